@@ -1,0 +1,28 @@
+"""CLI wiring through Typer's test runner."""
+
+from typer.testing import CliRunner
+
+from uncertsplat import __version__
+from uncertsplat.cli import app
+
+runner = CliRunner()
+
+
+def test_version():
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0
+    assert __version__ in result.output
+
+
+def test_help_lists_every_subcommand():
+    result = runner.invoke(app, ["--help"])
+    assert result.exit_code == 0
+    for name in ["synth", "reconstruct", "train", "evaluate", "prune", "report", "run"]:
+        assert name in result.output
+
+
+def test_bad_device_is_a_clear_error(tmp_path):
+    result = runner.invoke(app, ["train", str(tmp_path), "-o", str(tmp_path / "run"), "--device", "tpu"])
+    assert result.exit_code == 2
+    assert "unknown device" in result.output
+    assert "Traceback" not in result.output

@@ -1,0 +1,77 @@
+"""Config schemas: round trip, unknown keys, ranges, NaN/Inf, overrides."""
+
+import json
+
+import pytest
+
+from uncertsplat.config import (
+    STAGE_CONFIGS,
+    EvalConfig,
+    PruneConfig,
+    TrainConfig,
+    build_config,
+    load_toml,
+    parse_override,
+    train_config_from,
+)
+from uncertsplat.errors import UserError
+
+
+@pytest.mark.parametrize("name", sorted(k for k in STAGE_CONFIGS if k != "pipeline"))
+def test_round_trip_json(name):
+    model = STAGE_CONFIGS[name]
+    cfg = model()
+    again = model.model_validate(json.loads(cfg.model_dump_json()))
+    assert again == cfg
+
+
+def test_unknown_key_is_named():
+    with pytest.raises(UserError, match="iteratons: unknown key"):
+        build_config(TrainConfig, {"iteratons": 5})
+
+
+def test_nested_unknown_key_is_named():
+    with pytest.raises(UserError, match=r"densify\.intervall"):
+        build_config(TrainConfig, {"densify": {"intervall": 5}})
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_nan_inf_rejected(value):
+    with pytest.raises(UserError):
+        build_config(EvalConfig, {"std_floor": value})
+
+
+def test_range_checked():
+    with pytest.raises(UserError, match="num_samples"):
+        build_config(EvalConfig, {"num_samples": 0})
+
+
+def test_prune_modes_exclusive():
+    with pytest.raises(UserError, match="only one"):
+        build_config(PruneConfig, {"keep_ratio": 0.5, "auto": True})
+
+
+def test_override_parsing():
+    assert parse_override("a.b=3") == {"a": {"b": 3}}
+    assert parse_override("x=0.5") == {"x": 0.5}
+    assert parse_override("name=hello") == {"name": "hello"}
+    assert parse_override("flag=true") == {"flag": True}
+    with pytest.raises(UserError):
+        parse_override("novalue")
+
+
+def test_preset_then_overrides():
+    cfg = train_config_from("tiny", {"seed": 3}, ["iterations=7", "densify.interval=10"])
+    assert cfg.iterations == 7 and cfg.seed == 3 and cfg.densify.interval == 10
+    assert cfg.sh_degree == 1  # from the preset
+    with pytest.raises(UserError, match="unknown preset"):
+        train_config_from("nope")
+
+
+def test_toml_errors_name_the_file(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("iterations = = 3")
+    with pytest.raises(UserError, match="bad.toml"):
+        load_toml(bad)
+    with pytest.raises(UserError, match="not found"):
+        load_toml(tmp_path / "missing.toml")

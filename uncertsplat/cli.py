@@ -1,0 +1,264 @@
+"""The ``uncertsplat`` command line: thin Typer commands over the ``stages`` run() functions.
+
+The device is chosen here, once (``--device auto|cpu|cuda``); user errors are printed as one paragraph
+without a traceback (``--debug`` shows it).
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from uncertsplat import __version__
+from uncertsplat.console import console
+from uncertsplat.errors import UserError
+
+app = typer.Typer(
+    name="uncertsplat",
+    help="Photos to a calibrated uncertainty report for variational multi-scale 3D Gaussian Splatting.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+_STATE = {"debug": False}
+
+DeviceOpt = Annotated[str, typer.Option("--device", help="auto (CUDA if available), cpu or cuda.")]
+SetOpt = Annotated[
+    Optional[list[str]],
+    typer.Option("--set", help="Override a config key, e.g. --set iterations=500 (repeatable)."),
+]
+ConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="TOML file with this stage's config.")]
+
+
+def resolve_device(name: str):
+    """Map ``auto|cpu|cuda`` to a torch.device, with a clear error when CUDA is asked for but absent."""
+    import torch
+
+    name = name.lower()
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cpu":
+        return torch.device("cpu")
+    if name.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise UserError("--device cuda was requested but no CUDA device is available",
+                            hint="Use --device cpu or --device auto.")
+        return torch.device(name)
+    raise UserError(f"unknown device '{name}'", hint="Use auto, cpu or cuda.")
+
+
+def _handle_errors(fn):
+    """Turn UserError into a one-paragraph message and exit code 2; Ctrl-C into exit code 130."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except UserError as err:
+            if _STATE["debug"]:
+                raise
+            console.print(f"[bold red]error:[/] {err.render()}", soft_wrap=True)
+            raise typer.Exit(2) from None
+        except KeyboardInterrupt:
+            console.print("[yellow]interrupted[/]")
+            raise typer.Exit(130) from None
+
+    return wrapper
+
+
+def _version_callback(value: bool):
+    if value:
+        typer.echo(f"uncertsplat {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version_callback, is_eager=True, help="Show the version.")
+    ] = False,
+    debug: Annotated[bool, typer.Option("--debug", help="Show tracebacks for errors.")] = False,
+):
+    """uncertsplat: reconstruct, train, evaluate, prune and report uncertainty for 3DGS."""
+    _STATE["debug"] = debug
+
+
+def _stage_config(model, config_file: Path | None, overrides: list[str] | None, explicit: dict):
+    """config file < explicit command-line options < --set overrides."""
+    from uncertsplat.config import build_config, deep_update, load_toml, parse_override
+
+    data = load_toml(config_file) if config_file else {}
+    data = deep_update(data, {k: v for k, v in explicit.items() if v is not None})
+    for o in overrides or []:
+        data = deep_update(data, parse_override(o))
+    return build_config(model, data, source=str(config_file) if config_file else "command line")
+
+
+@app.command()
+@_handle_errors
+def synth(
+    out: Annotated[Path, typer.Argument(help="Output folder for the generated scene.")],
+    preset: Annotated[str, typer.Option(help="tiny (tests, seconds) or demo (the embedded default).")] = "demo",
+    seed: Annotated[int, typer.Option(help="Random seed; the same seed gives the same scene.")] = 0,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing scene in OUT.")] = False,
+    set_: SetOpt = None,
+):
+    """Generate a synthetic multi-view scene with GT cameras, depth and a COLMAP model."""
+    from uncertsplat.config import SynthConfig
+    from uncertsplat.stages import synth as stage
+
+    cfg = _stage_config(SynthConfig, None, set_, {"preset": preset, "seed": seed})
+    stage.run(out, cfg, overwrite=overwrite)
+
+
+@app.command()
+@_handle_errors
+def reconstruct(
+    photos: Annotated[Path, typer.Argument(help="Folder of photos (JPEG/PNG/TIFF).")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Workspace folder to write.")],
+    matcher: Annotated[Optional[str], typer.Option(help="exhaustive, sequential or auto.")] = None,
+    camera_model: Annotated[Optional[str], typer.Option(help="COLMAP camera model estimated by SfM.")] = None,
+    single_camera: Annotated[
+        Optional[bool], typer.Option("--single-camera/--per-image-camera", help="Share one camera per image size.")
+    ] = None,
+    max_image_size: Annotated[Optional[int], typer.Option(help="Longest image side used.")] = None,
+    min_registered: Annotated[Optional[float], typer.Option(help="Minimum registered fraction.")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Random seed.")] = None,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing workspace.")] = False,
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+):
+    """Run COLMAP SfM on PHOTOS and write an undistorted workspace with a health report."""
+    from uncertsplat.config import ReconstructConfig
+    from uncertsplat.stages import reconstruct as stage
+
+    explicit = dict(matcher=matcher, camera_model=camera_model, single_camera=single_camera,
+                    max_image_size=max_image_size, min_registered=min_registered, seed=seed,
+                    overwrite=overwrite or None)
+    cfg = _stage_config(ReconstructConfig, config, set_, explicit)
+    stage.run(photos, output, cfg)
+
+
+@app.command()
+@_handle_errors
+def train(
+    scene: Annotated[Path, typer.Argument(help="COLMAP workspace, NeRF-synthetic folder or synthetic scene.")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Run folder to write.")],
+    preset: Annotated[Optional[str], typer.Option(help="tiny, demo or paper (see the README).")] = None,
+    iterations: Annotated[Optional[int], typer.Option(help="Training steps.")] = None,
+    variant: Annotated[Optional[str], typer.Option(help="ours or paper (the original code's choices).")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Random seed.")] = None,
+    resume: Annotated[bool, typer.Option(help="Continue from the last good checkpoint in OUTPUT.")] = False,
+    device: DeviceOpt = "auto",
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+):
+    """Train a variational multi-scale 3DGS model with full-state checkpoints."""
+    from uncertsplat.config import load_toml, train_config_from
+    from uncertsplat.stages import train as stage
+
+    data = load_toml(config) if config else {}
+    explicit = {k: v for k, v in dict(iterations=iterations, variant=variant, seed=seed).items() if v is not None}
+    from uncertsplat.config import deep_update
+
+    cfg = train_config_from(preset, deep_update(data, explicit), set_)
+    stage.run(scene, output, cfg, device=resolve_device(device), resume=resume)
+
+
+@app.command()
+@_handle_errors
+def evaluate(
+    run: Annotated[Path, typer.Argument(help="Run folder written by `train`.")],
+    split: Annotated[Optional[str], typer.Option(help="test or train.")] = None,
+    num_samples: Annotated[Optional[int], typer.Option(help="Posterior samples per view (K).")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Random seed for sampling.")] = None,
+    depth_gt: Annotated[Optional[Path], typer.Option(help="Folder of GT depth maps.")] = None,
+    depth_scale: Annotated[Optional[str], typer.Option(help="auto or a factor to GT depth units.")] = None,
+    paper_nll: Annotated[Optional[bool], typer.Option("--paper-nll", help="Also report the paper's NLL.")] = None,
+    device: DeviceOpt = "auto",
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+):
+    """Render uncertainty maps for held-out views and score them (AUSE, NLL, calibration)."""
+    from uncertsplat.config import EvalConfig
+    from uncertsplat.stages import evaluate as stage
+
+    ds: object = None
+    if depth_scale is not None:
+        try:
+            ds = float(depth_scale)
+        except ValueError:
+            ds = depth_scale
+    explicit = dict(split=split, num_samples=num_samples, seed=seed, depth_gt=depth_gt, depth_scale=ds,
+                    paper_nll=paper_nll)
+    cfg = _stage_config(EvalConfig, config, set_, explicit)
+    stage.run(run, cfg, device=resolve_device(device))
+
+
+@app.command()
+@_handle_errors
+def prune(
+    run: Annotated[Path, typer.Argument(help="Run folder written by `train`.")],
+    output: Annotated[Optional[Path], typer.Option("-o", "--output", help="New run folder.")] = None,
+    keep_ratio: Annotated[Optional[float], typer.Option(help="Fraction of Gaussians to keep, in (0, 1].")] = None,
+    threshold: Annotated[Optional[float], typer.Option(help="Remove Gaussians whose score exceeds this.")] = None,
+    auto: Annotated[bool, typer.Option(help="Strongest pruning within --tolerance-db of the unpruned PSNR.")] = False,
+    score: Annotated[Optional[str], typer.Option(help="Per-Gaussian score (see the README).")] = None,
+    dry_run: Annotated[bool, typer.Option(help="Report only; write no model.")] = False,
+    sweep: Annotated[bool, typer.Option(help="Evaluate a range of keep ratios.")] = False,
+    device: DeviceOpt = "auto",
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+):
+    """Remove the most uncertain Gaussians (floaters) into a new run and measure the effect."""
+    from uncertsplat.config import PruneConfig
+    from uncertsplat.stages import prune as stage
+
+    explicit = dict(keep_ratio=keep_ratio, threshold=threshold, auto=auto or None, score=score,
+                    dry_run=dry_run or None, sweep=sweep or None)
+    cfg = _stage_config(PruneConfig, config, set_, explicit)
+    stage.run(run, output, cfg, device=resolve_device(device))
+
+
+@app.command()
+@_handle_errors
+def report(
+    runs: Annotated[list[Path], typer.Argument(help="One or more run folders.")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Report folder.")],
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+):
+    """Write a self-contained HTML report with PNG figures."""
+    from uncertsplat.config import ReportConfig
+    from uncertsplat.stages import report as stage
+
+    cfg = _stage_config(ReportConfig, config, set_, {})
+    stage.run(runs, output, cfg)
+
+
+@app.command("run")
+@_handle_errors
+def run_pipeline(
+    pipeline: Annotated[Path, typer.Argument(help="Pipeline TOML file (see pipelines/).")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output folder for all stages.")],
+    set_: SetOpt = None,
+    device: Annotated[Optional[str], typer.Option("--device", help="auto, cpu or cuda.")] = None,
+    force: Annotated[bool, typer.Option(help="Re-run stages even when unchanged.")] = False,
+):
+    """Run a chain of stages from a TOML file, skipping stages whose config and inputs are unchanged."""
+    from uncertsplat.stages import pipeline as stage
+
+    stage.run(pipeline, output, overrides=set_ or [], device=device, force=force)
+
+
+def entrypoint():  # pragma: no cover
+    sys.exit(app())
+
+
+if __name__ == "__main__":  # pragma: no cover
+    entrypoint()

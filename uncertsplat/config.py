@@ -1,0 +1,381 @@
+"""Pydantic configuration schemas: one model per stage, plus the pipeline chain.
+
+Every model forbids unknown keys, validates ranges and rejects NaN/Inf, so a typo in a TOML file or a
+``--set`` override is an error that names the key instead of a silently ignored setting. The fully
+resolved config of a stage is written as JSON beside its outputs (``RUN/config.json``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import tomllib
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from uncertsplat.errors import UserError
+
+
+class _Base(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+
+# ----------------------------------------------------------------------------------------------- synth
+class SynthConfig(_Base):
+    """Synthetic scene generation (``uncertsplat synth``)."""
+
+    preset: Literal["tiny", "demo"] = "demo"
+    """tiny: ~24 views at 128x96 for tests; demo: ~40 views at 320x240."""
+    seed: int = Field(0, ge=0)
+    """Random seed: the same seed gives byte-identical outputs."""
+    num_views: int | None = Field(None, ge=3, le=2000)
+    """Override the preset's number of views."""
+    width: int | None = Field(None, ge=16, le=8192)
+    """Override the preset's image width (height follows the 4:3 aspect)."""
+    test_every: int = Field(8, ge=2)
+    """Every n-th view (by sorted name, index 0, n, 2n, ...) is a test view."""
+
+
+# ------------------------------------------------------------------------------------------ reconstruct
+class ReconstructConfig(_Base):
+    """Structure-from-motion with COLMAP through pycolmap (``uncertsplat reconstruct``)."""
+
+    matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
+    """auto: exhaustive for up to ``exhaustive_max_images`` images, sequential above."""
+    exhaustive_max_images: int = Field(150, ge=2)
+    camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
+    """Camera model estimated by SfM; images are undistorted to PINHOLE afterwards."""
+    single_camera: bool = True
+    """One camera shared by all images of the same size (one device); else one per image."""
+    max_image_size: int = Field(1600, ge=64)
+    """Longest side used for feature extraction and undistorted output."""
+    min_registered: float = Field(0.8, gt=0.0, le=1.0)
+    """Fail when fewer than this fraction of the images register."""
+    seed: int = Field(0, ge=0)
+    num_threads: int = Field(-1, ge=-1)
+    """Threads for COLMAP (-1: all cores)."""
+    overwrite: bool = False
+    """Replace an existing workspace in the output folder."""
+
+
+# ------------------------------------------------------------------------------------------------ scene
+class SceneConfig(_Base):
+    """How a scene is loaded for training and evaluation."""
+
+    downscale: float = Field(1.0, ge=1.0, le=64.0)
+    """Divide image width and height by this factor (the paper uses 8 for LLFF)."""
+    test_every: int = Field(8, ge=2)
+    """Every n-th image by sorted name (index 0, n, 2n, ...) is held out, unless names/indices are given."""
+    test_names: list[str] | None = None
+    """Explicit held-out image names (overrides test_every)."""
+    test_indices: list[int] | None = None
+    """Explicit held-out indices into the sorted image list (overrides test_every)."""
+    normalize: bool = True
+    """Centre the cameras and scale the scene so the camera rig has radius 1 (recorded as world_from_source)."""
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Colour composited under images with an alpha channel, and rendered background."""
+    max_points: int = Field(200_000, ge=1)
+    """Cap on initial sparse points (random subset, seeded)."""
+
+    @field_validator("background")
+    @classmethod
+    def _check_bg(cls, v):
+        if any(not (0.0 <= c <= 1.0) for c in v):
+            raise ValueError("background components must be in [0, 1]")
+        return v
+
+
+# ------------------------------------------------------------------------------------------------ train
+class VariationalConfig(_Base):
+    """The posterior of the variational multi-scale model (METHOD.md)."""
+
+    num_entries: int = Field(10, ge=1, le=256)
+    """K: offset-table entries per posterior carrier (1 = the paper's 'naive VI' ablation)."""
+    subset_size: int = Field(2, ge=1, le=256)
+    """M: entries averaged per sample (clamped to K)."""
+    gate_temperature: float = Field(0.2, gt=0.0)
+    """T in sigmoid((nu + tau * eta) / T)."""
+    position_prior_std: float = Field(0.00248, gt=0.0)
+    """Position prior std; in 'ours' as a fraction of the scene extent, in 'paper' in world units."""
+    scale_prior_width: float = Field(0.1, gt=0.0, lt=1.0)
+    """w_p: the scale-multiplier prior is U[1 - w_p, 1]."""
+    gate_prior_mean: float = 2.0
+    gate_prior_std: float = Field(1.996, gt=0.0)
+    kl_weight: float = Field(1.0, ge=0.0)
+    table_lr_factor: float = Field(0.1, gt=0.0)
+    """Offset tables learn at this factor times their base attribute's rate."""
+
+
+class DensifyConfig(_Base):
+    """3DGS adaptive density control and the spawn rule."""
+
+    start: int = Field(100, ge=0)
+    until: int = Field(4000, ge=0)
+    interval: int = Field(100, ge=1)
+    grad_threshold: float = Field(2e-4, gt=0.0)
+    """Screen-space mean-gradient threshold (pixels, averaged over views where visible)."""
+    percent_dense: float = Field(0.01, gt=0.0)
+    """Clone if max scale <= percent_dense * extent, else split."""
+    split_factor: float = Field(1.6, gt=1.0)
+    min_opacity: float = Field(0.005, ge=0.0, lt=1.0)
+    opacity_reset_interval: int = Field(3000, ge=0)
+    """0 disables opacity reset."""
+    max_screen_size: float | None = Field(None, gt=0.0)
+    max_gaussians: int = Field(2_000_000, ge=1)
+    spawn_interval: int = Field(1000, ge=1)
+    spawn_scale_fraction: float = Field(0.01, gt=0.0)
+    """Spawn: carry a posterior when ||scale|| > this * extent ..."""
+    spawn_min_opacity: float = Field(0.0005, ge=0.0)
+    """... and opacity >= this."""
+
+
+class LearningRates(_Base):
+    """Adam learning rates (3DGS defaults)."""
+
+    means_init: float = Field(1.6e-4, gt=0.0)
+    """Times the scene extent; decays exponentially to means_final."""
+    means_final: float = Field(1.6e-6, gt=0.0)
+    sh0: float = Field(2.5e-3, gt=0.0)
+    shN: float = Field(2.5e-3 / 20, gt=0.0)
+    opacities: float = Field(0.05, gt=0.0)
+    scales: float = Field(5e-3, gt=0.0)
+    quats: float = Field(1e-3, gt=0.0)
+
+
+class TrainConfig(_Base):
+    """Training (``uncertsplat train``)."""
+
+    method: Literal["variational", "deterministic"] = "variational"
+    """variational: ours; deterministic: plain 3DGS (used by baselines)."""
+    variant: Literal["ours", "paper"] = "ours"
+    """paper: the original code's choices (log-scale multiplier, absolute position prior)."""
+    iterations: int = Field(7000, ge=1)
+    seed: int = Field(0, ge=0)
+    sh_degree: int = Field(3, ge=0, le=3)
+    sh_degree_interval: int = Field(1000, ge=1)
+    ssim_lambda: float = Field(0.2, ge=0.0, le=1.0)
+    tile_size: int = Field(8, ge=2, le=64)
+    batch_size: int = Field(1, ge=1)
+    random_background: bool = False
+    init_opacity: float = Field(0.1, gt=0.0, lt=1.0)
+    init_num_random: int = Field(0, ge=0)
+    """Add this many random points in the scene box when the sparse cloud is poor."""
+    log_every: int = Field(50, ge=1)
+    eval_every: int = Field(500, ge=1)
+    checkpoint_every: int = Field(1000, ge=1)
+    keep_checkpoints: int = Field(3, ge=1)
+    scene: SceneConfig = SceneConfig()
+    variational: VariationalConfig = VariationalConfig()
+    densify: DensifyConfig = DensifyConfig()
+    lr: LearningRates = LearningRates()
+
+
+TRAIN_PRESETS: dict[str, dict[str, Any]] = {
+    # for tests: seconds on a CPU
+    "tiny": {
+        "iterations": 300,
+        "sh_degree": 1,
+        "sh_degree_interval": 100,
+        "log_every": 25,
+        "eval_every": 100,
+        "checkpoint_every": 100,
+        "densify": {"start": 50, "until": 250, "interval": 50, "spawn_interval": 100, "opacity_reset_interval": 0},
+    },
+    # the embedded synthetic demo scene: a few minutes on 2 cores
+    "demo": {
+        "iterations": 2000,
+        "sh_degree": 2,
+        "sh_degree_interval": 500,
+        "log_every": 50,
+        "eval_every": 500,
+        "checkpoint_every": 500,
+        "densify": {"start": 100, "until": 1500, "interval": 100, "spawn_interval": 500, "opacity_reset_interval": 0},
+    },
+    # the paper's LLFF setting (1/8 resolution, 7000 steps, densify until 4000)
+    "paper": {
+        "iterations": 7000,
+        "scene": {"downscale": 8.0},
+        "densify": {"until": 4000},
+    },
+}
+
+
+# --------------------------------------------------------------------------------------------- evaluate
+class EvalConfig(_Base):
+    """Uncertainty rendering and metrics (``uncertsplat evaluate``)."""
+
+    split: Literal["test", "train"] = "test"
+    num_samples: int = Field(10, ge=1, le=10_000)
+    """K_eval: posterior samples per view (cost grows linearly)."""
+    seed: int = Field(0, ge=0)
+    depth_gt: Path | None = None
+    """Folder of GT depth maps ({image stem}.npy or .exr); synthetic scenes provide their own."""
+    depth_scale: Literal["auto"] | float = "auto"
+    """Factor from rendered depth to GT depth units; auto estimates it."""
+    depth_align: Literal["median", "lsq"] = "median"
+    std_floor: float = Field(1e-3, gt=0.0)
+    """Gaussian NLL uses max(std, std_floor) so a zero std does not give an infinite NLL."""
+    paper_nll: bool = False
+    """Also report the original code's KDE NLL formula (not comparable with a correct NLL)."""
+    ause_steps: int = Field(100, ge=2, le=10_000)
+    save_maps: bool = True
+    preview: Literal["percentile", "fixed"] = "percentile"
+    max_views: int | None = Field(None, ge=1)
+    """Evaluate only the first n views of the split (for quick looks)."""
+
+
+# ------------------------------------------------------------------------------------------------ prune
+class PruneConfig(_Base):
+    """Uncertainty-based pruning (``uncertsplat prune``)."""
+
+    keep_ratio: float | None = Field(None, gt=0.0, le=1.0)
+    threshold: float | None = None
+    auto: bool = False
+    score: str = "auto"
+    """Per-Gaussian score name, or auto for the documented default."""
+    tolerance_db: float = Field(0.1, ge=0.0)
+    sweep: bool = False
+    sweep_ratios: list[float] = [1.0, 0.95, 0.9, 0.8, 0.7, 0.6, 0.5]
+    dry_run: bool = False
+    seed: int = Field(0, ge=0)
+    num_samples: int = Field(10, ge=1)
+
+    @model_validator(mode="after")
+    def _one_mode(self):
+        modes = [self.keep_ratio is not None, self.threshold is not None, self.auto]
+        if sum(modes) > 1:
+            raise ValueError("give only one of keep_ratio, threshold, auto")
+        if any(not (0.0 < r <= 1.0) for r in self.sweep_ratios):
+            raise ValueError("sweep_ratios must be in (0, 1]")
+        return self
+
+
+# ----------------------------------------------------------------------------------------------- report
+class ReportConfig(_Base):
+    """HTML report (``uncertsplat report``)."""
+
+    title: str = "uncertsplat report"
+    max_views: int = Field(6, ge=1)
+    """Per-view figures for at most this many test views."""
+
+
+# --------------------------------------------------------------------------------------------- pipeline
+class PipelineStage(_Base):
+    """One stage of a pipeline file: its kind and its config (as in the stage's own schema)."""
+
+    stage: Literal["synth", "reconstruct", "train", "evaluate", "prune", "report"]
+    name: str | None = None
+    """Folder name under the pipeline output (default: the stage kind)."""
+    input: str | None = None
+    """Name of the stage whose output this stage reads, or a path (default: the previous stage)."""
+    preset: str | None = None
+    """For train: a preset from TRAIN_PRESETS, applied under the config given here."""
+    config: dict[str, Any] = {}
+
+
+class PipelineConfig(_Base):
+    """A chain of stages (``uncertsplat run PIPELINE.toml -o OUT``)."""
+
+    name: str = "pipeline"
+    photos: Path | None = None
+    """Input photo folder for pipelines that start with reconstruct."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    stages: list[PipelineStage]
+
+
+# ----------------------------------------------------------------------------------------------- helpers
+STAGE_CONFIGS: dict[str, type[_Base]] = {
+    "synth": SynthConfig,
+    "reconstruct": ReconstructConfig,
+    "train": TrainConfig,
+    "evaluate": EvalConfig,
+    "prune": PruneConfig,
+    "report": ReportConfig,
+}
+
+
+def deep_update(base: dict, update: dict) -> dict:
+    """Recursively merge ``update`` into a copy of ``base``."""
+    out = dict(base)
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = deep_update(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def parse_override(text: str) -> dict:
+    """Turn ``a.b.c=value`` into ``{"a": {"b": {"c": value}}}``; value parsed as TOML/JSON when possible."""
+    if "=" not in text:
+        raise UserError(f"override '{text}' is not of the form key=value", hint="Example: --set iterations=500")
+    key, raw = text.split("=", 1)
+    key = key.strip()
+    if not key:
+        raise UserError(f"override '{text}' has an empty key")
+    value: Any
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        try:
+            value = json.loads(raw)
+        except json.JSONDecodeError:
+            value = raw  # a bare string
+    out: dict = {}
+    node = out
+    parts = key.split(".")
+    for p in parts[:-1]:
+        node = node.setdefault(p, {})
+    node[parts[-1]] = value
+    return out
+
+
+def format_validation_error(err: ValidationError, source: str) -> str:
+    """One readable paragraph from a pydantic ValidationError."""
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "(root)"
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key (check the spelling; see --help for the valid keys)"
+        lines.append(f"{loc}: {msg}")
+    return f"invalid configuration in {source}: " + "; ".join(lines)
+
+
+def build_config(model: type[_Base], data: dict, source: str = "config"):
+    """Validate ``data`` against ``model``; errors become a ``UserError`` naming each bad key."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as err:
+        raise UserError(format_validation_error(err, source)) from None
+
+
+def load_toml(path: str | Path) -> dict:
+    """Read a TOML file with errors that name the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError("config file not found", path=path)
+    try:
+        return tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        raise UserError(f"not a valid TOML file ({err})", path=path) from None
+
+
+def train_config_from(preset: str | None, data: dict | None = None, overrides: list[str] | None = None) -> TrainConfig:
+    """Resolve a TrainConfig: preset, then ``data`` (e.g. from TOML), then ``key=value`` overrides."""
+    merged: dict = {}
+    if preset is not None:
+        if preset not in TRAIN_PRESETS:
+            raise UserError(f"unknown preset '{preset}'", hint=f"Choose one of: {', '.join(TRAIN_PRESETS)}.")
+        merged = deep_update(merged, TRAIN_PRESETS[preset])
+    if data:
+        merged = deep_update(merged, data)
+    for o in overrides or []:
+        merged = deep_update(merged, parse_override(o))
+    return build_config(TrainConfig, merged, source=f"train config (preset {preset})" if preset else "train config")
+
+
+def is_finite_number(x: float) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)

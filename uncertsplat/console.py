@@ -1,0 +1,27 @@
+"""The shared rich console and progress bars (library code prints through these, never print())."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+console = Console(stderr=True, highlight=False)
+
+
+def progress(transient: bool = False) -> Progress:
+    """A progress bar with counts and elapsed/remaining time; disabled when not a terminal in CI."""
+    disable = bool(os.environ.get("UNCERTSPLAT_NO_PROGRESS")) or (not sys.stderr.isatty() and bool(os.environ.get("CI")))
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        TextColumn("{task.fields[info]}"),
+        console=console,
+        transient=transient,
+        disable=disable,
+    )

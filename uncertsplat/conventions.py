@@ -1,0 +1,29 @@
+"""Conventions used everywhere in uncertsplat.
+
+Cameras
+    OpenCV camera frame: x right, y down, z forward. Rigid transforms are named ``a_from_b`` and map
+    points from frame ``b`` to frame ``a`` (``cam_from_world`` [4,4] maps world points to camera
+    points), as in pycolmap. Intrinsics ``K`` [3,3] map camera points to pixels; pixel centres are at
+    integer + 0.5 (the top-left pixel's centre is (0.5, 0.5)).
+
+Gaussians
+    Quaternions are wxyz. On disk and in the optimiser, scales are stored as log-scales and opacities as
+    logits (the 3DGS PLY layout). A ``GaussianSample`` holds *activated* values ready to render: linear
+    scales, opacities in [0, 1], normalised-or-not quaternions (the renderer normalises).
+
+Images and depth
+    Images are float32 HWC in [0, 1], linear in the file's encoding (no colour management). Depth is the
+    camera-space z of the surface. A rendered depth is alpha-normalised (sum w_i z_i / sum w_i) where
+    alpha > 0, and 0 where nothing was hit; the "expected" depth is sum w_i z_i (not normalised).
+
+Shapes
+    Shapes in comments use capital single letters: C cameras, N Gaussians, H height, W width,
+    B SH bases ((degree + 1) ** 2), K offset-table entries, P posterior carriers, S samples.
+
+Randomness
+    Randomness only through an explicit ``torch.Generator`` argument; no property draws random numbers.
+
+Devices
+    No device literals in the library. The device comes from the input tensors; the CLI chooses it once
+    (``--device auto|cpu|cuda``).
+"""

@@ -1,0 +1,1 @@
+"""File I/O: images (OpenImageIO), atomic writes, checkpoints, PLY."""

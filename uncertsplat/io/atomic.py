@@ -1,0 +1,121 @@
+"""Atomic file writes and run-folder locks.
+
+A write goes to a temporary file in the same folder, is flushed and fsync'ed, then renamed over the
+target, so a crash or a full disk never leaves a half-written file under the final name.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import IO
+
+from uncertsplat.errors import UserError
+
+
+def _fsync_dir(folder: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def atomic_write(path: str | Path, writer: Callable[[IO[bytes]], None]) -> Path:
+    """Write a file atomically: ``writer`` receives a binary file object open on a temp file.
+
+    Raises:
+        UserError: when the folder is not writable or the disk is full (the temp file is removed).
+    """
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as err:
+        raise UserError(f"cannot write here ({err.strerror})", path=path.parent,
+                        hint="Choose an output folder you can write to.") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            writer(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as err:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        if isinstance(err, OSError):
+            what = "the disk is full" if err.errno == errno.ENOSPC else (err.strerror or str(err))
+            raise UserError(f"could not write the file: {what}; nothing was left half-written", path=path,
+                            hint="Free some space or choose another output folder, then run again.") from None
+        raise
+    _fsync_dir(path.parent)
+    return path
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
+    return atomic_write(path, lambda f: f.write(data))
+
+
+def atomic_write_text(path: str | Path, text: str) -> Path:
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_json(path: str | Path, obj) -> Path:
+    return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=str) + "\n")
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+@contextlib.contextmanager
+def run_lock(folder: str | Path, command: str = "uncertsplat") -> Iterator[Path]:
+    """Hold ``folder/.lock`` (holding our PID) for the duration; refuse when a live process holds it.
+
+    A lock left by a dead process is taken over.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    lock = folder / ".lock"
+    while True:
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                pid = int(lock.read_text().split()[0])
+            except (OSError, ValueError, IndexError):
+                pid = -1
+            if _pid_alive(pid) and pid != os.getpid():
+                raise UserError(
+                    f"another uncertsplat process (PID {pid}) is writing to this folder",
+                    path=folder,
+                    hint="Wait for it to finish or choose another output folder. "
+                    f"If no such process runs, delete {lock}.",
+                ) from None
+            with contextlib.suppress(FileNotFoundError):
+                lock.unlink()
+            continue
+        except OSError as err:
+            raise UserError(f"cannot write here ({err.strerror})", path=folder) from None
+        with os.fdopen(fd, "w") as f:
+            f.write(f"{os.getpid()} {command}\n")
+        break
+    try:
+        yield lock
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            lock.unlink()

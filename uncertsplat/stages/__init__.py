@@ -1,0 +1,1 @@
+"""One run() per stage. All disk I/O of the pipeline lives here."""

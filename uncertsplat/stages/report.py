@@ -1,0 +1,9 @@
+"""Stage `report` (issue 8)."""
+
+from __future__ import annotations
+
+from uncertsplat.errors import UserError
+
+
+def run(*args, **kwargs):
+    raise UserError("`report` is not implemented yet (issue 8).")

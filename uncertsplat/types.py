@@ -1,0 +1,205 @@
+"""Core data types shared by every stage (frozen dataclasses of tensors).
+
+Shapes follow ``uncertsplat.conventions``: C cameras, N Gaussians, H, W image size, B SH bases.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+
+def _map_tensors(obj, fn):
+    """Return a copy of a frozen dataclass with ``fn`` applied to every tensor field."""
+    changes = {}
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        if isinstance(value, Tensor):
+            changes[f.name] = fn(value)
+    return replace(obj, **changes)
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """A batch of pinhole cameras sharing one image size.
+
+    Attributes:
+        cam_from_world: [C,4,4] world-to-camera rigid transforms (OpenCV axes).
+        K: [C,3,3] intrinsics in pixels.
+        width: image width in pixels.
+        height: image height in pixels.
+        image_names: C image names (file names relative to the images folder).
+    """
+
+    cam_from_world: Tensor  # [C,4,4]
+    K: Tensor  # [C,3,3]
+    width: int
+    height: int
+    image_names: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        if self.cam_from_world.ndim != 3 or self.cam_from_world.shape[-2:] != (4, 4):
+            raise ValueError(f"cam_from_world must be [C,4,4], got {tuple(self.cam_from_world.shape)}")
+        if self.K.shape != (self.cam_from_world.shape[0], 3, 3):
+            raise ValueError(f"K must be [C,3,3] matching cam_from_world, got {tuple(self.K.shape)}")
+        if self.image_names and len(self.image_names) != self.cam_from_world.shape[0]:
+            raise ValueError("image_names must have one name per camera")
+
+    def __len__(self) -> int:
+        return self.cam_from_world.shape[0]
+
+    def __getitem__(self, idx) -> Cameras:
+        """Select cameras by int, slice, list of ints or bool/long tensor."""
+        if isinstance(idx, int):
+            idx = [idx]
+        if isinstance(idx, slice):
+            sel = list(range(len(self)))[idx]
+        elif isinstance(idx, Tensor):
+            sel = (idx.nonzero().flatten() if idx.dtype == torch.bool else idx).tolist()
+        else:
+            sel = list(idx)
+        index = torch.as_tensor(sel, dtype=torch.long, device=self.K.device)
+        names = tuple(self.image_names[i] for i in sel) if self.image_names else ()
+        return Cameras(self.cam_from_world[index], self.K[index], self.width, self.height, names)
+
+    @property
+    def device(self) -> torch.device:
+        return self.K.device
+
+    @property
+    def world_from_cam(self) -> Tensor:  # [C,4,4]
+        return torch.linalg.inv(self.cam_from_world)
+
+    @property
+    def centers(self) -> Tensor:  # [C,3] camera centres in world coordinates
+        R = self.cam_from_world[:, :3, :3]
+        t = self.cam_from_world[:, :3, 3]
+        return -(R.transpose(1, 2) @ t[..., None])[..., 0]
+
+    def to(self, device=None, dtype=None) -> Cameras:
+        return _map_tensors(self, lambda t: t.to(device=device, dtype=dtype))
+
+    def scaled(self, factor: float) -> Cameras:
+        """Cameras for images resized by ``factor`` (e.g. 0.5 halves width and height)."""
+        K = self.K.clone()
+        K[:, :2, :] *= factor
+        w = max(1, round(self.width * factor))
+        h = max(1, round(self.height * factor))
+        return Cameras(self.cam_from_world, K, w, h, self.image_names)
+
+
+@dataclass(frozen=True)
+class SceneData:
+    """A loaded scene: cameras, image files, split, sparse points, normalisation.
+
+    Attributes:
+        cameras: all cameras, in the order of ``image_paths`` (sorted by image name).
+        image_paths: one path per camera.
+        split: {"train": indices, "test": indices} into the cameras.
+        points: [P,3] sparse points in the (normalised) world frame.
+        points_rgb: [P,3] their colours in [0, 1].
+        scene_scale: radius of the camera rig after normalisation (the "extent" of 3DGS is 1.1 x this).
+        world_from_source: [4,4] similarity applied to the source coordinates (recorded, invertible).
+        depth_paths: optional GT depth per camera (camera z in source units, .npy or .exr).
+        mask_paths: optional validity mask per camera.
+        depth_scale_to_gt: factor from world (normalised) depth to GT depth units, when known.
+        source: what was loaded ("colmap", "nerf_synthetic", "synthetic") and from where.
+    """
+
+    cameras: Cameras
+    image_paths: tuple[Path, ...]
+    split: dict[str, tuple[int, ...]]
+    points: Tensor  # [P,3]
+    points_rgb: Tensor  # [P,3]
+    scene_scale: float
+    world_from_source: Tensor  # [4,4]
+    depth_paths: tuple[Path, ...] | None = None
+    mask_paths: tuple[Path, ...] | None = None
+    depth_scale_to_gt: float | None = None
+    source: dict = field(default_factory=dict)
+
+    def subset(self, split: str) -> Cameras:
+        return self.cameras[list(self.split[split])]
+
+    @property
+    def extent(self) -> float:
+        """3DGS "cameras extent": 1.1 x the largest camera distance from the centroid."""
+        return 1.1 * self.scene_scale
+
+
+@dataclass(frozen=True)
+class GaussianSample:
+    """Activated Gaussian parameters, ready to render.
+
+    Attributes:
+        means: [N,3] world positions.
+        quats: [N,4] rotations, wxyz (need not be normalised).
+        scales: [N,3] linear standard deviations along the local axes.
+        opacities: [N] in [0, 1].
+        sh: [N,B,3] spherical-harmonic coefficients (B = (sh_degree_max + 1) ** 2).
+        sh_degree: the degree to evaluate (<= the degree the coefficients allow).
+    """
+
+    means: Tensor  # [N,3]
+    quats: Tensor  # [N,4]
+    scales: Tensor  # [N,3]
+    opacities: Tensor  # [N]
+    sh: Tensor  # [N,B,3]
+    sh_degree: int = 0
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    def to(self, device=None, dtype=None) -> GaussianSample:
+        return _map_tensors(self, lambda t: t.to(device=device, dtype=dtype))
+
+    def detach(self) -> GaussianSample:
+        return _map_tensors(self, lambda t: t.detach())
+
+
+@dataclass(frozen=True)
+class RenderOutput:
+    """What ``render`` returns.
+
+    Attributes:
+        rgb: [C,H,W,3] composited colour including the background.
+        alpha: [C,H,W,1] accumulated opacity.
+        depth: [C,H,W,1] alpha-normalised camera z (0 where alpha == 0).
+        depth_expected: [C,H,W,1] sum of w_i z_i (not normalised).
+        means2d: [C,N,2] projected means in pixels; its ``.grad`` after backward is what the
+            densification strategy reads (the tensor retains its gradient).
+        radii: [C,N] screen radius in pixels (0 = culled).
+        depths: [C,N] camera z of each Gaussian's mean.
+    """
+
+    rgb: Tensor
+    alpha: Tensor
+    depth: Tensor
+    depth_expected: Tensor
+    means2d: Tensor
+    radii: Tensor
+    depths: Tensor | None = None
+
+
+@dataclass(frozen=True)
+class UncertaintyMaps:
+    """Monte-Carlo mean and standard deviation maps for a batch of views.
+
+    Attributes:
+        rgb_mean, rgb_std: [C,H,W,3]
+        depth_mean, depth_std: [C,H,W,1]
+        alpha_mean: [C,H,W,1]
+        n_samples: number of posterior samples used.
+        image_names: C names.
+    """
+
+    rgb_mean: Tensor
+    rgb_std: Tensor
+    depth_mean: Tensor
+    depth_std: Tensor
+    alpha_mean: Tensor
+    n_samples: int
+    image_names: tuple[str, ...] = ()
