@@ -36,20 +36,10 @@ ConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="TOML file w
 
 
 def resolve_device(name: str):
-    """Map ``auto|cpu|cuda`` to a torch.device, with a clear error when CUDA is asked for but absent."""
-    import torch
+    """Resolve ``--device`` (see ``uncertsplat.device``)."""
+    from uncertsplat.device import resolve_device as _resolve
 
-    name = name.lower()
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cpu":
-        return torch.device("cpu")
-    if name.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise UserError("--device cuda was requested but no CUDA device is available",
-                            hint="Use --device cpu or --device auto.")
-        return torch.device(name)
-    raise UserError(f"unknown device '{name}'", hint="Use auto, cpu or cuda.")
+    return _resolve(name)
 
 
 def _handle_errors(fn):

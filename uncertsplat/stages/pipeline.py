@@ -1,9 +1,242 @@
-"""Stage `pipeline` (issue 8)."""
+"""``uncertsplat run``: a chain of stages from a TOML pipeline file.
+
+Each stage writes into its own folder under the output (``OUT/<name>``; ``evaluate`` writes into the
+run it evaluates, ``RUN/eval``) together with a ``manifest.json``. A stage whose resolved config and
+inputs are unchanged since its last successful run is skipped. A stage that must run again moves its
+previous output to ``OUT/.previous/<name>`` first, so nothing is lost silently. A failing stage leaves
+the outputs of earlier stages intact and the error names the stage.
+"""
 
 from __future__ import annotations
 
-from uncertsplat.errors import UserError
+import shutil
+import time
+from pathlib import Path
+
+from uncertsplat.config import (
+    STAGE_CONFIGS,
+    PipelineConfig,
+    PipelineStage,
+    build_config,
+    deep_update,
+    load_toml,
+    parse_override,
+    train_config_from,
+)
+from uncertsplat.console import console
+from uncertsplat.errors import StageError, UserError
+from uncertsplat.stages.manifest import (
+    Manifest,
+    fingerprint_folder,
+    read_manifest,
+    start_manifest,
+    write_manifest,
+)
+
+_TOP_LEVEL = {"name", "photos", "device"}
 
 
-def run(*args, **kwargs):
-    raise UserError("`pipeline` is not implemented yet (issue 8).")
+def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineConfig:
+    """Read and validate a pipeline file; ``overrides`` are ``stage.key=value`` or ``photos=...``.
+
+    The first component of an override names a stage (its ``name``, or its kind when unnamed); the
+    rest is a key in that stage's config (``train.preset=tiny`` sets the train preset).
+    """
+    data = load_toml(path)
+    base = Path(path).resolve().parent
+    for text in overrides or []:
+        parsed = parse_override(text)
+        (head, rest), = parsed.items()
+        if head in _TOP_LEVEL:
+            data[head] = rest
+            continue
+        stages = data.get("stages", [])
+        matches = [s for s in stages if (s.get("name") or s.get("stage")) == head]
+        if not matches:
+            known = ", ".join(str(s.get("name") or s.get("stage")) for s in stages)
+            raise UserError(f"--set {text}: no stage named '{head}' in the pipeline", path=path,
+                            hint=f"Stages: {known}; top-level keys: {', '.join(sorted(_TOP_LEVEL))}.")
+        if not isinstance(rest, dict):
+            raise UserError(f"--set {text}: give a key inside the stage, e.g. {head}.seed=1", path=path)
+        for stage in matches:
+            if "preset" in rest:
+                stage["preset"] = rest.pop("preset")
+            stage["config"] = deep_update(stage.get("config", {}), rest)
+    cfg = build_config(PipelineConfig, data, source=str(path))
+    if cfg.photos is not None and not cfg.photos.is_absolute():
+        cfg.photos = (base / cfg.photos).resolve() if not cfg.photos.exists() else cfg.photos.resolve()
+    names = [s.name or s.stage for s in cfg.stages]
+    dup = {n for n in names if names.count(n) > 1}
+    if dup:
+        raise UserError(f"stage names must be unique; repeated: {', '.join(sorted(dup))}", path=path,
+                        hint="Give repeated stages a `name`.")
+    return cfg
+
+
+def _stage_config(stage: PipelineStage):
+    if stage.stage == "train":
+        return train_config_from(stage.preset, stage.config)
+    if stage.preset is not None:
+        raise UserError(f"stage '{stage.name or stage.stage}': `preset` applies to train stages only")
+    return build_config(STAGE_CONFIGS[stage.stage], stage.config, source=f"stage '{stage.name or stage.stage}'")
+
+
+def _move_previous(out_dir: Path, root: Path, name: str) -> None:
+    """Keep one previous generation of a stage's output instead of deleting it."""
+    if not out_dir.exists() or not any(out_dir.iterdir()):
+        return
+    backup = root / ".previous" / name
+    if backup.exists():
+        shutil.rmtree(backup)
+    backup.parent.mkdir(parents=True, exist_ok=True)
+    shutil.move(str(out_dir), str(backup))
+    console.print(f"  previous output of '{name}' moved to {backup}")
+
+
+def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, device: str | None = None,
+        force: bool = False) -> dict[str, Path]:
+    """Run the pipeline into ``output``; returns the output folder of each stage by name."""
+    from uncertsplat.device import resolve_device
+
+    pipeline = Path(pipeline)
+    cfg = load_pipeline(pipeline, overrides)
+    dev = resolve_device(device or cfg.device)
+    root = Path(output)
+    root.mkdir(parents=True, exist_ok=True)
+
+    outputs: dict[str, Path] = {}
+    kinds: dict[str, str] = {}
+    manifests: dict[str, Manifest] = {}
+    upstreams: dict[str, str | None] = {}
+    previous: str | None = None
+    t_all = time.perf_counter()
+    console.print(f"[bold]pipeline[/] {cfg.name} ({pipeline}) -> {root}  device={dev}")
+
+    for stage in cfg.stages:
+        name = stage.name or stage.stage
+        stage_cfg = _stage_config(stage)
+        upstream = stage.input if stage.input is not None else previous
+        if stage.stage != "synth" and stage.stage != "report" and upstream is None and not (
+            stage.stage == "reconstruct" and cfg.photos is not None
+        ):
+            raise UserError(f"stage '{name}' has no input", path=pipeline,
+                            hint="Put a stage before it, set `input`, or set `photos` for reconstruct.")
+        upstreams[name] = upstream
+        inputs: dict[str, str] = {}
+        up_path: Path | None = None
+        if upstream is not None:
+            if upstream in outputs:
+                up_path = outputs[upstream]
+                inputs[upstream] = manifests[upstream].key
+            else:
+                up_path = Path(upstream)
+                if not up_path.is_absolute():
+                    up_path = (pipeline.resolve().parent / up_path)
+                inputs[str(up_path)] = fingerprint_folder(up_path)
+
+        kwargs: dict = {}
+        if stage.stage == "synth":
+            out_dir = root / name
+        elif stage.stage == "reconstruct":
+            if up_path is None:
+                up_path = Path(cfg.photos)
+                inputs["photos"] = fingerprint_folder(up_path)
+            elif kinds.get(upstream) == "synth":
+                up_path = up_path / "images"
+            out_dir = root / name
+        elif stage.stage == "evaluate":
+            out_dir = up_path / "eval"
+            synth = [n for n, k in kinds.items() if k == "synth"]
+            trained_on = kinds.get(str(upstreams.get(upstream)))
+            if synth and stage_cfg.depth_gt is None and trained_on == "reconstruct":
+                # SfM on a synthetic scene: the GT depth lives with the generator's output; the evaluate
+                # stage aligns the depth scale (the reconstruction's frame is not the generator's).
+                stage_cfg = stage_cfg.model_copy(update={"depth_gt": outputs[synth[0]] / "depth"})
+                inputs[synth[0]] = manifests[synth[0]].key
+        elif stage.stage == "report":
+            runs = [p for n, p in outputs.items() if kinds[n] in ("train", "prune")]
+            if not runs:
+                raise UserError(f"stage '{name}' needs a train or prune stage before it", path=pipeline)
+            kwargs["runs"] = runs
+            for n, k in kinds.items():
+                if k in ("train", "prune", "evaluate"):
+                    inputs[n] = manifests[n].key
+            out_dir = root / name
+        else:
+            out_dir = root / name
+
+        config_dict = stage_cfg.model_dump(mode="json")
+        new = start_manifest(stage.stage, name, config_dict, inputs)
+        old = read_manifest(out_dir)
+        if (not force and old is not None and old.status == "done" and old.config_hash == new.config_hash
+                and old.input_hashes == new.input_hashes):
+            console.print(f"[green]skip[/] {name}: unchanged since its last run ({out_dir})")
+            outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, old
+            previous = name
+            continue
+
+        console.print(f"[bold cyan]stage[/] {name} ({stage.stage}) -> {out_dir}")
+        _move_previous(out_dir, root, name if stage.stage != "evaluate" else f"{name}-eval")
+        t0 = time.perf_counter()
+        try:
+            _run_stage(stage.stage, stage_cfg, up_path, out_dir, dev, kwargs)
+        except KeyboardInterrupt:
+            _finish(out_dir, new, "failed", t0, "interrupted")
+            raise
+        except UserError as err:
+            _finish(out_dir, new, "failed", t0, err.render())
+            raise StageError(f"stage '{name}' ({stage.stage}) failed: {err.render()}") from None
+        except Exception as err:  # an unexpected fault: still say which stage, keep earlier outputs
+            _finish(out_dir, new, "failed", t0, f"{type(err).__name__}: {err}")
+            raise StageError(
+                f"stage '{name}' ({stage.stage}) failed with an internal error: {type(err).__name__}: {err}",
+                hint="Earlier stages' outputs are intact; re-run with --debug for the traceback and report it.",
+            ) from err
+        _finish(out_dir, new, "done", t0)
+        console.print(f"  [green]done[/] {name} in {time.perf_counter() - t0:.1f} s")
+        outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, new
+        previous = name
+
+    console.print(f"[bold green]pipeline finished[/] in {time.perf_counter() - t_all:.1f} s")
+    reports = [p for n, p in outputs.items() if kinds[n] == "report"]
+    for r in reports:
+        console.print(f"report: {r / 'index.html'}")
+    return outputs
+
+
+def _finish(out_dir: Path, manifest: Manifest, status: str, t0: float, error: str | None = None) -> None:
+    manifest.status = status
+    manifest.finished_at = time.time()
+    manifest.seconds = time.perf_counter() - t0
+    manifest.error = error
+    if out_dir.exists() or status == "done":
+        write_manifest(out_dir, manifest)
+
+
+def _run_stage(kind: str, cfg, up_path: Path | None, out_dir: Path, device, kwargs: dict) -> None:
+    if kind == "synth":
+        from uncertsplat.stages import synth
+
+        synth.run(out_dir, cfg, overwrite=True)
+    elif kind == "reconstruct":
+        from uncertsplat.stages import reconstruct
+
+        reconstruct.run(up_path, out_dir, cfg.model_copy(update={"overwrite": True}))
+    elif kind == "train":
+        from uncertsplat.stages import train
+
+        train.run(up_path, out_dir, cfg, device=device, resume=False)
+    elif kind == "evaluate":
+        from uncertsplat.stages import evaluate
+
+        evaluate.run(up_path, cfg, device=device)
+    elif kind == "prune":
+        from uncertsplat.stages import prune
+
+        prune.run(up_path, out_dir, cfg, device=device)
+    elif kind == "report":
+        from uncertsplat.stages import report
+
+        report.run(kwargs["runs"], out_dir, cfg)
+    else:  # pragma: no cover - the schema forbids it
+        raise UserError(f"unknown stage kind {kind}")

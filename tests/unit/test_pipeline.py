@@ -1,0 +1,103 @@
+"""Pipeline mechanics with stand-in stages: skipping unchanged stages, failures, overrides."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from uncertsplat.errors import StageError, UserError
+from uncertsplat.stages import pipeline as pl
+
+PIPE = """
+name = "t"
+device = "cpu"
+[[stages]]
+stage = "synth"
+config = { preset = "tiny" }
+[[stages]]
+stage = "train"
+preset = "tiny"
+[[stages]]
+stage = "evaluate"
+[[stages]]
+stage = "report"
+"""
+
+
+@pytest.fixture
+def calls(monkeypatch):
+    log: list[tuple[str, Path]] = []
+
+    def fake(kind, cfg, up_path, out_dir, device, kwargs):
+        log.append((kind, out_dir))
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "out.txt").write_text(json.dumps(cfg.model_dump(mode="json")))
+        if kind == "train" and getattr(cfg, "seed", 0) == 99:
+            raise UserError("boom: the scene is broken", path=up_path)
+
+    monkeypatch.setattr(pl, "_run_stage", fake)
+    return log
+
+
+def _write(tmp_path: Path) -> Path:
+    p = tmp_path / "p.toml"
+    p.write_text(PIPE)
+    return p
+
+
+def test_runs_all_then_skips_unchanged(tmp_path, calls):
+    p = _write(tmp_path)
+    outs = pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls] == ["synth", "train", "evaluate", "report"]
+    assert outs["evaluate"] == tmp_path / "out" / "train" / "eval"
+    for name in ["synth", "train", "report"]:
+        m = json.loads((tmp_path / "out" / name / "manifest.json").read_text())
+        assert m["status"] == "done"
+    calls.clear()
+    pl.run(p, tmp_path / "out")
+    assert calls == []  # everything unchanged
+
+
+def test_changed_config_reruns_stage_and_downstream_and_keeps_previous(tmp_path, calls):
+    p = _write(tmp_path)
+    pl.run(p, tmp_path / "out")
+    calls.clear()
+    pl.run(p, tmp_path / "out", overrides=["train.iterations=7"])
+    assert [k for k, _ in calls] == ["train", "evaluate", "report"]
+    assert (tmp_path / "out" / ".previous" / "train" / "out.txt").exists()
+
+
+def test_failure_names_stage_and_keeps_earlier_outputs(tmp_path, calls):
+    p = _write(tmp_path)
+    with pytest.raises(StageError, match=r"stage 'train' \(train\) failed: .*boom"):
+        pl.run(p, tmp_path / "out", overrides=["train.seed=99"])
+    assert (tmp_path / "out" / "synth" / "out.txt").exists()
+    m = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text())
+    assert m["status"] == "failed" and "boom" in m["error"]
+    # the failed stage re-runs next time, the finished one is skipped
+    calls.clear()
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls] == ["train", "evaluate", "report"]
+
+
+def test_bad_override_names_stage(tmp_path, calls):
+    p = _write(tmp_path)
+    with pytest.raises(UserError, match="no stage named 'trian'"):
+        pl.run(p, tmp_path / "out", overrides=["trian.iterations=3"])
+
+
+def test_unknown_stage_key_rejected(tmp_path, calls):
+    p = _write(tmp_path)
+    with pytest.raises(UserError, match="iteratons"):
+        pl.run(p, tmp_path / "out", overrides=["train.iteratons=3"])
+
+
+@pytest.mark.parametrize("name", ["demo.toml", "smoke.toml", "photos.toml"])
+def test_shipped_pipelines_validate(name):
+    root = Path(__file__).resolve().parents[2] / "pipelines"
+    cfg = pl.load_pipeline(root / name)
+    assert cfg.stages[-1].stage == "report"
+    for stage in cfg.stages:
+        pl._stage_config(stage)
