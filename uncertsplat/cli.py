@@ -9,7 +9,7 @@ from __future__ import annotations
 import functools
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -29,10 +29,10 @@ _STATE = {"debug": False}
 
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto (CUDA if available), cpu or cuda.")]
 SetOpt = Annotated[
-    Optional[list[str]],
+    list[str] | None,
     typer.Option("--set", help="Override a config key, e.g. --set iterations=500 (repeatable)."),
 ]
-ConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="TOML file with this stage's config.")]
+ConfigOpt = Annotated[Path | None, typer.Option("--config", help="TOML file with this stage's config.")]
 
 
 def resolve_device(name: str):
@@ -111,14 +111,14 @@ def synth(
 def reconstruct(
     photos: Annotated[Path, typer.Argument(help="Folder of photos (JPEG/PNG/TIFF).")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Workspace folder to write.")],
-    matcher: Annotated[Optional[str], typer.Option(help="exhaustive, sequential or auto.")] = None,
-    camera_model: Annotated[Optional[str], typer.Option(help="COLMAP camera model estimated by SfM.")] = None,
+    matcher: Annotated[str | None, typer.Option(help="exhaustive, sequential or auto.")] = None,
+    camera_model: Annotated[str | None, typer.Option(help="COLMAP camera model estimated by SfM.")] = None,
     single_camera: Annotated[
-        Optional[bool], typer.Option("--single-camera/--per-image-camera", help="Share one camera per image size.")
+        bool | None, typer.Option("--single-camera/--per-image-camera", help="Share one camera per image size.")
     ] = None,
-    max_image_size: Annotated[Optional[int], typer.Option(help="Longest image side used.")] = None,
-    min_registered: Annotated[Optional[float], typer.Option(help="Minimum registered fraction.")] = None,
-    seed: Annotated[Optional[int], typer.Option(help="Random seed.")] = None,
+    max_image_size: Annotated[int | None, typer.Option(help="Longest image side used.")] = None,
+    min_registered: Annotated[float | None, typer.Option(help="Minimum registered fraction.")] = None,
+    seed: Annotated[int | None, typer.Option(help="Random seed.")] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing workspace.")] = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
@@ -139,10 +139,10 @@ def reconstruct(
 def train(
     scene: Annotated[Path, typer.Argument(help="COLMAP workspace, NeRF-synthetic folder or synthetic scene.")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Run folder to write.")],
-    preset: Annotated[Optional[str], typer.Option(help="tiny, demo or paper (see the README).")] = None,
-    iterations: Annotated[Optional[int], typer.Option(help="Training steps.")] = None,
-    variant: Annotated[Optional[str], typer.Option(help="ours or paper (the original code's choices).")] = None,
-    seed: Annotated[Optional[int], typer.Option(help="Random seed.")] = None,
+    preset: Annotated[str | None, typer.Option(help="tiny, demo or paper (see the README).")] = None,
+    iterations: Annotated[int | None, typer.Option(help="Training steps.")] = None,
+    variant: Annotated[str | None, typer.Option(help="ours or paper (the original code's choices).")] = None,
+    seed: Annotated[int | None, typer.Option(help="Random seed.")] = None,
     resume: Annotated[bool, typer.Option(help="Continue from the last good checkpoint in OUTPUT.")] = False,
     device: DeviceOpt = "auto",
     config: ConfigOpt = None,
@@ -164,12 +164,12 @@ def train(
 @_handle_errors
 def evaluate(
     run: Annotated[Path, typer.Argument(help="Run folder written by `train`.")],
-    split: Annotated[Optional[str], typer.Option(help="test or train.")] = None,
-    num_samples: Annotated[Optional[int], typer.Option(help="Posterior samples per view (K).")] = None,
-    seed: Annotated[Optional[int], typer.Option(help="Random seed for sampling.")] = None,
-    depth_gt: Annotated[Optional[Path], typer.Option(help="Folder of GT depth maps.")] = None,
-    depth_scale: Annotated[Optional[str], typer.Option(help="auto or a factor to GT depth units.")] = None,
-    paper_nll: Annotated[Optional[bool], typer.Option("--paper-nll", help="Also report the paper's NLL.")] = None,
+    split: Annotated[str | None, typer.Option(help="test or train.")] = None,
+    num_samples: Annotated[int | None, typer.Option(help="Posterior samples per view (K).")] = None,
+    seed: Annotated[int | None, typer.Option(help="Random seed for sampling.")] = None,
+    depth_gt: Annotated[Path | None, typer.Option(help="Folder of GT depth maps.")] = None,
+    depth_scale: Annotated[str | None, typer.Option(help="auto or a factor to GT depth units.")] = None,
+    paper_nll: Annotated[bool | None, typer.Option("--paper-nll", help="Also report the paper's NLL.")] = None,
     device: DeviceOpt = "auto",
     config: ConfigOpt = None,
     set_: SetOpt = None,
@@ -194,11 +194,11 @@ def evaluate(
 @_handle_errors
 def prune(
     run: Annotated[Path, typer.Argument(help="Run folder written by `train`.")],
-    output: Annotated[Optional[Path], typer.Option("-o", "--output", help="New run folder.")] = None,
-    keep_ratio: Annotated[Optional[float], typer.Option(help="Fraction of Gaussians to keep, in (0, 1].")] = None,
-    threshold: Annotated[Optional[float], typer.Option(help="Remove Gaussians whose score exceeds this.")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="New run folder.")] = None,
+    keep_ratio: Annotated[float | None, typer.Option(help="Fraction of Gaussians to keep, in (0, 1].")] = None,
+    threshold: Annotated[float | None, typer.Option(help="Remove Gaussians whose score exceeds this.")] = None,
     auto: Annotated[bool, typer.Option(help="Strongest pruning within --tolerance-db of the unpruned PSNR.")] = False,
-    score: Annotated[Optional[str], typer.Option(help="Per-Gaussian score (see the README).")] = None,
+    score: Annotated[str | None, typer.Option(help="Per-Gaussian score (see the README).")] = None,
     dry_run: Annotated[bool, typer.Option(help="Report only; write no model.")] = False,
     sweep: Annotated[bool, typer.Option(help="Evaluate a range of keep ratios.")] = False,
     device: DeviceOpt = "auto",
@@ -237,7 +237,7 @@ def run_pipeline(
     pipeline: Annotated[Path, typer.Argument(help="Pipeline TOML file (see pipelines/).")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Output folder for all stages.")],
     set_: SetOpt = None,
-    device: Annotated[Optional[str], typer.Option("--device", help="auto, cpu or cuda.")] = None,
+    device: Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda.")] = None,
     force: Annotated[bool, typer.Option(help="Re-run stages even when unchanged.")] = False,
 ):
     """Run a chain of stages from a TOML file, skipping stages whose config and inputs are unchanged."""
