@@ -1,0 +1,85 @@
+"""Calibration coverage and Spearman correlation."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from uncertsplat.eval.calibration import (
+    average_ranks,
+    calibration,
+    mean_calibration,
+    nominal_coverage,
+    spearman,
+)
+
+
+def test_nominal_values():
+    assert nominal_coverage(1.0) == pytest.approx(0.682689, abs=1e-6)
+    assert nominal_coverage(2.0) == pytest.approx(0.954500, abs=1e-6)
+
+
+def test_gaussian_data_is_near_perfect(device):
+    g = torch.Generator().manual_seed(0)
+    n = 200_000
+    std = (0.01 + 0.2 * torch.rand(n, generator=g)).to(device)
+    err = (torch.randn(n, generator=g).to(device)) * std
+    r = calibration(err, std)
+    assert r.num_elements == n
+    for o, m in zip(r.observed, r.nominal, strict=True):
+        assert o == pytest.approx(m, abs=0.01)
+    assert r.calibration_error < 0.01
+    # over-confident (std halved): observed coverage falls below nominal, error grows
+    bad = calibration(err, std / 2)
+    assert all(o < m for o, m in zip(bad.observed, bad.nominal, strict=True))
+    assert bad.calibration_error > 0.1
+
+
+def test_zero_std_and_constant_error_no_nan(device):
+    err = torch.full((100,), 0.1, device=device)
+    r = calibration(err, torch.zeros(100, device=device))
+    assert all(o == 0.0 for o in r.observed)
+    assert math.isfinite(r.calibration_error)
+    exact = calibration(torch.zeros(100, device=device), torch.zeros(100, device=device))
+    assert all(o == 1.0 for o in exact.observed)
+    s = spearman(torch.zeros(100, device=device), err)
+    assert s.value is None and "constant" in s.reason
+    s2 = spearman(torch.rand(100, device=device), err)
+    assert s2.value is None and "error is constant" in s2.reason
+
+
+def test_calibration_mask_and_mean(device):
+    err = torch.tensor([[0.0, 5.0]], device=device)
+    std = torch.tensor([[1.0, 1.0]], device=device)
+    r = calibration(err, std, ks=(1.0,), mask=torch.tensor([[True, False]], device=device))
+    assert r.observed == (1.0,) and r.num_elements == 1
+    r2 = calibration(err, std, ks=(1.0,))
+    m = mean_calibration([r, r2])
+    assert m.observed[0] == pytest.approx(0.75)
+    assert m.calibration_error == pytest.approx(abs(0.75 - nominal_coverage(1.0)))
+
+
+def test_average_ranks_ties():
+    r = average_ranks(torch.tensor([10.0, 20.0, 10.0, 30.0, 10.0]))
+    assert r.tolist() == [2.0, 4.0, 2.0, 5.0, 2.0]
+
+
+def test_spearman_against_scipy(device):
+    from scipy.stats import spearmanr
+
+    g = torch.Generator().manual_seed(1)
+    x = torch.randint(0, 20, (500,), generator=g).float()  # many ties
+    y = x + 5 * torch.rand(500, generator=g)
+    y[:50] = 0.0
+    ref = spearmanr(x.numpy(), y.numpy()).statistic
+    got = spearman(x.to(device), y.to(device))
+    assert got.value == pytest.approx(ref, abs=1e-10) and got.reason is None
+    assert spearman(x, -x).value == pytest.approx(-1.0)
+
+
+def test_spearman_broadcast_std(device):
+    std = torch.arange(12, dtype=torch.float32, device=device).reshape(2, 6, 1)
+    err = std.expand(2, 6, 3) * 2 + 1
+    assert spearman(std, err).value == pytest.approx(1.0)

@@ -1,0 +1,147 @@
+"""Monte-Carlo rendering: Welford mean/std against direct formulas; memory does not grow with K."""
+
+from __future__ import annotations
+
+import weakref
+
+import pytest
+import torch
+
+from uncertsplat.types import Cameras, GaussianSample, RenderOutput
+from uncertsplat.uncertainty.mc import RunningMoments, mc_render
+
+H, W, C = 6, 5, 2
+
+
+def _cameras(device):
+    eye = torch.eye(4, device=device).expand(C, 4, 4).contiguous()
+    K = torch.eye(3, device=device).expand(C, 3, 3).contiguous()
+    return Cameras(eye, K, W, H, ("a.png", "b.png"))
+
+
+class Dummy:
+    """A 'posterior' with one scalar v ~ N(0.5, 0.1^2) per sample; rgb = v * pattern, depth = 2 + v."""
+
+    def __init__(self, device, requires_grad=False, h=H, w=W):
+        self.device = device
+        self.h, self.w = h, w
+        self.values: list[float] = []
+        self.alive: list[weakref.ref] = []
+        self.max_alive_at_render = 0
+        self.pattern = torch.linspace(0, 1, C * h * w * 3, device=device).reshape(C, h, w, 3)
+        self.pattern[0, 0, 0] = 0.0  # a pixel whose value never changes: std must be exactly 0
+        self.requires_grad = requires_grad
+
+    def sample_fn(self, generator):
+        v = 0.5 + 0.1 * torch.randn((), generator=generator)
+        self.values.append(float(v))
+        means = torch.full((1, 3), float(v), device=self.device, requires_grad=self.requires_grad)
+        return GaussianSample(
+            means=means,
+            quats=torch.tensor([[1.0, 0, 0, 0]], device=self.device),
+            scales=torch.ones(1, 3, device=self.device),
+            opacities=torch.ones(1, device=self.device),
+            sh=torch.zeros(1, 1, 3, device=self.device),
+        )
+
+    def render_fn(self, sample, cameras):
+        # how many earlier renders are still referenced somewhere when a new one is made
+        self.max_alive_at_render = max(self.max_alive_at_render, sum(r() is not None for r in self.alive))
+        v = sample.means[0, 0]
+        rgb = v * self.pattern
+        h, w = self.h, self.w
+        out = RenderOutput(
+            rgb=rgb,
+            alpha=torch.full((C, h, w, 1), 0.75, device=self.device),
+            depth=(2.0 + v) * torch.ones(C, h, w, 1, device=self.device),
+            depth_expected=torch.zeros(C, h, w, 1, device=self.device),
+            means2d=torch.zeros(C, 1, 2, device=self.device),
+            radii=torch.zeros(C, 1, device=self.device),
+        )
+        # Track the storages (not the tensor objects): a detached view or a slice kept by mc_render
+        # would keep the storage alive and be caught here.
+        self.alive.append(weakref.ref(rgb.untyped_storage()))
+        self.alive.append(weakref.ref(out.depth.untyped_storage()))
+        return out
+
+
+def test_mean_std_match_direct_formulas(device):
+    d = Dummy(device)
+    maps, samples = mc_render(d.sample_fn, d.render_fn, _cameras(device), 7, torch.Generator().manual_seed(0),
+                              keep_samples=True)
+    v = torch.tensor(d.values, dtype=torch.float64)
+    assert len(d.values) == 7
+    assert samples.rgb.shape == (7, C, H, W, 3) and samples.depth.shape == (7, C, H, W, 1)
+    assert torch.allclose(maps.rgb_mean, samples.rgb.mean(0), atol=1e-6)
+    assert torch.allclose(maps.rgb_std, samples.rgb.std(0, unbiased=True), atol=1e-6)
+    assert torch.allclose(maps.rgb_std.double().cpu(), v.std() * d.pattern.double().cpu(), atol=1e-6)
+    assert maps.rgb_std[0, 0, 0].eq(0).all()  # exactly zero, not 1e-9
+    assert torch.allclose(maps.depth_mean.double().cpu(), (2 + v.mean()).expand(C, H, W, 1), atol=1e-6)
+    assert torch.allclose(maps.depth_std.double().cpu(), v.std().expand(C, H, W, 1), atol=1e-6)
+    assert torch.allclose(maps.alpha_mean, torch.full_like(maps.alpha_mean, 0.75))
+    assert maps.n_samples == 7 and maps.image_names == ("a.png", "b.png")
+
+
+def test_single_sample_std_zero(device):
+    d = Dummy(device)
+    maps, samples = mc_render(d.sample_fn, d.render_fn, _cameras(device), 1, torch.Generator().manual_seed(0))
+    assert samples is None
+    assert maps.rgb_std.eq(0).all() and maps.depth_std.eq(0).all()
+    assert torch.allclose(maps.rgb_mean, d.values[0] * d.pattern)
+
+
+def test_same_seed_same_maps(device):
+    a = mc_render(Dummy(device).sample_fn, Dummy(device).render_fn, _cameras(device), 5,
+                  torch.Generator().manual_seed(3))[0]
+    b = mc_render(Dummy(device).sample_fn, Dummy(device).render_fn, _cameras(device), 5,
+                  torch.Generator().manual_seed(3))[0]
+    assert torch.equal(a.rgb_std, b.rgb_std) and torch.equal(a.rgb_mean, b.rgb_mean)
+
+
+@pytest.mark.parametrize("k", [2, 16])
+def test_memory_does_not_grow_with_k(device, k):
+    d = Dummy(device)
+    mc_render(d.sample_fn, d.render_fn, _cameras(device), k, torch.Generator().manual_seed(1))
+    # No earlier render is alive when the next one is made, and none survives the call.
+    assert d.max_alive_at_render == 0
+    assert all(r() is None for r in d.alive)
+    # keep_samples=True does retain them (so the check above can fail)
+    d2 = Dummy(device)
+    _, kept = mc_render(d2.sample_fn, d2.render_fn, _cameras(device), k, torch.Generator().manual_seed(1),
+                        keep_samples=True)
+    assert d2.max_alive_at_render == 2 * (k - 1)  # rgb and depth of every earlier sample
+
+
+def test_runs_without_grad(device):
+    d = Dummy(device, requires_grad=True)
+    maps, _ = mc_render(d.sample_fn, d.render_fn, _cameras(device), 3, torch.Generator().manual_seed(2))
+    assert maps.rgb_mean.grad_fn is None and not maps.rgb_std.requires_grad
+
+
+def test_cuda_peak_memory_flat_in_k(device):
+    if device.type != "cuda":
+        pytest.skip("peak allocation is measured on CUDA")
+    peaks = {}
+    side = 256
+    cams = Cameras(torch.eye(4, device=device).expand(C, 4, 4), torch.eye(3, device=device).expand(C, 3, 3),
+                   side, side)
+    for k in (2, 32):
+        d = Dummy(device, h=side, w=side)
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats(device)
+        base = torch.cuda.memory_allocated(device)
+        maps, _ = mc_render(d.sample_fn, d.render_fn, cams, k, torch.Generator().manual_seed(0))
+        torch.cuda.synchronize()
+        peaks[k] = torch.cuda.max_memory_allocated(device) - base
+        del maps, d
+    assert peaks[32] <= peaks[2] * 1.1 + 1024
+
+
+def test_running_moments_matches_torch():
+    g = torch.Generator().manual_seed(5)
+    xs = 1000.0 + torch.randn(50, 4, generator=g, dtype=torch.float64)  # large offset: Welford is stable
+    m = RunningMoments()
+    for x in xs:
+        m.update(x)
+    assert torch.allclose(m.mean, xs.mean(0), atol=1e-10)
+    assert torch.allclose(m.std, xs.std(0), atol=1e-10)

@@ -1,0 +1,189 @@
+"""Image quality metrics: PSNR, SSIM (differentiable) and the LPIPS availability check.
+
+Images are float HWC in [0, 1]: ``[H,W,3]`` for one view or ``[...,H,W,3]`` for a batch (usually
+``[C,H,W,3]``). Everything runs on the inputs' device; nothing is downloaded.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+from pathlib import Path
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+Reduction = Literal["mean", "none"]
+
+
+def _check_pair(pred: Tensor, target: Tensor) -> None:
+    if pred.shape != target.shape:
+        raise ValueError(f"pred and target must have the same shape, got {tuple(pred.shape)} vs {tuple(target.shape)}")
+    if pred.ndim < 3:
+        raise ValueError(f"images must be [...,H,W,Ch], got {tuple(pred.shape)}")
+
+
+def mse(pred: Tensor, target: Tensor, mask: Tensor | None = None) -> Tensor:
+    """Per-image mean squared error, shape [...] (the leading dims of ``[...,H,W,Ch]``).
+
+    ``mask`` ([...,H,W], [...,H,W,1] or [...,H,W,Ch], bool or float weights) restricts the mean to the
+    selected pixels; an image whose mask is empty gives NaN (there is nothing to measure).
+    """
+    _check_pair(pred, target)
+    sq = (pred - target).square()  # [...,H,W,Ch]
+    if mask is None:
+        return sq.mean(dim=(-3, -2, -1))
+    w = mask.to(sq.dtype)
+    if w.shape == sq.shape[:-1]:
+        w = w[..., None]
+    w = w.expand_as(sq)
+    return (sq * w).sum(dim=(-3, -2, -1)) / w.sum(dim=(-3, -2, -1))
+
+
+def psnr(pred: Tensor, target: Tensor, mask: Tensor | None = None, *, reduction: Reduction = "mean") -> Tensor:
+    """Peak signal-to-noise ratio in dB for images in [0, 1] (peak 1).
+
+    PSNR is computed per image (over H, W and channels, optionally masked), then averaged over the
+    leading dims when ``reduction="mean"`` (the usual way tables average views); ``"none"`` returns
+    the per-image values [...]. Identical images give ``+inf`` (not NaN); callers that average views
+    should decide how to treat it. Not differentiable at mse == 0.
+    """
+    err = mse(pred, target, mask)
+    # -10 log10(0) = +inf in IEEE arithmetic; written explicitly so the intent is clear.
+    value = torch.where(err > 0, -10.0 * torch.log10(err.clamp_min(torch.finfo(err.dtype).tiny)),
+                        torch.full_like(err, math.inf))
+    value = torch.where(torch.isnan(err), err, value)
+    return value.mean() if reduction == "mean" else value
+
+
+def gaussian_window(size: int = 11, sigma: float = 1.5, *, dtype=torch.float32, device=None) -> Tensor:
+    """Normalised 1-D Gaussian window [size] (the separable SSIM kernel)."""
+    x = torch.arange(size, dtype=torch.float64, device=device) - (size - 1) / 2.0
+    g = torch.exp(-(x**2) / (2.0 * sigma**2))
+    return (g / g.sum()).to(dtype)
+
+
+def _blur(x: Tensor, window: Tensor, padding: str) -> Tensor:
+    """Separable Gaussian blur of [B,Ch,H,W] per channel (zero padding for "same")."""
+    ch = x.shape[1]
+    k = window.shape[0]
+    pad = k // 2 if padding == "same" else 0
+    wx = window.view(1, 1, 1, k).expand(ch, 1, 1, k)
+    wy = window.view(1, 1, k, 1).expand(ch, 1, k, 1)
+    x = F.conv2d(x, wx, padding=(0, pad), groups=ch)
+    return F.conv2d(x, wy, padding=(pad, 0), groups=ch)
+
+
+def ssim_map(
+    pred: Tensor,
+    target: Tensor,
+    *,
+    window_size: int = 11,
+    sigma: float = 1.5,
+    c1: float = 0.01**2,
+    c2: float = 0.03**2,
+    padding: Literal["same", "valid"] = "same",
+) -> Tensor:
+    """Per-pixel SSIM map [...,H',W',Ch] of HWC images [...,H,W,Ch] in [0, 1] (data range 1).
+
+    Local statistics use an 11x11 Gaussian window (sigma 1.5), constants C1 = 0.01^2, C2 = 0.03^2
+    (Wang et al. 2004). ``padding="same"`` zero-pads like the 3DGS training/eval code (so published
+    3DGS numbers are comparable; the border pixels are slightly pessimistic); ``"valid"`` keeps only
+    windows fully inside the image (H' = H - 10), as scikit-image does.
+    """
+    _check_pair(pred, target)
+    lead = pred.shape[:-3]
+    h, w, ch = pred.shape[-3:]
+    if padding == "valid" and (h < window_size or w < window_size):
+        raise ValueError(f"valid SSIM needs images of at least {window_size}x{window_size}, got {h}x{w}")
+    # [...,H,W,Ch] -> [B,Ch,H,W]
+    x = pred.reshape(-1, h, w, ch).permute(0, 3, 1, 2)
+    y = target.reshape(-1, h, w, ch).permute(0, 3, 1, 2)
+    win = gaussian_window(window_size, sigma, dtype=pred.dtype, device=pred.device)
+    # One blur call over the five stacked maps (fewer kernel launches than five calls).
+    stats = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), win, padding)
+    mu_x, mu_y, exx, eyy, exy = stats.split(ch, dim=1)
+    sxx = exx - mu_x * mu_x
+    syy = eyy - mu_y * mu_y
+    sxy = exy - mu_x * mu_y
+    num = (2 * mu_x * mu_y + c1) * (2 * sxy + c2)
+    den = (mu_x * mu_x + mu_y * mu_y + c1) * (sxx + syy + c2)
+    out = (num / den).permute(0, 2, 3, 1)  # [B,H',W',Ch]
+    return out.reshape(*lead, *out.shape[1:])
+
+
+def ssim(
+    pred: Tensor,
+    target: Tensor,
+    *,
+    reduction: Reduction = "mean",
+    padding: Literal["same", "valid"] = "same",
+) -> Tensor:
+    """Structural similarity of HWC images in [0, 1]; differentiable (use ``1 - ssim`` as a loss).
+
+    ``pred``/``target``: [H,W,3] or [C,H,W,3] (any [...,H,W,Ch]). Returns the mean of the SSIM map
+    over pixels and channels: a scalar for ``reduction="mean"`` (also averaged over the leading dims),
+    or one value per image [...] for ``"none"``. See :func:`ssim_map` for the window and padding.
+    """
+    m = ssim_map(pred, target, padding=padding)
+    per_image = m.mean(dim=(-3, -2, -1))
+    return per_image.mean() if reduction == "mean" else per_image
+
+
+# ------------------------------------------------------------------------------------------------ LPIPS
+_TORCH_HUB_ALEXNET = "alexnet-owt-"  # torchvision's pretrained AlexNet file name prefix
+
+
+def lpips_available() -> tuple[bool, str]:
+    """Whether LPIPS can be computed from files already on this machine (never downloads).
+
+    LPIPS needs the ``lpips`` package (which ships its linear-layer weights) *and* the pretrained
+    AlexNet backbone in the torch hub cache; torchvision would otherwise download the backbone on
+    first use, which we never allow. Returns ``(ok, reason)``; the reason is shown in reports.
+    """
+    spec = importlib.util.find_spec("lpips")
+    if spec is None or spec.origin is None:
+        return False, "unavailable: no local weights (the `lpips` package is not installed)"
+    if importlib.util.find_spec("torchvision") is None:
+        return False, "unavailable: no local weights (`torchvision` is not installed)"
+    pkg_dir = Path(spec.origin).parent
+    linear = pkg_dir / "weights" / "v0.1" / "alex.pth"
+    if not linear.is_file():
+        return False, f"unavailable: no local weights ({linear} is missing)"
+    hub = Path(torch.hub.get_dir()) / "checkpoints"
+    if not hub.is_dir() or not any(p.name.startswith(_TORCH_HUB_ALEXNET) for p in hub.iterdir()):
+        return False, f"unavailable: no local weights (AlexNet backbone not in {hub})"
+    return True, "available: lpips (alex) with local weights"
+
+
+def lpips(pred: Tensor, target: Tensor) -> Tensor:
+    """LPIPS (AlexNet) distance per image [...] for HWC images in [0, 1], only with local weights.
+
+    Raises ``RuntimeError`` with the reason when :func:`lpips_available` says no.
+    """
+    ok, reason = lpips_available()
+    if not ok:
+        raise RuntimeError(f"LPIPS {reason}")
+    import lpips as _lpips  # optional dependency, checked above
+
+    net = _lpips_net(_lpips, pred.device)
+    _check_pair(pred, target)
+    lead = pred.shape[:-3]
+    h, w, ch = pred.shape[-3:]
+    x = pred.reshape(-1, h, w, ch).permute(0, 3, 1, 2) * 2 - 1  # LPIPS expects [-1, 1]
+    y = target.reshape(-1, h, w, ch).permute(0, 3, 1, 2) * 2 - 1
+    with torch.no_grad():
+        d = net(x.float(), y.float()).reshape(-1)
+    return d.reshape(lead)
+
+
+_LPIPS_CACHE: dict = {}
+
+
+def _lpips_net(module, device):
+    key = str(device)
+    if key not in _LPIPS_CACHE:
+        _LPIPS_CACHE[key] = module.LPIPS(net="alex", verbose=False).to(device).eval()
+    return _LPIPS_CACHE[key]

@@ -1,0 +1,206 @@
+"""``EvalReport``: the schema of ``RUN/eval/metrics.json`` (written by ``evaluate``, read by ``report``).
+
+Numbers that are not available (no GT depth, LPIPS without local weights, an undefined Spearman, a
+view with no valid pixel) are ``null``. Non-finite floats are stored as ``null`` too (JSON has no NaN;
+a PSNR of +inf, identical images, is therefore null): ``None`` always means "not a number we can
+state". Metric names match the report's column aliases (``uncertsplat/report/extract.py``).
+
+Curves are stored as ``curves[key][modality][metric]`` with key = "mean" or an image name, modality
+"rgb" or "depth", metric "mae" / "mse" / "rmse"; each curve has ``fractions``, ``oracle``,
+``uncertainty`` (normalised, see ``eval/sparsification.py``) and its ``ause``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+SCHEMA_VERSION = 1
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", ser_json_inf_nan="null")
+
+
+def _finite_or_none(v: Any) -> Any:
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+class ViewMetrics(_Strict):
+    """Metrics of one view (or their mean over views). All optional: None = not available."""
+
+    psnr: float | None = None
+    ssim: float | None = None
+    lpips: float | None = None
+    ause_mae: float | None = None
+    ause_mse: float | None = None
+    ause_rmse: float | None = None
+    nll: float | None = None
+    """Gaussian NLL with the std floor (``EvalReport.std_floor``)."""
+    nll_kde: float | None = None
+    """KDE NLL over the K samples, Silverman bandwidth from K."""
+    nll_paper: float | None = None
+    """The original code's KDE NLL formula; NOT comparable (depends on resolution)."""
+    calibration_error: float | None = None
+    spearman: float | None = None
+    """Spearman(std, |error|) over RGB elements; None when undefined (see ``spearman_note``)."""
+    spearman_note: str | None = None
+    depth_ause_mae: float | None = None
+    depth_ause_rmse: float | None = None
+    depth_abs_rel: float | None = None
+    depth_rmse: float | None = None
+    depth_mae: float | None = None
+    depth_nll: float | None = None
+    depth_spearman: float | None = None
+    seconds: float | None = None
+    """Wall time of the K Monte-Carlo renders of this view."""
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _nonfinite_to_none(cls, v):
+        return _finite_or_none(v)
+
+    @classmethod
+    def mean_of(cls, views: list[ViewMetrics]) -> ViewMetrics:
+        """Field-wise mean over views, skipping None (a field None in every view stays None)."""
+        out: dict[str, Any] = {}
+        for name in cls.model_fields:
+            if name == "spearman_note":  # the only non-numeric field
+                continue
+            vals = [getattr(v, name) for v in views if getattr(v, name) is not None]
+            out[name] = sum(vals) / len(vals) if vals else None
+        notes = {v.spearman_note for v in views if v.spearman_note}
+        if notes and out.get("spearman") is None:
+            out["spearman_note"] = "; ".join(sorted(notes))
+        elif notes:
+            out["spearman_note"] = f"averaged over the views where it is defined ({len(notes)} note(s))"
+        return cls(**out)
+
+
+class SparsificationCurve(_Strict):
+    """A normalised sparsification curve pair and its AUSE (see ``eval/sparsification.py``)."""
+
+    metric: str
+    fractions: list[float]
+    oracle: list[float]
+    uncertainty: list[float]
+    ause: float | None
+    aurg: float | None = None
+    num_elements: int = 0
+
+    @field_validator("ause", "aurg", mode="before")
+    @classmethod
+    def _nonfinite_to_none(cls, v):
+        return _finite_or_none(v)
+
+    @classmethod
+    def from_result(cls, result) -> SparsificationCurve | None:
+        """From an ``eval.sparsification.SparsificationResult``; None when it had no valid element."""
+        if result.num_elements == 0:
+            return None
+        return cls(
+            metric=result.metric,
+            fractions=[float(x) for x in result.fractions.tolist()],
+            oracle=[float(x) for x in result.oracle.tolist()],
+            uncertainty=[float(x) for x in result.uncertainty.tolist()],
+            ause=result.ause,
+            aurg=result.aurg,
+            num_elements=result.num_elements,
+        )
+
+
+class CurveSet(_Strict):
+    """Curves of one view (or the mean) by modality and metric: {"mae": curve, "rmse": curve, ...}."""
+
+    rgb: dict[str, SparsificationCurve] = Field(default_factory=dict)
+    depth: dict[str, SparsificationCurve] = Field(default_factory=dict)
+
+
+class CalibrationTable(_Strict):
+    """Observed vs nominal coverage of k-sigma intervals (see ``eval/calibration.py``)."""
+
+    ks: list[float]
+    observed: list[float | None]
+    nominal: list[float]
+    calibration_error: float | None
+    num_elements: int = 0
+
+    @field_validator("calibration_error", mode="before")
+    @classmethod
+    def _nonfinite_to_none(cls, v):
+        return _finite_or_none(v)
+
+    @field_validator("observed", mode="before")
+    @classmethod
+    def _nonfinite_list(cls, v):
+        return [_finite_or_none(x) for x in v] if isinstance(v, (list, tuple)) else v
+
+    @classmethod
+    def from_result(cls, result) -> CalibrationTable:
+        """From an ``eval.calibration.CalibrationResult``."""
+        return cls(
+            ks=list(result.ks),
+            observed=list(result.observed),
+            nominal=list(result.nominal),
+            calibration_error=result.calibration_error,
+            num_elements=result.num_elements,
+        )
+
+
+class DepthScaleInfo(_Strict):
+    """The factor applied to rendered depth before comparing with GT depth, and where it came from."""
+
+    scale: float
+    method: str
+    """"median" or "lsq" (estimated over all evaluated views' valid pixels), "given" (--depth-scale),
+    or "scene" (the scene's known factor)."""
+    num_pixels: int = 0
+
+
+class LpipsStatus(_Strict):
+    available: bool
+    reason: str
+
+
+class EvalReport(_Strict):
+    """Everything ``evaluate`` measured for one run and split (``RUN/eval/metrics.json``)."""
+
+    schema_version: int = SCHEMA_VERSION
+    split: str = "test"
+    image_names: list[str] = Field(default_factory=list)
+    per_view: dict[str, ViewMetrics] = Field(default_factory=dict)
+    mean: ViewMetrics = Field(default_factory=ViewMetrics)
+    curves: dict[str, CurveSet] = Field(default_factory=dict)
+    """Keyed by "mean" and by image name."""
+    calibration: dict[str, CalibrationTable] = Field(default_factory=dict)
+    """Mean over views, keyed "rgb" and (with GT depth) "depth"."""
+    config_hash: str = ""
+    versions: dict[str, str] = Field(default_factory=dict)
+    num_samples: int = Field(1, ge=1)
+    seed: int | None = None
+    seconds_per_view: float | None = None
+    ause_steps: int = 100
+    std_floor: float | None = None
+    kde_bandwidth: str = "silverman: max(1.06 * std_hat * K^(-1/5), floor)"
+    depth_scale: DepthScaleInfo | None = None
+    lpips: LpipsStatus | None = None
+    device: str | None = None
+    notes: list[str] = Field(default_factory=list)
+
+    @field_validator("seconds_per_view", "std_floor", mode="before")
+    @classmethod
+    def _nonfinite_to_none(cls, v):
+        return _finite_or_none(v)
+
+    def to_json(self) -> str:
+        """Pretty JSON text (what ``evaluate`` writes, atomically)."""
+        return self.model_dump_json(indent=2)
+
+    @classmethod
+    def from_json(cls, text: str | bytes) -> EvalReport:
+        """Parse and validate metrics.json text (raises pydantic.ValidationError on mismatch)."""
+        return cls.model_validate_json(text)
