@@ -15,7 +15,8 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-console = Console(stderr=True, highlight=False)
+# Outside a terminal (CI logs, pipes) rich would wrap tables at 80 columns; give them room.
+console = Console(stderr=True, highlight=False, width=None if sys.stderr.isatty() else 140)
 
 
 def progress(transient: bool = False) -> Progress:
