@@ -7,6 +7,9 @@ import os
 import pytest
 
 os.environ.setdefault("UNCERTSPLAT_NO_PROGRESS", "1")
+# OpenMP threads that spin while waiting make torch 10-20x slower when another process shares the
+# 2 cores (seen with parallel test workers); passive waiting costs nothing on an idle machine.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def pytest_addoption(parser):

@@ -26,9 +26,12 @@ class UserError(Exception):
             parts.append(f"{self.path}: {self.message}")
         else:
             parts.append(self.message)
+        text = parts[0]
         if self.hint:
-            parts.append(self.hint)
-        return " ".join(parts)
+            # messages are written without a final full stop; the hint is a sentence of its own
+            text = text if text.rstrip().endswith((".", "!", "?", ":")) else text.rstrip() + "."
+            text = f"{text} {self.hint}"
+        return text
 
 
 class StageError(UserError):

@@ -1,0 +1,41 @@
+"""Shared test fixtures: the tiny synthetic scene, generated once per test session.
+
+Use it from any test module with::
+
+    from tests.fixtures import tiny_scene_path  # noqa: F401
+
+    def test_something(tiny_scene_path):
+        scene = load_scene(tiny_scene_path, SceneConfig())
+
+Tests must treat the scene folder as read-only (it is shared by every test of the session); copy it
+(``shutil.copytree``) before modifying anything.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+_CACHE: dict[tuple[Path, int], Path] = {}
+
+
+def tiny_scene(tmp_root: Path, seed: int = 0) -> Path:
+    """Generate the ``tiny`` synthetic scene under ``tmp_root`` (once per process and seed) and return it."""
+    from uncertsplat.config import SynthConfig
+    from uncertsplat.data.synthetic import generate_scene, is_synthetic_scene
+
+    key = (Path(tmp_root).resolve(), seed)
+    if key in _CACHE and is_synthetic_scene(_CACHE[key]):
+        return _CACHE[key]
+    out = Path(tmp_root) / f"tiny_seed{seed}"
+    if not is_synthetic_scene(out):
+        generate_scene(out, SynthConfig(preset="tiny", seed=seed), overwrite=True)
+    _CACHE[key] = out
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_scene_path(tmp_path_factory) -> Path:
+    """Path of the tiny synthetic scene (24 views, 128x96, GT depth, COLMAP model), shared read-only."""
+    return tiny_scene(tmp_path_factory.getbasetemp() / "shared_scenes")

@@ -1,0 +1,142 @@
+"""Image I/O through OpenImageIO: bit depths, channel layouts, orientation, broken files, atomic writes."""
+
+from __future__ import annotations
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from uncertsplat.errors import UserError
+from uncertsplat.io.images import (
+    read_exr,
+    read_image,
+    read_image_size,
+    resize_image,
+    write_exr,
+    write_png,
+)
+
+
+def _raw_write(path, arr, fmt, attrs=None):
+    """Write pixels with OIIO directly (a stand-in for files made by other programs)."""
+    h, w, c = arr.shape
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    for k, v in (attrs or {}).items():
+        spec.attribute(k, v)
+    out = oiio.ImageOutput.create(str(path))
+    assert out.open(str(path), spec)
+    assert out.write_image(np.ascontiguousarray(arr))
+    out.close()
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(0)
+
+
+def test_png8_roundtrip(tmp_path, rng):
+    a = rng.random((12, 17, 3), dtype=np.float32)
+    write_png(tmp_path / "a.png", a)
+    b = read_image(tmp_path / "a.png")
+    assert b.shape == (12, 17, 3) and b.dtype == np.float32
+    assert np.abs(a - b).max() <= 0.5 / 255 + 1e-6
+    assert read_image_size(tmp_path / "a.png") == (17, 12)
+
+
+def test_png16_keeps_16_bit_precision(tmp_path, rng):
+    a16 = rng.integers(0, 65536, size=(9, 11, 3), dtype=np.uint16)
+    _raw_write(tmp_path / "a16.png", a16, oiio.UINT16)
+    b = read_image(tmp_path / "a16.png")
+    np.testing.assert_allclose(b, a16.astype(np.float32) / 65535.0, atol=1e-6)
+
+
+def test_grayscale_becomes_rgb(tmp_path, rng):
+    g = rng.integers(0, 256, size=(8, 10, 1), dtype=np.uint8)
+    _raw_write(tmp_path / "g.png", g, oiio.UINT8)
+    b = read_image(tmp_path / "g.png")
+    assert b.shape == (8, 10, 3)
+    for c in range(3):
+        np.testing.assert_allclose(b[..., c], g[..., 0] / 255.0, atol=1e-6)
+
+
+@pytest.mark.parametrize("bg", [(0.0, 0.0, 0.0), (1.0, 0.5, 0.25)])
+def test_rgba_composited_over_background(tmp_path, rng, bg):
+    rgb = rng.integers(0, 256, size=(6, 7, 3), dtype=np.uint8)
+    alpha = np.full((6, 7, 1), 255, np.uint8)
+    alpha[:3] = 0
+    alpha[3:, :3] = 128
+    write_png(tmp_path / "rgba.png", np.concatenate([rgb, alpha], -1))
+    b = read_image(tmp_path / "rgba.png", background=bg)
+    a = alpha.astype(np.float32) / 255.0
+    expect = rgb / 255.0 * a + np.asarray(bg, np.float32) * (1 - a)
+    np.testing.assert_allclose(b, expect, atol=2.5 / 255)
+    np.testing.assert_allclose(b[0, 0], bg, atol=1e-6)  # fully transparent pixel = background
+
+
+def test_jpeg_exif_orientation_is_applied(tmp_path):
+    a = np.zeros((20, 40, 3), np.uint8)  # landscape, bright left half
+    a[:, :20] = 255
+    _raw_write(tmp_path / "o.jpg", a, oiio.UINT8, {"Orientation": 6})  # "rotate 90 CW to display"
+    assert read_image_size(tmp_path / "o.jpg") == (20, 40)
+    b = read_image(tmp_path / "o.jpg")
+    assert b.shape == (40, 20, 3)
+    # rotated clockwise, the bright left half becomes the top half
+    assert b[:15].mean() > 0.9 and b[25:].mean() < 0.1
+
+
+def test_tiff_and_exr_read(tmp_path, rng):
+    a = rng.random((5, 6, 3), dtype=np.float32)
+    _raw_write(tmp_path / "a.tif", (a * 65535).round().astype(np.uint16), oiio.UINT16)
+    np.testing.assert_allclose(read_image(tmp_path / "a.tif"), a, atol=1e-4)
+    _raw_write(tmp_path / "a.exr", a, oiio.FLOAT)
+    np.testing.assert_allclose(read_image(tmp_path / "a.exr"), a, atol=1e-6)
+
+
+def test_exr_named_channels_roundtrip(tmp_path, rng):
+    ch = {"depth_mean": rng.random((4, 5), dtype=np.float32), "depth_std": rng.random((4, 5), dtype=np.float32)}
+    write_exr(tmp_path / "m.exr", ch)
+    back = read_exr(tmp_path / "m.exr")
+    assert set(back) == set(ch)
+    for k in ch:
+        np.testing.assert_array_equal(back[k], ch[k])
+
+
+def test_writes_leave_no_temp_files(tmp_path, rng):
+    write_png(tmp_path / "x.png", rng.random((4, 4, 3)))
+    write_exr(tmp_path / "x.exr", {"Z": rng.random((4, 4))})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["x.exr", "x.png"]
+
+
+def test_truncated_png_is_a_user_error(tmp_path, rng):
+    write_png(tmp_path / "full.png", rng.random((64, 64, 3)))
+    data = (tmp_path / "full.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    with pytest.raises(UserError) as info:
+        read_image(tmp_path / "cut.png")
+    assert "cut.png" in str(info.value)
+
+
+@pytest.mark.parametrize("content", [b"", b"this is not an image at all"])
+def test_empty_or_garbage_file_is_a_user_error(tmp_path, content):
+    p = tmp_path / "bad.png"
+    p.write_bytes(content)
+    with pytest.raises(UserError) as info:
+        read_image(p)
+    assert "bad.png" in str(info.value)
+    with pytest.raises(UserError):
+        read_image_size(p)
+
+
+def test_missing_file_is_a_user_error(tmp_path):
+    with pytest.raises(UserError) as info:
+        read_image(tmp_path / "nope.jpg")
+    assert "nope.jpg" in str(info.value)
+
+
+def test_resize_area_average(rng):
+    a = rng.random((8, 12, 3), dtype=np.float32)
+    r = resize_image(a, 6, 4)
+    expect = a.reshape(4, 2, 6, 2, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(r, expect, atol=1e-6)
+    assert resize_image(a[..., 0], 3, 2).shape == (2, 3)
+    np.testing.assert_array_equal(resize_image(a, 12, 8), a)

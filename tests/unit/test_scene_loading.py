@@ -1,0 +1,213 @@
+"""load_scene on our synthetic scene, COLMAP workspaces (binary/text) and NeRF-synthetic folders,
+and every bad input it must refuse with a UserError naming the file."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pycolmap  # tests may build odd COLMAP models directly; the package goes through sfm/colmap_io
+import pytest
+import torch
+
+from tests.fixtures import tiny_scene_path  # noqa: F401
+from uncertsplat.config import SceneConfig
+from uncertsplat.data.dataset import load_depths, load_images, load_masks
+from uncertsplat.errors import UserError
+from uncertsplat.io.images import read_image, write_png
+from uncertsplat.sfm.scene import load_scene
+
+
+@pytest.fixture
+def workspace(tiny_scene_path, tmp_path):  # noqa: F811
+    """A plain COLMAP workspace (images/ + sparse/0) copied from the tiny scene, safe to modify."""
+    ws = tmp_path / "ws"
+    shutil.copytree(tiny_scene_path / "images", ws / "images")
+    shutil.copytree(tiny_scene_path / "sparse", ws / "sparse")
+    return ws
+
+
+def _raises(path, cfg=None, match=None, name=None):
+    with pytest.raises(UserError) as info:
+        load_scene(path, cfg or SceneConfig())
+    text = str(info.value)
+    if match:
+        assert match in text, text
+    if name:
+        assert name in text, text
+    return text
+
+
+# ----------------------------------------------------------------------------------------------- loading
+def test_workspace_matches_synthetic_scene(tiny_scene_path, workspace):  # noqa: F811
+    a = load_scene(tiny_scene_path)
+    b = load_scene(workspace)
+    assert a.source["kind"] == "synthetic" and b.source["kind"] == "colmap"
+    torch.testing.assert_close(a.cameras.cam_from_world, b.cameras.cam_from_world)
+    assert b.depth_paths is None and a.depth_paths is not None
+
+
+def test_normalisation(tiny_scene_path):  # noqa: F811
+    raw = load_scene(tiny_scene_path, SceneConfig(normalize=False))
+    norm = load_scene(tiny_scene_path, SceneConfig())
+    c = norm.cameras.centers.double()
+    assert c.mean(0).abs().max() < 1e-5
+    assert abs(c.norm(dim=-1).max().item() - 1.0) < 1e-5
+    assert norm.scene_scale == pytest.approx(1.0, abs=1e-5)
+    T = norm.world_from_source.double()
+    src = torch.cat([raw.cameras.centers.double(), torch.ones(len(c), 1, dtype=torch.float64)], 1)
+    torch.testing.assert_close((src @ T.T)[:, :3], c, atol=1e-5, rtol=0)
+    pts = torch.cat([raw.points.double(), torch.ones(len(raw.points), 1, dtype=torch.float64)], 1)
+    torch.testing.assert_close((pts @ T.T)[:, :3], norm.points.double(), atol=1e-5, rtol=0)
+    # rotations unchanged, cameras stay rigid
+    torch.testing.assert_close(norm.cameras.cam_from_world[:, :3, :3], raw.cameras.cam_from_world[:, :3, :3])
+    # GT depth converted into normalised units
+    s = T[0, 0].item()
+    assert norm.depth_scale_to_gt == pytest.approx(1 / s)
+    torch.testing.assert_close(load_depths(norm, [2]), load_depths(raw, [2]) * s, rtol=1e-5, atol=1e-6)
+
+
+def test_downscale(tiny_scene_path):  # noqa: F811
+    full = load_scene(tiny_scene_path)
+    half = load_scene(tiny_scene_path, SceneConfig(downscale=2))
+    assert (half.cameras.width, half.cameras.height) == (64, 48)
+    torch.testing.assert_close(half.cameras.K[:, :2], full.cameras.K[:, :2] / 2)
+    img = load_images(half, [0, 3])
+    assert img.shape == (2, 48, 64, 3) and img.dtype == torch.float32
+    full_img = load_images(full, [0])
+    torch.testing.assert_close(img[0], full_img[0].reshape(48, 2, 64, 2, 3).mean((1, 3)), atol=1e-5, rtol=0)
+    assert load_depths(half, [0]).shape == (1, 48, 64, 1)
+    m = load_masks(half, [0])
+    assert m.dtype == torch.bool and m.shape == (1, 48, 64, 1) and m.all()
+
+
+def test_splits(tiny_scene_path):  # noqa: F811
+    names = [f"view_{i:03d}.png" for i in range(24)]
+    s = load_scene(tiny_scene_path, SceneConfig(test_every=5))
+    assert s.split["test"] == (0, 5, 10, 15, 20)
+    assert set(s.split["train"]) | set(s.split["test"]) == set(range(24))
+    s = load_scene(tiny_scene_path, SceneConfig(test_names=[names[7], names[2]]))
+    assert s.split["test"] == (2, 7) and 2 not in s.split["train"]
+    s = load_scene(tiny_scene_path, SceneConfig(test_indices=[23]))
+    assert s.split["test"] == (23,) and len(s.split["train"]) == 23
+    _raises(tiny_scene_path, SceneConfig(test_indices=list(range(24))), match="no training view")
+    _raises(tiny_scene_path, SceneConfig(test_names=["nope.png"]), match="nope.png")
+
+
+def test_text_model_and_sparse_without_0(workspace):
+    binary = load_scene(workspace)
+    rec = pycolmap.Reconstruction(str(workspace / "sparse" / "0"))
+    shutil.rmtree(workspace / "sparse")
+    (workspace / "sparse").mkdir()
+    rec.write_text(str(workspace / "sparse"))  # the model directly in sparse/, as text
+    text = load_scene(workspace)
+    torch.testing.assert_close(text.cameras.cam_from_world, binary.cameras.cam_from_world, atol=1e-5, rtol=0)
+    torch.testing.assert_close(text.cameras.K, binary.cameras.K)
+    assert text.points.shape == binary.points.shape
+
+
+def test_undistorted_camera_with_zero_distortion_is_accepted(workspace):
+    sparse = workspace / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(sparse))
+    cam = rec.cameras[1]
+    fx, fy, cx, cy = cam.params
+    cam.model = pycolmap.CameraModelId.OPENCV
+    cam.params = [fx, fy, cx, cy, 0.0, 0.0, 0.0, 0.0]
+    rec.write_binary(str(sparse))
+    scene = load_scene(workspace)
+    assert scene.cameras.K[0, 0, 0].item() == pytest.approx(fx)
+
+
+def test_nerf_synthetic(tiny_scene_path, tmp_path):  # noqa: F811
+    """Write the tiny scene in the Blender layout (OpenGL axes, RGBA) and load it back."""
+    ref = load_scene(tiny_scene_path, SceneConfig(normalize=False))
+    root = tmp_path / "nerf"
+    K = ref.cameras.K[0].double()
+    angle_x = 2 * math.atan(0.5 * ref.cameras.width / K[0, 0].item())
+    for split, idx in (("train", ref.split["train"]), ("test", ref.split["test"])):
+        frames = []
+        for i in idx:
+            name = ref.cameras.image_names[i]
+            rgb = read_image(ref.image_paths[i])
+            rgba = np.concatenate([rgb, np.ones_like(rgb[..., :1])], -1)
+            rgba[:4, :4, 3] = 0.0  # a transparent corner shows the background
+            write_png(root / split / name, rgba)
+            c2w = np.linalg.inv(ref.cameras.cam_from_world[i].double().numpy())
+            c2w[:3, 1:3] *= -1  # OpenCV -> OpenGL
+            frames.append({"file_path": f"./{split}/{name[:-4]}", "transform_matrix": c2w.tolist()})
+        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": angle_x, "frames": frames}))
+    scene = load_scene(root, SceneConfig(normalize=False, background=(1.0, 1.0, 1.0)))
+    assert scene.source["kind"] == "nerf_synthetic"
+    assert len(scene.cameras) == 24
+    assert len(scene.split["test"]) == 3  # the dataset's own split
+    order = {n: i for i, n in enumerate(scene.cameras.image_names)}
+    for i in ref.split["test"]:
+        j = order[f"test/{ref.cameras.image_names[i]}"]
+        assert j in scene.split["test"]
+        torch.testing.assert_close(scene.cameras.cam_from_world[j], ref.cameras.cam_from_world[i], atol=1e-5, rtol=0)
+        torch.testing.assert_close(scene.cameras.K[j], ref.cameras.K[i], atol=1e-4, rtol=0)
+    img = load_images(scene, [0])
+    assert torch.allclose(img[0, :4, :4], torch.ones(4, 4, 3))  # composited on the white background
+    pts = scene.points
+    assert len(pts) > 1000 and pts.std(0).min() > 0.1
+    assert torch.equal(pts, load_scene(root, SceneConfig(normalize=False)).points)  # seeded
+
+
+# ------------------------------------------------------------------------------------------- bad inputs
+def test_missing_and_empty_folder(tmp_path):
+    _raises(tmp_path / "nothing", match="not found", name="nothing")
+    (tmp_path / "empty").mkdir()
+    _raises(tmp_path / "empty", match="empty", name="empty")
+
+
+def test_missing_sparse(workspace):
+    shutil.rmtree(workspace / "sparse")
+    _raises(workspace, match="sparse/0", name=str(workspace))
+    (workspace / "sparse" / "0").mkdir(parents=True)
+    _raises(workspace, match="no COLMAP model", name="sparse")
+
+
+def test_distorted_camera_is_refused(workspace):
+    sparse = workspace / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(sparse))
+    cam = rec.cameras[1]
+    fx, _, cx, cy = cam.params
+    cam.model = pycolmap.CameraModelId.SIMPLE_RADIAL
+    cam.params = [fx, cx, cy, 0.05]
+    rec.write_binary(str(sparse))
+    text = _raises(workspace, match="SIMPLE_RADIAL", name=str(sparse))
+    assert "reconstruct" in text and "undistort" in text
+
+
+def test_images_of_different_sizes_are_refused(workspace):
+    p = workspace / "images" / "view_005.png"
+    write_png(p, np.zeros((50, 60, 3), np.float32))
+    _raises(workspace, match="60x50", name="view_005.png")
+
+
+def test_missing_image_is_refused(workspace):
+    (workspace / "images" / "view_010.png").unlink()
+    _raises(workspace, match="missing", name="view_010.png")
+
+
+def test_truncated_image_is_refused(workspace):
+    p = workspace / "images" / "view_002.png"
+    p.write_bytes(p.read_bytes()[:200])
+    with pytest.raises(UserError) as info:
+        scene = load_scene(workspace)  # the header may still be readable ...
+        load_images(scene, [2])  # ... the pixels are not
+    assert "view_002.png" in str(info.value)
+
+
+def test_failed_reconstruction_is_refused(workspace):
+    (workspace / "reconstruct_report.json").write_text(json.dumps({"success": False, "reason": "2 of 24 registered"}))
+    _raises(workspace, match="failed reconstruction", name="reconstruct_report.json")
+    (workspace / "reconstruct_report.json").write_text(json.dumps({"success": True}))
+    assert len(load_scene(workspace).cameras) == 24
+
+
+def test_missing_images_folder(workspace):
+    shutil.rmtree(workspace / "images")
+    _raises(workspace, match="images", name="images")

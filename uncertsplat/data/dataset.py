@@ -1,0 +1,87 @@
+"""Pixel data of a loaded scene as tensors: images, GT depth and validity masks.
+
+Everything is resized to the size of ``scene.cameras`` (after the scene's downscale factor) with area
+averaging, and returned on the requested device.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from uncertsplat.errors import UserError
+from uncertsplat.io.images import read_exr, read_image, resize_image
+from uncertsplat.types import SceneData
+
+
+def _indices(scene: SceneData, indices: Sequence[int] | None) -> list[int]:
+    return list(range(len(scene.cameras))) if indices is None else [int(i) for i in indices]
+
+
+def load_images(scene: SceneData, indices: Sequence[int] | None = None, device=None) -> Tensor:
+    """Images of the cameras ``indices`` (all when None) as [C,H,W,3] float32 in [0, 1].
+
+    Transparent pixels are composited over the scene's background colour (``SceneConfig.background``).
+    """
+    bg = tuple(scene.source.get("background", (0.0, 0.0, 0.0)))
+    W, H = scene.cameras.width, scene.cameras.height
+    out = [resize_image(read_image(scene.image_paths[i], background=bg), W, H) for i in _indices(scene, indices)]
+    return torch.from_numpy(np.stack(out)).to(device)
+
+
+def read_depth_file(path: Path) -> np.ndarray:
+    """A GT depth map [H,W] float32 from .npy, or from .exr (channel Z, depth, Y or R, else the first)."""
+    path = Path(path)
+    if path.suffix.lower() == ".npy":
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as err:
+            raise UserError(f"cannot read the depth map ({err})", path=path,
+                            hint="The file may be truncated; regenerate the scene.") from None
+    else:
+        channels = read_exr(path)
+        key = next((k for k in ("Z", "depth", "Y", "R") if k in channels), next(iter(channels)))
+        arr = channels[key]
+    arr = np.asarray(arr, dtype=np.float32)
+    if arr.ndim == 3 and arr.shape[-1] == 1:
+        arr = arr[..., 0]
+    if arr.ndim != 2:
+        raise UserError(f"depth map must be 2-D, got shape {arr.shape}", path=path)
+    return arr
+
+
+def load_depths(scene: SceneData, indices: Sequence[int] | None = None, device=None) -> Tensor | None:
+    """GT depth [C,H,W,1] in normalised world units (GT depth x the normalisation scale), or None.
+
+    0 marks pixels without a valid depth. Downscaling averages depth over each target pixel's area
+    (exact for smooth surfaces; mixes the two sides at depth edges, which ``load_masks`` excludes).
+    """
+    if scene.depth_paths is None:
+        return None
+    scale = 1.0 / scene.depth_scale_to_gt if scene.depth_scale_to_gt else 1.0
+    W, H = scene.cameras.width, scene.cameras.height
+    out = []
+    for i in _indices(scene, indices):
+        d = read_depth_file(scene.depth_paths[i])
+        d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+        out.append(resize_image(d, W, H) * scale)
+    return torch.from_numpy(np.stack(out)[..., None]).to(device)
+
+
+def load_masks(scene: SceneData, indices: Sequence[int] | None = None, device=None) -> Tensor | None:
+    """Validity masks [C,H,W,1] bool, or None when the scene has none.
+
+    A downscaled pixel is valid only when every source pixel under it is valid.
+    """
+    if scene.mask_paths is None:
+        return None
+    W, H = scene.cameras.width, scene.cameras.height
+    out = []
+    for i in _indices(scene, indices):
+        m = read_image(scene.mask_paths[i])[..., 0]
+        out.append(resize_image((m > 0.5).astype(np.float32), W, H) >= 1.0 - 1e-6)
+    return torch.from_numpy(np.stack(out)[..., None]).to(device)

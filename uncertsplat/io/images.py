@@ -1,0 +1,257 @@
+"""Image reading and writing through OpenImageIO.
+
+Images are returned as float32 HWC arrays in [0, 1] (RGB), whatever the file's bit depth or channel
+layout: grayscale is replicated to RGB, an alpha channel is composited over a background colour, and
+the EXIF orientation of photos is applied. Every write is atomic (temp file in the same folder, then
+rename), so an interrupted run never leaves a half-written image under its final name.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+
+from uncertsplat.errors import UserError
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
+
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
+_UNREADABLE_HINT = "Check that the file is a complete PNG, JPEG, TIFF or EXR image (re-export or remove it)."
+
+
+def _clean_error(text: str) -> str:
+    """OIIO repeats its messages; keep the first distinct line."""
+    lines = [ln.strip() for ln in (text or "").splitlines() if ln.strip()]
+    return lines[0] if lines else "unknown error"
+
+
+def _open(path: Path) -> oiio.ImageInput:
+    if not path.exists():
+        raise UserError("image file not found", path=path, hint="Check the path and the image folder.")
+    if path.is_file() and path.stat().st_size == 0:
+        raise UserError("image file is empty (0 bytes)", path=path, hint=_UNREADABLE_HINT)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise UserError(f"cannot read the image ({_clean_error(oiio.geterror())})", path=path, hint=_UNREADABLE_HINT)
+    return inp
+
+
+def _oriented_size(spec: oiio.ImageSpec) -> tuple[int, int]:
+    orientation = spec.get_int_attribute("Orientation", 1)
+    if orientation in (5, 6, 7, 8):  # rotated by 90 degrees: width and height swap when displayed
+        return spec.height, spec.width
+    return spec.width, spec.height
+
+
+def read_image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image as displayed (EXIF orientation applied), reading the header only."""
+    path = Path(path)
+    inp = _open(path)
+    try:
+        return _oriented_size(inp.spec())
+    finally:
+        inp.close()
+
+
+def _reorient(arr: np.ndarray, orientation: int) -> np.ndarray:
+    """Apply an EXIF orientation (1..8) to an HWC array, using OIIO's own definition of each code."""
+    if orientation == 1:
+        return arr
+    h, w, c = arr.shape
+    spec = oiio.ImageSpec(w, h, c, oiio.FLOAT)
+    spec.attribute("Orientation", int(orientation))
+    buf = oiio.ImageBuf(spec)
+    buf.set_pixels(oiio.ROI(0, w, 0, h, 0, 1, 0, c), np.ascontiguousarray(arr, dtype=np.float32))
+    out = oiio.ImageBufAlgo.reorient(buf)
+    return out.get_pixels(oiio.FLOAT).reshape(out.spec().height, out.spec().width, c)
+
+
+def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """Read an image as float32 RGB in [0, 1].
+
+    Args:
+        path: a PNG (8/16-bit), JPEG, TIFF or EXR file.
+        background: RGB colour in [0, 1] under transparent pixels (alpha is composited over it).
+
+    Returns:
+        [H,W,3] float32. Grayscale files are replicated to three channels; EXR values are clipped to
+        [0, 1]; JPEG EXIF orientation is applied.
+
+    Raises:
+        UserError: naming the file when it is missing, empty, truncated or not an image.
+    """
+    path = Path(path)
+    inp = _open(path)
+    try:
+        spec = inp.spec()
+        data = inp.read_image("float")
+        err = inp.geterror()
+        if data is None or err:
+            raise UserError(f"cannot read the image ({_clean_error(err or oiio.geterror())}); it may be truncated",
+                            path=path, hint=_UNREADABLE_HINT)
+        orientation = spec.get_int_attribute("Orientation", 1)
+        alpha_index = spec.alpha_channel
+    finally:
+        inp.close()
+    arr = np.asarray(data, dtype=np.float32)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.ndim == 4:  # volume images: first slice
+        arr = arr[0]
+    arr = np.nan_to_num(arr, nan=0.0, posinf=1.0, neginf=0.0)
+    c = arr.shape[-1]
+    if alpha_index < 0 and c in (2, 4):  # an unnamed extra channel in 2/4-channel files is alpha
+        alpha_index = c - 1
+    alpha = None
+    if 0 <= alpha_index < c:
+        alpha = np.clip(arr[..., alpha_index : alpha_index + 1], 0.0, 1.0)
+        arr = np.delete(arr, alpha_index, axis=-1)
+        c = arr.shape[-1]
+    if c == 1:
+        rgb = np.repeat(arr, 3, axis=-1)
+    elif c >= 3:
+        rgb = arr[..., :3]
+    else:  # two colour channels without alpha: not a photo layout we know
+        raise UserError(f"unsupported channel layout ({c} channels)", path=path,
+                        hint="Convert the image to RGB or grayscale.")
+    if alpha is not None:
+        # OIIO returns associated (premultiplied) colour, so "over" is rgb + bg * (1 - alpha).
+        bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
+        rgb = rgb + bg * (1.0 - alpha)
+    rgb = np.clip(rgb, 0.0, 1.0).astype(np.float32)
+    rgb = _reorient(rgb, orientation)
+    return np.ascontiguousarray(rgb)
+
+
+# ------------------------------------------------------------------------------------------------ writing
+def _atomic_oiio(path: Path, write: Callable[[str], None]) -> Path:
+    """Let ``write(tmp_name)`` create the file under a temp name with the same extension, then rename."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        os.close(fd)
+    except OSError as err:
+        raise UserError(f"cannot write here ({err.strerror})", path=path.parent,
+                        hint="Choose an output folder you can write to.") from None
+    try:
+        write(tmp)
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; give the file the usual permissions
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _write_array(path: Path, arr: np.ndarray, fmt, channel_names: Sequence[str] | None = None,
+                 attributes: dict | None = None) -> Path:
+    h, w, c = arr.shape
+    spec = oiio.ImageSpec(w, h, c, fmt)
+    if channel_names is not None:
+        spec.channelnames = tuple(channel_names)
+    for k, v in (attributes or {}).items():
+        spec.attribute(k, v)
+
+    def write(tmp: str) -> None:
+        out = oiio.ImageOutput.create(tmp)
+        if out is None or not out.open(tmp, spec):
+            raise UserError(f"cannot write the image ({_clean_error(oiio.geterror())})", path=path)
+        ok = out.write_image(np.ascontiguousarray(arr))
+        err = out.geterror()
+        out.close()
+        if not ok:
+            raise UserError(f"cannot write the image ({_clean_error(err)})", path=path,
+                            hint="Check free disk space and permissions.")
+
+    return _atomic_oiio(path, write)
+
+
+def write_png(path: str | Path, arr: np.ndarray) -> Path:
+    """Write an 8-bit PNG atomically.
+
+    Args:
+        arr: [H,W,3], [H,W,1] or [H,W] float in [0, 1] (rounded to 8 bits) or uint8.
+    """
+    arr = np.asarray(arr)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.ndim != 3 or arr.shape[-1] not in (1, 3, 4):
+        raise ValueError(f"write_png expects [H,W,1|3|4], got {arr.shape}")
+    if arr.dtype == bool:
+        arr = arr.astype(np.uint8) * 255
+    elif arr.dtype != np.uint8:
+        arr = np.round(np.clip(np.nan_to_num(arr.astype(np.float32), nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
+    # Our RGBA arrays are straight (unassociated) alpha: tell the PNG writer not to un-premultiply.
+    attrs = {"oiio:UnassociatedAlpha": 1} if arr.shape[-1] == 4 else None
+    return _write_array(Path(path), arr, oiio.UINT8, attributes=attrs)
+
+
+def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> Path:
+    """Write named float32 channels (each [H,W]) to an OpenEXR file atomically (zip compression)."""
+    if not channels:
+        raise ValueError("write_exr needs at least one channel")
+    names = list(channels)
+    planes = [np.asarray(channels[n], dtype=np.float32) for n in names]
+    shape = planes[0].shape
+    if any(p.shape != shape or p.ndim != 2 for p in planes):
+        raise ValueError("write_exr channels must all be [H,W] of the same size")
+    arr = np.stack(planes, axis=-1)
+    return _write_array(Path(path), arr, oiio.FLOAT, channel_names=names, attributes={"compression": "zip"})
+
+
+def read_exr(path: str | Path) -> dict[str, np.ndarray]:
+    """Read every channel of an EXR (or any float image) as {name: [H,W] float32}."""
+    path = Path(path)
+    inp = _open(path)
+    try:
+        names = list(inp.spec().channelnames)
+        data = inp.read_image("float")
+        err = inp.geterror()
+    finally:
+        inp.close()
+    if data is None or err:
+        raise UserError(f"cannot read the file ({_clean_error(err)}); it may be truncated", path=path,
+                        hint=_UNREADABLE_HINT)
+    arr = np.asarray(data, dtype=np.float32)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    return {n: np.ascontiguousarray(arr[..., i]) for i, n in enumerate(names)}
+
+
+# ----------------------------------------------------------------------------------------------- resizing
+def resize_image(arr: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Resize an [H,W,C] (or [H,W]) float array to (width, height).
+
+    Downscaling averages the source area under each target pixel (no aliasing); upscaling is bilinear.
+    Returns float32 of the input's channel layout.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    arr = np.asarray(arr)
+    squeeze = arr.ndim == 2
+    a = arr[..., None] if squeeze else arr
+    h, w = a.shape[:2]
+    if (w, h) == (width, height):
+        out = a.astype(np.float32)
+    else:
+        t = torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).permute(2, 0, 1)[None]  # [1,C,H,W]
+        if width <= w and height <= h:
+            r = F.interpolate(t, size=(height, width), mode="area")
+        else:
+            r = F.interpolate(t, size=(height, width), mode="bilinear", align_corners=False, antialias=False)
+        out = r[0].permute(1, 2, 0).numpy()
+    out = np.ascontiguousarray(out, dtype=np.float32)
+    return out[..., 0] if squeeze else out

@@ -1,0 +1,159 @@
+"""Reading and writing COLMAP models through pycolmap (the only place besides sfm/ that touches it).
+
+Poses are exchanged as plain numpy ``cam_from_world`` [4,4] matrices (OpenCV axes, as COLMAP uses),
+so the rest of the package never sees pycolmap objects.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from uncertsplat.errors import UserError
+
+MODEL_FILES = ("cameras", "images", "points3D")
+
+
+@dataclass(frozen=True)
+class ColmapCamera:
+    """One COLMAP camera: model name, size, pinhole part K [3,3] and its distortion parameters."""
+
+    camera_id: int
+    model: str
+    width: int
+    height: int
+    K: np.ndarray  # [3,3]
+    distortion: np.ndarray  # [D] the model's extra parameters (empty for PINHOLE / SIMPLE_PINHOLE)
+
+
+@dataclass(frozen=True)
+class ColmapImage:
+    name: str
+    camera_id: int
+    cam_from_world: np.ndarray  # [4,4]
+
+
+@dataclass(frozen=True)
+class ColmapModel:
+    """A COLMAP reconstruction as numpy arrays. Only registered images (with a pose) are listed."""
+
+    cameras: dict[int, ColmapCamera]
+    images: list[ColmapImage]
+    points: np.ndarray  # [P,3] float64
+    points_rgb: np.ndarray  # [P,3] uint8
+
+
+def has_model(folder: Path) -> bool:
+    """True when ``folder`` holds cameras/images/points3D as .bin or .txt."""
+    folder = Path(folder)
+    return any(all((folder / f"{n}{ext}").is_file() for n in MODEL_FILES) for ext in (".bin", ".txt"))
+
+
+def read_colmap_model(folder: str | Path) -> ColmapModel:
+    """Read a binary or text COLMAP model folder.
+
+    Raises:
+        UserError: when the folder holds no model or pycolmap cannot parse it.
+    """
+    import pycolmap
+
+    folder = Path(folder)
+    if not has_model(folder):
+        raise UserError("no COLMAP model here (expected cameras, images and points3D as .bin or .txt)",
+                        path=folder, hint="Run `uncertsplat reconstruct` on your photos to create a workspace.")
+    try:
+        rec = pycolmap.Reconstruction(str(folder))
+    except Exception as err:  # pycolmap raises plain RuntimeErrors/ValueErrors for broken files
+        raise UserError(f"cannot read the COLMAP model ({err})", path=folder,
+                        hint="The model files may be truncated; re-run `uncertsplat reconstruct`.") from None
+    cameras: dict[int, ColmapCamera] = {}
+    for cid, cam in rec.cameras.items():
+        extra = [int(i) for i in cam.extra_params_idxs()]
+        params = np.asarray(cam.params, dtype=np.float64)
+        cameras[int(cid)] = ColmapCamera(
+            camera_id=int(cid),
+            model=str(cam.model.name),
+            width=int(cam.width),
+            height=int(cam.height),
+            K=np.asarray(cam.calibration_matrix(), dtype=np.float64),
+            distortion=params[extra] if extra else np.zeros(0),
+        )
+    images = []
+    for _, im in rec.images.items():
+        if not im.has_pose:
+            continue
+        M = np.eye(4)
+        M[:3, :4] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
+        images.append(ColmapImage(name=str(im.name), camera_id=int(im.camera_id), cam_from_world=M))
+    pts = list(rec.points3D.values())
+    xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3)
+    return ColmapModel(cameras, images, xyz, rgb)
+
+
+def write_colmap_model(
+    folder: str | Path,
+    cam_from_world: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    names: Sequence[str],
+    points: np.ndarray,
+    points_rgb: np.ndarray,
+    tracks: Sequence[Sequence[tuple[int, float, float]]] | None = None,
+) -> Path:
+    """Write a binary COLMAP model with one shared PINHOLE camera.
+
+    Args:
+        folder: the model folder (e.g. ``sparse/0``); replaced atomically (written beside, then renamed).
+        cam_from_world: [C,4,4] poses (OpenCV axes).
+        K: [3,3] shared intrinsics.
+        names: C image names.
+        points: [P,3] positions; points_rgb: [P,3] colours in [0, 1] (float) or uint8.
+        tracks: per point, its observations (image index, u, v) in pixels (centres at +0.5, as COLMAP).
+    """
+    import pycolmap
+
+    folder = Path(folder)
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model="PINHOLE", width=int(width), height=int(height),
+                          params=[float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])], camera_id=1)
+    rec.add_camera_with_trivial_rig(cam)
+    C = len(names)
+    # Keypoints per image, in the order the tracks reference them.
+    keypoints: list[list[tuple[float, float]]] = [[] for _ in range(C)]
+    elements: list[list[tuple[int, int]]] = []
+    for obs in tracks or [[] for _ in range(len(points))]:
+        el = []
+        for j, u, v in obs:
+            el.append((j, len(keypoints[j])))
+            keypoints[j].append((u, v))
+        elements.append(el)
+    for j in range(C):
+        kp = np.array(keypoints[j], dtype=np.float64).reshape(-1, 2)
+        img = pycolmap.Image(name=str(names[j]), keypoints=kp, camera_id=1, image_id=j + 1)
+        rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(np.asarray(cam_from_world[j][:3, :4], np.float64)))
+    rgb = np.asarray(points_rgb)
+    if rgb.dtype != np.uint8:
+        rgb = np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)
+    for p in range(len(points)):
+        track = pycolmap.Track([pycolmap.TrackElement(j + 1, k) for j, k in elements[p]])
+        rec.add_point3D(np.asarray(points[p], np.float64), track, rgb[p])
+
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    try:
+        rec.write_binary(str(tmp))
+        if folder.exists():
+            shutil.rmtree(folder)
+        os.replace(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
