@@ -1,9 +1,232 @@
-"""Stage `reconstruct` (issue 4)."""
+"""Stage ``reconstruct``: a folder of photos to an undistorted COLMAP workspace with a health report.
+
+Workspace layout (DESIGN.md section 2)::
+
+    WS/images/                 undistorted PINHOLE images
+    WS/sparse/0/*.bin          the model of the undistorted images
+    WS/database.db             COLMAP features and matches
+    WS/distorted/sparse/0/     the model before undistortion (the kept, largest model)
+    WS/distorted/input/        rotated copies, only when some photos carry an EXIF orientation
+    WS/reconstruct_report.json written atomically for successful and failed runs
+"""
 
 from __future__ import annotations
 
+import shutil
+import time
+from pathlib import Path
+
+from uncertsplat.config import ReconstructConfig
+from uncertsplat.console import console, progress
 from uncertsplat.errors import UserError
+from uncertsplat.io.atomic import run_lock
+from uncertsplat.sfm import reconstruct as sfm
+from uncertsplat.sfm.report import REPORT_NAME, ModelSummary, ReconstructReport, load_report, write_report
+
+# What a workspace written by this stage consists of: --overwrite removes these and nothing else.
+_OWNED = ("images", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", REPORT_NAME)
 
 
-def run(*args, **kwargs):
-    raise UserError("`reconstruct` is not implemented yet (issue 4).")
+def _list_names(names: list[str], limit: int = 15) -> str:
+    shown = ", ".join(names[:limit])
+    return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")
+
+
+def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fingerprint: str) -> ReconstructReport | None:
+    """Check the output folder; return an identical finished report to reuse, else make room.
+
+    Raises:
+        UserError: the output folder holds something else (another workspace, other files) and
+            ``cfg.overwrite`` is off, or the photos live inside the output folder.
+    """
+    photos_abs, ws_abs = photos.resolve(), workspace.resolve()
+    if ws_abs == photos_abs or ws_abs in photos_abs.parents:
+        raise UserError("the output folder contains the photo folder; writing there could destroy the photos",
+                        path=workspace, hint="Choose an output folder outside the photo folder.")
+    if photos_abs in ws_abs.parents:
+        raise UserError("the output folder is inside the photo folder", path=workspace,
+                        hint="Choose an output folder outside the photo folder.")
+    if workspace.exists() and not workspace.is_dir():
+        raise UserError("the output path is a file, not a folder", path=workspace, hint="Choose another output path.")
+    if not workspace.exists() or not any(workspace.iterdir()):
+        return None
+    existing = None
+    try:
+        existing = load_report(workspace)
+    except UserError:
+        existing = None
+    same_input = (existing is not None and existing.photos == str(photos_abs)
+                  and existing.inputs_fingerprint == fingerprint)
+    if (not cfg.overwrite and same_input and existing.success
+            and existing.options == cfg.model_dump(mode="json", exclude={"overwrite"})
+            and (workspace / "sparse" / "0").is_dir()):
+        return existing
+    # Our own failed run on the same photos is redone without asking: there is nothing to lose.
+    redo_failed = existing is not None and same_input and not existing.success
+    if not cfg.overwrite and not redo_failed:
+        if existing is not None:
+            what = (f"a workspace made from other photos ({existing.photos})" if not same_input
+                    else "a workspace made with other options")
+        else:
+            what = "other files (not an uncertsplat workspace)"
+        raise UserError(f"the output folder already holds {what}", path=workspace,
+                        hint="Choose another output folder, or pass --overwrite to replace it.")
+    for name in _OWNED:
+        target = workspace / name
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        elif target.exists() or target.is_symlink():
+            target.unlink()
+    return None
+
+
+def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructReport:
+    """Run SfM on ``photos`` and write an undistorted workspace plus ``reconstruct_report.json``.
+
+    Returns the report. On failure (too few images registered, no overlap) the report is written
+    with ``success: false`` first, then a UserError lists the unregistered images and what to try.
+    """
+    photos, workspace = Path(photos), Path(workspace)
+    watch = sfm.Stopwatch()
+    t_start = time.perf_counter()
+    with watch("scan"):
+        scan = sfm.scan_photos(photos)
+        fingerprint = scan.fingerprint()
+    reused = _prepare_workspace(photos, workspace, cfg, fingerprint)
+    if reused is not None:
+        console.print(f"reconstruct: {workspace} already holds this reconstruction ({reused.summary()}); "
+                      "nothing to do (pass --overwrite to redo it)")
+        return reused
+
+    pyv, colv = sfm.versions()
+    report = ReconstructReport(
+        success=False, photos=str(photos.resolve()), inputs_fingerprint=fingerprint,
+        images_found=scan.names, images_unregistered=scan.names, ignored=scan.ignored, notes=list(scan.notes),
+        pycolmap_version=pyv, colmap_version=colv,
+        options=cfg.model_dump(mode="json", exclude={"overwrite"}),
+    )
+    for note in scan.notes:
+        console.print(f"[yellow]note:[/] {note}")
+    groups = scan.size_groups()
+    report.image_sizes = {f"{w}x{h}": len(n) for (w, h), n in groups.items()}
+    if len(groups) > 1 and cfg.single_camera:
+        report.notes.append(f"{len(groups)} image sizes found: one camera per size "
+                            f"({', '.join(report.image_sizes)})")
+
+    def fail(message: str, hint: str) -> UserError:
+        report.success = False
+        report.message = message
+        report.stage_seconds = dict(watch.seconds)
+        report.total_seconds = round(time.perf_counter() - t_start, 3)
+        write_report(workspace, report)
+        return UserError(f"{message} (report: {workspace / REPORT_NAME})", path=photos, hint=hint)
+
+    n = len(scan.photos)
+    distorted = workspace / "distorted"
+    database = workspace / "database.db"
+    with run_lock(workspace, "reconstruct"), sfm.colmap_logging():
+        sfm.set_seed(cfg.seed)
+        with watch("stage_inputs"):
+            image_dir, rotated = sfm.stage_inputs(scan, distorted / "input")
+        report.rotated = rotated
+        if rotated:
+            report.notes.append(f"EXIF orientation applied to {len(rotated)} image(s)")
+        matcher = sfm.resolve_matcher(cfg, n)
+        pairs = sfm.image_pairs(scan.names, matcher)
+        report.matcher = matcher
+
+        with progress() as bar:
+            # ---- features
+            task = bar.add_task("features", total=n, info="")
+            with watch("extract"):
+                keypoints = sfm.extract_features(database, image_dir, groups, cfg,
+                                                 advance=lambda k, s: bar.update(task, advance=k, info=s))
+            missing = [name for name in scan.names if name not in keypoints]
+            if missing:
+                raise fail(f"COLMAP could not read {len(missing)} image(s): {_list_names(missing)}",
+                           "Re-export these files as JPEG or PNG, or remove them.")
+            featureless = sorted(name for name, k in keypoints.items() if k == 0)
+            bar.update(task, info=f"{sum(keypoints.values())} keypoints")
+            if featureless:
+                report.notes.append(f"no features found in: {_list_names(featureless)}")
+
+            # ---- matching
+            task = bar.add_task(f"matching ({matcher})", total=len(pairs), info="")
+            with watch("match"):
+                report.num_verified_pairs = sfm.match_features(
+                    database, pairs, cfg, distorted, advance=lambda k, s: bar.update(task, advance=k, info=s))
+
+            # ---- mapping, retried once with relaxed options when too few images register
+            needed = cfg.min_registered * n
+            attempts = []
+            for relaxed in (False, True):
+                label = "mapping (relaxed)" if relaxed else "mapping"
+                task = bar.add_task(label, total=n, info="")
+                with watch("map"):
+                    result = sfm.map_incremental(database, image_dir, distorted / "models", cfg, relaxed,
+                                                 advance=lambda k, s, t=task: bar.update(t, advance=k, info=s))
+                bar.update(task, completed=result.num_registered, info=f"{result.num_registered} registered")
+                attempts.append(result)
+                if result.num_registered >= needed or report.num_verified_pairs == 0:
+                    break
+            result = max(attempts, key=lambda r: r.num_registered)
+            report.retried_relaxed = len(attempts) > 1
+
+        shutil.rmtree(distorted / "models", ignore_errors=True)
+        report.models_found = len(result.models)
+        report.models = [ModelSummary(index=i, num_images=m.num_reg_images(), num_points3d=m.num_points3D(),
+                                      image_names=sfm.registered_names(m), kept=(i == 0))
+                         for i, m in enumerate(result.models)]
+        best = result.best
+        registered = sfm.registered_names(best) if best is not None else []
+        report.images_registered = registered
+        report.images_unregistered = sorted(set(scan.names) - set(registered))
+        report.registered_fraction = len(registered) / n
+        if best is not None:
+            stats = sfm.model_stats(best)
+            report.num_points3d = stats["num_points3d"]
+            report.mean_reprojection_error = stats["mean_reprojection_error"]
+            report.mean_track_length = stats["mean_track_length"]
+            report.mean_observations_per_image = stats["mean_observations_per_image"]
+            report.cameras = sfm.camera_summaries(best)
+        if len(result.models) > 1:
+            report.notes.append(f"mapping split the photos into {len(result.models)} models; kept the largest "
+                                f"({result.models[0].num_reg_images()} images), sizes of the others: "
+                                f"{[m.num_reg_images() for m in result.models[1:]]}")
+
+        if best is None:
+            why = ("no image pair shares enough matching features" if report.num_verified_pairs == 0
+                   else "no initial image pair could be found")
+            raise fail(f"no model could be built: {why}; 0/{n} images registered",
+                       "The photos must overlap: take photos of one scene from nearby viewpoints with "
+                       "60-80% overlap between neighbours, avoid blur and textureless surfaces.")
+        if len(registered) < needed:
+            hints = ["take more photos with more overlap between neighbours",
+                     "use sharper images (no motion blur)"]
+            if matcher == "exhaustive" and n > 50:
+                hints.append("for video frames try --matcher sequential")
+            elif matcher == "sequential":
+                hints.append("for unordered photos try --matcher exhaustive")
+            hints.append(f"or lower --min-registered (now {cfg.min_registered})")
+            raise fail(f"only {len(registered)}/{n} images registered (below --min-registered "
+                       f"{cfg.min_registered}); unregistered: {_list_names(report.images_unregistered)}",
+                       "Try: " + "; ".join(hints) + ".")
+
+        model_dir = distorted / "sparse" / "0"
+        model_dir.mkdir(parents=True, exist_ok=True)
+        best.write(model_dir)
+        with console.status(f"undistorting {len(registered)} images"), watch("undistort"):
+            report.undistorted_size = sfm.undistort(model_dir, image_dir, workspace, cfg)
+
+        report.success = True
+        report.message = "" if not report.images_unregistered else (
+            f"{len(report.images_unregistered)} image(s) not registered: {_list_names(report.images_unregistered)}")
+        report.stage_seconds = dict(watch.seconds)
+        report.total_seconds = round(time.perf_counter() - t_start, 3)
+        write_report(workspace, report)
+    console.print(f"reconstruct: {report.summary()} -> {workspace}")
+    for stage, sec in report.stage_seconds.items():
+        console.print(f"  {stage:<13} {sec:8.2f} s")
+    if report.images_unregistered:
+        console.print(f"[yellow]warning:[/] not registered: {_list_names(report.images_unregistered)}")
+    return report

@@ -1,0 +1,250 @@
+"""Unit tests of the reconstruct building blocks (no feature matching or mapping here: fast)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import OpenImageIO as oiio
+import pytest
+
+from uncertsplat.config import ReconstructConfig
+from uncertsplat.errors import UserError
+from uncertsplat.sfm import reconstruct as sfm
+from uncertsplat.sfm.report import (
+    REPORT_NAME,
+    ReconstructReport,
+    load_report,
+    require_successful,
+    write_report,
+)
+from uncertsplat.stages import reconstruct as stage
+
+
+def write_image(path: Path, width: int = 32, height: int = 24, orientation: int | None = None, seed: int = 0):
+    """A random RGB image; ``orientation`` sets the EXIF Orientation tag."""
+    arr = np.random.default_rng(seed).integers(0, 255, (height, width, 3), dtype=np.uint8)
+    spec = oiio.ImageSpec(width, height, 3, "uint8")
+    if orientation is not None:
+        spec.attribute("Orientation", orientation)
+    out = oiio.ImageOutput.create(str(path))
+    assert out is not None, oiio.geterror()
+    out.open(str(path), spec)
+    out.write_image(arr)
+    out.close()
+    return arr
+
+
+# ------------------------------------------------------------------------------------------------ scan
+def test_scan_accepts_mixed_case_extensions_and_ignores_the_rest(tmp_path):
+    for i, name in enumerate(["a.JPG", "b.jpeg", "c.Png", "d.TIF", "e.tiff"]):
+        write_image(tmp_path / name, seed=i)
+    (tmp_path / "notes.txt").write_text("hello")
+    (tmp_path / ".DS_Store").write_bytes(b"\0")
+    (tmp_path / "nested").mkdir()
+    write_image(tmp_path / "nested" / "f.jpg")
+    scan = sfm.scan_photos(tmp_path)
+    assert scan.names == ["a.JPG", "b.jpeg", "c.Png", "d.TIF", "e.tiff"]
+    assert set(scan.ignored) == {"notes.txt", ".DS_Store", "nested/"}
+    assert any("nested" in n for n in scan.notes)
+    assert all((p.width, p.height) == (32, 24) for p in scan.photos)
+
+
+def test_scan_empty_folder(tmp_path):
+    with pytest.raises(UserError, match="empty"):
+        sfm.scan_photos(tmp_path)
+
+
+def test_scan_folder_without_photos(tmp_path):
+    (tmp_path / "readme.txt").write_text("x")
+    with pytest.raises(UserError, match="no JPEG, PNG or TIFF"):
+        sfm.scan_photos(tmp_path)
+
+
+def test_scan_missing_folder(tmp_path):
+    with pytest.raises(UserError, match="not found"):
+        sfm.scan_photos(tmp_path / "nope")
+
+
+def test_scan_fewer_than_three_images(tmp_path):
+    write_image(tmp_path / "a.jpg")
+    write_image(tmp_path / "b.jpg")
+    with pytest.raises(UserError, match="only 2 photo"):
+        sfm.scan_photos(tmp_path)
+
+
+def test_scan_names_every_unreadable_file(tmp_path):
+    for i in range(3):
+        write_image(tmp_path / f"ok{i}.png", seed=i)
+    (tmp_path / "broken.jpg").write_bytes(b"this is not a jpeg")
+    (tmp_path / "empty.PNG").write_bytes(b"")
+    with pytest.raises(UserError) as err:
+        sfm.scan_photos(tmp_path)
+    msg = str(err.value)
+    assert "broken.jpg" in msg and "empty.PNG" in msg and "ok0.png" not in msg
+
+
+def test_size_groups_and_exif_orientation(tmp_path):
+    write_image(tmp_path / "a.jpg", 40, 30)
+    write_image(tmp_path / "b.jpg", 40, 30, orientation=6)  # stored landscape, shown portrait
+    write_image(tmp_path / "c.jpg", 30, 40)
+    write_image(tmp_path / "d.jpg", 64, 48)
+    scan = sfm.scan_photos(tmp_path)
+    assert {p.name: p.orientation for p in scan.photos}["b.jpg"] == 6
+    groups = scan.size_groups()
+    assert groups == {(40, 30): ["a.jpg"], (30, 40): ["b.jpg", "c.jpg"], (64, 48): ["d.jpg"]}
+
+
+def test_stage_inputs_rotates_by_exif(tmp_path):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    upright = write_image(photos / "a.png", 40, 30)
+    stored = write_image(photos / "b.tif", 40, 30, orientation=6)
+    write_image(photos / "c.png", 40, 30)
+    scan = sfm.scan_photos(photos)
+    folder, rotated = sfm.stage_inputs(scan, tmp_path / "staging")
+    assert rotated == ["b.tif"] and folder == tmp_path / "staging"
+    assert sorted(p.name for p in folder.iterdir()) == ["a.png", "b.tif", "c.png"]
+    buf = oiio.ImageBuf(str(folder / "b.tif"))
+    got = buf.get_pixels(oiio.UINT8)
+    # orientation 6: the image must be rotated 90 degrees clockwise for display
+    assert got.shape == (40, 30, 3)
+    np.testing.assert_array_equal(got, np.rot90(stored, k=-1))
+    assert buf.spec().get_int_attribute("Orientation", 1) == 1
+    np.testing.assert_array_equal(oiio.ImageBuf(str(folder / "a.png")).get_pixels(oiio.UINT8), upright)
+
+
+def test_stage_inputs_without_orientation_uses_the_photo_folder(tmp_path):
+    for i in range(3):
+        write_image(tmp_path / f"{i}.png", seed=i)
+    scan = sfm.scan_photos(tmp_path)
+    folder, rotated = sfm.stage_inputs(scan, tmp_path / "staging")
+    assert folder == tmp_path and rotated == [] and not (tmp_path / "staging").exists()
+
+
+# ---------------------------------------------------------------------------------------------- pairs
+def test_exhaustive_pairs():
+    names = [f"{i}.jpg" for i in range(6)]
+    pairs = sfm.image_pairs(names, "exhaustive")
+    assert len(pairs) == 15 and len(set(pairs)) == 15
+    assert all(a < b for a, b in pairs)
+
+
+def test_sequential_pairs_neighbours_and_quadratic_links():
+    names = [f"{i:03d}.jpg" for i in range(100)]
+    pairs = sfm.image_pairs(names, "sequential", overlap=5)
+    assert len(pairs) == len(set(pairs))
+    idx = {(int(a[:3]), int(b[:3])) for a, b in pairs}
+    partners = sorted(j for i, j in idx if i == 10)
+    assert partners == [11, 12, 13, 14, 15, 18, 26]  # 5 neighbours, then distances 8 and 16
+    assert sorted(j for i, j in idx if i == 97) == [98, 99]
+    assert all(j > i for i, j in idx)
+
+
+def test_resolve_matcher():
+    cfg = ReconstructConfig(exhaustive_max_images=10)
+    assert sfm.resolve_matcher(cfg, 10) == "exhaustive"
+    assert sfm.resolve_matcher(cfg, 11) == "sequential"
+    assert sfm.resolve_matcher(ReconstructConfig(matcher="exhaustive", exhaustive_max_images=10), 500) == "exhaustive"
+
+
+# ---------------------------------------------------------------------------------------------- align
+def test_similarity_align_recovers_a_known_transform():
+    rng = np.random.default_rng(3)
+    src = rng.normal(size=(30, 3))
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    rot = q * np.sign(np.linalg.det(q))  # a proper rotation
+    dst = 2.5 * src @ rot.T + np.array([1.0, -2.0, 0.5])
+    s, r, t = sfm.similarity_align(src, dst)
+    assert s == pytest.approx(2.5, rel=1e-9)
+    np.testing.assert_allclose(r, rot, atol=1e-9)
+    np.testing.assert_allclose(t, [1.0, -2.0, 0.5], atol=1e-9)
+
+
+def test_similarity_align_never_returns_a_reflection():
+    rng = np.random.default_rng(4)
+    src = rng.normal(size=(20, 3))
+    dst = src * np.array([1.0, 1.0, -1.0])  # a mirror image: best proper fit is not exact
+    _, r, _ = sfm.similarity_align(src, dst)
+    assert np.linalg.det(r) == pytest.approx(1.0)
+
+
+# --------------------------------------------------------------------------------------------- report
+def _report(**kw) -> ReconstructReport:
+    base = dict(success=True, photos="/p", images_found=["a", "b", "c"], images_registered=["a", "b", "c"])
+    base.update(kw)
+    return ReconstructReport(**base)
+
+
+def test_report_roundtrip_and_atomic_write(tmp_path):
+    rep = _report(stage_seconds={"extract": 1.5}, cameras=[{"camera_id": 1, "model": "PINHOLE", "width": 4,
+                                                             "height": 3, "params": [1, 1, 2, 1.5], "num_images": 3}])
+    write_report(tmp_path, rep)
+    assert [p.name for p in tmp_path.iterdir()] == [REPORT_NAME]  # no temp file left
+    back = load_report(tmp_path)
+    assert back == rep
+    assert json.loads((tmp_path / REPORT_NAME).read_text())["success"] is True
+
+
+def test_require_successful_refuses_a_failed_workspace(tmp_path):
+    assert require_successful(tmp_path) is None  # a foreign workspace without a report is accepted
+    write_report(tmp_path, _report(success=False, message="only 1/3 images registered",
+                                   images_registered=["a"], images_unregistered=["b", "c"]))
+    with pytest.raises(UserError, match="failed reconstruction"):
+        require_successful(tmp_path)
+
+
+def test_load_report_rejects_garbage(tmp_path):
+    (tmp_path / REPORT_NAME).write_text("{not json")
+    with pytest.raises(UserError, match="not a valid reconstruct report"):
+        load_report(tmp_path)
+
+
+# ------------------------------------------------------------------------------------------ workspace
+def _photos(tmp_path: Path) -> Path:
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        write_image(photos / f"{i}.png", seed=i)
+    return photos
+
+
+def test_refuses_an_output_folder_with_other_files(tmp_path):
+    photos = _photos(tmp_path)
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    (ws / "thesis.docx").write_text("precious")
+    with pytest.raises(UserError, match="--overwrite"):
+        stage.run(photos, ws, ReconstructConfig())
+    assert (ws / "thesis.docx").read_text() == "precious"
+
+
+def test_refuses_a_workspace_of_other_photos(tmp_path):
+    photos = _photos(tmp_path)
+    ws = tmp_path / "ws"
+    write_report(ws, _report(photos=str(tmp_path / "elsewhere")))
+    (ws / "sparse" / "0").mkdir(parents=True)
+    with pytest.raises(UserError, match="other photos"):
+        stage.run(photos, ws, ReconstructConfig())
+    assert load_report(ws).photos == str(tmp_path / "elsewhere")  # untouched
+
+
+def test_refuses_output_inside_or_around_the_photos(tmp_path):
+    photos = _photos(tmp_path)
+    with pytest.raises(UserError, match="inside the photo folder"):
+        stage.run(photos, photos / "ws", ReconstructConfig(overwrite=True))
+    with pytest.raises(UserError, match="contains the photo folder"):
+        stage.run(photos, tmp_path, ReconstructConfig(overwrite=True))
+    assert len(list(photos.iterdir())) == 3
+
+
+def test_overwrite_removes_only_workspace_entries(tmp_path):
+    photos = _photos(tmp_path)
+    ws = tmp_path / "ws"
+    (ws / "images").mkdir(parents=True)
+    (ws / "images" / "old.png").write_bytes(b"x")
+    (ws / "keep.txt").write_text("mine")
+    write_report(ws, _report(photos=str(tmp_path / "elsewhere")))
+    assert stage._prepare_workspace(photos, ws, ReconstructConfig(overwrite=True), "fp") is None
+    assert sorted(p.name for p in ws.iterdir()) == ["keep.txt"]

@@ -1,0 +1,517 @@
+"""Structure-from-motion with COLMAP (pycolmap 4.2.1): photos to an undistorted PINHOLE workspace.
+
+The steps are plain functions so that each can be tested and timed on its own:
+
+``scan_photos`` (which files, their sizes and EXIF orientation) -> ``stage_inputs`` (rotated copies
+where EXIF asks for it) -> ``extract_features`` (SIFT, one camera per image size) -> ``match_features``
+(exhaustive or sequential pairs) -> ``map_incremental`` (keep the largest model, retry once relaxed)
+-> ``undistort`` (PINHOLE images into ``WS/images`` and the model into ``WS/sparse/0``).
+
+``uncertsplat.stages.reconstruct.run`` chains them, owns the workspace and writes the report.
+This package is the only one that imports pycolmap.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import os
+import shutil
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from uncertsplat.config import ReconstructConfig
+from uncertsplat.errors import UserError
+
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+"""Accepted photo extensions, compared case-insensitively (IMG_0001.JPG is fine)."""
+
+ProgressFn = Callable[[int, str], None]
+"""``advance(n, info)``: n more units done, ``info`` a short status text."""
+
+
+def _noop(n: int, info: str) -> None:
+    return None
+
+
+# ------------------------------------------------------------------------------------------- logging
+@contextlib.contextmanager
+def colmap_logging(verbose: bool = False) -> Iterator[None]:
+    """Silence COLMAP's glog chatter (hundreds of lines per image) unless ``verbose``.
+
+    Set ``UNCERTSPLAT_COLMAP_LOG=1`` to see COLMAP's own log when diagnosing a failure.
+    """
+    verbose = verbose or bool(os.environ.get("UNCERTSPLAT_COLMAP_LOG"))
+    old = pycolmap.logging.minloglevel
+    if not verbose:
+        pycolmap.logging.minloglevel = 3  # FATAL only: our own messages explain failures
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+# ---------------------------------------------------------------------------------------------- scan
+@dataclass(frozen=True)
+class PhotoInfo:
+    """One input photo: its name (relative to the photo folder), pixel size and EXIF orientation."""
+
+    name: str
+    path: Path
+    width: int
+    height: int
+    orientation: int = 1
+    """EXIF orientation 1..8 (1: upright). 5..8 swap width and height when applied."""
+
+    @property
+    def oriented_size(self) -> tuple[int, int]:
+        """(width, height) after applying the EXIF orientation."""
+        return (self.height, self.width) if self.orientation in (5, 6, 7, 8) else (self.width, self.height)
+
+
+@dataclass
+class PhotoScan:
+    """What ``scan_photos`` found in a folder."""
+
+    folder: Path
+    photos: list[PhotoInfo]
+    ignored: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def names(self) -> list[str]:
+        return [p.name for p in self.photos]
+
+    def size_groups(self) -> dict[tuple[int, int], list[str]]:
+        """(width, height) after orientation -> image names, in name order."""
+        groups: dict[tuple[int, int], list[str]] = {}
+        for p in self.photos:
+            groups.setdefault(p.oriented_size, []).append(p.name)
+        return groups
+
+    def fingerprint(self) -> str:
+        """Hash of names, byte sizes and modification times: changes when the photo folder changes."""
+        h = hashlib.sha256()
+        for p in self.photos:
+            st = p.path.stat()
+            h.update(f"{p.name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+        return h.hexdigest()[:16]
+
+
+def _read_header(path: Path) -> tuple[int, int, int] | str:
+    """(width, height, orientation) from the file header, or the reader's error message."""
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        msg = oiio.geterror() or "unknown format"
+        return msg.strip().splitlines()[0] if msg.strip() else "cannot be read"
+    try:
+        spec = inp.spec()
+        orientation = int(spec.get_int_attribute("Orientation", 1))
+        if spec.width <= 0 or spec.height <= 0:
+            return "image has no pixels"
+        return spec.width, spec.height, orientation if 1 <= orientation <= 8 else 1
+    finally:
+        inp.close()
+
+
+def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
+    """List the photos of ``folder`` (not recursive) and read their headers.
+
+    JPEG, PNG and TIFF files of any extension case are used; sub-folders, hidden files and other
+    files are ignored (and named in ``ignored``).
+
+    Raises:
+        UserError: the folder is missing or empty, holds fewer than ``min_images`` photos, or some
+            photos cannot be read (all of them are named).
+    """
+    folder = Path(folder)
+    if not folder.exists():
+        raise UserError("photo folder not found", path=folder, hint="Check the path.")
+    if not folder.is_dir():
+        raise UserError("expected a folder of photos, got a file", path=folder,
+                        hint="Put the photos in a folder and pass the folder.")
+    entries = sorted(folder.iterdir(), key=lambda p: p.name)
+    ignored: list[str] = []
+    notes: list[str] = []
+    candidates: list[Path] = []
+    subfolders = []
+    for entry in entries:
+        if entry.name.startswith("."):
+            ignored.append(entry.name)  # .DS_Store, ._IMG_0001.JPG (macOS resource forks), ...
+        elif entry.is_dir():
+            subfolders.append(entry.name)
+            ignored.append(entry.name + "/")
+        elif entry.suffix.lower() in IMAGE_EXTENSIONS:
+            candidates.append(entry)
+        else:
+            ignored.append(entry.name)
+    if subfolders:
+        notes.append(f"sub-folders are not searched: {', '.join(subfolders)} ignored "
+                     "(move their photos into the top folder to use them)")
+    if not candidates:
+        what = "is empty" if not entries else "holds no JPEG, PNG or TIFF photos"
+        raise UserError(f"the photo folder {what}", path=folder,
+                        hint=f"Put at least {min_images} overlapping photos ({', '.join(IMAGE_EXTENSIONS)}) "
+                        "directly in this folder.")
+    if len(candidates) < min_images:
+        raise UserError(f"only {len(candidates)} photo(s) found; structure-from-motion needs at least {min_images}",
+                        path=folder, hint="Add more overlapping photos of the scene (20 or more works best).")
+    photos: list[PhotoInfo] = []
+    bad: list[str] = []
+    for path in candidates:
+        header = _read_header(path)
+        if isinstance(header, str):
+            bad.append(f"{path.name} ({header})")
+        else:
+            w, h, o = header
+            photos.append(PhotoInfo(path.name, path, w, h, o))
+    if bad:
+        raise UserError(f"{len(bad)} photo(s) cannot be read: {'; '.join(bad)}", path=folder,
+                        hint="Remove or re-export these files (JPEG, PNG or TIFF), then run again.")
+    return PhotoScan(folder=folder, photos=photos, ignored=ignored, notes=notes)
+
+
+def stage_inputs(scan: PhotoScan, staging: Path) -> tuple[Path, list[str]]:
+    """Return the image folder COLMAP should read, and the names that were rotated.
+
+    COLMAP (pycolmap 4.2.1) ignores EXIF orientation, so a phone photo taken in portrait would be
+    read sideways. When any photo carries an orientation other than 1, a staging folder gets rotated
+    copies of those photos and links (or copies) of the others; else the photo folder is used as is.
+    """
+    rotate = [p for p in scan.photos if p.orientation != 1]
+    if not rotate:
+        return scan.folder, []
+    import OpenImageIO as oiio
+
+    if staging.exists():
+        shutil.rmtree(staging)
+    staging.mkdir(parents=True)
+    for p in scan.photos:
+        dst = staging / p.name
+        if p.orientation == 1:
+            try:
+                os.symlink(p.path.resolve(), dst)
+            except OSError:  # file systems without symlinks
+                shutil.copy2(p.path, dst)
+            continue
+        buf = oiio.ImageBufAlgo.reorient(oiio.ImageBuf(str(p.path)))
+        buf.specmod().attribute("Orientation", 1)  # the pixels are upright now
+        if p.path.suffix.lower() in (".jpg", ".jpeg"):
+            buf.specmod().attribute("Compression", "jpeg:95")
+        if not buf.write(str(dst)):
+            raise UserError(f"cannot write a rotated copy ({buf.geterror()})", path=dst)
+    return staging, [p.name for p in rotate]
+
+
+# ------------------------------------------------------------------------------------------ features
+def _chunks(items: Sequence, size: int) -> Iterator[Sequence]:
+    for i in range(0, len(items), size):
+        yield items[i:i + size]
+
+
+def extract_features(
+    database: Path,
+    image_dir: Path,
+    groups: dict[tuple[int, int], list[str]],
+    cfg: ReconstructConfig,
+    advance: ProgressFn = _noop,
+    chunk_size: int = 8,
+) -> dict[str, int]:
+    """SIFT features for every image into ``database``; returns name -> number of keypoints.
+
+    With ``cfg.single_camera`` every image size gets one shared camera: pycolmap's SINGLE mode
+    would otherwise skip (silently) every image whose size differs from the first. Images are fed
+    in chunks so the progress bar moves; later chunks reuse the group's camera.
+    """
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = cfg.camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = cfg.num_threads
+    extraction.max_image_size = cfg.max_image_size
+    mode = pycolmap.CameraMode.SINGLE if cfg.single_camera else pycolmap.CameraMode.PER_IMAGE
+    for names in groups.values():
+        camera_id = -1
+        for chunk in _chunks(names, chunk_size):
+            reader.existing_camera_id = camera_id
+            pycolmap.extract_features(database, image_dir, image_names=list(chunk), camera_mode=mode,
+                                      reader_options=reader, extraction_options=extraction,
+                                      device=pycolmap.Device.cpu)
+            if cfg.single_camera and camera_id == -1:
+                with pycolmap.Database.open(database) as db:
+                    for img in db.read_all_images():
+                        if img.name in chunk:
+                            camera_id = img.camera_id
+                            break
+            advance(len(chunk), "")
+    with pycolmap.Database.open(database) as db:
+        return {img.name: db.num_keypoints_for_image(img.image_id) for img in db.read_all_images()}
+
+
+# ------------------------------------------------------------------------------------------ matching
+def resolve_matcher(cfg: ReconstructConfig, num_images: int) -> str:
+    """auto: exhaustive for small sets, sequential for large (ordered, e.g. video) captures."""
+    if cfg.matcher != "auto":
+        return cfg.matcher
+    return "exhaustive" if num_images <= cfg.exhaustive_max_images else "sequential"
+
+
+def image_pairs(names: Sequence[str], matcher: str, overlap: int = 10) -> list[tuple[str, str]]:
+    """Pairs to match. ``names`` in capture order (sorted by name).
+
+    exhaustive: all pairs. sequential: each image with its ``overlap`` successors, plus successors at
+    distances 2^k (k < overlap), as COLMAP's quadratic sequential overlap, to close loops cheaply.
+    """
+    n = len(names)
+    if matcher == "exhaustive":
+        return [(names[i], names[j]) for i in range(n) for j in range(i + 1, n)]
+    if matcher != "sequential":
+        raise ValueError(f"unknown matcher {matcher!r}")
+    pairs: set[tuple[int, int]] = set()
+    for i in range(n):
+        for d in range(1, overlap + 1):
+            if i + d < n:
+                pairs.add((i, i + d))
+        for k in range(overlap):
+            d = 2 ** k
+            if i + d < n:
+                pairs.add((i, i + d))
+    return [(names[i], names[j]) for i, j in sorted(pairs)]
+
+
+def _verification_options(cfg: ReconstructConfig) -> pycolmap.TwoViewGeometryOptions:
+    opts = pycolmap.TwoViewGeometryOptions()
+    opts.ransac.random_seed = cfg.seed
+    return opts
+
+
+def count_verified_pairs(database: Path) -> int:
+    """Image pairs with geometrically verified inlier matches.
+
+    (``Database.num_verified_image_pairs`` also counts pairs whose verification failed.)
+    """
+    with pycolmap.Database.open(database) as db:
+        _, inliers = db.read_two_view_geometry_num_inliers()
+    return int(sum(1 for k in inliers if k > 0))
+
+
+def match_features(
+    database: Path,
+    pairs: Sequence[tuple[str, str]],
+    cfg: ReconstructConfig,
+    scratch: Path,
+    advance: ProgressFn = _noop,
+    block: int = 200,
+) -> int:
+    """Match and geometrically verify ``pairs``; returns the number of verified pairs.
+
+    Pairs go to COLMAP in blocks (an imported pair list each) so that progress can be shown.
+    """
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = cfg.num_threads
+    pairing = pycolmap.ImportedPairingOptions()
+    scratch.mkdir(parents=True, exist_ok=True)
+    pair_file = scratch / "pairs.txt"
+    verification = _verification_options(cfg)
+    verified = count_verified_pairs(database)
+    for chunk in _chunks(list(pairs), block):
+        pair_file.write_text("".join(f"{a} {b}\n" for a, b in chunk), encoding="utf-8")
+        pairing.match_list_path = str(pair_file)
+        pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=pairing,
+                                   verification_options=verification, device=pycolmap.Device.cpu)
+        verified = count_verified_pairs(database)
+        advance(len(chunk), f"{verified} verified")
+    pair_file.unlink(missing_ok=True)
+    return verified
+
+
+# ------------------------------------------------------------------------------------------- mapping
+@dataclass
+class MappingResult:
+    """All models of one mapping run, largest first."""
+
+    models: list[pycolmap.Reconstruction]
+    relaxed: bool
+
+    @property
+    def best(self) -> pycolmap.Reconstruction | None:
+        return self.models[0] if self.models else None
+
+    @property
+    def num_registered(self) -> int:
+        return self.best.num_reg_images() if self.best is not None else 0
+
+
+def mapper_options(cfg: ReconstructConfig, relaxed: bool = False) -> pycolmap.IncrementalPipelineOptions:
+    """Incremental mapping options; ``relaxed`` lowers the inlier and angle thresholds.
+
+    The relaxed set helps captures with little texture or small baselines, at the risk of admitting
+    a wrongly posed image, which is why it is only the second attempt.
+    """
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = cfg.num_threads
+    opts.random_seed = cfg.seed
+    opts.mapper.random_seed = cfg.seed
+    opts.triangulation.random_seed = cfg.seed
+    opts.min_model_size = 3
+    if relaxed:
+        opts.min_num_matches = 10
+        opts.init_num_trials = 400
+        opts.mapper.init_min_num_inliers = 50
+        opts.mapper.init_min_tri_angle = 8.0
+        opts.mapper.abs_pose_min_num_inliers = 15
+        opts.mapper.abs_pose_min_inlier_ratio = 0.15
+        opts.mapper.max_reg_trials = 5
+    return opts
+
+
+def map_incremental(
+    database: Path,
+    image_dir: Path,
+    scratch: Path,
+    cfg: ReconstructConfig,
+    relaxed: bool = False,
+    advance: ProgressFn = _noop,
+) -> MappingResult:
+    """Incremental mapping; every model it finds, largest (most registered images) first."""
+    if scratch.exists():
+        shutil.rmtree(scratch)
+    scratch.mkdir(parents=True)
+    count = [0]
+
+    def on_initial_pair() -> None:
+        count[0] += 2
+        advance(2, "initial pair")
+
+    def on_next_image() -> None:
+        count[0] += 1
+        advance(1, "")
+
+    models = pycolmap.incremental_mapping(database, image_dir, scratch, mapper_options(cfg, relaxed),
+                                          initial_image_pair_callback=on_initial_pair,
+                                          next_image_callback=on_next_image)
+    ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
+    return MappingResult(models=ordered, relaxed=relaxed)
+
+
+def registered_names(rec: pycolmap.Reconstruction) -> list[str]:
+    return sorted(rec.image(i).name for i in rec.reg_image_ids())
+
+
+def model_stats(rec: pycolmap.Reconstruction) -> dict:
+    """Health numbers of one model (reprojection error in pixels of the distorted images)."""
+    return {
+        "num_points3d": int(rec.num_points3D()),
+        "mean_reprojection_error": float(rec.compute_mean_reprojection_error()) if rec.num_points3D() else None,
+        "mean_track_length": float(rec.compute_mean_track_length()) if rec.num_points3D() else None,
+        "mean_observations_per_image": float(rec.compute_mean_observations_per_reg_image())
+        if rec.num_reg_images() else None,
+    }
+
+
+def camera_summaries(rec: pycolmap.Reconstruction) -> list[dict]:
+    counts: dict[int, int] = {}
+    for i in rec.reg_image_ids():
+        cid = rec.image(i).camera_id
+        counts[cid] = counts.get(cid, 0) + 1
+    out = []
+    for cid, cam in sorted(rec.cameras.items()):
+        out.append({"camera_id": int(cid), "model": cam.model_name, "width": int(cam.width),
+                    "height": int(cam.height), "params": [float(v) for v in cam.params],
+                    "num_images": counts.get(cid, 0)})
+    return out
+
+
+# --------------------------------------------------------------------------------------- undistortion
+def undistort(model_dir: Path, image_dir: Path, workspace: Path, cfg: ReconstructConfig) -> dict[str, list[int]]:
+    """Undistort the registered images to PINHOLE into ``WS/images`` and the model into ``WS/sparse/0``.
+
+    pycolmap writes ``sparse/*.bin`` without the ``0/`` level (and a ``stereo/`` folder and scripts
+    we do not need): it writes into a scratch folder, and we move the parts into place.
+    Returns image name -> [width, height] of the undistorted image.
+    """
+    tmp = workspace / ".undistort_tmp"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    options = pycolmap.UndistortCameraOptions()
+    options.max_image_size = cfg.max_image_size
+    pycolmap.undistort_images(tmp, model_dir, image_dir, output_type="COLMAP", undistort_options=options,
+                              num_threads=cfg.num_threads)
+    for name in ("images", "sparse"):
+        target = workspace / name
+        if target.exists():
+            shutil.rmtree(target)
+    (tmp / "images").rename(workspace / "images")
+    sparse0 = workspace / "sparse" / "0"
+    sparse0.mkdir(parents=True)
+    for f in (tmp / "sparse").iterdir():
+        f.rename(sparse0 / f.name)
+    shutil.rmtree(tmp)
+    rec = pycolmap.Reconstruction(sparse0)
+    return {rec.image(i).name: [int(rec.image(i).camera.width), int(rec.image(i).camera.height)]
+            for i in rec.reg_image_ids()}
+
+
+# -------------------------------------------------------------------------------------------- misc
+def set_seed(seed: int) -> None:
+    """Seed COLMAP's global PRNG (RANSAC, initial pair sampling)."""
+    pycolmap.set_random_seed(seed)
+
+
+def versions() -> tuple[str, str]:
+    """(pycolmap version, COLMAP build string)."""
+    return pycolmap.__version__, str(pycolmap.COLMAP_version)
+
+
+class Stopwatch:
+    """Seconds per named stage."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def __call__(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - t0, 3)
+
+
+def camera_centers(rec_dir: str | Path) -> dict[str, np.ndarray]:
+    """Image name -> camera centre [3] in world coordinates, from a COLMAP model folder."""
+    rec = pycolmap.Reconstruction(Path(rec_dir))
+    return {rec.image(i).name: np.asarray(rec.image(i).projection_center(), dtype=np.float64)
+            for i in rec.reg_image_ids()}
+
+
+def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity (Umeyama 1991) with ``dst ~ s * R @ src + t``.
+
+    Args:
+        src: [N,3] points. dst: [N,3] corresponding points, N >= 3 not collinear.
+    Returns:
+        (s, R [3,3], t [3]).
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or src.shape[0] < 3:
+        raise ValueError("similarity_align needs two [N,3] arrays with N >= 3")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)  # [3,3]
+    u, d, vt = np.linalg.svd(cov)
+    sign = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:  # reflection: flip the weakest axis
+        sign[2, 2] = -1.0
+    rot = u @ sign @ vt
+    var_s = (xs ** 2).sum() / len(src)
+    scale = float(np.trace(np.diag(d) @ sign) / var_s)
+    t = mu_d - scale * rot @ mu_s
+    return scale, rot, t
