@@ -1,0 +1,24 @@
+"""Evaluate a trained run (uncertainty maps + metrics) and write its HTML report.
+
+    python examples/evaluate_run.py RUN [K]    # e.g. example_out/run 4
+
+Writes RUN/eval/metrics.json, RUN/eval/maps/ and RUN/report/index.html; prints the mean metrics.
+"""
+
+import sys
+from pathlib import Path
+
+from uncertsplat.config import EvalConfig, ReportConfig
+from uncertsplat.device import resolve_device
+from uncertsplat.eval.report_schema import EvalReport
+from uncertsplat.stages import evaluate, report
+
+run = Path(sys.argv[1])
+k = int(sys.argv[2]) if len(sys.argv) > 2 else 10
+evaluate.run(run, EvalConfig(num_samples=k), device=resolve_device("auto"))
+
+metrics = EvalReport.from_json((run / "eval" / "metrics.json").read_text())
+m = metrics.mean
+print(f"PSNR {m.psnr}  SSIM {m.ssim}  AUSE-MAE {m.ause_mae}  NLL {m.nll}  calibration error {m.calibration_error}")
+print(f"{metrics.seconds_per_view} s per view for K = {metrics.num_samples} samples")
+print("report:", report.run([run], run / "report", ReportConfig()))

@@ -1,0 +1,20 @@
+"""Fit one scene: generate the small synthetic scene and train a variational 3DGS model on it.
+
+    python examples/fit_scene.py [OUT]        # OUT defaults to example_out/; a few minutes on a 2-core CPU
+
+Writes OUT/scene (images, GT depth, COLMAP model) and OUT/run (config.json, stats.jsonl, checkpoints,
+point_cloud.ply, variational.ply). The same as `uncertsplat synth` followed by `uncertsplat train`.
+"""
+
+import sys
+from pathlib import Path
+
+from uncertsplat.config import SynthConfig, train_config_from
+from uncertsplat.device import resolve_device
+from uncertsplat.stages import synth, train
+
+out = Path(sys.argv[1] if len(sys.argv) > 1 else "example_out")
+scene = synth.run(out / "scene", SynthConfig(preset="tiny", seed=0))
+cfg = train_config_from("tiny", overrides=["iterations=300"])  # presets: tiny, demo, paper
+train.run(scene, out / "run", cfg, device=resolve_device("auto"), resume=False)
+print(f"trained run: {out / 'run'}")

@@ -1,0 +1,390 @@
+"""Matplotlib figures of the report (Agg backend, PNG bytes; no display needed).
+
+Each function takes plain arrays / the extracted quantities and returns PNG bytes, or None when it has
+nothing to draw. Colours: error and std of a view share one colour scale (both are RGB differences, so
+the same colour means the same value); the rank-coloured pair compares orderings, free of scale.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Sequence
+
+import matplotlib
+
+matplotlib.use("Agg", force=False)  # no display; must run before pyplot is imported
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from uncertsplat.report.extract import Calibration, Curve  # noqa: E402
+from uncertsplat.report.loader import stats_series  # noqa: E402
+from uncertsplat.report.views import ViewMaps  # noqa: E402
+
+DPI = 100
+_STYLE = {
+    "font.size": 9,
+    "axes.titlesize": 9,
+    "axes.labelsize": 9,
+    "legend.fontsize": 8,
+    "axes.spines.top": False,
+    "axes.spines.right": False,
+    "axes.grid": True,
+    "grid.alpha": 0.3,
+    "figure.facecolor": "white",
+}
+RANK_CMAP = "turbo"  # the colour map of colormaps.rank_colorize (its default)
+RUN_COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf")
+
+
+def run_color(i: int) -> str:
+    return RUN_COLORS[i % len(RUN_COLORS)]
+
+
+def _png(fig, tight: bool = False) -> bytes:
+    """PNG bytes of ``fig`` (closed afterwards). ``tight`` crops to the content (an extra draw: slower),
+    for figures that cannot use ``tight_layout``."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight" if tight else None, metadata={"Software": None})
+    plt.close(fig)
+    return buf.getvalue()
+
+
+# ---------------------------------------------------------------------------------------------- colour
+def _rank01(x: np.ndarray) -> np.ndarray:
+    """[H,W] -> [H,W] average rank scaled to [0,1] (ties share their mean rank, like Spearman)."""
+    from scipy.stats import rankdata
+
+    flat = np.nan_to_num(x.astype(np.float64), nan=0.0).reshape(-1)
+    if flat.size <= 1 or np.all(flat == flat[0]):
+        return np.full(x.shape, 0.5)
+    r = rankdata(flat, method="average")
+    return ((r - 1.0) / (flat.size - 1.0)).reshape(x.shape)
+
+
+def rank_image(x: np.ndarray) -> np.ndarray:
+    """Rank-coloured [H,W,3] uint8 (``report.colormaps.rank_colorize`` when available)."""
+    try:
+        from uncertsplat.report.colormaps import rank_colorize
+
+        return np.asarray(rank_colorize(x))
+    except ImportError:
+        cmap = matplotlib.colormaps[RANK_CMAP]
+        return (cmap(_rank01(x))[..., :3] * 255).astype(np.uint8)
+
+
+def _robust_max(*arrays: np.ndarray | None, q: float = 99.0) -> float:
+    vals = [np.nan_to_num(a, nan=0.0).reshape(-1) for a in arrays if a is not None]
+    if not vals:
+        return 1.0
+    v = float(np.percentile(np.concatenate(vals), q))
+    return v if v > 0 else max(float(max(a.max() for a in vals)), 1e-6)
+
+
+# -------------------------------------------------------------------------------------------- per view
+def view_figure(view: ViewMaps, title: str = "") -> bytes | None:
+    """GT, mean, error, RGB std (shared scale), depth mean, depth std, rank(std) vs rank(error)."""
+    std = view.rgb_std_gray
+    panels: list[tuple[str, np.ndarray, dict]] = []
+    if view.gt is not None:
+        panels.append(("ground truth", np.clip(view.gt, 0, 1), {}))
+    if view.rgb_mean is not None:
+        panels.append(("mean render", np.clip(view.rgb_mean, 0, 1), {}))
+    vmax = _robust_max(view.error, std)
+    if view.error is not None:
+        panels.append(("|error| (RGB mean)", view.error, {"cmap": "inferno", "vmin": 0, "vmax": vmax, "bar": True}))
+    if std is not None:
+        panels.append(("RGB std (same scale)", std, {"cmap": "inferno", "vmin": 0, "vmax": vmax, "bar": True}))
+    if view.depth_mean is not None:
+        d = view.depth_mean
+        lo, hi = np.percentile(d, 1), np.percentile(d, 99)
+        panels.append(("depth mean", d, {"cmap": "viridis", "vmin": lo, "vmax": max(hi, lo + 1e-9), "bar": True}))
+    if view.depth_std is not None:
+        panels.append(("depth std", view.depth_std,
+                       {"cmap": "magma", "vmin": 0, "vmax": _robust_max(view.depth_std), "bar": True}))
+    if std is not None and view.error is not None:
+        panels.append(("rank of RGB std", rank_image(std), {"rank_bar": True}))
+        panels.append(("rank of |error|", rank_image(view.error), {"rank_bar": True}))
+    if not panels:
+        return None
+    cols = 4 if len(panels) > 4 else len(panels)
+    rows = (len(panels) + cols - 1) // cols
+    h, w = panels[0][1].shape[:2]
+    aspect = h / max(w, 1)
+    with plt.rc_context(_STYLE | {"axes.grid": False}):
+        fig, axes = plt.subplots(rows, cols, figsize=(3.1 * cols, 3.1 * aspect * rows + 0.5 * rows), squeeze=False)
+        for ax in axes.flat:
+            ax.axis("off")
+        for ax, (label, img, opts) in zip(axes.flat, panels, strict=False):
+            opts = dict(opts)
+            bar, rank_bar = opts.pop("bar", False), opts.pop("rank_bar", False)
+            im = ax.imshow(img, interpolation="nearest", **opts)
+            ax.set_title(label)
+            if bar:
+                fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
+            elif rank_bar:  # the image is already RGB: draw the bar from the colour map itself
+                sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(0, 1),
+                                                  cmap=matplotlib.colormaps[RANK_CMAP])
+                fig.colorbar(sm, ax=ax, fraction=0.046, pad=0.02, ticks=[0, 0.5, 1]).ax.set_yticklabels(
+                    ["low", "median", "high"])
+        if title:
+            fig.suptitle(title, fontsize=10)
+        fig.tight_layout()
+        return _png(fig)
+
+
+def side_by_side_figure(views: Sequence[tuple[str, ViewMaps]], view_name: str) -> bytes | None:
+    """One view across runs: rows = runs; mean, error, RGB std on one shared scale, rank(std), rank(error)."""
+    rows = [(label, v) for label, v in views if v.rgb_mean is not None or v.rgb_std is not None]
+    if len(rows) < 2:
+        return None
+    vmax = _robust_max(*[v.error for _, v in rows], *[v.rgb_std_gray for _, v in rows])
+    cols = ["mean render", "|error|", "RGB std", "rank of RGB std", "rank of |error|"]
+    h, w = next(a for a in (rows[0][1].rgb_mean, rows[0][1].rgb_std) if a is not None).shape[:2]
+    aspect = h / max(w, 1)
+    with plt.rc_context(_STYLE | {"axes.grid": False}):
+        fig, axes = plt.subplots(len(rows), len(cols), figsize=(2.6 * len(cols), 2.6 * aspect * len(rows) + 0.6),
+                                 squeeze=False)
+        last_im = None
+        for r, (label, v) in enumerate(rows):
+            std = v.rgb_std_gray
+            imgs = [
+                (None if v.rgb_mean is None else np.clip(v.rgb_mean, 0, 1), {}),
+                (v.error, {"cmap": "inferno", "vmin": 0, "vmax": vmax}),
+                (std, {"cmap": "inferno", "vmin": 0, "vmax": vmax}),
+                (None if std is None or v.error is None else rank_image(std), {}),
+                (None if std is None or v.error is None else rank_image(v.error), {}),
+            ]
+            for c, (img, opts) in enumerate(imgs):
+                ax = axes[r, c]
+                ax.set_xticks([])
+                ax.set_yticks([])
+                for s in ax.spines.values():
+                    s.set_visible(False)
+                if img is None:
+                    ax.text(0.5, 0.5, "n/a", ha="center", va="center", transform=ax.transAxes, color="0.5")
+                else:
+                    im = ax.imshow(img, interpolation="nearest", **opts)
+                    if opts:
+                        last_im = im
+                if r == 0:
+                    ax.set_title(cols[c])
+                if c == 0:
+                    ax.set_ylabel(label, fontsize=8)
+        if last_im is not None:
+            fig.colorbar(last_im, ax=axes[:, 1:3].ravel().tolist(), fraction=0.03, pad=0.02, label="RGB units")
+        fig.suptitle(view_name, fontsize=10)
+        return _png(fig, tight=True)
+
+
+# ---------------------------------------------------------------------------------------------- curves
+def sparsification_figure(curves: list[Curve], run_label: str = "") -> bytes | None:
+    """One panel per (modality, metric): per-view uncertainty curves (thin), mean curve and oracle."""
+    if not curves:
+        return None
+    groups: dict[tuple[bool, str], list[Curve]] = {}
+    for c in curves:
+        groups.setdefault((c.depth, c.metric), []).append(c)
+    order = sorted(groups, key=lambda k: (k[0], {"mae": 0, "rmse": 1, "mse": 2}.get(k[1], 3)))
+    order = [k for k in order if k[1] != "mse"] or order  # MSE repeats RMSE's ordering: leave it out
+    n = len(order)
+    with plt.rc_context(_STYLE):
+        fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.4), squeeze=False)
+        for ax, key in zip(axes[0], order, strict=False):
+            cs = groups[key]
+            views = [c for c in cs if c.view is not None]
+            means = [c for c in cs if c.view is None]
+            for i, c in enumerate(views):
+                ax.plot(c.fractions, c.uncertainty, color="#1f77b4", alpha=0.25, lw=0.8,
+                        label="per view (uncertainty)" if i == 0 else None)
+                ax.plot(c.fractions, c.oracle, color="0.4", alpha=0.25, lw=0.8, ls="--",
+                        label="per view (oracle)" if i == 0 else None)
+            for c in means[:1]:
+                lab = "mean" + (f" (AUSE {c.ause:.4f})" if c.ause is not None else "")
+                ax.plot(c.fractions, c.uncertainty, color="#d62728", lw=2.0, label=f"uncertainty, {lab}")
+                ax.plot(c.fractions, c.oracle, color="black", lw=1.6, ls="--", label="oracle, mean")
+                ax.fill_between(c.fractions, c.oracle, c.uncertainty, color="#d62728", alpha=0.12)
+            ax.set_xlabel("fraction of pixels removed (most uncertain first)")
+            ax.set_ylabel(f"normalised {key[1].upper()}")
+            ax.set_title(f"{'depth' if key[0] else 'RGB'} {key[1].upper()}")
+            ax.set_xlim(0, 1)
+            ax.set_ylim(bottom=0)
+            ax.legend(loc="upper right", frameon=False)
+        if run_label:
+            fig.suptitle(run_label, fontsize=10)
+        fig.tight_layout()
+        return _png(fig)
+
+
+def sparsification_compare_figure(per_run: list[tuple[str, list[Curve]]]) -> bytes | None:
+    """Mean RGB sparsification curves (MAE) of several runs on one plot, each with its oracle."""
+    items = []
+    for label, curves in per_run:
+        mean = [c for c in curves if c.view is None and not c.depth and c.metric == "mae"]
+        if mean:
+            items.append((label, mean[0]))
+    if len(items) < 2:
+        return None
+    with plt.rc_context(_STYLE):
+        fig, ax = plt.subplots(figsize=(5.5, 3.6))
+        for i, (label, c) in enumerate(items):
+            col = run_color(i)
+            ause = f" (AUSE {c.ause:.4f})" if c.ause is not None else ""
+            ax.plot(c.fractions, c.uncertainty, color=col, lw=1.8, label=f"{label}{ause}")
+            ax.plot(c.fractions, c.oracle, color=col, lw=1.0, ls="--")
+        ax.set_xlabel("fraction of pixels removed (most uncertain first)")
+        ax.set_ylabel("normalised MAE")
+        ax.set_title("mean sparsification curves (dashed: each run's oracle)")
+        ax.set_xlim(0, 1)
+        ax.set_ylim(bottom=0)
+        ax.legend(frameon=False)
+        fig.tight_layout()
+        return _png(fig)
+
+
+def calibration_figure(per_run: list[tuple[str, list[Calibration]]]) -> bytes | None:
+    """Reliability plot: observed vs nominal coverage of the k-sigma intervals, one line per run."""
+    items = [(label, c) for label, cals in per_run for c in cals]
+    if not items:
+        return None
+    with plt.rc_context(_STYLE):
+        fig, ax = plt.subplots(figsize=(4.4, 4.2))
+        ax.plot([0, 1], [0, 1], color="0.5", ls="--", lw=1, label="perfectly calibrated")
+        for i, (label, c) in enumerate(items):
+            run_i = [lab for lab, _ in per_run].index(label)
+            col = run_color(run_i)
+            name = f"{label} ({'depth' if c.depth else 'RGB'})" if len(items) > 1 else ("depth" if c.depth else "RGB")
+            ax.plot(c.nominal, c.observed, marker="o" if not c.depth else "s", color=col,
+                    ls="-" if not c.depth else ":", label=name)
+            if c.k is not None and i == 0:
+                for k, x, y in zip(c.k, c.nominal, c.observed, strict=False):
+                    ax.annotate(f"{k:g}σ", (x, y), textcoords="offset points", xytext=(4, -10), fontsize=7,
+                                color="0.3")
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1)
+        ax.set_aspect("equal")
+        ax.set_xlabel("nominal coverage of ±kσ (Gaussian)")
+        ax.set_ylabel("observed fraction of |error| ≤ kσ")
+        ax.set_title("reliability (below the diagonal: over-confident)")
+        ax.legend(loc="upper left", frameon=False)
+        fig.tight_layout()
+        return _png(fig)
+
+
+# -------------------------------------------------------------------------------------------- training
+# stats.jsonl (train/trainer.py): loss, l1, photo, kl_*; "ssim" there is the similarity, not a loss term.
+_LOSS_KEYS = ("loss", "l1", "photo", "ssim_loss", "dssim", "kl", "kl_total")
+_PSNR_KEYS = ("eval_psnr", "psnr_test", "test_psnr", "psnr")
+
+
+def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
+    """Training timeline: loss terms, Gaussian (and carrier) count, held-out PSNR, seconds per step."""
+    per_run = [(label, s) for label, s in per_run if s]
+    if not per_run:
+        return None
+    multi = len(per_run) > 1
+    keys = set().union(*[set().union(*[r.keys() for r in s]) for _, s in per_run])
+    loss_keys = [k for k in _LOSS_KEYS if k in keys]
+    loss_keys += sorted(k for k in keys if k.startswith("kl_") and k not in loss_keys)
+    # symlog's linear zone sits below the smallest typical term, so small KL terms stay readable
+    positive = np.concatenate([stats_series(s, k)[1] for _, s in per_run for k in loss_keys] or [np.zeros(0)])
+    positive = positive[positive > 0]
+    linthresh = float(np.clip(np.percentile(positive, 5), 1e-8, 1e-2)) if positive.size else 1e-3
+    panels = []
+    if loss_keys:
+        panels.append("loss")
+    if "num_gaussians" in keys:
+        panels.append("gaussians")
+    if any(k in keys for k in _PSNR_KEYS):
+        panels.append("psnr")
+    if "sec_per_step" in keys:
+        panels.append("speed")
+    if not panels:
+        return None
+    with plt.rc_context(_STYLE):
+        fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.2), squeeze=False)
+        for ax, panel in zip(axes[0], panels, strict=False):
+            for ri, (label, stats) in enumerate(per_run):
+                col = run_color(ri)
+                pre = f"{label}: " if multi else ""
+                if panel == "loss":
+                    styles = ("-", "--", ":", "-.")
+                    for j, k in enumerate(loss_keys if not multi else loss_keys[:1]):
+                        x, y = stats_series(stats, k)
+                        if x.size:
+                            ax.plot(x, y, lw=1.2, ls=styles[j % 4] if multi else "-",
+                                    color=col if multi else None, label=f"{pre}{k}")
+                    ax.set_title("loss" if multi else "loss terms")
+                    ax.set_yscale("symlog", linthresh=linthresh)
+                elif panel == "gaussians":
+                    x, y = stats_series(stats, "num_gaussians")
+                    ax.plot(x, y, color=col, lw=1.4, label=f"{pre}Gaussians")
+                    x, y = stats_series(stats, "num_carriers")
+                    if x.size:
+                        ax.plot(x, y, color=col, lw=1.2, ls="--", label=f"{pre}with posterior")
+                    ax.set_title("number of Gaussians")
+                elif panel == "psnr":
+                    for k in _PSNR_KEYS:
+                        x, y = stats_series(stats, k)
+                        if x.size:
+                            ax.plot(x, y, color=col, marker="o", ms=3, lw=1.2,
+                                    label=f"{pre}{'held-out' if k != 'psnr' else 'train'} PSNR")
+                            break
+                    ax.set_title("PSNR (dB)")
+                elif panel == "speed":
+                    x, y = stats_series(stats, "sec_per_step")
+                    ax.plot(x, y, color=col, lw=1.0, label=f"{pre}s/step")
+                    ax.set_title("seconds per step")
+                    ax.set_ylim(bottom=0)
+            ax.set_xlabel("step")
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(frameon=False)
+        fig.tight_layout()
+        return _png(fig)
+
+
+# ------------------------------------------------------------------------------------------------ prune
+def prune_sweep_figure(sweep: list[dict], label: str = "") -> bytes | None:
+    """Held-out PSNR, AUSE and model size vs keep ratio, uncertainty score vs random removal."""
+    def col(key_opts):
+        for k in key_opts:
+            xs, ys = [], []
+            for row in sweep:
+                x, y = row.get("keep_ratio"), row.get(k)
+                if isinstance(x, (int, float)) and isinstance(y, (int, float)) and not isinstance(y, bool):
+                    xs.append(float(x))
+                    ys.append(float(y))
+            if xs:
+                order = np.argsort(xs)
+                return np.asarray(xs)[order], np.asarray(ys)[order]
+        return None
+
+    panels = []
+    psnr, rpsnr = col(("psnr", "psnr_test")), col(("random_psnr", "psnr_random"))
+    if psnr is not None:
+        panels.append(("held-out PSNR (dB)", [("uncertainty score", psnr, "-"), ("random removal", rpsnr, "--")]))
+    ause, rause = col(("ause", "ause_mae")), col(("random_ause", "ause_random", "random_ause_mae"))
+    if ause is not None:
+        panels.append(("AUSE MAE", [("uncertainty score", ause, "-"), ("random removal", rause, "--")]))
+    ng, fs = col(("num_gaussians", "gaussians")), col(("file_size", "file_size_bytes", "size_bytes"))
+    if ng is not None:
+        panels.append(("number of Gaussians", [("Gaussians", ng, "-")]))
+    if fs is not None:
+        fs = (fs[0], fs[1] / 1e6)
+        panels.append(("file size (MB)", [("file size", fs, "-")]))
+    if not panels:
+        return None
+    with plt.rc_context(_STYLE):
+        fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.2), squeeze=False)
+        for ax, (title, series) in zip(axes[0], panels, strict=False):
+            for name, s, ls in series:
+                if s is not None:
+                    ax.plot(s[0], s[1], ls=ls, marker="o", ms=3, label=name)
+            ax.set_title(title)
+            ax.set_xlabel("keep ratio")
+            ax.invert_xaxis()  # left to right: stronger pruning
+            if len(series) > 1:
+                ax.legend(frameon=False)
+        if label:
+            fig.suptitle(label, fontsize=10)
+        fig.tight_layout()
+        return _png(fig)
