@@ -1,0 +1,180 @@
+"""Extreme inputs give finite images and finite gradients (one test per case)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import torch
+
+from tests.reference.naive_render import look_at_cameras, naive_render, random_scene
+from uncertsplat.render import render
+from uncertsplat.types import Cameras, GaussianSample
+
+W, H = 24, 20
+PARAMS = ("means", "quats", "scales", "opacities", "sh")
+
+
+def _cam(device):
+    """Camera at the origin looking down +z (world = camera frame)."""
+    K = torch.tensor([[[20.0, 0, W / 2], [0, 20.0, H / 2], [0, 0, 1]]])
+    return Cameras(torch.eye(4)[None], K, W, H).to(device=device)
+
+
+def _base(n, device, seed=0, z=3.0):
+    s = random_scene(n, torch.Generator().manual_seed(seed), sh_degree=3, extent=0.5)
+    means = s.means.clone()
+    means[:, 2] += z
+    return replace(s, means=means).to(device=device)
+
+
+def _run(sample: GaussianSample, device, cams=None, bg=True):
+    """Render, backprop an L1 loss to a random target, assert everything is finite; return output, grads."""
+    cams = _cam(device) if cams is None else cams
+    leaves = {k: getattr(sample, k).detach().clone().requires_grad_() for k in PARAMS}
+    s = replace(sample, **leaves)
+    background = torch.tensor([0.3, 0.6, 0.9], device=device) if bg else None
+    out = render(s, cams, background=background)
+    for k in ("rgb", "alpha", "depth", "depth_expected", "means2d", "radii", "depths"):
+        v = getattr(out, k)
+        assert torch.isfinite(v).all(), f"non-finite {k}"
+    target = torch.rand(out.rgb.shape, generator=torch.Generator().manual_seed(1)).to(device)
+    loss = (out.rgb - target).abs().mean() + out.depth.mean() + out.alpha.mean()
+    if loss.requires_grad:
+        loss.backward()
+    grads = {k: v.grad for k, v in leaves.items()}
+    for k, g in grads.items():
+        if g is not None:
+            assert torch.isfinite(g).all(), f"non-finite gradient for {k}"
+    assert out.alpha.min() >= 0 and out.alpha.max() <= 1 + 1e-6
+    return out, grads
+
+
+def _with(sample, **kw):
+    return replace(sample, **{k: v.to(sample.means) for k, v in kw.items()})
+
+
+def test_tiny_scales(device):
+    s = _base(20, device)
+    out, g = _run(_with(s, scales=torch.full((20, 3), 1e-7)), device)
+    # Sub-pixel Gaussians are still drawn through the 0.3 px dilation.
+    assert out.alpha.max() > 0 and g["means"].abs().sum() > 0
+
+
+def test_huge_scales(device):
+    s = _base(20, device)
+    out, g = _run(_with(s, scales=torch.full((20, 3), 1e3)), device)
+    assert out.alpha.min() > 0.5  # every pixel is covered
+
+
+def test_opacity_almost_zero(device):
+    s = _base(20, device)
+    out, _ = _run(_with(s, opacities=torch.full((20,), 1e-6)), device)
+    assert out.alpha.max() == 0 and (out.radii == 0).all()  # below 1/255 everywhere: culled
+
+
+def test_opacity_almost_one(device):
+    s = _base(20, device)
+    out, g = _run(_with(s, opacities=torch.full((20,), 1 - 1e-6)), device)
+    assert out.alpha.max() > 0.9 and g["opacities"] is not None
+
+
+def test_behind_the_camera(device):
+    s = _base(20, device, z=-3.0)
+    out, _ = _run(s, device)
+    assert out.alpha.max() == 0 and (out.radii == 0).all()
+    assert torch.allclose(out.rgb, torch.tensor([0.3, 0.6, 0.9], device=device).expand_as(out.rgb))
+
+
+def test_exactly_on_the_near_plane(device):
+    s = _base(5, device)
+    means = s.means.clone()
+    means[:, 2] = 0.01  # == near: culled (strictly in front is required)
+    out, _ = _run(_with(s, means=means), device)
+    assert (out.radii == 0).all() and out.alpha.max() == 0
+
+
+def test_just_past_the_near_plane(device):
+    s = _base(5, device)
+    means = s.means.clone()
+    means[:, :2] *= 0.001
+    means[:, 2] = 0.0100001
+    out, _ = _run(_with(s, means=means), device)
+    assert (out.radii > 0).any() and out.alpha.max() > 0
+
+
+def test_far_away_subpixel(device):
+    s = _base(20, device, z=1e6)
+    out, g = _run(s, device)
+    assert torch.isfinite(g["means"]).all()
+    assert (out.radii[out.radii > 0] < 3).all()  # the footprint is the dilation only
+
+
+def test_flat_covariance(device):
+    s = _base(20, device)
+    sc = torch.full((20, 3), 0.2)
+    sc[:, 2] = 1e-7
+    _run(_with(s, scales=sc), device)
+
+
+def test_needle_covariance(device):
+    s = _base(20, device)
+    sc = torch.full((20, 3), 1e-7)
+    sc[:, 0] = 10.0
+    _run(_with(s, scales=sc), device)
+
+
+def test_unnormalised_quaternions(device):
+    s = _base(20, device)
+    out_a, _ = _run(s, device)
+    out_b, _ = _run(_with(s, quats=s.quats * 1e3), device)
+    assert (out_a.rgb - out_b.rgb).abs().max() < 1e-5  # only the direction of q matters
+
+
+def test_near_zero_quaternions(device):
+    s = _base(20, device)
+    q = torch.zeros(20, 4)
+    q[:10] = 1e-30
+    _run(_with(s, quats=q), device)
+
+
+def test_entirely_off_screen(device):
+    s = _base(20, device)
+    means = s.means.clone()
+    means[:, 0] += 50.0
+    out, _ = _run(_with(s, means=means), device)
+    assert out.alpha.max() == 0 and (out.radii == 0).all()
+
+
+def test_empty_scene(device):
+    s = GaussianSample(
+        torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 16, 3), 3
+    ).to(device=device)
+    out, _ = _run(s, device)
+    assert out.rgb.shape == (1, H, W, 3) and out.means2d.shape == (1, 0, 2) and out.radii.shape == (1, 0)
+    assert torch.allclose(out.rgb, torch.tensor([0.3, 0.6, 0.9], device=device).expand_as(out.rgb))
+
+
+def test_single_gaussian_covering_the_image(device):
+    s = GaussianSample(
+        torch.tensor([[0.0, 0.0, 2.0]]),
+        torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
+        torch.tensor([[50.0, 50.0, 1.0]]),
+        torch.tensor([0.7]),
+        torch.zeros(1, 1, 3),
+        0,
+    ).to(device=device)
+    out, g = _run(s, device)
+    assert torch.allclose(out.alpha, torch.full_like(out.alpha, 0.7), atol=1e-3)
+    assert torch.allclose(out.rgb, 0.7 * 0.5 + 0.3 * torch.tensor([0.3, 0.6, 0.9], device=device), atol=1e-3)
+    ref = naive_render(s, _cam(device), background=torch.tensor([0.3, 0.6, 0.9], device=device))
+    assert (out.rgb.double() - ref["rgb"]).abs().max() < 1e-5
+    assert g["opacities"].abs().sum() > 0
+
+
+def test_many_cameras_batch_equals_single_renders(device):
+    s = random_scene(100, torch.Generator().manual_seed(2), sh_degree=3).to(device=device)
+    cams = look_at_cameras(3, 20, 16, focal=18.0).to(device=device)
+    out = render(s, cams)
+    for c in range(3):
+        one = render(s, cams[c])
+        assert (one.rgb[0] - out.rgb[c]).abs().max() < 1e-6

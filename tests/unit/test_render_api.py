@@ -1,0 +1,97 @@
+"""Shapes, conventions and helpers of uncertsplat.render."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tests.reference.naive_render import look_at_cameras, random_scene
+from uncertsplat.render import render, rgb_to_sh, sh_to_rgb
+from uncertsplat.render.project import quat_to_rotmat
+from uncertsplat.render.sh import C0, sh_basis
+
+
+def _sphere_quadrature(n_theta=16, n_phi=32):
+    """Gauss-Legendre in cos(theta) x uniform phi: exact for polynomials of degree <= 2 n_theta - 1."""
+    x, w = np.polynomial.legendre.leggauss(n_theta)
+    phi = np.arange(n_phi) * 2 * np.pi / n_phi
+    ct, ph = np.meshgrid(x, phi, indexing="ij")
+    st = np.sqrt(1 - ct**2)
+    dirs = np.stack([st * np.cos(ph), st * np.sin(ph), ct], -1).reshape(-1, 3)
+    weights = (w[:, None] * np.full(n_phi, 2 * np.pi / n_phi)[None]).reshape(-1)
+    return torch.from_numpy(dirs), torch.from_numpy(weights)
+
+
+def test_sh_basis_is_orthonormal_on_the_sphere():
+    dirs, w = _sphere_quadrature()
+    Y = sh_basis(3, dirs)  # [Q,16]
+    gram = (Y * w[:, None]).T @ Y
+    assert torch.allclose(gram, torch.eye(16, dtype=gram.dtype), atol=1e-10)
+
+
+def test_sh_degree1_follows_the_3dgs_sign_convention():
+    d = torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
+    Y = sh_basis(1, d)
+    c1 = math.sqrt(3 / (4 * math.pi))
+    assert torch.allclose(Y[0], torch.tensor([C0, 0, c1, 0], dtype=torch.float64))
+    assert torch.allclose(Y[1], torch.tensor([C0, 0, 0, -c1], dtype=torch.float64))
+    assert torch.allclose(Y[2], torch.tensor([C0, -c1, 0, 0], dtype=torch.float64))
+
+
+def test_rgb_sh_roundtrip():
+    rgb = torch.rand(10, 3, generator=torch.Generator().manual_seed(0))
+    assert C0 == pytest.approx(0.28209479177387814)
+    assert torch.allclose(sh_to_rgb(rgb_to_sh(rgb)), rgb, atol=1e-6)
+    assert torch.allclose(rgb_to_sh(torch.full((3,), 0.5)), torch.zeros(3))
+
+
+def test_quaternion_identity_and_orthonormality():
+    q = torch.randn(50, 4, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    R = quat_to_rotmat(q)
+    assert torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=R.dtype).expand(50, 3, 3), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(50, dtype=R.dtype))
+    assert torch.allclose(quat_to_rotmat(torch.tensor([[2.0, 0, 0, 0]])), torch.eye(3)[None])
+
+
+def test_output_shapes_and_means2d_gradient(device):
+    from dataclasses import replace
+
+    s = random_scene(80, torch.Generator().manual_seed(1), sh_degree=3).to(device=device)
+    means = s.means.clone().requires_grad_()
+    s = replace(s, means=means, opacities=s.opacities.clone().requires_grad_())
+    cams = look_at_cameras(2, 30, 20, focal=25.0).to(device=device)
+    out = render(s, cams)
+    assert out.rgb.shape == (2, 20, 30, 3)
+    assert out.alpha.shape == out.depth.shape == out.depth_expected.shape == (2, 20, 30, 1)
+    assert out.means2d.shape == (2, 80, 2) and out.radii.shape == (2, 80) and out.depths.shape == (2, 80)
+    assert not out.means2d.is_leaf
+    out.rgb.sum().backward()
+    g = out.means2d.grad
+    assert g is not None and g.shape == (2, 80, 2)
+    visible = out.radii > 0
+    assert (g[visible].abs().sum(-1) > 0).float().mean() > 0.5
+    assert (g[~visible] == 0).all()
+    assert (out.depth[out.alpha == 0] == 0).all()
+    hit = out.alpha[..., 0] > 0
+    assert torch.allclose(out.depth[hit], out.depth_expected[hit] / out.alpha[hit])
+
+
+def test_means2d_is_the_pinhole_projection(device):
+    s = random_scene(10, torch.Generator().manual_seed(2), sh_degree=0).to(device=device)
+    cams = look_at_cameras(1, 30, 20, focal=25.0).to(device=device)
+    out = render(s, cams)
+    p = s.means @ cams.cam_from_world[0, :3, :3].T + cams.cam_from_world[0, :3, 3]
+    uv = (p @ cams.K[0].T)[:, :2] / p[:, 2:]
+    assert torch.allclose(out.means2d[0], uv, atol=1e-4)
+    assert torch.allclose(out.depths[0], p[:, 2], atol=1e-5)
+
+
+def test_no_gradients_needed_works(device):
+    s = random_scene(30, torch.Generator().manual_seed(3), sh_degree=1).to(device=device)
+    cams = look_at_cameras(1, 16, 16, focal=15.0).to(device=device)
+    with torch.no_grad():
+        out = render(s, cams)
+    assert out.rgb.requires_grad is False and out.alpha.max() > 0

@@ -1,0 +1,413 @@
+"""Tile binning and exact front-to-back alpha compositing with a closed-form backward.
+
+Layout. The image of each camera is cut into ``tile_size`` x ``tile_size`` tiles. Every (tile, Gaussian)
+pair whose opacity-aware footprint (the ellipse where alpha >= 1/255) reaches the tile is listed once
+(box candidates, then an exact ellipse/rectangle test), and one stable sort by tile id (the
+Gaussians were already in depth order) gives each tile its front-to-back list. Tiles are then grouped
+into chunks of similar list length L and processed as padded dense blocks [nt, L, P] (P = tile_size^2
+pixels): the per-pixel exponent is one small matmul, transmittance is a cumprod along L, and the colour
+reduction is a batched matmul. Nothing per pixel is stored for backward: ``_Composite.backward``
+recomputes the block and applies the closed-form gradient.
+
+Exponent as a polynomial. With pixel coordinates (u, v) relative to the tile centre, the log-alpha of a
+Gaussian, ``ln o - (a du^2 + 2 b du dv + c dv^2) / 2`` with du = u - mu, dv = v - mv, is a quadratic
+in (u, v): ``coef . phi(u, v)`` with phi = (1, u, v, u^2, v^2, u v), so alpha for a whole block is one
+matmul and one exp. The compositor takes per-Gaussian (mean, conic, log-opacity) [G,6] and features
+[G,F], forms the pair coefficients itself, and maps their gradients back in closed form (no autograd
+graph over pairs or pixels).
+
+Gradient of the composite. For a pixel, out = sum_i w_i f_i with w_i = alpha_i T_i, T_i = prod_{j<i}
+(1 - alpha_j), f_i the feature row (r, g, b, z, 1). With g = dL/dout and h_i = g . f_i:
+    dL/df_i     = w_i g
+    dL/dalpha_i = T_i h_i - (sum_{k>i} w_k h_k) / (1 - alpha_i)
+    dL/dcoef_i  = sum_pixels dL/dalpha_i * alpha_i * phi(u, v)     (0 where alpha was clamped/skipped)
+alpha_i dL/dalpha_i = w_i h_i - r_i sum_{k>i} w_k h_k with r = alpha / (1 - alpha); the suffix sum is one
+cumsum (its total is g . out, known from the forward output).
+
+Limits. A block holds whole tile lists, so a single tile with an enormous list (L x P elements) is one
+block; memory is bounded by ``block_elements`` only while lists are shorter than block_elements / P.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .project import ALPHA_MAX, ALPHA_MIN, T_MIN
+
+# Elements (pairs x pixels) per dense block: bounds memory (a few blocks of this size are alive in
+# backward) and keeps the working set near the CPU caches.
+DEFAULT_BLOCK_ELEMENTS = 1 << 19
+PAD_LOG_ALPHA = -1.0e4  # exp() of this is exactly 0: padded rows contribute nothing
+
+
+@dataclass
+class TileBins:
+    """Sorted (tile, Gaussian) pairs.
+
+    Attributes:
+        pair_gauss: [M] flat Gaussian index (camera * N + n), sorted by tile then depth.
+        pair_tile: [M] global tile index (camera * tiles_per_camera + ty * tiles_x + tx).
+        tile_start: [T] first pair of each tile. tile_count: [T] pairs per tile.
+        tiles_x, tiles_y, tile_size: the tile grid of one camera.
+    """
+
+    pair_gauss: Tensor
+    pair_tile: Tensor
+    tile_start: Tensor
+    tile_count: Tensor
+    tiles_x: int
+    tiles_y: int
+    tile_size: int
+
+
+def bin_gaussians(
+    means2d: Tensor,  # [C,N,2]
+    extents: Tensor,  # [C,N,2]
+    valid: Tensor,  # [C,N]
+    depths: Tensor,  # [C,N]
+    width: int,
+    height: int,
+    tile_size: int,
+    conics: Tensor | None = None,  # [C,N,3]
+    opacities: Tensor | None = None,  # [N]
+) -> TileBins:
+    """List the tiles each visible Gaussian touches, sorted by (tile, depth). No Python loops.
+
+    Candidates come from the opacity-aware box; with ``conics`` and ``opacities`` given, each (tile,
+    Gaussian) pair is also tested exactly: the ellipse where alpha >= 1/255 must reach the rectangle of
+    the tile's pixel centres (drops the box corners, and most of the box of thin slanted Gaussians).
+    """
+    C, N = valid.shape
+    dev = means2d.device
+    ts = tile_size
+    tiles_x, tiles_y = math.ceil(width / ts), math.ceil(height / ts)
+    tpc = tiles_x * tiles_y
+    with torch.no_grad():
+        vidx = valid.reshape(-1).nonzero().squeeze(1)  # [V]
+        z = depths.reshape(-1).index_select(0, vidx)
+        order = vidx.index_select(0, torch.argsort(z, stable=True))  # visible Gaussians, front to back
+        m = means2d.reshape(-1, 2).index_select(0, order).float()
+        e = extents.reshape(-1, 2).index_select(0, order).float()
+        lim = torch.tensor([width - 1, height - 1], device=dev, dtype=m.dtype)
+        # Pixel index range whose centres (i + 0.5) lie in [m - e, m + e], clamped to the image.
+        lo = torch.minimum(torch.maximum((m - e - 0.5).ceil(), torch.zeros_like(m)), lim)
+        hi = torch.minimum(torch.maximum((m + e - 0.5).floor(), torch.zeros_like(m)), lim)
+        t0 = (lo / ts).floor()
+        span = ((hi / ts).floor() - t0 + 1).clamp_min(0)  # [V,2] tiles along x, y (small exact floats)
+        counts = (span[:, 0] * span[:, 1]).long()
+        M = int(counts.sum())
+        src = torch.repeat_interleave(torch.arange(order.numel(), device=dev), counts, output_size=M)
+        first = (torch.cumsum(counts, 0) - counts).float()
+        # k-th tile of a Gaussian's box, row-major; float math is exact here (k < 2^24) and much
+        # faster than int64 division on CPU.
+        k = torch.arange(M, device=dev, dtype=torch.float32) - first.index_select(0, src)
+        bw = span[:, 0].index_select(0, src)
+        ky = ((k + 0.5) / bw).floor()
+        kx = k - ky * bw
+        tx = t0[:, 0].index_select(0, src) + kx
+        ty = t0[:, 1].index_select(0, src) + ky
+        gauss = order.index_select(0, src)
+        if conics is not None and opacities is not None:
+            keep = _ellipse_meets_tile(
+                m.index_select(0, src),
+                conics.reshape(-1, 3).index_select(0, gauss).float(),
+                opacities.index_select(0, gauss % N if C > 1 else gauss).float(),
+                tx,
+                ty,
+                ts,
+            )
+            keep = keep.nonzero().squeeze(1)
+            gauss, tx, ty = gauss.index_select(0, keep), tx.index_select(0, keep), ty.index_select(0, keep)
+        cam = gauss // N if C > 1 else torch.zeros_like(gauss)
+        tile = (cam * tpc + (ty * tiles_x + tx).long()).int()
+        # Pairs are in depth order already; a stable sort by tile keeps that order inside each tile
+        # (int32 keys sort several times faster than int64 on CPU).
+        tile, perm = torch.sort(tile, stable=True)
+        tile = tile.long()
+        gauss = gauss.index_select(0, perm)
+        tile_count = torch.bincount(tile, minlength=C * tpc)
+        tile_start = torch.cumsum(tile_count, 0) - tile_count
+    return TileBins(gauss, tile, tile_start, tile_count, tiles_x, tiles_y, ts)
+
+
+def _ellipse_meets_tile(m: Tensor, conic: Tensor, opac: Tensor, tx: Tensor, ty: Tensor, ts: int) -> Tensor:
+    """[M] bool: min over the tile's pixel-centre rectangle of the conic form <= 2 ln(255 o).
+
+    For a convex quadratic whose minimiser (the mean) lies outside a box, the minimum over the box lies
+    on a face the mean is outside of; so with dx*, dy* the nearest offsets per axis, it is the smaller
+    of the minima along the edge dx = dx* and along dy = dy* (each a clamped 1D quadratic). When the
+    mean is inside along an axis, that candidate is just a feasible value >= the true minimum.
+    """
+    a, b, c = conic.unbind(-1)
+    x0 = tx * ts + 0.5 - m[:, 0]
+    y0 = ty * ts + 0.5 - m[:, 1]
+    x1, y1 = x0 + (ts - 1), y0 + (ts - 1)
+    dxs = torch.minimum(torch.maximum(torch.zeros_like(x0), x0), x1)
+    dys = torch.minimum(torch.maximum(torch.zeros_like(y0), y0), y1)
+    dy1 = torch.minimum(torch.maximum(-b * dxs / c, y0), y1)
+    q1 = a * dxs * dxs + 2 * b * dxs * dy1 + c * dy1 * dy1
+    dx2 = torch.minimum(torch.maximum(-b * dys / a, x0), x1)
+    q2 = a * dx2 * dx2 + 2 * b * dx2 * dys + c * dys * dys
+    thr = 2.0 * torch.log((opac / ALPHA_MIN).clamp_min(1.0))
+    # Conservative margin against float32 rounding; the compositor applies the exact per-pixel test.
+    # Written as "not above" so that a NaN (degenerate conic) keeps the pair.
+    return ~(torch.minimum(q1, q2) > thr * (1 + 1e-3) + 1e-3)
+
+
+def pixel_basis(tile_size: int, dtype, device) -> Tensor:
+    """[8,P] phi(u, v) = (1, u, v, u^2, v^2, u v, 0, 0) for a tile's pixel centres, relative to its centre.
+
+    The two zero rows let the per-pair rows (6 coefficients + the local mean offset) multiply phi directly.
+    """
+    r = torch.arange(tile_size, device=device, dtype=dtype) + 0.5 - tile_size / 2
+    v, u = torch.meshgrid(r, r, indexing="ij")  # pixel p = row * tile_size + col
+    u, v = u.reshape(-1), v.reshape(-1)
+    z = torch.zeros_like(u)
+    return torch.stack([torch.ones_like(u), u, v, u * u, v * v, u * v, z, z])
+
+
+def pair_rows(gparams: Tensor, pair_gauss: Tensor, pair_centre: Tensor) -> Tensor:
+    """[M,8] per pair: the log-alpha polynomial coefficients (6) and the mean relative to the tile centre (2).
+
+    gparams: [G,6] per Gaussian (mean x, mean y, conic a, b, c, log opacity).
+    """
+    gp = gparams.index_select(0, pair_gauss)
+    dx = gp[:, 0] - pair_centre[:, 0]
+    dy = gp[:, 1] - pair_centre[:, 1]
+    a, b, c, lo = gp[:, 2], gp[:, 3], gp[:, 4], gp[:, 5]
+    k1 = a * dx + b * dy
+    k2 = b * dx + c * dy
+    k0 = lo - 0.5 * (k1 * dx + k2 * dy)
+    return torch.stack([k0, k1, k2, -0.5 * a, -0.5 * c, -b, dx, dy], dim=-1)
+
+
+def _rows_backward(pb: Tensor, g: Tensor) -> Tensor:
+    """Chain rule from d(coefficients) [K,6] to d(mean x, mean y, a, b, c, log o) [K,6]; pb [K,8] rows."""
+    k1, k2 = pb[:, 1], pb[:, 2]
+    a, c, b = -2 * pb[:, 3], -2 * pb[:, 4], -pb[:, 5]
+    dx, dy = pb[:, 6], pb[:, 7]
+    g0, g1, g2, g3, g4, g5 = g.unbind(-1)
+    g_mx = g1 * a + g2 * b - g0 * k1
+    g_my = g1 * b + g2 * c - g0 * k2
+    g_a = g1 * dx - 0.5 * (g0 * dx * dx + g3)
+    g_b = g1 * dy + g2 * dx - g0 * dx * dy - g5
+    g_c = g2 * dy - 0.5 * (g0 * dy * dy + g4)
+    return torch.stack([g_mx, g_my, g_a, g_b, g_c, g0], dim=-1)
+
+
+@dataclass
+class _Block:
+    tiles: Tensor  # [nt] global tile ids
+    rows: Tensor  # [nt*L] pair index (M = padding row)
+    gauss: Tensor  # [nt*L] flat Gaussian index (G = padding row)
+    L: int
+    clamp: bool  # some Gaussian of the block may reach the 0.99 alpha cap
+
+
+@dataclass
+class CompositePlan:
+    blocks: list
+    pair_gauss: Tensor  # [M]
+    pair_centre: Tensor  # [M,2] tile centre of each pair, pixels
+    num_gaussians: int  # G = C * N
+    num_tiles: int
+    phi: Tensor  # [8,P]
+    gauss_all: Tensor  # [sum of block sizes] the blocks' Gaussian indices, concatenated
+    rows_all: Tensor  # the same for the pair rows
+    num_padded: int
+    kernels: tuple
+
+
+def make_plan(
+    bins: TileBins, num_gaussians: int, high_opacity: Tensor, phi: Tensor, block_elements: int, kernels
+) -> CompositePlan:
+    """Group tiles of similar list length into padded blocks of at most ~block_elements pair-pixels.
+
+    high_opacity: [G] bool, Gaussians whose alpha may reach the 0.99 cap.
+    """
+    dev = bins.tile_count.device
+    P = phi.shape[1]
+    M = bins.pair_gauss.numel()
+    ts = bins.tile_size
+    counts, tile_order = torch.sort(bins.tile_count, descending=True)
+    cl = counts.tolist()
+    neg = [-c for c in cl]  # ascending, for bisect
+    n_nonzero = bisect.bisect_left(neg, 0)
+    gauss_ext = torch.cat([bins.pair_gauss, bins.pair_gauss.new_full((1,), num_gaussians)])
+    on_host = dev.type == "cpu"
+    high_ext = torch.cat([high_opacity, high_opacity.new_zeros(1)])
+    ar = torch.arange(max(cl[0], 1) if cl else 1, device=dev)
+    blocks = []
+    i = 0
+    while i < n_nonzero:
+        L = cl[i]
+        nt = max(1, block_elements // (L * P))
+        # Keep padding below 2x: stop the block where lists get shorter than half of L.
+        j = min(i + nt, bisect.bisect_right(neg, -((L + 1) // 2), lo=i), n_nonzero)
+        j = max(j, i + 1)
+        tiles = tile_order[i:j]
+        rows = bins.tile_start[tiles, None] + ar[:L]
+        rows = torch.where(ar[:L] < bins.tile_count[tiles, None], rows, torch.full_like(rows, M)).reshape(-1)
+        gauss = gauss_ext.index_select(0, rows)
+        # On GPU, avoid a host sync per block: always apply the cap.
+        clamp = bool(high_ext.index_select(0, gauss).any()) if on_host else True
+        blocks.append(_Block(tiles, rows, gauss, L, clamp))
+        i = j
+    local = bins.pair_tile % (bins.tiles_x * bins.tiles_y)
+    centre = torch.stack([local % bins.tiles_x, local // bins.tiles_x], -1).to(phi.dtype) * ts + ts / 2
+    gauss_all = torch.cat([b.gauss for b in blocks]) if blocks else gauss_ext[:0]
+    rows_all = torch.cat([b.rows for b in blocks]) if blocks else gauss_ext[:0]
+    return CompositePlan(
+        blocks,
+        bins.pair_gauss,
+        centre,
+        num_gaussians,
+        bins.tile_count.numel(),
+        phi,
+        gauss_all,
+        rows_all,
+        gauss_all.numel(),
+        kernels,
+    )
+
+
+def _weights(pb: Tensor, phi: Tensor, nt: int, L: int, clamp: bool):
+    """Recompute a block: alpha, r = alpha / (1 - alpha) and the weights w, all [nt,L,P].
+
+    Transmittance T[:, i] (before Gaussian i) is a cumprod of 1 - alpha. 3DGS stops a ray before the
+    first Gaussian that would push T under T_MIN and does not add that one. Zeroing T where it is under
+    T_MIN and writing w_i = alpha_i T_i = r_i T_{i+1} gives exactly that: w = 0 from the stopping
+    Gaussian on, with no per-ray bookkeeping (T is non-increasing along the list).
+    """
+    alpha = torch.mm(pb, phi).view(nt, L, phi.shape[1])
+    alpha.exp_()
+    torch.nn.functional.threshold_(alpha, ALPHA_MIN, 0.0)  # skip contributions below 1/255
+    if clamp:
+        alpha.clamp_max_(ALPHA_MAX)
+    T = alpha.new_empty(nt, L + 1, alpha.shape[2])
+    T[:, 0].fill_(1.0)
+    torch.sub(alpha.new_ones(()), alpha, out=T[:, 1:])
+    r = alpha / T[:, 1:]
+    T.cumprod_(1)
+    torch.nn.functional.threshold_(T, T_MIN, 0.0)
+    w = r * T[:, 1:]
+    return alpha, r, w
+
+
+def block_forward(pb: Tensor, ft: Tensor, phi: Tensor, nt: int, L: int, clamp: bool) -> Tensor:
+    """Rows pb [nt*L,8], features ft [nt,L,F] -> [nt,P,F] composited features."""
+    _, _, w = _weights(pb, phi, nt, L, clamp)
+    return torch.bmm(w.transpose(1, 2), ft)
+
+
+def block_backward(
+    pb: Tensor, ft: Tensor, go: Tensor, gsum: Tensor, phi: Tensor, nt: int, L: int, clamp: bool
+):
+    """Closed-form gradients of one block: ([nt*L,8] d rows, [nt,L,F] d features).
+
+    go: [nt,P,F] upstream gradient; gsum: [nt,P] = sum_F go * out (= sum_i w_i h_i).
+    """
+    alpha, r, w = _weights(pb, phi, nt, L, clamp)
+    g_ft = torch.bmm(w, go)  # [nt,L,F]
+    wh = torch.bmm(ft, go.transpose(1, 2)).mul_(w)  # [nt,L,P]  w_i (g . f_i)
+    # Cumsum of wh with gsum subtracted from the first entry gives -(sum_{k>i} w_k h_k) directly.
+    wh[:, 0].sub_(gsum)
+    neg_suffix = torch.cumsum(wh, dim=1)
+    wh[:, 0].add_(gsum)
+    # dL/dlog-alpha = alpha dL/dalpha = w h - alpha / (1 - alpha) * suffix. After a ray stops both
+    # terms vanish (w = 0 and nothing follows), so no stop mask is needed here.
+    q = wh.addcmul_(r, neg_suffix)
+    if clamp:
+        q.masked_fill_(alpha >= ALPHA_MAX, 0.0)
+    g_pb = torch.mm(q.view(nt * L, -1), phi.t())  # [nt*L,8]
+    return g_pb, g_ft
+
+
+class _Composite(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, gparams: Tensor, feat: Tensor, plan: CompositePlan) -> Tensor:
+        fwd, _ = plan.kernels
+        F = feat.shape[1]
+        P = plan.phi.shape[1]
+        pad = gparams.new_zeros(1, 8)
+        pad[0, 0] = PAD_LOG_ALPHA
+        rows = torch.cat([pair_rows(gparams.detach(), plan.pair_gauss, plan.pair_centre), pad])  # [M+1,8]
+        feat_ext = torch.cat([feat.detach(), feat.new_zeros(1, F)])
+        out = feat.new_zeros(plan.num_tiles, P, F)
+        for b in plan.blocks:
+            pb = rows.index_select(0, b.rows)
+            ft = feat_ext.index_select(0, b.gauss).view(-1, b.L, F)
+            out[b.tiles] = fwd(pb, ft, plan.phi, b.tiles.numel(), b.L, b.clamp)
+        ctx.save_for_backward(rows, feat_ext, out)
+        ctx.plan = plan
+        return out
+
+    @staticmethod
+    def backward(ctx, g_out: Tensor):
+        rows, feat_ext, out = ctx.saved_tensors
+        plan: CompositePlan = ctx.plan
+        _, bwd = plan.kernels
+        F = feat_ext.shape[1]
+        g_out = g_out.contiguous()
+        gsum = (g_out * out).sum(-1)  # [T,P] sum_i w_i (g . f_i) per pixel
+        # Per padded pair: gradients of (mean x, mean y, a, b, c, log o) and of the features; summed
+        # per Gaussian with one index_add at the end (one big scatter is much cheaper than many).
+        g_pairs = feat_ext.new_empty(plan.num_padded, 6 + F)
+        off = 0
+        for b in plan.blocks:
+            nt = b.tiles.numel()
+            k = nt * b.L
+            pb = rows.index_select(0, b.rows)
+            ft = feat_ext.index_select(0, b.gauss).view(nt, b.L, F)
+            g_pb, g_ft = bwd(pb, ft, g_out[b.tiles], gsum[b.tiles], plan.phi, nt, b.L, b.clamp)
+            torch.cat([g_pb[:, :6], g_ft.view(k, F)], dim=1, out=g_pairs[off : off + k])
+            off += k
+        # Chain rule from the polynomial coefficients to the Gaussian's 2D parameters, for all pairs at once.
+        g_pairs[:, :6] = _rows_backward(rows.index_select(0, plan.rows_all), g_pairs[:, :6])
+        g_all = feat_ext.new_zeros(feat_ext.shape[0], 6 + F)
+        g_all.index_add_(0, plan.gauss_all, g_pairs)
+        return g_all[:-1, :6], g_all[:-1, 6:], None
+
+
+_COMPILED: dict = {}
+
+
+def get_kernels(compile: bool):
+    """(block_forward, block_backward), optionally wrapped in torch.compile (built once, cached)."""
+    if not compile:
+        return block_forward, block_backward
+    if "k" not in _COMPILED:
+        _COMPILED["k"] = (
+            torch.compile(block_forward, dynamic=True),
+            torch.compile(block_backward, dynamic=True),
+        )
+    return _COMPILED["k"]
+
+
+def composite(
+    gparams: Tensor,  # [G,6] mean x, mean y (pixels), conic a, b, c, log opacity
+    feat: Tensor,  # [G,F]
+    bins: TileBins,
+    high_opacity: Tensor | None = None,  # [G] bool; None = any Gaussian may hit the cap
+    block_elements: int = DEFAULT_BLOCK_ELEMENTS,
+    compile: bool = False,
+) -> Tensor:
+    """Composite features front to back; returns [T,P,F] per tile (T = C * tiles_per_camera)."""
+    phi = pixel_basis(bins.tile_size, gparams.dtype, gparams.device)
+    if high_opacity is None:
+        high_opacity = torch.ones(feat.shape[0], dtype=torch.bool, device=feat.device)
+    plan = make_plan(bins, feat.shape[0], high_opacity, phi, block_elements, get_kernels(compile))
+    return _Composite.apply(gparams, feat, plan)
+
+
+def tiles_to_image(tiles: Tensor, C: int, bins: TileBins, height: int, width: int) -> Tensor:
+    """[T,P,F] -> [C,H,W,F]."""
+    ts = bins.tile_size
+    F = tiles.shape[-1]
+    img = tiles.view(C, bins.tiles_y, bins.tiles_x, ts, ts, F).permute(0, 1, 3, 2, 4, 5)
+    return img.reshape(C, bins.tiles_y * ts, bins.tiles_x * ts, F)[:, :height, :width]

@@ -1,0 +1,101 @@
+"""``render``: Gaussians + cameras -> images, depth, screen-space means and radii."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..types import Cameras, GaussianSample, RenderOutput
+from .project import ALPHA_MAX, project_gaussians
+from .rasterize import DEFAULT_BLOCK_ELEMENTS, bin_gaussians, composite, tiles_to_image
+from .sh import sh_colors
+
+
+def render(
+    sample: GaussianSample,
+    cameras: Cameras,
+    *,
+    background: Tensor | None = None,
+    tile_size: int = 8,
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,
+    compile: bool = False,
+    block_elements: int = DEFAULT_BLOCK_ELEMENTS,
+) -> RenderOutput:
+    """Render a batch of cameras with 3DGS semantics (exact, differentiable).
+
+    EWA projection with a ``eps2d`` px screen-space dilation, SH colours (``sample.sh_degree``) seen
+    from each camera centre, Gaussians with camera z outside (near, far) culled, front-to-back
+    compositing with alpha capped at 0.99, contributions below 1/255 skipped, and a ray stopping
+    before its transmittance falls under 1e-4.
+
+    Args:
+        sample: activated Gaussians (means [N,3], quats [N,4] wxyz, scales [N,3], opacities [N], sh [N,B,3]).
+        cameras: C pinhole cameras of one image size.
+        background: [3] colour behind the Gaussians (None = black).
+        tile_size: tile edge in pixels (8 is fastest on CPU, 16 on GPU).
+        near, far: camera-z culling planes.
+        eps2d: screen-space dilation added to the 2D covariance (pixels^2).
+        compile: run the per-pixel kernels through ``torch.compile`` (opt-in; first call compiles).
+        block_elements: pair-pixel elements per dense block (memory/speed trade-off).
+
+    Returns:
+        RenderOutput with rgb [C,H,W,3], alpha [C,H,W,1], depth [C,H,W,1] (alpha-normalised camera z,
+        0 where alpha == 0), depth_expected [C,H,W,1], means2d [C,N,2] (pixels; it retains its gradient:
+        read ``out.means2d.grad`` after backward), radii [C,N] (float pixels, 0 = culled), depths [C,N].
+        Gradients flow to means, quats, scales, opacities and sh.
+    """
+    C, N = len(cameras), len(sample)
+    W, H = cameras.width, cameras.height
+    dtype = sample.means.dtype
+    cam_from_world = cameras.cam_from_world.to(dtype)
+    K = cameras.K.to(dtype)
+    proj = project_gaussians(
+        sample.means, sample.quats, sample.scales, sample.opacities, cam_from_world, K, W, H, near, far, eps2d
+    )
+    means2d = proj.means2d
+    if means2d.requires_grad:
+        means2d.retain_grad()
+
+    centers = -(cam_from_world[:, :3, :3].transpose(1, 2) @ cam_from_world[:, :3, 3:])[..., 0]  # [C,3]
+    colors = sh_colors(sample.sh_degree, sample.sh, sample.means, centers)  # [C,N,3]
+    ones = torch.ones_like(proj.depths)[..., None]
+    feat = torch.cat([colors, proj.depths[..., None], ones], dim=-1).reshape(C * N, 5)
+
+    bins = bin_gaussians(
+        means2d.detach(),
+        proj.extents,
+        proj.valid,
+        proj.depths.detach(),
+        W,
+        H,
+        tile_size,
+        proj.conics.detach(),
+        sample.opacities.detach(),
+    )
+    log_o = torch.log(sample.opacities.clamp_min(torch.finfo(dtype).tiny))
+    gparams = torch.cat([means2d, proj.conics, log_o.expand(C, N)[..., None]], dim=-1).reshape(C * N, 6)
+    # Alpha can reach the 0.99 cap only for opacities near it (small margin for rounding).
+    high = (sample.opacities.detach() > ALPHA_MAX - 1e-3).expand(C, N).reshape(-1)
+    tiles = composite(gparams, feat, bins, high, block_elements=block_elements, compile=compile)
+    img = tiles_to_image(tiles, C, bins, H, W)  # [C,H,W,5]
+
+    rgb = img[..., 0:3]
+    depth_expected = img[..., 3:4]
+    alpha = img[..., 4:5]
+    if background is not None:
+        rgb = rgb + (1.0 - alpha) * background.to(rgb)
+    hit = alpha > 0
+    # A hit pixel has alpha >= 1/255 (its first contribution alone), so the division is safe.
+    depth = torch.where(hit, depth_expected / torch.where(hit, alpha, torch.ones_like(alpha)), 0.0)
+    radii = proj.extents.amax(dim=-1)  # [C,N]
+    return RenderOutput(
+        rgb=rgb,
+        alpha=alpha,
+        depth=depth,
+        depth_expected=depth_expected,
+        means2d=means2d,
+        radii=radii,
+        depths=proj.depths,
+    )

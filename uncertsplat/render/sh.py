@@ -1,0 +1,117 @@
+"""Real spherical harmonics up to degree 3, in the basis and sign convention of 3DGS.
+
+The colour of a Gaussian seen along the unit direction d (from the camera centre to the mean) is
+``max(sum_b sh[b] * Y_b(d) + 0.5, 0)``; ``rgb_to_sh`` / ``sh_to_rgb`` convert the constant (DC) term.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+C0 = 0.28209479177387814
+C1 = 0.4886025119029199
+C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
+
+
+def num_sh_bases(degree: int) -> int:
+    """Number of SH coefficients per channel for ``degree`` (0..3)."""
+    return (degree + 1) ** 2
+
+
+def rgb_to_sh(rgb: Tensor) -> Tensor:
+    """DC coefficient whose evaluated colour is ``rgb`` (inverse of ``sh_to_rgb``)."""
+    return (rgb - 0.5) / C0
+
+
+def sh_to_rgb(sh_dc: Tensor) -> Tensor:
+    """Colour of a DC-only SH coefficient (before the clamp at 0)."""
+    return sh_dc * C0 + 0.5
+
+
+def sh_basis(degree: int, dirs: Tensor) -> Tensor:
+    """Evaluate the SH basis functions.
+
+    Args:
+        degree: 0..3.
+        dirs: [...,3] unit directions.
+
+    Returns:
+        [..., (degree+1)**2] basis values.
+    """
+    if not 0 <= degree <= 3:
+        raise ValueError(f"SH degree must be in 0..3, got {degree}")
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, C0)]
+    if degree >= 1:
+        out += [-C1 * y, C1 * z, -C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        xy, yz, xz = x * y, y * z, x * z
+        out += [
+            C2[0] * xy,
+            C2[1] * yz,
+            C2[2] * (2.0 * zz - xx - yy),
+            C2[3] * xz,
+            C2[4] * (xx - yy),
+        ]
+    if degree >= 3:
+        out += [
+            C3[0] * y * (3.0 * xx - yy),
+            C3[1] * xy * z,
+            C3[2] * y * (4.0 * zz - xx - yy),
+            C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy),
+            C3[4] * x * (4.0 * zz - xx - yy),
+            C3[5] * z * (xx - yy),
+            C3[6] * x * (xx - 3.0 * yy),
+        ]
+    return torch.stack(out, dim=-1)
+
+
+def eval_sh(degree: int, sh: Tensor, dirs: Tensor) -> Tensor:
+    """Raw SH value (no +0.5, no clamp).
+
+    Args:
+        degree: degree to evaluate; ``sh`` may hold more bases than it uses.
+        sh: [N,B,3] coefficients.
+        dirs: [C,N,3] unit view directions.
+
+    Returns:
+        [C,N,3].
+    """
+    nb = num_sh_bases(degree)
+    if sh.shape[-2] < nb:
+        raise ValueError(f"sh has {sh.shape[-2]} bases, degree {degree} needs {nb}")
+    basis = sh_basis(degree, dirs)  # [C,N,nb]
+    return (basis.unsqueeze(-1) * sh[:, :nb, :]).sum(-2)
+
+
+def sh_colors(degree: int, sh: Tensor, means: Tensor, centers: Tensor) -> Tensor:
+    """3DGS colour of each Gaussian seen from each camera centre.
+
+    Args:
+        degree: SH degree to evaluate.
+        sh: [N,B,3] coefficients.
+        means: [N,3] Gaussian centres.
+        centers: [C,3] camera centres (world).
+
+    Returns:
+        [C,N,3] colours ``max(SH(d) + 0.5, 0)`` with d = normalise(mean - centre).
+    """
+    if degree == 0:
+        # The DC term does not depend on the direction: skip the normalisation (and its gradient).
+        rgb = (sh[:, 0, :] * C0 + 0.5).unsqueeze(0).expand(centers.shape[0], -1, -1)
+        return rgb.clamp_min(0.0)
+    d = means.unsqueeze(0) - centers[:, None, :]  # [C,N,3]
+    # Gaussians exactly at a camera centre have no direction: clamp the norm so values stay finite.
+    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return (eval_sh(degree, sh, d) + 0.5).clamp_min(0.0)
