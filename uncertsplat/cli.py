@@ -6,6 +6,7 @@ without a traceback (``--debug`` shows it).
 
 from __future__ import annotations
 
+import errno
 import functools
 import sys
 from pathlib import Path
@@ -42,6 +43,9 @@ def resolve_device(name: str):
     return _resolve(name)
 
 
+_ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM}
+
+
 def _handle_errors(fn):
     """Turn UserError into a one-paragraph message and exit code 2; Ctrl-C into exit code 130."""
 
@@ -57,6 +61,14 @@ def _handle_errors(fn):
         except KeyboardInterrupt:
             console.print("[yellow]interrupted[/]")
             raise typer.Exit(130) from None
+        except OSError as err:
+            # the environment, not a bug: disk full, quota, file too large, read-only or forbidden folder
+            if _STATE["debug"] or err.errno not in _ENVIRONMENT_ERRNOS:
+                raise
+            where = f"{err.filename}: " if err.filename else ""
+            console.print(f"[bold red]error:[/] {where}{err.strerror}. Free some space or choose a folder you can "
+                          "write to, then run again (--resume continues a training run).", soft_wrap=True)
+            raise typer.Exit(2) from None
 
     return wrapper
 
@@ -143,21 +155,25 @@ def train(
     iterations: Annotated[int | None, typer.Option(help="Training steps.")] = None,
     variant: Annotated[str | None, typer.Option(help="ours or paper (the original code's choices).")] = None,
     seed: Annotated[int | None, typer.Option(help="Random seed.")] = None,
+    method: Annotated[str | None, typer.Option(
+        help="variational (default), paper, vi-single, deterministic, ensemble or fisher (baselines).")] = None,
     resume: Annotated[bool, typer.Option(help="Continue from the last good checkpoint in OUTPUT.")] = False,
     device: DeviceOpt = "auto",
     config: ConfigOpt = None,
     set_: SetOpt = None,
 ):
-    """Train a variational multi-scale 3DGS model with full-state checkpoints."""
+    """Train a variational multi-scale 3DGS model (or a baseline, --method) with full-state checkpoints."""
+    from uncertsplat.baselines import method_overrides, train_run
     from uncertsplat.config import load_toml, train_config_from
-    from uncertsplat.stages import train as stage
 
     data = load_toml(config) if config else {}
     explicit = {k: v for k, v in dict(iterations=iterations, variant=variant, seed=seed).items() if v is not None}
     from uncertsplat.config import deep_update
 
+    if method is not None:  # preset < config file < method < explicit options < --set
+        data = deep_update(data, method_overrides(method))
     cfg = train_config_from(preset, deep_update(data, explicit), set_)
-    stage.run(scene, output, cfg, device=resolve_device(device), resume=resume)
+    train_run(scene, output, cfg, device=resolve_device(device), resume=resume)
 
 
 @app.command()
@@ -229,6 +245,23 @@ def report(
 
     cfg = _stage_config(ReportConfig, config, set_, {})
     stage.run(runs, output, cfg)
+
+
+@app.command()
+@_handle_errors
+def sweep(
+    spec: Annotated[Path, typer.Argument(help="Sweep TOML (e.g. pipelines/tradeoff.toml).")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output folder (runs, sweep.jsonl, pareto.png).")],
+    jobs: Annotated[int | None, typer.Option(help="Parallel jobs (default: number of cores; 1 on CUDA).")] = None,
+    scene: Annotated[Path | None, typer.Option(help="Scene folder (overrides the spec's).")] = None,
+    force: Annotated[bool, typer.Option(help="Recompute points that already have a record.")] = False,
+    device: DeviceOpt = "auto",
+    set_: SetOpt = None,
+):
+    """Measure the speed-accuracy trade: train/evaluate each point of a sweep and draw the Pareto front."""
+    from uncertsplat.stages import sweep as stage
+
+    stage.run(spec, output, jobs=jobs, device=device, scene=scene, overrides=set_, force=force)
 
 
 @app.command("run")

@@ -54,6 +54,8 @@ class ReconstructConfig(_Base):
     min_registered: float = Field(0.8, gt=0.0, le=1.0)
     """Fail when fewer than this fraction of the images register."""
     seed: int = Field(0, ge=0)
+    """Seed for COLMAP's RANSAC and mapper; results are bit-identical for a seed only with num_threads=1
+    (with more threads, camera centres differ by ~1e-3 of the scene radius between runs)."""
     num_threads: int = Field(-1, ge=-1)
     """Threads for COLMAP (-1: all cores)."""
     overwrite: bool = False
@@ -115,7 +117,8 @@ class DensifyConfig(_Base):
     until: int = Field(4000, ge=0)
     interval: int = Field(100, ge=1)
     grad_threshold: float = Field(2e-4, gt=0.0)
-    """Screen-space mean-gradient threshold (pixels, averaged over views where visible)."""
+    """Screen-space mean-gradient threshold in NDC units as in 3DGS (pixel gradients x W/2, H/2), averaged
+    over the views where the Gaussian is visible."""
     percent_dense: float = Field(0.01, gt=0.0)
     """Clone if max scale <= percent_dense * extent, else split."""
     split_factor: float = Field(1.6, gt=1.0)
@@ -123,6 +126,7 @@ class DensifyConfig(_Base):
     opacity_reset_interval: int = Field(3000, ge=0)
     """0 disables opacity reset."""
     max_screen_size: float | None = Field(None, gt=0.0)
+    """Prune Gaussians whose screen radius exceeds this many pixels (3DGS uses 20), after the first opacity reset."""
     max_gaussians: int = Field(2_000_000, ge=1)
     spawn_interval: int = Field(1000, ge=1)
     spawn_scale_fraction: float = Field(0.01, gt=0.0)
@@ -144,11 +148,33 @@ class LearningRates(_Base):
     quats: float = Field(1e-3, gt=0.0)
 
 
+class FisherConfig(_Base):
+    """Post-hoc Laplace/Fisher baseline (``method = "fisher"``; ``uncertsplat.baselines.fisher``)."""
+
+    estimator: Literal["ggn", "empirical"] = "ggn"
+    """ggn: diag(J^T J) / noise^2 by Rademacher probes (unbiased); empirical: squared per-view gradients."""
+    probes: int = Field(2, ge=1, le=64)
+    """Rademacher probe vectors per training view (ggn only)."""
+    noise_std: Literal["auto"] | float = "auto"
+    """Observation noise std of the Gaussian likelihood; auto: RMS training residual."""
+    params: list[Literal["means", "scales", "opacities", "sh0"]] = ["means", "scales", "opacities", "sh0"]
+    """Per-Gaussian parameters that get a posterior (scales are log-scales, opacities logits)."""
+    prior_std_means: float = Field(0.01, gt=0.0)
+    """Prior std of the means, as a fraction of the scene extent."""
+    prior_std_scales: float = Field(0.1, gt=0.0)
+    prior_std_opacities: float = Field(0.5, gt=0.0)
+    prior_std_sh0: float = Field(0.1, gt=0.0)
+
+
 class TrainConfig(_Base):
     """Training (``uncertsplat train``)."""
 
-    method: Literal["variational", "deterministic"] = "variational"
-    """variational: ours; deterministic: plain 3DGS (used by baselines)."""
+    method: Literal["variational", "deterministic", "ensemble", "fisher"] = "variational"
+    """variational: ours; deterministic: plain 3DGS; ensemble / fisher: baselines (``uncertsplat.baselines``)."""
+    ensemble_size: int = Field(10, ge=1, le=1000)
+    """N: independently seeded deterministic members of ``method = "ensemble"`` (seeds seed .. seed + N - 1)."""
+    fisher: FisherConfig = FisherConfig()
+    """Settings of ``method = "fisher"``."""
     variant: Literal["ours", "paper"] = "ours"
     """paper: the original code's choices (log-scale multiplier, absolute position prior)."""
     iterations: int = Field(7000, ge=1)
@@ -241,6 +267,12 @@ class PruneConfig(_Base):
     dry_run: bool = False
     seed: int = Field(0, ge=0)
     num_samples: int = Field(10, ge=1)
+    score_views: int = Field(8, ge=1)
+    """Predictive score: at most this many training views (evenly spaced) are rendered."""
+    score_samples: int = Field(4, ge=2)
+    """Predictive score: posterior samples per view."""
+    render_views: int = Field(3, ge=0)
+    """Before/after PNG renders of this many held-out views."""
 
     @model_validator(mode="after")
     def _one_mode(self):

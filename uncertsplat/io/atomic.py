@@ -10,6 +10,7 @@ import contextlib
 import errno
 import json
 import os
+import re
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -68,6 +69,39 @@ def atomic_write_text(path: str | Path, text: str) -> Path:
 
 def atomic_write_json(path: str | Path, obj) -> Path:
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=str) + "\n")
+
+
+def read_json(path: str | Path):
+    """Parse a JSON file we wrote; a missing, truncated or corrupted file is a ``UserError`` naming it."""
+    path = Path(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        why = err.strerror if isinstance(err, OSError) else f"not valid JSON: {err}"
+        raise UserError(f"cannot read the file ({why}); it may be truncated or corrupted", path=path,
+                        hint="Restore it from a copy, or re-run the stage that wrote it.") from None
+
+
+# the temp names of atomic_write (".NAME.XXXXXXXX.tmp") and of io.images (".STEM.XXXXXXXX.tmp.EXT")
+_TEMP_NAME = re.compile(r"^\..+\.[A-Za-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
+
+
+def remove_stale_temp_files(*folders: str | Path) -> list[Path]:
+    """Delete the temp files that a killed writer left in ``folders`` (not recursive); returns them.
+
+    Only call this while holding the folder's ``run_lock``: then no live process is writing there.
+    """
+    removed = []
+    for folder in folders:
+        folder = Path(folder)
+        if not folder.is_dir():
+            continue
+        for p in folder.iterdir():
+            if _TEMP_NAME.match(p.name) and p.is_file():
+                with contextlib.suppress(OSError):
+                    p.unlink()
+                    removed.append(p)
+    return removed
 
 
 def _pid_alive(pid: int) -> bool:

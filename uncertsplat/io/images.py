@@ -9,6 +9,7 @@ rename), so an interrupted run never leaves a half-written image under its final
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from collections.abc import Callable, Sequence
@@ -23,6 +24,10 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
 
 _UMASK = os.umask(0)
 os.umask(_UMASK)
+
+MAX_PIXELS = 250_000_000
+"""Refuse images above this many pixels (250 MP is 3 GB as float RGB): a huge or forged header would
+otherwise exhaust memory while decoding instead of giving an error."""
 
 _UNREADABLE_HINT = "Check that the file is a complete PNG, JPEG, TIFF or EXR image (re-export or remove it)."
 
@@ -92,6 +97,10 @@ def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0)) 
     inp = _open(path)
     try:
         spec = inp.spec()
+        if spec.width * spec.height > MAX_PIXELS:
+            raise UserError(f"the image is {spec.width}x{spec.height} pixels, more than the "
+                            f"{MAX_PIXELS / 1e6:.0f} megapixels read at once", path=path,
+                            hint="Downscale the photo (or check that its header is not corrupted).")
         data = inp.read_image("float")
         err = inp.geterror()
         if data is None or err:
@@ -148,9 +157,13 @@ def _atomic_oiio(path: Path, write: Callable[[str], None]) -> Path:
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(err, OSError):
+            what = "the disk is full" if err.errno == errno.ENOSPC else (err.strerror or str(err))
+            raise UserError(f"could not write the image: {what}; nothing was left half-written", path=path,
+                            hint="Free some space or choose another output folder, then run again.") from None
         raise
     return path
 

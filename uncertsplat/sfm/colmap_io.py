@@ -6,6 +6,7 @@ so the rest of the package never sees pycolmap objects.
 
 from __future__ import annotations
 
+import functools
 import os
 import shutil
 import tempfile
@@ -55,6 +56,71 @@ def has_model(folder: Path) -> bool:
     return any(all((folder / f"{n}{ext}").is_file() for n in MODEL_FILES) for ext in (".bin", ".txt"))
 
 
+@functools.lru_cache(maxsize=64)
+def _camera_param_count(model_id: int) -> int | None:
+    import pycolmap
+
+    try:
+        return len(pycolmap.Camera.create_from_model_id(1, pycolmap.CameraModelId(model_id), 1.0, 1, 1).params)
+    except Exception:  # an unknown model id
+        return None
+
+
+def check_binary_model(folder: Path) -> None:
+    """Walk the record structure of cameras/images/points3D.bin and check it fits the file sizes.
+
+    pycolmap trusts the counts in these files: a truncated file or one flipped bit in a count can make it
+    read past the end for a very long time (seen: ReadPoints3DBinary spinning on an exhausted stream) or
+    load garbage. This check costs one pass over the counts (no float parsing) and raises ``UserError``
+    naming the damaged file instead.
+    """
+    import struct
+
+    def bad(path: Path, why: str) -> UserError:
+        return UserError(f"the COLMAP model file is damaged ({why})", path=path,
+                         hint="The file may be truncated or corrupted; re-run `uncertsplat reconstruct` "
+                         "or restore the workspace from a copy.")
+
+    def walk(path: Path, record) -> None:
+        data = path.read_bytes()
+        if len(data) < 8:
+            raise bad(path, f"only {len(data)} bytes")
+        (count,) = struct.unpack_from("<Q", data, 0)
+        off = 8
+        for i in range(count):
+            try:
+                off = record(data, off)
+            except struct.error:
+                off = len(data) + 1
+            if off > len(data):
+                raise bad(path, f"the file ends inside record {i + 1} of the {count} it announces")
+        if off != len(data):
+            raise bad(path, f"{len(data) - off} unexpected bytes after the {count} records")
+
+    def camera(data: bytes, off: int) -> int:
+        _cid, model_id, width, height = struct.unpack_from("<iiQQ", data, off)
+        n = _camera_param_count(model_id)
+        if n is None:
+            raise bad(folder / "cameras.bin", f"unknown camera model id {model_id}")
+        if not (0 < width < 2**20 and 0 < height < 2**20):
+            raise bad(folder / "cameras.bin", f"implausible image size {width}x{height}")
+        return off + 24 + 8 * n
+
+    def image(data: bytes, off: int) -> int:
+        end = data.find(b"\0", off + 64)  # after id, qvec, tvec, camera id: the name, NUL-terminated
+        if end < 0:
+            return len(data) + 1
+        (n2d,) = struct.unpack_from("<Q", data, end + 1)
+        return end + 1 + 8 + 24 * n2d
+
+    def point(data: bytes, off: int) -> int:
+        (track,) = struct.unpack_from("<Q", data, off + 43)  # id, xyz, rgb, error, then the track length
+        return off + 51 + 8 * track
+
+    for name, record in (("cameras", camera), ("images", image), ("points3D", point)):
+        walk(folder / f"{name}.bin", record)
+
+
 def read_colmap_model(folder: str | Path) -> ColmapModel:
     """Read a binary or text COLMAP model folder.
 
@@ -67,6 +133,8 @@ def read_colmap_model(folder: str | Path) -> ColmapModel:
     if not has_model(folder):
         raise UserError("no COLMAP model here (expected cameras, images and points3D as .bin or .txt)",
                         path=folder, hint="Run `uncertsplat reconstruct` on your photos to create a workspace.")
+    if all((folder / f"{n}.bin").is_file() for n in MODEL_FILES):
+        check_binary_model(folder)
     try:
         rec = pycolmap.Reconstruction(str(folder))
     except Exception as err:  # pycolmap raises plain RuntimeErrors/ValueErrors for broken files

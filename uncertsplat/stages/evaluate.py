@@ -119,7 +119,12 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
     model = loaded.model
     bg = torch.tensor(tcfg.scene.background, dtype=torch.float32, device=device)
     render_fn = functools.partial(render, background=bg, tile_size=tcfg.tile_size)
-    if tcfg.method == "deterministic" or model.num_carriers == 0:
+    from uncertsplat.baselines import eval_notes, make_sample_fn
+
+    baseline_fn = make_sample_fn(loaded, device)  # ensemble / fisher runs bring their own sampler
+    if baseline_fn is not None:
+        sample_fn = baseline_fn
+    elif tcfg.method == "deterministic" or model.num_carriers == 0:
         mean_sample = variational.posterior_mean(model, variant=prior.variant, extent=loaded.extent,
                                                  temperature=prior.temperature, sh_degree=loaded.sh_degree)
 
@@ -139,7 +144,7 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
     lp_ok, lp_reason = lpips_available()
     K = cfg.num_samples
     keep = K <= KDE_MAX_SAMPLES
-    notes = []
+    notes = eval_notes(loaded, cfg.num_samples)
     if not keep:
         notes.append(f"KDE NLL skipped: K={K} > {KDE_MAX_SAMPLES} would keep every sample in memory")
     if K == 1:
@@ -317,13 +322,13 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
     """Evaluate ``run_dir`` and write ``run_dir/eval`` (maps + metrics.json); returns the EvalReport."""
     from rich.table import Table
 
+    from uncertsplat.baselines import load_run
     from uncertsplat.io.atomic import atomic_write_text, run_lock
-    from uncertsplat.io.checkpoints import load_model
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise UserError("run folder not found", path=run_dir, hint="Give a folder written by `uncertsplat train`.")
-    loaded = load_model(run_dir, device)
+    loaded = load_run(run_dir, device)  # any method: variational, deterministic, ensemble, fisher
     scene = load_run_scene(loaded, run_dir)
     indices = list(scene.split[cfg.split])
     if cfg.max_views is not None:

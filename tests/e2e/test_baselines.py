@@ -1,0 +1,149 @@
+"""Baselines end to end on the tiny synthetic scene: train, evaluate, maps of the right shape, spread.
+
+Runs are kept very short (quarter resolution, 20 steps): these tests check the harness, not accuracy.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from tests.fixtures import tiny_scene
+from uncertsplat.baselines import load_run, train_run
+from uncertsplat.baselines.ensemble import EnsembleRun, member_dir
+from uncertsplat.baselines.fisher import FISHER_FILE, FisherRun
+from uncertsplat.cli import app
+from uncertsplat.config import EvalConfig, deep_update, train_config_from
+from uncertsplat.eval.report_schema import EvalReport
+from uncertsplat.io.images import read_exr
+from uncertsplat.stages import evaluate
+
+CPU = torch.device("cpu")
+H, W = 24, 32  # the tiny scene (128x96) at downscale 4
+QUICK = {
+    "iterations": 20, "scene": {"downscale": 4.0}, "eval_every": 1000, "checkpoint_every": 1000, "log_every": 10,
+    "densify": {"start": 5, "until": 15, "interval": 5, "spawn_interval": 10},
+}
+
+
+@pytest.fixture(scope="session")
+def scene_path(tmp_path_factory):
+    """The shared tiny synthetic scene (the same folder as ``tests.fixtures.tiny_scene_path``)."""
+    return tiny_scene(tmp_path_factory.getbasetemp() / "shared_scenes")
+
+
+def quick_cfg(**over):
+    return train_config_from("tiny", deep_update(QUICK, over))
+
+
+def exr_maps(run, report):
+    return [read_exr(run / "eval" / "maps" / f"{evaluate.map_stem(n)}.exr") for n in report.image_names]
+
+
+@pytest.fixture(scope="module")
+def ensemble_run(scene_path, tmp_path_factory):
+    run = tmp_path_factory.mktemp("ens") / "run"
+    train_run(scene_path, run, quick_cfg(method="ensemble", ensemble_size=2), CPU)
+    return run
+
+
+@pytest.fixture(scope="module")
+def fisher_run(scene_path, tmp_path_factory):
+    run = tmp_path_factory.mktemp("fisher") / "run"
+    train_run(scene_path, run, quick_cfg(method="fisher"), CPU)
+    return run
+
+
+def test_ensemble_layout_and_spread(ensemble_run):
+    run = ensemble_run
+    assert json.loads((run / "config.json").read_text())["method"] == "ensemble"
+    assert (run / "scene.json").is_file()
+    members = [json.loads((member_dir(run, i) / "config.json").read_text()) for i in range(2)]
+    assert [m["method"] for m in members] == ["deterministic", "deterministic"]
+    assert [m["seed"] for m in members] == [0, 1]
+    summary = json.loads((run / "train_summary.json").read_text())
+    assert summary["ensemble_size"] == 2 and len(summary["members"]) == 2
+    assert summary["seconds"] == pytest.approx(sum(m["seconds"] for m in summary["members"]))
+    loaded = load_run(run, CPU)
+    assert isinstance(loaded, EnsembleRun) and len(loaded.members) == 2
+    assert all(m.model.num_carriers == 0 for m in loaded.members)  # plain 3DGS members
+    report = evaluate.run(run, EvalConfig(num_samples=2, max_views=2), device=CPU)
+    assert len(report.image_names) == 2
+    for ch in exr_maps(run, report):
+        assert ch["rgb_std.R"].shape == (H, W) and ch["depth_std.Z"].shape == (H, W)
+        assert ch["rgb_std.R"].max() > 0, "two differently seeded members must disagree somewhere"
+    assert not any("1 member" in n for n in report.notes)
+    assert report.mean.ause_mae is not None and report.mean.nll is not None
+
+
+def test_ensemble_of_one_has_zero_spread(ensemble_run, tmp_path):
+    # an ensemble folder with N = 1 (member 0 of the N = 2 run; same layout, no retraining)
+    run = tmp_path / "ens1"
+    shutil.copytree(ensemble_run, run, ignore=shutil.ignore_patterns("member_1", "eval"))
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["ensemble_size"] = 1
+    (run / "config.json").write_text(json.dumps(cfg))
+    report = evaluate.run(run, EvalConfig(num_samples=3, max_views=2), device=CPU)
+    for ch in exr_maps(run, report):
+        assert ch["rgb_std.R"].shape == (H, W)
+        assert np.all(ch["rgb_std.R"] == 0) and np.all(ch["depth_std.Z"] == 0)
+    assert any("ensemble of 1 member" in n and "spread" in n for n in report.notes)
+    stored = EvalReport.from_json((run / "eval" / "metrics.json").read_text())
+    assert any("ensemble of 1 member" in n for n in stored.notes)
+
+
+def test_fisher_variances_and_spread(fisher_run):
+    run = fisher_run
+    assert (run / FISHER_FILE).is_file()
+    loaded = load_run(run, CPU)
+    assert isinstance(loaded, FisherRun)
+    assert loaded.model.num_carriers == 0, "the Fisher baseline starts from a plain (deterministic) 3DGS model"
+    assert set(loaded.variance) == {"means", "scales", "opacities", "sh0"}
+    cfg = loaded.config.fisher
+    for name, prior in (("means", cfg.prior_std_means * loaded.extent), ("scales", cfg.prior_std_scales)):
+        v = loaded.variance[name]
+        assert v.shape == loaded.model.params[name].shape
+        assert torch.all(v > 0) and torch.all(v <= prior**2 * (1 + 1e-5))
+        assert bool((v < 0.99 * prior**2).any()), "observed Gaussians must be tighter than the prior"
+    summary = json.loads((run / "train_summary.json").read_text())
+    assert summary["seconds"] == pytest.approx(summary["train_seconds"] + summary["fisher_seconds"])
+    report = evaluate.run(run, EvalConfig(num_samples=3, max_views=2, seed=1), device=CPU)
+    for ch in exr_maps(run, report):
+        assert ch["rgb_std.R"].shape == (H, W) and ch["rgb_std.R"].max() > 0
+        assert ch["depth_std.Z"].max() > 0
+    again = evaluate.evaluate_views(loaded, evaluate.load_run_scene(loaded, run), list(report_indices(run, 2)),
+                                    EvalConfig(num_samples=3, max_views=2, seed=1), CPU, show_progress=False)
+    assert again.mean.ause_mae == pytest.approx(report.mean.ause_mae, rel=1e-6)  # explicit generator: repeatable
+
+
+def report_indices(run, n):
+    loaded = load_run(run, CPU)
+    scene = evaluate.load_run_scene(loaded, run)
+    return list(scene.split["test"])[:n]
+
+
+def test_vi_single_through_the_cli(scene_path, tmp_path):
+    run = tmp_path / "vi1"
+    res = CliRunner().invoke(app, ["train", str(scene_path), "-o", str(run), "--preset", "tiny",
+                                   "--method", "vi-single", "--device", "cpu",
+                                   "--set", "iterations=20", "--set", "scene.downscale=4.0",
+                                   "--set", "eval_every=1000", "--set", "checkpoint_every=1000",
+                                   "--set", "densify={start=5, until=15, interval=5, spawn_interval=10}"])
+    assert res.exit_code == 0, res.output
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["method"] == "variational" and cfg["variational"]["num_entries"] == 1
+    loaded = load_run(run, CPU)
+    assert loaded.model.num_entries == 1 and loaded.model.num_carriers > 0
+    report = evaluate.run(run, EvalConfig(num_samples=3, max_views=1), device=CPU)
+    (ch,) = exr_maps(run, report)
+    assert ch["rgb_std.R"].shape == (H, W) and ch["rgb_std.R"].max() > 0
+
+
+def test_unknown_method_is_a_user_error(scene_path, tmp_path):
+    res = CliRunner().invoke(app, ["train", str(scene_path), "-o", str(tmp_path / "x"), "--method", "mc-dropout"])
+    assert res.exit_code == 2 and "unknown method" in res.output and "ensemble" in res.output

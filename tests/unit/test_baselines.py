@@ -1,0 +1,181 @@
+"""Unit tests of the baselines: method table, ensemble sampler, Fisher diagonal, Laplace samples."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from uncertsplat.baselines import METHODS, method_label, method_overrides
+from uncertsplat.baselines.ensemble import ensemble_sample_fn
+from uncertsplat.baselines.fisher import fisher_diagonal, perturbed_sample, posterior_variance
+from uncertsplat.config import TrainConfig, build_config, deep_update
+from uncertsplat.errors import UserError
+from uncertsplat.gaussians.variational import random_model
+
+
+def test_every_method_resolves_to_a_valid_config_and_label():
+    labels = {}
+    for name in METHODS:
+        cfg = build_config(TrainConfig, deep_update({}, method_overrides(name)))
+        labels[name] = method_label(cfg)
+    assert labels["vi-single"] == "vi-single" and labels["paper"] == "paper"
+    assert labels["ensemble"] == "ensemble-10" and labels["fisher"] == "fisher"
+    assert len(set(labels.values())) == len(labels)
+    cfg = build_config(TrainConfig, method_overrides("vi-single"))
+    assert cfg.method == "variational" and cfg.variational.num_entries == 1
+
+
+def test_unknown_method():
+    with pytest.raises(UserError, match="unknown method"):
+        method_overrides("dropout")
+
+
+def test_method_overrides_is_a_copy():
+    method_overrides("vi-single")["variational"]["num_entries"] = 99
+    assert METHODS["vi-single"]["variational"]["num_entries"] == 1
+
+
+# ------------------------------------------------------------------------------------------- ensemble
+def test_ensemble_sampler_uses_each_member_once_per_cycle():
+    members = [object() for _ in range(3)]
+    fn = ensemble_sample_fn(members)
+    g = torch.Generator().manual_seed(5)
+    first = [members.index(fn(g)) for _ in range(3)]
+    assert sorted(first) == [0, 1, 2]
+    more = [members.index(fn(g)) for _ in range(3)]  # the next cycle: again each member once
+    assert sorted(more) == [0, 1, 2]
+    # re-seeding starts a new sequence: the same seed gives the same members, in the same order
+    g.manual_seed(5)
+    assert [members.index(fn(g)) for _ in range(3)] == first
+    # another seed gives some other order (over a few seeds at least one differs)
+    orders = set()
+    for s in range(8):
+        g.manual_seed(100 + s)
+        orders.add(tuple(members.index(fn(g)) for _ in range(3)))
+    assert len(orders) > 1
+
+
+def test_ensemble_of_one_returns_the_same_sample():
+    only = object()
+    fn = ensemble_sample_fn([only])
+    g = torch.Generator().manual_seed(0)
+    assert all(fn(g) is only for _ in range(4))
+    with pytest.raises(ValueError):
+        ensemble_sample_fn([])
+
+
+# -------------------------------------------------------------------------------------------- fisher
+class _Cams:
+    """A stand-in for Cameras: T 'views', each a fixed linear map of the means to a 4x5 image."""
+
+    def __init__(self, maps):
+        self.maps = maps  # [T,3,60]
+
+    def __len__(self):
+        return self.maps.shape[0]
+
+    def __getitem__(self, idx):
+        return _Cams(self.maps[idx])
+
+
+def _linear_render(sample, cams):
+    # rgb depends on the sum of the means only: d rgb / d means[i,a] = maps[a] for every Gaussian i
+    flat = sample.means.sum(0) @ cams.maps[0]  # [60]
+    return SimpleNamespace(rgb=flat.reshape(1, 4, 5, 3))
+
+
+def _params(n=4, gen=None):
+    model = random_model(n, gen or torch.Generator().manual_seed(0), sh_degree=0, carrier_fraction=0.0)
+    return {k: v.detach() for k, v in model.params.items()}
+
+
+def test_ggn_fisher_is_an_unbiased_estimate_of_diag_jtj():
+    gen = torch.Generator().manual_seed(1)
+    params = _params()
+    maps = torch.randn(8, 3, 60, generator=gen)
+    cams = _Cams(maps)
+    images = torch.zeros(8, 4, 5, 3)
+    noise = 0.5
+    f = fisher_diagonal(params, cams, images, _linear_render, names=("means", "scales"), noise_std=noise,
+                        generator=gen, sh_degree=0, estimator="ggn", probes=64)
+    exact = maps.square().sum(-1).sum(0) / noise**2  # [3]: sum over views and pixels of J^2
+    assert f["means"].shape == params["means"].shape
+    for i in range(params["means"].shape[0]):
+        assert torch.allclose(f["means"][i], exact, rtol=0.2), (f["means"][i], exact)
+    assert torch.all(f["scales"] == 0), "parameters the render ignores carry no information"
+    assert "opacities" not in f
+
+
+def test_empirical_fisher_is_the_squared_view_gradient():
+    gen = torch.Generator().manual_seed(2)
+    params = _params()
+    maps = torch.randn(3, 3, 60, generator=gen)
+    images = torch.rand(3, 4, 5, 3, generator=gen)
+    noise = 0.2
+    f = fisher_diagonal(params, _Cams(maps), images, _linear_render, names=("means",), noise_std=noise,
+                        generator=gen, sh_degree=0, estimator="empirical")
+    s = params["means"].sum(0)
+    expected = torch.zeros(3)
+    for t in range(3):
+        r = s @ maps[t] - images[t].reshape(-1)
+        expected += (maps[t] @ r / noise**2).square()
+    assert torch.allclose(f["means"][0], expected, rtol=1e-4)
+    assert torch.allclose(f["means"], f["means"][:1].expand_as(f["means"]))
+
+
+def test_posterior_variance_between_zero_and_the_prior():
+    fisher = {"means": torch.tensor([0.0, 1.0, 1e6])}
+    v = posterior_variance(fisher, {"means": 0.5})
+    assert v["means"][0] == pytest.approx(0.25)  # no information: the prior
+    assert v["means"][1] == pytest.approx(1.0 / (1.0 + 4.0))
+    assert v["means"][2] < 1e-5
+
+
+def test_perturbed_sample_is_repeatable_and_zero_variance_is_the_mean():
+    params = _params(6)
+    var = {k: torch.full_like(params[k], 0.01) for k in ("means", "scales", "opacities", "sh0")}
+    a = perturbed_sample(params, var, torch.Generator().manual_seed(3), sh_degree=0)
+    b = perturbed_sample(params, var, torch.Generator().manual_seed(3), sh_degree=0)
+    c = perturbed_sample(params, var, torch.Generator().manual_seed(4), sh_degree=0)
+    assert torch.equal(a.means, b.means) and torch.equal(a.opacities, b.opacities)
+    assert not torch.equal(a.means, c.means)
+    assert torch.all(a.scales > 0) and torch.all((a.opacities > 0) & (a.opacities < 1))
+    zero = {k: torch.zeros_like(v) for k, v in var.items()}
+    m = perturbed_sample(params, zero, torch.Generator().manual_seed(3), sh_degree=0)
+    assert torch.equal(m.means, params["means"]) and torch.allclose(m.scales, params["scales"].exp())
+    # spread of the means matches the variance (std 0.1) over many Gaussians
+    big = _params(2000)
+    var = {"means": torch.full_like(big["means"], 0.01)}
+    d = perturbed_sample(big, var, torch.Generator().manual_seed(0), sh_degree=0).means - big["means"]
+    assert d.std().item() == pytest.approx(0.1, rel=0.05)
+
+
+# ------------------------------------------------------------------- deterministic = plain 3DGS
+def test_plain_3dgs_split_creates_no_posteriors():
+    from uncertsplat.gaussians import ops
+    from uncertsplat.gaussians.variational import Prior
+    from uncertsplat.train.optim import make_optimizer
+
+    g = torch.Generator().manual_seed(0)
+    model = random_model(30, g, sh_degree=1, num_entries=4, carrier_fraction=0.3)
+    opt = make_optimizer(model, {k: 1e-3 for k in model.parameters()})
+    carriers_before = model.num_carriers
+    parents_carry = model.posterior_row[:10] >= 0
+    mask = torch.zeros(30, dtype=torch.bool)
+    mask[:10] = True
+    ops.split(model, opt, mask, g, scales=model.params["scales"].detach().exp(), prior=Prior(), carry=False)
+    model.check()
+    # children of carriers keep a posterior (2 each), children of plain Gaussians get none
+    assert model.num_carriers == carriers_before - int(parents_carry.sum()) + 2 * int(parents_carry.sum())
+    assert torch.equal(model.posterior_row[-20:] >= 0, parents_carry.repeat(2))
+
+
+def test_deterministic_trainer_densifier_never_gives_posteriors():
+    from uncertsplat.gaussians.variational import Prior
+    from uncertsplat.strategy.densify import Densifier
+
+    cfg = TrainConfig().densify
+    assert Densifier(cfg, Prior(), 1.0, 5, torch.device("cpu"), posteriors=False).posteriors is False
+    assert Densifier(cfg, Prior(), 1.0, 5, torch.device("cpu")).posteriors is True

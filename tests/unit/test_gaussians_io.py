@@ -1,0 +1,84 @@
+"""Checkpoints (atomic, checksummed, fallback) and PLY files (viewer layout, exact round trip)."""
+
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData
+
+from uncertsplat.errors import UserError
+from uncertsplat.gaussians.variational import posterior_mean, random_model
+from uncertsplat.io.checkpoints import (
+    CorruptCheckpoint,
+    list_checkpoints,
+    load_checkpoint,
+    load_latest,
+    save_checkpoint,
+)
+from uncertsplat.io.ply import read_variational_ply, write_point_cloud_ply, write_variational_ply
+
+
+def test_checkpoint_round_trip_and_keep(tmp_path):
+    for step in (10, 20, 30, 40):
+        save_checkpoint(tmp_path, step, {"step": step, "x": torch.arange(step)}, keep=3)
+    assert [s for s, _ in list_checkpoints(tmp_path)] == [20, 30, 40]
+    path, state = load_latest(tmp_path)
+    assert path.name == "step_000040.pt" and state["step"] == 40 and torch.equal(state["x"], torch.arange(40))
+    assert not list(tmp_path.joinpath("ckpts").glob(".*tmp"))  # no temp files left behind
+
+
+def test_truncated_checkpoint_falls_back(tmp_path, capsys):
+    save_checkpoint(tmp_path, 1, {"step": 1}, keep=5)
+    p2 = save_checkpoint(tmp_path, 2, {"step": 2, "big": torch.zeros(1000)}, keep=5)
+    data = p2.read_bytes()
+    p2.write_bytes(data[: len(data) // 2])
+    with pytest.raises(CorruptCheckpoint, match="checksum"):
+        load_checkpoint(p2)
+    path, state = load_latest(tmp_path)
+    assert state["step"] == 1
+    p2.write_bytes(b"")
+    with pytest.raises(CorruptCheckpoint, match="header"):
+        load_checkpoint(p2)
+    assert load_latest(tmp_path / "nothing") is None
+
+
+def test_variational_ply_round_trip(tmp_path):
+    m = random_model(64, torch.Generator().manual_seed(0), sh_degree=2, num_entries=5, carrier_fraction=0.4,
+                     perturb_tables=0.3)
+    path = write_variational_ply(tmp_path / "variational.ply", m, meta={"extent": 1.5, "step": 7})
+    back, meta = read_variational_ply(path)
+    assert meta["extent"] == "1.5" and meta["step"] == "7"
+    assert torch.equal(back.posterior_row, m.posterior_row)
+    for name, p in m.parameters().items():
+        assert torch.equal(back.parameters()[name], p.detach()), name
+
+
+def test_variational_ply_without_carriers(tmp_path):
+    m = random_model(10, torch.Generator().manual_seed(1), carrier_fraction=0.0)
+    back, _ = read_variational_ply(write_variational_ply(tmp_path / "v.ply", m))
+    assert back.num_carriers == 0 and len(back) == 10
+
+
+def test_point_cloud_ply_standard_layout(tmp_path):
+    m = random_model(30, torch.Generator().manual_seed(2), sh_degree=3, carrier_fraction=0.5, perturb_tables=0.2)
+    path = write_point_cloud_ply(tmp_path / "point_cloud.ply", m, extent=2.0)
+    v = PlyData.read(str(path))["vertex"]
+    names = [p.name for p in v.properties]
+    expected = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
+                + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    assert names[: len(expected)] == expected
+    assert {"uncertainty_position", "has_posterior"} <= set(names)
+    pm = posterior_mean(m, extent=2.0)
+    np.testing.assert_allclose(np.stack([v["x"], v["y"], v["z"]], 1), pm.means.detach().numpy(), rtol=1e-6)
+    np.testing.assert_allclose(np.exp(v["scale_0"]), pm.scales.detach()[:, 0].numpy(), rtol=1e-5)
+    np.testing.assert_allclose(1 / (1 + np.exp(-v["opacity"])), pm.opacities.detach().numpy(), rtol=1e-4)
+    # f_rest is channel-major (3DGS): f_rest_0..14 are the 15 red coefficients
+    np.testing.assert_allclose(v["f_rest_1"], m.params["shN"].detach()[:, 1, 0].numpy())
+    has = np.asarray(v["has_posterior"]) > 0
+    assert (np.asarray(v["uncertainty_position"])[has] > 0).all() and (np.asarray(v["uncertainty_position"])[~has] == 0).all()
+
+
+def test_reading_a_point_cloud_as_variational_fails_clearly(tmp_path):
+    m = random_model(5, torch.Generator().manual_seed(3))
+    path = write_point_cloud_ply(tmp_path / "point_cloud.ply", m)
+    with pytest.raises(UserError, match="not a variational.ply"):
+        read_variational_ply(path)

@@ -1,0 +1,168 @@
+"""Schedules and densify / prune / spawn decisions, table-driven."""
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from uncertsplat.config import DensifyConfig
+from uncertsplat.gaussians.variational import Prior, random_model
+from uncertsplat.strategy.densify import (
+    Densifier,
+    densify_decisions,
+    limit_growth,
+    prune_decisions,
+    spawn_decisions,
+)
+from uncertsplat.strategy.schedule import (
+    is_densify_step,
+    is_opacity_reset_step,
+    is_spawn_step,
+    is_stats_step,
+    position_lr,
+    sh_degree_at,
+)
+
+CFG = DensifyConfig(start=100, until=400, interval=100, spawn_interval=200, opacity_reset_interval=300)
+
+
+@pytest.mark.parametrize(
+    "step, densify, reset, spawn, stats",
+    [
+        (1, False, False, False, True),
+        (100, False, False, False, True),  # start itself is excluded (3DGS: iteration > from_iter)
+        (150, False, False, False, True),
+        (200, True, False, True, True),
+        (300, True, True, False, True),
+        (399, False, False, False, True),
+        (400, False, False, True, False),  # until excluded for densify, included for spawn
+        (500, False, False, False, False),
+        (600, False, False, False, False),
+    ],
+)
+def test_schedule_table(step, densify, reset, spawn, stats):
+    assert is_densify_step(step, CFG) == densify
+    assert is_opacity_reset_step(step, CFG) == reset
+    assert is_spawn_step(step, CFG) == spawn
+    assert is_stats_step(step, CFG) == stats
+
+
+def test_opacity_reset_disabled_by_zero():
+    cfg = SimpleNamespace(opacity_reset_interval=0, until=1000)
+    assert not any(is_opacity_reset_step(s, cfg) for s in range(1, 1000))
+
+
+@pytest.mark.parametrize("step, interval, max_deg, expected",
+                         [(0, 1000, 3, 0), (999, 1000, 3, 0), (1000, 1000, 3, 1), (5000, 1000, 3, 3),
+                          (250, 100, 1, 1), (50, 100, 0, 0)])
+def test_sh_degree_schedule(step, interval, max_deg, expected):
+    assert sh_degree_at(step, max_deg, interval) == expected
+
+
+def test_position_lr_decays_exponentially_and_scales_with_extent():
+    assert position_lr(0, 100, 1e-4, 1e-6, 2.0) == pytest.approx(2e-4)
+    assert position_lr(100, 100, 1e-4, 1e-6, 2.0) == pytest.approx(2e-6)
+    assert position_lr(50, 100, 1e-4, 1e-6, 1.0) == pytest.approx(1e-5)  # geometric midpoint
+    assert position_lr(500, 100, 1e-4, 1e-6, 1.0) == pytest.approx(1e-6)
+
+
+@pytest.mark.parametrize(
+    "grad, max_scale, clone, split",
+    [
+        (1e-4, 0.001, False, False),  # cold
+        (2e-4, 0.001, True, False),  # at the threshold, small -> clone
+        (5e-4, 0.011, True, False),  # 0.011 <= 0.01 * 1.1 -> still small
+        (5e-4, 0.02, False, True),  # large -> split
+        (1e-5, 0.5, False, False),
+    ],
+)
+def test_densify_decisions_table(grad, max_scale, clone, split):
+    c, s = densify_decisions(torch.tensor([grad]), torch.tensor([max_scale]), grad_threshold=2e-4,
+                             percent_dense=0.01, extent=1.1)
+    assert bool(c) == clone and bool(s) == split
+
+
+@pytest.mark.parametrize(
+    "opacity, radius, scale, max_screen, expected",
+    [
+        (0.004, 1.0, 0.01, None, True),
+        (0.006, 1.0, 0.01, None, False),
+        (0.5, 30.0, 0.01, None, False),  # big on screen but no screen limit
+        (0.5, 30.0, 0.01, 20.0, True),
+        (0.5, 1.0, 0.2, 20.0, True),  # larger than 0.1 x extent
+        (0.5, 1.0, 0.05, 20.0, False),
+    ],
+)
+def test_prune_decisions_table(opacity, radius, scale, max_screen, expected):
+    out = prune_decisions(torch.tensor([opacity]), min_opacity=0.005, max_scale=torch.tensor([scale]),
+                          screen_radius=torch.tensor([radius]), max_screen_size=max_screen, extent=1.0)
+    assert bool(out) == expected
+
+
+@pytest.mark.parametrize(
+    "scale, opacity, expected",
+    [
+        (0.02, 0.5, True),  # ||(.02,.02,.02)|| = 0.035 > 0.011
+        (0.005, 0.5, False),  # 0.0087 < 0.011
+        (0.02, 0.0004, False),  # transparent
+        (0.02, 0.0005, True),
+    ],
+)
+def test_spawn_decisions_table(scale, opacity, expected):
+    out = spawn_decisions(torch.full((1, 3), scale), torch.tensor([opacity]), scale_fraction=0.01,
+                          min_opacity=0.0005, extent=1.1)
+    assert bool(out) == expected
+
+
+def test_limit_growth_keeps_highest_gradients():
+    grad = torch.tensor([5.0, 4.0, 3.0, 2.0, 1.0])
+    clone = torch.tensor([True, False, True, False, True])
+    split = torch.tensor([False, True, False, True, False])
+    c, s = limit_growth(clone, split, grad, n=10, max_gaussians=13)
+    assert c.tolist() == [True, False, True, False, False] and s.tolist() == [False, True, False, False, False]
+    c2, s2 = limit_growth(clone, split, grad, n=10, max_gaussians=100)
+    assert torch.equal(c2, clone) and torch.equal(s2, split)
+
+
+def test_densifier_uses_posterior_mean_and_keeps_stats_aligned():
+    from uncertsplat.train.optim import make_optimizer
+
+    g = torch.Generator().manual_seed(0)
+    model = random_model(30, g, carrier_fraction=0.5, perturb_tables=0.05)
+    with torch.no_grad():
+        model.params["opacities"][:3] = -10.0  # transparent -> pruned
+        model.params["scales"][3:6] = math.log(0.3)  # large -> split when hot
+        model.params["scales"][6:10] = math.log(0.001)  # small -> clone when hot
+        model.params["opacities"][3:] = model.params["opacities"][3:].clamp_min(0.0)
+    opt = make_optimizer(model, {k: 1e-3 for k in model.parameters()})
+    cfg = DensifyConfig(start=0, until=1000, interval=10, spawn_interval=10, opacity_reset_interval=0,
+                        grad_threshold=1e-3)
+    d = Densifier(cfg, Prior(), extent=1.0, n=len(model), device=model.device)
+    grad = torch.zeros(1, 30, 2)
+    grad[0, 3:10] = 1.0  # hot
+    radii = torch.ones(1, 30)
+    d.accumulate(10, grad, radii, 64, 48)
+    state_before = torch.get_rng_state()
+    done = d.step(10, model, opt, g)
+    assert torch.equal(torch.get_rng_state(), state_before)  # no global RNG use
+    assert done["split"] == 3 and done["cloned"] == 4 and done["pruned"] == 3
+    assert len(model) == 30 + 4 + 3 - 3
+    assert d.stats.grad_sum.shape == (len(model),)
+    model.check()
+    # split children carry posteriors; large Gaussians spawned
+    assert done["spawned"] >= 0 and (model.posterior_row[-6:] >= 0).all()
+
+
+def test_accumulate_converts_pixel_gradients_to_ndc():
+    cfg = DensifyConfig(start=0, until=100)
+    d = Densifier(cfg, Prior(), extent=1.0, n=3, device=torch.device("cpu"))
+    grad = torch.tensor([[[1.0, 0.0], [0.0, 1.0], [5.0, 5.0]]])  # [C=1,N=3,2] pixels
+    radii = torch.tensor([[2.0, 3.0, 0.0]])  # the third is culled: no statistics
+    d.accumulate(1, grad, radii, width=64, height=48)
+    d.accumulate(2, grad, radii, width=64, height=48)
+    torch.testing.assert_close(d.stats.grad_sum, torch.tensor([64.0, 48.0, 0.0]))  # 2 x (32, 24, -)
+    torch.testing.assert_close(d.stats.count, torch.tensor([2.0, 2.0, 0.0]))
+    torch.testing.assert_close(d.stats.max_radius, torch.tensor([2.0, 3.0, 0.0]))
+    d.accumulate(100, grad, radii, width=64, height=48)  # after `until`: ignored
+    torch.testing.assert_close(d.stats.count, torch.tensor([2.0, 2.0, 0.0]))

@@ -1,0 +1,208 @@
+"""Offset tables: KL terms, priors, sampling statistics, determinism, scene-scale equivariance."""
+
+import itertools
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+from torch.distributions import Normal, Uniform, kl_divergence
+
+from uncertsplat.gaussians.variational import (
+    Prior,
+    expected_gate,
+    gaussian_kl,
+    inverse_softplus,
+    kl_terms,
+    posterior_mean,
+    prior_rows,
+    random_model,
+    sample,
+    scale_kl,
+)
+
+
+def gen(seed=0, device="cpu"):
+    return torch.Generator(device=device).manual_seed(seed)
+
+
+@pytest.mark.parametrize("variant", ["ours", "paper"])
+def test_kl_zero_at_prior(variant):
+    prior = Prior(variant=variant)
+    m = random_model(40, gen(), prior=prior, carrier_fraction=0.6)
+    assert m.num_carriers > 0
+    kl = kl_terms(m, prior)
+    for k, v in kl.items():
+        assert abs(v.item()) < 1e-5, (k, v.item())
+
+
+def test_kl_zero_at_prior_any_k_ours():
+    # ours starts the width at w_p, so the KL is 0 for any K (the paper's 1/K only for K = 10)
+    for k in (1, 3, 10, 32):
+        prior = Prior()
+        m = random_model(10, gen(1), prior=prior, num_entries=k, carrier_fraction=1.0)
+        assert abs(kl_terms(m, prior)["total"].item()) < 1e-5
+
+
+def test_gaussian_kl_matches_torch():
+    g = gen(3)
+    loc = torch.randn(200, generator=g) * 3
+    raw = torch.randn(200, generator=g) * 4
+    for p_loc, p_std in [(0.0, 0.00248), (2.0, 1.996), (-1.0, 10.0)]:
+        ours = gaussian_kl(loc, raw, p_loc, p_std)
+        ref = kl_divergence(Normal(loc.double(), F.softplus(raw).double()), Normal(p_loc, p_std))
+        torch.testing.assert_close(ours.double(), ref, rtol=1e-4, atol=1e-4)
+
+
+def test_scale_kl_ours_is_moment_matched_gaussian_kl():
+    g = gen(4)
+    left = 0.8 + 0.2 * torch.rand(100, generator=g)
+    raw = torch.randn(100, generator=g) - 2
+    wp = 0.1
+    w = F.softplus(raw).clamp(0.01, 100)
+    ours = scale_kl(left, raw, wp, "ours")
+    ref = kl_divergence(Normal((left + w / 2).double(), (w / math.sqrt(12)).double()),
+                        Normal(1 - wp / 2, wp / math.sqrt(12)))
+    torch.testing.assert_close(ours.double(), ref, rtol=1e-4, atol=1e-4)
+    # inside the prior support the true KL is log(wp / w); ours agrees to first order there
+    inside = torch.tensor([0.92]), inverse_softplus(torch.tensor([0.05]))
+    true = kl_divergence(Uniform(0.92, 0.97), Uniform(1 - wp, 1.0))
+    assert math.isclose(float(true), math.log(2.0), rel_tol=1e-5)
+    assert float(scale_kl(*inside, wp, "ours")) > 0
+
+
+def test_scale_kl_paper_is_l1_of_endpoints():
+    left = torch.tensor([0.9, 0.8, 1.0])
+    raw = inverse_softplus(torch.tensor([0.1, 0.1, 0.3]))
+    out = scale_kl(left, raw, 0.1, "paper")
+    torch.testing.assert_close(out, torch.tensor([0.0, 0.2, 0.4]), atol=1e-5, rtol=0)
+
+
+def _subset_mixture(model, m_size, extent):
+    """Exact mean and std of a sampled position / multiplier, enumerating every subset."""
+    t = {k: v.detach().double() for k, v in model.tables.items()}
+    subsets = list(itertools.combinations(range(model.num_entries), m_size))
+    mus, vars_, lm, lv = [], [], [], []
+    for s in subsets:
+        s = list(s)
+        mu = t["pos_loc"][:, s].mean(1) * extent
+        sig = F.softplus(t["pos_spread_raw"][:, s].mean(1)) * extent
+        w = F.softplus(t["scale_width_raw"][:, s].mean(1)).clamp(0.01, 100)
+        left = t["scale_left"][:, s].mean(1)
+        mus.append(mu)
+        vars_.append(sig**2)
+        lm.append(left + w / 2)
+        lv.append(w**2 / 12)
+    mus, vars_, lm, lv = map(torch.stack, (mus, vars_, lm, lv))
+    pos_mean = mus.mean(0)
+    pos_std = ((vars_ + mus**2).mean(0) - pos_mean**2).sqrt()
+    mult_mean = lm.mean(0)
+    mult_std = ((lv + lm**2).mean(0) - mult_mean**2).sqrt()
+    return pos_mean, pos_std, mult_mean, mult_std
+
+
+def test_sampling_statistics_match_posterior():
+    extent = 2.0
+    prior = Prior(position_std=0.05)
+    model = random_model(30, gen(5), num_entries=4, carrier_fraction=1.0, prior=prior, perturb_tables=0.3,
+                         extent=extent)
+    idx = model.carrier_index()
+    g = gen(6)
+    S = 3000
+    with torch.no_grad():
+        draws = [sample(model, g, subset_size=2, extent=extent) for _ in range(S)]
+    means = torch.stack([d.means[idx] for d in draws]).double()  # [S,P,3]
+    mult = torch.stack([d.scales[idx] for d in draws]).double() / model.params["scales"].detach()[idx].exp()
+    pos_mean, pos_std, mult_mean, mult_std = _subset_mixture(model, 2, extent)
+    base = model.params["means"].detach()[idx].double()
+    se = pos_std / math.sqrt(S)
+    assert ((means.mean(0) - base - pos_mean).abs() < 5 * se + 1e-6).all()
+    torch.testing.assert_close(means.std(0), pos_std, rtol=0.08, atol=1e-6)
+    torch.testing.assert_close(mult.mean(0), mult_mean, rtol=0, atol=float(5 * mult_std.max() / math.sqrt(S)))
+    torch.testing.assert_close(mult.std(0), mult_std, rtol=0.08, atol=1e-6)
+    # gate: E[g] against a fine quadrature over eta, per carrier (subset M = K: no subset randomness)
+    model1 = random_model(20, gen(7), num_entries=3, carrier_fraction=1.0, perturb_tables=0.5)
+    idx1 = model1.carrier_index()
+    with torch.no_grad():
+        op = torch.stack([sample(model1, g, subset_size=3).opacities[idx1] for _ in range(S)]).double()
+    base_op = torch.sigmoid(model1.params["opacities"].detach()[idx1]).double()
+    t = model1.tables
+    nu = t["gate_loc"].detach().mean(1)[:, 0].double()
+    tau = F.softplus(t["gate_spread_raw"].detach().mean(1))[:, 0].double()
+    eta = torch.linspace(-8, 8, 4001, dtype=torch.float64)
+    w = torch.exp(-0.5 * eta**2)
+    w = w / w.sum()
+    eg = (torch.sigmoid((nu[:, None] + tau[:, None] * eta) / 0.2) * w).sum(1)
+    assert ((op.mean(0) - base_op * eg).abs() < 0.03).all()
+    # and the probit approximation used by posterior_mean is within 0.02 of the exact expectation
+    assert ((expected_gate(nu, tau, 0.2) - eg).abs() < 0.02).all()
+
+
+def test_sample_is_reproducible_and_noncarriers_untouched():
+    model = random_model(50, gen(8), carrier_fraction=0.5, perturb_tables=0.2)
+    a = sample(model, gen(9))
+    b = sample(model, gen(9))
+    torch.testing.assert_close(a.means, b.means, rtol=0, atol=0)
+    c = sample(model, gen(10))
+    assert not torch.equal(a.means, c.means)
+    non = model.posterior_row < 0
+    assert non.any()
+    torch.testing.assert_close(a.means[non], model.params["means"].detach()[non], rtol=0, atol=0)
+    torch.testing.assert_close(a.scales[non], model.params["scales"].detach()[non].exp())
+    torch.testing.assert_close(a.opacities[non], torch.sigmoid(model.params["opacities"].detach()[non]))
+
+
+def test_posterior_mean_is_deterministic_and_at_prior_center():
+    extent = 3.0
+    model = random_model(20, gen(11), carrier_fraction=1.0, extent=extent)
+    pm1 = posterior_mean(model, extent=extent)
+    pm2 = posterior_mean(model, extent=extent)
+    torch.testing.assert_close(pm1.means, pm2.means, rtol=0, atol=0)
+    # tables at the prior: no offset, multiplier 0.95 (mean of U[0.9, 1]), gate ~ P(logit > 0) ~ 0.84
+    torch.testing.assert_close(pm1.means, model.params["means"].detach())
+    torch.testing.assert_close(pm1.scales, 0.95 * model.params["scales"].detach().exp(), rtol=1e-5, atol=0)
+    gate = pm1.opacities / torch.sigmoid(model.params["opacities"].detach())
+    assert ((gate - 0.84).abs() < 0.03).all()
+
+
+def test_paper_variant_multiplies_the_log_scale():
+    prior = Prior(variant="paper")
+    model = random_model(10, gen(12), carrier_fraction=1.0, prior=prior)
+    pm = posterior_mean(model, variant="paper", temperature=prior.temperature)
+    s = model.params["scales"].detach()
+    torch.testing.assert_close(pm.scales, torch.exp(s * 0.95), rtol=1e-5, atol=0)
+    assert (pm.scales > s.exp()).all()  # log-scales < 0: small Gaussians grow
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_ours_is_equivariant_to_scene_scale(scale):
+    ref = random_model(30, gen(13), carrier_fraction=0.7, perturb_tables=0.3)
+    scaled = random_model(30, gen(13), carrier_fraction=0.7, perturb_tables=0.3)
+    with torch.no_grad():
+        scaled.params["means"].mul_(scale)
+        scaled.params["scales"].add_(math.log(scale))
+    a = sample(ref, gen(14), extent=1.0)
+    b = sample(scaled, gen(14), extent=scale)
+    torch.testing.assert_close(b.means / scale, a.means, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(b.scales / scale, a.scales, rtol=1e-5, atol=1e-9)
+    torch.testing.assert_close(b.opacities, a.opacities)
+    assert kl_terms(ref, Prior())["total"].item() == pytest.approx(kl_terms(scaled, Prior())["total"].item())
+
+
+def test_prior_rows_shapes_and_values():
+    rows = prior_rows(4, 10, Prior())
+    assert rows["pos_spread_raw"].shape == (4, 10, 3) and rows["gate_loc"].shape == (4, 10, 1)
+    assert torch.allclose(F.softplus(rows["pos_spread_raw"]), torch.tensor(0.00248))
+    assert torch.allclose(F.softplus(rows["gate_spread_raw"]), torch.tensor(1.996))
+    assert torch.allclose(rows["scale_left"], torch.tensor(0.9))
+
+
+def test_gradients_reach_tables_and_params():
+    model = random_model(20, gen(15), carrier_fraction=1.0, perturb_tables=0.1)
+    s = sample(model, gen(16))
+    loss = s.means.sum() + s.scales.sum() + s.opacities.sum() + kl_terms(model, Prior())["total"]
+    loss.backward()
+    for name, p in model.parameters().items():
+        if name in ("quats", "sh0", "shN"):
+            continue
+        assert p.grad is not None and p.grad.abs().sum() > 0, name

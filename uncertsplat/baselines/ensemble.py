@@ -1,0 +1,172 @@
+"""Deep-ensemble baseline: N independently seeded deterministic 3DGS models, uncertainty = their spread.
+
+Run folder::
+
+    RUN/config.json            the TrainConfig with method = "ensemble", ensemble_size = N
+    RUN/scene.json             copied from member 0 (all members share the scene and split)
+    RUN/members/member_{i}/    a normal deterministic run (seed = seed + i), readable by every stage
+    RUN/train_summary.json     summed training time, per-member summaries, mean held-out PSNR
+
+``evaluate`` draws its K samples by cycling through the members in a random order per view (drawn from
+the view's generator), so K = N renders each member exactly once and the MC mean/std are the ensemble
+mean and spread. Members differ only through their seed (view order, split noise): 3DGS starts from
+the same SfM points, so the spread is the optimisation's variability, as in the ensembles the paper
+compares against.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from uncertsplat.console import console
+from uncertsplat.errors import UserError
+from uncertsplat.io.atomic import atomic_write_json, atomic_write_text, run_lock
+from uncertsplat.io.checkpoints import LoadedRun, load_model
+from uncertsplat.types import GaussianSample
+
+
+def member_dir(run_dir: Path, i: int) -> Path:
+    return Path(run_dir) / "members" / f"member_{i}"
+
+
+def member_config(cfg, i: int):
+    """The deterministic TrainConfig of member ``i`` (seed ``cfg.seed + i``)."""
+    from uncertsplat.config import TrainConfig, build_config
+
+    data = json.loads(cfg.model_dump_json())
+    data.update(method="deterministic", seed=cfg.seed + i)
+    return build_config(TrainConfig, data, source=f"ensemble member {i}")
+
+
+def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False) -> Path:
+    """Train ``cfg.ensemble_size`` deterministic members into ``run_dir/members`` one after the other.
+
+    A finished member (``train_summary.json`` present) is kept on ``resume``; an unfinished one resumes
+    from its last checkpoint. Returns ``run_dir``.
+
+    Raises:
+        UserError: an existing run folder without ``resume``, a stored config of another method.
+    """
+    from uncertsplat.config import TrainConfig, build_config
+    from uncertsplat.stages import train
+
+    scene, run_dir = Path(scene), Path(run_dir)
+    exists = run_dir.exists() and (not run_dir.is_dir() or any(p.name != ".lock" for p in run_dir.iterdir()))
+    if exists and not resume:
+        raise UserError("the run folder already exists", path=run_dir,
+                        hint="Add --resume to continue it, or choose another output folder (-o).")
+    if resume and (run_dir / "config.json").is_file():
+        stored = build_config(TrainConfig, json.loads((run_dir / "config.json").read_text(encoding="utf-8")),
+                              source=str(run_dir / "config.json"))
+        if stored.method != "ensemble":
+            raise UserError(f"the run folder holds a '{stored.method}' run, not an ensemble", path=run_dir,
+                            hint="Choose another output folder (-o).")
+        if stored != cfg:
+            console.print("[yellow]note:[/] resuming with the run's stored configuration")
+        cfg = stored
+    n = cfg.ensemble_size
+    t0 = time.perf_counter()
+    with run_lock(run_dir, "train"):
+        atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
+        summaries = []
+        for i in range(n):
+            mdir = member_dir(run_dir, i)
+            done = mdir / "train_summary.json"
+            if not done.is_file():
+                console.print(f"[bold]ensemble[/] member {i + 1}/{n} (seed {cfg.seed + i})")
+                started = mdir.exists() and (mdir / "config.json").is_file()
+                train.run(scene, mdir, member_config(cfg, i), device=device, resume=started)
+            summaries.append(json.loads(done.read_text(encoding="utf-8")))
+        atomic_write_text(run_dir / "scene.json", (member_dir(run_dir, 0) / "scene.json").read_text(encoding="utf-8"))
+        psnrs = [s["test_psnr"] for s in summaries if s.get("test_psnr") is not None]
+        summary = {
+            "method": "ensemble", "ensemble_size": n, "steps": cfg.iterations,
+            "seconds": sum(float(s["seconds"]) for s in summaries),
+            "sec_per_step": sum(float(s["seconds"]) for s in summaries) / max(cfg.iterations, 1),
+            "wall_seconds_this_call": time.perf_counter() - t0,
+            "num_gaussians": sum(int(s["num_gaussians"]) for s in summaries),
+            "num_carriers": 0,
+            "peak_memory_mb": max(float(s.get("peak_memory_mb", 0.0)) for s in summaries),
+            "test_psnr_members_mean": sum(psnrs) / len(psnrs) if psnrs else None,
+            "test_psnr": None,  # the ensemble's own PSNR (of the mean render) comes from `evaluate`
+            "variant": cfg.variant, "device": str(device), "scene": str(scene.resolve()),
+            "members": summaries,
+        }
+        atomic_write_json(run_dir / "train_summary.json", summary)
+    console.print(f"done: ensemble of {n} members, {summary['seconds']:.1f} s of training in all -> {run_dir}")
+    return run_dir
+
+
+@dataclass
+class EnsembleRun(LoadedRun):
+    """A loaded ensemble: ``model`` etc. are member 0's (for printing), ``config`` is the ensemble's."""
+
+    members: list[LoadedRun] = field(default_factory=list)
+
+    def member_samples(self) -> list[GaussianSample]:
+        """The render-ready Gaussians of every member (deterministic: no posterior)."""
+        from uncertsplat.gaussians.variational import posterior_mean
+
+        out = []
+        for m in self.members:
+            prior = m.prior
+            out.append(posterior_mean(m.model, variant=prior.variant, extent=m.extent,
+                                      temperature=prior.temperature, sh_degree=m.sh_degree))
+        return out
+
+
+def load_ensemble(run_dir: Path, device: torch.device | str = "cpu") -> EnsembleRun:
+    """Load every member of an ensemble run.
+
+    Raises:
+        UserError: a member folder missing or unfinished (the message names it and how to finish it).
+    """
+    from uncertsplat.config import TrainConfig, build_config
+
+    run_dir = Path(run_dir)
+    cfg_path = run_dir / "config.json"
+    cfg = build_config(TrainConfig, json.loads(cfg_path.read_text(encoding="utf-8")), source=str(cfg_path))
+    members = []
+    for i in range(cfg.ensemble_size):
+        mdir = member_dir(run_dir, i)
+        if not (mdir / "train_summary.json").is_file():
+            raise UserError(f"ensemble member {i} is missing or unfinished", path=mdir,
+                            hint=f"Finish it with: uncertsplat train SCENE -o {run_dir} --method ensemble --resume")
+        members.append(load_model(mdir, device))
+    first = members[0]
+    return EnsembleRun(first.model, cfg, first.scene_path, first.extent, first.step, first.sh_degree, run_dir,
+                       members=members)
+
+
+def ensemble_sample_fn(samples: list[GaussianSample]):
+    """A ``sample_fn(generator)`` that cycles through ``samples`` in a random order per sequence.
+
+    A sequence starts whenever the generator is not in the state this function left it in (a fresh
+    seed per view, or another generator); it then draws a permutation of the members from the
+    generator and returns them in that order, drawing a new permutation after every full cycle. So K
+    samples of one view use each member once when K = N, the same seed gives the same members, and
+    no state leaks between views.
+    """
+    if not samples:
+        raise ValueError("an ensemble needs at least one member")
+    n = len(samples)
+    state: dict = {"expect": None, "order": [], "pos": 0}
+
+    def sample_fn(generator: torch.Generator) -> GaussianSample:
+        current = generator.get_state()
+        fresh = state["expect"] is None or not torch.equal(current, state["expect"])
+        if fresh or state["pos"] >= len(state["order"]):
+            state["order"] = torch.randperm(n, generator=generator, device=generator.device).tolist()
+            state["pos"] = 0
+            current = generator.get_state()
+        member = state["order"][state["pos"]]
+        state["pos"] += 1
+        state["expect"] = current
+        return samples[member]
+
+    return sample_fn

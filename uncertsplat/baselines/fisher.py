@@ -1,0 +1,262 @@
+"""Post-hoc Laplace/Fisher baseline (in the spirit of FisherRF) on a trained deterministic 3DGS model.
+
+Likelihood: every training pixel channel is Gaussian around the render, ``gt ~ N(rgb(theta), s^2)``.
+Its Fisher information w.r.t. the per-Gaussian parameters theta (means, log-scales, opacity logits and
+SH DC colour by default) is ``F = J^T J / s^2`` with J the Jacobian of the rendered pixels. We keep its
+diagonal, estimated per training view in one of two ways (``FisherConfig.estimator``):
+
+* ``"ggn"`` (default): ``diag(J^T J) = E_z[(J^T z)^2]`` over Rademacher vectors z (+-1 per pixel
+  channel): one backward pass per probe gives an unbiased estimate of the exact diagonal;
+* ``"empirical"``: the squared gradient of the view's loss ``sum (rgb - gt)^2 / (2 s^2)``, i.e.
+  ``(J^T r)^2 / s^4``. It is what "squared gradients of the photometric loss" usually means, but it
+  vanishes where the fit is perfect (r = 0), so well-fit parameters get the prior's variance; kept to
+  measure that difference.
+
+The Laplace posterior is ``N(theta_hat, diag(1 / (F + 1 / prior_std^2)))`` per parameter element; the
+observation noise ``s`` is the RMS training residual unless given. ``evaluate`` draws its K samples as
+``theta_hat + sqrt(var) * eps`` (``perturbed_sample``), rendering RGB and depth uncertainty.
+
+Run folder: a normal deterministic run (``method = "fisher"`` in ``config.json``) plus ``fisher.pt``
+(``{"variance": {name: [N,...]}, "fisher": {...}, "noise_std", "estimator", ...}``).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from uncertsplat.console import console
+from uncertsplat.errors import UserError
+from uncertsplat.io.checkpoints import LoadedRun, load_model
+from uncertsplat.types import Cameras, GaussianSample, RenderOutput
+
+FISHER_FILE = "fisher.pt"
+PARAM_ORDER = ("means", "scales", "opacities", "sh0")
+"""Perturbed parameters, in the order their noise is drawn."""
+
+
+def _activate(params: dict[str, Tensor], sh_degree: int, delta: dict[str, Tensor] | None = None) -> GaussianSample:
+    """A render-ready sample from stored parameters (log-scales, logits) plus optional offsets ``delta``."""
+    delta = delta or {}
+
+    def get(name):
+        v = params[name]
+        return v + delta[name] if name in delta else v
+
+    sh = torch.cat([get("sh0"), params["shN"]], dim=1)
+    return GaussianSample(means=get("means"), quats=params["quats"], scales=torch.exp(get("scales")),
+                          opacities=torch.sigmoid(get("opacities")), sh=sh, sh_degree=sh_degree)
+
+
+def residual_noise_std(params: dict[str, Tensor], cameras: Cameras, images: Tensor, render_fn, *, sh_degree: int,
+                       floor: float = 1.0 / 255.0) -> float:
+    """RMS of ``render - image`` over every training pixel channel (at least ``floor``).
+
+    Args:
+        params: stored per-Gaussian parameters (``GaussianModel.params``).
+        cameras: T training cameras; images: [T,H,W,3].
+    """
+    total, count = 0.0, 0
+    with torch.no_grad():
+        g = _activate(params, sh_degree)
+        for i in range(len(cameras)):
+            out = render_fn(g, cameras[[i]])
+            r = out.rgb[0] - images[i].to(out.rgb.device)
+            total += float(r.square().sum())
+            count += r.numel()
+    return max(math.sqrt(total / max(count, 1)), floor)
+
+
+def fisher_diagonal(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
+                    render_fn: Callable[[GaussianSample, Cameras], RenderOutput], *, names: tuple[str, ...],
+                    noise_std: float, generator: torch.Generator, sh_degree: int, estimator: str = "ggn",
+                    probes: int = 2) -> dict[str, Tensor]:
+    """Diagonal Fisher information of the Gaussian pixel likelihood, summed over the training views.
+
+    Args:
+        params: stored per-Gaussian parameters (tensors [N,...]; not modified, no ``.grad`` written).
+        cameras: T training cameras; images: [T,H,W,3] in [0, 1].
+        render_fn: ``render_fn(sample, cameras) -> RenderOutput`` (differentiable).
+        names: the parameters to estimate it for (keys of ``params``).
+        noise_std: observation noise std s.
+        generator: source of the Rademacher probes (``ggn``).
+        sh_degree: SH degree to render with.
+        estimator: ``"ggn"`` or ``"empirical"`` (module docstring).
+        probes: probe vectors per view (``ggn``).
+
+    Returns:
+        name -> [N,...] non-negative tensor shaped like ``params[name]``.
+    """
+    if estimator not in ("ggn", "empirical"):
+        raise ValueError(f"unknown estimator {estimator!r}")
+    leaves = {n: params[n].detach().clone().requires_grad_(True) for n in names}
+    fixed = {k: v.detach() for k, v in params.items()}
+    acc = {n: torch.zeros_like(v) for n, v in leaves.items()}
+    inv_var = 1.0 / noise_std**2
+    for i in range(len(cameras)):
+        sample = _activate({**fixed, **leaves}, sh_degree)
+        out = render_fn(sample, cameras[[i]])
+        rgb = out.rgb[0]  # [H,W,3]
+        if estimator == "ggn":
+            for p in range(probes):
+                z = torch.randint(0, 2, rgb.shape, generator=generator, device=generator.device).to(rgb) * 2 - 1
+                grads = torch.autograd.grad((rgb * z).sum(), list(leaves.values()), retain_graph=p < probes - 1,
+                                            allow_unused=True)
+                for n, gr in zip(leaves, grads, strict=True):
+                    if gr is not None:
+                        acc[n] += gr.square() * (inv_var / probes)
+        else:
+            r = rgb - images[i].to(rgb.device)
+            grads = torch.autograd.grad(r.square().sum() * (0.5 * inv_var), list(leaves.values()), allow_unused=True)
+            for n, gr in zip(leaves, grads, strict=True):
+                if gr is not None:
+                    acc[n] += gr.square()
+    return acc
+
+
+def posterior_variance(fisher: dict[str, Tensor], prior_std: dict[str, float]) -> dict[str, Tensor]:
+    """Laplace posterior variance per element: ``1 / (fisher + 1 / prior_std^2)``."""
+    return {n: 1.0 / (f + 1.0 / prior_std[n] ** 2) for n, f in fisher.items()}
+
+
+def perturbed_sample(params: dict[str, Tensor], variance: dict[str, Tensor], generator: torch.Generator, *,
+                     sh_degree: int) -> GaussianSample:
+    """One Laplace-posterior sample ``theta + sqrt(var) * eps`` (noise drawn in ``PARAM_ORDER``)."""
+    delta = {}
+    for name in PARAM_ORDER:
+        if name in variance:
+            v = variance[name]
+            eps = torch.randn(v.shape, generator=generator, device=generator.device).to(v.device, v.dtype)
+            delta[name] = v.sqrt() * eps
+    return _activate(params, sh_degree, delta)
+
+
+def prior_stds(fcfg, extent: float) -> dict[str, float]:
+    """Prior std per parameter from a ``FisherConfig`` (means relative to the scene extent)."""
+    return {"means": fcfg.prior_std_means * extent, "scales": fcfg.prior_std_scales,
+            "opacities": fcfg.prior_std_opacities, "sh0": fcfg.prior_std_sh0}
+
+
+def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
+    """Estimate the Laplace posterior of the trained deterministic model in ``run_dir`` and write ``fisher.pt``.
+
+    Returns the stored dict (variances, Fisher diagonals, noise std, timings).
+    """
+    from uncertsplat.data.dataset import load_images
+    from uncertsplat.io.atomic import atomic_write_bytes
+    from uncertsplat.render import render
+    from uncertsplat.sfm.scene import load_scene
+
+    run_dir = Path(run_dir)
+    loaded = load_model(run_dir, device)
+    cfg = loaded.config
+    fcfg = cfg.fisher
+    if loaded.scene_path is None:
+        raise UserError("the run does not record its scene (scene.json is missing)", path=run_dir)
+    data = load_scene(loaded.scene_path, cfg.scene)
+    idx = list(data.split["train"])
+    cams = data.cameras[idx].to(device)
+    images = load_images(data, idx, device)
+    bg = torch.tensor(cfg.scene.background, dtype=torch.float32, device=device)
+    near = 0.01 * float(data.scene_scale)  # as in training
+
+    def render_fn(sample, c):
+        return render(sample, c, background=bg, tile_size=cfg.tile_size, near=near)
+
+    params = {k: v.detach() for k, v in loaded.model.params.items()}
+    t0 = time.perf_counter()
+    noise = (residual_noise_std(params, cams, images, render_fn, sh_degree=loaded.sh_degree)
+             if fcfg.noise_std == "auto" else float(fcfg.noise_std))
+    gen = torch.Generator(device=device).manual_seed(seed)
+    names = tuple(n for n in PARAM_ORDER if n in fcfg.params)
+    fisher = fisher_diagonal(params, cams, images, render_fn, names=names, noise_std=noise, generator=gen,
+                             sh_degree=loaded.sh_degree, estimator=fcfg.estimator, probes=fcfg.probes)
+    var = posterior_variance(fisher, prior_stds(fcfg, loaded.extent))
+    seconds = time.perf_counter() - t0
+    state = {
+        "variance": {k: v.cpu() for k, v in var.items()},
+        "fisher": {k: v.cpu() for k, v in fisher.items()},
+        "noise_std": noise, "estimator": fcfg.estimator, "probes": fcfg.probes, "num_views": len(idx),
+        "num_gaussians": len(loaded.model), "seconds": seconds,
+        "means_checksum": float(params["means"].double().sum()),
+    }
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    atomic_write_bytes(run_dir / FISHER_FILE, buf.getvalue())
+    return state
+
+
+def train_fisher(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False) -> Path:
+    """Train a deterministic model (``method = "fisher"`` trains like ``deterministic``), then ``compute_fisher``.
+
+    ``train_summary.json`` gets ``train_seconds`` (the training loop), ``fisher_seconds`` and ``seconds``
+    (their sum: the method's whole cost).
+    """
+    from uncertsplat.io.atomic import atomic_write_json
+    from uncertsplat.stages import train
+
+    run_dir = Path(run_dir)
+    summary_path = run_dir / "train_summary.json"
+    if not (resume and summary_path.is_file()):
+        train.run(scene, run_dir, cfg, device=device, resume=resume)
+    summary = json.loads(summary_path.read_text(encoding="utf-8"))
+    if resume and (run_dir / FISHER_FILE).is_file() and "fisher_seconds" in summary:
+        return run_dir
+    console.print(f"[bold]fisher[/]: estimating the Laplace posterior ({cfg.fisher.estimator}) over the training views")
+    state = compute_fisher(run_dir, device, seed=cfg.seed)
+    summary["train_seconds"] = float(summary.get("train_seconds", summary["seconds"]))
+    summary["fisher_seconds"] = state["seconds"]
+    summary["seconds"] = summary["train_seconds"] + state["seconds"]
+    summary["fisher_noise_std"] = state["noise_std"]
+    atomic_write_json(summary_path, summary)
+    console.print(f"done: Fisher diagonal over {state['num_views']} views in {state['seconds']:.1f} s "
+                  f"(noise std {state['noise_std']:.4f}) -> {run_dir / FISHER_FILE}")
+    return run_dir
+
+
+@dataclass
+class FisherRun(LoadedRun):
+    """A loaded deterministic model plus its Laplace posterior variances (name -> [N,...])."""
+
+    variance: dict = field(default_factory=dict)
+    noise_std: float = 0.0
+
+
+def load_fisher(run_dir: Path, device: torch.device | str = "cpu") -> FisherRun:
+    """Load a fisher run (model + ``fisher.pt``), checking that the variances belong to this model."""
+    run_dir = Path(run_dir)
+    base = load_model(run_dir, device)
+    path = run_dir / FISHER_FILE
+    if not path.is_file():
+        raise UserError(f"{FISHER_FILE} is missing: the Fisher posterior was never computed", path=run_dir,
+                        hint=f"Finish it with: uncertsplat train SCENE -o {run_dir} --method fisher --resume")
+    try:
+        state = torch.load(path, map_location=torch.device(device), weights_only=True)
+    except Exception as err:  # a truncated or foreign file
+        raise UserError(f"cannot read {FISHER_FILE} ({type(err).__name__}: {err})", path=path,
+                        hint="Delete it and run train --method fisher --resume to recompute it.") from None
+    n = len(base.model)
+    if int(state["num_gaussians"]) != n or any(v.shape[0] != n for v in state["variance"].values()):
+        raise UserError(f"{FISHER_FILE} was computed for {state['num_gaussians']} Gaussians, the model has {n}",
+                        path=path, hint="Delete it and run train --method fisher --resume to recompute it.")
+    return FisherRun(base.model, base.config, base.scene_path, base.extent, base.step, base.sh_degree, base.source,
+                     variance=state["variance"], noise_std=float(state["noise_std"]))
+
+
+def fisher_sample_fn(loaded: FisherRun):
+    """``sample_fn(generator)`` drawing Laplace-posterior samples of a ``FisherRun``."""
+    params = {k: v.detach() for k, v in loaded.model.params.items()}
+    variance = {k: v.to(params["means"].device) for k, v in loaded.variance.items()}
+
+    def sample_fn(generator: torch.Generator) -> GaussianSample:
+        return perturbed_sample(params, variance, generator, sh_degree=loaded.sh_degree)
+
+    return sample_fn

@@ -1,0 +1,187 @@
+"""Every topology change of a ``GaussianModel``, keeping all rows aligned.
+
+Each operation updates, together: the per-Gaussian parameters, ``posterior_row``, the offset tables
+and the Adam state rows (``exp_avg``, ``exp_avg_sq``) of every tensor it touches. New rows start with
+zero moments (as in 3DGS); kept rows keep theirs. Parameters are replaced by new ``nn.Parameter``
+objects (the optimiser's param groups are updated in place), so callers must re-read
+``model.params[...]`` after an operation.
+
+The optimiser may be ``None`` (e.g. when editing a loaded model for pruning).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from uncertsplat.gaussians.params import GaussianModel
+from uncertsplat.gaussians.variational import Prior, prior_rows
+
+_MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")
+
+
+def _swap(optimizer: torch.optim.Optimizer | None, old: nn.Parameter, data: Tensor, keep: Tensor | None,
+          n_new: int) -> nn.Parameter:
+    """New parameter ``data``; its moments are ``old_moment[keep]`` (all rows when None) + ``n_new`` zero rows."""
+    new = nn.Parameter(data.detach().contiguous(), requires_grad=old.requires_grad)
+    if optimizer is None:
+        return new
+    for group in optimizer.param_groups:
+        for i, p in enumerate(group["params"]):
+            if p is old:
+                group["params"][i] = new
+                state = optimizer.state.pop(old, None)
+                if state:
+                    for key in _MOMENTS:
+                        if key in state:
+                            m = state[key] if keep is None else state[key][keep]
+                            zeros = torch.zeros((n_new, *m.shape[1:]), dtype=m.dtype, device=m.device)
+                            state[key] = torch.cat([m, zeros], dim=0)
+                    optimizer.state[new] = state
+                return new
+    raise KeyError("parameter not found in the optimiser")
+
+
+def _edit(model: GaussianModel, optimizer, *, keep: Tensor | None, new_params: dict[str, Tensor] | None,
+          table_keep: Tensor | None, new_tables: dict[str, Tensor] | None, posterior_row: Tensor) -> None:
+    """The one primitive: rows = old[keep] ++ new, for the Gaussians and (separately) the tables."""
+    n_new = 0 if new_params is None else next(iter(new_params.values())).shape[0]
+    for name, old in list(model.params.items()):
+        if keep is None and n_new == 0:
+            continue
+        kept = old.detach() if keep is None else old.detach()[keep]
+        data = kept if n_new == 0 else torch.cat([kept, new_params[name].to(kept)], dim=0)
+        model.params[name] = _swap(optimizer, old, data, keep, n_new)
+    t_new = 0 if new_tables is None else next(iter(new_tables.values())).shape[0]
+    for name, old in list(model.tables.items()):
+        if table_keep is None and t_new == 0:
+            continue
+        kept = old.detach() if table_keep is None else old.detach()[table_keep]
+        data = kept if t_new == 0 else torch.cat([kept, new_tables[name].to(kept)], dim=0)
+        model.tables[name] = _swap(optimizer, old, data, table_keep, t_new)
+    model.posterior_row = posterior_row
+
+
+def remove(model: GaussianModel, optimizer, mask: Tensor) -> None:
+    """Delete the Gaussians where ``mask`` [N] bool is True, with their table rows and Adam rows."""
+    mask = mask.to(model.device, torch.bool)
+    if not bool(mask.any()):
+        return
+    keep = (~mask).nonzero().flatten()
+    rows = model.posterior_row[keep]
+    table_keep = torch.sort(rows[rows >= 0]).values  # kept table rows, in their old order
+    new_row = torch.full_like(rows, -1)
+    carriers = rows >= 0
+    new_row[carriers] = torch.searchsorted(table_keep, rows[carriers])
+    _edit(model, optimizer, keep=keep, new_params=None, table_keep=table_keep, new_tables=None, posterior_row=new_row)
+
+
+def append(model: GaussianModel, optimizer, params: dict[str, Tensor], tables: dict[str, Tensor] | None = None,
+           carriers: Tensor | None = None) -> None:
+    """Add Gaussians ``params`` (name -> [n,...]); ``carriers`` [n] bool marks the new rows that own the
+    given ``tables`` rows (name -> [c,K,D], c = carriers.sum(), in order)."""
+    n = next(iter(params.values())).shape[0]
+    if n == 0:
+        return
+    P = model.num_carriers
+    new_rows = torch.full((n,), -1, dtype=torch.long, device=model.device)
+    if carriers is not None and bool(carriers.any()):
+        c = int(carriers.sum())
+        new_rows[carriers.to(model.device)] = torch.arange(P, P + c, device=model.device)
+    else:
+        tables = None
+    row = torch.cat([model.posterior_row, new_rows])
+    _edit(model, optimizer, keep=None, new_params=params, table_keep=None, new_tables=tables, posterior_row=row)
+
+
+def clone(model: GaussianModel, optimizer, mask: Tensor) -> None:
+    """Duplicate the Gaussians in ``mask``; clones of carriers get a copy of the parent's table rows."""
+    src = mask.to(model.device, torch.bool).nonzero().flatten()
+    if src.numel() == 0:
+        return
+    params = {k: v.detach()[src] for k, v in model.params.items()}
+    rows = model.posterior_row[src]
+    carriers = rows >= 0
+    tables = {k: v.detach()[rows[carriers]] for k, v in model.tables.items()}
+    append(model, optimizer, params, tables, carriers)
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """[N,4] wxyz (any norm) -> [N,3,3]."""
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(*quats.shape[:-1], 3, 3)
+
+
+def split(model: GaussianModel, optimizer, mask: Tensor, generator: torch.Generator, *, scales: Tensor,
+          prior: Prior, n: int = 2, factor: float = 1.6, carry: bool = True) -> None:
+    """Replace each Gaussian in ``mask`` by ``n`` children (3DGS split), all carrying a posterior.
+
+    With ``carry=False`` (plain 3DGS: ``method != "variational"``) a child carries a posterior only when
+    its parent does, so a model without posteriors keeps none.
+
+    Children are placed at the parent's position plus a draw from N(0, R diag(scales)^2 R^T) and get the
+    parent's log-scale minus log(factor). ``scales`` [N,3] are the linear scales the decision used (the
+    posterior mean), so no fresh posterior sample is involved. A child copies its parent's table rows, or
+    gets new rows at the prior when the parent had none.
+    """
+    src = mask.to(model.device, torch.bool).nonzero().flatten()
+    if src.numel() == 0:
+        return
+    p = {k: v.detach() for k, v in model.params.items()}
+    m = src.numel()
+    noise = torch.randn((n, m, 3), generator=generator, device=generator.device).to(model.device)
+    rot = quat_to_rotmat(p["quats"][src])  # [M,3,3]
+    local = noise * scales.detach()[src][None]  # [n,M,3]
+    offsets = torch.einsum("mij,nmj->nmi", rot, local)  # [n,M,3]
+    children = {k: v[src].repeat(n, *([1] * (v.ndim - 1))) for k, v in p.items()}
+    children["means"] = (p["means"][src][None] + offsets).reshape(n * m, 3)
+    children["scales"] = children["scales"] - math.log(factor)
+    parent_rows = model.posterior_row[src].repeat(n)
+    fresh = prior_rows(n * m, model.num_entries, prior, device=model.device, dtype=model.dtype)
+    tables = {}
+    for k, v in model.tables.items():
+        rows = fresh[k]
+        has = parent_rows >= 0
+        if bool(has.any()):
+            rows[has] = v.detach()[parent_rows[has]]
+        tables[k] = rows
+    carriers = torch.ones(n * m, dtype=torch.bool, device=model.device)
+    if not carry:
+        carriers = parent_rows >= 0
+        tables = {k: v[carriers] for k, v in tables.items()}
+    append(model, optimizer, children, tables, carriers)
+    parents = torch.zeros(len(model), dtype=torch.bool, device=model.device)
+    parents[src] = True
+    remove(model, optimizer, parents)
+
+
+def spawn(model: GaussianModel, optimizer, mask: Tensor, prior: Prior) -> int:
+    """Give a posterior (new table rows at the prior) to the Gaussians in ``mask`` that have none.
+
+    Returns the number of new carriers. Existing carriers keep their rows.
+    """
+    new = mask.to(model.device, torch.bool) & (model.posterior_row < 0)
+    c = int(new.sum())
+    if c == 0:
+        return 0
+    P = model.num_carriers
+    row = model.posterior_row.clone()
+    row[new] = torch.arange(P, P + c, device=model.device)
+    tables = prior_rows(c, model.num_entries, prior, device=model.device, dtype=model.dtype)
+    _edit(model, optimizer, keep=None, new_params=None, table_keep=None, new_tables=tables, posterior_row=row)
+    return c
+
+
+def reset_opacity(model: GaussianModel, optimizer, max_opacity: float = 0.01) -> None:
+    """Clamp opacities to at most ``max_opacity`` and zero their Adam moments (3DGS opacity reset)."""
+    old = model.params["opacities"]
+    cap = math.log(max_opacity / (1.0 - max_opacity))
+    data = old.detach().clamp_max(cap)
+    new = _swap(optimizer, old, data, torch.zeros(0, dtype=torch.long, device=model.device), len(model))
+    model.params["opacities"] = new

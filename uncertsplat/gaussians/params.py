@@ -1,0 +1,215 @@
+"""Per-Gaussian parameters: one row-aligned table, initialised from sparse points.
+
+``PARAM_SPECS`` lists every per-Gaussian attribute once (name, trailing shape, activation, learning-rate
+key); ``TABLE_SPECS`` (in ``variational.py``) does the same for the offset tables of posterior carriers.
+``GaussianModel`` holds both plus ``posterior_row`` [N] (long; -1 = no posterior), which maps each
+Gaussian to its row in the offset tables. Offset tables hold rows only for posterior carriers ("model
+only what a scene requires"), so a scene whose Gaussians are mostly small pays almost nothing for them.
+
+Invariant (checked by ``GaussianModel.check``): the values of ``posterior_row`` that are >= 0 are a
+permutation of ``0..P-1``: every table row belongs to exactly one Gaussian.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from uncertsplat.render.sh import rgb_to_sh
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One per-Gaussian attribute.
+
+    Attributes:
+        name: key in ``GaussianModel.params``.
+        shape: trailing shape per Gaussian; ``None`` entries depend on the SH degree (see ``trailing_shape``).
+        activation: how the stored value becomes a renderable one (documentation and PLY export).
+        lr: key into ``LearningRates`` (the optimiser builds one Adam group per attribute).
+    """
+
+    name: str
+    shape: tuple
+    activation: str
+    lr: str
+
+
+PARAM_SPECS: tuple[ParamSpec, ...] = (
+    ParamSpec("means", (3,), "identity", "means"),
+    ParamSpec("scales", (3,), "exp", "scales"),  # log of the linear standard deviations
+    ParamSpec("quats", (4,), "normalize", "quats"),  # wxyz
+    ParamSpec("opacities", (), "sigmoid", "opacities"),  # logits
+    ParamSpec("sh0", (1, 3), "identity", "sh0"),  # SH DC
+    ParamSpec("shN", (None, 3), "identity", "shN"),  # SH rest: (B - 1) bases
+)
+PARAM_NAMES: tuple[str, ...] = tuple(s.name for s in PARAM_SPECS)
+
+
+def num_sh_bases(degree: int) -> int:
+    return (degree + 1) ** 2
+
+
+def trailing_shape(spec: ParamSpec, sh_degree: int) -> tuple[int, ...]:
+    """The concrete trailing shape of ``spec`` for a model of maximum SH degree ``sh_degree``."""
+    return tuple(num_sh_bases(sh_degree) - 1 if d is None else d for d in spec.shape)
+
+
+class GaussianModel:
+    """Row-aligned per-Gaussian parameters plus the offset tables of posterior carriers.
+
+    Attributes:
+        params: name -> ``nn.Parameter`` [N,...] as listed in ``PARAM_SPECS`` (stored, not activated).
+        tables: name -> ``nn.Parameter`` [P,K,...] as listed in ``variational.TABLE_SPECS``.
+        posterior_row: [N] long, the table row of each Gaussian, -1 when it carries no posterior.
+        sh_degree: maximum SH degree the coefficients allow.
+        num_entries: K, offset-table entries per carrier.
+    """
+
+    def __init__(self, params: dict[str, Tensor], tables: dict[str, Tensor], posterior_row: Tensor,
+                 sh_degree: int, num_entries: int):
+        self.params = {k: v if isinstance(v, nn.Parameter) else nn.Parameter(v) for k, v in params.items()}
+        self.tables = {k: v if isinstance(v, nn.Parameter) else nn.Parameter(v) for k, v in tables.items()}
+        self.posterior_row = posterior_row
+        self.sh_degree = sh_degree
+        self.num_entries = num_entries
+
+    # ------------------------------------------------------------------------------------ properties
+    def __len__(self) -> int:
+        return self.params["means"].shape[0]
+
+    @property
+    def num_carriers(self) -> int:
+        """P: Gaussians that carry a posterior (= rows of the offset tables)."""
+        return next(iter(self.tables.values())).shape[0]
+
+    @property
+    def device(self) -> torch.device:
+        return self.params["means"].device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.params["means"].dtype
+
+    def parameters(self) -> dict[str, nn.Parameter]:
+        """All trainable tensors by name (per-Gaussian first, then tables)."""
+        return {**self.params, **self.tables}
+
+    def carrier_index(self) -> Tensor:
+        """[P'] indices of the Gaussians that carry a posterior, ordered by their table row."""
+        idx = (self.posterior_row >= 0).nonzero().flatten()
+        return idx[torch.argsort(self.posterior_row[idx])]
+
+    def check(self) -> None:
+        """Raise AssertionError when rows are not aligned (used by tests and after loading)."""
+        n = len(self)
+        for spec in PARAM_SPECS:
+            t = self.params[spec.name]
+            assert t.shape == (n, *trailing_shape(spec, self.sh_degree)), (spec.name, tuple(t.shape))
+        assert self.posterior_row.shape == (n,) and self.posterior_row.dtype == torch.long
+        p = self.num_carriers
+        for name, t in self.tables.items():
+            assert t.shape[:2] == (p, self.num_entries), (name, tuple(t.shape))
+        rows = self.posterior_row[self.posterior_row >= 0]
+        assert rows.numel() == p, f"{rows.numel()} carriers but {p} table rows"
+        assert torch.equal(torch.sort(rows).values, torch.arange(p, device=rows.device)), "table rows not a permutation"
+
+    def state_dict(self) -> dict:
+        return {
+            "params": {k: v.detach().clone() for k, v in self.params.items()},
+            "tables": {k: v.detach().clone() for k, v in self.tables.items()},
+            "posterior_row": self.posterior_row.clone(),
+            "sh_degree": self.sh_degree,
+            "num_entries": self.num_entries,
+        }
+
+    @classmethod
+    def from_state_dict(cls, state: dict, device: torch.device | None = None) -> GaussianModel:
+        def mv(t):
+            return t.to(device) if device is not None else t
+
+        model = cls({k: mv(v) for k, v in state["params"].items()}, {k: mv(v) for k, v in state["tables"].items()},
+                    mv(state["posterior_row"]), int(state["sh_degree"]), int(state["num_entries"]))
+        model.check()
+        return model
+
+
+# ----------------------------------------------------------------------------------------- initialisation
+def nearest_neighbor_distance(points: Tensor, k: int = 3, chunk: int = 4096) -> Tensor:
+    """[P] mean distance of each point to its ``k`` nearest other points.
+
+    Computed in row chunks with ``cdist`` + ``topk``, so memory is O(chunk x P), not O(P^2).
+    A single point (no neighbours) gets distance 0 (the caller clamps).
+    """
+    n = points.shape[0]
+    if n <= 1:
+        return torch.zeros(n, dtype=points.dtype, device=points.device)
+    k = min(k, n - 1)
+    out = torch.empty(n, dtype=points.dtype, device=points.device)
+    for start in range(0, n, chunk):
+        block = points[start:start + chunk]
+        d2 = torch.cdist(block, points).square()  # [chunk,P]
+        # the point itself sits at distance 0; take k + 1 smallest and drop the first
+        vals = torch.topk(d2, k + 1, dim=1, largest=False).values[:, 1:]
+        out[start:start + chunk] = vals.clamp_min(0).mean(dim=1).sqrt()
+    return out
+
+
+def _logit(p: float) -> float:
+    return math.log(p / (1.0 - p))
+
+
+def init_from_points(points: Tensor, colors: Tensor, *, sh_degree: int, num_entries: int,
+                     init_opacity: float = 0.1, extent: float = 1.0) -> GaussianModel:
+    """A model with one isotropic Gaussian per point and no posterior carriers yet.
+
+    Args:
+        points: [N,3] positions.
+        colors: [N,3] RGB in [0, 1].
+        sh_degree: maximum SH degree of the coefficients.
+        num_entries: K for the (initially empty) offset tables.
+        init_opacity: initial opacity of every Gaussian.
+        extent: scene extent; only used to give isolated points a sane scale (1e-3 x extent floor).
+    """
+    from uncertsplat.gaussians.variational import empty_tables  # avoid a cycle at import time
+
+    points = points.detach().float()
+    n = points.shape[0]
+    dev = points.device
+    dist = nearest_neighbor_distance(points).clamp_min(1e-7 * extent)
+    if n == 1:
+        dist = torch.full_like(dist, 1e-2 * extent)
+    scales = dist.log()[:, None].repeat(1, 3)  # [N,3]
+    quats = torch.zeros(n, 4, device=dev)
+    quats[:, 0] = 1.0
+    opac = torch.full((n,), _logit(init_opacity), device=dev)
+    sh0 = rgb_to_sh(colors.detach().float().clamp(0, 1))[:, None, :]  # [N,1,3]
+    shN = torch.zeros(n, num_sh_bases(sh_degree) - 1, 3, device=dev)
+    params = {"means": points.clone(), "scales": scales, "quats": quats, "opacities": opac, "sh0": sh0, "shN": shN}
+    tables = empty_tables(num_entries, device=dev, dtype=points.dtype)
+    return GaussianModel(params, tables, torch.full((n,), -1, dtype=torch.long, device=dev), sh_degree, num_entries)
+
+
+def memory_per_gaussian(model: GaussianModel, *, optimizer_moments: bool = True) -> dict[str, float]:
+    """Bytes per Gaussian: parameters, offset tables (only carriers pay), and Adam moments (2x).
+
+    Returns a dict with ``params``, ``tables``, ``index`` (posterior_row), ``optimizer`` and ``total``
+    bytes per Gaussian (0 for an empty model), plus ``table_bytes_per_carrier``.
+    """
+    n = max(len(model), 1)
+    pbytes = sum(t.numel() * t.element_size() for t in model.params.values())
+    tbytes = sum(t.numel() * t.element_size() for t in model.tables.values())
+    ibytes = model.posterior_row.numel() * model.posterior_row.element_size()
+    obytes = 2 * (pbytes + tbytes) if optimizer_moments else 0
+    per_carrier = sum(math.prod(t.shape[1:]) * t.element_size() for t in model.tables.values())
+    return {
+        "params": pbytes / n,
+        "tables": tbytes / n,
+        "index": ibytes / n,
+        "optimizer": obytes / n,
+        "total": (pbytes + tbytes + ibytes + obytes) / n,
+        "table_bytes_per_carrier": float(per_carrier),
+    }

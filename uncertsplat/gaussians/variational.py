@@ -1,0 +1,323 @@
+"""The variational part: offset tables of posterior carriers, posterior samples, KL terms.
+
+Every posterior carrier owns K table entries (``TABLE_SPECS``) for three attributes:
+
+* position: spread raw a [P,K,3] and location b [P,K,3];
+  sigma = softplus(a), mu = b, x~ = x + unit (mu + sigma eps), eps ~ N(0, I).
+* scale multiplier: width raw c [P,K,3] and left edge d [P,K,3];
+  w = clamp(softplus(c), 0.01, 100), l = d, o = l + w u, u ~ U(0, 1).
+* opacity gate: spread raw e [P,K,1] and location f [P,K,1];
+  tau = softplus(e), nu = f, g = sigmoid((nu + tau eta) / T), eta ~ N(0, 1); alpha~ = sigmoid(a) g.
+
+A sample draws one subset S of M entries (shared by all Gaussians of the sample, as in the paper),
+averages the raw columns over S, then draws the noises above. Non-carriers get no offset, multiplier 1
+and gate 1. Rotation and colour are deterministic.
+
+Two variants (DESIGN.md section 6, defect 3):
+
+* ``"ours"``: the position table is in units of the scene extent (``unit = extent``), so the prior
+  N(0, sigma_p^2) is relative to the scene and training is equivariant to a global scale; the scale
+  multiplier acts on the linear scale, ``scale = exp(s) * o``.
+* ``"paper"``: the position table is in world units (``unit = 1``, an absolute prior); the multiplier
+  acts on the log-scale, ``scale = exp(s * o)`` (which makes small Gaussians, s < 0, grow).
+
+KL terms (``kl_terms``) are computed for every table entry (not only the sampled subset), so all
+entries are regularised every step, and averaged over elements:
+
+* position and gate: the closed-form KL between Gaussians.
+* scale multiplier: the true KL(U[l, l+w] || U[1-w_p, 1]) is log(w_p / w) when the posterior interval
+  lies inside the prior's and +infinity otherwise, useless as a loss. ``"paper"`` uses the original
+  code's L1 distance between interval end points, |l - (1 - w_p)| + |(l + w) - 1|. ``"ours"`` uses the
+  KL between the moment-matched Gaussians of the two uniforms (same mean and variance: mean l + w/2,
+  std w / sqrt(12)): finite everywhere, zero exactly at the prior, smooth, on the same nat scale as the
+  other two terms, and growing both when the interval shrinks and when it leaves the prior's support.
+
+All spreads go through a numerically safe log-softplus, so the KL and the samplers stay finite for
+spreads from 1e-8 to 1e3, saturated gates, and an empty set of carriers (P = 0).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from uncertsplat.gaussians.params import GaussianModel
+from uncertsplat.types import GaussianSample
+
+Variant = Literal["ours", "paper"]
+
+
+@dataclass(frozen=True)
+class TableSpec:
+    """One offset-table column group: name, width D (table is [P,K,D]), and base learning-rate key."""
+
+    name: str
+    width: int
+    lr: str
+
+
+TABLE_SPECS: tuple[TableSpec, ...] = (
+    TableSpec("pos_spread_raw", 3, "means"),
+    TableSpec("pos_loc", 3, "means"),
+    TableSpec("scale_width_raw", 3, "scales"),
+    TableSpec("scale_left", 3, "scales"),
+    TableSpec("gate_spread_raw", 1, "opacities"),
+    TableSpec("gate_loc", 1, "opacities"),
+)
+TABLE_NAMES: tuple[str, ...] = tuple(s.name for s in TABLE_SPECS)
+
+MIN_WIDTH, MAX_WIDTH = 0.01, 100.0
+
+
+@dataclass(frozen=True)
+class Prior:
+    """The prior and its table initialisation (plain numbers: ``gaussians/`` never imports config).
+
+    Attributes:
+        position_std: sigma_p, in units of the extent (ours) or world units (paper).
+        scale_width: w_p: the multiplier prior is U[1 - w_p, 1].
+        gate_mean, gate_std: the gate-logit prior N(nu_p, tau_p^2).
+        temperature: T of the gate.
+        variant: "ours" or "paper".
+    """
+
+    position_std: float = 0.00248
+    scale_width: float = 0.1
+    gate_mean: float = 2.0
+    gate_std: float = 1.996
+    temperature: float = 0.2
+    variant: Variant = "ours"
+
+
+def inverse_softplus(y: float | Tensor) -> float | Tensor:
+    """x with softplus(x) = y (y > 0), stable for tiny and huge y."""
+    if isinstance(y, Tensor):
+        return y + torch.log(-torch.expm1(-y))
+    return y + math.log(-math.expm1(-y))
+
+
+def log_softplus(x: Tensor) -> Tensor:
+    """log(softplus(x)) without underflow: softplus(x) ~ exp(x) for x << 0, so the log is x there."""
+    low = x < -15.0
+    # clamp each branch's input so the branch not taken cannot produce inf (and NaN gradients)
+    return torch.where(low, x.clamp_max(-15.0), torch.log(F.softplus(x.clamp_min(-15.0))))
+
+
+def empty_tables(num_entries: int, *, device=None, dtype=torch.float32) -> dict[str, Tensor]:
+    """Tables with zero rows (P = 0)."""
+    return {s.name: torch.zeros(0, num_entries, s.width, device=device, dtype=dtype) for s in TABLE_SPECS}
+
+
+def prior_rows(n: int, num_entries: int, prior: Prior, *, device=None, dtype=torch.float32) -> dict[str, Tensor]:
+    """``n`` new table rows [n,K,D] at the prior, so every KL term is 0 for them.
+
+    The multiplier width starts at w_p (ours; the KL is then 0 for any K) or at 1/K (paper, as the
+    original code; equal to w_p for the default K = 10).
+    """
+    k = num_entries
+    width = prior.scale_width if prior.variant == "ours" else 1.0 / k
+    width = min(max(width, MIN_WIDTH), MAX_WIDTH)
+
+    def full(d, v):
+        return torch.full((n, k, d), float(v), device=device, dtype=dtype)
+
+    return {
+        "pos_spread_raw": full(3, inverse_softplus(prior.position_std)),
+        "pos_loc": full(3, 0.0),
+        "scale_width_raw": full(3, inverse_softplus(width)),
+        "scale_left": full(3, 1.0 - prior.scale_width),
+        "gate_spread_raw": full(1, inverse_softplus(prior.gate_std)),
+        "gate_loc": full(1, prior.gate_mean),
+    }
+
+
+def _unit(variant: Variant, extent: float) -> float:
+    return float(extent) if variant == "ours" else 1.0
+
+
+def _assemble(model: GaussianModel, idx: Tensor, offset: Tensor, mult: Tensor, gate: Tensor, *, variant: Variant,
+              sh_degree: int | None) -> GaussianSample:
+    """Full [N,...] activated tensors from per-carrier offset [P,3], multiplier [P,3] and gate [P]."""
+    p = model.params
+    means = p["means"]
+    if idx.numel():
+        means = means + torch.zeros_like(means).index_copy(0, idx, offset.to(means.dtype))
+        full_mult = torch.ones_like(p["scales"]).index_copy(0, idx, mult.to(means.dtype))
+        full_gate = torch.ones_like(p["opacities"]).index_copy(0, idx, gate.to(means.dtype))
+        if variant == "ours":
+            scales = torch.exp(p["scales"]) * full_mult
+        else:
+            scales = torch.exp(p["scales"] * full_mult)
+        opacities = torch.sigmoid(p["opacities"]) * full_gate
+    else:
+        scales = torch.exp(p["scales"])
+        opacities = torch.sigmoid(p["opacities"])
+    sh = torch.cat([p["sh0"], p["shN"]], dim=1)
+    degree = model.sh_degree if sh_degree is None else min(sh_degree, model.sh_degree)
+    return GaussianSample(means=means, quats=p["quats"], scales=scales, opacities=opacities, sh=sh, sh_degree=degree)
+
+
+def draw_subset(num_entries: int, subset_size: int, generator: torch.Generator) -> Tensor:
+    """[M] distinct entry indices, M = min(subset_size, K), drawn with ``generator`` (on its device)."""
+    m = min(max(int(subset_size), 1), num_entries)
+    return torch.randperm(num_entries, generator=generator, device=generator.device)[:m]
+
+
+def sample(model: GaussianModel, generator: torch.Generator, *, subset_size: int = 2, variant: Variant = "ours",
+           extent: float = 1.0, temperature: float = 0.2, sh_degree: int | None = None) -> GaussianSample:
+    """One posterior sample of every Gaussian, differentiable w.r.t. parameters and tables.
+
+    Random numbers are drawn in a fixed order (subset, eps [P,3], u [P,3], eta [P,1]) from
+    ``generator`` on its own device, so the same generator state gives the same sample.
+
+    Args:
+        model: the Gaussians and their offset tables.
+        generator: the only source of randomness.
+        subset_size: M, entries averaged per sample (clamped to K).
+        variant: "ours" or "paper" (see the module docstring).
+        extent: scene extent (position unit for "ours").
+        temperature: gate temperature T.
+        sh_degree: SH degree to evaluate (default: the model's maximum).
+    """
+    t = model.tables
+    idx = model.carrier_index()
+    P = idx.numel()
+    gdev = generator.device
+    dev = model.device
+    subset = draw_subset(model.num_entries, subset_size, generator).to(dev)
+    eps = torch.randn((P, 3), generator=generator, device=gdev).to(dev)
+    u = torch.rand((P, 3), generator=generator, device=gdev).to(dev)
+    eta = torch.randn((P, 1), generator=generator, device=gdev).to(dev)
+    if P == 0:
+        return _assemble(model, idx, eps, u, eta[:, 0], variant=variant, sh_degree=sh_degree)
+
+    def avg(name):
+        return t[name].index_select(1, subset).mean(dim=1)  # [P,D]
+
+    sigma = F.softplus(avg("pos_spread_raw"))
+    offset = (avg("pos_loc") + sigma * eps) * _unit(variant, extent)
+    width = F.softplus(avg("scale_width_raw")).clamp(MIN_WIDTH, MAX_WIDTH)
+    mult = avg("scale_left") + width * u
+    tau = F.softplus(avg("gate_spread_raw"))
+    gate = torch.sigmoid((avg("gate_loc") + tau * eta) / temperature)[:, 0]
+    return _assemble(model, idx, offset, mult, gate, variant=variant, sh_degree=sh_degree)
+
+
+def expected_gate(loc: Tensor, spread: Tensor, temperature: float) -> Tensor:
+    """E[sigmoid((nu + tau eta) / T)], eta ~ N(0,1), by the probit approximation (error < 0.02)."""
+    z = loc / temperature
+    s = spread / temperature
+    return torch.sigmoid(z / torch.sqrt(1.0 + (math.pi / 8.0) * s * s))
+
+
+def posterior_mean(model: GaussianModel, *, variant: Variant = "ours", extent: float = 1.0,
+                   temperature: float = 0.2, sh_degree: int | None = None) -> GaussianSample:
+    """The deterministic render of the posterior: no random numbers.
+
+    All K entries are averaged (the expectation over the random subset of the averaged columns), the
+    position offset is its mean mu, the multiplier its mean l + w/2, and the gate its expectation
+    (probit approximation), so that the mean render has the opacity the samples have on average.
+    Densification, pruning and spawning decide on these values, never on a fresh sample.
+    """
+    t = model.tables
+    idx = model.carrier_index()
+    if idx.numel() == 0:
+        z = torch.zeros(0, 3, device=model.device)
+        return _assemble(model, idx, z, z, z[:, 0], variant=variant, sh_degree=sh_degree)
+    offset = t["pos_loc"].mean(1) * _unit(variant, extent)
+    width = F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH)
+    mult = t["scale_left"].mean(1) + 0.5 * width
+    gate = expected_gate(t["gate_loc"].mean(1), F.softplus(t["gate_spread_raw"].mean(1)), temperature)[:, 0]
+    return _assemble(model, idx, offset, mult, gate, variant=variant, sh_degree=sh_degree)
+
+
+def gaussian_kl(loc: Tensor, spread_raw: Tensor, prior_loc: float, prior_std: float) -> Tensor:
+    """Elementwise KL(N(loc, softplus(spread_raw)^2) || N(prior_loc, prior_std^2)), finite at extremes."""
+    std = F.softplus(spread_raw)
+    log_std = log_softplus(spread_raw)
+    return math.log(prior_std) - log_std + (std.square() + (loc - prior_loc).square()) / (2.0 * prior_std**2) - 0.5
+
+
+def scale_kl(left: Tensor, width_raw: Tensor, prior_width: float, variant: Variant) -> Tensor:
+    """Elementwise scale-multiplier divergence (see the module docstring for why not the true KL)."""
+    width = F.softplus(width_raw).clamp(MIN_WIDTH, MAX_WIDTH)
+    if variant == "paper":
+        return (left - (1.0 - prior_width)).abs() + (left + width - 1.0).abs()
+    # moment-matched Gaussians: N(l + w/2, w^2/12) against N(1 - w_p/2, w_p^2/12)
+    dm = (left + 0.5 * width) - (1.0 - 0.5 * prior_width)
+    return math.log(prior_width) - torch.log(width) + (width.square() + 12.0 * dm.square()) / (2.0 * prior_width**2) - 0.5
+
+
+def kl_terms(model: GaussianModel, prior: Prior) -> dict[str, Tensor]:
+    """KL terms averaged over table elements: ``position``, ``scale``, ``gate`` and their sum ``total``.
+
+    All are 0-dim tensors; with no carriers they are exact zeros (no NaN from an empty mean).
+    """
+    t = model.tables
+    if model.num_carriers == 0:
+        z = t["pos_loc"].sum() * 0.0  # keeps the graph (and the device) without a NaN
+        return {"position": z, "scale": z, "gate": z, "total": z}
+    kl_pos = gaussian_kl(t["pos_loc"], t["pos_spread_raw"], 0.0, prior.position_std).mean()
+    kl_scale = scale_kl(t["scale_left"], t["scale_width_raw"], prior.scale_width, prior.variant).mean()
+    kl_gate = gaussian_kl(t["gate_loc"], t["gate_spread_raw"], prior.gate_mean, prior.gate_std).mean()
+    return {"position": kl_pos, "scale": kl_scale, "gate": kl_gate, "total": kl_pos + kl_scale + kl_gate}
+
+
+def carrier_uncertainty(model: GaussianModel, *, variant: Variant = "ours", extent: float = 1.0) -> dict[str, Tensor]:
+    """Per-Gaussian [N] posterior spreads (0 for non-carriers), all K entries averaged.
+
+    ``position``: RMS position std over the 3 axes in world units; ``scale``: mean multiplier width;
+    ``gate``: gate-logit std.
+    """
+    n = len(model)
+    dev = model.device
+    out = {k: torch.zeros(n, device=dev) for k in ("position", "scale", "gate")}
+    idx = model.carrier_index()
+    if idx.numel() == 0:
+        return out
+    t = {k: v.detach() for k, v in model.tables.items()}
+    sig = F.softplus(t["pos_spread_raw"].mean(1)) * _unit(variant, extent)
+    out["position"][idx] = sig.square().mean(1).sqrt()
+    out["scale"][idx] = F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH).mean(1)
+    out["gate"][idx] = F.softplus(t["gate_spread_raw"].mean(1))[:, 0]
+    return out
+
+
+def random_model(n: int, generator: torch.Generator, *, sh_degree: int = 1, num_entries: int = 10,
+                 carrier_fraction: float = 0.5, extent: float = 1.0, prior: Prior | None = None,
+                 perturb_tables: float = 0.0, device=None) -> GaussianModel:
+    """A random model (for tests and examples): Gaussians in a cube of side ``extent``, a random subset
+    of carriers with tables at the prior plus ``perturb_tables`` x N(0,1) noise (in raw units)."""
+    prior = prior or Prior()
+    device = device if device is not None else generator.device
+
+    def randn(*shape):
+        return torch.randn(shape, generator=generator, device=generator.device).to(device)
+
+    def rand(*shape):
+        return torch.rand(shape, generator=generator, device=generator.device).to(device)
+
+    b = (sh_degree + 1) ** 2
+    params = {
+        "means": (rand(n, 3) - 0.5) * extent,
+        "scales": torch.log(extent * (0.005 + 0.05 * rand(n, 3))),
+        "quats": randn(n, 4),
+        "opacities": randn(n),
+        "sh0": randn(n, 1, 3) * 0.5,
+        "shN": randn(n, b - 1, 3) * 0.1,
+    }
+    carriers = rand(n) < carrier_fraction
+    c = int(carriers.sum())
+    tables = prior_rows(c, num_entries, prior, device=device)
+    if perturb_tables > 0:
+        tables = {k: v + perturb_tables * randn(*v.shape) for k, v in tables.items()}
+    row = torch.full((n,), -1, dtype=torch.long, device=device)
+    # table rows in a shuffled order, so tests do not rely on rows following Gaussian order
+    perm = torch.randperm(c, generator=generator, device=generator.device).to(device)
+    row[carriers] = perm
+    return GaussianModel(params, tables, row, sh_degree, num_entries)

@@ -1,0 +1,179 @@
+"""PLY files of a trained model.
+
+``point_cloud.ply`` (``write_point_cloud_ply``): the standard 3DGS layout that viewers open
+(x y z nx ny nz f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3; log-scales, opacity logits, f_rest
+channel-major as in 3DGS), holding the *posterior mean* (offsets, multipliers and gates baked in), plus
+extra float properties per Gaussian: ``uncertainty_position`` (RMS position std, world units),
+``uncertainty_scale`` (mean multiplier width), ``uncertainty_gate`` (gate-logit std) and
+``has_posterior`` (0/1). Viewers ignore properties they do not know.
+
+``variational.ply`` (``write_variational_ply`` / ``read_variational_ply``): round-trips everything.
+Element ``vertex`` holds the *stored* parameters in the same standard names (so it opens in viewers
+too, without the posterior) plus ``has_posterior``; element ``offset`` holds one row per table entry
+(P x K rows, carrier-major in table-row order) with ``owner`` (the Gaussian index), ``entry`` (0..K-1)
+and the raw table columns ``pos_spread_raw_0..2 pos_loc_0..2 scale_width_raw_0..2 scale_left_0..2
+gate_spread_raw_0 gate_loc_0``. Only carriers have rows (no NaN padding). Header comments
+``uncertsplat key=value`` carry num_entries, sh_degree, variant, extent, step.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from plyfile import PlyData, PlyElement
+
+from uncertsplat.errors import UserError
+from uncertsplat.gaussians.params import GaussianModel
+from uncertsplat.gaussians.variational import TABLE_SPECS, carrier_uncertainty, posterior_mean
+from uncertsplat.io.atomic import atomic_write
+
+
+def _rest_count(sh_degree: int) -> int:
+    return 3 * ((sh_degree + 1) ** 2 - 1)
+
+
+def _standard_fields(means, log_scales, quats, opacity_logits, sh0, shN) -> dict[str, np.ndarray]:
+    n = means.shape[0]
+    cols: dict[str, np.ndarray] = {}
+    m = means.detach().cpu().float().numpy()
+    for i, a in enumerate("xyz"):
+        cols[a] = m[:, i]
+    for a in ("nx", "ny", "nz"):
+        cols[a] = np.zeros(n, np.float32)
+    dc = sh0.detach().cpu().float().reshape(n, 3).numpy()
+    for i in range(3):
+        cols[f"f_dc_{i}"] = dc[:, i]
+    rest = shN.detach().cpu().float().transpose(1, 2).reshape(n, -1).numpy()  # [N,3*(B-1)] channel-major
+    for i in range(rest.shape[1]):
+        cols[f"f_rest_{i}"] = rest[:, i]
+    cols["opacity"] = opacity_logits.detach().cpu().float().numpy()
+    s = log_scales.detach().cpu().float().numpy()
+    for i in range(3):
+        cols[f"scale_{i}"] = s[:, i]
+    q = quats.detach().cpu().float().numpy()
+    for i in range(4):
+        cols[f"rot_{i}"] = q[:, i]
+    return cols
+
+
+def _vertex(cols: dict[str, np.ndarray], n: int, name: str = "vertex") -> PlyElement:
+    dtype = [(k, "f4" if v.dtype.kind == "f" else "i4") for k, v in cols.items()]
+    arr = np.empty(n, dtype=dtype)
+    for k, v in cols.items():
+        arr[k] = v
+    return PlyElement.describe(arr, name)
+
+
+def _write(path: Path, elements: list[PlyElement], comments: list[str]) -> Path:
+    ply = PlyData(elements, text=False, byte_order="<", comments=comments)
+    return atomic_write(path, lambda f: ply.write(f))
+
+
+def write_point_cloud_ply(path: str | Path, model: GaussianModel, *, variant: str = "ours", extent: float = 1.0,
+                          temperature: float = 0.2) -> Path:
+    """Viewer-compatible PLY of the posterior mean with extra per-Gaussian uncertainty properties."""
+    with torch.no_grad():
+        pm = posterior_mean(model, variant=variant, extent=extent, temperature=temperature)
+        op = pm.opacities.clamp(1e-7, 1 - 1e-7)
+        cols = _standard_fields(pm.means, pm.scales.clamp_min(1e-30).log(), pm.quats, torch.log(op / (1 - op)),
+                                model.params["sh0"], model.params["shN"])
+        unc = carrier_uncertainty(model, variant=variant, extent=extent)
+    for k in ("position", "scale", "gate"):
+        cols[f"uncertainty_{k}"] = unc[k].cpu().float().numpy()
+    cols["has_posterior"] = (model.posterior_row >= 0).cpu().float().numpy()
+    return _write(Path(path), [_vertex(cols, len(model))], ["uncertsplat point_cloud posterior-mean"])
+
+
+def write_variational_ply(path: str | Path, model: GaussianModel, *, meta: dict | None = None) -> Path:
+    """Everything needed to rebuild ``model`` exactly (see the module docstring for the layout)."""
+    p = model.params
+    cols = _standard_fields(p["means"], p["scales"], p["quats"], p["opacities"], p["sh0"], p["shN"])
+    cols["has_posterior"] = (model.posterior_row >= 0).cpu().to(torch.int32).numpy()
+    P, K = model.num_carriers, model.num_entries
+    owner = model.carrier_index().cpu()  # [P] in table-row order
+    off: dict[str, np.ndarray] = {
+        "owner": owner.repeat_interleave(K).to(torch.int32).numpy(),
+        "entry": torch.arange(K).repeat(P).to(torch.int32).numpy(),
+    }
+    for spec in TABLE_SPECS:
+        t = model.tables[spec.name].detach().cpu().float().reshape(P * K, spec.width).numpy()
+        for j in range(spec.width):
+            off[f"{spec.name}_{j}"] = t[:, j]
+    info = {"num_entries": K, "sh_degree": model.sh_degree, **(meta or {})}
+    elements = [_vertex(cols, len(model)), _vertex(off, P * K, "offset")]
+    # a checksum of the binary data, so a flipped bit in a value is detected on reading, not rendered
+    info["sha256"] = _data_digest(elements)
+    comments = ["uncertsplat variational 1"] + [f"uncertsplat {k}={v}" for k, v in info.items()]
+    return _write(Path(path), elements, comments)
+
+
+def _data_digest(elements) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    for e in elements:
+        h.update(np.ascontiguousarray(e.data).astype(e.data.dtype.newbyteorder("<")).tobytes())
+    return h.hexdigest()
+
+
+def _parse_meta(comments: list[str]) -> dict:
+    meta = {}
+    for c in comments:
+        if c.startswith("uncertsplat ") and "=" in c:
+            k, v = c[len("uncertsplat "):].split("=", 1)
+            meta[k.strip()] = v.strip()
+    return meta
+
+
+def read_variational_ply(path: str | Path, device: torch.device | str = "cpu") -> tuple[GaussianModel, dict]:
+    """Rebuild the model written by ``write_variational_ply``; returns (model, header metadata)."""
+    path = Path(path)
+    try:
+        ply = PlyData.read(str(path))
+    except Exception as err:
+        raise UserError(f"cannot read the PLY file ({err})", path=path) from None
+    meta = _parse_meta(list(ply.comments))
+    names = [e.name for e in ply.elements]
+    if "vertex" not in names or "offset" not in names or "num_entries" not in meta:
+        raise UserError("not a variational.ply written by uncertsplat (missing elements or metadata)", path=path,
+                        hint="Use the variational.ply of a run folder; point_cloud.ply has no offset tables.")
+    if "sha256" in meta and _data_digest([ply["vertex"], ply["offset"]]) != meta["sha256"]:
+        raise UserError("checksum mismatch: the PLY file is corrupted", path=path,
+                        hint="Restore it from a copy, or re-create it from the run's checkpoints with "
+                        "`uncertsplat train ... --resume`.")
+    v = ply["vertex"].data
+    n = len(v)
+    sh_degree, K = int(meta["sh_degree"]), int(meta["num_entries"])
+
+    def col(data, *keys):
+        return torch.from_numpy(np.stack([np.asarray(data[k], dtype=np.float32) for k in keys], axis=-1))
+
+    nrest = _rest_count(sh_degree)
+    params = {
+        "means": col(v, "x", "y", "z"),
+        "scales": col(v, "scale_0", "scale_1", "scale_2"),
+        "quats": col(v, "rot_0", "rot_1", "rot_2", "rot_3"),
+        "opacities": torch.from_numpy(np.asarray(v["opacity"], dtype=np.float32)),
+        "sh0": col(v, "f_dc_0", "f_dc_1", "f_dc_2").reshape(n, 1, 3),
+        "shN": (col(v, *[f"f_rest_{i}" for i in range(nrest)]).reshape(n, 3, nrest // 3).transpose(1, 2)
+                if nrest else torch.zeros(n, 0, 3)),
+    }
+    o = ply["offset"].data
+    P = len(o) // K
+    owner = torch.from_numpy(np.asarray(o["owner"], dtype=np.int64)).reshape(P, K)[:, 0] if P else torch.zeros(0, dtype=torch.long)
+    row = torch.full((n,), -1, dtype=torch.long)
+    row[owner] = torch.arange(P)
+    tables = {}
+    for spec in TABLE_SPECS:
+        keys = [f"{spec.name}_{j}" for j in range(spec.width)]
+        tables[spec.name] = col(o, *keys).reshape(P, K, spec.width) if P else torch.zeros(0, K, spec.width)
+    dev = torch.device(device)
+    model = GaussianModel({k: t.contiguous().to(dev) for k, t in params.items()},
+                          {k: t.contiguous().to(dev) for k, t in tables.items()}, row.to(dev), sh_degree, K)
+    try:
+        model.check()
+    except AssertionError as err:
+        raise UserError(f"the PLY file is inconsistent ({err})", path=path) from None
+    return model, meta

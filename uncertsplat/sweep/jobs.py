@@ -1,0 +1,128 @@
+"""One sweep job: train one config (or reuse its finished run), evaluate it at each of its points.
+
+``run_job(job)`` is a function of a plain, JSON-serialisable dict (``spec.make_jobs``) and of the files it
+names, so a process pool here, or a cluster engine later, can run the jobs anywhere and in any order.
+It never raises for a failure inside the job: the records then have ``status = "failed"`` and the error.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+import traceback
+from pathlib import Path
+
+import torch
+
+RECORD_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "nll_kde", "calibration_error", "spearman",
+               "depth_ause_mae", "depth_ause_rmse", "depth_abs_rel")
+
+
+def _peak_mb(device: torch.device) -> float:
+    from uncertsplat.train.trainer import peak_memory_mb
+
+    return float(peak_memory_mb(device))
+
+
+def _train(job: dict, device: torch.device) -> tuple[dict, bool]:
+    """Train the job's run unless it is finished; returns (train_summary, trained_now)."""
+    from uncertsplat.baselines import train_run
+    from uncertsplat.config import TrainConfig, build_config
+
+    run_dir = Path(job["run_dir"])
+    summary_path = run_dir / "train_summary.json"
+    cfg = build_config(TrainConfig, job["train_config"], source=f"sweep job {job['job_id']}")
+    if summary_path.is_file() and (run_dir / "config.json").is_file():
+        stored = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
+        if stored == json.loads(cfg.model_dump_json()):
+            summary = json.loads(summary_path.read_text(encoding="utf-8"))
+            if cfg.method != "fisher" or "fisher_seconds" in summary:
+                return summary, False
+    resume = (run_dir / "config.json").is_file()
+    if run_dir.exists() and not resume:
+        shutil.rmtree(run_dir)  # a job that died before writing anything useful
+    if resume:
+        stored = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
+        if stored != json.loads(cfg.model_dump_json()):
+            shutil.rmtree(run_dir)  # another config under the same id: never mix them
+            resume = False
+    train_run(Path(job["scene"]), run_dir, cfg, device, resume=resume)
+    return json.loads(summary_path.read_text(encoding="utf-8")), True
+
+
+def run_job(job: dict) -> list[dict]:
+    """Run one job and return one record per point (see the module docstring).
+
+    Record keys: ``id``, ``hash``, ``job``, ``method``, ``knobs``, ``is_default``, ``status`` (ok/failed),
+    ``error``, ``train_seconds``, ``eval_seconds_per_view``, ``eval_seconds``, ``time`` (train + eval),
+    ``num_views``, ``num_samples``, ``peak_memory_mb`` (train / eval / max), ``num_gaussians``,
+    ``num_carriers``, the metrics of ``RECORD_KEYS`` (means over the views), ``notes``, ``run_dir``.
+    """
+    from uncertsplat.device import resolve_device
+
+    threads = job.get("threads")
+    if threads:
+        torch.set_num_threads(int(threads))  # one thread per job when jobs share the cores
+    base = {"job": job["job_id"], "method": job["method_label"], "run_dir": job["run_dir"],
+            "device": job["device"], "threads": torch.get_num_threads()}
+    records = []
+    try:
+        device = resolve_device(job["device"])
+        t0 = time.perf_counter()
+        summary, trained = _train(job, device)
+        train_peak = float(summary.get("peak_memory_mb") or 0.0)
+        train_info = {"train_seconds": float(summary["seconds"]), "trained_now": trained,
+                      "train_wall_seconds": time.perf_counter() - t0 if trained else None,
+                      "num_gaussians": summary.get("num_gaussians"), "num_carriers": summary.get("num_carriers"),
+                      "train_peak_memory_mb": train_peak}
+    except Exception as err:  # report, do not kill the sweep
+        msg = f"{type(err).__name__}: {err}"
+        tb = traceback.format_exc(limit=6)
+        return [{**base, "id": p["id"], "hash": p["hash"], "knobs": p["knobs"], "is_default": p["is_default"],
+                 "status": "failed", "stage": "train", "error": msg, "traceback": tb} for p in job["points"]]
+
+    for p in job["points"]:
+        rec = {**base, **train_info, "id": p["id"], "hash": p["hash"], "knobs": p["knobs"],
+               "is_default": p["is_default"]}
+        try:
+            rec.update(_evaluate(job, p, device))
+            rec["peak_memory_mb"] = max(train_peak, rec["eval_peak_memory_mb"])
+            rec["time"] = rec["train_seconds"] + rec["eval_seconds"]
+            rec["ause"] = rec.get("ause_mae")
+            rec["status"] = "ok"
+        except Exception as err:
+            rec.update(status="failed", stage="evaluate", error=f"{type(err).__name__}: {err}",
+                       traceback=traceback.format_exc(limit=6))
+        records.append(rec)
+    return records
+
+
+def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
+    from uncertsplat.baselines import load_run
+    from uncertsplat.config import EvalConfig, build_config
+    from uncertsplat.stages.evaluate import evaluate_views, load_run_scene
+
+    ecfg = build_config(EvalConfig, point["eval_config"], source=f"sweep point {point['id']}")
+    run_dir = Path(job["run_dir"])
+    loaded = load_run(run_dir, device)
+    scene = load_run_scene(loaded, run_dir)
+    indices = list(scene.split[ecfg.split])
+    if ecfg.max_views is not None:
+        indices = indices[: ecfg.max_views]
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    t0 = time.perf_counter()
+    report = evaluate_views(loaded, scene, indices, ecfg, device, show_progress=False)
+    wall = time.perf_counter() - t0
+    out = {k: getattr(report.mean, k) for k in RECORD_KEYS}
+    per_view = report.seconds_per_view or 0.0
+    out.update(eval_seconds_per_view=per_view, eval_seconds=per_view * len(indices), eval_wall_seconds=wall,
+               num_views=len(indices), num_samples=ecfg.num_samples, notes=list(report.notes),
+               eval_peak_memory_mb=_peak_mb(device),
+               peak_memory_scope="device" if device.type == "cuda" else "process (max RSS, includes training "
+                                                                        "when trained in the same process)")
+    from uncertsplat.io.atomic import atomic_write_text
+
+    atomic_write_text(Path(job["run_dir"]).parent.parent / "points" / f"{point['id']}.json", report.to_json() + "\n")
+    return out

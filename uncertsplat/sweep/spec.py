@@ -1,0 +1,214 @@
+"""What a speed-accuracy sweep varies: the spec (TOML), its points and the independent jobs they form.
+
+A spec names a base training config (preset + overrides), a base evaluation config, a ``default``
+point and the ``axes`` to vary. ``design = "axes"`` varies one knob at a time around the default
+(plus the default itself); ``design = "grid"`` takes the full product. Knobs:
+
+==============  ===========================================  =====================================
+knob            sets                                         costs
+==============  ===========================================  =====================================
+method          ``baselines.METHODS[name]``                  training (ensemble: N x)
+iterations      ``iterations`` (schedule scaled, see below)  training time
+num_entries     ``variational.num_entries`` (K_table)        memory, a little training time
+num_samples     ``EvalConfig.num_samples`` (K)               evaluation time (linear)
+downscale       ``scene.downscale`` (resolution)             everything (about quadratic)
+ensemble_size   ``ensemble_size`` (N)                        training time (linear)
+==============  ===========================================  =====================================
+
+``schedule = "scaled"`` (default) scales the densification window (start, until), the spawn and SH
+intervals and the opacity reset with the number of iterations (relative to the base config), so a
+short run densifies over the same fraction of its steps; the densification *interval* is kept, since
+its gradient statistics need about one pass over the training views whatever the run's length (a
+scaled interval densifies far more often and the Gaussians explode). ``"fixed"`` keeps the base schedule. Ensemble points always use K = N samples (each member once).
+
+Points that share a training config form one job (train once, evaluate at every K): each job is a
+pure function of its dict (``jobs.run_job``), so a cluster engine can run them anywhere.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from uncertsplat.config import (
+    EvalConfig,
+    TrainConfig,
+    build_config,
+    deep_update,
+    train_config_from,
+)
+from uncertsplat.stages.manifest import hash_config
+
+KNOBS = ("method", "iterations", "num_entries", "num_samples", "downscale", "ensemble_size")
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class SweepPoint(_Strict):
+    """The knob values of one point (None: the base config's value)."""
+
+    method: str = "variational"
+    iterations: int | None = Field(None, ge=1)
+    num_entries: int | None = Field(None, ge=1, le=256)
+    num_samples: int | None = Field(None, ge=1, le=10_000)
+    downscale: float | None = Field(None, ge=1.0, le=64.0)
+    ensemble_size: int | None = Field(None, ge=1, le=1000)
+
+
+class SweepAxes(_Strict):
+    """Values to try per knob (an empty list leaves the knob at the default)."""
+
+    method: list[str] = []
+    iterations: list[int] = []
+    num_entries: list[int] = []
+    num_samples: list[int] = []
+    downscale: list[float] = []
+    ensemble_size: list[int] = []
+
+
+class SweepSpec(_Strict):
+    """A sweep (``pipelines/tradeoff.toml``; ``uncertsplat sweep SPEC -o OUT``)."""
+
+    name: str = "sweep"
+    scene: Path | None = None
+    """Scene folder; None generates the synthetic scene of ``synth`` into OUT/scene."""
+    synth: dict[str, Any] = {"preset": "demo", "seed": 0}
+    """SynthConfig keys used when ``scene`` is not given."""
+    train_preset: str | None = "demo"
+    train: dict[str, Any] = {}
+    """TrainConfig keys over the preset (the base of every point)."""
+    evaluate: dict[str, Any] = {}
+    """EvalConfig keys (the base of every point; save_maps is ignored: sweeps write no maps)."""
+    design: Literal["axes", "grid"] = "axes"
+    schedule: Literal["scaled", "fixed"] = "scaled"
+    default: SweepPoint = SweepPoint()
+    axes: SweepAxes = SweepAxes()
+    pareto_x: str = "time"
+    pareto_y: list[str] = ["ause_mae", "nll"]
+
+
+def load_spec(path: Path, overrides: list[str] | None = None) -> SweepSpec:
+    """Read a sweep TOML (``key=value`` overrides as for ``--set``) into a validated ``SweepSpec``."""
+    from uncertsplat.config import load_toml, parse_override
+
+    data = load_toml(path)
+    for o in overrides or []:
+        data = deep_update(data, parse_override(o))
+    return build_config(SweepSpec, data, source=str(path))
+
+
+def expand_points(spec: SweepSpec) -> list[SweepPoint]:
+    """The points of a spec, default first, without duplicates (same knob values)."""
+    d = spec.default.model_dump()
+    axes = {k: v for k, v in spec.axes.model_dump().items() if v}
+    pts: list[dict] = [d]
+    if spec.design == "grid" and axes:
+        keys = list(axes)
+        for combo in itertools.product(*(axes[k] for k in keys)):
+            pts.append({**d, **dict(zip(keys, combo, strict=True))})
+    else:
+        for k, values in axes.items():
+            pts += [{**d, k: v} for v in values]
+    seen, out = set(), []
+    for p in pts:
+        key = json.dumps(p, sort_keys=True)
+        if key not in seen:
+            seen.add(key)
+            out.append(SweepPoint(**p))
+    return out
+
+
+def _scaled_schedule(data: dict, base: TrainConfig, iterations: int) -> dict:
+    """Scale the step-based schedule of ``base`` to ``iterations`` steps (keys into ``data``)."""
+    f = iterations / base.iterations
+    dz = base.densify
+
+    def s(v: int) -> int:
+        return max(1, round(v * f))
+
+    sched = {"start": s(dz.start) if dz.start else 0, "until": s(dz.until),
+             "spawn_interval": s(dz.spawn_interval),
+             "opacity_reset_interval": s(dz.opacity_reset_interval) if dz.opacity_reset_interval else 0}
+    return deep_update(data, {"iterations": iterations, "sh_degree_interval": s(base.sh_degree_interval),
+                              "densify": sched})
+
+
+def point_configs(spec: SweepSpec, point: SweepPoint) -> tuple[TrainConfig, EvalConfig]:
+    """The resolved train and eval configs of ``point``."""
+    from uncertsplat.baselines import method_overrides
+
+    base = train_config_from(spec.train_preset, spec.train)
+    data = json.loads(base.model_dump_json())
+    if point.iterations is not None and point.iterations != base.iterations:
+        data = (_scaled_schedule(data, base, point.iterations) if spec.schedule == "scaled"
+                else deep_update(data, {"iterations": point.iterations}))
+    if point.num_entries is not None:
+        data = deep_update(data, {"variational": {"num_entries": point.num_entries}})
+    if point.downscale is not None:
+        data = deep_update(data, {"scene": {"downscale": point.downscale}})
+    if point.ensemble_size is not None:
+        data["ensemble_size"] = point.ensemble_size
+    data = deep_update(data, method_overrides(point.method))  # vi-single's K_table = 1 wins
+    tcfg = build_config(TrainConfig, data, source=f"sweep point {point_id(point)}")
+    if tcfg.method in ("ensemble", "fisher", "deterministic"):
+        # no offset tables: K_table does not matter, so points differing only in it share a run
+        tcfg = tcfg.model_copy(update={"variational": TrainConfig().variational})
+    if tcfg.method != "ensemble":
+        tcfg = tcfg.model_copy(update={"ensemble_size": TrainConfig().ensemble_size})
+    edata = deep_update(spec.evaluate, {"save_maps": False})
+    if tcfg.method == "ensemble":
+        edata["num_samples"] = tcfg.ensemble_size
+    elif point.num_samples is not None:
+        edata["num_samples"] = point.num_samples
+    ecfg = build_config(EvalConfig, edata, source=f"sweep point {point_id(point)}")
+    return tcfg, ecfg
+
+
+def point_id(point: SweepPoint) -> str:
+    """A readable, file-name-safe id: method and the knobs that are set."""
+    parts = [point.method]
+    for key, tag in (("iterations", "it"), ("num_entries", "kt"), ("num_samples", "k"), ("downscale", "ds"),
+                     ("ensemble_size", "n")):
+        if key == "ensemble_size" and point.method != "ensemble":
+            continue  # N only matters to ensembles
+        v = getattr(point, key)
+        if v is not None:
+            parts.append(f"{tag}{v:g}" if isinstance(v, float) else f"{tag}{v}")
+    return "_".join(parts)
+
+
+def make_jobs(spec: SweepSpec, out_dir: Path, scene: Path, device: str, threads: int | None = None) -> list[dict]:
+    """Group the points by training config into independent jobs (plain dicts, JSON-serialisable).
+
+    Each job: ``{"job_id", "scene", "run_dir", "device", "threads", "train_config", "method_label",
+    "points": [{"id", "hash", "knobs", "eval_config", "is_default"}]}``.
+    """
+    from uncertsplat.baselines import method_label
+
+    points = expand_points(spec)
+    default = points[0]
+    jobs: dict[str, dict] = {}
+    seen: set[str] = set()
+    for p in points:
+        tcfg, ecfg = point_configs(spec, p)
+        tdata = json.loads(tcfg.model_dump_json())
+        edata = json.loads(ecfg.model_dump_json())
+        phash = hash_config({"train": tdata, "eval": edata})
+        if phash in seen:
+            continue  # knobs that do not matter to this method (e.g. N for a variational point)
+        seen.add(phash)
+        thash = hash_config(tdata)
+        label = method_label(tcfg)
+        job_id = f"{label}_{thash[:8]}"
+        job = jobs.setdefault(job_id, {
+            "job_id": job_id, "scene": str(Path(scene).resolve()), "run_dir": str((Path(out_dir) / "runs" / job_id).resolve()),
+            "device": device, "threads": threads, "train_config": tdata, "method_label": label, "points": []})
+        job["points"].append({"id": point_id(p), "hash": phash,
+                              "knobs": p.model_dump(), "eval_config": edata, "is_default": p == default})
+    return list(jobs.values())

@@ -1,0 +1,396 @@
+"""The training loop: variational multi-scale 3DGS with full-state checkpoints.
+
+One step: pick the next training view (a shuffled queue, refilled when empty), draw one posterior sample
+(``variational.sample``; the plain parameters for ``method="deterministic"``), render, loss = L1/SSIM +
+kl_weight x KL, backward, accumulate screen-space gradients, Adam update, then the topology changes due at
+this step (densify / prune / opacity reset / spawn), deciding on the posterior mean.
+
+Everything that influences the future is in ``state_dict()``: parameters, offset tables, posterior rows,
+Adam moments, densification statistics, both generators' states, the view queue, the step and the
+elapsed time. ``Trainer.from_state_dict`` continues exactly as if never interrupted (bit-identical on CPU).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import resource
+import signal
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from uncertsplat.config import TrainConfig
+from uncertsplat.console import progress
+from uncertsplat.eval.image import psnr, ssim
+from uncertsplat.gaussians.params import GaussianModel, init_from_points, memory_per_gaussian
+from uncertsplat.gaussians.variational import Prior, kl_terms, posterior_mean, sample
+from uncertsplat.render import render
+from uncertsplat.strategy.densify import Densifier, DensifyStats
+from uncertsplat.strategy.schedule import sh_degree_at
+from uncertsplat.train.losses import total_loss
+from uncertsplat.train.optim import base_rates, make_optimizer, set_rates
+from uncertsplat.types import Cameras, GaussianSample, SceneData
+
+STATE_VERSION = 1
+MAX_BAD_STEPS = 5
+"""Consecutive steps with a NaN/Inf loss or gradient (each skipped) after which training stops."""
+
+
+def prior_from_config(cfg: TrainConfig) -> Prior:
+    v = cfg.variational
+    return Prior(position_std=v.position_prior_std, scale_width=v.scale_prior_width, gate_mean=v.gate_prior_mean,
+                 gate_std=v.gate_prior_std, temperature=v.gate_temperature, variant=cfg.variant)
+
+
+def peak_memory_mb(device: torch.device) -> float:
+    """Peak accelerator memory (CUDA) or peak resident memory of the process (CPU), in MiB."""
+    if device.type == "cuda":
+        return torch.cuda.max_memory_allocated(device) / 2**20
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
+
+
+class TrainingInterrupted(Exception):
+    """Raised after a checkpoint was written because of Ctrl-C / SIGTERM."""
+
+    def __init__(self, step: int, path: Path | None):
+        self.step, self.path = step, path
+        super().__init__(f"training interrupted at step {step}" + (f"; checkpoint {path}" if path else ""))
+
+
+class Trainer:
+    """Trains a ``GaussianModel`` on one scene.
+
+    Args:
+        scene: the scene (cameras, split, sparse points, extent).
+        cfg: resolved training configuration.
+        train_images: [T,H,W,3] images of ``scene.split["train"]``, in that order, on the training device.
+        test_images: [V,H,W,3] images of ``scene.split["test"]`` (held-out PSNR), or None.
+        run_dir: where checkpoints and ``stats.jsonl`` go (None: nothing is written).
+        state: a ``state_dict()`` to resume from (None: initialise from the scene's points).
+    """
+
+    def __init__(self, scene: SceneData, cfg: TrainConfig, train_images: Tensor, test_images: Tensor | None = None,
+                 run_dir: Path | None = None, state: dict | None = None):
+        self.scene, self.cfg = scene, cfg
+        self.device = train_images.device
+        self.train_idx = list(scene.split["train"])
+        self.test_idx = list(scene.split.get("test", ()))
+        self.train_cams = scene.cameras[self.train_idx].to(self.device)
+        self.test_cams = scene.cameras[self.test_idx].to(self.device) if self.test_idx else None
+        self.train_images, self.test_images = train_images, test_images
+        if train_images.shape[0] != len(self.train_idx):
+            raise ValueError("train_images must have one image per training view")
+        self.run_dir = Path(run_dir) if run_dir is not None else None
+        self.extent = float(scene.extent)
+        self.prior = prior_from_config(cfg)
+        self.background = torch.tensor(cfg.scene.background, dtype=torch.float32, device=self.device)
+        # near plane relative to the scene so that the whole pipeline is equivariant to a global scale
+        self.near = 0.01 * float(scene.scene_scale)
+        self.variational = cfg.method == "variational"
+        if cfg.random_background:
+            from uncertsplat.errors import UserError
+
+            raise UserError("random_background is not supported yet", hint="Set random_background = false.")
+        if state is None:
+            self._init_fresh()
+        else:
+            self._load_state(state)
+        self.on_log: Callable[[dict], None] | None = None
+        self._stop = False
+        self.skipped_steps = 0  # steps whose update was skipped because of a NaN/Inf loss or gradient
+        self.bad_steps_in_a_row = 0
+
+    # ----------------------------------------------------------------------------------- state
+    def _init_fresh(self) -> None:
+        cfg = self.cfg
+        self.gen_views = torch.Generator().manual_seed(cfg.seed)
+        self.gen_noise = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
+        points = self.scene.points.to(self.device, torch.float32)
+        colors = self.scene.points_rgb.to(self.device, torch.float32)
+        if cfg.init_num_random > 0:
+            if points.shape[0] > 0:
+                lo, hi = points.amin(0), points.amax(0)
+            else:
+                c = self.train_cams.centers.mean(0)
+                lo, hi = c - self.extent, c + self.extent
+            r = torch.rand((cfg.init_num_random, 3), generator=self.gen_views).to(self.device)
+            points = torch.cat([points, lo + (hi - lo) * r])
+            colors = torch.cat([colors, torch.rand((cfg.init_num_random, 3), generator=self.gen_views).to(self.device)])
+        if points.shape[0] == 0:
+            from uncertsplat.errors import UserError
+
+            raise UserError("the scene has no sparse points to start from",
+                            hint="Set init_num_random (e.g. --set init_num_random=10000).")
+        self.model = init_from_points(points, colors, sh_degree=cfg.sh_degree,
+                                      num_entries=cfg.variational.num_entries, init_opacity=cfg.init_opacity,
+                                      extent=self.extent)
+        self.optimizer = make_optimizer(self.model, self._rates(0))
+        self.densifier = self._make_densifier()
+        self.view_queue: list[int] = []
+        self.step = 0
+        self.elapsed = 0.0
+
+    def state_dict(self) -> dict:
+        """Everything needed to continue exactly (tensors, numbers and strings only)."""
+        return {
+            "version": STATE_VERSION,
+            "step": self.step,
+            "elapsed": self.elapsed,
+            "extent": self.extent,
+            "sh_degree_active": self.sh_degree,
+            "config": self.cfg.model_dump_json(),
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "densify": self.densifier.stats.state_dict(),
+            "gen_views": self.gen_views.get_state(),
+            "gen_noise": self.gen_noise.get_state(),
+            "view_queue": torch.tensor(self.view_queue, dtype=torch.long),
+        }
+
+    def _load_state(self, state: dict) -> None:
+        if state.get("version") != STATE_VERSION:
+            raise ValueError(f"unsupported trainer state version {state.get('version')}")
+        self.model = GaussianModel.from_state_dict(state["model"], self.device)
+        self.optimizer = make_optimizer(self.model, self._rates(int(state["step"])))
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.densifier = self._make_densifier()
+        self.densifier.stats = DensifyStats.from_state_dict(state["densify"], self.device)
+        self.gen_views = torch.Generator()
+        self.gen_views.set_state(state["gen_views"].cpu())
+        self.gen_noise = torch.Generator(device=self.device)
+        self.gen_noise.set_state(state["gen_noise"].cpu())  # generator states are CPU byte tensors
+        self.view_queue = [int(i) for i in state["view_queue"].tolist()]
+        self.step = int(state["step"])
+        self.elapsed = float(state["elapsed"])
+
+    # -------------------------------------------------------------------------------- helpers
+    def _make_densifier(self) -> Densifier:
+        dcfg = self.cfg.densify
+        if not self.variational:  # plain 3DGS: densify, never spawn posteriors
+            dcfg = dcfg.model_copy(update={"spawn_interval": 10**9})
+        return Densifier(dcfg, self.prior, self.extent, len(self.model), self.device, posteriors=self.variational)
+
+    def _rates(self, step: int) -> dict[str, float]:
+        return base_rates(self.cfg.lr, step, self.cfg.iterations, self.extent,
+                          table_lr_factor=self.cfg.variational.table_lr_factor, variant=self.cfg.variant)
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_at(self.step, self.cfg.sh_degree, self.cfg.sh_degree_interval)
+
+    def _next_view(self) -> int:
+        if not self.view_queue:
+            self.view_queue = torch.randperm(len(self.train_idx), generator=self.gen_views).tolist()
+        return self.view_queue.pop()
+
+    def mean_sample(self) -> GaussianSample:
+        """The posterior-mean Gaussians at the current SH degree (what a plain render shows)."""
+        return posterior_mean(self.model, variant=self.cfg.variant, extent=self.extent,
+                              temperature=self.prior.temperature, sh_degree=self.sh_degree)
+
+    def render(self, gaussians: GaussianSample, cams: Cameras):
+        return render(gaussians, cams, background=self.background, tile_size=self.cfg.tile_size, near=self.near)
+
+    @torch.no_grad()
+    def evaluate(self, max_views: int | None = None) -> dict[str, float]:
+        """Held-out PSNR / SSIM of the posterior-mean render (empty dict without test views)."""
+        if self.test_cams is None or self.test_images is None:
+            return {}
+        g = self.mean_sample()
+        ps, ss = [], []
+        n = len(self.test_idx) if max_views is None else min(max_views, len(self.test_idx))
+        for i in range(n):
+            out = self.render(g, self.test_cams[i])
+            pred = out.rgb[0].clamp(0, 1)
+            ps.append(float(psnr(pred, self.test_images[i])))
+            ss.append(float(ssim(pred, self.test_images[i])))
+        return {"psnr": sum(ps) / n, "ssim": sum(ss) / n}
+
+    # ----------------------------------------------------------------------------------- steps
+    def train_step(self) -> dict[str, float]:
+        """One optimisation step (plus the topology changes due); returns the loss terms."""
+        cfg = self.cfg
+        step = self.step + 1
+        set_rates(self.optimizer, self._rates(step))
+        degree = sh_degree_at(step, cfg.sh_degree, cfg.sh_degree_interval)
+        views = [self._next_view() for _ in range(min(cfg.batch_size, len(self.train_idx)))]
+        cams = self.train_cams[views]
+        gt = self.train_images[views]
+        if self.variational:
+            g = sample(self.model, self.gen_noise, subset_size=cfg.variational.subset_size, variant=cfg.variant,
+                       extent=self.extent, temperature=self.prior.temperature, sh_degree=degree)
+            kl = kl_terms(self.model, self.prior)
+        else:
+            g = posterior_mean(self.model, variant=cfg.variant, extent=self.extent,
+                               temperature=self.prior.temperature, sh_degree=degree)
+            kl = None
+        out = self.render(g, cams)
+        losses = total_loss(out.rgb, gt, kl, ssim_lambda=cfg.ssim_lambda, kl_weight=cfg.variational.kl_weight)
+        losses["loss"].backward()
+        finite = self._all_finite([losses["loss"], *(p.grad for p in self.model.parameters().values())])
+        if finite:
+            self.bad_steps_in_a_row = 0
+            if out.means2d.grad is not None:
+                self.densifier.accumulate(step, out.means2d.grad, out.radii, cams.width, cams.height)
+            self.optimizer.step()
+        else:
+            self._skip_non_finite(step)
+        self.optimizer.zero_grad(set_to_none=True)
+        done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise)
+        self.step = step
+        result = {k: float(v.detach()) for k, v in losses.items()}
+        if not finite:
+            result["skipped"] = 1.0
+        result.update({k: float(v) for k, v in done.items() if v})
+        return result
+
+    @staticmethod
+    def _all_finite(tensors) -> bool:
+        flags = [torch.isfinite(t).all() for t in tensors if t is not None]
+        return bool(torch.stack(flags).all()) if flags else True
+
+    def _skip_non_finite(self, step: int) -> None:
+        """A NaN/Inf loss or gradient: skip the update (Adam would spread it into every parameter)."""
+        from uncertsplat.console import console
+        from uncertsplat.errors import UserError
+
+        self.skipped_steps += 1
+        self.bad_steps_in_a_row += 1
+        console.print(f"[yellow]warning:[/] step {step}: the loss or a gradient is NaN/Inf; update skipped "
+                      "(parameters unchanged)")
+        if self.bad_steps_in_a_row >= MAX_BAD_STEPS:
+            raise UserError(
+                f"training diverged: the loss or gradients were NaN/Inf for {self.bad_steps_in_a_row} steps in a "
+                f"row (steps {step - self.bad_steps_in_a_row + 1}-{step}); the model was not changed by them and "
+                "the checkpoints on disk are the last good state",
+                path=self.run_dir,
+                hint="Lower the learning rates (--set lr.means_init=..., lr.scales=...) or check the input "
+                "images, then start again (or --resume from the last good checkpoint).")
+
+    # ------------------------------------------------------------------------------------- loop
+    def _install_signal_handlers(self):
+        if threading.current_thread() is not threading.main_thread():
+            return None
+        old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+        def handler(signum, frame):
+            # finish the current step, checkpoint, stop; a second signal acts immediately
+            self._stop = True
+            for s, h in old.items():
+                signal.signal(s, h)
+
+        for s in old:
+            signal.signal(s, handler)
+        return old
+
+    def save_checkpoint(self) -> Path | None:
+        if self.run_dir is None:
+            return None
+        from uncertsplat.io.checkpoints import save_checkpoint
+
+        if not self._all_finite(self.model.parameters().values()):  # never replace a good checkpoint by NaNs
+            from uncertsplat.errors import UserError
+
+            raise UserError(f"the model has NaN/Inf parameters at step {self.step}; no checkpoint written",
+                            path=self.run_dir, hint="Resume from the last good checkpoint with lower learning rates.")
+        return save_checkpoint(self.run_dir, self.step, self.state_dict(), keep=self.cfg.keep_checkpoints)
+
+    def _log(self, record: dict) -> None:
+        if self.run_dir is not None:
+            try:
+                with open(self.run_dir / "stats.jsonl", "a", encoding="utf-8") as f:
+                    f.write(json.dumps(record) + "\n")
+            except OSError as err:  # disk full: a clear message; a line cut short is dropped on resume
+                from uncertsplat.errors import UserError
+
+                raise UserError(f"could not append to the training log ({err.strerror})",
+                                path=self.run_dir / "stats.jsonl",
+                                hint="Free some space, then continue with --resume.") from None
+        if self.on_log is not None:
+            self.on_log(record)
+
+    def fit(self, until: int | None = None) -> dict:
+        """Train up to step ``until`` (default: ``cfg.iterations``); returns the last log record.
+
+        Writes a checkpoint every ``checkpoint_every`` steps and at the end. On Ctrl-C / SIGTERM the
+        current step completes, a checkpoint is written and ``TrainingInterrupted`` is raised.
+        """
+        cfg = self.cfg
+        until = cfg.iterations if until is None else min(until, cfg.iterations)
+        old = self._install_signal_handlers()
+        last: dict = {}
+        window_t, window_n = 0.0, 0
+        last_eval = self.evaluate() if self.step == 0 else {}
+        if last_eval:
+            self._log({"step": 0, "eval_psnr": last_eval["psnr"], "eval_ssim": last_eval["ssim"],
+                       "num_gaussians": len(self.model), "num_carriers": self.model.num_carriers})
+        try:
+            with progress() as bar:
+                task = bar.add_task("train", total=until, completed=self.step, info="")
+                while self.step < until:
+                    t0 = time.perf_counter()
+                    terms = self.train_step()
+                    dt = time.perf_counter() - t0
+                    self.elapsed += dt
+                    window_t += dt
+                    window_n += 1
+                    step = self.step
+                    evaluated = step % cfg.eval_every == 0 or step == until
+                    if evaluated:
+                        last_eval = self.evaluate()
+                    if step % cfg.log_every == 0 or step == until or evaluated or "skipped" in terms:
+                        last = {"step": step, **{k: round(v, 7) for k, v in terms.items()},
+                                "num_gaussians": len(self.model), "num_carriers": self.model.num_carriers,
+                                "sh_degree": sh_degree_at(step, cfg.sh_degree, cfg.sh_degree_interval),
+                                "lr_means": self.optimizer.param_groups[0]["lr"],
+                                "sec_per_step": window_t / max(window_n, 1), "elapsed": self.elapsed,
+                                "peak_memory_mb": peak_memory_mb(self.device)}
+                        if last_eval and evaluated:
+                            last.update(eval_psnr=last_eval["psnr"], eval_ssim=last_eval["ssim"])
+                        self._log(last)
+                        window_t, window_n = 0.0, 0
+                    info = f"loss {terms['loss']:.4f}  N {len(self.model)}  P {self.model.num_carriers}"
+                    if last_eval:
+                        info += f"  test PSNR {last_eval['psnr']:.2f}"
+                    info += f"  {dt:.3f} s/step"
+                    bar.update(task, completed=step, info=info)
+                    if step % cfg.checkpoint_every == 0 and step != until:
+                        self.save_checkpoint()
+                    if self._stop:
+                        path = self.save_checkpoint()
+                        raise TrainingInterrupted(step, path)
+        finally:
+            if old:
+                for s, h in old.items():
+                    signal.signal(s, h)
+        if self.step == until:
+            self.save_checkpoint()
+        return last
+
+    def summary(self) -> dict:
+        mem = memory_per_gaussian(self.model)
+        return {"steps": self.step, "seconds": self.elapsed,
+                "sec_per_step": self.elapsed / max(self.step, 1),
+                "num_gaussians": len(self.model), "num_carriers": self.model.num_carriers,
+                "carrier_fraction": self.model.num_carriers / max(len(self.model), 1),
+                "memory_per_gaussian_bytes": mem["total"], "memory": mem,
+                "peak_memory_mb": peak_memory_mb(self.device), "extent": self.extent,
+                "skipped_steps": self.skipped_steps,
+                "sh_degree_active": self.sh_degree, "variant": self.cfg.variant, "method": self.cfg.method}
+
+
+def log_line(record: dict) -> str:
+    parts = [f"step {record.get('step')}"]
+    for k in ("loss", "eval_psnr", "num_gaussians", "num_carriers", "sec_per_step"):
+        if k in record:
+            v = record[k]
+            parts.append(f"{k} {v:.4g}" if isinstance(v, float) and not math.isnan(v) else f"{k} {v}")
+    return ", ".join(parts)
+
+
+__all__ = ["Trainer", "TrainingInterrupted", "prior_from_config", "peak_memory_mb"]
