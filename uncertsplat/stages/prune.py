@@ -1,9 +1,433 @@
-"""Stage `prune` (issue 7)."""
+"""Stage ``prune``: remove the most uncertain Gaussians (floaters) into a new run, and measure it.
+
+``uncertsplat prune RUN -o OUT (--keep-ratio R | --threshold T | --auto) [--score NAME] [--dry-run] [--sweep]``
+
+The input run is never modified. The output is built in a temporary sibling folder and renamed into
+place at the end, so an interrupted prune leaves no half-written run, and an existing output is refused
+(nothing is overwritten). ``OUT`` holds:
+
+- ``config.json``, ``scene.json``: copied from the input run (so ``evaluate``, ``report`` and ``prune``
+  accept ``OUT`` as a run); ``variational.ply`` (the pruned model, what ``load_model`` reads) and
+  ``point_cloud.ply`` (viewer PLY; the per-Gaussian scores are extra properties ``score_<name>``, and
+  ``contribution`` when the predictive score was computed). No checkpoints and no ``stats.jsonl``.
+- ``prune_mask.npy``: int64 indices (ascending) of the kept Gaussians in the input run's model. With the
+  input run's path and the SHA-256 of its model file (both in ``prune.json``) this makes the pruning
+  reversible and reproducible: ``rebuild_from_mask(RUN, OUT/prune_mask.npy)`` rebuilds the pruned model,
+  and undoing the prune is using (or re-pruning) ``RUN`` itself, which is unchanged.
+- ``scores.npz``: every score of every Gaussian of the input run, and the ``carriers`` flag.
+- ``renders/{view}_{before,after,random}.png``: posterior-mean renders of a few held-out views before
+  pruning, after pruning, and after removing as many random Gaussians.
+- ``prune.json``: counts before/after, score, threshold, keep ratio, held-out metrics (PSNR, SSIM, AUSE,
+  NLL, coverage = mean rendered alpha) before, after, and for the random-removal baseline at the same
+  count, seed, and with ``--sweep``/``--auto`` the curve (also in ``sweep.json``).
+
+``--dry-run`` writes no model (no config.json, scene.json or PLYs; ``OUT`` then holds only the report
+files, and with no ``-o`` nothing is written at all). ``--sweep`` alone (no keep ratio, threshold or
+auto) measures the curve and writes no model either.
+
+Which Gaussians a score may remove: only posterior carriers (see ``uncertainty.scores``), so a keep ratio
+below the fraction of non-carriers is reached only as far as the carriers allow (``keep_ratio_achieved``
+says how far). ``--auto`` walks the sweep ratios from the largest down and stops at the first whose
+held-out PSNR falls more than ``tolerance_db`` below the unpruned model's (the last one before it wins).
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from uncertsplat.config import EvalConfig, PruneConfig
+from uncertsplat.console import console
 from uncertsplat.errors import UserError
 
+METRIC_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "depth_ause_mae")
 
-def run(*args, **kwargs):
-    raise UserError("`prune` is not implemented yet (issue 7).")
+
+# ------------------------------------------------------------------------------------------ checks
+def _check_paths(run_dir: Path, output: Path | None, cfg: PruneConfig) -> None:
+    if not run_dir.is_dir():
+        raise UserError("run folder not found", path=run_dir, hint="Give a folder written by `uncertsplat train`.")
+    writes_model = not cfg.dry_run and _has_mode(cfg)
+    if output is None:
+        if writes_model:
+            raise UserError("no output folder given", path=run_dir,
+                            hint="Add -o NEW_RUN (the input run is never modified), or --dry-run to only report.")
+        return
+    src, dst = run_dir.resolve(), output.resolve()
+    if dst == src:
+        raise UserError("the output folder is the input run", path=output,
+                        hint="Choose a new folder: prune writes a new run and never modifies the input.")
+    if src in dst.parents:
+        raise UserError("the output folder is inside the input run", path=output,
+                        hint="Choose a folder outside the input run (e.g. next to it).")
+    if dst in src.parents:
+        raise UserError("the output folder contains the input run", path=output, hint="Choose a new, empty folder.")
+    if output.exists() and (not output.is_dir() or any(output.iterdir())):
+        raise UserError("the output folder already exists", path=output,
+                        hint="Choose a new folder (prune never overwrites), or delete this one first.")
+
+
+def _has_mode(cfg: PruneConfig) -> bool:
+    return cfg.keep_ratio is not None or cfg.threshold is not None or cfg.auto
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+# ------------------------------------------------------------------------------------- measurement
+class _Measure:
+    """Held-out metrics of a model (MC uncertainty via ``evaluate_views``), coverage and file sizes."""
+
+    def __init__(self, loaded, scene, indices: list[int], cfg: PruneConfig, device: torch.device):
+        from functools import partial
+
+        from uncertsplat.render import render
+
+        self.loaded, self.scene, self.indices, self.device = loaded, scene, indices, device
+        self.ecfg = EvalConfig(num_samples=cfg.num_samples, seed=cfg.seed, save_maps=False)
+        bg = torch.tensor(loaded.config.scene.background, dtype=torch.float32, device=device)
+        self.render_fn = partial(render, background=bg, tile_size=loaded.config.tile_size)
+        self.cams = scene.cameras[indices].to(device)
+        self.meta = {"variant": loaded.config.variant, "extent": loaded.extent, "step": loaded.step,
+                     "sh_degree_active": loaded.sh_degree,
+                     "temperature": loaded.config.variational.gate_temperature}
+        self._cache: dict[str, dict] = {}
+
+    @torch.no_grad()
+    def mean_renders(self, model) -> tuple[torch.Tensor, torch.Tensor]:
+        """Posterior-mean rgb [C,H,W,3] and alpha [C,H,W,1] of the held-out views (CPU)."""
+        from uncertsplat.gaussians.variational import posterior_mean
+
+        prior = self.loaded.prior
+        s = posterior_mean(model, variant=prior.variant, extent=self.loaded.extent, temperature=prior.temperature,
+                           sh_degree=self.loaded.sh_degree)
+        rgb, alpha = [], []
+        for c in range(len(self.cams)):
+            out = self.render_fn(s, self.cams[[c]])
+            rgb.append(out.rgb[0].clamp(0, 1).cpu())
+            alpha.append(out.alpha[0].cpu())
+        return torch.stack(rgb), torch.stack(alpha)
+
+    def file_sizes(self, model) -> dict[str, int]:
+        from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
+
+        with tempfile.TemporaryDirectory(prefix="uncertsplat-prune-") as tmp:
+            v = write_variational_ply(Path(tmp) / "variational.ply", model, meta=self.meta)
+            p = write_point_cloud_ply(Path(tmp) / "point_cloud.ply", model, variant=self.meta["variant"],
+                                      extent=self.loaded.extent, temperature=self.meta["temperature"])
+            return {"variational_ply_bytes": v.stat().st_size, "point_cloud_ply_bytes": p.stat().st_size}
+
+    def __call__(self, model, keep: torch.Tensor | None = None) -> dict:
+        """Metrics of ``model``; with ``keep`` (the mask that made it) the result is cached per mask."""
+        from uncertsplat.stages.evaluate import evaluate_views
+
+        key = None
+        if keep is not None:
+            key = hashlib.sha256(keep.cpu().numpy().tobytes()).hexdigest()
+            if key in self._cache:
+                return self._cache[key]
+        t0 = time.perf_counter()
+        loaded = dataclasses.replace(self.loaded, model=model)
+        report = evaluate_views(loaded, self.scene, self.indices, self.ecfg, self.device, show_progress=False)
+        _, alpha = self.mean_renders(model)
+        out = {"num_gaussians": len(model), "num_carriers": model.num_carriers}
+        for k in METRIC_KEYS:
+            v = getattr(report.mean, k, None)
+            if v is not None:
+                out[k] = float(v)
+        out["coverage"] = float(alpha.mean())
+        out.update(self.file_sizes(model))
+        out["seconds"] = time.perf_counter() - t0
+        if key is not None:
+            self._cache[key] = out
+        return out
+
+
+# ------------------------------------------------------------------------------------------ helpers
+def _random_keep(n: int, n_remove: int, seed: int) -> torch.Tensor:
+    """Random-removal baseline: ``n_remove`` of all Gaussians, from a CPU generator seeded with ``seed``.
+
+    The generator is re-seeded for every call, so the random masks of a sweep are nested (each removes
+    a prefix of the same permutation) and the baseline at a ratio does not depend on the other ratios.
+    """
+    from uncertsplat.prune import random_mask
+
+    return random_mask(n, n_remove, torch.Generator().manual_seed(seed))
+
+
+def _add_vertex_properties(path: Path, cols: dict[str, np.ndarray]) -> None:
+    """Append float properties to the ``vertex`` element of a PLY file (rewritten atomically)."""
+    from plyfile import PlyData, PlyElement
+
+    from uncertsplat.io.atomic import atomic_write
+
+    ply = PlyData.read(str(path))
+    v = ply["vertex"].data
+    dtype = v.dtype.descr + [(k, "f4") for k in cols]
+    arr = np.empty(len(v), dtype=dtype)
+    for name in v.dtype.names:
+        arr[name] = v[name]
+    for k, c in cols.items():
+        arr[k] = np.asarray(c, dtype=np.float32)
+    others = [e for e in ply.elements if e.name != "vertex"]
+    new = PlyData([PlyElement.describe(arr, "vertex"), *others], text=False, byte_order="<", comments=ply.comments)
+    atomic_write(path, lambda f: new.write(f))
+
+
+def _print_table(title: str, rows: list[tuple[str, dict]]) -> None:
+    from rich.table import Table
+
+    table = Table(title=title)
+    for col in ("model", "Gaussians", "PSNR", "SSIM", "AUSE-MAE", "NLL", "coverage", "PLY MB"):
+        table.add_column(col, justify="right")
+
+    def f(x, p=3):
+        return "-" if x is None else f"{x:.{p}f}"
+
+    for name, m in rows:
+        table.add_row(name, str(m["num_gaussians"]), f(m.get("psnr"), 2), f(m.get("ssim")), f(m.get("ause_mae")),
+                      f(m.get("nll")), f(m.get("coverage")), f(m["variational_ply_bytes"] / 1e6, 2))
+    console.print(table)
+
+
+def rebuild_from_mask(run_dir: str | Path, mask_file: str | Path, device: torch.device | str = "cpu"):
+    """The pruned model rebuilt from the original run and a ``prune_mask.npy`` (kept indices).
+
+    Raises:
+        UserError: when the mask does not fit the run's model (e.g. the run was retrained since).
+    """
+    from uncertsplat.io.checkpoints import load_model
+    from uncertsplat.prune import apply_keep, mask_from_indices
+
+    loaded = load_model(run_dir, device)
+    idx = torch.from_numpy(np.load(mask_file)).to(loaded.model.device)
+    try:
+        keep = mask_from_indices(idx, len(loaded.model))
+    except ValueError as err:
+        raise UserError(f"the mask does not fit this run ({err})", path=mask_file,
+                        hint="Use the run recorded as 'source_run' in prune.json.") from None
+    return apply_keep(loaded.model, keep)
+
+
+# ---------------------------------------------------------------------------------------------- run
+def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.device) -> dict:
+    """Prune ``run_dir`` into ``output`` (see the module docstring); returns the ``prune.json`` content.
+
+    Raises:
+        UserError: a missing run folder, a run without posterior carriers, no mode given, an unknown
+            score, an output folder equal to / inside / containing the input or already existing.
+    """
+    from uncertsplat.io.checkpoints import load_model
+    from uncertsplat.prune import apply_keep, keep_ratio_mask, num_to_remove, threshold_mask
+    from uncertsplat.stages.evaluate import load_run_scene
+    from uncertsplat.uncertainty.scores import carrier_mask, compute_scores, resolve_score_name, spread_views
+
+    run_dir = Path(run_dir)
+    output = Path(output) if output is not None else None
+    device = torch.device(device)
+    _check_paths(run_dir, output, cfg)
+    if not _has_mode(cfg) and not cfg.sweep:
+        raise UserError("no pruning mode given", path=run_dir,
+                        hint="Add one of --keep-ratio R (e.g. 0.9), --threshold T or --auto (or --sweep to only "
+                             "measure the curve).")
+    try:
+        score_name = resolve_score_name(cfg.score)
+    except ValueError as err:
+        raise UserError(str(err)) from None
+
+    loaded = load_model(run_dir, device)
+    model = loaded.model
+    if model.num_carriers == 0:
+        raise UserError("the run has no Gaussians with a posterior (posterior carriers), so there is no "
+                        "uncertainty to prune by", path=run_dir,
+                        hint="Prune a run trained with method=variational for at least one spawn interval "
+                             "(densify.spawn_interval steps).")
+    scene = load_run_scene(loaded, run_dir)
+    notes: list[str] = []
+    split = "test"
+    indices = list(scene.split.get("test", ()))
+    if not indices:
+        split = "train"
+        indices = list(scene.split["train"])
+        notes.append("the scene has no held-out views: metrics are on the training views")
+    if cfg.auto and split != "test":
+        raise UserError("--auto needs held-out views to measure the PSNR loss, and this scene has none",
+                        path=run_dir, hint="Use --keep-ratio or --threshold, or retrain with held-out views.")
+
+    # ---- scores (every posterior score; the predictive one only when asked for: it renders)
+    prior = loaded.prior
+    bg = torch.tensor(loaded.config.scene.background, dtype=torch.float32, device=device)
+    from functools import partial
+
+    from uncertsplat.render import render
+    render_fn = partial(render, background=bg, tile_size=loaded.config.tile_size)
+    names = ("position", "scale", "gate") + (("predictive",) if score_name == "predictive" else ())
+    score_cams = scene.cameras[spread_views(scene.split["train"], cfg.score_views)].to(device)
+    t0 = time.perf_counter()
+    scores = compute_scores(model, score_cams, torch.Generator(device=device).manual_seed(cfg.seed),
+                            render_fn=render_fn, names=names, num_samples=cfg.score_samples,
+                            subset_size=loaded.config.variational.subset_size, variant=prior.variant,
+                            extent=loaded.extent, temperature=prior.temperature)
+    score_seconds = time.perf_counter() - t0
+    score = scores[score_name]
+    carriers = carrier_mask(model)
+    n = len(model)
+
+    console.print(f"[bold]prune[/] {run_dir}: {n} Gaussians ({model.num_carriers} with a posterior), score "
+                  f"'{score_name}', {len(indices)} {split} views, K={cfg.num_samples}, {device}")
+    measure = _Measure(loaded, scene, indices, cfg, device)
+    before = measure(model)
+
+    # ---- sweep (also what --auto decides on)
+    sweep = None
+    if cfg.sweep or cfg.auto:
+        ratios = sorted(set(cfg.sweep_ratios) | {1.0}, reverse=True)
+        sweep = {"ratios": ratios, "score": score_name, "split": split, "unpruned": before, "points": []}
+        for r in ratios:
+            keep_s = keep_ratio_mask(score, carriers, r)
+            removed = int((~keep_s).sum())
+            point = {"keep_ratio": r, "num_removed": removed, "keep_ratio_achieved": (n - removed) / n}
+            keep_r = _random_keep(n, removed, cfg.seed)
+            point["score"] = before if removed == 0 else measure(apply_keep(model, keep_s), keep_s)
+            point["random"] = before if removed == 0 else measure(apply_keep(model, keep_r), keep_r)
+            sweep["points"].append(point)
+            console.print(f"  keep {r:.2f}: removed {removed}, PSNR {point['score'].get('psnr', float('nan')):.2f} "
+                          f"(random {point['random'].get('psnr', float('nan')):.2f})")
+        ok = [p for p in sweep["points"] if p["keep_ratio"] < 1.0]
+        within = None
+        for p in ok:  # descending ratios: stop at the first failure
+            if p["score"]["psnr"] >= before["psnr"] - cfg.tolerance_db:
+                within = p
+            else:
+                break
+        sweep["largest_removal_within_tolerance"] = None if within is None else {
+            "keep_ratio": within["keep_ratio"], "num_removed": within["num_removed"],
+            "psnr_loss_db": before["psnr"] - within["score"]["psnr"], "tolerance_db": cfg.tolerance_db}
+
+    # ---- the chosen mask
+    threshold = cfg.threshold
+    keep_ratio = cfg.keep_ratio
+    if cfg.auto:
+        best = sweep["largest_removal_within_tolerance"]
+        keep_ratio = best["keep_ratio"] if best else 1.0
+        if best is None:
+            notes.append(f"--auto: no evaluated keep ratio stays within {cfg.tolerance_db} dB; nothing removed")
+    keep = None
+    if threshold is not None:
+        keep = threshold_mask(score, carriers, threshold)
+    elif keep_ratio is not None:
+        keep = keep_ratio_mask(score, carriers, keep_ratio)
+        wanted = num_to_remove(n, keep_ratio)
+        if int((~keep).sum()) < wanted:
+            notes.append(f"keep ratio {keep_ratio} needs {wanted} removals but only {int(carriers.sum())} "
+                         "Gaussians carry a posterior; non-carriers are never removed by a score")
+
+    result: dict = {
+        "source_run": str(run_dir.resolve()),
+        "source_model": str(loaded.source.name),
+        "source_model_sha256": _sha256(loaded.source),
+        "score": score_name, "score_requested": cfg.score,
+        "mode": "auto" if cfg.auto else "threshold" if threshold is not None else
+                "keep_ratio" if keep_ratio is not None else "sweep",
+        "threshold": threshold, "keep_ratio": keep_ratio, "tolerance_db": cfg.tolerance_db,
+        "seed": cfg.seed, "num_samples": cfg.num_samples, "metric_split": split,
+        "metric_views": [scene.cameras.image_names[i] for i in indices],
+        "score_views": list(score_cams.image_names), "score_seconds": score_seconds,
+        "dry_run": cfg.dry_run, "device": str(device), "notes": notes,
+        "score_stats": {k: {"min": float(v[carriers].min()), "median": float(v[carriers].median()),
+                            "max": float(v[carriers].max())} for k, v in scores.items()},
+        "metrics": {"before": before},
+        "undo": "The source run is unchanged: use it to undo. prune_mask.npy lists the kept indices into its "
+                "model; uncertsplat.stages.prune.rebuild_from_mask(source_run, prune_mask.npy) rebuilds this model.",
+    }
+    pruned = random_model = rand_keep = None
+    if keep is not None:
+        removed = int((~keep).sum())
+        pruned = apply_keep(model, keep)
+        rand_keep = _random_keep(n, removed, cfg.seed)
+        random_model = apply_keep(model, rand_keep)
+        after = before if removed == 0 else measure(pruned, keep)
+        rand = before if removed == 0 else measure(random_model, rand_keep)
+        removed_scores = score[~keep]
+        result.update({
+            "counts": {"before": n, "after": n - removed, "removed": removed,
+                       "carriers_before": model.num_carriers, "carriers_after": pruned.num_carriers},
+            "keep_ratio_achieved": (n - removed) / n,
+            "threshold_effective": float(removed_scores.min()) if removed else None,
+        })
+        result["metrics"].update({"after": after, "random": rand})
+        result["delta_psnr_db"] = {"score": after.get("psnr", 0) - before.get("psnr", 0),
+                                   "random": rand.get("psnr", 0) - before.get("psnr", 0)}
+        _print_table(f"prune: keep {n - removed}/{n} by '{score_name}' ({split} views, K={cfg.num_samples})",
+                     [("before", before), ("after", after), ("random", rand)])
+    if sweep is not None:
+        result["sweep"] = sweep
+
+    if output is None:
+        console.print("dry run: nothing written" if cfg.dry_run else "sweep only: nothing written (no -o)")
+        return result
+    _write_output(run_dir, output, cfg, measure, loaded, result, scores, carriers, keep, pruned, random_model, sweep)
+    return result
+
+
+def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measure, loaded, result: dict,
+                  scores: dict, carriers: torch.Tensor, keep, pruned, random_model, sweep) -> None:
+    from uncertsplat.io.atomic import atomic_write_bytes, atomic_write_json
+    from uncertsplat.io.images import write_png
+    from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
+    from uncertsplat.prune import kept_indices
+    from uncertsplat.stages.evaluate import map_stem
+    from uncertsplat.uncertainty.scores import spread_views
+
+    output.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
+    try:
+        writes_model = keep is not None and not cfg.dry_run
+        if writes_model:
+            for name in ("config.json", "scene.json"):
+                if (run_dir / name).is_file():
+                    atomic_write_bytes(tmp / name, (run_dir / name).read_bytes())
+            write_variational_ply(tmp / "variational.ply", pruned, meta=measure.meta)
+            write_point_cloud_ply(tmp / "point_cloud.ply", pruned, variant=measure.meta["variant"],
+                                  extent=loaded.extent, temperature=measure.meta["temperature"])
+            kept = keep.to(carriers.device)
+            _add_vertex_properties(tmp / "point_cloud.ply",
+                                   {("contribution" if k == "contribution" else f"score_{k}"): v[kept].cpu().numpy()
+                                    for k, v in scores.items()})
+        if keep is not None:
+            np.save(tmp / "prune_mask.npy", kept_indices(keep).cpu().numpy().astype(np.int64))
+        np.savez(tmp / "scores.npz", carriers=carriers.cpu().numpy(),
+                 **{k: v.cpu().numpy() for k, v in scores.items()})
+        if keep is not None and cfg.render_views > 0:
+            sel = spread_views(range(len(measure.indices)), cfg.render_views)
+            for tag, m in (("before", loaded.model), ("after", pruned), ("random", random_model)):
+                rgb, _ = measure.mean_renders(m)
+                for j in sel:
+                    name = measure.scene.cameras.image_names[measure.indices[j]]
+                    write_png(tmp / "renders" / f"{map_stem(name)}_{tag}.png", rgb[j].numpy())
+        result["written"] = {"model": writes_model, "folder": str(output)}
+        if sweep is not None:
+            atomic_write_json(tmp / "sweep.json", sweep)
+        atomic_write_json(tmp / "prune.json", result)
+        if output.exists():
+            output.rmdir()  # checked empty before any work; rmdir fails (safely) if something appeared since
+        os.rename(tmp, output)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    what = "pruned run" if result["written"]["model"] else "report (no model: dry run)" \
+        if cfg.dry_run else "report (no model: sweep only)"
+    console.print(f"wrote {what} to {output}")

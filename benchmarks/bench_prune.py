@@ -1,0 +1,200 @@
+"""Benchmark ``uncertsplat prune``: held-out PSNR and Gaussian count vs keep ratio, per score and for random
+removal, the largest removal within 0.1 dB, and planted floaters (which score removes them best).
+
+    .venv/bin/uncertsplat synth /tmp/x/scene --preset demo
+    .venv/bin/uncertsplat train /tmp/x/scene -o /tmp/x/run --preset demo
+    .venv/bin/python benchmarks/bench_prune.py --run /tmp/x/run --label synthetic-demo
+
+Planted floaters: ``--floaters`` (fraction of N) Gaussians are added in free space in front of the training
+cameras (at 20-50 % of the way from a random training camera to the scene centre, so that camera and its
+neighbours see them), twice the median size of the model's Gaussians, opacity 0.7, random colours, each
+carrying a posterior at the prior (what a Gaussian the data never constrained has). For each score, the
+top-F carriers are removed (F = number of floaters): recall = fraction of floaters among them, and the
+held-out PSNR after removal is compared with the clean model and with the planted one.
+
+Writes ``benchmarks/results/prune_<label>.json`` and prints the Markdown rows for BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import time
+from functools import partial
+from pathlib import Path
+
+import torch
+
+from uncertsplat.config import PruneConfig
+from uncertsplat.gaussians import ops
+from uncertsplat.gaussians.variational import prior_rows
+from uncertsplat.io.checkpoints import load_model
+from uncertsplat.prune import apply_keep, copy_model, keep_ratio_mask, keep_top
+from uncertsplat.render import render
+from uncertsplat.render.sh import rgb_to_sh
+from uncertsplat.stages.evaluate import load_run_scene
+from uncertsplat.stages.prune import _Measure, _random_keep
+from uncertsplat.uncertainty.scores import SCORE_NAMES, carrier_mask, compute_scores, spread_views
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def plant_floaters(model, scene, fraction: float, prior, generator: torch.Generator):
+    """A copy of ``model`` with floaters appended (see the module docstring); returns (model, is_floater [N])."""
+    n_f = max(1, round(fraction * len(model)))
+    dev = model.device
+    cams = scene.cameras[list(scene.split["train"])]
+    centres = cams.centers.to(dev)
+    target = centres.mean(0)  # the rigs look inwards: the centroid is inside the scene
+    pick = torch.randint(0, len(cams), (n_f,), generator=generator).to(dev)
+    t = (0.2 + 0.3 * torch.rand(n_f, generator=generator)).to(dev)
+    jitter = 0.05 * (centres - target).norm(dim=1).mean() * torch.randn(n_f, 3, generator=generator).to(dev)
+    means = centres[pick] + t[:, None] * (target - centres[pick]) + jitter
+    size = 2.0 * torch.exp(model.params["scales"].detach()).amax(1).median()
+    quats = torch.zeros(n_f, 4, device=dev)
+    quats[:, 0] = 1.0
+    params = {
+        "means": means,
+        "scales": torch.full((n_f, 3), float(torch.log(size)), device=dev),
+        "quats": quats,
+        "opacities": torch.full((n_f,), math.log(0.7 / 0.3), device=dev),
+        "sh0": rgb_to_sh(torch.rand(n_f, 3, generator=generator).to(dev))[:, None, :],
+        "shN": torch.zeros(n_f, *model.params["shN"].shape[1:], device=dev),
+    }
+    out = copy_model(model)
+    tables = prior_rows(n_f, model.num_entries, prior, device=dev)
+    ops.append(out, None, params, tables, torch.ones(n_f, dtype=torch.bool, device=dev))
+    is_floater = torch.zeros(len(out), dtype=torch.bool, device=dev)
+    is_floater[len(model):] = True
+    return out, is_floater
+
+
+def all_scores(model, loaded, scene, cfg, device):
+    prior = loaded.prior
+    bg = torch.tensor(loaded.config.scene.background, dtype=torch.float32, device=device)
+    render_fn = partial(render, background=bg, tile_size=loaded.config.tile_size)
+    cams = scene.cameras[spread_views(scene.split["train"], cfg.score_views)].to(device)
+    t0 = time.perf_counter()
+    s = compute_scores(model, cams, torch.Generator(device=device).manual_seed(cfg.seed), render_fn=render_fn,
+                       names=SCORE_NAMES, num_samples=cfg.score_samples,
+                       subset_size=loaded.config.variational.subset_size, variant=prior.variant,
+                       extent=loaded.extent, temperature=prior.temperature)
+    return s, time.perf_counter() - t0
+
+
+def curves(loaded, scene, indices, cfg, device, ratios, tol):
+    model = loaded.model
+    measure = _Measure(loaded, scene, indices, cfg, device)
+    before = measure(model)
+    scores, score_s = all_scores(model, loaded, scene, cfg, device)
+    carriers = carrier_mask(model)
+    n = len(model)
+    out = {"unpruned": before, "score_seconds": score_s, "curves": {}, "within_tolerance": {}}
+    for name in (*SCORE_NAMES, "random"):
+        pts = []
+        for r in ratios:
+            if name == "random":
+                removed = n - round(r * n) if r < 1 else 0
+                keep = _random_keep(n, removed, cfg.seed)
+            else:
+                keep = keep_ratio_mask(scores[name], carriers, r)
+            removed = int((~keep).sum())
+            m = before if removed == 0 else measure(apply_keep(model, keep), keep)
+            pts.append({"keep_ratio": r, "num_removed": removed, **m})
+            print(f"  {name:10s} keep {r:.2f}: N {m['num_gaussians']:6d} PSNR {m['psnr']:.3f} SSIM {m['ssim']:.4f} "
+                  f"AUSE {m.get('ause_mae', float('nan')):.4f}", flush=True)
+        out["curves"][name] = pts
+        best = None
+        for p in pts:  # descending ratios, stop at the first failure (what --auto does)
+            if p["num_removed"] == 0:
+                continue
+            if p["psnr"] >= before["psnr"] - tol:
+                best = p
+            else:
+                break
+        out["within_tolerance"][name] = None if best is None else {
+            "keep_ratio": best["keep_ratio"], "num_removed": best["num_removed"],
+            "removed_fraction": best["num_removed"] / n, "psnr_loss_db": before["psnr"] - best["psnr"]}
+    return out
+
+
+def floaters(loaded, scene, indices, cfg, device, fraction, seed):
+    g = torch.Generator().manual_seed(seed)
+    planted, is_floater = plant_floaters(loaded.model, scene, fraction, loaded.prior, g)
+    import dataclasses
+
+    lp = dataclasses.replace(loaded, model=planted)
+    measure = _Measure(lp, scene, indices, cfg, device)
+    clean = _Measure(loaded, scene, indices, cfg, device)(loaded.model)
+    dirty = measure(planted)
+    scores, _ = all_scores(planted, lp, scene, cfg, device)
+    carriers = carrier_mask(planted)
+    n_f = int(is_floater.sum())
+    out = {"num_floaters": n_f, "num_gaussians": len(planted), "clean_psnr": clean["psnr"],
+           "planted_psnr": dirty["psnr"], "scores": {}}
+    for name in (*SCORE_NAMES, "random"):
+        if name == "random":
+            keep = _random_keep(len(planted), n_f, cfg.seed)
+        else:
+            keep = keep_top(scores[name], carriers, n_f)
+        recall = float((~keep[is_floater]).float().mean())
+        m = measure(apply_keep(planted, keep), keep)
+        out["scores"][name] = {"recall": recall, "psnr_after": m["psnr"], "ssim_after": m["ssim"],
+                               "floater_score_median": None if name == "random" else
+                               float(scores[name][is_floater].median()),
+                               "other_score_median": None if name == "random" else
+                               float(scores[name][carriers & ~is_floater].median())}
+        print(f"  floaters {name:10s} recall {recall:.3f} PSNR {m['psnr']:.3f} (clean {clean['psnr']:.3f}, "
+              f"planted {dirty['psnr']:.3f})", flush=True)
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", type=Path, required=True)
+    ap.add_argument("--label", default="synthetic-demo")
+    ap.add_argument("--ratios", type=float, nargs="+", default=[1.0, 0.95, 0.9, 0.8, 0.7, 0.6, 0.5])
+    ap.add_argument("--num-samples", type=int, default=5)
+    ap.add_argument("--floaters", type=float, default=0.02)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--machine", default=platform.processor() or platform.machine())
+    args = ap.parse_args()
+    device = torch.device(args.device)
+    cfg = PruneConfig(num_samples=args.num_samples)
+    loaded = load_model(args.run, device)
+    scene = load_run_scene(loaded, args.run)
+    indices = list(scene.split["test"])
+    t0 = time.perf_counter()
+    print(f"{args.label}: {len(loaded.model)} Gaussians ({loaded.model.num_carriers} carriers), "
+          f"{len(indices)} held-out views, K={cfg.num_samples}", flush=True)
+    res = {"label": args.label, "run": str(args.run), "machine": args.machine, "torch": torch.__version__,
+           "date": time.strftime("%Y-%m-%d"), "num_samples": cfg.num_samples, "seed": cfg.seed,
+           "num_gaussians": len(loaded.model), "num_carriers": loaded.model.num_carriers,
+           "train_step": loaded.step}
+    res["sweep"] = curves(loaded, scene, indices, cfg, device, sorted(set(args.ratios), reverse=True), 0.1)
+    res["floaters"] = floaters(loaded, scene, indices, cfg, device, args.floaters, seed=1)
+    res["seconds"] = time.perf_counter() - t0
+    path = ROOT / "benchmarks" / "results" / f"prune_{args.label}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(res, indent=2) + "\n")
+    print(f"wrote {path}")
+    # Markdown rows
+    sw = res["sweep"]
+    print("\n| score | " + " | ".join(f"keep {p['keep_ratio']:.2f}" for p in sw["curves"]["random"]) +
+          " | largest removal <= 0.1 dB |")
+    print("|---" * (len(sw["curves"]["random"]) + 2) + "|")
+    for name, pts in sw["curves"].items():
+        w = sw["within_tolerance"][name]
+        best = "none" if w is None else f"{100 * w['removed_fraction']:.0f}% (-{w['psnr_loss_db']:.3f} dB)"
+        print(f"| {name} | " + " | ".join(f"{p['psnr']:.2f} ({p['num_gaussians']})" for p in pts) + f" | {best} |")
+    fl = res["floaters"]
+    print(f"\nfloaters: {fl['num_floaters']}, clean PSNR {fl['clean_psnr']:.2f}, planted {fl['planted_psnr']:.2f}")
+    print("| score | recall of planted floaters | PSNR after removing top-F |\n|---|---|---|")
+    for name, v in fl["scores"].items():
+        print(f"| {name} | {v['recall']:.2f} | {v['psnr_after']:.2f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,141 @@
+"""`prune` end to end on a trained tiny run: a valid new run, reversible mask, dry run, sweep, bad input."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData
+from typer.testing import CliRunner
+
+from tests.fixtures import tiny_scene_path  # noqa: F401
+from tests.run_fixtures import tiny_run_path  # noqa: F401
+from uncertsplat.cli import app
+from uncertsplat.config import PruneConfig
+from uncertsplat.errors import UserError
+from uncertsplat.gaussians.variational import random_model
+from uncertsplat.io.checkpoints import load_model
+from uncertsplat.io.ply import write_variational_ply
+from uncertsplat.stages import prune
+from uncertsplat.uncertainty.scores import DEFAULT_SCORE
+
+runner = CliRunner()
+CPU = torch.device("cpu")
+FAST = dict(num_samples=2, score_views=2, score_samples=2, render_views=1)
+
+
+def _digest(folder):
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def pruned(tiny_run_path, tmp_path_factory):  # noqa: F811
+    before = _digest(tiny_run_path)
+    out = tmp_path_factory.mktemp("pr") / "pruned"
+    cfg = PruneConfig(keep_ratio=0.8, sweep=True, sweep_ratios=[1.0, 0.8], **FAST)
+    result = prune.run(tiny_run_path, out, cfg, device=CPU)
+    return out, result, before
+
+
+def test_writes_a_valid_pruned_run(pruned, tiny_run_path):  # noqa: F811
+    out, result, before = pruned
+    assert _digest(tiny_run_path) == before  # the input run is never modified
+    src = load_model(tiny_run_path, CPU).model
+    loaded = load_model(out, CPU)
+    loaded.model.check()
+    n = len(src)
+    assert result["counts"]["before"] == n and len(loaded.model) == result["counts"]["after"]
+    assert result["counts"]["after"] == n - round(0.2 * n) or result["counts"]["after"] > n - round(0.2 * n)
+    assert (out / "config.json").read_bytes() == (tiny_run_path / "config.json").read_bytes()
+    assert (out / "scene.json").is_file() and (out / "point_cloud.ply").is_file()
+    # the mask reproduces the pruned model from the untouched source run
+    kept = np.load(out / "prune_mask.npy")
+    assert kept.dtype == np.int64 and len(kept) == len(loaded.model) and np.all(np.diff(kept) > 0)
+    for name, t in src.params.items():
+        torch.testing.assert_close(loaded.model.params[name].detach(), t.detach()[torch.from_numpy(kept)])
+    rebuilt = prune.rebuild_from_mask(tiny_run_path, out / "prune_mask.npy")
+    for name, t in rebuilt.tables.items():
+        torch.testing.assert_close(loaded.model.tables[name].detach(), t.detach())
+    # scores are extra PLY properties; the removed Gaussians are the highest-scoring carriers
+    ply = PlyData.read(str(out / "point_cloud.ply"))
+    props = {p.name for p in ply["vertex"].properties}
+    assert {"score_position", "score_scale", "score_gate", f"score_{DEFAULT_SCORE}", "x", "opacity"} <= props
+    scores = np.load(out / "scores.npz")
+    s = scores[result["score"]]
+    removed = np.setdiff1d(np.arange(n), kept)
+    assert scores["carriers"][removed].all()
+    assert s[removed].min() >= s[kept][scores["carriers"][kept]].max()
+    # prune.json: metrics before/after/random, seed, the curve, renders
+    data = json.loads((out / "prune.json").read_text())
+    for key in ("before", "after", "random"):
+        assert np.isfinite(data["metrics"][key]["psnr"]) and data["metrics"][key]["num_gaussians"] > 0
+    assert data["metrics"]["random"]["num_gaussians"] == data["metrics"]["after"]["num_gaussians"]
+    assert data["metrics"]["after"]["variational_ply_bytes"] < data["metrics"]["before"]["variational_ply_bytes"]
+    assert data["seed"] == 0 and data["score"] == DEFAULT_SCORE and data["source_run"] == str(tiny_run_path.resolve())
+    sweep = json.loads((out / "sweep.json").read_text())
+    assert [p["keep_ratio"] for p in sweep["points"]] == [1.0, 0.8]
+    assert sweep["points"][1]["score"]["psnr"] == data["metrics"]["after"]["psnr"]  # same mask, same metrics
+    assert sweep["points"][0]["score"]["psnr"] == data["metrics"]["before"]["psnr"]
+    assert len(list((out / "renders").glob("*_before.png"))) == 1
+    assert len(list((out / "renders").glob("*_after.png"))) == 1
+
+
+def test_dry_run_on_a_pruned_run_writes_no_model(pruned, tmp_path):
+    out, _, _ = pruned
+    before = _digest(out)
+    dry = tmp_path / "dry"
+    result = prune.run(out, dry, PruneConfig(keep_ratio=0.9, dry_run=True, **FAST), device=CPU)
+    assert _digest(out) == before  # a pruned run is a valid input, and stays unchanged
+    names = {p.name for p in dry.iterdir()}
+    assert "prune.json" in names and "prune_mask.npy" in names
+    assert not names & {"variational.ply", "point_cloud.ply", "config.json", "ckpts"}
+    assert result["counts"]["after"] < result["counts"]["before"] == len(load_model(out, CPU).model)
+    assert json.loads((dry / "prune.json").read_text())["written"]["model"] is False
+
+
+def test_bad_inputs(tiny_run_path, tmp_path):  # noqa: F811
+    cfg = PruneConfig(keep_ratio=0.9, **FAST)
+    with pytest.raises(UserError, match="run folder not found"):
+        prune.run(tmp_path / "nope", tmp_path / "o", cfg, device=CPU)
+    with pytest.raises(UserError, match="is the input run"):
+        prune.run(tiny_run_path, tiny_run_path, cfg, device=CPU)
+    with pytest.raises(UserError, match="inside the input run"):
+        prune.run(tiny_run_path, tiny_run_path / "sub", cfg, device=CPU)
+    existing = tmp_path / "existing"
+    existing.mkdir()
+    (existing / "keep.txt").write_text("mine")
+    with pytest.raises(UserError, match="already exists"):
+        prune.run(tiny_run_path, existing, cfg, device=CPU)
+    assert (existing / "keep.txt").read_text() == "mine" and len(list(existing.iterdir())) == 1
+    with pytest.raises(UserError, match="no output folder"):
+        prune.run(tiny_run_path, None, cfg, device=CPU)
+    with pytest.raises(UserError, match="no pruning mode"):
+        prune.run(tiny_run_path, tmp_path / "o2", PruneConfig(**FAST), device=CPU)
+    with pytest.raises(UserError, match="unknown score"):
+        prune.run(tiny_run_path, tmp_path / "o3", PruneConfig(keep_ratio=0.9, score="entropy"), device=CPU)
+    assert not (tmp_path / "o2").exists() and not (tmp_path / "o3").exists()
+
+
+def test_run_without_posterior_is_refused(tiny_run_path, tmp_path):  # noqa: F811
+    run = tmp_path / "det"
+    run.mkdir()
+    for name in ("config.json", "scene.json"):
+        (run / name).write_bytes((tiny_run_path / name).read_bytes())
+    model = random_model(20, torch.Generator().manual_seed(0), carrier_fraction=0.0)
+    write_variational_ply(run / "variational.ply", model, meta={"extent": 1.0})
+    with pytest.raises(UserError, match="no Gaussians with a posterior"):
+        prune.run(run, tmp_path / "out", PruneConfig(keep_ratio=0.5, **FAST), device=CPU)
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("ratio", ["0", "1.5", "-0.2"])
+def test_cli_rejects_ratio_outside_unit_interval(tiny_run_path, tmp_path, ratio):  # noqa: F811
+    res = runner.invoke(app, ["prune", str(tiny_run_path), "-o", str(tmp_path / "o"), "--keep-ratio", ratio,
+                              "--device", "cpu"])
+    assert res.exit_code != 0
+    assert "keep_ratio" in res.output
+    assert not (tmp_path / "o").exists()

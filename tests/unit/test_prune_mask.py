@@ -1,0 +1,136 @@
+"""Keep masks: aligned rows after pruning, non-carriers never removed, exact counts, reproducible randomness."""
+
+import pytest
+import torch
+
+from tests.reference.naive_render import look_at_cameras
+from uncertsplat.gaussians.variational import posterior_mean, random_model
+from uncertsplat.prune import (
+    apply_keep,
+    keep_ratio_mask,
+    keep_top,
+    kept_indices,
+    mask_from_indices,
+    num_to_remove,
+    random_mask,
+    threshold_mask,
+)
+from uncertsplat.render import render
+from uncertsplat.uncertainty.scores import carrier_mask, posterior_scores
+
+
+def tagged_model(n=60, seed=0, device="cpu"):
+    g = torch.Generator().manual_seed(seed)
+    model = random_model(n, g, carrier_fraction=0.6, perturb_tables=0.3, device=torch.device(device))
+    with torch.no_grad():  # tag rows: Gaussian i has means[:,0] = i, its table rows pos_loc[..., 0] = i
+        model.params["means"][:, 0] = torch.arange(n, dtype=torch.float32, device=model.device)
+        idx = model.carrier_index()
+        model.tables["pos_loc"][:, :, 0] = idx[:, None].float()
+    return model
+
+
+def test_apply_keep_keeps_every_tensor_aligned(device):
+    model = tagged_model(device=device)
+    carriers = carrier_mask(model)
+    score = torch.rand(len(model), generator=torch.Generator().manual_seed(1)).to(device)
+    keep = keep_ratio_mask(score, carriers, 0.7)
+    pruned = apply_keep(model, keep)
+    pruned.check()
+    kept = kept_indices(keep)
+    assert len(pruned) == kept.numel()
+    for name, t in model.params.items():  # every per-Gaussian row is the original row at its kept index
+        torch.testing.assert_close(pruned.params[name].detach(), t.detach()[kept], rtol=0, atol=0)
+    # table rows follow their owner (the tag written into pos_loc) and carry the owner's whole row
+    idx = pruned.carrier_index()
+    torch.testing.assert_close(pruned.tables["pos_loc"].detach()[:, 0, 0], pruned.params["means"].detach()[idx, 0])
+    orig_rows = model.posterior_row[kept]
+    assert torch.equal(pruned.posterior_row >= 0, orig_rows >= 0)
+    for name, t in model.tables.items():
+        orig = t.detach()[orig_rows[orig_rows >= 0]]  # [P',K,D] in kept-Gaussian order
+        new = pruned.tables[name].detach()[pruned.posterior_row[pruned.posterior_row >= 0]]
+        torch.testing.assert_close(new, orig, rtol=0, atol=0)
+    # the original is untouched
+    assert len(model) == 60 and model.params["means"].shape[0] == 60
+
+
+def test_keeping_everything_changes_nothing(device):
+    model = tagged_model(device=device)
+    carriers = carrier_mask(model)
+    score = posterior_scores(model)["position"]
+    keep = keep_ratio_mask(score, carriers, 1.0)
+    assert bool(keep.all())
+    pruned = apply_keep(model, keep)
+    cams = look_at_cameras(2, 48, 36, 40.0, radius=80.0).to(device)  # the tagged means span x in [0, 60)
+    with torch.no_grad():
+        a = render(posterior_mean(model), cams)
+        b = render(posterior_mean(pruned), cams)
+    assert float(a.alpha.sum()) > 0  # the view sees something
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.alpha, b.alpha)
+    assert torch.equal(threshold_mask(score, carriers, float("inf")), keep)
+
+
+def test_score_never_removes_non_carriers():
+    model = tagged_model()
+    carriers = carrier_mask(model)
+    score = torch.full((len(model),), 5.0)
+    score[~carriers] = 100.0  # even when non-carriers would score highest
+    keep = keep_ratio_mask(score, carriers, 0.1)
+    assert bool(keep[~carriers].all())
+    assert int((~keep).sum()) == int(carriers.sum())  # capped at the number of carriers
+    assert bool(threshold_mask(score, carriers, 1.0)[~carriers].all())
+
+
+def test_keep_top_removes_highest_with_stable_ties():
+    score = torch.tensor([0.1, 0.9, 0.5, 0.9, 0.2, float("nan")])
+    cand = torch.tensor([True, True, True, True, True, True])
+    keep = keep_top(score, cand, 3)
+    # NaN counts as most uncertain, then the two 0.9 (lower index first)
+    assert keep.tolist() == [True, False, True, False, True, False]
+    assert keep_top(score, cand, 2).tolist() == [True, False, True, True, True, False]
+    assert bool(keep_top(score, cand, 0).all())
+
+
+def test_threshold_mask():
+    score = torch.tensor([0.1, 0.9, 0.5, 0.3])
+    cand = torch.tensor([True, True, False, True])
+    assert threshold_mask(score, cand, 0.4).tolist() == [True, False, True, True]
+
+
+@pytest.mark.parametrize("ratio", [0.0, -0.1, 1.01])
+def test_bad_keep_ratio(ratio):
+    with pytest.raises(ValueError, match="keep_ratio"):
+        num_to_remove(10, ratio)
+
+
+def test_num_to_remove_rounds_and_keeps_one():
+    assert num_to_remove(10, 1.0) == 0
+    assert num_to_remove(10, 0.75) == 2  # round(7.5) = 8 kept (banker's rounding)
+    assert num_to_remove(10, 0.01) == 9  # at least one kept
+
+
+def test_random_mask_is_reproducible_and_exact():
+    a = random_mask(100, 30, torch.Generator().manual_seed(3))
+    b = random_mask(100, 30, torch.Generator().manual_seed(3))
+    c = random_mask(100, 30, torch.Generator().manual_seed(4))
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    assert int((~a).sum()) == 30
+    cand = torch.arange(100) % 2 == 0
+    d = random_mask(100, 80, torch.Generator().manual_seed(3), candidates=cand)
+    assert int((~d).sum()) == 50 and bool(d[~cand].all())
+
+
+def test_mask_indices_round_trip():
+    keep = torch.tensor([True, False, True, True, False])
+    idx = kept_indices(keep)
+    assert idx.tolist() == [0, 2, 3]
+    assert torch.equal(mask_from_indices(idx, 5), keep)
+    with pytest.raises(ValueError, match="out of range"):
+        mask_from_indices(torch.tensor([0, 5]), 5)
+    with pytest.raises(ValueError, match="repeat"):
+        mask_from_indices(torch.tensor([1, 1]), 5)
+
+
+def test_apply_keep_rejects_wrong_shape():
+    model = tagged_model(n=10)
+    with pytest.raises(ValueError, match="keep mask"):
+        apply_keep(model, torch.ones(9, dtype=torch.bool))

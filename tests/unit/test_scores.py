@@ -1,0 +1,149 @@
+"""Per-Gaussian uncertainty scores: hand-checked values, the blending-weight identity, planted floaters."""
+
+import math
+
+import pytest
+import torch
+
+from tests.reference.naive_render import look_at_cameras
+from uncertsplat.gaussians.params import GaussianModel
+from uncertsplat.gaussians.variational import Prior, inverse_softplus, prior_rows
+from uncertsplat.prune import keep_ratio_mask
+from uncertsplat.render import render
+from uncertsplat.render.sh import rgb_to_sh
+from uncertsplat.uncertainty.scores import (
+    DEFAULT_SCORE,
+    SCORE_NAMES,
+    blending_weights,
+    carrier_mask,
+    compute_scores,
+    posterior_scores,
+    resolve_score_name,
+    spread_views,
+)
+
+
+def _set_rows(tables, rows, *, pos_std, width, gate_loc, gate_std):
+    with torch.no_grad():
+        tables["pos_spread_raw"][rows] = inverse_softplus(pos_std)
+        tables["pos_loc"][rows] = 0.0
+        tables["scale_width_raw"][rows] = inverse_softplus(width)
+        tables["scale_left"][rows] = 1.0 - width
+        tables["gate_spread_raw"][rows] = inverse_softplus(gate_std)
+        tables["gate_loc"][rows] = gate_loc
+
+
+def planted_scene(n_surface=150, n_floaters=15, seed=0, device="cpu", non_carriers=10):
+    """Opaque surface Gaussians on a sphere with tight posteriors, floaters in free space in front of a few
+    cameras with wide posteriors, and a few non-carriers on the surface. Returns (model, is_floater, cams)."""
+    g = torch.Generator().manual_seed(seed)
+    cams = look_at_cameras(8, 64, 48, 60.0, radius=4.0)
+    d = torch.randn(n_surface, 3, generator=g)
+    surface = 0.8 * d / d.norm(dim=1, keepdim=True)
+    eyes = cams.centers
+    # floaters: between cameras 0-1 and the object, in free space (1.5 to 2.8 from the centre)
+    pick = torch.randint(0, 2, (n_floaters,), generator=g)
+    t = 0.4 + 0.3 * torch.rand(n_floaters, generator=g)
+    floaters = eyes[pick] * t[:, None] + 0.15 * torch.randn(n_floaters, 3, generator=g)
+    means = torch.cat([surface, floaters])
+    n = means.shape[0]
+    scales = torch.cat([torch.full((n_surface, 3), math.log(0.12)), torch.full((n_floaters, 3), math.log(0.05))])
+    quats = torch.zeros(n, 4)
+    quats[:, 0] = 1
+    opac = torch.cat([torch.full((n_surface,), 4.0), torch.full((n_floaters,), 0.5)])
+    colors = torch.rand(n, 3, generator=g)
+    params = {"means": means, "scales": scales, "quats": quats, "opacities": opac,
+              "sh0": rgb_to_sh(colors)[:, None, :], "shN": torch.zeros(n, 3, 3)}
+    carriers = torch.ones(n, dtype=torch.bool)
+    carriers[:non_carriers] = False
+    P = int(carriers.sum())
+    tables = prior_rows(P, 10, Prior())
+    row = torch.full((n,), -1, dtype=torch.long)
+    row[carriers] = torch.randperm(P, generator=g)
+    is_floater = torch.zeros(n, dtype=torch.bool)
+    is_floater[n_surface:] = True
+    surf_rows = row[carriers & ~is_floater]
+    flo_rows = row[is_floater]
+    _set_rows(tables, surf_rows, pos_std=0.003, width=0.02, gate_loc=4.0, gate_std=0.3)
+    _set_rows(tables, flo_rows, pos_std=0.04, width=0.3, gate_loc=0.3, gate_std=2.0)
+    model = GaussianModel({k: v.to(device) for k, v in params.items()}, {k: v.to(device) for k, v in tables.items()},
+                          row.to(device), 1, 10)
+    model.check()
+    return model, is_floater.to(device), cams.to(device)
+
+
+def test_posterior_scores_match_hand_values(device):
+    model, is_floater, _ = planted_scene(device=device)
+    s = posterior_scores(model, variant="ours", extent=2.0)
+    carriers = carrier_mask(model)
+    i = int(is_floater.nonzero()[0])
+    # floater: sigma 0.04 x extent 2 = 0.08 world units; size = max posterior-mean scale = 0.05 x (0.7 + 0.15)
+    torch.testing.assert_close(s["position"][i].cpu(), torch.tensor(0.08 / (0.05 * 0.85)), rtol=1e-4, atol=0)
+    torch.testing.assert_close(s["scale"][i].cpu(), torch.tensor(0.3), rtol=1e-4, atol=0)
+    phi = 0.5 * math.erfc(0.3 / 2.0 / math.sqrt(2))  # P(nu + tau eta < 0) = Phi(-nu/tau)
+    torch.testing.assert_close(s["gate"][i].cpu(), torch.tensor(phi), rtol=1e-4, atol=0)
+    for k in ("position", "scale", "gate"):
+        assert bool((s[k][~carriers] == 0).all())  # non-carriers: lowest uncertainty
+        assert bool((s[k][carriers] > 0).all())
+    assert bool(((s["gate"] >= 0) & (s["gate"] <= 1)).all())
+
+
+def test_blending_weights_sum_to_the_rendered_alpha(device):
+    model, _, cams = planted_scene(device=device)
+    from uncertsplat.gaussians.variational import posterior_mean
+
+    s = posterior_mean(model)
+    w = blending_weights(s, cams, render_fn=render)  # [N]
+    with torch.no_grad():
+        alpha = render(s, cams).alpha  # [C,H,W,1]
+    # sum_i T_i alpha_i over the Gaussians is the accumulated alpha of each pixel
+    expected = alpha.sum() / (cams.width * cams.height)
+    torch.testing.assert_close(w.sum(), expected, rtol=1e-4, atol=1e-6)
+    assert bool((w >= -1e-7).all())
+    # a Gaussian alone in a view: its weight is that view's alpha
+    one = GaussianModel({k: v.detach()[:1].clone() for k, v in model.params.items()},
+                        {k: v.detach()[:0].clone() for k, v in model.tables.items()},
+                        torch.full((1,), -1, dtype=torch.long, device=device), 1, 10)
+    s1 = posterior_mean(one)
+    with torch.no_grad():
+        a1 = render(s1, cams[[0]]).alpha.sum() / (cams.width * cams.height)
+    torch.testing.assert_close(blending_weights(s1, cams[[0]], render_fn=render)[0], a1, rtol=1e-4, atol=1e-7)
+
+
+@pytest.mark.parametrize("name", SCORE_NAMES)
+def test_planted_floaters_rank_above_the_surface(device, name):
+    model, is_floater, cams = planted_scene(device=device)
+    scores = compute_scores(model, cams, torch.Generator(device=device).manual_seed(0), render_fn=render,
+                            names=(name,), num_samples=6)
+    score = scores[name]
+    n_f = int(is_floater.sum())
+    top = torch.topk(score, n_f).indices
+    recall = float(is_floater[top].float().mean())
+    assert recall >= 0.8, f"{name}: only {recall:.2f} of the top-{n_f} are planted floaters"
+    # pruning to the surface count removes the floaters and never a non-carrier
+    keep = keep_ratio_mask(score, carrier_mask(model), 1.0 - n_f / len(model))
+    assert float((~keep[is_floater]).float().mean()) >= 0.8
+    assert bool(keep[~carrier_mask(model)].all())
+
+
+def test_predictive_is_zero_for_unseen_and_non_carriers(device):
+    model, _, cams = planted_scene(device=device)
+    with torch.no_grad():  # move Gaussian 200 (a floater, a carrier) far behind every camera
+        model.params["means"][-1] = torch.tensor([0.0, 50.0, 0.0], device=device)
+    s = compute_scores(model, cams, torch.Generator(device=device).manual_seed(0), render_fn=render,
+                       names=("predictive",), num_samples=3)
+    assert float(s["predictive"][-1]) == 0.0
+    assert bool((s["predictive"][~carrier_mask(model)] == 0).all())
+    assert float(s["contribution"][~carrier_mask(model)].sum()) > 0  # non-carriers are seen (on the surface)
+    assert bool((s["predictive"][carrier_mask(model)] >= 0).all())
+
+
+def test_names_and_helpers():
+    assert resolve_score_name("auto") == DEFAULT_SCORE in SCORE_NAMES
+    with pytest.raises(ValueError, match="unknown score"):
+        resolve_score_name("entropy")
+    assert spread_views(range(4), 8) == [0, 1, 2, 3]
+    assert spread_views(range(10), 3) == [0, 3, 6]
+    model, _, _ = planted_scene()
+    with pytest.raises(ValueError, match="predictive"):
+        compute_scores(model, None, None, names=("predictive",))

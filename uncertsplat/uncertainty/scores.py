@@ -1,0 +1,179 @@
+"""Per-Gaussian uncertainty scores from the learned posterior (what ``uncertsplat prune`` ranks by).
+
+Only posterior carriers (Gaussians with an offset table) have a learned posterior. Every score is >= 0
+for carriers and exactly 0 for non-carriers, and ``carriers`` marks which is which: non-carriers have no
+posterior to judge, so they count as the least uncertain and pruning by a score never removes them.
+
+Scores (``SCORE_NAMES``; higher = more uncertain). All table columns are first averaged over the K
+entries, as ``variational.posterior_mean`` does.
+
+``position``
+    Position spread relative to the Gaussian's own size: RMS posterior position std over the 3 axes
+    (world units) divided by the largest axis of its posterior-mean scale. A spread of 1 means a sample
+    moves the Gaussian by about its own footprint. Dimensionless, so large and small Gaussians compare.
+``scale``
+    Width w of the scale-multiplier interval [l, l + w] averaged over the 3 axes: how much the size of
+    the Gaussian varies between samples, as a fraction of its size (dimensionless).
+``gate``
+    Gate-off probability P(g < 0.5) = P(nu + tau eta < 0) = Phi(-nu / tau) for the gate logit
+    N(nu, tau^2): the chance that a sample switches the Gaussian (mostly) off. In [0, 1].
+``predictive``
+    How much the Gaussian's sampled variation changes the rendered training views, weighted by how much
+    it contributes to them. With W_s = its blending weight accumulated over the chosen training views in
+    posterior sample s (sum over pixels of T_i alpha_i, divided by the pixels of one view, so 1 = one
+    full view's worth of coverage), the score is
+
+        predictive = sqrt( Var_s[W_s] + (mean_s[W_s] * min(1, position))^2 )
+
+    The first term is the change of its coverage (gate switching it off, the scale multiplier, moving
+    behind or out of occluders); the second approximates the change of the image when a footprint of
+    weight W moves by ``position`` times its size (a move of its full size or more changes all of it).
+    A cheap Monte-Carlo estimate: S posterior samples (default 4) of V training views (default: at most
+    8, evenly spaced). W is read from one backward pass per render: the rendered colour is linear in
+    each Gaussian's colour with coefficient T_i alpha_i summed over pixels, so rendering every Gaussian
+    with SH DC 0 (colour 0.5, above the clamp at 0) and differentiating the red channel's sum w.r.t. its
+    DC coefficient gives C0 x W_i. Gaussians that no chosen view sees score 0.
+
+Which score is the default (``DEFAULT_SCORE``) is decided by the planted-floater benchmark
+(``benchmarks/bench_prune.py``, BENCHMARKS.md "Pruning").
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from uncertsplat.gaussians.params import GaussianModel
+from uncertsplat.gaussians.variational import MAX_WIDTH, MIN_WIDTH, Variant, posterior_mean, sample
+from uncertsplat.render.sh import C0
+from uncertsplat.types import Cameras, GaussianSample
+
+SCORE_NAMES: tuple[str, ...] = ("position", "scale", "gate", "predictive")
+POSTERIOR_SCORES: tuple[str, ...] = ("position", "scale", "gate")
+"""Scores that need no rendering (read from the offset tables only)."""
+DEFAULT_SCORE = "predictive"
+"""The score ``--score auto`` uses: the best floater remover in the planted-floater benchmark (BENCHMARKS.md,
+"Pruning": it found 43 % of the planted floaters where the posterior-only scores found none). For plain
+size reduction at a PSNR budget ``position`` did better there (it removes low-contribution Gaussians)."""
+
+
+def resolve_score_name(name: str) -> str:
+    """``auto`` -> ``DEFAULT_SCORE``; other names are checked against ``SCORE_NAMES`` (ValueError)."""
+    if name == "auto":
+        return DEFAULT_SCORE
+    if name not in SCORE_NAMES:
+        raise ValueError(f"unknown score '{name}' (choose one of: auto, {', '.join(SCORE_NAMES)})")
+    return name
+
+
+def carrier_mask(model: GaussianModel) -> Tensor:
+    """[N] bool: the Gaussians that carry a posterior."""
+    return model.posterior_row >= 0
+
+
+@torch.no_grad()
+def posterior_scores(model: GaussianModel, *, variant: Variant = "ours", extent: float = 1.0,
+                     temperature: float = 0.2) -> dict[str, Tensor]:
+    """The ``position``, ``scale`` and ``gate`` scores [N] (0 for non-carriers; see the module docstring)."""
+    n = len(model)
+    dev = model.device
+    out = {k: torch.zeros(n, device=dev) for k in POSTERIOR_SCORES}
+    idx = model.carrier_index()  # [P] in table-row order
+    if idx.numel() == 0:
+        return out
+    t = {k: v.detach().mean(1) for k, v in model.tables.items()}  # [P,D]
+    unit = float(extent) if variant == "ours" else 1.0
+    sigma = F.softplus(t["pos_spread_raw"]) * unit  # [P,3] world units
+    rms = sigma.square().mean(1).sqrt()
+    size = posterior_mean(model, variant=variant, extent=extent, temperature=temperature).scales[idx].amax(1)
+    # a degenerate (zero-size) Gaussian: any spread is "large"; keep the ratio finite
+    out["position"][idx] = rms / size.clamp_min(1e-12)
+    out["scale"][idx] = F.softplus(t["scale_width_raw"]).clamp(MIN_WIDTH, MAX_WIDTH).mean(1)
+    tau = F.softplus(t["gate_spread_raw"])[:, 0].clamp_min(1e-12)
+    out["gate"][idx] = 0.5 * torch.erfc((t["gate_loc"][:, 0] / tau) / math.sqrt(2.0))  # Phi(-nu / tau)
+    return out
+
+
+def blending_weights(sample_: GaussianSample, cameras: Cameras, *, render_fn) -> Tensor:
+    """[N] blending weight of each Gaussian accumulated over ``cameras``, in units of one view's pixels.
+
+    Computed through one backward pass (see the module docstring): every Gaussian gets SH DC 0 and no
+    higher bands, so the red channel is 0.5 x sum_i T_i alpha_i, and its gradient w.r.t. the DC is C0 x
+    that sum per Gaussian. ``render_fn(sample, cameras)`` must not add a background that depends on it.
+    """
+    n = len(sample_)
+    dc = torch.zeros(n, 1, 3, device=sample_.means.device, dtype=sample_.means.dtype, requires_grad=True)
+    plain = GaussianSample(means=sample_.means.detach(), quats=sample_.quats.detach(),
+                           scales=sample_.scales.detach(), opacities=sample_.opacities.detach(), sh=dc, sh_degree=0)
+    total = torch.zeros(n, device=sample_.means.device)
+    for c in range(len(cameras)):  # one view at a time keeps memory at one render
+        if dc.grad is not None:
+            dc.grad = None
+        out = render_fn(plain, cameras[[c]])
+        out.rgb[..., 0].sum().backward()
+        total += dc.grad[:, 0, 0].detach() / C0
+    return total / float(cameras.width * cameras.height)
+
+
+def predictive_score(model: GaussianModel, cameras: Cameras, generator: torch.Generator, *, render_fn,
+                     num_samples: int = 4, subset_size: int = 2, variant: Variant = "ours", extent: float = 1.0,
+                     temperature: float = 0.2, position: Tensor | None = None) -> dict[str, Tensor]:
+    """The ``predictive`` score [N] and the mean contribution ``contribution`` [N] (see the module docstring).
+
+    Args:
+        model: the Gaussians and their offset tables.
+        cameras: training views to measure on (their count sets the cost: num_samples x views renders).
+        generator: source of the posterior samples.
+        render_fn: ``render_fn(sample, cameras) -> RenderOutput`` (background and tile size bound).
+        num_samples: S posterior samples (>= 2 for a variance).
+        position: the ``position`` score [N] (computed when None).
+    """
+    if num_samples < 2:
+        raise ValueError("predictive_score needs num_samples >= 2 (a variance over samples)")
+    carriers = carrier_mask(model)
+    if position is None:
+        position = posterior_scores(model, variant=variant, extent=extent, temperature=temperature)["position"]
+    weights = []
+    for _ in range(num_samples):
+        with torch.no_grad():
+            s = sample(model, generator, subset_size=subset_size, variant=variant, extent=extent,
+                       temperature=temperature, sh_degree=0)
+        weights.append(blending_weights(s, cameras, render_fn=render_fn))
+    w = torch.stack(weights)  # [S,N]
+    mean = w.mean(0)
+    var = w.var(0, unbiased=True)
+    pred = torch.sqrt(var + (mean * position.clamp_max(1.0)).square())
+    pred = torch.where(carriers, pred, torch.zeros_like(pred))
+    return {"predictive": pred, "contribution": mean}
+
+
+def spread_views(indices: Sequence[int], max_views: int) -> list[int]:
+    """At most ``max_views`` of ``indices``, evenly spaced (all of them when there are fewer)."""
+    indices = list(indices)
+    if len(indices) <= max_views:
+        return indices
+    step = len(indices) / max_views
+    return [indices[int(i * step)] for i in range(max_views)]
+
+
+def compute_scores(model: GaussianModel, cameras: Cameras | None, generator: torch.Generator | None, *,
+                   render_fn=None, names: Sequence[str] = SCORE_NAMES, num_samples: int = 4, subset_size: int = 2,
+                   variant: Variant = "ours", extent: float = 1.0, temperature: float = 0.2) -> dict[str, Tensor]:
+    """Every score in ``names`` as [N] tensors, plus ``contribution`` when ``predictive`` is asked for.
+
+    ``cameras``, ``generator`` and ``render_fn`` are needed only for ``predictive``.
+    """
+    for name in names:
+        resolve_score_name(name)
+    out = posterior_scores(model, variant=variant, extent=extent, temperature=temperature)
+    if "predictive" in names:
+        if cameras is None or generator is None or render_fn is None:
+            raise ValueError("the predictive score needs cameras, a generator and render_fn")
+        out.update(predictive_score(model, cameras, generator, render_fn=render_fn, num_samples=num_samples,
+                                    subset_size=subset_size, variant=variant, extent=extent,
+                                    temperature=temperature, position=out["position"]))
+    return {k: v for k, v in out.items() if k in names or k == "contribution"}
