@@ -104,52 +104,76 @@ def remove_stale_temp_files(*folders: str | Path) -> list[Path]:
     return removed
 
 
-def _pid_alive(pid: int) -> bool:
-    if pid <= 0:
-        return False
+_HELD: dict[str, int] = {}  # locks this process holds (re-entering one is allowed), by resolved path
+
+
+def _lock_holder(lock: Path) -> str:
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+        return lock.read_text().split()[0]
+    except (OSError, IndexError):
+        return "unknown"
 
 
 @contextlib.contextmanager
 def run_lock(folder: str | Path, command: str = "uncertsplat") -> Iterator[Path]:
     """Hold ``folder/.lock`` (holding our PID) for the duration; refuse when a live process holds it.
 
-    A lock left by a dead process is taken over.
+    The lock is an ``flock`` on that file, which the kernel releases when its process dies: a lock left by
+    a dead (even SIGKILLed) process is simply taken over, and two processes racing for a stale lock cannot
+    both win (the PID-file-only scheme had that race, and an empty file mid-creation looked stale).
     """
+    import fcntl
+
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+    created = not folder.exists()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise UserError(f"cannot create the folder ({err.strerror})", path=folder,
+                        hint="Choose an output folder you can write to.") from None
     lock = folder / ".lock"
+    key = str(lock.resolve())
+    if key in _HELD:  # this process already holds it (a stage run inside another on the same folder)
+        _HELD[key] += 1
+        try:
+            yield lock
+        finally:
+            _HELD[key] -= 1
+        return
     while True:
         try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-        except FileExistsError:
-            try:
-                pid = int(lock.read_text().split()[0])
-            except (OSError, ValueError, IndexError):
-                pid = -1
-            if _pid_alive(pid) and pid != os.getpid():
-                raise UserError(
-                    f"another uncertsplat process (PID {pid}) is writing to this folder",
-                    path=folder,
-                    hint="Wait for it to finish or choose another output folder. "
-                    f"If no such process runs, delete {lock}.",
-                ) from None
-            with contextlib.suppress(FileNotFoundError):
-                lock.unlink()
-            continue
+            fd = os.open(lock, os.O_CREAT | os.O_RDWR, 0o644)
         except OSError as err:
             raise UserError(f"cannot write here ({err.strerror})", path=folder) from None
-        with os.fdopen(fd, "w") as f:
-            f.write(f"{os.getpid()} {command}\n")
-        break
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as err:
+            os.close(fd)
+            if err.errno not in (errno.EWOULDBLOCK, errno.EACCES):
+                raise UserError(f"cannot lock the folder ({err.strerror})", path=folder) from None
+            pid = _lock_holder(lock)
+            raise UserError(
+                f"another uncertsplat process (PID {pid}) is writing to this folder",
+                path=folder,
+                hint="Wait for it to finish or choose another output folder.",
+            ) from None
+        try:  # a holder may have released (unlinked) the file between our open and flock: lock the current one
+            same = os.fstat(fd).st_ino == os.stat(lock).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()} {command}\n".encode())
+    _HELD[key] = 1
     try:
         yield lock
     finally:
+        del _HELD[key]
         with contextlib.suppress(FileNotFoundError):
             lock.unlink()
+        os.close(fd)
+        if created:  # a command that failed before writing anything leaves no empty folder behind
+            with contextlib.suppress(OSError):
+                folder.rmdir()

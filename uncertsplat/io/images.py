@@ -32,6 +32,15 @@ otherwise exhaust memory while decoding instead of giving an error."""
 _UNREADABLE_HINT = "Check that the file is a complete PNG, JPEG, TIFF or EXR image (re-export or remove it)."
 
 
+
+def _oiio_error(obj=None) -> str:
+    """OpenImageIO's pending error message; damaged files can put raw bytes in it, which the binding
+    fails to decode (UnicodeDecodeError): then a generic text stands in."""
+    try:
+        return (obj.geterror() if obj is not None else oiio.geterror()) or ""
+    except UnicodeDecodeError:
+        return "the decoder reported an unreadable error message"
+
 def _clean_error(text: str) -> str:
     """OIIO repeats its messages; keep the first distinct line."""
     lines = [ln.strip() for ln in (text or "").splitlines() if ln.strip()]
@@ -45,7 +54,7 @@ def _open(path: Path) -> oiio.ImageInput:
         raise UserError("image file is empty (0 bytes)", path=path, hint=_UNREADABLE_HINT)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise UserError(f"cannot read the image ({_clean_error(oiio.geterror())})", path=path, hint=_UNREADABLE_HINT)
+        raise UserError(f"cannot read the image ({_clean_error(_oiio_error())})", path=path, hint=_UNREADABLE_HINT)
     return inp
 
 
@@ -102,9 +111,9 @@ def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0)) 
                             f"{MAX_PIXELS / 1e6:.0f} megapixels read at once", path=path,
                             hint="Downscale the photo (or check that its header is not corrupted).")
         data = inp.read_image("float")
-        err = inp.geterror()
+        err = _oiio_error(inp)
         if data is None or err:
-            raise UserError(f"cannot read the image ({_clean_error(err or oiio.geterror())}); it may be truncated",
+            raise UserError(f"cannot read the image ({_clean_error(err or _oiio_error())}); it may be truncated",
                             path=path, hint=_UNREADABLE_HINT)
         orientation = spec.get_int_attribute("Orientation", 1)
         alpha_index = spec.alpha_channel
@@ -180,9 +189,9 @@ def _write_array(path: Path, arr: np.ndarray, fmt, channel_names: Sequence[str] 
     def write(tmp: str) -> None:
         out = oiio.ImageOutput.create(tmp)
         if out is None or not out.open(tmp, spec):
-            raise UserError(f"cannot write the image ({_clean_error(oiio.geterror())})", path=path)
+            raise UserError(f"cannot write the image ({_clean_error(_oiio_error())})", path=path)
         ok = out.write_image(np.ascontiguousarray(arr))
-        err = out.geterror()
+        err = _oiio_error(out)
         out.close()
         if not ok:
             raise UserError(f"cannot write the image ({_clean_error(err)})", path=path,
@@ -231,7 +240,7 @@ def read_exr(path: str | Path) -> dict[str, np.ndarray]:
     try:
         names = list(inp.spec().channelnames)
         data = inp.read_image("float")
-        err = inp.geterror()
+        err = _oiio_error(inp)
     finally:
         inp.close()
     if data is None or err:

@@ -1,0 +1,63 @@
+"""`uncertsplat run pipelines/smoke.toml` end to end on the CPU, then a re-run that skips every stage."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from uncertsplat.cli import app
+
+ROOT = Path(__file__).resolve().parents[2]
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def smoke_out(tmp_path_factory):
+    out = tmp_path_factory.mktemp("smoke") / "out"
+    result = runner.invoke(app, ["run", str(ROOT / "pipelines" / "smoke.toml"), "-o", str(out), "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    return out, result.output
+
+
+def test_every_stage_wrote_its_outputs(smoke_out):
+    out, _ = smoke_out
+    for name in ("synth", "train", "prune", "report"):
+        manifest = json.loads((out / name / "manifest.json").read_text())
+        assert manifest["status"] == "done", name
+    assert (out / "train" / "eval" / "metrics.json").is_file()
+    assert (out / "train" / "point_cloud.ply").is_file() and (out / "train" / "variational.ply").is_file()
+    assert (out / "prune" / "prune.json").is_file()
+
+
+def test_report_references_every_figure_and_matches_metrics(smoke_out):
+    out, _ = smoke_out
+    html = (out / "report" / "index.html").read_text(encoding="utf-8")
+    srcs = re.findall(r'<img[^>]+src="([^"]+)"', html)
+    assert srcs, "the report has figures"
+    for src in srcs:
+        assert (out / "report" / src).is_file(), src
+    figures = {p.name for p in (out / "report" / "figures").iterdir()}
+    assert figures == {Path(s).name for s in srcs if s.startswith("figures/")}
+    metrics = json.loads((out / "train" / "eval" / "metrics.json").read_text())
+    psnr = metrics["mean"]["psnr"]
+    values = [float(v) for v in re.findall(r'data-key="psnr"[^>]*data-value="([^"]+)"', html)]
+    assert any(v == pytest.approx(psnr, rel=1e-9) for v in values), "the report shows metrics.json's PSNR"
+
+
+def test_rerun_skips_unchanged_stages(smoke_out):
+    out, _ = smoke_out
+    result = runner.invoke(app, ["run", str(ROOT / "pipelines" / "smoke.toml"), "-o", str(out), "--device", "cpu"])
+    assert result.exit_code == 0, result.output
+    assert result.output.count("skip") >= 5, result.output
+
+
+def test_stage_failure_is_reported_clearly(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "bad"\n[[stages]]\nstage = "train"\ninput = "does_not_exist"\npreset = "tiny"\n')
+    result = runner.invoke(app, ["run", str(bad), "-o", str(tmp_path / "o"), "--device", "cpu"])
+    assert result.exit_code == 2
+    assert "stage 'train' (train) failed" in result.output and "Traceback" not in result.output

@@ -1,0 +1,103 @@
+"""Two writers on one run folder: the second refuses clearly; a lock left by a dead process is taken over;
+processes racing for one folder (also for a stale lock) never both hold it.
+(The CLI case, a second `train` while one trains, is in test_interrupt.py.)"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from tests.reliability.helpers import ROOT, env
+from uncertsplat.errors import UserError
+from uncertsplat.io.atomic import run_lock
+
+_HOLD = """
+import sys, time
+from uncertsplat.io.atomic import run_lock
+print("holding", flush=True)
+with run_lock(sys.argv[1], "test"):
+    print("locked", flush=True)
+    sys.stdin.readline()
+"""
+
+
+def test_live_holder_refuses_second_writer_with_its_pid(tmp_path):
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(tmp_path)], env=env(), cwd=ROOT,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "holding"
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(UserError) as err:
+            with run_lock(tmp_path, "second"):
+                pass
+        msg = str(err.value)
+        assert f"PID {holder.pid}" in msg and str(tmp_path) in msg and "another uncertsplat process" in msg
+        assert (tmp_path / ".lock").read_text().split()[0] == str(holder.pid)  # untouched by the refusal
+    finally:
+        holder.communicate("\n", timeout=60)
+    assert not (tmp_path / ".lock").exists()
+    with run_lock(tmp_path):  # free again
+        pass
+
+
+@pytest.mark.parametrize("content", ["999999 train\n", "", "garbage", "1 init\n"])
+def test_stale_lock_is_taken_over(tmp_path, content):
+    """A lock file nobody holds (dead PID, empty, garbage, even a live unrelated PID) is taken over."""
+    (tmp_path / ".lock").write_text(content)
+    with run_lock(tmp_path, "train") as lock:
+        import os
+
+        assert lock.read_text().split()[0] == str(os.getpid())
+    assert not (tmp_path / ".lock").exists()
+
+
+def test_lock_of_a_sigkilled_process_is_taken_over(tmp_path):
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(tmp_path)], env=env(), cwd=ROOT,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert holder.stdout.readline().strip() == "holding"
+    assert holder.stdout.readline().strip() == "locked"
+    holder.kill()
+    holder.wait(timeout=60)
+    assert (tmp_path / ".lock").exists()
+    with run_lock(tmp_path):
+        pass
+
+
+_RACE = """
+import json, os, sys, time
+from uncertsplat.errors import UserError
+from uncertsplat.io.atomic import run_lock
+folder, start = sys.argv[1], float(sys.argv[2])
+while time.time() < start:
+    time.sleep(0.001)
+for _ in range(20):
+    try:
+        with run_lock(folder, "race"):
+            t0 = time.time()
+            time.sleep(0.02)
+            print(json.dumps([t0, time.time()]), flush=True)
+    except UserError:
+        time.sleep(0.003)
+"""
+
+
+def test_racing_processes_never_hold_the_lock_together(tmp_path):
+    import time
+
+    (tmp_path / ".lock").write_text("999999 stale\n")  # they also race to take over a stale lock
+    start = time.time() + 3.0
+    procs = [subprocess.Popen([sys.executable, "-c", _RACE, str(tmp_path), str(start)], env=env(), cwd=ROOT,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for _ in range(4)]
+    spans = []
+    for p in procs:
+        out, errs = p.communicate(timeout=120)
+        assert p.returncode == 0, errs
+        spans += [json.loads(line) for line in out.splitlines()]
+    assert len(spans) >= 4
+    spans.sort()
+    for (a0, a1), (b0, b1) in zip(spans, spans[1:], strict=False):
+        assert b0 >= a1, f"two holders at once: {a0}-{a1} and {b0}-{b1}"
+    assert not (tmp_path / ".lock").exists()

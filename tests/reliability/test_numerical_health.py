@@ -1,0 +1,121 @@
+"""A loss or gradient going NaN/Inf is caught at the step it happens: the update is skipped with a message,
+and a run that keeps producing them stops with a clear error while the checkpoints stay the last good state.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from tests.e2e.test_train_resume import toy_config, toy_scene
+from uncertsplat.errors import UserError
+from uncertsplat.io.checkpoints import list_checkpoints, load_checkpoint
+from uncertsplat.train import trainer as trainer_mod
+from uncertsplat.train.trainer import MAX_BAD_STEPS, Trainer
+
+
+def _params(t: Trainer) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in t.model.parameters().items()}
+
+
+def _poison(kind: str, t: Trainer, bad_steps: set[int], monkeypatch):
+    """Make step s (for s in bad_steps) produce a NaN/Inf loss or gradient of the given kind."""
+    orig_render = t.render
+    orig_loss = trainer_mod.total_loss
+
+    def due() -> bool:
+        return t.step + 1 in bad_steps
+
+    if kind == "nan-loss":
+        def total_loss(*a, **k):
+            out = orig_loss(*a, **k)
+            if due():
+                out["loss"] = out["loss"] * float("nan")
+            return out
+
+        monkeypatch.setattr(trainer_mod, "total_loss", total_loss)
+    elif kind in ("nan-grad", "inf-grad"):
+        value = float("nan") if kind == "nan-grad" else float("inf")
+
+        def render(g, cams):
+            out = orig_render(g, cams)
+            if due() and out.rgb.requires_grad:  # the loss stays finite; the image gradient (and so every parameter's) is not
+                out.rgb.register_hook(lambda grad: torch.full_like(grad, value))
+            return out
+
+        monkeypatch.setattr(t, "render", render)
+    elif kind == "one-param-inf":
+        def render(g, cams):
+            if due():  # one-shot: a single entry of one parameter's gradient becomes +Inf
+                handle = []
+
+                def hook(grad):
+                    handle[0].remove()
+                    return grad.index_fill(0, torch.tensor([0]), math.inf)
+
+                handle.append(t.model.params["opacities"].register_hook(hook))
+            return orig_render(g, cams)
+
+        monkeypatch.setattr(t, "render", render)
+
+
+@pytest.mark.parametrize("kind", ["nan-loss", "nan-grad", "inf-grad", "one-param-inf"])
+def test_non_finite_step_is_skipped_with_a_message(kind, tmp_path, monkeypatch, capsys):
+    scene, tr, te = toy_scene()
+    cfg = toy_config(iterations=8, checkpoint_every=4)
+    t = Trainer(scene, cfg, tr, te, run_dir=tmp_path)
+    _poison(kind, t, {3}, monkeypatch)
+    t.fit(until=2)
+    before = _params(t)
+    last = t.fit(until=3)  # step 3: poisoned
+    assert last.get("skipped") == 1.0
+    after = _params(t)
+    for k in before:
+        assert torch.equal(before[k], after[k]), f"{k} changed by a skipped step"
+    assert "step 3: the loss or a gradient is NaN/Inf" in " ".join(capsys.readouterr().err.split())
+    t.fit()  # continues normally
+    assert t.step == 8 and t.skipped_steps == 1
+    for k, v in t.model.parameters().items():
+        assert torch.isfinite(v).all(), k
+    assert not any(torch.equal(before[k], v) for k, v in _params(t).items() if v.numel() and k == "means")
+    for _, p in list_checkpoints(tmp_path):
+        state = load_checkpoint(p)
+        assert all(torch.isfinite(v).all() for v in state["model"]["params"].values())
+    logged = [json.loads(line) for line in (tmp_path / "stats.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in logged if r.get("skipped")] == [3]
+    assert t.summary()["skipped_steps"] == 1
+
+
+def test_persistent_nan_stops_with_a_clear_error_and_good_checkpoints(tmp_path, monkeypatch):
+    scene, tr, te = toy_scene()
+    cfg = toy_config(iterations=30, checkpoint_every=4)
+    t = Trainer(scene, cfg, tr, te, run_dir=tmp_path)
+    _poison("nan-loss", t, set(range(10, 100)), monkeypatch)
+    with pytest.raises(UserError) as err:
+        t.fit()
+    msg = str(err.value)
+    assert "training diverged" in msg and f"steps 10-{9 + MAX_BAD_STEPS}" in msg and "learning rate" in msg
+    assert [s for s, _ in list_checkpoints(tmp_path)] == [4, 8, 12]  # step 12: parameters of step 9, unchanged
+    good = load_checkpoint(list_checkpoints(tmp_path)[-1][1])
+    assert all(torch.isfinite(v).all() for v in good["model"]["params"].values())
+    # the last good state resumes (and trains on once the cause is gone)
+    monkeypatch.undo()
+    resumed = Trainer(scene, cfg, tr, te, run_dir=tmp_path, state=good)
+    resumed.fit()
+    assert resumed.step == 30 and resumed.skipped_steps == 0
+
+
+def test_exploding_learning_rate_is_caught_not_saved_as_a_nan_model(tmp_path, capsys):
+    """A real cause: an absurd learning rate blows the scales up until the render is NaN/Inf."""
+    scene, tr, te = toy_scene()
+    cfg = toy_config(iterations=40, checkpoint_every=2, lr={"scales": 1e4, "opacities": 1e4})
+    t = Trainer(scene, cfg, tr, te, run_dir=tmp_path)
+    with pytest.raises(UserError, match="training diverged|NaN/Inf parameters"):
+        t.fit()
+    assert "NaN/Inf" in capsys.readouterr().err
+    for _, p in list_checkpoints(tmp_path):
+        state = load_checkpoint(p)
+        assert all(torch.isfinite(v).all() for v in state["model"]["params"].values()), p
