@@ -59,17 +59,20 @@ def _sync(device):
         torch.cuda.synchronize()
 
 
-def time_fn(fn, repeats: int, device, warmup: bool = True) -> list[float]:
+def time_fn(fn, repeats: int, device, warmup: bool = True) -> tuple[list[float], list[float]]:
+    """(wall times, process CPU times) in seconds. On a shared machine the CPU time of a 1-thread run is
+    the stable number (wall time also counts the time the process waited for a core)."""
     if warmup:
         fn()
-    out = []
+    wall, cpu = [], []
     for _ in range(repeats):
         _sync(device)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         fn()
         _sync(device)
-        out.append(time.perf_counter() - t0)
-    return out
+        wall.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return wall, cpu
 
 
 def peak_rss_mb() -> float:
@@ -97,8 +100,8 @@ def bench_case(n, width, height, repeats, device, compile=False, renderer=None, 
 
     if torch.device(device).type == "cuda":
         torch.cuda.reset_peak_memory_stats()
-    t_f = time_fn(fwd, repeats, device, warmup)
-    t_fb = time_fn(fwd_bwd, repeats, device, warmup)
+    t_f, c_f = time_fn(fwd, repeats, device, warmup)
+    t_fb, c_fb = time_fn(fwd_bwd, repeats, device, warmup)
     mem = torch.cuda.max_memory_allocated() / 2**20 if torch.device(device).type == "cuda" else peak_rss_mb()
     with torch.no_grad():
         o = render(s, cams)
@@ -110,6 +113,8 @@ def bench_case(n, width, height, repeats, device, compile=False, renderer=None, 
         "height": height,
         "fwd_ms": 1e3 * statistics.median(t_f),
         "fwd_bwd_ms": 1e3 * statistics.median(t_fb),
+        "fwd_cpu_ms": 1e3 * statistics.median(c_f),
+        "fwd_bwd_cpu_ms": 1e3 * statistics.median(c_fb),
         "fwd_runs_ms": [round(1e3 * t, 2) for t in t_f],
         "fwd_bwd_runs_ms": [round(1e3 * t, 2) for t in t_fb],
         "peak_mem_mb": mem,
@@ -186,7 +191,8 @@ def main():
         r = run_case_subprocess(args, n, w, h, "eager")
         rows.append(r)
         print(
-            f"eager   {w}x{h} N={n:>6}: fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms",
+            f"eager   {w}x{h} N={n:>6}: fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms  "
+            f"(CPU time {r['fwd_cpu_ms']:.1f} / {r['fwd_bwd_cpu_ms']:.1f} ms)",
             flush=True,
         )
         if args.compile:
@@ -233,10 +239,12 @@ def main():
     out.mkdir(parents=True, exist_ok=True)
     name = "render_quick.json" if args.quick else f"render_{args.device}_{args.threads}thread.json"
     (out / name).write_text(json.dumps(result, indent=2))
-    print("\n| mode | image | N | fwd ms | fwd+bwd ms | peak MB |\n|---|---|---|---|---|---|")
+    print("\n| mode | image | N | fwd ms | fwd+bwd ms | fwd CPU ms | fwd+bwd CPU ms | peak MB |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in rows + ([oracle] if oracle else []):
         print(
-            f"| {r['mode']} | {r['width']}x{r['height']} | {r['n']} | {r['fwd_ms']:.1f} | {r['fwd_bwd_ms']:.1f} | {r['peak_mem_mb']:.0f} |"
+            f"| {r['mode']} | {r['width']}x{r['height']} | {r['n']} | {r['fwd_ms']:.1f} | {r['fwd_bwd_ms']:.1f} "
+            f"| {r['fwd_cpu_ms']:.1f} | {r['fwd_bwd_cpu_ms']:.1f} | {r['peak_mem_mb']:.0f} |"
         )
 
 

@@ -178,3 +178,22 @@ def test_many_cameras_batch_equals_single_renders(device):
     for c in range(3):
         one = render(s, cams[c])
         assert (one.rgb[0] - out.rgb[c]).abs().max() < 1e-6
+
+
+def test_gaussian_behind_stopped_rays_gets_exactly_zero_gradient(device):
+    """Three near-opaque wide Gaussians stop every ray (T < 1e-4); a fourth behind them has no influence,
+    so its gradients must be exactly 0 (not rounding residue of the suffix sums)."""
+    n = 4
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 2.5], [0.0, 0.0, 3.0], [0.1, -0.1, 5.0]])
+    quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1)
+    scales = torch.tensor([[100.0, 100.0, 0.01]] * 3 + [[0.5, 0.5, 0.5]])
+    opac = torch.tensor([1 - 1e-6] * 3 + [0.8])
+    sh = torch.randn(n, 16, 3, generator=torch.Generator().manual_seed(0)) * 0.3
+    s = GaussianSample(means, quats, scales, opac, sh, 3).to(device=device)
+    out, g = _run(s, device)
+    assert out.alpha.min() >= 0.99 - 1e-6  # every ray ends at the second (T = 1e-4) or third Gaussian
+    for k in PARAMS:
+        assert g[k] is not None and torch.equal(g[k][3], torch.zeros_like(g[k][3])), k
+    # The front Gaussian does receive colour gradients (the check above is not vacuous); its alpha is
+    # at the 0.99 cap everywhere, so its geometry gradients are 0 by the cap's semantics.
+    assert g["sh"][0].abs().sum() > 0

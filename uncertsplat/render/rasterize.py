@@ -4,9 +4,10 @@ Layout. The image of each camera is cut into ``tile_size`` x ``tile_size`` tiles
 pair whose opacity-aware footprint (the ellipse where alpha >= 1/255) reaches the tile is listed once
 (box candidates, then an exact ellipse/rectangle test), and one stable sort by tile id (the
 Gaussians were already in depth order) gives each tile its front-to-back list. Tiles are then grouped
-into chunks of similar list length L and processed as padded dense blocks [nt, L, P] (P = tile_size^2
-pixels): the per-pixel exponent is one small matmul, transmittance is a cumprod along L, and the colour
-reduction is a batched matmul. Nothing per pixel is stored for backward: ``_Composite.backward``
+into chunks of similar list length L and processed as padded dense blocks [nt, P, L] (P = tile_size^2
+pixels, list position last so that the scans run along contiguous memory): the per-pixel exponent is one
+small batched matmul, transmittance is one in-place cumprod along L, and the colour reduction is a batched
+matmul. Nothing per pixel is stored for backward: ``_Composite.backward``
 recomputes the block and applies the closed-form gradient.
 
 Exponent as a polynomial. With pixel coordinates (u, v) relative to the tile centre, the log-alpha of a
@@ -21,8 +22,8 @@ Gradient of the composite. For a pixel, out = sum_i w_i f_i with w_i = alpha_i T
     dL/df_i     = w_i g
     dL/dalpha_i = T_i h_i - (sum_{k>i} w_k h_k) / (1 - alpha_i)
     dL/dcoef_i  = sum_pixels dL/dalpha_i * alpha_i * phi(u, v)     (0 where alpha was clamped/skipped)
-alpha_i dL/dalpha_i = w_i h_i - r_i sum_{k>i} w_k h_k with r = alpha / (1 - alpha); the suffix sum is one
-cumsum (its total is g . out, known from the forward output).
+alpha_i dL/dalpha_i = w_i h_i - r_i sum_{k>i} w_k h_k with r = alpha / (1 - alpha); the suffix sum is the
+block's total minus one cumsum, so it is exactly 0 behind a stopped ray.
 
 Limits. A block holds whole tile lists, so a single tile with an enormous list (L x P elements) is one
 block; memory is bounded by ``block_elements`` only while lists are shorter than block_elements / P.
@@ -41,7 +42,7 @@ from .project import ALPHA_MAX, ALPHA_MIN, T_MIN
 
 # Elements (pairs x pixels) per dense block: bounds memory (a few blocks of this size are alive in
 # backward) and keeps the working set near the CPU caches.
-DEFAULT_BLOCK_ELEMENTS = 1 << 19
+DEFAULT_BLOCK_ELEMENTS = 1 << 17
 PAD_LOG_ALPHA = -1.0e4  # exp() of this is exactly 0: padded rows contribute nothing
 
 
@@ -172,32 +173,44 @@ def pixel_basis(tile_size: int, dtype, device) -> Tensor:
 
 
 def pair_rows(gparams: Tensor, pair_gauss: Tensor, pair_centre: Tensor) -> Tensor:
-    """[M,8] per pair: the log-alpha polynomial coefficients (6) and the mean relative to the tile centre (2).
+    """[M+1,8] per pair: the log-alpha polynomial coefficients (6) and the mean relative to the tile centre (2).
 
-    gparams: [G,6] per Gaussian (mean x, mean y, conic a, b, c, log opacity).
+    gparams: [G,6] per Gaussian (mean x, mean y, conic a, b, c, log opacity). The last row is padding
+    (log alpha = PAD_LOG_ALPHA). Columns are written in place: no stack/cat copies of [M,8].
     """
+    M = pair_gauss.numel()
     gp = gparams.index_select(0, pair_gauss)
-    dx = gp[:, 0] - pair_centre[:, 0]
-    dy = gp[:, 1] - pair_centre[:, 1]
-    a, b, c, lo = gp[:, 2], gp[:, 3], gp[:, 4], gp[:, 5]
-    k1 = a * dx + b * dy
-    k2 = b * dx + c * dy
-    k0 = lo - 0.5 * (k1 * dx + k2 * dy)
-    return torch.stack([k0, k1, k2, -0.5 * a, -0.5 * c, -b, dx, dy], dim=-1)
+    out = gparams.new_zeros(M + 1, 8)
+    out[M, 0] = PAD_LOG_ALPHA
+    o = out[:M]
+    dx = torch.sub(gp[:, 0], pair_centre[:, 0], out=o[:, 6])
+    dy = torch.sub(gp[:, 1], pair_centre[:, 1], out=o[:, 7])
+    a, b, c = gp[:, 2], gp[:, 3], gp[:, 4]
+    k1 = torch.mul(a, dx, out=o[:, 1]).addcmul_(b, dy)
+    k2 = torch.mul(b, dx, out=o[:, 2]).addcmul_(c, dy)
+    torch.mul(k1, dx, out=o[:, 0]).addcmul_(k2, dy).mul_(-0.5).add_(gp[:, 5])
+    torch.mul(a, -0.5, out=o[:, 3])
+    torch.mul(c, -0.5, out=o[:, 4])
+    torch.neg(b, out=o[:, 5])
+    return out
 
 
-def _rows_backward(pb: Tensor, g: Tensor) -> Tensor:
-    """Chain rule from d(coefficients) [K,6] to d(mean x, mean y, a, b, c, log o) [K,6]; pb [K,8] rows."""
+def _rows_backward(pb: Tensor, g: Tensor, out: Tensor) -> None:
+    """Chain rule from d(coefficients) g [K,6] to d(mean x, mean y, a, b, c, log o), written into out [K,6].
+
+    pb: [K,8] rows. out may alias g (each output column is written after the inputs it needs are read).
+    """
     k1, k2 = pb[:, 1], pb[:, 2]
-    a, c, b = -2 * pb[:, 3], -2 * pb[:, 4], -pb[:, 5]
+    a, c, b = pb[:, 3] * -2, pb[:, 4] * -2, -pb[:, 5]
     dx, dy = pb[:, 6], pb[:, 7]
-    g0, g1, g2, g3, g4, g5 = g.unbind(-1)
-    g_mx = g1 * a + g2 * b - g0 * k1
-    g_my = g1 * b + g2 * c - g0 * k2
-    g_a = g1 * dx - 0.5 * (g0 * dx * dx + g3)
-    g_b = g1 * dy + g2 * dx - g0 * dx * dy - g5
-    g_c = g2 * dy - 0.5 * (g0 * dy * dy + g4)
-    return torch.stack([g_mx, g_my, g_a, g_b, g_c, g0], dim=-1)
+    g0, g1, g2, g3, g4, g5 = (x.clone() for x in g.unbind(-1))
+    torch.mul(g1, a, out=out[:, 0]).addcmul_(g2, b).addcmul_(g0, k1, value=-1.0)
+    torch.mul(g1, b, out=out[:, 1]).addcmul_(g2, c).addcmul_(g0, k2, value=-1.0)
+    g0dx = g0 * dx
+    torch.mul(g0dx, dx, out=out[:, 2]).add_(g3).mul_(-0.5).addcmul_(g1, dx)
+    torch.mul(g0dx, dy, out=out[:, 3]).neg_().addcmul_(g1, dy).addcmul_(g2, dx).sub_(g5)
+    torch.mul(g0, dy, out=out[:, 4]).mul_(dy).add_(g4).mul_(-0.5).addcmul_(g2, dy)
+    out[:, 5].copy_(g0)
 
 
 @dataclass
@@ -276,56 +289,66 @@ def make_plan(
     )
 
 
-def _weights(pb: Tensor, phi: Tensor, nt: int, L: int, clamp: bool):
-    """Recompute a block: alpha, r = alpha / (1 - alpha) and the weights w, all [nt,L,P].
-
-    Transmittance T[:, i] (before Gaussian i) is a cumprod of 1 - alpha. 3DGS stops a ray before the
-    first Gaussian that would push T under T_MIN and does not add that one. Zeroing T where it is under
-    T_MIN and writing w_i = alpha_i T_i = r_i T_{i+1} gives exactly that: w = 0 from the stopping
-    Gaussian on, with no per-ray bookkeeping (T is non-increasing along the list).
-    """
-    alpha = torch.mm(pb, phi).view(nt, L, phi.shape[1])
+def _alpha(pb: Tensor, phi_t: Tensor, nt: int, L: int, clamp: bool) -> Tensor:
+    """[nt,P,L] alpha of a block (list position last, so that the scans run along contiguous memory)."""
+    alpha = torch.bmm(phi_t.expand(nt, -1, -1), pb.view(nt, L, pb.shape[1]).transpose(1, 2))
     alpha.exp_()
     torch.nn.functional.threshold_(alpha, ALPHA_MIN, 0.0)  # skip contributions below 1/255
     if clamp:
         alpha.clamp_max_(ALPHA_MAX)
-    T = alpha.new_empty(nt, L + 1, alpha.shape[2])
-    T[:, 0].fill_(1.0)
-    torch.sub(alpha.new_ones(()), alpha, out=T[:, 1:])
-    r = alpha / T[:, 1:]
-    T.cumprod_(1)
+    return alpha
+
+
+def _weights(alpha: Tensor, need_r: bool):
+    """Weights w [nt,P,L] (and r = alpha / (1 - alpha) when asked) of a block, from alpha [nt,P,L].
+
+    T (transmittance) is one in-place cumprod of 1 - alpha along the list, which is the contiguous
+    last dim. 3DGS stops a ray before the first Gaussian that would push T under T_MIN and does not add
+    that one. Zeroing T where it is under T_MIN and writing w_i = alpha_i T_i = r_i T_{i+1} gives exactly
+    that: w = 0 from the stopping Gaussian on, with no per-ray bookkeeping (T is non-increasing).
+    """
+    nt, P, L = alpha.shape
+    T = alpha.new_empty(nt, P, L)  # T[..., i] = T_{i+1}, after Gaussian i
+    torch.sub(1.0, alpha, out=T)
+    r = torch.div(alpha, T, out=alpha if not need_r else None)
+    T.cumprod_(-1)
     torch.nn.functional.threshold_(T, T_MIN, 0.0)
-    w = r * T[:, 1:]
-    return alpha, r, w
+    w = T.mul_(r) if not need_r else T * r
+    return w, r
 
 
-def block_forward(pb: Tensor, ft: Tensor, phi: Tensor, nt: int, L: int, clamp: bool) -> Tensor:
+def block_forward(pb: Tensor, ft: Tensor, phi_t: Tensor, nt: int, L: int, clamp: bool) -> Tensor:
     """Rows pb [nt*L,8], features ft [nt,L,F] -> [nt,P,F] composited features."""
-    _, _, w = _weights(pb, phi, nt, L, clamp)
-    return torch.bmm(w.transpose(1, 2), ft)
+    w, _ = _weights(_alpha(pb, phi_t, nt, L, clamp), need_r=False)
+    return torch.bmm(w, ft)
 
 
 def block_backward(
-    pb: Tensor, ft: Tensor, go: Tensor, gsum: Tensor, phi: Tensor, nt: int, L: int, clamp: bool
-):
-    """Closed-form gradients of one block: ([nt*L,8] d rows, [nt,L,F] d features).
-
-    go: [nt,P,F] upstream gradient; gsum: [nt,P] = sum_F go * out (= sum_i w_i h_i).
-    """
-    alpha, r, w = _weights(pb, phi, nt, L, clamp)
-    g_ft = torch.bmm(w, go)  # [nt,L,F]
-    wh = torch.bmm(ft, go.transpose(1, 2)).mul_(w)  # [nt,L,P]  w_i (g . f_i)
-    # Cumsum of wh with gsum subtracted from the first entry gives -(sum_{k>i} w_k h_k) directly.
-    wh[:, 0].sub_(gsum)
-    neg_suffix = torch.cumsum(wh, dim=1)
-    wh[:, 0].add_(gsum)
-    # dL/dlog-alpha = alpha dL/dalpha = w h - alpha / (1 - alpha) * suffix. After a ray stops both
-    # terms vanish (w = 0 and nothing follows), so no stop mask is needed here.
+    pb: Tensor,
+    ft: Tensor,
+    go: Tensor,
+    phi_t: Tensor,
+    nt: int,
+    L: int,
+    clamp: bool,
+    g_rows: Tensor,
+    g_feat: Tensor,
+) -> None:
+    """Closed-form gradients of one block, written into g_rows [nt,L,8] and g_feat [nt,L,F]. go: [nt,P,F]."""
+    alpha = _alpha(pb, phi_t, nt, L, clamp)
+    capped = alpha >= ALPHA_MAX if clamp else None
+    w, r = _weights(alpha, need_r=True)
+    torch.bmm(w.transpose(1, 2), go, out=g_feat)  # dL/df_i = sum_pixels w_i g
+    wh = torch.bmm(go, ft.transpose(1, 2), out=alpha).mul_(w)  # [nt,P,L]  w_i (g . f_i)
+    # Suffix sums sum_{k>i} w_k h_k = total - prefix_i; with the block's own total (not g . out) the
+    # suffix is exactly 0 after a ray stops (only zeros were added).
+    neg_suffix = torch.cumsum(wh, dim=-1, out=w)
+    neg_suffix.sub_(neg_suffix[..., -1:].clone())
+    # dL/dlog-alpha = alpha dL/dalpha = w h - alpha / (1 - alpha) * suffix.
     q = wh.addcmul_(r, neg_suffix)
-    if clamp:
-        q.masked_fill_(alpha >= ALPHA_MAX, 0.0)
-    g_pb = torch.mm(q.view(nt * L, -1), phi.t())  # [nt*L,8]
-    return g_pb, g_ft
+    if capped is not None:
+        q.masked_fill_(capped, 0.0)
+    torch.bmm(q.transpose(1, 2), phi_t.expand(nt, -1, -1), out=g_rows)
 
 
 class _Composite(torch.autograd.Function):
@@ -334,29 +357,29 @@ class _Composite(torch.autograd.Function):
         fwd, _ = plan.kernels
         F = feat.shape[1]
         P = plan.phi.shape[1]
-        pad = gparams.new_zeros(1, 8)
-        pad[0, 0] = PAD_LOG_ALPHA
-        rows = torch.cat([pair_rows(gparams.detach(), plan.pair_gauss, plan.pair_centre), pad])  # [M+1,8]
+        phi_t = plan.phi.t().contiguous()
+        rows = pair_rows(gparams.detach(), plan.pair_gauss, plan.pair_centre)  # [M+1,8]
         feat_ext = torch.cat([feat.detach(), feat.new_zeros(1, F)])
         out = feat.new_zeros(plan.num_tiles, P, F)
         for b in plan.blocks:
             pb = rows.index_select(0, b.rows)
             ft = feat_ext.index_select(0, b.gauss).view(-1, b.L, F)
-            out[b.tiles] = fwd(pb, ft, plan.phi, b.tiles.numel(), b.L, b.clamp)
-        ctx.save_for_backward(rows, feat_ext, out)
+            out[b.tiles] = fwd(pb, ft, phi_t, b.tiles.numel(), b.L, b.clamp)
+        ctx.save_for_backward(rows, feat_ext)
         ctx.plan = plan
         return out
 
     @staticmethod
     def backward(ctx, g_out: Tensor):
-        rows, feat_ext, out = ctx.saved_tensors
+        rows, feat_ext = ctx.saved_tensors
         plan: CompositePlan = ctx.plan
         _, bwd = plan.kernels
         F = feat_ext.shape[1]
+        phi_t = plan.phi.t().contiguous()
         g_out = g_out.contiguous()
-        gsum = (g_out * out).sum(-1)  # [T,P] sum_i w_i (g . f_i) per pixel
         # Per padded pair: gradients of (mean x, mean y, a, b, c, log o) and of the features; summed
         # per Gaussian with one index_add at the end (one big scatter is much cheaper than many).
+        g_rows = feat_ext.new_empty(plan.num_padded, 8)
         g_pairs = feat_ext.new_empty(plan.num_padded, 6 + F)
         off = 0
         for b in plan.blocks:
@@ -364,11 +387,13 @@ class _Composite(torch.autograd.Function):
             k = nt * b.L
             pb = rows.index_select(0, b.rows)
             ft = feat_ext.index_select(0, b.gauss).view(nt, b.L, F)
-            g_pb, g_ft = bwd(pb, ft, g_out[b.tiles], gsum[b.tiles], plan.phi, nt, b.L, b.clamp)
-            torch.cat([g_pb[:, :6], g_ft.view(k, F)], dim=1, out=g_pairs[off : off + k])
+            gr = g_rows[off : off + k].view(nt, b.L, 8)
+            gf = ft.new_empty(nt, b.L, F)
+            bwd(pb, ft, g_out[b.tiles], phi_t, nt, b.L, b.clamp, gr, gf)
+            g_pairs[off : off + k, 6:] = gf.view(k, F)
             off += k
         # Chain rule from the polynomial coefficients to the Gaussian's 2D parameters, for all pairs at once.
-        g_pairs[:, :6] = _rows_backward(rows.index_select(0, plan.rows_all), g_pairs[:, :6])
+        _rows_backward(rows.index_select(0, plan.rows_all), g_rows[:, :6], g_pairs[:, :6])
         g_all = feat_ext.new_zeros(feat_ext.shape[0], 6 + F)
         g_all.index_add_(0, plan.gauss_all, g_pairs)
         return g_all[:-1, :6], g_all[:-1, 6:], None
