@@ -187,7 +187,7 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
             facts.append(("std floor (NLL)", run.metrics["std_floor"]))
         lp = run.metrics.get("lpips")
         if isinstance(lp, dict) and not lp.get("available", True):
-            facts.append(("LPIPS", f"unavailable: {lp.get('reason', '')}"))
+            facts.append(("LPIPS", lp.get("reason") or "unavailable"))
         if empty:
             facts.append(("not available", ", ".join(labels[k] for k in empty)))
         body.append(f'{title}{kv(facts)}<div data-run="{ri}">'

@@ -147,7 +147,11 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
         elif stage.stage == "evaluate":
             out_dir = up_path / "eval"
             synth = [n for n, k in kinds.items() if k == "synth"]
-            trained_on = kinds.get(str(upstreams.get(upstream)))
+            # follow the chain back (evaluate <- prune <- train) to the scene the model was trained on
+            node = upstream
+            while node is not None and kinds.get(node) == "prune":
+                node = upstreams.get(node)
+            trained_on = kinds.get(str(upstreams.get(node)))
             if synth and stage_cfg.depth_gt is None and trained_on == "reconstruct":
                 # SfM on a synthetic scene: the GT depth lives with the generator's output; the evaluate
                 # stage aligns the depth scale (the reconstruction's frame is not the generator's).
