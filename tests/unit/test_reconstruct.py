@@ -248,3 +248,13 @@ def test_overwrite_removes_only_workspace_entries(tmp_path):
     write_report(ws, _report(photos=str(tmp_path / "elsewhere")))
     assert stage._prepare_workspace(photos, ws, ReconstructConfig(overwrite=True), "fp") is None
     assert sorted(p.name for p in ws.iterdir()) == ["keep.txt"]
+
+
+def test_photos_in_a_subfolder_are_pointed_out(tmp_path):
+    from uncertsplat.sfm.reconstruct import scan_photos
+
+    (tmp_path / "images").mkdir()
+    for i in range(3):
+        (tmp_path / "images" / f"{i}.jpg").write_bytes(b"not really a jpeg")
+    with pytest.raises(UserError, match=r"sub-folder .*images holds photos: pass that folder instead"):
+        scan_photos(tmp_path)

@@ -157,9 +157,14 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
                      "(move their photos into the top folder to use them)")
     if not candidates:
         what = "is empty" if not entries else "holds no JPEG, PNG or TIFF photos"
-        raise UserError(f"the photo folder {what}", path=folder,
-                        hint=f"Put at least {min_images} overlapping photos ({', '.join(IMAGE_EXTENSIONS)}) "
-                        "directly in this folder.")
+        # a common slip: pointing at a dataset folder whose photos live in a sub-folder (e.g. images/)
+        with_photos = [d for d in sorted(subfolders)
+                       if any(p.suffix.lower() in IMAGE_EXTENSIONS for p in (folder / d).iterdir() if p.is_file())]
+        hint = (f"Put at least {min_images} overlapping photos ({', '.join(IMAGE_EXTENSIONS)}) "
+                "directly in this folder.")
+        if with_photos:
+            hint = f"Its sub-folder {folder / with_photos[0]} holds photos: pass that folder instead."
+        raise UserError(f"the photo folder {what}", path=folder, hint=hint)
     if len(candidates) < min_images:
         raise UserError(f"only {len(candidates)} photo(s) found; structure-from-motion needs at least {min_images}",
                         path=folder, hint="Add more overlapping photos of the scene (20 or more works best).")
