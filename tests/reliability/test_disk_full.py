@@ -97,12 +97,13 @@ def test_atomic_write_failure_is_clear_and_leaves_the_old_file(tmp_path, monkeyp
 
 @pytest.mark.parametrize("where", ["rename", "fsync"])
 def test_image_write_failure_is_clear(tmp_path, monkeypatch, where):
-    from uncertsplat.io import images
+    from uncertsplat.io import atomic, images
 
     target = tmp_path / "maps" / "view.png"
     images.write_png(target, np.zeros((4, 4, 3)))
     before = target.read_bytes()
-    monkeypatch.setattr(images.os, "replace" if where == "rename" else "fsync", _raiser(errno.ENOSPC))
+    # image writes go through io.atomic.atomic_write_via
+    monkeypatch.setattr(atomic.os, "replace" if where == "rename" else "fsync", _raiser(errno.ENOSPC))
     with pytest.raises(UserError, match="disk is full") as err:
         images.write_png(target, np.ones((4, 4, 3)))
     monkeypatch.undo()

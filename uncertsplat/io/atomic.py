@@ -28,35 +28,58 @@ def _fsync_dir(folder: Path) -> None:
             os.close(fd)
 
 
-def atomic_write(path: str | Path, writer: Callable[[IO[bytes]], None]) -> Path:
-    """Write a file atomically: ``writer`` receives a binary file object open on a temp file.
+_UMASK = os.umask(0)
+os.umask(_UMASK)
+
+
+def atomic_write_via(path: str | Path, write_tmp: Callable[[str], None], *, what: str = "file") -> Path:
+    """Write a file atomically through a writer that takes a file *name* (e.g. OpenImageIO).
+
+    ``write_tmp(tmp_name)`` creates the file under a temporary name in the same folder, with the same
+    extension (so format-sniffing writers pick the right format); it is fsync'ed and renamed over
+    ``path``. On any failure the temp file is removed.
 
     Raises:
-        UserError: when the folder is not writable or the disk is full (the temp file is removed).
+        UserError: when the folder is not writable or the disk is full.
     """
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        os.close(fd)
     except OSError as err:
         raise UserError(f"cannot write here ({err.strerror})", path=path.parent,
                         hint="Choose an output folder you can write to.") from None
     try:
-        with os.fdopen(fd, "wb") as f:
-            writer(f)
-            f.flush()
+        write_tmp(tmp)
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; give the file the usual permissions
+        with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException as err:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         if isinstance(err, OSError):
-            what = "the disk is full" if err.errno == errno.ENOSPC else (err.strerror or str(err))
-            raise UserError(f"could not write the file: {what}; nothing was left half-written", path=path,
+            why = "the disk is full" if err.errno == errno.ENOSPC else (err.strerror or str(err))
+            raise UserError(f"could not write the {what}: {why}; nothing was left half-written", path=path,
                             hint="Free some space or choose another output folder, then run again.") from None
         raise
     _fsync_dir(path.parent)
     return path
+
+
+def atomic_write(path: str | Path, writer: Callable[[IO[bytes]], None]) -> Path:
+    """Write a file atomically: ``writer`` receives a binary file object open on a temp file.
+
+    Raises:
+        UserError: when the folder is not writable or the disk is full (the temp file is removed).
+    """
+
+    def write_tmp(tmp: str) -> None:
+        with open(tmp, "wb") as f:
+            writer(f)
+
+    return atomic_write_via(path, write_tmp)
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:

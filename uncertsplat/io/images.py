@@ -8,10 +8,6 @@ rename), so an interrupted run never leaves a half-written image under its final
 
 from __future__ import annotations
 
-import contextlib
-import errno
-import os
-import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -19,11 +15,10 @@ import numpy as np
 import OpenImageIO as oiio
 
 from uncertsplat.errors import UserError
+from uncertsplat.io.atomic import atomic_write_via
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
 
-_UMASK = os.umask(0)
-os.umask(_UMASK)
 
 MAX_PIXELS = 250_000_000
 """Refuse images above this many pixels (250 MP is 3 GB as float RGB): a huge or forged header would
@@ -151,30 +146,8 @@ def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0)) 
 
 # ------------------------------------------------------------------------------------------------ writing
 def _atomic_oiio(path: Path, write: Callable[[str], None]) -> Path:
-    """Let ``write(tmp_name)`` create the file under a temp name with the same extension, then rename."""
-    path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-        os.close(fd)
-    except OSError as err:
-        raise UserError(f"cannot write here ({err.strerror})", path=path.parent,
-                        hint="Choose an output folder you can write to.") from None
-    try:
-        write(tmp)
-        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; give the file the usual permissions
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException as err:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        if isinstance(err, OSError):
-            what = "the disk is full" if err.errno == errno.ENOSPC else (err.strerror or str(err))
-            raise UserError(f"could not write the image: {what}; nothing was left half-written", path=path,
-                            hint="Free some space or choose another output folder, then run again.") from None
-        raise
-    return path
+    """Let ``write(tmp_name)`` create the image under a temp name with the same extension, then rename."""
+    return atomic_write_via(path, write, what="image")
 
 
 def _write_array(path: Path, arr: np.ndarray, fmt, channel_names: Sequence[str] | None = None,
