@@ -13,7 +13,7 @@ import torch
 from uncertsplat.gaussians.variational import sample
 from uncertsplat.io.checkpoints import load_model
 from uncertsplat.io.images import write_png
-from uncertsplat.render.render import render
+from uncertsplat.render import near_plane, render
 from uncertsplat.report.colormaps import colorize
 from uncertsplat.sfm.scene import load_scene
 from uncertsplat.uncertainty.mc import mc_render
@@ -36,7 +36,7 @@ def sample_fn(generator):
 
 def render_fn(gaussians, cameras):
     return render(gaussians, cameras, background=background, tile_size=cfg.tile_size,
-                  near=0.01 * scene.scene_scale)
+                  near=near_plane(scene.scene_scale))
 
 
 maps, _ = mc_render(sample_fn, render_fn, cams, k, torch.Generator().manual_seed(0))

@@ -152,7 +152,7 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
     """
     from uncertsplat.data.dataset import load_images
     from uncertsplat.io.atomic import atomic_write_bytes
-    from uncertsplat.render import render
+    from uncertsplat.render import near_plane, render
     from uncertsplat.sfm.scene import load_scene
 
     run_dir = Path(run_dir)
@@ -166,7 +166,7 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
     cams = data.cameras[idx].to(device)
     images = load_images(data, idx, device)
     bg = torch.tensor(cfg.scene.background, dtype=torch.float32, device=device)
-    near = 0.01 * float(data.scene_scale)  # as in training
+    near = near_plane(data.scene_scale)  # as in training
 
     def render_fn(sample, c):
         return render(sample, c, background=bg, tile_size=cfg.tile_size, near=near)

@@ -11,6 +11,15 @@ from .rasterize import DEFAULT_BLOCK_ELEMENTS, bin_gaussians, composite, tiles_t
 from .sh import sh_colors
 
 
+def near_plane(scene_scale: float) -> float:
+    """The near plane every stage renders with: 1% of the scene scale (the camera-rig radius).
+
+    Relative to the scene so that training, evaluation and pruning agree and the whole pipeline is
+    equivariant to a global rescaling of the scene.
+    """
+    return 0.01 * float(scene_scale)
+
+
 def render(
     sample: GaussianSample,
     cameras: Cameras,

@@ -107,7 +107,7 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
     )
     from uncertsplat.eval.sparsification import mean_curves, sparsification_all
     from uncertsplat.gaussians import variational
-    from uncertsplat.render import render
+    from uncertsplat.render import near_plane, render
     from uncertsplat.stages.manifest import hash_config, versions
     from uncertsplat.uncertainty.mc import mc_render
 
@@ -118,7 +118,7 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
     prior = loaded.prior
     model = loaded.model
     bg = torch.tensor(tcfg.scene.background, dtype=torch.float32, device=device)
-    render_fn = functools.partial(render, background=bg, tile_size=tcfg.tile_size)
+    render_fn = functools.partial(render, background=bg, tile_size=tcfg.tile_size, near=near_plane(scene.scene_scale))
     from uncertsplat.baselines import eval_notes, make_sample_fn
 
     baseline_fn = make_sample_fn(loaded, device)  # ensemble / fisher runs bring their own sampler

@@ -94,12 +94,13 @@ class _Measure:
     def __init__(self, loaded, scene, indices: list[int], cfg: PruneConfig, device: torch.device):
         from functools import partial
 
-        from uncertsplat.render import render
+        from uncertsplat.render import near_plane, render
 
         self.loaded, self.scene, self.indices, self.device = loaded, scene, indices, device
         self.ecfg = EvalConfig(num_samples=cfg.num_samples, seed=cfg.seed, save_maps=False)
         bg = torch.tensor(loaded.config.scene.background, dtype=torch.float32, device=device)
-        self.render_fn = partial(render, background=bg, tile_size=loaded.config.tile_size)
+        self.render_fn = partial(render, background=bg, tile_size=loaded.config.tile_size,
+                                 near=near_plane(scene.scene_scale))
         self.cams = scene.cameras[indices].to(device)
         self.meta = {"variant": loaded.config.variant, "extent": loaded.extent, "step": loaded.step,
                      "sh_degree_active": loaded.sh_degree,
@@ -272,8 +273,8 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
     bg = torch.tensor(loaded.config.scene.background, dtype=torch.float32, device=device)
     from functools import partial
 
-    from uncertsplat.render import render
-    render_fn = partial(render, background=bg, tile_size=loaded.config.tile_size)
+    from uncertsplat.render import near_plane, render
+    render_fn = partial(render, background=bg, tile_size=loaded.config.tile_size, near=near_plane(scene.scene_scale))
     names = ("position", "scale", "gate") + (("predictive",) if score_name == "predictive" else ())
     score_cams = scene.cameras[spread_views(scene.split["train"], cfg.score_views)].to(device)
     t0 = time.perf_counter()

@@ -29,7 +29,7 @@ from uncertsplat.console import progress
 from uncertsplat.eval.image import psnr, ssim
 from uncertsplat.gaussians.params import GaussianModel, init_from_points, memory_per_gaussian
 from uncertsplat.gaussians.variational import Prior, kl_terms, posterior_mean, sample
-from uncertsplat.render import render
+from uncertsplat.render import near_plane, render
 from uncertsplat.strategy.densify import Densifier, DensifyStats
 from uncertsplat.strategy.schedule import sh_degree_at
 from uncertsplat.train.losses import total_loss
@@ -89,8 +89,7 @@ class Trainer:
         self.extent = float(scene.extent)
         self.prior = prior_from_config(cfg)
         self.background = torch.tensor(cfg.scene.background, dtype=torch.float32, device=self.device)
-        # near plane relative to the scene so that the whole pipeline is equivariant to a global scale
-        self.near = 0.01 * float(scene.scene_scale)
+        self.near = near_plane(scene.scene_scale)
         self.variational = cfg.method == "variational"
         if cfg.random_background:
             from uncertsplat.errors import UserError
