@@ -173,7 +173,9 @@ def train(
     if method is not None:  # preset < config file < method < explicit options < --set
         data = deep_update(data, method_overrides(method))
     cfg = train_config_from(preset, deep_update(data, explicit), set_)
-    train_run(scene, output, cfg, device=resolve_device(device), resume=resume)
+    # with --resume, --iterations means "train on to this many steps" (the stored config wins otherwise)
+    train_run(scene, output, cfg, device=resolve_device(device), resume=resume,
+              extend_to=iterations if resume else None)
 
 
 @app.command()

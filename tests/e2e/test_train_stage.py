@@ -76,3 +76,16 @@ def test_resume_from_middle_checkpoint_is_exact(trained, tiny_scene_path, tmp_pa
         torch.testing.assert_close(b.parameters()[name], p, rtol=0, atol=1e-6, msg=name)
     steps = [json.loads(x)["step"] for x in (copy / "stats.jsonl").read_text().splitlines()]
     assert steps == sorted(steps) and len(steps) == len(set(steps))  # no duplicated log lines
+
+
+def test_resume_with_more_iterations_trains_on(tiny_scene_path, tmp_path):  # noqa: F811
+    run = tmp_path / "run"
+    cfg = train_config_from("tiny", None, ["iterations=6", "scene.downscale=4.0", "checkpoint_every=3",
+                                           "log_every=1", "eval_every=1000"])
+    stage.run(tiny_scene_path, run, cfg, torch.device("cpu"))
+    stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True, extend_to=9)
+    steps = [json.loads(line)["step"] for line in (run / "stats.jsonl").read_text().splitlines()]
+    assert max(steps) == 9
+    assert json.loads((run / "config.json").read_text())["iterations"] == 9
+    with pytest.raises(UserError, match="cannot shorten"):
+        stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True, extend_to=4)

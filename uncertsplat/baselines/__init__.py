@@ -52,8 +52,17 @@ def method_label(cfg) -> str:
     return "variational" if cfg.variant == "ours" else "paper"
 
 
-def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False) -> Path:
-    """Train ``cfg.method`` on ``scene`` into ``run_dir`` (the entry point for every method)."""
+def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False,
+              extend_to: int | None = None) -> Path:
+    """Train ``cfg.method`` on ``scene`` into ``run_dir`` (the entry point for every method).
+
+    ``extend_to`` (with ``resume``): continue a single-model run to that many steps.
+    """
+    from uncertsplat.errors import UserError
+
+    if extend_to is not None and cfg.method in ("ensemble", "fisher"):
+        raise UserError(f"--iterations with --resume is not supported for the {cfg.method} baseline",
+                        hint="Start a new run with the number of iterations you want.")
     if cfg.method == "ensemble":
         from uncertsplat.baselines.ensemble import train_ensemble
 
@@ -64,7 +73,7 @@ def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: boo
         return train_fisher(scene, run_dir, cfg, device, resume=resume)
     from uncertsplat.stages import train
 
-    return train.run(scene, run_dir, cfg, device=device, resume=resume)
+    return train.run(scene, run_dir, cfg, device=device, resume=resume, extend_to=extend_to)
 
 
 def load_run(run_dir: Path, device: torch.device | str = "cpu"):

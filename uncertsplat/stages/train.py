@@ -51,8 +51,11 @@ def _truncate_stats(path: Path, step: int) -> None:
     atomic_write_text(path, "".join(f"{line}\n" for line in keep))
 
 
-def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False) -> Path:
+def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False,
+        extend_to: int | None = None) -> Path:
     """Train on ``scene`` into ``run_dir``; returns ``run_dir``.
+
+    ``extend_to`` (with ``resume``): train on to this many steps instead of the stored ``iterations``.
 
     Raises:
         UserError: unreadable scene, an existing run folder without ``resume``, nothing to resume, or an
@@ -79,12 +82,21 @@ def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resu
         if resume:
             remove_stale_temp_files(run_dir, run_dir / "ckpts")  # left by a killed process; we hold the lock
             stored = read_json(run_dir / "config.json")
-            diff = _differences(stored, json.loads(cfg.model_dump_json()))
+            diff = [d for d in _differences(stored, json.loads(cfg.model_dump_json()))
+                    if not (d == "iterations" and extend_to is not None)]
             if diff:
                 console.print(f"[yellow]note:[/] resuming with the run's stored configuration; ignoring the "
                               f"given values of: {', '.join(diff)}")
             cfg = build_config(TrainConfig, stored, source=str(run_dir / "config.json"))
             found = load_latest(run_dir, map_location=device)
+            if extend_to is not None and extend_to != cfg.iterations:
+                done = int(found[1]["step"]) if found is not None else 0
+                if extend_to < done:
+                    raise UserError(f"cannot shorten the run to {extend_to} steps: its checkpoint is at step {done}",
+                                    path=run_dir, hint="Give --iterations at or above that step.")
+                console.print(f"[yellow]note:[/] continuing to {extend_to} steps instead of {cfg.iterations}; the "
+                              "position learning-rate schedule is stretched to the new length from here on")
+                cfg = cfg.model_copy(update={"iterations": extend_to})
             if found is None:
                 console.print("[yellow]note:[/] no usable checkpoint in the run folder; starting from step 0")
                 for name in ("stats.jsonl",):
