@@ -54,6 +54,13 @@ def read_depth_file(path: Path) -> np.ndarray:
     return arr
 
 
+def load_depth_map(path: Path, width: int, height: int) -> np.ndarray:
+    """One depth map [H,W] float32 resized to ``width`` x ``height``; non-finite or <= 0 becomes 0 (invalid)."""
+    d = read_depth_file(path)
+    d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+    return resize_image(d, width, height)
+
+
 def load_depths(scene: SceneData, indices: Sequence[int] | None = None, device=None) -> Tensor | None:
     """GT depth [C,H,W,1] in normalised world units (GT depth x the normalisation scale), or None.
 
@@ -64,11 +71,7 @@ def load_depths(scene: SceneData, indices: Sequence[int] | None = None, device=N
         return None
     scale = 1.0 / scene.depth_scale_to_gt if scene.depth_scale_to_gt else 1.0
     W, H = scene.cameras.width, scene.cameras.height
-    out = []
-    for i in _indices(scene, indices):
-        d = read_depth_file(scene.depth_paths[i])
-        d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
-        out.append(resize_image(d, W, H) * scale)
+    out = [load_depth_map(scene.depth_paths[i], W, H) * scale for i in _indices(scene, indices)]
     return torch.from_numpy(np.stack(out)[..., None]).to(device)
 
 

@@ -44,23 +44,22 @@ def _swap(optimizer: torch.optim.Optimizer | None, old: nn.Parameter, data: Tens
     raise KeyError("parameter not found in the optimiser")
 
 
+def _edit_rows(store: dict[str, Tensor], optimizer, keep: Tensor | None, new: dict[str, Tensor] | None) -> None:
+    """rows = old[keep] ++ new for every tensor of ``store`` (in place), with the Adam rows alongside."""
+    n_new = 0 if new is None else next(iter(new.values())).shape[0]
+    if keep is None and n_new == 0:
+        return
+    for name, old in list(store.items()):
+        kept = old.detach() if keep is None else old.detach()[keep]
+        data = kept if n_new == 0 else torch.cat([kept, new[name].to(kept)], dim=0)
+        store[name] = _swap(optimizer, old, data, keep, n_new)
+
+
 def _edit(model: GaussianModel, optimizer, *, keep: Tensor | None, new_params: dict[str, Tensor] | None,
           table_keep: Tensor | None, new_tables: dict[str, Tensor] | None, posterior_row: Tensor) -> None:
     """The one primitive: rows = old[keep] ++ new, for the Gaussians and (separately) the tables."""
-    n_new = 0 if new_params is None else next(iter(new_params.values())).shape[0]
-    for name, old in list(model.params.items()):
-        if keep is None and n_new == 0:
-            continue
-        kept = old.detach() if keep is None else old.detach()[keep]
-        data = kept if n_new == 0 else torch.cat([kept, new_params[name].to(kept)], dim=0)
-        model.params[name] = _swap(optimizer, old, data, keep, n_new)
-    t_new = 0 if new_tables is None else next(iter(new_tables.values())).shape[0]
-    for name, old in list(model.tables.items()):
-        if table_keep is None and t_new == 0:
-            continue
-        kept = old.detach() if table_keep is None else old.detach()[table_keep]
-        data = kept if t_new == 0 else torch.cat([kept, new_tables[name].to(kept)], dim=0)
-        model.tables[name] = _swap(optimizer, old, data, table_keep, t_new)
+    _edit_rows(model.params, optimizer, keep, new_params)
+    _edit_rows(model.tables, optimizer, table_keep, new_tables)
     model.posterior_row = posterior_row
 
 

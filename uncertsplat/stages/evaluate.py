@@ -52,8 +52,7 @@ class _ViewResult:
 
 def _gt_depth_from_folder(folder: Path, scene: SceneData, indices: list[int]) -> torch.Tensor:
     """GT depth [C,H,W,1] from ``folder/{stem}.npy|.exr`` (in GT units, resized to the cameras)."""
-    from uncertsplat.data.dataset import read_depth_file
-    from uncertsplat.io.images import resize_image
+    from uncertsplat.data.dataset import load_depth_map
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -67,9 +66,7 @@ def _gt_depth_from_folder(folder: Path, scene: SceneData, indices: list[int]) ->
         if path is None:
             raise UserError(f"no GT depth map for image '{scene.cameras.image_names[i]}'", path=folder,
                             hint=f"Expected {stem}.npy or {stem}.exr.")
-        d = read_depth_file(path)
-        d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
-        out.append(resize_image(d, W, H))
+        out.append(load_depth_map(path, W, H))
     return torch.from_numpy(np.stack(out)[..., None])
 
 
