@@ -37,7 +37,7 @@ ConfigOpt = Annotated[Path | None, typer.Option("--config", help="TOML file with
 
 
 def resolve_device(name: str):
-    """Resolve ``--device`` (see ``uncertsplat.device``)."""
+    """Resolve ``--device`` (see ``uncertsplat.device``); imported here so that ``--help`` does not load torch."""
     from uncertsplat.device import resolve_device as _resolve
 
     return _resolve(name)

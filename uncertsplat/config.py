@@ -8,7 +8,6 @@ resolved config of a stage is written as JSON beside its outputs (``RUN/config.j
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -411,6 +410,3 @@ def train_config_from(preset: str | None, data: dict | None = None, overrides: l
         merged = deep_update(merged, parse_override(o))
     return build_config(TrainConfig, merged, source=f"train config (preset {preset})" if preset else "train config")
 
-
-def is_finite_number(x: float) -> bool:
-    return isinstance(x, (int, float)) and math.isfinite(x)
