@@ -66,6 +66,12 @@ def test_sweep_writes_one_record_per_point_and_resumes(scene_path, tmp_path):
     assert all(summary["pareto"]["ause_mae_vs_time"])
     assert (out / "pareto.png").read_bytes()[:4] == b"\x89PNG"
     assert (out / "points" / "fisher_it16_kt4_k3_ds4.json").is_file()
+    # the page shows the figure and one row per point, with the numbers of sweep.json
+    page = (out / "index.html").read_text()
+    assert 'src="pareto.png"' in page
+    for r in summary["records"]:
+        assert f'data-point="{r["id"]}"' in page
+        assert f'data-key="ause_mae" data-value="{r["ause_mae"]!r}"' in page
 
     # a second run finds every point done: nothing is trained or evaluated again
     summary2 = sweep.run(spec, out, jobs=1, device="cpu", scene=scene_path)

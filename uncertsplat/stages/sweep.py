@@ -6,7 +6,8 @@ Writes into ``OUT/``:
 - ``points/{point}.json``: the full ``EvalReport`` of each point;
 - ``sweep.jsonl``: one JSON record per point (appended as jobs finish; see ``sweep.jobs.run_job``);
 - ``sweep.json``: the summary: spec, records (latest per point), default, Pareto fronts;
-- ``pareto.png``: accuracy vs time with the fronts and the default marked.
+- ``pareto.png``: accuracy vs time with the fronts and the default marked;
+- ``index.html``: the figure and a table of every point (front members and the default marked).
 
 Jobs (points sharing a training config) run over the local cores in a process pool of ``jobs``
 workers, each a fresh process per job (so peak-memory figures are per job) with one torch thread
@@ -23,7 +24,7 @@ from pathlib import Path
 
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
-from uncertsplat.io.atomic import atomic_write_json, run_lock
+from uncertsplat.io.atomic import atomic_write_json, atomic_write_text, run_lock
 
 
 def _read_records(path: Path) -> list[dict]:
@@ -73,6 +74,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         UserError: a bad spec, or (after writing everything) when some points failed.
     """
     from uncertsplat.device import resolve_device
+    from uncertsplat.report.sweep_page import build_sweep_page
     from uncertsplat.sweep.jobs import run_job
     from uncertsplat.sweep.pareto import plot_pareto
     from uncertsplat.sweep.spec import load_spec, make_jobs
@@ -147,7 +149,9 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         if any(r.get("status") == "ok" for r in summary["records"]):
             plot_pareto(summary["records"], out_dir / "pareto.png", x=spec.pareto_x, ys=spec.pareto_y,
                         title=f"{spec.name}: accuracy vs time (front in black, default starred)")
-    console.print(f"wrote {log}, {out_dir / 'sweep.json'} and {out_dir / 'pareto.png'}")
+        fig = "pareto.png" if (out_dir / "pareto.png").is_file() else None
+        atomic_write_text(out_dir / "index.html", build_sweep_page(summary, fig))
+    console.print(f"wrote {log}, {out_dir / 'sweep.json'}, {out_dir / 'pareto.png'} and {out_dir / 'index.html'}")
     if summary["num_failed"]:
         failed = [r["id"] for r in summary["records"] if r.get("status") != "ok"]
         raise UserError(f"{len(failed)} sweep point(s) failed: {', '.join(failed)}", path=log,

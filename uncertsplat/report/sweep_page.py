@@ -1,0 +1,88 @@
+"""The sweep's HTML page (``OUT/index.html`` of ``uncertsplat sweep``): the Pareto figure and every point.
+
+A pure function of the ``sweep.json`` summary: numbers are shown as stored (each numeric cell carries
+the exact value in ``data-value``), points on a Pareto front are marked, the default is starred.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+from uncertsplat.report.html import Cell, figure, kv, note, page, para, table
+
+# (record key, column header, format)
+COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("psnr", "PSNR", "{:.2f}"),
+    ("ause_mae", "AUSE-MAE", "{:.4f}"),
+    ("ause_rmse", "AUSE-RMSE", "{:.4f}"),
+    ("nll", "NLL", "{:.3f}"),
+    ("calibration_error", "cal. err", "{:.4f}"),
+    ("depth_ause_mae", "depth AUSE", "{:.4f}"),
+    ("train_seconds", "train s", "{:.1f}"),
+    ("eval_seconds_per_view", "eval s/view", "{:.2f}"),
+    ("peak_memory_mb", "peak MB", "{:.0f}"),
+)
+
+
+def _cell(rec: dict, key: str, fmt: str) -> Cell | str:
+    v = rec.get(key)
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(float(v)):
+        return "-"
+    return Cell(fmt.format(v), key=key, value=v)
+
+
+def _knobs(rec: dict) -> str:
+    k = rec.get("knobs") or {}
+    return ", ".join(f"{a}={b}" for a, b in k.items())
+
+
+def build_sweep_page(summary: dict, figure_rel: str | None) -> str:
+    """HTML text of the sweep page.
+
+    Args:
+        summary: the ``sweep.json`` summary (``stages.sweep.summarize``).
+        figure_rel: path of ``pareto.png`` relative to the page (None: no figure yet).
+    """
+    recs = list(summary.get("records", []))
+    fronts: dict[str, list[str]] = summary.get("pareto", {})
+    on_front = {pid for ids in fronts.values() for pid in ids}
+    default = summary.get("default")
+    ok = [r for r in recs if r.get("status") == "ok"]
+    failed = [r for r in recs if r.get("status") != "ok"]
+
+    sections = []
+    head = kv([("points", summary.get("num_points", len(recs))), ("failed", summary.get("num_failed", len(failed))),
+               ("default (starred)", default or "-"), ("x axis", summary.get("pareto_x", "time"))]
+              + [(f"front {name}", ", ".join(ids) or "-") for name, ids in fronts.items()])
+    sections.append(("summary", "Summary", head))
+    if figure_rel:
+        body = figure(figure_rel, "Accuracy vs time: every point coloured by method, the Pareto front as a black "
+                      "step line, the default as a red star.", "Pareto fronts of the sweep")
+    else:
+        body = note("No figure: no point has finished yet. Run the sweep again to resume it.")
+    sections.append(("pareto", "Pareto front", body))
+
+    rows = []
+    for r in sorted(ok, key=lambda r: (r.get("method", ""), r["id"])):
+        mark = ("★ " if r["id"] == default else "") + ("front" if r["id"] in on_front else "")
+        cells: list[Cell | str] = [Cell(str(r.get("method", "?")), text_cell=True),
+                                   Cell(_knobs(r), text_cell=True), Cell(mark.strip(), text_cell=True)]
+        cells += [_cell(r, key, fmt) for key, _, fmt in COLUMNS]
+        rows.append((r["id"], cells))
+    header = ["point", "method", "knobs", "default / front"] + [h for _, h, _ in COLUMNS]
+    body = (table(header, rows, table_id="sweep-points", row_attr="data-point") if rows
+            else note("No point has finished."))
+    body += para("Times are wall-clock seconds on the machine that ran the sweep; when several jobs share "
+                 "the cores they are comparable with each other, not with a quiet machine.", "legend")
+    sections.append(("points", "Points", body))
+    if failed:
+        frows = [(r["id"], [Cell(str(r.get("stage", "?")), text_cell=True),
+                            Cell(str(r.get("error", "")), text_cell=True)]) for r in failed]
+        sections.append(("failed", "Failed points",
+                         table(["point", "stage", "error"], frows, table_id="sweep-failed", row_attr="data-point")
+                         + para("Run the sweep again to retry only these points.")))
+    html_sections = "".join(f'<section id="{a}"><h2>{label}</h2>{b}</section>' for a, label, b in sections)
+    title = f"uncertsplat sweep: {summary.get('name', '')}"
+    subtitle = f"{len(ok)} of {len(recs)} points finished — generated {time.strftime('%Y-%m-%d %H:%M:%S')}"
+    return page(title, subtitle, [(a, label) for a, label, _ in sections], html_sections)
