@@ -216,7 +216,7 @@ def prune(
     keep_ratio: Annotated[float | None, typer.Option(help="Fraction of Gaussians to keep, in (0, 1].")] = None,
     threshold: Annotated[float | None, typer.Option(help="Remove Gaussians whose score exceeds this.")] = None,
     auto: Annotated[bool, typer.Option(help="Strongest pruning within --tolerance-db of the unpruned PSNR.")] = False,
-    score: Annotated[str | None, typer.Option(help="Per-Gaussian score (see the README).")] = None,
+    score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (= gate), gate, position, scale or predictive (see the README).")] = None,
     dry_run: Annotated[bool, typer.Option(help="Report only; write no model.")] = False,
     sweep: Annotated[bool, typer.Option(help="Evaluate a range of keep ratios.")] = False,
     device: DeviceOpt = "auto",
