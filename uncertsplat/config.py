@@ -176,6 +176,16 @@ class TrainConfig(_Base):
     """Settings of ``method = "fisher"``."""
     variant: Literal["ours", "paper"] = "ours"
     """paper: the original code's choices (log-scale multiplier, absolute position prior)."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _drop_legacy_keys(cls, data: Any) -> Any:
+        # Early runs carry `random_background = false` (an option that was never implemented and has
+        # been removed): they must still load. Asking for it is refused by the usual unknown-key error.
+        if isinstance(data, dict) and data.get("random_background") is False:
+            data = {k: v for k, v in data.items() if k != "random_background"}
+        return data
+
     iterations: int = Field(7000, ge=1)
     seed: int = Field(0, ge=0)
     sh_degree: int = Field(3, ge=0, le=3)
@@ -183,7 +193,6 @@ class TrainConfig(_Base):
     ssim_lambda: float = Field(0.2, ge=0.0, le=1.0)
     tile_size: int = Field(8, ge=2, le=64)
     batch_size: int = Field(1, ge=1)
-    random_background: bool = False
     init_opacity: float = Field(0.1, gt=0.0, lt=1.0)
     init_num_random: int = Field(0, ge=0)
     """Add this many random points in the scene box when the sparse cloud is poor."""

@@ -35,6 +35,13 @@ def test_nested_unknown_key_is_named():
         build_config(TrainConfig, {"densify": {"intervall": 5}})
 
 
+def test_runs_written_with_the_removed_random_background_key_still_load():
+    old_run = json.loads(TrainConfig().model_dump_json()) | {"random_background": False}
+    assert build_config(TrainConfig, old_run) == TrainConfig()
+    with pytest.raises(UserError, match="random_background: unknown key"):
+        build_config(TrainConfig, {"random_background": True})
+
+
 @pytest.mark.parametrize("value", [float("nan"), float("inf")])
 def test_nan_inf_rejected(value):
     with pytest.raises(UserError):

@@ -91,10 +91,6 @@ class Trainer:
         self.background = torch.tensor(cfg.scene.background, dtype=torch.float32, device=self.device)
         self.near = near_plane(scene.scene_scale)
         self.variational = cfg.method == "variational"
-        if cfg.random_background:
-            from uncertsplat.errors import UserError
-
-            raise UserError("random_background is not supported yet", hint="Set random_background = false.")
         if state is None:
             self._init_fresh()
         else:
