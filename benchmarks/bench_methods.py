@@ -9,6 +9,11 @@ Writes ``benchmarks/results/methods.json`` (the method table + every sweep recor
 Usage (CPU, shared 2 cores: about 15 minutes with the defaults)::
 
     .venv/bin/python benchmarks/bench_methods.py --out /tmp/bench_methods [--jobs 2] [--iterations 300]
+
+Any other scene, methods only (fern at 1/8 from a ``reconstruct`` workspace of the LLFF 1/4 images)::
+
+    .venv/bin/python benchmarks/bench_methods.py --scene WS --label fern-1-8 --methods-only \
+        --downscale 1.5873 --iterations 1000 --max-gaussians 30000 --out /tmp/bench_methods_fern
 """
 
 from __future__ import annotations
@@ -25,9 +30,18 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 def spec_toml(args) -> str:
     its = args.iterations
+    scene = f'scene = "{args.scene}"' if args.scene else 'synth = { preset = "demo", seed = 0 }'
+    if args.methods_only:
+        axes = 'method = ["variational", "paper", "vi-single", "fisher", "ensemble"]'
+    else:
+        axes = f"""method = ["variational", "paper", "vi-single", "fisher", "ensemble"]
+num_entries = [1, 10, 20]
+num_samples = [1, 5, 10, 20]
+iterations = {sorted({max(its // 2, 1), its})}
+downscale = {sorted({args.downscale, args.downscale * 2})}"""
     return f"""
 name = "methods"
-synth = {{ preset = "demo", seed = 0 }}
+{scene}
 train_preset = "demo"
 train = {{ eval_every = 100000, checkpoint_every = 100000, log_every = 50, densify = {{ max_gaussians = {args.max_gaussians} }} }}
 evaluate = {{ split = "test" }}
@@ -43,11 +57,7 @@ num_samples = 10
 downscale = {args.downscale}
 ensemble_size = {args.ensemble}
 [axes]
-method = ["variational", "paper", "vi-single", "fisher", "ensemble"]
-num_entries = [1, 10, 20]
-num_samples = [1, 5, 10, 20]
-iterations = {sorted({max(its // 2, 1), its})}
-downscale = {sorted({args.downscale, args.downscale * 2})}
+{axes}
 """
 
 
@@ -64,6 +74,11 @@ def main() -> None:
     ap.add_argument("--max-gaussians", type=int, default=10000, help="densification cap (keeps CPU runs short)")
     ap.add_argument("--jobs", type=int, default=None)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--scene", type=Path, default=None,
+                    help="a scene/workspace folder (default: the synthetic demo scene, generated)")
+    ap.add_argument("--label", default="synthetic-demo", help="results go to methods_<label>.json")
+    ap.add_argument("--methods-only", action="store_true",
+                    help="only the methods at the default knobs (no K_table/K/steps/resolution axes)")
     args = ap.parse_args()
 
     from uncertsplat.stages import sweep
@@ -96,7 +111,8 @@ def main() -> None:
                              f"{fmt(r['train_seconds'], 1)} | {fmt(r['eval_seconds_per_view'], 2)} |")
     RESULTS.mkdir(parents=True, exist_ok=True)
     out = {
-        "benchmark": "methods", "scene": "synthetic demo (320x240, 40 views, 5 test views)",
+        "benchmark": "methods", "label": args.label,
+        "scene": str(args.scene) if args.scene else "synthetic demo (320x240, 40 views, 5 test views)",
         "downscale": args.downscale, "iterations": args.iterations, "ensemble_size": args.ensemble,
         "max_gaussians": args.max_gaussians,
         "device": args.device, "jobs": args.jobs, "wall_seconds": wall,
@@ -104,14 +120,15 @@ def main() -> None:
         "note": "CPU shared with other processes: timings are indicative only",
         "table": rows, "pareto": summary["pareto"], "default": summary["default"], "records": recs,
     }
-    (RESULTS / "methods.json").write_text(json.dumps(out, indent=2) + "\n")
+    name = "methods" if args.label == "synthetic-demo" else f"methods_{args.label}"
+    (RESULTS / f"{name}.json").write_text(json.dumps(out, indent=2) + "\n")
     if (args.out / "pareto.png").is_file():
-        shutil.copyfile(args.out / "pareto.png", RESULTS / "methods_pareto.png")
+        shutil.copyfile(args.out / "pareto.png", RESULTS / f"{name}_pareto.png")
     print(table)
     print()
     print("\n".join(knob_rows))
     print(f"\nPareto (AUSE-MAE vs time): {summary['pareto'].get('ause_mae_vs_time')}")
-    print(f"wall {wall:.0f} s; wrote {RESULTS / 'methods.json'}")
+    print(f"wall {wall:.0f} s; wrote {RESULTS / (name + '.json')}")
 
 
 if __name__ == "__main__":
