@@ -14,6 +14,8 @@ $(BIN)/python:
 $(VENV)/.installed: $(BIN)/python pyproject.toml
 	$(BIN)/pip install -q torch==$(TORCH_VERSION)
 	$(BIN)/pip install -q -e '.[dev]'
+	@# build the native CPU kernels now (a few seconds) rather than on the first render; never fatal
+	$(BIN)/python -c "from uncertsplat import native; print('kernels:', native.describe('cpu'))"
 	touch $@
 
 setup: $(VENV)/.installed

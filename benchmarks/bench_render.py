@@ -3,7 +3,9 @@
 Scene: N Gaussians (seeded) uniformly inside the view frustum of a pinhole camera at depths 2..8,
 log-uniform scales 0.005..0.05, opacities 0.1..0.9, random rotations, SH degree 3. Loss: L1 to a random
 target image, gradients to all parameters. Medians over ``--repeats`` runs after one warm-up.
-The dense float64 oracle (tests/reference/naive_render.py) is timed at the smallest size, same run.
+Every case is timed with both compositors in the same run: ``native`` (the CPU kernels of
+``uncertsplat.native``, the default on CPU) and ``torch`` (the PyTorch blocks, the reference), and the
+ratio is reported. The dense float64 oracle (tests/reference/naive_render.py) is timed at the smallest size.
 
     .venv/bin/python benchmarks/bench_render.py            # full table, writes benchmarks/results/render_*.json
     .venv/bin/python benchmarks/bench_render.py --quick    # one size, for profiling
@@ -161,8 +163,10 @@ def one_case(args):
             warmup=False,
             renderer=lambda s_, c_: naive_render(s_, c_, pixel_chunk=1024),
         )
-    else:
-        r = bench_case(n, w, h, args.repeats, args.device, compile=(mode == "compile"))
+    elif mode == "compile":
+        r = bench_case(n, w, h, args.repeats, args.device, compile=True, backend="torch")
+    else:  # "native" or "torch"
+        r = bench_case(n, w, h, args.repeats, args.device, backend=mode)
     r["mode"] = mode
     print(json.dumps(r))
 
@@ -186,15 +190,23 @@ def main():
     sizes = [(256, 256), (512, 384)]
     ns = [5_000, 20_000, 50_000]
     cases = [(50_000, 512, 384)] if args.quick else [(n, w, h) for (w, h) in sizes for n in ns]
+    modes = ["native", "torch"] if args.device == "cpu" else ["torch"]
     rows = []
     for n, w, h in cases:
-        r = run_case_subprocess(args, n, w, h, "eager")
-        rows.append(r)
-        print(
-            f"eager   {w}x{h} N={n:>6}: fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms  "
-            f"(CPU time {r['fwd_cpu_ms']:.1f} / {r['fwd_bwd_cpu_ms']:.1f} ms)",
-            flush=True,
-        )
+        for mode in modes:
+            r = run_case_subprocess(args, n, w, h, mode)
+            rows.append(r)
+            print(
+                f"{mode:7s} {w}x{h} N={n:>6}: fwd {r['fwd_ms']:8.1f} ms  fwd+bwd {r['fwd_bwd_ms']:8.1f} ms  "
+                f"(CPU time {r['fwd_cpu_ms']:.1f} / {r['fwd_bwd_cpu_ms']:.1f} ms)",
+                flush=True,
+            )
+        if len(modes) == 2:
+            nat, ref = rows[-2], rows[-1]
+            nat["speedup_fwd_vs_torch"] = ref["fwd_ms"] / nat["fwd_ms"]
+            nat["speedup_fwd_bwd_vs_torch"] = ref["fwd_bwd_ms"] / nat["fwd_bwd_ms"]
+            print(f"        native vs torch: x{nat['speedup_fwd_vs_torch']:.2f} fwd, "
+                  f"x{nat['speedup_fwd_bwd_vs_torch']:.2f} fwd+bwd", flush=True)
         if args.compile:
             rc = run_case_subprocess(args, n, w, h, "compile")
             rows.append(rc)
@@ -208,7 +220,7 @@ def main():
         # The dense oracle evaluates every Gaussian at every pixel in float64 (minutes at 256x256/5k on
         # 2 cores), so it is compared with ours on a smaller scene, both measured in this run.
         n, w, h = ORACLE_CASE
-        ours = run_case_subprocess(args, n, w, h, "eager")
+        ours = run_case_subprocess(args, n, w, h, modes[0])
         o = run_case_subprocess(args, n, w, h, "oracle")
         o["ours_fwd_ms"] = ours["fwd_ms"]
         o["ours_fwd_bwd_ms"] = ours["fwd_bwd_ms"]
@@ -239,12 +251,13 @@ def main():
     out.mkdir(parents=True, exist_ok=True)
     name = "render_quick.json" if args.quick else f"render_{args.device}_{args.threads}thread.json"
     (out / name).write_text(json.dumps(result, indent=2))
-    print("\n| mode | image | N | fwd ms | fwd+bwd ms | fwd CPU ms | fwd+bwd CPU ms | peak MB |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("\n| mode | image | N | fwd ms | fwd+bwd ms | fwd CPU ms | fwd+bwd CPU ms | peak MB | fwd+bwd vs torch |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows + ([oracle] if oracle else []):
+        ratio = f"x{r['speedup_fwd_bwd_vs_torch']:.2f}" if "speedup_fwd_bwd_vs_torch" in r else ""
         print(
             f"| {r['mode']} | {r['width']}x{r['height']} | {r['n']} | {r['fwd_ms']:.1f} | {r['fwd_bwd_ms']:.1f} "
-            f"| {r['fwd_cpu_ms']:.1f} | {r['fwd_bwd_cpu_ms']:.1f} | {r['peak_mem_mb']:.0f} |"
+            f"| {r['fwd_cpu_ms']:.1f} | {r['fwd_bwd_cpu_ms']:.1f} | {r['peak_mem_mb']:.0f} | {ratio} |"
         )
 
 

@@ -76,14 +76,17 @@ def _blur(x: Tensor, window: Tensor, padding: str) -> Tensor:
     return F.conv2d(x, wy, padding=(pad, 0), groups=ch)
 
 
+SSIM_C1_DEFAULT, SSIM_C2_DEFAULT = 0.01**2, 0.03**2
+
+
 def ssim_map(
     pred: Tensor,
     target: Tensor,
     *,
     window_size: int = 11,
     sigma: float = 1.5,
-    c1: float = 0.01**2,
-    c2: float = 0.03**2,
+    c1: float = SSIM_C1_DEFAULT,
+    c2: float = SSIM_C2_DEFAULT,
     padding: Literal["same", "valid"] = "same",
 ) -> Tensor:
     """Per-pixel SSIM map [...,H',W',Ch] of HWC images [...,H,W,Ch] in [0, 1] (data range 1).
@@ -98,9 +101,10 @@ def ssim_map(
     h, w, ch = pred.shape[-3:]
     if padding == "valid" and (h < window_size or w < window_size):
         raise ValueError(f"valid SSIM needs images of at least {window_size}x{window_size}, got {h}x{w}")
-    # [...,H,W,Ch] -> [B,Ch,H,W]
-    x = pred.reshape(-1, h, w, ch).permute(0, 3, 1, 2)
-    y = target.reshape(-1, h, w, ch).permute(0, 3, 1, 2)
+    # [...,H,W,Ch] -> [B,Ch,H,W], made contiguous once: the elementwise ops below are several times
+    # slower on the strided views
+    x = pred.reshape(-1, h, w, ch).permute(0, 3, 1, 2).contiguous()
+    y = target.reshape(-1, h, w, ch).permute(0, 3, 1, 2).contiguous()
     win = gaussian_window(window_size, sigma, dtype=pred.dtype, device=pred.device)
     # One blur call over the five stacked maps (fewer kernel launches than five calls).
     stats = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=1), win, padding)
@@ -126,10 +130,56 @@ def ssim(
     ``pred``/``target``: [H,W,3] or [C,H,W,3] (any [...,H,W,Ch]). Returns the mean of the SSIM map
     over pixels and channels: a scalar for ``reduction="mean"`` (also averaged over the leading dims),
     or one value per image [...] for ``"none"``. See :func:`ssim_map` for the window and padding.
+    On CPU (float32, "same" padding, no gradient w.r.t. ``target``) the fused native kernel computes it
+    (``uncertsplat.native``: same value and gradient, about 5x faster than :func:`ssim_map`).
     """
-    m = ssim_map(pred, target, padding=padding)
-    per_image = m.mean(dim=(-3, -2, -1))
+    from uncertsplat import native
+
+    _check_pair(pred, target)
+    fused = padding == "same" and not target.requires_grad
+    if native.use_for(pred, target, supported=fused, dtypes=(torch.float32,), strict=False):
+        lead, (h, w, ch) = pred.shape[:-3], pred.shape[-3:]
+        planes = [t.reshape(-1, h, w, ch).permute(0, 3, 1, 2).reshape(-1, h, w).contiguous() for t in (pred, target)]
+        window = gaussian_window(dtype=torch.float32)
+        per_image = _FusedSSIM.apply(planes[0], planes[1].detach(), window).view(-1, ch).mean(-1).reshape(lead)
+    else:
+        per_image = ssim_map(pred, target, padding=padding).mean(dim=(-3, -2, -1))
     return per_image.mean() if reduction == "mean" else per_image
+
+
+class _FusedSSIM(torch.autograd.Function):
+    """Mean SSIM of each plane [B,H,W] (an image channel) by the native kernel, 11x11 window, zero padding.
+
+    Forward keeps the per-pixel partial derivatives of the SSIM map w.r.t. (mu_x, E[x^2], E[xy]);
+    backward blurs them (the zero-padded symmetric blur is its own adjoint) into d loss / d x.
+    """
+
+    @staticmethod
+    def forward(ctx, x: Tensor, y: Tensor, window: Tensor) -> Tensor:
+        from uncertsplat import native
+
+        lib = native.library()
+        B, H, W = x.shape
+        plane_mean = torch.empty(B, dtype=torch.float64)
+        partials = x.new_empty(3, B, H, W) if x.requires_grad else None
+        lib.us_ssim_forward_f32(B, H, W, window.numel(), x.data_ptr(), y.data_ptr(), window.data_ptr(),
+                                SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, plane_mean.data_ptr(),
+                                partials.data_ptr() if partials is not None else None, torch.get_num_threads())
+        ctx.save_for_backward(x, y, window, partials if partials is not None else x.new_empty(0))
+        return plane_mean.to(x.dtype)
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        from uncertsplat import native
+
+        x, y, window, partials = ctx.saved_tensors
+        B, H, W = x.shape
+        g_plane = grad.to(torch.float32).contiguous()
+        g_x = torch.empty_like(x)
+        native.library().us_ssim_backward_f32(B, H, W, window.numel(), x.data_ptr(), y.data_ptr(), window.data_ptr(),
+                                              partials.data_ptr(), g_plane.data_ptr(), g_x.data_ptr(),
+                                              torch.get_num_threads())
+        return g_x, None, None
 
 
 # ------------------------------------------------------------------------------------------------ LPIPS

@@ -184,28 +184,116 @@ def sample(model: GaussianModel, generator: torch.Generator, *, subset_size: int
         temperature: gate temperature T.
         sh_degree: SH degree to evaluate (default: the model's maximum).
     """
-    t = model.tables
+    draws = _draw(model, generator, subset_size)
+    if draws.idx.numel() == 0:
+        return _assemble(model, draws.idx, draws.eps, draws.u, draws.eta[:, 0], variant=variant, sh_degree=sh_degree)
+    avgs = {name: model.tables[name].index_select(1, draws.subset).mean(dim=1) for name in TABLE_NAMES}  # [P,D]
+    return _sample_from(model, draws, avgs, variant=variant, extent=extent, temperature=temperature,
+                        sh_degree=sh_degree)
+
+
+def sample_with_kl(model: GaussianModel, generator: torch.Generator, prior: Prior, *, subset_size: int = 2,
+                   extent: float = 1.0, sh_degree: int | None = None) -> tuple[GaussianSample, dict[str, Tensor]]:
+    """``sample(...)`` and ``kl_terms(model, prior)`` together (the training step needs both).
+
+    The same random draws and values as the two calls. On the native path (CPU, float32) the tables
+    enter the graph through one node, whose backward writes each table's gradient (KL plus the
+    sampled entries) in a single pass instead of four.
+    """
+    from uncertsplat import native
+
+    kw = {"variant": prior.variant, "extent": extent, "temperature": prior.temperature, "sh_degree": sh_degree}
+    tables = [model.tables[name] for name in TABLE_NAMES]
+    if model.num_carriers == 0 or not native.use_for(*tables, dtypes=(torch.float32,), strict=False):
+        return sample(model, generator, subset_size=subset_size, **kw), kl_terms(model, prior)
+    draws = _draw(model, generator, subset_size)
+    want = torch.is_grad_enabled() and any(t.requires_grad for t in tables)
+    *avg_list, kl_pos, kl_scale, kl_gate = _FusedTables.apply(draws.subset, prior, want, *tables)
+    avgs = dict(zip(TABLE_NAMES, avg_list, strict=True))
+    kl = {"position": kl_pos, "scale": kl_scale, "gate": kl_gate, "total": kl_pos + kl_scale + kl_gate}
+    return _sample_from(model, draws, avgs, **kw), kl
+
+
+@dataclass(frozen=True)
+class _Draws:
+    idx: Tensor  # [P] carriers in table-row order
+    subset: Tensor  # [M] table entries averaged in this sample
+    eps: Tensor  # [P,3] position noise
+    u: Tensor  # [P,3] scale-multiplier noise
+    eta: Tensor  # [P,1] gate noise
+
+
+def _draw(model: GaussianModel, generator: torch.Generator, subset_size: int) -> _Draws:
+    """The random numbers of one sample, in the documented order."""
     idx = model.carrier_index()
     P = idx.numel()
-    gdev = generator.device
-    dev = model.device
+    gdev, dev = generator.device, model.device
     subset = draw_subset(model.num_entries, subset_size, generator).to(dev)
     eps = torch.randn((P, 3), generator=generator, device=gdev).to(dev)
     u = torch.rand((P, 3), generator=generator, device=gdev).to(dev)
     eta = torch.randn((P, 1), generator=generator, device=gdev).to(dev)
-    if P == 0:
-        return _assemble(model, idx, eps, u, eta[:, 0], variant=variant, sh_degree=sh_degree)
+    return _Draws(idx, subset, eps, u, eta)
 
-    def avg(name):
-        return t[name].index_select(1, subset).mean(dim=1)  # [P,D]
 
-    sigma = F.softplus(avg("pos_spread_raw"))
-    offset = (avg("pos_loc") + sigma * eps) * _unit(variant, extent)
-    width = F.softplus(avg("scale_width_raw")).clamp(MIN_WIDTH, MAX_WIDTH)
-    mult = avg("scale_left") + width * u
-    tau = F.softplus(avg("gate_spread_raw"))
-    gate = torch.sigmoid((avg("gate_loc") + tau * eta) / temperature)[:, 0]
-    return _assemble(model, idx, offset, mult, gate, variant=variant, sh_degree=sh_degree)
+def _sample_from(model: GaussianModel, d: _Draws, avgs: dict[str, Tensor], *, variant: Variant, extent: float,
+                 temperature: float, sh_degree: int | None) -> GaussianSample:
+    """A sample from the subset-averaged raw columns ``avgs`` [P,D] and the draws."""
+    sigma = F.softplus(avgs["pos_spread_raw"])
+    offset = (avgs["pos_loc"] + sigma * d.eps) * _unit(variant, extent)
+    width = F.softplus(avgs["scale_width_raw"]).clamp(MIN_WIDTH, MAX_WIDTH)
+    mult = avgs["scale_left"] + width * d.u
+    tau = F.softplus(avgs["gate_spread_raw"])
+    gate = torch.sigmoid((avgs["gate_loc"] + tau * d.eta) / temperature)[:, 0]
+    return _assemble(model, d.idx, offset, mult, gate, variant=variant, sh_degree=sh_degree)
+
+
+class _FusedTables(torch.autograd.Function):
+    """Tables -> (subset averages [P,D] in TABLE_NAMES order, KL position, scale, gate), by the native KL.
+
+    Forward computes each KL term and its per-element gradient in one pass (kept only when needed);
+    backward scales that gradient in place and adds the averages' gradient to the sampled entries.
+    Backward can run once (the kept gradients are reused in place).
+    """
+
+    @staticmethod
+    def forward(ctx, subset: Tensor, prior: Prior, want_grad: bool, *tables: Tensor):
+        t = dict(zip(TABLE_NAMES, (x.detach() for x in tables), strict=True))
+        entries = subset.tolist()
+        avgs = []
+        for name in TABLE_NAMES:  # the mean of M strided [P,D] views: cheaper than index_select + mean
+            acc = t[name][:, entries[0]].clone()
+            for k in entries[1:]:
+                acc += t[name][:, k]
+            avgs.append(acc / len(entries))
+        unit: dict[str, Tensor] = {}
+        terms = (("position", "pos_loc", "pos_spread_raw", "gaussian", 0.0, prior.position_std),
+                 ("scale", "scale_left", "scale_width_raw", "scale", prior.scale_width,
+                  0 if prior.variant == "ours" else 1),
+                 ("gate", "gate_loc", "gate_spread_raw", "gaussian", prior.gate_mean, prior.gate_std))
+        kls = []
+        for term, loc, raw, kind, a, b in terms:
+            value, g_loc, g_raw = _native_kl(kind, t[loc], t[raw], a, b, want_grad)
+            kls.append(value)
+            if want_grad:
+                unit[loc], unit[raw] = (g_loc, term), (g_raw, term)
+        ctx.unit, ctx.entries = unit, entries
+        ctx.n = {term: t[loc].numel() for term, loc, *_ in terms}
+        return (*avgs, *kls)
+
+    @staticmethod
+    def backward(ctx, *grads: Tensor):
+        g_avgs = dict(zip(TABLE_NAMES, grads[:6], strict=True))
+        g_kl = dict(zip(("position", "scale", "gate"), grads[6:], strict=True))
+        out = []
+        for name in TABLE_NAMES:
+            g, term = ctx.unit[name]
+            g.mul_(g_kl[term] / ctx.n[term])
+            share = g_avgs[name] / len(ctx.entries)
+            for k in ctx.entries:
+                g[:, k] += share
+            out.append(g)
+        ctx.unit = None
+        return (None, None, None, *out)
 
 
 def expected_gate(loc: Tensor, spread: Tensor, temperature: float) -> Tensor:
@@ -256,16 +344,70 @@ def scale_kl(left: Tensor, width_raw: Tensor, prior_width: float, variant: Varia
 def kl_terms(model: GaussianModel, prior: Prior) -> dict[str, Tensor]:
     """KL terms averaged over table elements: ``position``, ``scale``, ``gate`` and their sum ``total``.
 
-    All are 0-dim tensors; with no carriers they are exact zeros (no NaN from an empty mean).
+    All are 0-dim tensors; with no carriers they are exact zeros (no NaN from an empty mean). On CPU
+    (float32) the fused native kernel computes each term and its gradient in one pass over the table
+    (``uncertsplat.native``); ``gaussian_kl`` and ``scale_kl`` are the reference and the path elsewhere.
     """
+    from uncertsplat import native
+
     t = model.tables
     if model.num_carriers == 0:
         z = t["pos_loc"].sum() * 0.0  # keeps the graph (and the device) without a NaN
         return {"position": z, "scale": z, "gate": z, "total": z}
-    kl_pos = gaussian_kl(t["pos_loc"], t["pos_spread_raw"], 0.0, prior.position_std).mean()
-    kl_scale = scale_kl(t["scale_left"], t["scale_width_raw"], prior.scale_width, prior.variant).mean()
-    kl_gate = gaussian_kl(t["gate_loc"], t["gate_spread_raw"], prior.gate_mean, prior.gate_std).mean()
+    if native.use_for(*t.values(), dtypes=(torch.float32,), strict=False):
+        kl_pos = _fused_kl("gaussian", t["pos_loc"], t["pos_spread_raw"], 0.0, prior.position_std)
+        kl_scale = _fused_kl("scale", t["scale_left"], t["scale_width_raw"], prior.scale_width,
+                             0 if prior.variant == "ours" else 1)
+        kl_gate = _fused_kl("gaussian", t["gate_loc"], t["gate_spread_raw"], prior.gate_mean, prior.gate_std)
+    else:
+        kl_pos = gaussian_kl(t["pos_loc"], t["pos_spread_raw"], 0.0, prior.position_std).mean()
+        kl_scale = scale_kl(t["scale_left"], t["scale_width_raw"], prior.scale_width, prior.variant).mean()
+        kl_gate = gaussian_kl(t["gate_loc"], t["gate_spread_raw"], prior.gate_mean, prior.gate_std).mean()
     return {"position": kl_pos, "scale": kl_scale, "gate": kl_gate, "total": kl_pos + kl_scale + kl_gate}
+
+
+def _fused_kl(kind: str, loc: Tensor, raw: Tensor, a: float, b: float) -> Tensor:
+    """Mean of one KL term by the native kernel (see ``_native_kl``); the gradient is computed in the
+    same pass, only when it is needed."""
+    want = torch.is_grad_enabled() and (loc.requires_grad or raw.requires_grad)
+    return _FusedKL.apply(loc, raw, kind, a, b, want)
+
+
+def _native_kl(kind: str, loc: Tensor, raw: Tensor, a: float, b: float, want_grad: bool
+               ) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """(mean, d mean-sum / d loc, d sum / d raw) of one KL term by the native kernel: ``gaussian`` (prior
+    mean a, std b) or ``scale`` (w_p = a, variant b: 0 ours, 1 paper). The gradients are of the *sum*
+    over elements (callers divide by ``loc.numel()``), None unless ``want_grad``."""
+    from uncertsplat import native
+
+    lib = native.library()
+    loc, raw = loc.detach().contiguous(), raw.detach().contiguous()
+    g_loc = torch.empty_like(loc) if want_grad else None
+    g_raw = torch.empty_like(raw) if want_grad else None
+    ptrs = (g_loc.data_ptr(), g_raw.data_ptr()) if want_grad else (None, None)
+    threads = torch.get_num_threads()
+    if kind == "gaussian":
+        total = lib.us_gaussian_kl_f32(loc.numel(), loc.data_ptr(), raw.data_ptr(), a, b, *ptrs, threads)
+    else:
+        total = lib.us_scale_kl_f32(loc.numel(), loc.data_ptr(), raw.data_ptr(), a, int(b), MIN_WIDTH, MAX_WIDTH,
+                                    *ptrs, threads)
+    return loc.new_tensor(total / loc.numel()), g_loc, g_raw
+
+
+class _FusedKL(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, loc: Tensor, raw: Tensor, kind: str, a: float, b: float, want_grad: bool) -> Tensor:
+        value, g_loc, g_raw = _native_kl(kind, loc, raw, a, b, want_grad)
+        if want_grad:
+            ctx.save_for_backward(g_loc, g_raw)
+        ctx.n = loc.numel()
+        return value
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        g_loc, g_raw = ctx.saved_tensors
+        scale = grad / ctx.n
+        return g_loc * scale, g_raw * scale, None, None, None, None
 
 
 def carrier_uncertainty(model: GaussianModel, *, variant: Variant = "ours", extent: float = 1.0) -> dict[str, Tensor]:

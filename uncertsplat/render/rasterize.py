@@ -33,10 +33,13 @@ from __future__ import annotations
 
 import bisect
 import math
+import threading
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+from uncertsplat import native
 
 from .project import ALPHA_MAX, ALPHA_MIN, T_MIN
 
@@ -76,18 +79,23 @@ def bin_gaussians(
     tile_size: int,
     conics: Tensor | None = None,  # [C,N,3]
     opacities: Tensor | None = None,  # [N]
+    backend: str | None = None,
 ) -> TileBins:
     """List the tiles each visible Gaussian touches, sorted by (tile, depth). No Python loops.
 
     Candidates come from the opacity-aware box; with ``conics`` and ``opacities`` given, each (tile,
     Gaussian) pair is also tested exactly: the ellipse where alpha >= 1/255 must reach the rectangle of
     the tile's pixel centres (drops the box corners, and most of the box of thin slanted Gaussians).
+    ``backend`` as in ``use_native``: the native kernel lists the same pairs in the same order.
     """
     C, N = valid.shape
     dev = means2d.device
     ts = tile_size
     tiles_x, tiles_y = math.ceil(width / ts), math.ceil(height / ts)
     tpc = tiles_x * tiles_y
+    if conics is not None and opacities is not None and use_native(means2d, extents, conics, opacities,
+                                                                    backend=backend):
+        return _bin_native(means2d, extents, valid, depths, conics, opacities, width, height, tile_size)
     with torch.no_grad():
         vidx = valid.reshape(-1).nonzero().squeeze(1)  # [V]
         z = depths.reshape(-1).index_select(0, vidx)
@@ -134,6 +142,31 @@ def bin_gaussians(
         tile_count = torch.bincount(tile, minlength=C * tpc)
         tile_start = torch.cumsum(tile_count, 0) - tile_count
     return TileBins(gauss, tile, tile_start, tile_count, tiles_x, tiles_y, ts)
+
+
+@torch.no_grad()
+def _bin_native(means2d: Tensor, extents: Tensor, valid: Tensor, depths: Tensor, conics: Tensor, opacities: Tensor,
+                width: int, height: int, tile_size: int) -> TileBins:
+    """``bin_gaussians`` by the native kernel: a counting sort by tile of the depth-ordered Gaussians."""
+    lib = native.library()
+    C, N = valid.shape
+    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    vidx = valid.reshape(-1).nonzero().squeeze(1)  # [V]
+    order = vidx.index_select(0, torch.argsort(depths.reshape(-1).index_select(0, vidx), stable=True))
+    m2, ext, con = (t.detach().contiguous() for t in (means2d, extents.to(means2d.dtype), conics))
+    opac = opacities.detach().to(means2d.dtype).contiguous()
+    head = (order.numel(), N, C, width, height, tile_size, tiles_x, tiles_y, ALPHA_MIN)
+    ptrs = (order.data_ptr(), m2.data_ptr(), ext.data_ptr(), con.data_ptr(), opac.data_ptr())
+    f64 = m2.dtype == torch.float64
+    tile_count = torch.zeros(C * tiles_x * tiles_y, dtype=torch.long)
+    M = (lib.us_bin_count_f64 if f64 else lib.us_bin_count_f32)(*head, *ptrs, tile_count.data_ptr())
+    tile_start = torch.cumsum(tile_count, 0) - tile_count
+    pair_gauss = torch.empty(M, dtype=torch.long)
+    pair_tile = torch.empty(M, dtype=torch.long)
+    cursor = torch.empty_like(tile_count)
+    (lib.us_bin_fill_f64 if f64 else lib.us_bin_fill_f32)(*head, *ptrs, tile_start.data_ptr(), cursor.data_ptr(),
+                                                          pair_gauss.data_ptr(), pair_tile.data_ptr())
+    return TileBins(pair_gauss, pair_tile, tile_start, tile_count, tiles_x, tiles_y, tile_size)
 
 
 def _ellipse_meets_tile(m: Tensor, conic: Tensor, opac: Tensor, tx: Tensor, ty: Tensor, ts: int) -> Tensor:
@@ -414,6 +447,77 @@ def get_kernels(compile: bool):
     return _COMPILED["k"]
 
 
+class _CompositeNative(torch.autograd.Function):
+    """The same compositing as ``_Composite``, by the native CPU kernel (``render/csrc/composite.cpp``)."""
+
+    @staticmethod
+    def forward(ctx, gparams: Tensor, feat: Tensor, bins: TileBins) -> Tensor:
+        lib = native.library()
+        gp, ft = gparams.detach().contiguous(), feat.detach().contiguous()
+        T, P, F = bins.tile_count.numel(), bins.tile_size**2, ft.shape[1]
+        out = gp.new_empty(T, P, F)
+        t_final = gp.new_empty(T, P)
+        last = torch.empty(T, P, dtype=torch.int32, device=gp.device)
+        fn = lib.us_forward_f64 if gp.dtype == torch.float64 else lib.us_forward_f32
+        rc = fn(*_native_head(bins, F), gp.data_ptr(), ft.data_ptr(), bins.pair_gauss.data_ptr(),
+                bins.tile_start.data_ptr(), bins.tile_count.data_ptr(), out.data_ptr(), t_final.data_ptr(),
+                last.data_ptr())
+        if rc != 0:
+            raise RuntimeError(f"native compositor failed (code {rc})")
+        ctx.save_for_backward(gp, ft, t_final, last)
+        ctx.bins = bins
+        return out
+
+    @staticmethod
+    def backward(ctx, g_out: Tensor):
+        gp, ft, t_final, last = ctx.saved_tensors
+        bins: TileBins = ctx.bins
+        lib = native.library()
+        F = ft.shape[1]
+        g_out = g_out.to(gp.dtype).contiguous()
+        M = bins.pair_gauss.numel()
+        g_pair = _scratch(M * (6 + F), gp.dtype).view(M, 6 + F)  # every row is written by the kernel
+        g_all = gp.new_zeros(gp.shape[0], 6 + F)  # [G, 6+F], summed over every pair of each Gaussian
+        fn = lib.us_backward_f64 if gp.dtype == torch.float64 else lib.us_backward_f32
+        rc = fn(*_native_head(bins, F), gp.shape[0], M, gp.data_ptr(), ft.data_ptr(), bins.pair_gauss.data_ptr(),
+                bins.tile_start.data_ptr(), bins.tile_count.data_ptr(), t_final.data_ptr(), last.data_ptr(),
+                g_out.data_ptr(), g_pair.data_ptr(), g_all.data_ptr())
+        if rc != 0:
+            raise RuntimeError(f"native compositor backward failed (code {rc})")
+        return g_all[:, :6], g_all[:, 6:], None
+
+
+_SCRATCH = threading.local()
+
+
+def _scratch(n: int, dtype: torch.dtype) -> Tensor:
+    """A reused per-thread CPU buffer of at least ``n`` elements (the per-pair gradients of the native
+    backward: tens of MB per call, whose fresh allocation and page faults cost as much as filling them)."""
+    buf = getattr(_SCRATCH, "buf", None)
+    if buf is None or buf.dtype != dtype or not n <= buf.numel() <= 2 * n + (1 << 20):
+        buf = torch.empty(n, dtype=dtype)
+        _SCRATCH.buf = buf
+    return buf[:n]
+
+
+def _native_head(bins: TileBins, F: int) -> tuple:
+    """The scalar arguments shared by the native forward and backward."""
+    return (bins.tile_count.numel(), bins.tiles_x, bins.tiles_x * bins.tiles_y, bins.tile_size,
+            torch.get_num_threads(), ALPHA_MIN, ALPHA_MAX, T_MIN, F)
+
+
+def use_native(*tensors: Tensor, backend: str | None = None, compile: bool = False,
+               num_features: int = 1) -> bool:
+    """Whether the native CPU kernels (binning and compositing) take these inputs (``native.use_for``)."""
+    if compile:
+        return False
+    return native.use_for(*tensors, backend=backend, supported=1 <= num_features <= NATIVE_MAX_FEATURES,
+                          unsupported=f" and at most {NATIVE_MAX_FEATURES} features")
+
+
+NATIVE_MAX_FEATURES = 8
+
+
 def composite(
     gparams: Tensor,  # [G,6] mean x, mean y (pixels), conic a, b, c, log opacity
     feat: Tensor,  # [G,F]
@@ -421,8 +525,15 @@ def composite(
     high_opacity: Tensor | None = None,  # [G] bool; None = any Gaussian may hit the cap
     block_elements: int = DEFAULT_BLOCK_ELEMENTS,
     compile: bool = False,
+    backend: str | None = None,
 ) -> Tensor:
-    """Composite features front to back; returns [T,P,F] per tile (T = C * tiles_per_camera)."""
+    """Composite features front to back; returns [T,P,F] per tile (T = C * tiles_per_camera).
+
+    ``backend`` picks the native CPU kernel or the PyTorch blocks (see ``use_native``); both compute
+    the same function and gradient.
+    """
+    if use_native(gparams, feat, backend=backend, compile=compile, num_features=feat.shape[1]):
+        return _CompositeNative.apply(gparams, feat, bins)
     phi = pixel_basis(bins.tile_size, gparams.dtype, gparams.device)
     if high_opacity is None:
         high_opacity = torch.ones(feat.shape[0], dtype=torch.bool, device=feat.device)

@@ -31,6 +31,7 @@ def render(
     eps2d: float = 0.3,
     compile: bool = False,
     block_elements: int = DEFAULT_BLOCK_ELEMENTS,
+    backend: str | None = None,
 ) -> RenderOutput:
     """Render a batch of cameras with 3DGS semantics (exact, differentiable).
 
@@ -47,7 +48,9 @@ def render(
         near, far: camera-z culling planes.
         eps2d: screen-space dilation added to the 2D covariance (pixels^2).
         compile: run the per-pixel kernels through ``torch.compile`` (opt-in; first call compiles).
-        block_elements: pair-pixel elements per dense block (memory/speed trade-off).
+        block_elements: pair-pixel elements per dense block of the PyTorch compositor (memory/speed).
+        backend: compositor: ``"auto"`` (the native CPU kernel for CPU tensors when it builds, else
+            PyTorch), ``"native"`` or ``"torch"``; None reads ``UNCERTSPLAT_RASTERIZER`` (default auto).
 
     Returns:
         RenderOutput with rgb [C,H,W,3], alpha [C,H,W,1], depth [C,H,W,1] (alpha-normalised camera z,
@@ -82,12 +85,13 @@ def render(
         tile_size,
         proj.conics.detach(),
         sample.opacities.detach(),
+        backend=backend,
     )
     log_o = torch.log(sample.opacities.clamp_min(torch.finfo(dtype).tiny))
     gparams = torch.cat([means2d, proj.conics, log_o.expand(C, N)[..., None]], dim=-1).reshape(C * N, 6)
     # Alpha can reach the 0.99 cap only for opacities near it (small margin for rounding).
     high = (sample.opacities.detach() > ALPHA_MAX - 1e-3).expand(C, N).reshape(-1)
-    tiles = composite(gparams, feat, bins, high, block_elements=block_elements, compile=compile)
+    tiles = composite(gparams, feat, bins, high, block_elements=block_elements, compile=compile, backend=backend)
     img = tiles_to_image(tiles, C, bins, H, W)  # [C,H,W,5]
 
     rgb = img[..., 0:3]

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from uncertsplat import native
 from uncertsplat.config import TrainConfig, build_config
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
@@ -119,9 +120,10 @@ def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resu
         train_images = load_images(data, data.split["train"], device)
         test_images = load_images(data, data.split["test"], device) if data.split.get("test") else None
         trainer = Trainer(data, cfg, train_images, test_images, run_dir=run_dir, state=state)
+        kernels = native.describe(device)
         console.print(f"training {len(trainer.model)} Gaussians on {len(data.split['train'])} views "
                       f"({data.cameras.width}x{data.cameras.height}), {len(data.split.get('test', ()))} held out, "
-                      f"device {device}, {cfg.iterations} steps")
+                      f"device {device} ({kernels}), {cfg.iterations} steps")
         trainer.on_log = lambda rec: console.log(log_line(rec)) if "eval_psnr" in rec else None
         try:
             trainer.fit()
@@ -137,7 +139,7 @@ def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resu
         summary = trainer.summary()
         held = trainer.evaluate()
         summary.update({"test_psnr": held.get("psnr"), "test_ssim": held.get("ssim"),
-                        "num_test_views": len(data.split.get("test", ())), "device": str(device),
+                        "num_test_views": len(data.split.get("test", ())), "device": str(device), "kernels": kernels,
                         "scene": str(scene.resolve())})
         atomic_write_json(run_dir / "train_summary.json", summary)
         psnr_txt = f", held-out PSNR {held['psnr']:.2f} dB" if held else ""

@@ -28,7 +28,7 @@ from uncertsplat.config import TrainConfig
 from uncertsplat.console import progress
 from uncertsplat.eval.image import psnr, ssim
 from uncertsplat.gaussians.params import GaussianModel, init_from_points, memory_per_gaussian
-from uncertsplat.gaussians.variational import Prior, kl_terms, posterior_mean, sample
+from uncertsplat.gaussians.variational import Prior, posterior_mean, sample_with_kl
 from uncertsplat.render import near_plane, render
 from uncertsplat.strategy.densify import Densifier, DensifyStats
 from uncertsplat.strategy.schedule import sh_degree_at
@@ -217,9 +217,8 @@ class Trainer:
         cams = self.train_cams[views]
         gt = self.train_images[views]
         if self.variational:
-            g = sample(self.model, self.gen_noise, subset_size=cfg.variational.subset_size, variant=cfg.variant,
-                       extent=self.extent, temperature=self.prior.temperature, sh_degree=degree)
-            kl = kl_terms(self.model, self.prior)
+            g, kl = sample_with_kl(self.model, self.gen_noise, self.prior, subset_size=cfg.variational.subset_size,
+                                   extent=self.extent, sh_degree=degree)
         else:
             g = posterior_mean(self.model, variant=cfg.variant, extent=self.extent,
                                temperature=self.prior.temperature, sh_degree=degree)
@@ -246,8 +245,10 @@ class Trainer:
 
     @staticmethod
     def _all_finite(tensors) -> bool:
-        flags = [torch.isfinite(t).all() for t in tensors if t is not None]
-        return bool(torch.stack(flags).all()) if flags else True
+        """True when no element is NaN/Inf. A sum is NaN/Inf as soon as one element is (one pass per
+        tensor instead of isfinite's three); it could only also overflow for values near 1e38 / N."""
+        sums = [t.sum() for t in tensors if t is not None]
+        return bool(torch.isfinite(torch.stack(sums)).all()) if sums else True
 
     def _skip_non_finite(self, step: int) -> None:
         """A NaN/Inf loss or gradient: skip the update (Adam would spread it into every parameter)."""
