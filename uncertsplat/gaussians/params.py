@@ -99,9 +99,18 @@ class GaussianModel:
         return {**self.params, **self.tables}
 
     def carrier_index(self) -> Tensor:
-        """[P'] indices of the Gaussians that carry a posterior, ordered by their table row."""
-        idx = (self.posterior_row >= 0).nonzero().flatten()
-        return idx[torch.argsort(self.posterior_row[idx])]
+        """[P'] indices of the Gaussians that carry a posterior, ordered by their table row.
+
+        Cached until ``posterior_row`` is replaced or modified in place (every training step asks for it;
+        it changes only with the topology)."""
+        row = self.posterior_row
+        cached = getattr(self, "_carrier_cache", None)
+        if cached is not None and cached[0] is row and cached[1] == row._version:
+            return cached[2]
+        idx = (row >= 0).nonzero().flatten()
+        idx = idx[torch.argsort(row[idx])]
+        self._carrier_cache = (row, row._version, idx)
+        return idx
 
     def check(self) -> None:
         """Raise AssertionError when rows are not aligned (used by tests and after loading)."""

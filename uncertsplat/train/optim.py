@@ -36,9 +36,16 @@ def base_rates(lr_cfg, step: int, total: int, extent: float, *, table_lr_factor:
 
 
 def make_optimizer(model: GaussianModel, rates: dict[str, float]) -> torch.optim.Adam:
-    """Adam (eps 1e-15, as 3DGS) with one named group per tensor of ``model.parameters()``."""
+    """Adam (eps 1e-15, as 3DGS) with one named group per tensor of ``model.parameters()``.
+
+    The fused implementation (one kernel per tensor; 3-4x faster than the default on CPU, where the
+    update of the offset tables was a visible share of a training step) where torch offers it for the
+    parameters' device; its state has the same layout, so checkpoints load either way.
+    """
     groups = [{"params": [p], "lr": rates[name], "name": name} for name, p in model.parameters().items()]
-    return torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS)
+    device = model.device.type
+    fused = device in ("cpu", "cuda") and all(p.dtype.is_floating_point for p in model.parameters().values())
+    return torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS, fused=fused or None)
 
 
 def set_rates(optimizer: torch.optim.Optimizer, rates: dict[str, float]) -> None:
