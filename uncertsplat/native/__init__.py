@@ -1,7 +1,8 @@
 """Native CPU kernels: built from ``csrc/*.cpp`` on first use into one library, loaded with ctypes.
 
 ``composite.cpp``: tile binning and the per-pixel compositing loop of the rasterizer, forward and
-backward (``render/rasterize.py``). ``losses.cpp``: fused SSIM (``eval/image.py``) and the KL terms of
+backward (``render/rasterize.py``). ``project.cpp``: the per-Gaussian front end, EWA projection and SH
+colours, forward and backward (``render/project.py``, ``render/sh.py``). ``losses.cpp``: fused SSIM (``eval/image.py``) and the KL terms of
 the offset tables (``gaussians/variational.py``), each with its gradient. ``vmath.h``: vectorisable exp/log; ``parallel.h``: fork-join over threads.
 
 The C++ files have a C ABI and no torch headers, so they compile in a few seconds with the system C++
@@ -29,9 +30,9 @@ from pathlib import Path
 
 import torch
 
-INTERFACE_VERSION = 6
+INTERFACE_VERSION = 8
 CSRC = Path(__file__).with_name("csrc")
-SOURCES = (CSRC / "composite.cpp", CSRC / "losses.cpp")
+SOURCES = (CSRC / "composite.cpp", CSRC / "losses.cpp", CSRC / "project.cpp")
 HEADERS = (CSRC / "vmath.h", CSRC / "parallel.h")
 # -fno-trapping-math lets the compiler vectorise the float->int conversion inside the exp polynomial;
 # -fopenmp-simd honours the `omp simd` hints without linking an OpenMP runtime (torch brings its own).
@@ -110,13 +111,13 @@ def _declare(lib: ctypes.CDLL) -> None:
         bwd = getattr(lib, f"us_backward_{suffix}")
         bwd.argtypes = head + [i64, i64] + [ptr] * 10
         bwd.restype = ctypes.c_int
-    bin_head = [i64] * 8 + [f64]
+    bin_head = [i64] * 9 + [f64]
     for suffix in ("f32", "f64"):
         count = getattr(lib, f"us_bin_count_{suffix}")
-        count.argtypes = bin_head + [ptr] * 6
+        count.argtypes = bin_head + [ptr] * 9
         count.restype = i64
         fill = getattr(lib, f"us_bin_fill_{suffix}")
-        fill.argtypes = bin_head + [ptr] * 9
+        fill.argtypes = bin_head + [ptr] * 5 + [i64] + [ptr] * 4
         fill.restype = ctypes.c_int
     lib.us_gaussian_kl_f32.argtypes = [i64, ptr, ptr, f64, f64, ptr, ptr, i64]
     lib.us_gaussian_kl_f32.restype = f64
@@ -126,6 +127,14 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.us_ssim_forward_f32.restype = ctypes.c_int
     lib.us_ssim_backward_f32.argtypes = [i64] * 4 + [ptr] * 6 + [i64]
     lib.us_ssim_backward_f32.restype = ctypes.c_int
+    lib.us_sh_forward_f32.argtypes = [i64] * 4 + [ptr] * 4 + [i64]
+    lib.us_sh_forward_f32.restype = ctypes.c_int
+    lib.us_sh_backward_f32.argtypes = [i64] * 4 + [ptr] * 6 + [i64]
+    lib.us_sh_backward_f32.restype = ctypes.c_int
+    lib.us_project_forward_f32.argtypes = [i64, i64] + [ptr] * 6 + [i64, i64, f64, f64, f64, f64] + [ptr] * 5 + [i64]
+    lib.us_project_forward_f32.restype = ctypes.c_int
+    lib.us_project_backward_f32.argtypes = [i64, i64] + [ptr] * 5 + [i64, i64, f64, f64, f64] + [ptr] * 6 + [i64]
+    lib.us_project_backward_f32.restype = ctypes.c_int
     lib.us_version.restype = ctypes.c_int
     lib.us_max_features.restype = ctypes.c_int
 

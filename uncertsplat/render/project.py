@@ -64,8 +64,19 @@ def project_gaussians(
     near: float = 0.01,
     far: float = 1e10,
     eps2d: float = 0.3,
+    backend: str | None = None,
 ) -> Projection:
-    """Project Gaussians into every camera (see the module docstring for the model)."""
+    """Project Gaussians into every camera (see the module docstring for the model).
+
+    On CPU (float32) the native kernel computes it and its gradient (``uncertsplat.native``; ``backend``
+    as in ``native.use_for``); the code below is the reference and the path on other devices.
+    """
+    from uncertsplat import native
+
+    if native.use_for(means, quats, scales, opacities, cam_from_world, K, backend=backend, dtypes=(torch.float32,),
+                      strict=False):
+        return Projection(*_NativeProjection.apply(means, quats, scales, opacities, cam_from_world, K, width, height,
+                                                   near, far, eps2d))
     R = cam_from_world[:, :3, :3]  # [C,3,3]
     t = cam_from_world[:, :3, 3]  # [C,3]
     p = torch.einsum("cij,nj->cni", R, means) + t[:, None, :]  # [C,N,3]
@@ -125,3 +136,44 @@ def project_gaussians(
         valid = valid & (m2[..., 1] + ey > 0.5) & (m2[..., 1] - ey < height - 0.5)
         extents = torch.where(valid[..., None], torch.stack([ex, ey], -1), torch.zeros_like(m2))
     return Projection(means2d, conics, z, extents, valid)
+
+
+class _NativeProjection(torch.autograd.Function):
+    """``project_gaussians`` by the native kernel. Gradients flow to means, quats and scales from means2d,
+    conics and depths; extents and valid carry none (as in the reference)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, cam_from_world, K, width, height, near, far, eps2d):
+        from uncertsplat import native
+
+        means, quats, scales, opacities, cams, Ks = (
+            t.detach().contiguous() for t in (means, quats, scales, opacities, cam_from_world, K))
+        C, N = cams.shape[0], means.shape[0]
+        means2d, conics = means.new_empty(C, N, 2), means.new_empty(C, N, 3)
+        depths, extents = means.new_empty(C, N), means.new_empty(C, N, 2)
+        valid = torch.empty(C, N, dtype=torch.uint8)
+        native.library().us_project_forward_f32(
+            C, N, means.data_ptr(), quats.data_ptr(), scales.data_ptr(), opacities.data_ptr(), cams.data_ptr(),
+            Ks.data_ptr(), width, height, near, far, eps2d, ALPHA_MIN, means2d.data_ptr(), conics.data_ptr(),
+            depths.data_ptr(), extents.data_ptr(), valid.data_ptr(), torch.get_num_threads())
+        ctx.save_for_backward(means, quats, scales, cams, Ks)
+        ctx.args = (width, height, near, far, eps2d)
+        ctx.mark_non_differentiable(extents)
+        valid = valid.bool()
+        ctx.mark_non_differentiable(valid)
+        return means2d, conics, depths, extents, valid
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths, _g_extents, _g_valid):
+        from uncertsplat import native
+
+        means, quats, scales, cams, Ks = ctx.saved_tensors
+        width, height, near, far, eps2d = ctx.args
+        C, N = cams.shape[0], means.shape[0]
+        grads = [None if g is None else g.contiguous() for g in (g_means2d, g_conics, g_depths)]
+        g_means, g_quats, g_scales = torch.empty_like(means), torch.empty_like(quats), torch.empty_like(scales)
+        native.library().us_project_backward_f32(
+            C, N, means.data_ptr(), quats.data_ptr(), scales.data_ptr(), cams.data_ptr(), Ks.data_ptr(), width,
+            height, near, far, eps2d, *(None if g is None else g.data_ptr() for g in grads), g_means.data_ptr(),
+            g_quats.data_ptr(), g_scales.data_ptr(), torch.get_num_threads())
+        return g_means, g_quats, g_scales, None, None, None, None, None, None, None, None

@@ -147,25 +147,32 @@ def bin_gaussians(
 @torch.no_grad()
 def _bin_native(means2d: Tensor, extents: Tensor, valid: Tensor, depths: Tensor, conics: Tensor, opacities: Tensor,
                 width: int, height: int, tile_size: int) -> TileBins:
-    """``bin_gaussians`` by the native kernel: a counting sort by tile of the depth-ordered Gaussians."""
+    """``bin_gaussians`` by the native kernel: a radix sort by depth, then a counting sort by tile."""
     lib = native.library()
     C, N = valid.shape
+    G = C * N
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
-    vidx = valid.reshape(-1).nonzero().squeeze(1)  # [V]
-    order = vidx.index_select(0, torch.argsort(depths.reshape(-1).index_select(0, vidx), stable=True))
-    m2, ext, con = (t.detach().contiguous() for t in (means2d, extents.to(means2d.dtype), conics))
-    opac = opacities.detach().to(means2d.dtype).contiguous()
-    head = (order.numel(), N, C, width, height, tile_size, tiles_x, tiles_y, ALPHA_MIN)
-    ptrs = (order.data_ptr(), m2.data_ptr(), ext.data_ptr(), con.data_ptr(), opac.data_ptr())
-    f64 = m2.dtype == torch.float64
-    tile_count = torch.zeros(C * tiles_x * tiles_y, dtype=torch.long)
-    M = (lib.us_bin_count_f64 if f64 else lib.us_bin_count_f32)(*head, *ptrs, tile_count.data_ptr())
+    T = C * tiles_x * tiles_y
+    dt = means2d.dtype
+    m2, ext, con, dep = (t.detach().to(dt).contiguous() for t in (means2d, extents, conics, depths))
+    opac = opacities.detach().to(dt).contiguous()
+    vis = valid.to(torch.uint8).contiguous()
+    workers = max(1, min(torch.get_num_threads(), G // 4096 + 1))
+    head = (G, N, C, width, height, tile_size, tiles_x, tiles_y, workers, ALPHA_MIN)
+    ptrs = (m2.data_ptr(), ext.data_ptr(), con.data_ptr(), opac.data_ptr())
+    f64 = dt == torch.float64
+    order = torch.empty(G, dtype=torch.long)
+    num_visible = torch.zeros(1, dtype=torch.long)
+    counts = torch.empty(workers, T, dtype=torch.long)
+    M = (lib.us_bin_count_f64 if f64 else lib.us_bin_count_f32)(
+        *head, *ptrs, dep.data_ptr(), vis.data_ptr(), order.data_ptr(), num_visible.data_ptr(), counts.data_ptr())
+    tile_count = counts.sum(0)
     tile_start = torch.cumsum(tile_count, 0) - tile_count
     pair_gauss = torch.empty(M, dtype=torch.long)
     pair_tile = torch.empty(M, dtype=torch.long)
-    cursor = torch.empty_like(tile_count)
-    (lib.us_bin_fill_f64 if f64 else lib.us_bin_fill_f32)(*head, *ptrs, tile_start.data_ptr(), cursor.data_ptr(),
-                                                          pair_gauss.data_ptr(), pair_tile.data_ptr())
+    (lib.us_bin_fill_f64 if f64 else lib.us_bin_fill_f32)(
+        *head, *ptrs, order.data_ptr(), int(num_visible), counts.data_ptr(), tile_start.data_ptr(),
+        pair_gauss.data_ptr(), pair_tile.data_ptr())
     return TileBins(pair_gauss, pair_tile, tile_start, tile_count, tiles_x, tiles_y, tile_size)
 
 

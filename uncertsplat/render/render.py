@@ -49,8 +49,9 @@ def render(
         eps2d: screen-space dilation added to the 2D covariance (pixels^2).
         compile: run the per-pixel kernels through ``torch.compile`` (opt-in; first call compiles).
         block_elements: pair-pixel elements per dense block of the PyTorch compositor (memory/speed).
-        backend: compositor: ``"auto"`` (the native CPU kernel for CPU tensors when it builds, else
-            PyTorch), ``"native"`` or ``"torch"``; None reads ``UNCERTSPLAT_RASTERIZER`` (default auto).
+        backend: kernels for projection, SH colours, binning and compositing: ``"auto"`` (the native CPU
+            kernels for CPU tensors when they build, else PyTorch), ``"native"`` or ``"torch"``; None reads
+            ``UNCERTSPLAT_RASTERIZER`` (default auto). Projection and SH are native for float32 only.
 
     Returns:
         RenderOutput with rgb [C,H,W,3], alpha [C,H,W,1], depth [C,H,W,1] (alpha-normalised camera z,
@@ -64,14 +65,15 @@ def render(
     cam_from_world = cameras.cam_from_world.to(dtype)
     K = cameras.K.to(dtype)
     proj = project_gaussians(
-        sample.means, sample.quats, sample.scales, sample.opacities, cam_from_world, K, W, H, near, far, eps2d
+        sample.means, sample.quats, sample.scales, sample.opacities, cam_from_world, K, W, H, near, far, eps2d,
+        backend=backend,
     )
     means2d = proj.means2d
     if means2d.requires_grad:
         means2d.retain_grad()
 
     centers = -(cam_from_world[:, :3, :3].transpose(1, 2) @ cam_from_world[:, :3, 3:])[..., 0]  # [C,3]
-    colors = sh_colors(sample.sh_degree, sample.sh, sample.means, centers)  # [C,N,3]
+    colors = sh_colors(sample.sh_degree, sample.sh, sample.means, centers, backend=backend)  # [C,N,3]
     ones = torch.ones_like(proj.depths)[..., None]
     feat = torch.cat([colors, proj.depths[..., None], ones], dim=-1).reshape(C * N, 5)
 

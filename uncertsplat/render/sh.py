@@ -96,7 +96,7 @@ def eval_sh(degree: int, sh: Tensor, dirs: Tensor) -> Tensor:
     return torch.einsum("cnb,nbk->cnk", basis, sh[:, :nb, :])
 
 
-def sh_colors(degree: int, sh: Tensor, means: Tensor, centers: Tensor) -> Tensor:
+def sh_colors(degree: int, sh: Tensor, means: Tensor, centers: Tensor, backend: str | None = None) -> Tensor:
     """3DGS colour of each Gaussian seen from each camera centre.
 
     Args:
@@ -107,7 +107,15 @@ def sh_colors(degree: int, sh: Tensor, means: Tensor, centers: Tensor) -> Tensor
 
     Returns:
         [C,N,3] colours ``max(SH(d) + 0.5, 0)`` with d = normalise(mean - centre).
+
+    On CPU (float32) the native kernel computes it and its gradient (``uncertsplat.native``; ``backend``
+    as in ``native.use_for``); the code below is the reference and the path on other devices.
     """
+    from uncertsplat import native
+
+    if native.use_for(sh, means, centers, backend=backend, dtypes=(torch.float32,), strict=False,
+                      supported=0 <= degree <= 3):
+        return _NativeSH.apply(sh, means, centers, degree)
     if degree == 0:
         # The DC term does not depend on the direction: skip the normalisation (and its gradient).
         rgb = (sh[:, 0, :] * C0 + 0.5).unsqueeze(0).expand(centers.shape[0], -1, -1)
@@ -116,3 +124,35 @@ def sh_colors(degree: int, sh: Tensor, means: Tensor, centers: Tensor) -> Tensor
     # Gaussians exactly at a camera centre have no direction: clamp the norm so values stay finite.
     d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     return (eval_sh(degree, sh, d) + 0.5).clamp_min(0.0)
+
+
+class _NativeSH(torch.autograd.Function):
+    """``sh_colors`` by the native kernel; backward gives d loss / d sh and d loss / d means (view direction)."""
+
+    @staticmethod
+    def forward(ctx, sh: Tensor, means: Tensor, centers: Tensor, degree: int) -> Tensor:
+        from uncertsplat import native
+
+        sh, means, centers = (t.detach().contiguous() for t in (sh, means, centers))
+        C, (N, B) = centers.shape[0], sh.shape[:2]
+        if B < num_sh_bases(degree):
+            raise ValueError(f"sh has {B} bases, degree {degree} needs {num_sh_bases(degree)}")
+        out = sh.new_empty(C, N, 3)
+        native.library().us_sh_forward_f32(C, N, B, degree, sh.data_ptr(), means.data_ptr(), centers.data_ptr(),
+                                           out.data_ptr(), torch.get_num_threads())
+        ctx.save_for_backward(sh, means, centers)
+        ctx.degree = degree
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        from uncertsplat import native
+
+        sh, means, centers = ctx.saved_tensors
+        C, (N, B) = centers.shape[0], sh.shape[:2]
+        g_sh, g_means = torch.empty_like(sh), torch.empty_like(means)
+        grad = grad.contiguous()  # kept in a variable: the kernel reads it after data_ptr() returns
+        native.library().us_sh_backward_f32(C, N, B, ctx.degree, sh.data_ptr(), means.data_ptr(), centers.data_ptr(),
+                                            grad.data_ptr(), g_sh.data_ptr(), g_means.data_ptr(),
+                                            torch.get_num_threads())
+        return g_sh, g_means, None, None

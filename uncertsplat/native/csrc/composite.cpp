@@ -309,15 +309,47 @@ int backward_any(int64_t F, const Params& prm, int64_t G, int64_t M, const S* gp
 
 
 // ------------------------------------------------------------------------------------------ binning
-// The (tile, Gaussian) pairs of rasterize.bin_gaussians, in the same order: Gaussians are visited front
-// to back (`order`, flat indices camera * N + n), each lists the tiles of its opacity-aware box whose
-// pixel-centre rectangle its alpha >= 1/255 ellipse reaches (the same conservative test), and a
-// counting sort by tile keeps the depth order inside every tile.
+// The (tile, Gaussian) pairs of rasterize.bin_gaussians, in the same order: visible Gaussians (flat
+// indices camera * N + n) are sorted front to back by a stable radix sort of their depth, each lists the
+// tiles of its opacity-aware box whose pixel-centre rectangle its alpha >= 1/255 ellipse reaches (the
+// same conservative test), and a counting sort by tile keeps the depth order inside every tile. Workers
+// take contiguous slices of the depth order, so the result does not depend on the number of threads.
 
 struct BinArgs {
-    int64_t V, N, C, width, height, tile_size, tiles_x, tiles_y;
+    int64_t G, N, C, width, height, tile_size, tiles_x, tiles_y, workers;
     double alpha_min;
 };
+
+// Stable LSD radix sort (8-bit digits) of the valid entries by depth; returns their count V.
+int64_t depth_order(const BinArgs& a, const float* depths, const uint8_t* valid, int64_t* order) {
+    std::vector<uint32_t> key, key2;
+    std::vector<int64_t> idx2;
+    int64_t V = 0;
+    for (int64_t g = 0; g < a.G; ++g)
+        if (valid[g]) order[V++] = g;
+    key.resize(V);
+    for (int64_t i = 0; i < V; ++i) {
+        uint32_t bits;
+        std::memcpy(&bits, depths + order[i], sizeof(bits));
+        key[i] = (bits & 0x80000000u) ? ~bits : (bits | 0x80000000u);  // float order as unsigned order
+    }
+    key2.resize(V);
+    idx2.resize(V);
+    for (int shift = 0; shift < 32; shift += 8) {
+        int64_t count[257] = {0};
+        for (int64_t i = 0; i < V; ++i) ++count[((key[i] >> shift) & 0xff) + 1];
+        if (count[1] == V) continue;  // all in one bucket: this digit keeps the order
+        for (int d = 0; d < 256; ++d) count[d + 1] += count[d];
+        for (int64_t i = 0; i < V; ++i) {
+            const int64_t k = count[(key[i] >> shift) & 0xff]++;
+            key2[k] = key[i];
+            idx2[k] = order[i];
+        }
+        key.swap(key2);
+        std::copy(idx2.begin(), idx2.end(), order);
+    }
+    return V;
+}
 
 // Tile range [tx0, tx1) x [ty0, ty1) of one Gaussian's box, clamped to the image.
 template <typename S>
@@ -335,25 +367,26 @@ void tile_box(const BinArgs& a, S mx, S my, S ex, S ey, int64_t& tx0, int64_t& t
 
 // True when the alpha >= alpha_min ellipse may reach the tile's pixel-centre rectangle (conservative,
 // NaN keeps the pair): the minimum of the conic form over the rectangle lies on an edge the mean is
-// outside of, so it is the smaller of two clamped 1D minima.
+// outside of, so it is the smaller of two clamped 1D minima. nb_c = -b / c and nb_a = -b / a.
 template <typename S>
-bool ellipse_meets_tile(S mx, S my, S ca, S cb, S cc, S thr, int64_t tx, int64_t ty, int64_t ts) {
+bool ellipse_meets_tile(S mx, S my, S ca, S cb, S cc, S nb_c, S nb_a, S limit, int64_t tx, int64_t ty, int64_t ts) {
     const S x0 = static_cast<S>(tx * ts) + S(0.5) - mx, y0 = static_cast<S>(ty * ts) + S(0.5) - my;
     const S x1 = x0 + static_cast<S>(ts - 1), y1 = y0 + static_cast<S>(ts - 1);
     auto clampv = [](S v, S lo, S hi) { return std::min(std::max(v, lo), hi); };
     const S dxs = clampv(S(0), x0, x1), dys = clampv(S(0), y0, y1);
-    const S dy1 = clampv(-cb * dxs / cc, y0, y1);
+    const S dy1 = clampv(nb_c * dxs, y0, y1);
     const S q1 = ca * dxs * dxs + S(2) * cb * dxs * dy1 + cc * dy1 * dy1;
-    const S dx2 = clampv(-cb * dys / ca, x0, x1);
+    const S dx2 = clampv(nb_a * dys, x0, x1);
     const S q2 = ca * dx2 * dx2 + S(2) * cb * dx2 * dys + cc * dys * dys;
-    return !(std::min(q1, q2) > thr * S(1.001) + S(1e-3));
+    return !(std::min(q1, q2) > limit);
 }
 
+// Calls emit(g, tile) for every pair of the Gaussians order[lo, hi), in that order.
 template <typename S, typename Emit>
-void visit_pairs(const BinArgs& a, const int64_t* order, const S* means2d, const S* extents, const S* conics,
-                 const S* opac, Emit emit) {
+void visit_pairs(const BinArgs& a, const int64_t* order, int64_t lo, int64_t hi, const S* means2d, const S* extents,
+                 const S* conics, const S* opac, Emit emit) {
     const int64_t tpc = a.tiles_x * a.tiles_y;
-    for (int64_t i = 0; i < a.V; ++i) {
+    for (int64_t i = lo; i < hi; ++i) {
         const int64_t g = order[i];
         const S mx = means2d[2 * g], my = means2d[2 * g + 1];
         int64_t tx0, tx1, ty0, ty1;
@@ -361,43 +394,69 @@ void visit_pairs(const BinArgs& a, const int64_t* order, const S* means2d, const
         const S o = opac[a.C > 1 ? g % a.N : g];
         const S ratio = o / static_cast<S>(a.alpha_min);
         const S thr = S(2) * std::log(ratio > S(1) ? ratio : S(1));
+        const S limit = thr * S(1.001) + S(1e-3);  // margin against float rounding, as in rasterize.py
         const S ca = conics[3 * g], cb = conics[3 * g + 1], cc = conics[3 * g + 2];
+        const S nb_c = -cb / cc, nb_a = -cb / ca;
         const int64_t base = (g / a.N) * tpc;
         for (int64_t ty = ty0; ty < ty1; ++ty)
             for (int64_t tx = tx0; tx < tx1; ++tx)
-                if (ellipse_meets_tile<S>(mx, my, ca, cb, cc, thr, tx, ty, a.tile_size)) emit(g, base + ty * a.tiles_x + tx);
+                if (ellipse_meets_tile<S>(mx, my, ca, cb, cc, nb_c, nb_a, limit, tx, ty, a.tile_size))
+                    emit(g, base + ty * a.tiles_x + tx);
     }
 }
 
+// Pass 1: the depth order, and per worker the number of pairs of each tile (counts [workers, T]).
 template <typename S>
-int64_t bin_count(const BinArgs& a, const int64_t* order, const S* means2d, const S* extents, const S* conics,
-                  const S* opac, int64_t* tile_count) {
-    int64_t total = 0;
-    visit_pairs<S>(a, order, means2d, extents, conics, opac, [&](int64_t, int64_t t) {
-        ++tile_count[t];
-        ++total;
+int64_t bin_count(const BinArgs& a, const S* means2d, const S* extents, const S* conics, const S* opac,
+                  const S* depths, const uint8_t* valid, int64_t* order, int64_t* num_visible, int64_t* counts) {
+    static_assert(sizeof(S) == 4 || sizeof(S) == 8, "float or double");
+    int64_t V;
+    if constexpr (sizeof(S) == 4) {
+        V = depth_order(a, depths, valid, order);
+    } else {  // float64 inputs (tests): sort by the float32 depth would lose ties; use a stable sort
+        V = 0;
+        for (int64_t g = 0; g < a.G; ++g)
+            if (valid[g]) order[V++] = g;
+        std::stable_sort(order, order + V, [&](int64_t x, int64_t y) { return depths[x] < depths[y]; });
+    }
+    *num_visible = V;
+    const int64_t T = a.C * a.tiles_x * a.tiles_y;
+    std::fill(counts, counts + a.workers * T, int64_t{0});
+    uskern::run_workers(a.workers, [&](int64_t w) {
+        int64_t* cnt = counts + w * T;
+        visit_pairs<S>(a, order, V * w / a.workers, V * (w + 1) / a.workers, means2d, extents, conics, opac,
+                       [&](int64_t, int64_t t) { ++cnt[t]; });
     });
+    int64_t total = 0;
+    for (int64_t i = 0; i < a.workers * T; ++i) total += counts[i];
     return total;
 }
 
+// Pass 2: with tile_start (cumulative counts over all workers), every worker writes its pairs after
+// those of the workers before it (its slice is nearer), so every tile stays in depth order.
 template <typename S>
-void bin_fill(const BinArgs& a, const int64_t* order, const S* means2d, const S* extents, const S* conics,
-              const S* opac, const int64_t* tile_start, int64_t* cursor, int64_t* pair_gauss, int64_t* pair_tile) {
+void bin_fill(const BinArgs& a, const S* means2d, const S* extents, const S* conics, const S* opac,
+              const int64_t* order, int64_t V, const int64_t* counts, const int64_t* tile_start, int64_t* pair_gauss,
+              int64_t* pair_tile) {
     const int64_t T = a.C * a.tiles_x * a.tiles_y;
-    for (int64_t t = 0; t < T; ++t) cursor[t] = tile_start[t];
-    visit_pairs<S>(a, order, means2d, extents, conics, opac, [&](int64_t g, int64_t t) {
-        const int64_t k = cursor[t]++;
-        pair_gauss[k] = g;
-        pair_tile[k] = t;
+    uskern::run_workers(a.workers, [&](int64_t w) {
+        std::vector<int64_t> cursor(tile_start, tile_start + T);
+        for (int64_t v = 0; v < w; ++v)
+            for (int64_t t = 0; t < T; ++t) cursor[t] += counts[v * T + t];
+        visit_pairs<S>(a, order, V * w / a.workers, V * (w + 1) / a.workers, means2d, extents, conics, opac,
+                       [&](int64_t g, int64_t t) {
+                           const int64_t k = cursor[t]++;
+                           pair_gauss[k] = g;
+                           pair_tile[k] = t;
+                       });
     });
 }
-
 }  // namespace
 
 extern "C" {
 
 // Interface version: native.py refuses a library whose version differs from its own.
-int us_version() { return 6; }
+int us_version() { return 8; }
 
 int us_max_features() { return 8; }
 
@@ -440,40 +499,42 @@ int us_backward_f64(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, i
                               g_gauss);
 }
 
-// Binning, in two calls: count the pairs per tile (returns the total M), then, with tile_start from a
-// cumulative sum of the counts, fill pair_gauss and pair_tile [M] (cursor: scratch [T]).
-#define US_BIN_ARGS BinArgs args{V, N, C, width, height, tile_size, tiles_x, tiles_y, alpha_min};
+// Binning, in two calls. us_bin_count: the depth order of the valid entries (order [G], num_visible),
+// per-worker tile counts [workers, T]; returns the number of pairs M. us_bin_fill: with tile_start [T]
+// (cumulative sum of the counts summed over workers), writes pair_gauss and pair_tile [M].
+#define US_BIN_ARGS BinArgs args{G, N, C, width, height, tile_size, tiles_x, tiles_y, workers, alpha_min};
+#define US_BIN_HEAD                                                                                             \
+    int64_t G, int64_t N, int64_t C, int64_t width, int64_t height, int64_t tile_size, int64_t tiles_x,       \
+        int64_t tiles_y, int64_t workers, double alpha_min
 
-int64_t us_bin_count_f32(int64_t V, int64_t N, int64_t C, int64_t width, int64_t height, int64_t tile_size,
-                         int64_t tiles_x, int64_t tiles_y, double alpha_min, const int64_t* order, const float* means2d,
-                         const float* extents, const float* conics, const float* opac, int64_t* tile_count) {
+int64_t us_bin_count_f32(US_BIN_HEAD, const float* means2d, const float* extents, const float* conics,
+                         const float* opac, const float* depths, const uint8_t* valid, int64_t* order,
+                         int64_t* num_visible, int64_t* counts) {
     US_BIN_ARGS
-    return bin_count<float>(args, order, means2d, extents, conics, opac, tile_count);
+    return bin_count<float>(args, means2d, extents, conics, opac, depths, valid, order, num_visible, counts);
 }
 
-int64_t us_bin_count_f64(int64_t V, int64_t N, int64_t C, int64_t width, int64_t height, int64_t tile_size,
-                         int64_t tiles_x, int64_t tiles_y, double alpha_min, const int64_t* order,
-                         const double* means2d, const double* extents, const double* conics, const double* opac,
-                         int64_t* tile_count) {
+int64_t us_bin_count_f64(US_BIN_HEAD, const double* means2d, const double* extents, const double* conics,
+                         const double* opac, const double* depths, const uint8_t* valid, int64_t* order,
+                         int64_t* num_visible, int64_t* counts) {
     US_BIN_ARGS
-    return bin_count<double>(args, order, means2d, extents, conics, opac, tile_count);
+    return bin_count<double>(args, means2d, extents, conics, opac, depths, valid, order, num_visible, counts);
 }
 
-int us_bin_fill_f32(int64_t V, int64_t N, int64_t C, int64_t width, int64_t height, int64_t tile_size,
-                    int64_t tiles_x, int64_t tiles_y, double alpha_min, const int64_t* order, const float* means2d,
-                    const float* extents, const float* conics, const float* opac, const int64_t* tile_start,
-                    int64_t* cursor, int64_t* pair_gauss, int64_t* pair_tile) {
+int us_bin_fill_f32(US_BIN_HEAD, const float* means2d, const float* extents, const float* conics, const float* opac,
+                    const int64_t* order, int64_t num_visible, const int64_t* counts, const int64_t* tile_start,
+                    int64_t* pair_gauss, int64_t* pair_tile) {
     US_BIN_ARGS
-    bin_fill<float>(args, order, means2d, extents, conics, opac, tile_start, cursor, pair_gauss, pair_tile);
+    bin_fill<float>(args, means2d, extents, conics, opac, order, num_visible, counts, tile_start, pair_gauss, pair_tile);
     return 0;
 }
 
-int us_bin_fill_f64(int64_t V, int64_t N, int64_t C, int64_t width, int64_t height, int64_t tile_size,
-                    int64_t tiles_x, int64_t tiles_y, double alpha_min, const int64_t* order, const double* means2d,
-                    const double* extents, const double* conics, const double* opac, const int64_t* tile_start,
-                    int64_t* cursor, int64_t* pair_gauss, int64_t* pair_tile) {
+int us_bin_fill_f64(US_BIN_HEAD, const double* means2d, const double* extents, const double* conics,
+                    const double* opac, const int64_t* order, int64_t num_visible, const int64_t* counts,
+                    const int64_t* tile_start, int64_t* pair_gauss, int64_t* pair_tile) {
     US_BIN_ARGS
-    bin_fill<double>(args, order, means2d, extents, conics, opac, tile_start, cursor, pair_gauss, pair_tile);
+    bin_fill<double>(args, means2d, extents, conics, opac, order, num_visible, counts, tile_start, pair_gauss,
+                     pair_tile);
     return 0;
 }
 

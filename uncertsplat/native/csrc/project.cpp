@@ -1,0 +1,403 @@
+// Per-Gaussian front end of the rasterizer, forward and backward: SH colours seen from each camera
+// (uncertsplat/render/sh.py) and the EWA projection (uncertsplat/render/project.py, the reference; see
+// its docstring for the model). The PyTorch versions are the reference and the path on other devices;
+// these replace dozens of elementwise tensor ops (and their autograd graph) by one pass per Gaussian.
+//
+// Layouts (row-major, float32): means [N,3], quats [N,4] wxyz, scales [N,3], opacities [N], sh [N,B,3],
+// cam_from_world [C,4,4], K [C,3,3], centres [C,3]; per camera outputs [C,N,...].
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+
+#include "parallel.h"
+
+namespace {
+
+constexpr float SH_C0 = 0.28209479177387814f;
+constexpr float SH_C1 = 0.4886025119029199f;
+constexpr float SH_C2[5] = {1.0925484305920792f, -1.0925484305920792f, 0.31539156525252005f, -1.0925484305920792f,
+                            0.5462742152960396f};
+constexpr float SH_C3[7] = {-0.5900435899266435f, 2.890611442640554f, -0.4570457994644658f, 0.3731763325901154f,
+                            -0.4570457994644658f, 1.445305721320277f, -0.5900435899266435f};
+
+// Basis values Y[0..nb) at the unit direction (x, y, z) and, when dY is given, their partial
+// derivatives w.r.t. x, y, z (dY[b][0..3)), treating the components as independent.
+inline void sh_basis(int degree, float x, float y, float z, float* Y, float (*dY)[3]) {
+    Y[0] = SH_C0;
+    if (dY) dY[0][0] = dY[0][1] = dY[0][2] = 0.0f;
+    if (degree < 1) return;
+    Y[1] = -SH_C1 * y;
+    Y[2] = SH_C1 * z;
+    Y[3] = -SH_C1 * x;
+    if (dY) {
+        dY[1][0] = 0; dY[1][1] = -SH_C1; dY[1][2] = 0;
+        dY[2][0] = 0; dY[2][1] = 0; dY[2][2] = SH_C1;
+        dY[3][0] = -SH_C1; dY[3][1] = 0; dY[3][2] = 0;
+    }
+    if (degree < 2) return;
+    const float xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+    Y[4] = SH_C2[0] * xy;
+    Y[5] = SH_C2[1] * yz;
+    Y[6] = SH_C2[2] * (2.0f * zz - xx - yy);
+    Y[7] = SH_C2[3] * xz;
+    Y[8] = SH_C2[4] * (xx - yy);
+    if (dY) {
+        dY[4][0] = SH_C2[0] * y; dY[4][1] = SH_C2[0] * x; dY[4][2] = 0;
+        dY[5][0] = 0; dY[5][1] = SH_C2[1] * z; dY[5][2] = SH_C2[1] * y;
+        dY[6][0] = -2.0f * SH_C2[2] * x; dY[6][1] = -2.0f * SH_C2[2] * y; dY[6][2] = 4.0f * SH_C2[2] * z;
+        dY[7][0] = SH_C2[3] * z; dY[7][1] = 0; dY[7][2] = SH_C2[3] * x;
+        dY[8][0] = 2.0f * SH_C2[4] * x; dY[8][1] = -2.0f * SH_C2[4] * y; dY[8][2] = 0;
+    }
+    if (degree < 3) return;
+    Y[9] = SH_C3[0] * y * (3.0f * xx - yy);
+    Y[10] = SH_C3[1] * xy * z;
+    Y[11] = SH_C3[2] * y * (4.0f * zz - xx - yy);
+    Y[12] = SH_C3[3] * z * (2.0f * zz - 3.0f * xx - 3.0f * yy);
+    Y[13] = SH_C3[4] * x * (4.0f * zz - xx - yy);
+    Y[14] = SH_C3[5] * z * (xx - yy);
+    Y[15] = SH_C3[6] * x * (xx - 3.0f * yy);
+    if (dY) {
+        dY[9][0] = SH_C3[0] * 6.0f * xy; dY[9][1] = SH_C3[0] * (3.0f * xx - 3.0f * yy); dY[9][2] = 0;
+        dY[10][0] = SH_C3[1] * yz; dY[10][1] = SH_C3[1] * xz; dY[10][2] = SH_C3[1] * xy;
+        dY[11][0] = SH_C3[2] * -2.0f * xy; dY[11][1] = SH_C3[2] * (4.0f * zz - xx - 3.0f * yy);
+        dY[11][2] = SH_C3[2] * 8.0f * yz;
+        dY[12][0] = SH_C3[3] * -6.0f * xz; dY[12][1] = SH_C3[3] * -6.0f * yz;
+        dY[12][2] = SH_C3[3] * (6.0f * zz - 3.0f * xx - 3.0f * yy);
+        dY[13][0] = SH_C3[4] * (4.0f * zz - 3.0f * xx - yy); dY[13][1] = SH_C3[4] * -2.0f * xy;
+        dY[13][2] = SH_C3[4] * 8.0f * xz;
+        dY[14][0] = SH_C3[5] * 2.0f * xz; dY[14][1] = SH_C3[5] * -2.0f * yz; dY[14][2] = SH_C3[5] * (xx - yy);
+        dY[15][0] = SH_C3[6] * (3.0f * xx - 3.0f * yy); dY[15][1] = SH_C3[6] * -6.0f * xy; dY[15][2] = 0;
+    }
+}
+
+// Unit direction from the camera centre to the mean; the norm is clamped at 1e-12 as in sh.py.
+inline float view_dir(const float* mean, const float* centre, float* d) {
+    const float vx = mean[0] - centre[0], vy = mean[1] - centre[1], vz = mean[2] - centre[2];
+    const float n = std::max(std::sqrt(vx * vx + vy * vy + vz * vz), 1e-12f);
+    d[0] = vx / n;
+    d[1] = vy / n;
+    d[2] = vz / n;
+    return n;
+}
+
+void sh_forward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, const float* means,
+                const float* centres, float* out, int64_t num_threads) {
+    const int nb = (degree + 1) * (degree + 1);
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, N / 2048 + 1));
+    uskern::run_workers(workers, [&](int64_t w) {
+        float Y[16], d[3] = {0.0f, 0.0f, 0.0f};
+        for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n) {
+            const float* s = sh + n * B * 3;
+            for (int64_t c = 0; c < C; ++c) {
+                if (degree > 0) view_dir(means + 3 * n, centres + 3 * c, d);
+                sh_basis(degree, d[0], d[1], d[2], Y, nullptr);
+                float* o = out + (c * N + n) * 3;
+                for (int k = 0; k < 3; ++k) {
+                    float v = 0.5f;
+                    for (int b = 0; b < nb; ++b) v += Y[b] * s[b * 3 + k];
+                    o[k] = v > 0.0f ? v : 0.0f;
+                }
+            }
+        }
+    });
+}
+
+// g_sh [N,B,3] and g_means [N,3] are overwritten (bases above the degree get 0).
+void sh_backward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, const float* means,
+                 const float* centres, const float* g_out, float* g_sh, float* g_means, int64_t num_threads) {
+    const int nb = (degree + 1) * (degree + 1);
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, N / 2048 + 1));
+    uskern::run_workers(workers, [&](int64_t w) {
+        float Y[16], dY[16][3], d[3] = {0.0f, 0.0f, 0.0f};
+        for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n) {
+            const float* s = sh + n * B * 3;
+            float* gs = g_sh + n * B * 3;
+            std::fill(gs, gs + B * 3, 0.0f);
+            float gm[3] = {0.0f, 0.0f, 0.0f};
+            for (int64_t c = 0; c < C; ++c) {
+                const float* g = g_out + (c * N + n) * 3;
+                if (g[0] == 0.0f && g[1] == 0.0f && g[2] == 0.0f) continue;
+                float norm = 1.0f;
+                if (degree > 0) norm = view_dir(means + 3 * n, centres + 3 * c, d);
+                sh_basis(degree, d[0], d[1], d[2], Y, degree > 0 ? dY : nullptr);
+                float gk[3];
+                for (int k = 0; k < 3; ++k) {  // the clamp at 0 passes the gradient where the value is >= 0
+                    float v = 0.5f;
+                    for (int b = 0; b < nb; ++b) v += Y[b] * s[b * 3 + k];
+                    gk[k] = v >= 0.0f ? g[k] : 0.0f;
+                }
+                float gd[3] = {0.0f, 0.0f, 0.0f};
+                for (int b = 0; b < nb; ++b) {
+                    float dv = 0.0f;  // d loss / d Y_b
+                    for (int k = 0; k < 3; ++k) {
+                        gs[b * 3 + k] += gk[k] * Y[b];
+                        dv += gk[k] * s[b * 3 + k];
+                    }
+                    if (degree > 0)
+                        for (int i = 0; i < 3; ++i) gd[i] += dv * dY[b][i];
+                }
+                if (degree > 0) {  // through d = v / |v|: (gd - d (d . gd)) / |v|
+                    const float dot = gd[0] * d[0] + gd[1] * d[1] + gd[2] * d[2];
+                    for (int i = 0; i < 3; ++i) gm[i] += (gd[i] - d[i] * dot) / norm;
+                }
+            }
+            for (int i = 0; i < 3; ++i) g_means[3 * n + i] = gm[i];
+        }
+    });
+}
+
+
+// ------------------------------------------------------------------------------------- projection
+struct Camera {
+    float R[9], t[3], fx, fy, cx, cy, lo_u, hi_u, lo_v, hi_v;
+};
+
+inline Camera load_camera(const float* cam, const float* K, int64_t W, int64_t H) {
+    Camera c;
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) c.R[3 * i + j] = cam[4 * i + j];
+        c.t[i] = cam[4 * i + 3];
+    }
+    c.fx = K[0];
+    c.fy = K[4];
+    c.cx = K[2];
+    c.cy = K[5];
+    // the view angle at which the Jacobian is evaluated is clamped to 1.3x the field of view (3DGS)
+    c.hi_u = (static_cast<float>(W) - c.cx) / c.fx + 0.15f * static_cast<float>(W) / c.fx;
+    c.lo_u = -c.cx / c.fx - 0.15f * static_cast<float>(W) / c.fx;
+    c.hi_v = (static_cast<float>(H) - c.cy) / c.fy + 0.15f * static_cast<float>(H) / c.fy;
+    c.lo_v = -c.cy / c.fy - 0.15f * static_cast<float>(H) / c.fy;
+    return c;
+}
+
+// Rotation matrix (row-major) of the normalised quaternion q (wxyz); qn receives the unit quaternion and
+// the norm is clamped at 1e-12 as in project.py.
+inline void quat_rotmat(const float* q, float* qn, float* Rq) {
+    const float n = std::max(std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), 1e-12f);
+    for (int i = 0; i < 4; ++i) qn[i] = q[i] / n;
+    const float w = qn[0], x = qn[1], y = qn[2], z = qn[3];
+    Rq[0] = 1 - 2 * (y * y + z * z); Rq[1] = 2 * (x * y - w * z); Rq[2] = 2 * (x * z + w * y);
+    Rq[3] = 2 * (x * y + w * z); Rq[4] = 1 - 2 * (x * x + z * z); Rq[5] = 2 * (y * z - w * x);
+    Rq[6] = 2 * (x * z - w * y); Rq[7] = 2 * (y * z + w * x); Rq[8] = 1 - 2 * (x * x + y * y);
+}
+
+// Everything the forward computes for one (camera, Gaussian); backward recomputes it.
+struct Proj {
+    float p[3], zs, u, v, uc, vc;
+    bool in_depth;
+    float J[6], RM[9], A[6], qn[4], Rq[9];
+    float m2[2], conic[3], s;  // s: the normalisation of A, also the scale of the 2D covariance
+    float a, b, c;             // normalised covariance entries (covariance = s [[a, b], [b, c]])
+};
+
+inline void project_one(const Camera& cam, const float* x, const float* q, const float* sc, float near, float far,
+                        float eps2d, Proj& r) {
+    for (int i = 0; i < 3; ++i)
+        r.p[i] = cam.R[3 * i] * x[0] + cam.R[3 * i + 1] * x[1] + cam.R[3 * i + 2] * x[2] + cam.t[i];
+    const float z = r.p[2];
+    r.in_depth = z > near && z < far;
+    r.zs = r.in_depth ? z : 1.0f;  // culled Gaussians get a harmless z
+    r.u = r.p[0] / r.zs;
+    r.v = r.p[1] / r.zs;
+    r.m2[0] = cam.fx * r.u + cam.cx;
+    r.m2[1] = cam.fy * r.v + cam.cy;
+    r.uc = std::max(std::min(r.u, cam.hi_u), cam.lo_u);
+    r.vc = std::max(std::min(r.v, cam.hi_v), cam.lo_v);
+    r.J[0] = cam.fx / r.zs; r.J[1] = 0; r.J[2] = -cam.fx * r.uc / r.zs;
+    r.J[3] = 0; r.J[4] = cam.fy / r.zs; r.J[5] = -cam.fy * r.vc / r.zs;
+    quat_rotmat(q, r.qn, r.Rq);
+    float M[9];
+    for (int i = 0; i < 3; ++i)
+        for (int k = 0; k < 3; ++k) M[3 * i + k] = r.Rq[3 * i + k] * sc[k];
+    for (int i = 0; i < 3; ++i)
+        for (int k = 0; k < 3; ++k)
+            r.RM[3 * i + k] = cam.R[3 * i] * M[k] + cam.R[3 * i + 1] * M[3 + k] + cam.R[3 * i + 2] * M[6 + k];
+    for (int i = 0; i < 2; ++i)
+        for (int k = 0; k < 3; ++k)
+            r.A[3 * i + k] = r.J[3 * i] * r.RM[k] + r.J[3 * i + 1] * r.RM[3 + k] + r.J[3 * i + 2] * r.RM[6 + k];
+    // Covariance A A^T + eps I, normalised by its overall size s (no overflow for huge Gaussians), with
+    // the determinant from the Lagrange identity (no cancellation for needles), as in project.py.
+    float ss = eps2d;
+    for (int i = 0; i < 6; ++i) ss += r.A[i] * r.A[i];
+    r.s = ss;
+    const float inv = 1.0f / std::sqrt(ss), e = eps2d / ss;
+    float a1[3], a2[3];
+    for (int k = 0; k < 3; ++k) {
+        a1[k] = r.A[k] * inv;
+        a2[k] = r.A[3 + k] * inv;
+    }
+    r.a = a1[0] * a1[0] + a1[1] * a1[1] + a1[2] * a1[2] + e;
+    r.c = a2[0] * a2[0] + a2[1] * a2[1] + a2[2] * a2[2] + e;
+    r.b = a1[0] * a2[0] + a1[1] * a2[1] + a1[2] * a2[2];
+    const float cx = a1[1] * a2[2] - a1[2] * a2[1], cy = a1[2] * a2[0] - a1[0] * a2[2], cz = a1[0] * a2[1] - a1[1] * a2[0];
+    const float det = cx * cx + cy * cy + cz * cz + e * (r.a + r.c - 2 * e) + e * e;
+    const float denom = std::max(det * ss, 1.17549435e-38f);
+    r.conic[0] = r.c / denom;
+    r.conic[1] = -r.b / denom;
+    r.conic[2] = r.a / denom;
+}
+
+void project_forward(int64_t C, int64_t N, const float* means, const float* quats, const float* scales,
+                     const float* opac, const float* cams, const float* Ks, int64_t W, int64_t H, float near,
+                     float far, float eps2d, float alpha_min, float* means2d, float* conics, float* depths,
+                     float* extents, uint8_t* valid, int64_t num_threads) {
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, N / 2048 + 1));
+    uskern::run_workers(workers, [&](int64_t w) {
+        Proj r;
+        for (int64_t c = 0; c < C; ++c) {
+            const Camera cam = load_camera(cams + 16 * c, Ks + 9 * c, W, H);
+            for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n) {
+                project_one(cam, means + 3 * n, quats + 4 * n, scales + 3 * n, near, far, eps2d, r);
+                const int64_t cn = c * N + n;
+                means2d[2 * cn] = r.m2[0];
+                means2d[2 * cn + 1] = r.m2[1];
+                for (int i = 0; i < 3; ++i) conics[3 * cn + i] = r.conic[i];
+                depths[cn] = r.p[2];
+                // opacity-aware footprint: o exp(-q/2) >= alpha_min <=> q <= 2 ln(o / alpha_min)
+                const float o = opac[n];
+                const float thr = 2.0f * std::log(std::max(o / alpha_min, 1.0f));
+                const float ex = std::sqrt(thr * r.a * r.s) * 1.001f + 1e-3f;
+                const float ey = std::sqrt(thr * r.c * r.s) * 1.001f + 1e-3f;
+                bool ok = r.in_depth && o >= alpha_min && std::isfinite(ex) && std::isfinite(ey);
+                ok = ok && r.m2[0] + ex > 0.5f && r.m2[0] - ex < static_cast<float>(W) - 0.5f;
+                ok = ok && r.m2[1] + ey > 0.5f && r.m2[1] - ey < static_cast<float>(H) - 0.5f;
+                valid[cn] = ok ? 1 : 0;
+                extents[2 * cn] = ok ? ex : 0.0f;
+                extents[2 * cn + 1] = ok ? ey : 0.0f;
+            }
+        }
+    });
+}
+
+// Gradients w.r.t. means, quats and scales (overwritten) from those of means2d [C,N,2], conics [C,N,3]
+// and depths [C,N] (any may be null). The conic is inv(A A^T + eps I): d conic = -K dSigma K.
+void project_backward(int64_t C, int64_t N, const float* means, const float* quats, const float* scales,
+                      const float* cams, const float* Ks, int64_t W, int64_t H, float near, float far, float eps2d,
+                      const float* g_means2d, const float* g_conics, const float* g_depths, float* g_means,
+                      float* g_quats, float* g_scales, int64_t num_threads) {
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, N / 2048 + 1));
+    uskern::run_workers(workers, [&](int64_t w) {
+        Proj r;
+        for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n) {
+            float gx[3] = {0, 0, 0}, gRq[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, gs[3] = {0, 0, 0};
+            const float* sc = scales + 3 * n;
+            for (int64_t c = 0; c < C; ++c) {
+                const int64_t cn = c * N + n;
+                const float gm0 = g_means2d ? g_means2d[2 * cn] : 0.0f, gm1 = g_means2d ? g_means2d[2 * cn + 1] : 0.0f;
+                const float gk0 = g_conics ? g_conics[3 * cn] : 0.0f, gk1 = g_conics ? g_conics[3 * cn + 1] : 0.0f;
+                const float gk2 = g_conics ? g_conics[3 * cn + 2] : 0.0f, gz = g_depths ? g_depths[cn] : 0.0f;
+                if (gm0 == 0 && gm1 == 0 && gk0 == 0 && gk1 == 0 && gk2 == 0 && gz == 0) continue;
+                const Camera cam = load_camera(cams + 16 * c, Ks + 9 * c, W, H);
+                project_one(cam, means + 3 * n, quats + 4 * n, sc, near, far, eps2d, r);
+                // d loss / d Sigma = -K G K, G = [[gk0, gk1 / 2], [gk1 / 2, gk2]] (b is both off-diagonals)
+                const float k0 = r.conic[0], k1 = r.conic[1], k2 = r.conic[2];
+                const float h = 0.5f * gk1;
+                const float t00 = k0 * gk0 + k1 * h, t01 = k0 * h + k1 * gk2;  // K G
+                const float t10 = k1 * gk0 + k2 * h, t11 = k1 * h + k2 * gk2;
+                const float S00 = -(t00 * k0 + t01 * k1), S01 = -(t00 * k1 + t01 * k2);
+                const float S11 = -(t10 * k1 + t11 * k2);
+                // Sigma = A A^T + eps I: d loss / d A = 2 S A
+                float gA[6];
+                for (int k = 0; k < 3; ++k) {
+                    gA[k] = 2.0f * (S00 * r.A[k] + S01 * r.A[3 + k]);
+                    gA[3 + k] = 2.0f * (S01 * r.A[k] + S11 * r.A[3 + k]);
+                }
+                // A = J RM: d J = gA RM^T, d RM = J^T gA
+                float gJ[6], gRM[9];
+                for (int i = 0; i < 2; ++i)
+                    for (int j = 0; j < 3; ++j)
+                        gJ[3 * i + j] = gA[3 * i] * r.RM[3 * j] + gA[3 * i + 1] * r.RM[3 * j + 1] + gA[3 * i + 2] * r.RM[3 * j + 2];
+                for (int j = 0; j < 3; ++j)
+                    for (int k = 0; k < 3; ++k) gRM[3 * j + k] = r.J[j] * gA[k] + r.J[3 + j] * gA[3 + k];
+                // RM = R M: d M = R^T d RM; M = Rq diag(s)
+                for (int i = 0; i < 3; ++i)
+                    for (int k = 0; k < 3; ++k) {
+                        const float gM = cam.R[i] * gRM[k] + cam.R[3 + i] * gRM[3 + k] + cam.R[6 + i] * gRM[6 + k];
+                        gRq[3 * i + k] += gM * sc[k];
+                        gs[k] += gM * r.Rq[3 * i + k];
+                    }
+                // J entries -> zs, uc, vc; then u, v, p
+                const float zs = r.zs, iz = 1.0f / zs, iz2 = iz * iz;
+                float gzs = gJ[0] * (-cam.fx * iz2) + gJ[2] * (cam.fx * r.uc * iz2) + gJ[4] * (-cam.fy * iz2) +
+                            gJ[5] * (cam.fy * r.vc * iz2);
+                const float guc = gJ[2] * (-cam.fx * iz), gvc = gJ[5] * (-cam.fy * iz);
+                float gu = gm0 * cam.fx + ((r.u > cam.lo_u && r.u < cam.hi_u) ? guc : 0.0f);
+                float gv = gm1 * cam.fy + ((r.v > cam.lo_v && r.v < cam.hi_v) ? gvc : 0.0f);
+                gzs += -(gu * r.p[0] + gv * r.p[1]) * iz2;
+                float gp[3] = {gu * iz, gv * iz, gz + (r.in_depth ? gzs : 0.0f)};
+                for (int j = 0; j < 3; ++j) gx[j] += cam.R[j] * gp[0] + cam.R[3 + j] * gp[1] + cam.R[6 + j] * gp[2];
+            }
+            // Rq(qn) -> qn -> q (through the normalisation, blocked where the norm was clamped). r holds
+            // this Gaussian's values whenever some camera contributed (otherwise every gradient is 0).
+            bool any = false;
+            for (int i = 0; i < 9; ++i) any = any || gRq[i] != 0.0f;
+            if (any) {
+                const float qw = r.qn[0], qx = r.qn[1], qy = r.qn[2], qz = r.qn[3];
+                const float* G = gRq;
+                float gq[4];
+                gq[0] = 2 * (-qz * G[1] + qy * G[2] + qz * G[3] - qx * G[5] - qy * G[6] + qx * G[7]);
+                gq[1] = 2 * (qy * G[1] + qz * G[2] + qy * G[3] - 2 * qx * G[4] - qw * G[5] + qz * G[6] + qw * G[7] -
+                             2 * qx * G[8]);
+                gq[2] = 2 * (-2 * qy * G[0] + qx * G[1] + qw * G[2] + qx * G[3] + qz * G[5] - qw * G[6] + qz * G[7] -
+                             2 * qy * G[8]);
+                gq[3] = 2 * (-2 * qz * G[0] - qw * G[1] + qx * G[2] + qw * G[3] - 2 * qz * G[4] + qy * G[5] +
+                             qx * G[6] + qy * G[7]);
+                const float* q = quats + 4 * n;
+                const float raw = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+                const float dot = raw >= 1e-12f ? gq[0] * qw + gq[1] * qx + gq[2] * qy + gq[3] * qz : 0.0f;
+                const float nq = std::max(raw, 1e-12f);
+                float* go = g_quats + 4 * n;
+                go[0] = (gq[0] - qw * dot) / nq;
+                go[1] = (gq[1] - qx * dot) / nq;
+                go[2] = (gq[2] - qy * dot) / nq;
+                go[3] = (gq[3] - qz * dot) / nq;
+            } else {
+                std::fill(g_quats + 4 * n, g_quats + 4 * n + 4, 0.0f);
+            }
+            for (int j = 0; j < 3; ++j) {
+                g_means[3 * n + j] = gx[j];
+                g_scales[3 * n + j] = gs[j];
+            }
+        }
+    });
+}
+
+}  // namespace
+
+extern "C" {
+
+int us_sh_forward_f32(int64_t C, int64_t N, int64_t B, int64_t degree, const float* sh, const float* means,
+                      const float* centres, float* out, int64_t num_threads) {
+    if (degree < 0 || degree > 3 || (degree + 1) * (degree + 1) > B) return 1;
+    sh_forward(C, N, B, static_cast<int>(degree), sh, means, centres, out, num_threads);
+    return 0;
+}
+
+int us_sh_backward_f32(int64_t C, int64_t N, int64_t B, int64_t degree, const float* sh, const float* means,
+                       const float* centres, const float* g_out, float* g_sh, float* g_means, int64_t num_threads) {
+    if (degree < 0 || degree > 3 || (degree + 1) * (degree + 1) > B) return 1;
+    sh_backward(C, N, B, static_cast<int>(degree), sh, means, centres, g_out, g_sh, g_means, num_threads);
+    return 0;
+}
+
+int us_project_forward_f32(int64_t C, int64_t N, const float* means, const float* quats, const float* scales,
+                           const float* opac, const float* cams, const float* Ks, int64_t W, int64_t H, double near,
+                           double far, double eps2d, double alpha_min, float* means2d, float* conics, float* depths,
+                           float* extents, uint8_t* valid, int64_t num_threads) {
+    project_forward(C, N, means, quats, scales, opac, cams, Ks, W, H, static_cast<float>(near), static_cast<float>(far),
+                    static_cast<float>(eps2d), static_cast<float>(alpha_min), means2d, conics, depths, extents, valid,
+                    num_threads);
+    return 0;
+}
+
+int us_project_backward_f32(int64_t C, int64_t N, const float* means, const float* quats, const float* scales,
+                            const float* cams, const float* Ks, int64_t W, int64_t H, double near, double far,
+                            double eps2d, const float* g_means2d, const float* g_conics, const float* g_depths,
+                            float* g_means, float* g_quats, float* g_scales, int64_t num_threads) {
+    project_backward(C, N, means, quats, scales, cams, Ks, W, H, static_cast<float>(near), static_cast<float>(far),
+                     static_cast<float>(eps2d), g_means2d, g_conics, g_depths, g_means, g_quats, g_scales, num_threads);
+    return 0;
+}
+
+}  // extern "C"
