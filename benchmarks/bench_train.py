@@ -5,6 +5,11 @@ Scenes: the synthetic demo scene (generated here) with the ``demo`` preset, the 
 ``uncertsplat reconstruct`` unless ``--fern-workspace`` points to an existing workspace).
 
     .venv/bin/python benchmarks/bench_train.py --scenes tiny synthetic-demo [--iterations N] [--device cpu]
+    .venv/bin/python benchmarks/bench_train.py --scenes fern --fern-workspace WS \
+        --set scene.downscale=1.5873 densify.max_gaussians=60000 --compare-kernels 30
+
+``--compare-kernels K``: after training, K steps from the final checkpoint with the native CPU kernels and
+K steps with the PyTorch ones, in the same process (the reference for the speed-up ratio).
 
 Writes ``benchmarks/results/train_{scene}.json`` and prints the Markdown rows for BENCHMARKS.md.
 """
@@ -63,9 +68,49 @@ def bench(name: str, work: Path, args) -> dict:
         "curve": [{k: r[k] for k in ("step", "eval_psnr", "num_gaussians", "num_carriers") if k in r}
                   for r in stats if "eval_psnr" in r],
     }
+    if args.compare_kernels:
+        result["kernel_comparison"] = compare_kernels(scene, run, cfg, args.compare_kernels, torch.device(args.device))
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"train_{name}.json").write_text(json.dumps(result, indent=2) + "\n")
     return result
+
+
+def compare_kernels(scene: Path, run: Path, cfg, steps: int, device: torch.device) -> dict:
+    """Seconds per step from the run's last checkpoint with the native and the PyTorch kernels."""
+    import os
+    import time
+
+    from uncertsplat.data.dataset import load_images
+    from uncertsplat.io.checkpoints import load_latest
+    from uncertsplat.sfm.scene import load_scene
+    from uncertsplat.train.trainer import Trainer
+
+    data = load_scene(scene, cfg.scene)
+    images = load_images(data, data.split["train"], device)
+    long_cfg = cfg.model_copy(update={"iterations": cfg.iterations + 2 * steps + 10})
+    out = {"steps": steps}
+    before = os.environ.get("UNCERTSPLAT_RASTERIZER")
+    try:
+        for backend in ("native", "torch"):
+            os.environ["UNCERTSPLAT_RASTERIZER"] = backend
+            _, state = load_latest(run, map_location=device)
+            trainer = Trainer(data, long_cfg, images, None, run_dir=None, state=state)
+            for _ in range(3):  # warm-up
+                trainer.train_step()
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                trainer.train_step()
+            out[f"{backend}_sec_per_step"] = (time.perf_counter() - t0) / steps
+            out["num_gaussians"] = len(trainer.model)
+    finally:
+        if before is None:
+            os.environ.pop("UNCERTSPLAT_RASTERIZER", None)
+        else:
+            os.environ["UNCERTSPLAT_RASTERIZER"] = before
+    out["speedup"] = out["torch_sec_per_step"] / out["native_sec_per_step"]
+    print(f"kernels at {out['num_gaussians']} Gaussians: native {out['native_sec_per_step']:.3f} s/step, PyTorch "
+          f"{out['torch_sec_per_step']:.3f} s/step (x{out['speedup']:.2f})")
+    return out
 
 
 def row(r: dict) -> str:
@@ -84,6 +129,8 @@ def main() -> None:
     ap.add_argument("--machine", default=None, help="machine description for the table")
     ap.add_argument("--fern-workspace", type=Path, default=None)
     ap.add_argument("--work", type=Path, default=None, help="keep scenes and runs here (default: a temp dir)")
+    ap.add_argument("--compare-kernels", type=int, default=0, metavar="STEPS",
+                    help="time STEPS steps from the final checkpoint with native and PyTorch kernels")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
