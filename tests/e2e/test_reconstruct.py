@@ -101,6 +101,14 @@ def test_synthetic_scene_registers_and_matches_gt(synth_scene, tmp_path):
     gt = sfm.camera_centers(synth_scene / "sparse" / "0")
     err, radius = centre_error(ws / "sparse" / "0", gt)
     assert err.max() < SYNTH_TOLERANCE * radius, (err.max() / radius)
+    # the report compares with the GT cameras itself (the photos are a synthetic scene's images/)
+    acc = report.ground_truth
+    assert acc is not None and acc["num_images"] == len(names)
+    assert acc["centre_error_max_pct"] == pytest.approx(100 * err.max() / radius, rel=1e-6)
+    assert 0 < acc["rotation_error_mean_deg"] <= acc["rotation_error_max_deg"] < 1.0
+    assert 0 <= acc["focal_error_mean_pct"] < 2.0
+    same = sfm.pose_accuracy(synth_scene / "sparse" / "0", synth_scene / "sparse" / "0")
+    assert same["centre_error_max_pct"] < 1e-6 and same["rotation_error_max_deg"] < 1e-3 and same["focal_error_mean_pct"] == 0
 
     # the same photos, options and output: reused, not recomputed
     mtime = (ws / REPORT_NAME).stat().st_mtime_ns

@@ -496,6 +496,44 @@ def camera_centers(rec_dir: str | Path) -> dict[str, np.ndarray]:
             for i in rec.reg_image_ids()}
 
 
+def pose_accuracy(model_dir: str | Path, reference_dir: str | Path) -> dict[str, float | int]:
+    """How far the cameras of a COLMAP model are from reference cameras (e.g. a synthetic scene's GT).
+
+    Images are matched by name; the model is aligned to the reference by a similarity (Umeyama) on the
+    camera centres. Returns the number of matched images, the mean and max centre error in % of the
+    reference radius (largest distance of a centre from their mean), the mean and max rotation error in
+    degrees and the mean relative focal-length error in %.
+    """
+    rec, ref = pycolmap.Reconstruction(Path(model_dir)), pycolmap.Reconstruction(Path(reference_dir))
+
+    def poses(r):
+        out = {}
+        for i in r.reg_image_ids():
+            im = r.image(i)
+            cam = r.camera(im.camera_id)
+            out[im.name] = (np.asarray(im.projection_center(), dtype=np.float64),
+                            np.asarray(im.cam_from_world().rotation.matrix(), dtype=np.float64),
+                            float(np.mean([cam.focal_length_x, cam.focal_length_y])))
+        return out
+
+    a, b = poses(rec), poses(ref)
+    names = sorted(set(a) & set(b))
+    if len(names) < 3:
+        raise ValueError(f"only {len(names)} images in common with the reference cameras")
+    src = np.stack([a[n][0] for n in names])
+    dst = np.stack([b[n][0] for n in names])
+    s, rot, t = similarity_align(src, dst)
+    radius = float(np.linalg.norm(dst - dst.mean(0), axis=1).max())
+    centre = np.linalg.norm((s * (rot @ src.T)).T + t - dst, axis=1) / radius * 100.0
+    # cam_from_ref = cam_from_model @ model_from_ref, and model_from_ref's rotation is rot^T
+    angles = [np.degrees(np.arccos(np.clip((np.trace(a[n][1] @ rot.T @ b[n][1].T) - 1.0) / 2.0, -1.0, 1.0)))
+              for n in names]
+    focal = [abs(a[n][2] / b[n][2] - 1.0) * 100.0 for n in names]
+    return {"num_images": len(names), "centre_error_mean_pct": float(centre.mean()),
+            "centre_error_max_pct": float(centre.max()), "rotation_error_mean_deg": float(np.mean(angles)),
+            "rotation_error_max_deg": float(np.max(angles)), "focal_error_mean_pct": float(np.mean(focal))}
+
+
 def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     """Least-squares similarity (Umeyama 1991) with ``dst ~ s * R @ src + t``.
 

@@ -82,6 +82,9 @@ class ReconstructReport(_Base):
     cameras: list[CameraSummary] = []
     undistorted_size: dict[str, list[int]] = {}
     """Image name -> [width, height] after undistortion, for the images in ``WORKSPACE/images``."""
+    ground_truth: dict[str, float] | None = None
+    """When the photos are a synthetic scene's ``images/``: the cameras' error against its GT cameras
+    (``sfm.reconstruct.pose_accuracy``: centre error in % of the rig radius, rotation and focal errors)."""
     stage_seconds: dict[str, float] = {}
     total_seconds: float = 0.0
     pycolmap_version: str = ""

@@ -218,6 +218,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         with console.status(f"undistorting {len(registered)} images"), watch("undistort"):
             report.undistorted_size = sfm.undistort(model_dir, image_dir, workspace, cfg)
 
+        report.ground_truth = _against_ground_truth(photos, workspace)
         report.success = True
         report.message = "" if not report.images_unregistered else (
             f"{len(report.images_unregistered)} image(s) not registered: {_list_names(report.images_unregistered)}")
@@ -229,4 +230,24 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         console.print(f"  {stage:<13} {sec:8.2f} s")
     if report.images_unregistered:
         console.print(f"[yellow]warning:[/] not registered: {_list_names(report.images_unregistered)}")
+    if report.ground_truth:
+        g = report.ground_truth
+        console.print(f"  against the synthetic scene's GT cameras: centres {g['centre_error_mean_pct']:.3f} % of the "
+                      f"rig radius (max {g['centre_error_max_pct']:.3f} %), rotations {g['rotation_error_mean_deg']:.3f} "
+                      f"deg (max {g['rotation_error_max_deg']:.3f}), focal {g['focal_error_mean_pct']:.2f} %")
     return report
+
+
+def _against_ground_truth(photos: Path, workspace: Path) -> dict[str, float] | None:
+    """Pose accuracy against a synthetic scene's GT cameras when ``photos`` is its ``images/`` folder."""
+    from uncertsplat.data.synthetic import is_synthetic_scene
+
+    scene = photos.resolve().parent
+    reference = scene / "sparse" / "0"
+    if photos.name != "images" or not is_synthetic_scene(scene) or not reference.is_dir():
+        return None
+    try:
+        return sfm.pose_accuracy(workspace / "sparse" / "0", reference)
+    except (ValueError, RuntimeError, OSError) as err:  # a damaged GT model must not fail the reconstruction
+        console.print(f"[yellow]note:[/] could not compare with the GT cameras in {reference}: {err}")
+        return None
