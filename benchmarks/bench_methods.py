@@ -2,7 +2,8 @@
 
 Runs one sweep (``uncertsplat.stages.sweep``) whose default is our variational model and whose axes
 are the methods (paper variant, single-entry VI, Fisher/Laplace, an N-member ensemble),
-the offset-table size K_table, the evaluation samples K, the training steps and the resolution.
+the offset-table size K_table, the evaluation samples K, the training steps, the resolution and
+(optionally) the spawn rule.
 Writes ``benchmarks/results/methods.json`` (the method table + every sweep record) and
 ``benchmarks/results/methods_pareto.png``, and prints the table as markdown for BENCHMARKS.md.
 
@@ -12,8 +13,10 @@ Usage (CPU, shared 2 cores: about 15 minutes with the defaults)::
 
 Any other scene, methods only (fern at 1/8 from a ``reconstruct`` workspace of the LLFF 1/4 images)::
 
-    .venv/bin/python benchmarks/bench_methods.py --scene WS --label fern-1-8 --methods-only \
-        --downscale 1.5873 --iterations 1000 --max-gaussians 30000 --out /tmp/bench_methods_fern
+    .venv/bin/python benchmarks/bench_methods.py --scene WS --label fern-1-8 --methods-only --train-preset paper \
+        --downscale 1.5873 --iterations 3000 --max-gaussians 60000 --out /tmp/bench_methods_fern
+
+``--spawn-fractions F ...`` adds the spawn rule as an axis (how many Gaussians carry a posterior).
 """
 
 from __future__ import annotations
@@ -31,18 +34,19 @@ RESULTS = Path(__file__).resolve().parent / "results"
 def spec_toml(args) -> str:
     its = args.iterations
     scene = f'scene = "{args.scene}"' if args.scene else 'synth = { preset = "demo", seed = 0 }'
+    spawn = f"\nspawn_fraction = {sorted(args.spawn_fractions)}" if args.spawn_fractions else ""
     if args.methods_only:
-        axes = 'method = ["variational", "paper", "vi-single", "fisher", "ensemble"]'
+        axes = 'method = ["variational", "paper", "vi-single", "fisher", "ensemble"]' + spawn
     else:
         axes = f"""method = ["variational", "paper", "vi-single", "fisher", "ensemble"]
 num_entries = [1, 10, 20]
 num_samples = [1, 5, 10, 20]
 iterations = {sorted({max(its // 2, 1), its})}
-downscale = {sorted({args.downscale, args.downscale * 2})}"""
+downscale = {sorted({args.downscale, args.downscale * 2})}{spawn}"""
     return f"""
 name = "methods"
 {scene}
-train_preset = "demo"
+train_preset = "{args.train_preset}"
 train = {{ eval_every = 100000, checkpoint_every = 100000, log_every = 50, densify = {{ max_gaussians = {args.max_gaussians} }} }}
 evaluate = {{ split = "test" }}
 design = "axes"
@@ -77,6 +81,9 @@ def main() -> None:
     ap.add_argument("--scene", type=Path, default=None,
                     help="a scene/workspace folder (default: the synthetic demo scene, generated)")
     ap.add_argument("--label", default="synthetic-demo", help="results go to methods_<label>.json")
+    ap.add_argument("--train-preset", default="demo", help="train preset of every point (fern: paper)")
+    ap.add_argument("--spawn-fractions", type=float, nargs="*", default=[],
+                    help="also vary the spawn rule (||scale|| > f x extent carries a posterior)")
     ap.add_argument("--methods-only", action="store_true",
                     help="only the methods at the default knobs (no K_table/K/steps/resolution axes)")
     args = ap.parse_args()
@@ -104,17 +111,20 @@ def main() -> None:
                      f"{fmt(r['train_seconds'], 1)} | {fmt(r['eval_seconds_per_view'], 2)} | "
                      f"{fmt(r.get('peak_memory_mb'), 0)} |")
     table = "\n".join(lines)
-    knob_rows = ["| point | PSNR | AUSE-MAE | NLL | train s | eval s/view |", "|---|---|---|---|---|---|"]
+    knob_rows = ["| point | PSNR | AUSE-MAE | NLL | depth AUSE | train s | eval s/view | Gaussians | carriers | B/Gaussian |",
+                 "|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(recs, key=lambda r: r["id"]):
         if r.get("status") == "ok":
             knob_rows.append(f"| {r['id']} | {fmt(r['psnr'], 2)} | {fmt(r['ause_mae'])} | {fmt(r['nll'])} | "
-                             f"{fmt(r['train_seconds'], 1)} | {fmt(r['eval_seconds_per_view'], 2)} |")
+                             f"{fmt(r['depth_ause_mae'])} | {fmt(r['train_seconds'], 1)} | "
+                             f"{fmt(r['eval_seconds_per_view'], 2)} | {r.get('num_gaussians')} | {r.get('num_carriers')} | "
+                             f"{fmt(r.get('memory_per_gaussian_bytes'), 0)} |")
     RESULTS.mkdir(parents=True, exist_ok=True)
     out = {
         "benchmark": "methods", "label": args.label,
         "scene": str(args.scene) if args.scene else "synthetic demo (320x240, 40 views, 5 test views)",
         "downscale": args.downscale, "iterations": args.iterations, "ensemble_size": args.ensemble,
-        "max_gaussians": args.max_gaussians,
+        "max_gaussians": args.max_gaussians, "train_preset": args.train_preset,
         "device": args.device, "jobs": args.jobs, "wall_seconds": wall,
         "machine": {"platform": platform.platform(), "python": platform.python_version()},
         "note": "CPU shared with other processes: timings are indicative only",

@@ -110,6 +110,17 @@ def test_point_configs_apply_knobs():
     assert fixed.densify.until == base.densify.until
 
 
+def test_spawn_fraction_knob_sets_the_spawn_rule_and_only_matters_to_posteriors(tmp_path):
+    s = spec(axes={"spawn_fraction": [0.01, 0.1], "method": ["variational", "fisher"]})
+    t, _ = point_configs(s, s.default.model_copy(update={"spawn_fraction": 0.1}))
+    assert t.densify.spawn_scale_fraction == 0.1 and point_id(s.default.model_copy(update={"spawn_fraction": 0.1})).endswith("sf0.1")
+    d, _ = point_configs(s, s.default.model_copy(update={"method": "fisher", "spawn_fraction": 0.1}))
+    f, _ = point_configs(s, s.default.model_copy(update={"method": "fisher"}))
+    assert d == f  # plain 3DGS has no posteriors: the knob cannot change it
+    jobs = make_jobs(spec(axes={"spawn_fraction": [0.05, 0.1]}), tmp_path, tmp_path / "scene", "cpu")
+    assert len(jobs) == 3  # the default and two spawn fractions: three trainings
+
+
 def test_jobs_group_points_that_share_training(tmp_path):
     s = spec(axes={"num_samples": [1, 5, 20], "num_entries": [5]})
     jobs = make_jobs(s, tmp_path, tmp_path / "scene", "cpu")

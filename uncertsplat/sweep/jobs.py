@@ -75,6 +75,7 @@ def run_job(job: dict) -> list[dict]:
         train_info = {"train_seconds": float(summary["seconds"]), "trained_now": trained,
                       "train_wall_seconds": time.perf_counter() - t0 if trained else None,
                       "num_gaussians": summary.get("num_gaussians"), "num_carriers": summary.get("num_carriers"),
+                      "memory_per_gaussian_bytes": summary.get("memory_per_gaussian_bytes"),
                       "train_peak_memory_mb": train_peak}
     except Exception as err:  # report, do not kill the sweep
         msg = f"{type(err).__name__}: {err}"

@@ -13,7 +13,12 @@ num_entries     ``variational.num_entries`` (K_table)        memory, a little tr
 num_samples     ``EvalConfig.num_samples`` (K)               evaluation time (linear)
 downscale       ``scene.downscale`` (resolution)             everything (about quadratic)
 ensemble_size   ``ensemble_size`` (N)                        training time (linear)
+spawn_fraction  ``densify.spawn_scale_fraction``             memory (offset tables of carriers)
 ==============  ===========================================  =====================================
+
+``spawn_fraction`` decides which Gaussians carry a posterior (||scale|| > fraction x extent): larger
+values give fewer carriers, hence less table memory and work per step, and leave the small Gaussians
+without uncertainty.
 
 ``schedule = "scaled"`` (default) scales the densification window (start, until), the spawn and SH
 intervals and the opacity reset with the number of iterations (relative to the base config), so a
@@ -43,7 +48,7 @@ from uncertsplat.config import (
 )
 from uncertsplat.stages.manifest import hash_config
 
-KNOBS = ("method", "iterations", "num_entries", "num_samples", "downscale", "ensemble_size")
+KNOBS = ("method", "iterations", "num_entries", "num_samples", "downscale", "ensemble_size", "spawn_fraction")
 
 
 class _Strict(BaseModel):
@@ -59,6 +64,7 @@ class SweepPoint(_Strict):
     num_samples: int | None = Field(None, ge=1, le=10_000)
     downscale: float | None = Field(None, ge=1.0, le=64.0)
     ensemble_size: int | None = Field(None, ge=1, le=1000)
+    spawn_fraction: float | None = Field(None, gt=0.0)
 
 
 class SweepAxes(_Strict):
@@ -70,6 +76,7 @@ class SweepAxes(_Strict):
     num_samples: list[int] = []
     downscale: list[float] = []
     ensemble_size: list[int] = []
+    spawn_fraction: list[float] = []
 
 
 class SweepSpec(_Strict):
@@ -154,11 +161,14 @@ def point_configs(spec: SweepSpec, point: SweepPoint) -> tuple[TrainConfig, Eval
         data = deep_update(data, {"scene": {"downscale": point.downscale}})
     if point.ensemble_size is not None:
         data["ensemble_size"] = point.ensemble_size
+    if point.spawn_fraction is not None:
+        data = deep_update(data, {"densify": {"spawn_scale_fraction": point.spawn_fraction}})
     data = deep_update(data, method_overrides(point.method))  # vi-single's K_table = 1 wins
     tcfg = build_config(TrainConfig, data, source=f"sweep point {point_id(point)}")
     if tcfg.method in ("ensemble", "fisher", "deterministic"):
-        # no offset tables: K_table does not matter, so points differing only in it share a run
-        tcfg = tcfg.model_copy(update={"variational": TrainConfig().variational})
+        # no offset tables: K_table and the spawn rule do not matter, so points differing only in them share a run
+        densify = tcfg.densify.model_copy(update={"spawn_scale_fraction": base.densify.spawn_scale_fraction})
+        tcfg = tcfg.model_copy(update={"variational": TrainConfig().variational, "densify": densify})
     if tcfg.method != "ensemble":
         tcfg = tcfg.model_copy(update={"ensemble_size": TrainConfig().ensemble_size})
     edata = deep_update(spec.evaluate, {"save_maps": False})
@@ -174,7 +184,7 @@ def point_id(point: SweepPoint) -> str:
     """A readable, file-name-safe id: method and the knobs that are set."""
     parts = [point.method]
     for key, tag in (("iterations", "it"), ("num_entries", "kt"), ("num_samples", "k"), ("downscale", "ds"),
-                     ("ensemble_size", "n")):
+                     ("ensemble_size", "n"), ("spawn_fraction", "sf")):
         if key == "ensemble_size" and point.method != "ensemble":
             continue  # N only matters to ensembles
         v = getattr(point, key)
