@@ -2,8 +2,9 @@
 
 ``composite.cpp``: tile binning and the per-pixel compositing loop of the rasterizer, forward and
 backward (``render/rasterize.py``). ``project.cpp``: the per-Gaussian front end, EWA projection and SH
-colours, forward and backward (``render/project.py``, ``render/sh.py``). ``losses.cpp``: fused SSIM (``eval/image.py``) and the KL terms of
-the offset tables (``gaussians/variational.py``), each with its gradient. ``vmath.h``: vectorisable exp/log; ``parallel.h``: fork-join over threads.
+colours, forward and backward (``render/project.py``, ``render/sh.py``). ``losses.cpp``: fused SSIM
+(``eval/image.py``) and the KL terms of the offset tables (``gaussians/variational.py``), each with its
+gradient. ``vmath.h``: vectorisable exp/log; ``parallel.h``: fork-join over threads.
 
 The C++ files have a C ABI and no torch headers, so they compile in a few seconds with the system C++
 compiler (``$CXX``, else ``c++``) and need no Python build step. The shared library is cached under
