@@ -177,7 +177,9 @@ def test_many_cameras_batch_equals_single_renders(device):
     out = render(s, cams)
     for c in range(3):
         one = render(s, cams[c])
-        assert (one.rgb[0] - out.rgb[c]).abs().max() < 1e-6
+        # float32 roundoff only: batched and single matmuls may take different SIMD paths on different
+        # CPUs (1.6e-6 seen on one machine, 0 on another); a real batching bug is off by far more.
+        assert (one.rgb[0] - out.rgb[c]).abs().max() < 1e-5
 
 
 def test_gaussian_behind_stopped_rays_gets_exactly_zero_gradient(device):
