@@ -12,6 +12,13 @@ carrying a posterior at the prior (what a Gaussian the data never constrained ha
 top-F carriers are removed (F = number of floaters): recall = fraction of floaters among them, and the
 held-out PSNR after removal is compared with the clean model and with the planted one.
 
+Real floaters (scenes with GT depth, i.e. the synthetic ones; ``--no-real-floaters`` skips them): the
+trained model's own Gaussians are labelled by ``eval.floaters.label_floaters`` (centre in front of the GT
+surface, beyond a margin, in every training view that contains it). For each score: the ROC AUC of
+floaters against the other carriers, the recall of the top-F carriers (F = number of floater carriers),
+and held-out PSNR / depth AUSE after removing them, beside removing exactly the labelled floaters (the
+oracle) and F random Gaussians.
+
 Writes ``benchmarks/results/prune_<label>.json`` and prints the Markdown rows for BENCHMARKS.md.
 """
 
@@ -28,8 +35,10 @@ from pathlib import Path
 import torch
 
 from uncertsplat.config import PruneConfig
+from uncertsplat.data.dataset import load_depths
+from uncertsplat.eval.floaters import label_floaters, ranking_auc
 from uncertsplat.gaussians import ops
-from uncertsplat.gaussians.variational import prior_rows
+from uncertsplat.gaussians.variational import posterior_mean, prior_rows
 from uncertsplat.io.checkpoints import load_model
 from uncertsplat.prune import apply_keep, copy_model, keep_ratio_mask, keep_top
 from uncertsplat.render import render
@@ -151,6 +160,49 @@ def floaters(loaded, scene, indices, cfg, device, fraction, seed):
     return out
 
 
+def real_floaters(loaded, scene, indices, cfg, device):
+    """Score the model's own free-space Gaussians (see the module docstring); None without GT depth."""
+    train = list(scene.split["train"])
+    depths = load_depths(scene, train, device)
+    if depths is None:
+        return None
+    model, prior = loaded.model, loaded.prior
+    pm = posterior_mean(model, variant=prior.variant, extent=loaded.extent, temperature=prior.temperature)
+    lab = label_floaters(pm.means.detach(), pm.scales.detach(), scene.cameras[train], depths, extent=loaded.extent)
+    measure = _Measure(loaded, scene, indices, cfg, device)
+    before = measure(model)
+    scores, _ = all_scores(model, loaded, scene, cfg, device)
+    carriers = carrier_mask(model)
+    is_f = lab.is_floater
+    n_f = int((is_f & carriers).sum())
+    contrib = scores["contribution"]
+    out = {"num_gaussians": len(model), "num_floaters": int(is_f.sum()), "num_floater_carriers": n_f,
+           "floater_contribution_share": float(contrib[is_f].sum() / contrib.sum().clamp_min(1e-12)),
+           "median_views_floaters": float(lab.num_views[is_f].float().median()) if is_f.any() else None,
+           "median_views_others": float(lab.num_views[~is_f].float().median()),
+           "unpruned": {k: before.get(k) for k in ("psnr", "ssim", "ause_mae", "depth_ause_mae")}, "scores": {}}
+    print(f"  real floaters: {out['num_floaters']} of {len(model)} ({n_f} carriers), "
+          f"{100 * out['floater_contribution_share']:.2f} % of the blending weight", flush=True)
+    if n_f == 0:
+        return out
+    for name in (*SCORE_NAMES, "random", "oracle"):
+        if name == "random":
+            keep = _random_keep(len(model), n_f, cfg.seed)
+        elif name == "oracle":
+            keep = ~(is_f & carriers)
+        else:
+            keep = keep_top(scores[name], carriers, n_f)
+        m = measure(apply_keep(model, keep), keep)
+        rec = {"recall": float((~keep[is_f & carriers]).float().mean()),
+               "auc": None if name in ("random", "oracle") else ranking_auc(scores[name], is_f, carriers),
+               **{k: m.get(k) for k in ("psnr", "ssim", "ause_mae", "depth_ause_mae")}}
+        out["scores"][name] = rec
+        auc = "-" if rec["auc"] is None else f"{rec['auc']:.3f}"
+        print(f"  real floaters {name:10s} AUC {auc} recall {rec['recall']:.3f} PSNR {m['psnr']:.3f} "
+              f"(unpruned {before['psnr']:.3f}) depth AUSE {m.get('depth_ause_mae', float('nan')):.4f}", flush=True)
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", type=Path, required=True)
@@ -158,6 +210,8 @@ def main():
     ap.add_argument("--ratios", type=float, nargs="+", default=[1.0, 0.95, 0.9, 0.8, 0.7, 0.6, 0.5])
     ap.add_argument("--num-samples", type=int, default=5)
     ap.add_argument("--floaters", type=float, default=0.02)
+    ap.add_argument("--no-real-floaters", action="store_true", help="skip the GT-depth floater labels")
+    ap.add_argument("--only-real-floaters", action="store_true", help="skip the keep-ratio sweep and planted floaters")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
     args = ap.parse_args()
@@ -173,14 +227,19 @@ def main():
            "date": time.strftime("%Y-%m-%d"), "num_samples": cfg.num_samples, "seed": cfg.seed,
            "num_gaussians": len(loaded.model), "num_carriers": loaded.model.num_carriers,
            "train_step": loaded.step}
-    res["sweep"] = curves(loaded, scene, indices, cfg, device, sorted(set(args.ratios), reverse=True), 0.1)
-    res["floaters"] = floaters(loaded, scene, indices, cfg, device, args.floaters, seed=1)
-    res["seconds"] = time.perf_counter() - t0
     path = ROOT / "benchmarks" / "results" / f"prune_{args.label}.json"
+    if not args.no_real_floaters:
+        res["real_floaters"] = real_floaters(loaded, scene, indices, cfg, device)
+    if not args.only_real_floaters:
+        res["sweep"] = curves(loaded, scene, indices, cfg, device, sorted(set(args.ratios), reverse=True), 0.1)
+        res["floaters"] = floaters(loaded, scene, indices, cfg, device, args.floaters, seed=1)
+    res["seconds"] = time.perf_counter() - t0
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(res, indent=2) + "\n")
     print(f"wrote {path}")
     # Markdown rows
+    if "sweep" not in res:
+        return
     sw = res["sweep"]
     print("\n| score | " + " | ".join(f"keep {p['keep_ratio']:.2f}" for p in sw["curves"]["random"]) +
           " | largest removal <= 0.1 dB |")

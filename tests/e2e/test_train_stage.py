@@ -38,6 +38,9 @@ def test_outputs_and_psnr_gain(trained):
     assert summary["steps"] == 80 and summary["num_carriers"] > 0
     assert summary["test_psnr"] > initial + 2.0, (initial, summary["test_psnr"])
     assert summary["memory_per_gaussian_bytes"] > 0 and summary["sec_per_step"] > 0
+    post = summary["posterior"]  # how far the posteriors moved from the prior, per carrier
+    assert post["carriers"] == summary["num_carriers"] and 0.0 <= post["moved_fraction"] <= 1.0
+    assert post["kl_nats"]["q10"] <= post["kl_nats"]["q50"] <= post["kl_nats"]["q90"]
     assert [s for s, _ in list_checkpoints(run)] == [40, 80]
     assert all("num_gaussians" in r for r in lines) and lines[-1]["step"] == 80
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from uncertsplat.errors import UserError
-from uncertsplat.sweep.pareto import pareto_front, plot_pareto
+from uncertsplat.sweep.pareto import pareto_front, plot_pareto, y_scale
 from uncertsplat.sweep.spec import SweepSpec, expand_points, load_spec, make_jobs, point_configs, point_id
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -74,6 +74,18 @@ def test_plot_pareto_writes_a_png(tmp_path):
     recs.append({"id": "bad", "method": "x", "status": "failed"})
     out = plot_pareto(recs, tmp_path / "p.png")
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize(("values", "expected"), [
+    ([0.132, 0.139, 0.17, 0.29, 0.76], ("log", {})),  # AUSE with a K = 1 point: a factor 5.8
+    ([0.132, 0.139, 0.17], ("linear", {})),  # close together
+    ([-1.6, -1.3, -0.3, 11.8, 750.0], ("symlog", {"linthresh": 1.6})),  # NLL beside K = 1; t = median |value|
+    ([-1.6, -1.3, -0.3, 2.2], ("linear", {})),  # NLL, no far point
+    ([0.0, 0.0], ("linear", {})),
+    ([], ("linear", {})),
+])
+def test_y_scale(values, expected):
+    assert y_scale(values) == expected
 
 
 # -------------------------------------------------------------------------------------------- spec

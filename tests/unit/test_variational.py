@@ -1,6 +1,7 @@
 """Offset tables: KL terms, priors, sampling statistics, determinism, scene-scale equivariance."""
 
 import itertools
+import json
 import math
 
 import pytest
@@ -15,6 +16,7 @@ from uncertsplat.gaussians.variational import (
     inverse_softplus,
     kl_terms,
     posterior_mean,
+    posterior_summary,
     prior_rows,
     random_model,
     sample,
@@ -206,3 +208,53 @@ def test_gradients_reach_tables_and_params():
         if name in ("quats", "sh0", "shN"):
             continue
         assert p.grad is not None and p.grad.abs().sum() > 0, name
+
+
+class TestPosteriorSummary:
+    """``posterior_summary``: how far the learned posteriors are from the prior."""
+
+    def _model(self, prior, n=400, carrier_fraction=0.5):
+        return random_model(n, torch.Generator().manual_seed(3), carrier_fraction=carrier_fraction, prior=prior)
+
+    @pytest.mark.parametrize("variant", ["ours", "paper"])
+    def test_at_the_prior_nothing_moved(self, variant):
+        prior = Prior(variant=variant)
+        s = posterior_summary(self._model(prior), prior)
+        assert s["carriers"] > 0 and s["moved_fraction"] == 0.0
+        assert s["kl_nats"]["q90"] == pytest.approx(0.0, abs=1e-6)
+        assert s["position_spread_ratio"]["q10"] == pytest.approx(1.0, rel=1e-5)
+        assert s["position_spread_ratio"]["q90"] == pytest.approx(1.0, rel=1e-5)
+        assert s["scale_width_ratio"]["q50"] == pytest.approx(1.0, rel=1e-5)
+        assert s["gate_off"]["q50"] == pytest.approx(s["gate_off_prior"], rel=1e-5)
+        # the documented value: N(2, 1.996^2) puts about 16 % of the gate logits below 0
+        assert s["gate_off_prior"] == pytest.approx(Normal(2.0, 1.996).cdf(torch.tensor(0.0)).item(), rel=1e-5)
+
+    def test_counts_the_carriers_that_moved(self):
+        prior = Prior()
+        model = self._model(prior)
+        p = model.num_carriers
+        half = torch.arange(p) < p // 2
+        # halve the position spread of half of the carriers (every entry, every axis): KL 3 x 0.318 nats
+        raw = model.tables["pos_spread_raw"]
+        model.tables["pos_spread_raw"] = torch.where(half[:, None, None],
+                                                     inverse_softplus(torch.full_like(raw, prior.position_std / 2)), raw)
+        s = posterior_summary(model, prior)
+        assert s["moved_fraction"] == pytest.approx((p // 2) / p)
+        expected = 3 * (math.log(2.0) + 0.125 - 0.5)
+        assert s["kl_nats"]["q90"] == pytest.approx(expected, rel=1e-3)
+        assert s["position_spread_ratio"]["q10"] == pytest.approx(0.5, rel=1e-3)
+        assert s["position_spread_ratio"]["q90"] == pytest.approx(1.0, rel=1e-3)
+
+    def test_gate_shift_shows_in_gate_off(self):
+        prior = Prior()
+        model = self._model(prior, carrier_fraction=1.0)
+        model.tables["gate_loc"] = torch.zeros_like(model.tables["gate_loc"])  # nu = 0: half the samples off
+        s = posterior_summary(model, prior)
+        assert s["gate_off"]["q50"] == pytest.approx(0.5, abs=1e-6)
+        assert s["moved_fraction"] == 1.0
+
+    def test_no_carriers_gives_none_not_nan(self):
+        prior = Prior()
+        s = posterior_summary(self._model(prior, carrier_fraction=0.0), prior)
+        assert s["carriers"] == 0 and s["moved_fraction"] is None and s["kl_nats"] is None
+        json.dumps(s)  # JSON-serialisable as written into train_summary.json

@@ -430,6 +430,59 @@ def carrier_uncertainty(model: GaussianModel, *, variant: Variant = "ours", exte
     return out
 
 
+MOVED_KL_NATS = 0.01
+"""A carrier's posterior counts as moved from the prior when its KL exceeds this (nats, per table entry):
+about what a 10 % change of one spread costs (KL(N(0, 0.9^2) || N(0, 1)) = 0.0104)."""
+
+
+@torch.no_grad()
+def posterior_summary(model: GaussianModel, prior: Prior) -> dict:
+    """How far the learned posteriors are from the prior: a diagnostic of what the data taught the tables.
+
+    A carrier whose posterior still equals the prior carries no information from the data, so its
+    per-Gaussian scores (``uncertainty.scores``) say nothing about it; the rendered uncertainty then comes
+    from the prior's noise propagated through the rendering. Per carrier (all K entries, as
+    ``posterior_mean`` averages them for the ratios):
+
+    * ``kl_nats``: KL of the carrier's table from the prior, summed over its 14 columns and averaged over
+      its K entries (the same terms as the training loss: closed-form Gaussian KL for position and gate,
+      the variant's scale term); ``moved_fraction``: carriers with ``kl_nats > MOVED_KL_NATS``.
+    * ``position_spread_ratio``: posterior position std / prior std (geometric mean over the 3 axes).
+    * ``scale_width_ratio``: multiplier interval width / w_p (mean over the axes).
+    * ``gate_off``: P(gate < 1/2) = Phi(-nu / tau), and ``gate_off_prior``, the prior's value.
+
+    Distributions are given as quantiles ``q10``, ``q50``, ``q90``. Returns plain Python numbers (JSON);
+    with no carriers every distribution is None.
+    """
+    t = {k: v.detach().float() for k, v in model.tables.items()}
+    p = model.num_carriers
+    gate_off_prior = 0.5 * math.erfc((prior.gate_mean / prior.gate_std) / math.sqrt(2.0))
+    out: dict = {"carriers": p, "moved_kl_nats": MOVED_KL_NATS, "gate_off_prior": gate_off_prior}
+    keys = ("kl_nats", "position_spread_ratio", "scale_width_ratio", "gate_off")
+    if p == 0:
+        return {**out, "moved_fraction": None, **{k: None for k in keys}}
+    kl = (gaussian_kl(t["pos_loc"], t["pos_spread_raw"], 0.0, prior.position_std).sum(2)
+          + scale_kl(t["scale_left"], t["scale_width_raw"], prior.scale_width, prior.variant).sum(2)
+          + gaussian_kl(t["gate_loc"], t["gate_spread_raw"], prior.gate_mean, prior.gate_std).sum(2)).mean(1)  # [P]
+    m = {k: v.mean(1) for k, v in t.items()}  # [P,D]
+    spread = log_softplus(m["pos_spread_raw"]).mean(1).exp() / prior.position_std
+    width = F.softplus(m["scale_width_raw"]).clamp(MIN_WIDTH, MAX_WIDTH).mean(1) / prior.scale_width
+    tau = F.softplus(m["gate_spread_raw"])[:, 0].clamp_min(1e-12)
+    gate_off = 0.5 * torch.erfc((m["gate_loc"][:, 0] / tau) / math.sqrt(2.0))
+    q = torch.tensor([0.1, 0.5, 0.9], device=kl.device)
+
+    def quantiles(x: Tensor) -> dict[str, float]:
+        # torch.quantile refuses more than 2^24 elements; a seeded subsample is exact enough for a summary
+        if x.numel() > 1_000_000:
+            x = x[torch.randperm(x.numel(), generator=torch.Generator().manual_seed(0))[:1_000_000].to(x.device)]
+        v = torch.quantile(x.float(), q).tolist()
+        return {"q10": v[0], "q50": v[1], "q90": v[2]}
+
+    return {**out, "moved_fraction": float((kl > MOVED_KL_NATS).float().mean()),
+            "kl_nats": quantiles(kl), "position_spread_ratio": quantiles(spread),
+            "scale_width_ratio": quantiles(width), "gate_off": quantiles(gate_off)}
+
+
 def random_model(n: int, generator: torch.Generator, *, sh_degree: int = 1, num_entries: int = 10,
                  carrier_fraction: float = 0.5, extent: float = 1.0, prior: Prior | None = None,
                  perturb_tables: float = 0.0, device=None) -> GaussianModel:

@@ -53,11 +53,33 @@ def pareto_front(points: Sequence[Any], x: str = "time", y: str = "ause", minimi
     return front
 
 
+def y_scale(values: Sequence[float]) -> tuple[str, dict]:
+    """The y-axis scale that keeps a cluster of close values readable beside a few far ones.
+
+    ``("log", {})`` for positive values spanning more than a factor 3 (AUSE with a K = 1 point),
+    ``("symlog", {"linthresh": t})`` when values reach zero or below and the far ones are more than 20x the
+    typical magnitude away (an NLL of -1.6 beside one of 750): linear within +-t, t the median magnitude
+    (at least 1e-3), logarithmic beyond; else ``("linear", {})``.
+    """
+    v = sorted(float(a) for a in values)
+    if not v:
+        return "linear", {}
+    if v[0] > 0:
+        return ("log", {}) if v[-1] > 3.0 * v[0] else ("linear", {})
+    mags = sorted(abs(a) for a in v)
+    typical = max(mags[len(mags) // 2], 1e-3)
+    if v[-1] - v[0] > 20.0 * typical:
+        return "symlog", {"linthresh": typical}
+    return "linear", {}
+
+
 def plot_pareto(records: Sequence[Mapping], path: Path, x: str = "time", ys: Sequence[str] = ("ause_mae", "nll"),
                 title: str = "speed-accuracy trade") -> Path:
     """One panel per ``ys`` key: every point, its Pareto front (a step line) and the default (a star).
 
-    Points are coloured by method and labelled by their id. Written with matplotlib's Agg backend.
+    Points are coloured by method; the points on the front and the default are labelled by their id (the
+    sweep's ``index.html`` lists every point with its values). The y axis follows ``y_scale``. Written
+    with matplotlib's Agg backend.
     """
     import matplotlib
 
@@ -80,10 +102,12 @@ def plot_pareto(records: Sequence[Mapping], path: Path, x: str = "time", ys: Seq
             if sel:
                 ax.scatter([_value(r, x) for r in sel], [_value(r, y) for r in sel], color=colour[m], label=m,
                            s=28, zorder=3)
-        for r in pts:
-            ax.annotate(r["id"], (_value(r, x), _value(r, y)), fontsize=6, alpha=0.7, xytext=(3, 3),
-                        textcoords="offset points")
         front = pareto_front(pts, x=x, y=y, minimize_both=(y != "psnr"))
+        on_front = {id(r) for r in front}
+        for r in pts:
+            if id(r) in on_front or r.get("is_default"):
+                ax.annotate(r["id"], (_value(r, x), _value(r, y)), fontsize=6.5, alpha=0.85, xytext=(4, 4),
+                            textcoords="offset points")
         if front:
             ax.step([_value(r, x) for r in front], [_value(r, y) for r in front], where="post", color="black",
                     lw=1.2, alpha=0.8, label="Pareto front", zorder=2)
@@ -93,9 +117,8 @@ def plot_pareto(records: Sequence[Mapping], path: Path, x: str = "time", ys: Seq
                            linewidth=1.5, label="default", zorder=4)
         if pts and min(_value(r, x) for r in pts) > 0:
             ax.set_xscale("log")
-        yv = [_value(r, y) for r in pts]
-        if yv and min(yv) > 0 and max(yv) > 100 * min(yv):
-            ax.set_yscale("log")  # e.g. the NLL of K = 1 (std 0 everywhere) dwarfs the rest
+        scale, kw = y_scale([_value(r, y) for r in pts])  # e.g. the NLL of K = 1 (std 0) dwarfs the rest
+        ax.set_yscale(scale, **kw)
         ax.set_xlabel(labels.get(x, x))
         ax.set_ylabel(labels.get(y, y))
         ax.grid(alpha=0.3)

@@ -28,7 +28,7 @@ from uncertsplat.config import TrainConfig
 from uncertsplat.console import progress
 from uncertsplat.eval.image import psnr, ssim
 from uncertsplat.gaussians.params import GaussianModel, init_from_points, memory_per_gaussian
-from uncertsplat.gaussians.variational import Prior, posterior_mean, sample_with_kl
+from uncertsplat.gaussians.variational import Prior, posterior_mean, posterior_summary, sample_with_kl
 from uncertsplat.render import near_plane, render
 from uncertsplat.strategy.densify import Densifier, DensifyStats
 from uncertsplat.strategy.schedule import sh_degree_at
@@ -377,7 +377,8 @@ class Trainer:
                 "memory_per_gaussian_bytes": mem["total"], "memory": mem,
                 "peak_memory_mb": peak_memory_mb(self.device), "extent": self.extent,
                 "skipped_steps": self.skipped_steps,
-                "sh_degree_active": self.sh_degree, "variant": self.cfg.variant, "method": self.cfg.method}
+                "sh_degree_active": self.sh_degree, "variant": self.cfg.variant, "method": self.cfg.method,
+                "posterior": posterior_summary(self.model, self.prior)}
 
 
 def log_line(record: dict) -> str:
