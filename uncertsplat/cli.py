@@ -216,6 +216,7 @@ def prune(
     keep_ratio: Annotated[float | None, typer.Option(help="Fraction of Gaussians to keep, in (0, 1].")] = None,
     threshold: Annotated[float | None, typer.Option(help="Remove Gaussians whose score exceeds this.")] = None,
     auto: Annotated[bool, typer.Option(help="Strongest pruning within --tolerance-db of the unpruned PSNR.")] = False,
+    tolerance_db: Annotated[float | None, typer.Option(help="PSNR loss --auto may accept, in dB (default 0.1).")] = None,
     score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (= gate), gate, position, scale or predictive (see the README).")] = None,
     dry_run: Annotated[bool, typer.Option(help="Report only; write no model.")] = False,
     sweep: Annotated[bool, typer.Option(help="Evaluate a range of keep ratios.")] = False,
@@ -227,8 +228,8 @@ def prune(
     from uncertsplat.config import PruneConfig
     from uncertsplat.stages import prune as stage
 
-    explicit = dict(keep_ratio=keep_ratio, threshold=threshold, auto=auto or None, score=score,
-                    dry_run=dry_run or None, sweep=sweep or None)
+    explicit = dict(keep_ratio=keep_ratio, threshold=threshold, auto=auto or None, tolerance_db=tolerance_db,
+                    score=score, dry_run=dry_run or None, sweep=sweep or None)
     cfg = _stage_config(PruneConfig, config, set_, explicit)
     stage.run(run, output, cfg, device=resolve_device(device))
 

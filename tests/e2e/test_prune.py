@@ -139,3 +139,32 @@ def test_cli_rejects_ratio_outside_unit_interval(tiny_run_path, tmp_path, ratio)
     assert res.exit_code != 0
     assert "keep_ratio" in res.output
     assert not (tmp_path / "o").exists()
+
+
+class TestAuto:
+    """``--auto``: the strongest pruning of the sweep whose held-out PSNR stays within the tolerance."""
+
+    def test_a_loose_tolerance_takes_the_strongest_ratio(self, tiny_run_path):  # noqa: F811
+        cfg = PruneConfig(auto=True, tolerance_db=100.0, sweep_ratios=[1.0, 0.9, 0.6], dry_run=True, **FAST)
+        result = prune.run(tiny_run_path, None, cfg, device=CPU)
+        n = result["counts"]["before"]
+        assert result["mode"] == "auto" and result["keep_ratio"] == 0.6
+        assert result["counts"]["removed"] == round(0.4 * n)
+        best = result["sweep"]["largest_removal_within_tolerance"]
+        assert best["keep_ratio"] == 0.6 and best["psnr_loss_db"] <= 100.0
+
+    def test_nothing_within_tolerance_removes_nothing_and_says_why(self, tiny_run_path):  # noqa: F811
+        # removing 70 % of a trained model always costs PSNR, so a zero tolerance admits no ratio
+        cfg = PruneConfig(auto=True, tolerance_db=0.0, sweep_ratios=[1.0, 0.3], dry_run=True, **FAST)
+        result = prune.run(tiny_run_path, None, cfg, device=CPU)
+        assert result["keep_ratio"] == 1.0 and result["counts"]["removed"] == 0
+        assert result["sweep"]["largest_removal_within_tolerance"] is None
+        (note,) = [x for x in result["notes"] if x.startswith("--auto")]
+        assert "nothing was removed" in note and "70 %" in note and "--tolerance-db" in note
+
+    def test_cli_tolerance_option(self, tiny_run_path, tmp_path):  # noqa: F811
+        res = runner.invoke(app, ["prune", str(tiny_run_path), "--auto", "--tolerance-db", "0", "--dry-run",
+                                  "--set", "sweep_ratios=[1.0, 0.3]", "--set", "num_samples=2",
+                                  "--set", "score_views=2", "--set", "render_views=0", "--device", "cpu"])
+        assert res.exit_code == 0, res.output
+        assert "nothing was removed" in " ".join(res.output.split())  # rich may wrap the line anywhere

@@ -325,7 +325,14 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
         best = sweep["largest_removal_within_tolerance"]
         keep_ratio = best["keep_ratio"] if best else 1.0
         if best is None:
-            notes.append(f"--auto: no evaluated keep ratio stays within {cfg.tolerance_db} dB; nothing removed")
+            first = next((p for p in sweep["points"] if p["num_removed"] > 0), None)
+            cost = "" if first is None else (
+                f" (the smallest removal tried, {100 * (1 - first['keep_ratio_achieved']):.0f} %, cost "
+                f"{before['psnr'] - first['score']['psnr']:.2f} dB; random removal of as many "
+                f"{before['psnr'] - first['random']['psnr']:.2f} dB)")
+            notes.append(f"--auto: no evaluated keep ratio stays within {cfg.tolerance_db} dB of the unpruned "
+                         f"held-out PSNR, so nothing was removed{cost}; allow more with --tolerance-db, or choose "
+                         "--keep-ratio")
     keep = None
     if threshold is not None:
         keep = threshold_mask(score, carriers, threshold)
@@ -376,6 +383,8 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
                      [("before", before), ("after", after), ("random", rand)])
     if sweep is not None:
         result["sweep"] = sweep
+    for note in notes:
+        console.print(f"[yellow]note:[/] {note}")
 
     if output is None:
         console.print("dry run: nothing written" if cfg.dry_run else "sweep only: nothing written (no -o)")
