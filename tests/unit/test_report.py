@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from uncertsplat.config import ReportConfig, TrainConfig
 from uncertsplat.errors import UserError
@@ -318,3 +319,19 @@ def test_cli_report(tmp_path):
     res = CliRunner().invoke(app, ["report", str(tmp_path / "missing"), "-o", str(tmp_path / "o2")])
     assert res.exit_code == 2
     assert "missing" in res.output
+
+
+def test_summary_says_how_far_the_posterior_moved(tmp_path):
+    from uncertsplat.gaussians.variational import Prior, posterior_summary, random_model
+
+    prior = Prior()
+    post = posterior_summary(random_model(50, torch.Generator().manual_seed(0), prior=prior), prior)
+    run = make_run(tmp_path, "r", maps=False)
+    summary = json.loads((run / "train_summary.json").read_text())
+    (run / "train_summary.json").write_text(json.dumps({**summary, "posterior": post}))
+    old = make_run(tmp_path, "old", maps=False)  # an older summary (no carriers / other keys): no note, no crash
+    s_old = json.loads((old / "train_summary.json").read_text())
+    (old / "train_summary.json").write_text(json.dumps({**s_old, "posterior": {"carriers": 3, "moved_fraction": 0.5}}))
+    html = stage.run([run, old], tmp_path / "out", ReportConfig()).read_text()
+    assert "r (train): posterior: 0.0 % of" in html and "moved from the prior" in html
+    assert "old (train): posterior" not in html

@@ -483,6 +483,20 @@ def posterior_summary(model: GaussianModel, prior: Prior) -> dict:
             "scale_width_ratio": quantiles(width), "gate_off": quantiles(gate_off)}
 
 
+def describe_posterior(post: dict) -> str:
+    """One line on how far the learned posteriors are from the prior, from a ``posterior_summary`` dict
+    (printed by ``train``, shown in the report)."""
+    pos, gate = post["position_spread_ratio"], post["gate_off"]
+    line = (f"posterior: {100 * post['moved_fraction']:.1f} % of {post['carriers']} carriers moved from the prior "
+            f"(KL > {post['moved_kl_nats']} nats); position spread x{pos['q10']:.3f}-{pos['q90']:.3f} of the prior, "
+            f"gate-off {100 * gate['q10']:.1f}-{100 * gate['q90']:.1f} % (prior {100 * post['gate_off_prior']:.1f} %), "
+            "10th-90th percentile")
+    if post["moved_fraction"] < 0.05:
+        line += ("; the posteriors are still close to the prior, so per-Gaussian scores carry little from the data "
+                 "(README: 'What the uncertainty is')")
+    return line
+
+
 def random_model(n: int, generator: torch.Generator, *, sh_degree: int = 1, num_entries: int = 10,
                  carrier_fraction: float = 0.5, extent: float = 1.0, prior: Prior | None = None,
                  perturb_tables: float = 0.0, device=None) -> GaussianModel:

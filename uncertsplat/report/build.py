@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.report import figures as F
 from uncertsplat.report.extract import (
     METRIC_SPECS,
@@ -163,6 +164,12 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
             body.append(note(f"{run.name}: Spearman: {sn}"))
         for n in (run.metrics or {}).get("notes", []) or []:
             body.append(note(f"{run.name} (evaluate): {n}"))
+        post = (run.train_summary or {}).get("posterior")
+        if isinstance(post, dict) and post.get("carriers") and post.get("moved_fraction") is not None:
+            try:
+                body.append(note(f"{run.name} (train): {describe_posterior(post)}"))
+            except (KeyError, TypeError):  # a summary written by another version: leave it to the provenance
+                pass
     w.section("summary", "Summary", "".join(body))
 
 

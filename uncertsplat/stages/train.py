@@ -18,6 +18,7 @@ from uncertsplat import native
 from uncertsplat.config import TrainConfig, build_config
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
+from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.io.atomic import (
     atomic_write_json,
     atomic_write_text,
@@ -146,19 +147,6 @@ def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resu
         console.print(f"done: {trainer.step} steps in {trainer.elapsed:.1f} s, {len(trainer.model)} Gaussians "
                       f"({trainer.model.num_carriers} with a posterior){psnr_txt} -> {run_dir}")
         if summary["posterior"]["carriers"]:
-            console.print(posterior_line(summary["posterior"]))
+            console.print(describe_posterior(summary["posterior"]))
     return run_dir
-
-
-def posterior_line(post: dict) -> str:
-    """One line on how far the learned posteriors are from the prior (``variational.posterior_summary``)."""
-    pos, gate = post["position_spread_ratio"], post["gate_off"]
-    line = (f"posterior: {100 * post['moved_fraction']:.1f} % of {post['carriers']} carriers moved from the prior "
-            f"(KL > {post['moved_kl_nats']} nats); position spread x{pos['q10']:.3f}-{pos['q90']:.3f} of the prior, "
-            f"gate-off {100 * gate['q10']:.1f}-{100 * gate['q90']:.1f} % (prior {100 * post['gate_off_prior']:.1f} %), "
-            "10th-90th percentile")
-    if post["moved_fraction"] < 0.05:
-        line += ("; the posteriors are still close to the prior, so per-Gaussian scores carry little from the data "
-                 "(README: 'What the uncertainty is')")
-    return line
 
