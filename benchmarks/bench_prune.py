@@ -93,11 +93,9 @@ def all_scores(model, loaded, scene, cfg, device):
     return s, time.perf_counter() - t0
 
 
-def curves(loaded, scene, indices, cfg, device, ratios, tol):
-    model = loaded.model
-    measure = _Measure(loaded, scene, indices, cfg, device)
-    before = measure(model)
-    scores, score_s = all_scores(model, loaded, scene, cfg, device)
+def curves(model, measure, before, scores, score_s, cfg, ratios, tol):
+    """Held-out metrics vs keep ratio per score and for random removal (``measure``: a ``_Measure`` of the
+    unpruned run, ``before`` its metrics, ``scores`` from ``all_scores``)."""
     carriers = carrier_mask(model)
     n = len(model)
     out = {"unpruned": before, "score_seconds": score_s, "curves": {}, "within_tolerance": {}}
@@ -160,8 +158,10 @@ def floaters(loaded, scene, indices, cfg, device, fraction, seed):
     return out
 
 
-def real_floaters(loaded, scene, indices, cfg, device):
-    """Score the model's own free-space Gaussians (see the module docstring); None without GT depth."""
+def real_floaters(loaded, scene, measure, before, scores, cfg, device):
+    """Score the model's own free-space Gaussians (see the module docstring); None without GT depth.
+
+    ``measure``, ``before`` and ``scores`` as for ``curves``."""
     train = list(scene.split["train"])
     depths = load_depths(scene, train, device)
     if depths is None:
@@ -169,9 +169,6 @@ def real_floaters(loaded, scene, indices, cfg, device):
     model, prior = loaded.model, loaded.prior
     pm = posterior_mean(model, variant=prior.variant, extent=loaded.extent, temperature=prior.temperature)
     lab = label_floaters(pm.means.detach(), pm.scales.detach(), scene.cameras[train], depths, extent=loaded.extent)
-    measure = _Measure(loaded, scene, indices, cfg, device)
-    before = measure(model)
-    scores, _ = all_scores(model, loaded, scene, cfg, device)
     carriers = carrier_mask(model)
     is_f = lab.is_floater
     n_f = int((is_f & carriers).sum())
@@ -228,10 +225,15 @@ def main():
            "num_gaussians": len(loaded.model), "num_carriers": loaded.model.num_carriers,
            "train_step": loaded.step}
     path = ROOT / "benchmarks" / "results" / f"prune_{args.label}.json"
+    # the unpruned metrics and the scores, once for the real floaters and the keep-ratio curves
+    measure = _Measure(loaded, scene, indices, cfg, device)
+    before = measure(loaded.model)
+    scores, score_s = all_scores(loaded.model, loaded, scene, cfg, device)
     if not args.no_real_floaters:
-        res["real_floaters"] = real_floaters(loaded, scene, indices, cfg, device)
+        res["real_floaters"] = real_floaters(loaded, scene, measure, before, scores, cfg, device)
     if not args.only_real_floaters:
-        res["sweep"] = curves(loaded, scene, indices, cfg, device, sorted(set(args.ratios), reverse=True), 0.1)
+        res["sweep"] = curves(loaded.model, measure, before, scores, score_s, cfg,
+                              sorted(set(args.ratios), reverse=True), 0.1)
         res["floaters"] = floaters(loaded, scene, indices, cfg, device, args.floaters, seed=1)
     res["seconds"] = time.perf_counter() - t0
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -430,6 +430,14 @@ def carrier_uncertainty(model: GaussianModel, *, variant: Variant = "ours", exte
     return out
 
 
+def gate_off_probability(loc: Tensor, spread: Tensor) -> Tensor:
+    """P(gate < 1/2) = P(nu + tau eta < 0) = Phi(-nu / tau) for a gate logit N(nu, tau^2) (``spread`` = tau > 0).
+
+    The chance that a posterior sample switches the Gaussian (mostly) off; in [0, 1], elementwise.
+    """
+    return 0.5 * torch.erfc((loc / spread.clamp_min(1e-12)) / math.sqrt(2.0))
+
+
 MOVED_KL_NATS = 0.01
 """A carrier's posterior counts as moved from the prior when its KL exceeds this (nats, per table entry):
 about what a 10 % change of one spread costs (KL(N(0, 0.9^2) || N(0, 1)) = 0.0104)."""
@@ -456,7 +464,7 @@ def posterior_summary(model: GaussianModel, prior: Prior) -> dict:
     """
     t = {k: v.detach().float() for k, v in model.tables.items()}
     p = model.num_carriers
-    gate_off_prior = 0.5 * math.erfc((prior.gate_mean / prior.gate_std) / math.sqrt(2.0))
+    gate_off_prior = float(gate_off_probability(torch.tensor(prior.gate_mean), torch.tensor(prior.gate_std)))
     out: dict = {"carriers": p, "moved_kl_nats": MOVED_KL_NATS, "gate_off_prior": gate_off_prior}
     keys = ("kl_nats", "position_spread_ratio", "scale_width_ratio", "gate_off")
     if p == 0:
@@ -467,8 +475,7 @@ def posterior_summary(model: GaussianModel, prior: Prior) -> dict:
     m = {k: v.mean(1) for k, v in t.items()}  # [P,D]
     spread = log_softplus(m["pos_spread_raw"]).mean(1).exp() / prior.position_std
     width = F.softplus(m["scale_width_raw"]).clamp(MIN_WIDTH, MAX_WIDTH).mean(1) / prior.scale_width
-    tau = F.softplus(m["gate_spread_raw"])[:, 0].clamp_min(1e-12)
-    gate_off = 0.5 * torch.erfc((m["gate_loc"][:, 0] / tau) / math.sqrt(2.0))
+    gate_off = gate_off_probability(m["gate_loc"][:, 0], F.softplus(m["gate_spread_raw"])[:, 0])
     q = torch.tensor([0.1, 0.5, 0.9], device=kl.device)
 
     def quantiles(x: Tensor) -> dict[str, float]:

@@ -149,4 +149,3 @@ def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resu
         if summary["posterior"]["carriers"]:
             console.print(describe_posterior(summary["posterior"]))
     return run_dir
-

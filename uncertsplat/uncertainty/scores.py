@@ -42,7 +42,6 @@ it must not be used to shrink a model: on fern, removing its top 5 % cost 6.9 dB
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import torch
@@ -50,7 +49,14 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from uncertsplat.gaussians.params import GaussianModel
-from uncertsplat.gaussians.variational import MAX_WIDTH, MIN_WIDTH, Variant, posterior_mean, sample
+from uncertsplat.gaussians.variational import (
+    MAX_WIDTH,
+    MIN_WIDTH,
+    Variant,
+    gate_off_probability,
+    posterior_mean,
+    sample,
+)
 from uncertsplat.render.sh import C0
 from uncertsplat.types import Cameras, GaussianSample
 
@@ -98,8 +104,7 @@ def posterior_scores(model: GaussianModel, *, variant: Variant = "ours", extent:
     # a degenerate (zero-size) Gaussian: any spread is "large"; keep the ratio finite
     out["position"][idx] = rms / size.clamp_min(1e-12)
     out["scale"][idx] = F.softplus(t["scale_width_raw"]).clamp(MIN_WIDTH, MAX_WIDTH).mean(1)
-    tau = F.softplus(t["gate_spread_raw"])[:, 0].clamp_min(1e-12)
-    out["gate"][idx] = 0.5 * torch.erfc((t["gate_loc"][:, 0] / tau) / math.sqrt(2.0))  # Phi(-nu / tau)
+    out["gate"][idx] = gate_off_probability(t["gate_loc"][:, 0], F.softplus(t["gate_spread_raw"])[:, 0])
     return out
 
 
