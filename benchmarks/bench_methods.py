@@ -35,6 +35,9 @@ def spec_toml(args) -> str:
     its = args.iterations
     scene = f'scene = "{args.scene}"' if args.scene else 'synth = { preset = "demo", seed = 0 }'
     spawn = f"\nspawn_fraction = {sorted(args.spawn_fractions)}" if args.spawn_fractions else ""
+    # --densify-until: the base config then has the run's length, so the scaled schedule keeps this window
+    base_its = f" iterations = {its}," if args.densify_until else ""
+    until = f", until = {args.densify_until}" if args.densify_until else ""
     if args.methods_only:
         axes = 'method = ["variational", "paper", "vi-single", "fisher", "ensemble"]' + spawn
     else:
@@ -47,7 +50,7 @@ downscale = {sorted({args.downscale, args.downscale * 2})}{spawn}"""
 name = "methods"
 {scene}
 train_preset = "{args.train_preset}"
-train = {{ eval_every = 100000, checkpoint_every = 100000, log_every = 50, densify = {{ max_gaussians = {args.max_gaussians} }} }}
+train = {{ eval_every = 100000, checkpoint_every = 100000, log_every = 50,{base_its} densify = {{ max_gaussians = {args.max_gaussians}{until} }} }}
 evaluate = {{ split = "test" }}
 design = "axes"
 schedule = "scaled"
@@ -82,6 +85,8 @@ def main() -> None:
                     help="a scene/workspace folder (default: the synthetic demo scene, generated)")
     ap.add_argument("--label", default="synthetic-demo", help="results go to methods_<label>.json")
     ap.add_argument("--train-preset", default="demo", help="train preset of every point (fern: paper)")
+    ap.add_argument("--densify-until", type=int, default=None,
+                    help="densify until this step at --iterations (default: the preset's window, scaled)")
     ap.add_argument("--spawn-fractions", type=float, nargs="*", default=[],
                     help="also vary the spawn rule (||scale|| > f x extent carries a posterior)")
     ap.add_argument("--methods-only", action="store_true",

@@ -11,6 +11,12 @@ Scenes: the synthetic demo scene (generated here) with the ``demo`` preset, the 
 ``--compare-kernels K``: after training, K steps from the final checkpoint with the native CPU kernels and
 K steps with the PyTorch ones, in the same process (the reference for the speed-up ratio).
 
+Every run also scores three deterministic ways to show the trained model on the held-out views
+(``render_modes``): the parameter posterior mean (``variational.posterior_mean``), the expected render
+(``variational.expected_render_sample``, what ``train`` reports and ``point_cloud.ply`` holds) and the mean of
+``--mc-samples`` posterior samples (what ``evaluate`` predicts), so the deterministic render is compared with its
+reference in the same run.
+
 Writes ``benchmarks/results/train_{scene}.json`` and prints the Markdown rows for BENCHMARKS.md.
 """
 
@@ -68,6 +74,7 @@ def bench(name: str, work: Path, args) -> dict:
         "curve": [{k: r[k] for k in ("step", "eval_psnr", "num_gaussians", "num_carriers") if k in r}
                   for r in stats if "eval_psnr" in r],
     }
+    result["render_modes"] = render_modes(run, torch.device(args.device), args.mc_samples)
     if args.compare_kernels:
         result["kernel_comparison"] = compare_kernels(scene, run, cfg, args.compare_kernels, torch.device(args.device))
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -113,6 +120,48 @@ def compare_kernels(scene: Path, run: Path, cfg, steps: int, device: torch.devic
     return out
 
 
+@torch.no_grad()
+def render_modes(run: Path, device: torch.device, mc_samples: int) -> dict:
+    """Held-out PSNR of the posterior mean, the expected render and the mean of ``mc_samples`` samples."""
+    from uncertsplat.data.dataset import load_images
+    from uncertsplat.eval.image import psnr
+    from uncertsplat.gaussians import variational as V
+    from uncertsplat.io.checkpoints import load_model
+    from uncertsplat.render import near_plane, render
+    from uncertsplat.stages.evaluate import load_run_scene
+
+    loaded = load_model(run, device)
+    scene = load_run_scene(loaded, run)
+    test = list(scene.split["test"])
+    if not test:
+        return {}
+    gt = load_images(scene, test, device)  # [C,H,W,3]
+    cams = scene.cameras[test].to(device)
+    prior, model, cfg = loaded.prior, loaded.model, loaded.config
+    kw = {"variant": prior.variant, "extent": loaded.extent, "temperature": prior.temperature,
+          "sh_degree": loaded.sh_degree}
+    bg = torch.tensor(cfg.scene.background, dtype=torch.float32, device=device)
+
+    def images(g):  # [C,H,W,3]
+        return torch.stack([render(g, cams[[c]], background=bg, tile_size=cfg.tile_size,
+                                   near=near_plane(scene.scene_scale)).rgb[0] for c in range(len(test))])
+
+    def score(rgb):
+        return sum(float(psnr(rgb[c].clamp(0, 1), gt[c])) for c in range(len(test))) / len(test)
+
+    gen = torch.Generator(device=device).manual_seed(0)
+    acc = None
+    for _ in range(mc_samples):
+        rgb = images(V.sample(model, gen, subset_size=cfg.variational.subset_size, **kw))
+        acc = rgb if acc is None else acc + rgb
+    out = {"posterior_mean_psnr": score(images(V.posterior_mean(model, **kw))),
+           "expected_render_psnr": score(images(V.expected_render_sample(model, **kw))),
+           "mc_samples": mc_samples, "mc_mean_psnr": score(acc / mc_samples)}
+    print(f"held-out PSNR: posterior mean {out['posterior_mean_psnr']:.2f}, expected render "
+          f"{out['expected_render_psnr']:.2f}, mean of {mc_samples} samples {out['mc_mean_psnr']:.2f}")
+    return out
+
+
 def row(r: dict) -> str:
     return (f"| {r['scene']} | {r['preset']} | {r['steps']} | {r['sec_per_step']:.3f} | {r['seconds']:.0f} | "
             f"{r['num_gaussians']} | {r['num_carriers']} | {r['memory_per_gaussian_bytes']:.0f} | "
@@ -129,6 +178,7 @@ def main() -> None:
     ap.add_argument("--machine", default=None, help="machine description for the table")
     ap.add_argument("--fern-workspace", type=Path, default=None)
     ap.add_argument("--work", type=Path, default=None, help="keep scenes and runs here (default: a temp dir)")
+    ap.add_argument("--mc-samples", type=int, default=10, help="posterior samples of the MC-mean reference")
     ap.add_argument("--compare-kernels", type=int, default=0, metavar="STEPS",
                     help="time STEPS steps from the final checkpoint with native and PyTorch kernels")
     args = ap.parse_args()

@@ -141,6 +141,11 @@ class GaussianSample:
         opacities: [N] in [0, 1].
         sh: [N,B,3] spherical-harmonic coefficients (B = (sh_degree_max + 1) ** 2).
         sh_degree: the degree to evaluate (<= the degree the coefficients allow).
+        position_var: optional [N] variance of an isotropic position noise N(0, var I) to average each
+            Gaussian over (``variational.expected_render_sample``): ``render`` then draws the Gaussian
+            convolved with it, i.e. covariance Sigma + var I, with its opacity scaled per view by
+            sqrt(det Sigma2d / det Sigma2d') (both with the screen-space dilation) so that its footprint
+            keeps the mass of the sharp one. None (the default) is a plain render.
     """
 
     means: Tensor  # [N,3]
@@ -149,6 +154,7 @@ class GaussianSample:
     opacities: Tensor  # [N]
     sh: Tensor  # [N,B,3]
     sh_degree: int = 0
+    position_var: Tensor | None = None  # [N]
 
     def __len__(self) -> int:
         return self.means.shape[0]

@@ -6,6 +6,7 @@ import torch
 from uncertsplat.gaussians.variational import (
     Prior,
     carrier_uncertainty,
+    expected_render_sample,
     inverse_softplus,
     kl_terms,
     posterior_mean,
@@ -32,10 +33,14 @@ def test_extremes_are_finite(variant, spread, gate_loc):
     kl = kl_terms(model, prior)
     s = sample(model, torch.Generator().manual_seed(1), variant=variant)
     pm = posterior_mean(model, variant=variant)
-    total = kl["total"] + s.means.sum() + s.opacities.sum() + pm.opacities.sum() + pm.means.sum()
+    er = expected_render_sample(model, variant=variant)
+    total = (kl["total"] + s.means.sum() + s.opacities.sum() + pm.opacities.sum() + pm.means.sum()
+             + er.opacities.sum() + er.means.sum())
     assert torch.isfinite(total), {k: float(v) for k, v in kl.items()}
     if variant == "ours":  # the paper's exp(s * o) with o up to 100 legitimately overflows
         assert torch.isfinite(s.scales).all()
+        assert torch.isfinite(er.scales).all() and (er.scales > 0).all()
+    assert ((er.opacities >= 0) & (er.opacities <= 1)).all()
     total.backward()
     for name, p in model.parameters().items():
         assert p.grad is None or torch.isfinite(p.grad).all(), name

@@ -12,6 +12,7 @@ from torch.distributions import Normal, Uniform, kl_divergence
 from uncertsplat.gaussians.variational import (
     Prior,
     expected_gate,
+    expected_render_sample,
     gaussian_kl,
     inverse_softplus,
     kl_terms,
@@ -188,6 +189,10 @@ def test_ours_is_equivariant_to_scene_scale(scale):
     torch.testing.assert_close(b.means / scale, a.means, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(b.scales / scale, a.scales, rtol=1e-5, atol=1e-9)
     torch.testing.assert_close(b.opacities, a.opacities)
+    ea, eb = expected_render_sample(ref, extent=1.0), expected_render_sample(scaled, extent=scale)
+    torch.testing.assert_close(eb.scales / scale, ea.scales, rtol=1e-5, atol=1e-9)
+    torch.testing.assert_close(eb.opacities, ea.opacities, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(eb.position_var / scale**2, ea.position_var, rtol=1e-4, atol=1e-12)
     assert kl_terms(ref, Prior())["total"].item() == pytest.approx(kl_terms(scaled, Prior())["total"].item())
 
 
@@ -258,3 +263,72 @@ class TestPosteriorSummary:
         s = posterior_summary(self._model(prior, carrier_fraction=0.0), prior)
         assert s["carriers"] == 0 and s["moved_fraction"] is None and s["kl_nats"] is None
         json.dumps(s)  # JSON-serialisable as written into train_summary.json
+
+
+def _average_render(model, cams, variant, n, seed):
+    from uncertsplat.render import render
+
+    g = gen(seed)
+    acc = None
+    with torch.no_grad():
+        for _ in range(n):
+            rgb = render(sample(model, g, subset_size=model.num_entries, variant=variant), cams).rgb
+            acc = rgb if acc is None else acc + rgb
+    return acc / n
+
+
+@pytest.mark.parametrize("variant", ["ours", "paper"])
+def test_expected_render_is_closer_to_the_average_of_samples_than_the_posterior_mean(variant):
+    from tests.reference.naive_render import look_at_cameras
+    from uncertsplat.render import render
+
+    # a position spread comparable to the Gaussians' sizes (0.005-0.055), so the noise visibly blurs the
+    # average render; subset M = K so the only randomness is the per-Gaussian noise the moments describe
+    prior = Prior(position_std=0.02, variant=variant)
+    model = random_model(120, gen(20), carrier_fraction=1.0, prior=prior, perturb_tables=0.1, num_entries=3)
+    with torch.no_grad():
+        model.params["opacities"].add_(2.0)  # mostly opaque: blending order matters, as in a scene
+    cams = look_at_cameras(2, 48, 40, 60.0, radius=1.6)
+    avg = _average_render(model, cams, variant, 400, seed=21)  # [C,H,W,3]
+    with torch.no_grad():
+        plain = render(posterior_mean(model, variant=variant, temperature=prior.temperature), cams).rgb
+        matched = render(expected_render_sample(model, variant=variant, temperature=prior.temperature), cams).rgb
+    err_plain = float((plain - avg).square().mean())
+    err_matched = float((matched - avg).square().mean())
+    assert err_plain > 1e-5  # the noise does change the average render here
+    assert err_matched < 0.2 * err_plain, (err_matched, err_plain)
+
+
+def test_expected_render_without_noise_is_the_posterior_mean():
+    model = random_model(30, gen(22), carrier_fraction=0.6, perturb_tables=0.2)
+    with torch.no_grad():  # no position spread, a point-mass multiplier at 1
+        model.tables["pos_spread_raw"].fill_(-40.0)
+        model.tables["scale_width_raw"].fill_(-40.0)  # width clamps to MIN_WIDTH = 0.01
+        model.tables["scale_left"].fill_(1.0 - 0.005)
+    pm = posterior_mean(model)
+    er = expected_render_sample(model)
+    torch.testing.assert_close(er.means, pm.means, rtol=0, atol=0)
+    torch.testing.assert_close(er.scales, pm.scales, rtol=1e-4, atol=0)
+    torch.testing.assert_close(er.opacities, pm.opacities, rtol=0, atol=0)
+    assert float(er.position_var.detach().abs().max()) < 1e-30
+    # without carriers it is the posterior mean exactly (a plain render)
+    none = random_model(10, gen(23), carrier_fraction=0.0)
+    er0 = expected_render_sample(none)
+    torch.testing.assert_close(er0.scales, posterior_mean(none).scales, rtol=0, atol=0)
+    assert er0.position_var is None
+
+
+def test_expected_render_at_the_prior():
+    extent = 2.0
+    model = random_model(40, gen(24), carrier_fraction=0.5, extent=extent)
+    pm = posterior_mean(model, extent=extent)
+    er = expected_render_sample(model, extent=extent)
+    car = model.posterior_row >= 0
+    s = model.params["scales"].detach().exp()
+    second = s.square() * (0.9**2 + 0.9 * 0.1 + 0.1**2 / 3)  # E[o^2] for o ~ U[0.9, 1]
+    torch.testing.assert_close(er.scales[car], second[car].sqrt(), rtol=1e-5, atol=0)
+    torch.testing.assert_close(er.position_var[car], torch.full((int(car.sum()),), (0.00248 * extent) ** 2),
+                               rtol=1e-4, atol=0)
+    assert (er.position_var[~car] == 0).all()
+    torch.testing.assert_close(er.opacities, pm.opacities, rtol=0, atol=0)  # E[gate]; the blur's dimming is per view
+    torch.testing.assert_close(er.scales[~car], pm.scales[~car], rtol=0, atol=0)

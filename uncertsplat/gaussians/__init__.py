@@ -1,7 +1,15 @@
 """Gaussians: the row-aligned parameter table, the variational offset tables, topology operations."""
 
 from .params import PARAM_SPECS, GaussianModel, init_from_points, memory_per_gaussian
-from .variational import TABLE_SPECS, Prior, carrier_uncertainty, kl_terms, posterior_mean, sample
+from .variational import (
+    TABLE_SPECS,
+    Prior,
+    carrier_uncertainty,
+    expected_render_sample,
+    kl_terms,
+    posterior_mean,
+    sample,
+)
 
 __all__ = ["PARAM_SPECS", "TABLE_SPECS", "GaussianModel", "Prior", "carrier_uncertainty", "init_from_points",
-           "kl_terms", "memory_per_gaussian", "posterior_mean", "sample"]
+           "expected_render_sample", "kl_terms", "memory_per_gaussian", "posterior_mean", "sample"]

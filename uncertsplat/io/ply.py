@@ -73,7 +73,11 @@ def _write(path: Path, elements: list[PlyElement], comments: list[str]) -> Path:
 
 def write_point_cloud_ply(path: str | Path, model: GaussianModel, *, variant: str = "ours", extent: float = 1.0,
                           temperature: float = 0.2) -> Path:
-    """Viewer-compatible PLY of the posterior mean with extra per-Gaussian uncertainty properties."""
+    """Viewer-compatible PLY of the posterior mean with extra per-Gaussian uncertainty properties.
+
+    Not the expected render (``variational.expected_render_sample``): its position blur needs a per-view
+    opacity correction that a standard viewer cannot apply.
+    """
     with torch.no_grad():
         pm = posterior_mean(model, variant=variant, extent=extent, temperature=temperature)
         op = pm.opacities.clamp(1e-7, 1 - 1e-7)

@@ -64,8 +64,11 @@ def render(
     dtype = sample.means.dtype
     cam_from_world = cameras.cam_from_world.to(dtype)
     K = cameras.K.to(dtype)
+    scales = sample.scales
+    if sample.position_var is not None:  # the footprint averaged over the position noise: Sigma + var I
+        scales = torch.sqrt(scales * scales + sample.position_var.clamp_min(0.0)[:, None])
     proj = project_gaussians(
-        sample.means, sample.quats, sample.scales, sample.opacities, cam_from_world, K, W, H, near, far, eps2d,
+        sample.means, sample.quats, scales, sample.opacities, cam_from_world, K, W, H, near, far, eps2d,
         backend=backend,
     )
     means2d = proj.means2d
@@ -89,7 +92,9 @@ def render(
         sample.opacities.detach(),
         backend=backend,
     )
-    log_o = torch.log(sample.opacities.clamp_min(torch.finfo(dtype).tiny))
+    log_o = torch.log(sample.opacities.clamp_min(torch.finfo(dtype).tiny))  # [N]
+    if sample.position_var is not None:
+        log_o = log_o + _blur_log_peak(sample, proj.conics, cam_from_world, K, W, H, near, far, eps2d, backend)  # [C,N]
     gparams = torch.cat([means2d, proj.conics, log_o.expand(C, N)[..., None]], dim=-1).reshape(C * N, 6)
     # Alpha can reach the 0.99 cap only for opacities near it (small margin for rounding).
     high = (sample.opacities.detach() > ALPHA_MAX - 1e-3).expand(C, N).reshape(-1)
@@ -114,3 +119,24 @@ def render(
         radii=radii,
         depths=proj.depths,
     )
+
+
+def _blur_log_peak(sample: GaussianSample, blurred_conics: Tensor, cam_from_world: Tensor, K: Tensor, W: int, H: int,
+                   near: float, far: float, eps2d: float, backend: str | None) -> Tensor:
+    """[C,N] log of the peak-height factor sqrt(det Sigma2d / det Sigma2d') of ``sample.position_var``'s blur.
+
+    Convolving a 2D Gaussian with another keeps its integral and lowers its peak by the square root of the
+    determinant ratio. Both covariances include the screen-space dilation, so a blur far below a pixel
+    changes nothing (a 3D estimate of the same ratio would dim sub-pixel axes for no visible blur).
+    det Sigma2d = 1 / det(conic), so the ratio is det(conic') / det(conic). At most 0: blurring never
+    brightens.
+    """
+    sharp = project_gaussians(sample.means, sample.quats, sample.scales, sample.opacities, cam_from_world, K, W, H,
+                              near, far, eps2d, backend=backend)
+    tiny = torch.finfo(blurred_conics.dtype).tiny
+
+    def log_det(conics: Tensor) -> Tensor:  # [C,N]
+        a, b, c = conics.unbind(-1)
+        return torch.log((a * c - b * b).clamp_min(tiny))
+
+    return (0.5 * (log_det(blurred_conics) - log_det(sharp.conics))).clamp_max(0.0)

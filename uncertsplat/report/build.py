@@ -221,9 +221,9 @@ def _background(run: RunData):
 def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[int, dict[str, ViewMaps]]:
     """Per-view figures; returns the loaded maps (run index -> name -> maps) for the comparison section."""
     loaded: dict[int, dict[str, ViewMaps]] = {}
-    body = [para("Each row: the ground-truth test image and the posterior-mean render; the absolute error and "
-                 "the predicted RGB std on one shared colour scale (same colour = same value); depth mean and "
-                 "std; and the rank-coloured std next to the rank-coloured error (each pixel coloured by its "
+    body = [para("Each row: the ground-truth test image and the prediction (the mean of the sampled renders); the "
+                 "absolute error and the predicted RGB std on one shared colour scale (same colour = same value); "
+                 "depth mean and std; and the rank-coloured std next to the rank-coloured error (each pixel coloured by its "
                  "rank quantile in its own map, so good uncertainty makes the two look alike whatever the "
                  "scales).", "legend")]
     for ri, run in enumerate(runs):

@@ -15,7 +15,7 @@ place at the end, so an interrupted prune leaves no half-written run, and an exi
   reversible and reproducible: ``rebuild_from_mask(RUN, OUT/prune_mask.npy)`` rebuilds the pruned model,
   and undoing the prune is using (or re-pruning) ``RUN`` itself, which is unchanged.
 - ``scores.npz``: every score of every Gaussian of the input run, and the ``carriers`` flag.
-- ``renders/{view}_{before,after,random}.png``: posterior-mean renders of a few held-out views before
+- ``renders/{view}_{before,after,random}.png``: deterministic renders (``expected_render_sample``) of a few held-out views before
   pruning, after pruning, and after removing as many random Gaussians.
 - ``prune.json``: counts before/after, score, threshold, keep ratio, held-out metrics (PSNR, SSIM, AUSE,
   NLL, coverage = mean rendered alpha) before, after, and for the random-removal baseline at the same
@@ -109,11 +109,12 @@ class _Measure:
 
     @torch.no_grad()
     def mean_renders(self, model) -> tuple[torch.Tensor, torch.Tensor]:
-        """Posterior-mean rgb [C,H,W,3] and alpha [C,H,W,1] of the held-out views (CPU)."""
-        from uncertsplat.gaussians.variational import posterior_mean
+        """Deterministic rgb [C,H,W,3] and alpha [C,H,W,1] of the held-out views (CPU), by the expected render
+        (``variational.expected_render_sample``)."""
+        from uncertsplat.gaussians.variational import expected_render_sample
 
         prior = self.loaded.prior
-        s = posterior_mean(model, variant=prior.variant, extent=self.loaded.extent, temperature=prior.temperature,
+        s = expected_render_sample(model, variant=prior.variant, extent=self.loaded.extent, temperature=prior.temperature,
                            sh_degree=self.loaded.sh_degree)
         rgb, alpha = [], []
         for c in range(len(self.cams)):

@@ -140,6 +140,7 @@ def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resu
         summary = trainer.summary()
         held = trainer.evaluate()
         summary.update({"test_psnr": held.get("psnr"), "test_ssim": held.get("ssim"),
+                        "test_render": "expected render (variational.expected_render_sample)",
                         "num_test_views": len(data.split.get("test", ())), "device": str(device), "kernels": kernels,
                         "scene": str(scene.resolve())})
         atomic_write_json(run_dir / "train_summary.json", summary)

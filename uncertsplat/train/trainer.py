@@ -28,7 +28,13 @@ from uncertsplat.config import TrainConfig
 from uncertsplat.console import progress
 from uncertsplat.eval.image import psnr, ssim
 from uncertsplat.gaussians.params import GaussianModel, init_from_points, memory_per_gaussian
-from uncertsplat.gaussians.variational import Prior, posterior_mean, posterior_summary, sample_with_kl
+from uncertsplat.gaussians.variational import (
+    Prior,
+    expected_render_sample,
+    posterior_mean,
+    posterior_summary,
+    sample_with_kl,
+)
 from uncertsplat.render import near_plane, render
 from uncertsplat.strategy.densify import Densifier, DensifyStats
 from uncertsplat.strategy.schedule import sh_degree_at
@@ -184,8 +190,9 @@ class Trainer:
         return self.view_queue.pop()
 
     def mean_sample(self) -> GaussianSample:
-        """The posterior-mean Gaussians at the current SH degree (what a plain render shows)."""
-        return posterior_mean(self.model, variant=self.cfg.variant, extent=self.extent,
+        """The deterministic Gaussians at the current SH degree (what a plain render shows): the expected
+        render of the posterior (``variational.expected_render_sample``)."""
+        return expected_render_sample(self.model, variant=self.cfg.variant, extent=self.extent,
                               temperature=self.prior.temperature, sh_degree=self.sh_degree)
 
     def render(self, gaussians: GaussianSample, cams: Cameras):
@@ -193,7 +200,7 @@ class Trainer:
 
     @torch.no_grad()
     def evaluate(self, max_views: int | None = None) -> dict[str, float]:
-        """Held-out PSNR / SSIM of the posterior-mean render (empty dict without test views)."""
+        """Held-out PSNR / SSIM of the deterministic render, ``mean_sample`` (empty dict without test views)."""
         if self.test_cams is None or self.test_images is None:
             return {}
         g = self.mean_sample()

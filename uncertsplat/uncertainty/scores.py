@@ -43,6 +43,7 @@ it must not be used to shrink a model: on fern, removing its top 5 % cost 6.9 dB
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 import torch
 import torch.nn.functional as F
@@ -117,8 +118,7 @@ def blending_weights(sample_: GaussianSample, cameras: Cameras, *, render_fn) ->
     """
     n = len(sample_)
     dc = torch.zeros(n, 1, 3, device=sample_.means.device, dtype=sample_.means.dtype, requires_grad=True)
-    plain = GaussianSample(means=sample_.means.detach(), quats=sample_.quats.detach(),
-                           scales=sample_.scales.detach(), opacities=sample_.opacities.detach(), sh=dc, sh_degree=0)
+    plain = replace(sample_.detach(), sh=dc, sh_degree=0)  # keeps position_var when the sample has one
     total = torch.zeros(n, device=sample_.means.device)
     for c in range(len(cameras)):  # one view at a time keeps memory at one render
         if dc.grad is not None:
