@@ -44,6 +44,10 @@ def test_writes_maps_and_metrics(evaluated):
     m = data.mean
     assert 10 < m.psnr < 60 and 0 < m.ssim <= 1
     assert m.ause_mae is not None and m.nll is not None and m.nll_kde is not None
+    # the one deterministic render `train` reports (the expected render) scores near the mean of K samples
+    assert m.psnr_render is not None and abs(m.psnr_render - m.psnr) < 1.5
+    summary = json.loads((run / "train_summary.json").read_text())
+    assert m.psnr_render == pytest.approx(summary["test_psnr"], abs=1e-3)  # the same render, the same views
     # the synthetic scene has GT depth in the run's own units: the scale is known, not estimated
     assert data.depth_scale.method == "scene" and data.depth_scale.scale == 1.0
     assert m.depth_ause_mae is not None and m.depth_abs_rel is not None

@@ -34,6 +34,11 @@ class ViewMetrics(_Strict):
     """Metrics of one view (or their mean over views). All optional: None = not available."""
 
     psnr: float | None = None
+    """PSNR of the prediction: the mean of the K sampled renders."""
+    psnr_render: float | None = None
+    """PSNR of one deterministic render: the expected render of a variational run
+    (``variational.expected_render_sample``), the plain render of a deterministic one; None for the
+    ensemble and Fisher baselines."""
     ssim: float | None = None
     lpips: float | None = None
     ause_mae: float | None = None

@@ -30,6 +30,7 @@ class MetricSpec:
 # Order = column order in the tables. Unknown scalar keys are shown after these, under their own names.
 METRIC_SPECS: tuple[MetricSpec, ...] = (
     MetricSpec("psnr", ("psnr",), "PSNR (dB)", ".2f", True),
+    MetricSpec("psnr_render", ("psnr_render",), "PSNR, one render (dB)", ".2f", True),
     MetricSpec("ssim", ("ssim",), "SSIM", ".4f", True),
     MetricSpec("lpips", ("lpips",), "LPIPS", ".4f", False),
     MetricSpec("ause_mae", ("ause_mae", "ause"), "AUSE MAE", ".4f", False),

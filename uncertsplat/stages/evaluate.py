@@ -133,6 +133,12 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
                                       extent=loaded.extent, temperature=prior.temperature,
                                       sh_degree=loaded.sh_degree)
 
+    # the one deterministic render (no sampling) that `train` reports: its PSNR goes next to the MC mean's
+    det_sample = None
+    if baseline_fn is None:
+        with torch.no_grad():
+            det_sample = variational.expected_render_sample(model, variant=prior.variant, extent=loaded.extent,
+                                                            temperature=prior.temperature, sh_degree=loaded.sh_degree)
     images = load_images(scene, indices)  # [C,H,W,3] CPU
     masks = load_masks(scene, indices)
     if gt_depth is None:
@@ -182,6 +188,10 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
             )
             if lp_ok:
                 m["lpips"] = float(lpips(pred, gt))
+            if det_sample is not None:
+                with torch.no_grad():
+                    det = render_fn(det_sample, cams).rgb[0].cpu().clamp(0, 1)
+                m["psnr_render"] = float(psnr(det, gt, mask))
             if samples is not None:
                 s_rgb = samples.rgb[:, 0].cpu()
                 m["nll_kde"] = float(kde_nll(s_rgb, gt, mask=mask))
