@@ -122,9 +122,14 @@ def compare_kernels(scene: Path, run: Path, cfg, steps: int, device: torch.devic
 
 @torch.no_grad()
 def render_modes(run: Path, device: torch.device, mc_samples: int) -> dict:
-    """Held-out PSNR of the posterior mean, the expected render and the mean of ``mc_samples`` samples."""
+    """Held-out PSNR of the posterior mean, the expected render and the mean of ``mc_samples`` samples; and the
+    uncertainty metrics (AUSE-MAE, Gaussian NLL, calibration error) of the samples' std with either the mean of
+    the samples or the expected render as the prediction."""
     from uncertsplat.data.dataset import load_images
+    from uncertsplat.eval.calibration import calibration
     from uncertsplat.eval.image import psnr
+    from uncertsplat.eval.nll import gaussian_nll
+    from uncertsplat.eval.sparsification import sparsification_all
     from uncertsplat.gaussians import variational as V
     from uncertsplat.io.checkpoints import load_model
     from uncertsplat.render import near_plane, render
@@ -146,17 +151,26 @@ def render_modes(run: Path, device: torch.device, mc_samples: int) -> dict:
         return torch.stack([render(g, cams[[c]], background=bg, tile_size=cfg.tile_size,
                                    near=near_plane(scene.scene_scale)).rgb[0] for c in range(len(test))])
 
-    def score(rgb):
-        return sum(float(psnr(rgb[c].clamp(0, 1), gt[c])) for c in range(len(test))) / len(test)
+    def mean_over_views(fn):
+        return sum(fn(c) for c in range(len(test))) / len(test)
 
     gen = torch.Generator(device=device).manual_seed(0)
-    acc = None
-    for _ in range(mc_samples):
-        rgb = images(V.sample(model, gen, subset_size=cfg.variational.subset_size, **kw))
-        acc = rgb if acc is None else acc + rgb
-    out = {"posterior_mean_psnr": score(images(V.posterior_mean(model, **kw))),
-           "expected_render_psnr": score(images(V.expected_render_sample(model, **kw))),
-           "mc_samples": mc_samples, "mc_mean_psnr": score(acc / mc_samples)}
+    samples = torch.stack([images(V.sample(model, gen, subset_size=cfg.variational.subset_size, **kw))
+                           for _ in range(mc_samples)])  # [S,C,H,W,3]
+    std = samples.std(0) if mc_samples > 1 else torch.zeros_like(samples[0])
+    preds = {"posterior_mean": images(V.posterior_mean(model, **kw)),
+             "expected_render": images(V.expected_render_sample(model, **kw)), "mc_mean": samples.mean(0)}
+    out: dict = {"mc_samples": mc_samples}
+    for name, rgb in preds.items():
+        rgb = rgb.clamp(0, 1)
+        out[f"{name}_psnr"] = mean_over_views(lambda c, rgb=rgb: float(psnr(rgb[c], gt[c])))
+        if name != "posterior_mean" and mc_samples > 1:  # the samples' std with this prediction
+            err = rgb - gt
+            out[f"{name}_ause_mae"] = mean_over_views(lambda c, err=err: sparsification_all(err[c], std[c])["mae"].ause)
+            out[f"{name}_nll"] = mean_over_views(
+                lambda c, rgb=rgb: float(gaussian_nll(gt[c], rgb[c], std[c], std_floor=1e-3)))
+            out[f"{name}_calibration_error"] = mean_over_views(
+                lambda c, err=err: calibration(err[c], std[c]).calibration_error)
     print(f"held-out PSNR: posterior mean {out['posterior_mean_psnr']:.2f}, expected render "
           f"{out['expected_render_psnr']:.2f}, mean of {mc_samples} samples {out['mc_mean_psnr']:.2f}")
     return out

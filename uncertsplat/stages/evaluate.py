@@ -363,6 +363,9 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
         table.add_row(name, f(v.psnr, 2), f(v.ssim), f(v.ause_mae), f(v.ause_rmse), f(v.nll), f(v.calibration_error),
                       f(v.spearman), f(v.depth_ause_mae), f(v.seconds, 2))
     console.print(table)
+    if report.mean.psnr_render is not None:
+        console.print(f"PSNR is that of the mean of the {cfg.num_samples} samples; one deterministic render (the "
+                      f"expected render, what train reports): {report.mean.psnr_render:.2f} dB")
     if report.depth_scale is not None:
         console.print(f"depth scale {report.depth_scale.scale:.4g} ({report.depth_scale.method})")
     console.print(f"wrote {out / 'metrics.json'} and maps in {out / 'maps'}")
