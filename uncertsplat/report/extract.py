@@ -55,7 +55,7 @@ METRIC_SPECS: tuple[MetricSpec, ...] = (
 _KNOWN_ALIASES = {a for s in METRIC_SPECS for a in s.aliases}
 
 # The summary table shows these metric columns (when at least one run has them) plus run facts.
-SUMMARY_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "calibration_error", "depth_ause_mae")
+SUMMARY_KEYS = ("psnr", "psnr_render", "ssim", "ause_mae", "ause_rmse", "nll", "calibration_error", "depth_ause_mae")
 
 
 def _flatten_scalars(d: Any, prefix: str = "", depth: int = 0) -> dict[str, Any]:
