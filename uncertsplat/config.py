@@ -261,6 +261,10 @@ class EvalConfig(_Base):
     preview: Literal["percentile", "fixed"] = "percentile"
     max_views: int | None = Field(None, ge=1)
     """Evaluate only the first n views of the split (for quick looks)."""
+    calibration_views: int = Field(8, ge=0)
+    """Fit one factor for the RGB std on this many evenly spaced training views (0: none); the metrics
+    ``nll_calibrated`` and ``calibration_error_calibrated`` use std x factor, the maps keep the raw std.
+    Costs K renders per view; only with ``split = "test"``."""
 
 
 # ------------------------------------------------------------------------------------------------ prune

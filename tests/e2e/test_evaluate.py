@@ -74,6 +74,40 @@ def test_same_seed_same_metrics(evaluated, tiny_run_path):
     assert again.mean.psnr == pytest.approx(report.mean.psnr, rel=1e-6)
 
 
+def test_std_scale_is_fitted_on_training_views_and_applied_to_the_std(evaluated):
+    from uncertsplat.data.dataset import load_images
+    from uncertsplat.eval.nll import gaussian_nll
+    from uncertsplat.io.checkpoints import load_model
+
+    run, report = evaluated
+    assert report.std_scale is not None and report.std_scale > 0
+    loaded = load_model(run, "cpu")
+    scene = evaluate.load_run_scene(loaded, run)
+    train_names = {scene.cameras.image_names[i] for i in scene.split["train"]}
+    assert len(report.calibration_views) == 8 and set(report.calibration_views) <= train_names
+    assert not set(report.calibration_views) & set(report.image_names)  # never the views it is scored on
+    # the calibrated NLL is the NLL of the stored maps with the std times the fitted factor
+    name = report.image_names[0]
+    ch = read_exr(run / "eval" / "maps" / f"{evaluate.map_stem(name)}.exr")
+    mean = torch.from_numpy(np.stack([ch[f"rgb_mean.{c}"] for c in "RGB"], -1))
+    std = torch.from_numpy(np.stack([ch[f"rgb_std.{c}"] for c in "RGB"], -1))
+    gt = load_images(scene, [scene.cameras.image_names.index(name)])[0]
+    v = report.per_view[name]
+    assert float(gaussian_nll(gt, mean, std, std_floor=report.std_floor)) == pytest.approx(v.nll, abs=1e-4)
+    expected = float(gaussian_nll(gt, mean, std * report.std_scale, std_floor=report.std_floor))
+    assert v.nll_calibrated == pytest.approx(expected, abs=1e-4)
+    assert report.mean.calibration_error_calibrated is not None
+
+
+def test_no_std_scale_when_disabled_or_scoring_training_views(tiny_run_path, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    off = evaluate.run(run, EvalConfig(num_samples=2, max_views=1, calibration_views=0), device=torch.device("cpu"))
+    on_train = evaluate.run(run, EvalConfig(num_samples=2, max_views=1, split="train"), device=torch.device("cpu"))
+    for rep in (off, on_train):
+        assert rep.std_scale is None and rep.calibration_views == [] and rep.mean.nll_calibrated is None
+
+
 def test_given_depth_gt_folder_estimates_scale(tiny_run_path, tiny_scene_path, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(tiny_run_path, run)

@@ -51,6 +51,10 @@ class ViewMetrics(_Strict):
     nll_paper: float | None = None
     """The original code's KDE NLL formula; NOT comparable (depends on resolution)."""
     calibration_error: float | None = None
+    nll_calibrated: float | None = None
+    """Gaussian NLL with the std times ``EvalReport.std_scale`` (fitted on training views)."""
+    calibration_error_calibrated: float | None = None
+    """Calibration error with the std times ``EvalReport.std_scale``."""
     spearman: float | None = None
     """Spearman(std, |error|) over RGB elements; None when undefined (see ``spearman_note``)."""
     spearman_note: str | None = None
@@ -192,6 +196,10 @@ class EvalReport(_Strict):
     std_floor: float | None = None
     kde_bandwidth: str = "silverman: max(1.06 * std_hat * K^(-1/5), floor)"
     depth_scale: DepthScaleInfo | None = None
+    std_scale: float | None = None
+    """Factor for the RGB std fitted on training views (``evaluate.fit_std_scale``); None = not fitted."""
+    calibration_views: list[str] = Field(default_factory=list)
+    """The training images ``std_scale`` was fitted on."""
     lpips: LpipsStatus | None = None
     device: str | None = None
     notes: list[str] = Field(default_factory=list)

@@ -41,6 +41,9 @@ METRIC_SPECS: tuple[MetricSpec, ...] = (
     MetricSpec("nll_paper", ("nll_paper", "paper_nll"), "NLL (paper formula)", ".3f", False),
     MetricSpec("calibration_error", ("calibration_error", "calib_error", "ece", "calibration_ece"),
                "Calib. error", ".4f", False),
+    MetricSpec("nll_calibrated", ("nll_calibrated",), "NLL, std rescaled on train views", ".3f", False),
+    MetricSpec("calibration_error_calibrated", ("calibration_error_calibrated",),
+               "Calib. error, std rescaled", ".4f", False),
     MetricSpec("spearman", ("spearman", "spearman_rgb"), "Spearman", ".3f", True),
     MetricSpec("depth_ause_mae", ("depth_ause_mae", "depth_ause", "ause_depth_mae", "ause_depth"),
                "Depth AUSE MAE", ".4f", False),
@@ -55,7 +58,8 @@ METRIC_SPECS: tuple[MetricSpec, ...] = (
 _KNOWN_ALIASES = {a for s in METRIC_SPECS for a in s.aliases}
 
 # The summary table shows these metric columns (when at least one run has them) plus run facts.
-SUMMARY_KEYS = ("psnr", "psnr_render", "ssim", "ause_mae", "ause_rmse", "nll", "calibration_error", "depth_ause_mae")
+SUMMARY_KEYS = ("psnr", "psnr_render", "ssim", "ause_mae", "ause_rmse", "nll", "calibration_error", "nll_calibrated",
+                "depth_ause_mae")
 
 
 def _flatten_scalars(d: Any, prefix: str = "", depth: int = 0) -> dict[str, Any]:

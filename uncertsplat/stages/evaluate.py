@@ -70,9 +70,73 @@ def _gt_depth_from_folder(folder: Path, scene: SceneData, indices: list[int]) ->
     return torch.from_numpy(np.stack(out)[..., None])
 
 
+def _samplers(loaded, scene: SceneData, device: torch.device):
+    """(sample_fn, render_fn, det_sample) of a run: one posterior sample per generator call (a baseline's own
+    sampler for ensemble / Fisher runs), the renderer with the run's settings, and the one deterministic
+    render that ``train`` reports (the expected render; None for the baselines)."""
+    from uncertsplat.baselines import make_sample_fn
+    from uncertsplat.gaussians import variational
+    from uncertsplat.render import near_plane, render
+
+    tcfg, prior, model = loaded.config, loaded.prior, loaded.model
+    bg = torch.tensor(tcfg.scene.background, dtype=torch.float32, device=device)
+    render_fn = functools.partial(render, background=bg, tile_size=tcfg.tile_size, near=near_plane(scene.scene_scale))
+    kw = {"variant": prior.variant, "extent": loaded.extent, "temperature": prior.temperature,
+          "sh_degree": loaded.sh_degree}
+    baseline_fn = make_sample_fn(loaded, device)  # ensemble / fisher runs bring their own sampler
+    if baseline_fn is not None:
+        return baseline_fn, render_fn, None
+    with torch.no_grad():
+        det_sample = variational.expected_render_sample(model, **kw)
+    if tcfg.method == "deterministic" or model.num_carriers == 0:
+        mean_sample = variational.posterior_mean(model, **kw)
+
+        def sample_fn(g):
+            return mean_sample
+    else:
+        def sample_fn(g):
+            return variational.sample(model, g, subset_size=tcfg.variational.subset_size, **kw)
+    return sample_fn, render_fn, det_sample
+
+
+@torch.no_grad()
+def fit_std_scale(loaded, scene: SceneData, cfg: EvalConfig, device: torch.device) -> tuple[float | None, list[str]]:
+    """One factor for the predicted std, fitted on ``cfg.calibration_views`` evenly spaced *training* views.
+
+    The maximum-likelihood scale of a Gaussian predictive, s^2 = mean((error / max(std, std_floor))^2) over
+    every valid pixel and channel of those views (K samples each, as in evaluation). Fitted on training
+    views, never on the views it is scored on; training views fit better than held-out ones, so it errs
+    low. Returns (scale, image names), or (None, []) when disabled or there is no training view.
+    """
+    from uncertsplat.data.dataset import load_images, load_masks
+    from uncertsplat.uncertainty.mc import mc_render
+
+    train = list(scene.split.get("train", ()))
+    n = min(cfg.calibration_views, len(train))
+    if n == 0:
+        return None, []
+    chosen = [train[round(j * (len(train) - 1) / max(n - 1, 1))] for j in range(n)] if n > 1 else [train[0]]
+    sample_fn, render_fn, _ = _samplers(loaded, scene, device)
+    images, masks = load_images(scene, chosen), load_masks(scene, chosen)
+    gen = torch.Generator(device=device)
+    total, count = 0.0, 0
+    for j, i in enumerate(chosen):
+        gen.manual_seed(cfg.seed * 1_000_003 + i)
+        maps, _ = mc_render(sample_fn, render_fn, scene.cameras[[i]].to(device), cfg.num_samples, gen)
+        z2 = ((maps.rgb_mean[0].cpu().clamp(0, 1) - images[j]) / maps.rgb_std[0].cpu().clamp_min(cfg.std_floor)) ** 2
+        if masks is not None:
+            z2 = z2[masks[j][..., 0]]
+        total += float(z2.double().sum())
+        count += z2.numel()
+    if count == 0:
+        return None, []
+    return (total / count) ** 0.5, [scene.cameras.image_names[i] for i in chosen]
+
+
 def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig, device: torch.device, *,
                    write_maps_to: Path | None = None, gt_depth: torch.Tensor | None = None,
-                   depth_known_scale: bool = False, show_progress: bool = True):
+                   depth_known_scale: bool = False, show_progress: bool = True, std_scale: float | None = None,
+                   calibration_views: list[str] | None = None):
     """Render K posterior samples of each view in ``indices`` and compute every metric.
 
     Args:
@@ -84,6 +148,9 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
         write_maps_to: a folder for EXR maps and PNG previews (nothing is written when None).
         gt_depth: [C,H,W,1] GT depth for these views; None uses the scene's own GT depth if any.
         depth_known_scale: the GT depth is in the run's world units (no scale to estimate).
+        std_scale: a factor for the RGB std (``fit_std_scale``): adds ``nll_calibrated`` and
+            ``calibration_error_calibrated`` (the maps and the other metrics keep the raw std).
+        calibration_views: the image names ``std_scale`` was fitted on (recorded in the report).
 
     Returns:
         ``eval.report_schema.EvalReport`` (not written to disk).
@@ -103,42 +170,15 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
         ViewMetrics,
     )
     from uncertsplat.eval.sparsification import mean_curves, sparsification_all
-    from uncertsplat.gaussians import variational
-    from uncertsplat.render import near_plane, render
     from uncertsplat.stages.manifest import hash_config, versions
     from uncertsplat.uncertainty.mc import mc_render
 
     if not indices:
         raise UserError("no view to evaluate in this split",
                         hint="Use --split train, or a scene with held-out views.")
-    tcfg = loaded.config
-    prior = loaded.prior
-    model = loaded.model
-    bg = torch.tensor(tcfg.scene.background, dtype=torch.float32, device=device)
-    render_fn = functools.partial(render, background=bg, tile_size=tcfg.tile_size, near=near_plane(scene.scene_scale))
-    from uncertsplat.baselines import eval_notes, make_sample_fn
+    from uncertsplat.baselines import eval_notes
 
-    baseline_fn = make_sample_fn(loaded, device)  # ensemble / fisher runs bring their own sampler
-    if baseline_fn is not None:
-        sample_fn = baseline_fn
-    elif tcfg.method == "deterministic" or model.num_carriers == 0:
-        mean_sample = variational.posterior_mean(model, variant=prior.variant, extent=loaded.extent,
-                                                 temperature=prior.temperature, sh_degree=loaded.sh_degree)
-
-        def sample_fn(g):
-            return mean_sample
-    else:
-        def sample_fn(g):
-            return variational.sample(model, g, subset_size=tcfg.variational.subset_size, variant=prior.variant,
-                                      extent=loaded.extent, temperature=prior.temperature,
-                                      sh_degree=loaded.sh_degree)
-
-    # the one deterministic render (no sampling) that `train` reports: its PSNR goes next to the MC mean's
-    det_sample = None
-    if baseline_fn is None:
-        with torch.no_grad():
-            det_sample = variational.expected_render_sample(model, variant=prior.variant, extent=loaded.extent,
-                                                            temperature=prior.temperature, sh_degree=loaded.sh_degree)
+    sample_fn, render_fn, det_sample = _samplers(loaded, scene, device)
     images = load_images(scene, indices)  # [C,H,W,3] CPU
     masks = load_masks(scene, indices)
     if gt_depth is None:
@@ -178,6 +218,10 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
             err = pred - gt
             sp = sparsification_all(err, std, mask=mask, steps=cfg.ause_steps)
             cal = calibration(err, std, mask=mask)
+            if std_scale is not None:
+                calibrated = dict(
+                    nll_calibrated=float(gaussian_nll(gt, pred, std * std_scale, std_floor=cfg.std_floor, mask=mask)),
+                    calibration_error_calibrated=calibration(err, std * std_scale, mask=mask).calibration_error)
             sm = spearman(std, err.abs(), mask=mask)
             m = dict(
                 psnr=float(psnr(pred, gt, mask)), ssim=float(ssim(pred, gt)),
@@ -186,6 +230,8 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
                 calibration_error=cal.calibration_error, spearman=sm.value, spearman_note=sm.reason,
                 seconds=seconds,
             )
+            if std_scale is not None:
+                m.update(calibrated)
             if lp_ok:
                 m["lpips"] = float(lpips(pred, gt))
             if det_sample is not None:
@@ -285,6 +331,8 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
         ause_steps=cfg.ause_steps,
         std_floor=cfg.std_floor,
         depth_scale=depth_info,
+        std_scale=std_scale,
+        calibration_views=calibration_views or [],
         lpips=LpipsStatus(available=lp_ok, reason=lp_reason),
         device=str(device),
         notes=notes,
@@ -347,7 +395,11 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
     with run_lock(run_dir, "evaluate"):
         console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
                       f"{len(loaded.model)} Gaussians ({loaded.model.num_carriers} with a posterior), {device}")
-        report = evaluate_views(loaded, scene, indices, cfg, device, write_maps_to=out / "maps", gt_depth=gt_depth)
+        std_scale, cal_views = (None, [])
+        if cfg.split == "test" and cfg.calibration_views > 0:  # never fitted on the views it is scored on
+            std_scale, cal_views = fit_std_scale(loaded, scene, cfg, device)
+        report = evaluate_views(loaded, scene, indices, cfg, device, write_maps_to=out / "maps", gt_depth=gt_depth,
+                                std_scale=std_scale, calibration_views=cal_views)
         atomic_write_text(out / "metrics.json", report.to_json() + "\n")
         atomic_write_text(out / "config.json", cfg.model_dump_json(indent=2) + "\n")
 
@@ -363,6 +415,11 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
         table.add_row(name, f(v.psnr, 2), f(v.ssim), f(v.ause_mae), f(v.ause_rmse), f(v.nll), f(v.calibration_error),
                       f(v.spearman), f(v.depth_ause_mae), f(v.seconds, 2))
     console.print(table)
+    if report.std_scale is not None:
+        m = report.mean
+        console.print(f"std x {report.std_scale:.3g} (fitted on {len(report.calibration_views)} training views): "
+                      f"NLL {m.nll_calibrated:.3f} (raw {m.nll:.3f}), calibration error "
+                      f"{m.calibration_error_calibrated:.3f} (raw {m.calibration_error:.3f}); AUSE is unchanged")
     if report.mean.psnr_render is not None:
         console.print(f"PSNR is that of the mean of the {cfg.num_samples} samples; one deterministic render (the "
                       f"expected render, what train reports): {report.mean.psnr_render:.2f} dB")
