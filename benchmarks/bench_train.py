@@ -63,6 +63,10 @@ def bench(name: str, work: Path, args) -> dict:
     overrides += args.set or []
     cfg = train_config_from(SCENES[name], None, overrides)
     run = work / f"run_{name}"
+    if (run / "config.json").is_file():  # this script's own run from an earlier call with the same --work
+        import shutil
+
+        shutil.rmtree(run)
     train_stage.run(scene, run, cfg, torch.device(args.device))
     summary = json.loads((run / "train_summary.json").read_text())
     stats = [json.loads(x) for x in (run / "stats.jsonl").read_text().splitlines()]
