@@ -335,3 +335,16 @@ def test_summary_says_how_far_the_posterior_moved(tmp_path):
     html = stage.run([run, old], tmp_path / "out", ReportConfig()).read_text()
     assert "r (train): posterior: 0.0 % of" in html and "moved from the prior" in html
     assert "old (train): posterior" not in html
+
+
+def test_metrics_section_states_the_fitted_std_scale(tmp_path):
+    run = make_run(tmp_path, "r", maps=False)
+    m = json.loads((run / "eval" / "metrics.json").read_text())
+    m.update(std_scale=1.9034, calibration_views=[f"view_{i:03d}.png" for i in range(1, 9)])
+    m["mean"]["nll_calibrated"] = -2.74
+    (run / "eval" / "metrics.json").write_text(json.dumps(m))
+    plain = make_run(tmp_path, "plain", maps=False)  # no std_scale: no fact, no crash
+    html = stage.run([run, plain], tmp_path / "out", ReportConfig()).read_text()
+    assert "x1.9, fitted on 8 training views" in html
+    assert html.count("std scale (calibrated NLL)") == 1
+    assert "NLL, std rescaled on train views" in html  # the summary column

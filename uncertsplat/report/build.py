@@ -192,6 +192,9 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
             facts.append(("depth scale", f"{ds.get('scale')} ({ds.get('method', '?')})"))
         if run.metrics.get("std_floor") is not None:
             facts.append(("std floor (NLL)", run.metrics["std_floor"]))
+        if isinstance(run.metrics.get("std_scale"), (int, float)):
+            n_cal = len(run.metrics.get("calibration_views") or [])
+            facts.append(("std scale (calibrated NLL)", f"x{run.metrics['std_scale']:.3g}, fitted on {n_cal} training views"))
         lp = run.metrics.get("lpips")
         if isinstance(lp, dict) and not lp.get("available", True):
             facts.append(("LPIPS", lp.get("reason") or "unavailable"))
