@@ -107,12 +107,15 @@ def main() -> None:
     rows = [r for r in recs if all(r["knobs"][k] == d[k] for k in ("iterations", "num_entries", "downscale"))
             and (r["knobs"]["num_samples"] == d["num_samples"])]
     rows.sort(key=lambda r: r["ause_mae"] if r.get("ause_mae") is not None else 9.0)
-    header = ("| method | PSNR | AUSE-MAE | AUSE-RMSE | NLL | cal. err | depth AUSE | train s | eval s/view | peak MB |\n"
-              "|---|---|---|---|---|---|---|---|---|---|")
+    header = ("| method | PSNR | AUSE-MAE | AUSE-RMSE | NLL | cal. err | std scale | NLL, std rescaled | cal. err, rescaled "
+              "| depth AUSE | train s | eval s/view | peak MB |\n"
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     lines = [header]
     for r in rows:
         lines.append(f"| {r['method']} | {fmt(r['psnr'], 2)} | {fmt(r['ause_mae'])} | {fmt(r['ause_rmse'])} | "
-                     f"{fmt(r['nll'])} | {fmt(r['calibration_error'])} | {fmt(r['depth_ause_mae'])} | "
+                     f"{fmt(r['nll'])} | {fmt(r['calibration_error'])} | {fmt(r.get('std_scale'), 2)} | "
+                     f"{fmt(r.get('nll_calibrated'))} | {fmt(r.get('calibration_error_calibrated'))} | "
+                     f"{fmt(r['depth_ause_mae'])} | "
                      f"{fmt(r['train_seconds'], 1)} | {fmt(r['eval_seconds_per_view'], 2)} | "
                      f"{fmt(r.get('peak_memory_mb'), 0)} |")
     table = "\n".join(lines)

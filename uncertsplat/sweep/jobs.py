@@ -15,8 +15,9 @@ from pathlib import Path
 
 import torch
 
-RECORD_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "nll_kde", "calibration_error", "spearman",
-               "depth_ause_mae", "depth_ause_rmse", "depth_abs_rel")
+RECORD_KEYS = ("psnr", "psnr_render", "ssim", "ause_mae", "ause_rmse", "nll", "nll_kde", "calibration_error",
+               "nll_calibrated", "calibration_error_calibrated", "spearman", "depth_ause_mae", "depth_ause_rmse",
+               "depth_abs_rel")
 
 
 def _peak_mb(device: torch.device) -> float:
@@ -57,7 +58,9 @@ def run_job(job: dict) -> list[dict]:
     Record keys: ``id``, ``hash``, ``job``, ``method``, ``knobs``, ``is_default``, ``status`` (ok/failed),
     ``error``, ``train_seconds``, ``eval_seconds_per_view``, ``eval_seconds``, ``time`` (train + eval),
     ``num_views``, ``num_samples``, ``peak_memory_mb`` (train / eval / max), ``num_gaussians``,
-    ``num_carriers``, the metrics of ``RECORD_KEYS`` (means over the views), ``notes``, ``run_dir``.
+    ``num_carriers``, the metrics of ``RECORD_KEYS`` (means over the views), ``std_scale`` and
+    ``calibration_seconds`` (the std factor fitted on training views, ``evaluate.fit_std_scale``, and its cost,
+    outside the timed evaluation), ``notes``, ``run_dir``.
     """
     from uncertsplat.device import resolve_device
 
@@ -102,7 +105,7 @@ def run_job(job: dict) -> list[dict]:
 def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     from uncertsplat.baselines import load_run
     from uncertsplat.config import EvalConfig, build_config
-    from uncertsplat.stages.evaluate import evaluate_views, load_run_scene
+    from uncertsplat.stages.evaluate import evaluate_views, fit_std_scale, load_run_scene
 
     ecfg = build_config(EvalConfig, point["eval_config"], source=f"sweep point {point['id']}")
     run_dir = Path(job["run_dir"])
@@ -111,12 +114,19 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     indices = list(scene.split[ecfg.split])
     if ecfg.max_views is not None:
         indices = indices[: ecfg.max_views]
+    t_cal = time.perf_counter()
+    std_scale, cal_views = (None, [])
+    if ecfg.split == "test" and ecfg.calibration_views > 0:  # as `evaluate` does; not part of the timed evaluation
+        std_scale, cal_views = fit_std_scale(loaded, scene, ecfg, device)
+    calibration_seconds = time.perf_counter() - t_cal
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
-    report = evaluate_views(loaded, scene, indices, ecfg, device, show_progress=False)
+    report = evaluate_views(loaded, scene, indices, ecfg, device, show_progress=False, std_scale=std_scale,
+                            calibration_views=cal_views)
     wall = time.perf_counter() - t0
     out = {k: getattr(report.mean, k) for k in RECORD_KEYS}
+    out.update(std_scale=std_scale, calibration_seconds=calibration_seconds)
     per_view = report.seconds_per_view or 0.0
     out.update(eval_seconds_per_view=per_view, eval_seconds=per_view * len(indices), eval_wall_seconds=wall,
                num_views=len(indices), num_samples=ecfg.num_samples, notes=list(report.notes),
