@@ -194,7 +194,8 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
             facts.append(("std floor (NLL)", run.metrics["std_floor"]))
         if isinstance(run.metrics.get("std_scale"), (int, float)):
             n_cal = len(run.metrics.get("calibration_views") or [])
-            facts.append(("std scale (calibrated NLL)", f"x{run.metrics['std_scale']:.3g}, fitted on {n_cal} training views"))
+            facts.append(("std scale (calibrated NLL)",
+                          f"x{run.metrics['std_scale']:.3g}, fitted on {n_cal} training views"))
         lp = run.metrics.get("lpips")
         if isinstance(lp, dict) and not lp.get("available", True):
             facts.append(("LPIPS", lp.get("reason") or "unavailable"))
@@ -226,9 +227,9 @@ def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[
     loaded: dict[int, dict[str, ViewMaps]] = {}
     body = [para("Each row: the ground-truth test image and the prediction (the mean of the sampled renders); the "
                  "absolute error and the predicted RGB std on one shared colour scale (same colour = same value); "
-                 "depth mean and std; and the rank-coloured std next to the rank-coloured error (each pixel coloured by its "
-                 "rank quantile in its own map, so good uncertainty makes the two look alike whatever the "
-                 "scales).", "legend")]
+                 "depth mean and std; and the rank-coloured std next to the rank-coloured error (each pixel "
+                 "coloured by its rank quantile in its own map, so good uncertainty makes the two look alike "
+                 "whatever the scales).", "legend")]
     for ri, run in enumerate(runs):
         names = _view_names(run)
         title = f"<h3>{esc(run.name)}</h3>" if len(runs) > 1 else ""

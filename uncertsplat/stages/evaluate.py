@@ -105,17 +105,18 @@ def fit_std_scale(loaded, scene: SceneData, cfg: EvalConfig, device: torch.devic
 
     The maximum-likelihood scale of a Gaussian predictive, s^2 = mean((error / max(std, std_floor))^2) over
     every valid pixel and channel of those views (K samples each, as in evaluation). Fitted on training
-    views, never on the views it is scored on; training views fit better than held-out ones, so it errs
-    low. Returns (scale, image names), or (None, []) when disabled or there is no training view.
+    views, never on the views it is scored on (so not at all when ``cfg.split`` is "train"); training views
+    fit better than held-out ones, so it errs low. Returns (scale, image names), or (None, []) when disabled,
+    when scoring the training split, or when there is no training view.
     """
     from uncertsplat.data.dataset import load_images, load_masks
     from uncertsplat.uncertainty.mc import mc_render
 
     train = list(scene.split.get("train", ()))
     n = min(cfg.calibration_views, len(train))
-    if n == 0:
+    if n == 0 or cfg.split != "test":
         return None, []
-    chosen = [train[round(j * (len(train) - 1) / max(n - 1, 1))] for j in range(n)] if n > 1 else [train[0]]
+    chosen = [train[round(j * (len(train) - 1) / max(n - 1, 1))] for j in range(n)]  # both ends included
     sample_fn, render_fn, _ = _samplers(loaded, scene, device)
     images, masks = load_images(scene, chosen), load_masks(scene, chosen)
     gen = torch.Generator(device=device)
@@ -218,10 +219,6 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
             err = pred - gt
             sp = sparsification_all(err, std, mask=mask, steps=cfg.ause_steps)
             cal = calibration(err, std, mask=mask)
-            if std_scale is not None:
-                calibrated = dict(
-                    nll_calibrated=float(gaussian_nll(gt, pred, std * std_scale, std_floor=cfg.std_floor, mask=mask)),
-                    calibration_error_calibrated=calibration(err, std * std_scale, mask=mask).calibration_error)
             sm = spearman(std, err.abs(), mask=mask)
             m = dict(
                 psnr=float(psnr(pred, gt, mask)), ssim=float(ssim(pred, gt)),
@@ -231,7 +228,9 @@ def evaluate_views(loaded, scene: SceneData, indices: list[int], cfg: EvalConfig
                 seconds=seconds,
             )
             if std_scale is not None:
-                m.update(calibrated)
+                m.update(nll_calibrated=float(gaussian_nll(gt, pred, std * std_scale, std_floor=cfg.std_floor,
+                                                           mask=mask)),
+                         calibration_error_calibrated=calibration(err, std * std_scale, mask=mask).calibration_error)
             if lp_ok:
                 m["lpips"] = float(lpips(pred, gt))
             if det_sample is not None:
@@ -395,9 +394,7 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
     with run_lock(run_dir, "evaluate"):
         console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
                       f"{len(loaded.model)} Gaussians ({loaded.model.num_carriers} with a posterior), {device}")
-        std_scale, cal_views = (None, [])
-        if cfg.split == "test" and cfg.calibration_views > 0:  # never fitted on the views it is scored on
-            std_scale, cal_views = fit_std_scale(loaded, scene, cfg, device)
+        std_scale, cal_views = fit_std_scale(loaded, scene, cfg, device)
         report = evaluate_views(loaded, scene, indices, cfg, device, write_maps_to=out / "maps", gt_depth=gt_depth,
                                 std_scale=std_scale, calibration_views=cal_views)
         atomic_write_text(out / "metrics.json", report.to_json() + "\n")

@@ -15,8 +15,8 @@ place at the end, so an interrupted prune leaves no half-written run, and an exi
   reversible and reproducible: ``rebuild_from_mask(RUN, OUT/prune_mask.npy)`` rebuilds the pruned model,
   and undoing the prune is using (or re-pruning) ``RUN`` itself, which is unchanged.
 - ``scores.npz``: every score of every Gaussian of the input run, and the ``carriers`` flag.
-- ``renders/{view}_{before,after,random}.png``: deterministic renders (``expected_render_sample``) of a few held-out views before
-  pruning, after pruning, and after removing as many random Gaussians.
+- ``renders/{view}_{before,after,random}.png``: deterministic renders (``expected_render_sample``) of a few
+  held-out views before pruning, after pruning, and after removing as many random Gaussians.
 - ``prune.json``: counts before/after, score, threshold, keep ratio, held-out metrics (PSNR, SSIM, AUSE,
   NLL, coverage = mean rendered alpha) before, after, and for the random-removal baseline at the same
   count, seed, and with ``--sweep``/``--auto`` the curve (also in ``sweep.json``).
@@ -114,8 +114,8 @@ class _Measure:
         from uncertsplat.gaussians.variational import expected_render_sample
 
         prior = self.loaded.prior
-        s = expected_render_sample(model, variant=prior.variant, extent=self.loaded.extent, temperature=prior.temperature,
-                           sh_degree=self.loaded.sh_degree)
+        s = expected_render_sample(model, variant=prior.variant, extent=self.loaded.extent,
+                                   temperature=prior.temperature, sh_degree=self.loaded.sh_degree)
         rgb, alpha = [], []
         for c in range(len(self.cams)):
             out = self.render_fn(s, self.cams[[c]])

@@ -115,9 +115,7 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     if ecfg.max_views is not None:
         indices = indices[: ecfg.max_views]
     t_cal = time.perf_counter()
-    std_scale, cal_views = (None, [])
-    if ecfg.split == "test" and ecfg.calibration_views > 0:  # as `evaluate` does; not part of the timed evaluation
-        std_scale, cal_views = fit_std_scale(loaded, scene, ecfg, device)
+    std_scale, cal_views = fit_std_scale(loaded, scene, ecfg, device)  # as `evaluate` does; not in the timed part
     calibration_seconds = time.perf_counter() - t_cal
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
