@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 from uncertsplat.config import EvalConfig
-from uncertsplat.stages.evaluate import evaluate_views, load_run_scene
+from uncertsplat.eval.engine import evaluate_views
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -35,17 +35,16 @@ def main() -> None:
     args = ap.parse_args()
 
     from uncertsplat.baselines import load_run
-    from uncertsplat.stages.evaluate import _gt_depth_from_folder
+    from uncertsplat.data.dataset import load_view_set
 
     device = torch.device("cpu")
     loaded = load_run(args.run, device)
-    scene = load_run_scene(loaded, args.run)
-    indices = list(scene.split["test"])
-    gt_depth = _gt_depth_from_folder(args.depth_gt, scene, indices) if args.depth_gt else None
+    scene = loaded.load_scene()
+    views = load_view_set(scene, scene.split["test"], depth_folder=args.depth_gt)
     rows = []
     for k in args.ks:
         cfg = EvalConfig(num_samples=k, seed=args.seed)
-        rep = evaluate_views(loaded, scene, indices, cfg, device, gt_depth=gt_depth, show_progress=False)
+        rep = evaluate_views(loaded.sampler(scene.scene_scale, device), views, cfg, device, show_progress=False)
         m = rep.mean
         rows.append({
             "K": k, "psnr": m.psnr, "ssim": m.ssim, "ause_mae": m.ause_mae, "ause_rmse": m.ause_rmse,
@@ -58,7 +57,7 @@ def main() -> None:
     out = ROOT / "benchmarks" / "results" / f"evaluate_{label}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({
-        "run": str(args.run), "views": len(indices), "gaussians": len(loaded.model) if hasattr(loaded, "model") else None,
+        "run": str(args.run), "views": len(views), "gaussians": len(loaded.model) if hasattr(loaded, "model") else None,
         "machine": args.machine, "threads": torch.get_num_threads(), "omp": os.environ.get("OMP_NUM_THREADS"),
         "date": datetime.date.today().isoformat(), "rows": rows,
     }, indent=2) + "\n")

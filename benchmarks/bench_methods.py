@@ -99,7 +99,7 @@ def main() -> None:
     spec = args.out / "methods.toml"
     spec.write_text(spec_toml(args))
     t0 = time.perf_counter()
-    summary = sweep.run(spec, args.out, jobs=args.jobs, device=args.device)
+    summary = sweep.run(spec, args.out, jobs=args.jobs, device=args.device).model_dump()  # plain rows below
     wall = time.perf_counter() - t0
     recs = summary["records"]
     # the method table: every method at the default knobs (ensemble: K = N)

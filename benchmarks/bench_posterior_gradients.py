@@ -34,15 +34,14 @@ COLUMNS = ("pos_spread_raw", "gate_spread_raw", "scale_width_raw")
 
 
 def measure(run: Path, steps: int, antithetic: bool, seed: int = 0) -> dict:
+    from uncertsplat.baselines import load_run
     from uncertsplat.data.dataset import load_images
     from uncertsplat.gaussians import variational as V
-    from uncertsplat.io.checkpoints import load_model
     from uncertsplat.render import near_plane, render
-    from uncertsplat.stages.evaluate import load_run_scene
     from uncertsplat.train.losses import total_loss
 
-    loaded = load_model(run)
-    scene = load_run_scene(loaded, run)
+    loaded = load_run(run)
+    scene = loaded.load_scene()
     train = list(scene.split["train"])
     images, cams = load_images(scene, train), scene.cameras[train]
     model, prior, cfg = loaded.model, loaded.prior, loaded.config

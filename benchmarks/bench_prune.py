@@ -34,20 +34,27 @@ from pathlib import Path
 
 import torch
 
+from uncertsplat.baselines import load_run
 from uncertsplat.config import PruneConfig
 from uncertsplat.data.dataset import load_depths
 from uncertsplat.eval.floaters import label_floaters, ranking_auc
 from uncertsplat.gaussians import ops
 from uncertsplat.gaussians.variational import posterior_mean, prior_rows
-from uncertsplat.io.checkpoints import load_model
 from uncertsplat.prune import apply_keep, copy_model, keep_ratio_mask, keep_top
+from uncertsplat.prune.policy import random_keep as _random_keep
 from uncertsplat.render import render
 from uncertsplat.render.sh import rgb_to_sh
-from uncertsplat.stages.evaluate import load_run_scene
-from uncertsplat.stages.prune import _Measure, _random_keep
+from uncertsplat.stages.prune import _Measure as _SchemaMeasure
 from uncertsplat.uncertainty.scores import SCORE_NAMES, carrier_mask, compute_scores, spread_views
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+class _Measure(_SchemaMeasure):
+    """The stage's measurement as plain dicts (this script indexes and serialises them)."""
+
+    def __call__(self, model, keep=None) -> dict:
+        return super().__call__(model, keep).model_dump()
 
 
 def plant_floaters(model, scene, fraction: float, prior, generator: torch.Generator):
@@ -214,8 +221,8 @@ def main():
     args = ap.parse_args()
     device = torch.device(args.device)
     cfg = PruneConfig(num_samples=args.num_samples)
-    loaded = load_model(args.run, device)
-    scene = load_run_scene(loaded, args.run)
+    loaded = load_run(args.run, device)
+    scene = loaded.load_scene()
     indices = list(scene.split["test"])
     t0 = time.perf_counter()
     print(f"{args.label}: {len(loaded.model)} Gaussians ({loaded.model.num_carriers} carriers), "

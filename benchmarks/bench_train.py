@@ -129,18 +129,17 @@ def render_modes(run: Path, device: torch.device, mc_samples: int) -> dict:
     """Held-out PSNR of the posterior mean, the expected render and the mean of ``mc_samples`` samples; and the
     uncertainty metrics (AUSE-MAE, Gaussian NLL, calibration error) of the samples' std with either the mean of
     the samples or the expected render as the prediction."""
+    from uncertsplat.baselines import load_run
     from uncertsplat.data.dataset import load_images
     from uncertsplat.eval.calibration import calibration
     from uncertsplat.eval.image import psnr
     from uncertsplat.eval.nll import gaussian_nll
     from uncertsplat.eval.sparsification import sparsification_all
     from uncertsplat.gaussians import variational as V
-    from uncertsplat.io.checkpoints import load_model
     from uncertsplat.render import near_plane, render
-    from uncertsplat.stages.evaluate import load_run_scene
 
-    loaded = load_model(run, device)
-    scene = load_run_scene(loaded, run)
+    loaded = load_run(run, device)
+    scene = loaded.load_scene()
     test = list(scene.split["test"])
     if not test:
         return {}

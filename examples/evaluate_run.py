@@ -10,14 +10,14 @@ from pathlib import Path
 
 from uncertsplat.config import EvalConfig, ReportConfig
 from uncertsplat.device import resolve_device
-from uncertsplat.eval.report_schema import EvalReport
+from uncertsplat.schemas.metrics import EvalReport
 from uncertsplat.stages import evaluate, report
 
 run = Path(sys.argv[1])
 k = int(sys.argv[2]) if len(sys.argv) > 2 else 10
 evaluate.run(run, EvalConfig(num_samples=k), device=resolve_device("auto"))
 
-metrics = EvalReport.from_json((run / "eval" / "metrics.json").read_text())
+metrics = EvalReport.read(run / "eval" / "metrics.json")
 m = metrics.mean
 print(f"PSNR {m.psnr}  SSIM {m.ssim}  AUSE-MAE {m.ause_mae}  NLL {m.nll}  calibration error {m.calibration_error}")
 print(f"{metrics.seconds_per_view} s per view for K = {metrics.num_samples} samples")

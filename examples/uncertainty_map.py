@@ -10,36 +10,23 @@ from pathlib import Path
 
 import torch
 
-from uncertsplat.gaussians.variational import sample
-from uncertsplat.io.checkpoints import load_model
+from uncertsplat.baselines import load_run
 from uncertsplat.io.images import write_png
-from uncertsplat.render import near_plane, render
 from uncertsplat.report.colormaps import colorize
-from uncertsplat.sfm.scene import load_scene
 from uncertsplat.uncertainty.mc import mc_render
 
 run = Path(sys.argv[1])
 view = int(sys.argv[2]) if len(sys.argv) > 2 else 0
 k = int(sys.argv[3]) if len(sys.argv) > 3 else 10
 
-loaded = load_model(run)  # model, resolved TrainConfig, scene path, extent
-cfg = loaded.config
-scene = load_scene(loaded.scene_path, cfg.scene)  # same normalisation as in training
+loaded = load_run(run)  # any method: model, resolved TrainConfig, scene path, extent
+scene = loaded.load_scene()  # same normalisation as in training
 cams = scene.subset("test")[view]
-background = torch.tensor(cfg.scene.background)
+# one posterior sample per call (variational.sample for our model; a baseline's own sampler otherwise), and
+# the renderer with the run's background, tile size and near plane
+sampler = loaded.sampler(scene.scene_scale, loaded.model.device)
 
-
-def sample_fn(generator):
-    return sample(loaded.model, generator, subset_size=cfg.variational.subset_size, variant=cfg.variant,
-                  extent=loaded.extent, temperature=loaded.prior.temperature, sh_degree=loaded.sh_degree)
-
-
-def render_fn(gaussians, cameras):
-    return render(gaussians, cameras, background=background, tile_size=cfg.tile_size,
-                  near=near_plane(scene.scene_scale))
-
-
-maps, _ = mc_render(sample_fn, render_fn, cams, k, torch.Generator().manual_seed(0))
+maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cams, k, torch.Generator().manual_seed(0))
 out = run / "example_maps"
 write_png(out / "mean.png", maps.rgb_mean[0].clamp(0, 1).numpy())
 write_png(out / "rgb_std.png", colorize(maps.rgb_std[0].mean(-1)))  # percentile colour scale

@@ -107,14 +107,23 @@ def synth(
     out: Annotated[Path, typer.Argument(help="Output folder for the generated scene.")],
     preset: Annotated[str, typer.Option(help="tiny (tests, seconds) or demo (the embedded default).")] = "demo",
     seed: Annotated[int, typer.Option(help="Random seed; the same seed gives the same scene.")] = 0,
+    layout: Annotated[str | None, typer.Option(
+        help="colmap (images/ + sparse/0, the default) or blender (transforms_train/test.json + RGBA PNGs, "
+        "the NeRF-synthetic layout, no sparse points).")] = None,
+    rig: Annotated[str | None, typer.Option(
+        help="ring (an orbit at ~22 degrees elevation, the default) or hemisphere (cameras over the upper "
+        "hemisphere looking at the centre, as in NeRF-synthetic).")] = None,
+    backdrop: Annotated[str | None, typer.Option(
+        help="room (objects in a closed room, the default) or transparent (objects only, RGBA with alpha).")] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing scene in OUT.")] = False,
     set_: SetOpt = None,
 ):
-    """Generate a synthetic multi-view scene with GT cameras, depth and a COLMAP model."""
+    """Generate a synthetic multi-view scene with GT cameras and depth, as a COLMAP model or a Blender folder."""
     from uncertsplat.config import SynthConfig
     from uncertsplat.stages import synth as stage
 
-    cfg = _stage_config(SynthConfig, None, set_, {"preset": preset, "seed": seed})
+    explicit = {"preset": preset, "seed": seed, "layout": layout, "rig": rig, "backdrop": backdrop}
+    cfg = _stage_config(SynthConfig, None, set_, explicit)
     stage.run(out, cfg, overwrite=overwrite)
 
 
@@ -149,7 +158,7 @@ def reconstruct(
 @app.command()
 @_handle_errors
 def train(
-    scene: Annotated[Path, typer.Argument(help="COLMAP workspace, NeRF-synthetic folder or synthetic scene.")],
+    scene: Annotated[Path, typer.Argument(help="COLMAP workspace, Blender folder (transforms_*.json), nerfstudio folder (transforms.json) or synthetic scene.")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Run folder to write.")],
     preset: Annotated[str | None, typer.Option(help="tiny, demo or paper (see the README).")] = None,
     iterations: Annotated[int | None, typer.Option(help="Training steps.")] = None,
@@ -163,18 +172,13 @@ def train(
     set_: SetOpt = None,
 ):
     """Train a variational multi-scale 3DGS model (or a baseline, --method) with full-state checkpoints."""
-    from uncertsplat.baselines import method_overrides, train_run
-    from uncertsplat.config import load_toml, train_config_from
+    from uncertsplat.config import load_toml
+    from uncertsplat.stages import train as stage
 
-    data = load_toml(config) if config else {}
-    explicit = {k: v for k, v in dict(iterations=iterations, variant=variant, seed=seed).items() if v is not None}
-    from uncertsplat.config import deep_update
-
-    if method is not None:  # preset < config file < method < explicit options < --set
-        data = deep_update(data, method_overrides(method))
-    cfg = train_config_from(preset, deep_update(data, explicit), set_)
+    cfg = stage.resolve_config(preset, load_toml(config) if config else {}, method,
+                               dict(iterations=iterations, variant=variant, seed=seed), set_)
     # with --resume, --iterations means "train on to this many steps" (the stored config wins otherwise)
-    train_run(scene, output, cfg, device=resolve_device(device), resume=resume,
+    stage.run(scene, output, cfg, device=resolve_device(device), resume=resume,
               extend_to=iterations if resume else None)
 
 

@@ -35,6 +35,15 @@ class SynthConfig(_Base):
     """Override the preset's image width (height follows the 4:3 aspect)."""
     test_every: int = Field(8, ge=2)
     """Every n-th view (by sorted name, index 0, n, 2n, ...) is a test view."""
+    layout: Literal["colmap", "blender"] = "colmap"
+    """colmap: images/ + a COLMAP model (sparse/0) with GT poses and sparse points; blender: the NeRF-synthetic
+    layout (transforms_train.json / transforms_test.json, RGBA PNGs in train/ and test/, no sparse points)."""
+    rig: Literal["ring", "hemisphere"] = "ring"
+    """ring: a jittered orbit at 22 +- 10 degrees elevation; hemisphere: cameras spread over the upper hemisphere
+    (10 to 75 degrees elevation, radius 4) all looking at one point, as in the NeRF-synthetic scenes."""
+    backdrop: Literal["room", "transparent"] = "room"
+    """room: the objects inside a closed textured room (every pixel hits a surface); transparent: the objects
+    alone, written as RGBA with alpha = pixel coverage (the training background then shows through)."""
 
 
 # ------------------------------------------------------------------------------------------ reconstruct
@@ -54,7 +63,7 @@ class ReconstructConfig(_Base):
     """Fail when fewer than this fraction of the images register."""
     seed: int = Field(0, ge=0)
     """Seed for COLMAP's RANSAC and mapper; results are bit-identical for a seed only with num_threads=1
-    (with more threads, camera centres differ by ~1e-3 of the scene radius between runs)."""
+    (with more threads the camera centres differ slightly between runs; BENCHMARKS.md, Reconstruct)."""
     num_threads: int = Field(-1, ge=-1)
     """Threads for COLMAP (-1: all cores)."""
     overwrite: bool = False
@@ -74,11 +83,19 @@ class SceneConfig(_Base):
     test_indices: list[int] | None = None
     """Explicit held-out indices into the sorted image list (overrides test_every)."""
     normalize: bool = True
-    """Centre the cameras and scale the scene so the camera rig has radius 1 (recorded as world_from_source)."""
+    """Move the scene centre (``center``) to the origin and scale the scene so that the camera rig has radius 1
+    about its centroid (recorded as world_from_source)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Colour composited under images with an alpha channel, and rendered background."""
     max_points: int = Field(200_000, ge=1)
     """Cap on initial sparse points (random subset, seeded)."""
+    center: Literal["auto", "optical_axes", "camera_centroid"] = "auto"
+    """Scene centre used for normalisation and for random initial points. auto: where the optical axes meet
+    for an inward-facing rig without sparse points (Blender / nerfstudio scenes), else the camera centroid
+    (COLMAP scenes, forward-facing captures). The choice and its reason are recorded in RUN/scene.json."""
+    carve: bool = True
+    """Random initial points (no sparse points) of a scene whose training images have real transparency: keep
+    only those inside the alpha > 0.5 foreground of every training view that sees them (space carving)."""
 
     @field_validator("background")
     @classmethod
@@ -90,7 +107,7 @@ class SceneConfig(_Base):
 
 # ------------------------------------------------------------------------------------------------ train
 class VariationalConfig(_Base):
-    """The posterior of the variational multi-scale model (METHOD.md)."""
+    """The posterior of the variational multi-scale model (docs/method.md)."""
 
     num_entries: int = Field(10, ge=1, le=256)
     """K: offset-table entries per posterior carrier (1 = the paper's 'naive VI' ablation)."""
@@ -217,10 +234,11 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
         "checkpoint_every": 100,
         "densify": {"start": 50, "until": 250, "interval": 50, "spawn_interval": 100, "opacity_reset_interval": 0},
     },
-    # the embedded synthetic demo scene (GT cameras): under 4 minutes on 2 cores. SH degree 0 because the
-    # scene is Lambertian (colour does not depend on the view). Measured (2026-11-23, 2-core CPU, native
-    # kernels; BENCHMARKS.md, Training), held-out PSNR of the expected render: 3500 steps, 40k Gaussians,
-    # 221 s, 30.33 dB. 2000 steps: 116-135 s, 29.45 dB; 3000: 190 s, 30.08 dB; 4000: 251 s, 30.53 dB.
+    # the embedded synthetic demo scene (GT cameras), sized to train in a few minutes on a 2-core CPU. SH degree
+    # 0 because the scene is Lambertian (colour does not depend on the view). 3500 steps is the shortest of the
+    # schedules tried that reaches the demo's PSNR target with a margin inside its time budget; longer ones add
+    # little. The cap of 40k Gaussians bounds the cost of a step. Times and PSNR for 2000-4000 steps:
+    # BENCHMARKS.md, "The expected render, and the `demo` preset at 3500 steps".
     "demo": {
         "iterations": 3500,
         "sh_degree": 0,

@@ -106,7 +106,11 @@ class SceneData:
         depth_paths: optional GT depth per camera (camera z in source units, .npy or .exr).
         mask_paths: optional validity mask per camera.
         depth_scale_to_gt: factor from world (normalised) depth to GT depth units, when known.
-        source: what was loaded ("colmap", "nerf_synthetic", "synthetic") and from where.
+        source: what was loaded ("colmap", "nerf_synthetic", "nerfstudio", "synthetic") and from where.
+        center: source coordinates of the scene centre (the world origin after normalisation, and the middle
+            of random initial points); None when unknown.
+        center_method: how ``center`` was found: "optical_axes" or "camera_centroid".
+        center_reason: why that method was chosen (one sentence, recorded in RUN/scene.json).
     """
 
     cameras: Cameras
@@ -120,6 +124,9 @@ class SceneData:
     mask_paths: tuple[Path, ...] | None = None
     depth_scale_to_gt: float | None = None
     source: dict = field(default_factory=dict)
+    center: tuple[float, float, float] | None = None
+    center_method: str = "camera_centroid"
+    center_reason: str = ""
 
     def subset(self, split: str) -> Cameras:
         return self.cameras[list(self.split[split])]
@@ -209,3 +216,36 @@ class UncertaintyMaps:
     alpha_mean: Tensor
     n_samples: int
     image_names: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class ViewSet:
+    """Views of a scene with what they should show: the input of the evaluation engine.
+
+    Built from a scene by ``data.dataset.load_view_set``; ``eval.engine`` only reads the tensors.
+
+    Attributes:
+        indices: the views' camera indices in their scene. Evaluation seeds each view's generator with
+            its index, so a view gets the same samples whichever other views are evaluated with it.
+        cameras: the C cameras (``scene.cameras[indices]``); their ``image_names`` name the views.
+        images: [C,H,W,3] float32 GT images in [0, 1] (CPU).
+        masks: [C,H,W,1] bool, True where a pixel counts; None: every pixel counts.
+        depths: [C,H,W,1] GT depth, 0 where unknown; None: no GT depth.
+        depth_known_scale: ``depths`` are in the scene's own (normalised) world units, so evaluation uses
+            them as they are instead of estimating a scale.
+    """
+
+    indices: tuple[int, ...]
+    cameras: Cameras
+    images: Tensor
+    masks: Tensor | None = None
+    depths: Tensor | None = None
+    depth_known_scale: bool = False
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    @property
+    def names(self) -> list[str]:
+        """The image name of each view."""
+        return list(self.cameras.image_names)

@@ -19,8 +19,11 @@ from uncertsplat.baselines.ensemble import EnsembleRun, member_dir
 from uncertsplat.baselines.fisher import FISHER_FILE, FisherRun
 from uncertsplat.cli import app
 from uncertsplat.config import EvalConfig, deep_update, train_config_from
-from uncertsplat.eval.report_schema import EvalReport
+from uncertsplat.data.dataset import load_view_set
+from uncertsplat.eval.engine import evaluate_views
 from uncertsplat.io.images import read_exr
+from uncertsplat.io.maps import map_stem
+from uncertsplat.schemas.metrics import EvalReport
 from uncertsplat.stages import evaluate
 
 CPU = torch.device("cpu")
@@ -42,7 +45,7 @@ def quick_cfg(**over):
 
 
 def exr_maps(run, report):
-    return [read_exr(run / "eval" / "maps" / f"{evaluate.map_stem(n)}.exr") for n in report.image_names]
+    return [read_exr(run / "eval" / "maps" / f"{map_stem(n)}.exr") for n in report.image_names]
 
 
 @pytest.fixture(scope="module")
@@ -116,14 +119,14 @@ def test_fisher_variances_and_spread(fisher_run):
     for ch in exr_maps(run, report):
         assert ch["rgb_std.R"].shape == (H, W) and ch["rgb_std.R"].max() > 0
         assert ch["depth_std.Z"].max() > 0
-    again = evaluate.evaluate_views(loaded, evaluate.load_run_scene(loaded, run), list(report_indices(run, 2)),
-                                    EvalConfig(num_samples=3, max_views=2, seed=1), CPU, show_progress=False)
+    scene = loaded.load_scene()
+    again = evaluate_views(loaded.sampler(scene.scene_scale, CPU), load_view_set(scene, report_indices(run, 2)),
+                           EvalConfig(num_samples=3, max_views=2, seed=1), CPU, show_progress=False)
     assert again.mean.ause_mae == pytest.approx(report.mean.ause_mae, rel=1e-6)  # explicit generator: repeatable
 
 
 def report_indices(run, n):
-    loaded = load_run(run, CPU)
-    scene = evaluate.load_run_scene(loaded, run)
+    scene = load_run(run, CPU).load_scene()
     return list(scene.split["test"])[:n]
 
 

@@ -9,7 +9,9 @@ from typer.testing import CliRunner
 
 from tests.fixtures import tiny_scene
 from uncertsplat.cli import app
+from uncertsplat.schemas import SweepSummary
 from uncertsplat.stages import sweep
+from uncertsplat.stages.sweep import read_records
 
 SPEC = """
 name = "tiny-sweep"
@@ -60,22 +62,23 @@ def test_sweep_writes_one_record_per_point_and_resumes(scene_path, tmp_path):
     assert by_id["variational_it16_kt4_k3_ds4"]["is_default"]
     assert by_id["variational_it16_kt4_k1_ds4"]["num_samples"] == 1
     assert any("K=1" in n for n in by_id["variational_it16_kt4_k1_ds4"]["notes"])
-    summary = json.loads((out / "sweep.json").read_text())
-    assert summary["num_points"] == 3 and summary["default"] == "variational_it16_kt4_k3_ds4"
-    assert set(summary["pareto"]) == {"ause_mae_vs_time", "nll_vs_time"}
-    assert all(summary["pareto"]["ause_mae_vs_time"])
+    summary = SweepSummary.read(out / "sweep.json")
+    assert [r.model_dump() for r in summary.records] == [r.model_dump() for r in read_records(out / "sweep.jsonl")]
+    assert summary.num_points == 3 and summary.default == "variational_it16_kt4_k3_ds4"
+    assert set(summary.pareto) == {"ause_mae_vs_time", "nll_vs_time"}
+    assert all(summary.pareto["ause_mae_vs_time"])
     assert (out / "pareto.png").read_bytes()[:4] == b"\x89PNG"
     assert (out / "points" / "fisher_it16_kt4_k3_ds4.json").is_file()
     # the page shows the figure and one row per point, with the numbers of sweep.json
     page = (out / "index.html").read_text()
     assert 'src="pareto.png"' in page
-    for r in summary["records"]:
-        assert f'data-point="{r["id"]}"' in page
-        assert f'data-key="ause_mae" data-value="{r["ause_mae"]!r}"' in page
+    for r in summary.records:
+        assert f'data-point="{r.id}"' in page
+        assert f'data-key="ause_mae" data-value="{r.ause_mae!r}"' in page
 
     # a second run finds every point done: nothing is trained or evaluated again
     summary2 = sweep.run(spec, out, jobs=1, device="cpu", scene=scene_path)
-    assert len(read_jsonl(out / "sweep.jsonl")) == 3 and summary2["num_points"] == 3
+    assert len(read_jsonl(out / "sweep.jsonl")) == 3 and summary2.num_points == 3
 
 
 @pytest.mark.slow
@@ -83,7 +86,7 @@ def test_sweep_process_pool_runs_jobs_in_fresh_processes(scene_path, tmp_path):
     spec = tmp_path / "spec.toml"
     spec.write_text(SPEC.replace("num_samples = [1, 3]", "num_samples = [3]"))
     summary = sweep.run(spec, tmp_path / "out", jobs=2, device="cpu", scene=scene_path)
-    recs = summary["records"]
-    assert summary["num_points"] == 2 and all(r["status"] == "ok" for r in recs)
-    assert all(r["threads"] == 1 for r in recs)  # jobs sharing the cores use one torch thread each
+    recs = summary.records
+    assert summary.num_points == 2 and all(r.status == "ok" for r in recs)
+    assert all(r.threads == 1 for r in recs)  # jobs sharing the cores use one torch thread each
     assert len(read_jsonl(tmp_path / "out" / "sweep.jsonl")) == 2

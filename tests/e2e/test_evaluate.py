@@ -12,10 +12,14 @@ from typer.testing import CliRunner
 
 from tests.fixtures import tiny_scene_path  # noqa: F401
 from tests.run_fixtures import tiny_run_path  # noqa: F401
+from uncertsplat.baselines import load_run
 from uncertsplat.cli import app
 from uncertsplat.config import EvalConfig
-from uncertsplat.eval.report_schema import EvalReport
+from uncertsplat.data.dataset import load_view_set
+from uncertsplat.eval.engine import evaluate_views
 from uncertsplat.io.images import read_exr
+from uncertsplat.io.maps import EXR_CHANNELS, map_stem
+from uncertsplat.schemas.metrics import EvalReport
 from uncertsplat.stages import evaluate
 
 runner = CliRunner()
@@ -34,9 +38,9 @@ def test_writes_maps_and_metrics(evaluated):
     data = EvalReport.from_json((run / "eval" / "metrics.json").read_text())
     assert data.image_names == report.image_names and len(data.image_names) == 3  # every 8th of 24 views
     for name in data.image_names:
-        stem = evaluate.map_stem(name)
+        stem = map_stem(name)
         ch = read_exr(run / "eval" / "maps" / f"{stem}.exr")
-        assert set(evaluate.EXR_CHANNELS) <= set(ch)
+        assert set(EXR_CHANNELS) <= set(ch)
         assert ch["rgb_std.R"].shape == (96, 128)
         assert np.all(ch["rgb_std.R"] >= 0) and np.all(np.isfinite(ch["depth_mean.Z"]))
         for suffix in ("gt", "mean", "error", "std", "error_rank", "std_rank", "depth", "depth_std"):
@@ -58,18 +62,17 @@ def test_writes_maps_and_metrics(evaluated):
 def test_posterior_gives_nonzero_std(evaluated):
     run, report = evaluated
     name = report.image_names[0]
-    ch = read_exr(run / "eval" / "maps" / f"{evaluate.map_stem(name)}.exr")
+    ch = read_exr(run / "eval" / "maps" / f"{map_stem(name)}.exr")
     assert ch["rgb_std.R"].max() > 0, "a run with posterior carriers must have some spread"
 
 
 def test_same_seed_same_metrics(evaluated, tiny_run_path):
     run, report = evaluated
-    from uncertsplat.io.checkpoints import load_model
-
-    loaded = load_model(run, "cpu")
-    scene = evaluate.load_run_scene(loaded, run)
-    again = evaluate.evaluate_views(loaded, scene, list(scene.split["test"]), EvalConfig(num_samples=5, seed=3),
-                                    torch.device("cpu"), show_progress=False)
+    cpu = torch.device("cpu")
+    loaded = load_run(run, cpu)
+    scene = loaded.load_scene()
+    again = evaluate_views(loaded.sampler(scene.scene_scale, cpu), load_view_set(scene, scene.split["test"]),
+                           EvalConfig(num_samples=5, seed=3), cpu, show_progress=False)
     assert again.mean.ause_mae == pytest.approx(report.mean.ause_mae, rel=1e-6)
     assert again.mean.psnr == pytest.approx(report.mean.psnr, rel=1e-6)
 
@@ -77,18 +80,16 @@ def test_same_seed_same_metrics(evaluated, tiny_run_path):
 def test_std_scale_is_fitted_on_training_views_and_applied_to_the_std(evaluated):
     from uncertsplat.data.dataset import load_images
     from uncertsplat.eval.nll import gaussian_nll
-    from uncertsplat.io.checkpoints import load_model
 
     run, report = evaluated
     assert report.std_scale is not None and report.std_scale > 0
-    loaded = load_model(run, "cpu")
-    scene = evaluate.load_run_scene(loaded, run)
+    scene = load_run(run, "cpu").load_scene()
     train_names = {scene.cameras.image_names[i] for i in scene.split["train"]}
     assert len(report.calibration_views) == 8 and set(report.calibration_views) <= train_names
     assert not set(report.calibration_views) & set(report.image_names)  # never the views it is scored on
     # the calibrated NLL is the NLL of the stored maps with the std times the fitted factor
     name = report.image_names[0]
-    ch = read_exr(run / "eval" / "maps" / f"{evaluate.map_stem(name)}.exr")
+    ch = read_exr(run / "eval" / "maps" / f"{map_stem(name)}.exr")
     mean = torch.from_numpy(np.stack([ch[f"rgb_mean.{c}"] for c in "RGB"], -1))
     std = torch.from_numpy(np.stack([ch[f"rgb_std.{c}"] for c in "RGB"], -1))
     gt = load_images(scene, [scene.cameras.image_names.index(name)])[0]

@@ -48,6 +48,31 @@ def test_report_references_every_figure_and_matches_metrics(smoke_out):
     assert any(v == pytest.approx(psnr, rel=1e-9) for v in values), "the report shows metrics.json's PSNR"
 
 
+def test_report_prune_section_equals_prune_json(smoke_out):
+    """The report built from the pipeline's real outputs shows prune.json's numbers and the keep-ratio figure."""
+    from uncertsplat.report.extract import PRUNE_SPECS, format_value
+    from uncertsplat.schemas import PruneReport
+
+    out, _ = smoke_out
+    rep = PruneReport.read(out / "prune" / "prune.json")
+    assert rep.sweep is not None and len(rep.sweep.points) == 3
+    html = (out / "report" / "index.html").read_text(encoding="utf-8")
+    (table_id,) = re.findall(r'<table id="(prune-\d+)">', html)
+    table = re.search(rf'<table id="{table_id}">(.*?)</table>', html, re.S).group(1)
+    rows = dict(re.findall(r'<tr[^>]*data-row="([^"]*)">(.*?)</tr>', table, re.S))
+    assert list(rows) == ["before", "after", "random removal"]
+    for label, m in zip(rows, (rep.metrics.before, rep.metrics.after, rep.metrics.random), strict=True):
+        cells = re.findall(r'<td data-key="([^"]*)" data-value="([^"]*)">([^<]*)</td>', rows[label])
+        assert cells == [(s.key, str(getattr(m, s.key)), format_value(getattr(m, s.key), s)) for s in PRUNE_SPECS]
+        assert all(text != "n/a" for key, _, text in cells if key != "depth_ause_mae"), (label, cells)
+    sweep_table = re.search(rf'<table id="{table_id.replace("prune", "prune-sweep")}">(.*?)</table>', html, re.S)
+    for p in rep.sweep.points:
+        assert f'data-key="score.psnr" data-value="{p.score.psnr!r}"' in sweep_table.group(1)
+        assert f'data-key="random.psnr" data-value="{p.random.psnr!r}"' in sweep_table.group(1)
+    fig = re.search(r'<img src="(figures/prune_sweep_run\d+\.png)"', html)
+    assert fig and (out / "report" / fig.group(1)).read_bytes()[:4] == b"\x89PNG"
+
+
 def test_rerun_skips_unchanged_stages(smoke_out):
     out, _ = smoke_out
     result = runner.invoke(app, ["run", str(ROOT / "pipelines" / "smoke.toml"), "-o", str(out), "--device", "cpu"])

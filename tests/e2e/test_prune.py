@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import json
 
 import numpy as np
 import pytest
@@ -13,12 +12,13 @@ from typer.testing import CliRunner
 
 from tests.fixtures import tiny_scene_path  # noqa: F401
 from tests.run_fixtures import tiny_run_path  # noqa: F401
+from uncertsplat.baselines import load_run
 from uncertsplat.cli import app
 from uncertsplat.config import PruneConfig
 from uncertsplat.errors import UserError
 from uncertsplat.gaussians.variational import random_model
-from uncertsplat.io.checkpoints import load_model
 from uncertsplat.io.ply import write_variational_ply
+from uncertsplat.schemas import PruneReport, PruneSweep
 from uncertsplat.stages import prune
 from uncertsplat.uncertainty.scores import DEFAULT_SCORE
 
@@ -44,12 +44,12 @@ def pruned(tiny_run_path, tmp_path_factory):  # noqa: F811
 def test_writes_a_valid_pruned_run(pruned, tiny_run_path):  # noqa: F811
     out, result, before = pruned
     assert _digest(tiny_run_path) == before  # the input run is never modified
-    src = load_model(tiny_run_path, CPU).model
-    loaded = load_model(out, CPU)
+    src = load_run(tiny_run_path, CPU).model
+    loaded = load_run(out, CPU)
     loaded.model.check()
     n = len(src)
-    assert result["counts"]["before"] == n and len(loaded.model) == result["counts"]["after"]
-    assert result["counts"]["after"] == n - round(0.2 * n) or result["counts"]["after"] > n - round(0.2 * n)
+    assert result.counts.before == n and len(loaded.model) == result.counts.after
+    assert result.counts.after == n - round(0.2 * n) or result.counts.after > n - round(0.2 * n)
     assert (out / "config.json").read_bytes() == (tiny_run_path / "config.json").read_bytes()
     assert (out / "scene.json").is_file() and (out / "point_cloud.ply").is_file()
     # the mask reproduces the pruned model from the untouched source run
@@ -65,21 +65,23 @@ def test_writes_a_valid_pruned_run(pruned, tiny_run_path):  # noqa: F811
     props = {p.name for p in ply["vertex"].properties}
     assert {"score_position", "score_scale", "score_gate", f"score_{DEFAULT_SCORE}", "x", "opacity"} <= props
     scores = np.load(out / "scores.npz")
-    s = scores[result["score"]]
+    s = scores[result.score]
     removed = np.setdiff1d(np.arange(n), kept)
     assert scores["carriers"][removed].all()
     assert s[removed].min() >= s[kept][scores["carriers"][kept]].max()
     # prune.json: metrics before/after/random, seed, the curve, renders
-    data = json.loads((out / "prune.json").read_text())
-    for key in ("before", "after", "random"):
-        assert np.isfinite(data["metrics"][key]["psnr"]) and data["metrics"][key]["num_gaussians"] > 0
-    assert data["metrics"]["random"]["num_gaussians"] == data["metrics"]["after"]["num_gaussians"]
-    assert data["metrics"]["after"]["variational_ply_bytes"] < data["metrics"]["before"]["variational_ply_bytes"]
-    assert data["seed"] == 0 and data["score"] == DEFAULT_SCORE and data["source_run"] == str(tiny_run_path.resolve())
-    sweep = json.loads((out / "sweep.json").read_text())
-    assert [p["keep_ratio"] for p in sweep["points"]] == [1.0, 0.8]
-    assert sweep["points"][1]["score"]["psnr"] == data["metrics"]["after"]["psnr"]  # same mask, same metrics
-    assert sweep["points"][0]["score"]["psnr"] == data["metrics"]["before"]["psnr"]
+    data = PruneReport.read(out / "prune.json")
+    assert data == result  # what run() returns is what it wrote
+    for m in (data.metrics.before, data.metrics.after, data.metrics.random):
+        assert np.isfinite(m.psnr) and m.num_gaussians > 0
+    assert data.metrics.random.num_gaussians == data.metrics.after.num_gaussians
+    assert data.metrics.after.variational_ply_bytes < data.metrics.before.variational_ply_bytes
+    assert data.seed == 0 and data.score == DEFAULT_SCORE and data.source_run == str(tiny_run_path.resolve())
+    sweep = PruneSweep.read(out / "sweep.json")
+    assert sweep == data.sweep
+    assert [p.keep_ratio for p in sweep.points] == [1.0, 0.8]
+    assert sweep.points[1].score.psnr == data.metrics.after.psnr  # same mask, same metrics
+    assert sweep.points[0].score.psnr == data.metrics.before.psnr
     assert len(list((out / "renders").glob("*_before.png"))) == 1
     assert len(list((out / "renders").glob("*_after.png"))) == 1
 
@@ -93,8 +95,8 @@ def test_dry_run_on_a_pruned_run_writes_no_model(pruned, tmp_path):
     names = {p.name for p in dry.iterdir()}
     assert "prune.json" in names and "prune_mask.npy" in names
     assert not names & {"variational.ply", "point_cloud.ply", "config.json", "ckpts"}
-    assert result["counts"]["after"] < result["counts"]["before"] == len(load_model(out, CPU).model)
-    assert json.loads((dry / "prune.json").read_text())["written"]["model"] is False
+    assert result.counts.after < result.counts.before == len(load_run(out, CPU).model)
+    assert PruneReport.read(dry / "prune.json").written.model is False
 
 
 def test_bad_inputs(tiny_run_path, tmp_path):  # noqa: F811
@@ -147,19 +149,19 @@ class TestAuto:
     def test_a_loose_tolerance_takes_the_strongest_ratio(self, tiny_run_path):  # noqa: F811
         cfg = PruneConfig(auto=True, tolerance_db=100.0, sweep_ratios=[1.0, 0.9, 0.6], dry_run=True, **FAST)
         result = prune.run(tiny_run_path, None, cfg, device=CPU)
-        n = result["counts"]["before"]
-        assert result["mode"] == "auto" and result["keep_ratio"] == 0.6
-        assert result["counts"]["removed"] == round(0.4 * n)
-        best = result["sweep"]["largest_removal_within_tolerance"]
-        assert best["keep_ratio"] == 0.6 and best["psnr_loss_db"] <= 100.0
+        n = result.counts.before
+        assert result.mode == "auto" and result.keep_ratio == 0.6
+        assert result.counts.removed == round(0.4 * n)
+        best = result.sweep.largest_removal_within_tolerance
+        assert best.keep_ratio == 0.6 and best.psnr_loss_db <= 100.0
 
     def test_nothing_within_tolerance_removes_nothing_and_says_why(self, tiny_run_path):  # noqa: F811
         # removing 70 % of a trained model always costs PSNR, so a zero tolerance admits no ratio
         cfg = PruneConfig(auto=True, tolerance_db=0.0, sweep_ratios=[1.0, 0.3], dry_run=True, **FAST)
         result = prune.run(tiny_run_path, None, cfg, device=CPU)
-        assert result["keep_ratio"] == 1.0 and result["counts"]["removed"] == 0
-        assert result["sweep"]["largest_removal_within_tolerance"] is None
-        (note,) = [x for x in result["notes"] if x.startswith("--auto")]
+        assert result.keep_ratio == 1.0 and result.counts.removed == 0
+        assert result.sweep.largest_removal_within_tolerance is None
+        (note,) = [x for x in result.notes if x.startswith("--auto")]
         assert "nothing was removed" in note and "70 %" in note and "--tolerance-db" in note
 
     def test_cli_tolerance_option(self, tiny_run_path, tmp_path):  # noqa: F811

@@ -7,9 +7,10 @@ import pytest
 import torch
 
 from tests.fixtures import tiny_scene_path  # noqa: F401
+from uncertsplat.baselines import load_run
 from uncertsplat.config import train_config_from
 from uncertsplat.errors import UserError
-from uncertsplat.io.checkpoints import list_checkpoints, load_model
+from uncertsplat.io.checkpoints import list_checkpoints
 from uncertsplat.stages import train as stage
 
 # a short schedule on the tiny scene at half resolution (64x48): ~80 steps on a CPU
@@ -45,9 +46,9 @@ def test_outputs_and_psnr_gain(trained):
     assert all("num_gaussians" in r for r in lines) and lines[-1]["step"] == 80
 
 
-def test_load_model_matches_checkpoint(trained):
+def test_load_run_matches_checkpoint(trained):
     run, cfg = trained
-    loaded = load_model(run, "cpu")
+    loaded = load_run(run, "cpu")
     assert loaded.source.name == "variational.ply" and loaded.step == 80 and loaded.config == cfg
     assert loaded.scene_path is not None and loaded.scene_path.is_dir()
     from uncertsplat.io.checkpoints import load_latest
@@ -73,7 +74,7 @@ def test_resume_from_middle_checkpoint_is_exact(trained, tiny_scene_path, tmp_pa
     # a truncated newer checkpoint must be skipped with a message
     (copy / "ckpts" / "step_000060.pt").write_bytes(b"USPLCKPT garbage")
     stage.run(tiny_scene_path, copy, cfg, torch.device("cpu"), resume=True)
-    a, b = load_model(run).model, load_model(copy).model
+    a, b = load_run(run).model, load_run(copy).model
     assert torch.equal(a.posterior_row, b.posterior_row)
     for name, p in a.parameters().items():
         torch.testing.assert_close(b.parameters()[name], p, rtol=0, atol=1e-6, msg=name)

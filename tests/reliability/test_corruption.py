@@ -107,7 +107,7 @@ def test_resume_falls_back_to_previous_good_checkpoint_and_says_so(small_run, tm
 
 
 def test_damaged_run_config_is_reported_not_a_traceback(small_run, tmp_path):
-    from uncertsplat.io.checkpoints import load_model
+    from uncertsplat.baselines import load_run
     from uncertsplat.stages import train
 
     run = _copy(small_run, tmp_path)
@@ -116,11 +116,11 @@ def test_damaged_run_config_is_reported_not_a_traceback(small_run, tmp_path):
     with pytest.raises(UserError, match="config.json"):
         train.run(scene, run, small_config(), device=torch.device("cpu"), resume=True)
     with pytest.raises(UserError, match="config.json"):
-        load_model(run)
+        load_run(run)
     shutil.copyfile(small_run / "config.json", run / "config.json")
     truncate(run / "scene.json", 0.5)
     with pytest.raises(UserError, match="scene.json"):
-        load_model(run)
+        load_run(run)
     assert not (run / ".lock").exists()
 
 

@@ -82,3 +82,17 @@ def test_reading_a_point_cloud_as_variational_fails_clearly(tmp_path):
     path = write_point_cloud_ply(tmp_path / "point_cloud.ply", m)
     with pytest.raises(UserError, match="not a variational.ply"):
         read_variational_ply(path)
+
+
+def test_inconsistent_model_in_a_checkpoint_is_reported(tmp_path):
+    """A checkpoint with a good checksum but misaligned rows: CorruptCheckpoint naming the field, no traceback."""
+    from uncertsplat.baselines import load_run
+    from uncertsplat.config import TrainConfig
+
+    m = random_model(12, torch.Generator().manual_seed(5), num_entries=2, carrier_fraction=0.5)
+    state = m.state_dict()
+    state["params"]["opacities"] = state["params"]["opacities"][:-1]
+    (tmp_path / "config.json").write_text(TrainConfig().model_dump_json())
+    save_checkpoint(tmp_path, 1, {"model": state, "step": 1, "extent": 1.0})
+    with pytest.raises(CorruptCheckpoint, match=r"inconsistent .*params\['opacities'\] has shape \(11,\)"):
+        load_run(tmp_path)

@@ -1,11 +1,18 @@
 """PARAM_SPECS, initialisation from points, nearest-neighbour scales, memory accounting."""
 
 import math
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
 
+import pytest
 import torch
 
 from uncertsplat.gaussians.params import (
     PARAM_SPECS,
+    GaussianModel,
     init_from_points,
     memory_per_gaussian,
     nearest_neighbor_distance,
@@ -65,3 +72,88 @@ def test_memory_per_gaussian_counts_only_carriers():
     assert math.isclose(m1["tables"], half.num_carriers * 560 / 100)
     assert m1["total"] > m0["total"]
     assert memory_per_gaussian(none, optimizer_moments=False)["optimizer"] == 0
+
+
+# ------------------------------------------------------------------------ GaussianModel.check: ValueError
+def _model(**kw):
+    return random_model(12, torch.Generator().manual_seed(3), num_entries=4, carrier_fraction=0.5, **kw)
+
+
+def _broken(what: str):
+    """A model with one defect a user can hit (a hand-edited checkpoint, a foreign PLY, a bad ``ops`` call)."""
+    m = _model()
+    carriers = (m.posterior_row >= 0).nonzero().flatten()
+    if what == "param_shape":
+        m.params["scales"] = torch.nn.Parameter(m.params["scales"][:-1])
+    elif what == "sh_degree":
+        m.sh_degree = 2
+    elif what == "missing_param":
+        del m.params["quats"]
+    elif what == "row_dtype":
+        m.posterior_row = m.posterior_row.int()
+    elif what == "row_shape":
+        m.posterior_row = m.posterior_row[:-1]
+    elif what == "missing_table":
+        del m.tables["gate_loc"]
+    elif what == "table_rows":
+        m.tables["pos_loc"] = torch.nn.Parameter(m.tables["pos_loc"][:-1])
+    elif what == "table_entries":
+        m.num_entries = 5
+    elif what == "table_width":
+        m.tables["gate_loc"] = torch.nn.Parameter(m.tables["gate_loc"].repeat(1, 1, 2))
+    elif what == "carrier_count":
+        m.posterior_row[(m.posterior_row < 0).nonzero()[0]] = 0  # one more carrier than table rows
+    elif what == "shared_row":
+        m.posterior_row[carriers[0]] = m.posterior_row[carriers[1]]
+    return m
+
+
+@pytest.mark.parametrize("what,words", [
+    ("param_shape", r"params\['scales'\] has shape \(11, 3\), expected \(12, 3\)"),
+    ("sh_degree", r"params\['shN'\] has shape \(12, 3, 3\), expected \(12, 8, 3\)"),
+    ("missing_param", r"params lacks quats"),
+    ("row_dtype", r"posterior_row must be a torch.long tensor of shape \(12,\), not torch.int32"),
+    ("row_shape", r"posterior_row must be .* not torch.int64 of shape \(11,\)"),
+    ("missing_table", r"tables lacks gate_loc"),
+    ("table_rows", r"tables\['pos_loc'\] has shape"),
+    ("table_entries", r"num_entries K = 5"),
+    ("table_width", r"tables\['gate_loc'\] has shape \(\d+, 4, 2\), expected \(\d+, 4, 1\)"),
+    ("carrier_count", r"marks \d+ carriers .* but the offset tables have \d+ rows"),
+    ("shared_row", r"not a permutation"),
+])
+def test_check_raises_value_error_naming_the_field(what, words):
+    _model().check()  # the intact model passes
+    with pytest.raises(ValueError, match=words):
+        _broken(what).check()
+
+
+def test_from_state_dict_refuses_an_inconsistent_state():
+    state = _model().state_dict()
+    state["posterior_row"][:] = -1  # carriers forgotten, tables kept
+    with pytest.raises(ValueError, match="posterior_row marks 0 carriers"):
+        GaussianModel.from_state_dict(state)
+
+
+def test_check_still_raises_under_python_optimize(tmp_path):
+    """``python -O`` strips ``assert``: the checks are plain ``if`` tests, so they survive it."""
+    script = tmp_path / "bad_model.py"
+    script.write_text(textwrap.dedent("""
+        import torch
+        from uncertsplat.gaussians.variational import random_model
+
+        assert False, "this line proves that -O is in effect"
+        m = random_model(8, torch.Generator().manual_seed(0), carrier_fraction=1.0)
+        m.posterior_row[1] = m.posterior_row[0]
+        try:
+            m.check()
+        except ValueError as err:
+            print("ValueError:", err)
+        else:
+            print("no error")
+    """))
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")])),
+           "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-O", str(script)], capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 0, out.stderr
+    assert "ValueError: GaussianModel.posterior_row" in out.stdout and "not a permutation" in out.stdout, out.stdout

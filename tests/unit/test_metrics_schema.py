@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from uncertsplat.eval.calibration import calibration
-from uncertsplat.eval.report_schema import (
+from uncertsplat.eval.sparsification import sparsification_all
+from uncertsplat.schemas.metrics import (
     CalibrationTable,
     CurveSet,
     DepthScaleInfo,
@@ -19,7 +20,6 @@ from uncertsplat.eval.report_schema import (
     SparsificationCurve,
     ViewMetrics,
 )
-from uncertsplat.eval.sparsification import sparsification_all
 
 
 def _report() -> EvalReport:
@@ -89,10 +89,10 @@ def test_empty_curve_is_none():
 
 
 def test_report_reader_finds_curves_and_calibration():
-    extract = pytest.importorskip("uncertsplat.report.extract")
-    data = json.loads(_report().to_json())
-    curves = extract.find_curves(data, ["a.png", "b.png"])
-    kinds = {(c.view, c.depth, c.metric) for c in curves}
+    from uncertsplat.report.extract import calibrations_of, curves_of
+
+    report = EvalReport.from_json(_report().to_json())  # what the report reads back from metrics.json
+    kinds = {(c.view, c.depth, c.metric) for c in curves_of(report)}
     assert ("a.png", False, "rmse") in kinds and (None, True, "mae") in kinds
-    cal = extract.find_calibration(data)
-    assert cal and len(cal[0].nominal) == 6
+    cal = calibrations_of(report)
+    assert cal and len(cal[0].table.nominal) == 6

@@ -197,8 +197,9 @@ def test_require_successful_refuses_a_failed_workspace(tmp_path):
 
 def test_load_report_rejects_garbage(tmp_path):
     (tmp_path / REPORT_NAME).write_text("{not json")
-    with pytest.raises(UserError, match="not a valid reconstruct report"):
+    with pytest.raises(UserError, match="not valid JSON") as err:
         load_report(tmp_path)
+    assert REPORT_NAME in str(err.value) and "uncertsplat reconstruct" in str(err.value)
 
 
 # ------------------------------------------------------------------------------------------ workspace

@@ -1,9 +1,15 @@
-"""The HTML report: figures referenced and present, numbers equal to metrics.json, tolerant of gaps."""
+"""The HTML report: figures referenced and present, numbers equal to the files, tolerant of absent files,
+explicit about invalid ones.
+
+Every fake file is built from its schema model and written with ``.write()`` (the writers' own path), so
+these tests cannot drift from what ``train``, ``evaluate`` and ``prune`` write.
+"""
 
 from __future__ import annotations
 
 import json
 import math
+import re
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -13,6 +19,29 @@ import torch
 
 from uncertsplat.config import ReportConfig, TrainConfig
 from uncertsplat.errors import UserError
+from uncertsplat.io.maps import EXR_CHANNELS, map_stem
+from uncertsplat.report import extract
+from uncertsplat.schemas import (
+    EvalReport,
+    Manifest,
+    PosteriorSummary,
+    PruneMetrics,
+    PruneReport,
+    PruneSweep,
+    RunScene,
+    SweepPoint,
+    SweepRecord,
+    TrainSummary,
+    ViewMetrics,
+)
+from uncertsplat.schemas.prune import (
+    PruneCounts,
+    PruneMetricSet,
+    PsnrChange,
+    ScoreStats,
+    ToleranceChoice,
+    Written,
+)
 from uncertsplat.stages import report as stage
 
 H, W = 12, 16
@@ -29,6 +58,7 @@ def _curve(rng, metric: str, steps: int = 20) -> dict:
 
 
 def make_scene(root: Path, names: list[str], seed: int = 0) -> Path:
+    """A scene folder with images and a ``reconstruct_report.json`` (written as ``reconstruct`` writes it)."""
     from uncertsplat.io.images import write_png
     from uncertsplat.sfm.report import ReconstructReport, write_report
 
@@ -44,9 +74,7 @@ def make_scene(root: Path, names: list[str], seed: int = 0) -> Path:
     return scene
 
 
-def make_metrics(names: list[str], seed: int = 0, depth: bool = True) -> dict:
-    from uncertsplat.eval.report_schema import EvalReport, ViewMetrics
-
+def make_metrics(names: list[str], seed: int = 0, depth: bool = True) -> EvalReport:
     rng = np.random.default_rng(seed)
     per_view = {}
     for n in names:
@@ -71,56 +99,87 @@ def make_metrics(names: list[str], seed: int = 0, depth: bool = True) -> dict:
     if depth:
         cal["depth"] = {"ks": ks, "observed": [min(1.0, x * 1.1) for x in nominal], "nominal": nominal,
                         "calibration_error": 0.05, "num_elements": 10}
-    rep = EvalReport(image_names=names, per_view=per_view, mean=mean, curves=curves, calibration=cal,
-                     config_hash="cfg0001", versions={"uncertsplat": "0.1.0", "torch": "2.x"}, num_samples=4,
-                     seed=0, seconds_per_view=0.123456, depth_scale={"scale": 1.5, "method": "median"})
-    return json.loads(rep.to_json())
+    return EvalReport(image_names=names, per_view=per_view, mean=mean, curves=curves, calibration=cal,
+                      config_hash="cfg0001", versions={"uncertsplat": "0.1.0", "torch": "2.x"}, num_samples=4,
+                      seed=0, seconds_per_view=0.123456, depth_scale={"scale": 1.5, "method": "median"})
+
+
+def prune_metrics(n: int, psnr: float, ssim: float = 0.9, ause: float = 0.3, nll: float = -1.5,
+                  ply: int = 1_234_567) -> PruneMetrics:
+    return PruneMetrics(num_gaussians=n, num_carriers=n // 2, psnr=psnr, ssim=ssim, ause_mae=ause, ause_rmse=ause * 1.3,
+                        nll=nll, depth_ause_mae=None, coverage=0.98, variational_ply_bytes=ply,
+                        point_cloud_ply_bytes=ply // 2, seconds=1.5)
+
+
+def make_prune_report(run: Path, *, n: int = 1190, sweep: bool = True) -> PruneReport:
+    """What ``prune --keep-ratio 0.9 --sweep`` writes: before / after / random metrics and a 4-point sweep."""
+    unpruned = prune_metrics(n, 25.0, 0.9, 0.31, -1.52, 1_234_567)
+    points = []
+    for r in (1.0, 0.9, 0.7, 0.5):
+        removed = round(n * (1 - r)) if r > 0.5 else round(n * 0.45)  # carriers run out below 0.55
+        achieved = (n - removed) / n
+        points.append(SweepPoint(keep_ratio=r, num_removed=removed, keep_ratio_achieved=achieved,
+                                 score=prune_metrics(n - removed, 25.0 - (1 - achieved) * 2.0),
+                                 random=prune_metrics(n - removed, 25.0 - (1 - achieved) * 8.0)))
+    sw = PruneSweep(ratios=[1.0, 0.9, 0.7, 0.5], score="position_spread", split="test", unpruned=unpruned,
+                    points=points, tolerance_db=0.5,
+                    largest_removal_within_tolerance=ToleranceChoice(
+                        keep_ratio=0.9, num_removed=points[1].num_removed,
+                        psnr_loss_db=25.0 - points[1].score.psnr, tolerance_db=0.5)) if sweep else None
+    after = prune_metrics(1071, 24.95, 0.899, 0.30, -1.49, 1_111_000)
+    rand = prune_metrics(1071, 24.21, 0.871, 0.35, -1.21, 1_111_000)
+    return PruneReport(
+        source_run=str(run.parent / "source"), source_model="variational.ply", source_model_sha256="ab" * 32,
+        score="position_spread", score_requested="position_spread", mode="keep_ratio", threshold=None,
+        keep_ratio=0.9, tolerance_db=0.5, seed=0, num_samples=4, metric_split="test",
+        metric_views=["view_000.png", "view_008.png"], score_views=["view_001.png"], score_seconds=0.7,
+        dry_run=False, device="cpu", notes=["only carriers can be removed: 45 % of the Gaussians at most"],
+        score_stats={"position_spread": ScoreStats(min=0.01, median=0.2, max=0.97)},
+        metrics=PruneMetricSet(before=unpruned, after=after, random=rand),
+        counts=PruneCounts(before=n, after=1071, removed=n - 1071, carriers_before=600, carriers_after=481),
+        keep_ratio_achieved=1071 / n, threshold_effective=0.4213, delta_psnr_db=PsnrChange(score=-0.05, random=-0.79),
+        sweep=sw, undo="use the source run", written=Written(model=True, folder=str(run)))
 
 
 def make_run(root: Path, name: str = "run", *, names=("view_000.png", "view_008.png"), seed: int = 0,
              metrics: bool = True, maps: bool = True, stats: bool = True, scene: Path | None = None,
-             prune: bool = False, scene_json: bool = False) -> Path:
-    """A small fake run folder following DESIGN.md section 2."""
-    from uncertsplat.io.images import write_exr
+             prune: bool = False, manifest: bool = False) -> Path:
+    """A small fake run folder with the files ``train``, ``evaluate`` and ``prune`` write, built from their models."""
+    from uncertsplat.io.images import write_exr, write_png
 
     rng = np.random.default_rng(seed + 100)
     run = root / name
     run.mkdir(parents=True)
     (run / "config.json").write_text(TrainConfig(seed=seed, iterations=100).model_dump_json(indent=2))
-    if scene is not None and scene_json:  # what `train` writes (io/checkpoints.load_model reads it)
-        (run / "scene.json").write_text(json.dumps({"scene": str(scene), "extent": 4.4}))
-    elif scene is not None:
-        (run / "manifest.json").write_text(json.dumps({
-            "stage": "train", "name": name, "config_hash": "c0ffee", "input_hashes": {str(scene): "f00d"},
-            "config": {}, "status": "done", "started_at": 0.0, "finished_at": 12.0, "seconds": 12.0,
-            "versions": {"uncertsplat": "0.1.0", "python": "3.x"}}))
+    if scene is not None:
+        RunScene(scene=str(scene), source={"kind": "colmap", "path": str(scene)}, extent=4.4, scene_scale=1.0,
+                 width=W, height=H, train=["view_001.png"], test=list(names)).write(run / "scene.json")
+    if manifest:
+        Manifest(stage="train", name=name, config_hash="c0ffee", input_hashes={"synth": "f00d"}, config={},
+                 status="done", started_at=0.0, finished_at=12.0, seconds=12.0,
+                 versions={"uncertsplat": "0.1.0", "python": "3.x"}).write(run / "manifest.json")
     if stats:
-        rows = [dict(step=s, loss=1.0 / (s + 1), l1=0.5 / (s + 1), ssim=0.2, kl_position=0.01, kl_scale=0.02,
-                     num_gaussians=1000 + 10 * s, num_carriers=400 + 5 * s, sec_per_step=0.05,
-                     peak_memory_mb=100.0, photo=0.3 / (s + 1), **({"eval_psnr": 20.0 + s / 10} if s % 50 == 0 else {}))
+        rows = [dict(step=s, loss=1.0 / (s + 1), l1=0.5 / (s + 1), ssim=0.2, photo=0.3 / (s + 1), kl_position=0.01,
+                     kl_scale=0.02, kl_total=0.03, num_gaussians=1000 + 10 * s, num_carriers=400 + 5 * s,
+                     sec_per_step=0.05, elapsed=0.05 * s, peak_memory_mb=100.0,
+                     **({"eval_psnr": 20.0 + s / 10, "eval_ssim": 0.8} if s % 50 == 0 else {}))
                 for s in range(0, 200, 10)]
         (run / "stats.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
-        (run / "train_summary.json").write_text(json.dumps({"seconds": 98.7, "num_gaussians": 1190,
-                                                            "iterations": 200, "final_psnr_test": 21.5}))
+        TrainSummary(method="variational", variant="ours", steps=200, seconds=98.7, sec_per_step=0.49,
+                     num_gaussians=1190, num_carriers=600, peak_memory_mb=100.0, device="cpu",
+                     scene=str(scene), test_psnr=21.5).write(run / "train_summary.json")
     if metrics:
-        (run / "eval").mkdir()
-        (run / "eval" / "metrics.json").write_text(json.dumps(make_metrics(list(names), seed)))
+        make_metrics(list(names), seed).write(run / "eval" / "metrics.json")
     if maps:
         for n in names:
             mean = rng.random((H, W, 3)).astype(np.float32)
             std = (rng.random((H, W, 3)) * 0.2).astype(np.float32)
-            ch = {f"rgb_mean.{c}": mean[..., i] for i, c in enumerate("RGB")}
-            ch.update({f"rgb_std.{c}": std[..., i] for i, c in enumerate("RGB")})
-            ch["depth_mean"] = (1 + rng.random((H, W))).astype(np.float32)
-            ch["depth_std"] = (rng.random((H, W)) * 0.1).astype(np.float32)
-            write_exr(run / "eval" / "maps" / f"{Path(n).stem}.exr", ch)
+            arrays = [mean[..., c] for c in range(3)] + [std[..., c] for c in range(3)]
+            arrays += [(1 + rng.random((H, W))).astype(np.float32), (rng.random((H, W)) * 0.1).astype(np.float32)]
+            write_exr(run / "eval" / "maps" / f"{map_stem(n)}.exr", dict(zip(EXR_CHANNELS, arrays, strict=True)))
+            write_png(run / "eval" / "maps" / f"{map_stem(n)}_gt.png", rng.random((H, W, 3)).astype(np.float32))
     if prune:
-        sweep = [dict(keep_ratio=r, psnr=25 - (1 - r) * 2, random_psnr=25 - (1 - r) * 8, ssim=0.9, ause=0.3 + r / 10,
-                      num_gaussians=int(1000 * r), file_size=int(250_000 * r)) for r in (1.0, 0.9, 0.7, 0.5)]
-        (run / "prune.json").write_text(json.dumps({
-            "counts": {"before": 1190, "after": 1071}, "score": "position_spread", "threshold": 0.42,
-            "keep_ratio": 0.9, "metrics_before": {"psnr": 25.0, "ssim": 0.9, "ause_mae": 0.31},
-            "metrics_after": {"psnr": 24.95, "ssim": 0.899, "ause_mae": 0.30}, "sweep": sweep}))
+        make_prune_report(run).write(run / "prune.json")
     return run
 
 
@@ -169,40 +228,49 @@ def assert_figures_consistent(out: Path, page: _Page) -> None:
     assert on_disk == set(page.imgs), f"unreferenced or missing figures: {on_disk ^ set(page.imgs)}"
 
 
+def table_rows(html: str, table_id: str) -> dict[str, list[tuple[str, str, str]]]:
+    """{row label: [(data-key, data-value, text) of each numeric cell]} of one table of the page."""
+    m = re.search(rf'<table id="{re.escape(table_id)}">(.*?)</table>', html, re.S)
+    assert m is not None, f"no table {table_id}"
+    rows = {}
+    for label, cells in re.findall(r'<tr[^>]*data-row="([^"]*)">(.*?)</tr>', m.group(1), re.S):
+        rows[label] = re.findall(r'<td data-key="([^"]*)" data-value="([^"]*)">([^<]*)</td>', cells)
+    return rows
+
+
 # ----------------------------------------------------------------------------------------------- tests
 def test_single_run_report_has_every_section_and_exact_numbers(tmp_path):
     names = ["view_000.png", "view_008.png"]
     scene = make_scene(tmp_path, names)
     run = make_run(tmp_path, "run_a", names=tuple(names), scene=scene)
     out = tmp_path / "report"
-    index = stage.run([run], out, ReportConfig())
+    index = stage.run(run, out)  # one folder, default config: what the end-to-end test calls
     assert index == out / "index.html" and index.is_file()
     page = parse(index)
     assert_figures_consistent(out, page)
     for sec in ("summary", "metrics", "views", "sparsification", "calibration", "training", "provenance"):
         assert sec in page.ids, sec
+    assert "prune" not in page.ids  # no prune.json: no pruning section
     # a per-view figure per view, sparsification, calibration and timeline figures
     assert {"figures/run0_view0.png", "figures/run0_view1.png", "figures/sparsification_run0.png",
             "figures/calibration.png", "figures/timeline.png"} <= set(page.imgs)
 
-    metrics = json.loads((run / "eval" / "metrics.json").read_text())
-    mean = metrics["mean"]
-    summary = [c for c in page.cells]
-    # every metric of the mean and of each view appears with the exact value and its formatted text
-    shown = {}
-    for key, value, text in summary:
+    metrics = EvalReport.read(run / "eval" / "metrics.json")
+    shown: dict[str, list[tuple[str, str]]] = {}
+    for key, value, text in page.cells:
         shown.setdefault(key, []).append((value, text))
-    for name, row in [("mean", mean), *metrics["per_view"].items()]:
-        for key, v in row.items():
+    # every metric of the mean and of each view appears with the exact value and its formatted text
+    for name, vm in [("mean", metrics.mean), *metrics.per_view.items()]:
+        for key, v in vm.model_dump().items():
             if not isinstance(v, float):
                 continue
-            assert any(float(val) == v for val, _ in shown[key]), (name, key, v)
-    # formatted PSNR of the mean is in the summary table
-    assert any(val == repr(mean["psnr"]) and txt == f"{mean['psnr']:.2f}" for val, txt in shown["psnr"])
-    assert any(float(val) == metrics["seconds_per_view"] for val, _ in shown["seconds_per_view"])
+            text = extract.format_value(v, extract.SPEC_BY_KEY[key])
+            assert (repr(v), text) in shown[key], (name, key, v)
+    assert any(float(val) == metrics.seconds_per_view for val, _ in shown["seconds_per_view"])
     text = " ".join(page.text)
-    assert "abc123def" in text  # photos fingerprint from the reconstruct health report
+    assert "abc123def" in text  # photos fingerprint from the reconstruct health report (via RunScene.scene)
     assert "0.42" in text  # reprojection error
+    assert "GT image" not in text and "not found" not in text  # the GT previews were read from eval/maps
 
 
 def test_missing_inputs_give_notes_not_a_crash(tmp_path):
@@ -216,6 +284,8 @@ def test_missing_inputs_give_notes_not_a_crash(tmp_path):
     assert "no eval/metrics.json" in html
     assert "no stats.jsonl" in html
     assert "uncertsplat evaluate" in html
+    assert "no scene.json" in html
+    assert "prune" not in page.ids
 
 
 def test_metrics_without_maps_and_corrupt_lines(tmp_path):
@@ -236,7 +306,8 @@ def test_corrupt_metrics_json_is_a_note(tmp_path):
     (run / "eval" / "metrics.json").write_text('{"per_view": {')
     index = stage.run([run], tmp_path / "out", ReportConfig())
     html = index.read_text()
-    assert "metrics.json: could not be read" in html
+    assert f"{run / 'eval' / 'metrics.json'}: not valid JSON" in html
+    assert "figures/sparsification_run0.png" not in html
     assert_figures_consistent(tmp_path / "out", parse(index))
 
 
@@ -257,8 +328,8 @@ def test_bad_run_path_names_it(tmp_path):
 def test_several_runs_side_by_side_and_pruning(tmp_path):
     names = ("view_000.png", "view_008.png")
     scene = make_scene(tmp_path, list(names))
-    a = make_run(tmp_path / "x", "run", names=names, scene=scene, seed=1)
-    b = make_run(tmp_path / "y", "run", names=names, scene=scene, seed=2, stats=False, prune=True, scene_json=True)
+    a = make_run(tmp_path / "x", "run", names=names, scene=scene, seed=1, manifest=True)
+    b = make_run(tmp_path / "y", "run", names=names, scene=scene, seed=2, stats=False, prune=True)
     out = tmp_path / "report"
     index = stage.run([a, b], out, ReportConfig(max_views=1))
     page = parse(index)
@@ -271,19 +342,129 @@ def test_several_runs_side_by_side_and_pruning(tmp_path):
     assert "x/run" in html and "y/run" in html  # same folder names are disambiguated
     # both runs' mean PSNRs are in the summary table, each exactly
     for r in (a, b):
-        m = json.loads((r / "eval" / "metrics.json").read_text())["mean"]["psnr"]
+        m = EvalReport.read(r / "eval" / "metrics.json").mean.psnr
         assert f'data-value="{m!r}"' in html
     assert 'data-key="psnr" data-value="24.95"' in html  # prune.json metrics after
-    # both runs found the scene (one through the manifest, one through scene.json): GT panels, health report
-    assert html.count("reconstruction health") == 2
-    assert "GT image not found" not in html
+    assert html.count("reconstruction health") == 2  # both found the scene through RunScene.scene
+    assert "input hash (synth)" in html  # the manifest's inputs in the provenance
+
+
+def test_prune_section_shows_the_prune_report(tmp_path):
+    """Every number of the before / after / random table and of the sweep table is the PruneReport's."""
+    run = make_run(tmp_path, "pruned", stats=False, prune=True)
+    rep = PruneReport.read(run / "prune.json")
+    index = stage.run(run, tmp_path / "out")
+    html = index.read_text()
+    page = parse(index)
+    assert "prune" in page.ids and "figures/prune_sweep_run0.png" in page.imgs
+
+    rows = table_rows(html, "prune-0")
+    assert list(rows) == ["before", "after", "random removal"]
+    for label, m in zip(rows, (rep.metrics.before, rep.metrics.after, rep.metrics.random), strict=True):
+        expected = [(s.key, str(getattr(m, s.key)), extract.format_value(getattr(m, s.key), s))
+                    for s in extract.PRUNE_SPECS]
+        assert rows[label] == expected, label
+    # spot-check the formats themselves, so a change of format is a deliberate one
+    assert rows["after"][0][2] == "24.95" and rows["after"][4][2] == "1,071" and rows["after"][5][2] == "1.11"
+    assert {"PSNR (dB)", "SSIM", "AUSE MAE", "NLL", "Gaussians", "PLY size (MB)"} <= set(page.text)
+
+    sweep_rows = table_rows(html, "prune-sweep-0")
+    assert len(sweep_rows) == len(rep.sweep.points)
+    for pt, (label, cells) in zip(rep.sweep.points, sweep_rows.items(), strict=True):
+        assert label == f"{pt.keep_ratio:.3f}"
+        got = {k: (v, t) for k, v, t in cells}
+        assert got["keep_ratio_achieved"] == (repr(pt.keep_ratio_achieved), f"{pt.keep_ratio_achieved:.3f}")
+        assert got["score.psnr"] == (repr(pt.score.psnr), f"{pt.score.psnr:.2f}")
+        assert got["random.psnr"] == (repr(pt.random.psnr), f"{pt.random.psnr:.2f}")
+    assert html.count("largest within tolerance") == 1
+
+    text = " ".join(page.text)
+    assert "keep_ratio" in text and "keep ratio requested" in text and "keep ratio achieved" in text
+    assert f"{rep.keep_ratio_achieved:.3f}" in text
+    assert "0.4213" in text  # threshold_effective
+    assert "position_spread" in text
+    assert rep.notes[0] in text
+    assert "threshold requested" in text and "None" not in text
+
+
+def test_prune_report_without_sweep_or_mask(tmp_path):
+    run = make_run(tmp_path, "pruned", stats=False, metrics=False, maps=False)
+    rep = make_prune_report(run, sweep=False)
+    rep.metrics = PruneMetricSet(before=rep.metrics.before)
+    rep.counts = rep.keep_ratio_achieved = rep.delta_psnr_db = None
+    rep.write(run / "prune.json")
+    index = stage.run(run, tmp_path / "out")
+    html = index.read_text()
+    assert list(table_rows(html, "prune-0")) == ["before"]
+    assert "No mask was chosen" in html and "No keep-ratio sweep in prune.json" in html
+    assert "prune_sweep" not in html
+    assert_figures_consistent(tmp_path / "out", parse(index))
+
+
+def test_invalid_prune_json_is_a_note_naming_the_file_and_key(tmp_path):
+    run = make_run(tmp_path, "pruned", stats=False, maps=False)
+    data = json.loads(make_prune_report(run).to_json())
+    data["metrics_before_after"] = data.pop("metrics")  # a renamed key
+    (run / "prune.json").write_text(json.dumps(data))
+    index = stage.run(run, tmp_path / "out")
+    html = index.read_text()
+    page = parse(index)
+    assert "prune" in page.ids  # the section is there, with the reason instead of the numbers
+    section = re.search(r'<section id="prune">(.*?)</section>', html, re.S).group(1)
+    assert f"{run / 'prune.json'}" in section
+    assert "key &#x27;metrics&#x27; is missing" in section
+    assert "key &#x27;metrics_before_after&#x27; is not part of the schema" in section
+    assert "prune-0" not in html and "prune_sweep" not in html
+    assert_figures_consistent(tmp_path / "out", page)
+
+
+def test_invalid_files_are_notes_not_guesses(tmp_path):
+    """An invalid scene.json, train_summary.json or config.json: each named in a note, its section left out."""
+    scene = make_scene(tmp_path, ["view_000.png", "view_008.png"])
+    run = make_run(tmp_path, "r", maps=False, scene=scene)
+    data = json.loads((run / "scene.json").read_text())
+    data["scene_path"] = data.pop("scene")  # the report must not look under another name
+    (run / "scene.json").write_text(json.dumps(data))
+    (run / "train_summary.json").write_text(json.dumps({"schema_version": 99}))
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["iteratoins"] = 5
+    (run / "config.json").write_text(json.dumps(cfg))
+    html = stage.run(run, tmp_path / "out").read_text()
+    assert "key &#x27;scene&#x27; is missing" in html and str(run / "scene.json") in html
+    assert "reconstruction health" not in html  # no scene path: no guess at one
+    assert "schema version 99 is newer" in html and str(run / "train_summary.json") in html
+    assert f"invalid configuration in {run / 'config.json'}: iteratoins" in html
+
+
+def test_exr_without_a_channel_is_a_note_naming_the_file(tmp_path):
+    from uncertsplat.io.images import write_exr
+
+    run = make_run(tmp_path, "r")
+    exr = run / "eval" / "maps" / "view_000.exr"
+    write_exr(exr, {"rgb_mean.R": np.zeros((H, W), np.float32)})
+    html = stage.run(run, tmp_path / "out").read_text()
+    assert f"{exr}: channel(s) rgb_mean.G" in html
+
+
+def test_metric_tables_name_real_schema_fields():
+    from uncertsplat.report.sweep_page import COLUMNS
+
+    fields = ViewMetrics.model_fields
+    keys = [s.key for s in extract.METRIC_SPECS]
+    assert len(keys) == len(set(keys))
+    assert set(keys) <= set(fields), set(keys) - set(fields)
+    numeric = {k for k, f in fields.items() if f.annotation != (str | None)}
+    assert numeric <= set(keys), f"ViewMetrics fields without a report column: {numeric - set(keys)}"
+    assert set(extract.SUMMARY_KEYS) <= set(keys)
+    assert {s.key for s in extract.PRUNE_SPECS} <= set(PruneMetrics.model_fields)
+    assert {k for k, _, _ in COLUMNS} <= set(SweepRecord.model_fields)
 
 
 def test_strings_are_escaped(tmp_path):
     run = make_run(tmp_path, 'a<b>&"c"', maps=False)
-    m = json.loads((run / "eval" / "metrics.json").read_text())
-    m["notes"] = ["<script>alert(1)</script>"]
-    (run / "eval" / "metrics.json").write_text(json.dumps(m))
+    m = EvalReport.read(run / "eval" / "metrics.json")
+    m.notes = ["<script>alert(1)</script>"]
+    m.write(run / "eval" / "metrics.json")
     index = stage.run([run], tmp_path / "out", ReportConfig(title="<i>t</i>"))
     html = index.read_text()
     assert "<script>" not in html and "<i>t</i>" not in html
@@ -327,22 +508,25 @@ def test_summary_says_how_far_the_posterior_moved(tmp_path):
     prior = Prior()
     post = posterior_summary(random_model(50, torch.Generator().manual_seed(0), prior=prior), prior)
     run = make_run(tmp_path, "r", maps=False)
-    summary = json.loads((run / "train_summary.json").read_text())
-    (run / "train_summary.json").write_text(json.dumps({**summary, "posterior": post}))
-    old = make_run(tmp_path, "old", maps=False)  # an older summary (no carriers / other keys): no note, no crash
+    summary = TrainSummary.read(run / "train_summary.json")
+    summary.posterior = PosteriorSummary(**post)
+    summary.write(run / "train_summary.json")
+    old = make_run(tmp_path, "old", maps=False)  # a summary whose posterior lacks keys: a note naming it
     s_old = json.loads((old / "train_summary.json").read_text())
     (old / "train_summary.json").write_text(json.dumps({**s_old, "posterior": {"carriers": 3, "moved_fraction": 0.5}}))
     html = stage.run([run, old], tmp_path / "out", ReportConfig()).read_text()
     assert "r (train): posterior: 0.0 % of" in html and "moved from the prior" in html
     assert "old (train): posterior" not in html
+    assert f"{old / 'train_summary.json'}" in html and "key &#x27;posterior.moved_kl_nats&#x27; is missing" in html
 
 
 def test_metrics_section_states_the_fitted_std_scale(tmp_path):
     run = make_run(tmp_path, "r", maps=False)
-    m = json.loads((run / "eval" / "metrics.json").read_text())
-    m.update(std_scale=1.9034, calibration_views=[f"view_{i:03d}.png" for i in range(1, 9)])
-    m["mean"]["nll_calibrated"] = -2.74
-    (run / "eval" / "metrics.json").write_text(json.dumps(m))
+    m = EvalReport.read(run / "eval" / "metrics.json")
+    m.std_scale = 1.9034
+    m.calibration_views = [f"view_{i:03d}.png" for i in range(1, 9)]
+    m.mean.nll_calibrated = -2.74
+    m.write(run / "eval" / "metrics.json")
     plain = make_run(tmp_path, "plain", maps=False)  # no std_scale: no fact, no crash
     html = stage.run([run, plain], tmp_path / "out", ReportConfig()).read_text()
     assert "x1.9, fitted on 8 training views" in html

@@ -202,10 +202,16 @@ def test_truncated_image_is_refused(workspace):
 
 
 def test_failed_reconstruction_is_refused(workspace):
-    (workspace / "reconstruct_report.json").write_text(json.dumps({"success": False, "reason": "2 of 24 registered"}))
+    from uncertsplat.schemas import ReconstructReport
+    from uncertsplat.sfm.report import write_report
+
+    write_report(workspace, ReconstructReport(success=False, photos="/p", message="2 of 24 registered"))
     _raises(workspace, match="failed reconstruction", name="reconstruct_report.json")
-    (workspace / "reconstruct_report.json").write_text(json.dumps({"success": True}))
+    write_report(workspace, ReconstructReport(success=True, photos="/p"))
     assert len(load_scene(workspace).cameras) == 24
+    # a report that is not ours is refused with the key, not read by guessing
+    (workspace / "reconstruct_report.json").write_text(json.dumps({"schema_version": 1, "ok": True}))
+    _raises(workspace, match="key 'ok' is not part of the schema", name="reconstruct_report.json")
 
 
 def test_missing_images_folder(workspace):

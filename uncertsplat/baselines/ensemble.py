@@ -23,10 +23,12 @@ from pathlib import Path
 
 import torch
 
+from uncertsplat.baselines.runs import LoadedRun, load_single_model, read_run_config
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
-from uncertsplat.io.atomic import atomic_write_json, atomic_write_text, run_lock
-from uncertsplat.io.checkpoints import LoadedRun, load_model
+from uncertsplat.eval.engine import Sampler
+from uncertsplat.io.atomic import atomic_write_text, run_lock
+from uncertsplat.schemas import TrainSummary
 from uncertsplat.types import GaussianSample
 
 
@@ -52,8 +54,7 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
     Raises:
         UserError: an existing run folder without ``resume``, a stored config of another method.
     """
-    from uncertsplat.config import TrainConfig, build_config
-    from uncertsplat.stages import train
+    from uncertsplat.train.session import train_model
 
     scene, run_dir = Path(scene), Path(run_dir)
     exists = run_dir.exists() and (not run_dir.is_dir() or any(p.name != ".lock" for p in run_dir.iterdir()))
@@ -61,8 +62,7 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
         raise UserError("the run folder already exists", path=run_dir,
                         hint="Add --resume to continue it, or choose another output folder (-o).")
     if resume and (run_dir / "config.json").is_file():
-        stored = build_config(TrainConfig, json.loads((run_dir / "config.json").read_text(encoding="utf-8")),
-                              source=str(run_dir / "config.json"))
+        stored = read_run_config(run_dir)
         if stored.method != "ensemble":
             raise UserError(f"the run folder holds a '{stored.method}' run, not an ensemble", path=run_dir,
                             hint="Choose another output folder (-o).")
@@ -80,25 +80,21 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
             if not done.is_file():
                 console.print(f"[bold]ensemble[/] member {i + 1}/{n} (seed {cfg.seed + i})")
                 started = mdir.exists() and (mdir / "config.json").is_file()
-                train.run(scene, mdir, member_config(cfg, i), device=device, resume=started)
-            summaries.append(json.loads(done.read_text(encoding="utf-8")))
+                train_model(scene, mdir, member_config(cfg, i), device=device, resume=started)
+            summaries.append(TrainSummary.read(done))
         atomic_write_text(run_dir / "scene.json", (member_dir(run_dir, 0) / "scene.json").read_text(encoding="utf-8"))
-        psnrs = [s["test_psnr"] for s in summaries if s.get("test_psnr") is not None]
-        summary = {
-            "method": "ensemble", "ensemble_size": n, "steps": cfg.iterations,
-            "seconds": sum(float(s["seconds"]) for s in summaries),
-            "sec_per_step": sum(float(s["seconds"]) for s in summaries) / max(cfg.iterations, 1),
-            "wall_seconds_this_call": time.perf_counter() - t0,
-            "num_gaussians": sum(int(s["num_gaussians"]) for s in summaries),
-            "num_carriers": 0,
-            "peak_memory_mb": max(float(s.get("peak_memory_mb", 0.0)) for s in summaries),
-            "test_psnr_members_mean": sum(psnrs) / len(psnrs) if psnrs else None,
-            "test_psnr": None,  # the ensemble's own PSNR (of the mean render) comes from `evaluate`
-            "variant": cfg.variant, "device": str(device), "scene": str(scene.resolve()),
-            "members": summaries,
-        }
-        atomic_write_json(run_dir / "train_summary.json", summary)
-    console.print(f"done: ensemble of {n} members, {summary['seconds']:.1f} s of training in all -> {run_dir}")
+        psnrs = [s.test_psnr for s in summaries if s.test_psnr is not None]
+        seconds = sum(s.seconds for s in summaries)
+        summary = TrainSummary(
+            method="ensemble", ensemble_size=n, steps=cfg.iterations, seconds=seconds,
+            sec_per_step=seconds / max(cfg.iterations, 1), wall_seconds_this_call=time.perf_counter() - t0,
+            num_gaussians=sum(s.num_gaussians for s in summaries), num_carriers=0,
+            peak_memory_mb=max(s.peak_memory_mb for s in summaries),
+            test_psnr_members_mean=sum(psnrs) / len(psnrs) if psnrs else None,
+            test_psnr=None,  # the ensemble's own PSNR (of the mean render) comes from `evaluate`
+            variant=cfg.variant, device=str(device), scene=str(scene.resolve()), members=summaries)
+        summary.write(run_dir / "train_summary.json")
+    console.print(f"done: ensemble of {n} members, {summary.seconds:.1f} s of training in all -> {run_dir}")
     return run_dir
 
 
@@ -119,28 +115,38 @@ class EnsembleRun(LoadedRun):
                                       temperature=prior.temperature, sh_degree=m.sh_degree))
         return out
 
+    def sampler(self, scene_scale: float, device: torch.device) -> Sampler:
+        """Samples cycle through the members (``ensemble_sample_fn``); no deterministic render of its own."""
+        return Sampler(ensemble_sample_fn(self.member_samples()), self.render_fn(scene_scale, device))
 
-def load_ensemble(run_dir: Path, device: torch.device | str = "cpu") -> EnsembleRun:
-    """Load every member of an ensemble run.
+    def eval_notes(self, num_samples: int) -> list[str]:
+        n = len(self.members)
+        if n == 1:
+            return ["ensemble of 1 member: every sample is the same render, the spread (std) is 0 everywhere; "
+                    "AUSE and NLL measure no uncertainty"]
+        if num_samples % n:
+            return [f"K={num_samples} is not a multiple of the {n} ensemble members: members are weighted "
+                    f"unequally (K = {n} uses each member once)"]
+        return []
+
+
+def load_ensemble(run_dir: Path, cfg, device: torch.device | str = "cpu") -> EnsembleRun:
+    """Load every member of the ensemble run ``run_dir`` whose config is ``cfg`` (``runs.load_run`` calls it).
 
     Raises:
         UserError: a member folder missing or unfinished (the message names it and how to finish it).
     """
-    from uncertsplat.config import TrainConfig, build_config
-
     run_dir = Path(run_dir)
-    cfg_path = run_dir / "config.json"
-    cfg = build_config(TrainConfig, json.loads(cfg_path.read_text(encoding="utf-8")), source=str(cfg_path))
     members = []
     for i in range(cfg.ensemble_size):
         mdir = member_dir(run_dir, i)
         if not (mdir / "train_summary.json").is_file():
             raise UserError(f"ensemble member {i} is missing or unfinished", path=mdir,
                             hint=f"Finish it with: uncertsplat train SCENE -o {run_dir} --method ensemble --resume")
-        members.append(load_model(mdir, device))
+        members.append(load_single_model(mdir, device))
     first = members[0]
     return EnsembleRun(first.model, cfg, first.scene_path, first.extent, first.step, first.sh_degree, run_dir,
-                       members=members)
+                       run_dir, members=members)
 
 
 def ensemble_sample_fn(samples: list[GaussianSample]):

@@ -23,19 +23,20 @@ Run folder: a normal deterministic run (``method = "fisher"`` in ``config.json``
 from __future__ import annotations
 
 import io
-import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from uncertsplat.baselines.runs import LoadedRun, load_single_model
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
-from uncertsplat.io.checkpoints import LoadedRun, load_model
+from uncertsplat.eval.engine import Sampler
+from uncertsplat.schemas import TrainSummary
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput
 
 FISHER_FILE = "fisher.pt"
@@ -152,24 +153,15 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
     """
     from uncertsplat.data.dataset import load_images
     from uncertsplat.io.atomic import atomic_write_bytes
-    from uncertsplat.render import near_plane, render
-    from uncertsplat.sfm.scene import load_scene
 
     run_dir = Path(run_dir)
-    loaded = load_model(run_dir, device)
-    cfg = loaded.config
-    fcfg = cfg.fisher
-    if loaded.scene_path is None:
-        raise UserError("the run does not record its scene (scene.json is missing)", path=run_dir)
-    data = load_scene(loaded.scene_path, cfg.scene)
+    loaded = load_single_model(run_dir, device)  # the trained model: its posterior does not exist yet
+    fcfg = loaded.config.fisher
+    data = loaded.load_scene()
     idx = list(data.split["train"])
     cams = data.cameras[idx].to(device)
     images = load_images(data, idx, device)
-    bg = torch.tensor(cfg.scene.background, dtype=torch.float32, device=device)
-    near = near_plane(data.scene_scale)  # as in training
-
-    def render_fn(sample, c):
-        return render(sample, c, background=bg, tile_size=cfg.tile_size, near=near)
+    render_fn = loaded.render_fn(data.scene_scale, device)  # as in training
 
     params = {k: v.detach() for k, v in loaded.model.params.items()}
     t0 = time.perf_counter()
@@ -200,23 +192,23 @@ def train_fisher(scene: Path, run_dir: Path, cfg, device: torch.device, resume: 
     ``train_summary.json`` gets ``train_seconds`` (the training loop), ``fisher_seconds`` and ``seconds``
     (their sum: the method's whole cost).
     """
-    from uncertsplat.io.atomic import atomic_write_json
-    from uncertsplat.stages import train
+    from uncertsplat.train.session import train_model
 
     run_dir = Path(run_dir)
     summary_path = run_dir / "train_summary.json"
     if not (resume and summary_path.is_file()):
-        train.run(scene, run_dir, cfg, device=device, resume=resume)
-    summary = json.loads(summary_path.read_text(encoding="utf-8"))
-    if resume and (run_dir / FISHER_FILE).is_file() and "fisher_seconds" in summary:
+        train_model(scene, run_dir, cfg, device=device, resume=resume)
+    summary = TrainSummary.read(summary_path)
+    if resume and (run_dir / FISHER_FILE).is_file() and summary.fisher_seconds is not None:
         return run_dir
     console.print(f"[bold]fisher[/]: estimating the Laplace posterior ({cfg.fisher.estimator}) over the training views")
     state = compute_fisher(run_dir, device, seed=cfg.seed)
-    summary["train_seconds"] = float(summary.get("train_seconds", summary["seconds"]))
-    summary["fisher_seconds"] = state["seconds"]
-    summary["seconds"] = summary["train_seconds"] + state["seconds"]
-    summary["fisher_noise_std"] = state["noise_std"]
-    atomic_write_json(summary_path, summary)
+    if summary.train_seconds is None:  # a second Fisher pass (resume) must not add the first one's time
+        summary.train_seconds = summary.seconds
+    summary.fisher_seconds = float(state["seconds"])
+    summary.seconds = summary.train_seconds + summary.fisher_seconds
+    summary.fisher_noise_std = float(state["noise_std"])
+    summary.write(summary_path)
     console.print(f"done: Fisher diagonal over {state['num_views']} views in {state['seconds']:.1f} s "
                   f"(noise std {state['noise_std']:.4f}) -> {run_dir / FISHER_FILE}")
     return run_dir
@@ -229,11 +221,21 @@ class FisherRun(LoadedRun):
     variance: dict = field(default_factory=dict)
     noise_std: float = 0.0
 
+    def sampler(self, scene_scale: float, device: torch.device) -> Sampler:
+        """Laplace-posterior samples (``fisher_sample_fn``); no deterministic render of its own."""
+        return Sampler(fisher_sample_fn(self), self.render_fn(scene_scale, device))
 
-def load_fisher(run_dir: Path, device: torch.device | str = "cpu") -> FisherRun:
-    """Load a fisher run (model + ``fisher.pt``), checking that the variances belong to this model."""
-    run_dir = Path(run_dir)
-    base = load_model(run_dir, device)
+    def eval_notes(self, num_samples: int) -> list[str]:
+        fcfg = self.config.fisher
+        return [f"fisher: Laplace posterior ({fcfg.estimator} diagonal Fisher, observation noise std "
+                f"{self.noise_std:.4g}) sampled by perturbing {', '.join(sorted(self.variance))}"]
+
+
+def load_fisher(base: LoadedRun) -> FisherRun:
+    """A fisher run: its trained model ``base`` plus ``fisher.pt``, checking that the variances belong to the
+    model (``runs.load_run`` calls it)."""
+    run_dir = base.run_dir
+    device = base.model.device
     path = run_dir / FISHER_FILE
     if not path.is_file():
         raise UserError(f"{FISHER_FILE} is missing: the Fisher posterior was never computed", path=run_dir,
@@ -247,8 +249,8 @@ def load_fisher(run_dir: Path, device: torch.device | str = "cpu") -> FisherRun:
     if int(state["num_gaussians"]) != n or any(v.shape[0] != n for v in state["variance"].values()):
         raise UserError(f"{FISHER_FILE} was computed for {state['num_gaussians']} Gaussians, the model has {n}",
                         path=path, hint="Delete it and run train --method fisher --resume to recompute it.")
-    return FisherRun(base.model, base.config, base.scene_path, base.extent, base.step, base.sh_degree, base.source,
-                     variance=state["variance"], noise_std=float(state["noise_std"]))
+    return FisherRun(**{f.name: getattr(base, f.name) for f in fields(LoadedRun)}, variance=state["variance"],
+                     noise_std=float(state["noise_std"]))
 
 
 def fisher_sample_fn(loaded: FisherRun):

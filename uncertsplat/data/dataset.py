@@ -15,7 +15,7 @@ from torch import Tensor
 
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import read_exr, read_image, resize_image
-from uncertsplat.types import SceneData
+from uncertsplat.types import SceneData, ViewSet
 
 
 def _indices(scene: SceneData, indices: Sequence[int] | None) -> list[int]:
@@ -88,3 +88,47 @@ def load_masks(scene: SceneData, indices: Sequence[int] | None = None, device=No
         m = read_image(scene.mask_paths[i])[..., 0]
         out.append(resize_image((m > 0.5).astype(np.float32), W, H) >= 1.0 - 1e-6)
     return torch.from_numpy(np.stack(out)[..., None]).to(device)
+
+
+def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) -> Tensor:
+    """GT depth [C,H,W,1] of the cameras ``indices`` from ``folder/{image stem}.npy|.exr`` (``--depth-gt``).
+
+    The maps stay in their own units (their scale to the scene is estimated by evaluation) and are
+    resized to the cameras like ``load_depths``.
+
+    Raises:
+        UserError: the folder is missing, or holds no map for one of the images (naming it).
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise UserError("GT depth folder not found", path=folder, hint="Give --depth-gt a folder of .npy/.exr maps.")
+    W, H = scene.cameras.width, scene.cameras.height
+    out = []
+    for i in indices:
+        stem = Path(scene.cameras.image_names[i]).stem
+        cands = [folder / f"{stem}{ext}" for ext in (".npy", ".exr", ".NPY", ".EXR")]
+        path = next((c for c in cands if c.is_file()), None)
+        if path is None:
+            raise UserError(f"no GT depth map for image '{scene.cameras.image_names[i]}'", path=folder,
+                            hint=f"Expected {stem}.npy or {stem}.exr.")
+        out.append(load_depth_map(path, W, H))
+    return torch.from_numpy(np.stack(out)[..., None])
+
+
+def load_view_set(scene: SceneData, indices: Sequence[int], *, depth: bool = True,
+                  depth_folder: Path | None = None) -> ViewSet:
+    """The views ``indices`` of ``scene`` with their images, masks and GT depth, for evaluation (CPU).
+
+    Args:
+        depth: load the scene's own GT depth (in its normalised units, so ``depth_known_scale``).
+        depth_folder: take GT depth from this folder instead (``load_depth_folder``; scale unknown).
+    """
+    indices = [int(i) for i in indices]
+    depths, known = None, False
+    if depth_folder is not None:  # first: a wrong folder fails before any image is read
+        depths = load_depth_folder(depth_folder, scene, indices)
+    elif depth:
+        depths = load_depths(scene, indices)
+        known = depths is not None
+    return ViewSet(indices=tuple(indices), cameras=scene.cameras[indices], images=load_images(scene, indices),
+                   masks=load_masks(scene, indices), depths=depths, depth_known_scale=known)

@@ -5,7 +5,8 @@ Textures are solid (3D) procedural patterns: multi-octave value noise, checkers 
 colours, and soft-edged speckles a few pixels across at demo resolution: enough corners for SIFT to match
 every view, yet band-limited so that a Gaussian model can learn them (the room's walls, seen far away and at
 grazing angles, get fainter detail than the objects). Generator version 1 had pixel-sized hard-edged
-speckles: SfM was as easy, but the demo model plateaued near 20 dB on them (version 2: 27.7 dB). Shading
+speckles: SfM was as easy, but the demo model plateaued far below what it reaches on version 2 (BENCHMARKS.md,
+"The synthetic demo scene (v2 textures)"). Shading
 is Lambertian with fixed lights, so the appearance does not depend on the viewing direction (what a
 3DGS model with low SH degree can represent exactly).
 
@@ -14,21 +15,32 @@ Geometry is intersected analytically, in float64, for whole batches of rays at o
 Colour uses 2x2 supersampling per pixel; depth and the validity mask come from the pixel-centre ray.
 
 World frame: z up, the floor at ``z = -1``, objects within a radius of about 1.8 of the origin,
-cameras on an orbit of radius about 4 looking at the centre. Units are arbitrary ("metres").
+cameras at a distance of about 4 looking at the centre. Units are arbitrary ("metres"). Two camera rigs
+(``SynthConfig.rig``): ``ring``, a jittered orbit at 22 +- 10 degrees elevation, and ``hemisphere``, cameras
+spread over the upper hemisphere of radius 4 (10 to 75 degrees elevation), all looking exactly at
+``LOOK_AT``, like the NeRF-synthetic scenes. With ``backdrop = "transparent"`` the room is left out: images
+are RGBA with alpha = the fraction of a pixel's subsamples that hit an object, and the RGB is the mean
+colour of those hits (straight alpha), so that compositing over any background is exact up to rounding.
 
-Outputs of :func:`generate_scene` (``OUT/``)::
+Outputs of :func:`generate_scene` (``OUT/``), ``layout = "colmap"``::
 
-    images/view_000.png   8-bit RGB
-    depth/view_000.npy    float32 [H,W] camera z of the surface at the pixel centre
-    masks/view_000.png    8-bit, 255 where depth is valid (every pixel hits the closed room)
+    images/view_000.png   8-bit RGB (RGBA with the transparent backdrop)
+    depth/view_000.npy    float32 [H,W] camera z of the surface at the pixel centre (0: nothing hit)
+    masks/view_000.png    8-bit, 255 where depth is valid (every pixel with the room)
     sparse/0/*.bin        COLMAP model: PINHOLE camera, GT poses, visible surface points with tracks
-    scene.json            preset, seed, size, intrinsics, image names, test views, generator version
+    scene.json            ``SynthScene``: preset, seed, layout, rig, intrinsics, image names, test views, ...
+
+``layout = "blender"`` (the NeRF-synthetic layout; no sparse points, as in those datasets)::
+
+    transforms_train.json, transforms_test.json   camera_angle_x, frames [file_path, transform_matrix]
+                                                  (camera-to-world, OpenGL camera axes)
+    train/view_001.png, test/view_000.png         8-bit RGBA (opaque with the room)
+    depth/, masks/, scene.json                    as above (one file per view, by stem)
 """
 
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import os
 import shutil
@@ -43,6 +55,7 @@ from torch import Tensor
 
 from uncertsplat.config import SynthConfig
 from uncertsplat.errors import UserError
+from uncertsplat.schemas.scene import SynthScene
 
 GENERATOR_VERSION = 2
 SCENE_KIND = "uncertsplat-synthetic"
@@ -61,6 +74,11 @@ _EPS = 1e-9
 ROOM = 6.0
 FLOOR = -1.0
 CEIL = 5.0
+
+# The hemisphere rig: every camera looks exactly at LOOK_AT from HEMI_RADIUS away.
+LOOK_AT = (0.0, 0.0, FLOOR + 0.6)
+HEMI_RADIUS = 4.0
+HEMI_ELEVATION = (10.0, 75.0)  # degrees: none at floor level, none straight overhead (z up has no azimuth there)
 
 
 @dataclass(frozen=True)
@@ -89,6 +107,7 @@ class SceneSpec:
     room_colors: tuple[tuple[float, float, float], ...]  # six faces x one colour each, plus accents
     noise_table: Tensor  # [G*G*G] float64 lattice values in [0, 1]
     grid: int
+    room: bool = True  # False: the objects alone (rays that miss them hit nothing)
 
     def describe(self) -> list[dict]:
         return [
@@ -118,8 +137,9 @@ def _palette(g: torch.Generator) -> tuple[tuple[float, float, float], ...]:
     return tuple(out)
 
 
-def make_scene_spec(seed: int, grid: int = 64) -> SceneSpec:
-    """The scene for ``seed``: object shapes, sizes, placement, colours and the noise lattice."""
+def make_scene_spec(seed: int, grid: int = 64, room: bool = True) -> SceneSpec:
+    """The scene for ``seed``: object shapes, sizes, placement, colours and the noise lattice (``room``:
+    inside the closed room, else the objects alone; the objects are the same either way)."""
     g = torch.Generator().manual_seed(int(seed) * 7919 + 17)
     patterns = ("checker", "stripes", "noise")
 
@@ -161,7 +181,7 @@ def make_scene_spec(seed: int, grid: int = 64) -> SceneSpec:
                                      pattern, freq, unit_dir()))
     room_colors = _palette(g) + _palette(g)
     noise_table = torch.rand(grid**3, generator=g, dtype=torch.float64)
-    return SceneSpec(tuple(objects), room_colors, noise_table, grid)
+    return SceneSpec(tuple(objects), room_colors, noise_table, grid, room)
 
 
 # ------------------------------------------------------------------------------------------ intersection
@@ -253,9 +273,15 @@ def trace(spec: SceneSpec, o: Tensor, d: Tensor) -> tuple[Tensor, Tensor, Tensor
     """Closest hit of rays o + t d ([R,3] each, float64) with the scene.
 
     Returns:
-        t [R] (inf where nothing is hit), normal [R,3], id [R] (0..5: room faces, 6+k: object k).
+        t [R] (inf where nothing is hit), normal [R,3], id [R] (0..5: room faces, 6+k: object k; 0 where
+        nothing is hit).
     """
-    t, n, ident = _intersect_room(o, d)
+    if spec.room:
+        t, n, ident = _intersect_room(o, d)
+    else:
+        t = torch.full_like(o[:, 0], math.inf)
+        n = torch.zeros_like(o)
+        ident = torch.zeros(o.shape[0], dtype=torch.long, device=o.device)
     for k, obj in enumerate(spec.objects):
         c = torch.tensor(obj.center, dtype=o.dtype, device=o.device)
         if obj.kind == "sphere":
@@ -397,16 +423,51 @@ def orbit_cameras(num_views: int, width: int, height: int, seed: int) -> tuple[T
         center = torch.tensor([radius * math.cos(el) * math.cos(az), radius * math.cos(el) * math.sin(az),
                                FLOOR + 0.7 + radius * math.sin(el)], dtype=torch.float64)
         target = torch.tensor([_rand(g, -0.15, 0.15), _rand(g, -0.15, 0.15), FLOOR + 0.6], dtype=torch.float64)
-        z = target - center
-        z = z / z.norm()
-        x = torch.linalg.cross(z, up)
-        x = x / x.norm()
-        y = torch.linalg.cross(z, x)
-        R = torch.stack([x, y, z])  # rows: camera axes in world coordinates
-        M = torch.eye(4, dtype=torch.float64)
-        M[:3, :3] = R
-        M[:3, 3] = -R @ center
-        mats.append(M)
+        mats.append(_look_at(center, target, up))
+    return torch.stack(mats), K
+
+
+def _look_at(center: Tensor, target: Tensor, up: Tensor) -> Tensor:
+    """cam_from_world [4,4] (OpenCV axes: z towards ``target``, y down) of a camera at ``center``."""
+    z = target - center
+    z = z / z.norm()
+    x = torch.linalg.cross(z, up)
+    x = x / x.norm()
+    y = torch.linalg.cross(z, x)
+    R = torch.stack([x, y, z])  # rows: camera axes in world coordinates
+    M = torch.eye(4, dtype=torch.float64)
+    M[:3, :3] = R
+    M[:3, 3] = -R @ center
+    return M
+
+
+def hemisphere_cameras(num_views: int, width: int, height: int, seed: int) -> tuple[Tensor, Tensor]:
+    """GT cameras spread over the upper hemisphere of radius ``HEMI_RADIUS`` around ``LOOK_AT``, all looking
+    exactly at it (the NeRF-synthetic rig).
+
+    Elevations are even in area (sin(elevation) evenly spaced over ``HEMI_ELEVATION``, jittered) and the
+    azimuths follow a golden-angle spiral, so the views cover the hemisphere evenly for any count and
+    every ``test_every``-th view samples all elevations.
+
+    Returns:
+        cam_from_world [C,4,4] float64 (OpenCV axes), K [3,3] float64 (shared PINHOLE intrinsics).
+    """
+    g = torch.Generator().manual_seed(int(seed) * 104729 + 7)
+    f = 1.0 * width  # the same intrinsics as the ring
+    K = torch.tensor([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    target = torch.tensor(LOOK_AT, dtype=torch.float64)
+    lo, hi = (math.sin(math.radians(e)) for e in HEMI_ELEVATION)
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    az0 = _rand(g, 0.0, 2 * math.pi)
+    mats = []
+    for i in range(num_views):
+        u = (i + 0.5 + _rand(g, -0.3, 0.3)) / num_views
+        el = math.asin(lo + (hi - lo) * u)
+        az = az0 + i * golden
+        center = target + HEMI_RADIUS * torch.tensor(
+            [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)], dtype=torch.float64)
+        mats.append(_look_at(center, target, up))
     return torch.stack(mats), K
 
 
@@ -422,12 +483,13 @@ def pixel_rays(cam_from_world: Tensor, K: Tensor, uv: Tensor) -> tuple[Tensor, T
 
 
 def render_view(spec: SceneSpec, cam_from_world: Tensor, K: Tensor, width: int, height: int,
-                supersample: int = 2) -> tuple[Tensor, Tensor, Tensor]:
+                supersample: int = 2) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Ray-cast one view.
 
     Returns:
-        rgb [H,W,3] float64 (mean of supersample^2 rays per pixel), depth [H,W] float64 camera z of the
-        pixel-centre ray (0 where nothing is hit), valid [H,W] bool.
+        rgb [H,W,3] float64 (mean colour of the supersample^2 rays per pixel that hit a surface: straight
+        alpha; 0 where none does), depth [H,W] float64 camera z of the pixel-centre ray (0 where nothing is
+        hit), valid [H,W] bool, alpha [H,W] float64 (fraction of the rays that hit; 1 everywhere in the room).
     """
     dt = torch.float64
     ys, xs = torch.meshgrid(torch.arange(height, dtype=dt), torch.arange(width, dtype=dt), indexing="ij")
@@ -444,6 +506,7 @@ def render_view(spec: SceneSpec, cam_from_world: Tensor, K: Tensor, width: int, 
         depth[a : a + _CHUNK] = t
     samples = (centres[:, None, :] + sub[None]).reshape(-1, 2)  # [H*W*S,2], pixel-major
     rgb = torch.empty(samples.shape[0], 3, dtype=dt)
+    hits = torch.empty(samples.shape[0], dtype=dt)
     for a in range(0, samples.shape[0], _CHUNK):
         o, d = pixel_rays(cam_from_world, K, samples[a : a + _CHUNK])
         t, n, ident = trace(spec, o, d)
@@ -451,10 +514,15 @@ def render_view(spec: SceneSpec, cam_from_world: Tensor, K: Tensor, width: int, 
         p = o + t.nan_to_num(posinf=0.0)[:, None] * d
         col = shade(spec, p, n, ident)
         rgb[a : a + _CHUNK] = torch.where(hit[:, None], col.to(dt), torch.zeros_like(o))
-    rgb = rgb.reshape(height * width, s * s, 3).mean(1).reshape(height, width, 3)
+        hits[a : a + _CHUNK] = hit.to(dt)
+    alpha = hits.reshape(height * width, s * s).mean(1)
+    rgb = rgb.reshape(height * width, s * s, 3).mean(1)
+    if not spec.room:  # straight alpha: the mean colour of the hits (with the room every ray hits: as is)
+        rgb = torch.where(alpha[:, None] > 0, rgb / alpha.clamp_min(1e-12)[:, None], torch.zeros_like(rgb))
     valid = torch.isfinite(depth)
     depth = torch.where(valid, depth, torch.zeros_like(depth))
-    return rgb, depth.reshape(height, width), valid.reshape(height, width)
+    return (rgb.reshape(height, width, 3), depth.reshape(height, width), valid.reshape(height, width),
+            alpha.reshape(height, width))
 
 
 # ---------------------------------------------------------------------------------------- sparse points
@@ -524,18 +592,63 @@ def resolve_size(cfg: SynthConfig) -> tuple[int, int, int, int]:
     return num_views, width, height, preset["points_per_view"]
 
 
-def is_synthetic_scene(path: Path) -> bool:
-    """True when ``path`` holds a scene written by :func:`generate_scene`."""
+def _claims_to_be_synthetic(meta: Path) -> bool:
+    """Whether a ``scene.json`` that failed validation says it is a synthetic scene's (its ``kind``)."""
+    import json
+
+    try:
+        data = json.loads(meta.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(data, dict) and data.get("kind") == SCENE_KIND
+
+
+def read_scene_meta(path: Path) -> SynthScene | None:
+    """The ``SynthScene`` of a folder written by :func:`generate_scene`, or None when ``path/scene.json`` is
+    missing, unreadable, or another file of that name (a run's ``scene.json``, someone else's).
+
+    Raises:
+        UserError: the file says it is a synthetic scene's but does not match the schema (naming the key).
+    """
     meta = Path(path) / "scene.json"
     if not meta.is_file():
-        return False
+        return None
     try:
-        return json.loads(meta.read_text(encoding="utf-8")).get("kind") == SCENE_KIND
-    except (OSError, ValueError, AttributeError):
+        found = SynthScene.read(meta)
+    except UserError:
+        if _claims_to_be_synthetic(meta):
+            raise
+        return None
+    return found if found.kind == SCENE_KIND else None
+
+
+def is_synthetic_scene(path: Path) -> bool:
+    """True when ``path`` holds a valid scene written by :func:`generate_scene`."""
+    try:
+        return read_scene_meta(path) is not None
+    except UserError:
         return False
 
 
-_OUTPUTS = ("images", "depth", "masks", "sparse", "scene.json")
+# What the generator writes, per layout: replaced on --overwrite, never anything else.
+_OUTPUTS = {"colmap": ("images", "depth", "masks", "sparse", "scene.json"),
+            "blender": ("train", "test", "transforms_train.json", "transforms_test.json", "depth", "masks",
+                        "scene.json")}
+
+
+def make_cameras(cfg: SynthConfig, num_views: int, width: int, height: int) -> tuple[Tensor, Tensor]:
+    """The GT cameras of ``cfg.rig``: cam_from_world [C,4,4] float64 (OpenCV axes), K [3,3] float64."""
+    if cfg.rig == "hemisphere":
+        return hemisphere_cameras(num_views, width, height, cfg.seed)
+    return orbit_cameras(num_views, width, height, cfg.seed)
+
+
+def opengl_camera_to_world(cam_from_world: Tensor) -> Tensor:
+    """Camera-to-world [C,4,4] in OpenGL camera axes (x right, y up, z backward), as Blender and nerfstudio
+    write ``transform_matrix``, from OpenCV ``cam_from_world`` [C,4,4]."""
+    c2w = torch.linalg.inv(cam_from_world.to(torch.float64))
+    c2w[:, :3, 1:3] *= -1.0
+    return c2w
 
 
 @contextlib.contextmanager
@@ -543,8 +656,8 @@ def _one_thread():
     """Run the ray caster on one intra-op thread, restoring the caller's setting afterwards.
 
     The caster is memory-bound elementwise code: a second thread gains little, while on a machine whose
-    cores are busy with other work, OpenMP's spinning barriers made it 10-20x slower (measured: tiny
-    scene 2 s on one thread vs 40 s on two while another process used the CPU).
+    cores are busy with other work, OpenMP's spinning barriers made it an order of magnitude slower
+    (BENCHMARKS.md, "Synthetic scenes").
     """
     before = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -587,19 +700,28 @@ def _generate(out: Path, cfg: SynthConfig, overwrite: bool, on_view) -> Path:
                         hint="Choose a new folder or pass --overwrite to replace the scene in it.")
 
     num_views, width, height, per_view = resolve_size(cfg)
-    spec = make_scene_spec(cfg.seed)
-    cam_from_world, K = orbit_cameras(num_views, width, height, cfg.seed)
+    room = cfg.backdrop == "room"
+    blender = cfg.layout == "blender"
+    spec = make_scene_spec(cfg.seed, room=room)
+    cam_from_world, K = make_cameras(cfg, num_views, width, height)
     names = [f"view_{i:03d}" for i in range(num_views)]
-    test = [f"{n}.png" for i, n in enumerate(names) if i % cfg.test_every == 0]
+    is_test = [i % cfg.test_every == 0 for i in range(num_views)]
+    test = [f"{n}.png" for n, t in zip(names, is_test, strict=True) if t]
 
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.synth-", dir=out.parent))
     try:
         images, depths = [], []
         for i, name in enumerate(names):
-            rgb, depth, valid = render_view(spec, cam_from_world[i], K, width, height)
+            rgb, depth, valid, alpha = render_view(spec, cam_from_world[i], K, width, height)
             rgb8 = torch.round(rgb.clamp(0, 1) * 255).to(torch.uint8)
-            write_png(tmp / "images" / f"{name}.png", rgb8.numpy())
+            if blender or not room:  # RGBA: Blender scenes always are; alpha carries the transparent backdrop
+                a8 = torch.round(alpha.clamp(0, 1) * 255).to(torch.uint8)
+                pixels = torch.cat([rgb8, a8[..., None]], -1).numpy()
+            else:
+                pixels = rgb8.numpy()
+            folder = ("test" if is_test[i] else "train") if blender else "images"
+            write_png(tmp / folder / f"{name}.png", pixels)
             d32 = depth.to(torch.float32).numpy()
             atomic_write(tmp / "depth" / f"{name}.npy", lambda f, a=d32: np.save(f, a, allow_pickle=False))
             write_png(tmp / "masks" / f"{name}.png", (valid.numpy()[..., None].astype(np.uint8) * 255))
@@ -607,41 +729,64 @@ def _generate(out: Path, cfg: SynthConfig, overwrite: bool, on_view) -> Path:
             depths.append(depth)
             if on_view is not None:
                 on_view(i + 1, num_views)
-        sparse = sample_sparse_points(spec, cam_from_world, K, width, height, depths, images, per_view, cfg.seed)
-        write_colmap_model(tmp / "sparse" / "0", cam_from_world.numpy(), K.numpy(), width, height,
-                           [f"{n}.png" for n in names], sparse.xyz.numpy(), sparse.rgb.numpy(), sparse.tracks)
-        meta = {
-            "kind": SCENE_KIND,
-            "generator_version": GENERATOR_VERSION,
-            "preset": cfg.preset,
-            "seed": cfg.seed,
-            "width": width,
-            "height": height,
-            "num_views": num_views,
-            "intrinsics": {"model": "PINHOLE", "fx": float(K[0, 0]), "fy": float(K[1, 1]),
-                           "cx": float(K[0, 2]), "cy": float(K[1, 2])},
-            "image_names": [f"{n}.png" for n in names],
-            "test_every": cfg.test_every,
-            "test_views": test,
-            "num_points": int(sparse.xyz.shape[0]),
-            "depth": "depth/{stem}.npy: float32 camera z of the pixel-centre ray, in the units of sparse/0",
-            "mask": "masks/{stem}.png: 255 where the depth is valid",
-            "room": {"half_width": ROOM, "floor": FLOOR, "ceiling": CEIL},
-            "objects": spec.describe(),
-            "config": cfg.model_dump(mode="json"),
-        }
-        atomic_write_json(tmp / "scene.json", meta)
+        num_points = 0
+        if blender:
+            # The NeRF-synthetic layout: no sparse points (training starts from random points, as for those).
+            c2w = opengl_camera_to_world(cam_from_world)
+            angle_x = 2.0 * math.atan(0.5 * width / float(K[0, 0]))
+            for split, want in (("train", False), ("test", True)):
+                frames = [{"file_path": f"./{split}/{n}", "transform_matrix": c2w[i].tolist()}
+                          for i, n in enumerate(names) if is_test[i] == want]
+                # an external format (read by other tools), not one of our schema files
+                atomic_write_json(tmp / f"transforms_{split}.json", {"camera_angle_x": angle_x, "frames": frames})
+        else:
+            sparse = sample_sparse_points(spec, cam_from_world, K, width, height, depths, images, per_view, cfg.seed)
+            write_colmap_model(tmp / "sparse" / "0", cam_from_world.numpy(), K.numpy(), width, height,
+                               [f"{n}.png" for n in names], sparse.xyz.numpy(), sparse.rgb.numpy(), sparse.tracks)
+            num_points = int(sparse.xyz.shape[0])
+        valid_text = "every pixel (the room is closed)" if room else "pixels whose centre ray hits an object"
+        units = "the units of the transforms files" if blender else "the units of sparse/0"
+        SynthScene(
+            kind=SCENE_KIND,
+            layout=cfg.layout,
+            rig=cfg.rig,
+            backdrop=cfg.backdrop,
+            look_at=list(LOOK_AT) if cfg.rig == "hemisphere" else None,
+            generator_version=GENERATOR_VERSION,
+            preset=cfg.preset,
+            seed=cfg.seed,
+            width=width,
+            height=height,
+            num_views=num_views,
+            intrinsics={"model": "PINHOLE", "fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
+                        "cy": float(K[1, 2])},
+            image_names=[f"{n}.png" for n in names],
+            test_every=cfg.test_every,
+            test_views=test,
+            num_points=num_points,
+            depth=f"depth/{{stem}}.npy: float32 camera z of the pixel-centre ray, in {units} (0: nothing hit)",
+            mask=f"masks/{{stem}}.png: 255 where the depth is valid: {valid_text}",
+            room={"half_width": ROOM, "floor": FLOOR, "ceiling": CEIL} if room else None,
+            objects=spec.describe(),
+            config=cfg.model_dump(mode="json"),
+        ).write(tmp / "scene.json")
         # Move into place: replace only what the generator writes, never other files of the user.
         if not out.exists():
             os.replace(tmp, out)
         else:
-            for item in _OUTPUTS:
+            try:  # a scene of the other layout goes too: the folder holds one scene
+                old = read_scene_meta(out)
+            except UserError:
+                old = None
+            items = dict.fromkeys(_OUTPUTS[cfg.layout] + (_OUTPUTS[old.layout] if old is not None else ()))
+            for item in items:
                 target = out / item
                 if target.is_dir():
                     shutil.rmtree(target)
                 elif target.exists():
                     target.unlink()
-                os.replace(tmp / item, target)
+                if (tmp / item).exists():
+                    os.replace(tmp / item, target)
             shutil.rmtree(tmp, ignore_errors=True)
     except BaseException:
         with contextlib.suppress(OSError):

@@ -1,4 +1,5 @@
-"""Metrics: image quality, sparsification/AUSE, NLL, calibration, depth, and the EvalReport schema.
+"""Metrics: image quality, sparsification/AUSE, NLL, calibration, depth, and the EvalReport schema;
+the evaluation engine that renders K samples per view and computes them all is ``eval.engine``.
 
 Pure functions of tensors: nothing here reads or writes files, imports config/io/stages, or
 downloads anything.
@@ -15,7 +16,6 @@ from uncertsplat.eval.calibration import (
 from uncertsplat.eval.depth import DepthMetrics, DepthScale, align_depth_scale, depth_metrics
 from uncertsplat.eval.image import lpips, lpips_available, psnr, ssim
 from uncertsplat.eval.nll import StreamingKDE, gaussian_nll, kde_bandwidth, kde_nll, paper_nll
-from uncertsplat.eval.report_schema import EvalReport, ViewMetrics
 from uncertsplat.eval.sparsification import (
     SparsificationResult,
     ause,
@@ -23,6 +23,7 @@ from uncertsplat.eval.sparsification import (
     sparsification,
     sparsification_all,
 )
+from uncertsplat.schemas.metrics import EvalReport, ViewMetrics
 
 __all__ = [
     "CalibrationResult",

@@ -131,7 +131,8 @@ def ssim(
     over pixels and channels: a scalar for ``reduction="mean"`` (also averaged over the leading dims),
     or one value per image [...] for ``"none"``. See :func:`ssim_map` for the window and padding.
     On CPU (float32, "same" padding, no gradient w.r.t. ``target``) the fused native kernel computes it
-    (``uncertsplat.native``: same value and gradient, about 5x faster than :func:`ssim_map`).
+    (``uncertsplat.native``: same value and gradient as :func:`ssim_map`, in one pass over the images
+    instead of a dozen tensor ops; BENCHMARKS.md, Rasterizer).
     """
     from uncertsplat import native
 

@@ -12,7 +12,7 @@ Three estimators, all per element (RGB channels are separate elements) and avera
   logsumexp, so far-away targets give a large finite NLL rather than log(0). :class:`StreamingKDE`
   computes the same value from samples streamed one at a time once the bandwidth is known (e.g. from
   a first Welford pass over the same seeded samples), so memory need not grow with K.
-- :func:`paper_nll`: the official code's estimator as described in DESIGN.md defect 1 (bandwidth
+- :func:`paper_nll`: the official code's estimator (docs/method.md, the original code's defect 1; bandwidth
   exponent +1/5 instead of -1/5, with the pixel count instead of the sample count). NOT COMPARABLE
   with a correct NLL: it depends on image resolution. Provided only to compare with published tables.
 """
@@ -150,7 +150,7 @@ class StreamingKDE:
 
 
 def paper_bandwidth(sample_std: Tensor, num_pixels: int, *, eps: float = 1e-5) -> Tensor:
-    """The flawed bandwidth of DESIGN.md defect 1: 1.06 * std * num_pixels^(+1/5) + eps.
+    """The flawed bandwidth of the original code (docs/method.md, defect 1): 1.06 * std * num_pixels^(+1/5) + eps.
 
     Two defects against Silverman's rule: the exponent has the wrong sign (+1/5) and the count is the
     number of pixels of the view instead of the number of samples K, so the bandwidth (and the NLL)
@@ -171,8 +171,8 @@ def paper_nll(
     """The original code's KDE NLL (NOT COMPARABLE with :func:`kde_nll` or :func:`gaussian_nll`).
 
     A per-channel Gaussian KDE over the K samples [K,H,W,3] with :func:`paper_bandwidth`;
-    ``num_pixels`` defaults to H*W of the samples. Reconstructed from DESIGN.md's description of the
-    official code (the two defects above); the constant ``eps`` is our assumption, so numbers agree
+    ``num_pixels`` defaults to H*W of the samples. Reconstructed from a written description of the
+    official code (docs/method.md, defect 1: the two defects above), not from its source; the constant ``eps`` is our assumption, so numbers agree
     with published tables only up to that choice. Use it only to set our runs beside those tables.
     """
     if samples.ndim < 3 or samples.shape[1:] != target.shape:

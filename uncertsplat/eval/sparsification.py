@@ -1,6 +1,6 @@
 """Sparsification curves and AUSE (Area Under the Sparsification Error), with deterministic ties.
 
-Definitions (METHOD.md "Evaluation protocol", DESIGN.md section 7). Given per-element errors e_i >= 0
+Definitions (docs/method.md, "Evaluation protocol"). Given per-element errors e_i >= 0
 and uncertainties u_i (RGB channels count as separate elements), for removal fractions
 r_j = j / S, j = 0 .. S-1 (S = ``steps``, default 100, so r runs from 0 to 0.99):
 
@@ -18,7 +18,7 @@ r_j = j / S, j = 0 .. S-1 (S = ``steps``, default 100, so r runs from 0 to 0.99)
 - AUSE = trapezoid integral over r of (U - O); AURG = trapezoid integral of (R - U), where the random
   curve R is constant at the overall error (what a random uncertainty gives in expectation).
 
-Ties (DESIGN.md defect 2): large areas have an uncertainty of exactly 0, and with a plain sort the
+Ties (docs/method.md, the original code's defect 2): large areas have an uncertainty of exactly 0, and with a plain sort the
 official code's result depends on the order in which tied elements happen to come. Here elements with
 equal uncertainty form one group; when a cut falls inside a group, each of the group's kept elements
 counts with the group's *mean* error (mean squared error for MSE/RMSE). This is the expectation of

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from uncertsplat.gaussians.params import GaussianModel
-from uncertsplat.gaussians.variational import Prior, prior_rows
+from uncertsplat.gaussians.prior import Prior, prior_rows
 
 _MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from uncertsplat.gaussians.prior import empty_tables
 from uncertsplat.render.sh import rgb_to_sh
 
 
@@ -63,7 +64,7 @@ class GaussianModel:
 
     Attributes:
         params: name -> ``nn.Parameter`` [N,...] as listed in ``PARAM_SPECS`` (stored, not activated).
-        tables: name -> ``nn.Parameter`` [P,K,...] as listed in ``variational.TABLE_SPECS``.
+        tables: name -> ``nn.Parameter`` [P,K,...] as listed in ``gaussians.prior.TABLE_SPECS``.
         posterior_row: [N] long, the table row of each Gaussian, -1 when it carries no posterior.
         sh_degree: maximum SH degree the coefficients allow.
         num_entries: K, offset-table entries per carrier.
@@ -113,18 +114,50 @@ class GaussianModel:
         return idx
 
     def check(self) -> None:
-        """Raise AssertionError when rows are not aligned (used by tests and after loading)."""
+        """Raise ``ValueError`` naming the field when the rows are not aligned (used after loading and by tests).
+
+        Checked: every ``PARAM_SPECS`` attribute is present with shape [N, *trailing shape]; ``posterior_row``
+        is a long tensor of shape [N]; every ``TABLE_SPECS`` table is present with shape [P, K, D]; the
+        values of ``posterior_row`` that are >= 0 are a permutation of ``0..P-1``. Plain ``if`` tests, so
+        the checks also run under ``python -O``.
+        """
+        from uncertsplat.gaussians.variational import TABLE_SPECS  # avoid a cycle at import time
+
+        missing = [s.name for s in PARAM_SPECS if s.name not in self.params]
+        if missing:
+            raise ValueError(f"GaussianModel.params lacks {', '.join(missing)} (expected {', '.join(PARAM_NAMES)})")
         n = len(self)
         for spec in PARAM_SPECS:
             t = self.params[spec.name]
-            assert t.shape == (n, *trailing_shape(spec, self.sh_degree)), (spec.name, tuple(t.shape))
-        assert self.posterior_row.shape == (n,) and self.posterior_row.dtype == torch.long
+            want = (n, *trailing_shape(spec, self.sh_degree))
+            if tuple(t.shape) != want:
+                raise ValueError(f"GaussianModel.params[{spec.name!r}] has shape {tuple(t.shape)}, expected {want} "
+                                 f"(N = {n}, sh_degree = {self.sh_degree})")
+        row = self.posterior_row
+        if not isinstance(row, Tensor) or row.dtype != torch.long or tuple(row.shape) != (n,):
+            got = f"{row.dtype} of shape {tuple(row.shape)}" if isinstance(row, Tensor) else type(row).__name__
+            raise ValueError(f"GaussianModel.posterior_row must be a torch.long tensor of shape ({n},), not {got}")
+        missing = [s.name for s in TABLE_SPECS if s.name not in self.tables]
+        if missing:
+            raise ValueError(f"GaussianModel.tables lacks {', '.join(missing)}")
+        for spec in TABLE_SPECS:
+            if self.tables[spec.name].dim() != 3:
+                raise ValueError(f"GaussianModel.tables[{spec.name!r}] has shape {tuple(self.tables[spec.name].shape)}, "
+                                 f"expected [P, K, {spec.width}]")
         p = self.num_carriers
-        for name, t in self.tables.items():
-            assert t.shape[:2] == (p, self.num_entries), (name, tuple(t.shape))
-        rows = self.posterior_row[self.posterior_row >= 0]
-        assert rows.numel() == p, f"{rows.numel()} carriers but {p} table rows"
-        assert torch.equal(torch.sort(rows).values, torch.arange(p, device=rows.device)), "table rows not a permutation"
+        for spec in TABLE_SPECS:
+            t = self.tables[spec.name]
+            want = (p, self.num_entries, spec.width)
+            if tuple(t.shape) != want:
+                raise ValueError(f"GaussianModel.tables[{spec.name!r}] has shape {tuple(t.shape)}, expected {want} "
+                                 f"(P = {p} carriers, num_entries K = {self.num_entries})")
+        rows = row[row >= 0]
+        if rows.numel() != p:
+            raise ValueError(f"GaussianModel.posterior_row marks {rows.numel()} carriers (values >= 0) but the offset "
+                             f"tables have {p} rows")
+        if not torch.equal(torch.sort(rows).values, torch.arange(p, device=rows.device)):
+            raise ValueError(f"GaussianModel.posterior_row: the values >= 0 are not a permutation of 0..{p - 1} "
+                             "(a table row is missing or shared by two Gaussians)")
 
     def state_dict(self) -> dict:
         return {
@@ -183,7 +216,6 @@ def init_from_points(points: Tensor, colors: Tensor, *, sh_degree: int, num_entr
         init_opacity: initial opacity of every Gaussian.
         extent: scene extent; only used to give isolated points a sane scale (1e-3 x extent floor).
     """
-    from uncertsplat.gaussians.variational import empty_tables  # avoid a cycle at import time
 
     points = points.detach().float()
     n = points.shape[0]

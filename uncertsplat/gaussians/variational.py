@@ -13,7 +13,7 @@ A sample draws one subset S of M entries (shared by all Gaussians of the sample,
 averages the raw columns over S, then draws the noises above. Non-carriers get no offset, multiplier 1
 and gate 1. Rotation and colour are deterministic.
 
-Two variants (DESIGN.md section 6, defect 3):
+Two variants (docs/method.md, "The two variants and the original code's defects"):
 
 * ``"ours"``: the position table is in units of the scene extent (``unit = extent``), so the prior
   N(0, sigma_p^2) is relative to the scene and training is equivariant to a global scale; the scale
@@ -40,65 +40,25 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from uncertsplat.gaussians.params import GaussianModel
-from uncertsplat.types import GaussianSample
-
-Variant = Literal["ours", "paper"]
-
-
-@dataclass(frozen=True)
-class TableSpec:
-    """One offset-table column group: name, width D (table is [P,K,D]), and base learning-rate key."""
-
-    name: str
-    width: int
-    lr: str
-
-
-TABLE_SPECS: tuple[TableSpec, ...] = (
-    TableSpec("pos_spread_raw", 3, "means"),
-    TableSpec("pos_loc", 3, "means"),
-    TableSpec("scale_width_raw", 3, "scales"),
-    TableSpec("scale_left", 3, "scales"),
-    TableSpec("gate_spread_raw", 1, "opacities"),
-    TableSpec("gate_loc", 1, "opacities"),
+from uncertsplat.gaussians.prior import (  # noqa: F401 (the layout's names, also importable from here)
+    MAX_WIDTH,
+    MIN_WIDTH,
+    TABLE_NAMES,
+    TABLE_SPECS,
+    Prior,
+    TableSpec,
+    Variant,
+    empty_tables,
+    inverse_softplus,
+    prior_rows,
 )
-TABLE_NAMES: tuple[str, ...] = tuple(s.name for s in TABLE_SPECS)
-
-MIN_WIDTH, MAX_WIDTH = 0.01, 100.0
-
-
-@dataclass(frozen=True)
-class Prior:
-    """The prior and its table initialisation (plain numbers: ``gaussians/`` never imports config).
-
-    Attributes:
-        position_std: sigma_p, in units of the extent (ours) or world units (paper).
-        scale_width: w_p: the multiplier prior is U[1 - w_p, 1].
-        gate_mean, gate_std: the gate-logit prior N(nu_p, tau_p^2).
-        temperature: T of the gate.
-        variant: "ours" or "paper".
-    """
-
-    position_std: float = 0.00248
-    scale_width: float = 0.1
-    gate_mean: float = 2.0
-    gate_std: float = 1.996
-    temperature: float = 0.2
-    variant: Variant = "ours"
-
-
-def inverse_softplus(y: float | Tensor) -> float | Tensor:
-    """x with softplus(x) = y (y > 0), stable for tiny and huge y."""
-    if isinstance(y, Tensor):
-        return y + torch.log(-torch.expm1(-y))
-    return y + math.log(-math.expm1(-y))
+from uncertsplat.types import GaussianSample
 
 
 def log_softplus(x: Tensor) -> Tensor:
@@ -106,34 +66,6 @@ def log_softplus(x: Tensor) -> Tensor:
     low = x < -15.0
     # clamp each branch's input so the branch not taken cannot produce inf (and NaN gradients)
     return torch.where(low, x.clamp_max(-15.0), torch.log(F.softplus(x.clamp_min(-15.0))))
-
-
-def empty_tables(num_entries: int, *, device=None, dtype=torch.float32) -> dict[str, Tensor]:
-    """Tables with zero rows (P = 0)."""
-    return {s.name: torch.zeros(0, num_entries, s.width, device=device, dtype=dtype) for s in TABLE_SPECS}
-
-
-def prior_rows(n: int, num_entries: int, prior: Prior, *, device=None, dtype=torch.float32) -> dict[str, Tensor]:
-    """``n`` new table rows [n,K,D] at the prior, so every KL term is 0 for them.
-
-    The multiplier width starts at w_p (ours; the KL is then 0 for any K) or at 1/K (paper, as the
-    original code; equal to w_p for the default K = 10).
-    """
-    k = num_entries
-    width = prior.scale_width if prior.variant == "ours" else 1.0 / k
-    width = min(max(width, MIN_WIDTH), MAX_WIDTH)
-
-    def full(d, v):
-        return torch.full((n, k, d), float(v), device=device, dtype=dtype)
-
-    return {
-        "pos_spread_raw": full(3, inverse_softplus(prior.position_std)),
-        "pos_loc": full(3, 0.0),
-        "scale_width_raw": full(3, inverse_softplus(width)),
-        "scale_left": full(3, 1.0 - prior.scale_width),
-        "gate_spread_raw": full(1, inverse_softplus(prior.gate_std)),
-        "gate_loc": full(1, prior.gate_mean),
-    }
 
 
 def _unit(variant: Variant, extent: float) -> float:
@@ -347,10 +279,11 @@ def expected_render_sample(model: GaussianModel, *, variant: Variant = "ours", e
     variances; exact for the isotropic prior), which ``render`` folds in per view: covariance
     Sigma + sigma^2 I, opacity lowered by the 2D peak ratio (``GaussianSample.position_var``).
 
-    Measured (BENCHMARKS.md, Training): on the demo scene 0.8 dB above ``posterior_mean`` and 0.2 dB above
-    the mean of 10 sampled renders; on fern 0.03 dB above ``posterior_mean``. It costs one render plus one
-    extra projection. Training decisions (densify, prune, spawn) keep using ``posterior_mean``: they concern
-    the parameters, not a render.
+    On the demo scene its held-out PSNR is above both ``posterior_mean`` and the mean of 10 sampled renders;
+    on fern, where the position spreads are small next to the Gaussians, the three agree closely
+    (BENCHMARKS.md, "The expected render"). It costs one render plus one extra projection. Training
+    decisions (densify, prune, spawn) keep using ``posterior_mean``: they concern the parameters, not a
+    render.
     """
     pm = posterior_mean(model, variant=variant, extent=extent, temperature=temperature, sh_degree=sh_degree)
     if model.num_carriers == 0:

@@ -6,7 +6,8 @@ File layout of ``RUN/ckpts/step_{N:06d}.pt``::
     payload: torch.save() of a dict of tensors / numbers / strings (loaded with weights_only=True)
 
 A truncated or corrupted file fails the checksum and is reported, and ``load_latest`` falls back to
-the previous checkpoint. Files are written through ``io.atomic`` (temp file, fsync, rename), so a crash
+the previous checkpoint. Loading a run for rendering (its PLY or newest checkpoint, config and scene)
+is ``baselines.load_run``'s. Files are written through ``io.atomic`` (temp file, fsync, rename), so a crash
 while saving never leaves a half-written file under the final name.
 """
 
@@ -14,10 +15,8 @@ from __future__ import annotations
 
 import hashlib
 import io
-import json
 import re
 import struct
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -109,76 +108,3 @@ def load_latest(run_dir: str | Path, map_location=None) -> tuple[Path, dict] | N
         except CorruptCheckpoint as err:
             console.print(f"[yellow]warning:[/] {err}; trying the previous checkpoint")
     return None
-
-
-# ----------------------------------------------------------------------------------- later stages
-@dataclass
-class LoadedRun:
-    """What ``evaluate`` / ``prune`` need to render a trained run.
-
-    Attributes:
-        model: the Gaussians and their offset tables (``gaussians.params.GaussianModel``).
-        config: the resolved ``TrainConfig`` (``RUN/config.json``).
-        scene_path: the scene folder the run was trained on (None when unknown).
-        extent: scene extent used in training (position unit of the "ours" variant).
-        step: training step of the model.
-        sh_degree: SH degree active at the end of training.
-        source: the file the model came from.
-    """
-
-    model: object
-    config: object
-    scene_path: Path | None
-    extent: float
-    step: int
-    sh_degree: int
-    source: Path
-
-    @property
-    def prior(self):
-        """The ``variational.Prior`` (variant, temperature, ...) to sample this model with."""
-        from uncertsplat.train.trainer import prior_from_config
-
-        return prior_from_config(self.config)
-
-
-def load_model(run_dir: str | Path, device: torch.device | str = "cpu") -> LoadedRun:
-    """Load a trained run for rendering: ``variational.ply`` when present, else the newest good checkpoint.
-
-    Raises:
-        UserError: when the folder holds no config or no model, naming the file and the fix.
-    """
-    from uncertsplat.config import TrainConfig, build_config
-    from uncertsplat.gaussians.params import GaussianModel
-    from uncertsplat.io.ply import read_variational_ply
-
-    run_dir = Path(run_dir)
-    cfg_path = run_dir / "config.json"
-    if not cfg_path.is_file():
-        raise UserError("not a training run (config.json is missing)", path=run_dir,
-                        hint="Point to a folder written by `uncertsplat train`.")
-    try:
-        cfg = build_config(TrainConfig, json.loads(cfg_path.read_text(encoding="utf-8")), source=str(cfg_path))
-    except json.JSONDecodeError as err:
-        raise UserError(f"config.json is not valid JSON ({err})", path=cfg_path) from None
-    info = {}
-    info_path = run_dir / "scene.json"
-    if info_path.is_file():
-        from uncertsplat.io.atomic import read_json
-
-        info = read_json(info_path)
-    device = torch.device(device)
-    ply = run_dir / "variational.ply"
-    if ply.is_file():
-        model, meta = read_variational_ply(ply, device=device)
-        return LoadedRun(model, cfg, Path(info["scene"]) if info.get("scene") else None,
-                         float(meta.get("extent", info.get("extent", 1.0))), int(meta.get("step", 0)),
-                         int(meta.get("sh_degree_active", model.sh_degree)), ply)
-    found = load_latest(run_dir, map_location=device)
-    if found is None:
-        raise UserError("no trained model here (neither variational.ply nor a checkpoint in ckpts/)", path=run_dir,
-                        hint="Run `uncertsplat train` (or `--resume`) to finish training first.")
-    path, state = found
-    model = GaussianModel.from_state_dict(state["model"], device)
-    return LoadedRun(model, cfg, Path(info["scene"]) if info.get("scene") else None, float(state["extent"]),
-                     int(state["step"]), int(state.get("sh_degree_active", model.sh_degree)), path)

@@ -144,6 +144,39 @@ def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0)) 
     return np.ascontiguousarray(rgb)
 
 
+def read_alpha(path: str | Path) -> np.ndarray | None:
+    """The alpha channel of an image as [H,W] float32 in [0, 1] (EXIF orientation applied), or None when the
+    file has no alpha channel (found from the header alone, without decoding the pixels).
+
+    Raises:
+        UserError: like ``read_image``, naming the file.
+    """
+    path = Path(path)
+    inp = _open(path)
+    try:
+        spec = inp.spec()
+        alpha_index = spec.alpha_channel
+        if alpha_index < 0 and spec.nchannels in (2, 4):  # as read_image: an unnamed extra channel is alpha
+            alpha_index = spec.nchannels - 1
+        if not 0 <= alpha_index < spec.nchannels:
+            return None
+        if spec.width * spec.height > MAX_PIXELS:
+            raise UserError(f"the image is {spec.width}x{spec.height} pixels, more than the "
+                            f"{MAX_PIXELS / 1e6:.0f} megapixels read at once", path=path,
+                            hint="Downscale the photo (or check that its header is not corrupted).")
+        data = inp.read_image(0, 0, alpha_index, alpha_index + 1, "float")
+        err = _oiio_error(inp)
+        if data is None or err:
+            raise UserError(f"cannot read the image ({_clean_error(err or _oiio_error())}); it may be truncated",
+                            path=path, hint=_UNREADABLE_HINT)
+        orientation = spec.get_int_attribute("Orientation", 1)
+    finally:
+        inp.close()
+    arr = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, 1)
+    arr = np.clip(np.nan_to_num(arr, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
+    return np.ascontiguousarray(_reorient(arr, orientation)[..., 0])
+
+
 # ------------------------------------------------------------------------------------------------ writing
 def _atomic_oiio(path: Path, write: Callable[[str], None]) -> Path:
     """Let ``write(tmp_name)`` create the image under a temp name with the same extension, then rename."""

@@ -26,7 +26,8 @@ from plyfile import PlyData, PlyElement
 
 from uncertsplat.errors import UserError
 from uncertsplat.gaussians.params import GaussianModel
-from uncertsplat.gaussians.variational import TABLE_SPECS, carrier_uncertainty, posterior_mean
+from uncertsplat.gaussians.prior import TABLE_SPECS
+from uncertsplat.gaussians.variational import carrier_uncertainty, posterior_mean
 from uncertsplat.io.atomic import atomic_write
 
 
@@ -178,6 +179,6 @@ def read_variational_ply(path: str | Path, device: torch.device | str = "cpu") -
                           {k: t.contiguous().to(dev) for k, t in tables.items()}, row.to(dev), sh_degree, K)
     try:
         model.check()
-    except AssertionError as err:
+    except ValueError as err:
         raise UserError(f"the PLY file is inconsistent ({err})", path=path) from None
     return model, meta

@@ -1,13 +1,14 @@
 """Assemble the HTML report from loaded runs: sections, figures, tables.
 
-Every section is optional: when its inputs are missing it is replaced by a short note saying what is
-missing and which command produces it. Metric values are shown exactly as stored in the run's files
-(each numeric cell also carries the raw value in ``data-value``), never recomputed.
+Every input is read through its schema (``report.loader``). A section whose input is absent is replaced
+by a short note saying what is missing and which command produces it; a section whose input is present
+but invalid shows the one-line reason (naming the file and the key or version). Metric values are shown
+as stored in the run's files (each numeric cell also carries the raw value in ``data-value``), never
+recomputed.
 """
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -18,21 +19,22 @@ from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.report import figures as F
 from uncertsplat.report.extract import (
     METRIC_SPECS,
+    PRUNE_SPECS,
+    SPEC_BY_KEY,
     SUMMARY_KEYS,
     Calibration,
     Curve,
-    find_calibration,
-    find_curves,
+    MetricValue,
+    calibrations_of,
+    curves_of,
     format_value,
-    mean_metrics,
     metric_row,
-    per_view_metrics,
+    prune_row,
 )
 from uncertsplat.report.html import Cell, details, esc, figure, kv, note, page, para, pre, table
-from uncertsplat.report.loader import RunData, as_float, first_key
-from uncertsplat.report.views import ViewMaps, list_map_views, load_view
-
-_SPEC_BY_KEY = {s.key: s for s in METRIC_SPECS}
+from uncertsplat.report.loader import CONFIG, MANIFEST, METRICS, PRUNE, RECONSTRUCT, SCENE, SUMMARY, RunData
+from uncertsplat.report.views import ViewMaps, load_view
+from uncertsplat.schemas import PruneReport, PruneSweep
 
 
 @dataclass
@@ -57,169 +59,123 @@ class ReportWriter:
         self.sections.append((anchor, label, f'<section id="{esc(anchor)}"><h2>{esc(label)}</h2>{body}</section>'))
 
 
-# --------------------------------------------------------------------------------------------- facts
-def _train_seconds(run: RunData) -> tuple[Any, str]:
-    """(value, source) of the training wall time."""
-    v = first_key(run.train_summary, ("train_seconds", "seconds", "total_seconds", "wall_seconds",
-                                      "elapsed_seconds", "time_seconds", "elapsed"))
-    if as_float(v) is not None:
-        return v, "train_summary.json"
-    if run.manifest and run.manifest.get("stage") == "train" and as_float(run.manifest.get("seconds")) is not None:
-        return run.manifest["seconds"], "manifest.json"
-    for row in reversed(run.stats):  # the trainer logs its cumulative training time as "elapsed"
-        if as_float(row.get("elapsed")) is not None:
-            return row["elapsed"], "stats.jsonl"
-    return None, ""
+# --------------------------------------------------------------------------------------------- helpers
+def _problem_note(run: RunData, file: str) -> str:
+    """A note with the one-line reason ``file`` could not be read ('' when it was read or is absent)."""
+    problem = run.problem(file)
+    return "" if problem is None else note(f"{run.name}: left out: {problem}")
 
 
-def _prune_count(prune: dict | None, which: str) -> Any:
-    """Gaussian count before/after in prune.json (flat keys or a nested counts object)."""
-    if not isinstance(prune, dict):
-        return None
-    flat = first_key(prune, (f"num_{which}", f"count_{which}", f"gaussians_{which}", f"num_gaussians_{which}"))
-    if flat is not None:
-        return flat
-    for key in ("counts", "num_gaussians", "gaussians"):
-        sub = prune.get(key)
-        if isinstance(sub, dict) and sub.get(which) is not None:
-            return sub[which]
-    sub = prune.get(which)
-    if isinstance(sub, dict):
-        return first_key(sub, ("num_gaussians", "count", "gaussians"))
-    return None
-
-
-def _num_gaussians(run: RunData) -> tuple[Any, str]:
-    if run.prune is not None:
-        v = _prune_count(run.prune, "after")
-        if v is not None:
-            return v, "prune.json"
-    v = first_key(run.train_summary, ("num_gaussians", "final_num_gaussians", "gaussians"))
-    if v is not None:
-        return v, "train_summary.json"
-    for row in reversed(run.stats):
-        if row.get("num_gaussians") is not None:
-            return row["num_gaussians"], "stats.jsonl"
-    return None, ""
-
-
-def _fmt_seconds(v: Any) -> str:
-    f = as_float(v)
-    if f is None:
-        return "n/a"
-    if f >= 120:
-        return f"{f / 60:.1f} min"
-    return f"{f:.1f} s"
-
-
-def _metric_cell(mv, key: str | None = None) -> Cell:
-    return Cell(format_value(mv.value, mv.spec.fmt), key=key or mv.source_key, value=mv.value)
-
-
-def _columns(rows: list[dict]) -> tuple[list[str], list[str]]:
-    """(metric keys with at least one number, keys that are null everywhere), in first-seen order."""
-    keys: list[str] = []
-    for r in rows:
-        keys += [k for k in r if k not in keys]
-    filled = [k for k in keys if any(k in r and as_float(r[k].value) is not None for r in rows)]
-    return filled, [k for k in keys if k not in filled]
+def _file_note(run: RunData, file: str, absent: str) -> str:
+    """The note for a section whose input ``file`` is not available: why it could not be read, or ``absent``."""
+    return _problem_note(run, file) or note(f"{run.name}: {absent}")
 
 
 def _missing_metrics_note(run: RunData) -> str:
-    return note(f"{run.name}: no eval/metrics.json — run `uncertsplat evaluate {run.path}` to measure the "
-                "uncertainty; metric sections are left out for this run.")
+    return _file_note(run, METRICS, f"no eval/metrics.json — run `uncertsplat evaluate {run.path}` to measure "
+                                    "the uncertainty; metric sections are left out for this run.")
+
+
+def _fmt_seconds(v: float | None) -> str:
+    if v is None:
+        return "n/a"
+    if v >= 120:
+        return f"{v / 60:.1f} min"
+    return f"{v:.1f} s"
+
+
+def _short(v: Any) -> str:
+    if v is None:
+        return "—"
+    if isinstance(v, float):
+        return format(v, ".6g")
+    return str(v)
+
+
+def _cell(mv: MetricValue, key: str | None = None) -> Cell:
+    return Cell(mv.text, key=key or mv.spec.key, value=mv.value)
+
+
+def _num_cell(value: Any, fmt: str, key: str) -> Cell:
+    return Cell(format_value(value, fmt), key=key, value=value)
+
+
+def _num_gaussians(run: RunData) -> int | None:
+    """The run's model size: after pruning for a pruned run, else what ``train`` ended with."""
+    if run.prune is not None and run.prune.counts is not None:
+        return run.prune.counts.after
+    return run.train_summary.num_gaussians if run.train_summary is not None else None
 
 
 # ----------------------------------------------------------------------------------------- sections
 def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
-    rows_by_run = [metric_row(mean_metrics(r.metrics)) for r in runs]
-    keys = [k for k in SUMMARY_KEYS if any(k in row for row in rows_by_run)]
-    header = ["run"] + [_SPEC_BY_KEY[k].label for k in keys] + [
+    rows_by_run = [metric_row(r.metrics.mean) if r.metrics is not None else {} for r in runs]
+    keys = [k for k in SUMMARY_KEYS if any(k in row and row[k].value is not None for row in rows_by_run)]
+    header = ["run"] + [SPEC_BY_KEY[k].label for k in keys] + [
         "Gaussians", "training time", "s / view (uncertainty)", "samples K"]
     rows = []
     for run, mrow in zip(runs, rows_by_run, strict=True):
-        cells: list[Cell | str] = []
-        for k in keys:
-            cells.append(_metric_cell(mrow[k]) if k in mrow else Cell("n/a"))
-        ng, _ = _num_gaussians(run)
-        cells.append(Cell(format_value(ng, ".4g"), key="num_gaussians", value=ng) if ng is not None else Cell("n/a"))
-        ts, _ = _train_seconds(run)
+        cells: list[Cell | str] = [_cell(mrow[k]) if k in mrow else Cell("n/a") for k in keys]
+        ng = _num_gaussians(run)
+        cells.append(_num_cell(ng, ",d", "num_gaussians") if ng is not None else Cell("n/a"))
+        ts = run.train_summary.seconds if run.train_summary is not None else None
         cells.append(Cell(_fmt_seconds(ts), key="train_seconds", value=ts) if ts is not None else Cell("n/a"))
-        spv = first_key(run.metrics, ("seconds_per_view",))
-        cells.append(Cell(format_value(spv, ".3f"), key="seconds_per_view", value=spv) if spv is not None
+        m = run.metrics
+        cells.append(_num_cell(m.seconds_per_view, ".3f", "seconds_per_view")
+                     if m is not None and m.seconds_per_view is not None else Cell("n/a"))
+        cells.append(Cell(str(m.num_samples), key="num_samples", value=m.num_samples) if m is not None
                      else Cell("n/a"))
-        ns = first_key(run.metrics, ("num_samples",))
-        cells.append(Cell(str(ns), key="num_samples", value=ns) if ns is not None else Cell("n/a"))
         rows.append((run.name, cells))
     body = [table(header, rows, table_id="summary")]
     body.append(para("Metrics are the means over the evaluated views, exactly as in each run's eval/metrics.json. "
                      "Lower is better for AUSE, NLL and calibration error; higher for PSNR and SSIM.", "legend"))
     for run in runs:
-        if run.metrics is None:
+        if run.metrics is None and run.problem(METRICS) is None:
             body.append(_missing_metrics_note(run))
         for n in run.notes:
             body.append(note(f"{run.name}: {n}"))
-        sn = mean_metrics(run.metrics).get("spearman_note")
-        if isinstance(sn, str) and sn:
-            body.append(note(f"{run.name}: Spearman: {sn}"))
-        for n in (run.metrics or {}).get("notes", []) or []:
-            body.append(note(f"{run.name} (evaluate): {n}"))
-        post = (run.train_summary or {}).get("posterior")
-        if isinstance(post, dict) and post.get("carriers") and post.get("moved_fraction") is not None:
-            try:
-                body.append(note(f"{run.name} (train): {describe_posterior(post)}"))
-            except (KeyError, TypeError):  # a summary written by another version: leave it to the provenance
-                pass
+        if run.metrics is not None:
+            if run.metrics.mean.spearman_note:
+                body.append(note(f"{run.name}: Spearman: {run.metrics.mean.spearman_note}"))
+            for n in run.metrics.notes:
+                body.append(note(f"{run.name} (evaluate): {n}"))
+        post = run.train_summary.posterior if run.train_summary is not None else None
+        if post is not None and post.carriers and post.moved_fraction is not None \
+                and post.position_spread_ratio is not None and post.gate_off is not None:
+            body.append(note(f"{run.name} (train): {describe_posterior(post.model_dump())}"))
     w.section("summary", "Summary", "".join(body))
 
 
 def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
     body = []
     for ri, run in enumerate(runs):
-        if run.metrics is None:
-            continue
-        pv = per_view_metrics(run.metrics)
-        mean = metric_row(mean_metrics(run.metrics))
-        rows_in = [(name, metric_row(d)) for name, d in pv.items()] + [("mean", mean)]
-        keys, empty = _columns([r for _, r in rows_in])
-        labels = {k: r[k].spec.label for _, r in rows_in for k in r}
-        rows = [(name, [_metric_cell(r[k]) if k in r else Cell("n/a") for k in keys]) for name, r in rows_in]
         title = f"<h3>{esc(run.name)}</h3>" if len(runs) > 1 else ""
-        facts = [("split", run.metrics.get("split", "n/a")), ("views", len(pv)),
-                 ("samples K", run.metrics.get("num_samples", "n/a"))]
-        ds = run.metrics.get("depth_scale")
-        if isinstance(ds, dict) and ds.get("scale") is not None:
-            facts.append(("depth scale", f"{ds.get('scale')} ({ds.get('method', '?')})"))
-        if run.metrics.get("std_floor") is not None:
-            facts.append(("std floor (NLL)", run.metrics["std_floor"]))
-        if isinstance(run.metrics.get("std_scale"), (int, float)):
-            n_cal = len(run.metrics.get("calibration_views") or [])
+        m = run.metrics
+        if m is None:
+            if run.problem(METRICS) is not None:
+                body.append(title + _missing_metrics_note(run))
+            continue
+        rows_in = [(name, metric_row(v)) for name, v in m.per_view.items()] + [("mean", metric_row(m.mean))]
+        keys = [s.key for s in METRIC_SPECS if any(r[s.key].value is not None for _, r in rows_in)]
+        empty = [s.label for s in METRIC_SPECS if s.key not in keys]
+        rows = [(name, [_cell(r[k]) for k in keys]) for name, r in rows_in]
+        facts: list[tuple[str, Any]] = [("split", m.split), ("views", len(m.per_view)), ("samples K", m.num_samples)]
+        if m.depth_scale is not None:
+            facts.append(("depth scale", f"{m.depth_scale.scale:.6g} ({m.depth_scale.method})"))
+        if m.std_floor is not None:
+            facts.append(("std floor (NLL)", m.std_floor))
+        if m.std_scale is not None:
             facts.append(("std scale (calibrated NLL)",
-                          f"x{run.metrics['std_scale']:.3g}, fitted on {n_cal} training views"))
-        lp = run.metrics.get("lpips")
-        if isinstance(lp, dict) and not lp.get("available", True):
-            facts.append(("LPIPS", lp.get("reason") or "unavailable"))
+                          f"x{m.std_scale:.3g}, fitted on {len(m.calibration_views)} training views"))
+        if m.lpips is not None and not m.lpips.available:
+            facts.append(("LPIPS", m.lpips.reason or "unavailable"))
         if empty:
-            facts.append(("not available", ", ".join(labels[k] for k in empty)))
-        body.append(f'{title}{kv(facts)}<div data-run="{ri}">'
-                    f'{table(["view"] + [labels[k] for k in keys], rows, table_id=f"metrics-{ri}")}</div>')
+            facts.append(("not available", ", ".join(empty)))
+        header = ["view"] + [SPEC_BY_KEY[k].label for k in keys]
+        body.append(f'{title}{kv(facts)}<div data-run="{ri}">{table(header, rows, table_id=f"metrics-{ri}")}</div>')
     if not body:
         body.append(note("No run has eval/metrics.json: run `uncertsplat evaluate RUN` first."))
     w.section("metrics", "Metrics per view", "".join(body))
-
-
-def _view_names(run: RunData) -> list[str]:
-    names = list(per_view_metrics(run.metrics))
-    if not names and isinstance((run.metrics or {}).get("image_names"), list):
-        names = [str(n) for n in run.metrics["image_names"]]
-    return names or list_map_views(run.maps_dir)
-
-
-def _background(run: RunData):
-    bg = ((run.config or {}).get("scene") or {}).get("background")
-    if isinstance(bg, (list, tuple)) and len(bg) == 3 and all(as_float(c) is not None for c in bg):
-        return tuple(float(c) for c in bg)
-    return (0.0, 0.0, 0.0)
 
 
 def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[int, dict[str, ViewMaps]]:
@@ -231,14 +187,19 @@ def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[
                  "coloured by its rank quantile in its own map, so good uncertainty makes the two look alike "
                  "whatever the scales).", "legend")]
     for ri, run in enumerate(runs):
-        names = _view_names(run)
         title = f"<h3>{esc(run.name)}</h3>" if len(runs) > 1 else ""
+        if run.metrics is None:
+            body.append(title + _file_note(run, METRICS, "no eval/metrics.json (it names the evaluated views); "
+                                                         "per-view figures left out."))
+            continue
         if not run.maps_dir.is_dir():
             body.append(title + note(f"{run.name}: no eval/maps/ folder (evaluate with save_maps on to get the "
                                      "uncertainty maps); per-view figures left out."))
             continue
+        names = list(run.metrics.image_names)
         if not names:
-            body.append(title + note(f"{run.name}: eval/maps/ holds no maps; per-view figures left out."))
+            body.append(title + note(f"{run.name}: eval/metrics.json lists no evaluated view; per-view figures "
+                                     "left out."))
             continue
         body.append(title)
         loaded[ri] = {}
@@ -246,12 +207,11 @@ def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[
         if len(names) > len(shown):
             body.append(para(f"Showing {len(shown)} of {len(names)} views (ReportConfig.max_views).", "muted"))
         for vi, name in enumerate(shown):
-            view = load_view(name, run.maps_dir, run.scene_path, _background(run))
+            view = load_view(name, run.maps_dir)
             loaded[ri][name] = view
-            png = F.view_figure(view, title=name)
-            html = w.add_figure(f"run{ri}_view{vi}.png", png, f"{run.name} — {name}",
+            html = w.add_figure(f"run{ri}_view{vi}.png", F.view_figure(view, title=name), f"{run.name} — {name}",
                                 f"uncertainty maps of {name}")
-            body.append(f"<h4>{esc(name)}</h4>" + (html or note(f"{name}: no maps could be read.")))
+            body.append(f"<h4>{esc(name)}</h4>" + (html or note(f"{name}: no maps could be read ({view.note}).")))
             if view.note and html:
                 body.append(note(f"{name}: {view.note}"))
     w.section("views", "Test views", "".join(body))
@@ -289,13 +249,14 @@ def sparsification_section(w: ReportWriter, runs: list[RunData]) -> list[tuple[s
         if run.metrics is None:
             body.append(_missing_metrics_note(run))
             continue
-        curves = find_curves(run.metrics, list(per_view_metrics(run.metrics)))
+        curves = curves_of(run.metrics)
         per_run.append((run.name, curves))
         if not curves:
-            body.append(note(f"{run.name}: metrics.json has no sparsification curves."))
+            body.append(note(f"{run.name}: eval/metrics.json has no sparsification curves."))
             continue
         n_views = len({c.view for c in curves if c.view is not None})
-        html = w.add_figure(f"sparsification_run{ri}.png", F.sparsification_figure(curves, run.name if len(runs) > 1 else ""),
+        html = w.add_figure(f"sparsification_run{ri}.png",
+                            F.sparsification_figure(curves, run.name if len(runs) > 1 else ""),
                             f"{run.name}: {n_views} per-view curves (thin) and their mean (thick)",
                             f"sparsification curves of {run.name}")
         body.append(html)
@@ -312,9 +273,9 @@ def calibration_section(w: ReportWriter, runs: list[RunData]) -> None:
     for run in runs:
         if run.metrics is None:
             continue
-        cals = find_calibration(run.metrics)
+        cals = calibrations_of(run.metrics)
         if not cals:
-            body.append(note(f"{run.name}: metrics.json has no calibration table."))
+            body.append(note(f"{run.name}: eval/metrics.json has no calibration table."))
             continue
         per_run.append((run.name, cals))
     if not per_run:
@@ -328,18 +289,15 @@ def calibration_section(w: ReportWriter, runs: list[RunData]) -> None:
         groups: dict[tuple, list[tuple[str, Calibration]]] = {}
         for label, cals in per_run:
             for c in cals:
-                key = tuple(c.k.tolist()) if c.k is not None else tuple(c.nominal.tolist())
-                groups.setdefault(key, []).append((f"{label + ' ' if len(runs) > 1 else ''}"
-                                                   f"{'depth' if c.depth else 'RGB'} observed", c))
-        for _, cols in groups.items():
-            first = cols[0][1]
+                groups.setdefault(tuple(c.table.ks), []).append(
+                    (f"{label + ' ' if len(runs) > 1 else ''}{'depth' if c.depth else 'RGB'} observed", c))
+        for ks, cols in groups.items():
+            first = cols[0][1].table
             rows = []
-            for i, n in enumerate(first.nominal):
-                k = first.k[i] if first.k is not None else None
-                cells = [Cell(format_value(float(n), ".3f"), key="nominal", value=float(n))]
-                cells += [Cell(format_value(float(c.observed[i]), ".3f"), key="observed", value=float(c.observed[i]))
-                          for _, c in cols]
-                rows.append((f"{k:g}σ" if k is not None else f"#{i + 1}", cells))
+            for i, k in enumerate(ks):
+                cells = [_num_cell(first.nominal[i], ".3f", "nominal")]
+                cells += [_num_cell(c.table.observed[i], ".3f", "observed") for _, c in cols]
+                rows.append((f"{k:g}σ", cells))
             body.append(table(["k", "nominal"] + [name for name, _ in cols], rows))
     w.section("calibration", "Calibration", "".join(body))
 
@@ -356,93 +314,147 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
         if not run.stats:
             body.append(note(f"{run.name}: no stats.jsonl (a pruned run has none; its source run has the timeline)."
                              if run.is_pruned else f"{run.name}: no stats.jsonl; training timeline left out."))
-        if run.train_summary:
-            items = [(k, _short(v)) for k, v in run.train_summary.items() if not isinstance(v, (dict, list))]
-            title = f"<h4>{esc(run.name)}: train_summary.json</h4>"
-            body.append(title + kv(items))
-            nested = {k: v for k, v in run.train_summary.items() if isinstance(v, (dict, list))}
-            if nested:
-                body.append(details("more", pre(json.dumps(nested, indent=2, default=str))))
+        s = run.train_summary
+        if s is not None:
+            data = s.model_dump(mode="json")
+            items = [(k, _short(v)) for k, v in data.items() if v is not None and not isinstance(v, (dict, list))]
+            body.append(f"<h4>{esc(run.name)}: train_summary.json</h4>" + kv(items))
+            nested = s.model_dump_json(indent=2, include={k for k, v in data.items() if isinstance(v, (dict, list))
+                                                          and v})
+            if nested.strip() != "{}":
+                body.append(details("more", pre(nested)))
+        else:
+            body.append(_problem_note(run, SUMMARY))
         last = run.stats[-1] if run.stats else None
-        if last and not run.train_summary:
+        if last and s is None:
             body.append(f"<h4>{esc(run.name)}: last logged step</h4>" + kv((k, _short(v)) for k, v in last.items()))
     w.section("training", "Training", "".join(body))
 
 
-def _short(v: Any) -> str:
-    if isinstance(v, float):
-        return format(v, ".6g")
-    return str(v)
+# -------------------------------------------------------------------------------------------- pruning
+def _prune_facts(p: PruneReport) -> list[tuple[str, str]]:
+    score = p.score if p.score == p.score_requested else f"{p.score} (requested: {p.score_requested})"
+    facts = [("score", score), ("mode", p.mode),
+             ("keep ratio requested", format_value(p.keep_ratio, ".3f") if p.keep_ratio is not None else "—"),
+             ("keep ratio achieved", format_value(p.keep_ratio_achieved, ".3f")
+              if p.keep_ratio_achieved is not None else "—"),
+             ("threshold requested", _short(p.threshold)),
+             ("threshold_effective (smallest removed score)", _short(p.threshold_effective))]
+    if p.counts is not None:
+        c = p.counts
+        facts += [("Gaussians before → after", f"{c.before:,} → {c.after:,} ({c.removed:,} removed, "
+                                               f"{100.0 * c.removed / max(c.before, 1):.1f} %)"),
+                  ("posterior carriers before → after", f"{c.carriers_before:,} → {c.carriers_after:,}")]
+    if p.delta_psnr_db is not None:
+        facts.append(("held-out PSNR change", f"{p.delta_psnr_db.score:+.2f} dB by the score, "
+                                              f"{p.delta_psnr_db.random:+.2f} dB by random removal"))
+    facts += [("metric views", f"{len(p.metric_views)} {p.metric_split} views, K = {p.num_samples} samples"),
+              ("seed", str(p.seed)), ("source run", p.source_run)]
+    if p.dry_run:
+        facts.append(("dry run", "yes: no model written"))
+    return facts
+
+
+def _prune_table(p: PruneReport, ri: int) -> str:
+    rows_in = [("before", p.metrics.before), ("after", p.metrics.after), ("random removal", p.metrics.random)]
+    rows = [(label, [_cell(v) for v in prune_row(m).values()]) for label, m in rows_in if m is not None]
+    return table(["model"] + [s.label for s in PRUNE_SPECS], rows, table_id=f"prune-{ri}")
+
+
+def _sweep_table(sweep: PruneSweep, ri: int) -> str:
+    best = sweep.largest_removal_within_tolerance
+    rows = []
+    for pt in sweep.points:
+        chosen = best is not None and pt.num_removed == best.num_removed and pt.keep_ratio == best.keep_ratio
+        rows.append((format_value(pt.keep_ratio, ".3f"), [
+            _num_cell(pt.keep_ratio_achieved, ".3f", "keep_ratio_achieved"),
+            _num_cell(pt.num_removed, ",d", "num_removed"),
+            _num_cell(pt.score.psnr, ".2f", "score.psnr"),
+            _num_cell(pt.random.psnr, ".2f", "random.psnr"),
+            Cell("largest within tolerance" if chosen else "", text_cell=True),
+        ]))
+    header = ["keep ratio", "achieved", "removed", f"PSNR, score '{sweep.score}' (dB)", "PSNR, random removal (dB)",
+              ""]
+    return table(header, rows, table_id=f"prune-sweep-{ri}")
 
 
 def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
-    pruned = [(ri, r) for ri, r in enumerate(runs) if r.prune is not None]
+    pruned = [(ri, r) for ri, r in enumerate(runs) if r.is_pruned]
     if not pruned:
         return
-    body = []
+    body = [para("Held-out metrics of the model before pruning, after removing the Gaussians the score ranks most "
+                 "uncertain, and after removing as many random Gaussians (the baseline the score must beat).",
+                 "legend")]
     for ri, run in pruned:
-        p = run.prune or {}
         body.append(f"<h3>{esc(run.name)}</h3>")
-        before, after = _prune_count(p, "before"), _prune_count(p, "after")
-        facts = [("Gaussians before", before), ("Gaussians after", after)]
-        if as_float(before) and as_float(after) is not None:
-            facts.append(("removed", f"{100.0 * (1 - float(after) / float(before)):.1f} %"))
-        for k in ("score", "threshold", "keep_ratio", "mode", "source", "source_run", "dry_run", "seed"):
-            if k in p and not isinstance(p[k], (dict, list)):
-                facts.append((k, _short(p[k])))
-        body.append(kv((k, "n/a" if v is None else _short(v)) for k, v in facts))
-        mb, ma = first_key(p, ("metrics_before", "before_metrics")), first_key(p, ("metrics_after", "after_metrics"))
-        if mb is None and isinstance(p.get("before"), dict) and isinstance(p.get("before", {}).get("metrics"), dict):
-            mb = p["before"]["metrics"]
-        if ma is None and isinstance(p.get("after"), dict) and isinstance(p.get("after", {}).get("metrics"), dict):
-            ma = p["after"]["metrics"]
-        rows = []
-        rnd = first_key(p, ("metrics_random", "random_metrics", "random"))
-        for label, m in (("before", mb), ("after", ma), ("random removal", rnd)):
-            if isinstance(m, dict):
-                rows.append((label, metric_row(m)))
-        if rows:
-            keys = []
-            for _, r in rows:
-                keys += [k for k in r if k not in keys]
-            labels = {k: r[k].spec.label for _, r in rows for k in r}
-            body.append(table(["model"] + [labels[k] for k in keys],
-                              [(lab, [_metric_cell(r[k]) if k in r else Cell("n/a") for k in keys]) for lab, r in rows],
-                              table_id=f"prune-{ri}"))
-        sweep = first_key(p, ("sweep", "sweep_results", "curve"))
-        if isinstance(sweep, dict):
-            sweep = first_key(sweep, ("rows", "points", "results"))
-        if isinstance(sweep, list) and sweep and all(isinstance(s, dict) for s in sweep):
-            body.append(w.add_figure(f"prune_sweep_run{ri}.png", F.prune_sweep_figure(sweep),
-                                     "Pruning sweep on held-out views: the uncertainty score (solid) against random "
-                                     "removal of the same number of Gaussians (dashed).", "pruning sweep"))
-            cols = []
-            for s in sweep:
-                cols += [k for k, v in s.items() if k not in cols and not isinstance(v, (dict, list))]
-            srows = [(_short(s.get(cols[0], i)), [Cell(_short(s[k])) if k in s else Cell("n/a") for k in cols[1:]])
-                     for i, s in enumerate(sweep)]
-            body.append(details("sweep table", table(cols, srows)))
-        else:
-            body.append(note(f"{run.name}: no sweep in prune.json (run `uncertsplat prune --sweep`)."))
+        p = run.prune
+        if p is None:
+            body.append(_problem_note(run, PRUNE))
+            continue
+        body.append(kv(_prune_facts(p)))
+        body.append(_prune_table(p, ri))
+        if p.metrics.after is None:
+            body.append(para("No mask was chosen (a sweep only): no 'after' or 'random removal' row.", "muted"))
+        for n in p.notes:
+            body.append(note(f"{run.name} (prune): {n}"))
+        if p.sweep is None:
+            body.append(para("No keep-ratio sweep in prune.json (run `uncertsplat prune --sweep` to measure one).",
+                             "muted"))
+            continue
+        sw = p.sweep
+        best = sw.largest_removal_within_tolerance
+        caption = (f"Held-out PSNR ({sw.split} views) against the fraction of Gaussians kept: the score "
+                   f"'{sw.score}' (solid) against random removal of as many Gaussians (dashed); dotted: the unpruned "
+                   f"model, shaded: within {sw.tolerance_db:g} dB of it.")
+        if best is not None:
+            caption += (f" Circled: the largest removal within tolerance (keep ratio {best.keep_ratio:g}, "
+                        f"{best.num_removed:,} removed, {best.psnr_loss_db:.2f} dB lost).")
+        html = w.add_figure(f"prune_sweep_run{ri}.png", F.prune_sweep_figure(sw), caption, "pruning sweep")
+        body.append(html or note(f"{run.name}: the sweep has no PSNR to plot."))
+        body.append(_sweep_table(sw, ri))
+        if best is None:
+            body.append(para(f"No removal stays within {sw.tolerance_db:g} dB of the unpruned PSNR.", "muted"))
     w.section("prune", "Pruning", "".join(body))
 
 
-def _workspace_hash(run: RunData) -> list[tuple[str, Any]]:
-    out = []
-    if run.manifest:
-        for k, v in (run.manifest.get("input_hashes") or {}).items():
-            out.append((f"input hash ({k})", v))
-        if run.manifest.get("config_hash"):
-            out.append(("config hash (manifest)", run.manifest["config_hash"]))
-    if run.metrics and run.metrics.get("config_hash"):
-        out.append(("config hash (evaluate)", run.metrics["config_hash"]))
-    if run.reconstruct and run.reconstruct.get("inputs_fingerprint"):
-        out.append(("photos fingerprint", run.reconstruct["inputs_fingerprint"]))
-    for src in (run.train_summary, run.config):
-        for k in ("data_hash", "scene_hash", "dataset_hash"):
-            if isinstance(src, dict) and src.get(k):
-                out.append((k, src[k]))
+# ------------------------------------------------------------------------------------------ provenance
+def _hashes(run: RunData) -> list[tuple[str, Any]]:
+    out: list[tuple[str, Any]] = []
+    if run.manifest is not None:
+        out += [(f"input hash ({k})", v) for k, v in run.manifest.input_hashes.items()]
+        out.append(("config hash (manifest)", run.manifest.config_hash))
+    if run.metrics is not None and run.metrics.config_hash:
+        out.append(("config hash (evaluate)", run.metrics.config_hash))
+    if run.reconstruct is not None and run.reconstruct.inputs_fingerprint:
+        out.append(("photos fingerprint", run.reconstruct.inputs_fingerprint))
     return out
+
+
+def _reconstruct_html(run: RunData) -> str:
+    r = run.reconstruct
+    if r is None:
+        if run.problem(RECONSTRUCT) is not None:
+            return _problem_note(run, RECONSTRUCT)
+        if run.scene_path is None:
+            return _file_note(run, SCENE, "no scene.json (written by `uncertsplat train`): the scene folder and its "
+                                          "reconstruction health report are not shown.")
+        if not run.scene_path.is_dir():
+            return note(f"{run.name}: the scene folder {run.scene_path} no longer exists.")
+        return para(f"No {RECONSTRUCT} in {run.scene_path} (a synthetic scene with its own cameras, or a workspace "
+                    "made by another tool).", "muted")
+    n_found, n_reg = len(r.images_found), len(r.images_registered)
+    items = [("success", r.success), ("registered", f"{n_reg}/{n_found} ({100 * r.registered_fraction:.0f} %)"),
+             ("models found", r.models_found), ("3D points", r.num_points3d),
+             ("mean reprojection error (px)", _short(r.mean_reprojection_error)),
+             ("matcher", r.matcher or "—"), ("COLMAP", r.colmap_version or r.pycolmap_version or "—"),
+             ("time", _fmt_seconds(r.total_seconds))]
+    if r.images_unregistered:
+        unreg = r.images_unregistered
+        items.append(("unregistered images", ", ".join(unreg[:30]) + (" …" if len(unreg) > 30 else "")))
+    html = f"<h4>reconstruction health ({esc(run.reconstruct_path)})</h4>" + kv(items)
+    if not r.success:
+        html += note(f"The reconstruction reported a failure: {r.message}")
+    return html + details(RECONSTRUCT, pre(r.to_json()))
 
 
 def provenance_section(w: ReportWriter, runs: list[RunData]) -> None:
@@ -452,52 +464,31 @@ def provenance_section(w: ReportWriter, runs: list[RunData]) -> None:
         facts: list[tuple[str, Any]] = [("run folder", str(run.path.resolve()))]
         if run.scene_path is not None:
             facts.append(("scene", str(run.scene_path)))
-        cfg = run.config or {}
-        for k in ("method", "variant", "iterations", "seed"):
-            if k in cfg:
-                facts.append((f"train {k}", cfg[k]))
-        if run.metrics:
-            for k in ("seed", "num_samples", "split", "device"):
-                if run.metrics.get(k) is not None:
-                    facts.append((f"evaluate {k}", run.metrics[k]))
-        versions: dict[str, Any] = {}
-        for src in (run.manifest, run.train_summary, run.metrics):
-            if isinstance(src, dict) and isinstance(src.get("versions"), dict):
-                versions.update(src["versions"])
+        cfg = run.config
+        if cfg is not None:
+            facts += [("train method", cfg.method), ("train variant", cfg.variant),
+                      ("train iterations", cfg.iterations), ("train seed", cfg.seed)]
+        m = run.metrics
+        if m is not None:
+            facts += [("evaluate split", m.split), ("evaluate samples K", m.num_samples)]
+            facts += [(f"evaluate {k}", v) for k, v in (("seed", m.seed), ("device", m.device)) if v is not None]
+        versions: dict[str, str] = {}
+        for src in (run.manifest, run.metrics):
+            if src is not None:
+                versions.update(src.versions)
         if versions:
             facts.append(("versions", ", ".join(f"{k} {v}" for k, v in sorted(versions.items()))))
-        facts += _workspace_hash(run)
+        facts += _hashes(run)
         body.append(kv((k, _short(v)) for k, v in facts))
-        if run.config is not None:
-            body.append(details("config.json (resolved training config)", pre(json.dumps(run.config, indent=2))))
+        if cfg is not None:
+            body.append(details("config.json (resolved training config)", pre(cfg.model_dump_json(indent=2))))
         else:
-            body.append(note(f"{run.name}: no config.json."))
-        if run.reconstruct is not None:
-            r = run.reconstruct
-            found, reg = r.get("images_found") or [], r.get("images_registered") or []
-            rf = as_float(r.get("registered_fraction"))
-            items = [("success", r.get("success")), ("registered", f"{len(reg)}/{len(found)}"
-                     + (f" ({100 * rf:.0f} %)" if rf is not None else "")),
-                     ("models found", r.get("models_found")), ("3D points", r.get("num_points3d")),
-                     ("mean reprojection error (px)", _short(r.get("mean_reprojection_error"))),
-                     ("matcher", r.get("matcher")), ("COLMAP", r.get("colmap_version") or r.get("pycolmap_version")),
-                     ("time", _fmt_seconds(r.get("total_seconds")))]
-            unreg = r.get("images_unregistered") or []
-            if unreg:
-                items.append(("unregistered images", ", ".join(map(str, unreg[:30])) + (" …" if len(unreg) > 30 else "")))
-            body.append(f"<h4>reconstruction health ({esc(run.reconstruct_path)})</h4>"
-                        + kv((k, "n/a" if v is None else v) for k, v in items))
-            if r.get("success") is False:
-                body.append(note(f"The reconstruction reported a failure: {r.get('message', '')}"))
-            body.append(details("reconstruct_report.json", pre(json.dumps(r, indent=2))))
-        elif run.scene_path is not None:
-            body.append(para(f"No reconstruct_report.json in {run.scene_path} (a workspace made by another tool "
-                             "or a synthetic scene with its own cameras).", "muted"))
-        else:
-            body.append(para("Scene folder not found from config.json / the manifest; GT images and the "
-                             "reconstruction health report are not shown.", "muted"))
+            body.append(_file_note(run, CONFIG, "no config.json."))
+        body.append(_reconstruct_html(run))
         if run.manifest is not None:
-            body.append(details("manifest.json", pre(json.dumps(run.manifest, indent=2))))
+            body.append(details("manifest.json", pre(run.manifest.to_json())))
+        else:
+            body.append(_problem_note(run, MANIFEST))
     w.section("provenance", "Provenance", "".join(body))
 
 

@@ -16,9 +16,11 @@ matplotlib.use("Agg", force=False)  # no display; must run before pyplot is impo
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from uncertsplat.report.colormaps import rank_colorize  # noqa: E402
 from uncertsplat.report.extract import Calibration, Curve  # noqa: E402
 from uncertsplat.report.loader import stats_series  # noqa: E402
 from uncertsplat.report.views import ViewMaps  # noqa: E402
+from uncertsplat.schemas.prune import PruneSweep  # noqa: E402
 
 DPI = 100
 _STYLE = {
@@ -50,26 +52,9 @@ def _png(fig, tight: bool = False) -> bytes:
 
 
 # ---------------------------------------------------------------------------------------------- colour
-def _rank01(x: np.ndarray) -> np.ndarray:
-    """[H,W] -> [H,W] average rank scaled to [0,1] (ties share their mean rank, like Spearman)."""
-    from scipy.stats import rankdata
-
-    flat = np.nan_to_num(x.astype(np.float64), nan=0.0).reshape(-1)
-    if flat.size <= 1 or np.all(flat == flat[0]):
-        return np.full(x.shape, 0.5)
-    r = rankdata(flat, method="average")
-    return ((r - 1.0) / (flat.size - 1.0)).reshape(x.shape)
-
-
 def rank_image(x: np.ndarray) -> np.ndarray:
-    """Rank-coloured [H,W,3] uint8 (``report.colormaps.rank_colorize`` when available)."""
-    try:
-        from uncertsplat.report.colormaps import rank_colorize
-
-        return np.asarray(rank_colorize(x))
-    except ImportError:
-        cmap = matplotlib.colormaps[RANK_CMAP]
-        return (cmap(_rank01(x))[..., :3] * 255).astype(np.uint8)
+    """Rank-coloured [H,W,3] uint8 (``report.colormaps.rank_colorize``, colour map ``RANK_CMAP``)."""
+    return np.asarray(rank_colorize(x, cmap=RANK_CMAP))
 
 
 def _robust_max(*arrays: np.ndarray | None, q: float = 99.0) -> float:
@@ -271,9 +256,10 @@ def calibration_figure(per_run: list[tuple[str, list[Calibration]]]) -> bytes | 
 
 
 # -------------------------------------------------------------------------------------------- training
-# stats.jsonl (train/trainer.py): loss, l1, photo, kl_*; "ssim" there is the similarity, not a loss term.
-_LOSS_KEYS = ("loss", "l1", "photo", "ssim_loss", "dssim", "kl", "kl_total")
-_PSNR_KEYS = ("eval_psnr", "psnr_test", "test_psnr", "psnr")
+# The keys of stats.jsonl (``train/trainer.py``, ``train/losses.py``): the loss terms loss, l1, photo and
+# kl_* (``kl_total`` among them); "ssim" there is the similarity, not a loss term; eval_psnr on held-out views.
+_LOSS_KEYS = ("loss", "l1", "photo")
+_PSNR_KEY = "eval_psnr"
 
 
 def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
@@ -294,7 +280,7 @@ def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
         panels.append("loss")
     if "num_gaussians" in keys:
         panels.append("gaussians")
-    if any(k in keys for k in _PSNR_KEYS):
+    if _PSNR_KEY in keys:
         panels.append("psnr")
     if "sec_per_step" in keys:
         panels.append("speed")
@@ -323,12 +309,9 @@ def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
                         ax.plot(x, y, color=col, lw=1.2, ls="--", label=f"{pre}with posterior")
                     ax.set_title("number of Gaussians")
                 elif panel == "psnr":
-                    for k in _PSNR_KEYS:
-                        x, y = stats_series(stats, k)
-                        if x.size:
-                            ax.plot(x, y, color=col, marker="o", ms=3, lw=1.2,
-                                    label=f"{pre}{'held-out' if k != 'psnr' else 'train'} PSNR")
-                            break
+                    x, y = stats_series(stats, _PSNR_KEY)
+                    if x.size:
+                        ax.plot(x, y, color=col, marker="o", ms=3, lw=1.2, label=f"{pre}held-out PSNR")
                     ax.set_title("PSNR (dB)")
                 elif panel == "speed":
                     x, y = stats_series(stats, "sec_per_step")
@@ -343,47 +326,42 @@ def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
 
 
 # ------------------------------------------------------------------------------------------------ prune
-def prune_sweep_figure(sweep: list[dict], label: str = "") -> bytes | None:
-    """Held-out PSNR, AUSE and model size vs keep ratio, uncertainty score vs random removal."""
-    def col(key_opts):
-        for k in key_opts:
-            xs, ys = [], []
-            for row in sweep:
-                x, y = row.get("keep_ratio"), row.get(k)
-                if isinstance(x, (int, float)) and isinstance(y, (int, float)) and not isinstance(y, bool):
-                    xs.append(float(x))
-                    ys.append(float(y))
-            if xs:
-                order = np.argsort(xs)
-                return np.asarray(xs)[order], np.asarray(ys)[order]
-        return None
+def prune_sweep_figure(sweep: PruneSweep, label: str = "") -> bytes | None:
+    """Held-out PSNR vs keep ratio achieved: the score's removal and random removal of as many Gaussians.
 
-    panels = []
-    psnr, rpsnr = col(("psnr", "psnr_test")), col(("random_psnr", "psnr_random"))
-    if psnr is not None:
-        panels.append(("held-out PSNR (dB)", [("uncertainty score", psnr, "-"), ("random removal", rpsnr, "--")]))
-    ause, rause = col(("ause", "ause_mae")), col(("random_ause", "ause_random", "random_ause_mae"))
-    if ause is not None:
-        panels.append(("AUSE MAE", [("uncertainty score", ause, "-"), ("random removal", rause, "--")]))
-    ng, fs = col(("num_gaussians", "gaussians")), col(("file_size", "file_size_bytes", "size_bytes"))
-    if ng is not None:
-        panels.append(("number of Gaussians", [("Gaussians", ng, "-")]))
-    if fs is not None:
-        fs = (fs[0], fs[1] / 1e6)
-        panels.append(("file size (MB)", [("file size", fs, "-")]))
-    if not panels:
+    The unpruned model's PSNR is a horizontal reference line (with the tolerance band below it) and the
+    sweep's ``largest_removal_within_tolerance`` is circled. None when no point has a PSNR.
+    """
+    pts = sorted(sweep.points, key=lambda p: -p.keep_ratio_achieved)
+    score = [(p.keep_ratio_achieved, p.score.psnr) for p in pts if p.score.psnr is not None]
+    rand = [(p.keep_ratio_achieved, p.random.psnr) for p in pts if p.random.psnr is not None]
+    if not score and not rand:
         return None
+    best = sweep.largest_removal_within_tolerance
+    chosen = None
+    if best is not None:
+        chosen = next((p for p in pts if p.num_removed == best.num_removed and p.keep_ratio == best.keep_ratio), None)
     with plt.rc_context(_STYLE):
-        fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.2), squeeze=False)
-        for ax, (title, series) in zip(axes[0], panels, strict=False):
-            for name, s, ls in series:
-                if s is not None:
-                    ax.plot(s[0], s[1], ls=ls, marker="o", ms=3, label=name)
-            ax.set_title(title)
-            ax.set_xlabel("keep ratio")
-            ax.invert_xaxis()  # left to right: stronger pruning
-            if len(series) > 1:
-                ax.legend(frameon=False)
+        fig, ax = plt.subplots(figsize=(6.4, 3.8))
+        ref = sweep.unpruned.psnr
+        if ref is not None:
+            ax.axhline(ref, color="0.35", lw=1.0, ls=":", label=f"unpruned ({ref:.2f} dB)")
+            ax.axhspan(ref - sweep.tolerance_db, ref, color="0.5", alpha=0.08, lw=0,
+                       label=f"within {sweep.tolerance_db:g} dB")
+        if score:
+            x, y = zip(*score, strict=True)
+            ax.plot(x, y, color=run_color(0), marker="o", ms=4, lw=1.8, label=f"score '{sweep.score}'")
+        if rand:
+            x, y = zip(*rand, strict=True)
+            ax.plot(x, y, color=run_color(1), marker="s", ms=4, lw=1.4, ls="--", label="random removal")
+        if chosen is not None and chosen.score.psnr is not None:
+            ax.plot([chosen.keep_ratio_achieved], [chosen.score.psnr], marker="o", ms=13, mfc="none", mec="black",
+                    mew=1.5, ls="none", label=f"largest removal within tolerance (keep {chosen.keep_ratio_achieved:.3f})")
+        ax.set_xlabel("keep ratio achieved (fraction of Gaussians kept)")
+        ax.set_ylabel(f"held-out PSNR (dB, {sweep.split} views)")
+        ax.set_title("pruning sweep: PSNR vs keep ratio")
+        ax.invert_xaxis()  # left to right: stronger pruning
+        ax.legend(frameon=False, loc="lower left")
         if label:
             fig.suptitle(label, fontsize=10)
         fig.tight_layout()

@@ -1,11 +1,29 @@
-"""Read a run folder for the report, tolerantly.
+"""Read a run folder for the report, through the schema of each file (``uncertsplat.schemas``).
 
 Every input of the report is optional: a run may have been trained but not evaluated, evaluated but not
-pruned, made by an older version, or interrupted. ``load_run`` reads what is there into a ``RunData``
-and records a short note for every file that exists but cannot be read, so the report can leave the
-section out and say why instead of failing. Only a path that is not a run folder at all is an error.
+pruned, or interrupted. ``load_run`` reads each file with its model's ``read_optional``:
 
-The on-disk contract is DESIGN.md section 2.
+- a file that is absent leaves its field None, and the report leaves the section out with a short note;
+- a file that is present but invalid (not JSON, a missing or renamed key, a newer schema version) also
+  leaves its field None, and its one-line ``UserError`` text (which names the file and the key or
+  version) is kept in ``RunData.problems``, shown in the report where the section would have been.
+
+Nothing is guessed: a file is read through its model or not at all. Only a path that is not a run
+folder is an error.
+
+=============================  ==========================================
+file (relative to the run)     model
+=============================  ==========================================
+``config.json``                :class:`uncertsplat.config.TrainConfig`
+``scene.json``                 :class:`RunScene` (``scene`` = scene folder)
+``train_summary.json``         :class:`TrainSummary`
+``manifest.json``              :class:`Manifest`
+``eval/metrics.json``          :class:`EvalReport`
+``prune.json``                 :class:`PruneReport`
+``SCENE/reconstruct_report``   :class:`ReconstructReport`
+``stats.jsonl``                free-form training log (one JSON object a line; a line cut by a crash
+                               is skipped with a note)
+=============================  ==========================================
 """
 
 from __future__ import annotations
@@ -18,63 +36,97 @@ from typing import Any
 
 import numpy as np
 
+from uncertsplat.config import TrainConfig, build_config
 from uncertsplat.errors import UserError
+from uncertsplat.schemas import EvalReport, Manifest, PruneReport, ReconstructReport, RunScene, TrainSummary
 
 # Files whose presence makes a folder a run folder (at least one is needed).
 RUN_MARKERS = ("config.json", "stats.jsonl", "train_summary.json", "eval/metrics.json", "prune.json",
-               "manifest.json")
+               "manifest.json", "scene.json")
 
+CONFIG = "config.json"
+SCENE = "scene.json"
+STATS = "stats.jsonl"
+SUMMARY = "train_summary.json"
+MANIFEST = "manifest.json"
+METRICS = "eval/metrics.json"
+PRUNE = "prune.json"
+RECONSTRUCT = "reconstruct_report.json"
 
 @dataclass
 class RunData:
-    """What the report knows about one run folder (each field None/empty when unavailable)."""
+    """What the report knows about one run folder (each field None/empty when absent or invalid)."""
 
     path: Path
     name: str
-    config: dict | None = None
+    config: TrainConfig | None = None
     stats: list[dict] = field(default_factory=list)
-    train_summary: dict | None = None
-    metrics: dict | None = None
-    """``eval/metrics.json`` as plain JSON (the values shown in the report come from here)."""
-    metrics_schema_ok: bool | None = None
-    """True when the EvalReport schema validated it, False when it did not, None when no schema."""
-    prune: dict | None = None
-    scene_info: dict | None = None
-    """``RUN/scene.json`` written by ``train``: {"scene": path, "extent": ...}."""
-    manifest: dict | None = None
-    reconstruct: dict | None = None
+    train_summary: TrainSummary | None = None
+    metrics: EvalReport | None = None
+    prune: PruneReport | None = None
+    scene_info: RunScene | None = None
+    manifest: Manifest | None = None
+    reconstruct: ReconstructReport | None = None
     reconstruct_path: Path | None = None
-    scene_path: Path | None = None
+    problems: dict[str, str] = field(default_factory=dict)
+    """File (relative to the run, e.g. ``prune.json``) -> one line saying why it could not be read."""
     notes: list[str] = field(default_factory=list)
-    """Problems met while reading (a corrupt file, a skipped line), shown in the report."""
+    """Every problem met while reading (those of ``problems`` and skipped log lines), shown in the summary."""
 
     @property
     def maps_dir(self) -> Path:
         return self.path / "eval" / "maps"
 
     @property
+    def scene_path(self) -> Path | None:
+        """The scene folder the run was trained on (``RunScene.scene``), None without a valid scene.json."""
+        return Path(self.scene_info.scene) if self.scene_info is not None else None
+
+    @property
     def is_pruned(self) -> bool:
-        return self.prune is not None
+        return self.prune is not None or PRUNE in self.problems
+
+    def problem(self, file: str) -> str | None:
+        """The one-line problem of ``file`` (a key of ``problems``), or None when it was read or is absent."""
+        return self.problems.get(file)
 
 
-# ----------------------------------------------------------------------------------------------- json
-def read_json(path: Path, notes: list[str]) -> dict | None:
-    """A JSON object from ``path``, or None (with a note) when it is missing, corrupt or not an object."""
+def one_line(err: UserError) -> str:
+    """The UserError text on one line (it names the file and what is wrong)."""
+    return " ".join(str(err).split())
+
+
+# ----------------------------------------------------------------------------------------------- read
+def _read(run: RunData, key: str, reader) -> Any:
+    """``reader()``; on a UserError record its one-line text under ``key`` and return None."""
+    try:
+        return reader()
+    except UserError as err:
+        run.problems[key] = one_line(err)
+        run.notes.append(run.problems[key])
+        return None
+
+
+def read_train_config(path: Path) -> TrainConfig | None:
+    """``RUN/config.json`` (the resolved ``TrainConfig`` written by ``train``), None when absent.
+
+    Raises:
+        UserError: naming the file when it is not JSON or not a valid TrainConfig.
+    """
     if not path.is_file():
         return None
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        notes.append(f"{path.name}: could not be read ({type(err).__name__}: {err}); left out")
-        return None
+        raise UserError(f"not valid JSON ({err})", path=path, hint="Re-run `uncertsplat train` to write it again.") \
+            from None
     if not isinstance(data, dict):
-        notes.append(f"{path.name}: expected a JSON object, found {type(data).__name__}; left out")
-        return None
-    return data
+        raise UserError(f"expected a JSON object, found {type(data).__name__}", path=path)
+    return build_config(TrainConfig, data, source=str(path))
 
 
 def read_jsonl(path: Path, notes: list[str]) -> list[dict]:
-    """The JSON objects of a JSON-lines file; unreadable lines (e.g. cut by a crash) are skipped."""
+    """The JSON objects of a JSON-lines log; unreadable lines (e.g. cut by a crash) are skipped with a note."""
     if not path.is_file():
         return []
     rows: list[dict] = []
@@ -82,7 +134,7 @@ def read_jsonl(path: Path, notes: list[str]) -> list[dict]:
     try:
         text = path.read_text(encoding="utf-8", errors="replace")
     except OSError as err:
-        notes.append(f"{path.name}: could not be read ({err.strerror}); left out")
+        notes.append(f"{path}: could not be read ({err.strerror}); left out")
         return []
     for line in text.splitlines():
         line = line.strip()
@@ -102,71 +154,12 @@ def read_jsonl(path: Path, notes: list[str]) -> list[dict]:
     return rows
 
 
-def _validate_metrics(data: dict) -> tuple[bool | None, str]:
-    """Validate against the EvalReport schema when it can be imported."""
-    try:
-        from uncertsplat.eval.report_schema import EvalReport
-    except Exception:  # the schema module is optional for the report: plain JSON is enough
-        return None, ""
-    try:
-        EvalReport.model_validate(data)
-    except Exception as err:  # pydantic.ValidationError, or a schema that rejects old files
-        first = str(err).splitlines()[0] if str(err) else type(err).__name__
-        return False, first
-    return True, ""
-
-
-# ------------------------------------------------------------------------------------------ scene path
-_SCENE_KEYS = ("scene_path", "scene", "scene_dir", "source_path", "workspace", "data", "data_dir", "input")
-
-
-def _scene_from(obj: Any) -> str | None:
-    if not isinstance(obj, dict):
-        return None
-    for key in _SCENE_KEYS:
-        v = obj.get(key)
-        if isinstance(v, str) and v:
-            return v
-        if isinstance(v, dict):  # e.g. {"scene": {"path": ...}} or a source dict
-            for k2 in ("path", "root", "scene_path"):
-                if isinstance(v.get(k2), str) and v.get(k2):
-                    return v[k2]
-    return None
-
-
-def find_scene_path(run: RunData) -> Path | None:
-    """The scene (workspace) the run was trained on: from RUN/scene.json (what ``train`` writes), else
-    config.json / train_summary.json, else the inputs named in the manifest."""
-    candidates: list[str] = []
-    for obj in (run.scene_info, run.config, run.train_summary, (run.config or {}).get("source"),
-                (run.train_summary or {}).get("source")):
-        s = _scene_from(obj)
-        if s:
-            candidates.append(s)
-    if run.manifest:
-        # A pipeline manifest names its inputs: a path, or the name of a sibling stage folder.
-        for key in (run.manifest.get("input_hashes") or {}):
-            key = str(key)
-            candidates.append(key if Path(key).is_absolute() else str(run.path.parent / key))
-    for c in candidates:
-        p = Path(c)
-        if not p.is_absolute():
-            p = (run.path / p) if (run.path / p).exists() else p
-        if p.is_dir() and p.resolve() != run.path.resolve() and (
-            (p / "images").is_dir() or (p / "sparse").is_dir() or (p / "reconstruct_report.json").is_file()
-            or any(p.glob("transforms_*.json"))
-        ):
-            return p
-    return None
-
-
-# ------------------------------------------------------------------------------------------------ load
 def load_run(path: str | Path, name: str | None = None) -> RunData:
-    """Read everything the report can use from a run folder.
+    """Read everything the report can use from a run folder (see the module docstring).
 
     Raises:
         UserError: naming ``path`` when it does not exist, is not a folder, or holds none of the files
-            a run folder has (config.json, stats.jsonl, eval/metrics.json, prune.json, manifest.json).
+            a run folder has (``RUN_MARKERS``).
     """
     path = Path(path)
     if not path.exists():
@@ -180,24 +173,17 @@ def load_run(path: str | Path, name: str | None = None) -> RunData:
             "not a run folder (none of config.json, stats.jsonl, eval/metrics.json, prune.json found)",
             path=path, hint="Give the folder written by `uncertsplat train` (or `prune`).")
     run = RunData(path=path, name=name or path.resolve().name)
-    notes = run.notes
-    run.config = read_json(path / "config.json", notes)
-    run.stats = read_jsonl(path / "stats.jsonl", notes)
-    run.train_summary = read_json(path / "train_summary.json", notes)
-    run.manifest = read_json(path / "manifest.json", notes)
-    run.scene_info = read_json(path / "scene.json", notes)
-    run.prune = read_json(path / "prune.json", notes)
-    run.metrics = read_json(path / "eval" / "metrics.json", notes)
-    if run.metrics is not None:
-        ok, why = _validate_metrics(run.metrics)
-        run.metrics_schema_ok = ok
-        if ok is False:
-            notes.append(f"eval/metrics.json does not match the current EvalReport schema ({why}); "
-                         "read as plain JSON")
-    run.scene_path = find_scene_path(run)
-    if run.scene_path is not None:
-        rp = run.scene_path / "reconstruct_report.json"
-        run.reconstruct = read_json(rp, notes)
+    run.config = _read(run, CONFIG, lambda: read_train_config(path / CONFIG))
+    run.stats = read_jsonl(path / STATS, run.notes)
+    run.train_summary = _read(run, SUMMARY, lambda: TrainSummary.read_optional(path / SUMMARY))
+    run.manifest = _read(run, MANIFEST, lambda: Manifest.read_optional(path / MANIFEST))
+    run.scene_info = _read(run, SCENE, lambda: RunScene.read_optional(path / SCENE))
+    run.prune = _read(run, PRUNE, lambda: PruneReport.read_optional(path / PRUNE))
+    run.metrics = _read(run, METRICS, lambda: EvalReport.read_optional(path / METRICS))
+    scene = run.scene_path
+    if scene is not None:
+        rp = scene / RECONSTRUCT
+        run.reconstruct = _read(run, RECONSTRUCT, lambda: ReconstructReport.read_optional(rp))
         run.reconstruct_path = rp if run.reconstruct is not None else None
     return run
 
@@ -210,16 +196,6 @@ def as_float(v: Any) -> float | None:
     if isinstance(v, (int, float)):
         f = float(v)
         return f if math.isfinite(f) else None
-    return None
-
-
-def first_key(d: dict | None, keys: tuple[str, ...]) -> Any:
-    """The value of the first of ``keys`` present in ``d`` (None when none is)."""
-    if not isinstance(d, dict):
-        return None
-    for k in keys:
-        if k in d and d[k] is not None:
-            return d[k]
     return None
 
 

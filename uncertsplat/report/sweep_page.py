@@ -1,7 +1,8 @@
 """The sweep's HTML page (``OUT/index.html`` of ``uncertsplat sweep``): the Pareto figure and every point.
 
-A pure function of the ``sweep.json`` summary: numbers are shown as stored (each numeric cell carries
-the exact value in ``data-value``), points on a Pareto front are marked, the default is starred.
+A pure function of the ``SweepSummary`` (what ``sweep.json`` holds): numbers are shown as stored (each
+numeric cell carries the exact value in ``data-value``), points on a Pareto front are marked, the default
+is starred. The columns name ``SweepRecord`` fields (a test checks that they are real fields).
 """
 
 from __future__ import annotations
@@ -10,8 +11,9 @@ import math
 import time
 
 from uncertsplat.report.html import Cell, figure, kv, note, page, para, table
+from uncertsplat.schemas.runs import SweepRecord, SweepSummary
 
-# (record key, column header, format)
+# (SweepRecord field, column header, format)
 COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("psnr", "PSNR", "{:.2f}"),
     ("ause_mae", "AUSE-MAE", "{:.4f}"),
@@ -25,35 +27,34 @@ COLUMNS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-def _cell(rec: dict, key: str, fmt: str) -> Cell | str:
-    v = rec.get(key)
+def _cell(rec: SweepRecord, key: str, fmt: str) -> Cell | str:
+    v = getattr(rec, key)
     if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(float(v)):
         return "-"
     return Cell(fmt.format(v), key=key, value=v)
 
 
-def _knobs(rec: dict) -> str:
-    k = rec.get("knobs") or {}
-    return ", ".join(f"{a}={b}" for a, b in k.items())
+def _knobs(rec: SweepRecord) -> str:
+    return ", ".join(f"{a}={b}" for a, b in rec.knobs.items())
 
 
-def build_sweep_page(summary: dict, figure_rel: str | None) -> str:
+def build_sweep_page(summary: SweepSummary, figure_rel: str | None) -> str:
     """HTML text of the sweep page.
 
     Args:
-        summary: the ``sweep.json`` summary (``stages.sweep.summarize``).
+        summary: the sweep's summary (``sweep.pareto.summarize``, written as ``sweep.json``).
         figure_rel: path of ``pareto.png`` relative to the page (None: no figure yet).
     """
-    recs = list(summary.get("records", []))
-    fronts: dict[str, list[str]] = summary.get("pareto", {})
+    recs = list(summary.records)
+    fronts = summary.pareto
     on_front = {pid for ids in fronts.values() for pid in ids}
-    default = summary.get("default")
-    ok = [r for r in recs if r.get("status") == "ok"]
-    failed = [r for r in recs if r.get("status") != "ok"]
+    default = summary.default
+    ok = [r for r in recs if r.status == "ok"]
+    failed = [r for r in recs if r.status != "ok"]
 
     sections = []
-    head = kv([("points", summary.get("num_points", len(recs))), ("failed", summary.get("num_failed", len(failed))),
-               ("default (starred)", default or "-"), ("x axis", summary.get("pareto_x", "time"))]
+    head = kv([("points", summary.num_points), ("failed", summary.num_failed),
+               ("default (starred)", default or "-"), ("x axis", summary.pareto_x)]
               + [(f"front {name}", ", ".join(ids) or "-") for name, ids in fronts.items()])
     sections.append(("summary", "Summary", head))
     if figure_rel:
@@ -64,12 +65,12 @@ def build_sweep_page(summary: dict, figure_rel: str | None) -> str:
     sections.append(("pareto", "Pareto front", body))
 
     rows = []
-    for r in sorted(ok, key=lambda r: (r.get("method", ""), r["id"])):
-        mark = ("★ " if r["id"] == default else "") + ("front" if r["id"] in on_front else "")
-        cells: list[Cell | str] = [Cell(str(r.get("method", "?")), text_cell=True),
+    for r in sorted(ok, key=lambda r: (r.method, r.id)):
+        mark = ("★ " if r.id == default else "") + ("front" if r.id in on_front else "")
+        cells: list[Cell | str] = [Cell(r.method, text_cell=True),
                                    Cell(_knobs(r), text_cell=True), Cell(mark.strip(), text_cell=True)]
         cells += [_cell(r, key, fmt) for key, _, fmt in COLUMNS]
-        rows.append((r["id"], cells))
+        rows.append((r.id, cells))
     header = ["point", "method", "knobs", "default / front"] + [h for _, h, _ in COLUMNS]
     body = (table(header, rows, table_id="sweep-points", row_attr="data-point") if rows
             else note("No point has finished."))
@@ -77,12 +78,12 @@ def build_sweep_page(summary: dict, figure_rel: str | None) -> str:
                  "the cores they are comparable with each other, not with a quiet machine.", "legend")
     sections.append(("points", "Points", body))
     if failed:
-        frows = [(r["id"], [Cell(str(r.get("stage", "?")), text_cell=True),
-                            Cell(str(r.get("error", "")), text_cell=True)]) for r in failed]
+        frows = [(r.id, [Cell(str(r.stage or "?"), text_cell=True), Cell(str(r.error or ""), text_cell=True)])
+                 for r in failed]
         sections.append(("failed", "Failed points",
                          table(["point", "stage", "error"], frows, table_id="sweep-failed", row_attr="data-point")
                          + para("Run the sweep again to retry only these points.")))
     html_sections = "".join(f'<section id="{a}"><h2>{label}</h2>{b}</section>' for a, label, b in sections)
-    title = f"uncertsplat sweep: {summary.get('name', '')}"
+    title = f"uncertsplat sweep: {summary.name}"
     subtitle = f"{len(ok)} of {len(recs)} points finished — generated {time.strftime('%Y-%m-%d %H:%M:%S')}"
     return page(title, subtitle, [(a, label) for a, label, _ in sections], html_sections)

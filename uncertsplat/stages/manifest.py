@@ -9,45 +9,14 @@ and input hashes exists.
 from __future__ import annotations
 
 import hashlib
-import json
-import platform
 import time
 from pathlib import Path
 
-from pydantic import BaseModel, ConfigDict
-
-from uncertsplat import __version__
-from uncertsplat.io.atomic import atomic_write_text
+from uncertsplat.errors import UserError
+from uncertsplat.provenance import hash_config, versions  # re-exported: the stage's manifest API
+from uncertsplat.schemas.runs import Manifest
 
 MANIFEST = "manifest.json"
-
-
-class Manifest(BaseModel):
-    """What one stage ran with and whether it finished."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    stage: str
-    name: str
-    config_hash: str
-    input_hashes: dict[str, str]
-    config: dict
-    status: str  # "running" | "done" | "failed"
-    started_at: float
-    finished_at: float | None = None
-    seconds: float | None = None
-    error: str | None = None
-    versions: dict[str, str] = {}
-
-    @property
-    def key(self) -> str:
-        """Hash of config and inputs: downstream stages use it as their input hash."""
-        text = json.dumps({"config": self.config_hash, "inputs": self.input_hashes}, sort_keys=True)
-        return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
-def hash_config(config: dict) -> str:
-    return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def fingerprint_folder(folder: Path, max_files: int = 100_000) -> str:
@@ -65,28 +34,18 @@ def fingerprint_folder(folder: Path, max_files: int = 100_000) -> str:
     return h.hexdigest()[:16]
 
 
-def versions() -> dict[str, str]:
-    out = {"uncertsplat": __version__, "python": platform.python_version()}
-    try:
-        import torch
-
-        out["torch"] = torch.__version__
-    except ImportError:  # pragma: no cover
-        pass
-    return out
-
-
 def read_manifest(folder: Path) -> Manifest | None:
     """The manifest in ``folder``, or None when absent or unreadable (then the stage simply re-runs)."""
-    path = Path(folder) / MANIFEST
     try:
-        return Manifest.model_validate_json(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        return Manifest.read_optional(Path(folder) / MANIFEST)
+    except UserError:
+        # a manifest is a cache key: one that cannot be read (damaged, an unknown version) only means the
+        # stage is run again, which rewrites it
         return None
 
 
 def write_manifest(folder: Path, manifest: Manifest) -> None:
-    atomic_write_text(Path(folder) / MANIFEST, manifest.model_dump_json(indent=2) + "\n")
+    manifest.write(Path(folder) / MANIFEST)
 
 
 def start_manifest(stage: str, name: str, config: dict, inputs: dict[str, str]) -> Manifest:
@@ -100,3 +59,7 @@ def start_manifest(stage: str, name: str, config: dict, inputs: dict[str, str]) 
         started_at=time.time(),
         versions=versions(),
     )
+
+
+__all__ = ["MANIFEST", "Manifest", "fingerprint_folder", "hash_config", "read_manifest", "start_manifest", "versions",
+           "write_manifest"]

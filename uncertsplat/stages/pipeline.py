@@ -227,10 +227,9 @@ def _run_stage(kind: str, cfg, up_path: Path | None, out_dir: Path, device, kwar
 
         reconstruct.run(up_path, out_dir, cfg.model_copy(update={"overwrite": True}))
     elif kind == "train":
-        from uncertsplat.baselines import train_run
+        from uncertsplat.stages import train
 
-        # through the method table, so ensemble / fisher stages train what they say
-        train_run(up_path, out_dir, cfg, device=device, resume=False)
+        train.run(up_path, out_dir, cfg, device=device, resume=False)  # dispatches on the method
     elif kind == "evaluate":
         from uncertsplat.stages import evaluate
 

@@ -7,7 +7,7 @@ place at the end, so an interrupted prune leaves no half-written run, and an exi
 (nothing is overwritten). ``OUT`` holds:
 
 - ``config.json``, ``scene.json``: copied from the input run (so ``evaluate``, ``report`` and ``prune``
-  accept ``OUT`` as a run); ``variational.ply`` (the pruned model, what ``load_model`` reads) and
+  accept ``OUT`` as a run); ``variational.ply`` (the pruned model, what ``baselines.load_run`` reads) and
   ``point_cloud.ply`` (viewer PLY; the per-Gaussian scores are extra properties ``score_<name>``, and
   ``contribution`` when the predictive score was computed). No checkpoints and no ``stats.jsonl``.
 - ``prune_mask.npy``: int64 indices (ascending) of the kept Gaussians in the input run's model. With the
@@ -47,6 +47,15 @@ import torch
 from uncertsplat.config import EvalConfig, PruneConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
+from uncertsplat.schemas.prune import (
+    PruneCounts,
+    PruneMetrics,
+    PruneMetricSet,
+    PruneReport,
+    PsnrChange,
+    ScoreStats,
+    Written,
+)
 
 METRIC_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "depth_ause_mae")
 
@@ -105,7 +114,7 @@ class _Measure:
         self.meta = {"variant": loaded.config.variant, "extent": loaded.extent, "step": loaded.step,
                      "sh_degree_active": loaded.sh_degree,
                      "temperature": loaded.config.variational.gate_temperature}
-        self._cache: dict[str, dict] = {}
+        self._cache: dict[str, PruneMetrics] = {}
 
     @torch.no_grad()
     def mean_renders(self, model) -> tuple[torch.Tensor, torch.Tensor]:
@@ -132,9 +141,10 @@ class _Measure:
                                       extent=self.loaded.extent, temperature=self.meta["temperature"])
             return {"variational_ply_bytes": v.stat().st_size, "point_cloud_ply_bytes": p.stat().st_size}
 
-    def __call__(self, model, keep: torch.Tensor | None = None) -> dict:
+    def __call__(self, model, keep: torch.Tensor | None = None) -> PruneMetrics:
         """Metrics of ``model``; with ``keep`` (the mask that made it) the result is cached per mask."""
-        from uncertsplat.stages.evaluate import evaluate_views
+        from uncertsplat.data.dataset import load_view_set
+        from uncertsplat.eval.engine import evaluate_views
 
         key = None
         if keep is not None:
@@ -143,33 +153,18 @@ class _Measure:
                 return self._cache[key]
         t0 = time.perf_counter()
         loaded = dataclasses.replace(self.loaded, model=model)
-        report = evaluate_views(loaded, self.scene, self.indices, self.ecfg, self.device, show_progress=False)
+        report = evaluate_views(loaded.sampler(self.scene.scene_scale, self.device),
+                                load_view_set(self.scene, self.indices), self.ecfg, self.device, show_progress=False)
         _, alpha = self.mean_renders(model)
-        out = {"num_gaussians": len(model), "num_carriers": model.num_carriers}
-        for k in METRIC_KEYS:
-            v = getattr(report.mean, k, None)
-            if v is not None:
-                out[k] = float(v)
-        out["coverage"] = float(alpha.mean())
-        out.update(self.file_sizes(model))
-        out["seconds"] = time.perf_counter() - t0
+        out = PruneMetrics(num_gaussians=len(model), num_carriers=model.num_carriers,
+                           **{k: getattr(report.mean, k) for k in METRIC_KEYS}, coverage=float(alpha.mean()),
+                           **self.file_sizes(model), seconds=time.perf_counter() - t0)
         if key is not None:
             self._cache[key] = out
         return out
 
 
 # ------------------------------------------------------------------------------------------ helpers
-def _random_keep(n: int, n_remove: int, seed: int) -> torch.Tensor:
-    """Random-removal baseline: ``n_remove`` of all Gaussians, from a CPU generator seeded with ``seed``.
-
-    The generator is re-seeded for every call, so the random masks of a sweep are nested (each removes
-    a prefix of the same permutation) and the baseline at a ratio does not depend on the other ratios.
-    """
-    from uncertsplat.prune import random_mask
-
-    return random_mask(n, n_remove, torch.Generator().manual_seed(seed))
-
-
 def _add_vertex_properties(path: Path, cols: dict[str, np.ndarray]) -> None:
     """Append float properties to the ``vertex`` element of a PLY file (rewritten atomically)."""
     from plyfile import PlyData, PlyElement
@@ -189,7 +184,11 @@ def _add_vertex_properties(path: Path, cols: dict[str, np.ndarray]) -> None:
     atomic_write(path, lambda f: new.write(f))
 
 
-def _print_table(title: str, rows: list[tuple[str, dict]]) -> None:
+def _num(x: float | None, digits: int = 2) -> str:
+    return "n/a" if x is None else f"{x:.{digits}f}"
+
+
+def _print_table(title: str, rows: list[tuple[str, PruneMetrics]]) -> None:
     from rich.table import Table
 
     table = Table(title=title)
@@ -200,8 +199,8 @@ def _print_table(title: str, rows: list[tuple[str, dict]]) -> None:
         return "-" if x is None else f"{x:.{p}f}"
 
     for name, m in rows:
-        table.add_row(name, str(m["num_gaussians"]), f(m.get("psnr"), 2), f(m.get("ssim")), f(m.get("ause_mae")),
-                      f(m.get("nll")), f(m.get("coverage")), f(m["variational_ply_bytes"] / 1e6, 2))
+        table.add_row(name, str(m.num_gaussians), f(m.psnr, 2), f(m.ssim), f(m.ause_mae), f(m.nll), f(m.coverage),
+                      f(m.variational_ply_bytes / 1e6, 2))
     console.print(table)
 
 
@@ -211,10 +210,10 @@ def rebuild_from_mask(run_dir: str | Path, mask_file: str | Path, device: torch.
     Raises:
         UserError: when the mask does not fit the run's model (e.g. the run was retrained since).
     """
-    from uncertsplat.io.checkpoints import load_model
+    from uncertsplat.baselines import load_run
     from uncertsplat.prune import apply_keep, mask_from_indices
 
-    loaded = load_model(run_dir, device)
+    loaded = load_run(run_dir, device)
     idx = torch.from_numpy(np.load(mask_file)).to(loaded.model.device)
     try:
         keep = mask_from_indices(idx, len(loaded.model))
@@ -225,16 +224,16 @@ def rebuild_from_mask(run_dir: str | Path, mask_file: str | Path, device: torch.
 
 
 # ---------------------------------------------------------------------------------------------- run
-def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.device) -> dict:
-    """Prune ``run_dir`` into ``output`` (see the module docstring); returns the ``prune.json`` content.
+def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.device) -> PruneReport:
+    """Prune ``run_dir`` into ``output`` (see the module docstring); returns what ``prune.json`` holds.
 
     Raises:
         UserError: a missing run folder, a run without posterior carriers, no mode given, an unknown
             score, an output folder equal to / inside / containing the input or already existing.
     """
-    from uncertsplat.io.checkpoints import load_model
-    from uncertsplat.prune import apply_keep, keep_ratio_mask, num_to_remove, threshold_mask
-    from uncertsplat.stages.evaluate import load_run_scene
+    from uncertsplat.baselines import load_run
+    from uncertsplat.prune import apply_keep
+    from uncertsplat.prune.policy import auto_keep_ratio, choose_mask, keep_ratio_sweep, random_keep
     from uncertsplat.uncertainty.scores import carrier_mask, compute_scores, resolve_score_name, spread_views
 
     run_dir = Path(run_dir)
@@ -250,14 +249,14 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
     except ValueError as err:
         raise UserError(str(err)) from None
 
-    loaded = load_model(run_dir, device)
+    loaded = load_run(run_dir, device)
     model = loaded.model
     if model.num_carriers == 0:
         raise UserError("the run has no Gaussians with a posterior (posterior carriers), so there is no "
                         "uncertainty to prune by", path=run_dir,
                         hint="Prune a run trained with method=variational for at least one spawn interval "
                              "(densify.spawn_interval steps).")
-    scene = load_run_scene(loaded, run_dir)
+    scene = loaded.load_scene()
     notes: list[str] = []
     split = "test"
     indices = list(scene.split.get("test", ()))
@@ -296,94 +295,56 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
     # ---- sweep (also what --auto decides on)
     sweep = None
     if cfg.sweep or cfg.auto:
-        ratios = sorted(set(cfg.sweep_ratios) | {1.0}, reverse=True)
-        sweep = {"ratios": ratios, "score": score_name, "split": split, "unpruned": before, "points": []}
-        for r in ratios:
-            keep_s = keep_ratio_mask(score, carriers, r)
-            removed = int((~keep_s).sum())
-            point = {"keep_ratio": r, "num_removed": removed, "keep_ratio_achieved": (n - removed) / n}
-            keep_r = _random_keep(n, removed, cfg.seed)
-            point["score"] = before if removed == 0 else measure(apply_keep(model, keep_s), keep_s)
-            point["random"] = before if removed == 0 else measure(apply_keep(model, keep_r), keep_r)
-            sweep["points"].append(point)
-            console.print(f"  keep {r:.2f}: removed {removed}, PSNR {point['score'].get('psnr', float('nan')):.2f} "
-                          f"(random {point['random'].get('psnr', float('nan')):.2f})")
-        ok = [p for p in sweep["points"] if p["keep_ratio"] < 1.0]
-        within = None
-        for p in ok:  # descending ratios: stop at the first failure
-            if p["score"]["psnr"] >= before["psnr"] - cfg.tolerance_db:
-                within = p
-            else:
-                break
-        sweep["largest_removal_within_tolerance"] = None if within is None else {
-            "keep_ratio": within["keep_ratio"], "num_removed": within["num_removed"],
-            "psnr_loss_db": before["psnr"] - within["score"]["psnr"], "tolerance_db": cfg.tolerance_db}
+        def show(p):
+            console.print(f"  keep {p.keep_ratio:.2f}: removed {p.num_removed}, PSNR {_num(p.score.psnr)} "
+                          f"(random {_num(p.random.psnr)})")
+
+        sweep = keep_ratio_sweep(model, score, carriers, cfg.sweep_ratios, measure, unpruned=before, seed=cfg.seed,
+                                 tolerance_db=cfg.tolerance_db, score_name=score_name, split=split, on_point=show)
 
     # ---- the chosen mask
     threshold = cfg.threshold
     keep_ratio = cfg.keep_ratio
     if cfg.auto:
-        best = sweep["largest_removal_within_tolerance"]
-        keep_ratio = best["keep_ratio"] if best else 1.0
-        if best is None:
-            first = next((p for p in sweep["points"] if p["num_removed"] > 0), None)
-            cost = "" if first is None else (
-                f" (the smallest removal tried, {100 * (1 - first['keep_ratio_achieved']):.0f} %, cost "
-                f"{before['psnr'] - first['score']['psnr']:.2f} dB; random removal of as many "
-                f"{before['psnr'] - first['random']['psnr']:.2f} dB)")
-            notes.append(f"--auto: no evaluated keep ratio stays within {cfg.tolerance_db} dB of the unpruned "
-                         f"held-out PSNR, so nothing was removed{cost}; allow more with --tolerance-db, or choose "
-                         "--keep-ratio")
-    keep = None
-    if threshold is not None:
-        keep = threshold_mask(score, carriers, threshold)
-    elif keep_ratio is not None:
-        keep = keep_ratio_mask(score, carriers, keep_ratio)
-        wanted = num_to_remove(n, keep_ratio)
-        if int((~keep).sum()) < wanted:
-            notes.append(f"keep ratio {keep_ratio} needs {wanted} removals but only {int(carriers.sum())} "
-                         "Gaussians carry a posterior; non-carriers are never removed by a score")
+        keep_ratio, note = auto_keep_ratio(sweep)
+        if note:
+            notes.append(note)
+    keep, mask_notes = choose_mask(score, carriers, threshold=threshold, keep_ratio=keep_ratio)
+    notes.extend(mask_notes)
 
-    result: dict = {
-        "source_run": str(run_dir.resolve()),
-        "source_model": str(loaded.source.name),
-        "source_model_sha256": _sha256(loaded.source),
-        "score": score_name, "score_requested": cfg.score,
-        "mode": "auto" if cfg.auto else "threshold" if threshold is not None else
-                "keep_ratio" if keep_ratio is not None else "sweep",
-        "threshold": threshold, "keep_ratio": keep_ratio, "tolerance_db": cfg.tolerance_db,
-        "seed": cfg.seed, "num_samples": cfg.num_samples, "metric_split": split,
-        "metric_views": [scene.cameras.image_names[i] for i in indices],
-        "score_views": list(score_cams.image_names), "score_seconds": score_seconds,
-        "dry_run": cfg.dry_run, "device": str(device), "notes": notes,
-        "score_stats": {k: {"min": float(v[carriers].min()), "median": float(v[carriers].median()),
-                            "max": float(v[carriers].max())} for k, v in scores.items()},
-        "metrics": {"before": before},
-        "undo": "The source run is unchanged: use it to undo. prune_mask.npy lists the kept indices into its "
-                "model; uncertsplat.stages.prune.rebuild_from_mask(source_run, prune_mask.npy) rebuilds this model.",
-    }
-    pruned = random_model = rand_keep = None
+    result = PruneReport(
+        source_run=str(run_dir.resolve()), source_model=str(loaded.source.name),
+        source_model_sha256=_sha256(loaded.source), score=score_name, score_requested=cfg.score,
+        mode="auto" if cfg.auto else "threshold" if threshold is not None else
+             "keep_ratio" if keep_ratio is not None else "sweep",
+        threshold=threshold, keep_ratio=keep_ratio, tolerance_db=cfg.tolerance_db, seed=cfg.seed,
+        num_samples=cfg.num_samples, metric_split=split, metric_views=[scene.cameras.image_names[i] for i in indices],
+        score_views=list(score_cams.image_names), score_seconds=score_seconds, dry_run=cfg.dry_run,
+        device=str(device), notes=notes,
+        score_stats={k: ScoreStats(min=float(v[carriers].min()), median=float(v[carriers].median()),
+                                   max=float(v[carriers].max())) for k, v in scores.items()},
+        metrics=PruneMetricSet(before=before), sweep=sweep,
+        undo="The source run is unchanged: use it to undo. prune_mask.npy lists the kept indices into its model; "
+             "uncertsplat.stages.prune.rebuild_from_mask(source_run, prune_mask.npy) rebuilds this model.",
+    )
+    pruned = random_model = None
     if keep is not None:
         removed = int((~keep).sum())
         pruned = apply_keep(model, keep)
-        rand_keep = _random_keep(n, removed, cfg.seed)
+        rand_keep = random_keep(n, removed, cfg.seed)
         random_model = apply_keep(model, rand_keep)
         after = before if removed == 0 else measure(pruned, keep)
         rand = before if removed == 0 else measure(random_model, rand_keep)
         removed_scores = score[~keep]
-        result.update({
-            "counts": {"before": n, "after": n - removed, "removed": removed,
-                       "carriers_before": model.num_carriers, "carriers_after": pruned.num_carriers},
-            "keep_ratio_achieved": (n - removed) / n,
-            "threshold_effective": float(removed_scores.min()) if removed else None,
-        })
-        result["metrics"].update({"after": after, "random": rand})
-        result["delta_psnr_db"] = {"score": after.get("psnr", 0) - before.get("psnr", 0),
-                                   "random": rand.get("psnr", 0) - before.get("psnr", 0)}
+        result.counts = PruneCounts(before=n, after=n - removed, removed=removed, carriers_before=model.num_carriers,
+                                    carriers_after=pruned.num_carriers)
+        result.keep_ratio_achieved = (n - removed) / n
+        result.threshold_effective = float(removed_scores.min()) if removed else None
+        result.metrics = PruneMetricSet(before=before, after=after, random=rand)
+        if before.psnr is not None and after.psnr is not None and rand.psnr is not None:
+            result.delta_psnr_db = PsnrChange(score=after.psnr - before.psnr, random=rand.psnr - before.psnr)
         _print_table(f"prune: keep {n - removed}/{n} by '{score_name}' ({split} views, K={cfg.num_samples})",
                      [("before", before), ("after", after), ("random", rand)])
-    if sweep is not None:
-        result["sweep"] = sweep
     for note in notes:
         console.print(f"[yellow]note:[/] {note}")
 
@@ -394,13 +355,13 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
     return result
 
 
-def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measure, loaded, result: dict,
+def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measure, loaded, result: PruneReport,
                   scores: dict, carriers: torch.Tensor, keep, pruned, random_model, sweep) -> None:
-    from uncertsplat.io.atomic import atomic_write_bytes, atomic_write_json
+    from uncertsplat.io.atomic import atomic_write_bytes
     from uncertsplat.io.images import write_png
+    from uncertsplat.io.maps import map_stem
     from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
     from uncertsplat.prune import kept_indices
-    from uncertsplat.stages.evaluate import map_stem
     from uncertsplat.uncertainty.scores import spread_views
 
     output.parent.mkdir(parents=True, exist_ok=True)
@@ -429,16 +390,16 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
                 for j in sel:
                     name = measure.scene.cameras.image_names[measure.indices[j]]
                     write_png(tmp / "renders" / f"{map_stem(name)}_{tag}.png", rgb[j].numpy())
-        result["written"] = {"model": writes_model, "folder": str(output)}
+        result.written = Written(model=writes_model, folder=str(output))
         if sweep is not None:
-            atomic_write_json(tmp / "sweep.json", sweep)
-        atomic_write_json(tmp / "prune.json", result)
+            sweep.write(tmp / "sweep.json")
+        result.write(tmp / "prune.json")
         if output.exists():
             output.rmdir()  # checked empty before any work; rmdir fails (safely) if something appeared since
         os.rename(tmp, output)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    what = "pruned run" if result["written"]["model"] else "report (no model: dry run)" \
+    what = "pruned run" if result.written.model else "report (no model: dry run)" \
         if cfg.dry_run else "report (no model: sweep only)"
     console.print(f"wrote {what} to {output}")

@@ -1,6 +1,6 @@
 """Stage ``reconstruct``: a folder of photos to an undistorted COLMAP workspace with a health report.
 
-Workspace layout (DESIGN.md section 2)::
+Workspace layout (the COLMAP layout that 3DGS tools read; README, ``uncertsplat reconstruct``)::
 
     WS/images/                 undistorted PINHOLE images
     WS/sparse/0/*.bin          the model of the undistorted images

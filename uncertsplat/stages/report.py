@@ -1,8 +1,9 @@
 """Stage ``report``: one or more run folders -> ``OUT/index.html`` with PNG figures in ``OUT/figures/``.
 
 The page is self-contained (inline CSS, no scripts, fonts or network access); figures are PNG files
-beside it. Every input is optional (see ``uncertsplat.report.loader``): a run that was not evaluated
-gets a note instead of metric sections. All files are written atomically; ``index.html`` is written
+beside it. Every input is read through its schema and is optional (see ``uncertsplat.report.loader``): a
+run that was not evaluated gets a note instead of metric sections, and a file that is present but invalid
+is named in a note with the key or version that is wrong. All files are written atomically; ``index.html`` is written
 last, so a report folder never references a figure that is not there.
 """
 
@@ -56,8 +57,8 @@ def _remove_stale_figures(out: Path, keep: list[str]) -> None:
                 p.unlink()
 
 
-def run(runs: list[Path], out: Path, cfg: ReportConfig | None = None) -> Path:
-    """Write the HTML report of ``runs`` into ``out``; returns the path of ``out/index.html``.
+def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = None) -> Path:
+    """Write the HTML report of ``runs`` (one run folder or a list) into ``out``; returns ``out/index.html``.
 
     Raises:
         UserError: naming the run path when a run folder is missing or is not a run folder, or the
@@ -67,7 +68,7 @@ def run(runs: list[Path], out: Path, cfg: ReportConfig | None = None) -> Path:
     from uncertsplat.report.loader import load_run
 
     cfg = cfg or ReportConfig()
-    paths = [Path(r) for r in runs]
+    paths = [Path(runs)] if isinstance(runs, (str, Path)) else [Path(r) for r in runs]
     if not paths:
         raise UserError("no run folder given", hint="Example: uncertsplat report runs/demo -o report/")
     out = Path(out)

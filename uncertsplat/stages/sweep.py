@@ -22,43 +22,47 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 from pathlib import Path
 
+from pydantic import ValidationError
+
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
-from uncertsplat.io.atomic import atomic_write_json, atomic_write_text, run_lock
+from uncertsplat.io.atomic import atomic_write_text, run_lock
+from uncertsplat.schemas.base import describe_validation_error, key_problems
+from uncertsplat.schemas.runs import SweepRecord, SweepSummary
 
 
-def _read_records(path: Path) -> list[dict]:
+def _num(x: float | None, digits: int) -> str:
+    return "n/a" if x is None else f"{x:.{digits}f}"
+
+
+def read_records(path: Path) -> list[SweepRecord]:
+    """The records of ``sweep.jsonl`` (a line cut short by a crash is skipped).
+
+    Raises:
+        UserError: naming the file, the line and the key when a complete line does not match the schema.
+    """
     out = []
     if path.is_file():
-        for line in path.read_text(encoding="utf-8").splitlines():
+        for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
             try:
-                out.append(json.loads(line))
+                data = json.loads(line)
             except json.JSONDecodeError:
                 continue  # a line cut short by a crash
+            problems = key_problems(SweepRecord, data)
+            try:
+                if problems:
+                    raise UserError("; ".join(problems[:4]))
+                out.append(SweepRecord.model_validate(data))
+            except (ValidationError, UserError) as err:
+                why = describe_validation_error(err) if isinstance(err, ValidationError) else err.message
+                raise UserError(f"line {i} does not match the sweep record schema (version "
+                                f"{SweepRecord.model_fields['schema_version'].default}): {why}", path=path,
+                                hint="Move the file away to start the sweep afresh.") from None
     return out
 
 
-def summarize(spec, records: list[dict]) -> dict:
-    """The ``sweep.json`` summary: the latest record per point, the default and the Pareto fronts."""
-    from uncertsplat.sweep.pareto import pareto_front
-
-    latest: dict[str, dict] = {}
-    for r in records:
-        latest[r["id"]] = r
-    recs = list(latest.values())
-    ok = [r for r in recs if r.get("status") == "ok"]
-    fronts = {}
-    for y in spec.pareto_y:
-        fronts[f"{y}_vs_{spec.pareto_x}"] = [r["id"] for r in pareto_front(ok, x=spec.pareto_x, y=y,
-                                                                             minimize_both=(y != "psnr"))]
-    default = next((r for r in recs if r.get("is_default")), None)
-    return {"name": spec.name, "spec": json.loads(spec.model_dump_json()), "num_points": len(recs),
-            "num_failed": len(recs) - len(ok), "default": default["id"] if default else None,
-            "pareto_x": spec.pareto_x, "pareto": fronts, "records": recs}
-
-
 def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str = "auto", scene: Path | None = None,
-        overrides: list[str] | None = None, force: bool = False) -> dict:
+        overrides: list[str] | None = None, force: bool = False) -> SweepSummary:
     """Run (or resume) a sweep; returns the ``sweep.json`` summary.
 
     Args:
@@ -76,7 +80,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
     from uncertsplat.device import resolve_device
     from uncertsplat.report.sweep_page import build_sweep_page
     from uncertsplat.sweep.jobs import run_job
-    from uncertsplat.sweep.pareto import plot_pareto
+    from uncertsplat.sweep.pareto import plot_pareto, summarize
     from uncertsplat.sweep.spec import load_spec, make_jobs
 
     spec = load_spec(Path(spec_path), overrides)
@@ -103,7 +107,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         all_jobs = make_jobs(spec, out_dir, Path(scene_path), str(dev), threads=None)
         hashes = {p["hash"] for j in all_jobs for p in j["points"]}  # this spec's points only
         log = out_dir / "sweep.jsonl"
-        done = {r["hash"] for r in _read_records(log) if r.get("status") == "ok"} if not force else set()
+        done = {r.hash for r in read_records(log) if r.status == "ok"} if not force else set()
         todo = []
         for job in all_jobs:
             job["points"] = [p for p in job["points"] if p["hash"] not in done]
@@ -113,16 +117,17 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         console.print(f"[bold]sweep[/] {spec.name}: {npts} points to run in {len(todo)} jobs "
                       f"({len(done)} already done), {min(jobs, max(len(todo), 1))} at a time, device {dev}")
 
-        def record(recs: list[dict]) -> None:
+        def record(dicts: list[dict]) -> None:
+            recs = [SweepRecord.model_validate(r) for r in dicts]  # a writer bug fails here, not in a later read
             with open(log, "a", encoding="utf-8") as f:
                 for r in recs:
-                    f.write(json.dumps(r) + "\n")
+                    f.write(r.model_dump_json() + "\n")
             for r in recs:
-                if r["status"] == "ok":
-                    console.print(f"  {r['id']}: PSNR {r['psnr']:.2f}, AUSE {r['ause_mae']:.4f}, NLL {r['nll']:.3f}, "
-                                  f"train {r['train_seconds']:.1f} s, eval {r['eval_seconds_per_view']:.2f} s/view")
+                if r.status == "ok":
+                    console.print(f"  {r.id}: PSNR {_num(r.psnr, 2)}, AUSE {_num(r.ause_mae, 4)}, NLL {_num(r.nll, 3)}, "
+                                  f"train {_num(r.train_seconds, 1)} s, eval {_num(r.eval_seconds_per_view, 2)} s/view")
                 else:
-                    console.print(f"  [red]{r['id']} failed[/] in {r.get('stage')}: {r.get('error')}")
+                    console.print(f"  [red]{r.id} failed[/] in {r.stage}: {r.error}")
 
         if jobs == 1 or len(todo) <= 1:
             for job in todo:
@@ -143,17 +148,17 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                                  "stage": "worker", "error": f"{type(err).__name__}: {err}"} for p in job["points"]]
                     record(recs)
 
-        records = [r for r in _read_records(log) if r.get("hash") in hashes]
+        records = [r for r in read_records(log) if r.hash in hashes]
         summary = summarize(spec, records)
-        atomic_write_json(out_dir / "sweep.json", summary)
-        if any(r.get("status") == "ok" for r in summary["records"]):
-            plot_pareto(summary["records"], out_dir / "pareto.png", x=spec.pareto_x, ys=spec.pareto_y,
+        summary.write(out_dir / "sweep.json")
+        if any(r.status == "ok" for r in summary.records):
+            plot_pareto(summary.records, out_dir / "pareto.png", x=spec.pareto_x, ys=spec.pareto_y,
                         title=f"{spec.name}: accuracy vs time (front in black, default starred)")
         fig = "pareto.png" if (out_dir / "pareto.png").is_file() else None
         atomic_write_text(out_dir / "index.html", build_sweep_page(summary, fig))
     console.print(f"wrote {log}, {out_dir / 'sweep.json'}, {out_dir / 'pareto.png'} and {out_dir / 'index.html'}")
-    if summary["num_failed"]:
-        failed = [r["id"] for r in summary["records"] if r.get("status") != "ok"]
+    if summary.num_failed:
+        failed = [r.id for r in summary.records if r.status != "ok"]
         raise UserError(f"{len(failed)} sweep point(s) failed: {', '.join(failed)}", path=log,
                         hint="See their `error` in sweep.jsonl; run the sweep again to retry only those points.")
     return summary

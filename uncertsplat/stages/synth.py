@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -10,19 +9,26 @@ from rich.table import Table
 
 from uncertsplat.config import SynthConfig
 from uncertsplat.console import console, progress
-from uncertsplat.data.synthetic import GENERATOR_VERSION, generate_scene, is_synthetic_scene, resolve_size
+from uncertsplat.data.synthetic import GENERATOR_VERSION, generate_scene, read_scene_meta, resolve_size
 from uncertsplat.errors import UserError
 from uncertsplat.io.atomic import run_lock
+from uncertsplat.schemas import SynthScene
 
 
-def _existing_config(out: Path) -> dict | None:
+def _same_scene(out: Path, cfg: SynthConfig) -> bool | None:
+    """None: ``out`` holds no (valid) synthetic scene; else whether it is the one ``cfg`` generates."""
     try:
-        meta = json.loads((out / "scene.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        meta = read_scene_meta(out)
+    except UserError:
         return None
-    if meta.get("generator_version") != GENERATOR_VERSION:
+    if meta is None:
         return None
-    return meta.get("config")
+    if meta.generator_version != GENERATOR_VERSION:
+        return False
+    try:  # a scene written before a config key existed was made with that key's default
+        return SynthConfig.model_validate(meta.config) == cfg
+    except ValueError:
+        return False
 
 
 def run(out: Path, cfg: SynthConfig, overwrite: bool = False) -> Path:
@@ -40,8 +46,9 @@ def run(out: Path, cfg: SynthConfig, overwrite: bool = False) -> Path:
         raise UserError("the output path exists and is not a folder", path=out, hint="Choose a folder path.")
     non_empty = out.is_dir() and any(p.name != ".lock" for p in out.iterdir())
     if non_empty and not overwrite:
-        if is_synthetic_scene(out):
-            if _existing_config(out) == cfg.model_dump(mode="json"):
+        same = _same_scene(out, cfg)
+        if same is not None:
+            if same:
                 console.print(f"[green]synth:[/] {out} already holds this scene (same config); nothing to do.")
                 return out
             raise UserError("the folder holds a synthetic scene made with a different config", path=out,
@@ -57,18 +64,25 @@ def run(out: Path, cfg: SynthConfig, overwrite: bool = False) -> Path:
                        on_view=lambda done, total: bar.update(task, completed=done, info=f"{width}x{height}"))
     elapsed = time.perf_counter() - t0
 
-    meta = json.loads((out / "scene.json").read_text(encoding="utf-8"))
+    meta = SynthScene.read(out / "scene.json")
     table = Table(title=f"synthetic scene '{cfg.preset}' (seed {cfg.seed}) in {elapsed:.1f} s", show_header=False)
     table.add_column(style="bold")
     table.add_column()
     table.add_row("folder", str(out))
-    table.add_row("views", f"{num_views} at {width}x{height}, test views: {len(meta['test_views'])} "
+    table.add_row("views", f"{num_views} at {width}x{height} on a {cfg.rig} rig, test views: {len(meta.test_views)} "
                   f"(every {cfg.test_every}th)")
-    table.add_row("images/", "8-bit PNG per view")
+    pixels = "RGB" if cfg.backdrop == "room" and cfg.layout == "colmap" else "RGBA"
+    backdrop = "objects in a closed room" if cfg.backdrop == "room" else "objects only, transparent background"
+    if cfg.layout == "blender":
+        table.add_row("train/, test/", f"8-bit {pixels} PNG per view ({backdrop})")
+        table.add_row("transforms_*.json", "Blender layout: camera_angle_x, GT camera-to-world (OpenGL axes)")
+    else:
+        table.add_row("images/", f"8-bit {pixels} PNG per view ({backdrop})")
     table.add_row("depth/", "float32 .npy camera z per view (exact)")
     table.add_row("masks/", "valid-depth mask PNG per view")
-    table.add_row("sparse/0/", f"COLMAP model: PINHOLE camera, GT poses, {meta['num_points']} points")
-    table.add_row("scene.json", "preset, seed, intrinsics, image names, test views")
+    if cfg.layout == "colmap":
+        table.add_row("sparse/0/", f"COLMAP model: PINHOLE camera, GT poses, {meta.num_points} points")
+    table.add_row("scene.json", "preset, seed, layout, rig, intrinsics, image names, test views")
     console.print(table)
     console.print(f"Next: [bold]uncertsplat train {out} -o RUN --preset {cfg.preset}[/]")
     return out

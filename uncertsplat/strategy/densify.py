@@ -2,7 +2,7 @@
 
 The decision functions are pure (tensors in, masks out) and table-tested. They are always fed the
 posterior-mean parameters (``variational.posterior_mean``), never a fresh random sample, so a decision
-does not depend on the noise of the step it happens at (DESIGN.md section 6, defect 4).
+does not depend on the noise of the step it happens at (docs/method.md, the original code's defect 4).
 ``Densifier`` ties the statistics, the schedule and ``gaussians.ops`` together for the trainer.
 """
 
@@ -15,7 +15,8 @@ from torch import Tensor
 
 from uncertsplat.gaussians import ops
 from uncertsplat.gaussians.params import GaussianModel
-from uncertsplat.gaussians.variational import Prior, posterior_mean
+from uncertsplat.gaussians.prior import Prior
+from uncertsplat.gaussians.variational import posterior_mean
 from uncertsplat.strategy.schedule import is_densify_step, is_opacity_reset_step, is_spawn_step, is_stats_step
 
 

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import torch
 
+from uncertsplat.schemas import TrainSummary
+
 RECORD_KEYS = ("psnr", "psnr_render", "ssim", "ause_mae", "ause_rmse", "nll", "nll_kde", "calibration_error",
                "nll_calibrated", "calibration_error_calibrated", "spearman", "depth_ause_mae", "depth_ause_rmse",
                "depth_abs_rel")
@@ -26,7 +28,7 @@ def _peak_mb(device: torch.device) -> float:
     return float(peak_memory_mb(device))
 
 
-def _train(job: dict, device: torch.device) -> tuple[dict, bool]:
+def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
     """Train the job's run unless it is finished; returns (train_summary, trained_now)."""
     from uncertsplat.baselines import train_run
     from uncertsplat.config import TrainConfig, build_config
@@ -37,8 +39,8 @@ def _train(job: dict, device: torch.device) -> tuple[dict, bool]:
     if summary_path.is_file() and (run_dir / "config.json").is_file():
         stored = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
         if stored == json.loads(cfg.model_dump_json()):
-            summary = json.loads(summary_path.read_text(encoding="utf-8"))
-            if cfg.method != "fisher" or "fisher_seconds" in summary:
+            summary = TrainSummary.read(summary_path)
+            if cfg.method != "fisher" or summary.fisher_seconds is not None:
                 return summary, False
     resume = (run_dir / "config.json").is_file()
     if run_dir.exists() and not resume:
@@ -49,7 +51,7 @@ def _train(job: dict, device: torch.device) -> tuple[dict, bool]:
             shutil.rmtree(run_dir)  # another config under the same id: never mix them
             resume = False
     train_run(Path(job["scene"]), run_dir, cfg, device, resume=resume)
-    return json.loads(summary_path.read_text(encoding="utf-8")), True
+    return TrainSummary.read(summary_path), True
 
 
 def run_job(job: dict) -> list[dict]:
@@ -59,7 +61,7 @@ def run_job(job: dict) -> list[dict]:
     ``error``, ``train_seconds``, ``eval_seconds_per_view``, ``eval_seconds``, ``time`` (train + eval),
     ``num_views``, ``num_samples``, ``peak_memory_mb`` (train / eval / max), ``num_gaussians``,
     ``num_carriers``, the metrics of ``RECORD_KEYS`` (means over the views), ``std_scale`` and
-    ``calibration_seconds`` (the std factor fitted on training views, ``evaluate.fit_std_scale``, and its cost,
+    ``calibration_seconds`` (the std factor fitted on training views, ``eval.engine.fit_std_scale``, and its cost,
     outside the timed evaluation), ``notes``, ``run_dir``.
     """
     from uncertsplat.device import resolve_device
@@ -74,11 +76,11 @@ def run_job(job: dict) -> list[dict]:
         device = resolve_device(job["device"])
         t0 = time.perf_counter()
         summary, trained = _train(job, device)
-        train_peak = float(summary.get("peak_memory_mb") or 0.0)
-        train_info = {"train_seconds": float(summary["seconds"]), "trained_now": trained,
+        train_peak = summary.peak_memory_mb
+        train_info = {"train_seconds": summary.seconds, "trained_now": trained,
                       "train_wall_seconds": time.perf_counter() - t0 if trained else None,
-                      "num_gaussians": summary.get("num_gaussians"), "num_carriers": summary.get("num_carriers"),
-                      "memory_per_gaussian_bytes": summary.get("memory_per_gaussian_bytes"),
+                      "num_gaussians": summary.num_gaussians, "num_carriers": summary.num_carriers,
+                      "memory_per_gaussian_bytes": summary.memory_per_gaussian_bytes,
                       "train_peak_memory_mb": train_peak}
     except Exception as err:  # report, do not kill the sweep
         msg = f"{type(err).__name__}: {err}"
@@ -103,25 +105,32 @@ def run_job(job: dict) -> list[dict]:
 
 
 def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
+    from functools import partial
+
     from uncertsplat.baselines import load_run
     from uncertsplat.config import EvalConfig, build_config
-    from uncertsplat.stages.evaluate import evaluate_views, fit_std_scale, load_run_scene
+    from uncertsplat.data.dataset import load_view_set
+    from uncertsplat.eval.engine import evaluate_views, fit_std_scale, split_indices
+    from uncertsplat.provenance import hash_config
 
     ecfg = build_config(EvalConfig, point["eval_config"], source=f"sweep point {point['id']}")
     run_dir = Path(job["run_dir"])
     loaded = load_run(run_dir, device)
-    scene = load_run_scene(loaded, run_dir)
-    indices = list(scene.split[ecfg.split])
-    if ecfg.max_views is not None:
-        indices = indices[: ecfg.max_views]
+    scene = loaded.load_scene()
+    indices = split_indices(scene.split, ecfg)
     t_cal = time.perf_counter()
-    std_scale, cal_views = fit_std_scale(loaded, scene, ecfg, device)  # as `evaluate` does; not in the timed part
+    # as `evaluate` does; not in the timed part
+    std_scale, cal_views = fit_std_scale(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()),
+                                         ecfg, device, load_views=partial(load_view_set, scene, depth=False))
     calibration_seconds = time.perf_counter() - t_cal
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
-    report = evaluate_views(loaded, scene, indices, ecfg, device, show_progress=False, std_scale=std_scale,
-                            calibration_views=cal_views)
+    views = load_view_set(scene, indices)  # the scene's own GT depth (a sweep point has no --depth-gt)
+    report = evaluate_views(loaded.sampler(scene.scene_scale, device), views, ecfg, device, show_progress=False,
+                            std_scale=std_scale, calibration_views=cal_views,
+                            notes=loaded.eval_notes(ecfg.num_samples),
+                            config_hash=hash_config(ecfg.model_dump(mode="json")))
     wall = time.perf_counter() - t0
     out = {k: getattr(report.mean, k) for k in RECORD_KEYS}
     out.update(std_scale=std_scale, calibration_seconds=calibration_seconds)

@@ -1,11 +1,14 @@
-"""Pareto front of sweep points (accuracy vs time): a pure function, plus its figure."""
+"""Pareto front of sweep points (accuracy vs time): a pure function, the sweep's summary, and its figure."""
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
+
+from uncertsplat.schemas.runs import SweepRecord, SweepSummary
 
 
 def _value(point: Any, key: str) -> float | None:
@@ -53,6 +56,24 @@ def pareto_front(points: Sequence[Any], x: str = "time", y: str = "ause", minimi
     return front
 
 
+def summarize(spec, records: Sequence[SweepRecord]) -> SweepSummary:
+    """The ``sweep.json`` summary of a ``spec.SweepSpec``'s records: the latest record per point, the default
+    and the Pareto fronts (``spec.pareto_y`` against ``spec.pareto_x``; PSNR is maximised)."""
+    latest: dict[str, SweepRecord] = {}
+    for r in records:
+        latest[r.id] = r
+    recs = list(latest.values())
+    ok = [r for r in recs if r.status == "ok"]
+    fronts = {}
+    for y in spec.pareto_y:
+        fronts[f"{y}_vs_{spec.pareto_x}"] = [r.id for r in pareto_front(ok, x=spec.pareto_x, y=y,
+                                                                          minimize_both=(y != "psnr"))]
+    default = next((r for r in recs if r.is_default), None)
+    return SweepSummary(name=spec.name, spec=json.loads(spec.model_dump_json()), num_points=len(recs),
+                        num_failed=len(recs) - len(ok), default=default.id if default else None,
+                        pareto_x=spec.pareto_x, pareto=fronts, records=recs)
+
+
 def y_scale(values: Sequence[float]) -> tuple[str, dict]:
     """The y-axis scale that keeps a cluster of close values readable beside a few far ones.
 
@@ -73,7 +94,7 @@ def y_scale(values: Sequence[float]) -> tuple[str, dict]:
     return "linear", {}
 
 
-def plot_pareto(records: Sequence[Mapping], path: Path, x: str = "time", ys: Sequence[str] = ("ause_mae", "nll"),
+def plot_pareto(records: Sequence[Any], path: Path, x: str = "time", ys: Sequence[str] = ("ause_mae", "nll"),
                 title: str = "speed-accuracy trade") -> Path:
     """One panel per ``ys`` key: every point, its Pareto front (a step line) and the default (a star).
 
@@ -106,7 +127,7 @@ def plot_pareto(records: Sequence[Mapping], path: Path, x: str = "time", ys: Seq
         on_front = {id(r) for r in front}
         for r in pts:
             if id(r) in on_front or r.get("is_default"):
-                ax.annotate(r["id"], (_value(r, x), _value(r, y)), fontsize=6.5, alpha=0.85, xytext=(4, 4),
+                ax.annotate(r.get("id"), (_value(r, x), _value(r, y)), fontsize=6.5, alpha=0.85, xytext=(4, 4),
                             textcoords="offset points")
         if front:
             ax.step([_value(r, x) for r in front], [_value(r, y) for r in front], where="post", color="black",

@@ -46,7 +46,7 @@ from uncertsplat.config import (
     deep_update,
     train_config_from,
 )
-from uncertsplat.stages.manifest import hash_config
+from uncertsplat.provenance import hash_config
 
 KNOBS = ("method", "iterations", "num_entries", "num_samples", "downscale", "ensemble_size", "spawn_fraction")
 

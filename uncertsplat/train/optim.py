@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 
 from uncertsplat.gaussians.params import PARAM_SPECS, GaussianModel
-from uncertsplat.gaussians.variational import TABLE_SPECS
+from uncertsplat.gaussians.prior import TABLE_SPECS
 from uncertsplat.strategy.schedule import position_lr
 
 ADAM_EPS = 1e-15
@@ -38,9 +38,10 @@ def base_rates(lr_cfg, step: int, total: int, extent: float, *, table_lr_factor:
 def make_optimizer(model: GaussianModel, rates: dict[str, float]) -> torch.optim.Adam:
     """Adam (eps 1e-15, as 3DGS) with one named group per tensor of ``model.parameters()``.
 
-    The fused implementation (one kernel per tensor; 3-4x faster than the default on CPU, where the
-    update of the offset tables was a visible share of a training step) where torch offers it for the
-    parameters' device; its state has the same layout, so checkpoints load either way.
+    The fused implementation (one kernel per tensor; several times faster than the default on CPU, where
+    the update of the offset tables was a visible share of a training step; BENCHMARKS.md, "Fused Adam")
+    where torch offers it for the parameters' device; its state has the same layout, so checkpoints load
+    either way.
     """
     groups = [{"params": [p], "lr": rates[name], "name": name} for name, p in model.parameters().items()]
     device = model.device.type

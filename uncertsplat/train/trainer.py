@@ -28,8 +28,8 @@ from uncertsplat.config import TrainConfig
 from uncertsplat.console import progress
 from uncertsplat.eval.image import psnr, ssim
 from uncertsplat.gaussians.params import GaussianModel, init_from_points, memory_per_gaussian
+from uncertsplat.gaussians.prior import Prior
 from uncertsplat.gaussians.variational import (
-    Prior,
     expected_render_sample,
     posterior_mean,
     posterior_summary,

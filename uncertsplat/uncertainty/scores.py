@@ -37,7 +37,7 @@ entries, as ``variational.posterior_mean`` does.
 Which score is the default (``DEFAULT_SCORE``) is decided by the pruning benchmark
 (``benchmarks/bench_prune.py``, BENCHMARKS.md "Pruning"): held-out PSNR vs keep ratio, and planted floaters.
 ``predictive`` ranks Gaussians that matter most to the image first (its weight is their contribution), so
-it must not be used to shrink a model: on fern, removing its top 5 % cost 6.9 dB.
+it must not be used to shrink a model: removing even its top few percent costs much of the image quality.
 """
 
 from __future__ import annotations
@@ -50,14 +50,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from uncertsplat.gaussians.params import GaussianModel
-from uncertsplat.gaussians.variational import (
-    MAX_WIDTH,
-    MIN_WIDTH,
-    Variant,
-    gate_off_probability,
-    posterior_mean,
-    sample,
-)
+from uncertsplat.gaussians.prior import MAX_WIDTH, MIN_WIDTH, Variant
+from uncertsplat.gaussians.variational import gate_off_probability, posterior_mean, sample
 from uncertsplat.render.sh import C0
 from uncertsplat.types import Cameras, GaussianSample
 
@@ -66,9 +60,9 @@ POSTERIOR_SCORES: tuple[str, ...] = ("position", "scale", "gate")
 """Scores that need no rendering (read from the offset tables only)."""
 DEFAULT_SCORE = "gate"
 """The score ``--score auto`` uses: the best at shrinking a model at a held-out PSNR budget in the pruning
-benchmark (BENCHMARKS.md, "Pruning"). On fern at 1/8 it beat random removal at every keep ratio (keep 0.5:
-26.33 dB vs 24.12 dB random, from 28.58 dB) and it costs no rendering. ``predictive`` is the one that finds
-planted floaters (40 % of them on fern, the posterior-only scores none), but it removes important
+benchmark (BENCHMARKS.md, "Pruning"). On fern at 1/8 it beat random removal at every keep ratio tried, and
+it costs no rendering. ``predictive`` is the one that finds planted floaters (the posterior-only scores find
+none), but it removes important
 Gaussians too: use it only with a small removal (``--keep-ratio 0.98``) and look at the before/after
 renders."""
 

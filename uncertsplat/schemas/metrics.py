@@ -3,7 +3,7 @@
 Numbers that are not available (no GT depth, LPIPS without local weights, an undefined Spearman, a
 view with no valid pixel) are ``null``. Non-finite floats are stored as ``null`` too (JSON has no NaN;
 a PSNR of +inf, identical images, is therefore null): ``None`` always means "not a number we can
-state". Metric names match the report's column aliases (``uncertsplat/report/extract.py``).
+state".
 
 Curves are stored as ``curves[key][modality][metric]`` with key = "mean" or an image name, modality
 "rgb" or "depth", metric "mae" / "mse" / "rmse"; each curve has ``fractions``, ``oracle``,
@@ -12,22 +12,15 @@ Curves are stored as ``curves[key][modality][metric]`` with key = "mean" or an i
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
+
+from uncertsplat.schemas.base import SchemaFile
+from uncertsplat.schemas.base import Strict as _Strict
+from uncertsplat.schemas.base import finite_or_none as _finite_or_none
 
 SCHEMA_VERSION = 1
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", ser_json_inf_nan="null")
-
-
-def _finite_or_none(v: Any) -> Any:
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
 
 
 class ViewMetrics(_Strict):
@@ -175,8 +168,12 @@ class LpipsStatus(_Strict):
     reason: str
 
 
-class EvalReport(_Strict):
+class EvalReport(SchemaFile):
     """Everything ``evaluate`` measured for one run and split (``RUN/eval/metrics.json``)."""
+
+    FILE_NAME = "eval/metrics.json"
+    SCHEMA_VERSION = SCHEMA_VERSION
+    WRITTEN_BY = "uncertsplat evaluate"
 
     schema_version: int = SCHEMA_VERSION
     split: str = "test"
@@ -197,7 +194,7 @@ class EvalReport(_Strict):
     kde_bandwidth: str = "silverman: max(1.06 * std_hat * K^(-1/5), floor)"
     depth_scale: DepthScaleInfo | None = None
     std_scale: float | None = None
-    """Factor for the RGB std fitted on training views (``evaluate.fit_std_scale``); None = not fitted."""
+    """Factor for the RGB std fitted on training views (``eval.engine.fit_std_scale``); None = not fitted."""
     calibration_views: list[str] = Field(default_factory=list)
     """The training images ``std_scale`` was fitted on."""
     lpips: LpipsStatus | None = None
@@ -208,10 +205,6 @@ class EvalReport(_Strict):
     @classmethod
     def _nonfinite_to_none(cls, v):
         return _finite_or_none(v)
-
-    def to_json(self) -> str:
-        """Pretty JSON text (what ``evaluate`` writes, atomically)."""
-        return self.model_dump_json(indent=2)
 
     @classmethod
     def from_json(cls, text: str | bytes) -> EvalReport:

@@ -1,0 +1,152 @@
+"""nerfstudio ``transforms.json`` folders (sfm/transforms.py): the tiny synthetic scene converted the way
+``ns-process-data`` writes it loads to the GT cameras; what we cannot render is refused naming the file."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from tests.fixtures import tiny_scene_path  # noqa: F401
+from uncertsplat.config import SceneConfig
+from uncertsplat.data.dataset import load_images
+from uncertsplat.errors import UserError
+from uncertsplat.io.images import read_image, resize_image, write_png
+from uncertsplat.sfm.scene import load_scene
+
+# what ns-process-data applies to the COLMAP world: (x, y, z) -> (x, z, -y)
+NS_APPLIED = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0], [0, -1.0, 0, 0]])
+
+
+def _write_ply(path, xyz, rgb):
+    from plyfile import PlyData, PlyElement
+
+    v = np.empty(len(xyz), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"),
+                                  ("blue", "u1")])
+    v["x"], v["y"], v["z"] = xyz.T
+    v["red"], v["green"], v["blue"] = np.round(rgb * 255).astype(np.uint8).T
+    PlyData([PlyElement.describe(v, "vertex")], text=True).write(str(path))
+
+
+def convert(src, root, applied=NS_APPLIED, per_frame=False, extra=None):
+    """The synthetic scene ``src`` as a nerfstudio folder (OpenGL poses in the transformed world)."""
+    ref = load_scene(src, SceneConfig(normalize=False))
+    shutil.copytree(src / "images", root / "images")
+    A = np.concatenate([applied, [[0, 0, 0, 1.0]]], 0)
+    R_A = A[:3, :3] / np.cbrt(np.linalg.det(A[:3, :3]))  # poses stay rigid in a scaled world
+    K = ref.cameras.K.double().numpy()
+    intr = lambda i: {"fl_x": K[i, 0, 0], "fl_y": K[i, 1, 1], "cx": K[i, 0, 2], "cy": K[i, 1, 2],  # noqa: E731
+                      "w": ref.cameras.width, "h": ref.cameras.height}
+    frames = []
+    for i, name in enumerate(ref.cameras.image_names):
+        c2w = np.linalg.inv(ref.cameras.cam_from_world[i].double().numpy())
+        c2w[:3, 1:3] *= -1  # OpenCV -> OpenGL camera axes
+        c2w[:3, :3], c2w[:3, 3] = R_A @ c2w[:3, :3], A[:3, :3] @ c2w[:3, 3] + A[:3, 3]
+        frame = {"file_path": f"images/{name}", "transform_matrix": c2w.tolist(), "colmap_im_id": i + 1}
+        frames.append({**frame, **intr(i)} if per_frame else frame)
+    meta = {"camera_model": "OPENCV", "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames,
+            "applied_transform": applied.tolist(), "ply_file_path": "sparse_pc.ply"}
+    if not per_frame:
+        meta.update(intr(0))
+    meta.update(extra or {})
+    xyz = ref.points.double().numpy() @ A[:3, :3].T + A[:3, 3]
+    _write_ply(root / "sparse_pc.ply", xyz, ref.points_rgb.numpy())
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return ref, meta
+
+
+def _raises(root, match, cfg=None):
+    with pytest.raises(UserError) as info:
+        load_scene(root, cfg or SceneConfig())
+    text = str(info.value)
+    assert match in text and "transforms.json" in text, text
+    return text
+
+
+def test_loads_the_gt_cameras_and_points(tiny_scene_path, tmp_path):  # noqa: F811
+    ref, _ = convert(tiny_scene_path, tmp_path / "ns")
+    scene = load_scene(tmp_path / "ns", SceneConfig(normalize=False))
+    assert scene.source["kind"] == "nerfstudio" and scene.source["frame"].startswith("COLMAP")
+    assert scene.cameras.image_names == tuple(f"images/{n}" for n in ref.cameras.image_names)
+    torch.testing.assert_close(scene.cameras.cam_from_world, ref.cameras.cam_from_world, atol=1e-5, rtol=0)
+    torch.testing.assert_close(scene.cameras.K, ref.cameras.K, atol=1e-4, rtol=0)
+    # the point cloud (written in the transformed world, as ns-process-data does) is back in COLMAP's frame
+    torch.testing.assert_close(scene.points, ref.points, atol=1e-5, rtol=0)
+    torch.testing.assert_close(scene.points_rgb, ref.points_rgb, atol=1 / 255, rtol=0)
+    assert scene.split == ref.split
+    # normalised like the COLMAP workspace: sparse points -> camera centroid, the same similarity
+    norm, ref_norm = load_scene(tmp_path / "ns"), load_scene(tiny_scene_path)
+    assert norm.center_method == "camera_centroid"
+    torch.testing.assert_close(norm.cameras.cam_from_world, ref_norm.cameras.cam_from_world, atol=1e-5, rtol=0)
+    torch.testing.assert_close(load_images(norm, [3]), load_images(ref_norm, [3]))
+
+
+def test_per_frame_intrinsics_scaled_transform_and_split(tiny_scene_path, tmp_path):  # noqa: F811
+    c, s_ = np.cos(0.4), np.sin(0.4)
+    similarity = np.array([[2 * c, -2 * s_, 0, 1.0], [2 * s_, 2 * c, 0, -3.0], [0, 0, 2.0, 0.5]])
+    ref, meta = convert(tiny_scene_path, tmp_path / "ns", applied=similarity, per_frame=True)
+    for i, fr in enumerate(meta["frames"]):  # every frame its own focal length
+        fr["fl_x"] *= 1 + 0.01 * i
+    meta["test_filenames"] = ["images/view_003.png", "./images/view_010.png"]
+    del meta["ply_file_path"]
+    (tmp_path / "ns" / "transforms.json").write_text(json.dumps(meta))
+    scene = load_scene(tmp_path / "ns", SceneConfig(normalize=False))
+    torch.testing.assert_close(scene.cameras.cam_from_world, ref.cameras.cam_from_world, atol=1e-5, rtol=0)
+    fx = ref.cameras.K[:, 0, 0] * (1 + 0.01 * torch.arange(24))
+    torch.testing.assert_close(scene.cameras.K[:, 0, 0], fx)
+    assert scene.split["test"] == (3, 10) and len(scene.split["train"]) == 22
+    # no point cloud: random initial points around where the (inward-facing) ring looks
+    assert scene.center_method == "optical_axes" and len(scene.points) > 1000
+
+
+def test_downscaled_image_folder(tiny_scene_path, tmp_path):  # noqa: F811
+    convert(tiny_scene_path, tmp_path / "ns")
+    for p in sorted((tmp_path / "ns" / "images").iterdir()):
+        write_png(tmp_path / "ns" / "images_2" / p.name, resize_image(read_image(p), 64, 48))
+    scene = load_scene(tmp_path / "ns", SceneConfig(downscale=2))
+    assert scene.source["images"] == "images_2" and scene.image_paths[0].parent.name == "images_2"
+    assert (scene.cameras.width, scene.cameras.height) == (64, 48)
+    full = load_scene(tmp_path / "ns", SceneConfig(downscale=4))  # no images_4/: the full-size images
+    assert full.source["images"] == "full size" and full.cameras.width == 32
+    torch.testing.assert_close(load_images(scene, [0]), load_images(load_scene(tiny_scene_path,
+                                                                                SceneConfig(downscale=2)), [0]),
+                               atol=1 / 255, rtol=0)
+
+
+def test_distortion_and_fisheye_are_refused(tiny_scene_path, tmp_path):  # noqa: F811
+    _, meta = convert(tiny_scene_path, tmp_path / "ns")
+    path = tmp_path / "ns" / "transforms.json"
+    path.write_text(json.dumps({**meta, "k1": 0.05, "p2": -1e-4}))
+    text = _raises(tmp_path / "ns", "k1=0.05, p2=-0.0001")
+    assert "distortion" in text and "uncertsplat reconstruct" in text and "undistort" in text
+    meta["frames"][4]["k2"] = 0.01  # per-frame distortion names the frame
+    path.write_text(json.dumps(meta))
+    _raises(tmp_path / "ns", "frame 'images/view_004.png' has lens distortion (k2=0.01)")
+    del meta["frames"][4]["k2"]
+    path.write_text(json.dumps({**meta, "camera_model": "OPENCV_FISHEYE"}))
+    _raises(tmp_path / "ns", "OPENCV_FISHEYE, which is not a pinhole camera")
+
+
+def test_bad_files_are_refused(tiny_scene_path, tmp_path):  # noqa: F811
+    _, meta = convert(tiny_scene_path, tmp_path / "ns")
+    path = tmp_path / "ns" / "transforms.json"
+    mixed = json.loads(json.dumps(meta))
+    for fr in mixed["frames"][:3]:
+        fr.update(w=256, h=192)
+    path.write_text(json.dumps(mixed))
+    _raises(tmp_path / "ns", "different image sizes: 128x96 (e.g. 'images/view_003.png'), 256x192")
+    path.write_text(json.dumps({**meta, "w": 100}))
+    with pytest.raises(UserError, match="image is 128x96 but the transforms file says 100x96"):
+        load_scene(tmp_path / "ns")
+    path.write_text(json.dumps({**meta, "applied_transform": [[1, 0, 0, 0], [0, 2, 0, 0], [0, 0, 1, 0]]}))
+    _raises(tmp_path / "ns", "applied_transform is not a rotation with a uniform scale")
+    path.write_text(json.dumps({**meta, "ply_file_path": "nope.ply"}))
+    with pytest.raises(UserError, match="nope.ply"):
+        load_scene(tmp_path / "ns")
+    path.write_text(json.dumps({"frames": "x"}))
+    _raises(tmp_path / "ns", "no list of 'frames'")
+    path.write_text("{")
+    _raises(tmp_path / "ns", "cannot read the transforms file")

@@ -1,0 +1,196 @@
+"""A run folder of any method, loaded for rendering: ``load_run`` is the one place a run is read.
+
+``load_run(run_dir, device)`` reads ``RUN/config.json`` (the ``TrainConfig``) and ``RUN/scene.json``
+(``schemas.RunScene``), then the model: ``variational.ply`` when present, else the newest good
+checkpoint (``load_single_model``). An ensemble run loads each member folder the same way
+(``baselines.ensemble``); a Fisher run adds its posterior variances (``baselines.fisher``). Every
+consumer (``evaluate``, ``prune``, ``sweep``, the examples and benchmarks) goes through it.
+
+The ``LoadedRun`` it returns knows how to be sampled (``sampler``: what the evaluation engine draws its
+K samples from), which notes an evaluation of it needs (``eval_notes``) and the scene it was trained on
+(``load_scene``). It lives in ``baselines`` because loading dispatches on the method.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from uncertsplat.config import TrainConfig, build_config
+from uncertsplat.errors import UserError
+from uncertsplat.eval.engine import Sampler
+from uncertsplat.gaussians.params import GaussianModel
+from uncertsplat.gaussians.prior import Prior
+from uncertsplat.schemas import RunScene
+from uncertsplat.types import SceneData
+
+
+@dataclass
+class LoadedRun:
+    """A trained run, ready to render.
+
+    Attributes:
+        model: the Gaussians and their offset tables.
+        config: the resolved ``TrainConfig`` (``RUN/config.json``).
+        scene_path: the scene folder the run was trained on (None when ``scene.json`` is missing).
+        extent: scene extent used in training (position unit of the "ours" variant).
+        step: training step of the model.
+        sh_degree: SH degree active at the end of training.
+        source: the file the model came from (the run folder for an ensemble).
+        run_dir: the run folder.
+    """
+
+    model: GaussianModel
+    config: TrainConfig
+    scene_path: Path | None
+    extent: float
+    step: int
+    sh_degree: int
+    source: Path
+    run_dir: Path
+
+    @property
+    def prior(self) -> Prior:
+        """The ``gaussians.prior.Prior`` (variant, temperature, ...) to sample this model with."""
+        from uncertsplat.train.trainer import prior_from_config
+
+        return prior_from_config(self.config)
+
+    def render_fn(self, scene_scale: float, device: torch.device) -> Callable:
+        """``render_fn(sample, cameras)`` with the run's background, tile size and near plane (as in training)."""
+        from uncertsplat.render import near_plane, render
+
+        bg = torch.tensor(self.config.scene.background, dtype=torch.float32, device=device)
+        return functools.partial(render, background=bg, tile_size=self.config.tile_size,
+                                 near=near_plane(scene_scale))
+
+    def sampler(self, scene_scale: float, device: torch.device) -> Sampler:
+        """What the evaluation engine draws samples from: the model's posterior (its mean for a deterministic
+        model or one without posterior carriers), and the expected render that ``train`` reports.
+
+        Build one per evaluation: a baseline's sampler may keep state between calls.
+        """
+        from uncertsplat.gaussians import variational
+
+        render_fn = self.render_fn(scene_scale, device)
+        prior, model = self.prior, self.model
+        kw = {"variant": prior.variant, "extent": self.extent, "temperature": prior.temperature,
+              "sh_degree": self.sh_degree}
+        with torch.no_grad():
+            det_sample = variational.expected_render_sample(model, **kw)
+        if self.config.method == "deterministic" or model.num_carriers == 0:
+            mean_sample = variational.posterior_mean(model, **kw)
+
+            def sample_fn(g):
+                return mean_sample
+        else:
+            subset_size = self.config.variational.subset_size
+
+            def sample_fn(g):
+                return variational.sample(model, g, subset_size=subset_size, **kw)
+        return Sampler(sample_fn, render_fn, det_sample)
+
+    def eval_notes(self, num_samples: int) -> list[str]:
+        """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run."""
+        if self.config.method == "deterministic":
+            return ["deterministic model: every sample is the same render, the std is 0 everywhere"]
+        return []
+
+    def load_scene(self) -> SceneData:
+        """The scene the run was trained on, with the run's scene config (same split and downscale).
+
+        Raises:
+            UserError: the run records no scene, or the scene folder is gone.
+        """
+        from uncertsplat.sfm.scene import load_scene
+
+        if self.scene_path is None:
+            raise UserError("the run does not record its scene (scene.json is missing)", path=self.run_dir,
+                            hint="Evaluate a run written by `uncertsplat train`.")
+        if not Path(self.scene_path).exists():
+            raise UserError(f"the scene this run was trained on is gone: {self.scene_path}", path=self.run_dir,
+                            hint="Restore the scene folder at that path, then run evaluate again.")
+        return load_scene(self.scene_path, self.config.scene)
+
+
+def read_run_config(run_dir: Path) -> TrainConfig:
+    """``RUN/config.json`` as a ``TrainConfig``.
+
+    Raises:
+        UserError: the file is missing (not a training run), not JSON, or not a valid config.
+    """
+    cfg_path = Path(run_dir) / "config.json"
+    if not cfg_path.is_file():
+        raise UserError("not a training run (config.json is missing)", path=run_dir,
+                        hint="Point to a folder written by `uncertsplat train`.")
+    try:
+        data = json.loads(cfg_path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as err:
+        raise UserError(f"config.json is not valid JSON ({err})", path=cfg_path) from None
+    return build_config(TrainConfig, data, source=str(cfg_path))
+
+
+def load_single_model(run_dir: str | Path, device: torch.device | str = "cpu") -> LoadedRun:
+    """The one trained model of a run folder, whatever its method: ``variational.ply`` when present, else the
+    newest good checkpoint. ``load_run`` uses it for every single-model method (and for each ensemble
+    member); a Fisher run's model is read here before its posterior exists.
+
+    Raises:
+        UserError: no config or no model in the folder, naming the file and the fix.
+    """
+    run_dir = Path(run_dir)
+    return _load_single(run_dir, read_run_config(run_dir), device)
+
+
+def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) -> LoadedRun:
+    from uncertsplat.io.checkpoints import CorruptCheckpoint, load_latest
+    from uncertsplat.io.ply import read_variational_ply
+
+    info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
+    scene_path = Path(info.scene) if info is not None and info.scene else None
+    device = torch.device(device)
+    ply = run_dir / "variational.ply"
+    if ply.is_file():
+        model, meta = read_variational_ply(ply, device=device)
+        extent = float(meta.get("extent", info.extent if info is not None else 1.0))
+        return LoadedRun(model, cfg, scene_path, extent, int(meta.get("step", 0)),
+                         int(meta.get("sh_degree_active", model.sh_degree)), ply, run_dir)
+    found = load_latest(run_dir, map_location=device)
+    if found is None:
+        raise UserError("no trained model here (neither variational.ply nor a checkpoint in ckpts/)", path=run_dir,
+                        hint="Run `uncertsplat train` (or `--resume`) to finish training first.")
+    path, state = found
+    try:
+        model = GaussianModel.from_state_dict(state["model"], device)
+    except (KeyError, ValueError) as err:  # a good checksum over an inconsistent model: written by other code
+        raise CorruptCheckpoint(f"the model in the checkpoint is inconsistent ({err})", path=path) from None
+    return LoadedRun(model, cfg, scene_path, float(state["extent"]), int(state["step"]),
+                     int(state.get("sh_degree_active", model.sh_degree)), path, run_dir)
+
+
+def load_run(run_dir: str | Path, device: torch.device | str = "cpu") -> LoadedRun:
+    """Load any run folder for rendering: an ``EnsembleRun``, a ``FisherRun`` or a plain ``LoadedRun``.
+
+    Raises:
+        UserError: the folder is not a finished run of its method (the message names the file and the fix).
+    """
+    run_dir = Path(run_dir)
+    cfg = read_run_config(run_dir)
+    if cfg.method == "ensemble":
+        from uncertsplat.baselines.ensemble import load_ensemble
+
+        return load_ensemble(run_dir, cfg, device)
+    base = _load_single(run_dir, cfg, device)
+    if cfg.method == "fisher":
+        from uncertsplat.baselines.fisher import load_fisher
+
+        return load_fisher(base)
+    return base
+
+
+__all__ = ["LoadedRun", "load_run", "load_single_model", "read_run_config"]

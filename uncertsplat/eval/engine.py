@@ -1,0 +1,374 @@
+"""The evaluation engine: K posterior samples of each view -> uncertainty maps -> every metric.
+
+``evaluate_views(sampler, views, cfg, device)`` renders K Monte-Carlo samples of each view
+(``uncertainty.mc.mc_render``), scores the mean and std against the views' images (and GT depth when
+there is some) and returns an ``EvalReport``. ``fit_std_scale`` fits the one factor for the predicted
+std on training views. Used by ``evaluate`` (which writes the maps and ``metrics.json``), ``prune``
+(held-out metrics before and after) and ``sweep`` (one record per point).
+
+Pure in the sense of the package's layering: it takes a ``Sampler`` (how to draw and render samples
+of a run: ``baselines.LoadedRun.sampler`` builds it for every method), the views as tensors
+(``types.ViewSet``: ``data.dataset.load_view_set`` loads them) and the settings (``EvalSettings``:
+``config.EvalConfig`` has them), and it reads and writes no file; ``on_view`` hands each view's maps
+to the caller. The prediction is the Monte-Carlo mean (as in the paper); the per-pixel uncertainty is
+the unbiased std over the K samples.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+from torch import Tensor
+
+from uncertsplat.console import progress
+from uncertsplat.errors import UserError
+from uncertsplat.schemas.metrics import EvalReport
+from uncertsplat.types import Cameras, GaussianSample, RenderOutput, ViewSet
+
+KDE_MAX_SAMPLES = 64
+"""The KDE NLL keeps every sample of a view in memory; above this K it is skipped (and noted)."""
+
+
+class EvalSettings(Protocol):
+    """What the engine reads of an evaluation config (``config.EvalConfig`` has all of it)."""
+
+    split: str
+    """The split the views come from (recorded; the std factor is fitted only when scoring "test")."""
+    num_samples: int
+    seed: int
+    std_floor: float
+    ause_steps: int
+    paper_nll: bool
+    depth_scale: str | float
+    """"auto", or a factor from rendered depth to GT depth units."""
+    depth_align: str
+    max_views: int | None
+    """Evaluate only the first n views of the split (None: all)."""
+    calibration_views: int
+
+
+@dataclass(frozen=True)
+class Sampler:
+    """How to draw and render posterior samples of one run.
+
+    Attributes:
+        sample_fn: ``sample_fn(generator) -> GaussianSample``, one posterior sample per call (a baseline's
+            own sampler for ensemble / Fisher runs).
+        render_fn: ``render_fn(sample, cameras) -> RenderOutput`` with the run's background, tile size and
+            near plane.
+        det_sample: the one deterministic sample ``train`` reports (the expected render), scored as
+            ``psnr_render``; None for methods without one.
+    """
+
+    sample_fn: Callable[[torch.Generator], GaussianSample]
+    render_fn: Callable[[GaussianSample, Cameras], RenderOutput]
+    det_sample: GaussianSample | None = None
+
+
+@dataclass(frozen=True)
+class ViewMaps:
+    """One evaluated view's maps, as ``on_view`` receives them (CPU tensors).
+
+    Attributes:
+        name: the image name.
+        gt: [H,W,3] the image.
+        rgb_mean: [H,W,3] the Monte-Carlo mean clamped to [0, 1] (the prediction that is scored).
+        rgb_std: [H,W,3] the unbiased std over the K samples.
+        depth_mean, depth_std: [H,W,1] in the run's world units.
+    """
+
+    name: str
+    gt: Tensor
+    rgb_mean: Tensor
+    rgb_std: Tensor
+    depth_mean: Tensor
+    depth_std: Tensor
+
+
+@dataclass
+class _ViewResult:
+    name: str
+    metrics: dict
+    curves: dict
+    calibration: object
+    depth_mean: Tensor  # [H,W,1] on CPU
+    depth_std: Tensor
+    alpha: Tensor
+
+
+def _view_seed(cfg: EvalSettings, index: int) -> int:
+    # per view (by its index in the scene): the same seed gives the same maps whatever else is evaluated
+    return cfg.seed * 1_000_003 + index
+
+
+def split_indices(split: Mapping[str, Sequence[int]], cfg: EvalSettings) -> list[int]:
+    """The views to evaluate: those of ``split[cfg.split]`` (a scene's split), the first ``cfg.max_views`` of them.
+
+    Raises:
+        UserError: the split holds no view.
+    """
+    indices = list(split.get(cfg.split, ()))
+    if cfg.max_views is not None:
+        indices = indices[: cfg.max_views]
+    if not indices:
+        raise UserError("no view to evaluate in this split", hint="Use --split train, or a scene with held-out views.")
+    return indices
+
+
+def calibration_indices(train_indices: Sequence[int], cfg: EvalSettings) -> list[int]:
+    """The ``cfg.calibration_views`` evenly spaced training views (both ends included) the std factor is fitted
+    on; none when disabled or when scoring the training split (never fit on the views that are scored)."""
+    train = list(train_indices)
+    n = min(cfg.calibration_views, len(train))
+    if n == 0 or cfg.split != "test":
+        return []
+    return [train[round(j * (len(train) - 1) / max(n - 1, 1))] for j in range(n)]
+
+
+@torch.no_grad()
+def fit_std_scale(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettings, device: torch.device, *,
+                  load_views: Callable[[list[int]], ViewSet]) -> tuple[float | None, list[str]]:
+    """One factor for the predicted std, fitted on ``calibration_indices`` of the training views.
+
+    The maximum-likelihood scale of a Gaussian predictive, s^2 = mean((error / max(std, std_floor))^2) over
+    every valid pixel and channel of those views (K samples each, as in evaluation). Training views fit
+    better than held-out ones, so it errs low.
+
+    Args:
+        sampler: the run's sampler (build a fresh one: a baseline's sampler may keep state between calls).
+        train_indices: the scene's training views.
+        load_views: ``load_views(indices) -> ViewSet`` (images and masks; depth is not needed).
+
+    Returns:
+        (scale, image names), or (None, []) when disabled, when scoring the training split, when there is
+        no training view or no valid pixel.
+    """
+    from uncertsplat.uncertainty.mc import mc_render
+
+    chosen = calibration_indices(train_indices, cfg)
+    if not chosen:
+        return None, []
+    views = load_views(chosen)
+    gen = torch.Generator(device=device)
+    total, count = 0.0, 0
+    for j, i in enumerate(views.indices):
+        gen.manual_seed(_view_seed(cfg, i))
+        maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, views.cameras[[j]].to(device), cfg.num_samples,
+                            gen)
+        err = maps.rgb_mean[0].cpu().clamp(0, 1) - views.images[j]
+        z2 = (err / maps.rgb_std[0].cpu().clamp_min(cfg.std_floor)) ** 2
+        if views.masks is not None:
+            z2 = z2[views.masks[j][..., 0]]
+        total += float(z2.double().sum())
+        count += z2.numel()
+    if count == 0:
+        return None, []
+    return (total / count) ** 0.5, views.names
+
+
+def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: torch.device, *,
+                   on_view: Callable[[ViewMaps], None] | None = None, show_progress: bool = True,
+                   std_scale: float | None = None, calibration_views: list[str] | None = None,
+                   notes: Sequence[str] = (), config_hash: str = "") -> EvalReport:
+    """Render K posterior samples of each view and compute every metric.
+
+    Args:
+        sampler: how to draw and render samples of the run (``baselines.LoadedRun.sampler``).
+        views: the views with their images, masks and GT depth (``data.dataset.load_view_set``). The GT
+            depth is used as it is when ``views.depth_known_scale``, else one scale for the whole set is
+            estimated (``cfg.depth_align``) unless ``cfg.depth_scale`` gives it.
+        cfg: the evaluation settings (K, seed, std floor, AUSE steps, depth alignment, ...).
+        device: where to render.
+        on_view: called with each view's maps as soon as they are computed (e.g. to write them).
+        show_progress: show a progress bar.
+        std_scale: a factor for the RGB std (``fit_std_scale``): adds ``nll_calibrated`` and
+            ``calibration_error_calibrated`` (the maps and the other metrics keep the raw std).
+        calibration_views: the image names ``std_scale`` was fitted on (recorded in the report).
+        notes: notes about the run to record (``LoadedRun.eval_notes``); the engine adds its own.
+        config_hash: the hash of the full evaluation config (recorded in the report).
+
+    Returns:
+        ``schemas.metrics.EvalReport`` (not written to disk).
+
+    Raises:
+        UserError: no view to evaluate, or GT depth that cannot be aligned with the rendered depth.
+    """
+    from uncertsplat.eval.calibration import calibration, mean_calibration, spearman
+    from uncertsplat.eval.depth import align_depth_scale, depth_metrics, valid_depth_mask
+    from uncertsplat.eval.image import lpips, lpips_available, psnr, ssim
+    from uncertsplat.eval.nll import gaussian_nll, kde_nll, paper_nll
+    from uncertsplat.eval.sparsification import mean_curves, sparsification_all
+    from uncertsplat.provenance import versions
+    from uncertsplat.schemas.metrics import (
+        CalibrationTable,
+        CurveSet,
+        DepthScaleInfo,
+        LpipsStatus,
+        SparsificationCurve,
+        ViewMetrics,
+    )
+    from uncertsplat.uncertainty.mc import mc_render
+
+    if len(views) == 0:
+        raise UserError("no view to evaluate in this split",
+                        hint="Use --split train, or a scene with held-out views.")
+    sample_fn, render_fn, det_sample = sampler.sample_fn, sampler.render_fn, sampler.det_sample
+    images, masks, gt_depth = views.images, views.masks, views.depths
+    lp_ok, lp_reason = lpips_available()
+    K = cfg.num_samples
+    keep = K <= KDE_MAX_SAMPLES
+    notes = list(notes)
+    if not keep:
+        notes.append(f"KDE NLL skipped: K={K} > {KDE_MAX_SAMPLES} would keep every sample in memory")
+    if K == 1:
+        notes.append("K=1: the std is 0 everywhere; AUSE and NLL then measure no uncertainty")
+
+    results: list[_ViewResult] = []
+    gen = torch.Generator(device=device)
+    prog = progress() if show_progress else None
+    task = prog.add_task("evaluate", total=len(views), info="") if prog else None
+    if prog:
+        prog.start()
+    try:
+        for j, i in enumerate(views.indices):
+            name = views.cameras.image_names[j]
+            cams = views.cameras[[j]].to(device)
+            gen.manual_seed(_view_seed(cfg, i))
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            t0 = time.perf_counter()
+            maps, samples = mc_render(sample_fn, render_fn, cams, K, gen, keep_samples=keep)
+            if device.type == "cuda":
+                torch.cuda.synchronize(device)
+            seconds = time.perf_counter() - t0
+            pred = maps.rgb_mean[0].cpu().clamp(0, 1)
+            std = maps.rgb_std[0].cpu()
+            gt = images[j]
+            mask = masks[j] if masks is not None else None
+            err = pred - gt
+            sp = sparsification_all(err, std, mask=mask, steps=cfg.ause_steps)
+            cal = calibration(err, std, mask=mask)
+            sm = spearman(std, err.abs(), mask=mask)
+            m = dict(
+                psnr=float(psnr(pred, gt, mask)), ssim=float(ssim(pred, gt)),
+                ause_mae=sp["mae"].ause, ause_mse=sp["mse"].ause, ause_rmse=sp["rmse"].ause,
+                nll=float(gaussian_nll(gt, pred, std, std_floor=cfg.std_floor, mask=mask)),
+                calibration_error=cal.calibration_error, spearman=sm.value, spearman_note=sm.reason,
+                seconds=seconds,
+            )
+            if std_scale is not None:
+                m.update(nll_calibrated=float(gaussian_nll(gt, pred, std * std_scale, std_floor=cfg.std_floor,
+                                                           mask=mask)),
+                         calibration_error_calibrated=calibration(err, std * std_scale, mask=mask).calibration_error)
+            if lp_ok:
+                m["lpips"] = float(lpips(pred, gt))
+            if det_sample is not None:
+                with torch.no_grad():
+                    det = render_fn(det_sample, cams).rgb[0].cpu().clamp(0, 1)
+                m["psnr_render"] = float(psnr(det, gt, mask))
+            if samples is not None:
+                s_rgb = samples.rgb[:, 0].cpu()
+                m["nll_kde"] = float(kde_nll(s_rgb, gt, mask=mask))
+                if cfg.paper_nll:
+                    m["nll_paper"] = float(paper_nll(s_rgb, gt, mask=mask))
+            curves = {k: SparsificationCurve.from_result(v) for k, v in sp.items()}
+            results.append(_ViewResult(name, m, {"rgb": sp, "rgb_curves": curves}, cal,
+                                       maps.depth_mean[0].cpu(), maps.depth_std[0].cpu(), maps.alpha_mean[0].cpu()))
+            if on_view is not None:
+                on_view(ViewMaps(name, gt, pred, std, maps.depth_mean[0].cpu(), maps.depth_std[0].cpu()))
+            if prog:
+                prog.update(task, advance=1, info=f"{name}: PSNR {m['psnr']:.2f} AUSE {m['ause_mae']:.3f} "
+                                                  f"{seconds:.2f}s")
+    finally:
+        if prog:
+            prog.stop()
+
+    # ---- depth: one scale for the whole split (estimated over all views' valid pixels, or known)
+    depth_info = None
+    depth_cal = []
+    depth_sp_all = []
+    if gt_depth is not None:
+        dm = torch.stack([r.depth_mean for r in results])  # [C,H,W,1]
+        ds = torch.stack([r.depth_std for r in results])
+        alpha = torch.stack([r.alpha for r in results])
+        base_mask = alpha > 0.5
+        if masks is not None:
+            base_mask = base_mask & masks
+        if isinstance(cfg.depth_scale, float):
+            scale = align_depth_scale(dm, gt_depth, mask=base_mask, method=cfg.depth_scale)
+        elif views.depth_known_scale:
+            scale = align_depth_scale(dm, gt_depth, mask=base_mask, method=1.0)
+            scale = type(scale)(1.0, "scene", scale.num_pixels)
+        else:
+            try:
+                scale = align_depth_scale(dm, gt_depth, mask=base_mask, method=cfg.depth_align)
+            except ValueError as err:
+                raise UserError(f"cannot align depth with the GT: {err}") from None
+        depth_info = DepthScaleInfo(scale=scale.scale, method=scale.method, num_pixels=scale.num_pixels)
+        for j, r in enumerate(results):
+            valid = valid_depth_mask(dm[j], gt_depth[j], base_mask[j])
+            d_err = dm[j] * scale.scale - gt_depth[j]
+            d_std = ds[j] * scale.scale
+            dsp = sparsification_all(d_err, d_std, mask=valid, steps=cfg.ause_steps)
+            dmet = depth_metrics(dm[j], gt_depth[j], scale=scale.scale, mask=valid)
+            dcal = calibration(d_err, d_std, mask=valid)
+            r.metrics.update(
+                depth_ause_mae=dsp["mae"].ause if dsp["mae"].num_elements else None,
+                depth_ause_rmse=dsp["rmse"].ause if dsp["rmse"].num_elements else None,
+                depth_abs_rel=dmet.abs_rel, depth_rmse=dmet.rmse, depth_mae=dmet.mae,
+                depth_nll=float(gaussian_nll(gt_depth[j], dm[j] * scale.scale, d_std, std_floor=cfg.std_floor,
+                                             mask=valid)) if dmet.num_pixels else None,
+                depth_spearman=spearman(d_std, d_err.abs(), mask=valid).value,
+            )
+            r.curves["depth"] = dsp
+            depth_sp_all.append(dsp)
+            if dcal.num_elements:
+                depth_cal.append(dcal)
+
+    per_view = {r.name: ViewMetrics(**r.metrics) for r in results}
+    curves = {}
+    for r in results:
+        cs = CurveSet(rgb={k: v for k, v in r.curves["rgb_curves"].items() if v is not None})
+        if "depth" in r.curves:
+            cs.depth = {k: c for k, v in r.curves["depth"].items() if (c := SparsificationCurve.from_result(v))}
+        curves[r.name] = cs
+    mean_set = CurveSet()
+    for metric in ("mae", "mse", "rmse"):
+        mean_set.rgb[metric] = SparsificationCurve.from_result(mean_curves([r.curves["rgb"][metric] for r in results]))
+        ok = [d[metric] for d in depth_sp_all if d[metric].num_elements > 0]
+        if ok:
+            mean_set.depth[metric] = SparsificationCurve.from_result(mean_curves(ok))
+    curves["mean"] = mean_set
+    cal_tables = {"rgb": CalibrationTable.from_result(mean_calibration([r.calibration for r in results]))}
+    if depth_cal:
+        cal_tables["depth"] = CalibrationTable.from_result(mean_calibration(depth_cal))
+    seconds = [r.metrics["seconds"] for r in results]
+    return EvalReport(
+        split=cfg.split,
+        image_names=[r.name for r in results],
+        per_view=per_view,
+        mean=ViewMetrics.mean_of(list(per_view.values())),
+        curves=curves,
+        calibration=cal_tables,
+        config_hash=config_hash,
+        versions=versions(),
+        num_samples=K,
+        seed=cfg.seed,
+        seconds_per_view=sum(seconds) / len(seconds),
+        ause_steps=cfg.ause_steps,
+        std_floor=cfg.std_floor,
+        depth_scale=depth_info,
+        std_scale=std_scale,
+        calibration_views=calibration_views or [],
+        lpips=LpipsStatus(available=lp_ok, reason=lp_reason),
+        device=str(device),
+        notes=notes,
+    )
+
+
+__all__ = ["KDE_MAX_SAMPLES", "EvalSettings", "Sampler", "ViewMaps", "calibration_indices", "evaluate_views",
+           "fit_std_scale", "split_indices"]

@@ -1,0 +1,34 @@
+"""What a result was computed with: the hash of a resolved config and the package versions.
+
+Recorded in ``manifest.json`` (pipeline stages), ``metrics.json`` (``evaluate``) and used as the
+identity of sweep points. Foundation layer: imports nothing of uncertsplat but its version, so the
+evaluation engine, the sweep and the stages can all use it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+
+from uncertsplat import __version__
+
+
+def hash_config(config: dict) -> str:
+    """A short, order-independent hash of a config dict (its JSON with sorted keys)."""
+    return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def versions() -> dict[str, str]:
+    """Versions of uncertsplat, Python and torch (when importable)."""
+    out = {"uncertsplat": __version__, "python": platform.python_version()}
+    try:
+        import torch
+
+        out["torch"] = torch.__version__
+    except ImportError:  # pragma: no cover
+        pass
+    return out
+
+
+__all__ = ["hash_config", "versions"]

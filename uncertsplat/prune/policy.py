@@ -1,0 +1,120 @@
+"""The prune policy: which keep mask to apply, the keep-ratio sweep and ``--auto``'s choice.
+
+Measuring a model (rendering held-out views, scoring its uncertainty) is the caller's: the policy takes
+a ``measure(model, keep) -> PruneMetrics`` function, so the decisions here are plain logic over
+numbers and masks and can be tested without rendering.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from uncertsplat.gaussians.params import GaussianModel
+from uncertsplat.prune.mask import apply_keep, keep_ratio_mask, num_to_remove, random_mask, threshold_mask
+from uncertsplat.schemas.prune import PruneMetrics, PruneSweep, SweepPoint, ToleranceChoice
+
+Measure = Callable[[GaussianModel, Tensor | None], PruneMetrics]
+"""``measure(model, keep)``: held-out metrics of ``model``; ``keep`` (the mask that made it) lets the
+measurement cache results per mask."""
+
+
+def random_keep(n: int, n_remove: int, seed: int) -> Tensor:
+    """Random-removal baseline: keep mask [n] removing ``n_remove`` of all Gaussians.
+
+    The generator is re-seeded for every call, so the random masks of a sweep are nested (each removes
+    a prefix of the same permutation) and the baseline at a ratio does not depend on the other ratios.
+    """
+    return random_mask(n, n_remove, torch.Generator().manual_seed(seed))
+
+
+def largest_removal_within(points: Sequence[SweepPoint], unpruned_psnr: float | None,
+                           tolerance_db: float) -> ToleranceChoice | None:
+    """The strongest removal, walking ``points`` by descending keep ratio, before the first whose
+    held-out PSNR falls more than ``tolerance_db`` below ``unpruned_psnr``; None when the first fails."""
+    if unpruned_psnr is None:
+        return None
+    within = None
+    for p in points:
+        if p.num_removed == 0:
+            continue
+        if p.score.psnr is not None and p.score.psnr >= unpruned_psnr - tolerance_db:
+            within = p
+        else:
+            break  # stop at the first failure: a larger removal that passes again is noise, not a plateau
+    if within is None:
+        return None
+    return ToleranceChoice(keep_ratio=within.keep_ratio, num_removed=within.num_removed,
+                           psnr_loss_db=unpruned_psnr - within.score.psnr, tolerance_db=tolerance_db)
+
+
+def keep_ratio_sweep(model: GaussianModel, score: Tensor, carriers: Tensor, ratios: Sequence[float],
+                     measure: Measure, *, unpruned: PruneMetrics, seed: int, tolerance_db: float, score_name: str,
+                     split: str, on_point: Callable[[SweepPoint], None] | None = None) -> PruneSweep:
+    """Measure the score's removal and random removal of as many Gaussians at each keep ratio.
+
+    Args:
+        score: [N] per-Gaussian score (higher = removed first); carriers: [N] bool, the removable ones.
+        ratios: keep ratios to try; 1.0 is always added; they are walked in descending order.
+        unpruned: the metrics of ``model`` itself (measured once by the caller).
+    """
+    n = len(model)
+    ordered = sorted(set(float(r) for r in ratios) | {1.0}, reverse=True)
+    points = []
+    for r in ordered:
+        keep_s = keep_ratio_mask(score, carriers, r)
+        removed = int((~keep_s).sum())
+        if removed == 0:
+            by_score = by_random = unpruned
+        else:
+            keep_r = random_keep(n, removed, seed)
+            by_score = measure(apply_keep(model, keep_s), keep_s)
+            by_random = measure(apply_keep(model, keep_r), keep_r)
+        point = SweepPoint(keep_ratio=r, num_removed=removed, keep_ratio_achieved=(n - removed) / n,
+                           score=by_score, random=by_random)
+        points.append(point)
+        if on_point is not None:
+            on_point(point)
+    return PruneSweep(ratios=ordered, score=score_name, split=split, unpruned=unpruned, points=points,
+                      tolerance_db=tolerance_db,
+                      largest_removal_within_tolerance=largest_removal_within(points, unpruned.psnr, tolerance_db))
+
+
+def auto_keep_ratio(sweep: PruneSweep) -> tuple[float, str | None]:
+    """``--auto``: the keep ratio of the sweep's largest removal within tolerance, and a note when that
+    is no removal at all (saying what the smallest removal would have cost)."""
+    best = sweep.largest_removal_within_tolerance
+    if best is not None:
+        return best.keep_ratio, None
+    first = next((p for p in sweep.points if p.num_removed > 0), None)
+    cost = ""
+    if first is not None and sweep.unpruned.psnr is not None and first.score.psnr is not None:
+        rand = "" if first.random.psnr is None else \
+            f"; random removal of as many {sweep.unpruned.psnr - first.random.psnr:.2f} dB"
+        cost = (f" (the smallest removal tried, {100 * (1 - first.keep_ratio_achieved):.0f} %, cost "
+                f"{sweep.unpruned.psnr - first.score.psnr:.2f} dB{rand})")
+    return 1.0, (f"--auto: no evaluated keep ratio stays within {sweep.tolerance_db} dB of the unpruned held-out "
+                 f"PSNR, so nothing was removed{cost}; allow more with --tolerance-db, or choose --keep-ratio")
+
+
+def choose_mask(score: Tensor, carriers: Tensor, *, threshold: float | None,
+                keep_ratio: float | None) -> tuple[Tensor | None, list[str]]:
+    """The keep mask [N] for a threshold (wins) or a keep ratio, and notes; (None, []) for neither."""
+    if threshold is not None:
+        return threshold_mask(score, carriers, threshold), []
+    if keep_ratio is None:
+        return None, []
+    keep = keep_ratio_mask(score, carriers, keep_ratio)
+    n = score.shape[0]
+    wanted = num_to_remove(n, keep_ratio)
+    notes = []
+    if int((~keep).sum()) < wanted:
+        notes.append(f"keep ratio {keep_ratio} needs {wanted} removals but only {int(carriers.sum())} "
+                     "Gaussians carry a posterior; non-carriers are never removed by a score")
+    return keep, notes
+
+
+__all__ = ["Measure", "auto_keep_ratio", "choose_mask", "keep_ratio_sweep", "largest_removal_within",
+           "random_keep"]

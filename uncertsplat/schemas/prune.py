@@ -1,0 +1,159 @@
+"""Schemas of what ``uncertsplat prune`` writes: ``prune.json`` and, with ``--sweep``/``--auto``, ``sweep.json``."""
+
+from __future__ import annotations
+
+from pydantic import Field, field_validator
+
+from uncertsplat.schemas.base import SchemaFile, Strict, finite_or_none
+
+
+class PruneMetrics(Strict):
+    """Held-out metrics of one model (the unpruned, the pruned, or the random-removal baseline).
+
+    ``psnr`` .. ``depth_ause_mae`` are the means over the metric views of ``evaluate``'s metrics (K
+    posterior samples); None when not available (e.g. no GT depth).
+    """
+
+    num_gaussians: int
+    num_carriers: int
+    psnr: float | None = None
+    ssim: float | None = None
+    ause_mae: float | None = None
+    ause_rmse: float | None = None
+    nll: float | None = None
+    depth_ause_mae: float | None = None
+    coverage: float
+    """Mean accumulated opacity of the expected render over the metric views (1 = every pixel covered)."""
+    variational_ply_bytes: int
+    point_cloud_ply_bytes: int
+    seconds: float
+    """Time to measure this model."""
+
+    @field_validator("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "depth_ause_mae", mode="before")
+    @classmethod
+    def _nonfinite_to_none(cls, v):
+        return finite_or_none(v)
+
+
+class SweepPoint(Strict):
+    """One keep ratio of the sweep: the score's removal and random removal of as many Gaussians."""
+
+    keep_ratio: float
+    num_removed: int
+    keep_ratio_achieved: float
+    """Fraction of all Gaussians kept (only carriers can be removed, so it may stay above ``keep_ratio``)."""
+    score: PruneMetrics
+    random: PruneMetrics
+
+
+class ToleranceChoice(Strict):
+    """The strongest removal whose held-out PSNR stays within ``tolerance_db`` of the unpruned model's."""
+
+    keep_ratio: float
+    num_removed: int
+    psnr_loss_db: float
+    tolerance_db: float
+
+
+class PruneSweep(SchemaFile):
+    """The keep-ratio sweep (``OUT/sweep.json`` of ``prune --sweep``, and ``sweep`` in ``prune.json``)."""
+
+    FILE_NAME = "sweep.json"
+    SCHEMA_VERSION = 1
+    WRITTEN_BY = "uncertsplat prune --sweep"
+
+    schema_version: int = 1
+    ratios: list[float]
+    """Descending; always includes 1.0 (nothing removed)."""
+    score: str
+    split: str
+    unpruned: PruneMetrics
+    points: list[SweepPoint]
+    tolerance_db: float
+    largest_removal_within_tolerance: ToleranceChoice | None = None
+
+
+class PruneCounts(Strict):
+    before: int
+    after: int
+    removed: int
+    carriers_before: int
+    carriers_after: int
+
+
+class PruneMetricSet(Strict):
+    """The metrics before pruning, after it, and after removing as many random Gaussians."""
+
+    before: PruneMetrics
+    after: PruneMetrics | None = None
+    random: PruneMetrics | None = None
+
+
+class PsnrChange(Strict):
+    """Held-out PSNR change in dB (negative = worse) by the score's removal and by random removal."""
+
+    score: float
+    random: float
+
+
+class ScoreStats(Strict):
+    """Range of a score over the posterior carriers."""
+
+    min: float
+    median: float
+    max: float
+
+
+class Written(Strict):
+    model: bool
+    """Whether a model was written (False for --dry-run and for a sweep only)."""
+    folder: str
+
+
+class PruneReport(SchemaFile):
+    """``OUT/prune.json``: what ``prune`` removed, by which score, and what it cost on held-out views."""
+
+    FILE_NAME = "prune.json"
+    SCHEMA_VERSION = 1
+    WRITTEN_BY = "uncertsplat prune"
+
+    schema_version: int = 1
+    source_run: str
+    source_model: str
+    source_model_sha256: str
+    score: str
+    score_requested: str
+    mode: str
+    """"keep_ratio", "threshold", "auto" or "sweep" (measure the curve only)."""
+    threshold: float | None = None
+    keep_ratio: float | None = None
+    tolerance_db: float
+    seed: int
+    num_samples: int
+    metric_split: str
+    metric_views: list[str]
+    score_views: list[str]
+    score_seconds: float
+    dry_run: bool
+    device: str
+    notes: list[str] = Field(default_factory=list)
+    score_stats: dict[str, ScoreStats]
+    metrics: PruneMetricSet
+    counts: PruneCounts | None = None
+    """None when no mask was chosen (a sweep only)."""
+    keep_ratio_achieved: float | None = None
+    threshold_effective: float | None = None
+    """The smallest score among the removed Gaussians."""
+    delta_psnr_db: PsnrChange | None = None
+    sweep: PruneSweep | None = None
+    undo: str
+    written: Written | None = None
+
+    @classmethod
+    def _upgrade(cls, data: dict, version: int) -> dict | None:
+        # version 0 (no schema_version key) had the same layout; its sweep lacked the version and tolerance
+        if version != 0:
+            return None
+        if isinstance(data.get("sweep"), dict):
+            data["sweep"] = {"schema_version": 1, "tolerance_db": data.get("tolerance_db"), **data["sweep"]}
+        return data

@@ -1,0 +1,103 @@
+"""Schema of ``WORKSPACE/reconstruct_report.json``, the health report of ``uncertsplat reconstruct``.
+
+The report is written for successful and failed runs alike (``success`` says which), so a user, and
+the later stages, can see why a reconstruction is not trustworthy: which images did not register, how
+many disconnected models COLMAP found, and how well the cameras fit the points.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import ConfigDict, Field
+
+from uncertsplat.schemas.base import SchemaFile, Strict
+
+REPORT_NAME = "reconstruct_report.json"
+REPORT_SCHEMA_VERSION = 1
+
+
+class _Base(Strict):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
+
+
+class CameraSummary(_Base):
+    """One estimated (distorted) camera of the kept model."""
+
+    camera_id: int
+    model: str
+    width: int
+    height: int
+    params: list[float]
+    num_images: int
+
+
+class ModelSummary(_Base):
+    """One model returned by incremental mapping (COLMAP may split a capture into several)."""
+
+    index: int
+    num_images: int
+    num_points3d: int
+    image_names: list[str]
+    kept: bool
+
+
+class ReconstructReport(SchemaFile):
+    """What ``reconstruct`` did and how healthy the result is (``WORKSPACE/reconstruct_report.json``)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_assignment=True)
+    FILE_NAME = REPORT_NAME
+    SCHEMA_VERSION = REPORT_SCHEMA_VERSION
+    WRITTEN_BY = "uncertsplat reconstruct"
+
+    schema_version: int = REPORT_SCHEMA_VERSION
+    success: bool
+    """False when the run stopped (too few images registered, no overlap); ``train`` refuses it."""
+    message: str = ""
+    """Why the run failed, or notes for a successful run."""
+    photos: str
+    """The input folder, as given (resolved to an absolute path)."""
+    inputs_fingerprint: str = ""
+    """Hash of the input file names, sizes and modification times (detects a changed photo folder)."""
+    images_found: list[str] = []
+    images_registered: list[str] = []
+    images_unregistered: list[str] = []
+    registered_fraction: float = Field(0.0, ge=0.0, le=1.0)
+    ignored: list[str] = []
+    """Entries of the photo folder that were not used (sub-folders, non-image files)."""
+    rotated: list[str] = []
+    """Images whose EXIF orientation was applied (staged as rotated copies)."""
+    notes: list[str] = []
+    image_sizes: dict[str, int] = {}
+    """'WxH' -> number of images of that size (one camera per size in single-camera mode)."""
+    matcher: str = ""
+    """The matcher actually used (auto resolved)."""
+    num_verified_pairs: int = 0
+    models_found: int = 0
+    models: list[ModelSummary] = []
+    retried_relaxed: bool = False
+    """Whether mapping was repeated with relaxed options because too few images registered."""
+    num_points3d: int = 0
+    mean_reprojection_error: float | None = None
+    """Pixels, in the kept model before undistortion."""
+    mean_track_length: float | None = None
+    mean_observations_per_image: float | None = None
+    cameras: list[CameraSummary] = []
+    undistorted_size: dict[str, list[int]] = {}
+    """Image name -> [width, height] after undistortion, for the images in ``WORKSPACE/images``."""
+    ground_truth: dict[str, float] | None = None
+    """When the photos are a synthetic scene's ``images/``: the cameras' error against its GT cameras
+    (``sfm.reconstruct.pose_accuracy``: centre error in % of the rig radius, rotation and focal errors)."""
+    stage_seconds: dict[str, float] = {}
+    total_seconds: float = 0.0
+    pycolmap_version: str = ""
+    colmap_version: str = ""
+    options: dict[str, Any] = {}
+    """The ReconstructConfig used (model_dump)."""
+
+    def summary(self) -> str:
+        """One line for the console."""
+        n, r = len(self.images_found), len(self.images_registered)
+        err = "n/a" if self.mean_reprojection_error is None else f"{self.mean_reprojection_error:.2f} px"
+        return (f"{r}/{n} images registered, {self.models_found} model(s), {self.num_points3d} points, "
+                f"reprojection error {err}, {self.total_seconds:.1f} s")

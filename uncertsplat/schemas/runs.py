@@ -1,0 +1,223 @@
+"""Schemas of a run's bookkeeping files: ``train_summary.json``, a stage's ``manifest.json``, sweep records."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from typing import Any
+
+from pydantic import Field, field_validator
+
+from uncertsplat.schemas.base import SchemaFile, Strict, finite_or_none
+
+
+# ------------------------------------------------------------------------------------ train_summary.json
+class Quantiles(Strict):
+    """10th, 50th and 90th percentile of a per-carrier quantity."""
+
+    q10: float
+    q50: float
+    q90: float
+
+
+class PosteriorSummary(Strict):
+    """How far the learned posteriors moved from the prior (``variational.posterior_summary``)."""
+
+    carriers: int
+    moved_kl_nats: float
+    """A carrier "moved" when its KL from the prior exceeds this many nats."""
+    gate_off_prior: float
+    moved_fraction: float | None
+    kl_nats: Quantiles | None
+    position_spread_ratio: Quantiles | None
+    scale_width_ratio: Quantiles | None
+    gate_off: Quantiles | None
+
+
+class MemoryPerGaussian(Strict):
+    """Bytes per Gaussian by kind (``gaussians.params.memory_per_gaussian``)."""
+
+    params: float
+    tables: float
+    index: float
+    optimizer: float
+    total: float
+    table_bytes_per_carrier: float
+
+
+class TrainSummary(SchemaFile):
+    """``RUN/train_summary.json``: what ``train`` did (one model), and for an ensemble its members.
+
+    The single-model fields are those of every method that trains one model (variational, vi-single,
+    deterministic, fisher); an ensemble run sums its members' training and lists their summaries in
+    ``members``, leaving the per-model diagnostics (``posterior``, ``memory``) to them.
+    """
+
+    FILE_NAME = "train_summary.json"
+    SCHEMA_VERSION = 1
+    WRITTEN_BY = "uncertsplat train"
+
+    schema_version: int = 1
+    method: str
+    variant: str
+    steps: int
+    seconds: float
+    """Training time; for fisher the training loop plus the Fisher pass, for an ensemble the members' sum."""
+    sec_per_step: float
+    num_gaussians: int
+    num_carriers: int
+    peak_memory_mb: float
+    device: str
+    scene: str
+    test_psnr: float | None = None
+    """Held-out PSNR of the run's deterministic render (``test_render``); None without held-out views and
+    for an ensemble (its mean render is scored by ``evaluate``)."""
+    test_ssim: float | None = None
+    test_render: str | None = None
+    num_test_views: int | None = None
+    # ---- one model
+    carrier_fraction: float | None = None
+    memory_per_gaussian_bytes: float | None = None
+    memory: MemoryPerGaussian | None = None
+    extent: float | None = None
+    skipped_steps: int | None = None
+    sh_degree_active: int | None = None
+    posterior: PosteriorSummary | None = None
+    kernels: str | None = None
+    # ---- fisher
+    train_seconds: float | None = None
+    fisher_seconds: float | None = None
+    fisher_noise_std: float | None = None
+    # ---- ensemble
+    ensemble_size: int | None = None
+    wall_seconds_this_call: float | None = None
+    test_psnr_members_mean: float | None = None
+    members: list[TrainSummary] = Field(default_factory=list)
+
+    @field_validator("test_psnr", "test_ssim", "test_psnr_members_mean", mode="before")
+    @classmethod
+    def _nonfinite_to_none(cls, v):
+        return finite_or_none(v)
+
+
+# ----------------------------------------------------------------------------------------- manifest.json
+class Manifest(SchemaFile):
+    """``STAGE/manifest.json``: what one pipeline stage ran with and whether it finished."""
+
+    FILE_NAME = "manifest.json"
+    SCHEMA_VERSION = 1
+    WRITTEN_BY = "uncertsplat run"
+
+    schema_version: int = 1
+    stage: str
+    name: str
+    config_hash: str
+    input_hashes: dict[str, str]
+    """Input name -> hash: an upstream stage's ``key`` (by its folder name) or a user folder's fingerprint."""
+    config: dict[str, Any]
+    status: str
+    """"running", "done" or "failed"."""
+    started_at: float
+    finished_at: float | None = None
+    seconds: float | None = None
+    error: str | None = None
+    versions: dict[str, str] = Field(default_factory=dict)
+
+    @classmethod
+    def _upgrade(cls, data: dict, version: int) -> dict | None:
+        # version 0 (before schema_version existed) had the same keys
+        return data if version == 0 else None
+
+    @property
+    def key(self) -> str:
+        """Hash of config and inputs: downstream stages use it as their input hash."""
+        text = json.dumps({"config": self.config_hash, "inputs": self.input_hashes}, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+# ------------------------------------------------------------------------------------------- sweep records
+class SweepRecord(Strict):
+    """One line of ``sweep.jsonl``: a sweep point's training and evaluation (failed points carry ``error``)."""
+
+    schema_version: int = 1
+    id: str
+    hash: str
+    job: str
+    method: str
+    knobs: dict[str, Any]
+    is_default: bool
+    status: str
+    """"ok" or "failed"."""
+    run_dir: str | None = None
+    """None only for a point whose worker process died before it could say."""
+    device: str | None = None
+    threads: int | None = None
+    stage: str | None = None
+    """The stage that failed (train / evaluate)."""
+    error: str | None = None
+    traceback: str | None = None
+    train_seconds: float | None = None
+    trained_now: bool | None = None
+    train_wall_seconds: float | None = None
+    num_gaussians: int | None = None
+    num_carriers: int | None = None
+    memory_per_gaussian_bytes: float | None = None
+    train_peak_memory_mb: float | None = None
+    # ---- evaluation (means over the views; see EvalReport.ViewMetrics)
+    psnr: float | None = None
+    psnr_render: float | None = None
+    ssim: float | None = None
+    ause_mae: float | None = None
+    ause_rmse: float | None = None
+    nll: float | None = None
+    nll_kde: float | None = None
+    calibration_error: float | None = None
+    nll_calibrated: float | None = None
+    calibration_error_calibrated: float | None = None
+    spearman: float | None = None
+    depth_ause_mae: float | None = None
+    depth_ause_rmse: float | None = None
+    depth_abs_rel: float | None = None
+    ause: float | None = None
+    """``ause_mae`` again, the name the Pareto axes use."""
+    std_scale: float | None = None
+    calibration_seconds: float | None = None
+    eval_seconds_per_view: float | None = None
+    eval_seconds: float | None = None
+    eval_wall_seconds: float | None = None
+    num_views: int | None = None
+    num_samples: int | None = None
+    notes: list[str] = Field(default_factory=list)
+    eval_peak_memory_mb: float | None = None
+    peak_memory_scope: str | None = None
+    peak_memory_mb: float | None = None
+    time: float | None = None
+    """Training plus evaluation seconds (the Pareto x axis)."""
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _nonfinite_to_none(cls, v):
+        return finite_or_none(v)
+
+    def get(self, key: str, default: Any = None) -> Any:
+        """Field by name (``pareto`` reads records and plain dicts alike)."""
+        return getattr(self, key, default)
+
+
+class SweepSummary(SchemaFile):
+    """``OUT/sweep.json`` of ``uncertsplat sweep``: the latest record per point and the Pareto fronts."""
+
+    FILE_NAME = "sweep.json"
+    SCHEMA_VERSION = 1
+    WRITTEN_BY = "uncertsplat sweep"
+
+    schema_version: int = 1
+    name: str
+    spec: dict[str, Any]
+    num_points: int
+    num_failed: int
+    default: str | None
+    pareto_x: str
+    pareto: dict[str, list[str]]
+    """"{y}_vs_{x}" -> ids of the points on that front."""
+    records: list[SweepRecord]

@@ -1,0 +1,161 @@
+"""Train one model into a run folder: scene folder -> checkpoints, stats, PLYs and a summary.
+
+``train_model`` is what every single-model method runs (variational, paper, vi-single, deterministic,
+and the models under the ensemble and Fisher baselines); ``stages.train.run`` is the command's entry
+point, dispatching on the method (``baselines.train_run``).
+
+Writes (README, "Outputs and their schemas"): ``RUN/config.json`` (resolved TrainConfig), ``RUN/scene.json``
+(``schemas.RunScene``: scene path, extent, split), ``RUN/ckpts/step_{N:06d}.pt``, ``RUN/stats.jsonl``,
+``RUN/point_cloud.ply``, ``RUN/variational.ply`` and ``RUN/train_summary.json``. An existing run folder is
+refused unless ``resume`` is set; a resumed run uses the configuration stored in the run (and says so
+when the one given differs) and continues exactly where the last good checkpoint left off.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+
+from uncertsplat import native
+from uncertsplat.config import TrainConfig, build_config
+from uncertsplat.console import console
+from uncertsplat.errors import UserError
+from uncertsplat.gaussians.variational import describe_posterior
+from uncertsplat.io.atomic import (
+    atomic_write_text,
+    read_json,
+    remove_stale_temp_files,
+    run_lock,
+)
+from uncertsplat.schemas import RunScene, TrainSummary
+
+
+def _differences(a: dict, b: dict, prefix: str = "") -> list[str]:
+    out = []
+    for k in sorted(set(a) | set(b)):
+        va, vb = a.get(k), b.get(k)
+        if isinstance(va, dict) and isinstance(vb, dict):
+            out += _differences(va, vb, f"{prefix}{k}.")
+        elif va != vb:
+            out.append(f"{prefix}{k}")
+    return out
+
+
+def _truncate_stats(path: Path, step: int) -> None:
+    """Drop log lines written after the checkpoint we resume from (they will be written again)."""
+    if not path.is_file():
+        return
+    keep = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            if int(json.loads(line).get("step", 0)) <= step:
+                keep.append(line)
+        except (ValueError, json.JSONDecodeError):
+            continue  # a line cut short by a crash
+    atomic_write_text(path, "".join(f"{line}\n" for line in keep))
+
+
+def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False,
+                extend_to: int | None = None) -> Path:
+    """Train one model on ``scene`` into ``run_dir``; returns ``run_dir``.
+
+    ``extend_to`` (with ``resume``): train on to this many steps instead of the stored ``iterations``.
+
+    Raises:
+        UserError: unreadable scene, an existing run folder without ``resume``, nothing to resume, or an
+            interruption (Ctrl-C / SIGTERM; a checkpoint was written and ``--resume`` continues).
+    """
+    from uncertsplat.data.dataset import load_images
+    from uncertsplat.io.checkpoints import load_latest
+    from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
+    from uncertsplat.sfm.scene import load_scene
+    from uncertsplat.train.trainer import Trainer, TrainingInterrupted, log_line
+
+    scene, run_dir = Path(scene), Path(run_dir)
+    device = torch.device(device)
+    exists = run_dir.exists() and (not run_dir.is_dir() or any(p.name != ".lock" for p in run_dir.iterdir()))
+    if exists and not resume:
+        raise UserError("the run folder already exists", path=run_dir,
+                        hint="Add --resume to continue it, or choose another output folder (-o).")
+    if resume and not (run_dir / "config.json").is_file():
+        raise UserError("nothing to resume: no config.json in the run folder", path=run_dir,
+                        hint="Start a new run without --resume.")
+
+    with run_lock(run_dir, "train"):
+        state = None
+        if resume:
+            remove_stale_temp_files(run_dir, run_dir / "ckpts")  # left by a killed process; we hold the lock
+            stored = read_json(run_dir / "config.json")
+            diff = [d for d in _differences(stored, json.loads(cfg.model_dump_json()))
+                    if not (d == "iterations" and extend_to is not None)]
+            if diff:
+                console.print(f"[yellow]note:[/] resuming with the run's stored configuration; ignoring the "
+                              f"given values of: {', '.join(diff)}")
+            cfg = build_config(TrainConfig, stored, source=str(run_dir / "config.json"))
+            found = load_latest(run_dir, map_location=device)
+            if extend_to is not None and extend_to != cfg.iterations:
+                done = int(found[1]["step"]) if found is not None else 0
+                if extend_to < done:
+                    raise UserError(f"cannot shorten the run to {extend_to} steps: its checkpoint is at step {done}",
+                                    path=run_dir, hint="Give --iterations at or above that step.")
+                console.print(f"[yellow]note:[/] continuing to {extend_to} steps instead of {cfg.iterations}; the "
+                              "position learning-rate schedule is stretched to the new length from here on")
+                cfg = cfg.model_copy(update={"iterations": extend_to})
+            if found is None:
+                console.print("[yellow]note:[/] no usable checkpoint in the run folder; starting from step 0")
+                for name in ("stats.jsonl",):
+                    (run_dir / name).unlink(missing_ok=True)
+            else:
+                path, state = found
+                console.print(f"resuming from {path} (step {state['step']})")
+                _truncate_stats(run_dir / "stats.jsonl", int(state["step"]))
+
+        data = load_scene(scene, cfg.scene)
+        if not data.split.get("train"):
+            raise UserError("the scene has no training views", path=scene, hint="Check test_every / test_names.")
+        atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
+        names = data.cameras.image_names
+        RunScene(
+            scene=str(scene.resolve()), source=data.source, extent=data.extent, scene_scale=data.scene_scale,
+            width=data.cameras.width, height=data.cameras.height,
+            train=[names[i] for i in data.split["train"]] if names else [],
+            test=[names[i] for i in data.split.get("test", ())] if names else [],
+            center=list(data.center) if data.center is not None else None, center_method=data.center_method,
+            center_reason=data.center_reason, world_from_source=data.world_from_source.double().tolist(),
+        ).write(run_dir / "scene.json")
+        train_images = load_images(data, data.split["train"], device)
+        test_images = load_images(data, data.split["test"], device) if data.split.get("test") else None
+        trainer = Trainer(data, cfg, train_images, test_images, run_dir=run_dir, state=state)
+        kernels = native.describe(device)
+        console.print(f"training {len(trainer.model)} Gaussians on {len(data.split['train'])} views "
+                      f"({data.cameras.width}x{data.cameras.height}), {len(data.split.get('test', ()))} held out, "
+                      f"device {device} ({kernels}), {cfg.iterations} steps")
+        trainer.on_log = lambda rec: console.log(log_line(rec)) if "eval_psnr" in rec else None
+        try:
+            trainer.fit()
+        except TrainingInterrupted as err:
+            raise UserError(f"training interrupted at step {err.step}; checkpoint saved ({err.path})",
+                            hint=f"Continue with: uncertsplat train {scene} -o {run_dir} --resume") from None
+
+        meta = {"variant": cfg.variant, "extent": trainer.extent, "step": trainer.step,
+                "sh_degree_active": trainer.sh_degree, "temperature": cfg.variational.gate_temperature}
+        write_point_cloud_ply(run_dir / "point_cloud.ply", trainer.model, variant=cfg.variant, extent=trainer.extent,
+                              temperature=cfg.variational.gate_temperature)
+        write_variational_ply(run_dir / "variational.ply", trainer.model, meta=meta)
+        held = trainer.evaluate()
+        summary = TrainSummary(**trainer.summary(), test_psnr=held.get("psnr"), test_ssim=held.get("ssim"),
+                               test_render="expected render (variational.expected_render_sample)",
+                               num_test_views=len(data.split.get("test", ())), device=str(device), kernels=kernels,
+                               scene=str(scene.resolve()))
+        summary.write(run_dir / "train_summary.json")
+        psnr_txt = f", held-out PSNR {held['psnr']:.2f} dB" if held else ""
+        console.print(f"done: {trainer.step} steps in {trainer.elapsed:.1f} s, {len(trainer.model)} Gaussians "
+                      f"({trainer.model.num_carriers} with a posterior){psnr_txt} -> {run_dir}")
+        if summary.posterior is not None and summary.posterior.carriers:
+            console.print(describe_posterior(summary.posterior.model_dump()))
+    return run_dir
+
+
+__all__ = ["train_model"]
