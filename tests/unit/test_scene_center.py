@@ -221,3 +221,25 @@ def test_scenes_carve_only_with_transparent_images(tmp_path):
     assert "carved" not in off.source["initial_points"]
     opaque = load_scene(generate_scene(tmp_path / "opaque", SynthConfig(**small)))
     assert "carved" not in opaque.source["initial_points"]
+
+
+def test_rendering_loads_skip_the_initial_points(tmp_path, monkeypatch):
+    """``initial_points=False`` (what loading a trained run does) reads no alpha mask and makes no points, and
+    leaves the cameras, split, normalisation and centre exactly as a training load has them."""
+    from uncertsplat.data.synthetic import generate_scene
+    from uncertsplat.io import images
+
+    path = generate_scene(tmp_path / "clear", SynthConfig(preset="tiny", num_views=8, width=32, layout="blender",
+                                                         rig="hemisphere", backdrop="transparent"))
+    full = load_scene(path)
+    assert full.points.shape[0] > 0
+
+    def no_alpha(p):
+        raise AssertionError(f"read the alpha of {p}")
+
+    monkeypatch.setattr(images, "read_alpha", no_alpha)
+    light = load_scene(path, initial_points=False)
+    assert light.points.shape == (0, 3)
+    torch.testing.assert_close(light.cameras.cam_from_world, full.cameras.cam_from_world, rtol=0, atol=0)
+    torch.testing.assert_close(light.world_from_source, full.world_from_source, rtol=0, atol=0)
+    assert light.split == full.split and light.center == full.center and light.scene_scale == full.scene_scale

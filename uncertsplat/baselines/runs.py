@@ -115,7 +115,9 @@ class LoadedRun:
         if not Path(self.scene_path).exists():
             raise UserError(f"the scene this run was trained on is gone: {self.scene_path}", path=self.run_dir,
                             hint="Restore the scene folder at that path, then run evaluate again.")
-        return load_scene(self.scene_path, self.config.scene)
+        # rendering a trained run needs no initial points (for a scene without sparse points, making them reads
+        # every training view's alpha mask)
+        return load_scene(self.scene_path, self.config.scene, initial_points=False)
 
 
 def read_run_config(run_dir: Path) -> TrainConfig:

@@ -43,12 +43,15 @@ _CARVE_SIZE = 400  # carve random initial points with alpha masks of at most thi
 
 
 # ----------------------------------------------------------------------------------------------- public
-def load_scene(path: str | Path, cfg: SceneConfig | None = None) -> SceneData:
+def load_scene(path: str | Path, cfg: SceneConfig | None = None, *, initial_points: bool = True) -> SceneData:
     """Load a scene folder (see the module docstring for what is recognised).
 
     Args:
         path: the scene folder.
         cfg: downscale, split and normalisation options (defaults when None).
+        initial_points: make random initial points for a scene without sparse points (reading the alpha masks
+            to carve them). Only a fresh training needs them; rendering a trained run passes False, which
+            leaves ``points`` empty for such scenes and changes nothing else (centre, normalisation, split).
 
     Raises:
         UserError: naming the file or folder and the fix, for every input we cannot use.
@@ -67,11 +70,11 @@ def load_scene(path: str | Path, cfg: SceneConfig | None = None) -> SceneData:
 
     meta = read_scene_meta(path)
     if meta is not None:
-        return _load_synthetic(path, cfg, meta)
+        return _load_synthetic(path, cfg, meta, initial_points)
     if any((path / f"transforms_{split}.json").is_file() for split in ("train", "val", "test")):
-        return _from_transforms(read_blender(path, cfg), cfg)
+        return _from_transforms(read_blender(path, cfg), cfg, initial_points)
     if (path / "transforms.json").is_file():
-        return _from_transforms(read_nerfstudio(path, cfg), cfg)
+        return _from_transforms(read_nerfstudio(path, cfg), cfg, initial_points)
     return _load_colmap(path, cfg)
 
 
@@ -154,11 +157,12 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
                                                             "model": str(sparse)})
 
 
-def _load_synthetic(path: Path, cfg: SceneConfig, meta: SynthScene) -> SceneData:
+def _load_synthetic(path: Path, cfg: SceneConfig, meta: SynthScene, initial_points: bool = True) -> SceneData:
     """A scene written by ``uncertsplat synth`` (``meta``: its ``SynthScene``): either layout, plus GT depth/masks."""
     if meta.layout == "blender":
         found = read_blender(path, cfg)
-        scene = _from_transforms(replace(found, source=dict(found.source, kind="synthetic", layout="blender")), cfg)
+        scene = _from_transforms(replace(found, source=dict(found.source, kind="synthetic", layout="blender")), cfg,
+                                 initial_points)
     else:  # held-out views: every scene.test_every-th, the same as synth's own split when both are the default 8
         scene = _load_colmap(path, cfg, source="synthetic")
     depth_paths, mask_paths = [], []
@@ -182,10 +186,10 @@ def _load_synthetic(path: Path, cfg: SceneConfig, meta: SynthScene) -> SceneData
     )
 
 
-def _from_transforms(found: TransformsScene, cfg: SceneConfig) -> SceneData:
+def _from_transforms(found: TransformsScene, cfg: SceneConfig, initial_points: bool = True) -> SceneData:
     """SceneData of a Blender / nerfstudio folder (random initial points when it has no point cloud)."""
     return _finish(found.cameras, list(found.paths), found.points, found.points_rgb, cfg, source=found.source,
-                   default_split=found.split, random_init=True)
+                   default_split=found.split, random_init=initial_points)
 
 
 # ------------------------------------------------------------------------------------- split, normalise
@@ -271,10 +275,9 @@ def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torc
     choice = choose_center(cameras, has_points=points.shape[0] > 0, mode=cfg.center, where=Path(source["path"]))
     if points.shape[0] == 0 and random_init:
         # 100k points (3DGS) for NeRF-synthetic at full size, fewer for small or downscaled scenes: there 100k
-        # random Gaussians make an opaque fog that a short training cannot clear (tiny synthetic hemisphere
-        # scene, `tiny` preset: 9.1 dB held-out PSNR from 100k points, 15.8 from 10k, 18.0 from 2.6k)
-        # Carved points (alpha masks) all lie in the object's visual hull and make no fog: twice as many do
-        # better (tiny scene, 300 steps, 2 seeds: 21.86 dB from 5.2k vs 21.63 from 2.6k; COLMAP twin 22.16).
+        # random Gaussians make an opaque fog that a short training cannot clear. Carved points (alpha masks)
+        # all lie in the object's visual hull and make no fog, so twice as many do better. Measured in
+        # BENCHMARKS.md, "Object scenes without sparse points".
         carve = _alpha_masks(cameras, paths, split["train"]) if cfg.carve else None
         pixels = len(split["train"]) * (cameras.width / cfg.downscale) * (cameras.height / cfg.downscale)
         per_point = _PIXELS_PER_RANDOM_POINT if carve is None else _PIXELS_PER_CARVED_POINT

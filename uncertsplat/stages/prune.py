@@ -101,16 +101,14 @@ class _Measure:
     """Held-out metrics of a model (MC uncertainty via ``evaluate_views``), coverage and file sizes."""
 
     def __init__(self, loaded, scene, indices: list[int], cfg: PruneConfig, device: torch.device):
-        from functools import partial
-
-        from uncertsplat.render import near_plane, render
+        from uncertsplat.data.dataset import load_view_set
 
         self.loaded, self.scene, self.indices, self.device = loaded, scene, indices, device
         self.ecfg = EvalConfig(num_samples=cfg.num_samples, seed=cfg.seed, save_maps=False)
-        bg = torch.tensor(loaded.config.scene.background, dtype=torch.float32, device=device)
-        self.render_fn = partial(render, background=bg, tile_size=loaded.config.tile_size,
-                                 near=near_plane(scene.scene_scale))
+        self.render_fn = loaded.render_fn(scene.scene_scale, device)
         self.cams = scene.cameras[indices].to(device)
+        # the held-out images and GT depth are read once; every model of a sweep is measured on them
+        self.views = load_view_set(scene, indices)
         self.meta = {"variant": loaded.config.variant, "extent": loaded.extent, "step": loaded.step,
                      "sh_degree_active": loaded.sh_degree,
                      "temperature": loaded.config.variational.gate_temperature}
@@ -143,7 +141,6 @@ class _Measure:
 
     def __call__(self, model, keep: torch.Tensor | None = None) -> PruneMetrics:
         """Metrics of ``model``; with ``keep`` (the mask that made it) the result is cached per mask."""
-        from uncertsplat.data.dataset import load_view_set
         from uncertsplat.eval.engine import evaluate_views
 
         key = None
@@ -154,7 +151,7 @@ class _Measure:
         t0 = time.perf_counter()
         loaded = dataclasses.replace(self.loaded, model=model)
         report = evaluate_views(loaded.sampler(self.scene.scene_scale, self.device),
-                                load_view_set(self.scene, self.indices), self.ecfg, self.device, show_progress=False)
+                                self.views, self.ecfg, self.device, show_progress=False)
         _, alpha = self.mean_renders(model)
         out = PruneMetrics(num_gaussians=len(model), num_carriers=model.num_carriers,
                            **{k: getattr(report.mean, k) for k in METRIC_KEYS}, coverage=float(alpha.mean()),
@@ -270,11 +267,7 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
 
     # ---- scores (every posterior score; the predictive one only when asked for: it renders)
     prior = loaded.prior
-    bg = torch.tensor(loaded.config.scene.background, dtype=torch.float32, device=device)
-    from functools import partial
-
-    from uncertsplat.render import near_plane, render
-    render_fn = partial(render, background=bg, tile_size=loaded.config.tile_size, near=near_plane(scene.scene_scale))
+    render_fn = loaded.render_fn(scene.scene_scale, device)
     names = ("position", "scale", "gate") + (("predictive",) if score_name == "predictive" else ())
     score_cams = scene.cameras[spread_views(scene.split["train"], cfg.score_views)].to(device)
     t0 = time.perf_counter()
