@@ -82,6 +82,14 @@ class SceneConfig(_Base):
     """Explicit held-out image names (overrides test_every)."""
     test_indices: list[int] | None = None
     """Explicit held-out indices into the sorted image list (overrides test_every)."""
+    train_names: list[str] | None = None
+    """Explicit training image names; images neither trained on nor held out are left unused (e.g. one side
+    of a capture, to measure what the model says about the other side). Default: every image not held out."""
+    train_indices: list[int] | None = None
+    """Explicit training indices into the sorted image list (as train_names)."""
+    points_from: Literal["all", "train"] = "all"
+    """Initial sparse points: all of them, or only those the SfM tracks show in at least 2 training views (no
+    information from held-out or unused views reaches the model; COLMAP workspaces and synthetic scenes)."""
     normalize: bool = True
     """Move the scene centre (``center``) to the origin and scale the scene so that the camera rig has radius 1
     about its centroid (recorded as world_from_source)."""
@@ -123,7 +131,20 @@ class VariationalConfig(_Base):
     gate_prior_std: float = Field(1.996, gt=0.0)
     kl_weight: float = Field(1.0, ge=0.0)
     table_lr_factor: float = Field(0.1, gt=0.0)
-    """Offset tables learn at this factor times their base attribute's rate."""
+    """Offset tables learn at this factor times their base attribute's rate (posterior = 'sgd')."""
+    posterior: Literal["informed", "sgd"] | None = None
+    """How the tables learn. informed: set in closed form from the training views' curvature (the Laplace
+    optimum of the evidence lower bound; ``variational.informed_tables``) every ``refresh_interval`` steps
+    and at the end, while SGD trains the Gaussians under samples of that posterior. sgd: the paper's
+    stochastic-gradient tables with the KL in the loss. Default: informed for variant 'ours', sgd for
+    'paper'."""
+    refresh_interval: int = Field(500, ge=1)
+    """Steps between two informed-posterior updates (each costs about 3 renders per training view)."""
+    probes: int = Field(2, ge=1, le=64)
+    """Rademacher probes per training view for the curvature (informed)."""
+    position_prior_scale: float = Field(1.0, ge=0.0)
+    """Informed: a carrier's position prior std is the larger of position_prior_std x extent and this times its
+    own size (geometric mean of its axes); 0 keeps only the fixed prior."""
 
 
 class DensifyConfig(_Base):
@@ -222,6 +243,19 @@ class TrainConfig(_Base):
     densify: DensifyConfig = DensifyConfig()
     lr: LearningRates = LearningRates()
 
+    @model_validator(mode="after")
+    def _posterior_for_variant(self):
+        if self.variational.posterior == "informed" and self.variant == "paper":
+            raise ValueError("variational.posterior = 'informed' needs variant 'ours' (the paper variant learns its "
+                             "tables by SGD); drop one of the two settings")
+        return self
+
+    @property
+    def posterior(self) -> str:
+        """The posterior that trains: ``variational.posterior``, or its default for the variant (informed for
+        'ours', sgd for 'paper')."""
+        return self.variational.posterior or ("sgd" if self.variant == "paper" else "informed")
+
 
 TRAIN_PRESETS: dict[str, dict[str, Any]] = {
     # for tests: seconds on a CPU
@@ -283,6 +317,16 @@ class EvalConfig(_Base):
     """Fit one factor for the RGB std on this many evenly spaced training views (0: none); the metrics
     ``nll_calibrated`` and ``calibration_error_calibrated`` use std x factor, the maps keep the raw std.
     Costs K renders per view; only with ``split = "test"``."""
+    empty_rays: bool = True
+    """Where a ray meets no Gaussian (accumulated opacity below 1) the model has no surface for the pixel: add
+    the std of an unknown colour (uniform in [0, 1]: 0.289) and an unknown depth (the scene extent), weighted
+    by (1 - alpha)^2 (``uncertainty.mc.mc_render``). Not for scenes whose training images are transparent
+    (the background is then data). False: the samples' spread only."""
+    residual_views: int = Field(64, ge=0)
+    """Add the pixel noise the model leaves on its training views to the RGB std: each Gaussian's mean squared
+    residual over the training pixels it is blended into (``uncertainty.residual``), rendered per pixel. Fitted
+    on at most this many evenly spaced training views (one render and one backward pass each, before the timed
+    evaluation); 0: off, the std is the samples' spread (and the empty-ray term) only."""
 
 
 # ------------------------------------------------------------------------------------------------ prune

@@ -5,8 +5,10 @@ Runs are kept very short (quarter resolution, 20 steps): these tests check the h
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
+from functools import partial
 
 import numpy as np
 import pytest
@@ -20,7 +22,7 @@ from uncertsplat.baselines.fisher import FISHER_FILE, FisherRun
 from uncertsplat.cli import app
 from uncertsplat.config import EvalConfig, deep_update, train_config_from
 from uncertsplat.data.dataset import load_view_set
-from uncertsplat.eval.engine import evaluate_views
+from uncertsplat.eval.engine import evaluate_views, fit_residual
 from uncertsplat.io.images import read_exr
 from uncertsplat.io.maps import map_stem
 from uncertsplat.schemas.metrics import EvalReport
@@ -91,11 +93,15 @@ def test_ensemble_of_one_has_zero_spread(ensemble_run, tmp_path):
     cfg = json.loads((run / "config.json").read_text())
     cfg["ensemble_size"] = 1
     (run / "config.json").write_text(json.dumps(cfg))
-    report = evaluate.run(run, EvalConfig(num_samples=3, max_views=2), device=CPU)
+    # the samples' spread alone (no empty-ray term, no pixel noise) is exactly 0 ...
+    report = evaluate.run(run, EvalConfig(num_samples=3, max_views=2, empty_rays=False, residual_views=0), device=CPU)
     for ch in exr_maps(run, report):
         assert ch["rgb_std.R"].shape == (H, W)
         assert np.all(ch["rgb_std.R"] == 0) and np.all(ch["depth_std.Z"] == 0)
     assert any("ensemble of 1 member" in n and "spread" in n for n in report.notes)
+    # ... and the default predictive adds the pixel noise of the member's Gaussians
+    report = evaluate.run(run, EvalConfig(num_samples=3, max_views=2), device=CPU)
+    assert all(ch["rgb_std.R"].max() > 0 for ch in exr_maps(run, report))
     stored = EvalReport.from_json((run / "eval" / "metrics.json").read_text())
     assert any("ensemble of 1 member" in n for n in stored.notes)
 
@@ -120,8 +126,11 @@ def test_fisher_variances_and_spread(fisher_run):
         assert ch["rgb_std.R"].shape == (H, W) and ch["rgb_std.R"].max() > 0
         assert ch["depth_std.Z"].max() > 0
     scene = loaded.load_scene()
-    again = evaluate_views(loaded.sampler(scene.scene_scale, CPU), load_view_set(scene, report_indices(run, 2)),
-                           EvalConfig(num_samples=3, max_views=2, seed=1), CPU, show_progress=False)
+    cfg = EvalConfig(num_samples=3, max_views=2, seed=1)
+    field = fit_residual(loaded.sampler(scene.scene_scale, CPU), scene.split["train"], cfg, CPU,
+                         load_views=partial(load_view_set, scene, depth=False))
+    again = evaluate_views(dataclasses.replace(loaded.sampler(scene.scene_scale, CPU), residual=field),
+                           load_view_set(scene, report_indices(run, 2)), cfg, CPU, show_progress=False)
     assert again.mean.ause_mae == pytest.approx(report.mean.ause_mae, rel=1e-6)  # explicit generator: repeatable
 
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
+from functools import partial
 
 import numpy as np
 import pytest
@@ -16,7 +18,7 @@ from uncertsplat.baselines import load_run
 from uncertsplat.cli import app
 from uncertsplat.config import EvalConfig
 from uncertsplat.data.dataset import load_view_set
-from uncertsplat.eval.engine import evaluate_views
+from uncertsplat.eval.engine import evaluate_views, fit_residual
 from uncertsplat.io.images import read_exr
 from uncertsplat.io.maps import EXR_CHANNELS, map_stem
 from uncertsplat.schemas.metrics import EvalReport
@@ -71,8 +73,11 @@ def test_same_seed_same_metrics(evaluated, tiny_run_path):
     cpu = torch.device("cpu")
     loaded = load_run(run, cpu)
     scene = loaded.load_scene()
-    again = evaluate_views(loaded.sampler(scene.scene_scale, cpu), load_view_set(scene, scene.split["test"]),
-                           EvalConfig(num_samples=5, seed=3), cpu, show_progress=False)
+    cfg = EvalConfig(num_samples=5, seed=3)
+    field = fit_residual(loaded.sampler(scene.scene_scale, cpu), scene.split["train"], cfg, cpu,
+                         load_views=partial(load_view_set, scene, depth=False))
+    sampler = dataclasses.replace(loaded.sampler(scene.scene_scale, cpu), residual=field)
+    again = evaluate_views(sampler, load_view_set(scene, scene.split["test"]), cfg, cpu, show_progress=False)
     assert again.mean.ause_mae == pytest.approx(report.mean.ause_mae, rel=1e-6)
     assert again.mean.psnr == pytest.approx(report.mean.psnr, rel=1e-6)
 

@@ -96,6 +96,33 @@ def test_splits(tiny_scene_path):  # noqa: F811
     _raises(tiny_scene_path, SceneConfig(test_names=["nope.png"]), match="nope.png")
 
 
+def test_explicit_training_views(tiny_scene_path):  # noqa: F811
+    names = [f"view_{i:03d}.png" for i in range(24)]
+    # training views only: the default held-out views stay held out, except those now trained on; the rest unused
+    s = load_scene(tiny_scene_path, SceneConfig(train_indices=[0, 1, 2, 3]))
+    assert s.split["train"] == (0, 1, 2, 3) and s.split["test"] == (8, 16)
+    s = load_scene(tiny_scene_path, SceneConfig(train_names=names[:6], test_indices=[12, 13]))
+    assert s.split == {"train": (0, 1, 2, 3, 4, 5), "test": (12, 13)}
+    _raises(tiny_scene_path, SceneConfig(train_indices=[1, 2], test_indices=[2, 3]), match="both trained on and held")
+    _raises(tiny_scene_path, SceneConfig(train_indices=[24]), match="training indices out of range")
+    _raises(tiny_scene_path, SceneConfig(train_names=["x.png"]), match="training image")
+
+
+def test_points_from_training_views(tiny_scene_path):  # noqa: F811
+    from uncertsplat.sfm.colmap_io import read_colmap_model
+
+    model = read_colmap_model(tiny_scene_path / "sparse" / "0")
+    train = {f"view_{i:03d}.png" for i in range(6)}
+    expected = sum(len(train.intersection(t)) >= 2 for t in model.point_images)
+    full = load_scene(tiny_scene_path, SceneConfig(train_indices=list(range(6))))
+    some = load_scene(tiny_scene_path, SceneConfig(train_indices=list(range(6)), points_from="train"))
+    assert 0 < expected < len(model.point_images)
+    assert some.points.shape[0] == expected and full.points.shape[0] == len(model.point_images)
+    # every kept point is one of the full set (same normalisation: the same cameras define it)
+    d = torch.cdist(some.points, full.points, compute_mode="donot_use_mm_for_euclid_dist").amin(1)
+    assert float(d.max()) < 1e-5
+
+
 def test_text_model_and_sparse_without_0(workspace):
     binary = load_scene(workspace)
     rec = pycolmap.Reconstruction(str(workspace / "sparse" / "0"))

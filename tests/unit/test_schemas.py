@@ -213,3 +213,17 @@ def test_unversioned_run_scene_is_converted(tmp_path):
     path.write_text(json.dumps(old))
     got = RunScene.read(path)
     assert got.scene == "/s" and got.center_method == "camera_centroid" and got.center is None
+
+
+def test_train_summary_version_1_is_converted(tmp_path):
+    """train_summary.json before the informed posterior (version 1) reads with no updates, members too."""
+    summary = next(e for e in EXAMPLES if isinstance(e, TrainSummary))
+    data = json.loads(summary.to_json())
+    data["schema_version"] = 1
+    del data["posterior_updates"]
+    member = {**data, "members": []}
+    data["members"] = [member]
+    path = tmp_path / "train_summary.json"
+    path.write_text(json.dumps(data))
+    got = TrainSummary.read(path)
+    assert got.schema_version == 2 and got.posterior_updates == [] and got.members[0].posterior_updates == []

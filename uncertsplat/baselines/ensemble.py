@@ -117,13 +117,14 @@ class EnsembleRun(LoadedRun):
 
     def sampler(self, scene_scale: float, device: torch.device) -> Sampler:
         """Samples cycle through the members (``ensemble_sample_fn``); no deterministic render of its own."""
-        return Sampler(ensemble_sample_fn(self.member_samples()), self.render_fn(scene_scale, device))
+        return Sampler(ensemble_sample_fn(self.member_samples()), self.render_fn(scene_scale, device),
+                       empty_std=self.empty_std())
 
     def eval_notes(self, num_samples: int) -> list[str]:
         n = len(self.members)
         if n == 1:
-            return ["ensemble of 1 member: every sample is the same render, the spread (std) is 0 everywhere; "
-                    "AUSE and NLL measure no uncertainty"]
+            return ["ensemble of 1 member: every sample is the same render, so the samples' spread is 0 everywhere; "
+                    "the std holds only the empty-ray and pixel-noise terms (when on)"]
         if num_samples % n:
             return [f"K={num_samples} is not a multiple of the {n} ensemble members: members are weighted "
                     f"unequally (K = {n} uses each member once)"]
@@ -146,7 +147,7 @@ def load_ensemble(run_dir: Path, cfg, device: torch.device | str = "cpu") -> Ens
         members.append(load_single_model(mdir, device))
     first = members[0]
     return EnsembleRun(first.model, cfg, first.scene_path, first.extent, first.step, first.sh_degree, run_dir,
-                       run_dir, members=members)
+                       run_dir, first.transparent, members=members)
 
 
 def ensemble_sample_fn(samples: list[GaussianSample]):

@@ -23,9 +23,7 @@ Run folder: a normal deterministic run (``method = "fisher"`` in ``config.json``
 from __future__ import annotations
 
 import io
-import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -37,90 +35,16 @@ from uncertsplat.console import console
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import Sampler
 from uncertsplat.schemas import TrainSummary
-from uncertsplat.types import Cameras, GaussianSample, RenderOutput
+from uncertsplat.types import GaussianSample
+from uncertsplat.uncertainty.curvature import activate as _activate
+from uncertsplat.uncertainty.curvature import fisher_diagonal, residual_noise_std
+
+__all__ = ["FISHER_FILE", "FisherRun", "compute_fisher", "fisher_diagonal", "load_fisher", "perturbed_sample",
+           "posterior_variance", "residual_noise_std", "train_fisher"]
 
 FISHER_FILE = "fisher.pt"
 PARAM_ORDER = ("means", "scales", "opacities", "sh0")
 """Perturbed parameters, in the order their noise is drawn."""
-
-
-def _activate(params: dict[str, Tensor], sh_degree: int, delta: dict[str, Tensor] | None = None) -> GaussianSample:
-    """A render-ready sample from stored parameters (log-scales, logits) plus optional offsets ``delta``."""
-    delta = delta or {}
-
-    def get(name):
-        v = params[name]
-        return v + delta[name] if name in delta else v
-
-    sh = torch.cat([get("sh0"), params["shN"]], dim=1)
-    return GaussianSample(means=get("means"), quats=params["quats"], scales=torch.exp(get("scales")),
-                          opacities=torch.sigmoid(get("opacities")), sh=sh, sh_degree=sh_degree)
-
-
-def residual_noise_std(params: dict[str, Tensor], cameras: Cameras, images: Tensor, render_fn, *, sh_degree: int,
-                       floor: float = 1.0 / 255.0) -> float:
-    """RMS of ``render - image`` over every training pixel channel (at least ``floor``).
-
-    Args:
-        params: stored per-Gaussian parameters (``GaussianModel.params``).
-        cameras: T training cameras; images: [T,H,W,3].
-    """
-    total, count = 0.0, 0
-    with torch.no_grad():
-        g = _activate(params, sh_degree)
-        for i in range(len(cameras)):
-            out = render_fn(g, cameras[[i]])
-            r = out.rgb[0] - images[i].to(out.rgb.device)
-            total += float(r.square().sum())
-            count += r.numel()
-    return max(math.sqrt(total / max(count, 1)), floor)
-
-
-def fisher_diagonal(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
-                    render_fn: Callable[[GaussianSample, Cameras], RenderOutput], *, names: tuple[str, ...],
-                    noise_std: float, generator: torch.Generator, sh_degree: int, estimator: str = "ggn",
-                    probes: int = 2) -> dict[str, Tensor]:
-    """Diagonal Fisher information of the Gaussian pixel likelihood, summed over the training views.
-
-    Args:
-        params: stored per-Gaussian parameters (tensors [N,...]; not modified, no ``.grad`` written).
-        cameras: T training cameras; images: [T,H,W,3] in [0, 1].
-        render_fn: ``render_fn(sample, cameras) -> RenderOutput`` (differentiable).
-        names: the parameters to estimate it for (keys of ``params``).
-        noise_std: observation noise std s.
-        generator: source of the Rademacher probes (``ggn``).
-        sh_degree: SH degree to render with.
-        estimator: ``"ggn"`` or ``"empirical"`` (module docstring).
-        probes: probe vectors per view (``ggn``).
-
-    Returns:
-        name -> [N,...] non-negative tensor shaped like ``params[name]``.
-    """
-    if estimator not in ("ggn", "empirical"):
-        raise ValueError(f"unknown estimator {estimator!r}")
-    leaves = {n: params[n].detach().clone().requires_grad_(True) for n in names}
-    fixed = {k: v.detach() for k, v in params.items()}
-    acc = {n: torch.zeros_like(v) for n, v in leaves.items()}
-    inv_var = 1.0 / noise_std**2
-    for i in range(len(cameras)):
-        sample = _activate({**fixed, **leaves}, sh_degree)
-        out = render_fn(sample, cameras[[i]])
-        rgb = out.rgb[0]  # [H,W,3]
-        if estimator == "ggn":
-            for p in range(probes):
-                z = torch.randint(0, 2, rgb.shape, generator=generator, device=generator.device).to(rgb) * 2 - 1
-                grads = torch.autograd.grad((rgb * z).sum(), list(leaves.values()), retain_graph=p < probes - 1,
-                                            allow_unused=True)
-                for n, gr in zip(leaves, grads, strict=True):
-                    if gr is not None:
-                        acc[n] += gr.square() * (inv_var / probes)
-        else:
-            r = rgb - images[i].to(rgb.device)
-            grads = torch.autograd.grad(r.square().sum() * (0.5 * inv_var), list(leaves.values()), allow_unused=True)
-            for n, gr in zip(leaves, grads, strict=True):
-                if gr is not None:
-                    acc[n] += gr.square()
-    return acc
 
 
 def posterior_variance(fisher: dict[str, Tensor], prior_std: dict[str, float]) -> dict[str, Tensor]:
@@ -223,7 +147,7 @@ class FisherRun(LoadedRun):
 
     def sampler(self, scene_scale: float, device: torch.device) -> Sampler:
         """Laplace-posterior samples (``fisher_sample_fn``); no deterministic render of its own."""
-        return Sampler(fisher_sample_fn(self), self.render_fn(scene_scale, device))
+        return Sampler(fisher_sample_fn(self), self.render_fn(scene_scale, device), empty_std=self.empty_std())
 
     def eval_notes(self, num_samples: int) -> list[str]:
         fcfg = self.config.fisher

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,6 +54,8 @@ class LoadedRun:
     sh_degree: int
     source: Path
     run_dir: Path
+    transparent: bool = False
+    """The training images had real transparency (``RUN/scene.json``): the background is data."""
 
     @property
     def prior(self) -> Prior:
@@ -60,6 +63,12 @@ class LoadedRun:
         from uncertsplat.train.trainer import prior_from_config
 
         return prior_from_config(self.config)
+
+    def empty_std(self) -> tuple[float, float] | None:
+        """(colour, depth) std of the unknown surface behind a ray that meets no Gaussian: a colour uniform in
+        [0, 1] (std 1 / sqrt(12)) and a depth anywhere within the scene extent; None when the training images
+        were transparent (a ray that meets nothing then shows the known background)."""
+        return None if self.transparent else (1.0 / math.sqrt(12.0), float(self.extent))
 
     def render_fn(self, scene_scale: float, device: torch.device) -> Callable:
         """``render_fn(sample, cameras)`` with the run's background, tile size and near plane (as in training)."""
@@ -93,12 +102,13 @@ class LoadedRun:
 
             def sample_fn(g):
                 return variational.sample(model, g, subset_size=subset_size, **kw)
-        return Sampler(sample_fn, render_fn, det_sample)
+        return Sampler(sample_fn, render_fn, det_sample, empty_std=self.empty_std(), )
 
     def eval_notes(self, num_samples: int) -> list[str]:
         """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run."""
         if self.config.method == "deterministic":
-            return ["deterministic model: every sample is the same render, the std is 0 everywhere"]
+            return ["deterministic model: every sample is the same render, so the samples' spread is 0 everywhere; "
+                    "the std holds only the empty-ray and pixel-noise terms (when on)"]
         return []
 
     def load_scene(self) -> SceneData:
@@ -155,13 +165,14 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
 
     info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
     scene_path = Path(info.scene) if info is not None and info.scene else None
+    transparent = bool(info.source.get("transparent", False)) if info is not None else False
     device = torch.device(device)
     ply = run_dir / "variational.ply"
     if ply.is_file():
         model, meta = read_variational_ply(ply, device=device)
         extent = float(meta.get("extent", info.extent if info is not None else 1.0))
         return LoadedRun(model, cfg, scene_path, extent, int(meta.get("step", 0)),
-                         int(meta.get("sh_degree_active", model.sh_degree)), ply, run_dir)
+                         int(meta.get("sh_degree_active", model.sh_degree)), ply, run_dir, transparent)
     found = load_latest(run_dir, map_location=device)
     if found is None:
         raise UserError("no trained model here (neither variational.ply nor a checkpoint in ckpts/)", path=run_dir,
@@ -172,7 +183,7 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
     except (KeyError, ValueError) as err:  # a good checksum over an inconsistent model: written by other code
         raise CorruptCheckpoint(f"the model in the checkpoint is inconsistent ({err})", path=path) from None
     return LoadedRun(model, cfg, scene_path, float(state["extent"]), int(state["step"]),
-                     int(state.get("sh_degree_active", model.sh_degree)), path, run_dir)
+                     int(state.get("sh_degree_active", model.sh_degree)), path, run_dir, transparent)
 
 
 def load_run(run_dir: str | Path, device: torch.device | str = "cpu") -> LoadedRun:

@@ -28,6 +28,7 @@ from uncertsplat.console import progress
 from uncertsplat.errors import UserError
 from uncertsplat.schemas.metrics import EvalReport
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput, ViewSet
+from uncertsplat.uncertainty.residual import ResidualField
 
 KDE_MAX_SAMPLES = 64
 """The KDE NLL keeps every sample of a view in memory; above this K it is skipped (and noted)."""
@@ -49,6 +50,10 @@ class EvalSettings(Protocol):
     max_views: int | None
     """Evaluate only the first n views of the split (None: all)."""
     calibration_views: int
+    empty_rays: bool
+    """Add the sampler's ``empty_std`` where rays meet no Gaussian (False: the samples' spread only)."""
+    residual_views: int
+    """Training views to fit the pixel noise of the model's Gaussians on (``fit_residual``; 0: none)."""
 
 
 @dataclass(frozen=True)
@@ -62,11 +67,17 @@ class Sampler:
             near plane.
         det_sample: the one deterministic sample ``train`` reports (the expected render), scored as
             ``psnr_render``; None for methods without one.
+        empty_std: (colour, depth) std of the unknown surface behind a ray that meets no Gaussian
+            (``uncertainty.mc.mc_render``); None when the background is part of the data.
+        residual: the pixel noise of the model's Gaussians (``fit_residual``), added to the RGB variance;
+            None: the samples' spread only.
     """
 
     sample_fn: Callable[[torch.Generator], GaussianSample]
     render_fn: Callable[[GaussianSample, Cameras], RenderOutput]
     det_sample: GaussianSample | None = None
+    empty_std: tuple[float, float] | None = None
+    residual: ResidualField | None = None
 
 
 @dataclass(frozen=True)
@@ -79,6 +90,7 @@ class ViewMaps:
         rgb_mean: [H,W,3] the Monte-Carlo mean clamped to [0, 1] (the prediction that is scored).
         rgb_std: [H,W,3] the unbiased std over the K samples.
         depth_mean, depth_std: [H,W,1] in the run's world units.
+        alpha_mean: [H,W,1] mean accumulated opacity (None when not given).
     """
 
     name: str
@@ -87,6 +99,7 @@ class ViewMaps:
     rgb_std: Tensor
     depth_mean: Tensor
     depth_std: Tensor
+    alpha_mean: Tensor | None = None
 
 
 @dataclass
@@ -98,6 +111,47 @@ class _ViewResult:
     depth_mean: Tensor  # [H,W,1] on CPU
     depth_std: Tensor
     alpha: Tensor
+
+
+def _predictive(sampler: Sampler, cfg: EvalSettings, cams: Cameras) -> dict:
+    """The terms ``mc_render`` adds to the samples' spread, as the settings allow."""
+    extra = sampler.residual.blended(cams, sampler.render_fn) if sampler.residual is not None else None
+    return {"empty_std": sampler.empty_std if cfg.empty_rays else None, "extra_var": extra}
+
+
+def residual_indices(train_indices: Sequence[int], cfg: EvalSettings) -> list[int]:
+    """The at most ``cfg.residual_views`` evenly spaced training views the pixel noise is fitted on."""
+    train = list(train_indices)
+    n = min(cfg.residual_views, len(train))
+    if n == 0:
+        return []
+    return [train[round(j * (len(train) - 1) / max(n - 1, 1))] for j in range(n)] if n < len(train) else train
+
+
+@torch.no_grad()
+def _representative(sampler: Sampler, device: torch.device) -> GaussianSample:
+    if sampler.det_sample is not None:
+        return sampler.det_sample
+    return sampler.sample_fn(torch.Generator(device=device).manual_seed(0))
+
+
+def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettings, device: torch.device, *,
+                 load_views: Callable[[list[int]], ViewSet]) -> ResidualField | None:
+    """The pixel noise of the sampler's Gaussians (``uncertainty.residual.fit_residual_field``), fitted on
+    ``residual_indices`` of the training views against the run's deterministic render (a sample when the
+    method has none); None when ``cfg.residual_views`` is 0 or there is no training view. Give it a sampler of
+    its own (a baseline's sampler may keep state) and attach the field to the evaluation's sampler with
+    ``dataclasses.replace(sampler, residual=field)``."""
+    from uncertsplat.uncertainty.residual import fit_residual_field
+
+    chosen = residual_indices(train_indices, cfg)
+    if not chosen:
+        return None
+    views = load_views(chosen)
+    masks = views.masks.to(device) if views.masks is not None else None
+    with torch.enable_grad():
+        return fit_residual_field(_representative(sampler, device), views.cameras.to(device),
+                                  views.images.to(device), sampler.render_fn, masks=masks)
 
 
 def _view_seed(cfg: EvalSettings, index: int) -> int:
@@ -158,7 +212,7 @@ def fit_std_scale(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSetti
     for j, i in enumerate(views.indices):
         gen.manual_seed(_view_seed(cfg, i))
         maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, views.cameras[[j]].to(device), cfg.num_samples,
-                            gen)
+                            gen, **_predictive(sampler, cfg, views.cameras[[j]].to(device)))
         err = maps.rgb_mean[0].cpu().clamp(0, 1) - views.images[j]
         z2 = (err / maps.rgb_std[0].cpu().clamp_min(cfg.std_floor)) ** 2
         if views.masks is not None:
@@ -225,7 +279,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if not keep:
         notes.append(f"KDE NLL skipped: K={K} > {KDE_MAX_SAMPLES} would keep every sample in memory")
     if K == 1:
-        notes.append("K=1: the std is 0 everywhere; AUSE and NLL then measure no uncertainty")
+        notes.append("K=1: the samples' spread is 0 everywhere; the std holds only the empty-ray and pixel-noise "
+                     "terms (when on)")
 
     results: list[_ViewResult] = []
     gen = torch.Generator(device=device)
@@ -241,7 +296,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             t0 = time.perf_counter()
-            maps, samples = mc_render(sample_fn, render_fn, cams, K, gen, keep_samples=keep)
+            maps, samples = mc_render(sample_fn, render_fn, cams, K, gen, keep_samples=keep,
+                                      **_predictive(sampler, cfg, cams))
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             seconds = time.perf_counter() - t0
@@ -279,7 +335,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             results.append(_ViewResult(name, m, {"rgb": sp, "rgb_curves": curves}, cal,
                                        maps.depth_mean[0].cpu(), maps.depth_std[0].cpu(), maps.alpha_mean[0].cpu()))
             if on_view is not None:
-                on_view(ViewMaps(name, gt, pred, std, maps.depth_mean[0].cpu(), maps.depth_std[0].cpu()))
+                on_view(ViewMaps(name, gt, pred, std, maps.depth_mean[0].cpu(), maps.depth_std[0].cpu(),
+                                 maps.alpha_mean[0].cpu()))
             if prog:
                 prog.update(task, advance=1, info=f"{name}: PSNR {m['psnr']:.2f} AUSE {m['ause_mae']:.3f} "
                                                   f"{seconds:.2f}s")

@@ -101,7 +101,8 @@ def draw_subset(num_entries: int, subset_size: int, generator: torch.Generator) 
 
 
 def sample(model: GaussianModel, generator: torch.Generator, *, subset_size: int = 2, variant: Variant = "ours",
-           extent: float = 1.0, temperature: float = 0.2, sh_degree: int | None = None) -> GaussianSample:
+           extent: float = 1.0, temperature: float = 0.2, sh_degree: int | None = None,
+           tables_grad: bool = True) -> GaussianSample:
     """One posterior sample of every Gaussian, differentiable w.r.t. parameters and tables.
 
     Random numbers are drawn in a fixed order (subset, eps [P,3], u [P,3], eta [P,1]) from
@@ -115,11 +116,14 @@ def sample(model: GaussianModel, generator: torch.Generator, *, subset_size: int
         extent: scene extent (position unit for "ours").
         temperature: gate temperature T.
         sh_degree: SH degree to evaluate (default: the model's maximum).
+        tables_grad: False: the sample is differentiable w.r.t. the Gaussians' parameters only (the
+            informed posterior sets its tables in closed form, ``informed_tables``).
     """
     draws = _draw(model, generator, subset_size)
     if draws.idx.numel() == 0:
         return _assemble(model, draws.idx, draws.eps, draws.u, draws.eta[:, 0], variant=variant, sh_degree=sh_degree)
-    avgs = {name: model.tables[name].index_select(1, draws.subset).mean(dim=1) for name in TABLE_NAMES}  # [P,D]
+    tables = model.tables if tables_grad else {k: v.detach() for k, v in model.tables.items()}
+    avgs = {name: tables[name].index_select(1, draws.subset).mean(dim=1) for name in TABLE_NAMES}  # [P,D]
     return _sample_from(model, draws, avgs, variant=variant, extent=extent, temperature=temperature,
                         sh_degree=sh_degree)
 
@@ -299,6 +303,104 @@ def expected_render_sample(model: GaussianModel, *, variant: Variant = "ours", e
                           sh_degree=pm.sh_degree, position_var=var)
 
 
+def mean_params(model: GaussianModel, *, variant: Variant = "ours", extent: float = 1.0,
+                temperature: float = 0.2) -> dict[str, Tensor]:
+    """The posterior mean as stored-style parameters [N,...] (means, log-scales, opacity logits, SH, quats),
+    detached: what ``uncertainty.curvature.fisher_diagonal`` differentiates the render against."""
+    with torch.no_grad():
+        pm = posterior_mean(model, variant=variant, extent=extent, temperature=temperature)
+        o = pm.opacities.clamp(1e-6, 1.0 - 1e-6)
+        p = model.params
+        return {"means": pm.means.detach(), "scales": torch.log(pm.scales).detach(),
+                "opacities": torch.log(o / (1.0 - o)).detach(), "quats": p["quats"].detach(),
+                "sh0": p["sh0"].detach(), "shN": p["shN"].detach()}
+
+
+def normal_quantile(p: Tensor) -> Tensor:
+    """Phi^-1(p), accurate in the tails (p down to 1e-38 in float32)."""
+    return torch.special.ndtri(p)
+
+
+@torch.no_grad()
+def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prior, *, extent: float = 1.0,
+                    position_prior_scale: float = 1.0) -> dict:
+    """Set every carrier's table to the posterior that the training views' curvature implies (in place).
+
+    ``fisher``: the diagonal Fisher information of the training views w.r.t. the posterior mean's
+    ``means`` [N,3], ``scales`` (log) [N,3] and ``opacities`` (logit) [N] (``mean_params`` +
+    ``uncertainty.curvature.fisher_diagonal``). For a Gaussian posterior and a likelihood expanded to second
+    order around the mean, the evidence lower bound is maximised by the Laplace precision, prior precision plus
+    Fisher: ``1 / var = 1 / prior_var + F``. So a parameter no view constrains keeps the prior's spread and a
+    well-observed one gets the data's. Per carrier (all K entries get the same values):
+
+    * position: the prior std is the larger of ``prior.position_std`` x extent and ``position_prior_scale``
+      x the carrier's own size (geometric mean of its axes): before any data, a Gaussian is located to
+      within its footprint. Posterior std per axis ``(F + 1 / prior_std^2)^-1/2``; location 0 (the mean is
+      the base position; a location the tables held is folded into it).
+    * scale multiplier U[l, l + w]: the log-scale prior variance is the prior interval's,
+      ``(w_p / m)^2 / 12`` with m = 1 - w_p / 2 its mean; the posterior width matches the Laplace variance,
+      ``w = m sqrt(12 var)``, centred on m.
+    * gate: switching a Gaussian off changes the render by ``-dr/da / (1 - o)`` (a pixel is linear in one
+      Gaussian's opacity o; a is its logit), which lowers the log-likelihood by ``dL = F_a / (2 (1 - o)^2)``.
+      The posterior odds of "off" are the prior's times ``exp(-dL)``; the gate keeps the prior's spread tau
+      and gets the location ``nu = -tau Phi^-1(P_off)``, so that P(gate < 1/2) = P_off. Unseen Gaussians keep
+      the prior's switch-off probability; those the data need are (almost) never switched off.
+
+    The posterior-mean render is preserved: base opacity and scale absorb the change of the expected gate
+    and of the mean multiplier, and the base position the old location.
+
+    Returns:
+        plain numbers for ``train_summary.json``: carriers, the fraction whose position variance is below half
+        the prior's (``data_dominated``), and the median switch-off probability.
+    """
+    idx = model.carrier_index()
+    P = idx.numel()
+    if P == 0:
+        return {"carriers": 0, "data_dominated": None, "gate_off_median": None}
+    if prior.variant != "ours":
+        raise ValueError("informed tables are defined for variant 'ours' (linear scale multiplier)")
+    t = model.tables
+    p = model.params
+    unit = _unit(prior.variant, extent)
+    before = posterior_mean(model, variant=prior.variant, extent=extent, temperature=prior.temperature)
+    old_opacity = before.opacities[idx]  # [P] effective opacity (base x expected gate)
+    old_mult = t["scale_left"].mean(1) + 0.5 * F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH)
+
+    # position
+    own = before.scales[idx].log().mean(1).exp()  # [P] geometric-mean size, world units
+    prior_std = torch.clamp(position_prior_scale * own, min=prior.position_std * unit)  # [P]
+    var = 1.0 / (fisher["means"][idx] + 1.0 / prior_std[:, None].square())  # [P,3]
+    p["means"].data.index_add_(0, idx, t["pos_loc"].mean(1) * unit)
+    t["pos_loc"].data.zero_()
+    sigma = (var.sqrt() / unit).clamp_min(1e-12)
+    t["pos_spread_raw"].data.copy_(inverse_softplus(sigma)[:, None, :].expand_as(t["pos_spread_raw"]))
+
+    # scale multiplier
+    m = 1.0 - 0.5 * prior.scale_width
+    prior_var = (prior.scale_width / m) ** 2 / 12.0
+    var_s = 1.0 / (fisher["scales"][idx] + 1.0 / prior_var)  # [P,3]
+    width = (m * (12.0 * var_s).sqrt()).clamp(MIN_WIDTH, MAX_WIDTH)
+    t["scale_width_raw"].data.copy_(inverse_softplus(width)[:, None, :].expand_as(t["scale_width_raw"]))
+    t["scale_left"].data.copy_((m - 0.5 * width)[:, None, :].expand_as(t["scale_left"]))
+    new_mult = m  # the multiplier's mean, l + w/2
+    p["scales"].data.index_add_(0, idx, torch.log(old_mult / new_mult))
+
+    # gate
+    tau = torch.tensor(prior.gate_std, device=idx.device)
+    p0 = gate_off_probability(torch.tensor(prior.gate_mean, device=idx.device), tau).clamp(1e-6, 1 - 1e-6)
+    drop = fisher["opacities"][idx] / (2.0 * (1.0 - old_opacity).clamp_min(1e-3).square())  # [P] nats
+    logit_off = (torch.log(p0) - torch.log1p(-p0) - drop).clamp_min(-80.0)
+    p_off = torch.sigmoid(logit_off)
+    nu = -prior.gate_std * normal_quantile(p_off)
+    t["gate_spread_raw"].data.fill_(inverse_softplus(prior.gate_std))
+    t["gate_loc"].data.copy_(nu[:, None, None].expand_as(t["gate_loc"]))
+    gate = expected_gate(nu, tau.expand_as(nu), prior.temperature)  # [P]
+    base = (old_opacity / gate).clamp(1e-6, 1.0 - 1e-4)
+    p["opacities"].data.index_copy_(0, idx, torch.log(base / (1.0 - base)).to(p["opacities"].dtype))
+    data_dominated = (var.mean(1) < 0.5 * prior_std.square()).float().mean()
+    return {"carriers": P, "data_dominated": float(data_dominated), "gate_off_median": float(p_off.median())}
+
+
 def gaussian_kl(loc: Tensor, spread_raw: Tensor, prior_loc: float, prior_std: float) -> Tensor:
     """Elementwise KL(N(loc, softplus(spread_raw)^2) || N(prior_loc, prior_std^2)), finite at extremes."""
     std = F.softplus(spread_raw)
@@ -465,10 +567,17 @@ def posterior_summary(model: GaussianModel, prior: Prior) -> dict:
             "scale_width_ratio": quantiles(width), "gate_off": quantiles(gate_off)}
 
 
-def describe_posterior(post: dict) -> str:
-    """One line on how far the learned posteriors are from the prior, from a ``posterior_summary`` dict
-    (printed by ``train``, shown in the report)."""
+def describe_posterior(post: dict, update: dict | None = None) -> str:
+    """One line on how far the learned posteriors are from the prior, from a ``posterior_summary`` dict and,
+    for the informed posterior, its last update record (``informed_tables`` plus step and noise; printed by
+    ``train``, shown in the report)."""
     pos, gate = post["position_spread_ratio"], post["gate_off"]
+    if update is not None and update.get("data_dominated") is not None:
+        return (f"posterior (informed, step {update['step']}): {100 * update['data_dominated']:.1f} % of "
+                f"{update['carriers']} carriers are set by the data (position variance below half the prior's), the "
+                f"rest by the prior; median switch-off probability {100 * update['gate_off_median']:.2f} % (prior "
+                f"{100 * post['gate_off_prior']:.1f} %, kept where no view needs the Gaussian); likelihood noise "
+                f"{update['noise_std']:.4f} (RMS training residual)")
     line = (f"posterior: {100 * post['moved_fraction']:.1f} % of {post['carriers']} carriers moved from the prior "
             f"(KL > {post['moved_kl_nats']} nats); position spread x{pos['q10']:.3f}-{pos['q90']:.3f} of the prior, "
             f"gate-off {100 * gate['q10']:.1f}-{100 * gate['q90']:.1f} % (prior {100 * post['gate_off_prior']:.1f} %), "

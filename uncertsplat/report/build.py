@@ -142,7 +142,9 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
         post = run.train_summary.posterior if run.train_summary is not None else None
         if post is not None and post.carriers and post.moved_fraction is not None \
                 and post.position_spread_ratio is not None and post.gate_off is not None:
-            body.append(note(f"{run.name} (train): {describe_posterior(post.model_dump())}"))
+            updates = run.train_summary.posterior_updates
+            last = updates[-1].model_dump() if updates else None
+            body.append(note(f"{run.name} (train): {describe_posterior(post.model_dump(), last)}"))
     w.section("summary", "Summary", "".join(body))
 
 

@@ -34,6 +34,20 @@ class PosteriorSummary(Strict):
     gate_off: Quantiles | None
 
 
+class PosteriorUpdate(Strict):
+    """One informed-posterior update (``Trainer.update_posterior``)."""
+
+    step: int
+    noise_std: float
+    """Observation noise of the Gaussian pixel likelihood: the RMS training residual."""
+    carriers: int
+    data_dominated: float | None
+    """Carriers whose position variance is below half the prior's: the data, not the prior, set them."""
+    gate_off_median: float | None
+    """Median probability that a sample switches a carrier off (the prior's for a Gaussian no view needs)."""
+    seconds: float
+
+
 class MemoryPerGaussian(Strict):
     """Bytes per Gaussian by kind (``gaussians.params.memory_per_gaussian``)."""
 
@@ -54,10 +68,10 @@ class TrainSummary(SchemaFile):
     """
 
     FILE_NAME = "train_summary.json"
-    SCHEMA_VERSION = 1
+    SCHEMA_VERSION = 2
     WRITTEN_BY = "uncertsplat train"
 
-    schema_version: int = 1
+    schema_version: int = 2
     method: str
     variant: str
     steps: int
@@ -83,6 +97,8 @@ class TrainSummary(SchemaFile):
     skipped_steps: int | None = None
     sh_degree_active: int | None = None
     posterior: PosteriorSummary | None = None
+    posterior_updates: list[PosteriorUpdate] = Field(default_factory=list)
+    """The informed posterior's updates in the last training call (empty for other posteriors)."""
     kernels: str | None = None
     # ---- fisher
     train_seconds: float | None = None
@@ -98,6 +114,14 @@ class TrainSummary(SchemaFile):
     @classmethod
     def _nonfinite_to_none(cls, v):
         return finite_or_none(v)
+
+    @classmethod
+    def _upgrade(cls, data: dict, version: int) -> dict | None:
+        # version 1 had no informed posterior: no updates, in the run and in its members
+        if version != 1:
+            return None
+        members = [{**m, "schema_version": 2, "posterior_updates": []} for m in data.get("members", [])]
+        return {**data, "posterior_updates": [], "members": members}
 
 
 # ----------------------------------------------------------------------------------------- manifest.json

@@ -48,6 +48,8 @@ class ColmapModel:
     images: list[ColmapImage]
     points: np.ndarray  # [P,3] float64
     points_rgb: np.ndarray  # [P,3] uint8
+    point_images: tuple[tuple[str, ...], ...] | None = None
+    """Per point, the names of the registered images that observe it (its track), when read from a file."""
 
 
 def has_model(folder: Path) -> bool:
@@ -162,7 +164,10 @@ def read_colmap_model(folder: str | Path) -> ColmapModel:
     pts = list(rec.points3D.values())
     xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
     rgb = np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3)
-    return ColmapModel(cameras, images, xyz, rgb)
+    names = {int(iid): str(im.name) for iid, im in rec.images.items()}
+    tracks = tuple(tuple(sorted({names[int(e.image_id)] for e in p.track.elements if int(e.image_id) in names}))
+                   for p in pts)
+    return ColmapModel(cameras, images, xyz, rgb, tracks)
 
 
 def write_colmap_model(

@@ -153,8 +153,21 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
     cameras, paths = _colmap_cameras(model, image_dir, sparse)
     points = torch.tensor(model.points, dtype=torch.float32).reshape(-1, 3)
     rgb = torch.tensor(model.points_rgb, dtype=torch.float32).reshape(-1, 3) / 255.0
+    if cfg.points_from == "train":
+        keep = _seen_by_training_views(model, cameras.image_names, cfg, sparse)
+        points, rgb = points[keep], rgb[keep]
     return _finish(cameras, paths, points, rgb, cfg, source={"kind": source, "path": str(path),
                                                             "model": str(sparse)})
+
+
+def _seen_by_training_views(model: ColmapModel, names: tuple[str, ...], cfg: SceneConfig, where: Path) -> torch.Tensor:
+    """[P] bool: points whose track has at least 2 training images (what SfM on those images alone could
+    triangulate)."""
+    if model.point_images is None:
+        raise UserError("points_from = 'train' needs the points' tracks, which this model does not have", path=where,
+                        hint="Use points_from = 'all', or a COLMAP model with tracks (points3D.bin / .txt).")
+    train = {names[i] for i in make_split(names, cfg, where=where)["train"]}
+    return torch.tensor([len(train.intersection(t)) >= 2 for t in model.point_images], dtype=torch.bool)
 
 
 def _load_synthetic(path: Path, cfg: SceneConfig, meta: SynthScene, initial_points: bool = True) -> SceneData:
@@ -193,28 +206,48 @@ def _from_transforms(found: TransformsScene, cfg: SceneConfig, initial_points: b
 
 
 # ------------------------------------------------------------------------------------- split, normalise
+def _named(names: tuple[str, ...], wanted: list[str] | None, indices: list[int] | None, what: str,
+           where: Path | None) -> list[int] | None:
+    """Sorted indices of explicit image names or indices (None when neither is given)."""
+    n = len(names)
+    if wanted is not None:
+        index = {name: i for i, name in enumerate(names)}
+        missing = [t for t in wanted if t not in index]
+        if missing:
+            raise UserError(f"{what} image(s) not in the scene: {', '.join(missing)}", path=where,
+                            hint=f"Valid names look like '{names[0]}'.")
+        return sorted({index[t] for t in wanted})
+    if indices is not None:
+        bad = [i for i in indices if not (0 <= i < n)]
+        if bad:
+            raise UserError(f"{what} indices out of range 0..{n - 1}: {bad}", path=where)
+        return sorted(set(indices))
+    return None
+
+
 def make_split(names: tuple[str, ...], cfg: SceneConfig, where: Path | None = None,
                default: dict[str, tuple[int, ...]] | None = None) -> dict[str, tuple[int, ...]]:
     """Train/test indices: explicit names, explicit indices, ``default`` (e.g. a dataset's own split),
-    else every ``test_every``-th image by sorted name starting at index 0."""
+    else every ``test_every``-th image by sorted name starting at index 0. Explicit training views
+    (``train_names`` / ``train_indices``) restrict the training set; images in neither set are unused."""
     n = len(names)
-    if cfg.test_names is not None:
-        index = {name: i for i, name in enumerate(names)}
-        missing = [t for t in cfg.test_names if t not in index]
-        if missing:
-            raise UserError(f"test image(s) not in the scene: {', '.join(missing)}", path=where,
-                            hint=f"Valid names look like '{names[0]}'.")
-        test = sorted({index[t] for t in cfg.test_names})
-    elif cfg.test_indices is not None:
-        bad = [i for i in cfg.test_indices if not (0 <= i < n)]
-        if bad:
-            raise UserError(f"test indices out of range 0..{n - 1}: {bad}", path=where)
-        test = sorted(set(cfg.test_indices))
-    elif default is not None:
+    test = _named(names, cfg.test_names, cfg.test_indices, "test", where)
+    train = _named(names, cfg.train_names, cfg.train_indices, "training", where)
+    if test is None and train is None and default is not None:
         return {k: tuple(v) for k, v in default.items()}
-    else:
-        test = list(range(0, n, cfg.test_every))
-    train = [i for i in range(n) if i not in set(test)]
+    if test is None:
+        if default is not None:
+            test = list(default.get("test", ()))
+        else:
+            test = list(range(0, n, cfg.test_every))
+        if train is not None:  # the default held-out views give way to explicit training views
+            test = [i for i in test if i not in set(train)]
+    if train is None:
+        train = [i for i in range(n) if i not in set(test)]
+    both = sorted(set(train) & set(test))
+    if both:
+        raise UserError(f"image(s) both trained on and held out: {', '.join(names[i] for i in both)}", path=where,
+                        hint="An image is either a training or a held-out view; fix train_* or test_*.")
     if not train:
         raise UserError(f"the test split takes all {n} images and leaves no training view", path=where,
                         hint="Hold out fewer images (test_names / test_indices / a larger test_every).")

@@ -17,6 +17,7 @@ std over the K samples.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import torch
@@ -58,7 +59,7 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
 
     from uncertsplat.baselines import load_run
     from uncertsplat.data.dataset import load_view_set
-    from uncertsplat.eval.engine import evaluate_views, fit_std_scale, split_indices
+    from uncertsplat.eval.engine import evaluate_views, fit_residual, fit_std_scale, split_indices
     from uncertsplat.io.atomic import atomic_write_text, run_lock
     from uncertsplat.provenance import hash_config
 
@@ -73,9 +74,14 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
     with run_lock(run_dir, "evaluate"):
         console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
                       f"{len(loaded.model)} Gaussians ({loaded.model.num_carriers} with a posterior), {device}")
-        std_scale, cal_views = fit_std_scale(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()),
-                                             cfg, device, load_views=partial(load_view_set, scene, depth=False))
-        report = evaluate_views(loaded.sampler(scene.scene_scale, device), views, cfg, device,
+        train_views = partial(load_view_set, scene, depth=False)
+        residual = fit_residual(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()), cfg, device,
+                                load_views=train_views)
+        std_scale, cal_views = fit_std_scale(
+            dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual),
+            scene.split.get("train", ()), cfg, device, load_views=train_views)
+        report = evaluate_views(dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual),
+                                views, cfg, device,
                                 on_view=partial(write_view_maps, out / "maps", preview=cfg.preview),
                                 std_scale=std_scale, calibration_views=cal_views,
                                 notes=loaded.eval_notes(cfg.num_samples),

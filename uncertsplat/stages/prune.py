@@ -39,6 +39,7 @@ import os
 import shutil
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -109,6 +110,11 @@ class _Measure:
         self.cams = scene.cameras[indices].to(device)
         # the held-out images and GT depth are read once; every model of a sweep is measured on them
         self.views = load_view_set(scene, indices)
+        # the pixel noise of the source model's Gaussians, fitted once: a pruned model keeps its Gaussians' noise
+        from uncertsplat.eval.engine import fit_residual
+
+        self.residual = fit_residual(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()),
+                                     self.ecfg, device, load_views=partial(load_view_set, scene, depth=False))
         self.meta = {"variant": loaded.config.variant, "extent": loaded.extent, "step": loaded.step,
                      "sh_degree_active": loaded.sh_degree,
                      "temperature": loaded.config.variational.gate_temperature}
@@ -150,8 +156,13 @@ class _Measure:
                 return self._cache[key]
         t0 = time.perf_counter()
         loaded = dataclasses.replace(self.loaded, model=model)
-        report = evaluate_views(loaded.sampler(self.scene.scene_scale, self.device),
-                                self.views, self.ecfg, self.device, show_progress=False)
+        residual = self.residual
+        if residual is not None and keep is not None:
+            residual = residual.subset(keep.to(residual.variance.device))
+        elif residual is not None and len(model) != len(self.loaded.model):
+            residual = None  # a model that is not a subset of the source: no noise to carry over
+        sampler = dataclasses.replace(loaded.sampler(self.scene.scene_scale, self.device), residual=residual)
+        report = evaluate_views(sampler, self.views, self.ecfg, self.device, show_progress=False)
         _, alpha = self.mean_renders(model)
         out = PruneMetrics(num_gaussians=len(model), num_carriers=model.num_carriers,
                            **{k: getattr(report.mean, k) for k in METRIC_KEYS}, coverage=float(alpha.mean()),

@@ -7,6 +7,7 @@ It never raises for a failure inside the job: the records then have ``status = "
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import time
@@ -110,7 +111,7 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     from uncertsplat.baselines import load_run
     from uncertsplat.config import EvalConfig, build_config
     from uncertsplat.data.dataset import load_view_set
-    from uncertsplat.eval.engine import evaluate_views, fit_std_scale, split_indices
+    from uncertsplat.eval.engine import evaluate_views, fit_residual, fit_std_scale, split_indices
     from uncertsplat.provenance import hash_config
 
     ecfg = build_config(EvalConfig, point["eval_config"], source=f"sweep point {point['id']}")
@@ -120,14 +121,19 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     indices = split_indices(scene.split, ecfg)
     t_cal = time.perf_counter()
     # as `evaluate` does; not in the timed part
-    std_scale, cal_views = fit_std_scale(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()),
-                                         ecfg, device, load_views=partial(load_view_set, scene, depth=False))
+    train_views = partial(load_view_set, scene, depth=False)
+    residual = fit_residual(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()), ecfg, device,
+                            load_views=train_views)
+    std_scale, cal_views = fit_std_scale(dataclasses.replace(loaded.sampler(scene.scene_scale, device),
+                                                             residual=residual),
+                                         scene.split.get("train", ()), ecfg, device, load_views=train_views)
     calibration_seconds = time.perf_counter() - t_cal
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
     views = load_view_set(scene, indices)  # the scene's own GT depth (a sweep point has no --depth-gt)
-    report = evaluate_views(loaded.sampler(scene.scene_scale, device), views, ecfg, device, show_progress=False,
+    report = evaluate_views(dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual), views,
+                            ecfg, device, show_progress=False,
                             std_scale=std_scale, calibration_views=cal_views,
                             notes=loaded.eval_notes(ecfg.num_samples),
                             config_hash=hash_config(ecfg.model_dump(mode="json")))

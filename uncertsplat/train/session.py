@@ -32,6 +32,18 @@ from uncertsplat.io.atomic import (
 from uncertsplat.schemas import RunScene, TrainSummary
 
 
+def _transparent(data) -> bool:
+    """Whether the first training image has real transparency (an alpha channel with some alpha < 1): the
+    background is then data, and a ray that meets no Gaussian shows it (``LoadedRun.empty_std``)."""
+    from uncertsplat.io.images import read_alpha
+
+    train = data.split.get("train", ())
+    if not train:
+        return False
+    a = read_alpha(data.image_paths[train[0]])
+    return a is not None and bool((a < 1.0).any())
+
+
 def _differences(a: dict, b: dict, prefix: str = "") -> list[str]:
     out = []
     for k in sorted(set(a) | set(b)):
@@ -118,7 +130,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         names = data.cameras.image_names
         RunScene(
-            scene=str(scene.resolve()), source=data.source, extent=data.extent, scene_scale=data.scene_scale,
+            scene=str(scene.resolve()), source=dict(data.source, transparent=_transparent(data)), extent=data.extent,
+            scene_scale=data.scene_scale,
             width=data.cameras.width, height=data.cameras.height,
             train=[names[i] for i in data.split["train"]] if names else [],
             test=[names[i] for i in data.split.get("test", ())] if names else [],
@@ -154,7 +167,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         console.print(f"done: {trainer.step} steps in {trainer.elapsed:.1f} s, {len(trainer.model)} Gaussians "
                       f"({trainer.model.num_carriers} with a posterior){psnr_txt} -> {run_dir}")
         if summary.posterior is not None and summary.posterior.carriers:
-            console.print(describe_posterior(summary.posterior.model_dump()))
+            last = summary.posterior_updates[-1].model_dump() if summary.posterior_updates else None
+            console.print(describe_posterior(summary.posterior.model_dump(), last))
     return run_dir
 
 

@@ -31,8 +31,11 @@ from uncertsplat.gaussians.params import GaussianModel, init_from_points, memory
 from uncertsplat.gaussians.prior import Prior
 from uncertsplat.gaussians.variational import (
     expected_render_sample,
+    informed_tables,
+    mean_params,
     posterior_mean,
     posterior_summary,
+    sample,
     sample_with_kl,
 )
 from uncertsplat.render import near_plane, render
@@ -41,6 +44,7 @@ from uncertsplat.strategy.schedule import sh_degree_at
 from uncertsplat.train.losses import total_loss
 from uncertsplat.train.optim import base_rates, make_optimizer, set_rates
 from uncertsplat.types import Cameras, GaussianSample, SceneData
+from uncertsplat.uncertainty.curvature import fisher_diagonal, residual_noise_std
 
 STATE_VERSION = 1
 MAX_BAD_STEPS = 5
@@ -97,6 +101,8 @@ class Trainer:
         self.background = torch.tensor(cfg.scene.background, dtype=torch.float32, device=self.device)
         self.near = near_plane(scene.scene_scale)
         self.variational = cfg.method == "variational"
+        self.informed = self.variational and cfg.posterior == "informed"
+        self.posterior_updates: list[dict] = []  # one record per informed-posterior update (this process)
         if state is None:
             self._init_fresh()
         else:
@@ -133,6 +139,7 @@ class Trainer:
         self.optimizer = make_optimizer(self.model, self._rates(0))
         self.densifier = self._make_densifier()
         self.view_queue: list[int] = []
+        self.informed_step = -1  # the step of the last informed-posterior update
         self.step = 0
         self.elapsed = 0.0
 
@@ -151,6 +158,7 @@ class Trainer:
             "gen_views": self.gen_views.get_state(),
             "gen_noise": self.gen_noise.get_state(),
             "view_queue": torch.tensor(self.view_queue, dtype=torch.long),
+            "informed_step": self.informed_step,
         }
 
     def _load_state(self, state: dict) -> None:
@@ -166,6 +174,7 @@ class Trainer:
         self.gen_noise = torch.Generator(device=self.device)
         self.gen_noise.set_state(state["gen_noise"].cpu())  # generator states are CPU byte tensors
         self.view_queue = [int(i) for i in state["view_queue"].tolist()]
+        self.informed_step = int(state.get("informed_step", -1))
         self.step = int(state["step"])
         self.elapsed = float(state["elapsed"])
 
@@ -223,7 +232,11 @@ class Trainer:
         views = [self._next_view() for _ in range(min(cfg.batch_size, len(self.train_idx)))]
         cams = self.train_cams[views]
         gt = self.train_images[views]
-        if self.variational:
+        if self.informed:  # the tables are set in closed form (update_posterior); the Gaussians learn here
+            g = sample(self.model, self.gen_noise, subset_size=cfg.variational.subset_size, variant=cfg.variant,
+                       extent=self.extent, temperature=self.prior.temperature, sh_degree=degree, tables_grad=False)
+            kl = None
+        elif self.variational:
             g, kl = sample_with_kl(self.model, self.gen_noise, self.prior, subset_size=cfg.variational.subset_size,
                                    extent=self.extent, sh_degree=degree)
         else:
@@ -244,11 +257,33 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise)
         self.step = step
+        if self.informed and (step % cfg.variational.refresh_interval == 0 or step == cfg.iterations):
+            self.update_posterior()
         result = {k: float(v.detach()) for k, v in losses.items()}
         if not finite:
             result["skipped"] = 1.0
         result.update({k: float(v) for k, v in done.items() if v})
         return result
+
+    def update_posterior(self) -> dict:
+        """Set the offset tables to the posterior the training views imply (``variational.informed_tables``):
+        the diagonal Fisher of a Gaussian pixel likelihood at the posterior mean, with the observation noise
+        the RMS training residual. Costs about 3 renders per training view; returns (and keeps) its record."""
+        t0 = time.perf_counter()
+        vcfg = self.cfg.variational
+        params = mean_params(self.model, variant=self.cfg.variant, extent=self.extent,
+                             temperature=self.prior.temperature)
+        degree = self.sh_degree
+        noise = residual_noise_std(params, self.train_cams, self.train_images, self.render, sh_degree=degree)
+        fisher = fisher_diagonal(params, self.train_cams, self.train_images, self.render,
+                                 names=("means", "scales", "opacities"), noise_std=noise, generator=self.gen_noise,
+                                 sh_degree=degree, probes=vcfg.probes)
+        record = informed_tables(self.model, fisher, self.prior, extent=self.extent,
+                                 position_prior_scale=vcfg.position_prior_scale)
+        self.informed_step = self.step
+        record = {"step": self.step, "noise_std": noise, **record, "seconds": time.perf_counter() - t0}
+        self.posterior_updates.append(record)
+        return record
 
     @staticmethod
     def _all_finite(tensors) -> bool:
@@ -385,7 +420,8 @@ class Trainer:
                 "peak_memory_mb": peak_memory_mb(self.device), "extent": self.extent,
                 "skipped_steps": self.skipped_steps,
                 "sh_degree_active": self.sh_degree, "variant": self.cfg.variant, "method": self.cfg.method,
-                "posterior": posterior_summary(self.model, self.prior)}
+                "posterior": posterior_summary(self.model, self.prior),
+                "posterior_updates": self.posterior_updates}
 
 
 def log_line(record: dict) -> str:

@@ -94,6 +94,8 @@ def mc_render(
     generator: torch.Generator,
     *,
     keep_samples: bool = False,
+    empty_std: tuple[float, float] | None = None,
+    extra_var: Tensor | None = None,
 ) -> tuple[UncertaintyMaps, MCSamples | None]:
     """Render ``num_samples`` posterior samples of ``cameras`` and return their mean and std maps.
 
@@ -104,6 +106,14 @@ def mc_render(
         num_samples: K >= 1.
         generator: the only source of randomness; the same seed gives the same maps.
         keep_samples: also return every render (memory x K), e.g. for the KDE NLL of a view.
+        empty_std: (colour std, depth std) of the unknown surface behind a ray that meets no Gaussian. Where
+            a sample's accumulated opacity is alpha < 1, a fraction 1 - alpha of the pixel shows what the model
+            has no Gaussian for: treated as an independent unknown value with this std, it adds
+            ``E[(1 - alpha)^2] std^2`` to the variance (E over the samples), so a pixel the model knows
+            nothing about is never certain. None: the samples' spread only (e.g. when the background is
+            part of the data).
+        extra_var: [C,H,W,1] a variance added to the RGB variance, e.g. the pixel noise of the model's
+            Gaussians (``uncertainty.residual``): the predictive of a pixel is the samples' spread plus it.
 
     Returns:
         (UncertaintyMaps with rgb_mean/rgb_std [C,H,W,3], depth_mean/depth_std [C,H,W,1],
@@ -127,11 +137,18 @@ def mc_render(
             # Drop the references now so the sample's and the render's memory can be reused by
             # the next iteration (otherwise two renders are alive at the peak).
             del sample, out
+    rgb_std, depth_std = rgb_m.std, depth_m.std
+    if empty_std is not None and (empty_std[0] > 0 or empty_std[1] > 0):
+        gap = (1.0 - alpha_m.mean).square() + alpha_m.var  # E[(1 - alpha)^2], [C,H,W,1]
+        rgb_std = (rgb_m.var + gap * empty_std[0] ** 2).sqrt()
+        depth_std = (depth_m.var + gap * empty_std[1] ** 2).sqrt()
+    if extra_var is not None:
+        rgb_std = (rgb_std.square() + extra_var.to(rgb_std)).sqrt()
     maps = UncertaintyMaps(
         rgb_mean=rgb_m.mean,
-        rgb_std=rgb_m.std,
+        rgb_std=rgb_std,
         depth_mean=depth_m.mean,
-        depth_std=depth_m.std,
+        depth_std=depth_std,
         alpha_mean=alpha_m.mean,
         n_samples=num_samples,
         image_names=tuple(cameras.image_names),

@@ -1,0 +1,216 @@
+"""Does the uncertainty find what the training views never saw? (issue 18, protocol "unseen regions")
+
+The synthetic scene (exact GT depth) is trained on the cameras of one half of its ring only, with initial
+points from those views only (``scene.points_from = "train"``), and tested on views of the other half, which
+see both surface the training views saw and surface none of them saw. Every test pixel is labelled
+observed / unobserved from GT depth (``eval.observed.observed_mask``). Per method:
+
+* ROC AUC of the per-pixel RGB std (mean over channels) and depth std for unobserved (positive) against
+  observed pixels, over the pixels with surface; with the empty-ray term (``eval.empty_rays``, the default)
+  and without it (the samples' spread alone);
+* mean std on unobserved / observed pixels, and on pixels whose rays meet no Gaussian (alpha < 0.5);
+* the evaluation metrics on those views: PSNR, AUSE-MAE, NLL, calibration error, the fitted std factor.
+
+Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
+its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),
+``sgd`` (the tables learned by SGD with the KL in the loss, the default before issue 18: the prior-only
+reference), ``paper``, ``vi-single``, ``fisher``, ``ensemble-N``.
+
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_unseen.py --out /tmp/unseen [--iterations 1500]
+
+Writes ``benchmarks/results/unseen_<label>.json`` and prints the Markdown rows for BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import time
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+METHODS = {  # name -> TrainConfig overrides on top of the demo preset
+    "variational": {"variational": {"posterior": "informed"}},
+    "sgd": {"variational": {"posterior": "sgd"}},
+    "paper": {"variant": "paper"},
+    "vi-single": {"variational": {"num_entries": 1, "posterior": "sgd"}},
+    "fisher": {"method": "fisher"},
+}
+
+
+def half_ring_split(scene, test_every: int) -> tuple[list[int], list[int]]:
+    """Training views: the cameras whose azimuth about the look-at centre lies in one half-turn; held out:
+    every ``test_every``-th camera of the other half (by azimuth)."""
+    c = scene.cameras.centers.double()
+    az = torch.atan2(c[:, 1] - c[:, 1].mean(), c[:, 0] - c[:, 0].mean())  # the synthetic scene is z-up
+    order = torch.argsort(az).tolist()
+    half = len(order) // 2
+    train = sorted(order[:half])
+    test = sorted(order[half:][::test_every])
+    return train, test
+
+
+def roc(score: torch.Tensor, positive: torch.Tensor) -> float | None:
+    from uncertsplat.eval.floaters import ranking_auc
+
+    if positive.all() or not positive.any():
+        return None
+    return ranking_auc(score.double(), positive)
+
+
+def measure(run_dir: Path, device: torch.device, num_samples: int, empty_rays: bool, residual_views: int) -> dict:
+    """Evaluate one run on its held-out views and score its std maps against the observed labels."""
+    import dataclasses
+    from functools import partial
+
+    from uncertsplat.baselines import load_run
+    from uncertsplat.config import EvalConfig
+    from uncertsplat.data.dataset import load_depths, load_view_set
+    from uncertsplat.eval.engine import evaluate_views, fit_residual, fit_std_scale
+    from uncertsplat.eval.observed import observed_mask
+
+    ecfg = EvalConfig(num_samples=num_samples, empty_rays=empty_rays, residual_views=residual_views)
+    loaded = load_run(run_dir, device)
+    scene = loaded.load_scene()
+    train, test = list(scene.split["train"]), list(scene.split["test"])
+    views = load_view_set(scene, test)
+    train_depth = load_depths(scene, train)[..., 0].double()  # [T,H,W]
+    cams = scene.cameras
+    maps: list = []
+    train_views = partial(load_view_set, scene, depth=False)
+    residual = fit_residual(loaded.sampler(scene.scene_scale, device), train, ecfg, device, load_views=train_views)
+
+    def sampler():
+        return dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual)
+
+    report = evaluate_views(sampler(), views, ecfg, device, show_progress=False, on_view=maps.append)
+    scale, _ = fit_std_scale(sampler(), train, ecfg, device, load_views=train_views)
+    rgb, dep, unobs, empty = [], [], [], []
+    for j, i in enumerate(test):
+        obs, valid = observed_mask(views.depths[j, ..., 0].double(), cams.cam_from_world[i], cams.K[i], train_depth,
+                                   cams.cam_from_world[train], cams.K[train])
+        m = maps[j]
+        rgb.append(m.rgb_std.mean(-1)[valid])
+        dep.append(m.depth_std[..., 0][valid])
+        unobs.append(~obs[valid])
+        empty.append((m.alpha_mean[..., 0] < 0.5)[valid])  # rays that meet (almost) no Gaussian
+    rgb, dep, unobs, empty = (torch.cat(x) for x in (rgb, dep, unobs, empty))
+    mean = report.mean
+    hit = ~empty
+    return {
+        "auc_rgb": roc(rgb, unobs), "auc_depth": roc(dep, unobs),
+        # the Gaussians' own spread, where the rays meet the model (alpha >= 0.5)
+        "auc_rgb_covered": roc(rgb[hit], unobs[hit]), "auc_depth_covered": roc(dep[hit], unobs[hit]),
+        "unobserved_covered_fraction": float(unobs[hit].float().mean()) if hit.any() else None,
+        "unobserved_fraction": float(unobs.float().mean()), "empty_fraction": float(empty.float().mean()),
+        "rgb_std_unobserved": float(rgb[unobs].mean()), "rgb_std_observed": float(rgb[~unobs].mean()),
+        "psnr": mean.psnr, "ause_mae": mean.ause_mae, "nll": mean.nll, "calibration_error": mean.calibration_error,
+        "depth_ause": getattr(mean, "depth_ause_mae", None), "std_scale": scale,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path("/tmp/bench_unseen"))
+    ap.add_argument("--label", default="synthetic-demo-half-ring")
+    ap.add_argument("--iterations", type=int, default=1500)
+    ap.add_argument("--width", type=int, default=160)
+    ap.add_argument("--test-every", type=int, default=2)
+    ap.add_argument("--max-gaussians", type=int, default=20000)
+    ap.add_argument("--keep-schedule", action="store_true",
+                    help="keep the demo preset's densification and spawn schedule (for its own 3500 steps)")
+    ap.add_argument("--methods", nargs="+", default=["variational", "sgd", "paper", "vi-single", "fisher", "ensemble-3"])
+    ap.add_argument("--samples", type=int, default=10)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--protocol", choices=["half-ring", "dense"], default="half-ring",
+                    help="half-ring: train on one half of the ring (the unseen-regions protocol); dense: every 8th "
+                    "view held out (the dense-capture check: uncertainty metrics must not get worse)")
+    ap.add_argument("--points", choices=["train", "all"], default="train",
+                    help="initial points: those the training views see (as SfM on them would give), or all")
+    ap.add_argument("--set", action="append", default=[], help="key=value for every method's TrainConfig")
+    ap.add_argument("--machine", default=platform.processor() or platform.machine())
+    args = ap.parse_args()
+
+    from uncertsplat.baselines import train_run
+    from uncertsplat.config import SynthConfig, train_config_from
+    from uncertsplat.data.synthetic import generate_scene
+    from uncertsplat.device import resolve_device
+    from uncertsplat.sfm.scene import load_scene
+
+    device = resolve_device("auto")
+    args.out.mkdir(parents=True, exist_ok=True)
+    scene_dir = args.out / "scene"
+    if not (scene_dir / "scene.json").is_file():
+        generate_scene(scene_dir, SynthConfig(preset="demo", seed=0, width=args.width))
+    if args.protocol == "half-ring":
+        train, test = half_ring_split(load_scene(scene_dir), args.test_every)
+    else:  # the dense capture: every 8th view held out, as the demo (nothing unobserved to find; AUSE matters)
+        n = len(load_scene(scene_dir).cameras)
+        test = list(range(0, n, 8))
+        train = [i for i in range(n) if i not in test]
+    its = args.iterations
+    base = {"iterations": its, "seed": args.seed, "eval_every": 10**6, "checkpoint_every": 10**6,
+            "scene": {"train_indices": train, "test_indices": test, "points_from": args.points},
+            "densify": {"until": int(its * 0.65), "spawn_interval": max(its // 10, 1), "max_gaussians": args.max_gaussians},
+            "variational": {"refresh_interval": max(its // 5, 1)}}
+    if args.keep_schedule:
+        base["densify"] = {"max_gaussians": args.max_gaussians}
+        del base["variational"]
+    rows = []
+    for name in args.methods:
+        over = dict(METHODS.get(name, {}))
+        if name.startswith("ensemble-"):
+            over = {"method": "ensemble", "ensemble_size": int(name.split("-")[1])}
+        elif name not in METHODS:
+            raise SystemExit(f"unknown method {name}")
+        from uncertsplat.config import deep_update
+
+        cfg = train_config_from("demo", deep_update(base, over), args.set)
+        run_dir = args.out / name
+        t0 = time.perf_counter()
+        if not (run_dir / "train_summary.json").is_file():
+            train_run(scene_dir, run_dir, cfg, device)
+        train_s = json.loads((run_dir / "train_summary.json").read_text())["seconds"]
+        rec = {"method": name, "train_seconds": train_s, "wall_seconds": time.perf_counter() - t0}
+        # the full predictive (the default), the samples' spread alone, and the samples plus the empty-ray term
+        rec["with_empty"] = measure(run_dir, device, args.samples, True, 64)
+        rec["without_empty"] = measure(run_dir, device, args.samples, False, 0)
+        rec["spread_and_empty"] = measure(run_dir, device, args.samples, True, 0)
+        rows.append(rec)
+        w, wo = rec["with_empty"], rec["without_empty"]
+        se = rec["spread_and_empty"]
+        print(f"{name:12s} AUC rgb {fmt(w['auc_rgb'])} depth {fmt(w['auc_depth'])} | spread only: rgb "
+              f"{fmt(wo['auc_rgb'])} depth {fmt(wo['auc_depth'])} | covered pixels: rgb {fmt(wo['auc_rgb_covered'])} "
+              f"depth {fmt(wo['auc_depth_covered'])} | PSNR {w['psnr']:.2f} AUSE {w['ause_mae']:.3f} "
+              f"NLL {w['nll']:.2f} cal {w['calibration_error']:.3f} x{fmt(w['std_scale'], 2)} | spread+empty: AUSE "
+              f"{se['ause_mae']:.3f} NLL {se['nll']:.2f} cal {se['calibration_error']:.3f} | spread: AUSE "
+              f"{wo['ause_mae']:.3f} NLL {wo['nll']:.2f} cal {wo['calibration_error']:.3f} x{fmt(wo['std_scale'], 2)} "
+              f"| train {train_s:.0f}s", flush=True)
+    out = {"label": args.label, "machine": args.machine, "date": time.strftime("%Y-%m-%d"),
+           "torch": torch.__version__, "iterations": its, "width": args.width, "train_views": train,
+           "test_views": test, "seed": args.seed, "samples": args.samples, "rows": rows}
+    path = ROOT / "benchmarks" / "results" / f"unseen_{args.label}.json"
+    path.write_text(json.dumps(out, indent=1))
+    print(f"\nwrote {path}\n")
+    print("| method | ROC AUC RGB std | ROC AUC depth std | without the empty-ray term (RGB / depth) | covered pixels "
+          "only (RGB / depth) | PSNR | AUSE-MAE | NLL | cal. err | fitted std factor | train s | machine | date |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        w, wo = r["with_empty"], r["without_empty"]
+        print(f"| {r['method']} | {fmt(w['auc_rgb'])} | {fmt(w['auc_depth'])} | {fmt(wo['auc_rgb'])} / "
+              f"{fmt(wo['auc_depth'])} | {fmt(wo['auc_rgb_covered'])} / {fmt(wo['auc_depth_covered'])} | {w['psnr']:.2f} | {w['ause_mae']:.3f} | {w['nll']:.2f} | "
+              f"{w['calibration_error']:.3f} | x{fmt(w['std_scale'], 2)} | {r['train_seconds']:.0f} | {args.machine} | "
+              f"{out['date']} |")
+
+
+def fmt(x, p=3):
+    return "-" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{p}f}"
+
+
+if __name__ == "__main__":
+    main()

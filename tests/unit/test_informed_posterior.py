@@ -1,0 +1,159 @@
+"""The informed posterior (``variational.informed_tables``): closed forms, extremes, the render it preserves,
+and the empty-ray term of the Monte-Carlo maps (``mc_render(empty_std=...)``)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from uncertsplat.config import TrainConfig
+from uncertsplat.gaussians.prior import Prior
+from uncertsplat.gaussians.variational import (
+    expected_gate,
+    gate_off_probability,
+    informed_tables,
+    mean_params,
+    posterior_mean,
+    random_model,
+)
+from uncertsplat.types import Cameras, RenderOutput
+from uncertsplat.uncertainty.mc import mc_render
+
+EXTENT = 2.0
+
+
+def _model(n=64, k=10, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return random_model(n, g, num_entries=k, carrier_fraction=0.75, extent=EXTENT)
+
+
+def _fisher(model, means=0.0, scales=0.0, opacities=0.0):
+    n = len(model)
+    return {"means": torch.full((n, 3), float(means)), "scales": torch.full((n, 3), float(scales)),
+            "opacities": torch.full((n,), float(opacities))}
+
+
+class TestClosedForm:
+    def test_unseen_gaussians_keep_the_prior(self):
+        """F = 0 (no view sees them): the prior's spread, width and switch-off probability."""
+        prior = Prior()
+        model = _model()
+        info = informed_tables(model, _fisher(model), prior, extent=EXTENT, position_prior_scale=0.0)
+        t = model.tables
+        torch.testing.assert_close(F.softplus(t["pos_spread_raw"]), torch.full_like(t["pos_loc"], prior.position_std))
+        torch.testing.assert_close(F.softplus(t["scale_width_raw"]), torch.full_like(t["pos_loc"], prior.scale_width),
+                                   rtol=1e-5, atol=1e-6)
+        off = gate_off_probability(t["gate_loc"], F.softplus(t["gate_spread_raw"]))
+        p0 = float(gate_off_probability(torch.tensor(prior.gate_mean), torch.tensor(prior.gate_std)))
+        torch.testing.assert_close(off, torch.full_like(off, p0), rtol=1e-4, atol=1e-6)
+        assert info["data_dominated"] == 0.0
+
+    def test_position_spread_is_the_laplace_one(self):
+        prior = Prior()
+        model = _model()
+        fisher = _fisher(model)
+        fisher["means"] = torch.rand(len(model), 3, generator=torch.Generator().manual_seed(1)) * 1e6
+        idx = model.carrier_index()
+        own = posterior_mean(model, extent=EXTENT).scales[idx].log().mean(1).exp()
+        informed_tables(model, fisher, prior, extent=EXTENT, position_prior_scale=1.0)
+        prior_std = own.clamp_min(prior.position_std * EXTENT)
+        expected = (fisher["means"][idx] + prior_std[:, None] ** -2) ** -0.5 / EXTENT  # table unit: the extent
+        got = F.softplus(model.tables["pos_spread_raw"])  # [P,K,3]
+        torch.testing.assert_close(got, expected[:, None, :].expand_as(got), rtol=1e-4, atol=1e-9)
+        assert float(model.tables["pos_loc"].detach().abs().max()) == 0.0
+
+    def test_gate_follows_the_evidence(self):
+        """dL = F_a / (2 (1 - o)^2) nats against 'off': none keeps the prior's odds, a lot switches it on."""
+        prior = Prior()
+        model = _model()
+        idx = model.carrier_index()
+        o = posterior_mean(model, extent=EXTENT).opacities[idx]
+        drop = torch.linspace(0.0, 50.0, idx.numel())
+        fisher = _fisher(model)
+        fisher["opacities"][idx] = drop * 2.0 * (1.0 - o) ** 2
+        informed_tables(model, fisher, prior, extent=EXTENT)
+        t = model.tables
+        off = gate_off_probability(t["gate_loc"][:, 0, 0], F.softplus(t["gate_spread_raw"][:, 0, 0]))
+        p0 = float(gate_off_probability(torch.tensor(prior.gate_mean), torch.tensor(prior.gate_std)))
+        expected = torch.sigmoid(math.log(p0 / (1 - p0)) - drop)
+        torch.testing.assert_close(off, expected, rtol=2e-3, atol=1e-7)
+        assert bool((off[1:] <= off[:-1]).all())  # more evidence, never more likely off
+
+    def test_the_mean_render_is_preserved(self):
+        """Base opacity, scale and position absorb the change of expected gate, multiplier and location."""
+        prior = Prior()
+        model = _model()
+        with torch.no_grad():  # tables away from the prior, as SGD might have left them
+            for v in model.tables.values():
+                v.add_(0.05 * torch.randn(v.shape, generator=torch.Generator().manual_seed(3)))
+        before = posterior_mean(model, extent=EXTENT)
+        fisher = _fisher(model, means=1e4, scales=1e3, opacities=30.0)
+        informed_tables(model, fisher, prior, extent=EXTENT)
+        after = posterior_mean(model, extent=EXTENT)
+        torch.testing.assert_close(after.means, before.means, rtol=0, atol=1e-5)
+        torch.testing.assert_close(after.scales, before.scales, rtol=1e-4, atol=1e-7)
+        torch.testing.assert_close(after.opacities, before.opacities, rtol=1e-3, atol=1e-4)
+
+
+class TestExtremes:
+    @pytest.mark.parametrize("k", [1, 10])
+    def test_one_entry_and_huge_or_zero_curvature(self, k):
+        model = _model(k=k)
+        for value in (0.0, 1e-30, 1e30):
+            informed_tables(model, _fisher(model, value, value, value), Prior(), extent=EXTENT)
+            for v in model.tables.values():
+                assert bool(torch.isfinite(v).all())
+            for v in model.params.values():
+                assert bool(torch.isfinite(v).all())
+
+    def test_no_carriers(self):
+        g = torch.Generator().manual_seed(0)
+        model = random_model(8, g, carrier_fraction=0.0)
+        assert informed_tables(model, _fisher(model), Prior())["carriers"] == 0
+
+    def test_paper_variant_is_refused(self):
+        model = _model()
+        with pytest.raises(ValueError, match="ours"):
+            informed_tables(model, _fisher(model), Prior(variant="paper"))
+        with pytest.raises(ValueError, match="informed"):
+            TrainConfig(variant="paper", variational={"posterior": "informed"})
+        assert TrainConfig().posterior == "informed" and TrainConfig(variant="paper").posterior == "sgd"
+        # a config written for 'ours' and switched to 'paper' (e.g. by a sweep axis) keeps working
+        data = TrainConfig().model_dump()
+        assert TrainConfig.model_validate({**data, "variant": "paper"}).posterior == "sgd"
+
+    def test_mean_params_render_like_the_posterior_mean(self):
+        model = _model()
+        p = mean_params(model, extent=EXTENT)
+        pm = posterior_mean(model, extent=EXTENT)
+        torch.testing.assert_close(torch.exp(p["scales"]), pm.scales)
+        torch.testing.assert_close(torch.sigmoid(p["opacities"]), pm.opacities, rtol=1e-4, atol=1e-6)
+        assert expected_gate(torch.tensor(30.0), torch.tensor(2.0), 0.2) > 0.999
+
+
+class TestEmptyRays:
+    @staticmethod
+    def _render(alpha_value):
+        def render_fn(sample, cams):
+            h, w = cams.height, cams.width
+            a = torch.full((1, h, w, 1), alpha_value)
+            return RenderOutput(rgb=torch.full((1, h, w, 3), 0.3) * a, alpha=a, depth=torch.ones(1, h, w, 1),
+                                depth_expected=a, means2d=torch.zeros(1, 0, 2), radii=torch.zeros(1, 0),
+                                depths=torch.zeros(1, 0))
+        return render_fn
+
+    def _cams(self):
+        return Cameras(torch.eye(4)[None], torch.eye(3)[None], 4, 3, ("a.png",))
+
+    @pytest.mark.parametrize("alpha", [0.0, 0.25, 1.0])
+    def test_std_of_the_missing_surface(self, alpha):
+        """Identical samples: the only spread is (1 - alpha) x the unknown surface's std."""
+        maps, _ = mc_render(lambda g: None, self._render(alpha), self._cams(), 4, torch.Generator(),
+                            empty_std=(0.3, 2.0))
+        torch.testing.assert_close(maps.rgb_std, torch.full_like(maps.rgb_std, (1 - alpha) * 0.3))
+        torch.testing.assert_close(maps.depth_std, torch.full_like(maps.depth_std, (1 - alpha) * 2.0))
+        plain, _ = mc_render(lambda g: None, self._render(alpha), self._cams(), 4, torch.Generator())
+        assert float(plain.rgb_std.abs().max()) == 0.0

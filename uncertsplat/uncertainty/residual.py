@@ -1,0 +1,118 @@
+"""The pixel noise a model leaves on its training views, attached to its Gaussians and rendered anywhere.
+
+The posterior says how unsure the model is about its Gaussians (epistemic); where the training views show
+that the model does not reproduce them, e.g. texture finer than its Gaussians or view-dependent effects, a
+pixel is uncertain however certain the parameters are (the noise of the pixel likelihood). This module
+estimates that noise per Gaussian, heteroscedastically, and renders it:
+
+* ``fit_residual_field``: each Gaussian's noise variance is the mean squared training residual of the
+  pixels it is blended into, weighted by its blending weight w_i(p):
+  ``v_i = sum_p w_i(p) r(p)^2 / sum_p w_i(p)`` over every training pixel p (r: the residual, averaged over
+  the 3 channels). Both sums come out of one backward pass per view: the render is linear in each
+  Gaussian's colour with coefficient w_i(p), so the gradient of ``sum_p c_0(p) r(p)^2 + c_1(p)`` w.r.t. a
+  constant colour is the pair of sums. A Gaussian no training pixel sees gets the mean over all pixels.
+* ``ResidualField.variance``: the blended variance ``sum_i w_i(p) v_i`` of a view (one extra render),
+  which ``uncertainty.mc.mc_render`` adds to the samples' variance: the predictive of a pixel is the
+  model's spread plus the noise of its Gaussians.
+
+Takes the sample and the renderer as a function (``render_fn(sample, cameras) -> RenderOutput``), so it
+imports neither ``render`` nor a model class.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import torch
+from torch import Tensor
+
+from uncertsplat.types import Cameras, GaussianSample, RenderOutput
+
+C0 = 0.28209479177387814  # the DC spherical harmonic: colour = C0 * sh0 + 0.5 (``render.sh``)
+
+
+def _with_colour(sample: GaussianSample, colour: Tensor) -> GaussianSample:
+    """``sample`` with every Gaussian's colour the constant ``colour`` [N,3] (SH degree 0)."""
+    sh = ((colour - 0.5) / C0)[:, None, :]
+    return replace(sample, sh=sh, sh_degree=0)
+
+
+@dataclass(frozen=True)
+class ResidualField:
+    """Per-Gaussian noise variance of one sample's Gaussians.
+
+    Attributes:
+        sample: the Gaussians whose geometry blends the noise (the sample the residuals were taken on).
+        variance: [N] noise variance per Gaussian (per colour channel).
+        seen: [N] bool, the Gaussians some training pixel saw (the others got the mean).
+        mean_variance: the mean squared residual over all training pixels and channels.
+    """
+
+    sample: GaussianSample
+    variance: Tensor
+    seen: Tensor
+    mean_variance: float
+
+    @torch.no_grad()
+    def blended(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
+        """[C,H,W,1] ``sum_i w_i(p) v_i`` for the cameras.
+
+        Two renders: the render is linear in the colours, so the difference between colour v and colour 0
+        removes whatever background ``render_fn`` composites behind the Gaussians.
+        """
+        zeros = torch.zeros_like(self.variance)
+        colour = torch.stack([self.variance, zeros, zeros], -1)  # [N,3]
+        with_v = render_fn(_with_colour(self.sample, colour), cameras).rgb[..., :1]
+        without = render_fn(_with_colour(self.sample, torch.zeros_like(colour)), cameras).rgb[..., :1]
+        return (with_v - without).clamp_min(0.0)
+
+    def subset(self, keep: Tensor) -> ResidualField:
+        """The field of the Gaussians ``keep`` ([N] bool or indices) kept, e.g. by pruning: each keeps its own
+        noise (a property of the Gaussian and the pixels it was blended into)."""
+        s = self.sample
+        pv = None if s.position_var is None else s.position_var[keep]
+        sample = replace(s, means=s.means[keep], quats=s.quats[keep], scales=s.scales[keep],
+                         opacities=s.opacities[keep], sh=s.sh[keep], position_var=pv)
+        return replace(self, sample=sample, variance=self.variance[keep], seen=self.seen[keep])
+
+
+def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
+                       render_fn: Callable[[GaussianSample, Cameras], RenderOutput],
+                       masks: Tensor | None = None) -> ResidualField:
+    """Each Gaussian's noise variance from the training views (see the module docstring).
+
+    Args:
+        sample: the Gaussians to attach the noise to (e.g. the expected render of a variational model).
+        cameras: T training cameras; images: [T,H,W,3] in [0, 1]; masks: [T,H,W,1] bool valid pixels or None.
+        render_fn: renders a sample for cameras (with the run's background).
+
+    Returns:
+        the ``ResidualField`` (on the sample's device).
+    """
+    n = sample.means.shape[0]
+    dev = sample.means.device
+    colour = torch.full((n, 3), 0.5, device=dev, requires_grad=True)
+    acc = torch.zeros(n, 2, device=dev, dtype=torch.float64)
+    total, count = 0.0, 0
+    for j in range(len(cameras)):
+        cam = cameras[[j]]
+        with torch.no_grad():
+            pred = render_fn(sample, cam).rgb[0]
+        r2 = (pred - images[j].to(pred)).square().mean(-1, keepdim=True)  # [H,W,1]
+        valid = torch.ones_like(r2, dtype=torch.bool) if masks is None else masks[j].to(dev)
+        r2 = torch.where(valid, r2, torch.zeros_like(r2))
+        total += float(r2.double().sum())
+        count += int(valid.sum())
+        out = render_fn(_with_colour(sample, colour), cam)
+        target = torch.cat([r2, valid.to(r2.dtype), torch.zeros_like(r2)], -1)  # [H,W,3]: r^2, 1, 0
+        (grad,) = torch.autograd.grad((out.rgb[0] * target).sum(), colour)
+        acc += grad[:, :2].double()
+    mean_var = total / max(count, 1)
+    weight = acc[:, 1]
+    seen = weight > 1e-6 * max(float(weight.max()), 1e-30) if n else torch.zeros(0, dtype=torch.bool, device=dev)
+    var = torch.where(seen, acc[:, 0] / weight.clamp_min(1e-30), torch.full_like(weight, mean_var))
+    return ResidualField(sample=sample, variance=var.float(), seen=seen, mean_variance=mean_var)
+
+
+__all__ = ["ResidualField", "fit_residual_field"]
