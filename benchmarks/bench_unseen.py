@@ -18,6 +18,15 @@ reference), ``paper``, ``vi-single``, ``fisher``, ``ensemble-N``.
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_unseen.py --out /tmp/unseen [--iterations 1500]
 
+Other protocols (``--protocol``): ``dense`` (every 8th view held out: the uncertainty metrics of a dense capture),
+``sparse`` (5 interleaved training views on an arc, tested between them, as the paper's light-field protocol), and
+``arc`` with ``--scene WS`` (real photos, e.g. a ``reconstruct`` workspace of fern: the last 20 % of the capture by
+name held out, so the test views extrapolate; no GT depth there, so per view: PSNR, mean std, RMSE, NLL, and the
+correlation over views of mean std with RMSE)::
+
+    .venv/bin/python benchmarks/bench_unseen.py --protocol arc --scene WS --preset paper --downscale 1.5873 \
+        --iterations 3000 --max-gaussians 60000 --methods variational sgd --label fern-arc --out /tmp/fern_arc
+
 Writes ``benchmarks/results/unseen_<label>.json`` and prints the Markdown rows for BENCHMARKS.md.
 """
 
@@ -35,6 +44,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 
 METHODS = {  # name -> TrainConfig overrides on top of the demo preset
+    "deterministic": {"method": "deterministic"},
     "variational": {"variational": {"posterior": "informed"}},
     "sgd": {"variational": {"posterior": "sgd"}},
     "paper": {"variant": "paper"},
@@ -53,6 +63,15 @@ def half_ring_split(scene, test_every: int) -> tuple[list[int], list[int]]:
     train = sorted(order[:half])
     test = sorted(order[half:][::test_every])
     return train, test
+
+
+def sparse_split(scene, n: int) -> tuple[list[int], list[int]]:
+    """The paper's light-field protocol: ``n`` interleaved training views on a contiguous arc of cameras (by
+    azimuth) and the ``n - 1`` views between them held out (e.g. train 43, 45, 47, 49 / test 42, 44, 46, 48)."""
+    c = scene.cameras.centers.double()
+    az = torch.atan2(c[:, 1] - c[:, 1].mean(), c[:, 0] - c[:, 0].mean())
+    order = torch.argsort(az).tolist()[: 2 * n - 1]
+    return sorted(order[0::2]), sorted(order[1::2])
 
 
 def roc(score: torch.Tensor, positive: torch.Tensor) -> float | None:
@@ -79,7 +98,7 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, empty_rays: b
     scene = loaded.load_scene()
     train, test = list(scene.split["train"]), list(scene.split["test"])
     views = load_view_set(scene, test)
-    train_depth = load_depths(scene, train)[..., 0].double()  # [T,H,W]
+    train_depth = load_depths(scene, train)  # [T,H,W,1] or None for real photos
     cams = scene.cameras
     maps: list = []
     train_views = partial(load_view_set, scene, depth=False)
@@ -90,9 +109,15 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, empty_rays: b
 
     report = evaluate_views(sampler(), views, ecfg, device, show_progress=False, on_view=maps.append)
     scale, _ = fit_std_scale(sampler(), train, ecfg, device, load_views=train_views)
+    per_view = per_view_agreement(report, maps)
+    if views.depths is None:  # real photos: no GT depth, no observed labels; per-view agreement only
+        m = report.mean
+        return {"psnr": m.psnr, "ause_mae": m.ause_mae, "nll": m.nll, "calibration_error": m.calibration_error,
+                "depth_ause": None, "std_scale": scale, **per_view}
     rgb, dep, unobs, empty = [], [], [], []
     for j, i in enumerate(test):
-        obs, valid = observed_mask(views.depths[j, ..., 0].double(), cams.cam_from_world[i], cams.K[i], train_depth,
+        obs, valid = observed_mask(views.depths[j, ..., 0].double(), cams.cam_from_world[i], cams.K[i],
+                                   train_depth[..., 0].double(),
                                    cams.cam_from_world[train], cams.K[train])
         m = maps[j]
         rgb.append(m.rgb_std.mean(-1)[valid])
@@ -110,8 +135,25 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, empty_rays: b
         "unobserved_fraction": float(unobs.float().mean()), "empty_fraction": float(empty.float().mean()),
         "rgb_std_unobserved": float(rgb[unobs].mean()), "rgb_std_observed": float(rgb[~unobs].mean()),
         "psnr": mean.psnr, "ause_mae": mean.ause_mae, "nll": mean.nll, "calibration_error": mean.calibration_error,
-        "depth_ause": getattr(mean, "depth_ause_mae", None), "std_scale": scale,
+        "depth_ause": getattr(mean, "depth_ause_mae", None), "std_scale": scale, **per_view,
     }
+
+
+def per_view_agreement(report, maps) -> dict:
+    """Per held-out view: PSNR, mean std and RMSE; and the Pearson correlation over views of mean std with RMSE
+    (does a view the model renders badly also get a high std?)."""
+    rows = []
+    for m in maps:
+        rmse = float((m.rgb_mean - m.gt).square().mean().sqrt())
+        rows.append({"view": m.name, "psnr": report.per_view[m.name].psnr, "mean_std": float(m.rgb_std.mean()),
+                     "rmse": rmse, "nll": report.per_view[m.name].nll})
+    corr = None
+    if len(rows) > 2:
+        x = torch.tensor([r["mean_std"] for r in rows], dtype=torch.float64)
+        y = torch.tensor([r["rmse"] for r in rows], dtype=torch.float64)
+        if float(x.std()) > 0 and float(y.std()) > 0:
+            corr = float(torch.corrcoef(torch.stack([x, y]))[0, 1])
+    return {"per_view": rows, "std_error_correlation": corr}
 
 
 def main() -> None:
@@ -127,9 +169,18 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", default=["variational", "sgd", "paper", "vi-single", "fisher", "ensemble-3"])
     ap.add_argument("--samples", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--protocol", choices=["half-ring", "dense"], default="half-ring",
+    ap.add_argument("--protocol", choices=["half-ring", "dense", "sparse", "arc"], default="half-ring",
                     help="half-ring: train on one half of the ring (the unseen-regions protocol); dense: every 8th "
-                    "view held out (the dense-capture check: uncertainty metrics must not get worse)")
+                    "view held out (the dense-capture check: uncertainty metrics must not get worse); sparse: "
+                    "--sparse-views interleaved training views on an arc, tested between them (the paper's LF "
+                    "protocol)")
+    ap.add_argument("--sparse-views", type=int, default=5)
+    ap.add_argument("--scene", type=Path, default=None,
+                    help="a scene folder to use instead of the synthetic one (e.g. a reconstruct workspace of real "
+                    "photos; no GT depth: no observed labels, per-view agreement only)")
+    ap.add_argument("--arc-fraction", type=float, default=0.2, help="arc protocol: the last fraction of the capture")
+    ap.add_argument("--preset", default="demo", help="training preset (paper for LLFF-like photos)")
+    ap.add_argument("--downscale", type=float, default=None)
     ap.add_argument("--points", choices=["train", "all"], default="train",
                     help="initial points: those the training views see (as SfM on them would give), or all")
     ap.add_argument("--set", action="append", default=[], help="key=value for every method's TrainConfig")
@@ -144,11 +195,18 @@ def main() -> None:
 
     device = resolve_device("auto")
     args.out.mkdir(parents=True, exist_ok=True)
-    scene_dir = args.out / "scene"
-    if not (scene_dir / "scene.json").is_file():
+    scene_dir = args.scene if args.scene is not None else args.out / "scene"
+    if args.scene is None and not (scene_dir / "scene.json").is_file():
         generate_scene(scene_dir, SynthConfig(preset="demo", seed=0, width=args.width))
     if args.protocol == "half-ring":
         train, test = half_ring_split(load_scene(scene_dir), args.test_every)
+    elif args.protocol == "sparse":
+        train, test = sparse_split(load_scene(scene_dir), args.sparse_views)
+    elif args.protocol == "arc":  # a contiguous run of the capture (by sorted name) held out: extrapolated views
+        n = len(load_scene(scene_dir).cameras)
+        k = max(2, round(n * args.arc_fraction))
+        test = list(range(n - k, n))
+        train = list(range(n - k))
     else:  # the dense capture: every 8th view held out, as the demo (nothing unobserved to find; AUSE matters)
         n = len(load_scene(scene_dir).cameras)
         test = list(range(0, n, 8))
@@ -158,6 +216,8 @@ def main() -> None:
             "scene": {"train_indices": train, "test_indices": test, "points_from": args.points},
             "densify": {"until": int(its * 0.65), "spawn_interval": max(its // 10, 1), "max_gaussians": args.max_gaussians},
             "variational": {"refresh_interval": max(its // 5, 1)}}
+    if args.downscale is not None:
+        base["scene"]["downscale"] = args.downscale
     if args.keep_schedule:
         base["densify"] = {"max_gaussians": args.max_gaussians}
         del base["variational"]
@@ -170,7 +230,7 @@ def main() -> None:
             raise SystemExit(f"unknown method {name}")
         from uncertsplat.config import deep_update
 
-        cfg = train_config_from("demo", deep_update(base, over), args.set)
+        cfg = train_config_from(args.preset, deep_update(base, over), args.set)
         run_dir = args.out / name
         t0 = time.perf_counter()
         if not (run_dir / "train_summary.json").is_file():
@@ -184,6 +244,12 @@ def main() -> None:
         rows.append(rec)
         w, wo = rec["with_empty"], rec["without_empty"]
         se = rec["spread_and_empty"]
+        if "auc_rgb" not in w:  # real photos
+            print(f"{name:12s} PSNR {w['psnr']:.2f} AUSE {w['ause_mae']:.3f} NLL {w['nll']:.2f} cal "
+                  f"{w['calibration_error']:.3f} x{fmt(w['std_scale'], 2)} corr(std, error) "
+                  f"{fmt(w['std_error_correlation'])} | spread: AUSE {wo['ause_mae']:.3f} NLL {wo['nll']:.2f} "
+                  f"x{fmt(wo['std_scale'], 2)} corr {fmt(wo['std_error_correlation'])} | train {train_s:.0f}s", flush=True)
+            continue
         print(f"{name:12s} AUC rgb {fmt(w['auc_rgb'])} depth {fmt(w['auc_depth'])} | spread only: rgb "
               f"{fmt(wo['auc_rgb'])} depth {fmt(wo['auc_depth'])} | covered pixels: rgb {fmt(wo['auc_rgb_covered'])} "
               f"depth {fmt(wo['auc_depth_covered'])} | PSNR {w['psnr']:.2f} AUSE {w['ause_mae']:.3f} "
@@ -202,8 +268,9 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         w, wo = r["with_empty"], r["without_empty"]
-        print(f"| {r['method']} | {fmt(w['auc_rgb'])} | {fmt(w['auc_depth'])} | {fmt(wo['auc_rgb'])} / "
-              f"{fmt(wo['auc_depth'])} | {fmt(wo['auc_rgb_covered'])} / {fmt(wo['auc_depth_covered'])} | {w['psnr']:.2f} | {w['ause_mae']:.3f} | {w['nll']:.2f} | "
+        print(f"| {r['method']} | {fmt(w.get('auc_rgb'))} | {fmt(w.get('auc_depth'))} | {fmt(wo.get('auc_rgb'))} / "
+              f"{fmt(wo.get('auc_depth'))} | {fmt(wo.get('auc_rgb_covered'))} / {fmt(wo.get('auc_depth_covered'))} | "
+              f"{w['psnr']:.2f} | {w['ause_mae']:.3f} | {w['nll']:.2f} | "
               f"{w['calibration_error']:.3f} | x{fmt(w['std_scale'], 2)} | {r['train_seconds']:.0f} | {args.machine} | "
               f"{out['date']} |")
 

@@ -139,7 +139,10 @@ class VariationalConfig(_Base):
     stochastic-gradient tables with the KL in the loss. Default: informed for variant 'ours', sgd for
     'paper'."""
     refresh_interval: int = Field(500, ge=1)
-    """Steps between two informed-posterior updates (each costs about 3 renders per training view)."""
+    """Steps between two informed-posterior updates (each costs about 3 renders per training view used)."""
+    refresh_views: int = Field(64, ge=0)
+    """Training views an update before the last step uses at most (drawn at random; the Fisher is scaled to all
+    views); the last update uses every view. 0: every view every time."""
     probes: int = Field(2, ge=1, le=64)
     """Rademacher probes per training view for the curvature (informed)."""
     position_prior_scale: float = Field(1.0, ge=0.0)

@@ -57,8 +57,10 @@ def half_ring_runs(tiny_scene_path, tmp_path_factory):  # noqa: F811
     train, test = _half_ring(load_scene(tiny_scene_path))
     out = {}
     for posterior in ("informed", "sgd"):
+        # updates before the last one use 5 of the 12 training views (the last one all of them)
         cfg = train_config_from("tiny", {"scene": {"train_indices": train, "test_indices": test},
-                                         "variational": {"posterior": posterior, "refresh_interval": 100}})
+                                         "variational": {"posterior": posterior, "refresh_interval": 100,
+                                                         "refresh_views": 5}})
         run = tmp_path_factory.mktemp(posterior)
         train_run(tiny_scene_path, run, cfg, CPU)
         out[posterior] = run
@@ -74,10 +76,11 @@ def test_unobserved_surface_gets_more_spread(half_ring_runs):
 
 
 def test_updates_are_recorded(half_ring_runs):
-    runs, _, _ = half_ring_runs
+    runs, train, _ = half_ring_runs
     summary = json.loads((runs["informed"] / "train_summary.json").read_text())
     steps = [u["step"] for u in summary["posterior_updates"]]
     assert steps == [100, 200, 300]
+    assert [u["views"] for u in summary["posterior_updates"]] == [5, 5, len(train)]
     last = summary["posterior_updates"][-1]
     assert 0.0 < last["data_dominated"] < 1.0 and last["noise_std"] > 0
     assert json.loads((runs["sgd"] / "train_summary.json").read_text())["posterior_updates"] == []

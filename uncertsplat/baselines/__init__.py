@@ -3,7 +3,8 @@
 Methods (``METHODS``; ``uncertsplat train --method NAME``):
 
 * ``variational`` (ours, default) and ``paper`` (``variational`` with ``variant = "paper"``);
-* ``vi-single``: the variational model with one offset-table entry (K_table = 1), the paper's "naive VI";
+* ``vi-single``: the variational model with one offset-table entry (K_table = 1) learned by SGD, the paper's
+  "naive VI" (the informed posterior holds one value per carrier whatever K, so K matters only to SGD tables);
 * ``deterministic``: plain 3DGS, no uncertainty (every sample is the same render, std 0);
 * ``ensemble``: N independently seeded deterministic models (``baselines.ensemble``), spread over members;
 * ``fisher``: a post-hoc Laplace/Fisher posterior on a deterministic model (``baselines.fisher``).
@@ -26,7 +27,7 @@ from uncertsplat.baselines.runs import LoadedRun, load_run, load_single_model
 METHODS: dict[str, dict[str, Any]] = {
     "variational": {"method": "variational", "variant": "ours"},
     "paper": {"method": "variational", "variant": "paper"},
-    "vi-single": {"method": "variational", "variational": {"num_entries": 1}},
+    "vi-single": {"method": "variational", "variational": {"num_entries": 1, "posterior": "sgd"}},
     "deterministic": {"method": "deterministic"},
     "ensemble": {"method": "ensemble"},
     "fisher": {"method": "fisher"},

@@ -281,6 +281,15 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if K == 1:
         notes.append("K=1: the samples' spread is 0 everywhere; the std holds only the empty-ray and pixel-noise "
                      "terms (when on)")
+    terms = ["the spread of the K samples"]
+    if sampler.residual is not None:
+        seen = float(sampler.residual.seen.float().mean()) if sampler.residual.seen.numel() else 0.0
+        terms.append(f"the pixel noise of the Gaussians on the training views (RMS residual "
+                     f"{sampler.residual.mean_variance ** 0.5:.4f}; {100 * seen:.1f} % of the Gaussians seen)")
+    if cfg.empty_rays and sampler.empty_std is not None:
+        terms.append(f"an unknown surface where rays meet no Gaussian (colour std {sampler.empty_std[0]:.3f}, depth "
+                     f"std {sampler.empty_std[1]:.3g})")
+    notes.append("std = " + " + ".join(terms))
 
     results: list[_ViewResult] = []
     gen = torch.Generator(device=device)

@@ -234,8 +234,10 @@ def init_from_points(points: Tensor, colors: Tensor, *, sh_degree: int, num_entr
     return GaussianModel(params, tables, torch.full((n,), -1, dtype=torch.long, device=dev), sh_degree, num_entries)
 
 
-def memory_per_gaussian(model: GaussianModel, *, optimizer_moments: bool = True) -> dict[str, float]:
-    """Bytes per Gaussian: parameters, offset tables (only carriers pay), and Adam moments (2x).
+def memory_per_gaussian(model: GaussianModel, *, optimizer_moments: bool = True,
+                        table_moments: bool = True) -> dict[str, float]:
+    """Bytes per Gaussian: parameters, offset tables (only carriers pay), and Adam moments (2x; of the tables
+    only with ``table_moments``: the informed posterior sets its tables without the optimiser).
 
     Returns a dict with ``params``, ``tables``, ``index`` (posterior_row), ``optimizer`` and ``total``
     bytes per Gaussian (0 for an empty model), plus ``table_bytes_per_carrier``.
@@ -244,7 +246,7 @@ def memory_per_gaussian(model: GaussianModel, *, optimizer_moments: bool = True)
     pbytes = sum(t.numel() * t.element_size() for t in model.params.values())
     tbytes = sum(t.numel() * t.element_size() for t in model.tables.values())
     ibytes = model.posterior_row.numel() * model.posterior_row.element_size()
-    obytes = 2 * (pbytes + tbytes) if optimizer_moments else 0
+    obytes = 2 * (pbytes + (tbytes if table_moments else 0)) if optimizer_moments else 0
     per_carrier = sum(math.prod(t.shape[1:]) * t.element_size() for t in model.tables.values())
     return {
         "params": pbytes / n,

@@ -38,6 +38,8 @@ class PosteriorUpdate(Strict):
     """One informed-posterior update (``Trainer.update_posterior``)."""
 
     step: int
+    views: int
+    """Training views the update used."""
     noise_std: float
     """Observation noise of the Gaussian pixel likelihood: the RMS training residual."""
     carriers: int

@@ -268,20 +268,31 @@ class Trainer:
     def update_posterior(self) -> dict:
         """Set the offset tables to the posterior the training views imply (``variational.informed_tables``):
         the diagonal Fisher of a Gaussian pixel likelihood at the posterior mean, with the observation noise
-        the RMS training residual. Costs about 3 renders per training view; returns (and keeps) its record."""
+        the RMS training residual. Costs about 3 renders per training view used; returns (and keeps) its record.
+
+        Updates before the last step use at most ``refresh_views`` training views, drawn with the view generator,
+        and scale the Fisher by (training views / views used), an unbiased estimate of the sum over all views;
+        the update at the last step uses every training view."""
         t0 = time.perf_counter()
         vcfg = self.cfg.variational
         params = mean_params(self.model, variant=self.cfg.variant, extent=self.extent,
                              temperature=self.prior.temperature)
         degree = self.sh_degree
-        noise = residual_noise_std(params, self.train_cams, self.train_images, self.render, sh_degree=degree)
-        fisher = fisher_diagonal(params, self.train_cams, self.train_images, self.render,
-                                 names=("means", "scales", "opacities"), noise_std=noise, generator=self.gen_noise,
-                                 sh_degree=degree, probes=vcfg.probes)
+        t = len(self.train_idx)
+        cams, images = self.train_cams, self.train_images
+        n = t if (vcfg.refresh_views == 0 or self.step >= self.cfg.iterations) else min(vcfg.refresh_views, t)
+        if n < t:
+            pick = torch.randperm(t, generator=self.gen_views)[:n].sort().values.tolist()
+            cams, images = cams[pick], images[pick]
+        noise = residual_noise_std(params, cams, images, self.render, sh_degree=degree)
+        fisher = fisher_diagonal(params, cams, images, self.render, names=("means", "scales", "opacities"),
+                                 noise_std=noise, generator=self.gen_noise, sh_degree=degree, probes=vcfg.probes)
+        if n < t:
+            fisher = {k: v * (t / n) for k, v in fisher.items()}
         record = informed_tables(self.model, fisher, self.prior, extent=self.extent,
                                  position_prior_scale=vcfg.position_prior_scale)
         self.informed_step = self.step
-        record = {"step": self.step, "noise_std": noise, **record, "seconds": time.perf_counter() - t0}
+        record = {"step": self.step, "views": n, "noise_std": noise, **record, "seconds": time.perf_counter() - t0}
         self.posterior_updates.append(record)
         return record
 
@@ -411,7 +422,7 @@ class Trainer:
         return last
 
     def summary(self) -> dict:
-        mem = memory_per_gaussian(self.model)
+        mem = memory_per_gaussian(self.model, table_moments=not self.informed)
         return {"steps": self.step, "seconds": self.elapsed,
                 "sec_per_step": self.elapsed / max(self.step, 1),
                 "num_gaussians": len(self.model), "num_carriers": self.model.num_carriers,

@@ -1,0 +1,77 @@
+"""The pixel noise of a model's Gaussians (``uncertainty.residual``) against closed forms, with the real renderer."""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+
+from uncertsplat.render import render
+from uncertsplat.types import Cameras, GaussianSample
+from uncertsplat.uncertainty.residual import fit_residual_field
+
+W, H = 40, 30
+
+
+def _cams(num: int) -> Cameras:
+    """``num`` cameras at the origin looking down +z, shifted along x by 0.05 each."""
+    cw = torch.eye(4).repeat(num, 1, 1)
+    cw[:, 0, 3] = -0.05 * torch.arange(num, dtype=torch.float32)
+    K = torch.tensor([[40.0, 0, W / 2], [0, 40.0, H / 2], [0, 0, 1.0]]).repeat(num, 1, 1)
+    return Cameras(cw, K, W, H, tuple(f"v{i}.png" for i in range(num)))
+
+
+def _sample(n=30, seed=0) -> GaussianSample:
+    g = torch.Generator().manual_seed(seed)
+    means = torch.cat([(torch.rand(n, 2, generator=g) - 0.5) * 1.2, 2.0 + torch.rand(n, 1, generator=g)], 1)
+    means[-1] = torch.tensor([0.0, 0.0, -5.0])  # behind every camera: no training pixel sees it
+    return GaussianSample(means=means, quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                          scales=torch.full((n, 3), 0.08), opacities=torch.full((n,), 0.7),
+                          sh=torch.randn(n, 1, 3, generator=g) * 0.3, sh_degree=0)
+
+
+RENDER = functools.partial(render, background=torch.tensor([0.2, 0.4, 0.6]))
+
+
+def test_a_constant_residual_is_every_seen_gaussians_noise():
+    """Images = render + d everywhere: every Gaussian a pixel sees gets d^2, the unseen one the mean (d^2), and the
+    rendered noise of a view is alpha x d^2 (the Gaussians' share of the pixel)."""
+    sample, cams, d = _sample(), _cams(3), 0.05
+    with torch.no_grad():
+        out = RENDER(sample, cams)
+    field = fit_residual_field(sample, cams, out.rgb + d, RENDER)
+    assert not bool(field.seen[-1]) and bool(field.seen[:-1].any())
+    torch.testing.assert_close(field.variance, torch.full_like(field.variance, d * d), rtol=1e-4, atol=1e-7)
+    assert abs(field.mean_variance - d * d) < 1e-7
+    blended = field.blended(cams, RENDER)
+    torch.testing.assert_close(blended, out.alpha * d * d, rtol=1e-3, atol=1e-7)
+
+
+def test_the_noise_follows_the_gaussian_that_makes_the_pixel():
+    """A residual only on the left half of the images: Gaussians drawn there get more noise than those on the right."""
+    sample, cams = _sample(seed=1), _cams(2)
+    with torch.no_grad():
+        out = RENDER(sample, cams)
+    images = out.rgb.clone()
+    images[:, :, : W // 2] += 0.1
+    field = fit_residual_field(sample, cams, images, RENDER)
+    x = sample.means[:, 0] / sample.means[:, 2]  # horizontal image coordinate (focal units) in camera 0
+    left, right = field.seen & (x < -0.15), field.seen & (x > 0.15)
+    assert bool(left.any()) and bool(right.any())
+    assert float(field.variance[left].mean()) > 3 * float(field.variance[right].mean())
+
+
+def test_masked_pixels_do_not_count_and_subset_keeps_each_gaussians_noise():
+    sample, cams = _sample(seed=2), _cams(2)
+    with torch.no_grad():
+        out = RENDER(sample, cams)
+    masks = torch.zeros(2, H, W, 1, dtype=torch.bool)
+    masks[:, :, W // 2:] = True
+    images = out.rgb.clone()
+    images[:, :, : W // 2] += 0.5  # a large error only where the mask excludes it
+    field = fit_residual_field(sample, cams, images, RENDER, masks=masks)
+    assert float(field.variance.max()) < 1e-8
+    keep = torch.arange(len(sample.means)) % 2 == 0
+    sub = field.subset(keep)
+    assert sub.sample.means.shape[0] == int(keep.sum())
+    torch.testing.assert_close(sub.variance, field.variance[keep])
