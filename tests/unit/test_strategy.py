@@ -166,3 +166,18 @@ def test_accumulate_converts_pixel_gradients_to_ndc():
     torch.testing.assert_close(d.stats.max_radius, torch.tensor([2.0, 3.0, 0.0]))
     d.accumulate(100, grad, radii, width=64, height=48)  # after `until`: ignored
     torch.testing.assert_close(d.stats.count, torch.tensor([2.0, 2.0, 0.0]))
+
+
+def test_no_opacity_reset_in_the_last_steps_of_a_run():
+    """A run cut inside the preset's densification window (e.g. --iterations 3000 with reset interval 3000 and
+    densify until 4000) must not end on a reset: every opacity at 0.01 and no step left to recover."""
+    from uncertsplat.gaussians.variational import random_model
+    from uncertsplat.strategy.densify import RESET_RECOVERY_STEPS
+
+    cfg = DensifyConfig(start=10**6, until=4000, opacity_reset_interval=1000, spawn_interval=10**6)
+    for iterations, resets in ((3000, [1000, 2000]), (3500, [1000, 2000]), (10_000, [1000, 2000, 3000])):
+        model = random_model(8, torch.Generator().manual_seed(0))
+        d = Densifier(cfg, Prior(), extent=1.0, n=len(model), device=model.device, iterations=iterations)
+        got = [s for s in (1000, 2000, 3000) if d.step(s, model, None, torch.Generator())["reset"]]
+        assert got == resets, (iterations, got)
+        assert all(s <= iterations - RESET_RECOVERY_STEPS for s in got)

@@ -183,7 +183,8 @@ class Trainer:
         dcfg = self.cfg.densify
         if not self.variational:  # plain 3DGS: densify, never spawn posteriors
             dcfg = dcfg.model_copy(update={"spawn_interval": 10**9})
-        return Densifier(dcfg, self.prior, self.extent, len(self.model), self.device, posteriors=self.variational)
+        return Densifier(dcfg, self.prior, self.extent, len(self.model), self.device, posteriors=self.variational,
+                         iterations=self.cfg.iterations)
 
     def _rates(self, step: int) -> dict[str, float]:
         return base_rates(self.cfg.lr, step, self.cfg.iterations, self.extent,
