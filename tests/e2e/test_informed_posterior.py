@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from tests.fixtures import tiny_scene_path  # noqa: F401
+from tests.run_fixtures import tiny_run_path  # noqa: F401
 from uncertsplat.baselines import load_run, train_run
 from uncertsplat.config import EvalConfig, train_config_from
 from uncertsplat.data.dataset import load_depths, load_view_set
@@ -84,3 +85,28 @@ def test_updates_are_recorded(half_ring_runs):
     last = summary["posterior_updates"][-1]
     assert 0.0 < last["data_dominated"] < 1.0 and last["noise_std"] > 0
     assert json.loads((runs["sgd"] / "train_summary.json").read_text())["posterior_updates"] == []
+
+
+def test_a_run_from_before_the_informed_posterior_resumes_with_sgd_tables(tiny_scene_path, tiny_run_path,  # noqa: F811
+                                                                        tmp_path):
+    """config.json files written before ``variational.posterior`` existed trained SGD tables; resuming one must not
+    switch it to the informed posterior halfway."""
+    import shutil
+
+    from uncertsplat.train.session import train_model
+
+    run = tmp_path / "old"
+    shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
+    cfg_path = run / "config.json"
+    data = json.loads(cfg_path.read_text())
+    data["variational"].pop("posterior")
+    data["variational"].pop("refresh_interval"), data["variational"].pop("refresh_views")
+    data["variational"].pop("probes"), data["variational"].pop("position_prior_scale")
+    data["scene"].pop("train_names"), data["scene"].pop("train_indices"), data["scene"].pop("points_from")
+    cfg_path.write_text(json.dumps(data))
+    step = json.loads((run / "train_summary.json").read_text())["steps"]
+    cfg = train_config_from("tiny", {})
+    train_model(tiny_scene_path, run, cfg, CPU, resume=True, extend_to=step + 100)
+    summary = json.loads((run / "train_summary.json").read_text())
+    assert summary["steps"] == step + 100 and summary["posterior_updates"] == []
+    assert json.loads(cfg_path.read_text())["variational"]["posterior"] in (None, "sgd")

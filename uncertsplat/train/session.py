@@ -100,6 +100,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         if resume:
             remove_stale_temp_files(run_dir, run_dir / "ckpts")  # left by a killed process; we hold the lock
             stored = read_json(run_dir / "config.json")
+            if isinstance(stored.get("variational"), dict) and "posterior" not in stored["variational"]:
+                # written before the informed posterior existed (every dump has the key since): it trained SGD tables
+                stored["variational"]["posterior"] = "sgd"
             diff = [d for d in _differences(stored, json.loads(cfg.model_dump_json()))
                     if not (d == "iterations" and extend_to is not None)]
             if diff:
