@@ -139,7 +139,6 @@ class Trainer:
         self.optimizer = make_optimizer(self.model, self._rates(0))
         self.densifier = self._make_densifier()
         self.view_queue: list[int] = []
-        self.informed_step = -1  # the step of the last informed-posterior update
         self.step = 0
         self.elapsed = 0.0
 
@@ -158,7 +157,6 @@ class Trainer:
             "gen_views": self.gen_views.get_state(),
             "gen_noise": self.gen_noise.get_state(),
             "view_queue": torch.tensor(self.view_queue, dtype=torch.long),
-            "informed_step": self.informed_step,
         }
 
     def _load_state(self, state: dict) -> None:
@@ -174,7 +172,6 @@ class Trainer:
         self.gen_noise = torch.Generator(device=self.device)
         self.gen_noise.set_state(state["gen_noise"].cpu())  # generator states are CPU byte tensors
         self.view_queue = [int(i) for i in state["view_queue"].tolist()]
-        self.informed_step = int(state.get("informed_step", -1))
         self.step = int(state["step"])
         self.elapsed = float(state["elapsed"])
 
@@ -292,7 +289,6 @@ class Trainer:
             fisher = {k: v * (t / n) for k, v in fisher.items()}
         record = informed_tables(self.model, fisher, self.prior, extent=self.extent,
                                  position_prior_scale=vcfg.position_prior_scale)
-        self.informed_step = self.step
         record = {"step": self.step, "views": n, "noise_std": noise, **record, "seconds": time.perf_counter() - t0}
         self.posterior_updates.append(record)
         return record
