@@ -53,12 +53,17 @@ METHODS = {  # name -> TrainConfig overrides on top of the demo preset
 }
 
 
+def by_azimuth(scene) -> list[int]:
+    """Camera indices ordered by azimuth about the camera centroid (the synthetic scene is z-up)."""
+    c = scene.cameras.centers.double()
+    az = torch.atan2(c[:, 1] - c[:, 1].mean(), c[:, 0] - c[:, 0].mean())
+    return torch.argsort(az).tolist()
+
+
 def half_ring_split(scene, test_every: int) -> tuple[list[int], list[int]]:
     """Training views: the cameras whose azimuth about the look-at centre lies in one half-turn; held out:
     every ``test_every``-th camera of the other half (by azimuth)."""
-    c = scene.cameras.centers.double()
-    az = torch.atan2(c[:, 1] - c[:, 1].mean(), c[:, 0] - c[:, 0].mean())  # the synthetic scene is z-up
-    order = torch.argsort(az).tolist()
+    order = by_azimuth(scene)
     half = len(order) // 2
     train = sorted(order[:half])
     test = sorted(order[half:][::test_every])
@@ -68,9 +73,7 @@ def half_ring_split(scene, test_every: int) -> tuple[list[int], list[int]]:
 def sparse_split(scene, n: int) -> tuple[list[int], list[int]]:
     """The paper's light-field protocol: ``n`` interleaved training views on a contiguous arc of cameras (by
     azimuth) and the ``n - 1`` views between them held out (e.g. train 43, 45, 47, 49 / test 42, 44, 46, 48)."""
-    c = scene.cameras.centers.double()
-    az = torch.atan2(c[:, 1] - c[:, 1].mean(), c[:, 0] - c[:, 0].mean())
-    order = torch.argsort(az).tolist()[: 2 * n - 1]
+    order = by_azimuth(scene)[: 2 * n - 1]
     return sorted(order[0::2]), sorted(order[1::2])
 
 

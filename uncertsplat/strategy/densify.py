@@ -17,7 +17,13 @@ from uncertsplat.gaussians import ops
 from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.gaussians.prior import Prior
 from uncertsplat.gaussians.variational import posterior_mean
-from uncertsplat.strategy.schedule import is_densify_step, is_opacity_reset_step, is_spawn_step, is_stats_step
+from uncertsplat.strategy.schedule import (  # noqa: F401 (RESET_RECOVERY_STEPS: also importable from here)
+    RESET_RECOVERY_STEPS,
+    is_densify_step,
+    is_opacity_reset_step,
+    is_spawn_step,
+    is_stats_step,
+)
 
 
 # ------------------------------------------------------------------------------------------ decisions
@@ -90,10 +96,6 @@ class DensifyStats:
         return cls(s["grad_sum"].to(device), s["count"].to(device), s["max_radius"].to(device))
 
 
-RESET_RECOVERY_STEPS = 1000
-"""No opacity reset in the last this many steps of a run (a short ``--iterations`` inside a preset's window)."""
-
-
 class Densifier:
     """Accumulates screen-space gradients and applies densify / prune / reset / spawn on schedule.
 
@@ -104,15 +106,14 @@ class Densifier:
         variant, temperature: how the posterior mean is formed (see ``variational.posterior_mean``).
         posteriors: False for plain 3DGS (``method != "variational"``): no spawning, and split children
             carry a posterior only when their parent does (so a model without posteriors keeps none).
+        iterations: the run's length (None: unknown): no opacity reset in its last ``RESET_RECOVERY_STEPS``.
     """
 
     def __init__(self, cfg, prior: Prior, extent: float, n: int, device, posteriors: bool = True,
                  iterations: int | None = None):
         self.cfg = cfg
         self.posteriors = posteriors  # False: plain 3DGS, splits and spawns never create posteriors
-        # an opacity reset needs steps to recover (fern: 5.6 dB held-out PSNR right after one, 28.5 dB 1000 steps
-        # later), so none falls in the last RESET_RECOVERY_STEPS of a run of ``iterations`` steps
-        self.last_reset = None if iterations is None else iterations - RESET_RECOVERY_STEPS
+        self.iterations = iterations  # the run's length: no opacity reset near its end (is_opacity_reset_step)
         self.prior = prior
         self.extent = float(extent)
         self.stats = DensifyStats.zeros(n, device)
@@ -168,7 +169,7 @@ class Densifier:
             ops.remove(model, optimizer, prune_m)
             done.update(cloned=int(clone_m.sum()), split=int(split_m.sum()), pruned=int(prune_m.sum()))
             changed = True
-        if is_opacity_reset_step(step, cfg) and (self.last_reset is None or step <= self.last_reset):
+        if is_opacity_reset_step(step, cfg, self.iterations):
             ops.reset_opacity(model, optimizer, 0.01)
             done["reset"] = 1
         if self.posteriors and is_spawn_step(step, cfg):
