@@ -17,6 +17,11 @@ Every run also scores three deterministic ways to show the trained model on the 
 ``--mc-samples`` posterior samples (what ``evaluate`` predicts), so the deterministic render is compared with its
 reference in the same run.
 
+Every run is trained with ``profile=true`` (``train_summary.json`` ``profile``: seconds per phase of the
+steps: data, sample, render, loss, backward, optimizer, densify, posterior, eval, checkpoint), and
+``--backward-steps`` steps after training are run under ``torch.profiler`` to split the backward pass by autograd
+node (rasterizer, SSIM, table sampling, KL, other).
+
 Writes ``benchmarks/results/train_{scene}.json`` and prints the Markdown rows for BENCHMARKS.md.
 """
 
@@ -60,6 +65,7 @@ def scene_folder(name: str, work: Path, fern_ws: Path | None) -> Path:
 def bench(name: str, work: Path, args) -> dict:
     scene = scene_folder(name, work, args.fern_workspace)
     overrides = [f"iterations={args.iterations}"] if args.iterations else []
+    overrides += [] if args.no_profile else ["profile=true"]
     overrides += args.set or []
     cfg = train_config_from(SCENES[name], None, overrides)
     run = work / f"run_{name}"
@@ -79,6 +85,10 @@ def bench(name: str, work: Path, args) -> dict:
                   for r in stats if "eval_psnr" in r],
     }
     result["render_modes"] = render_modes(run, torch.device(args.device), args.mc_samples)
+    if args.backward_steps and not args.no_profile:
+        result["backward"] = backward_breakdown(scene, run, cfg, args.backward_steps, torch.device(args.device))
+    if result.get("profile"):
+        print(profile_line(result))
     if args.compare_kernels:
         result["kernel_comparison"] = compare_kernels(scene, run, cfg, args.compare_kernels, torch.device(args.device))
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -122,6 +132,55 @@ def compare_kernels(scene: Path, run: Path, cfg, steps: int, device: torch.devic
     print(f"kernels at {out['num_gaussians']} Gaussians: native {out['native_sec_per_step']:.3f} s/step, PyTorch "
           f"{out['torch_sec_per_step']:.3f} s/step (x{out['speedup']:.2f})")
     return out
+
+
+BACKWARD_GROUPS = {  # autograd node name fragment -> group
+    "Composite": "rasterize", "Projection": "rasterize", "NativeSH": "rasterize", "SSIM": "ssim",
+    "FusedTables": "sample", "FusedKL": "kl"}
+
+
+def backward_breakdown(scene: Path, run: Path, cfg, steps: int, device: torch.device) -> dict:
+    """Seconds per step of the backward pass by autograd node group (rasterizer, SSIM, sampling of the tables,
+    KL, the rest), from ``steps`` steps after the run's last checkpoint under ``torch.profiler``."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from uncertsplat.data.dataset import load_images
+    from uncertsplat.io.checkpoints import load_latest
+    from uncertsplat.sfm.scene import load_scene
+    from uncertsplat.train.trainer import Trainer
+
+    data = load_scene(scene, cfg.scene)
+    images = load_images(data, data.split["train"], device)
+    long_cfg = cfg.model_copy(update={"iterations": cfg.iterations + steps + 10})
+    _, state = load_latest(run, map_location=device)
+    trainer = Trainer(data, long_cfg, images, None, run_dir=None, state=state)
+    for _ in range(3):  # warm-up
+        trainer.train_step()
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    with profile(activities=activities) as prof:
+        for _ in range(steps):
+            trainer.train_step()
+    groups: dict[str, float] = {}
+    for e in prof.key_averages():
+        if not e.key.startswith("autograd::engine::evaluate_function: "):
+            continue
+        node = e.key.split(": ", 1)[1]
+        group = next((g for frag, g in BACKWARD_GROUPS.items() if frag in node), "other")
+        groups[group] = groups.get(group, 0.0) + e.cpu_time_total / 1e6 / steps
+    return {"steps": steps, "num_gaussians": len(trainer.model), "sec_per_step": groups}
+
+
+def profile_line(r: dict) -> str:
+    """Share of each phase in the training time, and the backward's split when measured."""
+    prof = r["profile"]
+    total = sum(prof["seconds"].values())
+    parts = [f"{k} {100 * v / total:.1f}%" for k, v in sorted(prof["seconds"].items(), key=lambda kv: -kv[1])]
+    line = f"{r['scene']}: {total:.0f} s in phases: " + ", ".join(parts)
+    if "backward" in r:
+        b = r["backward"]["sec_per_step"]
+        line += "\n  backward per step: " + ", ".join(f"{k} {1000 * v:.1f} ms" for k, v in
+                                                    sorted(b.items(), key=lambda kv: -kv[1]))
+    return line
 
 
 @torch.no_grad()
@@ -198,6 +257,9 @@ def main() -> None:
     ap.add_argument("--mc-samples", type=int, default=10, help="posterior samples of the MC-mean reference")
     ap.add_argument("--compare-kernels", type=int, default=0, metavar="STEPS",
                     help="time STEPS steps from the final checkpoint with native and PyTorch kernels")
+    ap.add_argument("--no-profile", action="store_true", help="do not time the phases of the steps")
+    ap.add_argument("--backward-steps", type=int, default=20, metavar="STEPS",
+                    help="profile STEPS steps from the final checkpoint to split the backward pass (0: skip)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)

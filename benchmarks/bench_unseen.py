@@ -14,7 +14,8 @@ observed / unobserved from GT depth (``eval.observed.observed_mask``). Per metho
 Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
 its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),
 ``sgd`` (the tables learned by SGD with the KL in the loss, the default before issue 18: the prior-only
-reference), ``paper``, ``vi-single``, ``fisher``, ``ensemble-N``.
+reference), ``sandwich`` (the informed posterior with ``variational.sandwich``), ``paper``, ``vi-single``, ``fisher``,
+``ensemble-N``.
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_unseen.py --out /tmp/unseen [--iterations 1500]
 
@@ -46,6 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 METHODS = {  # name -> TrainConfig overrides on top of the demo preset
     "deterministic": {"method": "deterministic"},
     "variational": {"variational": {"posterior": "informed"}},
+    "sandwich": {"variational": {"posterior": "informed", "sandwich": True}},
     "sgd": {"variational": {"posterior": "sgd"}},
     "paper": {"variant": "paper"},
     "vi-single": {"variational": {"num_entries": 1, "posterior": "sgd"}},

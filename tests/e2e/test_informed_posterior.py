@@ -12,7 +12,9 @@ import json
 
 import pytest
 import torch
+import torch.nn.functional as F
 
+from tests.e2e.test_train_resume import toy_config, toy_scene
 from tests.fixtures import tiny_scene_path  # noqa: F401
 from tests.run_fixtures import tiny_run_path  # noqa: F401
 from uncertsplat.baselines import load_run, train_run
@@ -21,6 +23,7 @@ from uncertsplat.data.dataset import load_depths, load_view_set
 from uncertsplat.eval.engine import evaluate_views
 from uncertsplat.eval.observed import observed_mask
 from uncertsplat.sfm.scene import load_scene
+from uncertsplat.train.trainer import Trainer
 
 CPU = torch.device("cpu")
 
@@ -110,3 +113,20 @@ def test_a_run_from_before_the_informed_posterior_resumes_with_sgd_tables(tiny_s
     summary = json.loads((run / "train_summary.json").read_text())
     assert summary["steps"] == step + 100 and summary["posterior_updates"] == []
     assert json.loads(cfg_path.read_text())["variational"]["posterior"] in (None, "sgd")
+
+
+def test_sandwich_widens_only_the_last_update(tmp_path):
+    """``variational.sandwich``: identical training (the updates before the last are Laplace), then spreads at
+    least the Laplace ones, wider where the views disagree (the cap at the prior: the unit tests)."""
+    scene, tr, te = toy_scene()
+    spreads, params = {}, {}
+    for sandwich in (False, True):
+        cfg = toy_config(variational={"posterior": "informed", "refresh_interval": 10, "sandwich": sandwich})
+        t = Trainer(scene, cfg, tr, te)
+        t.fit()
+        assert [u["step"] for u in t.posterior_updates] == [10, 20, 30]
+        spreads[sandwich] = F.softplus(t.model.tables["pos_spread_raw"]).detach()
+        params[sandwich] = t.model.params["sh0"].detach()
+    torch.testing.assert_close(params[True], params[False], rtol=0, atol=0)  # same training
+    assert torch.all(spreads[True] >= spreads[False] * (1 - 1e-5))
+    assert float((spreads[True] > spreads[False] * 1.01).float().mean()) > 0.1

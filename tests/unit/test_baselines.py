@@ -13,6 +13,7 @@ from uncertsplat.baselines.fisher import fisher_diagonal, perturbed_sample, post
 from uncertsplat.config import TrainConfig, build_config, deep_update
 from uncertsplat.errors import UserError
 from uncertsplat.gaussians.variational import random_model
+from uncertsplat.uncertainty.curvature import fisher_and_disagreement
 
 
 def test_every_method_resolves_to_a_valid_config_and_label():
@@ -179,3 +180,43 @@ def test_deterministic_trainer_densifier_never_gives_posteriors():
     cfg = TrainConfig().densify
     assert Densifier(cfg, Prior(), 1.0, 5, torch.device("cpu"), posteriors=False).posteriors is False
     assert Densifier(cfg, Prior(), 1.0, 5, torch.device("cpu")).posteriors is True
+
+
+def test_disagreement_is_the_variance_of_the_view_scores():
+    """``fisher_and_disagreement``: the disagreement against its closed form (linear render), and the Fisher
+    part equal to ``fisher_diagonal``'s with the same probes."""
+    gen = torch.Generator().manual_seed(3)
+    params = _params()
+    maps = torch.randn(5, 3, 60, generator=gen)
+    images = torch.rand(5, 4, 5, 3, generator=gen)
+    noise = 0.3
+    f, d = fisher_and_disagreement(params, _Cams(maps), images, _linear_render, names=("means", "scales"),
+                                   noise_std=noise, generator=torch.Generator().manual_seed(9), sh_degree=0)
+    f_ref = fisher_diagonal(params, _Cams(maps), images, _linear_render, names=("means", "scales"), noise_std=noise,
+                            generator=torch.Generator().manual_seed(9), sh_degree=0, estimator="ggn")
+    torch.testing.assert_close(f["means"], f_ref["means"])
+    s = params["means"].sum(0)
+    g = torch.stack([maps[t] @ (s @ maps[t] - images[t].reshape(-1)) / noise**2 for t in range(5)])  # [T,3]
+    expected = g.var(0, unbiased=True) * 5
+    torch.testing.assert_close(d["means"][0], expected, rtol=1e-4, atol=1e-6)
+    assert torch.all(d["scales"] == 0), "parameters the render ignores: no disagreement"
+
+
+def test_disagreement_of_a_well_specified_model_is_its_fisher():
+    """Images = render + independent pixel noise of the stated std: the views disagree only by the noise, and
+    the disagreement's expectation is the Fisher (so the sandwich variance is the Laplace one)."""
+    gen = torch.Generator().manual_seed(4)
+    params = _params(n=1)
+    t, noise = 400, 0.1
+    maps = torch.randn(t, 3, 60, generator=gen)
+    s = params["means"].sum(0)
+    images = torch.stack([(s @ maps[i]).reshape(4, 5, 3) for i in range(t)])
+    images = images + noise * torch.randn(images.shape, generator=gen)
+    f, d = fisher_and_disagreement(params, _Cams(maps), images, _linear_render, names=("means",), noise_std=noise,
+                                   generator=gen, sh_degree=0, probes=16)
+    assert torch.allclose(d["means"], f["means"], rtol=0.15), (d["means"], f["means"])
+    # a bias the model cannot fit, different in every view, makes them disagree far more than the noise does
+    biased = images + 0.3 * torch.randn(t, 1, 1, 1, generator=gen)
+    _, d2 = fisher_and_disagreement(params, _Cams(maps), biased, _linear_render, names=("means",), noise_std=noise,
+                                    generator=gen, sh_degree=0)
+    assert torch.all(d2["means"] > 3 * f["means"])

@@ -65,6 +65,27 @@ class TestClosedForm:
         torch.testing.assert_close(got, expected[:, None, :].expand_as(got), rtol=1e-4, atol=1e-9)
         assert float(model.tables["pos_loc"].detach().abs().max()) == 0.0
 
+    def test_disagreement_widens_the_spread_up_to_the_prior(self):
+        """Sandwich: views that agree as the noise predicts (D = F) leave the Laplace spread; views that
+        disagree widen it by (D - F) / (F + prior precision)^2, never beyond the prior."""
+        prior = Prior()
+        f = torch.rand(64, 3, generator=torch.Generator().manual_seed(1)) * 1e6 + 1e4
+        spreads = []
+        for d in (f, 2.0 * f, 1e6 * f):
+            model = _model()
+            fisher = _fisher(model)
+            fisher["means"] = f.clone()
+            dis = {"means": d, "scales": torch.zeros(64, 3)}
+            idx = model.carrier_index()
+            own = posterior_mean(model, extent=EXTENT).scales[idx].log().mean(1).exp()
+            informed_tables(model, fisher, prior, extent=EXTENT, position_prior_scale=1.0, disagreement=dis)
+            spreads.append(F.softplus(model.tables["pos_spread_raw"])[:, 0] * EXTENT)  # [P,3] world units
+        prior_std = own.clamp_min(prior.position_std * EXTENT)[:, None]
+        prec = f[idx] + prior_std**-2
+        torch.testing.assert_close(spreads[0], prec**-0.5, rtol=1e-4, atol=1e-9)
+        torch.testing.assert_close(spreads[1], (1 / prec + f[idx] / prec**2).sqrt(), rtol=1e-4, atol=1e-9)
+        torch.testing.assert_close(spreads[2], prior_std.expand_as(spreads[2]), rtol=1e-4, atol=1e-9)
+
     def test_gate_follows_the_evidence(self):
         """dL = F_a / (2 (1 - o)^2) nats against 'off': none keeps the prior's odds, a lot switches it on."""
         prior = Prior()

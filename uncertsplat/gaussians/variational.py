@@ -323,7 +323,7 @@ def normal_quantile(p: Tensor) -> Tensor:
 
 @torch.no_grad()
 def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prior, *, extent: float = 1.0,
-                    position_prior_scale: float = 1.0) -> dict:
+                    position_prior_scale: float = 1.0, disagreement: dict[str, Tensor] | None = None) -> dict:
     """Set every carrier's table to the posterior that the training views' curvature implies (in place).
 
     ``fisher``: the diagonal Fisher information of the training views w.r.t. the posterior mean's
@@ -345,6 +345,11 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
       The posterior odds of "off" are the prior's times ``exp(-dL)``; the gate keeps the prior's spread tau
       and gets the location ``nu = -tau Phi^-1(P_off)``, so that P(gate < 1/2) = P_off. Unseen Gaussians keep
       the prior's switch-off probability; those the data need are (almost) never switched off.
+
+    ``disagreement`` (``uncertainty.curvature.fisher_and_disagreement``; optional): how much the training views
+    disagree about ``means`` and ``scales``. With it the position and log-scale variances are the sandwich's,
+    ``1 / prec + (D - F)_+ / prec^2`` (prec = F + prior precision), at most the prior's: equal to the Laplace
+    variance when the views disagree only as the pixel noise predicts, wider where the model cannot fit them all.
 
     The posterior-mean render is preserved: base opacity and scale absorb the change of the expected gate
     and of the mean multiplier, and the base position the old location.
@@ -369,7 +374,11 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
     # position
     own = before.scales[idx].log().mean(1).exp()  # [P] geometric-mean size, world units
     prior_std = torch.clamp(position_prior_scale * own, min=prior.position_std * unit)  # [P]
-    var = 1.0 / (fisher["means"][idx] + 1.0 / prior_std[:, None].square())  # [P,3]
+    prec = fisher["means"][idx] + 1.0 / prior_std[:, None].square()  # [P,3]
+    var = 1.0 / prec
+    if disagreement is not None:
+        var = torch.minimum(var + (disagreement["means"][idx] - fisher["means"][idx]).clamp_min(0.0) / prec.square(),
+                            prior_std[:, None].square())
     p["means"].data.index_add_(0, idx, t["pos_loc"].mean(1) * unit)
     t["pos_loc"].data.zero_()
     sigma = (var.sqrt() / unit).clamp_min(1e-12)
@@ -378,7 +387,11 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
     # scale multiplier
     m = 1.0 - 0.5 * prior.scale_width
     prior_var = (prior.scale_width / m) ** 2 / 12.0
-    var_s = 1.0 / (fisher["scales"][idx] + 1.0 / prior_var)  # [P,3]
+    prec_s = fisher["scales"][idx] + 1.0 / prior_var  # [P,3]
+    var_s = 1.0 / prec_s
+    if disagreement is not None:
+        var_s = (var_s + (disagreement["scales"][idx] - fisher["scales"][idx]).clamp_min(0.0) / prec_s.square()
+                 ).clamp_max(prior_var)
     width = (m * (12.0 * var_s).sqrt()).clamp(MIN_WIDTH, MAX_WIDTH)
     t["scale_width_raw"].data.copy_(inverse_softplus(width)[:, None, :].expand_as(t["scale_width_raw"]))
     t["scale_left"].data.copy_((m - 0.5 * width)[:, None, :].expand_as(t["scale_left"]))

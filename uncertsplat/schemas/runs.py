@@ -50,6 +50,17 @@ class PosteriorUpdate(Strict):
     seconds: float
 
 
+class StepProfile(Strict):
+    """Where the training time went (``TrainConfig.profile``; ``train.profile.PhaseTimer``), this training call."""
+
+    steps: int
+    seconds: dict[str, float]
+    """Wall seconds per phase: data, sample, render, loss, backward, optimizer, densify, posterior, eval,
+    checkpoint."""
+    fraction: dict[str, float]
+    """Each phase's share of the sum."""
+
+
 class MemoryPerGaussian(Strict):
     """Bytes per Gaussian by kind (``gaussians.params.memory_per_gaussian``)."""
 
@@ -102,6 +113,7 @@ class TrainSummary(SchemaFile):
     posterior_updates: list[PosteriorUpdate] = Field(default_factory=list)
     """The informed posterior's updates in the last training call (empty for other posteriors)."""
     kernels: str | None = None
+    profile: StepProfile | None = None
     # ---- fisher
     train_seconds: float | None = None
     fisher_seconds: float | None = None

@@ -43,8 +43,9 @@ from uncertsplat.strategy.densify import Densifier, DensifyStats
 from uncertsplat.strategy.schedule import sh_degree_at
 from uncertsplat.train.losses import total_loss
 from uncertsplat.train.optim import base_rates, make_optimizer, set_rates
+from uncertsplat.train.profile import PhaseTimer
 from uncertsplat.types import Cameras, GaussianSample, SceneData
-from uncertsplat.uncertainty.curvature import fisher_diagonal, residual_noise_std
+from uncertsplat.uncertainty.curvature import fisher_and_disagreement, fisher_diagonal, residual_noise_std
 
 STATE_VERSION = 1
 MAX_BAD_STEPS = 5
@@ -103,6 +104,7 @@ class Trainer:
         self.variational = cfg.method == "variational"
         self.informed = self.variational and cfg.posterior == "informed"
         self.posterior_updates: list[dict] = []  # one record per informed-posterior update (this process)
+        self.timer = PhaseTimer(self.device, cfg.profile)  # seconds per phase of this process's steps
         if state is None:
             self._init_fresh()
         else:
@@ -227,36 +229,49 @@ class Trainer:
         step = self.step + 1
         set_rates(self.optimizer, self._rates(step))
         degree = sh_degree_at(step, cfg.sh_degree, cfg.sh_degree_interval)
-        views = [self._next_view() for _ in range(min(cfg.batch_size, len(self.train_idx)))]
-        cams = self.train_cams[views]
-        gt = self.train_images[views]
-        if self.informed:  # the tables are set in closed form (update_posterior); the Gaussians learn here
-            g = sample(self.model, self.gen_noise, subset_size=cfg.variational.subset_size, variant=cfg.variant,
-                       extent=self.extent, temperature=self.prior.temperature, sh_degree=degree, tables_grad=False)
-            kl = None
-        elif self.variational:
-            g, kl = sample_with_kl(self.model, self.gen_noise, self.prior, subset_size=cfg.variational.subset_size,
-                                   extent=self.extent, sh_degree=degree)
-        else:
-            g = posterior_mean(self.model, variant=cfg.variant, extent=self.extent,
-                               temperature=self.prior.temperature, sh_degree=degree)
-            kl = None
-        out = self.render(g, cams)
-        losses = total_loss(out.rgb, gt, kl, ssim_lambda=cfg.ssim_lambda, kl_weight=cfg.variational.kl_weight)
-        losses["loss"].backward()
-        finite = self._all_finite([losses["loss"], *(p.grad for p in self.model.parameters().values())])
-        if finite:
-            self.bad_steps_in_a_row = 0
-            if out.means2d.grad is not None:
+        timer = self.timer
+        with timer("data"):
+            views = [self._next_view() for _ in range(min(cfg.batch_size, len(self.train_idx)))]
+            cams = self.train_cams[views]
+            gt = self.train_images[views]
+        with timer("sample"):
+            if self.informed:  # the tables are set in closed form (update_posterior); the Gaussians learn here
+                g = sample(self.model, self.gen_noise, subset_size=cfg.variational.subset_size, variant=cfg.variant,
+                           extent=self.extent, temperature=self.prior.temperature, sh_degree=degree,
+                           tables_grad=False)
+                kl = None
+            elif self.variational:
+                g, kl = sample_with_kl(self.model, self.gen_noise, self.prior,
+                                       subset_size=cfg.variational.subset_size, extent=self.extent, sh_degree=degree)
+            else:
+                g = posterior_mean(self.model, variant=cfg.variant, extent=self.extent,
+                                   temperature=self.prior.temperature, sh_degree=degree)
+                kl = None
+        with timer("render"):
+            out = self.render(g, cams)
+        with timer("loss"):
+            losses = total_loss(out.rgb, gt, kl, ssim_lambda=cfg.ssim_lambda, kl_weight=cfg.variational.kl_weight)
+        with timer("backward"):
+            losses["loss"].backward()
+        with timer("optimizer"):
+            finite = self._all_finite([losses["loss"], *(p.grad for p in self.model.parameters().values())])
+            if finite:
+                self.bad_steps_in_a_row = 0
+                self.optimizer.step()
+            else:
+                self._skip_non_finite(step)
+        if finite and out.means2d.grad is not None:
+            with timer("densify"):
                 self.densifier.accumulate(step, out.means2d.grad, out.radii, cams.width, cams.height)
-            self.optimizer.step()
-        else:
-            self._skip_non_finite(step)
-        self.optimizer.zero_grad(set_to_none=True)
-        done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise)
+        with timer("optimizer"):
+            self.optimizer.zero_grad(set_to_none=True)
+        with timer("densify"):
+            done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise)
         self.step = step
+        timer.steps += 1
         if self.informed and (step % cfg.variational.refresh_interval == 0 or step == cfg.iterations):
-            self.update_posterior()
+            with timer("posterior"):
+                self.update_posterior()
         result = {k: float(v.detach()) for k, v in losses.items()}
         if not finite:
             result["skipped"] = 1.0
@@ -270,7 +285,8 @@ class Trainer:
 
         Updates before the last step use at most ``refresh_views`` training views, drawn with the view generator,
         and scale the Fisher by (training views / views used), an unbiased estimate of the sum over all views;
-        the update at the last step uses every training view."""
+        the update at the last step uses every training view (and, with ``variational.sandwich``, widens the
+        spreads by the views' disagreement)."""
         t0 = time.perf_counter()
         vcfg = self.cfg.variational
         params = mean_params(self.model, variant=self.cfg.variant, extent=self.extent,
@@ -283,12 +299,21 @@ class Trainer:
             pick = torch.randperm(t, generator=self.gen_views)[:n].sort().values.tolist()
             cams, images = cams[pick], images[pick]
         noise = residual_noise_std(params, cams, images, self.render, sh_degree=degree)
-        fisher = fisher_diagonal(params, cams, images, self.render, names=("means", "scales", "opacities"),
-                                 noise_std=noise, generator=self.gen_noise, sh_degree=degree, probes=vcfg.probes)
+        names = ("means", "scales", "opacities")
+        disagreement = None
+        if vcfg.sandwich and self.step >= self.cfg.iterations:  # at every update it cost 2 dB (config docstring)
+            fisher, disagreement = fisher_and_disagreement(params, cams, images, self.render, names=names,
+                                                           noise_std=noise, generator=self.gen_noise,
+                                                           sh_degree=degree, probes=vcfg.probes)
+        else:
+            fisher = fisher_diagonal(params, cams, images, self.render, names=names, noise_std=noise,
+                                     generator=self.gen_noise, sh_degree=degree, probes=vcfg.probes)
         if n < t:
             fisher = {k: v * (t / n) for k, v in fisher.items()}
+            if disagreement is not None:
+                disagreement = {k: v * (t / n) for k, v in disagreement.items()}
         record = informed_tables(self.model, fisher, self.prior, extent=self.extent,
-                                 position_prior_scale=vcfg.position_prior_scale)
+                                 position_prior_scale=vcfg.position_prior_scale, disagreement=disagreement)
         record = {"step": self.step, "views": n, "noise_std": noise, **record, "seconds": time.perf_counter() - t0}
         self.posterior_updates.append(record)
         return record
@@ -388,7 +413,8 @@ class Trainer:
                     step = self.step
                     evaluated = step % cfg.eval_every == 0 or step == until
                     if evaluated:
-                        last_eval = self.evaluate()
+                        with self.timer("eval"):
+                            last_eval = self.evaluate()
                     if step % cfg.log_every == 0 or step == until or evaluated or "skipped" in terms:
                         last = {"step": step, **{k: round(v, 7) for k, v in terms.items()},
                                 "num_gaussians": len(self.model), "num_carriers": self.model.num_carriers,
@@ -406,7 +432,8 @@ class Trainer:
                     info += f"  {dt:.3f} s/step"
                     bar.update(task, completed=step, info=info)
                     if step % cfg.checkpoint_every == 0 and step != until:
-                        self.save_checkpoint()
+                        with self.timer("checkpoint"):
+                            self.save_checkpoint()
                     if self._stop:
                         path = self.save_checkpoint()
                         raise TrainingInterrupted(step, path)
@@ -429,7 +456,8 @@ class Trainer:
                 "skipped_steps": self.skipped_steps,
                 "sh_degree_active": self.sh_degree, "variant": self.cfg.variant, "method": self.cfg.method,
                 "posterior": posterior_summary(self.model, self.prior),
-                "posterior_updates": self.posterior_updates}
+                "posterior_updates": self.posterior_updates,
+                **({"profile": self.timer.summary()} if self.timer.enabled else {})}
 
 
 def log_line(record: dict) -> str:
