@@ -87,6 +87,8 @@ def bench(name: str, work: Path, args) -> dict:
     result["render_modes"] = render_modes(run, torch.device(args.device), args.mc_samples)
     if args.backward_steps and not args.no_profile:
         result["backward"] = backward_breakdown(scene, run, cfg, args.backward_steps, torch.device(args.device))
+    if result.get("profile") and result.get("posterior_updates"):
+        result["curvature_pass"] = curvature_pass(scene, run, cfg, torch.device(args.device))
     if result.get("profile"):
         print(profile_line(result))
     if args.compare_kernels:
@@ -168,6 +170,43 @@ def backward_breakdown(scene: Path, run: Path, cfg, steps: int, device: torch.de
         group = next((g for frag, g in BACKWARD_GROUPS.items() if frag in node), "other")
         groups[group] = groups.get(group, 0.0) + e.cpu_time_total / 1e6 / steps
     return {"steps": steps, "num_gaussians": len(trainer.model), "sec_per_step": groups}
+
+
+def curvature_pass(scene: Path, run: Path, cfg, device: torch.device, repeats: int = 2) -> dict:
+    """Seconds of the informed update's data pass on the final model over every training view: the noise and
+    the Fisher from one render per view (``curvature``) against the two passes it replaced (``residual_noise_std``
+    then ``fisher_diagonal``), alternating, in this process."""
+    import time
+
+    from uncertsplat.data.dataset import load_images
+    from uncertsplat.gaussians.variational import mean_params
+    from uncertsplat.io.checkpoints import load_latest
+    from uncertsplat.sfm.scene import load_scene
+    from uncertsplat.train.trainer import Trainer
+    from uncertsplat.uncertainty.curvature import curvature, fisher_diagonal, residual_noise_std
+
+    data = load_scene(scene, cfg.scene)
+    images = load_images(data, data.split["train"], device)
+    _, state = load_latest(run, map_location=device)
+    t = Trainer(data, cfg, images, None, run_dir=None, state=state)
+    params = mean_params(t.model, variant=cfg.variant, extent=t.extent, temperature=t.prior.temperature)
+    names, kw = ("means", "scales", "opacities"), {"sh_degree": t.sh_degree}
+    times: dict[str, list[float]] = {"one_pass": [], "two_passes": []}
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        curvature(params, t.train_cams, images, t.render, names=names, generator=torch.Generator(device).manual_seed(0),
+                  **kw)
+        times["one_pass"].append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        noise = residual_noise_std(params, t.train_cams, images, t.render, **kw)
+        fisher_diagonal(params, t.train_cams, images, t.render, names=names, noise_std=noise,
+                        generator=torch.Generator(device).manual_seed(0), **kw)
+        times["two_passes"].append(time.perf_counter() - t0)
+    out = {k: min(v) for k, v in times.items()}
+    out["ratio"] = out["one_pass"] / out["two_passes"]
+    print(f"informed update's data pass ({len(t.train_idx)} views): one pass {out['one_pass']:.2f} s, the two it "
+          f"replaced {out['two_passes']:.2f} s (x{out['ratio']:.2f})")
+    return out
 
 
 def profile_line(r: dict) -> str:

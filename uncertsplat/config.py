@@ -139,7 +139,8 @@ class VariationalConfig(_Base):
     stochastic-gradient tables with the KL in the loss. Default: informed for variant 'ours', sgd for
     'paper'."""
     refresh_interval: int = Field(500, ge=1)
-    """Steps between two informed-posterior updates (each costs about 3 renders per training view used)."""
+    """Steps between two informed-posterior updates (each costs one render and ``probes`` backward
+    passes per training view used)."""
     refresh_views: int = Field(64, ge=0)
     """Training views an update before the last step uses at most (drawn at random; the Fisher is scaled to all
     views); the last update uses every view. 0: every view every time."""
@@ -150,10 +151,14 @@ class VariationalConfig(_Base):
     own size (geometric mean of its axes); 0 keeps only the fixed prior."""
     sandwich: bool = False
     """Informed, last update only: widen the position and scale spreads by how much the training views disagree
-    (the sandwich variance, ``uncertainty.curvature.fisher_and_disagreement``), for a model the Gaussians cannot
+    (the sandwich variance, ``uncertainty.curvature.curvature``), for a model the Gaussians cannot
     fit exactly. Measured (BENCHMARKS.md, "sandwich"): better NLL and calibration, a better error ranking on a
     dense capture, 0.6 dB lower PSNR of the samples' mean and a weaker spread-only signal for unseen regions;
     off by default. Applied at every update it cost 2 dB (the Gaussians train under the wider samples)."""
+
+
+PIXELS_PER_GAUSSIAN = 4.0
+"""Default of ``DensifyConfig.pixels_per_gaussian`` (BENCHMARKS.md, "How many Gaussians a scene needs")."""
 
 
 class DensifyConfig(_Base):
@@ -173,7 +178,12 @@ class DensifyConfig(_Base):
     """0 disables opacity reset."""
     max_screen_size: float | None = Field(None, gt=0.0)
     """Prune Gaussians whose screen radius exceeds this many pixels (3DGS uses 20), after the first opacity reset."""
-    max_gaussians: int = Field(2_000_000, ge=1)
+    max_gaussians: int | None = Field(None, ge=1)
+    """The most Gaussians densification grows the model to. None (default): the scene's budget, one Gaussian per
+    ``pixels_per_gaussian`` training pixels (``strategy.budget``; ``train_summary.json`` ``budget`` says which
+    limit a run had and why)."""
+    pixels_per_gaussian: float = Field(PIXELS_PER_GAUSSIAN, gt=0.0)
+    """The automatic budget's training pixels per Gaussian (used when ``max_gaussians`` is None)."""
     spawn_interval: int = Field(1000, ge=1)
     spawn_scale_fraction: float = Field(0.01, gt=0.0)
     """Spawn: carry a posterior when ||scale|| > this * extent ..."""

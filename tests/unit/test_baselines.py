@@ -13,7 +13,7 @@ from uncertsplat.baselines.fisher import fisher_diagonal, perturbed_sample, post
 from uncertsplat.config import TrainConfig, build_config, deep_update
 from uncertsplat.errors import UserError
 from uncertsplat.gaussians.variational import random_model
-from uncertsplat.uncertainty.curvature import fisher_and_disagreement
+from uncertsplat.uncertainty.curvature import curvature, residual_noise_std
 
 
 def test_every_method_resolves_to_a_valid_config_and_label():
@@ -182,24 +182,28 @@ def test_deterministic_trainer_densifier_never_gives_posteriors():
     assert Densifier(cfg, Prior(), 1.0, 5, torch.device("cpu")).posteriors is True
 
 
-def test_disagreement_is_the_variance_of_the_view_scores():
-    """``fisher_and_disagreement``: the disagreement against its closed form (linear render), and the Fisher
-    part equal to ``fisher_diagonal``'s with the same probes."""
+def test_one_pass_gives_the_noise_the_fisher_and_the_disagreement():
+    """``curvature``: the noise is ``residual_noise_std``'s, the Fisher ``fisher_diagonal``'s with that noise and the
+    same probes, and the disagreement its closed form (linear render)."""
     gen = torch.Generator().manual_seed(3)
     params = _params()
     maps = torch.randn(5, 3, 60, generator=gen)
     images = torch.rand(5, 4, 5, 3, generator=gen)
-    noise = 0.3
-    f, d = fisher_and_disagreement(params, _Cams(maps), images, _linear_render, names=("means", "scales"),
-                                   noise_std=noise, generator=torch.Generator().manual_seed(9), sh_degree=0)
+    c = curvature(params, _Cams(maps), images, _linear_render, names=("means", "scales"),
+                  generator=torch.Generator().manual_seed(9), sh_degree=0, disagreement=True)
+    noise = residual_noise_std(params, _Cams(maps), images, _linear_render, sh_degree=0)
+    assert c.noise_std == pytest.approx(noise, rel=1e-6)
     f_ref = fisher_diagonal(params, _Cams(maps), images, _linear_render, names=("means", "scales"), noise_std=noise,
                             generator=torch.Generator().manual_seed(9), sh_degree=0, estimator="ggn")
-    torch.testing.assert_close(f["means"], f_ref["means"])
+    torch.testing.assert_close(c.fisher["means"], f_ref["means"], rtol=1e-5, atol=0)
     s = params["means"].sum(0)
     g = torch.stack([maps[t] @ (s @ maps[t] - images[t].reshape(-1)) / noise**2 for t in range(5)])  # [T,3]
     expected = g.var(0, unbiased=True) * 5
-    torch.testing.assert_close(d["means"][0], expected, rtol=1e-4, atol=1e-6)
-    assert torch.all(d["scales"] == 0), "parameters the render ignores: no disagreement"
+    torch.testing.assert_close(c.disagreement["means"][0], expected, rtol=1e-4, atol=1e-6)
+    assert torch.all(c.disagreement["scales"] == 0), "parameters the render ignores: no disagreement"
+    fixed = curvature(params, _Cams(maps), images, _linear_render, names=("means",),
+                      generator=torch.Generator().manual_seed(9), sh_degree=0, noise_std=0.5)
+    assert fixed.noise_std == 0.5 and fixed.disagreement is None
 
 
 def test_disagreement_of_a_well_specified_model_is_its_fisher():
@@ -212,11 +216,11 @@ def test_disagreement_of_a_well_specified_model_is_its_fisher():
     s = params["means"].sum(0)
     images = torch.stack([(s @ maps[i]).reshape(4, 5, 3) for i in range(t)])
     images = images + noise * torch.randn(images.shape, generator=gen)
-    f, d = fisher_and_disagreement(params, _Cams(maps), images, _linear_render, names=("means",), noise_std=noise,
-                                   generator=gen, sh_degree=0, probes=16)
-    assert torch.allclose(d["means"], f["means"], rtol=0.15), (d["means"], f["means"])
+    c = curvature(params, _Cams(maps), images, _linear_render, names=("means",), noise_std=noise, generator=gen,
+                  sh_degree=0, probes=16, disagreement=True)
+    assert torch.allclose(c.disagreement["means"], c.fisher["means"], rtol=0.15), (c.disagreement, c.fisher)
     # a bias the model cannot fit, different in every view, makes them disagree far more than the noise does
     biased = images + 0.3 * torch.randn(t, 1, 1, 1, generator=gen)
-    _, d2 = fisher_and_disagreement(params, _Cams(maps), biased, _linear_render, names=("means",), noise_std=noise,
-                                    generator=gen, sh_degree=0)
-    assert torch.all(d2["means"] > 3 * f["means"])
+    c2 = curvature(params, _Cams(maps), biased, _linear_render, names=("means",), noise_std=noise, generator=gen,
+                   sh_degree=0, disagreement=True)
+    assert torch.all(c2.disagreement["means"] > 3 * c.fisher["means"])

@@ -100,6 +100,21 @@ def draw_subset(num_entries: int, subset_size: int, generator: torch.Generator) 
     return torch.randperm(num_entries, generator=generator, device=generator.device)[:m]
 
 
+def _subset_mean(table: Tensor, subset: Tensor) -> Tensor:
+    """[P,K,D] -> [P,D]: the mean of the table entries ``subset`` [M].
+
+    On the CPU as a sum of M column slices: ``index_select`` + ``mean(dim=1)`` (a copy and a reduction over the
+    middle dimension) took 60 % of an informed training sample's time (BENCHMARKS.md, "Where a training step's
+    time goes"). Elsewhere the indices stay on the device (reading them would synchronise it)."""
+    if subset.device.type != "cpu":
+        return table.index_select(1, subset).mean(dim=1)
+    idx = subset.tolist()
+    acc = table[:, idx[0]]
+    for k in idx[1:]:
+        acc = acc + table[:, k]
+    return acc / len(idx) if len(idx) > 1 else acc
+
+
 def sample(model: GaussianModel, generator: torch.Generator, *, subset_size: int = 2, variant: Variant = "ours",
            extent: float = 1.0, temperature: float = 0.2, sh_degree: int | None = None,
            tables_grad: bool = True) -> GaussianSample:
@@ -123,7 +138,7 @@ def sample(model: GaussianModel, generator: torch.Generator, *, subset_size: int
     if draws.idx.numel() == 0:
         return _assemble(model, draws.idx, draws.eps, draws.u, draws.eta[:, 0], variant=variant, sh_degree=sh_degree)
     tables = model.tables if tables_grad else {k: v.detach() for k, v in model.tables.items()}
-    avgs = {name: tables[name].index_select(1, draws.subset).mean(dim=1) for name in TABLE_NAMES}  # [P,D]
+    avgs = {name: _subset_mean(tables[name], draws.subset) for name in TABLE_NAMES}  # [P,D]
     return _sample_from(model, draws, avgs, variant=variant, extent=extent, temperature=temperature,
                         sh_degree=sh_degree)
 
@@ -346,7 +361,7 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
       and gets the location ``nu = -tau Phi^-1(P_off)``, so that P(gate < 1/2) = P_off. Unseen Gaussians keep
       the prior's switch-off probability; those the data need are (almost) never switched off.
 
-    ``disagreement`` (``uncertainty.curvature.fisher_and_disagreement``; optional): how much the training views
+    ``disagreement`` (``uncertainty.curvature.curvature``; optional): how much the training views
     disagree about ``means`` and ``scales``. With it the position and log-scale variances are the sandwich's,
     ``1 / prec + (D - F)_+ / prec^2`` (prec = F + prior precision), at most the prior's: equal to the Laplace
     variance when the views disagree only as the pixel noise predicts, wider where the model cannot fit them all.

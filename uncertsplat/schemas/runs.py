@@ -61,6 +61,15 @@ class StepProfile(Strict):
     """Each phase's share of the sum."""
 
 
+class Budget(Strict):
+    """The model-size limit densification had (``strategy.budget.GaussianBudget``)."""
+
+    max_gaussians: int
+    source: str
+    """``config`` (``densify.max_gaussians`` set by the user or a preset) or ``auto`` (from the training pixels)."""
+    reason: str
+
+
 class MemoryPerGaussian(Strict):
     """Bytes per Gaussian by kind (``gaussians.params.memory_per_gaussian``)."""
 
@@ -114,6 +123,9 @@ class TrainSummary(SchemaFile):
     """The informed posterior's updates in the last training call (empty for other posteriors)."""
     kernels: str | None = None
     profile: StepProfile | None = None
+    budget: Budget | None = None
+    """None in runs from before the automatic budget (their limit was ``densify.max_gaussians``, 2,000,000 by
+    default)."""
     # ---- fisher
     train_seconds: float | None = None
     fisher_seconds: float | None = None

@@ -17,6 +17,7 @@ from uncertsplat.gaussians import ops
 from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.gaussians.prior import Prior
 from uncertsplat.gaussians.variational import posterior_mean
+from uncertsplat.strategy.budget import MAX_BUDGET
 from uncertsplat.strategy.schedule import (  # noqa: F401 (RESET_RECOVERY_STEPS: also importable from here)
     RESET_RECOVERY_STEPS,
     is_densify_step,
@@ -147,7 +148,9 @@ class Densifier:
                 max_scale = pm.scales.amax(-1)
                 clone_m, split_m = densify_decisions(grad, max_scale, grad_threshold=cfg.grad_threshold,
                                                      percent_dense=cfg.percent_dense, extent=self.extent)
-                clone_m, split_m = limit_growth(clone_m, split_m, grad, len(model), cfg.max_gaussians)
+                # the Trainer sets the scene's budget (strategy.budget); unset, the ceiling of any budget applies
+                limit = cfg.max_gaussians if cfg.max_gaussians is not None else MAX_BUDGET
+                clone_m, split_m = limit_growth(clone_m, split_m, grad, len(model), limit)
                 n0 = len(model)
                 split_scales = pm.scales
             ops.clone(model, optimizer, clone_m)

@@ -147,7 +147,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         kernels = native.describe(device)
         console.print(f"training {len(trainer.model)} Gaussians on {len(data.split['train'])} views "
                       f"({data.cameras.width}x{data.cameras.height}), {len(data.split.get('test', ()))} held out, "
-                      f"device {device} ({kernels}), {cfg.iterations} steps")
+                      f"device {device} ({kernels}), {cfg.iterations} steps, at most "
+                      f"{trainer.budget.max_gaussians:,} Gaussians ({trainer.budget.reason})")
         trainer.on_log = lambda rec: console.log(log_line(rec)) if "eval_psnr" in rec else None
         try:
             trainer.fit()

@@ -39,13 +39,14 @@ from uncertsplat.gaussians.variational import (
     sample_with_kl,
 )
 from uncertsplat.render import near_plane, render
+from uncertsplat.strategy.budget import gaussian_budget
 from uncertsplat.strategy.densify import Densifier, DensifyStats
 from uncertsplat.strategy.schedule import sh_degree_at
 from uncertsplat.train.losses import total_loss
 from uncertsplat.train.optim import base_rates, make_optimizer, set_rates
 from uncertsplat.train.profile import PhaseTimer
 from uncertsplat.types import Cameras, GaussianSample, SceneData
-from uncertsplat.uncertainty.curvature import fisher_and_disagreement, fisher_diagonal, residual_noise_std
+from uncertsplat.uncertainty.curvature import curvature
 
 STATE_VERSION = 1
 MAX_BAD_STEPS = 5
@@ -180,6 +181,10 @@ class Trainer:
     # -------------------------------------------------------------------------------- helpers
     def _make_densifier(self) -> Densifier:
         dcfg = self.cfg.densify
+        # the model-size limit: the user's, or the scene's from its training pixels (strategy.budget)
+        self.budget = gaussian_budget(dcfg.max_gaussians, dcfg.pixels_per_gaussian, views=len(self.train_idx),
+                                      width=self.train_cams.width, height=self.train_cams.height)
+        dcfg = dcfg.model_copy(update={"max_gaussians": self.budget.max_gaussians})
         if not self.variational:  # plain 3DGS: densify, never spawn posteriors
             dcfg = dcfg.model_copy(update={"spawn_interval": 10**9})
         return Densifier(dcfg, self.prior, self.extent, len(self.model), self.device, posteriors=self.variational,
@@ -281,7 +286,8 @@ class Trainer:
     def update_posterior(self) -> dict:
         """Set the offset tables to the posterior the training views imply (``variational.informed_tables``):
         the diagonal Fisher of a Gaussian pixel likelihood at the posterior mean, with the observation noise
-        the RMS training residual. Costs about 3 renders per training view used; returns (and keeps) its record.
+        the RMS training residual. Costs one render and ``probes`` backward passes per training view used; returns
+        (and keeps) its record.
 
         Updates before the last step use at most ``refresh_views`` training views, drawn with the view generator,
         and scale the Fisher by (training views / views used), an unbiased estimate of the sum over all views;
@@ -298,16 +304,12 @@ class Trainer:
         if n < t:
             pick = torch.randperm(t, generator=self.gen_views)[:n].sort().values.tolist()
             cams, images = cams[pick], images[pick]
-        noise = residual_noise_std(params, cams, images, self.render, sh_degree=degree)
-        names = ("means", "scales", "opacities")
-        disagreement = None
-        if vcfg.sandwich and self.step >= self.cfg.iterations:  # at every update it cost 2 dB (config docstring)
-            fisher, disagreement = fisher_and_disagreement(params, cams, images, self.render, names=names,
-                                                           noise_std=noise, generator=self.gen_noise,
-                                                           sh_degree=degree, probes=vcfg.probes)
-        else:
-            fisher = fisher_diagonal(params, cams, images, self.render, names=names, noise_std=noise,
-                                     generator=self.gen_noise, sh_degree=degree, probes=vcfg.probes)
+        # one render per view: the noise (RMS residual), the curvature, and at the last update with
+        # ``sandwich`` the views' disagreement (at every update it cost 2 dB: the config's docstring)
+        curv = curvature(params, cams, images, self.render, names=("means", "scales", "opacities"),
+                         generator=self.gen_noise, sh_degree=degree, probes=vcfg.probes,
+                         disagreement=vcfg.sandwich and self.step >= self.cfg.iterations)
+        noise, fisher, disagreement = curv.noise_std, curv.fisher, curv.disagreement
         if n < t:
             fisher = {k: v * (t / n) for k, v in fisher.items()}
             if disagreement is not None:
@@ -456,7 +458,7 @@ class Trainer:
                 "skipped_steps": self.skipped_steps,
                 "sh_degree_active": self.sh_degree, "variant": self.cfg.variant, "method": self.cfg.method,
                 "posterior": posterior_summary(self.model, self.prior),
-                "posterior_updates": self.posterior_updates,
+                "posterior_updates": self.posterior_updates, "budget": self.budget.as_dict(),
                 **({"profile": self.timer.summary()} if self.timer.enabled else {})}
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from torch import Tensor
@@ -100,46 +101,69 @@ def fisher_diagonal(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
     return acc
 
 
-def fisher_and_disagreement(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
-                            render_fn: Callable[[GaussianSample, Cameras], RenderOutput], *, names: tuple[str, ...],
-                            noise_std: float, generator: torch.Generator, sh_degree: int,
-                            probes: int = 2) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
-    """The diagonal Fisher (``fisher_diagonal``, ``ggn``) and how much the training views disagree, from one
-    render per view.
+@dataclass(frozen=True)
+class Curvature:
+    """What one pass over the training views says about the parameters (``curvature``)."""
+
+    fisher: dict[str, Tensor]
+    """name -> diagonal Fisher information [N,...] of the Gaussian pixel likelihood with noise ``noise_std``."""
+    noise_std: float
+    """The likelihood's noise: the given one, or the RMS training residual (at least ``floor``)."""
+    disagreement: dict[str, Tensor] | None
+    """name -> [N,...] how much the views disagree (see ``curvature``), or None when not asked for."""
+
+
+def curvature(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
+              render_fn: Callable[[GaussianSample, Cameras], RenderOutput], *, names: tuple[str, ...],
+              generator: torch.Generator, sh_degree: int, probes: int = 2, noise_std: float | None = None,
+              disagreement: bool = False, floor: float = 1.0 / 255.0) -> Curvature:
+    """The diagonal Fisher (``fisher_diagonal``'s ``ggn`` estimator, the same probes), the likelihood's noise and,
+    optionally, how much the training views disagree, from one render per view.
+
+    With ``noise_std`` None the noise is the RMS residual of these renders (``residual_noise_std``); every term
+    is accumulated without it and scaled at the end (the Fisher by 1 / s^2), so the residual pass and the
+    curvature pass are one.
 
     The disagreement is the variance over the T views of each view's score (the gradient of its Gaussian
     log-likelihood), times T: ``D = T/(T-1) sum_v (g_v - mean g)^2``. For a correctly specified model (pixels
-    independent, noise ``noise_std``) its expectation is the Fisher itself; where the views pull a parameter
-    different ways (residuals that are correlated across a Gaussian's footprint, a view-dependent look the
-    model cannot fit), it is larger. ``D / (F + prior precision)^2`` is the sandwich (infinitesimal
-    jackknife) variance: how much the parameter would move if the set of views were drawn again.
-
-    Returns:
-        (fisher, disagreement): name -> [N,...] non-negative tensors shaped like ``params[name]``.
+    independent, noise s) its expectation is the Fisher itself; where the views pull a parameter different ways
+    (residuals correlated across a Gaussian's footprint, a view-dependent look the model cannot fit) it is
+    larger. ``D / (F + prior precision)^2`` is the sandwich (infinitesimal jackknife) variance: how much the
+    parameter would move if the set of views were drawn again.
     """
     leaves = {n: params[n].detach().clone().requires_grad_(True) for n in names}
     fixed = {k: v.detach() for k, v in params.items()}
     fisher = {n: torch.zeros_like(v) for n, v in leaves.items()}
-    s1 = {n: torch.zeros_like(v, dtype=torch.float64) for n, v in leaves.items()}
-    s2 = {n: torch.zeros_like(v, dtype=torch.float64) for n, v in leaves.items()}
-    inv_var = 1.0 / noise_std**2
+    s1 = {n: torch.zeros_like(v, dtype=torch.float64) for n, v in leaves.items()} if disagreement else {}
+    s2 = {n: torch.zeros_like(v, dtype=torch.float64) for n, v in leaves.items()} if disagreement else {}
+    sq_sum, count = 0.0, 0
     t = len(cameras)
     for i in range(t):
         sample = activate({**fixed, **leaves}, sh_degree)
         rgb = render_fn(sample, cameras[[i]]).rgb[0]  # [H,W,3]
-        for _ in range(probes):
+        r = (rgb - images[i].to(rgb.device)).detach()
+        sq_sum += float(r.square().sum())
+        count += r.numel()
+        for p in range(probes):
             z = torch.randint(0, 2, rgb.shape, generator=generator, device=generator.device).to(rgb) * 2 - 1
-            grads = torch.autograd.grad((rgb * z).sum(), list(leaves.values()), retain_graph=True, allow_unused=True)
+            grads = torch.autograd.grad((rgb * z).sum(), list(leaves.values()), retain_graph=disagreement or p < probes - 1,
+                                        allow_unused=True)
             for n, gr in zip(leaves, grads, strict=True):
                 if gr is not None:
-                    fisher[n] += gr.square() * (inv_var / probes)
-        r = (rgb - images[i].to(rgb.device)).detach()
-        grads = torch.autograd.grad((rgb * r).sum() * inv_var, list(leaves.values()), allow_unused=True)
-        for n, gr in zip(leaves, grads, strict=True):
-            if gr is not None:
-                g = gr.double()
-                s1[n] += g
-                s2[n] += g.square()
-    scale = t / max(t - 1, 1)
-    disagreement = {n: ((s2[n] - s1[n].square() / t) * scale).clamp_min(0.0).to(fisher[n].dtype) for n in leaves}
-    return fisher, disagreement
+                    fisher[n] += gr.square() / probes
+        if disagreement:  # the score without the 1 / s^2 (applied below)
+            grads = torch.autograd.grad((rgb * r).sum(), list(leaves.values()), allow_unused=True)
+            for n, gr in zip(leaves, grads, strict=True):
+                if gr is not None:
+                    g = gr.double()
+                    s1[n] += g
+                    s2[n] += g.square()
+    if noise_std is None:
+        noise_std = max(math.sqrt(sq_sum / max(count, 1)), floor)
+    inv_var = 1.0 / noise_std**2
+    fisher = {n: v * inv_var for n, v in fisher.items()}
+    dis = None
+    if disagreement:
+        scale = t / max(t - 1, 1) * inv_var**2
+        dis = {n: ((s2[n] - s1[n].square() / t) * scale).clamp_min(0.0).to(fisher[n].dtype) for n in leaves}
+    return Curvature(fisher, float(noise_std), dis)
