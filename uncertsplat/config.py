@@ -151,8 +151,8 @@ class VariationalConfig(_Base):
     own size (geometric mean of its axes); 0 keeps only the fixed prior."""
     sandwich: bool = False
     """Informed, last update only: widen the position and scale spreads by how much the training views disagree
-    (the sandwich variance, ``uncertainty.curvature.curvature``), for a model the Gaussians cannot
-    fit exactly. Measured (BENCHMARKS.md, "sandwich"): better NLL and calibration, a better error ranking on a
+    (the sandwich variance, ``uncertainty.curvature.curvature``), for a model the Gaussians cannot fit exactly.
+    Measured (BENCHMARKS.md, "The sandwich variance"): better NLL and calibration, a better error ranking on a
     dense capture, 0.6 dB lower PSNR of the samples' mean and a weaker spread-only signal for unseen regions;
     off by default. Applied at every update it cost 2 dB (the Gaussians train under the wider samples)."""
 

@@ -39,8 +39,8 @@ def gaussian_budget(max_gaussians: int | None, pixels_per_gaussian: float, *, vi
         return GaussianBudget(int(max_gaussians), "config", "densify.max_gaussians")
     pixels = views * width * height
     n = min(max(math.ceil(pixels / pixels_per_gaussian), MIN_BUDGET), MAX_BUDGET)
-    reason = (f"one Gaussian per {pixels_per_gaussian:g} training pixels ({views} views of {width}x{height} = "
-              f"{pixels:,} pixels)")
+    reason = (f"one Gaussian per {pixels_per_gaussian:g} training pixels: {views} views of {width}x{height} = "
+              f"{pixels:,} pixels")
     if n in (MIN_BUDGET, MAX_BUDGET):
         reason += f", clamped to {n:,}"
     return GaussianBudget(n, "auto", reason)
