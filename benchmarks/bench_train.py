@@ -98,11 +98,9 @@ def bench(name: str, work: Path, args) -> dict:
     return result
 
 
-def compare_kernels(scene: Path, run: Path, cfg, steps: int, device: torch.device) -> dict:
-    """Seconds per step from the run's last checkpoint with the native and the PyTorch kernels."""
-    import os
-    import time
-
+def trainer_from_run(scene: Path, run: Path, cfg, device: torch.device, extra_steps: int = 0):
+    """A ``Trainer`` at the run's last checkpoint (no run folder: nothing is written), allowed ``extra_steps``
+    steps past the run's length."""
     from uncertsplat.data.dataset import load_images
     from uncertsplat.io.checkpoints import load_latest
     from uncertsplat.sfm.scene import load_scene
@@ -110,14 +108,22 @@ def compare_kernels(scene: Path, run: Path, cfg, steps: int, device: torch.devic
 
     data = load_scene(scene, cfg.scene)
     images = load_images(data, data.split["train"], device)
-    long_cfg = cfg.model_copy(update={"iterations": cfg.iterations + 2 * steps + 10})
+    _, state = load_latest(run, map_location=device)
+    cfg = cfg.model_copy(update={"iterations": cfg.iterations + extra_steps})
+    return Trainer(data, cfg, images, None, run_dir=None, state=state)
+
+
+def compare_kernels(scene: Path, run: Path, cfg, steps: int, device: torch.device) -> dict:
+    """Seconds per step from the run's last checkpoint with the native and the PyTorch kernels."""
+    import os
+    import time
+
     out = {"steps": steps}
     before = os.environ.get("UNCERTSPLAT_RASTERIZER")
     try:
         for backend in ("native", "torch"):
             os.environ["UNCERTSPLAT_RASTERIZER"] = backend
-            _, state = load_latest(run, map_location=device)
-            trainer = Trainer(data, long_cfg, images, None, run_dir=None, state=state)
+            trainer = trainer_from_run(scene, run, cfg, device, extra_steps=2 * steps + 10)
             for _ in range(3):  # warm-up
                 trainer.train_step()
             t0 = time.perf_counter()
@@ -146,16 +152,7 @@ def backward_breakdown(scene: Path, run: Path, cfg, steps: int, device: torch.de
     KL, the rest), from ``steps`` steps after the run's last checkpoint under ``torch.profiler``."""
     from torch.profiler import ProfilerActivity, profile
 
-    from uncertsplat.data.dataset import load_images
-    from uncertsplat.io.checkpoints import load_latest
-    from uncertsplat.sfm.scene import load_scene
-    from uncertsplat.train.trainer import Trainer
-
-    data = load_scene(scene, cfg.scene)
-    images = load_images(data, data.split["train"], device)
-    long_cfg = cfg.model_copy(update={"iterations": cfg.iterations + steps + 10})
-    _, state = load_latest(run, map_location=device)
-    trainer = Trainer(data, long_cfg, images, None, run_dir=None, state=state)
+    trainer = trainer_from_run(scene, run, cfg, device, extra_steps=steps + 10)
     for _ in range(3):  # warm-up
         trainer.train_step()
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
@@ -178,17 +175,11 @@ def curvature_pass(scene: Path, run: Path, cfg, device: torch.device, repeats: i
     then ``fisher_diagonal``), alternating, in this process."""
     import time
 
-    from uncertsplat.data.dataset import load_images
     from uncertsplat.gaussians.variational import mean_params
-    from uncertsplat.io.checkpoints import load_latest
-    from uncertsplat.sfm.scene import load_scene
-    from uncertsplat.train.trainer import Trainer
     from uncertsplat.uncertainty.curvature import curvature, fisher_diagonal, residual_noise_std
 
-    data = load_scene(scene, cfg.scene)
-    images = load_images(data, data.split["train"], device)
-    _, state = load_latest(run, map_location=device)
-    t = Trainer(data, cfg, images, None, run_dir=None, state=state)
+    t = trainer_from_run(scene, run, cfg, device)
+    images = t.train_images
     params = mean_params(t.model, variant=cfg.variant, extent=t.extent, temperature=t.prior.temperature)
     names, kw = ("means", "scales", "opacities"), {"sh_degree": t.sh_degree}
     times: dict[str, list[float]] = {"one_pass": [], "two_passes": []}

@@ -183,19 +183,19 @@ def test_deterministic_trainer_densifier_never_gives_posteriors():
 
 
 def test_one_pass_gives_the_noise_the_fisher_and_the_disagreement():
-    """``curvature``: the noise is ``residual_noise_std``'s, the Fisher ``fisher_diagonal``'s with that noise and the
-    same probes, and the disagreement its closed form (linear render)."""
+    """``curvature``: the noise is ``residual_noise_std``'s, the Fisher (scaled by that noise at the end) estimates
+    its closed form, and the disagreement is its closed form (linear render)."""
     gen = torch.Generator().manual_seed(3)
     params = _params()
     maps = torch.randn(5, 3, 60, generator=gen)
     images = torch.rand(5, 4, 5, 3, generator=gen)
     c = curvature(params, _Cams(maps), images, _linear_render, names=("means", "scales"),
-                  generator=torch.Generator().manual_seed(9), sh_degree=0, disagreement=True)
+                  generator=torch.Generator().manual_seed(9), sh_degree=0, probes=64, disagreement=True)
     noise = residual_noise_std(params, _Cams(maps), images, _linear_render, sh_degree=0)
     assert c.noise_std == pytest.approx(noise, rel=1e-6)
-    f_ref = fisher_diagonal(params, _Cams(maps), images, _linear_render, names=("means", "scales"), noise_std=noise,
-                            generator=torch.Generator().manual_seed(9), sh_degree=0, estimator="ggn")
-    torch.testing.assert_close(c.fisher["means"], f_ref["means"], rtol=1e-5, atol=0)
+    exact = maps.square().sum(-1).sum(0) / noise**2  # [3]: sum over views and pixels of J^2
+    for i in range(params["means"].shape[0]):
+        assert torch.allclose(c.fisher["means"][i], exact, rtol=0.2), (c.fisher["means"][i], exact)
     s = params["means"].sum(0)
     g = torch.stack([maps[t] @ (s @ maps[t] - images[t].reshape(-1)) / noise**2 for t in range(5)])  # [T,3]
     expected = g.var(0, unbiased=True) * 5

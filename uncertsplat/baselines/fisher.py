@@ -37,7 +37,7 @@ from uncertsplat.eval.engine import Sampler
 from uncertsplat.schemas import TrainSummary
 from uncertsplat.types import GaussianSample
 from uncertsplat.uncertainty.curvature import activate as _activate
-from uncertsplat.uncertainty.curvature import fisher_diagonal, residual_noise_std
+from uncertsplat.uncertainty.curvature import curvature, fisher_diagonal, residual_noise_std
 
 __all__ = ["FISHER_FILE", "FisherRun", "compute_fisher", "fisher_diagonal", "load_fisher", "perturbed_sample",
            "posterior_variance", "residual_noise_std", "train_fisher"]
@@ -89,12 +89,18 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
 
     params = {k: v.detach() for k, v in loaded.model.params.items()}
     t0 = time.perf_counter()
-    noise = (residual_noise_std(params, cams, images, render_fn, sh_degree=loaded.sh_degree)
-             if fcfg.noise_std == "auto" else float(fcfg.noise_std))
+    given = None if fcfg.noise_std == "auto" else float(fcfg.noise_std)
     gen = torch.Generator(device=device).manual_seed(seed)
     names = tuple(n for n in PARAM_ORDER if n in fcfg.params)
-    fisher = fisher_diagonal(params, cams, images, render_fn, names=names, noise_std=noise, generator=gen,
-                             sh_degree=loaded.sh_degree, estimator=fcfg.estimator, probes=fcfg.probes)
+    if fcfg.estimator == "ggn":  # the noise (when "auto") and the curvature from one render per view
+        curv = curvature(params, cams, images, render_fn, names=names, generator=gen, sh_degree=loaded.sh_degree,
+                         probes=fcfg.probes, noise_std=given)
+        noise, fisher = curv.noise_std, curv.fisher
+    else:  # the empirical Fisher's pass needs the noise first
+        noise = given if given is not None else residual_noise_std(params, cams, images, render_fn,
+                                                                   sh_degree=loaded.sh_degree)
+        fisher = fisher_diagonal(params, cams, images, render_fn, names=names, noise_std=noise, generator=gen,
+                                 sh_degree=loaded.sh_degree, estimator="empirical", probes=fcfg.probes)
     var = posterior_variance(fisher, prior_stds(fcfg, loaded.extent))
     seconds = time.perf_counter() - t0
     state = {

@@ -102,7 +102,7 @@ class LoadedRun:
 
             def sample_fn(g):
                 return variational.sample(model, g, subset_size=subset_size, **kw)
-        return Sampler(sample_fn, render_fn, det_sample, empty_std=self.empty_std(), )
+        return Sampler(sample_fn, render_fn, det_sample, empty_std=self.empty_std())
 
     def eval_notes(self, num_samples: int) -> list[str]:
         """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run."""

@@ -336,6 +336,15 @@ def normal_quantile(p: Tensor) -> Tensor:
     return torch.special.ndtri(p)
 
 
+def _posterior_variance(fisher: Tensor, prior_var: Tensor, disagreement: Tensor | None) -> Tensor:
+    """Laplace variance ``1 / prec`` (prec = F + 1 / prior_var); with the views' disagreement D, the sandwich
+    variance ``1 / prec + (D - F)_+ / prec^2``, at most the prior's (``informed_tables``)."""
+    prec = fisher + 1.0 / prior_var
+    if disagreement is None:
+        return 1.0 / prec
+    return torch.minimum(1.0 / prec + (disagreement - fisher).clamp_min(0.0) / prec.square(), prior_var)
+
+
 @torch.no_grad()
 def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prior, *, extent: float = 1.0,
                     position_prior_scale: float = 1.0, disagreement: dict[str, Tensor] | None = None) -> dict:
@@ -389,11 +398,9 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
     # position
     own = before.scales[idx].log().mean(1).exp()  # [P] geometric-mean size, world units
     prior_std = torch.clamp(position_prior_scale * own, min=prior.position_std * unit)  # [P]
-    prec = fisher["means"][idx] + 1.0 / prior_std[:, None].square()  # [P,3]
-    var = 1.0 / prec
-    if disagreement is not None:
-        var = torch.minimum(var + (disagreement["means"][idx] - fisher["means"][idx]).clamp_min(0.0) / prec.square(),
-                            prior_std[:, None].square())
+    dis = disagreement or {}
+    var = _posterior_variance(fisher["means"][idx], prior_std[:, None].square(),
+                              dis["means"][idx] if "means" in dis else None)  # [P,3]
     p["means"].data.index_add_(0, idx, t["pos_loc"].mean(1) * unit)
     t["pos_loc"].data.zero_()
     sigma = (var.sqrt() / unit).clamp_min(1e-12)
@@ -402,11 +409,8 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
     # scale multiplier
     m = 1.0 - 0.5 * prior.scale_width
     prior_var = (prior.scale_width / m) ** 2 / 12.0
-    prec_s = fisher["scales"][idx] + 1.0 / prior_var  # [P,3]
-    var_s = 1.0 / prec_s
-    if disagreement is not None:
-        var_s = (var_s + (disagreement["scales"][idx] - fisher["scales"][idx]).clamp_min(0.0) / prec_s.square()
-                 ).clamp_max(prior_var)
+    var_s = _posterior_variance(fisher["scales"][idx], torch.tensor(prior_var, device=idx.device),
+                                dis["scales"][idx] if "scales" in dis else None)  # [P,3]
     width = (m * (12.0 * var_s).sqrt()).clamp(MIN_WIDTH, MAX_WIDTH)
     t["scale_width_raw"].data.copy_(inverse_softplus(width)[:, None, :].expand_as(t["scale_width_raw"]))
     t["scale_left"].data.copy_((m - 0.5 * width)[:, None, :].expand_as(t["scale_left"]))

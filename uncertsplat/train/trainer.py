@@ -258,17 +258,16 @@ class Trainer:
             losses = total_loss(out.rgb, gt, kl, ssim_lambda=cfg.ssim_lambda, kl_weight=cfg.variational.kl_weight)
         with timer("backward"):
             losses["loss"].backward()
-        with timer("optimizer"):
             finite = self._all_finite([losses["loss"], *(p.grad for p in self.model.parameters().values())])
+        if finite and out.means2d.grad is not None:
+            with timer("densify"):
+                self.densifier.accumulate(step, out.means2d.grad, out.radii, cams.width, cams.height)
+        with timer("optimizer"):
             if finite:
                 self.bad_steps_in_a_row = 0
                 self.optimizer.step()
             else:
                 self._skip_non_finite(step)
-        if finite and out.means2d.grad is not None:
-            with timer("densify"):
-                self.densifier.accumulate(step, out.means2d.grad, out.radii, cams.width, cams.height)
-        with timer("optimizer"):
             self.optimizer.zero_grad(set_to_none=True)
         with timer("densify"):
             done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise)

@@ -76,28 +76,21 @@ def fisher_diagonal(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
     """
     if estimator not in ("ggn", "empirical"):
         raise ValueError(f"unknown estimator {estimator!r}")
+    if estimator == "ggn":
+        return curvature(params, cameras, images, render_fn, names=names, generator=generator, sh_degree=sh_degree,
+                         probes=probes, noise_std=noise_std).fisher
     leaves = {n: params[n].detach().clone().requires_grad_(True) for n in names}
     fixed = {k: v.detach() for k, v in params.items()}
     acc = {n: torch.zeros_like(v) for n, v in leaves.items()}
     inv_var = 1.0 / noise_std**2
     for i in range(len(cameras)):
         sample = activate({**fixed, **leaves}, sh_degree)
-        out = render_fn(sample, cameras[[i]])
-        rgb = out.rgb[0]  # [H,W,3]
-        if estimator == "ggn":
-            for p in range(probes):
-                z = torch.randint(0, 2, rgb.shape, generator=generator, device=generator.device).to(rgb) * 2 - 1
-                grads = torch.autograd.grad((rgb * z).sum(), list(leaves.values()), retain_graph=p < probes - 1,
-                                            allow_unused=True)
-                for n, gr in zip(leaves, grads, strict=True):
-                    if gr is not None:
-                        acc[n] += gr.square() * (inv_var / probes)
-        else:
-            r = rgb - images[i].to(rgb.device)
-            grads = torch.autograd.grad(r.square().sum() * (0.5 * inv_var), list(leaves.values()), allow_unused=True)
-            for n, gr in zip(leaves, grads, strict=True):
-                if gr is not None:
-                    acc[n] += gr.square()
+        rgb = render_fn(sample, cameras[[i]]).rgb[0]  # [H,W,3]
+        r = rgb - images[i].to(rgb.device)
+        grads = torch.autograd.grad(r.square().sum() * (0.5 * inv_var), list(leaves.values()), allow_unused=True)
+        for n, gr in zip(leaves, grads, strict=True):
+            if gr is not None:
+                acc[n] += gr.square()
     return acc
 
 
