@@ -69,6 +69,42 @@ class RunningMoments:
         return self.var.sqrt()
 
 
+class MonteCarloMoments:
+    """Running moments of the renders of posterior samples: what ``mc_render`` accumulates, exposed so that a
+    caller can add samples a few at a time and read the maps in between (the viewer refines a still frame
+    this way).
+
+    ``update(out)`` folds one ``RenderOutput`` in; ``maps(...)`` reads the mean and std maps with the same
+    empty-ray and extra-variance terms as ``mc_render``.
+    """
+
+    def __init__(self) -> None:
+        self.rgb, self.depth, self.alpha = RunningMoments(), RunningMoments(), RunningMoments()
+
+    @property
+    def count(self) -> int:
+        return self.rgb.count
+
+    def update(self, out: RenderOutput) -> None:
+        self.rgb.update(out.rgb)
+        self.depth.update(out.depth)
+        self.alpha.update(out.alpha)
+
+    def maps(self, image_names: tuple[str, ...] = (), *, empty_std: tuple[float, float] | None = None,
+             extra_var: Tensor | None = None) -> UncertaintyMaps:
+        """The mean and std maps of the samples so far (see ``mc_render`` for ``empty_std`` and ``extra_var``)."""
+        rgb_std, depth_std = self.rgb.std, self.depth.std
+        if empty_std is not None and (empty_std[0] > 0 or empty_std[1] > 0):
+            gap = (1.0 - self.alpha.mean).square() + self.alpha.var  # E[(1 - alpha)^2], [C,H,W,1]
+            rgb_std = (self.rgb.var + gap * empty_std[0] ** 2).sqrt()
+            depth_std = (self.depth.var + gap * empty_std[1] ** 2).sqrt()
+        if extra_var is not None:
+            rgb_std = (rgb_std.square() + extra_var.to(rgb_std)).sqrt()
+        return UncertaintyMaps(rgb_mean=self.rgb.mean, rgb_std=rgb_std, depth_mean=self.depth.mean,
+                               depth_std=depth_std, alpha_mean=self.alpha.mean, n_samples=self.count,
+                               image_names=image_names)
+
+
 @dataclass(frozen=True)
 class MCSamples:
     """The individual renders, kept only on request (memory grows with K).
@@ -121,37 +157,20 @@ def mc_render(
     """
     if num_samples < 1:
         raise ValueError(f"num_samples must be >= 1, got {num_samples}")
-    rgb_m, depth_m, alpha_m = RunningMoments(), RunningMoments(), RunningMoments()
+    moments = MonteCarloMoments()
     kept_rgb: list[Tensor] = []
     kept_depth: list[Tensor] = []
     with torch.no_grad():
         for _ in range(num_samples):
             sample = sample_fn(generator)
             out = render_fn(sample, cameras)
-            rgb_m.update(out.rgb)
-            depth_m.update(out.depth)
-            alpha_m.update(out.alpha)
+            moments.update(out)
             if keep_samples:
                 kept_rgb.append(out.rgb.detach())
                 kept_depth.append(out.depth.detach())
             # Drop the references now so the sample's and the render's memory can be reused by
             # the next iteration (otherwise two renders are alive at the peak).
             del sample, out
-    rgb_std, depth_std = rgb_m.std, depth_m.std
-    if empty_std is not None and (empty_std[0] > 0 or empty_std[1] > 0):
-        gap = (1.0 - alpha_m.mean).square() + alpha_m.var  # E[(1 - alpha)^2], [C,H,W,1]
-        rgb_std = (rgb_m.var + gap * empty_std[0] ** 2).sqrt()
-        depth_std = (depth_m.var + gap * empty_std[1] ** 2).sqrt()
-    if extra_var is not None:
-        rgb_std = (rgb_std.square() + extra_var.to(rgb_std)).sqrt()
-    maps = UncertaintyMaps(
-        rgb_mean=rgb_m.mean,
-        rgb_std=rgb_std,
-        depth_mean=depth_m.mean,
-        depth_std=depth_std,
-        alpha_mean=alpha_m.mean,
-        n_samples=num_samples,
-        image_names=tuple(cameras.image_names),
-    )
+    maps = moments.maps(tuple(cameras.image_names), empty_std=empty_std, extra_var=extra_var)
     samples = MCSamples(torch.stack(kept_rgb), torch.stack(kept_depth)) if keep_samples else None
     return maps, samples
