@@ -167,6 +167,8 @@ def train(
     method: Annotated[str | None, typer.Option(
         help="variational (default), paper, vi-single, deterministic, ensemble or fisher (baselines).")] = None,
     resume: Annotated[bool, typer.Option(help="Continue from the last good checkpoint in OUTPUT.")] = False,
+    view: Annotated[bool, typer.Option("--view", help="Watch the model train in the browser (needs viser).")] = False,
+    view_port: Annotated[int, typer.Option(help="Port of the --view viewer (0 picks a free one).")] = 8080,
     device: DeviceOpt = "auto",
     config: ConfigOpt = None,
     set_: SetOpt = None,
@@ -178,8 +180,13 @@ def train(
     cfg = stage.resolve_config(preset, load_toml(config) if config else {}, method,
                                dict(iterations=iterations, variant=variant, seed=seed), set_)
     # with --resume, --iterations means "train on to this many steps" (the stored config wins otherwise)
+    view_cfg = None
+    if view:
+        from uncertsplat.config import ViewConfig, build_config
+
+        view_cfg = build_config(ViewConfig, {"port": view_port}, source="command line")
     stage.run(scene, output, cfg, device=resolve_device(device), resume=resume,
-              extend_to=iterations if resume else None)
+              extend_to=iterations if resume else None, view=view_cfg)
 
 
 @app.command()
@@ -252,6 +259,24 @@ def report(
 
     cfg = _stage_config(ReportConfig, config, set_, {})
     stage.run(runs, output, cfg)
+
+
+@app.command()
+@_handle_errors
+def view(
+    run: Annotated[Path, typer.Argument(help="Run folder written by `train` (any method) or `prune`.")],
+    host: Annotated[str | None, typer.Option(help="Address to listen on (127.0.0.1: this machine only).")] = None,
+    port: Annotated[int | None, typer.Option(help="Port to listen on (default 8080; 0 picks a free one).")] = None,
+    device: DeviceOpt = "auto",
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+):
+    """Look at the model and its uncertainty in the browser (RGB, depth, std maps, prune preview, cameras)."""
+    from uncertsplat.config import ViewConfig
+    from uncertsplat.stages import view as stage
+
+    cfg = _stage_config(ViewConfig, config, set_, dict(host=host, port=port))
+    stage.run(run, cfg, device=resolve_device(device))
 
 
 @app.command()

@@ -393,6 +393,30 @@ class ReportConfig(_Base):
     """Per-view figures for at most this many test views."""
 
 
+class ViewConfig(_Base):
+    """The browser viewer (``uncertsplat view``); nothing here changes a result, only how it is shown."""
+
+    host: str = "127.0.0.1"
+    """Address to listen on: 127.0.0.1 (this machine only; use SSH port forwarding from elsewhere) or 0.0.0.0
+    (every network interface: anyone who can reach the port sees the model)."""
+    port: int = Field(8080, ge=0, le=65535)
+    """Port to listen on; 0 picks a free one."""
+    max_side: int = Field(800, ge=64, le=4096)
+    """Long side in pixels of a frame when the camera stands still (at most the browser's canvas)."""
+    still_samples: int = Field(16, ge=2, le=1024)
+    """Posterior samples (K) of a still std frame, added ``moving_samples`` at a time."""
+    moving_samples: int = Field(4, ge=1, le=64)
+    """Posterior samples of a std frame while the camera moves."""
+    moving_fps: float = Field(8.0, gt=0, le=120)
+    """Target frame rate while moving: the preview's resolution is chosen from the measured cost per pixel."""
+    jpeg_quality: int = Field(90, ge=10, le=100)
+    """JPEG quality of the frames sent to the browser."""
+    thumbnails: bool = True
+    """Show each camera's photo on its frustum (read in the background after start)."""
+    seed: int = 0
+    """Seed of the std modes' posterior samples (the same camera gives the same frame)."""
+
+
 # --------------------------------------------------------------------------------------------- pipeline
 class PipelineStage(_Base):
     """One stage of a pipeline file: its kind and its config (as in the stage's own schema)."""

@@ -159,3 +159,20 @@ def test_vi_single_through_the_cli(scene_path, tmp_path):
 def test_unknown_method_is_a_user_error(scene_path, tmp_path):
     res = CliRunner().invoke(app, ["train", str(scene_path), "-o", str(tmp_path / "x"), "--method", "mc-dropout"])
     assert res.exit_code == 2 and "unknown method" in res.output and "ensemble" in res.output
+
+
+@pytest.mark.parametrize("which", ["ensemble", "fisher"])
+def test_viewer_renders_baseline_runs(which, ensemble_run, fisher_run):
+    # `uncertsplat view` opens every method: the render modes and a posterior spread, no prune preview
+    from uncertsplat.baselines import load_run
+    from uncertsplat.view.frames import FrameRenderer
+
+    run = ensemble_run if which == "ensemble" else fisher_run
+    loaded = load_run(run, CPU)
+    scene = loaded.load_scene()
+    r = FrameRenderer(loaded, scene.scene_scale, CPU)
+    assert r.modes() == ["rgb", "depth", "rgb_std", "depth_std"] and r.has_posterior
+    cam = scene.cameras[[0]]
+    assert r.frame(cam, "rgb").image.std() > 5
+    std = r.frame(cam, "rgb_std", num_samples=4)
+    assert std.samples == 4 and np.nanmax(std.values) > 0

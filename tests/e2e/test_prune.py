@@ -170,3 +170,16 @@ class TestAuto:
                                   "--set", "score_views=2", "--set", "render_views=0", "--device", "cpu"])
         assert res.exit_code == 0, res.output
         assert "nothing was removed" in " ".join(res.output.split())  # rich may wrap the line anywhere
+
+
+def test_viewer_opens_the_pruned_run(pruned):  # noqa: F811
+    from uncertsplat.baselines import load_run
+    from uncertsplat.view.frames import FrameRenderer
+
+    out, result, _ = pruned
+    loaded = load_run(out, CPU)
+    scene = loaded.load_scene()
+    r = FrameRenderer(loaded, scene.scene_scale, CPU)
+    assert "prune" in r.modes()  # a pruned run keeps its carriers: it can be pruned (and previewed) again
+    frame = r.frame(scene.cameras[[0]], "rgb")
+    assert frame.image.shape == (scene.cameras.height, scene.cameras.width, 3) and frame.image.std() > 5

@@ -19,6 +19,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("cli", ("cli",)),
     # one module per command: config in, files out (and the pipeline that chains them)
     ("stages", ("stages",)),
+    # the browser viewer: renders any loaded run (through baselines) and colours it like the report
+    ("view", ("view",)),
     # the speed-accuracy sweep trains and evaluates methods (through baselines)
     ("sweep", ("sweep",)),
     # every training method and the one run loader (baselines: they dispatch on the method, so they sit

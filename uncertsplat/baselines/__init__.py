@@ -58,11 +58,12 @@ def method_label(cfg) -> str:
 
 
 def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False,
-              extend_to: int | None = None) -> Path:
+              extend_to: int | None = None, on_trainer=None) -> Path:
     """Train ``cfg.method`` on ``scene`` into ``run_dir``: the dispatch on the method, for the ``train`` stage
     and the sweep.
 
-    ``extend_to`` (with ``resume``): continue a single-model run to that many steps.
+    ``extend_to`` (with ``resume``): continue a single-model run to that many steps. ``on_trainer(trainer)``:
+    called with each ``Trainer`` before it trains (an ensemble has one per member), e.g. to watch it.
     """
     from uncertsplat.errors import UserError
 
@@ -72,14 +73,14 @@ def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: boo
     if cfg.method == "ensemble":
         from uncertsplat.baselines.ensemble import train_ensemble
 
-        return train_ensemble(scene, run_dir, cfg, device, resume=resume)
+        return train_ensemble(scene, run_dir, cfg, device, resume=resume, on_trainer=on_trainer)
     if cfg.method == "fisher":
         from uncertsplat.baselines.fisher import train_fisher
 
-        return train_fisher(scene, run_dir, cfg, device, resume=resume)
+        return train_fisher(scene, run_dir, cfg, device, resume=resume, on_trainer=on_trainer)
     from uncertsplat.train.session import train_model
 
-    return train_model(scene, run_dir, cfg, device=device, resume=resume, extend_to=extend_to)
+    return train_model(scene, run_dir, cfg, device=device, resume=resume, extend_to=extend_to, on_trainer=on_trainer)
 
 
 __all__ = ["METHODS", "LoadedRun", "load_run", "load_single_model", "method_label", "method_overrides", "train_run"]

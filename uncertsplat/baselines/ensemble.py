@@ -45,7 +45,8 @@ def member_config(cfg, i: int):
     return build_config(TrainConfig, data, source=f"ensemble member {i}")
 
 
-def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False) -> Path:
+def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False,
+                   on_trainer=None) -> Path:
     """Train ``cfg.ensemble_size`` deterministic members into ``run_dir/members`` one after the other.
 
     A finished member (``train_summary.json`` present) is kept on ``resume``; an unfinished one resumes
@@ -80,7 +81,7 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
             if not done.is_file():
                 console.print(f"[bold]ensemble[/] member {i + 1}/{n} (seed {cfg.seed + i})")
                 started = mdir.exists() and (mdir / "config.json").is_file()
-                train_model(scene, mdir, member_config(cfg, i), device=device, resume=started)
+                train_model(scene, mdir, member_config(cfg, i), device=device, resume=started, on_trainer=on_trainer)
             summaries.append(TrainSummary.read(done))
         atomic_write_text(run_dir / "scene.json", (member_dir(run_dir, 0) / "scene.json").read_text(encoding="utf-8"))
         psnrs = [s.test_psnr for s in summaries if s.test_psnr is not None]

@@ -116,7 +116,8 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
     return state
 
 
-def train_fisher(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False) -> Path:
+def train_fisher(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False,
+                 on_trainer=None) -> Path:
     """Train a deterministic model (``method = "fisher"`` trains like ``deterministic``), then ``compute_fisher``.
 
     ``train_summary.json`` gets ``train_seconds`` (the training loop), ``fisher_seconds`` and ``seconds``
@@ -127,7 +128,7 @@ def train_fisher(scene: Path, run_dir: Path, cfg, device: torch.device, resume: 
     run_dir = Path(run_dir)
     summary_path = run_dir / "train_summary.json"
     if not (resume and summary_path.is_file()):
-        train_model(scene, run_dir, cfg, device=device, resume=resume)
+        train_model(scene, run_dir, cfg, device=device, resume=resume, on_trainer=on_trainer)
     summary = TrainSummary.read(summary_path)
     if resume and (run_dir / FISHER_FILE).is_file() and summary.fisher_seconds is not None:
         return run_dir

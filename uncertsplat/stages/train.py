@@ -33,11 +33,12 @@ def resolve_config(preset: str | None, data: dict[str, Any], method: str | None,
 
 
 def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False,
-        extend_to: int | None = None) -> Path:
+        extend_to: int | None = None, view=None) -> Path:
     """Train ``cfg.method`` on ``scene`` into ``run_dir``; returns ``run_dir``.
 
     ``extend_to`` (with ``resume``): train a single-model run on to this many steps instead of the stored
-    ``iterations``.
+    ``iterations``. ``view``: a ``ViewConfig`` to watch the training in the browser (``view.live``; the
+    viewer closes when training ends).
 
     Raises:
         UserError: unreadable scene, an existing run folder without ``resume``, nothing to resume, an
@@ -46,5 +47,21 @@ def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resu
     """
     from uncertsplat.baselines import train_run
 
-    return train_run(Path(scene), Path(run_dir), cfg, device=torch.device(device), resume=resume,
-                     extend_to=extend_to)
+    if view is None:
+        return train_run(Path(scene), Path(run_dir), cfg, device=torch.device(device), resume=resume,
+                         extend_to=extend_to)
+    from uncertsplat.view.live import LiveView
+    from uncertsplat.view.server import require_viser
+
+    require_viser()  # before training starts, not after the scene is loaded
+    live = LiveView(view)
+    try:
+        return train_run(Path(scene), Path(run_dir), cfg, device=torch.device(device), resume=resume,
+                         extend_to=extend_to, on_trainer=live.attach)
+    finally:
+        if live.viewer is not None:
+            from uncertsplat.console import console
+
+            console.print(f"the viewer drew {live.frames} frames ({live.share:.1%} of the training time); it closes "
+                          f"now: `uncertsplat view {run_dir}` shows the trained model")
+        live.close()

@@ -70,10 +70,11 @@ def _truncate_stats(path: Path, step: int) -> None:
 
 
 def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False,
-                extend_to: int | None = None) -> Path:
+                extend_to: int | None = None, on_trainer=None) -> Path:
     """Train one model on ``scene`` into ``run_dir``; returns ``run_dir``.
 
     ``extend_to`` (with ``resume``): train on to this many steps instead of the stored ``iterations``.
+    ``on_trainer(trainer)``: called with the ``Trainer`` before it trains (``train --view`` attaches here).
 
     Raises:
         UserError: unreadable scene, an existing run folder without ``resume``, nothing to resume, or an
@@ -150,6 +151,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                       f"device {device} ({kernels}), {cfg.iterations} steps, at most "
                       f"{trainer.budget.max_gaussians:,} Gaussians ({trainer.budget.reason})")
         trainer.on_log = lambda rec: console.log(log_line(rec)) if "eval_psnr" in rec else None
+        if on_trainer is not None:
+            on_trainer(trainer)
         try:
             trainer.fit()
         except TrainingInterrupted as err:

@@ -111,6 +111,9 @@ class Trainer:
         else:
             self._load_state(state)
         self.on_log: Callable[[dict], None] | None = None
+        # called after every step with the trainer (``train --view`` draws the model here, between steps, so it
+        # never sees a half-updated model); its time is not in ``elapsed``
+        self.on_step: Callable[[Trainer], None] | None = None
         self._stop = False
         self.skipped_steps = 0  # steps whose update was skipped because of a NaN/Inf loss or gradient
         self.bad_steps_in_a_row = 0
@@ -432,6 +435,8 @@ class Trainer:
                         info += f"  test PSNR {last_eval['psnr']:.2f}"
                     info += f"  {dt:.3f} s/step"
                     bar.update(task, completed=step, info=info)
+                    if self.on_step is not None:
+                        self.on_step(self)
                     if step % cfg.checkpoint_every == 0 and step != until:
                         with self.timer("checkpoint"):
                             self.save_checkpoint()

@@ -1,0 +1,167 @@
+"""The viewer's frames (``view.frames``): the same pixels as ``render()``, std modes that refine, the prune
+preview that matches ``prune``'s mask, and camera conversions that round-trip."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tests.fixtures import tiny_scene_path  # noqa: F401
+from tests.run_fixtures import tiny_run_path  # noqa: F401
+from uncertsplat.baselines import load_run
+from uncertsplat.view.frames import (
+    FrameRenderer,
+    camera_pose,
+    rotmat_to_wxyz,
+    viewer_camera,
+)
+
+
+@pytest.fixture(scope="module")
+def renderer(tiny_run_path, device):
+    loaded = load_run(tiny_run_path, device)
+    scene = loaded.load_scene()
+    return FrameRenderer(loaded, scene.scene_scale, device, score_cameras=scene.cameras[scene.split["train"][:3]])
+
+
+@pytest.fixture(scope="module")
+def scene(renderer):
+    return renderer.loaded.load_scene()
+
+
+def _train_camera(scene, i=0, width=None, height=None, device="cpu"):
+    c = scene.cameras[[i]]
+    wxyz, pos, fov = camera_pose(c.cam_from_world[0], c.K[0], c.height)
+    return viewer_camera(wxyz, pos, fov, width or c.width, height or c.height, device)
+
+
+class TestCameras:
+    def test_pose_round_trip(self, scene):
+        c = scene.cameras[[3]]
+        cam = _train_camera(scene, 3)
+        torch.testing.assert_close(cam.cam_from_world, c.cam_from_world, atol=1e-5, rtol=0)
+        torch.testing.assert_close(cam.K[0, 0, 0], c.K[0, 1, 1], atol=1e-3, rtol=1e-5)
+
+    @pytest.mark.parametrize("angle", [0.0, 1e-7, math.pi / 2, math.pi - 1e-7, math.pi])
+    @pytest.mark.parametrize("axis", [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 1)])
+    def test_quaternion_of_every_rotation(self, angle, axis):
+        # Shepperd's branches, including the 180-degree rotations where the trace is -1
+        from uncertsplat.gaussians.ops import quat_to_rotmat
+
+        a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+        q = np.concatenate([[math.cos(angle / 2)], math.sin(angle / 2) * a])
+        R = quat_to_rotmat(torch.tensor(q)[None])[0].numpy()
+        back = quat_to_rotmat(torch.tensor(rotmat_to_wxyz(R))[None])[0].numpy()
+        np.testing.assert_allclose(back, R, atol=1e-9)
+        assert rotmat_to_wxyz(R)[0] >= 0
+
+
+class TestFrames:
+    def test_rgb_is_the_render_of_the_expected_sample(self, renderer, scene, device):
+        from uncertsplat.render import near_plane, render
+
+        cam = _train_camera(scene, 2, device=device)
+        frame = renderer.frame(cam, "rgb")
+        cfg = renderer.loaded.config
+        ref = render(renderer.sampler.det_sample, cam, background=torch.tensor(cfg.scene.background, device=device),
+                     tile_size=cfg.tile_size, near=near_plane(scene.scene_scale)).rgb[0]
+        expected = (ref.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
+        assert frame.image.shape == (cam.height, cam.width, 3) and frame.image.dtype == np.uint8
+        np.testing.assert_array_equal(frame.image, expected)
+
+    def test_rgb_at_a_viewer_size(self, renderer, scene, device):
+        # the browser's aspect is not the photo's: any size renders, with the same focal length per height
+        cam = _train_camera(scene, 0, 200, 50, device)
+        assert renderer.frame(cam, "rgb").image.shape == (50, 200, 3)
+
+    def test_depth_is_black_where_there_is_no_surface(self, renderer, scene, device):
+        cam = _train_camera(scene, 1, device=device)
+        frame = renderer.frame(cam, "depth")
+        lo, hi = frame.value_range
+        assert 0 < lo < hi
+        alpha = renderer.render_mean(cam).alpha[0, ..., 0].cpu().numpy()
+        empty = alpha < 0.05
+        assert np.isnan(frame.values[empty]).all() and np.isfinite(frame.values[~empty]).all()
+        assert (frame.image[empty] == 0).all()
+
+    @pytest.mark.parametrize("mode", ["rgb_std", "depth_std"])
+    def test_std_refined_in_steps_equals_drawn_at_once(self, renderer, scene, mode, device):
+        cam = _train_camera(scene, 4, device=device)
+        once = renderer.frame(cam, mode, num_samples=8)
+        acc = renderer.std_accumulator(cam)
+        acc.add(4)
+        first = acc.frame(mode)
+        acc.add(4)
+        steps = acc.frame(mode)
+        assert once.samples == steps.samples == 8 and first.samples == 4
+        np.testing.assert_allclose(steps.values, once.values, rtol=1e-5, atol=1e-7)
+        assert not np.allclose(first.values, steps.values)  # more samples: a different estimate
+        assert np.nanmax(steps.values) > 0
+
+    def test_std_mode_differs_from_rgb(self, renderer, scene, device):
+        cam = _train_camera(scene, 0, device=device)
+        assert np.abs(renderer.frame(cam, "rgb_std").image.astype(int) -
+                      renderer.frame(cam, "rgb").image.astype(int)).mean() > 5
+
+    def test_fixed_colour_range(self, renderer, scene, device):
+        cam = _train_camera(scene, 0, device=device)
+        f = renderer.frame(cam, "rgb_std", value_range=(0.0, 1e-9))
+        assert f.value_range == (0.0, 1e-9)
+
+    def test_unknown_mode(self, renderer, scene):
+        with pytest.raises(ValueError, match="unknown view mode"):
+            renderer.frame(_train_camera(scene), "normals")
+
+
+class TestPrunePreview:
+    def test_mask_is_prunes_mask(self, renderer):
+        from uncertsplat.prune.policy import choose_mask
+        from uncertsplat.uncertainty.scores import carrier_mask
+
+        keep = renderer.keep_mask("gate", 0.8)
+        ref, _ = choose_mask(renderer.scores("gate"), carrier_mask(renderer.loaded.model), threshold=None,
+                             keep_ratio=0.8)
+        assert torch.equal(keep, ref)
+        assert int((~keep).sum()) > 0
+
+    def test_removed_gaussians_are_coloured_and_hidden(self, renderer, scene, device):
+        cam = _train_camera(scene, 0, device=device)
+        keep_all = renderer.frame(cam, "prune", keep_ratio=1.0)
+        painted = renderer.frame(cam, "prune", keep_ratio=0.5)
+        assert "removes 0 of" in keep_all.note
+        # kept Gaussians are grey: with nothing removed every pixel is (nearly) grey; removals add colour
+        def saturation(img):
+            return (img.max(-1).astype(int) - img.min(-1).astype(int)).mean()
+        assert saturation(keep_all.image) < 3 < saturation(painted.image)
+        lo, hi = painted.value_range
+        assert lo <= hi
+        hidden = renderer.frame(cam, "prune", keep_ratio=0.5, hide_removed=True)
+        assert np.abs(hidden.image.astype(int) - renderer.frame(cam, "rgb").image.astype(int)).mean() > 0.1
+
+    def test_predictive_score_preview(self, renderer, scene, device):
+        # the predictive score renders the training cameras (with a backward pass) even from a no-grad frame
+        f = renderer.frame(_train_camera(scene, 0, device=device), "prune", score="predictive", keep_ratio=0.9)
+        assert "--score predictive" in f.note and renderer.scores("predictive").shape == (len(renderer.loaded.model),)
+
+    def test_predictive_score_needs_cameras(self, tiny_run_path, device):
+        loaded = load_run(tiny_run_path, device)
+        r = FrameRenderer(loaded, loaded.load_scene().scene_scale, device)
+        assert "predictive" not in r.score_names()
+        with pytest.raises(ValueError, match="unavailable"):
+            r.scores("predictive")
+
+    def test_deterministic_run_has_no_prune_mode(self, tiny_run_path, device):
+        # a deterministic run offers the render and std modes only; its std is the empty-ray term alone
+        loaded = load_run(tiny_run_path, device)
+        loaded.config = loaded.config.model_copy(update={"method": "deterministic"})
+        r = FrameRenderer(loaded, loaded.load_scene().scene_scale, device)
+        assert "prune" not in r.modes() and not r.prune_available and not r.has_posterior
+        scene = loaded.load_scene()
+        cam = _train_camera(scene, 0, device=device)
+        f = r.frame(cam, "rgb_std", num_samples=2)
+        every_sample = r.sampler.sample_fn(torch.Generator(device=device))  # the model's mean, whatever the seed
+        alpha = r.sampler.render_fn(every_sample, cam).alpha[0, ..., 0].detach().cpu().numpy()
+        np.testing.assert_allclose(f.values, (1 - alpha) / math.sqrt(12.0), atol=1e-6)

@@ -1,0 +1,86 @@
+"""Stage ``view``: a run folder -> a local web viewer of the model and its uncertainty (``uncertsplat view``).
+
+``run`` loads any run the other commands read (``baselines.load_run``), checks that the port is free, starts
+the viser server (``view.server.Viewer``) and, with ``block``, serves until Ctrl-C. viser is an optional
+dependency (``pip install 'uncertsplat[view]'``); without it the command says so and how to install it.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import torch
+
+from uncertsplat.config import ViewConfig
+from uncertsplat.console import console
+from uncertsplat.errors import UserError
+from uncertsplat.view.server import check_port, require_viser, viewer_url
+
+
+def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
+    """The ``Viewer`` of ``run_dir`` (not started).
+
+    Raises:
+        UserError: viser missing, a missing or unfinished run folder (the message names the file and the fix).
+    """
+    from uncertsplat.baselines import load_run
+    from uncertsplat.schemas import RunScene
+    from uncertsplat.uncertainty.scores import spread_views
+    from uncertsplat.view.frames import FrameRenderer
+    from uncertsplat.view.server import Viewer
+
+    require_viser()
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise UserError("run folder not found", path=run_dir, hint="Give a folder written by `uncertsplat train`.")
+    loaded = load_run(run_dir, device)
+    scene = None
+    try:
+        scene = loaded.load_scene()
+    except UserError as err:  # the model is still worth looking at without its photos
+        console.print(f"[yellow]note:[/] no cameras or photos in the viewer: {err.render()}", soft_wrap=True)
+    info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
+    scene_scale = scene.scene_scale if scene is not None else (info.scene_scale if info is not None else 1.0)
+    score_cams = None
+    if scene is not None and scene.split.get("train"):
+        score_cams = scene.cameras[spread_views(scene.split["train"], 8)]
+    renderer = FrameRenderer(loaded, scene_scale, device, score_cameras=score_cams, seed=cfg.seed)
+    return Viewer(renderer, scene, cfg)
+
+
+def run(run_dir: Path, cfg: ViewConfig, device: torch.device, *, block: bool = True):
+    """Serve ``run_dir`` in the browser; returns the started ``Viewer`` when ``block`` is False (the caller
+    stops it), else serves until Ctrl-C and returns None.
+
+    Raises:
+        UserError: see ``build``; the port in use or not allowed.
+    """
+    viewer = build(run_dir, cfg, device)
+    check_port(cfg.host, cfg.port)
+    try:
+        viewer.start()
+        if cfg.port and viewer.port != cfg.port:  # taken between our check and viser's bind
+            raise UserError(f"port {cfg.port} was taken while the viewer started", hint="Run the command again.")
+        r = viewer.renderer
+        console.print(f"[bold]view[/] {run_dir}: {len(r.loaded.model):,} Gaussians "
+                      f"({r.loaded.model.num_carriers:,} with a posterior), modes: {', '.join(r.modes())}, {device}")
+        console.print(f"open [bold]{viewer_url(cfg.host, viewer.port)}[/] in a browser (from another machine: "
+                      f"ssh -L {viewer.port}:localhost:{viewer.port} THIS_HOST); Ctrl-C stops")
+        if not block:
+            return viewer
+        while True:
+            time.sleep(0.5)
+    except KeyboardInterrupt:  # Ctrl-C, whenever it comes: stop cleanly
+        block = True
+    except BaseException:
+        block = True
+        raise
+    finally:
+        if block:
+            viewer.stop()
+    console.print("viewer stopped")
+    return None
+
+
+__all__ = ["build", "run"]
