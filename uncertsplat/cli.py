@@ -167,6 +167,8 @@ def train(
     method: Annotated[str | None, typer.Option(
         help="variational (default), paper, vi-single, deterministic, ensemble or fisher (baselines).")] = None,
     resume: Annotated[bool, typer.Option(help="Continue from the last good checkpoint in OUTPUT.")] = False,
+    add_views: Annotated[list[str] | None, typer.Option(
+        "--add-views", help="With --resume: image names to add to the training views (repeatable).")] = None,
     view: Annotated[bool, typer.Option("--view", help="Watch the model train in the browser (needs viser).")] = False,
     view_port: Annotated[int, typer.Option(help="Port of the --view viewer (0 picks a free one).")] = 8080,
     device: DeviceOpt = "auto",
@@ -186,7 +188,7 @@ def train(
 
         view_cfg = build_config(ViewConfig, {"port": view_port}, source="command line")
     stage.run(scene, output, cfg, device=resolve_device(device), resume=resume,
-              extend_to=iterations if resume else None, view=view_cfg)
+              extend_to=iterations if resume else None, view=view_cfg, add_views=add_views)
 
 
 @app.command()
@@ -259,6 +261,28 @@ def report(
 
     cfg = _stage_config(ReportConfig, config, set_, {})
     stage.run(runs, output, cfg)
+
+
+@app.command("select-views")
+@_handle_errors
+def select_views(
+    run: Annotated[Path, typer.Argument(help="Run folder written by `train`.")],
+    candidates: Annotated[str | None, typer.Option(
+        help="unused (the scene's images not used yet), around[:N] (viewpoints near the training cameras) or a "
+             "file of lines 'NAME QW QX QY QZ TX TY TZ'.")] = None,
+    num_views: Annotated[int | None, typer.Option("-n", "--num-views", help="How many views to choose.")] = None,
+    score: Annotated[str | None, typer.Option(help="variance, fisher, coverage or random.")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default RUN/select).")] = None,
+    device: DeviceOpt = "auto",
+    config: ConfigOpt = None,
+    set_: SetOpt = None,
+):
+    """Rank candidate cameras by how much the model would learn from them: which photo to take next."""
+    from uncertsplat.config import SelectConfig
+    from uncertsplat.stages import select as stage
+
+    cfg = _stage_config(SelectConfig, config, set_, dict(candidates=candidates, num_views=num_views, score=score))
+    stage.run(run, cfg, device=resolve_device(device), output=output)
 
 
 @app.command()

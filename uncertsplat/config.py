@@ -393,6 +393,27 @@ class ReportConfig(_Base):
     """Per-view figures for at most this many test views."""
 
 
+class SelectConfig(_Base):
+    """Choosing the next photos by the model's uncertainty (``uncertsplat select-views``)."""
+
+    candidates: str = "unused"
+    """unused (the scene's images not trained on or held out), around[:N] (viewpoints near the training cameras)
+    or a file of poses 'NAME QW QX QY QZ TX TY TZ' (``uncertsplat.select.candidates``)."""
+    num_views: int = Field(1, ge=1)
+    """How many views to choose (greedy for fisher and coverage; the top ones for variance and random)."""
+    score: Literal["variance", "fisher", "coverage", "random"] = "variance"
+    """How candidates are ranked (``uncertsplat.select.scores``)."""
+    num_samples: int = Field(4, ge=2, le=256)
+    """variance: posterior samples (K) per candidate."""
+    max_side: int = Field(96, ge=16, le=4096)
+    """variance and fisher: long side in pixels of the candidate (and training-view) renders."""
+    probes: int = Field(1, ge=1, le=64)
+    """fisher: Rademacher probes per view."""
+    around_radius: float = Field(1.0, gt=0.0)
+    """around: largest move of a candidate from its training camera, in median camera spacings."""
+    seed: int = 0
+
+
 class ViewConfig(_Base):
     """The browser viewer (``uncertsplat view``); nothing here changes a result, only how it is shown."""
 

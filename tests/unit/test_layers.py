@@ -19,8 +19,9 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("cli", ("cli",)),
     # one module per command: config in, files out (and the pipeline that chains them)
     ("stages", ("stages",)),
-    # the browser viewer: renders any loaded run (through baselines) and colours it like the report
-    ("view", ("view",)),
+    # the browser viewer: renders any loaded run (through baselines) and colours it like the report; choosing
+    # the next views scores candidates with a loaded run's posterior or the Fisher baseline's curvature
+    ("view and select", ("view", "select")),
     # the speed-accuracy sweep trains and evaluates methods (through baselines)
     ("sweep", ("sweep",)),
     # every training method and the one run loader (baselines: they dispatch on the method, so they sit

@@ -58,15 +58,19 @@ def method_label(cfg) -> str:
 
 
 def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False,
-              extend_to: int | None = None, on_trainer=None) -> Path:
+              extend_to: int | None = None, on_trainer=None, add_views: list[str] | None = None) -> Path:
     """Train ``cfg.method`` on ``scene`` into ``run_dir``: the dispatch on the method, for the ``train`` stage
     and the sweep.
 
     ``extend_to`` (with ``resume``): continue a single-model run to that many steps. ``on_trainer(trainer)``:
     called with each ``Trainer`` before it trains (an ensemble has one per member), e.g. to watch it.
+    ``add_views`` (with ``resume``): training views to add to a single-model run (``train --add-views``).
     """
     from uncertsplat.errors import UserError
 
+    if add_views and cfg.method in ("ensemble", "fisher"):
+        raise UserError(f"--add-views is not supported for the {cfg.method} baseline",
+                        hint="Grow a variational or deterministic run, or start a new run with the views you want.")
     if extend_to is not None and cfg.method in ("ensemble", "fisher"):
         raise UserError(f"--iterations with --resume is not supported for the {cfg.method} baseline",
                         hint="Start a new run with the number of iterations you want.")
@@ -80,7 +84,8 @@ def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: boo
         return train_fisher(scene, run_dir, cfg, device, resume=resume, on_trainer=on_trainer)
     from uncertsplat.train.session import train_model
 
-    return train_model(scene, run_dir, cfg, device=device, resume=resume, extend_to=extend_to, on_trainer=on_trainer)
+    return train_model(scene, run_dir, cfg, device=device, resume=resume, extend_to=extend_to, on_trainer=on_trainer,
+                       add_views=add_views)
 
 
 __all__ = ["METHODS", "LoadedRun", "load_run", "load_single_model", "method_label", "method_overrides", "train_run"]

@@ -423,11 +423,11 @@ def orbit_cameras(num_views: int, width: int, height: int, seed: int) -> tuple[T
         center = torch.tensor([radius * math.cos(el) * math.cos(az), radius * math.cos(el) * math.sin(az),
                                FLOOR + 0.7 + radius * math.sin(el)], dtype=torch.float64)
         target = torch.tensor([_rand(g, -0.15, 0.15), _rand(g, -0.15, 0.15), FLOOR + 0.6], dtype=torch.float64)
-        mats.append(_look_at(center, target, up))
+        mats.append(look_at(center, target, up))
     return torch.stack(mats), K
 
 
-def _look_at(center: Tensor, target: Tensor, up: Tensor) -> Tensor:
+def look_at(center: Tensor, target: Tensor, up: Tensor) -> Tensor:
     """cam_from_world [4,4] (OpenCV axes: z towards ``target``, y down) of a camera at ``center``."""
     z = target - center
     z = z / z.norm()
@@ -467,7 +467,7 @@ def hemisphere_cameras(num_views: int, width: int, height: int, seed: int) -> tu
         az = az0 + i * golden
         center = target + HEMI_RADIUS * torch.tensor(
             [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)], dtype=torch.float64)
-        mats.append(_look_at(center, target, up))
+        mats.append(look_at(center, target, up))
     return torch.stack(mats), K
 
 

@@ -16,6 +16,7 @@ OUT/prune.json                 ``prune``              :class:`PruneReport`
 OUT/sweep.json (prune)         ``prune --sweep``      :class:`PruneSweep`
 STAGE/manifest.json            ``run`` (pipelines)    :class:`Manifest`
 OUT/sweep.jsonl, sweep.json    ``sweep``              :class:`SweepRecord`, :class:`SweepSummary`
+OUT/selection.json             ``select-views``       :class:`Selection`
 =============================  =====================  ==========================
 """
 
@@ -24,8 +25,9 @@ from uncertsplat.schemas.metrics import EvalReport, ViewMetrics
 from uncertsplat.schemas.prune import PruneMetrics, PruneReport, PruneSweep, SweepPoint
 from uncertsplat.schemas.reconstruct import ReconstructReport
 from uncertsplat.schemas.runs import Manifest, PosteriorSummary, SweepRecord, SweepSummary, TrainSummary
-from uncertsplat.schemas.scene import RunScene, SynthScene
+from uncertsplat.schemas.scene import RunScene, SynthScene, ViewsAdded
+from uncertsplat.schemas.select import Selection
 
 __all__ = ["EvalReport", "Manifest", "PosteriorSummary", "PruneMetrics", "PruneReport", "PruneSweep",
-           "ReconstructReport", "RunScene", "SchemaFile", "Strict", "SweepPoint", "SweepRecord", "SweepSummary",
-           "SynthScene", "TrainSummary", "ViewMetrics"]
+           "ReconstructReport", "RunScene", "SchemaFile", "Selection", "Strict", "SweepPoint", "SweepRecord", "SweepSummary",
+           "SynthScene", "TrainSummary", "ViewMetrics", "ViewsAdded"]

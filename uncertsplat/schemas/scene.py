@@ -75,6 +75,14 @@ class SynthScene(SchemaFile):
         return {"layout": "colmap", "rig": "ring", "backdrop": "room", "look_at": None, **data}
 
 
+class ViewsAdded(Strict):
+    """Training views added to a run when it was resumed (``train --resume --add-views``)."""
+
+    step: int
+    """The training step the views were added at (they are trained on from the next step)."""
+    names: list[str]
+
+
 class RunScene(SchemaFile):
     """``RUN/scene.json`` (written by ``train``): which scene a run was trained on and how it was normalised."""
 
@@ -104,6 +112,8 @@ class RunScene(SchemaFile):
     world_from_source: list[list[float]] = Field(
         default_factory=lambda: [[1.0 if i == j else 0.0 for j in range(4)] for i in range(4)])
     """[4,4] similarity from source to world (normalised) coordinates; the identity without normalisation."""
+    views_added: list[ViewsAdded] = Field(default_factory=list)
+    """Views added to the training set after the run started, in order (``train`` then lists them all)."""
 
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:

@@ -33,12 +33,13 @@ def resolve_config(preset: str | None, data: dict[str, Any], method: str | None,
 
 
 def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False,
-        extend_to: int | None = None, view=None) -> Path:
+        extend_to: int | None = None, view=None, add_views: list[str] | None = None) -> Path:
     """Train ``cfg.method`` on ``scene`` into ``run_dir``; returns ``run_dir``.
 
     ``extend_to`` (with ``resume``): train a single-model run on to this many steps instead of the stored
     ``iterations``. ``view``: a ``ViewConfig`` to watch the training in the browser (``view.live``; the
-    viewer closes when training ends).
+    viewer closes when training ends). ``add_views`` (with ``resume``): image names to add to the training views
+    (``train --add-views``).
 
     Raises:
         UserError: unreadable scene, an existing run folder without ``resume``, nothing to resume, an
@@ -49,7 +50,7 @@ def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resu
 
     if view is None:
         return train_run(Path(scene), Path(run_dir), cfg, device=torch.device(device), resume=resume,
-                         extend_to=extend_to)
+                         extend_to=extend_to, add_views=add_views)
     from uncertsplat.view.live import LiveView
     from uncertsplat.view.server import require_viser
 
@@ -57,7 +58,7 @@ def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resu
     live = LiveView(view)
     try:
         return train_run(Path(scene), Path(run_dir), cfg, device=torch.device(device), resume=resume,
-                         extend_to=extend_to, on_trainer=live.attach)
+                         extend_to=extend_to, on_trainer=live.attach, add_views=add_views)
     finally:
         if live.viewer is not None:
             from uncertsplat.console import console

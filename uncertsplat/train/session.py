@@ -30,6 +30,7 @@ from uncertsplat.io.atomic import (
     run_lock,
 )
 from uncertsplat.schemas import RunScene, TrainSummary
+from uncertsplat.schemas.scene import ViewsAdded
 
 
 def _transparent(data) -> bool:
@@ -69,12 +70,40 @@ def _truncate_stats(path: Path, step: int) -> None:
     atomic_write_text(path, "".join(f"{line}\n" for line in keep))
 
 
+def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tuple[TrainConfig, list[str]]:
+    """``cfg`` with the views ``add`` appended to its explicit training names, and those names.
+
+    Raises:
+        UserError: the run trains on every image that is not held out (nothing can be added), a view is held
+            out or already trained on.
+    """
+    if cfg.scene.train_names is None:
+        raise UserError("this run trains on every image that is not held out, so there is no unused view to add",
+                        path=run_dir, hint="Start the run on a subset of the images (--set scene.train_names=[...]) "
+                                           "to add views later.")
+    info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
+    held = set(info.test) if info is not None else set()
+    current = list(cfg.scene.train_names)
+    added: list[str] = []
+    for name in [n.strip() for item in add for n in item.split(",") if n.strip()]:  # "a.png,b.png" or repeated
+        if name in held:
+            raise UserError(f"'{name}' is a held-out view of this run", path=run_dir,
+                            hint="Add an unused view (held-out views stay held out so the scores stay comparable).")
+        if name in current or name in added:
+            raise UserError(f"'{name}' is already a training view of this run", path=run_dir)
+        added.append(name)
+    scene = cfg.scene.model_copy(update={"train_names": current + added})
+    return cfg.model_copy(update={"scene": scene}), added
+
+
 def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False,
-                extend_to: int | None = None, on_trainer=None) -> Path:
+                extend_to: int | None = None, on_trainer=None, add_views: list[str] | None = None) -> Path:
     """Train one model on ``scene`` into ``run_dir``; returns ``run_dir``.
 
     ``extend_to`` (with ``resume``): train on to this many steps instead of the stored ``iterations``.
     ``on_trainer(trainer)``: called with the ``Trainer`` before it trains (``train --view`` attaches here).
+    ``add_views`` (with ``resume``): image names added to the training set from the checkpoint's step on (the run
+    must have started on explicit ``scene.train_names``); recorded in ``scene.json`` (``views_added``).
 
     Raises:
         UserError: unreadable scene, an existing run folder without ``resume``, nothing to resume, or an
@@ -92,6 +121,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     if exists and not resume:
         raise UserError("the run folder already exists", path=run_dir,
                         hint="Add --resume to continue it, or choose another output folder (-o).")
+    if add_views and not resume:
+        raise UserError("views can only be added to a run that exists (--add-views needs --resume)", path=run_dir,
+                        hint="Train the first views, then resume with --add-views.")
     if resume and not (run_dir / "config.json").is_file():
         raise UserError("nothing to resume: no config.json in the run folder", path=run_dir,
                         hint="Start a new run without --resume.")
@@ -110,6 +142,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 console.print(f"[yellow]note:[/] resuming with the run's stored configuration; ignoring the "
                               f"given values of: {', '.join(diff)}")
             cfg = build_config(TrainConfig, stored, source=str(run_dir / "config.json"))
+            if add_views:
+                cfg, add_views = _add_training_views(cfg, run_dir, list(add_views))
             found = load_latest(run_dir, map_location=device)
             if extend_to is not None and extend_to != cfg.iterations:
                 done = int(found[1]["step"]) if found is not None else 0
@@ -133,6 +167,10 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             raise UserError("the scene has no training views", path=scene, hint="Check test_every / test_names.")
         atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         names = data.cameras.image_names
+        before = RunScene.read_optional(run_dir / RunScene.FILE_NAME) if resume else None
+        views_added = list(before.views_added) if before is not None else []
+        if add_views:
+            views_added.append(ViewsAdded(step=int(state["step"]) if state is not None else 0, names=list(add_views)))
         RunScene(
             scene=str(scene.resolve()), source=dict(data.source, transparent=_transparent(data)), extent=data.extent,
             scene_scale=data.scene_scale,
@@ -141,10 +179,16 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             test=[names[i] for i in data.split.get("test", ())] if names else [],
             center=list(data.center) if data.center is not None else None, center_method=data.center_method,
             center_reason=data.center_reason, world_from_source=data.world_from_source.double().tolist(),
+            views_added=views_added,
         ).write(run_dir / "scene.json")
         train_images = load_images(data, data.split["train"], device)
         test_images = load_images(data, data.split["test"], device) if data.split.get("test") else None
         trainer = Trainer(data, cfg, train_images, test_images, run_dir=run_dir, state=state)
+        if add_views:
+            # the checkpoint's queue holds positions in the old list of training views: start a new pass over all
+            trainer.view_queue = []
+            console.print(f"added {len(add_views)} training view(s) at step {trainer.step}: {', '.join(add_views)} "
+                          f"({len(data.split['train'])} in all)")
         kernels = native.describe(device)
         console.print(f"training {len(trainer.model)} Gaussians on {len(data.split['train'])} views "
                       f"({data.cameras.width}x{data.cameras.height}), {len(data.split.get('test', ()))} held out, "

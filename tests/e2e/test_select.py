@@ -1,0 +1,135 @@
+"""``select-views`` and growing a run's views, end to end on the tiny scene: every policy, the active-learning
+loop (two rounds), the files it writes and the errors a user can hit."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from tests.fixtures import tiny_scene_path  # noqa: F401
+from tests.run_fixtures import TINY_RUN_OVERRIDES
+from uncertsplat.baselines import train_run
+from uncertsplat.cli import app
+from uncertsplat.config import SelectConfig, deep_update, train_config_from
+from uncertsplat.errors import UserError
+from uncertsplat.schemas import RunScene, Selection
+from uncertsplat.stages import select as stage
+
+CPU = torch.device("cpu")
+START = ["view_001.png", "view_004.png", "view_012.png", "view_019.png"]
+
+
+def _cfg(**over):
+    return train_config_from("tiny", deep_update(TINY_RUN_OVERRIDES, {"iterations": 80, **over}))
+
+
+@pytest.fixture(scope="module")
+def subset_run(tiny_scene_path, tmp_path_factory):
+    run = tmp_path_factory.mktemp("select") / "run"
+    train_run(tiny_scene_path, run, _cfg(scene={"train_names": START}), CPU)
+    return run
+
+
+@pytest.mark.parametrize("score", ["variance", "fisher", "coverage", "random"])
+def test_every_policy_chooses_distinct_unused_views(subset_run, tmp_path, score):
+    sel = stage.run(subset_run, SelectConfig(score=score, num_views=3), CPU, output=tmp_path / "sel")
+    names = [c.name for c in sel.chosen]
+    held = set(RunScene.read(subset_run / "scene.json").test)
+    assert len(names) == len(set(names)) == 3
+    assert not set(names) & (set(START) | held)
+    assert [c.rank for c in sel.chosen] == [1, 2, 3]
+    assert sel.num_candidates == len(sel.ranking) == 24 - len(START) - len(held)
+    scores = [c.score for c in sel.ranking]
+    assert scores == sorted(scores, reverse=True)
+    assert Selection.read(tmp_path / "sel" / "selection.json").chosen[0].name == names[0]
+    assert (tmp_path / "sel" / "selection.png").stat().st_size > 1000
+    if score in ("variance", "random"):  # not greedy: the top ones of the first ranking
+        assert names == [c.name for c in sel.ranking[:3]]
+
+
+@pytest.mark.parametrize("score", ["variance", "fisher"])
+def test_same_seed_same_choice(subset_run, tmp_path, score):
+    a = stage.run(subset_run, SelectConfig(score=score, num_views=2), CPU, output=tmp_path / "a")
+    b = stage.run(subset_run, SelectConfig(score=score, num_views=2), CPU, output=tmp_path / "b")
+    assert [c.name for c in a.chosen] == [c.name for c in b.chosen]
+    assert [c.score for c in a.ranking] == [c.score for c in b.ranking]
+
+
+def test_variance_prefers_views_of_what_the_start_views_miss(subset_run, tmp_path):
+    # the uncertainty policy is not coverage in disguise, but it must rank the far side above the start views'
+    # neighbours more often than not: its top third is farther from the used cameras than its bottom third
+    sel = stage.run(subset_run, SelectConfig(score="variance", num_views=1), CPU, output=tmp_path / "v")
+    cov = stage.run(subset_run, SelectConfig(score="coverage", num_views=1), CPU, output=tmp_path / "c")
+    distance = {c.name: c.score for c in cov.ranking}
+    ranked = [distance[c.name] for c in sel.ranking]
+    third = len(ranked) // 3
+    assert sum(ranked[:third]) / third > sum(ranked[-third:]) / third
+
+
+def test_two_rounds_of_the_loop(tiny_scene_path, subset_run, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(subset_run, run)
+    cfg = _cfg(scene={"train_names": START})
+    step = 80
+    added = []
+    for r in range(2):
+        sel = stage.run(run, SelectConfig(score="variance", seed=r), CPU)
+        name = sel.chosen[0].name
+        assert name not in added and name not in START
+        step += 20
+        train_run(tiny_scene_path, run, cfg, CPU, resume=True, extend_to=step, add_views=[name])
+        added.append(name)
+    info = RunScene.read(run / "scene.json")
+    assert [(v.step, v.names) for v in info.views_added] == [(80, [added[0]]), (100, [added[1]])]
+    assert sorted(info.train) == sorted(START + added)
+    assert json.loads((run / "config.json").read_text())["scene"]["train_names"] == START + added
+    summary = json.loads((run / "train_summary.json").read_text())
+    assert summary["steps"] == 120
+    # the next selection no longer offers them
+    sel = stage.run(run, SelectConfig(score="coverage", num_views=1), CPU)
+    assert not {c.name for c in sel.ranking} & set(added)
+
+
+class TestAddViewsErrors:
+    def test_needs_resume(self, tiny_scene_path, tmp_path):
+        with pytest.raises(UserError, match="needs --resume"):
+            train_run(tiny_scene_path, tmp_path / "new", _cfg(scene={"train_names": START}), CPU,
+                      add_views=["view_002.png"])
+
+    def test_held_out_or_trained_views_are_refused(self, tiny_scene_path, subset_run, tmp_path):
+        run = tmp_path / "run"
+        shutil.copytree(subset_run, run)
+        held = RunScene.read(run / "scene.json").test[0]
+        with pytest.raises(UserError, match="held-out view"):
+            train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=[held])
+        with pytest.raises(UserError, match="already a training view"):
+            train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=[START[0]])
+        with pytest.raises(UserError, match="not in the scene"):
+            train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["nope.png"])
+
+    def test_a_run_on_every_view_has_none_to_add(self, tiny_scene_path, tmp_path):
+        run = tmp_path / "all"
+        train_run(tiny_scene_path, run, _cfg(iterations=10), CPU)
+        with pytest.raises(UserError, match="no unused view to add"):
+            train_run(tiny_scene_path, run, _cfg(iterations=10), CPU, resume=True, extend_to=20,
+                      add_views=["view_002.png"])
+        with pytest.raises(UserError, match="no unused view"):
+            stage.run(run, SelectConfig(), CPU)
+
+
+def test_cli_with_a_pose_file(subset_run, tmp_path):
+    poses = tmp_path / "plan.txt"
+    poses.write_text("front 1 0 0 0 0 0 4\nside 0.7071067811865476 0 0.7071067811865476 0 0 0 4\n")
+    res = CliRunner().invoke(app, ["select-views", str(subset_run), "--candidates", str(poses), "-n", "1",
+                                   "--score", "coverage", "-o", str(tmp_path / "out"), "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    sel = Selection.read(tmp_path / "out" / "selection.json")
+    assert sel.num_candidates == 2 and sel.chosen[0].name in ("front", "side")
+    poses.write_text("front 1 0 0 0 0 0 4\nside 1 0 0\n")
+    res = CliRunner().invoke(app, ["select-views", str(subset_run), "--candidates", str(poses), "--score",
+                                   "coverage", "-o", str(tmp_path / "out2"), "--device", "cpu"])
+    assert res.exit_code == 2 and "line 2" in res.output and "8 fields" in res.output

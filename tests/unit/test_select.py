@@ -1,0 +1,118 @@
+"""``select-views`` building blocks: deterministic ranking, greedy coverage, candidate pose files."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from tests.fixtures import tiny_scene_path  # noqa: F401
+from uncertsplat.config import SceneConfig
+from uncertsplat.errors import UserError
+from uncertsplat.select.candidates import around_views, candidates_from_spec, read_pose_file, unused_views
+from uncertsplat.select.scores import coverage_choice, rank_order
+from uncertsplat.sfm.scene import load_scene
+from uncertsplat.view.frames import rotmat_to_wxyz
+
+
+class TestRanking:
+    def test_descending_ties_by_position_nan_last(self):
+        s = torch.tensor([1.0, 3.0, float("nan"), 3.0, 2.0, 1.0])
+        assert rank_order(s) == [1, 3, 4, 0, 5, 2]
+
+    def test_all_equal_keeps_candidate_order(self):
+        assert rank_order(torch.zeros(5)) == [0, 1, 2, 3, 4]
+
+    def test_coverage_is_greedy_farthest_point(self):
+        used = torch.tensor([[0.0, 0.0, 0.0]])
+        cands = torch.tensor([[1.0, 0, 0], [5.0, 0, 0], [-5.0, 0, 0], [4.9, 0, 0]])
+        chosen, at, first = coverage_choice(cands, used, 3)
+        # 5 and -5 tie at distance 5: the first listed wins; then -5 (10 away from it), then 1
+        assert chosen == [1, 2, 0] and at == pytest.approx([5.0, 5.0, 1.0])
+        torch.testing.assert_close(first, torch.tensor([1.0, 5.0, 5.0, 4.9], dtype=torch.float64))
+
+    def test_coverage_never_repeats_and_stops_at_the_pool(self):
+        cands = torch.zeros(3, 3)  # identical cameras: distances 0 after the first pick
+        chosen, _, _ = coverage_choice(cands, torch.ones(1, 3), 5)
+        assert chosen == [0, 1, 2]
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_scene_path):
+    return load_scene(tiny_scene_path, SceneConfig(train_names=["view_001.png", "view_002.png", "view_003.png"]))
+
+
+def _source_lines(scene, indices):
+    """COLMAP-style lines of the scene's own cameras in source coordinates (inverse of the normalisation)."""
+    W = scene.world_from_source.double()
+    s = float(torch.linalg.det(W[:3, :3]) ** (1 / 3))
+    R0, t0 = W[:3, :3] / s, W[:3, 3]
+    lines = []
+    for i in indices:
+        T = scene.cameras.cam_from_world[i].double()
+        R = T[:3, :3] @ R0
+        t = (T[:3, 3] + T[:3, :3] @ t0) / s
+        q = rotmat_to_wxyz(R.numpy())
+        lines.append(f"cand_{i} " + " ".join(f"{v:.12g}" for v in [*q, *t.tolist()]))
+    return lines
+
+
+class TestCandidates:
+    def test_unused_are_neither_trained_nor_held_out(self, scene):
+        idx = unused_views(scene)
+        assert idx and not set(idx) & (set(scene.split["train"]) | set(scene.split["test"]))
+        c = candidates_from_spec("unused", scene, scene.world_from_source, radius=1.0, generator=torch.Generator())
+        assert c.kind == "unused" and list(c.scene_indices) == idx
+
+    def test_pose_file_round_trips_to_the_scenes_cameras(self, scene, tmp_path):
+        f = tmp_path / "poses.txt"
+        f.write_text("# name qw qx qy qz tx ty tz\n\n" + "\n".join(_source_lines(scene, [0, 5, 9])) + "\n")
+        cams = read_pose_file(f, scene, scene.world_from_source)
+        assert cams.image_names == ("cand_0", "cand_5", "cand_9")
+        torch.testing.assert_close(cams.cam_from_world, scene.cameras.cam_from_world[[0, 5, 9]], atol=1e-5, rtol=0)
+
+    @pytest.mark.parametrize("line, message", [
+        ("a 1 0 0 0 0 0", "8 fields"),
+        ("a 1 0 0 0 0 0 x", "not 7 numbers"),
+        ("a 0 0 0 0 1 2 3", "quaternion is zero"),
+        ("a 2 0 0 0 1 2 3", "norm 2"),
+        ("a 1 0 0 0 nan 0 0", "non-finite"),
+    ])
+    def test_a_bad_pose_names_its_line(self, scene, tmp_path, line, message):
+        f = tmp_path / "poses.txt"
+        f.write_text("ok 1 0 0 0 0 0 1\n# comment\n" + line + "\n")
+        with pytest.raises(UserError, match=rf"line 3: .*{message}") as err:
+            read_pose_file(f, scene, scene.world_from_source)
+        assert str(f) in err.value.render()
+
+    def test_empty_file_duplicates_and_unknown_spec(self, scene, tmp_path):
+        empty = tmp_path / "empty.txt"
+        empty.write_text("# nothing\n")
+        with pytest.raises(UserError, match="holds no pose"):
+            read_pose_file(empty, scene, scene.world_from_source)
+        dup = tmp_path / "dup.txt"
+        dup.write_text("a 1 0 0 0 0 0 1\na 1 0 0 0 0 0 2\n")
+        with pytest.raises(UserError, match="repeat: a"):
+            read_pose_file(dup, scene, scene.world_from_source)
+        with pytest.raises(UserError, match="neither"):
+            candidates_from_spec("everything", scene, scene.world_from_source, radius=1.0, generator=torch.Generator())
+        with pytest.raises(UserError, match="positive integer"):
+            candidates_from_spec("around:x", scene, scene.world_from_source, radius=1.0, generator=torch.Generator())
+
+    def test_around_views_are_near_the_training_cameras_and_seeded(self, scene):
+        a = around_views(scene, 12, 1.0, torch.Generator().manual_seed(3))
+        b = around_views(scene, 12, 1.0, torch.Generator().manual_seed(3))
+        assert torch.equal(a.cam_from_world, b.cam_from_world) and len(a) == 12
+        R = a.cam_from_world[:, :3, :3].double()
+        torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand(12, 3, 3),
+                                   atol=1e-5, rtol=0)
+        train = scene.cameras[scene.split["train"]].centers
+        spacing = float(torch.cdist(train, train).add(torch.eye(len(train)) * 1e9).min(1).values.median())
+        assert float(torch.cdist(a.centers, train).min(1).values.max()) <= spacing * 1.0 + 1e-5
+        assert math.isfinite(float(a.cam_from_world.sum()))
+        # without a move, a candidate is its source camera exactly (same orientation: y down, looking forward)
+        still = around_views(scene, 6, 1e-12, torch.Generator().manual_seed(0))
+        src = scene.cameras[scene.split["train"]].cam_from_world
+        for T in still.cam_from_world:
+            assert float((src - T).abs().amax((1, 2)).min()) < 1e-4

@@ -1,0 +1,167 @@
+"""Candidate cameras for ``select-views``: where the next photo could be taken from.
+
+``--candidates`` is one of:
+
+- ``unused``: the scene's images that the run neither trained on nor held out (the active-learning
+  protocol: the pool of photos not used yet). Needs a run trained on explicit ``scene.train_names``.
+- ``around`` or ``around:N``: N viewpoints (default 32) near the current training cameras: each is a
+  training camera (drawn with the seed) moved by up to ``around_radius`` times the median spacing of the
+  training cameras, turned to look at the point its source camera looked at (a user extending a capture).
+- a file of poses, one per line: ``NAME QW QX QY QZ TX TY TZ``, the camera-from-world rotation (unit
+  quaternion, scalar first) and translation as in COLMAP's ``images.txt``, in the coordinates of the scene the
+  run was trained on (its COLMAP model or transforms file; ``RUN/scene.json`` records the similarity to the
+  run's normalised world). Blank lines and lines starting with ``#`` are skipped. The cameras take the
+  intrinsics and image size of the run's first training view.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from uncertsplat.data.synthetic import look_at
+from uncertsplat.errors import UserError
+from uncertsplat.gaussians.ops import quat_to_rotmat
+from uncertsplat.types import Cameras, SceneData
+
+DEFAULT_AROUND = 32
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """Candidate cameras and where they came from.
+
+    Attributes:
+        cameras: C cameras (world = the run's normalised coordinates), named.
+        kind: "unused", "around" or "file".
+        scene_indices: for "unused", each candidate's index in the scene (None otherwise).
+    """
+
+    cameras: Cameras
+    kind: str
+    scene_indices: tuple[int, ...] | None = None
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+
+def unused_views(scene: SceneData) -> list[int]:
+    """Scene indices neither trained on nor held out."""
+    used = set(scene.split.get("train", ())) | set(scene.split.get("test", ()))
+    return [i for i in range(len(scene.cameras)) if i not in used]
+
+
+def around_views(scene: SceneData, n: int, radius: float, generator: torch.Generator) -> Cameras:
+    """``n`` viewpoints near the training cameras (see the module docstring)."""
+    train = list(scene.split["train"])
+    cams = scene.cameras[train]
+    centres = cams.centers.double()
+    if len(train) > 1:
+        d = torch.cdist(centres, centres) + torch.eye(len(train), dtype=centres.dtype) * 1e30
+        spacing = float(d.min(1).values.median())
+    else:
+        spacing = 0.1 * scene.scene_scale
+    world_from_cam = torch.linalg.inv(cams.cam_from_world.double())
+    out = []
+    for _ in range(n):
+        j = int(torch.randint(len(train), (1,), generator=generator))
+        offset = torch.randn(3, generator=generator, dtype=torch.float64)
+        offset = offset / offset.norm().clamp_min(1e-12) * radius * spacing * float(torch.rand(1, generator=generator))
+        forward, up = world_from_cam[j, :3, 2], -world_from_cam[j, :3, 1]
+        target = centres[j] + forward * max(float(centres[j].norm()), spacing)  # as far as the scene centre
+        out.append(look_at(centres[j] + offset, target, up))
+    K = cams.K[[0] * n] if n else cams.K[:0]
+    names = tuple(f"around_{i:03d}" for i in range(n))
+    return Cameras(torch.stack(out).float() if out else cams.cam_from_world[:0], K, cams.width, cams.height, names)
+
+
+def read_pose_file(path: Path, scene: SceneData, world_from_source: Tensor) -> Cameras:
+    """Cameras of a pose file (see the module docstring).
+
+    Raises:
+        UserError: naming the file and the line of a malformed pose, or an empty file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise UserError("candidate pose file not found", path=path,
+                        hint="Give 'unused', 'around[:N]' or a file of lines 'NAME QW QX QY QZ TX TY TZ'.")
+    rows: list[Tensor] = []
+    names: list[str] = []
+    source_from_world = torch.linalg.inv(world_from_source.double())
+    scale = float(torch.linalg.det(world_from_source[:3, :3].double()).abs() ** (1.0 / 3.0))
+    for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        fields = text.split()
+        if len(fields) != 8:
+            raise UserError(f"line {number}: expected 'NAME QW QX QY QZ TX TY TZ' (8 fields), found {len(fields)}: "
+                            f"{text[:80]!r}", path=path)
+        try:
+            values = [float(v) for v in fields[1:]]
+        except ValueError:
+            raise UserError(f"line {number}: the pose is not 7 numbers: {' '.join(fields[1:])[:80]!r}",
+                            path=path) from None
+        if not all(math.isfinite(v) for v in values):
+            raise UserError(f"line {number}: the pose has a non-finite number", path=path)
+        q = torch.tensor(values[:4], dtype=torch.float64)
+        if float(q.norm()) < 1e-6:
+            raise UserError(f"line {number}: the rotation quaternion is zero", path=path,
+                            hint="Write a unit quaternion QW QX QY QZ (e.g. 1 0 0 0).")
+        if abs(float(q.norm()) - 1.0) > 1e-3:
+            raise UserError(f"line {number}: the rotation quaternion has norm {float(q.norm()):.4g}, not 1", path=path,
+                            hint="Normalise it (divide QW QX QY QZ by their norm).")
+        cam_from_source = torch.eye(4, dtype=torch.float64)
+        cam_from_source[:3, :3] = quat_to_rotmat(q[None])[0]
+        cam_from_source[:3, 3] = torch.tensor(values[4:], dtype=torch.float64)
+        # world = s R0 source + t0: through source_from_world the camera frame shrinks by 1/s; scaling its rows
+        # by s gives a rigid cam_from_world whose depths are in world units
+        T = cam_from_source @ source_from_world
+        T[:3, :] *= scale
+        rows.append(T)
+        names.append(fields[0])
+    if not rows:
+        raise UserError("the candidate pose file holds no pose", path=path,
+                        hint="Write one line 'NAME QW QX QY QZ TX TY TZ' per candidate camera.")
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise UserError(f"candidate names repeat: {', '.join(dup[:5])}", path=path, hint="Give every pose its own name.")
+    first = scene.cameras[[scene.split["train"][0]]]
+    return Cameras(torch.stack(rows).float(), first.K.expand(len(rows), 3, 3).clone(), first.width, first.height,
+                   tuple(names))
+
+
+def candidates_from_spec(spec: str, scene: SceneData, world_from_source: Tensor, *, radius: float,
+                         generator: torch.Generator) -> Candidates:
+    """The candidates of a ``--candidates`` value (see the module docstring).
+
+    Raises:
+        UserError: an unknown spec, no unused view, a bad pose file.
+    """
+    if spec == "unused":
+        idx = unused_views(scene)
+        if not idx:
+            raise UserError("the run's scene has no unused view: every image is trained on or held out",
+                            hint="Use --candidates around[:N] or a file of poses, or train on a subset of the images "
+                                 "(--set scene.train_names=[...]).")
+        return Candidates(scene.cameras[idx], "unused", tuple(idx))
+    if spec == "around" or spec.startswith("around:"):
+        try:
+            n = int(spec.split(":", 1)[1]) if ":" in spec else DEFAULT_AROUND
+        except ValueError:
+            n = -1
+        if n < 1:
+            raise UserError(f"--candidates {spec}: N must be a positive integer (e.g. around:32)")
+        return Candidates(around_views(scene, n, radius, generator), "around")
+    if Path(spec).suffix or Path(spec).exists():
+        return Candidates(read_pose_file(Path(spec), scene, world_from_source), "file")
+    raise UserError(f"--candidates {spec!r} is neither 'unused', 'around[:N]' nor a file",
+                    hint="Give 'unused' (the scene's images not used yet), 'around:32' (viewpoints near the "
+                         "training cameras) or a file of lines 'NAME QW QX QY QZ TX TY TZ'.")
+
+
+__all__ = ["Candidates", "DEFAULT_AROUND", "around_views", "candidates_from_spec", "read_pose_file", "unused_views"]

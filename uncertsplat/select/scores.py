@@ -1,0 +1,134 @@
+"""Scores of candidate cameras for ``select-views`` (higher = take that photo first) and the ranking.
+
+- ``variance``: the mean over the candidate's pixels of the posterior's RGB std (K Monte-Carlo samples at a
+  low resolution, with the empty-ray term of ``evaluate``: a candidate that looks where the model has no
+  Gaussian is uncertain there). The depth std is recorded beside it.
+- ``fisher``: the expected information of the candidate about the Gaussians, as FisherRF scores views:
+  ``sum_i F_cand,i / (F_train,i + 1 / prior_i^2)`` over the parameters of the Fisher baseline
+  (``FisherConfig.params``), with ``F`` the diagonal Gauss-Newton Fisher of the rendered image
+  (``uncertainty.curvature``, the same probes), the training views' noise and the baseline's prior. For
+  several views it is greedy: the chosen view's Fisher joins the training views' before the next choice.
+- ``coverage``: the distance from the candidate's centre to the nearest camera already used (trained on or
+  chosen): farthest-point sampling, the strong baseline without any uncertainty. Greedy for several views.
+- ``random``: uniform, from the seed.
+
+Ties are broken by candidate order (the first candidate wins), NaN scores rank last, so the same inputs
+always give the same choice.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+from uncertsplat.types import Cameras
+
+SCORES = ("variance", "fisher", "coverage", "random")
+
+
+def rank_order(scores: Tensor) -> list[int]:
+    """Candidate positions by descending score; ties by position, NaN last."""
+    s = torch.nan_to_num(scores.double().cpu(), nan=float("-inf"))
+    return torch.sort(-s, stable=True).indices.tolist()
+
+
+def low_resolution(cameras: Cameras, max_side: int) -> Cameras:
+    """``cameras`` scaled so that the long side is at most ``max_side`` pixels (never up)."""
+    factor = min(1.0, max_side / max(cameras.width, cameras.height))
+    return cameras.scaled(factor) if factor < 1.0 else cameras
+
+
+def best_unchosen(scores: Tensor, chosen: list[int]) -> int:
+    """The position of the best score among the candidates not chosen yet (``rank_order``'s tie rule)."""
+    masked = scores.clone()
+    if chosen:
+        masked[chosen] = float("nan")
+    return rank_order(masked)[0]
+
+
+def coverage_choice(candidates: Tensor, used: Tensor, n: int) -> tuple[list[int], list[float], Tensor]:
+    """Greedy farthest-point choice of ``n`` candidates.
+
+    Args:
+        candidates: [C,3] candidate camera centres.
+        used: [U,3] centres of the cameras used already (U may be 0: then the first pick is candidate 0).
+        n: how many to choose (at most C).
+
+    Returns:
+        (chosen positions, their distance when chosen, [C] every candidate's distance before any choice).
+    """
+    c = candidates.double()
+    if used.shape[0]:
+        dist = torch.cdist(c, used.double()).min(1).values
+    else:
+        dist = torch.full((c.shape[0],), float("inf"), dtype=torch.float64)
+    first = dist.clone()
+    chosen, at = [], []
+    for _ in range(min(n, c.shape[0])):
+        j = best_unchosen(dist, chosen)
+        chosen.append(j)
+        at.append(float(dist[j]))
+        dist = torch.minimum(dist, (c - c[j]).norm(dim=1))
+    return chosen, at, first
+
+
+@torch.no_grad()
+def variance_scores(sample_fn: Callable, render_fn: Callable, cameras: Cameras, num_samples: int, seed: int, *,
+                    empty_std: tuple[float, float] | None) -> tuple[Tensor, Tensor]:
+    """([C] mean RGB std, [C] mean depth std) of each candidate (one seeded generator per candidate)."""
+    from uncertsplat.uncertainty.mc import mc_render
+
+    rgb, depth = [], []
+    for c in range(len(cameras)):
+        gen = torch.Generator(device=cameras.device).manual_seed(seed * 1_000_003 + c)
+        maps, _ = mc_render(sample_fn, render_fn, cameras[[c]], num_samples, gen, empty_std=empty_std)
+        rgb.append(float(maps.rgb_std.mean()))
+        depth.append(float(maps.depth_std.mean()))
+    return torch.tensor(rgb, dtype=torch.float64), torch.tensor(depth, dtype=torch.float64)
+
+
+def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_images: Tensor, cameras: Cameras,
+                  render_fn: Callable, *, names: Sequence[str], prior_std: dict[str, float], sh_degree: int,
+                  probes: int, seed: int, n: int) -> tuple[list[int], list[float], Tensor, float]:
+    """Greedy FisherRF choice of ``n`` candidates (see the module docstring).
+
+    Returns:
+        (chosen positions, their information when chosen, [C] every candidate's information before any choice,
+        the training views' noise std used).
+    """
+    from uncertsplat.uncertainty.curvature import curvature
+
+    gen = torch.Generator(device=train_images.device).manual_seed(seed)
+    names = tuple(names)
+    base = curvature(params, train_cameras, train_images, render_fn, names=names, generator=gen,
+                     sh_degree=sh_degree, probes=probes)
+    noise = base.noise_std
+    precision = {k: base.fisher[k] + 1.0 / prior_std[k] ** 2 for k in names}
+    blank = torch.zeros(1, cameras.height, cameras.width, 3, device=train_images.device)
+
+    def view_fisher(c: int) -> dict[str, Tensor]:
+        g = torch.Generator(device=train_images.device).manual_seed(seed * 1_000_003 + c)
+        return curvature(params, cameras[[c]], blank, render_fn, names=names, generator=g, sh_degree=sh_degree,
+                         probes=probes, noise_std=noise).fisher
+
+    def information(f: dict[str, Tensor]) -> float:
+        return float(sum((f[k] / precision[k]).sum() for k in names))
+
+    scores = torch.tensor([information(view_fisher(c)) for c in range(len(cameras))], dtype=torch.float64)
+    first = scores.clone()
+    chosen, at = [], []
+    for r in range(min(n, len(cameras))):
+        j = best_unchosen(scores, chosen)
+        chosen.append(j)
+        at.append(float(scores[j]))
+        if r + 1 < n:  # the chosen view's information joins the training views', then every candidate again
+            f = view_fisher(j)
+            precision = {k: precision[k] + f[k] for k in names}
+            scores = torch.tensor([information(view_fisher(c)) if c not in chosen else float("nan")
+                                   for c in range(len(cameras))], dtype=torch.float64)
+    return chosen, at, first, noise
+
+
+__all__ = ["SCORES", "best_unchosen", "coverage_choice", "fisher_choice", "low_resolution", "rank_order", "variance_scores"]

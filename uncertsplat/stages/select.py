@@ -1,0 +1,164 @@
+"""Stage ``select-views``: a run + candidate cameras -> the next photos to take (``uncertsplat select-views``).
+
+``run`` loads the run (any single-model method; the ``fisher`` score needs the run's Gaussians, which every
+run has), builds the candidates (``select.candidates``), scores and chooses them (``select.scores``) and
+writes ``OUT/selection.json`` (``schemas.Selection``) and ``OUT/selection.png`` (the cameras seen from above:
+used, candidates, the chosen ones numbered). ``OUT`` defaults to ``RUN/select``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from uncertsplat.config import SelectConfig
+from uncertsplat.console import console
+from uncertsplat.errors import UserError
+
+
+def _plot(path: Path, used: torch.Tensor, cands: torch.Tensor, chosen: list[int], up: torch.Tensor, title: str) -> None:
+    """The camera centres seen from above (projected on the plane normal to ``up``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from uncertsplat.io.atomic import atomic_write_bytes
+
+    up = up.double() / up.double().norm().clamp_min(1e-12)
+    a = torch.linalg.cross(up, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+    if float(a.norm()) < 0.1:
+        a = torch.linalg.cross(up, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    a = a / a.norm()
+    b = torch.linalg.cross(up, a)
+
+    def xy(p):
+        p = p.double()
+        return (p @ a).numpy(), (p @ b).numpy()
+
+    fig, ax = plt.subplots(figsize=(6, 6), dpi=110)
+    ax.scatter(*xy(cands), s=14, c="0.6", label=f"candidates ({len(cands)})")
+    if len(used):
+        ax.scatter(*xy(used), s=22, c="tab:blue", label=f"used ({len(used)})")
+    if chosen:
+        cx, cy = xy(cands[chosen])
+        ax.scatter(cx, cy, s=60, c="tab:red", marker="*", label=f"chosen ({len(chosen)})")
+        for k, (x, y) in enumerate(zip(cx, cy, strict=True)):
+            ax.annotate(str(k + 1), (x, y), textcoords="offset points", xytext=(5, 5), color="tab:red")
+    ax.scatter([0.0], [0.0], s=30, c="k", marker="+", label="scene centre")
+    ax.set_aspect("equal")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8, loc="best")
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", bbox_inches="tight")
+    plt.close(fig)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | None = None):
+    """Choose ``cfg.num_views`` candidates for the run ``run_dir``; returns the written ``Selection``.
+
+    Raises:
+        UserError: a missing run, an ensemble (no single model), bad candidates (file and line named).
+    """
+    from uncertsplat.baselines import load_run
+    from uncertsplat.baselines.fisher import prior_stds
+    from uncertsplat.data.dataset import load_images
+    from uncertsplat.io.atomic import run_lock
+    from uncertsplat.io.images import resize_image
+    from uncertsplat.schemas import RunScene, Selection
+    from uncertsplat.schemas.select import CandidateScore, ChosenView
+    from uncertsplat.select.candidates import candidates_from_spec
+    from uncertsplat.select.scores import (
+        coverage_choice,
+        fisher_choice,
+        low_resolution,
+        rank_order,
+        variance_scores,
+    )
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise UserError("run folder not found", path=run_dir, hint="Give a folder written by `uncertsplat train`.")
+    out = Path(output) if output is not None else run_dir / "select"
+    loaded = load_run(run_dir, device)
+    scene = loaded.load_scene()
+    info = RunScene.read(run_dir / RunScene.FILE_NAME)
+    gen = torch.Generator().manual_seed(cfg.seed)
+    cands = candidates_from_spec(cfg.candidates, scene, torch.tensor(info.world_from_source, dtype=torch.float64),
+                                 radius=cfg.around_radius, generator=gen)
+    train = list(scene.split["train"])
+    used_names = [scene.cameras.image_names[i] for i in train] if scene.cameras.image_names else []
+    n = min(cfg.num_views, len(cands))
+    console.print(f"[bold]select-views[/] {run_dir}: {len(cands)} candidates ({cands.kind}), score '{cfg.score}', "
+                  f"choosing {n}, {device}")
+    settings: dict = {"seed": cfg.seed}
+    depth_std = None
+    t0 = time.perf_counter()
+    centres = cands.cameras.centers
+    if cfg.score == "coverage":
+        chosen, at, first = coverage_choice(centres, scene.cameras[train].centers, n)
+    elif cfg.score == "random":
+        first = torch.rand(len(cands), generator=torch.Generator().manual_seed(cfg.seed), dtype=torch.float64)
+        chosen = rank_order(first)[:n]
+        at = [float(first[j]) for j in chosen]
+    elif cfg.score == "variance":
+        sampler = loaded.sampler(scene.scene_scale, device)
+        low = low_resolution(cands.cameras, cfg.max_side).to(device)
+        first, depth_std = variance_scores(sampler.sample_fn, sampler.render_fn, low, cfg.num_samples, cfg.seed,
+                                           empty_std=sampler.empty_std)
+        chosen = rank_order(first)[:n]
+        at = [float(first[j]) for j in chosen]
+        settings.update(num_samples=cfg.num_samples, width=low.width, height=low.height)
+    else:  # fisher
+        low_train = low_resolution(scene.cameras[train], cfg.max_side)
+        images = torch.from_numpy(np.stack([resize_image(im.numpy(), low_train.width, low_train.height)
+                                            for im in load_images(scene, train)]))
+        fcfg = loaded.config.fisher
+        params = {k: v.detach() for k, v in loaded.model.params.items()}
+        low = low_resolution(cands.cameras, cfg.max_side)
+        with torch.enable_grad():
+            chosen, at, first, noise = fisher_choice(
+                params, low_train.to(device), images.to(device), low.to(device), loaded.render_fn(scene.scene_scale, device),
+                names=fcfg.params, prior_std=prior_stds(fcfg, loaded.extent), sh_degree=loaded.sh_degree,
+                probes=cfg.probes, seed=cfg.seed, n=n)
+        settings.update(width=low.width, height=low.height, probes=cfg.probes, noise_std=noise,
+                        params=list(fcfg.params))
+        if loaded.config.method == "ensemble":
+            settings["note"] = "ensemble: the Fisher of member 0's Gaussians"
+    seconds = time.perf_counter() - t0
+
+    def pose(c: int) -> dict:
+        return {"name": cands.cameras.image_names[c], "cam_from_world": cands.cameras.cam_from_world[c].double().tolist(),
+                "position": centres[c].double().tolist(),
+                "depth_std": float(depth_std[c]) if depth_std is not None else None}
+
+    def num(x) -> float | None:
+        x = float(x)
+        return None if x != x or x in (float("inf"), float("-inf")) else x
+
+    ranking = [CandidateScore(score=num(first[c]), **pose(c)) for c in rank_order(first)]
+    picked = [ChosenView(rank=k + 1, score=num(first[c]), score_when_chosen=num(at[k]), **pose(c))
+              for k, c in enumerate(chosen)]
+    sel = Selection(run=str(run_dir), score=cfg.score, candidates=cfg.candidates, num_candidates=len(cands),
+                    chosen=picked, ranking=ranking, used=used_names, seconds=seconds,
+                    seconds_per_candidate=seconds / max(len(cands), 1), settings=settings)
+    out.mkdir(parents=True, exist_ok=True)
+    with run_lock(out, "select-views"):
+        sel.write(out / Selection.FILE_NAME)
+        up = -torch.linalg.inv(scene.cameras[train].cam_from_world.double())[:, :3, 1].mean(0)
+        _plot(out / "selection.png", scene.cameras[train].centers, centres, chosen, up,
+              f"{run_dir.name}: {cfg.score} chose {', '.join(p.name for p in picked)}")
+    for p in picked:
+        console.print(f"  {p.rank}. {p.name}  score {p.score_when_chosen if p.score_when_chosen is not None else '-'}")
+    console.print(f"chose {len(picked)} of {len(cands)} in {seconds:.2f} s -> {out / Selection.FILE_NAME}, "
+                  f"{out / 'selection.png'}")
+    return sel
+
+
+__all__ = ["run"]
