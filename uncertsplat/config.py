@@ -401,7 +401,7 @@ class SelectConfig(_Base):
     or a file of poses 'NAME QW QX QY QZ TX TY TZ' (``uncertsplat.select.candidates``)."""
     num_views: int = Field(1, ge=1)
     """How many views to choose (greedy for fisher and coverage; the top ones for variance and random)."""
-    score: Literal["variance", "fisher", "coverage", "random"] = "variance"
+    score: Literal["variance", "unseen", "fisher", "coverage", "random"] = "variance"
     """How candidates are ranked (``uncertsplat.select.scores``)."""
     num_samples: int = Field(4, ge=2, le=256)
     """variance: posterior samples (K) per candidate."""

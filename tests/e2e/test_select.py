@@ -34,7 +34,7 @@ def subset_run(tiny_scene_path, tmp_path_factory):
     return run
 
 
-@pytest.mark.parametrize("score", ["variance", "fisher", "coverage", "random"])
+@pytest.mark.parametrize("score", ["variance", "unseen", "fisher", "coverage", "random"])
 def test_every_policy_chooses_distinct_unused_views(subset_run, tmp_path, score):
     sel = stage.run(subset_run, SelectConfig(score=score, num_views=3), CPU, output=tmp_path / "sel")
     names = [c.name for c in sel.chosen]
@@ -47,7 +47,7 @@ def test_every_policy_chooses_distinct_unused_views(subset_run, tmp_path, score)
     assert scores == sorted(scores, reverse=True)
     assert Selection.read(tmp_path / "sel" / "selection.json").chosen[0].name == names[0]
     assert (tmp_path / "sel" / "selection.png").stat().st_size > 1000
-    if score in ("variance", "random"):  # not greedy: the top ones of the first ranking
+    if score in ("variance", "unseen", "random"):  # not greedy: the top ones of the first ranking
         assert names == [c.name for c in sel.ranking[:3]]
 
 
@@ -57,6 +57,34 @@ def test_same_seed_same_choice(subset_run, tmp_path, score):
     b = stage.run(subset_run, SelectConfig(score=score, num_views=2), CPU, output=tmp_path / "b")
     assert [c.name for c in a.chosen] == [c.name for c in b.chosen]
     assert [c.score for c in a.ranking] == [c.score for c in b.ranking]
+
+
+def test_unseen_score_is_the_blended_relative_variance(subset_run):
+    from uncertsplat.baselines import load_run
+    from uncertsplat.select.scores import relative_position_variance, unseen_scores
+
+    loaded = load_run(subset_run, CPU)
+    scene = loaded.load_scene()
+    sampler = loaded.sampler(scene.scene_scale, CPU)
+    u = relative_position_variance(loaded.model, loaded.prior)
+    assert u.shape == (len(loaded.model),) and 0 <= float(u.min()) and float(u.max()) <= 1
+    assert float(u[loaded.model.posterior_row < 0].abs().sum()) == 0  # no posterior, nothing unknown
+    cams = scene.cameras[[0, 5]]
+    alpha = torch.stack([sampler.render_fn(sampler.det_sample, cams[[c]]).alpha.mean() for c in range(2)])
+    # u = 0 everywhere: only the empty part of the view is unknown; u = 1: all of it
+    zero = unseen_scores(sampler.det_sample, torch.zeros_like(u), sampler.render_fn, cams)
+    one = unseen_scores(sampler.det_sample, torch.ones_like(u), sampler.render_fn, cams)
+    torch.testing.assert_close(zero, (1 - alpha).double(), atol=1e-5, rtol=0)
+    torch.testing.assert_close(one, torch.ones(2, dtype=torch.float64), atol=2e-3, rtol=0)
+    mid = unseen_scores(sampler.det_sample, u, sampler.render_fn, cams)
+    assert bool(((zero <= mid + 1e-6) & (mid <= one + 1e-6)).all())
+
+
+def test_unseen_needs_a_posterior(tiny_scene_path, tmp_path):
+    run = tmp_path / "det"
+    train_run(tiny_scene_path, run, _cfg(iterations=10, method="deterministic", scene={"train_names": START}), CPU)
+    with pytest.raises(UserError, match="unseen score reads"):
+        stage.run(run, SelectConfig(score="unseen"), CPU)
 
 
 def test_variance_prefers_views_of_what_the_start_views_miss(subset_run, tmp_path):

@@ -8,6 +8,11 @@
   (``FisherConfig.params``), with ``F`` the diagonal Gauss-Newton Fisher of the rendered image
   (``uncertainty.curvature``, the same probes), the training views' noise and the baseline's prior. For
   several views it is greedy: the chosen view's Fisher joins the training views' before the next choice.
+- ``unseen``: the share of the candidate's view that shows what the data has not pinned down: each carrier's
+  position variance relative to the prior's (1 = the prior: no view constrains it; near 0: the data sets it;
+  ``gaussians.variational``'s tables), blended like a colour over the candidate's pixels, plus the
+  transmittance left behind the last Gaussian (a ray that meets nothing shows the unknown). Unlike the RGB std
+  it does not grow with the texture or the edges in view, only with the posterior (one render per candidate).
 - ``coverage``: the distance from the candidate's centre to the nearest camera already used (trained on or
   chosen): farthest-point sampling, the strong baseline without any uncertainty. Greedy for several views.
 - ``random``: uniform, from the seed.
@@ -25,7 +30,7 @@ from torch import Tensor
 
 from uncertsplat.types import Cameras
 
-SCORES = ("variance", "fisher", "coverage", "random")
+SCORES = ("variance", "unseen", "fisher", "coverage", "random")
 
 
 def rank_order(scores: Tensor) -> list[int]:
@@ -89,6 +94,41 @@ def variance_scores(sample_fn: Callable, render_fn: Callable, cameras: Cameras, 
     return torch.tensor(rgb, dtype=torch.float64), torch.tensor(depth, dtype=torch.float64)
 
 
+def relative_position_variance(model, prior) -> Tensor:
+    """[N] each Gaussian's posterior position variance over the prior's (geometric mean over the axes, at most
+    1); 0 for Gaussians without a posterior (deterministic)."""
+    from uncertsplat.gaussians.variational import log_softplus
+
+    u = torch.zeros(len(model), device=model.device)
+    idx = model.carrier_index()
+    if idx.numel():
+        raw = model.tables["pos_spread_raw"].detach().float().mean(1)  # [P,3]
+        ratio = log_softplus(raw).mean(1).exp() / prior.position_std
+        u[idx] = ratio.square().clamp(0.0, 1.0)
+    return u
+
+
+@torch.no_grad()
+def unseen_scores(sample, uncertainty: Tensor, render_fn: Callable, cameras: Cameras) -> Tensor:
+    """[C] the mean over each candidate's pixels of ``sum_i w_i u_i + (1 - alpha)`` (see the module docstring)."""
+    from dataclasses import replace
+
+    from uncertsplat.render.sh import C0
+
+    def painted(values: Tensor):
+        colour = values[:, None].expand(-1, 3)
+        return replace(sample, sh=((colour - 0.5) / C0)[:, None, :].contiguous(), sh_degree=0)
+
+    out = []
+    for c in range(len(cameras)):
+        cam = cameras[[c]]
+        with_u = render_fn(painted(uncertainty), cam)
+        without = render_fn(painted(torch.zeros_like(uncertainty)), cam)  # the background alone, to subtract
+        blended = (with_u.rgb[..., 0] - without.rgb[..., 0]).clamp_min(0.0)
+        out.append(float((blended + (1.0 - with_u.alpha[..., 0])).mean()))
+    return torch.tensor(out, dtype=torch.float64)
+
+
 def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_images: Tensor, cameras: Cameras,
                   render_fn: Callable, *, names: Sequence[str], prior_std: dict[str, float], sh_degree: int,
                   probes: int, seed: int, n: int) -> tuple[list[int], list[float], Tensor, float]:
@@ -131,4 +171,5 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
     return chosen, at, first, noise
 
 
-__all__ = ["SCORES", "best_unchosen", "coverage_choice", "fisher_choice", "low_resolution", "rank_order", "variance_scores"]
+__all__ = ["SCORES", "best_unchosen", "coverage_choice", "fisher_choice", "low_resolution", "rank_order",
+           "relative_position_variance", "unseen_scores", "variance_scores"]

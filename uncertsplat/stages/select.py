@@ -79,6 +79,8 @@ def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | N
         fisher_choice,
         low_resolution,
         rank_order,
+        relative_position_variance,
+        unseen_scores,
         variance_scores,
     )
 
@@ -107,6 +109,18 @@ def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | N
         first = torch.rand(len(cands), generator=torch.Generator().manual_seed(cfg.seed), dtype=torch.float64)
         chosen = rank_order(first)[:n]
         at = [float(first[j]) for j in chosen]
+    elif cfg.score == "unseen":
+        if loaded.model.num_carriers == 0 or loaded.config.method in ("ensemble", "fisher", "deterministic"):
+            raise UserError("the unseen score reads the Gaussians' posterior (offset tables), and this run has none",
+                            path=run_dir, hint="Use --score variance, fisher or coverage for this run.")
+        sampler = loaded.sampler(scene.scene_scale, device)
+        low = low_resolution(cands.cameras, cfg.max_side).to(device)
+        sample = sampler.det_sample if sampler.det_sample is not None else sampler.sample_fn(
+            torch.Generator(device=device).manual_seed(cfg.seed))
+        first = unseen_scores(sample, relative_position_variance(loaded.model, loaded.prior), sampler.render_fn, low)
+        chosen = rank_order(first)[:n]
+        at = [float(first[j]) for j in chosen]
+        settings.update(width=low.width, height=low.height)
     elif cfg.score == "variance":
         sampler = loaded.sampler(scene.scene_scale, device)
         low = low_resolution(cands.cameras, cfg.max_side).to(device)
