@@ -111,33 +111,41 @@ def main() -> None:
     print(f"{args.label}: pool {len(pool)}, start {[names[i] for i in start]}, budget {args.budget}", flush=True)
     out = args.tmp / args.label
     out.mkdir(parents=True, exist_ok=True)
-    results = []
+    path = ROOT / "benchmarks" / "results" / f"select_{args.label}.json"
+    results: list[dict] = []
+    res: dict = {}
+
+    def write() -> dict:
+        """Summary over the results so far, written after every loop (a long run interrupted keeps them)."""
+        summary = {}
+        for policy in args.policies:
+            rs = [r for r in results if r["policy"] == policy]
+
+            def stat(key, rs=rs):
+                vals = [r[key] for r in rs if r[key] is not None]
+                if not vals:
+                    return None
+                return {"mean": statistics.fmean(vals), "std": statistics.stdev(vals) if len(vals) > 1 else 0.0,
+                        "values": vals}
+
+            summary[policy] = {k: stat(k) for k in ("psnr", "ssim", "ause_mae", "depth_mae", "choose_share",
+                                                    "score_share")}
+        res.update({"label": args.label, "scene": str(args.scene), "date": date.today().isoformat(),
+                    "machine": platform.processor() or platform.machine(), "threads": torch.get_num_threads(),
+                    "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+                    "start": [names[i] for i in start], "pool": len(pool), "results": results, "summary": summary})
+        path.write_text(json.dumps(res, indent=1) + "\n")
+        return summary
+
     for seed in args.seeds:
         for policy in args.policies:
             r = one_loop(args.scene, scene, names, start, policy, seed, args, out)
             results.append(r)
+            write()
             print(f"RESULT {policy} seed {seed}: PSNR {r['psnr']:.2f} SSIM {r['ssim']:.3f} AUSE {r['ause_mae']:.3f} "
                   f"depth MAE {r['depth_mae']} choose {sum(r['choose_seconds']):.1f} s "
                   f"({100 * r['choose_share']:.1f} % of the rounds' training), added {r['added']}", flush=True)
-    summary = {}
-    for policy in args.policies:
-        rs = [r for r in results if r["policy"] == policy]
-
-        def stat(key, rs=rs):
-            vals = [r[key] for r in rs if r[key] is not None]
-            if not vals:
-                return None
-            return {"mean": statistics.fmean(vals), "std": statistics.stdev(vals) if len(vals) > 1 else 0.0,
-                    "values": vals}
-
-        summary[policy] = {k: stat(k) for k in ("psnr", "ssim", "ause_mae", "depth_mae", "choose_share",
-                                                "score_share")}
-    res = {"label": args.label, "scene": str(args.scene), "date": date.today().isoformat(),
-           "machine": platform.processor() or platform.machine(), "threads": torch.get_num_threads(),
-           "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-           "start": [names[i] for i in start], "pool": len(pool), "results": results, "summary": summary}
-    path = ROOT / "benchmarks" / "results" / f"select_{args.label}.json"
-    path.write_text(json.dumps(res, indent=1) + "\n")
+    summary = write()
     print(f"wrote {path}")
     for policy, s in summary.items():
         def f(x, p=2):

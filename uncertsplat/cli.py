@@ -311,13 +311,20 @@ def sweep(
     jobs: Annotated[int | None, typer.Option(help="Parallel jobs (default: number of cores; 1 on CUDA).")] = None,
     scene: Annotated[Path | None, typer.Option(help="Scene folder (overrides the spec's).")] = None,
     force: Annotated[bool, typer.Option(help="Recompute points that already have a record.")] = False,
+    executor: Annotated[str, typer.Option(help="local (this machine's cores) or ray (a Ray instance or cluster).")] = "local",
+    address: Annotated[str | None, typer.Option(
+        help="ray: 'auto' joins a running cluster; left out, a local Ray instance starts.")] = None,
+    cpus_per_job: Annotated[float, typer.Option(help="ray: CPUs each job asks for (and its torch threads).")] = 1.0,
+    gpus_per_job: Annotated[float, typer.Option(help="ray: GPUs each job asks for.")] = 0.0,
+    retries: Annotated[int, typer.Option(help="Runs again a job whose worker died or whose points failed.")] = 1,
     device: DeviceOpt = "auto",
     set_: SetOpt = None,
 ):
     """Measure the speed-accuracy trade: train/evaluate each point of a sweep and draw the Pareto front."""
     from uncertsplat.stages import sweep as stage
 
-    stage.run(spec, output, jobs=jobs, device=device, scene=scene, overrides=set_, force=force)
+    stage.run(spec, output, jobs=jobs, device=device, scene=scene, overrides=set_, force=force, executor=executor,
+              address=address, cpus_per_job=cpus_per_job, gpus_per_job=gpus_per_job, retries=retries)
 
 
 @app.command("run")

@@ -206,6 +206,10 @@ class SweepRecord(Strict):
     """The stage that failed (train / evaluate)."""
     error: str | None = None
     traceback: str | None = None
+    attempts: int | None = None
+    """How many times the point's job ran (1 + retries after a failure or a dead worker); None before retries."""
+    executor: str | None = None
+    """local or ray (None in records written before the executors)."""
     train_seconds: float | None = None
     trained_now: bool | None = None
     train_wall_seconds: float | None = None

@@ -9,17 +9,18 @@ Writes into ``OUT/``:
 - ``pareto.png``: accuracy vs time with the fronts and the default marked;
 - ``index.html``: the figure and a table of every point (front members and the default marked).
 
-Jobs (points sharing a training config) run over the local cores in a process pool of ``jobs``
-workers, each a fresh process per job (so peak-memory figures are per job) with one torch thread
-when several run at once. ``jobs = 1`` runs them one by one in this process.
+Jobs (points sharing a training config) run where ``executor`` says (``sweep.executors``): ``local``, over
+this machine's cores in a process pool of ``jobs`` workers, each a fresh process per job (so peak-memory
+figures are per job) with one torch thread when several run at once (``jobs = 1`` runs them one by one in
+this process); or ``ray``, as Ray tasks with their CPU/GPU request, on a local Ray instance or a cluster.
+Either way a failed job is retried ``retries`` times, only this process appends to ``sweep.jsonl`` (one
+complete line per record), and a progress bar counts done / running / failed points.
 """
 
 from __future__ import annotations
 
 import json
 import os
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -62,7 +63,8 @@ def read_records(path: Path) -> list[SweepRecord]:
 
 
 def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str = "auto", scene: Path | None = None,
-        overrides: list[str] | None = None, force: bool = False) -> SweepSummary:
+        overrides: list[str] | None = None, force: bool = False, executor: str = "local", address: str | None = None,
+        cpus_per_job: float = 1.0, gpus_per_job: float = 0.0, retries: int = 1) -> SweepSummary:
     """Run (or resume) a sweep; returns the ``sweep.json`` summary.
 
     Args:
@@ -73,13 +75,18 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         scene: a scene folder overriding the spec's.
         overrides: ``key=value`` overrides of the spec (e.g. ``train.iterations=300``).
         force: recompute points that already have an ``ok`` record.
+        executor: local or ray (``sweep.executors``).
+        address: ray only: None starts a local Ray instance (``jobs`` CPUs when given), "auto" joins a cluster.
+        cpus_per_job, gpus_per_job: ray only: the resources each job asks for (and its torch threads).
+        retries: extra runs of a job whose worker died or whose points failed.
 
     Raises:
         UserError: a bad spec, or (after writing everything) when some points failed.
     """
+    from uncertsplat.console import progress
     from uncertsplat.device import resolve_device
     from uncertsplat.report.sweep_page import build_sweep_page
-    from uncertsplat.sweep.jobs import run_job
+    from uncertsplat.sweep.executors import EXECUTORS, require_ray, run_local, run_ray
     from uncertsplat.sweep.pareto import plot_pareto, summarize
     from uncertsplat.sweep.spec import load_spec, make_jobs
 
@@ -90,6 +97,12 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         jobs = 1 if dev.type == "cuda" else (os.cpu_count() or 1)
     if jobs < 1:
         raise UserError(f"--jobs must be at least 1, got {jobs}")
+    if executor not in EXECUTORS:
+        raise UserError(f"unknown executor {executor!r}", hint=f"Choose one of: {', '.join(EXECUTORS)}.")
+    if retries < 0:
+        raise UserError(f"--retries must be at least 0, got {retries}")
+    if executor == "ray":
+        require_ray()  # before any work, with the install command
     out_dir.mkdir(parents=True, exist_ok=True)
     with run_lock(out_dir, "sweep"):
         scene_path = Path(scene) if scene is not None else spec.scene
@@ -114,14 +127,36 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
             if job["points"]:
                 todo.append(job)
         npts = sum(len(j["points"]) for j in todo)
+        where = (f"{min(jobs, max(len(todo), 1))} at a time" if executor == "local" else
+                 f"on Ray ({address or 'a local instance'}, {cpus_per_job:g} CPU / {gpus_per_job:g} GPU per job)")
         console.print(f"[bold]sweep[/] {spec.name}: {npts} points to run in {len(todo)} jobs "
-                      f"({len(done)} already done), {min(jobs, max(len(todo), 1))} at a time, device {dev}")
+                      f"({len(done)} already done), {where}, device {dev}, {retries} retries")
+        counts = {"done": 0, "failed": 0, "running": 0}
+        bar = progress()
+        task = bar.add_task("sweep", total=npts, info="")
+
+        def show() -> None:
+            bar.update(task, completed=counts["done"] + counts["failed"],
+                       info=f"done {counts['done']}  running {counts['running']}  failed {counts['failed']}")
+
+        def started(job: dict) -> None:
+            counts["running"] += len(job["points"])
+            show()
 
         def record(dicts: list[dict]) -> None:
+            for r in dicts:
+                r.setdefault("executor", executor)
             recs = [SweepRecord.model_validate(r) for r in dicts]  # a writer bug fails here, not in a later read
+            # one write of whole lines from this process only: a crash leaves no half record (read_records skips a
+            # line cut short anyway)
             with open(log, "a", encoding="utf-8") as f:
-                for r in recs:
-                    f.write(r.model_dump_json() + "\n")
+                f.write("".join(r.model_dump_json() + "\n" for r in recs))
+                f.flush()
+                os.fsync(f.fileno())
+            counts["running"] = max(0, counts["running"] - len(recs))
+            counts["done"] += sum(r.status == "ok" for r in recs)
+            counts["failed"] += sum(r.status != "ok" for r in recs)
+            show()
             for r in recs:
                 if r.status == "ok":
                     console.print(f"  {r.id}: PSNR {_num(r.psnr, 2)}, AUSE {_num(r.ause_mae, 4)}, NLL {_num(r.nll, 3)}, "
@@ -129,24 +164,12 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                 else:
                     console.print(f"  [red]{r.id} failed[/] in {r.stage}: {r.error}")
 
-        if jobs == 1 or len(todo) <= 1:
-            for job in todo:
-                record(run_job(job))
-        else:
-            for job in todo:
-                job["threads"] = 1  # jobs share the cores: oversubscribing threads only slows them all
-            ctx = get_context("spawn")  # no fork of a process holding torch threads
-            with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx, max_tasks_per_child=1) as pool:
-                futures = {pool.submit(run_job, job): job for job in todo}
-                for fut in as_completed(futures):
-                    job = futures[fut]
-                    try:
-                        recs = fut.result()
-                    except Exception as err:  # the worker died (e.g. out of memory)
-                        recs = [{"id": p["id"], "hash": p["hash"], "job": job["job_id"], "knobs": p["knobs"],
-                                 "method": job["method_label"], "is_default": p["is_default"], "status": "failed",
-                                 "stage": "worker", "error": f"{type(err).__name__}: {err}"} for p in job["points"]]
-                    record(recs)
+        with bar:
+            if executor == "ray":
+                run_ray(todo, address=address, cpus_per_job=cpus_per_job, gpus_per_job=gpus_per_job, retries=retries,
+                        on_records=record, on_start=started, num_cpus=jobs if address is None else None)
+            else:
+                run_local(todo, jobs=jobs, retries=retries, on_records=record, on_start=started)
 
         records = [r for r in read_records(log) if r.hash in hashes]
         summary = summarize(spec, records)

@@ -1,0 +1,144 @@
+"""Sweeps on Ray (``sweep.executors``): a local Ray instance of 2 CPUs, no network.
+
+The retry rules are tested with stand-in jobs (a function that raises, one that kills its worker), so they
+take seconds; one real sweep on the tiny scene checks that Ray gives the local executor's records.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.fixtures import tiny_scene
+from uncertsplat.errors import UserError
+from uncertsplat.stages import sweep
+from uncertsplat.sweep.executors import run_local, run_ray
+
+ray = pytest.importorskip("ray", reason="the ray extra (pip install 'uncertsplat[ray]')")
+
+SPEC = """
+name = "ray-sweep"
+train_preset = "tiny"
+train = { eval_every = 1000, checkpoint_every = 1000, log_every = 10 }
+evaluate = { max_views = 1 }
+[default]
+method = "variational"
+iterations = 16
+num_entries = 4
+num_samples = 3
+downscale = 4.0
+[axes]
+num_samples = [1, 3, 5]
+num_entries = [2, 4]
+"""
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    yield
+    ray.shutdown()
+
+
+def _job(name: str) -> dict:
+    return {"job_id": name, "method_label": "stand-in",
+            "points": [{"id": f"{name}-p", "hash": name, "knobs": {}, "is_default": False}]}
+
+
+def _ok(job: dict) -> list[dict]:
+    p = job["points"][0]
+    return [{"id": p["id"], "hash": p["hash"], "job": job["job_id"], "knobs": {}, "method": "stand-in",
+             "is_default": False, "status": "ok"}]
+
+
+class TestRetries:
+    @pytest.mark.parametrize("executor", ["local", "ray"])
+    def test_a_failing_point_is_retried_then_recorded_failed_while_the_others_finish(self, executor, local_ray,
+                                                                                       tmp_path):
+        calls = tmp_path / "calls"
+        calls.mkdir()
+
+        def run_job(job):
+            (calls / f"{job['job_id']}-{len(list(calls.glob(job['job_id'] + '-*')))}").touch()
+            if job["job_id"] == "bad":
+                p = job["points"][0]
+                return [{"id": p["id"], "hash": p["hash"], "job": "bad", "knobs": {}, "method": "stand-in",
+                         "is_default": False, "status": "failed", "stage": "train", "error": "ValueError: boom"}]
+            return _ok(job)
+
+        got: list[dict] = []
+        jobs = [_job("a"), _job("bad"), _job("b")]
+        if executor == "ray":
+            run_ray(jobs, address=None, cpus_per_job=1, gpus_per_job=0, retries=2, on_records=got.extend,
+                    run_job=run_job)
+        else:
+            run_local(jobs, jobs=1, retries=2, on_records=got.extend, run_job=run_job)
+        by_job = {r["job"]: r for r in got}
+        assert by_job["a"]["status"] == by_job["b"]["status"] == "ok"
+        assert by_job["bad"]["status"] == "failed" and "boom" in by_job["bad"]["error"]
+        assert by_job["bad"]["attempts"] == 3 and by_job["a"]["attempts"] == 1
+        assert len(list(calls.glob("bad-*"))) == 3
+
+    def test_a_killed_worker_is_retried(self, local_ray, tmp_path):
+        marker = tmp_path / "killed-once"
+
+        def run_job(job):
+            if not marker.exists():
+                marker.touch()
+                os._exit(1)  # the worker dies mid-point (as when the OOM killer takes it)
+            return _ok(job)
+
+        got: list[dict] = []
+        run_ray([_job("a")], address=None, cpus_per_job=1, gpus_per_job=0, retries=1, on_records=got.extend,
+                run_job=run_job)
+        assert got[0]["status"] == "ok" and got[0]["attempts"] == 2
+
+    def test_a_worker_that_always_dies_is_recorded_failed(self, local_ray):
+        def run_job(job):
+            os._exit(1)
+
+        got: list[dict] = []
+        run_ray([_job("a")], address=None, cpus_per_job=1, gpus_per_job=0, retries=1, on_records=got.extend,
+                run_job=run_job)
+        assert got[0]["status"] == "failed" and got[0]["stage"] == "worker" and got[0]["attempts"] == 2
+
+    def test_a_request_the_cluster_cannot_meet(self, local_ray):
+        with pytest.raises(UserError, match="would never run"):
+            run_ray([_job("a")], address=None, cpus_per_job=1, gpus_per_job=1, retries=0, on_records=list,
+                    run_job=_ok)
+
+
+def test_without_ray_one_message_with_the_install_command(monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "ray", None)
+    spec = tmp_path / "spec.toml"
+    spec.write_text(SPEC)
+    with pytest.raises(UserError, match=r"pip install 'uncertsplat\[ray\]'"):
+        sweep.run(spec, tmp_path / "out", device="cpu", executor="ray")
+    assert not (tmp_path / "out" / "sweep.jsonl").exists()
+
+
+def test_ray_gives_the_local_executors_records(local_ray, tmp_path_factory, tmp_path):
+    scene = tiny_scene(tmp_path_factory.getbasetemp() / "shared_scenes")
+    spec = tmp_path / "spec.toml"
+    spec.write_text(SPEC)
+    local = sweep.run(spec, tmp_path / "local", jobs=1, device="cpu", scene=scene)
+    on_ray = sweep.run(spec, tmp_path / "ray", device="cpu", scene=scene, executor="ray")
+    assert local.num_points == on_ray.num_points == 4 and on_ray.num_failed == 0
+    a = {r.id: r for r in local.records}
+    b = {r.id: r for r in on_ray.records}
+    assert a.keys() == b.keys()
+    for k in a:
+        assert b[k].executor == "ray" and a[k].executor == "local"
+        # the same seeds give the same numbers (the native kernels do not depend on the thread count)
+        for key in ("psnr", "ause_mae", "nll", "num_gaussians"):
+            assert getattr(b[k], key) == pytest.approx(getattr(a[k], key), rel=1e-4, abs=1e-6), (k, key)
+    # re-running skips every finished point
+    again = sweep.run(spec, tmp_path / "ray", device="cpu", scene=scene, executor="ray")
+    lines = (tmp_path / "ray" / "sweep.jsonl").read_text().splitlines()
+    assert len(lines) == 4 and again.num_points == 4
+    assert all(json.loads(line)["status"] == "ok" for line in lines)
+    assert Path(tmp_path / "ray" / "pareto.png").is_file()

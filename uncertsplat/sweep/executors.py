@@ -1,0 +1,183 @@
+"""Where a sweep's jobs run: this machine's cores (``local``) or a Ray cluster (``ray``).
+
+Both take the jobs of ``sweep.spec.make_jobs`` and hand every finished job's records (``sweep.jobs.run_job``)
+to ``on_records`` in the driver, which alone appends them to ``sweep.jsonl``. Both retry: a job whose worker
+died (killed, out of memory) or whose records failed is run again, up to ``retries`` more times, and then its
+records are kept as failed with the last error. The other jobs go on meanwhile.
+
+- ``local``: one job at a time in this process (``jobs = 1``), else a process pool of fresh processes (one
+  per job, one torch thread each). Needs nothing beyond the package.
+- ``ray``: every job is a Ray task asking for ``cpus_per_job`` CPUs and ``gpus_per_job`` GPUs (the job gets as
+  many torch threads). ``address`` None starts a local Ray instance with this machine's cores; ``"auto"`` (or
+  ``ray://...``) joins a running cluster, whose workers must reach the scene and the output folder at the same
+  paths (a shared filesystem). Ray is an optional dependency (``pip install 'uncertsplat[ray]'``).
+
+Ctrl-C cancels what has not finished (Ray tasks are cancelled, the pool's workers stopped) and leaves the
+finished records in ``sweep.jsonl``.
+"""
+
+from __future__ import annotations
+
+import traceback
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from multiprocessing import get_context
+
+from uncertsplat.errors import UserError
+
+RAY_INSTALL_HINT = "Install it with: pip install 'uncertsplat[ray]' (or: pip install ray)."
+EXECUTORS = ("local", "ray")
+
+OnRecords = Callable[[list[dict]], None]
+OnStart = Callable[[dict], None]
+
+
+def failed_records(job: dict, error: str, stage: str = "worker") -> list[dict]:
+    """One failed record per point of ``job`` (the job's worker died, or every retry failed)."""
+    return [{"id": p["id"], "hash": p["hash"], "job": job["job_id"], "knobs": p["knobs"], "method": job["method_label"],
+             "is_default": p["is_default"], "status": "failed", "stage": stage, "error": error}
+            for p in job["points"]]
+
+
+def _retry_needed(records: list[dict]) -> bool:
+    return any(r.get("status") != "ok" for r in records)
+
+
+def _with_attempts(records: list[dict], attempts: int) -> list[dict]:
+    for r in records:
+        r["attempts"] = attempts
+    return records
+
+
+def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecords,
+              on_start: OnStart | None = None, run_job: Callable[[dict], list[dict]] | None = None) -> None:
+    """Run ``todo`` on this machine (see the module docstring)."""
+    if run_job is None:
+        from uncertsplat.sweep.jobs import run_job
+    if jobs == 1 or len(todo) <= 1:
+        for job in todo:
+            for attempt in range(1, retries + 2):
+                if on_start:
+                    on_start(job)
+                try:
+                    recs = run_job(job)
+                except Exception as err:  # run_job reports its own failures; this is a bug or an interrupt-free crash
+                    recs = failed_records(job, f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
+                if not _retry_needed(recs) or attempt == retries + 1:
+                    on_records(_with_attempts(recs, attempt))
+                    break
+        return
+    for job in todo:
+        job["threads"] = 1  # jobs share the cores: oversubscribing threads only slows them all
+    ctx = get_context("spawn")  # no fork of a process holding torch threads
+    with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx, max_tasks_per_child=1) as pool:
+        attempts: dict[str, int] = {}
+        futures = {}
+
+        def submit(job: dict) -> None:
+            attempts[job["job_id"]] = attempts.get(job["job_id"], 0) + 1
+            if on_start:
+                on_start(job)
+            futures[pool.submit(run_job, job)] = job
+
+        for job in todo:
+            submit(job)
+        try:
+            while futures:
+                done, _ = wait(list(futures), return_when=FIRST_COMPLETED)
+                for fut in done:
+                    job = futures.pop(fut)
+                    try:
+                        recs = fut.result()
+                    except Exception as err:  # the worker died (e.g. out of memory, killed)
+                        recs = failed_records(job, f"{type(err).__name__}: {err}")
+                    n = attempts[job["job_id"]]
+                    if _retry_needed(recs) and n <= retries:
+                        submit(job)
+                    else:
+                        on_records(_with_attempts(recs, n))
+        except KeyboardInterrupt:
+            for fut in futures:
+                fut.cancel()
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+
+
+def require_ray():
+    """Import ray, or raise one UserError with the install command."""
+    try:
+        import ray
+    except ImportError as err:
+        raise UserError(f"--executor ray needs the ray package, which is not installed ({err})",
+                        hint=RAY_INSTALL_HINT) from None
+    return ray
+
+
+def run_ray(todo: list[dict], *, address: str | None, cpus_per_job: float, gpus_per_job: float, retries: int,
+            on_records: OnRecords, on_start: OnStart | None = None, num_cpus: int | None = None,
+            run_job: Callable[[dict], list[dict]] | None = None) -> None:
+    """Run ``todo`` as Ray tasks (see the module docstring).
+
+    ``num_cpus`` (a local instance only): the CPUs it may use (default: all of this machine's).
+    """
+    ray = require_ray()
+    if run_job is None:
+        from uncertsplat.sweep.jobs import run_job
+    started_here = False
+    if not ray.is_initialized():
+        kwargs = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
+        try:
+            if address is None:
+                ray.init(num_cpus=num_cpus, **kwargs)
+            else:
+                ray.init(address=address, **kwargs)
+        except ConnectionError as err:
+            raise UserError(f"cannot reach the Ray cluster at {address!r} ({err})",
+                            hint="Start it on the head node (ray start --head) and run the sweep there with "
+                                 "--address auto, or leave --address out to use this machine only.") from None
+        started_here = True
+    total = ray.cluster_resources()
+    if cpus_per_job > total.get("CPU", 0) or gpus_per_job > total.get("GPU", 0):
+        if started_here:
+            ray.shutdown()
+        raise UserError(f"a job asks for {cpus_per_job:g} CPUs and {gpus_per_job:g} GPUs, and the Ray cluster has "
+                        f"{total.get('CPU', 0):g} CPUs and {total.get('GPU', 0):g} GPUs in all, so it would never run",
+                        hint="Lower --cpus-per-job / --gpus-per-job, or add nodes with those resources.")
+    # every retry is the loop's (a dead worker and failed records alike), so a job runs at most retries + 1 times
+    task = ray.remote(num_cpus=cpus_per_job, num_gpus=gpus_per_job, max_retries=0)(run_job)
+    attempts: dict[str, int] = {}
+    pending: dict = {}
+
+    def submit(job: dict) -> None:
+        attempts[job["job_id"]] = attempts.get(job["job_id"], 0) + 1
+        job = {**job, "threads": max(1, int(cpus_per_job))}
+        if on_start:
+            on_start(job)
+        pending[task.remote(job)] = job
+
+    try:
+        for job in todo:
+            submit(job)
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            for ref in done:
+                job = pending.pop(ref)
+                try:
+                    recs = ray.get(ref)
+                except Exception as err:  # the worker died more often than Ray retries, or the task raised
+                    recs = failed_records(job, f"{type(err).__name__}: {str(err)[:2000]}")
+                n = attempts[job["job_id"]]
+                if _retry_needed(recs) and n <= retries:
+                    submit(job)
+                else:
+                    on_records(_with_attempts(recs, n))
+    except KeyboardInterrupt:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        raise
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+__all__ = ["EXECUTORS", "RAY_INSTALL_HINT", "failed_records", "require_ray", "run_local", "run_ray"]
