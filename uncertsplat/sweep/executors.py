@@ -49,6 +49,15 @@ def _with_attempts(records: list[dict], attempts: int) -> list[dict]:
     return records
 
 
+def _settle(job: dict, recs: list[dict], attempt: int, retries: int, resubmit: Callable[[dict], None],
+            on_records: OnRecords) -> None:
+    """Run ``job`` again when its records failed and retries are left, else report them with the attempt count."""
+    if _retry_needed(recs) and attempt <= retries:
+        resubmit(job)
+    else:
+        on_records(_with_attempts(recs, attempt))
+
+
 def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecords,
               on_start: OnStart | None = None, run_job: Callable[[dict], list[dict]] | None = None) -> None:
     """Run ``todo`` on this machine (see the module docstring)."""
@@ -91,11 +100,7 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
                         recs = fut.result()
                     except Exception as err:  # the worker died (e.g. out of memory, killed)
                         recs = failed_records(job, f"{type(err).__name__}: {err}")
-                    n = attempts[job["job_id"]]
-                    if _retry_needed(recs) and n <= retries:
-                        submit(job)
-                    else:
-                        on_records(_with_attempts(recs, n))
+                    _settle(job, recs, attempts[job["job_id"]], retries, submit, on_records)
         except KeyboardInterrupt:
             for fut in futures:
                 fut.cancel()
@@ -164,13 +169,9 @@ def run_ray(todo: list[dict], *, address: str | None, cpus_per_job: float, gpus_
                 job = pending.pop(ref)
                 try:
                     recs = ray.get(ref)
-                except Exception as err:  # the worker died more often than Ray retries, or the task raised
+                except Exception as err:  # the worker died (Ray does not retry it: max_retries=0) or the task raised
                     recs = failed_records(job, f"{type(err).__name__}: {str(err)[:2000]}")
-                n = attempts[job["job_id"]]
-                if _retry_needed(recs) and n <= retries:
-                    submit(job)
-                else:
-                    on_records(_with_attempts(recs, n))
+                _settle(job, recs, attempts[job["job_id"]], retries, submit, on_records)
     except KeyboardInterrupt:
         for ref in pending:
             ray.cancel(ref, force=True)
