@@ -317,14 +317,18 @@ def sweep(
     cpus_per_job: Annotated[float, typer.Option(help="ray: CPUs each job asks for (and its torch threads).")] = 1.0,
     gpus_per_job: Annotated[float, typer.Option(help="ray: GPUs each job asks for.")] = 0.0,
     retries: Annotated[int, typer.Option(help="Runs again a job whose worker died or whose points failed.")] = 1,
+    scenes: Annotated[str | None, typer.Option(
+        help="Only these of the spec's [scenes.NAME], comma-separated (e.g. fern,bonsai).")] = None,
     device: DeviceOpt = "auto",
     set_: SetOpt = None,
 ):
     """Measure the speed-accuracy trade: train/evaluate each point of a sweep and draw the Pareto front."""
     from uncertsplat.stages import sweep as stage
 
+    only = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
     stage.run(spec, output, jobs=jobs, device=device, scene=scene, overrides=set_, force=force, executor=executor,
-              address=address, cpus_per_job=cpus_per_job, gpus_per_job=gpus_per_job, retries=retries)
+              address=address, cpus_per_job=cpus_per_job, gpus_per_job=gpus_per_job, retries=retries,
+              only_scenes=only)
 
 
 @app.command("run")

@@ -34,5 +34,22 @@ class UserError(Exception):
         return text
 
 
+def require_extra(module: str, *, feature: str, extra: str):
+    """Import an optional dependency, or raise one UserError naming the feature and the install command.
+
+    Args:
+        module: the package to import (``"ray"``).
+        feature: what needs it, as the user asked for it (``"--executor ray"``).
+        extra: the project's extra that installs it (``pip install 'uncertsplat[EXTRA]'``).
+    """
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as err:
+        raise UserError(f"{feature} needs the {module} package, which is not installed ({err})",
+                        hint=f"Install it with: pip install 'uncertsplat[{extra}]' (or: pip install {module}).") from None
+
+
 class StageError(UserError):
     """A pipeline stage failed; the message says which stage and why."""

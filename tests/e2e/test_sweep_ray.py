@@ -142,3 +142,75 @@ def test_ray_gives_the_local_executors_records(local_ray, tmp_path_factory, tmp_
     assert len(lines) == 4 and again.num_points == 4
     assert all(json.loads(line)["status"] == "ok" for line in lines)
     assert Path(tmp_path / "ray" / "pareto.png").is_file()
+
+
+CTRL_C_SPEC = """
+name = "ray-ctrl-c"
+seeds = [0, 1, 2, 3]
+train_preset = "tiny"
+train = {{ eval_every = 1000, checkpoint_every = 1000, log_every = 1000 }}
+evaluate = {{ max_views = 1, num_samples = 2 }}
+[default]
+method = "variational"
+iterations = {iterations}
+downscale = 4.0
+"""
+
+
+def test_ctrl_c_cancels_the_ray_jobs_and_keeps_the_finished_records(tmp_path_factory, tmp_path):
+    """A real `uncertsplat sweep --executor ray` subprocess, Ctrl-C once the first records are written: exit 130
+    without a traceback, every line of sweep.jsonl a whole record, no Ray process of its own left; the same
+    command then runs only the points that were missing."""
+    import signal
+    import subprocess
+    import tempfile
+    import time
+
+    if not Path("/proc/self/cmdline").is_file():
+        pytest.skip("reads the process table from /proc")
+    scene = tiny_scene(tmp_path_factory.getbasetemp() / "shared_scenes")
+    spec = tmp_path / "spec.toml"
+    spec.write_text(CTRL_C_SPEC.format(iterations=400))
+    out = tmp_path / "out"
+    ray_tmp = tempfile.mkdtemp(prefix="rc", dir="/tmp")  # Ray's sockets need a short path
+    env = {**os.environ, "RAY_TMPDIR": ray_tmp, "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "uncertsplat.cli", "sweep", str(spec), "-o", str(out), "--scene", str(scene),
+           "--device", "cpu", "--executor", "ray", "--jobs", "2", "--retries", "0"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+    log = out / "sweep.jsonl"
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 240 and proc.poll() is None:
+        if log.is_file() and log.read_text().strip():
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.communicate()[0][-3000:]
+    assert log.is_file(), "no record within 240 s"
+    proc.send_signal(signal.SIGINT)
+    output = proc.communicate(timeout=120)[0]
+    assert proc.returncode == 130, output[-3000:]
+    assert "interrupted" in output and "Traceback" not in output, output[-3000:]
+    lines = log.read_text().splitlines()
+    assert 1 <= len(lines) < 4
+    recs = [json.loads(line) for line in lines]  # every line a whole record
+    assert all(r["status"] == "ok" and r["executor"] == "ray" for r in recs)
+    time.sleep(2.0)
+
+    def ray_processes() -> list[str]:  # processes of this sweep's Ray instance (its temp dir is on their command line)
+        found = []
+        for f in Path("/proc").glob("[0-9]*/cmdline"):
+            try:
+                cmdline = f.read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            except OSError:
+                continue  # gone meanwhile
+            if ray_tmp in cmdline:
+                found.append(cmdline[:120])
+        return found
+
+    assert not ray_processes()
+    # the same command (here on the local executor: the records do not depend on it) runs only the rest
+    done = {r["id"] for r in recs}
+    again = sweep.run(spec, out, jobs=2, device="cpu", scene=scene)
+    ids = [json.loads(line)["id"] for line in log.read_text().splitlines()]
+    assert len(ids) == 4 and len(set(ids)) == 4 and again.num_failed == 0
+    assert set(ids[: len(done)]) == done

@@ -43,3 +43,24 @@ def test_page_marks_front_and_default_and_lists_failures(tmp_path):
 def test_page_without_points_says_so():
     page = build_sweep_page(_summary([], {}, None), None)
     assert "No point has finished" in page and "<img" not in page
+
+
+def test_page_shows_the_table_over_seeds_per_scene(tmp_path):
+    from uncertsplat.sweep.pareto import summarize
+    from uncertsplat.sweep.spec import SweepSpec
+
+    recs = []
+    for scene in ("a", "b"):
+        for seed, (t, ause) in enumerate([(10.0, 0.3), (12.0, 0.5)]):
+            r = _rec(f"{scene}.variational_seed{seed}", "variational", t, ause, default=True)
+            recs.append(r.model_copy(update={"scene": scene, "seed": seed}))
+    spec = SweepSpec(scenes={"a": {"synth": {}}, "b": {"synth": {}}}, seeds=[0, 1])
+    summary = SweepSummary.read(summarize(spec, recs).write(tmp_path / "sweep.json"))
+    page = build_sweep_page(summary, "pareto.png")
+    row = re.search(r'<tr [^>]*data-group="a.variational">(.*?)</tr>', page, re.S).group(1)
+    assert "0.4000 ± 0.1414" in row and 'data-key="ause_mae" data-value="0.4"' in row
+    assert "★" in row and "front" in row and "0, 1" in row
+    point = re.search(r'<tr [^>]*data-point="b.variational_seed1">(.*?)</tr>', page, re.S).group(1)
+    assert "front" in point  # a seed's record is marked when its point (over seeds) is on the front
+    single = build_sweep_page(_summary([_rec("a", "variational", 1.0, 0.1, default=True)], {}, "a"), None)
+    assert 'id="sweep-table"' not in single  # one scene, one seed: the points table says it all

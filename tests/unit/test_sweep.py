@@ -161,3 +161,163 @@ def test_bad_spec_names_the_key(tmp_path):
     f.write_text('name = "x"\n[axes]\nnum_entriez = [1]\n')
     with pytest.raises(UserError, match="num_entriez"):
         load_spec(f)
+
+
+# ------------------------------------------------------------------------------------------ scenes and seeds
+MULTI = """
+name = "multi"
+seeds = [3, 1]
+train_preset = "tiny"
+evaluate = { split = "test" }
+[scenes.synthetic]
+synth = { preset = "tiny", seed = 0 }
+[scenes.mine]
+path = "captures/mine"
+train_preset = "paper"
+train = { scene = { downscale = 2.0 } }
+evaluate = { num_samples = 4 }
+[default]
+method = "variational"
+[axes]
+method = ["fisher"]
+num_samples = [2]
+"""
+
+
+def test_scenes_and_seeds_replicate_every_point(tmp_path):
+    f = tmp_path / "spec.toml"
+    f.write_text(MULTI)
+    s = load_spec(f)
+    assert s.scenes["mine"].path == tmp_path / "captures" / "mine"  # read from the spec's folder
+    jobs = make_jobs(s, tmp_path / "out", {"synthetic": tmp_path / "a", "mine": tmp_path / "b"}, "cpu")
+    pts = [(j, p) for j in jobs for p in j["points"]]
+    # 3 points (default, fisher, K=2) x 2 scenes x 2 seeds, in 2 trainings per scene and seed
+    assert len(pts) == 12 and len(jobs) == 8
+    ids = {p["id"] for _, p in pts}
+    assert "synthetic.variational_seed3" in ids and "mine.fisher_seed1" in ids and "mine.variational_k2_seed1" in ids
+    assert len({p["hash"] for _, p in pts}) == 12
+    for j, p in pts:
+        assert j["seed"] == j["train_config"]["seed"] == p["eval_config"]["seed"]
+        assert j["run_dir"] == str((tmp_path / "out" / "runs" / j["scene_name"] / j["job_id"].split(".", 1)[1]).resolve())
+        if j["scene_name"] == "mine":  # the scene's own preset and keys over the spec's
+            assert j["train_config"]["scene"]["downscale"] == 2.0 and j["scene"] == str((tmp_path / "b").resolve())
+            assert p["eval_config"]["num_samples"] == (2 if "_k2" in p["id"] else 4)
+        else:
+            assert j["train_config"]["scene"]["downscale"] == 1.0
+    paper = point_configs(s, s.default, "mine", 1)[0]
+    tiny = point_configs(s, s.default, "synthetic", 1)[0]
+    assert paper.iterations != tiny.iterations  # the presets differ
+    assert sum(p["is_default"] for _, p in pts) == 4  # one default per scene and seed
+    # the same configs on another scene are other points: the scene is part of the hash
+    one = SweepSpec(scenes={"a": {"synth": {}}, "b": {"synth": {}}})
+    hashes = [p["hash"] for j in make_jobs(one, tmp_path, {"a": tmp_path, "b": tmp_path}, "cpu") for p in j["points"]]
+    assert len(set(hashes)) == 2
+
+
+def test_single_scene_specs_keep_their_ids_and_hashes(tmp_path):
+    from uncertsplat.provenance import hash_config
+
+    s = spec()
+    (job,) = make_jobs(s, tmp_path, tmp_path / "scene", "cpu")
+    (p,) = job["points"]
+    t, e = point_configs(s, s.default)
+    assert p["hash"] == hash_config({"train": t.model_dump(mode="json"), "eval": e.model_dump(mode="json")})
+    assert p["id"] == point_id(s.default) and "seed" not in p["id"] and job["scene_name"] is None
+    assert job["run_dir"] == str((tmp_path / "runs" / job["job_id"]).resolve())
+
+
+@pytest.mark.parametrize(("toml", "match"), [
+    ('[scenes.a]\npath = "x"\nsynth = {}\n', "exactly one of path, photos or synth"),
+    ("[scenes.a]\n", "exactly one of path, photos or synth"),
+    ('[scenes."a b"]\nsynth = {}\n', "scene name"),
+    ('[scenes.a]\nsynth = {}\nreconstruct = { matcher = "exhaustive" }\n', "only apply to a `photos` scene"),
+    ('seeds = [1, 1]\n', "distinct"),
+    ('scene = "x"\n[scenes.a]\nsynth = {}\n', "not both"),
+])
+def test_bad_scenes_and_seeds_are_refused(tmp_path, toml, match):
+    f = tmp_path / "s.toml"
+    f.write_text(toml)
+    with pytest.raises(UserError, match=match):
+        load_spec(f)
+
+
+def _record(pid, status="ok", psnr=20.0, time=1.0, scene=None, seed=None, default=False):
+    from uncertsplat.schemas import SweepRecord
+
+    extra = dict(psnr=psnr, time=time, ause_mae=0.1 * time, nll=1.0) if status == "ok" else dict(error="x")
+    return SweepRecord(id=pid, hash=pid, job="j", method=pid.split(".")[-1].split("_")[0], knobs={},
+                       is_default=default, status=status, scene=scene, seed=seed, **extra)
+
+
+def test_table_averages_seeds_and_fronts_are_per_scene():
+    from uncertsplat.sweep.pareto import group_records, summarize
+
+    recs = [_record("a.variational_seed0", psnr=20.0, time=2.0, scene="a", seed=0, default=True),
+            _record("a.variational_seed1", psnr=22.0, time=4.0, scene="a", seed=1, default=True),
+            _record("a.variational_seed2", status="failed", scene="a", seed=2, default=True),
+            _record("a.fisher_seed0", psnr=18.0, time=1.0, scene="a", seed=0),
+            _record("b.variational_seed0", psnr=30.0, time=9.0, scene="b", seed=0, default=True)]
+    table = {g.id: g for g in group_records(recs)}
+    assert list(table) == ["a.variational", "a.fisher", "b.variational"]
+    v = table["a.variational"]
+    assert v.seeds == [0, 1] and v.num_failed == 1
+    assert v.mean["psnr"] == pytest.approx(21.0) and v.spread["psnr"] == pytest.approx(2 ** 0.5)
+    assert v.mean["time"] == pytest.approx(3.0) and table["a.fisher"].spread["psnr"] is None  # one seed: no spread
+    s = SweepSpec(scenes={"a": {"synth": {}}, "b": {"synth": {}}}, seeds=[0, 1, 2], pareto_y=["ause_mae"])
+    summary = summarize(s, recs)
+    # per scene: on a, fisher (faster, lower AUSE) dominates the variational mean; b has its one point
+    assert summary.pareto == {"a: ause_mae_vs_time": ["a.fisher"], "b: ause_mae_vs_time": ["b.variational"]}
+    assert summary.default == "a.variational" and summary.num_failed == 1
+
+
+def test_multi_scene_sweep_refuses_scene_flag_and_missing_folders(tmp_path):
+    from uncertsplat.stages import sweep
+
+    f = tmp_path / "s.toml"
+    f.write_text('[scenes.mine]\npath = "nowhere"\n')
+    with pytest.raises(UserError, match="names 1 scenes"):
+        sweep.run(f, tmp_path / "out", device="cpu", scene=tmp_path)
+    with pytest.raises(UserError, match="scene 'mine' does not exist") as err:
+        sweep.run(f, tmp_path / "out", device="cpu")
+    assert "scenes.mine.path" in err.value.hint
+    f.write_text('[scenes.mine]\nphotos = "nowhere"\n')
+    with pytest.raises(UserError, match="photos folder of sweep scene 'mine'"):
+        sweep.run(f, tmp_path / "out", device="cpu")
+
+
+def test_a_scene_can_move_the_default_the_axes_vary_around(tmp_path):
+    s = SweepSpec(train_preset="tiny", default={"iterations": 20, "num_samples": 5},
+                  axes={"num_samples": [2]},
+                  scenes={"small": {"synth": {}}, "long": {"synth": {}, "default": {"iterations": 40}}})
+    jobs = make_jobs(s, tmp_path, {"small": tmp_path, "long": tmp_path}, "cpu")
+    its = {p["id"]: j["train_config"]["iterations"] for j in jobs for p in j["points"]}
+    assert its == {"small.variational_it20_k5": 20, "small.variational_it20_k2": 20,
+                   "long.variational_it40_k5": 40, "long.variational_it40_k2": 40}
+    defaults = [p["id"] for j in jobs for p in j["points"] if p["is_default"]]
+    assert sorted(defaults) == ["long.variational_it40_k5", "small.variational_it20_k5"]
+    with pytest.raises(ValueError, match="unknown knob"):
+        SweepSpec(scenes={"a": {"synth": {}, "default": {"iterationz": 3}}})
+    with pytest.raises(ValueError, match="scenes.a.default"):
+        SweepSpec(scenes={"a": {"synth": {}, "default": {"iterations": 0}}})
+
+
+def test_only_scenes_restricts_a_multi_scene_spec(tmp_path):
+    from uncertsplat.stages import sweep
+
+    f = tmp_path / "s.toml"
+    f.write_text('[scenes.mine]\npath = "nowhere"\n[scenes.other]\npath = "nowhere2"\n')
+    with pytest.raises(UserError, match="--scenes names typo") as err:
+        sweep.run(f, tmp_path / "out", device="cpu", only_scenes=["typo"])
+    assert "mine, other" in err.value.hint
+    with pytest.raises(UserError, match="scene 'other' does not exist"):  # mine is not even looked at
+        sweep.run(f, tmp_path / "out", device="cpu", only_scenes=["other"])
+
+
+def test_methods_spec_file_is_valid():
+    s = load_spec(ROOT / "benchmarks" / "specs" / "methods.toml")
+    assert set(s.scenes) == {"synthetic", "fern", "bonsai"} and s.seeds == [0, 1, 2]
+    assert s.scenes["fern"].photos.resolve() == (ROOT.parent / "shared" / "datasets" / "fern" / "images").resolve()
+    jobs = make_jobs(s, ROOT / "never-written", {n: ROOT for n in s.scenes}, "cpu")
+    assert len(jobs) == 45  # 5 methods x 3 scenes x 3 seeds
+    fern = next(j for j in jobs if j["scene_name"] == "fern")["train_config"]
+    assert fern["iterations"] == 3000 and fern["densify"]["until"] < 3000  # the paper's schedule, scaled

@@ -11,7 +11,7 @@ import math
 import time
 
 from uncertsplat.report.html import Cell, figure, kv, note, page, para, table
-from uncertsplat.schemas.runs import SweepRecord, SweepSummary
+from uncertsplat.schemas.runs import SweepGroup, SweepRecord, SweepSummary
 
 # (SweepRecord field, column header, format)
 COLUMNS: tuple[tuple[str, str, str], ...] = (
@@ -34,6 +34,15 @@ def _cell(rec: SweepRecord, key: str, fmt: str) -> Cell | str:
     return Cell(fmt.format(v), key=key, value=v)
 
 
+def _group_cell(g: SweepGroup, key: str, fmt: str) -> Cell | str:
+    """``mean ± spread`` over the seeds (the cell's value is the mean, as in ``sweep.json``)."""
+    m, s = g.mean.get(key), g.spread.get(key)
+    if m is None or not math.isfinite(m):
+        return "-"
+    text = fmt.format(m) + (f" ± {fmt.format(s)}" if s is not None and math.isfinite(s) else "")
+    return Cell(text, key=key, value=m)
+
+
 def _knobs(rec: SweepRecord) -> str:
     return ", ".join(f"{a}={b}" for a, b in rec.knobs.items())
 
@@ -47,7 +56,7 @@ def build_sweep_page(summary: SweepSummary, figure_rel: str | None) -> str:
     """
     recs = list(summary.records)
     fronts = summary.pareto
-    on_front = {pid for ids in fronts.values() for pid in ids}
+    on_front = {pid for ids in fronts.values() for pid in ids}  # ids of table rows (a point without its seed)
     default = summary.default
     ok = [r for r in recs if r.status == "ok"]
     failed = [r for r in recs if r.status != "ok"]
@@ -64,9 +73,25 @@ def build_sweep_page(summary: SweepSummary, figure_rel: str | None) -> str:
         body = note("No figure: no point has finished yet. Run the sweep again to resume it.")
     sections.append(("pareto", "Pareto front", body))
 
+    replicated = any(g.scene is not None or len(g.seeds) > 1 for g in summary.table)
+    if replicated:  # scenes or seeds: the table the fronts compare (a single-scene, single-seed sweep has the points)
+        grows = []
+        for g in summary.table:
+            mark = ("★ " if g.is_default else "") + ("front" if g.id in on_front else "")
+            seeds = ", ".join("-" if s is None else str(s) for s in g.seeds) or "none finished"
+            cells: list[Cell | str] = [Cell(g.scene or "-", text_cell=True), Cell(g.method, text_cell=True),
+                                       Cell(seeds, text_cell=True), Cell(mark.strip(), text_cell=True)]
+            cells += [_group_cell(g, key, fmt) for key, _, fmt in COLUMNS]
+            grows.append((g.id, cells))
+        body = table(["point", "scene", "method", "seeds", "default / front"] + [h for _, h, _ in COLUMNS], grows,
+                     table_id="sweep-table", row_attr="data-group")
+        body += para("Mean ± sample standard deviation over the seeds whose run finished; the Pareto fronts "
+                     "compare these means, per scene.", "legend")
+        sections.append(("table", "Per scene, over seeds", body))
+
     rows = []
     for r in sorted(ok, key=lambda r: (r.method, r.id)):
-        mark = ("★ " if r.id == default else "") + ("front" if r.id in on_front else "")
+        mark = ("★ " if r.is_default else "") + ("front" if r.group in on_front else "")
         cells: list[Cell | str] = [Cell(r.method, text_cell=True),
                                    Cell(_knobs(r), text_cell=True), Cell(mark.strip(), text_cell=True)]
         cells += [_cell(r, key, fmt) for key, _, fmt in COLUMNS]

@@ -210,6 +210,16 @@ class SweepRecord(Strict):
     """How many times the point's job ran (1 + retries after a failure or a dead worker); None before retries."""
     executor: str | None = None
     """local or ray (None in records written before the executors)."""
+    scene: str | None = None
+    """The spec's scene name (None for a single-scene spec)."""
+    seed: int | None = None
+    """The spec's seed for this point (None: the configs' own seed, no ``seeds`` list)."""
+
+    @property
+    def group(self) -> str:
+        """The point's id on its scene without the seed: the row of the sweep's table it belongs to."""
+        suffix = f"_seed{self.seed}"
+        return self.id[: -len(suffix)] if self.seed is not None and self.id.endswith(suffix) else self.id
     train_seconds: float | None = None
     trained_now: bool | None = None
     train_wall_seconds: float | None = None
@@ -258,6 +268,24 @@ class SweepRecord(Strict):
         return getattr(self, key, default)
 
 
+class SweepGroup(Strict):
+    """A point on one scene over its seeds: a row of the sweep's table (what the Pareto fronts compare)."""
+
+    id: str
+    """The point's id without the seed (``SCENE.POINT`` for named scenes)."""
+    scene: str | None = None
+    method: str
+    knobs: dict[str, Any]
+    is_default: bool
+    seeds: list[int | None]
+    """The seeds whose record is ok (what ``mean`` averages)."""
+    num_failed: int = 0
+    mean: dict[str, float | None]
+    """The mean over ``seeds`` of each metric and cost (None when no seed has it)."""
+    spread: dict[str, float | None]
+    """The sample standard deviation over ``seeds`` (None with fewer than 2)."""
+
+
 class SweepSummary(SchemaFile):
     """``OUT/sweep.json`` of ``uncertsplat sweep``: the latest record per point and the Pareto fronts."""
 
@@ -273,5 +301,7 @@ class SweepSummary(SchemaFile):
     default: str | None
     pareto_x: str
     pareto: dict[str, list[str]]
-    """"{y}_vs_{x}" -> ids of the points on that front."""
+    """"{y}_vs_{x}" (named scenes: "{scene}: {y}_vs_{x}") -> ids of the ``table`` rows on that front."""
     records: list[SweepRecord]
+    table: list[SweepGroup] = Field(default_factory=list)
+    """One row per point and scene: the mean and spread over its seeds (one seed: its record's values)."""

@@ -2,11 +2,16 @@
 
 Writes into ``OUT/``:
 - ``scene/``: the synthetic scene, when the spec names none;
-- ``runs/{job}/``: one run folder per training config (reused when unchanged: a sweep resumes);
-- ``points/{point}.json``: the full ``EvalReport`` of each point;
+- ``scenes/{name}/``: a named scene's synthetic scene or ``reconstruct`` workspace (``[scenes.NAME]`` with
+  ``synth`` or ``photos``), made once by this process before any job;
+- ``runs/{job}/`` (named scenes: ``runs/{scene}/{job}/``): one run folder per training config (reused when
+  unchanged: a sweep resumes);
+- ``points/{point}.json``: the full ``EvalReport`` of each point (written by this process from what the job
+  returns: workers write only into their run folders);
 - ``sweep.jsonl``: one JSON record per point (appended as jobs finish; see ``sweep.jobs.run_job``);
-- ``sweep.json``: the summary: spec, records (latest per point), default, Pareto fronts;
-- ``pareto.png``: accuracy vs time with the fronts and the default marked;
+- ``sweep.json``: the summary: spec, records (latest per point), the table (mean and spread over seeds of each
+  point on each scene), default, Pareto fronts (per scene);
+- ``pareto.png``: accuracy vs time with the fronts and the default marked (one row of panels per scene);
 - ``index.html``: the figure and a table of every point (front members and the default marked).
 
 Jobs (points sharing a training config) run where ``executor`` says (``sweep.executors``): ``local``, over
@@ -62,9 +67,52 @@ def read_records(path: Path) -> list[SweepRecord]:
     return out
 
 
+def _synth(keys: dict, folder: Path) -> Path:
+    """The synthetic scene of ``keys`` (SynthConfig) in ``folder``, generated unless it is already there."""
+    from uncertsplat.config import SynthConfig, build_config
+    from uncertsplat.data.synthetic import generate_scene, is_synthetic_scene
+
+    cfg = build_config(SynthConfig, keys, source="sweep synth")
+    if not is_synthetic_scene(folder):
+        console.print(f"generating the synthetic scene ({keys}) into {folder}")
+        generate_scene(folder, cfg, overwrite=True)
+    return folder
+
+
+def prepare_scene(name: str, entry, out_dir: Path) -> Path:
+    """The folder ``train`` reads for the spec's scene ``name`` (``sweep.spec.SweepScene``).
+
+    ``path``: checked to exist; ``synth``: generated into ``OUT/scenes/NAME``; ``photos``: ``reconstruct`` runs
+    into ``OUT/scenes/NAME`` (it reuses a workspace that already holds the same photos and options).
+
+    Raises:
+        UserError: naming the scene and the folder when a ``path`` or ``photos`` folder does not exist.
+    """
+    folder = Path(out_dir) / "scenes" / name
+    if entry.synth is not None:
+        return _synth(entry.synth, folder)
+    if entry.path is not None:
+        if not Path(entry.path).exists():
+            raise UserError(f"the folder of sweep scene {name!r} does not exist", path=entry.path,
+                            hint=f"Fix scenes.{name}.path in the spec (relative paths are read from the spec's "
+                                 f"folder) or set it with --set scenes.{name}.path=FOLDER.")
+        return Path(entry.path)
+    from uncertsplat.config import ReconstructConfig, build_config
+    from uncertsplat.stages import reconstruct
+
+    if not Path(entry.photos).is_dir():
+        raise UserError(f"the photos folder of sweep scene {name!r} does not exist", path=entry.photos,
+                        hint=f"Fix scenes.{name}.photos in the spec or set it with --set scenes.{name}.photos=FOLDER.")
+    console.print(f"scene {name}: reconstructing {entry.photos} into {folder}")
+    reconstruct.run(Path(entry.photos), folder,
+                    build_config(ReconstructConfig, entry.reconstruct, source=f"sweep scene {name} reconstruct"))
+    return folder
+
+
 def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str = "auto", scene: Path | None = None,
         overrides: list[str] | None = None, force: bool = False, executor: str = "local", address: str | None = None,
-        cpus_per_job: float = 1.0, gpus_per_job: float = 0.0, retries: int = 1) -> SweepSummary:
+        cpus_per_job: float = 1.0, gpus_per_job: float = 0.0, retries: int = 1,
+        only_scenes: list[str] | None = None) -> SweepSummary:
     """Run (or resume) a sweep; returns the ``sweep.json`` summary.
 
     Args:
@@ -79,6 +127,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         address: ray only: None starts a local Ray instance (``jobs`` CPUs when given), "auto" joins a cluster.
         cpus_per_job, gpus_per_job: ray only: the resources each job asks for (and its torch threads).
         retries: extra runs of a job whose worker died or whose points failed.
+        only_scenes: run only these of the spec's ``[scenes.NAME]`` (None: all of them).
 
     Raises:
         UserError: a bad spec, or (after writing everything) when some points failed.
@@ -87,7 +136,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
     from uncertsplat.device import resolve_device
     from uncertsplat.report.sweep_page import build_sweep_page
     from uncertsplat.sweep.executors import EXECUTORS, require_ray, run_local, run_ray
-    from uncertsplat.sweep.pareto import plot_pareto, summarize
+    from uncertsplat.sweep.pareto import plot_pareto, summarize, table_points
     from uncertsplat.sweep.spec import load_spec, make_jobs
 
     spec = load_spec(Path(spec_path), overrides)
@@ -103,21 +152,29 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         raise UserError(f"--retries must be at least 0, got {retries}")
     if executor == "ray":
         require_ray()  # before any work, with the install command
+    if only_scenes:
+        unknown = [n for n in only_scenes if n not in spec.scenes]
+        if unknown:
+            raise UserError(f"--scenes names {', '.join(unknown)}, which the spec does not have", path=spec_path,
+                            hint=f"The spec's scenes: {', '.join(spec.scenes) or 'none (a single-scene spec)'}.")
+        spec = spec.model_copy(update={"scenes": {n: e for n, e in spec.scenes.items() if n in only_scenes}})
+    if scene is not None and spec.scenes:
+        raise UserError("--scene replaces the scene of a single-scene spec, and this spec names "
+                        f"{len(spec.scenes)} scenes ({', '.join(spec.scenes)})", path=spec_path,
+                        hint="Set one scene's folder with --set scenes.NAME.path=FOLDER instead.")
     out_dir.mkdir(parents=True, exist_ok=True)
     with run_lock(out_dir, "sweep"):
-        scene_path = Path(scene) if scene is not None else spec.scene
-        if scene_path is None:
-            scene_path = out_dir / "scene"
-            from uncertsplat.config import SynthConfig, build_config
-            from uncertsplat.data.synthetic import generate_scene, is_synthetic_scene
-
-            if not is_synthetic_scene(scene_path):
-                console.print(f"generating the synthetic scene ({spec.synth}) into {scene_path}")
-                generate_scene(scene_path, build_config(SynthConfig, spec.synth, source="sweep synth"), overwrite=True)
-        if not Path(scene_path).exists():
-            raise UserError("the sweep's scene folder does not exist", path=scene_path,
-                            hint="Give --scene PATH or remove `scene` from the spec to use a synthetic scene.")
-        all_jobs = make_jobs(spec, out_dir, Path(scene_path), str(dev), threads=None)
+        if spec.scenes:
+            folders = {name: prepare_scene(name, entry, out_dir) for name, entry in spec.scenes.items()}
+        else:
+            scene_path = Path(scene) if scene is not None else spec.scene
+            if scene_path is None:
+                scene_path = _synth(spec.synth, out_dir / "scene")
+            if not Path(scene_path).exists():
+                raise UserError("the sweep's scene folder does not exist", path=scene_path,
+                                hint="Give --scene PATH or remove `scene` from the spec to use a synthetic scene.")
+            folders = Path(scene_path)
+        all_jobs = make_jobs(spec, out_dir, folders, str(dev), threads=None)
         hashes = {p["hash"] for j in all_jobs for p in j["points"]}  # this spec's points only
         log = out_dir / "sweep.jsonl"
         done = {r.hash for r in read_records(log) if r.status == "ok"} if not force else set()
@@ -146,6 +203,9 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         def record(dicts: list[dict]) -> None:
             for r in dicts:
                 r.setdefault("executor", executor)
+                report = r.pop("point_report", None)
+                if report is not None:
+                    atomic_write_text(out_dir / "points" / f"{r['id']}.json", report + "\n")
             recs = [SweepRecord.model_validate(r) for r in dicts]  # a writer bug fails here, not in a later read
             # one write of whole lines from this process only: a crash leaves no half record (read_records skips a
             # line cut short anyway)
@@ -175,8 +235,10 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         summary = summarize(spec, records)
         summary.write(out_dir / "sweep.json")
         if any(r.status == "ok" for r in summary.records):
-            plot_pareto(summary.records, out_dir / "pareto.png", x=spec.pareto_x, ys=spec.pareto_y,
-                        title=f"{spec.name}: accuracy vs time (front in black, default starred)")
+            means = " (means over seeds)" if spec.seeds else ""
+            plot_pareto(table_points(summary), out_dir / "pareto.png", x=spec.pareto_x, ys=spec.pareto_y,
+                        title=f"{spec.name}: accuracy vs time{means} (front in black, default starred)",
+                        group="scene" if spec.scenes else None)
         fig = "pareto.png" if (out_dir / "pareto.png").is_file() else None
         atomic_write_text(out_dir / "index.html", build_sweep_page(summary, fig))
     console.print(f"wrote {log}, {out_dir / 'sweep.json'}, {out_dir / 'pareto.png'} and {out_dir / 'index.html'}")

@@ -23,9 +23,8 @@ from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from multiprocessing import get_context
 
-from uncertsplat.errors import UserError
+from uncertsplat.errors import UserError, require_extra
 
-RAY_INSTALL_HINT = "Install it with: pip install 'uncertsplat[ray]' (or: pip install ray)."
 EXECUTORS = ("local", "ray")
 
 OnRecords = Callable[[list[dict]], None]
@@ -35,6 +34,7 @@ OnStart = Callable[[dict], None]
 def failed_records(job: dict, error: str, stage: str = "worker") -> list[dict]:
     """One failed record per point of ``job`` (the job's worker died, or every retry failed)."""
     return [{"id": p["id"], "hash": p["hash"], "job": job["job_id"], "knobs": p["knobs"], "method": job["method_label"],
+             "scene": job.get("scene_name"), "seed": job.get("seed"),
              "is_default": p["is_default"], "status": "failed", "stage": stage, "error": error}
             for p in job["points"]]
 
@@ -110,12 +110,7 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
 
 def require_ray():
     """Import ray, or raise one UserError with the install command."""
-    try:
-        import ray
-    except ImportError as err:
-        raise UserError(f"--executor ray needs the ray package, which is not installed ({err})",
-                        hint=RAY_INSTALL_HINT) from None
-    return ray
+    return require_extra("ray", feature="--executor ray", extra="ray")
 
 
 def run_ray(todo: list[dict], *, address: str | None, cpus_per_job: float, gpus_per_job: float, retries: int,
@@ -181,4 +176,4 @@ def run_ray(todo: list[dict], *, address: str | None, cpus_per_job: float, gpus_
             ray.shutdown()
 
 
-__all__ = ["EXECUTORS", "RAY_INSTALL_HINT", "failed_records", "require_ray", "run_local", "run_ray"]
+__all__ = ["EXECUTORS", "failed_records", "require_ray", "run_local", "run_ray"]

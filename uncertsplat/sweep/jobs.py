@@ -58,12 +58,14 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
 def run_job(job: dict) -> list[dict]:
     """Run one job and return one record per point (see the module docstring).
 
-    Record keys: ``id``, ``hash``, ``job``, ``method``, ``knobs``, ``is_default``, ``status`` (ok/failed),
+    Record keys: ``id``, ``hash``, ``job``, ``method``, ``scene`` and ``seed`` (None unless the spec sets them),
+    ``knobs``, ``is_default``, ``status`` (ok/failed),
     ``error``, ``train_seconds``, ``eval_seconds_per_view``, ``eval_seconds``, ``time`` (train + eval),
     ``num_views``, ``num_samples``, ``peak_memory_mb`` (train / eval / max), ``num_gaussians``,
     ``num_carriers``, the metrics of ``RECORD_KEYS`` (means over the views), ``std_scale`` and
     ``calibration_seconds`` (the std factor fitted on training views, ``eval.engine.fit_std_scale``, and its cost,
-    outside the timed evaluation), ``notes``, ``run_dir``.
+    outside the timed evaluation), ``notes``, ``run_dir``; an ok record also carries ``point_report``, the point's
+    full ``EvalReport`` as JSON text, which the driver writes to ``OUT/points/{id}.json`` and drops from the record.
     """
     from uncertsplat.device import resolve_device
 
@@ -71,7 +73,8 @@ def run_job(job: dict) -> list[dict]:
     if threads:
         torch.set_num_threads(int(threads))  # one thread per job when jobs share the cores
     base = {"job": job["job_id"], "method": job["method_label"], "run_dir": job["run_dir"],
-            "device": job["device"], "threads": torch.get_num_threads()}
+            "device": job["device"], "threads": torch.get_num_threads(), "scene": job.get("scene_name"),
+            "seed": job.get("seed")}
     records = []
     try:
         device = resolve_device(job["device"])
@@ -146,7 +149,7 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
                eval_peak_memory_mb=_peak_mb(device),
                peak_memory_scope="device" if device.type == "cuda" else "process (max RSS, includes training "
                                                                         "when trained in the same process)")
-    from uncertsplat.io.atomic import atomic_write_text
-
-    atomic_write_text(Path(job["run_dir"]).parent.parent / "points" / f"{point['id']}.json", report.to_json() + "\n")
+    # the driver writes OUT/points/{id}.json from this text: a worker writes nothing outside its run folder, so a
+    # cluster whose nodes share no disk still gets every point's report on the driver's
+    out["point_report"] = report.to_json()
     return out

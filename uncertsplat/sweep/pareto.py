@@ -8,7 +8,13 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from uncertsplat.schemas.runs import SweepRecord, SweepSummary
+from uncertsplat.schemas.runs import SweepGroup, SweepRecord, SweepSummary
+
+TABLE_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "calibration_error", "nll_calibrated",
+              "calibration_error_calibrated", "std_scale", "depth_ause_mae", "depth_ause_rmse", "depth_abs_rel",
+              "spearman", "time", "train_seconds", "eval_seconds_per_view", "peak_memory_mb", "num_gaussians",
+              "num_carriers")
+"""What the sweep's table averages over seeds (``SweepGroup.mean``)."""
 
 
 def _value(point: Any, key: str) -> float | None:
@@ -56,22 +62,62 @@ def pareto_front(points: Sequence[Any], x: str = "time", y: str = "ause", minimi
     return front
 
 
+def _mean_std(values: list[float]) -> tuple[float | None, float | None]:
+    if not values:
+        return None, None
+    m = sum(values) / len(values)
+    if len(values) < 2:
+        return m, None
+    return m, math.sqrt(sum((v - m) ** 2 for v in values) / (len(values) - 1))
+
+
+def group_records(records: Sequence[SweepRecord]) -> list[SweepGroup]:
+    """One ``SweepGroup`` per point and scene: mean and sample std over the seeds whose record is ok.
+
+    Rows keep the order in which their first record appears.
+    """
+    groups: dict[str, list[SweepRecord]] = {}
+    for r in records:
+        groups.setdefault(r.group, []).append(r)
+    out = []
+    for gid, recs in groups.items():
+        ok = [r for r in recs if r.status == "ok"]
+        mean, spread = {}, {}
+        for key in TABLE_KEYS:
+            vals = [v for v in (_value(r, key) for r in ok) if v is not None]
+            mean[key], spread[key] = _mean_std(vals)
+        first = recs[0]
+        out.append(SweepGroup(id=gid, scene=first.scene, method=first.method, knobs=first.knobs,
+                              is_default=first.is_default, seeds=[r.seed for r in ok],
+                              num_failed=len(recs) - len(ok), mean=mean, spread=spread))
+    return out
+
+
+def front_key(y: str, x: str, scene: str | None) -> str:
+    """The ``SweepSummary.pareto`` key of the front of ``y`` against ``x`` (per scene when scenes are named)."""
+    return f"{y}_vs_{x}" if scene is None else f"{scene}: {y}_vs_{x}"
+
+
 def summarize(spec, records: Sequence[SweepRecord]) -> SweepSummary:
-    """The ``sweep.json`` summary of a ``spec.SweepSpec``'s records: the latest record per point, the default
-    and the Pareto fronts (``spec.pareto_y`` against ``spec.pareto_x``; PSNR is maximised)."""
+    """The ``sweep.json`` summary of a ``spec.SweepSpec``'s records: the latest record per point, the table of
+    means over seeds, the default and the Pareto fronts of the table's rows (``spec.pareto_y`` against
+    ``spec.pareto_x``, per scene; PSNR is maximised)."""
     latest: dict[str, SweepRecord] = {}
     for r in records:
         latest[r.id] = r
     recs = list(latest.values())
     ok = [r for r in recs if r.status == "ok"]
+    table = group_records(recs)
     fronts = {}
-    for y in spec.pareto_y:
-        fronts[f"{y}_vs_{spec.pareto_x}"] = [r.id for r in pareto_front(ok, x=spec.pareto_x, y=y,
-                                                                          minimize_both=(y != "psnr"))]
+    for scene in dict.fromkeys(g.scene for g in table) or [None]:
+        rows = [{"id": g.id, **g.mean} for g in table if g.scene == scene and g.seeds]
+        for y in spec.pareto_y:
+            fronts[front_key(y, spec.pareto_x, scene)] = [
+                p["id"] for p in pareto_front(rows, x=spec.pareto_x, y=y, minimize_both=(y != "psnr"))]
     default = next((r for r in recs if r.is_default), None)
     return SweepSummary(name=spec.name, spec=json.loads(spec.model_dump_json()), num_points=len(recs),
-                        num_failed=len(recs) - len(ok), default=default.id if default else None,
-                        pareto_x=spec.pareto_x, pareto=fronts, records=recs)
+                        num_failed=len(recs) - len(ok), default=default.group if default else None,
+                        pareto_x=spec.pareto_x, pareto=fronts, records=recs, table=table)
 
 
 def y_scale(values: Sequence[float]) -> tuple[str, dict]:
@@ -94,12 +140,19 @@ def y_scale(values: Sequence[float]) -> tuple[str, dict]:
     return "linear", {}
 
 
+def table_points(summary: SweepSummary) -> list[dict]:
+    """The rows of ``summary.table`` that have a finished seed, as the plain points ``plot_pareto`` draws."""
+    return [{"id": g.id, "method": g.method, "status": "ok", "is_default": g.is_default, "scene": g.scene, **g.mean}
+            for g in summary.table if g.seeds]
+
+
 def plot_pareto(records: Sequence[Any], path: Path, x: str = "time", ys: Sequence[str] = ("ause_mae", "nll"),
-                title: str = "speed-accuracy trade") -> Path:
+                title: str = "speed-accuracy trade", group: str | None = None) -> Path:
     """One panel per ``ys`` key: every point, its Pareto front (a step line) and the default (a star).
 
     Points are coloured by method; the points on the front and the default are labelled by their id (the
-    sweep's ``index.html`` lists every point with its values). The y axis follows ``y_scale``. Written
+    sweep's ``index.html`` lists every point with its values). The y axis follows ``y_scale``. With ``group``
+    (e.g. ``"scene"``), one row of panels per distinct value of that key, each with its own fronts. Written
     with matplotlib's Agg backend.
     """
     import matplotlib
@@ -111,12 +164,31 @@ def plot_pareto(records: Sequence[Any], path: Path, x: str = "time", ys: Sequenc
     methods = sorted({r.get("method", "?") for r in ok})
     cmap = plt.get_cmap("tab10")
     colour = {m: cmap(i % 10) for i, m in enumerate(methods)}
-    fig, axes = plt.subplots(1, len(ys), figsize=(6.0 * len(ys), 4.6), squeeze=False)
+    groups = list(dict.fromkeys(r.get(group) for r in ok)) if group else [None]
+    groups = groups or [None]
+    fig, axes = plt.subplots(len(groups), len(ys), figsize=(6.0 * len(ys), 4.6 * len(groups)), squeeze=False)
+    for row, g in enumerate(groups):
+        rows = [r for r in ok if group is None or r.get(group) == g]
+        _panels(axes[row], rows, x, ys, methods, colour, None if group is None else f"{group} {g}")
+    fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def _panels(axes, ok: Sequence[Any], x: str, ys: Sequence[str], methods: list[str], colour: dict,
+            heading: str | None) -> None:
+    """One row of ``plot_pareto``'s panels (one per ``ys`` key) for the points ``ok``."""
     labels = {"time": "training + evaluation time (s)", "train_seconds": "training time (s)",
               "eval_seconds_per_view": "evaluation time per view (s)", "ause_mae": "AUSE (MAE), lower is better",
               "ause_rmse": "AUSE (RMSE), lower is better", "nll": "NLL, lower is better", "psnr": "PSNR (dB)",
               "calibration_error": "calibration error", "depth_ause_mae": "depth AUSE (MAE)"}
-    for ax, y in zip(axes[0], ys, strict=True):
+    for ax, y in zip(axes, ys, strict=True):
         pts = [r for r in ok if _value(r, x) is not None and _value(r, y) is not None]
         for m in methods:
             sel = [r for r in pts if r.get("method") == m]
@@ -142,14 +214,7 @@ def plot_pareto(records: Sequence[Any], path: Path, x: str = "time", ys: Sequenc
         ax.set_yscale(scale, **kw)
         ax.set_xlabel(labels.get(x, x))
         ax.set_ylabel(labels.get(y, y))
+        if heading:
+            ax.set_title(heading, fontsize=10)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    tmp.replace(path)
-    return path

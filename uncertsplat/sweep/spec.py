@@ -28,16 +28,25 @@ scaled interval densifies far more often and the Gaussians explode). ``"fixed"``
 
 Points that share a training config form one job (train once, evaluate at every K): each job is a
 pure function of its dict (``jobs.run_job``), so a cluster engine can run them anywhere.
+
+Scenes and seeds replicate the design: with ``[scenes.NAME]`` tables every point runs on every scene (each
+scene a ``path`` that ``train`` reads, a folder of ``photos`` reconstructed once into ``OUT/scenes/NAME``, or a
+``synth`` scene generated there; each may set its own preset, train and evaluate keys over the spec's), and with
+``seeds = [0, 1, 2]`` every point trains once per seed (``TrainConfig.seed`` and ``EvalConfig.seed``). Point ids
+then read ``SCENE.POINT_seedS``; the summary's ``table`` gives the mean and spread over the seeds of each point on
+each scene, and the Pareto fronts are drawn per scene over those means. Relative paths in the file are read
+from the spec file's folder.
 """
 
 from __future__ import annotations
 
 import itertools
 import json
+import re
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from uncertsplat.config import (
     EvalConfig,
@@ -79,12 +88,52 @@ class SweepAxes(_Strict):
     spawn_fraction: list[float] = []
 
 
+class SweepScene(_Strict):
+    """One scene of a multi-scene sweep (``[scenes.NAME]``): exactly one of ``path``, ``photos`` or ``synth``."""
+
+    path: Path | None = None
+    """A scene or ``reconstruct`` workspace, as ``train`` reads it."""
+    photos: Path | None = None
+    """A folder of photos: ``reconstruct`` runs once (in the driver) into ``OUT/scenes/NAME``."""
+    reconstruct: dict[str, Any] = {}
+    """ReconstructConfig keys for ``photos``."""
+    synth: dict[str, Any] | None = None
+    """SynthConfig keys: the synthetic scene is generated into ``OUT/scenes/NAME``."""
+    train_preset: str | None = None
+    """The preset of this scene's points (None: the spec's ``train_preset``)."""
+    train: dict[str, Any] = {}
+    """TrainConfig keys over the spec's ``train`` (e.g. ``{ scene = { downscale = 2.0 } }``)."""
+    evaluate: dict[str, Any] = {}
+    """EvalConfig keys over the spec's ``evaluate``."""
+    default: dict[str, Any] = {}
+    """Knobs over the spec's ``[default]`` on this scene (e.g. ``{ iterations = 3000 }``): the axes vary around it."""
+
+    @model_validator(mode="after")
+    def _one_source(self) -> SweepScene:
+        given = [k for k in ("path", "photos", "synth") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"a scene needs exactly one of path, photos or synth (got {', '.join(given) or 'none'})")
+        if self.reconstruct and self.photos is None:
+            raise ValueError("`reconstruct` keys only apply to a `photos` scene")
+        unknown = sorted(set(self.default) - set(SweepPoint.model_fields))
+        if unknown:
+            raise ValueError(f"unknown knob(s) in `default`: {', '.join(unknown)} (knobs: {', '.join(KNOBS)})")
+        return self
+
+
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]*$")
+
+
 class SweepSpec(_Strict):
     """A sweep (``pipelines/tradeoff.toml``; ``uncertsplat sweep SPEC -o OUT``)."""
 
     name: str = "sweep"
     scene: Path | None = None
-    """Scene folder; None generates the synthetic scene of ``synth`` into OUT/scene."""
+    """Scene folder; None generates the synthetic scene of ``synth`` into OUT/scene (single-scene sweeps)."""
+    scenes: dict[str, SweepScene] = {}
+    """Named scenes: every point runs on each (then ``scene`` and ``synth`` are not used)."""
+    seeds: list[int] = []
+    """Training and evaluation seeds: every point runs once per seed (empty: the configs' own seed, once)."""
     synth: dict[str, Any] = {"preset": "demo", "seed": 0}
     """SynthConfig keys used when ``scene`` is not given."""
     train_preset: str | None = "demo"
@@ -99,12 +148,65 @@ class SweepSpec(_Strict):
     pareto_x: str = "time"
     pareto_y: list[str] = ["ause_mae", "nll"]
 
+    @field_validator("scenes")
+    @classmethod
+    def _scene_names(cls, v: dict[str, SweepScene]) -> dict[str, SweepScene]:
+        for name in v:
+            if not _NAME.match(name):
+                raise ValueError(f"scene name {name!r}: use letters, digits, '_' and '-' (it names folders and ids)")
+        return v
+
+    @field_validator("seeds")
+    @classmethod
+    def _seed_values(cls, v: list[int]) -> list[int]:
+        if any(s < 0 for s in v) or len(set(v)) != len(v):
+            raise ValueError(f"seeds must be distinct and non-negative, got {v}")
+        return v
+
+    @model_validator(mode="after")
+    def _one_scene_source(self) -> SweepSpec:
+        if self.scenes and self.scene is not None:
+            raise ValueError("give either `scene` or `[scenes.NAME]` tables, not both")
+        for name, entry in self.scenes.items():
+            try:
+                SweepPoint(**{**self.default.model_dump(), **entry.default})
+            except ValueError as err:
+                raise ValueError(f"scenes.{name}.default: {err}") from None
+        return self
+
+    def on_scene(self, scene: str | None) -> SweepSpec:
+        """This spec with ``[default]`` as it is on ``scene`` (its ``default`` knobs over the spec's)."""
+        if scene is None or not self.scenes[scene].default:
+            return self
+        point = SweepPoint(**{**self.default.model_dump(), **self.scenes[scene].default})
+        return self.model_copy(update={"default": point})
+
+    def scene_names(self) -> list[str | None]:
+        """The scenes every point runs on (``[None]``: the single ``scene`` / ``synth`` scene)."""
+        return list(self.scenes) or [None]
+
+    def seed_values(self) -> list[int | None]:
+        """The seeds every point runs with (``[None]``: the configs' own seed)."""
+        return list(self.seeds) or [None]
+
 
 def load_spec(path: Path, overrides: list[str] | None = None) -> SweepSpec:
     """Read a sweep TOML (``key=value`` overrides as for ``--set``) into a validated ``SweepSpec``."""
     from uncertsplat.config import load_toml, parse_override
 
     data = load_toml(path)
+    base = Path(path).resolve().parent  # paths written in the file are read from its folder (as in pipelines)
+
+    def anchored(v):
+        return str(base / v) if isinstance(v, str) and not Path(v).is_absolute() else v
+
+    if "scene" in data:
+        data["scene"] = anchored(data["scene"])
+    for entry in (data.get("scenes") or {}).values():
+        if isinstance(entry, dict):
+            for key in ("path", "photos"):
+                if key in entry:
+                    entry[key] = anchored(entry[key])
     for o in overrides or []:
         data = deep_update(data, parse_override(o))
     return build_config(SweepSpec, data, source=str(path))
@@ -146,11 +248,17 @@ def _scaled_schedule(data: dict, base: TrainConfig, iterations: int) -> dict:
                               "densify": sched})
 
 
-def point_configs(spec: SweepSpec, point: SweepPoint) -> tuple[TrainConfig, EvalConfig]:
-    """The resolved train and eval configs of ``point``."""
+def point_configs(spec: SweepSpec, point: SweepPoint, scene: str | None = None,
+                  seed: int | None = None) -> tuple[TrainConfig, EvalConfig]:
+    """The resolved train and eval configs of ``point`` (on the spec's scene ``scene``, with ``seed``)."""
     from uncertsplat.baselines import method_overrides
 
-    base = train_config_from(spec.train_preset, spec.train)
+    entry = spec.scenes[scene] if scene is not None else None
+    preset = entry.train_preset if entry is not None and entry.train_preset is not None else spec.train_preset
+    train_keys = deep_update(spec.train, entry.train) if entry is not None else spec.train
+    if seed is not None:
+        train_keys = deep_update(train_keys, {"seed": seed})
+    base = train_config_from(preset, train_keys)
     data = json.loads(base.model_dump_json())
     if point.iterations is not None and point.iterations != base.iterations:
         data = (_scaled_schedule(data, base, point.iterations) if spec.schedule == "scaled"
@@ -171,7 +279,8 @@ def point_configs(spec: SweepSpec, point: SweepPoint) -> tuple[TrainConfig, Eval
         tcfg = tcfg.model_copy(update={"variational": TrainConfig().variational, "densify": densify})
     if tcfg.method != "ensemble":
         tcfg = tcfg.model_copy(update={"ensemble_size": TrainConfig().ensemble_size})
-    edata = deep_update(spec.evaluate, {"save_maps": False})
+    edata = deep_update(spec.evaluate, entry.evaluate) if entry is not None else dict(spec.evaluate)
+    edata = deep_update(edata, {"save_maps": False} if seed is None else {"save_maps": False, "seed": seed})
     if tcfg.method == "ensemble":
         edata["num_samples"] = tcfg.ensemble_size
     elif point.num_samples is not None:
@@ -180,8 +289,8 @@ def point_configs(spec: SweepSpec, point: SweepPoint) -> tuple[TrainConfig, Eval
     return tcfg, ecfg
 
 
-def point_id(point: SweepPoint) -> str:
-    """A readable, file-name-safe id: method and the knobs that are set."""
+def point_id(point: SweepPoint, scene: str | None = None, seed: int | None = None) -> str:
+    """A readable, file-name-safe id: the scene (if named), method, the knobs that are set and the seed (if set)."""
     parts = [point.method]
     for key, tag in (("iterations", "it"), ("num_entries", "kt"), ("num_samples", "k"), ("downscale", "ds"),
                      ("ensemble_size", "n"), ("spawn_fraction", "sf")):
@@ -190,35 +299,52 @@ def point_id(point: SweepPoint) -> str:
         v = getattr(point, key)
         if v is not None:
             parts.append(f"{tag}{v:g}" if isinstance(v, float) else f"{tag}{v}")
-    return "_".join(parts)
+    if seed is not None:
+        parts.append(f"seed{seed}")
+    return (f"{scene}." if scene is not None else "") + "_".join(parts)
 
 
-def make_jobs(spec: SweepSpec, out_dir: Path, scene: Path, device: str, threads: int | None = None) -> list[dict]:
-    """Group the points by training config into independent jobs (plain dicts, JSON-serialisable).
+def make_jobs(spec: SweepSpec, out_dir: Path, scene: Path | dict[str, Path], device: str,
+              threads: int | None = None) -> list[dict]:
+    """Group the points by scene and training config into independent jobs (plain dicts, JSON-serialisable).
 
-    Each job: ``{"job_id", "scene", "run_dir", "device", "threads", "train_config", "method_label",
-    "points": [{"id", "hash", "knobs", "eval_config", "is_default"}]}``.
+    Args:
+        scene: the scene folder of a single-scene spec, or ``{name: folder}`` for each of ``spec.scenes``.
+
+    Each job: ``{"job_id", "scene", "scene_name", "seed", "run_dir", "device", "threads", "train_config",
+    "method_label", "points": [{"id", "hash", "knobs", "eval_config", "is_default"}]}``; run folders are
+    ``OUT/runs/JOB`` (``OUT/runs/SCENE/JOB`` for named scenes).
     """
     from uncertsplat.baselines import method_label
 
-    points = expand_points(spec)
-    default = points[0]
+    folders = dict(scene) if isinstance(scene, dict) else {None: Path(scene)}
+    if set(folders) != set(spec.scene_names()):
+        raise ValueError(f"scene folders for {sorted(map(str, folders))}, the spec names {spec.scene_names()}")
+    points = {name: expand_points(spec.on_scene(name)) for name in spec.scene_names()}
     jobs: dict[str, dict] = {}
     seen: set[str] = set()
-    for p in points:
-        tcfg, ecfg = point_configs(spec, p)
+    for name, seed, p in ((n, k, p) for n, k in itertools.product(spec.scene_names(), spec.seed_values())
+                          for p in points[n]):
+        default = points[name][0]
+        tcfg, ecfg = point_configs(spec, p, name, seed)
         tdata = json.loads(tcfg.model_dump_json())
         edata = json.loads(ecfg.model_dump_json())
-        phash = hash_config({"train": tdata, "eval": edata})
+        # a named scene is part of what a point is (the same configs on two scenes are two points); a single-scene
+        # spec keeps the hashes it always had, so its sweeps resume
+        phash = hash_config({"train": tdata, "eval": edata} if name is None else
+                            {"scene": name, "train": tdata, "eval": edata})
         if phash in seen:
             continue  # knobs that do not matter to this method (e.g. N for a variational point)
         seen.add(phash)
         thash = hash_config(tdata)
         label = method_label(tcfg)
-        job_id = f"{label}_{thash[:8]}"
+        job_id = f"{label}_{thash[:8]}" if name is None else f"{name}.{label}_{thash[:8]}"
+        run_dir = Path(out_dir) / "runs" / (job_id if name is None else Path(name) / f"{label}_{thash[:8]}")
         job = jobs.setdefault(job_id, {
-            "job_id": job_id, "scene": str(Path(scene).resolve()), "run_dir": str((Path(out_dir) / "runs" / job_id).resolve()),
-            "device": device, "threads": threads, "train_config": tdata, "method_label": label, "points": []})
-        job["points"].append({"id": point_id(p), "hash": phash,
-                              "knobs": p.model_dump(), "eval_config": edata, "is_default": p == default})
+            "job_id": job_id, "scene": str(Path(folders[name]).resolve()), "scene_name": name, "seed": seed,
+            "run_dir": str(run_dir.resolve()), "device": device, "threads": threads, "train_config": tdata,
+            "method_label": label, "points": []})
+        job["points"].append({"id": point_id(p, name, seed), "hash": phash,
+                              "knobs": p.model_dump(), "eval_config": edata,
+                              "is_default": p == default})
     return list(jobs.values())

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from uncertsplat.config import ViewConfig
-from uncertsplat.errors import UserError
+from uncertsplat.errors import UserError, require_extra
 from uncertsplat.report.colormaps import colorize
 from uncertsplat.types import Cameras, SceneData
 from uncertsplat.view.frames import (
@@ -95,17 +95,9 @@ def colour_bar_html(value_range: tuple[float, float] | None, unit: str, note: st
             f"<div style='opacity:0.8'>{html.escape(note)}</div></div>")
 
 
-INSTALL_HINT = "Install the viewer's dependency with: pip install 'uncertsplat[view]' (or: pip install viser)."
-
-
 def require_viser():
     """Import viser, or raise a UserError with the install command."""
-    try:
-        import viser
-    except ImportError as err:
-        raise UserError(f"the viewer needs the viser package, which is not installed ({err})",
-                        hint=INSTALL_HINT) from None
-    return viser
+    return require_extra("viser", feature="the viewer", extra="view")
 
 
 def check_port(host: str, port: int) -> None:
@@ -474,5 +466,5 @@ class Viewer:
         self.gui_status.content = f"{kind}: {cams.width}x{cams.height}{samples}, {seconds * 1000:.0f} ms"
 
 
-__all__ = ["INSTALL_HINT", "MIN_PREVIEW_SIDE", "STILL_AFTER", "ViewState", "Viewer", "check_port", "colour_bar_html",
+__all__ = ["MIN_PREVIEW_SIDE", "STILL_AFTER", "ViewState", "Viewer", "check_port", "colour_bar_html",
            "require_viser", "viewer_url"]
