@@ -109,26 +109,25 @@ def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | N
         first = torch.rand(len(cands), generator=torch.Generator().manual_seed(cfg.seed), dtype=torch.float64)
         chosen = rank_order(first)[:n]
         at = [float(first[j]) for j in chosen]
-    elif cfg.score == "unseen":
-        if loaded.model.num_carriers == 0 or loaded.config.method in ("ensemble", "fisher", "deterministic"):
+    elif cfg.score in ("unseen", "variance"):  # scores rendered from the posterior at the candidates
+        if cfg.score == "unseen" and (loaded.model.num_carriers == 0
+                                      or loaded.config.method in ("ensemble", "fisher", "deterministic")):
             raise UserError("the unseen score reads the Gaussians' posterior (offset tables), and this run has none",
                             path=run_dir, hint="Use --score variance, fisher or coverage for this run.")
         sampler = loaded.sampler(scene.scene_scale, device)
         low = low_resolution(cands.cameras, cfg.max_side).to(device)
-        sample = sampler.det_sample if sampler.det_sample is not None else sampler.sample_fn(
-            torch.Generator(device=device).manual_seed(cfg.seed))
-        first = unseen_scores(sample, relative_position_variance(loaded.model, loaded.prior), sampler.render_fn, low)
+        if cfg.score == "unseen":
+            sample = sampler.det_sample if sampler.det_sample is not None else sampler.sample_fn(
+                torch.Generator(device=device).manual_seed(cfg.seed))
+            first = unseen_scores(sample, relative_position_variance(loaded.model, loaded.prior), sampler.render_fn,
+                                  low)
+        else:
+            first, depth_std = variance_scores(sampler.sample_fn, sampler.render_fn, low, cfg.num_samples, cfg.seed,
+                                               empty_std=sampler.empty_std)
+            settings["num_samples"] = cfg.num_samples
         chosen = rank_order(first)[:n]
         at = [float(first[j]) for j in chosen]
         settings.update(width=low.width, height=low.height)
-    elif cfg.score == "variance":
-        sampler = loaded.sampler(scene.scene_scale, device)
-        low = low_resolution(cands.cameras, cfg.max_side).to(device)
-        first, depth_std = variance_scores(sampler.sample_fn, sampler.render_fn, low, cfg.num_samples, cfg.seed,
-                                           empty_std=sampler.empty_std)
-        chosen = rank_order(first)[:n]
-        at = [float(first[j]) for j in chosen]
-        settings.update(num_samples=cfg.num_samples, width=low.width, height=low.height)
     else:  # fisher
         low_train = low_resolution(scene.cameras[train], cfg.max_side)
         images = torch.from_numpy(np.stack([resize_image(im.numpy(), low_train.width, low_train.height)
