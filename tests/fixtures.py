@@ -20,6 +20,25 @@ import pytest
 _CACHE: dict[tuple[Path, int], Path] = {}
 
 
+def tiny_sweep_spec(name: str, axes: str) -> str:
+    """A sweep spec of a few seconds a point on the tiny scene: the default point and the ``[axes]`` lines given."""
+    return f"""
+name = "{name}"
+train_preset = "tiny"
+train = {{ eval_every = 1000, checkpoint_every = 1000, log_every = 10 }}
+evaluate = {{ max_views = 1 }}
+[default]
+method = "variational"
+iterations = 16
+num_entries = 4
+num_samples = 3
+downscale = 4.0
+ensemble_size = 2
+[axes]
+{axes}
+"""
+
+
 def tiny_scene(tmp_root: Path, seed: int = 0) -> Path:
     """Generate the ``tiny`` synthetic scene under ``tmp_root`` (once per process and seed) and return it."""
     from uncertsplat.config import SynthConfig

@@ -8,28 +8,14 @@ import math
 import pytest
 from typer.testing import CliRunner
 
-from tests.fixtures import tiny_scene
+from tests.fixtures import tiny_scene, tiny_sweep_spec
 from uncertsplat.cli import app
 from uncertsplat.schemas import SweepSummary
 from uncertsplat.stages import sweep
 from uncertsplat.stages.sweep import read_records
 
-SPEC = """
-name = "tiny-sweep"
-train_preset = "tiny"
-train = { eval_every = 1000, checkpoint_every = 1000, log_every = 10 }
-evaluate = { max_views = 1 }
-[default]
-method = "variational"
-iterations = 16
-num_entries = 4
-num_samples = 3
-downscale = 4.0
-ensemble_size = 2
-[axes]
-num_samples = [1, 3]
-method = ["variational", "fisher"]
-"""
+SPEC = tiny_sweep_spec("tiny-sweep", """num_samples = [1, 3]
+method = ["variational", "fisher"]""")
 
 
 @pytest.fixture(scope="session")

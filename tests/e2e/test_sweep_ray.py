@@ -13,28 +13,15 @@ from pathlib import Path
 
 import pytest
 
-from tests.fixtures import tiny_scene
+from tests.fixtures import tiny_scene, tiny_sweep_spec
 from uncertsplat.errors import UserError
 from uncertsplat.stages import sweep
 from uncertsplat.sweep.executors import run_local, run_ray
 
 ray = pytest.importorskip("ray", reason="the ray extra (pip install 'uncertsplat[ray]')")
 
-SPEC = """
-name = "ray-sweep"
-train_preset = "tiny"
-train = { eval_every = 1000, checkpoint_every = 1000, log_every = 10 }
-evaluate = { max_views = 1 }
-[default]
-method = "variational"
-iterations = 16
-num_entries = 4
-num_samples = 3
-downscale = 4.0
-[axes]
-num_samples = [1, 3, 5]
-num_entries = [2, 4]
-"""
+SPEC = tiny_sweep_spec("ray-sweep", """num_samples = [1, 3, 5]
+num_entries = [2, 4]""")
 
 
 @pytest.fixture(scope="module")
