@@ -29,7 +29,6 @@ import json
 import math
 import platform
 import time
-from functools import partial
 from pathlib import Path
 
 import torch
@@ -42,7 +41,6 @@ from uncertsplat.gaussians import ops
 from uncertsplat.gaussians.variational import posterior_mean, prior_rows
 from uncertsplat.prune import apply_keep, copy_model, keep_ratio_mask, keep_top
 from uncertsplat.prune.policy import random_keep as _random_keep
-from uncertsplat.render import render
 from uncertsplat.render.sh import rgb_to_sh
 from uncertsplat.stages.prune import _Measure as _SchemaMeasure
 from uncertsplat.uncertainty.scores import SCORE_NAMES, carrier_mask, compute_scores, spread_views
@@ -89,14 +87,15 @@ def plant_floaters(model, scene, fraction: float, prior, generator: torch.Genera
 
 def all_scores(model, loaded, scene, cfg, device):
     prior = loaded.prior
-    bg = torch.tensor(loaded.config.scene.background, dtype=torch.float32, device=device)
-    render_fn = partial(render, background=bg, tile_size=loaded.config.tile_size)
+    render_fn = loaded.render_fn(scene.scene_scale, device)  # as the prune stage scores
     cams = scene.cameras[spread_views(scene.split["train"], cfg.score_views)].to(device)
+    free_cams = scene.cameras[spread_views(scene.split["train"], cfg.free_space_views)].to(device)
     t0 = time.perf_counter()
     s = compute_scores(model, cams, torch.Generator(device=device).manual_seed(cfg.seed), render_fn=render_fn,
                        names=SCORE_NAMES, num_samples=cfg.score_samples,
                        subset_size=loaded.config.variational.subset_size, variant=prior.variant,
-                       extent=loaded.extent, temperature=prior.temperature)
+                       extent=loaded.extent, temperature=prior.temperature, free_space_cameras=free_cams,
+                       free_space_margin=cfg.free_space_margin)
     return s, time.perf_counter() - t0
 
 

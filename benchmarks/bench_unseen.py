@@ -11,6 +11,10 @@ observed / unobserved from GT depth (``eval.observed.observed_mask``). Per metho
 * mean std on unobserved / observed pixels, and on pixels whose rays meet no Gaussian (alpha < 0.5);
 * the evaluation metrics on those views: PSNR, AUSE-MAE, NLL, calibration error, the fitted std factor.
 
+Each run is evaluated three ways (``PREDICTIVES``): ``full`` (what ``evaluate`` writes), ``before`` (the predictive
+before the coverage and resolution terms: every alpha < 1 counts as empty, no resolution term) and ``spread``
+(the samples' spread alone).
+
 Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
 its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),
 ``sgd`` (the tables learned by SGD with the KL in the loss, the default before issue 18: the prior-only
@@ -87,8 +91,16 @@ def roc(score: torch.Tensor, positive: torch.Tensor) -> float | None:
     return ranking_auc(score.double(), positive)
 
 
-def measure(run_dir: Path, device: torch.device, num_samples: int, empty_rays: bool, residual_views: int) -> dict:
-    """Evaluate one run on its held-out views and score its std maps against the observed labels."""
+PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alpha < 1 counts as empty)
+    "full": ({}, False),  # what `evaluate` writes: spread + pixel noise + resolution term + empty rays
+    "before": ({"resolution": 0.0}, True),  # the predictive before the coverage and resolution terms (2026-11-24)
+    "spread": ({"empty_rays": False, "residual_views": 0, "resolution": 0.0}, False),  # the samples' spread alone
+}
+
+
+def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: str = "full") -> dict:
+    """Evaluate one run on its held-out views with one of the ``PREDICTIVES`` and score its std maps against the
+    observed labels."""
     import dataclasses
     from functools import partial
 
@@ -98,7 +110,8 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, empty_rays: b
     from uncertsplat.eval.engine import evaluate_views, fit_residual, fit_std_scale
     from uncertsplat.eval.observed import observed_mask
 
-    ecfg = EvalConfig(num_samples=num_samples, empty_rays=empty_rays, residual_views=residual_views)
+    overrides, full_coverage = PREDICTIVES[predictive]
+    ecfg = EvalConfig(num_samples=num_samples, **overrides)
     loaded = load_run(run_dir, device)
     scene = loaded.load_scene()
     train, test = list(scene.split["train"]), list(scene.split["test"])
@@ -110,7 +123,8 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, empty_rays: b
     residual = fit_residual(loaded.sampler(scene.scene_scale, device), train, ecfg, device, load_views=train_views)
 
     def sampler():
-        return dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual)
+        base = loaded.sampler(scene.scene_scale, device)
+        return dataclasses.replace(base, residual=residual, coverage=1.0 if full_coverage else base.coverage)
 
     report = evaluate_views(sampler(), views, ecfg, device, show_progress=False, on_view=maps.append)
     scale, _ = fit_std_scale(sampler(), train, ecfg, device, load_views=train_views)
@@ -242,42 +256,35 @@ def main() -> None:
             train_run(scene_dir, run_dir, cfg, device)
         train_s = json.loads((run_dir / "train_summary.json").read_text())["seconds"]
         rec = {"method": name, "train_seconds": train_s, "wall_seconds": time.perf_counter() - t0}
-        # the full predictive (the default), the samples' spread alone, and the samples plus the empty-ray term
-        rec["with_empty"] = measure(run_dir, device, args.samples, True, 64)
-        rec["without_empty"] = measure(run_dir, device, args.samples, False, 0)
-        rec["spread_and_empty"] = measure(run_dir, device, args.samples, True, 0)
+        # the full predictive (the default), the one before the coverage and resolution terms, the spread alone
+        for kind in PREDICTIVES:
+            rec[kind] = measure(run_dir, device, args.samples, kind)
         rows.append(rec)
-        w, wo = rec["with_empty"], rec["without_empty"]
-        se = rec["spread_and_empty"]
-        if "auc_rgb" not in w:  # real photos
-            print(f"{name:12s} PSNR {w['psnr']:.2f} AUSE {w['ause_mae']:.3f} NLL {w['nll']:.2f} cal "
-                  f"{w['calibration_error']:.3f} x{fmt(w['std_scale'], 2)} corr(std, error) "
-                  f"{fmt(w['std_error_correlation'])} | spread: AUSE {wo['ause_mae']:.3f} NLL {wo['nll']:.2f} "
-                  f"x{fmt(wo['std_scale'], 2)} corr {fmt(wo['std_error_correlation'])} | train {train_s:.0f}s", flush=True)
-            continue
-        print(f"{name:12s} AUC rgb {fmt(w['auc_rgb'])} depth {fmt(w['auc_depth'])} | spread only: rgb "
-              f"{fmt(wo['auc_rgb'])} depth {fmt(wo['auc_depth'])} | covered pixels: rgb {fmt(wo['auc_rgb_covered'])} "
-              f"depth {fmt(wo['auc_depth_covered'])} | PSNR {w['psnr']:.2f} AUSE {w['ause_mae']:.3f} "
-              f"NLL {w['nll']:.2f} cal {w['calibration_error']:.3f} x{fmt(w['std_scale'], 2)} | spread+empty: AUSE "
-              f"{se['ause_mae']:.3f} NLL {se['nll']:.2f} cal {se['calibration_error']:.3f} | spread: AUSE "
-              f"{wo['ause_mae']:.3f} NLL {wo['nll']:.2f} cal {wo['calibration_error']:.3f} x{fmt(wo['std_scale'], 2)} "
-              f"| train {train_s:.0f}s", flush=True)
+        print(f"{name:12s} " + " | ".join(f"{kind}: {summary(rec[kind])}" for kind in PREDICTIVES)
+              + f" | train {train_s:.0f}s", flush=True)
     out = {"label": args.label, "machine": args.machine, "date": time.strftime("%Y-%m-%d"),
            "torch": torch.__version__, "iterations": its, "width": args.width, "train_views": train,
            "test_views": test, "seed": args.seed, "samples": args.samples, "rows": rows}
     path = ROOT / "benchmarks" / "results" / f"unseen_{args.label}.json"
     path.write_text(json.dumps(out, indent=1))
     print(f"\nwrote {path}\n")
-    print("| method | ROC AUC RGB std | ROC AUC depth std | without the empty-ray term (RGB / depth) | covered pixels "
-          "only (RGB / depth) | PSNR | AUSE-MAE | NLL | cal. err | fitted std factor | train s | machine | date |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| method | predictive | ROC AUC RGB / depth std | PSNR | AUSE-MAE RGB / depth | NLL | cal. err | fitted std "
+          "factor | train s | machine | date |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        w, wo = r["with_empty"], r["without_empty"]
-        print(f"| {r['method']} | {fmt(w.get('auc_rgb'))} | {fmt(w.get('auc_depth'))} | {fmt(wo.get('auc_rgb'))} / "
-              f"{fmt(wo.get('auc_depth'))} | {fmt(wo.get('auc_rgb_covered'))} / {fmt(wo.get('auc_depth_covered'))} | "
-              f"{w['psnr']:.2f} | {w['ause_mae']:.3f} | {w['nll']:.2f} | "
-              f"{w['calibration_error']:.3f} | x{fmt(w['std_scale'], 2)} | {r['train_seconds']:.0f} | {args.machine} | "
-              f"{out['date']} |")
+        for kind in PREDICTIVES:
+            w = r[kind]
+            print(f"| {r['method']} | {kind} | {fmt(w.get('auc_rgb'))} / {fmt(w.get('auc_depth'))} | {w['psnr']:.2f} | "
+                  f"{w['ause_mae']:.3f} / {fmt(w.get('depth_ause'))} | {w['nll']:.2f} | {w['calibration_error']:.3f} | "
+                  f"x{fmt(w['std_scale'], 2)} | {r['train_seconds']:.0f} | {args.machine} | {out['date']} |")
+
+
+def summary(w: dict) -> str:
+    """One protocol result on a line."""
+    auc = f"AUC {fmt(w['auc_rgb'])}/{fmt(w['auc_depth'])} " if "auc_rgb" in w else ""
+    corr = f" corr(std, error) {fmt(w['std_error_correlation'])}" if "auc_rgb" not in w else ""
+    return (f"{auc}PSNR {w['psnr']:.2f} AUSE {w['ause_mae']:.3f}/{fmt(w.get('depth_ause'))} NLL {w['nll']:.2f} "
+            f"cal {w['calibration_error']:.3f} x{fmt(w['std_scale'], 2)}{corr}")
 
 
 def fmt(x, p=3):

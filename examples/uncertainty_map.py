@@ -26,10 +26,11 @@ cams = scene.subset("test")[view]
 # the renderer with the run's background, tile size and near plane
 sampler = loaded.sampler(scene.scene_scale, loaded.model.device)
 
-# the spread of k samples plus the unknown surface where rays meet no Gaussian (``evaluate`` also adds the pixel
-# noise of the Gaussians, ``eval.engine.fit_residual``, fitted on the training views)
+# the spread of k samples plus the unknown surface where rays are covered less than the model covers its
+# training views (``evaluate`` also adds the pixel noise of the Gaussians, ``eval.engine.fit_residual``, fitted
+# on the training views)
 maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cams, k, torch.Generator().manual_seed(0),
-                    empty_std=sampler.empty_std)
+                    empty_std=sampler.empty_std, coverage=sampler.coverage)
 out = run / "example_maps"
 write_png(out / "mean.png", maps.rgb_mean[0].clamp(0, 1).numpy())
 write_png(out / "rgb_std.png", colorize(maps.rgb_std[0].mean(-1)))  # percentile colour scale

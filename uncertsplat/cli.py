@@ -230,7 +230,7 @@ def prune(
     threshold: Annotated[float | None, typer.Option(help="Remove Gaussians whose score exceeds this.")] = None,
     auto: Annotated[bool, typer.Option(help="Strongest pruning within --tolerance-db of the unpruned PSNR.")] = False,
     tolerance_db: Annotated[float | None, typer.Option(help="PSNR loss --auto may accept, in dB (default 0.1).")] = None,
-    score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (= gate), gate, position, scale or predictive (see the README).")] = None,
+    score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (= free-space), free-space, gate, position, scale or predictive (see the README).")] = None,
     dry_run: Annotated[bool, typer.Option(help="Report only; write no model.")] = False,
     sweep: Annotated[bool, typer.Option(help="Evaluate a range of keep ratios.")] = False,
     device: DeviceOpt = "auto",
@@ -271,7 +271,7 @@ def select_views(
         help="unused (the scene's images not used yet), around[:N] (viewpoints near the training cameras) or a "
              "file of lines 'NAME QW QX QY QZ TX TY TZ'.")] = None,
     num_views: Annotated[int | None, typer.Option("-n", "--num-views", help="How many views to choose.")] = None,
-    score: Annotated[str | None, typer.Option(help="variance, fisher, coverage or random.")] = None,
+    score: Annotated[str | None, typer.Option(help="variance, unseen, fisher, coverage or random.")] = None,
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default RUN/select).")] = None,
     device: DeviceOpt = "auto",
     config: ConfigOpt = None,

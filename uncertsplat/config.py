@@ -341,10 +341,18 @@ class EvalConfig(_Base):
     ``nll_calibrated`` and ``calibration_error_calibrated`` use std x factor, the maps keep the raw std.
     Costs K renders per view; only with ``split = "test"``."""
     empty_rays: bool = True
-    """Where a ray meets no Gaussian (accumulated opacity below 1) the model has no surface for the pixel: add
-    the std of an unknown colour (uniform in [0, 1]: 0.289) and an unknown depth (the scene extent), weighted
-    by (1 - alpha)^2 (``uncertainty.mc.mc_render``). Not for scenes whose training images are transparent
-    (the background is then data). False: the samples' spread only."""
+    """Where a ray is covered less than the model covers the surfaces its training views saw (the alpha that 95 %
+    of the training pixels reach, ``uncertainty.mc.training_coverage``), the model has no surface for that part of
+    the pixel: add the std of an unknown colour (uniform in [0, 1]: 0.289) and an unknown depth (the scene
+    extent), weighted by (1 - alpha / coverage)_+^2 (``uncertainty.mc.mc_render``). Not for scenes whose training
+    images are transparent (the background is then data). False: the samples' spread only."""
+    resolution: float = Field(0.3, ge=0.0, le=10.0)
+    """The resolution term: however many views constrain it, a Gaussian's position is known only to within this
+    fraction of its own size (geometric mean of its axes), since neighbouring Gaussians can trade places that
+    much with no visible change in the training views (a diagonal posterior cannot represent that). Each of the
+    K samples is paired with one render of the model with every Gaussian moved by N(0, (resolution x size)^2);
+    their variance is added to the RGB and depth variance (the prediction stays the samples' mean). Doubles the
+    renders; 0: off. Also subtracted from the training residual the pixel noise is fitted on."""
     residual_views: int = Field(64, ge=0)
     """Add the pixel noise the model leaves on its training views to the RGB std: each Gaussian's mean squared
     residual over the training pixels it is blended into (``uncertainty.residual``), rendered per pixel. Fitted
@@ -371,6 +379,11 @@ class PruneConfig(_Base):
     """Predictive score: at most this many training views (evenly spaced) are rendered."""
     score_samples: int = Field(4, ge=2)
     """Predictive score: posterior samples per view."""
+    free_space_views: int = Field(64, ge=1)
+    """Free-space score: at most this many training views (evenly spaced) are rendered for the model's depth."""
+    free_space_margin: float = Field(1.0, ge=0.0)
+    """Free-space score: how many of its own sizes (largest axis) a Gaussian must lie in front of the model's
+    surface, in every training view containing it, to count as a floater."""
     render_views: int = Field(3, ge=0)
     """Before/after PNG renders of this many held-out views."""
 

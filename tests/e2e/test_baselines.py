@@ -94,7 +94,8 @@ def test_ensemble_of_one_has_zero_spread(ensemble_run, tmp_path):
     cfg["ensemble_size"] = 1
     (run / "config.json").write_text(json.dumps(cfg))
     # the samples' spread alone (no empty-ray term, no pixel noise) is exactly 0 ...
-    report = evaluate.run(run, EvalConfig(num_samples=3, max_views=2, empty_rays=False, residual_views=0), device=CPU)
+    spread_only = EvalConfig(num_samples=3, max_views=2, empty_rays=False, residual_views=0, resolution=0)
+    report = evaluate.run(run, spread_only, device=CPU)
     for ch in exr_maps(run, report):
         assert ch["rgb_std.R"].shape == (H, W)
         assert np.all(ch["rgb_std.R"] == 0) and np.all(ch["depth_std.Z"] == 0)

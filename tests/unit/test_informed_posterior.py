@@ -178,3 +178,53 @@ class TestEmptyRays:
         torch.testing.assert_close(maps.depth_std, torch.full_like(maps.depth_std, (1 - alpha) * 2.0))
         plain, _ = mc_render(lambda g: None, self._render(alpha), self._cams(), 4, torch.Generator())
         assert float(plain.rgb_std.abs().max()) == 0.0
+
+    @pytest.mark.parametrize(("alpha", "coverage"), [(0.0, 0.8), (0.4, 0.8), (0.8, 0.8), (0.95, 0.8), (0.5, 1e-3)])
+    def test_coverage(self, alpha, coverage):
+        """Only the part of the ray below the coverage the model reaches on its training views is unknown:
+        (1 - alpha / coverage)_+ x the unknown surface's std."""
+        maps, _ = mc_render(lambda g: None, self._render(alpha), self._cams(), 3, torch.Generator(),
+                            empty_std=(0.3, 2.0), coverage=coverage)
+        gap = max(0.0, 1.0 - alpha / coverage)
+        torch.testing.assert_close(maps.rgb_std, torch.full_like(maps.rgb_std, gap * 0.3))
+        torch.testing.assert_close(maps.depth_std, torch.full_like(maps.depth_std, gap * 2.0))
+
+    def test_coverage_varies_over_samples(self):
+        """E over the samples of the clipped gap squared: samples at alpha 0 and 1 with coverage 0.5 give gaps 1
+        and 0, so the empty-ray variance is 0.5 x std^2 (plus the samples' own spread)."""
+        alphas = iter([0.0, 1.0])
+        render = self._render(0.0)
+
+        def render_fn(sample, cams):
+            a = next(alphas)
+            out = render(sample, cams)
+            return RenderOutput(rgb=torch.zeros_like(out.rgb), alpha=torch.full_like(out.alpha, a),
+                                depth=torch.ones_like(out.depth), depth_expected=out.depth_expected,
+                                means2d=out.means2d, radii=out.radii, depths=out.depths)
+
+        maps, _ = mc_render(lambda g: None, render_fn, self._cams(), 2, torch.Generator(), empty_std=(0.3, 2.0),
+                            coverage=0.5)
+        torch.testing.assert_close(maps.rgb_std, torch.full_like(maps.rgb_std, (0.5 * 0.3**2) ** 0.5))
+
+    @pytest.mark.parametrize("coverage", [0.0, -0.1, 1.5, float("nan")])
+    def test_bad_coverage(self, coverage):
+        with pytest.raises(ValueError, match="coverage"):
+            mc_render(lambda g: None, self._render(0.5), self._cams(), 2, torch.Generator(), empty_std=(0.3, 2.0),
+                      coverage=coverage)
+
+    def test_training_coverage(self):
+        """The quantile of the training cameras' alpha; at least 1e-3; 1 without cameras."""
+        from uncertsplat.uncertainty.mc import training_coverage
+
+        values = torch.linspace(0.0, 1.0, 12).reshape(1, 3, 4, 1)
+
+        def render_fn(sample, cams):
+            return RenderOutput(rgb=torch.zeros(1, 3, 4, 3), alpha=values, depth=torch.ones(1, 3, 4, 1),
+                                depth_expected=values, means2d=torch.zeros(1, 0, 2), radii=torch.zeros(1, 0),
+                                depths=torch.zeros(1, 0))
+
+        cams = Cameras(torch.eye(4)[None].repeat(3, 1, 1), torch.eye(3)[None].repeat(3, 1, 1), 4, 3,
+                       ("a.png", "b.png", "c.png"))
+        assert training_coverage(None, cams, render_fn, quantile=0.5) == pytest.approx(0.5)
+        assert training_coverage(None, cams, render_fn, quantile=0.0) == pytest.approx(1e-3)
+        assert training_coverage(None, cams[[]], render_fn) == 1.0

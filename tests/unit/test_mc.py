@@ -145,3 +145,48 @@ def test_running_moments_matches_torch():
         m.update(x)
     assert torch.allclose(m.mean, xs.mean(0), atol=1e-10)
     assert torch.allclose(m.std, xs.std(0), atol=1e-10)
+
+
+class TestResolutionTerm:
+    """``mc_render(shift_fn=...)``: the variance of the shifted renders is added, the mean is the samples'."""
+
+    def test_shift_variance_is_added_and_the_mean_kept(self, device):
+        d, shifts = Dummy(device), Dummy(device)
+        plain = mc_render(Dummy(device).sample_fn, Dummy(device).render_fn, _cameras(device), 6,
+                          torch.Generator().manual_seed(1))[0]
+        maps = mc_render(d.sample_fn, d.render_fn, _cameras(device), 6, torch.Generator().manual_seed(1),
+                         shift_fn=shifts.sample_fn)[0]
+        # the samples are the same as without the term (the shifts draw from a generator of their own)
+        torch.testing.assert_close(maps.rgb_mean, plain.rgb_mean)
+        assert len(d.values) == 6 == len(shifts.values)
+        s = torch.tensor(shifts.values, dtype=torch.float64)
+        want_rgb = (plain.rgb_std.double().square() + s.var() * d.pattern.double().square()).sqrt()
+        torch.testing.assert_close(maps.rgb_std.double(), want_rgb, rtol=1e-5, atol=1e-6)
+        want_depth = (plain.depth_std.double().square() + s.var()).sqrt()
+        torch.testing.assert_close(maps.depth_std.double(), want_depth, rtol=1e-5, atol=1e-6)
+
+    def test_shifts_are_seeded_by_the_samples_seed(self, device):
+        runs = []
+        for _ in range(2):
+            shifts = Dummy(device)
+            mc_render(Dummy(device).sample_fn, Dummy(device).render_fn, _cameras(device), 3,
+                      torch.Generator().manual_seed(5), shift_fn=shifts.sample_fn)
+            runs.append(shifts.values)
+        assert runs[0] == runs[1]
+        other = Dummy(device)
+        mc_render(Dummy(device).sample_fn, Dummy(device).render_fn, _cameras(device), 3,
+                  torch.Generator().manual_seed(6), shift_fn=other.sample_fn)
+        assert other.values != runs[0]
+
+    def test_resolution_shift_moves_by_a_fraction_of_the_size(self):
+        from uncertsplat.uncertainty.mc import resolution_shift
+
+        n = 4000
+        scales = torch.tensor([[0.1, 0.4, 1.6]]).repeat(n, 1)  # geometric mean 0.4
+        sample = GaussianSample(means=torch.zeros(n, 3), quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                                scales=scales, opacities=torch.ones(n), sh=torch.zeros(n, 1, 3))
+        shifted = resolution_shift(sample, 0.3)(torch.Generator().manual_seed(0))
+        assert abs(float(shifted.means.std()) - 0.3 * 0.4) < 0.004
+        assert torch.equal(shifted.scales, sample.scales) and torch.equal(sample.means, torch.zeros(n, 3))
+        same = resolution_shift(sample, 0.0)(torch.Generator().manual_seed(0))
+        assert torch.equal(same.means, sample.means)

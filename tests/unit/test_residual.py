@@ -75,3 +75,19 @@ def test_masked_pixels_do_not_count_and_subset_keeps_each_gaussians_noise():
     sub = field.subset(keep)
     assert sub.sample.means.shape[0] == int(keep.sum())
     torch.testing.assert_close(sub.variance, field.variance[keep])
+
+
+def test_explained_variance_is_taken_off_the_residual():
+    """With ``explained`` the noise is fitted to max(r^2 - explained, 0): a constant residual d and an explained
+    variance e give every seen Gaussian d^2 - e, and an explained variance above d^2 gives 0."""
+    sample, cams, d = _sample(), _cams(3), 0.05
+    with torch.no_grad():
+        out = RENDER(sample, cams)
+    e = 0.3 * d * d
+    field = fit_residual_field(sample, cams, out.rgb + d, RENDER,
+                               explained=lambda cam: torch.full((1, H, W, 1), e))
+    seen = field.seen
+    torch.testing.assert_close(field.variance[seen], torch.full_like(field.variance[seen], d * d - e), rtol=1e-4,
+                               atol=1e-7)
+    none = fit_residual_field(sample, cams, out.rgb + d, RENDER, explained=lambda cam: torch.full((1, H, W, 1), 1.0))
+    assert float(none.variance.abs().max()) == 0.0

@@ -16,7 +16,9 @@ from uncertsplat.uncertainty.scores import (
     SCORE_NAMES,
     blending_weights,
     carrier_mask,
+    centre_gap,
     compute_scores,
+    free_space_depth,
     posterior_scores,
     resolve_score_name,
     spread_views,
@@ -147,3 +149,52 @@ def test_names_and_helpers():
     model, _, _ = planted_scene()
     with pytest.raises(ValueError, match="predictive"):
         compute_scores(model, None, None, names=("predictive",))
+
+    with pytest.raises(ValueError, match="free-space"):
+        compute_scores(model, None, None, names=("free-space",))
+
+
+class TestFreeSpace:
+    def test_centre_gap_hand_case(self):
+        """One camera at the origin looking down +z (K = identity-like, 4x4 image): a centre at z = 2 over a surface
+        at z = 5 is 3 in front; a centre outside the image or behind the camera counts in no view."""
+        from uncertsplat.types import Cameras
+
+        K = torch.tensor([[2.0, 0, 2.0], [0, 2.0, 2.0], [0, 0, 1.0]])
+        cams = Cameras(torch.eye(4)[None].repeat(2, 1, 1), K[None].repeat(2, 1, 1), 4, 4, ("a", "b"))
+        depth = [torch.full((4, 4), 5.0), torch.full((4, 4), 2.5)]
+        means = torch.tensor([[0.0, 0.0, 2.0], [50.0, 0.0, 2.0], [0.0, 0.0, -1.0]])
+        gap, views = centre_gap(means, cams, lambda c: depth[c])
+        assert views.tolist() == [2, 0, 0]
+        assert float(gap[0]) == pytest.approx(0.5)  # the smaller gap over the two views
+        assert math.isinf(float(gap[1])) and math.isinf(float(gap[2]))
+        # no surface through the pixel (0 or non-finite depth): free space along the whole ray
+        gap, views = centre_gap(means[:1], cams[[0]], lambda c: torch.zeros(4, 4))
+        assert math.isinf(float(gap[0])) and int(views[0]) == 1
+
+    def test_floaters_score_above_one_and_the_rest_by_gate(self, device):
+        model, is_floater, cams = planted_scene(device=device)
+        s = compute_scores(model, cams, None, render_fn=render, names=("free-space", "gate"))
+        carriers = carrier_mask(model)
+        free = s["free-space"]
+        flagged = free > 1.0
+        # the planted floaters sit in free space in every view that contains them; the surface never does
+        assert float(flagged[is_floater].float().mean()) >= 0.8
+        assert not bool(flagged[~is_floater].any())
+        rest = carriers & ~flagged
+        torch.testing.assert_close(free[rest], s["gate"][rest])
+        assert bool((free[~carriers] == 0).all())
+
+    def test_margin_and_hidden_gaussians(self, device):
+        """A Gaussian hidden behind the surface (inside the sphere) is never in free space; a larger margin flags
+        fewer floaters; every flagged Gaussian's depth d exceeds the margin."""
+        model, is_floater, cams = planted_scene(device=device)
+        with torch.no_grad():
+            model.params["means"][20] = torch.zeros(3, device=device)  # the sphere's centre: behind every surface
+        from uncertsplat.gaussians.variational import posterior_mean
+
+        d, views = free_space_depth(posterior_mean(model), cams, render_fn=render)
+        assert float(d[20]) < 0 and int(views[20]) == len(cams)
+        n = [int((compute_scores(model, cams, None, render_fn=render, names=("free-space",),
+                                 free_space_margin=m)["free-space"] > 1).sum()) for m in (1.0, 5.0, 1e9)]
+        assert n[0] >= n[1] and n[2] == 0 and n[0] > 0

@@ -118,14 +118,15 @@ class EnsembleRun(LoadedRun):
 
     def sampler(self, scene_scale: float, device: torch.device) -> Sampler:
         """Samples cycle through the members (``ensemble_sample_fn``); no deterministic render of its own."""
-        return Sampler(ensemble_sample_fn(self.member_samples()), self.render_fn(scene_scale, device),
-                       empty_std=self.empty_std())
+        members = self.member_samples()
+        return Sampler(ensemble_sample_fn(members), self.render_fn(scene_scale, device), empty_std=self.empty_std(),
+                       coverage=self.coverage(scene_scale, device, members[0]), mean_sample=members[0])
 
     def eval_notes(self, num_samples: int) -> list[str]:
         n = len(self.members)
         if n == 1:
             return ["ensemble of 1 member: every sample is the same render, so the samples' spread is 0 everywhere; "
-                    "the std holds only the empty-ray and pixel-noise terms (when on)"]
+                    "the std holds only the empty-ray, pixel-noise and resolution terms (when on)"]
         if num_samples % n:
             return [f"K={num_samples} is not a multiple of the {n} ensemble members: members are weighted "
                     f"unequally (K = {n} uses each member once)"]

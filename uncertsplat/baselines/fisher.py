@@ -154,7 +154,14 @@ class FisherRun(LoadedRun):
 
     def sampler(self, scene_scale: float, device: torch.device) -> Sampler:
         """Laplace-posterior samples (``fisher_sample_fn``); no deterministic render of its own."""
-        return Sampler(fisher_sample_fn(self), self.render_fn(scene_scale, device), empty_std=self.empty_std())
+        from uncertsplat.gaussians.variational import posterior_mean
+
+        prior = self.prior
+        with torch.no_grad():
+            mean = posterior_mean(self.model, variant=prior.variant, extent=self.extent,
+                                  temperature=prior.temperature, sh_degree=self.sh_degree)
+        return Sampler(fisher_sample_fn(self), self.render_fn(scene_scale, device), empty_std=self.empty_std(),
+                       coverage=self.coverage(scene_scale, device, mean), mean_sample=mean)
 
     def eval_notes(self, num_samples: int) -> list[str]:
         fcfg = self.config.fisher
@@ -180,7 +187,7 @@ def load_fisher(base: LoadedRun) -> FisherRun:
     if int(state["num_gaussians"]) != n or any(v.shape[0] != n for v in state["variance"].values()):
         raise UserError(f"{FISHER_FILE} was computed for {state['num_gaussians']} Gaussians, the model has {n}",
                         path=path, hint="Delete it and run train --method fisher --resume to recompute it.")
-    return FisherRun(**{f.name: getattr(base, f.name) for f in fields(LoadedRun)}, variance=state["variance"],
+    return FisherRun(**{f.name: getattr(base, f.name) for f in fields(LoadedRun) if f.init}, variance=state["variance"],
                      noise_std=float(state["noise_std"]))
 
 

@@ -17,7 +17,7 @@ import functools
 import json
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
@@ -28,7 +28,7 @@ from uncertsplat.eval.engine import Sampler
 from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.gaussians.prior import Prior
 from uncertsplat.schemas import RunScene
-from uncertsplat.types import SceneData
+from uncertsplat.types import GaussianSample, SceneData
 
 
 @dataclass
@@ -56,6 +56,7 @@ class LoadedRun:
     run_dir: Path
     transparent: bool = False
     """The training images had real transparency (``RUN/scene.json``): the background is data."""
+    _coverage: float | None = field(default=None, init=False, repr=False)  # ``coverage``, once computed
 
     @property
     def prior(self) -> Prior:
@@ -69,6 +70,32 @@ class LoadedRun:
         [0, 1] (std 1 / sqrt(12)) and a depth anywhere within the scene extent; None when the training images
         were transparent (a ray that meets nothing then shows the known background)."""
         return None if self.transparent else (1.0 / math.sqrt(12.0), float(self.extent))
+
+    def coverage(self, scene_scale: float, device: torch.device, sample: GaussianSample | None = None) -> float:
+        """The opacity the model reaches on the surfaces its training views saw (``uncertainty.mc.
+        training_coverage`` over the scene's training cameras; ``Sampler.coverage``), computed once per loaded
+        run. ``sample``: the Gaussians to render (default: the model's expected render). 1 when the empty-ray
+        term does not apply (transparent training images) or the run records no scene.
+        """
+        cached = getattr(self, "_coverage", None)
+        if cached is not None:
+            return cached
+        value = 1.0
+        if self.empty_std() is not None and self.scene_path is not None:
+            from uncertsplat.gaussians import variational
+            from uncertsplat.uncertainty.mc import training_coverage
+
+            scene = self.load_scene()
+            train = list(scene.split.get("train", ()))
+            if sample is None:
+                prior = self.prior
+                with torch.no_grad():
+                    sample = variational.expected_render_sample(
+                        self.model, variant=prior.variant, extent=self.extent, temperature=prior.temperature,
+                        sh_degree=self.sh_degree)
+            value = training_coverage(sample, scene.cameras[train].to(device), self.render_fn(scene_scale, device))
+        self._coverage = value
+        return value
 
     def render_fn(self, scene_scale: float, device: torch.device) -> Callable:
         """``render_fn(sample, cameras)`` with the run's background, tile size and near plane (as in training)."""
@@ -102,13 +129,14 @@ class LoadedRun:
 
             def sample_fn(g):
                 return variational.sample(model, g, subset_size=subset_size, **kw)
-        return Sampler(sample_fn, render_fn, det_sample, empty_std=self.empty_std())
+        return Sampler(sample_fn, render_fn, det_sample, empty_std=self.empty_std(),
+                       coverage=self.coverage(scene_scale, device, det_sample))
 
     def eval_notes(self, num_samples: int) -> list[str]:
         """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run."""
         if self.config.method == "deterministic":
             return ["deterministic model: every sample is the same render, so the samples' spread is 0 everywhere; "
-                    "the std holds only the empty-ray and pixel-noise terms (when on)"]
+                    "the std holds only the empty-ray, pixel-noise and resolution terms (when on)"]
         return []
 
     def load_scene(self) -> SceneData:

@@ -54,6 +54,8 @@ class EvalSettings(Protocol):
     """Add the sampler's ``empty_std`` where rays meet no Gaussian (False: the samples' spread only)."""
     residual_views: int
     """Training views to fit the pixel noise of the model's Gaussians on (``fit_residual``; 0: none)."""
+    resolution: float
+    """The resolution term's shift, in fractions of each Gaussian's size (``uncertainty.mc.resolution_shift``)."""
 
 
 @dataclass(frozen=True)
@@ -71,6 +73,10 @@ class Sampler:
             (``uncertainty.mc.mc_render``); None when the background is part of the data.
         residual: the pixel noise of the model's Gaussians (``fit_residual``), added to the RGB variance;
             None: the samples' spread only.
+        coverage: the opacity the model reaches on its training views' surfaces (``uncertainty.mc.
+            training_coverage``): rays covered less than this count as partly empty (``mc_render``).
+        mean_sample: a deterministic model that stands for the run in the predictive's side terms (pixel noise,
+            resolution term) when it has no ``det_sample`` (an ensemble's first member, a Fisher run's mean).
     """
 
     sample_fn: Callable[[torch.Generator], GaussianSample]
@@ -78,6 +84,8 @@ class Sampler:
     det_sample: GaussianSample | None = None
     empty_std: tuple[float, float] | None = None
     residual: ResidualField | None = None
+    coverage: float = 1.0
+    mean_sample: GaussianSample | None = None
 
 
 @dataclass(frozen=True)
@@ -113,10 +121,21 @@ class _ViewResult:
     alpha: Tensor
 
 
+def _shift_fn(sampler: Sampler, cfg: EvalSettings, device: torch.device):
+    """The resolution term's sampler (``uncertainty.mc.resolution_shift``) of the run's representative model, or
+    None when ``cfg.resolution`` is 0."""
+    from uncertsplat.uncertainty.mc import resolution_shift
+
+    if cfg.resolution <= 0:
+        return None
+    return resolution_shift(_representative(sampler, device), cfg.resolution)
+
+
 def _predictive(sampler: Sampler, cfg: EvalSettings, cams: Cameras) -> dict:
     """The terms ``mc_render`` adds to the samples' spread, as the settings allow."""
     extra = sampler.residual.blended(cams, sampler.render_fn) if sampler.residual is not None else None
-    return {"empty_std": sampler.empty_std if cfg.empty_rays else None, "extra_var": extra}
+    return {"empty_std": sampler.empty_std if cfg.empty_rays else None, "coverage": sampler.coverage,
+            "extra_var": extra, "shift_fn": _shift_fn(sampler, cfg, cams.device)}
 
 
 def residual_indices(train_indices: Sequence[int], cfg: EvalSettings) -> list[int]:
@@ -130,8 +149,11 @@ def residual_indices(train_indices: Sequence[int], cfg: EvalSettings) -> list[in
 
 @torch.no_grad()
 def _representative(sampler: Sampler, device: torch.device) -> GaussianSample:
+    """The deterministic model the side terms use: the expected render, else ``mean_sample``, else one sample."""
     if sampler.det_sample is not None:
         return sampler.det_sample
+    if sampler.mean_sample is not None:
+        return sampler.mean_sample
     return sampler.sample_fn(torch.Generator(device=device).manual_seed(0))
 
 
@@ -149,9 +171,25 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
         return None
     views = load_views(chosen)
     masks = views.masks.to(device) if views.masks is not None else None
+    explained = None
+    shift = _shift_fn(sampler, cfg, device)
+    if shift is not None:
+        def explained(cam: Cameras) -> Tensor:  # the resolution term's variance on the training view
+            from uncertsplat.uncertainty.mc import RunningMoments
+
+            gen = torch.Generator(device=device).manual_seed(cfg.seed)
+            moments = RunningMoments()
+            for _ in range(RESIDUAL_SHIFTS):
+                moments.update(sampler.render_fn(shift(gen), cam).rgb)
+            return moments.var.mean(-1, keepdim=True)
+
     with torch.enable_grad():
         return fit_residual_field(_representative(sampler, device), views.cameras.to(device),
-                                  views.images.to(device), sampler.render_fn, masks=masks)
+                                  views.images.to(device), sampler.render_fn, masks=masks, explained=explained)
+
+
+RESIDUAL_SHIFTS = 4
+"""Renders of the resolution term per training view when the pixel noise is fitted (``fit_residual``)."""
 
 
 def _view_seed(cfg: EvalSettings, index: int) -> int:
@@ -279,15 +317,19 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if not keep:
         notes.append(f"KDE NLL skipped: K={K} > {KDE_MAX_SAMPLES} would keep every sample in memory")
     if K == 1:
-        notes.append("K=1: the samples' spread is 0 everywhere; the std holds only the empty-ray and pixel-noise "
-                     "terms (when on)")
+        notes.append("K=1: the samples' spread and the resolution term are 0 everywhere; the std holds only the "
+                     "empty-ray and pixel-noise terms (when on)")
     terms = ["the spread of the K samples"]
     if sampler.residual is not None:
         seen = float(sampler.residual.seen.float().mean()) if sampler.residual.seen.numel() else 0.0
         terms.append(f"the pixel noise of the Gaussians on the training views (RMS residual "
                      f"{sampler.residual.mean_variance ** 0.5:.4f}; {100 * seen:.1f} % of the Gaussians seen)")
+    if cfg.resolution > 0:
+        terms.append(f"the resolution term (every Gaussian moved by N(0, ({cfg.resolution:g} x its size)^2), "
+                     "one render per sample)")
     if cfg.empty_rays and sampler.empty_std is not None:
-        terms.append(f"an unknown surface where rays meet no Gaussian (colour std {sampler.empty_std[0]:.3f}, depth "
+        terms.append(f"an unknown surface where rays are covered less than the model covers its training views "
+                     f"(alpha {sampler.coverage:.3f}; colour std {sampler.empty_std[0]:.3f}, depth "
                      f"std {sampler.empty_std[1]:.3g})")
     notes.append("std = " + " + ".join(terms))
 

@@ -21,6 +21,7 @@ from torch import Tensor
 
 from uncertsplat.eval.calibration import average_ranks
 from uncertsplat.types import Cameras
+from uncertsplat.uncertainty.scores import centre_gap
 
 
 @dataclass(frozen=True)
@@ -55,28 +56,8 @@ def label_floaters(means: Tensor, scales: Tensor, cameras: Cameras, depths: Tens
     """
     if depths.ndim == 4:
         depths = depths[..., 0]
-    n = means.shape[0]
-    dev = means.device
     margin = margin_scale * scales.amax(1) + margin_extent * float(extent)  # [N]
-    gap = torch.full((n,), float("inf"), device=dev)
-    views = torch.zeros(n, dtype=torch.long, device=dev)
-    H, W = cameras.height, cameras.width
-    for c in range(len(cameras)):
-        rt = cameras.cam_from_world[c].to(dev, means.dtype)
-        p = means @ rt[:3, :3].T + rt[:3, 3]  # [N,3] camera coordinates
-        z = p[:, 2]
-        k = cameras.K[c].to(dev, means.dtype)
-        zs = z.clamp_min(near)
-        u = k[0, 0] * p[:, 0] / zs + k[0, 2]
-        v = k[1, 1] * p[:, 1] / zs + k[1, 2]
-        inside = (z > near) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-        iu = u.clamp(0, W - 1).long()
-        iv = v.clamp(0, H - 1).long()
-        d = depths[c].to(dev, means.dtype)[iv, iu]  # [N] surface depth through the centre's pixel
-        d = torch.where(torch.isfinite(d) & (d > 0), d, torch.full_like(d, float("inf")))
-        g = torch.where(inside, d - z, torch.full_like(z, float("inf")))
-        gap = torch.minimum(gap, g)
-        views += inside.long()
+    gap, views = centre_gap(means, cameras, lambda c: depths[c], near=near)
     return FloaterLabels(is_floater=(views > 0) & (gap > margin), num_views=views, gap=gap)
 
 

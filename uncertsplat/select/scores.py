@@ -81,14 +81,16 @@ def coverage_choice(candidates: Tensor, used: Tensor, n: int) -> tuple[list[int]
 
 @torch.no_grad()
 def variance_scores(sample_fn: Callable, render_fn: Callable, cameras: Cameras, num_samples: int, seed: int, *,
-                    empty_std: tuple[float, float] | None) -> tuple[Tensor, Tensor]:
-    """([C] mean RGB std, [C] mean depth std) of each candidate (one seeded generator per candidate)."""
+                    empty_std: tuple[float, float] | None, coverage: float = 1.0) -> tuple[Tensor, Tensor]:
+    """([C] mean RGB std, [C] mean depth std) of each candidate (one seeded generator per candidate); ``empty_std``
+    and ``coverage`` as in ``uncertainty.mc.mc_render``."""
     from uncertsplat.uncertainty.mc import mc_render
 
     rgb, depth = [], []
     for c in range(len(cameras)):
         gen = torch.Generator(device=cameras.device).manual_seed(seed * 1_000_003 + c)
-        maps, _ = mc_render(sample_fn, render_fn, cameras[[c]], num_samples, gen, empty_std=empty_std)
+        maps, _ = mc_render(sample_fn, render_fn, cameras[[c]], num_samples, gen, empty_std=empty_std,
+                            coverage=coverage)
         rgb.append(float(maps.rgb_std.mean()))
         depth.append(float(maps.depth_std.mean()))
     return torch.tensor(rgb, dtype=torch.float64), torch.tensor(depth, dtype=torch.float64)

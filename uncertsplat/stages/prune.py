@@ -279,13 +279,15 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
     # ---- scores (every posterior score; the predictive one only when asked for: it renders)
     prior = loaded.prior
     render_fn = loaded.render_fn(scene.scene_scale, device)
-    names = ("position", "scale", "gate") + (("predictive",) if score_name == "predictive" else ())
+    names = ("position", "scale", "gate") + ((score_name,) if score_name in ("predictive", "free-space") else ())
     score_cams = scene.cameras[spread_views(scene.split["train"], cfg.score_views)].to(device)
+    free_cams = scene.cameras[spread_views(scene.split["train"], cfg.free_space_views)].to(device)
     t0 = time.perf_counter()
     scores = compute_scores(model, score_cams, torch.Generator(device=device).manual_seed(cfg.seed),
                             render_fn=render_fn, names=names, num_samples=cfg.score_samples,
                             subset_size=loaded.config.variational.subset_size, variant=prior.variant,
-                            extent=loaded.extent, temperature=prior.temperature)
+                            extent=loaded.extent, temperature=prior.temperature, free_space_cameras=free_cams,
+                            free_space_margin=cfg.free_space_margin)
     score_seconds = time.perf_counter() - t0
     score = scores[score_name]
     carriers = carrier_mask(model)
@@ -323,7 +325,8 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
              "keep_ratio" if keep_ratio is not None else "sweep",
         threshold=threshold, keep_ratio=keep_ratio, tolerance_db=cfg.tolerance_db, seed=cfg.seed,
         num_samples=cfg.num_samples, metric_split=split, metric_views=[scene.cameras.image_names[i] for i in indices],
-        score_views=list(score_cams.image_names), score_seconds=score_seconds, dry_run=cfg.dry_run,
+        score_views=list((free_cams if score_name == "free-space" else score_cams).image_names),
+        score_seconds=score_seconds, dry_run=cfg.dry_run,
         device=str(device), notes=notes,
         score_stats={k: ScoreStats(min=float(v[carriers].min()), median=float(v[carriers].median()),
                                    max=float(v[carriers].max())) for k, v in scores.items()},

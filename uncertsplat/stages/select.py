@@ -123,7 +123,7 @@ def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | N
                                   low)
         else:
             first, depth_std = variance_scores(sampler.sample_fn, sampler.render_fn, low, cfg.num_samples, cfg.seed,
-                                               empty_std=sampler.empty_std)
+                                               empty_std=sampler.empty_std, coverage=sampler.coverage)
             settings["num_samples"] = cfg.num_samples
         chosen = rank_order(first)[:n]
         at = [float(first[j]) for j in chosen]

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from uncertsplat.config import ViewConfig
+from uncertsplat.config import PruneConfig, ViewConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
 from uncertsplat.view.server import check_port, require_viser, viewer_url
@@ -42,10 +42,13 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
         console.print(f"[yellow]note:[/] no cameras or photos in the viewer: {err.render()}", soft_wrap=True)
     info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
     scene_scale = scene.scene_scale if scene is not None else (info.scene_scale if info is not None else 1.0)
-    score_cams = None
+    score_cams = free_cams = None
     if scene is not None and scene.split.get("train"):
-        score_cams = scene.cameras[spread_views(scene.split["train"], 8)]
-    renderer = FrameRenderer(loaded, scene_scale, device, score_cameras=score_cams, seed=cfg.seed)
+        defaults = PruneConfig()  # the same views as `prune`, so the preview shows its mask
+        score_cams = scene.cameras[spread_views(scene.split["train"], defaults.score_views)]
+        free_cams = scene.cameras[spread_views(scene.split["train"], defaults.free_space_views)]
+    renderer = FrameRenderer(loaded, scene_scale, device, score_cameras=score_cams, free_space_cameras=free_cams,
+                             seed=cfg.seed)
     return Viewer(renderer, scene, cfg)
 
 

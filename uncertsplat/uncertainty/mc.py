@@ -12,12 +12,20 @@ This module takes the sampler and renderer as functions, so it imports neither `
 Depth: the rendered depth is alpha-normalised and 0 where a sample hits nothing, so pixels at the
 silhouette mix 0 and surface depths and get a large depth std. That is a real property of the
 posterior (the surface may or may not be there); ``alpha_mean`` lets callers mask such pixels.
+
+Empty rays: where a ray is covered less than the model covers the surfaces its training views saw
+(``coverage``, from ``training_coverage``), the uncovered part shows something the model has no Gaussian
+for; ``mc_render``'s ``empty_std`` adds that unknown value's variance (see there).
+
+Resolution: ``mc_render``'s ``shift_fn`` pairs each sample with a render of the model whose Gaussians are
+moved by a fraction of their own size (``resolution_shift``); the variance of those renders is added too.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -69,17 +77,26 @@ class RunningMoments:
         return self.var.sqrt()
 
 
+SHIFT_SEED = 0x5EED5  # mixes the shifts' seed with the samples' seed
+
+
 class MonteCarloMoments:
     """Running moments of the renders of posterior samples: what ``mc_render`` accumulates, exposed so that a
     caller can add samples a few at a time and read the maps in between (the viewer refines a still frame
     this way).
 
     ``update(out)`` folds one ``RenderOutput`` in; ``maps(...)`` reads the mean and std maps with the same
-    empty-ray and extra-variance terms as ``mc_render``.
+    empty-ray and extra-variance terms as ``mc_render``. ``coverage`` (in (0, 1]) is the opacity below which a
+    ray counts as partly empty (``mc_render``); it is needed while the samples are folded in.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, coverage: float = 1.0) -> None:
+        if not (0.0 < coverage <= 1.0) or math.isnan(coverage):
+            raise ValueError(f"coverage must be in (0, 1], got {coverage}")
+        self.coverage = float(coverage)
         self.rgb, self.depth, self.alpha = RunningMoments(), RunningMoments(), RunningMoments()
+        self.gap = RunningMoments()  # (1 - alpha / coverage)_+ of each sample
+        self.shift_rgb, self.shift_depth = RunningMoments(), RunningMoments()  # ``update_shift``
 
     @property
     def count(self) -> int:
@@ -89,17 +106,29 @@ class MonteCarloMoments:
         self.rgb.update(out.rgb)
         self.depth.update(out.depth)
         self.alpha.update(out.alpha)
+        self.gap.update((1.0 - out.alpha.detach() / self.coverage).clamp_min(0.0))
+
+    def update_shift(self, out: RenderOutput) -> None:
+        """Fold in one render of the model with its Gaussians shifted within their resolution (``mc_render``'s
+        ``shift_fn``): their variance is added to the maps, their mean is not used."""
+        self.shift_rgb.update(out.rgb)
+        self.shift_depth.update(out.depth)
 
     def maps(self, image_names: tuple[str, ...] = (), *, empty_std: tuple[float, float] | None = None,
              extra_var: Tensor | None = None) -> UncertaintyMaps:
         """The mean and std maps of the samples so far (see ``mc_render`` for ``empty_std`` and ``extra_var``)."""
-        rgb_std, depth_std = self.rgb.std, self.depth.std
+        rgb_var, depth_var = self.rgb.var, self.depth.var
+        if self.shift_rgb.count:
+            rgb_var = rgb_var + self.shift_rgb.var
+            depth_var = depth_var + self.shift_depth.var
         if empty_std is not None and (empty_std[0] > 0 or empty_std[1] > 0):
-            gap = (1.0 - self.alpha.mean).square() + self.alpha.var  # E[(1 - alpha)^2], [C,H,W,1]
-            rgb_std = (self.rgb.var + gap * empty_std[0] ** 2).sqrt()
-            depth_std = (self.depth.var + gap * empty_std[1] ** 2).sqrt()
+            # the mean over the samples of (1 - alpha / coverage)_+^2, [C,H,W,1] (M2 / n is the biased variance)
+            gap = self.gap.mean.square() + self.gap.var * ((self.count - 1) / self.count)
+            rgb_var = rgb_var + gap * empty_std[0] ** 2
+            depth_var = depth_var + gap * empty_std[1] ** 2
         if extra_var is not None:
-            rgb_std = (rgb_std.square() + extra_var.to(rgb_std)).sqrt()
+            rgb_var = rgb_var + extra_var.to(rgb_var)
+        rgb_std, depth_std = rgb_var.sqrt(), depth_var.sqrt()
         return UncertaintyMaps(rgb_mean=self.rgb.mean, rgb_std=rgb_std, depth_mean=self.depth.mean,
                                depth_std=depth_std, alpha_mean=self.alpha.mean, n_samples=self.count,
                                image_names=image_names)
@@ -131,7 +160,9 @@ def mc_render(
     *,
     keep_samples: bool = False,
     empty_std: tuple[float, float] | None = None,
+    coverage: float = 1.0,
     extra_var: Tensor | None = None,
+    shift_fn: SampleFn | None = None,
 ) -> tuple[UncertaintyMaps, MCSamples | None]:
     """Render ``num_samples`` posterior samples of ``cameras`` and return their mean and std maps.
 
@@ -143,13 +174,20 @@ def mc_render(
         generator: the only source of randomness; the same seed gives the same maps.
         keep_samples: also return every render (memory x K), e.g. for the KDE NLL of a view.
         empty_std: (colour std, depth std) of the unknown surface behind a ray that meets no Gaussian. Where
-            a sample's accumulated opacity is alpha < 1, a fraction 1 - alpha of the pixel shows what the model
-            has no Gaussian for: treated as an independent unknown value with this std, it adds
-            ``E[(1 - alpha)^2] std^2`` to the variance (E over the samples), so a pixel the model knows
-            nothing about is never certain. None: the samples' spread only (e.g. when the background is
-            part of the data).
+            a sample's accumulated opacity alpha is below ``coverage``, a fraction 1 - alpha / coverage of the
+            pixel shows what the model has no Gaussian for: treated as an independent unknown value with this
+            std, it adds ``E[(1 - alpha / coverage)_+^2] std^2`` to the variance (E over the samples), so a
+            pixel the model knows nothing about is never certain. None: the samples' spread only (e.g. when
+            the background is part of the data).
+        coverage: the opacity the model reaches on the surfaces its training views saw
+            (``training_coverage``): a trained model leaves some of each pixel uncovered even where the
+            surface was seen (alpha 0.9-1, its colours fitted with that), and that part is not unknown. 1
+            counts every alpha < 1 (the term before it was measured: BENCHMARKS.md, "Coverage").
         extra_var: [C,H,W,1] a variance added to the RGB variance, e.g. the pixel noise of the model's
             Gaussians (``uncertainty.residual``): the predictive of a pixel is the samples' spread plus it.
+        shift_fn: the resolution term (``resolution_shift``): one render of it per sample, whose variance is added
+            to the RGB and depth variance (their mean is not used). Draws from its own generator, seeded from
+            ``generator``'s initial seed.
 
     Returns:
         (UncertaintyMaps with rgb_mean/rgb_std [C,H,W,3], depth_mean/depth_std [C,H,W,1],
@@ -157,7 +195,12 @@ def mc_render(
     """
     if num_samples < 1:
         raise ValueError(f"num_samples must be >= 1, got {num_samples}")
-    moments = MonteCarloMoments()
+    moments = MonteCarloMoments(coverage)
+    # the shifts draw from a generator of their own (seeded from this one's seed, which they leave untouched):
+    # a sampler may depend on its generator's state between its own calls (an ensemble's member order)
+    shift_gen = None
+    if shift_fn is not None:
+        shift_gen = torch.Generator(device=generator.device).manual_seed(generator.initial_seed() ^ SHIFT_SEED)
     kept_rgb: list[Tensor] = []
     kept_depth: list[Tensor] = []
     with torch.no_grad():
@@ -165,6 +208,8 @@ def mc_render(
             sample = sample_fn(generator)
             out = render_fn(sample, cameras)
             moments.update(out)
+            if shift_fn is not None:
+                moments.update_shift(render_fn(shift_fn(shift_gen), cameras))
             if keep_samples:
                 kept_rgb.append(out.rgb.detach())
                 kept_depth.append(out.depth.detach())
@@ -174,3 +219,47 @@ def mc_render(
     maps = moments.maps(tuple(cameras.image_names), empty_std=empty_std, extra_var=extra_var)
     samples = MCSamples(torch.stack(kept_rgb), torch.stack(kept_depth)) if keep_samples else None
     return maps, samples
+
+
+COVERAGE_QUANTILE = 0.05
+"""``training_coverage``: the fraction of training pixels allowed to lie below the coverage (BENCHMARKS.md,
+"Coverage": 0.01-0.1 measured)."""
+
+
+@torch.no_grad()
+def training_coverage(sample: GaussianSample, cameras: Cameras, render_fn: RenderFn, *,
+                      quantile: float = COVERAGE_QUANTILE, max_views: int = 8) -> float:
+    """The opacity the model reaches on the surfaces its training views saw: the ``quantile`` of the rendered
+    alpha over every pixel of at most ``max_views`` evenly spaced training cameras (``mc_render``'s
+    ``coverage``). At least 1e-3, so a model that covers nothing still gives a valid value; 1 without cameras.
+
+    Args:
+        sample: the model's Gaussians (its expected render or posterior mean).
+        cameras: the training cameras (images are not needed).
+        render_fn: renders a sample for cameras.
+    """
+    if not 0.0 <= quantile < 1.0:
+        raise ValueError(f"quantile must be in [0, 1), got {quantile}")
+    n = len(cameras)
+    if n == 0:
+        return 1.0
+    k = min(max_views, n)
+    pick = sorted({round(j * (n - 1) / max(k - 1, 1)) for j in range(k)})
+    alphas = [render_fn(sample, cameras[[i]]).alpha.flatten().float().cpu() for i in pick]
+    a = torch.cat(alphas)
+    if a.numel() > 1 << 24:  # torch.quantile's input limit
+        a = a[torch.linspace(0, a.numel() - 1, 1 << 24).long()]
+    return float(a.quantile(quantile).clamp(1e-3, 1.0))
+
+
+def resolution_shift(sample: GaussianSample, resolution: float) -> SampleFn:
+    """A sampler of ``sample`` with every Gaussian moved by N(0, (resolution x its size)^2) per axis (size: the
+    geometric mean of its axes): ``mc_render``'s ``shift_fn`` (see ``config.EvalConfig.resolution``)."""
+    size = sample.scales.detach().clamp_min(1e-30).log().mean(-1, keepdim=True).exp()  # [N,1]
+    step = float(resolution) * size
+
+    def shift(generator: torch.Generator) -> GaussianSample:
+        eps = torch.randn(sample.means.shape, generator=generator, device=generator.device, dtype=sample.means.dtype)
+        return replace(sample, means=sample.means + step * eps.to(sample.means.device))
+
+    return shift

@@ -79,13 +79,17 @@ class ResidualField:
 
 def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
                        render_fn: Callable[[GaussianSample, Cameras], RenderOutput],
-                       masks: Tensor | None = None) -> ResidualField:
+                       masks: Tensor | None = None,
+                       explained: Callable[[Cameras], Tensor] | None = None) -> ResidualField:
     """Each Gaussian's noise variance from the training views (see the module docstring).
 
     Args:
         sample: the Gaussians to attach the noise to (e.g. the expected render of a variational model).
         cameras: T training cameras; images: [T,H,W,3] in [0, 1]; masks: [T,H,W,1] bool valid pixels or None.
         render_fn: renders a sample for cameras (with the run's background).
+        explained: ``explained(camera) -> [1,H,W,1]`` a variance the rest of the predictive already gives each
+            pixel (the resolution term): the noise is fitted to what the residual leaves beyond it,
+            ``max(r^2 - explained, 0)``, so that the two are not counted twice.
 
     Returns:
         the ``ResidualField`` (on the sample's device).
@@ -100,6 +104,9 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
         with torch.no_grad():
             pred = render_fn(sample, cam).rgb[0]
         r2 = (pred - images[j].to(pred)).square().mean(-1, keepdim=True)  # [H,W,1]
+        if explained is not None:
+            with torch.no_grad():
+                r2 = (r2 - explained(cam)[0].to(r2)).clamp_min(0.0)
         valid = torch.ones_like(r2, dtype=torch.bool) if masks is None else masks[j].to(dev)
         r2 = torch.where(valid, r2, torch.zeros_like(r2))
         total += float(r2.double().sum())

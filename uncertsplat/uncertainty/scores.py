@@ -17,6 +17,15 @@ entries, as ``variational.posterior_mean`` does.
 ``gate``
     Gate-off probability P(g < 0.5) = P(nu + tau eta < 0) = Phi(-nu / tau) for the gate logit
     N(nu, tau^2): the chance that a sample switches the Gaussian (mostly) off. In [0, 1].
+``free-space``
+    For floaters: how far the Gaussian lies in front of the model's own surface. In every training view
+    whose image contains its centre (posterior mean), the model's rendered depth at that pixel (where the
+    render covers it, alpha >= 0.5; elsewhere the ray shows no surface) minus the centre's depth; the
+    smallest over those views, in units of the Gaussian's largest axis, is d. A Gaussian in front of the
+    surface by more than ``free_space_margin`` (1) of its own sizes in *every* view that contains it sits in
+    free space, where the views see through it to the surface behind: it scores 1 + d; every other carrier
+    scores its ``gate`` probability (in [0, 1]), so the floaters rank first and the rest in ``gate``'s order.
+    One render per view (at most ``free_space_views`` training views, evenly spaced), no sampling.
 ``predictive``
     How much the Gaussian's sampled variation changes the rendered training views, weighted by how much
     it contributes to them. With W_s = its blending weight accumulated over the chosen training views in
@@ -35,14 +44,15 @@ entries, as ``variational.posterior_mean`` does.
     DC coefficient gives C0 x W_i. Gaussians that no chosen view sees score 0.
 
 Which score is the default (``DEFAULT_SCORE``) is decided by the pruning benchmark
-(``benchmarks/bench_prune.py``, BENCHMARKS.md "Pruning"): held-out PSNR vs keep ratio, and planted floaters.
+(``benchmarks/bench_prune.py``, BENCHMARKS.md "Pruning"): held-out PSNR vs keep ratio, and the floaters that
+training leaves (GT-depth labels).
 ``predictive`` ranks Gaussians that matter most to the image first (its weight is their contribution), so
 it must not be used to shrink a model: removing even its top few percent costs much of the image quality.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import torch
@@ -55,16 +65,16 @@ from uncertsplat.gaussians.variational import gate_off_probability, posterior_me
 from uncertsplat.render.sh import C0
 from uncertsplat.types import Cameras, GaussianSample
 
-SCORE_NAMES: tuple[str, ...] = ("position", "scale", "gate", "predictive")
+SCORE_NAMES: tuple[str, ...] = ("position", "scale", "gate", "predictive", "free-space")
 POSTERIOR_SCORES: tuple[str, ...] = ("position", "scale", "gate")
 """Scores that need no rendering (read from the offset tables only)."""
-DEFAULT_SCORE = "gate"
-"""The score ``--score auto`` uses: the best at shrinking a model at a held-out PSNR budget in the pruning
-benchmark (BENCHMARKS.md, "Pruning"). On fern at 1/8 it beat random removal at every keep ratio tried, and
-it costs no rendering. ``predictive`` is the one that finds planted floaters (the posterior-only scores find
-none), but it removes important
-Gaussians too: use it only with a small removal (``--keep-ratio 0.98``) and look at the before/after
-renders."""
+DEFAULT_SCORE = "free-space"
+"""The score ``--score auto`` uses, chosen from the pruning benchmark's floater table (BENCHMARKS.md, "Pruning"):
+on the demo scene it ranks the floaters that training leaves (labelled with GT depth) at ROC AUC 0.89 against
+0.68 for ``gate``, and past the floaters it removes Gaussians in ``gate``'s order, so shrinking a model costs
+about what ``gate`` costs. ``gate`` (no rendering at all) remains the choice for shrinking a model without
+looking for floaters. ``predictive`` removes important Gaussians too: use it only with a small removal
+(``--keep-ratio 0.98``) and look at the before/after renders."""
 
 
 def resolve_score_name(name: str) -> str:
@@ -155,6 +165,80 @@ def predictive_score(model: GaussianModel, cameras: Cameras, generator: torch.Ge
     return {"predictive": pred, "contribution": mean}
 
 
+@torch.no_grad()
+def centre_gap(means: Tensor, cameras: Cameras, depth_of: Callable[[int], Tensor], *,
+               near: float = 1e-3) -> tuple[Tensor, Tensor]:
+    """How far each centre lies in front of the surface, over the views whose image contains it.
+
+    Args:
+        means: [N,3] centres in world units.
+        cameras: C views; ``depth_of(c)`` gives view c's [H,W] surface depth (camera z; 0, negative or
+            non-finite: no surface, i.e. free space along the whole ray).
+        near: centres closer to a camera than this are not inside its image.
+
+    Returns:
+        ([N] the smallest (surface depth - centre depth) over the views containing the centre, +inf when no
+        view contains it or every such ray is free; [N] int, the number of views containing it).
+    """
+    n = means.shape[0]
+    dev = means.device
+    gap = torch.full((n,), float("inf"), device=dev, dtype=means.dtype)
+    views = torch.zeros(n, dtype=torch.long, device=dev)
+    H, W = cameras.height, cameras.width
+    for c in range(len(cameras)):
+        rt = cameras.cam_from_world[c].to(dev, means.dtype)
+        p = means @ rt[:3, :3].T + rt[:3, 3]  # [N,3] camera coordinates
+        z = p[:, 2]
+        k = cameras.K[c].to(dev, means.dtype)
+        zs = z.clamp_min(near)
+        u = k[0, 0] * p[:, 0] / zs + k[0, 2]
+        v = k[1, 1] * p[:, 1] / zs + k[1, 2]
+        inside = (z > near) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        d = depth_of(c).to(dev, means.dtype)[v.clamp(0, H - 1).long(), u.clamp(0, W - 1).long()]  # [N]
+        d = torch.where(torch.isfinite(d) & (d > 0), d, torch.full_like(d, float("inf")))
+        gap = torch.minimum(gap, torch.where(inside, d - z, torch.full_like(z, float("inf"))))
+        views += inside.long()
+    return gap, views
+
+
+FREE_SPACE_ALPHA = 0.5
+"""A pixel whose render covers less than this shows no surface to the ``free-space`` score."""
+
+
+@torch.no_grad()
+def free_space_depth(sample_: GaussianSample, cameras: Cameras, *, render_fn) -> tuple[Tensor, Tensor]:
+    """([N] d: the smallest depth by which each centre lies in front of the model's rendered surface over the
+    ``cameras`` containing it, in units of its largest axis (+inf: no surface behind it in any of them); [N]
+    the number of those views). One render per camera (see ``free-space`` in the module docstring)."""
+    means = sample_.means.detach()
+
+    def depth_of(c: int) -> Tensor:
+        out = render_fn(sample_, cameras[[c]])
+        d = out.depth[0, ..., 0]
+        return torch.where(out.alpha[0, ..., 0] >= FREE_SPACE_ALPHA, d, torch.zeros_like(d))
+
+    gap, views = centre_gap(means, cameras, depth_of)
+    return gap / sample_.scales.detach().amax(1).clamp_min(1e-12), views
+
+
+def free_space_score(model: GaussianModel, cameras: Cameras, *, render_fn, gate: Tensor, margin: float = 1.0,
+                     variant: Variant = "ours", extent: float = 1.0, temperature: float = 0.2) -> Tensor:
+    """The ``free-space`` score [N] (0 for non-carriers; see the module docstring).
+
+    Args:
+        model: the Gaussians (their posterior mean is rendered and tested).
+        cameras: training views (one render each).
+        render_fn: ``render_fn(sample, cameras) -> RenderOutput``.
+        gate: the ``gate`` score [N], the order of the Gaussians that are not in free space.
+        margin: how many of its own sizes in front of the surface a Gaussian must be in every view.
+    """
+    pm = posterior_mean(model, variant=variant, extent=extent, temperature=temperature, sh_degree=0)
+    d, views = free_space_depth(pm, cameras, render_fn=render_fn)
+    free = (views > 0) & (d > margin)
+    score = torch.where(free, 1.0 + d.clamp_max(1e6).to(gate.dtype), gate)
+    return torch.where(carrier_mask(model), score, torch.zeros_like(score))
+
+
 def spread_views(indices: Sequence[int], max_views: int) -> list[int]:
     """At most ``max_views`` of ``indices``, evenly spaced (all of them when there are fewer)."""
     indices = list(indices)
@@ -166,14 +250,23 @@ def spread_views(indices: Sequence[int], max_views: int) -> list[int]:
 
 def compute_scores(model: GaussianModel, cameras: Cameras | None, generator: torch.Generator | None, *,
                    render_fn=None, names: Sequence[str] = SCORE_NAMES, num_samples: int = 4, subset_size: int = 2,
-                   variant: Variant = "ours", extent: float = 1.0, temperature: float = 0.2) -> dict[str, Tensor]:
+                   variant: Variant = "ours", extent: float = 1.0, temperature: float = 0.2,
+                   free_space_cameras: Cameras | None = None, free_space_margin: float = 1.0) -> dict[str, Tensor]:
     """Every score in ``names`` as [N] tensors, plus ``contribution`` when ``predictive`` is asked for.
 
-    ``cameras``, ``generator`` and ``render_fn`` are needed only for ``predictive``.
+    ``cameras``, ``generator`` and ``render_fn`` are needed only for ``predictive``; ``free-space`` renders
+    ``free_space_cameras`` (default: ``cameras``) with ``render_fn``.
     """
     for name in names:
         resolve_score_name(name)
     out = posterior_scores(model, variant=variant, extent=extent, temperature=temperature)
+    if "free-space" in names:
+        fs_cams = free_space_cameras if free_space_cameras is not None else cameras
+        if fs_cams is None or render_fn is None:
+            raise ValueError("the free-space score needs training cameras and render_fn")
+        out["free-space"] = free_space_score(model, fs_cams, render_fn=render_fn, gate=out["gate"],
+                                             margin=free_space_margin, variant=variant, extent=extent,
+                                             temperature=temperature)
     if "predictive" in names:
         if cameras is None or generator is None or render_fn is None:
             raise ValueError("the predictive score needs cameras, a generator and render_fn")

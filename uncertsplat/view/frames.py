@@ -50,7 +50,7 @@ VIEW_MODES: dict[str, str] = {
 STD_MODES = ("rgb_std", "depth_std")
 EMPTY_ALPHA = 0.05
 """A pixel whose accumulated opacity is below this shows no surface: black in the depth view."""
-PRUNE_SCORES = ("gate", "position", "scale", "predictive")
+PRUNE_SCORES = ("free-space", "gate", "position", "scale", "predictive")  # the first available is the default
 
 
 @dataclass(frozen=True)
@@ -151,7 +151,7 @@ class StdAccumulator:
     def __init__(self, renderer: FrameRenderer, cameras: Cameras, seed: int):
         self.renderer = renderer
         self.cameras = cameras
-        self.moments = MonteCarloMoments()
+        self.moments = MonteCarloMoments(renderer.sampler.coverage)
         self.generator = torch.Generator(device=renderer.device).manual_seed(seed)
 
     @property
@@ -190,11 +190,13 @@ class FrameRenderer:
         device: where to render (the run's device).
         score_cameras: training cameras for the ``predictive`` prune score (it renders them); None leaves
             that score out.
+        free_space_cameras: training cameras for the ``free-space`` prune score (one render each); None
+            leaves that score out.
         seed: seed of the std modes' samples (per camera) and of the predictive score.
     """
 
     def __init__(self, loaded: LoadedRun, scene_scale: float, device: torch.device | str, *,
-                 score_cameras: Cameras | None = None, seed: int = 0):
+                 score_cameras: Cameras | None = None, free_space_cameras: Cameras | None = None, seed: int = 0):
         from uncertsplat.gaussians import variational
 
         self.loaded = loaded
@@ -212,6 +214,7 @@ class FrameRenderer:
             member = " of member 0" if loaded.config.method == "ensemble" else ""
             self.rgb_source = f"the trained model's mean{member} ({loaded.config.method} has no expected render)"
         self.score_cameras = score_cameras
+        self.free_space_cameras = free_space_cameras
         self._scores: dict[str, Tensor] = {}
 
     # ---- what the run offers
@@ -233,8 +236,9 @@ class FrameRenderer:
         return [m for m in VIEW_MODES if m != "prune" or self.prune_available]
 
     def score_names(self) -> list[str]:
-        """The prune scores available (``predictive`` needs training cameras)."""
-        return [s for s in PRUNE_SCORES if s != "predictive" or self.score_cameras is not None]
+        """The prune scores available (``predictive`` and ``free-space`` need training cameras)."""
+        cams = {"predictive": self.score_cameras, "free-space": self.free_space_cameras}
+        return [s for s in PRUNE_SCORES if s not in cams or cams[s] is not None]
 
     # ---- frames
     @torch.no_grad()
@@ -282,12 +286,14 @@ class FrameRenderer:
         if name not in self._scores:
             prior = self.loaded.prior
             gen = torch.Generator(device=self.device).manual_seed(self.seed)
-            names = ("position", "scale", "gate") + (("predictive",) if name == "predictive" else ())
+            names = ("position", "scale", "gate") + ((name,) if name in ("predictive", "free-space") else ())
             cams = self.score_cameras.to(self.device) if self.score_cameras is not None else None
+            free = self.free_space_cameras.to(self.device) if self.free_space_cameras is not None else None
             with torch.enable_grad():  # the predictive score's blending weights come from one backward pass
                 out = compute_scores(self.loaded.model, cams, gen, render_fn=self.sampler.render_fn, names=names,
                                      subset_size=self.loaded.config.variational.subset_size,
-                                     variant=prior.variant, extent=self.loaded.extent, temperature=prior.temperature)
+                                     variant=prior.variant, extent=self.loaded.extent, temperature=prior.temperature,
+                                     free_space_cameras=free)
             self._scores.update({k: v for k, v in out.items() if k in PRUNE_SCORES})
         return self._scores[name]
 

@@ -72,7 +72,7 @@ class LiveView:
                            run_dir, run_dir)
         score_cams = trainer.train_cams[list(range(0, len(trainer.train_cams), max(1, len(trainer.train_cams) // 8)))]
         return FrameRenderer(loaded, trainer.scene.scene_scale, trainer.device, score_cameras=score_cams,
-                             seed=self.cfg.seed)
+                             free_space_cameras=trainer.train_cams, seed=self.cfg.seed)
 
     def step(self, trainer) -> None:
         """``Trainer.on_step``: serve the connected views while the budget allows."""
