@@ -130,3 +130,21 @@ def test_sandwich_widens_only_the_last_update(tmp_path):
     torch.testing.assert_close(params[True], params[False], rtol=0, atol=0)  # same training
     assert torch.all(spreads[True] >= spreads[False] * (1 - 1e-5))
     assert float((spreads[True] > spreads[False] * 1.01).float().mean()) > 0.1
+
+
+def test_training_on_the_expected_render(tmp_path):
+    """``variational.train_on = "expected"``: the Gaussians are fitted to the expected render (no random numbers, so
+    two runs are identical), the tables are still set by the updates only (never by the optimiser), and the fit
+    differs from training on samples."""
+    scene, tr, te = toy_scene()
+    sh0 = {}
+    for run, train_on in enumerate(("expected", "expected", "samples")):
+        cfg = toy_config(variational={"posterior": "informed", "refresh_interval": 10, "train_on": train_on})
+        t = Trainer(scene, cfg, tr, te)
+        t.fit()
+        assert [u["step"] for u in t.posterior_updates] == [10, 20, 30]
+        assert all(p.grad is None for p in t.model.tables.values())
+        assert all(not t.optimizer.state.get(p) for p in t.model.tables.values())
+        sh0[run] = t.model.params["sh0"].detach().clone()
+    torch.testing.assert_close(sh0[0], sh0[1], rtol=0, atol=0)
+    assert sh0[0].shape != sh0[2].shape or not torch.equal(sh0[0], sh0[2])

@@ -255,15 +255,17 @@ def expected_gate(loc: Tensor, spread: Tensor, temperature: float) -> Tensor:
 
 
 def posterior_mean(model: GaussianModel, *, variant: Variant = "ours", extent: float = 1.0,
-                   temperature: float = 0.2, sh_degree: int | None = None) -> GaussianSample:
+                   temperature: float = 0.2, sh_degree: int | None = None,
+                   tables_grad: bool = True) -> GaussianSample:
     """The deterministic render of the posterior: no random numbers.
 
     All K entries are averaged (the expectation over the random subset of the averaged columns), the
     position offset is its mean mu, the multiplier its mean l + w/2, and the gate its expectation
     (probit approximation), so that the mean render has the opacity the samples have on average.
-    Densification, pruning and spawning decide on these values, never on a fresh sample.
+    Densification, pruning and spawning decide on these values, never on a fresh sample. ``tables_grad``:
+    as for ``sample``.
     """
-    t = model.tables
+    t = model.tables if tables_grad else {k: v.detach() for k, v in model.tables.items()}
     idx = model.carrier_index()
     if idx.numel() == 0:
         z = torch.zeros(0, 3, device=model.device)
@@ -287,7 +289,8 @@ def _scale_second_moment(log_scale: Tensor, left: Tensor, width: Tensor, variant
 
 
 def expected_render_sample(model: GaussianModel, *, variant: Variant = "ours", extent: float = 1.0,
-                           temperature: float = 0.2, sh_degree: int | None = None) -> GaussianSample:
+                           temperature: float = 0.2, sh_degree: int | None = None,
+                           tables_grad: bool = True) -> GaussianSample:
     """Deterministic Gaussians whose render approximates the *mean of the posterior's renders*.
 
     ``posterior_mean`` renders each Gaussian at its mean parameters, which is sharper than the average
@@ -302,12 +305,13 @@ def expected_render_sample(model: GaussianModel, *, variant: Variant = "ours", e
     on fern, where the position spreads are small next to the Gaussians, the three agree closely
     (BENCHMARKS.md, "The expected render"). It costs one render plus one extra projection. Training
     decisions (densify, prune, spawn) keep using ``posterior_mean``: they concern the parameters, not a
-    render.
+    render. ``tables_grad``: as for ``sample``.
     """
-    pm = posterior_mean(model, variant=variant, extent=extent, temperature=temperature, sh_degree=sh_degree)
+    pm = posterior_mean(model, variant=variant, extent=extent, temperature=temperature, sh_degree=sh_degree,
+                        tables_grad=tables_grad)
     if model.num_carriers == 0:
         return pm
-    t = model.tables
+    t = model.tables if tables_grad else {k: v.detach() for k, v in model.tables.items()}
     idx = model.carrier_index()
     sigma2 = (F.softplus(t["pos_spread_raw"].mean(1)) * _unit(variant, extent)).square().mean(1)  # [P]
     width = F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH)  # [P,3]

@@ -243,7 +243,11 @@ class Trainer:
             cams = self.train_cams[views]
             gt = self.train_images[views]
         with timer("sample"):
-            if self.informed:  # the tables are set in closed form (update_posterior); the Gaussians learn here
+            if self.informed and cfg.variational.train_on == "expected":
+                g = expected_render_sample(self.model, variant=cfg.variant, extent=self.extent,
+                                           temperature=self.prior.temperature, sh_degree=degree, tables_grad=False)
+                kl = None
+            elif self.informed:  # the tables are set in closed form (update_posterior); the Gaussians learn here
                 g = sample(self.model, self.gen_noise, subset_size=cfg.variational.subset_size, variant=cfg.variant,
                            extent=self.extent, temperature=self.prior.temperature, sh_degree=degree,
                            tables_grad=False)
