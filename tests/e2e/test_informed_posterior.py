@@ -115,6 +115,26 @@ def test_a_run_from_before_the_informed_posterior_resumes_with_sgd_tables(tiny_s
     assert json.loads(cfg_path.read_text())["variational"]["posterior"] in (None, "sgd")
 
 
+def test_an_informed_run_from_before_train_on_resumes_on_samples(tiny_scene_path, tiny_run_path,  # noqa: F811
+                                                                 tmp_path):
+    """config.json files written before ``variational.train_on`` existed fitted their Gaussians to posterior samples;
+    a resumed one keeps doing so (the default for new runs is the expected render)."""
+    import shutil
+
+    from uncertsplat.train.session import train_model
+
+    assert train_config_from("tiny", {}).variational.train_on == "expected"
+    run = tmp_path / "old"
+    shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
+    cfg_path = run / "config.json"
+    data = json.loads(cfg_path.read_text())
+    data["variational"].pop("train_on")
+    cfg_path.write_text(json.dumps(data))
+    step = json.loads((run / "train_summary.json").read_text())["steps"]
+    train_model(tiny_scene_path, run, train_config_from("tiny", {}), CPU, resume=True, extend_to=step + 20)
+    assert json.loads(cfg_path.read_text())["variational"]["train_on"] == "samples"
+
+
 def test_sandwich_widens_only_the_last_update(tmp_path):
     """``variational.sandwich``: identical training (the updates before the last are Laplace), then spreads at
     least the Laplace ones, wider where the views disagree (the cap at the prior: the unit tests)."""

@@ -136,6 +136,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             if isinstance(stored.get("variational"), dict) and "posterior" not in stored["variational"]:
                 # written before the informed posterior existed (every dump has the key since): it trained SGD tables
                 stored["variational"]["posterior"] = "sgd"
+            if isinstance(stored.get("variational"), dict) and "train_on" not in stored["variational"]:
+                # written before train_on existed: an informed run then fitted its Gaussians to posterior samples
+                stored["variational"]["train_on"] = "samples"
             diff = [d for d in _differences(stored, json.loads(cfg.model_dump_json()))
                     if not (d == "iterations" and extend_to is not None)]
             if diff:
