@@ -159,7 +159,9 @@ def run_ray(todo: list[dict], *, address: str | None, cpus_per_job: float, gpus_
         for job in todo:
             submit(job)
         while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
+            # with a timeout: a blocking ray.wait holds Ctrl-C back until the next job ends (minutes for a real
+            # job); Python runs the SIGINT handler between the short waits
+            done, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
             for ref in done:
                 job = pending.pop(ref)
                 try:
