@@ -118,7 +118,8 @@ class VariationalConfig(_Base):
     """The posterior of the variational multi-scale model (docs/method.md)."""
 
     num_entries: int = Field(10, ge=1, le=256)
-    """K: offset-table entries per posterior carrier (1 = the paper's 'naive VI' ablation)."""
+    """K: offset-table entries per posterior carrier (1 = the paper's 'naive VI' ablation). Used by the SGD
+    posterior; the informed posterior stores one entry per carrier (its entries would all be equal)."""
     subset_size: int = Field(2, ge=1, le=256)
     """M: entries averaged per sample (clamped to K)."""
     gate_temperature: float = Field(0.2, gt=0.0)
@@ -257,6 +258,18 @@ class TrainConfig(_Base):
     device at every phase boundary."""
     sh_degree: int = Field(3, ge=0, le=3)
     sh_degree_interval: int = Field(1000, ge=1)
+    sh_min_gain_db: float = Field(0.05, ge=0.0)
+    """Keep an SH band only if it pays: when band d has trained for ``sh_degree_interval`` steps, training views
+    are rendered with and without it, and a band that raises their PSNR by less than this many dB is dropped with
+    every band above it (a smaller model, a smaller PLY and cheaper steps; ``strategy.sh_bands``). Each test and
+    its outcome is in ``train_summary.json`` ``sh_bands``. 0 keeps every band up to ``sh_degree``."""
+    sh_check_views: int = Field(8, ge=1)
+    """Training views rendered (twice) for each band test."""
+    sparse_updates: Literal["dense", "visible", "lazy"] = "dense"
+    """Which rows Adam updates each step: ``dense`` every Gaussian (torch's Adam); ``visible`` only the Gaussians
+    with a footprint in the step's views (and their offset-table rows), the others' parameters and moments left
+    as they are; ``lazy`` as visible, with the skipped steps' decay applied to a row's moments when it comes back
+    (``train.sparse_adam``). Measured in BENCHMARKS.md, "Sparse Adam updates"."""
     ssim_lambda: float = Field(0.2, ge=0.0, le=1.0)
     tile_size: int = Field(8, ge=2, le=64)
     batch_size: int = Field(1, ge=1)

@@ -532,3 +532,16 @@ def test_metrics_section_states_the_fitted_std_scale(tmp_path):
     assert "x1.9, fitted on 8 training views" in html
     assert html.count("std scale (calibrated NLL)") == 1
     assert "NLL, std rescaled on train views" in html  # the summary column
+
+
+def test_training_section_says_which_sh_bands_the_scene_kept(tmp_path):
+    from uncertsplat.schemas.runs import ShBandCheck
+
+    run = make_run(tmp_path, "r", maps=False)
+    summary = TrainSummary.read(run / "train_summary.json")
+    summary.sh_bands = [ShBandCheck(degree=1, step=2000, gain_db=0.31, kept=True, min_gain_db=0.05, views=8),
+                        ShBandCheck(degree=2, step=3000, gain_db=0.012, kept=False, min_gain_db=0.05, views=8)]
+    summary.write(run / "train_summary.json")
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    assert "SH band 1 at step 2000: +0.3100 dB on 8 training views (&gt;= 0.05 dB), kept" in html
+    assert "SH band 2 at step 3000: +0.0120 dB" in html and "dropped: the model keeps degree 1" in html

@@ -19,12 +19,14 @@ from torch import Tensor, nn
 from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.gaussians.prior import Prior, prior_rows
 
-_MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")
+# row-aligned optimiser state (``last_step``: train.sparse_adam's lazy decay; new rows get 0, harmless since their
+# moments are 0)
+_MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq", "last_step")
 
 
-def _swap(optimizer: torch.optim.Optimizer | None, old: nn.Parameter, data: Tensor, keep: Tensor | None,
-          n_new: int) -> nn.Parameter:
-    """New parameter ``data``; its moments are ``old_moment[keep]`` (all rows when None) + ``n_new`` zero rows."""
+def _replace(optimizer: torch.optim.Optimizer | None, old: nn.Parameter, data: Tensor, edit) -> nn.Parameter:
+    """New parameter ``data`` in ``old``'s place in the optimiser; each of its row-aligned moments ``m`` becomes
+    ``edit(m)``."""
     new = nn.Parameter(data.detach().contiguous(), requires_grad=old.requires_grad)
     if optimizer is None:
         return new
@@ -36,12 +38,21 @@ def _swap(optimizer: torch.optim.Optimizer | None, old: nn.Parameter, data: Tens
                 if state:
                     for key in _MOMENTS:
                         if key in state:
-                            m = state[key] if keep is None else state[key][keep]
-                            zeros = torch.zeros((n_new, *m.shape[1:]), dtype=m.dtype, device=m.device)
-                            state[key] = torch.cat([m, zeros], dim=0)
+                            state[key] = edit(state[key])
                     optimizer.state[new] = state
                 return new
     raise KeyError("parameter not found in the optimiser")
+
+
+def _swap(optimizer: torch.optim.Optimizer | None, old: nn.Parameter, data: Tensor, keep: Tensor | None,
+          n_new: int) -> nn.Parameter:
+    """New parameter ``data``; its moments are ``old_moment[keep]`` (all rows when None) + ``n_new`` zero rows."""
+
+    def edit(m: Tensor) -> Tensor:
+        m = m if keep is None else m[keep]
+        return torch.cat([m, torch.zeros((n_new, *m.shape[1:]), dtype=m.dtype, device=m.device)], dim=0)
+
+    return _replace(optimizer, old, data, edit)
 
 
 def _edit_rows(store: dict[str, Tensor], optimizer, keep: Tensor | None, new: dict[str, Tensor] | None) -> None:
@@ -175,6 +186,25 @@ def spawn(model: GaussianModel, optimizer, mask: Tensor, prior: Prior) -> int:
     tables = prior_rows(c, model.num_entries, prior, device=model.device, dtype=model.dtype)
     _edit(model, optimizer, keep=None, new_params=None, table_keep=None, new_tables=tables, posterior_row=row)
     return c
+
+
+def truncate_sh(model: GaussianModel, optimizer, degree: int) -> None:
+    """Keep only the SH bands up to ``degree`` (drops ``shN`` columns and their Adam moments).
+
+    The bands above ``degree`` average to zero over the sphere of view directions, so dropping them keeps each
+    Gaussian's direction-averaged colour. ``model.sh_degree`` becomes ``degree``; a degree at or above the
+    current one changes nothing.
+    """
+    if degree >= model.sh_degree:
+        return
+    if degree < 0:
+        raise ValueError(f"SH degree must be >= 0, got {degree}")
+    keep = (degree + 1) ** 2 - 1  # shN columns of degree `degree`
+    old = model.params["shN"]
+    # last_step (train.sparse_adam) is one number per row: it stays
+    new = _replace(optimizer, old, old.detach()[:, :keep], lambda m: m[:, :keep].contiguous() if m.dim() > 1 else m)
+    model.params["shN"] = new
+    model.sh_degree = degree
 
 
 def reset_opacity(model: GaussianModel, optimizer, max_opacity: float = 0.01) -> None:

@@ -4,7 +4,8 @@
 backward (``render/rasterize.py``). ``project.cpp``: the per-Gaussian front end, EWA projection and SH
 colours, forward and backward (``render/project.py``, ``render/sh.py``). ``losses.cpp``: fused SSIM
 (``eval/image.py``) and the KL terms of the offset tables (``gaussians/variational.py``), each with its
-gradient. ``vmath.h``: vectorisable exp/log; ``parallel.h``: fork-join over threads.
+gradient. ``optim.cpp``: Adam on selected rows (``train/sparse_adam.py``). ``vmath.h``: vectorisable
+exp/log; ``parallel.h``: fork-join over threads.
 
 The C++ files have a C ABI and no torch headers, so they compile in a few seconds with the system C++
 compiler (``$CXX``, else ``c++``) and need no Python build step. The shared library is cached under
@@ -31,13 +32,14 @@ from pathlib import Path
 
 import torch
 
-INTERFACE_VERSION = 8
+INTERFACE_VERSION = 9
 CSRC = Path(__file__).with_name("csrc")
-SOURCES = (CSRC / "composite.cpp", CSRC / "losses.cpp", CSRC / "project.cpp")
+SOURCES = (CSRC / "composite.cpp", CSRC / "losses.cpp", CSRC / "project.cpp", CSRC / "optim.cpp")
 HEADERS = (CSRC / "vmath.h", CSRC / "parallel.h")
 # -fno-trapping-math lets the compiler vectorise the float->int conversion inside the exp polynomial;
 # -fopenmp-simd honours the `omp simd` hints without linking an OpenMP runtime (torch brings its own).
-BASE_FLAGS = ("-O3", "-std=c++17", "-fPIC", "-shared", "-pthread", "-fopenmp-simd", "-fno-trapping-math")
+BASE_FLAGS = ("-O3", "-std=c++17", "-fPIC", "-shared", "-pthread", "-fopenmp-simd", "-fno-trapping-math",
+              "-fno-math-errno")
 ARCH_FLAGS = ("-march=native",)
 
 _state: dict = {}
@@ -136,6 +138,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.us_project_forward_f32.restype = ctypes.c_int
     lib.us_project_backward_f32.argtypes = [i64, i64] + [ptr] * 5 + [i64, i64, f64, f64, f64] + [ptr] * 6 + [i64]
     lib.us_project_backward_f32.restype = ctypes.c_int
+    lib.us_adam_rows_f32.argtypes = [i64, i64, i64] + [ptr] * 6 + [i64, f64, f64, f64, f64, i64]
+    lib.us_adam_rows_f32.restype = ctypes.c_int
     lib.us_version.restype = ctypes.c_int
     lib.us_max_features.restype = ctypes.c_int
 

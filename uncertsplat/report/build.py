@@ -35,6 +35,7 @@ from uncertsplat.report.html import Cell, details, esc, figure, kv, note, page, 
 from uncertsplat.report.loader import CONFIG, MANIFEST, METRICS, PRUNE, RECONSTRUCT, SCENE, SUMMARY, RunData
 from uncertsplat.report.views import ViewMaps, load_view
 from uncertsplat.schemas import PruneReport, PruneSweep
+from uncertsplat.strategy.sh_bands import band_reason
 
 
 @dataclass
@@ -321,6 +322,8 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
             data = s.model_dump(mode="json")
             items = [(k, _short(v)) for k, v in data.items() if v is not None and not isinstance(v, (dict, list))]
             body.append(f"<h4>{esc(run.name)}: train_summary.json</h4>" + kv(items))
+            for band in s.sh_bands:  # which SH bands the scene kept, and why
+                body.append(note(f"{run.name}: {band_reason(band)}"))
             nested = s.model_dump_json(indent=2, include={k for k, v in data.items() if isinstance(v, (dict, list))
                                                           and v})
             if nested.strip() != "{}":

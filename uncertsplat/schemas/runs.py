@@ -61,6 +61,22 @@ class StepProfile(Strict):
     """Each phase's share of the sum."""
 
 
+class ShBandCheck(Strict):
+    """One SH band's test (``TrainConfig.sh_min_gain_db``; ``strategy.sh_bands``)."""
+
+    degree: int
+    """The band tested (1-3)."""
+    step: int
+    """The step it was tested at, after ``sh_degree_interval`` steps with it."""
+    gain_db: float
+    """Training-view PSNR with the band minus without it (bands above it off)."""
+    kept: bool
+    """``gain_db >= min_gain_db``; a dropped band takes the bands above it along."""
+    min_gain_db: float
+    views: int
+    """Training views rendered."""
+
+
 class Budget(Strict):
     """The model-size limit densification had (``strategy.budget.GaussianBudget``)."""
 
@@ -118,6 +134,9 @@ class TrainSummary(SchemaFile):
     extent: float | None = None
     skipped_steps: int | None = None
     sh_degree_active: int | None = None
+    sh_bands: list[ShBandCheck] = Field(default_factory=list)
+    """The SH bands tested and whether each stayed (empty: none was tested, e.g. ``sh_min_gain_db = 0``, degree 0,
+    or runs from before the test)."""
     posterior: PosteriorSummary | None = None
     posterior_updates: list[PosteriorUpdate] = Field(default_factory=list)
     """The informed posterior's updates in the last training call (empty for other posteriors)."""

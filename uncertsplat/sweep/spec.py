@@ -9,7 +9,8 @@ knob            sets                                         costs
 ==============  ===========================================  =====================================
 method          ``baselines.METHODS[name]``                  training (ensemble: N x)
 iterations      ``iterations`` (schedule scaled, see below)  training time
-num_entries     ``variational.num_entries`` (K_table)        memory, a little training time
+num_entries     ``variational.num_entries`` (K_table)        memory, a little training time (SGD posterior;
+                                                             the informed one stores 1)
 num_samples     ``EvalConfig.num_samples`` (K)               evaluation time (linear)
 downscale       ``scene.downscale`` (resolution)             everything (about quadratic)
 ensemble_size   ``ensemble_size`` (N)                        training time (linear)

@@ -11,6 +11,7 @@ import torch
 from uncertsplat.gaussians.params import PARAM_SPECS, GaussianModel
 from uncertsplat.gaussians.prior import TABLE_SPECS
 from uncertsplat.strategy.schedule import position_lr
+from uncertsplat.train.sparse_adam import SparseAdam
 
 ADAM_EPS = 1e-15
 
@@ -35,8 +36,11 @@ def base_rates(lr_cfg, step: int, total: int, extent: float, *, table_lr_factor:
     return out
 
 
-def make_optimizer(model: GaussianModel, rates: dict[str, float]) -> torch.optim.Adam:
+def make_optimizer(model: GaussianModel, rates: dict[str, float], sparse: str = "dense") -> torch.optim.Optimizer:
     """Adam (eps 1e-15, as 3DGS) with one named group per tensor of ``model.parameters()``.
+
+    ``sparse``: ``"dense"`` (torch's Adam: every row every step), ``"visible"`` or ``"lazy"``
+    (``train.sparse_adam.SparseAdam``: only the rows the step's views touch; ``TrainConfig.sparse_updates``).
 
     The fused implementation (one kernel per tensor; several times faster than the default on CPU, where
     the update of the offset tables was a visible share of a training step; BENCHMARKS.md, "Fused Adam")
@@ -44,6 +48,8 @@ def make_optimizer(model: GaussianModel, rates: dict[str, float]) -> torch.optim
     either way.
     """
     groups = [{"params": [p], "lr": rates[name], "name": name} for name, p in model.parameters().items()]
+    if sparse != "dense":
+        return SparseAdam(groups, eps=ADAM_EPS, lazy=sparse == "lazy")
     device = model.device.type
     fused = device in ("cpu", "cuda") and all(p.dtype.is_floating_point for p in model.parameters().values())
     return torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS, fused=fused or None)

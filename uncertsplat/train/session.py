@@ -31,6 +31,7 @@ from uncertsplat.io.atomic import (
 )
 from uncertsplat.schemas import RunScene, TrainSummary
 from uncertsplat.schemas.scene import ViewsAdded
+from uncertsplat.strategy.sh_bands import band_reason
 
 
 def _transparent(data) -> bool:
@@ -198,6 +199,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                       f"device {device} ({kernels}), {cfg.iterations} steps, at most "
                       f"{trainer.budget.max_gaussians:,} Gaussians ({trainer.budget.reason})")
         trainer.on_log = lambda rec: console.log(log_line(rec)) if "eval_psnr" in rec else None
+        trainer.on_band = lambda check: console.log(band_reason(check))
         if on_trainer is not None:
             on_trainer(trainer)
         try:

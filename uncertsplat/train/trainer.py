@@ -27,6 +27,7 @@ from torch import Tensor
 from uncertsplat.config import TrainConfig
 from uncertsplat.console import progress
 from uncertsplat.eval.image import psnr, ssim
+from uncertsplat.gaussians.ops import truncate_sh
 from uncertsplat.gaussians.params import GaussianModel, init_from_points, memory_per_gaussian
 from uncertsplat.gaussians.prior import Prior
 from uncertsplat.gaussians.variational import (
@@ -42,6 +43,7 @@ from uncertsplat.render import near_plane, render
 from uncertsplat.strategy.budget import gaussian_budget
 from uncertsplat.strategy.densify import Densifier, DensifyStats
 from uncertsplat.strategy.schedule import sh_degree_at
+from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due, check_views
 from uncertsplat.train.losses import total_loss
 from uncertsplat.train.optim import base_rates, make_optimizer, set_rates
 from uncertsplat.train.profile import PhaseTimer
@@ -114,6 +116,7 @@ class Trainer:
         # called after every step with the trainer (``train --view`` draws the model here, between steps, so it
         # never sees a half-updated model); its time is not in ``elapsed``
         self.on_step: Callable[[Trainer], None] | None = None
+        self.on_band: Callable[[BandCheck], None] | None = None  # told of each SH band test (``train`` prints it)
         self._stop = False
         self.skipped_steps = 0  # steps whose update was skipped because of a NaN/Inf loss or gradient
         self.bad_steps_in_a_row = 0
@@ -139,12 +142,17 @@ class Trainer:
 
             raise UserError("the scene has no sparse points to start from",
                             hint="Set init_num_random (e.g. --set init_num_random=10000).")
+        # The informed posterior gives all entries of a carrier's table the same values (informed_tables), so it
+        # stores one: a sample averages equal entries, so K copies would change nothing but the memory (K = 10:
+        # 90 % of the tables). Runs trained before keep their K when resumed (the checkpoint's shapes).
+        entries = 1 if self.informed else cfg.variational.num_entries
         self.model = init_from_points(points, colors, sh_degree=cfg.sh_degree,
-                                      num_entries=cfg.variational.num_entries, init_opacity=cfg.init_opacity,
+                                      num_entries=entries, init_opacity=cfg.init_opacity,
                                       extent=self.extent)
-        self.optimizer = make_optimizer(self.model, self._rates(0))
+        self.optimizer = make_optimizer(self.model, self._rates(0), sparse=cfg.sparse_updates)
         self.densifier = self._make_densifier()
         self.view_queue: list[int] = []
+        self.sh_bands: list[BandCheck] = []
         self.step = 0
         self.elapsed = 0.0
 
@@ -163,13 +171,14 @@ class Trainer:
             "gen_views": self.gen_views.get_state(),
             "gen_noise": self.gen_noise.get_state(),
             "view_queue": torch.tensor(self.view_queue, dtype=torch.long),
+            "sh_bands": [b.model_dump() for b in self.sh_bands],
         }
 
     def _load_state(self, state: dict) -> None:
         if state.get("version") != STATE_VERSION:
             raise ValueError(f"unsupported trainer state version {state.get('version')}")
         self.model = GaussianModel.from_state_dict(state["model"], self.device)
-        self.optimizer = make_optimizer(self.model, self._rates(int(state["step"])))
+        self.optimizer = make_optimizer(self.model, self._rates(int(state["step"])), sparse=self.cfg.sparse_updates)
         self.optimizer.load_state_dict(state["optimizer"])
         self.densifier = self._make_densifier()
         self.densifier.stats = DensifyStats.from_state_dict(state["densify"], self.device)
@@ -178,6 +187,7 @@ class Trainer:
         self.gen_noise = torch.Generator(device=self.device)
         self.gen_noise.set_state(state["gen_noise"].cpu())  # generator states are CPU byte tensors
         self.view_queue = [int(i) for i in state["view_queue"].tolist()]
+        self.sh_bands = [BandCheck(**b) for b in state.get("sh_bands", [])]  # absent in checkpoints from before
         self.step = int(state["step"])
         self.elapsed = float(state["elapsed"])
 
@@ -199,7 +209,40 @@ class Trainer:
 
     @property
     def sh_degree(self) -> int:
-        return sh_degree_at(self.step, self.cfg.sh_degree, self.cfg.sh_degree_interval)
+        """Active SH degree: the schedule's, capped by the bands the model still has (``sh_min_gain_db``)."""
+        return sh_degree_at(self.step, self.model.sh_degree, self.cfg.sh_degree_interval)
+
+    @torch.no_grad()
+    def check_sh_band(self, step: int) -> BandCheck | None:
+        """Test the SH band due before ``step`` (``strategy.sh_bands``); drop it and those above when it does not
+        pay. Returns the test, or None when none is due."""
+        cfg = self.cfg
+        d = check_due(step, cfg.sh_degree_interval, self.model.sh_degree, cfg.sh_min_gain_db,
+                      {b.degree for b in self.sh_bands})
+        if d is None:
+            return None
+        views = check_views(len(self.train_idx), cfg.sh_check_views)
+        sample = expected_render_sample(self.model, variant=cfg.variant, extent=self.extent,
+                                        temperature=self.prior.temperature, sh_degree=d)
+        gain = band_gain_db(sample, d, self.train_cams[views], self.train_images[views],
+                            lambda g, cam: self.render(g, cam).rgb)
+        # a perfect fit with the band gives +inf; JSON has no infinity
+        check = BandCheck(degree=d, step=step, gain_db=round(min(gain, 1e3), 4), kept=gain >= cfg.sh_min_gain_db,
+                          min_gain_db=cfg.sh_min_gain_db, views=len(views))
+        if not check.kept:
+            truncate_sh(self.model, self.optimizer, d - 1)
+        self.sh_bands.append(check)
+        if self.on_band is not None:
+            self.on_band(check)
+        return check
+
+    def touched_rows(self, radii: Tensor) -> dict[str, Tensor]:
+        """Rows a step's render touched, per optimiser group: the Gaussians with a footprint in any of its views
+        ([C,N] ``radii`` > 0) for the per-Gaussian tensors, and those Gaussians' offset-table rows for the tables."""
+        gauss = (radii > 0).reshape(radii.shape[0], radii.shape[1], -1).any(-1).any(0).nonzero().squeeze(1)  # [R]
+        table = self.model.posterior_row.index_select(0, gauss)
+        table = table[table >= 0]
+        return {**dict.fromkeys(self.model.params, gauss), **dict.fromkeys(self.model.tables, table)}
 
     def _next_view(self) -> int:
         if not self.view_queue:
@@ -236,8 +279,11 @@ class Trainer:
         cfg = self.cfg
         step = self.step + 1
         set_rates(self.optimizer, self._rates(step))
-        degree = sh_degree_at(step, cfg.sh_degree, cfg.sh_degree_interval)
         timer = self.timer
+        if step % cfg.sh_degree_interval == 0:
+            with timer("eval"):
+                self.check_sh_band(step)
+        degree = sh_degree_at(step, self.model.sh_degree, cfg.sh_degree_interval)
         with timer("data"):
             views = [self._next_view() for _ in range(min(cfg.batch_size, len(self.train_idx)))]
             cams = self.train_cams[views]
@@ -272,7 +318,10 @@ class Trainer:
         with timer("optimizer"):
             if finite:
                 self.bad_steps_in_a_row = 0
-                self.optimizer.step()
+                if cfg.sparse_updates == "dense":
+                    self.optimizer.step()
+                else:
+                    self.optimizer.step(rows=self.touched_rows(out.radii))
             else:
                 self._skip_non_finite(step)
             self.optimizer.zero_grad(set_to_none=True)
@@ -426,7 +475,7 @@ class Trainer:
                     if step % cfg.log_every == 0 or step == until or evaluated or "skipped" in terms:
                         last = {"step": step, **{k: round(v, 7) for k, v in terms.items()},
                                 "num_gaussians": len(self.model), "num_carriers": self.model.num_carriers,
-                                "sh_degree": sh_degree_at(step, cfg.sh_degree, cfg.sh_degree_interval),
+                                "sh_degree": self.sh_degree,
                                 "lr_means": self.optimizer.param_groups[0]["lr"],
                                 "sec_per_step": window_t / max(window_n, 1), "elapsed": self.elapsed,
                                 "peak_memory_mb": peak_memory_mb(self.device)}
@@ -464,7 +513,8 @@ class Trainer:
                 "memory_per_gaussian_bytes": mem["total"], "memory": mem,
                 "peak_memory_mb": peak_memory_mb(self.device), "extent": self.extent,
                 "skipped_steps": self.skipped_steps,
-                "sh_degree_active": self.sh_degree, "variant": self.cfg.variant, "method": self.cfg.method,
+                "sh_degree_active": self.sh_degree, "sh_bands": [b.model_dump() for b in self.sh_bands],
+                "variant": self.cfg.variant, "method": self.cfg.method,
                 "posterior": posterior_summary(self.model, self.prior),
                 "posterior_updates": self.posterior_updates, "budget": self.budget.as_dict(),
                 **({"profile": self.timer.summary()} if self.timer.enabled else {})}

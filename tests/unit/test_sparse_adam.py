@@ -1,0 +1,189 @@
+"""Sparse Adam updates (``train.sparse_adam``, ``TrainConfig.sparse_updates``)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from tests.e2e.test_train_resume import toy_config, toy_scene
+from uncertsplat import native
+from uncertsplat.io.checkpoints import decode, encode
+from uncertsplat.train.sparse_adam import SparseAdam, adam_rows
+from uncertsplat.train.trainer import Trainer
+
+BACKENDS = ["torch", pytest.param("native", marks=pytest.mark.skipif(native.library() is None,
+                                                                     reason="native kernels unavailable"))]
+
+
+def _params(seed: int = 0, shapes=((50, 3), (50, 15, 3), (50,))):
+    g = torch.Generator().manual_seed(seed)
+    return [nn.Parameter(torch.randn(s, generator=g)) for s in shapes]
+
+
+def _grads(params, seed: int, rows: torch.Tensor | None = None):
+    """Random gradients; with ``rows``, zero outside them (what a render gives a Gaussian it never drew)."""
+    g = torch.Generator().manual_seed(seed)
+    for p in params:
+        p.grad = torch.randn(p.shape, generator=g)
+        if rows is not None:
+            mask = torch.zeros(p.shape[0], dtype=torch.bool)
+            mask[rows] = True
+            p.grad[~mask] = 0
+
+
+def _groups(params, lr=1e-2):
+    return [{"params": [p], "lr": lr, "name": f"t{i}"} for i, p in enumerate(params)]
+
+
+class TestRows:
+    @pytest.mark.parametrize("backend", BACKENDS)
+    def test_every_row_equals_torch_adam(self, backend, monkeypatch):
+        monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", backend)
+        a, b = _params(), _params()
+        dense = torch.optim.Adam(_groups(a), eps=1e-15)
+        sparse = SparseAdam(_groups(b), eps=1e-15)
+        for step in range(5):
+            _grads(a, step)
+            _grads(b, step)
+            dense.step()
+            sparse.step()
+        for pa, pb in zip(a, b, strict=True):
+            torch.testing.assert_close(pb, pa, rtol=1e-5, atol=1e-6)
+            for key in ("exp_avg", "exp_avg_sq"):
+                torch.testing.assert_close(sparse.state[pb][key], dense.state[pa][key], rtol=1e-5, atol=1e-6)
+
+    @pytest.mark.parametrize("backend", BACKENDS)
+    @pytest.mark.parametrize("lazy", [False, True])
+    def test_rows_outside_the_list_are_untouched_exactly(self, backend, lazy, monkeypatch):
+        monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", backend)
+        params = _params()
+        opt = SparseAdam(_groups(params), lazy=lazy)
+        _grads(params, 0)
+        opt.step()  # every row has moments now
+        before = [(p.detach().clone(), opt.state[p]["exp_avg"].clone(), opt.state[p]["exp_avg_sq"].clone())
+                  for p in params]
+        rows = torch.tensor([3, 7, 11, 40])
+        _grads(params, 1)  # gradients everywhere: rows not listed must still not move
+        opt.step(rows={f"t{i}": rows for i in range(len(params))})
+        out = torch.ones(50, dtype=torch.bool)
+        out[rows] = False
+        for p, (p0, m0, v0) in zip(params, before, strict=True):
+            assert torch.equal(p.detach()[out], p0[out])
+            assert torch.equal(opt.state[p]["exp_avg"][out], m0[out])
+            assert torch.equal(opt.state[p]["exp_avg_sq"][out], v0[out])
+            assert not torch.equal(p.detach()[rows], p0[rows])
+
+    @pytest.mark.parametrize("rows", [[0, 5, 6, 7, 9, 39, 17], list(range(2, 38))],
+                             ids=["few rows (runs)", "most rows (masked sweep)"])
+    def test_native_and_torch_paths_agree_with_lazy_decay(self, rows):
+        if native.library() is None:
+            pytest.skip("native kernels unavailable")
+        g = torch.Generator().manual_seed(3)
+        tensors = [torch.randn(40, 6, generator=g) for _ in range(4)]
+        tensors[3] = tensors[3].abs()  # exp_avg_sq >= 0
+        last = torch.randint(0, 5, (40,), generator=g)
+        rows = torch.tensor(rows)
+        out = {}
+        for backend in ("torch", "native"):
+            p, gr, m, v = (t.clone() for t in tensors)
+            ls = last.clone()
+            adam_rows(p, gr, m, v, ls, rows, step=9, lr=0.01, beta1=0.9, beta2=0.999, eps=1e-15, backend=backend)
+            out[backend] = (p, m, v, ls)
+        for x, y in zip(out["torch"], out["native"], strict=True):
+            torch.testing.assert_close(y, x, rtol=2e-6, atol=1e-7)
+        others = torch.ones(40, dtype=torch.bool)
+        others[rows] = False
+        assert (out["native"][3][rows] == 9).all() and torch.equal(out["native"][3][others], last[others])
+
+    @pytest.mark.parametrize("backend", BACKENDS)
+    def test_lazy_decay_is_the_dense_decay_of_the_skipped_steps(self, backend, monkeypatch):
+        """A row skipped for k steps then updated: its moments equal dense Adam's after k zero-gradient steps."""
+        monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", backend)
+        a, b = _params(shapes=((6, 4),)), _params(shapes=((6, 4),))
+        dense = torch.optim.Adam(_groups(a), eps=1e-15)
+        lazy = SparseAdam(_groups(b), eps=1e-15, lazy=True)
+        all_rows = {"t0": torch.arange(6)}
+        for step in range(6):
+            rows = torch.arange(6) if step in (0, 5) else torch.tensor([0, 1])  # rows 2-5 skipped 4 steps
+            _grads(a, step, rows)
+            _grads(b, step, rows)
+            dense.step()
+            lazy.step(rows=all_rows if step in (0, 5) else {"t0": rows})
+        for key in ("exp_avg", "exp_avg_sq"):
+            torch.testing.assert_close(lazy.state[b[0]][key], dense.state[a[0]][key], rtol=1e-5, atol=1e-10)
+        assert (lazy.state[b[0]]["last_step"] == 6).all()
+        # the parameters differ: dense Adam kept moving the skipped rows by their momentum, lazy did not
+        assert not torch.allclose(b[0][2:], a[0][2:])
+        torch.testing.assert_close(b[0][:2], a[0][:2], rtol=1e-5, atol=1e-6)
+
+    def test_empty_row_list_and_no_gradient_change_nothing(self):
+        params = _params(shapes=((5, 2),))
+        opt = SparseAdam(_groups(params))
+        p0 = params[0].detach().clone()
+        opt.step()  # no gradient yet
+        assert not opt.state
+        _grads(params, 0)
+        opt.step(rows={"t0": torch.zeros(0, dtype=torch.long)})
+        assert torch.equal(params[0].detach(), p0)
+
+
+class TestTraining:
+    def test_dense_and_sparse_agree_when_every_gaussian_is_visible(self):
+        """The toy scene's Gaussians sit in front of every camera; with no densification the rows a view touches
+        are all rows at almost every step, and the parameters follow dense Adam's."""
+        scene, tr, te = toy_scene()
+        base = {"iterations": 12, "densify": {"start": 1000, "until": 1000, "interval": 10, "spawn_interval": 10**6,
+                                              "opacity_reset_interval": 0}}
+        dense = Trainer(scene, toy_config(**base, sparse_updates="dense"), tr, te)
+        dense.fit()
+        sparse = Trainer(scene, toy_config(**base, sparse_updates="visible"), tr, te)
+        touched = []
+        rows_of = sparse.touched_rows
+
+        def recording(radii):
+            touched.append(rows_of(radii))
+            return touched[-1]
+
+        sparse.touched_rows = recording
+        sparse.fit()
+        assert len(touched) == 12
+        assert all(len(r["means"]) == len(sparse.model) for r in touched), "the test needs every Gaussian in view"
+        for name, p in dense.model.params.items():
+            torch.testing.assert_close(sparse.model.params[name], p, rtol=1e-4, atol=1e-5, msg=name)
+
+    @pytest.mark.parametrize("mode", ["visible", "lazy"])
+    def test_training_runs_and_resume_restores_the_sparse_state(self, mode):
+        scene, tr, te = toy_scene()
+        cfg = toy_config(sparse_updates=mode)
+        full = Trainer(scene, cfg, tr, te)
+        full.fit()
+        assert len(full.model) != 150, "densification ran: the optimiser state was edited with the rows"
+        part = Trainer(scene, cfg, tr, te)
+        part.fit(until=17)
+        resumed = Trainer(scene, cfg, tr, te, state=decode(encode(part.state_dict())))
+        resumed.fit()
+        for name, p in full.model.parameters().items():
+            torch.testing.assert_close(resumed.model.parameters()[name], p, rtol=0, atol=1e-6, msg=name)
+        sa, sb = full.optimizer.state_dict()["state"], resumed.optimizer.state_dict()["state"]
+        for i in sa:
+            for key in sa[i]:
+                torch.testing.assert_close(sb[i][key], sa[i][key], rtol=0, atol=1e-6, msg=f"{i}.{key}")
+        if mode == "lazy":
+            assert all("last_step" in s for s in sa.values())
+
+    def test_a_gaussian_outside_every_view_keeps_its_parameters_and_moments(self):
+        scene, tr, te = toy_scene()
+        cfg = toy_config(sparse_updates="visible", iterations=8,
+                         densify={"start": 1000, "until": 1000, "interval": 10, "spawn_interval": 10**6,
+                                  "opacity_reset_interval": 0})
+        t = Trainer(scene, cfg, tr, te)
+        t.fit(until=2)
+        with torch.no_grad():  # move Gaussian 0 far behind every camera (the ring looks at the origin from z = 0.6)
+            t.model.params["means"][0] = torch.tensor([0.0, 0.0, 500.0])
+        before = {n: p.detach()[0].clone() for n, p in t.model.params.items()}
+        moments = {n: t.optimizer.state[p]["exp_avg"][0].clone() for n, p in t.model.params.items()}
+        t.fit()
+        for n, p in t.model.params.items():
+            assert torch.equal(p.detach()[0], before[n]), n
+            assert torch.equal(t.optimizer.state[p]["exp_avg"][0], moments[n]), n
