@@ -58,3 +58,13 @@ def tiny_scene(tmp_root: Path, seed: int = 0) -> Path:
 def tiny_scene_path(tmp_path_factory) -> Path:
     """Path of the tiny synthetic scene (24 views, 128x96, GT depth, COLMAP model), shared read-only."""
     return tiny_scene(tmp_path_factory.getbasetemp() / "shared_scenes")
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` for a subprocess a test will Ctrl-C: SIGINT back to its default action.
+
+    A shell starts background jobs (``make test &``, ``nohup``) with SIGINT ignored, their children inherit that,
+    and Python then installs no KeyboardInterrupt handler, so the child would never see the test's Ctrl-C."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.fixtures import tiny_scene, tiny_sweep_spec
+from tests.fixtures import default_sigint, tiny_scene, tiny_sweep_spec
 from uncertsplat.errors import UserError
 from uncertsplat.stages import sweep
 from uncertsplat.sweep.executors import run_local, run_ray
@@ -164,7 +164,7 @@ def test_ctrl_c_cancels_the_ray_jobs_and_keeps_the_finished_records(tmp_path_fac
     cmd = [sys.executable, "-m", "uncertsplat.cli", "sweep", str(spec), "-o", str(out), "--scene", str(scene),
            "--device", "cpu", "--executor", "ray", "--jobs", "2", "--retries", "0"]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)
+                            start_new_session=True, preexec_fn=default_sigint)
     log = out / "sweep.jsonl"
     t0 = time.monotonic()
     while time.monotonic() - t0 < 240 and proc.poll() is None:

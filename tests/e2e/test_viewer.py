@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.fixtures import tiny_scene_path  # noqa: F401
+from tests.fixtures import default_sigint, tiny_scene_path  # noqa: F401
 from tests.run_fixtures import tiny_run_path  # noqa: F401
 from uncertsplat.config import ViewConfig
 from uncertsplat.errors import UserError
@@ -243,7 +243,7 @@ def test_ctrl_c_ends_cleanly(tiny_run_path, tmp_path):
     exe = Path(sys.executable).parent / "uncertsplat"
     proc = subprocess.Popen([str(exe), "view", str(tiny_run_path), "--port", str(port), "--device", "cpu",
                              "--set", "thumbnails=false"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env=dict(os.environ, COLUMNS="200"))
+                            env=dict(os.environ, COLUMNS="200"), preexec_fn=default_sigint)
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(proc.stdout), daemon=True)
     reader.start()
