@@ -115,6 +115,12 @@ def _subset_mean(table: Tensor, subset: Tensor) -> Tensor:
     return acc / len(idx) if len(idx) > 1 else acc
 
 
+def _tables(model: GaussianModel, grad: bool) -> dict[str, Tensor]:
+    """The offset tables as a sample reads them: the parameters, or detached (``tables_grad=False``: no gradient
+    reaches them)."""
+    return model.tables if grad else {k: v.detach() for k, v in model.tables.items()}
+
+
 def sample(model: GaussianModel, generator: torch.Generator, *, subset_size: int = 2, variant: Variant = "ours",
            extent: float = 1.0, temperature: float = 0.2, sh_degree: int | None = None,
            tables_grad: bool = True) -> GaussianSample:
@@ -137,7 +143,7 @@ def sample(model: GaussianModel, generator: torch.Generator, *, subset_size: int
     draws = _draw(model, generator, subset_size)
     if draws.idx.numel() == 0:
         return _assemble(model, draws.idx, draws.eps, draws.u, draws.eta[:, 0], variant=variant, sh_degree=sh_degree)
-    tables = model.tables if tables_grad else {k: v.detach() for k, v in model.tables.items()}
+    tables = _tables(model, tables_grad)
     avgs = {name: _subset_mean(tables[name], draws.subset) for name in TABLE_NAMES}  # [P,D]
     return _sample_from(model, draws, avgs, variant=variant, extent=extent, temperature=temperature,
                         sh_degree=sh_degree)
@@ -265,7 +271,7 @@ def posterior_mean(model: GaussianModel, *, variant: Variant = "ours", extent: f
     Densification, pruning and spawning decide on these values, never on a fresh sample. ``tables_grad``:
     as for ``sample``.
     """
-    t = model.tables if tables_grad else {k: v.detach() for k, v in model.tables.items()}
+    t = _tables(model, tables_grad)
     idx = model.carrier_index()
     if idx.numel() == 0:
         z = torch.zeros(0, 3, device=model.device)
@@ -311,7 +317,7 @@ def expected_render_sample(model: GaussianModel, *, variant: Variant = "ours", e
                         tables_grad=tables_grad)
     if model.num_carriers == 0:
         return pm
-    t = model.tables if tables_grad else {k: v.detach() for k, v in model.tables.items()}
+    t = _tables(model, tables_grad)
     idx = model.carrier_index()
     sigma2 = (F.softplus(t["pos_spread_raw"].mean(1)) * _unit(variant, extent)).square().mean(1)  # [P]
     width = F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH)  # [P,3]
@@ -535,7 +541,7 @@ def carrier_uncertainty(model: GaussianModel, *, variant: Variant = "ours", exte
     idx = model.carrier_index()
     if idx.numel() == 0:
         return out
-    t = {k: v.detach() for k, v in model.tables.items()}
+    t = _tables(model, grad=False)
     sig = F.softplus(t["pos_spread_raw"].mean(1)) * _unit(variant, extent)
     out["position"][idx] = sig.square().mean(1).sqrt()
     out["scale"][idx] = F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH).mean(1)

@@ -33,6 +33,11 @@ from uncertsplat.schemas import RunScene, TrainSummary
 from uncertsplat.schemas.scene import ViewsAdded
 from uncertsplat.strategy.sh_bands import band_reason
 
+# What a run trained with when its config.json predates a ``variational`` key (every dump has the key since):
+# posterior, before the informed posterior existed: SGD tables; train_on, before it existed: an informed run fitted
+# its Gaussians to posterior samples.
+_VARIATIONAL_BEFORE = {"posterior": "sgd", "train_on": "samples"}
+
 
 def _transparent(data) -> bool:
     """Whether the first training image has real transparency (an alpha channel with some alpha < 1): the
@@ -134,12 +139,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         if resume:
             remove_stale_temp_files(run_dir, run_dir / "ckpts")  # left by a killed process; we hold the lock
             stored = read_json(run_dir / "config.json")
-            if isinstance(stored.get("variational"), dict) and "posterior" not in stored["variational"]:
-                # written before the informed posterior existed (every dump has the key since): it trained SGD tables
-                stored["variational"]["posterior"] = "sgd"
-            if isinstance(stored.get("variational"), dict) and "train_on" not in stored["variational"]:
-                # written before train_on existed: an informed run then fitted its Gaussians to posterior samples
-                stored["variational"]["train_on"] = "samples"
+            if isinstance(stored.get("variational"), dict):
+                for key, value in _VARIATIONAL_BEFORE.items():
+                    stored["variational"].setdefault(key, value)
             diff = [d for d in _differences(stored, json.loads(cfg.model_dump_json()))
                     if not (d == "iterations" and extend_to is not None)]
             if diff:

@@ -28,8 +28,6 @@ from torch import Tensor
 
 from uncertsplat import native
 
-MODES = ("dense", "visible", "lazy")
-
 
 class SparseAdam(torch.optim.Optimizer):
     """Adam over named parameter groups (one tensor each) whose ``step`` takes the rows to update.

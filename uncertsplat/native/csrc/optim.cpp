@@ -24,36 +24,41 @@
 
 namespace {
 
+// Constants of one step (bias corrections folded in).
+struct AdamStep {
+    float c1, b2, c2, step_size, sqrt_bc2, eps;
+};
+
+// One element: torch's arithmetic (lerp for the first moment, eps added to the corrected square root).
+inline void adam_element(const AdamStep& s, float g, float m0, float v0, float p0, float& m, float& v, float& p) {
+    m = m0 + s.c1 * (g - m0);
+    v = s.b2 * v0 + s.c2 * g * g;
+    p = p0 - s.step_size * m / (std::sqrt(v) / s.sqrt_bc2 + s.eps);
+}
+
 // One Adam step on elements [lo, hi), kept only where keep[j] != 0. A plain function with restrict pointers:
 // inside a lambda's captures the compiler could not rule out aliasing and did not vectorise the loop.
 void masked_sweep(int64_t lo, int64_t hi, float* __restrict param, float* __restrict exp_avg,
-                  float* __restrict exp_avg_sq, const float* __restrict grad, const uint8_t* __restrict keep, float c1,
-                  float b2, float c2, float step_size, float sqrt_bc2, float eps) {
+                  float* __restrict exp_avg_sq, const float* __restrict grad, const uint8_t* __restrict keep,
+                  const AdamStep s) {
 #pragma omp simd
     for (int64_t j = lo; j < hi; ++j) {
-        const float gj = grad[j], m0 = exp_avg[j], v0 = exp_avg_sq[j], p0 = param[j];
-        const float mj = m0 + c1 * (gj - m0);  // torch's lerp
-        const float vj = b2 * v0 + c2 * gj * gj;
-        const float pj = p0 - step_size * mj / (std::sqrt(vj) / sqrt_bc2 + eps);
+        const float m0 = exp_avg[j], v0 = exp_avg_sq[j], p0 = param[j];
+        float m, v, p;
+        adam_element(s, grad[j], m0, v0, p0, m, v, p);
         const bool on = keep[j] != 0;
-        exp_avg[j] = on ? mj : m0;
-        exp_avg_sq[j] = on ? vj : v0;
-        param[j] = on ? pj : p0;
+        exp_avg[j] = on ? m : m0;
+        exp_avg_sq[j] = on ? v : v0;
+        param[j] = on ? p : p0;
     }
 }
 
 // The same step on every element of one span.
 void adam_span(int64_t n, float* __restrict param, float* __restrict exp_avg, float* __restrict exp_avg_sq,
-               const float* __restrict grad, float c1, float b2, float c2, float step_size, float sqrt_bc2, float eps) {
+               const float* __restrict grad, const AdamStep s) {
 #pragma omp simd
-    for (int64_t j = 0; j < n; ++j) {
-        const float gj = grad[j];
-        const float mj = exp_avg[j] + c1 * (gj - exp_avg[j]);
-        const float vj = b2 * exp_avg_sq[j] + c2 * gj * gj;
-        exp_avg[j] = mj;
-        exp_avg_sq[j] = vj;
-        param[j] -= step_size * mj / (std::sqrt(vj) / sqrt_bc2 + eps);
-    }
+    for (int64_t j = 0; j < n; ++j) adam_element(s, grad[j], exp_avg[j], exp_avg_sq[j], param[j], exp_avg[j],
+                                                 exp_avg_sq[j], param[j]);
 }
 
 }  // namespace
@@ -67,10 +72,8 @@ int us_adam_rows_f32(int64_t total_rows, int64_t num_rows, int64_t width, const 
     const double bc1 = 1.0 - std::pow(beta1, static_cast<double>(step));
     const double bc2 = 1.0 - std::pow(beta2, static_cast<double>(step));
     const float step_size = static_cast<float>(lr / bc1);
-    const float sqrt_bc2 = static_cast<float>(std::sqrt(bc2));
-    const float b2 = static_cast<float>(beta2);
-    const float c1 = static_cast<float>(1.0 - beta1), c2 = static_cast<float>(1.0 - beta2);
-    const float fe = static_cast<float>(eps);
+    const AdamStep s{static_cast<float>(1.0 - beta1), static_cast<float>(beta2), static_cast<float>(1.0 - beta2),
+                     step_size, static_cast<float>(std::sqrt(bc2)), static_cast<float>(eps)};
     // at least ~16k elements per worker, so small updates stay on one thread
     const int64_t workers =
         std::max<int64_t>(1, std::min<int64_t>(num_threads, (num_rows * width) / 16384 + 1));
@@ -104,7 +107,7 @@ int us_adam_rows_f32(int64_t total_rows, int64_t num_rows, int64_t width, const 
         const uint8_t* k = keep.data();
         uskern::run_workers(sweep_workers, [&](int64_t id) {
             const int64_t lo = n * id / sweep_workers, hi = n * (id + 1) / sweep_workers;
-            masked_sweep(lo, hi, param, exp_avg, exp_avg_sq, grad, k, c1, b2, c2, step_size, sqrt_bc2, fe);
+            masked_sweep(lo, hi, param, exp_avg, exp_avg_sq, grad, k, s);
         });
         return 0;
     }
@@ -117,8 +120,7 @@ int us_adam_rows_f32(int64_t total_rows, int64_t num_rows, int64_t width, const 
             int64_t e = i + 1;
             while (e < hi && rows[e] == rows[e - 1] + 1) ++e;
             const int64_t begin = rows[i] * width, n = (rows[e - 1] + 1) * width - begin;
-            adam_span(n, param + begin, exp_avg + begin, exp_avg_sq + begin, grad + begin, c1, b2, c2, step_size,
-                      sqrt_bc2, fe);
+            adam_span(n, param + begin, exp_avg + begin, exp_avg_sq + begin, grad + begin, s);
             i = e;
         }
     });
