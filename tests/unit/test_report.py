@@ -545,3 +545,19 @@ def test_training_section_says_which_sh_bands_the_scene_kept(tmp_path):
     html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
     assert "SH band 1 at step 2000: +0.3100 dB on 8 training views (&gt;= 0.05 dB), kept" in html
     assert "SH band 2 at step 3000: +0.0120 dB" in html and "dropped: the model keeps degree 1" in html
+
+
+def test_training_section_says_where_growth_stopped(tmp_path):
+    from uncertsplat.schemas.runs import GrowthCheck
+
+    run = make_run(tmp_path, "r", maps=False)
+    summary = TrainSummary.read(run / "train_summary.json")
+    summary.growth = [GrowthCheck(step=250, gaussians=16883, seen=16679, cost_db=0.018, min_gain_db=0.25,
+                                  stopped=False, views=8),
+                      GrowthCheck(step=500, gaussians=32156, seen=31273, cost_db=0.077, min_gain_db=0.25,
+                                  stopped=True, views=8)]
+    summary.write(run / "train_summary.json")
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    assert ("growth test at step 500: switching off the weakest half of the 31,273 Gaussians 8 training views see "
+            "(of 32,156) costs 0.077 dB (&lt; 0.25 dB), densification stops growing the model (2 growth test(s) "
+            "in all)") in html

@@ -35,6 +35,7 @@ from uncertsplat.report.html import Cell, details, esc, figure, kv, note, page, 
 from uncertsplat.report.loader import CONFIG, MANIFEST, METRICS, PRUNE, RECONSTRUCT, SCENE, SUMMARY, RunData
 from uncertsplat.report.views import ViewMaps, load_view
 from uncertsplat.schemas import PruneReport, PruneSweep
+from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
 
 
@@ -324,6 +325,10 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
             body.append(f"<h4>{esc(run.name)}: train_summary.json</h4>" + kv(items))
             for band in s.sh_bands:  # which SH bands the scene kept, and why
                 body.append(note(f"{run.name}: {band_reason(band)}"))
+            stops = [g for g in s.growth if g.stopped]  # where densification stopped growing the model, and why
+            if s.growth:
+                body.append(note(f"{run.name}: {growth_reason(stops[0] if stops else s.growth[-1])} "
+                                 f"({len(s.growth)} growth test(s) in all)"))
             nested = s.model_dump_json(indent=2, include={k for k, v in data.items() if isinstance(v, (dict, list))
                                                           and v})
             if nested.strip() != "{}":

@@ -77,6 +77,25 @@ class ShBandCheck(Strict):
     """Training views rendered."""
 
 
+class GrowthCheck(Strict):
+    """One test of whether densification should go on growing the model (``DensifyConfig.growth_min_gain_db``;
+    ``strategy.growth``)."""
+
+    step: int
+    gaussians: int
+    """The model's size at the test."""
+    seen: int
+    """Gaussians with a footprint in the test's views; the weakest half of them was switched off."""
+    cost_db: float
+    """Training-view PSNR of the whole model minus that without the weakest half."""
+    min_gain_db: float
+    stopped: bool
+    """``cost_db < min_gain_db`` here and in the ``growth_patience - 1`` tests before: no Gaussians were added after
+    this step."""
+    views: int
+    """Training views rendered."""
+
+
 class Budget(Strict):
     """The model-size limit densification had (``strategy.budget.GaussianBudget``)."""
 
@@ -142,6 +161,9 @@ class TrainSummary(SchemaFile):
     """The informed posterior's updates in the last training call (empty for other posteriors)."""
     kernels: str | None = None
     profile: StepProfile | None = None
+    growth: list[GrowthCheck] = Field(default_factory=list)
+    """The growth tests and whether densification stopped adding Gaussians (empty: none ran, e.g.
+    ``growth_min_gain_db = 0``, a schedule too short for one, or runs from before the test)."""
     budget: Budget | None = None
     """None in runs from before the automatic budget (their limit was ``densify.max_gaussians``, 2,000,000 by
     default)."""

@@ -118,6 +118,7 @@ class Densifier:
         self.prior = prior
         self.extent = float(extent)
         self.stats = DensifyStats.zeros(n, device)
+        self.grow = True  # False once the growth test (strategy.growth) stopped growth: densify steps only prune
 
     def accumulate(self, step: int, means2d_grad: Tensor, radii: Tensor, width: int, height: int) -> None:
         """Add one step's screen statistics. ``means2d_grad`` [C,N,2] is in pixels per unit loss; the
@@ -150,7 +151,7 @@ class Densifier:
                                                      percent_dense=cfg.percent_dense, extent=self.extent)
                 # the Trainer sets the scene's budget (strategy.budget); unset, the ceiling of any budget applies
                 limit = cfg.max_gaussians if cfg.max_gaussians is not None else MAX_BUDGET
-                clone_m, split_m = limit_growth(clone_m, split_m, grad, len(model), limit)
+                clone_m, split_m = limit_growth(clone_m, split_m, grad, len(model), limit if self.grow else 0)
                 n0 = len(model)
                 split_scales = pm.scales
             ops.clone(model, optimizer, clone_m)

@@ -31,12 +31,15 @@ from uncertsplat.io.atomic import (
 )
 from uncertsplat.schemas import RunScene, TrainSummary
 from uncertsplat.schemas.scene import ViewsAdded
+from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
 
-# What a run trained with when its config.json predates a ``variational`` key (every dump has the key since):
-# posterior, before the informed posterior existed: SGD tables; train_on, before it existed: an informed run fitted
-# its Gaussians to posterior samples.
-_VARIATIONAL_BEFORE = {"posterior": "sgd", "train_on": "samples"}
+# What a run trained with when its config.json predates a key (every dump has the key since), per config section:
+# variational.posterior, before the informed posterior existed: SGD tables; variational.train_on, before it
+# existed: an informed run fitted its Gaussians to posterior samples; densify.growth_min_gain_db, before the growth
+# test: densification grew the model up to its budget.
+_KEYS_BEFORE = {"variational": {"posterior": "sgd", "train_on": "samples"},
+                "densify": {"growth_min_gain_db": 0.0}}
 
 
 def _transparent(data) -> bool:
@@ -139,9 +142,10 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         if resume:
             remove_stale_temp_files(run_dir, run_dir / "ckpts")  # left by a killed process; we hold the lock
             stored = read_json(run_dir / "config.json")
-            if isinstance(stored.get("variational"), dict):
-                for key, value in _VARIATIONAL_BEFORE.items():
-                    stored["variational"].setdefault(key, value)
+            for section, before in _KEYS_BEFORE.items():
+                if isinstance(stored.get(section), dict):
+                    for key, value in before.items():
+                        stored[section].setdefault(key, value)
             diff = [d for d in _differences(stored, json.loads(cfg.model_dump_json()))
                     if not (d == "iterations" and extend_to is not None)]
             if diff:
@@ -202,6 +206,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                       f"{trainer.budget.max_gaussians:,} Gaussians ({trainer.budget.reason})")
         trainer.on_log = lambda rec: console.log(log_line(rec)) if "eval_psnr" in rec else None
         trainer.on_band = lambda check: console.log(band_reason(check))
+        trainer.on_growth = lambda check: console.log(growth_reason(check))
         if on_trainer is not None:
             on_trainer(trainer)
         try:

@@ -42,6 +42,7 @@ from uncertsplat.gaussians.variational import (
 from uncertsplat.render import near_plane, render
 from uncertsplat.strategy.budget import gaussian_budget
 from uncertsplat.strategy.densify import Densifier, DensifyStats
+from uncertsplat.strategy.growth import GrowthCheck, growth_check_due, halving_cost_db, weakest_half
 from uncertsplat.strategy.schedule import sh_degree_at
 from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due, check_views
 from uncertsplat.train.losses import total_loss
@@ -49,6 +50,7 @@ from uncertsplat.train.optim import base_rates, make_optimizer, set_rates
 from uncertsplat.train.profile import PhaseTimer
 from uncertsplat.types import Cameras, GaussianSample, SceneData
 from uncertsplat.uncertainty.curvature import curvature
+from uncertsplat.uncertainty.scores import blending_weights
 
 STATE_VERSION = 1
 MAX_BAD_STEPS = 5
@@ -117,6 +119,7 @@ class Trainer:
         # never sees a half-updated model); its time is not in ``elapsed``
         self.on_step: Callable[[Trainer], None] | None = None
         self.on_band: Callable[[BandCheck], None] | None = None  # told of each SH band test (``train`` prints it)
+        self.on_growth: Callable[[GrowthCheck], None] | None = None  # told of each growth test (likewise)
         self._stop = False
         self.skipped_steps = 0  # steps whose update was skipped because of a NaN/Inf loss or gradient
         self.bad_steps_in_a_row = 0
@@ -153,6 +156,7 @@ class Trainer:
         self.densifier = self._make_densifier()
         self.view_queue: list[int] = []
         self.sh_bands: list[BandCheck] = []
+        self.growth: list[GrowthCheck] = []
         self.step = 0
         self.elapsed = 0.0
 
@@ -172,6 +176,7 @@ class Trainer:
             "gen_noise": self.gen_noise.get_state(),
             "view_queue": torch.tensor(self.view_queue, dtype=torch.long),
             "sh_bands": [b.model_dump() for b in self.sh_bands],
+            "growth": [g.model_dump() for g in self.growth],
         }
 
     def _load_state(self, state: dict) -> None:
@@ -188,6 +193,8 @@ class Trainer:
         self.gen_noise.set_state(state["gen_noise"].cpu())  # generator states are CPU byte tensors
         self.view_queue = [int(i) for i in state["view_queue"].tolist()]
         self.sh_bands = [BandCheck(**b) for b in state.get("sh_bands", [])]  # absent in checkpoints from before
+        self.growth = [GrowthCheck(**g) for g in state.get("growth", [])]  # likewise
+        self.densifier.grow = not any(g.stopped for g in self.growth)
         self.step = int(state["step"])
         self.elapsed = float(state["elapsed"])
 
@@ -234,6 +241,33 @@ class Trainer:
         self.sh_bands.append(check)
         if self.on_band is not None:
             self.on_band(check)
+        return check
+
+    @torch.no_grad()
+    def check_growth(self, step: int) -> GrowthCheck | None:
+        """Run the growth test due at ``step`` (``strategy.growth``); stop densification's growth when the weakest
+        half of the model is worth less than ``densify.growth_min_gain_db``. Returns the test, or None."""
+        dcfg = self.cfg.densify
+        if not self.densifier.grow or not growth_check_due(step, dcfg):
+            return None
+        views = check_views(len(self.train_idx), dcfg.growth_check_views)
+        cams, images = self.train_cams[views], self.train_images[views]
+        g = self.mean_sample()
+        with torch.enable_grad():  # the blending weights come from one backward pass per view
+            weights = blending_weights(g, cams, render_fn=self.render)  # [N]
+        off = weakest_half(weights)
+        cost = halving_cost_db(g, off, cams, images, lambda s, cam: self.render(s, cam).rgb)
+        # the tests before this one that must also have found the half cheap (growth_patience - 1 of them)
+        before = self.growth[len(self.growth) - dcfg.growth_patience + 1:] if dcfg.growth_patience > 1 else []
+        cheap = cost < dcfg.growth_min_gain_db and len(before) == dcfg.growth_patience - 1 and all(
+            g.cost_db < g.min_gain_db for g in before)
+        check = GrowthCheck(step=step, gaussians=len(self.model), seen=int((weights > 0).sum()),
+                            cost_db=round(min(cost, 1e3), 4), min_gain_db=dcfg.growth_min_gain_db, stopped=cheap,
+                            views=len(views))
+        self.growth.append(check)
+        self.densifier.grow = not check.stopped
+        if self.on_growth is not None:
+            self.on_growth(check)
         return check
 
     def touched_rows(self, radii: Tensor) -> dict[str, Tensor]:
@@ -325,6 +359,8 @@ class Trainer:
             else:
                 self._skip_non_finite(step)
             self.optimizer.zero_grad(set_to_none=True)
+        with timer("eval"):
+            self.check_growth(step)
         with timer("densify"):
             done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise)
         self.step = step
@@ -514,6 +550,7 @@ class Trainer:
                 "peak_memory_mb": peak_memory_mb(self.device), "extent": self.extent,
                 "skipped_steps": self.skipped_steps,
                 "sh_degree_active": self.sh_degree, "sh_bands": [b.model_dump() for b in self.sh_bands],
+                "growth": [g.model_dump() for g in self.growth],
                 "variant": self.cfg.variant, "method": self.cfg.method,
                 "posterior": posterior_summary(self.model, self.prior),
                 "posterior_updates": self.posterior_updates, "budget": self.budget.as_dict(),

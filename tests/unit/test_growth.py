@@ -1,0 +1,180 @@
+"""Growth that stops when the model's last doubling no longer pays (``strategy.growth``,
+``DensifyConfig.growth_min_gain_db``)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from tests.e2e.test_train_resume import toy_config, toy_scene
+from tests.fixtures import tiny_scene_path  # noqa: F401
+from tests.run_fixtures import tiny_run_path  # noqa: F401
+from uncertsplat.config import DensifyConfig
+from uncertsplat.io.checkpoints import decode, encode
+from uncertsplat.schemas.runs import GrowthCheck
+from uncertsplat.strategy.growth import growth_check_due, growth_reason, halving_cost_db, weakest_half
+from uncertsplat.train.trainer import Trainer
+from uncertsplat.types import Cameras, GaussianSample
+
+
+class TestSchedule:
+    CFG = DensifyConfig(start=100, until=4000, opacity_reset_interval=3000, growth_check_interval=250)
+
+    @pytest.mark.parametrize(("step", "due"), [
+        (0, False), (100, False), (250, True), (300, False), (2750, True),
+        (3000, True),  # tested before that step's opacity reset
+        (3250, False), (3750, False),  # recovering from the reset
+        (4000, False), (4250, False),  # densification is over
+    ])
+    def test_due_inside_the_window_and_not_after_a_reset(self, step, due):
+        assert growth_check_due(step, self.CFG) is due
+
+    def test_zero_threshold_tests_nothing(self):
+        assert not growth_check_due(250, self.CFG.model_copy(update={"growth_min_gain_db": 0.0}))
+
+    def test_without_resets_every_interval_is_due(self):
+        cfg = self.CFG.model_copy(update={"opacity_reset_interval": 0})
+        assert growth_check_due(3250, cfg) and growth_check_due(3750, cfg)
+
+
+class TestWeakestHalf:
+    def test_smallest_seen_weights_with_ties_by_row(self):
+        w = torch.tensor([0.0, 3.0, 1.0, 2.0, 1.0, 0.0])
+        assert weakest_half(w).tolist() == [False, False, True, False, True, False]
+
+    def test_rounds_down_and_never_picks_the_unseen(self):
+        w = torch.tensor([5.0, 0.0, 4.0, 3.0, 0.0, 2.0, 1.0])  # 5 seen -> 2 off
+        assert weakest_half(w).tolist() == [False, False, False, False, False, True, True]
+        assert not weakest_half(torch.zeros(4)).any()
+        assert not weakest_half(torch.tensor([1.0])).any()
+
+
+def _sum_render(scale: float):
+    """A renderer whose image is a constant: ``scale`` x the sum of the sample's opacities."""
+
+    def render_fn(sample: GaussianSample, cam: Cameras) -> torch.Tensor:
+        return torch.full((1, 4, 5, 3), scale * float(sample.opacities.sum()))
+
+    return render_fn
+
+
+def _sample(n: int) -> GaussianSample:
+    return GaussianSample(torch.zeros(n, 3), torch.tensor([[1.0, 0, 0, 0]]).expand(n, 4), torch.ones(n, 3),
+                          torch.ones(n), torch.zeros(n, 1, 3))
+
+
+class TestCost:
+    CAMS = Cameras(torch.eye(4).expand(2, 4, 4).clone(), torch.eye(3).expand(2, 3, 3).clone(), 5, 4, ("a", "b"))
+
+    def test_closed_form(self):
+        images = torch.full((2, 4, 5, 3), 0.5)
+        off = torch.tensor([True, False, True, False])
+        cost = halving_cost_db(_sample(4), off, self.CAMS, images, _sum_render(0.1))  # 0.4 with all, 0.2 without
+        assert cost == pytest.approx(10 * math.log10(0.3**2 / 0.1**2), rel=1e-5)
+
+    def test_nothing_switched_off_costs_exactly_zero_and_a_perfect_fit_is_infinite(self):
+        images = torch.full((2, 4, 5, 3), 0.4)
+        none = torch.zeros(4, dtype=torch.bool)
+        assert halving_cost_db(_sample(4), none, self.CAMS, images, _sum_render(0.1)) == 0.0
+        assert halving_cost_db(_sample(4), ~none, self.CAMS, images, _sum_render(0.1)) == math.inf
+
+
+class TestTraining:
+    """The toy schedule densifies at steps 10 and 20 (``toy_config``); a test every 10 steps runs at 10 and 20."""
+
+    @staticmethod
+    def _cfg(gain: float, **densify):
+        cfg = toy_config()
+        return cfg.model_copy(update={"densify": cfg.densify.model_copy(update={
+            "growth_min_gain_db": gain, "growth_check_interval": 10, "growth_patience": 1, "grad_threshold": 1e-5,
+            **densify})})
+
+    def test_a_cheap_half_stops_growth_and_is_recorded(self):
+        scene, tr, te = toy_scene()
+        grown = Trainer(scene, self._cfg(0.0), tr, te)
+        grown.fit()
+        stopped = Trainer(scene, self._cfg(50.0), tr, te)
+        sizes = []
+        stopped.on_step = lambda t: sizes.append(len(t.model))
+        stopped.fit()
+        (check,) = stopped.growth  # no test after the stop
+        assert (check.step, check.stopped, check.views) == (10, True, 6)
+        assert 0 < check.seen <= check.gaussians and check.cost_db < 50.0
+        assert all(b <= a for a, b in zip(sizes[9:-1], sizes[10:], strict=True)), "after the stop it only shrinks"
+        assert sizes[9] < len(grown.model) - 10, "the same schedule without the test grows"
+        assert grown.growth == []
+        recorded = [GrowthCheck.model_validate(g) for g in stopped.summary()["growth"]]
+        assert recorded == [check] and "stops growing" in growth_reason(check)
+
+    def test_patience_waits_for_that_many_cheap_tests_in_a_row(self):
+        scene, tr, te = toy_scene()
+        t = Trainer(scene, self._cfg(50.0, growth_patience=2), tr, te)
+        t.fit()
+        assert [(g.step, g.stopped) for g in t.growth] == [(10, False), (20, True)]
+        t3 = Trainer(scene, self._cfg(50.0, growth_patience=3), tr, te)
+        t3.fit()
+        assert not any(g.stopped for g in t3.growth) and t3.densifier.grow, "two tests cannot make three in a row"
+
+    def test_a_half_that_pays_lets_growth_go_on(self):
+        scene, tr, te = toy_scene()
+        t = Trainer(scene, self._cfg(1e-9), tr, te)
+        t.fit()
+        assert [g.step for g in t.growth] == [10, 20]
+        assert all(not g.stopped and g.cost_db >= 1e-9 for g in t.growth)
+
+    def test_resume_after_a_stop_equals_uninterrupted(self):
+        scene, tr, te = toy_scene()
+        cfg = self._cfg(50.0)
+        full = Trainer(scene, cfg, tr, te)
+        full.fit()
+        part = Trainer(scene, cfg, tr, te)
+        part.fit(until=15)
+        resumed = Trainer(scene, cfg, tr, te, state=decode(encode(part.state_dict())))
+        assert resumed.growth == part.growth and not resumed.densifier.grow
+        resumed.fit()
+        for name, p in full.model.parameters().items():
+            torch.testing.assert_close(resumed.model.parameters()[name], p, rtol=0, atol=1e-6, msg=name)
+        assert resumed.summary()["growth"] == full.summary()["growth"]
+
+    def test_checkpoints_from_before_the_test_resume_growing(self):
+        scene, tr, te = toy_scene()
+        part = Trainer(scene, self._cfg(50.0), tr, te)
+        part.fit(until=8)
+        state = part.state_dict()
+        del state["growth"]
+        resumed = Trainer(scene, self._cfg(50.0), tr, te, state=state)
+        assert resumed.growth == [] and resumed.densifier.grow
+
+
+def test_a_run_from_before_the_test_resumes_without_it(tiny_scene_path, tiny_run_path, tmp_path):  # noqa: F811
+    """config.json files written before ``densify.growth_min_gain_db`` existed grew up to their budget; a resumed
+    one keeps doing so."""
+    import shutil
+
+    from uncertsplat.config import train_config_from
+    from uncertsplat.train.session import train_model
+
+    run = tmp_path / "old"
+    shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
+    cfg_path = run / "config.json"
+    data = json.loads(cfg_path.read_text())
+    data["densify"].pop("growth_min_gain_db")
+    cfg_path.write_text(json.dumps(data))
+    step = json.loads((run / "train_summary.json").read_text())["steps"]
+    train_model(tiny_scene_path, run, train_config_from("tiny", {}), torch.device("cpu"), resume=True,
+                extend_to=step + 10)
+    assert json.loads(cfg_path.read_text())["densify"]["growth_min_gain_db"] == 0.0
+
+
+def test_growth_reason_says_what_was_decided():
+    g = GrowthCheck(step=500, gaussians=32156, seen=31273, cost_db=0.077, min_gain_db=0.25, stopped=True, views=8)
+    assert growth_reason(g) == ("growth test at step 500: switching off the weakest half of the 31,273 Gaussians 8 "
+                                "training views see (of 32,156) costs 0.077 dB (< 0.25 dB), densification stops "
+                                "growing the model")
+    waiting = growth_reason(g.model_copy(update={"stopped": False}))
+    assert "(< 0.25 dB), growth goes on until" in waiting
+    assert growth_reason(g.model_copy(update={"stopped": False, "cost_db": 2.0})).endswith(
+        "costs 2.000 dB (>= 0.25 dB), growth goes on")
