@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import tomllib
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -393,6 +393,11 @@ class EvalConfig(_Base):
     residual over the training pixels it is blended into (``uncertainty.residual``), rendered per pixel. Fitted
     on at most this many evenly spaced training views (one render and one backward pass each, before the timed
     evaluation); 0: off, the std is the samples' spread (and the empty-ray term) only."""
+    residual_scale: Literal["fit"] | Annotated[float, Field(gt=0.0)] = "fit"
+    """The pixel noise's level: ``fit`` (default) scales the fitted per-Gaussian noise by the maximum-likelihood
+    factor given the rest of the predictive on the training views (``eval.engine.fit_noise_scale``: the residual
+    is heavy-tailed, so its local mean alone overstates most pixels' noise); a number multiplies it by that (1:
+    the local mean itself, the behaviour before 2026-11-25)."""
 
 
 # ------------------------------------------------------------------------------------------------ prune

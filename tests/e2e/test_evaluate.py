@@ -135,3 +135,21 @@ def test_cli_missing_run_is_clear(tmp_path):
 def test_cli_not_a_run(tmp_path):
     result = runner.invoke(app, ["evaluate", str(tmp_path), "--device", "cpu"])
     assert result.exit_code == 2 and "config.json is missing" in result.output
+
+
+def test_the_pixel_noise_level_is_fitted_and_recorded(tiny_run_path, tmp_path):
+    """``residual_scale``: "fit" records the maximum-likelihood factor and scales the noise by it (a given factor is
+    used as given; without the pixel-noise term there is none)."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    base = {"num_samples": 2, "max_views": 1, "calibration_views": 0}
+    cpu = torch.device("cpu")
+    fit = evaluate.run(run, EvalConfig(**base), device=cpu)
+    one = evaluate.run(run, EvalConfig(**base, residual_scale=1.0), device=cpu)
+    half = evaluate.run(run, EvalConfig(**base, residual_scale=0.5), device=cpu)
+    none = evaluate.run(run, EvalConfig(**base, residual_views=0), device=cpu)
+    assert fit.noise_scale is not None and fit.noise_scale > 0 and fit.noise_scale != 1.0
+    assert (one.noise_scale, half.noise_scale, none.noise_scale) == (1.0, 0.5, None)
+    assert json.loads((run / "eval" / "metrics.json").read_text())["noise_scale"] is None  # the last run's
+    name = next(iter(one.per_view))
+    assert half.per_view[name].nll != one.per_view[name].nll

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 
+import pytest
 import torch
 
 from uncertsplat.render import render
@@ -91,3 +92,55 @@ def test_explained_variance_is_taken_off_the_residual():
                                atol=1e-7)
     none = fit_residual_field(sample, cams, out.rgb + d, RENDER, explained=lambda cam: torch.full((1, H, W, 1), 1.0))
     assert float(none.variance.abs().max()) == 0.0
+
+
+class TestNoiseScale:
+    """``eval.engine.fit_noise_scale``: the maximum-likelihood level of the pixel noise on training views."""
+
+    @staticmethod
+    def _setup(d: float = 0.05):
+        from uncertsplat.uncertainty.residual import ResidualField
+
+        sample, cams = _sample(seed=2), _cams(3)
+        with torch.no_grad():
+            out = RENDER(sample, cams)
+        g = torch.Generator().manual_seed(0)
+        images = (out.rgb + d * torch.randn(out.rgb.shape, generator=g)).clamp(0, 1)
+        field = ResidualField(sample=sample, variance=torch.full((len(sample),), 1e-3), seen=torch.ones(len(sample),
+                              dtype=torch.bool), mean_variance=1e-3)
+        return sample, cams, images, field
+
+    def test_the_scale_gives_unit_z_variance_on_the_views(self):
+        from uncertsplat.eval.engine import fit_noise_scale
+
+        sample, cams, images, field = self._setup()
+        a = fit_noise_scale(field, sample, cams, images, RENDER)
+        with torch.no_grad():
+            r2 = (RENDER(sample, cams).rgb.clamp(0, 1) - images).square().mean(-1, keepdim=True)
+            covered = RENDER(sample, cams).alpha >= 0.5  # the pixels the fit uses
+        n = field.blended(cams, RENDER)
+        assert 0.05 < float(covered.float().mean()) < 0.95, "the scene has covered and uncovered pixels"
+        z2 = r2 / (a * n).clamp_min(1e-6)  # the default std floor, squared
+        assert abs(float(z2[covered].double().mean()) - 1.0) < 1e-6
+        scaled = field.scaled(a)
+        assert scaled.scale == a and torch.allclose(scaled.variance, field.variance * a)
+        assert field.scaled(1.0) is field
+
+    def test_explained_variance_lowers_the_scale_and_extremes_hit_the_bounds(self):
+        from uncertsplat.eval.engine import fit_noise_scale
+
+        sample, cams, images, field = self._setup()
+        a = fit_noise_scale(field, sample, cams, images, RENDER)
+        some = fit_noise_scale(field, sample, cams, images, RENDER, explained=lambda cam: torch.full((1, H, W, 1),
+                                                                                                    1e-3))
+        assert 0 < some < a
+        # what the rest explains already exceeds every residual: the noise all but vanishes
+        assert fit_noise_scale(field, sample, cams, images, RENDER,
+                               explained=lambda cam: torch.full((1, H, W, 1), 10.0)) == pytest.approx(1e-4)
+        # a field that is (almost) nothing against the residual: the largest scale
+        tiny = field.scaled(1e-12)
+        assert fit_noise_scale(tiny, sample, cams, images, RENDER, std_floor=1e-9) == pytest.approx(1e4)
+        # a perfect fit (no residual at all): the smallest
+        with torch.no_grad():
+            exact = RENDER(sample, cams).rgb.clamp(0, 1)
+        assert fit_noise_scale(field, sample, cams, exact, RENDER) == pytest.approx(1e-4)

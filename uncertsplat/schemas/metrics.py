@@ -197,6 +197,10 @@ class EvalReport(SchemaFile):
     """Factor for the RGB std fitted on training views (``eval.engine.fit_std_scale``); None = not fitted."""
     calibration_views: list[str] = Field(default_factory=list)
     """The training images ``std_scale`` was fitted on."""
+    noise_scale: float | None = None
+    """The factor the pixel noise (``EvalConfig.residual_views``) carries: fitted by maximum likelihood on training
+    views (``EvalConfig.residual_scale = "fit"``) or set; None without the pixel-noise term, or in reports from
+    before it was scaled (factor 1)."""
     lpips: LpipsStatus | None = None
     device: str | None = None
     notes: list[str] = Field(default_factory=list)

@@ -84,6 +84,7 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
                                 views, cfg, device,
                                 on_view=partial(write_view_maps, out / "maps", preview=cfg.preview),
                                 std_scale=std_scale, calibration_views=cal_views,
+                                noise_scale=residual.scale if residual is not None else None,
                                 notes=loaded.eval_notes(cfg.num_samples),
                                 config_hash=hash_config(cfg.model_dump(mode="json")))
         atomic_write_text(out / "metrics.json", report.to_json() + "\n")
@@ -101,6 +102,9 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
         table.add_row(name, f(v.psnr, 2), f(v.ssim), f(v.ause_mae), f(v.ause_rmse), f(v.nll), f(v.calibration_error),
                       f(v.spearman), f(v.depth_ause_mae), f(v.seconds, 2))
     console.print(table)
+    if report.noise_scale is not None:
+        how = "maximum likelihood on training views" if cfg.residual_scale == "fit" else "residual_scale"
+        console.print(f"pixel noise x {report.noise_scale:.3g} ({how})")
     if report.std_scale is not None:
         m = report.mean
         console.print(f"std x {report.std_scale:.3g} (fitted on {len(report.calibration_views)} training views): "

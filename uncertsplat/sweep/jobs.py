@@ -138,6 +138,7 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     report = evaluate_views(dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual), views,
                             ecfg, device, show_progress=False,
                             std_scale=std_scale, calibration_views=cal_views,
+                            noise_scale=residual.scale if residual is not None else None,
                             notes=loaded.eval_notes(ecfg.num_samples),
                             config_hash=hash_config(ecfg.model_dump(mode="json")))
     wall = time.perf_counter() - t0

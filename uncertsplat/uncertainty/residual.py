@@ -46,13 +46,22 @@ class ResidualField:
         sample: the Gaussians whose geometry blends the noise (the sample the residuals were taken on).
         variance: [N] noise variance per Gaussian (per colour channel).
         seen: [N] bool, the Gaussians some training pixel saw (the others got the mean).
-        mean_variance: the mean squared residual over all training pixels and channels.
+        mean_variance: the mean squared residual over all training pixels and channels (before ``scale``).
+        scale: the factor ``variance`` carries (``scaled``; ``eval.engine.fit_noise_scale`` fits one).
     """
 
     sample: GaussianSample
     variance: Tensor
     seen: Tensor
     mean_variance: float
+    scale: float = 1.0
+    """The factor ``variance`` was multiplied by (``scaled``): 1 as fitted."""
+
+    def scaled(self, factor: float) -> ResidualField:
+        """The field with every Gaussian's noise variance times ``factor`` (e.g. a fitted noise level)."""
+        if factor == 1.0:
+            return self
+        return replace(self, variance=self.variance * factor, scale=self.scale * factor)
 
     @torch.no_grad()
     def blended(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
