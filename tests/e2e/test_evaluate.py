@@ -144,8 +144,8 @@ def test_the_pixel_noise_level_is_fitted_and_recorded(tiny_run_path, tmp_path):
     shutil.copytree(tiny_run_path, run)
     base = {"num_samples": 2, "max_views": 1, "calibration_views": 0}
     cpu = torch.device("cpu")
-    fit = evaluate.run(run, EvalConfig(**base), device=cpu)
-    one = evaluate.run(run, EvalConfig(**base, residual_scale=1.0), device=cpu)
+    fit = evaluate.run(run, EvalConfig(**base, residual_scale="fit"), device=cpu)
+    one = evaluate.run(run, EvalConfig(**base), device=cpu)
     half = evaluate.run(run, EvalConfig(**base, residual_scale=0.5), device=cpu)
     none = evaluate.run(run, EvalConfig(**base, residual_views=0), device=cpu)
     assert fit.noise_scale is not None and fit.noise_scale > 0 and fit.noise_scale != 1.0

@@ -103,8 +103,8 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
                       f(v.spearman), f(v.depth_ause_mae), f(v.seconds, 2))
     console.print(table)
     if report.noise_scale is not None:
-        how = "maximum likelihood on training views" if cfg.residual_scale == "fit" else "residual_scale"
-        console.print(f"pixel noise x {report.noise_scale:.3g} ({how})")
+        if cfg.residual_scale == "fit":  # the default (1) is not worth a line
+            console.print(f"pixel noise x {report.noise_scale:.3g} (maximum likelihood on training views)")
     if report.std_scale is not None:
         m = report.mean
         console.print(f"std x {report.std_scale:.3g} (fitted on {len(report.calibration_views)} training views): "
