@@ -39,3 +39,25 @@ def train_tiny_run(scene: Path, out: Path, **overrides) -> Path:
 def tiny_run_path(tmp_path_factory, tiny_scene_path) -> Path:
     """Path of a run trained on the tiny synthetic scene (has posterior carriers)."""
     return train_tiny_run(tiny_scene_path, tmp_path_factory.mktemp("runs") / "tiny_run")
+
+
+def resume_without_key(scene: Path, run: Path, tmp: Path, section: str, key: str, steps: int) -> dict:
+    """Copy ``run`` to ``tmp / "old"``, delete ``section.key`` from its config.json (as a run written before the key
+    existed), resume it for ``steps`` more steps with the tiny preset, and return the config.json it then has."""
+    import json
+    import shutil
+
+    import torch
+
+    from uncertsplat.config import train_config_from
+    from uncertsplat.train.session import train_model
+
+    old = tmp / "old"
+    shutil.copytree(run, old, ignore=shutil.ignore_patterns("eval"))
+    cfg_path = old / "config.json"
+    data = json.loads(cfg_path.read_text())
+    data[section].pop(key)
+    cfg_path.write_text(json.dumps(data))
+    step = json.loads((old / "train_summary.json").read_text())["steps"]
+    train_model(scene, old, train_config_from("tiny", {}), torch.device("cpu"), resume=True, extend_to=step + steps)
+    return json.loads(cfg_path.read_text())

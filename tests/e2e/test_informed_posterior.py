@@ -16,7 +16,7 @@ import torch.nn.functional as F
 
 from tests.e2e.test_train_resume import toy_config, toy_scene
 from tests.fixtures import tiny_scene_path  # noqa: F401
-from tests.run_fixtures import tiny_run_path  # noqa: F401
+from tests.run_fixtures import resume_without_key, tiny_run_path  # noqa: F401
 from uncertsplat.baselines import load_run, train_run
 from uncertsplat.config import EvalConfig, train_config_from
 from uncertsplat.data.dataset import load_depths, load_view_set
@@ -119,20 +119,9 @@ def test_an_informed_run_from_before_train_on_resumes_on_samples(tiny_scene_path
                                                                  tmp_path):
     """config.json files written before ``variational.train_on`` existed fitted their Gaussians to posterior samples;
     a resumed one keeps doing so (the default for new runs is the expected render)."""
-    import shutil
-
-    from uncertsplat.train.session import train_model
-
     assert train_config_from("tiny", {}).variational.train_on == "expected"
-    run = tmp_path / "old"
-    shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
-    cfg_path = run / "config.json"
-    data = json.loads(cfg_path.read_text())
-    data["variational"].pop("train_on")
-    cfg_path.write_text(json.dumps(data))
-    step = json.loads((run / "train_summary.json").read_text())["steps"]
-    train_model(tiny_scene_path, run, train_config_from("tiny", {}), CPU, resume=True, extend_to=step + 20)
-    assert json.loads(cfg_path.read_text())["variational"]["train_on"] == "samples"
+    cfg = resume_without_key(tiny_scene_path, tiny_run_path, tmp_path, "variational", "train_on", 20)
+    assert cfg["variational"]["train_on"] == "samples"
 
 
 def test_sandwich_widens_only_the_last_update(tmp_path):

@@ -65,6 +65,12 @@ def toy_config(**extra):
     return train_config_from(None, data)
 
 
+def assert_same_parameters(a, b, atol: float = 1e-6) -> None:
+    """Every parameter tensor of model ``b`` equals model ``a``'s to ``atol``."""
+    for name, p in a.parameters().items():
+        torch.testing.assert_close(b.parameters()[name], p, rtol=0, atol=atol, msg=name)
+
+
 def test_resume_equals_uninterrupted(tmp_path):
     scene, tr, te = toy_scene()
     cfg = toy_config()
@@ -83,8 +89,7 @@ def test_resume_equals_uninterrupted(tmp_path):
     assert resumed.step == full.step == 30
     a, b = full.model, resumed.model
     assert torch.equal(a.posterior_row, b.posterior_row)
-    for name, p in a.parameters().items():
-        torch.testing.assert_close(b.parameters()[name], p, rtol=0, atol=1e-6, msg=name)
+    assert_same_parameters(a, b)
     sa, sb = full.optimizer.state_dict()["state"], resumed.optimizer.state_dict()["state"]
     for i in sa:
         torch.testing.assert_close(sb[i]["exp_avg_sq"], sa[i]["exp_avg_sq"], rtol=0, atol=1e-9)

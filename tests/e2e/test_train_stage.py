@@ -6,6 +6,7 @@ import shutil
 import pytest
 import torch
 
+from tests.e2e.test_train_resume import assert_same_parameters
 from tests.fixtures import tiny_scene_path  # noqa: F401
 from uncertsplat.baselines import load_run
 from uncertsplat.config import train_config_from
@@ -76,8 +77,7 @@ def test_resume_from_middle_checkpoint_is_exact(trained, tiny_scene_path, tmp_pa
     stage.run(tiny_scene_path, copy, cfg, torch.device("cpu"), resume=True)
     a, b = load_run(run).model, load_run(copy).model
     assert torch.equal(a.posterior_row, b.posterior_row)
-    for name, p in a.parameters().items():
-        torch.testing.assert_close(b.parameters()[name], p, rtol=0, atol=1e-6, msg=name)
+    assert_same_parameters(a, b)
     steps = [json.loads(x)["step"] for x in (copy / "stats.jsonl").read_text().splitlines()]
     assert steps == sorted(steps) and len(steps) == len(set(steps))  # no duplicated log lines
 

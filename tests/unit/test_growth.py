@@ -3,15 +3,14 @@
 
 from __future__ import annotations
 
-import json
 import math
 
 import pytest
 import torch
 
-from tests.e2e.test_train_resume import toy_config, toy_scene
+from tests.e2e.test_train_resume import assert_same_parameters, toy_config, toy_scene
 from tests.fixtures import tiny_scene_path  # noqa: F401
-from tests.run_fixtures import tiny_run_path  # noqa: F401
+from tests.run_fixtures import resume_without_key, tiny_run_path  # noqa: F401
 from uncertsplat.config import DensifyConfig
 from uncertsplat.io.checkpoints import decode, encode
 from uncertsplat.schemas.runs import GrowthCheck
@@ -135,8 +134,7 @@ class TestTraining:
         resumed = Trainer(scene, cfg, tr, te, state=decode(encode(part.state_dict())))
         assert resumed.growth == part.growth and not resumed.densifier.grow
         resumed.fit()
-        for name, p in full.model.parameters().items():
-            torch.testing.assert_close(resumed.model.parameters()[name], p, rtol=0, atol=1e-6, msg=name)
+        assert_same_parameters(full.model, resumed.model)
         assert resumed.summary()["growth"] == full.summary()["growth"]
 
     def test_checkpoints_from_before_the_test_resume_growing(self):
@@ -152,21 +150,8 @@ class TestTraining:
 def test_a_run_from_before_the_test_resumes_without_it(tiny_scene_path, tiny_run_path, tmp_path):  # noqa: F811
     """config.json files written before ``densify.growth_min_gain_db`` existed grew up to their budget; a resumed
     one keeps doing so."""
-    import shutil
-
-    from uncertsplat.config import train_config_from
-    from uncertsplat.train.session import train_model
-
-    run = tmp_path / "old"
-    shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
-    cfg_path = run / "config.json"
-    data = json.loads(cfg_path.read_text())
-    data["densify"].pop("growth_min_gain_db")
-    cfg_path.write_text(json.dumps(data))
-    step = json.loads((run / "train_summary.json").read_text())["steps"]
-    train_model(tiny_scene_path, run, train_config_from("tiny", {}), torch.device("cpu"), resume=True,
-                extend_to=step + 10)
-    assert json.loads(cfg_path.read_text())["densify"]["growth_min_gain_db"] == 0.0
+    cfg = resume_without_key(tiny_scene_path, tiny_run_path, tmp_path, "densify", "growth_min_gain_db", 10)
+    assert cfg["densify"]["growth_min_gain_db"] == 0.0
 
 
 def test_growth_reason_says_what_was_decided():

@@ -141,13 +141,16 @@ def _predictive(sampler: Sampler, cfg: EvalSettings, cams: Cameras) -> dict:
             "extra_var": extra, "shift_fn": _shift_fn(sampler, cfg, cams.device)}
 
 
+def evenly_spaced(items: Sequence[int], n: int) -> list[int]:
+    """At most ``n`` of ``items``, evenly spaced with both ends included (all of them when n >= len(items))."""
+    items = list(items)
+    n = min(n, len(items))
+    return [items[round(j * (len(items) - 1) / max(n - 1, 1))] for j in range(n)]
+
+
 def residual_indices(train_indices: Sequence[int], cfg: EvalSettings) -> list[int]:
     """The at most ``cfg.residual_views`` evenly spaced training views the pixel noise is fitted on."""
-    train = list(train_indices)
-    n = min(cfg.residual_views, len(train))
-    if n == 0:
-        return []
-    return [train[round(j * (len(train) - 1) / max(n - 1, 1))] for j in range(n)] if n < len(train) else train
+    return evenly_spaced(train_indices, cfg.residual_views)
 
 
 @torch.no_grad()
@@ -217,16 +220,13 @@ def fit_noise_scale(field: ResidualField, sample: GaussianSample, cameras: Camer
     Solves ``mean_p r(p)^2 / (e(p) + a n(p)) = 1`` over the valid pixels with alpha >= ``MIN_NOISE_ALPHA`` of at
     most ``NOISE_SCALE_VIEWS`` of ``cameras``, where r^2 is the squared residual of ``sample``'s render (mean over
     the channels), ``n`` the field's blended noise and ``e`` what ``explained`` gives (the resolution term; 0
-    without it): the scale at which the Gaussian predictive's z-scores have unit variance there. The per-Gaussian noise is a local mean of
-    r^2, and r^2 is heavy-tailed (most pixels fit closely, a few edges do not), so the unscaled noise makes most
+    without it): the scale at which the Gaussian predictive's z-scores have unit variance there. The per-Gaussian
+    noise is a local mean of r^2, and r^2 is heavy-tailed (most pixels fit closely, a few edges do not), so the unscaled noise makes most
     pixels' std too large (the demo scene: a factor of 0.63 fitted on the whole std). Monotone in ``a``:
     bisection in log space over [1e-4, 1e4] (an end when the root lies beyond it).
     """
-    t = len(cameras)
-    m = min(t, NOISE_SCALE_VIEWS)
-    pick = sorted({round(j * (t - 1) / max(m - 1, 1)) for j in range(m)})
     r2s, es, ns = [], [], []
-    for j in pick:
+    for j in evenly_spaced(range(len(cameras)), NOISE_SCALE_VIEWS):
         cam = cameras[[j]]
         out = render_fn(sample, cam)
         pred = out.rgb[0].clamp(0, 1)
@@ -289,11 +289,7 @@ def split_indices(split: Mapping[str, Sequence[int]], cfg: EvalSettings) -> list
 def calibration_indices(train_indices: Sequence[int], cfg: EvalSettings) -> list[int]:
     """The ``cfg.calibration_views`` evenly spaced training views (both ends included) the std factor is fitted
     on; none when disabled or when scoring the training split (never fit on the views that are scored)."""
-    train = list(train_indices)
-    n = min(cfg.calibration_views, len(train))
-    if n == 0 or cfg.split != "test":
-        return []
-    return [train[round(j * (len(train) - 1) / max(n - 1, 1))] for j in range(n)]
+    return evenly_spaced(train_indices, cfg.calibration_views) if cfg.split == "test" else []
 
 
 @torch.no_grad()

@@ -20,7 +20,6 @@ held-out views stay unseen by every training decision.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -29,6 +28,7 @@ from torch import Tensor
 
 from uncertsplat.schemas.runs import GrowthCheck
 from uncertsplat.strategy.schedule import RESET_RECOVERY_STEPS
+from uncertsplat.strategy.view_checks import psnr_gain_db
 from uncertsplat.types import Cameras, GaussianSample
 
 
@@ -60,31 +60,18 @@ def weakest_half(weights: Tensor) -> Tensor:
     return out
 
 
-@torch.no_grad()
 def halving_cost_db(sample: GaussianSample, off: Tensor, cameras: Cameras, images: Tensor,
                     render_fn: Callable[[GaussianSample, Cameras], Tensor]) -> float:
-    """Training-view PSNR lost (dB) when the Gaussians in ``off`` [N] are switched off: ``10 log10(mse
-    without / mse with)``, the squared errors summed over all views first. 0 when nothing changes.
+    """Training-view PSNR lost (dB) when the Gaussians in ``off`` [N] are switched off (opacity 0):
+    ``view_checks.psnr_gain_db`` of the whole model over the rest (0 when nothing changes).
 
     Args:
-        sample: the Gaussians to render. off: [N] bool, those to switch off (opacity 0).
+        sample: the Gaussians to render. off: [N] bool, those to switch off.
         cameras: [V] training cameras. images: [V,H,W,3] their photos.
         render_fn: (sample, camera) -> [1,H,W,3] image in [0, 1].
     """
     without = replace(sample, opacities=torch.where(off, torch.zeros_like(sample.opacities), sample.opacities))
-    sse = []
-    for g in (sample, without):
-        total = 0.0
-        for i in range(len(cameras)):
-            pred = render_fn(g, cameras[i])[0].clamp(0, 1)
-            total += float((pred - images[i]).square().sum(dtype=torch.float64))
-        sse.append(total)
-    full, half = sse
-    if full == half:
-        return 0.0
-    if full <= 0.0:
-        return math.inf
-    return 10.0 * math.log10(max(half, 1e-300) / full)
+    return psnr_gain_db(sample, without, cameras, images, render_fn)
 
 
 def growth_reason(check: GrowthCheck) -> str:

@@ -14,7 +14,6 @@ at d - 1. Only training views are used: the held-out views stay unseen by every 
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import replace
 
@@ -22,6 +21,7 @@ import torch
 from torch import Tensor
 
 from uncertsplat.schemas.runs import ShBandCheck
+from uncertsplat.strategy.view_checks import psnr_gain_db
 from uncertsplat.types import Cameras, GaussianSample
 
 # One band's test (degree, step, gain_db, kept, min_gain_db, views): the record ``train_summary.json`` keeps.
@@ -51,14 +51,6 @@ def check_due(step: int, interval: int, max_degree: int, min_gain_db: float, che
     return d
 
 
-def check_views(num_views: int, max_views: int) -> list[int]:
-    """Up to ``max_views`` training view indices spread evenly over ``range(num_views)`` (deterministic)."""
-    n = min(num_views, max_views)
-    if n <= 0:
-        return []
-    return sorted({int(round(i * (num_views - 1) / max(n - 1, 1))) for i in range(n)})
-
-
 @torch.no_grad()
 def band_gain_db(sample: GaussianSample, degree: int, cameras: Cameras, images: Tensor,
                  render_fn: Callable[[GaussianSample, Cameras], Tensor]) -> float:
@@ -70,20 +62,9 @@ def band_gain_db(sample: GaussianSample, degree: int, cameras: Cameras, images: 
         cameras: [V] training cameras. images: [V,H,W,3] their photos.
         render_fn: (sample, camera) -> [1,H,W,3] image in [0, 1].
 
-    The MSE is summed over all the views' pixels before the ratio, so a view with large errors weighs more.
-    Two identical renders (no band content) give exactly 0.
+    As ``view_checks.psnr_gain_db``: two identical renders (no band content) give exactly 0.
     """
     if degree < 1:
         raise ValueError(f"band degree must be >= 1, got {degree}")
-    sse = {degree: 0.0, degree - 1: 0.0}
-    for d in sse:
-        g = replace(sample, sh_degree=d)
-        for i in range(len(cameras)):
-            pred = render_fn(g, cameras[i])[0].clamp(0, 1)
-            sse[d] += float((pred - images[i]).square().sum(dtype=torch.float64))
-    with_band, without = sse[degree], sse[degree - 1]
-    if with_band == without:
-        return 0.0
-    if with_band <= 0.0:
-        return math.inf
-    return 10.0 * math.log10(max(without, 1e-300) / with_band)
+    return psnr_gain_db(replace(sample, sh_degree=degree), replace(sample, sh_degree=degree - 1), cameras, images,
+                        render_fn)

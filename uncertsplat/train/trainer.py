@@ -44,7 +44,8 @@ from uncertsplat.strategy.budget import gaussian_budget
 from uncertsplat.strategy.densify import Densifier, DensifyStats
 from uncertsplat.strategy.growth import GrowthCheck, growth_check_due, halving_cost_db, weakest_half
 from uncertsplat.strategy.schedule import sh_degree_at
-from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due, check_views
+from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due
+from uncertsplat.strategy.view_checks import check_views
 from uncertsplat.train.losses import total_loss
 from uncertsplat.train.optim import base_rates, make_optimizer, set_rates
 from uncertsplat.train.profile import PhaseTimer
@@ -260,7 +261,7 @@ class Trainer:
         # the tests before this one that must also have found the half cheap (growth_patience - 1 of them)
         before = self.growth[len(self.growth) - dcfg.growth_patience + 1:] if dcfg.growth_patience > 1 else []
         cheap = cost < dcfg.growth_min_gain_db and len(before) == dcfg.growth_patience - 1 and all(
-            g.cost_db < g.min_gain_db for g in before)
+            b.cost_db < b.min_gain_db for b in before)
         check = GrowthCheck(step=step, gaussians=len(self.model), seen=int((weights > 0).sum()),
                             cost_db=round(min(cost, 1e3), 4), min_gain_db=dcfg.growth_min_gain_db, stopped=cheap,
                             views=len(views))

@@ -1,0 +1,52 @@
+"""What the training decisions that look at images share (``strategy.sh_bands``, ``strategy.growth``): which
+training views to render, and how much one model beats another on them. Only training views: the held-out views
+stay unseen by every training decision."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from uncertsplat.types import Cameras, GaussianSample
+
+
+def check_views(num_views: int, max_views: int) -> list[int]:
+    """Up to ``max_views`` training view indices spread evenly over ``range(num_views)`` (deterministic)."""
+    n = min(num_views, max_views)
+    if n <= 0:
+        return []
+    return sorted({int(round(i * (num_views - 1) / max(n - 1, 1))) for i in range(n)})
+
+
+@torch.no_grad()
+def psnr_gain_db(sample: GaussianSample, other: GaussianSample, cameras: Cameras, images: Tensor,
+                 render_fn: Callable[[GaussianSample, Cameras], Tensor]) -> float:
+    """How much better ``sample`` renders the views than ``other`` (dB): ``10 log10(mse other / mse sample)``.
+
+    Args:
+        sample, other: the two sets of Gaussians.
+        cameras: [V] training cameras. images: [V,H,W,3] their photos.
+        render_fn: (sample, camera) -> [1,H,W,3] image in [0, 1].
+
+    The squared errors are summed over all the views' pixels before the ratio, so a view with large errors weighs
+    more. Two identical renders give exactly 0; a perfect ``sample`` (and an imperfect ``other``) +inf.
+    """
+    sse = []
+    for g in (sample, other):
+        total = 0.0
+        for i in range(len(cameras)):
+            pred = render_fn(g, cameras[i])[0].clamp(0, 1)
+            total += float((pred - images[i]).square().sum(dtype=torch.float64))
+        sse.append(total)
+    mine, theirs = sse
+    if mine == theirs:
+        return 0.0
+    if mine <= 0.0:
+        return math.inf
+    return 10.0 * math.log10(max(theirs, 1e-300) / mine)
+
+
+__all__ = ["check_views", "psnr_gain_db"]
