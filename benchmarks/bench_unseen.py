@@ -11,9 +11,10 @@ observed / unobserved from GT depth (``eval.observed.observed_mask``). Per metho
 * mean std on unobserved / observed pixels, and on pixels whose rays meet no Gaussian (alpha < 0.5);
 * the evaluation metrics on those views: PSNR, AUSE-MAE, NLL, calibration error, the fitted std factor.
 
-Each run is evaluated three ways (``PREDICTIVES``): ``full`` (what ``evaluate`` writes), ``before`` (the predictive
-before the coverage and resolution terms: every alpha < 1 counts as empty, no resolution term) and ``spread``
-(the samples' spread alone).
+Each run is evaluated four ways (``PREDICTIVES``, ``--predictives`` picks some): ``full`` (what ``evaluate``
+writes), ``before`` (the predictive before the coverage and resolution terms: every alpha < 1 counts as empty, no
+resolution term), ``spread`` (the samples' spread alone) and ``leverage`` (``full`` with
+``EvalConfig.residual_leverage``).
 
 Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
 its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),
@@ -97,6 +98,7 @@ PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alph
     "full": ({}, False),  # what `evaluate` writes: spread + pixel noise + resolution term + empty rays
     "before": ({"resolution": 0.0}, True),  # the predictive before the coverage and resolution terms (2026-11-24)
     "spread": ({"empty_rays": False, "residual_views": 0, "resolution": 0.0}, False),  # the samples' spread alone
+    "leverage": ({"residual_leverage": True}, False),  # full, each Gaussian's pixel noise / (1 - its leverage)
 }
 
 
@@ -206,6 +208,8 @@ def main() -> None:
                     help="initial points: those the training views see (as SfM on them would give), or all")
     ap.add_argument("--set", action="append", default=[], help="key=value for every method's TrainConfig")
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
+    ap.add_argument("--predictives", nargs="+", choices=list(PREDICTIVES), default=list(PREDICTIVES),
+                    help="which predictives to evaluate every run with (default: all)")
     args = ap.parse_args()
 
     from uncertsplat.baselines import train_run
@@ -259,10 +263,10 @@ def main() -> None:
         train_s = json.loads((run_dir / "train_summary.json").read_text())["seconds"]
         rec = {"method": name, "train_seconds": train_s, "wall_seconds": time.perf_counter() - t0}
         # the full predictive (the default), the one before the coverage and resolution terms, the spread alone
-        for kind in PREDICTIVES:
+        for kind in args.predictives:
             rec[kind] = measure(run_dir, device, args.samples, kind)
         rows.append(rec)
-        print(f"{name:12s} " + " | ".join(f"{kind}: {summary(rec[kind])}" for kind in PREDICTIVES)
+        print(f"{name:12s} " + " | ".join(f"{kind}: {summary(rec[kind])}" for kind in args.predictives)
               + f" | train {train_s:.0f}s", flush=True)
     out = {"label": args.label, "machine": args.machine, "date": time.strftime("%Y-%m-%d"),
            "torch": torch.__version__, "iterations": its, "width": args.width, "train_views": train,
@@ -274,7 +278,7 @@ def main() -> None:
           "factor | train s | machine | date |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        for kind in PREDICTIVES:
+        for kind in args.predictives:
             w = r[kind]
             print(f"| {r['method']} | {kind} | {fmt(w.get('auc_rgb'))} / {fmt(w.get('auc_depth'))} | {w['psnr']:.2f} | "
                   f"{w['ause_mae']:.3f} / {fmt(w.get('depth_ause'))} | {w['nll']:.2f} | {w['calibration_error']:.3f} | "

@@ -146,7 +146,12 @@ class VariationalConfig(_Base):
     """Training views an update before the last step uses at most (drawn at random; the Fisher is scaled to all
     views); the last update uses every view. 0: every view every time."""
     probes: int = Field(2, ge=1, le=64)
-    """Rademacher probes per training view for the curvature (informed)."""
+    """Rademacher probes per training view for the curvature of the last update (informed): the posterior that
+    ``evaluate`` samples."""
+    refresh_probes: int = Field(1, ge=1, le=64)
+    """Rademacher probes per training view for the updates before the last step, which only steer what the
+    Gaussians are fitted to in between. Measured on the demo preset (BENCHMARKS.md, "Where a training step's time
+    goes"): 1 instead of 2 takes the updates from 20.4 to 13.8 s of 274 s with the same PSNR, AUSE and NLL."""
     position_prior_scale: float = Field(1.0, ge=0.0)
     """Informed: a carrier's position prior std is the larger of position_prior_std x extent and this times its
     own size (geometric mean of its axes); 0 keeps only the fixed prior."""
@@ -401,6 +406,13 @@ class EvalConfig(_Base):
     std too small where the model renders worse than on its training views (NLL: sparse views -2.61 -> -2.34,
     half-ring 0.26 -> 1.52, bonsai -1.00 -> -0.75), so it is not the default (BENCHMARKS.md, "The pixel noise's
     level")."""
+    residual_leverage: bool = False
+    """Carry the pixel noise from the training residuals to the noise itself: each Gaussian's noise divided by
+    (1 - h), h its parameters over the training pixel channels it is blended into (its leverage, capped at 0.9;
+    ``uncertainty.residual.ResidualField.out_of_sample``). A training residual is smaller than the noise by what
+    the Gaussian's own parameters absorbed, most where few pixels fit it. Measured (BENCHMARKS.md, "The pixel
+    noise's level"): NLL trained on half the ring 0.26 -> -0.37, 5 sparse views -2.61 -> -2.67, but fern's
+    calibration error 0.052 -> 0.086 (59 parameters at SH degree 3), so off by default."""
 
 
 # ------------------------------------------------------------------------------------------------ prune

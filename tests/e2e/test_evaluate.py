@@ -147,9 +147,13 @@ def test_the_pixel_noise_level_is_fitted_and_recorded(tiny_run_path, tmp_path):
     fit = evaluate.run(run, EvalConfig(**base, residual_scale="fit"), device=cpu)
     one = evaluate.run(run, EvalConfig(**base), device=cpu)
     half = evaluate.run(run, EvalConfig(**base, residual_scale=0.5), device=cpu)
+    leverage = evaluate.run(run, EvalConfig(**base, residual_leverage=True), device=cpu)
     none = evaluate.run(run, EvalConfig(**base, residual_views=0), device=cpu)
     assert fit.noise_scale is not None and fit.noise_scale > 0 and fit.noise_scale != 1.0
     assert (one.noise_scale, half.noise_scale, none.noise_scale) == (1.0, 0.5, None)
     assert json.loads((run / "eval" / "metrics.json").read_text())["noise_scale"] is None  # the last run's
     name = next(iter(one.per_view))
     assert half.per_view[name].nll != one.per_view[name].nll
+    # the leverage changes the std (each Gaussian's noise / (1 - h)), not the prediction
+    assert leverage.per_view[name].psnr == one.per_view[name].psnr
+    assert leverage.per_view[name].nll != one.per_view[name].nll

@@ -85,6 +85,8 @@ def test_updates_are_recorded(half_ring_runs):
     steps = [u["step"] for u in summary["posterior_updates"]]
     assert steps == [100, 200, 300]
     assert [u["views"] for u in summary["posterior_updates"]] == [5, 5, len(train)]
+    # the updates in between take refresh_probes (1) probes per view, the last one `probes` (2)
+    assert [u["probes"] for u in summary["posterior_updates"]] == [1, 1, 2]
     last = summary["posterior_updates"][-1]
     assert 0.0 < last["data_dominated"] < 1.0 and last["noise_std"] > 0
     assert json.loads((runs["sgd"] / "train_summary.json").read_text())["posterior_updates"] == []
@@ -157,3 +159,12 @@ def test_training_on_the_expected_render(tmp_path):
         sh0[run] = t.model.params["sh0"].detach().clone()
     torch.testing.assert_close(sh0[0], sh0[1], rtol=0, atol=0)
     assert sh0[0].shape != sh0[2].shape or not torch.equal(sh0[0], sh0[2])
+
+
+def test_an_informed_run_from_before_refresh_probes_keeps_its_probes(tiny_scene_path, tiny_run_path,  # noqa: F811
+                                                                      tmp_path):
+    """config.json files written before ``variational.refresh_probes`` existed used ``probes`` at every update; a
+    resumed one keeps doing so (new runs take 1 between updates)."""
+    assert train_config_from("tiny", {}).variational.refresh_probes == 1
+    cfg = resume_without_key(tiny_scene_path, tiny_run_path, tmp_path, "variational", "refresh_probes", 20)
+    assert cfg["variational"]["refresh_probes"] == cfg["variational"]["probes"] == 2

@@ -144,3 +144,48 @@ class TestNoiseScale:
         with torch.no_grad():
             exact = RENDER(sample, cams).rgb.clamp(0, 1)
         assert fit_noise_scale(field, sample, cams, exact, RENDER) == pytest.approx(1e-4)
+
+
+class TestOutOfSample:
+    """``ResidualField.out_of_sample``: the leverage correction from training residuals to a new view's noise."""
+
+    def test_observations_are_each_gaussians_share_of_the_pixels(self):
+        """sum_i w_i(p) = alpha(p), so the Gaussians' observations add up to the views' summed alpha."""
+        sample, cams = _sample(seed=3), _cams(3)
+        with torch.no_grad():
+            out = RENDER(sample, cams)
+        field = fit_residual_field(sample, cams, out.rgb + 0.05, RENDER)
+        assert float(field.observations[-1]) == 0.0
+        torch.testing.assert_close(field.observations.double().sum(), out.alpha.double().sum(), rtol=1e-4, atol=1e-3)
+
+    def test_the_factor_is_the_leverage_closed_form_and_capped(self):
+        sample, cams = _sample(seed=4), _cams(2)
+        with torch.no_grad():
+            out = RENDER(sample, cams)
+        field = fit_residual_field(sample, cams, out.rgb + 0.05, RENDER)
+        k = 14
+        oos = field.out_of_sample(k)
+        h = (k / (3 * field.observations.double())).clamp(max=0.9)
+        torch.testing.assert_close(oos.variance.double(), field.variance.double() / (1 - h), rtol=1e-5,
+                                   atol=1e-9)
+        # the Gaussian no pixel saw gets the cap: 1 / (1 - 0.9) = 10
+        assert float(oos.variance[-1] / field.variance[-1]) == pytest.approx(10.0, rel=1e-5)
+        assert oos.leverage_inflation == pytest.approx(float((1 / (1 - h)).mean()), rel=1e-5)
+        # more views of the same pixels: smaller leverage, never below the in-sample noise
+        more = field.out_of_sample(k, view_factor=100.0)
+        seen = field.observations > 1.0
+        assert bool((more.variance[seen] < oos.variance[seen]).all())
+        assert bool((more.variance >= field.variance).all())
+        # a pruned field keeps each Gaussian's observations
+        keep = torch.arange(len(sample.means)) % 3 == 0
+        torch.testing.assert_close(field.subset(keep).observations, field.observations[keep])
+
+    def test_a_field_without_counts_is_refused(self):
+        from dataclasses import replace
+
+        sample, cams = _sample(seed=5), _cams(1)
+        with torch.no_grad():
+            out = RENDER(sample, cams)
+        field = replace(fit_residual_field(sample, cams, out.rgb, RENDER), observations=None)
+        with pytest.raises(ValueError, match="observation counts"):
+            field.out_of_sample(14)

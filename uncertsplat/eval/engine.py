@@ -59,6 +59,8 @@ class EvalSettings(Protocol):
     """The resolution term's shift, in fractions of each Gaussian's size (``uncertainty.mc.resolution_shift``)."""
     residual_scale: str | float
     """"fit" (``fit_noise_scale``) or a factor for the pixel noise."""
+    residual_leverage: bool
+    """Inflate each Gaussian's noise to a new view's (``ResidualField.out_of_sample``)."""
 
 
 @dataclass(frozen=True)
@@ -200,9 +202,15 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
     with torch.enable_grad():
         field = fit_residual_field(rep, cams, images, sampler.render_fn, masks=masks, explained=explained)
     if cfg.residual_scale == "fit":
-        return field.scaled(fit_noise_scale(field, rep, cams, images, sampler.render_fn, masks=masks,
-                                            explained=explained, std_floor=cfg.std_floor))
-    return field.scaled(float(cfg.residual_scale))
+        field = field.scaled(fit_noise_scale(field, rep, cams, images, sampler.render_fn, masks=masks,
+                                             explained=explained, std_floor=cfg.std_floor))
+    else:
+        field = field.scaled(float(cfg.residual_scale))
+    if cfg.residual_leverage:
+        # the scale above is fitted to training residuals; the leverage gives the noise behind them
+        k = 11 + 3 * (rep.sh_degree + 1) ** 2
+        field = field.out_of_sample(k, view_factor=len(list(train_indices)) / len(chosen))
+    return field
 
 
 MIN_NOISE_ALPHA = 0.5

@@ -40,6 +40,9 @@ class PosteriorUpdate(Strict):
     step: int
     views: int
     """Training views the update used."""
+    probes: int | None = None
+    """Rademacher probes per view (``variational.probes`` at the last step, ``refresh_probes`` before); None in
+    summaries from before it was recorded."""
     noise_std: float
     """Observation noise of the Gaussian pixel likelihood: the RMS training residual."""
     carriers: int

@@ -146,6 +146,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 if isinstance(stored.get(section), dict):
                     for key, value in before.items():
                         stored[section].setdefault(key, value)
+            if isinstance(stored.get("variational"), dict):  # every update used `probes` before refresh_probes
+                stored["variational"].setdefault("refresh_probes", stored["variational"].get("probes", 2))
             diff = [d for d in _differences(stored, json.loads(cfg.model_dump_json()))
                     if not (d == "iterations" and extend_to is not None)]
             if diff:

@@ -383,8 +383,8 @@ class Trainer:
 
         Updates before the last step use at most ``refresh_views`` training views, drawn with the view generator,
         and scale the Fisher by (training views / views used), an unbiased estimate of the sum over all views;
-        the update at the last step uses every training view (and, with ``variational.sandwich``, widens the
-        spreads by the views' disagreement)."""
+        the update at the last step uses every training view and ``probes`` probes per view (the earlier ones
+        ``refresh_probes``), and with ``variational.sandwich`` widens the spreads by the views' disagreement."""
         t0 = time.perf_counter()
         vcfg = self.cfg.variational
         params = mean_params(self.model, variant=self.cfg.variant, extent=self.extent,
@@ -392,15 +392,17 @@ class Trainer:
         degree = self.sh_degree
         t = len(self.train_idx)
         cams, images = self.train_cams, self.train_images
-        n = t if (vcfg.refresh_views == 0 or self.step >= self.cfg.iterations) else min(vcfg.refresh_views, t)
+        last = self.step >= self.cfg.iterations
+        n = t if (vcfg.refresh_views == 0 or last) else min(vcfg.refresh_views, t)
         if n < t:
             pick = torch.randperm(t, generator=self.gen_views)[:n].sort().values.tolist()
             cams, images = cams[pick], images[pick]
         # one render per view: the noise (RMS residual), the curvature, and at the last update with
         # ``sandwich`` the views' disagreement (at every update it cost 2 dB: the config's docstring)
         curv = curvature(params, cams, images, self.render, names=("means", "scales", "opacities"),
-                         generator=self.gen_noise, sh_degree=degree, probes=vcfg.probes,
-                         disagreement=vcfg.sandwich and self.step >= self.cfg.iterations)
+                         generator=self.gen_noise, sh_degree=degree,
+                         probes=vcfg.probes if last else vcfg.refresh_probes,
+                         disagreement=vcfg.sandwich and last)
         noise, fisher, disagreement = curv.noise_std, curv.fisher, curv.disagreement
         if n < t:
             fisher = {k: v * (t / n) for k, v in fisher.items()}
@@ -408,7 +410,8 @@ class Trainer:
                 disagreement = {k: v * (t / n) for k, v in disagreement.items()}
         record = informed_tables(self.model, fisher, self.prior, extent=self.extent,
                                  position_prior_scale=vcfg.position_prior_scale, disagreement=disagreement)
-        record = {"step": self.step, "views": n, "noise_std": noise, **record, "seconds": time.perf_counter() - t0}
+        record = {"step": self.step, "views": n, "probes": vcfg.probes if last else vcfg.refresh_probes,
+                  "noise_std": noise, **record, "seconds": time.perf_counter() - t0}
         self.posterior_updates.append(record)
         return record
 

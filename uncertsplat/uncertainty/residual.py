@@ -11,6 +11,12 @@ estimates that noise per Gaussian, heteroscedastically, and renders it:
   the 3 channels). Both sums come out of one backward pass per view: the render is linear in each
   Gaussian's colour with coefficient w_i(p), so the gradient of ``sum_p c_0(p) r(p)^2 + c_1(p)`` w.r.t. a
   constant colour is the pair of sums. A Gaussian no training pixel sees gets the mean over all pixels.
+* ``ResidualField.out_of_sample``: a training residual is smaller than the noise by the share of the data the
+  Gaussian's own parameters absorbed (its leverage h, the parameters over the pixel channels it is blended into;
+  in least squares the training residual's variance is s^2 (1 - h)), so each Gaussian's noise is divided by
+  (1 - h): little for a Gaussian that hundreds of pixels pin down, much for one that a few pixels of a sparse
+  capture fitted. Not (1 + h) / (1 - h), a new observation's whole error: its h s^2 is the parameters'
+  uncertainty, which the posterior's spread and the resolution term already give the predictive.
 * ``ResidualField.variance``: the blended variance ``sum_i w_i(p) v_i`` of a view (one extra render),
   which ``uncertainty.mc.mc_render`` adds to the samples' variance: the predictive of a pixel is the
   model's spread plus the noise of its Gaussians.
@@ -29,6 +35,8 @@ from torch import Tensor
 
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput
 
+MAX_LEVERAGE = 0.9
+"""The largest leverage ``ResidualField.out_of_sample`` gives a Gaussian (a factor of 10 on its noise)."""
 C0 = 0.28209479177387814  # the DC spherical harmonic: colour = C0 * sh0 + 0.5 (``render.sh``)
 
 
@@ -48,6 +56,8 @@ class ResidualField:
         seen: [N] bool, the Gaussians some training pixel saw (the others got the mean).
         mean_variance: the mean squared residual over all training pixels and channels (before ``scale``).
         scale: the factor ``variance`` carries (``scaled``; ``eval.engine.fit_noise_scale`` fits one).
+        observations: [N] the training pixels each Gaussian is blended into, ``sum_p w_i(p)`` over the views
+            the field was fitted on (``out_of_sample``).
     """
 
     sample: GaussianSample
@@ -56,6 +66,28 @@ class ResidualField:
     mean_variance: float
     scale: float = 1.0
     """The factor ``variance`` was multiplied by (``scaled``): 1 as fitted."""
+    observations: Tensor | None = None
+    leverage_inflation: float | None = None
+    """The mean factor ``out_of_sample`` multiplied the noise by (None: not applied)."""
+
+    def out_of_sample(self, params_per_gaussian: int, view_factor: float = 1.0,
+                      max_leverage: float = MAX_LEVERAGE) -> ResidualField:
+        """The noise level behind the training residuals: each Gaussian's variance divided by (1 - h), with leverage
+        ``h = min(params_per_gaussian / (3 x observations x view_factor), max_leverage)`` (module docstring).
+
+        Args:
+            params_per_gaussian: free parameters of a Gaussian (position 3, scale 3, rotation 4, opacity 1, colour
+                3 per SH coefficient).
+            view_factor: training views / views the field was fitted on (the observations of all views).
+            max_leverage: the cap on h (a Gaussian no pixel saw gets it): 0.9 multiplies by 10.
+        """
+        if self.observations is None:
+            raise ValueError("this field has no observation counts (fit it with fit_residual_field)")
+        channels = 3.0 * self.observations.double() * view_factor
+        h = (params_per_gaussian / channels.clamp_min(1e-30)).clamp(max=max_leverage)
+        inflation = (1 / (1 - h)).to(self.variance.dtype)
+        mean = float(inflation.mean()) if inflation.numel() else 1.0
+        return replace(self, variance=self.variance * inflation, leverage_inflation=mean)
 
     def scaled(self, factor: float) -> ResidualField:
         """The field with every Gaussian's noise variance times ``factor`` (e.g. a fitted noise level)."""
@@ -83,7 +115,8 @@ class ResidualField:
         pv = None if s.position_var is None else s.position_var[keep]
         sample = replace(s, means=s.means[keep], quats=s.quats[keep], scales=s.scales[keep],
                          opacities=s.opacities[keep], sh=s.sh[keep], position_var=pv)
-        return replace(self, sample=sample, variance=self.variance[keep], seen=self.seen[keep])
+        obs = None if self.observations is None else self.observations[keep]
+        return replace(self, sample=sample, variance=self.variance[keep], seen=self.seen[keep], observations=obs)
 
 
 def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
@@ -128,7 +161,8 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
     weight = acc[:, 1]
     seen = weight > 1e-6 * max(float(weight.max()), 1e-30) if n else torch.zeros(0, dtype=torch.bool, device=dev)
     var = torch.where(seen, acc[:, 0] / weight.clamp_min(1e-30), torch.full_like(weight, mean_var))
-    return ResidualField(sample=sample, variance=var.float(), seen=seen, mean_variance=mean_var)
+    return ResidualField(sample=sample, variance=var.float(), seen=seen, mean_variance=mean_var,
+                         observations=weight.float())
 
 
 __all__ = ["ResidualField", "fit_residual_field"]
