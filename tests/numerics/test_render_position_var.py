@@ -92,3 +92,40 @@ def test_extreme_variances_give_finite_images_and_gradients(device, var):
         assert t.grad is None or torch.isfinite(t.grad).all(), name
     if var == 1e6:  # blurred over the whole scene: every peak falls below the 1/255 cut-off
         assert float(out.alpha.detach().max()) < 1e-6
+
+
+def test_the_peak_factor_equals_a_second_projections_at_every_view_angle(device):
+    """``_blur_log_peak`` gets the sharp covariance as Sigma2d' - v J J^T instead of projecting twice: the same
+    factor as the two projections' determinants, for Gaussians inside, at the edge of and far outside the view
+    (where the Jacobian's view angle is clamped), behind the camera, and for blurs from sub-pixel to huge."""
+    from uncertsplat.render.project import project_gaussians
+    from uncertsplat.render.render import _blur_log_peak
+
+    g = torch.Generator().manual_seed(7)
+    n = 200
+    s = _scene(n, device, seed=7)
+    means = (torch.rand(n, 3, generator=g) - 0.5) * torch.tensor([8.0, 8.0, 4.0])  # many outside the frustum
+    var = torch.exp(torch.empty(n).uniform_(-14.0, 2.0, generator=g))  # std from 1e-3 to 2.7 scene units
+    s = replace(s, means=means.to(device), position_var=var.to(device))
+    cams = look_at_cameras(3, 40, 32, 40.0, radius=3.0).to(device)
+    cw, K = cams.cam_from_world, cams.K
+    blurred = project_gaussians(s.means, s.quats, torch.sqrt(s.scales**2 + s.position_var[:, None]), s.opacities,
+                                cw, K, 40, 32, 0.01, 1e10, 0.3)
+    sharp = project_gaussians(s.means, s.quats, s.scales, s.opacities, cw, K, 40, 32, 0.01, 1e10, 0.3)
+
+    def log_det(conics):
+        a, b, c = conics.double().unbind(-1)
+        return torch.log((a * c - b * b).clamp_min(1e-300))
+
+    expected = (0.5 * (log_det(blurred.conics) - log_det(sharp.conics))).clamp_max(0.0)
+    got = _blur_log_peak(s, blurred.conics, cw, K, 40, 32, 0.01, 1e10, 0.3).double()
+    front = blurred.depths > 0.01
+    assert bool(front.any()) and bool((~front).any())
+    # where the peak factor still shows (above 1e-4), the two agree to the float32 rounding of the conics (the
+    # two-projection form has its own: a c - b^2 of an elongated conic cancels)
+    shows = front & (expected > -9.0)
+    assert int(shows.sum()) > 100
+    torch.testing.assert_close(got[shows], expected[shows], rtol=1e-3, atol=2e-4)
+    # far below that, both say "invisible"; behind the camera the factor is 0 (the Gaussian is culled)
+    assert bool((got[front & ~shows] < -8.0).all())
+    assert float(got[~front].abs().max()) == 0.0

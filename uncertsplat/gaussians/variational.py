@@ -309,7 +309,8 @@ def expected_render_sample(model: GaussianModel, *, variant: Variant = "ours", e
 
     On the demo scene its held-out PSNR is above both ``posterior_mean`` and the mean of 10 sampled renders;
     on fern, where the position spreads are small next to the Gaussians, the three agree closely
-    (BENCHMARKS.md, "The expected render"). It costs one render plus one extra projection. Training
+    (BENCHMARKS.md, "The expected render"). It costs one render (its per-view peak factor needs
+    no second projection: ``render._blur_log_peak``). Training
     decisions (densify, prune, spawn) keep using ``posterior_mean``: they concern the parameters, not a
     render. ``tables_grad``: as for ``sample``.
     """

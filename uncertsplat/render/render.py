@@ -94,7 +94,7 @@ def render(
     )
     log_o = torch.log(sample.opacities.clamp_min(torch.finfo(dtype).tiny))  # [N]
     if sample.position_var is not None:
-        log_o = log_o + _blur_log_peak(sample, proj.conics, cam_from_world, K, W, H, near, far, eps2d, backend)  # [C,N]
+        log_o = log_o + _blur_log_peak(sample, proj.conics, cam_from_world, K, W, H, near, far, eps2d)  # [C,N]
     gparams = torch.cat([means2d, proj.conics, log_o.expand(C, N)[..., None]], dim=-1).reshape(C * N, 6)
     # Alpha can reach the 0.99 cap only for opacities near it (small margin for rounding).
     high = (sample.opacities.detach() > ALPHA_MAX - 1e-3).expand(C, N).reshape(-1)
@@ -122,21 +122,41 @@ def render(
 
 
 def _blur_log_peak(sample: GaussianSample, blurred_conics: Tensor, cam_from_world: Tensor, K: Tensor, W: int, H: int,
-                   near: float, far: float, eps2d: float, backend: str | None) -> Tensor:
+                   near: float, far: float, eps2d: float) -> Tensor:
     """[C,N] log of the peak-height factor sqrt(det Sigma2d / det Sigma2d') of ``sample.position_var``'s blur.
 
     Convolving a 2D Gaussian with another keeps its integral and lowers its peak by the square root of the
     determinant ratio. Both covariances include the screen-space dilation, so a blur far below a pixel
-    changes nothing (a 3D estimate of the same ratio would dim sub-pixel axes for no visible blur).
-    det Sigma2d = 1 / det(conic), so the ratio is det(conic') / det(conic). At most 0: blurring never
-    brightens.
+    changes nothing (a 3D estimate of the same ratio would dim sub-pixel axes for no visible blur). At most 0:
+    blurring never brightens.
+
+    The sharp covariance needs no second projection: the blur is isotropic in 3D and the camera's rotation keeps
+    it so, hence Sigma2d' = J R (Sigma + v I) R^T J^T + eps I = Sigma2d + v J J^T, with J the projection's
+    Jacobian at the mean (the same clamped view angle as ``project_gaussians``). Sigma2d' is the inverse of the
+    blurred conic; the 2x2 algebra runs in float64, since Sigma2d' - v J J^T cancels when the blur dominates.
     """
-    sharp = project_gaussians(sample.means, sample.quats, sample.scales, sample.opacities, cam_from_world, K, W, H,
-                              near, far, eps2d, backend=backend)
-    tiny = torch.finfo(blurred_conics.dtype).tiny
-
-    def log_det(conics: Tensor) -> Tensor:  # [C,N]
-        a, b, c = conics.unbind(-1)
-        return torch.log((a * c - b * b).clamp_min(tiny))
-
-    return (0.5 * (log_det(blurred_conics) - log_det(sharp.conics))).clamp_max(0.0)
+    f64 = torch.float64
+    R, t = cam_from_world[:, :3, :3].to(f64), cam_from_world[:, :3, 3].to(f64)
+    p = torch.einsum("cij,nj->cni", R, sample.means.to(f64)) + t[:, None, :]  # [C,N,3]
+    x, y, z = p.unbind(-1)
+    inside = (z > near) & (z < far)
+    zs = torch.where(inside, z, torch.ones_like(z))
+    K64 = K.to(f64)
+    fx, fy = K64[:, 0, 0, None], K64[:, 1, 1, None]  # [C,1]
+    cx, cy = K64[:, 0, 2, None], K64[:, 1, 2, None]
+    u, v = x / zs, y / zs
+    mx, my = 0.15 * W / fx, 0.15 * H / fy
+    uc = torch.maximum(torch.minimum(u, (W - cx) / fx + mx), -cx / fx - mx)
+    vc = torch.maximum(torch.minimum(v, (H - cy) / fy + my), -cy / fy - my)
+    iz2 = 1.0 / (zs * zs)
+    jxx, jxy, jyy = fx * fx * iz2 * (1 + uc * uc), fx * fy * iz2 * uc * vc, fy * fy * iz2 * (1 + vc * vc)  # J J^T
+    a, b, c = blurred_conics.to(f64).unbind(-1)
+    det_conic = a * c - b * b  # 1 / det Sigma2d'
+    ok = inside & (det_conic > torch.finfo(blurred_conics.dtype).tiny)
+    dc = torch.where(ok, det_conic, torch.ones_like(det_conic))  # culled: harmless values, no inf in the graph
+    var = sample.position_var.to(f64).clamp_min(0.0)[None, :]  # [1,N]
+    sxx, sxy, syy = c / dc - var * jxx, -b / dc - var * jxy, a / dc - var * jyy  # Sigma2d (sharp)
+    # Sigma2d >= eps I, so det >= eps^2: the clamp only catches the cancellation's rounding
+    det_sharp = (sxx * syy - sxy * sxy).clamp_min(eps2d * eps2d)
+    log_ratio = (0.5 * (torch.log(det_sharp) + torch.log(dc))).clamp_max(0.0)
+    return torch.where(ok, log_ratio, torch.zeros_like(log_ratio)).to(blurred_conics.dtype)
