@@ -164,6 +164,17 @@ class TestAuto:
         (note,) = [x for x in result.notes if x.startswith("--auto")]
         assert "nothing was removed" in note and "70 %" in note and "--tolerance-db" in note
 
+    def test_auto_alone_measures_no_ratio_past_the_first_failure(self, tiny_run_path):  # noqa: F811
+        """The decision never looks past the first ratio that fails, so ``--auto`` stops measuring there; with
+        ``--sweep`` the whole curve is measured and the choice is the same."""
+        common = dict(auto=True, tolerance_db=0.0, sweep_ratios=[1.0, 0.5, 0.3, 0.2], dry_run=True, **FAST)
+        alone = prune.run(tiny_run_path, None, PruneConfig(**common), device=CPU)
+        full = prune.run(tiny_run_path, None, PruneConfig(**common, sweep=True), device=CPU)
+        assert [p.keep_ratio for p in full.sweep.points] == [1.0, 0.5, 0.3, 0.2]
+        assert [p.keep_ratio for p in alone.sweep.points] == [1.0, 0.5]  # removing half fails a zero tolerance
+        assert alone.keep_ratio == full.keep_ratio == 1.0
+        assert alone.sweep.points[1].score.psnr == full.sweep.points[1].score.psnr
+
     def test_cli_tolerance_option(self, tiny_run_path, tmp_path):  # noqa: F811
         res = runner.invoke(app, ["prune", str(tiny_run_path), "--auto", "--tolerance-db", "0", "--dry-run",
                                   "--set", "sweep_ratios=[1.0, 0.3]", "--set", "num_samples=2",

@@ -30,6 +30,11 @@ def random_keep(n: int, n_remove: int, seed: int) -> Tensor:
     return random_mask(n, n_remove, torch.Generator().manual_seed(seed))
 
 
+def _fails(metrics: PruneMetrics, unpruned_psnr: float | None, tolerance_db: float) -> bool:
+    """Whether a removal's held-out PSNR is unknown or more than ``tolerance_db`` below the unpruned one's."""
+    return unpruned_psnr is None or metrics.psnr is None or metrics.psnr < unpruned_psnr - tolerance_db
+
+
 def largest_removal_within(points: Sequence[SweepPoint], unpruned_psnr: float | None,
                            tolerance_db: float) -> ToleranceChoice | None:
     """The strongest removal, walking ``points`` by descending keep ratio, before the first whose
@@ -40,7 +45,7 @@ def largest_removal_within(points: Sequence[SweepPoint], unpruned_psnr: float | 
     for p in points:
         if p.num_removed == 0:
             continue
-        if p.score.psnr is not None and p.score.psnr >= unpruned_psnr - tolerance_db:
+        if not _fails(p.score, unpruned_psnr, tolerance_db):
             within = p
         else:
             break  # stop at the first failure: a larger removal that passes again is noise, not a plateau
@@ -52,13 +57,17 @@ def largest_removal_within(points: Sequence[SweepPoint], unpruned_psnr: float | 
 
 def keep_ratio_sweep(model: GaussianModel, score: Tensor, carriers: Tensor, ratios: Sequence[float],
                      measure: Measure, *, unpruned: PruneMetrics, seed: int, tolerance_db: float, score_name: str,
-                     split: str, on_point: Callable[[SweepPoint], None] | None = None) -> PruneSweep:
+                     split: str, on_point: Callable[[SweepPoint], None] | None = None,
+                     stop_at_first_failure: bool = False) -> PruneSweep:
     """Measure the score's removal and random removal of as many Gaussians at each keep ratio.
 
     Args:
         score: [N] per-Gaussian score (higher = removed first); carriers: [N] bool, the removable ones.
         ratios: keep ratios to try; 1.0 is always added; they are walked in descending order.
         unpruned: the metrics of ``model`` itself (measured once by the caller).
+        stop_at_first_failure: stop after the first ratio whose held-out PSNR falls more than ``tolerance_db``
+            below the unpruned model's: ``largest_removal_within`` never looks past it, so ``--auto`` alone
+            needs no more (``--sweep`` measures the whole curve).
     """
     n = len(model)
     ordered = sorted(set(float(r) for r in ratios) | {1.0}, reverse=True)
@@ -77,6 +86,8 @@ def keep_ratio_sweep(model: GaussianModel, score: Tensor, carriers: Tensor, rati
         points.append(point)
         if on_point is not None:
             on_point(point)
+        if stop_at_first_failure and removed and _fails(by_score, unpruned.psnr, tolerance_db):
+            break
     return PruneSweep(ratios=ordered, score=score_name, split=split, unpruned=unpruned, points=points,
                       tolerance_db=tolerance_db,
                       largest_removal_within_tolerance=largest_removal_within(points, unpruned.psnr, tolerance_db))

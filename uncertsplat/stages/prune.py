@@ -28,7 +28,8 @@ auto) measures the curve and writes no model either.
 Which Gaussians a score may remove: only posterior carriers (see ``uncertainty.scores``), so a keep ratio
 below the fraction of non-carriers is reached only as far as the carriers allow (``keep_ratio_achieved``
 says how far). ``--auto`` walks the sweep ratios from the largest down and stops at the first whose
-held-out PSNR falls more than ``tolerance_db`` below the unpruned model's (the last one before it wins).
+held-out PSNR falls more than ``tolerance_db`` below the unpruned model's (the last one before it wins); without
+``--sweep`` it measures no ratio past that one.
 """
 
 from __future__ import annotations
@@ -306,7 +307,8 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
                           f"(random {_num(p.random.psnr)})")
 
         sweep = keep_ratio_sweep(model, score, carriers, cfg.sweep_ratios, measure, unpruned=before, seed=cfg.seed,
-                                 tolerance_db=cfg.tolerance_db, score_name=score_name, split=split, on_point=show)
+                                 tolerance_db=cfg.tolerance_db, score_name=score_name, split=split, on_point=show,
+                                 stop_at_first_failure=not cfg.sweep)
 
     # ---- the chosen mask
     threshold = cfg.threshold
