@@ -161,3 +161,11 @@ def test_cli_with_a_pose_file(subset_run, tmp_path):
     res = CliRunner().invoke(app, ["select-views", str(subset_run), "--candidates", str(poses), "--score",
                                    "coverage", "-o", str(tmp_path / "out2"), "--device", "cpu"])
     assert res.exit_code == 2 and "line 2" in res.output and "8 fields" in res.output
+
+
+def test_the_default_score_is_fisher(subset_run, tmp_path):
+    """The uncertainty policy that did best in the active-learning loop (BENCHMARKS.md) is what a plain call uses."""
+    res = CliRunner().invoke(app, ["select-views", str(subset_run), "-o", str(tmp_path / "out"), "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    sel = Selection.read(tmp_path / "out" / "selection.json")
+    assert sel.score == "fisher" and len(sel.chosen) == 1 and sel.chosen[0].name not in sel.used
