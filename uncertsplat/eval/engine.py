@@ -60,7 +60,7 @@ class EvalSettings(Protocol):
     residual_scale: str | float
     """"fit" (``fit_noise_scale``) or a factor for the pixel noise."""
     residual_leverage: bool
-    """Inflate each Gaussian's noise to a new view's (``ResidualField.out_of_sample``)."""
+    """Divide each Gaussian's noise by (1 - its leverage) (``ResidualField.out_of_sample``)."""
 
 
 @dataclass(frozen=True)
