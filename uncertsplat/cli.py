@@ -271,7 +271,7 @@ def select_views(
         help="unused (the scene's images not used yet), around[:N] (viewpoints near the training cameras) or a "
              "file of lines 'NAME QW QX QY QZ TX TY TZ'.")] = None,
     num_views: Annotated[int | None, typer.Option("-n", "--num-views", help="How many views to choose.")] = None,
-    score: Annotated[str | None, typer.Option(help="variance, unseen, fisher, coverage or random.")] = None,
+    score: Annotated[str | None, typer.Option(help="fisher (default), variance, unseen, coverage or random.")] = None,
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default RUN/select).")] = None,
     device: DeviceOpt = "auto",
     config: ConfigOpt = None,
