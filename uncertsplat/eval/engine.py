@@ -209,7 +209,7 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
     if cfg.residual_leverage:
         # the scale above is fitted to training residuals; the leverage gives the noise behind them
         k = 11 + 3 * (rep.sh_degree + 1) ** 2
-        field = field.out_of_sample(k, view_factor=len(list(train_indices)) / len(chosen))
+        field = field.out_of_sample(k, view_factor=len(train_indices) / len(chosen))
     return field
 
 

@@ -52,6 +52,16 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     return R.view(*quats.shape[:-1], 3, 3)
 
 
+def clamped_view_angle(u: Tensor, v: Tensor, fx: Tensor, fy: Tensor, cx: Tensor, cy: Tensor, width: int,
+                       height: int) -> tuple[Tensor, Tensor]:
+    """The normalised image coordinates ``u = x / z``, ``v = y / z`` [C,N] clamped to 15 % of the image beyond its
+    edges (3DGS's 1.3 x tan(fov / 2)): where the projection's Jacobian is evaluated (``fx`` etc.: [C,1])."""
+    mx, my = 0.15 * width / fx, 0.15 * height / fy
+    uc = torch.maximum(torch.minimum(u, (width - cx) / fx + mx), -cx / fx - mx)
+    vc = torch.maximum(torch.minimum(v, (height - cy) / fy + my), -cy / fy - my)
+    return uc, vc
+
+
 def project_gaussians(
     means: Tensor,  # [N,3]
     quats: Tensor,  # [N,4]
@@ -92,10 +102,7 @@ def project_gaussians(
     means2d = torch.stack([fx * u + cx, fy * v + cy], dim=-1)  # [C,N,2]
 
     # Jacobian of the perspective map, evaluated with the view angle clamped (3DGS: 1.3 x tan(fov/2)).
-    mx = 0.15 * width / fx
-    my = 0.15 * height / fy
-    uc = torch.maximum(torch.minimum(u, (width - cx) / fx + mx), -cx / fx - mx)
-    vc = torch.maximum(torch.minimum(v, (height - cy) / fy + my), -cy / fy - my)
+    uc, vc = clamped_view_angle(u, v, fx, fy, cx, cy, width, height)
     zero = torch.zeros_like(u)
     J = torch.stack(
         [torch.stack([fx / zs, zero, -fx * uc / zs], -1), torch.stack([zero, fy / zs, -fy * vc / zs], -1)],

@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from ..types import Cameras, GaussianSample, RenderOutput
-from .project import ALPHA_MAX, project_gaussians
+from .project import ALPHA_MAX, clamped_view_angle, project_gaussians
 from .rasterize import DEFAULT_BLOCK_ELEMENTS, bin_gaussians, composite, tiles_to_image
 from .sh import sh_colors
 
@@ -144,10 +144,7 @@ def _blur_log_peak(sample: GaussianSample, blurred_conics: Tensor, cam_from_worl
     K64 = K.to(f64)
     fx, fy = K64[:, 0, 0, None], K64[:, 1, 1, None]  # [C,1]
     cx, cy = K64[:, 0, 2, None], K64[:, 1, 2, None]
-    u, v = x / zs, y / zs
-    mx, my = 0.15 * W / fx, 0.15 * H / fy
-    uc = torch.maximum(torch.minimum(u, (W - cx) / fx + mx), -cx / fx - mx)
-    vc = torch.maximum(torch.minimum(v, (H - cy) / fy + my), -cy / fy - my)
+    uc, vc = clamped_view_angle(x / zs, y / zs, fx, fy, cx, cy, W, H)
     iz2 = 1.0 / (zs * zs)
     jxx, jxy, jyy = fx * fx * iz2 * (1 + uc * uc), fx * fy * iz2 * uc * vc, fy * fy * iz2 * (1 + vc * vc)  # J J^T
     a, b, c = blurred_conics.to(f64).unbind(-1)

@@ -34,11 +34,13 @@ from uncertsplat.schemas.scene import ViewsAdded
 from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
 
-# What a run trained with when its config.json predates a key (every dump has the key since), per config section:
-# variational.posterior, before the informed posterior existed: SGD tables; variational.train_on, before it
-# existed: an informed run fitted its Gaussians to posterior samples; densify.growth_min_gain_db, before the growth
-# test: densification grew the model up to its budget.
-_KEYS_BEFORE = {"variational": {"posterior": "sgd", "train_on": "samples"},
+# What a run trained with when its config.json predates a key (every dump has the key since), per config section;
+# a callable gets the stored section: variational.posterior, before the informed posterior existed: SGD tables;
+# variational.train_on, before it existed: an informed run fitted its Gaussians to posterior samples;
+# variational.refresh_probes, before it existed: every update used `probes`; densify.growth_min_gain_db, before the
+# growth test: densification grew the model up to its budget.
+_KEYS_BEFORE = {"variational": {"posterior": "sgd", "train_on": "samples",
+                                "refresh_probes": lambda section: section.get("probes", 2)},
                 "densify": {"growth_min_gain_db": 0.0}}
 
 
@@ -145,9 +147,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             for section, before in _KEYS_BEFORE.items():
                 if isinstance(stored.get(section), dict):
                     for key, value in before.items():
-                        stored[section].setdefault(key, value)
-            if isinstance(stored.get("variational"), dict):  # every update used `probes` before refresh_probes
-                stored["variational"].setdefault("refresh_probes", stored["variational"].get("probes", 2))
+                        if key not in stored[section]:
+                            stored[section][key] = value(stored[section]) if callable(value) else value
             diff = [d for d in _differences(stored, json.loads(cfg.model_dump_json()))
                     if not (d == "iterations" and extend_to is not None)]
             if diff:

@@ -399,9 +399,9 @@ class Trainer:
             cams, images = cams[pick], images[pick]
         # one render per view: the noise (RMS residual), the curvature, and at the last update with
         # ``sandwich`` the views' disagreement (at every update it cost 2 dB: the config's docstring)
+        probes = vcfg.probes if last else vcfg.refresh_probes
         curv = curvature(params, cams, images, self.render, names=("means", "scales", "opacities"),
-                         generator=self.gen_noise, sh_degree=degree,
-                         probes=vcfg.probes if last else vcfg.refresh_probes,
+                         generator=self.gen_noise, sh_degree=degree, probes=probes,
                          disagreement=vcfg.sandwich and last)
         noise, fisher, disagreement = curv.noise_std, curv.fisher, curv.disagreement
         if n < t:
@@ -410,8 +410,8 @@ class Trainer:
                 disagreement = {k: v * (t / n) for k, v in disagreement.items()}
         record = informed_tables(self.model, fisher, self.prior, extent=self.extent,
                                  position_prior_scale=vcfg.position_prior_scale, disagreement=disagreement)
-        record = {"step": self.step, "views": n, "probes": vcfg.probes if last else vcfg.refresh_probes,
-                  "noise_std": noise, **record, "seconds": time.perf_counter() - t0}
+        record = {"step": self.step, "views": n, "probes": probes, "noise_std": noise, **record,
+                  "seconds": time.perf_counter() - t0}
         self.posterior_updates.append(record)
         return record
 
