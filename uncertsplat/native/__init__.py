@@ -32,14 +32,16 @@ from pathlib import Path
 
 import torch
 
-INTERFACE_VERSION = 9
+INTERFACE_VERSION = 10
 CSRC = Path(__file__).with_name("csrc")
 SOURCES = (CSRC / "composite.cpp", CSRC / "losses.cpp", CSRC / "project.cpp", CSRC / "optim.cpp")
 HEADERS = (CSRC / "vmath.h", CSRC / "parallel.h")
 # -fno-trapping-math lets the compiler vectorise the float->int conversion inside the exp polynomial;
 # -fopenmp-simd honours the `omp simd` hints without linking an OpenMP runtime (torch brings its own).
+# -Wno-psabi: GCC notes that vectors wider than the target's registers are passed differently than by
+# older GCCs; these are inlined internal helpers, never part of the library's C interface.
 BASE_FLAGS = ("-O3", "-std=c++17", "-fPIC", "-shared", "-pthread", "-fopenmp-simd", "-fno-trapping-math",
-              "-fno-math-errno")
+              "-fno-math-errno", "-Wno-psabi")
 ARCH_FLAGS = ("-march=native",)
 
 _state: dict = {}
@@ -109,7 +111,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     head = [i64, i64, i64, i64, i64, f64, f64, f64, i64]
     for suffix in ("f32", "f64"):
         fwd = getattr(lib, f"us_forward_{suffix}")
-        fwd.argtypes = head + [ptr] * 8
+        fwd.argtypes = head + [i64] + [ptr] * 8
         fwd.restype = ctypes.c_int
         bwd = getattr(lib, f"us_backward_{suffix}")
         bwd.argtypes = head + [i64, i64] + [ptr] * 10

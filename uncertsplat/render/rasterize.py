@@ -471,7 +471,7 @@ class _CompositeNative(torch.autograd.Function):
         t_final = gp.new_empty(T, P)
         last = torch.empty(T, P, dtype=torch.int32, device=gp.device)
         fn = lib.us_forward_f64 if gp.dtype == torch.float64 else lib.us_forward_f32
-        rc = fn(*_native_head(bins, F), gp.data_ptr(), ft.data_ptr(), bins.pair_gauss.data_ptr(),
+        rc = fn(*_native_head(bins, F), gp.shape[0], gp.data_ptr(), ft.data_ptr(), bins.pair_gauss.data_ptr(),
                 bins.tile_start.data_ptr(), bins.tile_count.data_ptr(), out.data_ptr(), t_final.data_ptr(),
                 last.data_ptr())
         if rc != 0:

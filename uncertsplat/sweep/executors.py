@@ -12,8 +12,8 @@ records are kept as failed with the last error. The other jobs go on meanwhile.
   ``ray://...``) joins a running cluster, whose workers must reach the scene and the output folder at the same
   paths (a shared filesystem). Ray is an optional dependency (``pip install 'uncertsplat[ray]'``).
 
-Ctrl-C cancels what has not finished (Ray tasks are cancelled, the pool's workers stopped) and leaves the
-finished records in ``sweep.jsonl``.
+Ctrl-C cancels what has not finished (the local Ray instance is shut down, or the tasks on a joined cluster
+cancelled; the pool's workers stopped) and leaves the finished records in ``sweep.jsonl``.
 """
 
 from __future__ import annotations
@@ -170,8 +170,13 @@ def run_ray(todo: list[dict], *, address: str | None, cpus_per_job: float, gpus_
                     recs = failed_records(job, f"{type(err).__name__}: {str(err)[:2000]}")
                 _settle(job, recs, attempts[job["job_id"]], retries, submit, on_records)
     except KeyboardInterrupt:
-        for ref in pending:
-            ray.cancel(ref, force=True)
+        # A local instance of our own is shut down below, which ends its workers. Cancelling their tasks first
+        # races with tasks that are just finishing: Ray's core worker then aborts the process ("Tried to
+        # complete task that was not pending"), so the user gets a crash instead of a clean stop. On a
+        # cluster we joined, the tasks must be cancelled, or they would run on.
+        if not (started_here and address is None):
+            for ref in pending:
+                ray.cancel(ref, force=True)
         raise
     finally:
         if started_here:

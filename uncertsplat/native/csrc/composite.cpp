@@ -23,33 +23,27 @@
 // Gaussians behind a stopped ray get exactly zero gradient. Gradients are written per pair (one thread
 // owns a tile), then summed per Gaussian in pair order (deterministic for any number of threads).
 //
-// Vectorisation: the pixel loop of a tile is the inner loop (SIMD across pixels, like a warp), with
-// branch-free selects; exp is vmath.h's polynomial (float), which the compiler vectorises.
+// Vectorisation: a tile is cut into slices of LANES consecutive pixels (one SIMD register of floats:
+// two rows of an 8 x 8 tile with AVX-512, one with AVX2). Forward runs slice by slice over the entries
+// whose rows reach the slice (per-slice lists, built without branches), with the slice's state in
+// registers and the alphas of a few entries computed ahead (their exp polynomials overlap); backward
+// runs entry by entry over the slices its rows reach. Selects are branch-free; exp is vmath.h's
+// polynomial (float).
 
 #include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <limits>
+#include <type_traits>
+#include <utility>
 #include <vector>
 
 #include "parallel.h"
 #include "vmath.h"
 
 namespace {
-
-template <typename S>
-inline S expo(S x);
-
-template <>
-inline float expo<float>(float x) {
-    return uskern::vexp(x);
-}
-
-template <>
-inline double expo<double>(double x) {
-    return std::exp(x);
-}
 
 struct Params {
     int64_t num_tiles, tiles_x, tiles_per_cam, tile_size, num_threads;
@@ -77,178 +71,358 @@ void for_each_tile(int64_t num_tiles, int64_t workers, int64_t chunk, Fn fn) {
 
 constexpr int64_t CHUNK = 4;
 
+// The lanes of one SIMD register of floats (16 with AVX-512, 8 with AVX, else 4): a slice of that many
+// consecutive pixels of a tile (row-major; e.g. two rows of an 8 x 8 tile with AVX-512). GCC/Clang
+// vector extensions rather than intrinsics, so the same code builds for any target; vectors wider than
+// the target's registers are avoided (GCC lowers some of their operations lane by lane).
+#if defined(__AVX512F__)
+constexpr int LANES = 16;
+#elif defined(__AVX__)
+constexpr int LANES = 8;
+#else
+constexpr int LANES = 4;
+#endif
+
 template <typename S>
-void pixel_centres(const Params& prm, int64_t tile, S* px, S* py) {
-    const int64_t ts = prm.tile_size;
-    const int64_t local = tile % prm.tiles_per_cam;
-    const int64_t tx = local % prm.tiles_x, ty = local / prm.tiles_x;
-    for (int64_t r = 0; r < ts; ++r)
-        for (int64_t c = 0; c < ts; ++c) {
-            px[r * ts + c] = static_cast<S>(tx * ts + c) + S(0.5);
-            py[r * ts + c] = static_cast<S>(ty * ts + r) + S(0.5);
-        }
+struct Lanes {
+    typedef S V __attribute__((vector_size(LANES * sizeof(S))));
+    using I = std::conditional_t<sizeof(S) == 4, int32_t, int64_t>;
+    typedef I M __attribute__((vector_size(LANES * sizeof(S))));  // comparison results: all ones or 0
+};
+
+template <typename V>
+inline V vexp_lanes(V x);
+
+template <>
+inline Lanes<float>::V vexp_lanes<Lanes<float>::V>(Lanes<float>::V x) {
+    return uskern::vexp_vec<Lanes<float>::V, Lanes<float>::M>(x);
 }
 
+template <>
+inline Lanes<double>::V vexp_lanes<Lanes<double>::V>(Lanes<double>::V x) {
+    for (int l = 0; l < LANES; ++l) x[l] = std::exp(x[l]);
+    return x;
+}
+
+template <typename M>
+inline bool any_lane(M m) {
+    uint64_t words[sizeof(M) / 8];
+    std::memcpy(words, &m, sizeof(M));
+    uint64_t any = 0;
+    for (uint64_t w : words) any |= w;
+    return any != 0;
+}
+
+// Sum of the lanes of a vector, as a tree of half-width adds (log2 of the lane count steps).
+template <typename S, int N, typename V>
+inline S hsum_tree(V v) {
+    if constexpr (N == 1) {
+        return v[0];
+    } else {
+        typedef S H __attribute__((vector_size(N / 2 * sizeof(S))));
+        H lo, hi;
+        std::memcpy(&lo, &v, sizeof(H));
+        std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof(H), sizeof(H));
+        return hsum_tree<S, N / 2>(lo + hi);
+    }
+}
+
+template <typename V>
+inline auto hsum(V v) {
+    using S = std::remove_reference_t<decltype(v[0])>;
+    return hsum_tree<S, LANES>(v);
+}
+
+// Calls fn(std::integral_constant<int, f>) for f = 0 .. F - 1. Per-feature lane arrays indexed only by
+// these constants stay in registers (a runtime loop index makes GCC keep the array in memory).
+template <typename Fn, int... I>
+inline void each_feature_impl(Fn&& fn, std::integer_sequence<int, I...>) {
+    (fn(std::integral_constant<int, I>{}), ...);
+}
+
+template <int F, typename Fn>
+inline void each_feature(Fn&& fn) {
+    each_feature_impl(fn, std::make_integer_sequence<int, F>{});
+}
+
+// Per-Gaussian records, built once per call: (mean x, mean y, conic a, b, c, log opacity, rlo, rhi) and
+// the F features. [rlo, rhi] are the first and last pixel rows whose centres lie in the bounding box
+// (with a margin) of the ellipse where alpha can reach alpha_min; empty (rlo > rhi) when it never does,
+// or for NaN parameters (whose NaN alpha would be skipped anyway); every row for a degenerate conic.
+// A slice outside those rows skips the Gaussian, which changes no result (alpha < alpha_min is skipped).
+constexpr int PK = 8;
+
+template <typename S>
+void gaussian_records(const Params& prm, int64_t G, int64_t F, const S* gp, const S* feat, S* rec) {
+    const S lmin = std::log(static_cast<S>(prm.alpha_min));
+    const S big = S(1 << 24);  // rows are exact integers in S up to here
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(prm.num_threads, G / 16384 + 1));
+    uskern::run_workers(workers, [&](int64_t w) {
+        for (int64_t g = G * w / workers; g < G * (w + 1) / workers; ++g) {
+            const S* q = gp + g * 6;
+            S* e = rec + g * (PK + F);
+            for (int k = 0; k < 6; ++k) e[k] = q[k];
+            const S a = q[2], b = q[3], c = q[4];
+            const S thr = S(2) * (q[5] - lmin);  // alpha >= alpha_min  <=>  conic form <= thr
+            const S det = a * c - b * b;
+            S rlo = 1, rhi = 0;
+            if (thr >= S(0)) {
+                rlo = -1, rhi = big;
+                if (det > S(0) && a > S(0) && c > S(0) && std::isfinite(det) && std::isfinite(q[1])) {
+                    // |dy| <= sqrt(thr * Sigma_yy), Sigma = conic^-1, so Sigma_yy = a / det
+                    const S ey = std::sqrt(thr * (a / det) * S(1.002)) + S(0.01);
+                    rlo = std::min(std::max(std::ceil(q[1] - ey - S(0.5)), S(-1)), big);
+                    rhi = std::min(std::max(std::floor(q[1] + ey - S(0.5)), S(-1)), big);
+                }
+            }
+            e[6] = rlo;
+            e[7] = rhi;
+            for (int64_t f = 0; f < F; ++f) e[PK + f] = feat[g * F + f];
+        }
+    });
+}
+
+// The lanes of the tiles of one call: slice s holds pixels p = LANES s + lane of a tile, at offsets
+// (col, row) from the tile's first pixel centre; padding lanes (p >= P) are inactive.
+template <typename S>
+struct LaneGrid {
+    using V = typename Lanes<S>::V;
+    using M = typename Lanes<S>::M;
+    int64_t ts, P, NS;
+    std::vector<V> col, row;
+    std::vector<M> active;
+
+    explicit LaneGrid(int64_t tile_size) : ts(tile_size), P(ts * ts), NS((P + LANES - 1) / LANES) {
+        col.resize(NS), row.resize(NS), active.resize(NS);
+        for (int64_t s = 0; s < NS; ++s)
+            for (int l = 0; l < LANES; ++l) {
+                const int64_t p = s * LANES + l, q = p < P ? p : P - 1;
+                col[s][l] = static_cast<S>(q % ts);
+                row[s][l] = static_cast<S>(q / ts);
+                active[s][l] = p < P ? -1 : 0;
+            }
+    }
+};
+
+// One tile of a LaneGrid: its first pixel centre and the slices a record's rows fall in.
+template <typename S>
+struct TileLanes {
+    const LaneGrid<S>& grid;
+    int64_t row0;  // first pixel row of the tile
+    S x0, y0;      // centre of its first pixel
+
+    TileLanes(const LaneGrid<S>& g, const Params& prm, int64_t tile) : grid(g) {
+        const int64_t local = tile % prm.tiles_per_cam;
+        row0 = local / prm.tiles_x * g.ts;
+        x0 = static_cast<S>(local % prm.tiles_x * g.ts) + S(0.5);
+        y0 = static_cast<S>(row0) + S(0.5);
+    }
+
+    typename Lanes<S>::V px(int64_t s) const { return grid.col[s] + x0; }
+    typename Lanes<S>::V py(int64_t s) const { return grid.row[s] + y0; }
+
+    // The slices [s0, s1] holding a row of a record's [rlo, rhi] (s0 > s1 when none).
+    void slices(const S* e, int64_t& s0, int64_t& s1) const {
+        const int64_t r0 = std::max<int64_t>(static_cast<int64_t>(e[6]) - row0, 0);
+        const int64_t r1 = std::min<int64_t>(static_cast<int64_t>(e[7]) - row0, grid.ts - 1);
+        s0 = r0 * grid.ts / LANES;
+        s1 = r0 > r1 ? s0 - 1 : (r1 * grid.ts + grid.ts - 1) / LANES;
+    }
+};
+
+// Per-thread buffers of the backward (vectors of lanes: aligned for their type).
+template <typename S>
+struct SliceScratch {
+    std::vector<typename Lanes<S>::V> v;
+    std::vector<typename Lanes<S>::M> m;
+};
+
+// The exponent of alpha = exp(power) at pixel offsets (dx, dy); forward and backward share it so that
+// their skip decisions agree exactly.
+template <typename V, typename S>
+inline V pixel_power(V dx, V dy, S a, S b, S c, S lo) {
+    return lo - S(0.5) * (a * dx * dx + c * dy * dy) - b * dx * dy;
+}
+
+// Forward: each 16-pixel slice walks the entries that can reach it, front to back, with its state
+// (transmittance, accumulated features, last added entry, live mask) in registers, and stops as soon
+// as every ray of the slice has stopped. The per-slice lists are built without branches, so skipping
+// costs no mispredicted jumps.
 template <typename S, int F>
-void forward_tile(const Params& prm, int64_t tile, const S* gp, const S* feat, const int64_t* pair_gauss,
+void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, const S* rec, const int64_t* pair_gauss,
                   const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final, int32_t* last,
-                  std::vector<S>& scratch) {
-    const int64_t P = prm.tile_size * prm.tile_size;
-    scratch.assign(P * (3 + F + 1), S(0));
-    S* px = scratch.data();
-    S* py = px + P;
-    S* T = py + P;
-    S* acc = T + P;  // [F][P]
-    S* live = acc + F * P;
-    int32_t* lst = last + tile * P;
-    pixel_centres(prm, tile, px, py);
-    for (int64_t p = 0; p < P; ++p) {
-        T[p] = S(1);
-        live[p] = S(1);
-        lst[p] = 0;
+                  std::vector<int64_t>& scratch) {
+    using V = typename Lanes<S>::V;
+    using M = typename Lanes<S>::M;
+    using I = typename Lanes<S>::I;
+    const TileLanes<S> tl(grid, prm, tile);
+    const int64_t P = grid.P, NS = grid.NS;
+    const int64_t start = tile_start[tile], count = tile_count[tile];
+    scratch.resize(static_cast<size_t>(NS * count + NS) + 1);
+    int64_t* nlist = scratch.data();      // [NS] entries per slice
+    int64_t* lists = nlist + NS;          // [NS][count] list positions j, per slice
+    std::fill(nlist, nlist + NS, int64_t{0});
+    for (int64_t j = 0; j < count; ++j) {
+        int64_t s0, s1;
+        tl.slices(rec + pair_gauss[start + j] * (PK + F), s0, s1);
+        for (int64_t s = 0; s < NS; ++s) {
+            lists[s * count + nlist[s]] = j;
+            nlist[s] += (s >= s0) & (s <= s1);
+        }
     }
     const S amin = static_cast<S>(prm.alpha_min), amax = static_cast<S>(prm.alpha_max);
     const S tmin = static_cast<S>(prm.t_min);
-    const int64_t start = tile_start[tile], count = tile_count[tile];
-    for (int64_t j = 0; j < count; ++j) {
-        const int64_t g = pair_gauss[start + j];
-        const S* q = gp + g * 6;
-        const S mx = q[0], my = q[1], a = q[2], b = q[3], c = q[4], lo = q[5];
-        S fv[F];
-        for (int f = 0; f < F; ++f) fv[f] = feat[g * F + f];
-        const int32_t jn = static_cast<int32_t>(j + 1);
-#pragma omp simd
-        for (int64_t p = 0; p < P; ++p) {
-            const S dx = px[p] - mx, dy = py[p] - my;
-            const S power = lo - S(0.5) * (a * dx * dx + c * dy * dy) - b * dx * dy;
-            S alpha = expo<S>(power);
-            alpha = alpha < amax ? alpha : amax;
-            const S Tp = T[p];
-            const S Tn = Tp * (S(1) - alpha);
-            const bool use = (alpha >= amin) & (live[p] > S(0));
-            const bool stop = use & (Tn < tmin);
-            const bool add = use & !stop;
-            const S w = add ? alpha * Tp : S(0);
-            for (int f = 0; f < F; ++f) acc[f * P + p] += w * fv[f];
-            T[p] = add ? Tn : Tp;
-            lst[p] = add ? jn : lst[p];
-            live[p] = stop ? S(0) : live[p];
-        }
-        if ((j & 7) == 7) {  // every 8 entries: stop when every ray of the tile has stopped
-            S any = 0;
-            for (int64_t p = 0; p < P; ++p) any += live[p];
-            if (any == S(0)) break;
-        }
-    }
     S* o = out + tile * P * F;
-    for (int64_t p = 0; p < P; ++p) {
-        for (int f = 0; f < F; ++f) o[p * F + f] = acc[f * P + p];
-        t_final[tile * P + p] = T[p];
+    for (int64_t s = 0; s < NS; ++s) {
+        const V px = tl.px(s), py = tl.py(s);
+        const int64_t* sl = lists + s * count;
+        V T = V{} + S(1);
+        V acc[F];
+        each_feature<F>([&](auto f) { acc[f] = V{}; });
+        M lastv = M{};
+        M live = grid.active[s];
+        // Entries in batches of B: their alphas first (independent of each other, so the exp polynomials
+        // overlap), then the compositing, whose transmittance chain is serial.
+        constexpr int64_t B = 4;
+        const int64_t n = nlist[s];
+        for (int64_t k0 = 0; k0 < n; k0 += B) {
+            V alpha[B];
+            const S* eb[B];
+            for (int64_t i = 0; i < B; ++i) {
+                const int64_t k = std::min(k0 + i, n - 1);  // a repeated last entry is masked below
+                eb[i] = rec + pair_gauss[start + sl[k]] * (PK + F);
+                const S* e = eb[i];
+                const V raw = vexp_lanes<V>(pixel_power<V, S>(px - e[0], py - e[1], e[2], e[3], e[4], e[5]));
+                alpha[i] = raw < amax ? raw : amax;
+            }
+            for (int64_t i = 0; i < B && k0 + i < n; ++i) {
+                const S* e = eb[i];
+                const V Tn = T * (S(1) - alpha[i]);
+                const M use = (alpha[i] >= amin) & live;
+                const M stop = use & (Tn < tmin);
+                const M add = use & ~stop;
+                const V w = add ? alpha[i] * T : V{};
+                each_feature<F>([&](auto f) { acc[f] += w * e[PK + f]; });
+                T = add ? Tn : T;
+                lastv = add ? M{} + static_cast<I>(sl[k0 + i] + 1) : lastv;
+                live = stop ? M{} : live;
+            }
+            if ((k0 & 7) == 4 && !any_lane(live)) break;  // every 8 entries: every ray of the slice stopped
+        }
+        for (int l = 0; l < LANES; ++l) {
+            const int64_t p = s * LANES + l;
+            if (p >= P) break;
+            each_feature<F>([&](auto f) { o[p * F + f] = acc[f][l]; });
+            t_final[tile * P + p] = T[l];
+            last[tile * P + p] = static_cast<int32_t>(lastv[l]);
+        }
     }
 }
 
+// Backward: the tile's list back to front from its last added entry; per entry, each slice that can hold
+// it and still has it in front of a last added entry recovers its transmittance T_i = T_{i+1} /
+// (1 - alpha_i) and suffix sum_{k>i} w_k h_k, and adds its pixels' d loss / d power moments and
+// feature weights to lane accumulators in registers (one horizontal sum per entry).
 template <typename S, int F>
-void backward_tile(const Params& prm, int64_t tile, const S* gp, const S* feat, const int64_t* pair_gauss,
+void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, const S* rec, const int64_t* pair_gauss,
                    const int64_t* tile_start, const int64_t* tile_count, const S* t_final, const int32_t* last,
-                   const S* g_out, S* g_pair, std::vector<S>& scratch) {
-    const int64_t P = prm.tile_size * prm.tile_size;
+                   const S* g_out, S* g_pair, SliceScratch<S>& scratch) {
+    using V = typename Lanes<S>::V;
+    using M = typename Lanes<S>::M;
+    using I = typename Lanes<S>::I;
+    const TileLanes<S> tl(grid, prm, tile);
+    const int64_t P = grid.P, NS = grid.NS;
     const int32_t* lst = last + tile * P;
     int32_t maxlast = 0;
     for (int64_t p = 0; p < P; ++p) maxlast = std::max(maxlast, lst[p]);
+    const int64_t start = tile_start[tile], count = tile_count[tile];
     // pairs behind every ray of the tile get exactly zero gradient
-    std::fill(g_pair + (tile_start[tile] + maxlast) * (6 + F),
-              g_pair + (tile_start[tile] + tile_count[tile]) * (6 + F), S(0));
+    std::fill(g_pair + (start + maxlast) * (6 + F), g_pair + (start + count) * (6 + F), S(0));
     if (maxlast == 0) return;
-    scratch.assign(P * (6 + F), S(0));
-    S* px = scratch.data();
-    S* py = px + P;
-    S* T = py + P;
-    S* suf = T + P;
-    S* wbuf = suf + P;
-    S* dbuf = wbuf + P;
-    S* go = dbuf + P;  // [F][P]
-    pixel_centres(prm, tile, px, py);
+    // scratch: per slice T, suffix, d loss / d out [F]; lane integers: last; padding lanes are inert
+    scratch.v.resize(static_cast<size_t>(NS) * (2 + F));
+    scratch.m.resize(static_cast<size_t>(NS));
+    V* T = scratch.v.data();
+    V* suf = T + NS;
+    V* go = suf + NS;  // [F][NS]
+    M* lq = scratch.m.data();
+    std::vector<int32_t> slicemax(static_cast<size_t>(NS), 0);
     const S* gt = g_out + tile * P * F;
-    for (int64_t p = 0; p < P; ++p) {
-        T[p] = t_final[tile * P + p];
-        for (int f = 0; f < F; ++f) go[f * P + p] = gt[p * F + f];
-    }
+    for (int64_t s = 0; s < NS; ++s)
+        for (int l = 0; l < LANES; ++l) {
+            const int64_t p = s * LANES + l;
+            const bool in = p < P;
+            T[s][l] = in ? t_final[tile * P + p] : S(1);
+            suf[s][l] = S(0);
+            lq[s][l] = in ? lst[p] : 0;
+            if (in) slicemax[s] = std::max(slicemax[s], lst[p]);
+            for (int f = 0; f < F; ++f) go[f * NS + s][l] = in ? gt[p * F + f] : S(0);
+        }
     const S amin = static_cast<S>(prm.alpha_min), amax = static_cast<S>(prm.alpha_max);
-    const int64_t start = tile_start[tile];
     for (int64_t j = maxlast - 1; j >= 0; --j) {
-        const int64_t g = pair_gauss[start + j];
-        const S* q = gp + g * 6;
-        const S mx = q[0], my = q[1], a = q[2], b = q[3], c = q[4], lo = q[5];
-        S fv[F];
-        for (int f = 0; f < F; ++f) fv[f] = feat[g * F + f];
-        const int32_t jj = static_cast<int32_t>(j);
-        // Pass 1: per-pixel weight and d loss / d power (and whether any pixel used this Gaussian).
-        S used = 0;
-#pragma omp simd reduction(max : used)
-        for (int64_t p = 0; p < P; ++p) {
-            const S dx = px[p] - mx, dy = py[p] - my;
-            const S power = lo - S(0.5) * (a * dx * dx + c * dy * dy) - b * dx * dy;
-            const S raw = expo<S>(power);
-            const S alpha = raw < amax ? raw : amax;
-            const bool use = (jj < lst[p]) & (alpha >= amin);
-            const S inv = S(1) / (S(1) - alpha);  // alpha <= alpha_max < 1
-            const S Tb = use ? T[p] * inv : T[p];  // transmittance in front of this Gaussian
-            const S w = use ? alpha * Tb : S(0);
-            S h = 0;
-            for (int f = 0; f < F; ++f) h += go[f * P + p] * fv[f];
+        const S* e = rec + pair_gauss[start + j] * (PK + F);
+        const S mx = e[0], my = e[1], a = e[2], b = e[3], c = e[4], lo = e[5];
+        const M jj = M{} + static_cast<I>(j);
+        V m0{}, mx1{}, my1{}, mxx{}, mxy{}, myy{};
+        V gf[F];
+        each_feature<F>([&](auto f) { gf[f] = V{}; });
+        M used{};
+        int64_t s0, s1;
+        tl.slices(e, s0, s1);
+        for (int64_t s = s0; s <= s1; ++s) {
+            if (j >= slicemax[s]) continue;  // every pixel of the slice stopped before this entry
+            const V dx = tl.px(s) - mx, dy = tl.py(s) - my;
+            const V raw = vexp_lanes<V>(pixel_power<V, S>(dx, dy, a, b, c, lo));
+            const V alpha = raw < amax ? raw : amax;
+            const M use = (jj < lq[s]) & (alpha >= amin);
+            const V inv = S(1) / (S(1) - alpha);  // alpha <= alpha_max < 1
+            const V Tb = use ? T[s] * inv : T[s];  // transmittance in front of this Gaussian
+            const V w = use ? alpha * Tb : V{};
+            V h{};
+            each_feature<F>([&](auto f) { h += go[f * NS + s] * e[PK + f]; });
             // d loss / d power = alpha d loss / d alpha = w h - alpha / (1 - alpha) * suffix
-            const S dpow = w * h - (alpha * inv) * suf[p];
-            dbuf[p] = (use & (raw < amax)) ? dpow : S(0);
-            wbuf[p] = w;
-            T[p] = Tb;
-            suf[p] += w * h;
-            used = use ? S(1) : used;
-        }
-        S* row = g_pair + (start + j) * (6 + F);
-        if (used == S(0)) {  // no pixel of the tile took this Gaussian: its gradient here is 0
-            std::fill(row, row + 6 + F, S(0));
-            continue;
-        }
-        // Pass 2: moments of d loss / d power over the tile's pixels, then the chain rule once per pair:
-        // d power / d mean = (a dx + b dy, b dx + c dy), d power / d(a, b, c) = -(dx^2 / 2, dx dy, dy^2 / 2).
-        S m0 = 0, mx1 = 0, my1 = 0, mxx = 0, mxy = 0, myy = 0;
-#pragma omp simd reduction(+ : m0, mx1, my1, mxx, mxy, myy)
-        for (int64_t p = 0; p < P; ++p) {
-            const S dx = px[p] - mx, dy = py[p] - my, d = dbuf[p];
-            const S ddx = d * dx, ddy = d * dy;
+            const V dpow = w * h - (alpha * inv) * suf[s];
+            const V d = (use & (raw < amax)) ? dpow : V{};
+            suf[s] += w * h;
+            T[s] = Tb;
+            used |= use;
+            // moments of d loss / d power: d power / d mean = (a dx + b dy, b dx + c dy),
+            // d power / d(a, b, c) = -(dx^2 / 2, dx dy, dy^2 / 2)
+            const V ddx = d * dx, ddy = d * dy;
             m0 += d;
             mx1 += ddx;
             my1 += ddy;
             mxx += ddx * dx;
             mxy += ddx * dy;
             myy += ddy * dy;
+            each_feature<F>([&](auto f) { gf[f] += w * go[f * NS + s]; });
         }
-        const S glo = m0, gmx = a * mx1 + b * my1, gmy = b * mx1 + c * my1, ga = mxx, gb = mxy, gc = myy;
-        S gf[F];
-        for (int f = 0; f < F; ++f) {
-            S sum = 0;
-            const S* gof = go + f * P;
-#pragma omp simd reduction(+ : sum)
-            for (int64_t p = 0; p < P; ++p) sum += wbuf[p] * gof[p];
-            gf[f] = sum;
+        S* row = g_pair + (start + j) * (6 + F);
+        if (!any_lane(used)) {  // no pixel of the tile took this Gaussian: its gradient here is 0
+            std::fill(row, row + 6 + F, S(0));
+            continue;
         }
-        row[0] = gmx;
-        row[1] = gmy;
-        row[2] = S(-0.5) * ga;
-        row[3] = -gb;
-        row[4] = S(-0.5) * gc;
-        row[5] = glo;
-        for (int f = 0; f < F; ++f) row[6 + f] = gf[f];
+        const S smx = hsum(mx1), smy = hsum(my1);
+        row[0] = a * smx + b * smy;
+        row[1] = b * smx + c * smy;
+        row[2] = S(-0.5) * hsum(mxx);
+        row[3] = -hsum(mxy);
+        row[4] = S(-0.5) * hsum(myy);
+        row[5] = hsum(m0);
+        each_feature<F>([&](auto f) { row[6 + f] = hsum(gf[f]); });
     }
 }
 
 template <typename S, int F>
-void forward_all(const Params& prm, const S* gp, const S* feat, const int64_t* pair_gauss, const int64_t* tile_start,
-                 const int64_t* tile_count, S* out, S* t_final, int32_t* last) {
+void forward_all(const Params& prm, int64_t G, const S* gp, const S* feat, const int64_t* pair_gauss,
+                 const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final, int32_t* last) {
+    std::vector<S> rec(static_cast<size_t>(G) * (PK + F));
+    gaussian_records<S>(prm, G, F, gp, feat, rec.data());
+    const LaneGrid<S> grid(prm.tile_size);
     const int64_t workers = num_workers(prm.num_tiles, prm.num_threads, CHUNK);
-    std::vector<std::vector<S>> scratch(workers);
+    std::vector<std::vector<int64_t>> scratch(workers);
     for_each_tile(prm.num_tiles, workers, CHUNK, [&](int64_t id, int64_t t) {
-        forward_tile<S, F>(prm, t, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last, scratch[id]);
+        forward_tile<S, F>(prm, grid, t, rec.data(), pair_gauss, tile_start, tile_count, out, t_final, last, scratch[id]);
     });
 }
 
@@ -259,10 +433,13 @@ template <typename S, int F>
 void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S* feat, const int64_t* pair_gauss,
                   const int64_t* tile_start, const int64_t* tile_count, const S* t_final, const int32_t* last,
                   const S* g_out, S* g_pair, S* g_gauss) {
+    std::vector<S> rec(static_cast<size_t>(G) * (PK + F));
+    gaussian_records<S>(prm, G, F, gp, feat, rec.data());
+    const LaneGrid<S> grid(prm.tile_size);
     const int64_t workers = num_workers(prm.num_tiles, prm.num_threads, CHUNK);
-    std::vector<std::vector<S>> scratch(workers);
+    std::vector<SliceScratch<S>> scratch(workers);
     for_each_tile(prm.num_tiles, workers, CHUNK, [&](int64_t id, int64_t t) {
-        backward_tile<S, F>(prm, t, gp, feat, pair_gauss, tile_start, tile_count, t_final, last, g_out, g_pair,
+        backward_tile<S, F>(prm, grid, t, rec.data(), pair_gauss, tile_start, tile_count, t_final, last, g_out, g_pair,
                             scratch[id]);
     });
     const int64_t reducers = std::max<int64_t>(1, std::min<int64_t>(prm.num_threads, G / 4096 + 1));
@@ -292,9 +469,9 @@ void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S*
     }
 
 template <typename S>
-int forward_any(int64_t F, const Params& prm, const S* gp, const S* feat, const int64_t* pair_gauss,
+int forward_any(int64_t F, const Params& prm, int64_t G, const S* gp, const S* feat, const int64_t* pair_gauss,
                 const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final, int32_t* last) {
-    US_DISPATCH_F(F, (forward_all<S, F>(prm, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last)));
+    US_DISPATCH_F(F, (forward_all<S, F>(prm, G, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last)));
     return 0;
 }
 
@@ -456,7 +633,7 @@ void bin_fill(const BinArgs& a, const S* means2d, const S* extents, const S* con
 extern "C" {
 
 // Interface version: native.py refuses a library whose version differs from its own.
-int us_version() { return 9; }
+int us_version() { return 10; }
 
 int us_max_features() { return 8; }
 
@@ -464,19 +641,19 @@ int us_max_features() { return 8; }
     Params prm{num_tiles, tiles_x, tiles_per_cam, tile_size, num_threads, alpha_min, alpha_max, t_min};
 
 int us_forward_f32(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size, int64_t num_threads,
-                   double alpha_min, double alpha_max, double t_min, int64_t F, const float* gp, const float* feat,
+                   double alpha_min, double alpha_max, double t_min, int64_t F, int64_t G, const float* gp, const float* feat,
                    const int64_t* pair_gauss, const int64_t* tile_start, const int64_t* tile_count, float* out,
                    float* t_final, int32_t* last) {
     US_PARAMS
-    return forward_any<float>(F, prm, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last);
+    return forward_any<float>(F, prm, G, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last);
 }
 
 int us_forward_f64(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size, int64_t num_threads,
-                   double alpha_min, double alpha_max, double t_min, int64_t F, const double* gp, const double* feat,
+                   double alpha_min, double alpha_max, double t_min, int64_t F, int64_t G, const double* gp, const double* feat,
                    const int64_t* pair_gauss, const int64_t* tile_start, const int64_t* tile_count, double* out,
                    double* t_final, int32_t* last) {
     US_PARAMS
-    return forward_any<double>(F, prm, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last);
+    return forward_any<double>(F, prm, G, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last);
 }
 
 int us_backward_f32(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size, int64_t num_threads,

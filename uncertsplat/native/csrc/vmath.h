@@ -29,6 +29,27 @@ inline float vexp(float x) {
     return y * scale;
 }
 
+// vexp on a vector of floats at once (GCC/Clang vector extension types: VF of floats, VI the int32
+// vector of the same size), the same operations lane by lane.
+template <typename VF, typename VI>
+inline VF vexp_vec(VF x) {
+    x = x < -87.0f ? VF{} - 87.0f : x;
+    x = x > 87.0f ? VF{} + 87.0f : x;
+    const VF t = x * 1.44269504088896341f + 128.5f;
+    const VI k = __builtin_convertvector(t, VI) - 128;
+    const VF kf = __builtin_convertvector(k, VF);
+    const VF r = (x - kf * 0.693359375f) - kf * (-2.12194440e-4f);
+    VF p = VF{} + 1.9875691500e-4f;
+    p = p * r + 1.3981999507e-3f;
+    p = p * r + 8.3334519073e-3f;
+    p = p * r + 4.1665795894e-2f;
+    p = p * r + 1.6666665459e-1f;
+    p = p * r + 5.0000001201e-1f;
+    const VF y = p * (r * r) + r + 1.0f;
+    const VI bits = (k + 127) << 23;
+    return y * (VF)bits;  // a vector cast reinterprets the bits
+}
+
 inline float vlog(float x) {  // natural log of a positive normal float, within a few ulp
     int32_t bits;
     std::memcpy(&bits, &x, sizeof(bits));
