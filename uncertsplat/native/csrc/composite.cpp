@@ -113,24 +113,57 @@ inline bool any_lane(M m) {
     return any != 0;
 }
 
-// Sum of the lanes of a vector, as a tree of half-width adds (log2 of the lane count steps).
-template <typename S, int N, typename V>
-inline S hsum_tree(V v) {
-    if constexpr (N == 1) {
-        return v[0];
-    } else {
-        typedef S H __attribute__((vector_size(N / 2 * sizeof(S))));
-        H lo, hi;
-        std::memcpy(&lo, &v, sizeof(H));
-        std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof(H), sizeof(H));
-        return hsum_tree<S, N / 2>(lo + hi);
-    }
+// Lane sums of several vectors at once. combine(a, b) halves the partial sums per quantity: a and b each
+// hold Q quantities in blocks of K lanes; the result holds a's Q quantities then b's, in blocks of K / 2
+// (the low half of each block plus its high half). log2(LANES) rounds of this turn LANES vectors into one
+// whose lane i is the sum of vector i: about 3 operations per vector instead of 2 log2(LANES) for one
+// tree per vector.
+#if defined(__clang__) || (defined(__GNUC__) && __GNUC__ >= 12)
+#define US_HAVE_SHUFFLEVECTOR 1
+#endif
+
+#ifdef US_HAVE_SHUFFLEVECTOR
+constexpr int half_lane(int o, int K, bool hi) {
+    const int half = LANES / 2, sub = K / 2;
+    const int src = o < half ? 0 : LANES, r = o % half;
+    return src + (r / sub) * K + (hi ? sub : 0) + r % sub;
 }
 
-template <typename V>
-inline auto hsum(V v) {
-    using S = std::remove_reference_t<decltype(v[0])>;
-    return hsum_tree<S, LANES>(v);
+template <int K, typename V, int... O>
+inline V combine_impl(V a, V b, std::integer_sequence<int, O...>) {
+    return __builtin_shufflevector(a, b, half_lane(O, K, false)...) +
+           __builtin_shufflevector(a, b, half_lane(O, K, true)...);
+}
+
+// v[0 .. n) (n <= G) reduced in place to v[0] whose lane i is the lane sum of input i; the inputs hold
+// blocks of K lanes per quantity (K = LANES for plain vectors).
+template <int K, int G, typename V>
+inline void combine_rounds(V* v) {
+    if constexpr (K > 1) {
+        for (int i = 0; i < G / 2; ++i)
+            v[i] = combine_impl<K>(v[2 * i], v[2 * i + 1], std::make_integer_sequence<int, LANES>{});
+        combine_rounds<K / 2, G / 2>(v);
+    }
+}
+#endif
+
+// out[i] = the sum of the lanes of v[i], for i < n (v is overwritten).
+template <typename S, typename V>
+inline void lane_sums(V* v, int n, S* out) {
+#ifdef US_HAVE_SHUFFLEVECTOR
+    for (int g0 = 0; g0 < n; g0 += LANES) {
+        V grp[LANES];
+        for (int i = 0; i < LANES; ++i) grp[i] = g0 + i < n ? v[g0 + i] : V{};
+        combine_rounds<LANES, LANES>(grp);
+        for (int i = 0; i < LANES && g0 + i < n; ++i) out[g0 + i] = grp[0][i];
+    }
+#else
+    for (int i = 0; i < n; ++i) {
+        S s = 0;
+        for (int l = 0; l < LANES; ++l) s += v[i][l];
+        out[i] = s;
+    }
+#endif
 }
 
 // Calls fn(std::integral_constant<int, f>) for f = 0 .. F - 1. Per-feature lane arrays indexed only by
@@ -402,14 +435,17 @@ void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, con
             std::fill(row, row + 6 + F, S(0));
             continue;
         }
-        const S smx = hsum(mx1), smy = hsum(my1);
-        row[0] = a * smx + b * smy;
-        row[1] = b * smx + c * smy;
-        row[2] = S(-0.5) * hsum(mxx);
-        row[3] = -hsum(mxy);
-        row[4] = S(-0.5) * hsum(myy);
-        row[5] = hsum(m0);
-        each_feature<F>([&](auto f) { row[6 + f] = hsum(gf[f]); });
+        V sums_in[6 + F] = {mx1, my1, mxx, mxy, myy, m0};
+        each_feature<F>([&](auto f) { sums_in[6 + f] = gf[f]; });
+        S sum[6 + F];
+        lane_sums<S>(sums_in, 6 + F, sum);
+        row[0] = a * sum[0] + b * sum[1];
+        row[1] = b * sum[0] + c * sum[1];
+        row[2] = S(-0.5) * sum[2];
+        row[3] = -sum[3];
+        row[4] = S(-0.5) * sum[4];
+        row[5] = sum[5];
+        for (int f = 0; f < F; ++f) row[6 + f] = sum[6 + f];
     }
 }
 
