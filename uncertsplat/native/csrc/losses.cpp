@@ -124,29 +124,99 @@ double scale_kl(int64_t n, const float* left, const float* raw, float wp, int va
 }
 
 // ---------------------------------------------------------------------------------------- SSIM
-// Zero-padded "same" separable blur of one plane: out = sum_ij w_i w_j in[y + i - r, x + j - r], in = 0 outside.
-void blur_plane(const float* in, float* out, float* tmp, int64_t H, int64_t W, const float* w, int64_t K) {
-    const int64_t r = (K - 1) / 2;
-    std::fill(tmp, tmp + H * W, 0.0f);
-    for (int64_t y = 0; y < H; ++y) {
-        const float* src = in + y * W;
-        float* dst = tmp + y * W;
-        for (int64_t k = 0; k < K; ++k) {
-            const int64_t off = k - r;
-            const int64_t x0 = std::max<int64_t>(0, -off), x1 = std::min<int64_t>(W, W - off);
+// Separable zero-padded "same" blurs with the window w [K] (K odd, r = (K - 1) / 2), in two phases over
+// rows (every thread takes rows of every plane, so 3 planes keep 2 threads busy): a horizontal pass of
+// each row into padded row buffers, then a vertical pass that keeps its sums in registers (LANES pixels
+// at a time) and applies the per-pixel formula right away, so the vertically blurred planes are never
+// stored. Each plane's mean is summed per row, then over rows in a fixed order (any thread count gives
+// the same result).
+
+#if defined(__AVX512F__)
+constexpr int SSIM_LANES = 16;
+#elif defined(__AVX__)
+constexpr int SSIM_LANES = 8;
+#else
+constexpr int SSIM_LANES = 4;
+#endif
+typedef float VS __attribute__((vector_size(SSIM_LANES * sizeof(float))));
+
+inline VS load_vs(const float* p) {
+    VS v;
+    std::memcpy(&v, p, sizeof(VS));
+    return v;
+}
+
+inline void store_vs(float* p, VS v) { std::memcpy(p, &v, sizeof(VS)); }
+
+// Row geometry: rows of padded width Wp (a multiple of the lanes); a padded input row holds r zeros, the
+// W values, then zeros up to Wp + 2 r.
+struct SsimRows {
+    int64_t B, H, W, K, r, Wp;
+    SsimRows(int64_t B_, int64_t H_, int64_t W_, int64_t K_)
+        : B(B_), H(H_), W(W_), K(K_), r((K_ - 1) / 2), Wp((W_ + SSIM_LANES - 1) / SSIM_LANES * SSIM_LANES) {}
+};
+
+// Runs fn(row) for row in [0, n) on up to num_threads threads (contiguous ranges).
+template <typename Fn>
+void parallel_rows(int64_t n, int64_t num_threads, Fn fn) {
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, n / 16 + 1));
+    uskern::run_workers(workers, [&](int64_t w) {
+        for (int64_t i = n * w / workers; i < n * (w + 1) / workers; ++i) fn(i);
+    });
+}
+
+// Horizontal blur of NQ quantities of one row: out[q][x] = sum_k w[k] f_q(a[x + k], b[x + k]) for the
+// padded input rows a, b; f = (a, b, a^2, b^2, a b) for the forward (NQ = 5, products formed on the
+// fly), f = (a, b, c) of three inputs for the backward.
+template <int NQ>
+inline void hblur_row(const SsimRows& g, const float* w, const float* a, const float* b, const float* c,
+                      float* const* out) {
+    for (int64_t x0 = 0; x0 < g.Wp; x0 += SSIM_LANES) {
+        VS acc[NQ] = {};
+        for (int64_t k = 0; k < g.K; ++k) {
             const float wk = w[k];
-            for (int64_t x = x0; x < x1; ++x) dst[x] += wk * src[x + off];
+            const VS va = load_vs(a + x0 + k), vb = load_vs(b + x0 + k);
+            if constexpr (NQ == 5) {
+                acc[0] += wk * va;
+                acc[1] += wk * vb;
+                acc[2] += wk * (va * va);
+                acc[3] += wk * (vb * vb);
+                acc[4] += wk * (va * vb);
+            } else {
+                acc[0] += wk * va;
+                acc[1] += wk * vb;
+                acc[2] += wk * load_vs(c + x0 + k);
+            }
         }
+        for (int q = 0; q < NQ; ++q) store_vs(out[q] + x0, acc[q]);
     }
-    std::fill(out, out + H * W, 0.0f);
-    for (int64_t y = 0; y < H; ++y) {
-        float* dst = out + y * W;
-        const int64_t k0 = std::max<int64_t>(0, r - y), k1 = std::min<int64_t>(K, H - y + r);
-        for (int64_t k = k0; k < k1; ++k) {
-            const float* src = tmp + (y + k - r) * W;
-            const float wk = w[k];
-            for (int64_t x = 0; x < W; ++x) dst[x] += wk * src[x];
-        }
+}
+
+// A padded copy of row y of a plane (zeros around it).
+inline void pad_row(const SsimRows& g, const float* plane, int64_t y, float* dst) {
+    std::fill(dst, dst + g.Wp + 2 * g.r, 0.0f);
+    std::memcpy(dst + g.r, plane + y * g.W, sizeof(float) * g.W);
+}
+
+// Vertical blur at output row y of NQ horizontally blurred planes hb[q] (rows of Wp), LANES pixels from
+// x0: sum over the rows y + k - r inside the image.
+template <int NQ>
+inline void vblur(const SsimRows& g, const float* w, const float* const* hb, int64_t y, int64_t x0, VS* acc) {
+    const int64_t k0 = std::max<int64_t>(0, g.r - y), k1 = std::min<int64_t>(g.K, g.H - y + g.r);
+    for (int q = 0; q < NQ; ++q) acc[q] = VS{};
+    for (int64_t k = k0; k < k1; ++k) {
+        const float wk = w[k];
+        const int64_t off = (y + k - g.r) * g.Wp + x0;
+        for (int q = 0; q < NQ; ++q) acc[q] += wk * load_vs(hb[q] + off);
+    }
+}
+
+// Stores the first n (<= LANES) lanes of v at p.
+inline void store_lanes(float* p, VS v, int64_t n) {
+    if (n == SSIM_LANES) {
+        store_vs(p, v);
+    } else {
+        for (int64_t l = 0; l < n; ++l) p[l] = v[l];
     }
 }
 
@@ -155,71 +225,86 @@ void blur_plane(const float* in, float* out, float* tmp, int64_t H, int64_t W, c
 // map w.r.t. (mu_x, E[x^2], E[xy]), which ssim_backward turns into d loss / d x.
 void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, const float* x, const float* y, const float* w,
                   float c1, float c2, double* plane_mean, float* partials, int64_t num_threads) {
-    const int64_t HW = H * W;
-    const int64_t workers = std::max<int64_t>(1, std::min(num_threads, B));
-    uskern::run_workers(workers, [&](int64_t id) {
-        std::vector<float> buf(HW * 7);
-        float *tmp = buf.data(), *prod = tmp + HW, *mx = prod + HW, *my = mx + HW, *exx = my + HW,
-              *eyy = exx + HW, *exy = eyy + HW;
-        for (int64_t b = id; b < B; b += workers) {
-            const float* xb = x + b * HW;
-            const float* yb = y + b * HW;
-            blur_plane(xb, mx, tmp, H, W, w, K);
-            blur_plane(yb, my, tmp, H, W, w, K);
-            for (int64_t i = 0; i < HW; ++i) prod[i] = xb[i] * xb[i];
-            blur_plane(prod, exx, tmp, H, W, w, K);
-            for (int64_t i = 0; i < HW; ++i) prod[i] = yb[i] * yb[i];
-            blur_plane(prod, eyy, tmp, H, W, w, K);
-            for (int64_t i = 0; i < HW; ++i) prod[i] = xb[i] * yb[i];
-            blur_plane(prod, exy, tmp, H, W, w, K);
-            float* dmu = partials ? partials + b * HW : nullptr;
-            float* dxx = partials ? partials + (B + b) * HW : nullptr;
-            float* dxy = partials ? partials + (2 * B + b) * HW : nullptr;
-            double total = 0.0;
-            for (int64_t lo = 0; lo < HW; lo += BLOCK) {
-                const int64_t hi = std::min(HW, lo + BLOCK);
-                double sum = 0.0;
-#pragma omp simd reduction(+ : sum)
-                for (int64_t i = lo; i < hi; ++i) {
-                    const float ux = mx[i], uy = my[i];
-                    const float sxx = exx[i] - ux * ux, syy = eyy[i] - uy * uy, sxy = exy[i] - ux * uy;
-                    const float a1 = 2.0f * ux * uy + c1, a2 = 2.0f * sxy + c2;
-                    const float b1 = ux * ux + uy * uy + c1, b2 = sxx + syy + c2;
-                    // Divide only by b1 b2 >= c1 c2 > 0: a2 = 2 sxy + c2 can be 0 (anti-correlated windows)
-                    const float inv_d = 1.0f / (b1 * b2);
-                    const float s = a1 * a2 * inv_d;
-                    sum += s;
-                    if (partials != nullptr) {
-                        dmu[i] = (2.0f * uy * (a2 - a1) - 2.0f * ux * s * (b2 - b1)) * inv_d;
-                        dxx[i] = -s * b1 * inv_d;
-                        dxy[i] = 2.0f * a1 * inv_d;
-                    }
-                }
-                total += sum;
-            }
-            plane_mean[b] = total / static_cast<double>(HW);
-        }
+    const SsimRows g(B, H, W, K);
+    const int64_t HWp = H * g.Wp;
+    std::vector<float> hbuf(static_cast<size_t>(5 * B * HWp));  // horizontally blurred x, y, xx, yy, xy
+    parallel_rows(B * H, num_threads, [&](int64_t row) {
+        const int64_t b = row / H, yy = row % H;
+        std::vector<float> pa(g.Wp + 2 * g.r + SSIM_LANES), pb(pa.size());
+        pad_row(g, x + b * H * W, yy, pa.data());
+        pad_row(g, y + b * H * W, yy, pb.data());
+        float* out[5];
+        for (int q = 0; q < 5; ++q) out[q] = hbuf.data() + (q * B + b) * HWp + yy * g.Wp;
+        hblur_row<5>(g, w, pa.data(), pb.data(), nullptr, out);
     });
+    std::vector<double> row_sum(static_cast<size_t>(B * H), 0.0);
+    const int64_t HW = H * W;
+    parallel_rows(B * H, num_threads, [&](int64_t row) {
+        const int64_t b = row / H, yy = row % H;
+        const float* hb[5];
+        for (int q = 0; q < 5; ++q) hb[q] = hbuf.data() + (q * B + b) * HWp;
+        double sum = 0.0;
+        for (int64_t x0 = 0; x0 < W; x0 += SSIM_LANES) {
+            const int64_t n = std::min<int64_t>(SSIM_LANES, W - x0);
+            VS m[5];
+            vblur<5>(g, w, hb, yy, x0, m);
+            const VS ux = m[0], uy = m[1];
+            const VS sxx = m[2] - ux * ux, syy = m[3] - uy * uy, sxy = m[4] - ux * uy;
+            const VS a1 = 2.0f * ux * uy + c1, a2 = 2.0f * sxy + c2;
+            const VS b1 = ux * ux + uy * uy + c1, b2 = sxx + syy + c2;
+            // Divide only by b1 b2 >= c1 c2 > 0: a2 = 2 sxy + c2 can be 0 (anti-correlated windows)
+            const VS inv_d = 1.0f / (b1 * b2);
+            const VS s = a1 * a2 * inv_d;
+            for (int64_t l = 0; l < n; ++l) sum += s[l];
+            if (partials != nullptr) {
+                const int64_t o = b * HW + yy * W + x0;
+                store_lanes(partials + o, (2.0f * uy * (a2 - a1) - 2.0f * ux * s * (b2 - b1)) * inv_d, n);
+                store_lanes(partials + B * HW + o, -s * b1 * inv_d, n);
+                store_lanes(partials + 2 * B * HW + o, 2.0f * a1 * inv_d, n);
+            }
+        }
+        row_sum[row] = sum;
+    });
+    for (int64_t b = 0; b < B; ++b) {
+        double total = 0.0;
+        for (int64_t yy = 0; yy < H; ++yy) total += row_sum[b * H + yy];
+        plane_mean[b] = total / static_cast<double>(HW);
+    }
 }
 
 // d loss / d x for loss = sum_b g_plane[b] * plane_mean[b]:
 // g_plane[b] / HW * (blur(d_mu) + 2 x blur(d_exx) + y blur(d_exy)) (the blur is its own adjoint).
 void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, const float* x, const float* y, const float* w,
                    const float* partials, const float* g_plane, float* g_x, int64_t num_threads) {
-    const int64_t HW = H * W;
-    const int64_t workers = std::max<int64_t>(1, std::min(num_threads, B));
-    uskern::run_workers(workers, [&](int64_t id) {
-        std::vector<float> buf(HW * 4);
-        float *tmp = buf.data(), *bmu = tmp + HW, *bxx = bmu + HW, *bxy = bxx + HW;
-        for (int64_t b = id; b < B; b += workers) {
-            blur_plane(partials + b * HW, bmu, tmp, H, W, w, K);
-            blur_plane(partials + (B + b) * HW, bxx, tmp, H, W, w, K);
-            blur_plane(partials + (2 * B + b) * HW, bxy, tmp, H, W, w, K);
-            const float scale = g_plane[b] / static_cast<float>(HW);
-            const float* xb = x + b * HW;
-            const float* yb = y + b * HW;
-            float* gb = g_x + b * HW;
-            for (int64_t i = 0; i < HW; ++i) gb[i] = scale * (bmu[i] + 2.0f * xb[i] * bxx[i] + yb[i] * bxy[i]);
+    const SsimRows g(B, H, W, K);
+    const int64_t HWp = H * g.Wp, HW = H * W;
+    std::vector<float> hbuf(static_cast<size_t>(3 * B * HWp));
+    parallel_rows(B * H, num_threads, [&](int64_t row) {
+        const int64_t b = row / H, yy = row % H;
+        std::vector<float> pa(g.Wp + 2 * g.r + SSIM_LANES), pb(pa.size()), pc(pa.size());
+        pad_row(g, partials + b * HW, yy, pa.data());
+        pad_row(g, partials + (B + b) * HW, yy, pb.data());
+        pad_row(g, partials + (2 * B + b) * HW, yy, pc.data());
+        float* out[3];
+        for (int q = 0; q < 3; ++q) out[q] = hbuf.data() + (q * B + b) * HWp + yy * g.Wp;
+        hblur_row<3>(g, w, pa.data(), pb.data(), pc.data(), out);
+    });
+    parallel_rows(B * H, num_threads, [&](int64_t row) {
+        const int64_t b = row / H, yy = row % H;
+        const float* hb[3];
+        for (int q = 0; q < 3; ++q) hb[q] = hbuf.data() + (q * B + b) * HWp;
+        const float scale = g_plane[b] / static_cast<float>(HW);
+        const float* xr = x + b * HW + yy * W;
+        const float* yr = y + b * HW + yy * W;
+        float* gr = g_x + b * HW + yy * W;
+        for (int64_t x0 = 0; x0 < W; x0 += SSIM_LANES) {
+            const int64_t n = std::min<int64_t>(SSIM_LANES, W - x0);
+            VS m[3];
+            vblur<3>(g, w, hb, yy, x0, m);
+            VS xv{}, yv{};
+            std::memcpy(&xv, xr + x0, sizeof(float) * n);
+            std::memcpy(&yv, yr + x0, sizeof(float) * n);
+            store_lanes(gr + x0, scale * (m[0] + 2.0f * xv * m[1] + yv * m[2]), n);
         }
     });
 }
