@@ -1,0 +1,310 @@
+"""The native CPU kernels of this checkout against those of another revision, in one process.
+
+The reference library is built from ``git show REF:uncertsplat/native/csrc/*`` with this checkout's compiler
+flags, loaded beside the current one, and the two are called alternately on the same inputs (min and median of
+``--repeats`` rounds; the machines are shared and noisy, so only ratios within a run are reported):
+
+- ``render``: the whole ``render`` forward and forward + backward (projection, SH, binning, compositing, L1
+  loss) of ``bench_render.make_scene``'s random scene (``--scene-n``, ``--width``, ``--height``);
+- ``composite``: the compositor's forward and backward alone on that scene's (tile, Gaussian) lists;
+- ``ssim``: the fused SSIM forward and backward of three 320x240 planes;
+- ``train`` (with ``--run RUN --scene SCENE``): training steps of a run from its last checkpoint, the two
+  libraries taking turns every ``--block`` steps (the model keeps training across the turns), and the
+  compositor alone on one of its training views.
+
+A reference library of another interface version is wrapped so that the current Python code can call it (the
+compositor's forward took no Gaussian count before version 10); images and gradients of both are compared.
+
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_kernels.py --ref 3adb8f7 [--run demo_out/train
+        --scene demo_out/synth] [--threads 2] [--repeats 20]
+
+Writes ``benchmarks/results/kernels.json`` and prints the Markdown rows for BENCHMARKS.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from datetime import date
+from pathlib import Path
+
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_render import PARAMS, make_scene  # noqa: E402
+
+from uncertsplat import native  # noqa: E402
+from uncertsplat.eval.image import SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, gaussian_window  # noqa: E402
+from uncertsplat.render import rasterize, render  # noqa: E402
+
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+class _OldInterface:
+    """A library of interface version < 10 behind the current calls: its compositor forward takes no G."""
+
+    def __init__(self, lib: ctypes.CDLL):
+        self._lib = lib
+
+    def __getattr__(self, name):
+        fn = getattr(self._lib, name)
+        if name in ("us_forward_f32", "us_forward_f64"):
+            def call(*args):  # (head..., F, G, pointers...) -> (head..., F, pointers...)
+                return fn(*args[:9], *args[10:])
+            return call
+        return fn
+
+
+def build_reference(ref: str, out_dir: Path):
+    """Build the kernels of revision ``ref`` into ``out_dir``; returns the loaded library (wrapped if older)."""
+    src = out_dir / "csrc"
+    src.mkdir(parents=True, exist_ok=True)
+    names = subprocess.run(["git", "ls-tree", "--name-only", f"{ref}:uncertsplat/native/csrc"], cwd=ROOT,
+                           check=True, capture_output=True, text=True).stdout.split()
+    for name in names:
+        text = subprocess.run(["git", "show", f"{ref}:uncertsplat/native/csrc/{name}"], cwd=ROOT, check=True,
+                              capture_output=True, text=True).stdout
+        (src / name).write_text(text)
+    target = out_dir / "reference.so"
+    cxx = native._compiler()
+    cmd = [cxx, *native.BASE_FLAGS, *native.ARCH_FLAGS, *(str(src / n) for n in names if n.endswith(".cpp")),
+           "-o", str(target)]
+    subprocess.run(cmd, check=True, capture_output=True, text=True)
+    lib = ctypes.CDLL(str(target))
+    version = lib.us_version()
+    native._declare(lib) if version >= 10 else _declare_v9(lib)
+    return (lib if version >= 10 else _OldInterface(lib)), version
+
+
+def _declare_v9(lib: ctypes.CDLL) -> None:
+    """The argument types of an interface-9 library (as ``native._declare`` set them then)."""
+    native._declare(lib)  # the other symbols kept their signatures
+    i64, f64, ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+    head = [i64, i64, i64, i64, i64, f64, f64, f64, i64]
+    for suffix in ("f32", "f64"):
+        getattr(lib, f"us_forward_{suffix}").argtypes = head + [ptr] * 8
+        getattr(lib, f"us_forward_{suffix}").restype = ctypes.c_int
+
+
+def alternate(fns: dict, repeats: int) -> dict:
+    """Seconds of each fn, called in turn ``repeats`` times after one warm-up each: min and median."""
+    for fn in fns.values():
+        fn()
+    times = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            times[k].append(time.perf_counter() - t0)
+    return {k: {"min_ms": 1e3 * min(v), "median_ms": 1e3 * statistics.median(v)} for k, v in times.items()}
+
+
+def with_lib(lib, fn):
+    def call():
+        native._state["lib"] = lib
+        return fn()
+    return call
+
+
+def bench_render_and_composite(libs: dict, n: int, width: int, height: int, repeats: int) -> dict:
+    s, cams = make_scene(n, width, height)
+    target = torch.rand(1, height, width, 3, generator=torch.Generator().manual_seed(1))
+    leaves = {k: getattr(s, k).detach().clone().requires_grad_() for k in PARAMS}
+    sg = replace(s, **leaves)
+
+    def fwd():
+        with torch.no_grad():
+            return render(s, cams)
+
+    def fwd_bwd():
+        for v in leaves.values():
+            v.grad = None
+        out = render(sg, cams)
+        (out.rgb - target).abs().mean().backward()
+        return out.rgb.detach(), {k: v.grad.clone() for k, v in leaves.items()}
+
+    results = {"case": f"{width}x{height}, {n} Gaussians"}
+    results["render_fwd"] = alternate({k: with_lib(lib, fwd) for k, lib in libs.items()}, repeats)
+    results["render_fwd_bwd"] = alternate({k: with_lib(lib, fwd_bwd) for k, lib in libs.items()}, repeats)
+    outs = {k: with_lib(lib, fwd_bwd)() for k, lib in libs.items()}
+    (img_a, g_a), (img_b, g_b) = outs.values()
+    results["max_image_difference"] = float((img_a - img_b).abs().max())
+    results["max_relative_gradient_difference"] = max(
+        float((g_a[k] - g_b[k]).abs().max() / g_a[k].abs().max().clamp_min(1e-30)) for k in g_a)
+    captured = {}
+    original = rasterize._CompositeNative.apply
+
+    def spy(gp, feat, bins):
+        captured.setdefault("x", (gp.detach().clone(), feat.detach().clone(), bins))
+        return original(gp, feat, bins)
+
+    rasterize._CompositeNative.apply = spy
+    try:
+        with_lib(libs["current"], fwd)()
+    finally:
+        rasterize._CompositeNative.apply = original
+    results["composite"] = composite_alone(libs, *captured["x"], repeats)
+    return results
+
+
+def composite_alone(libs: dict, gp, feat, bins, repeats: int) -> dict:
+    """The compositor's forward, and forward + backward, on fixed lists (random gradient of the output)."""
+    gpr, fr = gp.clone().requires_grad_(), feat.clone().requires_grad_()
+    g = torch.randn(bins.tile_count.numel(), bins.tile_size ** 2, feat.shape[1],
+                    generator=torch.Generator().manual_seed(0))
+
+    def fwd():
+        return rasterize._CompositeNative.apply(gp, feat, bins)
+
+    def fwd_bwd():
+        gpr.grad = fr.grad = None
+        rasterize._CompositeNative.apply(gpr, fr, bins).backward(g)
+
+    out = {"pairs": int(bins.pair_gauss.numel()), "tiles": int(bins.tile_count.numel()),
+           "forward": alternate({k: with_lib(lib, fwd) for k, lib in libs.items()}, repeats),
+           "forward_backward": alternate({k: with_lib(lib, fwd_bwd) for k, lib in libs.items()}, repeats)}
+    return out
+
+
+def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, width: int = 320) -> dict:
+    gen = torch.Generator().manual_seed(0)
+    x = torch.rand(planes, height, width, generator=gen)
+    y = (x + 0.1 * torch.randn(planes, height, width, generator=gen)).clamp(0, 1)
+    win = gaussian_window(dtype=torch.float32)
+    threads = torch.get_num_threads()
+
+    def forward(lib):
+        def call():
+            pm, part = torch.empty(planes, dtype=torch.float64), torch.empty(3, planes, height, width)
+            lib.us_ssim_forward_f32(planes, height, width, win.numel(), x.data_ptr(), y.data_ptr(), win.data_ptr(),
+                                    SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, pm.data_ptr(), part.data_ptr(), threads)
+            return pm, part
+        return call
+
+    parts = {k: forward(lib)() for k, lib in libs.items()}
+
+    def backward(lib, part):
+        def call():
+            gx, gp = torch.empty(planes, height, width), torch.ones(planes)
+            lib.us_ssim_backward_f32(planes, height, width, win.numel(), x.data_ptr(), y.data_ptr(), win.data_ptr(),
+                                     part.data_ptr(), gp.data_ptr(), gx.data_ptr(), threads)
+            return gx
+        return call
+
+    (pm_a, part_a), (pm_b, part_b) = parts.values()
+    grads = [backward(lib, parts[k][1])() for k, lib in libs.items()]
+    return {"case": f"{planes} planes of {width}x{height}",
+            "forward": alternate({k: forward(lib) for k, lib in libs.items()}, repeats),
+            "backward": alternate({k: backward(lib, parts[k][1]) for k, lib in libs.items()}, repeats),
+            "max_mean_difference": float((pm_a - pm_b).abs().max()),
+            "max_gradient_difference": float((grads[0] - grads[1]).abs().max())}
+
+
+def bench_training(libs: dict, run: Path, scene: Path, rounds: int, block: int) -> dict:
+    """Training steps from the run's last checkpoint, the libraries taking turns every ``block`` steps."""
+    from bench_train import trainer_from_run
+
+    from uncertsplat.config import TrainConfig
+
+    cfg = TrainConfig.model_validate_json((run / "config.json").read_text())
+    trainer = trainer_from_run(scene, run, cfg, torch.device("cpu"), extra_steps=(rounds + 1) * block * len(libs) + 10)
+    captured = {}
+    original = rasterize._CompositeNative.apply
+
+    def spy(gp, feat, bins):
+        captured.setdefault("x", (gp.detach().clone(), feat.detach().clone(), bins))
+        return original(gp, feat, bins)
+
+    rasterize._CompositeNative.apply = spy
+    try:
+        native._state["lib"] = libs["current"]
+        trainer.train_step()
+    finally:
+        rasterize._CompositeNative.apply = original
+    per_step = {k: [] for k in libs}
+    for r in range(rounds + 1):
+        for k, lib in libs.items():
+            native._state["lib"] = lib
+            t0 = time.perf_counter()
+            for _ in range(block):
+                trainer.train_step()
+            if r:  # the first round warms up
+                per_step[k].append((time.perf_counter() - t0) / block)
+    return {"run": str(run), "num_gaussians": len(trainer.model), "block": block, "rounds": rounds,
+            "step": {k: {"min_ms": 1e3 * min(v), "median_ms": 1e3 * statistics.median(v)}
+                     for k, v in per_step.items()},
+            "composite": composite_alone(libs, *captured["x"], 2 * rounds)}
+
+
+def ratio(d: dict, key: str = "min_ms") -> float:
+    return d["current"][key] / d["reference"][key]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--ref", required=True, help="git revision of the reference kernels")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--scene-n", type=int, default=50_000)
+    ap.add_argument("--width", type=int, default=512)
+    ap.add_argument("--height", type=int, default=384)
+    ap.add_argument("--run", type=Path, help="a run folder: also time its training steps")
+    ap.add_argument("--scene", type=Path, help="the scene of --run")
+    ap.add_argument("--rounds", type=int, default=6)
+    ap.add_argument("--block", type=int, default=10)
+    ap.add_argument("--out", type=Path, default=RESULTS / "kernels.json")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    if native.library() is None:
+        sys.exit(f"the native kernels are unavailable: {native.unavailable_reason()}")
+    with tempfile.TemporaryDirectory() as tmp:
+        ref_lib, ref_version = build_reference(args.ref, Path(tmp))
+        libs = {"current": native.library(), "reference": ref_lib}
+        result = {"date": date.today().isoformat(), "machine": platform.processor() or platform.machine(),
+                  "cpu": native._cpu_signature()[:200], "torch": torch.__version__, "threads": args.threads,
+                  "repeats": args.repeats, "reference": args.ref, "reference_interface": ref_version,
+                  "load_average_start": os.getloadavg()}
+        result["render"] = bench_render_and_composite(libs, args.scene_n, args.width, args.height, args.repeats)
+        result["ssim"] = bench_ssim(libs, args.repeats)
+        if args.run:
+            result["train"] = bench_training(libs, args.run, args.scene or Path(json.loads(
+                (args.run / "train_summary.json").read_text())["scene"]), args.rounds, args.block)
+        native._state["lib"] = libs["current"]
+        result["load_average_end"] = os.getloadavg()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    r = result["render"]
+    rows = [("render forward", r["render_fwd"]), ("render forward + backward", r["render_fwd_bwd"]),
+            ("compositor forward", r["composite"]["forward"]),
+            ("compositor forward + backward", r["composite"]["forward_backward"]),
+            ("SSIM forward (3 x 320x240)", result["ssim"]["forward"]),
+            ("SSIM backward", result["ssim"]["backward"])]
+    if "train" in result:
+        t = result["train"]
+        rows += [(f"training step ({t['num_gaussians']} Gaussians)", t["step"]),
+                 ("compositor forward, a training view", t["composite"]["forward"]),
+                 ("compositor forward + backward, a training view", t["composite"]["forward_backward"])]
+    print(f"\n{r['case']}, {args.threads} threads, reference {args.ref}; min (median) ms")
+    print("| what | reference | current | ratio (min) | ratio (median) |")
+    print("|---|---|---|---|---|")
+    for name, d in rows:
+        print(f"| {name} | {d['reference']['min_ms']:.1f} ({d['reference']['median_ms']:.1f}) | "
+              f"{d['current']['min_ms']:.1f} ({d['current']['median_ms']:.1f}) | x{ratio(d):.2f} | "
+              f"x{ratio(d, 'median_ms'):.2f} |")
+    print(f"images differ by at most {r['max_image_difference']:.2e}, gradients by {r['max_relative_gradient_difference']:.2e} "
+          f"(relative); SSIM means by {result['ssim']['max_mean_difference']:.2e}")
+
+
+if __name__ == "__main__":
+    main()
