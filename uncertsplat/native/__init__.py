@@ -32,7 +32,7 @@ from pathlib import Path
 
 import torch
 
-INTERFACE_VERSION = 10
+INTERFACE_VERSION = 11
 CSRC = Path(__file__).with_name("csrc")
 SOURCES = (CSRC / "composite.cpp", CSRC / "losses.cpp", CSRC / "project.cpp", CSRC / "optim.cpp")
 HEADERS = (CSRC / "vmath.h", CSRC / "parallel.h")
@@ -119,11 +119,13 @@ def _declare(lib: ctypes.CDLL) -> None:
     bin_head = [i64] * 9 + [f64]
     for suffix in ("f32", "f64"):
         count = getattr(lib, f"us_bin_count_{suffix}")
-        count.argtypes = bin_head + [ptr] * 9
+        count.argtypes = bin_head + [ptr] * 9 + [ctypes.POINTER(ptr)]
         count.restype = i64
         fill = getattr(lib, f"us_bin_fill_{suffix}")
-        fill.argtypes = bin_head + [ptr] * 5 + [i64] + [ptr] * 4
+        fill.argtypes = bin_head + [ptr] * 5 + [i64] + [ptr] * 5
         fill.restype = ctypes.c_int
+    lib.us_bin_free.argtypes = [ptr]
+    lib.us_bin_free.restype = None
     lib.us_gaussian_kl_f32.argtypes = [i64, ptr, ptr, f64, f64, ptr, ptr, i64]
     lib.us_gaussian_kl_f32.restype = f64
     lib.us_scale_kl_f32.argtypes = [i64, ptr, ptr, f64, i64, f64, f64, ptr, ptr, i64]

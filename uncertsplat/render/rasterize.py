@@ -37,6 +37,7 @@ block; memory is bounded by ``block_elements`` only while lists are shorter than
 from __future__ import annotations
 
 import bisect
+import ctypes
 import math
 import threading
 from dataclasses import dataclass
@@ -169,15 +170,25 @@ def _bin_native(means2d: Tensor, extents: Tensor, valid: Tensor, depths: Tensor,
     order = torch.empty(G, dtype=torch.long)
     num_visible = torch.zeros(1, dtype=torch.long)
     counts = torch.empty(workers, T, dtype=torch.long)
+    state = ctypes.c_void_p()  # what pass 1 found, held by the kernel until us_bin_fill (or us_bin_free)
     M = (lib.us_bin_count_f64 if f64 else lib.us_bin_count_f32)(
-        *head, *ptrs, dep.data_ptr(), vis.data_ptr(), order.data_ptr(), num_visible.data_ptr(), counts.data_ptr())
-    tile_count = counts.sum(0)
-    tile_start = torch.cumsum(tile_count, 0) - tile_count
-    pair_gauss = torch.empty(M, dtype=torch.long)
-    pair_tile = torch.empty(M, dtype=torch.long)
-    (lib.us_bin_fill_f64 if f64 else lib.us_bin_fill_f32)(
+        *head, *ptrs, dep.data_ptr(), vis.data_ptr(), order.data_ptr(), num_visible.data_ptr(), counts.data_ptr(),
+        ctypes.byref(state))
+    try:
+        if M < 0:
+            raise MemoryError("the native binning ran out of memory")
+        tile_count = counts.sum(0)
+        tile_start = torch.cumsum(tile_count, 0) - tile_count
+        pair_gauss = torch.empty(M, dtype=torch.long)
+        pair_tile = torch.empty(M, dtype=torch.long)
+    except BaseException:
+        lib.us_bin_free(state)
+        raise
+    rc = (lib.us_bin_fill_f64 if f64 else lib.us_bin_fill_f32)(
         *head, *ptrs, order.data_ptr(), int(num_visible), counts.data_ptr(), tile_start.data_ptr(),
-        pair_gauss.data_ptr(), pair_tile.data_ptr())
+        pair_gauss.data_ptr(), pair_tile.data_ptr(), state)
+    if rc != 0:
+        raise RuntimeError(f"native binning failed (code {rc})")
     return TileBins(pair_gauss, pair_tile, tile_start, tile_count, tiles_x, tiles_y, tile_size)
 
 

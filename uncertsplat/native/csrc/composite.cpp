@@ -36,6 +36,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <new>
 #include <type_traits>
 #include <utility>
 #include <vector>
@@ -594,34 +595,40 @@ bool ellipse_meets_tile(S mx, S my, S ca, S cb, S cc, S nb_c, S nb_a, S limit, i
     return !(std::min(q1, q2) > limit);
 }
 
-// Calls emit(g, tile) for every pair of the Gaussians order[lo, hi), in that order.
-template <typename S, typename Emit>
-void visit_pairs(const BinArgs& a, const int64_t* order, int64_t lo, int64_t hi, const S* means2d, const S* extents,
-                 const S* conics, const S* opac, Emit emit) {
-    const int64_t tpc = a.tiles_x * a.tiles_y;
-    for (int64_t i = lo; i < hi; ++i) {
-        const int64_t g = order[i];
-        const S mx = means2d[2 * g], my = means2d[2 * g + 1];
-        int64_t tx0, tx1, ty0, ty1;
-        tile_box<S>(a, mx, my, extents[2 * g], extents[2 * g + 1], tx0, tx1, ty0, ty1);
-        const S o = opac[a.C > 1 ? g % a.N : g];
-        const S ratio = o / static_cast<S>(a.alpha_min);
-        const S thr = S(2) * std::log(ratio > S(1) ? ratio : S(1));
-        const S limit = thr * S(1.001) + S(1e-3);  // margin against float rounding, as in rasterize.py
-        const S ca = conics[3 * g], cb = conics[3 * g + 1], cc = conics[3 * g + 2];
-        const S nb_c = -cb / cc, nb_a = -cb / ca;
-        const int64_t base = (g / a.N) * tpc;
-        for (int64_t ty = ty0; ty < ty1; ++ty)
-            for (int64_t tx = tx0; tx < tx1; ++tx)
-                if (ellipse_meets_tile<S>(mx, my, ca, cb, cc, nb_c, nb_a, limit, tx, ty, a.tile_size))
-                    emit(g, base + ty * a.tiles_x + tx);
+// The tiles of one Gaussian's box that its ellipse reaches: box origin (tx0, ty0), width bw and height bh
+// in tiles; mask bit k (row-major in the box) is set when tile k passes the test. Boxes of more than 64
+// tiles keep no mask (big = true): their tests are repeated when the pairs are written.
+struct BoxTiles {
+    uint64_t mask;
+    int32_t tx0, ty0, bw, bh;
+    bool big() const { return static_cast<int64_t>(bw) * bh > 64; }
+};
+
+template <typename S>
+struct EllipseTest {
+    S mx, my, ca, cb, cc, nb_c, nb_a, limit;
+    int64_t ts;
+    bool operator()(int64_t tx, int64_t ty) const {
+        return ellipse_meets_tile<S>(mx, my, ca, cb, cc, nb_c, nb_a, limit, tx, ty, ts);
     }
+};
+
+template <typename S>
+EllipseTest<S> ellipse_test(const BinArgs& a, int64_t g, const S* means2d, const S* conics, const S* opac) {
+    const S o = opac[a.C > 1 ? g % a.N : g];
+    const S ratio = o / static_cast<S>(a.alpha_min);
+    const S thr = S(2) * std::log(ratio > S(1) ? ratio : S(1));
+    const S ca = conics[3 * g], cb = conics[3 * g + 1], cc = conics[3 * g + 2];
+    // margin against float rounding, as in rasterize.py
+    return {means2d[2 * g], means2d[2 * g + 1], ca, cb, cc, -cb / cc, -cb / ca, thr * S(1.001) + S(1e-3), a.tile_size};
 }
 
-// Pass 1: the depth order, and per worker the number of pairs of each tile (counts [workers, T]).
+// Pass 1: the depth order, each visible Gaussian's box and tile mask (boxes [V]), and per worker the
+// number of pairs of each tile (counts [workers, T]).
 template <typename S>
 int64_t bin_count(const BinArgs& a, const S* means2d, const S* extents, const S* conics, const S* opac,
-                  const S* depths, const uint8_t* valid, int64_t* order, int64_t* num_visible, int64_t* counts) {
+                  const S* depths, const uint8_t* valid, int64_t* order, int64_t* num_visible, int64_t* counts,
+                  std::vector<BoxTiles>& boxes) {
     static_assert(sizeof(S) == 4 || sizeof(S) == 8, "float or double");
     int64_t V;
     if constexpr (sizeof(S) == 4) {
@@ -633,12 +640,28 @@ int64_t bin_count(const BinArgs& a, const S* means2d, const S* extents, const S*
         std::stable_sort(order, order + V, [&](int64_t x, int64_t y) { return depths[x] < depths[y]; });
     }
     *num_visible = V;
-    const int64_t T = a.C * a.tiles_x * a.tiles_y;
+    const int64_t T = a.C * a.tiles_x * a.tiles_y, tpc = a.tiles_x * a.tiles_y;
     std::fill(counts, counts + a.workers * T, int64_t{0});
+    boxes.resize(static_cast<size_t>(V));
     uskern::run_workers(a.workers, [&](int64_t w) {
         int64_t* cnt = counts + w * T;
-        visit_pairs<S>(a, order, V * w / a.workers, V * (w + 1) / a.workers, means2d, extents, conics, opac,
-                       [&](int64_t, int64_t t) { ++cnt[t]; });
+        for (int64_t i = V * w / a.workers; i < V * (w + 1) / a.workers; ++i) {
+            const int64_t g = order[i];
+            int64_t tx0, tx1, ty0, ty1;
+            tile_box<S>(a, means2d[2 * g], means2d[2 * g + 1], extents[2 * g], extents[2 * g + 1], tx0, tx1, ty0, ty1);
+            const EllipseTest<S> meets = ellipse_test<S>(a, g, means2d, conics, opac);
+            BoxTiles& box = boxes[i];
+            box = {0, static_cast<int32_t>(tx0), static_cast<int32_t>(ty0), static_cast<int32_t>(tx1 - tx0),
+                   static_cast<int32_t>(ty1 - ty0)};
+            const int64_t base = (g / a.N) * tpc;
+            int64_t k = 0;
+            for (int64_t ty = ty0; ty < ty1; ++ty)
+                for (int64_t tx = tx0; tx < tx1; ++tx, ++k) {
+                    const bool hit = meets(tx, ty);
+                    cnt[base + ty * a.tiles_x + tx] += hit;
+                    if (k < 64) box.mask |= static_cast<uint64_t>(hit) << k;
+                }
+        }
     });
     int64_t total = 0;
     for (int64_t i = 0; i < a.workers * T; ++i) total += counts[i];
@@ -646,30 +669,78 @@ int64_t bin_count(const BinArgs& a, const S* means2d, const S* extents, const S*
 }
 
 // Pass 2: with tile_start (cumulative counts over all workers), every worker writes its pairs after
-// those of the workers before it (its slice is nearer), so every tile stays in depth order.
+// those of the workers before it (its slice is nearer), so every tile stays in depth order. The tiles of a
+// box come from its mask (the tests again for boxes without one).
 template <typename S>
-void bin_fill(const BinArgs& a, const S* means2d, const S* extents, const S* conics, const S* opac,
-              const int64_t* order, int64_t V, const int64_t* counts, const int64_t* tile_start, int64_t* pair_gauss,
-              int64_t* pair_tile) {
-    const int64_t T = a.C * a.tiles_x * a.tiles_y;
+void bin_fill(const BinArgs& a, const S* means2d, const S* conics, const S* opac, const int64_t* order, int64_t V,
+              const std::vector<BoxTiles>& boxes, const int64_t* counts, const int64_t* tile_start,
+              int64_t* pair_gauss, int64_t* pair_tile) {
+    const int64_t T = a.C * a.tiles_x * a.tiles_y, tpc = a.tiles_x * a.tiles_y;
     uskern::run_workers(a.workers, [&](int64_t w) {
         std::vector<int64_t> cursor(tile_start, tile_start + T);
         for (int64_t v = 0; v < w; ++v)
             for (int64_t t = 0; t < T; ++t) cursor[t] += counts[v * T + t];
-        visit_pairs<S>(a, order, V * w / a.workers, V * (w + 1) / a.workers, means2d, extents, conics, opac,
-                       [&](int64_t g, int64_t t) {
-                           const int64_t k = cursor[t]++;
-                           pair_gauss[k] = g;
-                           pair_tile[k] = t;
-                       });
+        auto emit = [&](int64_t g, int64_t t) {
+            const int64_t k = cursor[t]++;
+            pair_gauss[k] = g;
+            pair_tile[k] = t;
+        };
+        for (int64_t i = V * w / a.workers; i < V * (w + 1) / a.workers; ++i) {
+            const int64_t g = order[i];
+            const BoxTiles& box = boxes[i];
+            const int64_t base = (g / a.N) * tpc;
+            if (!box.big()) {
+                for (uint64_t m = box.mask; m != 0; m &= m - 1) {
+                    const int k = __builtin_ctzll(m);
+                    emit(g, base + (box.ty0 + k / box.bw) * a.tiles_x + box.tx0 + k % box.bw);
+                }
+                continue;
+            }
+            const EllipseTest<S> meets = ellipse_test<S>(a, g, means2d, conics, opac);
+            for (int64_t ty = box.ty0; ty < box.ty0 + box.bh; ++ty)
+                for (int64_t tx = box.tx0; tx < box.tx0 + box.bw; ++tx)
+                    if (meets(tx, ty)) emit(g, base + ty * a.tiles_x + tx);
+        }
     });
+}
+
+// What pass 1 leaves for pass 2 (held by the caller between the two calls).
+struct BinState {
+    std::vector<BoxTiles> boxes;
+};
+
+template <typename S>
+int64_t bin_count_any(const BinArgs& args, const S* means2d, const S* extents, const S* conics, const S* opac,
+                      const S* depths, const uint8_t* valid, int64_t* order, int64_t* num_visible, int64_t* counts,
+                      void** state) {
+    *state = nullptr;
+    try {
+        auto* st = new BinState();
+        const int64_t M = bin_count<S>(args, means2d, extents, conics, opac, depths, valid, order, num_visible,
+                                       counts, st->boxes);
+        *state = st;
+        return M;
+    } catch (const std::bad_alloc&) {
+        return -1;
+    }
+}
+
+template <typename S>
+int bin_fill_any(const BinArgs& args, const S* means2d, const S* conics, const S* opac, const int64_t* order,
+                 int64_t V, void* state, const int64_t* counts, const int64_t* tile_start, int64_t* pair_gauss,
+                 int64_t* pair_tile) {
+    auto* st = static_cast<BinState*>(state);
+    if (st == nullptr || static_cast<int64_t>(st->boxes.size()) != V) return 1;
+    bin_fill<S>(args, means2d, conics, opac, order, V, st->boxes, counts, tile_start, pair_gauss, pair_tile);
+    delete st;
+    return 0;
 }
 }  // namespace
 
 extern "C" {
 
 // Interface version: native.py refuses a library whose version differs from its own.
-int us_version() { return 10; }
+int us_version() { return 11; }
 
 int us_max_features() { return 8; }
 
@@ -713,8 +784,10 @@ int us_backward_f64(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, i
 }
 
 // Binning, in two calls. us_bin_count: the depth order of the valid entries (order [G], num_visible),
-// per-worker tile counts [workers, T]; returns the number of pairs M. us_bin_fill: with tile_start [T]
-// (cumulative sum of the counts summed over workers), writes pair_gauss and pair_tile [M].
+// per-worker tile counts [workers, T]; returns the number of pairs M (-1 when out of memory) and, in
+// *state, what it found, which us_bin_fill consumes: with tile_start [T] (cumulative sum of the counts
+// summed over workers) it writes pair_gauss and pair_tile [M] and frees the state. us_bin_free frees a
+// state that will not be filled.
 #define US_BIN_ARGS BinArgs args{G, N, C, width, height, tile_size, tiles_x, tiles_y, workers, alpha_min};
 #define US_BIN_HEAD                                                                                             \
     int64_t G, int64_t N, int64_t C, int64_t width, int64_t height, int64_t tile_size, int64_t tiles_x,       \
@@ -722,33 +795,38 @@ int us_backward_f64(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, i
 
 int64_t us_bin_count_f32(US_BIN_HEAD, const float* means2d, const float* extents, const float* conics,
                          const float* opac, const float* depths, const uint8_t* valid, int64_t* order,
-                         int64_t* num_visible, int64_t* counts) {
+                         int64_t* num_visible, int64_t* counts, void** state) {
     US_BIN_ARGS
-    return bin_count<float>(args, means2d, extents, conics, opac, depths, valid, order, num_visible, counts);
+    return bin_count_any<float>(args, means2d, extents, conics, opac, depths, valid, order, num_visible, counts,
+                                state);
 }
 
 int64_t us_bin_count_f64(US_BIN_HEAD, const double* means2d, const double* extents, const double* conics,
                          const double* opac, const double* depths, const uint8_t* valid, int64_t* order,
-                         int64_t* num_visible, int64_t* counts) {
+                         int64_t* num_visible, int64_t* counts, void** state) {
     US_BIN_ARGS
-    return bin_count<double>(args, means2d, extents, conics, opac, depths, valid, order, num_visible, counts);
+    return bin_count_any<double>(args, means2d, extents, conics, opac, depths, valid, order, num_visible, counts,
+                                 state);
 }
 
 int us_bin_fill_f32(US_BIN_HEAD, const float* means2d, const float* extents, const float* conics, const float* opac,
                     const int64_t* order, int64_t num_visible, const int64_t* counts, const int64_t* tile_start,
-                    int64_t* pair_gauss, int64_t* pair_tile) {
+                    int64_t* pair_gauss, int64_t* pair_tile, void* state) {
     US_BIN_ARGS
-    bin_fill<float>(args, means2d, extents, conics, opac, order, num_visible, counts, tile_start, pair_gauss, pair_tile);
-    return 0;
+    (void)extents;
+    return bin_fill_any<float>(args, means2d, conics, opac, order, num_visible, state, counts, tile_start, pair_gauss,
+                               pair_tile);
 }
 
 int us_bin_fill_f64(US_BIN_HEAD, const double* means2d, const double* extents, const double* conics,
                     const double* opac, const int64_t* order, int64_t num_visible, const int64_t* counts,
-                    const int64_t* tile_start, int64_t* pair_gauss, int64_t* pair_tile) {
+                    const int64_t* tile_start, int64_t* pair_gauss, int64_t* pair_tile, void* state) {
     US_BIN_ARGS
-    bin_fill<double>(args, means2d, extents, conics, opac, order, num_visible, counts, tile_start, pair_gauss,
-                     pair_tile);
-    return 0;
+    (void)extents;
+    return bin_fill_any<double>(args, means2d, conics, opac, order, num_visible, state, counts, tile_start,
+                                pair_gauss, pair_tile);
 }
+
+void us_bin_free(void* state) { delete static_cast<BinState*>(state); }
 
 }  // extern "C"
