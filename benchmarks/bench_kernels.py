@@ -6,14 +6,16 @@ flags, loaded beside the current one, and the two are called alternately on the 
 
 - ``render``: the whole ``render`` forward and forward + backward (projection, SH, binning, compositing, L1
   loss) of ``bench_render.make_scene``'s random scene (``--scene-n``, ``--width``, ``--height``);
+- ``binning``: ``bin_gaussians`` alone on that scene and, with ``--run``, on a training view;
 - ``composite``: the compositor's forward and backward alone on that scene's (tile, Gaussian) lists;
 - ``ssim``: the fused SSIM forward and backward of three 320x240 planes;
 - ``train`` (with ``--run RUN --scene SCENE``): training steps of a run from its last checkpoint, the two
   libraries taking turns every ``--block`` steps (the model keeps training across the turns), and the
   compositor alone on one of its training views.
 
-A reference library of another interface version is wrapped so that the current Python code can call it (the
-compositor's forward took no Gaussian count before version 10); images and gradients of both are compared.
+A reference library of an older interface version is wrapped so that the current Python code can call it (the
+compositor's forward took no Gaussian count before version 10, binning kept no state between its two calls
+before 11); images and gradients of both are compared.
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_kernels.py --ref 3adb8f7 [--run demo_out/train
         --scene demo_out/synth] [--threads 2] [--repeats 20]
@@ -49,21 +51,70 @@ from uncertsplat.eval.image import SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, gaussian_wi
 from uncertsplat.render import rasterize, render  # noqa: E402
 
 RESULTS = ROOT / "benchmarks" / "results"
+RENDER_MODULE = sys.modules["uncertsplat.render.render"]
+
+
+def capture_render_inputs(fn) -> tuple:
+    """(the arguments of render's bin_gaussians call, those of its compositor call) during ``fn()``."""
+    captured = {}
+    bin_original, comp_original = RENDER_MODULE.bin_gaussians, rasterize._CompositeNative.apply
+
+    def bin_spy(*args, **kw):
+        captured.setdefault("bin", (tuple(a.detach() if isinstance(a, torch.Tensor) else a for a in args), kw))
+        return bin_original(*args, **kw)
+
+    def comp_spy(gp, feat, bins):
+        captured.setdefault("composite", (gp.detach().clone(), feat.detach().clone(), bins))
+        return comp_original(gp, feat, bins)
+
+    RENDER_MODULE.bin_gaussians, rasterize._CompositeNative.apply = bin_spy, comp_spy
+    try:
+        fn()
+    finally:
+        RENDER_MODULE.bin_gaussians, rasterize._CompositeNative.apply = bin_original, comp_original
+    return captured["bin"], captured["composite"]
+
+
+def binning_alone(libs: dict, args: tuple, kw: dict, repeats: int) -> dict:
+    """``bin_gaussians`` with each library; the pairs must be the same."""
+    outs = {k: with_lib(lib, lambda: rasterize.bin_gaussians(*args, **kw))() for k, lib in libs.items()}
+    a, b = outs.values()
+    if not (torch.equal(a.pair_gauss, b.pair_gauss) and torch.equal(a.pair_tile, b.pair_tile)):
+        raise AssertionError("the two libraries list different (tile, Gaussian) pairs")
+    return {"pairs": int(a.pair_gauss.numel()),
+            "time": alternate({k: with_lib(lib, lambda: rasterize.bin_gaussians(*args, **kw))
+                               for k, lib in libs.items()}, repeats)}
 
 
 class _OldInterface:
-    """A library of interface version < 10 behind the current calls: its compositor forward takes no G."""
+    """A library of an older interface behind the current calls: before version 10 the compositor forward took
+    no Gaussian count; before version 11 binning kept no state between its two calls (pass 2 tested again)."""
+
+    def __init__(self, lib: ctypes.CDLL, version: int):
+        self._lib, self._version = lib, version
+
+    def __getattr__(self, name):
+        if name == "us_bin_free" and self._version < 11:
+            return lambda state: None
+        fn = getattr(self._lib, name)
+        if self._version < 10 and name in ("us_forward_f32", "us_forward_f64"):
+            return lambda *args: fn(*args[:9], *args[10:])  # (head, F, G, pointers) -> (head, F, pointers)
+        if self._version < 11 and name.startswith(("us_bin_count_", "us_bin_fill_")):
+            return lambda *args: fn(*args[:-1])  # no state argument
+        return fn
+
+
+class _Tolerant:
+    """A library whose missing symbols are stand-ins (so that ``native._declare`` can run on an older one)."""
 
     def __init__(self, lib: ctypes.CDLL):
         self._lib = lib
 
     def __getattr__(self, name):
-        fn = getattr(self._lib, name)
-        if name in ("us_forward_f32", "us_forward_f64"):
-            def call(*args):  # (head..., F, G, pointers...) -> (head..., F, pointers...)
-                return fn(*args[:9], *args[10:])
-            return call
-        return fn
+        try:
+            return getattr(self._lib, name)
+        except AttributeError:
+            return type("Missing", (), {})()
 
 
 def build_reference(ref: str, out_dir: Path):
@@ -77,24 +128,23 @@ def build_reference(ref: str, out_dir: Path):
                               capture_output=True, text=True).stdout
         (src / name).write_text(text)
     target = out_dir / "reference.so"
-    cxx = native._compiler()
-    cmd = [cxx, *native.BASE_FLAGS, *native.ARCH_FLAGS, *(str(src / n) for n in names if n.endswith(".cpp")),
-           "-o", str(target)]
+    cmd = [native._compiler(), *native.BASE_FLAGS, *native.ARCH_FLAGS,
+           *(str(src / n) for n in names if n.endswith(".cpp")), "-o", str(target)]
     subprocess.run(cmd, check=True, capture_output=True, text=True)
     lib = ctypes.CDLL(str(target))
     version = lib.us_version()
-    native._declare(lib) if version >= 10 else _declare_v9(lib)
-    return (lib if version >= 10 else _OldInterface(lib)), version
-
-
-def _declare_v9(lib: ctypes.CDLL) -> None:
-    """The argument types of an interface-9 library (as ``native._declare`` set them then)."""
-    native._declare(lib)  # the other symbols kept their signatures
+    native._declare(_Tolerant(lib))  # the symbols that kept their signatures
     i64, f64, ptr = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
-    head = [i64, i64, i64, i64, i64, f64, f64, f64, i64]
-    for suffix in ("f32", "f64"):
-        getattr(lib, f"us_forward_{suffix}").argtypes = head + [ptr] * 8
-        getattr(lib, f"us_forward_{suffix}").restype = ctypes.c_int
+    if version < 10:
+        head = [i64, i64, i64, i64, i64, f64, f64, f64, i64]
+        for suffix in ("f32", "f64"):
+            getattr(lib, f"us_forward_{suffix}").argtypes = head + [ptr] * 8
+    if version < 11:
+        bin_head = [i64] * 9 + [f64]
+        for suffix in ("f32", "f64"):
+            getattr(lib, f"us_bin_count_{suffix}").argtypes = bin_head + [ptr] * 9
+            getattr(lib, f"us_bin_fill_{suffix}").argtypes = bin_head + [ptr] * 5 + [i64] + [ptr] * 4
+    return (lib if version >= 11 else _OldInterface(lib, version)), version
 
 
 def alternate(fns: dict, repeats: int) -> dict:
@@ -142,19 +192,9 @@ def bench_render_and_composite(libs: dict, n: int, width: int, height: int, repe
     results["max_image_difference"] = float((img_a - img_b).abs().max())
     results["max_relative_gradient_difference"] = max(
         float((g_a[k] - g_b[k]).abs().max() / g_a[k].abs().max().clamp_min(1e-30)) for k in g_a)
-    captured = {}
-    original = rasterize._CompositeNative.apply
-
-    def spy(gp, feat, bins):
-        captured.setdefault("x", (gp.detach().clone(), feat.detach().clone(), bins))
-        return original(gp, feat, bins)
-
-    rasterize._CompositeNative.apply = spy
-    try:
-        with_lib(libs["current"], fwd)()
-    finally:
-        rasterize._CompositeNative.apply = original
-    results["composite"] = composite_alone(libs, *captured["x"], repeats)
+    (bin_args, bin_kw), comp = capture_render_inputs(with_lib(libs["current"], fwd))
+    results["binning"] = binning_alone(libs, bin_args, bin_kw, repeats)
+    results["composite"] = composite_alone(libs, *comp, repeats)
     return results
 
 
@@ -219,19 +259,7 @@ def bench_training(libs: dict, run: Path, scene: Path, rounds: int, block: int) 
 
     cfg = TrainConfig.model_validate_json((run / "config.json").read_text())
     trainer = trainer_from_run(scene, run, cfg, torch.device("cpu"), extra_steps=(rounds + 1) * block * len(libs) + 10)
-    captured = {}
-    original = rasterize._CompositeNative.apply
-
-    def spy(gp, feat, bins):
-        captured.setdefault("x", (gp.detach().clone(), feat.detach().clone(), bins))
-        return original(gp, feat, bins)
-
-    rasterize._CompositeNative.apply = spy
-    try:
-        native._state["lib"] = libs["current"]
-        trainer.train_step()
-    finally:
-        rasterize._CompositeNative.apply = original
+    (bin_args, bin_kw), comp = capture_render_inputs(with_lib(libs["current"], trainer.train_step))
     per_step = {k: [] for k in libs}
     for r in range(rounds + 1):
         for k, lib in libs.items():
@@ -244,7 +272,8 @@ def bench_training(libs: dict, run: Path, scene: Path, rounds: int, block: int) 
     return {"run": str(run), "num_gaussians": len(trainer.model), "block": block, "rounds": rounds,
             "step": {k: {"min_ms": 1e3 * min(v), "median_ms": 1e3 * statistics.median(v)}
                      for k, v in per_step.items()},
-            "composite": composite_alone(libs, *captured["x"], 2 * rounds)}
+            "binning": binning_alone(libs, bin_args, bin_kw, 2 * rounds),
+            "composite": composite_alone(libs, *comp, 2 * rounds)}
 
 
 def ratio(d: dict, key: str = "min_ms") -> float:
@@ -286,6 +315,7 @@ def main() -> None:
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     r = result["render"]
     rows = [("render forward", r["render_fwd"]), ("render forward + backward", r["render_fwd_bwd"]),
+            ("binning", r["binning"]["time"]),
             ("compositor forward", r["composite"]["forward"]),
             ("compositor forward + backward", r["composite"]["forward_backward"]),
             ("SSIM forward (3 x 320x240)", result["ssim"]["forward"]),
@@ -293,6 +323,7 @@ def main() -> None:
     if "train" in result:
         t = result["train"]
         rows += [(f"training step ({t['num_gaussians']} Gaussians)", t["step"]),
+                 ("binning, a training view", t["binning"]["time"]),
                  ("compositor forward, a training view", t["composite"]["forward"]),
                  ("compositor forward + backward, a training view", t["composite"]["forward_backward"])]
     print(f"\n{r['case']}, {args.threads} threads, reference {args.ref}; min (median) ms")
