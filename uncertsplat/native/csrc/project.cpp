@@ -1,7 +1,8 @@
 // Per-Gaussian front end of the rasterizer, forward and backward: SH colours seen from each camera
 // (uncertsplat/render/sh.py) and the EWA projection (uncertsplat/render/project.py, the reference; see
 // its docstring for the model). The PyTorch versions are the reference and the path on other devices;
-// these replace dozens of elementwise tensor ops (and their autograd graph) by one pass per Gaussian.
+// these replace dozens of elementwise tensor ops (and their autograd graph) by one pass per Gaussian. The
+// projection and its gradient run on LANES Gaussians at a time (one SIMD register of floats per value).
 //
 // Layouts (row-major, float32): means [N,3], quats [N,4] wxyz, scales [N,3], opacities [N], sh [N,B,3],
 // cam_from_world [C,4,4], K [C,3,3], centres [C,3]; per camera outputs [C,N,...].
@@ -171,43 +172,78 @@ inline Camera load_camera(const float* cam, const float* K, int64_t W, int64_t H
     return c;
 }
 
+// The projection is written once for T = float (one Gaussian: the backward's recomputation) and for T = a
+// vector of LANES floats (LANES Gaussians at once: the forward). Comparisons give bool or a lane mask, and
+// `m ? a : b` selects per lane for both; these helpers cover the rest.
+#if defined(__AVX512F__)
+constexpr int LANES = 16;
+#elif defined(__AVX__)
+constexpr int LANES = 8;
+#else
+constexpr int LANES = 4;
+#endif
+typedef float VF __attribute__((vector_size(LANES * sizeof(float))));
+
+inline float vsqrt(float x) { return std::sqrt(x); }
+inline VF vsqrt(VF x) {
+    for (int l = 0; l < LANES; ++l) x[l] = std::sqrt(x[l]);  // one vector sqrt (-fno-math-errno)
+    return x;
+}
+template <typename T>
+inline T vmax(T a, T b) {
+    return a > b ? a : b;
+}
+template <typename T>
+inline T vmin(T a, T b) {
+    return a < b ? a : b;
+}
+// b where m else a, for a mask or a bool m (GCC vectors: a lane mask; scalars: a bool)
+template <typename T, typename Mask>
+inline T select(Mask m, T a, T b) {
+    return m ? b : a;
+}
+
 // Rotation matrix (row-major) of the normalised quaternion q (wxyz); qn receives the unit quaternion and
 // the norm is clamped at 1e-12 as in project.py.
-inline void quat_rotmat(const float* q, float* qn, float* Rq) {
-    const float n = std::max(std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), 1e-12f);
+template <typename T>
+inline void quat_rotmat(const T* q, T* qn, T* Rq) {
+    const T n = vmax<T>(vsqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]), T{} + 1e-12f);
     for (int i = 0; i < 4; ++i) qn[i] = q[i] / n;
-    const float w = qn[0], x = qn[1], y = qn[2], z = qn[3];
+    const T w = qn[0], x = qn[1], y = qn[2], z = qn[3];
     Rq[0] = 1 - 2 * (y * y + z * z); Rq[1] = 2 * (x * y - w * z); Rq[2] = 2 * (x * z + w * y);
     Rq[3] = 2 * (x * y + w * z); Rq[4] = 1 - 2 * (x * x + z * z); Rq[5] = 2 * (y * z - w * x);
     Rq[6] = 2 * (x * z - w * y); Rq[7] = 2 * (y * z + w * x); Rq[8] = 1 - 2 * (x * x + y * y);
 }
 
-// Everything the forward computes for one (camera, Gaussian); backward recomputes it.
+// Everything the forward computes for one (camera, Gaussian), or LANES of them; backward recomputes it.
+template <typename T>
 struct Proj {
-    float p[3], zs, u, v, uc, vc;
-    bool in_depth;
-    float J[6], RM[9], A[6], qn[4], Rq[9];
-    float m2[2], conic[3], s;  // s: the normalisation of A, also the scale of the 2D covariance
-    float a, b, c;             // normalised covariance entries (covariance = s [[a, b], [b, c]])
+    using Mask = decltype(T{} < T{});
+    T p[3], zs, u, v, uc, vc;
+    Mask in_depth;
+    T J[6], RM[9], A[6], qn[4], Rq[9];
+    T m2[2], conic[3], s;  // s: the normalisation of A, also the scale of the 2D covariance
+    T a, b, c;             // normalised covariance entries (covariance = s [[a, b], [b, c]])
 };
 
-inline void project_one(const Camera& cam, const float* x, const float* q, const float* sc, float near, float far,
-                        float eps2d, Proj& r) {
+template <typename T>
+inline void project_one(const Camera& cam, const T* x, const T* q, const T* sc, float near, float far, float eps2d,
+                        Proj<T>& r) {
     for (int i = 0; i < 3; ++i)
         r.p[i] = cam.R[3 * i] * x[0] + cam.R[3 * i + 1] * x[1] + cam.R[3 * i + 2] * x[2] + cam.t[i];
-    const float z = r.p[2];
-    r.in_depth = z > near && z < far;
-    r.zs = r.in_depth ? z : 1.0f;  // culled Gaussians get a harmless z
+    const T z = r.p[2];
+    r.in_depth = (z > near) & (z < far);
+    r.zs = select(r.in_depth, T{} + 1.0f, z);  // culled Gaussians get a harmless z
     r.u = r.p[0] / r.zs;
     r.v = r.p[1] / r.zs;
     r.m2[0] = cam.fx * r.u + cam.cx;
     r.m2[1] = cam.fy * r.v + cam.cy;
-    r.uc = std::max(std::min(r.u, cam.hi_u), cam.lo_u);
-    r.vc = std::max(std::min(r.v, cam.hi_v), cam.lo_v);
-    r.J[0] = cam.fx / r.zs; r.J[1] = 0; r.J[2] = -cam.fx * r.uc / r.zs;
-    r.J[3] = 0; r.J[4] = cam.fy / r.zs; r.J[5] = -cam.fy * r.vc / r.zs;
-    quat_rotmat(q, r.qn, r.Rq);
-    float M[9];
+    r.uc = vmax<T>(vmin<T>(r.u, T{} + cam.hi_u), T{} + cam.lo_u);
+    r.vc = vmax<T>(vmin<T>(r.v, T{} + cam.hi_v), T{} + cam.lo_v);
+    r.J[0] = cam.fx / r.zs; r.J[1] = T{}; r.J[2] = -cam.fx * r.uc / r.zs;
+    r.J[3] = T{}; r.J[4] = cam.fy / r.zs; r.J[5] = -cam.fy * r.vc / r.zs;
+    quat_rotmat<T>(q, r.qn, r.Rq);
+    T M[9];
     for (int i = 0; i < 3; ++i)
         for (int k = 0; k < 3; ++k) M[3 * i + k] = r.Rq[3 * i + k] * sc[k];
     for (int i = 0; i < 3; ++i)
@@ -218,11 +254,11 @@ inline void project_one(const Camera& cam, const float* x, const float* q, const
             r.A[3 * i + k] = r.J[3 * i] * r.RM[k] + r.J[3 * i + 1] * r.RM[3 + k] + r.J[3 * i + 2] * r.RM[6 + k];
     // Covariance A A^T + eps I, normalised by its overall size s (no overflow for huge Gaussians), with
     // the determinant from the Lagrange identity (no cancellation for needles), as in project.py.
-    float ss = eps2d;
+    T ss = T{} + eps2d;
     for (int i = 0; i < 6; ++i) ss += r.A[i] * r.A[i];
     r.s = ss;
-    const float inv = 1.0f / std::sqrt(ss), e = eps2d / ss;
-    float a1[3], a2[3];
+    const T inv = 1.0f / vsqrt(ss), e = eps2d / ss;
+    T a1[3], a2[3];
     for (int k = 0; k < 3; ++k) {
         a1[k] = r.A[k] * inv;
         a2[k] = r.A[3 + k] * inv;
@@ -230,44 +266,170 @@ inline void project_one(const Camera& cam, const float* x, const float* q, const
     r.a = a1[0] * a1[0] + a1[1] * a1[1] + a1[2] * a1[2] + e;
     r.c = a2[0] * a2[0] + a2[1] * a2[1] + a2[2] * a2[2] + e;
     r.b = a1[0] * a2[0] + a1[1] * a2[1] + a1[2] * a2[2];
-    const float cx = a1[1] * a2[2] - a1[2] * a2[1], cy = a1[2] * a2[0] - a1[0] * a2[2], cz = a1[0] * a2[1] - a1[1] * a2[0];
-    const float det = cx * cx + cy * cy + cz * cz + e * (r.a + r.c - 2 * e) + e * e;
-    const float denom = std::max(det * ss, 1.17549435e-38f);
+    const T cx = a1[1] * a2[2] - a1[2] * a2[1], cy = a1[2] * a2[0] - a1[0] * a2[2], cz = a1[0] * a2[1] - a1[1] * a2[0];
+    const T det = cx * cx + cy * cy + cz * cz + e * (r.a + r.c - 2 * e) + e * e;
+    const T denom = vmax<T>(det * ss, T{} + 1.17549435e-38f);
     r.conic[0] = r.c / denom;
     r.conic[1] = -r.b / denom;
     r.conic[2] = r.a / denom;
+}
+
+// LANES Gaussians n0 .. n0 + LANES - 1 of camera c (lanes past N repeat the last Gaussian and are not
+// stored): the projection and the opacity-aware footprint.
+void project_lanes(const Camera& cam, int64_t c, int64_t n0, int64_t N, const float* means, const float* quats,
+                   const float* scales, const float* opac, int64_t W, int64_t H, float near, float far, float eps2d,
+                   float alpha_min, float* means2d, float* conics, float* depths, float* extents, uint8_t* valid) {
+    VF x[3], q[4], sc[3], o;
+    for (int l = 0; l < LANES; ++l) {
+        const int64_t n = std::min<int64_t>(n0 + l, N - 1);
+        for (int i = 0; i < 3; ++i) x[i][l] = means[3 * n + i], sc[i][l] = scales[3 * n + i];
+        for (int i = 0; i < 4; ++i) q[i][l] = quats[4 * n + i];
+        o[l] = opac[n];
+    }
+    Proj<VF> r;
+    project_one<VF>(cam, x, q, sc, near, far, eps2d, r);
+    // opacity-aware footprint: o exp(-q/2) >= alpha_min <=> q <= 2 ln(o / alpha_min)
+    VF thr = vmax<VF>(o / alpha_min, VF{} + 1.0f);
+    for (int l = 0; l < LANES; ++l) thr[l] = 2.0f * std::log(thr[l]);
+    const VF ex = vsqrt(thr * r.a * r.s) * 1.001f + 1e-3f;
+    const VF ey = vsqrt(thr * r.c * r.s) * 1.001f + 1e-3f;
+    for (int l = 0; l < LANES && n0 + l < N; ++l) {
+        const int64_t cn = c * N + n0 + l;
+        means2d[2 * cn] = r.m2[0][l];
+        means2d[2 * cn + 1] = r.m2[1][l];
+        for (int i = 0; i < 3; ++i) conics[3 * cn + i] = r.conic[i][l];
+        depths[cn] = r.p[2][l];
+        bool ok = r.in_depth[l] && o[l] >= alpha_min && std::isfinite(ex[l]) && std::isfinite(ey[l]);
+        ok = ok && r.m2[0][l] + ex[l] > 0.5f && r.m2[0][l] - ex[l] < static_cast<float>(W) - 0.5f;
+        ok = ok && r.m2[1][l] + ey[l] > 0.5f && r.m2[1][l] - ey[l] < static_cast<float>(H) - 0.5f;
+        valid[cn] = ok ? 1 : 0;
+        extents[2 * cn] = ok ? ex[l] : 0.0f;
+        extents[2 * cn + 1] = ok ? ey[l] : 0.0f;
+    }
 }
 
 void project_forward(int64_t C, int64_t N, const float* means, const float* quats, const float* scales,
                      const float* opac, const float* cams, const float* Ks, int64_t W, int64_t H, float near,
                      float far, float eps2d, float alpha_min, float* means2d, float* conics, float* depths,
                      float* extents, uint8_t* valid, int64_t num_threads) {
+    const int64_t blocks = (N + LANES - 1) / LANES;
     const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, N / 2048 + 1));
     uskern::run_workers(workers, [&](int64_t w) {
-        Proj r;
         for (int64_t c = 0; c < C; ++c) {
             const Camera cam = load_camera(cams + 16 * c, Ks + 9 * c, W, H);
-            for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n) {
-                project_one(cam, means + 3 * n, quats + 4 * n, scales + 3 * n, near, far, eps2d, r);
-                const int64_t cn = c * N + n;
-                means2d[2 * cn] = r.m2[0];
-                means2d[2 * cn + 1] = r.m2[1];
-                for (int i = 0; i < 3; ++i) conics[3 * cn + i] = r.conic[i];
-                depths[cn] = r.p[2];
-                // opacity-aware footprint: o exp(-q/2) >= alpha_min <=> q <= 2 ln(o / alpha_min)
-                const float o = opac[n];
-                const float thr = 2.0f * std::log(std::max(o / alpha_min, 1.0f));
-                const float ex = std::sqrt(thr * r.a * r.s) * 1.001f + 1e-3f;
-                const float ey = std::sqrt(thr * r.c * r.s) * 1.001f + 1e-3f;
-                bool ok = r.in_depth && o >= alpha_min && std::isfinite(ex) && std::isfinite(ey);
-                ok = ok && r.m2[0] + ex > 0.5f && r.m2[0] - ex < static_cast<float>(W) - 0.5f;
-                ok = ok && r.m2[1] + ey > 0.5f && r.m2[1] - ey < static_cast<float>(H) - 0.5f;
-                valid[cn] = ok ? 1 : 0;
-                extents[2 * cn] = ok ? ex : 0.0f;
-                extents[2 * cn + 1] = ok ? ey : 0.0f;
-            }
+            for (int64_t blk = blocks * w / workers; blk < blocks * (w + 1) / workers; ++blk)
+                project_lanes(cam, c, blk * LANES, N, means, quats, scales, opac, W, H, near, far, eps2d, alpha_min,
+                              means2d, conics, depths, extents, valid);
         }
     });
+}
+
+inline bool any_lane(bool m) { return m; }
+inline bool any_lane(decltype(VF{} < VF{}) m) {
+    for (int l = 0; l < LANES; ++l)
+        if (m[l]) return true;
+    return false;
+}
+
+// Gradients of LANES Gaussians n0 .. n0 + LANES - 1 (lanes past N get no gradient and are not stored) w.r.t.
+// means, quats and scales from those of means2d [C,N,2], conics [C,N,3] and depths [C,N] (any may be null).
+// A (camera, Gaussian) whose incoming gradients are all 0 contributes nothing (its projection may not be
+// finite), as a lane mask.
+void project_backward_lanes(int64_t C, int64_t N, int64_t n0, const float* means, const float* quats,
+                            const float* scales, const float* cams, const float* Ks, int64_t W, int64_t H, float near,
+                            float far, float eps2d, const float* g_means2d, const float* g_conics,
+                            const float* g_depths, float* g_means, float* g_quats, float* g_scales) {
+    using T = VF;
+    T x[3], q[4], sc[3];
+    for (int l = 0; l < LANES; ++l) {
+        const int64_t n = std::min<int64_t>(n0 + l, N - 1);
+        for (int i = 0; i < 3; ++i) x[i][l] = means[3 * n + i], sc[i][l] = scales[3 * n + i];
+        for (int i = 0; i < 4; ++i) q[i][l] = quats[4 * n + i];
+    }
+    T gx[3] = {}, gRq[9] = {}, gs[3] = {};
+    Proj<T> r;
+    bool projected = false;
+    for (int64_t c = 0; c < C; ++c) {
+        T gm0{}, gm1{}, gk0{}, gk1{}, gk2{}, gz{};
+        for (int l = 0; l < LANES && n0 + l < N; ++l) {
+            const int64_t cn = c * N + n0 + l;
+            if (g_means2d) gm0[l] = g_means2d[2 * cn], gm1[l] = g_means2d[2 * cn + 1];
+            if (g_conics) gk0[l] = g_conics[3 * cn], gk1[l] = g_conics[3 * cn + 1], gk2[l] = g_conics[3 * cn + 2];
+            if (g_depths) gz[l] = g_depths[cn];
+        }
+        const auto act = (gm0 != 0) | (gm1 != 0) | (gk0 != 0) | (gk1 != 0) | (gk2 != 0) | (gz != 0);
+        if (!any_lane(act)) continue;
+        const Camera cam = load_camera(cams + 16 * c, Ks + 9 * c, W, H);
+        project_one<T>(cam, x, q, sc, near, far, eps2d, r);
+        projected = true;
+        // d loss / d Sigma = -K G K, G = [[gk0, gk1 / 2], [gk1 / 2, gk2]] (b is both off-diagonals)
+        const T k0 = r.conic[0], k1 = r.conic[1], k2 = r.conic[2];
+        const T h = 0.5f * gk1;
+        const T t00 = k0 * gk0 + k1 * h, t01 = k0 * h + k1 * gk2;  // K G
+        const T t10 = k1 * gk0 + k2 * h, t11 = k1 * h + k2 * gk2;
+        const T S00 = -(t00 * k0 + t01 * k1), S01 = -(t00 * k1 + t01 * k2);
+        const T S11 = -(t10 * k1 + t11 * k2);
+        // Sigma = A A^T + eps I: d loss / d A = 2 S A
+        T gA[6];
+        for (int k = 0; k < 3; ++k) {
+            gA[k] = 2.0f * (S00 * r.A[k] + S01 * r.A[3 + k]);
+            gA[3 + k] = 2.0f * (S01 * r.A[k] + S11 * r.A[3 + k]);
+        }
+        // A = J RM: d J = gA RM^T, d RM = J^T gA
+        T gJ[6], gRM[9];
+        for (int i = 0; i < 2; ++i)
+            for (int j = 0; j < 3; ++j)
+                gJ[3 * i + j] = gA[3 * i] * r.RM[3 * j] + gA[3 * i + 1] * r.RM[3 * j + 1] + gA[3 * i + 2] * r.RM[3 * j + 2];
+        for (int j = 0; j < 3; ++j)
+            for (int k = 0; k < 3; ++k) gRM[3 * j + k] = r.J[j] * gA[k] + r.J[3 + j] * gA[3 + k];
+        // RM = R M: d M = R^T d RM; M = Rq diag(s)
+        for (int i = 0; i < 3; ++i)
+            for (int k = 0; k < 3; ++k) {
+                const T gM = cam.R[i] * gRM[k] + cam.R[3 + i] * gRM[3 + k] + cam.R[6 + i] * gRM[6 + k];
+                gRq[3 * i + k] += select(act, T{}, gM * sc[k]);
+                gs[k] += select(act, T{}, gM * r.Rq[3 * i + k]);
+            }
+        // J entries -> zs, uc, vc; then u, v, p
+        const T zs = r.zs, iz = 1.0f / zs, iz2 = iz * iz;
+        T gzs = gJ[0] * (-cam.fx * iz2) + gJ[2] * (cam.fx * r.uc * iz2) + gJ[4] * (-cam.fy * iz2) +
+                gJ[5] * (cam.fy * r.vc * iz2);
+        const T guc = gJ[2] * (-cam.fx * iz), gvc = gJ[5] * (-cam.fy * iz);
+        const T gu = gm0 * cam.fx + select((r.u > cam.lo_u) & (r.u < cam.hi_u), T{}, guc);
+        const T gv = gm1 * cam.fy + select((r.v > cam.lo_v) & (r.v < cam.hi_v), T{}, gvc);
+        gzs += -(gu * r.p[0] + gv * r.p[1]) * iz2;
+        const T gp[3] = {gu * iz, gv * iz, gz + select(r.in_depth, T{}, gzs)};
+        for (int j = 0; j < 3; ++j)
+            gx[j] += select(act, T{}, cam.R[j] * gp[0] + cam.R[3 + j] * gp[1] + cam.R[6 + j] * gp[2]);
+    }
+    // Rq(qn) -> qn -> q (through the normalisation, blocked where the norm was clamped). r holds these
+    // Gaussians' unit quaternions whenever some camera contributed (otherwise every gradient is 0).
+    auto any = gRq[0] != 0;
+    for (int i = 1; i < 9; ++i) any = any | (gRq[i] != 0);
+    T gq4[4] = {};
+    if (projected && any_lane(any)) {
+        const T qw = r.qn[0], qx = r.qn[1], qy = r.qn[2], qz = r.qn[3];
+        const T* G = gRq;
+        T gq[4];
+        gq[0] = 2 * (-qz * G[1] + qy * G[2] + qz * G[3] - qx * G[5] - qy * G[6] + qx * G[7]);
+        gq[1] = 2 * (qy * G[1] + qz * G[2] + qy * G[3] - 2 * qx * G[4] - qw * G[5] + qz * G[6] + qw * G[7] -
+                     2 * qx * G[8]);
+        gq[2] = 2 * (-2 * qy * G[0] + qx * G[1] + qw * G[2] + qx * G[3] + qz * G[5] - qw * G[6] + qz * G[7] -
+                     2 * qy * G[8]);
+        gq[3] = 2 * (-2 * qz * G[0] - qw * G[1] + qx * G[2] + qw * G[3] - 2 * qz * G[4] + qy * G[5] +
+                     qx * G[6] + qy * G[7]);
+        const T raw = vsqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+        const T dot = select(raw >= 1e-12f, T{}, gq[0] * qw + gq[1] * qx + gq[2] * qy + gq[3] * qz);
+        const T nq = vmax<T>(raw, T{} + 1e-12f);
+        for (int i = 0; i < 4; ++i) gq4[i] = select(any, T{}, (gq[i] - r.qn[i] * dot) / nq);
+    }
+    for (int l = 0; l < LANES && n0 + l < N; ++l) {
+        const int64_t n = n0 + l;
+        for (int i = 0; i < 4; ++i) g_quats[4 * n + i] = gq4[i][l];
+        for (int j = 0; j < 3; ++j) {
+            g_means[3 * n + j] = gx[j][l];
+            g_scales[3 * n + j] = gs[j][l];
+        }
+    }
 }
 
 // Gradients w.r.t. means, quats and scales (overwritten) from those of means2d [C,N,2], conics [C,N,3]
@@ -276,90 +438,12 @@ void project_backward(int64_t C, int64_t N, const float* means, const float* qua
                       const float* cams, const float* Ks, int64_t W, int64_t H, float near, float far, float eps2d,
                       const float* g_means2d, const float* g_conics, const float* g_depths, float* g_means,
                       float* g_quats, float* g_scales, int64_t num_threads) {
+    const int64_t blocks = (N + LANES - 1) / LANES;
     const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, N / 2048 + 1));
     uskern::run_workers(workers, [&](int64_t w) {
-        Proj r;
-        for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n) {
-            float gx[3] = {0, 0, 0}, gRq[9] = {0, 0, 0, 0, 0, 0, 0, 0, 0}, gs[3] = {0, 0, 0};
-            const float* sc = scales + 3 * n;
-            for (int64_t c = 0; c < C; ++c) {
-                const int64_t cn = c * N + n;
-                const float gm0 = g_means2d ? g_means2d[2 * cn] : 0.0f, gm1 = g_means2d ? g_means2d[2 * cn + 1] : 0.0f;
-                const float gk0 = g_conics ? g_conics[3 * cn] : 0.0f, gk1 = g_conics ? g_conics[3 * cn + 1] : 0.0f;
-                const float gk2 = g_conics ? g_conics[3 * cn + 2] : 0.0f, gz = g_depths ? g_depths[cn] : 0.0f;
-                if (gm0 == 0 && gm1 == 0 && gk0 == 0 && gk1 == 0 && gk2 == 0 && gz == 0) continue;
-                const Camera cam = load_camera(cams + 16 * c, Ks + 9 * c, W, H);
-                project_one(cam, means + 3 * n, quats + 4 * n, sc, near, far, eps2d, r);
-                // d loss / d Sigma = -K G K, G = [[gk0, gk1 / 2], [gk1 / 2, gk2]] (b is both off-diagonals)
-                const float k0 = r.conic[0], k1 = r.conic[1], k2 = r.conic[2];
-                const float h = 0.5f * gk1;
-                const float t00 = k0 * gk0 + k1 * h, t01 = k0 * h + k1 * gk2;  // K G
-                const float t10 = k1 * gk0 + k2 * h, t11 = k1 * h + k2 * gk2;
-                const float S00 = -(t00 * k0 + t01 * k1), S01 = -(t00 * k1 + t01 * k2);
-                const float S11 = -(t10 * k1 + t11 * k2);
-                // Sigma = A A^T + eps I: d loss / d A = 2 S A
-                float gA[6];
-                for (int k = 0; k < 3; ++k) {
-                    gA[k] = 2.0f * (S00 * r.A[k] + S01 * r.A[3 + k]);
-                    gA[3 + k] = 2.0f * (S01 * r.A[k] + S11 * r.A[3 + k]);
-                }
-                // A = J RM: d J = gA RM^T, d RM = J^T gA
-                float gJ[6], gRM[9];
-                for (int i = 0; i < 2; ++i)
-                    for (int j = 0; j < 3; ++j)
-                        gJ[3 * i + j] = gA[3 * i] * r.RM[3 * j] + gA[3 * i + 1] * r.RM[3 * j + 1] + gA[3 * i + 2] * r.RM[3 * j + 2];
-                for (int j = 0; j < 3; ++j)
-                    for (int k = 0; k < 3; ++k) gRM[3 * j + k] = r.J[j] * gA[k] + r.J[3 + j] * gA[3 + k];
-                // RM = R M: d M = R^T d RM; M = Rq diag(s)
-                for (int i = 0; i < 3; ++i)
-                    for (int k = 0; k < 3; ++k) {
-                        const float gM = cam.R[i] * gRM[k] + cam.R[3 + i] * gRM[3 + k] + cam.R[6 + i] * gRM[6 + k];
-                        gRq[3 * i + k] += gM * sc[k];
-                        gs[k] += gM * r.Rq[3 * i + k];
-                    }
-                // J entries -> zs, uc, vc; then u, v, p
-                const float zs = r.zs, iz = 1.0f / zs, iz2 = iz * iz;
-                float gzs = gJ[0] * (-cam.fx * iz2) + gJ[2] * (cam.fx * r.uc * iz2) + gJ[4] * (-cam.fy * iz2) +
-                            gJ[5] * (cam.fy * r.vc * iz2);
-                const float guc = gJ[2] * (-cam.fx * iz), gvc = gJ[5] * (-cam.fy * iz);
-                float gu = gm0 * cam.fx + ((r.u > cam.lo_u && r.u < cam.hi_u) ? guc : 0.0f);
-                float gv = gm1 * cam.fy + ((r.v > cam.lo_v && r.v < cam.hi_v) ? gvc : 0.0f);
-                gzs += -(gu * r.p[0] + gv * r.p[1]) * iz2;
-                float gp[3] = {gu * iz, gv * iz, gz + (r.in_depth ? gzs : 0.0f)};
-                for (int j = 0; j < 3; ++j) gx[j] += cam.R[j] * gp[0] + cam.R[3 + j] * gp[1] + cam.R[6 + j] * gp[2];
-            }
-            // Rq(qn) -> qn -> q (through the normalisation, blocked where the norm was clamped). r holds
-            // this Gaussian's values whenever some camera contributed (otherwise every gradient is 0).
-            bool any = false;
-            for (int i = 0; i < 9; ++i) any = any || gRq[i] != 0.0f;
-            if (any) {
-                const float qw = r.qn[0], qx = r.qn[1], qy = r.qn[2], qz = r.qn[3];
-                const float* G = gRq;
-                float gq[4];
-                gq[0] = 2 * (-qz * G[1] + qy * G[2] + qz * G[3] - qx * G[5] - qy * G[6] + qx * G[7]);
-                gq[1] = 2 * (qy * G[1] + qz * G[2] + qy * G[3] - 2 * qx * G[4] - qw * G[5] + qz * G[6] + qw * G[7] -
-                             2 * qx * G[8]);
-                gq[2] = 2 * (-2 * qy * G[0] + qx * G[1] + qw * G[2] + qx * G[3] + qz * G[5] - qw * G[6] + qz * G[7] -
-                             2 * qy * G[8]);
-                gq[3] = 2 * (-2 * qz * G[0] - qw * G[1] + qx * G[2] + qw * G[3] - 2 * qz * G[4] + qy * G[5] +
-                             qx * G[6] + qy * G[7]);
-                const float* q = quats + 4 * n;
-                const float raw = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-                const float dot = raw >= 1e-12f ? gq[0] * qw + gq[1] * qx + gq[2] * qy + gq[3] * qz : 0.0f;
-                const float nq = std::max(raw, 1e-12f);
-                float* go = g_quats + 4 * n;
-                go[0] = (gq[0] - qw * dot) / nq;
-                go[1] = (gq[1] - qx * dot) / nq;
-                go[2] = (gq[2] - qy * dot) / nq;
-                go[3] = (gq[3] - qz * dot) / nq;
-            } else {
-                std::fill(g_quats + 4 * n, g_quats + 4 * n + 4, 0.0f);
-            }
-            for (int j = 0; j < 3; ++j) {
-                g_means[3 * n + j] = gx[j];
-                g_scales[3 * n + j] = gs[j];
-            }
-        }
+        for (int64_t blk = blocks * w / workers; blk < blocks * (w + 1) / workers; ++blk)
+            project_backward_lanes(C, N, blk * LANES, means, quats, scales, cams, Ks, W, H, near, far, eps2d,
+                                   g_means2d, g_conics, g_depths, g_means, g_quats, g_scales);
     });
 }
 
