@@ -15,166 +15,9 @@
 
 namespace {
 
-constexpr float SH_C0 = 0.28209479177387814f;
-constexpr float SH_C1 = 0.4886025119029199f;
-constexpr float SH_C2[5] = {1.0925484305920792f, -1.0925484305920792f, 0.31539156525252005f, -1.0925484305920792f,
-                            0.5462742152960396f};
-constexpr float SH_C3[7] = {-0.5900435899266435f, 2.890611442640554f, -0.4570457994644658f, 0.3731763325901154f,
-                            -0.4570457994644658f, 1.445305721320277f, -0.5900435899266435f};
-
-// Basis values Y[0..nb) at the unit direction (x, y, z) and, when dY is given, their partial
-// derivatives w.r.t. x, y, z (dY[b][0..3)), treating the components as independent.
-inline void sh_basis(int degree, float x, float y, float z, float* Y, float (*dY)[3]) {
-    Y[0] = SH_C0;
-    if (dY) dY[0][0] = dY[0][1] = dY[0][2] = 0.0f;
-    if (degree < 1) return;
-    Y[1] = -SH_C1 * y;
-    Y[2] = SH_C1 * z;
-    Y[3] = -SH_C1 * x;
-    if (dY) {
-        dY[1][0] = 0; dY[1][1] = -SH_C1; dY[1][2] = 0;
-        dY[2][0] = 0; dY[2][1] = 0; dY[2][2] = SH_C1;
-        dY[3][0] = -SH_C1; dY[3][1] = 0; dY[3][2] = 0;
-    }
-    if (degree < 2) return;
-    const float xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
-    Y[4] = SH_C2[0] * xy;
-    Y[5] = SH_C2[1] * yz;
-    Y[6] = SH_C2[2] * (2.0f * zz - xx - yy);
-    Y[7] = SH_C2[3] * xz;
-    Y[8] = SH_C2[4] * (xx - yy);
-    if (dY) {
-        dY[4][0] = SH_C2[0] * y; dY[4][1] = SH_C2[0] * x; dY[4][2] = 0;
-        dY[5][0] = 0; dY[5][1] = SH_C2[1] * z; dY[5][2] = SH_C2[1] * y;
-        dY[6][0] = -2.0f * SH_C2[2] * x; dY[6][1] = -2.0f * SH_C2[2] * y; dY[6][2] = 4.0f * SH_C2[2] * z;
-        dY[7][0] = SH_C2[3] * z; dY[7][1] = 0; dY[7][2] = SH_C2[3] * x;
-        dY[8][0] = 2.0f * SH_C2[4] * x; dY[8][1] = -2.0f * SH_C2[4] * y; dY[8][2] = 0;
-    }
-    if (degree < 3) return;
-    Y[9] = SH_C3[0] * y * (3.0f * xx - yy);
-    Y[10] = SH_C3[1] * xy * z;
-    Y[11] = SH_C3[2] * y * (4.0f * zz - xx - yy);
-    Y[12] = SH_C3[3] * z * (2.0f * zz - 3.0f * xx - 3.0f * yy);
-    Y[13] = SH_C3[4] * x * (4.0f * zz - xx - yy);
-    Y[14] = SH_C3[5] * z * (xx - yy);
-    Y[15] = SH_C3[6] * x * (xx - 3.0f * yy);
-    if (dY) {
-        dY[9][0] = SH_C3[0] * 6.0f * xy; dY[9][1] = SH_C3[0] * (3.0f * xx - 3.0f * yy); dY[9][2] = 0;
-        dY[10][0] = SH_C3[1] * yz; dY[10][1] = SH_C3[1] * xz; dY[10][2] = SH_C3[1] * xy;
-        dY[11][0] = SH_C3[2] * -2.0f * xy; dY[11][1] = SH_C3[2] * (4.0f * zz - xx - 3.0f * yy);
-        dY[11][2] = SH_C3[2] * 8.0f * yz;
-        dY[12][0] = SH_C3[3] * -6.0f * xz; dY[12][1] = SH_C3[3] * -6.0f * yz;
-        dY[12][2] = SH_C3[3] * (6.0f * zz - 3.0f * xx - 3.0f * yy);
-        dY[13][0] = SH_C3[4] * (4.0f * zz - 3.0f * xx - yy); dY[13][1] = SH_C3[4] * -2.0f * xy;
-        dY[13][2] = SH_C3[4] * 8.0f * xz;
-        dY[14][0] = SH_C3[5] * 2.0f * xz; dY[14][1] = SH_C3[5] * -2.0f * yz; dY[14][2] = SH_C3[5] * (xx - yy);
-        dY[15][0] = SH_C3[6] * (3.0f * xx - 3.0f * yy); dY[15][1] = SH_C3[6] * -6.0f * xy; dY[15][2] = 0;
-    }
-}
-
-// Unit direction from the camera centre to the mean; the norm is clamped at 1e-12 as in sh.py.
-inline float view_dir(const float* mean, const float* centre, float* d) {
-    const float vx = mean[0] - centre[0], vy = mean[1] - centre[1], vz = mean[2] - centre[2];
-    const float n = std::max(std::sqrt(vx * vx + vy * vy + vz * vz), 1e-12f);
-    d[0] = vx / n;
-    d[1] = vy / n;
-    d[2] = vz / n;
-    return n;
-}
-
-void sh_forward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, const float* means,
-                const float* centres, float* out, int64_t num_threads) {
-    const int nb = (degree + 1) * (degree + 1);
-    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, N / 2048 + 1));
-    uskern::run_workers(workers, [&](int64_t w) {
-        float Y[16], d[3] = {0.0f, 0.0f, 0.0f};
-        for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n) {
-            const float* s = sh + n * B * 3;
-            for (int64_t c = 0; c < C; ++c) {
-                if (degree > 0) view_dir(means + 3 * n, centres + 3 * c, d);
-                sh_basis(degree, d[0], d[1], d[2], Y, nullptr);
-                float* o = out + (c * N + n) * 3;
-                for (int k = 0; k < 3; ++k) {
-                    float v = 0.5f;
-                    for (int b = 0; b < nb; ++b) v += Y[b] * s[b * 3 + k];
-                    o[k] = v > 0.0f ? v : 0.0f;
-                }
-            }
-        }
-    });
-}
-
-// g_sh [N,B,3] and g_means [N,3] are overwritten (bases above the degree get 0).
-void sh_backward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, const float* means,
-                 const float* centres, const float* g_out, float* g_sh, float* g_means, int64_t num_threads) {
-    const int nb = (degree + 1) * (degree + 1);
-    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, N / 2048 + 1));
-    uskern::run_workers(workers, [&](int64_t w) {
-        float Y[16], dY[16][3], d[3] = {0.0f, 0.0f, 0.0f};
-        for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n) {
-            const float* s = sh + n * B * 3;
-            float* gs = g_sh + n * B * 3;
-            std::fill(gs, gs + B * 3, 0.0f);
-            float gm[3] = {0.0f, 0.0f, 0.0f};
-            for (int64_t c = 0; c < C; ++c) {
-                const float* g = g_out + (c * N + n) * 3;
-                if (g[0] == 0.0f && g[1] == 0.0f && g[2] == 0.0f) continue;
-                float norm = 1.0f;
-                if (degree > 0) norm = view_dir(means + 3 * n, centres + 3 * c, d);
-                sh_basis(degree, d[0], d[1], d[2], Y, degree > 0 ? dY : nullptr);
-                float gk[3];
-                for (int k = 0; k < 3; ++k) {  // the clamp at 0 passes the gradient where the value is >= 0
-                    float v = 0.5f;
-                    for (int b = 0; b < nb; ++b) v += Y[b] * s[b * 3 + k];
-                    gk[k] = v >= 0.0f ? g[k] : 0.0f;
-                }
-                float gd[3] = {0.0f, 0.0f, 0.0f};
-                for (int b = 0; b < nb; ++b) {
-                    float dv = 0.0f;  // d loss / d Y_b
-                    for (int k = 0; k < 3; ++k) {
-                        gs[b * 3 + k] += gk[k] * Y[b];
-                        dv += gk[k] * s[b * 3 + k];
-                    }
-                    if (degree > 0)
-                        for (int i = 0; i < 3; ++i) gd[i] += dv * dY[b][i];
-                }
-                if (degree > 0) {  // through d = v / |v|: (gd - d (d . gd)) / |v|
-                    const float dot = gd[0] * d[0] + gd[1] * d[1] + gd[2] * d[2];
-                    for (int i = 0; i < 3; ++i) gm[i] += (gd[i] - d[i] * dot) / norm;
-                }
-            }
-            for (int i = 0; i < 3; ++i) g_means[3 * n + i] = gm[i];
-        }
-    });
-}
-
-
-// ------------------------------------------------------------------------------------- projection
-struct Camera {
-    float R[9], t[3], fx, fy, cx, cy, lo_u, hi_u, lo_v, hi_v;
-};
-
-inline Camera load_camera(const float* cam, const float* K, int64_t W, int64_t H) {
-    Camera c;
-    for (int i = 0; i < 3; ++i) {
-        for (int j = 0; j < 3; ++j) c.R[3 * i + j] = cam[4 * i + j];
-        c.t[i] = cam[4 * i + 3];
-    }
-    c.fx = K[0];
-    c.fy = K[4];
-    c.cx = K[2];
-    c.cy = K[5];
-    // the view angle at which the Jacobian is evaluated is clamped to 1.3x the field of view (3DGS)
-    c.hi_u = (static_cast<float>(W) - c.cx) / c.fx + 0.15f * static_cast<float>(W) / c.fx;
-    c.lo_u = -c.cx / c.fx - 0.15f * static_cast<float>(W) / c.fx;
-    c.hi_v = (static_cast<float>(H) - c.cy) / c.fy + 0.15f * static_cast<float>(H) / c.fy;
-    c.lo_v = -c.cy / c.fy - 0.15f * static_cast<float>(H) / c.fy;
-    return c;
-}
-
-// The projection is written once for T = float (one Gaussian: the backward's recomputation) and for T = a
-// vector of LANES floats (LANES Gaussians at once: the forward). Comparisons give bool or a lane mask, and
-// `m ? a : b` selects per lane for both; these helpers cover the rest.
+// SH colours and the projection are written once for T = float (one Gaussian) or a vector of LANES floats
+// (LANES Gaussians at once, what the kernels run). Comparisons give bool or a lane mask, and `m ? a : b`
+// selects per lane for both; these helpers cover the rest.
 #if defined(__AVX512F__)
 constexpr int LANES = 16;
 #elif defined(__AVX__)
@@ -201,6 +44,194 @@ inline T vmin(T a, T b) {
 template <typename T, typename Mask>
 inline T select(Mask m, T a, T b) {
     return m ? b : a;
+}
+
+// A float as a T.
+template <typename T>
+inline T bc(float v) {
+    return T{} + v;
+}
+
+constexpr float SH_C0 = 0.28209479177387814f;
+constexpr float SH_C1 = 0.4886025119029199f;
+constexpr float SH_C2[5] = {1.0925484305920792f, -1.0925484305920792f, 0.31539156525252005f, -1.0925484305920792f,
+                            0.5462742152960396f};
+constexpr float SH_C3[7] = {-0.5900435899266435f, 2.890611442640554f, -0.4570457994644658f, 0.3731763325901154f,
+                            -0.4570457994644658f, 1.445305721320277f, -0.5900435899266435f};
+
+// Basis values Y[0..nb) at the unit direction (x, y, z) and, when dY is given, their partial
+// derivatives w.r.t. x, y, z (dY[b][0..3)), treating the components as independent.
+template <typename T>
+inline void sh_basis(int degree, T x, T y, T z, T* Y, T (*dY)[3]) {
+    Y[0] = bc<T>(SH_C0);
+    if (dY) dY[0][0] = dY[0][1] = dY[0][2] = T{};
+    if (degree < 1) return;
+    Y[1] = -SH_C1 * y;
+    Y[2] = SH_C1 * z;
+    Y[3] = -SH_C1 * x;
+    if (dY) {
+        dY[1][0] = T{}; dY[1][1] = bc<T>(-SH_C1); dY[1][2] = T{};
+        dY[2][0] = T{}; dY[2][1] = T{}; dY[2][2] = bc<T>(SH_C1);
+        dY[3][0] = bc<T>(-SH_C1); dY[3][1] = T{}; dY[3][2] = T{};
+    }
+    if (degree < 2) return;
+    const T xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
+    Y[4] = SH_C2[0] * xy;
+    Y[5] = SH_C2[1] * yz;
+    Y[6] = SH_C2[2] * (2.0f * zz - xx - yy);
+    Y[7] = SH_C2[3] * xz;
+    Y[8] = SH_C2[4] * (xx - yy);
+    if (dY) {
+        dY[4][0] = SH_C2[0] * y; dY[4][1] = SH_C2[0] * x; dY[4][2] = T{};
+        dY[5][0] = T{}; dY[5][1] = SH_C2[1] * z; dY[5][2] = SH_C2[1] * y;
+        dY[6][0] = -2.0f * SH_C2[2] * x; dY[6][1] = -2.0f * SH_C2[2] * y; dY[6][2] = 4.0f * SH_C2[2] * z;
+        dY[7][0] = SH_C2[3] * z; dY[7][1] = T{}; dY[7][2] = SH_C2[3] * x;
+        dY[8][0] = 2.0f * SH_C2[4] * x; dY[8][1] = -2.0f * SH_C2[4] * y; dY[8][2] = T{};
+    }
+    if (degree < 3) return;
+    Y[9] = SH_C3[0] * y * (3.0f * xx - yy);
+    Y[10] = SH_C3[1] * xy * z;
+    Y[11] = SH_C3[2] * y * (4.0f * zz - xx - yy);
+    Y[12] = SH_C3[3] * z * (2.0f * zz - 3.0f * xx - 3.0f * yy);
+    Y[13] = SH_C3[4] * x * (4.0f * zz - xx - yy);
+    Y[14] = SH_C3[5] * z * (xx - yy);
+    Y[15] = SH_C3[6] * x * (xx - 3.0f * yy);
+    if (dY) {
+        dY[9][0] = SH_C3[0] * 6.0f * xy; dY[9][1] = SH_C3[0] * (3.0f * xx - 3.0f * yy); dY[9][2] = T{};
+        dY[10][0] = SH_C3[1] * yz; dY[10][1] = SH_C3[1] * xz; dY[10][2] = SH_C3[1] * xy;
+        dY[11][0] = SH_C3[2] * -2.0f * xy; dY[11][1] = SH_C3[2] * (4.0f * zz - xx - 3.0f * yy);
+        dY[11][2] = SH_C3[2] * 8.0f * yz;
+        dY[12][0] = SH_C3[3] * -6.0f * xz; dY[12][1] = SH_C3[3] * -6.0f * yz;
+        dY[12][2] = SH_C3[3] * (6.0f * zz - 3.0f * xx - 3.0f * yy);
+        dY[13][0] = SH_C3[4] * (4.0f * zz - 3.0f * xx - yy); dY[13][1] = SH_C3[4] * -2.0f * xy;
+        dY[13][2] = SH_C3[4] * 8.0f * xz;
+        dY[14][0] = SH_C3[5] * 2.0f * xz; dY[14][1] = SH_C3[5] * -2.0f * yz; dY[14][2] = SH_C3[5] * (xx - yy);
+        dY[15][0] = SH_C3[6] * (3.0f * xx - 3.0f * yy); dY[15][1] = SH_C3[6] * -6.0f * xy; dY[15][2] = T{};
+    }
+}
+
+// Unit direction from the camera centre to the mean; the norm is clamped at 1e-12 as in sh.py.
+template <typename T>
+inline T view_dir(const T* mean, const float* centre, T* d) {
+    const T vx = mean[0] - centre[0], vy = mean[1] - centre[1], vz = mean[2] - centre[2];
+    const T n = vmax<T>(vsqrt(vx * vx + vy * vy + vz * vz), bc<T>(1e-12f));
+    d[0] = vx / n;
+    d[1] = vy / n;
+    d[2] = vz / n;
+    return n;
+}
+
+// The means [3] and coefficients [nb * 3] of LANES Gaussians n0 .. (lanes past N repeat the last one).
+inline void load_sh_lanes(int64_t n0, int64_t N, int64_t B, int nb, const float* sh, const float* means, VF* m,
+                          VF* s) {
+    for (int l = 0; l < LANES; ++l) {
+        const int64_t n = std::min<int64_t>(n0 + l, N - 1);
+        for (int i = 0; i < 3; ++i) m[i][l] = means[3 * n + i];
+        for (int i = 0; i < nb * 3; ++i) s[i][l] = sh[n * B * 3 + i];
+    }
+}
+
+void sh_forward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, const float* means,
+                const float* centres, float* out, int64_t num_threads) {
+    const int nb = (degree + 1) * (degree + 1);
+    const int64_t blocks = (N + LANES - 1) / LANES;
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, N / 2048 + 1));
+    uskern::run_workers(workers, [&](int64_t w) {
+        VF m[3], s[48], Y[16], d[3] = {};
+        for (int64_t blk = blocks * w / workers; blk < blocks * (w + 1) / workers; ++blk) {
+            const int64_t n0 = blk * LANES;
+            load_sh_lanes(n0, N, B, nb, sh, means, m, s);
+            for (int64_t c = 0; c < C; ++c) {
+                if (degree > 0) view_dir<VF>(m, centres + 3 * c, d);
+                sh_basis<VF>(degree, d[0], d[1], d[2], Y, nullptr);
+                VF v[3];
+                for (int k = 0; k < 3; ++k) {
+                    v[k] = bc<VF>(0.5f);
+                    for (int b = 0; b < nb; ++b) v[k] += Y[b] * s[b * 3 + k];
+                    v[k] = vmax<VF>(v[k], VF{});
+                }
+                for (int l = 0; l < LANES && n0 + l < N; ++l)
+                    for (int k = 0; k < 3; ++k) out[(c * N + n0 + l) * 3 + k] = v[k][l];
+            }
+        }
+    });
+}
+
+// g_sh [N,B,3] and g_means [N,3] are overwritten (bases above the degree get 0). A (camera, Gaussian)
+// whose incoming gradient is 0 contributes nothing.
+void sh_backward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, const float* means,
+                 const float* centres, const float* g_out, float* g_sh, float* g_means, int64_t num_threads) {
+    const int nb = (degree + 1) * (degree + 1);
+    const int64_t blocks = (N + LANES - 1) / LANES;
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, N / 2048 + 1));
+    uskern::run_workers(workers, [&](int64_t w) {
+        VF m[3], s[48], Y[16], dY[16][3], d[3] = {};
+        for (int64_t blk = blocks * w / workers; blk < blocks * (w + 1) / workers; ++blk) {
+            const int64_t n0 = blk * LANES;
+            load_sh_lanes(n0, N, B, nb, sh, means, m, s);
+            VF gs[48] = {}, gm[3] = {};
+            for (int64_t c = 0; c < C; ++c) {
+                VF g[3] = {};
+                for (int l = 0; l < LANES && n0 + l < N; ++l)
+                    for (int k = 0; k < 3; ++k) g[k][l] = g_out[(c * N + n0 + l) * 3 + k];
+                const auto act = (g[0] != 0) | (g[1] != 0) | (g[2] != 0);
+                VF norm = bc<VF>(1.0f);
+                if (degree > 0) norm = view_dir<VF>(m, centres + 3 * c, d);
+                sh_basis<VF>(degree, d[0], d[1], d[2], Y, degree > 0 ? dY : nullptr);
+                VF gk[3];
+                for (int k = 0; k < 3; ++k) {  // the clamp at 0 passes the gradient where the value is >= 0
+                    VF v = bc<VF>(0.5f);
+                    for (int b = 0; b < nb; ++b) v += Y[b] * s[b * 3 + k];
+                    gk[k] = select(act & (v >= 0.0f), VF{}, g[k]);
+                }
+                VF gd[3] = {};
+                for (int b = 0; b < nb; ++b) {
+                    VF dv{};  // d loss / d Y_b
+                    for (int k = 0; k < 3; ++k) {
+                        gs[b * 3 + k] += select(act, VF{}, gk[k] * Y[b]);  // 0 * NaN stays out
+                        dv += gk[k] * s[b * 3 + k];
+                    }
+                    if (degree > 0)
+                        for (int i = 0; i < 3; ++i) gd[i] += dv * dY[b][i];
+                }
+                if (degree > 0) {  // through d = v / |v|: (gd - d (d . gd)) / |v|
+                    const VF dot = gd[0] * d[0] + gd[1] * d[1] + gd[2] * d[2];
+                    for (int i = 0; i < 3; ++i) gm[i] += select(act, VF{}, (gd[i] - d[i] * dot) / norm);
+                }
+            }
+            for (int l = 0; l < LANES && n0 + l < N; ++l) {
+                const int64_t n = n0 + l;
+                float* gsn = g_sh + n * B * 3;
+                for (int i = 0; i < nb * 3; ++i) gsn[i] = gs[i][l];
+                std::fill(gsn + nb * 3, gsn + B * 3, 0.0f);
+                for (int i = 0; i < 3; ++i) g_means[3 * n + i] = gm[i][l];
+            }
+        }
+    });
+}
+
+
+// ------------------------------------------------------------------------------------- projection
+struct Camera {
+    float R[9], t[3], fx, fy, cx, cy, lo_u, hi_u, lo_v, hi_v;
+};
+
+inline Camera load_camera(const float* cam, const float* K, int64_t W, int64_t H) {
+    Camera c;
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) c.R[3 * i + j] = cam[4 * i + j];
+        c.t[i] = cam[4 * i + 3];
+    }
+    c.fx = K[0];
+    c.fy = K[4];
+    c.cx = K[2];
+    c.cy = K[5];
+    // the view angle at which the Jacobian is evaluated is clamped to 1.3x the field of view (3DGS)
+    c.hi_u = (static_cast<float>(W) - c.cx) / c.fx + 0.15f * static_cast<float>(W) / c.fx;
+    c.lo_u = -c.cx / c.fx - 0.15f * static_cast<float>(W) / c.fx;
+    c.hi_v = (static_cast<float>(H) - c.cy) / c.fy + 0.15f * static_cast<float>(H) / c.fy;
+    c.lo_v = -c.cy / c.fy - 0.15f * static_cast<float>(H) / c.fy;
+    return c;
 }
 
 // Rotation matrix (row-major) of the normalised quaternion q (wxyz); qn receives the unit quaternion and
