@@ -72,17 +72,9 @@ void for_each_tile(int64_t num_tiles, int64_t workers, int64_t chunk, Fn fn) {
 
 constexpr int64_t CHUNK = 4;
 
-// The lanes of one SIMD register of floats (16 with AVX-512, 8 with AVX, else 4): a slice of that many
-// consecutive pixels of a tile (row-major; e.g. two rows of an 8 x 8 tile with AVX-512). GCC/Clang
-// vector extensions rather than intrinsics, so the same code builds for any target; vectors wider than
-// the target's registers are avoided (GCC lowers some of their operations lane by lane).
-#if defined(__AVX512F__)
-constexpr int LANES = 16;
-#elif defined(__AVX__)
-constexpr int LANES = 8;
-#else
-constexpr int LANES = 4;
-#endif
+// The lanes of one SIMD register of floats (uskern::LANES): a slice of that many consecutive pixels of a
+// tile (row-major; e.g. two rows of an 8 x 8 tile with AVX-512).
+using uskern::LANES;
 
 template <typename S>
 struct Lanes {
@@ -96,7 +88,7 @@ inline V vexp_lanes(V x);
 
 template <>
 inline Lanes<float>::V vexp_lanes<Lanes<float>::V>(Lanes<float>::V x) {
-    return uskern::vexp_vec<Lanes<float>::V, Lanes<float>::M>(x);
+    return uskern::vexp_t<Lanes<float>::V, Lanes<float>::M>(x);
 }
 
 template <>

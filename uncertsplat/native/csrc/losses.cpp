@@ -131,14 +131,8 @@ double scale_kl(int64_t n, const float* left, const float* raw, float wp, int va
 // stored. Each plane's mean is summed per row, then over rows in a fixed order (any thread count gives
 // the same result).
 
-#if defined(__AVX512F__)
-constexpr int SSIM_LANES = 16;
-#elif defined(__AVX__)
-constexpr int SSIM_LANES = 8;
-#else
-constexpr int SSIM_LANES = 4;
-#endif
-typedef float VS __attribute__((vector_size(SSIM_LANES * sizeof(float))));
+constexpr int SSIM_LANES = uskern::LANES;
+using VS = uskern::floatv;
 
 inline VS load_vs(const float* p) {
     VS v;

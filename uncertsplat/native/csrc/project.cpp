@@ -12,20 +12,15 @@
 #include <cstdint>
 
 #include "parallel.h"
+#include "vmath.h"
 
 namespace {
 
 // SH colours and the projection are written once for T = float (one Gaussian) or a vector of LANES floats
 // (LANES Gaussians at once, what the kernels run). Comparisons give bool or a lane mask, and `m ? a : b`
 // selects per lane for both; these helpers cover the rest.
-#if defined(__AVX512F__)
-constexpr int LANES = 16;
-#elif defined(__AVX__)
-constexpr int LANES = 8;
-#else
-constexpr int LANES = 4;
-#endif
-typedef float VF __attribute__((vector_size(LANES * sizeof(float))));
+using uskern::LANES;
+using VF = uskern::floatv;
 
 inline float vsqrt(float x) { return std::sqrt(x); }
 inline VF vsqrt(VF x) {

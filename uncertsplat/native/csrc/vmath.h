@@ -4,51 +4,65 @@
 
 #include <cstdint>
 #include <cstring>
+#include <type_traits>
 
 namespace uskern {
 
-// exp for |x| <= 87 (clamped outside), within 2 ulp of expf: Cody-Waite reduction and a degree-6
-// polynomial, branch-free so that loops calling it vectorise (build with -fno-trapping-math).
-inline float vexp(float x) {
-    x = x < -87.0f ? -87.0f : x;
-    x = x > 87.0f ? 87.0f : x;
-    const float t = x * 1.44269504088896341f + 128.5f;
-    const int k = static_cast<int>(t) - 128;
-    const float kf = static_cast<float>(k);
-    const float r = (x - kf * 0.693359375f) - kf * (-2.12194440e-4f);
-    float p = 1.9875691500e-4f;
-    p = p * r + 1.3981999507e-3f;
-    p = p * r + 8.3334519073e-3f;
-    p = p * r + 4.1665795894e-2f;
-    p = p * r + 1.6666665459e-1f;
-    p = p * r + 5.0000001201e-1f;
-    const float y = p * (r * r) + r + 1.0f;
-    const int32_t bits = (k + 127) << 23;
-    float scale;
-    std::memcpy(&scale, &bits, sizeof(scale));
-    return y * scale;
+// Floats per SIMD register of the target (16 with AVX-512, 8 with AVX, else 4: SSE, NEON), and that many
+// floats / int32 as a GCC/Clang vector type. The kernels that run across pixels or Gaussians use it rather
+// than intrinsics, so the same code builds for any target; wider vectors than this are avoided (GCC lowers
+// some of their operations lane by lane).
+#if defined(__AVX512F__)
+constexpr int LANES = 16;
+#elif defined(__AVX__)
+constexpr int LANES = 8;
+#else
+constexpr int LANES = 4;
+#endif
+typedef float floatv __attribute__((vector_size(LANES * sizeof(float))));
+typedef int32_t int32v __attribute__((vector_size(LANES * sizeof(int32_t))));
+
+// Value conversions (float <-> int32, rounding toward zero) and bit reinterpretation, for a float / int32
+// or a GCC/Clang vector of them.
+template <typename To, typename From>
+inline To convert(From x) {
+    if constexpr (std::is_arithmetic_v<From>) {
+        return static_cast<To>(x);
+    } else {
+        return __builtin_convertvector(x, To);
+    }
 }
 
-// vexp on a vector of floats at once (GCC/Clang vector extension types: VF of floats, VI the int32
-// vector of the same size), the same operations lane by lane.
-template <typename VF, typename VI>
-inline VF vexp_vec(VF x) {
-    x = x < -87.0f ? VF{} - 87.0f : x;
-    x = x > 87.0f ? VF{} + 87.0f : x;
-    const VF t = x * 1.44269504088896341f + 128.5f;
-    const VI k = __builtin_convertvector(t, VI) - 128;
-    const VF kf = __builtin_convertvector(k, VF);
-    const VF r = (x - kf * 0.693359375f) - kf * (-2.12194440e-4f);
-    VF p = VF{} + 1.9875691500e-4f;
+template <typename To, typename From>
+inline To bit_cast(From x) {
+    static_assert(sizeof(To) == sizeof(From), "same size");
+    To y;
+    std::memcpy(&y, &x, sizeof(y));
+    return y;
+}
+
+// exp for |x| <= 87 (clamped outside), within 2 ulp of expf: Cody-Waite reduction and a degree-6
+// polynomial, branch-free so that loops calling it vectorise (build with -fno-trapping-math). F is float
+// (I int32_t) or a vector of floats (I the int32 vector of its size), computed lane by lane alike.
+template <typename F, typename I>
+inline F vexp_t(F x) {
+    x = x < -87.0f ? F{} - 87.0f : x;
+    x = x > 87.0f ? F{} + 87.0f : x;
+    const F t = x * 1.44269504088896341f + 128.5f;
+    const I k = convert<I>(t) - 128;
+    const F kf = convert<F>(k);
+    const F r = (x - kf * 0.693359375f) - kf * (-2.12194440e-4f);
+    F p = F{} + 1.9875691500e-4f;
     p = p * r + 1.3981999507e-3f;
     p = p * r + 8.3334519073e-3f;
     p = p * r + 4.1665795894e-2f;
     p = p * r + 1.6666665459e-1f;
     p = p * r + 5.0000001201e-1f;
-    const VF y = p * (r * r) + r + 1.0f;
-    const VI bits = (k + 127) << 23;
-    return y * (VF)bits;  // a vector cast reinterprets the bits
+    const F y = p * (r * r) + r + 1.0f;
+    return y * bit_cast<F>(I((k + 127) << 23));
 }
+
+inline float vexp(float x) { return vexp_t<float, int32_t>(x); }
 
 inline float vlog(float x) {  // natural log of a positive normal float, within a few ulp
     int32_t bits;
