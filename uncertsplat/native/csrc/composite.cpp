@@ -270,7 +270,7 @@ inline V pixel_power(V dx, V dy, S a, S b, S c, S lo) {
     return lo - S(0.5) * (a * dx * dx + c * dy * dy) - b * dx * dy;
 }
 
-// Forward: each 16-pixel slice walks the entries that can reach it, front to back, with its state
+// Forward: each slice of LANES pixels walks the entries that can reach it, front to back, with its state
 // (transmittance, accumulated features, last added entry, live mask) in registers, and stops as soon
 // as every ray of the slice has stopped. The per-slice lists are built without branches, so skipping
 // costs no mispredicted jumps.

@@ -150,12 +150,14 @@ struct SsimRows {
         : B(B_), H(H_), W(W_), K(K_), r((K_ - 1) / 2), Wp((W_ + SSIM_LANES - 1) / SSIM_LANES * SSIM_LANES) {}
 };
 
-// Runs fn(row) for row in [0, n) on up to num_threads threads (contiguous ranges).
+// Runs fn(row, buffer) for row in [0, n) on up to num_threads threads (contiguous ranges); buffer is the
+// worker's own scratch of buf_size floats (zeros at first).
 template <typename Fn>
-void parallel_rows(int64_t n, int64_t num_threads, Fn fn) {
+void parallel_rows(int64_t n, int64_t num_threads, size_t buf_size, Fn fn) {
     const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, n / 16 + 1));
     uskern::run_workers(workers, [&](int64_t w) {
-        for (int64_t i = n * w / workers; i < n * (w + 1) / workers; ++i) fn(i);
+        std::vector<float> buf(buf_size);
+        for (int64_t i = n * w / workers; i < n * (w + 1) / workers; ++i) fn(i, buf.data());
     });
 }
 
@@ -222,18 +224,19 @@ void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, const float* x, co
     const SsimRows g(B, H, W, K);
     const int64_t HWp = H * g.Wp;
     std::vector<float> hbuf(static_cast<size_t>(5 * B * HWp));  // horizontally blurred x, y, xx, yy, xy
-    parallel_rows(B * H, num_threads, [&](int64_t row) {
+    const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;  // a padded row and the lanes read past it
+    parallel_rows(B * H, num_threads, 2 * row_len, [&](int64_t row, float* buf) {
         const int64_t b = row / H, yy = row % H;
-        std::vector<float> pa(g.Wp + 2 * g.r + SSIM_LANES), pb(pa.size());
-        pad_row(g, x + b * H * W, yy, pa.data());
-        pad_row(g, y + b * H * W, yy, pb.data());
+        float *pa = buf, *pb = buf + row_len;
+        pad_row(g, x + b * H * W, yy, pa);
+        pad_row(g, y + b * H * W, yy, pb);
         float* out[5];
         for (int q = 0; q < 5; ++q) out[q] = hbuf.data() + (q * B + b) * HWp + yy * g.Wp;
-        hblur_row<5>(g, w, pa.data(), pb.data(), nullptr, out);
+        hblur_row<5>(g, w, pa, pb, nullptr, out);
     });
     std::vector<double> row_sum(static_cast<size_t>(B * H), 0.0);
     const int64_t HW = H * W;
-    parallel_rows(B * H, num_threads, [&](int64_t row) {
+    parallel_rows(B * H, num_threads, 0, [&](int64_t row, float*) {
         const int64_t b = row / H, yy = row % H;
         const float* hb[5];
         for (int q = 0; q < 5; ++q) hb[q] = hbuf.data() + (q * B + b) * HWp;
@@ -273,17 +276,18 @@ void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, const float* x, c
     const SsimRows g(B, H, W, K);
     const int64_t HWp = H * g.Wp, HW = H * W;
     std::vector<float> hbuf(static_cast<size_t>(3 * B * HWp));
-    parallel_rows(B * H, num_threads, [&](int64_t row) {
+    const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;
+    parallel_rows(B * H, num_threads, 3 * row_len, [&](int64_t row, float* buf) {
         const int64_t b = row / H, yy = row % H;
-        std::vector<float> pa(g.Wp + 2 * g.r + SSIM_LANES), pb(pa.size()), pc(pa.size());
-        pad_row(g, partials + b * HW, yy, pa.data());
-        pad_row(g, partials + (B + b) * HW, yy, pb.data());
-        pad_row(g, partials + (2 * B + b) * HW, yy, pc.data());
+        float *pa = buf, *pb = buf + row_len, *pc = buf + 2 * row_len;
+        pad_row(g, partials + b * HW, yy, pa);
+        pad_row(g, partials + (B + b) * HW, yy, pb);
+        pad_row(g, partials + (2 * B + b) * HW, yy, pc);
         float* out[3];
         for (int q = 0; q < 3; ++q) out[q] = hbuf.data() + (q * B + b) * HWp + yy * g.Wp;
-        hblur_row<3>(g, w, pa.data(), pb.data(), pc.data(), out);
+        hblur_row<3>(g, w, pa, pb, pc, out);
     });
-    parallel_rows(B * H, num_threads, [&](int64_t row) {
+    parallel_rows(B * H, num_threads, 0, [&](int64_t row, float*) {
         const int64_t b = row / H, yy = row % H;
         const float* hb[3];
         for (int q = 0; q < 3; ++q) hb[q] = hbuf.data() + (q * B + b) * HWp;
