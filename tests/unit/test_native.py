@@ -111,6 +111,17 @@ def test_more_features_than_the_kernel_takes():
         composite(gparams, feat, bins, backend="native")
 
 
+def test_compositor_return_codes_become_clear_errors():
+    """2 is the kernel running out of memory for its per-Gaussian records; any other failure names its code."""
+    from uncertsplat.render.rasterize import _check_composite
+
+    _check_composite(0, "")
+    with pytest.raises(MemoryError, match="compositor backward ran out of memory.*fewer cameras"):
+        _check_composite(2, " backward")
+    with pytest.raises(RuntimeError, match=r"compositor failed \(code 1\)"):
+        _check_composite(1, "")
+
+
 def test_bad_backend_setting_is_refused(monkeypatch):
     s, cams = _scene(10, torch.float32)
     monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "fastest")

@@ -485,8 +485,7 @@ class _CompositeNative(torch.autograd.Function):
         rc = fn(*_native_head(bins, F), gp.shape[0], gp.data_ptr(), ft.data_ptr(), bins.pair_gauss.data_ptr(),
                 bins.tile_start.data_ptr(), bins.tile_count.data_ptr(), out.data_ptr(), t_final.data_ptr(),
                 last.data_ptr())
-        if rc != 0:
-            raise RuntimeError(f"native compositor failed (code {rc})")
+        _check_composite(rc, "")
         ctx.save_for_backward(gp, ft, t_final, last)
         ctx.bins = bins
         return out
@@ -505,9 +504,17 @@ class _CompositeNative(torch.autograd.Function):
         rc = fn(*_native_head(bins, F), gp.shape[0], M, gp.data_ptr(), ft.data_ptr(), bins.pair_gauss.data_ptr(),
                 bins.tile_start.data_ptr(), bins.tile_count.data_ptr(), t_final.data_ptr(), last.data_ptr(),
                 g_out.data_ptr(), g_pair.data_ptr(), g_all.data_ptr())
-        if rc != 0:
-            raise RuntimeError(f"native compositor backward failed (code {rc})")
+        _check_composite(rc, " backward")
         return g_all[:, :6], g_all[:, 6:], None
+
+
+def _check_composite(rc: int, what: str) -> None:
+    """Raise for a native compositor return code (0: done; 2: out of memory; else an unsupported input)."""
+    if rc == 2:
+        raise MemoryError(f"the native compositor{what} ran out of memory (its per-Gaussian records); render fewer "
+                          "cameras at once or use fewer Gaussians")
+    if rc != 0:
+        raise RuntimeError(f"native compositor{what} failed (code {rc})")
 
 
 _SCRATCH = threading.local()

@@ -171,7 +171,8 @@ inline void each_feature(Fn&& fn) {
     each_feature_impl(fn, std::make_integer_sequence<int, F>{});
 }
 
-// Per-Gaussian records, built once per call: (mean x, mean y, conic a, b, c, log opacity, rlo, rhi) and
+// Per-Gaussian records, built once per call (forward_any / backward_any return 2 when they do not fit in
+// memory): (mean x, mean y, conic a, b, c, log opacity, rlo, rhi) and
 // the F features. [rlo, rhi] are the first and last pixel rows whose centres lie in the bounding box
 // (with a margin) of the ellipse where alpha can reach alpha_min; empty (rlo > rhi) when it never does,
 // or for NaN parameters (whose NaN alpha would be skipped anyway); every row for a degenerate conic.
@@ -500,7 +501,11 @@ void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S*
 template <typename S>
 int forward_any(int64_t F, const Params& prm, int64_t G, const S* gp, const S* feat, const int64_t* pair_gauss,
                 const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final, int32_t* last) {
-    US_DISPATCH_F(F, (forward_all<S, F>(prm, G, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last)));
+    try {
+        US_DISPATCH_F(F, (forward_all<S, F>(prm, G, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last)));
+    } catch (const std::bad_alloc&) {  // the per-Gaussian records (G x (8 + F) values)
+        return 2;
+    }
     return 0;
 }
 
@@ -508,8 +513,12 @@ template <typename S>
 int backward_any(int64_t F, const Params& prm, int64_t G, int64_t M, const S* gp, const S* feat,
                  const int64_t* pair_gauss, const int64_t* tile_start, const int64_t* tile_count, const S* t_final,
                  const int32_t* last, const S* g_out, S* g_pair, S* g_gauss) {
-    US_DISPATCH_F(F, (backward_all<S, F>(prm, G, M, gp, feat, pair_gauss, tile_start, tile_count, t_final, last, g_out,
-                                         g_pair, g_gauss)));
+    try {
+        US_DISPATCH_F(F, (backward_all<S, F>(prm, G, M, gp, feat, pair_gauss, tile_start, tile_count, t_final, last,
+                                             g_out, g_pair, g_gauss)));
+    } catch (const std::bad_alloc&) {
+        return 2;
+    }
     return 0;
 }
 
