@@ -12,6 +12,12 @@ from uncertsplat.render.rasterize import bin_gaussians, composite
 from uncertsplat.types import GaussianSample
 
 
+def _nondet_tol(device: torch.device) -> float:
+    """On CUDA the per-Gaussian sums of the backward pass are atomic adds whose order varies between runs,
+    so two backward passes differ in the last bits (seen on an H100, 2026-11-26); on the CPU they are exact."""
+    return 1e-12 if device.type == "cuda" else 0.0
+
+
 @pytest.mark.parametrize("n_cams,w,h,n,fast", [(2, 12, 10, 6, True), (1, 7, 6, 4, False)])
 def test_gradcheck_render_all_parameters(device, n_cams, w, h, n, fast):
     """Fast mode (random projections of the Jacobian) on a larger case, the full Jacobian on a tiny one."""
@@ -36,7 +42,8 @@ def test_gradcheck_render_all_parameters(device, n_cams, w, h, n, fast):
     )
     out = fn(*inputs)
     assert (out[1] > 0.1).any(), "the scene must be visible for the check to mean anything"
-    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=fast)
+    assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=fast,
+                                     nondet_tol=_nondet_tol(device))
 
 
 def test_gradcheck_compositor_alone(device):
@@ -52,5 +59,6 @@ def test_gradcheck_compositor_alone(device):
     feat = torch.rand(len(s), 5, dtype=torch.float64, device=device, generator=None).requires_grad_()
     assert bins.pair_gauss.numel() > len(s)
     assert torch.autograd.gradcheck(
-        lambda c, f: composite(c, f, bins, block_elements=32), (gparams, feat), eps=1e-6, atol=1e-5
+        lambda c, f: composite(c, f, bins, block_elements=32), (gparams, feat), eps=1e-6, atol=1e-5,
+        nondet_tol=_nondet_tol(device),
     )

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import pytest
 import torch
 
@@ -127,12 +125,11 @@ def test_mean_curves_average(device):
     assert float(torch.trapezoid(m.uncertainty - m.oracle, m.fractions)) == pytest.approx(m.ause)
 
 
-def test_million_elements_fast(device):
+def test_million_elements(device):
+    """A full-resolution image's worth of pixels (how fast it is: benchmarks/bench_evaluate.py)."""
     g = torch.Generator().manual_seed(5)
-    err = torch.rand(10**6, generator=g).to(device)
-    unc = (err + 0.3 * torch.rand(10**6, generator=g)).to(device)
-    t0 = time.perf_counter()
+    err_cpu = torch.rand(10**6, generator=g)
+    err = err_cpu.to(device)
+    unc = (err_cpu + 0.3 * torch.rand(10**6, generator=g)).to(device)
     res = sparsification_all(err, unc)
-    dt = time.perf_counter() - t0
     assert 0 < res["mae"].ause < sparsification(err, -err).ause
-    assert dt < 10.0

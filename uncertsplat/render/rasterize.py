@@ -52,6 +52,15 @@ from .project import ALPHA_MAX, ALPHA_MIN, T_MIN
 # Elements (pairs x pixels) per dense block: bounds memory (a few blocks of this size are alive in
 # backward) and keeps the working set near the CPU caches.
 DEFAULT_BLOCK_ELEMENTS = 1 << 17
+# On a GPU a block costs a few dozen kernel launches whatever its size, and small blocks leave the
+# device idle between them (at 512x384 / 50k with CPU-sized blocks: 8000 launches, the GPU busy 21 of
+# 115 ms, H100 2026-11-26); larger blocks trade memory (a few [nt,P,L] float tensors) for launches.
+DEFAULT_BLOCK_ELEMENTS_GPU = 1 << 22
+
+
+def default_block_elements(device: torch.device) -> int:
+    """Pair-pixel elements per block of the PyTorch compositor: cache-sized on the CPU, larger on GPUs."""
+    return DEFAULT_BLOCK_ELEMENTS if device.type == "cpu" else DEFAULT_BLOCK_ELEMENTS_GPU
 PAD_LOG_ALPHA = -1.0e4  # exp() of this is exactly 0: padded rows contribute nothing
 
 
@@ -117,10 +126,13 @@ def bin_gaussians(
         counts = (span[:, 0] * span[:, 1]).long()
         M = int(counts.sum())
         src = torch.repeat_interleave(torch.arange(order.numel(), device=dev), counts, output_size=M)
-        first = (torch.cumsum(counts, 0) - counts).float()
-        # k-th tile of a Gaussian's box, row-major; float math is exact here (k < 2^24) and much
-        # faster than int64 division on CPU.
-        k = torch.arange(M, device=dev, dtype=torch.float32) - first.index_select(0, src)
+        first = torch.cumsum(counts, 0) - counts
+        # k-th tile of a Gaussian's box, row-major. The subtraction is in int64 (the pair index passes
+        # 2^24 at 1080p with a few 100k Gaussians, where float32 is no longer exact); the tile arithmetic
+        # is in float32, exact while tile indices stay below 2^24, and much faster than int64 on CPU.
+        fdt = torch.float32 if tpc < 2**24 else torch.float64
+        k = (torch.arange(M, device=dev) - first.index_select(0, src)).to(fdt)
+        span, t0 = span.to(fdt), t0.to(fdt)
         bw = span[:, 0].index_select(0, src)
         ky = ((k + 0.5) / bw).floor()
         kx = k - ky * bw
@@ -553,7 +565,7 @@ def composite(
     feat: Tensor,  # [G,F]
     bins: TileBins,
     high_opacity: Tensor | None = None,  # [G] bool; None = any Gaussian may hit the cap
-    block_elements: int = DEFAULT_BLOCK_ELEMENTS,
+    block_elements: int | None = None,
     compile: bool = False,
     backend: str | None = None,
 ) -> Tensor:
@@ -565,6 +577,8 @@ def composite(
     if use_native(gparams, feat, backend=backend, compile=compile, num_features=feat.shape[1]):
         return _CompositeNative.apply(gparams, feat, bins)
     phi = pixel_basis(bins.tile_size, gparams.dtype, gparams.device)
+    if block_elements is None:
+        block_elements = default_block_elements(gparams.device)
     if high_opacity is None:
         high_opacity = torch.ones(feat.shape[0], dtype=torch.bool, device=feat.device)
     plan = make_plan(bins, feat.shape[0], high_opacity, phi, block_elements, get_kernels(compile))

@@ -7,7 +7,7 @@ from torch import Tensor
 
 from ..types import Cameras, GaussianSample, RenderOutput
 from .project import ALPHA_MAX, clamped_view_angle, project_gaussians
-from .rasterize import DEFAULT_BLOCK_ELEMENTS, bin_gaussians, composite, tiles_to_image
+from .rasterize import bin_gaussians, composite, tiles_to_image
 from .sh import sh_colors
 
 
@@ -30,7 +30,7 @@ def render(
     far: float = 1e10,
     eps2d: float = 0.3,
     compile: bool = False,
-    block_elements: int = DEFAULT_BLOCK_ELEMENTS,
+    block_elements: int | None = None,
     backend: str | None = None,
 ) -> RenderOutput:
     """Render a batch of cameras with 3DGS semantics (exact, differentiable).
@@ -48,7 +48,8 @@ def render(
         near, far: camera-z culling planes.
         eps2d: screen-space dilation added to the 2D covariance (pixels^2).
         compile: run the per-pixel kernels through ``torch.compile`` (opt-in; first call compiles).
-        block_elements: pair-pixel elements per dense block of the PyTorch compositor (memory/speed).
+        block_elements: pair-pixel elements per dense block of the PyTorch compositor (memory/speed);
+            None = ``default_block_elements(device)`` (larger on GPUs, where each block costs launches).
         backend: kernels for projection, SH colours, binning and compositing: ``"auto"`` (the native CPU
             kernels for CPU tensors when they build, else PyTorch), ``"native"`` or ``"torch"``; None reads
             ``UNCERTSPLAT_RASTERIZER`` (default auto). Projection and SH are native for float32 only.
