@@ -9,6 +9,8 @@ flags, loaded beside the current one, and the two are called alternately on the 
 - ``binning``: ``bin_gaussians`` alone on that scene and, with ``--run``, on a training view;
 - ``composite``: the compositor's forward and backward alone on that scene's (tile, Gaussian) lists;
 - ``ssim``: the fused SSIM forward and backward of three 320x240 planes;
+- ``dense`` (with ``--dense``): the same on a denser scene (the Gaussians in the middle third of the view, sizes
+  around 3 % of their depth), with a 2048^3 float32 matmul timed in the same run as the machine's yardstick;
 - ``train`` (with ``--run RUN --scene SCENE``): training steps of a run from its last checkpoint, the two
   libraries taking turns every ``--block`` steps (the model keeps training across the turns), and the
   compositor alone on one of its training views.
@@ -88,10 +90,13 @@ def binning_alone(libs: dict, args: tuple, kw: dict, repeats: int) -> dict:
 
 class _OldInterface:
     """A library of an older interface behind the current calls: before version 10 the compositor forward took
-    no Gaussian count; before version 11 binning kept no state between its two calls (pass 2 tested again)."""
+    no Gaussian count; before version 11 binning kept no state between its two calls (pass 2 tested again);
+    before version 12 pass 2 always wrote pair_tile (today's callers pass a null pointer)."""
 
     def __init__(self, lib: ctypes.CDLL, version: int):
         self._lib, self._version = lib, version
+        self._pairs = 0  # M of the last pass 1, for the pair_tile buffer an older pass 2 needs
+        self._pair_tile = None
 
     def __getattr__(self, name):
         if name == "us_bin_free" and self._version < 11:
@@ -99,8 +104,19 @@ class _OldInterface:
         fn = getattr(self._lib, name)
         if self._version < 10 and name in ("us_forward_f32", "us_forward_f64"):
             return lambda *args: fn(*args[:9], *args[10:])  # (head, F, G, pointers) -> (head, F, pointers)
-        if self._version < 11 and name.startswith(("us_bin_count_", "us_bin_fill_")):
-            return lambda *args: fn(*args[:-1])  # no state argument
+        if name.startswith("us_bin_count_"):
+            def count(*args):
+                self._pairs = fn(*(args if self._version >= 11 else args[:-1]))  # no state argument
+                return self._pairs
+            return count
+        if name.startswith("us_bin_fill_"):
+            def fill(*args):
+                args = list(args)
+                if args[-2] is None and self._version < 12:
+                    self._pair_tile = torch.empty(max(self._pairs, 1), dtype=torch.long)
+                    args[-2] = self._pair_tile.data_ptr()
+                return fn(*(args if self._version >= 11 else args[:-1]))
+            return fill
         return fn
 
 
@@ -144,7 +160,7 @@ def build_reference(ref: str, out_dir: Path):
         for suffix in ("f32", "f64"):
             getattr(lib, f"us_bin_count_{suffix}").argtypes = bin_head + [ptr] * 9
             getattr(lib, f"us_bin_fill_{suffix}").argtypes = bin_head + [ptr] * 5 + [i64] + [ptr] * 4
-    return (lib if version >= 11 else _OldInterface(lib, version)), version
+    return (lib if version >= 12 else _OldInterface(lib, version)), version
 
 
 def alternate(fns: dict, repeats: int) -> dict:
@@ -167,8 +183,25 @@ def with_lib(lib, fn):
     return call
 
 
-def bench_render_and_composite(libs: dict, n: int, width: int, height: int, repeats: int) -> dict:
-    s, cams = make_scene(n, width, height)
+def make_dense_scene(n: int, width: int, height: int, seed: int = 0):
+    """``make_scene`` with the Gaussians crowded into the middle third of the view and sizes around 3 % of their
+    depth (issue 19's denser scene): many overlapping splats per tile, rays that stop early."""
+    s, cams = make_scene(n, width, height, seed)
+    g = torch.Generator().manual_seed(seed + 1)
+    z = s.means[:, 2:3]
+    xy = s.means[:, :2] / 3.0  # the middle third of the frustum at the same depths
+    scales = 0.03 * z * torch.exp(0.2 * torch.randn(n, 3, generator=g))
+    return replace(s, means=torch.cat([xy, z], -1), scales=scales), cams
+
+
+def matmul_ms(repeats: int) -> dict:
+    """A 2048^3 float32 matmul, the machine's yardstick in the same run."""
+    a, b = torch.randn(2048, 2048), torch.randn(2048, 2048)
+    return alternate({"matmul": lambda: a @ b}, repeats)["matmul"]
+
+
+def bench_render_and_composite(libs: dict, n: int, width: int, height: int, repeats: int, dense: bool = False) -> dict:
+    s, cams = (make_dense_scene if dense else make_scene)(n, width, height)
     target = torch.rand(1, height, width, 3, generator=torch.Generator().manual_seed(1))
     leaves = {k: getattr(s, k).detach().clone().requires_grad_() for k in PARAMS}
     sg = replace(s, **leaves)
@@ -184,7 +217,7 @@ def bench_render_and_composite(libs: dict, n: int, width: int, height: int, repe
         (out.rgb - target).abs().mean().backward()
         return out.rgb.detach(), {k: v.grad.clone() for k, v in leaves.items()}
 
-    results = {"case": f"{width}x{height}, {n} Gaussians"}
+    results = {"case": f"{width}x{height}, {n} Gaussians" + (", dense" if dense else "")}
     results["render_fwd"] = alternate({k: with_lib(lib, fwd) for k, lib in libs.items()}, repeats)
     results["render_fwd_bwd"] = alternate({k: with_lib(lib, fwd_bwd) for k, lib in libs.items()}, repeats)
     outs = {k: with_lib(lib, fwd_bwd)() for k, lib in libs.items()}
@@ -288,6 +321,9 @@ def main() -> None:
     ap.add_argument("--scene-n", type=int, default=50_000)
     ap.add_argument("--width", type=int, default=512)
     ap.add_argument("--height", type=int, default=384)
+    ap.add_argument("--dense", action="store_true",
+                    help="also the denser scene (middle third of the view, sizes ~3 %% of the depth) and a 2048^3 "
+                         "matmul in the same run")
     ap.add_argument("--run", type=Path, help="a run folder: also time its training steps")
     ap.add_argument("--scene", type=Path, help="the scene of --run")
     ap.add_argument("--rounds", type=int, default=6)
@@ -305,6 +341,10 @@ def main() -> None:
                   "repeats": args.repeats, "reference": args.ref, "reference_interface": ref_version,
                   "load_average_start": os.getloadavg()}
         result["render"] = bench_render_and_composite(libs, args.scene_n, args.width, args.height, args.repeats)
+        if args.dense:
+            result["dense"] = bench_render_and_composite(libs, args.scene_n, args.width, args.height,
+                                                         max(3, args.repeats // 4), dense=True)
+            result["dense"]["matmul_2048"] = matmul_ms(args.repeats)
         result["ssim"] = bench_ssim(libs, args.repeats)
         if args.run:
             result["train"] = bench_training(libs, args.run, args.scene or Path(json.loads(
@@ -320,6 +360,13 @@ def main() -> None:
             ("compositor forward + backward", r["composite"]["forward_backward"]),
             ("SSIM forward (3 x 320x240)", result["ssim"]["forward"]),
             ("SSIM backward", result["ssim"]["backward"])]
+    if "dense" in result:
+        dn, mm = result["dense"], result["dense"]["matmul_2048"]
+        rows += [("dense scene: render forward + backward", dn["render_fwd_bwd"]),
+                 ("dense scene: compositor forward + backward", dn["composite"]["forward_backward"])]
+        print(f"2048^3 float32 matmul in the same run: {mm['min_ms']:.1f} ({mm['median_ms']:.1f}) ms; dense render "
+              f"fwd+bwd / matmul: reference x{dn['render_fwd_bwd']['reference']['min_ms'] / mm['min_ms']:.2f}, "
+              f"current x{dn['render_fwd_bwd']['current']['min_ms'] / mm['min_ms']:.2f} (min)")
     if "train" in result:
         t = result["train"]
         rows += [(f"training step ({t['num_gaussians']} Gaussians)", t["step"]),

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import torch
 
-INTERFACE_VERSION = 11
+INTERFACE_VERSION = 12
 CSRC = Path(__file__).with_name("csrc")
 SOURCES = (CSRC / "composite.cpp", CSRC / "losses.cpp", CSRC / "project.cpp", CSRC / "optim.cpp")
 HEADERS = (CSRC / "vmath.h", CSRC / "parallel.h")

@@ -70,18 +70,27 @@ class TileBins:
 
     Attributes:
         pair_gauss: [M] flat Gaussian index (camera * N + n), sorted by tile then depth.
-        pair_tile: [M] global tile index (camera * tiles_per_camera + ty * tiles_x + tx).
+        pair_tile: [M] global tile index (camera * tiles_per_camera + ty * tiles_x + tx); the native
+            binning leaves it to be derived from ``tile_count`` on first use (the native compositor never
+            reads it, and writing it cost M int64 stores).
         tile_start: [T] first pair of each tile. tile_count: [T] pairs per tile.
         tiles_x, tiles_y, tile_size: the tile grid of one camera.
     """
 
     pair_gauss: Tensor
-    pair_tile: Tensor
+    _pair_tile: Tensor | None
     tile_start: Tensor
     tile_count: Tensor
     tiles_x: int
     tiles_y: int
     tile_size: int
+
+    @property
+    def pair_tile(self) -> Tensor:
+        if self._pair_tile is None:
+            tiles = torch.arange(self.tile_count.numel(), device=self.tile_count.device)
+            self._pair_tile = torch.repeat_interleave(tiles, self.tile_count, output_size=self.pair_gauss.numel())
+        return self._pair_tile
 
 
 def bin_gaussians(
@@ -192,16 +201,15 @@ def _bin_native(means2d: Tensor, extents: Tensor, valid: Tensor, depths: Tensor,
         tile_count = counts.sum(0)
         tile_start = torch.cumsum(tile_count, 0) - tile_count
         pair_gauss = torch.empty(M, dtype=torch.long)
-        pair_tile = torch.empty(M, dtype=torch.long)
     except BaseException:
         lib.us_bin_free(state)
         raise
     rc = (lib.us_bin_fill_f64 if f64 else lib.us_bin_fill_f32)(
         *head, *ptrs, order.data_ptr(), int(num_visible), counts.data_ptr(), tile_start.data_ptr(),
-        pair_gauss.data_ptr(), pair_tile.data_ptr(), state)
+        pair_gauss.data_ptr(), None, state)  # no pair_tile: TileBins derives it if asked
     if rc != 0:
         raise RuntimeError(f"native binning failed (code {rc})")
-    return TileBins(pair_gauss, pair_tile, tile_start, tile_count, tiles_x, tiles_y, tile_size)
+    return TileBins(pair_gauss, None, tile_start, tile_count, tiles_x, tiles_y, tile_size)
 
 
 def _ellipse_meets_tile(m: Tensor, conic: Tensor, opac: Tensor, tx: Tensor, ty: Tensor, ts: int) -> Tensor:

@@ -273,77 +273,116 @@ inline V pixel_power(V dx, V dy, S a, S b, S c, S lo) {
 
 // Forward: each slice of LANES pixels walks the entries that can reach it, front to back, with its state
 // (transmittance, accumulated features, last added entry, live mask) in registers, and stops as soon
-// as every ray of the slice has stopped. The per-slice lists are built without branches, so skipping
-// costs no mispredicted jumps.
+// as every ray of the slice has stopped. The tile's list is taken in chunks of LIST_CHUNK entries: the
+// per-slice lists of a chunk are built without branches (skipping costs no mispredicted jumps), and no
+// list is built past the chunk where the last ray of the tile stopped (on dense scenes rays stop after a
+// small part of a tile's list, and building the whole list per slice cost more than compositing).
+constexpr int64_t LIST_CHUNK = 128;
+
+template <typename S>
+struct ForwardScratch {
+    std::vector<int64_t> lists;        // [NS] entries per slice, then [NS][LIST_CHUNK] list positions
+    std::vector<typename Lanes<S>::V> v;  // per slice: T, then F accumulated features
+    std::vector<typename Lanes<S>::M> m;  // per slice: last added entry + 1, live rays
+};
+
 template <typename S, int F>
 void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, const S* rec, const int64_t* pair_gauss,
                   const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final, int32_t* last,
-                  std::vector<int64_t>& scratch) {
+                  ForwardScratch<S>& scratch) {
     using V = typename Lanes<S>::V;
     using M = typename Lanes<S>::M;
     using I = typename Lanes<S>::I;
     const TileLanes<S> tl(grid, prm, tile);
     const int64_t P = grid.P, NS = grid.NS;
     const int64_t start = tile_start[tile], count = tile_count[tile];
-    scratch.resize(static_cast<size_t>(NS * count + NS) + 1);
-    int64_t* nlist = scratch.data();      // [NS] entries per slice
-    int64_t* lists = nlist + NS;          // [NS][count] list positions j, per slice
-    std::fill(nlist, nlist + NS, int64_t{0});
-    for (int64_t j = 0; j < count; ++j) {
-        int64_t s0, s1;
-        tl.slices(rec + pair_gauss[start + j] * (PK + F), s0, s1);
-        for (int64_t s = 0; s < NS; ++s) {
-            lists[s * count + nlist[s]] = j;
-            nlist[s] += (s >= s0) & (s <= s1);
-        }
+    scratch.lists.resize(static_cast<size_t>(NS * LIST_CHUNK + NS));
+    scratch.v.resize(static_cast<size_t>(NS * (1 + F)));
+    scratch.m.resize(static_cast<size_t>(2 * NS));
+    int64_t* nlist = scratch.lists.data();  // [NS] entries per slice in this chunk
+    int64_t* lists = nlist + NS;            // [NS][LIST_CHUNK] list positions j, per slice
+    V* Ts = scratch.v.data();               // [NS]
+    V* accs = Ts + NS;                      // [NS][F]
+    M* lasts = scratch.m.data();            // [NS]
+    M* lives = lasts + NS;                  // [NS]
+    int64_t alive = 0;                      // slices with a live ray
+    for (int64_t s = 0; s < NS; ++s) {
+        Ts[s] = V{} + S(1);
+        for (int f = 0; f < F; ++f) accs[s * F + f] = V{};
+        lasts[s] = M{};
+        lives[s] = grid.active[s];
+        alive += any_lane(lives[s]);
     }
     const S amin = static_cast<S>(prm.alpha_min), amax = static_cast<S>(prm.alpha_max);
     const S tmin = static_cast<S>(prm.t_min);
-    S* o = out + tile * P * F;
-    for (int64_t s = 0; s < NS; ++s) {
-        const V px = tl.px(s), py = tl.py(s);
-        const int64_t* sl = lists + s * count;
-        V T = V{} + S(1);
-        V acc[F];
-        each_feature<F>([&](auto f) { acc[f] = V{}; });
-        M lastv = M{};
-        M live = grid.active[s];
-        // Entries in batches of B: their alphas first (independent of each other, so the exp polynomials
-        // overlap), then the compositing, whose transmittance chain is serial.
-        constexpr int64_t B = 4;
-        const int64_t n = nlist[s];
-        for (int64_t k0 = 0; k0 < n; k0 += B) {
-            V alpha[B];
-            const S* eb[B];
-            for (int64_t i = 0; i < B; ++i) {
-                const int64_t k = std::min(k0 + i, n - 1);  // a repeated last entry is masked below
-                eb[i] = rec + pair_gauss[start + sl[k]] * (PK + F);
-                const S* e = eb[i];
-                const V raw = vexp_lanes<V>(pixel_power<V, S>(px - e[0], py - e[1], e[2], e[3], e[4], e[5]));
-                alpha[i] = raw < amax ? raw : amax;
+    for (int64_t c0 = 0; c0 < count && alive > 0; c0 += LIST_CHUNK) {
+        const int64_t c1 = std::min(count, c0 + LIST_CHUNK);
+        std::fill(nlist, nlist + NS, int64_t{0});
+        for (int64_t j = c0; j < c1; ++j) {
+            int64_t s0, s1;
+            tl.slices(rec + pair_gauss[start + j] * (PK + F), s0, s1);
+            for (int64_t s = 0; s < NS; ++s) {
+                lists[s * LIST_CHUNK + nlist[s]] = j;
+                nlist[s] += (s >= s0) & (s <= s1);
             }
-            for (int64_t i = 0; i < B && k0 + i < n; ++i) {
-                const S* e = eb[i];
-                const V Tn = T * (S(1) - alpha[i]);
-                const M use = (alpha[i] >= amin) & live;
-                const M stop = use & (Tn < tmin);
-                const M add = use & ~stop;
-                const V w = add ? alpha[i] * T : V{};
-                each_feature<F>([&](auto f) { acc[f] += w * e[PK + f]; });
-                T = add ? Tn : T;
-                lastv = add ? M{} + static_cast<I>(sl[k0 + i] + 1) : lastv;
-                live = stop ? M{} : live;
-            }
-            if ((k0 & 7) == 4 && !any_lane(live)) break;  // every 8 entries: every ray of the slice stopped
         }
+        alive = 0;
+        for (int64_t s = 0; s < NS; ++s) {
+            M live = lives[s];
+            const int64_t n = nlist[s];
+            if (n == 0 || !any_lane(live)) {
+                alive += any_lane(live);
+                continue;
+            }
+            const V px = tl.px(s), py = tl.py(s);
+            const int64_t* sl = lists + s * LIST_CHUNK;
+            V T = Ts[s];
+            V acc[F];
+            each_feature<F>([&](auto f) { acc[f] = accs[s * F + f]; });
+            M lastv = lasts[s];
+            // Entries in batches of B: their alphas first (independent of each other, so the exp
+            // polynomials overlap), then the compositing, whose transmittance chain is serial.
+            constexpr int64_t B = 4;
+            for (int64_t k0 = 0; k0 < n; k0 += B) {
+                V alpha[B];
+                const S* eb[B];
+                for (int64_t i = 0; i < B; ++i) {
+                    const int64_t k = std::min(k0 + i, n - 1);  // a repeated last entry is masked below
+                    eb[i] = rec + pair_gauss[start + sl[k]] * (PK + F);
+                    const S* e = eb[i];
+                    const V raw = vexp_lanes<V>(pixel_power<V, S>(px - e[0], py - e[1], e[2], e[3], e[4], e[5]));
+                    alpha[i] = raw < amax ? raw : amax;
+                }
+                for (int64_t i = 0; i < B && k0 + i < n; ++i) {
+                    const S* e = eb[i];
+                    const V Tn = T * (S(1) - alpha[i]);
+                    const M use = (alpha[i] >= amin) & live;
+                    const M stop = use & (Tn < tmin);
+                    const M add = use & ~stop;
+                    const V w = add ? alpha[i] * T : V{};
+                    each_feature<F>([&](auto f) { acc[f] += w * e[PK + f]; });
+                    T = add ? Tn : T;
+                    lastv = add ? M{} + static_cast<I>(sl[k0 + i] + 1) : lastv;
+                    live = stop ? M{} : live;
+                }
+                if ((k0 & 7) == 4 && !any_lane(live)) break;  // every 8 entries: every ray of the slice stopped
+            }
+            Ts[s] = T;
+            each_feature<F>([&](auto f) { accs[s * F + f] = acc[f]; });
+            lasts[s] = lastv;
+            lives[s] = live;
+            alive += any_lane(live);
+        }
+    }
+    S* o = out + tile * P * F;
+    for (int64_t s = 0; s < NS; ++s)
         for (int l = 0; l < LANES; ++l) {
             const int64_t p = s * LANES + l;
             if (p >= P) break;
-            each_feature<F>([&](auto f) { o[p * F + f] = acc[f][l]; });
-            t_final[tile * P + p] = T[l];
-            last[tile * P + p] = static_cast<int32_t>(lastv[l]);
+            for (int f = 0; f < F; ++f) o[p * F + f] = accs[s * F + f][l];
+            t_final[tile * P + p] = Ts[s][l];
+            last[tile * P + p] = static_cast<int32_t>(lasts[s][l]);
         }
-    }
 }
 
 // Backward: the tile's list back to front from its last added entry; per entry, each slice that can hold
@@ -353,7 +392,7 @@ void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, cons
 template <typename S, int F>
 void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, const S* rec, const int64_t* pair_gauss,
                    const int64_t* tile_start, const int64_t* tile_count, const S* t_final, const int32_t* last,
-                   const S* g_out, S* g_pair, SliceScratch<S>& scratch) {
+                   const S* g_out, S* g_pair, int32_t* tile_used, SliceScratch<S>& scratch) {
     using V = typename Lanes<S>::V;
     using M = typename Lanes<S>::M;
     using I = typename Lanes<S>::I;
@@ -362,9 +401,10 @@ void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, con
     const int32_t* lst = last + tile * P;
     int32_t maxlast = 0;
     for (int64_t p = 0; p < P; ++p) maxlast = std::max(maxlast, lst[p]);
-    const int64_t start = tile_start[tile], count = tile_count[tile];
-    // pairs behind every ray of the tile get exactly zero gradient
-    std::fill(g_pair + (start + maxlast) * (6 + F), g_pair + (start + count) * (6 + F), S(0));
+    const int64_t start = tile_start[tile];
+    // The pairs behind every ray of the tile (from maxlast on) get exactly zero gradient: their rows are
+    // neither written nor summed (on dense scenes most of a tile's list lies behind its stopped rays).
+    tile_used[tile] = maxlast;
     if (maxlast == 0) return;
     // scratch: per slice T, suffix, d loss / d out [F]; lane integers: last; padding lanes are inert
     scratch.v.resize(static_cast<size_t>(NS) * (2 + F));
@@ -450,7 +490,7 @@ void forward_all(const Params& prm, int64_t G, const S* gp, const S* feat, const
     gaussian_records<S>(prm, G, F, gp, feat, rec.data());
     const LaneGrid<S> grid(prm.tile_size);
     const int64_t workers = num_workers(prm.num_tiles, prm.num_threads, CHUNK);
-    std::vector<std::vector<int64_t>> scratch(workers);
+    std::vector<ForwardScratch<S>> scratch(workers);
     for_each_tile(prm.num_tiles, workers, CHUNK, [&](int64_t id, int64_t t) {
         forward_tile<S, F>(prm, grid, t, rec.data(), pair_gauss, tile_start, tile_count, out, t_final, last, scratch[id]);
     });
@@ -468,20 +508,22 @@ void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S*
     const LaneGrid<S> grid(prm.tile_size);
     const int64_t workers = num_workers(prm.num_tiles, prm.num_threads, CHUNK);
     std::vector<SliceScratch<S>> scratch(workers);
+    std::vector<int32_t> tile_used(static_cast<size_t>(prm.num_tiles), 0);  // rows written per tile
     for_each_tile(prm.num_tiles, workers, CHUNK, [&](int64_t id, int64_t t) {
         backward_tile<S, F>(prm, grid, t, rec.data(), pair_gauss, tile_start, tile_count, t_final, last, g_out, g_pair,
-                            scratch[id]);
+                            tile_used.data(), scratch[id]);
     });
     const int64_t reducers = std::max<int64_t>(1, std::min<int64_t>(prm.num_threads, G / 4096 + 1));
     uskern::run_workers(reducers, [&](int64_t w) {
         const int64_t lo = G * w / reducers, hi = G * (w + 1) / reducers;
-        for (int64_t k = 0; k < M; ++k) {
-            const int64_t g = pair_gauss[k];
-            if (g < lo || g >= hi) continue;
-            const S* src = g_pair + k * (6 + F);
-            S* dst = g_gauss + g * (6 + F);
-            for (int f = 0; f < 6 + F; ++f) dst[f] += src[f];
-        }
+        for (int64_t t = 0; t < prm.num_tiles; ++t)  // pairs in ascending order, the written rows only
+            for (int64_t k = tile_start[t], k1 = k + tile_used[t]; k < k1; ++k) {
+                const int64_t g = pair_gauss[k];
+                if (g < lo || g >= hi) continue;
+                const S* src = g_pair + k * (6 + F);
+                S* dst = g_gauss + g * (6 + F);
+                for (int f = 0; f < 6 + F; ++f) dst[f] += src[f];
+            }
     });
 }
 
@@ -597,12 +639,14 @@ bool ellipse_meets_tile(S mx, S my, S ca, S cb, S cc, S nb_c, S nb_a, S limit, i
 }
 
 // The tiles of one Gaussian's box that its ellipse reaches: box origin (tx0, ty0), width bw and height bh
-// in tiles; mask bit k (row-major in the box) is set when tile k passes the test. Boxes of more than 64
-// tiles keep no mask (big = true): their tests are repeated when the pairs are written.
+// in tiles; bit k of the mask (row-major in the box) is set when tile k passes the test. A box of up to 64
+// tiles holds its mask in `mask`; a larger one (big = true) keeps ceil(bw bh / 64) words in its worker's
+// pool from word `mask` on (pass 2 gives every worker the same Gaussians as pass 1, so it finds them there).
 struct BoxTiles {
     uint64_t mask;
     int32_t tx0, ty0, bw, bh;
-    bool big() const { return static_cast<int64_t>(bw) * bh > 64; }
+    int64_t area() const { return static_cast<int64_t>(bw) * bh; }
+    bool big() const { return area() > 64; }
 };
 
 template <typename S>
@@ -629,7 +673,7 @@ EllipseTest<S> ellipse_test(const BinArgs& a, int64_t g, const S* means2d, const
 template <typename S>
 int64_t bin_count(const BinArgs& a, const S* means2d, const S* extents, const S* conics, const S* opac,
                   const S* depths, const uint8_t* valid, int64_t* order, int64_t* num_visible, int64_t* counts,
-                  std::vector<BoxTiles>& boxes) {
+                  std::vector<BoxTiles>& boxes, std::vector<std::vector<uint64_t>>& pools) {
     static_assert(sizeof(S) == 4 || sizeof(S) == 8, "float or double");
     int64_t V;
     if constexpr (sizeof(S) == 4) {
@@ -644,8 +688,10 @@ int64_t bin_count(const BinArgs& a, const S* means2d, const S* extents, const S*
     const int64_t T = a.C * a.tiles_x * a.tiles_y, tpc = a.tiles_x * a.tiles_y;
     std::fill(counts, counts + a.workers * T, int64_t{0});
     boxes.resize(static_cast<size_t>(V));
+    pools.assign(static_cast<size_t>(a.workers), {});
     uskern::run_workers(a.workers, [&](int64_t w) {
         int64_t* cnt = counts + w * T;
+        std::vector<uint64_t>& pool = pools[w];
         for (int64_t i = V * w / a.workers; i < V * (w + 1) / a.workers; ++i) {
             const int64_t g = order[i];
             int64_t tx0, tx1, ty0, ty1;
@@ -655,13 +701,22 @@ int64_t bin_count(const BinArgs& a, const S* means2d, const S* extents, const S*
             box = {0, static_cast<int32_t>(tx0), static_cast<int32_t>(ty0), static_cast<int32_t>(tx1 - tx0),
                    static_cast<int32_t>(ty1 - ty0)};
             const int64_t base = (g / a.N) * tpc;
+            uint64_t* bits = &box.mask;
+            if (box.big()) {
+                box.mask = pool.size();
+                pool.resize(pool.size() + static_cast<size_t>((box.area() + 63) / 64), 0);
+                bits = pool.data() + box.mask;
+            }
             int64_t k = 0;
+            uint64_t word = 0;  // the mask's current word, in a register
             for (int64_t ty = ty0; ty < ty1; ++ty)
                 for (int64_t tx = tx0; tx < tx1; ++tx, ++k) {
                     const bool hit = meets(tx, ty);
                     cnt[base + ty * a.tiles_x + tx] += hit;
-                    if (k < 64) box.mask |= static_cast<uint64_t>(hit) << k;
+                    word |= static_cast<uint64_t>(hit) << (k & 63);
+                    if ((k & 63) == 63) bits[k >> 6] = word, word = 0;
                 }
+            if (k & 63) bits[k >> 6] = word;
         }
     });
     int64_t total = 0;
@@ -671,10 +726,9 @@ int64_t bin_count(const BinArgs& a, const S* means2d, const S* extents, const S*
 
 // Pass 2: with tile_start (cumulative counts over all workers), every worker writes its pairs after
 // those of the workers before it (its slice is nearer), so every tile stays in depth order. The tiles of a
-// box come from its mask (the tests again for boxes without one).
-template <typename S>
-void bin_fill(const BinArgs& a, const S* means2d, const S* conics, const S* opac, const int64_t* order, int64_t V,
-              const std::vector<BoxTiles>& boxes, const int64_t* counts, const int64_t* tile_start,
+// box come from its mask.
+void bin_fill(const BinArgs& a, const int64_t* order, int64_t V, const std::vector<BoxTiles>& boxes,
+              const std::vector<std::vector<uint64_t>>& pools, const int64_t* counts, const int64_t* tile_start,
               int64_t* pair_gauss, int64_t* pair_tile) {
     const int64_t T = a.C * a.tiles_x * a.tiles_y, tpc = a.tiles_x * a.tiles_y;
     uskern::run_workers(a.workers, [&](int64_t w) {
@@ -684,23 +738,18 @@ void bin_fill(const BinArgs& a, const S* means2d, const S* conics, const S* opac
         auto emit = [&](int64_t g, int64_t t) {
             const int64_t k = cursor[t]++;
             pair_gauss[k] = g;
-            pair_tile[k] = t;
+            if (pair_tile != nullptr) pair_tile[k] = t;  // optional: the Python side can derive it
         };
         for (int64_t i = V * w / a.workers; i < V * (w + 1) / a.workers; ++i) {
             const int64_t g = order[i];
             const BoxTiles& box = boxes[i];
             const int64_t base = (g / a.N) * tpc;
-            if (!box.big()) {
-                for (uint64_t m = box.mask; m != 0; m &= m - 1) {
-                    const int k = __builtin_ctzll(m);
+            const uint64_t* bits = box.big() ? pools[w].data() + box.mask : &box.mask;
+            for (int64_t word = 0, words = (box.area() + 63) / 64; word < words; ++word)
+                for (uint64_t m = bits[word]; m != 0; m &= m - 1) {
+                    const int64_t k = word * 64 + __builtin_ctzll(m);
                     emit(g, base + (box.ty0 + k / box.bw) * a.tiles_x + box.tx0 + k % box.bw);
                 }
-                continue;
-            }
-            const EllipseTest<S> meets = ellipse_test<S>(a, g, means2d, conics, opac);
-            for (int64_t ty = box.ty0; ty < box.ty0 + box.bh; ++ty)
-                for (int64_t tx = box.tx0; tx < box.tx0 + box.bw; ++tx)
-                    if (meets(tx, ty)) emit(g, base + ty * a.tiles_x + tx);
         }
     });
 }
@@ -708,6 +757,7 @@ void bin_fill(const BinArgs& a, const S* means2d, const S* conics, const S* opac
 // What pass 1 leaves for pass 2 (held by the caller between the two calls).
 struct BinState {
     std::vector<BoxTiles> boxes;
+    std::vector<std::vector<uint64_t>> pools;  // per worker, the masks of its big boxes
 };
 
 template <typename S>
@@ -718,7 +768,7 @@ int64_t bin_count_any(const BinArgs& args, const S* means2d, const S* extents, c
     try {
         auto* st = new BinState();
         const int64_t M = bin_count<S>(args, means2d, extents, conics, opac, depths, valid, order, num_visible,
-                                       counts, st->boxes);
+                                       counts, st->boxes, st->pools);
         *state = st;
         return M;
     } catch (const std::bad_alloc&) {
@@ -732,7 +782,8 @@ int bin_fill_any(const BinArgs& args, const S* means2d, const S* conics, const S
                  int64_t* pair_tile) {
     auto* st = static_cast<BinState*>(state);
     if (st == nullptr || static_cast<int64_t>(st->boxes.size()) != V) return 1;
-    bin_fill<S>(args, means2d, conics, opac, order, V, st->boxes, counts, tile_start, pair_gauss, pair_tile);
+    (void)means2d, (void)conics, (void)opac;  // pass 1's masks hold the tests
+    bin_fill(args, order, V, st->boxes, st->pools, counts, tile_start, pair_gauss, pair_tile);
     delete st;
     return 0;
 }
@@ -741,7 +792,7 @@ int bin_fill_any(const BinArgs& args, const S* means2d, const S* conics, const S
 extern "C" {
 
 // Interface version: native.py refuses a library whose version differs from its own.
-int us_version() { return 11; }
+int us_version() { return 12; }
 
 int us_max_features() { return 8; }
 
@@ -787,8 +838,8 @@ int us_backward_f64(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, i
 // Binning, in two calls. us_bin_count: the depth order of the valid entries (order [G], num_visible),
 // per-worker tile counts [workers, T]; returns the number of pairs M (-1 when out of memory) and, in
 // *state, what it found, which us_bin_fill consumes: with tile_start [T] (cumulative sum of the counts
-// summed over workers) it writes pair_gauss and pair_tile [M] and frees the state. us_bin_free frees a
-// state that will not be filled.
+// summed over workers) it writes pair_gauss [M] and, unless that pointer is null, pair_tile [M], and frees
+// the state. us_bin_free frees a state that will not be filled.
 #define US_BIN_ARGS BinArgs args{G, N, C, width, height, tile_size, tiles_x, tiles_y, workers, alpha_min};
 #define US_BIN_HEAD                                                                                             \
     int64_t G, int64_t N, int64_t C, int64_t width, int64_t height, int64_t tile_size, int64_t tiles_x,       \
