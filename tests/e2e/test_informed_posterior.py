@@ -161,6 +161,34 @@ def test_training_on_the_expected_render(tmp_path):
     assert sh0[0].shape != sh0[2].shape or not torch.equal(sh0[0], sh0[2])
 
 
+def test_the_expected_renders_table_terms_are_never_stale(monkeypatch):
+    """Training on the expected render keeps its table terms between steps (``ExpectedConstants``); at every step of
+    a run with posterior updates, densification, spawning and an opacity reset, the sample they give is the one
+    computed from the tables afresh."""
+    import uncertsplat.train.trainer as trainer_module
+
+    original = trainer_module.expected_render_sample
+    checked = []
+
+    def both(model, **kw):
+        fast = original(model, **kw)
+        slow = original(model, **{**kw, "constants": None})
+        for k in ("means", "scales", "opacities", "position_var"):
+            torch.testing.assert_close(getattr(fast, k), getattr(slow, k), rtol=1e-5, atol=1e-7, msg=k)
+        if kw.get("tables_grad") is False:  # a training step's sample (evaluation renders take the tables afresh)
+            checked.append(kw.get("constants") is not None)
+        return fast
+
+    monkeypatch.setattr(trainer_module, "expected_render_sample", both)
+    scene, tr, te = toy_scene()
+    # updates at steps 7, 14, 21, 28 and 30: between densification steps (10, 20), so that each must drop the terms
+    cfg = toy_config(variational={"posterior": "informed", "refresh_interval": 7, "train_on": "expected"})
+    t = Trainer(scene, cfg, tr, te)
+    t.fit()
+    assert len(checked) == 30 and all(checked)
+    assert [u["step"] for u in t.posterior_updates] == [7, 14, 21, 28, 30]
+
+
 def test_an_informed_run_from_before_refresh_probes_keeps_its_probes(tiny_scene_path, tiny_run_path,  # noqa: F811
                                                                       tmp_path):
     """config.json files written before ``variational.refresh_probes`` existed used ``probes`` at every update; a

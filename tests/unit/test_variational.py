@@ -11,6 +11,7 @@ from torch.distributions import Normal, Uniform, kl_divergence
 
 from uncertsplat.gaussians.variational import (
     Prior,
+    expected_constants,
     expected_gate,
     expected_render_sample,
     gaussian_kl,
@@ -316,6 +317,59 @@ def test_expected_render_without_noise_is_the_posterior_mean():
     er0 = expected_render_sample(none)
     torch.testing.assert_close(er0.scales, posterior_mean(none).scales, rtol=0, atol=0)
     assert er0.position_var is None
+
+
+class TestExpectedConstants:
+    """The table terms computed once give the expected render's values and gradients, and know when they are stale."""
+
+    def _model(self, seed=25, fraction=0.6):
+        model = random_model(50, gen(seed), carrier_fraction=fraction, perturb_tables=0.3, extent=1.5)
+        for v in model.params.values():
+            v.requires_grad_(True)
+        return model
+
+    def test_same_sample_and_gradients(self):
+        model = self._model()
+        kw = dict(extent=1.5, temperature=0.2, tables_grad=False)
+        c = expected_constants(model, extent=1.5, temperature=0.2)
+        slow, fast = expected_render_sample(model, **kw), expected_render_sample(model, constants=c, **kw)
+        grads = []
+        for s_ in (slow, fast):
+            for v in model.params.values():
+                v.grad = None
+            w = torch.linspace(0.5, 1.5, s_.means.numel()).view_as(s_.means)
+            (s_.means * w).sum().add(s_.scales.square().sum()).add(s_.opacities.sum()).add(s_.sh.sum()).backward()
+            grads.append({k: v.grad.clone() for k, v in model.params.items() if v.grad is not None})
+        for k in ("means", "scales", "opacities", "sh", "quats"):
+            torch.testing.assert_close(getattr(fast, k), getattr(slow, k), rtol=1e-6, atol=0)
+        torch.testing.assert_close(fast.position_var, slow.position_var, rtol=0, atol=0)
+        assert grads[0].keys() == grads[1].keys()
+        for k in grads[0]:
+            torch.testing.assert_close(grads[1][k], grads[0][k], rtol=1e-5, atol=1e-7)
+
+    def test_ignored_when_the_topology_changed_or_not_applicable(self):
+        model = self._model()
+        c = expected_constants(model, extent=1.5)
+        other = self._model(seed=26)  # a different model (another posterior_row): constants do not fit
+        assert not c.fits(other)
+        torch.testing.assert_close(expected_render_sample(other, extent=1.5, tables_grad=False, constants=c).scales,
+                                   expected_render_sample(other, extent=1.5, tables_grad=False).scales)
+        with torch.no_grad():  # an in-place write to the rows (put back: the table keeps its invariant)
+            model.posterior_row[0] = model.posterior_row[0].clone()
+        assert not c.fits(model)
+        # with gradients to the tables, or the paper variant, the constants are not used
+        fresh = expected_constants(model, extent=1.5)
+        assert fresh.fits(model)
+        with torch.no_grad():
+            model.tables["pos_loc"].add_(0.5)  # the table terms change: a caller must drop the constants
+        torch.testing.assert_close(expected_render_sample(model, extent=1.5, tables_grad=True, constants=fresh).means,
+                                   expected_render_sample(model, extent=1.5, tables_grad=True).means)
+
+    def test_no_carriers(self):
+        model = self._model(fraction=0.0)
+        c = expected_constants(model)
+        er = expected_render_sample(model, tables_grad=False, constants=c)
+        assert er.position_var is None  # as without constants: a plain render
 
 
 def test_expected_render_at_the_prior():

@@ -294,9 +294,58 @@ def _scale_second_moment(log_scale: Tensor, left: Tensor, width: Tensor, variant
     return torch.exp(2.0 * log_scale * left) * ratio
 
 
+@dataclass
+class ExpectedConstants:
+    """What ``expected_render_sample`` reads from the offset tables, spread to all N Gaussians (variant "ours").
+
+    With the tables held fixed (``tables_grad=False``: the informed posterior sets them in closed form every
+    ``refresh_interval`` steps) these are constants, and a training step needs only three element-wise ops on
+    the parameters instead of the tables' reductions and scatters (about 6 of a demo step's 88 ms, forward and
+    backward, BENCHMARKS.md). The caller owns their lifetime: ``fits`` catches a change of topology, not a change
+    of the tables' values (``informed_tables`` writes them through ``.data``), so drop them when the tables change.
+    """
+
+    offset: Tensor  # [N,3] mean position offset (0 off the carriers)
+    scale_factor: Tensor  # [N,3] sqrt(E[multiplier^2]) (1 off the carriers)
+    gate: Tensor  # [N] E[gate] (1 off the carriers)
+    position_var: Tensor  # [N] mean per-axis position variance (0 off the carriers)
+    rows: Tensor  # the model's posterior_row when computed (identity and version checked by ``fits``)
+    rows_version: int
+
+    def fits(self, model: GaussianModel) -> bool:
+        return (model.posterior_row is self.rows and model.posterior_row._version == self.rows_version
+                and self.offset.shape[0] == len(model))
+
+
+@torch.no_grad()
+def expected_constants(model: GaussianModel, *, extent: float = 1.0, temperature: float = 0.2) -> ExpectedConstants:
+    """The table terms of ``expected_render_sample`` (variant "ours", tables without gradient), computed once."""
+    t = _tables(model, False)
+    idx = model.carrier_index()
+    p = model.params
+    unit = _unit("ours", extent)
+    offset = torch.zeros_like(p["means"])
+    factor = torch.ones_like(p["scales"])
+    gate = torch.ones_like(p["opacities"])
+    var = torch.zeros_like(p["opacities"])
+    if idx.numel():
+        width = F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH)  # [P,3]
+        left = t["scale_left"].mean(1)
+        # E[o^2] for o ~ U[l, l + w]: the "ours" branch of _scale_second_moment without exp(2 s)
+        second = left * left + left * width + width * width / 3.0
+        offset.index_copy_(0, idx, (t["pos_loc"].mean(1) * unit).to(offset.dtype))
+        factor.index_copy_(0, idx, second.sqrt().to(factor.dtype))
+        g = expected_gate(t["gate_loc"].mean(1), F.softplus(t["gate_spread_raw"].mean(1)), temperature)[:, 0]
+        gate.index_copy_(0, idx, g.to(gate.dtype))
+        sigma2 = (F.softplus(t["pos_spread_raw"].mean(1)) * unit).square().mean(1)  # [P]
+        var.index_copy_(0, idx, sigma2.to(var.dtype))
+    row = model.posterior_row
+    return ExpectedConstants(offset, factor, gate, var, row, row._version)
+
+
 def expected_render_sample(model: GaussianModel, *, variant: Variant = "ours", extent: float = 1.0,
                            temperature: float = 0.2, sh_degree: int | None = None,
-                           tables_grad: bool = True) -> GaussianSample:
+                           tables_grad: bool = True, constants: ExpectedConstants | None = None) -> GaussianSample:
     """Deterministic Gaussians whose render approximates the *mean of the posterior's renders*.
 
     ``posterior_mean`` renders each Gaussian at its mean parameters, which is sharper than the average
@@ -312,8 +361,18 @@ def expected_render_sample(model: GaussianModel, *, variant: Variant = "ours", e
     (BENCHMARKS.md, "The expected render"). It costs one render (its per-view peak factor needs
     no second projection: ``render._blur_log_peak``). Training
     decisions (densify, prune, spawn) keep using ``posterior_mean``: they concern the parameters, not a
-    render. ``tables_grad``: as for ``sample``.
+    render. ``tables_grad``: as for ``sample``. ``constants``: ``expected_constants`` of the current tables
+    (variant "ours" with ``tables_grad=False`` only; ignored otherwise or when they no longer ``fit``).
     """
+    if (constants is not None and variant == "ours" and not tables_grad and model.num_carriers > 0
+            and constants.fits(model)):
+        p = model.params
+        degree = model.sh_degree if sh_degree is None else min(sh_degree, model.sh_degree)
+        return GaussianSample(means=p["means"] + constants.offset, quats=p["quats"],
+                              scales=torch.exp(p["scales"]) * constants.scale_factor,
+                              opacities=torch.sigmoid(p["opacities"]) * constants.gate,
+                              sh=torch.cat([p["sh0"], p["shN"]], dim=1), sh_degree=degree,
+                              position_var=constants.position_var)
     pm = posterior_mean(model, variant=variant, extent=extent, temperature=temperature, sh_degree=sh_degree,
                         tables_grad=tables_grad)
     if model.num_carriers == 0:

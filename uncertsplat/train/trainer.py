@@ -31,6 +31,8 @@ from uncertsplat.gaussians.ops import truncate_sh
 from uncertsplat.gaussians.params import GaussianModel, init_from_points, memory_per_gaussian
 from uncertsplat.gaussians.prior import Prior
 from uncertsplat.gaussians.variational import (
+    ExpectedConstants,
+    expected_constants,
     expected_render_sample,
     informed_tables,
     mean_params,
@@ -111,6 +113,9 @@ class Trainer:
         self.informed = self.variational and cfg.posterior == "informed"
         self.posterior_updates: list[dict] = []  # one record per informed-posterior update (this process)
         self.timer = PhaseTimer(self.device, cfg.profile)  # seconds per phase of this process's steps
+        # the table terms of the expected render while the tables stay fixed (dropped whenever the tables or
+        # the topology may have changed: posterior updates, densification, growth and SH-band checks)
+        self._expected: ExpectedConstants | None = None
         if state is None:
             self._init_fresh()
         else:
@@ -317,7 +322,8 @@ class Trainer:
         timer = self.timer
         if step % cfg.sh_degree_interval == 0:
             with timer("eval"):
-                self.check_sh_band(step)
+                if self.check_sh_band(step) is not None:
+                    self._expected = None
         degree = sh_degree_at(step, self.model.sh_degree, cfg.sh_degree_interval)
         with timer("data"):
             views = [self._next_view() for _ in range(min(cfg.batch_size, len(self.train_idx)))]
@@ -325,8 +331,12 @@ class Trainer:
             gt = self.train_images[views]
         with timer("sample"):
             if self.informed and cfg.variational.train_on == "expected":
+                if cfg.variant == "ours" and (self._expected is None or not self._expected.fits(self.model)):
+                    self._expected = expected_constants(self.model, extent=self.extent,
+                                                        temperature=self.prior.temperature)
                 g = expected_render_sample(self.model, variant=cfg.variant, extent=self.extent,
-                                           temperature=self.prior.temperature, sh_degree=degree, tables_grad=False)
+                                           temperature=self.prior.temperature, sh_degree=degree, tables_grad=False,
+                                           constants=self._expected)
                 kl = None
             elif self.informed:  # the tables are set in closed form (update_posterior); the Gaussians learn here
                 g = sample(self.model, self.gen_noise, subset_size=cfg.variational.subset_size, variant=cfg.variant,
@@ -361,9 +371,12 @@ class Trainer:
                 self._skip_non_finite(step)
             self.optimizer.zero_grad(set_to_none=True)
         with timer("eval"):
-            self.check_growth(step)
+            if self.check_growth(step) is not None:
+                self._expected = None
         with timer("densify"):
             done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise)
+            if any(done.values()):
+                self._expected = None
         self.step = step
         timer.steps += 1
         if self.informed and (step % cfg.variational.refresh_interval == 0 or step == cfg.iterations):
@@ -386,6 +399,7 @@ class Trainer:
         the update at the last step uses every training view and ``probes`` probes per view (the earlier ones
         ``refresh_probes``), and with ``variational.sandwich`` widens the spreads by the views' disagreement."""
         t0 = time.perf_counter()
+        self._expected = None  # the tables change below (through .data, which no version counter sees)
         vcfg = self.cfg.variational
         params = mean_params(self.model, variant=self.cfg.variant, extent=self.extent,
                              temperature=self.prior.temperature)
