@@ -99,7 +99,7 @@ def test_the_peak_factor_equals_a_second_projections_at_every_view_angle(device)
     factor as the two projections' determinants, for Gaussians inside, at the edge of and far outside the view
     (where the Jacobian's view angle is clamped), behind the camera, and for blurs from sub-pixel to huge."""
     from uncertsplat.render.project import project_gaussians
-    from uncertsplat.render.render import _blur_log_peak
+    from uncertsplat.render.render import blur_log_peak
 
     g = torch.Generator().manual_seed(7)
     n = 200
@@ -118,7 +118,7 @@ def test_the_peak_factor_equals_a_second_projections_at_every_view_angle(device)
         return torch.log((a * c - b * b).clamp_min(1e-300))
 
     expected = (0.5 * (log_det(blurred.conics) - log_det(sharp.conics))).clamp_max(0.0)
-    got = _blur_log_peak(s, blurred.conics, cw, K, 40, 32, 0.01, 1e10, 0.3).double()
+    got = blur_log_peak(s, blurred.conics, cw, K, 40, 32, 0.01, 1e10, 0.3).double()
     front = blurred.depths > 0.01
     assert bool(front.any()) and bool((~front).any())
     # where the peak factor still shows (above 1e-4), the two agree to the float32 rounding of the conics (the
@@ -129,3 +129,49 @@ def test_the_peak_factor_equals_a_second_projections_at_every_view_angle(device)
     # far below that, both say "invisible"; behind the camera the factor is 0 (the Gaussian is culled)
     assert bool((got[front & ~shows] < -8.0).all())
     assert float(got[~front].abs().max()) == 0.0
+
+
+def test_the_native_peak_factor_matches_the_reference_and_its_gradients():
+    """The native kernel of the peak factor against ``_blur_log_peak`` (float64 tensor ops): values and the gradients
+    to the means, the blurred conics and the variances, with Gaussians behind the camera, at clamped view angles,
+    without blur (v = 0), with a negative variance, a degenerate conic and blurs whose sharp determinant clamps."""
+    from uncertsplat import native
+    from uncertsplat.render.project import project_gaussians
+    from uncertsplat.render.render import _blur_log_peak, _NativeBlurPeak
+
+    if native.library() is None:
+        pytest.skip(f"native kernels unavailable: {native.unavailable_reason()}")
+    g = torch.Generator().manual_seed(11)
+    n = 300
+    s = _scene(n, "cpu", seed=11)
+    means = (torch.rand(n, 3, generator=g) - 0.5) * torch.tensor([8.0, 8.0, 4.0])
+    var = torch.exp(torch.empty(n).uniform_(-14.0, 2.0, generator=g))
+    var[:20] = 0.0
+    var[20:25] = -1e-3  # clamped to 0, as the reference does
+    cams = look_at_cameras(3, 40, 32, 40.0, radius=3.0)
+    cw, K = cams.cam_from_world, cams.K
+    conics = project_gaussians(means, s.quats, torch.sqrt(s.scales**2 + var.clamp_min(0)[:, None]), s.opacities,
+                               cw, K, 40, 32, 0.01, 1e10, 0.3).conics.detach().clone()
+    conics[:, 25] = torch.tensor([1.0, 1.0, 1.0])  # a c - b^2 = 0: no factor
+    inputs = {"means": means, "conics": conics, "var": var}
+    outs, grads = {}, {}
+    weight = torch.rand(3, n, generator=g) - 0.5
+    for name in ("reference", "native"):
+        leaves = {k: v.detach().clone().requires_grad_() for k, v in inputs.items()}
+        if name == "native":
+            out = _NativeBlurPeak.apply(leaves["means"], leaves["conics"], leaves["var"], cw, K, 40, 32, 0.01, 1e10,
+                                        0.3)
+        else:
+            out = _blur_log_peak(replace(s, means=leaves["means"], position_var=leaves["var"]), leaves["conics"], cw, K,
+                                 40, 32, 0.01, 1e10, 0.3)
+        (out * weight).sum().backward()
+        outs[name], grads[name] = out.detach(), {k: v.grad for k, v in leaves.items()}
+    behind = project_gaussians(means, s.quats, s.scales, s.opacities, cw, K, 40, 32, 0.01, 1e10, 0.3).depths <= 0.01
+    assert bool(behind.any()) and bool((outs["reference"] < -1.0).any()) and bool((outs["reference"] == 0).any())
+    torch.testing.assert_close(outs["native"], outs["reference"], rtol=1e-5, atol=1e-6)
+    for k in inputs:
+        ref, got = grads["reference"][k], grads["native"][k]
+        if k == "var":  # at v = 0 the factor sits on its clamp at 0, where rounding decides which side passes
+            ref, got = ref[var > 0], got[var > 0]
+        assert float(ref.abs().max()) > 0, k  # the comparison is not vacuous
+        torch.testing.assert_close(got, ref, rtol=1e-4, atol=1e-6 * float(ref.abs().max()), msg=k)

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import torch
 
-INTERFACE_VERSION = 12
+INTERFACE_VERSION = 13
 CSRC = Path(__file__).with_name("csrc")
 SOURCES = (CSRC / "composite.cpp", CSRC / "losses.cpp", CSRC / "project.cpp", CSRC / "optim.cpp")
 HEADERS = (CSRC / "vmath.h", CSRC / "parallel.h")
@@ -142,6 +142,10 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.us_project_forward_f32.restype = ctypes.c_int
     lib.us_project_backward_f32.argtypes = [i64, i64] + [ptr] * 5 + [i64, i64, f64, f64, f64] + [ptr] * 6 + [i64]
     lib.us_project_backward_f32.restype = ctypes.c_int
+    lib.us_blur_peak_forward_f32.argtypes = [i64, i64] + [ptr] * 5 + [i64, i64, f64, f64, f64, ptr, i64]
+    lib.us_blur_peak_forward_f32.restype = ctypes.c_int
+    lib.us_blur_peak_backward_f32.argtypes = [i64, i64] + [ptr] * 5 + [i64, i64, f64, f64, f64] + [ptr] * 4 + [i64]
+    lib.us_blur_peak_backward_f32.restype = ctypes.c_int
     lib.us_adam_rows_f32.argtypes = [i64, i64, i64] + [ptr] * 6 + [i64, f64, f64, f64, f64, i64]
     lib.us_adam_rows_f32.restype = ctypes.c_int
     lib.us_version.restype = ctypes.c_int

@@ -95,7 +95,8 @@ def render(
     )
     log_o = torch.log(sample.opacities.clamp_min(torch.finfo(dtype).tiny))  # [N]
     if sample.position_var is not None:
-        log_o = log_o + _blur_log_peak(sample, proj.conics, cam_from_world, K, W, H, near, far, eps2d)  # [C,N]
+        log_o = log_o + blur_log_peak(sample, proj.conics, cam_from_world, K, W, H, near, far, eps2d,
+                                      backend=backend)  # [C,N]
     gparams = torch.cat([means2d, proj.conics, log_o.expand(C, N)[..., None]], dim=-1).reshape(C * N, 6)
     # Alpha can reach the 0.99 cap only for opacities near it (small margin for rounding).
     high = (sample.opacities.detach() > ALPHA_MAX - 1e-3).expand(C, N).reshape(-1)
@@ -120,6 +121,53 @@ def render(
         radii=radii,
         depths=proj.depths,
     )
+
+
+def blur_log_peak(sample: GaussianSample, blurred_conics: Tensor, cam_from_world: Tensor, K: Tensor, W: int, H: int,
+                  near: float, far: float, eps2d: float, backend: str | None = None) -> Tensor:
+    """[C,N] ``_blur_log_peak``, by the native CPU kernel for float32 CPU tensors (``native.use_for``; the same
+    float64 arithmetic in one pass per Gaussian instead of some 20 tensor ops and their graph)."""
+    from uncertsplat import native
+
+    var = sample.position_var
+    if native.use_for(sample.means, blurred_conics, var, cam_from_world, K, backend=backend, strict=False,
+                      dtypes=(torch.float32,)):
+        return _NativeBlurPeak.apply(sample.means, blurred_conics, var, cam_from_world, K, W, H, near, far, eps2d)
+    return _blur_log_peak(sample, blurred_conics, cam_from_world, K, W, H, near, far, eps2d)
+
+
+class _NativeBlurPeak(torch.autograd.Function):
+    """``_blur_log_peak`` by the native kernel (``native/csrc/project.cpp``); gradients to the means, the blurred
+    conics and the position variances, none to the cameras (as the trainer uses it)."""
+
+    @staticmethod
+    def forward(ctx, means, conics, var, cam_from_world, K, W, H, near, far, eps2d):
+        from uncertsplat import native
+
+        means, conics, var, cams, Ks = (t.detach().contiguous() for t in (means, conics, var, cam_from_world, K))
+        C, N = cams.shape[0], means.shape[0]
+        out = means.new_empty(C, N)
+        native.library().us_blur_peak_forward_f32(
+            C, N, means.data_ptr(), conics.data_ptr(), var.data_ptr(), cams.data_ptr(), Ks.data_ptr(), W, H, near,
+            far, eps2d, out.data_ptr(), torch.get_num_threads())
+        ctx.save_for_backward(means, conics, var, cams, Ks)
+        ctx.args = (W, H, near, far, eps2d)
+        return out
+
+    @staticmethod
+    def backward(ctx, g_out):
+        from uncertsplat import native
+
+        means, conics, var, cams, Ks = ctx.saved_tensors
+        W, H, near, far, eps2d = ctx.args
+        C, N = cams.shape[0], means.shape[0]
+        g_out = g_out.contiguous()
+        g_means, g_conics, g_var = torch.empty_like(means), torch.empty_like(conics), torch.empty_like(var)
+        native.library().us_blur_peak_backward_f32(
+            C, N, means.data_ptr(), conics.data_ptr(), var.data_ptr(), cams.data_ptr(), Ks.data_ptr(), W, H, near,
+            far, eps2d, g_out.data_ptr(), g_means.data_ptr(), g_conics.data_ptr(), g_var.data_ptr(),
+            torch.get_num_threads())
+        return g_means, g_conics, g_var, None, None, None, None, None, None, None
 
 
 def _blur_log_peak(sample: GaussianSample, blurred_conics: Tensor, cam_from_world: Tensor, K: Tensor, W: int, H: int,

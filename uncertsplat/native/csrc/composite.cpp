@@ -792,7 +792,7 @@ int bin_fill_any(const BinArgs& args, const S* means2d, const S* conics, const S
 extern "C" {
 
 // Interface version: native.py refuses a library whose version differs from its own.
-int us_version() { return 12; }
+int us_version() { return 13; }
 
 int us_max_features() { return 8; }
 

@@ -10,6 +10,8 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <limits>
+#include <vector>
 
 #include "parallel.h"
 #include "vmath.h"
@@ -473,9 +475,151 @@ void project_backward(int64_t C, int64_t N, const float* means, const float* qua
     });
 }
 
+// ------------------------------------------------------------------ the expected render's peak factor
+// render._blur_log_peak (the reference; its docstring has the model): per camera and Gaussian, the log of
+// sqrt(det Sigma2d / det Sigma2d') = 0.5 (log det(Sigma2d' - v J J^T) + log det C'), C' the blurred conic,
+// at most 0, and 0 behind the camera or for a degenerate conic. In double, as the reference: the
+// difference cancels when the blur dominates. One pass per Gaussian replaces some 20 float64 tensor ops
+// and their graph. Backward: the same steps in reverse, with the reference's clamp and selection rules.
+struct BlurPeakCamera {
+    double R[9], t[3], fx, fy, cx, cy, ulo, uhi, vlo, vhi;
+};
+
+inline BlurPeakCamera blur_peak_camera(const float* cam, const float* K, int64_t W, int64_t H) {
+    BlurPeakCamera b;
+    for (int i = 0; i < 3; ++i) {
+        for (int j = 0; j < 3; ++j) b.R[3 * i + j] = cam[4 * i + j];
+        b.t[i] = cam[4 * i + 3];
+    }
+    b.fx = K[0], b.fy = K[4], b.cx = K[2], b.cy = K[5];
+    const double mx = 0.15 * static_cast<double>(W) / b.fx, my = 0.15 * static_cast<double>(H) / b.fy;
+    b.uhi = (static_cast<double>(W) - b.cx) / b.fx + mx, b.ulo = -b.cx / b.fx - mx;
+    b.vhi = (static_cast<double>(H) - b.cy) / b.fy + my, b.vlo = -b.cy / b.fy - my;
+    return b;
+}
+
+// Everything forward computes for one (camera, Gaussian), kept for backward.
+struct BlurPeakState {
+    bool ok, pass;  // ok: a value (else 0); pass: the value is not clamped at 0 (gradient flows)
+    double x, y, zs, u, v, uc, vc, iz2, jxx, jxy, jyy, a, b, c, dc, var, sxx, sxy, syy, raw, ds, out;
+};
+
+inline BlurPeakState blur_peak_one(const BlurPeakCamera& k, const float* m, const float* con, float v, double near,
+                                   double far, double eps2d) {
+    BlurPeakState s{};
+    const double mx = m[0], my = m[1], mz = m[2];
+    s.x = k.R[0] * mx + k.R[1] * my + k.R[2] * mz + k.t[0];
+    s.y = k.R[3] * mx + k.R[4] * my + k.R[5] * mz + k.t[1];
+    const double z = k.R[6] * mx + k.R[7] * my + k.R[8] * mz + k.t[2];
+    const bool inside = z > near && z < far;
+    s.zs = inside ? z : 1.0;
+    s.u = s.x / s.zs, s.v = s.y / s.zs;
+    s.uc = std::max(std::min(s.u, k.uhi), k.ulo);
+    s.vc = std::max(std::min(s.v, k.vhi), k.vlo);
+    s.iz2 = 1.0 / (s.zs * s.zs);
+    s.jxx = k.fx * k.fx * s.iz2 * (1 + s.uc * s.uc);
+    s.jxy = k.fx * k.fy * s.iz2 * s.uc * s.vc;
+    s.jyy = k.fy * k.fy * s.iz2 * (1 + s.vc * s.vc);
+    s.a = con[0], s.b = con[1], s.c = con[2];
+    const double det = s.a * s.c - s.b * s.b;
+    s.ok = inside && det > static_cast<double>(std::numeric_limits<float>::min());
+    s.dc = s.ok ? det : 1.0;
+    s.var = std::max(static_cast<double>(v), 0.0);
+    s.sxx = s.c / s.dc - s.var * s.jxx;
+    s.sxy = -s.b / s.dc - s.var * s.jxy;
+    s.syy = s.a / s.dc - s.var * s.jyy;
+    s.raw = s.sxx * s.syy - s.sxy * s.sxy;
+    s.ds = std::max(s.raw, eps2d * eps2d);
+    const double half = 0.5 * (std::log(s.ds) + std::log(s.dc));
+    s.pass = s.ok && half <= 0.0;
+    s.out = s.ok ? std::min(half, 0.0) : 0.0;
+    return s;
+}
+
+void blur_peak_forward(int64_t C, int64_t N, const float* means, const float* conics, const float* var,
+                       const float* cams, const float* Ks, int64_t W, int64_t H, double near, double far, double eps2d,
+                       float* out, int64_t num_threads) {
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, C * N / 8192 + 1));
+    for (int64_t ci = 0; ci < C; ++ci) {
+        const BlurPeakCamera k = blur_peak_camera(cams + 16 * ci, Ks + 9 * ci, W, H);
+        uskern::run_workers(workers, [&](int64_t w) {
+            for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n)
+                out[ci * N + n] = static_cast<float>(
+                    blur_peak_one(k, means + 3 * n, conics + 3 * (ci * N + n), var[n], near, far, eps2d).out);
+        });
+    }
+}
+
+// g_means [N,3] and g_var [N] are sums over the cameras (a worker owns a range of Gaussians); g_conics [C,N,3].
+void blur_peak_backward(int64_t C, int64_t N, const float* means, const float* conics, const float* var,
+                        const float* cams, const float* Ks, int64_t W, int64_t H, double near, double far, double eps2d,
+                        const float* g_out, float* g_means, float* g_conics, float* g_var, int64_t num_threads) {
+    std::vector<BlurPeakCamera> ks(static_cast<size_t>(C));
+    for (int64_t ci = 0; ci < C; ++ci) ks[ci] = blur_peak_camera(cams + 16 * ci, Ks + 9 * ci, W, H);
+    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, C * N / 8192 + 1));
+    uskern::run_workers(workers, [&](int64_t w) {
+        for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n) {
+            double gm[3] = {0, 0, 0}, gv = 0;
+            for (int64_t ci = 0; ci < C; ++ci) {
+                const BlurPeakCamera& k = ks[ci];
+                const int64_t cn = ci * N + n;
+                const BlurPeakState s = blur_peak_one(k, means + 3 * n, conics + 3 * cn, var[n], near, far, eps2d);
+                float* gc = g_conics + 3 * cn;
+                if (!s.pass) {
+                    gc[0] = gc[1] = gc[2] = 0.0f;
+                    continue;
+                }
+                const double G = g_out[cn];
+                const double d_raw = s.raw >= eps2d * eps2d ? G * 0.5 / s.ds : 0.0;
+                double d_dc = G * 0.5 / s.dc;
+                const double d_sxx = d_raw * s.syy, d_syy = d_raw * s.sxx, d_sxy = -2.0 * d_raw * s.sxy;
+                const double idc = 1.0 / s.dc, idc2 = idc * idc;
+                double d_a = d_syy * idc, d_b = -d_sxy * idc, d_c = d_sxx * idc;
+                d_dc += -d_sxx * s.c * idc2 + d_sxy * s.b * idc2 - d_syy * s.a * idc2;
+                const double d_var = -(d_sxx * s.jxx + d_sxy * s.jxy + d_syy * s.jyy);
+                const double d_jxx = -d_sxx * s.var, d_jxy = -d_sxy * s.var, d_jyy = -d_syy * s.var;
+                d_a += d_dc * s.c;
+                d_c += d_dc * s.a;
+                d_b += -2.0 * s.b * d_dc;
+                gc[0] = static_cast<float>(d_a), gc[1] = static_cast<float>(d_b), gc[2] = static_cast<float>(d_c);
+                if (var[n] >= 0.0f) gv += d_var;
+                const double fxx = k.fx * k.fx, fxy = k.fx * k.fy, fyy = k.fy * k.fy;
+                const double d_iz2 = d_jxx * fxx * (1 + s.uc * s.uc) + d_jxy * fxy * s.uc * s.vc +
+                                     d_jyy * fyy * (1 + s.vc * s.vc);
+                const double d_uc = d_jxx * fxx * s.iz2 * 2 * s.uc + d_jxy * fxy * s.iz2 * s.vc;
+                const double d_vc = d_jyy * fyy * s.iz2 * 2 * s.vc + d_jxy * fxy * s.iz2 * s.uc;
+                // the clamps of the view angle pass the gradient only strictly inside their bounds
+                const double du = (s.u < k.uhi && s.u > k.ulo) ? d_uc : 0.0;
+                const double dv = (s.v < k.vhi && s.v > k.vlo) ? d_vc : 0.0;
+                const double dx = du / s.zs, dy = dv / s.zs;
+                const double dz = -(du * s.x + dv * s.y) / (s.zs * s.zs) - 2.0 * d_iz2 * s.iz2 / s.zs;  // ok: inside
+                for (int j = 0; j < 3; ++j) gm[j] += k.R[j] * dx + k.R[3 + j] * dy + k.R[6 + j] * dz;
+            }
+            for (int j = 0; j < 3; ++j) g_means[3 * n + j] = static_cast<float>(gm[j]);
+            g_var[n] = static_cast<float>(gv);
+        }
+    });
+}
+
 }  // namespace
 
 extern "C" {
+
+int us_blur_peak_forward_f32(int64_t C, int64_t N, const float* means, const float* conics, const float* var,
+                             const float* cams, const float* Ks, int64_t W, int64_t H, double near, double far,
+                             double eps2d, float* out, int64_t num_threads) {
+    blur_peak_forward(C, N, means, conics, var, cams, Ks, W, H, near, far, eps2d, out, num_threads);
+    return 0;
+}
+
+int us_blur_peak_backward_f32(int64_t C, int64_t N, const float* means, const float* conics, const float* var,
+                              const float* cams, const float* Ks, int64_t W, int64_t H, double near, double far,
+                              double eps2d, const float* g_out, float* g_means, float* g_conics, float* g_var,
+                              int64_t num_threads) {
+    blur_peak_backward(C, N, means, conics, var, cams, Ks, W, H, near, far, eps2d, g_out, g_means, g_conics, g_var,
+                       num_threads);
+    return 0;
+}
 
 int us_sh_forward_f32(int64_t C, int64_t N, int64_t B, int64_t degree, const float* sh, const float* means,
                       const float* centres, float* out, int64_t num_threads) {
