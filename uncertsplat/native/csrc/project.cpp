@@ -209,12 +209,16 @@ void sh_backward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, c
 
 
 // ------------------------------------------------------------------------------------- projection
-struct Camera {
-    float R[9], t[3], fx, fy, cx, cy, lo_u, hi_u, lo_v, hi_v;
+// A camera as the kernels read it, in float (projection) or double (the peak factor, as its reference).
+template <typename S>
+struct CameraT {
+    S R[9], t[3], fx, fy, cx, cy, lo_u, hi_u, lo_v, hi_v;
 };
+using Camera = CameraT<float>;
 
-inline Camera load_camera(const float* cam, const float* K, int64_t W, int64_t H) {
-    Camera c;
+template <typename S>
+inline CameraT<S> load_camera(const float* cam, const float* K, int64_t W, int64_t H) {
+    CameraT<S> c;
     for (int i = 0; i < 3; ++i) {
         for (int j = 0; j < 3; ++j) c.R[3 * i + j] = cam[4 * i + j];
         c.t[i] = cam[4 * i + 3];
@@ -224,10 +228,10 @@ inline Camera load_camera(const float* cam, const float* K, int64_t W, int64_t H
     c.cx = K[2];
     c.cy = K[5];
     // the view angle at which the Jacobian is evaluated is clamped to 1.3x the field of view (3DGS)
-    c.hi_u = (static_cast<float>(W) - c.cx) / c.fx + 0.15f * static_cast<float>(W) / c.fx;
-    c.lo_u = -c.cx / c.fx - 0.15f * static_cast<float>(W) / c.fx;
-    c.hi_v = (static_cast<float>(H) - c.cy) / c.fy + 0.15f * static_cast<float>(H) / c.fy;
-    c.lo_v = -c.cy / c.fy - 0.15f * static_cast<float>(H) / c.fy;
+    c.hi_u = (static_cast<S>(W) - c.cx) / c.fx + S(0.15) * static_cast<S>(W) / c.fx;
+    c.lo_u = -c.cx / c.fx - S(0.15) * static_cast<S>(W) / c.fx;
+    c.hi_v = (static_cast<S>(H) - c.cy) / c.fy + S(0.15) * static_cast<S>(H) / c.fy;
+    c.lo_v = -c.cy / c.fy - S(0.15) * static_cast<S>(H) / c.fy;
     return c;
 }
 
@@ -344,7 +348,7 @@ void project_forward(int64_t C, int64_t N, const float* means, const float* quat
     const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, N / 2048 + 1));
     uskern::run_workers(workers, [&](int64_t w) {
         for (int64_t c = 0; c < C; ++c) {
-            const Camera cam = load_camera(cams + 16 * c, Ks + 9 * c, W, H);
+            const Camera cam = load_camera<float>(cams + 16 * c, Ks + 9 * c, W, H);
             for (int64_t blk = blocks * w / workers; blk < blocks * (w + 1) / workers; ++blk)
                 project_lanes(cam, c, blk * LANES, N, means, quats, scales, opac, W, H, near, far, eps2d, alpha_min,
                               means2d, conics, depths, extents, valid);
@@ -387,7 +391,7 @@ void project_backward_lanes(int64_t C, int64_t N, int64_t n0, const float* means
         }
         const auto act = (gm0 != 0) | (gm1 != 0) | (gk0 != 0) | (gk1 != 0) | (gk2 != 0) | (gz != 0);
         if (!any_lane(act)) continue;
-        const Camera cam = load_camera(cams + 16 * c, Ks + 9 * c, W, H);
+        const Camera cam = load_camera<float>(cams + 16 * c, Ks + 9 * c, W, H);
         project_one<T>(cam, x, q, sc, near, far, eps2d, r);
         projected = true;
         // d loss / d Sigma = -K G K, G = [[gk0, gk1 / 2], [gk1 / 2, gk2]] (b is both off-diagonals)
@@ -481,22 +485,6 @@ void project_backward(int64_t C, int64_t N, const float* means, const float* qua
 // at most 0, and 0 behind the camera or for a degenerate conic. In double, as the reference: the
 // difference cancels when the blur dominates. One pass per Gaussian replaces some 20 float64 tensor ops
 // and their graph. Backward: the same steps in reverse, with the reference's clamp and selection rules.
-struct BlurPeakCamera {
-    double R[9], t[3], fx, fy, cx, cy, ulo, uhi, vlo, vhi;
-};
-
-inline BlurPeakCamera blur_peak_camera(const float* cam, const float* K, int64_t W, int64_t H) {
-    BlurPeakCamera b;
-    for (int i = 0; i < 3; ++i) {
-        for (int j = 0; j < 3; ++j) b.R[3 * i + j] = cam[4 * i + j];
-        b.t[i] = cam[4 * i + 3];
-    }
-    b.fx = K[0], b.fy = K[4], b.cx = K[2], b.cy = K[5];
-    const double mx = 0.15 * static_cast<double>(W) / b.fx, my = 0.15 * static_cast<double>(H) / b.fy;
-    b.uhi = (static_cast<double>(W) - b.cx) / b.fx + mx, b.ulo = -b.cx / b.fx - mx;
-    b.vhi = (static_cast<double>(H) - b.cy) / b.fy + my, b.vlo = -b.cy / b.fy - my;
-    return b;
-}
 
 // Everything forward computes for one (camera, Gaussian), kept for backward.
 struct BlurPeakState {
@@ -504,7 +492,7 @@ struct BlurPeakState {
     double x, y, zs, u, v, uc, vc, iz2, jxx, jxy, jyy, a, b, c, dc, var, sxx, sxy, syy, raw, ds, out;
 };
 
-inline BlurPeakState blur_peak_one(const BlurPeakCamera& k, const float* m, const float* con, float v, double near,
+inline BlurPeakState blur_peak_one(const CameraT<double>& k, const float* m, const float* con, float v, double near,
                                    double far, double eps2d) {
     BlurPeakState s{};
     const double mx = m[0], my = m[1], mz = m[2];
@@ -514,8 +502,8 @@ inline BlurPeakState blur_peak_one(const BlurPeakCamera& k, const float* m, cons
     const bool inside = z > near && z < far;
     s.zs = inside ? z : 1.0;
     s.u = s.x / s.zs, s.v = s.y / s.zs;
-    s.uc = std::max(std::min(s.u, k.uhi), k.ulo);
-    s.vc = std::max(std::min(s.v, k.vhi), k.vlo);
+    s.uc = std::max(std::min(s.u, k.hi_u), k.lo_u);
+    s.vc = std::max(std::min(s.v, k.hi_v), k.lo_v);
     s.iz2 = 1.0 / (s.zs * s.zs);
     s.jxx = k.fx * k.fx * s.iz2 * (1 + s.uc * s.uc);
     s.jxy = k.fx * k.fy * s.iz2 * s.uc * s.vc;
@@ -541,7 +529,7 @@ void blur_peak_forward(int64_t C, int64_t N, const float* means, const float* co
                        float* out, int64_t num_threads) {
     const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, C * N / 8192 + 1));
     for (int64_t ci = 0; ci < C; ++ci) {
-        const BlurPeakCamera k = blur_peak_camera(cams + 16 * ci, Ks + 9 * ci, W, H);
+        const CameraT<double> k = load_camera<double>(cams + 16 * ci, Ks + 9 * ci, W, H);
         uskern::run_workers(workers, [&](int64_t w) {
             for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n)
                 out[ci * N + n] = static_cast<float>(
@@ -554,14 +542,14 @@ void blur_peak_forward(int64_t C, int64_t N, const float* means, const float* co
 void blur_peak_backward(int64_t C, int64_t N, const float* means, const float* conics, const float* var,
                         const float* cams, const float* Ks, int64_t W, int64_t H, double near, double far, double eps2d,
                         const float* g_out, float* g_means, float* g_conics, float* g_var, int64_t num_threads) {
-    std::vector<BlurPeakCamera> ks(static_cast<size_t>(C));
-    for (int64_t ci = 0; ci < C; ++ci) ks[ci] = blur_peak_camera(cams + 16 * ci, Ks + 9 * ci, W, H);
+    std::vector<CameraT<double>> ks(static_cast<size_t>(C));
+    for (int64_t ci = 0; ci < C; ++ci) ks[ci] = load_camera<double>(cams + 16 * ci, Ks + 9 * ci, W, H);
     const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, C * N / 8192 + 1));
     uskern::run_workers(workers, [&](int64_t w) {
         for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n) {
             double gm[3] = {0, 0, 0}, gv = 0;
             for (int64_t ci = 0; ci < C; ++ci) {
-                const BlurPeakCamera& k = ks[ci];
+                const CameraT<double>& k = ks[ci];
                 const int64_t cn = ci * N + n;
                 const BlurPeakState s = blur_peak_one(k, means + 3 * n, conics + 3 * cn, var[n], near, far, eps2d);
                 float* gc = g_conics + 3 * cn;
@@ -589,8 +577,8 @@ void blur_peak_backward(int64_t C, int64_t N, const float* means, const float* c
                 const double d_uc = d_jxx * fxx * s.iz2 * 2 * s.uc + d_jxy * fxy * s.iz2 * s.vc;
                 const double d_vc = d_jyy * fyy * s.iz2 * 2 * s.vc + d_jxy * fxy * s.iz2 * s.uc;
                 // the clamps of the view angle pass the gradient only strictly inside their bounds
-                const double du = (s.u < k.uhi && s.u > k.ulo) ? d_uc : 0.0;
-                const double dv = (s.v < k.vhi && s.v > k.vlo) ? d_vc : 0.0;
+                const double du = (s.u < k.hi_u && s.u > k.lo_u) ? d_uc : 0.0;
+                const double dv = (s.v < k.hi_v && s.v > k.lo_v) ? d_vc : 0.0;
                 const double dx = du / s.zs, dy = dv / s.zs;
                 const double dz = -(du * s.x + dv * s.y) / (s.zs * s.zs) - 2.0 * d_iz2 * s.iz2 / s.zs;  // ok: inside
                 for (int j = 0; j < 3; ++j) gm[j] += k.R[j] * dx + k.R[3 + j] * dy + k.R[6 + j] * dz;
