@@ -72,6 +72,23 @@ def test_saturated_scene_with_capped_alpha_and_early_stop():
         assert ((ga[k] - gb[k]).norm() / ga[k].norm()).item() <= 1e-5, k
 
 
+@pytest.mark.parametrize("opacity_range", [(0.01, 0.03), (0.05, 0.1), (0.3, 0.6)])
+def test_tile_lists_longer_than_a_list_chunk(opacity_range):
+    """The forward takes a tile's list in chunks of 128 entries: faint Gaussians keep rays alive across several
+    chunks (the state carries over), denser ones stop them in the first chunks (the rest is never listed); every
+    case as the PyTorch path, in float64."""
+    s, cams = _scene(1500, torch.float64, seed=9, opacity_range=opacity_range)
+    p = project_gaussians(s.means, s.quats, s.scales, s.opacities, cams.cam_from_world, cams.K, 61, 47)
+    bins = bin_gaussians(p.means2d, p.extents, p.valid, p.depths, 61, 47, 8, p.conics, s.opacities)
+    assert int(bins.tile_count.max()) > 2 * 128
+    a, ga = _render_and_grads(s, cams, "torch")
+    b, gb = _render_and_grads(s, cams, "native")
+    for k in ("rgb", "alpha", "depth"):
+        assert (getattr(a, k) - getattr(b, k)).abs().max().item() <= 1e-12, k
+    for k in PARAMS:
+        assert ((ga[k] - gb[k]).norm() / ga[k].norm()).item() <= 1e-12, k
+
+
 def test_binning_lists_the_same_pairs_in_the_same_order():
     s, cams = _scene(800, torch.float32)
     p = project_gaussians(s.means, s.quats, s.scales, s.opacities, cams.cam_from_world, cams.K, 61, 47)
