@@ -156,6 +156,7 @@ def test_the_native_peak_factor_matches_the_reference_and_its_gradients():
     inputs = {"means": means, "conics": conics, "var": var}
     outs, grads = {}, {}
     weight = torch.rand(3, n, generator=g) - 0.5
+    weight[:, ::3] = 0.0  # no gradient arrives there (the kernel skips them): as most unseen Gaussians in training
     for name in ("reference", "native"):
         leaves = {k: v.detach().clone().requires_grad_() for k, v in inputs.items()}
         if name == "native":

@@ -551,13 +551,17 @@ void blur_peak_backward(int64_t C, int64_t N, const float* means, const float* c
             for (int64_t ci = 0; ci < C; ++ci) {
                 const CameraT<double>& k = ks[ci];
                 const int64_t cn = ci * N + n;
-                const BlurPeakState s = blur_peak_one(k, means + 3 * n, conics + 3 * cn, var[n], near, far, eps2d);
                 float* gc = g_conics + 3 * cn;
+                const double G = g_out[cn];
+                if (G == 0.0) {  // every gradient below is proportional to G (in training: most Gaussians, unseen)
+                    gc[0] = gc[1] = gc[2] = 0.0f;
+                    continue;
+                }
+                const BlurPeakState s = blur_peak_one(k, means + 3 * n, conics + 3 * cn, var[n], near, far, eps2d);
                 if (!s.pass) {
                     gc[0] = gc[1] = gc[2] = 0.0f;
                     continue;
                 }
-                const double G = g_out[cn];
                 const double d_raw = s.raw >= eps2d * eps2d ? G * 0.5 / s.ds : 0.0;
                 double d_dc = G * 0.5 / s.dc;
                 const double d_sxx = d_raw * s.syy, d_syy = d_raw * s.sxx, d_sxy = -2.0 * d_raw * s.sxy;
