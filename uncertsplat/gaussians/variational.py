@@ -276,17 +276,39 @@ def posterior_mean(model: GaussianModel, *, variant: Variant = "ours", extent: f
     if idx.numel() == 0:
         z = torch.zeros(0, 3, device=model.device)
         return _assemble(model, idx, z, z, z[:, 0], variant=variant, sh_degree=sh_degree)
+    offset, left, width, gate = _entry_means(t, variant, extent, temperature)
+    return _assemble(model, idx, offset, left + 0.5 * width, gate, variant=variant, sh_degree=sh_degree)
+
+
+def _entry_means(t: dict[str, Tensor], variant: Variant, extent: float,
+                 temperature: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Per carrier, from all K entries averaged: the mean position offset [P,3], the multiplier's interval
+    [l, l + w] as (left, width) [P,3], and E[gate] [P]."""
     offset = t["pos_loc"].mean(1) * _unit(variant, extent)
-    width = F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH)
-    mult = t["scale_left"].mean(1) + 0.5 * width
+    width = _multiplier_width(t)
     gate = expected_gate(t["gate_loc"].mean(1), F.softplus(t["gate_spread_raw"].mean(1)), temperature)[:, 0]
-    return _assemble(model, idx, offset, mult, gate, variant=variant, sh_degree=sh_degree)
+    return offset, t["scale_left"].mean(1), width, gate
+
+
+def _multiplier_width(t: dict[str, Tensor]) -> Tensor:
+    """[P,3] the width w of the multiplier's interval [l, l + w] (all K entries averaged, clamped)."""
+    return F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH)
+
+
+def _position_variance(t: dict[str, Tensor], variant: Variant, extent: float) -> Tensor:
+    """[P] the mean of a carrier's per-axis position variances (all K entries averaged)."""
+    return (F.softplus(t["pos_spread_raw"].mean(1)) * _unit(variant, extent)).square().mean(1)
+
+
+def _multiplier_second_moment(left: Tensor, width: Tensor) -> Tensor:
+    """E[o^2] for o ~ U[l, l + w]."""
+    return left * left + left * width + width * width / 3.0
 
 
 def _scale_second_moment(log_scale: Tensor, left: Tensor, width: Tensor, variant: Variant) -> Tensor:
     """E[scale^2] [P,3] under the multiplier o ~ U[l, l + w]: exp(2s) E[o^2] (ours) or E[exp(2 s o)] (paper)."""
     if variant == "ours":
-        return torch.exp(2.0 * log_scale) * (left * left + left * width + width * width / 3.0)
+        return torch.exp(2.0 * log_scale) * _multiplier_second_moment(left, width)
     # E[exp(2 s o)] = exp(2 s l) (exp(2 s w) - 1) / (2 s w); the ratio tends to 1 as s w -> 0
     x = 2.0 * log_scale * width
     small = x.abs() < 1e-6
@@ -323,22 +345,16 @@ def expected_constants(model: GaussianModel, *, extent: float = 1.0, temperature
     t = _tables(model, False)
     idx = model.carrier_index()
     p = model.params
-    unit = _unit("ours", extent)
     offset = torch.zeros_like(p["means"])
     factor = torch.ones_like(p["scales"])
     gate = torch.ones_like(p["opacities"])
     var = torch.zeros_like(p["opacities"])
     if idx.numel():
-        width = F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH)  # [P,3]
-        left = t["scale_left"].mean(1)
-        # E[o^2] for o ~ U[l, l + w]: the "ours" branch of _scale_second_moment without exp(2 s)
-        second = left * left + left * width + width * width / 3.0
-        offset.index_copy_(0, idx, (t["pos_loc"].mean(1) * unit).to(offset.dtype))
-        factor.index_copy_(0, idx, second.sqrt().to(factor.dtype))
-        g = expected_gate(t["gate_loc"].mean(1), F.softplus(t["gate_spread_raw"].mean(1)), temperature)[:, 0]
-        gate.index_copy_(0, idx, g.to(gate.dtype))
-        sigma2 = (F.softplus(t["pos_spread_raw"].mean(1)) * unit).square().mean(1)  # [P]
-        var.index_copy_(0, idx, sigma2.to(var.dtype))
+        mean_offset, left, width, mean_gate = _entry_means(t, "ours", extent, temperature)
+        offset.index_copy_(0, idx, mean_offset.to(offset.dtype))
+        factor.index_copy_(0, idx, _multiplier_second_moment(left, width).sqrt().to(factor.dtype))
+        gate.index_copy_(0, idx, mean_gate.to(gate.dtype))
+        var.index_copy_(0, idx, _position_variance(t, "ours", extent).to(var.dtype))
     row = model.posterior_row
     return ExpectedConstants(offset, factor, gate, var, row, row._version)
 
@@ -379,8 +395,8 @@ def expected_render_sample(model: GaussianModel, *, variant: Variant = "ours", e
         return pm
     t = _tables(model, tables_grad)
     idx = model.carrier_index()
-    sigma2 = (F.softplus(t["pos_spread_raw"].mean(1)) * _unit(variant, extent)).square().mean(1)  # [P]
-    width = F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH)  # [P,3]
+    sigma2 = _position_variance(t, variant, extent)  # [P]
+    width = _multiplier_width(t)  # [P,3]
     second = _scale_second_moment(model.params["scales"][idx], t["scale_left"].mean(1), width, variant)  # [P,3]
     scales = pm.scales.index_copy(0, idx, second.sqrt().to(pm.scales.dtype))
     var = torch.zeros_like(pm.opacities).index_copy(0, idx, sigma2.to(pm.opacities.dtype))  # [N]
@@ -463,7 +479,7 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
     unit = _unit(prior.variant, extent)
     before = posterior_mean(model, variant=prior.variant, extent=extent, temperature=prior.temperature)
     old_opacity = before.opacities[idx]  # [P] effective opacity (base x expected gate)
-    old_mult = t["scale_left"].mean(1) + 0.5 * F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH)
+    old_mult = t["scale_left"].mean(1) + 0.5 * _multiplier_width(t)
 
     # position
     own = before.scales[idx].log().mean(1).exp()  # [P] geometric-mean size, world units
@@ -604,7 +620,7 @@ def carrier_uncertainty(model: GaussianModel, *, variant: Variant = "ours", exte
     t = _tables(model, grad=False)
     sig = F.softplus(t["pos_spread_raw"].mean(1)) * _unit(variant, extent)
     out["position"][idx] = sig.square().mean(1).sqrt()
-    out["scale"][idx] = F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH).mean(1)
+    out["scale"][idx] = _multiplier_width(t).mean(1)
     out["gate"][idx] = F.softplus(t["gate_spread_raw"].mean(1))[:, 0]
     return out
 

@@ -56,12 +56,12 @@ DEFAULT_BLOCK_ELEMENTS = 1 << 17
 # device idle between them (at 512x384 / 50k with CPU-sized blocks: 8000 launches, the GPU busy 21 of
 # 115 ms, H100 2026-11-26); larger blocks trade memory (a few [nt,P,L] float tensors) for launches.
 DEFAULT_BLOCK_ELEMENTS_GPU = 1 << 22
+PAD_LOG_ALPHA = -1.0e4  # exp() of this is exactly 0: padded rows contribute nothing
 
 
 def default_block_elements(device: torch.device) -> int:
     """Pair-pixel elements per block of the PyTorch compositor: cache-sized on the CPU, larger on GPUs."""
     return DEFAULT_BLOCK_ELEMENTS if device.type == "cpu" else DEFAULT_BLOCK_ELEMENTS_GPU
-PAD_LOG_ALPHA = -1.0e4  # exp() of this is exactly 0: padded rows contribute nothing
 
 
 @dataclass

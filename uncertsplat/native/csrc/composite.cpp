@@ -391,8 +391,8 @@ void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, cons
 // feature weights to lane accumulators in registers (one horizontal sum per entry).
 template <typename S, int F>
 void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, const S* rec, const int64_t* pair_gauss,
-                   const int64_t* tile_start, const int64_t* tile_count, const S* t_final, const int32_t* last,
-                   const S* g_out, S* g_pair, int32_t* tile_used, SliceScratch<S>& scratch) {
+                   const int64_t* tile_start, const S* t_final, const int32_t* last, const S* g_out, S* g_pair,
+                   int32_t* tile_used, SliceScratch<S>& scratch) {
     using V = typename Lanes<S>::V;
     using M = typename Lanes<S>::M;
     using I = typename Lanes<S>::I;
@@ -510,7 +510,7 @@ void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S*
     std::vector<SliceScratch<S>> scratch(workers);
     std::vector<int32_t> tile_used(static_cast<size_t>(prm.num_tiles), 0);  // rows written per tile
     for_each_tile(prm.num_tiles, workers, CHUNK, [&](int64_t id, int64_t t) {
-        backward_tile<S, F>(prm, grid, t, rec.data(), pair_gauss, tile_start, tile_count, t_final, last, g_out, g_pair,
+        backward_tile<S, F>(prm, grid, t, rec.data(), pair_gauss, tile_start, t_final, last, g_out, g_pair,
                             tile_used.data(), scratch[id]);
     });
     const int64_t reducers = std::max<int64_t>(1, std::min<int64_t>(prm.num_threads, G / 4096 + 1));
