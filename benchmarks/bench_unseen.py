@@ -14,7 +14,8 @@ observed / unobserved from GT depth (``eval.observed.observed_mask``). Per metho
 Each run is evaluated four ways (``PREDICTIVES``, ``--predictives`` picks some): ``full`` (what ``evaluate``
 writes), ``before`` (the predictive before the coverage and resolution terms: every alpha < 1 counts as empty, no
 resolution term), ``spread`` (the samples' spread alone) and ``leverage`` (``full`` with
-``EvalConfig.residual_leverage``).
+``EvalConfig.residual_leverage``); ``no-colour`` is ``full`` without the colour posterior
+(``EvalConfig.colour_posterior``, the default since 2026-11-26).
 
 Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
 its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),
@@ -99,6 +100,7 @@ PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alph
     "before": ({"resolution": 0.0}, True),  # the predictive before the coverage and resolution terms (2026-11-24)
     "spread": ({"empty_rays": False, "residual_views": 0, "resolution": 0.0}, False),  # the samples' spread alone
     "leverage": ({"residual_leverage": True}, False),  # full, each Gaussian's pixel noise / (1 - its leverage)
+    "no-colour": ({"colour_posterior": False}, False),  # full without the colour posterior (the default before)
 }
 
 

@@ -406,6 +406,13 @@ class EvalConfig(_Base):
     std too small where the model renders worse than on its training views (NLL: sparse views -2.61 -> -2.34,
     half-ring 0.26 -> 1.52, bonsai -1.00 -> -0.75), so it is not the default (BENCHMARKS.md, "The pixel noise's
     level")."""
+    colour_posterior: bool = True
+    """Add the colour the model does not know to the RGB std: the Laplace posterior of each Gaussian's colour (its
+    SH coefficients) given the training pixels it is blended into, seen from the evaluated view
+    (``uncertainty.residual``, "The colour posterior"). Negligible where the training views pinned a Gaussian's
+    colour down; the prior's (the training pixels' variance) for a Gaussian no view saw, e.g. a surface a new view
+    uncovers; in between for a colour seen from few directions and looked at from a new one (SH degree > 0).
+    Fitted in the same pass as the pixel noise (``residual_views`` > 0), no extra render."""
     residual_leverage: bool = False
     """Carry the pixel noise from the training residuals to the noise itself: each Gaussian's noise divided by
     (1 - h), h its parameters over the training pixel channels it is blended into (its leverage, capped at 0.9;

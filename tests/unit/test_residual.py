@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from dataclasses import replace
 
 import pytest
 import torch
@@ -189,3 +190,97 @@ class TestOutOfSample:
         field = replace(fit_residual_field(sample, cams, out.rgb, RENDER), observations=None)
         with pytest.raises(ValueError, match="observation counts"):
             field.out_of_sample(14)
+
+
+class TestColourPosterior:
+    """The Laplace posterior of each Gaussian's colour (``fit_residual_field(colour_posterior=True)``) against closed forms."""
+
+    @staticmethod
+    def _fit(sample, cams, images, **kw):
+        return fit_residual_field(sample, cams, images, RENDER, colour_posterior=True, **kw)
+
+    def test_closed_form_at_degree_0(self):
+        """Unseen Gaussian: the prior, the training pixels' variance. Seen: 1 / (n / v + 1 / prior) in RGB units,
+        n the training pixels it is blended into (sum of weights), v its noise."""
+        sample, cams, d = _sample(), _cams(3), 0.05
+        with torch.no_grad():
+            out = RENDER(sample, cams)
+        images = (out.rgb + d).clamp(0, 1)
+        field = self._fit(sample, cams, images)
+        var = field.colour_variance(cams.centers)  # [3,N]
+        pixel_var = float(images.double().reshape(-1, 3).var(0, unbiased=False).mean())
+        assert var.shape == (3, len(sample))
+        assert float(var[0, -1]) == pytest.approx(pixel_var, rel=1e-5)  # no training pixel saw the last one
+        seen = field.seen
+        expect = 1.0 / (field.observations.double() / field.variance.double() + 1.0 / pixel_var)
+        torch.testing.assert_close(var[0, seen].double(), expect[seen], rtol=1e-4, atol=1e-12)
+        # degree 0: no direction dependence
+        torch.testing.assert_close(var[1], var[0])
+        well_seen = seen & (field.observations > 5)  # blended into more than 5 training pixels
+        assert bool(well_seen.any())
+        assert float(var[0, well_seen].max()) < 0.2 * pixel_var, "a seen colour is known far better than the prior"
+
+    def test_view_factor_scales_the_evidence(self):
+        sample, cams = _sample(), _cams(2)
+        with torch.no_grad():
+            images = RENDER(sample, cams).rgb + 0.02
+        one = self._fit(sample, cams, images)
+        four = self._fit(sample, cams, images, view_factor=4.0)
+        torch.testing.assert_close(four.colour_evidence, 4 * one.colour_evidence)
+        assert bool((four.colour_variance(cams.centers) <= one.colour_variance(cams.centers) + 1e-12).all())
+
+    def test_a_new_direction_is_less_known_than_the_seen_ones(self):
+        """SH degree 1, every training view looking down +z: the band-1 coefficients along x and y get no evidence,
+        so the colour seen from the side (+x) is less certain than from the training cameras, and equals the DC
+        variance plus C1^2 x the band's prior for a coefficient no view constrains."""
+        sample, cams = _sample(seed=3), _cams(3)
+        g = torch.Generator().manual_seed(5)
+        sample = replace(sample, sh=torch.cat([sample.sh, 0.2 * torch.randn(len(sample), 3, 3, generator=g)], 1),
+                         sh_degree=1)
+        with torch.no_grad():
+            images = RENDER(sample, cams).rgb + 0.03
+        field = self._fit(sample, cams, images)
+        assert field.colour_evidence.shape == (len(sample), 4) and field.colour_prior.shape == (4,)
+        i = int(torch.nonzero(field.seen & (field.observations > 5)).flatten()[0])
+        centre = sample.means[i]
+        front = (centre - torch.tensor([0.0, 0.0, 2.0]))[None]  # 2 units in front of it, on the training side
+        side = (centre - torch.tensor([2.0, 0.0, 0.0]))[None]  # 2 units to its -x side, looking along +x
+        v_front = float(field.colour_variance(front)[0, i])
+        v_side = float(field.colour_variance(side)[0, i])
+        assert v_side > 5 * v_front
+        assert v_side <= float(field.colour_prior[0]) * 0.2821**2 + float(field.colour_prior[3]) * 0.4886**2 + 1e-9
+
+    def test_blended_adds_the_unknown_colour_where_a_new_view_uncovers_an_unseen_gaussian(self):
+        """The Gaussian behind every training camera is unseen; a camera turned around sees it, and its blended
+        variance there is (almost) noise + prior; on the training views the colour term adds little."""
+        sample, cams, d = _sample(), _cams(3), 0.05
+        with torch.no_grad():
+            out = RENDER(sample, cams)
+        images = (out.rgb + d).clamp(0, 1)
+        field = self._fit(sample, cams, images)
+        plain = fit_residual_field(sample, cams, images, RENDER)
+        on_train, plain_train = field.blended(cams, RENDER), plain.blended(cams, RENDER)
+        assert float((on_train - plain_train).max()) < 0.15 * float(plain_train.max())
+        back = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))[None]  # at the origin, looking down -z
+        turned = Cameras(back, cams.K[:1], W, H, ("back.png",))
+        with torch.no_grad():
+            alpha = RENDER(sample, turned).alpha
+        centre = alpha[0, H // 2, W // 2, 0]
+        assert float(centre) > 0.3, "the turned camera sees the unseen Gaussian"
+        got = field.blended(turned, RENDER)[0, H // 2, W // 2, 0]
+        expect = centre * (field.variance[-1] + field.colour_variance(turned.centers)[0, -1])
+        torch.testing.assert_close(got, expect, rtol=1e-3, atol=1e-7)
+        assert float(got) > 0.5 * float(centre) * float(field.colour_prior[0]) * 0.2821**2
+
+    def test_constant_images_and_subset(self):
+        """Images without any variation: the prior is 0 (floored), every colour variance finite and ~0; ``subset``
+        keeps each Gaussian's evidence."""
+        sample, cams = _sample(), _cams(2)
+        images = torch.full((2, H, W, 3), 0.4)
+        field = self._fit(sample, cams, images)
+        var = field.colour_variance(cams.centers)
+        assert bool(torch.isfinite(var).all()) and float(var.max()) < 1e-9
+        keep = torch.arange(len(sample)) % 3 != 0
+        sub = field.subset(keep)
+        torch.testing.assert_close(sub.colour_evidence, field.colour_evidence[keep])
+        torch.testing.assert_close(sub.colour_variance(cams.centers), var[:, keep])

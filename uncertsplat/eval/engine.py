@@ -29,7 +29,7 @@ from uncertsplat.console import progress
 from uncertsplat.errors import UserError
 from uncertsplat.schemas.metrics import EvalReport
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput, ViewSet
-from uncertsplat.uncertainty.residual import ResidualField
+from uncertsplat.uncertainty.residual import C0, ResidualField
 
 KDE_MAX_SAMPLES = 64
 """The KDE NLL keeps every sample of a view in memory; above this K it is skipped (and noted)."""
@@ -61,6 +61,8 @@ class EvalSettings(Protocol):
     """"fit" (``fit_noise_scale``) or a factor for the pixel noise."""
     residual_leverage: bool
     """Divide each Gaussian's noise by (1 - its leverage) (``ResidualField.out_of_sample``)."""
+    colour_posterior: bool
+    """Add each Gaussian's colour posterior variance to its noise (``ResidualField.colour_variance``)."""
 
 
 @dataclass(frozen=True)
@@ -200,7 +202,8 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
     rep = _representative(sampler, device)
     cams, images = views.cameras.to(device), views.images.to(device)
     with torch.enable_grad():
-        field = fit_residual_field(rep, cams, images, sampler.render_fn, masks=masks, explained=explained)
+        field = fit_residual_field(rep, cams, images, sampler.render_fn, masks=masks, explained=explained,
+                                   colour_posterior=cfg.colour_posterior, view_factor=len(train_indices) / len(chosen))
     if cfg.residual_scale == "fit":
         field = field.scaled(fit_noise_scale(field, rep, cams, images, sampler.render_fn, masks=masks,
                                              explained=explained, std_floor=cfg.std_floor))
@@ -405,6 +408,11 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         seen = float(sampler.residual.seen.float().mean()) if sampler.residual.seen.numel() else 0.0
         terms.append(f"the pixel noise of the Gaussians on the training views (RMS residual "
                      f"{sampler.residual.mean_variance ** 0.5:.4f}; {100 * seen:.1f} % of the Gaussians seen)")
+        unknown = sampler.residual.colour_unknown_fraction()
+        if unknown is not None:
+            prior = float(sampler.residual.colour_prior[0]) ** 0.5 * C0
+            terms.append(f"the colour the training views leave unknown (each Gaussian's colour posterior; prior std "
+                         f"{prior:.3f}; {100 * unknown:.1f} % of the Gaussians' colour set mostly by the prior)")
     if cfg.resolution > 0:
         terms.append(f"the resolution term (every Gaussian moved by N(0, ({cfg.resolution:g} x its size)^2), "
                      "one render per sample)")

@@ -17,9 +17,20 @@ estimates that noise per Gaussian, heteroscedastically, and renders it:
   (1 - h): little for a Gaussian that hundreds of pixels pin down, much for one that a few pixels of a sparse
   capture fitted. Not (1 + h) / (1 - h), a new observation's whole error: its h s^2 is the parameters'
   uncertainty, which the posterior's spread and the resolution term already give the predictive.
-* ``ResidualField.variance``: the blended variance ``sum_i w_i(p) v_i`` of a view (one extra render),
-  which ``uncertainty.mc.mc_render`` adds to the samples' variance: the predictive of a pixel is the
-  model's spread plus the noise of its Gaussians.
+* The colour posterior (``fit_residual_field(colour_posterior=True)``, ``ResidualField.colour_variance``): the variational
+  posterior covers where a Gaussian is, not what colour it has. A Gaussian's colour is linear in its SH
+  coefficients, so the Laplace posterior of a coefficient b is exact for the pixel likelihood: precision
+  ``sum_views Y_b(d_v)^2 sum_p w_i(p) / v_i + 1 / prior_b`` (d_v: the direction from view v's centre to the
+  Gaussian; ``sum_p w_i(p)`` stands in for the exact ``sum_p w_i(p)^2``, an upper bound since w <= 1). The
+  prior is empirical: the DC colour's is the variance of the training pixels ("a surface no view saw looks like
+  some pixel of the capture"), each higher band's the mean square of that band over the seen Gaussians. Seen
+  from a direction d, the colour's variance is ``sum_b Y_b(d)^2 / precision_b``: negligible for a Gaussian that
+  views pinned down, the prior's for one no view saw (a surface a held-out view uncovers), and growing with
+  the angle from the directions its views had, for the view-dependent bands.
+* ``ResidualField.blended``: the blended variance ``sum_i w_i(p) (v_i + c_i)`` of a view (c_i: the colour
+  posterior's variance, when fitted; one extra render), which ``uncertainty.mc.mc_render`` adds to the samples'
+  variance: the predictive of a pixel is the model's spread plus the noise and the unknown colour of its
+  Gaussians.
 
 Takes the sample and the renderer as a function (``render_fn(sample, cameras) -> RenderOutput``), so it
 imports neither ``render`` nor a model class.
@@ -33,11 +44,14 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
+from uncertsplat.render.sh import sh_basis
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput
 
 MAX_LEVERAGE = 0.9
 """The largest leverage ``ResidualField.out_of_sample`` gives a Gaussian (a factor of 10 on its noise)."""
 C0 = 0.28209479177387814  # the DC spherical harmonic: colour = C0 * sh0 + 0.5 (``render.sh``)
+MIN_PRIOR = 1e-12
+"""Floor of a colour prior variance (an SH band no seen Gaussian uses has no spread to give)."""
 
 
 def _with_colour(sample: GaussianSample, colour: Tensor) -> GaussianSample:
@@ -69,6 +83,25 @@ class ResidualField:
     observations: Tensor | None = None
     leverage_inflation: float | None = None
     """The mean factor ``out_of_sample`` multiplied the noise by (None: not applied)."""
+    colour_evidence: Tensor | None = None
+    """[N,B] ``sum_views Y_b(d_v)^2 sum_p w_i(p)`` per SH coefficient b, over all training views (the colour
+    posterior, module docstring); None: no colour term."""
+    colour_prior: Tensor | None = None
+    """[B] the prior variance of each SH coefficient (SH units) of the colour posterior."""
+
+    def colour_variance(self, centers: Tensor) -> Tensor:
+        """[C,N] the posterior variance of each Gaussian's colour (per channel, RGB units) seen from each camera
+        centre ``centers`` [C,3] (module docstring); zeros when the field has no colour term."""
+        s = self.sample
+        if self.colour_evidence is None:
+            return torch.zeros(centers.shape[0], s.means.shape[0], device=s.means.device)
+        noise = self.variance.double().clamp_min(1e-12)[:, None]  # [N,1]
+        prior = self.colour_prior.double().clamp_min(MIN_PRIOR)  # [B]
+        coef_var = 1.0 / (self.colour_evidence.double() / noise + 1.0 / prior)  # [N,B]
+        d = s.means.double()[None] - centers.double()[:, None]  # [C,N,3]
+        d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        basis = sh_basis(_degree(coef_var.shape[1]), d)  # [C,N,B]
+        return (basis.square() * coef_var).sum(-1).to(self.variance.dtype)
 
     def out_of_sample(self, params_per_gaussian: int, view_factor: float = 1.0,
                       max_leverage: float = MAX_LEVERAGE) -> ResidualField:
@@ -95,15 +128,28 @@ class ResidualField:
             return self
         return replace(self, variance=self.variance * factor, scale=self.scale * factor)
 
+    def colour_unknown_fraction(self) -> float | None:
+        """The share of the Gaussians whose DC colour the prior sets more than the data (posterior variance above half
+        the prior's: ``evidence / noise < 1 / prior``); None without a colour term."""
+        if self.colour_evidence is None or not self.colour_evidence.shape[0]:
+            return None
+        data = self.colour_evidence[:, 0].double() / self.variance.double().clamp_min(1e-12)
+        return float((data < 1.0 / float(self.colour_prior[0].clamp_min(MIN_PRIOR))).double().mean())
+
     @torch.no_grad()
     def blended(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
-        """[C,H,W,1] ``sum_i w_i(p) v_i`` for the cameras.
+        """[C,H,W,1] ``sum_i w_i(p) (v_i + c_i)`` for the cameras (c_i: the colour posterior's variance seen from
+        the camera, 0 without a colour term).
 
-        Two renders: the render is linear in the colours, so the difference between colour v and colour 0
-        removes whatever background ``render_fn`` composites behind the Gaussians.
+        Two renders per camera: the render is linear in the colours, so the difference between colour v and colour
+        0 removes whatever background ``render_fn`` composites behind the Gaussians.
         """
-        zeros = torch.zeros_like(self.variance)
-        colour = torch.stack([self.variance, zeros, zeros], -1)  # [N,3]
+        if self.colour_evidence is not None and len(cameras) > 1:  # the colour term depends on the camera
+            return torch.cat([self.blended(cameras[[j]], render_fn) for j in range(len(cameras))])
+        var = self.variance + self.colour_variance(cameras.centers)[0] if self.colour_evidence is not None else \
+            self.variance
+        zeros = torch.zeros_like(var)
+        colour = torch.stack([var, zeros, zeros], -1)  # [N,3]
         with_v = render_fn(_with_colour(self.sample, colour), cameras).rgb[..., :1]
         without = render_fn(_with_colour(self.sample, torch.zeros_like(colour)), cameras).rgb[..., :1]
         return (with_v - without).clamp_min(0.0)
@@ -116,13 +162,34 @@ class ResidualField:
         sample = replace(s, means=s.means[keep], quats=s.quats[keep], scales=s.scales[keep],
                          opacities=s.opacities[keep], sh=s.sh[keep], position_var=pv)
         obs = None if self.observations is None else self.observations[keep]
-        return replace(self, sample=sample, variance=self.variance[keep], seen=self.seen[keep], observations=obs)
+        evidence = None if self.colour_evidence is None else self.colour_evidence[keep]
+        return replace(self, sample=sample, variance=self.variance[keep], seen=self.seen[keep], observations=obs,
+                       colour_evidence=evidence)
+
+
+def _degree(num_bases: int) -> int:
+    """The SH degree of ``num_bases`` coefficients per channel."""
+    return round(num_bases ** 0.5) - 1
+
+
+def _colour_prior(sample: GaussianSample, seen: Tensor, pixel_var: float, num_bases: int) -> Tensor:
+    """[B] the colour posterior's prior variance per SH coefficient (SH units): the DC term's from the training
+    pixels' variance, each higher band's the mean square of that band's coefficients over the seen Gaussians."""
+    prior = torch.zeros(num_bases, dtype=torch.float64, device=sample.means.device)
+    prior[0] = pixel_var / C0**2
+    sh = sample.sh[seen][:, :num_bases].double()  # [S,B,3]
+    for band in range(1, _degree(num_bases) + 1):
+        lo, hi = band * band, (band + 1) ** 2
+        if sh.shape[0]:
+            prior[lo:hi] = sh[:, lo:hi].square().mean()
+    return prior
 
 
 def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
                        render_fn: Callable[[GaussianSample, Cameras], RenderOutput],
                        masks: Tensor | None = None,
-                       explained: Callable[[Cameras], Tensor] | None = None) -> ResidualField:
+                       explained: Callable[[Cameras], Tensor] | None = None, colour_posterior: bool = False,
+                       view_factor: float = 1.0) -> ResidualField:
     """Each Gaussian's noise variance from the training views (see the module docstring).
 
     Args:
@@ -140,6 +207,10 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
     dev = sample.means.device
     colour = torch.full((n, 3), 0.5, device=dev, requires_grad=True)
     acc = torch.zeros(n, 2, device=dev, dtype=torch.float64)
+    num_bases = (sample.sh_degree + 1) ** 2
+    evidence = torch.zeros(n, num_bases, device=dev, dtype=torch.float64) if colour_posterior else None
+    pix_sum = torch.zeros(3, dtype=torch.float64, device=dev)
+    pix_sq = torch.zeros(3, dtype=torch.float64, device=dev)
     total, count = 0.0, 0
     for j in range(len(cameras)):
         cam = cameras[[j]]
@@ -157,12 +228,24 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
         target = torch.cat([r2, valid.to(r2.dtype), torch.zeros_like(r2)], -1)  # [H,W,3]: r^2, 1, 0
         (grad,) = torch.autograd.grad((out.rgb[0] * target).sum(), colour)
         acc += grad[:, :2].double()
+        if evidence is not None:
+            img = images[j].to(dev).double()[valid[..., 0]]  # [P,3]
+            pix_sum += img.sum(0)
+            pix_sq += img.square().sum(0)
+            d = sample.means.detach().double() - cam.centers.double()  # [N,3]
+            d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            evidence += sh_basis(sample.sh_degree, d).square() * grad[:, 1:2].double()
     mean_var = total / max(count, 1)
     weight = acc[:, 1]
     seen = weight > 1e-6 * max(float(weight.max()), 1e-30) if n else torch.zeros(0, dtype=torch.bool, device=dev)
     var = torch.where(seen, acc[:, 0] / weight.clamp_min(1e-30), torch.full_like(weight, mean_var))
+    prior = None
+    if evidence is not None:
+        pixel_var = float((pix_sq / max(count, 1) - (pix_sum / max(count, 1)).square()).clamp_min(0).mean())
+        prior = _colour_prior(sample, seen, pixel_var, num_bases).float()
+        evidence = (evidence * view_factor).float()
     return ResidualField(sample=sample, variance=var.float(), seen=seen, mean_variance=mean_var,
-                         observations=weight.float())
+                         observations=weight.float(), colour_evidence=evidence, colour_prior=prior)
 
 
 __all__ = ["ResidualField", "fit_residual_field"]
