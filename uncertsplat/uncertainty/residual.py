@@ -199,6 +199,9 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
         explained: ``explained(camera) -> [1,H,W,1]`` a variance the rest of the predictive already gives each
             pixel (the resolution term): the noise is fitted to what the residual leaves beyond it,
             ``max(r^2 - explained, 0)``, so that the two are not counted twice.
+        colour_posterior: also fit the colour posterior (module docstring; ``ResidualField.colour_variance``).
+        view_factor: the training views over ``len(cameras)`` (when the field is fitted on a subset of them): the
+            colour posterior's evidence is scaled to all training views by it.
 
     Returns:
         the ``ResidualField`` (on the sample's device).
