@@ -284,3 +284,18 @@ class TestColourPosterior:
         sub = field.subset(keep)
         torch.testing.assert_close(sub.colour_evidence, field.colour_evidence[keep])
         torch.testing.assert_close(sub.colour_variance(cams.centers), var[:, keep])
+
+    def test_a_perfect_fit_leaves_only_the_unseen_colours_unknown(self):
+        """Zero residual (images = the render): every seen Gaussian's noise is 0 and its colour variance (almost) 0,
+        finite; the unseen one keeps the prior; nothing is NaN."""
+        sample, cams = _sample(), _cams(3)
+        with torch.no_grad():
+            images = RENDER(sample, cams).rgb
+        field = self._fit(sample, cams, images)
+        var = field.colour_variance(cams.centers)
+        assert bool(torch.isfinite(var).all())
+        assert float(field.variance[field.seen].abs().max()) < 1e-10
+        assert float(var[:, field.seen].max()) < 1e-6
+        pixel_var = float(images.double().reshape(-1, 3).var(0, unbiased=False).mean())
+        assert float(var[0, -1]) == pytest.approx(pixel_var, rel=1e-4)
+        assert 0.0 < field.colour_unknown_fraction() < 0.5

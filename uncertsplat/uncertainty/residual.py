@@ -52,6 +52,8 @@ MAX_LEVERAGE = 0.9
 C0 = 0.28209479177387814  # the DC spherical harmonic: colour = C0 * sh0 + 0.5 (``render.sh``)
 MIN_PRIOR = 1e-12
 """Floor of a colour prior variance (an SH band no seen Gaussian uses has no spread to give)."""
+MIN_NOISE = 1e-10
+"""Floor of the noise variance the colour posterior divides by (a Gaussian its training pixels fit exactly)."""
 
 
 def _with_colour(sample: GaussianSample, colour: Tensor) -> GaussianSample:
@@ -95,10 +97,11 @@ class ResidualField:
         s = self.sample
         if self.colour_evidence is None:
             return torch.zeros(centers.shape[0], s.means.shape[0], device=s.means.device)
-        noise = self.variance.double().clamp_min(1e-12)[:, None]  # [N,1]
-        prior = self.colour_prior.double().clamp_min(MIN_PRIOR)  # [B]
-        coef_var = 1.0 / (self.colour_evidence.double() / noise + 1.0 / prior)  # [N,B]
-        d = s.means.double()[None] - centers.double()[:, None]  # [C,N,3]
+        # float32 is enough (evidence / noise stays far below its range) and keeps [C,N,B] small for large models
+        noise = self.variance.float().clamp_min(MIN_NOISE)[:, None]  # [N,1]
+        prior = self.colour_prior.float().clamp_min(MIN_PRIOR)  # [B]
+        coef_var = 1.0 / (self.colour_evidence.float() / noise + 1.0 / prior)  # [N,B]
+        d = s.means.float()[None] - centers.float().to(s.means.device)[:, None]  # [C,N,3]
         d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         basis = sh_basis(_degree(coef_var.shape[1]), d)  # [C,N,B]
         return (basis.square() * coef_var).sum(-1).to(self.variance.dtype)
@@ -133,7 +136,7 @@ class ResidualField:
         the prior's: ``evidence / noise < 1 / prior``); None without a colour term."""
         if self.colour_evidence is None or not self.colour_evidence.shape[0]:
             return None
-        data = self.colour_evidence[:, 0].double() / self.variance.double().clamp_min(1e-12)
+        data = self.colour_evidence[:, 0].double() / self.variance.double().clamp_min(MIN_NOISE)
         return float((data < 1.0 / float(self.colour_prior[0].clamp_min(MIN_PRIOR))).double().mean())
 
     @torch.no_grad()
