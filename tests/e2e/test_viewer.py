@@ -178,6 +178,16 @@ class TestRenderLoop:
         viewer.serve(state)
         assert "removes" in viewer.gui_bar.content and "--keep-ratio 0.7" in viewer.gui_bar.content
 
+    def test_unseen_mode_from_the_runs_photos(self, viewer):
+        # `view` builds the mode from the run's training photos: fitted on first use, served like the depth mode
+        assert "unseen" in viewer.renderer.modes()
+        viewer.set_mode("unseen")
+        assert viewer.gui_lock.visible and not viewer.gui_samples.visible
+        client = FakeClient(viewer.scene, 0)
+        state = self._state(viewer, client, moving=False)
+        viewer.serve(state)
+        assert "no photo showed" in viewer.gui_bar.content and viewer.renderer._unseen is not None
+
 
 def _train_watched(scene, out, live, iterations=60):
     from tests.run_fixtures import TINY_RUN_OVERRIDES

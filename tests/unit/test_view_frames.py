@@ -168,3 +168,56 @@ class TestPrunePreview:
         c = r.sampler.coverage
         assert 0.0 < c <= 1.0
         np.testing.assert_allclose(f.values, np.clip(1 - alpha / c, 0, None) / math.sqrt(12.0), atol=1e-6)
+
+
+class TestUnseenMode:
+    """``unseen``: the colour posterior blended for the view plus the empty-ray term, fitted once."""
+
+    @staticmethod
+    def _renderer(tiny_run_path, device, calls):
+        from functools import partial
+
+        from uncertsplat.config import EvalConfig
+        from uncertsplat.data.dataset import load_view_set
+        from uncertsplat.eval.engine import fit_residual
+
+        loaded = load_run(tiny_run_path, device)
+        scene = loaded.load_scene()
+
+        def field():
+            calls.append(1)
+            return fit_residual(loaded.sampler(scene.scene_scale, device), scene.split["train"],
+                                EvalConfig(resolution=0.0), device, load_views=partial(load_view_set, scene, depth=False))
+
+        return FrameRenderer(loaded, scene.scene_scale, device, unseen_field=field), scene
+
+    def test_values_are_the_blended_colour_posterior_and_the_empty_term(self, tiny_run_path, device):
+        calls: list[int] = []
+        r, scene = self._renderer(tiny_run_path, device, calls)
+        assert "unseen" in r.modes() and not calls  # nothing is fitted before the mode is shown
+        cam = _train_camera(scene, 1, device=device)
+        f = r.frame(cam, "unseen")
+        field = r._unseen
+        with torch.no_grad():
+            colour = field.colour_blended(cam, r.sampler.render_fn)[0, ..., 0]
+            alpha = r.render_mean(cam).alpha[0, ..., 0]
+        gap = (1 - alpha / r.sampler.coverage).clamp_min(0)
+        expect = (colour + gap.square() * r.sampler.empty_std[0] ** 2).sqrt().cpu().numpy()
+        np.testing.assert_allclose(f.values, expect, rtol=1e-5, atol=1e-7)
+        assert np.isfinite(f.values).all() and f.values.min() >= 0
+        r.frame(_train_camera(scene, 2, device=device), "unseen")
+        assert len(calls) == 1, "the colour posterior is fitted once"
+
+    def test_a_seen_view_is_known_far_better_than_the_prior(self, tiny_run_path, device):
+        r, scene = self._renderer(tiny_run_path, device, [])
+        f = r.frame(_train_camera(scene, 0, device=device), "unseen")
+        prior_std = float(r._unseen.colour_prior[0]) ** 0.5 * 0.28209479177387814
+        covered = r.render_mean(_train_camera(scene, 0, device=device)).alpha[0, ..., 0].cpu().numpy() >= \
+            r.sampler.coverage
+        assert covered.any()
+        assert float(np.median(f.values[covered])) < 0.25 * prior_std
+
+    def test_without_photos_there_is_no_unseen_mode(self, renderer, scene):
+        assert "unseen" not in renderer.modes()
+        with pytest.raises(ValueError, match="no training photos"):
+            renderer.frame(_train_camera(scene), "unseen")

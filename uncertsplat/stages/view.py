@@ -47,8 +47,22 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
         defaults = PruneConfig()  # the same views as `prune`, so the preview shows its mask
         score_cams = scene.cameras[spread_views(scene.split["train"], defaults.score_views)]
         free_cams = scene.cameras[spread_views(scene.split["train"], defaults.free_space_views)]
+    unseen = None
+    if scene is not None and scene.split.get("train"):
+        def unseen():
+            # the colour posterior as `evaluate` fits it, without the resolution term's shifted renders (they
+            # only refine the noise of what the photos showed)
+            from functools import partial
+
+            from uncertsplat.config import EvalConfig
+            from uncertsplat.data.dataset import load_view_set
+            from uncertsplat.eval.engine import fit_residual
+
+            console.print("fitting what the training photos showed (the unseen mode, once)...")
+            return fit_residual(loaded.sampler(scene_scale, device), scene.split["train"],
+                                EvalConfig(resolution=0.0), device, load_views=partial(load_view_set, scene, depth=False))
     renderer = FrameRenderer(loaded, scene_scale, device, score_cameras=score_cams, free_space_cameras=free_cams,
-                             seed=cfg.seed)
+                             seed=cfg.seed, unseen_field=unseen)
     return Viewer(renderer, scene, cfg)
 
 

@@ -140,6 +140,13 @@ class ResidualField:
         return float((data < 1.0 / float(self.colour_prior[0].clamp_min(MIN_PRIOR))).double().mean())
 
     @torch.no_grad()
+    def colour_blended(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
+        """[C,H,W,1] ``sum_i w_i(p) c_i``: the colour posterior's variance alone, blended for the cameras (zeros
+        without a colour term). What no training view showed, without the noise of what they did show."""
+        return torch.cat([_blend(self.sample, self.colour_variance(cameras[[j]].centers)[0], cameras[[j]], render_fn)
+                          for j in range(len(cameras))])
+
+    @torch.no_grad()
     def blended(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
         """[C,H,W,1] ``sum_i w_i(p) (v_i + c_i)`` for the cameras (c_i: the colour posterior's variance seen from
         the camera, 0 without a colour term).
@@ -151,11 +158,7 @@ class ResidualField:
             return torch.cat([self.blended(cameras[[j]], render_fn) for j in range(len(cameras))])
         var = self.variance + self.colour_variance(cameras.centers)[0] if self.colour_evidence is not None else \
             self.variance
-        zeros = torch.zeros_like(var)
-        colour = torch.stack([var, zeros, zeros], -1)  # [N,3]
-        with_v = render_fn(_with_colour(self.sample, colour), cameras).rgb[..., :1]
-        without = render_fn(_with_colour(self.sample, torch.zeros_like(colour)), cameras).rgb[..., :1]
-        return (with_v - without).clamp_min(0.0)
+        return _blend(self.sample, var, cameras, render_fn)
 
     def subset(self, keep: Tensor) -> ResidualField:
         """The field of the Gaussians ``keep`` ([N] bool or indices) kept, e.g. by pruning: each keeps its own
@@ -168,6 +171,20 @@ class ResidualField:
         evidence = None if self.colour_evidence is None else self.colour_evidence[keep]
         return replace(self, sample=sample, variance=self.variance[keep], seen=self.seen[keep], observations=obs,
                        colour_evidence=evidence)
+
+
+def _blend(sample: GaussianSample, values: Tensor, cameras: Cameras,
+           render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
+    """[C,H,W,1] ``sum_i w_i(p) values_i`` ([N] per-Gaussian values) for the cameras.
+
+    Two renders: the render is linear in the colours, so the difference between colour ``values`` and colour 0
+    removes whatever background ``render_fn`` composites behind the Gaussians.
+    """
+    zeros = torch.zeros_like(values)
+    colour = torch.stack([values, zeros, zeros], -1)  # [N,3]
+    with_v = render_fn(_with_colour(sample, colour), cameras).rgb[..., :1]
+    without = render_fn(_with_colour(sample, torch.zeros_like(colour)), cameras).rgb[..., :1]
+    return (with_v - without).clamp_min(0.0)
 
 
 def _degree(num_bases: int) -> int:

@@ -14,6 +14,12 @@ of the ``VIEW_MODES``:
   the three channels. ``StdAccumulator`` adds samples a few at a time, so the server can show K = 4 while
   the camera moves and refine the same frame while it stands still. The pixel-noise term of ``evaluate``
   (fitted on training views) is not added: the viewer shows what the posterior itself says.
+- ``unseen``: what no training view showed, as an RGB std: each Gaussian's colour posterior (``evaluate``'s
+  colour term, ``uncertainty.residual``, fitted once on the training views the first time the mode is shown)
+  blended for the view, plus the empty-ray term of the mean render (a ray the model covers less than its
+  training views is partly an unknown surface). Near 0 wherever the training views saw the surface; up to the
+  capture's pixel std where a view looks at Gaussians no photo showed, the empty term's 0.29 where it looks at
+  nothing. Only when the run's training photos are there (``unseen_field``).
 - ``prune``: the run's expected render with every Gaussian that ``prune --keep-ratio R --score S`` would
   remove coloured by its score (turbo, from the threshold to the 99th percentile of the removed ones) and
   the kept ones in grey; or, with ``hide_removed``, the render of the kept Gaussians (what the pruned run
@@ -26,6 +32,7 @@ server's "lock colour range"), as in the report's previews (``report.colormaps``
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -37,12 +44,14 @@ from uncertsplat.gaussians.ops import quat_to_rotmat
 from uncertsplat.report.colormaps import color_range, colorize
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput, _map_tensors
 from uncertsplat.uncertainty.mc import MonteCarloMoments
+from uncertsplat.uncertainty.residual import ResidualField
 
 VIEW_MODES: dict[str, str] = {
     "rgb": "RGB",
     "depth": "Depth",
     "rgb_std": "RGB std",
     "depth_std": "Depth std",
+    "unseen": "Unseen by the photos",
     "prune": "Prune preview",
 }
 """Mode key -> the label the panel shows."""
@@ -193,10 +202,13 @@ class FrameRenderer:
         free_space_cameras: training cameras for the ``free-space`` prune score (one render each); None
             leaves that score out.
         seed: seed of the std modes' samples (per camera) and of the predictive score.
+        unseen_field: returns the run's ``ResidualField`` with its colour posterior (fitted on the training
+            views; called once, when the ``unseen`` mode is first shown); None leaves that mode out.
     """
 
     def __init__(self, loaded: LoadedRun, scene_scale: float, device: torch.device | str, *,
-                 score_cameras: Cameras | None = None, free_space_cameras: Cameras | None = None, seed: int = 0):
+                 score_cameras: Cameras | None = None, free_space_cameras: Cameras | None = None, seed: int = 0,
+                 unseen_field: Callable[[], ResidualField | None] | None = None):
         from uncertsplat.gaussians import variational
 
         self.loaded = loaded
@@ -216,6 +228,8 @@ class FrameRenderer:
         self.score_cameras = score_cameras
         self.free_space_cameras = free_space_cameras
         self._scores: dict[str, Tensor] = {}
+        self._unseen_fn = unseen_field
+        self._unseen: ResidualField | None = None
 
     # ---- what the run offers
     @property
@@ -233,7 +247,8 @@ class FrameRenderer:
 
     def modes(self) -> list[str]:
         """The ``VIEW_MODES`` keys this run supports."""
-        return [m for m in VIEW_MODES if m != "prune" or self.prune_available]
+        return [m for m in VIEW_MODES if (m != "prune" or self.prune_available)
+                and (m != "unseen" or self._unseen_fn is not None)]
 
     def score_names(self) -> list[str]:
         """The prune scores available (``predictive`` and ``free-space`` need training cameras)."""
@@ -266,9 +281,33 @@ class FrameRenderer:
             acc = self.std_accumulator(cameras)
             acc.add(num_samples)
             return acc.frame(mode, value_range)
+        if mode == "unseen":
+            return self.unseen_frame(cameras, value_range)
         if mode == "prune":
             return self.prune_frame(cameras, score=score, keep_ratio=keep_ratio, hide_removed=hide_removed)
         raise ValueError(f"unknown view mode {mode!r} (choose one of {', '.join(VIEW_MODES)})")
+
+    @torch.no_grad()
+    def unseen_frame(self, cameras: Cameras, value_range: tuple[float, float] | None = None) -> Frame:
+        """The ``unseen`` frame (module docstring): ``sqrt(colour posterior blended + empty-ray variance)``."""
+        if self._unseen_fn is None:
+            raise ValueError("this viewer has no training photos to know what they showed (unseen mode)")
+        if self._unseen is None:
+            with torch.enable_grad():  # the fit's sums come from backward passes
+                self._unseen = self._unseen_fn()
+            if self._unseen is None or self._unseen.colour_evidence is None:
+                raise ValueError("the run's colour posterior could not be fitted (no training views)")
+        out = self.render_mean(cameras)
+        var = self._unseen.colour_blended(cameras, self.sampler.render_fn)[0, ..., 0]  # [H,W]
+        empty = self.sampler.empty_std
+        if empty is not None:
+            gap = (1.0 - out.alpha[0, ..., 0] / self.sampler.coverage).clamp_min(0.0)
+            var = var + gap.square() * empty[0] ** 2
+        values = var.clamp_min(0.0).sqrt().float().cpu().numpy()
+        image, rng = colour_map(values, value_range)
+        share = self._unseen.colour_unknown_fraction() or 0.0
+        note = f"colour posterior + empty rays; {100 * share:.1f} % of the Gaussians unseen by the training photos"
+        return Frame(image, _surface_depth(out), rng, "RGB std of what no photo showed", 1, note, values)
 
     def std_accumulator(self, cameras: Cameras) -> StdAccumulator:
         """A fresh ``StdAccumulator`` for ``cameras`` (seeded with the renderer's seed)."""

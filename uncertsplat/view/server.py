@@ -228,7 +228,7 @@ class Viewer:
         mode = self.mode
         self.gui_samples.visible = mode in STD_MODES
         self.gui_prune_folder.visible = mode == "prune"
-        self.gui_lock.visible = mode in ("depth",) + STD_MODES
+        self.gui_lock.visible = mode in ("depth", "unseen") + STD_MODES
 
     def _on_panel(self, _event) -> None:
         self._update_visibility()
