@@ -63,8 +63,10 @@ def one_loop(scene_path: Path, scene, names, start: list[int], policy: str, seed
     step = args.init_steps
     for r in range(args.budget - len(start)):
         t = time.perf_counter()
-        sel = select_stage.run(run, SelectConfig(score=policy, seed=seed * 1000 + r, num_samples=args.select_samples,
-                                                 max_side=args.select_side), CPU, output=run / "select" / f"round{r}")
+        score, info = ("fisher", "log-det") if policy == "fisher-logdet" else (policy, "trace")
+        sel = select_stage.run(run, SelectConfig(score=score, information=info, seed=seed * 1000 + r,
+                                                 num_samples=args.select_samples, max_side=args.select_side),
+                               CPU, output=run / "select" / f"round{r}")
         choose_seconds.append(time.perf_counter() - t)
         score_seconds.append(sel.seconds)
         name = sel.chosen[0].name
@@ -97,7 +99,8 @@ def main() -> None:
     ap.add_argument("--init-steps", type=int, default=600)
     ap.add_argument("--steps-per-round", type=int, default=300)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--policies", nargs="+", default=["variance", "fisher", "coverage", "random"])
+    ap.add_argument("--policies", nargs="+", default=["variance", "fisher", "coverage", "random"],
+                    help="select-views scores, or fisher-logdet (fisher with information=log-det)")
     ap.add_argument("--select-samples", type=int, default=4)
     ap.add_argument("--select-side", type=int, default=96)
     ap.add_argument("--eval-samples", type=int, default=4)

@@ -59,6 +59,24 @@ def test_same_seed_same_choice(subset_run, tmp_path, score):
     assert [c.score for c in a.ranking] == [c.score for c in b.ranking]
 
 
+def test_fisher_log_det_is_the_saturating_information(subset_run, tmp_path):
+    """log-det scores each candidate by sum log(1 + F / prec) / 2 with the same probes as the trace: never above
+    half the trace (log1p(x) <= x), positive, and it chooses distinct unused views; the setting is recorded."""
+    trace = stage.run(subset_run, SelectConfig(score="fisher", num_views=2), CPU, output=tmp_path / "t")
+    logdet = stage.run(subset_run, SelectConfig(score="fisher", num_views=2, information="log-det"), CPU,
+                       output=tmp_path / "l")
+    t = {c.name: c.score for c in trace.ranking}
+    ld = {c.name: c.score for c in logdet.ranking}
+    assert t.keys() == ld.keys()
+    assert all(0 < ld[k] <= 0.5 * t[k] * (1 + 1e-9) for k in t)
+    assert any(ld[k] < 0.45 * t[k] for k in t), "some candidate's information saturates"
+    names = [c.name for c in logdet.chosen]
+    assert len(set(names)) == 2 and not set(names) & set(START)
+    assert logdet.settings["information"] == "log-det" and trace.settings["information"] == "trace"
+    with pytest.raises(ValueError):
+        SelectConfig(information="entropy")
+
+
 def test_unseen_score_is_the_blended_relative_variance(subset_run):
     from uncertsplat.baselines import load_run
     from uncertsplat.select.scores import relative_position_variance, unseen_scores

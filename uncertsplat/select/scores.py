@@ -8,6 +8,10 @@
   (``FisherConfig.params``), with ``F`` the diagonal Gauss-Newton Fisher of the rendered image
   (``uncertainty.curvature``, the same probes), the training views' noise and the baseline's prior. For
   several views it is greedy: the chosen view's Fisher joins the training views' before the next choice.
+  ``information="log-det"`` scores the expected information gain of the same diagonal Gaussian posterior
+  instead, ``sum_i log(1 + F_cand,i / (F_train,i + 1 / prior_i^2)) / 2`` nats: a parameter's gain saturates
+  once the candidate pins it down, so a view that sees many unknown parameters a little beats one that sees a few
+  very sharply (the trace grows without bound in the latter).
 - ``unseen``: the share of the candidate's view that shows what the data has not pinned down: each carrier's
   position variance relative to the prior's (1 = the prior: no view constrains it; near 0: the data sets it;
   ``gaussians.variational``'s tables), blended like a colour over the candidate's pixels, plus the
@@ -133,7 +137,8 @@ def unseen_scores(sample, uncertainty: Tensor, render_fn: Callable, cameras: Cam
 
 def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_images: Tensor, cameras: Cameras,
                   render_fn: Callable, *, names: Sequence[str], prior_std: dict[str, float], sh_degree: int,
-                  probes: int, seed: int, n: int) -> tuple[list[int], list[float], Tensor, float]:
+                  probes: int, seed: int, n: int, information: str = "trace"
+                  ) -> tuple[list[int], list[float], Tensor, float]:
     """Greedy FisherRF choice of ``n`` candidates (see the module docstring).
 
     Returns:
@@ -155,10 +160,15 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
         return curvature(params, cameras[[c]], blank, render_fn, names=names, generator=g, sh_degree=sh_degree,
                          probes=probes, noise_std=noise).fisher
 
-    def information(f: dict[str, Tensor]) -> float:
-        return float(sum((f[k] / precision[k]).sum() for k in names))
+    if information not in ("trace", "log-det"):
+        raise ValueError(f"unknown information {information!r} (trace or log-det)")
 
-    scores = torch.tensor([information(view_fisher(c)) for c in range(len(cameras))], dtype=torch.float64)
+    def gain(f: dict[str, Tensor]) -> float:
+        if information == "trace":
+            return float(sum((f[k] / precision[k]).sum() for k in names))
+        return float(sum(0.5 * torch.log1p(f[k] / precision[k]).sum() for k in names))
+
+    scores = torch.tensor([gain(view_fisher(c)) for c in range(len(cameras))], dtype=torch.float64)
     first = scores.clone()
     chosen, at = [], []
     for r in range(min(n, len(cameras))):
@@ -168,7 +178,7 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
         if r + 1 < n:  # the chosen view's information joins the training views', then every candidate again
             f = view_fisher(j)
             precision = {k: precision[k] + f[k] for k in names}
-            scores = torch.tensor([information(view_fisher(c)) if c not in chosen else float("nan")
+            scores = torch.tensor([gain(view_fisher(c)) if c not in chosen else float("nan")
                                    for c in range(len(cameras))], dtype=torch.float64)
     return chosen, at, first, noise
 

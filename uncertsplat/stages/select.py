@@ -139,9 +139,9 @@ def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | N
             chosen, at, first, noise = fisher_choice(
                 params, low_train.to(device), images.to(device), low.to(device), loaded.render_fn(scene.scene_scale, device),
                 names=fcfg.params, prior_std=prior_stds(fcfg, loaded.extent), sh_degree=loaded.sh_degree,
-                probes=cfg.probes, seed=cfg.seed, n=n)
+                probes=cfg.probes, seed=cfg.seed, n=n, information=cfg.information)
         settings.update(width=low.width, height=low.height, probes=cfg.probes, noise_std=noise,
-                        params=list(fcfg.params))
+                        information=cfg.information, params=list(fcfg.params))
         if loaded.config.method == "ensemble":
             settings["note"] = "ensemble: the Fisher of member 0's Gaussians"
     seconds = time.perf_counter() - t0
