@@ -101,8 +101,7 @@ class ResidualField:
         noise = self.variance.float().clamp_min(MIN_NOISE)[:, None]  # [N,1]
         prior = self.colour_prior.float().clamp_min(MIN_PRIOR)  # [B]
         coef_var = 1.0 / (self.colour_evidence.float() / noise + 1.0 / prior)  # [N,B]
-        d = s.means.float()[None] - centers.float().to(s.means.device)[:, None]  # [C,N,3]
-        d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        d = _view_directions(s.means.float(), centers.float().to(s.means.device))  # [C,N,3]
         basis = sh_basis(_degree(coef_var.shape[1]), d)  # [C,N,B]
         return (basis.square() * coef_var).sum(-1).to(self.variance.dtype)
 
@@ -149,16 +148,12 @@ class ResidualField:
     @torch.no_grad()
     def blended(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
         """[C,H,W,1] ``sum_i w_i(p) (v_i + c_i)`` for the cameras (c_i: the colour posterior's variance seen from
-        the camera, 0 without a colour term).
-
-        Two renders per camera: the render is linear in the colours, so the difference between colour v and colour
-        0 removes whatever background ``render_fn`` composites behind the Gaussians.
-        """
+        the camera, 0 without a colour term)."""
         if self.colour_evidence is not None and len(cameras) > 1:  # the colour term depends on the camera
             return torch.cat([self.blended(cameras[[j]], render_fn) for j in range(len(cameras))])
         var = self.variance + self.colour_variance(cameras.centers)[0] if self.colour_evidence is not None else \
             self.variance
-        return _blend(self.sample, var, cameras, render_fn)
+        return _blend(self.sample, var, cameras, render_fn)  # two renders: see _blend
 
     def subset(self, keep: Tensor) -> ResidualField:
         """The field of the Gaussians ``keep`` ([N] bool or indices) kept, e.g. by pruning: each keeps its own
@@ -185,6 +180,13 @@ def _blend(sample: GaussianSample, values: Tensor, cameras: Cameras,
     with_v = render_fn(_with_colour(sample, colour), cameras).rgb[..., :1]
     without = render_fn(_with_colour(sample, torch.zeros_like(colour)), cameras).rgb[..., :1]
     return (with_v - without).clamp_min(0.0)
+
+
+def _view_directions(means: Tensor, centers: Tensor) -> Tensor:
+    """[C,N,3] unit directions from each camera centre ``centers`` [C,3] to each mean ``means`` [N,3] (the SH
+    convention, ``render.sh``); a mean at a centre gets the zero vector."""
+    d = means[None] - centers[:, None]
+    return d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
 def _degree(num_bases: int) -> int:
@@ -255,8 +257,7 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
             img = images[j].to(dev).double()[valid[..., 0]]  # [P,3]
             pix_sum += img.sum(0)
             pix_sq += img.square().sum(0)
-            d = sample.means.detach().double() - cam.centers.double()  # [N,3]
-            d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            d = _view_directions(sample.means.detach().double(), cam.centers.double())[0]  # [N,3]
             evidence += sh_basis(sample.sh_degree, d).square() * grad[:, 1:2].double()
     mean_var = total / max(count, 1)
     weight = acc[:, 1]

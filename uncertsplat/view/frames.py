@@ -298,12 +298,12 @@ class FrameRenderer:
             if self._unseen is None or self._unseen.colour_evidence is None:
                 raise ValueError("the run's colour posterior could not be fitted (no training views)")
         out = self.render_mean(cameras)
-        var = self._unseen.colour_blended(cameras, self.sampler.render_fn)[0, ..., 0]  # [H,W]
-        empty = self.sampler.empty_std
-        if empty is not None:
-            gap = (1.0 - out.alpha[0, ..., 0] / self.sampler.coverage).clamp_min(0.0)
-            var = var + gap.square() * empty[0] ** 2
-        values = var.clamp_min(0.0).sqrt().float().cpu().numpy()
+        # the mean render as a single sample: no spread, the empty-ray term as `evaluate` adds it, the colour term
+        moments = MonteCarloMoments(self.sampler.coverage)
+        moments.update(out)
+        maps = moments.maps(empty_std=self.sampler.empty_std,
+                            extra_var=self._unseen.colour_blended(cameras, self.sampler.render_fn))
+        values = maps.rgb_std[0, ..., 0].float().cpu().numpy()  # the same in every channel
         image, rng = colour_map(values, value_range)
         share = self._unseen.colour_unknown_fraction() or 0.0
         note = f"colour posterior + empty rays; {100 * share:.1f} % of the Gaussians unseen by the training photos"
