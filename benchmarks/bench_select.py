@@ -47,6 +47,10 @@ def start_set(scene, pool: list[int], k: int) -> list[int]:
     return [pool[0]] + [pool[1 + j] for j in chosen]
 
 
+FISHER_VARIANTS = {"fisher-logdet": "log-det", "fisher-predictive": "predictive"}
+"""Policies that are the fisher score with another ``SelectConfig.information``."""
+
+
 def one_loop(scene_path: Path, scene, names, start: list[int], policy: str, seed: int, args, out: Path) -> dict:
     run = out / f"{policy}_seed{seed}"
     shutil.rmtree(run, ignore_errors=True)
@@ -63,7 +67,7 @@ def one_loop(scene_path: Path, scene, names, start: list[int], policy: str, seed
     step = args.init_steps
     for r in range(args.budget - len(start)):
         t = time.perf_counter()
-        score, info = ("fisher", "log-det") if policy == "fisher-logdet" else (policy, "trace")
+        score, info = ("fisher", FISHER_VARIANTS[policy]) if policy in FISHER_VARIANTS else (policy, "trace")
         sel = select_stage.run(run, SelectConfig(score=score, information=info, seed=seed * 1000 + r,
                                                  num_samples=args.select_samples, max_side=args.select_side),
                                CPU, output=run / "select" / f"round{r}")
@@ -100,7 +104,7 @@ def main() -> None:
     ap.add_argument("--steps-per-round", type=int, default=300)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--policies", nargs="+", default=["variance", "fisher", "coverage", "random"],
-                    help="select-views scores, or fisher-logdet (fisher with information=log-det)")
+                    help="select-views scores, or fisher-logdet / fisher-predictive (fisher with that information)")
     ap.add_argument("--select-samples", type=int, default=4)
     ap.add_argument("--select-side", type=int, default=96)
     ap.add_argument("--eval-samples", type=int, default=4)

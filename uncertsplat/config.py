@@ -486,10 +486,11 @@ class SelectConfig(_Base):
     """variance and fisher: long side in pixels of the candidate (and training-view) renders."""
     probes: int = Field(1, ge=1, le=64)
     """fisher: Rademacher probes per view."""
-    information: Literal["trace", "log-det"] = "trace"
-    """fisher: how a candidate's information is counted: trace (FisherRF's sum of F_cand / precision) or log-det (the
+    information: Literal["trace", "log-det", "predictive"] = "trace"
+    """fisher: how a candidate's information is counted: trace (FisherRF's sum of F_cand / precision), log-det (the
     expected information gain of the diagonal posterior, sum of log(1 + F_cand / precision) / 2, which saturates per
-    parameter)."""
+    parameter) or predictive (the variance the candidate takes off the renders of the training views and all the
+    candidates, sum of G F_cand / (precision (precision + F_cand)) with G their Fisher)."""
     around_radius: float = Field(1.0, gt=0.0)
     """around: largest move of a candidate from its training camera, in median camera spacings."""
     seed: int = 0

@@ -77,6 +77,17 @@ def test_fisher_log_det_is_the_saturating_information(subset_run, tmp_path):
         SelectConfig(information="entropy")
 
 
+def test_fisher_predictive_runs_end_to_end(subset_run, tmp_path):
+    """information=predictive through the stage: positive scores, two distinct unused views, the setting recorded
+    (its arithmetic: tests/unit/test_select.py, TestFisherInformation)."""
+    sel = stage.run(subset_run, SelectConfig(score="fisher", num_views=2, information="predictive"), CPU,
+                    output=tmp_path / "p")
+    assert all(c.score > 0 for c in sel.ranking)
+    names = [c.name for c in sel.chosen]
+    assert len(set(names)) == 2 and not set(names) & set(START)
+    assert sel.settings["information"] == "predictive"
+
+
 def test_unseen_score_is_the_blended_relative_variance(subset_run):
     from uncertsplat.baselines import load_run
     from uncertsplat.select.scores import relative_position_variance, unseen_scores

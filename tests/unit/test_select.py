@@ -10,9 +10,11 @@ import torch
 from tests.fixtures import tiny_scene_path  # noqa: F401
 from uncertsplat.config import SceneConfig
 from uncertsplat.errors import UserError
+from uncertsplat.select import scores as scores_mod
 from uncertsplat.select.candidates import around_views, candidates_from_spec, read_pose_file, unused_views
-from uncertsplat.select.scores import coverage_choice, rank_order
+from uncertsplat.select.scores import coverage_choice, fisher_choice, rank_order
 from uncertsplat.sfm.scene import load_scene
+from uncertsplat.uncertainty import curvature as curvature_mod
 from uncertsplat.view.frames import rotmat_to_wxyz
 
 
@@ -36,6 +38,65 @@ class TestRanking:
         cands = torch.zeros(3, 3)  # identical cameras: distances 0 after the first pick
         chosen, _, _ = coverage_choice(cands, torch.ones(1, 3), 5)
         assert chosen == [0, 1, 2]
+
+
+class _Views:
+    """Stand-in cameras: a list of labels, indexable like ``Cameras``."""
+
+    height = width = 1
+
+    def __init__(self, labels):
+        self.labels = list(labels)
+
+    def __len__(self):
+        return len(self.labels)
+
+    def __getitem__(self, idx):
+        return _Views([self.labels[i] for i in idx])
+
+
+class TestFisherInformation:
+    """``fisher_choice``'s counts of a candidate's information, with the curvature replaced by known diagonals:
+    one parameter ``a`` that one candidate pins sharply, one ``b`` that three candidates see."""
+
+    FISHER = {"train": [1.0, 0.0], 0: [10.0, 0.0], 1: [0.0, 4.0], 2: [0.0, 4.0], 3: [0.0, 4.0]}
+
+    @pytest.fixture
+    def choose(self, monkeypatch):
+        def fake(params, cameras, images, render_fn, *, noise_std=None, **_):
+            f = torch.tensor(self.FISHER["train" if noise_std is None else cameras.labels[0]], dtype=torch.float64)
+            return curvature_mod.Curvature({"means": f}, 0.1, None)
+
+        monkeypatch.setattr(curvature_mod, "curvature", fake)
+
+        def run(information, n):
+            return fisher_choice({}, _Views(["train"]), torch.zeros(1, 1, 1, 3), _Views(range(4)), None,
+                                 names=["means"], prior_std={"means": 1.0}, sh_degree=0, probes=1, seed=0, n=n,
+                                 information=information)
+        return run
+
+    def test_trace_takes_the_sharp_view(self, choose):
+        chosen, at, first, _ = choose("trace", 1)
+        # precision = training Fisher + 1 / prior^2 = [2, 1]: 10 / 2 = 5 against 4 / 1
+        assert chosen == [0] and at == pytest.approx([5.0])
+        torch.testing.assert_close(first, torch.tensor([5.0, 4.0, 4.0, 4.0], dtype=torch.float64))
+
+    def test_predictive_weighs_what_the_capture_shows(self, choose):
+        chosen, at, first, _ = choose("predictive", 2)
+        # G = training + every candidate = [11, 12]; score = G F / (P (P + F)):
+        # view 0: 11 * 10 / (2 * 12) = 4.583, views 1-3: 12 * 4 / (1 * 5) = 9.6 (the first of the tie wins)
+        torch.testing.assert_close(first, torch.tensor([110 / 24, 9.6, 9.6, 9.6], dtype=torch.float64))
+        # then view 1's Fisher joins the precision ([2, 5]): views 2-3 drop to 12 * 4 / (5 * 9), view 0 is next
+        assert chosen == [1, 0] and at == pytest.approx([9.6, 110 / 24])
+
+    def test_cache_off_gives_the_same_choice(self, choose, monkeypatch):
+        cached = choose("predictive", 3)
+        monkeypatch.setattr(scores_mod, "CACHE_ELEMENTS", 0)
+        assert choose("predictive", 3)[:2] == cached[:2]
+
+    def test_unknown_information_is_refused(self, choose):
+        with pytest.raises(ValueError, match="predictive"):
+            choose("entropy", 1)
 
 
 @pytest.fixture(scope="module")

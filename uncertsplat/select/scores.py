@@ -11,7 +11,13 @@
   ``information="log-det"`` scores the expected information gain of the same diagonal Gaussian posterior
   instead, ``sum_i log(1 + F_cand,i / (F_train,i + 1 / prior_i^2)) / 2`` nats: a parameter's gain saturates
   once the candidate pins it down, so a view that sees many unknown parameters a little beats one that sees a few
-  very sharply (the trace grows without bound in the latter).
+  very sharply (the trace grows without bound in the latter). ``information="predictive"`` scores what the
+  candidate takes off the variance of the renders of every view of the capture (the training views and all the
+  candidates, the views a user will look at): ``sum_i G_i F_cand,i / (P_i (P_i + F_cand,i))`` with ``P`` the
+  precision above and ``G`` the Fisher summed over those views. A parameter counts by how much the capture's
+  renders depend on it (G / P: its share of their variance) and saturates once the candidate pins it down, so a
+  view that teaches what many other views show beats one that pins a corner no other view sees (the expected
+  reduction of the integrated predictive variance of active learning).
 - ``unseen``: the share of the candidate's view that shows what the data has not pinned down: each carrier's
   position variance relative to the prior's (1 = the prior: no view constrains it; near 0: the data sets it;
   ``gaussians.variational``'s tables), blended like a colour over the candidate's pixels, plus the
@@ -117,22 +123,19 @@ def relative_position_variance(model, prior) -> Tensor:
 @torch.no_grad()
 def unseen_scores(sample, uncertainty: Tensor, render_fn: Callable, cameras: Cameras) -> Tensor:
     """[C] the mean over each candidate's pixels of ``sum_i w_i u_i + (1 - alpha)`` (see the module docstring)."""
-    from dataclasses import replace
-
-    from uncertsplat.render.sh import C0
-
-    def painted(values: Tensor):
-        colour = values[:, None].expand(-1, 3)
-        return replace(sample, sh=((colour - 0.5) / C0)[:, None, :].contiguous(), sh_degree=0)
+    from uncertsplat.uncertainty.residual import blend_values
 
     out = []
     for c in range(len(cameras)):
-        cam = cameras[[c]]
-        with_u = render_fn(painted(uncertainty), cam)
-        without = render_fn(painted(torch.zeros_like(uncertainty)), cam)  # the background alone, to subtract
-        blended = (with_u.rgb[..., 0] - without.rgb[..., 0]).clamp_min(0.0)
-        out.append(float((blended + (1.0 - with_u.alpha[..., 0])).mean()))
+        blended, alpha = blend_values(sample, uncertainty, cameras[[c]], render_fn)
+        out.append(float((blended + (1.0 - alpha)).mean()))
     return torch.tensor(out, dtype=torch.float64)
+
+
+INFORMATION = ("trace", "log-det", "predictive")
+CACHE_ELEMENTS = 2**27
+"""fisher_choice keeps every candidate's Fisher in memory up to this many values (512 MB in float32); beyond it,
+each is computed again when needed (same seed, same values)."""
 
 
 def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_images: Tensor, cameras: Cameras,
@@ -147,6 +150,8 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
     """
     from uncertsplat.uncertainty.curvature import curvature
 
+    if information not in INFORMATION:
+        raise ValueError(f"unknown information {information!r} ({', '.join(INFORMATION)})")
     gen = torch.Generator(device=train_images.device).manual_seed(seed)
     names = tuple(names)
     base = curvature(params, train_cameras, train_images, render_fn, names=names, generator=gen,
@@ -154,24 +159,39 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
     noise = base.noise_std
     precision = {k: base.fisher[k] + 1.0 / prior_std[k] ** 2 for k in names}
     blank = torch.zeros(1, cameras.height, cameras.width, 3, device=train_images.device)
+    num = len(cameras)
+    keep = num * sum(base.fisher[k].numel() for k in names) <= CACHE_ELEMENTS
+    cache: dict[int, dict[str, Tensor]] = {}
 
     def view_fisher(c: int) -> dict[str, Tensor]:
+        if c in cache:
+            return cache[c]
         g = torch.Generator(device=train_images.device).manual_seed(seed * 1_000_003 + c)
-        return curvature(params, cameras[[c]], blank, render_fn, names=names, generator=g, sh_degree=sh_degree,
-                         probes=probes, noise_std=noise).fisher
+        f = curvature(params, cameras[[c]], blank, render_fn, names=names, generator=g, sh_degree=sh_degree,
+                      probes=probes, noise_std=noise).fisher
+        if keep:
+            cache[c] = f
+        return f
 
-    if information not in ("trace", "log-det"):
-        raise ValueError(f"unknown information {information!r} (trace or log-det)")
+    reference = None
+    if information == "predictive":  # the capture's views: the training views' Fisher plus every candidate's
+        reference = {k: base.fisher[k].clone() for k in names}
+        for c in range(num):
+            f = view_fisher(c)
+            for k in names:
+                reference[k] += f[k]
 
     def gain(f: dict[str, Tensor]) -> float:
         if information == "trace":
             return float(sum((f[k] / precision[k]).sum() for k in names))
-        return float(sum(0.5 * torch.log1p(f[k] / precision[k]).sum() for k in names))
+        if information == "log-det":
+            return float(sum(0.5 * torch.log1p(f[k] / precision[k]).sum() for k in names))
+        return float(sum((reference[k] * f[k] / (precision[k] * (precision[k] + f[k]))).sum() for k in names))
 
-    scores = torch.tensor([gain(view_fisher(c)) for c in range(len(cameras))], dtype=torch.float64)
+    scores = torch.tensor([gain(view_fisher(c)) for c in range(num)], dtype=torch.float64)
     first = scores.clone()
     chosen, at = [], []
-    for r in range(min(n, len(cameras))):
+    for r in range(min(n, num)):
         j = best_unchosen(scores, chosen)
         chosen.append(j)
         at.append(float(scores[j]))
@@ -179,9 +199,9 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
             f = view_fisher(j)
             precision = {k: precision[k] + f[k] for k in names}
             scores = torch.tensor([gain(view_fisher(c)) if c not in chosen else float("nan")
-                                   for c in range(len(cameras))], dtype=torch.float64)
+                                   for c in range(num)], dtype=torch.float64)
     return chosen, at, first, noise
 
 
-__all__ = ["SCORES", "best_unchosen", "coverage_choice", "fisher_choice", "low_resolution", "rank_order",
+__all__ = ["INFORMATION", "SCORES", "best_unchosen", "coverage_choice", "fisher_choice", "low_resolution", "rank_order",
            "relative_position_variance", "unseen_scores", "variance_scores"]

@@ -56,8 +56,9 @@ MIN_NOISE = 1e-10
 """Floor of the noise variance the colour posterior divides by (a Gaussian its training pixels fit exactly)."""
 
 
-def _with_colour(sample: GaussianSample, colour: Tensor) -> GaussianSample:
-    """``sample`` with every Gaussian's colour the constant ``colour`` [N,3] (SH degree 0)."""
+def with_colour(sample: GaussianSample, colour: Tensor) -> GaussianSample:
+    """``sample`` with every Gaussian's colour the constant ``colour`` [N,3] (SH degree 0): renders it as a map of
+    per-Gaussian values."""
     sh = ((colour - 0.5) / C0)[:, None, :]
     return replace(sample, sh=sh, sh_degree=0)
 
@@ -142,8 +143,8 @@ class ResidualField:
     def colour_blended(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
         """[C,H,W,1] ``sum_i w_i(p) c_i``: the colour posterior's variance alone, blended for the cameras (zeros
         without a colour term). What no training view showed, without the noise of what they did show."""
-        return torch.cat([_blend(self.sample, self.colour_variance(cameras[[j]].centers)[0], cameras[[j]], render_fn)
-                          for j in range(len(cameras))])
+        return torch.cat([blend_values(self.sample, self.colour_variance(cameras[[j]].centers)[0], cameras[[j]],
+                                       render_fn)[0] for j in range(len(cameras))])
 
     @torch.no_grad()
     def blended(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
@@ -153,7 +154,7 @@ class ResidualField:
             return torch.cat([self.blended(cameras[[j]], render_fn) for j in range(len(cameras))])
         var = self.variance + self.colour_variance(cameras.centers)[0] if self.colour_evidence is not None else \
             self.variance
-        return _blend(self.sample, var, cameras, render_fn)  # two renders: see _blend
+        return blend_values(self.sample, var, cameras, render_fn)[0]  # two renders: see blend_values
 
     def subset(self, keep: Tensor) -> ResidualField:
         """The field of the Gaussians ``keep`` ([N] bool or indices) kept, e.g. by pruning: each keeps its own
@@ -168,18 +169,19 @@ class ResidualField:
                        colour_evidence=evidence)
 
 
-def _blend(sample: GaussianSample, values: Tensor, cameras: Cameras,
-           render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
-    """[C,H,W,1] ``sum_i w_i(p) values_i`` ([N] per-Gaussian values) for the cameras.
+def blend_values(sample: GaussianSample, values: Tensor, cameras: Cameras,
+                 render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> tuple[Tensor, Tensor]:
+    """``sum_i w_i(p) values_i`` ([N] per-Gaussian values) for the cameras, [C,H,W,1], and the renders' alpha
+    [C,H,W,1].
 
     Two renders: the render is linear in the colours, so the difference between colour ``values`` and colour 0
     removes whatever background ``render_fn`` composites behind the Gaussians.
     """
     zeros = torch.zeros_like(values)
     colour = torch.stack([values, zeros, zeros], -1)  # [N,3]
-    with_v = render_fn(_with_colour(sample, colour), cameras).rgb[..., :1]
-    without = render_fn(_with_colour(sample, torch.zeros_like(colour)), cameras).rgb[..., :1]
-    return (with_v - without).clamp_min(0.0)
+    with_v = render_fn(with_colour(sample, colour), cameras)
+    without = render_fn(with_colour(sample, torch.zeros_like(colour)), cameras).rgb[..., :1]
+    return (with_v.rgb[..., :1] - without).clamp_min(0.0), with_v.alpha
 
 
 def _view_directions(means: Tensor, centers: Tensor) -> Tensor:
@@ -249,7 +251,7 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
         r2 = torch.where(valid, r2, torch.zeros_like(r2))
         total += float(r2.double().sum())
         count += int(valid.sum())
-        out = render_fn(_with_colour(sample, colour), cam)
+        out = render_fn(with_colour(sample, colour), cam)
         target = torch.cat([r2, valid.to(r2.dtype), torch.zeros_like(r2)], -1)  # [H,W,3]: r^2, 1, 0
         (grad,) = torch.autograd.grad((out.rgb[0] * target).sum(), colour)
         acc += grad[:, :2].double()
@@ -272,4 +274,4 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
                          observations=weight.float(), colour_evidence=evidence, colour_prior=prior)
 
 
-__all__ = ["ResidualField", "fit_residual_field"]
+__all__ = ["ResidualField", "blend_values", "fit_residual_field", "with_colour"]

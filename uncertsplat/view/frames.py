@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -44,7 +44,7 @@ from uncertsplat.gaussians.ops import quat_to_rotmat
 from uncertsplat.report.colormaps import color_range, colorize
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput, _map_tensors
 from uncertsplat.uncertainty.mc import MonteCarloMoments
-from uncertsplat.uncertainty.residual import ResidualField
+from uncertsplat.uncertainty.residual import ResidualField, with_colour
 
 VIEW_MODES: dict[str, str] = {
     "rgb": "RGB",
@@ -370,8 +370,7 @@ class FrameRenderer:
         lut = torch.from_numpy(colorize(np.linspace(0, 1, 256)[None], "fixed", 0.0, 1.0)[0]).to(base)  # [256,3]
         hot = lut[(t * 255).round().long()] / 255.0
         colour = torch.where(keep[:, None], grey, hot)
-        painted = replace(sample, sh=((colour - 0.5) / C0)[:, None, :].contiguous(), sh_degree=0)
-        out = self.sampler.render_fn(painted, cameras)
+        out = self.sampler.render_fn(with_colour(sample, colour), cameras)
         return Frame(_to_uint8(out.rgb[0]), _surface_depth(out), (lo, hi), f"{score} score of the removed", 1,
                      note)
 
