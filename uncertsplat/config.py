@@ -291,6 +291,14 @@ class TrainConfig(_Base):
     with a footprint in the step's views (and their offset-table rows), the others' parameters and moments left
     as they are; ``lazy`` as visible, with the skipped steps' decay applied to a row's moments when it comes back
     (``train.sparse_adam``). Measured in BENCHMARKS.md, "Sparse Adam updates"."""
+    low_res_fraction: float = Field(0.0, ge=0.0, lt=1.0)
+    """The first ``low_res_fraction`` of the iterations train on the images (and cameras) scaled by
+    ``low_res_scale``, area-averaged: the rasterizer's cost is per pixel, and the early steps, which place and
+    grow the Gaussians, need the coarse picture more than the fine one. The steps after it, and every evaluation,
+    growth and SH-band test, use the full images. 0: off. Measured in BENCHMARKS.md, "Training at half
+    resolution first"."""
+    low_res_scale: float = Field(0.5, gt=0.0, le=1.0)
+    """The image scale of the low-resolution steps (``low_res_fraction``)."""
     ssim_lambda: float = Field(0.2, ge=0.0, le=1.0)
     tile_size: int = Field(8, ge=2, le=64)
     batch_size: int = Field(1, ge=1)

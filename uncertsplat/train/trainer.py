@@ -104,6 +104,14 @@ class Trainer:
         self.train_images, self.test_images = train_images, test_images
         if train_images.shape[0] != len(self.train_idx):
             raise ValueError("train_images must have one image per training view")
+        # the low-resolution phase's images and cameras (cfg.low_res_fraction), area-averaged once
+        self.low_res_until = int(cfg.low_res_fraction * cfg.iterations)
+        self.low_cams = self.low_images = None
+        if self.low_res_until > 0 and cfg.low_res_scale < 1.0:
+            self.low_cams = self.train_cams.scaled(cfg.low_res_scale)
+            self.low_images = torch.nn.functional.interpolate(
+                train_images.permute(0, 3, 1, 2), size=(self.low_cams.height, self.low_cams.width), mode="area"
+            ).permute(0, 2, 3, 1).contiguous()  # [T,h,w,3]
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.extent = float(scene.extent)
         self.prior = prior_from_config(cfg)
@@ -327,8 +335,10 @@ class Trainer:
         degree = sh_degree_at(step, self.model.sh_degree, cfg.sh_degree_interval)
         with timer("data"):
             views = [self._next_view() for _ in range(min(cfg.batch_size, len(self.train_idx)))]
-            cams = self.train_cams[views]
-            gt = self.train_images[views]
+            if self.low_cams is not None and step <= self.low_res_until:
+                cams, gt = self.low_cams[views], self.low_images[views]
+            else:
+                cams, gt = self.train_cams[views], self.train_images[views]
         with timer("sample"):
             if self.informed and cfg.variational.train_on == "expected":
                 if cfg.variant == "ours" and (self._expected is None or not self._expected.fits(self.model)):
@@ -359,7 +369,10 @@ class Trainer:
             finite = self._all_finite([losses["loss"], *(p.grad for p in self.model.parameters().values())])
         if finite and out.means2d.grad is not None:
             with timer("densify"):
-                self.densifier.accumulate(step, out.means2d.grad, out.radii, cams.width, cams.height)
+                # screen radii in the full images' pixels (max_screen_size), whatever this step's resolution
+                scale = self.train_cams.width / cams.width
+                radii = out.radii if scale == 1.0 else out.radii * scale
+                self.densifier.accumulate(step, out.means2d.grad, radii, cams.width, cams.height)
         with timer("optimizer"):
             if finite:
                 self.bad_steps_in_a_row = 0
