@@ -155,6 +155,10 @@ class VariationalConfig(_Base):
     position_prior_scale: float = Field(1.0, ge=0.0)
     """Informed: a carrier's position prior std is the larger of position_prior_std x extent and this times its
     own size (geometric mean of its axes); 0 keeps only the fixed prior."""
+    position_depth_fraction: float = Field(0.1, gt=0.0)
+    """Informed: a carrier's position prior std is at most this fraction of its distance to the nearest training
+    camera, so that no posterior sample moves a large, weakly constrained Gaussian (a background blob) in front
+    of a camera (``gaussians.variational.informed_tables``; BENCHMARKS.md, "Training at half resolution first")."""
     train_on: Literal["samples", "expected"] = "expected"
     """Informed: what the Gaussians are fitted to between updates, the expected render
     (``variational.expected_render_sample``: the posterior samples' average render, no random numbers) or the renders

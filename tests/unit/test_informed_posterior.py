@@ -65,6 +65,30 @@ class TestClosedForm:
         torch.testing.assert_close(got, expected[:, None, :].expand_as(got), rtol=1e-4, atol=1e-9)
         assert float(model.tables["pos_loc"].detach().abs().max()) == 0.0
 
+    def test_position_prior_is_capped_by_the_depth_to_the_nearest_camera(self):
+        """F = 0: the prior's spread, unless a fraction of the distance to the nearest training camera is smaller
+        (a large, unconstrained Gaussian must not be sampled in front of a camera)."""
+        prior = Prior()
+        model = _model()
+        idx = model.carrier_index()
+        with torch.no_grad():
+            before = posterior_mean(model, extent=EXTENT)
+        own = before.scales[idx].log().mean(1).exp()
+        prior_std = own.clamp_min(prior.position_std * EXTENT)  # [P]
+        # one camera at the first carrier's centre, one far away: that carrier gets spread 0, the others
+        # fraction x their distance where that is below their own prior
+        centers = torch.stack([before.means[idx[0]], torch.tensor([100.0, 0.0, 0.0])])
+        depth = torch.cdist(before.means[idx], centers).amin(1)
+        fraction = float((prior_std[1:] / depth[1:]).median())  # caps about half of the others
+        informed_tables(model, _fisher(model), prior, extent=EXTENT, position_prior_scale=1.0,
+                        camera_centers=centers, position_depth_fraction=fraction)
+        expected = torch.minimum(prior_std, fraction * depth) / EXTENT
+        got = F.softplus(model.tables["pos_spread_raw"]).detach()  # [P,K,3]
+        torch.testing.assert_close(got, expected[:, None, None].expand_as(got), rtol=1e-4, atol=1e-9)
+        assert float(got[0].max()) < 1e-9
+        capped = (fraction * depth < prior_std)[1:]
+        assert 0 < int(capped.sum()) < capped.numel(), "the test caps some carriers and leaves others"
+
     def test_disagreement_widens_the_spread_up_to_the_prior(self):
         """Sandwich: views that agree as the noise predicts (D = F) leave the Laplace spread; views that
         disagree widen it by (D - F) / (F + prior precision)^2, never beyond the prior."""

@@ -433,7 +433,8 @@ def _posterior_variance(fisher: Tensor, prior_var: Tensor, disagreement: Tensor 
 
 @torch.no_grad()
 def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prior, *, extent: float = 1.0,
-                    position_prior_scale: float = 1.0, disagreement: dict[str, Tensor] | None = None) -> dict:
+                    position_prior_scale: float = 1.0, disagreement: dict[str, Tensor] | None = None,
+                    camera_centers: Tensor | None = None, position_depth_fraction: float = 0.1) -> dict:
     """Set every carrier's table to the posterior that the training views' curvature implies (in place).
 
     ``fisher``: the diagonal Fisher information of the training views w.r.t. the posterior mean's
@@ -446,7 +447,12 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
     * position: the prior std is the larger of ``prior.position_std`` x extent and ``position_prior_scale``
       x the carrier's own size (geometric mean of its axes): before any data, a Gaussian is located to
       within its footprint. Posterior std per axis ``(F + 1 / prior_std^2)^-1/2``; location 0 (the mean is
-      the base position; a location the tables held is folded into it).
+      the base position; a location the tables held is folded into it). With ``camera_centers`` [T,3] (the
+      training cameras) the prior std is at most ``position_depth_fraction`` x the carrier's distance to the
+      nearest of them: the Fisher is the curvature at the mean, and for a Gaussian as large as its distance to
+      the cameras (a background blob of a real capture) it is nearly 0, so its own size alone would let a sample
+      move it by its depth, in front of a camera, where it covers the whole view; moved by 10 % of its depth, its
+      footprint changes by about 10 %.
     * scale multiplier U[l, l + w]: the log-scale prior variance is the prior interval's,
       ``(w_p / m)^2 / 12`` with m = 1 - w_p / 2 its mean; the posterior width matches the Laplace variance,
       ``w = m sqrt(12 var)``, centred on m.
@@ -484,6 +490,9 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
     # position
     own = before.scales[idx].log().mean(1).exp()  # [P] geometric-mean size, world units
     prior_std = torch.clamp(position_prior_scale * own, min=prior.position_std * unit)  # [P]
+    if camera_centers is not None and camera_centers.shape[0]:
+        depth = torch.cdist(before.means[idx].double(), camera_centers.to(idx.device).double()).amin(1)  # [P]
+        prior_std = torch.minimum(prior_std, (position_depth_fraction * depth).to(prior_std.dtype))
     dis = disagreement or {}
     var = _posterior_variance(fisher["means"][idx], prior_std[:, None].square(),
                               dis["means"][idx] if "means" in dis else None)  # [P,3]

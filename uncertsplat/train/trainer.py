@@ -436,7 +436,9 @@ class Trainer:
             if disagreement is not None:
                 disagreement = {k: v * (t / n) for k, v in disagreement.items()}
         record = informed_tables(self.model, fisher, self.prior, extent=self.extent,
-                                 position_prior_scale=vcfg.position_prior_scale, disagreement=disagreement)
+                                 position_prior_scale=vcfg.position_prior_scale, disagreement=disagreement,
+                                 camera_centers=self.train_cams.centers,
+                                 position_depth_fraction=vcfg.position_depth_fraction)
         record = {"step": self.step, "views": n, "probes": probes, "noise_std": noise, **record,
                   "seconds": time.perf_counter() - t0}
         self.posterior_updates.append(record)
