@@ -299,8 +299,9 @@ class TrainConfig(_Base):
     """The first ``low_res_fraction`` of the iterations train on the images (and cameras) scaled by
     ``low_res_scale``, area-averaged: the rasterizer's cost is per pixel, and the early steps, which place and
     grow the Gaussians, need the coarse picture more than the fine one. The steps after it, and every evaluation,
-    growth and SH-band test, use the full images. 0: off. Measured in BENCHMARKS.md, "Training at half
-    resolution first"."""
+    growth and SH-band test, use the full images. The phase ends at step ``low_res_fraction x iterations`` of the
+    run's current ``iterations`` (a resume that extends them extends it). 0: off. Measured in BENCHMARKS.md,
+    "Training at half resolution first"."""
     low_res_scale: float = Field(0.5, gt=0.0, le=1.0)
     """The image scale of the low-resolution steps (``low_res_fraction``)."""
     ssim_lambda: float = Field(0.2, ge=0.0, le=1.0)
