@@ -143,6 +143,29 @@ def test_sandwich_widens_only_the_last_update(tmp_path):
     assert float((spreads[True] > spreads[False] * 1.01).float().mean()) > 0.1
 
 
+def test_no_carrier_spreads_past_a_fraction_of_its_depth():
+    """Trained end to end, every carrier's position std (world units) is at most ``position_depth_fraction`` x its
+    distance to the nearest training camera (the posterior std is below the capped prior's); a fraction small
+    enough to bind narrows the spreads."""
+    from uncertsplat.gaussians.variational import posterior_mean
+
+    scene, tr, te = toy_scene()
+    medians = {}
+    for fraction in (0.1, 0.005):
+        cfg = toy_config(variational={"posterior": "informed", "refresh_interval": 10,
+                                      "position_depth_fraction": fraction})
+        t = Trainer(scene, cfg, tr, te)
+        t.fit()
+        idx = t.model.carrier_index()
+        with torch.no_grad():
+            means = posterior_mean(t.model, extent=t.extent).means[idx]
+            std = F.softplus(t.model.tables["pos_spread_raw"]).amax((1, 2)) * t.extent  # [P] (the 'ours' unit)
+        depth = torch.cdist(means, t.train_cams.centers).amin(1)
+        assert torch.all(std <= fraction * depth * (1 + 1e-4)), fraction
+        medians[fraction] = float(std.median())
+    assert medians[0.005] < 0.5 * medians[0.1]
+
+
 def test_training_on_the_expected_render(tmp_path):
     """``variational.train_on = "expected"``: the Gaussians are fitted to the expected render (no random numbers, so
     two runs are identical), the tables are still set by the updates only (never by the optimiser), and the fit
