@@ -120,10 +120,15 @@ def sh_colors(degree: int, sh: Tensor, means: Tensor, centers: Tensor, backend: 
         # The DC term does not depend on the direction: skip the normalisation (and its gradient).
         rgb = (sh[:, 0, :] * C0 + 0.5).unsqueeze(0).expand(centers.shape[0], -1, -1)
         return rgb.clamp_min(0.0)
+    return (eval_sh(degree, sh, view_directions(means, centers)) + 0.5).clamp_min(0.0)
+
+
+def view_directions(means: Tensor, centers: Tensor) -> Tensor:
+    """[C,N,3] the unit directions ``normalise(mean - centre)`` from each camera centre ``centers`` [C,3] to each
+    Gaussian centre ``means`` [N,3], the directions the SH colour is evaluated at."""
     d = means.unsqueeze(0) - centers[:, None, :]  # [C,N,3]
-    # Gaussians exactly at a camera centre have no direction: clamp the norm so values stay finite.
-    d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    return (eval_sh(degree, sh, d) + 0.5).clamp_min(0.0)
+    # Gaussians exactly at a camera centre have no direction: clamp the norm so values stay finite (zero vector).
+    return d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
 class _NativeSH(torch.autograd.Function):

@@ -44,7 +44,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from uncertsplat.render.sh import sh_basis
+from uncertsplat.render.sh import sh_basis, view_directions
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput
 
 MAX_LEVERAGE = 0.9
@@ -102,7 +102,7 @@ class ResidualField:
         noise = self.variance.float().clamp_min(MIN_NOISE)[:, None]  # [N,1]
         prior = self.colour_prior.float().clamp_min(MIN_PRIOR)  # [B]
         coef_var = 1.0 / (self.colour_evidence.float() / noise + 1.0 / prior)  # [N,B]
-        d = _view_directions(s.means.float(), centers.float().to(s.means.device))  # [C,N,3]
+        d = view_directions(s.means.float(), centers.float().to(s.means.device))  # [C,N,3]
         basis = sh_basis(_degree(coef_var.shape[1]), d)  # [C,N,B]
         return (basis.square() * coef_var).sum(-1).to(self.variance.dtype)
 
@@ -184,13 +184,6 @@ def blend_values(sample: GaussianSample, values: Tensor, cameras: Cameras,
     return (with_v.rgb[..., :1] - without).clamp_min(0.0), with_v.alpha
 
 
-def _view_directions(means: Tensor, centers: Tensor) -> Tensor:
-    """[C,N,3] unit directions from each camera centre ``centers`` [C,3] to each mean ``means`` [N,3] (the SH
-    convention, ``render.sh``); a mean at a centre gets the zero vector."""
-    d = means[None] - centers[:, None]
-    return d / d.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-
-
 def _degree(num_bases: int) -> int:
     """The SH degree of ``num_bases`` coefficients per channel."""
     return round(num_bases ** 0.5) - 1
@@ -259,7 +252,7 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
             img = images[j].to(dev).double()[valid[..., 0]]  # [P,3]
             pix_sum += img.sum(0)
             pix_sq += img.square().sum(0)
-            d = _view_directions(sample.means.detach().double(), cam.centers.double())[0]  # [N,3]
+            d = view_directions(sample.means.detach().double(), cam.centers.double())[0]  # [N,3]
             evidence += sh_basis(sample.sh_degree, d).square() * grad[:, 1:2].double()
     mean_var = total / max(count, 1)
     weight = acc[:, 1]
