@@ -47,9 +47,9 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
         defaults = PruneConfig()  # the same views as `prune`, so the preview shows its mask
         score_cams = scene.cameras[spread_views(scene.split["train"], defaults.score_views)]
         free_cams = scene.cameras[spread_views(scene.split["train"], defaults.free_space_views)]
-    unseen = None
+    fit_unseen = None
     if scene is not None and scene.split.get("train"):
-        def unseen():
+        def fit_unseen():
             # the colour posterior as `evaluate` fits it, without the resolution term's shifted renders (they
             # only refine the noise of what the photos showed)
             from functools import partial
@@ -62,7 +62,7 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
             return fit_residual(loaded.sampler(scene_scale, device), scene.split["train"],
                                 EvalConfig(resolution=0.0), device, load_views=partial(load_view_set, scene, depth=False))
     renderer = FrameRenderer(loaded, scene_scale, device, score_cameras=score_cams, free_space_cameras=free_cams,
-                             seed=cfg.seed, unseen_field=unseen)
+                             seed=cfg.seed, unseen_field=fit_unseen)
     return Viewer(renderer, scene, cfg)
 
 
