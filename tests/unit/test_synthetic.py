@@ -207,3 +207,52 @@ def test_generate_refuses_non_empty_without_overwrite(tmp_path):
     (tmp_path / "a" / "f").write_text("x")
     with pytest.raises(UserError):
         generate_scene(tmp_path / "a", SynthConfig(**SMALL))
+
+
+class TestViewsOnThreads:
+    """`generate_scene` renders views on as many Python threads as the caller's torch threads (one intra-op
+    thread each); the scene must not depend on how many."""
+
+    @staticmethod
+    def _with_threads(n, fn):
+        before = torch.get_num_threads()
+        torch.set_num_threads(n)
+        try:
+            return fn()
+        finally:
+            torch.set_num_threads(before)
+
+    def test_same_bytes_on_one_and_on_three_threads(self, tmp_path):
+        cfg = SynthConfig(preset="tiny", num_views=7, width=24, seed=5)  # more views than twice the workers
+        one = self._with_threads(1, lambda: generate_scene(tmp_path / "one", cfg))
+        three = self._with_threads(3, lambda: generate_scene(tmp_path / "three", cfg))
+        f1, f3 = _files(one), _files(three)
+        assert f1.keys() == f3.keys() and len([k for k in f1 if k.startswith("images/")]) == 7
+        for k in f1:
+            assert f1[k] == f3[k], k
+
+    def test_the_callers_thread_count_is_restored_and_progress_is_in_order(self, tmp_path):
+        seen = []
+        before = self._with_threads(3, lambda: (
+            generate_scene(tmp_path / "s", SynthConfig(**SMALL), on_view=lambda i, n: seen.append((i, n))),
+            torch.get_num_threads())[1])
+        assert before == 3
+        assert seen == [(i, 4) for i in range(1, 5)]
+
+    def test_a_failed_write_leaves_no_folder_behind(self, tmp_path, monkeypatch):
+        import uncertsplat.io.images as images
+
+        real = images.write_png
+        calls = []
+
+        def failing(path, pixels):
+            calls.append(path)
+            if len(calls) == 5:
+                raise OSError("disk full")
+            return real(path, pixels)
+
+        monkeypatch.setattr(images, "write_png", failing)
+        with pytest.raises(OSError, match="disk full"):
+            self._with_threads(2, lambda: generate_scene(tmp_path / "s", SynthConfig(**SMALL)))
+        assert not (tmp_path / "s").exists()
+        assert [p.name for p in tmp_path.iterdir()] == []  # the temporary sibling is gone too
