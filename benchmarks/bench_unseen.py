@@ -15,7 +15,8 @@ Each run is evaluated four ways (``PREDICTIVES``, ``--predictives`` picks some):
 writes), ``before`` (the predictive before the coverage and resolution terms: every alpha < 1 counts as empty, no
 resolution term), ``spread`` (the samples' spread alone) and ``leverage`` (``full`` with
 ``EvalConfig.residual_leverage``); ``no-colour`` is ``full`` without the colour posterior
-(``EvalConfig.colour_posterior``, the default since 2026-11-26).
+(``EvalConfig.colour_posterior``, the default since 2026-11-26); ``edge`` / ``no-edge`` are ``full`` with and
+without the edge term (``EvalConfig.edge_noise``).
 
 Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
 its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),
@@ -101,6 +102,8 @@ PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alph
     "spread": ({"empty_rays": False, "residual_views": 0, "resolution": 0.0}, False),  # the samples' spread alone
     "leverage": ({"residual_leverage": True}, False),  # full, each Gaussian's pixel noise / (1 - its leverage)
     "no-colour": ({"colour_posterior": False}, False),  # full without the colour posterior (the default before)
+    "edge": ({"edge_noise": True}, False),  # full with the pixel noise split into the edge term and the rest
+    "no-edge": ({"edge_noise": False}, False),  # full without the edge term
 }
 
 

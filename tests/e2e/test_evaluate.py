@@ -157,3 +157,22 @@ def test_the_pixel_noise_level_is_fitted_and_recorded(tiny_run_path, tmp_path):
     # the leverage changes the std (each Gaussian's noise / (1 - h)), not the prediction
     assert leverage.per_view[name].psnr == one.per_view[name].psnr
     assert leverage.per_view[name].nll != one.per_view[name].nll
+
+
+def test_the_edge_term_is_fitted_recorded_and_changes_only_the_std(tiny_run_path, tmp_path):
+    """``edge_noise``: delta^2 is fitted on the training views, recorded in metrics.json and named in the notes; the
+    prediction is unchanged and the std is not; off, the report records 0."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    base = {"num_samples": 2, "max_views": 1, "calibration_views": 0}
+    cpu = torch.device("cpu")
+    off = evaluate.run(run, EvalConfig(**base, edge_noise=False), device=cpu)
+    on = evaluate.run(run, EvalConfig(**base, edge_noise=True), device=cpu)
+    assert off.edge_scale == 0.0 and on.edge_scale is not None and on.edge_scale > 0.0
+    assert json.loads((run / "eval" / "metrics.json").read_text())["edge_scale"] == on.edge_scale
+    assert any("edge term" in n for n in on.notes) and not any("edge term" in n for n in off.notes)
+    name = next(iter(on.per_view))
+    assert on.per_view[name].psnr == off.per_view[name].psnr
+    assert on.per_view[name].ause_mae != off.per_view[name].ause_mae
+    none = evaluate.run(run, EvalConfig(**base, residual_views=0, edge_noise=True), device=cpu)
+    assert none.edge_scale is None

@@ -299,3 +299,108 @@ class TestColourPosterior:
         pixel_var = float(images.double().reshape(-1, 3).var(0, unbiased=False).mean())
         assert float(var[0, -1]) == pytest.approx(pixel_var, rel=1e-4)
         assert 0.0 < field.colour_unknown_fraction() < 0.5
+
+
+class TestEdgeTerm:
+    """The edge term ``delta^2 |grad I|^2`` (``image_gradient_sq``, ``fit_edge_scale``, ``ResidualField.edge``)."""
+
+    def test_gradient_of_ramps_constants_and_single_pixels(self):
+        from uncertsplat.uncertainty.residual import image_gradient_sq
+
+        ys, xs = torch.meshgrid(torch.arange(5.0), torch.arange(7.0), indexing="ij")
+        ramp = torch.stack([0.1 * xs, 0.1 * xs, 0.1 * xs], -1)  # slope 0.1 per pixel along x in every channel
+        torch.testing.assert_close(image_gradient_sq(ramp), torch.full((5, 7, 1), 0.01))  # the borders too (linear)
+        both = torch.stack([0.3 * ys, 0.0 * xs, 0.0 * xs], -1)[None]  # batched; one channel of three moves along y
+        torch.testing.assert_close(image_gradient_sq(both), torch.full((1, 5, 7, 1), 0.09 / 3))
+        assert float(image_gradient_sq(torch.full((4, 6, 3), 0.7)).abs().max()) == 0.0
+        row = torch.stack([0.2 * torch.arange(9.0)] * 3, -1)[None]  # [1,9,3]: one row, no y difference to take
+        torch.testing.assert_close(image_gradient_sq(row), torch.full((1, 9, 1), 0.04))
+
+    def test_the_slope_is_recovered_when_the_residual_follows_the_gradient(self):
+        """Residuals with r^2 = s0 + delta^2 g (+ an explained e) exactly: least squares gives delta^2 back; pixels the
+        model does not cover (alpha < 0.5) do not count, whatever their residual."""
+        from uncertsplat.uncertainty.residual import fit_edge_scale, image_gradient_sq
+
+        sample, cams = _sample(seed=3), _cams(3)
+        with torch.no_grad():
+            out = RENDER(sample, cams)
+        g = image_gradient_sq(out.rgb)  # [3,H,W,1]
+        s0, delta2, e = 1e-4, 0.8, 2e-5
+        sign = torch.where(torch.rand(out.rgb.shape, generator=torch.Generator().manual_seed(0)) < 0.5, -1.0, 1.0)
+        images = out.rgb + sign * (s0 + delta2 * g + e).sqrt()  # |r| the same in every channel
+        uncovered = out.alpha < 0.5
+        assert bool(uncovered.any()) and bool((~uncovered).any())
+        images = torch.where(uncovered, images + 0.3, images)
+        got = fit_edge_scale(sample, cams, images, RENDER, explained=lambda cam: torch.full((1, H, W, 1), e))
+        assert got == pytest.approx(delta2, rel=1e-3)
+        # without telling it about e, a constant e only moves the intercept
+        assert fit_edge_scale(sample, cams, images, RENDER) == pytest.approx(delta2, rel=1e-3)
+
+    def test_no_gradient_relation_gives_zero_and_the_field_renders_nothing_then(self):
+        from uncertsplat.uncertainty.residual import fit_edge_scale
+
+        sample, cams, d = _sample(), _cams(2), 0.05
+        with torch.no_grad():
+            out = RENDER(sample, cams)
+        # a residual that shrinks where the image changes: a negative slope is clamped to 0
+        from uncertsplat.uncertainty.residual import image_gradient_sq
+
+        g = image_gradient_sq(out.rgb)
+        images = out.rgb + (d * d / (1.0 + 100 * g)).sqrt()
+        assert fit_edge_scale(sample, cams, images, RENDER) == 0.0
+        # nothing covered (every Gaussian behind the cameras): no pixel to fit on
+        behind = replace(sample, means=sample.means * torch.tensor([1.0, 1.0, -1.0]))
+        assert fit_edge_scale(behind, cams, images, RENDER) == 0.0
+        field = fit_residual_field(sample, cams, out.rgb + d, RENDER)
+        assert field.edge_scale == 0.0
+        assert float(field.edge(cams, RENDER).abs().max()) == 0.0
+
+    def test_the_noise_is_fitted_to_what_the_edge_term_leaves_and_blended_adds_it(self):
+        from uncertsplat.uncertainty.residual import image_gradient_sq
+
+        sample, cams, d = _sample(), _cams(3), 0.05
+        with torch.no_grad():
+            out = RENDER(sample, cams)
+        g = image_gradient_sq(out.rgb)
+        delta2 = 0.5
+        images = out.rgb + (d * d + delta2 * g).sqrt()
+        field = fit_residual_field(sample, cams, images, RENDER, edge_scale=delta2)
+        seen = field.seen
+        torch.testing.assert_close(field.variance[seen], torch.full_like(field.variance[seen], d * d), rtol=1e-3,
+                                   atol=1e-7)
+        # the Gaussian no pixel sees gets the whole residual's mean, the edge part included
+        assert not bool(seen[-1])
+        assert float(field.variance[-1]) == pytest.approx(float((d * d + delta2 * g).mean()), rel=1e-4)
+        assert field.edge_scale == delta2
+        torch.testing.assert_close(field.edge(cams, RENDER), delta2 * g)
+        torch.testing.assert_close(field.blended(cams, RENDER), out.alpha * d * d + delta2 * g, rtol=1e-3, atol=1e-7)
+        # a fitted noise level scales both parts; pruning keeps the edge term
+        assert field.scaled(0.5).edge_scale == pytest.approx(0.25)
+        assert field.subset(torch.arange(len(sample.means)) % 2 == 0).edge_scale == delta2
+
+
+def test_the_colour_posterior_divides_by_the_whole_noise_with_an_edge_term():
+    """With an edge term a Gaussian's own noise is what the edge term leaves; its pixels' variance in the likelihood
+    (what the colour posterior divides by) stays the whole residual, so edge Gaussians do not get exactly known
+    colours."""
+    from uncertsplat.uncertainty.residual import image_gradient_sq
+
+    sample, cams, d = _sample(), _cams(3), 0.05
+    with torch.no_grad():
+        out = RENDER(sample, cams)
+    g = image_gradient_sq(out.rgb)
+    delta2 = 0.5
+    images = out.rgb + (d * d + delta2 * g).sqrt()
+    plain = fit_residual_field(sample, cams, images, RENDER, colour_posterior=True)
+    edge = fit_residual_field(sample, cams, images, RENDER, colour_posterior=True, edge_scale=delta2)
+    assert plain.pixel_variance is None and edge.pixel_variance is not None
+    torch.testing.assert_close(edge.likelihood_variance, plain.variance)
+    assert bool((edge.variance[edge.seen] < plain.variance[edge.seen] - 1e-9).any())  # the edge share came off
+    centers = cams.centers
+    torch.testing.assert_close(edge.colour_variance(centers), plain.colour_variance(centers))
+    assert edge.colour_unknown_fraction() == plain.colour_unknown_fraction()
+    # scaled, subset and the leverage carry the whole noise along
+    torch.testing.assert_close(edge.scaled(2.0).likelihood_variance, 2.0 * plain.variance)
+    keep = torch.arange(len(sample.means)) % 3 == 0
+    torch.testing.assert_close(edge.subset(keep).likelihood_variance, plain.variance[keep])
+    torch.testing.assert_close(edge.out_of_sample(14).likelihood_variance, plain.out_of_sample(14).variance)

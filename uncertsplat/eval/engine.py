@@ -63,6 +63,9 @@ class EvalSettings(Protocol):
     """Divide each Gaussian's noise by (1 - its leverage) (``ResidualField.out_of_sample``)."""
     colour_posterior: bool
     """Add each Gaussian's colour posterior variance to its noise (``ResidualField.colour_variance``)."""
+    edge_noise: bool
+    """Split the pixel noise into an edge term ``delta^2 |grad I|^2`` and the per-Gaussian rest
+    (``uncertainty.residual.fit_edge_scale``)."""
 
 
 @dataclass(frozen=True)
@@ -174,7 +177,7 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
     method has none); None when ``cfg.residual_views`` is 0 or there is no training view. Give it a sampler of
     its own (a baseline's sampler may keep state) and attach the field to the evaluation's sampler with
     ``dataclasses.replace(sampler, residual=field)``."""
-    from uncertsplat.uncertainty.residual import fit_residual_field
+    from uncertsplat.uncertainty.residual import fit_edge_scale, fit_residual_field
 
     chosen = residual_indices(train_indices, cfg)
     if not chosen:
@@ -201,9 +204,12 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
 
     rep = _representative(sampler, device)
     cams, images = views.cameras.to(device), views.images.to(device)
+    edge = fit_edge_scale(rep, cams, images, sampler.render_fn, masks=masks, explained=explained) \
+        if cfg.edge_noise else 0.0
     with torch.enable_grad():
         field = fit_residual_field(rep, cams, images, sampler.render_fn, masks=masks, explained=explained,
-                                   colour_posterior=cfg.colour_posterior, view_factor=len(train_indices) / len(chosen))
+                                   colour_posterior=cfg.colour_posterior, view_factor=len(train_indices) / len(chosen),
+                                   edge_scale=edge)
     if cfg.residual_scale == "fit":
         field = field.scaled(fit_noise_scale(field, rep, cams, images, sampler.render_fn, masks=masks,
                                              explained=explained, std_floor=cfg.std_floor))
@@ -408,6 +414,9 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         seen = float(sampler.residual.seen.float().mean()) if sampler.residual.seen.numel() else 0.0
         terms.append(f"the pixel noise of the Gaussians on the training views (RMS residual "
                      f"{sampler.residual.mean_variance ** 0.5:.4f}; {100 * seen:.1f} % of the Gaussians seen)")
+        if sampler.residual.edge_scale > 0.0:
+            terms.append(f"the edge term (a misplacement of {sampler.residual.edge_scale ** 0.5:.2f} px fitted on the "
+                         "training views, times the image gradient of the view's render)")
         unknown = sampler.residual.colour_unknown_fraction()
         if unknown is not None:
             prior = float(sampler.residual.colour_prior[0]) ** 0.5 * C0
@@ -562,6 +571,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         std_scale=std_scale,
         calibration_views=calibration_views or [],
         noise_scale=noise_scale,
+        edge_scale=sampler.residual.edge_scale if sampler.residual is not None else None,
         lpips=LpipsStatus(available=lp_ok, reason=lp_reason),
         device=str(device),
         notes=notes,

@@ -201,6 +201,9 @@ class EvalReport(SchemaFile):
     """The factor the pixel noise (``EvalConfig.residual_views``) carries: fitted by maximum likelihood on training
     views (``EvalConfig.residual_scale = "fit"``) or set; None without the pixel-noise term, or in reports from
     before it was scaled (factor 1)."""
+    edge_scale: float | None = None
+    """delta^2 (pixels^2) of the pixel noise's edge term (``EvalConfig.edge_noise``): 0 without it, None without the
+    pixel-noise term or in reports from before it."""
     lpips: LpipsStatus | None = None
     device: str | None = None
     notes: list[str] = Field(default_factory=list)

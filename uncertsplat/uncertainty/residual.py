@@ -27,6 +27,14 @@ estimates that noise per Gaussian, heteroscedastically, and renders it:
   from a direction d, the colour's variance is ``sum_b Y_b(d)^2 / precision_b``: negligible for a Gaussian that
   views pinned down, the prior's for one no view saw (a surface a held-out view uncovers), and growing with
   the angle from the directions its views had, for the view-dependent bands.
+* The edge term (``fit_edge_scale``, ``ResidualField.edge_scale``): most of a model's error sits on the edges
+  and texture lines of its render, where a fraction of a pixel's misplacement changes a pixel by a lot, and a
+  per-Gaussian noise spreads that error over all the Gaussian's pixels (too wide where the image is flat, too
+  narrow on the edge itself). A misplacement of delta pixels changes a pixel by about ``delta |grad I(p)|``,
+  so the predictive gets ``delta^2 g(p)`` with ``g`` the squared gradient of the view's own render
+  (``image_gradient_sq``), ``delta^2`` fitted to the training residuals by least squares, and the per-Gaussian
+  noise is fitted to what the edge term leaves (a Gaussian no training pixel sees keeps the mean of the whole
+  residual, edges included: nothing tells where its edges are).
 * ``ResidualField.blended``: the blended variance ``sum_i w_i(p) (v_i + c_i)`` of a view (c_i: the colour
   posterior's variance, when fitted; one extra render), which ``uncertainty.mc.mc_render`` adds to the samples'
   variance: the predictive of a pixel is the model's spread plus the noise and the unknown colour of its
@@ -91,6 +99,18 @@ class ResidualField:
     posterior, module docstring); None: no colour term."""
     colour_prior: Tensor | None = None
     """[B] the prior variance of each SH coefficient (SH units) of the colour posterior."""
+    edge_scale: float = 0.0
+    """``delta^2`` (pixels^2) of the edge term ``delta^2 g(p)`` (module docstring; ``fit_edge_scale``); 0: none."""
+    pixel_variance: Tensor | None = None
+    """[N] each Gaussian's whole noise, the edge term's share of its pixels included: the pixel likelihood's variance
+    the colour posterior divides by (None: ``variance``, i.e. no edge term)."""
+
+    @property
+    def likelihood_variance(self) -> Tensor:
+        """[N] the variance of a Gaussian's pixels in the likelihood: ``pixel_variance`` when the field has an edge
+        term (the per-Gaussian noise alone would make the colours of edge Gaussians look exactly known), else
+        ``variance``."""
+        return self.variance if self.pixel_variance is None else self.pixel_variance
 
     def colour_variance(self, centers: Tensor) -> Tensor:
         """[C,N] the posterior variance of each Gaussian's colour (per channel, RGB units) seen from each camera
@@ -99,7 +119,7 @@ class ResidualField:
         if self.colour_evidence is None:
             return torch.zeros(centers.shape[0], s.means.shape[0], device=s.means.device)
         # float32 is enough (evidence / noise stays far below its range) and keeps [C,N,B] small for large models
-        noise = self.variance.float().clamp_min(MIN_NOISE)[:, None]  # [N,1]
+        noise = self.likelihood_variance.float().clamp_min(MIN_NOISE)[:, None]  # [N,1]
         prior = self.colour_prior.float().clamp_min(MIN_PRIOR)  # [B]
         coef_var = 1.0 / (self.colour_evidence.float() / noise + 1.0 / prior)  # [N,B]
         d = view_directions(s.means.float(), centers.float().to(s.means.device))  # [C,N,3]
@@ -123,20 +143,23 @@ class ResidualField:
         h = (params_per_gaussian / channels.clamp_min(1e-30)).clamp(max=max_leverage)
         inflation = (1 / (1 - h)).to(self.variance.dtype)
         mean = float(inflation.mean()) if inflation.numel() else 1.0
-        return replace(self, variance=self.variance * inflation, leverage_inflation=mean)
+        pv = None if self.pixel_variance is None else self.pixel_variance * inflation
+        return replace(self, variance=self.variance * inflation, pixel_variance=pv, leverage_inflation=mean)
 
     def scaled(self, factor: float) -> ResidualField:
         """The field with every Gaussian's noise variance times ``factor`` (e.g. a fitted noise level)."""
         if factor == 1.0:
             return self
-        return replace(self, variance=self.variance * factor, scale=self.scale * factor)
+        pv = None if self.pixel_variance is None else self.pixel_variance * factor
+        return replace(self, variance=self.variance * factor, scale=self.scale * factor,
+                       edge_scale=self.edge_scale * factor, pixel_variance=pv)
 
     def colour_unknown_fraction(self) -> float | None:
         """The share of the Gaussians whose DC colour the prior sets more than the data (posterior variance above half
         the prior's: ``evidence / noise < 1 / prior``); None without a colour term."""
         if self.colour_evidence is None or not self.colour_evidence.shape[0]:
             return None
-        data = self.colour_evidence[:, 0].double() / self.variance.double().clamp_min(MIN_NOISE)
+        data = self.colour_evidence[:, 0].double() / self.likelihood_variance.double().clamp_min(MIN_NOISE)
         return float((data < 1.0 / float(self.colour_prior[0].clamp_min(MIN_PRIOR))).double().mean())
 
     @torch.no_grad()
@@ -147,14 +170,24 @@ class ResidualField:
                                        render_fn)[0] for j in range(len(cameras))])
 
     @torch.no_grad()
+    def edge(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
+        """[C,H,W,1] the edge term ``edge_scale x g(p)`` of the field's sample rendered for the cameras (one render;
+        zeros without an edge term)."""
+        out = render_fn(self.sample, cameras)
+        if self.edge_scale <= 0.0:
+            return torch.zeros_like(out.rgb[..., :1])
+        return self.edge_scale * image_gradient_sq(out.rgb)
+
+    @torch.no_grad()
     def blended(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
         """[C,H,W,1] ``sum_i w_i(p) (v_i + c_i)`` for the cameras (c_i: the colour posterior's variance seen from
-        the camera, 0 without a colour term)."""
+        the camera, 0 without a colour term), plus the edge term when the field has one."""
         if self.colour_evidence is not None and len(cameras) > 1:  # the colour term depends on the camera
             return torch.cat([self.blended(cameras[[j]], render_fn) for j in range(len(cameras))])
         var = self.variance + self.colour_variance(cameras.centers)[0] if self.colour_evidence is not None else \
             self.variance
-        return blend_values(self.sample, var, cameras, render_fn)[0]  # two renders: see blend_values
+        out = blend_values(self.sample, var, cameras, render_fn)[0]  # two renders: see blend_values
+        return out + self.edge(cameras, render_fn) if self.edge_scale > 0.0 else out
 
     def subset(self, keep: Tensor) -> ResidualField:
         """The field of the Gaussians ``keep`` ([N] bool or indices) kept, e.g. by pruning: each keeps its own
@@ -165,7 +198,9 @@ class ResidualField:
                          opacities=s.opacities[keep], sh=s.sh[keep], position_var=pv)
         obs = None if self.observations is None else self.observations[keep]
         evidence = None if self.colour_evidence is None else self.colour_evidence[keep]
+        pv = None if self.pixel_variance is None else self.pixel_variance[keep]
         return replace(self, sample=sample, variance=self.variance[keep], seen=self.seen[keep], observations=obs,
+                       pixel_variance=pv,
                        colour_evidence=evidence)
 
 
@@ -182,6 +217,66 @@ def blend_values(sample: GaussianSample, values: Tensor, cameras: Cameras,
     with_v = render_fn(with_colour(sample, colour), cameras)
     without = render_fn(with_colour(sample, torch.zeros_like(colour)), cameras).rgb[..., :1]
     return (with_v.rgb[..., :1] - without).clamp_min(0.0), with_v.alpha
+
+
+def image_gradient_sq(rgb: Tensor) -> Tensor:
+    """[...,H,W,1] the squared gradient magnitude of images ``rgb`` [...,H,W,3] per pixel^2, mean over the channels:
+    central differences inside, one-sided at the borders (an image of 1 pixel along an axis has 0 there)."""
+    def diff(x: Tensor, dim: int) -> Tensor:
+        n = x.shape[dim]
+        if n < 2:
+            return torch.zeros_like(x)
+        lo = torch.cat([x.narrow(dim, 0, 1), x.narrow(dim, 0, n - 1)], dim)  # x[i-1], x[0] at the first
+        hi = torch.cat([x.narrow(dim, 1, n - 1), x.narrow(dim, n - 1, 1)], dim)  # x[i+1], x[n-1] at the last
+        step = torch.full((n,), 2.0, dtype=x.dtype, device=x.device)
+        step[0] = step[-1] = 1.0
+        shape = [1] * x.dim()
+        shape[dim] = n
+        return (hi - lo) / step.view(shape)
+
+    gy = diff(rgb, rgb.dim() - 3)
+    gx = diff(rgb, rgb.dim() - 2)
+    return (gx.square() + gy.square()).mean(-1, keepdim=True)
+
+
+EDGE_MIN_ALPHA = 0.5
+"""Pixels whose accumulated opacity is below this do not enter the edge term's fit (``fit_edge_scale``): where the
+model covers little, the residual is the missing surface's, not an edge's."""
+
+
+@torch.no_grad()
+def fit_edge_scale(sample: GaussianSample, cameras: Cameras, images: Tensor,
+                   render_fn: Callable[[GaussianSample, Cameras], RenderOutput], *, masks: Tensor | None = None,
+                   explained: Callable[[Cameras], Tensor] | None = None) -> float:
+    """``delta^2`` of the edge term (module docstring): the least-squares slope of ``r(p)^2 - e(p)`` on ``g(p)``
+    (with an intercept) over the training pixels with alpha >= ``EDGE_MIN_ALPHA``, clamped at 0.
+
+    r^2: the squared residual of ``sample``'s render (mean over the channels); e: what ``explained(camera)`` already
+    gives each pixel (the resolution term; 0 without it); g: ``image_gradient_sq`` of the render. One render per
+    camera. Returns 0 when no pixel qualifies or the gradient does not vary.
+    """
+    sums = torch.zeros(5, dtype=torch.float64)  # n, sum g, sum g^2, sum y, sum g y
+    for j in range(len(cameras)):
+        cam = cameras[[j]]
+        out = render_fn(sample, cam)
+        pred = out.rgb[0]
+        y = (pred - images[j].to(pred)).square().mean(-1, keepdim=True)  # [H,W,1]
+        if explained is not None:
+            y = y - explained(cam)[0].to(y)
+        g = image_gradient_sq(pred)
+        valid = out.alpha[0] >= EDGE_MIN_ALPHA
+        if masks is not None:
+            valid = valid & masks[j].to(valid.device).bool()
+        g, y = g[valid].double().cpu(), y[valid].double().cpu()
+        sums += torch.stack([torch.tensor(float(g.numel()), dtype=torch.float64), g.sum(), g.square().sum(), y.sum(),
+                             (g * y).sum()])
+    n, sg, sgg, sy, sgy = sums.tolist()
+    if n < 2:
+        return 0.0
+    var_g = sgg / n - (sg / n) ** 2
+    if var_g <= 1e-20:
+        return 0.0
+    return max((sgy / n - (sg / n) * (sy / n)) / var_g, 0.0)
 
 
 def _degree(num_bases: int) -> int:
@@ -206,7 +301,7 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
                        render_fn: Callable[[GaussianSample, Cameras], RenderOutput],
                        masks: Tensor | None = None,
                        explained: Callable[[Cameras], Tensor] | None = None, colour_posterior: bool = False,
-                       view_factor: float = 1.0) -> ResidualField:
+                       view_factor: float = 1.0, edge_scale: float = 0.0) -> ResidualField:
     """Each Gaussian's noise variance from the training views (see the module docstring).
 
     Args:
@@ -219,6 +314,8 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
         colour_posterior: also fit the colour posterior (module docstring; ``ResidualField.colour_variance``).
         view_factor: the training views over ``len(cameras)`` (when the field is fitted on a subset of them): the
             colour posterior's evidence is scaled to all training views by it.
+        edge_scale: ``delta^2`` of the edge term (``fit_edge_scale``; 0: none): the noise is fitted to what the
+            residual leaves beyond it as well, and the field renders it (``ResidualField.edge``).
 
     Returns:
         the ``ResidualField`` (on the sample's device).
@@ -226,7 +323,7 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
     n = sample.means.shape[0]
     dev = sample.means.device
     colour = torch.full((n, 3), 0.5, device=dev, requires_grad=True)
-    acc = torch.zeros(n, 2, device=dev, dtype=torch.float64)
+    acc = torch.zeros(n, 3, device=dev, dtype=torch.float64)  # sum w r^2 (edge term off), sum w, sum w r^2 (whole)
     num_bases = (sample.sh_degree + 1) ** 2
     evidence = torch.zeros(n, num_bases, device=dev, dtype=torch.float64) if colour_posterior else None
     pix_sum = torch.zeros(3, dtype=torch.float64, device=dev)
@@ -242,12 +339,19 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
                 r2 = (r2 - explained(cam)[0].to(r2)).clamp_min(0.0)
         valid = torch.ones_like(r2, dtype=torch.bool) if masks is None else masks[j].to(dev)
         r2 = torch.where(valid, r2, torch.zeros_like(r2))
+        # the unseen Gaussians' noise: the whole residual's mean, edges included (nothing says where theirs lie)
         total += float(r2.double().sum())
         count += int(valid.sum())
+        whole = r2
+        if edge_scale > 0.0:
+            # not clamped per pixel: an edge pixel the edge term over-explains lowers its Gaussians' noise, so that the
+            # two terms together match the residual on average (each Gaussian's mean is clamped at 0 below)
+            with torch.no_grad():
+                r2 = torch.where(valid, r2 - edge_scale * image_gradient_sq(pred), torch.zeros_like(r2))
         out = render_fn(with_colour(sample, colour), cam)
-        target = torch.cat([r2, valid.to(r2.dtype), torch.zeros_like(r2)], -1)  # [H,W,3]: r^2, 1, 0
+        target = torch.cat([r2, valid.to(r2.dtype), whole], -1)  # [H,W,3]: r^2 beyond the edge term, 1, r^2
         (grad,) = torch.autograd.grad((out.rgb[0] * target).sum(), colour)
-        acc += grad[:, :2].double()
+        acc += grad.double()
         if evidence is not None:
             img = images[j].to(dev).double()[valid[..., 0]]  # [P,3]
             pix_sum += img.sum(0)
@@ -257,14 +361,19 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
     mean_var = total / max(count, 1)
     weight = acc[:, 1]
     seen = weight > 1e-6 * max(float(weight.max()), 1e-30) if n else torch.zeros(0, dtype=torch.bool, device=dev)
-    var = torch.where(seen, acc[:, 0] / weight.clamp_min(1e-30), torch.full_like(weight, mean_var))
+    var = torch.where(seen, (acc[:, 0] / weight.clamp_min(1e-30)).clamp_min(0.0), torch.full_like(weight, mean_var))
+    whole_var = None
+    if edge_scale > 0.0:
+        whole_var = torch.where(seen, acc[:, 2] / weight.clamp_min(1e-30), torch.full_like(weight, mean_var)).float()
     prior = None
     if evidence is not None:
         pixel_var = float((pix_sq / max(count, 1) - (pix_sum / max(count, 1)).square()).clamp_min(0).mean())
         prior = _colour_prior(sample, seen, pixel_var, num_bases).float()
         evidence = (evidence * view_factor).float()
     return ResidualField(sample=sample, variance=var.float(), seen=seen, mean_variance=mean_var,
-                         observations=weight.float(), colour_evidence=evidence, colour_prior=prior)
+                         observations=weight.float(), colour_evidence=evidence, colour_prior=prior,
+                         edge_scale=float(edge_scale), pixel_variance=whole_var)
 
 
-__all__ = ["ResidualField", "blend_values", "fit_residual_field", "with_colour"]
+__all__ = ["ResidualField", "blend_values", "fit_edge_scale", "fit_residual_field", "image_gradient_sq",
+           "with_colour"]
