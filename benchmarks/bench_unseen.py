@@ -16,7 +16,8 @@ writes), ``before`` (the predictive before the coverage and resolution terms: ev
 resolution term), ``spread`` (the samples' spread alone) and ``leverage`` (``full`` with
 ``EvalConfig.residual_leverage``); ``no-colour`` is ``full`` without the colour posterior
 (``EvalConfig.colour_posterior``, the default since 2026-11-26); ``edge`` / ``no-edge`` are ``full`` with and
-without the edge term (``EvalConfig.edge_noise``).
+without the edge term (``EvalConfig.edge_noise``); ``no-depth-spread`` is ``full`` without the spread of the depths
+each ray blends (``EvalConfig.depth_spread``).
 
 Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
 its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),
@@ -99,11 +100,12 @@ def roc(score: torch.Tensor, positive: torch.Tensor) -> float | None:
 PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alpha < 1 counts as empty)
     "full": ({}, False),  # what `evaluate` writes: spread + pixel noise + resolution term + empty rays
     "before": ({"resolution": 0.0}, True),  # the predictive before the coverage and resolution terms (2026-11-24)
-    "spread": ({"empty_rays": False, "residual_views": 0, "resolution": 0.0}, False),  # the samples' spread alone
+    "spread": ({"empty_rays": False, "residual_views": 0, "resolution": 0.0, "depth_spread": False}, False),  # spread only
     "leverage": ({"residual_leverage": True}, False),  # full, each Gaussian's pixel noise / (1 - its leverage)
     "no-colour": ({"colour_posterior": False}, False),  # full without the colour posterior (the default before)
     "edge": ({"edge_noise": True}, False),  # full with the pixel noise split into the edge term and the rest
     "no-edge": ({"edge_noise": False}, False),  # full without the edge term
+    "no-depth-spread": ({"depth_spread": False}, False),  # full without the depths a ray blends
 }
 
 
@@ -163,7 +165,10 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: s
         "unobserved_fraction": float(unobs.float().mean()), "empty_fraction": float(empty.float().mean()),
         "rgb_std_unobserved": float(rgb[unobs].mean()), "rgb_std_observed": float(rgb[~unobs].mean()),
         "psnr": mean.psnr, "ause_mae": mean.ause_mae, "nll": mean.nll, "calibration_error": mean.calibration_error,
-        "depth_ause": getattr(mean, "depth_ause_mae", None), "std_scale": scale, **per_view,
+        "depth_ause": getattr(mean, "depth_ause_mae", None), "std_scale": scale,
+        "depth_nll": mean.depth_nll,
+        "depth_calibration_error": report.calibration["depth"].calibration_error if "depth" in report.calibration
+        else None, **per_view,
     }
 
 
@@ -294,8 +299,10 @@ def summary(w: dict) -> str:
     """One protocol result on a line."""
     auc = f"AUC {fmt(w['auc_rgb'])}/{fmt(w['auc_depth'])} " if "auc_rgb" in w else ""
     corr = f" corr(std, error) {fmt(w['std_error_correlation'])}" if "auc_rgb" not in w else ""
+    depth = f" depth NLL {fmt(w.get('depth_nll'), 2)} cal {fmt(w.get('depth_calibration_error'))}" \
+        if w.get("depth_nll") is not None else ""
     return (f"{auc}PSNR {w['psnr']:.2f} AUSE {w['ause_mae']:.3f}/{fmt(w.get('depth_ause'))} NLL {w['nll']:.2f} "
-            f"cal {w['calibration_error']:.3f} x{fmt(w['std_scale'], 2)}{corr}")
+            f"cal {w['calibration_error']:.3f} x{fmt(w['std_scale'], 2)}{depth}{corr}")
 
 
 def fmt(x, p=3):

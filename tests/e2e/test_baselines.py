@@ -93,8 +93,9 @@ def test_ensemble_of_one_has_zero_spread(ensemble_run, tmp_path):
     cfg = json.loads((run / "config.json").read_text())
     cfg["ensemble_size"] = 1
     (run / "config.json").write_text(json.dumps(cfg))
-    # the samples' spread alone (no empty-ray term, no pixel noise) is exactly 0 ...
-    spread_only = EvalConfig(num_samples=3, max_views=2, empty_rays=False, residual_views=0, resolution=0)
+    # the samples' spread alone (no empty-ray term, no pixel noise, no depth spread along the rays) is exactly 0 ...
+    spread_only = EvalConfig(num_samples=3, max_views=2, empty_rays=False, residual_views=0, resolution=0,
+                             depth_spread=False)
     report = evaluate.run(run, spread_only, device=CPU)
     for ch in exr_maps(run, report):
         assert ch["rgb_std.R"].shape == (H, W)

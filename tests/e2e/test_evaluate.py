@@ -176,3 +176,19 @@ def test_the_edge_term_is_fitted_recorded_and_changes_only_the_std(tiny_run_path
     assert on.per_view[name].ause_mae != off.per_view[name].ause_mae
     none = evaluate.run(run, EvalConfig(**base, residual_views=0, edge_noise=True), device=cpu)
     assert none.edge_scale is None
+
+
+def test_the_depth_spread_widens_the_depth_std_only(tiny_run_path, tmp_path):
+    """``depth_spread``: the variance of the depths each ray blends joins the depth variance (named in the notes);
+    the RGB metrics are those without it, and the depth NLL changes."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    base = {"num_samples": 2, "max_views": 1, "calibration_views": 0}
+    cpu = torch.device("cpu")
+    off = evaluate.run(run, EvalConfig(**base, depth_spread=False), device=cpu)
+    on = evaluate.run(run, EvalConfig(**base, depth_spread=True), device=cpu)
+    name = next(iter(on.per_view))
+    a, b = off.per_view[name], on.per_view[name]
+    assert (a.psnr, a.ause_mae, a.nll) == (b.psnr, b.ause_mae, b.nll)
+    assert a.depth_nll is not None and b.depth_nll is not None and b.depth_nll != a.depth_nll
+    assert any("depths each ray blends" in n for n in on.notes) and not any("depths each ray" in n for n in off.notes)

@@ -40,7 +40,8 @@ def _std_unobserved_over_observed(run, train, test) -> float:
     scene = loaded.load_scene()
     views = load_view_set(scene, test)
     maps = []
-    cfg = EvalConfig(num_samples=8, empty_rays=False, residual_views=0, resolution=0)  # the posterior's spread alone
+    cfg = EvalConfig(num_samples=8, empty_rays=False, residual_views=0, resolution=0,  # the posterior's spread alone
+                     depth_spread=False)
     evaluate_views(loaded.sampler(scene.scene_scale, CPU), views, cfg, CPU, show_progress=False, on_view=maps.append)
     depths = load_depths(scene, train)[..., 0].double()
     cams = scene.cameras

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import weakref
+from dataclasses import replace
 
 import pytest
 import torch
@@ -190,3 +191,81 @@ class TestResolutionTerm:
         assert torch.equal(shifted.scales, sample.scales) and torch.equal(sample.means, torch.zeros(n, 3))
         same = resolution_shift(sample, 0.0)(torch.Generator().manual_seed(0))
         assert torch.equal(same.means, sample.means)
+
+
+class TestDepthSpread:
+    """``depth_spread``: the variance of the depths a ray blends, against the closed form with the real renderer."""
+
+    W2, H2 = 24, 18
+
+    def _cams(self, z0=0.0):
+        cw = torch.eye(4)[None].clone()
+        cw[0, 2, 3] = z0  # the camera looks down +z; z0 moves the scene away from it
+        K = torch.tensor([[[20.0, 0, self.W2 / 2], [0, 20.0, self.H2 / 2], [0, 0, 1.0]]])
+        return Cameras(cw, K, self.W2, self.H2, ("v.png",))
+
+    @staticmethod
+    def _two_layers(z1, z2, o1=0.5, o2=0.8):
+        """Two equal, wide, flat Gaussians on the optical axis at depths z1 < z2 (the same footprint in the image
+        when their sizes grow with depth)."""
+        means = torch.tensor([[0.0, 0.0, z1], [0.0, 0.0, z2]])
+        scales = torch.tensor([[0.6 * z1, 0.6 * z1, 1e-3], [0.6 * z2, 0.6 * z2, 1e-3]])
+        return GaussianSample(means=means, quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(2, 1), scales=scales,
+                              opacities=torch.tensor([o1, o2]), sh=torch.zeros(2, 1, 3), sh_degree=0)
+
+    def _render(self):
+        import functools
+
+        from uncertsplat.render import render
+
+        return functools.partial(render, background=torch.tensor([0.3, 0.6, 0.9]))
+
+    def _closed_form(self, sample, cams, z_shift=0.0):
+        """w1 = a1, w2 = (1 - a1) a2 from each Gaussian rendered alone; the variance of {z1 w.p. w1, z2 w.p. w2}."""
+        render = self._render()
+        a = [render(GaussianSample(means=sample.means[[i]], quats=sample.quats[[i]], scales=sample.scales[[i]],
+                                   opacities=sample.opacities[[i]], sh=sample.sh[[i]], sh_degree=0), cams).alpha[0]
+             for i in range(2)]
+        w1, w2 = a[0], (1 - a[0]) * a[1]
+        z1, z2 = (sample.means[:, 2] + z_shift).tolist()
+        return w1 * w2 * (z1 - z2) ** 2 / (w1 + w2).square(), w1, w2
+
+    def test_two_layers_give_the_mixture_variance_and_one_layer_none(self):
+        from uncertsplat.uncertainty.mc import depth_spread
+
+        sample, cams = self._two_layers(2.0, 3.0), self._cams()
+        got = depth_spread(sample, cams, self._render())[0]
+        want, w1, w2 = self._closed_form(sample, cams)
+        both = (w1 > 0.05) & (w2 > 0.05)
+        assert int(both.sum()) > 20
+        torch.testing.assert_close(got[both], want[both], rtol=2e-3, atol=1e-5)
+        one = GaussianSample(means=sample.means[:1], quats=sample.quats[:1], scales=sample.scales[:1],
+                             opacities=sample.opacities[:1], sh=sample.sh[:1], sh_degree=0)
+        assert float(depth_spread(one, cams, self._render()).abs().max()) < 1e-5  # one depth per ray: nothing
+        empty = replace(sample, means=sample.means * torch.tensor([1.0, 1.0, -1.0]))  # behind the camera
+        assert float(depth_spread(empty, cams, self._render()).abs().max()) == 0.0
+
+    def test_a_scene_far_from_the_camera_keeps_its_digits(self):
+        """The same two layers 1 apart, 2000 units from the camera: z^2 ~ 4e6 would leave float32 no digit for a
+        variance of ~0.2 without the shift to the nearest Gaussian."""
+        from uncertsplat.uncertainty.mc import depth_spread
+
+        near_sample = self._two_layers(2.0, 3.0)
+        far = 2000.0
+        sample = replace(near_sample, means=near_sample.means + torch.tensor([0.0, 0.0, far]),
+                         scales=near_sample.scales * (near_sample.means[:, 2:3] + far) / near_sample.means[:, 2:3])
+        got = depth_spread(sample, self._cams(), self._render())[0]
+        want, w1, w2 = self._closed_form(sample, self._cams())
+        both = (w1 > 0.05) & (w2 > 0.05)
+        assert int(both.sum()) > 20
+        torch.testing.assert_close(got[both], want[both], rtol=1e-2, atol=1e-4)
+
+    def test_mc_render_adds_it_to_the_depth_variance_only(self, device):
+        d = Dummy(device)
+        plain = mc_render(Dummy(device).sample_fn, Dummy(device).render_fn, _cameras(device), 4,
+                          torch.Generator().manual_seed(2))[0]
+        extra = torch.full((C, H, W, 1), 0.09, device=device)
+        maps = mc_render(d.sample_fn, d.render_fn, _cameras(device), 4, torch.Generator().manual_seed(2),
+                         extra_depth_var=extra)[0]
+        torch.testing.assert_close(maps.rgb_std, plain.rgb_std)
+        torch.testing.assert_close(maps.depth_std.square(), plain.depth_std.square() + 0.09, rtol=1e-5, atol=1e-6)

@@ -63,6 +63,8 @@ class EvalSettings(Protocol):
     """Divide each Gaussian's noise by (1 - its leverage) (``ResidualField.out_of_sample``)."""
     colour_posterior: bool
     """Add each Gaussian's colour posterior variance to its noise (``ResidualField.colour_variance``)."""
+    depth_spread: bool
+    """Add the variance of the depths each ray blends (``uncertainty.mc.depth_spread``) to the depth variance."""
     edge_noise: bool
     """Split the pixel noise into an edge term ``delta^2 |grad I|^2`` and the per-Gaussian rest
     (``uncertainty.residual.fit_edge_scale``)."""
@@ -143,9 +145,12 @@ def _shift_fn(sampler: Sampler, cfg: EvalSettings, device: torch.device):
 
 def _predictive(sampler: Sampler, cfg: EvalSettings, cams: Cameras) -> dict:
     """The terms ``mc_render`` adds to the samples' spread, as the settings allow."""
+    from uncertsplat.uncertainty.mc import depth_spread
+
     extra = sampler.residual.blended(cams, sampler.render_fn) if sampler.residual is not None else None
+    spread = depth_spread(_representative(sampler, cams.device), cams, sampler.render_fn) if cfg.depth_spread else None
     return {"empty_std": sampler.empty_std if cfg.empty_rays else None, "coverage": sampler.coverage,
-            "extra_var": extra, "shift_fn": _shift_fn(sampler, cfg, cams.device)}
+            "extra_var": extra, "extra_depth_var": spread, "shift_fn": _shift_fn(sampler, cfg, cams.device)}
 
 
 def evenly_spaced(items: Sequence[int], n: int) -> list[int]:
@@ -425,6 +430,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if cfg.resolution > 0:
         terms.append(f"the resolution term (every Gaussian moved by N(0, ({cfg.resolution:g} x its size)^2), "
                      "one render per sample)")
+    if cfg.depth_spread:
+        terms.append("for depth, the spread of the depths each ray blends (the model's deterministic render)")
     if cfg.empty_rays and sampler.empty_std is not None:
         terms.append(f"an unknown surface where rays are covered less than the model covers its training views "
                      f"(alpha {sampler.coverage:.3f}; colour std {sampler.empty_std[0]:.3f}, depth "

@@ -115,8 +115,9 @@ class MonteCarloMoments:
         self.shift_depth.update(out.depth)
 
     def maps(self, image_names: tuple[str, ...] = (), *, empty_std: tuple[float, float] | None = None,
-             extra_var: Tensor | None = None) -> UncertaintyMaps:
-        """The mean and std maps of the samples so far (see ``mc_render`` for ``empty_std`` and ``extra_var``)."""
+             extra_var: Tensor | None = None, extra_depth_var: Tensor | None = None) -> UncertaintyMaps:
+        """The mean and std maps of the samples so far (see ``mc_render`` for ``empty_std``, ``extra_var`` and
+        ``extra_depth_var``)."""
         rgb_var, depth_var = self.rgb.var, self.depth.var
         if self.shift_rgb.count:
             rgb_var = rgb_var + self.shift_rgb.var
@@ -128,6 +129,8 @@ class MonteCarloMoments:
             depth_var = depth_var + gap * empty_std[1] ** 2
         if extra_var is not None:
             rgb_var = rgb_var + extra_var.to(rgb_var)
+        if extra_depth_var is not None:
+            depth_var = depth_var + extra_depth_var.to(depth_var)
         rgb_std, depth_std = rgb_var.sqrt(), depth_var.sqrt()
         return UncertaintyMaps(rgb_mean=self.rgb.mean, rgb_std=rgb_std, depth_mean=self.depth.mean,
                                depth_std=depth_std, alpha_mean=self.alpha.mean, n_samples=self.count,
@@ -162,6 +165,7 @@ def mc_render(
     empty_std: tuple[float, float] | None = None,
     coverage: float = 1.0,
     extra_var: Tensor | None = None,
+    extra_depth_var: Tensor | None = None,
     shift_fn: SampleFn | None = None,
 ) -> tuple[UncertaintyMaps, MCSamples | None]:
     """Render ``num_samples`` posterior samples of ``cameras`` and return their mean and std maps.
@@ -185,6 +189,8 @@ def mc_render(
             counts every alpha < 1 (the term before 2026-11-25; BENCHMARKS.md, "Coverage, resolution and floaters").
         extra_var: [C,H,W,1] a variance added to the RGB variance, e.g. the pixel noise of the model's
             Gaussians (``uncertainty.residual``): the predictive of a pixel is the samples' spread plus it.
+        extra_depth_var: [C,H,W,1] a variance added to the depth variance, e.g. the spread of the depths each ray
+            blends (``depth_spread``).
         shift_fn: the resolution term (``resolution_shift``): one render of it per sample, whose variance is added
             to the RGB and depth variance (their mean is not used). Draws from its own generator, seeded from
             ``generator``'s initial seed.
@@ -216,7 +222,8 @@ def mc_render(
             # Drop the references now so the sample's and the render's memory can be reused by
             # the next iteration (otherwise two renders are alive at the peak).
             del sample, out
-    maps = moments.maps(tuple(cameras.image_names), empty_std=empty_std, extra_var=extra_var)
+    maps = moments.maps(tuple(cameras.image_names), empty_std=empty_std, extra_var=extra_var,
+                        extra_depth_var=extra_depth_var)
     samples = MCSamples(torch.stack(kept_rgb), torch.stack(kept_depth)) if keep_samples else None
     return maps, samples
 
@@ -253,6 +260,40 @@ def training_coverage(sample: GaussianSample, cameras: Cameras, render_fn: Rende
     if a.numel() > 1 << 24:  # torch.quantile's input limit
         a = a[torch.linspace(0, a.numel() - 1, 1 << 24).long()]
     return float(a.quantile(quantile).clamp(1e-3, 1.0))
+
+
+@torch.no_grad()
+def depth_spread(sample: GaussianSample, cameras: Cameras, render_fn: RenderFn) -> Tensor:
+    """[C,H,W,1] the variance of the depths each ray blends: ``sum_i w_i z_i^2 / alpha - depth^2`` (w_i the blending
+    weights, z_i each Gaussian's camera z, alpha = sum_i w_i, depth the alpha-normalised depth), clamped at 0; 0
+    where nothing is blended.
+
+    A rendered depth is the weighted mean of the depths of the Gaussians along the ray: where the ray crosses an
+    edge, a semi-transparent layer or a floater in front of a surface, the pixel's depth is a mixture of distant
+    values, and the mean says nothing of it. Two renders per camera (colours (z, z^2, 1) and then 0, the difference
+    removing the background: the render is linear in the colours).
+    """
+    from uncertsplat.uncertainty.residual import with_colour
+
+    outs = []
+    for j in range(len(cameras)):
+        cam = cameras[[j]]
+        cw = cam.cam_from_world[0].to(sample.means)  # [4,4]
+        z = sample.means @ cw[2, :3] + cw[2, 3]  # [N] camera z of each mean, as the renderer's depth uses
+        # shifted by the nearest Gaussian in front of the camera: the variance does not change, float32 keeps its
+        # digits for a scene far from the camera, and the colours stay >= 0 (the renderer clamps colours at 0;
+        # the Gaussians behind the camera, clamped, are culled anyway)
+        front = z[z > 0]
+        z = z - (front.min() if front.numel() else 0.0)
+        col = torch.stack([z, z * z, torch.ones_like(z)], -1)  # [N,3]: blended -> sum w z, sum w z^2, alpha
+        moments = render_fn(with_colour(sample, col), cam).rgb[0] - render_fn(with_colour(sample, torch.zeros_like(col)),
+                                                                            cam).rgb[0]  # [H,W,3]
+        alpha = moments[..., 2:3]
+        a = alpha.clamp_min(1e-6)
+        mean = moments[..., :1] / a
+        var = (moments[..., 1:2] / a - mean.square()).clamp_min(0.0)
+        outs.append(torch.where(alpha > 1e-6, var, torch.zeros_like(var)))
+    return torch.stack(outs)
 
 
 def resolution_shift(sample: GaussianSample, resolution: float) -> SampleFn:
