@@ -159,34 +159,37 @@ def test_the_pixel_noise_level_is_fitted_and_recorded(tiny_run_path, tmp_path):
     assert leverage.per_view[name].nll != one.per_view[name].nll
 
 
+ONE_VIEW = {"num_samples": 2, "max_views": 1, "calibration_views": 0}
+
+
+def _off_and_on(tiny_run_path, tmp_path, key):
+    """(run, report with ``key`` off, report with it on): one view of a copy of the tiny run, evaluated both ways."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    cpu = torch.device("cpu")
+    off = evaluate.run(run, EvalConfig(**ONE_VIEW, **{key: False}), device=cpu)
+    on = evaluate.run(run, EvalConfig(**ONE_VIEW, **{key: True}), device=cpu)
+    return run, off, on
+
+
 def test_the_edge_term_is_fitted_recorded_and_changes_only_the_std(tiny_run_path, tmp_path):
     """``edge_noise``: delta^2 is fitted on the training views, recorded in metrics.json and named in the notes; the
     prediction is unchanged and the std is not; off, the report records 0."""
-    run = tmp_path / "run"
-    shutil.copytree(tiny_run_path, run)
-    base = {"num_samples": 2, "max_views": 1, "calibration_views": 0}
-    cpu = torch.device("cpu")
-    off = evaluate.run(run, EvalConfig(**base, edge_noise=False), device=cpu)
-    on = evaluate.run(run, EvalConfig(**base, edge_noise=True), device=cpu)
+    run, off, on = _off_and_on(tiny_run_path, tmp_path, "edge_noise")
     assert off.edge_scale == 0.0 and on.edge_scale is not None and on.edge_scale > 0.0
     assert json.loads((run / "eval" / "metrics.json").read_text())["edge_scale"] == on.edge_scale
     assert any("edge term" in n for n in on.notes) and not any("edge term" in n for n in off.notes)
     name = next(iter(on.per_view))
     assert on.per_view[name].psnr == off.per_view[name].psnr
     assert on.per_view[name].ause_mae != off.per_view[name].ause_mae
-    none = evaluate.run(run, EvalConfig(**base, residual_views=0, edge_noise=True), device=cpu)
+    none = evaluate.run(run, EvalConfig(**ONE_VIEW, residual_views=0, edge_noise=True), device=torch.device("cpu"))
     assert none.edge_scale is None
 
 
 def test_the_depth_spread_widens_the_depth_std_only(tiny_run_path, tmp_path):
     """``depth_spread``: the variance of the depths each ray blends joins the depth variance (named in the notes);
     the RGB metrics are those without it, and the depth NLL changes."""
-    run = tmp_path / "run"
-    shutil.copytree(tiny_run_path, run)
-    base = {"num_samples": 2, "max_views": 1, "calibration_views": 0}
-    cpu = torch.device("cpu")
-    off = evaluate.run(run, EvalConfig(**base, depth_spread=False), device=cpu)
-    on = evaluate.run(run, EvalConfig(**base, depth_spread=True), device=cpu)
+    _, off, on = _off_and_on(tiny_run_path, tmp_path, "depth_spread")
     name = next(iter(on.per_view))
     a, b = off.per_view[name], on.per_view[name]
     assert (a.psnr, a.ause_mae, a.nll) == (b.psnr, b.ause_mae, b.nll)

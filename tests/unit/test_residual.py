@@ -301,6 +301,17 @@ class TestColourPosterior:
         assert 0.0 < field.colour_unknown_fraction() < 0.5
 
 
+def _edge_images(sample, cams, d, delta2):
+    """(render, g, images): training images whose residual is sqrt(d^2 + delta2 g) in every channel, g the render's
+    squared image gradient, i.e. noise d^2 plus an edge term of exactly delta2."""
+    from uncertsplat.uncertainty.residual import image_gradient_sq
+
+    with torch.no_grad():
+        out = RENDER(sample, cams)
+    g = image_gradient_sq(out.rgb)
+    return out, g, out.rgb + (d * d + delta2 * g).sqrt()
+
+
 class TestEdgeTerm:
     """The edge term ``delta^2 |grad I|^2`` (``image_gradient_sq``, ``fit_edge_scale``, ``ResidualField.edge``)."""
 
@@ -356,14 +367,8 @@ class TestEdgeTerm:
         assert float(field.edge(cams, RENDER).abs().max()) == 0.0
 
     def test_the_noise_is_fitted_to_what_the_edge_term_leaves_and_blended_adds_it(self):
-        from uncertsplat.uncertainty.residual import image_gradient_sq
-
-        sample, cams, d = _sample(), _cams(3), 0.05
-        with torch.no_grad():
-            out = RENDER(sample, cams)
-        g = image_gradient_sq(out.rgb)
-        delta2 = 0.5
-        images = out.rgb + (d * d + delta2 * g).sqrt()
+        sample, cams, d, delta2 = _sample(), _cams(3), 0.05, 0.5
+        out, g, images = _edge_images(sample, cams, d, delta2)
         field = fit_residual_field(sample, cams, images, RENDER, edge_scale=delta2)
         seen = field.seen
         torch.testing.assert_close(field.variance[seen], torch.full_like(field.variance[seen], d * d), rtol=1e-3,
@@ -383,14 +388,8 @@ def test_the_colour_posterior_divides_by_the_whole_noise_with_an_edge_term():
     """With an edge term a Gaussian's own noise is what the edge term leaves; its pixels' variance in the likelihood
     (what the colour posterior divides by) stays the whole residual, so edge Gaussians do not get exactly known
     colours."""
-    from uncertsplat.uncertainty.residual import image_gradient_sq
-
-    sample, cams, d = _sample(), _cams(3), 0.05
-    with torch.no_grad():
-        out = RENDER(sample, cams)
-    g = image_gradient_sq(out.rgb)
-    delta2 = 0.5
-    images = out.rgb + (d * d + delta2 * g).sqrt()
+    sample, cams, d, delta2 = _sample(), _cams(3), 0.05, 0.5
+    _, _, images = _edge_images(sample, cams, d, delta2)
     plain = fit_residual_field(sample, cams, images, RENDER, colour_posterior=True)
     edge = fit_residual_field(sample, cams, images, RENDER, colour_posterior=True, edge_scale=delta2)
     assert plain.pixel_variance is None and edge.pixel_variance is not None
