@@ -143,12 +143,14 @@ def _shift_fn(sampler: Sampler, cfg: EvalSettings, device: torch.device):
     return resolution_shift(_representative(sampler, device), cfg.resolution)
 
 
-def _predictive(sampler: Sampler, cfg: EvalSettings, cams: Cameras) -> dict:
-    """The terms ``mc_render`` adds to the samples' spread, as the settings allow."""
+def _predictive(sampler: Sampler, cfg: EvalSettings, cams: Cameras, *, depth: bool = True) -> dict:
+    """The terms ``mc_render`` adds to the samples' spread, as the settings allow (``depth=False``: none of the
+    depth-only ones, for a caller that reads the RGB maps alone)."""
     from uncertsplat.uncertainty.mc import depth_spread
 
     extra = sampler.residual.blended(cams, sampler.render_fn) if sampler.residual is not None else None
-    spread = depth_spread(_representative(sampler, cams.device), cams, sampler.render_fn) if cfg.depth_spread else None
+    spread = depth_spread(_representative(sampler, cams.device), cams, sampler.render_fn) \
+        if cfg.depth_spread and depth else None
     return {"empty_std": sampler.empty_std if cfg.empty_rays else None, "coverage": sampler.coverage,
             "extra_var": extra, "extra_depth_var": spread, "shift_fn": _shift_fn(sampler, cfg, cams.device)}
 
@@ -343,7 +345,7 @@ def fit_std_scale(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSetti
     for j, i in enumerate(views.indices):
         gen.manual_seed(_view_seed(cfg, i))
         maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, views.cameras[[j]].to(device), cfg.num_samples,
-                            gen, **_predictive(sampler, cfg, views.cameras[[j]].to(device)))
+                            gen, **_predictive(sampler, cfg, views.cameras[[j]].to(device), depth=False))
         err = maps.rgb_mean[0].cpu().clamp(0, 1) - views.images[j]
         z2 = (err / maps.rgb_std[0].cpu().clamp_min(cfg.std_floor)) ** 2
         if views.masks is not None:
