@@ -50,8 +50,9 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
     fit_unseen = None
     if scene is not None and scene.split.get("train"):
         def fit_unseen():
-            # the colour posterior as `evaluate` fits it, without the resolution term's shifted renders (they
-            # only refine the noise of what the photos showed)
+            # the colour posterior as `evaluate` fits it, without the resolution term's shifted renders and the edge
+            # term's fit (they only refine the noise of what the photos showed; the colour posterior divides by the
+            # whole noise either way)
             from functools import partial
 
             from uncertsplat.config import EvalConfig
@@ -60,7 +61,8 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
 
             console.print("fitting what the training photos showed (the unseen mode, once)...")
             return fit_residual(loaded.sampler(scene_scale, device), scene.split["train"],
-                                EvalConfig(resolution=0.0), device, load_views=partial(load_view_set, scene, depth=False))
+                                EvalConfig(resolution=0.0, edge_noise=False), device,
+                                load_views=partial(load_view_set, scene, depth=False))
     renderer = FrameRenderer(loaded, scene_scale, device, score_cameras=score_cams, free_space_cameras=free_cams,
                              seed=cfg.seed, unseen_field=fit_unseen)
     return Viewer(renderer, scene, cfg)

@@ -270,10 +270,10 @@ def depth_spread(sample: GaussianSample, cameras: Cameras, render_fn: RenderFn) 
 
     A rendered depth is the weighted mean of the depths of the Gaussians along the ray: where the ray crosses an
     edge, a semi-transparent layer or a floater in front of a surface, the pixel's depth is a mixture of distant
-    values, and the mean says nothing of it. Two renders per camera (colours (z, z^2, 1) and then 0, the difference
-    removing the background: the render is linear in the colours).
+    values, and the mean says nothing of it. Two renders per camera (``uncertainty.residual.blend_colours`` of
+    (z, z^2, 0)).
     """
-    from uncertsplat.uncertainty.residual import with_colour
+    from uncertsplat.uncertainty.residual import blend_colours
 
     outs = []
     for j in range(len(cameras)):
@@ -285,10 +285,8 @@ def depth_spread(sample: GaussianSample, cameras: Cameras, render_fn: RenderFn) 
         # the Gaussians behind the camera, clamped, are culled anyway)
         front = z[z > 0]
         z = z - (front.min() if front.numel() else 0.0)
-        col = torch.stack([z, z * z, torch.ones_like(z)], -1)  # [N,3]: blended -> sum w z, sum w z^2, alpha
-        moments = render_fn(with_colour(sample, col), cam).rgb[0] - render_fn(with_colour(sample, torch.zeros_like(col)),
-                                                                            cam).rgb[0]  # [H,W,3]
-        alpha = moments[..., 2:3]
+        moments, alpha = blend_colours(sample, torch.stack([z, z * z, torch.zeros_like(z)], -1), cam, render_fn)
+        moments, alpha = moments[0], alpha[0]  # [H,W,3]: sum w z, sum w z^2, 0; [H,W,1]
         a = alpha.clamp_min(1e-6)
         mean = moments[..., :1] / a
         var = (moments[..., 1:2] / a - mean.square()).clamp_min(0.0)

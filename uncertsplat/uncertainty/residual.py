@@ -172,11 +172,10 @@ class ResidualField:
     @torch.no_grad()
     def edge(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
         """[C,H,W,1] the edge term ``edge_scale x g(p)`` of the field's sample rendered for the cameras (one render;
-        zeros without an edge term)."""
-        out = render_fn(self.sample, cameras)
+        zeros without an edge term, and no render)."""
         if self.edge_scale <= 0.0:
-            return torch.zeros_like(out.rgb[..., :1])
-        return self.edge_scale * image_gradient_sq(out.rgb)
+            return torch.zeros(len(cameras), cameras.height, cameras.width, 1, device=self.sample.means.device)
+        return self.edge_scale * image_gradient_sq(render_fn(self.sample, cameras).rgb)
 
     @torch.no_grad()
     def blended(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
@@ -204,39 +203,36 @@ class ResidualField:
                        colour_evidence=evidence)
 
 
+def blend_colours(sample: GaussianSample, colour: Tensor, cameras: Cameras,
+                  render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> tuple[Tensor, Tensor]:
+    """``sum_i w_i(p) colour_i`` ([N,3] non-negative per-Gaussian values, three at a time) for the cameras,
+    [C,H,W,3], and the renders' alpha [C,H,W,1].
+
+    Two renders: the render is linear in the colours, so the difference between colour ``colour`` and colour 0
+    removes whatever background ``render_fn`` composites behind the Gaussians (clamped at 0 against rounding).
+    """
+    with_c = render_fn(with_colour(sample, colour), cameras)
+    without = render_fn(with_colour(sample, torch.zeros_like(colour)), cameras).rgb
+    return (with_c.rgb - without).clamp_min(0.0), with_c.alpha
+
+
 def blend_values(sample: GaussianSample, values: Tensor, cameras: Cameras,
                  render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> tuple[Tensor, Tensor]:
     """``sum_i w_i(p) values_i`` ([N] per-Gaussian values) for the cameras, [C,H,W,1], and the renders' alpha
-    [C,H,W,1].
-
-    Two renders: the render is linear in the colours, so the difference between colour ``values`` and colour 0
-    removes whatever background ``render_fn`` composites behind the Gaussians.
-    """
+    [C,H,W,1] (``blend_colours`` of the values in the first channel)."""
     zeros = torch.zeros_like(values)
-    colour = torch.stack([values, zeros, zeros], -1)  # [N,3]
-    with_v = render_fn(with_colour(sample, colour), cameras)
-    without = render_fn(with_colour(sample, torch.zeros_like(colour)), cameras).rgb[..., :1]
-    return (with_v.rgb[..., :1] - without).clamp_min(0.0), with_v.alpha
+    blended, alpha = blend_colours(sample, torch.stack([values, zeros, zeros], -1), cameras, render_fn)
+    return blended[..., :1], alpha
 
 
 def image_gradient_sq(rgb: Tensor) -> Tensor:
     """[...,H,W,1] the squared gradient magnitude of images ``rgb`` [...,H,W,3] per pixel^2, mean over the channels:
-    central differences inside, one-sided at the borders (an image of 1 pixel along an axis has 0 there)."""
-    def diff(x: Tensor, dim: int) -> Tensor:
-        n = x.shape[dim]
-        if n < 2:
-            return torch.zeros_like(x)
-        lo = torch.cat([x.narrow(dim, 0, 1), x.narrow(dim, 0, n - 1)], dim)  # x[i-1], x[0] at the first
-        hi = torch.cat([x.narrow(dim, 1, n - 1), x.narrow(dim, n - 1, 1)], dim)  # x[i+1], x[n-1] at the last
-        step = torch.full((n,), 2.0, dtype=x.dtype, device=x.device)
-        step[0] = step[-1] = 1.0
-        shape = [1] * x.dim()
-        shape[dim] = n
-        return (hi - lo) / step.view(shape)
+    central differences inside, one-sided at the borders (``torch.gradient``; an image of 1 pixel along an axis has
+    0 there)."""
+    def diff(dim: int) -> Tensor:
+        return torch.gradient(rgb, dim=dim)[0] if rgb.shape[dim] >= 2 else torch.zeros_like(rgb)
 
-    gy = diff(rgb, rgb.dim() - 3)
-    gx = diff(rgb, rgb.dim() - 2)
-    return (gx.square() + gy.square()).mean(-1, keepdim=True)
+    return (diff(rgb.dim() - 2).square() + diff(rgb.dim() - 3).square()).mean(-1, keepdim=True)
 
 
 EDGE_MIN_ALPHA = 0.5
@@ -375,5 +371,5 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
                          edge_scale=float(edge_scale), pixel_variance=whole_var)
 
 
-__all__ = ["ResidualField", "blend_values", "fit_edge_scale", "fit_residual_field", "image_gradient_sq",
+__all__ = ["ResidualField", "blend_colours", "blend_values", "fit_edge_scale", "fit_residual_field", "image_gradient_sq",
            "with_colour"]
