@@ -22,6 +22,7 @@ from uncertsplat.eval.engine import evaluate_views, fit_residual
 from uncertsplat.io.images import read_exr
 from uncertsplat.io.maps import EXR_CHANNELS, map_stem
 from uncertsplat.schemas.metrics import EvalReport
+from uncertsplat.schemas.prune import PruneReport
 from uncertsplat.stages import evaluate
 
 runner = CliRunner()
@@ -195,3 +196,61 @@ def test_the_depth_spread_widens_the_depth_std_only(tiny_run_path, tmp_path):
     assert (a.psnr, a.ause_mae, a.nll) == (b.psnr, b.ause_mae, b.nll)
     assert a.depth_nll is not None and b.depth_nll is not None and b.depth_nll != a.depth_nll
     assert any("depths each ray blends" in n for n in on.notes) and not any("depths each ray" in n for n in off.notes)
+
+
+SAME_CFG = EvalConfig(num_samples=2, max_views=1, calibration_views=0, residual_views=2)
+
+
+@pytest.fixture(scope="module")
+def same_model_runs(tiny_run_path, tmp_path_factory):  # noqa: F811
+    from uncertsplat.config import PruneConfig
+    from uncertsplat.stages import prune
+
+    root = tmp_path_factory.mktemp("same")
+    src = root / "src"
+    shutil.copytree(tiny_run_path, src, ignore=shutil.ignore_patterns("eval"))
+    kept = root / "kept"
+    prune.run(src, kept, PruneConfig(keep_ratio=1.0, num_samples=2, score_views=2, score_samples=2,
+                                     render_views=1), device=torch.device("cpu"))
+    assert (kept / "variational.ply").read_bytes() == (src / "variational.ply").read_bytes()
+    evaluate.run(src, SAME_CFG, device=torch.device("cpu"))
+    return src, kept
+
+
+class TestPrunedRunThatRemovedNothing:
+    """A prune output whose model is its source's file, unchanged: evaluate copies the source's evaluation when it
+    was made with the same settings, and evaluates anything else."""
+
+    def test_copies_the_source_evaluation(self, same_model_runs):
+        src, kept = same_model_runs
+        report = evaluate.run(kept, SAME_CFG, device=torch.device("cpu"))
+        source = EvalReport.read(src / "eval" / "metrics.json")
+        copied = EvalReport.read(kept / "eval" / "metrics.json")
+        assert copied == report
+        assert copied.model_copy(update={"notes": source.notes}) == source  # every number the source's
+        assert copied.notes[:-1] == source.notes and "copied from" in copied.notes[-1]
+        for f in sorted((src / "eval" / "maps").iterdir()):
+            assert (kept / "eval" / "maps" / f.name).read_bytes() == f.read_bytes()
+        assert sorted(p.name for p in (kept / "eval").iterdir()) == ["config.json", "maps", "metrics.json"]
+        assert evaluate.same_model_evaluation(kept, SAME_CFG, torch.device("cpu")) == src / "eval"
+
+    def test_anything_else_is_evaluated(self, same_model_runs, tmp_path):
+        src, kept = same_model_runs
+        cpu = torch.device("cpu")
+        assert evaluate.same_model_evaluation(kept, SAME_CFG.model_copy(update={"num_samples": 3}), cpu) is None
+        assert evaluate.same_model_evaluation(kept, SAME_CFG.model_copy(update={"reuse": False}), cpu) is None
+        assert evaluate.same_model_evaluation(src, SAME_CFG, cpu) is None  # not a prune output
+        # a pruned model that differs from its source's file (here: the source's file was changed since)
+        other = tmp_path / "other"
+        shutil.copytree(src, other)
+        changed = tmp_path / "changed"
+        shutil.copytree(kept, changed, ignore=shutil.ignore_patterns("eval"))
+        data = PruneReport.read(changed / "prune.json")
+        data.source_run = str(other)
+        data.write(changed / "prune.json")
+        assert evaluate.same_model_evaluation(changed, SAME_CFG, cpu) == other / "eval"
+        with open(other / "variational.ply", "ab") as f:
+            f.write(b"\0")
+        assert evaluate.same_model_evaluation(changed, SAME_CFG, cpu) is None
+        report = evaluate.run(changed, SAME_CFG, device=cpu)
+        assert not any("copied from" in n for n in report.notes)

@@ -11,6 +11,10 @@ engine (``eval.engine``: K samples per view, every metric) and writes into ``RUN
 - ``metrics.json``: the ``EvalReport`` (per view by image name, mean, curves, calibration).
 - ``config.json``: the resolved ``EvalConfig``.
 
+A ``prune`` output that removed nothing holds its source run's model file unchanged; its evaluation with the
+settings, versions and device the source run was evaluated with is that one, so it is copied
+(``same_model_evaluation``; ``--set reuse=false`` evaluates again).
+
 The prediction is the Monte-Carlo mean (as in the paper); the per-pixel uncertainty is the unbiased
 std over the K samples.
 """
@@ -51,26 +55,109 @@ def write_view_maps(folder: Path, maps: ViewMaps, preview: str) -> None:
     write_png(folder / f"{stem}_depth_std.png", colorize(depth_std[..., 0].numpy(), mode="percentile"))
 
 
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def same_model_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device) -> Path | None:
+    """The ``eval`` folder of ``run_dir``'s source run when evaluating ``run_dir`` would repeat it exactly, else None.
+
+    That is when ``run_dir`` is a ``prune`` output (``prune.json``) whose ``variational.ply`` is byte for byte the
+    source run's (the SHA-256 ``prune.json`` recorded, of both files as they are now), whose ``config.json`` and
+    ``scene.json`` equal the source's, and the source's ``eval/metrics.json`` was written with this config (its
+    hash), by the same versions (uncertsplat, Python, torch) on the same device, with its maps and config beside it.
+    Any file missing or unreadable: None (evaluate as usual).
+    """
+    from uncertsplat.provenance import hash_config, versions
+    from uncertsplat.schemas.metrics import EvalReport
+    from uncertsplat.schemas.prune import PruneReport
+
+    if not cfg.reuse:
+        return None
+    try:
+        pruned = PruneReport.read_optional(run_dir / PruneReport.FILE_NAME)
+        if pruned is None or pruned.source_model != "variational.ply":
+            return None
+        source = Path(pruned.source_run)
+        if source.resolve() == run_dir.resolve():
+            return None
+        for name in ("config.json", "scene.json"):
+            if (run_dir / name).read_bytes() != (source / name).read_bytes():
+                return None
+        previous = EvalReport.read_optional(source / EvalReport.FILE_NAME)
+        if (previous is None or previous.config_hash != hash_config(cfg.model_dump(mode="json"))
+                or previous.device != str(device) or previous.versions != versions()
+                or not (source / "eval" / "config.json").is_file() or not (source / "eval" / "maps").is_dir()):
+            return None
+        digest = pruned.source_model_sha256
+        if _sha256(run_dir / "variational.ply") != digest or _sha256(source / "variational.ply") != digest:
+            return None
+    except (OSError, UserError):
+        return None
+    return source / "eval"
+
+
+def _copy_evaluation(source_eval: Path, out: Path) -> None:
+    """Copy ``source_eval``'s maps, metrics and config to ``out``, adding a note to the metrics; the copy is built
+    beside ``out`` and renamed into place, so a failure leaves ``out`` as it was."""
+    import shutil
+    import tempfile
+
+    from uncertsplat.schemas.metrics import EvalReport
+
+    tmp = Path(tempfile.mkdtemp(prefix=".eval-copy-", dir=out.parent))
+    try:
+        staged = tmp / "eval"
+        # what evaluate writes, nothing else (a pipeline's manifest there belongs to the source's stage)
+        shutil.copytree(source_eval / "maps", staged / "maps")
+        shutil.copy2(source_eval / "config.json", staged / "config.json")
+        shutil.copy2(source_eval / "metrics.json", staged / "metrics.json")
+        report = EvalReport.read(staged / "metrics.json")
+        report.notes.append(f"copied from {source_eval}: this run's model file is that run's, unchanged (prune "
+                            "removed nothing), and it was evaluated with the same settings, versions and device "
+                            "(--set reuse=false evaluates again)")
+        (staged / "metrics.json").write_text(report.to_json() + "\n", encoding="utf-8")
+        if out.exists():
+            shutil.rmtree(out)
+        staged.rename(out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
     """Evaluate ``run_dir`` and write ``run_dir/eval`` (maps + metrics.json); returns the EvalReport."""
     from functools import partial
-
-    from rich.table import Table
 
     from uncertsplat.baselines import load_run
     from uncertsplat.data.dataset import load_view_set
     from uncertsplat.eval.engine import evaluate_views, fit_residual, fit_std_scale, split_indices
     from uncertsplat.io.atomic import atomic_write_text, run_lock
     from uncertsplat.provenance import hash_config
+    from uncertsplat.schemas.metrics import EvalReport
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise UserError("run folder not found", path=run_dir, hint="Give a folder written by `uncertsplat train`.")
+    out = run_dir / "eval"
+    with run_lock(run_dir, "evaluate"):
+        reusable = same_model_evaluation(run_dir, cfg, device)
+        if reusable is not None:
+            _copy_evaluation(reusable, out)
+    if reusable is not None:
+        console.print(f"[bold]evaluate[/] {run_dir}: its model is {reusable.parent}'s, unchanged (prune removed "
+                      f"nothing), evaluated there with the same settings: copied {reusable} "
+                      "(--set reuse=false evaluates again)")
+        return _print_report(run_dir, cfg, EvalReport.read(out / "metrics.json"), out)
     loaded = load_run(run_dir, device)  # any method: variational, deterministic, ensemble, fisher
     scene = loaded.load_scene()
     indices = split_indices(scene.split, cfg)
     views = load_view_set(scene, indices, depth_folder=cfg.depth_gt)
-    out = run_dir / "eval"
     with run_lock(run_dir, "evaluate"):
         console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
                       f"{len(loaded.model)} Gaussians ({loaded.model.num_carriers} with a posterior), {device}")
@@ -89,6 +176,12 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
                                 config_hash=hash_config(cfg.model_dump(mode="json")))
         atomic_write_text(out / "metrics.json", report.to_json() + "\n")
         atomic_write_text(out / "config.json", cfg.model_dump_json(indent=2) + "\n")
+    return _print_report(run_dir, cfg, report, out)
+
+
+def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
+    """Print ``report``'s table and notes; returns it."""
+    from rich.table import Table
 
     table = Table(title=f"{run_dir.name}: {cfg.split} views (K={cfg.num_samples})")
     for col in ("view", "PSNR", "SSIM", "AUSE-MAE", "AUSE-RMSE", "NLL", "cal.err", "Spearman", "depth AUSE", "s/view"):
