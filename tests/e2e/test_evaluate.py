@@ -231,7 +231,8 @@ class TestPrunedRunThatRemovedNothing:
         assert copied.notes[:-1] == source.notes and "copied from" in copied.notes[-1]
         for f in sorted((src / "eval" / "maps").iterdir()):
             assert (kept / "eval" / "maps" / f.name).read_bytes() == f.read_bytes()
-        assert sorted(p.name for p in (kept / "eval").iterdir()) == ["config.json", "maps", "metrics.json"]
+        copied_files = sorted(p.name for p in (kept / "eval").iterdir())
+        assert copied_files == ["config.json", "maps", "metrics.json", "residual.pt"]
         assert evaluate.same_model_evaluation(kept, SAME_CFG, torch.device("cpu")) == src / "eval"
 
     def test_anything_else_is_evaluated(self, same_model_runs, tmp_path):
@@ -254,3 +255,67 @@ class TestPrunedRunThatRemovedNothing:
         assert evaluate.same_model_evaluation(changed, SAME_CFG, cpu) is None
         report = evaluate.run(changed, SAME_CFG, device=cpu)
         assert not any("copied from" in n for n in report.notes)
+
+
+class TestResidualCache:
+    """``RUN/eval/residual.pt``: evaluate keeps the fitted pixel noise under a key of the model and the settings it
+    depends on; the next evaluate or prune of the same model with those settings reads it and gets the same numbers."""
+
+    def test_read_back_gives_the_same_evaluation(self, tiny_run_path, tmp_path, monkeypatch):  # noqa: F811
+        from uncertsplat.eval import engine
+        from uncertsplat.stages.residual_cache import FILE_NAME
+
+        run = tmp_path / "run"
+        shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
+        cpu = torch.device("cpu")
+        first = evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)
+        assert (run / "eval" / FILE_NAME).is_file()
+        fits = []
+        real = engine.fit_residual
+        monkeypatch.setattr(engine, "fit_residual", lambda *a, **k: fits.append(1) or real(*a, **k))
+        again = evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)  # read back: no fit
+        assert fits == []
+        name = next(iter(first.per_view))
+        assert again.per_view[name].model_dump(exclude={"seconds"}) == first.per_view[name].model_dump(
+            exclude={"seconds"})
+        evaluate.run(run, EvalConfig(**{**ONE_VIEW, "num_samples": 3}), device=cpu)  # not a setting the noise reads
+        assert fits == []
+        evaluate.run(run, EvalConfig(**ONE_VIEW, resolution=0.2), device=cpu)  # one it reads: fitted again
+        assert fits == [1]
+        (run / "eval" / FILE_NAME).write_bytes(b"not a torch file")  # unreadable: fitted again, replaced
+        evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)
+        assert fits == [1, 1]
+        evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)
+        assert fits == [1, 1]
+
+    def test_prune_reads_it_and_leaves_the_source_alone(self, tiny_run_path, tmp_path, monkeypatch):  # noqa: F811
+        from uncertsplat.config import PruneConfig
+        from uncertsplat.eval import engine
+        from uncertsplat.stages import prune
+        from uncertsplat.stages.residual_cache import FILE_NAME, residual_key
+
+        run = tmp_path / "run"
+        shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
+        cpu = torch.device("cpu")
+        cfg = PruneConfig(keep_ratio=0.9, num_samples=2, score_views=2, score_samples=2, render_views=1)
+        fits = []
+        real = engine.fit_residual
+        monkeypatch.setattr(engine, "fit_residual", lambda *a, **k: fits.append(1) or real(*a, **k))
+        prune.run(run, tmp_path / "p0", cfg, device=cpu)  # nothing to read: fitted, and nothing written
+        assert fits == [1] and not (run / "eval" / FILE_NAME).exists()
+        evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)
+        assert fits == [1, 1]
+        cached = (run / "eval" / FILE_NAME).read_bytes()
+        first = PruneReport.read(tmp_path / "p0" / "prune.json")
+        second = prune.run(run, tmp_path / "p1", cfg, device=cpu)
+        assert fits == [1, 1]  # read, not fitted
+        assert (run / "eval" / FILE_NAME).read_bytes() == cached
+        assert second.metrics.after.ause_mae == first.metrics.after.ause_mae
+        assert second.metrics.before.nll == first.metrics.before.nll
+        # the key: the model file, the settings the noise reads, the device type
+        loaded = load_run(run, cpu)
+        key = residual_key(loaded, EvalConfig(), cpu)
+        assert key == residual_key(loaded, EvalConfig(num_samples=3, max_views=1), cpu)
+        for change in ({"edge_noise": False}, {"residual_views": 3}, {"seed": 1}, {"colour_posterior": False}):
+            assert residual_key(loaded, EvalConfig(**change), cpu) != key
+        assert residual_key(loaded, EvalConfig(), torch.device("meta")) != key

@@ -403,3 +403,39 @@ def test_the_colour_posterior_divides_by_the_whole_noise_with_an_edge_term():
     keep = torch.arange(len(sample.means)) % 3 == 0
     torch.testing.assert_close(edge.subset(keep).likelihood_variance, plain.variance[keep])
     torch.testing.assert_close(edge.out_of_sample(14).likelihood_variance, plain.out_of_sample(14).variance)
+
+
+class TestState:
+    """``ResidualField.state`` / ``from_state``: what the cache of the fitted noise stores, and what it refuses."""
+
+    def test_the_field_comes_back_exactly(self, tmp_path):
+        from uncertsplat.uncertainty.residual import ResidualField
+
+        sample, cams, d, delta2 = _sample(), _cams(3), 0.05, 0.5
+        _, _, images = _edge_images(sample, cams, d, delta2)
+        field = fit_residual_field(sample, cams, images, RENDER, colour_posterior=True, edge_scale=delta2)
+        field = field.scaled(0.7).out_of_sample(14)
+        torch.save(field.state(), tmp_path / "f.pt")
+        back = ResidualField.from_state(sample, torch.load(tmp_path / "f.pt", weights_only=True))
+        for k in ResidualField.STATE_TENSORS:
+            torch.testing.assert_close(getattr(back, k), getattr(field, k), rtol=0, atol=0)
+        for k in ResidualField.STATE_NUMBERS:
+            assert getattr(back, k) == getattr(field, k)
+        torch.testing.assert_close(back.blended(cams, RENDER), field.blended(cams, RENDER), rtol=0, atol=0)
+        plain = fit_residual_field(sample, cams, images, RENDER)  # no colour term, no edge term: the Nones too
+        back = ResidualField.from_state(sample, plain.state())
+        assert back.colour_evidence is None and back.pixel_variance is None and back.edge_scale == 0.0
+
+    def test_a_state_for_other_gaussians_is_refused(self):
+        from uncertsplat.uncertainty.residual import ResidualField
+
+        sample, cams = _sample(), _cams(2)
+        _, _, images = _edge_images(sample, cams, 0.05, 0.0)
+        state = fit_residual_field(sample, cams, images, RENDER, colour_posterior=True).state()
+        with pytest.raises(ValueError, match="rows"):
+            ResidualField.from_state(_sample(n=20), state)
+        deg1 = replace(sample, sh=torch.zeros(len(sample.means), 4, 3), sh_degree=1)
+        with pytest.raises(ValueError, match="SH degree"):
+            ResidualField.from_state(deg1, state)
+        with pytest.raises(ValueError, match="edge_scale"):
+            ResidualField.from_state(sample, {k: v for k, v in state.items() if k != "edge_scale"})

@@ -229,6 +229,22 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
     return field
 
 
+RESIDUAL_SETTINGS = ("residual_views", "resolution", "residual_scale", "residual_leverage", "colour_posterior",
+                     "edge_noise", "seed", "std_floor")
+"""The settings ``fit_residual`` reads: a fitted field can stand for another evaluation of the same model whose
+settings agree on these (``stages.residual_cache``)."""
+
+
+def residual_from_state(sampler: Sampler, state: dict, device: torch.device) -> ResidualField:
+    """The field ``ResidualField.state()`` of an earlier ``fit_residual`` of the same model gave, attached to this
+    sampler's representative model (the Gaussians ``fit_residual`` fits on).
+
+    Raises:
+        ValueError: the state does not fit the model.
+    """
+    return ResidualField.from_state(_representative(sampler, device), state)
+
+
 MIN_NOISE_ALPHA = 0.5
 """Pixels whose accumulated opacity is below this do not enter the noise scale's fit (``fit_noise_scale``)."""
 NOISE_SCALE_VIEWS = 16

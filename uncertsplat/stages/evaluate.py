@@ -10,6 +10,8 @@ engine (``eval.engine``: K samples per view, every metric) and writes into ``RUN
   the ``*_rank`` previews colour each pixel by its rank, so error and std compare without any scale.
 - ``metrics.json``: the ``EvalReport`` (per view by image name, mean, curves, calibration).
 - ``config.json``: the resolved ``EvalConfig``.
+- ``residual.pt``: the pixel noise fitted on the training views, with a key of the model and the settings it
+  depends on (``stages.residual_cache``): the next ``evaluate`` or ``prune`` of the same model reads it.
 
 A ``prune`` output that removed nothing holds its source run's model file unchanged; its evaluation with the
 settings, versions and device the source run was evaluated with is that one, so it is copied
@@ -110,6 +112,7 @@ def _copy_evaluation(source_eval: Path, out: Path) -> None:
     import tempfile
 
     from uncertsplat.schemas.metrics import EvalReport
+    from uncertsplat.stages.residual_cache import FILE_NAME
 
     tmp = Path(tempfile.mkdtemp(prefix=".eval-copy-", dir=out.parent))
     try:
@@ -118,6 +121,8 @@ def _copy_evaluation(source_eval: Path, out: Path) -> None:
         shutil.copytree(source_eval / "maps", staged / "maps")
         shutil.copy2(source_eval / "config.json", staged / "config.json")
         shutil.copy2(source_eval / "metrics.json", staged / "metrics.json")
+        if (source_eval / FILE_NAME).is_file():  # the same model's noise, under the same key
+            shutil.copy2(source_eval / FILE_NAME, staged / FILE_NAME)
         report = EvalReport.read(staged / "metrics.json")
         report.notes.append(f"copied from {source_eval}: this run's model file is that run's, unchanged (prune "
                             "removed nothing), and it was evaluated with the same settings, versions and device "
@@ -136,10 +141,11 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
 
     from uncertsplat.baselines import load_run
     from uncertsplat.data.dataset import load_view_set
-    from uncertsplat.eval.engine import evaluate_views, fit_residual, fit_std_scale, split_indices
+    from uncertsplat.eval.engine import evaluate_views, fit_std_scale, split_indices
     from uncertsplat.io.atomic import atomic_write_text, run_lock
     from uncertsplat.provenance import hash_config
     from uncertsplat.schemas.metrics import EvalReport
+    from uncertsplat.stages.residual_cache import fitted_residual
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -162,8 +168,8 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
         console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
                       f"{len(loaded.model)} Gaussians ({loaded.model.num_carriers} with a posterior), {device}")
         train_views = partial(load_view_set, scene, depth=False)
-        residual = fit_residual(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()), cfg, device,
-                                load_views=train_views)
+        residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
+                                   load_views=train_views, write=True)
         std_scale, cal_views = fit_std_scale(
             dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual),
             scene.split.get("train", ()), cfg, device, load_views=train_views)

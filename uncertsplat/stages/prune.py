@@ -112,10 +112,11 @@ class _Measure:
         # the held-out images and GT depth are read once; every model of a sweep is measured on them
         self.views = load_view_set(scene, indices)
         # the pixel noise of the source model's Gaussians, fitted once: a pruned model keeps its Gaussians' noise
-        from uncertsplat.eval.engine import fit_residual
+        # (read from the source run's evaluation when it fitted the same one; the source run is never written)
+        from uncertsplat.stages.residual_cache import fitted_residual
 
-        self.residual = fit_residual(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()),
-                                     self.ecfg, device, load_views=partial(load_view_set, scene, depth=False))
+        self.residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), self.ecfg, device,
+                                        load_views=partial(load_view_set, scene, depth=False), write=False)
         self.meta = {"variant": loaded.config.variant, "extent": loaded.extent, "step": loaded.step,
                      "sh_degree_active": loaded.sh_degree,
                      "temperature": loaded.config.variational.gate_temperature}

@@ -188,6 +188,48 @@ class ResidualField:
         out = blend_values(self.sample, var, cameras, render_fn)[0]  # two renders: see blend_values
         return out + self.edge(cameras, render_fn) if self.edge_scale > 0.0 else out
 
+    STATE_TENSORS = ("variance", "seen", "observations", "colour_evidence", "colour_prior", "pixel_variance")
+    STATE_NUMBERS = ("mean_variance", "scale", "leverage_inflation", "edge_scale")
+
+    def state(self) -> dict:
+        """Everything but the sample, as CPU tensors and numbers (``from_state`` rebuilds the field): what a cache of
+        the fitted noise stores."""
+        out: dict = {k: getattr(self, k) for k in self.STATE_NUMBERS}
+        for k in self.STATE_TENSORS:
+            t = getattr(self, k)
+            out[k] = None if t is None else t.detach().cpu()
+        return out
+
+    @classmethod
+    def from_state(cls, sample: GaussianSample, state: dict) -> ResidualField:
+        """The field ``state()`` gave, on ``sample`` (the Gaussians it was fitted on, on their device).
+
+        Raises:
+            ValueError: the state does not fit the sample (another number of Gaussians or SH coefficients) or
+                misses a key.
+        """
+        n = sample.means.shape[0]
+        dev = sample.means.device
+        kw: dict = {}
+        for k in cls.STATE_NUMBERS:
+            if k not in state:
+                raise ValueError(f"the residual state has no {k!r}")
+            kw[k] = state[k]
+        for k in cls.STATE_TENSORS:
+            t = state.get(k)
+            if t is None:
+                kw[k] = None
+                continue
+            if k != "colour_prior" and t.shape[0] != n:
+                raise ValueError(f"the residual state's {k} has {t.shape[0]} rows for {n} Gaussians")
+            kw[k] = t.to(dev)
+        if kw["variance"] is None or kw["seen"] is None:
+            raise ValueError("the residual state has no variance")
+        bases = (sample.sh_degree + 1) ** 2
+        if kw["colour_evidence"] is not None and kw["colour_evidence"].shape[1] != bases:
+            raise ValueError("the residual state's colour evidence is for another SH degree")
+        return cls(sample=sample, **kw)
+
     def subset(self, keep: Tensor) -> ResidualField:
         """The field of the Gaussians ``keep`` ([N] bool or indices) kept, e.g. by pruning: each keeps its own
         noise (a property of the Gaussian and the pixels it was blended into)."""

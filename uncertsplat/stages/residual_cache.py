@@ -1,0 +1,86 @@
+"""The pixel noise a model leaves on its training views, fitted once per model and settings (``RUN/eval/residual.pt``).
+
+``evaluate`` and ``prune`` both need the pixel noise of the model's Gaussians (``eval.engine.fit_residual``: a
+render of up to 64 training views, with the resolution term's renders and the edge term's fit; about half of
+``evaluate``'s time on the demo run). It depends only on the model file, the run's ``config.json`` and
+``scene.json``, the settings ``eval.engine.RESIDUAL_SETTINGS`` names, the device type and the versions, so
+``evaluate`` keeps it beside its maps with a key of all of those, and the next ``evaluate`` or ``prune`` of the same
+model with the same settings reads it instead of fitting it again. A file whose key differs, or that cannot be read,
+is ignored (the noise is fitted afresh). ``prune`` only reads it: the input run is never modified.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import pickle
+from collections.abc import Callable
+from pathlib import Path
+
+import torch
+
+from uncertsplat.types import ViewSet
+
+FILE_NAME = "residual.pt"
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def residual_key(loaded, cfg, device: torch.device) -> str | None:
+    """The key of the pixel noise ``fit_residual`` would fit for ``loaded`` (a ``baselines.LoadedRun``) with
+    ``cfg``: a SHA-256 over the model file, the run's config and scene files, the settings it reads, the device
+    type and the versions. None when the model is not one file (an ensemble) or a file cannot be read."""
+    from uncertsplat.eval.engine import RESIDUAL_SETTINGS
+    from uncertsplat.provenance import versions
+
+    source, run_dir = Path(loaded.source), Path(loaded.run_dir)
+    try:
+        if not source.is_file():
+            return None
+        parts = {
+            "model": _sha256(source),
+            "config": hashlib.sha256((run_dir / "config.json").read_bytes()).hexdigest(),
+            "scene": hashlib.sha256((run_dir / "scene.json").read_bytes()).hexdigest()
+            if (run_dir / "scene.json").is_file() else None,
+            "settings": {k: getattr(cfg, k) for k in RESIDUAL_SETTINGS},
+            "device": device.type,
+            "versions": versions(),
+        }
+    except OSError:
+        return None
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torch.device, *,
+                    load_views: Callable[[list[int]], ViewSet], write: bool):
+    """The pixel noise of ``loaded``'s model (``eval.engine.fit_residual``), read from ``RUN/eval/residual.pt``
+    when that file was written for the same key (``residual_key``), else fitted; with ``write``, a fitted field is
+    kept there for the next evaluation. None when ``cfg.residual_views`` is 0 or there is no training view."""
+    from uncertsplat.eval.engine import fit_residual, residual_from_state
+    from uncertsplat.io.atomic import atomic_write
+
+    sampler = loaded.sampler(scene_scale, device)
+    key = residual_key(loaded, cfg, device)
+    path = Path(loaded.run_dir) / "eval" / FILE_NAME
+    if key is not None and path.is_file():
+        try:
+            data = torch.load(path, map_location="cpu", weights_only=True)
+            if isinstance(data, dict) and data.get("key") == key:
+                return residual_from_state(sampler, data["state"], device)
+        except (OSError, RuntimeError, ValueError, KeyError, EOFError, pickle.UnpicklingError):
+            pass  # unreadable or for another model: fit it again (and replace it below)
+    field = fit_residual(sampler, train_indices, cfg, device, load_views=load_views)
+    if write and key is not None and field is not None:
+        state = {"key": key, "state": field.state()}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, lambda f: torch.save(state, f))
+    return field
+
+
+__all__ = ["FILE_NAME", "fitted_residual", "residual_key"]
