@@ -1,4 +1,4 @@
-"""What a result was computed with: the hash of a resolved config and the package versions.
+"""What a result was computed with: the hash of a resolved config, of a file, and the package versions.
 
 Recorded in ``manifest.json`` (pipeline stages), ``metrics.json`` (``evaluate``) and used as the
 identity of sweep points. Foundation layer: imports nothing of uncertsplat but its version, so the
@@ -10,8 +10,18 @@ from __future__ import annotations
 import hashlib
 import json
 import platform
+from pathlib import Path
 
 from uncertsplat import __version__
+
+
+def file_sha256(path: str | Path) -> str:
+    """The SHA-256 of a file's bytes (hex), read in 1 MiB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def hash_config(config: dict) -> str:

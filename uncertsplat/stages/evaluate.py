@@ -57,15 +57,6 @@ def write_view_maps(folder: Path, maps: ViewMaps, preview: str) -> None:
     write_png(folder / f"{stem}_depth_std.png", colorize(depth_std[..., 0].numpy(), mode="percentile"))
 
 
-def _sha256(path: Path) -> str:
-    import hashlib
-
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
 
 def same_model_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device) -> Path | None:
     """The ``eval`` folder of ``run_dir``'s source run when evaluating ``run_dir`` would repeat it exactly, else None.
@@ -76,7 +67,7 @@ def same_model_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device) 
     hash), by the same versions (uncertsplat, Python, torch) on the same device, with its maps and config beside it.
     Any file missing or unreadable: None (evaluate as usual).
     """
-    from uncertsplat.provenance import hash_config, versions
+    from uncertsplat.provenance import file_sha256, hash_config, versions
     from uncertsplat.schemas.metrics import EvalReport
     from uncertsplat.schemas.prune import PruneReport
 
@@ -98,7 +89,7 @@ def same_model_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device) 
                 or not (source / "eval" / "config.json").is_file() or not (source / "eval" / "maps").is_dir()):
             return None
         digest = pruned.source_model_sha256
-        if _sha256(run_dir / "variational.ply") != digest or _sha256(source / "variational.ply") != digest:
+        if file_sha256(run_dir / "variational.ply") != digest or file_sha256(source / "variational.ply") != digest:
             return None
     except (OSError, UserError):
         return None

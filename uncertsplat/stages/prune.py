@@ -49,6 +49,7 @@ import torch
 from uncertsplat.config import EvalConfig, PruneConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
+from uncertsplat.provenance import file_sha256
 from uncertsplat.schemas.prune import (
     PruneCounts,
     PruneMetrics,
@@ -89,13 +90,6 @@ def _check_paths(run_dir: Path, output: Path | None, cfg: PruneConfig) -> None:
 def _has_mode(cfg: PruneConfig) -> bool:
     return cfg.keep_ratio is not None or cfg.threshold is not None or cfg.auto
 
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 # ------------------------------------------------------------------------------------- measurement
@@ -323,7 +317,7 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
 
     result = PruneReport(
         source_run=str(run_dir.resolve()), source_model=str(loaded.source.name),
-        source_model_sha256=_sha256(loaded.source), score=score_name, score_requested=cfg.score,
+        source_model_sha256=file_sha256(loaded.source), score=score_name, score_requested=cfg.score,
         mode="auto" if cfg.auto else "threshold" if threshold is not None else
              "keep_ratio" if keep_ratio is not None else "sweep",
         threshold=threshold, keep_ratio=keep_ratio, tolerance_db=cfg.tolerance_db, seed=cfg.seed,

@@ -24,27 +24,20 @@ from uncertsplat.types import ViewSet
 FILE_NAME = "residual.pt"
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
 
 def residual_key(loaded, cfg, device: torch.device) -> str | None:
     """The key of the pixel noise ``fit_residual`` would fit for ``loaded`` (a ``baselines.LoadedRun``) with
     ``cfg``: a SHA-256 over the model file, the run's config and scene files, the settings it reads, the device
     type and the versions. None when the model is not one file (an ensemble) or a file cannot be read."""
     from uncertsplat.eval.engine import RESIDUAL_SETTINGS
-    from uncertsplat.provenance import versions
+    from uncertsplat.provenance import file_sha256, versions
 
     source, run_dir = Path(loaded.source), Path(loaded.run_dir)
     try:
         if not source.is_file():
             return None
         parts = {
-            "model": _sha256(source),
+            "model": file_sha256(source),
             "config": hashlib.sha256((run_dir / "config.json").read_bytes()).hexdigest(),
             "scene": hashlib.sha256((run_dir / "scene.json").read_bytes()).hexdigest()
             if (run_dir / "scene.json").is_file() else None,
