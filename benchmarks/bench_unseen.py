@@ -17,7 +17,8 @@ resolution term), ``spread`` (the samples' spread alone) and ``leverage`` (``ful
 ``EvalConfig.residual_leverage``); ``no-colour`` is ``full`` without the colour posterior
 (``EvalConfig.colour_posterior``, the default since 2026-11-26); ``edge`` / ``no-edge`` are ``full`` with and
 without the edge term (``EvalConfig.edge_noise``); ``no-depth-spread`` is ``full`` without the spread of the depths
-each ray blends (``EvalConfig.depth_spread``).
+each ray blends (``EvalConfig.depth_spread``); ``resolution-1`` is ``full`` with one render of the resolution
+term per sample (``EvalConfig.resolution_renders``, 2 since 2026-11-27).
 
 Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
 its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),
@@ -106,6 +107,7 @@ PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alph
     "edge": ({"edge_noise": True}, False),  # full with the pixel noise split into the edge term and the rest
     "no-edge": ({"edge_noise": False}, False),  # full without the edge term
     "no-depth-spread": ({"depth_spread": False}, False),  # full without the depths a ray blends
+    "resolution-1": ({"resolution_renders": 1}, False),  # full with one resolution render per sample (before 11-27)
 }
 
 

@@ -409,8 +409,14 @@ class EvalConfig(_Base):
     fraction of its own size (geometric mean of its axes), since neighbouring Gaussians can trade places that
     much with no visible change in the training views (a diagonal posterior cannot represent that). Each of the
     K samples is paired with one render of the model with every Gaussian moved by N(0, (resolution x size)^2);
-    their variance is added to the RGB and depth variance (the prediction stays the samples' mean). Doubles the
-    renders; 0: off. Also subtracted from the training residual the pixel noise is fitted on."""
+    their variance is added to the RGB and depth variance (the prediction stays the samples' mean). Costs
+    ``resolution_renders`` renders per sample; 0: off. Also subtracted from the training residual the pixel noise is
+    fitted on."""
+    resolution_renders: int = Field(2, ge=1, le=100)
+    """Renders of the resolution term per posterior sample. Its variance is estimated from K x this many renders,
+    and at K = 10 its Monte Carlo noise is what costs the std's ranking most (BENCHMARKS.md, "The resolution term's
+    renders": demo AUSE-MAE 0.131 at 1, 0.128 at 2, 0.127 at 3 or with K = 30; fern 0.193 -> 0.192 at 2). Each one
+    more costs K renders per evaluated view."""
     residual_views: int = Field(64, ge=0)
     """Add the pixel noise the model leaves on its training views to the RGB std: each Gaussian's mean squared
     residual over the training pixels it is blended into (``uncertainty.residual``), rendered per pixel. Fitted

@@ -198,6 +198,20 @@ def test_the_depth_spread_widens_the_depth_std_only(tiny_run_path, tmp_path):
     assert any("depths each ray blends" in n for n in on.notes) and not any("depths each ray" in n for n in off.notes)
 
 
+def test_more_resolution_renders_change_the_std_only(tiny_run_path, tmp_path):  # noqa: F811
+    """``resolution_renders``: the resolution term's variance from more renders per sample (named in the notes); the
+    prediction is the samples' mean either way."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    cpu = torch.device("cpu")
+    one = evaluate.run(run, EvalConfig(**ONE_VIEW, resolution_renders=1), device=cpu)
+    three = evaluate.run(run, EvalConfig(**ONE_VIEW, resolution_renders=3), device=cpu)
+    name = next(iter(one.per_view))
+    assert one.per_view[name].psnr == three.per_view[name].psnr
+    assert one.per_view[name].ause_mae != three.per_view[name].ause_mae
+    assert any("1 render per sample" in n for n in one.notes) and any("3 renders per sample" in n for n in three.notes)
+
+
 SAME_CFG = EvalConfig(num_samples=2, max_views=1, calibration_views=0, residual_views=2)
 
 

@@ -166,6 +166,21 @@ class TestResolutionTerm:
         want_depth = (plain.depth_std.double().square() + s.var()).sqrt()
         torch.testing.assert_close(maps.depth_std.double(), want_depth, rtol=1e-5, atol=1e-6)
 
+    def test_several_shift_renders_per_sample_pool_into_one_variance(self, device):
+        d, shifts = Dummy(device), Dummy(device)
+        plain = mc_render(Dummy(device).sample_fn, Dummy(device).render_fn, _cameras(device), 4,
+                          torch.Generator().manual_seed(2))[0]
+        maps = mc_render(d.sample_fn, d.render_fn, _cameras(device), 4, torch.Generator().manual_seed(2),
+                         shift_fn=shifts.sample_fn, shift_renders=3)[0]
+        assert len(d.values) == 4 and len(shifts.values) == 12  # K samples, 3 shift renders each
+        torch.testing.assert_close(maps.rgb_mean, plain.rgb_mean)
+        s = torch.tensor(shifts.values, dtype=torch.float64)
+        want_rgb = (plain.rgb_std.double().square() + s.var() * d.pattern.double().square()).sqrt()
+        torch.testing.assert_close(maps.rgb_std.double(), want_rgb, rtol=1e-5, atol=1e-6)
+        with pytest.raises(ValueError, match="shift_renders"):
+            mc_render(d.sample_fn, d.render_fn, _cameras(device), 4, torch.Generator().manual_seed(2),
+                      shift_fn=shifts.sample_fn, shift_renders=0)
+
     def test_shifts_are_seeded_by_the_samples_seed(self, device):
         runs = []
         for _ in range(2):

@@ -57,6 +57,8 @@ class EvalSettings(Protocol):
     """Training views to fit the pixel noise of the model's Gaussians on (``fit_residual``; 0: none)."""
     resolution: float
     """The resolution term's shift, in fractions of each Gaussian's size (``uncertainty.mc.resolution_shift``)."""
+    resolution_renders: int
+    """Renders of the resolution term per posterior sample (``uncertainty.mc.mc_render``'s ``shift_renders``)."""
     residual_scale: str | float
     """"fit" (``fit_noise_scale``) or a factor for the pixel noise."""
     residual_leverage: bool
@@ -152,7 +154,8 @@ def _predictive(sampler: Sampler, cfg: EvalSettings, cams: Cameras, *, depth: bo
     spread = depth_spread(_representative(sampler, cams.device), cams, sampler.render_fn) \
         if cfg.depth_spread and depth else None
     return {"empty_std": sampler.empty_std if cfg.empty_rays else None, "coverage": sampler.coverage,
-            "extra_var": extra, "extra_depth_var": spread, "shift_fn": _shift_fn(sampler, cfg, cams.device)}
+            "extra_var": extra, "extra_depth_var": spread, "shift_fn": _shift_fn(sampler, cfg, cams.device),
+            "shift_renders": cfg.resolution_renders}
 
 
 def evenly_spaced(items: Sequence[int], n: int) -> list[int]:
@@ -447,7 +450,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                          f"{prior:.3f}; {100 * unknown:.1f} % of the Gaussians' colour set mostly by the prior)")
     if cfg.resolution > 0:
         terms.append(f"the resolution term (every Gaussian moved by N(0, ({cfg.resolution:g} x its size)^2), "
-                     "one render per sample)")
+                     f"{cfg.resolution_renders} render{'s' if cfg.resolution_renders > 1 else ''} per sample)")
     if cfg.depth_spread:
         terms.append("for depth, the spread of the depths each ray blends (the model's deterministic render)")
     if cfg.empty_rays and sampler.empty_std is not None:

@@ -17,8 +17,8 @@ Empty rays: where a ray is covered less than the model covers the surfaces its t
 (``coverage``, from ``training_coverage``), the uncovered part shows something the model has no Gaussian
 for; ``mc_render``'s ``empty_std`` adds that unknown value's variance (see there).
 
-Resolution: ``mc_render``'s ``shift_fn`` pairs each sample with a render of the model whose Gaussians are
-moved by a fraction of their own size (``resolution_shift``); the variance of those renders is added too.
+Resolution: ``mc_render``'s ``shift_fn`` pairs each sample with ``shift_renders`` renders of the model whose Gaussians
+are moved by a fraction of their own size (``resolution_shift``); the variance of those renders is added too.
 """
 
 from __future__ import annotations
@@ -167,6 +167,7 @@ def mc_render(
     extra_var: Tensor | None = None,
     extra_depth_var: Tensor | None = None,
     shift_fn: SampleFn | None = None,
+    shift_renders: int = 1,
 ) -> tuple[UncertaintyMaps, MCSamples | None]:
     """Render ``num_samples`` posterior samples of ``cameras`` and return their mean and std maps.
 
@@ -194,6 +195,9 @@ def mc_render(
         shift_fn: the resolution term (``resolution_shift``): one render of it per sample, whose variance is added
             to the RGB and depth variance (their mean is not used). Draws from its own generator, seeded from
             ``generator``'s initial seed.
+        shift_renders: renders of ``shift_fn`` per sample (``shift_renders`` x K in all): the resolution term's
+            variance is estimated from that many renders, so its Monte Carlo noise falls with them (it is what
+            the std's ranking loses most to at small K; BENCHMARKS.md, "The resolution term's renders").
 
     Returns:
         (UncertaintyMaps with rgb_mean/rgb_std [C,H,W,3], depth_mean/depth_std [C,H,W,1],
@@ -201,6 +205,8 @@ def mc_render(
     """
     if num_samples < 1:
         raise ValueError(f"num_samples must be >= 1, got {num_samples}")
+    if shift_renders < 1:
+        raise ValueError(f"shift_renders must be >= 1, got {shift_renders}")
     moments = MonteCarloMoments(coverage)
     # the shifts draw from a generator of their own (seeded from this one's seed, which they leave untouched):
     # a sampler may depend on its generator's state between its own calls (an ensemble's member order)
@@ -215,7 +221,8 @@ def mc_render(
             out = render_fn(sample, cameras)
             moments.update(out)
             if shift_fn is not None:
-                moments.update_shift(render_fn(shift_fn(shift_gen), cameras))
+                for _ in range(shift_renders):
+                    moments.update_shift(render_fn(shift_fn(shift_gen), cameras))
             if keep_samples:
                 kept_rgb.append(out.rgb.detach())
                 kept_depth.append(out.depth.detach())
