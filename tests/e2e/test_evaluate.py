@@ -275,7 +275,7 @@ class TestResidualCache:
     """``RUN/eval/residual.pt``: evaluate keeps the fitted pixel noise under a key of the model and the settings it
     depends on; the next evaluate or prune of the same model with those settings reads it and gets the same numbers."""
 
-    def test_read_back_gives_the_same_evaluation(self, tiny_run_path, tmp_path, monkeypatch):  # noqa: F811
+    def test_read_back_gives_the_same_evaluation(self, tiny_run_path, tmp_path, monkeypatch, capsys):  # noqa: F811
         from uncertsplat.eval import engine
         from uncertsplat.stages.residual_cache import FILE_NAME
 
@@ -284,11 +284,13 @@ class TestResidualCache:
         cpu = torch.device("cpu")
         first = evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)
         assert (run / "eval" / FILE_NAME).is_file()
+        assert "pixel noise: fitted on" in capsys.readouterr().err
         fits = []
         real = engine.fit_residual
         monkeypatch.setattr(engine, "fit_residual", lambda *a, **k: fits.append(1) or real(*a, **k))
         again = evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)  # read back: no fit
         assert fits == []
+        assert "pixel noise: read from" in capsys.readouterr().err  # the user is told which
         name = next(iter(first.per_view))
         assert again.per_view[name].model_dump(exclude={"seconds"}) == first.per_view[name].model_dump(
             exclude={"seconds"})

@@ -161,9 +161,10 @@ def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
         train_views = partial(load_view_set, scene, depth=False)
         residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
                                    load_views=train_views, write=True)
-        std_scale, cal_views = fit_std_scale(
-            dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual),
-            scene.split.get("train", ()), cfg, device, load_views=train_views)
+        with console.status("fitting the std factor on training views"):
+            std_scale, cal_views = fit_std_scale(
+                dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual),
+                scene.split.get("train", ()), cfg, device, load_views=train_views)
         report = evaluate_views(dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual),
                                 views, cfg, device,
                                 on_view=partial(write_view_maps, out / "maps", preview=cfg.preview),

@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 import pickle
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -55,7 +56,8 @@ def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torc
     """The pixel noise of ``loaded``'s model (``eval.engine.fit_residual``), read from ``RUN/eval/residual.pt``
     when that file was written for the same key (``residual_key``), else fitted; with ``write``, a fitted field is
     kept there for the next evaluation. None when ``cfg.residual_views`` is 0 or there is no training view."""
-    from uncertsplat.eval.engine import fit_residual, residual_from_state
+    from uncertsplat.console import console
+    from uncertsplat.eval.engine import fit_residual, residual_from_state, residual_indices
     from uncertsplat.io.atomic import atomic_write
 
     sampler = loaded.sampler(scene_scale, device)
@@ -65,10 +67,17 @@ def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torc
         try:
             data = torch.load(path, map_location="cpu", weights_only=True)
             if isinstance(data, dict) and data.get("key") == key:
-                return residual_from_state(sampler, data["state"], device)
+                field = residual_from_state(sampler, data["state"], device)
+                console.print(f"pixel noise: read from {path} (fitted earlier for this model and these settings)")
+                return field
         except (OSError, RuntimeError, ValueError, KeyError, EOFError, pickle.UnpicklingError):
             pass  # unreadable or for another model: fit it again (and replace it below)
-    field = fit_residual(sampler, train_indices, cfg, device, load_views=load_views)
+    views = len(residual_indices(train_indices, cfg))
+    t0 = time.perf_counter()
+    with console.status(f"fitting the pixel noise on {views} training views"):
+        field = fit_residual(sampler, train_indices, cfg, device, load_views=load_views)
+    if field is not None:
+        console.print(f"pixel noise: fitted on {views} training views in {time.perf_counter() - t0:.1f} s")
     if write and key is not None and field is not None:
         state = {"key": key, "state": field.state()}
         path.parent.mkdir(parents=True, exist_ok=True)
