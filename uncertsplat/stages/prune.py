@@ -91,7 +91,6 @@ def _has_mode(cfg: PruneConfig) -> bool:
     return cfg.keep_ratio is not None or cfg.threshold is not None or cfg.auto
 
 
-
 # ------------------------------------------------------------------------------------- measurement
 class _Measure:
     """Held-out metrics of a model (MC uncertainty via ``evaluate_views``), coverage and file sizes."""
