@@ -186,6 +186,25 @@ def test_library_is_built_into_the_cache_folder_and_reused(monkeypatch, tmp_path
     assert not list((tmp_path / "native").glob("*.so.tmp*")) and len(list((tmp_path / "native").iterdir())) == 1
 
 
+def test_a_failing_compiler_falls_back_to_pytorch_and_says_why(monkeypatch, tmp_path):
+    """The reason names the failed command and its output, no file is left in the cache folder, and the renderer
+    takes the PyTorch path."""
+    fake = tmp_path / "bad-cxx"
+    fake.write_text("#!/bin/sh\necho \"error: boom\"\nexit 1\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("CXX", str(fake))
+    monkeypatch.setenv("UNCERTSPLAT_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(native, "_state", {})
+    with pytest.warns(UserWarning, match="the build failed"):
+        assert native.library() is None
+    reason = native.unavailable_reason()
+    assert str(fake) in reason and "composite_forward.cpp" in reason and "boom" in reason
+    assert not list((tmp_path / "cache" / "native").iterdir())
+    assert "PyTorch kernels" in native.describe("cpu")
+    s, cams = _scene(50, torch.float32)
+    assert torch.isfinite(render(s, cams).rgb).all()
+
+
 @pytest.mark.parametrize("shape", [(37, 53, 3), (2, 24, 19, 3), (11, 11, 1)])
 def test_fused_ssim_matches_the_reference(monkeypatch, shape):
     g = torch.Generator().manual_seed(2)

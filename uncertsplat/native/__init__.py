@@ -1,17 +1,18 @@
 """Native CPU kernels: built from ``csrc/*.cpp`` on first use into one library, loaded with ctypes.
 
-``composite.cpp``: tile binning and the per-pixel compositing loop of the rasterizer, forward and
-backward (``render/rasterize.py``). ``project.cpp``: the per-Gaussian front end, EWA projection and SH
-colours, forward and backward (``render/project.py``, ``render/sh.py``). ``losses.cpp``: fused SSIM
-(``eval/image.py``) and the KL terms of the offset tables (``gaussians/variational.py``), each with its
-gradient. ``optim.cpp``: Adam on selected rows (``train/sparse_adam.py``). ``vmath.h``: vectorisable
-exp/log; ``parallel.h``: fork-join over threads.
+``composite.h``: tile binning and the per-pixel compositing loop of the rasterizer, forward and backward
+(``render/rasterize.py``), behind the C interface in ``composite_forward.cpp`` and ``composite_backward.cpp``.
+``project.cpp``: the per-Gaussian front end, EWA projection and SH colours, forward and backward
+(``render/project.py``, ``render/sh.py``). ``losses.cpp``: fused SSIM (``eval/image.py``) and the KL terms of the
+offset tables (``gaussians/variational.py``), each with its gradient. ``optim.cpp``: Adam on selected rows
+(``train/sparse_adam.py``). ``vmath.h``: vectorisable exp/log; ``parallel.h``: fork-join over threads.
 
-The C++ files have a C ABI and no torch headers, so they compile in a few seconds with the system C++
-compiler (``$CXX``, else ``c++``) and need no Python build step. The shared library is cached under
-``$UNCERTSPLAT_CACHE_DIR`` (default ``$XDG_CACHE_HOME/uncertsplat`` or ``~/.cache/uncertsplat``) in a
-file named by a hash of the source, the compiler, the flags and the CPU, so a change to any of them
-builds a new one and machines sharing a home folder never load a library built for another CPU.
+The C++ files have a C ABI and no torch headers, so they need no Python build step: the system C++ compiler
+(``$CXX``, else ``c++``) compiles each file in a process of its own, side by side, and links them (about 15 s on
+2 cores; 25 s as one compiler call). The shared library is cached under ``$UNCERTSPLAT_CACHE_DIR`` (default
+``$XDG_CACHE_HOME/uncertsplat`` or ``~/.cache/uncertsplat``) in a file named by a hash of the source, the
+compiler, the flags and the CPU, so a change to any of them builds a new one and machines sharing a home folder
+never load a library built for another CPU.
 
 When no compiler is found, or the build fails, ``library()`` returns None once with a warning that says
 why, and every caller uses its PyTorch implementation (same results, slower on CPU).
@@ -34,8 +35,10 @@ import torch
 
 INTERFACE_VERSION = 13
 CSRC = Path(__file__).with_name("csrc")
-SOURCES = (CSRC / "composite.cpp", CSRC / "losses.cpp", CSRC / "project.cpp", CSRC / "optim.cpp")
-HEADERS = (CSRC / "vmath.h", CSRC / "parallel.h")
+# the slowest to compile first (the build runs them side by side): the two halves of the rasterizer take most of it
+SOURCES = (CSRC / "composite_forward.cpp", CSRC / "composite_backward.cpp", CSRC / "losses.cpp", CSRC / "project.cpp",
+           CSRC / "optim.cpp")
+HEADERS = (CSRC / "composite.h", CSRC / "vmath.h", CSRC / "parallel.h")
 # -fno-trapping-math lets the compiler vectorise the float->int conversion inside the exp polynomial;
 # -fopenmp-simd honours the `omp simd` hints without linking an OpenMP runtime (torch brings its own).
 # -Wno-psabi: GCC notes that vectors wider than the target's registers are passed differently than by
@@ -85,25 +88,60 @@ def _compiler_version(cxx: str) -> str:
         return ""
 
 
+def _compile_all(cmds: list[list[str]]) -> str | None:
+    """Run the compiler commands side by side (one process per source file: the build is bound by the compiler's
+    single-threaded optimiser, so ``len(SOURCES)`` processes take about the longest file's time on enough cores).
+    Returns None when every one succeeded, else the first failure's command and its last output."""
+    procs: list[subprocess.Popen] = []
+    try:
+        for cmd in cmds:
+            procs.append(subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
+    except OSError:
+        for proc in procs:  # none left running behind a failed start
+            proc.kill()
+            proc.wait()
+        raise
+    failure = None
+    for cmd, proc in zip(cmds, procs, strict=True):
+        try:
+            out, _ = proc.communicate(timeout=300)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out = proc.communicate()[0] + "\n(stopped after 300 s)"
+        if proc.returncode != 0 and failure is None:
+            failure = f"{' '.join(cmd)}\n{(out or '').strip()[-2000:]}"
+    return failure
+
+
 def _build(cxx: str, target: Path) -> str | None:
-    """Compile into ``target`` atomically; returns None on success, else the reason."""
+    """Compile into ``target`` atomically; returns None on success, else the reason.
+
+    Each source file is compiled to an object in a private temporary folder, all at once, then linked: the first
+    use on a new machine waits for the compiler's work divided over the cores, not for its sum (the temporary
+    folder goes, whatever happens)."""
     target.parent.mkdir(parents=True, exist_ok=True)
     last_err = ""
+    compile_flags = tuple(f for f in BASE_FLAGS if f != "-shared")
     for arch in (ARCH_FLAGS, ()):  # retry without -march=native for compilers that lack it
-        fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
-        os.close(fd)
-        cmd = [cxx, *BASE_FLAGS, *arch, *(str(s) for s in SOURCES), "-o", tmp]
-        try:
-            res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-        except (OSError, subprocess.SubprocessError) as err:
-            res, last_err = None, str(err)
-        if res is not None and res.returncode == 0:
-            os.replace(tmp, target)
-            return None
-        if res is not None:
-            last_err = (res.stderr or res.stdout).strip()[-2000:]
-        Path(tmp).unlink(missing_ok=True)
-    return f"the build failed: {' '.join(cmd)}\n{last_err}"
+        with tempfile.TemporaryDirectory(dir=target.parent, prefix=".build-") as work:
+            objs = [str(Path(work) / f"{src.stem}.o") for src in SOURCES]
+            cmds = [[cxx, *compile_flags, *arch, "-c", str(src), "-o", obj]
+                    for src, obj in zip(SOURCES, objs, strict=True)]
+            tmp = str(Path(work) / "kernels.so")
+            try:
+                err = _compile_all(cmds)
+                if err is None:
+                    link = [cxx, *BASE_FLAGS, *arch, *objs, "-o", tmp]
+                    res = subprocess.run(link, capture_output=True, text=True, timeout=300)
+                    if res.returncode != 0:
+                        err = f"{' '.join(link)}\n{(res.stderr or res.stdout).strip()[-2000:]}"
+            except (OSError, subprocess.SubprocessError) as exc:
+                err = str(exc)
+            if err is None:
+                os.replace(tmp, target)
+                return None
+            last_err = err
+    return f"the build failed: {last_err}"
 
 
 def _declare(lib: ctypes.CDLL) -> None:

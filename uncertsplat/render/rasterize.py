@@ -25,7 +25,7 @@ Gradient of the composite. For a pixel, out = sum_i w_i f_i with w_i = alpha_i T
 alpha_i dL/dalpha_i = w_i h_i - r_i sum_{k>i} w_k h_k with r = alpha / (1 - alpha); the suffix sum is the
 block's total minus one cumsum, so it is exactly 0 behind a stopped ray.
 
-Two implementations. On CPU tensors the native kernels (``uncertsplat/native/csrc/composite.cpp``: binning
+Two implementations. On CPU tensors the native kernels (``uncertsplat/native/csrc/composite.h``: binning
 by radix and counting sorts, a per-pixel loop with early stop, a back-to-front backward) compute the
 same pairs, images and gradients; the PyTorch blocks below are the reference and the path on other
 devices (``backend`` / ``UNCERTSPLAT_RASTERIZER`` choose, see ``use_native``).
@@ -491,7 +491,7 @@ def get_kernels(compile: bool):
 
 
 class _CompositeNative(torch.autograd.Function):
-    """The same compositing as ``_Composite``, by the native CPU kernel (``render/csrc/composite.cpp``)."""
+    """The same compositing as ``_Composite``, by the native CPU kernel (``native/csrc/composite.h``)."""
 
     @staticmethod
     def forward(ctx, gparams: Tensor, feat: Tensor, bins: TileBins) -> Tensor:

@@ -1,5 +1,7 @@
 // Native CPU rasterizer kernels of uncertsplat: tile binning and the per-pixel front-to-back loop of 3DGS,
-// forward and backward.
+// forward and backward. This header holds the kernels; composite_forward.cpp (binning, forward) and
+// composite_backward.cpp (backward) instantiate them behind the C interface, as two files so that the build
+// compiles them side by side (the templates of either take most of the library's build time).
 //
 // Plain C++17 with a C ABI (called through ctypes with tensor data pointers): no torch headers, so it
 // builds in seconds with the system compiler. uncertsplat/native/__init__.py builds and loads it;
@@ -29,6 +31,8 @@
 // registers and the alphas of a few entries computed ahead (their exp polynomials overlap); backward
 // runs entry by entry over the slices its rows reach. Selects are branch-free; exp is vmath.h's
 // polynomial (float).
+
+#pragma once
 
 #include <algorithm>
 #include <atomic>
@@ -789,96 +793,6 @@ int bin_fill_any(const BinArgs& args, const S* means2d, const S* conics, const S
 }
 }  // namespace
 
-extern "C" {
-
-// Interface version: native.py refuses a library whose version differs from its own.
-int us_version() { return 13; }
-
-int us_max_features() { return 8; }
-
+// The kernels' parameters from the C interface's arguments of the same names.
 #define US_PARAMS                                                                                     \
     Params prm{num_tiles, tiles_x, tiles_per_cam, tile_size, num_threads, alpha_min, alpha_max, t_min};
-
-int us_forward_f32(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size, int64_t num_threads,
-                   double alpha_min, double alpha_max, double t_min, int64_t F, int64_t G, const float* gp, const float* feat,
-                   const int64_t* pair_gauss, const int64_t* tile_start, const int64_t* tile_count, float* out,
-                   float* t_final, int32_t* last) {
-    US_PARAMS
-    return forward_any<float>(F, prm, G, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last);
-}
-
-int us_forward_f64(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size, int64_t num_threads,
-                   double alpha_min, double alpha_max, double t_min, int64_t F, int64_t G, const double* gp, const double* feat,
-                   const int64_t* pair_gauss, const int64_t* tile_start, const int64_t* tile_count, double* out,
-                   double* t_final, int32_t* last) {
-    US_PARAMS
-    return forward_any<double>(F, prm, G, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last);
-}
-
-int us_backward_f32(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size, int64_t num_threads,
-                    double alpha_min, double alpha_max, double t_min, int64_t F, int64_t G, int64_t M,
-                    const float* gp, const float* feat, const int64_t* pair_gauss, const int64_t* tile_start,
-                    const int64_t* tile_count, const float* t_final, const int32_t* last, const float* g_out,
-                    float* g_pair, float* g_gauss) {
-    US_PARAMS
-    return backward_any<float>(F, prm, G, M, gp, feat, pair_gauss, tile_start, tile_count, t_final, last, g_out, g_pair,
-                              g_gauss);
-}
-
-int us_backward_f64(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size, int64_t num_threads,
-                    double alpha_min, double alpha_max, double t_min, int64_t F, int64_t G, int64_t M,
-                    const double* gp, const double* feat, const int64_t* pair_gauss, const int64_t* tile_start,
-                    const int64_t* tile_count, const double* t_final, const int32_t* last, const double* g_out,
-                    double* g_pair, double* g_gauss) {
-    US_PARAMS
-    return backward_any<double>(F, prm, G, M, gp, feat, pair_gauss, tile_start, tile_count, t_final, last, g_out, g_pair,
-                              g_gauss);
-}
-
-// Binning, in two calls. us_bin_count: the depth order of the valid entries (order [G], num_visible),
-// per-worker tile counts [workers, T]; returns the number of pairs M (-1 when out of memory) and, in
-// *state, what it found, which us_bin_fill consumes: with tile_start [T] (cumulative sum of the counts
-// summed over workers) it writes pair_gauss [M] and, unless that pointer is null, pair_tile [M], and frees
-// the state. us_bin_free frees a state that will not be filled.
-#define US_BIN_ARGS BinArgs args{G, N, C, width, height, tile_size, tiles_x, tiles_y, workers, alpha_min};
-#define US_BIN_HEAD                                                                                             \
-    int64_t G, int64_t N, int64_t C, int64_t width, int64_t height, int64_t tile_size, int64_t tiles_x,       \
-        int64_t tiles_y, int64_t workers, double alpha_min
-
-int64_t us_bin_count_f32(US_BIN_HEAD, const float* means2d, const float* extents, const float* conics,
-                         const float* opac, const float* depths, const uint8_t* valid, int64_t* order,
-                         int64_t* num_visible, int64_t* counts, void** state) {
-    US_BIN_ARGS
-    return bin_count_any<float>(args, means2d, extents, conics, opac, depths, valid, order, num_visible, counts,
-                                state);
-}
-
-int64_t us_bin_count_f64(US_BIN_HEAD, const double* means2d, const double* extents, const double* conics,
-                         const double* opac, const double* depths, const uint8_t* valid, int64_t* order,
-                         int64_t* num_visible, int64_t* counts, void** state) {
-    US_BIN_ARGS
-    return bin_count_any<double>(args, means2d, extents, conics, opac, depths, valid, order, num_visible, counts,
-                                 state);
-}
-
-int us_bin_fill_f32(US_BIN_HEAD, const float* means2d, const float* extents, const float* conics, const float* opac,
-                    const int64_t* order, int64_t num_visible, const int64_t* counts, const int64_t* tile_start,
-                    int64_t* pair_gauss, int64_t* pair_tile, void* state) {
-    US_BIN_ARGS
-    (void)extents;
-    return bin_fill_any<float>(args, means2d, conics, opac, order, num_visible, state, counts, tile_start, pair_gauss,
-                               pair_tile);
-}
-
-int us_bin_fill_f64(US_BIN_HEAD, const double* means2d, const double* extents, const double* conics,
-                    const double* opac, const int64_t* order, int64_t num_visible, const int64_t* counts,
-                    const int64_t* tile_start, int64_t* pair_gauss, int64_t* pair_tile, void* state) {
-    US_BIN_ARGS
-    (void)extents;
-    return bin_fill_any<double>(args, means2d, conics, opac, order, num_visible, state, counts, tile_start,
-                                pair_gauss, pair_tile);
-}
-
-void us_bin_free(void* state) { delete static_cast<BinState*>(state); }
-
-}  // extern "C"
