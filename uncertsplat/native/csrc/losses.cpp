@@ -216,6 +216,15 @@ inline void store_lanes(float* p, VS v, int64_t n) {
     }
 }
 
+// The calling thread's buffer of at least n floats, kept between calls: a training step's SSIM needs some MB of
+// it twice, and a fresh allocation of that size is fresh pages from the system, zeroed and faulted in on every
+// call. Every element the caller reads it writes first. One per calling thread (views may be scored on threads).
+std::vector<float>& scratch(size_t n) {
+    thread_local std::vector<float> buf;
+    if (buf.size() < n) buf.resize(n);
+    return buf;
+}
+
 // SSIM of planes x, y [B, H, W] (B = images x channels): per-plane mean of the SSIM map into
 // plane_mean [B]; with `partials` [3, B, H, W] given, also the per-pixel partial derivatives of the
 // map w.r.t. (mu_x, E[x^2], E[xy]), which ssim_backward turns into d loss / d x.
@@ -223,7 +232,7 @@ void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, const float* x, co
                   float c1, float c2, double* plane_mean, float* partials, int64_t num_threads) {
     const SsimRows g(B, H, W, K);
     const int64_t HWp = H * g.Wp;
-    std::vector<float> hbuf(static_cast<size_t>(5 * B * HWp));  // horizontally blurred x, y, xx, yy, xy
+    std::vector<float>& hbuf = scratch(static_cast<size_t>(5 * B * HWp));  // horizontally blurred x, y, xx, yy, xy
     const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;  // a padded row and the lanes read past it
     parallel_rows(B * H, num_threads, 2 * row_len, [&](int64_t row, float* buf) {
         const int64_t b = row / H, yy = row % H;
@@ -275,7 +284,7 @@ void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, const float* x, c
                    const float* partials, const float* g_plane, float* g_x, int64_t num_threads) {
     const SsimRows g(B, H, W, K);
     const int64_t HWp = H * g.Wp, HW = H * W;
-    std::vector<float> hbuf(static_cast<size_t>(3 * B * HWp));
+    std::vector<float>& hbuf = scratch(static_cast<size_t>(3 * B * HWp));
     const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;
     parallel_rows(B * H, num_threads, 3 * row_len, [&](int64_t row, float* buf) {
         const int64_t b = row / H, yy = row % H;

@@ -492,6 +492,8 @@ struct BlurPeakState {
     double x, y, zs, u, v, uc, vc, iz2, jxx, jxy, jyy, a, b, c, dc, var, sxx, sxy, syy, raw, ds, out;
 };
 
+// VALUE: also the output (one log); the backward needs only ``pass``, which the determinant ratio gives without it.
+template <bool VALUE>
 inline BlurPeakState blur_peak_one(const CameraT<double>& k, const float* m, const float* con, float v, double near,
                                    double far, double eps2d) {
     BlurPeakState s{};
@@ -518,9 +520,10 @@ inline BlurPeakState blur_peak_one(const CameraT<double>& k, const float* m, con
     s.syy = s.a / s.dc - s.var * s.jyy;
     s.raw = s.sxx * s.syy - s.sxy * s.sxy;
     s.ds = std::max(s.raw, eps2d * eps2d);
-    const double half = 0.5 * (std::log(s.ds) + std::log(s.dc));
-    s.pass = s.ok && half <= 0.0;
-    s.out = s.ok ? std::min(half, 0.0) : 0.0;
+    // log sqrt(det Sigma2d / det Sigma2d'): det Sigma2d' = 1 / dc, so the ratio is ds dc (one log, not two)
+    const double ratio = s.ds * s.dc;
+    s.pass = s.ok && ratio <= 1.0;
+    if (VALUE) s.out = s.pass ? 0.5 * std::log(ratio) : 0.0;
     return s;
 }
 
@@ -533,7 +536,7 @@ void blur_peak_forward(int64_t C, int64_t N, const float* means, const float* co
         uskern::run_workers(workers, [&](int64_t w) {
             for (int64_t n = N * w / workers; n < N * (w + 1) / workers; ++n)
                 out[ci * N + n] = static_cast<float>(
-                    blur_peak_one(k, means + 3 * n, conics + 3 * (ci * N + n), var[n], near, far, eps2d).out);
+                    blur_peak_one<true>(k, means + 3 * n, conics + 3 * (ci * N + n), var[n], near, far, eps2d).out);
         });
     }
 }
@@ -557,7 +560,7 @@ void blur_peak_backward(int64_t C, int64_t N, const float* means, const float* c
                     gc[0] = gc[1] = gc[2] = 0.0f;
                     continue;
                 }
-                const BlurPeakState s = blur_peak_one(k, means + 3 * n, conics + 3 * cn, var[n], near, far, eps2d);
+                const BlurPeakState s = blur_peak_one<false>(k, means + 3 * n, conics + 3 * cn, var[n], near, far, eps2d);
                 if (!s.pass) {
                     gc[0] = gc[1] = gc[2] = 0.0f;
                     continue;
