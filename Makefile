@@ -20,11 +20,19 @@ $(VENV)/.installed: $(BIN)/python pyproject.toml
 
 setup: $(VENV)/.installed
 
+# The tests run in TEST_WORKERS processes of one thread each (pytest-xdist; a module's tests stay in one process so
+# its trained fixtures are built once): on 2 cores 6 min instead of 12 for one process of 2 threads, since much of
+# a test's time is Python, process start-up and waiting, which one thread per core overlaps. The threaded paths of
+# the native kernels are checked by tests that set the thread count themselves. TEST_WORKERS=0: one process.
+TEST_WORKERS ?= 2
+TEST_THREADS := $(if $(filter 0,$(TEST_WORKERS)),2,1)
+TEST_XDIST := $(if $(filter 0,$(TEST_WORKERS)),,-n $(TEST_WORKERS) --dist loadfile)
+
 test: setup
-	OMP_NUM_THREADS=2 $(BIN)/python -m pytest -q -m "not slow" $(PYTEST_ARGS)
+	OMP_NUM_THREADS=$(TEST_THREADS) $(BIN)/python -m pytest -q $(TEST_XDIST) -m "not slow" $(PYTEST_ARGS)
 
 test-all: setup
-	OMP_NUM_THREADS=2 $(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	OMP_NUM_THREADS=$(TEST_THREADS) $(BIN)/python -m pytest -q $(TEST_XDIST) $(PYTEST_ARGS)
 
 lint: setup
 	$(BIN)/ruff check uncertsplat tests benchmarks examples

@@ -116,6 +116,46 @@ def test_backward_is_deterministic_for_any_thread_count():
         assert torch.equal(g1[k], g2[k]) and torch.equal(g1[k], g3[k]), k
 
 
+def _with_threads(n, fn):
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(n)
+        return fn()
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_every_kernel_is_the_same_with_one_or_two_threads(monkeypatch):
+    """Projection, SH, the expected render's peak factor, compositing, SSIM and the KL terms, forward and backward:
+    bit-identical with 1 and 2 threads. Sizes past each kernel's split threshold (9,000 Gaussians, 3 x 64 image rows,
+    20,000 table elements), so 2 threads take 2 workers. `make test` runs its workers single-threaded
+    (OMP_NUM_THREADS=1), so this is where the threaded paths are checked."""
+    monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "native")
+    s, cams = _scene(9000, torch.float32)
+    s = replace(s, position_var=torch.rand(9000, generator=torch.Generator().manual_seed(5)) * 0.01)
+    g = torch.Generator().manual_seed(6)
+    target = torch.rand(64, 80, 3, generator=g)
+    pred = (target + 0.1 * torch.randn(64, 80, 3, generator=g)).clamp(0, 1)
+    model = random_model(20000, torch.Generator().manual_seed(7), num_entries=2, perturb_tables=0.5)
+
+    def run():
+        out, grads = _render_and_grads(s, cams, "native")
+        x = pred.clone().requires_grad_()
+        value = ssim(x, target)
+        value.backward()
+        for t in model.tables.values():
+            t.grad = None
+        kl = kl_terms(model, Prior())
+        (kl["position"] + 2 * kl["scale"] + 3 * kl["gate"]).backward()
+        return [t.detach() for t in (out.rgb, out.alpha, out.depth, *grads.values(), value, x.grad, *kl.values(),
+                                     *(model.tables[k].grad for k in TABLE_NAMES))]
+
+    one, two = _with_threads(1, run), _with_threads(2, run)
+    assert float(one[1].mean()) > 0.2 and 0.1 < float(one[len(PARAMS) + 3]) < 0.99  # covered image, SSIM not trivial
+    for a, b in zip(one, two, strict=True):
+        assert torch.equal(a, b)
+
+
 def test_more_features_than_the_kernel_takes():
     s, cams = _scene(50, torch.float32)
     p = project_gaussians(s.means, s.quats, s.scales, s.opacities, cams.cam_from_world, cams.K, 61, 47)
