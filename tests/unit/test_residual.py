@@ -384,6 +384,38 @@ class TestEdgeTerm:
         assert field.subset(torch.arange(len(sample.means)) % 2 == 0).edge_scale == delta2
 
 
+    def test_fitted_in_the_same_pass_as_the_noise_it_is_the_two_step_fit(self):
+        """``edge_scale="fit"``: the slope and the noise from one pass over the views equal ``fit_edge_scale`` followed
+        by the noise fitted with that slope, with an explained variance and a mask; a constant residual gives about 0;
+        a word other than "fit" is refused."""
+        from uncertsplat.uncertainty.residual import fit_edge_scale
+
+        sample, cams, d, delta2 = _sample(), _cams(3), 0.05, 0.5
+        _, _, images = _edge_images(sample, cams, d, delta2)
+        masks = torch.ones(3, H, W, 1, dtype=torch.bool)
+        masks[1, :, : W // 3] = False
+
+        def explained(cam):
+            return torch.full((1, H, W, 1), 3e-4)
+
+        slope = fit_edge_scale(sample, cams, images, RENDER, masks=masks, explained=explained)
+        assert slope == pytest.approx(delta2, rel=0.05)
+        two = fit_residual_field(sample, cams, images, RENDER, masks=masks, explained=explained, colour_posterior=True,
+                                 edge_scale=slope)
+        one = fit_residual_field(sample, cams, images, RENDER, masks=masks, explained=explained, colour_posterior=True,
+                                 edge_scale="fit")
+        assert one.edge_scale == pytest.approx(slope, rel=1e-9)
+        for k in ("variance", "pixel_variance", "observations", "colour_evidence"):
+            torch.testing.assert_close(getattr(one, k), getattr(two, k), rtol=1e-5, atol=1e-9)
+        assert torch.equal(one.seen, two.seen) and one.mean_variance == pytest.approx(two.mean_variance, rel=1e-12)
+        with torch.no_grad():
+            plain = RENDER(sample, cams).rgb
+        flat = fit_residual_field(sample, cams, plain + d, RENDER, edge_scale="fit")
+        assert flat.edge_scale < 1e-5  # (float32 rounding of r^2 only)
+        with pytest.raises(ValueError, match="fit"):
+            fit_residual_field(sample, cams, images, RENDER, edge_scale="auto")
+
+
 def test_the_colour_posterior_divides_by_the_whole_noise_with_an_edge_term():
     """With an edge term a Gaussian's own noise is what the edge term leaves; its pixels' variance in the likelihood
     (what the colour posterior divides by) stays the whole residual, so edge Gaussians do not get exactly known

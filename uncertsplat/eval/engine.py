@@ -69,7 +69,7 @@ class EvalSettings(Protocol):
     """Add the variance of the depths each ray blends (``uncertainty.mc.depth_spread``) to the depth variance."""
     edge_noise: bool
     """Split the pixel noise into an edge term ``delta^2 |grad I|^2`` and the per-Gaussian rest
-    (``uncertainty.residual.fit_edge_scale``)."""
+    (``uncertainty.residual.fit_edge_scale``; ``fit_residual_field`` fits it in its own pass)."""
 
 
 @dataclass(frozen=True)
@@ -187,7 +187,7 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
     method has none); None when ``cfg.residual_views`` is 0 or there is no training view. Give it a sampler of
     its own (a baseline's sampler may keep state) and attach the field to the evaluation's sampler with
     ``dataclasses.replace(sampler, residual=field)``."""
-    from uncertsplat.uncertainty.residual import fit_edge_scale, fit_residual_field
+    from uncertsplat.uncertainty.residual import fit_residual_field
 
     chosen = residual_indices(train_indices, cfg)
     if not chosen:
@@ -214,12 +214,10 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
 
     rep = _representative(sampler, device)
     cams, images = views.cameras.to(device), views.images.to(device)
-    edge = fit_edge_scale(rep, cams, images, sampler.render_fn, masks=masks, explained=explained) \
-        if cfg.edge_noise else 0.0
     with torch.enable_grad():
         field = fit_residual_field(rep, cams, images, sampler.render_fn, masks=masks, explained=explained,
                                    colour_posterior=cfg.colour_posterior, view_factor=len(train_indices) / len(chosen),
-                                   edge_scale=edge)
+                                   edge_scale="fit" if cfg.edge_noise else 0.0)
     if cfg.residual_scale == "fit":
         field = field.scaled(fit_noise_scale(field, rep, cams, images, sampler.render_fn, masks=masks,
                                              explained=explained, std_floor=cfg.std_floor))

@@ -282,6 +282,31 @@ EDGE_MIN_ALPHA = 0.5
 model covers little, the residual is the missing surface's, not an edge's."""
 
 
+def _edge_sums(pred: Tensor, alpha: Tensor, y: Tensor, mask: Tensor | None) -> Tensor:
+    """[5] float64 (n, sum g, sum g^2, sum y, sum g y) over one view's pixels with alpha >= ``EDGE_MIN_ALPHA`` (and in
+    ``mask``): the edge term's least-squares sums, g the render ``pred``'s ``image_gradient_sq``, y [H,W,1] what the
+    term is fitted to."""
+    g = image_gradient_sq(pred)
+    valid = alpha >= EDGE_MIN_ALPHA
+    if mask is not None:
+        valid = valid & mask.to(valid.device).bool()
+    g, y = g[valid].double().cpu(), y[valid].double().cpu()
+    return torch.stack([torch.tensor(float(g.numel()), dtype=torch.float64), g.sum(), g.square().sum(), y.sum(),
+                        (g * y).sum()])
+
+
+def _edge_slope(sums: Tensor) -> float:
+    """The least-squares slope (with an intercept) of y on g from ``_edge_sums`` summed over views, clamped at 0; 0
+    when fewer than 2 pixels qualify or g does not vary."""
+    n, sg, sgg, sy, sgy = sums.tolist()
+    if n < 2:
+        return 0.0
+    var_g = sgg / n - (sg / n) ** 2
+    if var_g <= 1e-20:
+        return 0.0
+    return max((sgy / n - (sg / n) * (sy / n)) / var_g, 0.0)
+
+
 @torch.no_grad()
 def fit_edge_scale(sample: GaussianSample, cameras: Cameras, images: Tensor,
                    render_fn: Callable[[GaussianSample, Cameras], RenderOutput], *, masks: Tensor | None = None,
@@ -291,9 +316,10 @@ def fit_edge_scale(sample: GaussianSample, cameras: Cameras, images: Tensor,
 
     r^2: the squared residual of ``sample``'s render (mean over the channels); e: what ``explained(camera)`` already
     gives each pixel (the resolution term; 0 without it); g: ``image_gradient_sq`` of the render. One render per
-    camera. Returns 0 when no pixel qualifies or the gradient does not vary.
+    camera. Returns 0 when no pixel qualifies or the gradient does not vary. (``fit_residual_field(edge_scale="fit")``
+    fits the same slope in its own pass over the views.)
     """
-    sums = torch.zeros(5, dtype=torch.float64)  # n, sum g, sum g^2, sum y, sum g y
+    sums = torch.zeros(5, dtype=torch.float64)
     for j in range(len(cameras)):
         cam = cameras[[j]]
         out = render_fn(sample, cam)
@@ -301,20 +327,8 @@ def fit_edge_scale(sample: GaussianSample, cameras: Cameras, images: Tensor,
         y = (pred - images[j].to(pred)).square().mean(-1, keepdim=True)  # [H,W,1]
         if explained is not None:
             y = y - explained(cam)[0].to(y)
-        g = image_gradient_sq(pred)
-        valid = out.alpha[0] >= EDGE_MIN_ALPHA
-        if masks is not None:
-            valid = valid & masks[j].to(valid.device).bool()
-        g, y = g[valid].double().cpu(), y[valid].double().cpu()
-        sums += torch.stack([torch.tensor(float(g.numel()), dtype=torch.float64), g.sum(), g.square().sum(), y.sum(),
-                             (g * y).sum()])
-    n, sg, sgg, sy, sgy = sums.tolist()
-    if n < 2:
-        return 0.0
-    var_g = sgg / n - (sg / n) ** 2
-    if var_g <= 1e-20:
-        return 0.0
-    return max((sgy / n - (sg / n) * (sy / n)) / var_g, 0.0)
+        sums += _edge_sums(pred, out.alpha[0], y, None if masks is None else masks[j])
+    return _edge_slope(sums)
 
 
 def _degree(num_bases: int) -> int:
@@ -339,7 +353,7 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
                        render_fn: Callable[[GaussianSample, Cameras], RenderOutput],
                        masks: Tensor | None = None,
                        explained: Callable[[Cameras], Tensor] | None = None, colour_posterior: bool = False,
-                       view_factor: float = 1.0, edge_scale: float = 0.0) -> ResidualField:
+                       view_factor: float = 1.0, edge_scale: float | str = 0.0) -> ResidualField:
     """Each Gaussian's noise variance from the training views (see the module docstring).
 
     Args:
@@ -352,42 +366,50 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
         colour_posterior: also fit the colour posterior (module docstring; ``ResidualField.colour_variance``).
         view_factor: the training views over ``len(cameras)`` (when the field is fitted on a subset of them): the
             colour posterior's evidence is scaled to all training views by it.
-        edge_scale: ``delta^2`` of the edge term (``fit_edge_scale``; 0: none): the noise is fitted to what the
-            residual leaves beyond it as well, and the field renders it (``ResidualField.edge``).
+        edge_scale: ``delta^2`` of the edge term (0: none; ``"fit"``: fitted as ``fit_edge_scale`` does, from the
+            same renders): the noise is fitted to what the residual leaves beyond it as well, and the field renders
+            it (``ResidualField.edge``).
 
     Returns:
         the ``ResidualField`` (on the sample's device).
+
+    One pass over the views, two renders each (the sample's, and one with a constant colour whose gradient gives
+    the blended sums): the noise is linear in ``delta^2``, ``sum_p w (r^2 - delta^2 g) = sum_p w r^2 - delta^2
+    sum_p w g``, so the sums of r^2 and of g are kept apart and combined once ``delta^2`` is known.
     """
+    if isinstance(edge_scale, str) and edge_scale != "fit":
+        raise ValueError(f"edge_scale must be a number or 'fit', got {edge_scale!r}")
+    fit_edge = edge_scale == "fit"
+    edge = fit_edge or float(edge_scale) > 0.0
     n = sample.means.shape[0]
     dev = sample.means.device
     colour = torch.full((n, 3), 0.5, device=dev, requires_grad=True)
-    acc = torch.zeros(n, 3, device=dev, dtype=torch.float64)  # sum w r^2 (edge term off), sum w, sum w r^2 (whole)
+    acc = torch.zeros(n, 3, device=dev, dtype=torch.float64)  # sum w r^2, sum w, sum w g (valid pixels)
+    edge_sums = torch.zeros(5, dtype=torch.float64)  # the edge term's least squares (_edge_sums)
     num_bases = (sample.sh_degree + 1) ** 2
     evidence = torch.zeros(n, num_bases, device=dev, dtype=torch.float64) if colour_posterior else None
     pix_sum = torch.zeros(3, dtype=torch.float64, device=dev)
     pix_sq = torch.zeros(3, dtype=torch.float64, device=dev)
-    total, count = 0.0, 0
+    total_r2, count = 0.0, 0
     for j in range(len(cameras)):
         cam = cameras[[j]]
+        mask = None if masks is None else masks[j]
         with torch.no_grad():
-            pred = render_fn(sample, cam).rgb[0]
-        r2 = (pred - images[j].to(pred)).square().mean(-1, keepdim=True)  # [H,W,1]
-        if explained is not None:
-            with torch.no_grad():
-                r2 = (r2 - explained(cam)[0].to(r2)).clamp_min(0.0)
-        valid = torch.ones_like(r2, dtype=torch.bool) if masks is None else masks[j].to(dev)
-        r2 = torch.where(valid, r2, torch.zeros_like(r2))
-        # the unseen Gaussians' noise: the whole residual's mean, edges included (nothing says where theirs lie)
-        total += float(r2.double().sum())
+            rendered = render_fn(sample, cam)
+            pred = rendered.rgb[0]
+            r2 = (pred - images[j].to(pred)).square().mean(-1, keepdim=True)  # [H,W,1]
+            if explained is not None:
+                r2 = r2 - explained(cam)[0].to(r2)
+            if fit_edge:  # fitted to r^2 - e unclamped, as fit_edge_scale
+                edge_sums += _edge_sums(pred, rendered.alpha[0], r2, mask)
+            r2 = r2.clamp_min(0.0) if explained is not None else r2
+            valid = torch.ones_like(r2, dtype=torch.bool) if mask is None else mask.to(dev)
+            r2 = torch.where(valid, r2, torch.zeros_like(r2))
+            g = torch.where(valid, image_gradient_sq(pred), torch.zeros_like(r2)) if edge else torch.zeros_like(r2)
+        total_r2 += float(r2.double().sum())
         count += int(valid.sum())
-        whole = r2
-        if edge_scale > 0.0:
-            # not clamped per pixel: an edge pixel the edge term over-explains lowers its Gaussians' noise, so that the
-            # two terms together match the residual on average (each Gaussian's mean is clamped at 0 below)
-            with torch.no_grad():
-                r2 = torch.where(valid, r2 - edge_scale * image_gradient_sq(pred), torch.zeros_like(r2))
         out = render_fn(with_colour(sample, colour), cam)
-        target = torch.cat([r2, valid.to(r2.dtype), whole], -1)  # [H,W,3]: r^2 beyond the edge term, 1, r^2
+        target = torch.cat([r2, valid.to(r2.dtype), g], -1)  # [H,W,3]: r^2, 1, g
         (grad,) = torch.autograd.grad((out.rgb[0] * target).sum(), colour)
         acc += grad.double()
         if evidence is not None:
@@ -396,13 +418,18 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
             pix_sq += img.square().sum(0)
             d = view_directions(sample.means.detach().double(), cam.centers.double())[0]  # [N,3]
             evidence += sh_basis(sample.sh_degree, d).square() * grad[:, 1:2].double()
-    mean_var = total / max(count, 1)
+    delta2 = _edge_slope(edge_sums) if fit_edge else float(edge_scale)
+    # the unseen Gaussians' noise: the whole residual's mean, edges included (nothing says where theirs lie)
+    mean_var = total_r2 / max(count, 1)
     weight = acc[:, 1]
     seen = weight > 1e-6 * max(float(weight.max()), 1e-30) if n else torch.zeros(0, dtype=torch.bool, device=dev)
-    var = torch.where(seen, (acc[:, 0] / weight.clamp_min(1e-30)).clamp_min(0.0), torch.full_like(weight, mean_var))
+    # not clamped per pixel: an edge pixel the edge term over-explains lowers its Gaussians' noise, so that the two
+    # terms together match the residual on average (each Gaussian's mean is clamped at 0)
+    beyond = acc[:, 0] - delta2 * acc[:, 2]
+    var = torch.where(seen, (beyond / weight.clamp_min(1e-30)).clamp_min(0.0), torch.full_like(weight, mean_var))
     whole_var = None
-    if edge_scale > 0.0:
-        whole_var = torch.where(seen, acc[:, 2] / weight.clamp_min(1e-30), torch.full_like(weight, mean_var)).float()
+    if delta2 > 0.0:
+        whole_var = torch.where(seen, acc[:, 0] / weight.clamp_min(1e-30), torch.full_like(weight, mean_var)).float()
     prior = None
     if evidence is not None:
         pixel_var = float((pix_sq / max(count, 1) - (pix_sum / max(count, 1)).square()).clamp_min(0).mean())
@@ -410,7 +437,7 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
         evidence = (evidence * view_factor).float()
     return ResidualField(sample=sample, variance=var.float(), seen=seen, mean_variance=mean_var,
                          observations=weight.float(), colour_evidence=evidence, colour_prior=prior,
-                         edge_scale=float(edge_scale), pixel_variance=whole_var)
+                         edge_scale=delta2, pixel_variance=whole_var)
 
 
 __all__ = ["ResidualField", "blend_colours", "blend_values", "fit_edge_scale", "fit_residual_field", "image_gradient_sq",
