@@ -14,7 +14,8 @@ observed / unobserved from GT depth (``eval.observed.observed_mask``). Per metho
 Each run is evaluated four ways (``PREDICTIVES``, ``--predictives`` picks some): ``full`` (what ``evaluate``
 writes), ``before`` (the predictive before the coverage and resolution terms: every alpha < 1 counts as empty, no
 resolution term), ``spread`` (the samples' spread alone) and ``leverage`` (``full`` with
-``EvalConfig.residual_leverage``); ``no-colour`` is ``full`` without the colour posterior
+``EvalConfig.residual_leverage = "full"``); ``no-leverage`` is ``full`` without the relative leverage (the default
+since 2026-11-27); ``no-colour`` is ``full`` without the colour posterior
 (``EvalConfig.colour_posterior``, the default since 2026-11-26); ``edge`` / ``no-edge`` are ``full`` with and
 without the edge term (``EvalConfig.edge_noise``); ``no-depth-spread`` is ``full`` without the spread of the depths
 each ray blends (``EvalConfig.depth_spread``); ``resolution-1`` is ``full`` with one render of the resolution
@@ -102,7 +103,8 @@ PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alph
     "full": ({}, False),  # what `evaluate` writes: spread + pixel noise + resolution term + empty rays
     "before": ({"resolution": 0.0}, True),  # the predictive before the coverage and resolution terms (2026-11-24)
     "spread": ({"empty_rays": False, "residual_views": 0, "resolution": 0.0, "depth_spread": False}, False),  # spread only
-    "leverage": ({"residual_leverage": True}, False),  # full, each Gaussian's pixel noise / (1 - its leverage)
+    "leverage": ({"residual_leverage": "full"}, False),  # full, each Gaussian's pixel noise / (1 - its leverage)
+    "no-leverage": ({"residual_leverage": "none"}, False),  # full without the relative leverage (before 11-27)
     "no-colour": ({"colour_posterior": False}, False),  # full without the colour posterior (the default before)
     "edge": ({"edge_noise": True}, False),  # full with the pixel noise split into the edge term and the rest
     "no-edge": ({"edge_noise": False}, False),  # full without the edge term

@@ -148,16 +148,23 @@ def test_the_pixel_noise_level_is_fitted_and_recorded(tiny_run_path, tmp_path):
     fit = evaluate.run(run, EvalConfig(**base, residual_scale="fit"), device=cpu)
     one = evaluate.run(run, EvalConfig(**base), device=cpu)
     half = evaluate.run(run, EvalConfig(**base, residual_scale=0.5), device=cpu)
-    leverage = evaluate.run(run, EvalConfig(**base, residual_leverage=True), device=cpu)
+    leverage = evaluate.run(run, EvalConfig(**base, residual_leverage=True), device=cpu)  # an old config's bool
+    plain = evaluate.run(run, EvalConfig(**base, residual_leverage="none"), device=cpu)
     none = evaluate.run(run, EvalConfig(**base, residual_views=0), device=cpu)
     assert fit.noise_scale is not None and fit.noise_scale > 0 and fit.noise_scale != 1.0
     assert (one.noise_scale, half.noise_scale, none.noise_scale) == (1.0, 0.5, None)
     assert json.loads((run / "eval" / "metrics.json").read_text())["noise_scale"] is None  # the last run's
     name = next(iter(one.per_view))
     assert half.per_view[name].nll != one.per_view[name].nll
-    # the leverage changes the std (each Gaussian's noise / (1 - h)), not the prediction
-    assert leverage.per_view[name].psnr == one.per_view[name].psnr
+    # the leverage changes the std (each Gaussian's noise / (1 - h)), not the prediction; the default is relative to
+    # the median Gaussian's (on this tiny run it may raise no Gaussian: the arithmetic is tested in test_residual.py)
+    assert EvalConfig(residual_leverage=True).residual_leverage == "full"
+    assert EvalConfig(residual_leverage=False).residual_leverage == "none" and EvalConfig().residual_leverage == "relative"
+    assert leverage.per_view[name].psnr == one.per_view[name].psnr == plain.per_view[name].psnr
     assert leverage.per_view[name].nll != one.per_view[name].nll
+    assert any("leverage (relative) by a factor" in n for n in one.notes)
+    assert any("leverage (full) by a factor" in n for n in leverage.notes)
+    assert not any("leverage" in n for n in plain.notes)
 
 
 ONE_VIEW = {"num_samples": 2, "max_views": 1, "calibration_views": 0}

@@ -10,7 +10,7 @@ import torch
 
 from uncertsplat.render import render
 from uncertsplat.types import Cameras, GaussianSample
-from uncertsplat.uncertainty.residual import fit_residual_field
+from uncertsplat.uncertainty.residual import ResidualField, fit_residual_field
 
 W, H = 40, 30
 
@@ -414,6 +414,28 @@ class TestEdgeTerm:
         assert flat.edge_scale < 1e-5  # (float32 rounding of r^2 only)
         with pytest.raises(ValueError, match="fit"):
             fit_residual_field(sample, cams, images, RENDER, edge_scale="auto")
+
+
+def test_the_relative_leverage_raises_only_the_gaussians_observed_less_than_the_median():
+    """``out_of_sample(relative=True)``: the factor (1 - h_m) / (1 - h) where above 1, h_m the median leverage of the
+    seen Gaussians; 1 for the median and the better observed; the cap for one no pixel saw; nothing when the median
+    is at the cap."""
+    sample = _sample(n=5)
+    obs = torch.tensor([100.0, 10.0, 5.0, 2.0, 0.0])  # h = 12 / (3 obs): 0.04, 0.4, 0.8, 0.9 (cap), 0.9 (cap)
+    field = ResidualField(sample=sample, variance=torch.full((5,), 1e-3), seen=obs > 0, mean_variance=1e-3,
+                          observations=obs)
+    h = torch.tensor([0.04, 0.4, 0.8, 0.9, 0.9], dtype=torch.float64)
+    hm = torch.tensor([0.04, 0.4, 0.8, 0.9]).double().median()  # of the seen: torch's lower median, 0.4
+    want = ((1 - hm) / (1 - h)).clamp_min(1.0)
+    got = field.out_of_sample(12, relative=True)
+    torch.testing.assert_close(got.variance.double() / 1e-3, want, rtol=1e-5, atol=0)
+    assert torch.equal(got.variance[:2], field.variance[:2])  # the median and the better observed: unchanged
+    full = field.out_of_sample(12)
+    assert bool((full.variance > got.variance).all())  # full divides every Gaussian by 1 - h
+    # a capture where the median Gaussian is at the cap (every Gaussian fitted by a few pixels): nothing changes
+    sparse = replace(field, observations=torch.tensor([1.0, 2.0, 3.0, 100.0, 0.0]), seen=torch.tensor([True] * 4 + [False]))
+    back = sparse.out_of_sample(12, relative=True)
+    assert torch.equal(back.variance, sparse.variance)
 
 
 def test_the_colour_posterior_divides_by_the_whole_noise_with_an_edge_term():

@@ -61,8 +61,9 @@ class EvalSettings(Protocol):
     """Renders of the resolution term per posterior sample (``uncertainty.mc.mc_render``'s ``shift_renders``)."""
     residual_scale: str | float
     """"fit" (``fit_noise_scale``) or a factor for the pixel noise."""
-    residual_leverage: bool
-    """Divide each Gaussian's noise by (1 - its leverage) (``ResidualField.out_of_sample``)."""
+    residual_leverage: str
+    """``none``, ``relative`` (each Gaussian's noise by (1 - its leverage) / (1 - the median's) where above 1) or
+    ``full`` (by 1 - its leverage) (``ResidualField.out_of_sample``)."""
     colour_posterior: bool
     """Add each Gaussian's colour posterior variance to its noise (``ResidualField.colour_variance``)."""
     depth_spread: bool
@@ -223,10 +224,11 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
                                              explained=explained, std_floor=cfg.std_floor))
     else:
         field = field.scaled(float(cfg.residual_scale))
-    if cfg.residual_leverage:
+    if cfg.residual_leverage != "none":
         # the scale above is fitted to training residuals; the leverage gives the noise behind them
         k = 11 + 3 * (rep.sh_degree + 1) ** 2
-        field = field.out_of_sample(k, view_factor=len(train_indices) / len(chosen))
+        field = field.out_of_sample(k, view_factor=len(train_indices) / len(chosen),
+                                    relative=cfg.residual_leverage == "relative")
     return field
 
 
@@ -436,8 +438,11 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     terms = ["the spread of the K samples"]
     if sampler.residual is not None:
         seen = float(sampler.residual.seen.float().mean()) if sampler.residual.seen.numel() else 0.0
+        lev = sampler.residual.leverage_inflation
+        lev = "" if lev is None else (f"; raised by the leverage ({cfg.residual_leverage}) by a factor {lev:.3g} on "
+                                      "average")
         terms.append(f"the pixel noise of the Gaussians on the training views (RMS residual "
-                     f"{sampler.residual.mean_variance ** 0.5:.4f}; {100 * seen:.1f} % of the Gaussians seen)")
+                     f"{sampler.residual.mean_variance ** 0.5:.4f}; {100 * seen:.1f} % of the Gaussians seen{lev})")
         if sampler.residual.edge_scale > 0.0:
             terms.append(f"the edge term (a misplacement of {sampler.residual.edge_scale ** 0.5:.2f} px fitted on the "
                          "training views, times the image gradient of the view's render)")

@@ -16,7 +16,13 @@ estimates that noise per Gaussian, heteroscedastically, and renders it:
   in least squares the training residual's variance is s^2 (1 - h)), so each Gaussian's noise is divided by
   (1 - h): little for a Gaussian that hundreds of pixels pin down, much for one that a few pixels of a sparse
   capture fitted. Not (1 + h) / (1 - h), a new observation's whole error: its h s^2 is the parameters'
-  uncertainty, which the posterior's spread and the resolution term already give the predictive.
+  uncertainty, which the posterior's spread and the resolution term already give the predictive. Relative to the
+  typical Gaussian (``relative=True``, the evaluation's default): ``(1 - h_m) / (1 - h)`` where above 1, h_m the
+  median leverage of the seen Gaussians. The level of the typical Gaussian's noise stays the one its residuals
+  give, which the held-out views of dense captures confirm (the mean predicted variance about the mean squared
+  error); only the Gaussians observed by fewer pixels than it, which the training residuals flatter most (the
+  initial points of a surface few views saw), get more. Where the median Gaussian's leverage is already at the
+  cap (a sparse capture: every Gaussian fitted by a few pixels) nothing changes.
 * The colour posterior (``fit_residual_field(colour_posterior=True)``, ``ResidualField.colour_variance``): the variational
   posterior covers where a Gaussian is, not what colour it has. A Gaussian's colour is linear in its SH
   coefficients, so the Laplace posterior of a coefficient b is exact for the pixel likelihood: precision
@@ -127,7 +133,7 @@ class ResidualField:
         return (basis.square() * coef_var).sum(-1).to(self.variance.dtype)
 
     def out_of_sample(self, params_per_gaussian: int, view_factor: float = 1.0,
-                      max_leverage: float = MAX_LEVERAGE) -> ResidualField:
+                      max_leverage: float = MAX_LEVERAGE, relative: bool = False) -> ResidualField:
         """The noise level behind the training residuals: each Gaussian's variance divided by (1 - h), with leverage
         ``h = min(params_per_gaussian / (3 x observations x view_factor), max_leverage)`` (module docstring).
 
@@ -136,12 +142,19 @@ class ResidualField:
                 3 per SH coefficient).
             view_factor: training views / views the field was fitted on (the observations of all views).
             max_leverage: the cap on h (a Gaussian no pixel saw gets it): 0.9 multiplies by 10.
+            relative: divide by ``(1 - h) / (1 - h_m)`` where that is above 1 and leave the rest, h_m the median
+                leverage of the seen Gaussians: the correction of a Gaussian observed by fewer pixels than the
+                typical one, with the typical one's level kept as the residuals give it (module docstring).
         """
         if self.observations is None:
             raise ValueError("this field has no observation counts (fit it with fit_residual_field)")
         channels = 3.0 * self.observations.double() * view_factor
         h = (params_per_gaussian / channels.clamp_min(1e-30)).clamp(max=max_leverage)
-        inflation = (1 / (1 - h)).to(self.variance.dtype)
+        inflation = 1 / (1 - h)
+        if relative:
+            typical = h[self.seen].median() if bool(self.seen.any()) else h.new_tensor(0.0)
+            inflation = (inflation * (1 - typical)).clamp_min(1.0)
+        inflation = inflation.to(self.variance.dtype)
         mean = float(inflation.mean()) if inflation.numel() else 1.0
         pv = None if self.pixel_variance is None else self.pixel_variance * inflation
         return replace(self, variance=self.variance * inflation, pixel_variance=pv, leverage_inflation=mean)
