@@ -1,4 +1,5 @@
-// The rasterizer's binning and forward pass behind the C interface (kernels: composite.h).
+// The rasterizer's binning and forward pass behind the C interface (kernels: composite.h). Each entry point
+// exists for float (_f32) and double (_f64), defined once by a macro over the scalar type.
 
 #include "composite.h"
 
@@ -9,21 +10,17 @@ int us_version() { return 13; }
 
 int us_max_features() { return 8; }
 
-int us_forward_f32(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size, int64_t num_threads,
-                   double alpha_min, double alpha_max, double t_min, int64_t F, int64_t G, const float* gp, const float* feat,
-                   const int64_t* pair_gauss, const int64_t* tile_start, const int64_t* tile_count, float* out,
-                   float* t_final, int32_t* last) {
-    US_PARAMS
-    return forward_any<float>(F, prm, G, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last);
-}
-
-int us_forward_f64(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size, int64_t num_threads,
-                   double alpha_min, double alpha_max, double t_min, int64_t F, int64_t G, const double* gp, const double* feat,
-                   const int64_t* pair_gauss, const int64_t* tile_start, const int64_t* tile_count, double* out,
-                   double* t_final, int32_t* last) {
-    US_PARAMS
-    return forward_any<double>(F, prm, G, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last);
-}
+#define US_FORWARD(SUFFIX, S)                                                                                    \
+    int us_forward_##SUFFIX(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size,       \
+                            int64_t num_threads, double alpha_min, double alpha_max, double t_min, int64_t F,   \
+                            int64_t G, const S* gp, const S* feat, const int64_t* pair_gauss,                   \
+                            const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final,           \
+                            int32_t* last) {                                                                    \
+        US_PARAMS                                                                                                \
+        return forward_any<S>(F, prm, G, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last);     \
+    }
+US_FORWARD(f32, float)
+US_FORWARD(f64, double)
 
 // Binning, in two calls. us_bin_count: the depth order of the valid entries (order [G], num_visible),
 // per-worker tile counts [workers, T]; returns the number of pairs M (-1 when out of memory) and, in
@@ -35,39 +32,24 @@ int us_forward_f64(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, in
     int64_t G, int64_t N, int64_t C, int64_t width, int64_t height, int64_t tile_size, int64_t tiles_x,       \
         int64_t tiles_y, int64_t workers, double alpha_min
 
-int64_t us_bin_count_f32(US_BIN_HEAD, const float* means2d, const float* extents, const float* conics,
-                         const float* opac, const float* depths, const uint8_t* valid, int64_t* order,
-                         int64_t* num_visible, int64_t* counts, void** state) {
-    US_BIN_ARGS
-    return bin_count_any<float>(args, means2d, extents, conics, opac, depths, valid, order, num_visible, counts,
-                                state);
-}
-
-int64_t us_bin_count_f64(US_BIN_HEAD, const double* means2d, const double* extents, const double* conics,
-                         const double* opac, const double* depths, const uint8_t* valid, int64_t* order,
-                         int64_t* num_visible, int64_t* counts, void** state) {
-    US_BIN_ARGS
-    return bin_count_any<double>(args, means2d, extents, conics, opac, depths, valid, order, num_visible, counts,
-                                 state);
-}
-
-int us_bin_fill_f32(US_BIN_HEAD, const float* means2d, const float* extents, const float* conics, const float* opac,
-                    const int64_t* order, int64_t num_visible, const int64_t* counts, const int64_t* tile_start,
-                    int64_t* pair_gauss, int64_t* pair_tile, void* state) {
-    US_BIN_ARGS
-    (void)extents;
-    return bin_fill_any<float>(args, means2d, conics, opac, order, num_visible, state, counts, tile_start, pair_gauss,
-                               pair_tile);
-}
-
-int us_bin_fill_f64(US_BIN_HEAD, const double* means2d, const double* extents, const double* conics,
-                    const double* opac, const int64_t* order, int64_t num_visible, const int64_t* counts,
-                    const int64_t* tile_start, int64_t* pair_gauss, int64_t* pair_tile, void* state) {
-    US_BIN_ARGS
-    (void)extents;
-    return bin_fill_any<double>(args, means2d, conics, opac, order, num_visible, state, counts, tile_start,
-                                pair_gauss, pair_tile);
-}
+#define US_BIN(SUFFIX, S)                                                                                        \
+    int64_t us_bin_count_##SUFFIX(US_BIN_HEAD, const S* means2d, const S* extents, const S* conics,             \
+                                  const S* opac, const S* depths, const uint8_t* valid, int64_t* order,         \
+                                  int64_t* num_visible, int64_t* counts, void** state) {                        \
+        US_BIN_ARGS                                                                                              \
+        return bin_count_any<S>(args, means2d, extents, conics, opac, depths, valid, order, num_visible, counts, \
+                                state);                                                                          \
+    }                                                                                                            \
+    int us_bin_fill_##SUFFIX(US_BIN_HEAD, const S* means2d, const S* extents, const S* conics, const S* opac,    \
+                             const int64_t* order, int64_t num_visible, const int64_t* counts,                  \
+                             const int64_t* tile_start, int64_t* pair_gauss, int64_t* pair_tile, void* state) { \
+        US_BIN_ARGS                                                                                              \
+        (void)extents;                                                                                           \
+        return bin_fill_any<S>(args, means2d, conics, opac, order, num_visible, state, counts, tile_start,       \
+                               pair_gauss, pair_tile);                                                           \
+    }
+US_BIN(f32, float)
+US_BIN(f64, double)
 
 void us_bin_free(void* state) { delete static_cast<BinState*>(state); }
 
