@@ -439,8 +439,10 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if sampler.residual is not None:
         seen = float(sampler.residual.seen.float().mean()) if sampler.residual.seen.numel() else 0.0
         lev = sampler.residual.leverage_inflation
-        lev = "" if lev is None else (f"; raised by the leverage ({cfg.residual_leverage}) by a factor {lev:.3g} on "
-                                      "average")
+        lev = "" if lev is None else (
+            f"; raised by the leverage ({cfg.residual_leverage}) by a factor {lev:.3g} on average"
+            + (" (1 for every Gaussian observed at least as well as the median one)"
+               if cfg.residual_leverage == "relative" else ""))
         terms.append(f"the pixel noise of the Gaussians on the training views (RMS residual "
                      f"{sampler.residual.mean_variance ** 0.5:.4f}; {100 * seen:.1f} % of the Gaussians seen{lev})")
         if sampler.residual.edge_scale > 0.0:
