@@ -100,29 +100,26 @@ def test_binning_lists_the_same_pairs_in_the_same_order():
         assert torch.equal(getattr(a, k), getattr(b, k)), k
 
 
-def test_backward_is_deterministic_for_any_thread_count():
-    """Bit-identical gradients run to run and with 1 or 2 threads (resume relies on it)."""
-    s, cams = _scene(600, torch.float32)
-    before = torch.get_num_threads()
-    try:
-        torch.set_num_threads(2)
-        _, g1 = _render_and_grads(s, cams, "native")
-        _, g2 = _render_and_grads(s, cams, "native")
-        torch.set_num_threads(1)
-        _, g3 = _render_and_grads(s, cams, "native")
-    finally:
-        torch.set_num_threads(before)
-    for k in PARAMS:
-        assert torch.equal(g1[k], g2[k]) and torch.equal(g1[k], g3[k]), k
-
-
 def _with_threads(n, fn):
+    """``fn()`` with torch (and so the native kernels) on ``n`` threads, the thread count restored after."""
     before = torch.get_num_threads()
     try:
         torch.set_num_threads(n)
         return fn()
     finally:
         torch.set_num_threads(before)
+
+
+def test_backward_is_deterministic_for_any_thread_count():
+    """Bit-identical gradients run to run and with 1 or 2 threads (resume relies on it)."""
+    s, cams = _scene(600, torch.float32)
+
+    def grads():
+        return _render_and_grads(s, cams, "native")[1]
+
+    g1, g2, g3 = _with_threads(2, grads), _with_threads(2, grads), _with_threads(1, grads)
+    for k in PARAMS:
+        assert torch.equal(g1[k], g2[k]) and torch.equal(g1[k], g3[k]), k
 
 
 def test_every_kernel_is_the_same_with_one_or_two_threads(monkeypatch):

@@ -8,8 +8,8 @@ offset tables (``gaussians/variational.py``), each with its gradient. ``optim.cp
 (``train/sparse_adam.py``). ``vmath.h``: vectorisable exp/log; ``parallel.h``: fork-join over threads.
 
 The C++ files have a C ABI and no torch headers, so they need no Python build step: the system C++ compiler
-(``$CXX``, else ``c++``) compiles each file in a process of its own, side by side, and links them (about 15 s on
-2 cores; 25 s as one compiler call). The shared library is cached under ``$UNCERTSPLAT_CACHE_DIR`` (default
+(``$CXX``, else ``c++``) compiles each file in a process of its own, side by side, and links them (17.5 s on
+2 cores; 25.5 s as one compiler call). The shared library is cached under ``$UNCERTSPLAT_CACHE_DIR`` (default
 ``$XDG_CACHE_HOME/uncertsplat`` or ``~/.cache/uncertsplat``) in a file named by a hash of the source, the
 compiler, the flags and the CPU, so a change to any of them builds a new one and machines sharing a home folder
 never load a library built for another CPU.
@@ -35,7 +35,7 @@ import torch
 
 INTERFACE_VERSION = 13
 CSRC = Path(__file__).with_name("csrc")
-# the slowest to compile first (the build runs them side by side): the two halves of the rasterizer take most of it
+# compiled side by side, one process each (``_build``): the two halves of the rasterizer take most of the time
 SOURCES = (CSRC / "composite_forward.cpp", CSRC / "composite_backward.cpp", CSRC / "losses.cpp", CSRC / "project.cpp",
            CSRC / "optim.cpp")
 HEADERS = (CSRC / "composite.h", CSRC / "vmath.h", CSRC / "parallel.h")
@@ -88,6 +88,11 @@ def _compiler_version(cxx: str) -> str:
         return ""
 
 
+def _failure(cmd: list[str], output: str | None) -> str:
+    """A failed compiler or linker call, for the reason ``library()`` reports: the command and its last output."""
+    return f"{' '.join(cmd)}\n{(output or '').strip()[-2000:]}"
+
+
 def _compile_all(cmds: list[list[str]]) -> str | None:
     """Run the compiler commands side by side (one process per source file: the build is bound by the compiler's
     single-threaded optimiser, so ``len(SOURCES)`` processes take about the longest file's time on enough cores).
@@ -109,7 +114,7 @@ def _compile_all(cmds: list[list[str]]) -> str | None:
             proc.kill()
             out = proc.communicate()[0] + "\n(stopped after 300 s)"
         if proc.returncode != 0 and failure is None:
-            failure = f"{' '.join(cmd)}\n{(out or '').strip()[-2000:]}"
+            failure = _failure(cmd, out)
     return failure
 
 
@@ -134,7 +139,7 @@ def _build(cxx: str, target: Path) -> str | None:
                     link = [cxx, *BASE_FLAGS, *arch, *objs, "-o", tmp]
                     res = subprocess.run(link, capture_output=True, text=True, timeout=300)
                     if res.returncode != 0:
-                        err = f"{' '.join(link)}\n{(res.stderr or res.stdout).strip()[-2000:]}"
+                        err = _failure(link, res.stderr or res.stdout)
             except (OSError, subprocess.SubprocessError) as exc:
                 err = str(exc)
             if err is None:

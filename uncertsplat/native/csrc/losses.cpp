@@ -217,8 +217,8 @@ inline void store_lanes(float* p, VS v, int64_t n) {
 }
 
 // The calling thread's buffer of at least n floats, kept between calls: a training step's SSIM needs some MB of
-// it twice, and a fresh allocation of that size is fresh pages from the system, zeroed and faulted in on every
-// call. Every element the caller reads it writes first. One per calling thread (views may be scored on threads).
+// it twice (4.6 MB for three 320x240 planes), and a fresh std::vector is zero-filled on every call, though every
+// element the caller reads it writes first. One per calling thread (views may be scored on threads).
 std::vector<float>& scratch(size_t n) {
     thread_local std::vector<float> buf;
     if (buf.size() < n) buf.resize(n);
