@@ -284,7 +284,8 @@ def main() -> None:
               + f" | train {train_s:.0f}s", flush=True)
     out = {"label": args.label, "machine": args.machine, "date": time.strftime("%Y-%m-%d"),
            "torch": torch.__version__, "iterations": its, "width": args.width, "train_views": train,
-           "test_views": test, "seed": args.seed, "samples": args.samples, "rows": rows}
+           "test_views": test, "seed": args.seed, "samples": args.samples, "set": args.set, "protocol": args.protocol,
+           "rows": rows}
     path = ROOT / "benchmarks" / "results" / f"unseen_{args.label}.json"
     path.write_text(json.dumps(out, indent=1))
     print(f"\nwrote {path}\n")

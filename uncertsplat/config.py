@@ -295,6 +295,10 @@ class TrainConfig(_Base):
     with a footprint in the step's views (and their offset-table rows), the others' parameters and moments left
     as they are; ``lazy`` as visible, with the skipped steps' decay applied to a row's moments when it comes back
     (``train.sparse_adam``). Measured in BENCHMARKS.md, "Sparse Adam updates"."""
+    drop_rate: float = Field(0.0, ge=0.0, lt=1.0)
+    """Leave each Gaussian out of a step's render with probability ``drop_rate x step / iterations`` (the
+    others' opacity divided by 1 - rate): a regulariser against fitting the training views with Gaussians no
+    other view checks, for sparse captures. 0: off."""
     low_res_fraction: float = Field(0.0, ge=0.0, lt=1.0)
     """The first ``low_res_fraction`` of the iterations train on the images (and cameras) scaled by
     ``low_res_scale``, area-averaged: the rasterizer's cost is per pixel, and the early steps, which place and

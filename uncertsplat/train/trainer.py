@@ -12,6 +12,7 @@ elapsed time. ``Trainer.from_state_dict`` continues exactly as if never interrup
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import resource
@@ -143,6 +144,7 @@ class Trainer:
         cfg = self.cfg
         self.gen_views = torch.Generator().manual_seed(cfg.seed)
         self.gen_noise = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
+        self.gen_drop = torch.Generator(device=self.device).manual_seed(cfg.seed + 3)
         points = self.scene.points.to(self.device, torch.float32)
         colors = self.scene.points_rgb.to(self.device, torch.float32)
         if cfg.init_num_random > 0:
@@ -188,6 +190,7 @@ class Trainer:
             "densify": self.densifier.stats.state_dict(),
             "gen_views": self.gen_views.get_state(),
             "gen_noise": self.gen_noise.get_state(),
+            "gen_drop": self.gen_drop.get_state(),
             "view_queue": torch.tensor(self.view_queue, dtype=torch.long),
             "sh_bands": [b.model_dump() for b in self.sh_bands],
             "growth": [g.model_dump() for g in self.growth],
@@ -205,6 +208,11 @@ class Trainer:
         self.gen_views.set_state(state["gen_views"].cpu())
         self.gen_noise = torch.Generator(device=self.device)
         self.gen_noise.set_state(state["gen_noise"].cpu())  # generator states are CPU byte tensors
+        self.gen_drop = torch.Generator(device=self.device)
+        if "gen_drop" in state:
+            self.gen_drop.set_state(state["gen_drop"].cpu())
+        else:  # checkpoints from before the option: seeded as a fresh run's
+            self.gen_drop.manual_seed(self.cfg.seed + 3)
         self.view_queue = [int(i) for i in state["view_queue"].tolist()]
         self.sh_bands = [BandCheck(**b) for b in state.get("sh_bands", [])]  # absent in checkpoints from before
         self.growth = [GrowthCheck(**g) for g in state.get("growth", [])]  # likewise
@@ -360,6 +368,8 @@ class Trainer:
                 g = posterior_mean(self.model, variant=cfg.variant, extent=self.extent,
                                    temperature=self.prior.temperature, sh_degree=degree)
                 kl = None
+            if cfg.drop_rate > 0.0:
+                g = self._drop(g, step)
         with timer("render"):
             out = self.render(g, cams)
         with timer("loss"):
@@ -400,6 +410,15 @@ class Trainer:
             result["skipped"] = 1.0
         result.update({k: float(v) for k, v in done.items() if v})
         return result
+
+    def _drop(self, g: GaussianSample, step: int) -> GaussianSample:
+        """``drop_rate``: each Gaussian left out of this step's render with probability r = drop_rate x
+        step / iterations, the others' opacity divided by 1 - r (capped below 1) so that a pixel keeps its
+        expected coverage."""
+        r = self.cfg.drop_rate * min(step / self.cfg.iterations, 1.0)
+        keep = torch.rand(len(g), generator=self.gen_drop, device=g.opacities.device) >= r  # [N]
+        opac = torch.where(keep, (g.opacities / (1.0 - r)).clamp(max=0.999), torch.zeros_like(g.opacities))
+        return dataclasses.replace(g, opacities=opac)
 
     def update_posterior(self) -> dict:
         """Set the offset tables to the posterior the training views imply (``variational.informed_tables``):
