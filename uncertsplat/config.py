@@ -550,6 +550,10 @@ class SelectConfig(_Base):
     expected information gain of the diagonal posterior, sum of log(1 + F_cand / precision) / 2, which saturates per
     parameter) or predictive (the variance the candidate takes off the renders of the training views and all the
     candidates, sum of G F_cand / (precision (precision + F_cand)) with G their Fisher)."""
+    gaps: float = Field(0.0, ge=0.0, le=1.0)
+    """fisher: only the candidates whose distance to the nearest camera used (trained on or chosen) is at least
+    this fraction of the largest such distance compete (``select.scores.gap_eligible``); 0: every candidate, 1:
+    coverage's farthest ones."""
     around_radius: float = Field(1.0, gt=0.0)
     """around: largest move of a candidate from its training camera, in median camera spacings."""
     seed: int = 0

@@ -12,7 +12,7 @@ from uncertsplat.config import SceneConfig
 from uncertsplat.errors import UserError
 from uncertsplat.select import scores as scores_mod
 from uncertsplat.select.candidates import around_views, candidates_from_spec, read_pose_file, unused_views
-from uncertsplat.select.scores import coverage_choice, fisher_choice, rank_order
+from uncertsplat.select.scores import coverage_choice, fisher_choice, gap_eligible, rank_order
 from uncertsplat.sfm.scene import load_scene
 from uncertsplat.uncertainty import curvature as curvature_mod
 from uncertsplat.view.frames import rotmat_to_wxyz
@@ -69,11 +69,28 @@ class TestFisherInformation:
 
         monkeypatch.setattr(curvature_mod, "curvature", fake)
 
-        def run(information, n):
+        def run(information, n, eligible=None):
             return fisher_choice({}, _Views(["train"]), torch.zeros(1, 1, 1, 3), _Views(range(4)), None,
                                  names=["means"], prior_std={"means": 1.0}, sh_degree=0, probes=1, seed=0, n=n,
-                                 information=information)
+                                 information=information, eligible=eligible)
         return run
+
+    def test_gaps_keep_the_choice_among_the_far_candidates(self, choose):
+        # candidates on a line at 1, 4, 5, 9 from the one camera used (at 0); view 0 is the most informative
+        centres = torch.tensor([[1.0, 0, 0], [4.0, 0, 0], [5.0, 0, 0], [9.0, 0, 0]])
+        eligible = gap_eligible(centres, torch.zeros(1, 3), 0.5)
+        assert eligible([]).tolist() == [False, False, True, True]  # at least 0.5 x 9 from the camera
+        # after choosing view 3, the distances are 1, 4, 4, - and 0.5 x 4 lets views 1 and 2 in
+        assert eligible([3]).tolist() == [False, True, True, False]
+        # views 2 and 3 tie at 4 (the first wins); then view 3 alone lies in the gap (4 from view 2, 1 for the others)
+        chosen, at, first, _ = choose("trace", 2, eligible)
+        assert chosen == [2, 3] and at == pytest.approx([4.0, 4.0 / 5.0])  # view 2 pinned b: precision 1 + 4
+        assert math.isnan(first[0]) and math.isnan(first[1])  # not scored
+        # without the gaps the sharp view 0, next to the camera, wins
+        assert choose("trace", 1)[0] == [0]
+        # fraction 0 lets every candidate compete; 1 only the farthest (coverage's choice)
+        assert gap_eligible(centres, torch.zeros(1, 3), 0.0)([]).all()
+        assert gap_eligible(centres, torch.zeros(1, 3), 1.0)([]).tolist() == [False, False, False, True]
 
     def test_trace_takes_the_sharp_view(self, choose):
         chosen, at, first, _ = choose("trace", 1)

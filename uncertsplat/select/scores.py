@@ -23,6 +23,9 @@
   ``gaussians.variational``'s tables), blended like a colour over the candidate's pixels, plus the
   transmittance left behind the last Gaussian (a ray that meets nothing shows the unknown). Unlike the RGB std
   it does not grow with the texture or the edges in view, only with the posterior (one render per candidate).
+  ``gaps`` (``SelectConfig.gaps``) lets only the candidates in the capture's gaps compete (``gap_eligible``): a
+  candidate at least that fraction of the farthest candidate's distance from the cameras used, so the Fisher
+  chooses among the views coverage would consider, not next to a view just added.
 - ``coverage``: the distance from the candidate's centre to the nearest camera already used (trained on or
   chosen): farthest-point sampling, the strong baseline without any uncertainty. Greedy for several views.
 - ``random``: uniform, from the seed.
@@ -138,11 +141,38 @@ CACHE_ELEMENTS = 2**27
 each is computed again when needed (same seed, same values)."""
 
 
+def gap_eligible(candidates: Tensor, used: Tensor, fraction: float) -> Callable[[list[int]], Tensor]:
+    """The candidates that lie in the capture's gaps: ``f(chosen)`` gives the [C] mask of the candidates whose
+    distance to the nearest camera used (``used`` [U,3] and the ``chosen`` positions so far) is at least
+    ``fraction`` x the largest such distance among the candidates not chosen yet (0: every candidate; 1:
+    coverage's farthest ones). ``candidates``: [C,3] centres."""
+    c = candidates.double()
+    base = (torch.cdist(c, used.double()).min(1).values if used.shape[0]
+            else torch.full((c.shape[0],), float("inf"), dtype=torch.float64))
+
+    def eligible(chosen: list[int]) -> Tensor:
+        dist = base.clone()
+        for j in chosen:
+            dist = torch.minimum(dist, (c - c[j]).norm(dim=1))
+        free = torch.ones_like(dist, dtype=torch.bool)
+        free[chosen] = False
+        if not bool(free.any()):
+            return free
+        top = dist[free].max()
+        if not bool(torch.isfinite(top)):
+            return free
+        return free & (dist >= fraction * top)
+
+    return eligible
+
+
 def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_images: Tensor, cameras: Cameras,
                   render_fn: Callable, *, names: Sequence[str], prior_std: dict[str, float], sh_degree: int,
-                  probes: int, seed: int, n: int, information: str = "trace"
+                  probes: int, seed: int, n: int, information: str = "trace",
+                  eligible: Callable[[list[int]], Tensor] | None = None
                   ) -> tuple[list[int], list[float], Tensor, float]:
-    """Greedy FisherRF choice of ``n`` candidates (see the module docstring).
+    """Greedy FisherRF choice of ``n`` candidates (see the module docstring). ``eligible`` (``gap_eligible``)
+    restricts each choice to the candidates its mask allows; the others are not scored (NaN).
 
     Returns:
         (chosen positions, their information when chosen, [C] every candidate's information before any choice,
@@ -188,7 +218,12 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
             return float(sum(0.5 * torch.log1p(f[k] / precision[k]).sum() for k in names))
         return float(sum((reference[k] * f[k] / (precision[k] * (precision[k] + f[k]))).sum() for k in names))
 
-    scores = torch.tensor([gain(view_fisher(c)) for c in range(num)], dtype=torch.float64)
+    def all_scores(chosen: list[int]) -> Tensor:
+        ok = eligible(chosen).tolist() if eligible is not None else [True] * num
+        return torch.tensor([gain(view_fisher(c)) if ok[c] and c not in chosen else float("nan")
+                             for c in range(num)], dtype=torch.float64)
+
+    scores = all_scores([])
     first = scores.clone()
     chosen, at = [], []
     for r in range(min(n, num)):
@@ -198,10 +233,9 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
         if r + 1 < n:  # the chosen view's information joins the training views', then every candidate again
             f = view_fisher(j)
             precision = {k: precision[k] + f[k] for k in names}
-            scores = torch.tensor([gain(view_fisher(c)) if c not in chosen else float("nan")
-                                   for c in range(num)], dtype=torch.float64)
+            scores = all_scores(chosen)
     return chosen, at, first, noise
 
 
-__all__ = ["INFORMATION", "SCORES", "best_unchosen", "coverage_choice", "fisher_choice", "low_resolution", "rank_order",
+__all__ = ["INFORMATION", "SCORES", "best_unchosen", "coverage_choice", "fisher_choice", "gap_eligible", "low_resolution", "rank_order",
            "relative_position_variance", "unseen_scores", "variance_scores"]

@@ -77,6 +77,7 @@ def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | N
     from uncertsplat.select.scores import (
         coverage_choice,
         fisher_choice,
+        gap_eligible,
         low_resolution,
         rank_order,
         relative_position_variance,
@@ -139,9 +140,10 @@ def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | N
             chosen, at, first, noise = fisher_choice(
                 params, low_train.to(device), images.to(device), low.to(device), loaded.render_fn(scene.scene_scale, device),
                 names=fcfg.params, prior_std=prior_stds(fcfg, loaded.extent), sh_degree=loaded.sh_degree,
-                probes=cfg.probes, seed=cfg.seed, n=n, information=cfg.information)
+                probes=cfg.probes, seed=cfg.seed, n=n, information=cfg.information,
+                eligible=gap_eligible(centres, scene.cameras[train].centers, cfg.gaps) if cfg.gaps > 0 else None)
         settings.update(width=low.width, height=low.height, probes=cfg.probes, noise_std=noise,
-                        information=cfg.information, params=list(fcfg.params))
+                        information=cfg.information, params=list(fcfg.params), gaps=cfg.gaps)
         if loaded.config.method == "ensemble":
             settings["note"] = "ensemble: the Fisher of member 0's Gaussians"
     seconds = time.perf_counter() - t0
