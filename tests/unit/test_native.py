@@ -369,3 +369,65 @@ def test_native_projection_matches_the_reference(monkeypatch):
         assert torch.isfinite(got).all(), name
         assert ((got - ref).norm() / ref.norm()).item() <= 1e-4, name
     del g
+
+
+class TestSingleThreadedTorch:
+    """``native.single_threaded_torch``: torch's own ops on one thread, the native kernels on torch's count."""
+
+    def test_inside_torch_has_one_thread_and_the_kernels_keep_theirs(self):
+        if native.library() is None:
+            pytest.skip(f"native kernels unavailable: {native.unavailable_reason()}")
+
+        def check():
+            with native.single_threaded_torch("cpu"):
+                inside = torch.get_num_threads(), native.kernel_threads()
+                with native.single_threaded_torch("cpu"):  # nested: unchanged
+                    nested = torch.get_num_threads(), native.kernel_threads()
+            return inside, nested, torch.get_num_threads(), native.kernel_threads()
+
+        assert _with_threads(2, check) == ((1, 2), (1, 2), 2, 2)
+
+    def test_restored_after_an_error(self):
+        def fail():
+            with native.single_threaded_torch("cpu"):
+                raise KeyError("inside")
+
+        def check():
+            with pytest.raises(KeyError):
+                fail()
+            return torch.get_num_threads(), native.kernel_threads()
+
+        assert _with_threads(2, check) == (2, 2)
+
+    @pytest.mark.parametrize("case", ["one thread", "torch backend", "meta device"])
+    def test_nothing_changes_where_it_cannot_pay(self, case, monkeypatch):
+        if case == "torch backend":
+            monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "torch")
+        n = 1 if case == "one thread" else 2
+        device = "meta" if case == "meta device" else "cpu"
+
+        def check():
+            with native.single_threaded_torch(device):
+                return torch.get_num_threads(), native.kernel_threads()
+
+        assert _with_threads(n, check) == (n, n)
+
+    def test_a_training_step_runs_torch_on_one_thread_and_the_kernels_on_two(self):
+        if native.library() is None:
+            pytest.skip(f"native kernels unavailable: {native.unavailable_reason()}")
+        from tests.e2e.test_train_resume import toy_config, toy_scene
+        from uncertsplat.train.trainer import Trainer
+
+        scene, tr, te = toy_scene()
+        t = Trainer(scene, toy_config(iterations=4), tr, te)
+        seen = []
+        render = t.render
+
+        def wrapped(g, cams):
+            seen.append((torch.get_num_threads(), native.kernel_threads()))
+            return render(g, cams)
+
+        t.render = wrapped
+        _with_threads(2, t.train_step)
+        assert seen == [(1, 2)]
+        assert _with_threads(2, torch.get_num_threads) == 2

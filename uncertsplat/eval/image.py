@@ -165,7 +165,7 @@ class _FusedSSIM(torch.autograd.Function):
         partials = x.new_empty(3, B, H, W) if x.requires_grad else None
         lib.us_ssim_forward_f32(B, H, W, window.numel(), x.data_ptr(), y.data_ptr(), window.data_ptr(),
                                 SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, plane_mean.data_ptr(),
-                                partials.data_ptr() if partials is not None else None, torch.get_num_threads())
+                                partials.data_ptr() if partials is not None else None, native.kernel_threads())
         ctx.save_for_backward(x, y, window, partials if partials is not None else x.new_empty(0))
         return plane_mean.to(x.dtype)
 
@@ -179,7 +179,7 @@ class _FusedSSIM(torch.autograd.Function):
         g_x = torch.empty_like(x)
         native.library().us_ssim_backward_f32(B, H, W, window.numel(), x.data_ptr(), y.data_ptr(), window.data_ptr(),
                                               partials.data_ptr(), g_plane.data_ptr(), g_x.data_ptr(),
-                                              torch.get_num_threads())
+                                              native.kernel_threads())
         return g_x, None, None
 
 

@@ -589,7 +589,7 @@ def _native_kl(kind: str, loc: Tensor, raw: Tensor, a: float, b: float, want_gra
     g_loc = torch.empty_like(loc) if want_grad else None
     g_raw = torch.empty_like(raw) if want_grad else None
     ptrs = (g_loc.data_ptr(), g_raw.data_ptr()) if want_grad else (None, None)
-    threads = torch.get_num_threads()
+    threads = native.kernel_threads()
     if kind == "gaussian":
         total = lib.us_gaussian_kl_f32(loc.numel(), loc.data_ptr(), raw.data_ptr(), a, b, *ptrs, threads)
     else:

@@ -21,6 +21,7 @@ why, and every caller uses its PyTorch implementation (same results, slower on C
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import hashlib
 import os
@@ -272,6 +273,36 @@ def use_for(*tensors: torch.Tensor, backend: str | None = None, supported: bool 
             raise RuntimeError(f"the native kernels are unavailable: {unavailable_reason()}")
         return False
     return True
+
+
+def kernel_threads() -> int:
+    """Threads a native kernel call uses: torch's intra-op thread count, or the count it had when
+    ``single_threaded_torch`` lowered it."""
+    return _state.get("kernel_threads") or torch.get_num_threads()
+
+
+@contextlib.contextmanager
+def single_threaded_torch(device: torch.device | str):
+    """Inside: torch's own CPU ops run on one thread, the native kernels on as many threads as torch had.
+
+    Between the kernels, a training step is a few hundred small torch ops on tensors of one value per
+    Gaussian or per pixel (about 40k-300k elements); on 2 threads each one wakes the intra-op pool, which cost
+    more than the arithmetic: a demo training step took x0.74 the time with those ops on one thread and the
+    kernels on two (BENCHMARKS.md, "Torch's own ops on one thread"). The kernels start their own threads, so
+    they keep the parallelism where it pays. Nothing changes on other devices, without the native kernels,
+    or when torch already runs on one thread."""
+    before = torch.get_num_threads()
+    if torch.device(device).type != "cpu" or before <= 1 or "kernel_threads" in _state \
+            or requested_backend() == "torch" or library() is None:
+        yield
+        return
+    _state["kernel_threads"] = before
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+        del _state["kernel_threads"]
 
 
 def describe(device: torch.device | str) -> str:

@@ -162,7 +162,7 @@ class _NativeProjection(torch.autograd.Function):
         native.library().us_project_forward_f32(
             C, N, means.data_ptr(), quats.data_ptr(), scales.data_ptr(), opacities.data_ptr(), cams.data_ptr(),
             Ks.data_ptr(), width, height, near, far, eps2d, ALPHA_MIN, means2d.data_ptr(), conics.data_ptr(),
-            depths.data_ptr(), extents.data_ptr(), valid.data_ptr(), torch.get_num_threads())
+            depths.data_ptr(), extents.data_ptr(), valid.data_ptr(), native.kernel_threads())
         ctx.save_for_backward(means, quats, scales, cams, Ks)
         ctx.args = (width, height, near, far, eps2d)
         ctx.mark_non_differentiable(extents)
@@ -182,5 +182,5 @@ class _NativeProjection(torch.autograd.Function):
         native.library().us_project_backward_f32(
             C, N, means.data_ptr(), quats.data_ptr(), scales.data_ptr(), cams.data_ptr(), Ks.data_ptr(), width,
             height, near, far, eps2d, *(None if g is None else g.data_ptr() for g in grads), g_means.data_ptr(),
-            g_quats.data_ptr(), g_scales.data_ptr(), torch.get_num_threads())
+            g_quats.data_ptr(), g_scales.data_ptr(), native.kernel_threads())
         return g_means, g_quats, g_scales, None, None, None, None, None, None, None, None

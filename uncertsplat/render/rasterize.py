@@ -184,7 +184,7 @@ def _bin_native(means2d: Tensor, extents: Tensor, valid: Tensor, depths: Tensor,
     m2, ext, con, dep = (t.detach().to(dt).contiguous() for t in (means2d, extents, conics, depths))
     opac = opacities.detach().to(dt).contiguous()
     vis = valid.to(torch.uint8).contiguous()
-    workers = max(1, min(torch.get_num_threads(), G // 4096 + 1))
+    workers = max(1, min(native.kernel_threads(), G // 4096 + 1))
     head = (G, N, C, width, height, tile_size, tiles_x, tiles_y, workers, ALPHA_MIN)
     ptrs = (m2.data_ptr(), ext.data_ptr(), con.data_ptr(), opac.data_ptr())
     f64 = dt == torch.float64
@@ -553,7 +553,7 @@ def _scratch(n: int, dtype: torch.dtype) -> Tensor:
 def _native_head(bins: TileBins, F: int) -> tuple:
     """The scalar arguments shared by the native forward and backward."""
     return (bins.tile_count.numel(), bins.tiles_x, bins.tiles_x * bins.tiles_y, bins.tile_size,
-            torch.get_num_threads(), ALPHA_MIN, ALPHA_MAX, T_MIN, F)
+            native.kernel_threads(), ALPHA_MIN, ALPHA_MAX, T_MIN, F)
 
 
 def use_native(*tensors: Tensor, backend: str | None = None, compile: bool = False,

@@ -149,7 +149,7 @@ class _NativeBlurPeak(torch.autograd.Function):
         out = means.new_empty(C, N)
         native.library().us_blur_peak_forward_f32(
             C, N, means.data_ptr(), conics.data_ptr(), var.data_ptr(), cams.data_ptr(), Ks.data_ptr(), W, H, near,
-            far, eps2d, out.data_ptr(), torch.get_num_threads())
+            far, eps2d, out.data_ptr(), native.kernel_threads())
         ctx.save_for_backward(means, conics, var, cams, Ks)
         ctx.args = (W, H, near, far, eps2d)
         return out
@@ -166,7 +166,7 @@ class _NativeBlurPeak(torch.autograd.Function):
         native.library().us_blur_peak_backward_f32(
             C, N, means.data_ptr(), conics.data_ptr(), var.data_ptr(), cams.data_ptr(), Ks.data_ptr(), W, H, near,
             far, eps2d, g_out.data_ptr(), g_means.data_ptr(), g_conics.data_ptr(), g_var.data_ptr(),
-            torch.get_num_threads())
+            native.kernel_threads())
         return g_means, g_conics, g_var, None, None, None, None, None, None, None
 
 

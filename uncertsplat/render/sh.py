@@ -144,7 +144,7 @@ class _NativeSH(torch.autograd.Function):
             raise ValueError(f"sh has {B} bases, degree {degree} needs {num_sh_bases(degree)}")
         out = sh.new_empty(C, N, 3)
         native.library().us_sh_forward_f32(C, N, B, degree, sh.data_ptr(), means.data_ptr(), centers.data_ptr(),
-                                           out.data_ptr(), torch.get_num_threads())
+                                           out.data_ptr(), native.kernel_threads())
         ctx.save_for_backward(sh, means, centers)
         ctx.degree = degree
         return out
@@ -159,5 +159,5 @@ class _NativeSH(torch.autograd.Function):
         grad = grad.contiguous()  # kept in a variable: the kernel reads it after data_ptr() returns
         native.library().us_sh_backward_f32(C, N, B, ctx.degree, sh.data_ptr(), means.data_ptr(), centers.data_ptr(),
                                             grad.data_ptr(), g_sh.data_ptr(), g_means.data_ptr(),
-                                            torch.get_num_threads())
+                                            native.kernel_threads())
         return g_sh, g_means, None, None

@@ -128,6 +128,13 @@ def _copy_evaluation(source_eval: Path, out: Path) -> None:
 
 def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
     """Evaluate ``run_dir`` and write ``run_dir/eval`` (maps + metrics.json); returns the EvalReport."""
+    from uncertsplat import native
+
+    with native.single_threaded_torch(device):  # torch's own ops on one thread, the kernels on all
+        return _run(run_dir, cfg, device)
+
+
+def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
     from functools import partial
 
     from uncertsplat.baselines import load_run

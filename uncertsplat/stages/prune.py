@@ -234,6 +234,13 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
         UserError: a missing run folder, a run without posterior carriers, no mode given, an unknown
             score, an output folder equal to / inside / containing the input or already existing.
     """
+    from uncertsplat import native
+
+    with native.single_threaded_torch(device):  # torch's own ops on one thread, the kernels on all
+        return _run(run_dir, output, cfg, device)
+
+
+def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.device):
     from uncertsplat.baselines import load_run
     from uncertsplat.prune import apply_keep
     from uncertsplat.prune.policy import auto_keep_ratio, choose_mask, keep_ratio_sweep, random_keep

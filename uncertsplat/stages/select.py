@@ -66,6 +66,13 @@ def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | N
     Raises:
         UserError: a missing run, an ensemble (no single model), bad candidates (file and line named).
     """
+    from uncertsplat import native
+
+    with native.single_threaded_torch(device):  # torch's own ops on one thread, the kernels on all
+        return _run(run_dir, cfg, device, output)
+
+
+def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | None = None):
     from uncertsplat.baselines import load_run
     from uncertsplat.baselines.fisher import prior_stds
     from uncertsplat.data.dataset import load_images

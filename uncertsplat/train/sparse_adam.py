@@ -105,7 +105,7 @@ def adam_rows(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor, 
         native.library().us_adam_rows_f32(
             param.shape[0], r.numel(), width, r.data_ptr(), param.data_ptr(), grad.data_ptr(), exp_avg.data_ptr(),
             exp_avg_sq.data_ptr(), None if last_step is None else last_step.data_ptr(), step, lr, beta1, beta2, eps,
-            torch.get_num_threads())
+            native.kernel_threads())
         return
     p2, g2, m2, v2 = (t.view(t.shape[0], -1) for t in tensors)
     g = g2.index_select(0, rows)

@@ -25,6 +25,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from uncertsplat import native
 from uncertsplat.config import TrainConfig
 from uncertsplat.console import progress
 from uncertsplat.eval.image import psnr, ssim
@@ -331,7 +332,12 @@ class Trainer:
 
     # ----------------------------------------------------------------------------------- steps
     def train_step(self) -> dict[str, float]:
-        """One optimisation step (plus the topology changes due); returns the loss terms."""
+        """One optimisation step (plus the topology changes due); returns the loss terms. On the CPU with the
+        native kernels, torch's own ops in it run on one thread (``native.single_threaded_torch``)."""
+        with native.single_threaded_torch(self.device):
+            return self._train_step()
+
+    def _train_step(self) -> dict[str, float]:
         cfg = self.cfg
         step = self.step + 1
         set_rates(self.optimizer, self._rates(step))
