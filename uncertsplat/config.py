@@ -536,9 +536,10 @@ class SelectConfig(_Base):
     num_views: int = Field(1, ge=1)
     """How many views to choose (greedy for fisher and coverage; the top ones for variance and random)."""
     score: Literal["variance", "unseen", "fisher", "coverage", "random"] = "fisher"
-    """How candidates are ranked (``uncertsplat.select.scores``). fisher, the default, is the uncertainty policy that
-    did best in the active-learning loop (BENCHMARKS.md, "Choosing the next view": on fern 27.46 dB against 26.58
-    for random choice and 27.36 for coverage; variance trailed both on both scenes)."""
+    """How candidates are ranked (``uncertsplat.select.scores``). fisher, the default, with ``gaps`` = 0.5, is the
+    policy that did best in the active-learning loop (BENCHMARKS.md, "Choosing the next view", "The Fisher inside the
+    gaps": synthetic ring 21.16 dB against 20.70 for coverage and 20.87 for random choice; fern 27.64 against 27.49
+    and 26.80; three seeds each; variance trailed random on both scenes)."""
     num_samples: int = Field(4, ge=2, le=256)
     """variance: posterior samples (K) per candidate."""
     max_side: int = Field(96, ge=16, le=4096)
@@ -550,10 +551,11 @@ class SelectConfig(_Base):
     expected information gain of the diagonal posterior, sum of log(1 + F_cand / precision) / 2, which saturates per
     parameter) or predictive (the variance the candidate takes off the renders of the training views and all the
     candidates, sum of G F_cand / (precision (precision + F_cand)) with G their Fisher)."""
-    gaps: float = Field(0.0, ge=0.0, le=1.0)
+    gaps: float = Field(0.5, ge=0.0, le=1.0)
     """fisher: only the candidates whose distance to the nearest camera used (trained on or chosen) is at least
-    this fraction of the largest such distance compete (``select.scores.gap_eligible``); 0: every candidate, 1:
-    coverage's farthest ones."""
+    this fraction of the largest such distance compete (``select.scores.gap_eligible``); the others get no score.
+    0: every candidate (FisherRF's choice, which picked views next to ones just added), 1: coverage's farthest
+    ones. 0.5, the one value tried, is the default since 2026-11-27."""
     around_radius: float = Field(1.0, gt=0.0)
     """around: largest move of a candidate from its training camera, in median camera spacings."""
     seed: int = 0

@@ -44,7 +44,8 @@ def test_every_policy_chooses_distinct_unused_views(subset_run, tmp_path, score)
     assert [c.rank for c in sel.chosen] == [1, 2, 3]
     assert sel.num_candidates == len(sel.ranking) == 24 - len(START) - len(held)
     scores = [c.score for c in sel.ranking]
-    assert scores == sorted(scores, reverse=True)
+    scored = [x for x in scores if x is not None]  # fisher scores only the candidates in the gaps (the default)
+    assert scores[:len(scored)] == sorted(scored, reverse=True) and len(scored) >= 3
     assert Selection.read(tmp_path / "sel" / "selection.json").chosen[0].name == names[0]
     assert (tmp_path / "sel" / "selection.png").stat().st_size > 1000
     if score in ("variance", "unseen", "random"):  # not greedy: the top ones of the first ranking
@@ -62,8 +63,8 @@ def test_same_seed_same_choice(subset_run, tmp_path, score):
 def test_fisher_log_det_is_the_saturating_information(subset_run, tmp_path):
     """log-det scores each candidate by sum log(1 + F / prec) / 2 with the same probes as the trace: never above
     half the trace (log1p(x) <= x), positive, and it chooses distinct unused views; the setting is recorded."""
-    trace = stage.run(subset_run, SelectConfig(score="fisher", num_views=2), CPU, output=tmp_path / "t")
-    logdet = stage.run(subset_run, SelectConfig(score="fisher", num_views=2, information="log-det"), CPU,
+    trace = stage.run(subset_run, SelectConfig(score="fisher", num_views=2, gaps=0.0), CPU, output=tmp_path / "t")
+    logdet = stage.run(subset_run, SelectConfig(score="fisher", num_views=2, information="log-det", gaps=0.0), CPU,
                        output=tmp_path / "l")
     t = {c.name: c.score for c in trace.ranking}
     ld = {c.name: c.score for c in logdet.ranking}
@@ -77,10 +78,35 @@ def test_fisher_log_det_is_the_saturating_information(subset_run, tmp_path):
         SelectConfig(information="entropy")
 
 
+def test_fisher_chooses_inside_the_gaps_by_default(subset_run, tmp_path):
+    """The default (gaps = 0.5): only candidates at least half the farthest one's distance from the cameras used
+    are scored, each choice is one of them (given the ones chosen before), and the setting is recorded."""
+    from uncertsplat.baselines import load_run
+    from uncertsplat.select.scores import gap_eligible
+
+    sel = stage.run(subset_run, SelectConfig(score="fisher", num_views=2), CPU, output=tmp_path / "g")
+    assert sel.settings["gaps"] == 0.5
+    scene = load_run(subset_run, CPU).load_scene()  # the frame the stage measures distances in
+    used = scene.cameras[list(scene.split["train"])].centers
+    cands = sel.ranking
+    centres = torch.tensor([c.position for c in cands], dtype=torch.float64)
+    eligible = gap_eligible(centres, used, 0.5)
+    names = [c.name for c in cands]
+    chosen = []
+    for c in sel.chosen:
+        assert bool(eligible(chosen)[names.index(c.name)]), c.name
+        chosen.append(names.index(c.name))
+    first = eligible([])
+    assert {c.name for c in cands if c.score is not None} == {n for i, n in enumerate(names) if bool(first[i])}
+    assert 0 < int(first.sum()) < len(cands)
+    plain = stage.run(subset_run, SelectConfig(score="fisher", num_views=1, gaps=0.0), CPU, output=tmp_path / "p")
+    assert all(c.score is not None for c in plain.ranking) and plain.settings["gaps"] == 0.0
+
+
 def test_fisher_predictive_runs_end_to_end(subset_run, tmp_path):
     """information=predictive through the stage: positive scores, two distinct unused views, the setting recorded
     (its arithmetic: tests/unit/test_select.py, TestFisherInformation)."""
-    sel = stage.run(subset_run, SelectConfig(score="fisher", num_views=2, information="predictive"), CPU,
+    sel = stage.run(subset_run, SelectConfig(score="fisher", num_views=2, information="predictive", gaps=0.0), CPU,
                     output=tmp_path / "p")
     assert all(c.score > 0 for c in sel.ranking)
     names = [c.name for c in sel.chosen]
