@@ -389,7 +389,7 @@ class Trainer:
                 scale = self.train_cams.width / cams.width
                 radii = out.radii if scale == 1.0 else out.radii * scale
                 self.densifier.accumulate(step, out.means2d.grad, radii, cams.width, cams.height)
-        with timer("optimizer"):
+        with timer("optimizer"), native.all_torch_threads():
             if finite:
                 self.bad_steps_in_a_row = 0
                 if cfg.sparse_updates == "dense":
