@@ -71,6 +71,23 @@ def assert_same_parameters(a, b, atol: float = 1e-6) -> None:
         torch.testing.assert_close(b.parameters()[name], p, rtol=0, atol=atol, msg=name)
 
 
+def assert_resume_is_exact(cfg, until: int):
+    """A toy-scene run stopped at step ``until``, its state through a checkpoint's bytes, resumed to the end,
+    ends with the parameters of the run that was never stopped; returns that uninterrupted trainer."""
+    from uncertsplat.io.checkpoints import decode, encode
+
+    scene, tr, te = toy_scene()
+    full = Trainer(scene, cfg, tr, te)
+    full.fit()
+    part = Trainer(scene, cfg, tr, te)
+    part.fit(until=until)
+    resumed = Trainer(scene, cfg, tr, te, state=decode(encode(part.state_dict())))
+    resumed.fit()
+    assert resumed.step == full.step == cfg.iterations
+    assert_same_parameters(full.model, resumed.model)
+    return full
+
+
 def test_resume_equals_uninterrupted(tmp_path):
     scene, tr, te = toy_scene()
     cfg = toy_config()

@@ -7,9 +7,8 @@ import pydantic
 import pytest
 import torch
 
-from tests.e2e.test_train_resume import assert_same_parameters, toy_config, toy_scene
+from tests.e2e.test_train_resume import assert_resume_is_exact, toy_config, toy_scene
 from uncertsplat.config import TrainConfig
-from uncertsplat.io.checkpoints import decode, encode
 from uncertsplat.train.trainer import Trainer
 
 
@@ -57,16 +56,8 @@ class TestLowResolutionPhase:
             assert t.low_images is None and set(sizes) == {(48, 36)}
 
     def test_resume_inside_the_phase_equals_uninterrupted(self):
-        scene, tr, te = toy_scene()
-        cfg = toy_config(low_res_fraction=0.5)  # 30 steps: low resolution up to step 15, densification in it
-        full = Trainer(scene, cfg, tr, te)
-        full.fit()
-        part = Trainer(scene, cfg, tr, te)
-        part.fit(until=7)
-        resumed = Trainer(scene, cfg, tr, te, state=decode(encode(part.state_dict())))
-        resumed.fit()
-        assert resumed.step == full.step == 30
-        assert_same_parameters(full.model, resumed.model)
+        # 30 steps: low resolution up to step 15, densification in it
+        assert_resume_is_exact(toy_config(low_res_fraction=0.5), until=7)
 
     @pytest.mark.parametrize("bad", [{"low_res_fraction": 1.0}, {"low_res_fraction": -0.1}, {"low_res_scale": 0.0},
                                      {"low_res_scale": 1.5}])
