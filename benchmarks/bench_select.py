@@ -10,6 +10,10 @@ At the end: held-out PSNR / SSIM of the expected render, AUSE-MAE (K = ``--eval-
 with GT depth, the depth MAE of the mean render (``evaluate``); and the time spent choosing against the
 time spent training the rounds.
 
+Policies are ``select-views`` scores with the settings of the tables before 2026-11-27: ``fisher`` here is the
+Fisher over every candidate (``gaps = 0``); ``fisher-gaps`` is the command's default since then (``gaps = 0.5``),
+``fisher-logdet`` / ``fisher-predictive`` the other ``information`` settings.
+
     .venv/bin/python benchmarks/bench_select.py --scene demo_out/synth --label synthetic --downscale 2
     .venv/bin/python benchmarks/bench_select.py --scene /tmp/fernws --label fern --downscale 16 --preset paper
 
