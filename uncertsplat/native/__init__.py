@@ -302,7 +302,7 @@ def single_threaded_torch(device: torch.device | str):
         yield
     finally:
         torch.set_num_threads(before)
-        del _state["kernel_threads"]
+        _state.pop("kernel_threads", None)  # pop, not del: two threads entering at once must not raise here
 
 
 @contextlib.contextmanager
