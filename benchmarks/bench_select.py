@@ -72,7 +72,8 @@ def one_loop(scene_path: Path, scene, names, start: list[int], policy: str, seed
     step = args.init_steps
     for r in range(args.budget - len(start)):
         t = time.perf_counter()
-        score, (info, gaps) = ("fisher", FISHER_VARIANTS[policy]) if policy in FISHER_VARIANTS else (policy, ("trace", 0.0))
+        score, (info, gaps) = (("fisher", FISHER_VARIANTS[policy]) if policy in FISHER_VARIANTS
+                               else (policy, ("trace", 0.0)))
         sel = select_stage.run(run, SelectConfig(score=score, information=info, gaps=gaps, seed=seed * 1000 + r,
                                                  num_samples=args.select_samples, max_side=args.select_side),
                                CPU, output=run / "select" / f"round{r}")
@@ -109,7 +110,8 @@ def main() -> None:
     ap.add_argument("--steps-per-round", type=int, default=300)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--policies", nargs="+", default=["variance", "fisher", "coverage", "random"],
-                    help="select-views scores, or fisher-logdet / fisher-predictive (fisher with that information) / fisher-gaps (fisher with gaps = 0.5)")
+                    help="select-views scores, or fisher-logdet / fisher-predictive (fisher with that information) / "
+                         "fisher-gaps (fisher with gaps = 0.5)")
     ap.add_argument("--select-samples", type=int, default=4)
     ap.add_argument("--select-side", type=int, default=96)
     ap.add_argument("--eval-samples", type=int, default=4)

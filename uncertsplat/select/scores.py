@@ -66,6 +66,15 @@ def best_unchosen(scores: Tensor, chosen: list[int]) -> int:
     return rank_order(masked)[0]
 
 
+def nearest_used_distance(candidates: Tensor, used: Tensor) -> Tensor:
+    """[C] float64 distance from each candidate centre ([C,3]) to the nearest used camera centre ([U,3]); inf for
+    every candidate when U = 0."""
+    c = candidates.double()
+    if used.shape[0]:
+        return torch.cdist(c, used.double()).min(1).values
+    return torch.full((c.shape[0],), float("inf"), dtype=torch.float64)
+
+
 def coverage_choice(candidates: Tensor, used: Tensor, n: int) -> tuple[list[int], list[float], Tensor]:
     """Greedy farthest-point choice of ``n`` candidates.
 
@@ -78,10 +87,7 @@ def coverage_choice(candidates: Tensor, used: Tensor, n: int) -> tuple[list[int]
         (chosen positions, their distance when chosen, [C] every candidate's distance before any choice).
     """
     c = candidates.double()
-    if used.shape[0]:
-        dist = torch.cdist(c, used.double()).min(1).values
-    else:
-        dist = torch.full((c.shape[0],), float("inf"), dtype=torch.float64)
+    dist = nearest_used_distance(c, used)
     first = dist.clone()
     chosen, at = [], []
     for _ in range(min(n, c.shape[0])):
@@ -147,8 +153,7 @@ def gap_eligible(candidates: Tensor, used: Tensor, fraction: float) -> Callable[
     ``fraction`` x the largest such distance among the candidates not chosen yet (0: every candidate; 1:
     coverage's farthest ones). ``candidates``: [C,3] centres."""
     c = candidates.double()
-    base = (torch.cdist(c, used.double()).min(1).values if used.shape[0]
-            else torch.full((c.shape[0],), float("inf"), dtype=torch.float64))
+    base = nearest_used_distance(c, used)
 
     def eligible(chosen: list[int]) -> Tensor:
         dist = base.clone()
@@ -237,5 +242,5 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
     return chosen, at, first, noise
 
 
-__all__ = ["INFORMATION", "SCORES", "best_unchosen", "coverage_choice", "fisher_choice", "gap_eligible", "low_resolution", "rank_order",
-           "relative_position_variance", "unseen_scores", "variance_scores"]
+__all__ = ["INFORMATION", "SCORES", "best_unchosen", "coverage_choice", "fisher_choice", "gap_eligible", "low_resolution",
+           "nearest_used_distance", "rank_order", "relative_position_variance", "unseen_scores", "variance_scores"]

@@ -48,7 +48,6 @@ _KEYS_BEFORE = {"variational": {"posterior": "sgd", "train_on": "samples",
 FEW_VIEWS = 10
 
 
-
 def _transparent(data) -> bool:
     """Whether the first training image has real transparency (an alpha channel with some alpha < 1): the
     background is then data, and a ray that meets no Gaussian shows it (``LoadedRun.empty_std``)."""
