@@ -57,9 +57,12 @@ RENDER_MODULE = sys.modules["uncertsplat.render.render"]
 
 
 def capture_render_inputs(fn) -> tuple:
-    """(the arguments of render's bin_gaussians call, those of its compositor call) during ``fn()``."""
+    """(the arguments of render's bin_gaussians call, those of its compositor call as packed (gparams [G,6],
+    feat [G,5], bins)) during ``fn()``; render's image-layout compositing (``composite_image``) is packed the
+    same way, so that both libraries' compositors run on the same inputs."""
     captured = {}
     bin_original, comp_original = RENDER_MODULE.bin_gaussians, rasterize._CompositeNative.apply
+    image_original = rasterize._CompositeImageNative.apply
 
     def bin_spy(*args, **kw):
         captured.setdefault("bin", (tuple(a.detach() if isinstance(a, torch.Tensor) else a for a in args), kw))
@@ -69,11 +72,20 @@ def capture_render_inputs(fn) -> tuple:
         captured.setdefault("composite", (gp.detach().clone(), feat.detach().clone(), bins))
         return comp_original(gp, feat, bins)
 
+    def image_spy(means2d, conics, log_o, colors, depths, background, bins, height, width):
+        m2, con, lo, col, dep = (t.detach() for t in (means2d, conics, log_o, colors, depths))
+        gp = torch.cat([m2, con, lo[..., None]], -1).reshape(-1, 6)
+        feat = torch.cat([col, dep[..., None], torch.ones_like(dep)[..., None]], -1).reshape(-1, 5)
+        captured.setdefault("composite", (gp, feat, bins))
+        return image_original(means2d, conics, log_o, colors, depths, background, bins, height, width)
+
     RENDER_MODULE.bin_gaussians, rasterize._CompositeNative.apply = bin_spy, comp_spy
+    rasterize._CompositeImageNative.apply = image_spy
     try:
         fn()
     finally:
         RENDER_MODULE.bin_gaussians, rasterize._CompositeNative.apply = bin_original, comp_original
+        rasterize._CompositeImageNative.apply = image_original
     return captured["bin"], captured["composite"]
 
 
@@ -91,7 +103,10 @@ def binning_alone(libs: dict, args: tuple, kw: dict, repeats: int) -> dict:
 class _OldInterface:
     """A library of an older interface behind the current calls: before version 10 the compositor forward took
     no Gaussian count; before version 11 binning kept no state between its two calls (pass 2 tested again);
-    before version 12 pass 2 always wrote pair_tile (today's callers pass a null pointer)."""
+    before version 12 pass 2 always wrote pair_tile (today's callers pass a null pointer); before version 14
+    SSIM read planes [B,H,W] only (today's callers pass HWC images and their channel count: the stand-in copies
+    them into planes and the gradient back, as the Python code before version 14 did) and the compositor had no
+    image entry points (``composite_image_available`` is then False: render takes the tile path)."""
 
     def __init__(self, lib: ctypes.CDLL, version: int):
         self._lib, self._version = lib, version
@@ -102,6 +117,8 @@ class _OldInterface:
         if name == "us_bin_free" and self._version < 11:
             return lambda state: None
         fn = getattr(self._lib, name)
+        if self._version < 14 and name in ("us_ssim_forward_f32", "us_ssim_backward_f32"):
+            return _planar_ssim(fn, backward=name.endswith("backward_f32"))
         if self._version < 10 and name in ("us_forward_f32", "us_forward_f64"):
             return lambda *args: fn(*args[:9], *args[10:])  # (head, F, G, pointers) -> (head, F, pointers)
         if name.startswith("us_bin_count_"):
@@ -118,6 +135,29 @@ class _OldInterface:
                 return fn(*(args if self._version >= 11 else args[:-1]))
             return fill
         return fn
+
+
+def _planar_ssim(fn, backward: bool):
+    """An SSIM entry point of interface < 14 (planes [B,H,W]) behind today's call (HWC images, channel count)."""
+    import numpy as np
+
+    def view(ptr: int, shape: tuple) -> torch.Tensor:
+        arr = np.ctypeslib.as_array(ctypes.cast(ptr, ctypes.POINTER(ctypes.c_float)), shape=shape)
+        return torch.from_numpy(arr)
+
+    def call(B, H, W, K, CH, x, y, w, *rest):
+        if CH == 1:
+            return fn(B, H, W, K, x, y, w, *rest)
+        shape = (B // CH, H, W, CH)
+        xp, yp = (view(p, shape).permute(0, 3, 1, 2).contiguous() for p in (x, y))
+        if not backward:
+            return fn(B, H, W, K, xp.data_ptr(), yp.data_ptr(), w, *rest)
+        partials, g_plane, g_x, threads = rest
+        gp = torch.empty(B // CH, CH, H, W)
+        rc = fn(B, H, W, K, xp.data_ptr(), yp.data_ptr(), w, partials, g_plane, gp.data_ptr(), threads)
+        view(g_x, shape).copy_(gp.permute(0, 2, 3, 1))
+        return rc
+    return call
 
 
 class _Tolerant:
@@ -160,7 +200,10 @@ def build_reference(ref: str, out_dir: Path):
         for suffix in ("f32", "f64"):
             getattr(lib, f"us_bin_count_{suffix}").argtypes = bin_head + [ptr] * 9
             getattr(lib, f"us_bin_fill_{suffix}").argtypes = bin_head + [ptr] * 5 + [i64] + [ptr] * 4
-    return (lib if version >= 12 else _OldInterface(lib, version)), version
+    if version < 14:
+        lib.us_ssim_forward_f32.argtypes = [i64] * 4 + [ptr] * 3 + [f64, f64, ptr, ptr, i64]
+        lib.us_ssim_backward_f32.argtypes = [i64] * 4 + [ptr] * 6 + [i64]
+    return (lib if version >= 14 else _OldInterface(lib, version)), version
 
 
 def alternate(fns: dict, repeats: int) -> dict:
@@ -260,7 +303,7 @@ def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, wid
     def forward(lib):
         def call():
             pm, part = torch.empty(planes, dtype=torch.float64), torch.empty(3, planes, height, width)
-            lib.us_ssim_forward_f32(planes, height, width, win.numel(), x.data_ptr(), y.data_ptr(), win.data_ptr(),
+            lib.us_ssim_forward_f32(planes, height, width, win.numel(), 1, x.data_ptr(), y.data_ptr(), win.data_ptr(),
                                     SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, pm.data_ptr(), part.data_ptr(), threads)
             return pm, part
         return call
@@ -270,7 +313,7 @@ def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, wid
     def backward(lib, part):
         def call():
             gx, gp = torch.empty(planes, height, width), torch.ones(planes)
-            lib.us_ssim_backward_f32(planes, height, width, win.numel(), x.data_ptr(), y.data_ptr(), win.data_ptr(),
+            lib.us_ssim_backward_f32(planes, height, width, win.numel(), 1, x.data_ptr(), y.data_ptr(), win.data_ptr(),
                                      part.data_ptr(), gp.data_ptr(), gx.data_ptr(), threads)
             return gx
         return call

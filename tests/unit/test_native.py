@@ -165,6 +165,70 @@ def test_more_features_than_the_kernel_takes():
         composite(gparams, feat, bins, backend="native")
 
 
+def _image_inputs(dtype, seed=11):
+    s, cams = _scene(700, dtype, seed=seed)
+    p = project_gaussians(s.means, s.quats, s.scales, s.opacities, cams.cam_from_world, cams.K, 61, 47)
+    bins = bin_gaussians(p.means2d, p.extents, p.valid, p.depths, 61, 47, 8, p.conics, s.opacities)
+    centers = -(cams.cam_from_world[:, :3, :3].transpose(1, 2) @ cams.cam_from_world[:, :3, 3:])[..., 0]
+    colors = sh_colors(s.sh_degree, s.sh, s.means, centers)
+    log_o = s.opacities.log().expand(2, -1)
+    return [t.detach().clone().requires_grad_() for t in (p.means2d, p.conics, log_o, colors, p.depths)], bins
+
+
+@pytest.mark.parametrize("background", [None, (0.3, 0.6, 0.9)])
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-5), (torch.float64, 1e-12)])
+@pytest.mark.parametrize("used", ["all", "rgb"])
+def test_image_compositing_equals_tiles_then_image(background, dtype, tol, used):
+    """render's fused path (``composite_image``: the kernel writes images and blends the background) against the
+    packed inputs through ``composite``, ``tiles_to_image``, the slices and the blend: same images, same gradients
+    to every input, also when the loss reads rgb only (the other outputs get no gradient) and with partial tiles
+    (61 x 47 in 8 x 8 tiles) on two cameras."""
+    from uncertsplat.render.rasterize import composite_image, tiles_to_image
+
+    bg = torch.tensor(background, dtype=dtype) if background is not None else None
+    g = torch.Generator().manual_seed(12)
+    weights = [torch.randn(2, 47, 61, k, generator=g, dtype=dtype) for k in (3, 1, 1)]
+
+    def loss(outs):
+        return sum((o * w).sum() for o, w in zip(outs, weights, strict=True) if used == "all" or o.shape[-1] == 3)
+
+    ins, bins = _image_inputs(dtype)
+    fused = composite_image(*ins, bins, 47, 61, bg)
+    loss(fused).backward()
+    g_fused = [t.grad for t in ins]
+
+    ins2, _ = _image_inputs(dtype)
+    m2, con, lo, col, dep = ins2
+    feat = torch.cat([col, dep[..., None], torch.ones_like(dep)[..., None]], -1).reshape(-1, 5)
+    gp = torch.cat([m2, con, lo[..., None]], -1).reshape(-1, 6)
+    img = tiles_to_image(composite(gp, feat, bins, backend="native"), 2, bins, 47, 61)
+    rgb, de, al = img[..., 0:3], img[..., 3:4], img[..., 4:5]
+    if bg is not None:
+        rgb = rgb + (1.0 - al) * bg
+    loss((rgb, de, al)).backward()
+    assert float(al.detach().mean()) > 0.3, "the scene must cover the images"
+    for a, b in zip(fused, (rgb, de, al), strict=True):
+        assert (a - b).abs().max().item() <= tol
+    for name, a, b in zip(("means2d", "conics", "log_o", "colors", "depths"), g_fused, [t.grad for t in ins2],
+                          strict=True):
+        if used == "rgb" and name == "depths":  # only the expected depth and alpha read the depths
+            assert all(t is None or float(t.abs().max()) == 0.0 for t in (a, b))
+            continue
+        assert ((a - b).norm() / b.norm()).item() <= tol, name
+
+
+def test_a_background_that_learns_takes_the_tile_path():
+    """The fused path gives the background no gradient; render keeps the general path when it needs one."""
+    s, cams = _scene(300, torch.float32)
+    bg = torch.tensor([0.2, 0.4, 0.6], requires_grad=True)
+    out = render(s, cams, background=bg, backend="native")
+    out.rgb.sum().backward()
+    fixed = render(s, cams, background=bg.detach(), backend="native")
+    assert (out.rgb - fixed.rgb).abs().max().item() <= 1e-5
+    # d sum(rgb) / d bg_c = sum over the pixels of (1 - alpha)
+    assert torch.allclose(bg.grad, (1.0 - fixed.alpha).sum().expand(3), rtol=1e-4)
+
+
 def test_compositor_return_codes_become_clear_errors():
     """2 is the kernel running out of memory for its per-Gaussian records; any other failure names its code."""
     from uncertsplat.render.rasterize import _check_composite
@@ -242,7 +306,7 @@ def test_a_failing_compiler_falls_back_to_pytorch_and_says_why(monkeypatch, tmp_
     assert torch.isfinite(render(s, cams).rgb).all()
 
 
-@pytest.mark.parametrize("shape", [(37, 53, 3), (2, 24, 19, 3), (11, 11, 1)])
+@pytest.mark.parametrize("shape", [(37, 53, 3), (2, 24, 19, 3), (11, 11, 1), (3, 20, 17, 2)])
 def test_fused_ssim_matches_the_reference(monkeypatch, shape):
     g = torch.Generator().manual_seed(2)
     target = torch.rand(shape, generator=g)

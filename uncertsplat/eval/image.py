@@ -140,16 +140,18 @@ def ssim(
     fused = padding == "same" and not target.requires_grad
     if native.use_for(pred, target, supported=fused, dtypes=(torch.float32,), strict=False):
         lead, (h, w, ch) = pred.shape[:-3], pred.shape[-3:]
-        planes = [t.reshape(-1, h, w, ch).permute(0, 3, 1, 2).reshape(-1, h, w).contiguous() for t in (pred, target)]
+        # the kernel reads the channels of HWC images as planes in place (no permuted copies)
+        images = [t.reshape(-1, h, w, ch).contiguous() for t in (pred, target)]
         window = gaussian_window(dtype=torch.float32)
-        per_image = _FusedSSIM.apply(planes[0], planes[1].detach(), window).view(-1, ch).mean(-1).reshape(lead)
+        per_image = _FusedSSIM.apply(images[0], images[1].detach(), window).view(-1, ch).mean(-1).reshape(lead)
     else:
         per_image = ssim_map(pred, target, padding=padding).mean(dim=(-3, -2, -1))
     return per_image.mean() if reduction == "mean" else per_image
 
 
 class _FusedSSIM(torch.autograd.Function):
-    """Mean SSIM of each plane [B,H,W] (an image channel) by the native kernel, 11x11 window, zero padding.
+    """Mean SSIM of each channel of images [n,H,W,Ch] by the native kernel ([n*Ch], image-major), 11x11 window,
+    zero padding.
 
     Forward keeps the per-pixel partial derivatives of the SSIM map w.r.t. (mu_x, E[x^2], E[xy]);
     backward blurs them (the zero-padded symmetric blur is its own adjoint) into d loss / d x.
@@ -160,10 +162,11 @@ class _FusedSSIM(torch.autograd.Function):
         from uncertsplat import native
 
         lib = native.library()
-        B, H, W = x.shape
+        n, H, W, ch = x.shape
+        B = n * ch
         plane_mean = torch.empty(B, dtype=torch.float64)
         partials = x.new_empty(3, B, H, W) if x.requires_grad else None
-        lib.us_ssim_forward_f32(B, H, W, window.numel(), x.data_ptr(), y.data_ptr(), window.data_ptr(),
+        lib.us_ssim_forward_f32(B, H, W, window.numel(), ch, x.data_ptr(), y.data_ptr(), window.data_ptr(),
                                 SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, plane_mean.data_ptr(),
                                 partials.data_ptr() if partials is not None else None, native.kernel_threads())
         ctx.save_for_backward(x, y, window, partials if partials is not None else x.new_empty(0))
@@ -174,12 +177,12 @@ class _FusedSSIM(torch.autograd.Function):
         from uncertsplat import native
 
         x, y, window, partials = ctx.saved_tensors
-        B, H, W = x.shape
+        n, H, W, ch = x.shape
         g_plane = grad.to(torch.float32).contiguous()
         g_x = torch.empty_like(x)
-        native.library().us_ssim_backward_f32(B, H, W, window.numel(), x.data_ptr(), y.data_ptr(), window.data_ptr(),
-                                              partials.data_ptr(), g_plane.data_ptr(), g_x.data_ptr(),
-                                              native.kernel_threads())
+        native.library().us_ssim_backward_f32(n * ch, H, W, window.numel(), ch, x.data_ptr(), y.data_ptr(),
+                                              window.data_ptr(), partials.data_ptr(), g_plane.data_ptr(),
+                                              g_x.data_ptr(), native.kernel_threads())
         return g_x, None, None
 
 

@@ -528,6 +528,84 @@ class _CompositeNative(torch.autograd.Function):
         return g_all[:, :6], g_all[:, 6:], None
 
 
+class _CompositeImageNative(torch.autograd.Function):
+    """``render``'s compositing by the native kernel in image layout (``composite_image``): the features are
+    (colour, camera depth, 1), the outputs images, the background blended in by the kernel. Gradients to the
+    means, conics, log opacities, colours and depths; none to the background (a constant in every caller)."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, log_o, colors, depths, background, bins: TileBins, height: int, width: int):
+        lib = native.library()
+        ctx.set_materialize_grads(False)
+        C, N = means2d.shape[:2]
+        ins = [t.detach().contiguous() for t in (means2d, conics, log_o, colors, depths)]
+        bg = background.detach().to(ins[0].dtype).contiguous() if background is not None else None
+        rgb = ins[0].new_empty(C, height, width, 3)
+        depth_expected = ins[0].new_empty(C, height, width, 1)
+        alpha = ins[0].new_empty(C, height, width, 1)
+        T, P = bins.tile_count.numel(), bins.tile_size**2
+        t_final = ins[0].new_empty(T, P)
+        last = torch.empty(T, P, dtype=torch.int32)
+        fn = lib.us_forward_image_f64 if ins[0].dtype == torch.float64 else lib.us_forward_image_f32
+        rc = fn(*_native_head(bins, 5), C * N, height, width, *(t.data_ptr() for t in ins),
+                bg.data_ptr() if bg is not None else None, bins.pair_gauss.data_ptr(), bins.tile_start.data_ptr(),
+                bins.tile_count.data_ptr(), rgb.data_ptr(), depth_expected.data_ptr(), alpha.data_ptr(),
+                t_final.data_ptr(), last.data_ptr())
+        _check_composite(rc, "")
+        ctx.save_for_backward(*ins, t_final, last, *([bg] if bg is not None else []))
+        ctx.bins, ctx.size = bins, (C, N, height, width)
+        return rgb, depth_expected, alpha
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_depth, g_alpha):
+        means2d, conics, log_o, colors, depths, t_final, last, *bg = ctx.saved_tensors
+        bins: TileBins = ctx.bins
+        C, N, height, width = ctx.size
+        if g_rgb is None and g_depth is None and g_alpha is None:
+            return (None,) * 9
+        grads = [g.to(means2d.dtype).contiguous() if g is not None else None for g in (g_rgb, g_depth, g_alpha)]
+        M, G = bins.pair_gauss.numel(), C * N
+        g_pair = _scratch(M * 11, means2d.dtype).view(M, 11)  # every row is written by the kernel
+        g_all = means2d.new_zeros(G, 11)  # [G, 11], summed over every pair of each Gaussian
+        fn = native.library().us_backward_image_f64 if means2d.dtype == torch.float64 else \
+            native.library().us_backward_image_f32
+        rc = fn(*_native_head(bins, 5), G, M, height, width,
+                *(t.data_ptr() for t in (means2d, conics, log_o, colors, depths)),
+                bg[0].data_ptr() if bg else None, bins.pair_gauss.data_ptr(), bins.tile_start.data_ptr(),
+                bins.tile_count.data_ptr(), t_final.data_ptr(), last.data_ptr(),
+                *(g.data_ptr() if g is not None else None for g in grads), g_pair.data_ptr(), g_all.data_ptr())
+        _check_composite(rc, " backward")
+        g_all = g_all.view(C, N, 11)
+        return (g_all[..., 0:2], g_all[..., 2:5], g_all[..., 5], g_all[..., 6:9], g_all[..., 9], None, None, None,
+                None)
+
+
+def composite_image(means2d: Tensor, conics: Tensor, log_o: Tensor, colors: Tensor, depths: Tensor,
+                    bins: TileBins, height: int, width: int,
+                    background: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """What ``render`` composites, by the native CPU kernel straight into images: the features (colour,
+    camera depth, 1) of the Gaussians ``means2d`` [C,N,2], ``conics`` [C,N,3], ``log_o`` [C,N], ``colors``
+    [C,N,3], ``depths`` [C,N] over ``bins``; returns rgb [C,H,W,3] (``background`` [3] behind the Gaussians:
+    + (1 - alpha) background), depth_expected [C,H,W,1] and alpha [C,H,W,1].
+
+    The same function and gradient as ``composite`` of the packed [C*N,6] / [C*N,5] inputs followed by
+    ``tiles_to_image``, the channel slices and the background's blend, without those tensor ops and their
+    backward (a few ms of every training step). The background gets no gradient. Use
+    ``composite_image_available`` first: CPU tensors, float32 or float64, the native kernels loaded."""
+    return _CompositeImageNative.apply(means2d, conics, log_o, colors, depths, background, bins, height, width)
+
+
+def composite_image_available(*tensors: Tensor, background: Tensor | None = None, backend: str | None = None,
+                              compile: bool = False) -> bool:
+    """Whether ``composite_image`` takes these inputs: ``use_native`` holds and the loaded library has the
+    image entry points (a benchmark's reference build of an older interface may not)."""
+    if background is not None and background.requires_grad:
+        return False
+    if not use_native(*tensors, backend=backend, compile=compile, num_features=5):
+        return False
+    return hasattr(native.library(), "us_forward_image_f32")
+
+
 def _check_composite(rc: int, what: str) -> None:
     """Raise for a native compositor return code (0: done; 2: out of memory; else an unsupported input)."""
     if rc == 2:

@@ -7,7 +7,7 @@ from torch import Tensor
 
 from ..types import Cameras, GaussianSample, RenderOutput
 from .project import ALPHA_MAX, clamped_view_angle, project_gaussians
-from .rasterize import bin_gaussians, composite, tiles_to_image
+from .rasterize import bin_gaussians, composite, composite_image, composite_image_available, tiles_to_image
 from .sh import sh_colors
 
 
@@ -78,8 +78,6 @@ def render(
 
     centers = -(cam_from_world[:, :3, :3].transpose(1, 2) @ cam_from_world[:, :3, 3:])[..., 0]  # [C,3]
     colors = sh_colors(sample.sh_degree, sample.sh, sample.means, centers, backend=backend)  # [C,N,3]
-    ones = torch.ones_like(proj.depths)[..., None]
-    feat = torch.cat([colors, proj.depths[..., None], ones], dim=-1).reshape(C * N, 5)
 
     bins = bin_gaussians(
         means2d.detach(),
@@ -97,17 +95,22 @@ def render(
     if sample.position_var is not None:
         log_o = log_o + blur_log_peak(sample, proj.conics, cam_from_world, K, W, H, near, far, eps2d,
                                       backend=backend)  # [C,N]
-    gparams = torch.cat([means2d, proj.conics, log_o.expand(C, N)[..., None]], dim=-1).reshape(C * N, 6)
-    # Alpha can reach the 0.99 cap only for opacities near it (small margin for rounding).
-    high = (sample.opacities.detach() > ALPHA_MAX - 1e-3).expand(C, N).reshape(-1)
-    tiles = composite(gparams, feat, bins, high, block_elements=block_elements, compile=compile, backend=backend)
-    img = tiles_to_image(tiles, C, bins, H, W)  # [C,H,W,5]
-
-    rgb = img[..., 0:3]
-    depth_expected = img[..., 3:4]
-    alpha = img[..., 4:5]
-    if background is not None:
-        rgb = rgb + (1.0 - alpha) * background.to(rgb)
+    log_o = log_o.expand(C, N)
+    if composite_image_available(means2d, colors, background=background, backend=backend, compile=compile):
+        # the native kernel composites straight into the images, background included
+        rgb, depth_expected, alpha = composite_image(means2d, proj.conics, log_o, colors, proj.depths, bins, H, W,
+                                                     background)
+    else:
+        feat = torch.cat([colors, proj.depths[..., None], torch.ones_like(proj.depths)[..., None]], dim=-1)
+        gparams = torch.cat([means2d, proj.conics, log_o[..., None]], dim=-1).reshape(C * N, 6)
+        # Alpha can reach the 0.99 cap only for opacities near it (small margin for rounding).
+        high = (sample.opacities.detach() > ALPHA_MAX - 1e-3).expand(C, N).reshape(-1)
+        tiles = composite(gparams, feat.reshape(C * N, 5), bins, high, block_elements=block_elements,
+                          compile=compile, backend=backend)
+        img = tiles_to_image(tiles, C, bins, H, W)  # [C,H,W,5]
+        rgb, depth_expected, alpha = img[..., 0:3], img[..., 3:4], img[..., 4:5]
+        if background is not None:
+            rgb = rgb + (1.0 - alpha) * background.to(rgb)
     hit = alpha > 0
     # A hit pixel has alpha >= 1/255 (its first contribution alone), so the division is safe.
     depth = torch.where(hit, depth_expected / torch.where(hit, alpha, torch.ones_like(alpha)), 0.0)

@@ -183,34 +183,80 @@ inline void each_feature(Fn&& fn) {
 // A slice outside those rows skips the Gaussian, which changes no result (alpha < alpha_min is skipped).
 constexpr int PK = 8;
 
+// The standard render's compositing in image layout (us_forward_image / us_backward_image): the Gaussians'
+// columns come as separate arrays and the features are fixed, (colour r, g, b, camera depth, 1), so F = 5;
+// the outputs are images [C,H,W,.] (a tile's pixels beyond the image's right or bottom edge are neither written
+// nor read): rgb with the background behind the Gaussians (+ T_final bg), the expected depth and alpha. This
+// saves render() the packing of [G,6] / [G,5] inputs, the tile-to-image copy, the channel slices and the
+// background's tensor ops, and their backward. In backward the background is the last entry of every ray
+// (weight T_final, d loss / d its value g_rgb . bg), so it enters the suffix sum from the start.
+constexpr int IMAGE_F = 5;
+
 template <typename S>
-void gaussian_records(const Params& prm, int64_t G, int64_t F, const S* gp, const S* feat, S* rec) {
+struct ImageIO {
+    const S *means2d, *conics, *log_o, *colors, *depths;  // [G,2], [G,3], [G], [G,3], [G]
+    int64_t height, width;
+    S bg[3];                  // 0 without a background
+    S *rgb, *depth, *alpha;   // forward: [C,H,W,3], [C,H,W], [C,H,W]
+    const S *g_rgb, *g_depth, *g_alpha;  // backward: d loss / d those (null: 0)
+
+    // Image offset (camera, row, column) of pixel p of a tile, or -1 beyond the image.
+    int64_t pixel(const Params& prm, int64_t ts, int64_t tile, int64_t p) const {
+        const int64_t cam = tile / prm.tiles_per_cam, local = tile % prm.tiles_per_cam;
+        const int64_t row = local / prm.tiles_x * ts + p / ts, col = local % prm.tiles_x * ts + p % ts;
+        return (row < height && col < width) ? (cam * height + row) * width + col : -1;
+    }
+};
+
+// Builds the records; fill(g, e) writes e[0 .. 6) (mean x, mean y, conic a, b, c, log opacity) and the F
+// features e[PK .. PK + F).
+template <typename S, typename Fill>
+void gaussian_records_with(const Params& prm, int64_t G, int64_t F, Fill fill, S* rec) {
     const S lmin = std::log(static_cast<S>(prm.alpha_min));
     const S big = S(1 << 24);  // rows are exact integers in S up to here
     const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(prm.num_threads, G / 16384 + 1));
     uskern::run_workers(workers, [&](int64_t w) {
         for (int64_t g = G * w / workers; g < G * (w + 1) / workers; ++g) {
-            const S* q = gp + g * 6;
             S* e = rec + g * (PK + F);
-            for (int k = 0; k < 6; ++k) e[k] = q[k];
-            const S a = q[2], b = q[3], c = q[4];
-            const S thr = S(2) * (q[5] - lmin);  // alpha >= alpha_min  <=>  conic form <= thr
+            fill(g, e);
+            const S a = e[2], b = e[3], c = e[4];
+            const S thr = S(2) * (e[5] - lmin);  // alpha >= alpha_min  <=>  conic form <= thr
             const S det = a * c - b * b;
             S rlo = 1, rhi = 0;
             if (thr >= S(0)) {
                 rlo = -1, rhi = big;
-                if (det > S(0) && a > S(0) && c > S(0) && std::isfinite(det) && std::isfinite(q[1])) {
+                if (det > S(0) && a > S(0) && c > S(0) && std::isfinite(det) && std::isfinite(e[1])) {
                     // |dy| <= sqrt(thr * Sigma_yy), Sigma = conic^-1, so Sigma_yy = a / det
                     const S ey = std::sqrt(thr * (a / det) * S(1.002)) + S(0.01);
-                    rlo = std::min(std::max(std::ceil(q[1] - ey - S(0.5)), S(-1)), big);
-                    rhi = std::min(std::max(std::floor(q[1] + ey - S(0.5)), S(-1)), big);
+                    rlo = std::min(std::max(std::ceil(e[1] - ey - S(0.5)), S(-1)), big);
+                    rhi = std::min(std::max(std::floor(e[1] + ey - S(0.5)), S(-1)), big);
                 }
             }
             e[6] = rlo;
             e[7] = rhi;
-            for (int64_t f = 0; f < F; ++f) e[PK + f] = feat[g * F + f];
         }
     });
+}
+
+// Records from gparams [G,6] and feat [G,F], or (io not null) from an ImageIO's arrays.
+template <typename S>
+void gaussian_records(const Params& prm, int64_t G, int64_t F, const S* gp, const S* feat, const ImageIO<S>* io,
+                      S* rec) {
+    if (io == nullptr) {
+        gaussian_records_with<S>(prm, G, F, [&](int64_t g, S* e) {
+            for (int k = 0; k < 6; ++k) e[k] = gp[g * 6 + k];
+            for (int64_t f = 0; f < F; ++f) e[PK + f] = feat[g * F + f];
+        }, rec);
+        return;
+    }
+    gaussian_records_with<S>(prm, G, IMAGE_F, [&](int64_t g, S* e) {
+        e[0] = io->means2d[2 * g], e[1] = io->means2d[2 * g + 1];
+        e[2] = io->conics[3 * g], e[3] = io->conics[3 * g + 1], e[4] = io->conics[3 * g + 2];
+        e[5] = io->log_o[g];
+        e[PK] = io->colors[3 * g], e[PK + 1] = io->colors[3 * g + 1], e[PK + 2] = io->colors[3 * g + 2];
+        e[PK + 3] = io->depths[g];
+        e[PK + 4] = S(1);
+    }, rec);
 }
 
 // The lanes of the tiles of one call: slice s holds pixels p = LANES s + lane of a tile, at offsets
@@ -293,7 +339,7 @@ struct ForwardScratch {
 template <typename S, int F>
 void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, const S* rec, const int64_t* pair_gauss,
                   const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final, int32_t* last,
-                  ForwardScratch<S>& scratch) {
+                  const ImageIO<S>* io, ForwardScratch<S>& scratch) {
     using V = typename Lanes<S>::V;
     using M = typename Lanes<S>::M;
     using I = typename Lanes<S>::I;
@@ -378,14 +424,24 @@ void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, cons
             alive += any_lane(live);
         }
     }
-    S* o = out + tile * P * F;
     for (int64_t s = 0; s < NS; ++s)
         for (int l = 0; l < LANES; ++l) {
             const int64_t p = s * LANES + l;
             if (p >= P) break;
-            for (int f = 0; f < F; ++f) o[p * F + f] = accs[s * F + f][l];
             t_final[tile * P + p] = Ts[s][l];
             last[tile * P + p] = static_cast<int32_t>(lasts[s][l]);
+            if constexpr (F == IMAGE_F) {
+                if (io != nullptr) {
+                    const int64_t q = io->pixel(prm, grid.ts, tile, p);
+                    if (q < 0) continue;
+                    for (int c = 0; c < 3; ++c) io->rgb[3 * q + c] = accs[s * F + c][l] + Ts[s][l] * io->bg[c];
+                    io->depth[q] = accs[s * F + 3][l];
+                    io->alpha[q] = accs[s * F + 4][l];
+                    continue;
+                }
+            }
+            S* o = out + (tile * P + p) * F;
+            for (int f = 0; f < F; ++f) o[f] = accs[s * F + f][l];
         }
 }
 
@@ -396,7 +452,7 @@ void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, cons
 template <typename S, int F>
 void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, const S* rec, const int64_t* pair_gauss,
                    const int64_t* tile_start, const S* t_final, const int32_t* last, const S* g_out, S* g_pair,
-                   int32_t* tile_used, SliceScratch<S>& scratch) {
+                   int32_t* tile_used, const ImageIO<S>* io, SliceScratch<S>& scratch) {
     using V = typename Lanes<S>::V;
     using M = typename Lanes<S>::M;
     using I = typename Lanes<S>::I;
@@ -418,7 +474,6 @@ void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, con
     V* go = suf + NS;  // [F][NS]
     M* lq = scratch.m.data();
     std::vector<int32_t> slicemax(static_cast<size_t>(NS), 0);
-    const S* gt = g_out + tile * P * F;
     for (int64_t s = 0; s < NS; ++s)
         for (int l = 0; l < LANES; ++l) {
             const int64_t p = s * LANES + l;
@@ -427,7 +482,25 @@ void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, con
             suf[s][l] = S(0);
             lq[s][l] = in ? lst[p] : 0;
             if (in) slicemax[s] = std::max(slicemax[s], lst[p]);
-            for (int f = 0; f < F; ++f) go[f * NS + s][l] = in ? gt[p * F + f] : S(0);
+            for (int f = 0; f < F; ++f) go[f * NS + s][l] = S(0);
+            if (!in) continue;
+            if constexpr (F == IMAGE_F) {
+                if (io != nullptr) {
+                    const int64_t q = io->pixel(prm, grid.ts, tile, p);
+                    if (q < 0) continue;
+                    S gb = S(0);  // the background's share: the last entry of the ray, weight T_final
+                    for (int c = 0; c < 3; ++c) {
+                        const S g = io->g_rgb != nullptr ? io->g_rgb[3 * q + c] : S(0);
+                        go[c * NS + s][l] = g;
+                        gb += g * io->bg[c];
+                    }
+                    go[3 * NS + s][l] = io->g_depth != nullptr ? io->g_depth[q] : S(0);
+                    go[4 * NS + s][l] = io->g_alpha != nullptr ? io->g_alpha[q] : S(0);
+                    suf[s][l] = T[s][l] * gb;
+                    continue;
+                }
+            }
+            for (int f = 0; f < F; ++f) go[f * NS + s][l] = g_out[(tile * P + p) * F + f];
         }
     const S amin = static_cast<S>(prm.alpha_min), amax = static_cast<S>(prm.alpha_max);
     for (int64_t j = maxlast - 1; j >= 0; --j) {
@@ -489,14 +562,16 @@ void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, con
 
 template <typename S, int F>
 void forward_all(const Params& prm, int64_t G, const S* gp, const S* feat, const int64_t* pair_gauss,
-                 const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final, int32_t* last) {
+                 const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final, int32_t* last,
+                 const ImageIO<S>* io = nullptr) {
     std::vector<S> rec(static_cast<size_t>(G) * (PK + F));
-    gaussian_records<S>(prm, G, F, gp, feat, rec.data());
+    gaussian_records<S>(prm, G, F, gp, feat, io, rec.data());
     const LaneGrid<S> grid(prm.tile_size);
     const int64_t workers = num_workers(prm.num_tiles, prm.num_threads, CHUNK);
     std::vector<ForwardScratch<S>> scratch(workers);
     for_each_tile(prm.num_tiles, workers, CHUNK, [&](int64_t id, int64_t t) {
-        forward_tile<S, F>(prm, grid, t, rec.data(), pair_gauss, tile_start, tile_count, out, t_final, last, scratch[id]);
+        forward_tile<S, F>(prm, grid, t, rec.data(), pair_gauss, tile_start, tile_count, out, t_final, last, io,
+                           scratch[id]);
     });
 }
 
@@ -506,16 +581,16 @@ void forward_all(const Params& prm, int64_t G, const S* gp, const S* feat, const
 template <typename S, int F>
 void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S* feat, const int64_t* pair_gauss,
                   const int64_t* tile_start, const int64_t* tile_count, const S* t_final, const int32_t* last,
-                  const S* g_out, S* g_pair, S* g_gauss) {
+                  const S* g_out, S* g_pair, S* g_gauss, const ImageIO<S>* io = nullptr) {
     std::vector<S> rec(static_cast<size_t>(G) * (PK + F));
-    gaussian_records<S>(prm, G, F, gp, feat, rec.data());
+    gaussian_records<S>(prm, G, F, gp, feat, io, rec.data());
     const LaneGrid<S> grid(prm.tile_size);
     const int64_t workers = num_workers(prm.num_tiles, prm.num_threads, CHUNK);
     std::vector<SliceScratch<S>> scratch(workers);
     std::vector<int32_t> tile_used(static_cast<size_t>(prm.num_tiles), 0);  // rows written per tile
     for_each_tile(prm.num_tiles, workers, CHUNK, [&](int64_t id, int64_t t) {
         backward_tile<S, F>(prm, grid, t, rec.data(), pair_gauss, tile_start, t_final, last, g_out, g_pair,
-                            tile_used.data(), scratch[id]);
+                            tile_used.data(), io, scratch[id]);
     });
     const int64_t reducers = std::max<int64_t>(1, std::min<int64_t>(prm.num_threads, G / 4096 + 1));
     uskern::run_workers(reducers, [&](int64_t w) {
@@ -568,6 +643,30 @@ int backward_any(int64_t F, const Params& prm, int64_t G, int64_t M, const S* gp
     return 0;
 }
 
+template <typename S>
+int forward_image(const Params& prm, int64_t G, const ImageIO<S>& io, const int64_t* pair_gauss,
+                  const int64_t* tile_start, const int64_t* tile_count, S* t_final, int32_t* last) {
+    try {
+        forward_all<S, IMAGE_F>(prm, G, nullptr, nullptr, pair_gauss, tile_start, tile_count, nullptr, t_final, last,
+                                &io);
+    } catch (const std::bad_alloc&) {
+        return 2;
+    }
+    return 0;
+}
+
+template <typename S>
+int backward_image(const Params& prm, int64_t G, int64_t M, const ImageIO<S>& io, const int64_t* pair_gauss,
+                   const int64_t* tile_start, const int64_t* tile_count, const S* t_final, const int32_t* last,
+                   S* g_pair, S* g_gauss) {
+    try {
+        backward_all<S, IMAGE_F>(prm, G, M, nullptr, nullptr, pair_gauss, tile_start, tile_count, t_final, last,
+                                 nullptr, g_pair, g_gauss, &io);
+    } catch (const std::bad_alloc&) {
+        return 2;
+    }
+    return 0;
+}
 
 // ------------------------------------------------------------------------------------------ binning
 // The (tile, Gaussian) pairs of rasterize.bin_gaussians, in the same order: visible Gaussians (flat

@@ -18,4 +18,27 @@ extern "C" {
 US_BACKWARD(f32, float)
 US_BACKWARD(f64, double)
 
+// The backward of us_forward_image: d loss / d rgb, depth, alpha (each may be null: 0) -> per-pair rows
+// g_pair [M, 11] (scratch) and per-Gaussian sums g_gauss [G, 11] (zeroed by the caller): mean x, mean y,
+// conic a, b, c, log opacity, colour r, g, b, depth, and the constant feature's (unused).
+#define US_BACKWARD_IMAGE(SUFFIX, S)                                                                             \
+    int us_backward_image_##SUFFIX(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size, \
+                                   int64_t num_threads, double alpha_min, double alpha_max, double t_min,       \
+                                   int64_t F, int64_t G, int64_t M, int64_t height, int64_t width,              \
+                                   const S* means2d, const S* conics, const S* log_o, const S* colors,          \
+                                   const S* depths, const S* background, const int64_t* pair_gauss,             \
+                                   const int64_t* tile_start, const int64_t* tile_count, const S* t_final,      \
+                                   const int32_t* last, const S* g_rgb, const S* g_depth, const S* g_alpha,     \
+                                   S* g_pair, S* g_gauss) {                                                     \
+        if (F != IMAGE_F) return 1;                                                                              \
+        US_PARAMS                                                                                                \
+        ImageIO<S> io{means2d, conics, log_o, colors, depths, height, width, {S(0), S(0), S(0)},                \
+                      nullptr, nullptr, nullptr, g_rgb, g_depth, g_alpha};                                       \
+        if (background != nullptr) io.bg[0] = background[0], io.bg[1] = background[1], io.bg[2] = background[2]; \
+        return backward_image<S>(prm, G, M, io, pair_gauss, tile_start, tile_count, t_final, last, g_pair,       \
+                                 g_gauss);                                                                       \
+    }
+US_BACKWARD_IMAGE(f32, float)
+US_BACKWARD_IMAGE(f64, double)
+
 }  // extern "C"

@@ -6,7 +6,7 @@
 extern "C" {
 
 // Interface version: native.py refuses a library whose version differs from its own.
-int us_version() { return 13; }
+int us_version() { return 14; }
 
 int us_max_features() { return 8; }
 
@@ -21,6 +21,25 @@ int us_max_features() { return 8; }
     }
 US_FORWARD(f32, float)
 US_FORWARD(f64, double)
+
+// render()'s compositing in image layout (composite.h, ImageIO): F must be 5; background [3] or null.
+#define US_FORWARD_IMAGE(SUFFIX, S)                                                                              \
+    int us_forward_image_##SUFFIX(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size, \
+                                  int64_t num_threads, double alpha_min, double alpha_max, double t_min,        \
+                                  int64_t F, int64_t G, int64_t height, int64_t width, const S* means2d,        \
+                                  const S* conics, const S* log_o, const S* colors, const S* depths,            \
+                                  const S* background, const int64_t* pair_gauss, const int64_t* tile_start,    \
+                                  const int64_t* tile_count, S* rgb, S* depth, S* alpha, S* t_final,            \
+                                  int32_t* last) {                                                              \
+        if (F != IMAGE_F) return 1;                                                                              \
+        US_PARAMS                                                                                                \
+        ImageIO<S> io{means2d, conics, log_o, colors, depths, height, width, {S(0), S(0), S(0)},                \
+                      rgb, depth, alpha, nullptr, nullptr, nullptr};                                             \
+        if (background != nullptr) io.bg[0] = background[0], io.bg[1] = background[1], io.bg[2] = background[2]; \
+        return forward_image<S>(prm, G, io, pair_gauss, tile_start, tile_count, t_final, last);                  \
+    }
+US_FORWARD_IMAGE(f32, float)
+US_FORWARD_IMAGE(f64, double)
 
 // Binning, in two calls. us_bin_count: the depth order of the valid entries (order [G], num_visible),
 // per-worker tile counts [workers, T]; returns the number of pairs M (-1 when out of memory) and, in

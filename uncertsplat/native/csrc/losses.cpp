@@ -143,11 +143,16 @@ inline VS load_vs(const float* p) {
 inline void store_vs(float* p, VS v) { std::memcpy(p, &v, sizeof(VS)); }
 
 // Row geometry: rows of padded width Wp (a multiple of the lanes); a padded input row holds r zeros, the
-// W values, then zeros up to Wp + 2 r.
+// W values, then zeros up to Wp + 2 r. The B planes are the CH channels of B / CH images in HWC layout
+// (CH = 1: planes [B, H, W]): plane b is channel b % CH of image b / CH, its pixels CH floats apart, so
+// the caller's images need no copy into planes.
 struct SsimRows {
-    int64_t B, H, W, K, r, Wp;
-    SsimRows(int64_t B_, int64_t H_, int64_t W_, int64_t K_)
-        : B(B_), H(H_), W(W_), K(K_), r((K_ - 1) / 2), Wp((W_ + SSIM_LANES - 1) / SSIM_LANES * SSIM_LANES) {}
+    int64_t B, H, W, K, r, Wp, CH;
+    SsimRows(int64_t B_, int64_t H_, int64_t W_, int64_t K_, int64_t CH_)
+        : B(B_), H(H_), W(W_), K(K_), r((K_ - 1) / 2), Wp((W_ + SSIM_LANES - 1) / SSIM_LANES * SSIM_LANES),
+          CH(CH_) {}
+    // Offset of plane b's row y, pixel 0, in the caller's images.
+    int64_t row(int64_t b, int64_t y) const { return (b / CH * H + y) * W * CH + b % CH; }
 };
 
 // Runs fn(row, buffer) for row in [0, n) on up to num_threads threads (contiguous ranges); buffer is the
@@ -188,10 +193,14 @@ inline void hblur_row(const SsimRows& g, const float* w, const float* a, const f
     }
 }
 
-// A padded copy of row y of a plane (zeros around it).
-inline void pad_row(const SsimRows& g, const float* plane, int64_t y, float* dst) {
+// A padded copy of a row of W values `stride` floats apart (zeros around it).
+inline void pad_row(const SsimRows& g, const float* src, int64_t stride, float* dst) {
     std::fill(dst, dst + g.Wp + 2 * g.r, 0.0f);
-    std::memcpy(dst + g.r, plane + y * g.W, sizeof(float) * g.W);
+    if (stride == 1) {
+        std::memcpy(dst + g.r, src, sizeof(float) * g.W);
+    } else {
+        for (int64_t i = 0; i < g.W; ++i) dst[g.r + i] = src[i * stride];
+    }
 }
 
 // Vertical blur at output row y of NQ horizontally blurred planes hb[q] (rows of Wp), LANES pixels from
@@ -225,20 +234,20 @@ std::vector<float>& scratch(size_t n) {
     return buf;
 }
 
-// SSIM of planes x, y [B, H, W] (B = images x channels): per-plane mean of the SSIM map into
+// SSIM of the B planes of x, y (SsimRows: B = images x channels): per-plane mean of the SSIM map into
 // plane_mean [B]; with `partials` [3, B, H, W] given, also the per-pixel partial derivatives of the
 // map w.r.t. (mu_x, E[x^2], E[xy]), which ssim_backward turns into d loss / d x.
-void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, const float* x, const float* y, const float* w,
-                  float c1, float c2, double* plane_mean, float* partials, int64_t num_threads) {
-    const SsimRows g(B, H, W, K);
+void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* x, const float* y,
+                  const float* w, float c1, float c2, double* plane_mean, float* partials, int64_t num_threads) {
+    const SsimRows g(B, H, W, K, CH);
     const int64_t HWp = H * g.Wp;
     std::vector<float>& hbuf = scratch(static_cast<size_t>(5 * B * HWp));  // horizontally blurred x, y, xx, yy, xy
     const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;  // a padded row and the lanes read past it
     parallel_rows(B * H, num_threads, 2 * row_len, [&](int64_t row, float* buf) {
         const int64_t b = row / H, yy = row % H;
         float *pa = buf, *pb = buf + row_len;
-        pad_row(g, x + b * H * W, yy, pa);
-        pad_row(g, y + b * H * W, yy, pb);
+        pad_row(g, x + g.row(b, yy), CH, pa);
+        pad_row(g, y + g.row(b, yy), CH, pb);
         float* out[5];
         for (int q = 0; q < 5; ++q) out[q] = hbuf.data() + (q * B + b) * HWp + yy * g.Wp;
         hblur_row<5>(g, w, pa, pb, nullptr, out);
@@ -280,18 +289,18 @@ void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, const float* x, co
 
 // d loss / d x for loss = sum_b g_plane[b] * plane_mean[b]:
 // g_plane[b] / HW * (blur(d_mu) + 2 x blur(d_exx) + y blur(d_exy)) (the blur is its own adjoint).
-void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, const float* x, const float* y, const float* w,
-                   const float* partials, const float* g_plane, float* g_x, int64_t num_threads) {
-    const SsimRows g(B, H, W, K);
+void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* x, const float* y,
+                   const float* w, const float* partials, const float* g_plane, float* g_x, int64_t num_threads) {
+    const SsimRows g(B, H, W, K, CH);
     const int64_t HWp = H * g.Wp, HW = H * W;
     std::vector<float>& hbuf = scratch(static_cast<size_t>(3 * B * HWp));
     const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;
     parallel_rows(B * H, num_threads, 3 * row_len, [&](int64_t row, float* buf) {
         const int64_t b = row / H, yy = row % H;
         float *pa = buf, *pb = buf + row_len, *pc = buf + 2 * row_len;
-        pad_row(g, partials + b * HW, yy, pa);
-        pad_row(g, partials + (B + b) * HW, yy, pb);
-        pad_row(g, partials + (2 * B + b) * HW, yy, pc);
+        pad_row(g, partials + b * HW + yy * W, 1, pa);
+        pad_row(g, partials + (B + b) * HW + yy * W, 1, pb);
+        pad_row(g, partials + (2 * B + b) * HW + yy * W, 1, pc);
         float* out[3];
         for (int q = 0; q < 3; ++q) out[q] = hbuf.data() + (q * B + b) * HWp + yy * g.Wp;
         hblur_row<3>(g, w, pa, pb, pc, out);
@@ -301,17 +310,23 @@ void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, const float* x, c
         const float* hb[3];
         for (int q = 0; q < 3; ++q) hb[q] = hbuf.data() + (q * B + b) * HWp;
         const float scale = g_plane[b] / static_cast<float>(HW);
-        const float* xr = x + b * HW + yy * W;
-        const float* yr = y + b * HW + yy * W;
-        float* gr = g_x + b * HW + yy * W;
+        const float* xr = x + g.row(b, yy);
+        const float* yr = y + g.row(b, yy);
+        float* gr = g_x + g.row(b, yy);
         for (int64_t x0 = 0; x0 < W; x0 += SSIM_LANES) {
             const int64_t n = std::min<int64_t>(SSIM_LANES, W - x0);
             VS m[3];
             vblur<3>(g, w, hb, yy, x0, m);
             VS xv{}, yv{};
-            std::memcpy(&xv, xr + x0, sizeof(float) * n);
-            std::memcpy(&yv, yr + x0, sizeof(float) * n);
-            store_lanes(gr + x0, scale * (m[0] + 2.0f * xv * m[1] + yv * m[2]), n);
+            if (CH == 1) {
+                std::memcpy(&xv, xr + x0, sizeof(float) * n);
+                std::memcpy(&yv, yr + x0, sizeof(float) * n);
+                store_lanes(gr + x0, scale * (m[0] + 2.0f * xv * m[1] + yv * m[2]), n);
+            } else {
+                for (int64_t l = 0; l < n; ++l) xv[l] = xr[(x0 + l) * CH], yv[l] = yr[(x0 + l) * CH];
+                const VS gv = scale * (m[0] + 2.0f * xv * m[1] + yv * m[2]);
+                for (int64_t l = 0; l < n; ++l) gr[(x0 + l) * CH] = gv[l];
+            }
         }
     });
 }
@@ -331,16 +346,22 @@ double us_scale_kl_f32(int64_t n, const float* left, const float* raw, double wp
                     static_cast<float>(w_max), g_left, g_raw, num_threads);
 }
 
-int us_ssim_forward_f32(int64_t B, int64_t H, int64_t W, int64_t K, const float* x, const float* y, const float* w,
-                        double c1, double c2, double* plane_mean, float* partials, int64_t num_threads) {
-    ssim_forward(B, H, W, K, x, y, w, static_cast<float>(c1), static_cast<float>(c2), plane_mean, partials,
+// The B planes are the CH channels of B / CH images [H, W, CH] (CH = 1: planes [B, H, W]); returns 1 when B is
+// not a multiple of CH.
+int us_ssim_forward_f32(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* x, const float* y,
+                        const float* w, double c1, double c2, double* plane_mean, float* partials,
+                        int64_t num_threads) {
+    if (CH < 1 || B % CH != 0) return 1;
+    ssim_forward(B, H, W, K, CH, x, y, w, static_cast<float>(c1), static_cast<float>(c2), plane_mean, partials,
                  num_threads);
     return 0;
 }
 
-int us_ssim_backward_f32(int64_t B, int64_t H, int64_t W, int64_t K, const float* x, const float* y, const float* w,
-                         const float* partials, const float* g_plane, float* g_x, int64_t num_threads) {
-    ssim_backward(B, H, W, K, x, y, w, partials, g_plane, g_x, num_threads);
+int us_ssim_backward_f32(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* x, const float* y,
+                         const float* w, const float* partials, const float* g_plane, float* g_x,
+                         int64_t num_threads) {
+    if (CH < 1 || B % CH != 0) return 1;
+    ssim_backward(B, H, W, K, CH, x, y, w, partials, g_plane, g_x, num_threads);
     return 0;
 }
 
