@@ -106,7 +106,8 @@ class _OldInterface:
     before version 12 pass 2 always wrote pair_tile (today's callers pass a null pointer); before version 14
     SSIM read planes [B,H,W] only (today's callers pass HWC images and their channel count: the stand-in copies
     them into planes and the gradient back, as the Python code before version 14 did) and the compositor had no
-    image entry points (``composite_image_available`` is then False: render takes the tile path)."""
+    image entry points (``composite_image_available`` is then False: render takes the tile path); before version
+    15 SSIM had no L1 term (the stand-in adds it with the tensor ops the Python code used before)."""
 
     def __init__(self, lib: ctypes.CDLL, version: int):
         self._lib, self._version = lib, version
@@ -117,8 +118,8 @@ class _OldInterface:
         if name == "us_bin_free" and self._version < 11:
             return lambda state: None
         fn = getattr(self._lib, name)
-        if self._version < 14 and name in ("us_ssim_forward_f32", "us_ssim_backward_f32"):
-            return _planar_ssim(fn, backward=name.endswith("backward_f32"))
+        if self._version < 15 and name in ("us_ssim_forward_f32", "us_ssim_backward_f32"):
+            return _older_ssim(fn, backward=name.endswith("backward_f32"), planar=self._version < 14)
         if self._version < 10 and name in ("us_forward_f32", "us_forward_f64"):
             return lambda *args: fn(*args[:9], *args[10:])  # (head, F, G, pointers) -> (head, F, pointers)
         if name.startswith("us_bin_count_"):
@@ -137,25 +138,39 @@ class _OldInterface:
         return fn
 
 
-def _planar_ssim(fn, backward: bool):
-    """An SSIM entry point of interface < 14 (planes [B,H,W]) behind today's call (HWC images, channel count)."""
+def _older_ssim(fn, backward: bool, planar: bool):
+    """An SSIM entry point of interface < 15 behind today's call (HWC images and their channel count, the L1 term's
+    output or gradient): before 14 (``planar``) the kernel read planes [B,H,W] only; the L1 term was tensor ops."""
     import numpy as np
 
-    def view(ptr: int, shape: tuple) -> torch.Tensor:
-        arr = np.ctypeslib.as_array(ctypes.cast(ptr, ctypes.POINTER(ctypes.c_float)), shape=shape)
-        return torch.from_numpy(arr)
+    def view(ptr: int, shape: tuple, dtype=ctypes.c_float) -> torch.Tensor:
+        return torch.from_numpy(np.ctypeslib.as_array(ctypes.cast(ptr, ctypes.POINTER(dtype)), shape=shape))
 
     def call(B, H, W, K, CH, x, y, w, *rest):
-        if CH == 1:
-            return fn(B, H, W, K, x, y, w, *rest)
         shape = (B // CH, H, W, CH)
-        xp, yp = (view(p, shape).permute(0, 3, 1, 2).contiguous() for p in (x, y))
+        xi, yi = view(x, shape), view(y, shape)
+        if planar and CH > 1:
+            xp, yp = (t.permute(0, 3, 1, 2).contiguous() for t in (xi, yi))
+            x_arg, y_arg = xp.data_ptr(), yp.data_ptr()
+        else:
+            x_arg, y_arg = x, y
+        head = (B, H, W, K) if planar else (B, H, W, K, CH)
         if not backward:
-            return fn(B, H, W, K, xp.data_ptr(), yp.data_ptr(), w, *rest)
-        partials, g_plane, g_x, threads = rest
-        gp = torch.empty(B // CH, CH, H, W)
-        rc = fn(B, H, W, K, xp.data_ptr(), yp.data_ptr(), w, partials, g_plane, gp.data_ptr(), threads)
-        view(g_x, shape).copy_(gp.permute(0, 2, 3, 1))
+            c1, c2, plane_mean, partials, plane_l1, threads = rest
+            rc = fn(*head, x_arg, y_arg, w, c1, c2, plane_mean, partials, threads)
+            if plane_l1 is not None:
+                view(plane_l1, (B,), ctypes.c_double).copy_((xi - yi).abs().mean(dim=(1, 2)).reshape(B))
+            return rc
+        partials, g_plane, g_l1, g_x, threads = rest
+        gx = view(g_x, shape)
+        if planar and CH > 1:
+            gp = torch.empty(B // CH, CH, H, W)
+            rc = fn(*head, x_arg, y_arg, w, partials, g_plane, gp.data_ptr(), threads)
+            gx.copy_(gp.permute(0, 2, 3, 1))
+        else:
+            rc = fn(*head, x_arg, y_arg, w, partials, g_plane, g_x, threads)
+        if g_l1 is not None:
+            gx.add_(torch.sign(xi - yi) * view(g_l1, (B,)).view(B // CH, 1, 1, CH) / (H * W))
         return rc
     return call
 
@@ -200,10 +215,11 @@ def build_reference(ref: str, out_dir: Path):
         for suffix in ("f32", "f64"):
             getattr(lib, f"us_bin_count_{suffix}").argtypes = bin_head + [ptr] * 9
             getattr(lib, f"us_bin_fill_{suffix}").argtypes = bin_head + [ptr] * 5 + [i64] + [ptr] * 4
-    if version < 14:
-        lib.us_ssim_forward_f32.argtypes = [i64] * 4 + [ptr] * 3 + [f64, f64, ptr, ptr, i64]
-        lib.us_ssim_backward_f32.argtypes = [i64] * 4 + [ptr] * 6 + [i64]
-    return (lib if version >= 14 else _OldInterface(lib, version)), version
+    if version < 15:
+        k = 4 if version < 14 else 5  # the channel count came with version 14
+        lib.us_ssim_forward_f32.argtypes = [i64] * k + [ptr] * 3 + [f64, f64, ptr, ptr, i64]
+        lib.us_ssim_backward_f32.argtypes = [i64] * k + [ptr] * 6 + [i64]
+    return (lib if version >= 15 else _OldInterface(lib, version)), version
 
 
 def alternate(fns: dict, repeats: int) -> dict:
@@ -304,7 +320,7 @@ def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, wid
         def call():
             pm, part = torch.empty(planes, dtype=torch.float64), torch.empty(3, planes, height, width)
             lib.us_ssim_forward_f32(planes, height, width, win.numel(), 1, x.data_ptr(), y.data_ptr(), win.data_ptr(),
-                                    SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, pm.data_ptr(), part.data_ptr(), threads)
+                                    SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, pm.data_ptr(), part.data_ptr(), None, threads)
             return pm, part
         return call
 
@@ -314,7 +330,7 @@ def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, wid
         def call():
             gx, gp = torch.empty(planes, height, width), torch.ones(planes)
             lib.us_ssim_backward_f32(planes, height, width, win.numel(), 1, x.data_ptr(), y.data_ptr(), win.data_ptr(),
-                                     part.data_ptr(), gp.data_ptr(), gx.data_ptr(), threads)
+                                     part.data_ptr(), gp.data_ptr(), None, gx.data_ptr(), threads)
             return gx
         return call
 

@@ -134,24 +134,47 @@ def ssim(
     (``uncertsplat.native``: same value and gradient as :func:`ssim_map`, in one pass over the images
     instead of a dozen tensor ops; BENCHMARKS.md, Rasterizer).
     """
-    from uncertsplat import native
-
     _check_pair(pred, target)
-    fused = padding == "same" and not target.requires_grad
-    if native.use_for(pred, target, supported=fused, dtypes=(torch.float32,), strict=False):
-        lead, (h, w, ch) = pred.shape[:-3], pred.shape[-3:]
-        # the kernel reads the channels of HWC images as planes in place (no permuted copies)
-        images = [t.reshape(-1, h, w, ch).contiguous() for t in (pred, target)]
-        window = gaussian_window(dtype=torch.float32)
-        per_image = _FusedSSIM.apply(images[0], images[1].detach(), window).view(-1, ch).mean(-1).reshape(lead)
+    if _fused_ssim(pred, target, padding):
+        per_image = _fused_ssim_l1(pred, target)[0]
     else:
         per_image = ssim_map(pred, target, padding=padding).mean(dim=(-3, -2, -1))
     return per_image.mean() if reduction == "mean" else per_image
 
 
+def ssim_and_l1(pred: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+    """(mean SSIM, mean |pred - target|) of HWC images [...,H,W,Ch] in [0, 1], both differentiable w.r.t. ``pred``:
+    the training loss's two image terms. Where :func:`ssim` runs the fused native kernel, both come from its one
+    pass over the images (the L1 term's subtraction, absolute value, mean and their backward are a few tensor ops
+    per training step otherwise); elsewhere :func:`ssim` and the plain L1."""
+    _check_pair(pred, target)
+    if _fused_ssim(pred, target, "same"):
+        per_image, l1 = _fused_ssim_l1(pred, target)
+        return per_image.mean(), l1
+    return ssim(pred, target), (pred - target).abs().mean()
+
+
+def _fused_ssim(pred: Tensor, target: Tensor, padding: str) -> bool:
+    """Whether the fused native SSIM takes these images (CPU float32, "same" padding, no gradient to the target)."""
+    from uncertsplat import native
+
+    fused = padding == "same" and not target.requires_grad
+    return native.use_for(pred, target, supported=fused, dtypes=(torch.float32,), strict=False)
+
+
+def _fused_ssim_l1(pred: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+    """(per-image mean SSIM [...], mean |pred - target| over everything) by the fused kernel."""
+    lead, (h, w, ch) = pred.shape[:-3], pred.shape[-3:]
+    # the kernel reads the channels of HWC images as planes in place (no permuted copies)
+    images = [t.reshape(-1, h, w, ch).contiguous() for t in (pred, target)]
+    window = gaussian_window(dtype=torch.float32)
+    plane_ssim, plane_l1 = _FusedSSIM.apply(images[0], images[1].detach(), window)
+    return plane_ssim.view(-1, ch).mean(-1).reshape(lead), plane_l1.mean()
+
+
 class _FusedSSIM(torch.autograd.Function):
-    """Mean SSIM of each channel of images [n,H,W,Ch] by the native kernel ([n*Ch], image-major), 11x11 window,
-    zero padding.
+    """Mean SSIM and mean |x - y| of each channel of images [n,H,W,Ch] by the native kernel ([n*Ch] each,
+    image-major), 11x11 window, zero padding.
 
     Forward keeps the per-pixel partial derivatives of the SSIM map w.r.t. (mu_x, E[x^2], E[xy]);
     backward blurs them (the zero-padded symmetric blur is its own adjoint) into d loss / d x.
@@ -162,27 +185,33 @@ class _FusedSSIM(torch.autograd.Function):
         from uncertsplat import native
 
         lib = native.library()
+        ctx.set_materialize_grads(False)
         n, H, W, ch = x.shape
         B = n * ch
-        plane_mean = torch.empty(B, dtype=torch.float64)
+        plane_mean, plane_l1 = torch.empty(B, dtype=torch.float64), torch.empty(B, dtype=torch.float64)
         partials = x.new_empty(3, B, H, W) if x.requires_grad else None
         lib.us_ssim_forward_f32(B, H, W, window.numel(), ch, x.data_ptr(), y.data_ptr(), window.data_ptr(),
                                 SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, plane_mean.data_ptr(),
-                                partials.data_ptr() if partials is not None else None, native.kernel_threads())
+                                partials.data_ptr() if partials is not None else None, plane_l1.data_ptr(),
+                                native.kernel_threads())
         ctx.save_for_backward(x, y, window, partials if partials is not None else x.new_empty(0))
-        return plane_mean.to(x.dtype)
+        return plane_mean.to(x.dtype), plane_l1.to(x.dtype)
 
     @staticmethod
-    def backward(ctx, grad: Tensor):
+    def backward(ctx, grad: Tensor | None, grad_l1: Tensor | None):
         from uncertsplat import native
 
         x, y, window, partials = ctx.saved_tensors
         n, H, W, ch = x.shape
-        g_plane = grad.to(torch.float32).contiguous()
+        if grad is None and grad_l1 is None:
+            return None, None, None
+        g_plane = grad.to(torch.float32).contiguous() if grad is not None else x.new_zeros(n * ch)
+        g_l1 = grad_l1.to(torch.float32).contiguous() if grad_l1 is not None else None
         g_x = torch.empty_like(x)
         native.library().us_ssim_backward_f32(n * ch, H, W, window.numel(), ch, x.data_ptr(), y.data_ptr(),
                                               window.data_ptr(), partials.data_ptr(), g_plane.data_ptr(),
-                                              g_x.data_ptr(), native.kernel_threads())
+                                              g_l1.data_ptr() if g_l1 is not None else None, g_x.data_ptr(),
+                                              native.kernel_threads())
         return g_x, None, None
 
 

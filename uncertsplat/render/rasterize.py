@@ -519,7 +519,7 @@ class _CompositeNative(torch.autograd.Function):
         g_out = g_out.to(gp.dtype).contiguous()
         M = bins.pair_gauss.numel()
         g_pair = _scratch(M * (6 + F), gp.dtype).view(M, 6 + F)  # every row is written by the kernel
-        g_all = gp.new_zeros(gp.shape[0], 6 + F)  # [G, 6+F], summed over every pair of each Gaussian
+        g_all = gp.new_empty(gp.shape[0], 6 + F)  # [G, 6+F]: the kernel sums every pair of each Gaussian
         fn = lib.us_backward_f64 if gp.dtype == torch.float64 else lib.us_backward_f32
         rc = fn(*_native_head(bins, F), gp.shape[0], M, gp.data_ptr(), ft.data_ptr(), bins.pair_gauss.data_ptr(),
                 bins.tile_start.data_ptr(), bins.tile_count.data_ptr(), t_final.data_ptr(), last.data_ptr(),
@@ -566,7 +566,7 @@ class _CompositeImageNative(torch.autograd.Function):
         grads = [g.to(means2d.dtype).contiguous() if g is not None else None for g in (g_rgb, g_depth, g_alpha)]
         M, G = bins.pair_gauss.numel(), C * N
         g_pair = _scratch(M * 11, means2d.dtype).view(M, 11)  # every row is written by the kernel
-        g_all = means2d.new_zeros(G, 11)  # [G, 11], summed over every pair of each Gaussian
+        g_all = means2d.new_empty(G, 11)  # [G, 11]: the kernel sums every pair of each Gaussian
         fn = native.library().us_backward_image_f64 if means2d.dtype == torch.float64 else \
             native.library().us_backward_image_f32
         rc = fn(*_native_head(bins, 5), G, M, height, width,

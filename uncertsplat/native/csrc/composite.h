@@ -595,6 +595,7 @@ void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S*
     const int64_t reducers = std::max<int64_t>(1, std::min<int64_t>(prm.num_threads, G / 4096 + 1));
     uskern::run_workers(reducers, [&](int64_t w) {
         const int64_t lo = G * w / reducers, hi = G * (w + 1) / reducers;
+        std::fill(g_gauss + lo * (6 + F), g_gauss + hi * (6 + F), S(0));  // the caller need not zero it
         for (int64_t t = 0; t < prm.num_tiles; ++t)  // pairs in ascending order, the written rows only
             for (int64_t k = tile_start[t], k1 = k + tile_used[t]; k < k1; ++k) {
                 const int64_t g = pair_gauss[k];

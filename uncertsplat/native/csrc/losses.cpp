@@ -236,18 +236,26 @@ std::vector<float>& scratch(size_t n) {
 
 // SSIM of the B planes of x, y (SsimRows: B = images x channels): per-plane mean of the SSIM map into
 // plane_mean [B]; with `partials` [3, B, H, W] given, also the per-pixel partial derivatives of the
-// map w.r.t. (mu_x, E[x^2], E[xy]), which ssim_backward turns into d loss / d x.
+// map w.r.t. (mu_x, E[x^2], E[xy]), which ssim_backward turns into d loss / d x. With `plane_l1` [B] given,
+// also each plane's mean |x - y| (the L1 term of the training loss, from the rows this pass reads anyway).
 void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* x, const float* y,
-                  const float* w, float c1, float c2, double* plane_mean, float* partials, int64_t num_threads) {
+                  const float* w, float c1, float c2, double* plane_mean, float* partials, double* plane_l1,
+                  int64_t num_threads) {
     const SsimRows g(B, H, W, K, CH);
     const int64_t HWp = H * g.Wp;
     std::vector<float>& hbuf = scratch(static_cast<size_t>(5 * B * HWp));  // horizontally blurred x, y, xx, yy, xy
+    std::vector<double> row_l1(plane_l1 != nullptr ? static_cast<size_t>(B * H) : 0, 0.0);
     const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;  // a padded row and the lanes read past it
     parallel_rows(B * H, num_threads, 2 * row_len, [&](int64_t row, float* buf) {
         const int64_t b = row / H, yy = row % H;
         float *pa = buf, *pb = buf + row_len;
         pad_row(g, x + g.row(b, yy), CH, pa);
         pad_row(g, y + g.row(b, yy), CH, pb);
+        if (plane_l1 != nullptr) {
+            float sum = 0.0f;
+            for (int64_t i = 0; i < W; ++i) sum += std::fabs(pa[g.r + i] - pb[g.r + i]);
+            row_l1[row] = sum;
+        }
         float* out[5];
         for (int q = 0; q < 5; ++q) out[q] = hbuf.data() + (q * B + b) * HWp + yy * g.Wp;
         hblur_row<5>(g, w, pa, pb, nullptr, out);
@@ -281,16 +289,21 @@ void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const 
         row_sum[row] = sum;
     });
     for (int64_t b = 0; b < B; ++b) {
-        double total = 0.0;
+        double total = 0.0, l1 = 0.0;
         for (int64_t yy = 0; yy < H; ++yy) total += row_sum[b * H + yy];
         plane_mean[b] = total / static_cast<double>(HW);
+        if (plane_l1 == nullptr) continue;
+        for (int64_t yy = 0; yy < H; ++yy) l1 += row_l1[b * H + yy];
+        plane_l1[b] = l1 / static_cast<double>(HW);
     }
 }
 
-// d loss / d x for loss = sum_b g_plane[b] * plane_mean[b]:
-// g_plane[b] / HW * (blur(d_mu) + 2 x blur(d_exx) + y blur(d_exy)) (the blur is its own adjoint).
+// d loss / d x for loss = sum_b g_plane[b] * plane_mean[b] (+ g_l1[b] * plane_l1[b] when g_l1 is given):
+// g_plane[b] / HW * (blur(d_mu) + 2 x blur(d_exx) + y blur(d_exy)) (the blur is its own adjoint), plus
+// g_l1[b] / HW * sign(x - y) (0 where x == y, as torch's abs).
 void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* x, const float* y,
-                   const float* w, const float* partials, const float* g_plane, float* g_x, int64_t num_threads) {
+                   const float* w, const float* partials, const float* g_plane, const float* g_l1, float* g_x,
+                   int64_t num_threads) {
     const SsimRows g(B, H, W, K, CH);
     const int64_t HWp = H * g.Wp, HW = H * W;
     std::vector<float>& hbuf = scratch(static_cast<size_t>(3 * B * HWp));
@@ -310,6 +323,7 @@ void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const
         const float* hb[3];
         for (int q = 0; q < 3; ++q) hb[q] = hbuf.data() + (q * B + b) * HWp;
         const float scale = g_plane[b] / static_cast<float>(HW);
+        const float l1_scale = g_l1 != nullptr ? g_l1[b] / static_cast<float>(HW) : 0.0f;
         const float* xr = x + g.row(b, yy);
         const float* yr = y + g.row(b, yy);
         float* gr = g_x + g.row(b, yy);
@@ -321,10 +335,17 @@ void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const
             if (CH == 1) {
                 std::memcpy(&xv, xr + x0, sizeof(float) * n);
                 std::memcpy(&yv, yr + x0, sizeof(float) * n);
-                store_lanes(gr + x0, scale * (m[0] + 2.0f * xv * m[1] + yv * m[2]), n);
             } else {
                 for (int64_t l = 0; l < n; ++l) xv[l] = xr[(x0 + l) * CH], yv[l] = yr[(x0 + l) * CH];
-                const VS gv = scale * (m[0] + 2.0f * xv * m[1] + yv * m[2]);
+            }
+            VS gv = scale * (m[0] + 2.0f * xv * m[1] + yv * m[2]);
+            if (g_l1 != nullptr) {
+                const VS d = xv - yv;
+                gv += (d > 0.0f ? VS{} + l1_scale : VS{}) - (d < 0.0f ? VS{} + l1_scale : VS{});
+            }
+            if (CH == 1) {
+                store_lanes(gr + x0, gv, n);
+            } else {
                 for (int64_t l = 0; l < n; ++l) gr[(x0 + l) * CH] = gv[l];
             }
         }
@@ -347,21 +368,21 @@ double us_scale_kl_f32(int64_t n, const float* left, const float* raw, double wp
 }
 
 // The B planes are the CH channels of B / CH images [H, W, CH] (CH = 1: planes [B, H, W]); returns 1 when B is
-// not a multiple of CH.
+// not a multiple of CH. plane_l1 (forward) and g_l1 (backward) may be null: no L1 term.
 int us_ssim_forward_f32(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* x, const float* y,
-                        const float* w, double c1, double c2, double* plane_mean, float* partials,
+                        const float* w, double c1, double c2, double* plane_mean, float* partials, double* plane_l1,
                         int64_t num_threads) {
     if (CH < 1 || B % CH != 0) return 1;
     ssim_forward(B, H, W, K, CH, x, y, w, static_cast<float>(c1), static_cast<float>(c2), plane_mean, partials,
-                 num_threads);
+                 plane_l1, num_threads);
     return 0;
 }
 
 int us_ssim_backward_f32(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* x, const float* y,
-                         const float* w, const float* partials, const float* g_plane, float* g_x,
+                         const float* w, const float* partials, const float* g_plane, const float* g_l1, float* g_x,
                          int64_t num_threads) {
     if (CH < 1 || B % CH != 0) return 1;
-    ssim_backward(B, H, W, K, CH, x, y, w, partials, g_plane, g_x, num_threads);
+    ssim_backward(B, H, W, K, CH, x, y, w, partials, g_plane, g_l1, g_x, num_threads);
     return 0;
 }
 
