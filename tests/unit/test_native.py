@@ -217,6 +217,14 @@ def test_image_compositing_equals_tiles_then_image(background, dtype, tol, used)
         assert ((a - b).norm() / b.norm()).item() <= tol, name
 
 
+def test_a_grey_background_given_as_one_value_takes_the_tile_path():
+    """A background of one value broadcasts over the channels as before (the fused path reads exactly 3)."""
+    s, cams = _scene(300, torch.float32)
+    grey = render(s, cams, background=torch.tensor(0.4), backend="native")
+    rgb = render(s, cams, background=torch.tensor([0.4, 0.4, 0.4]), backend="native")
+    assert (grey.rgb - rgb.rgb).abs().max().item() <= 1e-6
+
+
 def test_a_background_that_learns_takes_the_tile_path():
     """The fused path gives the background no gradient; render keeps the general path when it needs one."""
     s, cams = _scene(300, torch.float32)
