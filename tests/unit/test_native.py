@@ -217,6 +217,33 @@ def test_image_compositing_equals_tiles_then_image(background, dtype, tol, used)
         assert ((a - b).norm() / b.norm()).item() <= tol, name
 
 
+@pytest.mark.parametrize("n,size,tile_size", [(0, (61, 47), 8), (1, (61, 47), 8), (200, (1, 1), 8),
+                                               (200, (5, 3), 16), (200, (17, 9), 4)])
+def test_image_compositing_at_the_extremes(n, size, tile_size):
+    """No Gaussian (the background everywhere), one, a one-pixel image, an image smaller than one tile, and
+    images that end inside their last tiles: the fused path equals the PyTorch one (float64), gradients too."""
+    w, h = size
+    s = random_scene(max(n, 1), torch.Generator().manual_seed(1), sh_degree=1, dtype=torch.float64)
+    if n == 0:
+        s = replace(s, **{k: getattr(s, k)[:0] for k in PARAMS})
+    cams = look_at_cameras(2, w, h, focal=55.0 * w / 61, dtype=torch.float64)
+    outs = {}
+    for backend in ("native", "torch"):
+        leaves = {k: getattr(s, k).detach().clone().requires_grad_() for k in PARAMS}
+        out = render(replace(s, **leaves), cams, background=torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64),
+                     tile_size=tile_size, backend=backend)
+        (out.rgb.sum() + out.alpha.sum() + out.depth.sum()).backward()
+        outs[backend] = (out, {k: v.grad for k, v in leaves.items()})
+    (a, ga), (b, gb) = outs["native"], outs["torch"]
+    for k in ("rgb", "alpha", "depth"):
+        assert (getattr(a, k) - getattr(b, k)).abs().max().item() <= 1e-12, k
+    if n == 0:
+        assert torch.equal(a.rgb, torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64).expand_as(a.rgb))
+    for k in PARAMS:
+        if n > 0 and gb[k] is not None and float(gb[k].norm()) > 0:
+            assert ((ga[k] - gb[k]).norm() / gb[k].norm()).item() <= 1e-10, k
+
+
 def test_a_grey_background_given_as_one_value_takes_the_tile_path():
     """A background of one value broadcasts over the channels as before (the fused path reads exactly 3)."""
     s, cams = _scene(300, torch.float32)
