@@ -56,6 +56,18 @@ RESULTS = ROOT / "benchmarks" / "results"
 RENDER_MODULE = sys.modules["uncertsplat.render.render"]
 
 
+_image_available = rasterize.composite_image_available
+
+
+def _image_path_if_the_library_has_it(*args, **kw) -> bool:
+    """render's fused image compositing only with a library that has its entry points: a reference built from a
+    revision of interface < 14 has not, and renders through the packed compositor as the code of its day did."""
+    return hasattr(native.library(), "us_forward_image_f32") and _image_available(*args, **kw)
+
+
+RENDER_MODULE.composite_image_available = _image_path_if_the_library_has_it
+
+
 def capture_render_inputs(fn) -> tuple:
     """(the arguments of render's bin_gaussians call, those of its compositor call as packed (gparams [G,6],
     feat [G,5], bins)) during ``fn()``; render's image-layout compositing (``composite_image``) is packed the
@@ -106,8 +118,9 @@ class _OldInterface:
     before version 12 pass 2 always wrote pair_tile (today's callers pass a null pointer); before version 14
     SSIM read planes [B,H,W] only (today's callers pass HWC images and their channel count: the stand-in copies
     them into planes and the gradient back, as the Python code before version 14 did) and the compositor had no
-    image entry points (``composite_image_available`` is then False: render takes the tile path); before version
-    15 SSIM had no L1 term (the stand-in adds it with the tensor ops the Python code used before)."""
+    image entry points (``_image_path_if_the_library_has_it``: render takes the tile path); before version
+    15 SSIM had no L1 term (the stand-in adds it with the tensor ops the Python code used before) and the
+    compositor backward added into per-Gaussian sums its caller had zeroed (the stand-in zeroes them)."""
 
     def __init__(self, lib: ctypes.CDLL, version: int):
         self._lib, self._version = lib, version
@@ -120,6 +133,13 @@ class _OldInterface:
         fn = getattr(self._lib, name)
         if self._version < 15 and name in ("us_ssim_forward_f32", "us_ssim_backward_f32"):
             return _older_ssim(fn, backward=name.endswith("backward_f32"), planar=self._version < 14)
+        if self._version < 15 and name in ("us_backward_f32", "us_backward_f64"):
+            size = 8 if name.endswith("f64") else 4
+
+            def backward(*args):  # (head with F last, G, M, 10 pointers, g_gauss [G, 6 + F] last)
+                ctypes.memset(args[-1], 0, args[9] * (6 + args[8]) * size)
+                return fn(*args)
+            return backward
         if self._version < 10 and name in ("us_forward_f32", "us_forward_f64"):
             return lambda *args: fn(*args[:9], *args[10:])  # (head, F, G, pointers) -> (head, F, pointers)
         if name.startswith("us_bin_count_"):

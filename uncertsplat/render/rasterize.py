@@ -597,14 +597,11 @@ def composite_image(means2d: Tensor, conics: Tensor, log_o: Tensor, colors: Tens
 
 def composite_image_available(*tensors: Tensor, background: Tensor | None = None, backend: str | None = None,
                               compile: bool = False) -> bool:
-    """Whether ``composite_image`` takes these inputs: ``use_native`` holds, the background (if any) is a constant
-    of 3 values (another shape broadcasts in the general path) and the loaded library has the image entry points
-    (a benchmark's reference build of an older interface may not)."""
+    """Whether ``composite_image`` takes these inputs: ``use_native`` holds and the background (if any) is a
+    constant of 3 values (another shape broadcasts in the general path)."""
     if background is not None and (background.requires_grad or background.numel() != 3):
         return False
-    if not use_native(*tensors, backend=backend, compile=compile, num_features=5):
-        return False
-    return hasattr(native.library(), "us_forward_image_f32")
+    return use_native(*tensors, backend=backend, compile=compile, num_features=5)
 
 
 def _check_composite(rc: int, what: str) -> None:
