@@ -567,8 +567,8 @@ class _CompositeImageNative(torch.autograd.Function):
         M, G = bins.pair_gauss.numel(), C * N
         g_pair = _scratch(M * 11, means2d.dtype).view(M, 11)  # every row is written by the kernel
         g_all = means2d.new_empty(G, 11)  # [G, 11]: the kernel sums every pair of each Gaussian
-        fn = native.library().us_backward_image_f64 if means2d.dtype == torch.float64 else \
-            native.library().us_backward_image_f32
+        lib = native.library()
+        fn = lib.us_backward_image_f64 if means2d.dtype == torch.float64 else lib.us_backward_image_f32
         rc = fn(*_native_head(bins, 5), G, M, height, width,
                 *(t.data_ptr() for t in (means2d, conics, log_o, colors, depths)),
                 bg[0].data_ptr() if bg else None, bins.pair_gauss.data_ptr(), bins.tile_start.data_ptr(),

@@ -208,6 +208,16 @@ struct ImageIO {
     }
 };
 
+// An ImageIO of the Gaussians' columns and the background ([3], or null: black); outputs and gradients null.
+template <typename S>
+ImageIO<S> image_inputs(const S* means2d, const S* conics, const S* log_o, const S* colors, const S* depths,
+                        int64_t height, int64_t width, const S* background) {
+    ImageIO<S> io{means2d, conics, log_o, colors, depths, height, width, {S(0), S(0), S(0)},
+                  nullptr, nullptr, nullptr, nullptr, nullptr, nullptr};
+    if (background != nullptr) io.bg[0] = background[0], io.bg[1] = background[1], io.bg[2] = background[2];
+    return io;
+}
+
 // Builds the records; fill(g, e) writes e[0 .. 6) (mean x, mean y, conic a, b, c, log opacity) and the F
 // features e[PK .. PK + F).
 template <typename S, typename Fill>

@@ -32,9 +32,8 @@ US_BACKWARD(f64, double)
                                    S* g_pair, S* g_gauss) {                                                     \
         if (F != IMAGE_F) return 1;                                                                              \
         US_PARAMS                                                                                                \
-        ImageIO<S> io{means2d, conics, log_o, colors, depths, height, width, {S(0), S(0), S(0)},                \
-                      nullptr, nullptr, nullptr, g_rgb, g_depth, g_alpha};                                       \
-        if (background != nullptr) io.bg[0] = background[0], io.bg[1] = background[1], io.bg[2] = background[2]; \
+        ImageIO<S> io = image_inputs<S>(means2d, conics, log_o, colors, depths, height, width, background);      \
+        io.g_rgb = g_rgb, io.g_depth = g_depth, io.g_alpha = g_alpha;                                           \
         return backward_image<S>(prm, G, M, io, pair_gauss, tile_start, tile_count, t_final, last, g_pair,       \
                                  g_gauss);                                                                       \
     }

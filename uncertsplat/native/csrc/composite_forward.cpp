@@ -33,9 +33,8 @@ US_FORWARD(f64, double)
                                   int32_t* last) {                                                              \
         if (F != IMAGE_F) return 1;                                                                              \
         US_PARAMS                                                                                                \
-        ImageIO<S> io{means2d, conics, log_o, colors, depths, height, width, {S(0), S(0), S(0)},                \
-                      rgb, depth, alpha, nullptr, nullptr, nullptr};                                             \
-        if (background != nullptr) io.bg[0] = background[0], io.bg[1] = background[1], io.bg[2] = background[2]; \
+        ImageIO<S> io = image_inputs<S>(means2d, conics, log_o, colors, depths, height, width, background);      \
+        io.rgb = rgb, io.depth = depth, io.alpha = alpha;                                                       \
         return forward_image<S>(prm, G, io, pair_gauss, tile_start, tile_count, t_final, last);                  \
     }
 US_FORWARD_IMAGE(f32, float)
