@@ -135,14 +135,15 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: s
     cams = scene.cameras
     maps: list = []
     train_views = partial(load_view_set, scene, depth=False)
-    residual = fit_residual(loaded.sampler(scene.scene_scale, device), train, ecfg, device, load_views=train_views)
+    residual = fit_residual(loaded.sampler(scene.scene_scale, device), train, ecfg, device, load_views=train_views,
+                            calibration_indices=scene.split.get("calibration", ()))
 
     def sampler():
         base = loaded.sampler(scene.scene_scale, device)
         return dataclasses.replace(base, residual=residual, coverage=1.0 if full_coverage else base.coverage)
 
     report = evaluate_views(sampler(), views, ecfg, device, show_progress=False, on_view=maps.append)
-    scale, _ = fit_std_scale(sampler(), train, ecfg, device, load_views=train_views)
+    scale, _ = fit_std_scale(sampler(), scene.split, ecfg, device, load_views=train_views)
     per_view = per_view_agreement(report, maps)
     if views.depths is None:  # real photos: no GT depth, no observed labels; per-view agreement only
         m = report.mean

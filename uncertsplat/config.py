@@ -87,6 +87,11 @@ class SceneConfig(_Base):
     of a capture, to measure what the model says about the other side). Default: every image not held out."""
     train_indices: list[int] | None = None
     """Explicit training indices into the sorted image list (as train_names)."""
+    calibration_holdout: int = Field(0, ge=0)
+    """Training views set aside before training, evenly spaced over them, for ``evaluate`` to fit the std factor
+    on: views the model never trained on, so the factor carries the gap between the training views and new ones
+    (a factor fitted on training views errs low where the model fits them better than new views). 0: none, the
+    factor is fitted on training views (``EvalConfig.calibration_views``)."""
     points_from: Literal["all", "train"] = "all"
     """Initial sparse points: all of them, or only those the SfM tracks show in at least 2 training views (no
     information from held-out or unused views reaches the model; COLMAP workspaces and synthetic scenes)."""

@@ -98,7 +98,8 @@ class SceneData:
     Attributes:
         cameras: all cameras, in the order of ``image_paths`` (sorted by image name).
         image_paths: one path per camera.
-        split: {"train": indices, "test": indices} into the cameras.
+        split: {"train": indices, "test": indices} into the cameras, and "calibration" (views set aside from
+            training for the std factor) when ``SceneConfig.calibration_holdout`` asks for it.
         points: [P,3] sparse points in the (normalised) world frame.
         points_rgb: [P,3] their colours in [0, 1].
         scene_scale: radius of the camera rig after normalisation (the "extent" of 3DGS is 1.1 x this).

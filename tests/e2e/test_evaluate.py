@@ -106,6 +106,70 @@ def test_std_scale_is_fitted_on_training_views_and_applied_to_the_std(evaluated)
     assert report.mean.calibration_error_calibrated is not None
 
 
+def test_std_scale_is_fitted_on_the_views_set_aside_from_training(tiny_run_path, tmp_path):
+    """A run whose scene set views aside (``scene.calibration_holdout``) gets its std factor fitted on exactly those:
+    none of them a training view, the report saying so, and the factor the maximum-likelihood one of their maps."""
+    from uncertsplat.eval.engine import fit_std_scale
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    cfg_path = run / "config.json"
+    config = json.loads(cfg_path.read_text())
+    config["scene"]["calibration_holdout"] = 2
+    cfg_path.write_text(json.dumps(config))
+    ecfg = EvalConfig(num_samples=2, max_views=1, residual_views=2)
+    rep = evaluate.run(run, ecfg, device=torch.device("cpu"))
+    loaded = load_run(run, "cpu")
+    scene = loaded.load_scene()
+    names = scene.cameras.image_names
+    held = [names[i] for i in scene.split["calibration"]]
+    assert len(held) == 2 and rep.calibration_views == held and rep.calibration_held_out
+    assert not set(held) & {names[i] for i in scene.split["train"]}
+    saved = EvalReport.from_json((run / "eval" / "metrics.json").read_text())
+    assert saved.calibration_held_out and saved.calibration_views == held
+    # the engine fits the same factor on the scene's split, and another one on its training views
+    cpu = torch.device("cpu")
+    field = fit_residual(loaded.sampler(scene.scene_scale, cpu), scene.split["train"], ecfg, cpu,
+                         load_views=partial(load_view_set, scene, depth=False))
+    sampler = dataclasses.replace(loaded.sampler(scene.scene_scale, cpu), residual=field)
+    on_train, train_names = fit_std_scale(sampler, {"train": scene.split["train"]}, ecfg, cpu,
+                                          load_views=partial(load_view_set, scene, depth=False))
+    assert not set(train_names) & set(held) and on_train != pytest.approx(rep.std_scale, rel=1e-3)
+    again, again_names = fit_std_scale(sampler, scene.split, ecfg, cpu,
+                                       load_views=partial(load_view_set, scene, depth=False))
+    assert again_names == held and again == pytest.approx(rep.std_scale, rel=1e-5)
+
+
+def test_the_noise_level_is_fitted_on_the_views_set_aside_from_training(tiny_run_path):
+    """``residual_scale = "fit"`` with views set aside fits the noise's level on them: noisier set-aside images give a
+    larger level, and without them the level comes from the training views alone (the set-aside images unread)."""
+    cpu = torch.device("cpu")
+    loaded = load_run(tiny_run_path, cpu)
+    scene = loaded.load_scene()
+    train, aside = list(scene.split["train"])[:-2], list(scene.split["train"])[-2:]
+    cfg = EvalConfig(residual_views=4, residual_scale="fit", resolution=0.0)
+    plain = partial(load_view_set, scene, depth=False)
+    g = torch.Generator().manual_seed(0)
+    noise = {i: torch.randn(96, 128, 3, generator=g) * 0.1 for i in aside}
+    read: list[int] = []
+
+    def noisy(indices):
+        views = plain(indices)
+        read.extend(i for i in indices if i in noise)
+        images = torch.stack([(im + noise[i]).clamp(0, 1) if i in noise else im
+                              for i, im in zip(indices, views.images, strict=True)])
+        return dataclasses.replace(views, images=images)
+
+    def level(load, calibration):
+        return fit_residual(loaded.sampler(scene.scene_scale, cpu), train, cfg, cpu, load_views=load,
+                            calibration_indices=calibration).scale
+
+    clean, dirty = level(plain, aside), level(noisy, aside)
+    assert dirty > 2 * clean
+    read.clear()
+    assert level(noisy, ()) == pytest.approx(level(plain, ()), rel=1e-9) and not read
+
+
 def test_no_std_scale_when_disabled_or_scoring_training_views(tiny_run_path, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(tiny_run_path, run)

@@ -194,6 +194,18 @@ class TestAddViewsErrors:
         with pytest.raises(UserError, match="not in the scene"):
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["nope.png"])
 
+    def test_a_run_with_views_set_aside_takes_none(self, tiny_scene_path, subset_run, tmp_path):
+        """More training views would set other views aside for calibration: refused, the run left as it was."""
+        run = tmp_path / "run"
+        shutil.copytree(subset_run, run)
+        config = json.loads((run / "config.json").read_text())
+        config["scene"]["calibration_holdout"] = 1
+        (run / "config.json").write_text(json.dumps(config))
+        before = (run / "scene.json").read_text()
+        with pytest.raises(UserError, match="sets views aside for calibration"):
+            train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["view_002.png"])
+        assert (run / "scene.json").read_text() == before
+
     def test_a_run_on_every_view_has_none_to_add(self, tiny_scene_path, tmp_path):
         run = tmp_path / "all"
         train_run(tiny_scene_path, run, _cfg(iterations=10), CPU)

@@ -531,7 +531,11 @@ def test_metrics_section_states_the_fitted_std_scale(tmp_path):
     html = stage.run([run, plain], tmp_path / "out", ReportConfig()).read_text()
     assert "x1.9, fitted on 8 training views" in html
     assert html.count("std scale (calibrated NLL)") == 1
-    assert "NLL, std rescaled on train views" in html  # the summary column
+    assert "NLL, std rescaled" in html  # the summary column
+    m.calibration_views, m.calibration_held_out = ["view_003.png", "view_010.png"], True
+    m.write(run / "eval" / "metrics.json")
+    html = stage.run([run], tmp_path / "out2", ReportConfig()).read_text()
+    assert "x1.9, fitted on 2 views set aside from training" in html
 
 
 def test_training_section_says_which_sh_bands_the_scene_kept(tmp_path):

@@ -108,6 +108,31 @@ def test_explicit_training_views(tiny_scene_path):  # noqa: F811
     _raises(tiny_scene_path, SceneConfig(train_names=["x.png"]), match="training image")
 
 
+def test_views_set_aside_for_calibration(tiny_scene_path):  # noqa: F811
+    """``calibration_holdout`` = n moves the middle view of each of n equal runs of the training views to
+    "calibration": disjoint from both other sets, nothing lost, the held-out views as they were; with points from
+    the training views only, the set-aside views give no point; n = every training view is refused."""
+    base = load_scene(tiny_scene_path, SceneConfig())
+    s = load_scene(tiny_scene_path, SceneConfig(calibration_holdout=3))
+    train, cal = list(base.split["train"]), s.split["calibration"]
+    assert cal == (train[3], train[10], train[17]) and len(train) == 21
+    assert s.split["test"] == base.split["test"]
+    assert set(s.split["train"]) == set(train) - set(cal)
+    assert not set(cal) & set(s.split["test"])
+    one = load_scene(tiny_scene_path, SceneConfig(train_indices=[4, 5, 6], calibration_holdout=1))
+    assert one.split["train"] == (4, 6) and one.split["calibration"] == (5,)
+    assert "calibration" not in base.split
+    _raises(tiny_scene_path, SceneConfig(train_indices=[4, 5], calibration_holdout=2), match="calibration_holdout")
+    from uncertsplat.sfm.colmap_io import read_colmap_model
+
+    model = read_colmap_model(tiny_scene_path / "sparse" / "0")
+    some = load_scene(tiny_scene_path, SceneConfig(train_indices=list(range(7)), calibration_holdout=1,
+                                                   points_from="train"))
+    assert some.split["calibration"] == (3,)
+    kept = {f"view_{i:03d}.png" for i in (0, 1, 2, 4, 5, 6)}
+    assert some.points.shape[0] == sum(len(kept.intersection(t)) >= 2 for t in model.point_images)
+
+
 def test_points_from_training_views(tiny_scene_path):  # noqa: F811
     from uncertsplat.sfm.colmap_io import read_colmap_model
 

@@ -145,7 +145,7 @@ def test_older_version_without_conversion_is_refused(tmp_path):
     del data["schema_version"]  # an EvalReport always had a version: 0 cannot be converted
     path = tmp_path / "metrics.json"
     path.write_text(json.dumps(data))
-    with pytest.raises(UserError, match=r"schema version 0 is older than 1 and cannot be converted") as err:
+    with pytest.raises(UserError, match=r"schema version 0 is older than 2 and cannot be converted") as err:
         EvalReport.read(path)
     assert "uncertsplat evaluate" in str(err.value)  # says which command rewrites it
 
@@ -213,6 +213,28 @@ def test_unversioned_run_scene_is_converted(tmp_path):
     path.write_text(json.dumps(old))
     got = RunScene.read(path)
     assert got.scene == "/s" and got.center_method == "camera_centroid" and got.center is None
+    assert got.calibration == []
+
+
+def test_version_1_run_scene_and_eval_report_are_converted(tmp_path):
+    """scene.json and eval/metrics.json of runs before views could be set aside for calibration (version 1) read
+    with none set aside and the std factor fitted on training views."""
+    scene = next(e for e in EXAMPLES if isinstance(e, RunScene))
+    data = json.loads(scene.to_json())
+    data["schema_version"] = 1
+    del data["calibration"]
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(data))
+    got = RunScene.read(path)
+    assert got.schema_version == 2 and got.calibration == [] and got.train == scene.train
+    report = next(e for e in EXAMPLES if isinstance(e, EvalReport))
+    data = json.loads(report.to_json())
+    data["schema_version"] = 1
+    del data["calibration_held_out"]
+    path = tmp_path / "metrics.json"
+    path.write_text(json.dumps(data))
+    got = EvalReport.read(path)
+    assert got.schema_version == 2 and not got.calibration_held_out and got.mean == report.mean
 
 
 def test_train_summary_version_1_is_converted(tmp_path):

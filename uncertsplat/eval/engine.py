@@ -182,12 +182,17 @@ def _representative(sampler: Sampler, device: torch.device) -> GaussianSample:
 
 
 def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettings, device: torch.device, *,
-                 load_views: Callable[[list[int]], ViewSet]) -> ResidualField | None:
+                 load_views: Callable[[list[int]], ViewSet],
+                 calibration_indices: Sequence[int] = ()) -> ResidualField | None:
     """The pixel noise of the sampler's Gaussians (``uncertainty.residual.fit_residual_field``), fitted on
     ``residual_indices`` of the training views against the run's deterministic render (a sample when the
     method has none); None when ``cfg.residual_views`` is 0 or there is no training view. Give it a sampler of
     its own (a baseline's sampler may keep state) and attach the field to the evaluation's sampler with
-    ``dataclasses.replace(sampler, residual=field)``."""
+    ``dataclasses.replace(sampler, residual=field)``.
+
+    With ``cfg.residual_scale = "fit"`` and ``calibration_indices`` (views set aside from training,
+    ``SceneConfig.calibration_holdout``), the noise's level is fitted on those views, after the leverage: views the
+    model never trained on show the noise a new view sees, so nothing is corrected for what training absorbed."""
     from uncertsplat.uncertainty.residual import fit_residual_field
 
     chosen = residual_indices(train_indices, cfg)
@@ -219,16 +224,24 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
         field = fit_residual_field(rep, cams, images, sampler.render_fn, masks=masks, explained=explained,
                                    colour_posterior=cfg.colour_posterior, view_factor=len(train_indices) / len(chosen),
                                    edge_scale="fit" if cfg.edge_noise else 0.0)
-    if cfg.residual_scale == "fit":
+    on_set_aside = cfg.residual_scale == "fit" and len(calibration_indices) > 0
+    if cfg.residual_scale == "fit" and not on_set_aside:
         field = field.scaled(fit_noise_scale(field, rep, cams, images, sampler.render_fn, masks=masks,
                                              explained=explained, std_floor=cfg.std_floor))
-    else:
+    elif not on_set_aside:
         field = field.scaled(float(cfg.residual_scale))
     if cfg.residual_leverage != "none":
-        # the scale above is fitted to training residuals; the leverage gives the noise behind them
+        # a scale fitted to training residuals (or set) is the noise of the training pixels; the leverage gives the
+        # noise behind them
         k = 11 + 3 * (rep.sh_degree + 1) ** 2
         field = field.out_of_sample(k, view_factor=len(train_indices) / len(chosen),
                                     relative=cfg.residual_leverage == "relative")
+    if on_set_aside:
+        cal = load_views(list(calibration_indices))
+        cal_masks = cal.masks.to(device) if cal.masks is not None else None
+        field = field.scaled(fit_noise_scale(field, rep, cal.cameras.to(device), cal.images.to(device),
+                                             sampler.render_fn, masks=cal_masks, explained=explained,
+                                             std_floor=cfg.std_floor))
     return field
 
 
@@ -329,33 +342,38 @@ def split_indices(split: Mapping[str, Sequence[int]], cfg: EvalSettings) -> list
     return indices
 
 
-def calibration_indices(train_indices: Sequence[int], cfg: EvalSettings) -> list[int]:
-    """The ``cfg.calibration_views`` evenly spaced training views (both ends included) the std factor is fitted
-    on; none when disabled or when scoring the training split (never fit on the views that are scored)."""
-    return evenly_spaced(train_indices, cfg.calibration_views) if cfg.split == "test" else []
+def calibration_indices(split: Mapping[str, Sequence[int]], cfg: EvalSettings) -> list[int]:
+    """The views the std factor is fitted on: at most ``cfg.calibration_views`` of the scene's ``"calibration"``
+    views (set aside from training, ``SceneConfig.calibration_holdout``) when it has some, else of its training
+    views, evenly spaced with both ends included; none when disabled or when scoring the training split (never fit
+    on the views that are scored)."""
+    if cfg.split != "test":
+        return []
+    return evenly_spaced(split.get("calibration") or split.get("train", ()), cfg.calibration_views)
 
 
 @torch.no_grad()
-def fit_std_scale(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettings, device: torch.device, *,
+def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: EvalSettings, device: torch.device, *,
                   load_views: Callable[[list[int]], ViewSet]) -> tuple[float | None, list[str]]:
-    """One factor for the predicted std, fitted on ``calibration_indices`` of the training views.
+    """One factor for the predicted std, fitted on the views ``calibration_indices`` chooses from ``split``.
 
     The maximum-likelihood scale of a Gaussian predictive, s^2 = mean((error / max(std, std_floor))^2) over
     every valid pixel and channel of those views (K samples each, as in evaluation). Training views fit
-    better than held-out ones, so it errs low.
+    better than held-out ones, so a factor fitted on them errs low; views set aside from training
+    (``split["calibration"]``) do not have that bias.
 
     Args:
         sampler: the run's sampler (build a fresh one: a baseline's sampler may keep state between calls).
-        train_indices: the scene's training views.
+        split: the scene's split (``SceneData.split``).
         load_views: ``load_views(indices) -> ViewSet`` (images and masks; depth is not needed).
 
     Returns:
         (scale, image names), or (None, []) when disabled, when scoring the training split, when there is
-        no training view or no valid pixel.
+        no view to fit on or no valid pixel.
     """
     from uncertsplat.uncertainty.mc import mc_render
 
-    chosen = calibration_indices(train_indices, cfg)
+    chosen = calibration_indices(split, cfg)
     if not chosen:
         return None, []
     views = load_views(chosen)
@@ -379,6 +397,7 @@ def fit_std_scale(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSetti
 def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: torch.device, *,
                    on_view: Callable[[ViewMaps], None] | None = None, show_progress: bool = True,
                    std_scale: float | None = None, calibration_views: list[str] | None = None,
+                   calibration_held_out: bool = False,
                    noise_scale: float | None = None,
                    notes: Sequence[str] = (), config_hash: str = "") -> EvalReport:
     """Render K posterior samples of each view and compute every metric.
@@ -395,6 +414,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         std_scale: a factor for the RGB std (``fit_std_scale``): adds ``nll_calibrated`` and
             ``calibration_error_calibrated`` (the maps and the other metrics keep the raw std).
         calibration_views: the image names ``std_scale`` was fitted on (recorded in the report).
+        calibration_held_out: whether the scene set views aside from training, on which the std factor and a fitted
+            noise level were then fitted (recorded).
         noise_scale: the factor the sampler's pixel noise carries (``ResidualField.scale``; recorded).
         notes: notes about the run to record (``LoadedRun.eval_notes``); the engine adds its own.
         config_hash: the hash of the full evaluation config (recorded in the report).
@@ -602,7 +623,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         std_floor=cfg.std_floor,
         depth_scale=depth_info,
         std_scale=std_scale,
-        calibration_views=calibration_views or [],
+        calibration_views=calibration_views or [], calibration_held_out=calibration_held_out,
         noise_scale=noise_scale,
         edge_scale=sampler.residual.edge_scale if sampler.residual is not None else None,
         lpips=LpipsStatus(available=lp_ok, reason=lp_reason),

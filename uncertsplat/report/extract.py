@@ -43,7 +43,7 @@ METRIC_SPECS: tuple[MetricSpec, ...] = (
     MetricSpec("nll_kde", "NLL (KDE)", ".3f", False),
     MetricSpec("nll_paper", "NLL (paper formula)", ".3f", False),
     MetricSpec("calibration_error", "Calib. error", ".4f", False),
-    MetricSpec("nll_calibrated", "NLL, std rescaled on train views", ".3f", False),
+    MetricSpec("nll_calibrated", "NLL, std rescaled", ".3f", False),
     MetricSpec("calibration_error_calibrated", "Calib. error, std rescaled", ".4f", False),
     MetricSpec("spearman", "Spearman", ".3f", True),
     MetricSpec("depth_ause_mae", "Depth AUSE MAE", ".4f", False),

@@ -20,7 +20,8 @@ from uncertsplat.schemas.base import SchemaFile
 from uncertsplat.schemas.base import Strict as _Strict
 from uncertsplat.schemas.base import finite_or_none as _finite_or_none
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+"""``EvalReport``'s: 2 added ``calibration_held_out`` (2026-11-27)."""
 
 
 class ViewMetrics(_Strict):
@@ -175,6 +176,13 @@ class EvalReport(SchemaFile):
     SCHEMA_VERSION = SCHEMA_VERSION
     WRITTEN_BY = "uncertsplat evaluate"
 
+    @classmethod
+    def _upgrade(cls, data: dict, version: int) -> dict | None:
+        # version 1 had every key but calibration_held_out: its std factor was always fitted on training views
+        if version != 1:
+            return None
+        return {**data, "calibration_held_out": False}
+
     schema_version: int = SCHEMA_VERSION
     split: str = "test"
     image_names: list[str] = Field(default_factory=list)
@@ -194,9 +202,14 @@ class EvalReport(SchemaFile):
     kde_bandwidth: str = "silverman: max(1.06 * std_hat * K^(-1/5), floor)"
     depth_scale: DepthScaleInfo | None = None
     std_scale: float | None = None
-    """Factor for the RGB std fitted on training views (``eval.engine.fit_std_scale``); None = not fitted."""
+    """Factor for the RGB std fitted on training views, or on views set aside from training
+    (``eval.engine.fit_std_scale``); None = not fitted."""
     calibration_views: list[str] = Field(default_factory=list)
-    """The training images ``std_scale`` was fitted on."""
+    """The images ``std_scale`` was fitted on."""
+    calibration_held_out: bool = False
+    """True: the scene set views aside from training (``SceneConfig.calibration_holdout``), and the std factor
+    (``calibration_views``) and a fitted pixel-noise level (``noise_scale``) were fitted on them; False: on training
+    views."""
     noise_scale: float | None = None
     """The factor the pixel noise (``EvalConfig.residual_views``) carries: fitted by maximum likelihood on training
     views (``EvalConfig.residual_scale = "fit"``) or set; None without the pixel-noise term, or in reports from

@@ -87,10 +87,10 @@ class RunScene(SchemaFile):
     """``RUN/scene.json`` (written by ``train``): which scene a run was trained on and how it was normalised."""
 
     FILE_NAME = "scene.json"
-    SCHEMA_VERSION = 1
+    SCHEMA_VERSION = 2
     WRITTEN_BY = "uncertsplat train"
 
-    schema_version: int = 1
+    schema_version: int = 2
     scene: str
     """Absolute path of the scene folder (COLMAP workspace, Blender/nerfstudio folder, synthetic scene)."""
     source: dict[str, Any] = Field(default_factory=dict)
@@ -101,6 +101,8 @@ class RunScene(SchemaFile):
     height: int
     train: list[str] = Field(default_factory=list)
     test: list[str] = Field(default_factory=list)
+    calibration: list[str] = Field(default_factory=list)
+    """Views set aside from training for the std factor (``SceneConfig.calibration_holdout``; empty: none)."""
     center: list[float] | None = None
     """Source coordinates of the scene centre: the world origin after normalisation and the middle of random
     initial points (``SceneData.center``); None in runs written before it was recorded."""
@@ -118,7 +120,11 @@ class RunScene(SchemaFile):
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
         # version 0 (runs trained before schema_version existed) had the first eight keys; the centre fields
-        # take their defaults, which describe what those runs did (the camera centroid)
-        if version != 0:
-            return None
-        return {**data, "center_reason": "not recorded: trained by a version of uncertsplat that always used the camera centroid"}
+        # take their defaults, which describe what those runs did (the camera centroid). Version 1 had every key
+        # but calibration (2026-11-27): no view was set aside then.
+        if version == 0:
+            return {**data, "calibration": [], "center_reason": "not recorded: trained by a version of uncertsplat "
+                                                                "that always used the camera centroid"}
+        if version == 1:
+            return {**data, "calibration": []}
+        return None

@@ -229,7 +229,32 @@ def make_split(names: tuple[str, ...], cfg: SceneConfig, where: Path | None = No
                default: dict[str, tuple[int, ...]] | None = None) -> dict[str, tuple[int, ...]]:
     """Train/test indices: explicit names, explicit indices, ``default`` (e.g. a dataset's own split),
     else every ``test_every``-th image by sorted name starting at index 0. Explicit training views
-    (``train_names`` / ``train_indices``) restrict the training set; images in neither set are unused."""
+    (``train_names`` / ``train_indices``) restrict the training set; images in neither set are unused. With
+    ``calibration_holdout`` = n, n of the training views move to a third set, ``"calibration"`` (``_set_aside``).
+
+    Raises:
+        UserError: a view in both sets, no training view left, or an index/name that does not exist.
+    """
+    split = _train_test(names, cfg, where, default)
+    return _set_aside(split, cfg.calibration_holdout, where) if cfg.calibration_holdout else split
+
+
+def _set_aside(split: dict[str, tuple[int, ...]], n: int, where: Path | None) -> dict[str, tuple[int, ...]]:
+    """``split`` with ``n`` of its training views moved to ``"calibration"``: the middle view of each of n equal runs
+    of the training views, so that they spread over the capture as the held-out views do."""
+    train = list(split["train"])
+    if len(train) - n < 1:
+        raise UserError(f"calibration_holdout = {n} takes every one of the {len(train)} training views", path=where,
+                        hint="Set aside fewer views for calibration (scene.calibration_holdout).")
+    picked = sorted({train[int((j + 0.5) * len(train) / n)] for j in range(n)})
+    out = {k: tuple(v) for k, v in split.items() if k != "calibration"}
+    out["train"] = tuple(i for i in train if i not in set(picked))
+    out["calibration"] = tuple(picked)
+    return out
+
+
+def _train_test(names: tuple[str, ...], cfg: SceneConfig, where: Path | None,
+                default: dict[str, tuple[int, ...]] | None) -> dict[str, tuple[int, ...]]:
     n = len(names)
     test = _named(names, cfg.test_names, cfg.test_indices, "test", where)
     train = _named(names, cfg.train_names, cfg.train_indices, "training", where)

@@ -167,21 +167,30 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
                       f"{len(loaded.model)} Gaussians ({loaded.model.num_carriers} with a posterior), {device}")
         train_views = partial(load_view_set, scene, depth=False)
         residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
-                                   load_views=train_views, write=True)
-        with console.status("fitting the std factor on training views"):
+                                   load_views=train_views, write=True,
+                                   calibration_indices=scene.split.get("calibration", ()))
+        with console.status("fitting the std factor on " + ("the views set aside for calibration"
+                                                             if scene.split.get("calibration") else "training views")):
             std_scale, cal_views = fit_std_scale(
                 dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual),
-                scene.split.get("train", ()), cfg, device, load_views=train_views)
+                scene.split, cfg, device, load_views=train_views)
         report = evaluate_views(dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual),
                                 views, cfg, device,
                                 on_view=partial(write_view_maps, out / "maps", preview=cfg.preview),
                                 std_scale=std_scale, calibration_views=cal_views,
+                                calibration_held_out=bool(scene.split.get("calibration")),
                                 noise_scale=residual.scale if residual is not None else None,
                                 notes=loaded.eval_notes(cfg.num_samples),
                                 config_hash=hash_config(cfg.model_dump(mode="json")))
         atomic_write_text(out / "metrics.json", report.to_json() + "\n")
         atomic_write_text(out / "config.json", cfg.model_dump_json(indent=2) + "\n")
     return _print_report(run_dir, cfg, report, out)
+
+
+def _fitted_on(report) -> str:
+    """Which views the report's std factor was fitted on, in words."""
+    n = len(report.calibration_views)
+    return f"{n} views set aside from training" if report.calibration_held_out else f"{n} training views"
 
 
 def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
@@ -202,10 +211,11 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
     console.print(table)
     if report.noise_scale is not None:
         if cfg.residual_scale == "fit":  # the default (1) is not worth a line
-            console.print(f"pixel noise x {report.noise_scale:.3g} (maximum likelihood on training views)")
+            where = "the views set aside from training" if report.calibration_held_out else "training views"
+            console.print(f"pixel noise x {report.noise_scale:.3g} (maximum likelihood on {where})")
     if report.std_scale is not None:
         m = report.mean
-        console.print(f"std x {report.std_scale:.3g} (fitted on {len(report.calibration_views)} training views): "
+        console.print(f"std x {report.std_scale:.3g} (fitted on {_fitted_on(report)}): "
                       f"NLL {m.nll_calibrated:.3f} (raw {m.nll:.3f}), calibration error "
                       f"{m.calibration_error_calibrated:.3f} (raw {m.calibration_error:.3f}); AUSE is unchanged")
     if report.mean.psnr_render is not None:

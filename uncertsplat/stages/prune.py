@@ -109,7 +109,8 @@ class _Measure:
         from uncertsplat.stages.residual_cache import fitted_residual
 
         self.residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), self.ecfg, device,
-                                        load_views=partial(load_view_set, scene, depth=False), write=False)
+                                        load_views=partial(load_view_set, scene, depth=False), write=False,
+                                        calibration_indices=scene.split.get("calibration", ()))
         self.meta = {"variant": loaded.config.variant, "extent": loaded.extent, "step": loaded.step,
                      "sh_degree_active": loaded.sh_degree,
                      "temperature": loaded.config.variational.gate_temperature}

@@ -52,10 +52,11 @@ def residual_key(loaded, cfg, device: torch.device) -> str | None:
 
 
 def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torch.device, *,
-                    load_views: Callable[[list[int]], ViewSet], write: bool):
+                    load_views: Callable[[list[int]], ViewSet], write: bool, calibration_indices=()):
     """The pixel noise of ``loaded``'s model (``eval.engine.fit_residual``), read from ``RUN/eval/residual.pt``
     when that file was written for the same key (``residual_key``), else fitted; with ``write``, a fitted field is
-    kept there for the next evaluation. None when ``cfg.residual_views`` is 0 or there is no training view."""
+    kept there for the next evaluation. None when ``cfg.residual_views`` is 0 or there is no training view.
+    ``calibration_indices``: views set aside from training (``fit_residual``)."""
     from uncertsplat.console import console
     from uncertsplat.eval.engine import fit_residual, residual_from_state, residual_indices
     from uncertsplat.io.atomic import atomic_write
@@ -75,7 +76,8 @@ def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torc
     views = len(residual_indices(train_indices, cfg))
     t0 = time.perf_counter()
     with console.status(f"fitting the pixel noise on {views} training views"):
-        field = fit_residual(sampler, train_indices, cfg, device, load_views=load_views)
+        field = fit_residual(sampler, train_indices, cfg, device, load_views=load_views,
+                             calibration_indices=calibration_indices)
     if field is not None:
         console.print(f"pixel noise: fitted on {views} training views in {time.perf_counter() - t0:.1f} s")
     if write and key is not None and field is not None:

@@ -126,10 +126,10 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     # as `evaluate` does; not in the timed part
     train_views = partial(load_view_set, scene, depth=False)
     residual = fit_residual(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()), ecfg, device,
-                            load_views=train_views)
+                            load_views=train_views, calibration_indices=scene.split.get("calibration", ()))
     std_scale, cal_views = fit_std_scale(dataclasses.replace(loaded.sampler(scene.scene_scale, device),
                                                              residual=residual),
-                                         scene.split.get("train", ()), ecfg, device, load_views=train_views)
+                                         scene.split, ecfg, device, load_views=train_views)
     calibration_seconds = time.perf_counter() - t_cal
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -138,6 +138,7 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     report = evaluate_views(dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual), views,
                             ecfg, device, show_progress=False,
                             std_scale=std_scale, calibration_views=cal_views,
+                            calibration_held_out=bool(scene.split.get("calibration")),
                             noise_scale=residual.scale if residual is not None else None,
                             notes=loaded.eval_notes(ecfg.num_samples),
                             config_hash=hash_config(ecfg.model_dump(mode="json")))

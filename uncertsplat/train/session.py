@@ -89,9 +89,15 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
     """``cfg`` with the views ``add`` appended to its explicit training names, and those names.
 
     Raises:
-        UserError: the run trains on every image that is not held out (nothing can be added), a view is held
-            out or already trained on.
+        UserError: the run trains on every image that is not held out (nothing can be added), sets views aside for
+            calibration, or a view is held out or already trained on.
     """
+    if cfg.scene.calibration_holdout:
+        # the views set aside are chosen over the training views: more training views would set others aside, and a
+        # view the model trained on could then calibrate it
+        raise UserError("this run sets views aside for calibration (scene.calibration_holdout), and adding views "
+                        "would change which ones", path=run_dir,
+                        hint="Train a new run on the views you want (scene.train_names), with views set aside or not.")
     if cfg.scene.train_names is None:
         raise UserError("this run trains on every image that is not held out, so there is no unused view to add",
                         path=run_dir, hint="Start the run on a subset of the images (--set scene.train_names=[...]) "
@@ -194,6 +200,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             width=data.cameras.width, height=data.cameras.height,
             train=[names[i] for i in data.split["train"]] if names else [],
             test=[names[i] for i in data.split.get("test", ())] if names else [],
+            calibration=[names[i] for i in data.split.get("calibration", ())] if names else [],
             center=list(data.center) if data.center is not None else None, center_method=data.center_method,
             center_reason=data.center_reason, world_from_source=data.world_from_source.double().tolist(),
             views_added=views_added,
@@ -209,6 +216,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         kernels = native.describe(device)
         console.print(f"training {len(trainer.model)} Gaussians on {len(data.split['train'])} views "
                       f"({data.cameras.width}x{data.cameras.height}), {len(data.split.get('test', ()))} held out, "
+                      + (f"{len(data.split['calibration'])} set aside for calibration, " if data.split.get("calibration")
+                         else "") +
                       f"device {device} ({kernels}), {cfg.iterations} steps, at most "
                       f"{trainer.budget.max_gaussians:,} Gaussians ({trainer.budget.reason})")
         n_train = len(data.split["train"])
