@@ -124,13 +124,16 @@ def test_std_scale_is_fitted_on_the_views_set_aside_from_training(tiny_run_path,
     names = scene.cameras.image_names
     held = [names[i] for i in scene.split["calibration"]]
     assert len(held) == 2 and rep.calibration_views == held and rep.calibration_held_out
+    assert rep.noise_scale is not None and rep.noise_scale != 1.0  # residual_scale "auto": fitted on the views aside
     assert not set(held) & {names[i] for i in scene.split["train"]}
     saved = EvalReport.from_json((run / "eval" / "metrics.json").read_text())
     assert saved.calibration_held_out and saved.calibration_views == held
     # the engine fits the same factor on the scene's split, and another one on its training views
     cpu = torch.device("cpu")
     field = fit_residual(loaded.sampler(scene.scene_scale, cpu), scene.split["train"], ecfg, cpu,
-                         load_views=partial(load_view_set, scene, depth=False))
+                         load_views=partial(load_view_set, scene, depth=False),
+                         calibration_indices=scene.split["calibration"])
+    assert field.scale == pytest.approx(rep.noise_scale, rel=1e-6)
     sampler = dataclasses.replace(loaded.sampler(scene.scene_scale, cpu), residual=field)
     on_train, train_names = fit_std_scale(sampler, {"train": scene.split["train"]}, ecfg, cpu,
                                           load_views=partial(load_view_set, scene, depth=False))
@@ -142,7 +145,8 @@ def test_std_scale_is_fitted_on_the_views_set_aside_from_training(tiny_run_path,
 
 def test_the_noise_level_is_fitted_on_the_views_set_aside_from_training(tiny_run_path):
     """``residual_scale = "fit"`` with views set aside fits the noise's level on them: noisier set-aside images give a
-    larger level, and without them the level comes from the training views alone (the set-aside images unread)."""
+    larger level, and without them the level comes from the training views alone (the set-aside images unread);
+    ``"auto"`` fits it the same way on views set aside and leaves it at 1 without them."""
     cpu = torch.device("cpu")
     loaded = load_run(tiny_run_path, cpu)
     scene = loaded.load_scene()
@@ -168,6 +172,9 @@ def test_the_noise_level_is_fitted_on_the_views_set_aside_from_training(tiny_run
     assert dirty > 2 * clean
     read.clear()
     assert level(noisy, ()) == pytest.approx(level(plain, ()), rel=1e-9) and not read
+    cfg = EvalConfig(residual_views=4, resolution=0.0)  # "auto": fitted on the views set aside, else 1
+    assert cfg.residual_scale == "auto"
+    assert level(plain, aside) == pytest.approx(clean, rel=1e-9) and level(plain, ()) == 1.0
 
 
 def test_no_std_scale_when_disabled_or_scoring_training_views(tiny_run_path, tmp_path):

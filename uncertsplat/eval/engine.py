@@ -190,7 +190,7 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
     its own (a baseline's sampler may keep state) and attach the field to the evaluation's sampler with
     ``dataclasses.replace(sampler, residual=field)``.
 
-    With ``cfg.residual_scale = "fit"`` and ``calibration_indices`` (views set aside from training,
+    With ``cfg.residual_scale`` "fit" or "auto" and ``calibration_indices`` (views set aside from training,
     ``SceneConfig.calibration_holdout``), the noise's level is fitted on those views, after the leverage: views the
     model never trained on show the noise a new view sees, so nothing is corrected for what training absorbed."""
     from uncertsplat.uncertainty.residual import fit_residual_field
@@ -224,12 +224,13 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
         field = fit_residual_field(rep, cams, images, sampler.render_fn, masks=masks, explained=explained,
                                    colour_posterior=cfg.colour_posterior, view_factor=len(train_indices) / len(chosen),
                                    edge_scale="fit" if cfg.edge_noise else 0.0)
-    on_set_aside = cfg.residual_scale == "fit" and len(calibration_indices) > 0
-    if cfg.residual_scale == "fit" and not on_set_aside:
+    mode = noise_scale_mode(cfg, calibration_indices)
+    on_set_aside = mode == "fit" and len(calibration_indices) > 0
+    if mode == "fit" and not on_set_aside:
         field = field.scaled(fit_noise_scale(field, rep, cams, images, sampler.render_fn, masks=masks,
                                              explained=explained, std_floor=cfg.std_floor))
     elif not on_set_aside:
-        field = field.scaled(float(cfg.residual_scale))
+        field = field.scaled(float(mode))
     if cfg.residual_leverage != "none":
         # a scale fitted to training residuals (or set) is the noise of the training pixels; the leverage gives the
         # noise behind them
@@ -243,6 +244,13 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
                                              sampler.render_fn, masks=cal_masks, explained=explained,
                                              std_floor=cfg.std_floor))
     return field
+
+
+def noise_scale_mode(cfg: EvalSettings, calibration_indices: Sequence[int] = ()) -> str | float:
+    """``cfg.residual_scale`` resolved: "fit" or a factor ("auto": "fit" when views were set aside, else 1)."""
+    if cfg.residual_scale == "auto":
+        return "fit" if len(calibration_indices) > 0 else 1.0
+    return cfg.residual_scale
 
 
 RESIDUAL_SETTINGS = ("residual_views", "resolution", "residual_scale", "residual_leverage", "colour_posterior",

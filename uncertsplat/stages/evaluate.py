@@ -210,7 +210,8 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
                       f(v.spearman), f(v.depth_ause_mae), f(v.seconds, 2))
     console.print(table)
     if report.noise_scale is not None:
-        if cfg.residual_scale == "fit":  # the default (1) is not worth a line
+        # a fitted level is worth a line (1, the default without views set aside, is not)
+        if cfg.residual_scale == "fit" or (cfg.residual_scale == "auto" and report.calibration_held_out):
             where = "the views set aside from training" if report.calibration_held_out else "training views"
             console.print(f"pixel noise x {report.noise_scale:.3g} (maximum likelihood on {where})")
     if report.std_scale is not None:
