@@ -142,6 +142,11 @@ class TestCandidates:
         assert idx and not set(idx) & (set(scene.split["train"]) | set(scene.split["test"]))
         c = candidates_from_spec("unused", scene, scene.world_from_source, radius=1.0, generator=torch.Generator())
         assert c.kind == "unused" and list(c.scene_indices) == idx
+        # views set aside for calibration are no candidates either (adding them would change which are set aside)
+        from dataclasses import replace
+
+        aside = replace(scene, split={**scene.split, "calibration": (idx[0],)})
+        assert unused_views(aside) == idx[1:]
 
     def test_pose_file_round_trips_to_the_scenes_cameras(self, scene, tmp_path):
         f = tmp_path / "poses.txt"

@@ -50,8 +50,8 @@ class Candidates:
 
 
 def unused_views(scene: SceneData) -> list[int]:
-    """Scene indices neither trained on nor held out."""
-    used = set(scene.split.get("train", ())) | set(scene.split.get("test", ()))
+    """Scene indices neither trained on, held out nor set aside for calibration."""
+    used = set(scene.split.get("train", ())) | set(scene.split.get("test", ())) | set(scene.split.get("calibration", ()))
     return [i for i in range(len(scene.cameras)) if i not in used]
 
 
