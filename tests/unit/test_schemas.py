@@ -216,24 +216,23 @@ def test_unversioned_run_scene_is_converted(tmp_path):
     assert got.calibration == []
 
 
+def _as_version_1(example, dropped: str, path):
+    """``example`` written as its version 1 file, without the key ``dropped`` that version 2 added; read back."""
+    data = json.loads(example.to_json())
+    data["schema_version"] = 1
+    del data[dropped]
+    path.write_text(json.dumps(data))
+    return type(example).read(path)
+
+
 def test_version_1_run_scene_and_eval_report_are_converted(tmp_path):
     """scene.json and eval/metrics.json of runs before views could be set aside for calibration (version 1) read
     with none set aside and the std factor fitted on training views."""
     scene = next(e for e in EXAMPLES if isinstance(e, RunScene))
-    data = json.loads(scene.to_json())
-    data["schema_version"] = 1
-    del data["calibration"]
-    path = tmp_path / "scene.json"
-    path.write_text(json.dumps(data))
-    got = RunScene.read(path)
+    got = _as_version_1(scene, "calibration", tmp_path / "scene.json")
     assert got.schema_version == 2 and got.calibration == [] and got.train == scene.train
     report = next(e for e in EXAMPLES if isinstance(e, EvalReport))
-    data = json.loads(report.to_json())
-    data["schema_version"] = 1
-    del data["calibration_held_out"]
-    path = tmp_path / "metrics.json"
-    path.write_text(json.dumps(data))
-    got = EvalReport.read(path)
+    got = _as_version_1(report, "calibration_held_out", tmp_path / "metrics.json")
     assert got.schema_version == 2 and not got.calibration_held_out and got.mean == report.mean
 
 
