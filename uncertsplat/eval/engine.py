@@ -226,11 +226,11 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
                                    edge_scale="fit" if cfg.edge_noise else 0.0)
     mode = noise_scale_mode(cfg, calibration_indices)
     on_set_aside = mode == "fit" and len(calibration_indices) > 0
-    if mode == "fit" and not on_set_aside:
+    if mode != "fit":
+        field = field.scaled(float(mode))
+    elif not on_set_aside:
         field = field.scaled(fit_noise_scale(field, rep, cams, images, sampler.render_fn, masks=masks,
                                              explained=explained, std_floor=cfg.std_floor))
-    elif not on_set_aside:
-        field = field.scaled(float(mode))
     if cfg.residual_leverage != "none":
         # a scale fitted to training residuals (or set) is the noise of the training pixels; the leverage gives the
         # noise behind them

@@ -246,10 +246,10 @@ def _set_aside(split: dict[str, tuple[int, ...]], n: int, where: Path | None) ->
     if len(train) - n < 1:
         raise UserError(f"calibration_holdout = {n} takes every one of the {len(train)} training views", path=where,
                         hint="Set aside fewer views for calibration (scene.calibration_holdout).")
-    picked = sorted({train[int((j + 0.5) * len(train) / n)] for j in range(n)})
+    picked = {train[int((j + 0.5) * len(train) / n)] for j in range(n)}
     out = {k: tuple(v) for k, v in split.items() if k != "calibration"}
-    out["train"] = tuple(i for i in train if i not in set(picked))
-    out["calibration"] = tuple(picked)
+    out["train"] = tuple(i for i in train if i not in picked)
+    out["calibration"] = tuple(sorted(picked))
     return out
 
 
