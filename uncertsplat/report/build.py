@@ -170,8 +170,7 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
             facts.append(("std floor (NLL)", m.std_floor))
         if m.std_scale is not None:
             facts.append(("std scale (calibrated NLL)",
-                          f"x{m.std_scale:.3g}, fitted on {len(m.calibration_views)} "
-                          + ("views set aside from training" if m.calibration_held_out else "training views")))
+                          f"x{m.std_scale:.3g}, fitted on {len(m.calibration_views)} {m.calibration_source}"))
         if m.lpips is not None and not m.lpips.available:
             facts.append(("LPIPS", m.lpips.reason or "unavailable"))
         if empty:

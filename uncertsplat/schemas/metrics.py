@@ -210,6 +210,11 @@ class EvalReport(SchemaFile):
     """True: the scene set views aside from training (``SceneConfig.calibration_holdout``), and the std factor
     (``calibration_views``) and a fitted pixel-noise level (``noise_scale``) were fitted on them; False: on training
     views."""
+    @property
+    def calibration_source(self) -> str:
+        """The views the std factor and a fitted noise level come from, in words (``calibration_held_out``)."""
+        return "views set aside from training" if self.calibration_held_out else "training views"
+
     noise_scale: float | None = None
     """The factor the pixel noise (``EvalConfig.residual_views``) carries: fitted by maximum likelihood on the views
     set aside from training (``calibration_held_out``) or on training views (``EvalConfig.residual_scale``), or set;

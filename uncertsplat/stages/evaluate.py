@@ -187,12 +187,6 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
     return _print_report(run_dir, cfg, report, out)
 
 
-def _fitted_on(report) -> str:
-    """Which views the report's std factor was fitted on, in words."""
-    n = len(report.calibration_views)
-    return f"{n} views set aside from training" if report.calibration_held_out else f"{n} training views"
-
-
 def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
     """Print ``report``'s table and notes; returns it."""
     from rich.table import Table
@@ -212,11 +206,11 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
     if report.noise_scale is not None:
         # a fitted level is worth a line (1, the default without views set aside, is not)
         if cfg.residual_scale == "fit" or (cfg.residual_scale == "auto" and report.calibration_held_out):
-            where = "the views set aside from training" if report.calibration_held_out else "training views"
-            console.print(f"pixel noise x {report.noise_scale:.3g} (maximum likelihood on {where})")
+            console.print(f"pixel noise x {report.noise_scale:.3g} (maximum likelihood on the "
+                          f"{report.calibration_source})")
     if report.std_scale is not None:
         m = report.mean
-        console.print(f"std x {report.std_scale:.3g} (fitted on {_fitted_on(report)}): "
+        console.print(f"std x {report.std_scale:.3g} (fitted on {len(report.calibration_views)} {report.calibration_source}): "
                       f"NLL {m.nll_calibrated:.3f} (raw {m.nll:.3f}), calibration error "
                       f"{m.calibration_error_calibrated:.3f} (raw {m.calibration_error:.3f}); AUSE is unchanged")
     if report.mean.psnr_render is not None:
