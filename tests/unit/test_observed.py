@@ -7,7 +7,8 @@ import math
 import pytest
 import torch
 
-from uncertsplat.eval.observed import observed_mask, unproject
+from uncertsplat.eval.observed import observed_mask
+from uncertsplat.render.project import unproject
 
 H, W, F, D = 12, 16, 20.0, 5.0
 K = torch.tensor([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)

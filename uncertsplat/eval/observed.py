@@ -15,18 +15,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-
-def unproject(depth: Tensor, cam_from_world: Tensor, K: Tensor) -> Tensor:
-    """World points [H,W,3] of the pixel centres of one view at their depth (camera z) [H,W]."""
-    h, w = depth.shape
-    dt = depth.dtype
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=dt, device=depth.device),
-                            torch.arange(w, dtype=dt, device=depth.device), indexing="ij")
-    pix = torch.stack([xs + 0.5, ys + 0.5, torch.ones_like(xs)], -1)  # [H,W,3]
-    rays = pix @ torch.linalg.inv(K.to(dt)).T  # [H,W,3], z = 1
-    cam = rays * depth[..., None]  # [H,W,3] camera coordinates
-    world_from_cam = torch.linalg.inv(cam_from_world.to(dt))
-    return cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+from uncertsplat.render.project import project_points, unproject
 
 
 def observed_mask(depth: Tensor, cam_from_world: Tensor, K: Tensor, train_depths: Tensor,
@@ -64,11 +53,8 @@ def observed_mask(depth: Tensor, cam_from_world: Tensor, K: Tensor, train_depths
     seen = torch.zeros(points.shape[0], dtype=torch.bool, device=depth.device)
     th, tw = train_depths.shape[1:]
     for i in range(t):
-        R, tr = train_cam_from_world[i, :3, :3].to(dt), train_cam_from_world[i, :3, 3].to(dt)
-        p = points @ R.T + tr  # [V,3] in training camera i
-        z = p[:, 2]
+        uv, z = project_points(points, train_cam_from_world[i], train_K[i])  # [V,2], [V] in training camera i
         front = z > 1e-9
-        uv = (p[:, :2] / z.clamp_min(1e-9)[:, None]) @ train_K[i, :2, :2].to(dt).T + train_K[i, :2, 2].to(dt)
         col, row = torch.floor(uv[:, 0]).long(), torch.floor(uv[:, 1]).long()
         inside = front & (col >= 0) & (col < tw) & (row >= 0) & (row < th)
         d = torch.zeros_like(z)
@@ -80,4 +66,4 @@ def observed_mask(depth: Tensor, cam_from_world: Tensor, K: Tensor, train_depths
     return observed, valid
 
 
-__all__ = ["observed_mask", "unproject"]
+__all__ = ["observed_mask"]

@@ -22,6 +22,30 @@ ALPHA_MAX = 0.99  # per-Gaussian alpha cap (3DGS)
 T_MIN = 1e-4  # a ray stops when its transmittance would fall below this (3DGS)
 
 
+def unproject(depth: Tensor, cam_from_world: Tensor, K: Tensor) -> Tensor:
+    """World points [H,W,3] of the pixel centres of one view at their depth (camera z) [H,W], in ``depth``'s dtype."""
+    h, w = depth.shape
+    dt = depth.dtype
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=dt, device=depth.device),
+                            torch.arange(w, dtype=dt, device=depth.device), indexing="ij")
+    pix = torch.stack([xs + 0.5, ys + 0.5, torch.ones_like(xs)], -1)  # [H,W,3]
+    rays = pix @ torch.linalg.inv(K.to(dt)).T  # [H,W,3], z = 1
+    cam = rays * depth[..., None]  # [H,W,3] camera coordinates
+    world_from_cam = torch.linalg.inv(cam_from_world.to(dt))
+    return cam @ world_from_cam[:3, :3].T + world_from_cam[:3, 3]
+
+
+def project_points(points: Tensor, cam_from_world: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
+    """Pixel coordinates [...,2] (centres at +0.5) and camera z [...] of world ``points`` [...,3] in one camera
+    (``cam_from_world`` [4,4], ``K`` [3,3]), in ``points``' dtype; points at z <= 1e-9 get finite, meaningless
+    pixels (test z)."""
+    dt = points.dtype
+    p = points @ cam_from_world[:3, :3].to(dt).T + cam_from_world[:3, 3].to(dt)
+    z = p[..., 2]
+    uv = (p[..., :2] / z.clamp_min(1e-9)[..., None]) @ K[:2, :2].to(dt).T + K[:2, 2].to(dt)
+    return uv, z
+
+
 class Projection(NamedTuple):
     means2d: Tensor  # [C,N,2] pixels (centres at +0.5)
     conics: Tensor  # [C,N,3] inverse 2D covariance (a, b, c): power = -0.5 (a dx^2 + 2 b dx dy + c dy^2)
