@@ -19,7 +19,8 @@ since 2026-11-27); ``no-colour`` is ``full`` without the colour posterior
 (``EvalConfig.colour_posterior``, the default since 2026-11-26); ``edge`` / ``no-edge`` are ``full`` with and
 without the edge term (``EvalConfig.edge_noise``); ``no-depth-spread`` is ``full`` without the spread of the depths
 each ray blends (``EvalConfig.depth_spread``); ``resolution-1`` is ``full`` with one render of the resolution
-term per sample (``EvalConfig.resolution_renders``, 2 since 2026-11-27).
+term per sample (``EvalConfig.resolution_renders``, 2 since 2026-11-27); ``no-consistency`` is ``full`` without
+the view-consistency term (``EvalConfig.consistency_views``).
 
 Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
 its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),
@@ -101,8 +102,9 @@ def roc(score: torch.Tensor, positive: torch.Tensor) -> float | None:
 
 PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alpha < 1 counts as empty)
     "full": ({}, False),  # what `evaluate` writes: spread + pixel noise + resolution term + empty rays
-    "before": ({"resolution": 0.0}, True),  # the predictive before the coverage and resolution terms (2026-11-24)
-    "spread": ({"empty_rays": False, "residual_views": 0, "resolution": 0.0, "depth_spread": False}, False),  # spread only
+    "before": ({"resolution": 0.0, "consistency_views": 0}, True),  # the predictive before the coverage and resolution terms (2026-11-24)
+    "spread": ({"empty_rays": False, "residual_views": 0, "resolution": 0.0, "depth_spread": False,
+                "consistency_views": 0}, False),  # spread only
     "leverage": ({"residual_leverage": "full"}, False),  # full, each Gaussian's pixel noise / (1 - its leverage)
     "no-leverage": ({"residual_leverage": "none"}, False),  # full without the relative leverage (before 11-27)
     "no-colour": ({"colour_posterior": False}, False),  # full without the colour posterior (the default before)
@@ -110,6 +112,7 @@ PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alph
     "no-edge": ({"edge_noise": False}, False),  # full without the edge term
     "no-depth-spread": ({"depth_spread": False}, False),  # full without the depths a ray blends
     "resolution-1": ({"resolution_renders": 1}, False),  # full with one resolution render per sample (before 11-27)
+    "no-consistency": ({"consistency_views": 0}, False),  # full without the view-consistency term (before 11-27)
 }
 
 
@@ -122,7 +125,7 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: s
     from uncertsplat.baselines import load_run
     from uncertsplat.config import EvalConfig
     from uncertsplat.data.dataset import load_depths, load_view_set
-    from uncertsplat.eval.engine import evaluate_views, fit_residual, fit_std_scale
+    from uncertsplat.eval.engine import evaluate_views, fit_residual, fit_std_scale, with_side_terms
     from uncertsplat.eval.observed import observed_mask
 
     overrides, full_coverage = PREDICTIVES[predictive]
@@ -140,7 +143,8 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: s
 
     def sampler():
         base = loaded.sampler(scene.scene_scale, device)
-        return dataclasses.replace(base, residual=residual, coverage=1.0 if full_coverage else base.coverage)
+        return dataclasses.replace(with_side_terms(base, residual, cams[train], ecfg, device),
+                                   coverage=1.0 if full_coverage else base.coverage)
 
     report = evaluate_views(sampler(), views, ecfg, device, show_progress=False, on_view=maps.append)
     scale, _ = fit_std_scale(sampler(), scene.split, ecfg, device, load_views=train_views)

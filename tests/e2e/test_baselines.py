@@ -5,7 +5,6 @@ Runs are kept very short (quarter resolution, 20 steps): these tests check the h
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
 from functools import partial
@@ -22,7 +21,7 @@ from uncertsplat.baselines.fisher import FISHER_FILE, FisherRun
 from uncertsplat.cli import app
 from uncertsplat.config import EvalConfig, deep_update, train_config_from
 from uncertsplat.data.dataset import load_view_set
-from uncertsplat.eval.engine import evaluate_views, fit_residual
+from uncertsplat.eval.engine import evaluate_views, fit_residual, with_side_terms
 from uncertsplat.io.images import read_exr
 from uncertsplat.io.maps import map_stem
 from uncertsplat.schemas.metrics import EvalReport
@@ -93,9 +92,10 @@ def test_ensemble_of_one_has_zero_spread(ensemble_run, tmp_path):
     cfg = json.loads((run / "config.json").read_text())
     cfg["ensemble_size"] = 1
     (run / "config.json").write_text(json.dumps(cfg))
-    # the samples' spread alone (no empty-ray term, no pixel noise, no depth spread along the rays) is exactly 0 ...
+    # the samples' spread alone (no empty-ray term, no pixel noise, no depth spread along the rays, no view consistency)
+    # is exactly 0 ...
     spread_only = EvalConfig(num_samples=3, max_views=2, empty_rays=False, residual_views=0, resolution=0,
-                             depth_spread=False)
+                             depth_spread=False, consistency_views=0)
     report = evaluate.run(run, spread_only, device=CPU)
     for ch in exr_maps(run, report):
         assert ch["rgb_std.R"].shape == (H, W)
@@ -131,7 +131,8 @@ def test_fisher_variances_and_spread(fisher_run):
     cfg = EvalConfig(num_samples=3, max_views=2, seed=1)
     field = fit_residual(loaded.sampler(scene.scene_scale, CPU), scene.split["train"], cfg, CPU,
                          load_views=partial(load_view_set, scene, depth=False))
-    again = evaluate_views(dataclasses.replace(loaded.sampler(scene.scene_scale, CPU), residual=field),
+    again = evaluate_views(with_side_terms(loaded.sampler(scene.scene_scale, CPU), field,
+                                           scene.cameras[scene.split["train"]], cfg, CPU),
                            load_view_set(scene, report_indices(run, 2)), cfg, CPU, show_progress=False)
     assert again.mean.ause_mae == pytest.approx(report.mean.ause_mae, rel=1e-6)  # explicit generator: repeatable
 

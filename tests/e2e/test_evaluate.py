@@ -18,7 +18,7 @@ from uncertsplat.baselines import load_run
 from uncertsplat.cli import app
 from uncertsplat.config import EvalConfig
 from uncertsplat.data.dataset import load_view_set
-from uncertsplat.eval.engine import evaluate_views, fit_residual
+from uncertsplat.eval.engine import evaluate_views, fit_residual, with_side_terms
 from uncertsplat.io.images import read_exr
 from uncertsplat.io.maps import EXR_CHANNELS, map_stem
 from uncertsplat.schemas.metrics import EvalReport
@@ -77,7 +77,8 @@ def test_same_seed_same_metrics(evaluated, tiny_run_path):
     cfg = EvalConfig(num_samples=5, seed=3)
     field = fit_residual(loaded.sampler(scene.scene_scale, cpu), scene.split["train"], cfg, cpu,
                          load_views=partial(load_view_set, scene, depth=False))
-    sampler = dataclasses.replace(loaded.sampler(scene.scene_scale, cpu), residual=field)
+    sampler = with_side_terms(loaded.sampler(scene.scene_scale, cpu), field, scene.cameras[scene.split["train"]], cfg,
+                              cpu)
     again = evaluate_views(sampler, load_view_set(scene, scene.split["test"]), cfg, cpu, show_progress=False)
     assert again.mean.ause_mae == pytest.approx(report.mean.ause_mae, rel=1e-6)
     assert again.mean.psnr == pytest.approx(report.mean.psnr, rel=1e-6)
@@ -134,7 +135,8 @@ def test_std_scale_is_fitted_on_the_views_set_aside_from_training(tiny_run_path,
                          load_views=partial(load_view_set, scene, depth=False),
                          calibration_indices=scene.split["calibration"])
     assert field.scale == pytest.approx(rep.noise_scale, rel=1e-6)
-    sampler = dataclasses.replace(loaded.sampler(scene.scene_scale, cpu), residual=field)
+    sampler = with_side_terms(loaded.sampler(scene.scene_scale, cpu), field, scene.cameras[scene.split["train"]], ecfg,
+                              cpu)
     on_train, train_names = fit_std_scale(sampler, {"train": scene.split["train"]}, ecfg, cpu,
                                           load_views=partial(load_view_set, scene, depth=False))
     assert not set(train_names) & set(held) and on_train != pytest.approx(rep.std_scale, rel=1e-3)

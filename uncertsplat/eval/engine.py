@@ -16,6 +16,7 @@ the unbiased std over the K samples.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -29,6 +30,7 @@ from uncertsplat.console import progress
 from uncertsplat.errors import UserError
 from uncertsplat.schemas.metrics import EvalReport
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput, ViewSet
+from uncertsplat.uncertainty.consistency import ViewConsistency
 from uncertsplat.uncertainty.residual import C0, ResidualField
 
 KDE_MAX_SAMPLES = 64
@@ -66,6 +68,8 @@ class EvalSettings(Protocol):
     ``full`` (by 1 - its leverage) (``ResidualField.out_of_sample``)."""
     colour_posterior: bool
     """Add each Gaussian's colour posterior variance to its noise (``ResidualField.colour_variance``)."""
+    consistency_views: int
+    """Training views the view-consistency term compares each evaluated view with (``view_consistency``; 0: none)."""
     depth_spread: bool
     """Add the variance of the depths each ray blends (``uncertainty.mc.depth_spread``) to the depth variance."""
     edge_noise: bool
@@ -92,6 +96,7 @@ class Sampler:
             training_coverage``): rays covered less than this count as partly empty (``mc_render``).
         mean_sample: a deterministic model that stands for the run in the predictive's side terms (pixel noise,
             resolution term) when it has no ``det_sample`` (an ensemble's first member, a Fisher run's mean).
+        consistency: the view-consistency term (``view_consistency``), added to the RGB variance; None: none.
     """
 
     sample_fn: Callable[[torch.Generator], GaussianSample]
@@ -101,6 +106,7 @@ class Sampler:
     residual: ResidualField | None = None
     coverage: float = 1.0
     mean_sample: GaussianSample | None = None
+    consistency: ViewConsistency | None = None
 
 
 @dataclass(frozen=True)
@@ -152,6 +158,9 @@ def _predictive(sampler: Sampler, cfg: EvalSettings, cams: Cameras, *, depth: bo
     from uncertsplat.uncertainty.mc import depth_spread
 
     extra = sampler.residual.blended(cams, sampler.render_fn) if sampler.residual is not None else None
+    if sampler.consistency is not None:
+        term = torch.cat([sampler.consistency.variance(cams[[j]], sampler.render_fn) for j in range(len(cams))])
+        extra = term if extra is None else extra + term
     spread = depth_spread(_representative(sampler, cams.device), cams, sampler.render_fn) \
         if cfg.depth_spread and depth else None
     return {"empty_std": sampler.empty_std if cfg.empty_rays else None, "coverage": sampler.coverage,
@@ -164,6 +173,25 @@ def evenly_spaced(items: Sequence[int], n: int) -> list[int]:
     items = list(items)
     n = min(n, len(items))
     return [items[round(j * (len(items) - 1) / max(n - 1, 1))] for j in range(n)]
+
+
+def view_consistency(sampler: Sampler, train_cameras: Cameras, cfg: EvalSettings,
+                     device: torch.device) -> ViewConsistency | None:
+    """The view-consistency term (``uncertainty.consistency``) of the sampler's representative model against its
+    training cameras, comparing at most ``cfg.consistency_views`` of them (evenly spaced); None when that is 0 or there
+    is no training camera. Renders each compared training view once."""
+    if cfg.consistency_views <= 0 or len(train_cameras) == 0:
+        return None
+    chosen = evenly_spaced(range(len(train_cameras)), cfg.consistency_views)
+    return ViewConsistency.of(_representative(sampler, device), train_cameras[chosen].to(device), sampler.render_fn)
+
+
+def with_side_terms(sampler: Sampler, residual: ResidualField | None, train_cameras: Cameras, cfg: EvalSettings,
+                    device: torch.device) -> Sampler:
+    """``sampler`` with the pixel noise ``residual`` (``fit_residual``) and the view-consistency term of its
+    ``train_cameras`` (``view_consistency``) attached: what every evaluation of a run scores."""
+    return dataclasses.replace(sampler, residual=residual,
+                               consistency=view_consistency(sampler, train_cameras, cfg, device))
 
 
 def residual_indices(train_indices: Sequence[int], cfg: EvalSettings) -> list[int]:
@@ -485,6 +513,11 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if cfg.resolution > 0:
         terms.append(f"the resolution term (every Gaussian moved by N(0, ({cfg.resolution:g} x its size)^2), "
                      f"{cfg.resolution_renders} render{'s' if cfg.resolution_renders > 1 else ''} per sample)")
+    if sampler.consistency is not None:
+        terms.append(f"the squared difference between the model's renders of each surface point from the view and from "
+                     f"the training view nearest in direction that saw it, where that is more than "
+                     f"{sampler.consistency.gate:.1f} degrees away ({len(sampler.consistency.cameras)} training views "
+                     f"compared)")
     if cfg.depth_spread:
         terms.append("for depth, the spread of the depths each ray blends (the model's deterministic render)")
     if cfg.empty_rays and sampler.empty_std is not None:

@@ -143,7 +143,7 @@ class _Measure:
 
     def __call__(self, model, keep: torch.Tensor | None = None) -> PruneMetrics:
         """Metrics of ``model``; with ``keep`` (the mask that made it) the result is cached per mask."""
-        from uncertsplat.eval.engine import evaluate_views
+        from uncertsplat.eval.engine import evaluate_views, with_side_terms
 
         key = None
         if keep is not None:
@@ -157,7 +157,8 @@ class _Measure:
             residual = residual.subset(keep.to(residual.variance.device))
         elif residual is not None and len(model) != len(self.loaded.model):
             residual = None  # a model that is not a subset of the source: no noise to carry over
-        sampler = dataclasses.replace(loaded.sampler(self.scene.scene_scale, self.device), residual=residual)
+        sampler = with_side_terms(loaded.sampler(self.scene.scene_scale, self.device), residual,
+                                  self.scene.cameras[list(self.scene.split.get("train", ()))], self.ecfg, self.device)
         report = evaluate_views(sampler, self.views, self.ecfg, self.device, show_progress=False)
         _, alpha = self.mean_renders(model)
         out = PruneMetrics(num_gaussians=len(model), num_carriers=model.num_carriers,

@@ -1,0 +1,154 @@
+"""The view-consistency term (``uncertainty.consistency``) against closed forms, with a renderer of a plane whose
+colour depends on the camera (so the two renders of a point differ by a known amount)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from uncertsplat.types import Cameras, GaussianSample, RenderOutput
+from uncertsplat.uncertainty.consistency import (
+    DEPTH_JUMP,
+    GATE_SPACINGS,
+    MIN_GATE,
+    ViewConsistency,
+    _depth_edges,
+    capture_spacing,
+)
+
+W, H = 32, 24
+
+
+def _cameras(azimuths_deg, focal=40.0, width=W, height=H) -> Cameras:
+    """Cameras 4 units from the origin at these azimuths (about the y axis, 0 = on the -z axis), looking at it."""
+    mats = []
+    for a in azimuths_deg:
+        a = math.radians(a)
+        eye = torch.tensor([4 * math.sin(a), 0.0, -4 * math.cos(a)], dtype=torch.float64)
+        fwd = -eye / eye.norm()
+        down = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+        right = torch.linalg.cross(down, fwd)
+        rot = torch.stack([right, down, fwd])
+        m = torch.eye(4, dtype=torch.float64)
+        m[:3, :3] = rot
+        m[:3, 3] = -rot @ eye
+        mats.append(m)
+    K = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]], dtype=torch.float64)
+    n = len(mats)
+    return Cameras(torch.stack(mats).float(), K.float().repeat(n, 1, 1), width, height,
+                   tuple(f"v{i}.png" for i in range(n)))
+
+
+def _colour(cam: Cameras) -> float:
+    """The plane's colour seen from ``cam``: grows with the camera's azimuth."""
+    c = cam.centers[0]
+    return 0.3 + 0.4 * math.atan2(float(c[0]), -float(c[2]))
+
+
+def _plane_render(nearer: frozenset = frozenset()):
+    """A renderer of the plane z = 0 (every pixel covered) in the colour ``_colour`` of the camera; for cameras whose
+    rounded azimuth is in ``nearer``, something at half the depth hides it."""
+    def render_fn(sample: GaussianSample, cameras: Cameras) -> RenderOutput:
+        assert len(cameras) == 1
+        cw = cameras.cam_from_world[0].double()
+        rot, centre = cw[:3, :3], cameras.centers[0].double()
+        ys, xs = torch.meshgrid(torch.arange(cameras.height, dtype=torch.float64),
+                                torch.arange(cameras.width, dtype=torch.float64), indexing="ij")
+        pix = torch.stack([xs + 0.5, ys + 0.5, torch.ones_like(xs)], -1)
+        ray_cam = pix @ torch.linalg.inv(cameras.K[0].double()).T  # z = 1
+        ray_world = ray_cam @ rot  # R^T applied to each ray
+        depth = -centre[2] / ray_world[..., 2]  # camera z of the ray's point on z = 0
+        azimuth = round(math.degrees(math.atan2(float(centre[0]), -float(centre[2]))))
+        if azimuth in nearer:
+            depth = depth * 0.5
+        rgb = torch.full((1, cameras.height, cameras.width, 3), _colour(cameras), dtype=torch.float32)
+        one = torch.ones(1, cameras.height, cameras.width, 1)
+        d = depth.float()[None, ..., None]
+        return RenderOutput(rgb=rgb, alpha=one, depth=d, depth_expected=d, means2d=torch.zeros(1, 1, 2),
+                            radii=torch.zeros(1, 1))
+
+    return render_fn
+
+
+def _sample() -> GaussianSample:
+    return GaussianSample(means=torch.zeros(1, 3), quats=torch.tensor([[1.0, 0, 0, 0]]), scales=torch.full((1, 3), 0.1),
+                          opacities=torch.ones(1), sh=torch.zeros(1, 1, 3), sh_degree=0)
+
+
+def _term(train_azimuths, gate, render_fn=None):
+    render_fn = render_fn or _plane_render()
+    vc = ViewConsistency.of(_sample(), _cameras(train_azimuths, focal=6.0), render_fn)  # wide training views
+    return dataclasses.replace(vc, gate=gate), render_fn
+
+
+class TestViewConsistency:
+    def test_beyond_twice_the_gate_it_is_the_squared_difference_from_the_nearest_training_direction(self):
+        """Training views at 0 and 50 degrees, the evaluated one at 38 (a narrow view, inside both): the nearest
+        direction is the 50-degree view's, 12 degrees off, beyond twice a 4-degree gate: the term is the squared
+        difference of the two colours everywhere."""
+        vc, render_fn = _term([0.0, 50.0], gate=4.0)
+        test = _cameras([38.0], focal=60.0)
+        var = vc.variance(test, render_fn)
+        assert var.shape == (1, H, W, 1)
+        expect = (_colour(test) - _colour(_cameras([50.0]))) ** 2
+        torch.testing.assert_close(var, torch.full_like(var, expect), rtol=1e-2, atol=1e-6)  # the renders kept as float16
+
+    def test_within_the_gate_nothing_and_in_between_part(self):
+        vc, render_fn = _term([0.0, 50.0], gate=20.0)
+        test = _cameras([38.0], focal=60.0)
+        assert float(vc.variance(test, render_fn).abs().max()) == 0.0  # 12 degrees < 20
+        part, _ = _term([0.0, 50.0], gate=8.0)  # 12 degrees: weight (12 - 8) / 8 = 0.5 at the image centre
+        var = part.variance(test, render_fn)
+        full = (_colour(test) - _colour(_cameras([50.0]))) ** 2
+        assert float(var[0, H // 2, W // 2, 0]) == pytest.approx(0.5 * full, rel=0.05)
+
+    def test_a_training_view_itself_gets_nothing(self):
+        vc, render_fn = _term([0.0, 50.0], gate=MIN_GATE)
+        assert float(vc.variance(_cameras([50.0], focal=60.0), render_fn).abs().max()) == 0.0
+
+    def test_a_training_view_that_does_not_see_the_point_is_passed_over(self):
+        """The 50-degree view renders something nearer than the plane: the point is hidden there, so the 0-degree
+        view (38 degrees off) is the one compared."""
+        render_fn = _plane_render(nearer=frozenset({50}))
+        vc, _ = _term([0.0, 50.0], gate=4.0, render_fn=render_fn)
+        test = _cameras([38.0], focal=60.0)
+        expect = (_colour(test) - _colour(_cameras([0.0]))) ** 2
+        var = vc.variance(test, render_fn)
+        torch.testing.assert_close(var, torch.full_like(var, expect), rtol=1e-2, atol=1e-6)  # the renders kept as float16
+
+    def test_no_surface_and_no_seeing_view_give_zeros_and_one_camera_at_a_time(self):
+        vc, render_fn = _term([0.0], gate=4.0)
+
+        def empty(sample, cameras):
+            out = render_fn(sample, cameras)
+            return dataclasses.replace(out, alpha=torch.zeros_like(out.alpha))
+
+        test = _cameras([40.0], focal=60.0)
+        assert float(vc.variance(test, empty).abs().max()) == 0.0
+        hidden = _plane_render(nearer=frozenset({0}))
+        vc_hidden, _ = _term([0.0], gate=4.0, render_fn=hidden)
+        assert float(vc_hidden.variance(test, hidden).abs().max()) == 0.0
+        with pytest.raises(ValueError, match="one camera"):
+            vc.variance(_cameras([10.0, 20.0]), render_fn)
+
+    def test_the_gate_is_twice_the_capture_spacing(self):
+        ring = _cameras([30.0 * i for i in range(12)])
+        assert capture_spacing(ring.centers, torch.zeros(3)) == pytest.approx(30.0, rel=1e-4)
+        assert capture_spacing(ring.centers[:1], torch.zeros(3)) == MIN_GATE
+        same = ring.centers[[0, 0, 0]]
+        assert capture_spacing(same, torch.zeros(3)) == MIN_GATE  # three photos from one place
+        vc = ViewConsistency.of(_sample(), ring, _plane_render())
+        assert vc.gate == pytest.approx(GATE_SPACINGS * 30.0, rel=1e-4)
+        assert vc.rgb.shape == (12, H, W, 3) and vc.depth.shape == (12, H, W)
+
+
+def test_depth_edges_flag_jumps_not_slopes():
+    step = torch.ones(8, 10)
+    step[:, 5:] = 1.5
+    edges = _depth_edges(step)
+    assert edges[:, 4:6].all() and not edges[:, :4].any() and not edges[:, 6:].any()
+    slope = 1.0 + 0.5 * DEPTH_JUMP * torch.arange(10.0)[None].expand(8, 10) / 10  # well below the jump per window
+    assert not _depth_edges(slope).any()
