@@ -23,6 +23,7 @@ std over the K samples.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import torch
@@ -171,11 +172,12 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
                                    calibration_indices=scene.split.get("calibration", ()))
         with console.status("fitting the std factor on " + ("the views set aside for calibration"
                                                              if scene.split.get("calibration") else "training views")):
-            std_scale, cal_views = fit_std_scale(
-                with_side_terms(loaded.sampler(scene.scene_scale, device), residual, train_cams, cfg, device),
-                scene.split, cfg, device, load_views=train_views)
-        report = evaluate_views(with_side_terms(loaded.sampler(scene.scene_scale, device), residual, train_cams, cfg,
-                                                device),
+            fitting = with_side_terms(loaded.sampler(scene.scene_scale, device), residual, train_cams, cfg, device)
+            std_scale, cal_views = fit_std_scale(fitting, scene.split, cfg, device, load_views=train_views)
+        # a fresh sampler (a baseline's may keep state), the same side terms (the view-consistency term's renders
+        # are the model's, not the sampler's)
+        report = evaluate_views(dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual,
+                                                    consistency=fitting.consistency),
                                 views, cfg, device,
                                 on_view=partial(write_view_maps, out / "maps", preview=cfg.preview),
                                 std_scale=std_scale, calibration_views=cal_views,

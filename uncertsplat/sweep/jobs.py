@@ -7,6 +7,7 @@ It never raises for a failure inside the job: the records then have ``status = "
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import time
@@ -133,16 +134,15 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     residual = fit_residual(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()), ecfg, device,
                             load_views=train_views, calibration_indices=scene.split.get("calibration", ()))
     train_cams = scene.cameras[list(scene.split.get("train", ()))]
-    std_scale, cal_views = fit_std_scale(with_side_terms(loaded.sampler(scene.scene_scale, device), residual,
-                                                         train_cams, ecfg, device),
-                                         scene.split, ecfg, device, load_views=train_views)
+    fitting = with_side_terms(loaded.sampler(scene.scene_scale, device), residual, train_cams, ecfg, device)
+    std_scale, cal_views = fit_std_scale(fitting, scene.split, ecfg, device, load_views=train_views)
     calibration_seconds = time.perf_counter() - t_cal
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
     views = load_view_set(scene, indices)  # the scene's own GT depth (a sweep point has no --depth-gt)
-    report = evaluate_views(with_side_terms(loaded.sampler(scene.scene_scale, device), residual, train_cams, ecfg,
-                                            device), views,
+    report = evaluate_views(dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual,
+                                                consistency=fitting.consistency), views,
                             ecfg, device, show_progress=False,
                             std_scale=std_scale, calibration_views=cal_views,
                             calibration_held_out=bool(scene.split.get("calibration")),
