@@ -106,8 +106,17 @@ class TestViewConsistency:
         assert float(var[0, H // 2, W // 2, 0]) == pytest.approx(0.5 * full, rel=0.05)
 
     def test_a_training_view_itself_gets_nothing(self):
+        """Another camera at the place of a training view (narrower) is 0 degrees off it; a compared training view
+        itself is 0 without a render."""
         vc, render_fn = _term([0.0, 50.0], gate=MIN_GATE)
         assert float(vc.variance(_cameras([50.0], focal=60.0), render_fn).abs().max()) == 0.0
+
+        def no_render(sample, cameras):
+            raise AssertionError("a compared training view needs no render")
+
+        own = vc.cameras[[1]]
+        assert vc.variance(own, no_render).shape == (1, own.height, own.width, 1)
+        assert float(vc.variance(own, no_render).abs().max()) == 0.0
 
     def test_a_training_view_that_does_not_see_the_point_is_passed_over(self):
         """The 50-degree view renders something nearer than the plane: the point is hidden there, so the 0-degree

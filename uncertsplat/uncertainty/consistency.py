@@ -115,17 +115,20 @@ class ViewConsistency:
         pixel's point, where the pixel has no surface and within the gate."""
         if len(camera) != 1:
             raise ValueError(f"one camera at a time, got {len(camera)}")
+        zero = torch.zeros(1, camera.height, camera.width, 1, device=self.depth.device)
+        if self._is_compared(camera):  # its own render is the nearest: 0 everywhere
+            return zero
         out = render_fn(self.sample, camera)
-        rgb, depth, alpha = out.rgb[0], out.depth[0, ..., 0].double(), out.alpha[0, ..., 0]  # [H,W,3], [H,W], [H,W]
+        # float32 throughout: a pixel's point and its projection need far less than float32's 1e-7 relative
+        rgb, depth, alpha = out.rgb[0], out.depth[0, ..., 0], out.alpha[0, ..., 0]  # [H,W,3], [H,W], [H,W]
         h, w = depth.shape
-        zero = torch.zeros(1, h, w, 1, device=rgb.device, dtype=rgb.dtype)
         surface = (alpha >= MIN_ALPHA) & (depth > 0) & ~_depth_edges(depth)
         if not bool(surface.any()) or len(self.cameras) == 0:
             return zero
         points = unproject(torch.where(surface, depth, torch.zeros_like(depth)), camera.cam_from_world[0],
-                           camera.K[0])  # [H,W,3] float64
-        to_view = F.normalize(camera.centers[0].double() - points, dim=-1)  # [H,W,3]
-        best = torch.full((h, w), float("inf"), dtype=torch.float64, device=rgb.device)  # angle of the chosen view
+                           camera.K[0])  # [H,W,3]
+        to_view = F.normalize(camera.centers[0].to(points) - points, dim=-1)  # [H,W,3]
+        best = torch.full((h, w), float("inf"), dtype=points.dtype, device=rgb.device)  # angle of the chosen view
         diff = torch.zeros(h, w, dtype=rgb.dtype, device=rgb.device)
         hk, wk = self.cameras.height, self.cameras.width
         for k in range(len(self.cameras)):
@@ -141,13 +144,25 @@ class ViewConsistency:
             grid = torch.stack([uv[..., 0] / wk * 2 - 1, uv[..., 1] / hk * 2 - 1], -1).to(rgb.dtype)[None]
             there = F.grid_sample(image.permute(2, 0, 1)[None], grid, mode="bilinear", padding_mode="border",
                                   align_corners=False)[0].permute(1, 2, 0)  # [H,W,4]
-            seen = inside & ((z - there[..., 3].double()).abs() <= DEPTH_TOLERANCE * z)
-            angle = _angle(F.normalize(cam.centers[0].double() - points, dim=-1), to_view)
+            seen = inside & ((z - there[..., 3]).abs() <= DEPTH_TOLERANCE * z)
+            angle = _angle(F.normalize(cam.centers[0].to(points) - points, dim=-1), to_view)
             better = seen & (angle < best)
             diff = torch.where(better, (rgb - there[..., :3]).square().mean(-1), diff)
             best = torch.where(better, angle, best)
         weight = ((best - self.gate) / self.gate).clamp(0.0, 1.0).to(rgb.dtype)  # 0 where no view saw the point
         return _box_mean(diff * weight)[None, ..., None]
+
+    def _is_compared(self, camera: Cameras) -> bool:
+        """Whether ``camera`` is one of the compared training views (e.g. one the std factor is fitted on)."""
+        return bool(_same_camera(camera.to(self.cameras.cam_from_world.device), self.cameras).any())
+
+
+def _same_camera(a: Cameras, b: Cameras) -> Tensor:
+    """[len(b)] bool: the cameras of ``b`` that are the one camera ``a`` (pose, intrinsics and image size)."""
+    if (a.width, a.height) != (b.width, b.height):
+        return torch.zeros(len(b), dtype=torch.bool)
+    pose = (b.cam_from_world - a.cam_from_world.to(b.cam_from_world)).abs().flatten(1).amax(1) <= 1e-6
+    return pose & ((b.K - a.K.to(b.K)).abs().flatten(1).amax(1) <= 1e-6)
 
 
 def _depth_edges(depth: Tensor) -> Tensor:
