@@ -142,6 +142,8 @@ class TestViewConsistency:
         assert float(vc_hidden.variance(test, hidden).abs().max()) == 0.0
         with pytest.raises(ValueError, match="one camera"):
             vc.variance(_cameras([10.0, 20.0]), render_fn)
+        with pytest.raises(ValueError, match="at least one training camera"):
+            ViewConsistency.of(_sample(), _cameras([0.0])[[]], render_fn)
 
     def test_the_gate_is_twice_the_capture_spacing(self):
         ring = _cameras([30.0 * i for i in range(12)])

@@ -194,6 +194,19 @@ def with_side_terms(sampler: Sampler, residual: ResidualField | None, train_came
                                consistency=view_consistency(sampler, train_cameras, cfg, device))
 
 
+def scored_sampler(new_sampler: Callable[[], Sampler], residual: ResidualField | None, cameras: Cameras,
+                   split: Mapping[str, Sequence[int]], cfg: EvalSettings, device: torch.device, *,
+                   load_views: Callable[[list[int]], ViewSet]) -> tuple[Sampler, float | None, list[str]]:
+    """The sampler an evaluation of a run scores (``with_side_terms``: the pixel noise ``residual`` and the
+    view-consistency term of the ``split``'s training ``cameras``), with the std factor ``fit_std_scale`` fits for it
+    and the names of the views it was fitted on. ``new_sampler()`` gives a fresh sampler of the run; the factor is
+    fitted with one and the returned sampler is another (a baseline's sampler may keep state between calls), both
+    with the same side terms, built once."""
+    fitting = with_side_terms(new_sampler(), residual, cameras[list(split.get("train", ()))], cfg, device)
+    std_scale, names = fit_std_scale(fitting, split, cfg, device, load_views=load_views)
+    return dataclasses.replace(new_sampler(), residual=residual, consistency=fitting.consistency), std_scale, names
+
+
 def residual_indices(train_indices: Sequence[int], cfg: EvalSettings) -> list[int]:
     """The at most ``cfg.residual_views`` evenly spaced training views the pixel noise is fitted on."""
     return evenly_spaced(train_indices, cfg.residual_views)

@@ -23,7 +23,6 @@ std over the K samples.
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import torch
@@ -139,7 +138,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
 
     from uncertsplat.baselines import load_run
     from uncertsplat.data.dataset import load_view_set
-    from uncertsplat.eval.engine import evaluate_views, fit_std_scale, split_indices, with_side_terms
+    from uncertsplat.eval.engine import evaluate_views, scored_sampler, split_indices
     from uncertsplat.io.atomic import atomic_write_text, run_lock
     from uncertsplat.provenance import hash_config
     from uncertsplat.schemas.metrics import EvalReport
@@ -166,19 +165,15 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
         console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
                       f"{len(loaded.model)} Gaussians ({loaded.model.num_carriers} with a posterior), {device}")
         train_views = partial(load_view_set, scene, depth=False)
-        train_cams = scene.cameras[list(scene.split.get("train", ()))]
         residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
                                    load_views=train_views, write=True,
                                    calibration_indices=scene.split.get("calibration", ()))
         with console.status("fitting the std factor on " + ("the views set aside for calibration"
                                                              if scene.split.get("calibration") else "training views")):
-            fitting = with_side_terms(loaded.sampler(scene.scene_scale, device), residual, train_cams, cfg, device)
-            std_scale, cal_views = fit_std_scale(fitting, scene.split, cfg, device, load_views=train_views)
-        # a fresh sampler (a baseline's may keep state), the same side terms (the view-consistency term's renders
-        # are the model's, not the sampler's)
-        report = evaluate_views(dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual,
-                                                    consistency=fitting.consistency),
-                                views, cfg, device,
+            sampler, std_scale, cal_views = scored_sampler(partial(loaded.sampler, scene.scene_scale, device),
+                                                           residual, scene.cameras, scene.split, cfg, device,
+                                                           load_views=train_views)
+        report = evaluate_views(sampler, views, cfg, device,
                                 on_view=partial(write_view_maps, out / "maps", preview=cfg.preview),
                                 std_scale=std_scale, calibration_views=cal_views,
                                 calibration_held_out=bool(scene.split.get("calibration")),

@@ -7,7 +7,6 @@ It never raises for a failure inside the job: the records then have ``status = "
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import shutil
 import time
@@ -114,13 +113,7 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     from uncertsplat.baselines import load_run
     from uncertsplat.config import EvalConfig, build_config
     from uncertsplat.data.dataset import load_view_set
-    from uncertsplat.eval.engine import (
-        evaluate_views,
-        fit_residual,
-        fit_std_scale,
-        split_indices,
-        with_side_terms,
-    )
+    from uncertsplat.eval.engine import evaluate_views, fit_residual, scored_sampler, split_indices
     from uncertsplat.provenance import hash_config
 
     ecfg = build_config(EvalConfig, point["eval_config"], source=f"sweep point {point['id']}")
@@ -133,17 +126,14 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     train_views = partial(load_view_set, scene, depth=False)
     residual = fit_residual(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()), ecfg, device,
                             load_views=train_views, calibration_indices=scene.split.get("calibration", ()))
-    train_cams = scene.cameras[list(scene.split.get("train", ()))]
-    fitting = with_side_terms(loaded.sampler(scene.scene_scale, device), residual, train_cams, ecfg, device)
-    std_scale, cal_views = fit_std_scale(fitting, scene.split, ecfg, device, load_views=train_views)
+    sampler, std_scale, cal_views = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual,
+                                                   scene.cameras, scene.split, ecfg, device, load_views=train_views)
     calibration_seconds = time.perf_counter() - t_cal
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
     views = load_view_set(scene, indices)  # the scene's own GT depth (a sweep point has no --depth-gt)
-    report = evaluate_views(dataclasses.replace(loaded.sampler(scene.scene_scale, device), residual=residual,
-                                                consistency=fitting.consistency), views,
-                            ecfg, device, show_progress=False,
+    report = evaluate_views(sampler, views, ecfg, device, show_progress=False,
                             std_scale=std_scale, calibration_views=cal_views,
                             calibration_held_out=bool(scene.split.get("calibration")),
                             noise_scale=residual.scale if residual is not None else None,

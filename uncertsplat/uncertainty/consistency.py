@@ -97,17 +97,21 @@ class ViewConsistency:
     def of(cls, sample: GaussianSample, cameras: Cameras,
            render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> ViewConsistency:
         """The term for ``sample`` and the training ``cameras`` (one render each, kept), the gate from their
-        spacing seen from the model's median Gaussian."""
+        spacing seen from the model's median Gaussian.
+
+        Raises:
+            ValueError: no camera (``eval.engine.view_consistency`` builds no term then).
+        """
+        if len(cameras) == 0:
+            raise ValueError("the view-consistency term needs at least one training camera")
         point = sample.means.detach().median(0).values if sample.means.shape[0] else sample.means.new_zeros(3)
         rgb, depth = [], []
         for k in range(len(cameras)):
             out = render_fn(sample, cameras[[k]])
             rgb.append(out.rgb[0].half())
             depth.append(out.depth[0, ..., 0].float())
-        dev = sample.means.device
-        empty = torch.zeros(0, cameras.height, cameras.width, device=dev)
-        return cls(sample, cameras, torch.stack(rgb) if rgb else empty[..., None].expand(0, -1, -1, 3).half(),
-                   torch.stack(depth) if depth else empty, GATE_SPACINGS * capture_spacing(cameras.centers, point))
+        return cls(sample, cameras, torch.stack(rgb), torch.stack(depth),
+                   GATE_SPACINGS * capture_spacing(cameras.centers, point))
 
     @torch.no_grad()
     def variance(self, camera: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
@@ -123,7 +127,7 @@ class ViewConsistency:
         rgb, depth, alpha = out.rgb[0], out.depth[0, ..., 0], out.alpha[0, ..., 0]  # [H,W,3], [H,W], [H,W]
         h, w = depth.shape
         surface = (alpha >= MIN_ALPHA) & (depth > 0) & ~_depth_edges(depth)
-        if not bool(surface.any()) or len(self.cameras) == 0:
+        if not bool(surface.any()):
             return zero
         points = unproject(torch.where(surface, depth, torch.zeros_like(depth)), camera.cam_from_world[0],
                            camera.K[0])  # [H,W,3]
