@@ -125,7 +125,7 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: s
     from uncertsplat.baselines import load_run
     from uncertsplat.config import EvalConfig
     from uncertsplat.data.dataset import load_depths, load_view_set
-    from uncertsplat.eval.engine import evaluate_views, fit_residual, fit_std_scale, with_side_terms
+    from uncertsplat.eval.engine import evaluate_views, fit_residual, scored_sampler
     from uncertsplat.eval.observed import observed_mask
 
     overrides, full_coverage = PREDICTIVES[predictive]
@@ -141,13 +141,12 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: s
     residual = fit_residual(loaded.sampler(scene.scene_scale, device), train, ecfg, device, load_views=train_views,
                             calibration_indices=scene.split.get("calibration", ()))
 
-    def sampler():
+    def new_sampler():
         base = loaded.sampler(scene.scene_scale, device)
-        return dataclasses.replace(with_side_terms(base, residual, cams[train], ecfg, device),
-                                   coverage=1.0 if full_coverage else base.coverage)
+        return dataclasses.replace(base, coverage=1.0 if full_coverage else base.coverage)
 
-    report = evaluate_views(sampler(), views, ecfg, device, show_progress=False, on_view=maps.append)
-    scale, _ = fit_std_scale(sampler(), scene.split, ecfg, device, load_views=train_views)
+    sampler, scale, _ = scored_sampler(new_sampler, residual, cams, scene.split, ecfg, device, load_views=train_views)
+    report = evaluate_views(sampler, views, ecfg, device, show_progress=False, on_view=maps.append)
     per_view = per_view_agreement(report, maps)
     if views.depths is None:  # real photos: no GT depth, no observed labels; per-view agreement only
         m = report.mean
