@@ -139,6 +139,8 @@ def reconstruct(
     ] = None,
     max_image_size: Annotated[int | None, typer.Option(help="Longest image side used.")] = None,
     min_registered: Annotated[float | None, typer.Option(help="Minimum registered fraction.")] = None,
+    mapping_attempts: Annotated[int | None, typer.Option(
+        help="Mapping runs at most (other seeds) until two agree; the best is kept. 1: a single run.")] = None,
     seed: Annotated[int | None, typer.Option(help="Random seed.")] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing workspace.")] = False,
     config: ConfigOpt = None,
@@ -149,8 +151,8 @@ def reconstruct(
     from uncertsplat.stages import reconstruct as stage
 
     explicit = dict(matcher=matcher, camera_model=camera_model, single_camera=single_camera,
-                    max_image_size=max_image_size, min_registered=min_registered, seed=seed,
-                    overwrite=overwrite or None)
+                    max_image_size=max_image_size, min_registered=min_registered,
+                    mapping_attempts=mapping_attempts, seed=seed, overwrite=overwrite or None)
     cfg = _stage_config(ReconstructConfig, config, set_, explicit)
     stage.run(photos, output, cfg)
 

@@ -61,6 +61,11 @@ class ReconstructConfig(_Base):
     """Longest side used for feature extraction and undistorted output."""
     min_registered: float = Field(0.8, gt=0.0, le=1.0)
     """Fail when fewer than this fraction of the images register."""
+    mapping_attempts: int = Field(4, ge=1, le=20)
+    """Incremental mapping runs at most: it is run with seeds ``seed``, ``seed + 1``, ... until two runs agree on the
+    geometry (images, feature observations, focal lengths; ``sfm.reconstruct.attempts_agree``) and the run that
+    explains the most feature observations is kept. One run can settle in a wrong focal length (bonsai: 3 of 8 seeds;
+    BENCHMARKS.md "Mapping runs that disagree"). 1: one run, as COLMAP alone."""
     seed: int = Field(0, ge=0)
     """Seed for COLMAP's RANSAC and mapper; results are bit-identical for a seed only with num_threads=1
     (with more threads the camera centres differ slightly between runs; BENCHMARKS.md, Reconstruct)."""

@@ -85,6 +85,14 @@ def test_synthetic_scene_registers_and_matches_gt(synth_scene, tmp_path):
     assert report.num_points3d > 100
     assert 0 < report.mean_reprojection_error < 1.5
     assert set(report.stage_seconds) >= {"extract", "match", "map", "undistort"}
+    # mapped again with the next seed until two runs agreed; the kept run is the workspace's model
+    runs = report.mapping_attempts
+    assert report.mapping_agreed is True and 2 <= len(runs) <= CFG.mapping_attempts
+    assert [a.seed for a in runs] == list(range(CFG.seed, CFG.seed + len(runs))) and not any(a.relaxed for a in runs)
+    (kept,) = [a for a in runs if a.kept]
+    assert kept.num_observations == report.num_observations == max(a.num_observations for a in runs)
+    assert kept.num_images == len(names) and kept.num_points3d == report.num_points3d
+    assert report.num_observations == pytest.approx(report.mean_observations_per_image * len(names))
 
     # workspace layout: undistorted PINHOLE model in sparse/0 and one image per registered view
     assert sorted(p.name for p in (ws / "images").iterdir()) == names
@@ -262,10 +270,11 @@ def test_same_seed_single_thread_is_bitwise_reproducible(synth_scene, tmp_path):
     photos.mkdir()
     for p in sorted((synth_scene / "images").iterdir())[:10]:
         shutil.copy(p, photos / p.name)
-    cfg = ReconstructConfig(num_threads=1, seed=7, min_registered=0.5)
+    cfg = ReconstructConfig(num_threads=1, seed=7, min_registered=0.5, mapping_attempts=1)
     centres = []
     for ws in ("a", "b"):
-        stage.run(photos, tmp_path / ws, cfg)
+        report = stage.run(photos, tmp_path / ws, cfg)
+        assert [a.seed for a in report.mapping_attempts] == [7] and report.mapping_agreed is None
         c = sfm.camera_centers(tmp_path / ws / "sparse" / "0")
         centres.append(np.stack([c[n] for n in sorted(c)]))
     assert len(centres[0]) >= 5

@@ -39,6 +39,8 @@ def test_outputs_and_psnr_gain(trained):
     summary = json.loads((run / "train_summary.json").read_text())
     assert summary["steps"] == 80 and summary["num_carriers"] > 0
     assert summary["test_psnr"] > initial + 2.0, (initial, summary["test_psnr"])
+    # the fit of its own photos is recorded, and above the held-out views' (those it never saw)
+    assert summary["train_psnr"] > summary["test_psnr"], (summary["train_psnr"], summary["test_psnr"])
     assert summary["memory_per_gaussian_bytes"] > 0 and summary["sec_per_step"] > 0
     post = summary["posterior"]  # how far the posteriors moved from the prior, per carrier
     assert post["carriers"] == summary["num_carriers"] and 0.0 <= post["moved_fraction"] <= 1.0

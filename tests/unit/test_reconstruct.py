@@ -259,3 +259,65 @@ def test_photos_in_a_subfolder_are_pointed_out(tmp_path):
         (tmp_path / "images" / f"{i}.jpg").write_bytes(b"not really a jpeg")
     with pytest.raises(UserError, match=r"sub-folder .*images holds photos: pass that folder instead"):
         scan_photos(tmp_path)
+
+
+# ------------------------------------------------------------------------------------------ mapping runs
+def attempt(seed: int, images: int = 49, observations: int = 50_000, focal: float = 820.0, relaxed: bool = False):
+    return {"seed": seed, "relaxed": relaxed, "num_images": images, "num_points3d": observations // 3,
+            "num_observations": observations, "mean_reprojection_error": 0.4, "focal_lengths": {"1": focal}}
+
+
+def test_mapping_runs_agree_only_on_the_same_geometry():
+    # bonsai's runs (BENCHMARKS.md "Mapping runs that disagree"): right ones agree, one image more or less included
+    good = attempt(5, images=49, observations=50_514, focal=800.1)
+    assert sfm.attempts_agree(good, attempt(7, images=49, observations=51_570, focal=834.2))
+    assert sfm.attempts_agree(good, attempt(6, images=48, observations=50_491, focal=800.1))
+    assert not sfm.attempts_agree(good, attempt(0, images=48, observations=25_692, focal=536.6))  # a wrong focal
+    assert not sfm.attempts_agree(attempt(0, images=48, observations=25_692, focal=536.6),  # two wrong ones
+                                  attempt(1, images=48, observations=27_236, focal=523.6))
+    # each criterion on its own, just inside and just outside its tolerance
+    lo = 1.0 - sfm.AGREE_OBSERVATIONS
+    assert sfm.attempts_agree(attempt(0, observations=100_000), attempt(1, observations=round(100_000 * lo) + 1))
+    assert not sfm.attempts_agree(attempt(0, observations=100_000), attempt(1, observations=round(100_000 * lo) - 1))
+    lo = 1.0 - sfm.AGREE_FOCAL
+    assert sfm.attempts_agree(attempt(0, focal=1000.0), attempt(1, focal=1000.0 * lo + 0.1))
+    assert not sfm.attempts_agree(attempt(0, focal=1000.0), attempt(1, focal=1000.0 * lo - 0.1))
+    assert sfm.attempts_agree(attempt(0, images=49), attempt(1, images=48))  # at least one image of slack
+    assert not sfm.attempts_agree(attempt(0, images=49), attempt(1, images=47))
+    assert sfm.attempts_agree(attempt(0, images=1000), attempt(1, images=980))  # 2 % of many
+    assert not sfm.attempts_agree(attempt(0, images=1000), attempt(1, images=979))
+    # no model, or no observation: nothing to agree on
+    empty = {**attempt(2, images=0, observations=0), "focal_lengths": {}}
+    assert not sfm.attempts_agree(empty, empty)
+    # cameras only one run estimated are not compared; a shared one that differs is
+    a = {**attempt(0), "focal_lengths": {"1": 800.0, "2": 600.0}}
+    assert sfm.attempts_agree(a, {**attempt(1), "focal_lengths": {"1": 800.0}})
+    assert not sfm.attempts_agree(a, {**attempt(1), "focal_lengths": {"1": 800.0, "2": 300.0}})
+
+
+def test_the_kept_mapping_run_explains_the_most_observations():
+    runs = [attempt(0, images=48, observations=21_272), attempt(1, observations=50_518), attempt(2, observations=29_961)]
+    assert sfm.choose_attempt(runs, needed=40) == 1
+    # runs below the registration bar only count when no run reaches it
+    runs = [attempt(0, images=30, observations=90_000), attempt(1, images=45, observations=40_000)]
+    assert sfm.choose_attempt(runs, needed=40) == 1
+    assert sfm.choose_attempt(runs, needed=46) == 0
+    # ties: more images, then the earlier run
+    assert sfm.choose_attempt([attempt(0, images=40), attempt(1, images=41)], needed=1) == 1
+    assert sfm.choose_attempt([attempt(0), attempt(1)], needed=1) == 0
+
+
+def test_train_warns_when_the_model_cannot_fit_its_own_photos(tmp_path):
+    from uncertsplat.train.session import POOR_FIT_PSNR, poor_fit_warnings
+
+    assert poor_fit_warnings(None, tmp_path) == []
+    assert poor_fit_warnings(POOR_FIT_PSNR, tmp_path) == []
+    (plain,) = poor_fit_warnings(POOR_FIT_PSNR - 1.1, tmp_path)  # not a reconstruct workspace
+    assert f"{POOR_FIT_PSNR - 1.1:.1f} dB" in plain and "camera poses" in plain and "reconstruct_report" not in plain
+    write_report(tmp_path, _report(num_points3d=6084, mean_reprojection_error=1.028, mapping_agreed=False))
+    (warning,) = poor_fit_warnings(18.9, tmp_path)
+    assert str(tmp_path / REPORT_NAME) in warning and "6,084 points" in warning and "1.03 px" in warning
+    assert "disagreed" in warning and "--seed" in warning
+    (tmp_path / REPORT_NAME).write_text("{not json")  # a damaged report does not fail a finished training
+    (damaged,) = poor_fit_warnings(18.9, tmp_path)
+    assert "camera poses" in damaged

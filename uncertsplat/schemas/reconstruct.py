@@ -42,6 +42,23 @@ class ModelSummary(_Base):
     kept: bool
 
 
+class MappingAttempt(_Base):
+    """One run of incremental mapping (``reconstruct`` maps again with another seed until two runs agree)."""
+
+    seed: int
+    relaxed: bool
+    num_images: int
+    """Images registered in the run's largest model."""
+    num_points3d: int
+    num_observations: int
+    """Feature observations the largest model explains (the sum of its points' track lengths): what the kept run
+    maximises."""
+    mean_reprojection_error: float | None = None
+    focal_lengths: dict[str, float] = {}
+    """Camera id -> estimated focal length (pixels of the distorted images)."""
+    kept: bool = False
+
+
 class ReconstructReport(SchemaFile):
     """What ``reconstruct`` did and how healthy the result is (``WORKSPACE/reconstruct_report.json``)."""
 
@@ -77,11 +94,18 @@ class ReconstructReport(SchemaFile):
     models: list[ModelSummary] = []
     retried_relaxed: bool = False
     """Whether mapping was repeated with relaxed options because too few images registered."""
+    mapping_attempts: list[MappingAttempt] = []
+    """Every mapping run, in order (``kept``: the one the workspace holds)."""
+    mapping_agreed: bool | None = None
+    """Whether two mapping runs found the same geometry (``sfm.reconstruct.attempts_agree``); None with one run
+    (``--mapping-attempts 1``). False: the kept run is the best of runs that disagreed; check the poses."""
     num_points3d: int = 0
     mean_reprojection_error: float | None = None
     """Pixels, in the kept model before undistortion."""
     mean_track_length: float | None = None
     mean_observations_per_image: float | None = None
+    num_observations: int | None = None
+    """Feature observations of the kept model (the sum of its points' track lengths)."""
     cameras: list[CameraSummary] = []
     undistorted_size: dict[str, list[int]] = {}
     """Image name -> [width, height] after undistortion, for the images in ``WORKSPACE/images``."""

@@ -149,6 +149,11 @@ class TrainSummary(SchemaFile):
     test_ssim: float | None = None
     test_render: str | None = None
     num_test_views: int | None = None
+    train_psnr: float | None = None
+    """PSNR of the same render on at most 8 evenly spaced training views: how well the model fits its own photos
+    (None for an ensemble and runs from before it was recorded)."""
+    warnings: list[str] = Field(default_factory=list)
+    """What ``train`` warned about (e.g. a model that cannot fit its own photos)."""
     # ---- one model
     carrier_fraction: float | None = None
     memory_per_gaussian_bytes: float | None = None
@@ -180,7 +185,7 @@ class TrainSummary(SchemaFile):
     test_psnr_members_mean: float | None = None
     members: list[TrainSummary] = Field(default_factory=list)
 
-    @field_validator("test_psnr", "test_ssim", "test_psnr_members_mean", mode="before")
+    @field_validator("test_psnr", "test_ssim", "train_psnr", "test_psnr_members_mean", mode="before")
     @classmethod
     def _nonfinite_to_none(cls, v):
         return finite_or_none(v)

@@ -4,8 +4,9 @@ The steps are plain functions so that each can be tested and timed on its own:
 
 ``scan_photos`` (which files, their sizes and EXIF orientation) -> ``stage_inputs`` (rotated copies
 where EXIF asks for it) -> ``extract_features`` (SIFT, one camera per image size) -> ``match_features``
-(exhaustive or sequential pairs) -> ``map_incremental`` (keep the largest model, retry once relaxed)
--> ``undistort`` (PINHOLE images into ``WS/images`` and the model into ``WS/sparse/0``).
+(exhaustive or sequential pairs) -> ``map_incremental`` (keep the largest model; run again with other seeds
+until two runs agree, ``choose_attempt`` keeps the one that explains the most feature observations; relaxed options
+when too few images register) -> ``undistort`` (PINHOLE images into ``WS/images`` and the model into ``WS/sparse/0``).
 
 ``uncertsplat.stages.reconstruct.run`` chains them, owns the workspace and writes the report.
 This package is the only one that imports pycolmap.
@@ -343,6 +344,7 @@ class MappingResult:
 
     models: list[pycolmap.Reconstruction]
     relaxed: bool
+    seed: int = 0
 
     @property
     def best(self) -> pycolmap.Reconstruction | None:
@@ -353,17 +355,20 @@ class MappingResult:
         return self.best.num_reg_images() if self.best is not None else 0
 
 
-def mapper_options(cfg: ReconstructConfig, relaxed: bool = False) -> pycolmap.IncrementalPipelineOptions:
-    """Incremental mapping options; ``relaxed`` lowers the inlier and angle thresholds.
+def mapper_options(cfg: ReconstructConfig, relaxed: bool = False,
+                   seed: int | None = None) -> pycolmap.IncrementalPipelineOptions:
+    """Incremental mapping options; ``relaxed`` lowers the inlier and angle thresholds; ``seed`` (default
+    ``cfg.seed``) seeds the mapper's RANSAC and triangulation.
 
     The relaxed set helps captures with little texture or small baselines, at the risk of admitting
-    a wrongly posed image, which is why it is only the second attempt.
+    a wrongly posed image, which is why it is only tried when the normal set registers too few images.
     """
+    seed = cfg.seed if seed is None else seed
     opts = pycolmap.IncrementalPipelineOptions()
     opts.num_threads = cfg.num_threads
-    opts.random_seed = cfg.seed
-    opts.mapper.random_seed = cfg.seed
-    opts.triangulation.random_seed = cfg.seed
+    opts.random_seed = seed
+    opts.mapper.random_seed = seed
+    opts.triangulation.random_seed = seed
     opts.min_model_size = 3
     if relaxed:
         opts.min_num_matches = 10
@@ -383,8 +388,9 @@ def map_incremental(
     cfg: ReconstructConfig,
     relaxed: bool = False,
     advance: ProgressFn = _noop,
+    seed: int | None = None,
 ) -> MappingResult:
-    """Incremental mapping; every model it finds, largest (most registered images) first."""
+    """Incremental mapping (``mapper_options``); every model it finds, largest (most registered images) first."""
     if scratch.exists():
         shutil.rmtree(scratch)
     scratch.mkdir(parents=True)
@@ -398,11 +404,65 @@ def map_incremental(
         count[0] += 1
         advance(1, "")
 
-    models = pycolmap.incremental_mapping(database, image_dir, scratch, mapper_options(cfg, relaxed),
+    pycolmap.set_random_seed(cfg.seed if seed is None else seed)
+    models = pycolmap.incremental_mapping(database, image_dir, scratch, mapper_options(cfg, relaxed, seed),
                                           initial_image_pair_callback=on_initial_pair,
                                           next_image_callback=on_next_image)
     ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
-    return MappingResult(models=ordered, relaxed=relaxed)
+    return MappingResult(models=ordered, relaxed=relaxed, seed=cfg.seed if seed is None else seed)
+
+
+AGREE_OBSERVATIONS = 0.05
+"""Two mapping runs agree when their feature observations differ by at most this fraction of the larger count,"""
+AGREE_FOCAL = 0.05
+"""every camera both estimated has focal lengths within this fraction of each other,"""
+AGREE_IMAGES = 0.02
+"""and their registered images differ by at most this fraction (at least one image). Runs of the same photos that found
+the right geometry differ by a few percent: bonsai's matches mapped with 8 seeds, the 5 runs at the right focal length
+within 2.1 % in observations and 4.2 % in focal length (50,491-51,570 observations, 800-834 px, 48-49 images);
+runs caught in a wrong focal length explain about half as many observations and spread more among themselves
+(24,157-27,236 at 524-537 px; BENCHMARKS.md, "Mapping runs that disagree")."""
+
+
+def attempts_agree(a: dict, b: dict) -> bool:
+    """Whether two mapping runs' summaries (``attempt_summary``) describe the same geometry: registered images within
+    ``AGREE_IMAGES``, feature observations within ``AGREE_OBSERVATIONS`` and the focal length of every camera both
+    estimated within ``AGREE_FOCAL`` (relative)."""
+    if not a["num_observations"] or not b["num_observations"]:
+        return False
+    if abs(a["num_images"] - b["num_images"]) > max(1.0, AGREE_IMAGES * max(a["num_images"], b["num_images"])):
+        return False
+    if abs(a["num_observations"] - b["num_observations"]) > AGREE_OBSERVATIONS * max(a["num_observations"],
+                                                                                     b["num_observations"]):
+        return False
+    shared = set(a["focal_lengths"]) & set(b["focal_lengths"])
+    return all(abs(a["focal_lengths"][c] - b["focal_lengths"][c])
+               <= AGREE_FOCAL * max(a["focal_lengths"][c], b["focal_lengths"][c]) for c in shared)
+
+
+def choose_attempt(attempts: Sequence[dict], needed: float) -> int:
+    """Index of the mapping run to keep: of the runs that registered at least ``needed`` images (all of them when
+    none did), the one whose model explains the most feature observations (the sum of its points' track lengths),
+    then the one with more images. Incremental mapping can settle in a wrong focal length and distortion (a local
+    minimum of bundle adjustment); such a model keeps fewer observations within the reprojection threshold."""
+    enough = [i for i, a in enumerate(attempts) if a["num_images"] >= needed] or list(range(len(attempts)))
+    return max(enough, key=lambda i: (attempts[i]["num_observations"], attempts[i]["num_images"], -i))
+
+
+def attempt_summary(result: MappingResult) -> dict:
+    """What ``attempts_agree`` and ``choose_attempt`` compare, of one mapping run's largest model (the fields of
+    ``schemas.reconstruct.MappingAttempt``)."""
+    best = result.best
+    out = {"seed": result.seed, "relaxed": result.relaxed, "num_images": 0, "num_points3d": 0, "num_observations": 0,
+           "mean_reprojection_error": None, "focal_lengths": {}}
+    if best is None:
+        return out
+    used = {best.image(i).camera_id for i in best.reg_image_ids()}
+    out.update(num_images=int(best.num_reg_images()), num_points3d=int(best.num_points3D()),
+               num_observations=int(best.compute_num_observations()),
+               mean_reprojection_error=float(best.compute_mean_reprojection_error()) if best.num_points3D() else None,
+               focal_lengths={str(c): float(cam.mean_focal_length()) for c, cam in best.cameras.items() if c in used})
+    return out
 
 
 def registered_names(rec: pycolmap.Reconstruction) -> list[str]:
@@ -413,6 +473,7 @@ def model_stats(rec: pycolmap.Reconstruction) -> dict:
     """Health numbers of one model (reprojection error in pixels of the distorted images)."""
     return {
         "num_points3d": int(rec.num_points3D()),
+        "num_observations": int(rec.compute_num_observations()),
         "mean_reprojection_error": float(rec.compute_mean_reprojection_error()) if rec.num_points3D() else None,
         "mean_track_length": float(rec.compute_mean_track_length()) if rec.num_points3D() else None,
         "mean_observations_per_image": float(rec.compute_mean_observations_per_reg_image())

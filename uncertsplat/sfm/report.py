@@ -14,6 +14,7 @@ from uncertsplat.schemas.reconstruct import (
     REPORT_NAME,
     REPORT_SCHEMA_VERSION,
     CameraSummary,
+    MappingAttempt,
     ModelSummary,
     ReconstructReport,
 )
@@ -54,5 +55,5 @@ def require_successful(workspace: str | Path) -> ReconstructReport | None:
     return report
 
 
-__all__ = ["REPORT_NAME", "REPORT_SCHEMA_VERSION", "CameraSummary", "ModelSummary", "ReconstructReport", "load_report",
-           "report_path", "require_successful", "write_report"]
+__all__ = ["REPORT_NAME", "REPORT_SCHEMA_VERSION", "CameraSummary", "MappingAttempt", "ModelSummary", "ReconstructReport",
+           "load_report", "report_path", "require_successful", "write_report"]

@@ -21,7 +21,14 @@ from uncertsplat.console import console, progress
 from uncertsplat.errors import UserError
 from uncertsplat.io.atomic import run_lock
 from uncertsplat.sfm import reconstruct as sfm
-from uncertsplat.sfm.report import REPORT_NAME, ModelSummary, ReconstructReport, load_report, write_report
+from uncertsplat.sfm.report import (
+    REPORT_NAME,
+    MappingAttempt,
+    ModelSummary,
+    ReconstructReport,
+    load_report,
+    write_report,
+)
 
 # What a workspace written by this stage consists of: --overwrite removes these and nothing else.
 _OWNED = ("images", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", REPORT_NAME)
@@ -156,21 +163,41 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                 report.num_verified_pairs = sfm.match_features(
                     database, pairs, cfg, distorted, advance=lambda k, s: bar.update(task, advance=k, info=s))
 
-            # ---- mapping, retried once with relaxed options when too few images register
+            # ---- mapping: runs with other seeds until two agree, relaxed options when too few images register
             needed = cfg.min_registered * n
-            attempts = []
+            results: list[sfm.MappingResult] = []
             for relaxed in (False, True):
-                label = "mapping (relaxed)" if relaxed else "mapping"
-                task = bar.add_task(label, total=n, info="")
-                with watch("map"):
-                    result = sfm.map_incremental(database, image_dir, distorted / "models", cfg, relaxed,
-                                                 advance=lambda k, s, t=task: bar.update(t, advance=k, info=s))
-                bar.update(task, completed=result.num_registered, info=f"{result.num_registered} registered")
-                attempts.append(result)
-                if result.num_registered >= needed or report.num_verified_pairs == 0:
+                for attempt in range(cfg.mapping_attempts):
+                    seed = cfg.seed + attempt
+                    label = ("mapping (relaxed)" if relaxed else "mapping") + (f", seed {seed}" if attempt else "")
+                    task = bar.add_task(label, total=n, info="")
+                    with watch("map"):
+                        result = sfm.map_incremental(database, image_dir, distorted / "models", cfg, relaxed,
+                                                     advance=lambda k, s, t=task: bar.update(t, advance=k, info=s),
+                                                     seed=seed)
+                    results.append(result)
+                    bar.update(task, completed=result.num_registered, info=f"{result.num_registered} registered, "
+                               f"{sfm.attempt_summary(result)['num_observations']} observations")
+                    if result.best is None:
+                        break  # no initial pair: another seed of the same options finds none either
+                    if _agreeing(results, len(results) - 1):
+                        break
+                if max(r.num_registered for r in results) >= needed or report.num_verified_pairs == 0:
                     break
-            result = max(attempts, key=lambda r: r.num_registered)
-            report.retried_relaxed = len(attempts) > 1
+            summaries = [sfm.attempt_summary(r) for r in results]
+            kept = sfm.choose_attempt(summaries, needed)
+            result = results[kept]
+            report.retried_relaxed = any(r.relaxed for r in results)
+            report.mapping_attempts = [MappingAttempt(**a, kept=(i == kept)) for i, a in enumerate(summaries)]
+            report.mapping_agreed = _agreeing(results, kept) if cfg.mapping_attempts > 1 and result.best is not None \
+                else None
+            if report.mapping_agreed is False:
+                runs = "; ".join(f"seed {a['seed']}{' (relaxed)' if a['relaxed'] else ''}: {a['num_images']} images, "
+                                 f"{a['num_observations']} observations, focal {_focals(a)}" for a in summaries)
+                report.notes.append(f"the {len(summaries)} mapping runs disagree ({runs}); kept seed "
+                                    f"{summaries[kept]['seed']}, which explains the most feature observations. Check "
+                                    f"the poses (train warns when it cannot fit its own views) or raise "
+                                    f"--mapping-attempts")
 
         shutil.rmtree(distorted / "models", ignore_errors=True)
         report.models_found = len(result.models)
@@ -188,6 +215,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
             report.mean_reprojection_error = stats["mean_reprojection_error"]
             report.mean_track_length = stats["mean_track_length"]
             report.mean_observations_per_image = stats["mean_observations_per_image"]
+            report.num_observations = stats["num_observations"]
             report.cameras = sfm.camera_summaries(best)
         if len(result.models) > 1:
             report.notes.append(f"mapping split the photos into {len(result.models)} models; kept the largest "
@@ -228,6 +256,15 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     console.print(f"reconstruct: {report.summary()} -> {workspace}")
     for stage, sec in report.stage_seconds.items():
         console.print(f"  {stage:<13} {sec:8.2f} s")
+    if len(report.mapping_attempts) > 1:
+        runs = ", ".join(f"seed {a.seed}{' relaxed' if a.relaxed else ''}: {a.num_observations:,} observations"
+                         f"{'' if not a.focal_lengths else ' at ' + _focals(a.model_dump())}{' (kept)' if a.kept else ''}"
+                         for a in report.mapping_attempts)
+        verdict = {True: "agreed", False: "[yellow]disagreed[/]", None: "one run of these options"}[report.mapping_agreed]
+        console.print(f"  mapping runs ({verdict}): {runs}")
+    if report.mapping_agreed is False:
+        console.print("[yellow]warning:[/] the mapping runs found different geometries; the kept one explains the most "
+                      "feature observations (reconstruct_report.json: mapping_attempts)")
     if report.images_unregistered:
         console.print(f"[yellow]warning:[/] not registered: {_list_names(report.images_unregistered)}")
     if report.ground_truth:
@@ -236,6 +273,22 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                       f"rig radius (max {g['centre_error_max_pct']:.3f} %), rotations {g['rotation_error_mean_deg']:.3f} "
                       f"deg (max {g['rotation_error_max_deg']:.3f}), focal {g['focal_error_mean_pct']:.2f} %")
     return report
+
+
+def _agreeing(results: list, index: int) -> bool | None:
+    """Whether mapping run ``index`` agrees (``sfm.attempts_agree``) with another run of the same options; None
+    when it is the only run of its options."""
+    others = [r for j, r in enumerate(results) if j != index and r.relaxed == results[index].relaxed]
+    if not others:
+        return None
+    mine = sfm.attempt_summary(results[index])
+    return any(sfm.attempts_agree(mine, sfm.attempt_summary(r)) for r in others)
+
+
+def _focals(attempt: dict) -> str:
+    """The focal lengths of a mapping run's summary, for a note ("813 px" or "813 / 640 px")."""
+    f = attempt["focal_lengths"]
+    return " / ".join(f"{v:.0f}" for v in f.values()) + " px" if f else "none"
 
 
 def _against_ground_truth(photos: Path, workspace: Path) -> dict[str, float] | None:

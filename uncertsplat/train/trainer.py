@@ -330,6 +330,18 @@ class Trainer:
             ss.append(float(ssim(pred, self.test_images[i])))
         return {"psnr": sum(ps) / n, "ssim": sum(ss) / n}
 
+    @torch.no_grad()
+    def training_psnr(self, max_views: int = 8) -> float | None:
+        """Mean PSNR of the deterministic render (``mean_sample``) on at most ``max_views`` evenly spaced training
+        views: how well the model fits its own photos (None without training views)."""
+        n = len(self.train_idx)
+        if n == 0 or max_views < 1:
+            return None
+        g = self.mean_sample()
+        chosen = sorted({round(j * (n - 1) / max(min(max_views, n) - 1, 1)) for j in range(min(max_views, n))})
+        return sum(float(psnr(self.render(g, self.train_cams[i]).rgb[0].clamp(0, 1), self.train_images[i]))
+                   for i in chosen) / len(chosen)
+
     # ----------------------------------------------------------------------------------- steps
     def train_step(self) -> dict[str, float]:
         """One optimisation step (plus the topology changes due); returns the loss terms. On the CPU with the
