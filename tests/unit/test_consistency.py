@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput
+from uncertsplat.uncertainty import consistency
 from uncertsplat.uncertainty.consistency import (
     DEPTH_JUMP,
     GATE_SPACINGS,
@@ -127,6 +128,22 @@ class TestViewConsistency:
         expect = (_colour(test) - _colour(_cameras([0.0]))) ** 2
         var = vc.variance(test, render_fn)
         torch.testing.assert_close(var, torch.full_like(var, expect), rtol=1e-2, atol=1e-6)  # the renders kept as float16
+
+    def test_views_compared_in_batches_choose_as_one_by_one(self, monkeypatch):
+        """Ten training views (more than one batch of ``VIEW_CHUNK``), the nearest direction in the last batch and a
+        hidden one nearer still: the same map with batches of 1, 3 and the default, and the expected colour."""
+        azimuths = [-60.0, -45.0, -30.0, -20.0, -10.0, 0.0, 10.0, 20.0, 30.0, 52.0, -70.0, -80.0]  # farther ones last
+        render_fn = _plane_render(nearer=frozenset({30}))
+        vc, _ = _term(azimuths, gate=2.0, render_fn=render_fn)
+        test = _cameras([40.0], focal=60.0)  # 10 degrees from the hidden 30, 12 from 52: the visible 52 wins
+        maps = {}
+        for chunk in (1, 3, consistency.VIEW_CHUNK):
+            monkeypatch.setattr(consistency, "VIEW_CHUNK", chunk)
+            maps[chunk] = vc.variance(test, render_fn)
+        assert len(azimuths) > consistency.VIEW_CHUNK
+        assert torch.equal(maps[1], maps[3]) and torch.equal(maps[1], maps[consistency.VIEW_CHUNK])
+        expect = (_colour(test) - _colour(_cameras([52.0]))) ** 2
+        torch.testing.assert_close(maps[1], torch.full_like(maps[1], expect), rtol=1e-2, atol=1e-6)
 
     def test_no_surface_and_no_seeing_view_give_zeros_and_one_camera_at_a_time(self):
         vc, render_fn = _term([0.0], gate=4.0)

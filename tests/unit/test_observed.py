@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from uncertsplat.eval.observed import observed_mask
-from uncertsplat.render.project import unproject
+from uncertsplat.render.project import project_points, unproject
 
 H, W, F, D = 12, 16, 20.0, 5.0
 K = torch.tensor([[F, 0.0, W / 2], [0.0, F, H / 2], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -43,6 +43,26 @@ def test_unproject_then_project_gives_the_pixel_centres():
     ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
     torch.testing.assert_close(uv, torch.stack([xs + 0.5, ys + 0.5], -1))
     torch.testing.assert_close(p[..., 2], plane() * 1.5)
+
+
+def test_project_points_in_several_cameras_at_once_is_each_camera_alone():
+    cams = torch.stack([cam_at(0.3, 20.0), cam_at(-1.0, -35.0), cam_at(2.0, 90.0)])  # the last: the wall edge-on
+    Ks = torch.stack([K, K * 1.5, K])
+    Ks[1, 2, 2] = 1.0
+    pts = unproject(plane(), cam_at(), K)  # [H,W,3]
+    uv, z = project_points(pts, cams, Ks)
+    assert uv.shape == (3, H, W, 2) and z.shape == (3, H, W)
+    for c in range(3):
+        one_uv, one_z = project_points(pts, cams[c], Ks[c])
+        torch.testing.assert_close(uv[c], one_uv, rtol=0, atol=1e-9)
+        torch.testing.assert_close(z[c], one_z, rtol=0, atol=1e-12)
+    # flat points too, and the round trip of the first camera
+    flat_uv, _ = project_points(pts.reshape(-1, 3), cams, Ks)
+    torch.testing.assert_close(flat_uv, uv.reshape(3, -1, 2), rtol=0, atol=0)
+    back, back_z = project_points(unproject(plane() * 1.5, cams[0], K), cams[0], K)
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    torch.testing.assert_close(back, torch.stack([xs + 0.5, ys + 0.5], -1))
+    torch.testing.assert_close(back_z, plane() * 1.5)
 
 
 def test_the_same_view_observes_everything():

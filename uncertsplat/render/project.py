@@ -37,13 +37,18 @@ def unproject(depth: Tensor, cam_from_world: Tensor, K: Tensor) -> Tensor:
 
 def project_points(points: Tensor, cam_from_world: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
     """Pixel coordinates [...,2] (centres at +0.5) and camera z [...] of world ``points`` [...,3] in one camera
-    (``cam_from_world`` [4,4], ``K`` [3,3]), in ``points``' dtype; points at z <= 1e-9 get finite, meaningless
-    pixels (test z)."""
+    (``cam_from_world`` [4,4], ``K`` [3,3]), or [C,...,2] and [C,...] in each of C cameras ([C,4,4], [C,3,3]), in
+    ``points``' dtype; points at z <= 1e-9 get finite, meaningless pixels (test z)."""
     dt = points.dtype
-    p = points @ cam_from_world[:3, :3].to(dt).T + cam_from_world[:3, 3].to(dt)
+    shape = points.shape[:-1]
+    flat = points.reshape(-1, 3)  # [P,3]
+    R, t = cam_from_world[..., :3, :3].to(dt), cam_from_world[..., :3, 3].to(dt)  # [(C,)3,3], [(C,)3]
+    p = flat @ R.transpose(-1, -2) + t[..., None, :]  # [(C,)P,3]
     z = p[..., 2]
-    uv = (p[..., :2] / z.clamp_min(1e-9)[..., None]) @ K[:2, :2].to(dt).T + K[:2, 2].to(dt)
-    return uv, z
+    uv = (p[..., :2] / z.clamp_min(1e-9)[..., None]) @ K[..., :2, :2].to(dt).transpose(-1, -2) + \
+        K[..., None, :2, 2].to(dt)
+    lead = cam_from_world.shape[:-2]
+    return uv.reshape(*lead, *shape, 2), z.reshape(*lead, *shape)
 
 
 class Projection(NamedTuple):

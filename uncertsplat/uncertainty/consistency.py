@@ -55,6 +55,9 @@ BLUR = 2
 """Half-width in pixels of the window the squared differences are averaged over."""
 MIN_GATE = 1.0
 """Degrees: the smallest ``gate`` (a capture of one view, or of views from one place)."""
+VIEW_CHUNK = 8
+"""Training views a pixel's point is projected into at once (``ViewConsistency.variance``): their renders are sampled
+as one batch (4 float32 channels per pixel of each)."""
 
 
 def _angle(a: Tensor, b: Tensor) -> Tensor:
@@ -129,32 +132,36 @@ class ViewConsistency:
         surface = (alpha >= MIN_ALPHA) & (depth > 0) & ~_depth_edges(depth)
         if not bool(surface.any()):
             return zero
+        where = surface.flatten().nonzero()[:, 0]  # [S] only the pixels with a surface are projected
         points = unproject(torch.where(surface, depth, torch.zeros_like(depth)), camera.cam_from_world[0],
-                           camera.K[0])  # [H,W,3]
-        to_view = F.normalize(camera.centers[0].to(points) - points, dim=-1)  # [H,W,3]
-        best = torch.full((h, w), float("inf"), dtype=points.dtype, device=rgb.device)  # angle of the chosen view
-        diff = torch.zeros(h, w, dtype=rgb.dtype, device=rgb.device)
+                           camera.K[0]).reshape(-1, 3)[where]  # [S,3]
+        colour = rgb.reshape(-1, 3)[where]  # [S,3]
+        to_view = F.normalize(camera.centers[0].to(points) - points, dim=-1)  # [S,3]
+        best = torch.full_like(points[:, 0], float("inf"))  # [S] angle of the chosen view
+        diff = torch.zeros_like(colour[:, 0])  # [S]
         hk, wk = self.cameras.height, self.cameras.width
-        for k in range(len(self.cameras)):
-            cam = self.cameras[[k]]
-            uv, z = project_points(points, cam.cam_from_world[0], cam.K[0])
-            inside = surface & (z > 1e-9) & (uv[..., 0] >= 0) & (uv[..., 0] <= wk) & (uv[..., 1] >= 0) & \
-                (uv[..., 1] <= hk)
-            if not bool(inside.any()):
-                continue
-            # the training view's render and depth at the point, bilinearly (a surface at a grazing angle changes
+        for k0 in range(0, len(self.cameras), VIEW_CHUNK):
+            cams = self.cameras[k0:k0 + VIEW_CHUNK]
+            uv, z = project_points(points, cams.cam_from_world, cams.K)  # [C,S,2], [C,S]
+            inside = (z > 1e-9) & (uv[..., 0] >= 0) & (uv[..., 0] <= wk) & (uv[..., 1] >= 0) & (uv[..., 1] <= hk)
+            # the training views' renders and depths at the point, bilinearly (a surface at a grazing angle changes
             # depth by more than the tolerance from one pixel to the next)
-            image = torch.cat([self.rgb[k].to(rgb.dtype), self.depth[k].to(rgb.dtype)[..., None]], -1)  # [H',W',4]
-            grid = torch.stack([uv[..., 0] / wk * 2 - 1, uv[..., 1] / hk * 2 - 1], -1).to(rgb.dtype)[None]
-            there = F.grid_sample(image.permute(2, 0, 1)[None], grid, mode="bilinear", padding_mode="border",
-                                  align_corners=False)[0].permute(1, 2, 0)  # [H,W,4]
+            image = torch.cat([self.rgb[k0:k0 + VIEW_CHUNK].to(rgb.dtype),
+                               self.depth[k0:k0 + VIEW_CHUNK].to(rgb.dtype)[..., None]], -1)  # [C,H',W',4]
+            grid = torch.stack([uv[..., 0] / wk * 2 - 1, uv[..., 1] / hk * 2 - 1], -1).to(rgb.dtype)[:, None]
+            there = F.grid_sample(image.permute(0, 3, 1, 2), grid, mode="bilinear", padding_mode="border",
+                                  align_corners=False)[:, :, 0].transpose(1, 2)  # [C,S,4]
             seen = inside & ((z - there[..., 3]).abs() <= DEPTH_TOLERANCE * z)
-            angle = _angle(F.normalize(cam.centers[0].to(points) - points, dim=-1), to_view)
-            better = seen & (angle < best)
-            diff = torch.where(better, (rgb - there[..., :3]).square().mean(-1), diff)
-            best = torch.where(better, angle, best)
+            angle = _angle(F.normalize(cams.centers.to(points)[:, None] - points, dim=-1), to_view)  # [C,S]
+            angle = torch.where(seen, angle, torch.full_like(angle, float("inf")))
+            nearest, k = angle.min(0)  # [S]: the first of equal angles, as views in order
+            better = nearest < best
+            found = (colour - there.gather(0, k[None, :, None].expand(1, -1, 4))[0, :, :3]).square().mean(-1)
+            diff = torch.where(better, found, diff)
+            best = torch.where(better, nearest, best)
         weight = ((best - self.gate) / self.gate).clamp(0.0, 1.0).to(rgb.dtype)  # 0 where no view saw the point
-        return _box_mean(diff * weight)[None, ..., None]
+        full = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(0, where, diff * weight)
+        return _box_mean(full.reshape(h, w))[None, ..., None]
 
     def _is_compared(self, camera: Cameras) -> bool:
         """Whether ``camera`` is one of the compared training views (e.g. one the std factor is fitted on)."""
