@@ -69,7 +69,13 @@ def make_scene(root: Path, names: list[str], seed: int = 0) -> Path:
     rep = ReconstructReport(success=True, photos=str(root / "photos"), images_found=names,
                             images_registered=names, registered_fraction=1.0, models_found=1,
                             num_points3d=123, mean_reprojection_error=0.42, inputs_fingerprint="abc123def",
-                            matcher="exhaustive", total_seconds=3.5)
+                            matcher="exhaustive", total_seconds=3.5, mapping_agreed=False,
+                            notes=["the 2 mapping runs disagree (seed 0: ...); kept seed 1"],
+                            mapping_attempts=[
+                                {"seed": 0, "relaxed": False, "num_images": 2, "num_points3d": 40,
+                                 "num_observations": 90, "focal_lengths": {"1": 505.3}},
+                                {"seed": 1, "relaxed": False, "num_images": 2, "num_points3d": 123,
+                                 "num_observations": 301, "focal_lengths": {"1": 812.6}, "kept": True}])
     write_report(scene, rep)
     return scene
 
@@ -167,7 +173,8 @@ def make_run(root: Path, name: str = "run", *, names=("view_000.png", "view_008.
         (run / "stats.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
         TrainSummary(method="variational", variant="ours", steps=200, seconds=98.7, sec_per_step=0.49,
                      num_gaussians=1190, num_carriers=600, peak_memory_mb=100.0, device="cpu",
-                     scene=str(scene), test_psnr=21.5).write(run / "train_summary.json")
+                     scene=str(scene), test_psnr=21.5, train_psnr=19.25,
+                     warnings=["the model fits its own training views at only 19.2 dB"]).write(run / "train_summary.json")
     if metrics:
         make_metrics(list(names), seed).write(run / "eval" / "metrics.json")
     if maps:
@@ -270,6 +277,10 @@ def test_single_run_report_has_every_section_and_exact_numbers(tmp_path):
     text = " ".join(page.text)
     assert "abc123def" in text  # photos fingerprint from the reconstruct health report (via RunScene.scene)
     assert "0.42" in text  # reprojection error
+    # the mapping runs, their disagreement, and train's warning about its own training views
+    assert "2 (they disagreed); kept seed 1: 301 feature observations at 813 px" in text
+    assert "the 2 mapping runs disagree (seed 0: ...); kept seed 1" in text
+    assert "the model fits its own training views at only 19.2 dB" in text and "19.25" in text
     assert "GT image" not in text and "not found" not in text  # the GT previews were read from eval/maps
 
 

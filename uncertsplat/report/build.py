@@ -323,6 +323,8 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
             data = s.model_dump(mode="json")
             items = [(k, _short(v)) for k, v in data.items() if v is not None and not isinstance(v, (dict, list))]
             body.append(f"<h4>{esc(run.name)}: train_summary.json</h4>" + kv(items))
+            for warning in s.warnings:  # e.g. a model that cannot fit its own training views
+                body.append(note(f"{run.name}: {warning}"))
             for band in s.sh_bands:  # which SH bands the scene kept, and why
                 body.append(note(f"{run.name}: {band_reason(band)}"))
             stops = [g for g in s.growth if g.stopped]  # where densification stopped growing the model, and why
@@ -458,12 +460,21 @@ def _reconstruct_html(run: RunData) -> str:
              ("mean reprojection error (px)", _short(r.mean_reprojection_error)),
              ("matcher", r.matcher or "—"), ("COLMAP", r.colmap_version or r.pycolmap_version or "—"),
              ("time", _fmt_seconds(r.total_seconds))]
+    if r.mapping_attempts:
+        verdict = {True: "two agreed", False: "they disagreed", None: "one run"}[r.mapping_agreed]
+        kept = next((a for a in r.mapping_attempts if a.kept), None)
+        focal = "" if kept is None or not kept.focal_lengths else \
+            " at " + " / ".join(f"{f:.0f}" for f in kept.focal_lengths.values()) + " px"
+        items.append(("mapping runs", f"{len(r.mapping_attempts)} ({verdict})" + (
+            "" if kept is None else f"; kept seed {kept.seed}: {kept.num_observations:,} feature observations{focal}")))
     if r.images_unregistered:
         unreg = r.images_unregistered
         items.append(("unregistered images", ", ".join(unreg[:30]) + (" …" if len(unreg) > 30 else "")))
     html = f"<h4>reconstruction health ({esc(run.reconstruct_path)})</h4>" + kv(items)
     if not r.success:
         html += note(f"The reconstruction reported a failure: {r.message}")
+    for text in r.notes:  # e.g. mapping runs that disagreed, a capture split into several models
+        html += note(text)
     return html + details(RECONSTRUCT, pre(r.to_json()))
 
 
