@@ -66,9 +66,13 @@ def test_report_prune_section_equals_prune_json(smoke_out):
         assert cells == [(s.key, str(getattr(m, s.key)), format_value(getattr(m, s.key), s)) for s in PRUNE_SPECS]
         assert all(text != "n/a" for key, _, text in cells if key != "depth_ause_mae"), (label, cells)
     sweep_table = re.search(rf'<table id="{table_id.replace("prune", "prune-sweep")}">(.*?)</table>', html, re.S)
+    metric = rep.sweep.metric  # the PSNR the tolerance was checked on (the expected render's)
+    assert metric == "psnr_render"
     for p in rep.sweep.points:
-        assert f'data-key="score.psnr" data-value="{p.score.psnr!r}"' in sweep_table.group(1)
-        assert f'data-key="random.psnr" data-value="{p.random.psnr!r}"' in sweep_table.group(1)
+        for which in ("score", "random"):
+            value = getattr(getattr(p, which), metric)
+            assert value is not None
+            assert f'data-key="{which}.{metric}" data-value="{value!r}"' in sweep_table.group(1)
     fig = re.search(r'<img src="(figures/prune_sweep_run\d+\.png)"', html)
     assert fig and (out / "report" / fig.group(1)).read_bytes()[:4] == b"\x89PNG"
 

@@ -165,15 +165,25 @@ class TestAuto:
         assert "nothing was removed" in note and "70 %" in note and "--tolerance-db" in note
 
     def test_auto_alone_measures_no_ratio_past_the_first_failure(self, tiny_run_path):  # noqa: F811
-        """The decision never looks past the first ratio that fails, so ``--auto`` stops measuring there; with
-        ``--sweep`` the whole curve is measured and the choice is the same."""
+        """The decision never looks past the first ratio that fails, so ``--auto`` stops measuring there, and it
+        measures the ratios it walks by their expected render only (the decision's PSNR); with ``--sweep`` the whole
+        curve is measured, uncertainty included, and the choice is the same."""
         common = dict(auto=True, tolerance_db=0.0, sweep_ratios=[1.0, 0.5, 0.3, 0.2], dry_run=True, **FAST)
         alone = prune.run(tiny_run_path, None, PruneConfig(**common), device=CPU)
         full = prune.run(tiny_run_path, None, PruneConfig(**common, sweep=True), device=CPU)
         assert [p.keep_ratio for p in full.sweep.points] == [1.0, 0.5, 0.3, 0.2]
         assert [p.keep_ratio for p in alone.sweep.points] == [1.0, 0.5]  # removing half fails a zero tolerance
         assert alone.keep_ratio == full.keep_ratio == 1.0
-        assert alone.sweep.points[1].score.psnr == full.sweep.points[1].score.psnr
+        assert alone.sweep.metric == full.sweep.metric == "psnr_render"
+        assert alone.sweep.points[1].score.psnr_render == full.sweep.points[1].score.psnr_render
+        assert alone.sweep.points[1].random.psnr_render == full.sweep.points[1].random.psnr_render
+        # the uncertainty of the ratios walked: measured with --sweep, not by --auto alone
+        assert not alone.sweep.uncertainty_measured and full.sweep.uncertainty_measured
+        assert alone.sweep.points[1].score.psnr is None and alone.sweep.points[1].score.ause_mae is None
+        assert full.sweep.points[1].score.psnr is not None and full.sweep.points[1].score.ause_mae is not None
+        # the unpruned model is measured in full either way, its render PSNR the same
+        assert alone.sweep.unpruned == alone.metrics.before and alone.metrics.before.ause_mae is not None
+        assert alone.metrics.before.psnr_render == pytest.approx(full.metrics.before.psnr_render, abs=0)
 
     def test_cli_tolerance_option(self, tiny_run_path, tmp_path):  # noqa: F811
         res = runner.invoke(app, ["prune", str(tiny_run_path), "--auto", "--tolerance-db", "0", "--dry-run",

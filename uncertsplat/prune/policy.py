@@ -16,9 +16,14 @@ from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.prune.mask import apply_keep, keep_ratio_mask, num_to_remove, random_mask, threshold_mask
 from uncertsplat.schemas.prune import PruneMetrics, PruneSweep, SweepPoint, ToleranceChoice
 
-Measure = Callable[[GaussianModel, Tensor | None], PruneMetrics]
-"""``measure(model, keep)``: held-out metrics of ``model``; ``keep`` (the mask that made it) lets the
-measurement cache results per mask."""
+Measure = Callable[[GaussianModel, Tensor | None, bool], PruneMetrics]
+"""``measure(model, keep, full)``: held-out metrics of ``model``; ``keep`` (the mask that made it) lets the
+measurement cache results per mask; ``full=False`` asks only for what one render per view gives (``psnr_render``,
+coverage, sizes), not the K samples' uncertainty metrics."""
+
+DECISION_METRIC = "psnr_render"
+"""The PSNR the tolerance is checked on: the expected render's (what ``train`` reports), one render per view, so a
+sweep can decide without the K samples of every point."""
 
 
 def random_keep(n: int, n_remove: int, seed: int) -> Tensor:
@@ -30,36 +35,40 @@ def random_keep(n: int, n_remove: int, seed: int) -> Tensor:
     return random_mask(n, n_remove, torch.Generator().manual_seed(seed))
 
 
-def _fails(metrics: PruneMetrics, unpruned_psnr: float | None, tolerance_db: float) -> bool:
-    """Whether a removal's held-out PSNR is unknown or more than ``tolerance_db`` below the unpruned one's."""
-    return unpruned_psnr is None or metrics.psnr is None or metrics.psnr < unpruned_psnr - tolerance_db
+def _fails(metrics: PruneMetrics, unpruned_psnr: float | None, tolerance_db: float,
+           metric: str = DECISION_METRIC) -> bool:
+    """Whether a removal's held-out PSNR (``metric``) is unknown or more than ``tolerance_db`` below the unpruned
+    one's."""
+    value = getattr(metrics, metric)
+    return unpruned_psnr is None or value is None or value < unpruned_psnr - tolerance_db
 
 
-def largest_removal_within(points: Sequence[SweepPoint], unpruned_psnr: float | None,
-                           tolerance_db: float) -> ToleranceChoice | None:
+def largest_removal_within(points: Sequence[SweepPoint], unpruned_psnr: float | None, tolerance_db: float,
+                           metric: str = DECISION_METRIC) -> ToleranceChoice | None:
     """The strongest removal, walking ``points`` by descending keep ratio, before the first whose
-    held-out PSNR falls more than ``tolerance_db`` below ``unpruned_psnr``; None when the first fails."""
+    held-out PSNR (``metric``) falls more than ``tolerance_db`` below ``unpruned_psnr``; None when the first fails."""
     if unpruned_psnr is None:
         return None
     within = None
     for p in points:
         if p.num_removed == 0:
             continue
-        if not _fails(p.score, unpruned_psnr, tolerance_db):
+        if not _fails(p.score, unpruned_psnr, tolerance_db, metric):
             within = p
         else:
             break  # stop at the first failure: a larger removal that passes again is noise, not a plateau
     if within is None:
         return None
     return ToleranceChoice(keep_ratio=within.keep_ratio, num_removed=within.num_removed,
-                           psnr_loss_db=unpruned_psnr - within.score.psnr, tolerance_db=tolerance_db)
+                           psnr_loss_db=unpruned_psnr - getattr(within.score, metric), tolerance_db=tolerance_db)
 
 
 def keep_ratio_sweep(model: GaussianModel, score: Tensor, carriers: Tensor, ratios: Sequence[float],
                      measure: Measure, *, unpruned: PruneMetrics, seed: int, tolerance_db: float, score_name: str,
                      split: str, on_point: Callable[[SweepPoint], None] | None = None,
-                     stop_at_first_failure: bool = False) -> PruneSweep:
-    """Measure the score's removal and random removal of as many Gaussians at each keep ratio.
+                     stop_at_first_failure: bool = False, full: bool = True) -> PruneSweep:
+    """Measure the score's removal and random removal of as many Gaussians at each keep ratio; the tolerance is
+    checked on ``DECISION_METRIC``.
 
     Args:
         score: [N] per-Gaussian score (higher = removed first); carriers: [N] bool, the removable ones.
@@ -68,6 +77,7 @@ def keep_ratio_sweep(model: GaussianModel, score: Tensor, carriers: Tensor, rati
         stop_at_first_failure: stop after the first ratio whose held-out PSNR falls more than ``tolerance_db``
             below the unpruned model's: ``largest_removal_within`` never looks past it, so ``--auto`` alone
             needs no more (``--sweep`` measures the whole curve).
+        full: measure every point's uncertainty metrics too (``measure(..., full=True)``); else its render only.
     """
     n = len(model)
     ordered = sorted(set(float(r) for r in ratios) | {1.0}, reverse=True)
@@ -79,18 +89,19 @@ def keep_ratio_sweep(model: GaussianModel, score: Tensor, carriers: Tensor, rati
             by_score = by_random = unpruned
         else:
             keep_r = random_keep(n, removed, seed)
-            by_score = measure(apply_keep(model, keep_s), keep_s)
-            by_random = measure(apply_keep(model, keep_r), keep_r)
+            by_score = measure(apply_keep(model, keep_s), keep_s, full)
+            by_random = measure(apply_keep(model, keep_r), keep_r, full)
         point = SweepPoint(keep_ratio=r, num_removed=removed, keep_ratio_achieved=(n - removed) / n,
                            score=by_score, random=by_random)
         points.append(point)
         if on_point is not None:
             on_point(point)
-        if stop_at_first_failure and removed and _fails(by_score, unpruned.psnr, tolerance_db):
+        if stop_at_first_failure and removed and _fails(by_score, getattr(unpruned, DECISION_METRIC), tolerance_db):
             break
     return PruneSweep(ratios=ordered, score=score_name, split=split, unpruned=unpruned, points=points,
-                      tolerance_db=tolerance_db,
-                      largest_removal_within_tolerance=largest_removal_within(points, unpruned.psnr, tolerance_db))
+                      tolerance_db=tolerance_db, metric=DECISION_METRIC, uncertainty_measured=full,
+                      largest_removal_within_tolerance=largest_removal_within(points, getattr(unpruned, DECISION_METRIC),
+                                                                              tolerance_db))
 
 
 def auto_keep_ratio(sweep: PruneSweep) -> tuple[float, str | None]:
@@ -101,11 +112,12 @@ def auto_keep_ratio(sweep: PruneSweep) -> tuple[float, str | None]:
         return best.keep_ratio, None
     first = next((p for p in sweep.points if p.num_removed > 0), None)
     cost = ""
-    if first is not None and sweep.unpruned.psnr is not None and first.score.psnr is not None:
-        rand = "" if first.random.psnr is None else \
-            f"; random removal of as many {sweep.unpruned.psnr - first.random.psnr:.2f} dB"
+    ref = getattr(sweep.unpruned, sweep.metric)
+    if first is not None and ref is not None and getattr(first.score, sweep.metric) is not None:
+        rand = "" if getattr(first.random, sweep.metric) is None else \
+            f"; random removal of as many {ref - getattr(first.random, sweep.metric):.2f} dB"
         cost = (f" (the smallest removal tried, {100 * (1 - first.keep_ratio_achieved):.0f} %, cost "
-                f"{sweep.unpruned.psnr - first.score.psnr:.2f} dB{rand})")
+                f"{ref - getattr(first.score, sweep.metric):.2f} dB{rand})")
     return 1.0, (f"--auto: no evaluated keep ratio stays within {sweep.tolerance_db} dB of the unpruned held-out "
                  f"PSNR, so nothing was removed{cost}; allow more with --tolerance-db, or choose --keep-ratio")
 

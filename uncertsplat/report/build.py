@@ -381,12 +381,13 @@ def _sweep_table(sweep: PruneSweep, ri: int) -> str:
         rows.append((format_value(pt.keep_ratio, ".3f"), [
             _num_cell(pt.keep_ratio_achieved, ".3f", "keep_ratio_achieved"),
             _num_cell(pt.num_removed, ",d", "num_removed"),
-            _num_cell(pt.score.psnr, ".2f", "score.psnr"),
-            _num_cell(pt.random.psnr, ".2f", "random.psnr"),
+            _num_cell(getattr(pt.score, sweep.metric), ".2f", f"score.{sweep.metric}"),
+            _num_cell(getattr(pt.random, sweep.metric), ".2f", f"random.{sweep.metric}"),
             Cell("largest within tolerance" if chosen else "", text_cell=True),
         ]))
-    header = ["keep ratio", "achieved", "removed", f"PSNR, score '{sweep.score}' (dB)", "PSNR, random removal (dB)",
-              ""]
+    what = " of the expected render" if sweep.metric == "psnr_render" else ""
+    header = ["keep ratio", "achieved", "removed", f"PSNR{what}, score '{sweep.score}' (dB)",
+              f"PSNR{what}, random removal (dB)", ""]
     return table(header, rows, table_id=f"prune-sweep-{ri}")
 
 
@@ -415,7 +416,8 @@ def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
             continue
         sw = p.sweep
         best = sw.largest_removal_within_tolerance
-        caption = (f"Held-out PSNR ({sw.split} views) against the fraction of Gaussians kept: the score "
+        caption = (f"Held-out PSNR ({sw.split} views{', expected render' if sw.metric == 'psnr_render' else ''}) "
+                   f"against the fraction of Gaussians kept: the score "
                    f"'{sw.score}' (solid) against random removal of as many Gaussians (dashed); dotted: the unpruned "
                    f"model, shaded: within {sw.tolerance_db:g} dB of it.")
         if best is not None:

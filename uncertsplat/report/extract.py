@@ -64,6 +64,7 @@ SUMMARY_KEYS = ("psnr", "psnr_render", "ssim", "ause_mae", "ause_rmse", "nll", "
 # The pruning table: PruneMetrics fields of the models before / after pruning and after random removal.
 PRUNE_SPECS: tuple[MetricSpec, ...] = (
     MetricSpec("psnr", "PSNR (dB)", ".2f", True),
+    MetricSpec("psnr_render", "PSNR, expected render (dB)", ".2f", True),
     MetricSpec("ssim", "SSIM", ".4f", True),
     MetricSpec("ause_mae", "AUSE MAE", ".4f", False),
     MetricSpec("nll", "NLL", ".3f", False),

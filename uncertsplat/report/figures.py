@@ -340,8 +340,13 @@ def prune_sweep_figure(sweep: PruneSweep, label: str = "") -> bytes | None:
     sweep's ``largest_removal_within_tolerance`` is circled. None when no point has a PSNR.
     """
     pts = sorted(sweep.points, key=lambda p: -p.keep_ratio_achieved)
-    score = [(p.keep_ratio_achieved, p.score.psnr) for p in pts if p.score.psnr is not None]
-    rand = [(p.keep_ratio_achieved, p.random.psnr) for p in pts if p.random.psnr is not None]
+    metric = sweep.metric  # the PSNR the tolerance was checked on
+
+    def value(m):
+        return getattr(m, metric)
+
+    score = [(p.keep_ratio_achieved, value(p.score)) for p in pts if value(p.score) is not None]
+    rand = [(p.keep_ratio_achieved, value(p.random)) for p in pts if value(p.random) is not None]
     if not score and not rand:
         return None
     best = sweep.largest_removal_within_tolerance
@@ -350,7 +355,7 @@ def prune_sweep_figure(sweep: PruneSweep, label: str = "") -> bytes | None:
         chosen = next((p for p in pts if p.num_removed == best.num_removed and p.keep_ratio == best.keep_ratio), None)
     with plt.rc_context(_STYLE):
         fig, ax = plt.subplots(figsize=(6.4, 3.8))
-        ref = sweep.unpruned.psnr
+        ref = value(sweep.unpruned)
         if ref is not None:
             ax.axhline(ref, color="0.35", lw=1.0, ls=":", label=f"unpruned ({ref:.2f} dB)")
             ax.axhspan(ref - sweep.tolerance_db, ref, color="0.5", alpha=0.08, lw=0,
@@ -361,11 +366,12 @@ def prune_sweep_figure(sweep: PruneSweep, label: str = "") -> bytes | None:
         if rand:
             x, y = zip(*rand, strict=True)
             ax.plot(x, y, color=run_color(1), marker="s", ms=4, lw=1.4, ls="--", label="random removal")
-        if chosen is not None and chosen.score.psnr is not None:
-            ax.plot([chosen.keep_ratio_achieved], [chosen.score.psnr], marker="o", ms=13, mfc="none", mec="black",
+        if chosen is not None and value(chosen.score) is not None:
+            ax.plot([chosen.keep_ratio_achieved], [value(chosen.score)], marker="o", ms=13, mfc="none", mec="black",
                     mew=1.5, ls="none", label=f"largest removal within tolerance (keep {chosen.keep_ratio_achieved:.3f})")
         ax.set_xlabel("keep ratio achieved (fraction of Gaussians kept)")
-        ax.set_ylabel(f"held-out PSNR (dB, {sweep.split} views)")
+        what = "expected render" if metric == "psnr_render" else "mean of the samples"
+        ax.set_ylabel(f"held-out PSNR (dB, {sweep.split} views, {what})")
         ax.set_title("pruning sweep: PSNR vs keep ratio")
         ax.invert_xaxis()  # left to right: stronger pruning
         ax.legend(frameon=False, loc="lower left")

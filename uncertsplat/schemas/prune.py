@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field, field_validator
 
 from uncertsplat.schemas.base import SchemaFile, Strict, finite_or_none
@@ -18,6 +20,9 @@ class PruneMetrics(Strict):
     num_carriers: int
     psnr: float | None = None
     ssim: float | None = None
+    psnr_render: float | None = None
+    """Held-out PSNR of the expected render (one deterministic render per view, what ``train`` reports): what
+    ``--auto`` and the sweep's tolerance compare (``PruneSweep.metric``). None in files from before it."""
     ause_mae: float | None = None
     ause_rmse: float | None = None
     nll: float | None = None
@@ -29,7 +34,7 @@ class PruneMetrics(Strict):
     seconds: float
     """Time to measure this model."""
 
-    @field_validator("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "depth_ause_mae", mode="before")
+    @field_validator("psnr", "ssim", "psnr_render", "ause_mae", "ause_rmse", "nll", "depth_ause_mae", mode="before")
     @classmethod
     def _nonfinite_to_none(cls, v):
         return finite_or_none(v)
@@ -71,6 +76,12 @@ class PruneSweep(SchemaFile):
     points: list[SweepPoint]
     tolerance_db: float
     largest_removal_within_tolerance: ToleranceChoice | None = None
+    metric: Literal["psnr", "psnr_render"] = "psnr"
+    """The PSNR of ``PruneMetrics`` the tolerance is checked on: ``psnr_render`` (the expected render's; sweeps written
+    since 2026-11-27) or ``psnr`` (the mean of the K samples; sweeps written before)."""
+    uncertainty_measured: bool = True
+    """Whether the points carry the uncertainty metrics (``prune --sweep``); ``--auto`` alone measures the points by
+    their render only (``psnr_render``, coverage, sizes) and the chosen mask in full."""
 
 
 class PruneCounts(Strict):

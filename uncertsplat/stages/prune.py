@@ -28,8 +28,9 @@ auto) measures the curve and writes no model either.
 Which Gaussians a score may remove: only posterior carriers (see ``uncertainty.scores``), so a keep ratio
 below the fraction of non-carriers is reached only as far as the carriers allow (``keep_ratio_achieved``
 says how far). ``--auto`` walks the sweep ratios from the largest down and stops at the first whose
-held-out PSNR falls more than ``tolerance_db`` below the unpruned model's (the last one before it wins); without
-``--sweep`` it measures no ratio past that one.
+held-out PSNR of the expected render (``psnr_render``, one render per view) falls more than ``tolerance_db`` below
+the unpruned model's (the last one before it wins); without ``--sweep`` it measures no ratio past that one and the
+ratios it walks by their render only (the K samples' uncertainty metrics are measured for the chosen mask).
 """
 
 from __future__ import annotations
@@ -141,31 +142,41 @@ class _Measure:
                                       extent=self.loaded.extent, temperature=self.meta["temperature"])
             return {"variational_ply_bytes": v.stat().st_size, "point_cloud_ply_bytes": p.stat().st_size}
 
-    def __call__(self, model, keep: torch.Tensor | None = None) -> PruneMetrics:
-        """Metrics of ``model``; with ``keep`` (the mask that made it) the result is cached per mask."""
+    def __call__(self, model, keep: torch.Tensor | None = None, full: bool = True) -> PruneMetrics:
+        """Metrics of ``model``; with ``keep`` (the mask that made it) the result is cached per mask. ``full=False``:
+        only what one expected render per view gives (``psnr_render``, coverage) and the file sizes."""
         from uncertsplat.eval.engine import evaluate_views, with_side_terms
+        from uncertsplat.eval.image import psnr
 
         key = None
         if keep is not None:
             key = hashlib.sha256(keep.cpu().numpy().tobytes()).hexdigest()
-            if key in self._cache:
-                return self._cache[key]
+            cached = self._cache.get((key, True)) or (None if full else self._cache.get((key, False)))
+            if cached is not None:
+                return cached
         t0 = time.perf_counter()
-        loaded = dataclasses.replace(self.loaded, model=model)
-        residual = self.residual
-        if residual is not None and keep is not None:
-            residual = residual.subset(keep.to(residual.variance.device))
-        elif residual is not None and len(model) != len(self.loaded.model):
-            residual = None  # a model that is not a subset of the source: no noise to carry over
-        sampler = with_side_terms(loaded.sampler(self.scene.scene_scale, self.device), residual,
-                                  self.scene.cameras[list(self.scene.split.get("train", ()))], self.ecfg, self.device)
-        report = evaluate_views(sampler, self.views, self.ecfg, self.device, show_progress=False)
-        _, alpha = self.mean_renders(model)
-        out = PruneMetrics(num_gaussians=len(model), num_carriers=model.num_carriers,
-                           **{k: getattr(report.mean, k) for k in METRIC_KEYS}, coverage=float(alpha.mean()),
-                           **self.file_sizes(model), seconds=time.perf_counter() - t0)
+        uncertainty = {}
+        if full:
+            loaded = dataclasses.replace(self.loaded, model=model)
+            residual = self.residual
+            if residual is not None and keep is not None:
+                residual = residual.subset(keep.to(residual.variance.device))
+            elif residual is not None and len(model) != len(self.loaded.model):
+                residual = None  # a model that is not a subset of the source: no noise to carry over
+            sampler = with_side_terms(loaded.sampler(self.scene.scene_scale, self.device), residual,
+                                      self.scene.cameras[list(self.scene.split.get("train", ()))], self.ecfg,
+                                      self.device)
+            report = evaluate_views(sampler, self.views, self.ecfg, self.device, show_progress=False)
+            uncertainty = {k: getattr(report.mean, k) for k in METRIC_KEYS}
+        rgb, alpha = self.mean_renders(model)
+        masks = self.views.masks
+        render_psnr = [float(psnr(rgb[j], self.views.images[j], masks[j] if masks is not None else None))
+                       for j in range(len(rgb))]
+        out = PruneMetrics(num_gaussians=len(model), num_carriers=model.num_carriers, **uncertainty,
+                           psnr_render=sum(render_psnr) / len(render_psnr) if render_psnr else None,
+                           coverage=float(alpha.mean()), **self.file_sizes(model), seconds=time.perf_counter() - t0)
         if key is not None:
-            self._cache[key] = out
+            self._cache[(key, full)] = out
         return out
 
 
@@ -197,15 +208,15 @@ def _print_table(title: str, rows: list[tuple[str, PruneMetrics]]) -> None:
     from rich.table import Table
 
     table = Table(title=title)
-    for col in ("model", "Gaussians", "PSNR", "SSIM", "AUSE-MAE", "NLL", "coverage", "PLY MB"):
+    for col in ("model", "Gaussians", "PSNR", "PSNR render", "SSIM", "AUSE-MAE", "NLL", "coverage", "PLY MB"):
         table.add_column(col, justify="right")
 
     def f(x, p=3):
         return "-" if x is None else f"{x:.{p}f}"
 
     for name, m in rows:
-        table.add_row(name, str(m.num_gaussians), f(m.psnr, 2), f(m.ssim), f(m.ause_mae), f(m.nll), f(m.coverage),
-                      f(m.variational_ply_bytes / 1e6, 2))
+        table.add_row(name, str(m.num_gaussians), f(m.psnr, 2), f(m.psnr_render, 2), f(m.ssim), f(m.ause_mae),
+                      f(m.nll), f(m.coverage), f(m.variational_ply_bytes / 1e6, 2))
     console.print(table)
 
 
@@ -306,12 +317,13 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
     sweep = None
     if cfg.sweep or cfg.auto:
         def show(p):
-            console.print(f"  keep {p.keep_ratio:.2f}: removed {p.num_removed}, PSNR {_num(p.score.psnr)} "
-                          f"(random {_num(p.random.psnr)})")
+            console.print(f"  keep {p.keep_ratio:.2f}: removed {p.num_removed}, PSNR of the expected render "
+                          f"{_num(p.score.psnr_render)} (random {_num(p.random.psnr_render)})")
 
+        # --auto alone decides on the expected render's PSNR and measures the uncertainty of the chosen mask only
         sweep = keep_ratio_sweep(model, score, carriers, cfg.sweep_ratios, measure, unpruned=before, seed=cfg.seed,
                                  tolerance_db=cfg.tolerance_db, score_name=score_name, split=split, on_point=show,
-                                 stop_at_first_failure=not cfg.sweep)
+                                 stop_at_first_failure=not cfg.sweep, full=cfg.sweep)
 
     # ---- the chosen mask
     threshold = cfg.threshold
