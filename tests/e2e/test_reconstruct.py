@@ -92,6 +92,7 @@ def test_synthetic_scene_registers_and_matches_gt(synth_scene, tmp_path):
     (kept,) = [a for a in runs if a.kept]
     assert kept.num_observations == report.num_observations == max(a.num_observations for a in runs)
     assert kept.num_images == len(names) and kept.num_points3d == report.num_points3d
+    assert all(a.seconds > 0 for a in runs) and sum(a.seconds for a in runs) <= report.stage_seconds["map"] + 1e-3
     assert report.num_observations == pytest.approx(report.mean_observations_per_image * len(names))
 
     # workspace layout: undistorted PINHOLE model in sparse/0 and one image per registered view

@@ -56,6 +56,8 @@ class MappingAttempt(_Base):
     mean_reprojection_error: float | None = None
     focal_lengths: dict[str, float] = {}
     """Camera id -> estimated focal length (pixels of the distorted images)."""
+    seconds: float = 0.0
+    """Time of this mapping run."""
     kept: bool = False
 
 

@@ -345,6 +345,7 @@ class MappingResult:
     models: list[pycolmap.Reconstruction]
     relaxed: bool
     seed: int = 0
+    seconds: float = 0.0
 
     @property
     def best(self) -> pycolmap.Reconstruction | None:
@@ -405,11 +406,13 @@ def map_incremental(
         advance(1, "")
 
     pycolmap.set_random_seed(cfg.seed if seed is None else seed)
+    t0 = time.perf_counter()
     models = pycolmap.incremental_mapping(database, image_dir, scratch, mapper_options(cfg, relaxed, seed),
                                           initial_image_pair_callback=on_initial_pair,
                                           next_image_callback=on_next_image)
     ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
-    return MappingResult(models=ordered, relaxed=relaxed, seed=cfg.seed if seed is None else seed)
+    return MappingResult(models=ordered, relaxed=relaxed, seed=cfg.seed if seed is None else seed,
+                         seconds=round(time.perf_counter() - t0, 3))
 
 
 AGREE_OBSERVATIONS = 0.05
@@ -454,7 +457,7 @@ def attempt_summary(result: MappingResult) -> dict:
     ``schemas.reconstruct.MappingAttempt``)."""
     best = result.best
     out = {"seed": result.seed, "relaxed": result.relaxed, "num_images": 0, "num_points3d": 0, "num_observations": 0,
-           "mean_reprojection_error": None, "focal_lengths": {}}
+           "mean_reprojection_error": None, "focal_lengths": {}, "seconds": result.seconds}
     if best is None:
         return out
     used = {best.image(i).camera_id for i in best.reg_image_ids()}

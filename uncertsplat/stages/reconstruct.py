@@ -258,8 +258,8 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         console.print(f"  {stage:<13} {sec:8.2f} s")
     if len(report.mapping_attempts) > 1:
         runs = ", ".join(f"seed {a.seed}{' relaxed' if a.relaxed else ''}: {a.num_observations:,} observations"
-                         f"{'' if not a.focal_lengths else ' at ' + _focals(a.model_dump())}{' (kept)' if a.kept else ''}"
-                         for a in report.mapping_attempts)
+                         f"{'' if not a.focal_lengths else ' at ' + _focals(a.model_dump())} in {a.seconds:.0f} s"
+                         f"{' (kept)' if a.kept else ''}" for a in report.mapping_attempts)
         verdict = {True: "agreed", False: "[yellow]disagreed[/]", None: "one run of these options"}[report.mapping_agreed]
         console.print(f"  mapping runs ({verdict}): {runs}")
     if report.mapping_agreed is False:
