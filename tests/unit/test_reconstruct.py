@@ -321,3 +321,18 @@ def test_train_warns_when_the_model_cannot_fit_its_own_photos(tmp_path):
     (tmp_path / REPORT_NAME).write_text("{not json")  # a damaged report does not fail a finished training
     (damaged,) = poor_fit_warnings(18.9, tmp_path)
     assert "camera poses" in damaged
+
+
+def test_train_notes_disagreeing_mapping_runs_before_it_starts(tmp_path):
+    from uncertsplat.train.session import workspace_notes
+
+    assert workspace_notes(tmp_path) == []  # no report: another kind of scene
+    runs = [{"seed": 0, "relaxed": False, "num_images": 3, "num_points3d": 10, "num_observations": 30},
+            {"seed": 1, "relaxed": False, "num_images": 3, "num_points3d": 20, "num_observations": 61, "kept": True}]
+    write_report(tmp_path, _report(mapping_agreed=True, mapping_attempts=runs))
+    assert workspace_notes(tmp_path) == []
+    write_report(tmp_path, _report(mapping_agreed=False, mapping_attempts=runs))
+    (note,) = workspace_notes(tmp_path)
+    assert "disagreed" in note and "kept seed 1, 61 feature observations" in note and "--seed" in note
+    (tmp_path / REPORT_NAME).write_text("{not json")
+    assert workspace_notes(tmp_path) == []

@@ -225,6 +225,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             console.print(f"[yellow]note:[/] {n_train} training views: with so few, --set drop_rate=0.2 (Gaussians "
                           "left out of training renders at random) rendered the views between them 0.4-0.5 dB better "
                           "on the synthetic scene (BENCHMARKS.md, \"Leaving Gaussians out of training renders\")")
+        for text in workspace_notes(scene):
+            console.print(f"[yellow]note:[/] {text}")
         trainer.on_log = lambda rec: console.log(log_line(rec)) if "eval_psnr" in rec else None
         trainer.on_band = lambda check: console.log(band_reason(check))
         trainer.on_growth = lambda check: console.log(growth_reason(check))
@@ -267,18 +269,36 @@ trains on far better than that when the cameras are right (the demo scene 33 dB 
 at the paper's 7000 steps); bonsai trained on an SfM run caught in a wrong focal length fitted them at 18.9 dB."""
 
 
+def _workspace_report(scene: Path):
+    """The ``reconstruct`` report of a workspace scene; None for other scenes or an unreadable report."""
+    from uncertsplat.sfm.report import load_report
+
+    try:
+        return load_report(scene)
+    except UserError:  # a damaged report must not stop a training (the scene loader decides what it needs)
+        return None
+
+
+def workspace_notes(scene: Path) -> list[str]:
+    """What ``train`` says before it starts about the scene's SfM: its mapping runs disagreed (the cameras may be
+    wrong, and a bad SfM costs a whole training to find out)."""
+    report = _workspace_report(scene) if scene.is_dir() else None
+    if report is None or report.mapping_agreed is not False:
+        return []
+    kept = next((a for a in report.mapping_attempts if a.kept), None)
+    which = f" (kept seed {kept.seed}, {kept.num_observations:,} feature observations)" if kept else ""
+    return [f"the mapping runs of {scene / 'reconstruct_report.json'} disagreed{which}: if the model fits its own "
+            "training views poorly, `train` says so at the end; `uncertsplat reconstruct` with --overwrite and "
+            "another --seed or more --mapping-attempts maps again"]
+
+
 def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
     """The warning for a model that cannot fit its own training views (``POOR_FIT_PSNR``), naming what to check:
     the SfM health report when the scene is a ``reconstruct`` workspace."""
     if fit_psnr is None or fit_psnr >= POOR_FIT_PSNR:
         return []
-    from uncertsplat.sfm.report import load_report
-
     where = "the camera poses"
-    try:
-        report = load_report(scene)
-    except UserError:  # an unreadable report must not fail a finished training
-        report = None
+    report = _workspace_report(scene) if scene.is_dir() else None
     if report is not None:
         err = "n/a" if report.mean_reprojection_error is None else f"{report.mean_reprojection_error:.2f} px"
         where = (f"the camera poses ({scene / 'reconstruct_report.json'}: {report.num_points3d:,} points, "
@@ -289,4 +309,4 @@ def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
             f"check {where}, moving objects or exposure changes between the photos"]
 
 
-__all__ = ["POOR_FIT_PSNR", "poor_fit_warnings", "train_model"]
+__all__ = ["POOR_FIT_PSNR", "poor_fit_warnings", "train_model", "workspace_notes"]
