@@ -179,6 +179,30 @@ def test_the_noise_level_is_fitted_on_the_views_set_aside_from_training(tiny_run
     assert level(plain, aside) == pytest.approx(clean, rel=1e-9) and level(plain, ()) == 1.0
 
 
+def test_the_level_on_views_set_aside_is_fitted_given_the_rest_of_the_predictive(tiny_run_path, monkeypatch):
+    """On views set aside the noise's level is the maximum-likelihood one given the samples' spread and the other terms
+    ``evaluate`` adds there: with that rest counted it is lower than with nothing else in the predictive."""
+    from uncertsplat.eval import engine
+
+    cpu = torch.device("cpu")
+    loaded = load_run(tiny_run_path, cpu)
+    scene = loaded.load_scene()
+    train, aside = list(scene.split["train"])[:-2], list(scene.split["train"])[-2:]
+    cfg = EvalConfig(residual_views=4, residual_scale="fit", resolution=0.0, num_samples=4)
+    views = partial(load_view_set, scene, depth=False)
+
+    def level():
+        return fit_residual(loaded.sampler(scene.scene_scale, cpu), train, cfg, cpu, load_views=views,
+                            calibration_indices=aside).scale
+
+    given_rest = level()
+    rest = engine._rest_of_predictive(loaded.sampler(scene.scene_scale, cpu), cfg,
+                                      scene.cameras[aside], aside, cpu)(scene.cameras[[aside[1]]])
+    assert rest.shape == (1, scene.cameras.height, scene.cameras.width, 1) and float(rest.mean()) > 0
+    monkeypatch.setattr(engine, "_rest_of_predictive", lambda *a: lambda cam: torch.zeros(1, 1, 1, 1))
+    assert given_rest < level()
+
+
 def test_no_std_scale_when_disabled_or_scoring_training_views(tiny_run_path, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(tiny_run_path, run)
@@ -415,3 +439,9 @@ class TestResidualCache:
         for change in ({"edge_noise": False}, {"residual_views": 3}, {"seed": 1}, {"colour_posterior": False}):
             assert residual_key(loaded, EvalConfig(**change), cpu) != key
         assert residual_key(loaded, EvalConfig(), torch.device("meta")) != key
+        # with views set aside the noise's level is fitted given the K samples and the other terms: they count too
+        aside = residual_key(loaded, EvalConfig(), cpu, set_aside=True)
+        assert aside != key and aside == residual_key(loaded, EvalConfig(max_views=1), cpu, set_aside=True)
+        for change in ({"num_samples": 3}, {"empty_rays": False}, {"resolution_renders": 1}):
+            assert residual_key(loaded, EvalConfig(**change), cpu, set_aside=True) != aside
+            assert residual_key(loaded, EvalConfig(**change), cpu) == key

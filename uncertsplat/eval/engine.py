@@ -282,9 +282,33 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
         cal = load_views(list(calibration_indices))
         cal_masks = cal.masks.to(device) if cal.masks is not None else None
         field = field.scaled(fit_noise_scale(field, rep, cal.cameras.to(device), cal.images.to(device),
-                                             sampler.render_fn, masks=cal_masks, explained=explained,
+                                             sampler.render_fn, masks=cal_masks,
+                                             explained=_rest_of_predictive(sampler, cfg, cal.cameras.to(device),
+                                                                           cal.indices, device),
                                              std_floor=cfg.std_floor))
     return field
+
+
+def _rest_of_predictive(sampler: Sampler, cfg: EvalSettings, cameras: Cameras, indices: Sequence[int],
+                        device: torch.device) -> Callable[[Cameras], Tensor]:
+    """``explained(camera) -> [1,H,W,1]`` for ``fit_noise_scale`` on views set aside from training: the RGB variance
+    of the predictive ``evaluate`` scores there without the pixel noise (the K samples' spread, the resolution term,
+    the empty-ray term; the view-consistency term is 0 this close to the training views) of ``cameras`` (scene
+    ``indices``), each with its evaluation seed, so the noise's level is the maximum-likelihood one given everything else that will be added to it. With the
+    resolution term alone in its place the demo's std came out 20-25 % too wide (BENCHMARKS.md, "Why the demo's raw
+    calibration error stays above 0.05")."""
+    from uncertsplat.uncertainty.mc import mc_render
+
+    def explained(cam: Cameras) -> Tensor:
+        match = (cameras.cam_from_world == cam.cam_from_world[0]).flatten(1).all(1).nonzero()[:, 0].tolist()
+        j = match[0] if match else 0
+        gen = torch.Generator(device=device).manual_seed(_view_seed(cfg, indices[j]))
+        bare = dataclasses.replace(sampler, residual=None, consistency=None)
+        maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cam, cfg.num_samples, gen,
+                            **_predictive(bare, cfg, cam, depth=False))
+        return maps.rgb_std.square().mean(-1, keepdim=True)
+
+    return explained
 
 
 def noise_scale_mode(cfg: EvalSettings, calibration_indices: Sequence[int] = ()) -> str | float:
@@ -297,7 +321,12 @@ def noise_scale_mode(cfg: EvalSettings, calibration_indices: Sequence[int] = ())
 RESIDUAL_SETTINGS = ("residual_views", "resolution", "residual_scale", "residual_leverage", "colour_posterior",
                      "edge_noise", "seed", "std_floor")
 """The settings ``fit_residual`` reads: a fitted field can stand for another evaluation of the same model whose
-settings agree on these (``stages.residual_cache``)."""
+settings agree on these (``stages.residual_cache``)..."""
+RESIDUAL_SET_ASIDE_SETTINGS = ("num_samples", "empty_rays", "resolution_renders")
+"""... and on these too when it fits the noise's level on views set aside from training (``_rest_of_predictive``)."""
+RESIDUAL_FIT = 2
+"""How ``fit_residual`` fits (part of a cached field's key): 2 since the noise's level on views set aside is fitted
+given the whole rest of the predictive (1: given the resolution term alone)."""
 
 
 def residual_from_state(sampler: Sampler, state: dict, device: torch.device) -> ResidualField:

@@ -26,11 +26,13 @@ FILE_NAME = "residual.pt"
 
 
 
-def residual_key(loaded, cfg, device: torch.device) -> str | None:
+def residual_key(loaded, cfg, device: torch.device, set_aside: bool = False) -> str | None:
     """The key of the pixel noise ``fit_residual`` would fit for ``loaded`` (a ``baselines.LoadedRun``) with
     ``cfg``: a SHA-256 over the model file, the run's config and scene files, the settings it reads, the device
-    type and the versions. None when the model is not one file (an ensemble) or a file cannot be read."""
-    from uncertsplat.eval.engine import RESIDUAL_SETTINGS
+    type and the versions (and, with ``set_aside``: views set aside from training, where the noise's level is fitted
+    given the rest of the predictive, the settings that shape it). None when the model is not one file (an ensemble)
+    or a file cannot be read."""
+    from uncertsplat.eval.engine import RESIDUAL_FIT, RESIDUAL_SET_ASIDE_SETTINGS, RESIDUAL_SETTINGS
     from uncertsplat.provenance import file_sha256, versions
 
     source, run_dir = Path(loaded.source), Path(loaded.run_dir)
@@ -42,7 +44,9 @@ def residual_key(loaded, cfg, device: torch.device) -> str | None:
             "config": hashlib.sha256((run_dir / "config.json").read_bytes()).hexdigest(),
             "scene": hashlib.sha256((run_dir / "scene.json").read_bytes()).hexdigest()
             if (run_dir / "scene.json").is_file() else None,
-            "settings": {k: getattr(cfg, k) for k in RESIDUAL_SETTINGS},
+            "settings": {k: getattr(cfg, k) for k in RESIDUAL_SETTINGS
+                         + (RESIDUAL_SET_ASIDE_SETTINGS if set_aside else ())},
+            "fit": RESIDUAL_FIT,
             "device": device.type,
             "versions": versions(),
         }
@@ -62,7 +66,7 @@ def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torc
     from uncertsplat.io.atomic import atomic_write
 
     sampler = loaded.sampler(scene_scale, device)
-    key = residual_key(loaded, cfg, device)
+    key = residual_key(loaded, cfg, device, set_aside=len(calibration_indices) > 0)
     path = Path(loaded.run_dir) / "eval" / FILE_NAME
     if key is not None and path.is_file():
         try:
