@@ -34,17 +34,14 @@ ROOT = Path(__file__).resolve().parents[1]
 def replay(runs: list[dict], start: int, attempts: int) -> tuple[int, int] | None:
     """(index of the kept run, runs used) of ``reconstruct``'s search starting at run ``start`` (seeds in order);
     None when the list ends before the search would."""
-    done: list[int] = []
+    done: list[dict] = []
     for k in range(attempts):
-        i = start + k
-        if i >= len(runs):
+        if start + k >= len(runs):
             return None
-        if any(sfm.attempts_agree(runs[i], runs[j]) for j in done):
-            done.append(i)
+        done.append(runs[start + k])
+        if sfm.agreeing(done, len(done) - 1):
             break
-        done.append(i)
-    kept = done[sfm.choose_attempt([runs[i] for i in done], needed=0)]
-    return kept, len(done)
+    return start + sfm.choose_attempt(done, needed=0), len(done)
 
 
 def main() -> None:

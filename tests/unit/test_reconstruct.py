@@ -336,3 +336,13 @@ def test_train_notes_disagreeing_mapping_runs_before_it_starts(tmp_path):
     assert "disagreed" in note and "kept seed 1, 61 feature observations" in note and "--seed" in note
     (tmp_path / REPORT_NAME).write_text("{not json")
     assert workspace_notes(tmp_path) == []
+
+
+def test_a_mapping_run_agrees_only_with_runs_of_its_own_options():
+    runs = [attempt(0, observations=25_692, focal=536.6), attempt(1, observations=50_514, focal=800.1),
+            attempt(2, observations=51_570, focal=834.2, relaxed=True)]
+    assert sfm.agreeing(runs[:1], 0) is None  # the only run: nothing to agree with
+    assert sfm.agreeing(runs[:2], 1) is False
+    assert sfm.agreeing(runs, 2) is None  # the one relaxed run is not compared with the normal ones
+    runs.append(attempt(3, observations=51_043, focal=829.1))
+    assert sfm.agreeing(runs, 3) is True and sfm.agreeing(runs, 1) is True and sfm.agreeing(runs, 0) is False

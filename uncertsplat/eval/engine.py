@@ -294,9 +294,9 @@ def _rest_of_predictive(sampler: Sampler, cfg: EvalSettings, cameras: Cameras, i
     """``explained(camera) -> [1,H,W,1]`` for ``fit_noise_scale`` on views set aside from training: the RGB variance
     of the predictive ``evaluate`` scores there without the pixel noise (the K samples' spread, the resolution term,
     the empty-ray term; the view-consistency term is 0 this close to the training views) of ``cameras`` (scene
-    ``indices``), each with its evaluation seed, so the noise's level is the maximum-likelihood one given everything else that will be added to it. With the
-    resolution term alone in its place the demo's std came out 20-25 % too wide (BENCHMARKS.md, "Why the demo's raw
-    calibration error stays above 0.05")."""
+    ``indices``), each with its evaluation seed, so the noise's level is the maximum-likelihood one given everything
+    else that will be added to it. With the resolution term alone in its place the demo's std came out 20-25 % too
+    wide (BENCHMARKS.md, "Why the demo's raw calibration error stays above 0.05")."""
     from uncertsplat.uncertainty.mc import mc_render
 
     def explained(cam: Cameras) -> Tensor:

@@ -392,6 +392,7 @@ def map_incremental(
     seed: int | None = None,
 ) -> MappingResult:
     """Incremental mapping (``mapper_options``); every model it finds, largest (most registered images) first."""
+    seed = cfg.seed if seed is None else seed
     if scratch.exists():
         shutil.rmtree(scratch)
     scratch.mkdir(parents=True)
@@ -405,14 +406,13 @@ def map_incremental(
         count[0] += 1
         advance(1, "")
 
-    pycolmap.set_random_seed(cfg.seed if seed is None else seed)
+    pycolmap.set_random_seed(seed)
     t0 = time.perf_counter()
     models = pycolmap.incremental_mapping(database, image_dir, scratch, mapper_options(cfg, relaxed, seed),
                                           initial_image_pair_callback=on_initial_pair,
                                           next_image_callback=on_next_image)
     ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
-    return MappingResult(models=ordered, relaxed=relaxed, seed=cfg.seed if seed is None else seed,
-                         seconds=round(time.perf_counter() - t0, 3))
+    return MappingResult(models=ordered, relaxed=relaxed, seed=seed, seconds=round(time.perf_counter() - t0, 3))
 
 
 AGREE_OBSERVATIONS = 0.05
@@ -441,6 +441,17 @@ def attempts_agree(a: dict, b: dict) -> bool:
     shared = set(a["focal_lengths"]) & set(b["focal_lengths"])
     return all(abs(a["focal_lengths"][c] - b["focal_lengths"][c])
                <= AGREE_FOCAL * max(a["focal_lengths"][c], b["focal_lengths"][c]) for c in shared)
+
+
+def agreeing(attempts: Sequence[dict], index: int) -> bool | None:
+    """Whether mapping run ``index`` of ``attempts`` (``attempt_summary``) agrees (``attempts_agree``) with another
+    run of the same options: ``reconstruct`` stops mapping when the newest one does. None when it is the only run of
+    its options."""
+    mine = attempts[index]
+    others = [a for j, a in enumerate(attempts) if j != index and a["relaxed"] == mine["relaxed"]]
+    if not others:
+        return None
+    return any(attempts_agree(mine, a) for a in others)
 
 
 def choose_attempt(attempts: Sequence[dict], needed: float) -> int:

@@ -166,6 +166,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
             # ---- mapping: runs with other seeds until two agree, relaxed options when too few images register
             needed = cfg.min_registered * n
             results: list[sfm.MappingResult] = []
+            summaries: list[dict] = []  # sfm.attempt_summary of each result, made once
             for relaxed in (False, True):
                 for attempt in range(cfg.mapping_attempts):
                     seed = cfg.seed + attempt
@@ -176,21 +177,21 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                                                      advance=lambda k, s, t=task: bar.update(t, advance=k, info=s),
                                                      seed=seed)
                     results.append(result)
+                    summaries.append(sfm.attempt_summary(result))
                     bar.update(task, completed=result.num_registered, info=f"{result.num_registered} registered, "
-                               f"{sfm.attempt_summary(result)['num_observations']} observations")
+                               f"{summaries[-1]['num_observations']} observations")
                     if result.best is None:
                         break  # no initial pair: another seed of the same options finds none either
-                    if _agreeing(results, len(results) - 1):
+                    if sfm.agreeing(summaries, len(summaries) - 1):
                         break
                 if max(r.num_registered for r in results) >= needed or report.num_verified_pairs == 0:
                     break
-            summaries = [sfm.attempt_summary(r) for r in results]
             kept = sfm.choose_attempt(summaries, needed)
             result = results[kept]
             report.retried_relaxed = any(r.relaxed for r in results)
             report.mapping_attempts = [MappingAttempt(**a, kept=(i == kept)) for i, a in enumerate(summaries)]
-            report.mapping_agreed = _agreeing(results, kept) if cfg.mapping_attempts > 1 and result.best is not None \
-                else None
+            report.mapping_agreed = sfm.agreeing(summaries, kept) \
+                if cfg.mapping_attempts > 1 and result.best is not None else None
             if report.mapping_agreed is False:
                 runs = "; ".join(f"seed {a['seed']}{' (relaxed)' if a['relaxed'] else ''}: {a['num_images']} images, "
                                  f"{a['num_observations']} observations, focal {_focals(a)}" for a in summaries)
@@ -273,16 +274,6 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                       f"rig radius (max {g['centre_error_max_pct']:.3f} %), rotations {g['rotation_error_mean_deg']:.3f} "
                       f"deg (max {g['rotation_error_max_deg']:.3f}), focal {g['focal_error_mean_pct']:.2f} %")
     return report
-
-
-def _agreeing(results: list, index: int) -> bool | None:
-    """Whether mapping run ``index`` agrees (``sfm.attempts_agree``) with another run of the same options; None
-    when it is the only run of its options."""
-    others = [r for j, r in enumerate(results) if j != index and r.relaxed == results[index].relaxed]
-    if not others:
-        return None
-    mine = sfm.attempt_summary(results[index])
-    return any(sfm.attempts_agree(mine, sfm.attempt_summary(r)) for r in others)
 
 
 def _focals(attempt: dict) -> str:

@@ -273,6 +273,8 @@ def _workspace_report(scene: Path):
     """The ``reconstruct`` report of a workspace scene; None for other scenes or an unreadable report."""
     from uncertsplat.sfm.report import load_report
 
+    if not scene.is_dir():
+        return None
     try:
         return load_report(scene)
     except UserError:  # a damaged report must not stop a training (the scene loader decides what it needs)
@@ -282,7 +284,7 @@ def _workspace_report(scene: Path):
 def workspace_notes(scene: Path) -> list[str]:
     """What ``train`` says before it starts about the scene's SfM: its mapping runs disagreed (the cameras may be
     wrong, and a bad SfM costs a whole training to find out)."""
-    report = _workspace_report(scene) if scene.is_dir() else None
+    report = _workspace_report(scene)
     if report is None or report.mapping_agreed is not False:
         return []
     kept = next((a for a in report.mapping_attempts if a.kept), None)
@@ -298,7 +300,7 @@ def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
     if fit_psnr is None or fit_psnr >= POOR_FIT_PSNR:
         return []
     where = "the camera poses"
-    report = _workspace_report(scene) if scene.is_dir() else None
+    report = _workspace_report(scene)
     if report is not None:
         err = "n/a" if report.mean_reprojection_error is None else f"{report.mean_reprojection_error:.2f} px"
         where = (f"the camera poses ({scene / 'reconstruct_report.json'}: {report.num_points3d:,} points, "

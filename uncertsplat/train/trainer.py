@@ -334,11 +334,10 @@ class Trainer:
     def training_psnr(self, max_views: int = 8) -> float | None:
         """Mean PSNR of the deterministic render (``mean_sample``) on at most ``max_views`` evenly spaced training
         views: how well the model fits its own photos (None without training views)."""
-        n = len(self.train_idx)
-        if n == 0 or max_views < 1:
+        chosen = check_views(len(self.train_idx), max_views)
+        if not chosen:
             return None
         g = self.mean_sample()
-        chosen = sorted({round(j * (n - 1) / max(min(max_views, n) - 1, 1)) for j in range(min(max_views, n))})
         return sum(float(psnr(self.render(g, self.train_cams[i]).rgb[0].clamp(0, 1), self.train_images[i]))
                    for i in chosen) / len(chosen)
 
