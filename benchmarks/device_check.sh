@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# The CUDA checks for a lent device machine (see BENCHMARKS.md, "CUDA"): the test suite with --device cuda, then
+# the demo pipeline with --device cuda. Run from the repository root there, with our non-torch dependencies
+# carried as wheels in .whl (the machine has its own torch and no registry):
+#   device run: bash benchmarks/device_check.sh        (carry .whl; results under $OUT)
+set -u
+OUT=${OUT:-/tmp/device_out}
+mkdir -p "$OUT"
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+export PYTHONPATH=/tmp/site PYTHONUNBUFFERED=1
+python3 -m pip install -q --no-index --no-deps --no-build-isolation -e . >/dev/null 2>&1 || exit 1
+{ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader; nproc;
+  python3 -c "import torch; print(torch.__version__, torch.cuda.get_device_name())"; git rev-parse --short HEAD 2>/dev/null; } \
+  | tee "$OUT/machine.txt"
+TEST_S=${TEST_S:-270}
+DEMO_S=${DEMO_S:-250}
+t0=$SECONDS
+OMP_NUM_THREADS=1 timeout "$TEST_S" python3 -m pytest -q -m 'not slow' --device cuda -n 12 --timeout 150 \
+  -p no:cacheprovider ${PYTEST_EXTRA:-} >"$OUT/tests.log" 2>&1
+echo "tests rc=$? seconds=$((SECONDS - t0))" | tee -a "$OUT/machine.txt"
+grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests.log" | tail -25
+[ "${SKIP_DEMO:-0}" = 1 ] && exit 0
+t0=$SECONDS
+timeout "$DEMO_S" uncertsplat run pipelines/demo.toml -o /tmp/demo --device cuda >"$OUT/demo.log" 2>&1
+echo "demo rc=$? seconds=$((SECONDS - t0))" | tee -a "$OUT/machine.txt"
+tail -30 "$OUT/demo.log"
+cp /tmp/demo/train/train_summary.json "$OUT/" 2>/dev/null
+cp /tmp/demo/train/eval/metrics.json "$OUT/train_eval_metrics.json" 2>/dev/null
+cp /tmp/demo/prune/prune.json "$OUT/" 2>/dev/null
+cp /tmp/demo/reconstruct/reconstruct_report.json "$OUT/" 2>/dev/null
