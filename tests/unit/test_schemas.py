@@ -247,4 +247,5 @@ def test_train_summary_version_1_is_converted(tmp_path):
     path = tmp_path / "train_summary.json"
     path.write_text(json.dumps(data))
     got = TrainSummary.read(path)
-    assert got.schema_version == 2 and got.posterior_updates == [] and got.members[0].posterior_updates == []
+    assert got.schema_version == TrainSummary.SCHEMA_VERSION and got.posterior_updates == []
+    assert got.members[0].posterior_updates == [] and got.members[0].train_psnr is None and got.warnings == []

@@ -64,10 +64,10 @@ class PruneSweep(SchemaFile):
     """The keep-ratio sweep (``OUT/sweep.json`` of ``prune --sweep``, and ``sweep`` in ``prune.json``)."""
 
     FILE_NAME = "sweep.json"
-    SCHEMA_VERSION = 1
+    SCHEMA_VERSION = 2
     WRITTEN_BY = "uncertsplat prune --sweep"
 
-    schema_version: int = 1
+    schema_version: int = 2
     ratios: list[float]
     """Descending; always includes 1.0 (nothing removed)."""
     score: str
@@ -82,6 +82,15 @@ class PruneSweep(SchemaFile):
     uncertainty_measured: bool = True
     """Whether the points carry the uncertainty metrics (``prune --sweep``); ``--auto`` alone measures the points by
     their render only (``psnr_render``, coverage, sizes) and the chosen mask in full."""
+
+    @classmethod
+    def _upgrade(cls, data: dict, version: int) -> dict | None:
+        # version 1 checked the tolerance on the K samples' mean and measured every point in full; its metrics had
+        # no expected-render PSNR (None). Files written between those keys' arrival and the version's bump have them:
+        # kept
+        if version != 1:
+            return None
+        return {"metric": "psnr", "uncertainty_measured": True, **data, "schema_version": cls.SCHEMA_VERSION}
 
 
 class PruneCounts(Strict):
@@ -125,10 +134,10 @@ class PruneReport(SchemaFile):
     """``OUT/prune.json``: what ``prune`` removed, by which score, and what it cost on held-out views."""
 
     FILE_NAME = "prune.json"
-    SCHEMA_VERSION = 1
+    SCHEMA_VERSION = 2
     WRITTEN_BY = "uncertsplat prune"
 
-    schema_version: int = 1
+    schema_version: int = 2
     source_run: str
     source_model: str
     source_model_sha256: str
@@ -162,9 +171,13 @@ class PruneReport(SchemaFile):
 
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
-        # version 0 (no schema_version key) had the same layout; its sweep lacked the version and tolerance
-        if version != 0:
+        # version 0 (no schema_version key) had version 1's layout, its sweep without the version and tolerance;
+        # version 1's metrics had no expected-render PSNR (None) and its sweep decided on the samples' mean
+        if version not in (0, 1):
             return None
-        if isinstance(data.get("sweep"), dict):
-            data["sweep"] = {"schema_version": 1, "tolerance_db": data.get("tolerance_db"), **data["sweep"]}
+        sweep = data.get("sweep")
+        if isinstance(sweep, dict):
+            if version == 0:
+                sweep = {"schema_version": 1, "tolerance_db": data.get("tolerance_db"), **sweep}
+            data["sweep"] = PruneSweep._upgrade(dict(sweep), sweep.get("schema_version", 1))
         return data

@@ -14,7 +14,7 @@ from pydantic import ConfigDict, Field
 from uncertsplat.schemas.base import SchemaFile, Strict
 
 REPORT_NAME = "reconstruct_report.json"
-REPORT_SCHEMA_VERSION = 1
+REPORT_SCHEMA_VERSION = 2
 
 
 class _Base(Strict):
@@ -120,6 +120,14 @@ class ReconstructReport(SchemaFile):
     colmap_version: str = ""
     options: dict[str, Any] = {}
     """The ReconstructConfig used (model_dump)."""
+
+    @classmethod
+    def _upgrade(cls, data: dict, version: int) -> dict | None:
+        # version 1 mapped once: no list of runs, no agreement test, no observation count (files written between
+        # those keys' arrival and the version's bump have them: kept)
+        if version != 1:
+            return None
+        return {"mapping_attempts": [], "mapping_agreed": None, "num_observations": None, **data}
 
     def summary(self) -> str:
         """One line for the console."""

@@ -128,10 +128,10 @@ class TrainSummary(SchemaFile):
     """
 
     FILE_NAME = "train_summary.json"
-    SCHEMA_VERSION = 2
+    SCHEMA_VERSION = 3
     WRITTEN_BY = "uncertsplat train"
 
-    schema_version: int = 2
+    schema_version: int = 3
     method: str
     variant: str
     steps: int
@@ -192,11 +192,16 @@ class TrainSummary(SchemaFile):
 
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
-        # version 1 had no informed posterior: no updates, in the run and in its members
-        if version != 1:
+        # version 1 had no informed posterior (no updates); versions 1 and 2 neither the fit on the training views
+        # nor the warnings; in the run and in its members
+        if version not in (1, 2):
             return None
-        members = [{**m, "schema_version": 2, "posterior_updates": []} for m in data.get("members", [])]
-        return {**data, "posterior_updates": [], "members": members}
+
+        def up(d: dict) -> dict:
+            d = {"train_psnr": None, "warnings": [], **d, "schema_version": cls.SCHEMA_VERSION}
+            return {**d, "posterior_updates": []} if version == 1 else d
+
+        return {**up(data), "members": [up(m) for m in data.get("members", [])]}
 
 
 # ----------------------------------------------------------------------------------------- manifest.json

@@ -1,0 +1,131 @@
+"""Output files of an earlier uncertsplat still read, and a schema's keys never change without a version bump.
+
+Readers refuse a file with a missing key (``schemas.base.key_problems``: writers dump every field, so a missing key
+means a damaged or foreign file). A field added to a schema without raising its ``SCHEMA_VERSION`` and converting
+the older version (``_upgrade``) therefore breaks every folder written before: on 2026-11-27 four files of the
+previous day's runs (``reconstruct_report.json``, ``train_summary.json``, ``prune.json``, ``sweep.json``, kept in
+``tests/data/outputs_v0.1_2026-11-27``) could no longer be read. ``tests/data/schema_keys.json`` holds each schema's
+version and dotted keys; a change to one without a new version fails here.
+"""
+
+from __future__ import annotations
+
+import json
+import typing
+from pathlib import Path
+
+import pytest
+
+from uncertsplat.schemas import (
+    EvalReport,
+    Manifest,
+    PruneReport,
+    PruneSweep,
+    ReconstructReport,
+    RunScene,
+    SchemaFile,
+    Selection,
+    SweepSummary,
+    SynthScene,
+    TrainSummary,
+)
+from uncertsplat.schemas.base import _models_in
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+KEYS_FILE = DATA / "schema_keys.json"
+SCHEMAS = [EvalReport, Manifest, PruneReport, PruneSweep, ReconstructReport, RunScene, Selection, SweepSummary,
+           SynthScene, TrainSummary]
+
+
+def schema_keys(model, prefix: str = "", seen: frozenset = frozenset()) -> list[str]:
+    """Every dotted key of ``model`` and of the records nested in it (a record that nests itself, once)."""
+    out = []
+    for name, field in model.model_fields.items():
+        out.append(prefix + name)
+        for sub in _models_in(field.annotation)[:1]:
+            if sub in seen or sub is model:
+                continue
+            inner = f"{prefix}{name}.*." if typing.get_origin(field.annotation) in (dict, list) else f"{prefix}{name}."
+            out += schema_keys(sub, inner, seen | {model})
+    return sorted(out)
+
+
+def current() -> dict:
+    return {cls.__name__: {"version": cls.SCHEMA_VERSION, "keys": schema_keys(cls)} for cls in SCHEMAS}
+
+
+@pytest.mark.parametrize("cls", SCHEMAS, ids=lambda c: c.__name__)
+def test_keys_change_only_with_a_new_schema_version(cls):
+    """To change a schema: raise its SCHEMA_VERSION (and the ``schema_version`` field's default), convert the older
+    version in ``_upgrade``, then write the new keys with
+    ``python -c "from tests.unit.test_schema_versions import write_keys; write_keys()"``."""
+    stored = json.loads(KEYS_FILE.read_text())[cls.__name__]
+    now = current()[cls.__name__]
+    assert cls.model_fields["schema_version"].default == cls.SCHEMA_VERSION, "the field's default is the version"
+    if now["version"] == stored["version"]:
+        added = sorted(set(now["keys"]) - set(stored["keys"]))
+        removed = sorted(set(stored["keys"]) - set(now["keys"]))
+        assert not added and not removed, (
+            f"{cls.__name__}'s keys changed at schema version {now['version']} (added {added}, removed {removed}): "
+            "files written before would no longer read. Raise SCHEMA_VERSION, convert the older version in "
+            "_upgrade, then update tests/data/schema_keys.json (write_keys)")
+    else:
+        assert now["version"] > stored["version"], "a schema version never goes down"
+        pytest.fail(f"{cls.__name__} is at version {now['version']}, tests/data/schema_keys.json at "
+                    f"{stored['version']}: check that _upgrade converts version {stored['version']}, then update "
+                    "the file (write_keys)")
+
+
+def write_keys() -> None:
+    """Record the schemas' current versions and keys (after a version bump with its conversion)."""
+    KEYS_FILE.write_text(json.dumps(current(), indent=1) + "\n")
+
+
+OLD = DATA / "outputs_v0.1_2026-11-27"
+
+
+@pytest.mark.parametrize(("cls", "name"), [(ReconstructReport, "reconstruct_report.json"),
+                                           (TrainSummary, "train_summary.json"), (PruneReport, "prune.json"),
+                                           (PruneSweep, "sweep.json")])
+def test_files_of_the_previous_version_read(cls, name):
+    """Real files of ``make demo`` from 2026-11-27 (before the mapping runs, the training views' PSNR and the
+    expected-render prune decision) read, with the new keys at their "not recorded" values."""
+    got = cls.read(OLD / name)
+    assert got.schema_version == cls.SCHEMA_VERSION
+    old = json.loads((OLD / name).read_text())
+    assert old["schema_version"] < cls.SCHEMA_VERSION  # the file really is of an older version
+    if cls is ReconstructReport:
+        assert got.mapping_attempts == [] and got.mapping_agreed is None and got.num_observations is None
+        assert got.num_points3d == old["num_points3d"] and got.images_registered == old["images_registered"]
+    elif cls is TrainSummary:
+        assert got.train_psnr is None and got.warnings == [] and got.test_psnr == pytest.approx(old["test_psnr"])
+    elif cls is PruneReport:
+        assert got.sweep.metric == "psnr" and got.sweep.uncertainty_measured  # it decided on the samples' mean
+        assert got.metrics.before.psnr_render is None and got.metrics.before.psnr == pytest.approx(
+            old["metrics"]["before"]["psnr"])
+    else:
+        assert got.metric == "psnr" and got.unpruned.psnr_render is None and len(got.points) == len(old["points"])
+
+
+def test_version_1_files_that_already_have_the_new_keys_keep_them(tmp_path):
+    """Files written on 2026-11-27 between the keys' arrival and the version bump carry them at version 1: the
+    conversion keeps what they say (a sweep that decided on the expected render stays so)."""
+    sweep = json.loads((OLD / "sweep.json").read_text())
+    sweep.update(metric="psnr_render", uncertainty_measured=False)
+    path = tmp_path / "sweep.json"
+    path.write_text(json.dumps(sweep))
+    got = PruneSweep.read(path)
+    assert got.metric == "psnr_render" and not got.uncertainty_measured
+    report = json.loads((OLD / "reconstruct_report.json").read_text())
+    report.update(mapping_attempts=[], mapping_agreed=True, num_observations=1234)
+    path = tmp_path / "reconstruct_report.json"
+    path.write_text(json.dumps(report))
+    got = ReconstructReport.read(path)
+    assert got.mapping_agreed is True and got.num_observations == 1234
+
+
+def test_schema_keys_walk_nested_records():
+    keys = schema_keys(PruneReport)
+    assert "metrics.before.psnr_render" in keys and "sweep.points.*.score.psnr_render" in keys
+    assert "members" in schema_keys(TrainSummary)  # a record that nests itself is listed once
+    assert issubclass(PruneReport, SchemaFile)
