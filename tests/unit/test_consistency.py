@@ -162,6 +162,29 @@ class TestViewConsistency:
         with pytest.raises(ValueError, match="at least one training camera"):
             ViewConsistency.of(_sample(), _cameras([0.0])[[]], render_fn)
 
+    def test_a_point_no_training_camera_looked_at_gets_the_views_far_differences(self, monkeypatch):
+        """Training views at 0 and 50 degrees, a wider evaluated one at 20: its centre is seen from both (20 and 30
+        degrees off, beyond twice a 4-degree gate; the 0-degree view is the nearer), its corners lie outside both
+        training images and get the mean of the full-weight differences (a mixture of the two kinds); with too few
+        of those, or when another (not compared) training camera's image holds the corners, they get nothing."""
+        render_fn = _plane_render()
+        vc = dataclasses.replace(ViewConsistency.of(_sample(), _cameras([0.0, 50.0], focal=30.0), render_fn),
+                                 gate=4.0)
+        test = _cameras([20.0], focal=14.0)
+        d0 = (_colour(test) - _colour(_cameras([0.0]))) ** 2
+        d50 = (_colour(test) - _colour(_cameras([50.0]))) ** 2
+        var = vc.variance(test, render_fn)[0, ..., 0]
+        assert float(var[H // 2, W // 2]) == pytest.approx(d0, rel=0.02)  # seen: its own difference
+        for corner in (float(var[0, 0]), float(var[0, -1]), float(var[-1, -1])):
+            assert d0 * 1.05 < corner < d50 * 0.95  # neither kind alone: their mean over the view
+        monkeypatch.setattr(consistency, "MIN_FAR_PIXELS", H * W + 1)  # too few far differences: nothing there
+        assert float(vc.variance(test, render_fn)[0, 0, -1, 0]) == 0.0
+        monkeypatch.undo()
+        wide = dataclasses.replace(vc, frustum_cameras=_cameras([0.0, 50.0, 20.0], focal=6.0))
+        looked = wide.variance(test, render_fn)[0, ..., 0]
+        assert float(looked[0, -1]) == 0.0  # a training camera held the corner: not "never looked at"
+        assert float(looked[H // 2, W // 2]) == pytest.approx(d0, rel=0.02)
+
     def test_the_gate_is_twice_the_capture_spacing(self):
         ring = _cameras([30.0 * i for i in range(12)])
         assert capture_spacing(ring.centers, torch.zeros(3)) == pytest.approx(30.0, rel=1e-4)

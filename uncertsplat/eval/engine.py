@@ -183,7 +183,8 @@ def view_consistency(sampler: Sampler, train_cameras: Cameras, cfg: EvalSettings
     if cfg.consistency_views <= 0 or len(train_cameras) == 0:
         return None
     chosen = evenly_spaced(range(len(train_cameras)), cfg.consistency_views)
-    return ViewConsistency.of(_representative(sampler, device), train_cameras[chosen].to(device), sampler.render_fn)
+    return ViewConsistency.of(_representative(sampler, device), train_cameras[chosen].to(device), sampler.render_fn,
+                              frustum_cameras=train_cameras.to(device))
 
 
 def with_side_terms(sampler: Sampler, residual: ResidualField | None, train_cameras: Cameras, cfg: EvalSettings,

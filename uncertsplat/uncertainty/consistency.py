@@ -22,6 +22,15 @@ is Lambertian and its depth right, the training view's render is what the photo 
 evaluated view's error itself; where the surface's colour changes with the direction, it is a change no training
 view showed either.
 
+A surface point that lies outside the image of every training camera (``frustum_cameras``: all of them, compared or
+not) was never looked at: no direction is near it, and no render of it can be compared. It gets the mean of the
+evaluated view's own full-weight differences (those of its points seen only from beyond twice the gate), the error of
+a point the capture saw only from afar, when there are at least ``MIN_FAR_PIXELS`` of them, else nothing: a point
+outside every view can be no better known than one seen from afar. Points inside some training image but hidden there
+by the model's own surfaces get nothing: on real photos that test fails on depth noise as often as on occlusion
+(fern's extrapolated arc: AUSE-MAE 0.187 -> 0.213 when they got the level; BENCHMARKS.md, "Surfaces no training
+camera looked at").
+
 Pure tensors: a sample, cameras and a renderer (``render_fn(sample, cameras) -> RenderOutput``).
 """
 
@@ -58,6 +67,9 @@ MIN_GATE = 1.0
 VIEW_CHUNK = 8
 """Training views a pixel's point is projected into at once (``ViewConsistency.variance``): their renders are sampled
 as one batch (4 float32 channels per pixel of each)."""
+MIN_FAR_PIXELS = (2 * BLUR + 1) ** 2
+"""Full-weight differences an evaluated view needs before their mean is given to its points that no training camera
+looked at: one averaging window's worth, as many as the term averages anywhere else."""
 
 
 def _angle(a: Tensor, b: Tensor) -> Tensor:
@@ -87,6 +99,8 @@ class ViewConsistency:
         depth: [T,H,W] its rendered depth there (0 where alpha is 0).
         gate: degrees, ``GATE_SPACINGS`` x the capture's spacing (``capture_spacing``): no weight below it, full
             weight from twice it.
+        frustum_cameras: every training camera (compared or not), for the test whether any looked at a point; None:
+            ``cameras``.
     """
 
     sample: GaussianSample
@@ -94,13 +108,16 @@ class ViewConsistency:
     rgb: Tensor
     depth: Tensor
     gate: float
+    frustum_cameras: Cameras | None = None
 
     @classmethod
     @torch.no_grad()
     def of(cls, sample: GaussianSample, cameras: Cameras,
-           render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> ViewConsistency:
+           render_fn: Callable[[GaussianSample, Cameras], RenderOutput],
+           frustum_cameras: Cameras | None = None) -> ViewConsistency:
         """The term for ``sample`` and the training ``cameras`` (one render each, kept), the gate from their
-        spacing seen from the model's median Gaussian.
+        spacing seen from the model's median Gaussian; ``frustum_cameras``: all training cameras when ``cameras``
+        is a subset of them.
 
         Raises:
             ValueError: no camera (``eval.engine.view_consistency`` builds no term then).
@@ -114,12 +131,13 @@ class ViewConsistency:
             rgb.append(out.rgb[0].half())
             depth.append(out.depth[0, ..., 0].float())
         return cls(sample, cameras, torch.stack(rgb), torch.stack(depth),
-                   GATE_SPACINGS * capture_spacing(cameras.centers, point))
+                   GATE_SPACINGS * capture_spacing(cameras.centers, point), frustum_cameras)
 
     @torch.no_grad()
     def variance(self, camera: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
-        """[1,H,W,1] the term for one evaluated ``camera`` (module docstring); 0 where no training view sees the
-        pixel's point, where the pixel has no surface and within the gate."""
+        """[1,H,W,1] the term for one evaluated ``camera`` (module docstring); 0 where the pixel has no surface,
+        within the gate and where training views hold the pixel's point but none sees it; the view's mean
+        full-weight difference where no training camera holds it (when it has ``MIN_FAR_PIXELS`` of them)."""
         if len(camera) != 1:
             raise ValueError(f"one camera at a time, got {len(camera)}")
         zero = torch.zeros(1, camera.height, camera.width, 1, device=self.depth.device)
@@ -143,7 +161,7 @@ class ViewConsistency:
         for k0 in range(0, len(self.cameras), VIEW_CHUNK):
             cams = self.cameras[k0:k0 + VIEW_CHUNK]
             uv, z = project_points(points, cams.cam_from_world, cams.K)  # [C,S,2], [C,S]
-            inside = (z > 1e-9) & (uv[..., 0] >= 0) & (uv[..., 0] <= wk) & (uv[..., 1] >= 0) & (uv[..., 1] <= hk)
+            inside = _in_image(uv, z, wk, hk)  # [C,S]
             # the training views' renders and depths at the point, bilinearly (a surface at a grazing angle changes
             # depth by more than the tolerance from one pixel to the next)
             image = torch.cat([self.rgb[k0:k0 + VIEW_CHUNK].to(rgb.dtype),
@@ -159,13 +177,35 @@ class ViewConsistency:
             found = (colour - there.gather(0, k[None, :, None].expand(1, -1, 4))[0, :, :3]).square().mean(-1)
             diff = torch.where(better, found, diff)
             best = torch.where(better, nearest, best)
-        weight = ((best - self.gate) / self.gate).clamp(0.0, 1.0).to(rgb.dtype)  # 0 where no view saw the point
+        weight = ((best - self.gate) / self.gate).clamp(0.0, 1.0).to(rgb.dtype)  # diff is 0 where no view saw it
+        far = torch.isfinite(best) & (weight >= 1.0)  # [S] seen, but only from beyond twice the gate
+        if int(far.sum()) >= MIN_FAR_PIXELS:
+            unlooked = ~self._looked_at(points)  # [S] outside every training image: never looked at
+            diff = torch.where(unlooked, diff[far].mean().expand_as(diff), diff)  # weight is 1 there (best = inf)
         full = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(0, where, diff * weight)
         return _box_mean(full.reshape(h, w))[None, ..., None]
+
+    def _looked_at(self, points: Tensor) -> Tensor:
+        """[S] bool: whether the image of some training camera (``frustum_cameras``) holds each point [S,3], in
+        front of it."""
+        cameras = self.frustum_cameras if self.frustum_cameras is not None else self.cameras
+        cameras = cameras.to(points.device)
+        looked = torch.zeros_like(points[:, 0], dtype=torch.bool)
+        for k0 in range(0, len(cameras), VIEW_CHUNK):
+            cams = cameras[k0:k0 + VIEW_CHUNK]
+            uv, z = project_points(points, cams.cam_from_world, cams.K)  # [C,S,2], [C,S]
+            looked |= _in_image(uv, z, cams.width, cams.height).any(0)
+        return looked
 
     def _is_compared(self, camera: Cameras) -> bool:
         """Whether ``camera`` is one of the compared training views (e.g. one the std factor is fitted on)."""
         return bool(_same_camera(camera.to(self.cameras.cam_from_world.device), self.cameras).any())
+
+
+def _in_image(uv: Tensor, z: Tensor, width: int, height: int) -> Tensor:
+    """[...] bool: projections ``uv`` [...,2] at camera depths ``z`` [...] that land in a ``width`` x ``height``
+    image, in front of the camera."""
+    return (z > 1e-9) & (uv[..., 0] >= 0) & (uv[..., 0] <= width) & (uv[..., 1] >= 0) & (uv[..., 1] <= height)
 
 
 def _same_camera(a: Cameras, b: Cameras) -> Tensor:
