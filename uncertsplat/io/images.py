@@ -206,6 +206,10 @@ def _write_array(path: Path, arr: np.ndarray, fmt, channel_names: Sequence[str] 
     return _atomic_oiio(path, write)
 
 
+PNG_COMPRESSION = 3
+"""zlib level of the PNGs we write (lossless at every level; 1-9)."""
+
+
 def write_png(path: str | Path, arr: np.ndarray) -> Path:
     """Write an 8-bit PNG atomically.
 
@@ -221,8 +225,11 @@ def write_png(path: str | Path, arr: np.ndarray) -> Path:
         arr = arr.astype(np.uint8) * 255
     elif arr.dtype != np.uint8:
         arr = np.round(np.clip(np.nan_to_num(arr.astype(np.float32), nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
-    # Our RGBA arrays are straight (unassociated) alpha: tell the PNG writer not to un-premultiply.
-    attrs = {"oiio:UnassociatedAlpha": 1} if arr.shape[-1] == 4 else None
+    # zlib level 3 instead of the writer's 6: a 320x240 view in 13 ms instead of 29-35 ms, 8 % larger (the synthetic
+    # scene writes 80 of them, `evaluate` several per view)
+    attrs = {"png:compressionLevel": PNG_COMPRESSION}
+    if arr.shape[-1] == 4:  # our RGBA arrays are straight (unassociated) alpha: the writer must not un-premultiply
+        attrs["oiio:UnassociatedAlpha"] = 1
     return _write_array(Path(path), arr, oiio.UINT8, attributes=attrs)
 
 
