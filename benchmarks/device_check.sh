@@ -3,6 +3,7 @@
 # the demo pipeline with --device cuda. Run from the repository root there, with our non-torch dependencies
 # carried as wheels in .whl (the machine has its own torch and no registry):
 #   device run: bash benchmarks/device_check.sh        (carry .whl; results under $OUT)
+# TEST_PATHS=... runs only those tests, SKIP_DEMO=1 leaves the demo out, DEMO_S / TEST_S bound each part.
 set -u
 OUT=${OUT:-/tmp/device_out}
 mkdir -p "$OUT"
@@ -16,7 +17,7 @@ TEST_S=${TEST_S:-270}
 DEMO_S=${DEMO_S:-250}
 t0=$SECONDS
 OMP_NUM_THREADS=1 timeout "$TEST_S" python3 -m pytest -q -m 'not slow' --device cuda -n 12 --timeout 150 \
-  -p no:cacheprovider ${PYTEST_EXTRA:-} >"$OUT/tests.log" 2>&1
+  -p no:cacheprovider ${PYTEST_EXTRA:-} ${TEST_PATHS:-} >"$OUT/tests.log" 2>&1
 echo "tests rc=$? seconds=$((SECONDS - t0))" | tee -a "$OUT/machine.txt"
 grep -E "^(FAILED|ERROR)|passed|failed" "$OUT/tests.log" | tail -25
 [ "${SKIP_DEMO:-0}" = 1 ] && exit 0

@@ -23,7 +23,7 @@ from uncertsplat.uncertainty.consistency import (
 W, H = 32, 24
 
 
-def _cameras(azimuths_deg, focal=40.0, width=W, height=H) -> Cameras:
+def _cameras(azimuths_deg, focal=40.0, width=W, height=H, device="cpu") -> Cameras:
     """Cameras 4 units from the origin at these azimuths (about the y axis, 0 = on the -z axis), looking at it."""
     mats = []
     for a in azimuths_deg:
@@ -40,7 +40,7 @@ def _cameras(azimuths_deg, focal=40.0, width=W, height=H) -> Cameras:
     K = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]], dtype=torch.float64)
     n = len(mats)
     return Cameras(torch.stack(mats).float(), K.float().repeat(n, 1, 1), width, height,
-                   tuple(f"v{i}.png" for i in range(n)))
+                   tuple(f"v{i}.png" for i in range(n))).to(device)
 
 
 def _colour(cam: Cameras) -> float:
@@ -54,7 +54,8 @@ def _plane_render(nearer: frozenset = frozenset()):
     rounded azimuth is in ``nearer``, something at half the depth hides it."""
     def render_fn(sample: GaussianSample, cameras: Cameras) -> RenderOutput:
         assert len(cameras) == 1
-        cw = cameras.cam_from_world[0].double()
+        dev = cameras.cam_from_world.device
+        cw = cameras.cam_from_world[0].double().cpu()
         rot, centre = cw[:3, :3], cameras.centers[0].double()
         ys, xs = torch.meshgrid(torch.arange(cameras.height, dtype=torch.float64),
                                 torch.arange(cameras.width, dtype=torch.float64), indexing="ij")
@@ -65,23 +66,24 @@ def _plane_render(nearer: frozenset = frozenset()):
         azimuth = round(math.degrees(math.atan2(float(centre[0]), -float(centre[2]))))
         if azimuth in nearer:
             depth = depth * 0.5
-        rgb = torch.full((1, cameras.height, cameras.width, 3), _colour(cameras), dtype=torch.float32)
-        one = torch.ones(1, cameras.height, cameras.width, 1)
-        d = depth.float()[None, ..., None]
-        return RenderOutput(rgb=rgb, alpha=one, depth=d, depth_expected=d, means2d=torch.zeros(1, 1, 2),
-                            radii=torch.zeros(1, 1))
+        rgb = torch.full((1, cameras.height, cameras.width, 3), _colour(cameras), dtype=torch.float32, device=dev)
+        one = torch.ones(1, cameras.height, cameras.width, 1, device=dev)
+        d = depth.float()[None, ..., None].to(dev)
+        return RenderOutput(rgb=rgb, alpha=one, depth=d, depth_expected=d, means2d=torch.zeros(1, 1, 2, device=dev),
+                            radii=torch.zeros(1, 1, device=dev))
 
     return render_fn
 
 
-def _sample() -> GaussianSample:
+def _sample(device="cpu") -> GaussianSample:
     return GaussianSample(means=torch.zeros(1, 3), quats=torch.tensor([[1.0, 0, 0, 0]]), scales=torch.full((1, 3), 0.1),
-                          opacities=torch.ones(1), sh=torch.zeros(1, 1, 3), sh_degree=0)
+                          opacities=torch.ones(1), sh=torch.zeros(1, 1, 3), sh_degree=0).to(device)
 
 
-def _term(train_azimuths, gate, render_fn=None):
+def _term(train_azimuths, gate, render_fn=None, device="cpu"):
     render_fn = render_fn or _plane_render()
-    vc = ViewConsistency.of(_sample(), _cameras(train_azimuths, focal=6.0), render_fn)  # wide training views
+    vc = ViewConsistency.of(_sample(device), _cameras(train_azimuths, focal=6.0, device=device),
+                            render_fn)  # wide training views
     return dataclasses.replace(vc, gate=gate), render_fn
 
 
@@ -129,13 +131,13 @@ class TestViewConsistency:
         var = vc.variance(test, render_fn)
         torch.testing.assert_close(var, torch.full_like(var, expect), rtol=1e-2, atol=1e-6)  # the renders kept as float16
 
-    def test_views_compared_in_batches_choose_as_one_by_one(self, monkeypatch):
+    def test_views_compared_in_batches_choose_as_one_by_one(self, monkeypatch, device):
         """Ten training views (more than one batch of ``VIEW_CHUNK``), the nearest direction in the last batch and a
         hidden one nearer still: the same map with batches of 1, 3 and the default, and the expected colour."""
         azimuths = [-60.0, -45.0, -30.0, -20.0, -10.0, 0.0, 10.0, 20.0, 30.0, 52.0, -70.0, -80.0]  # farther ones last
         render_fn = _plane_render(nearer=frozenset({30}))
-        vc, _ = _term(azimuths, gate=2.0, render_fn=render_fn)
-        test = _cameras([40.0], focal=60.0)  # 10 degrees from the hidden 30, 12 from 52: the visible 52 wins
+        vc, _ = _term(azimuths, gate=2.0, render_fn=render_fn, device=device)
+        test = _cameras([40.0], focal=60.0, device=device)  # 10 degrees from the hidden 30, 12 from 52: the visible 52 wins
         maps = {}
         for chunk in (1, 3, consistency.VIEW_CHUNK):
             monkeypatch.setattr(consistency, "VIEW_CHUNK", chunk)
@@ -162,25 +164,26 @@ class TestViewConsistency:
         with pytest.raises(ValueError, match="at least one training camera"):
             ViewConsistency.of(_sample(), _cameras([0.0])[[]], render_fn)
 
-    def test_a_point_no_training_camera_looked_at_gets_the_views_far_differences(self, monkeypatch):
+    def test_a_point_no_training_camera_looked_at_gets_the_views_far_differences(self, monkeypatch, device):
         """Training views at 0 and 50 degrees, a wider evaluated one at 20: its centre is seen from both (20 and 30
         degrees off, beyond twice a 4-degree gate; the 0-degree view is the nearer), its corners lie outside both
         training images and get the mean of the full-weight differences (a mixture of the two kinds); with too few
         of those, or when another (not compared) training camera's image holds the corners, they get nothing."""
         render_fn = _plane_render()
-        vc = dataclasses.replace(ViewConsistency.of(_sample(), _cameras([0.0, 50.0], focal=30.0), render_fn),
-                                 gate=4.0)
-        test = _cameras([20.0], focal=14.0)
+        vc = dataclasses.replace(ViewConsistency.of(_sample(device), _cameras([0.0, 50.0], focal=30.0, device=device),
+                                                    render_fn), gate=4.0)
+        test = _cameras([20.0], focal=14.0, device=device)
         d0 = (_colour(test) - _colour(_cameras([0.0]))) ** 2
         d50 = (_colour(test) - _colour(_cameras([50.0]))) ** 2
         var = vc.variance(test, render_fn)[0, ..., 0]
+        assert var.device.type == torch.device(device).type
         assert float(var[H // 2, W // 2]) == pytest.approx(d0, rel=0.02)  # seen: its own difference
         for corner in (float(var[0, 0]), float(var[0, -1]), float(var[-1, -1])):
             assert d0 * 1.05 < corner < d50 * 0.95  # neither kind alone: their mean over the view
         monkeypatch.setattr(consistency, "MIN_FAR_PIXELS", H * W + 1)  # too few far differences: nothing there
         assert float(vc.variance(test, render_fn)[0, 0, -1, 0]) == 0.0
         monkeypatch.undo()
-        wide = dataclasses.replace(vc, frustum_cameras=_cameras([0.0, 50.0, 20.0], focal=6.0))
+        wide = dataclasses.replace(vc, frustum_cameras=_cameras([0.0, 50.0, 20.0], focal=6.0, device=device))
         looked = wide.variance(test, render_fn)[0, ..., 0]
         assert float(looked[0, -1]) == 0.0  # a training camera held the corner: not "never looked at"
         assert float(looked[H // 2, W // 2]) == pytest.approx(d0, rel=0.02)
