@@ -11,7 +11,7 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 export PYTHONPATH=/tmp/site PYTHONUNBUFFERED=1
 python3 -m pip install -q --no-index --no-deps --no-build-isolation -e . >/dev/null 2>&1 || exit 1
 { nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader; nproc;
-  python3 -c "import torch; print(torch.__version__, torch.cuda.get_device_name())"; git rev-parse --short HEAD 2>/dev/null; } \
+  python3 -c "import torch; print(torch.__version__, torch.cuda.get_device_name())"; } \
   | tee "$OUT/machine.txt"
 TEST_S=${TEST_S:-270}
 DEMO_S=${DEMO_S:-250}

@@ -54,8 +54,9 @@ def _plane_render(nearer: frozenset = frozenset()):
     rounded azimuth is in ``nearer``, something at half the depth hides it."""
     def render_fn(sample: GaussianSample, cameras: Cameras) -> RenderOutput:
         assert len(cameras) == 1
-        dev = cameras.cam_from_world.device
-        cw = cameras.cam_from_world[0].double().cpu()
+        dev = cameras.cam_from_world.device  # the outputs go where the cameras are; the plane is traced on the CPU
+        cameras = cameras.to("cpu")
+        cw = cameras.cam_from_world[0].double()
         rot, centre = cw[:3, :3], cameras.centers[0].double()
         ys, xs = torch.meshgrid(torch.arange(cameras.height, dtype=torch.float64),
                                 torch.arange(cameras.width, dtype=torch.float64), indexing="ij")
