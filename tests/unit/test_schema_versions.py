@@ -16,25 +16,15 @@ from pathlib import Path
 
 import pytest
 
-from uncertsplat.schemas import (
-    EvalReport,
-    Manifest,
-    PruneReport,
-    PruneSweep,
-    ReconstructReport,
-    RunScene,
-    SchemaFile,
-    Selection,
-    SweepSummary,
-    SynthScene,
-    TrainSummary,
-)
+from uncertsplat import schemas
 from uncertsplat.schemas.base import _models_in
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 KEYS_FILE = DATA / "schema_keys.json"
-SCHEMAS = [EvalReport, Manifest, PruneReport, PruneSweep, ReconstructReport, RunScene, Selection, SweepSummary,
-           SynthScene, TrainSummary]
+SCHEMAS = [schemas.EvalReport, schemas.Manifest, schemas.PruneReport, schemas.PruneSweep, schemas.ReconstructReport,
+           schemas.RunScene, schemas.Selection, schemas.SweepSummary, schemas.SynthScene, schemas.TrainSummary]
+PruneReport, PruneSweep, ReconstructReport, TrainSummary = (schemas.PruneReport, schemas.PruneSweep,
+                                                            schemas.ReconstructReport, schemas.TrainSummary)
 
 
 def schema_keys(model, prefix: str = "", seen: frozenset = frozenset()) -> list[str]:
@@ -128,4 +118,4 @@ def test_schema_keys_walk_nested_records():
     keys = schema_keys(PruneReport)
     assert "metrics.before.psnr_render" in keys and "sweep.points.*.score.psnr_render" in keys
     assert "members" in schema_keys(TrainSummary)  # a record that nests itself is listed once
-    assert issubclass(PruneReport, SchemaFile)
+    assert issubclass(PruneReport, schemas.SchemaFile)
