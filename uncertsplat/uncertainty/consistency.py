@@ -180,7 +180,7 @@ class ViewConsistency:
         weight = ((best - self.gate) / self.gate).clamp(0.0, 1.0).to(rgb.dtype)  # diff is 0 where no view saw it
         far = torch.isfinite(best) & (weight >= 1.0)  # [S] seen, but only from beyond twice the gate
         if int(far.sum()) >= MIN_FAR_PIXELS:
-            unlooked = ~self._looked_at(points)  # [S] outside every training image: never looked at
+            unlooked = torch.isinf(best) & ~self._looked_at(points)  # [S] outside every training image
             diff = torch.where(unlooked, diff[far].mean().expand_as(diff), diff)  # weight is 1 there (best = inf)
         full = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(0, where, diff * weight)
         return _box_mean(full.reshape(h, w))[None, ..., None]
