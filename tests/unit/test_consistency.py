@@ -189,6 +189,38 @@ class TestViewConsistency:
         assert float(looked[0, -1]) == 0.0  # a training camera held the corner: not "never looked at"
         assert float(looked[H // 2, W // 2]) == pytest.approx(d0, rel=0.02)
 
+    def test_the_fraction_of_a_view_no_training_camera_looked_at(self, device):
+        """The wide view at 20 degrees sees the plane beyond both narrow training images at its corners: a part of
+        its surface, neither none nor all; none once a training camera's image holds it, none for a compared view
+        and for a view without surface; ``evaluate`` names the views from 5 % on."""
+        from types import SimpleNamespace
+
+        from uncertsplat.stages.evaluate import UNLOOKED_NOTE, _unlooked_note
+
+        render_fn = _plane_render()
+        narrow = _cameras([0.0, 50.0], focal=30.0, device=device)
+        vc = ViewConsistency.of(_sample(device), narrow, render_fn)
+        test = _cameras([20.0], focal=14.0, device=device)
+        part = vc.unlooked_fraction(test, render_fn)
+        assert 0.1 < part < 0.9
+        wide = dataclasses.replace(vc, frustum_cameras=_cameras([0.0, 50.0, 20.0], focal=6.0, device=device))
+        assert wide.unlooked_fraction(test, render_fn) == 0.0
+        assert vc.unlooked_fraction(narrow[[1]], render_fn) == 0.0
+
+        def empty(sample, cameras):
+            out = render_fn(sample, cameras)
+            return dataclasses.replace(out, alpha=torch.zeros_like(out.alpha))
+
+        assert vc.unlooked_fraction(test, empty) == 0.0
+        inside = _cameras([20.0], focal=60.0, device=device)  # narrow: all of it inside the training images
+        assert vc.unlooked_fraction(inside, render_fn) < UNLOOKED_NOTE
+        both = dataclasses.replace(test, cam_from_world=torch.cat([test.cam_from_world, inside.cam_from_world]),
+                                   K=torch.cat([test.K, inside.K]), image_names=("wide.png", "narrow.png"))
+        views = SimpleNamespace(cameras=both, names=["wide.png", "narrow.png"])
+        note = _unlooked_note(SimpleNamespace(consistency=vc, render_fn=render_fn), views, torch.device(device))
+        assert note.startswith("1 of 2 views") and f"wide.png {100 * part:.0f} %" in note and "narrow" not in note
+        assert _unlooked_note(SimpleNamespace(consistency=None, render_fn=render_fn), views, torch.device(device)) is None
+
     def test_the_gate_is_twice_the_capture_spacing(self):
         ring = _cameras([30.0 * i for i in range(12)])
         assert capture_spacing(ring.centers, torch.zeros(3)) == pytest.approx(30.0, rel=1e-4)

@@ -180,9 +180,36 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
                                 noise_scale=residual.scale if residual is not None else None,
                                 notes=loaded.eval_notes(cfg.num_samples),
                                 config_hash=hash_config(cfg.model_dump(mode="json")))
+        note = _unlooked_note(sampler, views, device)
+        if note:
+            report.notes.append(note)
         atomic_write_text(out / "metrics.json", report.to_json() + "\n")
         atomic_write_text(out / "config.json", cfg.model_dump_json(indent=2) + "\n")
+    if note:
+        console.print(f"note: {note}")
     return _print_report(run_dir, cfg, report, out)
+
+
+UNLOOKED_NOTE = 0.05
+"""``evaluate`` names the views with at least this fraction of their surface outside every training photo: a few
+pixels at an image's edge are usual in any capture."""
+
+
+def _unlooked_note(sampler, views, device: torch.device) -> str | None:
+    """A note naming the evaluated views whose surface lies outside every training photo for at least
+    ``UNLOOKED_NOTE`` of its pixels (``ViewConsistency.unlooked_fraction``): where the model extrapolates beyond the
+    capture and the std there is the view-consistency term's far level. None without such a view or without the
+    term (``consistency_views = 0``)."""
+    if sampler.consistency is None:
+        return None
+    fractions = {name: sampler.consistency.unlooked_fraction(views.cameras[[j]].to(device), sampler.render_fn)
+                 for j, name in enumerate(views.names)}
+    beyond = {name: f for name, f in fractions.items() if f >= UNLOOKED_NOTE}
+    if not beyond:
+        return None
+    listed = ", ".join(f"{name} {100 * f:.0f} %" for name, f in sorted(beyond.items(), key=lambda x: -x[1]))
+    return (f"{len(beyond)} of {len(fractions)} views show surface that no training photo had in view (the model "
+            f"extrapolates there, and its std says so): {listed}")
 
 
 def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):

@@ -143,16 +143,11 @@ class ViewConsistency:
         zero = torch.zeros(1, camera.height, camera.width, 1, device=self.depth.device)
         if self._is_compared(camera):  # its own render is the nearest: 0 everywhere
             return zero
-        out = render_fn(self.sample, camera)
-        # float32 throughout: a pixel's point and its projection need far less than float32's 1e-7 relative
-        rgb, depth, alpha = out.rgb[0], out.depth[0, ..., 0], out.alpha[0, ..., 0]  # [H,W,3], [H,W], [H,W]
-        h, w = depth.shape
-        surface = (alpha >= MIN_ALPHA) & (depth > 0) & ~_depth_edges(depth)
-        if not bool(surface.any()):
+        found = self._surface_points(camera, render_fn)
+        if found is None:
             return zero
-        where = surface.flatten().nonzero()[:, 0]  # [S] only the pixels with a surface are projected
-        points = unproject(torch.where(surface, depth, torch.zeros_like(depth)), camera.cam_from_world[0],
-                           camera.K[0]).reshape(-1, 3)[where]  # [S,3]
+        rgb, where, points = found  # [H,W,3], [S], [S,3]
+        h, w = rgb.shape[:2]
         colour = rgb.reshape(-1, 3)[where]  # [S,3]
         to_view = F.normalize(camera.centers[0].to(points) - points, dim=-1)  # [S,3]
         best = torch.full_like(points[:, 0], float("inf"))  # [S] angle of the chosen view
@@ -184,6 +179,35 @@ class ViewConsistency:
             diff = torch.where(unlooked, diff[far].mean().expand_as(diff), diff)  # weight is 1 there (best = inf)
         full = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(0, where, diff * weight)
         return _box_mean(full.reshape(h, w))[None, ..., None]
+
+    @torch.no_grad()
+    def unlooked_fraction(self, camera: Cameras,
+                          render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> float:
+        """The fraction of one evaluated ``camera``'s surface pixels (those ``variance`` compares) whose point lies
+        outside the image of every training camera: how much of the view the capture never had in sight. 0 for a
+        compared training view and a view without surface."""
+        if len(camera) != 1:
+            raise ValueError(f"one camera at a time, got {len(camera)}")
+        found = None if self._is_compared(camera) else self._surface_points(camera, render_fn)
+        if found is None:
+            return 0.0
+        return float((~self._looked_at(found[2])).float().mean())
+
+    def _surface_points(self, camera: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]
+                        ) -> tuple[Tensor, Tensor, Tensor] | None:
+        """The model's render of one ``camera``: its rgb [H,W,3], the flat indices [S] of its surface pixels (alpha
+        >= ``MIN_ALPHA``, a depth, off the depth edges) and their points at the rendered depth [S,3]; None without
+        surface."""
+        out = render_fn(self.sample, camera)
+        # float32 throughout: a pixel's point and its projection need far less than float32's 1e-7 relative
+        rgb, depth, alpha = out.rgb[0], out.depth[0, ..., 0], out.alpha[0, ..., 0]  # [H,W,3], [H,W], [H,W]
+        surface = (alpha >= MIN_ALPHA) & (depth > 0) & ~_depth_edges(depth)
+        if not bool(surface.any()):
+            return None
+        where = surface.flatten().nonzero()[:, 0]  # [S] only the pixels with a surface are projected
+        points = unproject(torch.where(surface, depth, torch.zeros_like(depth)), camera.cam_from_world[0],
+                           camera.K[0]).reshape(-1, 3)[where]  # [S,3]
+        return rgb, where, points
 
     def _looked_at(self, points: Tensor) -> Tensor:
         """[S] bool: whether the image of some training camera (``frustum_cameras``) holds each point [S,3], in
