@@ -116,26 +116,21 @@ PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alph
 }
 
 
-def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: str = "full") -> dict:
-    """Evaluate one run on its held-out views with one of the ``PREDICTIVES`` and score its std maps against the
-    observed labels."""
+def evaluate_run(run_dir: Path, device: torch.device, ecfg, full_coverage: bool = False) -> dict:
+    """Evaluate one run on its held-out views as ``evaluate`` scores them (``ecfg``; ``full_coverage``: every alpha
+    < 1 counts as empty). Returns the scene, its train / test indices, the held-out views, the training views' GT
+    depth (None for real photos), the report, the per-view maps and the fitted std factor."""
     import dataclasses
     from functools import partial
 
     from uncertsplat.baselines import load_run
-    from uncertsplat.config import EvalConfig
     from uncertsplat.data.dataset import load_depths, load_view_set
     from uncertsplat.eval.engine import evaluate_views, fit_residual, scored_sampler
-    from uncertsplat.eval.observed import observed_mask
 
-    overrides, full_coverage = PREDICTIVES[predictive]
-    ecfg = EvalConfig(num_samples=num_samples, **overrides)
     loaded = load_run(run_dir, device)
     scene = loaded.load_scene()
     train, test = list(scene.split["train"]), list(scene.split["test"])
     views = load_view_set(scene, test)
-    train_depth = load_depths(scene, train)  # [T,H,W,1] or None for real photos
-    cams = scene.cameras
     maps: list = []
     train_views = partial(load_view_set, scene, depth=False)
     residual = fit_residual(loaded.sampler(scene.scene_scale, device), train, ecfg, device, load_views=train_views,
@@ -145,19 +140,41 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: s
         base = loaded.sampler(scene.scene_scale, device)
         return dataclasses.replace(base, coverage=1.0 if full_coverage else base.coverage)
 
-    sampler, scale, _ = scored_sampler(new_sampler, residual, cams, scene.split, ecfg, device, load_views=train_views)
+    sampler, scale, _ = scored_sampler(new_sampler, residual, scene.cameras, scene.split, ecfg, device,
+                                       load_views=train_views)
     report = evaluate_views(sampler, views, ecfg, device, show_progress=False, on_view=maps.append)
+    return {"scene": scene, "train": train, "test": test, "views": views,
+            "train_depth": load_depths(scene, train),  # [T,H,W,1] or None for real photos
+            "report": report, "maps": maps, "std_scale": scale}
+
+
+def observed(run: dict, j: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The GT labels of held-out view ``j`` of ``evaluate_run``'s result: [H,W] observed (some training view sees
+    the GT surface point) and [H,W] valid (the pixel has GT surface); ``eval.observed.observed_mask``."""
+    from uncertsplat.eval.observed import observed_mask
+
+    cams, train, views = run["scene"].cameras, run["train"], run["views"]
+    i = run["test"][j]
+    return observed_mask(views.depths[j, ..., 0].double(), cams.cam_from_world[i], cams.K[i],
+                         run["train_depth"][..., 0].double(), cams.cam_from_world[train], cams.K[train])
+
+
+def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: str = "full") -> dict:
+    """Evaluate one run on its held-out views with one of the ``PREDICTIVES`` and score its std maps against the
+    observed labels."""
+    from uncertsplat.config import EvalConfig
+
+    overrides, full_coverage = PREDICTIVES[predictive]
+    run = evaluate_run(run_dir, device, EvalConfig(num_samples=num_samples, **overrides), full_coverage)
+    report, maps, views, scale = run["report"], run["maps"], run["views"], run["std_scale"]
     per_view = per_view_agreement(report, maps)
     if views.depths is None:  # real photos: no GT depth, no observed labels; per-view agreement only
         m = report.mean
         return {"psnr": m.psnr, "ause_mae": m.ause_mae, "nll": m.nll, "calibration_error": m.calibration_error,
                 "depth_ause": None, "std_scale": scale, **per_view}
     rgb, dep, unobs, empty = [], [], [], []
-    for j, i in enumerate(test):
-        obs, valid = observed_mask(views.depths[j, ..., 0].double(), cams.cam_from_world[i], cams.K[i],
-                                   train_depth[..., 0].double(),
-                                   cams.cam_from_world[train], cams.K[train])
-        m = maps[j]
+    for j, m in enumerate(maps):
+        obs, valid = observed(run, j)
         rgb.append(m.rgb_std.mean(-1)[valid])
         dep.append(m.depth_std[..., 0][valid])
         unobs.append(~obs[valid])

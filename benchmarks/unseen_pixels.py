@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from functools import partial
 from pathlib import Path
 
 import torch
@@ -24,39 +23,22 @@ import torch
 
 def pixels(run_dir: Path, overrides: dict, device: torch.device) -> dict:
     """Per held-out pixel with GT depth: squared error, predicted variance (mean over channels), the GT label, the
-    rendered alpha; and the run's metrics."""
-    from uncertsplat.baselines import load_run
-    from uncertsplat.config import EvalConfig
-    from uncertsplat.data.dataset import load_depths, load_view_set
-    from uncertsplat.eval.engine import evaluate_views, fit_residual, scored_sampler
-    from uncertsplat.eval.observed import observed_mask
+    rendered alpha; and the run's metrics (``bench_unseen.evaluate_run``, K = 10)."""
+    from bench_unseen import evaluate_run, observed
 
-    cfg = EvalConfig(num_samples=10, **overrides)
-    loaded = load_run(run_dir, device)
-    scene = loaded.load_scene()
-    train, test = list(scene.split["train"]), list(scene.split["test"])
-    views = load_view_set(scene, test)
-    train_depth = load_depths(scene, train)
-    cams = scene.cameras
-    load_views = partial(load_view_set, scene, depth=False)
-    residual = fit_residual(loaded.sampler(scene.scene_scale, device), train, cfg, device, load_views=load_views,
-                            calibration_indices=scene.split.get("calibration", ()))
-    sampler, factor, _ = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual, cams,
-                                        scene.split, cfg, device, load_views=load_views)
-    maps = []
-    report = evaluate_views(sampler, views, cfg, device, show_progress=False, on_view=maps.append, std_scale=factor)
+    from uncertsplat.config import EvalConfig
+
+    run = evaluate_run(run_dir, device, EvalConfig(num_samples=10, **overrides))
     out = {"err2": [], "var": [], "observed": [], "alpha": []}
-    for j, i in enumerate(test):
-        observed, valid = observed_mask(views.depths[j, ..., 0].double(), cams.cam_from_world[i], cams.K[i],
-                                        train_depth[..., 0].double(), cams.cam_from_world[train], cams.K[train])
-        m = maps[j]
+    for j, m in enumerate(run["maps"]):
+        obs, valid = observed(run, j)
         out["err2"].append((m.rgb_mean - m.gt).square().mean(-1)[valid])
         out["var"].append(m.rgb_std.square().mean(-1)[valid])
-        out["observed"].append(observed[valid])
+        out["observed"].append(obs[valid])
         out["alpha"].append(m.alpha_mean[..., 0][valid])
     out = {k: torch.cat(v) for k, v in out.items()}
-    out["metrics"] = report.mean
-    out["factor"] = factor
+    out["metrics"] = run["report"].mean
+    out["factor"] = run["std_scale"]
     return out
 
 
