@@ -169,8 +169,8 @@ class ViewConsistency:
             angle = torch.where(seen, angle, torch.full_like(angle, float("inf")))
             nearest, k = angle.min(0)  # [S]: the first of equal angles, as views in order
             better = nearest < best
-            found = (colour - there.gather(0, k[None, :, None].expand(1, -1, 4))[0, :, :3]).square().mean(-1)
-            diff = torch.where(better, found, diff)
+            sq = (colour - there.gather(0, k[None, :, None].expand(1, -1, 4))[0, :, :3]).square().mean(-1)  # [S]
+            diff = torch.where(better, sq, diff)
             best = torch.where(better, nearest, best)
         weight = ((best - self.gate) / self.gate).clamp(0.0, 1.0).to(rgb.dtype)  # diff is 0 where no view saw it
         far = torch.isfinite(best) & (weight >= 1.0)  # [S] seen, but only from beyond twice the gate
