@@ -218,7 +218,8 @@ class DensifyConfig(_Base):
     (``strategy.growth``; each test is in ``train_summary.json`` ``growth``). 0: grow up to ``max_gaussians`` as
     3DGS does. The half is switched off without re-fitting the rest, which overstates what a model of half the size
     would lose (demo scene: 2-6 dB here against 0.4-1.5 dB of held-out PSNR per doubling); measured on four scenes
-    in BENCHMARKS.md, "Growth that stops when it no longer pays"."""
+    in BENCHMARKS.md, "Growth that stops when it no longer pays". No test runs while the model is within 1 % of
+    ``max_gaussians`` (``strategy.growth.at_budget``)."""
     growth_check_interval: int = Field(250, ge=1)
     """Steps between growth tests."""
     growth_patience: int = Field(2, ge=1)

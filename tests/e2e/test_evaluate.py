@@ -18,7 +18,7 @@ from uncertsplat.baselines import load_run
 from uncertsplat.cli import app
 from uncertsplat.config import EvalConfig
 from uncertsplat.data.dataset import load_view_set
-from uncertsplat.eval.engine import evaluate_views, fit_residual, with_side_terms
+from uncertsplat.eval.engine import evaluate_views, fit_residual, fit_std_scale, with_side_terms
 from uncertsplat.io.images import read_exr
 from uncertsplat.io.maps import EXR_CHANNELS, map_stem
 from uncertsplat.schemas.metrics import EvalReport
@@ -110,8 +110,6 @@ def test_std_scale_is_fitted_on_training_views_and_applied_to_the_std(evaluated)
 def test_std_scale_is_fitted_on_the_views_set_aside_from_training(tiny_run_path, tmp_path):
     """A run whose scene set views aside (``scene.calibration_holdout``) gets its std factor fitted on exactly those:
     none of them a training view, the report saying so, and the factor the maximum-likelihood one of their maps."""
-    from uncertsplat.eval.engine import fit_std_scale
-
     run = tmp_path / "run"
     shutil.copytree(tiny_run_path, run)
     cfg_path = run / "config.json"
@@ -201,6 +199,40 @@ def test_the_level_on_views_set_aside_is_fitted_given_the_rest_of_the_predictive
     assert rest.shape == (1, scene.cameras.height, scene.cameras.width, 1) and float(rest.mean()) > 0
     monkeypatch.setattr(engine, "_rest_of_predictive", lambda *a: lambda cam: torch.zeros(1, 1, 1, 1))
     assert given_rest < level()
+
+
+def test_the_std_factor_reuses_the_samples_the_noise_level_was_fitted_with(tiny_run_path, monkeypatch):
+    """With views set aside, ``fit_residual`` renders their K samples to fit the noise's level; ``fit_std_scale`` given
+    those maps adds the pixel noise and the view-consistency term to them instead of rendering the samples again,
+    and fits the same factor."""
+    from uncertsplat.uncertainty import mc
+
+    cpu = torch.device("cpu")
+    loaded = load_run(tiny_run_path, cpu)
+    scene = loaded.load_scene()
+    train, aside = list(scene.split["train"])[:-2], list(scene.split["train"])[-2:]
+    split = {"train": train, "calibration": aside}
+    cfg = EvalConfig(residual_views=4, num_samples=3, consistency_views=4)
+    views = partial(load_view_set, scene, depth=False)
+    kept: dict = {}
+    field = fit_residual(loaded.sampler(scene.scene_scale, cpu), train, cfg, cpu, load_views=views,
+                         calibration_indices=aside, set_aside_maps=kept)
+    assert sorted(kept) == sorted(aside)
+    assert all(m.shape == s.shape == (1, scene.cameras.height, scene.cameras.width, 3) for m, s in kept.values())
+    sampler = with_side_terms(loaded.sampler(scene.scene_scale, cpu), field, scene.cameras[train], cfg, cpu)
+    assert sampler.consistency is not None and sampler.residual is not None
+    rendered, _ = fit_std_scale(sampler, split, cfg, cpu, load_views=views)
+    calls = []
+    real = mc.mc_render
+    monkeypatch.setattr(mc, "mc_render", lambda *a, **k: calls.append(1) or real(*a, **k))
+    reused, names = fit_std_scale(sampler, split, cfg, cpu, load_views=views, set_aside_maps=kept)
+    assert calls == [] and names == [scene.cameras.image_names[i] for i in aside]
+    assert reused == pytest.approx(rendered, rel=1e-5)
+    # a view the maps lack is rendered as before
+    partial_maps = {aside[0]: kept[aside[0]]}
+    assert fit_std_scale(sampler, split, cfg, cpu, load_views=views,
+                         set_aside_maps=partial_maps)[0] == pytest.approx(rendered, rel=1e-5)
+    assert calls == [1]
 
 
 def test_no_std_scale_when_disabled_or_scoring_training_views(tiny_run_path, tmp_path):

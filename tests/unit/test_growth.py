@@ -14,7 +14,14 @@ from tests.run_fixtures import resume_without_key, tiny_run_path  # noqa: F401
 from uncertsplat.config import DensifyConfig
 from uncertsplat.io.checkpoints import decode, encode
 from uncertsplat.schemas.runs import GrowthCheck
-from uncertsplat.strategy.growth import growth_check_due, growth_reason, halving_cost_db, weakest_half
+from uncertsplat.strategy.growth import (
+    AT_BUDGET,
+    at_budget,
+    growth_check_due,
+    growth_reason,
+    halving_cost_db,
+    weakest_half,
+)
 from uncertsplat.train.trainer import Trainer
 from uncertsplat.types import Cameras, GaussianSample
 
@@ -37,6 +44,14 @@ class TestSchedule:
     def test_without_resets_every_interval_is_due(self):
         cfg = self.CFG.model_copy(update={"opacity_reset_interval": 0})
         assert growth_check_due(3250, cfg) and growth_check_due(3750, cfg)
+
+
+class TestAtBudget:
+    @pytest.mark.parametrize(("n", "budget", "at"), [
+        (40_000, 40_000, True), (39_991, 40_000, True), (39_600, 40_000, True), (39_599, 40_000, False),
+        (0, 1, False), (1, 1, True), (41_000, 40_000, True)])
+    def test_within_one_percent_is_at_the_budget(self, n, budget, at):
+        assert AT_BUDGET == 0.99 and at_budget(n, budget) is at
 
 
 class TestWeakestHalf:
@@ -123,6 +138,23 @@ class TestTraining:
         t.fit()
         assert [g.step for g in t.growth] == [10, 20]
         assert all(not g.stopped and g.cost_db >= 1e-9 for g in t.growth)
+
+    def test_no_test_while_the_model_is_at_its_budget(self):
+        scene, tr, te = toy_scene()
+        free = Trainer(scene, self._cfg(1e-9), tr, te)
+        sizes = {}
+        free.on_step = lambda t: sizes.setdefault(t.step, len(t.model))
+        free.fit()
+        # a budget the model has reached at step 10 (the first test): from there on no test runs
+        cap = sizes[9]
+        capped = Trainer(scene, self._cfg(1e-9, max_gaussians=cap), tr, te)
+        capped.fit()
+        assert at_budget(cap, capped.budget.max_gaussians)
+        assert capped.growth == [] and capped.densifier.grow
+        # a budget with room at every test: every test runs
+        roomy = Trainer(scene, self._cfg(1e-9, max_gaussians=10 * max(sizes.values())), tr, te)
+        roomy.fit()
+        assert [g.step for g in roomy.growth] == [10, 20]
 
     def test_resume_after_a_stop_equals_uninterrupted(self):
         scene, tr, te = toy_scene()

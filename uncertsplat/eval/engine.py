@@ -157,15 +157,22 @@ def _predictive(sampler: Sampler, cfg: EvalSettings, cams: Cameras, *, depth: bo
     depth-only ones, for a caller that reads the RGB maps alone)."""
     from uncertsplat.uncertainty.mc import depth_spread
 
-    extra = sampler.residual.blended(cams, sampler.render_fn) if sampler.residual is not None else None
-    if sampler.consistency is not None:
-        term = torch.cat([sampler.consistency.variance(cams[[j]], sampler.render_fn) for j in range(len(cams))])
-        extra = term if extra is None else extra + term
+    extra = _side_variance(sampler, cams)
     spread = depth_spread(_representative(sampler, cams.device), cams, sampler.render_fn) \
         if cfg.depth_spread and depth else None
     return {"empty_std": sampler.empty_std if cfg.empty_rays else None, "coverage": sampler.coverage,
             "extra_var": extra, "extra_depth_var": spread, "shift_fn": _shift_fn(sampler, cfg, cams.device),
             "shift_renders": cfg.resolution_renders}
+
+
+def _side_variance(sampler: Sampler, cams: Cameras) -> Tensor | None:
+    """[C,H,W,1] the RGB variance of the sampler's side terms, the pixel noise and the view-consistency term (None
+    without either): what ``mc_render`` adds to the samples' spread as ``extra_var``."""
+    extra = sampler.residual.blended(cams, sampler.render_fn) if sampler.residual is not None else None
+    if sampler.consistency is not None:
+        term = torch.cat([sampler.consistency.variance(cams[[j]], sampler.render_fn) for j in range(len(cams))])
+        extra = term if extra is None else extra + term
+    return extra
 
 
 def evenly_spaced(items: Sequence[int], n: int) -> list[int]:
@@ -197,14 +204,18 @@ def with_side_terms(sampler: Sampler, residual: ResidualField | None, train_came
 
 def scored_sampler(new_sampler: Callable[[], Sampler], residual: ResidualField | None, cameras: Cameras,
                    split: Mapping[str, Sequence[int]], cfg: EvalSettings, device: torch.device, *,
-                   load_views: Callable[[list[int]], ViewSet]) -> tuple[Sampler, float | None, list[str]]:
+                   load_views: Callable[[list[int]], ViewSet],
+                   set_aside_maps: dict[int, tuple[Tensor, Tensor]] | None = None
+                   ) -> tuple[Sampler, float | None, list[str]]:
     """The sampler an evaluation of a run scores (``with_side_terms``: the pixel noise ``residual`` and the
     view-consistency term of the ``split``'s training ``cameras``), with the std factor ``fit_std_scale`` fits for it
     and the names of the views it was fitted on. ``new_sampler()`` gives a fresh sampler of the run; the factor is
     fitted with one and the returned sampler is another (a baseline's sampler may keep state between calls), both
-    with the same side terms, built once."""
+    with the same side terms, built once. ``set_aside_maps``: ``fit_residual``'s, when it fitted the noise in this
+    process (``fit_std_scale``)."""
     fitting = with_side_terms(new_sampler(), residual, cameras[list(split.get("train", ()))], cfg, device)
-    std_scale, names = fit_std_scale(fitting, split, cfg, device, load_views=load_views)
+    std_scale, names = fit_std_scale(fitting, split, cfg, device, load_views=load_views,
+                                     set_aside_maps=set_aside_maps)
     return dataclasses.replace(new_sampler(), residual=residual, consistency=fitting.consistency), std_scale, names
 
 
@@ -225,7 +236,8 @@ def _representative(sampler: Sampler, device: torch.device) -> GaussianSample:
 
 def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettings, device: torch.device, *,
                  load_views: Callable[[list[int]], ViewSet],
-                 calibration_indices: Sequence[int] = ()) -> ResidualField | None:
+                 calibration_indices: Sequence[int] = (),
+                 set_aside_maps: dict[int, tuple[Tensor, Tensor]] | None = None) -> ResidualField | None:
     """The pixel noise of the sampler's Gaussians (``uncertainty.residual.fit_residual_field``), fitted on
     ``residual_indices`` of the training views against the run's deterministic render (a sample when the
     method has none); None when ``cfg.residual_views`` is 0 or there is no training view. Give it a sampler of
@@ -234,7 +246,9 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
 
     With ``cfg.residual_scale`` "fit" or "auto" and ``calibration_indices`` (views set aside from training,
     ``SceneConfig.calibration_holdout``), the noise's level is fitted on those views, after the leverage: views the
-    model never trained on show the noise a new view sees, so nothing is corrected for what training absorbed."""
+    model never trained on show the noise a new view sees, so nothing is corrected for what training absorbed.
+    ``set_aside_maps``: a dict that receives those views' predictive without the noise (``_rest_of_predictive``),
+    for ``fit_std_scale`` to add the noise to instead of rendering the K samples again."""
     from uncertsplat.uncertainty.residual import fit_residual_field
 
     chosen = residual_indices(train_indices, cfg)
@@ -285,19 +299,21 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
         field = field.scaled(fit_noise_scale(field, rep, cal.cameras.to(device), cal.images.to(device),
                                              sampler.render_fn, masks=cal_masks,
                                              explained=_rest_of_predictive(sampler, cfg, cal.cameras.to(device),
-                                                                           cal.indices, device),
+                                                                           cal.indices, device, set_aside_maps),
                                              std_floor=cfg.std_floor))
     return field
 
 
 def _rest_of_predictive(sampler: Sampler, cfg: EvalSettings, cameras: Cameras, indices: Sequence[int],
-                        device: torch.device) -> Callable[[Cameras], Tensor]:
+                        device: torch.device,
+                        keep: dict[int, tuple[Tensor, Tensor]] | None = None) -> Callable[[Cameras], Tensor]:
     """``explained(camera) -> [1,H,W,1]`` for ``fit_noise_scale`` on views set aside from training: the RGB variance
     of the predictive ``evaluate`` scores there without the pixel noise (the K samples' spread, the resolution term,
     the empty-ray term; the view-consistency term is 0 this close to the training views) of ``cameras`` (scene
     ``indices``), each with its evaluation seed, so the noise's level is the maximum-likelihood one given everything
     else that will be added to it. With the resolution term alone in its place the demo's std came out 20-25 % too
-    wide (BENCHMARKS.md, "Why the demo's raw calibration error stays above 0.05")."""
+    wide (BENCHMARKS.md, "Why the demo's raw calibration error stays above 0.05"). ``keep``: receives each view's
+    (rgb_mean, rgb_std) [1,H,W,3] (on the CPU) by scene index."""
     from uncertsplat.uncertainty.mc import mc_render
 
     def explained(cam: Cameras) -> Tensor:
@@ -307,6 +323,8 @@ def _rest_of_predictive(sampler: Sampler, cfg: EvalSettings, cameras: Cameras, i
         bare = dataclasses.replace(sampler, residual=None, consistency=None)
         maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cam, cfg.num_samples, gen,
                             **_predictive(bare, cfg, cam, depth=False))
+        if keep is not None:
+            keep[indices[j]] = (maps.rgb_mean.cpu(), maps.rgb_std.cpu())
         return maps.rgb_std.square().mean(-1, keepdim=True)
 
     return explained
@@ -433,7 +451,8 @@ def calibration_indices(split: Mapping[str, Sequence[int]], cfg: EvalSettings) -
 
 @torch.no_grad()
 def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: EvalSettings, device: torch.device, *,
-                  load_views: Callable[[list[int]], ViewSet]) -> tuple[float | None, list[str]]:
+                  load_views: Callable[[list[int]], ViewSet],
+                  set_aside_maps: Mapping[int, tuple[Tensor, Tensor]] | None = None) -> tuple[float | None, list[str]]:
     """One factor for the predicted std, fitted on the views ``calibration_indices`` chooses from ``split``.
 
     The maximum-likelihood scale of a Gaussian predictive, s^2 = mean((error / max(std, std_floor))^2) over
@@ -445,6 +464,10 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
         sampler: the run's sampler (build a fresh one: a baseline's sampler may keep state between calls).
         split: the scene's split (``SceneData.split``).
         load_views: ``load_views(indices) -> ViewSet`` (images and masks; depth is not needed).
+        set_aside_maps: (rgb_mean, rgb_std) [1,H,W,3] by scene index of the predictive without the pixel noise and
+            the view-consistency term, the same K samples with the same seed (``fit_residual`` renders them to fit
+            the noise's level on views set aside): for those views only the two terms are added (their variances
+            add) instead of rendering the samples again.
 
     Returns:
         (scale, image names), or (None, []) when disabled, when scoring the training split, when there is
@@ -459,11 +482,18 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
     gen = torch.Generator(device=device)
     total, count = 0.0, 0
     for j, i in enumerate(views.indices):
-        gen.manual_seed(_view_seed(cfg, i))
-        maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, views.cameras[[j]].to(device), cfg.num_samples,
-                            gen, **_predictive(sampler, cfg, views.cameras[[j]].to(device), depth=False))
-        err = maps.rgb_mean[0].cpu().clamp(0, 1) - views.images[j]
-        z2 = (err / maps.rgb_std[0].cpu().clamp_min(cfg.std_floor)) ** 2
+        cam = views.cameras[[j]].to(device)
+        if set_aside_maps is not None and i in set_aside_maps:
+            mean, bare_std = set_aside_maps[i]
+            extra = _side_variance(sampler, cam)
+            std = bare_std if extra is None else (bare_std.square() + extra.cpu().to(bare_std)).sqrt()
+        else:
+            gen.manual_seed(_view_seed(cfg, i))
+            maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cam, cfg.num_samples, gen,
+                                **_predictive(sampler, cfg, cam, depth=False))
+            mean, std = maps.rgb_mean.cpu(), maps.rgb_std.cpu()
+        err = mean[0].clamp(0, 1) - views.images[j]
+        z2 = (err / std[0].clamp_min(cfg.std_floor)) ** 2
         if views.masks is not None:
             z2 = z2[views.masks[j][..., 0]]
         total += float(z2.double().sum())

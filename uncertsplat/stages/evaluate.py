@@ -165,14 +165,17 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
         console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
                       f"{len(loaded.model)} Gaussians ({loaded.model.num_carriers} with a posterior), {device}")
         train_views = partial(load_view_set, scene, depth=False)
+        # the set-aside views' K samples, when the noise is fitted here: the std factor's fit reuses them
+        set_aside_maps: dict = {}
         residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
                                    load_views=train_views, write=True,
-                                   calibration_indices=scene.split.get("calibration", ()))
+                                   calibration_indices=scene.split.get("calibration", ()),
+                                   set_aside_maps=set_aside_maps)
         with console.status("fitting the std factor on " + ("the views set aside for calibration"
                                                              if scene.split.get("calibration") else "training views")):
             sampler, std_scale, cal_views = scored_sampler(partial(loaded.sampler, scene.scene_scale, device),
                                                            residual, scene.cameras, scene.split, cfg, device,
-                                                           load_views=train_views)
+                                                           load_views=train_views, set_aside_maps=set_aside_maps)
         report = evaluate_views(sampler, views, cfg, device,
                                 on_view=partial(write_view_maps, out / "maps", preview=cfg.preview),
                                 std_scale=std_scale, calibration_views=cal_views,

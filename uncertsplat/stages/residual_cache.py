@@ -56,11 +56,13 @@ def residual_key(loaded, cfg, device: torch.device, set_aside: bool = False) -> 
 
 
 def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torch.device, *,
-                    load_views: Callable[[list[int]], ViewSet], write: bool, calibration_indices=()):
+                    load_views: Callable[[list[int]], ViewSet], write: bool, calibration_indices=(),
+                    set_aside_maps: dict | None = None):
     """The pixel noise of ``loaded``'s model (``eval.engine.fit_residual``), read from ``RUN/eval/residual.pt``
     when that file was written for the same key (``residual_key``), else fitted; with ``write``, a fitted field is
     kept there for the next evaluation. None when ``cfg.residual_views`` is 0 or there is no training view.
-    ``calibration_indices``: views set aside from training (``fit_residual``)."""
+    ``calibration_indices``: views set aside from training and ``set_aside_maps`` (filled only when the noise is
+    fitted here): as ``fit_residual``'s."""
     from uncertsplat.console import console
     from uncertsplat.eval.engine import fit_residual, residual_from_state, residual_indices
     from uncertsplat.io.atomic import atomic_write
@@ -81,7 +83,7 @@ def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torc
     t0 = time.perf_counter()
     with console.status(f"fitting the pixel noise on {views} training views"):
         field = fit_residual(sampler, train_indices, cfg, device, load_views=load_views,
-                             calibration_indices=calibration_indices)
+                             calibration_indices=calibration_indices, set_aside_maps=set_aside_maps)
     if field is not None:
         console.print(f"pixel noise: fitted on {views} training views in {time.perf_counter() - t0:.1f} s")
     if write and key is not None and field is not None:

@@ -16,6 +16,11 @@ tests, which see a model that has barely started to fit (bonsai: 0.02 dB at step
 model grew from 31k to 308k Gaussians; the demo scene: 1.9 dB at step 250, 2.8-5.8 dB later). Gaussians the check views do not see are never switched
 off (they would cost nothing there and make the model look over-grown). Only training views are used: the
 held-out views stay unseen by every training decision.
+
+No test runs while the model is within ``AT_BUDGET`` of its budget (``DensifyConfig.max_gaussians``): the budget
+already stops its growth there, and what the test could still stop is the refilling of what pruning removes
+(the demo scene: 6 of its 8 tests, at 39,991-40,000 of 40,000; 0.47-0.56 s each on the 2-core CPU). Once pruning leaves room
+(e.g. after an opacity reset), the tests resume.
 """
 
 from __future__ import annotations
@@ -45,6 +50,16 @@ def growth_check_due(step: int, cfg) -> bool:
         return False
     reset = cfg.opacity_reset_interval
     return not (reset > 0 and step > reset and step % reset <= RESET_RECOVERY_STEPS)
+
+
+# A model with at least this fraction of its budget is at the budget: the growth test is skipped (module docstring).
+AT_BUDGET = 0.99
+
+
+def at_budget(gaussians: int, max_gaussians: int) -> bool:
+    """Whether a model of ``gaussians`` is at its budget ``max_gaussians`` (at least ``AT_BUDGET`` of it), where
+    the growth test has nothing left to decide."""
+    return gaussians >= AT_BUDGET * max_gaussians
 
 
 def weakest_half(weights: Tensor) -> Tensor:
@@ -85,4 +100,4 @@ def growth_reason(check: GrowthCheck) -> str:
             f"({cmp} {check.min_gain_db:g} dB), {verdict}")
 
 
-__all__ = ["GrowthCheck", "growth_check_due", "growth_reason", "halving_cost_db", "weakest_half"]
+__all__ = ["AT_BUDGET", "GrowthCheck", "at_budget", "growth_check_due", "growth_reason", "halving_cost_db", "weakest_half"]

@@ -46,7 +46,13 @@ from uncertsplat.gaussians.variational import (
 from uncertsplat.render import near_plane, render
 from uncertsplat.strategy.budget import gaussian_budget
 from uncertsplat.strategy.densify import Densifier, DensifyStats
-from uncertsplat.strategy.growth import GrowthCheck, growth_check_due, halving_cost_db, weakest_half
+from uncertsplat.strategy.growth import (
+    GrowthCheck,
+    at_budget,
+    growth_check_due,
+    halving_cost_db,
+    weakest_half,
+)
 from uncertsplat.strategy.schedule import sh_degree_at
 from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due
 from uncertsplat.strategy.view_checks import check_views
@@ -269,9 +275,12 @@ class Trainer:
     @torch.no_grad()
     def check_growth(self, step: int) -> GrowthCheck | None:
         """Run the growth test due at ``step`` (``strategy.growth``); stop densification's growth when the weakest
-        half of the model is worth less than ``densify.growth_min_gain_db``. Returns the test, or None."""
+        half of the model is worth less than ``densify.growth_min_gain_db``. Returns the test, or None (none due,
+        growth already stopped, or the model at its budget: ``strategy.growth.at_budget``)."""
         dcfg = self.cfg.densify
         if not self.densifier.grow or not growth_check_due(step, dcfg):
+            return None
+        if at_budget(len(self.model), self.budget.max_gaussians):
             return None
         views = check_views(len(self.train_idx), dcfg.growth_check_views)
         cams, images = self.train_cams[views], self.train_images[views]
