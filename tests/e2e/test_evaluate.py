@@ -407,6 +407,68 @@ class TestPrunedRunThatRemovedNothing:
         assert not any("copied from" in n for n in report.notes)
 
 
+class TestPruneReadsTheEvaluation:
+    """``prune``'s "before" row: ``evaluate``'s held-out means when it scored the same model file on the same views
+    with the same settings and versions (``stages.evaluate.matching_evaluation``), the same numbers it would measure."""
+
+    CFG = dict(keep_ratio=0.9, num_samples=2, score_views=2, score_samples=2, render_views=1)
+
+    def test_the_same_numbers_as_measuring_again(self, tiny_run_path, tmp_path):  # noqa: F811
+        from uncertsplat.config import PruneConfig
+        from uncertsplat.provenance import file_sha256
+        from uncertsplat.stages import prune
+        from uncertsplat.stages.prune import METRIC_KEYS
+
+        run = tmp_path / "run"
+        shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
+        cpu = torch.device("cpu")
+        measured = prune.run(run, None, PruneConfig(**self.CFG, dry_run=True), device=cpu)
+        assert not any("evaluate's" in n for n in measured.notes)
+        report = evaluate.run(run, EvalConfig(num_samples=2), device=cpu)
+        assert report.model_sha256 == file_sha256(run / "variational.ply")
+        assert EvalReport.read(run / "eval" / "metrics.json").model_sha256 == report.model_sha256
+        read = prune.run(run, None, PruneConfig(**self.CFG, dry_run=True), device=cpu)
+        assert any("evaluate's" in n and "metrics.json" in n for n in read.notes)
+        for k in METRIC_KEYS:  # what measuring gives, to the last digit
+            assert getattr(read.metrics.before, k) == getattr(measured.metrics.before, k), k
+        assert read.metrics.before.psnr_render == measured.metrics.before.psnr_render
+        assert read.metrics.after == measured.metrics.after.model_copy(update={"seconds": read.metrics.after.seconds})
+
+    def test_anything_else_is_measured(self, tiny_run_path, tmp_path):  # noqa: F811
+        from uncertsplat.config import PruneConfig
+        from uncertsplat.stages import prune
+        from uncertsplat.stages.evaluate import matching_evaluation
+
+        run = tmp_path / "run"
+        shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
+        cpu = torch.device("cpu")
+        evaluate.run(run, EvalConfig(num_samples=3), device=cpu)  # another K than prune's
+        read = prune.run(run, None, PruneConfig(**self.CFG, dry_run=True), device=cpu)
+        assert not any("evaluate's" in n for n in read.notes)
+        model = run / "variational.ply"
+        names = EvalReport.read(run / "eval" / "metrics.json").image_names
+        cfg = EvalConfig(num_samples=3)
+        assert matching_evaluation(run, model, cfg, names, cpu) is not None
+        assert matching_evaluation(run, model, cfg.model_copy(update={"save_maps": False, "reuse": False}), names,
+                                   cpu) is not None  # what is written, not what is measured
+        assert matching_evaluation(run, model, cfg.model_copy(update={"resolution": 0.2}), names, cpu) is None
+        assert matching_evaluation(run, model, cfg, names[:1], cpu) is None
+        assert matching_evaluation(run, model, cfg, names, torch.device("meta")) is None
+        # a report of an older version (no model recorded), and one of another model file
+        data = EvalReport.read(run / "eval" / "metrics.json")
+        data.model_copy(update={"model_sha256": None}).write(run / "eval" / "metrics.json")
+        assert matching_evaluation(run, model, cfg, names, cpu) is None
+        data.model_copy(update={"model_sha256": "0" * 64}).write(run / "eval" / "metrics.json")
+        assert matching_evaluation(run, model, cfg, names, cpu) is None
+        data.write(run / "eval" / "metrics.json")
+        assert matching_evaluation(run, model, cfg, names, cpu) is not None
+        # the settings file and the report disagree (written by different runs)
+        (run / "eval" / "config.json").write_text(EvalConfig(num_samples=2).model_dump_json())
+        assert matching_evaluation(run, model, EvalConfig(num_samples=2), names, cpu) is None
+        (run / "eval" / "config.json").write_text("{not json")
+        assert matching_evaluation(run, model, cfg, names, cpu) is None
+
+
 class TestResidualCache:
     """``RUN/eval/residual.pt``: evaluate keeps the fitted pixel noise under a key of the model and the settings it
     depends on; the next evaluate or prune of the same model with those settings reads it and gets the same numbers."""

@@ -20,7 +20,7 @@ from uncertsplat.schemas.base import SchemaFile
 from uncertsplat.schemas.base import Strict as _Strict
 from uncertsplat.schemas.base import finite_or_none as _finite_or_none
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 """``EvalReport``'s: 2 added ``calibration_held_out`` (2026-11-27)."""
 
 
@@ -178,10 +178,14 @@ class EvalReport(SchemaFile):
 
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
-        # version 1 had every key but calibration_held_out: its std factor was always fitted on training views
-        if version != 1:
+        # version 1 had every key but calibration_held_out (its std factor was always fitted on training views) and
+        # model_sha256; version 2 every key but model_sha256 (not recorded)
+        if version not in (1, 2):
             return None
-        return {**data, "calibration_held_out": False}
+        out = {"model_sha256": None, **data}
+        if version == 1:
+            out.setdefault("calibration_held_out", False)
+        return out
 
     schema_version: int = SCHEMA_VERSION
     split: str = "test"
@@ -224,6 +228,10 @@ class EvalReport(SchemaFile):
     pixel-noise term or in reports from before it."""
     lpips: LpipsStatus | None = None
     device: str | None = None
+    model_sha256: str | None = None
+    """SHA-256 of the model file scored (``variational.ply`` or the method's file); None: not recorded (files of
+    schema version 2 and older) or a model of several files (an ensemble). ``prune`` reads this evaluation's
+    held-out means as its "before" row when the file, the settings and the versions are the same."""
     notes: list[str] = Field(default_factory=list)
 
     @field_validator("seconds_per_view", "std_floor", mode="before")

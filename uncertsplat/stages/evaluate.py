@@ -24,6 +24,7 @@ std over the K samples.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -32,6 +33,9 @@ from uncertsplat.console import console
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import ViewMaps
 from uncertsplat.io.maps import EXR_CHANNELS, map_stem
+
+if TYPE_CHECKING:
+    from uncertsplat.schemas.metrics import EvalReport
 
 
 def write_view_maps(folder: Path, maps: ViewMaps, preview: str) -> None:
@@ -95,6 +99,38 @@ def same_model_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device) 
     return source / "eval"
 
 
+OUTPUT_SETTINGS = ("save_maps", "preview", "reuse")
+"""``EvalConfig`` fields that change what ``evaluate`` writes or whether it runs, not the numbers it measures."""
+
+
+def matching_evaluation(run_dir: Path, model_file: Path, cfg: EvalConfig, image_names: list[str],
+                        device: torch.device) -> EvalReport | None:
+    """``run_dir``'s ``eval/metrics.json`` when it holds what evaluating ``model_file`` on ``image_names`` with
+    ``cfg`` would measure: the file scored is ``model_file`` as it is now (``EvalReport.model_sha256``), the same
+    views, device and versions (uncertsplat, Python, torch), and settings equal to ``cfg`` but for
+    ``OUTPUT_SETTINGS`` (``eval/config.json``, tied to the report by its hash). Else None, as for any file missing,
+    unreadable or of an older version that did not record the model."""
+    from uncertsplat.provenance import file_sha256, hash_config, versions
+    from uncertsplat.schemas.metrics import EvalReport
+
+    try:
+        report = EvalReport.read_optional(run_dir / EvalReport.FILE_NAME)
+        if (report is None or report.model_sha256 is None or report.image_names != list(image_names)
+                or report.device != str(device) or report.versions != versions()):
+            return None
+        used = EvalConfig.model_validate_json((run_dir / "eval" / "config.json").read_text(encoding="utf-8"))
+        if report.config_hash != hash_config(used.model_dump(mode="json")):
+            return None
+        if used.model_dump(mode="json", exclude=set(OUTPUT_SETTINGS)) != cfg.model_dump(
+                mode="json", exclude=set(OUTPUT_SETTINGS)):
+            return None
+        if file_sha256(model_file) != report.model_sha256:
+            return None
+    except (OSError, UserError, ValueError):
+        return None
+    return report
+
+
 def _copy_evaluation(source_eval: Path, out: Path) -> None:
     """Copy ``source_eval``'s maps, metrics and config to ``out``, adding a note to the metrics; the copy is built
     beside ``out`` and renamed into place, so a failure leaves ``out`` as it was."""
@@ -140,7 +176,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
     from uncertsplat.data.dataset import load_view_set
     from uncertsplat.eval.engine import evaluate_views, scored_sampler, split_indices
     from uncertsplat.io.atomic import atomic_write_text, run_lock
-    from uncertsplat.provenance import hash_config
+    from uncertsplat.provenance import file_sha256, hash_config
     from uncertsplat.schemas.metrics import EvalReport
     from uncertsplat.stages.residual_cache import fitted_residual
 
@@ -186,6 +222,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
         note = _unlooked_note(sampler, views, device)
         if note:
             report.notes.append(note)
+        if Path(loaded.source).is_file():  # which model file these numbers belong to (prune reads them back)
+            report.model_sha256 = file_sha256(loaded.source)
         atomic_write_text(out / "metrics.json", report.to_json() + "\n")
         atomic_write_text(out / "config.json", cfg.model_dump_json(indent=2) + "\n")
     if note:

@@ -133,6 +133,23 @@ class _Measure:
             alpha.append(out.alpha[0].cpu())
         return torch.stack(rgb), torch.stack(alpha)
 
+    def unpruned(self, run_dir: Path) -> tuple[PruneMetrics, Path | None]:
+        """The source model's metrics, and the ``evaluate`` report they were read from (None: measured here): its
+        held-out means when ``evaluate`` scored this model file on these views with these settings
+        (``stages.evaluate.matching_evaluation``: what ``self(model)`` would measure again); the expected render's
+        PSNR, the coverage and the file sizes are measured either way."""
+        from uncertsplat.schemas.metrics import EvalReport
+        from uncertsplat.stages.evaluate import matching_evaluation
+
+        names = [self.scene.cameras.image_names[i] for i in self.indices]
+        report = matching_evaluation(run_dir, Path(self.loaded.source), self.ecfg, names, self.device)
+        if report is None:
+            return self(self.loaded.model), None
+        t0 = time.perf_counter()
+        cheap = self(self.loaded.model, full=False)
+        return cheap.model_copy(update={**{k: getattr(report.mean, k) for k in METRIC_KEYS},
+                                        "seconds": time.perf_counter() - t0}), run_dir / EvalReport.FILE_NAME
+
     def file_sizes(self, model) -> dict[str, int]:
         from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
 
@@ -311,7 +328,10 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
     console.print(f"[bold]prune[/] {run_dir}: {n} Gaussians ({model.num_carriers} with a posterior), score "
                   f"'{score_name}', {len(indices)} {split} views, K={cfg.num_samples}, {device}")
     measure = _Measure(loaded, scene, indices, cfg, device)
-    before = measure(model)
+    before, read_from = measure.unpruned(run_dir)
+    if read_from is not None:
+        notes.append(f"the unpruned model's uncertainty metrics are evaluate's ({read_from}: the same model file, "
+                     "views, settings and versions)")
 
     # ---- sweep (also what --auto decides on)
     sweep = None
