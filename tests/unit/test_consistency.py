@@ -165,29 +165,50 @@ class TestViewConsistency:
         with pytest.raises(ValueError, match="at least one training camera"):
             ViewConsistency.of(_sample(), _cameras([0.0])[[]], render_fn)
 
-    def test_a_point_no_training_camera_looked_at_gets_the_views_far_differences(self, monkeypatch, device):
+    def test_a_point_no_training_camera_looked_at_gets_the_palettes_variance(self, device):
         """Training views at 0 and 50 degrees, a wider evaluated one at 20: its centre is seen from both (20 and 30
         degrees off, beyond twice a 4-degree gate; the 0-degree view is the nearer), its corners lie outside both
-        training images and get the mean of the full-weight differences (a mixture of the two kinds); with too few
-        of those, or when another (not compared) training camera's image holds the corners, they get nothing."""
+        training images and get the variance of the training renders' colours (here two constants over equal
+        areas: (c50 - c0)^2 / 4, times n / (n - 1)); nothing without a palette, or when another (not compared)
+        training camera's image holds the corners."""
         render_fn = _plane_render()
         vc = dataclasses.replace(ViewConsistency.of(_sample(device), _cameras([0.0, 50.0], focal=30.0, device=device),
                                                     render_fn), gate=4.0)
+        c0, c50 = _colour(_cameras([0.0])), _colour(_cameras([50.0]))
+        n = 2 * H * W
+        assert vc.palette_var == pytest.approx((c50 - c0) ** 2 / 4 * n / (n - 1), rel=1e-5)
         test = _cameras([20.0], focal=14.0, device=device)
-        d0 = (_colour(test) - _colour(_cameras([0.0]))) ** 2
-        d50 = (_colour(test) - _colour(_cameras([50.0]))) ** 2
+        d0 = (_colour(test) - c0) ** 2
         var = vc.variance(test, render_fn)[0, ..., 0]
         assert var.device.type == torch.device(device).type
         assert float(var[H // 2, W // 2]) == pytest.approx(d0, rel=0.02)  # seen: its own difference
         for corner in (float(var[0, 0]), float(var[0, -1]), float(var[-1, -1])):
-            assert d0 * 1.05 < corner < d50 * 0.95  # neither kind alone: their mean over the view
-        monkeypatch.setattr(consistency, "MIN_FAR_PIXELS", H * W + 1)  # too few far differences: nothing there
-        assert float(vc.variance(test, render_fn)[0, 0, -1, 0]) == 0.0
-        monkeypatch.undo()
+            assert corner == pytest.approx(vc.palette_var, rel=1e-3)
+        assert float(dataclasses.replace(vc, palette_var=0.0).variance(test, render_fn)[0, 0, -1, 0]) == 0.0
         wide = dataclasses.replace(vc, frustum_cameras=_cameras([0.0, 50.0, 20.0], focal=6.0, device=device))
         looked = wide.variance(test, render_fn)[0, ..., 0]
         assert float(looked[0, -1]) == 0.0  # a training camera held the corner: not "never looked at"
         assert float(looked[H // 2, W // 2]) == pytest.approx(d0, rel=0.02)
+
+    def test_the_palette_counts_only_surface_pixels(self, device):
+        """Pixels without a surface (alpha below ``MIN_ALPHA``: the background of an object scene) are not colours of
+        the scene; a single colour has no variance."""
+        render_fn = _plane_render()
+
+        def half_empty(sample, cameras):
+            out = render_fn(sample, cameras)
+            alpha = out.alpha.clone()
+            alpha[:, :, : W // 2] = 0.0
+            rgb = out.rgb.clone()
+            rgb[:, :, : W // 2] = 0.9  # the background's colour
+            return dataclasses.replace(out, alpha=alpha, rgb=rgb)
+
+        one = ViewConsistency.of(_sample(device), _cameras([10.0], device=device), half_empty)
+        assert one.palette_var == 0.0
+        two = ViewConsistency.of(_sample(device), _cameras([0.0, 50.0], device=device), half_empty)
+        full = ViewConsistency.of(_sample(device), _cameras([0.0, 50.0], device=device), render_fn)
+        n, m = 2 * H * W, H * W
+        assert two.palette_var == pytest.approx(full.palette_var * (n - 1) / n * m / (m - 1), rel=1e-5)
 
     def test_the_fraction_of_a_view_no_training_camera_looked_at(self, device):
         """The wide view at 20 degrees sees the plane beyond both narrow training images at its corners: a part of

@@ -239,7 +239,7 @@ pixels at an image's edge are usual in any capture."""
 def _unlooked_note(sampler, views, device: torch.device) -> str | None:
     """A note naming the evaluated views whose surface lies outside every training photo for at least
     ``UNLOOKED_NOTE`` of its pixels (``ViewConsistency.unlooked_fraction``): where the model extrapolates beyond the
-    capture and the std there is the view-consistency term's far level. None without such a view or without the
+    capture and the std there is the view-consistency term's palette variance. None without such a view or without the
     term (``consistency_views = 0``)."""
     if sampler.consistency is None:
         return None
