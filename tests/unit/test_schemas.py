@@ -145,7 +145,8 @@ def test_older_version_without_conversion_is_refused(tmp_path):
     del data["schema_version"]  # an EvalReport always had a version: 0 cannot be converted
     path = tmp_path / "metrics.json"
     path.write_text(json.dumps(data))
-    with pytest.raises(UserError, match=r"schema version 0 is older than 2 and cannot be converted") as err:
+    with pytest.raises(UserError, match=rf"schema version 0 is older than {EvalReport.SCHEMA_VERSION} and cannot be "
+                       "converted") as err:
         EvalReport.read(path)
     assert "uncertsplat evaluate" in str(err.value)  # says which command rewrites it
 
@@ -233,7 +234,8 @@ def test_version_1_run_scene_and_eval_report_are_converted(tmp_path):
     assert got.schema_version == 2 and got.calibration == [] and got.train == scene.train
     report = next(e for e in EXAMPLES if isinstance(e, EvalReport))
     got = _as_version_1(report, "calibration_held_out", tmp_path / "metrics.json")
-    assert got.schema_version == 2 and not got.calibration_held_out and got.mean == report.mean
+    assert got.schema_version == EvalReport.SCHEMA_VERSION and not got.calibration_held_out and got.mean == report.mean
+    assert got.model_sha256 is None
 
 
 def test_train_summary_version_1_is_converted(tmp_path):
