@@ -165,11 +165,13 @@ class ViewConsistency:
         to_view = F.normalize(camera.centers[0].to(points) - points, dim=-1)  # [S,3]
         best = torch.full_like(points[:, 0], float("inf"))  # [S] angle of the chosen view
         diff = torch.zeros_like(colour[:, 0])  # [S]
+        inside_any = torch.zeros_like(points[:, 0], dtype=torch.bool)  # [S] in some compared view's image
         hk, wk = self.cameras.height, self.cameras.width
         for k0 in range(0, len(self.cameras), VIEW_CHUNK):
             cams = self.cameras[k0:k0 + VIEW_CHUNK]
             uv, z = project_points(points, cams.cam_from_world, cams.K)  # [C,S,2], [C,S]
             inside = _in_image(uv, z, wk, hk)  # [C,S]
+            inside_any |= inside.any(0)
             # the training views' renders and depths at the point, bilinearly (a surface at a grazing angle changes
             # depth by more than the tolerance from one pixel to the next)
             image = torch.cat([self.rgb[k0:k0 + VIEW_CHUNK].to(rgb.dtype),
@@ -187,7 +189,11 @@ class ViewConsistency:
             best = torch.where(better, nearest, best)
         weight = ((best - self.gate) / self.gate).clamp(0.0, 1.0).to(rgb.dtype)  # diff is 0 where no view saw it
         if self.palette_var > 0.0:
-            unlooked = torch.isinf(best) & ~self._looked_at(points)  # [S] outside every training image
+            # outside every training image: the compared views' images were tested above; the other training cameras
+            # only for the points outside all of those (usually few)
+            unlooked = torch.isinf(best) & ~inside_any  # [S]
+            if self.frustum_cameras is not None and bool(unlooked.any()):
+                unlooked[unlooked.clone()] = ~self._looked_at(points[unlooked])
             diff = torch.where(unlooked, torch.full_like(diff, self.palette_var), diff)  # weight 1 there (best = inf)
         full = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(0, where, diff * weight)
         return _box_mean(full.reshape(h, w))[None, ..., None]
