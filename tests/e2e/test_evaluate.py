@@ -425,8 +425,9 @@ class TestPruneReadsTheEvaluation:
         measured = prune.run(run, None, PruneConfig(**self.CFG, dry_run=True), device=cpu)
         assert not any("evaluate's" in n for n in measured.notes)
         report = evaluate.run(run, EvalConfig(num_samples=2), device=cpu)
-        assert report.model_sha256 == file_sha256(run / "variational.ply")
-        assert EvalReport.read(run / "eval" / "metrics.json").model_sha256 == report.model_sha256
+        assert report.run_sha256 == evaluate.run_sha256(run, run / "variational.ply")
+        assert report.run_sha256 != file_sha256(run / "variational.ply")  # the run's config and scene count too
+        assert EvalReport.read(run / "eval" / "metrics.json").run_sha256 == report.run_sha256
         read = prune.run(run, None, PruneConfig(**self.CFG, dry_run=True), device=cpu)
         assert any("evaluate's" in n and "metrics.json" in n for n in read.notes)
         for k in METRIC_KEYS:  # what measuring gives, to the last digit
@@ -456,11 +457,16 @@ class TestPruneReadsTheEvaluation:
         assert matching_evaluation(run, model, cfg, names, torch.device("meta")) is None
         # a report of an older version (no model recorded), and one of another model file
         data = EvalReport.read(run / "eval" / "metrics.json")
-        data.model_copy(update={"model_sha256": None}).write(run / "eval" / "metrics.json")
+        data.model_copy(update={"run_sha256": None}).write(run / "eval" / "metrics.json")
         assert matching_evaluation(run, model, cfg, names, cpu) is None
-        data.model_copy(update={"model_sha256": "0" * 64}).write(run / "eval" / "metrics.json")
+        data.model_copy(update={"run_sha256": "0" * 64}).write(run / "eval" / "metrics.json")
         assert matching_evaluation(run, model, cfg, names, cpu) is None
         data.write(run / "eval" / "metrics.json")
+        assert matching_evaluation(run, model, cfg, names, cpu) is not None
+        scene_json = (run / "scene.json").read_bytes()  # the run's files changed since it was evaluated
+        (run / "scene.json").write_bytes(scene_json + b"\n")
+        assert matching_evaluation(run, model, cfg, names, cpu) is None
+        (run / "scene.json").write_bytes(scene_json)
         assert matching_evaluation(run, model, cfg, names, cpu) is not None
         # the settings file and the report disagree (written by different runs)
         (run / "eval" / "config.json").write_text(EvalConfig(num_samples=2).model_dump_json())

@@ -122,17 +122,17 @@ def test_schema_keys_walk_nested_records():
 
 
 def test_evaluation_reports_of_versions_1_and_2_read_without_the_model_file(tmp_path):
-    """``metrics.json`` gained ``model_sha256`` in version 3 (``prune`` reads an evaluation of the same model file
+    """``metrics.json`` gained ``run_sha256`` in version 3 (``prune`` reads an evaluation of the same model file
     back); older reports read with it at None, so ``prune`` measures again instead of trusting them."""
-    current = schemas.EvalReport(image_names=["a.png"], device="cpu", model_sha256="f" * 64).model_dump(mode="json")
-    v2 = {k: v for k, v in current.items() if k != "model_sha256"} | {"schema_version": 2}
+    current = schemas.EvalReport(image_names=["a.png"], device="cpu", run_sha256="f" * 64).model_dump(mode="json")
+    v2 = {k: v for k, v in current.items() if k != "run_sha256"} | {"schema_version": 2}
     v1 = {k: v for k, v in v2.items() if k != "calibration_held_out"} | {"schema_version": 1}
     for data in (v1, v2):
         path = tmp_path / "metrics.json"
         path.write_text(json.dumps(data))
         got = schemas.EvalReport.read(path)
-        assert got.schema_version == 3 and got.model_sha256 is None and got.image_names == ["a.png"]
+        assert got.schema_version == 3 and got.run_sha256 is None and got.image_names == ["a.png"]
         assert got.calibration_held_out is False
-    kept = v2 | {"model_sha256": "e" * 64}  # written between the key's arrival and the bump: kept
+    kept = v2 | {"run_sha256": "e" * 64}  # written between the key's arrival and the bump: kept
     path.write_text(json.dumps(kept))
-    assert schemas.EvalReport.read(path).model_sha256 == "e" * 64
+    assert schemas.EvalReport.read(path).run_sha256 == "e" * 64

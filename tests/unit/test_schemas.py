@@ -235,7 +235,7 @@ def test_version_1_run_scene_and_eval_report_are_converted(tmp_path):
     report = next(e for e in EXAMPLES if isinstance(e, EvalReport))
     got = _as_version_1(report, "calibration_held_out", tmp_path / "metrics.json")
     assert got.schema_version == EvalReport.SCHEMA_VERSION and not got.calibration_held_out and got.mean == report.mean
-    assert got.model_sha256 is None
+    assert got.run_sha256 is None
 
 
 def test_train_summary_version_1_is_converted(tmp_path):

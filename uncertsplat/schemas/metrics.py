@@ -179,10 +179,10 @@ class EvalReport(SchemaFile):
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
         # version 1 had every key but calibration_held_out (its std factor was always fitted on training views) and
-        # model_sha256; version 2 every key but model_sha256 (not recorded)
+        # run_sha256; version 2 every key but run_sha256 (not recorded)
         if version not in (1, 2):
             return None
-        out = {"model_sha256": None, **data}
+        out = {"run_sha256": None, **data}
         if version == 1:
             out.setdefault("calibration_held_out", False)
         return out
@@ -228,10 +228,11 @@ class EvalReport(SchemaFile):
     pixel-noise term or in reports from before it."""
     lpips: LpipsStatus | None = None
     device: str | None = None
-    model_sha256: str | None = None
-    """SHA-256 of the model file scored (``variational.ply`` or the method's file); None: not recorded (files of
-    schema version 2 and older) or a model of several files (an ensemble). ``prune`` reads this evaluation's
-    held-out means as its "before" row when the file, the settings and the versions are the same."""
+    run_sha256: str | None = None
+    """What was scored: a SHA-256 over the model file (``variational.ply`` or the method's file) and the run's
+    ``config.json`` and ``scene.json`` (``stages.evaluate.run_sha256``); None: not recorded (files of schema version
+    2 and older) or a model of several files (an ensemble). ``prune`` reads this evaluation's held-out means as its
+    "before" row when these, the settings and the versions are the same."""
     notes: list[str] = Field(default_factory=list)
 
     @field_validator("seconds_per_view", "std_floor", mode="before")

@@ -103,19 +103,37 @@ OUTPUT_SETTINGS = ("save_maps", "preview", "reuse")
 """``EvalConfig`` fields that change what ``evaluate`` writes or whether it runs, not the numbers it measures."""
 
 
+def run_sha256(run_dir: Path, model_file: Path) -> str:
+    """SHA-256 over what an evaluation of ``run_dir`` scores: ``model_file`` and the run's ``config.json`` and
+    ``scene.json`` (either may be missing).
+
+    Raises:
+        OSError: the model file cannot be read.
+    """
+    import hashlib
+
+    from uncertsplat.provenance import file_sha256
+
+    parts = [file_sha256(model_file)]
+    for name in ("config.json", "scene.json"):
+        path = Path(run_dir) / name
+        parts.append(file_sha256(path) if path.is_file() else "-")
+    return hashlib.sha256(" ".join(parts).encode()).hexdigest()
+
+
 def matching_evaluation(run_dir: Path, model_file: Path, cfg: EvalConfig, image_names: list[str],
                         device: torch.device) -> EvalReport | None:
     """``run_dir``'s ``eval/metrics.json`` when it holds what evaluating ``model_file`` on ``image_names`` with
-    ``cfg`` would measure: the file scored is ``model_file`` as it is now (``EvalReport.model_sha256``), the same
-    views, device and versions (uncertsplat, Python, torch), and settings equal to ``cfg`` but for
-    ``OUTPUT_SETTINGS`` (``eval/config.json``, tied to the report by its hash). Else None, as for any file missing,
-    unreadable or of an older version that did not record the model."""
-    from uncertsplat.provenance import file_sha256, hash_config, versions
+    ``cfg`` would measure: the model file and the run's config and scene files as they are now
+    (``EvalReport.run_sha256``), the same views, device and versions (uncertsplat, Python, torch), and settings equal
+    to ``cfg`` but for ``OUTPUT_SETTINGS`` (``eval/config.json``, tied to the report by its hash). Else None, as for
+    any file missing, unreadable or of an older version that did not record the run."""
+    from uncertsplat.provenance import hash_config, versions
     from uncertsplat.schemas.metrics import EvalReport
 
     try:
         report = EvalReport.read_optional(run_dir / EvalReport.FILE_NAME)
-        if (report is None or report.model_sha256 is None or report.image_names != list(image_names)
+        if (report is None or report.run_sha256 is None or report.image_names != list(image_names)
                 or report.device != str(device) or report.versions != versions()):
             return None
         used = EvalConfig.model_validate_json((run_dir / "eval" / "config.json").read_text(encoding="utf-8"))
@@ -124,7 +142,7 @@ def matching_evaluation(run_dir: Path, model_file: Path, cfg: EvalConfig, image_
         if used.model_dump(mode="json", exclude=set(OUTPUT_SETTINGS)) != cfg.model_dump(
                 mode="json", exclude=set(OUTPUT_SETTINGS)):
             return None
-        if file_sha256(model_file) != report.model_sha256:
+        if run_sha256(run_dir, model_file) != report.run_sha256:
             return None
     except (OSError, UserError, ValueError):
         return None
@@ -176,7 +194,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
     from uncertsplat.data.dataset import load_view_set
     from uncertsplat.eval.engine import evaluate_views, scored_sampler, split_indices
     from uncertsplat.io.atomic import atomic_write_text, run_lock
-    from uncertsplat.provenance import file_sha256, hash_config
+    from uncertsplat.provenance import hash_config
     from uncertsplat.schemas.metrics import EvalReport
     from uncertsplat.stages.residual_cache import fitted_residual
 
@@ -222,8 +240,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
         note = _unlooked_note(sampler, views, device)
         if note:
             report.notes.append(note)
-        if Path(loaded.source).is_file():  # which model file these numbers belong to (prune reads them back)
-            report.model_sha256 = file_sha256(loaded.source)
+        if Path(loaded.source).is_file():  # which model and run these numbers belong to (prune reads them back)
+            report.run_sha256 = run_sha256(run_dir, Path(loaded.source))
         atomic_write_text(out / "metrics.json", report.to_json() + "\n")
         atomic_write_text(out / "config.json", cfg.model_dump_json(indent=2) + "\n")
     if note:
