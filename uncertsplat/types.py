@@ -154,18 +154,26 @@ class GaussianSample:
             convolved with it, i.e. covariance Sigma + var I, with its opacity scaled per view by
             sqrt(det Sigma2d / det Sigma2d') (both with the screen-space dilation) so that its footprint
             keeps the mass of the sharp one. None (the default) is a plain render.
+        sh_rest: optional [N,B-1,3]: the higher SH bands apart, ``sh`` then holding the DC [N,1,3] only (a
+            training step's sample: the parameter table's two tensors, rendered without a concatenated copy;
+            ``render.sh.sh_colors_split``). ``full_sh`` gives [N,B,3] either way.
     """
 
     means: Tensor  # [N,3]
     quats: Tensor  # [N,4]
     scales: Tensor  # [N,3]
     opacities: Tensor  # [N]
-    sh: Tensor  # [N,B,3]
+    sh: Tensor  # [N,B,3], or [N,1,3] with sh_rest
     sh_degree: int = 0
     position_var: Tensor | None = None  # [N]
+    sh_rest: Tensor | None = None  # [N,B-1,3]
 
     def __len__(self) -> int:
         return self.means.shape[0]
+
+    def full_sh(self) -> Tensor:
+        """[N,B,3] every SH coefficient (``sh``, or ``sh`` and ``sh_rest`` concatenated)."""
+        return self.sh if self.sh_rest is None else torch.cat([self.sh, self.sh_rest], dim=1)
 
     def to(self, device=None, dtype=None) -> GaussianSample:
         return _map_tensors(self, lambda t: t.to(device=device, dtype=dtype))

@@ -20,7 +20,7 @@ from uncertsplat.gaussians.variational import TABLE_NAMES, Prior, kl_terms, rand
 from uncertsplat.render import render
 from uncertsplat.render.project import project_gaussians
 from uncertsplat.render.rasterize import bin_gaussians, composite
-from uncertsplat.render.sh import sh_colors
+from uncertsplat.render.sh import num_sh_bases, sh_colors, sh_colors_split
 
 PARAMS = ("means", "quats", "scales", "opacities", "sh")
 
@@ -469,6 +469,54 @@ def test_native_sh_colours_match_the_reference(monkeypatch, degree, bases):
     assert torch.allclose(out["native"][0], out["torch"][0], atol=1e-5, rtol=1e-5)
     for ref, got in zip(out["torch"][1:], out["native"][1:], strict=True):
         assert ((got - ref).norm() / ref.norm().clamp_min(1e-30)).item() <= 1e-5
+
+
+@pytest.mark.parametrize("degree,bases", [(0, 1), (0, 4), (1, 4), (2, 9), (3, 16)])
+def test_sh_from_two_arrays_equals_sh_from_their_concatenation(monkeypatch, degree, bases):
+    """``sh_colors_split`` (the DC and the higher bands as two tensors, the parameter table's layout) gives the
+    colours and gradients of ``sh_colors`` on their concatenation, bit for bit with the native kernel, and its
+    gradients come in the inputs' own contiguous layouts (so autograd stores them without a copy); the same on the
+    PyTorch path."""
+    g = torch.Generator().manual_seed(10 + degree)
+    sh, means = torch.randn(700, bases, 3, generator=g), torch.randn(700, 3, generator=g)
+    centres = torch.randn(3, 3, generator=g) * 3
+    weights = torch.randn(3, 700, 3, generator=g)
+    for backend in ("native", "torch"):
+        monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", backend)
+        a, b = sh.clone().requires_grad_(), means.clone().requires_grad_()
+        joined = sh_colors(degree, a, b, centres)
+        (joined * weights).sum().backward()
+        dc, rest, m = sh[:, :1].clone().requires_grad_(), sh[:, 1:].clone().requires_grad_(), \
+            means.clone().requires_grad_()
+        split = sh_colors_split(degree, dc, rest, m, centres)
+        (split * weights).sum().backward()
+        assert torch.equal(split, joined), backend
+        assert torch.equal(dc.grad, a.grad[:, :1]) and torch.equal(rest.grad, a.grad[:, 1:]), backend
+        assert torch.equal(m.grad, b.grad) if b.grad is not None else m.grad is None or not m.grad.any()
+        assert dc.grad.is_contiguous() and rest.grad.is_contiguous()
+        if bases > 1:
+            assert not rest.grad[:, num_sh_bases(degree) - 1:].any(), "bases above the degree get 0"
+
+
+def test_a_training_sample_renders_as_its_concatenated_copy():
+    """The expected render with the tables' constants (a training step's sample) keeps the SH as the table's two
+    tensors; rendered, it equals the same sample with them concatenated, and ``full_sh`` is that concatenation."""
+    from dataclasses import replace
+
+    from uncertsplat.gaussians.variational import expected_constants, expected_render_sample
+    from uncertsplat.render.render import render
+
+    model = random_model(300, torch.Generator().manual_seed(4), perturb_tables=0.3)
+    constants = expected_constants(model, extent=1.0, temperature=0.2)
+    s = expected_render_sample(model, variant="ours", extent=1.0, temperature=0.2, tables_grad=False,
+                               constants=constants)
+    assert s.sh_rest is not None and s.sh.shape[1] == 1
+    assert s.sh.data_ptr() == model.params["sh0"].data_ptr() and s.sh_rest.data_ptr() == model.params["shN"].data_ptr()
+    joined = replace(s, sh=s.full_sh(), sh_rest=None)
+    assert joined.sh.shape[1] == 1 + s.sh_rest.shape[1]
+    cams = look_at_cameras(2, 40, 30, focal=35.0, radius=3.0)
+    a, b = render(s, cams), render(joined, cams)
+    assert torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth)
 
 
 def test_native_projection_matches_the_reference(monkeypatch):

@@ -338,10 +338,13 @@ class TestExpectedConstants:
             for v in model.params.values():
                 v.grad = None
             w = torch.linspace(0.5, 1.5, s_.means.numel()).view_as(s_.means)
-            (s_.means * w).sum().add(s_.scales.square().sum()).add(s_.opacities.sum()).add(s_.sh.sum()).backward()
+            (s_.means * w).sum().add(s_.scales.square().sum()).add(s_.opacities.sum()).add(
+                s_.full_sh().sum()).backward()
             grads.append({k: v.grad.clone() for k, v in model.params.items() if v.grad is not None})
-        for k in ("means", "scales", "opacities", "sh", "quats"):
+        for k in ("means", "scales", "opacities", "quats"):
             torch.testing.assert_close(getattr(fast, k), getattr(slow, k), rtol=1e-6, atol=0)
+        assert fast.sh_rest is not None and slow.sh_rest is None  # the training sample keeps the table's SH tensors
+        torch.testing.assert_close(fast.full_sh(), slow.full_sh(), rtol=0, atol=0)
         torch.testing.assert_close(fast.position_var, slow.position_var, rtol=0, atol=0)
         assert grads[0].keys() == grads[1].keys()
         for k in grads[0]:

@@ -378,16 +378,18 @@ def expected_render_sample(model: GaussianModel, *, variant: Variant = "ours", e
     no second projection: ``render._blur_log_peak``). Training
     decisions (densify, prune, spawn) keep using ``posterior_mean``: they concern the parameters, not a
     render. ``tables_grad``: as for ``sample``. ``constants``: ``expected_constants`` of the current tables
-    (variant "ours" with ``tables_grad=False`` only; ignored otherwise or when they no longer ``fit``).
+    (variant "ours" with ``tables_grad=False`` only; ignored otherwise or when they no longer ``fit``); the sample
+    then holds the SH as the table's two tensors (``GaussianSample.sh_rest``), for a training step's render.
     """
     if (constants is not None and variant == "ours" and not tables_grad and model.num_carriers > 0
             and constants.fits(model)):
         p = model.params
         degree = model.sh_degree if sh_degree is None else min(sh_degree, model.sh_degree)
+        # the SH as the table's two tensors (GaussianSample.sh_rest): a training step renders them uncopied
         return GaussianSample(means=p["means"] + constants.offset, quats=p["quats"],
                               scales=torch.exp(p["scales"]) * constants.scale_factor,
                               opacities=torch.sigmoid(p["opacities"]) * constants.gate,
-                              sh=torch.cat([p["sh0"], p["shN"]], dim=1), sh_degree=degree,
+                              sh=p["sh0"], sh_rest=p["shN"], sh_degree=degree,
                               position_var=constants.position_var)
     pm = posterior_mean(model, variant=variant, extent=extent, temperature=temperature, sh_degree=sh_degree,
                         tables_grad=tables_grad)

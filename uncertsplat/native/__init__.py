@@ -34,7 +34,7 @@ from pathlib import Path
 
 import torch
 
-INTERFACE_VERSION = 15
+INTERFACE_VERSION = 16
 CSRC = Path(__file__).with_name("csrc")
 # compiled side by side, one process each (``_build``): the two halves of the rasterizer take most of the time
 SOURCES = (CSRC / "composite_forward.cpp", CSRC / "composite_backward.cpp", CSRC / "losses.cpp", CSRC / "project.cpp",
@@ -188,6 +188,10 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.us_sh_forward_f32.restype = ctypes.c_int
     lib.us_sh_backward_f32.argtypes = [i64] * 4 + [ptr] * 6 + [i64]
     lib.us_sh_backward_f32.restype = ctypes.c_int
+    lib.us_sh2_forward_f32.argtypes = [i64] * 4 + [ptr] * 5 + [i64]
+    lib.us_sh2_forward_f32.restype = ctypes.c_int
+    lib.us_sh2_backward_f32.argtypes = [i64] * 4 + [ptr] * 8 + [i64]
+    lib.us_sh2_backward_f32.restype = ctypes.c_int
     lib.us_project_forward_f32.argtypes = [i64, i64] + [ptr] * 6 + [i64, i64, f64, f64, f64, f64] + [ptr] * 5 + [i64]
     lib.us_project_forward_f32.restype = ctypes.c_int
     lib.us_project_backward_f32.argtypes = [i64, i64] + [ptr] * 5 + [i64, i64, f64, f64, f64] + [ptr] * 6 + [i64]

@@ -8,7 +8,7 @@ from torch import Tensor
 from ..types import Cameras, GaussianSample, RenderOutput
 from .project import ALPHA_MAX, clamped_view_angle, project_gaussians
 from .rasterize import bin_gaussians, composite, composite_image, composite_image_available, tiles_to_image
-from .sh import sh_colors
+from .sh import sh_colors, sh_colors_split
 
 
 def near_plane(scene_scale: float) -> float:
@@ -77,7 +77,10 @@ def render(
         means2d.retain_grad()
 
     centers = -(cam_from_world[:, :3, :3].transpose(1, 2) @ cam_from_world[:, :3, 3:])[..., 0]  # [C,3]
-    colors = sh_colors(sample.sh_degree, sample.sh, sample.means, centers, backend=backend)  # [C,N,3]
+    if sample.sh_rest is None:
+        colors = sh_colors(sample.sh_degree, sample.sh, sample.means, centers, backend=backend)  # [C,N,3]
+    else:
+        colors = sh_colors_split(sample.sh_degree, sample.sh, sample.sh_rest, sample.means, centers, backend=backend)
 
     bins = bin_gaussians(
         means2d.detach(),

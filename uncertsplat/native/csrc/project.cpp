@@ -119,16 +119,33 @@ inline T view_dir(const T* mean, const float* centre, T* d) {
 }
 
 // The means [3] and coefficients [nb * 3] of LANES Gaussians n0 .. (lanes past N repeat the last one).
-inline void load_sh_lanes(int64_t n0, int64_t N, int64_t B, int nb, const float* sh, const float* means, VF* m,
-                          VF* s) {
+// The coefficients of Gaussian n: the DC at dc + n * dc_stride (3 floats), bases 1.. at rest + n * rest_stride (3 each).
+// One [N,B,3] array: dc = sh, rest = sh + 3, both strides B * 3; the parameter table's two arrays sh0 [N,1,3] and
+// shN [N,B-1,3]: strides 3 and (B - 1) * 3 (no concatenated copy of them per step).
+struct ShLayout {
+    const float* dc;
+    int64_t dc_stride;
+    const float* rest;
+    int64_t rest_stride;
+};
+
+struct ShGradLayout {
+    float* dc;
+    int64_t dc_stride;
+    float* rest;
+    int64_t rest_stride;
+};
+
+inline void load_sh_lanes(int64_t n0, int64_t N, int nb, const ShLayout& sh, const float* means, VF* m, VF* s) {
     for (int l = 0; l < LANES; ++l) {
         const int64_t n = std::min<int64_t>(n0 + l, N - 1);
         for (int i = 0; i < 3; ++i) m[i][l] = means[3 * n + i];
-        for (int i = 0; i < nb * 3; ++i) s[i][l] = sh[n * B * 3 + i];
+        for (int i = 0; i < 3; ++i) s[i][l] = sh.dc[n * sh.dc_stride + i];
+        for (int i = 3; i < nb * 3; ++i) s[i][l] = sh.rest[n * sh.rest_stride + i - 3];
     }
 }
 
-void sh_forward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, const float* means,
+void sh_forward(int64_t C, int64_t N, int64_t B, int degree, const ShLayout& sh, const float* means,
                 const float* centres, float* out, int64_t num_threads) {
     const int nb = (degree + 1) * (degree + 1);
     const int64_t blocks = (N + LANES - 1) / LANES;
@@ -137,7 +154,7 @@ void sh_forward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, co
         VF m[3], s[48], Y[16], d[3] = {};
         for (int64_t blk = blocks * w / workers; blk < blocks * (w + 1) / workers; ++blk) {
             const int64_t n0 = blk * LANES;
-            load_sh_lanes(n0, N, B, nb, sh, means, m, s);
+            load_sh_lanes(n0, N, nb, sh, means, m, s);
             for (int64_t c = 0; c < C; ++c) {
                 if (degree > 0) view_dir<VF>(m, centres + 3 * c, d);
                 sh_basis<VF>(degree, d[0], d[1], d[2], Y, nullptr);
@@ -156,8 +173,9 @@ void sh_forward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, co
 
 // g_sh [N,B,3] and g_means [N,3] are overwritten (bases above the degree get 0). A (camera, Gaussian)
 // whose incoming gradient is 0 contributes nothing.
-void sh_backward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, const float* means,
-                 const float* centres, const float* g_out, float* g_sh, float* g_means, int64_t num_threads) {
+void sh_backward(int64_t C, int64_t N, int64_t B, int degree, const ShLayout& sh, const float* means,
+                 const float* centres, const float* g_out, const ShGradLayout& g_sh, float* g_means,
+                 int64_t num_threads) {
     const int nb = (degree + 1) * (degree + 1);
     const int64_t blocks = (N + LANES - 1) / LANES;
     const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, N / 2048 + 1));
@@ -165,7 +183,7 @@ void sh_backward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, c
         VF m[3], s[48], Y[16], dY[16][3], d[3] = {};
         for (int64_t blk = blocks * w / workers; blk < blocks * (w + 1) / workers; ++blk) {
             const int64_t n0 = blk * LANES;
-            load_sh_lanes(n0, N, B, nb, sh, means, m, s);
+            load_sh_lanes(n0, N, nb, sh, means, m, s);
             VF gs[48] = {}, gm[3] = {};
             for (int64_t c = 0; c < C; ++c) {
                 VF g[3] = {};
@@ -198,9 +216,11 @@ void sh_backward(int64_t C, int64_t N, int64_t B, int degree, const float* sh, c
             }
             for (int l = 0; l < LANES && n0 + l < N; ++l) {
                 const int64_t n = n0 + l;
-                float* gsn = g_sh + n * B * 3;
-                for (int i = 0; i < nb * 3; ++i) gsn[i] = gs[i][l];
-                std::fill(gsn + nb * 3, gsn + B * 3, 0.0f);
+                float* gdc = g_sh.dc + n * g_sh.dc_stride;
+                for (int i = 0; i < 3; ++i) gdc[i] = gs[i][l];
+                float* grest = g_sh.rest + n * g_sh.rest_stride;
+                for (int i = 3; i < nb * 3; ++i) grest[i - 3] = gs[i][l];
+                std::fill(grest + std::max(nb - 1, 0) * 3, grest + (B - 1) * 3, 0.0f);
                 for (int i = 0; i < 3; ++i) g_means[3 * n + i] = gm[i][l];
             }
         }
@@ -619,14 +639,34 @@ int us_blur_peak_backward_f32(int64_t C, int64_t N, const float* means, const fl
 int us_sh_forward_f32(int64_t C, int64_t N, int64_t B, int64_t degree, const float* sh, const float* means,
                       const float* centres, float* out, int64_t num_threads) {
     if (degree < 0 || degree > 3 || (degree + 1) * (degree + 1) > B) return 1;
-    sh_forward(C, N, B, static_cast<int>(degree), sh, means, centres, out, num_threads);
+    sh_forward(C, N, B, static_cast<int>(degree), ShLayout{sh, B * 3, sh + 3, B * 3}, means, centres, out,
+               num_threads);
     return 0;
 }
 
 int us_sh_backward_f32(int64_t C, int64_t N, int64_t B, int64_t degree, const float* sh, const float* means,
                        const float* centres, const float* g_out, float* g_sh, float* g_means, int64_t num_threads) {
     if (degree < 0 || degree > 3 || (degree + 1) * (degree + 1) > B) return 1;
-    sh_backward(C, N, B, static_cast<int>(degree), sh, means, centres, g_out, g_sh, g_means, num_threads);
+    sh_backward(C, N, B, static_cast<int>(degree), ShLayout{sh, B * 3, sh + 3, B * 3}, means, centres, g_out,
+                ShGradLayout{g_sh, B * 3, g_sh + 3, B * 3}, g_means, num_threads);
+    return 0;
+}
+
+// The same with the DC sh0 [N,1,3] and the higher bands shN [N,B-1,3] as two arrays (the parameter table's).
+int us_sh2_forward_f32(int64_t C, int64_t N, int64_t B, int64_t degree, const float* sh0, const float* shN,
+                       const float* means, const float* centres, float* out, int64_t num_threads) {
+    if (degree < 0 || degree > 3 || (degree + 1) * (degree + 1) > B) return 1;
+    sh_forward(C, N, B, static_cast<int>(degree), ShLayout{sh0, 3, shN, (B - 1) * 3}, means, centres, out,
+               num_threads);
+    return 0;
+}
+
+int us_sh2_backward_f32(int64_t C, int64_t N, int64_t B, int64_t degree, const float* sh0, const float* shN,
+                        const float* means, const float* centres, const float* g_out, float* g_sh0, float* g_shN,
+                        float* g_means, int64_t num_threads) {
+    if (degree < 0 || degree > 3 || (degree + 1) * (degree + 1) > B) return 1;
+    sh_backward(C, N, B, static_cast<int>(degree), ShLayout{sh0, 3, shN, (B - 1) * 3}, means, centres, g_out,
+                ShGradLayout{g_sh0, 3, g_shN, (B - 1) * 3}, g_means, num_threads);
     return 0;
 }
 
