@@ -36,6 +36,12 @@ def evaluated(tiny_run_path, tmp_path_factory):
     return run, report
 
 
+def test_the_notes_say_what_a_point_no_training_camera_looked_at_gets(evaluated):
+    """The predictive's description names the consistency term's level for such points: the palette's variance."""
+    _, report = evaluated
+    assert any("outside every training image gets the variance of the scene's colours" in n for n in report.notes)
+
+
 def test_writes_maps_and_metrics(evaluated):
     run, report = evaluated
     data = EvalReport.from_json((run / "eval" / "metrics.json").read_text())

@@ -590,8 +590,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         terms.append(f"the squared difference between the model's renders of each surface point from the view and from "
                      f"the training view nearest in direction that saw it, where that is more than "
                      f"{sampler.consistency.gate:.1f} degrees away ({len(sampler.consistency.cameras)} training views "
-                     f"compared; a point outside every training image gets the mean of the view's differences from "
-                     f"beyond twice that angle)")
+                     f"compared; a point outside every training image gets the variance of the scene's colours in "
+                     f"their renders, {sampler.consistency.palette_var:.4f})")
     if cfg.depth_spread:
         terms.append("for depth, the spread of the depths each ray blends (the model's deterministic render)")
     if cfg.empty_rays and sampler.empty_std is not None:
