@@ -115,7 +115,7 @@ def sh_colors(degree: int, sh: Tensor, means: Tensor, centers: Tensor, backend: 
 
     if native.use_for(sh, means, centers, backend=backend, dtypes=(torch.float32,), strict=False,
                       supported=0 <= degree <= 3):
-        return _NativeSH.apply(sh, means, centers, degree)
+        return _NativeSH.apply(sh, None, means, centers, degree)
     if degree == 0:
         # The DC term does not depend on the direction: skip the normalisation (and its gradient).
         rgb = (sh[:, 0, :] * C0 + 0.5).unsqueeze(0).expand(centers.shape[0], -1, -1)
@@ -133,7 +133,7 @@ def sh_colors_split(degree: int, sh0: Tensor, sh_rest: Tensor, means: Tensor, ce
 
     if native.use_for(sh0, sh_rest, means, centers, backend=backend, dtypes=(torch.float32,), strict=False,
                       supported=0 <= degree <= 3):
-        return _NativeSHSplit.apply(sh0, sh_rest, means, centers, degree)
+        return _NativeSH.apply(sh0, sh_rest, means, centers, degree)
     return sh_colors(degree, torch.cat([sh0, sh_rest], dim=1), means, centers, backend=backend)
 
 
@@ -146,20 +146,25 @@ def view_directions(means: Tensor, centers: Tensor) -> Tensor:
 
 
 class _NativeSH(torch.autograd.Function):
-    """``sh_colors`` by the native kernel; backward gives d loss / d sh and d loss / d means (view direction)."""
+    """``sh_colors`` / ``sh_colors_split`` by the native kernel: the coefficients as one [N,B,3] array (``sh_rest``
+    None) or as the DC [N,1,3] and the higher bands [N,B-1,3] apart, read in place; backward writes d loss / d
+    coefficients in the same layout and d loss / d means (view direction)."""
 
     @staticmethod
-    def forward(ctx, sh: Tensor, means: Tensor, centers: Tensor, degree: int) -> Tensor:
+    def forward(ctx, sh: Tensor, sh_rest: Tensor | None, means: Tensor, centers: Tensor, degree: int) -> Tensor:
         from uncertsplat import native
 
-        sh, means, centers = (t.detach().contiguous() for t in (sh, means, centers))
-        C, (N, B) = centers.shape[0], sh.shape[:2]
+        parts = tuple(t.detach().contiguous() for t in ((sh,) if sh_rest is None else (sh, sh_rest)))
+        means, centers = means.detach().contiguous(), centers.detach().contiguous()
+        C, N, B = centers.shape[0], means.shape[0], sum(t.shape[1] for t in parts)
         if B < num_sh_bases(degree):
             raise ValueError(f"sh has {B} bases, degree {degree} needs {num_sh_bases(degree)}")
-        out = sh.new_empty(C, N, 3)
-        native.library().us_sh_forward_f32(C, N, B, degree, sh.data_ptr(), means.data_ptr(), centers.data_ptr(),
-                                           out.data_ptr(), native.kernel_threads())
-        ctx.save_for_backward(sh, means, centers)
+        out = parts[0].new_empty(C, N, 3)
+        lib = native.library()
+        fn = lib.us_sh_forward_f32 if len(parts) == 1 else lib.us_sh2_forward_f32
+        fn(C, N, B, degree, *(t.data_ptr() for t in parts), means.data_ptr(), centers.data_ptr(), out.data_ptr(),
+           native.kernel_threads())
+        ctx.save_for_backward(means, centers, *parts)
         ctx.degree = degree
         return out
 
@@ -167,44 +172,12 @@ class _NativeSH(torch.autograd.Function):
     def backward(ctx, grad: Tensor):
         from uncertsplat import native
 
-        sh, means, centers = ctx.saved_tensors
-        C, (N, B) = centers.shape[0], sh.shape[:2]
-        g_sh, g_means = torch.empty_like(sh), torch.empty_like(means)
+        means, centers, *parts = ctx.saved_tensors
+        C, N, B = centers.shape[0], means.shape[0], sum(t.shape[1] for t in parts)
+        g_parts, g_means = [torch.empty_like(t) for t in parts], torch.empty_like(means)
         grad = grad.contiguous()  # kept in a variable: the kernel reads it after data_ptr() returns
-        native.library().us_sh_backward_f32(C, N, B, ctx.degree, sh.data_ptr(), means.data_ptr(), centers.data_ptr(),
-                                            grad.data_ptr(), g_sh.data_ptr(), g_means.data_ptr(),
-                                            native.kernel_threads())
-        return g_sh, g_means, None, None
-
-
-class _NativeSHSplit(torch.autograd.Function):
-    """``sh_colors_split`` by the native kernel: the DC and the higher bands read from, and their gradients written
-    to, two arrays."""
-
-    @staticmethod
-    def forward(ctx, sh0: Tensor, sh_rest: Tensor, means: Tensor, centers: Tensor, degree: int) -> Tensor:
-        from uncertsplat import native
-
-        sh0, sh_rest, means, centers = (t.detach().contiguous() for t in (sh0, sh_rest, means, centers))
-        C, N, B = centers.shape[0], sh0.shape[0], 1 + sh_rest.shape[1]
-        if B < num_sh_bases(degree):
-            raise ValueError(f"sh has {B} bases, degree {degree} needs {num_sh_bases(degree)}")
-        out = sh0.new_empty(C, N, 3)
-        native.library().us_sh2_forward_f32(C, N, B, degree, sh0.data_ptr(), sh_rest.data_ptr(), means.data_ptr(),
-                                            centers.data_ptr(), out.data_ptr(), native.kernel_threads())
-        ctx.save_for_backward(sh0, sh_rest, means, centers)
-        ctx.degree = degree
-        return out
-
-    @staticmethod
-    def backward(ctx, grad: Tensor):
-        from uncertsplat import native
-
-        sh0, sh_rest, means, centers = ctx.saved_tensors
-        C, N, B = centers.shape[0], sh0.shape[0], 1 + sh_rest.shape[1]
-        g_sh0, g_rest, g_means = torch.empty_like(sh0), torch.empty_like(sh_rest), torch.empty_like(means)
-        grad = grad.contiguous()  # kept in a variable: the kernel reads it after data_ptr() returns
-        native.library().us_sh2_backward_f32(C, N, B, ctx.degree, sh0.data_ptr(), sh_rest.data_ptr(),
-                                             means.data_ptr(), centers.data_ptr(), grad.data_ptr(), g_sh0.data_ptr(),
-                                             g_rest.data_ptr(), g_means.data_ptr(), native.kernel_threads())
-        return g_sh0, g_rest, g_means, None, None
+        lib = native.library()
+        fn = lib.us_sh_backward_f32 if len(parts) == 1 else lib.us_sh2_backward_f32
+        fn(C, N, B, ctx.degree, *(t.data_ptr() for t in parts), means.data_ptr(), centers.data_ptr(), grad.data_ptr(),
+           *(t.data_ptr() for t in g_parts), g_means.data_ptr(), native.kernel_threads())
+        return g_parts[0], g_parts[1] if len(parts) == 2 else None, g_means, None, None
