@@ -111,6 +111,12 @@ class SceneConfig(_Base):
     """Scene centre used for normalisation and for random initial points. auto: where the optical axes meet
     for an inward-facing rig without sparse points (Blender / nerfstudio scenes), else the camera centroid
     (COLMAP scenes, forward-facing captures). The choice and its reason are recorded in RUN/scene.json."""
+    photo_sizes: Literal["fit", "strict"] = "fit"
+    """A COLMAP workspace whose images come in more than one size (portrait and landscape photos, two cameras).
+    fit: the most common size is the scene's; a photo of the other orientation is turned a quarter turn (its
+    camera with it) and every photo within ``PHOTO_SIZE_TOLERANCE`` of that size is cropped to the size all of
+    them share (a few pixels: undistortion crops each camera differently); photos of other sizes are left out,
+    by name. strict: refuse such a workspace."""
     carve: bool = True
     """Random initial points (no sparse points) of a scene whose training images have real transparency: keep
     only those inside the alpha > 0.5 foreground of every training view that sees them (space carving)."""

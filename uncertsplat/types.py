@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -92,6 +93,26 @@ class Cameras:
 
 
 @dataclass(frozen=True)
+class PhotoFit:
+    """How one photo is brought to the scene's common image size (``SceneData.photo_fits``): turned by ``turns``
+    clockwise quarter turns (0 or 1: a portrait photo among landscape ones), then cropped to ``width`` x
+    ``height`` pixels from column ``x0`` and row ``y0`` of the turned photo. Its camera is turned and shifted to
+    match when the scene is loaded."""
+
+    turns: int
+    x0: int
+    y0: int
+    width: int
+    height: int
+
+    def apply(self, image: np.ndarray) -> np.ndarray:
+        """The fitted copy of ``image`` [H,W,...] (the photo as read, at its full size)."""
+        if self.turns % 4:
+            image = np.rot90(image, k=-(self.turns % 4), axes=(0, 1))  # clockwise
+        return np.ascontiguousarray(image[self.y0:self.y0 + self.height, self.x0:self.x0 + self.width])
+
+
+@dataclass(frozen=True)
 class SceneData:
     """A loaded scene: cameras, image files, split, sparse points, normalisation.
 
@@ -112,6 +133,9 @@ class SceneData:
             of random initial points); None when unknown.
         center_method: how ``center`` was found: "optical_axes" or "camera_centroid".
         center_reason: why that method was chosen (one sentence, recorded in RUN/scene.json).
+        photo_fits: per camera, how its photo is turned and cropped to the common image size (``PhotoFit``), when
+            the photos came in more than one size; None when every photo is read as it is.
+        notes: what loading changed or left out that a user should know (printed by ``train``).
     """
 
     cameras: Cameras
@@ -128,6 +152,8 @@ class SceneData:
     center: tuple[float, float, float] | None = None
     center_method: str = "camera_centroid"
     center_reason: str = ""
+    photo_fits: tuple[PhotoFit, ...] | None = None
+    notes: tuple[str, ...] = ()
 
     def subset(self, split: str) -> Cameras:
         return self.cameras[list(self.split[split])]

@@ -269,3 +269,99 @@ def test_failed_reconstruction_is_refused(workspace):
 def test_missing_images_folder(workspace):
     shutil.rmtree(workspace / "images")
     _raises(workspace, match="images", name="images")
+
+
+# ------------------------------------------------------------------------------------ photos of several sizes
+def _with_camera(model, name, camera, cam_from_world):
+    """``model`` with image ``name`` on ``camera`` (added to the cameras) at pose ``cam_from_world`` [4,4]."""
+    from dataclasses import replace
+
+    cameras = {**model.cameras, camera.camera_id: camera}
+    images = [replace(im, camera_id=camera.camera_id, cam_from_world=cam_from_world) if im.name == name else im
+              for im in model.images]
+    return replace(model, cameras=cameras, images=images)
+
+
+def _load_with_model(monkeypatch, workspace, model, cfg=None):
+    monkeypatch.setattr("uncertsplat.sfm.scene.read_colmap_model", lambda _path: model)
+    return load_scene(workspace, cfg or SceneConfig())
+
+
+def test_portrait_photo_is_turned_with_its_camera(workspace, monkeypatch):
+    """A photo taken in the other orientation (stored turned a quarter turn anticlockwise, with the camera of
+    that photo) loads as the original view: the same camera and the same pixels."""
+    from dataclasses import replace
+
+    from uncertsplat.sfm.colmap_io import read_colmap_model
+
+    before = load_scene(workspace)
+    name, i = "view_005.png", before.cameras.image_names.index("view_005.png")
+    model = read_colmap_model(workspace / "sparse" / "0")
+    im = next(m for m in model.images if m.name == name)
+    cam = model.cameras[im.camera_id]
+    W, H = cam.width, cam.height
+    fx, fy, cx, cy = cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]
+    # the portrait camera: pixel (u, v) of the landscape photo is (v, W - u) of the portrait one
+    K = np.array([[fy, 0.0, cy], [0.0, fx, W - cx], [0.0, 0.0, 1.0]])
+    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    pose = im.cam_from_world.copy()
+    pose[:3, :] = turn.T @ pose[:3, :]
+    portrait = replace(cam, camera_id=2, width=H, height=W, K=K)
+    path = workspace / "images" / name
+    original = read_image(path)
+    write_png(path, np.rot90(original, k=1).copy())  # anticlockwise
+    scene = _load_with_model(monkeypatch, workspace, _with_camera(model, name, portrait, pose))
+    assert (scene.cameras.width, scene.cameras.height) == (W, H)
+    torch.testing.assert_close(scene.cameras.K, before.cameras.K, atol=1e-4, rtol=0)
+    torch.testing.assert_close(scene.cameras.cam_from_world, before.cameras.cam_from_world, atol=1e-5, rtol=0)
+    torch.testing.assert_close(load_images(scene, [i])[0], torch.from_numpy(original), atol=0, rtol=0)
+    assert scene.photo_fits[i].turns == 1 and all(f.turns == 0 for j, f in enumerate(scene.photo_fits) if j != i)
+    assert any(name in note and "turned" in note for note in scene.notes)
+    assert scene.source["photo_fits"][name][0] == 1
+
+
+def test_photos_a_few_pixels_larger_are_cropped_to_the_common_size(workspace, monkeypatch):
+    from dataclasses import replace
+
+    from uncertsplat.sfm.colmap_io import read_colmap_model
+
+    before = load_scene(workspace)
+    name, i = "view_007.png", before.cameras.image_names.index("view_007.png")
+    model = read_colmap_model(workspace / "sparse" / "0")
+    im = next(m for m in model.images if m.name == name)
+    cam = model.cameras[im.camera_id]
+    K = cam.K.copy()
+    K[0, 2] += 2.0  # 2 more columns on the left, 1 more row on top (and as many on the other sides)
+    K[1, 2] += 1.0
+    wider = replace(cam, camera_id=2, width=cam.width + 4, height=cam.height + 2, K=K)
+    path = workspace / "images" / name
+    original = read_image(path)
+    write_png(path, np.pad(original, ((1, 1), (2, 2), (0, 0)), mode="edge"))
+    scene = _load_with_model(monkeypatch, workspace, _with_camera(model, name, wider, im.cam_from_world))
+    assert (scene.cameras.width, scene.cameras.height) == (cam.width, cam.height)
+    torch.testing.assert_close(scene.cameras.K, before.cameras.K, atol=1e-4, rtol=0)
+    torch.testing.assert_close(load_images(scene, [i])[0], torch.from_numpy(original), atol=0, rtol=0)
+    assert any("cropped" in note for note in scene.notes)
+
+
+def test_photos_of_another_size_are_left_out_or_refused(workspace, monkeypatch):
+    from dataclasses import replace
+
+    from uncertsplat.sfm.colmap_io import read_colmap_model
+
+    before = load_scene(workspace)
+    name = "view_009.png"
+    model = read_colmap_model(workspace / "sparse" / "0")
+    im = next(m for m in model.images if m.name == name)
+    cam = model.cameras[im.camera_id]
+    big = replace(cam, camera_id=2, width=2 * cam.width, height=2 * cam.height, K=cam.K * [[2], [2], [1]])
+    write_png(workspace / "images" / name, np.zeros((2 * cam.height, 2 * cam.width, 3), np.float32))
+    changed = _with_camera(model, name, big, im.cam_from_world)
+    scene = _load_with_model(monkeypatch, workspace, changed)
+    assert name not in scene.cameras.image_names and len(scene.cameras) == len(before.cameras) - 1
+    assert (scene.cameras.width, scene.cameras.height) == (cam.width, cam.height)
+    assert any(name in note and "left out" in note for note in scene.notes)
+    with pytest.raises(UserError) as info:
+        _load_with_model(monkeypatch, workspace, changed, SceneConfig(photo_sizes="strict"))
+    text = str(info.value)
+    assert f"{2 * cam.width}x{2 * cam.height}: 1 image ({name})" in text and "photo_sizes" in text

@@ -25,12 +25,21 @@ def _indices(scene: SceneData, indices: Sequence[int] | None) -> list[int]:
 def load_images(scene: SceneData, indices: Sequence[int] | None = None, device=None) -> Tensor:
     """Images of the cameras ``indices`` (all when None) as [C,H,W,3] float32 in [0, 1].
 
-    Transparent pixels are composited over the scene's background colour (``SceneConfig.background``).
+    Transparent pixels are composited over the scene's background colour (``SceneConfig.background``); photos
+    of another size than the scene's are turned and cropped first (``SceneData.photo_fits``).
     """
     bg = tuple(scene.source.get("background", (0.0, 0.0, 0.0)))
     W, H = scene.cameras.width, scene.cameras.height
-    out = [resize_image(read_image(scene.image_paths[i], background=bg), W, H) for i in _indices(scene, indices)]
+    out = [resize_image(read_photo(scene, i, background=bg), W, H) for i in _indices(scene, indices)]
     return torch.from_numpy(np.stack(out)).to(device)
+
+
+def read_photo(scene: SceneData, index: int,
+               background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    """The photo of camera ``index`` [H,W,3] float32 at its full size, turned and cropped as the scene's cameras
+    are (``SceneData.photo_fits``)."""
+    image = read_image(scene.image_paths[index], background=background)
+    return image if scene.photo_fits is None else scene.photo_fits[index].apply(image)
 
 
 def read_depth_file(path: Path) -> np.ndarray:

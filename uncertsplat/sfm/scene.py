@@ -99,8 +99,10 @@ def _check_reconstruct_report(path: Path) -> None:
     require_successful(path)
 
 
-def _colmap_cameras(model: ColmapModel, image_dir: Path, sparse: Path) -> tuple[Cameras, list[Path]]:
-    """Sorted, validated cameras and image paths of a COLMAP model."""
+def _colmap_cameras(model: ColmapModel, image_dir: Path, sparse: Path, cfg: SceneConfig
+                    ) -> tuple[Cameras, list[Path], tuple | None, list[str]]:
+    """Sorted, validated cameras and image paths of a COLMAP model, the ``PhotoFit`` of each when the images
+    come in more than one size (``SceneConfig.photo_sizes``; None otherwise) and the notes on that."""
     if not model.images:
         raise UserError("the COLMAP model has no registered images", path=sparse,
                         hint="Re-run `uncertsplat reconstruct` with more overlapping photos.")
@@ -115,31 +117,125 @@ def _colmap_cameras(model: ColmapModel, image_dir: Path, sparse: Path) -> tuple[
             )
     images = sorted(model.images, key=lambda im: im.name)
     sizes = {(model.cameras[im.camera_id].width, model.cameras[im.camera_id].height) for im in images}
-    if len(sizes) > 1:
-        raise UserError(
-            f"the images have different sizes ({', '.join(f'{w}x{h}' for w, h in sorted(sizes))}) but one "
-            "image size is assumed",
-            path=sparse,
-            hint="Resize all photos to one size (or undistort to a common size) and reconstruct again.",
-        )
-    width, height = sizes.pop()
+    if len(sizes) > 1 and cfg.photo_sizes == "strict":
+        raise UserError(f"the images have different sizes ({_sizes_by_name(model, images)}) and scene.photo_sizes "
+                        "is 'strict'", path=sparse,
+                        hint="Use scene.photo_sizes = 'fit' (turns portrait photos and crops to a common size), or "
+                             "bring all photos to one size and reconstruct again.")
+    fits, notes = (None, []) if len(sizes) == 1 else _fit_sizes(model, images, sparse)
+    if fits is not None:
+        images = [im for im in images if im.name in fits]
     paths = []
     for im in images:
         p = image_dir / im.name
         if not p.is_file():
             raise UserError(f"image '{im.name}' named in the COLMAP model is missing", path=p,
                             hint=f"Put the image into {image_dir} or reconstruct again without it.")
+        cam = model.cameras[im.camera_id]
         w, h = read_image_size(p)
-        if (w, h) != (width, height):
+        if (w, h) != (cam.width, cam.height):
             raise UserError(
-                f"image is {w}x{h} but its COLMAP camera is {width}x{height} (one camera size is assumed)",
+                f"image is {w}x{h} but its COLMAP camera is {cam.width}x{cam.height}",
                 path=p,
                 hint="Use the undistorted images the model was made for, or reconstruct again.",
             )
         paths.append(p)
-    c2w = torch.tensor(np.stack([im.cam_from_world for im in images]), dtype=torch.float32)
-    K = torch.tensor(np.stack([model.cameras[im.camera_id].K for im in images]), dtype=torch.float32)
-    return Cameras(c2w, K, width, height, tuple(im.name for im in images)), paths
+    c2w = torch.tensor(np.stack([im.cam_from_world for im in images]), dtype=torch.float64)
+    K = torch.tensor(np.stack([model.cameras[im.camera_id].K for im in images]), dtype=torch.float64)
+    if fits is None:
+        width, height = sizes.pop()
+    else:
+        ordered = [fits[im.name] for im in images]
+        c2w, K = _fitted_cameras(c2w, K, ordered, [model.cameras[im.camera_id].height for im in images])
+        width, height = ordered[0].width, ordered[0].height
+    cameras = Cameras(c2w.float(), K.float(), width, height, tuple(im.name for im in images))
+    return cameras, paths, (tuple(fits[im.name] for im in images) if fits is not None else None), notes
+
+
+PHOTO_SIZE_TOLERANCE = 0.1
+"""``SceneConfig.photo_sizes`` = "fit": a photo (turned to the scene's orientation) joins the scene when its width
+and height are within this fraction of the most common size; it is cropped to the size all joined photos share."""
+
+
+def _sizes_by_name(model: ColmapModel, images: list) -> str:
+    """'800x600: 22 images; 600x800: 1 image (IMG_7.jpg)': the sizes of ``images``, the rarer ones with names."""
+    groups: dict[tuple[int, int], list[str]] = {}
+    for im in images:
+        cam = model.cameras[im.camera_id]
+        groups.setdefault((cam.width, cam.height), []).append(im.name)
+    parts = []
+    for (w, h), names in sorted(groups.items(), key=lambda kv: -len(kv[1])):
+        shown = "" if len(names) == max(len(v) for v in groups.values()) else \
+            f" ({', '.join(names[:5])}{', ...' if len(names) > 5 else ''})"
+        parts.append(f"{w}x{h}: {len(names)} image{'s' if len(names) != 1 else ''}{shown}")
+    return "; ".join(parts)
+
+
+def _fit_sizes(model: ColmapModel, images: list, sparse: Path) -> tuple[dict, list[str]]:
+    """``SceneConfig.photo_sizes`` = "fit" for ``images`` of more than one size: {name: PhotoFit} of the photos
+    that join the scene, and the notes that say what was turned, cropped and left out.
+
+    Raises:
+        UserError: fewer than two photos join (nothing to train and hold out).
+    """
+    from uncertsplat.types import PhotoFit
+
+    counts: dict[tuple[int, int], int] = {}
+    for im in images:
+        cam = model.cameras[im.camera_id]
+        counts[(cam.width, cam.height)] = counts.get((cam.width, cam.height), 0) + 1
+    # the most common size; among equals the larger, then the wider (deterministic)
+    ref_w, ref_h = max(counts, key=lambda s: (counts[s], s[0] * s[1], s[0]))
+    turned: dict[str, tuple[int, int, int]] = {}  # name -> (turns, width, height) after turning
+    left_out: list[str] = []
+    for im in images:
+        cam = model.cameras[im.camera_id]
+        turns = int((cam.width >= cam.height) != (ref_w >= ref_h) and cam.width != cam.height)
+        w, h = (cam.height, cam.width) if turns else (cam.width, cam.height)
+        if abs(w - ref_w) <= PHOTO_SIZE_TOLERANCE * ref_w and abs(h - ref_h) <= PHOTO_SIZE_TOLERANCE * ref_h:
+            turned[im.name] = (turns, w, h)
+        else:
+            left_out.append(f"{im.name} ({cam.width}x{cam.height})")
+    if len(turned) < 2:
+        raise UserError(f"the images have different sizes ({_sizes_by_name(model, images)}) and fewer than two "
+                        "share one", path=sparse, hint="Reconstruct photos of one camera at one size.")
+    width = min(w for _, w, _ in turned.values())
+    height = min(h for _, _, h in turned.values())
+    fits = {name: PhotoFit(turns, (w - width) // 2, (h - height) // 2, width, height)
+            for name, (turns, w, h) in turned.items()}
+    notes = []
+    rotated = sorted(n for n, f in fits.items() if f.turns)
+    if rotated:
+        notes.append(f"{len(rotated)} photo(s) of the other orientation turned a quarter turn clockwise (their "
+                     f"cameras with them): {', '.join(rotated[:8])}{', ...' if len(rotated) > 8 else ''}")
+    cropped = sum(1 for n, (_, w, h) in turned.items() if (w, h) != (width, height))
+    if cropped:
+        notes.append(f"{cropped} photo(s) cropped to the {width}x{height} pixels every photo of the scene has "
+                     "(at most a few percent of each side)")
+    if left_out:
+        notes.append(f"{len(left_out)} photo(s) of another size left out (the scene's is {ref_w}x{ref_h}; "
+                     f"scene.photo_sizes): {', '.join(left_out[:8])}{', ...' if len(left_out) > 8 else ''}")
+    return fits, notes
+
+
+def _fitted_cameras(c2w: torch.Tensor, K: torch.Tensor, fits: list, heights: list[int]
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """cam_from_world [C,4,4] and K [C,3,3] (float64) of the photos as ``fits`` turn and crop them; ``heights``:
+    each photo's height before turning.
+
+    A clockwise quarter turn takes pixel (u, v) of a photo of height H to (H - v, u): in camera axes
+    (x, y, z) -> (-y, x, z), so fx' = fy, fy' = fx, cx' = H - cy, cy' = cx. A crop from (x0, y0) moves the
+    principal point by (-x0, -y0)."""
+    c2w, K = c2w.clone(), K.clone()
+    turn = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=c2w.dtype)
+    for i, fit in enumerate(fits):
+        if fit.turns % 4 == 1:
+            c2w[i, :3, :] = turn @ c2w[i, :3, :]
+            fx, fy, cx, cy = (float(K[i, 0, 0]), float(K[i, 1, 1]), float(K[i, 0, 2]), float(K[i, 1, 2]))
+            K[i, 0, 0], K[i, 1, 1], K[i, 0, 2], K[i, 1, 2] = fy, fx, heights[i] - cy, cx
+        K[i, 0, 2] -= fit.x0
+        K[i, 1, 2] -= fit.y0
+    return c2w, K
 
 
 def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneData:
@@ -150,14 +246,14 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
         raise UserError("missing images/ folder beside sparse/", path=image_dir,
                         hint="A COLMAP workspace needs the (undistorted) images in WORKSPACE/images.")
     model = read_colmap_model(sparse)
-    cameras, paths = _colmap_cameras(model, image_dir, sparse)
+    cameras, paths, fits, notes = _colmap_cameras(model, image_dir, sparse, cfg)
     points = torch.tensor(model.points, dtype=torch.float32).reshape(-1, 3)
     rgb = torch.tensor(model.points_rgb, dtype=torch.float32).reshape(-1, 3) / 255.0
     if cfg.points_from == "train":
         keep = _seen_by_training_views(model, cameras.image_names, cfg, sparse)
         points, rgb = points[keep], rgb[keep]
     return _finish(cameras, paths, points, rgb, cfg, source={"kind": source, "path": str(path),
-                                                            "model": str(sparse)})
+                                                            "model": str(sparse)}, photo_fits=fits, notes=notes)
 
 
 def _seen_by_training_views(model: ColmapModel, names: tuple[str, ...], cfg: SceneConfig, where: Path) -> torch.Tensor:
@@ -327,8 +423,10 @@ def _alpha_masks(cameras: Cameras, paths: list[Path], train: tuple[int, ...]):
 
 
 def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torch.Tensor, cfg: SceneConfig,
-            source: dict, default_split: dict | None = None, random_init: bool = False) -> SceneData:
-    """Split, choose the centre, add random initial points (``random_init`` and no points), normalise."""
+            source: dict, default_split: dict | None = None, random_init: bool = False,
+            photo_fits: tuple | None = None, notes: list[str] | tuple[str, ...] = ()) -> SceneData:
+    """Split, choose the centre, add random initial points (``random_init`` and no points), normalise;
+    ``photo_fits`` and ``notes`` are ``_colmap_cameras``'s (recorded in ``source`` too)."""
     split = make_split(cameras.image_names, cfg, where=Path(source["path"]), default=default_split)
     choice = choose_center(cameras, has_points=points.shape[0] > 0, mode=cfg.center, where=Path(source["path"]))
     if points.shape[0] == 0 and random_init:
@@ -367,6 +465,9 @@ def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torc
     if cfg.downscale != 1.0:
         cams = cams.scaled(1.0 / cfg.downscale)
     source = dict(source, background=list(cfg.background), downscale=cfg.downscale)
+    if photo_fits is not None:
+        source = dict(source, photo_fits={name: [f.turns, f.x0, f.y0, f.width, f.height]
+                                          for name, f in zip(cams.image_names, photo_fits, strict=True)})
     return SceneData(
         cameras=cams,
         image_paths=tuple(paths),
@@ -380,4 +481,6 @@ def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torc
         center=tuple(float(v) for v in choice.center),
         center_method=choice.method,
         center_reason=choice.reason,
+        photo_fits=photo_fits,
+        notes=tuple(notes),
     )

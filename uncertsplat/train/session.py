@@ -220,6 +220,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                          else "") +
                       f"device {device} ({kernels}), {cfg.iterations} steps, at most "
                       f"{trainer.budget.max_gaussians:,} Gaussians ({trainer.budget.reason})")
+        for note in data.notes:
+            console.print(f"[yellow]note:[/] {note}")
         n_train = len(data.split["train"])
         if n_train < FEW_VIEWS and cfg.drop_rate == 0.0 and cfg.method in ("variational", "deterministic"):
             console.print(f"[yellow]note:[/] {n_train} training views: with so few, --set drop_rate=0.2 (Gaussians "

@@ -308,9 +308,10 @@ class Viewer:
         return on_click
 
     def _read_photo(self, i: int, width: int) -> np.ndarray:
-        from uncertsplat.io.images import read_image, resize_image
+        from uncertsplat.data.dataset import read_photo
+        from uncertsplat.io.images import resize_image
 
-        img = read_image(self.scene.image_paths[i])
+        img = read_photo(self.scene, i)
         h = max(1, round(img.shape[0] * width / img.shape[1]))
         return (np.clip(resize_image(img, width, h), 0, 1) * 255 + 0.5).astype(np.uint8)
 
