@@ -152,9 +152,11 @@ def _colmap_cameras(model: ColmapModel, image_dir: Path, sparse: Path, cfg: Scen
     return cameras, paths, (tuple(fits[im.name] for im in images) if fits is not None else None), notes
 
 
-PHOTO_SIZE_TOLERANCE = 0.1
+PHOTO_SIZE_TOLERANCE = 0.05
 """``SceneConfig.photo_sizes`` = "fit": a photo (turned to the scene's orientation) joins the scene when its width
-and height are within this fraction of the most common size; it is cropped to the size all joined photos share."""
+and height are within this fraction of the most common size; it is cropped to the size all joined photos share.
+Small, so that one photo a little smaller cannot crop much off every other (undistortion's differences are a few
+pixels; two phones of one make differ by about 1 %)."""
 
 
 def _sizes_by_name(model: ColmapModel, images: list) -> str:
