@@ -521,7 +521,9 @@ class PruneConfig(_Base):
     threshold: float | None = None
     auto: bool = False
     score: str = "auto"
-    """Per-Gaussian score name, or auto for the documented default."""
+    """Per-Gaussian score name, or auto: ``free-space`` (``uncertainty.scores.DEFAULT_SCORE``), and with ``auto`` or
+    ``keep_ratio`` on held-out views (not with ``sweep``) ``gate`` too, whichever prunes better there
+    (``uncertainty.scores.AUTO_ALTERNATIVES``)."""
     tolerance_db: float = Field(0.1, ge=0.0)
     sweep: bool = False
     sweep_ratios: list[float] = [1.0, 0.95, 0.9, 0.8, 0.7, 0.6, 0.5]

@@ -134,3 +134,55 @@ def test_apply_keep_rejects_wrong_shape():
     model = tagged_model(n=10)
     with pytest.raises(ValueError, match="keep mask"):
         apply_keep(model, torch.ones(9, dtype=torch.bool))
+
+
+class TestScoreChoice:
+    """``--score auto``: the default and its alternatives are swept with the same measure, and the one that removes
+    the most within the tolerance (``--auto``) or keeps the higher PSNR at the asked ratio (``--keep-ratio``) is used;
+    the default wins ties."""
+
+    @staticmethod
+    def sweeps(ratios, tolerance_db=0.1, full=False):
+        from uncertsplat.prune.policy import keep_ratio_sweep
+        from uncertsplat.schemas.prune import PruneMetrics
+
+        model = tagged_model(n=60)
+        carriers = carrier_mask(model)
+        important = model.params["means"][:, 0].detach() < 30  # the first 30 rows carry the image
+
+        def measure(m, keep, full_=True):
+            # 30 dB, less 0.05 dB per important Gaussian removed
+            lost = int((~keep & important).sum())
+            return PruneMetrics(num_gaussians=len(m), num_carriers=m.num_carriers, psnr_render=30.0 - 0.05 * lost,
+                                coverage=1.0, variational_ply_bytes=0, point_cloud_ply_bytes=0, seconds=0.0)
+
+        unpruned = measure(model, torch.ones(60, dtype=torch.bool))
+        rows = model.params["means"][:, 0].detach()
+        scores = {"free-space": -rows, "gate": rows}  # free-space removes the important rows first, gate the others
+        return {name: keep_ratio_sweep(model, s, carriers, ratios, measure, unpruned=unpruned, seed=0,
+                                       tolerance_db=tolerance_db, score_name=name, split="test", full=full)
+                for name, s in scores.items()}
+
+    def test_the_score_that_removes_more_within_the_tolerance_is_chosen(self):
+        from uncertsplat.prune.policy import choose_score_by_removal
+
+        sweeps = self.sweeps([1.0, 0.9, 0.8])
+        assert sweeps["free-space"].largest_removal_within_tolerance is None  # 6 important rows: 0.3 dB
+        assert sweeps["gate"].largest_removal_within_tolerance.keep_ratio == 0.8
+        chosen, note = choose_score_by_removal(sweeps)
+        assert chosen == "gate" and "'free-space' 0 Gaussians" in note and "'gate' 12 Gaussians" in note
+
+    def test_the_default_wins_a_tie(self):
+        from uncertsplat.prune.policy import choose_score_by_removal
+
+        sweeps = self.sweeps([1.0, 0.9], tolerance_db=100.0)  # both remove 6
+        assert choose_score_by_removal(sweeps)[0] == "free-space"
+        assert choose_score_by_removal(self.sweeps([1.0, 0.9], tolerance_db=0.0))[0] == "gate"
+
+    def test_at_a_keep_ratio_the_higher_psnr_is_chosen(self):
+        from uncertsplat.prune.policy import choose_score_at_ratio
+
+        sweeps = self.sweeps([0.9])
+        chosen, note = choose_score_at_ratio(sweeps, 0.9)
+        assert chosen == "gate" and "'free-space' 29.70 dB" in note and "'gate' 30.00 dB" in note
+        assert choose_score_at_ratio(self.sweeps([1.0]), 1.0)[0] == "free-space"  # nothing removed: a tie

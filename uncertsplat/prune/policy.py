@@ -122,6 +122,37 @@ def auto_keep_ratio(sweep: PruneSweep) -> tuple[float, str | None]:
                  f"PSNR, so nothing was removed{cost}; allow more with --tolerance-db, or choose --keep-ratio")
 
 
+def _removal(sweep: PruneSweep) -> int:
+    best = sweep.largest_removal_within_tolerance
+    return 0 if best is None else best.num_removed
+
+
+def choose_score_by_removal(sweeps: dict[str, PruneSweep]) -> tuple[str, str]:
+    """``--auto --score auto``: the score whose sweep removes the most within its tolerance (the first of ``sweeps``
+    among equals: the default score), and a note saying what each removes."""
+    names = list(sweeps)
+    chosen = max(names, key=lambda n: (_removal(sweeps[n]), -names.index(n)))
+    what = "; ".join(f"'{n}' {_removal(sweeps[n])} Gaussians" for n in names)
+    return chosen, (f"score auto: the score that removes the most within {sweeps[chosen].tolerance_db} dB of the "
+                    f"held-out PSNR is used, '{chosen}' ({what})")
+
+
+def choose_score_at_ratio(sweeps: dict[str, PruneSweep], keep_ratio: float) -> tuple[str, str]:
+    """``--keep-ratio R --score auto``: the score whose removal at ``keep_ratio`` keeps the higher held-out PSNR
+    (``DECISION_METRIC``; the first of ``sweeps`` among equals or when one is unknown), and a note with both."""
+    names = list(sweeps)
+
+    def value(n: str) -> float:
+        point = next((p for p in sweeps[n].points if p.keep_ratio == keep_ratio), None)
+        v = None if point is None else getattr(point.score, DECISION_METRIC)
+        return float("-inf") if v is None else float(v)
+
+    chosen = max(names, key=lambda n: (value(n), -names.index(n)))
+    what = "; ".join(f"'{n}' {value(n):.2f} dB" for n in names)
+    return chosen, (f"score auto: at keep ratio {keep_ratio:g} the score whose removal keeps the higher held-out PSNR "
+                    f"of the expected render is used, '{chosen}' ({what})")
+
+
 def choose_mask(score: Tensor, carriers: Tensor, *, threshold: float | None,
                 keep_ratio: float | None) -> tuple[Tensor | None, list[str]]:
     """The keep mask [N] for a threshold (wins) or a keep ratio, and notes; (None, []) for neither."""
@@ -139,5 +170,5 @@ def choose_mask(score: Tensor, carriers: Tensor, *, threshold: float | None,
     return keep, notes
 
 
-__all__ = ["Measure", "auto_keep_ratio", "choose_mask", "keep_ratio_sweep", "largest_removal_within",
-           "random_keep"]
+__all__ = ["Measure", "auto_keep_ratio", "choose_mask", "choose_score_at_ratio", "choose_score_by_removal",
+           "keep_ratio_sweep", "largest_removal_within", "random_keep"]

@@ -273,8 +273,21 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
 def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.device):
     from uncertsplat.baselines import load_run
     from uncertsplat.prune import apply_keep
-    from uncertsplat.prune.policy import auto_keep_ratio, choose_mask, keep_ratio_sweep, random_keep
-    from uncertsplat.uncertainty.scores import carrier_mask, compute_scores, resolve_score_name, spread_views
+    from uncertsplat.prune.policy import (
+        auto_keep_ratio,
+        choose_mask,
+        choose_score_at_ratio,
+        choose_score_by_removal,
+        keep_ratio_sweep,
+        random_keep,
+    )
+    from uncertsplat.uncertainty.scores import (
+        AUTO_ALTERNATIVES,
+        carrier_mask,
+        compute_scores,
+        resolve_score_name,
+        spread_views,
+    )
 
     run_dir = Path(run_dir)
     output = Path(output) if output is not None else None
@@ -321,12 +334,20 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
                             extent=loaded.extent, temperature=prior.temperature, free_space_cameras=free_cams,
                             free_space_margin=cfg.free_space_margin)
     score_seconds = time.perf_counter() - t0
-    score = scores[score_name]
     carriers = carrier_mask(model)
     n = len(model)
 
+    # ---- which score: with score auto, --auto or --keep-ratio and held-out views, the default and its alternatives
+    # are each measured and the one that prunes better is used (free-space misreads thin structure in front of a
+    # surface as floaters on some captures; BENCHMARKS.md "Pruning")
+    candidates = [score_name]
+    if (cfg.score == "auto" and not cfg.sweep and split == "test" and cfg.threshold is None
+            and (cfg.auto or cfg.keep_ratio is not None)):
+        candidates += [n for n in AUTO_ALTERNATIVES if n != score_name]
+
+    which = f"'{score_name}'" if len(candidates) == 1 else f"auto ({', '.join(candidates)}: the better one)"
     console.print(f"[bold]prune[/] {run_dir}: {n} Gaussians ({model.num_carriers} with a posterior), score "
-                  f"'{score_name}', {len(indices)} {split} views, K={cfg.num_samples}, {device}")
+                  f"{which}, {len(indices)} {split} views, K={cfg.num_samples}, {device}")
     measure = _Measure(loaded, scene, indices, cfg, device)
     before, read_from = measure.unpruned(run_dir)
     if read_from is not None:
@@ -336,14 +357,28 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
     # ---- sweep (also what --auto decides on)
     sweep = None
     if cfg.sweep or cfg.auto:
-        def show(p):
-            console.print(f"  keep {p.keep_ratio:.2f}: removed {p.num_removed}, PSNR of the expected render "
-                          f"{_num(p.score.psnr_render)} (random {_num(p.random.psnr_render)})")
+        def show(p, name=None):
+            console.print(f"  {f'{name}: ' if name else ''}keep {p.keep_ratio:.2f}: removed {p.num_removed}, PSNR of "
+                          f"the expected render {_num(p.score.psnr_render)} (random {_num(p.random.psnr_render)})")
 
         # --auto alone decides on the expected render's PSNR and measures the uncertainty of the chosen mask only
-        sweep = keep_ratio_sweep(model, score, carriers, cfg.sweep_ratios, measure, unpruned=before, seed=cfg.seed,
-                                 tolerance_db=cfg.tolerance_db, score_name=score_name, split=split, on_point=show,
-                                 stop_at_first_failure=not cfg.sweep, full=cfg.sweep)
+        sweeps = {name: keep_ratio_sweep(model, scores[name], carriers, cfg.sweep_ratios, measure, unpruned=before,
+                                         seed=cfg.seed, tolerance_db=cfg.tolerance_db, score_name=name, split=split,
+                                         on_point=partial(show, name=name if len(candidates) > 1 else None),
+                                         stop_at_first_failure=not cfg.sweep, full=cfg.sweep)
+                  for name in candidates}
+        if len(sweeps) > 1:
+            score_name, note = choose_score_by_removal(sweeps)
+            notes.append(note)
+        sweep = sweeps[score_name]
+    elif len(candidates) > 1:  # --keep-ratio R: the expected render's PSNR at R by each score
+        sweeps = {name: keep_ratio_sweep(model, scores[name], carriers, [cfg.keep_ratio], measure, unpruned=before,
+                                         seed=cfg.seed, tolerance_db=cfg.tolerance_db, score_name=name, split=split,
+                                         full=False)
+                  for name in candidates}
+        score_name, note = choose_score_at_ratio(sweeps, cfg.keep_ratio)
+        notes.append(note)
+    score = scores[score_name]
 
     # ---- the chosen mask
     threshold = cfg.threshold

@@ -45,7 +45,8 @@ entries, as ``variational.posterior_mean`` does.
 
 Which score is the default (``DEFAULT_SCORE``) is decided by the pruning benchmark
 (``benchmarks/bench_prune.py``, BENCHMARKS.md "Pruning"): held-out PSNR vs keep ratio, and the floaters that
-training leaves (GT-depth labels).
+training leaves (GT-depth labels); ``--score auto`` measures ``AUTO_ALTERNATIVES`` beside it on the held-out views
+and prunes by the better one (``stages.prune``).
 ``predictive`` ranks Gaussians that matter most to the image first (its weight is their contribution), so
 it must not be used to shrink a model: removing even its top few percent costs much of the image quality.
 """
@@ -75,6 +76,13 @@ on the demo scene it ranks the floaters that training leaves (labelled with GT d
 about what ``gate`` costs. ``gate`` (no rendering at all) remains the choice for shrinking a model without
 looking for floaters. ``predictive`` removes important Gaussians too: use it only with a small removal
 (``--keep-ratio 0.98``) and look at the before/after renders."""
+
+
+AUTO_ALTERNATIVES: tuple[str, ...] = ("gate",)
+"""What ``--score auto`` also measures with ``--auto`` or ``--keep-ratio`` on held-out views, using whichever of it and
+``DEFAULT_SCORE`` prunes better there (``prune.policy.choose_score_by_removal`` / ``choose_score_at_ratio``): on fern at
+1/8 (7000 steps) ``free-space`` cost 0.46 dB for its first 5 % (random removal 0.67 dB), ``gate`` 0.00 dB for 30 %
+(BENCHMARKS.md, "Pruning"). No render: it is read from the offset tables."""
 
 
 def resolve_score_name(name: str) -> str:
