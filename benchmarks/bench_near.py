@@ -79,6 +79,7 @@ def main() -> None:
         resolve_size,
     )
     from uncertsplat.eval.engine import evaluate_views, scored_sampler
+    from uncertsplat.io.images import resize_image
     from uncertsplat.stages.residual_cache import fitted_residual
     from uncertsplat.types import Cameras, ViewSet
 
@@ -119,11 +120,13 @@ def main() -> None:
         if fraction == 1.0:
             return load_view_set(scene, test)
         c2w = near_cameras(src_c2w[test], K, targets, fraction)
+        W, H = scene.cameras.width, scene.cameras.height  # the run's size (after its downscale): as load_view_set
         images, depths = [], []
         for j in range(len(test)):
             rgb, depth, _valid, _alpha = render_view(spec, c2w[j], K, width, height)
-            images.append(torch.round(rgb.clamp(0, 1) * 255) / 255.0)  # as the scene's PNGs hold them
-            depths.append(depth)
+            rgb8 = (torch.round(rgb.clamp(0, 1) * 255) / 255.0).float().numpy()  # as the scene's PNGs hold them
+            images.append(torch.from_numpy(resize_image(rgb8, W, H)))
+            depths.append(torch.from_numpy(resize_image(depth.float().numpy(), W, H)))
         cams = Cameras(to_run_frame(c2w, scene.world_from_source).float(), K.float().expand(len(test), 3, 3).clone(),
                        width, height, tuple(f"{n} at {fraction:g}" for n in names))
         cams = cams.scaled(scene.cameras.width / width)
