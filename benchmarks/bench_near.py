@@ -64,7 +64,8 @@ def main() -> None:
     ap.add_argument("--fractions", type=float, nargs="+", default=[0.75, 0.5])
     ap.add_argument("--num-samples", type=int, default=10)
     ap.add_argument("--label", default="demo")
-    ap.add_argument("--set", nargs="*", default=[], help="EvalConfig overrides, e.g. finer_detail=false")
+    ap.add_argument("--set", nargs="*", default=[], help="EvalConfig overrides, e.g. num_samples=10")
+    ap.add_argument("--maps", type=Path, default=None, help="also write every view's maps (evaluate's PNGs) here")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
 
@@ -143,6 +144,10 @@ def main() -> None:
         def keep(maps, stats=stats):
             err = (maps.rgb_mean.clamp(0, 1) - maps.gt).square().mean().sqrt()
             stats.append((float(maps.rgb_std.mean()), float(err)))
+            if args.maps is not None:
+                from uncertsplat.stages.evaluate import write_view_maps
+
+                write_view_maps(args.maps, maps, cfg.preview)
 
         t0 = time.perf_counter()
         report = evaluate_views(sampler, views, cfg, device, on_view=keep, std_scale=std_scale,
