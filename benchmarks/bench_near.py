@@ -153,7 +153,9 @@ def main() -> None:
         report = evaluate_views(sampler, views, cfg, device, on_view=keep, std_scale=std_scale,
                                 calibration_views=cal_views, show_progress=False)
         m = report.mean
-        rows.append({"fraction": fraction, "views": len(views.indices), "psnr": m.psnr, "ause_mae": m.ause_mae,
+        finer = [sampler.consistency.reach(views.cameras[[j]], sampler.render_fn)[1] if sampler.consistency else None
+                 for j in range(len(views.indices))]  # what evaluate's note reads (ViewConsistency.reach)
+        rows.append({"finer_scale": finer, "fraction": fraction, "views": len(views.indices), "psnr": m.psnr, "ause_mae": m.ause_mae,
                      "nll": m.nll, "calibration_error": m.calibration_error, "nll_calibrated": m.nll_calibrated,
                      "depth_ause_mae": m.depth_ause_mae,
                      "mean_std": sum(s for s, _ in stats) / len(stats), "rmse": sum(e for _, e in stats) / len(stats),
@@ -162,7 +164,8 @@ def main() -> None:
                       "psnr": report.per_view[n].psnr}
                      for n, (s, e) in zip(views.cameras.image_names, stats, strict=True)]
         print(f"distance x{fraction:g}: PSNR {m.psnr:.2f}, AUSE-MAE {m.ause_mae:.3f}, NLL {m.nll:.3f}, "
-              f"cal. err {m.calibration_error:.3f}, mean std {rows[-1]['mean_std']:.4f}, RMSE {rows[-1]['rmse']:.4f}")
+              f"cal. err {m.calibration_error:.3f}, mean std {rows[-1]['mean_std']:.4f}, RMSE {rows[-1]['rmse']:.4f}, "
+              f"finer scale {', '.join('-' if f is None else f'{f:.2f}' for f in finer)}")
     s = torch.tensor([v["mean_std"] for v in per_view], dtype=torch.float64)
     e = torch.tensor([v["rmse"] for v in per_view], dtype=torch.float64)
     corr = float(torch.corrcoef(torch.stack([s, e]))[0, 1]) if len(per_view) > 2 else math.nan

@@ -216,7 +216,7 @@ class TestViewConsistency:
         and for a view without surface; ``evaluate`` names the views from 5 % on."""
         from types import SimpleNamespace
 
-        from uncertsplat.stages.evaluate import UNLOOKED_NOTE, _unlooked_note
+        from uncertsplat.stages.evaluate import UNLOOKED_NOTE, _reach_notes
 
         render_fn = _plane_render()
         narrow = _cameras([0.0, 50.0], focal=30.0, device=device)
@@ -238,9 +238,45 @@ class TestViewConsistency:
         both = dataclasses.replace(test, cam_from_world=torch.cat([test.cam_from_world, inside.cam_from_world]),
                                    K=torch.cat([test.K, inside.K]), image_names=("wide.png", "narrow.png"))
         views = SimpleNamespace(cameras=both, names=["wide.png", "narrow.png"])
-        note = _unlooked_note(SimpleNamespace(consistency=vc, render_fn=render_fn), views, torch.device(device))
+        notes = _reach_notes(SimpleNamespace(consistency=vc, render_fn=render_fn), views, torch.device(device))
+        note = next(n for n in notes if "no training photo had in view" in n)
         assert note.startswith("1 of 2 views") and f"wide.png {100 * part:.0f} %" in note and "narrow" not in note
-        assert _unlooked_note(SimpleNamespace(consistency=None, render_fn=render_fn), views, torch.device(device)) is None
+        assert _reach_notes(SimpleNamespace(consistency=None, render_fn=render_fn), views, torch.device(device)) == []
+
+    def test_the_scale_at_which_a_view_resolves_the_surface(self, device):
+        """Training views at 0 and 50 degrees with focal length 30, the plane 4 units away: a view between them
+        with the same focal length resolves it as finely as they do (1; the footprint grows with the depth along
+        the ray, which is the same at the same distance), one with focal length 60 twice as finely (zoomed in), one
+        moved to half the distance too; ``evaluate`` names the views from ``FINER_NOTE`` on, and a compared view
+        and a view without surface have 1."""
+        from types import SimpleNamespace
+
+        from uncertsplat.stages.evaluate import FINER_NOTE, _reach_notes
+
+        render_fn = _plane_render()
+        train = _cameras([0.0, 50.0], focal=30.0, device=device)
+        vc = ViewConsistency.of(_sample(device), train, render_fn)
+        same = _cameras([25.0], focal=30.0, device=device)
+        zoom = _cameras([25.0], focal=60.0, device=device)
+        assert vc.reach(same, render_fn)[1] == pytest.approx(1.0, rel=0.1)  # the plane seen at 25 degrees: 0.93
+        assert vc.reach(zoom, render_fn)[1] == pytest.approx(2.0, rel=0.1)
+        near = dataclasses.replace(zoom, cam_from_world=zoom.cam_from_world.clone())
+        near.cam_from_world[0, 2, 3] -= 2.0  # along its optical axis, to 2 units from the plane's centre
+        assert vc.reach(near, render_fn)[1] == pytest.approx(4.0, rel=0.1)
+        assert vc.reach(train[[1]], render_fn) == (0.0, 1.0)
+
+        def empty(sample, cameras):
+            out = render_fn(sample, cameras)
+            return dataclasses.replace(out, alpha=torch.zeros_like(out.alpha))
+
+        assert vc.reach(zoom, empty) == (0.0, 1.0)
+        both = dataclasses.replace(same, cam_from_world=torch.cat([same.cam_from_world, zoom.cam_from_world]),
+                                   K=torch.cat([same.K, zoom.K]), image_names=("same.png", "zoom.png"))
+        notes = _reach_notes(SimpleNamespace(consistency=vc, render_fn=render_fn),
+                             SimpleNamespace(cameras=both, names=["same.png", "zoom.png"]), torch.device(device))
+        (note,) = [n for n in notes if "finer than any training photo" in n]
+        assert note.startswith("1 of 2 views") and "zoom.png x1.9" in note and "same.png" not in note
+        assert FINER_NOTE < 2.0
 
     def test_the_gate_is_twice_the_capture_spacing(self):
         ring = _cameras([30.0 * i for i in range(12)])

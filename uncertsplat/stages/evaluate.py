@@ -237,14 +237,13 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
                                 noise_scale=residual.scale if residual is not None else None,
                                 notes=loaded.eval_notes(cfg.num_samples),
                                 config_hash=hash_config(cfg.model_dump(mode="json")))
-        note = _unlooked_note(sampler, views, device)
-        if note:
-            report.notes.append(note)
+        reach = _reach_notes(sampler, views, device)
+        report.notes.extend(reach)
         if Path(loaded.source).is_file():  # which model and run these numbers belong to (prune reads them back)
             report.run_sha256 = run_sha256(run_dir, Path(loaded.source))
         atomic_write_text(out / "metrics.json", report.to_json() + "\n")
         atomic_write_text(out / "config.json", cfg.model_dump_json(indent=2) + "\n")
-    if note:
+    for note in reach:
         console.print(f"note: {note}")
     return _print_report(run_dir, cfg, report, out)
 
@@ -254,21 +253,36 @@ UNLOOKED_NOTE = 0.05
 pixels at an image's edge are usual in any capture."""
 
 
-def _unlooked_note(sampler, views, device: torch.device) -> str | None:
-    """A note naming the evaluated views whose surface lies outside every training photo for at least
-    ``UNLOOKED_NOTE`` of its pixels (``ViewConsistency.unlooked_fraction``): where the model extrapolates beyond the
-    capture and the std there is the view-consistency term's palette variance. None without such a view or without the
-    term (``consistency_views = 0``)."""
+FINER_NOTE = 1.5
+"""``evaluate`` names the views that resolve the surface at least this many times finer than any training photo
+that saw it (``ViewConsistency.reach``, the median over a view's surface): a held-out photo of a capture is about as
+near as its neighbours (1.0-1.1 on the demo ring), one taken at half the distance is at 2."""
+
+
+def _reach_notes(sampler, views, device: torch.device) -> list[str]:
+    """Notes naming the evaluated views that go beyond the capture (``ViewConsistency.reach``, one render each):
+    those whose surface lies outside every training photo for at least ``UNLOOKED_NOTE`` of its pixels (the model
+    extrapolates there, and the std there is the view-consistency term's palette variance), and those that resolve
+    the surface at least ``FINER_NOTE`` times finer than any training photo (nearer or zoomed in: the model holds no
+    detail finer than the photos, and on a sparse capture its std there is too low; BENCHMARKS.md, "Views closer than
+    the training views"). Empty without such a view or without the term (``consistency_views = 0``)."""
     if sampler.consistency is None:
-        return None
-    fractions = {name: sampler.consistency.unlooked_fraction(views.cameras[[j]].to(device), sampler.render_fn)
-                 for j, name in enumerate(views.names)}
-    beyond = {name: f for name, f in fractions.items() if f >= UNLOOKED_NOTE}
-    if not beyond:
-        return None
-    listed = ", ".join(f"{name} {100 * f:.0f} %" for name, f in sorted(beyond.items(), key=lambda x: -x[1]))
-    return (f"{len(beyond)} of {len(fractions)} views show surface that no training photo had in view (the model "
-            f"extrapolates there, and its std says so): {listed}")
+        return []
+    reach = {name: sampler.consistency.reach(views.cameras[[j]].to(device), sampler.render_fn)
+             for j, name in enumerate(views.names)}
+    notes = []
+    beyond = {name: r[0] for name, r in reach.items() if r[0] >= UNLOOKED_NOTE}
+    if beyond:
+        listed = ", ".join(f"{name} {100 * f:.0f} %" for name, f in sorted(beyond.items(), key=lambda x: -x[1]))
+        notes.append(f"{len(beyond)} of {len(reach)} views show surface that no training photo had in view (the model "
+                     f"extrapolates there, and its std says so): {listed}")
+    finer = {name: r[1] for name, r in reach.items() if r[1] >= FINER_NOTE}
+    if finer:
+        listed = ", ".join(f"{name} x{f:.1f}" for name, f in sorted(finer.items(), key=lambda x: -x[1]))
+        notes.append(f"{len(finer)} of {len(reach)} views see the surface finer than any training photo did (nearer or "
+                     f"zoomed in): the model holds no detail finer than the photos, and where few photos saw a surface "
+                     f"its std there is too low: {listed}")
+    return notes
 
 
 def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):

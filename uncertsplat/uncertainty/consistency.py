@@ -204,12 +204,40 @@ class ViewConsistency:
         """The fraction of one evaluated ``camera``'s surface pixels (those ``variance`` compares) whose point lies
         outside the image of every training camera: how much of the view the capture never had in sight. 0 for a
         compared training view and a view without surface."""
+        return self.reach(camera, render_fn)[0]
+
+    @torch.no_grad()
+    def reach(self, camera: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]
+              ) -> tuple[float, float]:
+        """How far one evaluated ``camera`` goes beyond the capture, from one render of it: (``unlooked_fraction``,
+        the finer scale: the median, over its surface points that some compared training view sees, of the finest
+        such view's pixel footprint at the point (depth / focal length) over this view's; above 1 the view resolves
+        the surface finer than any training photo did, by that factor: nearer, or zoomed in). (0, 1) for a compared
+        view and a view without surface; the scale is 1 when no compared view sees any of its points."""
         if len(camera) != 1:
             raise ValueError(f"one camera at a time, got {len(camera)}")
         found = None if self._is_compared(camera) else self._surface_points(camera, render_fn)
         if found is None:
-            return 0.0
-        return float((~self._looked_at(found[2])).float().mean())
+            return 0.0, 1.0
+        points = found[2]  # [S,3]
+        unlooked = float((~self._looked_at(points)).float().mean())
+        _, z_here = project_points(points, camera.cam_from_world.to(points), camera.K.to(points))  # [1,S]
+        foot = (z_here[0] / camera.K[0, 0, 0].to(points)).clamp_min(1e-30)  # [S] this view's pixel footprint
+        finest = torch.full_like(foot, float("inf"))  # [S] the finest seeing view's footprint / this view's
+        hk, wk = self.cameras.height, self.cameras.width
+        for k0 in range(0, len(self.cameras), VIEW_CHUNK):
+            cams = self.cameras[k0:k0 + VIEW_CHUNK]
+            uv, z = project_points(points, cams.cam_from_world, cams.K)  # [C,S,2], [C,S]
+            grid = torch.stack([uv[..., 0] / wk * 2 - 1, uv[..., 1] / hk * 2 - 1], -1).to(points.dtype)[:, None]
+            there = F.grid_sample(self.depth[k0:k0 + VIEW_CHUNK, None].to(points.dtype), grid, mode="bilinear",
+                                  padding_mode="border", align_corners=False)[:, 0, 0]  # [C,S] rendered depth there
+            seen = _in_image(uv, z, wk, hk) & ((z - there).abs() <= DEPTH_TOLERANCE * z)
+            ratio = (z / cams.K[:, 0, 0].to(z)[:, None]) / foot  # [C,S]
+            finest = torch.minimum(finest, torch.where(seen, ratio, torch.full_like(ratio, float("inf"))).min(0).values)
+        seen_any = torch.isfinite(finest)
+        if not bool(seen_any.any()):
+            return unlooked, 1.0
+        return unlooked, float(finest[seen_any].median())
 
     def _surface_points(self, camera: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]
                         ) -> tuple[Tensor, Tensor, Tensor] | None:
