@@ -1,8 +1,9 @@
 """Benchmark ``uncertsplat train``: seconds per step, total time, Gaussians, memory, held-out PSNR/SSIM.
 
 Scenes: the synthetic demo scene (generated here) with the ``demo`` preset, the ``tiny`` scene with the
-``tiny`` preset, and LLFF fern at 1/8 resolution with the ``paper`` preset (reconstructed here with
-``uncertsplat reconstruct`` unless ``--fern-workspace`` points to an existing workspace).
+``tiny`` preset, LLFF fern at 1/8 resolution with the ``paper`` preset (reconstructed here with
+``uncertsplat reconstruct`` unless ``--fern-workspace`` points to an existing workspace), and bonsai as
+``pipelines/photos.toml`` trains it (``paper`` preset, ``scene.downscale=2``; ``--bonsai-workspace``).
 
     .venv/bin/python benchmarks/bench_train.py --scenes tiny synthetic-demo [--iterations N] [--device cpu]
     .venv/bin/python benchmarks/bench_train.py --scenes fern --fern-workspace WS \
@@ -43,28 +44,34 @@ ROOT = Path(__file__).resolve().parents[1]
 DATASETS = ROOT / "../shared/datasets"
 RESULTS = ROOT / "benchmarks" / "results"
 
-SCENES = {"tiny": "tiny", "synthetic-demo": "demo", "fern": "paper"}
+SCENES = {"tiny": "tiny", "synthetic-demo": "demo", "fern": "paper", "bonsai": "paper"}
+SCENE_OVERRIDES = {"bonsai": ["scene.downscale=2"]}  # as pipelines/photos.toml trains it
 
 
-def scene_folder(name: str, work: Path, fern_ws: Path | None) -> Path:
+def scene_folder(name: str, work: Path, fern_ws: Path | None, bonsai_ws: Path | None = None) -> Path:
     if name in ("tiny", "synthetic-demo"):
         from uncertsplat.stages import synth
 
         out = work / name
         synth.run(out, SynthConfig(preset="tiny" if name == "tiny" else "demo"), overwrite=True)
         return out
-    if fern_ws is not None:
-        return fern_ws
+    given = fern_ws if name == "fern" else bonsai_ws
+    if given is not None:
+        return given
     from uncertsplat.stages import reconstruct
 
-    ws = work / "fern_ws"
-    reconstruct.run(DATASETS / "fern" / "images", ws, ReconstructConfig())
+    ws = work / f"{name}_ws"
+    # bonsai as pipelines/photos.toml reconstructs it
+    cfg = ReconstructConfig() if name == "fern" else ReconstructConfig(matcher="auto", single_camera=True,
+                                                                        max_image_size=1600)
+    reconstruct.run(DATASETS / name / "images", ws, cfg)
     return ws
 
 
 def bench(name: str, work: Path, args) -> dict:
-    scene = scene_folder(name, work, args.fern_workspace)
-    overrides = [f"iterations={args.iterations}"] if args.iterations else []
+    scene = scene_folder(name, work, args.fern_workspace, args.bonsai_workspace)
+    overrides = list(SCENE_OVERRIDES.get(name, []))
+    overrides += [f"iterations={args.iterations}"] if args.iterations else []
     overrides += [] if args.no_profile else ["profile=true"]
     overrides += args.set or []
     cfg = train_config_from(SCENES[name], None, overrides)
@@ -285,6 +292,8 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--machine", default=None, help="machine description for the table")
     ap.add_argument("--fern-workspace", type=Path, default=None)
+    ap.add_argument("--bonsai-workspace", type=Path, default=None,
+                    help="a reconstruct workspace of ../shared/datasets/bonsai (default: reconstructed here)")
     ap.add_argument("--work", type=Path, default=None, help="keep scenes and runs here (default: a temp dir)")
     ap.add_argument("--mc-samples", type=int, default=10, help="posterior samples of the MC-mean reference")
     ap.add_argument("--compare-kernels", type=int, default=0, metavar="STEPS",
