@@ -96,20 +96,26 @@ class Cameras:
 class PhotoFit:
     """How one photo is brought to the scene's common image size (``SceneData.photo_fits``): turned by ``turns``
     clockwise quarter turns (0 or 1: a portrait photo among landscape ones), then cropped to ``width`` x
-    ``height`` pixels from column ``x0`` and row ``y0`` of the turned photo. Its camera is turned and shifted to
-    match when the scene is loaded."""
+    ``height`` pixels from column ``x0`` and row ``y0`` of the turned photo, which is ``turned_width`` x
+    ``turned_height``. Its camera is turned and shifted to match when the scene is loaded."""
 
     turns: int
     x0: int
     y0: int
     width: int
     height: int
+    turned_width: int
+    turned_height: int
 
     def apply(self, image: np.ndarray) -> np.ndarray:
-        """The fitted copy of ``image`` [H,W,...] (the photo as read, at its full size)."""
+        """The fitted copy of ``image`` [H,W,...]: the photo as read, or a map of it at another resolution (a GT
+        depth map), whose crop is scaled to its size."""
         if self.turns % 4:
             image = np.rot90(image, k=-(self.turns % 4), axes=(0, 1))  # clockwise
-        return np.ascontiguousarray(image[self.y0:self.y0 + self.height, self.x0:self.x0 + self.width])
+        sy, sx = image.shape[0] / self.turned_height, image.shape[1] / self.turned_width
+        y0, x0 = round(self.y0 * sy), round(self.x0 * sx)
+        y1, x1 = round((self.y0 + self.height) * sy), round((self.x0 + self.width) * sx)
+        return np.ascontiguousarray(image[y0:y1, x0:x1])
 
 
 @dataclass(frozen=True)

@@ -318,6 +318,20 @@ def test_portrait_photo_is_turned_with_its_camera(workspace, monkeypatch):
     assert scene.photo_fits[i].turns == 1 and all(f.turns == 0 for j, f in enumerate(scene.photo_fits) if j != i)
     assert any(name in note and "turned" in note for note in scene.notes)
     assert scene.source["photo_fits"][name][0] == 1
+    # a GT depth map of the upright photo (--depth-gt), at its size and at half of it, is turned with it
+    from uncertsplat.data.dataset import load_depth_folder
+    from uncertsplat.io.images import resize_image
+
+    depth = (1.0 + np.arange(H * W, dtype=np.float32).reshape(H, W) / (H * W))  # the landscape view's
+    for scale, folder in ((1, workspace / "gt_full"), (2, workspace / "gt_half")):
+        folder.mkdir()
+        small = depth[::scale, ::scale]
+        np.save(folder / "view_005.npy", np.rot90(small, k=1).copy())
+        for other in scene.cameras.image_names:
+            if other != name:
+                np.save(folder / (other.rsplit(".", 1)[0] + ".npy"), np.ones((H, W), np.float32))
+        got = load_depth_folder(folder, scene, [i])[0, ..., 0].numpy()
+        np.testing.assert_allclose(got, resize_image(small, W, H), rtol=0, atol=1e-6)
 
 
 def test_photos_a_few_pixels_larger_are_cropped_to_the_common_size(workspace, monkeypatch):

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import read_exr, read_image, resize_image
-from uncertsplat.types import SceneData, ViewSet
+from uncertsplat.types import PhotoFit, SceneData, ViewSet
 
 
 def _indices(scene: SceneData, indices: Sequence[int] | None) -> list[int]:
@@ -63,10 +63,13 @@ def read_depth_file(path: Path) -> np.ndarray:
     return arr
 
 
-def load_depth_map(path: Path, width: int, height: int) -> np.ndarray:
-    """One depth map [H,W] float32 resized to ``width`` x ``height``; non-finite or <= 0 becomes 0 (invalid)."""
+def load_depth_map(path: Path, width: int, height: int, fit: PhotoFit | None = None) -> np.ndarray:
+    """One depth map [H,W] float32 resized to ``width`` x ``height``; non-finite or <= 0 becomes 0 (invalid). ``fit``:
+    its photo's ``PhotoFit``, applied first (the map turned and cropped as the photo is)."""
     d = read_depth_file(path)
     d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+    if fit is not None:
+        d = fit.apply(d)
     return resize_image(d, width, height)
 
 
@@ -120,7 +123,7 @@ def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) ->
         if path is None:
             raise UserError(f"no GT depth map for image '{scene.cameras.image_names[i]}'", path=folder,
                             hint=f"Expected {stem}.npy or {stem}.exr.")
-        out.append(load_depth_map(path, W, H))
+        out.append(load_depth_map(path, W, H, scene.photo_fits[i] if scene.photo_fits is not None else None))
     return torch.from_numpy(np.stack(out)[..., None])
 
 

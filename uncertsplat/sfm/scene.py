@@ -203,7 +203,7 @@ def _fit_sizes(model: ColmapModel, images: list, sparse: Path) -> tuple[dict, li
                         "share one", path=sparse, hint="Reconstruct photos of one camera at one size.")
     width = min(w for _, w, _ in turned.values())
     height = min(h for _, _, h in turned.values())
-    fits = {name: PhotoFit(turns, (w - width) // 2, (h - height) // 2, width, height)
+    fits = {name: PhotoFit(turns, (w - width) // 2, (h - height) // 2, width, height, w, h)
             for name, (turns, w, h) in turned.items()}
     notes = []
     rotated = sorted(n for n, f in fits.items() if f.turns)
@@ -468,7 +468,8 @@ def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torc
         cams = cams.scaled(1.0 / cfg.downscale)
     source = dict(source, background=list(cfg.background), downscale=cfg.downscale)
     if photo_fits is not None:
-        source = dict(source, photo_fits={name: [f.turns, f.x0, f.y0, f.width, f.height]
+        source = dict(source, photo_fits={name: [f.turns, f.x0, f.y0, f.width, f.height, f.turned_width,
+                                                 f.turned_height]
                                           for name, f in zip(cams.image_names, photo_fits, strict=True)})
     return SceneData(
         cameras=cams,
