@@ -116,9 +116,14 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         console.print(f"[yellow]note:[/] {note}")
     groups = scan.size_groups()
     report.image_sizes = {f"{w}x{h}": len(n) for (w, h), n in groups.items()}
-    if len(groups) > 1 and cfg.single_camera:
-        report.notes.append(f"{len(groups)} image sizes found: one camera per size "
-                            f"({', '.join(report.image_sizes)})")
+    if len(groups) > 1:
+        # train fits them to one size (sfm.scene: scene.photo_sizes); say so before the mapping's minutes
+        sizes = "; ".join(f"{k}: {v}" for k, v in sorted(report.image_sizes.items(), key=lambda kv: -kv[1]))
+        note = (f"{len(groups)} image sizes found ({sizes})" + ("; one camera per size" if cfg.single_camera else "")
+                + ": `train` fits the photos to the most common size (photos of the other orientation turned, a few "
+                "pixels cropped, other sizes left out; scene.photo_sizes)")
+        report.notes.append(note)
+        console.print(f"[yellow]note:[/] {note}")
 
     def fail(message: str, hint: str) -> UserError:
         report.success = False
