@@ -153,7 +153,8 @@ class TrainSummary(SchemaFile):
     """PSNR of the same render on at most 8 evenly spaced training views: how well the model fits its own photos
     (None for an ensemble and runs from before it was recorded)."""
     warnings: list[str] = Field(default_factory=list)
-    """What ``train`` warned about (e.g. a model that cannot fit its own photos)."""
+    """What ``train`` warned about (e.g. a model that cannot fit its own photos), and, prefixed "scene: ", what
+    loading changed of the photos (``SceneData.notes``: turned, cropped or left out)."""
     # ---- one model
     carrier_fraction: float | None = None
     memory_per_gaussian_bytes: float | None = None

@@ -248,10 +248,12 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         held = trainer.evaluate()
         fit_psnr = trainer.training_psnr()
         warnings = poor_fit_warnings(fit_psnr, scene)
+        # what loading changed of the photos (turned, cropped, left out) goes into the summary, so the report shows it
+        recorded = warnings + [f"scene: {note}" for note in data.notes]
         summary = TrainSummary(**trainer.summary(), test_psnr=held.get("psnr"), test_ssim=held.get("ssim"),
                                test_render="expected render (variational.expected_render_sample)",
                                num_test_views=len(data.split.get("test", ())), device=str(device), kernels=kernels,
-                               scene=str(scene.resolve()), train_psnr=fit_psnr, warnings=warnings)
+                               scene=str(scene.resolve()), train_psnr=fit_psnr, warnings=recorded)
         summary.write(run_dir / "train_summary.json")
         psnr_txt = f", held-out PSNR {held['psnr']:.2f} dB" if held else ""
         fit_txt = f", training views {fit_psnr:.2f} dB" if fit_psnr is not None else ""
