@@ -115,8 +115,9 @@ class SceneConfig(_Base):
     """A COLMAP workspace whose images come in more than one size (portrait and landscape photos, two cameras).
     fit: the most common size is the scene's; a photo of the other orientation is turned a quarter turn (its
     camera with it) and every photo within ``PHOTO_SIZE_TOLERANCE`` of that size is cropped to the size all of
-    them share (a few pixels: undistortion crops each camera differently); photos of other sizes are left out,
-    by name. strict: refuse such a workspace."""
+    them share (a few pixels: undistortion crops each camera differently); a photo of another resolution of the
+    same shape (``PHOTO_SHAPE_TOLERANCE``: a second camera) is resized to it, its camera scaled; photos of other
+    shapes are left out, by name. strict: refuse such a workspace."""
     carve: bool = True
     """Random initial points (no sparse points) of a scene whose training images have real transparency: keep
     only those inside the alpha > 0.5 foreground of every training view that sees them (space carving)."""

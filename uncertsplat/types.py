@@ -95,9 +95,10 @@ class Cameras:
 @dataclass(frozen=True)
 class PhotoFit:
     """How one photo is brought to the scene's common image size (``SceneData.photo_fits``): turned by ``turns``
-    clockwise quarter turns (0 or 1: a portrait photo among landscape ones), then cropped to ``width`` x
-    ``height`` pixels from column ``x0`` and row ``y0`` of the turned photo, which is ``turned_width`` x
-    ``turned_height``. Its camera is turned and shifted to match when the scene is loaded."""
+    clockwise quarter turns (0 or 1: a portrait photo among landscape ones) to ``turned_width`` x ``turned_height``,
+    resized to ``scaled_width`` x ``scaled_height`` (another camera's resolution of the same shape; the turned size
+    when not resized), then cropped to ``width`` x ``height`` pixels from column ``x0`` and row ``y0``. Its camera
+    is turned, scaled and shifted to match when the scene is loaded."""
 
     turns: int
     x0: int
@@ -106,16 +107,25 @@ class PhotoFit:
     height: int
     turned_width: int
     turned_height: int
+    scaled_width: int = 0
+    scaled_height: int = 0
+
+    @property
+    def scaled(self) -> tuple[int, int]:
+        """(width, height) after the resize (the turned size when there is none)."""
+        return (self.scaled_width or self.turned_width, self.scaled_height or self.turned_height)
 
     def apply(self, image: np.ndarray) -> np.ndarray:
-        """The fitted copy of ``image`` [H,W,...]: the photo as read, or a map of it at another resolution (a GT
-        depth map), whose crop is scaled to its size."""
+        """The fitted copy of ``image`` [H,W,...] float: the photo as read, or a map of it at another resolution (a
+        GT depth map), first brought to the photo's (scaled) size when it differs."""
+        from uncertsplat.io.images import resize_image
+
         if self.turns % 4:
             image = np.rot90(image, k=-(self.turns % 4), axes=(0, 1))  # clockwise
-        sy, sx = image.shape[0] / self.turned_height, image.shape[1] / self.turned_width
-        y0, x0 = round(self.y0 * sy), round(self.x0 * sx)
-        y1, x1 = round((self.y0 + self.height) * sy), round((self.x0 + self.width) * sx)
-        return np.ascontiguousarray(image[y0:y1, x0:x1])
+        sw, sh = self.scaled
+        if image.shape[:2] != (sh, sw):
+            image = resize_image(np.ascontiguousarray(image, dtype=np.float32), sw, sh)
+        return np.ascontiguousarray(image[self.y0:self.y0 + self.height, self.x0:self.x0 + self.width])
 
 
 @dataclass(frozen=True)

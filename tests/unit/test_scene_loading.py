@@ -358,6 +358,28 @@ def test_photos_a_few_pixels_larger_are_cropped_to_the_common_size(workspace, mo
     assert any("cropped" in note for note in scene.notes)
 
 
+def test_a_photo_of_another_resolution_of_the_same_shape_is_resized_with_its_camera(workspace, monkeypatch):
+    """Another camera's photo at twice the resolution (each pixel repeated 2 x 2, its intrinsics doubled) loads as
+    the original view: the same camera, the same pixels (area averaging undoes the repetition)."""
+    from dataclasses import replace
+
+    from uncertsplat.sfm.colmap_io import read_colmap_model
+
+    before = load_scene(workspace)
+    name, i = "view_009.png", before.cameras.image_names.index("view_009.png")
+    model = read_colmap_model(workspace / "sparse" / "0")
+    im = next(m for m in model.images if m.name == name)
+    cam = model.cameras[im.camera_id]
+    big = replace(cam, camera_id=2, width=2 * cam.width, height=2 * cam.height, K=cam.K * [[2], [2], [1]])
+    original = read_image(workspace / "images" / name)
+    write_png(workspace / "images" / name, original.repeat(2, 0).repeat(2, 1))
+    scene = _load_with_model(monkeypatch, workspace, _with_camera(model, name, big, im.cam_from_world))
+    assert (scene.cameras.width, scene.cameras.height) == (cam.width, cam.height)
+    torch.testing.assert_close(scene.cameras.K, before.cameras.K, atol=1e-4, rtol=0)
+    torch.testing.assert_close(load_images(scene, [i])[0], torch.from_numpy(original), atol=1e-6, rtol=0)
+    assert any(name in note and "resized" in note for note in scene.notes)
+
+
 def test_photos_of_another_size_are_left_out_or_refused(workspace, monkeypatch):
     from dataclasses import replace
 
@@ -368,9 +390,9 @@ def test_photos_of_another_size_are_left_out_or_refused(workspace, monkeypatch):
     model = read_colmap_model(workspace / "sparse" / "0")
     im = next(m for m in model.images if m.name == name)
     cam = model.cameras[im.camera_id]
-    big = replace(cam, camera_id=2, width=2 * cam.width, height=2 * cam.height, K=cam.K * [[2], [2], [1]])
-    write_png(workspace / "images" / name, np.zeros((2 * cam.height, 2 * cam.width, 3), np.float32))
-    changed = _with_camera(model, name, big, im.cam_from_world)
+    wide = replace(cam, camera_id=2, width=2 * cam.width, K=cam.K * [[2], [1], [1]])  # another shape
+    write_png(workspace / "images" / name, np.zeros((cam.height, 2 * cam.width, 3), np.float32))
+    changed = _with_camera(model, name, wide, im.cam_from_world)
     scene = _load_with_model(monkeypatch, workspace, changed)
     assert name not in scene.cameras.image_names and len(scene.cameras) == len(before.cameras) - 1
     assert (scene.cameras.width, scene.cameras.height) == (cam.width, cam.height)
@@ -378,4 +400,4 @@ def test_photos_of_another_size_are_left_out_or_refused(workspace, monkeypatch):
     with pytest.raises(UserError) as info:
         _load_with_model(monkeypatch, workspace, changed, SceneConfig(photo_sizes="strict"))
     text = str(info.value)
-    assert f"{2 * cam.width}x{2 * cam.height}: 1 image ({name})" in text and "photo_sizes" in text
+    assert f"{2 * cam.width}x{cam.height}: 1 image ({name})" in text and "photo_sizes" in text

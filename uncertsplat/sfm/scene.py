@@ -152,6 +152,11 @@ def _colmap_cameras(model: ColmapModel, image_dir: Path, sparse: Path, cfg: Scen
     return cameras, paths, (tuple(fits[im.name] for im in images) if fits is not None else None), notes
 
 
+PHOTO_SHAPE_TOLERANCE = 0.01
+"""``SceneConfig.photo_sizes`` = "fit": a photo (turned to the scene's orientation) beyond ``PHOTO_SIZE_TOLERANCE``
+of the most common size joins the scene resized to its width when its aspect ratio is within this fraction of the
+scene's (another camera's resolution of the same shape, e.g. 4032x3024 among 3264x2448); the camera is scaled with
+it. Other shapes are left out."""
 PHOTO_SIZE_TOLERANCE = 0.05
 """``SceneConfig.photo_sizes`` = "fit": a photo (turned to the scene's orientation) joins the scene when its width
 and height are within this fraction of the most common size; it is cropped to the size all joined photos share.
@@ -188,29 +193,38 @@ def _fit_sizes(model: ColmapModel, images: list, sparse: Path) -> tuple[dict, li
         counts[(cam.width, cam.height)] = counts.get((cam.width, cam.height), 0) + 1
     # the most common size; among equals the larger, then the wider (deterministic)
     ref_w, ref_h = max(counts, key=lambda s: (counts[s], s[0] * s[1], s[0]))
-    turned: dict[str, tuple[int, int, int]] = {}  # name -> (turns, width, height) after turning
+    # name -> (turns, width, height after turning, width, height after resizing)
+    turned: dict[str, tuple[int, int, int, int, int]] = {}
     left_out: list[str] = []
     for im in images:
         cam = model.cameras[im.camera_id]
         turns = int((cam.width >= cam.height) != (ref_w >= ref_h) and cam.width != cam.height)
         w, h = (cam.height, cam.width) if turns else (cam.width, cam.height)
         if abs(w - ref_w) <= PHOTO_SIZE_TOLERANCE * ref_w and abs(h - ref_h) <= PHOTO_SIZE_TOLERANCE * ref_h:
-            turned[im.name] = (turns, w, h)
+            turned[im.name] = (turns, w, h, w, h)
+        elif abs(w / h - ref_w / ref_h) <= PHOTO_SHAPE_TOLERANCE * ref_w / ref_h:
+            # another camera's resolution of the same shape: resized to the common width
+            turned[im.name] = (turns, w, h, ref_w, max(1, round(h * ref_w / w)))
         else:
             left_out.append(f"{im.name} ({cam.width}x{cam.height})")
     if len(turned) < 2:
         raise UserError(f"the images have different sizes ({_sizes_by_name(model, images)}) and fewer than two "
                         "share one", path=sparse, hint="Reconstruct photos of one camera at one size.")
-    width = min(w for _, w, _ in turned.values())
-    height = min(h for _, _, h in turned.values())
-    fits = {name: PhotoFit(turns, (w - width) // 2, (h - height) // 2, width, height, w, h)
-            for name, (turns, w, h) in turned.items()}
+    width = min(sw for *_, sw, _ in turned.values())
+    height = min(sh for *_, sh in turned.values())
+    fits = {name: PhotoFit(turns, (sw - width) // 2, (sh - height) // 2, width, height, w, h,
+                           sw if (sw, sh) != (w, h) else 0, sh if (sw, sh) != (w, h) else 0)
+            for name, (turns, w, h, sw, sh) in turned.items()}
     notes = []
     rotated = sorted(n for n, f in fits.items() if f.turns)
     if rotated:
         notes.append(f"{len(rotated)} photo(s) of the other orientation turned a quarter turn clockwise (their "
                      f"cameras with them): {', '.join(rotated[:8])}{', ...' if len(rotated) > 8 else ''}")
-    cropped = sum(1 for n, (_, w, h) in turned.items() if (w, h) != (width, height))
+    scaled = sorted(n for n, f in fits.items() if f.scaled_width)
+    if scaled:
+        notes.append(f"{len(scaled)} photo(s) of another resolution of the same shape resized to the scene's (their "
+                     f"cameras with them): {', '.join(scaled[:8])}{', ...' if len(scaled) > 8 else ''}")
+    cropped = sum(1 for f in fits.values() if f.scaled != (width, height))
     if cropped:
         notes.append(f"{cropped} photo(s) cropped to the {width}x{height} pixels every photo of the scene has "
                      "(at most a few percent of each side)")
@@ -226,8 +240,8 @@ def _fitted_cameras(c2w: torch.Tensor, K: torch.Tensor, fits: list, heights: lis
     each photo's height before turning.
 
     A clockwise quarter turn takes pixel (u, v) of a photo of height H to (H - v, u): in camera axes
-    (x, y, z) -> (-y, x, z), so fx' = fy, fy' = fx, cx' = H - cy, cy' = cx. A crop from (x0, y0) moves the
-    principal point by (-x0, -y0)."""
+    (x, y, z) -> (-y, x, z), so fx' = fy, fy' = fx, cx' = H - cy, cy' = cx. A resize by (sx, sy) scales fx, cx by
+    sx and fy, cy by sy; a crop from (x0, y0) moves the principal point by (-x0, -y0)."""
     c2w, K = c2w.clone(), K.clone()
     turn = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=c2w.dtype)
     for i, fit in enumerate(fits):
@@ -235,6 +249,9 @@ def _fitted_cameras(c2w: torch.Tensor, K: torch.Tensor, fits: list, heights: lis
             c2w[i, :3, :] = turn @ c2w[i, :3, :]
             fx, fy, cx, cy = (float(K[i, 0, 0]), float(K[i, 1, 1]), float(K[i, 0, 2]), float(K[i, 1, 2]))
             K[i, 0, 0], K[i, 1, 1], K[i, 0, 2], K[i, 1, 2] = fy, fx, heights[i] - cy, cx
+        sw, sh = fit.scaled  # a resize scales pixel coordinates (centres at +0.5) by the size ratio per axis
+        K[i, 0] *= sw / fit.turned_width
+        K[i, 1] *= sh / fit.turned_height
         K[i, 0, 2] -= fit.x0
         K[i, 1, 2] -= fit.y0
     return c2w, K
@@ -469,7 +486,7 @@ def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torc
     source = dict(source, background=list(cfg.background), downscale=cfg.downscale)
     if photo_fits is not None:
         source = dict(source, photo_fits={name: [f.turns, f.x0, f.y0, f.width, f.height, f.turned_width,
-                                                 f.turned_height]
+                                                 f.turned_height, *f.scaled]
                                           for name, f in zip(cams.image_names, photo_fits, strict=True)})
     return SceneData(
         cameras=cams,
