@@ -8,7 +8,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -97,8 +96,8 @@ class PhotoFit:
     """How one photo is brought to the scene's common image size (``SceneData.photo_fits``): turned by ``turns``
     clockwise quarter turns (0 or 1: a portrait photo among landscape ones) to ``turned_width`` x ``turned_height``,
     resized to ``scaled_width`` x ``scaled_height`` (another camera's resolution of the same shape; the turned size
-    when not resized), then cropped to ``width`` x ``height`` pixels from column ``x0`` and row ``y0``. Its camera
-    is turned, scaled and shifted to match when the scene is loaded."""
+    when not resized), then cropped to ``width`` x ``height`` pixels from column ``x0`` and row ``y0``
+    (``data.dataset.fit_photo``). Its camera is turned, scaled and shifted to match when the scene is loaded."""
 
     turns: int
     x0: int
@@ -114,18 +113,6 @@ class PhotoFit:
     def scaled(self) -> tuple[int, int]:
         """(width, height) after the resize (the turned size when there is none)."""
         return (self.scaled_width or self.turned_width, self.scaled_height or self.turned_height)
-
-    def apply(self, image: np.ndarray) -> np.ndarray:
-        """The fitted copy of ``image`` [H,W,...] float: the photo as read, or a map of it at another resolution (a
-        GT depth map), first brought to the photo's (scaled) size when it differs."""
-        from uncertsplat.io.images import resize_image
-
-        if self.turns % 4:
-            image = np.rot90(image, k=-(self.turns % 4), axes=(0, 1))  # clockwise
-        sw, sh = self.scaled
-        if image.shape[:2] != (sh, sw):
-            image = resize_image(np.ascontiguousarray(image, dtype=np.float32), sw, sh)
-        return np.ascontiguousarray(image[self.y0:self.y0 + self.height, self.x0:self.x0 + self.width])
 
 
 @dataclass(frozen=True)

@@ -39,7 +39,18 @@ def read_photo(scene: SceneData, index: int,
     """The photo of camera ``index`` [H,W,3] float32 at its full size, turned and cropped as the scene's cameras
     are (``SceneData.photo_fits``)."""
     image = read_image(scene.image_paths[index], background=background)
-    return image if scene.photo_fits is None else scene.photo_fits[index].apply(image)
+    return image if scene.photo_fits is None else fit_photo(scene.photo_fits[index], image)
+
+
+def fit_photo(fit: PhotoFit, image: np.ndarray) -> np.ndarray:
+    """The copy of ``image`` [H,W,...] float that ``fit`` makes: turned, brought to the photo's (scaled) size when it
+    differs (a resized photo, or a map of it at another resolution such as a GT depth map), then cropped."""
+    if fit.turns % 4:
+        image = np.rot90(image, k=-(fit.turns % 4), axes=(0, 1))  # clockwise
+    sw, sh = fit.scaled
+    if image.shape[:2] != (sh, sw):
+        image = resize_image(np.ascontiguousarray(image, dtype=np.float32), sw, sh)
+    return np.ascontiguousarray(image[fit.y0:fit.y0 + fit.height, fit.x0:fit.x0 + fit.width])
 
 
 def read_depth_file(path: Path) -> np.ndarray:
@@ -69,7 +80,7 @@ def load_depth_map(path: Path, width: int, height: int, fit: PhotoFit | None = N
     d = read_depth_file(path)
     d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
     if fit is not None:
-        d = fit.apply(d)
+        d = fit_photo(fit, d)
     return resize_image(d, width, height)
 
 
