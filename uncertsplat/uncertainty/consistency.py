@@ -166,20 +166,9 @@ class ViewConsistency:
         best = torch.full_like(points[:, 0], float("inf"))  # [S] angle of the chosen view
         diff = torch.zeros_like(colour[:, 0])  # [S]
         inside_any = torch.zeros_like(points[:, 0], dtype=torch.bool)  # [S] in some compared view's image
-        hk, wk = self.cameras.height, self.cameras.width
         for k0 in range(0, len(self.cameras), VIEW_CHUNK):
-            cams = self.cameras[k0:k0 + VIEW_CHUNK]
-            uv, z = project_points(points, cams.cam_from_world, cams.K)  # [C,S,2], [C,S]
-            inside = _in_image(uv, z, wk, hk)  # [C,S]
+            cams, _, inside, there, seen = self._compared_at(points, k0, rgb.dtype)
             inside_any |= inside.any(0)
-            # the training views' renders and depths at the point, bilinearly (a surface at a grazing angle changes
-            # depth by more than the tolerance from one pixel to the next)
-            image = torch.cat([self.rgb[k0:k0 + VIEW_CHUNK].to(rgb.dtype),
-                               self.depth[k0:k0 + VIEW_CHUNK].to(rgb.dtype)[..., None]], -1)  # [C,H',W',4]
-            grid = torch.stack([uv[..., 0] / wk * 2 - 1, uv[..., 1] / hk * 2 - 1], -1).to(rgb.dtype)[:, None]
-            there = F.grid_sample(image.permute(0, 3, 1, 2), grid, mode="bilinear", padding_mode="border",
-                                  align_corners=False)[:, :, 0].transpose(1, 2)  # [C,S,4]
-            seen = inside & ((z - there[..., 3]).abs() <= DEPTH_TOLERANCE * z)
             angle = _angle(F.normalize(cams.centers.to(points)[:, None] - points, dim=-1), to_view)  # [C,S]
             angle = torch.where(seen, angle, torch.full_like(angle, float("inf")))
             nearest, k = angle.min(0)  # [S]: the first of equal angles, as views in order
@@ -189,11 +178,7 @@ class ViewConsistency:
             best = torch.where(better, nearest, best)
         weight = ((best - self.gate) / self.gate).clamp(0.0, 1.0).to(rgb.dtype)  # diff is 0 where no view saw it
         if self.palette_var > 0.0:
-            # outside every training image: the compared views' images were tested above; the other training cameras
-            # only for the points outside all of those (usually few)
-            unlooked = torch.isinf(best) & ~inside_any  # [S]
-            if self.frustum_cameras is not None and bool(unlooked.any()):
-                unlooked[unlooked.clone()] = ~self._looked_at(points[unlooked])
+            unlooked = self._outside_every_image(points, inside_any)  # [S] (best = inf there: no view saw them)
             diff = torch.where(unlooked, torch.full_like(diff, self.palette_var), diff)  # weight 1 there (best = inf)
         full = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(0, where, diff * weight)
         return _box_mean(full.reshape(h, w))[None, ..., None]
@@ -220,20 +205,16 @@ class ViewConsistency:
         if found is None:
             return 0.0, 1.0
         points = found[2]  # [S,3]
-        unlooked = float((~self._looked_at(points)).float().mean())
         _, z_here = project_points(points, camera.cam_from_world.to(points), camera.K.to(points))  # [1,S]
         foot = (z_here[0] / camera.K[0, 0, 0].to(points)).clamp_min(1e-30)  # [S] this view's pixel footprint
         finest = torch.full_like(foot, float("inf"))  # [S] the finest seeing view's footprint / this view's
-        hk, wk = self.cameras.height, self.cameras.width
+        inside_any = torch.zeros_like(foot, dtype=torch.bool)  # [S] in some compared view's image
         for k0 in range(0, len(self.cameras), VIEW_CHUNK):
-            cams = self.cameras[k0:k0 + VIEW_CHUNK]
-            uv, z = project_points(points, cams.cam_from_world, cams.K)  # [C,S,2], [C,S]
-            grid = torch.stack([uv[..., 0] / wk * 2 - 1, uv[..., 1] / hk * 2 - 1], -1).to(points.dtype)[:, None]
-            there = F.grid_sample(self.depth[k0:k0 + VIEW_CHUNK, None].to(points.dtype), grid, mode="bilinear",
-                                  padding_mode="border", align_corners=False)[:, 0, 0]  # [C,S] rendered depth there
-            seen = _in_image(uv, z, wk, hk) & ((z - there).abs() <= DEPTH_TOLERANCE * z)
+            cams, z, inside, _, seen = self._compared_at(points, k0, points.dtype)
+            inside_any |= inside.any(0)
             ratio = (z / cams.K[:, 0, 0].to(z)[:, None]) / foot  # [C,S]
             finest = torch.minimum(finest, torch.where(seen, ratio, torch.full_like(ratio, float("inf"))).min(0).values)
+        unlooked = float(self._outside_every_image(points, inside_any).float().mean())
         seen_any = torch.isfinite(finest)
         if not bool(seen_any.any()):
             return unlooked, 1.0
@@ -254,6 +235,33 @@ class ViewConsistency:
         points = unproject(torch.where(surface, depth, torch.zeros_like(depth)), camera.cam_from_world[0],
                            camera.K[0]).reshape(-1, 3)[where]  # [S,3]
         return rgb, where, points
+
+    def _compared_at(self, points: Tensor, k0: int, dtype: torch.dtype
+                     ) -> tuple[Cameras, Tensor, Tensor, Tensor, Tensor]:
+        """The compared views ``k0`` .. ``k0 + VIEW_CHUNK`` at ``points`` [S,3]: their cameras, the points' depths in
+        them z [C,S], whether their images hold the points (in front) [C,S], their renders there [C,S,4] (rgb and
+        rendered depth, bilinearly: a surface at a grazing angle changes depth by more than the tolerance from one
+        pixel to the next; in ``dtype``) and whether they see the points (held, the rendered depth within
+        ``DEPTH_TOLERANCE``) [C,S]."""
+        hk, wk = self.cameras.height, self.cameras.width
+        cams = self.cameras[k0:k0 + VIEW_CHUNK]
+        uv, z = project_points(points, cams.cam_from_world, cams.K)  # [C,S,2], [C,S]
+        inside = _in_image(uv, z, wk, hk)  # [C,S]
+        image = torch.cat([self.rgb[k0:k0 + VIEW_CHUNK].to(dtype),
+                           self.depth[k0:k0 + VIEW_CHUNK].to(dtype)[..., None]], -1)  # [C,H',W',4]
+        grid = torch.stack([uv[..., 0] / wk * 2 - 1, uv[..., 1] / hk * 2 - 1], -1).to(dtype)[:, None]
+        there = F.grid_sample(image.permute(0, 3, 1, 2), grid, mode="bilinear", padding_mode="border",
+                              align_corners=False)[:, :, 0].transpose(1, 2)  # [C,S,4]
+        seen = inside & ((z - there[..., 3]).abs() <= DEPTH_TOLERANCE * z)
+        return cams, z, inside, there, seen
+
+    def _outside_every_image(self, points: Tensor, inside_any: Tensor) -> Tensor:
+        """[S] bool: the ``points`` [S,3] outside the image of every training camera, given ``inside_any`` [S] (inside
+        some compared view's image): only the others are projected into the other training cameras (usually few)."""
+        outside = ~inside_any
+        if self.frustum_cameras is not None and bool(outside.any()):
+            outside[outside.clone()] = ~self._looked_at(points[outside])
+        return outside
 
     def _looked_at(self, points: Tensor) -> Tensor:
         """[S] bool: whether the image of some training camera (``frustum_cameras``) holds each point [S,3], in
