@@ -33,3 +33,9 @@ def progress(transient: bool = False) -> Progress:
         transient=transient,
         disable=disable,
     )
+
+
+def list_names(names: list[str], limit: int = 15) -> str:
+    """``names`` joined by commas for a message, the first ``limit`` of them and how many more."""
+    shown = ", ".join(names[:limit])
+    return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from uncertsplat.config import SceneConfig
+from uncertsplat.console import list_names
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import read_image_size
 from uncertsplat.schemas.scene import SynthScene
@@ -146,7 +147,7 @@ def _colmap_cameras(model: ColmapModel, image_dir: Path, sparse: Path, cfg: Scen
         width, height = sizes.pop()
     else:
         ordered = [fits[im.name] for im in images]
-        c2w, K = _fitted_cameras(c2w, K, ordered, [model.cameras[im.camera_id].height for im in images])
+        c2w, K = _fitted_cameras(c2w, K, ordered)
         width, height = ordered[0].width, ordered[0].height
     cameras = Cameras(c2w.float(), K.float(), width, height, tuple(im.name for im in images))
     return cameras, paths, (tuple(fits[im.name] for im in images) if fits is not None else None), notes
@@ -172,8 +173,7 @@ def _sizes_by_name(model: ColmapModel, images: list) -> str:
         groups.setdefault((cam.width, cam.height), []).append(im.name)
     parts = []
     for (w, h), names in sorted(groups.items(), key=lambda kv: -len(kv[1])):
-        shown = "" if len(names) == max(len(v) for v in groups.values()) else \
-            f" ({', '.join(names[:5])}{', ...' if len(names) > 5 else ''})"
+        shown = "" if len(names) == max(len(v) for v in groups.values()) else f" ({list_names(names, 5)})"
         parts.append(f"{w}x{h}: {len(names)} image{'s' if len(names) != 1 else ''}{shown}")
     return "; ".join(parts)
 
@@ -219,25 +219,23 @@ def _fit_sizes(model: ColmapModel, images: list, sparse: Path) -> tuple[dict, li
     rotated = sorted(n for n, f in fits.items() if f.turns)
     if rotated:
         notes.append(f"{len(rotated)} photo(s) of the other orientation turned a quarter turn clockwise (their "
-                     f"cameras with them): {', '.join(rotated[:8])}{', ...' if len(rotated) > 8 else ''}")
+                     f"cameras with them): {list_names(rotated, 8)}")
     scaled = sorted(n for n, f in fits.items() if f.scaled_width)
     if scaled:
         notes.append(f"{len(scaled)} photo(s) of another resolution of the same shape resized to the scene's (their "
-                     f"cameras with them): {', '.join(scaled[:8])}{', ...' if len(scaled) > 8 else ''}")
+                     f"cameras with them): {list_names(scaled, 8)}")
     cropped = sum(1 for f in fits.values() if f.scaled != (width, height))
     if cropped:
         notes.append(f"{cropped} photo(s) cropped to the {width}x{height} pixels every photo of the scene has "
                      "(at most a few percent of each side)")
     if left_out:
         notes.append(f"{len(left_out)} photo(s) of another size left out (the scene's is {ref_w}x{ref_h}; "
-                     f"scene.photo_sizes): {', '.join(left_out[:8])}{', ...' if len(left_out) > 8 else ''}")
+                     f"scene.photo_sizes): {list_names(left_out, 8)}")
     return fits, notes
 
 
-def _fitted_cameras(c2w: torch.Tensor, K: torch.Tensor, fits: list, heights: list[int]
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
-    """cam_from_world [C,4,4] and K [C,3,3] (float64) of the photos as ``fits`` turn and crop them; ``heights``:
-    each photo's height before turning.
+def _fitted_cameras(c2w: torch.Tensor, K: torch.Tensor, fits: list) -> tuple[torch.Tensor, torch.Tensor]:
+    """cam_from_world [C,4,4] and K [C,3,3] (float64) of the photos as ``fits`` turn, resize and crop them.
 
     A clockwise quarter turn takes pixel (u, v) of a photo of height H to (H - v, u): in camera axes
     (x, y, z) -> (-y, x, z), so fx' = fy, fy' = fx, cx' = H - cy, cy' = cx. A resize by (sx, sy) scales fx, cx by
@@ -248,7 +246,8 @@ def _fitted_cameras(c2w: torch.Tensor, K: torch.Tensor, fits: list, heights: lis
         if fit.turns % 4 == 1:
             c2w[i, :3, :] = turn @ c2w[i, :3, :]
             fx, fy, cx, cy = (float(K[i, 0, 0]), float(K[i, 1, 1]), float(K[i, 0, 2]), float(K[i, 1, 2]))
-            K[i, 0, 0], K[i, 1, 1], K[i, 0, 2], K[i, 1, 2] = fy, fx, heights[i] - cy, cx
+            # the photo's height before the turn is its width after it
+            K[i, 0, 0], K[i, 1, 1], K[i, 0, 2], K[i, 1, 2] = fy, fx, fit.turned_width - cy, cx
         sw, sh = fit.scaled  # a resize scales pixel coordinates (centres at +0.5) by the size ratio per axis
         K[i, 0] *= sw / fit.turned_width
         K[i, 1] *= sh / fit.turned_height

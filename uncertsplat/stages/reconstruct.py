@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 from uncertsplat.config import ReconstructConfig
-from uncertsplat.console import console, progress
+from uncertsplat.console import console, list_names, progress
 from uncertsplat.errors import UserError
 from uncertsplat.io.atomic import run_lock
 from uncertsplat.sfm import reconstruct as sfm
@@ -32,11 +32,6 @@ from uncertsplat.sfm.report import (
 
 # What a workspace written by this stage consists of: --overwrite removes these and nothing else.
 _OWNED = ("images", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", REPORT_NAME)
-
-
-def _list_names(names: list[str], limit: int = 15) -> str:
-    shown = ", ".join(names[:limit])
-    return shown + (f" and {len(names) - limit} more" if len(names) > limit else "")
 
 
 def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fingerprint: str) -> ReconstructReport | None:
@@ -155,12 +150,12 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                                                  advance=lambda k, s: bar.update(task, advance=k, info=s))
             missing = [name for name in scan.names if name not in keypoints]
             if missing:
-                raise fail(f"COLMAP could not read {len(missing)} image(s): {_list_names(missing)}",
+                raise fail(f"COLMAP could not read {len(missing)} image(s): {list_names(missing)}",
                            "Re-export these files as JPEG or PNG, or remove them.")
             featureless = sorted(name for name, k in keypoints.items() if k == 0)
             bar.update(task, info=f"{sum(keypoints.values())} keypoints")
             if featureless:
-                report.notes.append(f"no features found in: {_list_names(featureless)}")
+                report.notes.append(f"no features found in: {list_names(featureless)}")
 
             # ---- matching
             task = bar.add_task(f"matching ({matcher})", total=len(pairs), info="")
@@ -243,7 +238,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                 hints.append("for unordered photos try --matcher exhaustive")
             hints.append(f"or lower --min-registered (now {cfg.min_registered})")
             raise fail(f"only {len(registered)}/{n} images registered (below --min-registered "
-                       f"{cfg.min_registered}); unregistered: {_list_names(report.images_unregistered)}",
+                       f"{cfg.min_registered}); unregistered: {list_names(report.images_unregistered)}",
                        "Try: " + "; ".join(hints) + ".")
 
         model_dir = distorted / "sparse" / "0"
@@ -255,7 +250,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         report.ground_truth = _against_ground_truth(photos, workspace)
         report.success = True
         report.message = "" if not report.images_unregistered else (
-            f"{len(report.images_unregistered)} image(s) not registered: {_list_names(report.images_unregistered)}")
+            f"{len(report.images_unregistered)} image(s) not registered: {list_names(report.images_unregistered)}")
         report.stage_seconds = dict(watch.seconds)
         report.total_seconds = round(time.perf_counter() - t_start, 3)
         write_report(workspace, report)
@@ -272,7 +267,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         console.print("[yellow]warning:[/] the mapping runs found different geometries; the kept one explains the most "
                       "feature observations (reconstruct_report.json: mapping_attempts)")
     if report.images_unregistered:
-        console.print(f"[yellow]warning:[/] not registered: {_list_names(report.images_unregistered)}")
+        console.print(f"[yellow]warning:[/] not registered: {list_names(report.images_unregistered)}")
     if report.ground_truth:
         g = report.ground_truth
         console.print(f"  against the synthetic scene's GT cameras: centres {g['centre_error_mean_pct']:.3f} % of the "
