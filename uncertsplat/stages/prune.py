@@ -355,6 +355,10 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
                      "views, settings and versions)")
 
     # ---- sweep (also what --auto decides on)
+    def sweep_of(name: str, ratios, **kw):
+        return keep_ratio_sweep(model, scores[name], carriers, ratios, measure, unpruned=before, seed=cfg.seed,
+                                tolerance_db=cfg.tolerance_db, score_name=name, split=split, **kw)
+
     sweep = None
     if cfg.sweep or cfg.auto:
         def show(p, name=None):
@@ -362,21 +366,16 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
                           f"the expected render {_num(p.score.psnr_render)} (random {_num(p.random.psnr_render)})")
 
         # --auto alone decides on the expected render's PSNR and measures the uncertainty of the chosen mask only
-        sweeps = {name: keep_ratio_sweep(model, scores[name], carriers, cfg.sweep_ratios, measure, unpruned=before,
-                                         seed=cfg.seed, tolerance_db=cfg.tolerance_db, score_name=name, split=split,
-                                         on_point=partial(show, name=name if len(candidates) > 1 else None),
-                                         stop_at_first_failure=not cfg.sweep, full=cfg.sweep)
+        sweeps = {name: sweep_of(name, cfg.sweep_ratios, stop_at_first_failure=not cfg.sweep, full=cfg.sweep,
+                                 on_point=partial(show, name=name if len(candidates) > 1 else None))
                   for name in candidates}
         if len(sweeps) > 1:
             score_name, note = choose_score_by_removal(sweeps)
             notes.append(note)
         sweep = sweeps[score_name]
     elif len(candidates) > 1:  # --keep-ratio R: the expected render's PSNR at R by each score
-        sweeps = {name: keep_ratio_sweep(model, scores[name], carriers, [cfg.keep_ratio], measure, unpruned=before,
-                                         seed=cfg.seed, tolerance_db=cfg.tolerance_db, score_name=name, split=split,
-                                         full=False)
-                  for name in candidates}
-        score_name, note = choose_score_at_ratio(sweeps, cfg.keep_ratio)
+        score_name, note = choose_score_at_ratio({name: sweep_of(name, [cfg.keep_ratio], full=False)
+                                                  for name in candidates}, cfg.keep_ratio)
         notes.append(note)
     score = scores[score_name]
 
