@@ -31,8 +31,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def near_cameras(cam_from_world: torch.Tensor, K: torch.Tensor, targets: torch.Tensor, fraction: float
-                 ) -> torch.Tensor:
+def near_cameras(cam_from_world: torch.Tensor, targets: torch.Tensor, fraction: float) -> torch.Tensor:
     """cam_from_world [C,4,4] (float64, source frame) of cameras moved along their optical axes to ``fraction`` of
     their distance to ``targets`` [C,3] (the points they look at), the orientation kept."""
     out = cam_from_world.clone()
@@ -43,18 +42,6 @@ def near_cameras(cam_from_world: torch.Tensor, K: torch.Tensor, targets: torch.T
         dist = float((targets[i] - centre) @ ahead)
         moved = centre + (1.0 - fraction) * dist * ahead
         out[i, :3, 3] = -R @ moved
-    return out
-
-
-def to_run_frame(cam_from_world: torch.Tensor, world_from_source: torch.Tensor) -> torch.Tensor:
-    """Source-frame cam_from_world [C,4,4] in the run's normalised world (``sfm.scene._finish``'s similarity
-    x' = s x + T[:3, 3]; the camera frame scaled by s too, so it stays rigid)."""
-    T = world_from_source.double()
-    s = float(T[0, 0])
-    mid = -T[:3, 3] / s
-    out = cam_from_world.double().clone()
-    R, t = out[:, :3, :3], out[:, :3, 3]
-    out[:, :3, 3] = s * ((R @ mid) + t)
     return out
 
 
@@ -81,6 +68,7 @@ def main() -> None:
     )
     from uncertsplat.eval.engine import evaluate_views, scored_sampler
     from uncertsplat.io.images import resize_image
+    from uncertsplat.sfm.scene import normalized_cam_from_world
     from uncertsplat.stages.residual_cache import fitted_residual
     from uncertsplat.types import Cameras, ViewSet
 
@@ -120,7 +108,7 @@ def main() -> None:
     def view_set(fraction: float) -> ViewSet:
         if fraction == 1.0:
             return load_view_set(scene, test)
-        c2w = near_cameras(src_c2w[test], K, targets, fraction)
+        c2w = near_cameras(src_c2w[test], targets, fraction)
         W, H = scene.cameras.width, scene.cameras.height  # the run's size (after its downscale): as load_view_set
         images, depths = [], []
         for j in range(len(test)):
@@ -128,7 +116,7 @@ def main() -> None:
             rgb8 = (torch.round(rgb.clamp(0, 1) * 255) / 255.0).float().numpy()  # as the scene's PNGs hold them
             images.append(torch.from_numpy(resize_image(rgb8, W, H)))
             depths.append(torch.from_numpy(resize_image(depth.float().numpy(), W, H)))
-        cams = Cameras(to_run_frame(c2w, scene.world_from_source).float(), K.float().expand(len(test), 3, 3).clone(),
+        cams = Cameras(normalized_cam_from_world(c2w, scene.world_from_source).float(), K.float().expand(len(test), 3, 3).clone(),
                        width, height, tuple(f"{n} at {fraction:g}" for n in names))
         cams = cams.scaled(scene.cameras.width / width)
         scale = 1.0 / scene.depth_scale_to_gt if scene.depth_scale_to_gt else 1.0

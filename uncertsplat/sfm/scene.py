@@ -440,6 +440,20 @@ def _alpha_masks(cameras: Cameras, paths: list[Path], train: tuple[int, ...]):
     return (cameras[list(train)], masks) if transparent else None
 
 
+def normalized_cam_from_world(cam_from_world: torch.Tensor, world_from_source: torch.Tensor) -> torch.Tensor:
+    """[C,4,4] float64: source-frame ``cam_from_world`` [C,4,4] in the normalised world of the similarity
+    ``world_from_source`` [4,4] (``SceneData.world_from_source``: x' = s x + T[:3, 3]).
+
+    cam_from_world' = S_s * cam_from_world * world_from_source^-1 (the camera frame scaled by s too, so the result
+    stays rigid): R' = R, t' = s * (R c + t) with T = [sI, -s c]."""
+    T = world_from_source.double()
+    s = float(T[0, 0])
+    c2w = cam_from_world.double()
+    new = c2w.clone()
+    new[:, :3, 3] = s * ((c2w[:, :3, :3] @ (-T[:3, 3] / s)) + c2w[:, :3, 3])
+    return new
+
+
 def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torch.Tensor, cfg: SceneConfig,
             source: dict, default_split: dict | None = None, random_init: bool = False,
             photo_fits: tuple | None = None, notes: list[str] | tuple[str, ...] = ()) -> SceneData:
@@ -469,14 +483,7 @@ def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torc
         T, s = normalization(cameras, choice.center)
     else:
         T, s = torch.eye(4, dtype=torch.float64), 1.0
-    # cam_from_world' = S_s * cam_from_world * world_from_source^-1 (camera frame scaled by s too,
-    # so the result stays rigid): R' = R, t' = s * (R c + t) with T = [sI, -s c].
-    c2w = cameras.cam_from_world.double()
-    R = c2w[:, :3, :3]
-    t = c2w[:, :3, 3]
-    mid = -T[:3, 3] / s
-    new = c2w.clone()
-    new[:, :3, 3] = s * ((R @ mid) + t)
+    new = normalized_cam_from_world(cameras.cam_from_world, T)
     pts = (points.double() * s + T[:3, 3]).float()
     cams = Cameras(new.float(), cameras.K.float(), cameras.width, cameras.height, cameras.image_names)
     scene_scale = float((cams.centers.double() - cams.centers.double().mean(0)).norm(dim=-1).max())
