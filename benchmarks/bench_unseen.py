@@ -40,6 +40,14 @@ correlation over views of mean std with RMSE)::
     .venv/bin/python benchmarks/bench_unseen.py --protocol arc --scene WS --preset paper --downscale 1.5873 \
         --iterations 3000 --max-gaussians 60000 --methods variational sgd --label fern-arc --out /tmp/fern_arc
 
+Photos of different exposure (``--exposure-jitter S``: every generated photo's brightness scaled by a random gain
+of log-std S, held-out photos too, as with automatic exposure), with and without ``exposure = "affine"``::
+
+    .venv/bin/python benchmarks/bench_unseen.py --protocol dense --methods variational --predictives full \
+        --exposure-jitter 0.25 --out /tmp/exposure_off --label exposure-off
+    .venv/bin/python benchmarks/bench_unseen.py --protocol dense --methods variational --predictives full \
+        --exposure-jitter 0.25 --set exposure=affine --out /tmp/exposure_affine --label exposure-affine
+
 Writes ``benchmarks/results/unseen_<label>.json`` and prints the Markdown rows for BENCHMARKS.md.
 """
 
@@ -214,6 +222,24 @@ def per_view_agreement(report, maps) -> dict:
     return {"per_view": rows, "std_error_correlation": corr}
 
 
+def jitter_exposure(scene_dir: Path, sigma: float, seed: int) -> list[float]:
+    """Scale each photo of a generated scene by a gain exp(N(0, sigma)) (in the order of its image names, seeded),
+    clipped to [0, 1] as a camera saturates; returns the gains. The GT depth and sparse points stay as they were."""
+    import numpy as np
+
+    from uncertsplat.io.images import read_image, write_png
+
+    meta = json.loads((scene_dir / "scene.json").read_text())
+    rng = np.random.default_rng(seed)
+    gains = [float(np.exp(rng.normal(0.0, sigma))) for _ in meta["image_names"]]
+    for name, gain in zip(meta["image_names"], gains, strict=True):
+        path = scene_dir / "images" / name
+        pixels = np.clip(read_image(path)[..., :3] * gain, 0.0, 1.0).astype(np.float32)
+        path.unlink()
+        write_png(path, pixels)
+    return gains
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_unseen"))
@@ -243,6 +269,9 @@ def main() -> None:
                     help="initial points: those the training views see (as SfM on them would give), or all")
     ap.add_argument("--set", action="append", default=[], help="key=value for every method's TrainConfig")
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
+    ap.add_argument("--exposure-jitter", type=float, default=0.0,
+                    help="scale each generated photo's brightness by exp(N(0, S)) (seeded; held-out photos too, as "
+                    "in a capture with automatic exposure), keeping the clean photos' sparse points")
     ap.add_argument("--predictives", nargs="+", choices=list(PREDICTIVES), default=list(PREDICTIVES),
                     help="which predictives to evaluate every run with (default: all)")
     args = ap.parse_args()
@@ -258,6 +287,8 @@ def main() -> None:
     scene_dir = args.scene if args.scene is not None else args.out / "scene"
     if args.scene is None and not (scene_dir / "scene.json").is_file():
         generate_scene(scene_dir, SynthConfig(preset="demo", seed=0, width=args.width))
+        if args.exposure_jitter > 0:
+            jitter_exposure(scene_dir, args.exposure_jitter, args.seed)
     if args.protocol == "half-ring":
         train, test = half_ring_split(load_scene(scene_dir), args.test_every)
     elif args.protocol == "sparse":
@@ -306,6 +337,7 @@ def main() -> None:
     out = {"label": args.label, "machine": args.machine, "date": time.strftime("%Y-%m-%d"),
            "torch": torch.__version__, "iterations": its, "width": args.width, "train_views": train,
            "test_views": test, "seed": args.seed, "samples": args.samples, "set": args.set, "protocol": args.protocol,
+           "exposure_jitter": args.exposure_jitter,
            "rows": rows}
     path = ROOT / "benchmarks" / "results" / f"unseen_{args.label}.json"
     path.write_text(json.dumps(out, indent=1))

@@ -326,6 +326,13 @@ class TrainConfig(_Base):
     "Training at half resolution first"."""
     low_res_scale: float = Field(0.5, gt=0.0, le=1.0)
     """The image scale of the low-resolution steps (``low_res_fraction``)."""
+    exposure: Literal["off", "affine"] = "off"
+    """``affine``: each training photo gets a gain and an offset per colour channel, learned with the model, so that
+    photos of different exposure or white balance (automatic exposure, outdoor light) are not fitted with floaters
+    (``render.exposure``); ``evaluate`` compares the training photos at the model's exposure and adds the spread of
+    the learned exposures to a new view's variance. ``off``: every photo is taken as it is."""
+    exposure_lr: float = Field(2e-3, gt=0.0)
+    """Adam learning rate of the exposure parameters (log gain and offset)."""
     ssim_lambda: float = Field(0.2, ge=0.0, le=1.0)
     tile_size: int = Field(8, ge=2, le=64)
     batch_size: int = Field(1, ge=1)

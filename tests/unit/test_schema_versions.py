@@ -22,7 +22,8 @@ from uncertsplat.schemas.base import _models_in
 DATA = Path(__file__).resolve().parents[1] / "data"
 KEYS_FILE = DATA / "schema_keys.json"
 SCHEMAS = [schemas.EvalReport, schemas.Manifest, schemas.PruneReport, schemas.PruneSweep, schemas.ReconstructReport,
-           schemas.RunScene, schemas.Selection, schemas.SweepSummary, schemas.SynthScene, schemas.TrainSummary]
+           schemas.RunExposure, schemas.RunScene, schemas.Selection, schemas.SweepSummary, schemas.SynthScene,
+           schemas.TrainSummary]
 PruneReport, PruneSweep, ReconstructReport, TrainSummary = (schemas.PruneReport, schemas.PruneSweep,
                                                             schemas.ReconstructReport, schemas.TrainSummary)
 

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from uncertsplat.baselines.runs import LoadedRun, load_single_model, read_run_config
+from uncertsplat.baselines.runs import LoadedRun, load_single_model, mean_exposure, read_run_config
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import Sampler
@@ -120,7 +120,8 @@ class EnsembleRun(LoadedRun):
         """Samples cycle through the members (``ensemble_sample_fn``); no deterministic render of its own."""
         members = self.member_samples()
         return Sampler(ensemble_sample_fn(members), self.render_fn(scene_scale, device), empty_std=self.empty_std(),
-                       coverage=self.coverage(scene_scale, device, members[0]), mean_sample=members[0])
+                       coverage=self.coverage(scene_scale, device, members[0]), mean_sample=members[0],
+                       exposure=self.photo_exposure())
 
     def eval_notes(self, num_samples: int) -> list[str]:
         n = len(self.members)
@@ -149,7 +150,7 @@ def load_ensemble(run_dir: Path, cfg, device: torch.device | str = "cpu") -> Ens
         members.append(load_single_model(mdir, device))
     first = members[0]
     return EnsembleRun(first.model, cfg, first.scene_path, first.extent, first.step, first.sh_degree, run_dir,
-                       run_dir, first.transparent, members=members)
+                       run_dir, first.transparent, mean_exposure([m.exposure for m in members]), members=members)
 
 
 def ensemble_sample_fn(samples: list[GaussianSample]):

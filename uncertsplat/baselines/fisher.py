@@ -85,6 +85,9 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
     idx = list(data.split["train"])
     cams = data.cameras[idx].to(device)
     images = load_images(data, idx, device)
+    exposure = loaded.photo_exposure()
+    if exposure is not None:  # the photos at the model's exposure, as training compared them
+        images = exposure.unexposed_images(idx, images)
     render_fn = loaded.render_fn(data.scene_scale, device)  # as in training
 
     params = {k: v.detach() for k, v in loaded.model.params.items()}
@@ -161,7 +164,8 @@ class FisherRun(LoadedRun):
             mean = posterior_mean(self.model, variant=prior.variant, extent=self.extent,
                                   temperature=prior.temperature, sh_degree=self.sh_degree)
         return Sampler(fisher_sample_fn(self), self.render_fn(scene_scale, device), empty_std=self.empty_std(),
-                       coverage=self.coverage(scene_scale, device, mean), mean_sample=mean)
+                       coverage=self.coverage(scene_scale, device, mean), mean_sample=mean,
+                       exposure=self.photo_exposure())
 
     def eval_notes(self, num_samples: int) -> list[str]:
         fcfg = self.config.fisher

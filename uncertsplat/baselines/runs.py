@@ -27,7 +27,8 @@ from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import Sampler
 from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.gaussians.prior import Prior
-from uncertsplat.schemas import RunScene
+from uncertsplat.render.exposure import PhotoExposure
+from uncertsplat.schemas import RunExposure, RunScene
 from uncertsplat.types import GaussianSample, SceneData
 
 
@@ -56,6 +57,8 @@ class LoadedRun:
     run_dir: Path
     transparent: bool = False
     """The training images had real transparency (``RUN/scene.json``): the background is data."""
+    exposure: RunExposure | None = None
+    """The training photos' learned exposures (``RUN/exposure.json``; ``TrainConfig.exposure``), None without."""
     _coverage: float | None = field(default=None, init=False, repr=False)  # ``coverage``, once computed
 
     @property
@@ -130,7 +133,29 @@ class LoadedRun:
             def sample_fn(g):
                 return variational.sample(model, g, subset_size=subset_size, **kw)
         return Sampler(sample_fn, render_fn, det_sample, empty_std=self.empty_std(),
-                       coverage=self.coverage(scene_scale, device, det_sample))
+                       coverage=self.coverage(scene_scale, device, det_sample), exposure=self.photo_exposure())
+
+    def photo_exposure(self) -> PhotoExposure | None:
+        """``exposure`` with the photos as view indices of the run's scene (``Sampler.exposure``); None without
+        exposures.
+
+        Raises:
+            UserError: ``exposure.json`` names a photo the scene does not have.
+        """
+        if self.exposure is None:
+            return None
+        from uncertsplat.render.exposure import PhotoExposure
+
+        names = self.load_scene().cameras.image_names
+        index = {n: i for i, n in enumerate(names)}
+        missing = [n for n in self.exposure.images if n not in index]
+        if missing:
+            raise UserError(f"{RunExposure.FILE_NAME} names {len(missing)} photo(s) the scene does not have "
+                            f"(e.g. {missing[0]})", path=self.run_dir / RunExposure.FILE_NAME,
+                            hint="Train the run again on this scene, or restore the scene it was trained on.")
+        return PhotoExposure(tuple(index[n] for n in self.exposure.images),
+                             torch.tensor(self.exposure.gain, dtype=torch.float32),
+                             torch.tensor(self.exposure.offset, dtype=torch.float32))
 
     def eval_notes(self, num_samples: int) -> list[str]:
         """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run."""
@@ -138,6 +163,14 @@ class LoadedRun:
             return ["deterministic model: every sample is the same render, so the samples' spread is 0 everywhere; "
                     "the std holds only the empty-ray, pixel-noise and resolution terms (when on)"]
         return []
+
+    def exposure_notes(self) -> list[str]:
+        """What an evaluation notes about the run's learned exposures (``exposure``): none without them."""
+        if self.exposure is None:
+            return []
+        return [f"{self.exposure.describe()} ({RunExposure.FILE_NAME}): the pixel noise is fitted on the training "
+                "photos at the model's exposure, and the spread of the photos' exposures is part of the RGB std (a new "
+                "photo's exposure is not known)"]
 
     def load_scene(self) -> SceneData:
         """The scene the run was trained on, with the run's scene config (same split and downscale).
@@ -194,13 +227,14 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
     info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
     scene_path = Path(info.scene) if info is not None and info.scene else None
     transparent = bool(info.source.get("transparent", False)) if info is not None else False
+    exposure = RunExposure.read_optional(run_dir / RunExposure.FILE_NAME)
     device = torch.device(device)
     ply = run_dir / "variational.ply"
     if ply.is_file():
         model, meta = read_variational_ply(ply, device=device)
         extent = float(meta.get("extent", info.extent if info is not None else 1.0))
         return LoadedRun(model, cfg, scene_path, extent, int(meta.get("step", 0)),
-                         int(meta.get("sh_degree_active", model.sh_degree)), ply, run_dir, transparent)
+                         int(meta.get("sh_degree_active", model.sh_degree)), ply, run_dir, transparent, exposure)
     found = load_latest(run_dir, map_location=device)
     if found is None:
         raise UserError("no trained model here (neither variational.ply nor a checkpoint in ckpts/)", path=run_dir,
@@ -210,8 +244,34 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
         model = GaussianModel.from_state_dict(state["model"], device)
     except (KeyError, ValueError) as err:  # a good checksum over an inconsistent model: written by other code
         raise CorruptCheckpoint(f"the model in the checkpoint is inconsistent ({err})", path=path) from None
+    if exposure is None and state.get("exposure") is not None and info is not None:
+        exposure = checkpoint_exposure(state, info.train)
     return LoadedRun(model, cfg, scene_path, float(state["extent"]), int(state["step"]),
-                     int(state.get("sh_degree_active", model.sh_degree)), path, run_dir, transparent)
+                     int(state.get("sh_degree_active", model.sh_degree)), path, run_dir, transparent, exposure)
+
+
+def checkpoint_exposure(state: dict, train_names: list[str]) -> RunExposure | None:
+    """The exposures a training checkpoint ``state`` holds, as ``exposure.json`` would (``train_names``: the run's
+    training photos in the order of its split, ``RunScene.train``); None when its rows do not match them."""
+    from uncertsplat.render.exposure import centred
+
+    params = state["exposure"].detach().cpu().double()
+    if params.shape[0] != len(train_names):
+        return None
+    gain, offset = centred(params)
+    return RunExposure(images=list(train_names), gain=gain.tolist(), offset=offset.tolist(),
+                       step=int(state.get("step", 0)))
+
+
+def mean_exposure(records: list[RunExposure | None]) -> RunExposure | None:
+    """The exposures of several models of one capture (an ensemble's members), averaged per photo (the log gains
+    and the offsets); None when any has none or they name different photos."""
+    if not records or any(r is None for r in records) or any(r.images != records[0].images for r in records):
+        return None
+    log_gain = torch.tensor([r.gain for r in records], dtype=torch.float64).log().mean(0)
+    offset = torch.tensor([r.offset for r in records], dtype=torch.float64).mean(0)
+    return RunExposure(images=records[0].images, gain=log_gain.exp().tolist(), offset=offset.tolist(),
+                       step=min(r.step for r in records))
 
 
 def load_run(run_dir: str | Path, device: torch.device | str = "cpu") -> LoadedRun:
@@ -234,4 +294,4 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu") -> LoadedR
     return base
 
 
-__all__ = ["LoadedRun", "load_run", "load_single_model", "read_run_config"]
+__all__ = ["LoadedRun", "checkpoint_exposure", "load_run", "load_single_model", "mean_exposure", "read_run_config"]

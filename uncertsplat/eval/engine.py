@@ -28,6 +28,7 @@ from torch import Tensor
 
 from uncertsplat.console import progress
 from uncertsplat.errors import UserError
+from uncertsplat.render.exposure import PhotoExposure
 from uncertsplat.schemas.metrics import EvalReport
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput, ViewSet
 from uncertsplat.uncertainty.consistency import ViewConsistency
@@ -97,6 +98,10 @@ class Sampler:
         mean_sample: a deterministic model that stands for the run in the predictive's side terms (pixel noise,
             resolution term) when it has no ``det_sample`` (an ensemble's first member, a Fisher run's mean).
         consistency: the view-consistency term (``view_consistency``), added to the RGB variance; None: none.
+        exposure: the training photos' learned exposures (``TrainConfig.exposure``): the training photos the pixel
+            noise is fitted on are brought to the model's exposure, and the spread of the exposures is added to the
+            RGB variance (a new photo's exposure is not known; the std factor is fitted on photos as they are, each
+            at its own exposure like a new one); None: photos taken as they are.
     """
 
     sample_fn: Callable[[torch.Generator], GaussianSample]
@@ -107,6 +112,7 @@ class Sampler:
     coverage: float = 1.0
     mean_sample: GaussianSample | None = None
     consistency: ViewConsistency | None = None
+    exposure: PhotoExposure | None = None
 
 
 @dataclass(frozen=True)
@@ -171,6 +177,12 @@ def _side_variance(sampler: Sampler, cams: Cameras) -> Tensor | None:
     extra = sampler.residual.blended(cams, sampler.render_fn) if sampler.residual is not None else None
     if sampler.consistency is not None:
         term = torch.cat([sampler.consistency.variance(cams[[j]], sampler.render_fn) for j in range(len(cams))])
+        extra = term if extra is None else extra + term
+    if sampler.exposure is not None:
+        rep = _representative(sampler, cams.device)
+        with torch.no_grad():
+            term = torch.cat([sampler.exposure.variance(sampler.render_fn(rep, cams[[j]]).rgb)
+                              for j in range(len(cams))])
         extra = term if extra is None else extra + term
     return extra
 
@@ -255,6 +267,8 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
     if not chosen:
         return None
     views = load_views(chosen)
+    if sampler.exposure is not None:
+        views = sampler.exposure.unexposed(views)
     masks = views.masks.to(device) if views.masks is not None else None
     explained = None
     shift = _shift_fn(sampler, cfg, device)
@@ -478,14 +492,14 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
     chosen = calibration_indices(split, cfg)
     if not chosen:
         return None, []
-    views = load_views(chosen)
+    views = load_views(chosen)  # as they are: a photo at its own exposure, what the exposures' spread predicts
     gen = torch.Generator(device=device)
     total, count = 0.0, 0
     for j, i in enumerate(views.indices):
         cam = views.cameras[[j]].to(device)
         if set_aside_maps is not None and i in set_aside_maps:
             mean, bare_std = set_aside_maps[i]
-            extra = _side_variance(sampler, cam)
+            extra = _side_variance(dataclasses.replace(sampler, exposure=None), cam)  # bare_std has the exposures' term
             std = bare_std if extra is None else (bare_std.square() + extra.cpu().to(bare_std)).sqrt()
         else:
             gen.manual_seed(_view_seed(cfg, i))

@@ -24,10 +24,17 @@ from uncertsplat.schemas.base import SchemaFile, Strict
 from uncertsplat.schemas.metrics import EvalReport, ViewMetrics
 from uncertsplat.schemas.prune import PruneMetrics, PruneReport, PruneSweep, SweepPoint
 from uncertsplat.schemas.reconstruct import ReconstructReport
-from uncertsplat.schemas.runs import Manifest, PosteriorSummary, SweepRecord, SweepSummary, TrainSummary
+from uncertsplat.schemas.runs import (
+    Manifest,
+    PosteriorSummary,
+    RunExposure,
+    SweepRecord,
+    SweepSummary,
+    TrainSummary,
+)
 from uncertsplat.schemas.scene import RunScene, SynthScene, ViewsAdded
 from uncertsplat.schemas.select import Selection
 
 __all__ = ["EvalReport", "Manifest", "PosteriorSummary", "PruneMetrics", "PruneReport", "PruneSweep",
-           "ReconstructReport", "RunScene", "SchemaFile", "Selection", "Strict", "SweepPoint", "SweepRecord", "SweepSummary",
+           "ReconstructReport", "RunExposure", "RunScene", "SchemaFile", "Selection", "Strict", "SweepPoint", "SweepRecord", "SweepSummary",
            "SynthScene", "TrainSummary", "ViewMetrics", "ViewsAdded"]

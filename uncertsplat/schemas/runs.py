@@ -6,7 +6,7 @@ import hashlib
 import json
 from typing import Any
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from uncertsplat.schemas.base import SchemaFile, Strict, finite_or_none
 
@@ -203,6 +203,48 @@ class TrainSummary(SchemaFile):
             return {**d, "posterior_updates": []} if version == 1 else d
 
         return {**up(data), "members": [up(m) for m in data.get("members", [])]}
+
+
+# ------------------------------------------------------------------------------------------ exposure.json
+class RunExposure(SchemaFile):
+    """``RUN/exposure.json``: each training photo's learned exposure (``TrainConfig.exposure = "affine"``,
+    ``render.exposure``): the gain and offset per colour channel that take the model's colours to what the photo
+    shows, centred over the photos (geometric mean gain 1, mean offset 0 per channel). ``evaluate`` brings the
+    training photos to the model's exposure with them and adds their spread to a new view's variance."""
+
+    FILE_NAME = "exposure.json"
+    SCHEMA_VERSION = 1
+    WRITTEN_BY = "uncertsplat train"
+
+    schema_version: int = 1
+    images: list[str]
+    """The training photos' names, in the order of ``gain`` and ``offset``."""
+    gain: list[list[float]]
+    """[T][3] per photo and channel (r, g, b)."""
+    offset: list[list[float]]
+    """[T][3] likewise, in colour units (0-1)."""
+    step: int
+    """The training step the exposures belong to."""
+
+    @model_validator(mode="after")
+    def _aligned(self) -> RunExposure:
+        if len(self.gain) != len(self.images) or len(self.offset) != len(self.images):
+            raise ValueError(f"{len(self.images)} images but {len(self.gain)} gains and {len(self.offset)} offsets")
+        if any(len(row) != 3 for row in (*self.gain, *self.offset)):
+            raise ValueError("every gain and offset has 3 channels (r, g, b)")
+        if any(not (v > 0.0) for row in self.gain for v in row):
+            raise ValueError("every gain must be positive")
+        return self
+
+    def describe(self) -> str:
+        """One line: the range of the photos' gains and the spread of their offsets."""
+        import statistics
+
+        gains = [sum(row) / 3.0 for row in self.gain]
+        offsets = [sum(row) / 3.0 for row in self.offset]
+        spread = statistics.pstdev(offsets) if len(offsets) > 1 else 0.0
+        return (f"exposure of {len(self.images)} training photos: gain {min(gains):.3f}-{max(gains):.3f} "
+                f"(mean over channels), offset spread {spread:.4f}")
 
 
 # ----------------------------------------------------------------------------------------- manifest.json

@@ -33,6 +33,7 @@ from uncertsplat.console import console
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import ViewMaps
 from uncertsplat.io.maps import EXR_CHANNELS, map_stem
+from uncertsplat.schemas.runs import RunExposure
 
 if TYPE_CHECKING:
     from uncertsplat.schemas.metrics import EvalReport
@@ -86,6 +87,9 @@ def same_model_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device) 
         for name in ("config.json", "scene.json"):
             if (run_dir / name).read_bytes() != (source / name).read_bytes():
                 return None
+        here, there = (d / RunExposure.FILE_NAME for d in (run_dir, source))
+        if (here.read_bytes() if here.is_file() else None) != (there.read_bytes() if there.is_file() else None):
+            return None
         previous = EvalReport.read_optional(source / EvalReport.FILE_NAME)
         if (previous is None or previous.config_hash != hash_config(cfg.model_dump(mode="json"))
                 or previous.device != str(device) or previous.versions != versions()
@@ -105,7 +109,7 @@ OUTPUT_SETTINGS = ("save_maps", "preview", "reuse")
 
 def run_sha256(run_dir: Path, model_file: Path) -> str:
     """SHA-256 over what an evaluation of ``run_dir`` scores: ``model_file`` and the run's ``config.json`` and
-    ``scene.json`` (either may be missing).
+    ``scene.json`` (either may be missing), and its ``exposure.json`` when it has one.
 
     Raises:
         OSError: the model file cannot be read.
@@ -118,6 +122,9 @@ def run_sha256(run_dir: Path, model_file: Path) -> str:
     for name in ("config.json", "scene.json"):
         path = Path(run_dir) / name
         parts.append(file_sha256(path) if path.is_file() else "-")
+    exposure = Path(run_dir) / RunExposure.FILE_NAME
+    if exposure.is_file():  # only when present: the runs without one keep the hash they were evaluated under
+        parts.append(file_sha256(exposure))
     return hashlib.sha256(" ".join(parts).encode()).hexdigest()
 
 
@@ -235,7 +242,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
                                 std_scale=std_scale, calibration_views=cal_views,
                                 calibration_held_out=bool(scene.split.get("calibration")),
                                 noise_scale=residual.scale if residual is not None else None,
-                                notes=loaded.eval_notes(cfg.num_samples),
+                                notes=loaded.eval_notes(cfg.num_samples) + loaded.exposure_notes(),
                                 config_hash=hash_config(cfg.model_dump(mode="json")))
         reach = _reach_notes(sampler, views, device)
         report.notes.extend(reach)

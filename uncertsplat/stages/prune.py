@@ -60,6 +60,7 @@ from uncertsplat.schemas.prune import (
     ScoreStats,
     Written,
 )
+from uncertsplat.schemas.runs import RunExposure
 
 METRIC_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "depth_ause_mae")
 
@@ -447,7 +448,7 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
     try:
         writes_model = keep is not None and not cfg.dry_run
         if writes_model:
-            for name in ("config.json", "scene.json"):
+            for name in ("config.json", "scene.json", RunExposure.FILE_NAME):
                 if (run_dir / name).is_file():
                     atomic_write_bytes(tmp / name, (run_dir / name).read_bytes())
             write_variational_ply(tmp / "variational.ply", pruned, meta=measure.meta)

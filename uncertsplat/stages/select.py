@@ -138,8 +138,12 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         settings.update(width=low.width, height=low.height)
     else:  # fisher
         low_train = low_resolution(scene.cameras[train], cfg.max_side)
+        photos = load_images(scene, train)
+        exposure = loaded.photo_exposure()
+        if exposure is not None:  # the photos at the model's exposure, as training compared them
+            photos = exposure.unexposed_images(train, photos)
         images = torch.from_numpy(np.stack([resize_image(im.numpy(), low_train.width, low_train.height)
-                                            for im in load_images(scene, train)]))
+                                            for im in photos]))
         fcfg = loaded.config.fisher
         params = {k: v.detach() for k, v in loaded.model.params.items()}
         low = low_resolution(cands.cameras, cfg.max_side)

@@ -137,7 +137,7 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
                             std_scale=std_scale, calibration_views=cal_views,
                             calibration_held_out=bool(scene.split.get("calibration")),
                             noise_scale=residual.scale if residual is not None else None,
-                            notes=loaded.eval_notes(ecfg.num_samples),
+                            notes=loaded.eval_notes(ecfg.num_samples) + loaded.exposure_notes(),
                             config_hash=hash_config(ecfg.model_dump(mode="json")))
     wall = time.perf_counter() - t0
     out = {k: getattr(report.mean, k) for k in RECORD_KEYS}

@@ -29,7 +29,7 @@ from uncertsplat.io.atomic import (
     remove_stale_temp_files,
     run_lock,
 )
-from uncertsplat.schemas import RunScene, TrainSummary
+from uncertsplat.schemas import RunExposure, RunScene, TrainSummary
 from uncertsplat.schemas.scene import ViewsAdded
 from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
@@ -245,9 +245,15 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         write_point_cloud_ply(run_dir / "point_cloud.ply", trainer.model, variant=cfg.variant, extent=trainer.extent,
                               temperature=cfg.variational.gate_temperature)
         write_variational_ply(run_dir / "variational.ply", trainer.model, meta=meta)
+        exposure = trainer.exposure_record(names)
+        if exposure is not None:
+            exposure.write(run_dir / RunExposure.FILE_NAME)
+            console.print(exposure.describe())
+        elif (run_dir / RunExposure.FILE_NAME).exists():  # an earlier training of this folder learned exposures
+            (run_dir / RunExposure.FILE_NAME).unlink()
         held = trainer.evaluate()
         fit_psnr = trainer.training_psnr()
-        warnings = poor_fit_warnings(fit_psnr, scene)
+        warnings = poor_fit_warnings(fit_psnr, scene) + exposure_warnings(trainer.photo_gains(), cfg.exposure)
         # what loading changed of the photos (turned, cropped, left out) goes into the summary, so the report shows it
         recorded = warnings + [f"scene: {note}" for note in data.notes]
         summary = TrainSummary(**trainer.summary(), test_psnr=held.get("psnr"), test_ssim=held.get("ssim"),
@@ -298,6 +304,25 @@ def workspace_notes(scene: Path) -> list[str]:
             "another --seed or more --mapping-attempts maps again"]
 
 
+EXPOSURE_SPREAD = 1.15
+"""``train`` warns when the brightest of the training photos it checks is this many times as bright as the darkest,
+relative to the model's render (``Trainer.photo_gains``) and ``exposure`` is off. Measured (8 photos each): the demo
+scene 1.003-1.006, fern 1.005, bonsai 1.077; the demo scene with every photo's brightness scaled by a random gain of
+log-std 0.25, 2.09 (BENCHMARKS.md, "Photos of different exposure")."""
+
+
+def exposure_warnings(gains: list[float], exposure: str) -> list[str]:
+    """The warning for training photos of different brightness (``EXPOSURE_SPREAD``) when ``exposure`` is off."""
+    if exposure != "off" or len(gains) < 2 or min(gains) <= 0.0:
+        return []
+    spread = max(gains) / min(gains)
+    if spread < EXPOSURE_SPREAD:
+        return []
+    return [f"the training photos differ in brightness (relative gains {min(gains):.2f}-{max(gains):.2f} on "
+            f"{len(gains)} of them): if they were taken with automatic exposure or white balance, train again with "
+            "--set exposure=affine (a gain and offset per photo, learned with the model)"]
+
+
 def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
     """The warning for a model that cannot fit its own training views (``POOR_FIT_PSNR``), naming what to check:
     the SfM health report when the scene is a ``reconstruct`` workspace."""
@@ -315,4 +340,4 @@ def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
             f"check {where}, moving objects or exposure changes between the photos"]
 
 
-__all__ = ["POOR_FIT_PSNR", "poor_fit_warnings", "train_model", "workspace_notes"]
+__all__ = ["EXPOSURE_SPREAD", "POOR_FIT_PSNR", "exposure_warnings", "poor_fit_warnings", "train_model", "workspace_notes"]

@@ -44,6 +44,8 @@ from uncertsplat.gaussians.variational import (
     sample_with_kl,
 )
 from uncertsplat.render import near_plane, render
+from uncertsplat.render.exposure import centred, expose, fitted_gain, unexpose
+from uncertsplat.schemas.runs import RunExposure
 from uncertsplat.strategy.budget import gaussian_budget
 from uncertsplat.strategy.densify import Densifier, DensifyStats
 from uncertsplat.strategy.growth import (
@@ -182,6 +184,66 @@ class Trainer:
         self.growth: list[GrowthCheck] = []
         self.step = 0
         self.elapsed = 0.0
+        self._init_exposure(None)
+
+    def _init_exposure(self, state: dict | None) -> None:
+        """The per-photo exposure parameters [T,2,3] (``render.exposure``) and their optimiser, from ``state`` (a
+        checkpoint's) or at the identity; None with ``exposure = "off"``. Views added since the checkpoint
+        (``train --add-views``) start at the others' centre, the others keep their rows (matched by view index) and,
+        when none was added, their optimiser state."""
+        self.exposure = self.exposure_optimizer = None
+        if self.cfg.exposure == "off":
+            return
+        params = torch.zeros(len(self.train_idx), 2, 3, device=self.device)
+        saved = state.get("exposure") if state is not None else None
+        same = False
+        if saved is not None:
+            saved = saved.to(self.device, torch.float32)
+            rows = {int(v): r for r, v in enumerate(state["exposure_views"].tolist())}
+            params[:] = saved.mean(0)  # a view the checkpoint has no row for: the others' centre
+            for r, v in enumerate(self.train_idx):
+                if v in rows:
+                    params[r] = saved[rows[v]]
+            same = list(rows) == list(self.train_idx)
+        self.exposure = params.requires_grad_(True)
+        self.exposure_optimizer = torch.optim.Adam([self.exposure], lr=self.cfg.exposure_lr, eps=1e-15)
+        if same and state.get("exposure_optimizer") is not None:
+            self.exposure_optimizer.load_state_dict(state["exposure_optimizer"])
+            for group in self.exposure_optimizer.param_groups:  # the config's rate, as for the model's groups
+                group["lr"] = self.cfg.exposure_lr
+
+    def exposures(self) -> tuple[Tensor, Tensor] | None:
+        """([T,3] gains, [T,3] offsets) of the training photos, centred (``render.exposure.centred``), detached;
+        None with ``exposure = "off"``."""
+        if self.exposure is None:
+            return None
+        with torch.no_grad():
+            return centred(self.exposure.detach())
+
+    def exposure_record(self, names) -> RunExposure | None:
+        """The training photos' learned exposures as ``RUN/exposure.json`` holds them (``names``: the scene's image
+        names, indexed by the scene's view indices); None with ``exposure = "off"``."""
+        ex = self.exposures()
+        if ex is None:
+            return None
+        gain, offset = (t.double().cpu().tolist() for t in ex)
+        return RunExposure(images=[names[i] for i in self.train_idx], gain=gain, offset=offset, step=self.step)
+
+    def photos(self, views: list[int] | None = None) -> Tensor:
+        """[B,H,W,3] the training photos ``views`` (positions in the training list; None: all) at the model's
+        exposure: as they are with ``exposure = "off"`` (``train_images`` itself for all), else with each photo's
+        learned exposure taken out (``unexpose``). What the growth and SH-band tests, the training PSNR and the
+        informed posterior compare the renders with."""
+        ex = self.exposures()
+        if views is None:
+            if ex is None:
+                return self.train_images
+            views = list(range(len(self.train_idx)))
+        images = self.train_images[views]
+        if ex is None:
+            return images
+        idx = torch.as_tensor(views, dtype=torch.long, device=self.device).reshape(-1)
+        return unexpose(images, ex[0][idx], ex[1][idx])
 
     def state_dict(self) -> dict:
         """Everything needed to continue exactly (tensors, numbers and strings only)."""
@@ -201,6 +263,9 @@ class Trainer:
             "view_queue": torch.tensor(self.view_queue, dtype=torch.long),
             "sh_bands": [b.model_dump() for b in self.sh_bands],
             "growth": [g.model_dump() for g in self.growth],
+            "exposure": self.exposure.detach().clone() if self.exposure is not None else None,
+            "exposure_views": torch.tensor(self.train_idx, dtype=torch.long),
+            "exposure_optimizer": self.exposure_optimizer.state_dict() if self.exposure_optimizer is not None else None,
         }
 
     def _load_state(self, state: dict) -> None:
@@ -226,6 +291,7 @@ class Trainer:
         self.densifier.grow = not any(g.stopped for g in self.growth)
         self.step = int(state["step"])
         self.elapsed = float(state["elapsed"])
+        self._init_exposure(state)
 
     # -------------------------------------------------------------------------------- helpers
     def _make_densifier(self) -> Densifier:
@@ -260,7 +326,7 @@ class Trainer:
         views = check_views(len(self.train_idx), cfg.sh_check_views)
         sample = expected_render_sample(self.model, variant=cfg.variant, extent=self.extent,
                                         temperature=self.prior.temperature, sh_degree=d)
-        gain = band_gain_db(sample, d, self.train_cams[views], self.train_images[views],
+        gain = band_gain_db(sample, d, self.train_cams[views], self.photos(views),
                             lambda g, cam: self.render(g, cam).rgb)
         # a perfect fit with the band gives +inf; JSON has no infinity
         check = BandCheck(degree=d, step=step, gain_db=round(min(gain, 1e3), 4), kept=gain >= cfg.sh_min_gain_db,
@@ -283,7 +349,7 @@ class Trainer:
         if at_budget(len(self.model), self.budget.max_gaussians):
             return None
         views = check_views(len(self.train_idx), dcfg.growth_check_views)
-        cams, images = self.train_cams[views], self.train_images[views]
+        cams, images = self.train_cams[views], self.photos(views)
         g = self.mean_sample()
         with torch.enable_grad():  # the blending weights come from one backward pass per view
             weights = blending_weights(g, cams, render_fn=self.render)  # [N]
@@ -340,6 +406,15 @@ class Trainer:
         return {"psnr": sum(ps) / n, "ssim": sum(ss) / n}
 
     @torch.no_grad()
+    def photo_gains(self, max_views: int = 8) -> list[float]:
+        """The gain of each of at most ``max_views`` evenly spaced training photos (at the model's exposure: after
+        the learned exposures with ``exposure = "affine"``) relative to the deterministic render
+        (``render.exposure.fitted_gain``): all near 1 when the photos share one exposure."""
+        g = self.mean_sample()
+        return [fitted_gain(self.render(g, self.train_cams[i]).rgb[0], self.photos([i])[0])
+                for i in check_views(len(self.train_idx), max_views)]
+
+    @torch.no_grad()
     def training_psnr(self, max_views: int = 8) -> float | None:
         """Mean PSNR of the deterministic render (``mean_sample``) on at most ``max_views`` evenly spaced training
         views: how well the model fits its own photos (None without training views)."""
@@ -347,7 +422,7 @@ class Trainer:
         if not chosen:
             return None
         g = self.mean_sample()
-        return sum(float(psnr(self.render(g, self.train_cams[i]).rgb[0].clamp(0, 1), self.train_images[i]))
+        return sum(float(psnr(self.render(g, self.train_cams[i]).rgb[0].clamp(0, 1), self.photos([i])[0]))
                    for i in chosen) / len(chosen)
 
     # ----------------------------------------------------------------------------------- steps
@@ -399,10 +474,16 @@ class Trainer:
         with timer("render"):
             out = self.render(g, cams)
         with timer("loss"):
-            losses = total_loss(out.rgb, gt, kl, ssim_lambda=cfg.ssim_lambda, kl_weight=cfg.variational.kl_weight)
+            rgb = out.rgb
+            if self.exposure is not None:  # the render at each photo's exposure (render.exposure)
+                gain, offset = centred(self.exposure)
+                idx = torch.as_tensor(views, dtype=torch.long, device=self.device)
+                rgb = expose(rgb, gain[idx], offset[idx])
+            losses = total_loss(rgb, gt, kl, ssim_lambda=cfg.ssim_lambda, kl_weight=cfg.variational.kl_weight)
         with timer("backward"):
             losses["loss"].backward()
-            finite = self._all_finite([losses["loss"], *(p.grad for p in self.model.parameters().values())])
+            finite = self._all_finite([losses["loss"], *(p.grad for p in self.model.parameters().values()),
+                                       self.exposure.grad if self.exposure is not None else None])
         if finite and out.means2d.grad is not None:
             with timer("densify"):
                 # screen radii in the full images' pixels (max_screen_size), whatever this step's resolution
@@ -416,9 +497,13 @@ class Trainer:
                     self.optimizer.step()
                 else:
                     self.optimizer.step(rows=self.touched_rows(out.radii))
+                if self.exposure_optimizer is not None:
+                    self.exposure_optimizer.step()
             else:
                 self._skip_non_finite(step)
             self.optimizer.zero_grad(set_to_none=True)
+            if self.exposure_optimizer is not None:
+                self.exposure_optimizer.zero_grad(set_to_none=True)
         with timer("eval"):
             if self.check_growth(step) is not None:
                 self._expected = None
@@ -463,7 +548,7 @@ class Trainer:
                              temperature=self.prior.temperature)
         degree = self.sh_degree
         t = len(self.train_idx)
-        cams, images = self.train_cams, self.train_images
+        cams, images = self.train_cams, self.photos()
         last = self.step >= self.cfg.iterations
         n = t if (vcfg.refresh_views == 0 or last) else min(vcfg.refresh_views, t)
         if n < t:

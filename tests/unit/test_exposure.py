@@ -1,0 +1,148 @@
+"""Per-photo exposure (``TrainConfig.exposure``, ``render.exposure``): the affine map and its inverse, the spread's
+variance against a direct computation, what training learns from photos of known exposure, exact resume, views added
+on resume, and what evaluation reads back."""
+
+from __future__ import annotations
+
+import pydantic
+import pytest
+import torch
+
+from tests.e2e.test_train_resume import assert_resume_is_exact, toy_config, toy_scene
+from uncertsplat.baselines.runs import mean_exposure
+from uncertsplat.config import TrainConfig
+from uncertsplat.render.exposure import PhotoExposure, centred, expose, spread_variance, unexpose
+from uncertsplat.schemas import RunExposure
+from uncertsplat.train.trainer import Trainer
+from uncertsplat.types import Cameras, ViewSet
+
+
+class TestAffineMap:
+    def test_centred_has_unit_geometric_mean_gain_and_zero_mean_offset(self):
+        params = torch.randn(7, 2, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+        gain, offset = centred(params)
+        torch.testing.assert_close(gain.log().mean(0), torch.zeros(3, dtype=torch.float64))
+        torch.testing.assert_close(offset.mean(0), torch.zeros(3, dtype=torch.float64))
+        # a shift of every photo's parameters is the same exposure
+        shifted = centred(params + torch.tensor([0.3, -0.2], dtype=torch.float64)[None, :, None])
+        torch.testing.assert_close(shifted[0], gain)
+        torch.testing.assert_close(shifted[1], offset)
+
+    def test_unexpose_inverts_expose(self):
+        g = torch.Generator().manual_seed(1)
+        rgb = torch.rand(3, 5, 4, 3, generator=g, dtype=torch.float64)
+        gain = 0.5 + torch.rand(3, 3, generator=g, dtype=torch.float64)
+        offset = 0.1 * torch.randn(3, 3, generator=g, dtype=torch.float64)
+        shown = expose(rgb, gain, offset)
+        torch.testing.assert_close(shown[1, 2, 3], rgb[1, 2, 3] * gain[1] + offset[1])
+        torch.testing.assert_close(unexpose(shown, gain, offset), rgb)
+
+    def test_spread_variance_is_the_variance_over_the_photos(self):
+        g = torch.Generator().manual_seed(2)
+        gain = 0.6 + 0.8 * torch.rand(9, 3, generator=g, dtype=torch.float64)
+        offset = 0.05 * torch.randn(9, 3, generator=g, dtype=torch.float64)
+        rgb = torch.rand(4, 6, 3, generator=g, dtype=torch.float64)
+        shown = gain[:, None, None, :] * rgb[None] + offset[:, None, None, :]  # [T,4,6,3]
+        direct = shown.var(0, unbiased=False).mean(-1, keepdim=True)
+        torch.testing.assert_close(spread_variance(rgb, gain, offset), direct)
+
+    def test_spread_variance_at_the_extremes(self):
+        rgb = torch.rand(2, 3, 3)
+        one = spread_variance(rgb, torch.ones(1, 3), torch.zeros(1, 3))
+        assert one.shape == (2, 3, 1) and bool((one == 0).all())  # one photo: no spread
+        same = spread_variance(rgb, torch.full((5, 3), 1.3), torch.full((5, 3), 0.02))
+        torch.testing.assert_close(same, torch.zeros(2, 3, 1))  # identical exposures: none either
+        offsets_only = spread_variance(rgb, torch.ones(2, 3), torch.tensor([[0.1] * 3, [-0.1] * 3]))
+        torch.testing.assert_close(offsets_only, torch.full((2, 3, 1), 0.01))  # independent of the colour
+
+
+class TestPhotoExposure:
+    def test_only_the_training_photos_are_brought_to_the_models_exposure(self):
+        images = torch.full((3, 2, 2, 3), 0.6)
+        cams = Cameras(torch.eye(4).expand(3, 4, 4).clone(), torch.eye(3).expand(3, 3, 3).clone(), 2, 2,
+                       ("a.png", "b.png", "c.png"))
+        views = ViewSet(indices=(4, 7, 9), cameras=cams, images=images)
+        ex = PhotoExposure((9, 4), torch.tensor([[2.0] * 3, [0.5] * 3]), torch.tensor([[0.1] * 3, [0.0] * 3]))
+        out = ex.unexposed(views)
+        torch.testing.assert_close(out.images[0], torch.full((2, 2, 3), 1.2))  # view 4: gain 0.5
+        torch.testing.assert_close(out.images[1], images[1])  # view 7: not a training photo, as it is
+        torch.testing.assert_close(out.images[2], torch.full((2, 2, 3), 0.25))  # view 9: (0.6 - 0.1) / 2
+        assert torch.equal(views.images, images)  # the input is not changed
+        none = PhotoExposure((1,), torch.ones(1, 3), torch.zeros(1, 3))
+        assert none.unexposed(views) is views
+
+    def test_run_exposure_is_checked(self):
+        ok = RunExposure(images=["a", "b"], gain=[[1.0] * 3, [1.0] * 3], offset=[[0.0] * 3, [0.0] * 3], step=3)
+        assert "2 training photos" in ok.describe()
+        with pytest.raises(pydantic.ValidationError, match="2 images but 1 gains"):
+            RunExposure(images=["a", "b"], gain=[[1.0] * 3], offset=[[0.0] * 3, [0.0] * 3], step=0)
+        with pytest.raises(pydantic.ValidationError, match="positive"):
+            RunExposure(images=["a"], gain=[[1.0, 0.0, 1.0]], offset=[[0.0] * 3], step=0)
+        with pytest.raises(pydantic.ValidationError, match="3 channels"):
+            RunExposure(images=["a"], gain=[[1.0, 1.0]], offset=[[0.0] * 3], step=0)
+
+    def test_an_ensembles_exposure_is_the_members_mean(self):
+        a = RunExposure(images=["x", "y"], gain=[[2.0] * 3, [0.5] * 3], offset=[[0.1] * 3, [-0.1] * 3], step=5)
+        b = RunExposure(images=["x", "y"], gain=[[0.5] * 3, [2.0] * 3], offset=[[0.3] * 3, [0.1] * 3], step=4)
+        m = mean_exposure([a, b])
+        assert m is not None and m.step == 4
+        torch.testing.assert_close(torch.tensor(m.gain, dtype=torch.float64), torch.ones(2, 3, dtype=torch.float64))  # geometric mean
+        torch.testing.assert_close(torch.tensor(m.offset, dtype=torch.float64), torch.tensor([[0.2] * 3, [0.0] * 3], dtype=torch.float64))
+        assert mean_exposure([a, None]) is None
+        assert mean_exposure([a, b.model_copy(update={"images": ["x", "z"]})]) is None
+
+
+def _exposed_toy(gains: torch.Tensor):
+    """The toy scene with training photo i shown at gain ``gains[i]`` (all channels)."""
+    scene, tr, te = toy_scene()
+    return scene, (tr * gains[:, None, None, None]).clamp(0, 1), te
+
+
+class TestTraining:
+    def test_off_by_default_with_nothing_learned(self):
+        assert TrainConfig().exposure == "off"
+        scene, tr, te = toy_scene()
+        t = Trainer(scene, toy_config(iterations=3), tr, te)
+        t.fit()
+        assert t.exposure is None and t.exposures() is None and t.exposure_record(["x"] * 8) is None
+        assert torch.equal(t.photos([0, 2]), tr[[0, 2]])
+        assert t.state_dict()["exposure"] is None
+
+    def test_learns_the_photos_gains(self):
+        true = torch.tensor([0.7, 1.0, 1.3, 0.85, 1.15, 1.0])  # the 6 training photos of the toy scene
+        scene, tr, te = _exposed_toy(true)
+        cfg = toy_config(iterations=200, exposure="affine", exposure_lr=0.01, eval_every=1000)
+        t = Trainer(scene, cfg, tr, te)
+        t.fit()
+        gain, offset = t.exposures()
+        learned = gain.mean(1).log()
+        expected = true.log() - true.log().mean()
+        assert torch.corrcoef(torch.stack([learned, expected]))[0, 1] > 0.95, (learned, expected)
+        # on the Gaussians (not the black background), the photos at the model's exposure are nearer the photos
+        # at one exposure than the photos as they are
+        clean = toy_scene()[1]
+        lit = clean > 0.2
+        assert (t.photos(list(range(6))) - clean)[lit].abs().mean() < 0.5 * (tr - clean)[lit].abs().mean()
+        record = t.exposure_record([f"v{i}.png" for i in range(8)])
+        assert record.images == [f"v{i}.png" for i in scene.split["train"]] and record.step == 200
+
+    def test_resume_is_exact_with_the_exposures(self):
+        full = assert_resume_is_exact(toy_config(exposure="affine", exposure_lr=0.01), until=13)
+        assert full.exposure is not None and float(full.exposure.detach().abs().max()) > 0
+
+    def test_views_added_on_resume_start_at_the_others_centre(self):
+        scene, tr, te = toy_scene()
+        cfg = toy_config(iterations=20, exposure="affine", exposure_lr=0.05)
+        t = Trainer(scene, cfg, tr, te)
+        t.fit()
+        state = t.state_dict()
+        # the checkpoint knew training views 1, 2, 3, 5, 6, 7; view 2 is dropped and view 0 added
+        train = [0, 1, 3, 5, 6, 7]
+        more = type(scene)(**{**scene.__dict__, "split": {**scene.split, "train": train}})
+        images = toy_scene()[1]  # any images of the right shape
+        resumed = Trainer(more, cfg, torch.cat([images[:1], images[:1], images[2:]]), te, state=state)
+        saved = state["exposure"]
+        rows = {v: r for r, v in enumerate(state["exposure_views"].tolist())}
+        for r, v in enumerate(train):
+            want = saved[rows[v]] if v in rows else saved.mean(0)
+            torch.testing.assert_close(resumed.exposure.detach()[r], want)
