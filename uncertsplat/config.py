@@ -326,11 +326,17 @@ class TrainConfig(_Base):
     "Training at half resolution first"."""
     low_res_scale: float = Field(0.5, gt=0.0, le=1.0)
     """The image scale of the low-resolution steps (``low_res_fraction``)."""
-    exposure: Literal["off", "affine"] = "off"
+    exposure: Literal["off", "auto", "affine"] = "off"
     """``affine``: each training photo gets a gain and an offset per colour channel, learned with the model, so that
     photos of different exposure or white balance (automatic exposure, outdoor light) are not fitted with floaters
     (``render.exposure``); ``evaluate`` compares the training photos at the model's exposure and adds the spread of
-    the learned exposures to a new view's variance. ``off``: every photo is taken as it is."""
+    the learned exposures to a new view's variance. ``off``: every photo is taken as it is (``train`` warns at the end
+    when they differ in brightness). ``auto``: as ``off`` until a test finds the photos' brightness different
+    (``strategy.exposure``; each test in ``train_summary.json`` ``exposure_checks``), then as ``affine``. ``off`` is
+    the default: ``affine`` costs 0.1-0.5 dB on photos of one exposure, and ``auto``'s test also fires on bonsai
+    (BENCHMARKS.md, "Photos of different exposure")."""
+    exposure_check_interval: int = Field(250, ge=1)
+    """Steps between the exposure tests of ``exposure = "auto"`` (up to half of the iterations)."""
     exposure_lr: float = Field(2e-3, gt=0.0)
     """Adam learning rate of the exposure parameters (log gain and offset)."""
     ssim_lambda: float = Field(0.2, ge=0.0, le=1.0)

@@ -35,11 +35,22 @@ def exposed_scene(tiny_scene_path, tmp_path_factory) -> Path:  # noqa: F811
     return scene
 
 
-def test_train_warns_about_photos_of_different_brightness(exposed_scene, tmp_path):
-    run = train_tiny_run(exposed_scene, tmp_path / "off")
-    warnings = TrainSummary.read(run / TrainSummary.FILE_NAME).warnings
-    assert any("differ in brightness" in w and "exposure=affine" in w for w in warnings), warnings
-    assert not (run / RunExposure.FILE_NAME).exists()
+def test_train_warns_about_photos_of_different_brightness_with_exposure_off(exposed_scene, tmp_path):
+    run = train_tiny_run(exposed_scene, tmp_path / "off")  # exposure "off", the default
+    summary = TrainSummary.read(run / TrainSummary.FILE_NAME)
+    assert any("differ in brightness" in w and "exposure=affine" in w for w in summary.warnings), summary.warnings
+    assert not (run / RunExposure.FILE_NAME).exists() and summary.exposure_checks == []
+
+
+def test_auto_learns_the_exposures_once_a_test_finds_them_different(exposed_scene, tmp_path, capsys):
+    run = train_tiny_run(exposed_scene, tmp_path / "auto", exposure="auto", exposure_check_interval=40,
+                         exposure_lr=0.01)
+    summary = TrainSummary.read(run / TrainSummary.FILE_NAME)
+    assert summary.exposure_checks and summary.exposure_checks[-1].enabled, summary.exposure_checks
+    assert (run / RunExposure.FILE_NAME).is_file()
+    assert not any("differ in brightness" in w for w in summary.warnings), summary.warnings
+    err = " ".join(capsys.readouterr().err.split())
+    assert "learning each photo's exposure from here on" in err
 
 
 def test_affine_exposures_are_learned_evaluated_and_kept_by_prune(exposed_scene, tiny_scene_path, tmp_path):  # noqa: F811

@@ -8,11 +8,13 @@ import pydantic
 import pytest
 import torch
 
-from tests.e2e.test_train_resume import assert_resume_is_exact, toy_config, toy_scene
+from tests.e2e.test_train_resume import assert_resume_is_exact, assert_same_parameters, toy_config, toy_scene
 from uncertsplat.baselines.runs import mean_exposure
 from uncertsplat.config import TrainConfig
+from uncertsplat.io.checkpoints import decode, encode
 from uncertsplat.render.exposure import PhotoExposure, centred, expose, spread_variance, unexpose
 from uncertsplat.schemas import RunExposure
+from uncertsplat.strategy.exposure import EXPOSURE_SPREAD
 from uncertsplat.train.trainer import Trainer
 from uncertsplat.types import Cameras, ViewSet
 
@@ -99,14 +101,57 @@ def _exposed_toy(gains: torch.Tensor):
 
 
 class TestTraining:
-    def test_off_by_default_with_nothing_learned(self):
+    def test_off_by_default_learns_nothing(self):
         assert TrainConfig().exposure == "off"
         scene, tr, te = toy_scene()
-        t = Trainer(scene, toy_config(iterations=3), tr, te)
+        t = Trainer(scene, toy_config(iterations=3, exposure="off"), tr, te)
         t.fit()
         assert t.exposure is None and t.exposures() is None and t.exposure_record(["x"] * 8) is None
-        assert torch.equal(t.photos([0, 2]), tr[[0, 2]])
-        assert t.state_dict()["exposure"] is None
+        assert torch.equal(t.photos([0, 2]), tr[[0, 2]]) and t.photos() is tr
+        assert t.state_dict()["exposure"] is None and t.exposure_checks == []
+
+    def test_auto_trains_photos_of_one_exposure_exactly_as_off(self):
+        scene, tr, te = toy_scene()
+        off = Trainer(scene, toy_config(exposure="off"), tr, te)
+        off.fit()
+        auto = Trainer(scene, toy_config(exposure="auto", exposure_check_interval=5), tr, te)
+        auto.fit()
+        assert auto.exposure is None
+        # tests after steps 10 and 15 (from a fifth to half of the 30 steps), none switching the exposures on
+        assert [c.step for c in auto.exposure_checks] == [10, 15]
+        assert not any(c.enabled for c in auto.exposure_checks)
+        assert all(c.spread < EXPOSURE_SPREAD for c in auto.exposure_checks)
+        assert_same_parameters(off.model, auto.model, atol=0.0)
+
+    def test_auto_switches_the_exposures_on_for_photos_of_different_brightness(self):
+        true = torch.tensor([0.6, 1.0, 1.4, 0.8, 1.2, 1.0])
+        scene, tr, te = _exposed_toy(true)
+        cfg = toy_config(iterations=200, exposure="auto", exposure_check_interval=20, exposure_lr=0.01,
+                         eval_every=1000)
+        t = Trainer(scene, cfg, tr, te)
+        t.fit()
+        first = t.exposure_checks[0]
+        assert first.step == 40 and first.enabled and first.spread >= EXPOSURE_SPREAD  # the first at a fifth
+        assert len(t.exposure_checks) == 1  # no test once the exposures are learned
+        learned = t.exposures()[0].mean(1).log()
+        expected = true.log() - true.log().mean()
+        assert torch.corrcoef(torch.stack([learned, expected]))[0, 1] > 0.95, (learned, expected)
+        assert t.summary()["exposure_checks"][0]["enabled"] is True
+
+    def test_resume_is_exact_when_auto_switches_on_mid_run(self):
+        true = torch.tensor([0.6, 1.0, 1.4, 0.8, 1.2, 1.0])
+        scene, tr, te = _exposed_toy(true)
+        cfg = toy_config(exposure="auto", exposure_check_interval=5, exposure_lr=0.01)
+        full = Trainer(scene, cfg, tr, te)
+        full.fit()
+        part = Trainer(scene, cfg, tr, te)
+        part.fit(until=12)  # after the test at step 10 switched them on
+        assert part.exposure is not None
+        resumed = Trainer(scene, cfg, tr, te, state=decode(encode(part.state_dict())))
+        resumed.fit()
+        assert_same_parameters(full.model, resumed.model)
+        torch.testing.assert_close(resumed.exposure, full.exposure, rtol=0, atol=1e-6)
+        assert resumed.exposure_checks == full.exposure_checks
 
     def test_learns_the_photos_gains(self):
         true = torch.tensor([0.7, 1.0, 1.3, 0.85, 1.15, 1.0])  # the 6 training photos of the toy scene

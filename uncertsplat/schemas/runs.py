@@ -99,6 +99,23 @@ class GrowthCheck(Strict):
     """Training views rendered."""
 
 
+class ExposureCheck(Strict):
+    """One test of whether the training photos differ in exposure (``TrainConfig.exposure = "auto"``;
+    ``strategy.exposure``)."""
+
+    step: int
+    views: int
+    """Training photos tested."""
+    gain_min: float
+    gain_max: float
+    """The smallest and largest fitted gain of a tested photo relative to the model's render."""
+    spread: float
+    """``gain_max / gain_min``."""
+    threshold: float
+    enabled: bool
+    """``spread >= threshold``: the photos' exposures were learned from the next step on."""
+
+
 class Budget(Strict):
     """The model-size limit densification had (``strategy.budget.GaussianBudget``)."""
 
@@ -128,10 +145,10 @@ class TrainSummary(SchemaFile):
     """
 
     FILE_NAME = "train_summary.json"
-    SCHEMA_VERSION = 3
+    SCHEMA_VERSION = 4
     WRITTEN_BY = "uncertsplat train"
 
-    schema_version: int = 3
+    schema_version: int = 4
     method: str
     variant: str
     steps: int
@@ -176,6 +193,9 @@ class TrainSummary(SchemaFile):
     budget: Budget | None = None
     """None in runs from before the automatic budget (their limit was ``densify.max_gaussians``, 2,000,000 by
     default)."""
+    exposure_checks: list[ExposureCheck] = Field(default_factory=list)
+    """The exposure tests (``exposure = "auto"``) and whether they switched on the photos' exposures (empty: none ran,
+    e.g. ``exposure`` "off" or "affine", or runs from before the test)."""
     # ---- fisher
     train_seconds: float | None = None
     fisher_seconds: float | None = None
@@ -194,12 +214,12 @@ class TrainSummary(SchemaFile):
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
         # version 1 had no informed posterior (no updates); versions 1 and 2 neither the fit on the training views
-        # nor the warnings; in the run and in its members
-        if version not in (1, 2):
+        # nor the warnings; versions 1-3 no exposure tests; in the run and in its members
+        if version not in (1, 2, 3):
             return None
 
         def up(d: dict) -> dict:
-            d = {"train_psnr": None, "warnings": [], **d, "schema_version": cls.SCHEMA_VERSION}
+            d = {"train_psnr": None, "warnings": [], "exposure_checks": [], **d, "schema_version": cls.SCHEMA_VERSION}
             return {**d, "posterior_updates": []} if version == 1 else d
 
         return {**up(data), "members": [up(m) for m in data.get("members", [])]}

@@ -31,6 +31,7 @@ from uncertsplat.io.atomic import (
 )
 from uncertsplat.schemas import RunExposure, RunScene, TrainSummary
 from uncertsplat.schemas.scene import ViewsAdded
+from uncertsplat.strategy.exposure import EXPOSURE_SPREAD, exposure_reason, gain_spread
 from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
 
@@ -232,6 +233,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         trainer.on_log = lambda rec: console.log(log_line(rec)) if "eval_psnr" in rec else None
         trainer.on_band = lambda check: console.log(band_reason(check))
         trainer.on_growth = lambda check: console.log(growth_reason(check))
+        # only the test that switches the exposures on is news (the others are in train_summary.json)
+        trainer.on_exposure = lambda check: console.log(exposure_reason(check)) if check.enabled else None
         if on_trainer is not None:
             on_trainer(trainer)
         try:
@@ -253,7 +256,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             (run_dir / RunExposure.FILE_NAME).unlink()
         held = trainer.evaluate()
         fit_psnr = trainer.training_psnr()
-        warnings = poor_fit_warnings(fit_psnr, scene) + exposure_warnings(trainer.photo_gains(), cfg.exposure)
+        warnings = poor_fit_warnings(fit_psnr, scene) + exposure_warnings(trainer.photo_gains(),
+                                                                          trainer.exposure is not None)
         # what loading changed of the photos (turned, cropped, left out) goes into the summary, so the report shows it
         recorded = warnings + [f"scene: {note}" for note in data.notes]
         summary = TrainSummary(**trainer.summary(), test_psnr=held.get("psnr"), test_ssim=held.get("ssim"),
@@ -304,19 +308,11 @@ def workspace_notes(scene: Path) -> list[str]:
             "another --seed or more --mapping-attempts maps again"]
 
 
-EXPOSURE_SPREAD = 1.15
-"""``train`` warns when the brightest of the training photos it checks is this many times as bright as the darkest,
-relative to the model's render (``Trainer.photo_gains``) and ``exposure`` is off. Measured (8 photos each): the demo
-scene 1.003-1.006, fern 1.005, bonsai 1.077; the demo scene with every photo's brightness scaled by a random gain of
-log-std 0.25, 2.09 (BENCHMARKS.md, "Photos of different exposure")."""
-
-
-def exposure_warnings(gains: list[float], exposure: str) -> list[str]:
-    """The warning for training photos of different brightness (``EXPOSURE_SPREAD``) when ``exposure`` is off."""
-    if exposure != "off" or len(gains) < 2 or min(gains) <= 0.0:
-        return []
-    spread = max(gains) / min(gains)
-    if spread < EXPOSURE_SPREAD:
+def exposure_warnings(gains: list[float], learned: bool) -> list[str]:
+    """The warning for training photos of different brightness (``strategy.exposure.EXPOSURE_SPREAD``) when their
+    exposures were not ``learned``."""
+    spread = gain_spread(gains)
+    if learned or spread < EXPOSURE_SPREAD:
         return []
     return [f"the training photos differ in brightness (relative gains {min(gains):.2f}-{max(gains):.2f} on "
             f"{len(gains)} of them): if they were taken with automatic exposure or white balance, train again with "
@@ -340,4 +336,4 @@ def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
             f"check {where}, moving objects or exposure changes between the photos"]
 
 
-__all__ = ["EXPOSURE_SPREAD", "POOR_FIT_PSNR", "exposure_warnings", "poor_fit_warnings", "train_model", "workspace_notes"]
+__all__ = ["POOR_FIT_PSNR", "exposure_warnings", "poor_fit_warnings", "train_model", "workspace_notes"]

@@ -48,6 +48,7 @@ from uncertsplat.render.exposure import centred, expose, fitted_gain, unexpose
 from uncertsplat.schemas.runs import RunExposure
 from uncertsplat.strategy.budget import gaussian_budget
 from uncertsplat.strategy.densify import Densifier, DensifyStats
+from uncertsplat.strategy.exposure import EXPOSURE_SPREAD, ExposureCheck, exposure_check_due, gain_spread
 from uncertsplat.strategy.growth import (
     GrowthCheck,
     at_budget,
@@ -144,6 +145,7 @@ class Trainer:
         self.on_step: Callable[[Trainer], None] | None = None
         self.on_band: Callable[[BandCheck], None] | None = None  # told of each SH band test (``train`` prints it)
         self.on_growth: Callable[[GrowthCheck], None] | None = None  # told of each growth test (likewise)
+        self.on_exposure: Callable[[ExposureCheck], None] | None = None  # told of each exposure test (likewise)
         self._stop = False
         self.skipped_steps = 0  # steps whose update was skipped because of a NaN/Inf loss or gradient
         self.bad_steps_in_a_row = 0
@@ -184,6 +186,7 @@ class Trainer:
         self.growth: list[GrowthCheck] = []
         self.step = 0
         self.elapsed = 0.0
+        self.exposure_checks: list[ExposureCheck] = []
         self._init_exposure(None)
 
     def _init_exposure(self, state: dict | None) -> None:
@@ -192,10 +195,10 @@ class Trainer:
         (``train --add-views``) start at the others' centre, the others keep their rows (matched by view index) and,
         when none was added, their optimiser state."""
         self.exposure = self.exposure_optimizer = None
-        if self.cfg.exposure == "off":
-            return
-        params = torch.zeros(len(self.train_idx), 2, 3, device=self.device)
         saved = state.get("exposure") if state is not None else None
+        if self.cfg.exposure == "off" or (self.cfg.exposure == "auto" and saved is None):
+            return  # "auto": until a test switches them on (check_exposure)
+        params = torch.zeros(len(self.train_idx), 2, 3, device=self.device)
         same = False
         if saved is not None:
             saved = saved.to(self.device, torch.float32)
@@ -266,6 +269,7 @@ class Trainer:
             "exposure": self.exposure.detach().clone() if self.exposure is not None else None,
             "exposure_views": torch.tensor(self.train_idx, dtype=torch.long),
             "exposure_optimizer": self.exposure_optimizer.state_dict() if self.exposure_optimizer is not None else None,
+            "exposure_checks": [c.model_dump() for c in self.exposure_checks],
         }
 
     def _load_state(self, state: dict) -> None:
@@ -291,6 +295,7 @@ class Trainer:
         self.densifier.grow = not any(g.stopped for g in self.growth)
         self.step = int(state["step"])
         self.elapsed = float(state["elapsed"])
+        self.exposure_checks = [ExposureCheck(**c) for c in state.get("exposure_checks", [])]
         self._init_exposure(state)
 
     # -------------------------------------------------------------------------------- helpers
@@ -406,6 +411,26 @@ class Trainer:
         return {"psnr": sum(ps) / n, "ssim": sum(ss) / n}
 
     @torch.no_grad()
+    def check_exposure(self, step: int) -> ExposureCheck | None:
+        """Run the exposure test due after ``step`` (``exposure = "auto"``, ``strategy.exposure``); switch the
+        photos' exposures on (at the identity) when their fitted gains spread by ``EXPOSURE_SPREAD`` or more.
+        Returns the test, or None when none is due."""
+        if not exposure_check_due(step, self.cfg, self.exposure is not None):
+            return None
+        gains = self.photo_gains()
+        spread = gain_spread(gains)
+        check = ExposureCheck(step=step, views=len(gains), gain_min=round(min(gains, default=1.0), 4),
+                              gain_max=round(max(gains, default=1.0), 4), spread=round(spread, 4),
+                              threshold=EXPOSURE_SPREAD, enabled=spread >= EXPOSURE_SPREAD)
+        self.exposure_checks.append(check)
+        if check.enabled:
+            self._init_exposure({"exposure": torch.zeros(len(self.train_idx), 2, 3, device=self.device),
+                                 "exposure_views": torch.tensor(self.train_idx, dtype=torch.long)})
+        if self.on_exposure is not None:
+            self.on_exposure(check)
+        return check
+
+    @torch.no_grad()
     def photo_gains(self, max_views: int = 8) -> list[float]:
         """The gain of each of at most ``max_views`` evenly spaced training photos (at the model's exposure: after
         the learned exposures with ``exposure = "affine"``) relative to the deterministic render
@@ -507,6 +532,7 @@ class Trainer:
         with timer("eval"):
             if self.check_growth(step) is not None:
                 self._expected = None
+            self.check_exposure(step)
         with timer("densify"):
             done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise)
             if any(done.values()):
@@ -714,6 +740,7 @@ class Trainer:
                 "skipped_steps": self.skipped_steps,
                 "sh_degree_active": self.sh_degree, "sh_bands": [b.model_dump() for b in self.sh_bands],
                 "growth": [g.model_dump() for g in self.growth],
+                "exposure_checks": [c.model_dump() for c in self.exposure_checks],
                 "variant": self.cfg.variant, "method": self.cfg.method,
                 "posterior": posterior_summary(self.model, self.prior),
                 "posterior_updates": self.posterior_updates, "budget": self.budget.as_dict(),
