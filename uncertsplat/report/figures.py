@@ -16,8 +16,9 @@ matplotlib.use("Agg", force=False)  # no display; must run before pyplot is impo
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from uncertsplat.report.colormaps import rank_colorize  # noqa: E402
+from uncertsplat.report.colormaps import colorize, rank_colorize  # noqa: E402
 from uncertsplat.report.extract import Calibration, Curve  # noqa: E402
+from uncertsplat.report.grid import Panel, grid_png, rank_bar, value_bar  # noqa: E402
 from uncertsplat.report.loader import stats_series  # noqa: E402
 from uncertsplat.report.views import ViewMaps  # noqa: E402
 from uncertsplat.schemas.prune import PruneSweep  # noqa: E402
@@ -70,58 +71,45 @@ def _robust_max(*arrays: np.ndarray | None, q: float = 99.0) -> float:
 
 
 # -------------------------------------------------------------------------------------------- per view
+def _rgb8(x: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(np.nan_to_num(x, nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def _mapped(x: np.ndarray, cmap: str, vmin: float, vmax: float) -> np.ndarray:
+    return colorize(x, mode="fixed", vmin=vmin, vmax=vmax, cmap=cmap)
+
+
 def view_figure(view: ViewMaps, title: str = "") -> bytes | None:
-    """GT, mean, error, RGB std (shared scale), depth mean, depth std, rank(std) vs rank(error)."""
+    """GT, mean, error, RGB std (shared scale), depth mean, depth std, rank(std) vs rank(error): a grid of panels
+    (``report.grid``) with colour bars."""
     std = view.rgb_std_gray
-    panels: list[tuple[str, np.ndarray, dict]] = []
+    panels: list[Panel] = []
     if view.gt is not None:
-        panels.append(("ground truth", np.clip(view.gt, 0, 1), {}))
+        panels.append(Panel("ground truth", _rgb8(view.gt)))
     if view.rgb_mean is not None:
-        panels.append(("mean render", np.clip(view.rgb_mean, 0, 1), {}))
+        panels.append(Panel("mean render", _rgb8(view.rgb_mean)))
     vmax = _robust_max(view.error, std)
     if view.error is not None:
-        panels.append(("|error| (RGB mean)", view.error, {"cmap": "inferno", "vmin": 0, "vmax": vmax, "bar": True}))
+        panels.append(Panel("|error| (RGB mean)", _mapped(view.error, "inferno", 0.0, vmax),
+                            value_bar("inferno", 0.0, vmax)))
     if std is not None:
-        panels.append(("RGB std (same scale)", std, {"cmap": "inferno", "vmin": 0, "vmax": vmax, "bar": True}))
+        panels.append(Panel("RGB std (same scale)", _mapped(std, "inferno", 0.0, vmax), value_bar("inferno", 0.0, vmax)))
     if view.depth_mean is not None:
         d = view.depth_mean
-        lo, hi = np.percentile(d, 1), np.percentile(d, 99)
-        panels.append(("depth mean", d, {"cmap": "viridis", "vmin": lo, "vmax": max(hi, lo + 1e-9), "bar": True}))
+        lo, hi = float(np.percentile(d, 1)), float(np.percentile(d, 99))
+        hi = max(hi, lo + 1e-9)
+        panels.append(Panel("depth mean", _mapped(d, "viridis", lo, hi), value_bar("viridis", lo, hi)))
     if view.depth_std is not None:
-        panels.append(("depth std", view.depth_std,
-                       {"cmap": "magma", "vmin": 0, "vmax": _robust_max(view.depth_std), "bar": True}))
+        top = _robust_max(view.depth_std)
+        panels.append(Panel("depth std", _mapped(view.depth_std, "magma", 0.0, top), value_bar("magma", 0.0, top)))
     if std is not None and view.error is not None:
-        panels.append(("rank of RGB std", rank_image(std), {"rank_bar": True}))
-        panels.append(("rank of |error|", rank_image(view.error), {"rank_bar": True}))
+        panels.append(Panel("rank of RGB std", rank_image(std), rank_bar(RANK_CMAP)))
+        panels.append(Panel("rank of |error|", rank_image(view.error), rank_bar(RANK_CMAP)))
     if not panels:
         return None
     cols = 4 if len(panels) > 4 else len(panels)
-    rows = (len(panels) + cols - 1) // cols
-    h, w = panels[0][1].shape[:2]
-    aspect = h / max(w, 1)
-    with plt.rc_context(_STYLE | {"axes.grid": False}):
-        fig, axes = plt.subplots(rows, cols, figsize=(3.1 * cols, 3.1 * aspect * rows + 0.5 * rows), squeeze=False)
-        for ax in axes.flat:
-            ax.axis("off")
-        for ax, (label, img, opts) in zip(axes.flat, panels, strict=False):
-            opts = dict(opts)
-            bar, rank_bar = opts.pop("bar", False), opts.pop("rank_bar", False)
-            im = ax.imshow(img, interpolation="nearest", **opts)
-            ax.set_title(label)
-            if bar:
-                fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02)
-            elif rank_bar:  # the image is already RGB: draw the bar from the colour map itself
-                sm = matplotlib.cm.ScalarMappable(norm=matplotlib.colors.Normalize(0, 1),
-                                                  cmap=matplotlib.colormaps[RANK_CMAP])
-                fig.colorbar(sm, ax=ax, fraction=0.046, pad=0.02, ticks=[0, 0.5, 1]).ax.set_yticklabels(
-                    ["low", "median", "high"])
-        if title:
-            fig.suptitle(title, fontsize=10)
-        # fixed margins instead of tight_layout (a third of this figure's time): every panel is an image of the
-        # same shape with at most a colour bar, so the same fractions fit any image size (0.5 in of title per row)
-        fig.subplots_adjust(left=0.01, right=0.95, bottom=0.02, top=1 - 0.45 / fig.get_figheight(), wspace=0.25,
-                            hspace=0.5 / (3.1 * aspect))
-        return _png(fig)
+    return grid_png([panels[i:i + cols] for i in range(0, len(panels), cols)], title=title,
+                    compress_level=PNG_COMPRESS)
 
 
 def side_by_side_figure(views: Sequence[tuple[str, ViewMaps]], view_name: str) -> bytes | None:
@@ -130,42 +118,21 @@ def side_by_side_figure(views: Sequence[tuple[str, ViewMaps]], view_name: str) -
     if len(rows) < 2:
         return None
     vmax = _robust_max(*[v.error for _, v in rows], *[v.rgb_std_gray for _, v in rows])
-    cols = ["mean render", "|error|", "RGB std", "rank of RGB std", "rank of |error|"]
-    h, w = next(a for a in (rows[0][1].rgb_mean, rows[0][1].rgb_std) if a is not None).shape[:2]
-    aspect = h / max(w, 1)
-    with plt.rc_context(_STYLE | {"axes.grid": False}):
-        fig, axes = plt.subplots(len(rows), len(cols), figsize=(2.6 * len(cols), 2.6 * aspect * len(rows) + 0.6),
-                                 squeeze=False)
-        last_im = None
-        for r, (label, v) in enumerate(rows):
-            std = v.rgb_std_gray
-            imgs = [
-                (None if v.rgb_mean is None else np.clip(v.rgb_mean, 0, 1), {}),
-                (v.error, {"cmap": "inferno", "vmin": 0, "vmax": vmax}),
-                (std, {"cmap": "inferno", "vmin": 0, "vmax": vmax}),
-                (None if std is None or v.error is None else rank_image(std), {}),
-                (None if std is None or v.error is None else rank_image(v.error), {}),
-            ]
-            for c, (img, opts) in enumerate(imgs):
-                ax = axes[r, c]
-                ax.set_xticks([])
-                ax.set_yticks([])
-                for s in ax.spines.values():
-                    s.set_visible(False)
-                if img is None:
-                    ax.text(0.5, 0.5, "n/a", ha="center", va="center", transform=ax.transAxes, color="0.5")
-                else:
-                    im = ax.imshow(img, interpolation="nearest", **opts)
-                    if opts:
-                        last_im = im
-                if r == 0:
-                    ax.set_title(cols[c])
-                if c == 0:
-                    ax.set_ylabel(label, fontsize=8)
-        if last_im is not None:
-            fig.colorbar(last_im, ax=axes[:, 1:3].ravel().tolist(), fraction=0.03, pad=0.02, label="RGB units")
-        fig.suptitle(view_name, fontsize=10)
-        return _png(fig, tight=True)
+    bar = value_bar("inferno", 0.0, vmax)
+    titles = ["mean render", "|error|", "RGB std", "rank of RGB std", "rank of |error|"]
+    grid = []
+    for r, (_, v) in enumerate(rows):
+        std = v.rgb_std_gray
+        both = std is not None and v.error is not None
+        t = titles if r == 0 else [""] * len(titles)  # the columns are named once, above the first row
+        grid.append([
+            Panel(t[0], None if v.rgb_mean is None else _rgb8(v.rgb_mean)),
+            Panel(t[1], None if v.error is None else _mapped(v.error, "inferno", 0.0, vmax)),
+            Panel(t[2], None if std is None else _mapped(std, "inferno", 0.0, vmax), None if std is None else bar),
+            Panel(t[3], rank_image(std) if both else None),
+            Panel(t[4], rank_image(v.error) if both else None, rank_bar(RANK_CMAP) if both else None),
+        ])
+    return grid_png(grid, title=view_name, row_labels=[label for label, _ in rows], compress_level=PNG_COMPRESS)
 
 
 # ---------------------------------------------------------------------------------------------- curves
