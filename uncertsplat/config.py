@@ -425,10 +425,11 @@ class EvalConfig(_Base):
     max_views: int | None = Field(None, ge=1)
     """Evaluate only the first n views of the split (for quick looks)."""
     reuse: bool = True
-    """When the run is a ``prune`` output that removed nothing (its model file is byte for byte the source run's)
-    and the source run was evaluated with these same settings, by the same versions, on the same device, copy
-    that evaluation instead of computing it again (``stages.evaluate.same_model_evaluation``; it says so in its
-    notes). False: always evaluate."""
+    """Keep an evaluation that measured what this one would: the run's own ``eval/`` when it scored the same model
+    file, views and settings by the same versions on the same device (e.g. written by ``prune``, which evaluates
+    the run it writes; ``stages.evaluate.matching_evaluation``), or, for a ``prune`` output that removed nothing
+    (its model file byte for byte the source run's), the source run's evaluation, copied (``same_model_evaluation``;
+    it says so in its notes). False: always evaluate."""
     calibration_views: int = Field(8, ge=0)
     """Fit one factor for the RGB std on this many evenly spaced training views (0: none); the metrics
     ``nll_calibrated`` and ``calibration_error_calibrated`` use std x factor, the maps keep the raw std.

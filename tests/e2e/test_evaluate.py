@@ -498,7 +498,7 @@ class TestResidualCache:
         fits = []
         real = engine.fit_residual
         monkeypatch.setattr(engine, "fit_residual", lambda *a, **k: fits.append(1) or real(*a, **k))
-        again = evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)  # read back: no fit
+        again = evaluate.run(run, EvalConfig(**ONE_VIEW, reuse=False), device=cpu)  # read back: no fit
         assert fits == []
         assert "pixel noise: read from" in capsys.readouterr().err  # the user is told which
         name = next(iter(first.per_view))
@@ -509,10 +509,32 @@ class TestResidualCache:
         evaluate.run(run, EvalConfig(**ONE_VIEW, resolution=0.2), device=cpu)  # one it reads: fitted again
         assert fits == [1]
         (run / "eval" / FILE_NAME).write_bytes(b"not a torch file")  # unreadable: fitted again, replaced
-        evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)
+        evaluate.run(run, EvalConfig(**ONE_VIEW, reuse=False), device=cpu)
         assert fits == [1, 1]
-        evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)
+        evaluate.run(run, EvalConfig(**ONE_VIEW, reuse=False), device=cpu)
         assert fits == [1, 1]
+
+    def test_an_evaluation_already_there_is_kept(self, tiny_run_path, tmp_path, monkeypatch, capsys):  # noqa: F811
+        from uncertsplat.eval import engine
+
+        run = tmp_path / "run"
+        shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
+        cpu = torch.device("cpu")
+        first = evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)
+        capsys.readouterr()
+        calls = []
+        real = engine.evaluate_views
+        monkeypatch.setattr(engine, "evaluate_views", lambda *a, **k: calls.append(1) or real(*a, **k))
+        again = evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)  # the same settings: kept
+        assert calls == [] and again == first
+        assert "already evaluated with these settings" in " ".join(capsys.readouterr().err.split())
+        evaluate.run(run, EvalConfig(**ONE_VIEW, preview="fixed"), device=cpu)  # other previews: evaluated again
+        assert calls == [1]
+        next(iter((run / "eval" / "maps").glob("*.exr"))).unlink()  # a map gone: evaluated again
+        evaluate.run(run, EvalConfig(**ONE_VIEW, preview="fixed"), device=cpu)
+        assert calls == [1, 1]
+        evaluate.run(run, EvalConfig(**ONE_VIEW, preview="fixed", reuse=False), device=cpu)
+        assert calls == [1, 1, 1]
 
     def test_prune_reads_it_and_leaves_the_source_alone(self, tiny_run_path, tmp_path, monkeypatch):  # noqa: F811
         from uncertsplat.config import PruneConfig
@@ -527,14 +549,17 @@ class TestResidualCache:
         fits = []
         real = engine.fit_residual
         monkeypatch.setattr(engine, "fit_residual", lambda *a, **k: fits.append(1) or real(*a, **k))
-        prune.run(run, tmp_path / "p0", cfg, device=cpu)  # nothing to read: fitted, and nothing written
-        assert fits == [1] and not (run / "eval" / FILE_NAME).exists()
+        # nothing to read: fitted, and nothing written to the source; the pruned run it writes is evaluated there,
+        # with a fit of its own model's noise
+        prune.run(run, tmp_path / "p0", cfg, device=cpu)
+        assert fits == [1, 1] and not (run / "eval" / FILE_NAME).exists()
+        assert (tmp_path / "p0" / "eval" / FILE_NAME).is_file()
         evaluate.run(run, EvalConfig(**ONE_VIEW), device=cpu)
-        assert fits == [1, 1]
+        assert fits == [1, 1, 1]
         cached = (run / "eval" / FILE_NAME).read_bytes()
         first = PruneReport.read(tmp_path / "p0" / "prune.json")
         second = prune.run(run, tmp_path / "p1", cfg, device=cpu)
-        assert fits == [1, 1]  # read, not fitted
+        assert fits == [1, 1, 1, 1]  # the source's read, not fitted; the new pruned run's fitted
         assert (run / "eval" / FILE_NAME).read_bytes() == cached
         assert second.metrics.after.ause_mae == first.metrics.after.ause_mae
         assert second.metrics.before.nll == first.metrics.before.nll

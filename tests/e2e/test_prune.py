@@ -86,6 +86,21 @@ def test_writes_a_valid_pruned_run(pruned, tiny_run_path):  # noqa: F811
     assert len(list((out / "renders").glob("*_after.png"))) == 1
 
 
+def test_the_pruned_run_is_evaluated_as_evaluate_does_and_evaluate_keeps_it(pruned, capsys):
+    from uncertsplat.config import EvalConfig
+    from uncertsplat.schemas import EvalReport
+    from uncertsplat.stages import evaluate
+
+    out, result, _ = pruned
+    report = EvalReport.read(out / "eval" / "metrics.json")
+    after = result.metrics.after
+    assert (after.psnr, after.ause_mae, after.nll) == (report.mean.psnr, report.mean.ause_mae, report.mean.nll)
+    assert any("the pruned model's uncertainty metrics are evaluate's" in n for n in result.notes)
+    capsys.readouterr()
+    again = evaluate.run(out, EvalConfig(num_samples=FAST["num_samples"]), device=CPU)
+    assert again == report and "already evaluated" in " ".join(capsys.readouterr().err.split())
+
+
 def test_dry_run_on_a_pruned_run_writes_no_model(pruned, tmp_path):
     out, _, _ = pruned
     before = _digest(out)

@@ -186,15 +186,38 @@ def _copy_evaluation(source_eval: Path, out: Path) -> None:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def run(run_dir: Path, cfg: EvalConfig, device: torch.device):
-    """Evaluate ``run_dir`` and write ``run_dir/eval`` (maps + metrics.json); returns the EvalReport."""
+def run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = False):
+    """Evaluate ``run_dir`` and write ``run_dir/eval`` (maps + metrics.json); returns the EvalReport. An evaluation
+    already there that measured what this one would (``matching_evaluation``, its maps too) is kept and returned
+    (``cfg.reuse``). ``quiet``: print no table or notes (a caller that reports the numbers itself)."""
     from uncertsplat import native
 
     with native.single_threaded_torch(device):  # torch's own ops on one thread, the kernels on all
-        return _run(run_dir, cfg, device)
+        return _run(run_dir, cfg, device, quiet)
 
 
-def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
+def _finished(run_dir: Path, model_file: Path, cfg: EvalConfig, image_names: list[str], device: torch.device):
+    """``run_dir``'s evaluation when it holds what this one would write: ``matching_evaluation``, with the maps of
+    every view and the same preview scales when ``cfg.save_maps``; None otherwise or with ``cfg.reuse`` off."""
+    from uncertsplat.io.maps import map_stem
+
+    if not cfg.reuse:
+        return None
+    report = matching_evaluation(run_dir, model_file, cfg, image_names, device)
+    if report is None or not cfg.save_maps:
+        return report
+    try:
+        used = EvalConfig.model_validate_json((run_dir / "eval" / "config.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    maps = run_dir / "eval" / "maps"
+    if not used.save_maps or used.preview != cfg.preview or not all(
+            (maps / f"{map_stem(n)}.exr").is_file() for n in image_names):
+        return None
+    return report
+
+
+def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = False):
     from functools import partial
 
     from uncertsplat.baselines import load_run
@@ -221,10 +244,16 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
     loaded = load_run(run_dir, device)  # any method: variational, deterministic, ensemble, fisher
     scene = loaded.load_scene()
     indices = split_indices(scene.split, cfg)
+    done = _finished(run_dir, Path(loaded.source), cfg, [scene.cameras.image_names[i] for i in indices], device)
+    if done is not None:
+        console.print(f"[bold]evaluate[/] {run_dir}: already evaluated with these settings, versions and device "
+                      f"({out / 'metrics.json'}; --set reuse=false evaluates again)")
+        return done if quiet else _print_report(run_dir, cfg, done, out)
     views = load_view_set(scene, indices, depth_folder=cfg.depth_gt)
     with run_lock(run_dir, "evaluate"):
-        console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
-                      f"{len(loaded.model)} Gaussians ({loaded.model.num_carriers} with a posterior), {device}")
+        if not quiet:
+            console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
+                          f"{len(loaded.model)} Gaussians ({loaded.model.num_carriers} with a posterior), {device}")
         train_views = partial(load_view_set, scene, depth=False)
         # the set-aside views' K samples, when the noise is fitted here: the std factor's fit reuses them
         set_aside_maps: dict = {}
@@ -250,6 +279,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device):
             report.run_sha256 = run_sha256(run_dir, Path(loaded.source))
         atomic_write_text(out / "metrics.json", report.to_json() + "\n")
         atomic_write_text(out / "config.json", cfg.model_dump_json(indent=2) + "\n")
+    if quiet:
+        return report
     for note in reach:
         console.print(f"note: {note}")
     return _print_report(run_dir, cfg, report, out)

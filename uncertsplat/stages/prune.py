@@ -20,6 +20,9 @@ place at the end, so an interrupted prune leaves no half-written run, and an exi
 - ``prune.json``: counts before/after, score, threshold, keep ratio, held-out metrics (PSNR, SSIM, AUSE,
   NLL, coverage = mean rendered alpha) before, after, and for the random-removal baseline at the same
   count, seed, and with ``--sweep``/``--auto`` the curve (also in ``sweep.json``).
+- ``eval/``: when the written model removed something, the pruned run evaluated as ``evaluate`` does (its maps,
+  ``metrics.json``, the pixel noise fitted for the pruned model), with this K and seed; the "after" row is its held-out
+  means, and ``evaluate`` of ``OUT`` with the same settings keeps it instead of computing it again.
 
 ``--dry-run`` writes no model (no config.json, scene.json or PLYs; ``OUT`` then holds only the report
 files, and with no ``-o`` nothing is written at all). ``--sweep`` alone (no keep ratio, threshold or
@@ -407,12 +410,15 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
              "uncertsplat.stages.prune.rebuild_from_mask(source_run, prune_mask.npy) rebuilds this model.",
     )
     pruned = random_model = None
+    # a pruned model that is written is scored by ``evaluate`` itself once it is (``_evaluate_written``): the "after"
+    # row is then the pruned run's own evaluation, and an ``evaluate`` of it with the same settings has nothing to redo
+    evaluate_written = output is not None and not cfg.dry_run
     if keep is not None:
         removed = int((~keep).sum())
         pruned = apply_keep(model, keep)
         rand_keep = random_keep(n, removed, cfg.seed)
         random_model = apply_keep(model, rand_keep)
-        after = before if removed == 0 else measure(pruned, keep)
+        after = before if removed == 0 else measure(pruned, keep, full=not evaluate_written)
         rand = before if removed == 0 else measure(random_model, rand_keep)
         removed_scores = score[~keep]
         result.counts = PruneCounts(before=n, after=n - removed, removed=removed, carriers_before=model.num_carriers,
@@ -420,18 +426,50 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         result.keep_ratio_achieved = (n - removed) / n
         result.threshold_effective = float(removed_scores.min()) if removed else None
         result.metrics = PruneMetricSet(before=before, after=after, random=rand)
-        if before.psnr is not None and after.psnr is not None and rand.psnr is not None:
-            result.delta_psnr_db = PsnrChange(score=after.psnr - before.psnr, random=rand.psnr - before.psnr)
-        _print_table(f"prune: keep {n - removed}/{n} by '{score_name}' ({split} views, K={cfg.num_samples})",
-                     [("before", before), ("after", after), ("random", rand)])
-    for note in notes:
-        console.print(f"[yellow]note:[/] {note}")
+        _psnr_change(result)
 
     if output is None:
+        _print_result(result, notes, score_name, cfg)
         console.print("dry run: nothing written" if cfg.dry_run else "sweep only: nothing written (no -o)")
         return result
     _write_output(run_dir, output, cfg, measure, loaded, result, scores, carriers, keep, pruned, random_model, sweep)
+    if evaluate_written and keep is not None and result.counts is not None and result.counts.removed > 0:
+        _evaluate_written(output, result, measure, device)
+        notes.append(f"the pruned model's uncertainty metrics are evaluate's ({output / 'eval' / 'metrics.json'}: "
+                     "the pruned run evaluated as `evaluate` does, with this K and seed)")
+        result.notes = notes
+        result.write(output / "prune.json")
+    _print_result(result, notes, score_name, cfg)
     return result
+
+
+def _psnr_change(result: PruneReport) -> None:
+    """``result.delta_psnr_db`` from its metrics, when all three rows have a PSNR."""
+    m = result.metrics
+    if m.after is not None and m.random is not None and None not in (m.before.psnr, m.after.psnr, m.random.psnr):
+        result.delta_psnr_db = PsnrChange(score=m.after.psnr - m.before.psnr, random=m.random.psnr - m.before.psnr)
+
+
+def _print_result(result: PruneReport, notes: list[str], score_name: str, cfg: PruneConfig) -> None:
+    m = result.metrics
+    if result.counts is not None and m.after is not None and m.random is not None:
+        c = result.counts
+        _print_table(f"prune: keep {c.after}/{c.before} by '{score_name}' ({result.metric_split} views, "
+                     f"K={cfg.num_samples})", [("before", m.before), ("after", m.after), ("random", m.random)])
+    for note in notes:
+        console.print(f"[yellow]note:[/] {note}")
+
+
+def _evaluate_written(output: Path, result: PruneReport, measure: _Measure, device: torch.device) -> None:
+    """Evaluate the pruned run just written to ``output`` as ``evaluate`` does (``output/eval``), and take its held-out
+    means as the "after" row of ``result``."""
+    from uncertsplat.stages import evaluate
+
+    console.print(f"evaluating the pruned run {output} as `evaluate` does")
+    report = evaluate.run(output, measure.ecfg.model_copy(update={"save_maps": True}), device, quiet=True)
+    after = result.metrics.after
+    result.metrics.after = after.model_copy(update={k: getattr(report.mean, k) for k in METRIC_KEYS})
+    _psnr_change(result)
 
 
 def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measure, loaded, result: PruneReport,
