@@ -33,6 +33,19 @@ def test_every_stage_wrote_its_outputs(smoke_out):
     assert (out / "prune" / "prune.json").is_file()
 
 
+def test_the_pruned_runs_evaluation_is_prunes_own(smoke_out):
+    """prune evaluated the run it wrote with the pipeline's settings; the evaluate stage after it keeps that."""
+    out, output = smoke_out
+    text = " ".join(output.split())
+    assert "evaluate " + str(out / "prune") + ": already evaluated with these settings" in text
+    assert not (out / ".previous" / "evaluate_pruned-eval").exists()
+    manifest = json.loads((out / "prune" / "eval" / "manifest.json").read_text())
+    assert manifest["status"] == "done"
+    report = json.loads((out / "prune" / "eval" / "metrics.json").read_text())
+    pruned = json.loads((out / "prune" / "prune.json").read_text())
+    assert pruned["metrics"]["after"]["nll"] == report["mean"]["nll"]
+
+
 def test_report_references_every_figure_and_matches_metrics(smoke_out):
     out, _ = smoke_out
     html = (out / "report" / "index.html").read_text(encoding="utf-8")

@@ -217,6 +217,23 @@ def _finished(run_dir: Path, model_file: Path, cfg: EvalConfig, image_names: lis
     return report
 
 
+def kept_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device):
+    """The evaluation ``run`` would keep in ``run_dir/eval`` (``_finished``: the same model file, views, settings,
+    versions and device, its maps there), or None; for a caller that must not move it away first (``run``)."""
+    from uncertsplat.baselines import load_run
+    from uncertsplat.eval.engine import split_indices
+
+    if not cfg.reuse or not (Path(run_dir) / "eval" / "metrics.json").is_file():
+        return None
+    try:
+        loaded = load_run(run_dir, device)
+        scene = loaded.load_scene()
+    except UserError:
+        return None
+    names = [scene.cameras.image_names[i] for i in split_indices(scene.split, cfg)]
+    return _finished(Path(run_dir), Path(loaded.source), cfg, names, device)
+
+
 def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = False):
     from functools import partial
 

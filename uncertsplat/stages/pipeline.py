@@ -81,6 +81,14 @@ def _stage_config(stage: PipelineStage):
     return build_config(STAGE_CONFIGS[stage.stage], stage.config, source=f"stage '{stage.name or stage.stage}'")
 
 
+def _evaluation_kept(run_dir: Path, cfg, device) -> bool:
+    """Whether ``evaluate`` will keep the evaluation already in ``run_dir/eval`` (e.g. ``prune`` evaluated the run it
+    wrote with these settings): it is then left in place, not moved to ``.previous``."""
+    from uncertsplat.stages import evaluate
+
+    return evaluate.kept_evaluation(run_dir, cfg, device) is not None
+
+
 def _move_previous(out_dir: Path, root: Path, name: str) -> None:
     """Keep one previous generation of a stage's output instead of deleting it."""
     if not out_dir.exists() or not any(out_dir.iterdir()):
@@ -180,7 +188,8 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             continue
 
         console.print(f"[bold cyan]stage[/] {name} ({stage.stage}) -> {out_dir}")
-        _move_previous(out_dir, root, name if stage.stage != "evaluate" else f"{name}-eval")
+        if not (stage.stage == "evaluate" and _evaluation_kept(up_path, stage_cfg, dev)):
+            _move_previous(out_dir, root, name if stage.stage != "evaluate" else f"{name}-eval")
         t0 = time.perf_counter()
         try:
             _run_stage(stage.stage, stage_cfg, up_path, out_dir, dev, kwargs)
