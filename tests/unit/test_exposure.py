@@ -12,7 +12,7 @@ from tests.e2e.test_train_resume import assert_resume_is_exact, assert_same_para
 from uncertsplat.baselines.runs import mean_exposure
 from uncertsplat.config import TrainConfig
 from uncertsplat.io.checkpoints import decode, encode
-from uncertsplat.render.exposure import PhotoExposure, centred, expose, spread_variance, unexpose
+from uncertsplat.render.exposure import PhotoExposure, centred, expose, fitted_gain, spread_variance, unexpose
 from uncertsplat.schemas import RunExposure
 from uncertsplat.strategy.exposure import EXPOSURE_SPREAD
 from uncertsplat.train.trainer import Trainer
@@ -38,6 +38,15 @@ class TestAffineMap:
         shown = expose(rgb, gain, offset)
         torch.testing.assert_close(shown[1, 2, 3], rgb[1, 2, 3] * gain[1] + offset[1])
         torch.testing.assert_close(unexpose(shown, gain, offset), rgb)
+
+    def test_fitted_gain_finds_a_photos_brightness(self):
+        g = torch.Generator().manual_seed(3)
+        render = torch.rand(6, 8, 3, generator=g, dtype=torch.float64)
+        assert fitted_gain(render, render) == pytest.approx(1.0)
+        assert fitted_gain(render, 1.3 * render + 0.05) == pytest.approx(1.3)  # an offset does not change the gain
+        gains = torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64)
+        assert fitted_gain(render, render * gains) == pytest.approx(float(gains.mean()))  # mean over the channels
+        assert fitted_gain(torch.full((6, 8, 3), 0.4), render) == 1.0  # a flat render says nothing
 
     def test_spread_variance_is_the_variance_over_the_photos(self):
         g = torch.Generator().manual_seed(2)

@@ -60,6 +60,7 @@ class LoadedRun:
     exposure: RunExposure | None = None
     """The training photos' learned exposures (``RUN/exposure.json``; ``TrainConfig.exposure``), None without."""
     _coverage: float | None = field(default=None, init=False, repr=False)  # ``coverage``, once computed
+    _photo_exposure: PhotoExposure | None = field(default=None, init=False, repr=False)  # ``photo_exposure``, once
 
     @property
     def prior(self) -> Prior:
@@ -136,16 +137,16 @@ class LoadedRun:
                        coverage=self.coverage(scene_scale, device, det_sample), exposure=self.photo_exposure())
 
     def photo_exposure(self) -> PhotoExposure | None:
-        """``exposure`` with the photos as view indices of the run's scene (``Sampler.exposure``); None without
-        exposures.
+        """``exposure`` with the photos as view indices of the run's scene (``Sampler.exposure``), computed once;
+        None without exposures.
 
         Raises:
             UserError: ``exposure.json`` names a photo the scene does not have.
         """
         if self.exposure is None:
             return None
-        from uncertsplat.render.exposure import PhotoExposure
-
+        if self._photo_exposure is not None:
+            return self._photo_exposure
         names = self.load_scene().cameras.image_names
         index = {n: i for i, n in enumerate(names)}
         missing = [n for n in self.exposure.images if n not in index]
@@ -153,9 +154,10 @@ class LoadedRun:
             raise UserError(f"{RunExposure.FILE_NAME} names {len(missing)} photo(s) the scene does not have "
                             f"(e.g. {missing[0]})", path=self.run_dir / RunExposure.FILE_NAME,
                             hint="Train the run again on this scene, or restore the scene it was trained on.")
-        return PhotoExposure(tuple(index[n] for n in self.exposure.images),
-                             torch.tensor(self.exposure.gain, dtype=torch.float32),
-                             torch.tensor(self.exposure.offset, dtype=torch.float32))
+        self._photo_exposure = PhotoExposure(tuple(index[n] for n in self.exposure.images),
+                                             torch.tensor(self.exposure.gain, dtype=torch.float32),
+                                             torch.tensor(self.exposure.offset, dtype=torch.float32))
+        return self._photo_exposure
 
     def eval_notes(self, num_samples: int) -> list[str]:
         """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run."""
@@ -253,14 +255,12 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
 def checkpoint_exposure(state: dict, train_names: list[str]) -> RunExposure | None:
     """The exposures a training checkpoint ``state`` holds, as ``exposure.json`` would (``train_names``: the run's
     training photos in the order of its split, ``RunScene.train``); None when its rows do not match them."""
-    from uncertsplat.render.exposure import centred
+    from uncertsplat.render.exposure import exposure_record
 
-    params = state["exposure"].detach().cpu().double()
+    params = state["exposure"]
     if params.shape[0] != len(train_names):
         return None
-    gain, offset = centred(params)
-    return RunExposure(images=list(train_names), gain=gain.tolist(), offset=offset.tolist(),
-                       step=int(state.get("step", 0)))
+    return exposure_record(params, train_names, int(state.get("step", 0)))
 
 
 def mean_exposure(records: list[RunExposure | None]) -> RunExposure | None:

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from uncertsplat.schemas.runs import RunExposure
 from uncertsplat.types import ViewSet
 
 
@@ -31,6 +32,12 @@ def centred(params: Tensor) -> tuple[Tensor, Tensor]:
     photos: the gains' geometric mean and the offsets' mean are 1 and 0 per channel."""
     log_gain, offset = params[:, 0], params[:, 1]
     return torch.exp(log_gain - log_gain.mean(0, keepdim=True)), offset - offset.mean(0, keepdim=True)
+
+
+def exposure_record(params: Tensor, images: list[str], step: int) -> RunExposure:
+    """``RUN/exposure.json``'s record of ``params`` [T,2,3] (``centred``) for the training photos ``images``."""
+    gain, offset = (t.detach().double().cpu().tolist() for t in centred(params.detach()))
+    return RunExposure(images=list(images), gain=gain, offset=offset, step=int(step))
 
 
 def expose(rgb: Tensor, gain: Tensor, offset: Tensor) -> Tensor:
@@ -56,14 +63,11 @@ def spread_variance(rgb: Tensor, gain: Tensor, offset: Tensor) -> Tensor:
     return var.clamp_min(0.0).mean(-1, keepdim=True)
 
 
-def fitted_gain(render: Tensor, photo: Tensor, mask: Tensor | None = None) -> float:
+def fitted_gain(render: Tensor, photo: Tensor) -> float:
     """The gain of the least-squares affine map (per channel, with an offset) from ``render`` [H,W,3] to ``photo``
-    [H,W,3], mean over the channels: about 1 for a photo at the model's exposure, g for one g times brighter. Over
-    the pixels of ``mask`` [H,W] (bool) when given. A flat render (no variance) gives 1."""
+    [H,W,3], mean over the channels: about 1 for a photo at the model's exposure, g for one g times brighter. A flat
+    render (no variance) gives 1."""
     r, p = render.reshape(-1, 3).double(), photo.reshape(-1, 3).double()
-    if mask is not None:
-        keep = mask.reshape(-1)
-        r, p = r[keep], p[keep]
     if r.shape[0] < 2:
         return 1.0
     rc, pc = r - r.mean(0), p - p.mean(0)
@@ -111,4 +115,5 @@ class PhotoExposure:
         return spread_variance(rgb, self.gain.to(rgb.device), self.offset.to(rgb.device))
 
 
-__all__ = ["PhotoExposure", "centred", "expose", "fitted_gain", "spread_variance", "unexpose"]
+__all__ = ["PhotoExposure", "centred", "expose", "exposure_record", "fitted_gain", "spread_variance",
+           "unexpose"]

@@ -8,8 +8,7 @@ exposure"). Whether a capture needs it is measured, as the SH bands and the mode
 
 every ``exposure_check_interval`` steps from ``EXPOSURE_CHECK_FROM`` to ``EXPOSURE_CHECK_UNTIL`` of the run, a few
 training photos are compared with the model's deterministic render, and each photo's gain relative to it is fitted by
-least squares
-(``render.exposure.fitted_gain``, per channel with an offset, mean over the channels). When the brightest of them is
+least squares (``render.exposure.fitted_gain``, per channel with an offset, mean over the channels). When the brightest of them is
 ``EXPOSURE_SPREAD`` times the darkest or more, the photos' exposures are learned from the next step on (every photo
 at the identity at first); otherwise the next test looks again. The tests draw no random numbers, so a run whose
 tests never fire trains exactly as with ``exposure = "off"``.
@@ -61,5 +60,5 @@ def exposure_reason(check: ExposureCheck) -> str:
             f"{verdict})")
 
 
-__all__ = ["EXPOSURE_CHECK_FROM", "EXPOSURE_CHECK_UNTIL", "EXPOSURE_SPREAD", "ExposureCheck", "exposure_check_due", "exposure_reason",
-           "gain_spread"]
+__all__ = ["EXPOSURE_CHECK_FROM", "EXPOSURE_CHECK_UNTIL", "EXPOSURE_SPREAD", "ExposureCheck", "exposure_check_due",
+           "exposure_reason", "gain_spread"]

@@ -44,7 +44,7 @@ from uncertsplat.gaussians.variational import (
     sample_with_kl,
 )
 from uncertsplat.render import near_plane, render
-from uncertsplat.render.exposure import centred, expose, fitted_gain, unexpose
+from uncertsplat.render.exposure import centred, expose, exposure_record, fitted_gain, unexpose
 from uncertsplat.schemas.runs import RunExposure
 from uncertsplat.strategy.budget import gaussian_budget
 from uncertsplat.strategy.densify import Densifier, DensifyStats
@@ -208,12 +208,16 @@ class Trainer:
                 if v in rows:
                     params[r] = saved[rows[v]]
             same = list(rows) == list(self.train_idx)
-        self.exposure = params.requires_grad_(True)
-        self.exposure_optimizer = torch.optim.Adam([self.exposure], lr=self.cfg.exposure_lr, eps=1e-15)
+        self._start_exposure(params)
         if same and state.get("exposure_optimizer") is not None:
             self.exposure_optimizer.load_state_dict(state["exposure_optimizer"])
             for group in self.exposure_optimizer.param_groups:  # the config's rate, as for the model's groups
                 group["lr"] = self.cfg.exposure_lr
+
+    def _start_exposure(self, params: Tensor) -> None:
+        """Learn the photos' exposures from ``params`` [T,2,3] on, with a fresh optimiser."""
+        self.exposure = params.requires_grad_(True)
+        self.exposure_optimizer = torch.optim.Adam([self.exposure], lr=self.cfg.exposure_lr, eps=1e-15)
 
     def exposures(self) -> tuple[Tensor, Tensor] | None:
         """([T,3] gains, [T,3] offsets) of the training photos, centred (``render.exposure.centred``), detached;
@@ -226,11 +230,9 @@ class Trainer:
     def exposure_record(self, names) -> RunExposure | None:
         """The training photos' learned exposures as ``RUN/exposure.json`` holds them (``names``: the scene's image
         names, indexed by the scene's view indices); None with ``exposure = "off"``."""
-        ex = self.exposures()
-        if ex is None:
+        if self.exposure is None:
             return None
-        gain, offset = (t.double().cpu().tolist() for t in ex)
-        return RunExposure(images=[names[i] for i in self.train_idx], gain=gain, offset=offset, step=self.step)
+        return exposure_record(self.exposure, [names[i] for i in self.train_idx], self.step)
 
     def photos(self, views: list[int] | None = None) -> Tensor:
         """[B,H,W,3] the training photos ``views`` (positions in the training list; None: all) at the model's
@@ -423,9 +425,8 @@ class Trainer:
                               gain_max=round(max(gains, default=1.0), 4), spread=round(spread, 4),
                               threshold=EXPOSURE_SPREAD, enabled=spread >= EXPOSURE_SPREAD)
         self.exposure_checks.append(check)
-        if check.enabled:
-            self._init_exposure({"exposure": torch.zeros(len(self.train_idx), 2, 3, device=self.device),
-                                 "exposure_views": torch.tensor(self.train_idx, dtype=torch.long)})
+        if check.enabled:  # every photo at the identity
+            self._start_exposure(torch.zeros(len(self.train_idx), 2, 3, device=self.device))
         if self.on_exposure is not None:
             self.on_exposure(check)
         return check
