@@ -16,6 +16,7 @@ matplotlib.use("Agg", force=False)  # no display; must run before pyplot is impo
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from uncertsplat.io.images import to_uint8  # noqa: E402
 from uncertsplat.report.colormaps import colorize, rank_colorize  # noqa: E402
 from uncertsplat.report.extract import Calibration, Curve  # noqa: E402
 from uncertsplat.report.grid import Panel, grid_png, rank_bar, value_bar  # noqa: E402
@@ -46,11 +47,10 @@ def run_color(i: int) -> str:
     return RUN_COLORS[i % len(RUN_COLORS)]
 
 
-def _png(fig, tight: bool = False) -> bytes:
-    """PNG bytes of ``fig`` (closed afterwards). ``tight`` crops to the content (an extra draw: slower),
-    for figures that cannot use ``tight_layout``."""
+def _png(fig) -> bytes:
+    """PNG bytes of ``fig`` (closed afterwards)."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight" if tight else None, metadata={"Software": None},
+    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None},
                 pil_kwargs={"compress_level": PNG_COMPRESS})
     plt.close(fig)
     return buf.getvalue()
@@ -71,10 +71,6 @@ def _robust_max(*arrays: np.ndarray | None, q: float = 99.0) -> float:
 
 
 # -------------------------------------------------------------------------------------------- per view
-def _rgb8(x: np.ndarray) -> np.ndarray:
-    return np.round(np.clip(np.nan_to_num(x, nan=0.0), 0.0, 1.0) * 255.0).astype(np.uint8)
-
-
 def _mapped(x: np.ndarray, cmap: str, vmin: float, vmax: float) -> np.ndarray:
     return colorize(x, mode="fixed", vmin=vmin, vmax=vmax, cmap=cmap)
 
@@ -85,9 +81,9 @@ def view_figure(view: ViewMaps, title: str = "") -> bytes | None:
     std = view.rgb_std_gray
     panels: list[Panel] = []
     if view.gt is not None:
-        panels.append(Panel("ground truth", _rgb8(view.gt)))
+        panels.append(Panel("ground truth", to_uint8(view.gt)))
     if view.rgb_mean is not None:
-        panels.append(Panel("mean render", _rgb8(view.rgb_mean)))
+        panels.append(Panel("mean render", to_uint8(view.rgb_mean)))
     vmax = _robust_max(view.error, std)
     if view.error is not None:
         panels.append(Panel("|error| (RGB mean)", _mapped(view.error, "inferno", 0.0, vmax),
@@ -126,7 +122,7 @@ def side_by_side_figure(views: Sequence[tuple[str, ViewMaps]], view_name: str) -
         both = std is not None and v.error is not None
         t = titles if r == 0 else [""] * len(titles)  # the columns are named once, above the first row
         grid.append([
-            Panel(t[0], None if v.rgb_mean is None else _rgb8(v.rgb_mean)),
+            Panel(t[0], None if v.rgb_mean is None else to_uint8(v.rgb_mean)),
             Panel(t[1], None if v.error is None else _mapped(v.error, "inferno", 0.0, vmax)),
             Panel(t[2], None if std is None else _mapped(std, "inferno", 0.0, vmax), None if std is None else bar),
             Panel(t[3], rank_image(std) if both else None),
