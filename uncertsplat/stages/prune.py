@@ -433,7 +433,7 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         console.print("dry run: nothing written" if cfg.dry_run else "sweep only: nothing written (no -o)")
         return result
     _write_output(run_dir, output, cfg, measure, loaded, result, scores, carriers, keep, pruned, random_model, sweep)
-    if evaluate_written and keep is not None and result.counts is not None and result.counts.removed > 0:
+    if evaluate_written and keep is not None and result.counts.removed > 0:  # (nothing removed: "after" is "before")
         _evaluate_written(output, result, measure, device)
         notes.append(f"the pruned model's uncertainty metrics are evaluate's ({output / 'eval' / 'metrics.json'}: "
                      "the pruned run evaluated as `evaluate` does, with this K and seed)")
