@@ -20,7 +20,8 @@ since 2026-11-27); ``no-colour`` is ``full`` without the colour posterior
 without the edge term (``EvalConfig.edge_noise``); ``no-depth-spread`` is ``full`` without the spread of the depths
 each ray blends (``EvalConfig.depth_spread``); ``resolution-1`` is ``full`` with one render of the resolution
 term per sample (``EvalConfig.resolution_renders``, 2 since 2026-11-27); ``no-consistency`` is ``full`` without
-the view-consistency term (``EvalConfig.consistency_views``).
+the view-consistency term (``EvalConfig.consistency_views``); ``no-finer`` is ``full`` without the finer-detail term
+(``EvalConfig.finer_detail``).
 
 Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
 its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),
@@ -121,6 +122,7 @@ PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alph
     "no-depth-spread": ({"depth_spread": False}, False),  # full without the depths a ray blends
     "resolution-1": ({"resolution_renders": 1}, False),  # full with one resolution render per sample (before 11-27)
     "no-consistency": ({"consistency_views": 0}, False),  # full without the view-consistency term (before 11-27)
+    "no-finer": ({"finer_detail": False}, False),  # full without the finer-detail term (before 11-28)
 }
 
 

@@ -296,3 +296,98 @@ def test_depth_edges_flag_jumps_not_slopes():
     assert edges[:, 4:6].all() and not edges[:, :4].any() and not edges[:, 6:].any()
     slope = 1.0 + 0.5 * DEPTH_JUMP * torch.arange(10.0)[None].expand(8, 10) / 10  # well below the jump per window
     assert not _depth_edges(slope).any()
+
+
+def _textured_plane_render(slope: float = 0.05):
+    """The plane of ``_plane_render`` coloured by position instead of by camera: 0.5 + ``slope`` x (world x), the same
+    from every direction (so the view-consistency difference is 0 and the render's gradient is known)."""
+    from uncertsplat.render.project import unproject
+
+    base = _plane_render()
+
+    def render_fn(sample: GaussianSample, cameras: Cameras) -> RenderOutput:
+        out = base(sample, cameras)
+        pts = unproject(out.depth[0, ..., 0].double(), cameras.cam_from_world[0].double(), cameras.K[0].double())
+        rgb = (0.5 + slope * pts[..., 0]).float()[None, ..., None].expand(1, cameras.height, cameras.width, 3)
+        return dataclasses.replace(out, rgb=rgb.contiguous().to(out.rgb.device))
+
+    return render_fn
+
+
+class TestFinerDetail:
+    """The finer-detail term, ``(r^2 - 1) finer_detail g(p)``: training views at 0 and 50 degrees with focal length 30,
+    4 units from the textured plane; r = 1 between them at their distance, about 2 zoomed in x2 and 4 moved to half
+    the distance too (``test_the_scale_at_which_a_view_resolves_the_surface``)."""
+
+    C = 0.1  # the term's coefficient (delta^2 + 1/12 in evaluate)
+
+    def _added(self, vc, camera, render_fn):
+        from uncertsplat.uncertainty.residual import image_gradient_sq
+
+        added = vc.variance(camera, render_fn) - dataclasses.replace(vc, finer_detail=0.0).variance(camera, render_fn)
+        g = image_gradient_sq(render_fn(vc.sample, camera).rgb)
+        inner = (slice(None), slice(2, -2), slice(2, -2))  # away from the one-sided differences of the border
+        return added[inner], g[inner]
+
+    def test_the_variance_of_a_step_against_the_ramp_the_photos_recorded(self, device):
+        render_fn = _textured_plane_render()
+        train = _cameras([0.0, 50.0], focal=30.0, device=device)
+        vc = ViewConsistency.of(_sample(device), train, render_fn, finer_detail=self.C)
+        assert vc.finer_detail == self.C
+        same = _cameras([25.0], focal=30.0, device=device)
+        added, g = self._added(vc, same, render_fn)
+        # as fine as the photos: nothing, but near the edge the oblique plane is a little nearer than in either photo
+        assert (g > 0).all() and float((added == 0).float().mean()) > 0.5 and (added <= 0.5 * self.C * g).all()
+        zoom = _cameras([25.0], focal=60.0, device=device)
+        added, g = self._added(vc, zoom, render_fn)
+        ratio = added / (self.C * g)  # r^2 - 1 per pixel
+        assert float(ratio.median()) == pytest.approx(2.0**2 - 1.0, rel=0.2)
+        near = dataclasses.replace(zoom, cam_from_world=zoom.cam_from_world.clone())
+        near.cam_from_world[0, 2, 3] -= 2.0
+        added_near, g_near = self._added(vc, near, render_fn)
+        assert float((added_near / (self.C * g_near)).median()) == pytest.approx(4.0**2 - 1.0, rel=0.2)
+
+    def test_nothing_without_a_gradient_a_surface_or_the_term(self, device):
+        train = _cameras([0.0, 50.0], focal=30.0, device=device)
+        zoom = _cameras([25.0], focal=60.0, device=device)
+        flat = _plane_render()  # one colour per view: no gradient, only the view-consistency difference
+        vc = ViewConsistency.of(_sample(device), train, flat, finer_detail=self.C)
+        assert torch.equal(vc.variance(zoom, flat), dataclasses.replace(vc, finer_detail=0.0).variance(zoom, flat))
+        textured = _textured_plane_render()
+
+        def empty(sample, cameras):
+            out = textured(sample, cameras)
+            return dataclasses.replace(out, alpha=torch.zeros_like(out.alpha))
+
+        vc = ViewConsistency.of(_sample(device), train, textured, finer_detail=self.C)
+        assert not vc.variance(zoom, empty).any()
+        assert not vc.variance(train[[0]], textured).any(), "a compared training view itself"
+        assert ViewConsistency.of(_sample(device), train, textured).finer_detail == 0.0
+        assert not ViewConsistency.of(_sample(device), train, textured).variance(zoom, textured).any()
+
+    def test_evaluate_gives_the_term_the_edge_scale_and_the_step(self, monkeypatch):
+        from types import SimpleNamespace
+
+        from uncertsplat.eval import engine
+        from uncertsplat.uncertainty.consistency import STEP_VARIANCE
+
+        got = {}
+
+        def of(*args, **kwargs):
+            got.update(kwargs)
+            return "term"
+
+        monkeypatch.setattr(engine.ViewConsistency, "of", of)
+        sampler = SimpleNamespace(det_sample=_sample(), mean_sample=None, render_fn=None)
+        cfg = SimpleNamespace(consistency_views=4, finer_detail=True)
+        assert engine.view_consistency(sampler, _cameras([0.0, 50.0]), cfg, torch.device("cpu"), 0.04) == "term"
+        assert got["finer_detail"] == pytest.approx(0.04 + STEP_VARIANCE) and STEP_VARIANCE == pytest.approx(1 / 12)
+        cfg.finer_detail = False
+        engine.view_consistency(sampler, _cameras([0.0, 50.0]), cfg, torch.device("cpu"), 0.04)
+        assert got["finer_detail"] == 0.0
+        residual = SimpleNamespace(edge_scale=0.02)
+        cfg.finer_detail = True
+        monkeypatch.setattr(engine.dataclasses, "replace", lambda obj, **kw: kw)
+        assert engine.with_side_terms(sampler, residual, _cameras([0.0, 50.0]), cfg, torch.device("cpu"))[
+            "consistency"] == "term"
+        assert got["finer_detail"] == pytest.approx(0.02 + STEP_VARIANCE)

@@ -31,7 +31,7 @@ from uncertsplat.errors import UserError
 from uncertsplat.render.exposure import PhotoExposure
 from uncertsplat.schemas.metrics import EvalReport
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput, ViewSet
-from uncertsplat.uncertainty.consistency import ViewConsistency
+from uncertsplat.uncertainty.consistency import STEP_VARIANCE, ViewConsistency
 from uncertsplat.uncertainty.residual import C0, ResidualField
 
 KDE_MAX_SAMPLES = 64
@@ -76,6 +76,9 @@ class EvalSettings(Protocol):
     edge_noise: bool
     """Split the pixel noise into an edge term ``delta^2 |grad I|^2`` and the per-Gaussian rest
     (``uncertainty.residual.fit_edge_scale``; ``fit_residual_field`` fits it in its own pass)."""
+    finer_detail: bool
+    """Add the finer-detail term where a view resolves the surface finer than the training views that see it
+    (``uncertainty.consistency``; part of the view-consistency term, so none when ``consistency_views`` is 0)."""
 
 
 @dataclass(frozen=True)
@@ -195,23 +198,26 @@ def evenly_spaced(items: Sequence[int], n: int) -> list[int]:
 
 
 def view_consistency(sampler: Sampler, train_cameras: Cameras, cfg: EvalSettings,
-                     device: torch.device) -> ViewConsistency | None:
+                     device: torch.device, edge_scale: float = 0.0) -> ViewConsistency | None:
     """The view-consistency term (``uncertainty.consistency``) of the sampler's representative model against its
     training cameras, comparing at most ``cfg.consistency_views`` of them (evenly spaced); None when that is 0 or there
-    is no training camera. Renders each compared training view once."""
+    is no training camera. Renders each compared training view once. With ``cfg.finer_detail``, the term also carries
+    the finer-detail term, with the pixel noise's ``edge_scale`` (delta^2, 0 without an edge term)."""
     if cfg.consistency_views <= 0 or len(train_cameras) == 0:
         return None
     chosen = evenly_spaced(range(len(train_cameras)), cfg.consistency_views)
+    finer = edge_scale + STEP_VARIANCE if cfg.finer_detail else 0.0
     return ViewConsistency.of(_representative(sampler, device), train_cameras[chosen].to(device), sampler.render_fn,
-                              frustum_cameras=train_cameras.to(device))
+                              frustum_cameras=train_cameras.to(device), finer_detail=finer)
 
 
 def with_side_terms(sampler: Sampler, residual: ResidualField | None, train_cameras: Cameras, cfg: EvalSettings,
                     device: torch.device) -> Sampler:
     """``sampler`` with the pixel noise ``residual`` (``fit_residual``) and the view-consistency term of its
     ``train_cameras`` (``view_consistency``) attached: what every evaluation of a run scores."""
+    edge = residual.edge_scale if residual is not None else 0.0
     return dataclasses.replace(sampler, residual=residual,
-                               consistency=view_consistency(sampler, train_cameras, cfg, device))
+                               consistency=view_consistency(sampler, train_cameras, cfg, device, edge_scale=edge))
 
 
 def scored_sampler(new_sampler: Callable[[], Sampler], residual: ResidualField | None, cameras: Cameras,

@@ -319,8 +319,9 @@ def _reach_notes(sampler, views, device: torch.device) -> list[str]:
     those whose surface lies outside every training photo for at least ``UNLOOKED_NOTE`` of its pixels (the model
     extrapolates there, and the std there is the view-consistency term's palette variance), and those that resolve
     the surface at least ``FINER_NOTE`` times finer than any training photo (nearer or zoomed in: the model holds no
-    detail finer than the photos, and on a sparse capture its std there is too low; BENCHMARKS.md, "Views closer than
-    the training views"). Empty without such a view or without the term (``consistency_views = 0``)."""
+    detail finer than the photos; the finer-detail term widens the std at the render's edges there, and on a sparse
+    capture it is still too low; BENCHMARKS.md, "Views closer than the training views" and "Detail finer than any
+    photo recorded"). Empty without such a view or without the term (``consistency_views = 0``)."""
     if sampler.consistency is None:
         return []
     reach = {name: sampler.consistency.reach(views.cameras[[j]].to(device), sampler.render_fn)
@@ -334,9 +335,11 @@ def _reach_notes(sampler, views, device: torch.device) -> list[str]:
     finer = {name: r[1] for name, r in reach.items() if r[1] >= FINER_NOTE}
     if finer:
         listed = ", ".join(f"{name} x{f:.1f}" for name, f in sorted(finer.items(), key=lambda x: -x[1]))
+        std = ("its std adds what a sharper surface could hold at the render's edges, and where few photos saw a "
+               "surface it is still too low" if sampler.consistency.finer_detail > 0.0 else
+               "and where few photos saw a surface its std there is too low (finer_detail is off)")
         notes.append(f"{len(finer)} of {len(reach)} views see the surface finer than any training photo did (nearer or "
-                     f"zoomed in): the model holds no detail finer than the photos, and where few photos saw a surface "
-                     f"its std there is too low: {listed}")
+                     f"zoomed in): the model holds no detail finer than the photos; {std}: {listed}")
     return notes
 
 
