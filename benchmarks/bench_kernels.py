@@ -13,7 +13,8 @@ flags, loaded beside the current one, and the two are called alternately on the 
   around 3 % of their depth), with a 2048^3 float32 matmul timed in the same run as the machine's yardstick;
 - ``train`` (with ``--run RUN --scene SCENE``): training steps of a run from its last checkpoint, the two
   libraries taking turns every ``--block`` steps (the model keeps training across the turns), and the
-  compositor alone on one of its training views.
+  compositor alone on one of its training views (packed with a gradient on every feature, and into images with
+  a loss on the rgb image alone, as a training step calls it).
 
 A reference library of an older interface version is wrapped so that the current Python code can call it (the
 compositor's forward took no Gaussian count before version 10, binning kept no state between its two calls
@@ -329,6 +330,26 @@ def composite_alone(libs: dict, gp, feat, bins, repeats: int) -> dict:
     return out
 
 
+def composite_image_alone(libs: dict, gp, feat, bins, height: int, width: int, repeats: int) -> dict:
+    """The compositor as a training step calls it (``composite_image``: images, a loss on the rgb image alone),
+    forward + backward on fixed lists; the two libraries' gradients are compared too."""
+    n = gp.shape[0]
+    ins = [gp[:, :2].reshape(1, n, 2), gp[:, 2:5].reshape(1, n, 3), gp[:, 5].reshape(1, n),
+           feat[:, :3].reshape(1, n, 3), feat[:, 3].reshape(1, n)]
+    g = torch.randn(1, height, width, 3, generator=torch.Generator().manual_seed(0))
+
+    def fwd_bwd():
+        leaves = [t.clone().requires_grad_() for t in ins]
+        rgb, _, _ = rasterize._CompositeImageNative.apply(*leaves, None, bins, height, width)
+        (rgb * g).sum().backward()
+        return [t.grad for t in leaves]
+
+    grads = {k: with_lib(lib, fwd_bwd)() for k, lib in libs.items()}
+    a, b = grads.values()
+    return {"forward_backward": alternate({k: with_lib(lib, fwd_bwd) for k, lib in libs.items()}, repeats),
+            "max_gradient_difference": max(float((x - y).abs().max()) for x, y in zip(a, b, strict=True))}
+
+
 def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, width: int = 320) -> dict:
     gen = torch.Generator().manual_seed(0)
     x = torch.rand(planes, height, width, generator=gen)
@@ -385,7 +406,9 @@ def bench_training(libs: dict, run: Path, scene: Path, rounds: int, block: int) 
             "step": {k: {"min_ms": 1e3 * min(v), "median_ms": 1e3 * statistics.median(v)}
                      for k, v in per_step.items()},
             "binning": binning_alone(libs, bin_args, bin_kw, 2 * rounds),
-            "composite": composite_alone(libs, *comp, 2 * rounds)}
+            "composite": composite_alone(libs, *comp, 2 * rounds),
+            "composite_image": composite_image_alone(libs, *comp, trainer.train_cams.height, trainer.train_cams.width,
+                                                     2 * rounds)}
 
 
 def ratio(d: dict, key: str = "min_ms") -> float:
@@ -451,7 +474,9 @@ def main() -> None:
         rows += [(f"training step ({t['num_gaussians']} Gaussians)", t["step"]),
                  ("binning, a training view", t["binning"]["time"]),
                  ("compositor forward, a training view", t["composite"]["forward"]),
-                 ("compositor forward + backward, a training view", t["composite"]["forward_backward"])]
+                 ("compositor forward + backward, a training view", t["composite"]["forward_backward"]),
+                 ("compositor into images, forward + backward of an rgb loss (a training step's)",
+                  t["composite_image"]["forward_backward"])]
     print(f"\n{r['case']}, {args.threads} threads, reference {args.ref}; min (median) ms")
     print("| what | reference | current | ratio (min) | ratio (median) |")
     print("|---|---|---|---|---|")
