@@ -32,6 +32,10 @@ reference), ``sandwich`` (the informed posterior with ``variational.sandwich``),
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_unseen.py --out /tmp/unseen [--iterations 1500]
 
+A method whose run folder already exists under ``--out`` is evaluated again, not trained again (e.g. to compare
+predictives on one model); its saved configuration must be the one this call asks for (else the script stops and
+says so: a run of another protocol or ``--set`` would be scored as if it were this one's).
+
 Other protocols (``--protocol``): ``dense`` (every 8th view held out: the uncertainty metrics of a dense capture),
 ``sparse`` (5 interleaved training views on an arc, tested between them, as the paper's light-field protocol), and
 ``arc`` with ``--scene WS`` (real photos, e.g. a ``reconstruct`` workspace of fern: the last 20 % of the capture by
@@ -279,7 +283,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from uncertsplat.baselines import train_run
-    from uncertsplat.config import SynthConfig, train_config_from
+    from uncertsplat.config import SynthConfig, TrainConfig, train_config_from
     from uncertsplat.data.synthetic import generate_scene
     from uncertsplat.device import resolve_device
     from uncertsplat.sfm.scene import load_scene
@@ -328,6 +332,9 @@ def main() -> None:
         t0 = time.perf_counter()
         if not (run_dir / "train_summary.json").is_file():
             train_run(scene_dir, run_dir, cfg, device)
+        elif TrainConfig.model_validate_json((run_dir / "config.json").read_text()) != cfg:
+            raise SystemExit(f"{run_dir} holds a run trained with another configuration (protocol, --set, "
+                             f"--iterations ...): choose another --out, or delete it to train again")
         train_s = json.loads((run_dir / "train_summary.json").read_text())["seconds"]
         rec = {"method": name, "train_seconds": train_s, "wall_seconds": time.perf_counter() - t0}
         # the full predictive (the default), the one before the coverage and resolution terms, the spread alone
