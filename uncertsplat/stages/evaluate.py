@@ -135,6 +135,13 @@ def matching_evaluation(run_dir: Path, model_file: Path, cfg: EvalConfig, image_
     (``EvalReport.run_sha256``), the same views, device and versions (uncertsplat, Python, torch), and settings equal
     to ``cfg`` but for ``OUTPUT_SETTINGS`` (``eval/config.json``, tied to the report by its hash). Else None, as for
     any file missing, unreadable or of an older version that did not record the run."""
+    found = _matching(run_dir, model_file, cfg, image_names, device)
+    return found[0] if found is not None else None
+
+
+def _matching(run_dir: Path, model_file: Path, cfg: EvalConfig, image_names: list[str],
+              device: torch.device) -> tuple[EvalReport, EvalConfig] | None:
+    """``matching_evaluation``'s report and the settings it was measured with (``eval/config.json``)."""
     from uncertsplat.provenance import hash_config, versions
     from uncertsplat.schemas.metrics import EvalReport
 
@@ -153,7 +160,7 @@ def matching_evaluation(run_dir: Path, model_file: Path, cfg: EvalConfig, image_
             return None
     except (OSError, UserError, ValueError):
         return None
-    return report
+    return report, used
 
 
 def _copy_evaluation(source_eval: Path, out: Path) -> None:
@@ -203,13 +210,12 @@ def _finished(run_dir: Path, model_file: Path, cfg: EvalConfig, image_names: lis
 
     if not cfg.reuse:
         return None
-    report = matching_evaluation(run_dir, model_file, cfg, image_names, device)
-    if report is None or not cfg.save_maps:
-        return report
-    try:
-        used = EvalConfig.model_validate_json((run_dir / "eval" / "config.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+    found = _matching(run_dir, model_file, cfg, image_names, device)
+    if found is None:
         return None
+    report, used = found
+    if not cfg.save_maps:
+        return report
     maps = run_dir / "eval" / "maps"
     if not used.save_maps or used.preview != cfg.preview or not all(
             (maps / f"{map_stem(n)}.exr").is_file() for n in image_names):
