@@ -84,11 +84,11 @@ BLUR = 2
 MIN_GATE = 1.0
 """Degrees: the smallest ``gate`` (a capture of one view, or of views from one place)."""
 VIEW_CHUNK = 8
+"""Training views a pixel's point is projected into at once (``ViewConsistency.variance``): their renders are sampled
+as one batch (4 float32 channels per pixel of each)."""
 STEP_VARIANCE = 1.0 / 12.0
 """Pixels^2: the mean squared difference between a step and a linear ramp one pixel wide over that pixel, per squared
 gradient of the ramp (the finer-detail term's ``(r^2 - 1) / 12``; module docstring)."""
-"""Training views a pixel's point is projected into at once (``ViewConsistency.variance``): their renders are sampled
-as one batch (4 float32 channels per pixel of each)."""
 
 
 def _angle(a: Tensor, b: Tensor) -> Tensor:
