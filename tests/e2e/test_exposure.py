@@ -75,6 +75,10 @@ def test_affine_exposures_are_learned_evaluated_and_kept_by_prune(exposed_scene,
     exposure = loaded.photo_exposure()
     assert [scene.cameras.image_names[i] for i in exposure.indices] == train_names
     assert loaded.sampler(scene.scene_scale, torch.device("cpu")).exposure is not None
+    # a pruned subset (prune's measurements) keeps the photos' exposures without reading the scene again, not the
+    # model-dependent coverage
+    subset = loaded.with_model(loaded.model)
+    assert subset.photo_exposure() is exposure and subset._coverage is None and loaded._coverage is not None
 
     cfg = EvalConfig(num_samples=2)
     report = evaluate.run(run, cfg, torch.device("cpu"))

@@ -13,6 +13,7 @@ K samples from), which notes an evaluation of it needs (``eval_notes``) and the 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -61,6 +62,13 @@ class LoadedRun:
     """The training photos' learned exposures (``RUN/exposure.json``; ``TrainConfig.exposure``), None without."""
     _coverage: float | None = field(default=None, init=False, repr=False)  # ``coverage``, once computed
     _photo_exposure: PhotoExposure | None = field(default=None, init=False, repr=False)  # ``photo_exposure``, once
+
+    def with_model(self, model: GaussianModel) -> LoadedRun:
+        """This run with another ``model`` (e.g. a pruned subset): what depends on the model is computed again
+        (``coverage``), what depends on the scene alone is kept (``photo_exposure``, which reads the scene)."""
+        out = dataclasses.replace(self, model=model)
+        out._photo_exposure = self._photo_exposure
+        return out
 
     @property
     def prior(self) -> Prior:

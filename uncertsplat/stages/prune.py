@@ -38,7 +38,6 @@ ratios it walks by their render only (the K samples' uncertainty metrics are mea
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import os
 import shutil
@@ -178,7 +177,7 @@ class _Measure:
         t0 = time.perf_counter()
         uncertainty = {}
         if full:
-            loaded = dataclasses.replace(self.loaded, model=model)
+            loaded = self.loaded.with_model(model)
             residual = self.residual
             if residual is not None and keep is not None:
                 residual = residual.subset(keep.to(residual.variance.device))
