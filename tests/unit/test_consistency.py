@@ -391,3 +391,27 @@ class TestFinerDetail:
         assert engine.with_side_terms(sampler, residual, _cameras([0.0, 50.0]), cfg, torch.device("cpu"))[
             "consistency"] == "term"
         assert got["finer_detail"] == pytest.approx(0.02 + STEP_VARIANCE)
+
+
+def test_the_finer_detail_term_stays_finite_at_the_extremes(device, monkeypatch):
+    """A camera almost touching the textured plane (a thousandth of the training distance, so r is about a thousand),
+    a surface claimed at depth 0 and a footprint of 1e-30 (r about 1e29, capped at ``MAX_FINER``): the term is finite
+    and not negative everywhere."""
+    render_fn = _textured_plane_render()
+    train = _cameras([0.0, 50.0], focal=30.0, device=device)
+    vc = ViewConsistency.of(_sample(device), train, render_fn, finer_detail=0.1)
+    near = _cameras([25.0], focal=30.0, device=device)
+    near.cam_from_world[0, 2, 3] -= 4.0 - 4e-3  # to 4e-3 from the plane's centre along its optical axis
+    var = vc.variance(near, render_fn)
+    assert torch.isfinite(var).all() and (var >= 0).all() and var.any()
+
+    def flat_at_zero(sample, cameras):  # a surface claimed at depth 0: footprint 0
+        out = render_fn(sample, cameras)
+        return dataclasses.replace(out, depth=torch.full_like(out.depth, 1e-30))
+
+    var = vc.variance(_cameras([25.0], focal=60.0, device=device), flat_at_zero)
+    assert torch.isfinite(var).all() and (var >= 0).all()
+    footprint = consistency._footprint
+    monkeypatch.setattr(consistency, "_footprint", lambda points, camera: footprint(points, camera) * 1e-30)
+    var = vc.variance(_cameras([25.0], focal=60.0, device=device), render_fn)
+    assert torch.isfinite(var).all() and (var >= 0).all() and float(var.max()) > 1.0  # r^2 = 1e12 times g

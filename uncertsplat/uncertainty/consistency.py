@@ -86,6 +86,8 @@ MIN_GATE = 1.0
 VIEW_CHUNK = 8
 """Training views a pixel's point is projected into at once (``ViewConsistency.variance``): their renders are sampled
 as one batch (4 float32 channels per pixel of each)."""
+MAX_FINER = 1e6
+"""The largest r the finer-detail term takes (its square stays a float32 number)."""
 STEP_VARIANCE = 1.0 / 12.0
 """Pixels^2: the mean squared difference between a step and a linear ramp one pixel wide over that pixel, per squared
 gradient of the ramp (the finer-detail term's ``(r^2 - 1) / 12``; module docstring)."""
@@ -222,7 +224,10 @@ class ViewConsistency:
         full = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(0, where, diff * weight)
         out = _box_mean(full.reshape(h, w))[None, ..., None]
         if self.finer_detail > 0.0:  # not averaged: the edges it follows are a pixel wide
-            r2 = torch.where(torch.isfinite(finest), finest.square(), torch.ones_like(finest)).clamp_min(1.0)  # [S]
+            # r capped at 1e6 so that r^2 stays a float32 number (a footprint near 0 would overflow to inf, and
+            # inf x a zero gradient is NaN); a view a million times finer than every photo is far past any capture
+            r = finest.clamp(1.0, MAX_FINER)
+            r2 = torch.where(torch.isfinite(finest), r.square(), torch.ones_like(finest))  # [S]
             g = image_gradient_sq(rgb).reshape(-1)[where]  # [S]
             detail = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(
                 0, where, ((r2 - 1.0) * self.finer_detail * g).to(rgb.dtype))
