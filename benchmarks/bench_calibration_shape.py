@@ -114,8 +114,8 @@ def components(run: Path, device: torch.device) -> dict:
     train_views = partial(load_view_set, scene, depth=False)
     residual = fitted_residual(loaded, scene.scene_scale, scene.split["train"], cfg, device, load_views=train_views,
                                write=False, calibration_indices=scene.split.get("calibration", ()))
-    sampler, _, _ = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual, scene.cameras,
-                                   scene.split, cfg, device, load_views=train_views)
+    sampler, _ = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual, scene.cameras,
+                                scene.split, cfg, device, load_views=train_views)
     variants = {"full": (sampler, cfg), "no_noise": (dataclasses.replace(sampler, residual=None), cfg),
                 "no_resolution": (sampler, cfg.model_copy(update={"resolution": 0.0}))}
 

@@ -102,8 +102,8 @@ def main() -> None:
     residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
                                load_views=train_views, write=False,
                                calibration_indices=scene.split.get("calibration", ()))
-    sampler, std_scale, cal_views = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual,
-                                                   scene.cameras, scene.split, cfg, device, load_views=train_views)
+    sampler, fit = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual, scene.cameras,
+                                  scene.split, cfg, device, load_views=train_views)
 
     def view_set(fraction: float) -> ViewSet:
         if fraction == 1.0:
@@ -138,8 +138,8 @@ def main() -> None:
                 write_view_maps(args.maps, maps, cfg.preview)
 
         t0 = time.perf_counter()
-        report = evaluate_views(sampler, views, cfg, device, on_view=keep, std_scale=std_scale,
-                                calibration_views=cal_views, show_progress=False)
+        report = evaluate_views(sampler, views, cfg, device, on_view=keep, std_scale=fit.scale,
+                                calibration_views=fit.names, dof=fit.dof, show_progress=False)
         m = report.mean
         finer = [sampler.consistency.reach(views.cameras[[j]], sampler.render_fn)[1] if sampler.consistency else None
                  for j in range(len(views.indices))]  # what evaluate's note reads (ViewConsistency.reach)
@@ -157,7 +157,8 @@ def main() -> None:
     s = torch.tensor([v["mean_std"] for v in per_view], dtype=torch.float64)
     e = torch.tensor([v["rmse"] for v in per_view], dtype=torch.float64)
     corr = float(torch.corrcoef(torch.stack([s, e]))[0, 1]) if len(per_view) > 2 else math.nan
-    result = {"run": str(args.run.resolve()), "set": args.set, "std_scale": std_scale, "fractions": rows, "per_view": per_view,
+    result = {"run": str(args.run.resolve()), "set": args.set, "std_scale": fit.scale, "degrees_of_freedom": fit.dof,
+              "fractions": rows, "per_view": per_view,
               "correlation_mean_std_rmse": corr, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads",
               "torch": torch.__version__, "date": date.today().isoformat()}
     out = args.out or ROOT / "benchmarks" / "results" / f"near_{args.label}.json"

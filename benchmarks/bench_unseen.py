@@ -154,9 +154,10 @@ def evaluate_run(run_dir: Path, device: torch.device, ecfg, full_coverage: bool 
         base = loaded.sampler(scene.scene_scale, device)
         return dataclasses.replace(base, coverage=1.0 if full_coverage else base.coverage)
 
-    sampler, scale, _ = scored_sampler(new_sampler, residual, scene.cameras, scene.split, ecfg, device,
-                                       load_views=train_views)
-    report = evaluate_views(sampler, views, ecfg, device, show_progress=False, on_view=maps.append)
+    sampler, fit = scored_sampler(new_sampler, residual, scene.cameras, scene.split, ecfg, device,
+                                  load_views=train_views)
+    scale = fit.scale
+    report = evaluate_views(sampler, views, ecfg, device, show_progress=False, on_view=maps.append, dof=fit.dof)
     return {"scene": scene, "train": train, "test": test, "views": views,
             "train_depth": load_depths(scene, train),  # [T,H,W,1] or None for real photos
             "report": report, "maps": maps, "std_scale": scale}
@@ -185,7 +186,8 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: s
     if views.depths is None:  # real photos: no GT depth, no observed labels; per-view agreement only
         m = report.mean
         return {"psnr": m.psnr, "ause_mae": m.ause_mae, "nll": m.nll, "calibration_error": m.calibration_error,
-                "depth_ause": None, "std_scale": scale, **per_view}
+                "depth_ause": None, "std_scale": scale, "degrees_of_freedom": report.degrees_of_freedom,
+                "nll_gaussian": m.nll_gaussian, "calibration_error_gaussian": m.calibration_error_gaussian, **per_view}
     rgb, dep, unobs, empty = [], [], [], []
     for j, m in enumerate(maps):
         obs, valid = observed(run, j)
@@ -205,7 +207,8 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: s
         "rgb_std_unobserved": float(rgb[unobs].mean()), "rgb_std_observed": float(rgb[~unobs].mean()),
         "psnr": mean.psnr, "ause_mae": mean.ause_mae, "nll": mean.nll, "calibration_error": mean.calibration_error,
         "depth_ause": getattr(mean, "depth_ause_mae", None), "std_scale": scale,
-        "depth_nll": mean.depth_nll,
+        "degrees_of_freedom": report.degrees_of_freedom, "nll_gaussian": mean.nll_gaussian,
+        "calibration_error_gaussian": mean.calibration_error_gaussian, "depth_nll": mean.depth_nll,
         "depth_calibration_error": report.calibration["depth"].calibration_error if "depth" in report.calibration
         else None, **per_view,
     }

@@ -416,7 +416,7 @@ class EvalConfig(_Base):
     """Factor from rendered depth to GT depth units; auto estimates it."""
     depth_align: Literal["median", "lsq"] = "median"
     std_floor: float = Field(1e-3, gt=0.0)
-    """Gaussian NLL uses max(std, std_floor) so a zero std does not give an infinite NLL."""
+    """The NLL uses max(std, std_floor) so a zero std does not give an infinite NLL."""
     paper_nll: bool = False
     """Also report the original code's KDE NLL formula (not comparable with a correct NLL)."""
     ause_steps: int = Field(100, ge=2, le=10_000)
@@ -434,6 +434,16 @@ class EvalConfig(_Base):
     """Fit one factor for the RGB std on this many evenly spaced training views (0: none); the metrics
     ``nll_calibrated`` and ``calibration_error_calibrated`` use std x factor, the maps keep the raw std.
     Costs K renders per view; only with ``split = "test"``."""
+    degrees_of_freedom: Literal["fit", "gaussian"] | Annotated[float, Field(ge=2.1)] = "fit"
+    """The RGB predictive's tails: a Student-t with the predicted std and nu degrees of freedom (``eval.tails``), or
+    the Gaussian. A pixel's error given its std is heavy-tailed (the std estimates the error's scale, which varies
+    around it): z-scores with a kurtosis of 9-14 on the demo, fern and bonsai, which a Gaussian of the right
+    variance covers too often at one std and too rarely at three. ``fit`` (the default): nu by maximum likelihood on
+    the views the std factor is fitted on (``calibration_views``; z-scores divided by their RMS, so nu sets the
+    shape and not the level), the Gaussian where there are none; a number: that nu. The NLL, the calibration table
+    and the calibration error use it (raw and calibrated); the maps keep the std; depth stays Gaussian. The
+    Gaussian reading of the same std is reported beside (``nll_gaussian``, ``calibration_error_gaussian``).
+    Measured in BENCHMARKS.md, "The predictive's tails"."""
     empty_rays: bool = True
     """Where a ray is covered less than the model covers the surfaces its training views saw (the alpha that 95 %
     of the training pixels reach, ``uncertainty.mc.training_coverage``), the model has no surface for that part of

@@ -18,7 +18,7 @@ from uncertsplat.baselines import load_run
 from uncertsplat.cli import app
 from uncertsplat.config import EvalConfig
 from uncertsplat.data.dataset import load_view_set
-from uncertsplat.eval.engine import evaluate_views, fit_residual, fit_std_scale, with_side_terms
+from uncertsplat.eval.engine import StdFit, evaluate_views, fit_residual, fit_std_scale, with_side_terms
 from uncertsplat.io.images import read_exr
 from uncertsplat.io.maps import EXR_CHANNELS, map_stem
 from uncertsplat.schemas.metrics import EvalReport
@@ -92,7 +92,8 @@ def test_same_seed_same_metrics(evaluated, tiny_run_path):
 
 def test_std_scale_is_fitted_on_training_views_and_applied_to_the_std(evaluated):
     from uncertsplat.data.dataset import load_images
-    from uncertsplat.eval.nll import gaussian_nll
+    from uncertsplat.eval.calibration import calibration
+    from uncertsplat.eval.nll import gaussian_nll, predictive_nll
 
     run, report = evaluated
     assert report.std_scale is not None and report.std_scale > 0
@@ -107,9 +108,17 @@ def test_std_scale_is_fitted_on_training_views_and_applied_to_the_std(evaluated)
     std = torch.from_numpy(np.stack([ch[f"rgb_std.{c}"] for c in "RGB"], -1))
     gt = load_images(scene, [scene.cameras.image_names.index(name)])[0]
     v = report.per_view[name]
-    assert float(gaussian_nll(gt, mean, std, std_floor=report.std_floor)) == pytest.approx(v.nll, abs=1e-4)
-    expected = float(gaussian_nll(gt, mean, std * report.std_scale, std_floor=report.std_floor))
+    # the predictive: a Student-t with the std and the degrees of freedom fitted on the same views
+    dof = report.degrees_of_freedom
+    assert dof is not None and dof >= 2.1
+    assert float(predictive_nll(gt, mean, std, dof, std_floor=report.std_floor)) == pytest.approx(v.nll, abs=1e-4)
+    assert float(gaussian_nll(gt, mean, std, std_floor=report.std_floor)) == pytest.approx(v.nll_gaussian, abs=1e-4)
+    expected = float(predictive_nll(gt, mean, std * report.std_scale, dof, std_floor=report.std_floor))
     assert v.nll_calibrated == pytest.approx(expected, abs=1e-4)
+    err = mean.clamp(0, 1) - gt
+    assert calibration(err, std, dof=dof).calibration_error == pytest.approx(v.calibration_error, abs=1e-3)
+    assert calibration(err, std).calibration_error == pytest.approx(v.calibration_error_gaussian, abs=1e-3)
+    assert report.calibration["rgb"].half_widths == list(calibration(err, std, dof=dof).half_widths)
     assert report.mean.calibration_error_calibrated is not None
 
 
@@ -141,12 +150,12 @@ def test_std_scale_is_fitted_on_the_views_set_aside_from_training(tiny_run_path,
     assert field.scale == pytest.approx(rep.noise_scale, rel=1e-6)
     sampler = with_side_terms(loaded.sampler(scene.scene_scale, cpu), field, scene.cameras[scene.split["train"]], ecfg,
                               cpu)
-    on_train, train_names = fit_std_scale(sampler, {"train": scene.split["train"]}, ecfg, cpu,
-                                          load_views=partial(load_view_set, scene, depth=False))
-    assert not set(train_names) & set(held) and on_train != pytest.approx(rep.std_scale, rel=1e-3)
-    again, again_names = fit_std_scale(sampler, scene.split, ecfg, cpu,
-                                       load_views=partial(load_view_set, scene, depth=False))
-    assert again_names == held and again == pytest.approx(rep.std_scale, rel=1e-5)
+    on_train = fit_std_scale(sampler, {"train": scene.split["train"]}, ecfg, cpu,
+                             load_views=partial(load_view_set, scene, depth=False))
+    assert not set(on_train.names) & set(held) and on_train.scale != pytest.approx(rep.std_scale, rel=1e-3)
+    again = fit_std_scale(sampler, scene.split, ecfg, cpu, load_views=partial(load_view_set, scene, depth=False))
+    assert again.names == held and again.scale == pytest.approx(rep.std_scale, rel=1e-5)
+    assert rep.degrees_of_freedom is not None and again.dof == pytest.approx(rep.degrees_of_freedom, rel=1e-5)
 
 
 def test_the_noise_level_is_fitted_on_the_views_set_aside_from_training(tiny_run_path):
@@ -227,17 +236,20 @@ def test_the_std_factor_reuses_the_samples_the_noise_level_was_fitted_with(tiny_
     assert all(m.shape == s.shape == (1, scene.cameras.height, scene.cameras.width, 3) for m, s in kept.values())
     sampler = with_side_terms(loaded.sampler(scene.scene_scale, cpu), field, scene.cameras[train], cfg, cpu)
     assert sampler.consistency is not None and sampler.residual is not None
-    rendered, _ = fit_std_scale(sampler, split, cfg, cpu, load_views=views)
+    rendered = fit_std_scale(sampler, split, cfg, cpu, load_views=views)
     calls = []
     real = mc.mc_render
     monkeypatch.setattr(mc, "mc_render", lambda *a, **k: calls.append(1) or real(*a, **k))
-    reused, names = fit_std_scale(sampler, split, cfg, cpu, load_views=views, set_aside_maps=kept)
-    assert calls == [] and names == [scene.cameras.image_names[i] for i in aside]
-    assert reused == pytest.approx(rendered, rel=1e-5)
+    reused = fit_std_scale(sampler, split, cfg, cpu, load_views=views, set_aside_maps=kept)
+    assert calls == [] and reused.names == [scene.cameras.image_names[i] for i in aside]
+    assert reused.scale == pytest.approx(rendered.scale, rel=1e-5)
+    assert (reused.dof is None) == (rendered.dof is None)
+    if reused.dof is not None:
+        assert reused.dof == pytest.approx(rendered.dof, rel=1e-3)
     # a view the maps lack is rendered as before
     partial_maps = {aside[0]: kept[aside[0]]}
     assert fit_std_scale(sampler, split, cfg, cpu, load_views=views,
-                         set_aside_maps=partial_maps)[0] == pytest.approx(rendered, rel=1e-5)
+                         set_aside_maps=partial_maps).scale == pytest.approx(rendered.scale, rel=1e-5)
     assert calls == [1]
 
 
@@ -576,3 +588,26 @@ class TestResidualCache:
         for change in ({"num_samples": 3}, {"empty_rays": False}, {"resolution_renders": 1}):
             assert residual_key(loaded, EvalConfig(**change), cpu, set_aside=True) != aside
             assert residual_key(loaded, EvalConfig(**change), cpu) == key
+
+
+def test_the_predictive_tails_follow_the_setting(tiny_run_path):
+    """``degrees_of_freedom``: "fit" fits nu on the views the std factor is fitted on, "gaussian" gives none, a number
+    is kept, and without views to fit on "fit" falls back to the Gaussian while a number still holds."""
+    cpu = torch.device("cpu")
+    loaded = load_run(tiny_run_path, cpu)
+    scene = loaded.load_scene()
+    views = partial(load_view_set, scene, depth=False)
+    cfg = EvalConfig(num_samples=2, residual_views=0, consistency_views=0, calibration_views=2)
+    sampler = loaded.sampler(scene.scene_scale, cpu)
+    fitted = fit_std_scale(sampler, scene.split, cfg, cpu, load_views=views)
+    assert fitted.dof is not None and 2.1 <= fitted.dof and len(fitted.names) == 2
+    assert fit_std_scale(sampler, scene.split, cfg.model_copy(update={"degrees_of_freedom": "gaussian"}), cpu,
+                         load_views=views).dof is None
+    fixed = cfg.model_copy(update={"degrees_of_freedom": 5.0})
+    assert fit_std_scale(sampler, scene.split, fixed, cpu, load_views=views).dof == 5.0
+    none = cfg.model_copy(update={"calibration_views": 0})
+    assert fit_std_scale(sampler, scene.split, none, cpu, load_views=views) == StdFit()
+    assert fit_std_scale(sampler, scene.split, fixed.model_copy(update={"calibration_views": 0}), cpu,
+                         load_views=views).dof == 5.0
+    with pytest.raises(ValueError):
+        EvalConfig(degrees_of_freedom=2.0)

@@ -122,17 +122,23 @@ def test_schema_keys_walk_nested_records():
     assert issubclass(PruneReport, schemas.SchemaFile)
 
 
-def test_evaluation_reports_of_versions_1_and_2_read_without_the_model_file(tmp_path):
+def test_evaluation_reports_of_versions_1_to_3_read(tmp_path):
     """``metrics.json`` gained ``run_sha256`` in version 3 (``prune`` reads an evaluation of the same model file
-    back); older reports read with it at None, so ``prune`` measures again instead of trusting them."""
+    back) and the Student-t predictive in version 4; older reports read with the model file at None, so ``prune``
+    measures again instead of trusting them, and with the Gaussian predictive they were scored with."""
     current = schemas.EvalReport(image_names=["a.png"], device="cpu", run_sha256="f" * 64).model_dump(mode="json")
-    v2 = {k: v for k, v in current.items() if k != "run_sha256"} | {"schema_version": 2}
+    new_view_keys = ("nll_gaussian", "calibration_error_gaussian")
+    v3 = {k: v for k, v in current.items() if k != "degrees_of_freedom"} | {
+        "schema_version": 3, "mean": {k: v for k, v in current["mean"].items() if k not in new_view_keys}}
+    v2 = {k: v for k, v in v3.items() if k != "run_sha256"} | {"schema_version": 2}
     v1 = {k: v for k, v in v2.items() if k != "calibration_held_out"} | {"schema_version": 1}
-    for data in (v1, v2):
+    for data in (v1, v2, v3):
         path = tmp_path / "metrics.json"
         path.write_text(json.dumps(data))
         got = schemas.EvalReport.read(path)
-        assert got.schema_version == 3 and got.run_sha256 is None and got.image_names == ["a.png"]
+        assert got.schema_version == 4 and got.image_names == ["a.png"]
+        assert got.degrees_of_freedom is None and got.mean.nll_gaussian is None
+        assert got.run_sha256 == ("f" * 64 if data is v3 else None)
         assert got.calibration_held_out is False
     kept = v2 | {"run_sha256": "e" * 64}  # written between the key's arrival and the bump: kept
     path.write_text(json.dumps(kept))

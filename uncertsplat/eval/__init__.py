@@ -15,7 +15,7 @@ from uncertsplat.eval.calibration import (
 )
 from uncertsplat.eval.depth import DepthMetrics, DepthScale, align_depth_scale, depth_metrics
 from uncertsplat.eval.image import lpips, lpips_available, psnr, ssim
-from uncertsplat.eval.nll import StreamingKDE, gaussian_nll, kde_bandwidth, kde_nll, paper_nll
+from uncertsplat.eval.nll import StreamingKDE, gaussian_nll, kde_bandwidth, kde_nll, paper_nll, predictive_nll
 from uncertsplat.eval.sparsification import (
     SparsificationResult,
     ause,
@@ -39,6 +39,7 @@ __all__ = [
     "calibration",
     "depth_metrics",
     "gaussian_nll",
+    "predictive_nll",
     "kde_bandwidth",
     "kde_nll",
     "lpips",

@@ -1,9 +1,12 @@
 """Calibration of predicted std against observed errors, and Spearman rank correlation.
 
-Calibration: for each k, the observed fraction of elements with |error| <= k * std is compared with
-the fraction a Gaussian with that std would give, erf(k / sqrt 2) (0.383, 0.683, 0.866, 0.954, 0.988,
-0.997 for k = 0.5 .. 3). Calibration error = mean |observed - nominal| over the k values (0 = the
-intervals hold as often as claimed; over-confident stds give observed < nominal).
+Calibration: for each k, the central interval of the predictive with the probability a Gaussian gives
+mean +- k std, erf(k / sqrt 2) (0.383, 0.683, 0.866, 0.954, 0.988, 0.997 for k = 0.5 .. 3), is compared
+with the observed fraction of elements inside it. For the Gaussian predictive the interval is |error| <= k std;
+for a Student-t predictive with ``dof`` degrees of freedom and the same std (``eval.tails``) it is
+|error| <= w std, w the t's half-width for that probability (narrower at small k, wider at k = 3).
+Calibration error = mean |observed - nominal| over the k values (0 = the intervals hold as often as
+claimed; over-confident stds give observed < nominal).
 
 Spearman: Pearson correlation of average ranks (ties share the mean of their ranks, so large areas of
 std exactly 0 are handled consistently). A constant input has no ranking: the value is then None with
@@ -19,20 +22,23 @@ import torch
 from torch import Tensor
 
 from uncertsplat.eval._common import broadcast_mask
+from uncertsplat.eval.tails import half_width
 
 DEFAULT_KS: tuple[float, ...] = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
 
 @dataclass(frozen=True)
 class CalibrationResult:
-    """Observed vs nominal coverage of the k-sigma intervals.
+    """Observed vs nominal coverage of the predictive's central intervals.
 
     Attributes:
-        ks: the interval half-widths in units of std.
-        observed: fraction of elements with |error| <= k * std, per k.
-        nominal: erf(k / sqrt 2), per k.
+        ks: the levels, as the Gaussian's half-widths in units of std (k = 1: the probability 0.683).
+        observed: fraction of elements inside the interval, per k.
+        nominal: erf(k / sqrt 2), per k: the interval's probability.
         calibration_error: mean |observed - nominal| (NaN if there is no valid element).
         num_elements: number of valid elements.
+        half_widths: the intervals' half-widths in units of std (the ks for the Gaussian).
+        dof: the Student-t's degrees of freedom (None: the Gaussian).
     """
 
     ks: tuple[float, ...]
@@ -40,6 +46,8 @@ class CalibrationResult:
     nominal: tuple[float, ...]
     calibration_error: float
     num_elements: int
+    half_widths: tuple[float, ...] = ()
+    dof: float | None = None
 
     def to_dict(self) -> dict:
         return {
@@ -48,6 +56,8 @@ class CalibrationResult:
             "nominal": list(self.nominal),
             "calibration_error": self.calibration_error,
             "num_elements": self.num_elements,
+            "half_widths": list(self.half_widths),
+            "dof": self.dof,
         }
 
 
@@ -71,8 +81,10 @@ def calibration(
     *,
     ks: tuple[float, ...] = DEFAULT_KS,
     mask: Tensor | None = None,
+    dof: float | None = None,
 ) -> CalibrationResult:
-    """Coverage of |error| <= k * std for each k, against the Gaussian nominal coverage.
+    """Coverage of each k's central interval of the predictive (Gaussian: |error| <= k * std), against its
+    probability erf(k / sqrt 2).
 
     Args:
         error: [...] prediction - target (sign ignored).
@@ -80,16 +92,18 @@ def calibration(
             hits (|error| == 0), which is the honest reading of a zero-width interval.
         ks: interval half-widths in std units.
         mask: optional validity mask.
+        dof: the degrees of freedom of a Student-t predictive with this std (``eval.tails``); None: the Gaussian.
     """
     e, s = _valid(error, std, mask)
     n = e.numel()
     nominal = tuple(nominal_coverage(k) for k in ks)
+    widths = tuple(float(k) if dof is None else half_width(p, dof) for k, p in zip(ks, nominal, strict=True))
     if n == 0:
         nan = tuple(float("nan") for _ in ks)
-        return CalibrationResult(tuple(ks), nan, nominal, float("nan"), 0)
-    observed = tuple(float((e <= k * s).to(torch.float64).mean()) for k in ks)
+        return CalibrationResult(tuple(ks), nan, nominal, float("nan"), 0, widths, dof)
+    observed = tuple(float((e <= w * s).to(torch.float64).mean()) for w in widths)
     cal_err = sum(abs(o - m) for o, m in zip(observed, nominal, strict=True)) / len(ks)
-    return CalibrationResult(tuple(ks), observed, nominal, cal_err, n)
+    return CalibrationResult(tuple(ks), observed, nominal, cal_err, n, widths, dof)
 
 
 def mean_calibration(results: list[CalibrationResult]) -> CalibrationResult:
@@ -98,12 +112,13 @@ def mean_calibration(results: list[CalibrationResult]) -> CalibrationResult:
     if not ok:
         raise ValueError("no view has valid elements")
     ks = ok[0].ks
-    if any(r.ks != ks for r in ok):
-        raise ValueError("cannot average calibration tables with different k values")
+    if any(r.ks != ks or r.half_widths != ok[0].half_widths for r in ok):
+        raise ValueError("cannot average calibration tables with different k values or predictives")
     observed = tuple(sum(r.observed[i] for r in ok) / len(ok) for i in range(len(ks)))
     nominal = ok[0].nominal
     cal_err = sum(abs(o - m) for o, m in zip(observed, nominal, strict=True)) / len(ks)
-    return CalibrationResult(ks, observed, nominal, cal_err, sum(r.num_elements for r in ok))
+    return CalibrationResult(ks, observed, nominal, cal_err, sum(r.num_elements for r in ok), ok[0].half_widths,
+                             ok[0].dof)
 
 
 def average_ranks(x: Tensor) -> Tensor:

@@ -54,6 +54,8 @@ class EvalSettings(Protocol):
     max_views: int | None
     """Evaluate only the first n views of the split (None: all)."""
     calibration_views: int
+    degrees_of_freedom: str | float
+    """"fit" (nu of the RGB predictive's Student-t fitted with the std factor, ``fit_std_scale``), "gaussian", or nu."""
     empty_rays: bool
     """Add the sampler's ``empty_std`` where rays meet no Gaussian (False: the samples' spread only)."""
     residual_views: int
@@ -224,17 +226,16 @@ def scored_sampler(new_sampler: Callable[[], Sampler], residual: ResidualField |
                    split: Mapping[str, Sequence[int]], cfg: EvalSettings, device: torch.device, *,
                    load_views: Callable[[list[int]], ViewSet],
                    set_aside_maps: dict[int, tuple[Tensor, Tensor]] | None = None
-                   ) -> tuple[Sampler, float | None, list[str]]:
+                   ) -> tuple[Sampler, StdFit]:
     """The sampler an evaluation of a run scores (``with_side_terms``: the pixel noise ``residual`` and the
-    view-consistency term of the ``split``'s training ``cameras``), with the std factor ``fit_std_scale`` fits for it
-    and the names of the views it was fitted on. ``new_sampler()`` gives a fresh sampler of the run; the factor is
-    fitted with one and the returned sampler is another (a baseline's sampler may keep state between calls), both
-    with the same side terms, built once. ``set_aside_maps``: ``fit_residual``'s, when it fitted the noise in this
-    process (``fit_std_scale``)."""
+    view-consistency term of the ``split``'s training ``cameras``), with the std factor and the tails
+    ``fit_std_scale`` fits for it. ``new_sampler()`` gives a fresh sampler of the run; the fit is made with one and
+    the returned sampler is another (a baseline's sampler may keep state between calls), both with the same side
+    terms, built once. ``set_aside_maps``: ``fit_residual``'s, when it fitted the noise in this process
+    (``fit_std_scale``)."""
     fitting = with_side_terms(new_sampler(), residual, cameras[list(split.get("train", ()))], cfg, device)
-    std_scale, names = fit_std_scale(fitting, split, cfg, device, load_views=load_views,
-                                     set_aside_maps=set_aside_maps)
-    return dataclasses.replace(new_sampler(), residual=residual, consistency=fitting.consistency), std_scale, names
+    fit = fit_std_scale(fitting, split, cfg, device, load_views=load_views, set_aside_maps=set_aside_maps)
+    return dataclasses.replace(new_sampler(), residual=residual, consistency=fitting.consistency), fit
 
 
 def residual_indices(train_indices: Sequence[int], cfg: EvalSettings) -> list[int]:
@@ -469,14 +470,37 @@ def calibration_indices(split: Mapping[str, Sequence[int]], cfg: EvalSettings) -
     return evenly_spaced(split.get("calibration") or split.get("train", ()), cfg.calibration_views)
 
 
+@dataclass(frozen=True)
+class StdFit:
+    """What the views ``calibration_indices`` chooses say about the RGB predictive (``fit_std_scale``).
+
+    Attributes:
+        scale: one factor for the std (None: not fitted).
+        dof: the Student-t's degrees of freedom (``eval.tails``; None: the Gaussian).
+        names: the image names the two were fitted on.
+    """
+
+    scale: float | None = None
+    dof: float | None = None
+    names: list[str] = dataclasses.field(default_factory=list)
+
+
+def _fixed_dof(cfg: EvalSettings) -> float | None:
+    """``cfg.degrees_of_freedom`` when it is a number; None for "gaussian" and "fit"."""
+    return float(cfg.degrees_of_freedom) if not isinstance(cfg.degrees_of_freedom, str) else None
+
+
 @torch.no_grad()
 def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: EvalSettings, device: torch.device, *,
                   load_views: Callable[[list[int]], ViewSet],
-                  set_aside_maps: Mapping[int, tuple[Tensor, Tensor]] | None = None) -> tuple[float | None, list[str]]:
-    """One factor for the predicted std, fitted on the views ``calibration_indices`` chooses from ``split``.
+                  set_aside_maps: Mapping[int, tuple[Tensor, Tensor]] | None = None) -> StdFit:
+    """One factor for the predicted std and the predictive's tails, fitted on the views ``calibration_indices``
+    chooses from ``split``.
 
-    The maximum-likelihood scale of a Gaussian predictive, s^2 = mean((error / max(std, std_floor))^2) over
-    every valid pixel and channel of those views (K samples each, as in evaluation). Training views fit
+    The factor is the maximum-likelihood scale of a Gaussian predictive, s^2 = mean((error / max(std, std_floor))^2)
+    over every valid pixel and channel of those views (K samples each, as in evaluation): the one that makes the
+    variance right. With ``cfg.degrees_of_freedom`` "fit", the Student-t's nu is then fitted by maximum likelihood
+    to the same z-scores divided by s (``eval.tails.fit_dof``): the shape, whatever the level. Training views fit
     better than held-out ones, so a factor fitted on them errs low; views set aside from training
     (``split["calibration"]``) do not have that bias.
 
@@ -490,17 +514,18 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
             add) instead of rendering the samples again.
 
     Returns:
-        (scale, image names), or (None, []) when disabled, when scoring the training split, when there is
-        no view to fit on or no valid pixel.
+        ``StdFit``: no factor (and nu only when ``cfg.degrees_of_freedom`` sets it) when disabled, when scoring the
+        training split, when there is no view to fit on or no valid pixel.
     """
+    from uncertsplat.eval.tails import fit_dof
     from uncertsplat.uncertainty.mc import mc_render
 
     chosen = calibration_indices(split, cfg)
     if not chosen:
-        return None, []
+        return StdFit(dof=_fixed_dof(cfg))
     views = load_views(chosen)  # as they are: a photo at its own exposure, what the exposures' spread predicts
     gen = torch.Generator(device=device)
-    total, count = 0.0, 0
+    zs: list[Tensor] = []
     for j, i in enumerate(views.indices):
         cam = views.cameras[[j]].to(device)
         if set_aside_maps is not None and i in set_aside_maps:
@@ -513,20 +538,20 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
                                 **_predictive(sampler, cfg, cam, depth=False))
             mean, std = maps.rgb_mean.cpu(), maps.rgb_std.cpu()
         err = mean[0].clamp(0, 1) - views.images[j]
-        z2 = (err / std[0].clamp_min(cfg.std_floor)) ** 2
-        if views.masks is not None:
-            z2 = z2[views.masks[j][..., 0]]
-        total += float(z2.double().sum())
-        count += z2.numel()
-    if count == 0:
-        return None, []
-    return (total / count) ** 0.5, views.names
+        z = err / std[0].clamp_min(cfg.std_floor)  # [H,W,3]
+        zs.append((z[views.masks[j][..., 0]] if views.masks is not None else z).reshape(-1))
+    z = torch.cat(zs)
+    if z.numel() == 0:
+        return StdFit(dof=_fixed_dof(cfg))
+    scale = float(z.double().square().mean()) ** 0.5
+    dof = fit_dof(z / scale) if cfg.degrees_of_freedom == "fit" and scale > 0.0 else _fixed_dof(cfg)
+    return StdFit(scale, dof, views.names)
 
 
 def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: torch.device, *,
                    on_view: Callable[[ViewMaps], None] | None = None, show_progress: bool = True,
                    std_scale: float | None = None, calibration_views: list[str] | None = None,
-                   calibration_held_out: bool = False,
+                   calibration_held_out: bool = False, dof: float | None = None,
                    noise_scale: float | None = None,
                    notes: Sequence[str] = (), config_hash: str = "") -> EvalReport:
     """Render K posterior samples of each view and compute every metric.
@@ -542,7 +567,10 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         show_progress: show a progress bar.
         std_scale: a factor for the RGB std (``fit_std_scale``): adds ``nll_calibrated`` and
             ``calibration_error_calibrated`` (the maps and the other metrics keep the raw std).
-        calibration_views: the image names ``std_scale`` was fitted on (recorded in the report).
+        calibration_views: the image names ``std_scale`` (and a fitted ``dof``) was fitted on (recorded in the report).
+        dof: the degrees of freedom of the RGB predictive's Student-t (``StdFit.dof``; None: the Gaussian): the NLL
+            and the calibration use it, raw and calibrated; ``nll_gaussian`` and ``calibration_error_gaussian`` give
+            the Gaussian reading of the same std beside it.
         calibration_held_out: whether the scene set views aside from training, on which the std factor and a fitted
             noise level were then fitted (recorded).
         noise_scale: the factor the sampler's pixel noise carries (``ResidualField.scale``; recorded).
@@ -558,7 +586,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     from uncertsplat.eval.calibration import calibration, mean_calibration, spearman
     from uncertsplat.eval.depth import align_depth_scale, depth_metrics, valid_depth_mask
     from uncertsplat.eval.image import lpips, lpips_available, psnr, ssim
-    from uncertsplat.eval.nll import gaussian_nll, kde_nll, paper_nll
+    from uncertsplat.eval.nll import gaussian_nll, kde_nll, paper_nll, predictive_nll
     from uncertsplat.eval.sparsification import mean_curves, sparsification_all
     from uncertsplat.provenance import versions
     from uncertsplat.schemas.metrics import (
@@ -645,19 +673,23 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             mask = masks[j] if masks is not None else None
             err = pred - gt
             sp = sparsification_all(err, std, mask=mask, steps=cfg.ause_steps)
-            cal = calibration(err, std, mask=mask)
+            cal = calibration(err, std, mask=mask, dof=dof)
             sm = spearman(std, err.abs(), mask=mask)
             m = dict(
                 psnr=float(psnr(pred, gt, mask)), ssim=float(ssim(pred, gt)),
                 ause_mae=sp["mae"].ause, ause_mse=sp["mse"].ause, ause_rmse=sp["rmse"].ause,
-                nll=float(gaussian_nll(gt, pred, std, std_floor=cfg.std_floor, mask=mask)),
+                nll=float(predictive_nll(gt, pred, std, dof, std_floor=cfg.std_floor, mask=mask)),
                 calibration_error=cal.calibration_error, spearman=sm.value, spearman_note=sm.reason,
                 seconds=seconds,
             )
+            if dof is not None:
+                m.update(nll_gaussian=float(gaussian_nll(gt, pred, std, std_floor=cfg.std_floor, mask=mask)),
+                         calibration_error_gaussian=calibration(err, std, mask=mask).calibration_error)
             if std_scale is not None:
-                m.update(nll_calibrated=float(gaussian_nll(gt, pred, std * std_scale, std_floor=cfg.std_floor,
-                                                           mask=mask)),
-                         calibration_error_calibrated=calibration(err, std * std_scale, mask=mask).calibration_error)
+                m.update(nll_calibrated=float(predictive_nll(gt, pred, std * std_scale, dof, std_floor=cfg.std_floor,
+                                                             mask=mask)),
+                         calibration_error_calibrated=calibration(err, std * std_scale, mask=mask,
+                                                                  dof=dof).calibration_error)
             if lp_ok:
                 m["lpips"] = float(lpips(pred, gt))
             if det_sample is not None:
@@ -758,6 +790,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         std_floor=cfg.std_floor,
         depth_scale=depth_info,
         std_scale=std_scale,
+        degrees_of_freedom=dof,
         calibration_views=calibration_views or [], calibration_held_out=calibration_held_out,
         noise_scale=noise_scale,
         edge_scale=sampler.residual.edge_scale if sampler.residual is not None else None,
@@ -767,5 +800,5 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     )
 
 
-__all__ = ["KDE_MAX_SAMPLES", "EvalSettings", "Sampler", "ViewMaps", "calibration_indices", "evaluate_views",
-           "fit_std_scale", "split_indices"]
+__all__ = ["KDE_MAX_SAMPLES", "EvalSettings", "Sampler", "StdFit", "ViewMaps", "calibration_indices",
+           "evaluate_views", "fit_std_scale", "split_indices"]

@@ -1,11 +1,13 @@
 """Negative log-likelihood of held-out pixels under the predicted distribution.
 
-Three estimators, all per element (RGB channels are separate elements) and averaged (natural log):
+Four estimators, all per element (RGB channels are separate elements) and averaged (natural log):
 
 - :func:`gaussian_nll`: N(target; mean, max(std, std_floor)^2). The floor (default 1e-3, i.e. a
   quarter of one 8-bit level) exists because large areas have a Monte-Carlo std of exactly 0; without
   it one such pixel with any error makes the mean NLL infinite. Its value is part of the metric and is
   written into the results.
+- :func:`predictive_nll`: the same with a Student-t of that std and ``dof`` degrees of freedom (``eval.tails``;
+  None: ``gaussian_nll``).
 - :func:`kde_nll`: a Gaussian kernel density estimate over the K Monte-Carlo samples of each element,
   bandwidth by Silverman's rule from the *sample count*: h = 1.06 * std_hat * K^(-1/5), std_hat the
   unbiased sample std, floored at ``bandwidth_floor`` (same reason as above). Computed with
@@ -25,6 +27,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from uncertsplat.eval import tails
 from uncertsplat.eval._common import broadcast_mask
 
 Reduction = Literal["mean", "none"]
@@ -70,6 +73,21 @@ def gaussian_nll(
     z = (target - mean) / s
     nll = 0.5 * z.square() + torch.log(s) + _LOG_SQRT_2PI
     return _reduce(nll, mask, reduction)
+
+
+def predictive_nll(
+    target: Tensor,
+    mean: Tensor,
+    std: Tensor,
+    dof: float | None,
+    *,
+    std_floor: float = 1e-3,
+    mask: Tensor | None = None,
+    reduction: Reduction = "mean",
+) -> Tensor:
+    """NLL under the Student-t with std max(std, std_floor) and ``dof`` degrees of freedom (``eval.tails``); the
+    arguments as :func:`gaussian_nll`, which it is for ``dof`` None."""
+    return _reduce(tails.nll(target, mean, std, dof, std_floor=std_floor), mask, reduction)
 
 
 def kde_bandwidth(sample_std: Tensor, num_samples: int, *, floor: float = 1e-3) -> Tensor:

@@ -171,6 +171,9 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
         if m.std_scale is not None:
             facts.append(("std scale (calibrated NLL)",
                           f"x{m.std_scale:.3g}, fitted on {len(m.calibration_views)} {m.calibration_source}"))
+        if m.degrees_of_freedom is not None:
+            facts.append(("RGB predictive", f"Student-t with the std and {m.degrees_of_freedom:.3g} degrees of freedom"
+                                            + (f", fitted on the {m.calibration_source}" if m.calibration_views else "")))
         if m.lpips is not None and not m.lpips.available:
             facts.append(("LPIPS", m.lpips.reason or "unavailable"))
         if empty:
@@ -286,9 +289,10 @@ def calibration_section(w: ReportWriter, runs: list[RunData]) -> None:
         body.append(note("No calibration table available (run `uncertsplat evaluate` first)."))
     else:
         body.append(w.add_figure("calibration.png", F.calibration_figure(per_run),
-                                 "Observed fraction of errors inside ±kσ vs the fraction a Gaussian with that σ "
-                                 "would give. On the diagonal: calibrated; below: over-confident (σ too small); "
-                                 "above: under-confident.", "reliability plot"))
+                                 "Observed fraction of errors inside the predictive's central interval vs the "
+                                 "interval's probability (a Gaussian's ±kσ; a Student-t predictive's interval of the "
+                                 "same probability is ±wσ, w in the table). On the diagonal: calibrated; below: "
+                                 "over-confident (σ too small); above: under-confident.", "reliability plot"))
         # One table per set of k values: rows = k, columns = nominal, then observed per run and modality.
         groups: dict[tuple, list[tuple[str, Calibration]]] = {}
         for label, cals in per_run:
@@ -297,12 +301,16 @@ def calibration_section(w: ReportWriter, runs: list[RunData]) -> None:
                     (f"{label + ' ' if len(runs) > 1 else ''}{'depth' if c.depth else 'RGB'} observed", c))
         for ks, cols in groups.items():
             first = cols[0][1].table
+            # a Student-t's half-widths differ from the ks: one column per table that has its own
+            widths = [(name.replace(" observed", " half-width w"), c) for name, c in cols
+                      if c.table.half_widths is not None and c.table.half_widths != c.table.ks]
             rows = []
             for i, k in enumerate(ks):
                 cells = [_num_cell(first.nominal[i], ".3f", "nominal")]
+                cells += [_num_cell(c.table.half_widths[i], ".2f", "half-width") for _, c in widths]
                 cells += [_num_cell(c.table.observed[i], ".3f", "observed") for _, c in cols]
                 rows.append((f"{k:g}σ", cells))
-            body.append(table(["k", "nominal"] + [name for name, _ in cols], rows))
+            body.append(table(["k", "nominal"] + [name for name, _ in widths] + [name for name, _ in cols], rows))
     w.section("calibration", "Calibration", "".join(body))
 
 

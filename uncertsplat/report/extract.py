@@ -45,6 +45,8 @@ METRIC_SPECS: tuple[MetricSpec, ...] = (
     MetricSpec("calibration_error", "Calib. error", ".4f", False),
     MetricSpec("nll_calibrated", "NLL, std rescaled", ".3f", False),
     MetricSpec("calibration_error_calibrated", "Calib. error, std rescaled", ".4f", False),
+    MetricSpec("nll_gaussian", "NLL, read as a Gaussian", ".3f", False),
+    MetricSpec("calibration_error_gaussian", "Calib. error, read as a Gaussian", ".4f", False),
     MetricSpec("spearman", "Spearman", ".3f", True),
     MetricSpec("depth_ause_mae", "Depth AUSE MAE", ".4f", False),
     MetricSpec("depth_ause_rmse", "Depth AUSE RMSE", ".4f", False),
@@ -161,7 +163,8 @@ def curves_of(report: EvalReport) -> list[Curve]:
 # ---------------------------------------------------------------------------------------- calibration
 @dataclass(frozen=True)
 class Calibration:
-    """``EvalReport.calibration[modality]``: observed vs nominal coverage of the k-sigma intervals."""
+    """``EvalReport.calibration[modality]``: observed vs nominal coverage of the predictive's central intervals (a
+    Gaussian's k-sigma ones, or a Student-t's of the same probabilities)."""
 
     modality: str
     table: CalibrationTable

@@ -197,7 +197,8 @@ def sparsification_compare_figure(per_run: list[tuple[str, list[Curve]]]) -> byt
 
 
 def calibration_figure(per_run: list[tuple[str, list[Calibration]]]) -> bytes | None:
-    """Reliability plot: observed vs nominal coverage of the k-sigma intervals, one line per run."""
+    """Reliability plot: observed vs nominal coverage of the predictive's central intervals (a Gaussian's k-sigma ones,
+    a Student-t's of the same probabilities), one line per run."""
     items = [(label, c) for label, cals in per_run for c in cals]
     if not items:
         return None
@@ -217,8 +218,8 @@ def calibration_figure(per_run: list[tuple[str, list[Calibration]]]) -> bytes | 
         ax.set_xlim(0, 1)
         ax.set_ylim(0, 1)
         ax.set_aspect("equal")
-        ax.set_xlabel("nominal coverage of ±kσ (Gaussian)")
-        ax.set_ylabel("observed fraction of |error| ≤ kσ")
+        ax.set_xlabel("nominal coverage (a Gaussian's ±kσ)")
+        ax.set_ylabel("observed fraction inside the interval")
         ax.set_title("reliability (below the diagonal: over-confident)")
         ax.legend(loc="upper left", frameon=False)
         fig.tight_layout()

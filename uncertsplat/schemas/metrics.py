@@ -20,8 +20,9 @@ from uncertsplat.schemas.base import SchemaFile
 from uncertsplat.schemas.base import Strict as _Strict
 from uncertsplat.schemas.base import finite_or_none as _finite_or_none
 
-SCHEMA_VERSION = 3
-"""``EvalReport``'s: 2 added ``calibration_held_out`` (2026-11-27)."""
+SCHEMA_VERSION = 4
+"""``EvalReport``'s: 2 added ``calibration_held_out`` (2026-11-27), 4 the Student-t predictive
+(``degrees_of_freedom``, the Gaussian readings and the calibration table's half-widths; 2026-11-28)."""
 
 
 class ViewMetrics(_Strict):
@@ -39,16 +40,22 @@ class ViewMetrics(_Strict):
     ause_mse: float | None = None
     ause_rmse: float | None = None
     nll: float | None = None
-    """Gaussian NLL with the std floor (``EvalReport.std_floor``)."""
+    """NLL of the RGB predictive with the std floor (``EvalReport.std_floor``): a Student-t with the std and
+    ``EvalReport.degrees_of_freedom``, or the Gaussian when that is None."""
     nll_kde: float | None = None
     """KDE NLL over the K samples, Silverman bandwidth from K."""
     nll_paper: float | None = None
     """The original code's KDE NLL formula; NOT comparable (depends on resolution)."""
     calibration_error: float | None = None
+    """Mean |observed - nominal| coverage of the RGB predictive's central intervals (``eval.calibration``)."""
     nll_calibrated: float | None = None
-    """Gaussian NLL with the std times ``EvalReport.std_scale`` (fitted on training views)."""
+    """The NLL with the std times ``EvalReport.std_scale`` (fitted on training views or views set aside)."""
     calibration_error_calibrated: float | None = None
     """Calibration error with the std times ``EvalReport.std_scale``."""
+    nll_gaussian: float | None = None
+    """The Gaussian NLL of the same (raw) std, when the predictive is a Student-t; None when it is the Gaussian."""
+    calibration_error_gaussian: float | None = None
+    """The calibration error of Gaussian intervals of the same (raw) std, when the predictive is a Student-t."""
     spearman: float | None = None
     """Spearman(std, |error|) over RGB elements; None when undefined (see ``spearman_note``)."""
     spearman_note: str | None = None
@@ -124,13 +131,17 @@ class CurveSet(_Strict):
 
 
 class CalibrationTable(_Strict):
-    """Observed vs nominal coverage of k-sigma intervals (see ``eval/calibration.py``)."""
+    """Observed vs nominal coverage of the predictive's central intervals (see ``eval/calibration.py``)."""
 
     ks: list[float]
+    """The levels, as a Gaussian's half-widths in stds (nominal = erf(k / sqrt 2))."""
     observed: list[float | None]
     nominal: list[float]
     calibration_error: float | None
     num_elements: int = 0
+    half_widths: list[float] | None = None
+    """The intervals' half-widths in stds (the ks for the Gaussian; a Student-t's are narrower at small k and wider
+    at large k); None in reports from before schema version 4 (Gaussian)."""
 
     @field_validator("calibration_error", mode="before")
     @classmethod
@@ -151,6 +162,7 @@ class CalibrationTable(_Strict):
             nominal=list(result.nominal),
             calibration_error=result.calibration_error,
             num_elements=result.num_elements,
+            half_widths=list(result.half_widths) if result.half_widths else None,
         )
 
 
@@ -179,10 +191,13 @@ class EvalReport(SchemaFile):
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
         # version 1 had every key but calibration_held_out (its std factor was always fitted on training views) and
-        # run_sha256; version 2 every key but run_sha256 (not recorded)
-        if version not in (1, 2):
+        # run_sha256; version 2 every key but run_sha256 (not recorded); version 3 every key but the Student-t's
+        # (its predictive was the Gaussian: the defaults)
+        if version not in (1, 2, 3):
             return None
-        out = {"run_sha256": None, **data}
+        out = dict(data)
+        if version < 3:
+            out = {"run_sha256": None, **out}
         if version == 1:
             out.setdefault("calibration_held_out", False)
         return out
@@ -208,8 +223,11 @@ class EvalReport(SchemaFile):
     std_scale: float | None = None
     """Factor for the RGB std fitted on training views, or on views set aside from training
     (``eval.engine.fit_std_scale``); None = not fitted."""
+    degrees_of_freedom: float | None = None
+    """nu of the RGB predictive's Student-t (``EvalConfig.degrees_of_freedom``; ``eval.tails``), fitted on
+    ``calibration_views`` or set; None: the Gaussian."""
     calibration_views: list[str] = Field(default_factory=list)
-    """The images ``std_scale`` was fitted on."""
+    """The images ``std_scale`` (and a fitted ``degrees_of_freedom``) was fitted on."""
     calibration_held_out: bool = False
     """True: the scene set views aside from training (``SceneConfig.calibration_holdout``), and the std factor
     (``calibration_views``) and a fitted pixel-noise level (``noise_scale``) were fitted on them; False: on training

@@ -32,6 +32,7 @@ from uncertsplat.config import EvalConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import ViewMaps
+from uncertsplat.eval.tails import half_width as _half_width
 from uncertsplat.io.maps import EXR_CHANNELS, map_stem
 from uncertsplat.schemas.runs import RunExposure
 
@@ -286,12 +287,12 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
                                    set_aside_maps=set_aside_maps)
         with console.status("fitting the std factor on " + ("the views set aside for calibration"
                                                              if scene.split.get("calibration") else "training views")):
-            sampler, std_scale, cal_views = scored_sampler(partial(loaded.sampler, scene.scene_scale, device),
-                                                           residual, scene.cameras, scene.split, cfg, device,
-                                                           load_views=train_views, set_aside_maps=set_aside_maps)
+            sampler, fit = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual,
+                                          scene.cameras, scene.split, cfg, device, load_views=train_views,
+                                          set_aside_maps=set_aside_maps)
         report = evaluate_views(sampler, views, cfg, device,
                                 on_view=partial(write_view_maps, out / "maps", preview=cfg.preview),
-                                std_scale=std_scale, calibration_views=cal_views,
+                                std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
                                 calibration_held_out=bool(scene.split.get("calibration")),
                                 noise_scale=residual.scale if residual is not None else None,
                                 notes=loaded.eval_notes(cfg.num_samples) + loaded.exposure_notes(),
@@ -375,6 +376,19 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
         console.print(f"std x {report.std_scale:.3g} (fitted on {len(report.calibration_views)} {report.calibration_source}): "
                       f"NLL {m.nll_calibrated:.3f} (raw {m.nll:.3f}), calibration error "
                       f"{m.calibration_error_calibrated:.3f} (raw {m.calibration_error:.3f}); AUSE is unchanged")
+    if report.degrees_of_freedom is not None:
+        m = report.mean
+        where = (f"fitted on the {report.calibration_source}" if cfg.degrees_of_freedom == "fit" else "set")
+        gaussian = ("" if m.nll_gaussian is None else
+                    f"; read as a Gaussian, the same std gives NLL {m.nll_gaussian:.3f}, calibration error "
+                    f"{m.calibration_error_gaussian:.3f}")
+        console.print(f"RGB predictive: a Student-t with the std and {report.degrees_of_freedom:.3g} degrees of "
+                      f"freedom ({where}; its 68 % interval is +-{_half_width(0.6827, report.degrees_of_freedom):.2f} "
+                      f"std, its 99.7 % one +-{_half_width(0.9973, report.degrees_of_freedom):.2f}){gaussian}")
+        if cfg.degrees_of_freedom == "fit" and not report.calibration_held_out:
+            console.print("[dim]training views fit better than new ones, so their tails are heavier (bonsai: 2.75 "
+                          "degrees of freedom where its held-out views ask for 3.4); views set aside from training "
+                          "give a fit that holds for new views: train with --set scene.calibration_holdout=3[/]")
     if report.mean.psnr_render is not None:
         console.print(f"PSNR is that of the mean of the {cfg.num_samples} samples; one deterministic render (the "
                       f"expected render, what train reports): {report.mean.psnr_render:.2f} dB")

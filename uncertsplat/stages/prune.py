@@ -115,6 +115,7 @@ class _Measure:
         self.residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), self.ecfg, device,
                                         load_views=partial(load_view_set, scene, depth=False), write=False,
                                         calibration_indices=scene.split.get("calibration", ()))
+        self._dof: tuple[float | None] | None = None  # the source's predictive tails, once known (``dof``)
         self.meta = {"variant": loaded.config.variant, "extent": loaded.extent, "step": loaded.step,
                      "sh_degree_active": loaded.sh_degree,
                      "temperature": loaded.config.variational.gate_temperature}
@@ -148,10 +149,27 @@ class _Measure:
         report = matching_evaluation(run_dir, Path(self.loaded.source), self.ecfg, names, self.device)
         if report is None:
             return self(self.loaded.model), None
+        self._dof = (report.degrees_of_freedom,)
         t0 = time.perf_counter()
         cheap = self(self.loaded.model, full=False)
         return cheap.model_copy(update={**{k: getattr(report.mean, k) for k in METRIC_KEYS},
                                         "seconds": time.perf_counter() - t0}), run_dir / EvalReport.FILE_NAME
+
+    def dof(self) -> float | None:
+        """The source model's RGB predictive tails (``eval.engine.fit_std_scale``), which every model of the sweep
+        is scored with, so that their NLLs compare: read from the source's evaluation when ``unpruned`` found one,
+        else fitted once here."""
+        if self._dof is None:
+            from uncertsplat.data.dataset import load_view_set
+            from uncertsplat.eval.engine import fit_std_scale, with_side_terms
+
+            sampler = with_side_terms(self.loaded.sampler(self.scene.scene_scale, self.device), self.residual,
+                                      self.scene.cameras[list(self.scene.split.get("train", ()))], self.ecfg,
+                                      self.device)
+            fit = fit_std_scale(sampler, self.scene.split, self.ecfg, self.device,
+                                load_views=partial(load_view_set, self.scene, depth=False))
+            self._dof = (fit.dof,)
+        return self._dof[0]
 
     def file_sizes(self, model) -> dict[str, int]:
         from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
@@ -177,6 +195,7 @@ class _Measure:
         t0 = time.perf_counter()
         uncertainty = {}
         if full:
+            dof = self.dof()
             loaded = self.loaded.with_model(model)
             residual = self.residual
             if residual is not None and keep is not None:
@@ -186,7 +205,8 @@ class _Measure:
             sampler = with_side_terms(loaded.sampler(self.scene.scene_scale, self.device), residual,
                                       self.scene.cameras[list(self.scene.split.get("train", ()))], self.ecfg,
                                       self.device)
-            report = evaluate_views(sampler, self.views, self.ecfg, self.device, show_progress=False)
+            report = evaluate_views(sampler, self.views, self.ecfg, self.device, show_progress=False,
+                                    dof=dof)
             uncertainty = {k: getattr(report.mean, k) for k in METRIC_KEYS}
         rgb, alpha = self.mean_renders(model)
         masks = self.views.masks

@@ -126,22 +126,22 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     train_views = partial(load_view_set, scene, depth=False)
     residual = fit_residual(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()), ecfg, device,
                             load_views=train_views, calibration_indices=scene.split.get("calibration", ()))
-    sampler, std_scale, cal_views = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual,
-                                                   scene.cameras, scene.split, ecfg, device, load_views=train_views)
+    sampler, fit = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual, scene.cameras,
+                                  scene.split, ecfg, device, load_views=train_views)
     calibration_seconds = time.perf_counter() - t_cal
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     t0 = time.perf_counter()
     views = load_view_set(scene, indices)  # the scene's own GT depth (a sweep point has no --depth-gt)
     report = evaluate_views(sampler, views, ecfg, device, show_progress=False,
-                            std_scale=std_scale, calibration_views=cal_views,
+                            std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
                             calibration_held_out=bool(scene.split.get("calibration")),
                             noise_scale=residual.scale if residual is not None else None,
                             notes=loaded.eval_notes(ecfg.num_samples) + loaded.exposure_notes(),
                             config_hash=hash_config(ecfg.model_dump(mode="json")))
     wall = time.perf_counter() - t0
     out = {k: getattr(report.mean, k) for k in RECORD_KEYS}
-    out.update(std_scale=std_scale, calibration_seconds=calibration_seconds)
+    out.update(std_scale=fit.scale, calibration_seconds=calibration_seconds)
     per_view = report.seconds_per_view or 0.0
     out.update(eval_seconds_per_view=per_view, eval_seconds=per_view * len(indices), eval_wall_seconds=wall,
                num_views=len(indices), num_samples=ecfg.num_samples, notes=list(report.notes),

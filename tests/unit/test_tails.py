@@ -1,0 +1,130 @@
+"""The Student-t predictive (``eval.tails``): its coverage, half-widths, NLL and the fit of its degrees of freedom,
+against scipy's t and at the extremes; the calibration table and the NLL with it."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from uncertsplat.eval import tails
+from uncertsplat.eval.calibration import calibration, mean_calibration, nominal_coverage
+from uncertsplat.eval.nll import gaussian_nll, predictive_nll
+
+stats = pytest.importorskip("scipy.stats")
+
+
+def unit_t(dof: float, n: int, seed: int) -> torch.Tensor:
+    """n draws of the unit-variance t."""
+    g = torch.Generator().manual_seed(seed)
+    chi2 = 2.0 * torch._standard_gamma(torch.full((n,), dof / 2, dtype=torch.float64), generator=g)
+    return torch.randn(n, dtype=torch.float64, generator=g) / torch.sqrt(chi2 / dof) * math.sqrt((dof - 2) / dof)
+
+
+class TestAgainstScipy:
+    @pytest.mark.parametrize("dof", [tails.MIN_DOF, 2.5, 3.5, 5.0, 30.0, tails.MAX_DOF])
+    @pytest.mark.parametrize("x", [1e-3, 0.5, 1.0, 3.0, 25.0, 1e4])
+    def test_coverage(self, dof, x):
+        scale = math.sqrt((dof - 2) / dof)
+        assert tails.coverage(x, dof) == pytest.approx(2 * stats.t.cdf(x / scale, dof) - 1, abs=1e-9)
+
+    @pytest.mark.parametrize("dof", [tails.MIN_DOF, 3.0, 4.3, 100.0])
+    @pytest.mark.parametrize("p", [0.0, 0.3829, 0.6827, 0.9973, 0.999999])
+    def test_half_width(self, dof, p):
+        want = stats.t.ppf(0.5 + p / 2, dof) * math.sqrt((dof - 2) / dof)
+        assert tails.half_width(p, dof) == pytest.approx(want, rel=1e-7, abs=1e-12)
+
+    @pytest.mark.parametrize("dof", [tails.MIN_DOF, 4.0, 50.0])
+    def test_log_density(self, dof):
+        z = torch.tensor([0.0, 0.3, -2.0, 40.0, 1e6], dtype=torch.float64)
+        scale = math.sqrt((dof - 2) / dof)
+        want = stats.t.logpdf(z.numpy(), dof, scale=scale)
+        assert torch.allclose(tails.log_density(z, dof), torch.from_numpy(want), rtol=1e-10, atol=1e-10)
+
+    def test_the_gaussian(self):
+        assert tails.coverage(1.0, None) == pytest.approx(nominal_coverage(1.0), abs=1e-15)
+        assert tails.half_width(nominal_coverage(2.0), None) == pytest.approx(2.0, rel=1e-8)
+        # a large nu is the Gaussian within a thousandth of coverage
+        for k in (0.5, 1.0, 3.0):
+            assert tails.coverage(k, tails.MAX_DOF) == pytest.approx(nominal_coverage(k), abs=1e-3)
+
+
+class TestNLL:
+    def test_none_is_the_gaussian_nll(self, device):
+        g = torch.Generator().manual_seed(1)
+        target, mean = torch.rand(4, 5, 3, generator=g).to(device), torch.rand(4, 5, 3, generator=g).to(device)
+        std = (0.1 * torch.rand(4, 5, 3, generator=g)).to(device)
+        std[0] = 0.0  # floored
+        assert torch.allclose(predictive_nll(target, mean, std, None), gaussian_nll(target, mean, std))
+
+    def test_matches_scipy_with_the_floor(self):
+        e = torch.tensor([0.0, 0.01, -0.3, 2.0], dtype=torch.float64)
+        std = torch.tensor([0.02, 0.0, 0.1, 0.05], dtype=torch.float64)
+        dof = 3.2
+        s = std.clamp_min(1e-3)
+        want = -stats.t.logpdf(e.numpy(), dof, scale=(s * math.sqrt((dof - 2) / dof)).numpy())
+        got = predictive_nll(e, torch.zeros_like(e), std, dof, reduction="none")
+        assert torch.allclose(got, torch.from_numpy(want), rtol=1e-10)
+
+    def test_heavy_tailed_errors_prefer_the_t(self):
+        e = unit_t(4.0, 200_000, 0) * 0.05
+        std = torch.full_like(e, 0.05)
+        assert float(predictive_nll(e, torch.zeros_like(e), std, 4.0)) < float(gaussian_nll(e, torch.zeros_like(e), std)) - 0.05
+
+    def test_extremes_stay_finite(self):
+        e = torch.tensor([1e6, -1e6, 0.0], dtype=torch.float64)
+        std = torch.tensor([0.0, 1e-30, 1e6], dtype=torch.float64)
+        for dof in (tails.MIN_DOF, tails.MAX_DOF):
+            assert torch.isfinite(predictive_nll(e, torch.zeros_like(e), std, dof, reduction="none")).all()
+        with pytest.raises(ValueError, match="degrees of freedom"):
+            predictive_nll(e, e, std, 2.0)
+        with pytest.raises(ValueError, match="degrees of freedom"):
+            tails.coverage(1.0, float("nan"))
+        with pytest.raises(ValueError, match="probability"):
+            tails.half_width(1.0, 4.0)
+
+
+class TestFit:
+    @pytest.mark.parametrize("dof", [2.5, 4.0, 10.0])
+    def test_recovers_the_degrees_of_freedom(self, dof):
+        z = unit_t(dof, 400_000, 2)
+        z = z / z.square().mean().sqrt()
+        assert tails.fit_dof(z) == pytest.approx(dof, rel=0.1)
+
+    def test_gaussian_z_give_the_gaussian_or_a_large_dof(self):
+        z = torch.randn(400_000, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+        dof = tails.fit_dof(z)
+        assert dof is None or dof > 50
+
+    def test_nothing_to_fit(self):
+        assert tails.fit_dof(torch.empty(0)) is None
+        assert tails.fit_dof(torch.tensor([float("nan"), float("inf")])) is None
+        # all z = 0: the most peaked t fits best; still a valid dof
+        assert tails.fit_dof(torch.zeros(1000)) == pytest.approx(tails.MIN_DOF, rel=0.01)
+
+    def test_many_elements_are_strided(self, monkeypatch):
+        monkeypatch.setattr(tails, "FIT_ELEMENTS", 1000)
+        z = unit_t(4.0, 200_000, 4)
+        assert tails.fit_dof(z / z.square().mean().sqrt()) == pytest.approx(4.0, rel=0.5)
+
+
+class TestCalibration:
+    def test_t_errors_are_calibrated_only_with_the_t(self, device):
+        g = torch.Generator().manual_seed(5)
+        std = (0.01 + 0.2 * torch.rand(300_000, generator=g, dtype=torch.float64))
+        err = (unit_t(3.5, 300_000, 6) * std).to(device)
+        std = std.to(device)
+        gaussian = calibration(err, std)
+        t = calibration(err, std, dof=3.5)
+        assert t.calibration_error < 0.005 < 0.03 < gaussian.calibration_error
+        # the t's intervals: narrower than k std at small k, wider at k = 3
+        assert t.half_widths[0] < 0.5 and t.half_widths[-1] > 3.0 and t.dof == 3.5
+        assert gaussian.half_widths == gaussian.ks and gaussian.dof is None
+
+    def test_tables_of_different_predictives_do_not_average(self):
+        e, s = torch.randn(100), torch.ones(100)
+        with pytest.raises(ValueError, match="predictives"):
+            mean_calibration([calibration(e, s), calibration(e, s, dof=4.0)])
+        both = mean_calibration([calibration(e, s, dof=4.0), calibration(e * 2, s, dof=4.0)])
+        assert both.dof == 4.0 and both.half_widths == calibration(e, s, dof=4.0).half_widths
