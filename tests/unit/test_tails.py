@@ -100,8 +100,12 @@ class TestFit:
     def test_nothing_to_fit(self):
         assert tails.fit_dof(torch.empty(0)) is None
         assert tails.fit_dof(torch.tensor([float("nan"), float("inf")])) is None
+        # too few z-scores for the tails to say anything: the Gaussian, however heavy they look
+        few = unit_t(2.5, tails.MIN_FIT_ELEMENTS - 1, 7)
+        assert tails.fit_dof(few / few.square().mean().sqrt()) is None
+        assert tails.fit_dof(torch.cat([few, torch.full((1,), float("nan"), dtype=few.dtype)])) is None
         # all z = 0: the most peaked t fits best; still a valid dof
-        assert tails.fit_dof(torch.zeros(1000)) == pytest.approx(tails.MIN_DOF, rel=0.01)
+        assert tails.fit_dof(torch.zeros(tails.MIN_FIT_ELEMENTS)) == pytest.approx(tails.MIN_DOF, rel=0.01)
 
     def test_many_elements_are_strided(self, monkeypatch):
         monkeypatch.setattr(tails, "FIT_ELEMENTS", 1000)

@@ -30,6 +30,8 @@ MAX_DOF = 1000.0
 """Largest nu fitted; a fit at this end is reported as the Gaussian (the two differ by less than 1e-3 in coverage)."""
 FIT_ELEMENTS = 1_000_000
 """At most this many z-scores (evenly strided) enter ``fit_dof``: more change nu in the third digit."""
+MIN_FIT_ELEMENTS = 1000
+"""``fit_dof`` needs at least this many finite z-scores (a few hundred tail pixels decide nu); fewer: the Gaussian."""
 
 
 def _check(dof: float | None) -> None:
@@ -121,11 +123,11 @@ def fit_dof(z: Tensor) -> float | None:
 
     A grid over log(nu - 2) from ``MIN_DOF`` to ``MAX_DOF`` with the Gaussian beside it, then golden-section search
     around the best point. Returns None (the Gaussian) when the Gaussian or the ``MAX_DOF`` end is best, or when
-    there are no finite z-scores.
+    there are fewer than ``MIN_FIT_ELEMENTS`` finite z-scores.
     """
     z = z.detach().reshape(-1).to(torch.float64)
     z = z[torch.isfinite(z)]
-    if z.numel() == 0:
+    if z.numel() < MIN_FIT_ELEMENTS:
         return None
     if z.numel() > FIT_ELEMENTS:
         z = z[:: -(-z.numel() // FIT_ELEMENTS)]
@@ -157,4 +159,4 @@ def fit_dof(z: Tensor) -> float | None:
     return 2.0 + math.exp(0.5 * (lo + hi))
 
 
-__all__ = ["FIT_ELEMENTS", "MAX_DOF", "MIN_DOF", "coverage", "fit_dof", "half_width", "log_density", "nll"]
+__all__ = ["FIT_ELEMENTS", "MAX_DOF", "MIN_DOF", "MIN_FIT_ELEMENTS", "coverage", "fit_dof", "half_width", "log_density", "nll"]
