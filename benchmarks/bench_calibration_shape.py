@@ -12,7 +12,10 @@ themselves (so they bound what any rescaling fitted elsewhere could do):
 - with one factor per decile (maximum likelihood, and the calibration-optimal one);
 - with ``--components``: the predictive is rendered again with the pixel noise and with the resolution term
   left out, and the two terms and the rest are weighted by the maximum-likelihood weights (a grid), fitted on the
-  views set aside for calibration and, as an oracle, on the scored views.
+  views set aside for calibration and, as an oracle, on the scored views;
+- the Student-t predictive with the same std (``eval.tails``): the calibration error and NLL at nu = 3, 4, 5 and
+  at the nu ``evaluate`` fitted (``degrees_of_freedom`` in the report), and the oracle nu of the scored views'
+  z-scores divided by their RMS (what ``fit_dof`` would give on them).
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_calibration_shape.py RUN [--components] [--tag NAME]
 
@@ -37,6 +40,7 @@ import torch
 from uncertsplat.baselines import load_run
 from uncertsplat.config import EvalConfig
 from uncertsplat.data.dataset import load_view_set
+from uncertsplat.eval import tails
 from uncertsplat.eval.calibration import DEFAULT_KS, calibration
 from uncertsplat.io.images import read_exr
 from uncertsplat.io.maps import map_stem
@@ -84,6 +88,17 @@ def shape(e: torch.Tensor, s: torch.Tensor) -> dict:
             "calibration_optimal_factor": f_cal, "calibration_error_optimal_factor": c_cal,
             "calibration_error_per_decile_ml": cal_err(e, s_ml),
             "calibration_error_per_decile_optimal": cal_err(e, s_cal), "deciles": rows}
+
+
+def student_t(e: torch.Tensor, s: torch.Tensor, fitted: float | None) -> dict:
+    """The Student-t predictive with std ``s``: calibration error and NLL per nu (3, 4, 5 and ``evaluate``'s)."""
+    rows = []
+    for dof in sorted({3.0, 4.0, 5.0} | ({fitted} if fitted is not None else set())):
+        rows.append({"dof": dof, "fitted_by_evaluate": dof == fitted,
+                     "calibration_error": calibration(e, s, dof=dof).calibration_error,
+                     "nll": float(tails.nll(e, torch.zeros_like(e), s, dof).mean())})
+    z = e / s
+    return {"oracle_dof": tails.fit_dof(z / z.square().mean().sqrt()), "rows": rows}
 
 
 def read_maps(run: Path, report: EvalReport, scene) -> tuple[torch.Tensor, torch.Tensor]:
@@ -174,7 +189,7 @@ def main() -> None:
     e, s = read_maps(args.run, report, scene)
     out = {"run": str(args.run), "date": str(date.today()), "machine": args.machine, "ks": list(DEFAULT_KS),
            "evaluate_calibration_error": report.mean.calibration_error, "evaluate_std_scale": report.std_scale,
-           **shape(e, s)}
+           **shape(e, s), "student_t": student_t(e, s, report.degrees_of_freedom)}
     if args.components:
         out["components"] = components(args.run, torch.device("cpu"))
     print(json.dumps(out, indent=1))
