@@ -8,7 +8,8 @@ flags, loaded beside the current one, and the two are called alternately on the 
   loss) of ``bench_render.make_scene``'s random scene (``--scene-n``, ``--width``, ``--height``);
 - ``binning``: ``bin_gaussians`` alone on that scene and, with ``--run``, on a training view;
 - ``composite``: the compositor's forward and backward alone on that scene's (tile, Gaussian) lists;
-- ``ssim``: the fused SSIM forward and backward of three 320x240 planes;
+- ``ssim``: the fused SSIM forward and backward of three 320x240 planes, and of one 401x266 RGB image in its
+  HWC layout (a bonsai training step's: the kernel reads the channels as planes in place);
 - ``dense`` (with ``--dense``): the same on a denser scene (the Gaussians in the middle third of the view, sizes
   around 3 % of their depth), with a 2048^3 float32 matmul timed in the same run as the machine's yardstick;
 - ``train`` (with ``--run RUN --scene SCENE``): training steps of a run from its last checkpoint, the two
@@ -350,18 +351,23 @@ def composite_image_alone(libs: dict, gp, feat, bins, height: int, width: int, r
             "max_gradient_difference": max(float((x - y).abs().max()) for x, y in zip(a, b, strict=True))}
 
 
-def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, width: int = 320) -> dict:
+def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, width: int = 320,
+               channels: int = 1) -> dict:
+    """SSIM forward and backward of ``planes`` planes: separate planes [planes,H,W] (``channels`` 1), or the
+    ``channels`` of planes / channels HWC images."""
     gen = torch.Generator().manual_seed(0)
-    x = torch.rand(planes, height, width, generator=gen)
-    y = (x + 0.1 * torch.randn(planes, height, width, generator=gen)).clamp(0, 1)
+    shape = (planes, height, width) if channels == 1 else (planes // channels, height, width, channels)
+    x = torch.rand(shape, generator=gen)
+    y = (x + 0.1 * torch.randn(shape, generator=gen)).clamp(0, 1)
     win = gaussian_window(dtype=torch.float32)
     threads = torch.get_num_threads()
 
     def forward(lib):
         def call():
             pm, part = torch.empty(planes, dtype=torch.float64), torch.empty(3, planes, height, width)
-            lib.us_ssim_forward_f32(planes, height, width, win.numel(), 1, x.data_ptr(), y.data_ptr(), win.data_ptr(),
-                                    SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, pm.data_ptr(), part.data_ptr(), None, threads)
+            lib.us_ssim_forward_f32(planes, height, width, win.numel(), channels, x.data_ptr(), y.data_ptr(),
+                                    win.data_ptr(), SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, pm.data_ptr(), part.data_ptr(),
+                                    None, threads)
             return pm, part
         return call
 
@@ -369,15 +375,15 @@ def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, wid
 
     def backward(lib, part):
         def call():
-            gx, gp = torch.empty(planes, height, width), torch.ones(planes)
-            lib.us_ssim_backward_f32(planes, height, width, win.numel(), 1, x.data_ptr(), y.data_ptr(), win.data_ptr(),
-                                     part.data_ptr(), gp.data_ptr(), None, gx.data_ptr(), threads)
+            gx, gp = torch.empty(shape), torch.ones(planes)
+            lib.us_ssim_backward_f32(planes, height, width, win.numel(), channels, x.data_ptr(), y.data_ptr(),
+                                     win.data_ptr(), part.data_ptr(), gp.data_ptr(), None, gx.data_ptr(), threads)
             return gx
         return call
 
     (pm_a, part_a), (pm_b, part_b) = parts.values()
     grads = [backward(lib, parts[k][1])() for k, lib in libs.items()]
-    return {"case": f"{planes} planes of {width}x{height}",
+    return {"case": f"{planes} planes of {width}x{height}" + (f", {channels} channels HWC" if channels > 1 else ""),
             "forward": alternate({k: forward(lib) for k, lib in libs.items()}, repeats),
             "backward": alternate({k: backward(lib, parts[k][1]) for k, lib in libs.items()}, repeats),
             "max_mean_difference": float((pm_a - pm_b).abs().max()),
@@ -448,6 +454,7 @@ def main() -> None:
                                                          max(3, args.repeats // 4), dense=True)
             result["dense"]["matmul_2048"] = matmul_ms(args.repeats)
         result["ssim"] = bench_ssim(libs, args.repeats)
+        result["ssim_hwc"] = bench_ssim(libs, args.repeats, height=266, width=401, channels=3)
         if args.run:
             result["train"] = bench_training(libs, args.run, args.scene or Path(json.loads(
                 (args.run / "train_summary.json").read_text())["scene"]), args.rounds, args.block)
@@ -461,7 +468,9 @@ def main() -> None:
             ("compositor forward", r["composite"]["forward"]),
             ("compositor forward + backward", r["composite"]["forward_backward"]),
             ("SSIM forward (3 x 320x240)", result["ssim"]["forward"]),
-            ("SSIM backward", result["ssim"]["backward"])]
+            ("SSIM backward", result["ssim"]["backward"]),
+            ("SSIM forward (a 401x266 RGB image, HWC)", result["ssim_hwc"]["forward"]),
+            ("SSIM backward (the same)", result["ssim_hwc"]["backward"])]
     if "dense" in result:
         dn, mm = result["dense"], result["dense"]["matmul_2048"]
         rows += [("dense scene: render forward + backward", dn["render_fwd_bwd"]),

@@ -359,6 +359,32 @@ def test_fused_ssim_matches_the_reference(monkeypatch, shape):
     assert rel <= 1e-5
 
 
+@pytest.mark.parametrize("shape", [(64, 45, 3), (5, 30, 3), (2, 13, 9, 1)])
+def test_fused_ssim_is_the_same_on_any_number_of_threads(monkeypatch, shape):
+    """The kernel splits each plane's rows into runs, one per task, blurring the r rows around a run twice: the
+    value, the L1 term and the gradient do not depend on how many runs there are (threads 1-7, more runs than
+    rows included), bit for bit."""
+    from uncertsplat.eval.image import ssim_and_l1
+
+    monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "native")
+    g = torch.Generator().manual_seed(5)
+    target = torch.rand(shape, generator=g)
+    pred = (target + 0.2 * torch.randn(shape, generator=g)).clamp(0, 1)
+    before = torch.get_num_threads()
+    out = []
+    try:
+        for threads in (1, 2, 3, 7):
+            torch.set_num_threads(threads)
+            x = pred.clone().requires_grad_()
+            s, l1 = ssim_and_l1(x, target)
+            (0.8 * l1 + 0.2 * (1 - s)).backward()
+            out.append((s.detach(), l1.detach(), x.grad))
+    finally:
+        torch.set_num_threads(before)
+    for s, l1, grad in out[1:]:
+        assert torch.equal(s, out[0][0]) and torch.equal(l1, out[0][1]) and torch.equal(grad, out[0][2])
+
+
 def test_fused_ssim_gradient_where_the_structure_term_vanishes(monkeypatch):
     """Anti-correlated windows with 2 sigma_xy + C2 ~ 0: the gradient must stay finite and match the
     reference (a kernel dividing by that term gave NaN steps in training)."""

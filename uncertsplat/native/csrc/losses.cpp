@@ -124,12 +124,14 @@ double scale_kl(int64_t n, const float* left, const float* raw, float wp, int va
 }
 
 // ---------------------------------------------------------------------------------------- SSIM
-// Separable zero-padded "same" blurs with the window w [K] (K odd, r = (K - 1) / 2), in two phases over
-// rows (every thread takes rows of every plane, so 3 planes keep 2 threads busy): a horizontal pass of
-// each row into padded row buffers, then a vertical pass that keeps its sums in registers (LANES pixels
-// at a time) and applies the per-pixel formula right away, so the vertically blurred planes are never
-// stored. Each plane's mean is summed per row, then over rows in a fixed order (any thread count gives
-// the same result).
+// Separable zero-padded "same" blurs with the window w [K] (K odd, r = (K - 1) / 2). The forward runs one pass
+// per task (SsimTasks: a run of rows of one plane): each row is blurred horizontally into a ring of the last K
+// rows, and each output row vertically from the ring as soon as it holds the row's window, keeping the sums in
+// registers (LANES pixels at a time) and applying the per-pixel formula right away, so neither blurred plane is
+// stored. The backward runs two phases over rows (every thread takes rows of every plane): the horizontal pass of
+// its three inputs into padded row buffers, then the vertical pass (one pass with a ring measured 3-6 % slower
+// there on HWC images: the rows around each run are blurred twice, and its planes are read once anyway). Each
+// plane's mean is summed per row, then over rows in a fixed order (any thread count gives the same result).
 
 constexpr int SSIM_LANES = uskern::LANES;
 using VS = uskern::floatv;
@@ -155,11 +157,11 @@ struct SsimRows {
     int64_t row(int64_t b, int64_t y) const { return (b / CH * H + y) * W * CH + b % CH; }
 };
 
-// Runs fn(row, buffer) for row in [0, n) on up to num_threads threads (contiguous ranges); buffer is the
-// worker's own scratch of buf_size floats (zeros at first).
+// Runs fn(item, buffer) for item in [0, n) on `workers` threads (contiguous ranges); buffer is the worker's own
+// scratch of buf_size floats (zeros at first).
 template <typename Fn>
-void parallel_rows(int64_t n, int64_t num_threads, size_t buf_size, Fn fn) {
-    const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(num_threads, n / 16 + 1));
+void parallel_ranges(int64_t n, int64_t workers, size_t buf_size, Fn fn) {
+    workers = std::max<int64_t>(1, std::min<int64_t>(workers, n));
     uskern::run_workers(workers, [&](int64_t w) {
         std::vector<float> buf(buf_size);
         for (int64_t i = n * w / workers; i < n * (w + 1) / workers; ++i) fn(i, buf.data());
@@ -216,6 +218,38 @@ inline void vblur(const SsimRows& g, const float* w, const float* const* hb, int
     }
 }
 
+// Vertical blur at output row y of NQ horizontally blurred rows kept in a ring of K rows per quantity
+// (ring[q * K + row % K] holds row `row` of quantity q, Wp floats), LANES pixels from x0: sum over the rows
+// y + k - r inside the image.
+template <int NQ>
+inline void vblur_ring(const SsimRows& g, const float* w, const float* ring, int64_t y, int64_t x0, VS* acc) {
+    const int64_t k0 = std::max<int64_t>(0, g.r - y), k1 = std::min<int64_t>(g.K, g.H - y + g.r);
+    for (int q = 0; q < NQ; ++q) acc[q] = VS{};
+    for (int64_t k = k0; k < k1; ++k) {
+        const float wk = w[k];
+        const int64_t slot = (y + k - g.r) % g.K;
+        for (int q = 0; q < NQ; ++q) acc[q] += wk * load_vs(ring + (q * g.K + slot) * g.Wp + x0);
+    }
+}
+
+// The SSIM passes' tasks: each plane's rows in `chunks` contiguous runs, task t = plane t / chunks, run t % chunks.
+// A task blurs the rows of its run (and the r rows on either side it needs) horizontally into a ring of K rows and
+// blurs each output row vertically as soon as the ring holds its window, so the horizontally blurred planes never
+// leave the cache (they were 5 full planes, 6.6 MB for a 401x266 RGB image, written and read back). Runs of about
+// H / chunks rows: the r rows above and below a run are blurred twice, so the runs are long (2 per plane for 3
+// planes on 2 threads).
+struct SsimTasks {
+    int64_t chunks, count;
+    SsimTasks(const SsimRows& g, int64_t num_threads) {
+        const int64_t threads = std::max<int64_t>(1, num_threads);
+        chunks = std::max<int64_t>(1, std::min<int64_t>(g.H, (2 * threads + g.B - 1) / g.B));
+        count = g.B * chunks;
+    }
+    int64_t plane(int64_t t) const { return t / chunks; }
+    int64_t y0(const SsimRows& g, int64_t t) const { return g.H * (t % chunks) / chunks; }
+    int64_t y1(const SsimRows& g, int64_t t) const { return g.H * (t % chunks + 1) / chunks; }
+};
+
 // Stores the first n (<= LANES) lanes of v at p.
 inline void store_lanes(float* p, VS v, int64_t n) {
     if (n == SSIM_LANES) {
@@ -225,8 +259,8 @@ inline void store_lanes(float* p, VS v, int64_t n) {
     }
 }
 
-// The calling thread's buffer of at least n floats, kept between calls: a training step's SSIM needs some MB of
-// it twice (4.6 MB for three 320x240 planes), and a fresh std::vector is zero-filled on every call, though every
+// The calling thread's buffer of at least n floats, kept between calls: a training step's SSIM backward needs some
+// MB of it (2.8 MB for three 320x240 planes), and a fresh std::vector is zero-filled on every call, though every
 // element the caller reads it writes first. One per calling thread (views may be scored on threads).
 std::vector<float>& scratch(size_t n) {
     thread_local std::vector<float> buf;
@@ -242,51 +276,62 @@ void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const 
                   const float* w, float c1, float c2, double* plane_mean, float* partials, double* plane_l1,
                   int64_t num_threads) {
     const SsimRows g(B, H, W, K, CH);
-    const int64_t HWp = H * g.Wp;
-    std::vector<float>& hbuf = scratch(static_cast<size_t>(5 * B * HWp));  // horizontally blurred x, y, xx, yy, xy
+    const SsimTasks tasks(g, num_threads);
     std::vector<double> row_l1(plane_l1 != nullptr ? static_cast<size_t>(B * H) : 0, 0.0);
-    const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;  // a padded row and the lanes read past it
-    parallel_rows(B * H, num_threads, 2 * row_len, [&](int64_t row, float* buf) {
-        const int64_t b = row / H, yy = row % H;
-        float *pa = buf, *pb = buf + row_len;
-        pad_row(g, x + g.row(b, yy), CH, pa);
-        pad_row(g, y + g.row(b, yy), CH, pb);
-        if (plane_l1 != nullptr) {
-            float sum = 0.0f;
-            for (int64_t i = 0; i < W; ++i) sum += std::fabs(pa[g.r + i] - pb[g.r + i]);
-            row_l1[row] = sum;
-        }
-        float* out[5];
-        for (int q = 0; q < 5; ++q) out[q] = hbuf.data() + (q * B + b) * HWp + yy * g.Wp;
-        hblur_row<5>(g, w, pa, pb, nullptr, out);
-    });
     std::vector<double> row_sum(static_cast<size_t>(B * H), 0.0);
     const int64_t HW = H * W;
-    parallel_rows(B * H, num_threads, 0, [&](int64_t row, float*) {
-        const int64_t b = row / H, yy = row % H;
-        const float* hb[5];
-        for (int q = 0; q < 5; ++q) hb[q] = hbuf.data() + (q * B + b) * HWp;
-        double sum = 0.0;
-        for (int64_t x0 = 0; x0 < W; x0 += SSIM_LANES) {
-            const int64_t n = std::min<int64_t>(SSIM_LANES, W - x0);
-            VS m[5];
-            vblur<5>(g, w, hb, yy, x0, m);
-            const VS ux = m[0], uy = m[1];
-            const VS sxx = m[2] - ux * ux, syy = m[3] - uy * uy, sxy = m[4] - ux * uy;
-            const VS a1 = 2.0f * ux * uy + c1, a2 = 2.0f * sxy + c2;
-            const VS b1 = ux * ux + uy * uy + c1, b2 = sxx + syy + c2;
-            // Divide only by b1 b2 >= c1 c2 > 0: a2 = 2 sxy + c2 can be 0 (anti-correlated windows)
-            const VS inv_d = 1.0f / (b1 * b2);
-            const VS s = a1 * a2 * inv_d;
-            for (int64_t l = 0; l < n; ++l) sum += s[l];
-            if (partials != nullptr) {
-                const int64_t o = b * HW + yy * W + x0;
-                store_lanes(partials + o, (2.0f * uy * (a2 - a1) - 2.0f * ux * s * (b2 - b1)) * inv_d, n);
-                store_lanes(partials + B * HW + o, -s * b1 * inv_d, n);
-                store_lanes(partials + 2 * B * HW + o, 2.0f * a1 * inv_d, n);
+    const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;  // a padded row and the lanes read past it
+    const size_t ring_len = static_cast<size_t>(5 * K * g.Wp);  // horizontally blurred x, y, xx, yy, xy
+    parallel_ranges(tasks.count, num_threads, 2 * row_len + ring_len, [&](int64_t t, float* buf) {
+        const int64_t b = tasks.plane(t), y0 = tasks.y0(g, t), y1 = tasks.y1(g, t);
+        float *pa = buf, *pb = buf + row_len, *ring = buf + 2 * row_len;
+        int64_t next = std::max<int64_t>(0, y0 - g.r);  // the next row to blur horizontally into the ring
+        for (int64_t oy = y0; oy < y1; ++oy) {
+            for (const int64_t last = std::min<int64_t>(H - 1, oy + g.r); next <= last; ++next) {
+                pad_row(g, x + g.row(b, next), CH, pa);
+                pad_row(g, y + g.row(b, next), CH, pb);
+                if (plane_l1 != nullptr && next >= y0 && next < y1) {  // each row's L1 in the task that owns it
+                    VS acc{};
+                    for (int64_t i = 0; i < g.Wp; i += SSIM_LANES) {
+                        const VS d = load_vs(pa + g.r + i) - load_vs(pb + g.r + i);  // zeros past W on both
+                        acc += d < 0.0f ? -d : d;
+                    }
+                    float sum = 0.0f;
+                    for (int l = 0; l < SSIM_LANES; ++l) sum += acc[l];
+                    row_l1[b * H + next] = sum;
+                }
+                float* out[5];
+                for (int q = 0; q < 5; ++q) out[q] = ring + (q * K + next % K) * g.Wp;
+                hblur_row<5>(g, w, pa, pb, nullptr, out);
             }
+            VS sum{};
+            for (int64_t x0 = 0; x0 < W; x0 += SSIM_LANES) {
+                const int64_t n = std::min<int64_t>(SSIM_LANES, W - x0);
+                VS m[5];
+                vblur_ring<5>(g, w, ring, oy, x0, m);
+                const VS ux = m[0], uy = m[1];
+                const VS sxx = m[2] - ux * ux, syy = m[3] - uy * uy, sxy = m[4] - ux * uy;
+                const VS a1 = 2.0f * ux * uy + c1, a2 = 2.0f * sxy + c2;
+                const VS b1 = ux * ux + uy * uy + c1, b2 = sxx + syy + c2;
+                // Divide only by b1 b2 >= c1 c2 > 0: a2 = 2 sxy + c2 can be 0 (anti-correlated windows)
+                const VS inv_d = 1.0f / (b1 * b2);
+                const VS s = a1 * a2 * inv_d;
+                if (n == SSIM_LANES) {
+                    sum += s;
+                } else {
+                    for (int64_t l = 0; l < n; ++l) sum[l] += s[l];
+                }
+                if (partials != nullptr) {
+                    const int64_t o = b * HW + oy * W + x0;
+                    store_lanes(partials + o, (2.0f * uy * (a2 - a1) - 2.0f * ux * s * (b2 - b1)) * inv_d, n);
+                    store_lanes(partials + B * HW + o, -s * b1 * inv_d, n);
+                    store_lanes(partials + 2 * B * HW + o, 2.0f * a1 * inv_d, n);
+                }
+            }
+            double total = 0.0;
+            for (int l = 0; l < SSIM_LANES; ++l) total += sum[l];
+            row_sum[b * H + oy] = total;
         }
-        row_sum[row] = sum;
     });
     for (int64_t b = 0; b < B; ++b) {
         double total = 0.0, l1 = 0.0;
@@ -308,7 +353,8 @@ void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const
     const int64_t HWp = H * g.Wp, HW = H * W;
     std::vector<float>& hbuf = scratch(static_cast<size_t>(3 * B * HWp));
     const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;
-    parallel_rows(B * H, num_threads, 3 * row_len, [&](int64_t row, float* buf) {
+    const int64_t workers = std::min<int64_t>(num_threads, B * H / 16 + 1);  // at least 16 rows each
+    parallel_ranges(B * H, workers, 3 * row_len, [&](int64_t row, float* buf) {
         const int64_t b = row / H, yy = row % H;
         float *pa = buf, *pb = buf + row_len, *pc = buf + 2 * row_len;
         pad_row(g, partials + b * HW + yy * W, 1, pa);
@@ -318,7 +364,7 @@ void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const
         for (int q = 0; q < 3; ++q) out[q] = hbuf.data() + (q * B + b) * HWp + yy * g.Wp;
         hblur_row<3>(g, w, pa, pb, pc, out);
     });
-    parallel_rows(B * H, num_threads, 0, [&](int64_t row, float*) {
+    parallel_ranges(B * H, workers, 0, [&](int64_t row, float*) {
         const int64_t b = row / H, yy = row % H;
         const float* hb[3];
         for (int q = 0; q < 3; ++q) hb[q] = hbuf.data() + (q * B + b) * HWp;
