@@ -209,7 +209,8 @@ class ViewConsistency:
         for k0 in range(0, len(self.cameras), VIEW_CHUNK):
             cams, z, inside, there, seen = self._compared_at(points, k0, rgb.dtype)
             inside_any |= inside.any(0)
-            finest = torch.minimum(finest, _finest_ratio(cams, z, seen, foot))
+            if self.finer_detail > 0.0:
+                finest = torch.minimum(finest, _finest_ratio(cams, z, seen, foot))
             angle = _angle(F.normalize(cams.centers.to(points)[:, None] - points, dim=-1), to_view)  # [C,S]
             angle = torch.where(seen, angle, torch.full_like(angle, float("inf")))
             nearest, k = angle.min(0)  # [S]: the first of equal angles, as views in order
