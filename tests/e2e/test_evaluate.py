@@ -19,8 +19,8 @@ from uncertsplat.cli import app
 from uncertsplat.config import EvalConfig
 from uncertsplat.data.dataset import load_view_set
 from uncertsplat.eval.engine import StdFit, evaluate_views, fit_residual, fit_std_scale, with_side_terms
-from uncertsplat.io.images import read_exr
-from uncertsplat.io.maps import EXR_CHANNELS, map_stem
+from uncertsplat.io.images import read_exr, read_exr_attribute
+from uncertsplat.io.maps import EXR_CHANNELS, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
 from uncertsplat.schemas.metrics import EvalReport
 from uncertsplat.schemas.prune import PruneReport
 from uncertsplat.stages import evaluate
@@ -52,6 +52,10 @@ def test_writes_maps_and_metrics(evaluated):
         assert set(EXR_CHANNELS) <= set(ch)
         assert ch["rgb_std.R"].shape == (96, 128)
         assert np.all(ch["rgb_std.R"] >= 0) and np.all(np.isfinite(ch["depth_mean.Z"]))
+        # the header says which predictive the std is the std of
+        exr = run / "eval" / "maps" / f"{stem}.exr"
+        assert read_exr_attribute(exr, EXR_RGB_PREDICTIVE) == "student-t"
+        assert read_exr_attribute(exr, EXR_RGB_DOF) == pytest.approx(report.degrees_of_freedom, rel=1e-6)
         for suffix in ("gt", "mean", "error", "std", "error_rank", "std_rank", "depth", "depth_std"):
             assert (run / "eval" / "maps" / f"{stem}_{suffix}.png").is_file()
     m = data.mean

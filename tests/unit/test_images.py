@@ -9,6 +9,7 @@ import pytest
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import (
     read_exr,
+    read_exr_attribute,
     read_image,
     read_image_size,
     resize_image,
@@ -99,6 +100,14 @@ def test_exr_named_channels_roundtrip(tmp_path, rng):
     assert set(back) == set(ch)
     for k in ch:
         np.testing.assert_array_equal(back[k], ch[k])
+
+
+def test_exr_header_attributes_roundtrip(tmp_path, rng):
+    """``write_exr``'s attributes read back by name (a float, a string); a name never written is None."""
+    write_exr(tmp_path / "a.exr", {"Z": rng.random((3, 4))}, {"uncertsplat:nu": 3.5, "uncertsplat:kind": "student-t"})
+    assert read_exr_attribute(tmp_path / "a.exr", "uncertsplat:nu") == pytest.approx(3.5)
+    assert read_exr_attribute(tmp_path / "a.exr", "uncertsplat:kind") == "student-t"
+    assert read_exr_attribute(tmp_path / "a.exr", "uncertsplat:absent") is None
 
 
 def test_writes_leave_no_temp_files(tmp_path, rng):

@@ -131,6 +131,8 @@ class ViewMaps:
         rgb_std: [H,W,3] the unbiased std over the K samples.
         depth_mean, depth_std: [H,W,1] in the run's world units.
         alpha_mean: [H,W,1] mean accumulated opacity (None when not given).
+        dof: the degrees of freedom of the RGB predictive's Student-t (``evaluate_views``' ``dof``; None: the
+            Gaussian).
     """
 
     name: str
@@ -140,6 +142,7 @@ class ViewMaps:
     depth_mean: Tensor
     depth_std: Tensor
     alpha_mean: Tensor | None = None
+    dof: float | None = None
 
 
 @dataclass
@@ -706,7 +709,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                                        maps.depth_mean[0].cpu(), maps.depth_std[0].cpu(), maps.alpha_mean[0].cpu()))
             if on_view is not None:
                 on_view(ViewMaps(name, gt, pred, std, maps.depth_mean[0].cpu(), maps.depth_std[0].cpu(),
-                                 maps.alpha_mean[0].cpu()))
+                                 maps.alpha_mean[0].cpu(), dof))
             if prog:
                 prog.update(task, advance=1, info=f"{name}: PSNR {m['psnr']:.2f} AUSE {m['ause_mae']:.3f} "
                                                   f"{seconds:.2f}s")

@@ -239,8 +239,9 @@ def write_png(path: str | Path, arr: np.ndarray) -> Path:
     return _write_array(Path(path), arr, oiio.UINT8, attributes=attrs)
 
 
-def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> Path:
-    """Write named float32 channels (each [H,W]) to an OpenEXR file atomically (zip compression)."""
+def write_exr(path: str | Path, channels: dict[str, np.ndarray], attributes: dict | None = None) -> Path:
+    """Write named float32 channels (each [H,W]) to an OpenEXR file atomically (zip compression), with header
+    ``attributes`` (name -> str / int / float) beside them."""
     if not channels:
         raise ValueError("write_exr needs at least one channel")
     names = list(channels)
@@ -249,7 +250,18 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray]) -> Path:
     if any(p.shape != shape or p.ndim != 2 for p in planes):
         raise ValueError("write_exr channels must all be [H,W] of the same size")
     arr = np.stack(planes, axis=-1)
-    return _write_array(Path(path), arr, oiio.FLOAT, channel_names=names, attributes={"compression": "zip"})
+    return _write_array(Path(path), arr, oiio.FLOAT, channel_names=names,
+                        attributes={"compression": "zip", **(attributes or {})})
+
+
+def read_exr_attribute(path: str | Path, name: str):
+    """One header attribute of an image file (``write_exr``'s ``attributes``), or None when it has none."""
+    path = Path(path)
+    inp = _open(path)
+    try:
+        return inp.spec().getattribute(name)
+    finally:
+        inp.close()
 
 
 def read_exr(path: str | Path) -> dict[str, np.ndarray]:

@@ -1,7 +1,8 @@
 """File layout of ``evaluate``'s per-view maps, shared by their writer and their readers.
 
 ``RUN/eval/maps/{map_stem(name)}.exr`` holds the float channels ``EXR_CHANNELS`` of the view whose image
-is ``name``; the PNG previews next to it are ``{map_stem(name)}_{kind}.png``. ``stages/evaluate.py``
+is ``name``, and in its header which predictive ``rgb_std`` is the std of (``EXR_RGB_PREDICTIVE``,
+``EXR_RGB_DOF``); the PNG previews next to it are ``{map_stem(name)}_{kind}.png``. ``stages/evaluate.py``
 writes them, ``report`` reads them, and ``prune`` names its renders the same way.
 """
 
@@ -12,6 +13,11 @@ from pathlib import Path
 EXR_CHANNELS = ("rgb_mean.R", "rgb_mean.G", "rgb_mean.B", "rgb_std.R", "rgb_std.G", "rgb_std.B",
                 "depth_mean.Z", "depth_std.Z")
 """Channels of a view's EXR: MC mean and std of the colour, and of the depth (in the run's world units)."""
+EXR_RGB_PREDICTIVE = "uncertsplat:rgb_predictive"
+"""Header attribute: "student-t" or "gaussian", the family of the RGB predictive whose std ``rgb_std`` holds."""
+EXR_RGB_DOF = "uncertsplat:rgb_degrees_of_freedom"
+"""Header attribute (float, with "student-t"): nu; the central interval of probability p is mean +- w std, w the
+unit-variance t's half-width (``eval.tails.half_width``)."""
 
 
 def map_stem(image_name: str) -> str:
@@ -20,4 +26,4 @@ def map_stem(image_name: str) -> str:
     return str(p.with_suffix("")).replace("/", "__").replace("\\", "__")
 
 
-__all__ = ["EXR_CHANNELS", "map_stem"]
+__all__ = ["EXR_CHANNELS", "EXR_RGB_DOF", "EXR_RGB_PREDICTIVE", "map_stem"]

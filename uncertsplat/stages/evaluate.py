@@ -33,7 +33,7 @@ from uncertsplat.console import console
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import ViewMaps
 from uncertsplat.eval.tails import half_width as _half_width
-from uncertsplat.io.maps import EXR_CHANNELS, map_stem
+from uncertsplat.io.maps import EXR_CHANNELS, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
 from uncertsplat.schemas.runs import RunExposure
 
 if TYPE_CHECKING:
@@ -49,7 +49,11 @@ def write_view_maps(folder: Path, maps: ViewMaps, preview: str) -> None:
     stem = map_stem(maps.name)
     gt, pred, std, depth_mean, depth_std = maps.gt, maps.rgb_mean, maps.rgb_std, maps.depth_mean, maps.depth_std
     arrays = [pred[..., c] for c in range(3)] + [std[..., c] for c in range(3)] + [depth_mean[..., 0], depth_std[..., 0]]
-    write_exr(folder / f"{stem}.exr", {n: a.numpy() for n, a in zip(EXR_CHANNELS, arrays, strict=True)})
+    # the maps say which predictive their std is the std of (a reader of the EXR alone can build intervals)
+    predictive = {EXR_RGB_PREDICTIVE: "gaussian" if maps.dof is None else "student-t"}
+    if maps.dof is not None:
+        predictive[EXR_RGB_DOF] = float(maps.dof)
+    write_exr(folder / f"{stem}.exr", {n: a.numpy() for n, a in zip(EXR_CHANNELS, arrays, strict=True)}, predictive)
     err = (pred - gt).abs().mean(-1).numpy()
     s = std.mean(-1).numpy()
     write_png(folder / f"{stem}_gt.png", gt.numpy())
