@@ -520,7 +520,7 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
         ``StdFit``: no factor (and nu only when ``cfg.degrees_of_freedom`` sets it) when disabled, when scoring the
         training split, when there is no view to fit on or no valid pixel.
     """
-    from uncertsplat.eval.tails import fit_dof
+    from uncertsplat.eval.tails import FIT_ELEMENTS, fit_dof
     from uncertsplat.uncertainty.mc import mc_render
 
     chosen = calibration_indices(split, cfg)
@@ -528,6 +528,9 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
         return StdFit(dof=_fixed_dof(cfg))
     views = load_views(chosen)  # as they are: a photo at its own exposure, what the exposures' spread predicts
     gen = torch.Generator(device=device)
+    # the factor from every z-score; nu from at most FIT_ELEMENTS of them, strided per view, so that large photos
+    # do not keep every z-score of every view in memory
+    total, count = 0.0, 0
     zs: list[Tensor] = []
     for j, i in enumerate(views.indices):
         cam = views.cameras[[j]].to(device)
@@ -542,12 +545,14 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
             mean, std = maps.rgb_mean.cpu(), maps.rgb_std.cpu()
         err = mean[0].clamp(0, 1) - views.images[j]
         z = err / std[0].clamp_min(cfg.std_floor)  # [H,W,3]
-        zs.append((z[views.masks[j][..., 0]] if views.masks is not None else z).reshape(-1))
-    z = torch.cat(zs)
-    if z.numel() == 0:
+        z = (z[views.masks[j][..., 0]] if views.masks is not None else z).reshape(-1)
+        total += float(z.double().square().sum())
+        count += z.numel()
+        zs.append(z[:: -(-z.numel() * len(chosen) // FIT_ELEMENTS) or 1])
+    if count == 0:
         return StdFit(dof=_fixed_dof(cfg))
-    scale = float(z.double().square().mean()) ** 0.5
-    dof = fit_dof(z / scale) if cfg.degrees_of_freedom == "fit" and scale > 0.0 else _fixed_dof(cfg)
+    scale = (total / count) ** 0.5
+    dof = fit_dof(torch.cat(zs) / scale) if cfg.degrees_of_freedom == "fit" and scale > 0.0 else _fixed_dof(cfg)
     return StdFit(scale, dof, views.names)
 
 
