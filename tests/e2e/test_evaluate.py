@@ -594,7 +594,7 @@ class TestResidualCache:
             assert residual_key(loaded, EvalConfig(**change), cpu) == key
 
 
-def test_the_predictive_tails_follow_the_setting(tiny_run_path):
+def test_the_predictive_tails_follow_the_setting(tiny_run_path, monkeypatch):
     """``degrees_of_freedom``: "fit" fits nu on the views the std factor is fitted on, "gaussian" gives none, a number
     is kept, and without views to fit on "fit" falls back to the Gaussian while a number still holds."""
     cpu = torch.device("cpu")
@@ -605,6 +605,14 @@ def test_the_predictive_tails_follow_the_setting(tiny_run_path):
     sampler = loaded.sampler(scene.scene_scale, cpu)
     fitted = fit_std_scale(sampler, scene.split, cfg, cpu, load_views=views)
     assert fitted.dof is not None and 2.1 <= fitted.dof and len(fitted.names) == 2
+    # nu from a strided share of the z-scores when there are many; the factor still from all of them
+    from uncertsplat.eval import tails
+
+    monkeypatch.setattr(tails, "FIT_ELEMENTS", 5000)
+    strided = fit_std_scale(sampler, scene.split, cfg, cpu, load_views=views)
+    assert strided.scale == pytest.approx(fitted.scale, rel=1e-9) and strided.dof is not None
+    assert strided.dof == pytest.approx(fitted.dof, rel=0.5)
+    monkeypatch.undo()
     assert fit_std_scale(sampler, scene.split, cfg.model_copy(update={"degrees_of_freedom": "gaussian"}), cpu,
                          load_views=views).dof is None
     fixed = cfg.model_copy(update={"degrees_of_freedom": 5.0})
