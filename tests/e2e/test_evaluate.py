@@ -623,3 +623,19 @@ def test_the_predictive_tails_follow_the_setting(tiny_run_path, monkeypatch):
                          load_views=views).dof == 5.0
     with pytest.raises(ValueError):
         EvalConfig(degrees_of_freedom=2.0)
+
+
+def test_the_intervals_example_reads_the_predictive_from_the_maps(evaluated, capsys, monkeypatch):
+    """``examples/intervals.py`` builds each view's interval from its EXR alone (the std and the header's nu) and
+    writes its bounds, the lower below the upper."""
+    import runpy
+    import sys
+    from pathlib import Path
+
+    run, report = evaluated
+    monkeypatch.setattr(sys, "argv", ["intervals.py", str(run), "0.9"])
+    runpy.run_path(str(Path(__file__).resolve().parents[2] / "examples" / "intervals.py"), run_name="__main__")
+    printed = capsys.readouterr().out
+    assert printed.count("Student-t") == len(report.image_names) and "nominal 90.0 %" in printed
+    bounds = read_exr(run / "example_intervals" / f"{map_stem(report.image_names[0])}.exr")
+    assert np.all(bounds["lower.R"] <= bounds["upper.R"])
