@@ -205,30 +205,18 @@ inline void pad_row(const SsimRows& g, const float* src, int64_t stride, float* 
     }
 }
 
-// Vertical blur at output row y of NQ horizontally blurred planes hb[q] (rows of Wp), LANES pixels from
-// x0: sum over the rows y + k - r inside the image.
-template <int NQ>
-inline void vblur(const SsimRows& g, const float* w, const float* const* hb, int64_t y, int64_t x0, VS* acc) {
+// Vertical blur at output row y of NQ horizontally blurred rows, LANES pixels from x0: sum over the rows y + k - r
+// inside the image. Quantity q's rows start at hb[q], row `row` being the slot(row)-th of Wp floats there (full planes
+// in the backward: slot(row) = row; a ring of the last K rows in the forward: row % K).
+template <int NQ, typename Slot>
+inline void vblur(const SsimRows& g, const float* w, const float* const* hb, Slot slot, int64_t y, int64_t x0,
+                  VS* acc) {
     const int64_t k0 = std::max<int64_t>(0, g.r - y), k1 = std::min<int64_t>(g.K, g.H - y + g.r);
     for (int q = 0; q < NQ; ++q) acc[q] = VS{};
     for (int64_t k = k0; k < k1; ++k) {
         const float wk = w[k];
-        const int64_t off = (y + k - g.r) * g.Wp + x0;
+        const int64_t off = slot(y + k - g.r) * g.Wp + x0;
         for (int q = 0; q < NQ; ++q) acc[q] += wk * load_vs(hb[q] + off);
-    }
-}
-
-// Vertical blur at output row y of NQ horizontally blurred rows kept in a ring of K rows per quantity
-// (ring[q * K + row % K] holds row `row` of quantity q, Wp floats), LANES pixels from x0: sum over the rows
-// y + k - r inside the image.
-template <int NQ>
-inline void vblur_ring(const SsimRows& g, const float* w, const float* ring, int64_t y, int64_t x0, VS* acc) {
-    const int64_t k0 = std::max<int64_t>(0, g.r - y), k1 = std::min<int64_t>(g.K, g.H - y + g.r);
-    for (int q = 0; q < NQ; ++q) acc[q] = VS{};
-    for (int64_t k = k0; k < k1; ++k) {
-        const float wk = w[k];
-        const int64_t slot = (y + k - g.r) % g.K;
-        for (int q = 0; q < NQ; ++q) acc[q] += wk * load_vs(ring + (q * g.K + slot) * g.Wp + x0);
     }
 }
 
@@ -285,6 +273,9 @@ void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const 
     parallel_ranges(tasks.count, num_threads, 2 * row_len + ring_len, [&](int64_t t, float* buf) {
         const int64_t b = tasks.plane(t), y0 = tasks.y0(g, t), y1 = tasks.y1(g, t);
         float *pa = buf, *pb = buf + row_len, *ring = buf + 2 * row_len;
+        float* ring_q[5];  // quantity q's K rows
+        for (int q = 0; q < 5; ++q) ring_q[q] = ring + q * K * g.Wp;
+        auto ring_slot = [&](int64_t row) { return row % K; };
         int64_t next = std::max<int64_t>(0, y0 - g.r);  // the next row to blur horizontally into the ring
         for (int64_t oy = y0; oy < y1; ++oy) {
             for (const int64_t last = std::min<int64_t>(H - 1, oy + g.r); next <= last; ++next) {
@@ -301,14 +292,14 @@ void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const 
                     row_l1[b * H + next] = sum;
                 }
                 float* out[5];
-                for (int q = 0; q < 5; ++q) out[q] = ring + (q * K + next % K) * g.Wp;
+                for (int q = 0; q < 5; ++q) out[q] = ring_q[q] + ring_slot(next) * g.Wp;
                 hblur_row<5>(g, w, pa, pb, nullptr, out);
             }
             VS sum{};
             for (int64_t x0 = 0; x0 < W; x0 += SSIM_LANES) {
                 const int64_t n = std::min<int64_t>(SSIM_LANES, W - x0);
                 VS m[5];
-                vblur_ring<5>(g, w, ring, oy, x0, m);
+                vblur<5>(g, w, ring_q, ring_slot, oy, x0, m);
                 const VS ux = m[0], uy = m[1];
                 const VS sxx = m[2] - ux * ux, syy = m[3] - uy * uy, sxy = m[4] - ux * uy;
                 const VS a1 = 2.0f * ux * uy + c1, a2 = 2.0f * sxy + c2;
@@ -376,7 +367,7 @@ void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const
         for (int64_t x0 = 0; x0 < W; x0 += SSIM_LANES) {
             const int64_t n = std::min<int64_t>(SSIM_LANES, W - x0);
             VS m[3];
-            vblur<3>(g, w, hb, yy, x0, m);
+            vblur<3>(g, w, hb, [](int64_t row) { return row; }, yy, x0, m);
             VS xv{}, yv{};
             if (CH == 1) {
                 std::memcpy(&xv, xr + x0, sizeof(float) * n);
