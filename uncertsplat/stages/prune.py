@@ -159,15 +159,13 @@ class _Measure:
         """The source model's RGB predictive tails (``eval.engine.fit_std_scale``), which every model of the sweep
         is scored with, so that their NLLs compare: read from the source's evaluation when ``unpruned`` found one,
         else fitted once here."""
-        if self._dof is None:
+        if self._dof is None:  # as `evaluate` fits it
             from uncertsplat.data.dataset import load_view_set
-            from uncertsplat.eval.engine import fit_std_scale, with_side_terms
+            from uncertsplat.eval.engine import scored_sampler
 
-            sampler = with_side_terms(self.loaded.sampler(self.scene.scene_scale, self.device), self.residual,
-                                      self.scene.cameras[list(self.scene.split.get("train", ()))], self.ecfg,
-                                      self.device)
-            fit = fit_std_scale(sampler, self.scene.split, self.ecfg, self.device,
-                                load_views=partial(load_view_set, self.scene, depth=False))
+            _, fit = scored_sampler(partial(self.loaded.sampler, self.scene.scene_scale, self.device), self.residual,
+                                    self.scene.cameras, self.scene.split, self.ecfg, self.device,
+                                    load_views=partial(load_view_set, self.scene, depth=False))
             self._dof = (fit.dof,)
         return self._dof[0]
 
