@@ -83,11 +83,17 @@ class Cameras:
         return _map_tensors(self, lambda t: t.to(device=device, dtype=dtype))
 
     def scaled(self, factor: float) -> Cameras:
-        """Cameras for images resized by ``factor`` (e.g. 0.5 halves width and height)."""
-        K = self.K.clone()
-        K[:, :2, :] *= factor
+        """Cameras for images resized by ``factor`` (e.g. 0.5 halves width and height).
+
+        The size is rounded to whole pixels, and an image is resized to that size edge to edge, so each axis is
+        scaled by its own ratio (new size / old size), not by ``factor``: 533 rows halved are 266, a scale of
+        0.49906, and intrinsics scaled by 0.5 would put the bottom row a quarter of a pixel off its photo.
+        """
         w = max(1, round(self.width * factor))
         h = max(1, round(self.height * factor))
+        K = self.K.clone()
+        K[:, 0, :] *= w / self.width
+        K[:, 1, :] *= h / self.height
         return Cameras(self.cam_from_world, K, w, h, self.image_names)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import OpenImageIO as oiio
 import pytest
+import torch
 
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import (
@@ -149,3 +150,44 @@ def test_resize_area_average(rng):
     np.testing.assert_allclose(r, expect, atol=1e-6)
     assert resize_image(a[..., 0], 3, 2).shape == (2, 3)
     np.testing.assert_array_equal(resize_image(a, 12, 8), a)
+
+
+class TestAreaResize:
+    """``area_resize``: each target pixel the exact mean of the source area it covers, edge to edge."""
+
+    def test_whole_ratios_are_torch_area_pooling(self):
+        import torch.nn.functional as F
+
+        from uncertsplat.io.images import area_resize
+
+        t = torch.rand(2, 3, 12, 18, generator=torch.Generator().manual_seed(0))
+        assert torch.equal(area_resize(t, 4, 6), F.interpolate(t, size=(4, 6), mode="area"))
+        assert torch.equal(area_resize(t[0, 0], 6, 9), F.interpolate(t[:1, :1], size=(6, 9), mode="area")[0, 0])
+
+    @pytest.mark.parametrize("size", [(7, 5), (11, 13), (1, 1), (12, 17)])
+    def test_other_ratios_integrate_exactly(self, size):
+        from uncertsplat.io.images import area_resize
+
+        H, W, h, w = 12, 18, *size
+        t = torch.rand(3, H, W, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+        out = area_resize(t, h, w)
+        # the same means from the image upsampled by h * w (nearest) and pooled by whole blocks
+        fine = t.repeat_interleave(h, 1).repeat_interleave(w, 2)  # [3, H h, W w]
+        ref = fine.reshape(3, h, H, w, W).mean((2, 4))
+        torch.testing.assert_close(out, ref, atol=1e-12, rtol=0)
+        torch.testing.assert_close(out.mean((1, 2)), t.mean((1, 2)), atol=1e-12, rtol=0)
+
+    def test_a_ramp_keeps_its_pixel_centres(self):
+        """802 x 533 to 401 x 266 (the rows by 2.0038): each pixel shows the photo where its centre falls."""
+        from uncertsplat.io.images import resize_image
+
+        ys, xs = np.meshgrid(np.arange(533) + 0.5, np.arange(802) + 0.5, indexing="ij")
+        out = resize_image(np.stack([xs, ys], -1).astype(np.float32), 401, 266)  # [266,401,2]
+        np.testing.assert_allclose(out[0, :, 0], (np.arange(401) + 0.5) * 2, atol=1e-3)
+        np.testing.assert_allclose(out[:, 0, 1], (np.arange(266) + 0.5) * 533 / 266, atol=0.01)
+
+    def test_upscaling_is_refused(self):
+        from uncertsplat.io.images import area_resize
+
+        with pytest.raises(ValueError, match="only downscales"):
+            area_resize(torch.zeros(4, 4), 5, 4)

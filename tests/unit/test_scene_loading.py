@@ -83,6 +83,38 @@ def test_downscale(tiny_scene_path):  # noqa: F811
     assert m.dtype == torch.bool and m.shape == (1, 48, 64, 1) and m.all()
 
 
+def test_downscale_to_a_rounded_size_keeps_each_pixel_on_its_ray(tiny_scene_path):  # noqa: F811
+    """128 x 96 / 3 is 42.67 x 32, rounded to 43 x 32: the photo is stretched by 43/42.67 across, so the intrinsics
+    must scale x by 43/128 (not 1/3), and the resize must average each target pixel's exact share of the photo."""
+    from uncertsplat.io.images import resize_image
+    from uncertsplat.render.project import project_points
+
+    full = load_scene(tiny_scene_path)
+    small = load_scene(tiny_scene_path, SceneConfig(downscale=3))
+    W, H, w, h = full.cameras.width, full.cameras.height, small.cameras.width, small.cameras.height
+    assert (w, h) == (43, 32)
+    # an image holding each full-size pixel centre's own coordinates, resized as photos are
+    ys, xs = np.meshgrid(np.arange(H) + 0.5, np.arange(W) + 0.5, indexing="ij")
+    ramp = resize_image(np.stack([xs, ys], -1).astype(np.float32), w, h)  # [h,w,2]
+    for cam in (0, 7):
+        uv_full, _ = project_points(full.points.double(), full.cameras.cam_from_world[cam].double(),
+                                    full.cameras.K[cam].double())
+        uv, _ = project_points(full.points.double(), small.cameras.cam_from_world[cam].double(),
+                               small.cameras.K[cam].double())
+        inside = ((uv > 1.0) & (uv < torch.tensor([w - 1.0, h - 1.0], dtype=uv.dtype))).all(-1)
+        assert inside.sum() > 20
+        x, y = (uv[inside] - 0.5).unbind(-1)  # the resized image bilinearly at the point (exact on a ramp)
+        x0, y0 = x.floor().long(), y.floor().long()
+        fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+        r = torch.from_numpy(ramp).double()
+        seen = ((1 - fy) * ((1 - fx) * r[y0, x0] + fx * r[y0, x0 + 1])
+                + fy * ((1 - fx) * r[y0 + 1, x0] + fx * r[y0 + 1, x0 + 1]))
+        # the resized photo shows there what the full photo shows where the full camera sees the point (to the
+        # ramp's steps within a source pixel): with intrinsics scaled by 1/3 the right edge drifted a full source
+        # pixel; with torch's adaptive area bins the content moved up to half a source pixel in a saw-tooth
+        torch.testing.assert_close(seen, uv_full[inside], atol=0.01, rtol=0)
+
+
 def test_splits(tiny_scene_path):  # noqa: F811
     names = [f"view_{i:03d}.png" for i in range(24)]
     s = load_scene(tiny_scene_path, SceneConfig(test_every=5))

@@ -43,6 +43,7 @@ from uncertsplat.gaussians.variational import (
     sample,
     sample_with_kl,
 )
+from uncertsplat.io.images import area_resize
 from uncertsplat.render import near_plane, render
 from uncertsplat.render.exposure import centred, expose, exposure_record, fitted_gain, unexpose
 from uncertsplat.schemas.runs import RunExposure
@@ -120,9 +121,8 @@ class Trainer:
         self.low_cams = self.low_images = None
         if self.low_res_until > 0 and cfg.low_res_scale < 1.0:
             self.low_cams = self.train_cams.scaled(cfg.low_res_scale)
-            self.low_images = torch.nn.functional.interpolate(
-                train_images.permute(0, 3, 1, 2), size=(self.low_cams.height, self.low_cams.width), mode="area"
-            ).permute(0, 2, 3, 1).contiguous()  # [T,h,w,3]
+            self.low_images = area_resize(train_images.permute(0, 3, 1, 2), self.low_cams.height, self.low_cams.width
+                                          ).permute(0, 2, 3, 1).contiguous()  # [T,h,w,3]
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.extent = float(scene.extent)
         self.prior = prior_from_config(cfg)
