@@ -138,6 +138,8 @@ def reconstruct(
         bool | None, typer.Option("--single-camera/--per-image-camera", help="Share one camera per image size.")
     ] = None,
     max_image_size: Annotated[int | None, typer.Option(help="Longest image side used.")] = None,
+    features: Annotated[str | None, typer.Option(
+        help="sift or dsp-sift (matches photos far apart; slower).")] = None,
     min_registered: Annotated[float | None, typer.Option(help="Minimum registered fraction.")] = None,
     mapping_attempts: Annotated[int | None, typer.Option(
         help="Mapping runs at most (other seeds) until two agree; the best is kept. 1: a single run.")] = None,
@@ -151,7 +153,7 @@ def reconstruct(
     from uncertsplat.stages import reconstruct as stage
 
     explicit = dict(matcher=matcher, camera_model=camera_model, single_camera=single_camera,
-                    max_image_size=max_image_size, min_registered=min_registered,
+                    max_image_size=max_image_size, features=features, min_registered=min_registered,
                     mapping_attempts=mapping_attempts, seed=seed, overwrite=overwrite or None)
     cfg = _stage_config(ReconstructConfig, config, set_, explicit)
     stage.run(photos, output, cfg)

@@ -59,6 +59,14 @@ class ReconstructConfig(_Base):
     """One camera shared by all images of the same size (one device); else one per image."""
     max_image_size: int = Field(1600, ge=64)
     """Longest side used for feature extraction and undistorted output."""
+    features: Literal["sift", "dsp-sift"] = "sift"
+    """sift: COLMAP's SIFT. dsp-sift: SIFT with affine-adapted regions and domain-size pooling (descriptors pooled
+    over several region sizes), which match across wider changes of view; more observations per photo and better
+    poses on captures whose photos are far apart, for more extraction time (BENCHMARKS.md, "Features for photos far
+    apart")."""
+    guided_matching: bool = False
+    """After a pair's geometry is verified, match its features again constrained by that geometry (more inlier
+    matches per pair; matching takes several times longer)."""
     min_registered: float = Field(0.8, gt=0.0, le=1.0)
     """Fail when fewer than this fraction of the images register."""
     mapping_attempts: int = Field(4, ge=1, le=20)

@@ -346,3 +346,33 @@ def test_a_mapping_run_agrees_only_with_runs_of_its_own_options():
     assert sfm.agreeing(runs, 2) is None  # the one relaxed run is not compared with the normal ones
     runs.append(attempt(3, observations=51_043, focal=829.1))
     assert sfm.agreeing(runs, 3) is True and sfm.agreeing(runs, 1) is True and sfm.agreeing(runs, 0) is False
+
+
+@pytest.mark.parametrize("features, guided", [("sift", False), ("dsp-sift", True)])
+def test_feature_and_matching_options_reach_colmap(tmp_path, monkeypatch, features, guided):
+    """``features`` and ``guided_matching`` set COLMAP's options (the pycolmap calls are stubbed: no real work)."""
+    import pycolmap
+
+    seen = {}
+    monkeypatch.setattr(pycolmap, "extract_features",
+                        lambda *a, extraction_options, **k: seen.setdefault("extraction", extraction_options))
+    monkeypatch.setattr(pycolmap, "match_image_pairs",
+                        lambda *a, matching_options, **k: seen.setdefault("matching", matching_options))
+    monkeypatch.setattr(sfm, "count_verified_pairs", lambda database: 0)
+    cfg = ReconstructConfig(features=features, guided_matching=guided, single_camera=False)
+    db = tmp_path / "database.db"
+    assert sfm.extract_features(db, tmp_path, {(32, 24): ["a.png"]}, cfg) == {}  # the stub extracted nothing
+    sfm.match_features(db, [("a.png", "b.png")], cfg, tmp_path / "scratch")
+    sift = seen["extraction"].sift
+    dsp = features == "dsp-sift"
+    assert sift.estimate_affine_shape is dsp and sift.domain_size_pooling is dsp
+    assert seen["matching"].guided_matching is guided
+
+
+def test_a_workspace_from_before_an_option_existed_is_reused_at_its_default():
+    options = ReconstructConfig().model_dump(mode="json", exclude={"overwrite"})
+    older = {k: v for k, v in options.items() if k not in ("features", "guided_matching")}
+    assert stage._same_options(older, ReconstructConfig())
+    assert not stage._same_options(older, ReconstructConfig(features="dsp-sift"))
+    assert not stage._same_options({**options, "removed_option": 1}, ReconstructConfig())
+    assert not stage._same_options({**options, "matcher": "sequential"}, ReconstructConfig())

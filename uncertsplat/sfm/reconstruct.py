@@ -241,6 +241,9 @@ def extract_features(
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = cfg.num_threads
     extraction.max_image_size = cfg.max_image_size
+    if cfg.features == "dsp-sift":
+        extraction.sift.estimate_affine_shape = True
+        extraction.sift.domain_size_pooling = True
     mode = pycolmap.CameraMode.SINGLE if cfg.single_camera else pycolmap.CameraMode.PER_IMAGE
     for names in groups.values():
         camera_id = -1
@@ -321,6 +324,7 @@ def match_features(
     """
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = cfg.num_threads
+    matching.guided_matching = cfg.guided_matching
     pairing = pycolmap.ImportedPairingOptions()
     scratch.mkdir(parents=True, exist_ok=True)
     pair_file = scratch / "pairs.txt"

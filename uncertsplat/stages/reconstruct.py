@@ -34,6 +34,16 @@ from uncertsplat.sfm.report import (
 _OWNED = ("images", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", REPORT_NAME)
 
 
+def _same_options(recorded: dict, cfg: ReconstructConfig) -> bool:
+    """Whether a workspace's recorded options are ``cfg``'s; an option added since it was made counts at its default
+    (a workspace from before ``features`` existed was made with "sift", the default)."""
+    try:
+        then = type(cfg).model_validate({**recorded, "overwrite": cfg.overwrite})
+    except ValueError:  # an option that no longer exists, or a value no longer allowed
+        return False
+    return then == cfg
+
+
 def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fingerprint: str) -> ReconstructReport | None:
     """Check the output folder; return an identical finished report to reuse, else make room.
 
@@ -60,7 +70,7 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
     same_input = (existing is not None and existing.photos == str(photos_abs)
                   and existing.inputs_fingerprint == fingerprint)
     if (not cfg.overwrite and same_input and existing.success
-            and existing.options == cfg.model_dump(mode="json", exclude={"overwrite"})
+            and _same_options(existing.options, cfg)
             and (workspace / "sparse" / "0").is_dir()):
         return existing
     # Our own failed run on the same photos is redone without asking: there is nothing to lose.
