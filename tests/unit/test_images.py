@@ -176,6 +176,10 @@ class TestAreaResize:
         ref = fine.reshape(3, h, H, w, W).mean((2, 4))
         torch.testing.assert_close(out, ref, atol=1e-12, rtol=0)
         torch.testing.assert_close(out.mean((1, 2)), t.mean((1, 2)), atol=1e-12, rtol=0)
+        # a batch of images (resized one at a time) gives each image's own result
+        batch = torch.stack([t, 1 - t])  # [2,3,H,W]
+        torch.testing.assert_close(area_resize(batch, h, w), torch.stack([out, area_resize(1 - t, h, w)]),
+                                   atol=1e-12, rtol=0)
 
     def test_a_ramp_keeps_its_pixel_centres(self):
         """802 x 533 to 401 x 266 (the rows by 2.0038): each pixel shows the photo where its centre falls."""
