@@ -376,3 +376,26 @@ def test_a_workspace_from_before_an_option_existed_is_reused_at_its_default():
     assert not stage._same_options(older, ReconstructConfig(features="dsp-sift"))
     assert not stage._same_options({**options, "removed_option": 1}, ReconstructConfig())
     assert not stage._same_options({**options, "matcher": "sequential"}, ReconstructConfig())
+
+
+def test_weakly_registered_photos_are_named_fewest_first():
+    """Photos with fewer than a fifth of the median photo's observations (a stub with what the function reads)."""
+
+    class Image:
+        def __init__(self, name, n):
+            self.name, self.num_points3D = name, n
+
+    class Rec:
+        def __init__(self, counts):
+            self.images = [Image(n, c) for n, c in counts.items()]
+
+        def reg_image_ids(self):
+            return range(len(self.images))
+
+        def image(self, i):
+            return self.images[i]
+
+    counts = {"a.jpg": 753, "b.jpg": 800, "c.jpg": 32, "d.jpg": 760, "e.jpg": 149, "f.jpg": 151, "g.jpg": 900}
+    assert sfm.weakly_registered(Rec(counts)) == {"c.jpg": 32, "e.jpg": 149}  # median 753: below 150.6
+    assert sfm.weakly_registered(Rec({"a.jpg": 1000, "b.jpg": 1100, "c.jpg": 950})) == {}
+    assert sfm.weakly_registered(Rec({"a.jpg": 1000, "b.jpg": 1})) == {}  # two photos: no median to speak of

@@ -499,6 +499,20 @@ def model_stats(rec: pycolmap.Reconstruction) -> dict:
     }
 
 
+WEAK_FRACTION = 0.2  # a photo with fewer than this fraction of the median photo's observations is named
+
+
+def weakly_registered(rec: pycolmap.Reconstruction, fraction: float = WEAK_FRACTION) -> dict[str, int]:
+    """Registered photos whose pose rests on fewer than ``fraction`` of the median photo's feature observations
+    (name -> observations), fewest first. bonsai with SIFT: DSCF5763.JPG from 32 points where the median photo has
+    753 (BENCHMARKS.md, "Features for photos far apart")."""
+    counts = {rec.image(i).name: int(rec.image(i).num_points3D) for i in rec.reg_image_ids()}
+    if len(counts) < 3:
+        return {}
+    median = float(np.median(list(counts.values())))
+    return dict(sorted(((n, c) for n, c in counts.items() if c < fraction * median), key=lambda kv: (kv[1], kv[0])))
+
+
 def camera_summaries(rec: pycolmap.Reconstruction) -> list[dict]:
     counts: dict[int, int] = {}
     for i in rec.reg_image_ids():
