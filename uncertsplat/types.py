@@ -87,7 +87,7 @@ class Cameras:
 
         The size is rounded to whole pixels, and an image is resized to that size edge to edge, so each axis is
         scaled by its own ratio (new size / old size), not by ``factor``: 533 rows halved are 266, a scale of
-        0.49906, and intrinsics scaled by 0.5 would put the bottom row a quarter of a pixel off its photo.
+        0.49906, and intrinsics scaled by 0.5 would put the bottom rows half a pixel off their photo.
         """
         w = max(1, round(self.width * factor))
         h = max(1, round(self.height * factor))

@@ -331,12 +331,15 @@ def area_resize(images, height: int, width: int):
         t = images.reshape(-1, 1, H, W) if images.dim() != 4 else images
         out = F.interpolate(t, size=(height, width), mode="area")
         return out.reshape(*lead, height, width)
+    def exact(image):  # both axes, float64
+        return _area_axis(_area_axis(image, width, -1), height, -2)
+
     if images.dim() == 4 and images.shape[0] > 1:  # one image at a time: the float64 sums of a whole batch of
         out = images.new_empty((*images.shape[:2], height, width))  # training photos would be gigabytes
         for i in range(images.shape[0]):
-            out[i] = _area_axis(_area_axis(images[i], width, -1), height, -2)
+            out[i] = exact(images[i])
         return out
-    return _area_axis(_area_axis(images, width, -1), height, -2).to(images.dtype)
+    return exact(images).to(images.dtype)
 
 
 def _area_axis(t, n: int, dim: int):

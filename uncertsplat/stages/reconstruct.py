@@ -111,6 +111,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         return reused
 
     pyv, colv = sfm.versions()
+    weak_note = ""  # the photos registered from few points, printed again after the summary
     report = ReconstructReport(
         success=False, photos=str(photos.resolve()), inputs_fingerprint=fingerprint,
         images_found=scan.names, images_unregistered=scan.names, ignored=scan.ignored, notes=list(scan.notes),
@@ -230,11 +231,12 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
             report.cameras = sfm.camera_summaries(best)
             weak = sfm.weakly_registered(best)
             if weak:
-                report.notes.append(
+                weak_note = (
                     "weakly registered (their poses rest on fewer than a fifth of the median photo's feature "
                     "observations): " + ", ".join(f"{n} ({c})" for n, c in weak.items())
                     + "; photos far apart match better with --features dsp-sift --set guided_matching=true, or add "
                     "photos between these and their neighbours")
+                report.notes.append(weak_note)
         if len(result.models) > 1:
             report.notes.append(f"mapping split the photos into {len(result.models)} models; kept the largest "
                                 f"({result.models[0].num_reg_images()} images), sizes of the others: "
@@ -285,9 +287,8 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                       "feature observations (reconstruct_report.json: mapping_attempts)")
     if report.images_unregistered:
         console.print(f"[yellow]warning:[/] not registered: {list_names(report.images_unregistered)}")
-    for note in report.notes:
-        if note.startswith("weakly registered"):
-            console.print(f"[yellow]note:[/] {note}")
+    if weak_note:
+        console.print(f"[yellow]note:[/] {weak_note}")
     if report.ground_truth:
         g = report.ground_truth
         console.print(f"  against the synthetic scene's GT cameras: centres {g['centre_error_mean_pct']:.3f} % of the "
