@@ -26,3 +26,16 @@ def test_bad_device_is_a_clear_error(tmp_path):
     assert result.exit_code == 2
     assert "unknown device" in result.output
     assert "Traceback" not in result.output
+
+
+def test_python_dash_m_runs_the_same_cli():
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-m", "uncertsplat", "--version"], capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert __version__ in result.stdout
+    result = subprocess.run([sys.executable, "-m", "uncertsplat", "--help"], capture_output=True, text=True,
+                            timeout=120)
+    assert "Usage: uncertsplat" in result.stdout
