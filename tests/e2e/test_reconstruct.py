@@ -163,6 +163,20 @@ def test_mixed_sizes_and_exif_orientation(synth_scene, tmp_path):
     assert err.max() < 2 * SYNTH_TOLERANCE * radius, (err.max() / radius)
 
 
+def test_photo_names_with_spaces_are_matched_and_kept(synth_scene, tmp_path):
+    """COLMAP's imported pair lists split lines at spaces: such photos were never matched (0 verified pairs)."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for p in sorted((synth_scene / "images").iterdir())[:12]:  # half the orbit keeps the test short
+        shutil.copy(p, photos / f"my photo {p.stem}{p.suffix}")
+    report = stage.run(photos, tmp_path / "ws", CFG)
+    assert report.success and report.num_verified_pairs > 11
+    assert sorted(report.images_registered) == sorted(p.name for p in photos.iterdir())
+    assert sorted(p.name for p in (tmp_path / "ws" / "images").iterdir()) == sorted(report.images_registered)
+    with pycolmap.Database.open(tmp_path / "ws" / "database.db") as db:  # the aliases were undone
+        assert sorted(im.name for im in db.read_all_images()) == sorted(report.images_registered)
+
+
 def test_too_few_registered_lists_the_images_and_writes_the_report(synth_scene, tmp_path):
     photos = tmp_path / "photos"
     photos.mkdir()

@@ -85,6 +85,50 @@ def test_scan_names_every_unreadable_file(tmp_path):
     assert "broken.jpg" in msg and "empty.PNG" in msg and "ok0.png" not in msg
 
 
+@pytest.mark.parametrize("ext", [".jpg", ".png"])
+def test_scan_names_a_photo_whose_pixels_end_early(tmp_path, ext):
+    """A truncated file's header reads well; its pixels do not (COLMAP would fill them in without a word)."""
+    for i in range(3):
+        write_image(tmp_path / f"ok{i}{ext}", 64, 48, seed=i)
+    write_image(tmp_path / f"cut{ext}", 64, 48, seed=9)
+    data = (tmp_path / f"cut{ext}").read_bytes()
+    (tmp_path / f"cut{ext}").write_bytes(data[: len(data) // 2])
+    with pytest.raises(UserError) as err:
+        sfm.scan_photos(tmp_path)
+    msg = str(err.value)
+    assert f"cut{ext}" in msg and "truncated" in msg and "ok0" not in msg
+
+
+def test_scan_leaves_out_exact_copies_and_names_them(tmp_path):
+    for i in range(4):
+        write_image(tmp_path / f"p{i}.png", seed=i)
+    (tmp_path / "p1_copy.png").write_bytes((tmp_path / "p1.png").read_bytes())
+    (tmp_path / "z.png").write_bytes((tmp_path / "p3.png").read_bytes())
+    write_image(tmp_path / "same_size_other_pixels.png", seed=7)  # the size of the others, not a copy
+    scan = sfm.scan_photos(tmp_path)
+    assert scan.names == ["p0.png", "p1.png", "p2.png", "p3.png", "same_size_other_pixels.png"]
+    assert {"p1_copy.png", "z.png"} <= set(scan.ignored)
+    assert any("p1_copy.png (= p1.png)" in n and "z.png (= p3.png)" in n for n in scan.notes)
+
+
+def test_scan_refuses_a_folder_of_copies(tmp_path):
+    write_image(tmp_path / "a.png")
+    for name in ("b.png", "c.png"):
+        (tmp_path / name).write_bytes((tmp_path / "a.png").read_bytes())
+    with pytest.raises(UserError, match="only 1 different photo"):
+        sfm.scan_photos(tmp_path)
+
+
+def test_scan_keeps_one_photo_per_name_stem(tmp_path):
+    for i in range(3):
+        write_image(tmp_path / f"IMG_{i}.jpg", seed=i)
+    write_image(tmp_path / "IMG_1.png", seed=5)  # evaluate's maps of the two would share one file name
+    scan = sfm.scan_photos(tmp_path)
+    assert scan.names == ["IMG_0.jpg", "IMG_1.jpg", "IMG_2.jpg"]
+    assert "IMG_1.png" in scan.ignored
+    assert any("IMG_1.png (beside IMG_1.jpg)" in n for n in scan.notes)
+
+
 def test_size_groups_and_exif_orientation(tmp_path):
     write_image(tmp_path / "a.jpg", 40, 30)
     write_image(tmp_path / "b.jpg", 40, 30, orientation=6)  # stored landscape, shown portrait
@@ -100,8 +144,8 @@ def test_stage_inputs_rotates_by_exif(tmp_path):
     photos = tmp_path / "photos"
     photos.mkdir()
     upright = write_image(photos / "a.png", 40, 30)
-    stored = write_image(photos / "b.tif", 40, 30, orientation=6)
-    write_image(photos / "c.png", 40, 30)
+    stored = write_image(photos / "b.tif", 40, 30, orientation=6, seed=1)
+    write_image(photos / "c.png", 40, 30, seed=2)
     scan = sfm.scan_photos(photos)
     folder, rotated = sfm.stage_inputs(scan, tmp_path / "staging")
     assert rotated == ["b.tif"] and folder == tmp_path / "staging"

@@ -238,9 +238,15 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                     "photos between these and their neighbours")
                 report.notes.append(weak_note)
         if len(result.models) > 1:
-            report.notes.append(f"mapping split the photos into {len(result.models)} models; kept the largest "
-                                f"({result.models[0].num_reg_images()} images), sizes of the others: "
-                                f"{[m.num_reg_images() for m in result.models[1:]]}")
+            # COLMAP's later models may re-use photos of the first: only the ones no kept model has are lost
+            kept = {im.name for im in result.models[0].images.values() if im.has_pose}
+            others = {im.name for m in result.models[1:] for im in m.images.values() if im.has_pose}
+            lost = sorted(others - kept)
+            report.notes.append(f"mapping made {len(result.models)} models; kept the largest "
+                                f"({result.models[0].num_reg_images()} images), the others hold "
+                                f"{[m.num_reg_images() for m in result.models[1:]]} images"
+                                + (f", {len(lost)} of them in no kept model: {', '.join(lost)}" if lost
+                                   else ", all of them in the kept model too"))
 
         if best is None:
             why = ("no image pair shares enough matching features" if report.num_verified_pairs == 0
