@@ -305,6 +305,21 @@ def test_photos_in_a_subfolder_are_pointed_out(tmp_path):
         scan_photos(tmp_path)
 
 
+def test_photos_two_levels_down_and_in_several_subfolders_are_pointed_out(tmp_path):
+    from uncertsplat.sfm.reconstruct import scan_photos
+
+    deep = tmp_path / "capture" / "dcim"
+    deep.mkdir(parents=True)
+    (deep / "0.jpg").write_bytes(b"x")
+    with pytest.raises(UserError, match=r"sub-folder .*capture/dcim holds photos"):
+        scan_photos(tmp_path)
+    other = tmp_path / "b"
+    other.mkdir()
+    (other / "1.jpg").write_bytes(b"x")
+    with pytest.raises(UserError, match=r"sub-folders .*b, .*capture/dcim hold photos: pass one of them"):
+        scan_photos(tmp_path)
+
+
 # ------------------------------------------------------------------------------------------ mapping runs
 def attempt(seed: int, images: int = 49, observations: int = 50_000, focal: float = 820.0, relaxed: bool = False):
     return {"seed": seed, "relaxed": relaxed, "num_images": images, "num_points3d": observations // 3,

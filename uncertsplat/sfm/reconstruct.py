@@ -161,12 +161,15 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
     if not candidates:
         what = "is empty" if not entries else "holds no JPEG, PNG or TIFF photos"
         # a common slip: pointing at a dataset folder whose photos live in a sub-folder (e.g. images/)
-        with_photos = [d for d in sorted(subfolders)
-                       if any(p.suffix.lower() in IMAGE_EXTENSIONS for p in (folder / d).iterdir() if p.is_file())]
+        with_photos = _folders_with_photos(folder)
         hint = (f"Put at least {min_images} overlapping photos ({', '.join(IMAGE_EXTENSIONS)}) "
                 "directly in this folder.")
-        if with_photos:
-            hint = f"Its sub-folder {folder / with_photos[0]} holds photos: pass that folder instead."
+        if len(with_photos) == 1:
+            hint = f"Its sub-folder {with_photos[0]} holds photos: pass that folder instead."
+        elif with_photos:
+            listed = ", ".join(str(d) for d in with_photos[:4]) + (", ..." if len(with_photos) > 4 else "")
+            hint = (f"Its sub-folders {listed} hold photos: pass one of them, or move the photos of one scene "
+                    "into one folder and pass that.")
         raise UserError(f"the photo folder {what}", path=folder, hint=hint)
     if len(candidates) < min_images:
         raise UserError(f"only {len(candidates)} photo(s) found; structure-from-motion needs at least {min_images}",
@@ -221,6 +224,28 @@ def _one_per_stem(photos: list[PhotoInfo], ignored: list[str], notes: list[str])
     notes.append(f"{len(dropped)} photo(s) share their name with another up to the extension and were left out "
                  f"(often one shot saved in two formats; rename one to use both): {listed}")
     return [p for p in photos if p.name not in dropped]
+
+
+def _folders_with_photos(folder: Path, depth: int = 2) -> list[Path]:
+    """The sub-folders of ``folder`` (down to ``depth`` levels, hidden ones skipped) that hold photos directly."""
+    found: list[Path] = []
+    level = [folder]
+    for _ in range(depth):
+        nxt = []
+        for d in level:
+            try:
+                subs = sorted(e for e in d.iterdir() if e.is_dir() and not e.name.startswith("."))
+            except OSError:
+                continue
+            for sub in subs:
+                try:
+                    if any(p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS for p in sub.iterdir()):
+                        found.append(sub)
+                except OSError:
+                    continue
+                nxt.append(sub)
+        level = nxt
+    return found
 
 
 def _file_digest(path: Path) -> str:
