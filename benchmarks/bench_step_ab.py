@@ -8,6 +8,8 @@ median per mode are compared. ``--what``:
   in place and the L1 term from SSIM's pass (2026-11-27) against the paths before them in the same library:
   the packed compositor with ``tiles_to_image``, the channel slices and the background's blend, SSIM on
   permuted copies of the channels, L1 as tensor ops.
+- ``train-on``: the informed posterior's Gaussians fitted to the posterior mean's render
+  (``variational.train_on = "mean"``, now) against the expected render (``"expected"``, before).
 
 Page faults per step are reported too (fresh pages the allocator got from the system). glibc's malloc thresholds
 must not be set by ``mallopt`` in a "before" mode: setting them turns off its dynamic thresholds for the rest of
@@ -96,11 +98,23 @@ def _fused_image_modes():
     return before, after
 
 
+def _train_on_modes(trainer):
+    """(set_before, set_now) for ``train-on``: the trainer's ``variational.train_on``, "expected" then "mean"."""
+
+    def setter(value):
+        def set_mode():
+            cfg = trainer.cfg
+            trainer.cfg = cfg.model_copy(update={"variational": cfg.variational.model_copy(update={"train_on": value})})
+            trainer._expected = None
+        return set_mode
+    return setter("expected"), setter("mean")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--run", type=Path, required=True, help="a run folder with checkpoints")
     ap.add_argument("--scene", type=Path, required=True, help="the scene of --run")
-    ap.add_argument("--what", choices=["fused-image"], default="fused-image")
+    ap.add_argument("--what", choices=["fused-image", "train-on"], default="fused-image")
     ap.add_argument("--rounds", type=int, default=16)
     ap.add_argument("--block", type=int, default=10)
     ap.add_argument("--label", default="run")
@@ -110,7 +124,7 @@ def main() -> None:
     cfg = TrainConfig.model_validate(json.loads((args.run / "config.json").read_text()))
     trainer = trainer_from_run(args.scene, args.run, cfg, torch.device("cpu"),
                                extra_steps=2 * args.block * args.rounds + 10)
-    set_before, set_now = _fused_image_modes()
+    set_before, set_now = _fused_image_modes() if args.what == "fused-image" else _train_on_modes(trainer)
     for _ in range(5):  # warm-up
         trainer.train_step()
     seconds: dict[str, list[float]] = {"before": [], "now": []}

@@ -15,6 +15,8 @@ PACKAGE = Path(__file__).resolve().parents[2] / "uncertsplat"
 # Entries are module paths relative to ``uncertsplat`` and match the module and everything under it (the
 # longest entry wins), so one package can sit on two layers (``io``). A new package must be placed here.
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
+    # `python -m uncertsplat`: runs the command line
+    ("entry point", ("__main__",)),
     # the command line: parses options, picks the device, calls one stage
     ("cli", ("cli",)),
     # one module per command: config in, files out (and the pipeline that chains them)

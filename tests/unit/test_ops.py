@@ -116,6 +116,46 @@ def test_spawn_adds_prior_rows_only_for_new_carriers():
     model.check()
 
 
+@pytest.mark.parametrize("keep", [False, True])
+def test_spawn_keep_render_preserves_the_posterior_mean(keep):
+    """``keep_render``: the new carriers' posterior-mean opacity and scale are what they were without a posterior
+    (to float rounding; an opacity too high to divide by the prior's gate is capped); the old carriers and every
+    other parameter are untouched. Without it the prior dims and shrinks them."""
+    from uncertsplat.gaussians.variational import expected_gate, posterior_mean
+
+    model, opt, _ = setup()
+    with torch.no_grad():  # opacities from 0.02 to 0.8: below 1 / E[gate], so none is capped
+        model.params["opacities"].copy_(torch.logit(torch.linspace(0.02, 0.8, 40)))
+    prior = Prior()
+    new = model.posterior_row < 0
+    before = posterior_mean(model, variant="ours")
+    means = model.params["means"].detach().clone()
+    ops.spawn(model, opt, torch.ones(40, dtype=torch.bool), prior, keep_render=keep)
+    after = posterior_mean(model, variant="ours")
+    torch.testing.assert_close(after.opacities[~new], before.opacities[~new], rtol=1e-6, atol=0)
+    torch.testing.assert_close(after.scales[~new], before.scales[~new], rtol=1e-6, atol=0)
+    torch.testing.assert_close(model.params["means"].detach(), means, rtol=0, atol=0)
+    gate = float(expected_gate(torch.tensor(prior.gate_mean), torch.tensor(prior.gate_std), prior.temperature))
+    mult = 1.0 - 0.5 * prior.scale_width
+    if keep:
+        torch.testing.assert_close(after.opacities[new], before.opacities[new], rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(after.scales[new], before.scales[new], rtol=1e-5, atol=1e-7)
+    else:
+        torch.testing.assert_close(after.opacities[new], before.opacities[new] * gate, rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(after.scales[new], before.scales[new] * mult, rtol=1e-5, atol=1e-7)
+    model.check()
+
+
+def test_spawn_keep_render_caps_an_opacity_the_gate_cannot_carry():
+    model, opt, _ = setup()
+    new = model.posterior_row < 0
+    with torch.no_grad():
+        model.params["opacities"].fill_(10.0)  # sigmoid 0.99995: more than E[gate] x 1 allows
+    ops.spawn(model, opt, torch.ones(40, dtype=torch.bool), Prior(), keep_render=True)
+    assert torch.isfinite(model.params["opacities"]).all()
+    assert float(torch.sigmoid(model.params["opacities"].detach()[new]).max()) <= 1.0 - 1e-4 + 1e-7
+
+
 def test_reset_opacity_caps_and_zeroes_moments():
     model, opt, _ = setup()
     with torch.no_grad():

@@ -171,15 +171,28 @@ def split(model: GaussianModel, optimizer, mask: Tensor, generator: torch.Genera
     remove(model, optimizer, parents)
 
 
-def spawn(model: GaussianModel, optimizer, mask: Tensor, prior: Prior) -> int:
+def spawn(model: GaussianModel, optimizer, mask: Tensor, prior: Prior, keep_render: bool = False) -> int:
     """Give a posterior (new table rows at the prior) to the Gaussians in ``mask`` that have none.
 
-    Returns the number of new carriers. Existing carriers keep their rows.
+    Returns the number of new carriers. Existing carriers keep their rows. ``keep_render`` (variant "ours"): the
+    new carriers' base opacity and scale absorb the prior's expected gate and mean multiplier, so that the
+    posterior mean renders them as before (as the informed update does); else the prior dims them by its
+    expected gate (17 % with the default prior) and shrinks them by its mean multiplier (5 %).
     """
     new = mask.to(model.device, torch.bool) & (model.posterior_row < 0)
     c = int(new.sum())
     if c == 0:
         return 0
+    if keep_render and prior.variant == "ours":
+        from uncertsplat.gaussians.variational import expected_gate
+
+        with torch.no_grad():
+            p = model.params
+            gate = float(expected_gate(torch.tensor(prior.gate_mean), torch.tensor(prior.gate_std),
+                                       prior.temperature))
+            base = (torch.sigmoid(p["opacities"][new]) / gate).clamp(1e-6, 1.0 - 1e-4)
+            p["opacities"].data[new] = torch.log(base / (1.0 - base)).to(p["opacities"].dtype)
+            p["scales"].data[new] -= math.log(1.0 - 0.5 * prior.scale_width)
     P = model.num_carriers
     row = model.posterior_row.clone()
     row[new] = torch.arange(P, P + c, device=model.device)

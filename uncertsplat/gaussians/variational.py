@@ -262,15 +262,25 @@ def expected_gate(loc: Tensor, spread: Tensor, temperature: float) -> Tensor:
 
 def posterior_mean(model: GaussianModel, *, variant: Variant = "ours", extent: float = 1.0,
                    temperature: float = 0.2, sh_degree: int | None = None,
-                   tables_grad: bool = True) -> GaussianSample:
+                   tables_grad: bool = True, constants: ExpectedConstants | None = None) -> GaussianSample:
     """The deterministic render of the posterior: no random numbers.
 
     All K entries are averaged (the expectation over the random subset of the averaged columns), the
     position offset is its mean mu, the multiplier its mean l + w/2, and the gate its expectation
     (probit approximation), so that the mean render has the opacity the samples have on average.
     Densification, pruning and spawning decide on these values, never on a fresh sample. ``tables_grad``:
-    as for ``sample``.
+    as for ``sample``. ``constants``: as for ``expected_render_sample`` (the same table terms serve both), for a
+    training step's render.
     """
+    if (constants is not None and constants.mean_factor is not None and variant == "ours" and not tables_grad
+            and model.num_carriers > 0 and constants.fits(model)):
+        p = model.params
+        degree = model.sh_degree if sh_degree is None else min(sh_degree, model.sh_degree)
+        # the SH as the table's two tensors (GaussianSample.sh_rest), as expected_render_sample's fast path
+        return GaussianSample(means=p["means"] + constants.offset, quats=p["quats"],
+                              scales=torch.exp(p["scales"]) * constants.mean_factor,
+                              opacities=torch.sigmoid(p["opacities"]) * constants.gate,
+                              sh=p["sh0"], sh_rest=p["shN"], sh_degree=degree)
     t = _tables(model, tables_grad)
     idx = model.carrier_index()
     if idx.numel() == 0:
@@ -333,6 +343,7 @@ class ExpectedConstants:
     position_var: Tensor  # [N] mean per-axis position variance (0 off the carriers)
     rows: Tensor  # the model's posterior_row when computed (identity and version checked by ``fits``)
     rows_version: int
+    mean_factor: Tensor | None = None  # [N,3] E[multiplier] = l + w/2 (1 off the carriers): ``posterior_mean``'s
 
     def fits(self, model: GaussianModel) -> bool:
         return (model.posterior_row is self.rows and model.posterior_row._version == self.rows_version
@@ -347,16 +358,18 @@ def expected_constants(model: GaussianModel, *, extent: float = 1.0, temperature
     p = model.params
     offset = torch.zeros_like(p["means"])
     factor = torch.ones_like(p["scales"])
+    mean_factor = torch.ones_like(p["scales"])
     gate = torch.ones_like(p["opacities"])
     var = torch.zeros_like(p["opacities"])
     if idx.numel():
         mean_offset, left, width, mean_gate = _entry_means(t, "ours", extent, temperature)
         offset.index_copy_(0, idx, mean_offset.to(offset.dtype))
         factor.index_copy_(0, idx, _multiplier_second_moment(left, width).sqrt().to(factor.dtype))
+        mean_factor.index_copy_(0, idx, (left + 0.5 * width).to(factor.dtype))
         gate.index_copy_(0, idx, mean_gate.to(gate.dtype))
         var.index_copy_(0, idx, _position_variance(t, "ours", extent).to(var.dtype))
     row = model.posterior_row
-    return ExpectedConstants(offset, factor, gate, var, row, row._version)
+    return ExpectedConstants(offset, factor, gate, var, row, row._version, mean_factor)
 
 
 def expected_render_sample(model: GaussianModel, *, variant: Variant = "ours", extent: float = 1.0,

@@ -108,11 +108,13 @@ class Densifier:
         posteriors: False for plain 3DGS (``method != "variational"``): no spawning, and split children
             carry a posterior only when their parent does (so a model without posteriors keeps none).
         iterations: the run's length (None: unknown): no opacity reset in its last ``RESET_RECOVERY_STEPS``.
+        spawn_keeps_render: new carriers keep their posterior-mean render (``ops.spawn``'s ``keep_render``).
     """
 
     def __init__(self, cfg, prior: Prior, extent: float, n: int, device, posteriors: bool = True,
-                 iterations: int | None = None):
+                 iterations: int | None = None, spawn_keeps_render: bool = False):
         self.cfg = cfg
+        self.spawn_keeps_render = spawn_keeps_render  # ops.spawn's keep_render (the informed posterior's runs)
         self.posteriors = posteriors  # False: plain 3DGS, splits and spawns never create posteriors
         self.iterations = iterations  # the run's length: no opacity reset near its end (is_opacity_reset_step)
         self.prior = prior
@@ -182,7 +184,7 @@ class Densifier:
                                     temperature=self.prior.temperature)
                 m = spawn_decisions(pm.scales, pm.opacities, scale_fraction=cfg.spawn_scale_fraction,
                                     min_opacity=cfg.spawn_min_opacity, extent=self.extent)
-            done["spawned"] = ops.spawn(model, optimizer, m, self.prior)
+            done["spawned"] = ops.spawn(model, optimizer, m, self.prior, keep_render=self.spawn_keeps_render)
         if changed:
             self.stats = DensifyStats.zeros(len(model), model.device)
         return done

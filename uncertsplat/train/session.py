@@ -38,10 +38,12 @@ from uncertsplat.strategy.sh_bands import band_reason
 # What a run trained with when its config.json predates a key (every dump has the key since), per config section;
 # a callable gets the stored section: variational.posterior, before the informed posterior existed: SGD tables;
 # variational.train_on, before it existed: an informed run fitted its Gaussians to posterior samples;
-# variational.refresh_probes, before it existed: every update used `probes`; densify.growth_min_gain_db, before the
-# growth test: densification grew the model up to its budget.
+# variational.refresh_probes, before it existed: every update used `probes`; variational.spawn_keeps_render, before
+# it existed: spawned carriers took the prior's gate and multiplier on top of their parameters; densify.growth_min_gain_db,
+# before the growth test: densification grew the model up to its budget.
 _KEYS_BEFORE = {"variational": {"posterior": "sgd", "train_on": "samples",
-                                "refresh_probes": lambda section: section.get("probes", 2)},
+                                "refresh_probes": lambda section: section.get("probes", 2),
+                                "spawn_keeps_render": False},
                 "densify": {"growth_min_gain_db": 0.0}}
 
 # Below this many training views `train` suggests `drop_rate` (measured: 5 views +0.4-0.5 dB held out, 20 views

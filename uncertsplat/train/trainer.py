@@ -309,8 +309,9 @@ class Trainer:
         dcfg = dcfg.model_copy(update={"max_gaussians": self.budget.max_gaussians})
         if not self.variational:  # plain 3DGS: densify, never spawn posteriors
             dcfg = dcfg.model_copy(update={"spawn_interval": 10**9})
+        keep = self.informed and self.cfg.variational.spawn_keeps_render
         return Densifier(dcfg, self.prior, self.extent, len(self.model), self.device, posteriors=self.variational,
-                         iterations=self.cfg.iterations)
+                         iterations=self.cfg.iterations, spawn_keeps_render=keep)
 
     def _rates(self, step: int) -> dict[str, float]:
         return base_rates(self.cfg.lr, step, self.cfg.iterations, self.extent,
@@ -475,13 +476,14 @@ class Trainer:
             else:
                 cams, gt = self.train_cams[views], self.train_images[views]
         with timer("sample"):
-            if self.informed and cfg.variational.train_on == "expected":
+            if self.informed and cfg.variational.train_on in ("expected", "mean"):
                 if cfg.variant == "ours" and (self._expected is None or not self._expected.fits(self.model)):
                     self._expected = expected_constants(self.model, extent=self.extent,
                                                         temperature=self.prior.temperature)
-                g = expected_render_sample(self.model, variant=cfg.variant, extent=self.extent,
-                                           temperature=self.prior.temperature, sh_degree=degree, tables_grad=False,
-                                           constants=self._expected)
+                deterministic = expected_render_sample if cfg.variational.train_on == "expected" else posterior_mean
+                g = deterministic(self.model, variant=cfg.variant, extent=self.extent,
+                                  temperature=self.prior.temperature, sh_degree=degree, tables_grad=False,
+                                  constants=self._expected)
                 kl = None
             elif self.informed:  # the tables are set in closed form (update_posterior); the Gaussians learn here
                 g = sample(self.model, self.gen_noise, subset_size=cfg.variational.subset_size, variant=cfg.variant,
