@@ -190,8 +190,8 @@ class VariationalConfig(_Base):
     render (``variational.expected_render_sample``: the samples' average render, each footprint widened by its
     position spread; the default until 2026-11-28); samples: renders of posterior samples (until 2026-11-25).
     Measured (BENCHMARKS.md, "Fitting the Gaussians to the posterior mean"), mean (with ``spawn_keeps_render``)
-    against expected: the half ring's held-out views 19.16 -> 20.10 dB (plain 3DGS 20.24), unseen-surface AUC RGB
-    0.954 -> 0.963; 5 sparse views at half the distance 25.34 -> 26.22 dB; the demo, fern and bonsai within 0.2 dB
+    against expected: the half ring's held-out views 19.20 -> 20.10 dB (plain 3DGS 20.24), unseen-surface AUC RGB
+    0.955 -> 0.963; 5 sparse views at half the distance 25.34 -> 26.22 dB; the demo, fern and bonsai within 0.2 dB
     and 0.05 nats (bonsai's AUSE-MAE 0.015-0.027 worse). Fitted to the expected render, a Gaussian few views pin
     down is sharpened so that its widened footprint matches them, which new views then see."""
     spawn_keeps_render: bool = True
