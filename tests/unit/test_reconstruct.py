@@ -129,6 +129,21 @@ def test_scan_keeps_one_photo_per_name_stem(tmp_path):
     assert any("IMG_1.png (beside IMG_1.jpg)" in n for n in scan.notes)
 
 
+def test_scan_notes_photos_with_an_alpha_channel(tmp_path):
+    for i in range(3):
+        write_image(tmp_path / f"p{i}.jpg", seed=i)
+    spec = oiio.ImageSpec(32, 24, 4, "uint8")
+    out = oiio.ImageOutput.create(str(tmp_path / "cutout.png"))
+    out.open(str(tmp_path / "cutout.png"), spec)
+    out.write_image(np.full((24, 32, 4), 128, dtype=np.uint8))
+    out.close()
+    scan = sfm.scan_photos(tmp_path)
+    assert [p.name for p in scan.photos if p.alpha] == ["cutout.png"]
+    assert any("alpha channel" in n and "cutout.png" in n for n in scan.notes)
+    (tmp_path / "cutout.png").unlink()
+    assert not any("alpha" in n for n in sfm.scan_photos(tmp_path).notes)
+
+
 def test_size_groups_and_exif_orientation(tmp_path):
     write_image(tmp_path / "a.jpg", 40, 30)
     write_image(tmp_path / "b.jpg", 40, 30, orientation=6)  # stored landscape, shown portrait

@@ -70,6 +70,8 @@ class PhotoInfo:
     height: int
     orientation: int = 1
     """EXIF orientation 1..8 (1: upright). 5..8 swap width and height when applied."""
+    alpha: bool = False
+    """The file has an alpha channel (COLMAP and training read its colour channels as they are)."""
 
     @property
     def oriented_size(self) -> tuple[int, int]:
@@ -106,8 +108,8 @@ class PhotoScan:
         return h.hexdigest()[:16]
 
 
-def _read_header(path: Path) -> tuple[int, int, int] | str:
-    """(width, height, orientation) from the file header, or the reader's error message."""
+def _read_header(path: Path) -> tuple[int, int, int, bool] | str:
+    """(width, height, orientation, has alpha) from the file header, or the reader's error message."""
     import OpenImageIO as oiio
 
     inp = oiio.ImageInput.open(str(path))
@@ -119,7 +121,8 @@ def _read_header(path: Path) -> tuple[int, int, int] | str:
         orientation = int(spec.get_int_attribute("Orientation", 1))
         if spec.width <= 0 or spec.height <= 0:
             return "image has no pixels"
-        return spec.width, spec.height, orientation if 1 <= orientation <= 8 else 1
+        alpha = spec.alpha_channel >= 0 or spec.nchannels in (2, 4)
+        return spec.width, spec.height, orientation if 1 <= orientation <= 8 else 1, alpha
     finally:
         inp.close()
 
@@ -190,13 +193,18 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
         if err is not None:
             bad.append(f"{path.name} (cannot be decoded to the end: {err}; it may be truncated)")
         else:
-            w, h, o = header
-            photos.append(PhotoInfo(path.name, path, w, h, o))
+            w, h, o, alpha = header
+            photos.append(PhotoInfo(path.name, path, w, h, o, alpha))
     if bad:
         raise UserError(f"{len(bad)} photo(s) cannot be read: {'; '.join(bad)}", path=folder,
                         hint="Remove or re-export these files (JPEG, PNG or TIFF), then run again.")
     photos = _without_copies(photos, ignored, notes)
     photos = _one_per_stem(photos, ignored, notes)
+    with_alpha = [p.name for p in photos if p.alpha]
+    if with_alpha:
+        listed = ", ".join(with_alpha[:8]) + (", ..." if len(with_alpha) > 8 else "")
+        notes.append(f"{len(with_alpha)} photo(s) have an alpha channel, which is not used: structure-from-motion "
+                     f"and training see the colour stored under transparent pixels as it is ({listed})")
     if len(photos) < min_images:
         raise UserError(f"only {len(photos)} different photo(s) found; structure-from-motion needs at least "
                         f"{min_images}", path=folder, hint="Add more overlapping photos of the scene.")
