@@ -217,20 +217,31 @@ def _one_per_stem(photos: list[PhotoInfo], ignored: list[str], notes: list[str])
     ``IMG_0001.jpg`` beside ``IMG_0001.png`` is most often one shot saved twice; and `evaluate` names a view's
     maps by the stem (``io.maps.map_stem``), so the two would write over each other's.
     """
-    kept: dict[str, str] = {}
+    return _first_of_each(
+        photos, lambda p: Path(p.name).stem.casefold(), ignored, notes,
+        lambda dropped: (f"{len(dropped)} photo(s) share their name with another up to the extension and were left "
+                         "out (often one shot saved in two formats; rename one to use both): "
+                         + ", ".join(f"{d} (beside {k})" for d, k in sorted(dropped.items()))))
+
+
+def _first_of_each(photos: list[PhotoInfo], key: Callable[[PhotoInfo], object], ignored: list[str],
+                   notes: list[str], note: Callable[[dict[str, str]], str]) -> list[PhotoInfo]:
+    """``photos`` with the first (by name) of those that share a ``key`` (None: unique); each one left out is named
+    in ``ignored``, and ``note({left out: the photo kept})`` is added to ``notes``."""
+    kept: dict[object, str] = {}
     dropped: dict[str, str] = {}
     for p in photos:
-        stem = Path(p.name).stem.casefold()
-        if stem in kept:
-            dropped[p.name] = kept[stem]
+        k = key(p)
+        if k is None:
+            continue
+        if k in kept:
+            dropped[p.name] = kept[k]
         else:
-            kept[stem] = p.name
+            kept[k] = p.name
     if not dropped:
         return photos
     ignored.extend(sorted(dropped))
-    listed = ", ".join(f"{d} (beside {k})" for d, k in sorted(dropped.items()))
-    notes.append(f"{len(dropped)} photo(s) share their name with another up to the extension and were left out "
-                 f"(often one shot saved in two formats; rename one to use both): {listed}")
+    notes.append(note(dropped))
     return [p for p in photos if p.name not in dropped]
 
 
@@ -270,26 +281,14 @@ def _without_copies(photos: list[PhotoInfo], ignored: list[str], notes: list[str
     A copy adds nothing to the reconstruction, and one copy in training with its twin held out would make the
     held-out scores measure memory (a 6-photo case: 22.1 dB held out with copies, 19.4 without).
     """
-    by_size: dict[int, list[PhotoInfo]] = {}
+    sizes: dict[int, int] = {}
     for p in photos:
-        by_size.setdefault(p.path.stat().st_size, []).append(p)
-    first: dict[str, str] = {}
-    copies: dict[str, str] = {}  # copy -> the photo it repeats
-    for group in by_size.values():
-        if len(group) < 2:  # a file of a size no other has is no copy: not read
-            continue
-        for p in group:
-            digest = _file_digest(p.path)
-            if digest in first:
-                copies[p.name] = first[digest]
-            else:
-                first[digest] = p.name
-    if not copies:
-        return photos
-    ignored.extend(sorted(copies))
-    listed = ", ".join(f"{c} (= {o})" for c, o in sorted(copies.items()))
-    notes.append(f"{len(copies)} photo(s) are exact copies of another and were left out: {listed}")
-    return [p for p in photos if p.name not in copies]
+        sizes[p.path.stat().st_size] = sizes.get(p.path.stat().st_size, 0) + 1
+    return _first_of_each(
+        # a file of a size no other has is no copy: not read
+        photos, lambda p: _file_digest(p.path) if sizes[p.path.stat().st_size] > 1 else None, ignored, notes,
+        lambda dropped: (f"{len(dropped)} photo(s) are exact copies of another and were left out: "
+                         + ", ".join(f"{c} (= {o})" for c, o in sorted(dropped.items()))))
 
 
 def stage_inputs(scan: PhotoScan, staging: Path) -> tuple[Path, list[str]]:
