@@ -473,3 +473,13 @@ def test_weakly_registered_photos_are_named_fewest_first():
     assert sfm.weakly_registered(Rec(counts)) == {"c.jpg": 32, "e.jpg": 149}  # median 753: below 150.6
     assert sfm.weakly_registered(Rec({"a.jpg": 1000, "b.jpg": 1100, "c.jpg": 950})) == {}
     assert sfm.weakly_registered(Rec({"a.jpg": 1000, "b.jpg": 1})) == {}  # two photos: no median to speak of
+
+
+def test_the_weak_registration_note_suggests_only_options_not_used():
+    weak = {"c.jpg": 32}
+    note = stage.weak_registration_note(weak, ReconstructConfig())
+    assert "c.jpg (32)" in note and "--features dsp-sift --set guided_matching=true" in note
+    note = stage.weak_registration_note(weak, ReconstructConfig(features="dsp-sift"))
+    assert "--features" not in note and "--set guided_matching=true" in note
+    note = stage.weak_registration_note(weak, ReconstructConfig(features="dsp-sift", guided_matching=True))
+    assert "--features" not in note and "guided" not in note and "add photos between these" in note

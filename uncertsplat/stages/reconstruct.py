@@ -92,6 +92,17 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
     return None
 
 
+def weak_registration_note(weak: dict[str, int], cfg: ReconstructConfig) -> str:
+    """The note naming the weakly registered photos (``sfm.weakly_registered``: name -> feature observations); it
+    suggests only the matching options this run did not use."""
+    options = ([] if cfg.features == "dsp-sift" else ["--features dsp-sift"]) + (
+        [] if cfg.guided_matching else ["--set guided_matching=true"])
+    return ("weakly registered (their poses rest on fewer than a fifth of the median photo's feature observations): "
+            + ", ".join(f"{n} ({c})" for n, c in weak.items()) + "; "
+            + (f"photos far apart match better with {' '.join(options)}, or add " if options else "add ")
+            + "photos between these and their neighbours")
+
+
 def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructReport:
     """Run SfM on ``photos`` and write an undistorted workspace plus ``reconstruct_report.json``.
 
@@ -231,11 +242,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
             report.cameras = sfm.camera_summaries(best)
             weak = sfm.weakly_registered(best)
             if weak:
-                weak_note = (
-                    "weakly registered (their poses rest on fewer than a fifth of the median photo's feature "
-                    "observations): " + ", ".join(f"{n} ({c})" for n, c in weak.items())
-                    + "; photos far apart match better with --features dsp-sift --set guided_matching=true, or add "
-                    "photos between these and their neighbours")
+                weak_note = weak_registration_note(weak, cfg)
                 report.notes.append(weak_note)
         if len(result.models) > 1:
             # COLMAP's later models may re-use photos of the first: only the ones no kept model has are lost
