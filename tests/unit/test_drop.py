@@ -69,15 +69,3 @@ class TestDrop:
     def test_rates_out_of_range_are_refused(self, bad):
         with pytest.raises(pydantic.ValidationError):
             TrainConfig(drop_rate=bad)
-
-
-@pytest.mark.parametrize(("views", "drop", "noted"), [(4, 0.0, True), (4, 0.2, False), (12, 0.0, False)])
-def test_train_suggests_the_option_for_few_views(tiny_scene_path, tmp_path, capsys, views, drop, noted):  # noqa: F811
-    from uncertsplat.config import train_config_from
-    from uncertsplat.stages import train
-
-    cfg = train_config_from("tiny", {"iterations": 2, "drop_rate": drop,
-                                     "scene": {"train_indices": list(range(views)), "test_indices": [views]}})
-    train.run(tiny_scene_path, tmp_path / "run", cfg, device=torch.device("cpu"))
-    err = " ".join(capsys.readouterr().err.split())
-    assert ("--set drop_rate=0.2" in err) == noted, err

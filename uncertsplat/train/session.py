@@ -46,10 +46,6 @@ _KEYS_BEFORE = {"variational": {"posterior": "sgd", "train_on": "samples",
                                 "spawn_keeps_render": False},
                 "densify": {"growth_min_gain_db": 0.0}}
 
-# Below this many training views `train` suggests `drop_rate` (measured: 5 views +0.4-0.5 dB held out, 20 views
-# +0.2 dB, 35 views -0.4 dB; BENCHMARKS.md "Leaving Gaussians out of training renders").
-FEW_VIEWS = 10
-
 
 def _transparent(data) -> bool:
     """Whether the first training image has real transparency (an alpha channel with some alpha < 1): the
@@ -225,11 +221,6 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                       f"{trainer.budget.max_gaussians:,} Gaussians ({trainer.budget.reason})")
         for note in data.notes:
             console.print(f"[yellow]note:[/] {note}")
-        n_train = len(data.split["train"])
-        if n_train < FEW_VIEWS and cfg.drop_rate == 0.0 and cfg.method in ("variational", "deterministic"):
-            console.print(f"[yellow]note:[/] {n_train} training views: with so few, --set drop_rate=0.2 (Gaussians "
-                          "left out of training renders at random) rendered the views between them 0.4-0.5 dB better "
-                          "on the synthetic scene (BENCHMARKS.md, \"Leaving Gaussians out of training renders\")")
         for text in workspace_notes(scene):
             console.print(f"[yellow]note:[/] {text}")
         trainer.on_log = lambda rec: console.log(log_line(rec)) if "eval_psnr" in rec else None
