@@ -18,6 +18,7 @@ from torch import Tensor, nn
 
 from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.gaussians.prior import Prior, prior_rows
+from uncertsplat.gaussians.variational import absorbed_opacity_logit, expected_gate
 
 # row-aligned optimiser state (``last_step``: train.sparse_adam's lazy decay; new rows get 0, harmless since their
 # moments are 0)
@@ -184,15 +185,13 @@ def spawn(model: GaussianModel, optimizer, mask: Tensor, prior: Prior, keep_rend
     if c == 0:
         return 0
     if keep_render and prior.variant == "ours":
-        from uncertsplat.gaussians.variational import expected_gate
-
         with torch.no_grad():
             p = model.params
             gate = float(expected_gate(torch.tensor(prior.gate_mean), torch.tensor(prior.gate_std),
                                        prior.temperature))
-            base = (torch.sigmoid(p["opacities"][new]) / gate).clamp(1e-6, 1.0 - 1e-4)
-            p["opacities"].data[new] = torch.log(base / (1.0 - base)).to(p["opacities"].dtype)
-            p["scales"].data[new] -= math.log(1.0 - 0.5 * prior.scale_width)
+            p["opacities"].data[new] = absorbed_opacity_logit(torch.sigmoid(p["opacities"][new]), gate).to(
+                p["opacities"].dtype)
+            p["scales"].data[new] -= math.log(1.0 - 0.5 * prior.scale_width)  # the prior's mean multiplier
     P = model.num_carriers
     row = model.posterior_row.clone()
     row[new] = torch.arange(P, P + c, device=model.device)

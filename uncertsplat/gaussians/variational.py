@@ -260,6 +260,14 @@ def expected_gate(loc: Tensor, spread: Tensor, temperature: float) -> Tensor:
     return torch.sigmoid(z / torch.sqrt(1.0 + (math.pi / 8.0) * s * s))
 
 
+def absorbed_opacity_logit(opacity: Tensor, gate: Tensor | float) -> Tensor:
+    """The base opacity logit whose opacity times ``gate`` (the expected gate) is ``opacity``: a posterior's gate
+    absorbed so that the posterior mean renders the Gaussian as before (capped below 1 where the gate cannot carry
+    it)."""
+    base = (opacity / gate).clamp(1e-6, 1.0 - 1e-4)
+    return torch.log(base / (1.0 - base))
+
+
 def posterior_mean(model: GaussianModel, *, variant: Variant = "ours", extent: float = 1.0,
                    temperature: float = 0.2, sh_degree: int | None = None,
                    tables_grad: bool = True, constants: ExpectedConstants | None = None) -> GaussianSample:
@@ -537,8 +545,7 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
     t["gate_spread_raw"].data.fill_(inverse_softplus(prior.gate_std))
     t["gate_loc"].data.copy_(nu[:, None, None].expand_as(t["gate_loc"]))
     gate = expected_gate(nu, tau.expand_as(nu), prior.temperature)  # [P]
-    base = (old_opacity / gate).clamp(1e-6, 1.0 - 1e-4)
-    p["opacities"].data.index_copy_(0, idx, torch.log(base / (1.0 - base)).to(p["opacities"].dtype))
+    p["opacities"].data.index_copy_(0, idx, absorbed_opacity_logit(old_opacity, gate).to(p["opacities"].dtype))
     data_dominated = (var.mean(1) < 0.5 * prior_std.square()).float().mean()
     return {"carriers": P, "data_dominated": float(data_dominated), "gate_off_median": float(p_off.median())}
 

@@ -60,20 +60,14 @@ def _oriented_size(spec: oiio.ImageSpec) -> tuple[int, int]:
     return spec.width, spec.height
 
 
-def decode_error(path: str | Path) -> str | None:
-    """None when the whole image decodes, else the decoder's message (a truncated JPEG or PNG, say, whose header
-    reads well: other programs would fill the missing part with grey or black without a word)."""
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        return _clean_error(_oiio_error()) if _oiio_error() else "cannot be opened"
-    try:
-        data = inp.read_image("uint8")
-        err = _oiio_error(inp)
-        if data is None or err:
-            return _clean_error(err or _oiio_error())
-        return None
-    finally:
-        inp.close()
+def decode_error(inp: oiio.ImageInput) -> str | None:
+    """None when every pixel of the opened image decodes, else the decoder's message (a truncated JPEG or PNG, say,
+    whose header reads well: other programs would fill the missing part with grey or black without a word)."""
+    data = inp.read_image("uint8")
+    err = _oiio_error(inp)
+    if data is None or err:
+        return _clean_error(err or _oiio_error())
+    return None
 
 
 def read_image_size(path: str | Path) -> tuple[int, int]:

@@ -19,6 +19,7 @@ import hashlib
 import os
 import shutil
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -28,6 +29,7 @@ import numpy as np
 import pycolmap
 
 from uncertsplat.config import ReconstructConfig
+from uncertsplat.console import list_names
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import decode_error
 
@@ -109,7 +111,10 @@ class PhotoScan:
 
 
 def _read_header(path: Path) -> tuple[int, int, int, bool] | str:
-    """(width, height, orientation, has alpha) from the file header, or the reader's error message."""
+    """(width, height, orientation, has alpha) from the file header, or the reader's error message.
+
+    Every pixel is decoded too, not only the header: COLMAP reads a truncated JPEG or PNG without a word, filling
+    the missing rows with grey or black, and the model would then be trained on them."""
     import OpenImageIO as oiio
 
     inp = oiio.ImageInput.open(str(path))
@@ -121,6 +126,9 @@ def _read_header(path: Path) -> tuple[int, int, int, bool] | str:
         orientation = int(spec.get_int_attribute("Orientation", 1))
         if spec.width <= 0 or spec.height <= 0:
             return "image has no pixels"
+        err = decode_error(inp)
+        if err is not None:
+            return f"cannot be decoded to the end: {err}; it may be truncated"
         alpha = spec.alpha_channel >= 0 or spec.nchannels in (2, 4)
         return spec.width, spec.height, orientation if 1 <= orientation <= 8 else 1, alpha
     finally:
@@ -170,9 +178,8 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
         if len(with_photos) == 1:
             hint = f"Its sub-folder {with_photos[0]} holds photos: pass that folder instead."
         elif with_photos:
-            listed = ", ".join(str(d) for d in with_photos[:4]) + (", ..." if len(with_photos) > 4 else "")
-            hint = (f"Its sub-folders {listed} hold photos: pass one of them, or move the photos of one scene "
-                    "into one folder and pass that.")
+            hint = (f"Its sub-folders {list_names([str(d) for d in with_photos], 4)} hold photos: pass one of them, "
+                    "or move the photos of one scene into one folder and pass that.")
         raise UserError(f"the photo folder {what}", path=folder, hint=hint)
     if len(candidates) < min_images:
         raise UserError(f"only {len(candidates)} photo(s) found; structure-from-motion needs at least {min_images}",
@@ -181,17 +188,9 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
     bad: list[str] = []
     with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
         headers = list(pool.map(_read_header, candidates))
-        # every pixel, not only the header: COLMAP reads a truncated JPEG or PNG without a word, filling the
-        # missing rows with grey or black, and the model would then be trained on them
-        broken = list(pool.map(decode_error, [p for p, h in zip(candidates, headers, strict=True) if not isinstance(h, str)]))
-    broken_iter = iter(broken)
     for path, header in zip(candidates, headers, strict=True):
         if isinstance(header, str):
             bad.append(f"{path.name} ({header})")
-            continue
-        err = next(broken_iter)
-        if err is not None:
-            bad.append(f"{path.name} (cannot be decoded to the end: {err}; it may be truncated)")
         else:
             w, h, o, alpha = header
             photos.append(PhotoInfo(path.name, path, w, h, o, alpha))
@@ -202,9 +201,8 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
     photos = _one_per_stem(photos, ignored, notes)
     with_alpha = [p.name for p in photos if p.alpha]
     if with_alpha:
-        listed = ", ".join(with_alpha[:8]) + (", ..." if len(with_alpha) > 8 else "")
         notes.append(f"{len(with_alpha)} photo(s) have an alpha channel, which is not used: structure-from-motion "
-                     f"and training see the colour stored under transparent pixels as it is ({listed})")
+                     f"and training see the colour stored under transparent pixels as it is ({list_names(with_alpha, 8)})")
     if len(photos) < min_images:
         raise UserError(f"only {len(photos)} different photo(s) found; structure-from-motion needs at least "
                         f"{min_images}", path=folder, hint="Add more overlapping photos of the scene.")
@@ -281,12 +279,11 @@ def _without_copies(photos: list[PhotoInfo], ignored: list[str], notes: list[str
     A copy adds nothing to the reconstruction, and one copy in training with its twin held out would make the
     held-out scores measure memory (a 6-photo case: 22.1 dB held out with copies, 19.4 without).
     """
-    sizes: dict[int, int] = {}
-    for p in photos:
-        sizes[p.path.stat().st_size] = sizes.get(p.path.stat().st_size, 0) + 1
+    size = {p.name: p.path.stat().st_size for p in photos}
+    shared = Counter(size.values())
     return _first_of_each(
         # a file of a size no other has is no copy: not read
-        photos, lambda p: _file_digest(p.path) if sizes[p.path.stat().st_size] > 1 else None, ignored, notes,
+        photos, lambda p: _file_digest(p.path) if shared[size[p.name]] > 1 else None, ignored, notes,
         lambda dropped: (f"{len(dropped)} photo(s) are exact copies of another and were left out: "
                          + ", ".join(f"{c} (= {o})" for c, o in sorted(dropped.items()))))
 
@@ -427,10 +424,10 @@ def _names_for_pair_lists(database: Path) -> Iterator[dict[str, str]]:
     error, they get their names back.
     """
     with pycolmap.Database.open(database) as db:
-        images = [im for im in db.read_all_images() if any(c.isspace() for c in im.name)]
-        taken = {im.name for im in db.read_all_images()}
+        images = db.read_all_images()
+        taken = {im.name for im in images}
         aliases: dict[str, str] = {}
-        for im in images:
+        for im in (im for im in images if any(c.isspace() for c in im.name)):
             alias = f"uncertsplat-image-{im.image_id}{Path(im.name).suffix.replace(' ', '')}"
             while alias in taken:
                 alias = "_" + alias

@@ -98,7 +98,7 @@ def weak_registration_note(weak: dict[str, int], cfg: ReconstructConfig) -> str:
     options = ([] if cfg.features == "dsp-sift" else ["--features dsp-sift"]) + (
         [] if cfg.guided_matching else ["--set guided_matching=true"])
     return ("weakly registered (their poses rest on fewer than a fifth of the median photo's feature observations): "
-            + ", ".join(f"{n} ({c})" for n, c in weak.items()) + "; "
+            + list_names([f"{n} ({c})" for n, c in weak.items()]) + "; "
             + (f"photos far apart match better with {' '.join(options)}, or add " if options else "add ")
             + "photos between these and their neighbours")
 
@@ -252,7 +252,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
             report.notes.append(f"mapping made {len(result.models)} models; kept the largest "
                                 f"({result.models[0].num_reg_images()} images), the others hold "
                                 f"{[m.num_reg_images() for m in result.models[1:]]} images"
-                                + (f", {len(lost)} of them in no kept model: {', '.join(lost)}" if lost
+                                + (f", {len(lost)} of them in no kept model: {list_names(lost)}" if lost
                                    else ", all of them in the kept model too"))
 
         if best is None:

@@ -683,7 +683,7 @@ class Trainer:
         window_t, window_n = 0.0, 0
         # the bar's s/step: the mean over this call's steps, so that one step with a posterior update (a second or
         # so; the last step of a run always has one) does not show as the rate
-        call_t, call_n = 0.0, 0
+        start_step, start_elapsed = self.step, self.elapsed
         last_eval = self.evaluate() if self.step == 0 else {}
         if last_eval:
             self._log({"step": 0, "eval_psnr": last_eval["psnr"], "eval_ssim": last_eval["ssim"],
@@ -717,8 +717,7 @@ class Trainer:
                     info = f"loss {terms['loss']:.4f}  N {len(self.model)}  P {self.model.num_carriers}"
                     if last_eval:
                         info += f"  test PSNR {last_eval['psnr']:.2f}"
-                    call_t, call_n = call_t + dt, call_n + 1
-                    info += f"  {call_t / call_n:.3f} s/step"
+                    info += f"  {(self.elapsed - start_elapsed) / (step - start_step):.3f} s/step"
                     bar.update(task, completed=step, info=info)
                     if self.on_step is not None:
                         self.on_step(self)
