@@ -122,7 +122,8 @@ class SceneConfig(_Base):
     photo_sizes: Literal["fit", "strict"] = "fit"
     """A COLMAP workspace whose images come in more than one size (portrait and landscape photos, two cameras).
     fit: the most common size is the scene's; a photo of the other orientation is turned a quarter turn (its
-    camera with it) and every photo within ``PHOTO_SIZE_TOLERANCE`` of that size is cropped to the size all of
+    camera with it, the way that puts the scene's up where the other photos have it; its maps are written turned
+    back) and every photo within ``PHOTO_SIZE_TOLERANCE`` of that size is cropped to the size all of
     them share (a few pixels: undistortion crops each camera differently); a photo of another resolution of the
     same shape (``PHOTO_SHAPE_TOLERANCE``: a second camera) is resized to it, its camera scaled; photos of other
     shapes are left out, by name. strict: refuse such a workspace."""

@@ -100,7 +100,8 @@ class Cameras:
 @dataclass(frozen=True)
 class PhotoFit:
     """How one photo is brought to the scene's common image size (``SceneData.photo_fits``): turned by ``turns``
-    clockwise quarter turns (0 or 1: a portrait photo among landscape ones) to ``turned_width`` x ``turned_height``,
+    clockwise quarter turns (0; 1 or 3 for a portrait photo among landscape ones, the turn that puts the scene's up
+    where the other photos have it) to ``turned_width`` x ``turned_height``,
     resized to ``scaled_width`` x ``scaled_height`` (another camera's resolution of the same shape; the turned size
     when not resized), then cropped to ``width`` x ``height`` pixels from column ``x0`` and row ``y0``
     (``data.dataset.fit_photo``). Its camera is turned, scaled and shifted to match when the scene is loaded."""

@@ -16,7 +16,7 @@ from tests.fixtures import tiny_scene_path  # noqa: F401
 from uncertsplat.config import SceneConfig
 from uncertsplat.data.dataset import load_depths, load_images, load_masks
 from uncertsplat.errors import UserError
-from uncertsplat.io.images import read_image, write_png
+from uncertsplat.io.images import read_exr, read_image, write_png
 from uncertsplat.sfm.scene import load_scene
 
 
@@ -319,12 +319,17 @@ def _load_with_model(monkeypatch, workspace, model, cfg=None):
     return load_scene(workspace, cfg or SceneConfig())
 
 
-def test_portrait_photo_is_turned_with_its_camera(workspace, monkeypatch):
-    """A photo taken in the other orientation (stored turned a quarter turn anticlockwise, with the camera of
-    that photo) loads as the original view: the same camera and the same pixels."""
+@pytest.mark.parametrize("stored", [1, -1], ids=["anticlockwise", "clockwise"])
+def test_portrait_photo_is_turned_with_its_camera(workspace, monkeypatch, tmp_path, stored):
+    """A photo taken in the other orientation (stored turned a quarter turn either way, with the camera of that
+    photo) loads as the original view: turned back the way that puts the scene's up where the other photos have
+    it, the same camera and the same pixels; its maps are written as the photo lies."""
     from dataclasses import replace
 
+    from uncertsplat.data.dataset import photo_turns
+    from uncertsplat.eval.engine import ViewMaps
     from uncertsplat.sfm.colmap_io import read_colmap_model
+    from uncertsplat.stages.evaluate import write_view_maps
 
     before = load_scene(workspace)
     name, i = "view_005.png", before.cameras.image_names.index("view_005.png")
@@ -333,23 +338,36 @@ def test_portrait_photo_is_turned_with_its_camera(workspace, monkeypatch):
     cam = model.cameras[im.camera_id]
     W, H = cam.width, cam.height
     fx, fy, cx, cy = cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]
-    # the portrait camera: pixel (u, v) of the landscape photo is (v, W - u) of the portrait one
-    K = np.array([[fy, 0.0, cy], [0.0, fx, W - cx], [0.0, 0.0, 1.0]])
-    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    clockwise = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # camera axes (x, y, z) -> (-y, x, z)
     pose = im.cam_from_world.copy()
-    pose[:3, :] = turn.T @ pose[:3, :]
+    if stored == 1:  # pixel (u, v) of the landscape photo is (v, W - u) of the portrait one
+        K = np.array([[fy, 0.0, cy], [0.0, fx, W - cx], [0.0, 0.0, 1.0]])
+        pose[:3, :] = clockwise.T @ pose[:3, :]
+    else:  # (u, v) -> (H - v, u)
+        K = np.array([[fy, 0.0, H - cy], [0.0, fx, cx], [0.0, 0.0, 1.0]])
+        pose[:3, :] = clockwise @ pose[:3, :]
     portrait = replace(cam, camera_id=2, width=H, height=W, K=K)
     path = workspace / "images" / name
     original = read_image(path)
-    write_png(path, np.rot90(original, k=1).copy())  # anticlockwise
+    write_png(path, np.rot90(original, k=stored).copy())
     scene = _load_with_model(monkeypatch, workspace, _with_camera(model, name, portrait, pose))
     assert (scene.cameras.width, scene.cameras.height) == (W, H)
     torch.testing.assert_close(scene.cameras.K, before.cameras.K, atol=1e-4, rtol=0)
     torch.testing.assert_close(scene.cameras.cam_from_world, before.cameras.cam_from_world, atol=1e-5, rtol=0)
-    torch.testing.assert_close(load_images(scene, [i])[0], torch.from_numpy(original), atol=0, rtol=0)
-    assert scene.photo_fits[i].turns == 1 and all(f.turns == 0 for j, f in enumerate(scene.photo_fits) if j != i)
+    gt = load_images(scene, [i])[0]
+    torch.testing.assert_close(gt, torch.from_numpy(original), atol=0, rtol=0)
+    turns = 1 if stored == 1 else 3
+    assert scene.photo_fits[i].turns == turns and all(f.turns == 0 for j, f in enumerate(scene.photo_fits) if j != i)
+    assert photo_turns(scene) == {name: turns}
     assert any(name in note and "turned" in note for note in scene.notes)
-    assert scene.source["photo_fits"][name][0] == 1
+    assert scene.source["photo_fits"][name][0] == turns
+    # the view's maps lie as its photo does: the GT preview is the photo itself, every map turned alike
+    depth = torch.arange(H * W, dtype=torch.float32).reshape(H, W, 1)
+    write_view_maps(tmp_path, ViewMaps(name, gt, gt, 0.5 * gt, depth, 2.0 * depth), "percentile", photo_turns(scene))
+    np.testing.assert_array_equal(read_image(tmp_path / "view_005_gt.png"), read_image(path))
+    channels = read_exr(tmp_path / "view_005.exr")
+    np.testing.assert_array_equal(channels["depth_mean.Z"], np.rot90(depth[..., 0].numpy(), k=stored))
+    np.testing.assert_array_equal(channels["rgb_std.G"], np.rot90(0.5 * gt[..., 1].numpy(), k=stored))
     # a GT depth map of the upright photo (--depth-gt), at its size and at half of it, is turned with it
     from uncertsplat.data.dataset import load_depth_folder
     from uncertsplat.io.images import resize_image
@@ -358,7 +376,7 @@ def test_portrait_photo_is_turned_with_its_camera(workspace, monkeypatch):
     for scale, folder in ((1, workspace / "gt_full"), (2, workspace / "gt_half")):
         folder.mkdir()
         small = depth[::scale, ::scale]
-        np.save(folder / "view_005.npy", np.rot90(small, k=1).copy())
+        np.save(folder / "view_005.npy", np.rot90(small, k=stored).copy())
         for other in scene.cameras.image_names:
             if other != name:
                 np.save(folder / (other.rsplit(".", 1)[0] + ".npy"), np.ones((H, W), np.float32))

@@ -104,8 +104,22 @@ class TestFit:
         few = unit_t(2.5, tails.MIN_FIT_ELEMENTS - 1, 7)
         assert tails.fit_dof(few / few.square().mean().sqrt()) is None
         assert tails.fit_dof(torch.cat([few, torch.full((1,), float("nan"), dtype=few.dtype)])) is None
-        # all z = 0: the most peaked t fits best; still a valid dof
-        assert tails.fit_dof(torch.zeros(tails.MIN_FIT_ELEMENTS)) == pytest.approx(tails.MIN_DOF, rel=0.01)
+
+    @pytest.mark.parametrize("kind", ["zeros", "cauchy"])
+    def test_the_heaviest_tails_give_a_valid_dof(self, kind):
+        """z-scores whose best fit is the grid's lower end (all 0: the most peaked t; Cauchy's tails, heavier than
+        any t with a variance) give MIN_DOF exactly, which every use of the dof accepts (a value a rounding below it
+        stopped `evaluate`)."""
+        if kind == "zeros":
+            z = torch.zeros(tails.MIN_FIT_ELEMENTS, dtype=torch.float64)
+        else:
+            u = torch.rand(200_000, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+            z = torch.tan(math.pi * (u - 0.5))  # Cauchy
+            z = z / z.square().mean().sqrt()
+        dof = tails.fit_dof(z)
+        assert dof == tails.MIN_DOF
+        assert 0.0 < tails.coverage(1.0, dof) < 1.0
+        assert math.isfinite(float(tails.nll(z, torch.zeros_like(z), torch.ones_like(z), dof).mean()))
 
     def test_many_elements_are_strided(self, monkeypatch):
         monkeypatch.setattr(tails, "FIT_ELEMENTS", 1000)

@@ -42,6 +42,16 @@ def read_photo(scene: SceneData, index: int,
     return image if scene.photo_fits is None else fit_photo(scene.photo_fits[index], image)
 
 
+def photo_turns(scene: SceneData) -> dict[str, int]:
+    """{image name: clockwise quarter turns} of the photos the scene turned to its common orientation
+    (``SceneData.photo_fits``); empty when none was turned. A map of such a view turned back by
+    ``torch.rot90(map, k=turns)`` lies as its photo does."""
+    if scene.photo_fits is None:
+        return {}
+    return {name: fit.turns % 4 for name, fit in zip(scene.cameras.image_names, scene.photo_fits, strict=True)
+            if fit.turns % 4}
+
+
 def fit_photo(fit: PhotoFit, image: np.ndarray) -> np.ndarray:
     """The copy of ``image`` [H,W,...] float that ``fit`` makes: turned, brought to the photo's (scaled) size when it
     differs (a resized photo, or a map of it at another resolution such as a GT depth map), then cropped."""

@@ -156,7 +156,8 @@ def fit_dof(z: Tensor) -> float | None:
             lo, a, fa = a, b, fb
             b = lo + ratio * (hi - lo)
             fb = loglik(b)
-    return 2.0 + math.exp(0.5 * (lo + hi))
+    # exp(log(MIN_DOF - 2)) rounds to a hair below it: clamp, or the validation refuses the grid's own end
+    return min(max(2.0 + math.exp(0.5 * (lo + hi)), MIN_DOF), MAX_DOF)
 
 
 __all__ = ["FIT_ELEMENTS", "MAX_DOF", "MIN_DOF", "MIN_FIT_ELEMENTS", "coverage", "fit_dof", "half_width", "log_density", "nll"]

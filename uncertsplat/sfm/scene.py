@@ -193,12 +193,16 @@ def _fit_sizes(model: ColmapModel, images: list, sparse: Path) -> tuple[dict, li
         counts[(cam.width, cam.height)] = counts.get((cam.width, cam.height), 0) + 1
     # the most common size; among equals the larger, then the wider (deterministic)
     ref_w, ref_h = max(counts, key=lambda s: (counts[s], s[0] * s[1], s[0]))
+    cams = {im.name: model.cameras[im.camera_id] for im in images}
+    # photos of the other orientation (a square one is of both)
+    other = {n for n, c in cams.items() if (c.width >= c.height) != (ref_w >= ref_h) and c.width != c.height}
+    up = _scene_up([im for im in images if im.name not in other])
     # name -> (turns, width, height after turning, width, height after resizing)
     turned: dict[str, tuple[int, int, int, int, int]] = {}
     left_out: list[str] = []
     for im in images:
-        cam = model.cameras[im.camera_id]
-        turns = int((cam.width >= cam.height) != (ref_w >= ref_h) and cam.width != cam.height)
+        cam = cams[im.name]
+        turns = _quarter_turns(im.cam_from_world, up) if im.name in other else 0
         w, h = (cam.height, cam.width) if turns else (cam.width, cam.height)
         if abs(w - ref_w) <= PHOTO_SIZE_TOLERANCE * ref_w and abs(h - ref_h) <= PHOTO_SIZE_TOLERANCE * ref_h:
             turned[im.name] = (turns, w, h, w, h)
@@ -218,8 +222,9 @@ def _fit_sizes(model: ColmapModel, images: list, sparse: Path) -> tuple[dict, li
     notes = []
     rotated = sorted(n for n, f in fits.items() if f.turns)
     if rotated:
-        notes.append(f"{len(rotated)} photo(s) of the other orientation turned a quarter turn clockwise (their "
-                     f"cameras with them): {list_names(rotated, 8)}")
+        notes.append(f"{len(rotated)} photo(s) of the other orientation turned a quarter turn, their cameras with "
+                     f"them, so that the scene's up points where it does in the other photos (their maps are "
+                     f"written turned back): {list_names(rotated, 8)}")
     scaled = sorted(n for n, f in fits.items() if f.scaled_width)
     if scaled:
         notes.append(f"{len(scaled)} photo(s) of another resolution of the same shape resized to the scene's (their "
@@ -234,20 +239,40 @@ def _fit_sizes(model: ColmapModel, images: list, sparse: Path) -> tuple[dict, li
     return fits, notes
 
 
+def _scene_up(images: list) -> np.ndarray:
+    """[3] the mean of ``images``' up directions in world axes (OpenCV cameras: the image's up is -y), unit length;
+    (0, 0, 0) when they cancel out."""
+    up = -np.sum([im.cam_from_world[1, :3] for im in images], axis=0)
+    norm = float(np.linalg.norm(up))
+    return up / norm if norm > 1e-9 else np.zeros(3)
+
+
+def _quarter_turns(cam_from_world: np.ndarray, up: np.ndarray) -> int:
+    """1 (clockwise) or 3 (anticlockwise): the quarter turn after which the photo's up (its camera's -y) points
+    closer to ``up``, the scene's up in the photos of the common orientation. A clockwise turn makes the camera's
+    x axis its new y axis (``_fitted_cameras``), so its new up is -x; an anticlockwise one +x. Whichever way EXIF
+    or the photographer turned the camera, the turned photo then lies as the others do (clockwise on a tie)."""
+    x_axis = np.asarray(cam_from_world)[0, :3]
+    return 3 if float(x_axis @ up) > 1e-9 else 1
+
+
 def _fitted_cameras(c2w: torch.Tensor, K: torch.Tensor, fits: list) -> tuple[torch.Tensor, torch.Tensor]:
     """cam_from_world [C,4,4] and K [C,3,3] (float64) of the photos as ``fits`` turn, resize and crop them.
 
     A clockwise quarter turn takes pixel (u, v) of a photo of height H to (H - v, u): in camera axes
-    (x, y, z) -> (-y, x, z), so fx' = fy, fy' = fx, cx' = H - cy, cy' = cx. A resize by (sx, sy) scales fx, cx by
-    sx and fy, cy by sy; a crop from (x0, y0) moves the principal point by (-x0, -y0)."""
+    (x, y, z) -> (-y, x, z), so fx' = fy, fy' = fx, cx' = H - cy, cy' = cx. An anticlockwise one takes (u, v) of a
+    photo of width W to (v, W - u): (x, y, z) -> (y, -x, z), fx' = fy, fy' = fx, cx' = cy, cy' = W - cx. A resize
+    by (sx, sy) scales fx, cx by sx and fy, cy by sy; a crop from (x0, y0) moves the principal point by (-x0, -y0)."""
     c2w, K = c2w.clone(), K.clone()
-    turn = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=c2w.dtype)
+    clockwise = torch.tensor([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=c2w.dtype)
     for i, fit in enumerate(fits):
-        if fit.turns % 4 == 1:
-            c2w[i, :3, :] = turn @ c2w[i, :3, :]
+        turns = fit.turns % 4
+        if turns in (1, 3):
+            c2w[i, :3, :] = (clockwise if turns == 1 else clockwise.T) @ c2w[i, :3, :]
             fx, fy, cx, cy = (float(K[i, 0, 0]), float(K[i, 1, 1]), float(K[i, 0, 2]), float(K[i, 1, 2]))
-            # the photo's height before the turn is its width after it
-            K[i, 0, 0], K[i, 1, 1], K[i, 0, 2], K[i, 1, 2] = fy, fx, fit.turned_width - cy, cx
+            # the photo's height before the turn is its width after it, and its width the height after it
+            K[i, 0, 0], K[i, 1, 1] = fy, fx
+            K[i, 0, 2], K[i, 1, 2] = (fit.turned_width - cy, cx) if turns == 1 else (cy, fit.turned_height - cx)
         sw, sh = fit.scaled  # a resize scales pixel coordinates (centres at +0.5) by the size ratio per axis
         K[i, 0] *= sw / fit.turned_width
         K[i, 1] *= sh / fit.turned_height

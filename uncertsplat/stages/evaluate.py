@@ -7,7 +7,8 @@ engine (``eval.engine``: K samples per view, every metric) and writes into ``RUN
   ``depth_std.Z`` (depth in the run's normalised world units; layout in ``io.maps``), and PNG previews
   ``{image}_{gt,mean,error,std,error_rank,std_rank,depth,depth_std}.png``. Colour scales: ``error`` and
   ``std`` use the turbo map over the 1st-99th percentile of that map (``--set preview=fixed`` maps [0, 1]);
-  the ``*_rank`` previews colour each pixel by its rank, so error and std compare without any scale.
+  the ``*_rank`` previews colour each pixel by its rank, so error and std compare without any scale. A photo the
+  scene turned to its common orientation (``SceneData.photo_fits``) has its maps turned back, as the photo lies.
 - ``metrics.json``: the ``EvalReport`` (per view by image name, mean, curves, calibration).
 - ``config.json``: the resolved ``EvalConfig``.
 - ``residual.pt``: the pixel noise fitted on the training views, with a key of the model and the settings it
@@ -40,14 +41,20 @@ if TYPE_CHECKING:
     from uncertsplat.schemas.metrics import EvalReport
 
 
-def write_view_maps(folder: Path, maps: ViewMaps, preview: str) -> None:
-    """EXR float maps and PNG previews of one view (see the module docstring for the colour scales)."""
+def write_view_maps(folder: Path, maps: ViewMaps, preview: str, turns: dict[str, int] | None = None) -> None:
+    """EXR float maps and PNG previews of one view (see the module docstring for the colour scales).
+
+    ``turns``: {image name: clockwise quarter turns} of the photos the scene turned to its common orientation
+    (``SceneData.photo_fits``); their maps are turned back, so that each view's maps lie as its photo does."""
     from uncertsplat.io.images import write_exr, write_png
     from uncertsplat.report.colormaps import colorize, rank_colorize
 
     folder = Path(folder)
     stem = map_stem(maps.name)
-    gt, pred, std, depth_mean, depth_std = maps.gt, maps.rgb_mean, maps.rgb_std, maps.depth_mean, maps.depth_std
+    back = (turns or {}).get(maps.name, 0) % 4
+    gt, pred, std, depth_mean, depth_std = (
+        torch.rot90(t, k=back, dims=(0, 1)) if back else t  # the fit turned clockwise: back is anticlockwise
+        for t in (maps.gt, maps.rgb_mean, maps.rgb_std, maps.depth_mean, maps.depth_std))
     arrays = [pred[..., c] for c in range(3)] + [std[..., c] for c in range(3)] + [depth_mean[..., 0], depth_std[..., 0]]
     # the maps say which predictive their std is the std of (a reader of the EXR alone can build intervals)
     predictive = {EXR_RGB_PREDICTIVE: "gaussian" if maps.dof is None else "student-t"}
@@ -249,7 +256,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     from functools import partial
 
     from uncertsplat.baselines import load_run
-    from uncertsplat.data.dataset import load_view_set
+    from uncertsplat.data.dataset import load_view_set, photo_turns
     from uncertsplat.eval.engine import evaluate_views, scored_sampler, split_indices
     from uncertsplat.io.atomic import atomic_write_text, run_lock
     from uncertsplat.provenance import hash_config
@@ -295,7 +302,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
                                           scene.cameras, scene.split, cfg, device, load_views=train_views,
                                           set_aside_maps=set_aside_maps)
         report = evaluate_views(sampler, views, cfg, device,
-                                on_view=partial(write_view_maps, out / "maps", preview=cfg.preview),
+                                on_view=partial(write_view_maps, out / "maps", preview=cfg.preview,
+                                                turns=photo_turns(scene)),
                                 std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
                                 calibration_held_out=bool(scene.split.get("calibration")),
                                 noise_scale=residual.scale if residual is not None else None,

@@ -491,6 +491,7 @@ def _evaluate_written(output: Path, result: PruneReport, measure: _Measure, devi
 
 def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measure, loaded, result: PruneReport,
                   scores: dict, carriers: torch.Tensor, keep, pruned, random_model, sweep) -> None:
+    from uncertsplat.data.dataset import photo_turns
     from uncertsplat.io.atomic import atomic_write_bytes
     from uncertsplat.io.images import write_png
     from uncertsplat.io.maps import map_stem
@@ -519,11 +520,13 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
                  **{k: v.cpu().numpy() for k, v in scores.items()})
         if keep is not None and cfg.render_views > 0:
             sel = spread_views(range(len(measure.indices)), cfg.render_views)
+            turns = photo_turns(measure.scene)  # each render lies as its photo does (as evaluate's maps)
             for tag, m in (("before", loaded.model), ("after", pruned), ("random", random_model)):
                 rgb, _ = measure.mean_renders(m)
                 for j in sel:
                     name = measure.scene.cameras.image_names[measure.indices[j]]
-                    write_png(tmp / "renders" / f"{map_stem(name)}_{tag}.png", rgb[j].numpy())
+                    write_png(tmp / "renders" / f"{map_stem(name)}_{tag}.png",
+                              np.rot90(rgb[j].numpy(), k=turns.get(name, 0), axes=(0, 1)).copy())
         result.written = Written(model=writes_model, folder=str(output))
         if sweep is not None:
             sweep.write(tmp / "sweep.json")
