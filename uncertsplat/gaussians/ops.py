@@ -191,7 +191,7 @@ def spawn(model: GaussianModel, optimizer, mask: Tensor, prior: Prior, keep_rend
                                        prior.temperature))
             p["opacities"].data[new] = absorbed_opacity_logit(torch.sigmoid(p["opacities"][new]), gate).to(
                 p["opacities"].dtype)
-            p["scales"].data[new] -= math.log(1.0 - 0.5 * prior.scale_width)  # the prior's mean multiplier
+            p["scales"].data[new] -= math.log(prior.scale_mean)  # the prior's mean multiplier
     P = model.num_carriers
     row = model.posterior_row.clone()
     row[new] = torch.arange(P, P + c, device=model.device)

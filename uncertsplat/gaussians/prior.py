@@ -73,6 +73,17 @@ class Prior:
     temperature: float = 0.2
     variant: Variant = "ours"
 
+    @property
+    def scale_mean(self) -> float:
+        """The prior multiplier's mean, ``mean_multiplier(scale_width)``."""
+        return mean_multiplier(self.scale_width)
+
+
+def mean_multiplier(scale_width: float) -> float:
+    """The mean 1 - w_p / 2 of the scale-multiplier prior U[1 - w_p, 1]: what a Gaussian at the prior scales its
+    base scale by on average (a spawned carrier's and an informed update's base scale absorb it)."""
+    return 1.0 - 0.5 * scale_width
+
 
 def inverse_softplus(y: float | Tensor) -> float | Tensor:
     """x with softplus(x) = y (y > 0), stable for tiny and huge y."""
@@ -110,4 +121,4 @@ def prior_rows(n: int, num_entries: int, prior: Prior, *, device=None, dtype=tor
 
 
 __all__ = ["MAX_WIDTH", "MIN_WIDTH", "TABLE_NAMES", "TABLE_SPECS", "Prior", "TableSpec", "Variant",
-           "empty_tables", "inverse_softplus", "prior_rows"]
+           "empty_tables", "inverse_softplus", "mean_multiplier", "prior_rows"]

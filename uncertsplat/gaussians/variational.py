@@ -56,6 +56,7 @@ from uncertsplat.gaussians.prior import (  # noqa: F401 (the layout's names, als
     Variant,
     empty_tables,
     inverse_softplus,
+    mean_multiplier,
     prior_rows,
 )
 from uncertsplat.types import GaussianSample
@@ -525,7 +526,7 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
     t["pos_spread_raw"].data.copy_(inverse_softplus(sigma)[:, None, :].expand_as(t["pos_spread_raw"]))
 
     # scale multiplier
-    m = 1.0 - 0.5 * prior.scale_width
+    m = prior.scale_mean
     prior_var = (prior.scale_width / m) ** 2 / 12.0
     var_s = _posterior_variance(fisher["scales"][idx], torch.tensor(prior_var, device=idx.device),
                                 dis["scales"][idx] if "scales" in dis else None)  # [P,3]
@@ -563,7 +564,7 @@ def scale_kl(left: Tensor, width_raw: Tensor, prior_width: float, variant: Varia
     if variant == "paper":
         return (left - (1.0 - prior_width)).abs() + (left + width - 1.0).abs()
     # moment-matched Gaussians: N(l + w/2, w^2/12) against N(1 - w_p/2, w_p^2/12)
-    dm = (left + 0.5 * width) - (1.0 - 0.5 * prior_width)
+    dm = (left + 0.5 * width) - mean_multiplier(prior_width)
     return math.log(prior_width) - torch.log(width) + (width.square() + 12.0 * dm.square()) / (2.0 * prior_width**2) - 0.5
 
 
