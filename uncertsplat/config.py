@@ -302,15 +302,6 @@ class TrainConfig(_Base):
     variant: Literal["ours", "paper"] = "ours"
     """paper: the original code's choices (log-scale multiplier, absolute position prior)."""
 
-    @model_validator(mode="before")
-    @classmethod
-    def _drop_legacy_keys(cls, data: Any) -> Any:
-        # Early runs carry `random_background = false` (an option that was never implemented and has
-        # been removed): they must still load. Asking for it is refused by the usual unknown-key error.
-        if isinstance(data, dict) and data.get("random_background") is False:
-            data = {k: v for k, v in data.items() if k != "random_background"}
-        return data
-
     iterations: int = Field(7000, ge=1)
     seed: int = Field(0, ge=0)
     profile: bool = False
@@ -335,6 +326,13 @@ class TrainConfig(_Base):
     """Leave each Gaussian out of a step's render with probability ``drop_rate x step / iterations`` (the
     others' opacity divided by 1 - rate): a regulariser against fitting the training views with Gaussians no
     other view checks, for sparse captures. 0: off."""
+    random_background: bool = False
+    """Render each training step over a random colour (uniform in [0, 1] per channel, its own random stream)
+    instead of ``scene.background``: a ray the model leaves partly empty then shows a colour that changes from step
+    to step, so the photos' surfaces, dark ones too, are fitted with Gaussians rather than with a black background
+    showing through (which `evaluate`'s empty-ray term would count as a surface no view saw). Evaluation renders
+    over ``scene.background`` as always. Not for training images with transparency (their background is data):
+    ignored there, with a note."""
     low_res_fraction: float = Field(0.0, ge=0.0, lt=1.0)
     """The first ``low_res_fraction`` of the iterations train on the images (and cameras) scaled by
     ``low_res_scale``, area-averaged: the rasterizer's cost is per pixel, and the early steps, which place and

@@ -14,6 +14,7 @@ when the one given differs) and continues exactly where the last good checkpoint
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import torch
@@ -193,8 +194,13 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         views_added = list(before.views_added) if before is not None else []
         if add_views:
             views_added.append(ViewsAdded(step=int(state["step"]) if state is not None else 0, names=list(add_views)))
+        # the images' transparency decides the empty-ray term (evaluate) and whether random_background applies
+        data = replace(data, source=dict(data.source, transparent=_transparent(data)))
+        if cfg.random_background and data.source["transparent"]:
+            console.print("[yellow]note:[/] random_background is not used: the training images are transparent "
+                          "(their background is data)")
         RunScene(
-            scene=str(scene.resolve()), source=dict(data.source, transparent=_transparent(data)), extent=data.extent,
+            scene=str(scene.resolve()), source=data.source, extent=data.extent,
             scene_scale=data.scene_scale,
             width=data.cameras.width, height=data.cameras.height,
             train=[names[i] for i in data.split["train"]] if names else [],

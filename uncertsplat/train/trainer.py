@@ -127,6 +127,8 @@ class Trainer:
         self.extent = float(scene.extent)
         self.prior = prior_from_config(cfg)
         self.background = torch.tensor(cfg.scene.background, dtype=torch.float32, device=self.device)
+        # training renders over a random colour (cfg.random_background), unless the images' background is data
+        self.random_background = cfg.random_background and not bool(scene.source.get("transparent", False))
         self.near = near_plane(scene.scene_scale)
         self.variational = cfg.method == "variational"
         self.informed = self.variational and cfg.posterior == "informed"
@@ -156,6 +158,7 @@ class Trainer:
         self.gen_views = torch.Generator().manual_seed(cfg.seed)
         self.gen_noise = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
         self.gen_drop = torch.Generator(device=self.device).manual_seed(cfg.seed + 3)
+        self.gen_background = torch.Generator(device=self.device).manual_seed(cfg.seed + 4)
         points = self.scene.points.to(self.device, torch.float32)
         colors = self.scene.points_rgb.to(self.device, torch.float32)
         if cfg.init_num_random > 0:
@@ -265,6 +268,7 @@ class Trainer:
             "gen_views": self.gen_views.get_state(),
             "gen_noise": self.gen_noise.get_state(),
             "gen_drop": self.gen_drop.get_state(),
+            "gen_background": self.gen_background.get_state(),
             "view_queue": torch.tensor(self.view_queue, dtype=torch.long),
             "sh_bands": [b.model_dump() for b in self.sh_bands],
             "growth": [g.model_dump() for g in self.growth],
@@ -291,6 +295,11 @@ class Trainer:
             self.gen_drop.set_state(state["gen_drop"].cpu())
         else:  # checkpoints from before the option: seeded as a fresh run's
             self.gen_drop.manual_seed(self.cfg.seed + 3)
+        self.gen_background = torch.Generator(device=self.device)
+        if "gen_background" in state:
+            self.gen_background.set_state(state["gen_background"].cpu())
+        else:  # likewise
+            self.gen_background.manual_seed(self.cfg.seed + 4)
         self.view_queue = [int(i) for i in state["view_queue"].tolist()]
         self.sh_bands = [BandCheck(**b) for b in state.get("sh_bands", [])]  # absent in checkpoints from before
         self.growth = [GrowthCheck(**g) for g in state.get("growth", [])]  # likewise
@@ -395,8 +404,10 @@ class Trainer:
         return expected_render_sample(self.model, variant=self.cfg.variant, extent=self.extent,
                               temperature=self.prior.temperature, sh_degree=self.sh_degree)
 
-    def render(self, gaussians: GaussianSample, cams: Cameras):
-        return render(gaussians, cams, background=self.background, tile_size=self.cfg.tile_size, near=self.near)
+    def render(self, gaussians: GaussianSample, cams: Cameras, background: Tensor | None = None):
+        """``render`` with the run's settings, over ``background`` [3] (default: ``scene.background``)."""
+        return render(gaussians, cams, background=self.background if background is None else background,
+                      tile_size=self.cfg.tile_size, near=self.near)
 
     @torch.no_grad()
     def evaluate(self, max_views: int | None = None) -> dict[str, float]:
@@ -500,7 +511,11 @@ class Trainer:
             if cfg.drop_rate > 0.0:
                 g = self._drop(g, step)
         with timer("render"):
-            out = self.render(g, cams)
+            if self.random_background:
+                out = self.render(g, cams, background=torch.rand(3, generator=self.gen_background,
+                                                                  device=self.device))  # over a random colour [3]
+            else:
+                out = self.render(g, cams)
         with timer("loss"):
             rgb = out.rgb
             if self.exposure is not None:  # the render at each photo's exposure (render.exposure)
