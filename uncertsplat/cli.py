@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.text import Text
 
 from uncertsplat import __version__
 from uncertsplat.console import console
@@ -31,7 +32,7 @@ _STATE = {"debug": False}
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto (CUDA if available), cpu or cuda.")]
 SetOpt = Annotated[
     list[str] | None,
-    typer.Option("--set", help="Override a config key, e.g. --set iterations=500 (repeatable)."),
+    typer.Option("--set", help="Override a config key: key=value, dots for nested keys (repeatable)."),
 ]
 ConfigOpt = Annotated[Path | None, typer.Option("--config", help="TOML file with this stage's config.")]
 
@@ -56,7 +57,8 @@ def _handle_errors(fn):
         except UserError as err:
             if _STATE["debug"]:
                 raise
-            console.print(f"[bold red]error:[/] {err.render()}", soft_wrap=True)
+            # the message as plain text: a path or value in it must not be read as markup or an emoji code
+            console.print(Text.assemble(("error:", "bold red"), " ", err.render()), soft_wrap=True)
             raise typer.Exit(2) from None
         except KeyboardInterrupt:
             console.print("[yellow]interrupted[/]")
@@ -66,8 +68,9 @@ def _handle_errors(fn):
             if _STATE["debug"] or err.errno not in _ENVIRONMENT_ERRNOS:
                 raise
             where = f"{err.filename}: " if err.filename else ""
-            console.print(f"[bold red]error:[/] {where}{err.strerror}. Free some space or choose a folder you can "
-                          "write to, then run again (--resume continues a training run).", soft_wrap=True)
+            console.print(Text.assemble(("error:", "bold red"), f" {where}{err.strerror}. Free some space or choose a "
+                                        "folder you can write to, then run again (--resume continues a training run)."),
+                          soft_wrap=True)
             raise typer.Exit(2) from None
 
     return wrapper
@@ -184,7 +187,8 @@ def train(
     from uncertsplat.stages import train as stage
 
     cfg = stage.resolve_config(preset, load_toml(config) if config else {}, method,
-                               dict(iterations=iterations, variant=variant, seed=seed), set_)
+                               dict(iterations=iterations, variant=variant, seed=seed), set_,
+                               source=str(config) if config else None)
     # with --resume, --iterations means "train on to this many steps" (the stored config wins otherwise)
     view_cfg = None
     if view:

@@ -742,14 +742,30 @@ def parse_override(text: str) -> dict:
     return out
 
 
-def format_validation_error(err: ValidationError, source: str) -> str:
-    """One readable paragraph from a pydantic ValidationError."""
+def _valid_keys(model: type[BaseModel] | None, loc: tuple) -> list[str]:
+    """The field names of the (nested) model at ``loc``'s parent, [] when it cannot be followed."""
+    for part in loc[:-1]:
+        field = model.model_fields.get(str(part)) if model is not None else None
+        inner = getattr(field, "annotation", None) if field is not None else None
+        model = inner if isinstance(inner, type) and issubclass(inner, BaseModel) else None
+    return list(model.model_fields) if model is not None else []
+
+
+def format_validation_error(err: ValidationError, source: str, model: type[BaseModel] | None = None) -> str:
+    """One readable paragraph from a pydantic ValidationError; an unknown key gets the closest valid ones."""
+    import difflib
+
     lines = []
     for e in err.errors():
         loc = ".".join(str(p) for p in e["loc"]) or "(root)"
         msg = e["msg"]
         if e["type"] == "extra_forbidden":
-            msg = "unknown key (check the spelling; see --help for the valid keys)"
+            valid = _valid_keys(model, tuple(e["loc"]))
+            close = difflib.get_close_matches(str(e["loc"][-1]), valid, n=3, cutoff=0.6)
+            prefix = ".".join(str(p) for p in e["loc"][:-1])
+            named = [f"{prefix}.{k}" if prefix else k for k in close]
+            msg = ("unknown key" + (f" (did you mean {' or '.join(named)}?)" if named else " (check the spelling)")
+                   + (f"; valid keys here: {', '.join(valid)}" if valid and not named else ""))
         lines.append(f"{loc}: {msg}")
     return f"invalid configuration in {source}: " + "; ".join(lines)
 
@@ -759,7 +775,7 @@ def build_config(model: type[_Base], data: dict, source: str = "config"):
     try:
         return model.model_validate(data)
     except ValidationError as err:
-        raise UserError(format_validation_error(err, source)) from None
+        raise UserError(format_validation_error(err, source, model)) from None
 
 
 def load_toml(path: str | Path) -> dict:
@@ -773,16 +789,22 @@ def load_toml(path: str | Path) -> dict:
         raise UserError(f"not a valid TOML file ({err})", path=path) from None
 
 
-def train_config_from(preset: str | None, data: dict | None = None, overrides: list[str] | None = None) -> TrainConfig:
-    """Resolve a TrainConfig: preset, then ``data`` (e.g. from TOML), then ``key=value`` overrides."""
+def train_config_from(preset: str | None, data: dict | None = None, overrides: list[str] | None = None,
+                      source: str | None = None) -> TrainConfig:
+    """Resolve a TrainConfig: preset, then ``data`` (e.g. from TOML), then ``key=value`` overrides. ``source``:
+    where ``data`` came from (a TOML file); the preset and ``data`` are checked before the overrides, so that an
+    error in the file names it."""
     merged: dict = {}
     if preset is not None:
         if preset not in TRAIN_PRESETS:
             raise UserError(f"unknown preset '{preset}'", hint=f"Choose one of: {', '.join(TRAIN_PRESETS)}.")
         merged = deep_update(merged, TRAIN_PRESETS[preset])
+    with_preset = f" (preset {preset})" if preset else ""
     if data:
         merged = deep_update(merged, data)
+        if source is not None:
+            build_config(TrainConfig, merged, source=source + with_preset)
     for o in overrides or []:
         merged = deep_update(merged, parse_override(o))
-    return build_config(TrainConfig, merged, source=f"train config (preset {preset})" if preset else "train config")
+    return build_config(TrainConfig, merged, source="train config" + with_preset)
 

@@ -289,6 +289,14 @@ def test_cli_not_a_run(tmp_path):
     assert result.exit_code == 2 and "config.json is missing" in result.output
 
 
+def test_cli_an_evaluation_folder_names_its_run(evaluated):
+    """RUN/eval holds a config.json too (evaluate's): one line that points to RUN, not 25 unknown keys."""
+    run, _ = evaluated
+    result = runner.invoke(app, ["evaluate", str(run / "eval"), "--device", "cpu"])
+    assert result.exit_code == 2 and "another command's" in result.output, result.output
+    assert str(run.resolve()) in result.output.replace("\n", "") and "unknown key" not in result.output
+
+
 def test_the_pixel_noise_level_is_fitted_and_recorded(tiny_run_path, tmp_path):
     """``residual_scale``: "fit" records the maximum-likelihood factor and scales the noise by it (a given factor is
     used as given; without the pixel-noise term there is none)."""

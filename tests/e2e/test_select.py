@@ -206,6 +206,26 @@ class TestAddViewsErrors:
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["view_002.png"])
         assert (run / "scene.json").read_text() == before
 
+    def test_a_finished_run_needs_steps_for_the_added_views(self, tiny_scene_path, subset_run, tmp_path):
+        """Without --iterations beyond its end the added view would be recorded as trained on with 0 steps."""
+        run = tmp_path / "run"
+        shutil.copytree(subset_run, run)
+        before = {n: (run / n).read_text() for n in ("config.json", "scene.json")}
+        with pytest.raises(UserError, match="would never be trained on"):
+            train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, add_views=["view_002.png"])
+        assert {n: (run / n).read_text() for n in before} == before
+
+    def test_a_run_started_on_indices_grows_by_name(self, tiny_scene_path, tmp_path):
+        """scene.train_indices: the run continues on the names of those views, with the added one."""
+        run = tmp_path / "idx"
+        train_run(tiny_scene_path, run, _cfg(iterations=10, scene={"train_indices": [1, 4, 12, 19]}), CPU)
+        first = RunScene.read(run / "scene.json")
+        train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=20, add_views=["view_002.png"])
+        info = RunScene.read(run / "scene.json")
+        assert sorted(info.train) == sorted([*first.train, "view_002.png"]) and info.test == first.test
+        scene = json.loads((run / "config.json").read_text())["scene"]
+        assert scene["train_names"] == [*first.train, "view_002.png"] and scene["train_indices"] is None
+
     def test_a_run_on_every_view_has_none_to_add(self, tiny_scene_path, tmp_path):
         run = tmp_path / "all"
         train_run(tiny_scene_path, run, _cfg(iterations=10), CPU)
@@ -228,6 +248,15 @@ def test_cli_with_a_pose_file(subset_run, tmp_path):
     res = CliRunner().invoke(app, ["select-views", str(subset_run), "--candidates", str(poses), "--score",
                                    "coverage", "-o", str(tmp_path / "out2"), "--device", "cpu"])
     assert res.exit_code == 2 and "line 2" in res.output and "8 fields" in res.output
+
+
+def test_cli_errors_print_the_message_as_given(subset_run, tmp_path):
+    """An error that quotes what the user typed shows it verbatim: `around:x:` is not an emoji, `[red]` not markup."""
+    res = CliRunner().invoke(app, ["select-views", str(subset_run), "--candidates", "around:x", "-o",
+                                   str(tmp_path / "out"), "--device", "cpu"])
+    assert res.exit_code == 2 and "around:x" in res.output and "\u274c" not in res.output, res.output
+    res = CliRunner().invoke(app, ["evaluate", str(tmp_path / "[red]nope"), "--device", "cpu"])
+    assert res.exit_code == 2 and "[red]nope" in res.output, res.output
 
 
 def test_the_default_score_is_fisher(subset_run, tmp_path):

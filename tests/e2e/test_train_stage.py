@@ -95,3 +95,28 @@ def test_resume_with_more_iterations_trains_on(tiny_scene_path, tmp_path):  # no
     assert json.loads((run / "config.json").read_text())["iterations"] == 9
     with pytest.raises(UserError, match="cannot shorten"):
         stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True, extend_to=4)
+
+
+def test_resume_on_another_scene_is_refused(trained, tiny_scene_path, tmp_path):  # noqa: F811
+    """A run continues on the scene it was trained on: another scene's photos (or the same scene copied with an
+    image missing) are refused and nothing in the run changes; a scene folder that moved, with every image, is
+    accepted."""
+    run, cfg = trained
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    before = {n: (copy / n).read_bytes() for n in ("config.json", "scene.json", "stats.jsonl")}
+    other = tmp_path / "other"
+    shutil.copytree(tiny_scene_path, other)
+    with pytest.raises(UserError, match="was trained on .*: that scene is still at"):
+        stage.run(other, copy, cfg, torch.device("cpu"), resume=True, extend_to=85)
+    # moved: the recorded folder is gone; a scene without one of the run's images is not the same scene
+    info = json.loads((copy / "scene.json").read_text())
+    info["scene"] = str(tmp_path / "moved-away")
+    (copy / "scene.json").write_text(json.dumps({**info, "test": [*info["test"], "elsewhere.png"]}))
+    with pytest.raises(UserError, match="1 of its images are not in .*elsewhere.png"):
+        stage.run(other, copy, cfg, torch.device("cpu"), resume=True, extend_to=85)
+    assert json.loads((copy / "config.json").read_bytes()) == json.loads(before["config.json"])
+    assert (copy / "stats.jsonl").read_bytes() == before["stats.jsonl"]
+    (copy / "scene.json").write_text(json.dumps(info))
+    stage.run(other, copy, cfg, torch.device("cpu"), resume=True, extend_to=85)
+    assert json.loads((copy / "scene.json").read_text())["scene"] == str(other.resolve())

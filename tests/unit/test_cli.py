@@ -39,3 +39,20 @@ def test_python_dash_m_runs_the_same_cli():
     result = subprocess.run([sys.executable, "-m", "uncertsplat", "--help"], capture_output=True, text=True,
                             timeout=120)
     assert "Usage: uncertsplat" in result.stdout
+
+
+def test_train_config_file_errors_name_the_file(tmp_path):
+    """A typo in `train --config FILE` names FILE (as the other commands do); a typo in --set does not blame it."""
+    bad = tmp_path / "tc_bad.toml"
+    bad.write_text("iteratons = 100\n")
+    result = runner.invoke(app, ["train", str(tmp_path), "-o", str(tmp_path / "run"), "--preset", "tiny",
+                                 "--config", str(bad), "--device", "cpu"])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    out = result.output.replace("\n", "")
+    assert str(bad) in out and "iteratons" in out, result.output
+    good = tmp_path / "tc.toml"
+    good.write_text("iterations = 100\n")
+    result = runner.invoke(app, ["train", str(tmp_path), "-o", str(tmp_path / "run"), "--config", str(good),
+                                 "--set", "seeed=1", "--device", "cpu"])
+    assert result.exit_code == 2 and "seeed" in result.output and str(good) not in result.output.replace("\n", "")
+    assert not (tmp_path / "run").exists()

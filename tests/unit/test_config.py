@@ -83,3 +83,13 @@ def test_toml_errors_name_the_file(tmp_path):
         load_toml(bad)
     with pytest.raises(UserError, match="not found"):
         load_toml(tmp_path / "missing.toml")
+
+
+def test_an_unknown_key_gets_the_closest_valid_ones():
+    """A typo names the key it probably meant (nested too); a key like none lists the valid keys at its level."""
+    with pytest.raises(UserError, match=r"densify\.untill: unknown key \(did you mean densify\.until\?\)"):
+        build_config(TrainConfig, {"densify": {"untill": 3}}, source="x.toml")
+    with pytest.raises(UserError, match="iteratons: unknown key .did you mean iterations"):
+        build_config(TrainConfig, {"iteratons": 3})
+    with pytest.raises(UserError, match="zzzz: unknown key .check the spelling.; valid keys here: .*num_samples"):
+        build_config(EvalConfig, {"zzzz": 3})

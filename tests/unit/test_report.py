@@ -335,6 +335,13 @@ def test_bad_run_path_names_it(tmp_path):
         stage.run([empty], tmp_path / "out", ReportConfig())
     assert str(empty) in str(e.value) and "not a run folder" in str(e.value)
     assert not (tmp_path / "out").exists()
+    # a scene folder (synth writes a scene.json too) is not a run: refused, not an empty report
+    scene = tmp_path / "scene"
+    (scene / "images").mkdir(parents=True)
+    (scene / "scene.json").write_text('{"schema_version": 2}')
+    with pytest.raises(UserError, match="this is a scene, the input of `uncertsplat train`"):
+        stage.run([scene], tmp_path / "out", ReportConfig())
+    assert not (tmp_path / "out").exists()
 
 
 def test_several_runs_side_by_side_and_pruning(tmp_path):

@@ -215,6 +215,12 @@ def read_run_config(run_dir: Path) -> TrainConfig:
         data = json.loads(cfg_path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as err:
         raise UserError(f"config.json is not valid JSON ({err})", path=cfg_path) from None
+    if isinstance(data, dict) and 2 * len(data.keys() - TrainConfig.model_fields.keys()) > len(data):
+        # another stage's output (RUN/eval, a prune or select folder's config): name the run it belongs to
+        parent = Path(run_dir).resolve().parent
+        owner = parent if (parent / "config.json").is_file() else None
+        raise UserError("not a training run (its config.json is another command's)", path=run_dir,
+                        hint=f"Give the run folder{f': {owner}' if owner else ' (written by `uncertsplat train`)'}.")
     return build_config(TrainConfig, data, source=str(cfg_path))
 
 

@@ -42,7 +42,7 @@ from uncertsplat.schemas import EvalReport, Manifest, PruneReport, ReconstructRe
 
 # Files whose presence makes a folder a run folder (at least one is needed).
 RUN_MARKERS = ("config.json", "stats.jsonl", "train_summary.json", "eval/metrics.json", "prune.json",
-               "manifest.json", "scene.json")
+               "manifest.json")
 
 CONFIG = "config.json"
 SCENE = "scene.json"
@@ -169,8 +169,11 @@ def load_run(path: str | Path, name: str | None = None) -> RunData:
         raise UserError("not a folder; expected a run folder", path=path,
                         hint="Give the folder written by `uncertsplat train` (or `prune`), not a file in it.")
     if not any((path / m).is_file() for m in RUN_MARKERS):
+        # a scene folder (synth's or a COLMAP workspace) holds images and a scene.json or sparse/, but no run files
+        scene = (path / "images").is_dir() or (path / "sparse").is_dir()
         raise UserError(
-            "not a run folder (none of config.json, stats.jsonl, eval/metrics.json, prune.json found)",
+            "not a run folder (none of config.json, stats.jsonl, eval/metrics.json, prune.json found)"
+            + ("; this is a scene, the input of `uncertsplat train`" if scene else ""),
             path=path, hint="Give the folder written by `uncertsplat train` (or `prune`).")
     run = RunData(path=path, name=name or path.resolve().name)
     run.config = _read(run, CONFIG, lambda: read_train_config(path / CONFIG))

@@ -17,8 +17,9 @@ from uncertsplat.config import TrainConfig
 
 
 def resolve_config(preset: str | None, data: dict[str, Any], method: str | None, explicit: dict[str, Any],
-                   overrides: list[str] | None) -> TrainConfig:
-    """The ``TrainConfig`` of: preset < ``data`` (a config file) < ``method``'s keys < explicit options < ``--set``.
+                   overrides: list[str] | None, source: str | None = None) -> TrainConfig:
+    """The ``TrainConfig`` of: preset < ``data`` (a config file, ``source``) < ``method``'s keys < explicit options <
+    ``--set``. An error in the config file names it.
 
     Raises:
         UserError: an unknown method, preset or key, or a value out of range.
@@ -26,6 +27,8 @@ def resolve_config(preset: str | None, data: dict[str, Any], method: str | None,
     from uncertsplat.baselines import method_overrides
     from uncertsplat.config import deep_update, train_config_from
 
+    if data and source is not None:
+        train_config_from(preset, data, source=source)  # the file alone: its errors name it
     if method is not None:
         data = deep_update(data, method_overrides(method))
     return train_config_from(preset, deep_update(data, {k: v for k, v in explicit.items() if v is not None}),

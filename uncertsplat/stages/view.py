@@ -7,6 +7,9 @@ dependency (``pip install 'uncertsplat[view]'``); without it the command says so
 
 from __future__ import annotations
 
+import contextlib
+import signal
+import threading
 import time
 from pathlib import Path
 
@@ -68,6 +71,24 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
     return Viewer(renderer, scene, cfg)
 
 
+@contextlib.contextmanager
+def _sigterm_as_ctrl_c():
+    """SIGTERM (`kill`, `timeout`) stops the serving loop as Ctrl-C does; without this the process dies in the
+    fatal-signal handler pycolmap's logging installs, which prints a native stack dump. Main thread only."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(_signum, _frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def run(run_dir: Path, cfg: ViewConfig, device: torch.device, *, block: bool = True):
     """Serve ``run_dir`` in the browser; returns the started ``Viewer`` when ``block`` is False (the caller
     stops it), else serves until Ctrl-C and returns None.
@@ -88,9 +109,10 @@ def run(run_dir: Path, cfg: ViewConfig, device: torch.device, *, block: bool = T
                       f"ssh -L {viewer.port}:localhost:{viewer.port} THIS_HOST); Ctrl-C stops")
         if not block:
             return viewer
-        while True:
-            time.sleep(0.5)
-    except KeyboardInterrupt:  # Ctrl-C, whenever it comes: stop cleanly
+        with _sigterm_as_ctrl_c():
+            while True:
+                time.sleep(0.5)
+    except KeyboardInterrupt:  # Ctrl-C (or SIGTERM), whenever it comes: stop cleanly
         block = True
     except BaseException:
         block = True

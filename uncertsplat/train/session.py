@@ -85,6 +85,24 @@ def _truncate_stats(path: Path, step: int) -> None:
     atomic_write_text(path, "".join(f"{line}\n" for line in keep))
 
 
+def _check_same_scene(before: RunScene, scene: Path, names: tuple[str, ...], run_dir: Path) -> None:
+    """Refuse to resume ``run_dir`` on another scene than the one it was trained on (``scene.json``): its model
+    would go on training on other photos and its held-out scores would mix two scenes. A scene folder that was
+    moved (the recorded path is gone) is accepted when it holds every image the run trained on and held out."""
+    recorded = Path(before.scene)
+    if recorded.resolve() == scene.resolve():
+        return
+    missing = sorted((set(before.train) | set(before.test) | set(before.calibration)) - set(names))
+    if recorded.exists() or missing:
+        why = (f"{len(missing)} of its images are not in {scene} (e.g. {missing[0]})" if missing
+               else f"that scene is still at {recorded}")
+        raise UserError(f"the run was trained on {recorded}, not on {scene}: {why}", path=run_dir,
+                        hint=f"Resume it on its own scene: uncertsplat train {recorded} -o {run_dir} --resume "
+                             "(or train the other scene into a new run folder).")
+    console.print(f"[yellow]note:[/] the run's scene was at {recorded} (gone); resuming on {scene}, which holds "
+                  "all of its images")
+
+
 def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tuple[TrainConfig, list[str]]:
     """``cfg`` with the views ``add`` appended to its explicit training names, and those names.
 
@@ -98,13 +116,15 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
         raise UserError("this run sets views aside for calibration (scene.calibration_holdout), and adding views "
                         "would change which ones", path=run_dir,
                         hint="Train a new run on the views you want (scene.train_names), with views set aside or not.")
-    if cfg.scene.train_names is None:
+    info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
+    if cfg.scene.train_names is None and (cfg.scene.train_indices is None or info is None):
         raise UserError("this run trains on every image that is not held out, so there is no unused view to add",
                         path=run_dir, hint="Start the run on a subset of the images (--set scene.train_names=[...]) "
                                            "to add views later.")
-    info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
     held = set(info.test) if info is not None else set()
-    current = list(cfg.scene.train_names)
+    # a run started on scene.train_indices continues on the names of those views (scene.json), so that the added
+    # ones join them whatever their place in the sorted image list
+    current = list(cfg.scene.train_names) if cfg.scene.train_names is not None else list(info.train)
     added: list[str] = []
     for name in [n.strip() for item in add for n in item.split(",") if n.strip()]:  # "a.png,b.png" or repeated
         if name in held:
@@ -113,7 +133,7 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
         if name in current or name in added:
             raise UserError(f"'{name}' is already a training view of this run", path=run_dir)
         added.append(name)
-    scene = cfg.scene.model_copy(update={"train_names": current + added})
+    scene = cfg.scene.model_copy(update={"train_names": current + added, "train_indices": None})
     return cfg.model_copy(update={"scene": scene}), added
 
 
@@ -162,8 +182,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             diff = [d for d in _differences(stored, json.loads(cfg.model_dump_json()))
                     if not (d == "iterations" and extend_to is not None)]
             if diff:
-                console.print(f"[yellow]note:[/] resuming with the run's stored configuration; ignoring the "
-                              f"given values of: {', '.join(diff)}")
+                console.print(f"[yellow]note:[/] resuming with the run's stored configuration; this command's "
+                              f"(its options, preset and defaults) is not used, and differs in: {', '.join(diff)}")
             cfg = build_config(TrainConfig, stored, source=str(run_dir / "config.json"))
             if add_views:
                 cfg, add_views = _add_training_views(cfg, run_dir, list(add_views))
@@ -176,6 +196,10 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 console.print(f"[yellow]note:[/] continuing to {extend_to} steps instead of {cfg.iterations}; the "
                               "position learning-rate schedule is stretched to the new length from here on")
                 cfg = cfg.model_copy(update={"iterations": extend_to})
+            if add_views and found is not None and int(found[1]["step"]) >= cfg.iterations:
+                raise UserError(f"the run has finished its {cfg.iterations} steps: the added view(s) would never be "
+                                "trained on", path=run_dir,
+                                hint=f"Give the steps to train them with: --iterations N (N > {cfg.iterations}).")
             if found is None:
                 console.print("[yellow]note:[/] no usable checkpoint in the run folder; starting from step 0")
                 for name in ("stats.jsonl",):
@@ -188,9 +212,11 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         data = load_scene(scene, cfg.scene)
         if not data.split.get("train"):
             raise UserError("the scene has no training views", path=scene, hint="Check test_every / test_names.")
-        atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         names = data.cameras.image_names
         before = RunScene.read_optional(run_dir / RunScene.FILE_NAME) if resume else None
+        if before is not None:
+            _check_same_scene(before, scene, names, run_dir)
+        atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         views_added = list(before.views_added) if before is not None else []
         if add_views:
             views_added.append(ViewsAdded(step=int(state["step"]) if state is not None else 0, names=list(add_views)))
