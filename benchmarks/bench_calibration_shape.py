@@ -39,7 +39,7 @@ import torch
 
 from uncertsplat.baselines import load_run
 from uncertsplat.config import EvalConfig
-from uncertsplat.data.dataset import load_view_set
+from uncertsplat.data.dataset import load_view_set, photo_turns, turned_back
 from uncertsplat.eval import tails
 from uncertsplat.eval.calibration import DEFAULT_KS, calibration
 from uncertsplat.io.images import read_exr
@@ -105,13 +105,16 @@ def read_maps(run: Path, report: EvalReport, scene) -> tuple[torch.Tensor, torch
     """Pooled (error, std) of the evaluated views, std at ``report.std_floor``."""
     names = list(scene.cameras.image_names)
     views = load_view_set(scene, [names.index(n) for n in report.image_names], depth=False)
+    turns = photo_turns(scene)  # the maps of a turned photo lie as the photo does
     errs, stds = [], []
     for j, name in enumerate(report.image_names):
         d = read_exr(run / "eval" / "maps" / f"{map_stem(name)}.exr")
         mean = torch.from_numpy(np.stack([d[f"rgb_mean.{c}"] for c in "RGB"], -1)).double()
         std = torch.from_numpy(np.stack([d[f"rgb_std.{c}"] for c in "RGB"], -1)).double()
-        valid = torch.ones(mean.shape[:2], dtype=torch.bool) if views.masks is None else views.masks[j][..., 0]
-        errs.append((mean.clamp(0, 1) - views.images[j].double())[valid].reshape(-1))
+        k = turns.get(name, 0)
+        valid = (torch.ones(mean.shape[:2], dtype=torch.bool) if views.masks is None
+                 else turned_back(views.masks[j][..., 0], k))
+        errs.append((mean.clamp(0, 1) - turned_back(views.images[j].double(), k))[valid].reshape(-1))
         stds.append(std.clamp_min(report.std_floor)[valid].reshape(-1))
     return torch.cat(errs), torch.cat(stds)
 

@@ -647,3 +647,38 @@ def test_the_intervals_example_reads_the_predictive_from_the_maps(evaluated, cap
     assert printed.count("Student-t") == len(report.image_names) and "nominal 90.0 %" in printed
     bounds = read_exr(run / "example_intervals" / f"{map_stem(report.image_names[0])}.exr")
     assert np.all(bounds["lower.R"] <= bounds["upper.R"])
+
+
+@pytest.mark.parametrize("script, args, expect", [
+    ("uncertainty_map.py", ["view_999.png"], "no held-out view 'view_999.png'"),
+    ("uncertainty_map.py", ["10"], "no held-out view '10'"),
+    ("intervals.py", [], "metrics.json"),
+    ("evaluate_run.py", ["many"], "python examples/evaluate_run.py RUN [K]"),
+])
+def test_the_examples_end_with_a_message_not_a_traceback(tiny_run_path, tmp_path, monkeypatch, script, args, expect):
+    """What a user types wrong (a view that is not held out, a run not evaluated yet, K not a number) ends the
+    example with one message naming it."""
+    import runpy
+    import sys
+    from pathlib import Path
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    shutil.rmtree(run / "eval", ignore_errors=True)
+    monkeypatch.setattr(sys, "argv", [script, str(run), *args])
+    with pytest.raises(SystemExit) as e:
+        runpy.run_path(str(Path(__file__).resolve().parents[2] / "examples" / script), run_name="__main__")
+    assert expect in str(e.value.code)
+
+
+def test_the_map_example_takes_a_view_by_name(tiny_run_path, tmp_path, monkeypatch, capsys):
+    import runpy
+    import sys
+    from pathlib import Path
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    name = load_run(run).load_scene().subset("test").image_names[1]
+    monkeypatch.setattr(sys, "argv", ["uncertainty_map.py", str(run), name, "2"])
+    runpy.run_path(str(Path(__file__).resolve().parents[2] / "examples" / "uncertainty_map.py"), run_name="__main__")
+    assert capsys.readouterr().out.startswith(f"{name}: mean RGB std") and (run / "example_maps" / "rgb_std.png").is_file()

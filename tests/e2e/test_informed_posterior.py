@@ -114,7 +114,8 @@ def test_a_run_from_before_the_informed_posterior_resumes_with_sgd_tables(tiny_s
     cfg = train_config_from("tiny", {})
     train_model(tiny_scene_path, run, cfg, CPU, resume=True, extend_to=step + 100)
     summary = json.loads((run / "train_summary.json").read_text())
-    assert summary["steps"] == step + 100 and summary["posterior_updates"] == []
+    # no informed update after the resume (those before it came with the checkpoint)
+    assert summary["steps"] == step + 100 and all(u["step"] <= step for u in summary["posterior_updates"])
     assert json.loads(cfg_path.read_text())["variational"]["posterior"] in (None, "sgd")
 
 

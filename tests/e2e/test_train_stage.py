@@ -61,10 +61,18 @@ def test_load_run_matches_checkpoint(trained):
         assert torch.equal(p.detach(), state["model"]["params" if name in state["model"]["params"] else "tables"][name])
 
 
-def test_existing_run_is_refused(trained, tiny_scene_path):  # noqa: F811
+def test_existing_run_is_refused(trained, tiny_scene_path, tmp_path):  # noqa: F811
     run, cfg = trained
-    with pytest.raises(UserError, match="already exists"):
+    with pytest.raises(UserError, match="already exists") as e:
         stage.run(tiny_scene_path, run, cfg, torch.device("cpu"))
+    assert "--resume" in e.value.hint
+    # a folder of other files: --resume could not continue it, so it is not suggested
+    other = tmp_path / "junk"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(UserError, match="not a training run") as e:
+        stage.run(tiny_scene_path, other, cfg, torch.device("cpu"))
+    assert "--resume" not in e.value.hint and (other / "notes.txt").read_text() == "mine"
 
 
 def test_resume_from_middle_checkpoint_is_exact(trained, tiny_scene_path, tmp_path):  # noqa: F811
@@ -120,3 +128,20 @@ def test_resume_on_another_scene_is_refused(trained, tiny_scene_path, tmp_path):
     (copy / "scene.json").write_text(json.dumps(info))
     stage.run(other, copy, cfg, torch.device("cpu"), resume=True, extend_to=85)
     assert json.loads((copy / "scene.json").read_text())["scene"] == str(other.resolve())
+
+
+def test_a_resumed_run_keeps_its_posterior_updates(tiny_scene_path, tmp_path):  # noqa: F811
+    """train_summary.json lists every informed update of the run, those before the checkpoint it resumed from
+    too (they are in the checkpoint), so `train`'s posterior line and the report read the same record."""
+    run = tmp_path / "run"
+    cfg = train_config_from("tiny", None, ["iterations=40", "scene.downscale=4.0", "checkpoint_every=20",
+                                           "log_every=10", "eval_every=1000", "variational.refresh_interval=10"])
+    stage.run(tiny_scene_path, run, cfg, torch.device("cpu"))
+    full = json.loads((run / "train_summary.json").read_text())["posterior_updates"]
+    assert [u["step"] for u in full] == [10, 20, 30, 40]
+    (run / "ckpts" / "step_000040.pt").unlink()
+    (run / "train_summary.json").unlink()
+    stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True)
+    resumed = json.loads((run / "train_summary.json").read_text())["posterior_updates"]
+    assert [u["step"] for u in resumed] == [10, 20, 30, 40]
+    assert [u["noise_std"] for u in resumed] == pytest.approx([u["noise_std"] for u in full])

@@ -101,3 +101,12 @@ def test_shipped_pipelines_validate(name):
     assert cfg.stages[-1].stage == "report"
     for stage in cfg.stages:
         pl._stage_config(stage)
+
+
+def test_photos_pipeline_without_photos_says_how_to_give_them(tmp_path, calls):
+    """photos.toml's `photos` is a placeholder: run without --set photos=... is refused before any output folder
+    exists, with the option to use."""
+    root = Path(__file__).resolve().parents[2] / "pipelines"
+    with pytest.raises(UserError, match="--set photos=/path/to/photos"):
+        pl.run(root / "photos.toml", tmp_path / "out")
+    assert not (tmp_path / "out").exists() and calls == []

@@ -52,6 +52,18 @@ def photo_turns(scene: SceneData) -> dict[str, int]:
             if fit.turns % 4}
 
 
+def turned_back(image: np.ndarray | Tensor, turns: int) -> np.ndarray | Tensor:
+    """``image`` [H,W,...] of a view the scene turned by ``turns`` clockwise quarter turns (``photo_turns``), turned
+    back as its photo lies: how ``evaluate`` writes such a view's maps, so a reader comparing them with the
+    scene's images turns the images the same way."""
+    k = turns % 4
+    if k == 0:
+        return image
+    if isinstance(image, Tensor):
+        return torch.rot90(image, k=k, dims=(0, 1))
+    return np.ascontiguousarray(np.rot90(image, k=k, axes=(0, 1)))
+
+
 def fit_photo(fit: PhotoFit, image: np.ndarray) -> np.ndarray:
     """The copy of ``image`` [H,W,...] float that ``fit`` makes: turned, brought to the photo's (scaled) size when it
     differs (a resized photo, or a map of it at another resolution such as a GT depth map), then cropped."""

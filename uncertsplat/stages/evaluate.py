@@ -46,15 +46,15 @@ def write_view_maps(folder: Path, maps: ViewMaps, preview: str, turns: dict[str,
 
     ``turns``: {image name: clockwise quarter turns} of the photos the scene turned to its common orientation
     (``SceneData.photo_fits``); their maps are turned back, so that each view's maps lie as its photo does."""
+    from uncertsplat.data.dataset import turned_back
     from uncertsplat.io.images import write_exr, write_png
     from uncertsplat.report.colormaps import colorize, rank_colorize
 
     folder = Path(folder)
     stem = map_stem(maps.name)
-    back = (turns or {}).get(maps.name, 0) % 4
-    gt, pred, std, depth_mean, depth_std = (
-        torch.rot90(t, k=back, dims=(0, 1)) if back else t  # the fit turned clockwise: back is anticlockwise
-        for t in (maps.gt, maps.rgb_mean, maps.rgb_std, maps.depth_mean, maps.depth_std))
+    back = (turns or {}).get(maps.name, 0)
+    gt, pred, std, depth_mean, depth_std = (turned_back(t, back) for t in (maps.gt, maps.rgb_mean, maps.rgb_std,
+                                                                         maps.depth_mean, maps.depth_std))
     arrays = [pred[..., c] for c in range(3)] + [std[..., c] for c in range(3)] + [depth_mean[..., 0], depth_std[..., 0]]
     # the maps say which predictive their std is the std of (a reader of the EXR alone can build intervals)
     predictive = {EXR_RGB_PREDICTIVE: "gaussian" if maps.dof is None else "student-t"}

@@ -108,6 +108,11 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
 
     pipeline = Path(pipeline)
     cfg = load_pipeline(pipeline, overrides)
+    if cfg.photos is not None and not Path(cfg.photos).is_dir() and any(
+            st.stage == "reconstruct" and st.input is None for st in cfg.stages):
+        # before any output folder exists: the pipeline's photo folder is a placeholder until the user sets it
+        raise UserError("photo folder not found (the pipeline's `photos`)", path=Path(cfg.photos),
+                        hint=f"Give your photos: uncertsplat run {pipeline} -o {output} --set photos=/path/to/photos")
     dev = resolve_device(device or cfg.device)
     root = Path(output)
     root.mkdir(parents=True, exist_ok=True)

@@ -491,7 +491,7 @@ def _evaluate_written(output: Path, result: PruneReport, measure: _Measure, devi
 
 def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measure, loaded, result: PruneReport,
                   scores: dict, carriers: torch.Tensor, keep, pruned, random_model, sweep) -> None:
-    from uncertsplat.data.dataset import photo_turns
+    from uncertsplat.data.dataset import photo_turns, turned_back
     from uncertsplat.io.atomic import atomic_write_bytes
     from uncertsplat.io.images import write_png
     from uncertsplat.io.maps import map_stem
@@ -526,7 +526,7 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
                 for j in sel:
                     name = measure.scene.cameras.image_names[measure.indices[j]]
                     write_png(tmp / "renders" / f"{map_stem(name)}_{tag}.png",
-                              np.rot90(rgb[j].numpy(), k=turns.get(name, 0), axes=(0, 1)).copy())
+                              turned_back(rgb[j].numpy(), turns.get(name, 0)))
         result.written = Written(model=writes_model, folder=str(output))
         if sweep is not None:
             sweep.write(tmp / "sweep.json")

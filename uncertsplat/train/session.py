@@ -14,6 +14,7 @@ when the one given differs) and continues exactly where the last good checkpoint
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -160,6 +161,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     device = torch.device(device)
     exists = run_dir.exists() and (not run_dir.is_dir() or any(p.name != ".lock" for p in run_dir.iterdir()))
     if exists and not resume:
+        if not (run_dir / "config.json").is_file():  # files of something else: nothing --resume could continue
+            raise UserError("the output folder exists and holds files that are not a training run", path=run_dir,
+                            hint="Choose another output folder (-o), or empty this one.")
         raise UserError("the run folder already exists", path=run_dir,
                         hint="Add --resume to continue it, or choose another output folder (-o).")
     if add_views and not resume:
@@ -283,6 +287,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         fit_psnr = trainer.training_psnr()
         warnings = poor_fit_warnings(fit_psnr, scene) + exposure_warnings(trainer.photo_gains(),
                                                                           trainer.exposure is not None)
+        if warnings and trainer.step < SHORT_RUN_STEPS:  # both judge a fitted model
+            warnings = [f"{w} (after only {trainer.step} steps the model may not fit its photos yet: judge this on "
+                        "a full run)" for w in warnings]
         # what loading changed of the photos (turned, cropped, left out) goes into the summary, so the report shows it
         recorded = warnings + [f"scene: {note}" for note in data.notes]
         summary = TrainSummary(**trainer.summary(), test_psnr=held.get("psnr"), test_ssim=held.get("ssim"),
@@ -302,6 +309,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     return run_dir
 
 
+SHORT_RUN_STEPS = 1000
+"""A run shorter than this has not fitted its photos yet (the tiny preset's 300-step smoke runs): `train`'s warnings
+on the fit and on the photos' brightness say so."""
 POOR_FIT_PSNR = 20.0
 """A model whose render of its own training views stays below this PSNR (dB) gets a warning: 3DGS fits the photos it
 trains on far better than that when the cameras are right (the demo scene 33 dB and more, fern and bonsai 25-30 dB
@@ -357,7 +367,9 @@ def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
                  f"reprojection error {err}"
                  + (", its mapping runs disagreed" if report.mapping_agreed is False else "") +
                  "; `uncertsplat reconstruct` with --overwrite and another --seed maps the photos again)")
-    return [f"the model fits its own training views at only {fit_psnr:.1f} dB (below {POOR_FIT_PSNR:.0f} dB): "
+    # rounded down, so that a value just below the threshold reads as below it
+    shown = math.floor(fit_psnr * 100.0 + 1e-6) / 100.0
+    return [f"the model fits its own training views at only {shown:.2f} dB (below {POOR_FIT_PSNR:g} dB): "
             f"check {where}, moving objects or exposure changes between the photos"]
 
 

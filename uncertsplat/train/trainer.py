@@ -132,7 +132,7 @@ class Trainer:
         self.near = near_plane(scene.scene_scale)
         self.variational = cfg.method == "variational"
         self.informed = self.variational and cfg.posterior == "informed"
-        self.posterior_updates: list[dict] = []  # one record per informed-posterior update (this process)
+        self.posterior_updates: list[dict] = []  # one record per informed-posterior update (kept in checkpoints)
         self.timer = PhaseTimer(self.device, cfg.profile)  # seconds per phase of this process's steps
         # the table terms of the expected render while the tables stay fixed (dropped whenever the tables or
         # the topology may have changed: posterior updates, densification, growth and SH-band checks)
@@ -271,6 +271,7 @@ class Trainer:
             "gen_background": self.gen_background.get_state(),
             "view_queue": torch.tensor(self.view_queue, dtype=torch.long),
             "sh_bands": [b.model_dump() for b in self.sh_bands],
+            "posterior_updates": [dict(u) for u in self.posterior_updates],
             "growth": [g.model_dump() for g in self.growth],
             "exposure": self.exposure.detach().clone() if self.exposure is not None else None,
             "exposure_views": torch.tensor(self.train_idx, dtype=torch.long),
@@ -302,6 +303,9 @@ class Trainer:
             self.gen_background.manual_seed(self.cfg.seed + 4)
         self.view_queue = [int(i) for i in state["view_queue"].tolist()]
         self.sh_bands = [BandCheck(**b) for b in state.get("sh_bands", [])]  # absent in checkpoints from before
+        # the updates before the checkpoint (absent in checkpoints from before: the summary then lists this
+        # process's updates only)
+        self.posterior_updates = [dict(u) for u in state.get("posterior_updates", [])]
         self.growth = [GrowthCheck(**g) for g in state.get("growth", [])]  # likewise
         self.densifier.grow = not any(g.stopped for g in self.growth)
         self.step = int(state["step"])
