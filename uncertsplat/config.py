@@ -717,6 +717,25 @@ def deep_update(base: dict, update: dict) -> dict:
     return out
 
 
+def _parse_value(raw: str) -> Any:
+    """A ``--set`` value: TOML, else JSON, else a list of bare words (``[a.png, b.png]``, what a shell leaves of
+    ``["a.png","b.png"]`` typed without quotes around it), else the bare string."""
+    try:
+        return tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        pass
+    try:
+        return json.loads(raw)
+    except json.JSONDecodeError:
+        pass
+    text = raw.strip()
+    if text.startswith("[") and text.endswith("]"):
+        items = [item.strip().strip("'\"") for item in text[1:-1].split(",")]
+        return [_parse_value(item) if item[:1].isdigit() or item in ("true", "false") else item
+                for item in items if item]
+    return raw
+
+
 def parse_override(text: str) -> dict:
     """Turn ``a.b.c=value`` into ``{"a": {"b": {"c": value}}}``; value parsed as TOML/JSON when possible."""
     if "=" not in text:
@@ -725,14 +744,7 @@ def parse_override(text: str) -> dict:
     key = key.strip()
     if not key:
         raise UserError(f"override '{text}' has an empty key")
-    value: Any
-    try:
-        value = tomllib.loads(f"v = {raw}")["v"]
-    except tomllib.TOMLDecodeError:
-        try:
-            value = json.loads(raw)
-        except json.JSONDecodeError:
-            value = raw  # a bare string
+    value = _parse_value(raw)
     out: dict = {}
     node = out
     parts = key.split(".")

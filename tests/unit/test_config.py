@@ -93,3 +93,17 @@ def test_an_unknown_key_gets_the_closest_valid_ones():
         build_config(TrainConfig, {"iteratons": 3})
     with pytest.raises(UserError, match="zzzz: unknown key .check the spelling.; valid keys here: .*num_samples"):
         build_config(EvalConfig, {"zzzz": 3})
+
+
+def test_a_list_of_bare_names_is_a_list():
+    """`--set scene.train_names=[a.png,b.png]` (the shell took the quotes, or none were typed) is the list of those
+    names, not a string pydantic refuses as "not a valid list"; numbers in such a list stay numbers."""
+    from uncertsplat.config import SceneConfig, parse_override
+
+    assert parse_override("scene.train_names=[view_002.png, view_004.png]") == {
+        "scene": {"train_names": ["view_002.png", "view_004.png"]}}
+    assert parse_override('scene.train_names=["a.png","b.png"]')["scene"]["train_names"] == ["a.png", "b.png"]
+    assert parse_override("x=[1, b.png, true]")["x"] == [1, "b.png", True]
+    assert parse_override("name=001.png")["name"] == "001.png"
+    cfg = build_config(SceneConfig, parse_override("train_names=[view_002.png,view_004.png]"))
+    assert cfg.train_names == ["view_002.png", "view_004.png"]

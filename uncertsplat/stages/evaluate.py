@@ -397,7 +397,8 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
         console.print(f"RGB predictive: a Student-t with the std and {report.degrees_of_freedom:.3g} degrees of "
                       f"freedom ({where}; its 68 % interval is +-{_half_width(0.6827, report.degrees_of_freedom):.2f} "
                       f"std, its 99.7 % one +-{_half_width(0.9973, report.degrees_of_freedom):.2f}){gaussian}")
-        if cfg.degrees_of_freedom == "fit" and not report.calibration_held_out:
+        if cfg.degrees_of_freedom == "fit" and not report.calibration_held_out and report.degrees_of_freedom < 10:
+            # heavy tails fitted on training views may be heavier than new views' (light ones say nothing of that)
             console.print("[dim]training views fit better than new ones, so their tails are heavier (bonsai: 2.75 "
                           "degrees of freedom where its held-out views ask for 3.4); views set aside from training "
                           "give a fit that holds for new views: train with --set scene.calibration_holdout=3[/]")

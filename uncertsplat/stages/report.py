@@ -84,5 +84,5 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
     for r in loaded:
         for n in r.notes:
             console.print(f"[yellow]note[/] {r.name}: {n}")
-    console.print(f"report: {index} ({len(figures)} figures)")
+    console.print(f"report: {index} ({len(figures)} figure{'' if len(figures) == 1 else 's'})")
     return index

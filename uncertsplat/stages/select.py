@@ -181,9 +181,13 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         _plot(out / "selection.png", scene.cameras[train].centers, centres, chosen, up,
               f"{run_dir.name}: {cfg.score} chose {', '.join(p.name for p in picked)}")
     for p in picked:
-        console.print(f"  {p.rank}. {p.name}  score {p.score_when_chosen if p.score_when_chosen is not None else '-'}")
+        console.print(f"  {p.rank}. {p.name}  score "
+                      f"{f'{p.score_when_chosen:.6g}' if p.score_when_chosen is not None else '-'}")
     console.print(f"chose {len(picked)} of {len(cands)} in {seconds:.2f} s -> {out / Selection.FILE_NAME}, "
                   f"{out / 'selection.png'}")
+    if len(picked) < cfg.num_views:
+        console.print(f"[yellow]note:[/] {cfg.num_views} views were asked for and only {len(cands)} candidates "
+                      "were there: every one is chosen")
     return sel
 
 
