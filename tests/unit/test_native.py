@@ -15,6 +15,7 @@ import torch
 
 from tests.reference.naive_render import look_at_cameras, random_scene
 from uncertsplat import native
+from uncertsplat.errors import UserError
 from uncertsplat.eval.image import ssim
 from uncertsplat.gaussians.variational import TABLE_NAMES, Prior, kl_terms, random_model
 from uncertsplat.render import render
@@ -278,7 +279,7 @@ def test_compositor_return_codes_become_clear_errors():
 def test_bad_backend_setting_is_refused(monkeypatch):
     s, cams = _scene(10, torch.float32)
     monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "fastest")
-    with pytest.raises(ValueError, match="UNCERTSPLAT_RASTERIZER must be auto, native or torch"):
+    with pytest.raises(UserError, match="UNCERTSPLAT_RASTERIZER must be auto, native or torch"):
         render(s, cams)
 
 

@@ -486,3 +486,15 @@ def test_the_weak_registration_note_suggests_only_options_not_used():
     assert "--features" not in note and "--set guided_matching=true" in note
     note = stage.weak_registration_note(weak, ReconstructConfig(features="dsp-sift", guided_matching=True))
     assert "--features" not in note and "guided" not in note and "add photos between these" in note
+
+
+def test_train_notes_training_images_a_downscale_made_tiny():
+    """The paper preset's downscale 8 on 400 px photos trains at 50 px: `train` says so with a downscale that
+    trains at about 800 px (or the photos' own size); images large enough, or not downscaled, get no note."""
+    from uncertsplat.train.session import small_images_notes
+
+    (note,) = small_images_notes(50, 37, 8.0)
+    assert "50x37" in note and "about 400 px" in note and "--set scene.downscale=1 " in note
+    (note,) = small_images_notes(150, 100, 40.0)  # 6000 px photos at 40: 7.5 -> about 800 px
+    assert "--set scene.downscale=7.5 trains at about 800 px" in note
+    assert small_images_notes(402, 300, 2.0) == [] and small_images_notes(100, 75, 1.0) == []

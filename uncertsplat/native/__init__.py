@@ -251,7 +251,11 @@ def requested_backend() -> str:
     ``torch``. It selects the implementation of every native kernel (rasterizer, SSIM, KL)."""
     value = os.environ.get("UNCERTSPLAT_RASTERIZER", "auto").strip().lower() or "auto"
     if value not in ("auto", "native", "torch"):
-        raise ValueError(f"UNCERTSPLAT_RASTERIZER must be auto, native or torch, not {value!r}")
+        # a setting of the user's environment: a message, not a traceback
+        from uncertsplat.errors import UserError
+
+        raise UserError(f"UNCERTSPLAT_RASTERIZER must be auto, native or torch, not {value!r}",
+                        hint="Unset it (auto) or set one of those.")
     return value
 
 

@@ -159,6 +159,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
 
     scene, run_dir = Path(scene), Path(run_dir)
     device = torch.device(device)
+    native.requested_backend()  # a bad UNCERTSPLAT_RASTERIZER is refused before the run folder is made
     exists = run_dir.exists() and (not run_dir.is_dir() or any(p.name != ".lock" for p in run_dir.iterdir()))
     if exists and not resume:
         if not (run_dir / "config.json").is_file():  # files of something else: nothing --resume could continue
@@ -255,7 +256,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                          else "") +
                       f"device {device} ({kernels}), {cfg.iterations} steps, at most "
                       f"{trainer.budget.max_gaussians:,} Gaussians ({trainer.budget.reason})")
-        for note in data.notes:
+        for note in [*data.notes, *small_images_notes(data.cameras.width, data.cameras.height, cfg.scene.downscale)]:
             console.print(f"[yellow]note:[/] {note}")
         for text in workspace_notes(scene):
             console.print(f"[yellow]note:[/] {text}")
@@ -343,6 +344,24 @@ def workspace_notes(scene: Path) -> list[str]:
             "another --seed or more --mapping-attempts maps again"]
 
 
+SMALL_TRAINING_SIDE = 200
+"""A training image whose long side is below this many pixels after ``scene.downscale`` has little detail to fit
+(the paper preset's downscale 8 is for photos of about 4000 px: 400 px photos train at 50 px)."""
+
+
+def small_images_notes(width: int, height: int, downscale: float) -> list[str]:
+    """The note for training images that ``scene.downscale`` made very small, with a downscale that trains at about
+    800 px on the long side (or at the photos' own size)."""
+    side = max(width, height)
+    if downscale <= 1.0 or side >= SMALL_TRAINING_SIDE:
+        return []
+    photo = side * downscale
+    better = max(1.0, round(photo / 800.0, 2))
+    return [f"training at {width}x{height}: scene.downscale={downscale:g} shrinks photos of about {photo:.0f} px to "
+            f"{side} px, which leaves little to fit; --set scene.downscale={better:g} trains at about "
+            f"{photo / better:.0f} px"]
+
+
 def exposure_warnings(gains: list[float], learned: bool) -> list[str]:
     """The warning for training photos of different brightness (``strategy.exposure.EXPOSURE_SPREAD``) when their
     exposures were not ``learned``."""
@@ -373,4 +392,5 @@ def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
             f"check {where}, moving objects or exposure changes between the photos"]
 
 
-__all__ = ["POOR_FIT_PSNR", "exposure_warnings", "poor_fit_warnings", "train_model", "workspace_notes"]
+__all__ = ["POOR_FIT_PSNR", "exposure_warnings", "poor_fit_warnings", "small_images_notes", "train_model",
+           "workspace_notes"]
