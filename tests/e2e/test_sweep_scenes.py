@@ -76,6 +76,10 @@ def test_one_spec_runs_every_point_on_every_scene_and_seed(scene_path, tmp_path)
 
     again = sweep.run(spec, out, jobs=1, device="cpu")  # everything done: nothing runs again
     assert len((out / "sweep.jsonl").read_text().splitlines()) == 8 and again.num_points == 8
+    # one scene again (--scenes): the summary still covers both (it held only the scene run before)
+    one = sweep.run(spec, out, jobs=1, device="cpu", only_scenes=["given"])
+    assert one.num_points == 8 and {g.id for g in one.table} == set(table)
+    assert SweepSummary.read(out / "sweep.json").num_points == 8
 
 
 def test_a_photos_scene_is_reconstructed_once_before_the_jobs(tmp_path, monkeypatch):

@@ -152,6 +152,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         raise UserError(f"--retries must be at least 0, got {retries}")
     if executor == "ray":
         require_ray()  # before any work, with the install command
+    whole = spec  # the summary covers every scene of the spec, whichever of them this call runs
     if only_scenes:
         unknown = [n for n in only_scenes if n not in spec.scenes]
         if unknown:
@@ -231,8 +232,12 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
             else:
                 run_local(todo, jobs=jobs, retries=retries, on_records=record, on_start=started)
 
+        if whole is not spec:  # --scenes: the other scenes' points (a point's hash does not depend on its folder)
+            others = {n: out_dir / "scenes" / n for n in whole.scenes if n not in spec.scenes}
+            hashes |= {p["hash"] for j in make_jobs(whole, out_dir, {**folders, **others}, str(dev), threads=None)
+                       for p in j["points"]}
         records = [r for r in read_records(log) if r.hash in hashes]
-        summary = summarize(spec, records)
+        summary = summarize(whole, records)
         summary.write(out_dir / "sweep.json")
         if any(r.status == "ok" for r in summary.records):
             means = " (means over seeds)" if spec.seeds else ""
