@@ -222,6 +222,10 @@ def evaluate(
         try:
             ds = float(depth_scale)
         except ValueError:
+            if depth_scale != "auto":
+                raise UserError(f"--depth-scale must be auto or a number, not {depth_scale!r}",
+                                hint="auto estimates it from the GT depth maps; a number is the factor to GT units."
+                                ) from None
             ds = depth_scale
     explicit = dict(split=split, num_samples=num_samples, seed=seed, depth_gt=depth_gt, depth_scale=ds,
                     paper_nll=paper_nll)
@@ -326,7 +330,7 @@ def sweep(
     gpus_per_job: Annotated[float, typer.Option(help="ray: GPUs each job asks for.")] = 0.0,
     retries: Annotated[int, typer.Option(help="Runs again a job whose worker died or whose points failed.")] = 1,
     scenes: Annotated[str | None, typer.Option(
-        help="Only these of the spec's [scenes.NAME], comma-separated (e.g. fern,bonsai).")] = None,
+        help="Only these of the spec's \\[scenes.NAME], comma-separated (e.g. fern,bonsai).")] = None,
     device: DeviceOpt = "auto",
     set_: SetOpt = None,
 ):

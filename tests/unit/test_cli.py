@@ -56,3 +56,14 @@ def test_train_config_file_errors_name_the_file(tmp_path):
                                  "--set", "seeed=1", "--device", "cpu"])
     assert result.exit_code == 2 and "seeed" in result.output and str(good) not in result.output.replace("\n", "")
     assert not (tmp_path / "run").exists()
+
+
+def test_depth_scale_that_is_neither_auto_nor_a_number(tmp_path):
+    result = runner.invoke(app, ["evaluate", str(tmp_path), "--depth-scale", "foo", "--device", "cpu"])
+    assert result.exit_code == 2 and "--depth-scale must be auto or a number, not 'foo'" in result.output
+    assert "literal" not in result.output
+
+
+def test_help_shows_the_sweep_scenes_table_name():
+    result = runner.invoke(app, ["sweep", "--help"])
+    assert result.exit_code == 0 and "[scenes.NAME]" in result.output
