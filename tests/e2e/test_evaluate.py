@@ -261,9 +261,14 @@ def test_no_std_scale_when_disabled_or_scoring_training_views(tiny_run_path, tmp
     run = tmp_path / "run"
     shutil.copytree(tiny_run_path, run)
     off = evaluate.run(run, EvalConfig(num_samples=2, max_views=1, calibration_views=0), device=torch.device("cpu"))
+    held_out = (run / "eval" / "metrics.json").read_bytes()
     on_train = evaluate.run(run, EvalConfig(num_samples=2, max_views=1, split="train"), device=torch.device("cpu"))
     for rep in (off, on_train):
         assert rep.std_scale is None and rep.calibration_views == [] and rep.mean.nll_calibrated is None
+    # the training views' scores go beside the held-out evaluation, which stays as it was (report and prune read it)
+    assert (run / "eval" / "metrics.json").read_bytes() == held_out
+    assert EvalReport.read(run / "eval-train" / "metrics.json").split == "train"
+    assert len(list((run / "eval-train" / "maps").glob("*.exr"))) == 1
 
 
 def test_given_depth_gt_folder_estimates_scale(tiny_run_path, tiny_scene_path, tmp_path):

@@ -10,6 +10,8 @@ engine (``eval.engine``: K samples per view, every metric) and writes into ``RUN
   the ``*_rank`` previews colour each pixel by its rank, so error and std compare without any scale. A photo the
   scene turned to its common orientation (``SceneData.photo_fits``) has its maps turned back, as the photo lies.
 - ``metrics.json``: the ``EvalReport`` (per view by image name, mean, curves, calibration).
+- with ``--split train``, the same files go to ``RUN/eval-train/`` (``eval_dir``): the held-out evaluation in
+  ``RUN/eval/`` stays as it was.
 - ``config.json``: the resolved ``EvalConfig``.
 - ``residual.pt``: the pixel noise fitted on the training views, with a key of the model and the settings it
   depends on (``stages.residual_cache``): the next ``evaluate`` or ``prune`` of the same model reads it.
@@ -39,6 +41,13 @@ from uncertsplat.schemas.runs import RunExposure
 
 if TYPE_CHECKING:
     from uncertsplat.schemas.metrics import EvalReport
+
+
+def eval_dir(run_dir: Path, cfg: EvalConfig) -> Path:
+    """Where an evaluation of ``run_dir`` goes: ``RUN/eval`` for the held-out views (what ``report`` and ``prune``
+    read), ``RUN/eval-train`` for ``split = "train"``, so that scoring the training views never replaces the
+    held-out evaluation."""
+    return Path(run_dir) / ("eval" if cfg.split == "test" else "eval-train")
 
 
 def write_view_maps(folder: Path, maps: ViewMaps, preview: str, turns: dict[str, int] | None = None) -> None:
@@ -87,7 +96,7 @@ def same_model_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device) 
     from uncertsplat.schemas.metrics import EvalReport
     from uncertsplat.schemas.prune import PruneReport
 
-    if not cfg.reuse:
+    if not cfg.reuse or cfg.split != "test":
         return None
     try:
         pruned = PruneReport.read_optional(run_dir / PruneReport.FILE_NAME)
@@ -266,7 +275,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise UserError("run folder not found", path=run_dir, hint="Give a folder written by `uncertsplat train`.")
-    out = run_dir / "eval"
+    out = eval_dir(run_dir, cfg)
     with run_lock(run_dir, "evaluate"):
         reusable = same_model_evaluation(run_dir, cfg, device)
         if reusable is not None:
@@ -279,7 +288,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     loaded = load_run(run_dir, device)  # any method: variational, deterministic, ensemble, fisher
     scene = loaded.load_scene()
     indices = split_indices(scene.split, cfg)
-    done = _finished(run_dir, Path(loaded.source), cfg, [scene.cameras.image_names[i] for i in indices], device)
+    done = (_finished(run_dir, Path(loaded.source), cfg, [scene.cameras.image_names[i] for i in indices], device)
+            if cfg.split == "test" else None)
     if done is not None:
         console.print(f"[bold]evaluate[/] {run_dir}: already evaluated with these settings, versions and device "
                       f"({out / 'metrics.json'}; --set reuse=false evaluates again)")

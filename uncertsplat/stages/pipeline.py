@@ -158,7 +158,9 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 up_path = up_path / "images"
             out_dir = root / name
         elif stage.stage == "evaluate":
-            out_dir = up_path / "eval"
+            from uncertsplat.stages.evaluate import eval_dir
+
+            out_dir = eval_dir(up_path, stage_cfg)
             synth = [n for n, k in kinds.items() if k == "synth"]
             # follow the chain back (evaluate <- prune <- train) to the scene the model was trained on
             node = upstream
