@@ -128,6 +128,8 @@ def synth(
     explicit = {"preset": preset, "seed": seed, "layout": layout, "rig": rig, "backdrop": backdrop}
     cfg = _stage_config(SynthConfig, None, set_, explicit)
     stage.run(out, cfg, overwrite=overwrite)
+    # the next command a user types (not printed by the stage: inside `run` the pipeline trains it)
+    console.print(f"Next: [bold]uncertsplat train {out} -o RUN --preset {cfg.preset}[/]")
 
 
 @app.command()

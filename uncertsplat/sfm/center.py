@@ -222,7 +222,7 @@ def random_points(cameras: Cameras, choice: CenterChoice, n: int, generator: tor
                              f"masks of all {judged} views that see it)")
     rgb = torch.rand(points.shape[0], 3, generator=generator)
     return points, rgb, (f"{points.shape[0]} random points in {what}, carved with the alpha masks of {judged} "
-                         f"views (kept {have} of {tried} candidates)")
+                         f"views ({have} of {tried} candidates fell inside them)")
 
 
 def carve_points(points: Tensor, cameras: Cameras, masks: Sequence[Tensor | None]) -> Tensor:

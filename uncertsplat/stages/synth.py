@@ -84,5 +84,4 @@ def run(out: Path, cfg: SynthConfig, overwrite: bool = False) -> Path:
         table.add_row("sparse/0/", f"COLMAP model: PINHOLE camera, GT poses, {meta.num_points} points")
     table.add_row("scene.json", "preset, seed, layout, rig, intrinsics, image names, test views")
     console.print(table)
-    console.print(f"Next: [bold]uncertsplat train {out} -o RUN --preset {cfg.preset}[/]")
     return out
