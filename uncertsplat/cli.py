@@ -188,9 +188,9 @@ def train(
     from uncertsplat.config import load_toml
     from uncertsplat.stages import train as stage
 
-    cfg = stage.resolve_config(preset, load_toml(config) if config else {}, method,
-                               dict(iterations=iterations, variant=variant, seed=seed), set_,
-                               source=str(config) if config else None)
+    data = load_toml(config) if config else {}
+    explicit = dict(iterations=iterations, variant=variant, seed=seed)
+    cfg = stage.resolve_config(preset, data, method, explicit, set_, source=str(config) if config else None)
     # with --resume, --iterations means "train on to this many steps" (the stored config wins otherwise)
     view_cfg = None
     if view:
@@ -198,7 +198,8 @@ def train(
 
         view_cfg = build_config(ViewConfig, {"port": view_port}, source="command line")
     stage.run(scene, output, cfg, device=resolve_device(device), resume=resume,
-              extend_to=iterations if resume else None, view=view_cfg, add_views=add_views)
+              extend_to=iterations if resume else None, view=view_cfg, add_views=add_views,
+              given=stage.given_keys(preset, data, method, explicit, set_) if resume else None)
 
 
 @app.command()

@@ -145,3 +145,22 @@ def test_a_resumed_run_keeps_its_posterior_updates(tiny_scene_path, tmp_path):  
     resumed = json.loads((run / "train_summary.json").read_text())["posterior_updates"]
     assert [u["step"] for u in resumed] == [10, 20, 30, 40]
     assert [u["noise_std"] for u in resumed] == pytest.approx([u["noise_std"] for u in full])
+
+
+def test_resume_names_only_the_values_the_command_gave(tiny_scene_path, tmp_path):  # noqa: F811
+    """`train --resume` uses the run's stored configuration; its note names what this command set that differs
+    (here --set seed=5), not the defaults it never gave (the run used the tiny preset's)."""
+    from typer.testing import CliRunner
+
+    from uncertsplat.cli import app
+
+    run = tmp_path / "run"
+    args = ["train", str(tiny_scene_path), "-o", str(run), "--device", "cpu"]
+    first = CliRunner().invoke(app, [*args, "--preset", "tiny", "--set", "iterations=6", "--set", "scene.downscale=4"])
+    assert first.exit_code == 0, first.output
+    plain = CliRunner().invoke(app, [*args, "--resume"])
+    assert plain.exit_code == 0 and "ignoring" not in plain.output, plain.output
+    seeded = CliRunner().invoke(app, [*args, "--resume", "--set", "seed=5"])
+    assert seeded.exit_code == 0, seeded.output
+    note = " ".join(seeded.output.split())
+    assert "ignoring the given values of: seed" in note and "densify" not in note

@@ -58,13 +58,15 @@ def method_label(cfg) -> str:
 
 
 def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False,
-              extend_to: int | None = None, on_trainer=None, add_views: list[str] | None = None) -> Path:
+              extend_to: int | None = None, on_trainer=None, add_views: list[str] | None = None,
+              given: set[str] | None = None) -> Path:
     """Train ``cfg.method`` on ``scene`` into ``run_dir``: the dispatch on the method, for the ``train`` stage
     and the sweep.
 
     ``extend_to`` (with ``resume``): continue a single-model run to that many steps. ``on_trainer(trainer)``:
     called with each ``Trainer`` before it trains (an ensemble has one per member), e.g. to watch it.
     ``add_views`` (with ``resume``): training views to add to a single-model run (``train --add-views``).
+    ``given``: the keys the command set (``stages.train.given_keys``), for ``train_model``'s note on resume.
     """
     from uncertsplat.errors import UserError
 
@@ -85,7 +87,7 @@ def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: boo
     from uncertsplat.train.session import train_model
 
     return train_model(scene, run_dir, cfg, device=device, resume=resume, extend_to=extend_to, on_trainer=on_trainer,
-                       add_views=add_views)
+                       add_views=add_views, given=given)
 
 
 __all__ = ["METHODS", "LoadedRun", "load_run", "load_single_model", "method_label", "method_overrides", "train_run"]

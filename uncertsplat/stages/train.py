@@ -35,12 +35,35 @@ def resolve_config(preset: str | None, data: dict[str, Any], method: str | None,
                              overrides)
 
 
+def given_keys(preset: str | None, data: dict[str, Any], method: str | None, explicit: dict[str, Any],
+               overrides: list[str] | None) -> set[str]:
+    """The dotted config keys a ``train`` command set itself (preset, config file, method, options, ``--set``): on
+    ``--resume`` only those are worth naming where they differ from the run's stored configuration."""
+    from uncertsplat.baselines import method_overrides
+    from uncertsplat.config import TRAIN_PRESETS, parse_override
+
+    def dotted(d: dict, prefix: str = "") -> set[str]:
+        out: set[str] = set()
+        for k, v in d.items():
+            out |= dotted(v, f"{prefix}{k}.") if isinstance(v, dict) and v else {f"{prefix}{k}"}
+        return out
+
+    keys = dotted(TRAIN_PRESETS.get(preset, {})) if preset else set()
+    keys |= dotted(data) | (dotted(method_overrides(method)) if method else set())
+    keys |= {k for k, v in explicit.items() if v is not None}
+    for o in overrides or []:
+        keys |= dotted(parse_override(o))
+    return keys
+
+
 def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False,
-        extend_to: int | None = None, view=None, add_views: list[str] | None = None) -> Path:
+        extend_to: int | None = None, view=None, add_views: list[str] | None = None,
+        given: set[str] | None = None) -> Path:
     """Train ``cfg.method`` on ``scene`` into ``run_dir``; returns ``run_dir``.
 
     ``extend_to`` (with ``resume``): train a single-model run on to this many steps instead of the stored
-    ``iterations``. ``view``: a ``ViewConfig`` to watch the training in the browser (``view.live``; the
+    ``iterations``. ``given``: the keys the command set (``given_keys``; None: all), named on ``resume`` where they
+    differ from the stored configuration. ``view``: a ``ViewConfig`` to watch the training in the browser (``view.live``; the
     viewer closes when training ends). ``add_views`` (with ``resume``): image names to add to the training views
     (``train --add-views``).
 
@@ -53,7 +76,7 @@ def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resu
 
     if view is None:
         return train_run(Path(scene), Path(run_dir), cfg, device=torch.device(device), resume=resume,
-                         extend_to=extend_to, add_views=add_views)
+                         extend_to=extend_to, add_views=add_views, given=given)
     from uncertsplat.view.live import LiveView
     from uncertsplat.view.server import require_viser
 
@@ -61,7 +84,7 @@ def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resu
     live = LiveView(view)
     try:
         return train_run(Path(scene), Path(run_dir), cfg, device=torch.device(device), resume=resume,
-                         extend_to=extend_to, on_trainer=live.attach, add_views=add_views)
+                         extend_to=extend_to, on_trainer=live.attach, add_views=add_views, given=given)
     finally:
         if live.viewer is not None:
             from uncertsplat.console import console

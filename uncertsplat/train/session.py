@@ -139,13 +139,16 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
 
 
 def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False,
-                extend_to: int | None = None, on_trainer=None, add_views: list[str] | None = None) -> Path:
+                extend_to: int | None = None, on_trainer=None, add_views: list[str] | None = None,
+                given: set[str] | None = None) -> Path:
     """Train one model on ``scene`` into ``run_dir``; returns ``run_dir``.
 
     ``extend_to`` (with ``resume``): train on to this many steps instead of the stored ``iterations``.
     ``on_trainer(trainer)``: called with the ``Trainer`` before it trains (``train --view`` attaches here).
     ``add_views`` (with ``resume``): image names added to the training set from the checkpoint's step on (the run
     must have started on explicit ``scene.train_names``); recorded in ``scene.json`` (``views_added``).
+    ``given`` (with ``resume``): the dotted keys the command set; the note on values the stored configuration
+    overrides names only those (None: every difference, the command's defaults too).
 
     Raises:
         UserError: unreadable scene, an existing run folder without ``resume``, nothing to resume, or an
@@ -185,10 +188,11 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                         if key not in stored[section]:
                             stored[section][key] = value(stored[section]) if callable(value) else value
             diff = [d for d in _differences(stored, json.loads(cfg.model_dump_json()))
-                    if not (d == "iterations" and extend_to is not None)]
+                    if not (d == "iterations" and extend_to is not None)
+                    and (given is None or any(d == g or d.startswith(g + ".") for g in given))]
             if diff:
-                console.print(f"[yellow]note:[/] resuming with the run's stored configuration; this command's "
-                              f"(its options, preset and defaults) is not used, and differs in: {', '.join(diff)}")
+                console.print(f"[yellow]note:[/] resuming with the run's stored configuration; ignoring the "
+                              f"given values of: {', '.join(diff)}")
             cfg = build_config(TrainConfig, stored, source=str(run_dir / "config.json"))
             if add_views:
                 cfg, add_views = _add_training_views(cfg, run_dir, list(add_views))
