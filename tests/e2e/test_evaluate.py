@@ -687,3 +687,26 @@ def test_the_map_example_takes_a_view_by_name(tiny_run_path, tmp_path, monkeypat
     monkeypatch.setattr(sys, "argv", ["uncertainty_map.py", str(run), name, "2"])
     runpy.run_path(str(Path(__file__).resolve().parents[2] / "examples" / "uncertainty_map.py"), run_name="__main__")
     assert capsys.readouterr().out.startswith(f"{name}: mean RGB std") and (run / "example_maps" / "rgb_std.png").is_file()
+
+
+def test_a_model_that_leaves_its_training_views_empty_gets_a_note(tiny_run_path, tmp_path, monkeypatch, capsys):
+    """Coverage below LOW_COVERAGE (bonsai's 0.43: dark surfaces left to the background) is said, with the option
+    that covers them; a well-covered model (the tiny run) gets no such note."""
+    from uncertsplat.baselines.runs import LoadedRun
+    from uncertsplat.stages.evaluate import LOW_COVERAGE, low_coverage_notes
+
+    assert low_coverage_notes(None, 7000) == [] and low_coverage_notes(LOW_COVERAGE, 7000) == []
+    assert low_coverage_notes(0.43, 120) == []  # a short run has not covered its surfaces yet: nothing to say
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    cfg = EvalConfig(num_samples=2, max_views=1, calibration_views=0, reuse=False, save_maps=False)
+    plain = evaluate.run(run, cfg, device=torch.device("cpu"))  # 120 steps
+    assert not any("covers its own training views" in n for n in plain.notes)
+    config = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**config, "iterations": 7000}))  # read as a full run
+    monkeypatch.setattr(LoadedRun, "coverage", lambda self, *a, **k: 0.43)
+    low = evaluate.run(run, cfg, device=torch.device("cpu"))
+    (note,) = [n for n in low.notes if "covers its own training views" in n]
+    assert "alpha 0.43" in note and "random_background=true" in note
+    printed = capsys.readouterr()
+    assert "random_background=true" in " ".join((printed.out + printed.err).split())
