@@ -67,3 +67,14 @@ def test_depth_scale_that_is_neither_auto_nor_a_number(tmp_path):
 def test_help_shows_the_sweep_scenes_table_name():
     result = runner.invoke(app, ["sweep", "--help"])
     assert result.exit_code == 0 and "[scenes.NAME]" in result.output
+
+
+def test_the_paper_variant_with_a_baseline_is_noted(tmp_path):
+    """--variant paper changes only the variational model's tables: a baseline trained with it is told so."""
+    result = runner.invoke(app, ["train", str(tmp_path / "nowhere"), "-o", str(tmp_path / "run"), "--method",
+                                 "deterministic", "--variant", "paper", "--device", "cpu"])
+    out = " ".join(result.output.split())
+    assert "the deterministic baseline has none, so it changes nothing here" in out
+    result = runner.invoke(app, ["train", str(tmp_path / "nowhere"), "-o", str(tmp_path / "run"), "--variant", "paper",
+                                 "--device", "cpu"])
+    assert "changes nothing" not in result.output

@@ -31,8 +31,14 @@ def resolve_config(preset: str | None, data: dict[str, Any], method: str | None,
         train_config_from(preset, data, source=source)  # the file alone: its errors name it
     if method is not None:
         data = deep_update(data, method_overrides(method))
-    return train_config_from(preset, deep_update(data, {k: v for k, v in explicit.items() if v is not None}),
-                             overrides)
+    cfg = train_config_from(preset, deep_update(data, {k: v for k, v in explicit.items() if v is not None}),
+                            overrides)
+    if cfg.variant == "paper" and cfg.method != "variational":
+        from uncertsplat.console import console
+
+        console.print(f"[yellow]note:[/] the paper variant shapes the offset tables of the variational model; the "
+                      f"{cfg.method} baseline has none, so it changes nothing here")
+    return cfg
 
 
 def given_keys(preset: str | None, data: dict[str, Any], method: str | None, explicit: dict[str, Any],
