@@ -804,19 +804,16 @@ def load_toml(path: str | Path) -> dict:
 def train_config_from(preset: str | None, data: dict | None = None, overrides: list[str] | None = None,
                       source: str | None = None) -> TrainConfig:
     """Resolve a TrainConfig: preset, then ``data`` (e.g. from TOML), then ``key=value`` overrides. ``source``:
-    where ``data`` came from (a TOML file); the preset and ``data`` are checked before the overrides, so that an
-    error in the file names it."""
+    what an error names (default "train config"), e.g. the TOML file ``data`` came from."""
     merged: dict = {}
     if preset is not None:
         if preset not in TRAIN_PRESETS:
             raise UserError(f"unknown preset '{preset}'", hint=f"Choose one of: {', '.join(TRAIN_PRESETS)}.")
         merged = deep_update(merged, TRAIN_PRESETS[preset])
-    with_preset = f" (preset {preset})" if preset else ""
     if data:
         merged = deep_update(merged, data)
-        if source is not None:
-            build_config(TrainConfig, merged, source=source + with_preset)
     for o in overrides or []:
         merged = deep_update(merged, parse_override(o))
-    return build_config(TrainConfig, merged, source="train config" + with_preset)
+    label = source or "train config"
+    return build_config(TrainConfig, merged, source=f"{label} (preset {preset})" if preset else label)
 

@@ -44,8 +44,8 @@ def read_photo(scene: SceneData, index: int,
 
 def photo_turns(scene: SceneData) -> dict[str, int]:
     """{image name: clockwise quarter turns} of the photos the scene turned to its common orientation
-    (``SceneData.photo_fits``); empty when none was turned. A map of such a view turned back by
-    ``torch.rot90(map, k=turns)`` lies as its photo does."""
+    (``SceneData.photo_fits``); empty when none was turned. ``turned_back`` lays a map of such a view as its photo
+    lies."""
     if scene.photo_fits is None:
         return {}
     return {name: fit.turns % 4 for name, fit in zip(scene.cameras.image_names, scene.photo_fits, strict=True)

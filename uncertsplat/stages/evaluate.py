@@ -38,7 +38,6 @@ from uncertsplat.eval.engine import ViewMaps
 from uncertsplat.eval.tails import half_width as _half_width
 from uncertsplat.io.maps import EXR_CHANNELS, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
 from uncertsplat.schemas.runs import RunExposure
-from uncertsplat.train.session import SHORT_RUN_STEPS
 
 if TYPE_CHECKING:
     from uncertsplat.schemas.metrics import EvalReport
@@ -345,6 +344,8 @@ def low_coverage_notes(coverage: float | None, steps: int) -> list[str]:
     """The note for a model trained ``steps`` steps that covers its own training views poorly (``LOW_COVERAGE``);
     none for None, or for a run shorter than ``train``'s ``SHORT_RUN_STEPS`` (not yet fitted: its coverage says
     nothing about dark surfaces)."""
+    from uncertsplat.train.session import SHORT_RUN_STEPS  # here: evaluate's import needs no training module
+
     if coverage is None or coverage >= LOW_COVERAGE or steps < SHORT_RUN_STEPS:
         return []
     return [f"the model covers its own training views only to alpha {coverage:.2f} (95 % of their pixels): it leaves "

@@ -279,6 +279,16 @@ class Trainer:
             "exposure_checks": [c.model_dump() for c in self.exposure_checks],
         }
 
+    def _restored_generator(self, state: dict, key: str, offset: int) -> torch.Generator:
+        """The generator ``state[key]`` on the training device; seeded as a fresh run's (seed + ``offset``) for a
+        checkpoint written before its option existed."""
+        gen = torch.Generator(device=self.device)
+        if key in state:
+            gen.set_state(state[key].cpu())  # generator states are CPU byte tensors
+        else:
+            gen.manual_seed(self.cfg.seed + offset)
+        return gen
+
     def _load_state(self, state: dict) -> None:
         if state.get("version") != STATE_VERSION:
             raise ValueError(f"unsupported trainer state version {state.get('version')}")
@@ -291,16 +301,8 @@ class Trainer:
         self.gen_views.set_state(state["gen_views"].cpu())
         self.gen_noise = torch.Generator(device=self.device)
         self.gen_noise.set_state(state["gen_noise"].cpu())  # generator states are CPU byte tensors
-        self.gen_drop = torch.Generator(device=self.device)
-        if "gen_drop" in state:
-            self.gen_drop.set_state(state["gen_drop"].cpu())
-        else:  # checkpoints from before the option: seeded as a fresh run's
-            self.gen_drop.manual_seed(self.cfg.seed + 3)
-        self.gen_background = torch.Generator(device=self.device)
-        if "gen_background" in state:
-            self.gen_background.set_state(state["gen_background"].cpu())
-        else:  # likewise
-            self.gen_background.manual_seed(self.cfg.seed + 4)
+        self.gen_drop = self._restored_generator(state, "gen_drop", 3)
+        self.gen_background = self._restored_generator(state, "gen_background", 4)
         self.view_queue = [int(i) for i in state["view_queue"].tolist()]
         self.sh_bands = [BandCheck(**b) for b in state.get("sh_bands", [])]  # absent in checkpoints from before
         # the updates before the checkpoint (absent in checkpoints from before: the summary then lists this
