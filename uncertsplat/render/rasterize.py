@@ -109,7 +109,9 @@ def bin_gaussians(
 
     Candidates come from the opacity-aware box; with ``conics`` and ``opacities`` given, each (tile,
     Gaussian) pair is also tested exactly: the ellipse where alpha >= 1/255 must reach the rectangle of
-    the tile's pixel centres (drops the box corners, and most of the box of thin slanted Gaussians).
+    the tile's pixel centres (drops the box corners, and most of the box of thin slanted Gaussians). In each
+    row of the box the tiles from the first to the last that pass are kept (a convex ellipse reaches a run of
+    tiles; the native kernel tests only the row's ends).
     ``backend`` as in ``use_native``: the native kernel lists the same pairs in the same order.
     """
     C, N = valid.shape
@@ -157,7 +159,7 @@ def bin_gaussians(
                 ty,
                 ts,
             )
-            keep = keep.nonzero().squeeze(1)
+            keep = _row_runs(keep, src, span, ky, kx).nonzero().squeeze(1)
             gauss, tx, ty = gauss.index_select(0, keep), tx.index_select(0, keep), ty.index_select(0, keep)
         cam = gauss // N if C > 1 else torch.zeros_like(gauss)
         tile = (cam * tpc + (ty * tiles_x + tx).long()).int()
@@ -210,6 +212,22 @@ def _bin_native(means2d: Tensor, extents: Tensor, valid: Tensor, depths: Tensor,
     if rc != 0:
         raise RuntimeError(f"native binning failed (code {rc})")
     return TileBins(pair_gauss, None, tile_start, tile_count, tiles_x, tiles_y, tile_size)
+
+
+def _row_runs(hit: Tensor, src: Tensor, span: Tensor, ky: Tensor, kx: Tensor) -> Tensor:
+    """[M] bool: the candidates from the first to the last ``hit`` of their row of their Gaussian's box.
+
+    src [M] the candidate's Gaussian (index into the box spans [V,2]), ky, kx [M] its row and column in the box.
+    Mathematically the hits of a row are already one run; in floats a tile between two hits whose test lands
+    on the limit could fail, and the native kernel (which scans each row from both ends) keeps it.
+    """
+    heights = span[:, 1].long()
+    row = (torch.cumsum(heights, 0) - heights).index_select(0, src) + ky.long()  # [M] (Gaussian, box row)
+    R = int(heights.sum())
+    none = float(2**30)  # a row without a hit: first > last
+    first = kx.new_full((R,), none).scatter_reduce(0, row, torch.where(hit, kx, none), "amin")
+    last = kx.new_full((R,), -none).scatter_reduce(0, row, torch.where(hit, kx, -none), "amax")
+    return (kx >= first.index_select(0, row)) & (kx <= last.index_select(0, row))
 
 
 def _ellipse_meets_tile(m: Tensor, conic: Tensor, opac: Tensor, tx: Tensor, ty: Tensor, ts: int) -> Tensor:

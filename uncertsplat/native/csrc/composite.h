@@ -44,6 +44,9 @@
 #include <type_traits>
 #include <utility>
 #include <vector>
+#if defined(__SSE__)
+#include <immintrin.h>
+#endif
 
 #include "parallel.h"
 #include "vmath.h"
@@ -681,9 +684,9 @@ int backward_image(const Params& prm, int64_t G, int64_t M, const ImageIO<S>& io
 
 // ------------------------------------------------------------------------------------------ binning
 // The (tile, Gaussian) pairs of rasterize.bin_gaussians, in the same order: visible Gaussians (flat
-// indices camera * N + n) are sorted front to back by a stable radix sort of their depth, each lists the
-// tiles of its opacity-aware box whose pixel-centre rectangle its alpha >= 1/255 ellipse reaches (the
-// same conservative test), and a counting sort by tile keeps the depth order inside every tile. Workers
+// indices camera * N + n) are sorted front to back by a stable radix sort of their depth, each lists, in
+// every row of its opacity-aware box, the tiles from the first to the last whose pixel-centre rectangle its
+// alpha >= 1/255 ellipse reaches (the same conservative test), and a counting sort by tile keeps the depth order inside every tile. Workers
 // take contiguous slices of the depth order, so the result does not depend on the number of threads.
 
 struct BinArgs {
@@ -752,6 +755,14 @@ bool ellipse_meets_tile(S mx, S my, S ca, S cb, S cc, S nb_c, S nb_a, S limit, i
     return !(std::min(q1, q2) > limit);
 }
 
+// Sets bits k0..k1 (inclusive) of a mask of 64-bit words.
+inline void set_bits(uint64_t* bits, int64_t k0, int64_t k1) {
+    for (int64_t w = k0 >> 6; w <= (k1 >> 6); ++w) {
+        const int64_t lo = std::max(k0, w * 64) - w * 64, hi = std::min(k1, w * 64 + 63) - w * 64;
+        bits[w] |= (~uint64_t{0} >> (63 - (hi - lo))) << lo;
+    }
+}
+
 // The tiles of one Gaussian's box that its ellipse reaches: box origin (tx0, ty0), width bw and height bh
 // in tiles; bit k of the mask (row-major in the box) is set when tile k passes the test. A box of up to 64
 // tiles holds its mask in `mask`; a larger one (big = true) keeps ceil(bw bh / 64) words in its worker's
@@ -782,6 +793,51 @@ EllipseTest<S> ellipse_test(const BinArgs& a, int64_t g, const S* means2d, const
     return {means2d[2 * g], means2d[2 * g + 1], ca, cb, cc, -cb / cc, -cb / ca, thr * S(1.001) + S(1e-3), a.tile_size};
 }
 
+// Bit l of the result: tile (tx + l, ty) passes the ellipse test, for l < n <= LANES; the scalar test's
+// arithmetic on LANES tiles of a row at once.
+template <typename S>
+__attribute__((always_inline)) inline uint64_t row_hits(const EllipseTest<S>& e, int64_t tx, int64_t n, int64_t ty) {
+    using V = typename Lanes<S>::V;
+    V lane;
+    for (int l = 0; l < LANES; ++l) lane[l] = static_cast<S>(l);
+    auto clampv = [](auto v, auto lo, auto hi) {  // std::min(std::max(v, lo), hi), lane by lane
+        const auto m = v < lo ? lo : v;
+        return hi < m ? hi : m;
+    };
+    const S ts = static_cast<S>(e.ts);
+    const V x0 = (static_cast<S>(tx) + lane) * ts + S(0.5) - e.mx;
+    const S y0 = static_cast<S>(ty * e.ts) + S(0.5) - e.my;
+    const V x1 = x0 + static_cast<S>(e.ts - 1);
+    const S y1 = y0 + static_cast<S>(e.ts - 1);
+    const V zero = V{} + S(0);
+    const V dxs = clampv(zero, x0, x1);
+    const S dys = std::min(std::max(S(0), y0), y1);
+    const V dy1 = clampv(e.nb_c * dxs, V{} + y0, V{} + y1);
+    const V q1 = e.ca * dxs * dxs + S(2) * e.cb * dxs * dy1 + e.cc * dy1 * dy1;
+    const V dx2 = clampv(V{} + e.nb_a * dys, x0, x1);
+    const V q2 = e.ca * dx2 * dx2 + S(2) * e.cb * dx2 * dys + e.cc * dys * dys;
+    const auto miss = (q2 < q1 ? q2 : q1) > e.limit;  // NaN keeps the pair
+    uint64_t bits = 0;
+    // The lanes' signs as bits in one instruction where the target has it: GCC turns the loop below into
+    // one extract per lane, which cost more than the tests themselves.
+#if defined(__AVX512F__)
+    if constexpr (sizeof(S) == 4 && LANES == 16)
+        bits = static_cast<uint16_t>(~_mm512_test_epi32_mask(reinterpret_cast<__m512i>(miss),
+                                                             reinterpret_cast<__m512i>(miss)));
+    else
+#elif defined(__AVX__)
+    if constexpr (sizeof(S) == 4 && LANES == 8)
+        bits = ~static_cast<uint64_t>(_mm256_movemask_ps(reinterpret_cast<__m256>(miss))) & 0xffu;
+    else
+#elif defined(__SSE__)
+    if constexpr (sizeof(S) == 4 && LANES == 4)
+        bits = ~static_cast<uint64_t>(_mm_movemask_ps(reinterpret_cast<__m128>(miss))) & 0xfu;
+    else
+#endif
+        for (int l = 0; l < LANES; ++l) bits |= static_cast<uint64_t>(miss[l] == 0) << l;
+    return n >= 64 ? bits : bits & ((uint64_t{1} << n) - 1);
+}
+
 // Pass 1: the depth order, each visible Gaussian's box and tile mask (boxes [V]), and per worker the
 // number of pairs of each tile (counts [workers, T]).
 template <typename S>
@@ -799,12 +855,15 @@ int64_t bin_count(const BinArgs& a, const S* means2d, const S* extents, const S*
         std::stable_sort(order, order + V, [&](int64_t x, int64_t y) { return depths[x] < depths[y]; });
     }
     *num_visible = V;
-    const int64_t T = a.C * a.tiles_x * a.tiles_y, tpc = a.tiles_x * a.tiles_y;
-    std::fill(counts, counts + a.workers * T, int64_t{0});
+    const int64_t T = a.C * a.tiles_x * a.tiles_y;
     boxes.resize(static_cast<size_t>(V));
     pools.assign(static_cast<size_t>(a.workers), {});
+    // A row's hits are one run of tiles (the ellipse's slice through a row of tiles is convex), so each row is
+    // scanned from both ends to its first hit and the run between is counted in a difference array with one
+    // extra column per row (tiles_x + 1), summed into the counts at the end.
+    const int64_t W1 = a.tiles_x + 1;
     uskern::run_workers(a.workers, [&](int64_t w) {
-        int64_t* cnt = counts + w * T;
+        std::vector<int64_t> diff(static_cast<size_t>(a.C * a.tiles_y * W1), 0);
         std::vector<uint64_t>& pool = pools[w];
         for (int64_t i = V * w / a.workers; i < V * (w + 1) / a.workers; ++i) {
             const int64_t g = order[i];
@@ -814,23 +873,40 @@ int64_t bin_count(const BinArgs& a, const S* means2d, const S* extents, const S*
             BoxTiles& box = boxes[i];
             box = {0, static_cast<int32_t>(tx0), static_cast<int32_t>(ty0), static_cast<int32_t>(tx1 - tx0),
                    static_cast<int32_t>(ty1 - ty0)};
-            const int64_t base = (g / a.N) * tpc;
+            const int64_t rows = (g / a.N) * a.tiles_y * W1;
             uint64_t* bits = &box.mask;
             if (box.big()) {
                 box.mask = pool.size();
                 pool.resize(pool.size() + static_cast<size_t>((box.area() + 63) / 64), 0);
                 bits = pool.data() + box.mask;
             }
-            int64_t k = 0;
-            uint64_t word = 0;  // the mask's current word, in a register
-            for (int64_t ty = ty0; ty < ty1; ++ty)
-                for (int64_t tx = tx0; tx < tx1; ++tx, ++k) {
-                    const bool hit = meets(tx, ty);
-                    cnt[base + ty * a.tiles_x + tx] += hit;
-                    word |= static_cast<uint64_t>(hit) << (k & 63);
-                    if ((k & 63) == 63) bits[k >> 6] = word, word = 0;
+            const int64_t last_chunk = tx0 + (tx1 - 1 - tx0) / LANES * LANES;
+            for (int64_t ty = ty0; ty < ty1; ++ty) {
+                int64_t lo = -1, hi = -1;
+                uint64_t bits_lo = 0;
+                for (int64_t c = tx0; c < tx1; c += LANES)
+                    if ((bits_lo = row_hits<S>(meets, c, std::min<int64_t>(LANES, tx1 - c), ty)) != 0) {
+                        lo = c + __builtin_ctzll(bits_lo);
+                        break;
+                    }
+                if (lo < 0) continue;
+                for (int64_t c = last_chunk;; c -= LANES) {
+                    const uint64_t b = c <= lo ? bits_lo : row_hits<S>(meets, c, std::min<int64_t>(LANES, tx1 - c), ty);
+                    if (b != 0) {
+                        hi = c + 63 - __builtin_clzll(b);
+                        break;
+                    }
                 }
-            if (k & 63) bits[k >> 6] = word;
+                int64_t* d = diff.data() + rows + ty * W1;
+                ++d[lo];
+                --d[hi + 1];
+                set_bits(bits, (ty - ty0) * box.bw + (lo - tx0), (ty - ty0) * box.bw + (hi - tx0));
+            }
+        }
+        int64_t* cnt = counts + w * T;
+        for (int64_t r = 0; r < a.C * a.tiles_y; ++r) {
+            int64_t run = 0;
+            for (int64_t tx = 0; tx < a.tiles_x; ++tx) cnt[r * a.tiles_x + tx] = run += diff[r * W1 + tx];
         }
     });
     int64_t total = 0;
