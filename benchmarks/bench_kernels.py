@@ -122,10 +122,13 @@ class _OldInterface:
     them into planes and the gradient back, as the Python code before version 14 did) and the compositor had no
     image entry points (``_image_path_if_the_library_has_it``: render takes the tile path); before version
     15 SSIM had no L1 term (the stand-in adds it with the tensor ops the Python code used before) and the
-    compositor backward added into per-Gaussian sums its caller had zeroed (the stand-in zeroes them)."""
+    compositor backward added into per-Gaussian sums its caller had zeroed (the stand-in zeroes them); before
+    version 17 the pair indices were int64 (``pair_index_dtype``: the binning writes them so while it runs, and
+    lists made by the other library are converted before it is timed on them)."""
 
     def __init__(self, lib: ctypes.CDLL, version: int):
         self._lib, self._version = lib, version
+        self.pair_index_dtype = torch.int64 if version < 17 else torch.int32
         self._pairs = 0  # M of the last pass 1, for the pair_tile buffer an older pass 2 needs
         self._pair_tile = None
 
@@ -241,7 +244,7 @@ def build_reference(ref: str, out_dir: Path):
         k = 4 if version < 14 else 5  # the channel count came with version 14
         lib.us_ssim_forward_f32.argtypes = [i64] * k + [ptr] * 3 + [f64, f64, ptr, ptr, i64]
         lib.us_ssim_backward_f32.argtypes = [i64] * k + [ptr] * 6 + [i64]
-    return (lib if version >= 15 else _OldInterface(lib, version)), version
+    return (lib if version >= 17 else _OldInterface(lib, version)), version
 
 
 def alternate(fns: dict, repeats: int) -> dict:
@@ -257,11 +260,21 @@ def alternate(fns: dict, repeats: int) -> dict:
     return {k: {"min_ms": 1e3 * min(v), "median_ms": 1e3 * statistics.median(v)} for k, v in times.items()}
 
 
+def pair_index_dtype(lib) -> torch.dtype:
+    return lib.pair_index_dtype if isinstance(lib, _OldInterface) else torch.int32
+
+
 def with_lib(lib, fn):
     def call():
         native._state["lib"] = lib
+        rasterize.PAIR_INDEX_DTYPE = pair_index_dtype(lib)
         return fn()
     return call
+
+
+def bins_for(lib, bins: rasterize.TileBins) -> rasterize.TileBins:
+    """``bins`` with the pair indices in the type ``lib`` reads (converted here, outside the timed calls)."""
+    return replace(bins, pair_gauss=bins.pair_gauss.to(pair_index_dtype(lib)))
 
 
 def make_dense_scene(n: int, width: int, height: int, seed: int = 0):
@@ -318,16 +331,19 @@ def composite_alone(libs: dict, gp, feat, bins, repeats: int) -> dict:
     g = torch.randn(bins.tile_count.numel(), bins.tile_size ** 2, feat.shape[1],
                     generator=torch.Generator().manual_seed(0))
 
-    def fwd():
-        return rasterize._CompositeNative.apply(gp, feat, bins)
+    def fwd(b):
+        return lambda: rasterize._CompositeNative.apply(gp, feat, b)
 
-    def fwd_bwd():
-        gpr.grad = fr.grad = None
-        rasterize._CompositeNative.apply(gpr, fr, bins).backward(g)
+    def fwd_bwd(b):
+        def call():
+            gpr.grad = fr.grad = None
+            rasterize._CompositeNative.apply(gpr, fr, b).backward(g)
+        return call
 
+    own = {k: bins_for(lib, bins) for k, lib in libs.items()}
     out = {"pairs": int(bins.pair_gauss.numel()), "tiles": int(bins.tile_count.numel()),
-           "forward": alternate({k: with_lib(lib, fwd) for k, lib in libs.items()}, repeats),
-           "forward_backward": alternate({k: with_lib(lib, fwd_bwd) for k, lib in libs.items()}, repeats)}
+           "forward": alternate({k: with_lib(lib, fwd(own[k])) for k, lib in libs.items()}, repeats),
+           "forward_backward": alternate({k: with_lib(lib, fwd_bwd(own[k])) for k, lib in libs.items()}, repeats)}
     return out
 
 
@@ -339,15 +355,18 @@ def composite_image_alone(libs: dict, gp, feat, bins, height: int, width: int, r
            feat[:, :3].reshape(1, n, 3), feat[:, 3].reshape(1, n)]
     g = torch.randn(1, height, width, 3, generator=torch.Generator().manual_seed(0))
 
-    def fwd_bwd():
-        leaves = [t.clone().requires_grad_() for t in ins]
-        rgb, _, _ = rasterize._CompositeImageNative.apply(*leaves, None, bins, height, width)
-        (rgb * g).sum().backward()
-        return [t.grad for t in leaves]
+    def fwd_bwd(b):
+        def call():
+            leaves = [t.clone().requires_grad_() for t in ins]
+            rgb, _, _ = rasterize._CompositeImageNative.apply(*leaves, None, b, height, width)
+            (rgb * g).sum().backward()
+            return [t.grad for t in leaves]
+        return call
 
-    grads = {k: with_lib(lib, fwd_bwd)() for k, lib in libs.items()}
+    own = {k: bins_for(lib, bins) for k, lib in libs.items()}
+    grads = {k: with_lib(lib, fwd_bwd(own[k]))() for k, lib in libs.items()}
     a, b = grads.values()
-    return {"forward_backward": alternate({k: with_lib(lib, fwd_bwd) for k, lib in libs.items()}, repeats),
+    return {"forward_backward": alternate({k: with_lib(lib, fwd_bwd(own[k])) for k, lib in libs.items()}, repeats),
             "max_gradient_difference": max(float((x - y).abs().max()) for x, y in zip(a, b, strict=True))}
 
 
@@ -403,6 +422,7 @@ def bench_training(libs: dict, run: Path, scene: Path, rounds: int, block: int) 
     for r in range(rounds + 1):
         for k, lib in libs.items():
             native._state["lib"] = lib
+            rasterize.PAIR_INDEX_DTYPE = pair_index_dtype(lib)
             t0 = time.perf_counter()
             for _ in range(block):
                 trainer.train_step()
@@ -459,6 +479,7 @@ def main() -> None:
             result["train"] = bench_training(libs, args.run, args.scene or Path(json.loads(
                 (args.run / "train_summary.json").read_text())["scene"]), args.rounds, args.block)
         native._state["lib"] = libs["current"]
+        rasterize.PAIR_INDEX_DTYPE = torch.int32
         result["load_average_end"] = os.getloadavg()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")

@@ -64,12 +64,18 @@ def default_block_elements(device: torch.device) -> int:
     return DEFAULT_BLOCK_ELEMENTS if device.type == "cpu" else DEFAULT_BLOCK_ELEMENTS_GPU
 
 
+# The native kernels' index type of TileBins.pair_gauss (interface >= 17; benchmarks/bench_kernels.py sets it to
+# int64 while it times a reference library of an older interface).
+PAIR_INDEX_DTYPE = torch.int32
+
+
 @dataclass
 class TileBins:
     """Sorted (tile, Gaussian) pairs.
 
     Attributes:
-        pair_gauss: [M] flat Gaussian index (camera * N + n), sorted by tile then depth.
+        pair_gauss: [M] int32 flat Gaussian index (camera * N + n), sorted by tile then depth (int32: the
+            compositor reads it once per pair and the binning writes it, half the bytes of int64).
         pair_tile: [M] global tile index (camera * tiles_per_camera + ty * tiles_x + tx); the native
             binning leaves it to be derived from ``tile_count`` on first use (the native compositor never
             reads it, and writing it cost M int64 stores).
@@ -115,6 +121,8 @@ def bin_gaussians(
     ``backend`` as in ``use_native``: the native kernel lists the same pairs in the same order.
     """
     C, N = valid.shape
+    if C * N >= 2**31:
+        raise ValueError(f"{C} cameras x {N} Gaussians: the tile lists index at most 2^31 - 1 Gaussians per render")
     dev = means2d.device
     ts = tile_size
     tiles_x, tiles_y = math.ceil(width / ts), math.ceil(height / ts)
@@ -167,7 +175,7 @@ def bin_gaussians(
         # (int32 keys sort several times faster than int64 on CPU).
         tile, perm = torch.sort(tile, stable=True)
         tile = tile.long()
-        gauss = gauss.index_select(0, perm)
+        gauss = gauss.index_select(0, perm).int()
         tile_count = torch.bincount(tile, minlength=C * tpc)
         tile_start = torch.cumsum(tile_count, 0) - tile_count
     return TileBins(gauss, tile, tile_start, tile_count, tiles_x, tiles_y, ts)
@@ -202,7 +210,7 @@ def _bin_native(means2d: Tensor, extents: Tensor, valid: Tensor, depths: Tensor,
             raise MemoryError("the native binning ran out of memory")
         tile_count = counts.sum(0)
         tile_start = torch.cumsum(tile_count, 0) - tile_count
-        pair_gauss = torch.empty(M, dtype=torch.long)
+        pair_gauss = torch.empty(M, dtype=PAIR_INDEX_DTYPE)
     except BaseException:
         lib.us_bin_free(state)
         raise

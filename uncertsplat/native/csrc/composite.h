@@ -350,7 +350,7 @@ struct ForwardScratch {
 };
 
 template <typename S, int F>
-void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, const S* rec, const int64_t* pair_gauss,
+void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, const S* rec, const int32_t* pair_gauss,
                   const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final, int32_t* last,
                   const ImageIO<S>* io, ForwardScratch<S>& scratch) {
     using V = typename Lanes<S>::V;
@@ -383,7 +383,7 @@ void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, cons
         std::fill(nlist, nlist + NS, int64_t{0});
         for (int64_t j = c0; j < c1; ++j) {
             int64_t s0, s1;
-            tl.slices(rec + pair_gauss[start + j] * (PK + F), s0, s1);
+            tl.slices(rec + static_cast<int64_t>(pair_gauss[start + j]) * (PK + F), s0, s1);
             for (int64_t s = 0; s < NS; ++s) {
                 lists[s * LIST_CHUNK + nlist[s]] = j;
                 nlist[s] += (s >= s0) & (s <= s1);
@@ -411,7 +411,7 @@ void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, cons
                 const S* eb[B];
                 for (int64_t i = 0; i < B; ++i) {
                     const int64_t k = std::min(k0 + i, n - 1);  // a repeated last entry is masked below
-                    eb[i] = rec + pair_gauss[start + sl[k]] * (PK + F);
+                    eb[i] = rec + static_cast<int64_t>(pair_gauss[start + sl[k]]) * (PK + F);
                     const S* e = eb[i];
                     const V raw = vexp_lanes<V>(pixel_power<V, S>(px - e[0], py - e[1], e[2], e[3], e[4], e[5]));
                     alpha[i] = raw < amax ? raw : amax;
@@ -463,7 +463,7 @@ void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, cons
 // (1 - alpha_i) and suffix sum_{k>i} w_k h_k, and adds its pixels' d loss / d power moments and
 // feature weights to lane accumulators in registers (one horizontal sum per entry).
 template <typename S, int F>
-void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, const S* rec, const int64_t* pair_gauss,
+void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, const S* rec, const int32_t* pair_gauss,
                    const int64_t* tile_start, const S* t_final, const int32_t* last, const S* g_out, S* g_pair,
                    int32_t* tile_used, const ImageIO<S>* io, SliceScratch<S>& scratch) {
     using V = typename Lanes<S>::V;
@@ -517,7 +517,7 @@ void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, con
         }
     const S amin = static_cast<S>(prm.alpha_min), amax = static_cast<S>(prm.alpha_max);
     for (int64_t j = maxlast - 1; j >= 0; --j) {
-        const S* e = rec + pair_gauss[start + j] * (PK + F);
+        const S* e = rec + static_cast<int64_t>(pair_gauss[start + j]) * (PK + F);
         const S mx = e[0], my = e[1], a = e[2], b = e[3], c = e[4], lo = e[5];
         const M jj = M{} + static_cast<I>(j);
         V m0{}, mx1{}, my1{}, mxx{}, mxy{}, myy{};
@@ -574,7 +574,7 @@ void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, con
 }
 
 template <typename S, int F>
-void forward_all(const Params& prm, int64_t G, const S* gp, const S* feat, const int64_t* pair_gauss,
+void forward_all(const Params& prm, int64_t G, const S* gp, const S* feat, const int32_t* pair_gauss,
                  const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final, int32_t* last,
                  const ImageIO<S>* io = nullptr) {
     std::vector<S> rec(static_cast<size_t>(G) * (PK + F));
@@ -592,7 +592,7 @@ void forward_all(const Params& prm, int64_t G, const S* gp, const S* feat, const
 // adds the pairs of the Gaussians in its index range, so every sum is taken in the same order whatever
 // the number of threads (backward is deterministic, and resumed training is bit-identical).
 template <typename S, int F>
-void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S* feat, const int64_t* pair_gauss,
+void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S* feat, const int32_t* pair_gauss,
                   const int64_t* tile_start, const int64_t* tile_count, const S* t_final, const int32_t* last,
                   const S* g_out, S* g_pair, S* g_gauss, const ImageIO<S>* io = nullptr) {
     std::vector<S> rec(static_cast<size_t>(G) * (PK + F));
@@ -634,7 +634,7 @@ void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S*
     }
 
 template <typename S>
-int forward_any(int64_t F, const Params& prm, int64_t G, const S* gp, const S* feat, const int64_t* pair_gauss,
+int forward_any(int64_t F, const Params& prm, int64_t G, const S* gp, const S* feat, const int32_t* pair_gauss,
                 const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final, int32_t* last) {
     try {
         US_DISPATCH_F(F, (forward_all<S, F>(prm, G, gp, feat, pair_gauss, tile_start, tile_count, out, t_final, last)));
@@ -646,7 +646,7 @@ int forward_any(int64_t F, const Params& prm, int64_t G, const S* gp, const S* f
 
 template <typename S>
 int backward_any(int64_t F, const Params& prm, int64_t G, int64_t M, const S* gp, const S* feat,
-                 const int64_t* pair_gauss, const int64_t* tile_start, const int64_t* tile_count, const S* t_final,
+                 const int32_t* pair_gauss, const int64_t* tile_start, const int64_t* tile_count, const S* t_final,
                  const int32_t* last, const S* g_out, S* g_pair, S* g_gauss) {
     try {
         US_DISPATCH_F(F, (backward_all<S, F>(prm, G, M, gp, feat, pair_gauss, tile_start, tile_count, t_final, last,
@@ -658,7 +658,7 @@ int backward_any(int64_t F, const Params& prm, int64_t G, int64_t M, const S* gp
 }
 
 template <typename S>
-int forward_image(const Params& prm, int64_t G, const ImageIO<S>& io, const int64_t* pair_gauss,
+int forward_image(const Params& prm, int64_t G, const ImageIO<S>& io, const int32_t* pair_gauss,
                   const int64_t* tile_start, const int64_t* tile_count, S* t_final, int32_t* last) {
     try {
         forward_all<S, IMAGE_F>(prm, G, nullptr, nullptr, pair_gauss, tile_start, tile_count, nullptr, t_final, last,
@@ -670,7 +670,7 @@ int forward_image(const Params& prm, int64_t G, const ImageIO<S>& io, const int6
 }
 
 template <typename S>
-int backward_image(const Params& prm, int64_t G, int64_t M, const ImageIO<S>& io, const int64_t* pair_gauss,
+int backward_image(const Params& prm, int64_t G, int64_t M, const ImageIO<S>& io, const int32_t* pair_gauss,
                    const int64_t* tile_start, const int64_t* tile_count, const S* t_final, const int32_t* last,
                    S* g_pair, S* g_gauss) {
     try {
@@ -919,7 +919,7 @@ int64_t bin_count(const BinArgs& a, const S* means2d, const S* extents, const S*
 // box come from its mask.
 void bin_fill(const BinArgs& a, const int64_t* order, int64_t V, const std::vector<BoxTiles>& boxes,
               const std::vector<std::vector<uint64_t>>& pools, const int64_t* counts, const int64_t* tile_start,
-              int64_t* pair_gauss, int64_t* pair_tile) {
+              int32_t* pair_gauss, int64_t* pair_tile) {
     const int64_t T = a.C * a.tiles_x * a.tiles_y, tpc = a.tiles_x * a.tiles_y;
     uskern::run_workers(a.workers, [&](int64_t w) {
         std::vector<int64_t> cursor(tile_start, tile_start + T);
@@ -927,7 +927,7 @@ void bin_fill(const BinArgs& a, const int64_t* order, int64_t V, const std::vect
             for (int64_t t = 0; t < T; ++t) cursor[t] += counts[v * T + t];
         auto emit = [&](int64_t g, int64_t t) {
             const int64_t k = cursor[t]++;
-            pair_gauss[k] = g;
+            pair_gauss[k] = static_cast<int32_t>(g);  // G < 2^31: rasterize.py checks
             if (pair_tile != nullptr) pair_tile[k] = t;  // optional: the Python side can derive it
         };
         for (int64_t i = V * w / a.workers; i < V * (w + 1) / a.workers; ++i) {
@@ -968,7 +968,7 @@ int64_t bin_count_any(const BinArgs& args, const S* means2d, const S* extents, c
 
 template <typename S>
 int bin_fill_any(const BinArgs& args, const S* means2d, const S* conics, const S* opac, const int64_t* order,
-                 int64_t V, void* state, const int64_t* counts, const int64_t* tile_start, int64_t* pair_gauss,
+                 int64_t V, void* state, const int64_t* counts, const int64_t* tile_start, int32_t* pair_gauss,
                  int64_t* pair_tile) {
     auto* st = static_cast<BinState*>(state);
     if (st == nullptr || static_cast<int64_t>(st->boxes.size()) != V) return 1;

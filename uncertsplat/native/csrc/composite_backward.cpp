@@ -8,7 +8,7 @@ extern "C" {
 #define US_BACKWARD(SUFFIX, S)                                                                                   \
     int us_backward_##SUFFIX(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size,      \
                              int64_t num_threads, double alpha_min, double alpha_max, double t_min, int64_t F,  \
-                             int64_t G, int64_t M, const S* gp, const S* feat, const int64_t* pair_gauss,       \
+                             int64_t G, int64_t M, const S* gp, const S* feat, const int32_t* pair_gauss,       \
                              const int64_t* tile_start, const int64_t* tile_count, const S* t_final,            \
                              const int32_t* last, const S* g_out, S* g_pair, S* g_gauss) {                      \
         US_PARAMS                                                                                                \
@@ -26,7 +26,7 @@ US_BACKWARD(f64, double)
                                    int64_t num_threads, double alpha_min, double alpha_max, double t_min,       \
                                    int64_t F, int64_t G, int64_t M, int64_t height, int64_t width,              \
                                    const S* means2d, const S* conics, const S* log_o, const S* colors,          \
-                                   const S* depths, const S* background, const int64_t* pair_gauss,             \
+                                   const S* depths, const S* background, const int32_t* pair_gauss,             \
                                    const int64_t* tile_start, const int64_t* tile_count, const S* t_final,      \
                                    const int32_t* last, const S* g_rgb, const S* g_depth, const S* g_alpha,     \
                                    S* g_pair, S* g_gauss) {                                                     \

@@ -6,14 +6,14 @@
 extern "C" {
 
 // Interface version: native.py refuses a library whose version differs from its own.
-int us_version() { return 16; }
+int us_version() { return 17; }
 
 int us_max_features() { return 8; }
 
 #define US_FORWARD(SUFFIX, S)                                                                                    \
     int us_forward_##SUFFIX(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size,       \
                             int64_t num_threads, double alpha_min, double alpha_max, double t_min, int64_t F,   \
-                            int64_t G, const S* gp, const S* feat, const int64_t* pair_gauss,                   \
+                            int64_t G, const S* gp, const S* feat, const int32_t* pair_gauss,                   \
                             const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final,           \
                             int32_t* last) {                                                                    \
         US_PARAMS                                                                                                \
@@ -28,7 +28,7 @@ US_FORWARD(f64, double)
                                   int64_t num_threads, double alpha_min, double alpha_max, double t_min,        \
                                   int64_t F, int64_t G, int64_t height, int64_t width, const S* means2d,        \
                                   const S* conics, const S* log_o, const S* colors, const S* depths,            \
-                                  const S* background, const int64_t* pair_gauss, const int64_t* tile_start,    \
+                                  const S* background, const int32_t* pair_gauss, const int64_t* tile_start,    \
                                   const int64_t* tile_count, S* rgb, S* depth, S* alpha, S* t_final,            \
                                   int32_t* last) {                                                              \
         if (F != IMAGE_F) return 1;                                                                              \
@@ -60,7 +60,7 @@ US_FORWARD_IMAGE(f64, double)
     }                                                                                                            \
     int us_bin_fill_##SUFFIX(US_BIN_HEAD, const S* means2d, const S* extents, const S* conics, const S* opac,    \
                              const int64_t* order, int64_t num_visible, const int64_t* counts,                  \
-                             const int64_t* tile_start, int64_t* pair_gauss, int64_t* pair_tile, void* state) { \
+                             const int64_t* tile_start, int32_t* pair_gauss, int64_t* pair_tile, void* state) { \
         US_BIN_ARGS                                                                                              \
         (void)extents;                                                                                           \
         return bin_fill_any<S>(args, means2d, conics, opac, order, num_visible, state, counts, tile_start,       \
