@@ -22,7 +22,11 @@ compositor's forward took no Gaussian count before version 10, binning kept no s
 before 11); images and gradients of both are compared.
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_kernels.py --ref 3adb8f7 [--run demo_out/train
-        --scene demo_out/synth] [--threads 2] [--repeats 20]
+        --scene demo_out/synth] [--threads 2] [--repeats 20] [--dense] [--one-thread-torch]
+
+``--one-thread-torch`` times the kernels as training, ``evaluate`` and ``prune`` call them (torch's own ops on one
+thread, the kernels on ``--threads``); without it torch's intra-op threads wait, spinning, between its ops while the
+kernels' threads run, which on a 2-core machine slows both libraries alike.
 
 Writes ``benchmarks/results/kernels.json`` and prints the Markdown rows for BENCHMARKS.md.
 """
@@ -30,6 +34,7 @@ Writes ``benchmarks/results/kernels.json`` and prints the Markdown rows for BENC
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import json
 import os
@@ -379,7 +384,7 @@ def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, wid
     x = torch.rand(shape, generator=gen)
     y = (x + 0.1 * torch.randn(shape, generator=gen)).clamp(0, 1)
     win = gaussian_window(dtype=torch.float32)
-    threads = torch.get_num_threads()
+    threads = native.kernel_threads()
 
     def forward(lib):
         def call():
@@ -456,6 +461,10 @@ def main() -> None:
     ap.add_argument("--scene", type=Path, help="the scene of --run")
     ap.add_argument("--rounds", type=int, default=6)
     ap.add_argument("--block", type=int, default=10)
+    ap.add_argument("--one-thread-torch", action="store_true",
+                    help="render, binning, compositor and SSIM inside native.single_threaded_torch (torch's own "
+                         "ops on one thread, the kernels on --threads), as training, evaluate and prune call them "
+                         "since 2026-11-27; the matmul keeps torch's threads")
     ap.add_argument("--out", type=Path, default=RESULTS / "kernels.json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
@@ -468,13 +477,21 @@ def main() -> None:
                   "cpu": native._cpu_signature()[:200], "torch": torch.__version__, "threads": args.threads,
                   "repeats": args.repeats, "reference": args.ref, "reference_interface": ref_version,
                   "load_average_start": os.getloadavg()}
-        result["render"] = bench_render_and_composite(libs, args.scene_n, args.width, args.height, args.repeats)
+        result["one_thread_torch"] = args.one_thread_torch
+
+        def kernels_context():
+            return native.single_threaded_torch("cpu") if args.one_thread_torch else contextlib.nullcontext()
+
+        with kernels_context():
+            result["render"] = bench_render_and_composite(libs, args.scene_n, args.width, args.height, args.repeats)
         if args.dense:
-            result["dense"] = bench_render_and_composite(libs, args.scene_n, args.width, args.height,
-                                                         max(3, args.repeats // 4), dense=True)
+            with kernels_context():
+                result["dense"] = bench_render_and_composite(libs, args.scene_n, args.width, args.height,
+                                                             max(3, args.repeats // 4), dense=True)
             result["dense"]["matmul_2048"] = matmul_ms(args.repeats)
-        result["ssim"] = bench_ssim(libs, args.repeats)
-        result["ssim_hwc"] = bench_ssim(libs, args.repeats, height=266, width=401, channels=3)
+        with kernels_context():
+            result["ssim"] = bench_ssim(libs, args.repeats)
+            result["ssim_hwc"] = bench_ssim(libs, args.repeats, height=266, width=401, channels=3)
         if args.run:
             result["train"] = bench_training(libs, args.run, args.scene or Path(json.loads(
                 (args.run / "train_summary.json").read_text())["scene"]), args.rounds, args.block)
