@@ -763,18 +763,20 @@ def _valid_keys(model: type[BaseModel] | None, loc: tuple) -> list[str]:
     return list(model.model_fields) if model is not None else []
 
 
-def format_validation_error(err: ValidationError, source: str, model: type[BaseModel] | None = None) -> str:
-    """One readable paragraph from a pydantic ValidationError; an unknown key gets the closest valid ones."""
+def format_validation_error(err: ValidationError, source: str, model: type[BaseModel] | None = None,
+                            key_prefix: str = "") -> str:
+    """One readable paragraph from a pydantic ValidationError; an unknown key gets the closest valid ones.
+    ``key_prefix``: where the validated table sits in the file (e.g. "train" for a sweep spec's ``train`` keys)."""
     import difflib
 
     lines = []
     for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "(root)"
-        msg = e["msg"]
+        loc = ".".join(str(p) for p in (key_prefix.split(".") if key_prefix else []) + list(e["loc"])) or "(root)"
+        msg = e["msg"].removeprefix("Value error, ")  # our validators' messages are sentences of their own
         if e["type"] == "extra_forbidden":
             valid = _valid_keys(model, tuple(e["loc"]))
             close = difflib.get_close_matches(str(e["loc"][-1]), valid, n=3, cutoff=0.6)
-            prefix = ".".join(str(p) for p in e["loc"][:-1])
+            prefix = ".".join(str(p) for p in (key_prefix.split(".") if key_prefix else []) + list(e["loc"][:-1]))
             named = [f"{prefix}.{k}" if prefix else k for k in close]
             msg = ("unknown key" + (f" (did you mean {' or '.join(named)}?)" if named else " (check the spelling)")
                    + (f"; valid keys here: {', '.join(valid)}" if valid and not named else ""))
@@ -782,12 +784,13 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
     return f"invalid configuration in {source}: " + "; ".join(lines)
 
 
-def build_config(model: type[_Base], data: dict, source: str = "config"):
-    """Validate ``data`` against ``model``; errors become a ``UserError`` naming each bad key."""
+def build_config(model: type[_Base], data: dict, source: str = "config", key_prefix: str = ""):
+    """Validate ``data`` against ``model``; errors become a ``UserError`` naming each bad key (after
+    ``key_prefix``, where ``data`` sits in ``source``)."""
     try:
         return model.model_validate(data)
     except ValidationError as err:
-        raise UserError(format_validation_error(err, source, model)) from None
+        raise UserError(format_validation_error(err, source, model, key_prefix)) from None
 
 
 def load_toml(path: str | Path) -> dict:

@@ -159,6 +159,20 @@ def test_vi_single_through_the_cli(scene_path, tmp_path):
     assert ch["rgb_std.R"].shape == (H, W) and ch["rgb_std.R"].max() > 0
 
 
+def test_ensemble_members_do_not_say_done(scene_path, tmp_path):
+    """Each member's closing line names the member; only the ensemble's own line says "done"."""
+    run = tmp_path / "ens"
+    res = CliRunner().invoke(app, ["train", str(scene_path), "-o", str(run), "--preset", "tiny",
+                                   "--method", "ensemble", "--device", "cpu", "--set", "ensemble_size=2",
+                                   "--set", "iterations=6", "--set", "scene.downscale=4.0",
+                                   "--set", "eval_every=1000", "--set", "checkpoint_every=1000"])
+    assert res.exit_code == 0, res.output
+    text = " ".join(res.output.split())
+    assert "member 1/2 trained: 6 steps" in text and "member 2/2 trained: 6 steps" in text
+    assert [line.split(":")[0] for line in res.output.splitlines() if line.startswith("done")] == ["done"]
+    assert "done: ensemble of 2 members" in text
+
+
 def test_unknown_method_is_a_user_error(scene_path, tmp_path):
     res = CliRunner().invoke(app, ["train", str(scene_path), "-o", str(tmp_path / "x"), "--method", "mc-dropout"])
     assert res.exit_code == 2 and "unknown method" in res.output and "ensemble" in res.output

@@ -163,6 +163,27 @@ def test_bad_spec_names_the_key(tmp_path):
         load_spec(f)
 
 
+@pytest.mark.parametrize(("toml", "match"), [
+    ("[axes]\nnum_samples = [0, 2]\n", r"s\.toml: axes\.num_samples\.0: Input should be greater than or equal to 1"),
+    ('[axes]\nmethod = ["variational", "mcdropout"]\n', r"axes\.method\.1: unknown method 'mcdropout' \(methods: "),
+    ('[default]\nmethod = "mc"\n', r"default\.method: unknown method 'mc'"),
+    ('train = { iterations = "x" }\n', r"s\.toml \(preset tiny\): train\.iterations: Input should be a valid integer"),
+    ("train = { densify = { untill = 5 } }\n", r"train\.densify\.untill: unknown key \(did you mean train\.densify\.until\?\)"),
+    ("evaluate = { num_sample = 3 }\n", r"evaluate\.num_sample: unknown key \(did you mean evaluate\.num_samples\?\)"),
+    ('[scenes.a]\nsynth = {}\ntrain = { iteraton = 4 }\n', r"scenes\.a\.train\.iteraton: unknown key"),
+    ('evaluate = { num_samples = 0 }\n[scenes.a]\nsynth = {}\n', r"s\.toml: evaluate\.num_samples: Input should be"),
+    ('[scenes.a]\nsynth = {}\nevaluate = { num_samples = 0 }\n', r"s\.toml: scenes\.a\.evaluate\.num_samples: Input"),
+])
+def test_bad_knob_values_and_base_keys_are_refused_when_the_spec_is_read(tmp_path, toml, match):
+    """Axis values, methods and the spec's train / evaluate keys are checked on reading, each named where it is in
+    the file (an axis value of 0 was a traceback when the points were expanded; a bad `train` key was named as
+    a key of "train config (preset ...)")."""
+    f = tmp_path / "s.toml"
+    f.write_text('train_preset = "tiny"\n' + toml)
+    with pytest.raises(UserError, match=match):
+        load_spec(f)
+
+
 # ------------------------------------------------------------------------------------------ scenes and seeds
 MULTI = """
 name = "multi"

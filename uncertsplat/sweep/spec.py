@@ -45,17 +45,27 @@ import itertools
 import json
 import re
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from uncertsplat.config import (
     EvalConfig,
     TrainConfig,
     build_config,
     deep_update,
+    format_validation_error,
     train_config_from,
 )
+from uncertsplat.errors import UserError
 from uncertsplat.provenance import hash_config
 
 KNOBS = ("method", "iterations", "num_entries", "num_samples", "downscale", "ensemble_size", "spawn_fraction")
@@ -65,28 +75,47 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
+def _known_method(name: str) -> str:
+    from uncertsplat.baselines import METHODS
+
+    if name not in METHODS:
+        raise ValueError(f"unknown method {name!r} (methods: {', '.join(METHODS)})")
+    return name
+
+
+# The knobs' types and ranges, shared by a point and the axes' lists (so that a bad axis value is refused, naming
+# its key, when the spec is read).
+Method = Annotated[str, AfterValidator(_known_method)]
+Iterations = Annotated[int, Field(ge=1)]
+NumEntries = Annotated[int, Field(ge=1, le=256)]
+NumSamples = Annotated[int, Field(ge=1, le=10_000)]
+Downscale = Annotated[float, Field(ge=1.0, le=64.0)]
+EnsembleSize = Annotated[int, Field(ge=1, le=1000)]
+SpawnFraction = Annotated[float, Field(gt=0.0)]
+
+
 class SweepPoint(_Strict):
     """The knob values of one point (None: the base config's value)."""
 
-    method: str = "variational"
-    iterations: int | None = Field(None, ge=1)
-    num_entries: int | None = Field(None, ge=1, le=256)
-    num_samples: int | None = Field(None, ge=1, le=10_000)
-    downscale: float | None = Field(None, ge=1.0, le=64.0)
-    ensemble_size: int | None = Field(None, ge=1, le=1000)
-    spawn_fraction: float | None = Field(None, gt=0.0)
+    method: Method = "variational"
+    iterations: Iterations | None = None
+    num_entries: NumEntries | None = None
+    num_samples: NumSamples | None = None
+    downscale: Downscale | None = None
+    ensemble_size: EnsembleSize | None = None
+    spawn_fraction: SpawnFraction | None = None
 
 
 class SweepAxes(_Strict):
     """Values to try per knob (an empty list leaves the knob at the default)."""
 
-    method: list[str] = []
-    iterations: list[int] = []
-    num_entries: list[int] = []
-    num_samples: list[int] = []
-    downscale: list[float] = []
-    ensemble_size: list[int] = []
-    spawn_fraction: list[float] = []
+    method: list[Method] = []
+    iterations: list[Iterations] = []
+    num_entries: list[NumEntries] = []
+    num_samples: list[NumSamples] = []
+    downscale: list[Downscale] = []
+    ensemble_size: list[EnsembleSize] = []
+    spawn_fraction: list[SpawnFraction] = []
 
 
 class SweepScene(_Strict):
@@ -210,7 +239,39 @@ def load_spec(path: Path, overrides: list[str] | None = None) -> SweepSpec:
                     entry[key] = anchored(entry[key])
     for o in overrides or []:
         data = deep_update(data, parse_override(o))
-    return build_config(SweepSpec, data, source=str(path))
+    spec = build_config(SweepSpec, data, source=str(path))
+    check_base_configs(spec, str(path))
+    return spec
+
+
+def check_base_configs(spec: SweepSpec, source: str) -> None:
+    """The spec's ``train`` and ``evaluate`` keys (and each scene's) as configs, so that a bad key is refused when
+    the spec is read, named where it is in the file, rather than when a point's job builds its configs."""
+    tables = [(None, "")] + [(name, f"scenes.{name}.") for name in spec.scenes]
+    for name, where in tables:
+        entry = spec.scenes[name] if name is not None else None
+        preset = entry.train_preset if entry is not None and entry.train_preset is not None else spec.train_preset
+        for key, own, model in (("train", spec.train, TrainConfig), ("evaluate", spec.evaluate, EvalConfig)):
+            data = deep_update(own, getattr(entry, key)) if entry is not None else own
+            if key == "train":
+                label = f"{source} (preset {preset})" if preset else source
+                base = train_config_from(preset, {}) if preset else None
+                data = deep_update(json.loads(base.model_dump_json()), data) if base is not None else data
+            else:
+                label = source
+            try:
+                model.model_validate(data)
+            except ValidationError as err:
+                # a key of the scene's own table is named there; one of the spec's shared table, there
+                inner = getattr(entry, key) if entry is not None else {}
+                prefix = f"{where}{key}" if entry is not None and _mentions(inner, err) else key
+                raise UserError(format_validation_error(err, label, model, key_prefix=prefix)) from None
+
+
+def _mentions(table: dict, err: ValidationError) -> bool:
+    """True when the first error's key path starts in ``table``."""
+    loc = err.errors()[0]["loc"]
+    return bool(loc) and loc[0] in table
 
 
 def expand_points(spec: SweepSpec) -> list[SweepPoint]:

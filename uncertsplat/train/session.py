@@ -140,7 +140,7 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
 
 def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False,
                 extend_to: int | None = None, on_trainer=None, add_views: list[str] | None = None,
-                given: set[str] | None = None) -> Path:
+                given: set[str] | None = None, done_label: str = "done") -> Path:
     """Train one model on ``scene`` into ``run_dir``; returns ``run_dir``.
 
     ``extend_to`` (with ``resume``): train on to this many steps instead of the stored ``iterations``.
@@ -149,6 +149,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     must have started on explicit ``scene.train_names``); recorded in ``scene.json`` (``views_added``).
     ``given`` (with ``resume``): the dotted keys the command set; the note on values the stored configuration
     overrides names only those (None: every difference, the command's defaults too).
+    ``done_label``: how the closing line starts (an ensemble's member says which member it is: the run is not done).
 
     Raises:
         UserError: unreadable scene, an existing run folder without ``resume``, nothing to resume, or an
@@ -304,7 +305,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         summary.write(run_dir / "train_summary.json")
         psnr_txt = f", held-out PSNR {held['psnr']:.2f} dB" if held else ""
         fit_txt = f", training views {fit_psnr:.2f} dB" if fit_psnr is not None else ""
-        console.print(f"done: {trainer.step} steps in {trainer.elapsed:.1f} s, {len(trainer.model)} Gaussians "
+        console.print(f"{done_label}: {trainer.step} steps in {trainer.elapsed:.1f} s, {len(trainer.model)} Gaussians "
                       f"({trainer.model.num_carriers} with a posterior){psnr_txt}{fit_txt} -> {run_dir}")
         for warning in warnings:
             console.print(f"[yellow]warning:[/] {warning}")
