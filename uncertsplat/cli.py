@@ -17,7 +17,7 @@ from rich.text import Text
 
 from uncertsplat import __version__
 from uncertsplat.console import console
-from uncertsplat.errors import UserError
+from uncertsplat.errors import Interrupted, UserError
 
 app = typer.Typer(
     name="uncertsplat",
@@ -48,7 +48,8 @@ _ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, err
 
 
 def _handle_errors(fn):
-    """Turn UserError into a one-paragraph message and exit code 2; Ctrl-C into exit code 130."""
+    """Turn UserError into a one-paragraph message and exit code 2; Ctrl-C (and an Interrupted error: the work
+    stopped on a signal, what was done kept) into exit code 130."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -58,8 +59,9 @@ def _handle_errors(fn):
             if _STATE["debug"]:
                 raise
             # the message as plain text: a path or value in it must not be read as markup or an emoji code
-            console.print(Text.assemble(("error:", "bold red"), " ", err.render()), soft_wrap=True)
-            raise typer.Exit(2) from None
+            label = ("interrupted:", "bold yellow") if isinstance(err, Interrupted) else ("error:", "bold red")
+            console.print(Text.assemble(label, " ", err.render()), soft_wrap=True)
+            raise typer.Exit(130 if isinstance(err, Interrupted) else 2) from None
         except KeyboardInterrupt:
             console.print("[yellow]interrupted[/]")
             raise typer.Exit(130) from None
@@ -222,14 +224,15 @@ def evaluate(
 
     ds: object = None
     if depth_scale is not None:
+        hint = "auto estimates it from the GT depth maps; a number is the factor to GT units."
         try:
             ds = float(depth_scale)
         except ValueError:
             if depth_scale != "auto":
-                raise UserError(f"--depth-scale must be auto or a number, not {depth_scale!r}",
-                                hint="auto estimates it from the GT depth maps; a number is the factor to GT units."
-                                ) from None
+                raise UserError(f"--depth-scale must be auto or a number, not {depth_scale!r}", hint=hint) from None
             ds = depth_scale
+        if isinstance(ds, float) and not (0.0 < ds < float("inf")):  # checked before any view is rendered
+            raise UserError(f"--depth-scale must be a positive number, not {depth_scale}", hint=hint)
     explicit = dict(split=split, num_samples=num_samples, seed=seed, depth_gt=depth_gt, depth_scale=ds,
                     paper_nll=paper_nll)
     cfg = _stage_config(EvalConfig, config, set_, explicit)

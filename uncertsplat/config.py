@@ -428,8 +428,8 @@ class EvalConfig(_Base):
     seed: int = Field(0, ge=0)
     depth_gt: Path | None = None
     """Folder of GT depth maps ({image stem}.npy or .exr); synthetic scenes provide their own."""
-    depth_scale: Literal["auto"] | float = "auto"
-    """Factor from rendered depth to GT depth units; auto estimates it."""
+    depth_scale: Literal["auto"] | Annotated[float, Field(gt=0.0)] = "auto"
+    """Factor from rendered depth to GT depth units (> 0); auto estimates it."""
     depth_align: Literal["median", "lsq"] = "median"
     std_floor: float = Field(1e-3, gt=0.0)
     """The NLL uses max(std, std_floor) so a zero std does not give an infinite NLL."""

@@ -53,3 +53,8 @@ def require_extra(module: str, *, feature: str, extra: str):
 
 class StageError(UserError):
     """A pipeline stage failed; the message says which stage and why."""
+
+
+class Interrupted(UserError):
+    """The user stopped the work (Ctrl-C, SIGTERM) and what was done is kept (e.g. a checkpoint): the message says
+    where and the hint how to continue. The CLI exits with 130, as for Ctrl-C; a sweep stops instead of retrying."""

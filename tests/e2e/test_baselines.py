@@ -173,6 +173,29 @@ def test_ensemble_members_do_not_say_done(scene_path, tmp_path):
     assert "done: ensemble of 2 members" in text
 
 
+def test_an_interrupted_ensemble_resumes_as_one(scene_path, tmp_path):
+    """An ensemble stopped in its second member names the ensemble's folder to resume, and a plain --resume (without
+    --method ensemble) finishes the ensemble instead of training one model into its folder."""
+    from uncertsplat.errors import UserError
+    from uncertsplat.schemas import TrainSummary
+
+    run, members = tmp_path / "ens", []
+
+    def stop_the_second(trainer):  # as if Ctrl-C arrived at step 10 of member 2
+        members.append(trainer)
+        if len(members) == 2:
+            trainer.on_log = lambda rec: setattr(trainer, "_stop", rec["step"] >= 10)
+
+    with pytest.raises(UserError) as info:
+        train_run(scene_path, run, quick_cfg(method="ensemble", ensemble_size=3), CPU, on_trainer=stop_the_second)
+    assert info.value.hint.endswith(f"-o {run} --resume")
+    train_run(scene_path, run, quick_cfg(), CPU, resume=True)  # the command's default method: variational
+    summary = TrainSummary.read(run / "train_summary.json")
+    assert summary.method == "ensemble" and len(summary.members) == 3
+    assert all(m.steps == 20 for m in summary.members)
+    assert not (run / "ckpts").exists() and not (run / "point_cloud.ply").exists()
+
+
 def test_unknown_method_is_a_user_error(scene_path, tmp_path):
     res = CliRunner().invoke(app, ["train", str(scene_path), "-o", str(tmp_path / "x"), "--method", "mc-dropout"])
     assert res.exit_code == 2 and "unknown method" in res.output and "ensemble" in res.output

@@ -132,6 +132,16 @@ def flip_bit(path: Path, offset: int, bit: int = 3) -> None:
     path.write_bytes(bytes(data))
 
 
+def assert_clean_interrupt(rc: int, out: str, *must_contain: str) -> None:
+    """Exit code 130 (as for Ctrl-C), an ``interrupted:`` paragraph naming what is asked, and no traceback."""
+    assert rc == 130, f"exit code {rc}, output:\n{out}"
+    assert "Traceback" not in out, out
+    assert "interrupted:" in out, out
+    flat = " ".join(out.split())
+    for s in must_contain:
+        assert s in flat or s in out, f"{s!r} not in output:\n{out}"
+
+
 def assert_clean_error(rc: int, out: str, *must_contain: str) -> None:
     """Exit code 2, an ``error:`` paragraph naming what is asked, and no traceback."""
     assert rc == 2, f"exit code {rc}, output:\n{out}"

@@ -19,6 +19,7 @@ from tests.fixtures import tiny_scene_path  # noqa: F401
 from tests.reliability.helpers import (
     FAST,
     assert_clean_error,
+    assert_clean_interrupt,
     finish,
     logged_steps,
     run_cli,
@@ -76,7 +77,7 @@ def test_sigint_then_resume_then_sigterm_and_second_writer_refused(tiny_scene_pa
 
     # SIGINT (Ctrl-C): the step in progress completes, a checkpoint is written, clean exit
     rc, out = _interrupt(proc, signal.SIGINT, run, after_step=2)
-    assert_clean_error(rc, out, "training interrupted", "checkpoint saved", "--resume")
+    assert_clean_interrupt(rc, out, "training interrupted", "checkpoint saved", "--resume")
     n = _interrupted_step(out)
     assert n >= 2
     assert _check_all_checkpoints_load(run) == [n]
@@ -87,7 +88,7 @@ def test_sigint_then_resume_then_sigterm_and_second_writer_refused(tiny_scene_pa
     # --resume continues from step n; then SIGTERM (what `kill` and job schedulers send)
     proc = start_cli(*args, "--resume")
     rc, out = _interrupt(proc, signal.SIGTERM, run, after_step=n + 2)
-    assert_clean_error(rc, out, "training interrupted", "checkpoint saved")
+    assert_clean_interrupt(rc, out, "training interrupted", "checkpoint saved")
     assert f"step {n})" in " ".join(out.split()), out  # "resuming from ... (step n)"
     m = _interrupted_step(out)
     assert m >= n + 2
@@ -122,7 +123,7 @@ def test_sigkill_at_a_random_step_then_resume(tiny_scene_path, tmp_path):
     wait_until(lambda: (run / "config.json").stat().st_ino != inode, proc, what="the resumed run to start")
     rc, out = _interrupt(proc, signal.SIGINT, run, after_step=last + 1)
     assert f"step {last})" in " ".join(out.split()), out
-    assert_clean_error(rc, out, "training interrupted")
+    assert_clean_interrupt(rc, out, "training interrupted")
     n = _interrupted_step(out)
     assert logged_steps(run) == list(range(1, n + 1)), f"killed after {kill_after}, resumed from {last}"
     assert _check_all_checkpoints_load(run)[-1] == n

@@ -1,5 +1,6 @@
 """CLI wiring through Typer's test runner."""
 
+import pytest
 from typer.testing import CliRunner
 
 from uncertsplat import __version__
@@ -62,6 +63,12 @@ def test_depth_scale_that_is_neither_auto_nor_a_number(tmp_path):
     result = runner.invoke(app, ["evaluate", str(tmp_path), "--depth-scale", "foo", "--device", "cpu"])
     assert result.exit_code == 2 and "--depth-scale must be auto or a number, not 'foo'" in result.output
     assert "literal" not in result.output
+
+
+@pytest.mark.parametrize("value", ["-1", "0", "inf"])
+def test_depth_scale_that_is_not_positive_is_refused_before_rendering(tmp_path, value):
+    result = runner.invoke(app, ["evaluate", str(tmp_path), "--depth-scale", value, "--device", "cpu"])
+    assert result.exit_code == 2 and f"--depth-scale must be a positive number, not {value}" in result.output
 
 
 def test_help_shows_the_sweep_scenes_table_name():

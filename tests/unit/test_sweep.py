@@ -173,6 +173,8 @@ def test_bad_spec_names_the_key(tmp_path):
     ('[scenes.a]\nsynth = {}\ntrain = { iteraton = 4 }\n', r"scenes\.a\.train\.iteraton: unknown key"),
     ('evaluate = { num_samples = 0 }\n[scenes.a]\nsynth = {}\n', r"s\.toml: evaluate\.num_samples: Input should be"),
     ('[scenes.a]\nsynth = {}\nevaluate = { num_samples = 0 }\n', r"s\.toml: scenes\.a\.evaluate\.num_samples: Input"),
+    ('scenes = "x"\n', r"s\.toml: scenes: Input should be a valid dictionary"),
+    ('scenes = ["a"]\n', r"s\.toml: scenes: Input should be a valid dictionary"),
 ])
 def test_bad_knob_values_and_base_keys_are_refused_when_the_spec_is_read(tmp_path, toml, match):
     """Axis values, methods and the spec's train / evaluate keys are checked on reading, each named where it is in
@@ -342,3 +344,24 @@ def test_methods_spec_file_is_valid():
     assert len(jobs) == 45  # 5 methods x 3 scenes x 3 seeds
     fern = next(j for j in jobs if j["scene_name"] == "fern")["train_config"]
     assert fern["iterations"] == 3000 and fern["densify"]["until"] < 3000  # the paper's schedule, scaled
+
+
+def test_an_interrupted_point_stops_a_sequential_sweep_without_a_retry():
+    """Ctrl-C during a point's training (an Interrupted error, its checkpoint written) stops the sweep: the points
+    before it keep their records, it is not run again, the ones after are not started."""
+    from uncertsplat.errors import Interrupted
+    from uncertsplat.sweep.executors import run_local
+
+    calls, got = [], []
+
+    def run_job(job):
+        calls.append(job["job_id"])
+        if job["job_id"] == "b":
+            raise Interrupted("training interrupted at step 7; checkpoint saved (x)")
+        p = job["points"][0]
+        return [{"id": p["id"], "hash": p["hash"], "job": job["job_id"], "status": "ok"}]
+
+    jobs = [{"job_id": n, "points": [{"id": n, "hash": n}]} for n in ("a", "b", "c")]
+    with pytest.raises(Interrupted, match="step 7"):
+        run_local(jobs, jobs=1, retries=2, on_records=got.extend, run_job=run_job)
+    assert calls == ["a", "b"] and [r["job"] for r in got] == ["a"]

@@ -22,7 +22,7 @@ from typing import Any
 
 import torch
 
-from uncertsplat.baselines.runs import LoadedRun, load_run, load_single_model
+from uncertsplat.baselines.runs import LoadedRun, load_run, load_single_model, read_run_config
 
 METHODS: dict[str, dict[str, Any]] = {
     "variational": {"method": "variational", "variant": "ours"},
@@ -70,6 +70,15 @@ def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: boo
     """
     from uncertsplat.errors import UserError
 
+    stored = _stored_method(run_dir) if resume else None
+    if stored in ("ensemble", "fisher") and stored != cfg.method:
+        # an ensemble or Fisher run resumed without its --method: the run folder decides, as it does the method of
+        # a single-model run (training one model into the ensemble's folder lost the ensemble)
+        from uncertsplat.console import console
+
+        console.print(f"[yellow]note:[/] the run folder holds a{'n' if stored == 'ensemble' else ''} {stored} run: "
+                      f"resuming it as one (its stored configuration)")
+        cfg = read_run_config(run_dir)
     if add_views and cfg.method in ("ensemble", "fisher"):
         raise UserError(f"--add-views is not supported for the {cfg.method} baseline",
                         hint="Grow a variational or deterministic run, or start a new run with the views you want.")
@@ -88,6 +97,17 @@ def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: boo
 
     return train_model(scene, run_dir, cfg, device=device, resume=resume, extend_to=extend_to, on_trainer=on_trainer,
                        add_views=add_views, given=given)
+
+
+def _stored_method(run_dir: Path) -> str | None:
+    """The method in ``RUN/config.json``, or None when there is none to read (a new run; errors come later)."""
+    import json
+
+    try:
+        method = json.loads((Path(run_dir) / "config.json").read_text(encoding="utf-8")).get("method")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return method if isinstance(method, str) else None
 
 
 __all__ = ["METHODS", "LoadedRun", "load_run", "load_single_model", "method_label", "method_overrides", "train_run"]

@@ -82,7 +82,9 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
                 console.print(f"[bold]ensemble[/] member {i + 1}/{n} (seed {cfg.seed + i})")
                 started = mdir.exists() and (mdir / "config.json").is_file()
                 train_model(scene, mdir, member_config(cfg, i), device=device, resume=started, on_trainer=on_trainer,
-                            done_label=f"member {i + 1}/{n} trained")
+                            done_label=f"member {i + 1}/{n} trained", resume_dir=run_dir)
+            elif resume:
+                console.print(f"[bold]ensemble[/] member {i + 1}/{n} (seed {cfg.seed + i}): trained before")
             summaries.append(TrainSummary.read(done))
         atomic_write_text(run_dir / "scene.json", (member_dir(run_dir, 0) / "scene.json").read_text(encoding="utf-8"))
         psnrs = [s.test_psnr for s in summaries if s.test_psnr is not None]

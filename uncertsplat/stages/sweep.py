@@ -31,7 +31,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from uncertsplat.console import console
-from uncertsplat.errors import UserError
+from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.io.atomic import atomic_write_text, run_lock
 from uncertsplat.schemas.base import describe_validation_error, key_problems
 from uncertsplat.schemas.runs import SweepRecord, SweepSummary
@@ -226,11 +226,16 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                     console.print(f"  [red]{r.id} failed[/] in {r.stage}: {r.error}")
 
         with bar:
-            if executor == "ray":
-                run_ray(todo, address=address, cpus_per_job=cpus_per_job, gpus_per_job=gpus_per_job, retries=retries,
-                        on_records=record, on_start=started, num_cpus=jobs if address is None else None)
-            else:
-                run_local(todo, jobs=jobs, retries=retries, on_records=record, on_start=started)
+            try:
+                if executor == "ray":
+                    run_ray(todo, address=address, cpus_per_job=cpus_per_job, gpus_per_job=gpus_per_job,
+                            retries=retries, on_records=record, on_start=started,
+                            num_cpus=jobs if address is None else None)
+                else:
+                    run_local(todo, jobs=jobs, retries=retries, on_records=record, on_start=started)
+            except Interrupted as err:  # a point's training stopped on Ctrl-C: the sweep stops, it does not retry
+                raise Interrupted(f"sweep stopped: {err.message}", hint="Run the same sweep command again: the "
+                                  "finished points are kept and the stopped one resumes from its checkpoint.") from None
 
         if whole is not spec:  # --scenes: the other scenes' points (a point's hash does not depend on its folder)
             others = {n: out_dir / "scenes" / n for n in whole.scenes if n not in spec.scenes}

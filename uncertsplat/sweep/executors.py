@@ -23,7 +23,7 @@ from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from multiprocessing import get_context
 
-from uncertsplat.errors import UserError, require_extra
+from uncertsplat.errors import Interrupted, UserError, require_extra
 
 EXECUTORS = ("local", "ray")
 
@@ -70,6 +70,8 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
                     on_start(job)
                 try:
                     recs = run_job(job)
+                except Interrupted:
+                    raise
                 except Exception as err:  # run_job reports its own failures; this is a bug or an interrupt-free crash
                     recs = failed_records(job, f"{type(err).__name__}: {err}\n{traceback.format_exc(limit=4)}")
                 if not _retry_needed(recs) or attempt == retries + 1:
@@ -79,7 +81,8 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
     for job in todo:
         job["threads"] = 1  # jobs share the cores: oversubscribing threads only slows them all
     ctx = get_context("spawn")  # no fork of a process holding torch threads
-    with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx, max_tasks_per_child=1) as pool:
+    with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx, max_tasks_per_child=1,
+                             initializer=_worker_stops_quietly_on_ctrl_c) as pool:
         attempts: dict[str, int] = {}
         futures = {}
 
@@ -98,14 +101,31 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
                     job = futures.pop(fut)
                     try:
                         recs = fut.result()
+                    except Interrupted:  # a worker's training stopped on a signal: the sweep stops too
+                        raise KeyboardInterrupt from None
                     except Exception as err:  # the worker died (e.g. out of memory, killed)
                         recs = failed_records(job, f"{type(err).__name__}: {err}")
                     _settle(job, recs, attempts[job["job_id"]], retries, submit, on_records)
         except KeyboardInterrupt:
             for fut in futures:
                 fut.cancel()
-            pool.shutdown(wait=False, cancel_futures=True)
+            # wait for the workers, which stop at once (a training one after its step and checkpoint): without the
+            # wait the pool's manager thread failed on the pool it was still adjusting (a traceback)
+            pool.shutdown(wait=True, cancel_futures=True)
             raise
+
+
+def _worker_stops_quietly_on_ctrl_c() -> None:
+    """Ctrl-C reaches every process of the terminal's group: a pool worker then exits without a traceback (an idle
+    one printed KeyboardInterrupt's) while the driver stops the sweep. A training job installs its own handler while
+    it trains (the step finishes, a checkpoint is written, then it stops) and restores this one after."""
+    import signal
+
+    signal.signal(signal.SIGINT, _exit_quietly)
+
+
+def _exit_quietly(signum, frame) -> None:
+    raise SystemExit(130)
 
 
 def require_ray():

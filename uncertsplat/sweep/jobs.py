@@ -15,6 +15,7 @@ from pathlib import Path
 
 import torch
 
+from uncertsplat.errors import Interrupted
 from uncertsplat.schemas import TrainSummary
 
 RECORD_KEYS = ("psnr", "psnr_render", "ssim", "ause_mae", "ause_rmse", "nll", "nll_kde", "calibration_error",
@@ -85,6 +86,8 @@ def run_job(job: dict) -> list[dict]:
                       "num_gaussians": summary.num_gaussians, "num_carriers": summary.num_carriers,
                       "memory_per_gaussian_bytes": summary.memory_per_gaussian_bytes,
                       "train_peak_memory_mb": train_peak}
+    except Interrupted:  # Ctrl-C / SIGTERM: the sweep stops (the checkpoint resumes the point), it does not retry
+        raise
     except Exception as err:  # report, do not kill the sweep
         msg = f"{type(err).__name__}: {err}"
         tb = traceback.format_exc(limit=6)

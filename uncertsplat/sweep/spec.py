@@ -232,7 +232,8 @@ def load_spec(path: Path, overrides: list[str] | None = None) -> SweepSpec:
 
     if "scene" in data:
         data["scene"] = anchored(data["scene"])
-    for entry in (data.get("scenes") or {}).values():
+    scenes = data.get("scenes")
+    for entry in (scenes.values() if isinstance(scenes, dict) else ()):  # not a table: the validation says so
         if isinstance(entry, dict):
             for key in ("path", "photos"):
                 if key in entry:

@@ -23,7 +23,7 @@ import torch
 from uncertsplat import native
 from uncertsplat.config import TrainConfig, build_config
 from uncertsplat.console import console
-from uncertsplat.errors import UserError
+from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.io.atomic import (
     atomic_write_text,
@@ -140,7 +140,7 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
 
 def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False,
                 extend_to: int | None = None, on_trainer=None, add_views: list[str] | None = None,
-                given: set[str] | None = None, done_label: str = "done") -> Path:
+                given: set[str] | None = None, done_label: str = "done", resume_dir: Path | None = None) -> Path:
     """Train one model on ``scene`` into ``run_dir``; returns ``run_dir``.
 
     ``extend_to`` (with ``resume``): train on to this many steps instead of the stored ``iterations``.
@@ -150,6 +150,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     ``given`` (with ``resume``): the dotted keys the command set; the note on values the stored configuration
     overrides names only those (None: every difference, the command's defaults too).
     ``done_label``: how the closing line starts (an ensemble's member says which member it is: the run is not done).
+    ``resume_dir``: the folder an interruption's "Continue with" names (an ensemble member's: the ensemble's).
 
     Raises:
         UserError: unreadable scene, an existing run folder without ``resume``, nothing to resume, or an
@@ -275,8 +276,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         try:
             trainer.fit()
         except TrainingInterrupted as err:
-            raise UserError(f"training interrupted at step {err.step}; checkpoint saved ({err.path})",
-                            hint=f"Continue with: uncertsplat train {scene} -o {run_dir} --resume") from None
+            raise Interrupted(f"training interrupted at step {err.step}; checkpoint saved ({err.path})",
+                              hint=f"Continue with: uncertsplat train {scene} -o {resume_dir or run_dir} --resume") from None
 
         meta = {"variant": cfg.variant, "extent": trainer.extent, "step": trainer.step,
                 "sh_degree_active": trainer.sh_degree, "temperature": cfg.variational.gate_temperature}

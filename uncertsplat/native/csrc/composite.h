@@ -186,6 +186,24 @@ inline void each_feature(Fn&& fn) {
 // A slice outside those rows skips the Gaussian, which changes no result (alpha < alpha_min is skipped).
 constexpr int PK = 8;
 
+// Floats (doubles) from one record to the next: PK + F rounded up to whole 64-byte cache lines, so that reading a
+// record (in list order, i.e. at random in Gaussian order) touches one line, not two (13 floats took 52 bytes).
+template <typename S>
+constexpr int64_t record_stride(int64_t F) {
+    return ((PK + F) * static_cast<int64_t>(sizeof(S)) + 63) / 64 * (64 / static_cast<int64_t>(sizeof(S)));
+}
+
+// The records of G Gaussians, the first at a 64-byte boundary.
+template <typename S>
+struct Records {
+    std::vector<S> store;
+    S* data;
+    Records(int64_t G, int64_t F) : store(static_cast<size_t>(G * record_stride<S>(F) + 64 / sizeof(S))) {
+        const auto addr = reinterpret_cast<std::uintptr_t>(store.data());
+        data = store.data() + ((64 - addr % 64) % 64) / sizeof(S);
+    }
+};
+
 // The standard render's compositing in image layout (us_forward_image / us_backward_image): the Gaussians'
 // columns come as separate arrays and the features are fixed, (colour r, g, b, camera depth, 1), so F = 5;
 // the outputs are images [C,H,W,.] (a tile's pixels beyond the image's right or bottom edge are neither written
@@ -230,7 +248,7 @@ void gaussian_records_with(const Params& prm, int64_t G, int64_t F, Fill fill, S
     const int64_t workers = std::max<int64_t>(1, std::min<int64_t>(prm.num_threads, G / 16384 + 1));
     uskern::run_workers(workers, [&](int64_t w) {
         for (int64_t g = G * w / workers; g < G * (w + 1) / workers; ++g) {
-            S* e = rec + g * (PK + F);
+            S* e = rec + g * record_stride<S>(F);
             fill(g, e);
             const S a = e[2], b = e[3], c = e[4];
             const S thr = S(2) * (e[5] - lmin);  // alpha >= alpha_min  <=>  conic form <= thr
@@ -341,6 +359,7 @@ inline V pixel_power(V dx, V dy, S a, S b, S c, S lo) {
 // list is built past the chunk where the last ray of the tile stopped (on dense scenes rays stop after a
 // small part of a tile's list, and building the whole list per slice cost more than compositing).
 constexpr int64_t LIST_CHUNK = 128;
+constexpr int64_t PREFETCH = 8;  // entries ahead whose record is fetched while one is read
 
 template <typename S>
 struct ForwardScratch {
@@ -383,7 +402,9 @@ void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, cons
         std::fill(nlist, nlist + NS, int64_t{0});
         for (int64_t j = c0; j < c1; ++j) {
             int64_t s0, s1;
-            tl.slices(rec + static_cast<int64_t>(pair_gauss[start + j]) * (PK + F), s0, s1);
+            // the records are read in list order but lie in Gaussian order: fetch a few entries ahead
+            if (j + PREFETCH < count) __builtin_prefetch(rec + static_cast<int64_t>(pair_gauss[start + j + PREFETCH]) * record_stride<S>(F));
+            tl.slices(rec + static_cast<int64_t>(pair_gauss[start + j]) * record_stride<S>(F), s0, s1);
             for (int64_t s = 0; s < NS; ++s) {
                 lists[s * LIST_CHUNK + nlist[s]] = j;
                 nlist[s] += (s >= s0) & (s <= s1);
@@ -411,7 +432,7 @@ void forward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, cons
                 const S* eb[B];
                 for (int64_t i = 0; i < B; ++i) {
                     const int64_t k = std::min(k0 + i, n - 1);  // a repeated last entry is masked below
-                    eb[i] = rec + static_cast<int64_t>(pair_gauss[start + sl[k]]) * (PK + F);
+                    eb[i] = rec + static_cast<int64_t>(pair_gauss[start + sl[k]]) * record_stride<S>(F);
                     const S* e = eb[i];
                     const V raw = vexp_lanes<V>(pixel_power<V, S>(px - e[0], py - e[1], e[2], e[3], e[4], e[5]));
                     alpha[i] = raw < amax ? raw : amax;
@@ -517,7 +538,8 @@ void backward_tile(const Params& prm, const LaneGrid<S>& grid, int64_t tile, con
         }
     const S amin = static_cast<S>(prm.alpha_min), amax = static_cast<S>(prm.alpha_max);
     for (int64_t j = maxlast - 1; j >= 0; --j) {
-        const S* e = rec + static_cast<int64_t>(pair_gauss[start + j]) * (PK + F);
+        if (j >= PREFETCH) __builtin_prefetch(rec + static_cast<int64_t>(pair_gauss[start + j - PREFETCH]) * record_stride<S>(F));
+        const S* e = rec + static_cast<int64_t>(pair_gauss[start + j]) * record_stride<S>(F);
         const S mx = e[0], my = e[1], a = e[2], b = e[3], c = e[4], lo = e[5];
         const M jj = M{} + static_cast<I>(j);
         V m0{}, mx1{}, my1{}, mxx{}, mxy{}, myy{};
@@ -577,13 +599,13 @@ template <typename S, int F>
 void forward_all(const Params& prm, int64_t G, const S* gp, const S* feat, const int32_t* pair_gauss,
                  const int64_t* tile_start, const int64_t* tile_count, S* out, S* t_final, int32_t* last,
                  const ImageIO<S>* io = nullptr) {
-    std::vector<S> rec(static_cast<size_t>(G) * (PK + F));
-    gaussian_records<S>(prm, G, F, gp, feat, io, rec.data());
+    Records<S> rec(G, F);
+    gaussian_records<S>(prm, G, F, gp, feat, io, rec.data);
     const LaneGrid<S> grid(prm.tile_size);
     const int64_t workers = num_workers(prm.num_tiles, prm.num_threads, CHUNK);
     std::vector<ForwardScratch<S>> scratch(workers);
     for_each_tile(prm.num_tiles, workers, CHUNK, [&](int64_t id, int64_t t) {
-        forward_tile<S, F>(prm, grid, t, rec.data(), pair_gauss, tile_start, tile_count, out, t_final, last, io,
+        forward_tile<S, F>(prm, grid, t, rec.data, pair_gauss, tile_start, tile_count, out, t_final, last, io,
                            scratch[id]);
     });
 }
@@ -595,14 +617,14 @@ template <typename S, int F>
 void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S* feat, const int32_t* pair_gauss,
                   const int64_t* tile_start, const int64_t* tile_count, const S* t_final, const int32_t* last,
                   const S* g_out, S* g_pair, S* g_gauss, const ImageIO<S>* io = nullptr) {
-    std::vector<S> rec(static_cast<size_t>(G) * (PK + F));
-    gaussian_records<S>(prm, G, F, gp, feat, io, rec.data());
+    Records<S> rec(G, F);
+    gaussian_records<S>(prm, G, F, gp, feat, io, rec.data);
     const LaneGrid<S> grid(prm.tile_size);
     const int64_t workers = num_workers(prm.num_tiles, prm.num_threads, CHUNK);
     std::vector<SliceScratch<S>> scratch(workers);
     std::vector<int32_t> tile_used(static_cast<size_t>(prm.num_tiles), 0);  // rows written per tile
     for_each_tile(prm.num_tiles, workers, CHUNK, [&](int64_t id, int64_t t) {
-        backward_tile<S, F>(prm, grid, t, rec.data(), pair_gauss, tile_start, t_final, last, g_out, g_pair,
+        backward_tile<S, F>(prm, grid, t, rec.data, pair_gauss, tile_start, t_final, last, g_out, g_pair,
                             tile_used.data(), io, scratch[id]);
     });
     const int64_t reducers = std::max<int64_t>(1, std::min<int64_t>(prm.num_threads, G / 4096 + 1));
