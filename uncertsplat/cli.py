@@ -248,7 +248,7 @@ def prune(
     threshold: Annotated[float | None, typer.Option(help="Remove Gaussians whose score exceeds this.")] = None,
     auto: Annotated[bool, typer.Option(help="Strongest pruning within --tolerance-db of the unpruned PSNR.")] = False,
     tolerance_db: Annotated[float | None, typer.Option(help="PSNR loss --auto may accept, in dB (default 0.1).")] = None,
-    score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (= free-space), free-space, gate, position, scale or predictive (see the README).")] = None,
+    score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (with --auto or --keep-ratio: free-space and gate both tried, the one that prunes more within the tolerance kept; else free-space), free-space, gate, position, scale or predictive (see the README).")] = None,
     dry_run: Annotated[bool, typer.Option(help="Report only; write no model.")] = False,
     sweep: Annotated[bool, typer.Option(help="Evaluate a range of keep ratios.")] = False,
     device: DeviceOpt = "auto",
@@ -262,6 +262,9 @@ def prune(
     explicit = dict(keep_ratio=keep_ratio, threshold=threshold, auto=auto or None, tolerance_db=tolerance_db,
                     score=score, dry_run=dry_run or None, sweep=sweep or None)
     cfg = _stage_config(PruneConfig, config, set_, explicit)
+    if tolerance_db is not None and not cfg.auto:
+        raise UserError("--tolerance-db only applies to --auto (the strongest pruning within that PSNR loss)",
+                        hint="Add --auto, or leave --tolerance-db out.")
     stage.run(run, output, cfg, device=resolve_device(device))
 
 

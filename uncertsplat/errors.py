@@ -58,3 +58,12 @@ class StageError(UserError):
 class Interrupted(UserError):
     """The user stopped the work (Ctrl-C, SIGTERM) and what was done is kept (e.g. a checkpoint): the message says
     where and the hint how to continue. The CLI exits with 130, as for Ctrl-C; a sweep stops instead of retrying."""
+
+
+def run_folder_missing(path: str | Path) -> UserError:
+    """The error for a run folder that is not there: a file of that name is named as one."""
+    path = Path(path)
+    if path.exists():
+        return UserError("this is a file, not a run folder", path=path,
+                         hint="Give the folder `uncertsplat train -o` wrote (it holds config.json).")
+    return UserError("run folder not found", path=path, hint="Give a folder written by `uncertsplat train`.")

@@ -196,6 +196,38 @@ def test_an_interrupted_ensemble_resumes_as_one(scene_path, tmp_path):
     assert not (run / "ckpts").exists() and not (run / "point_cloud.ply").exists()
 
 
+def test_an_unfinished_run_is_evaluated_with_a_note(scene_path, tmp_path):
+    """A run stopped at step 10 of 20 and not resumed: evaluate measures its checkpoint and says so (with the
+    command that finishes it); a finished run has no such note."""
+    from uncertsplat.errors import Interrupted
+
+    run = tmp_path / "half"
+
+    def stop(trainer):
+        trainer.on_log = lambda rec: setattr(trainer, "_stop", rec["step"] >= 10)
+
+    with pytest.raises(Interrupted):
+        train_run(scene_path, run, quick_cfg(), CPU, on_trainer=stop)
+    report = evaluate.run(run, EvalConfig(num_samples=2, max_views=1), device=CPU)
+    (note,) = [n for n in report.notes if "not finished training" in n]
+    assert "step 10 of 20" in note and f"-o {run} --resume" in note
+    assert load_run(run, CPU).unfinished_notes() == [note]
+    train_run(scene_path, run, quick_cfg(), CPU, resume=True)
+    assert load_run(run, CPU).unfinished_notes() == []
+
+
+@pytest.mark.parametrize("which", ["ensemble", "fisher"])
+def test_prune_refuses_a_baseline_naming_its_method(which, ensemble_run, fisher_run, tmp_path):
+    from uncertsplat.config import PruneConfig
+    from uncertsplat.errors import UserError
+    from uncertsplat.stages import prune
+
+    run = ensemble_run if which == "ensemble" else fisher_run
+    with pytest.raises(UserError, match=f"a {which} run has no per-Gaussian posterior"):
+        prune.run(run, tmp_path / "out", PruneConfig(keep_ratio=0.5), device=CPU)
+    assert not (tmp_path / "out").exists()
+
+
 def test_unknown_method_is_a_user_error(scene_path, tmp_path):
     res = CliRunner().invoke(app, ["train", str(scene_path), "-o", str(tmp_path / "x"), "--method", "mc-dropout"])
     assert res.exit_code == 2 and "unknown method" in res.output and "ensemble" in res.output

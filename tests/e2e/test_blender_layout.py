@@ -112,3 +112,23 @@ def test_run_records_the_centre(scenes, tmp_path):
     assert np.allclose(T @ np.array([*LOOK_AT, 1.0]), [0, 0, 0, 1], atol=1e-6)
     assert info.source["kind"] == "synthetic" and "random points" in info.source["initial_points"]
     assert info.scene_scale == pytest.approx(1.0, abs=1e-5)
+
+
+def test_evaluate_says_its_metrics_are_taken_inside_the_masks(scenes, colmap_run):
+    """The object scene's validity masks cover a third of each view: evaluate's PSNR (inside them) is not train's
+    (whole images), and both the report's notes and the console line say so."""
+    from typer.testing import CliRunner
+
+    from uncertsplat.cli import app
+    from uncertsplat.schemas.metrics import EvalReport
+
+    _, _, root = scenes
+    res = CliRunner().invoke(app, ["evaluate", str(root / "run_colmap"), "--num-samples", "2", "--set", "max_views=1",
+                                   "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    assert "what train reports (train's over whole images; these inside the scene's validity masks)" in " ".join(
+        res.output.split())
+    report = EvalReport.from_json((root / "run_colmap" / "eval" / "metrics.json").read_text())
+    (note,) = [n for n in report.notes if n.startswith("the scene has validity masks")]
+    share = float(note.split("(")[1].split("%")[0]) / 100
+    assert 0.2 < share < 0.5 and "train's held-out PSNR over whole images" in note

@@ -85,3 +85,17 @@ def test_the_paper_variant_with_a_baseline_is_noted(tmp_path):
     result = runner.invoke(app, ["train", str(tmp_path / "nowhere"), "-o", str(tmp_path / "run"), "--variant", "paper",
                                  "--device", "cpu"])
     assert "changes nothing" not in result.output
+
+
+def test_tolerance_without_auto_is_refused(tmp_path):
+    result = runner.invoke(app, ["prune", str(tmp_path), "-o", str(tmp_path / "p"), "--tolerance-db", "0.2",
+                                 "--device", "cpu"])
+    assert result.exit_code == 2 and "--tolerance-db only applies to --auto" in " ".join(result.output.split())
+
+
+@pytest.mark.parametrize("command", ["evaluate", "select-views"])
+def test_a_file_given_as_the_run_folder_is_named_a_file(tmp_path, command):
+    f = tmp_path / "spec.toml"
+    f.write_text("x = 1\n")
+    result = runner.invoke(app, [command, str(f), "--device", "cpu"])
+    assert result.exit_code == 2 and "this is a file, not a run folder" in " ".join(result.output.split())

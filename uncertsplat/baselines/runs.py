@@ -174,6 +174,27 @@ class LoadedRun:
                     "the std holds only the empty-ray, pixel-noise and resolution terms (when on)"]
         return []
 
+    def unfinished_notes(self) -> list[str]:
+        """A note when the model is a training checkpoint before the run's last step (training was stopped and not
+        resumed): what is measured is that checkpoint. None for finished runs (their model is ``variational.ply``)."""
+        if self.source.suffix != ".pt" or self.step >= self.config.iterations:
+            return []
+        scene = self.scene_path if self.scene_path is not None else "SCENE"
+        return [f"the run has not finished training: its model is the checkpoint of step {self.step} of "
+                f"{self.config.iterations} (`uncertsplat train {scene} -o {self.run_dir} --resume` finishes it)"]
+
+    def warn_if_unfinished(self) -> list[str]:
+        """``unfinished_notes``, each also printed as a warning; returns them."""
+        notes = self.unfinished_notes()
+        if notes:
+            from rich.text import Text
+
+            from uncertsplat.console import console
+
+            for note in notes:
+                console.print(Text.assemble(("warning:", "yellow"), " ", note), soft_wrap=True)
+        return notes
+
     def exposure_notes(self) -> list[str]:
         """What an evaluation notes about the run's learned exposures (``exposure``): none without them."""
         if self.exposure is None:

@@ -556,6 +556,11 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
     return StdFit(scale, dof, views.names)
 
 
+MASKED_NOTE_BELOW = 0.995
+"""``evaluate_views`` notes that its metrics are taken inside the scene's validity masks when these cover less of
+the pixels than this (a mask of every pixel changes nothing)."""
+
+
 def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: torch.device, *,
                    on_view: Callable[[ViewMaps], None] | None = None, show_progress: bool = True,
                    std_scale: float | None = None, calibration_views: list[str] | None = None,
@@ -621,6 +626,11 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if K == 1:
         notes.append("K=1: the samples' spread and the resolution term are 0 everywhere; the std holds only the "
                      "empty-ray and pixel-noise terms (when on)")
+    inside = float(masks.float().mean()) if masks is not None else 1.0
+    if inside < MASKED_NOTE_BELOW:  # train's held-out PSNR is over whole images: the two differ on such scenes
+        notes.append(f"the scene has validity masks: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
+                     f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out PSNR "
+                     "over whole images")
     terms = ["the spread of the K samples"]
     if sampler.residual is not None:
         seen = float(sampler.residual.seen.float().mean()) if sampler.residual.seen.numel() else 0.0

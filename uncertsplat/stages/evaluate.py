@@ -33,7 +33,7 @@ import torch
 
 from uncertsplat.config import EvalConfig
 from uncertsplat.console import console
-from uncertsplat.errors import UserError
+from uncertsplat.errors import UserError, run_folder_missing
 from uncertsplat.eval.engine import ViewMaps
 from uncertsplat.eval.tails import half_width as _half_width
 from uncertsplat.io.maps import EXR_CHANNELS, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
@@ -274,7 +274,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        raise UserError("run folder not found", path=run_dir, hint="Give a folder written by `uncertsplat train`.")
+        raise run_folder_missing(run_dir)
     out = eval_dir(run_dir, cfg)
     with run_lock(run_dir, "evaluate"):
         reusable = same_model_evaluation(run_dir, cfg, device)
@@ -286,6 +286,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
                       "(--set reuse=false evaluates again)")
         return _print_report(run_dir, cfg, EvalReport.read(out / "metrics.json"), out)
     loaded = load_run(run_dir, device)  # any method: variational, deterministic, ensemble, fisher
+    unfinished = loaded.warn_if_unfinished()
     scene = loaded.load_scene()
     indices = split_indices(scene.split, cfg)
     done = (_finished(run_dir, Path(loaded.source), cfg, [scene.cameras.image_names[i] for i in indices], device)
@@ -317,7 +318,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
                                 std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
                                 calibration_held_out=bool(scene.split.get("calibration")),
                                 noise_scale=residual.scale if residual is not None else None,
-                                notes=loaded.eval_notes(cfg.num_samples) + loaded.exposure_notes(),
+                                notes=loaded.eval_notes(cfg.num_samples) + loaded.exposure_notes() + unfinished,
                                 config_hash=hash_config(cfg.model_dump(mode="json")))
         reach = _reach_notes(sampler, views, device)
         low = low_coverage_notes(sampler.coverage if cfg.empty_rays and sampler.empty_std is not None else None,
@@ -436,8 +437,10 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
                           "degrees of freedom where its held-out views ask for 3.4); views set aside from training "
                           "give a fit that holds for new views: train with --set scene.calibration_holdout=3[/]")
     if report.mean.psnr_render is not None:
+        masked = any(n.startswith("the scene has validity masks") for n in report.notes)
+        where = " (train's over whole images; these inside the scene's validity masks)" if masked else ""
         console.print(f"PSNR is that of the mean of the {cfg.num_samples} samples; one deterministic render (the "
-                      f"expected render, what train reports): {report.mean.psnr_render:.2f} dB")
+                      f"expected render, what train reports{where}): {report.mean.psnr_render:.2f} dB")
     if report.depth_scale is not None:
         console.print(f"depth scale {report.depth_scale.scale:.4g} ({report.depth_scale.method})")
     console.print(f"wrote {out / 'metrics.json'} and maps in {out / 'maps'}")

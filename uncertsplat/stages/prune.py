@@ -51,7 +51,7 @@ import torch
 
 from uncertsplat.config import EvalConfig, PruneConfig
 from uncertsplat.console import console
-from uncertsplat.errors import UserError
+from uncertsplat.errors import UserError, run_folder_missing
 from uncertsplat.provenance import file_sha256
 from uncertsplat.schemas.prune import (
     PruneCounts,
@@ -70,7 +70,7 @@ METRIC_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "depth_ause_mae")
 # ------------------------------------------------------------------------------------------ checks
 def _check_paths(run_dir: Path, output: Path | None, cfg: PruneConfig) -> None:
     if not run_dir.is_dir():
-        raise UserError("run folder not found", path=run_dir, hint="Give a folder written by `uncertsplat train`.")
+        raise run_folder_missing(run_dir)
     writes_model = not cfg.dry_run and _has_mode(cfg)
     if output is None:
         if writes_model:
@@ -324,12 +324,15 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         raise UserError(str(err)) from None
 
     loaded = load_run(run_dir, device)
+    loaded.warn_if_unfinished()
     model = loaded.model
     if model.num_carriers == 0:
-        raise UserError("the run has no Gaussians with a posterior (posterior carriers), so there is no "
-                        "uncertainty to prune by", path=run_dir,
-                        hint="Prune a run trained with method=variational for at least one spawn interval "
-                             "(densify.spawn_interval steps).")
+        method = loaded.config.method
+        why = (f"a {method} run has no per-Gaussian posterior" if method in ("deterministic", "ensemble", "fisher")
+               else "the run has no Gaussians with a posterior (posterior carriers)")
+        raise UserError(f"{why}, so there is no uncertainty to prune by", path=run_dir,
+                        hint="Prune a run trained with the variational method (the default) for at least one spawn "
+                             "interval (densify.spawn_interval steps).")
     scene = loaded.load_scene()
     notes: list[str] = []
     split = "test"

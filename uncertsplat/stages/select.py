@@ -16,7 +16,7 @@ import torch
 
 from uncertsplat.config import SelectConfig
 from uncertsplat.console import console
-from uncertsplat.errors import UserError
+from uncertsplat.errors import UserError, run_folder_missing
 
 
 def _plot(path: Path, used: torch.Tensor, cands: torch.Tensor, chosen: list[int], up: torch.Tensor, title: str) -> None:
@@ -94,9 +94,10 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        raise UserError("run folder not found", path=run_dir, hint="Give a folder written by `uncertsplat train`.")
+        raise run_folder_missing(run_dir)
     out = Path(output) if output is not None else run_dir / "select"
     loaded = load_run(run_dir, device)
+    loaded.warn_if_unfinished()
     scene = loaded.load_scene()
     info = RunScene.read(run_dir / RunScene.FILE_NAME)
     gen = torch.Generator().manual_seed(cfg.seed)

@@ -17,7 +17,7 @@ import torch
 
 from uncertsplat.config import PruneConfig, ViewConfig
 from uncertsplat.console import console
-from uncertsplat.errors import UserError
+from uncertsplat.errors import UserError, run_folder_missing
 from uncertsplat.view.server import check_port, require_viser, viewer_url
 
 
@@ -36,8 +36,9 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
     require_viser()
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        raise UserError("run folder not found", path=run_dir, hint="Give a folder written by `uncertsplat train`.")
+        raise run_folder_missing(run_dir)
     loaded = load_run(run_dir, device)
+    loaded.warn_if_unfinished()
     scene = None
     try:
         scene = loaded.load_scene()

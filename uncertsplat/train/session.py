@@ -305,7 +305,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                                scene=str(scene.resolve()), train_psnr=fit_psnr, warnings=recorded)
         summary.write(run_dir / "train_summary.json")
         psnr_txt = f", held-out PSNR {held['psnr']:.2f} dB" if held else ""
-        fit_txt = f", training views {fit_psnr:.2f} dB" if fit_psnr is not None else ""
+        fit_txt = f", training views {_psnr_shown(fit_psnr):.2f} dB" if fit_psnr is not None else ""
         console.print(f"{done_label}: {trainer.step} steps in {trainer.elapsed:.1f} s, {len(trainer.model)} Gaussians "
                       f"({trainer.model.num_carriers} with a posterior){psnr_txt}{fit_txt} -> {run_dir}")
         for warning in warnings:
@@ -379,6 +379,12 @@ def exposure_warnings(gains: list[float], learned: bool) -> list[str]:
             "--set exposure=affine (a gain and offset per photo, learned with the model)"]
 
 
+def _psnr_shown(psnr: float) -> float:
+    """A training-view PSNR as printed: rounded down to 0.01 dB, so that a value just below ``POOR_FIT_PSNR`` reads as
+    below it both in the closing line and in the warning (19.995 was "20.00 dB" there and "19.99" here)."""
+    return math.floor(psnr * 100.0 + 1e-6) / 100.0
+
+
 def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
     """The warning for a model that cannot fit its own training views (``POOR_FIT_PSNR``), naming what to check:
     the SfM health report when the scene is a ``reconstruct`` workspace."""
@@ -392,9 +398,7 @@ def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
                  f"reprojection error {err}"
                  + (", its mapping runs disagreed" if report.mapping_agreed is False else "") +
                  "; `uncertsplat reconstruct` with --overwrite and another --seed maps the photos again)")
-    # rounded down, so that a value just below the threshold reads as below it
-    shown = math.floor(fit_psnr * 100.0 + 1e-6) / 100.0
-    return [f"the model fits its own training views at only {shown:.2f} dB (below {POOR_FIT_PSNR:g} dB): "
+    return [f"the model fits its own training views at only {_psnr_shown(fit_psnr):.2f} dB (below {POOR_FIT_PSNR:g} dB): "
             f"check {where}, moving objects or exposure changes between the photos"]
 
 
