@@ -98,8 +98,9 @@ def test_rerun_skips_unchanged_stages(smoke_out):
 
 
 def test_stage_failure_is_reported_clearly(tmp_path):
+    (tmp_path / "not_a_scene").mkdir()  # a folder, so the pipeline's check passes and the stage itself fails
     bad = tmp_path / "bad.toml"
-    bad.write_text('name = "bad"\n[[stages]]\nstage = "train"\ninput = "does_not_exist"\npreset = "tiny"\n')
+    bad.write_text('name = "bad"\n[[stages]]\nstage = "train"\ninput = "not_a_scene"\npreset = "tiny"\n')
     result = runner.invoke(app, ["run", str(bad), "-o", str(tmp_path / "o"), "--device", "cpu"])
     assert result.exit_code == 2
     assert "stage 'train' (train) failed" in result.output and "Traceback" not in result.output

@@ -110,3 +110,19 @@ def test_photos_pipeline_without_photos_says_how_to_give_them(tmp_path, calls):
     with pytest.raises(UserError, match="--set photos=/path/to/photos"):
         pl.run(root / "photos.toml", tmp_path / "out")
     assert not (tmp_path / "out").exists() and calls == []
+
+
+@pytest.mark.parametrize(("override", "match"), [
+    ("evaluate.num_samples=0", r"p\.toml: invalid configuration in stage 'evaluate': num_samples: Input should be"),
+    ("train.preset=tinyy", r"p\.toml: unknown preset 'tinyy'"),
+    (None, r"p\.toml: stage 'evaluate': its input 'trian' is neither an earlier stage nor a folder"),
+])
+def test_every_stage_is_checked_before_the_first_runs(tmp_path, calls, override, match):
+    """A mistake in a late stage's configuration or input is refused before any stage runs (synth and train ran
+    first, and with photos a reconstruction of minutes), naming the pipeline file and the stage."""
+    p = _write(tmp_path)
+    if override is None:  # an input that names no stage
+        p.write_text(PIPE.replace('stage = "evaluate"', 'stage = "evaluate"\ninput = "trian"'))
+    with pytest.raises(UserError, match=match):
+        pl.run(p, tmp_path / "out", overrides=[override] if override else None)
+    assert calls == [] and not (tmp_path / "out").exists()

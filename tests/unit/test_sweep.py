@@ -174,6 +174,11 @@ def test_bad_spec_names_the_key(tmp_path):
     ('evaluate = { num_samples = 0 }\n[scenes.a]\nsynth = {}\n', r"s\.toml: evaluate\.num_samples: Input should be"),
     ('[scenes.a]\nsynth = {}\nevaluate = { num_samples = 0 }\n', r"s\.toml: scenes\.a\.evaluate\.num_samples: Input"),
     ('scenes = "x"\n', r"s\.toml: scenes: Input should be a valid dictionary"),
+    ('train_preset = "tny"\n', r"s\.toml: train_preset: unknown preset 'tny' \(presets: "),
+    ('[scenes.a]\nsynth = {}\ntrain_preset = "tinyy"\n', r"s\.toml: scenes\.a\.train_preset: unknown preset 'tinyy'"),
+    ('[scenes.a]\nsynth = { preset = "tiny", sede = 3 }\n', r"s\.toml: scenes\.a\.synth\.sede: unknown key"),
+    ('synth = { preset = "huge" }\n', r"s\.toml: synth\.preset: "),
+    ('[scenes.a]\nphotos = "p"\nreconstruct = { matcher = "fast" }\n', r"s\.toml: scenes\.a\.reconstruct\.matcher: "),
     ('scenes = ["a"]\n', r"s\.toml: scenes: Input should be a valid dictionary"),
 ])
 def test_bad_knob_values_and_base_keys_are_refused_when_the_spec_is_read(tmp_path, toml, match):
@@ -181,7 +186,7 @@ def test_bad_knob_values_and_base_keys_are_refused_when_the_spec_is_read(tmp_pat
     the file (an axis value of 0 was a traceback when the points were expanded; a bad `train` key was named as
     a key of "train config (preset ...)")."""
     f = tmp_path / "s.toml"
-    f.write_text('train_preset = "tiny"\n' + toml)
+    f.write_text(('' if toml.startswith("train_preset") else 'train_preset = "tiny"\n') + toml)
     with pytest.raises(UserError, match=match):
         load_spec(f)
 

@@ -75,10 +75,34 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
 
 def _stage_config(stage: PipelineStage):
     if stage.stage == "train":
-        return train_config_from(stage.preset, stage.config)
+        return train_config_from(stage.preset, stage.config, source=f"stage '{stage.name or stage.stage}'")
     if stage.preset is not None:
         raise UserError(f"stage '{stage.name or stage.stage}': `preset` applies to train stages only")
     return build_config(STAGE_CONFIGS[stage.stage], stage.config, source=f"stage '{stage.name or stage.stage}'")
+
+
+def check_stages(cfg: PipelineConfig, path: Path) -> None:
+    """Every stage's configuration and input, before the first stage runs: a typo in the last stage's keys was
+    found only after the stages before it had run (with real photos, after minutes of reconstruction).
+
+    Raises:
+        UserError: naming the pipeline file, the stage and the key (or the input that names nothing).
+    """
+    earlier: list[str] = []
+    for stage in cfg.stages:
+        name = stage.name or stage.stage
+        try:
+            _stage_config(stage)
+        except UserError as err:
+            raise UserError(err.message, path=path, hint=err.hint) from None
+        if stage.input is not None and stage.input not in earlier:
+            folder = Path(stage.input)
+            folder = folder if folder.is_absolute() else Path(path).resolve().parent / folder
+            if not folder.exists():
+                raise UserError(f"stage '{name}': its input '{stage.input}' is neither an earlier stage nor a folder",
+                                path=path, hint=f"Earlier stages: {', '.join(earlier) or 'none'}; a folder is read "
+                                                "from the pipeline file's folder.")
+        earlier.append(name)
 
 
 def _evaluation_kept(run_dir: Path, cfg, device) -> bool:
@@ -108,6 +132,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
 
     pipeline = Path(pipeline)
     cfg = load_pipeline(pipeline, overrides)
+    check_stages(cfg, pipeline)
     if cfg.photos is not None and not Path(cfg.photos).is_dir() and any(
             st.stage == "reconstruct" and st.input is None for st in cfg.stages):
         # before any output folder exists: the pipeline's photo folder is a placeholder until the user sets it

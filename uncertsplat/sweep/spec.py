@@ -246,12 +246,31 @@ def load_spec(path: Path, overrides: list[str] | None = None) -> SweepSpec:
 
 
 def check_base_configs(spec: SweepSpec, source: str) -> None:
-    """The spec's ``train`` and ``evaluate`` keys (and each scene's) as configs, so that a bad key is refused when
-    the spec is read, named where it is in the file, rather than when a point's job builds its configs."""
+    """The spec's ``train_preset``, ``train``, ``evaluate``, ``synth`` and ``reconstruct`` keys (and each scene's) as
+    configs, so that a mistake is refused when the spec is read, named where it is in the file, rather than when a
+    point's job (or the scene's generation or reconstruction) builds its configs."""
+    from uncertsplat.config import TRAIN_PRESETS, ReconstructConfig, SynthConfig
+
     tables = [(None, "")] + [(name, f"scenes.{name}.") for name in spec.scenes]
+    if not spec.scenes and spec.scene is None:  # the single synthetic scene
+        try:
+            SynthConfig.model_validate(spec.synth)
+        except ValidationError as err:
+            raise UserError(format_validation_error(err, source, SynthConfig, key_prefix="synth")) from None
     for name, where in tables:
         entry = spec.scenes[name] if name is not None else None
-        preset = entry.train_preset if entry is not None and entry.train_preset is not None else spec.train_preset
+        own_preset = entry is not None and entry.train_preset is not None
+        preset = entry.train_preset if own_preset else spec.train_preset
+        if preset is not None and preset not in TRAIN_PRESETS:
+            raise UserError(f"invalid configuration in {source}: {where if own_preset else ''}train_preset: unknown "
+                            f"preset '{preset}' (presets: {', '.join(TRAIN_PRESETS)})")
+        for key, model in (("synth", SynthConfig), ("reconstruct", ReconstructConfig)):
+            table = getattr(entry, key) if entry is not None else None
+            if table:
+                try:
+                    model.model_validate(table)
+                except ValidationError as err:
+                    raise UserError(format_validation_error(err, source, model, key_prefix=f"{where}{key}")) from None
         for key, own, model in (("train", spec.train, TrainConfig), ("evaluate", spec.evaluate, EvalConfig)):
             data = deep_update(own, getattr(entry, key)) if entry is not None else own
             if key == "train":
