@@ -768,11 +768,16 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
     """One readable paragraph from a pydantic ValidationError; an unknown key gets the closest valid ones.
     ``key_prefix``: where the validated table sits in the file (e.g. "train" for a sweep spec's ``train`` keys)."""
     import difflib
+    import re
 
-    lines = []
+    lines: list[str] = []
     for e in err.errors():
-        loc = ".".join(str(p) for p in (key_prefix.split(".") if key_prefix else []) + list(e["loc"])) or "(root)"
+        # a union's members appear in the path as tags (literal['fit','gaussian'], constrained-float): left out, so
+        # that the alternatives for one key read as one key's
+        path = [p for p in e["loc"] if not (isinstance(p, str) and re.search(r"[\[\]'\-]", p))]
+        loc = ".".join(str(p) for p in (key_prefix.split(".") if key_prefix else []) + path) or "(root)"
         msg = e["msg"].removeprefix("Value error, ")  # our validators' messages are sentences of their own
+        msg = re.sub(r" or instance of \w+", "", msg)  # "a valid dictionary or instance of SweepScene"
         if e["type"] == "extra_forbidden":
             valid = _valid_keys(model, tuple(e["loc"]))
             close = difflib.get_close_matches(str(e["loc"][-1]), valid, n=3, cutoff=0.6)
@@ -780,7 +785,11 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
             named = [f"{prefix}.{k}" if prefix else k for k in close]
             msg = ("unknown key" + (f" (did you mean {' or '.join(named)}?)" if named else " (check the spelling)")
                    + (f"; valid keys here: {', '.join(valid)}" if valid and not named else ""))
-        lines.append(f"{loc}: {msg}")
+        same = next((i for i, line in enumerate(lines) if line.startswith(f"{loc}: ")), None)
+        if same is not None:  # another alternative of a union: one line for the key
+            lines[same] += f", or {msg[0].lower()}{msg[1:]}"
+        else:
+            lines.append(f"{loc}: {msg}")
     return f"invalid configuration in {source}: " + "; ".join(lines)
 
 

@@ -170,7 +170,11 @@ def test_ensemble_members_do_not_say_done(scene_path, tmp_path):
     text = " ".join(res.output.split())
     assert "member 1/2 trained: 6 steps" in text and "member 2/2 trained: 6 steps" in text
     assert [line.split(":")[0] for line in res.output.splitlines() if line.startswith("done")] == ["done"]
-    assert "done: ensemble of 2 members" in text
+    assert "done: ensemble of 2 members" in text and "the members' held-out PSNR" in text
+    res = CliRunner().invoke(app, ["evaluate", str(run), "--num-samples", "3", "--set", "max_views=1", "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    flat = " ".join(res.output.split())
+    assert " Gaussians in 2 members (no posterior)" in flat and "note: K=3 is not a multiple of the 2 ensemble" in flat
 
 
 def test_an_interrupted_ensemble_resumes_as_one(scene_path, tmp_path):

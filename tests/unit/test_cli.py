@@ -99,3 +99,11 @@ def test_a_file_given_as_the_run_folder_is_named_a_file(tmp_path, command):
     f.write_text("x = 1\n")
     result = runner.invoke(app, [command, str(f), "--device", "cpu"])
     assert result.exit_code == 2 and "this is a file, not a run folder" in " ".join(result.output.split())
+
+
+def test_a_union_key_reads_as_one_key():
+    """degrees_of_freedom is "fit", "gaussian" or a number >= 2.1: one message for the key, not pydantic's tags."""
+    result = runner.invoke(app, ["evaluate", "nowhere", "--set", "degrees_of_freedom=1", "--device", "cpu"])
+    flat = " ".join(result.output.split())
+    assert result.exit_code == 2 and "degrees_of_freedom: Input should be 'fit' or 'gaussian', or input should be " \
+        "greater than or equal to 2.1" in flat and "literal" not in flat and "constrained" not in flat

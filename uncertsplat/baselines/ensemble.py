@@ -98,7 +98,10 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
             test_psnr=None,  # the ensemble's own PSNR (of the mean render) comes from `evaluate`
             variant=cfg.variant, device=str(device), scene=str(scene.resolve()), members=summaries)
         summary.write(run_dir / "train_summary.json")
-    console.print(f"done: ensemble of {n} members, {summary.seconds:.1f} s of training in all -> {run_dir}")
+    psnr_txt = (f", the members' held-out PSNR {summary.test_psnr_members_mean:.2f} dB on average (the ensemble's own "
+                "comes from `evaluate`)" if summary.test_psnr_members_mean is not None else "")
+    console.print(f"done: ensemble of {n} member{'s' if n != 1 else ''}, {summary.seconds:.1f} s of training in all"
+                  f"{psnr_txt} -> {run_dir}")
     return run_dir
 
 
@@ -125,6 +128,10 @@ class EnsembleRun(LoadedRun):
         return Sampler(ensemble_sample_fn(members), self.render_fn(scene_scale, device), empty_std=self.empty_std(),
                        coverage=self.coverage(scene_scale, device, members[0]), mean_sample=members[0],
                        exposure=self.photo_exposure())
+
+    def size_text(self) -> str:
+        """All members' Gaussians (``model`` is member 0's alone)."""
+        return f"{sum(len(m.model) for m in self.members)} Gaussians in {len(self.members)} members (no posterior)"
 
     def eval_notes(self, num_samples: int) -> list[str]:
         n = len(self.members)

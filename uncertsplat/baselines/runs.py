@@ -174,6 +174,10 @@ class LoadedRun:
                     "the std holds only the empty-ray, pixel-noise and resolution terms (when on)"]
         return []
 
+    def size_text(self) -> str:
+        """The model's size as the commands print it: "N Gaussians (M with a posterior)"."""
+        return f"{len(self.model)} Gaussians ({self.model.num_carriers} with a posterior)"
+
     def unfinished_notes(self) -> list[str]:
         """A note when the model is a training checkpoint before the run's last step (training was stopped and not
         resumed): what is measured is that checkpoint. None for finished runs (their model is ``variational.ply``)."""

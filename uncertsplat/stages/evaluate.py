@@ -299,7 +299,10 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     with run_lock(run_dir, "evaluate"):
         if not quiet:
             console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
-                          f"{len(loaded.model)} Gaussians ({loaded.model.num_carriers} with a posterior), {device}")
+                          f"{loaded.size_text()}, {device}")
+            for note in loaded.eval_notes(cfg.num_samples):
+                if note.startswith("K="):  # a choice of the command's that changes what is measured
+                    console.print(f"[yellow]note:[/] {note}")
         train_views = partial(load_view_set, scene, depth=False)
         # the set-aside views' K samples, when the noise is fitted here: the std factor's fit reuses them
         set_aside_maps: dict = {}
