@@ -95,11 +95,28 @@ def main(
     _STATE["debug"] = debug
 
 
+_STAGE_TABLES = ("synth", "reconstruct", "train", "evaluate", "prune", "report", "select", "view")
+
+
+def _config_file(path: Path) -> dict:
+    """A --config file's keys; one that holds a single stage table (``[train]``) is refused with the fix."""
+    from uncertsplat.config import load_toml
+
+    data = load_toml(path)
+    if len(data) == 1 and next(iter(data)) in _STAGE_TABLES and isinstance(next(iter(data.values())), dict):
+        (table,) = data
+        raise UserError(f"the file holds a [{table}] table, but a --config file holds the command's keys at its top "
+                        f"level (e.g. `iterations = 7000`, not under [{table}])", path=path,
+                        hint=f"Remove the [{table}] line; a pipeline file (`uncertsplat run`) is where stages are "
+                             "tables.")
+    return data
+
+
 def _stage_config(model, config_file: Path | None, overrides: list[str] | None, explicit: dict):
     """config file < explicit command-line options < --set overrides."""
-    from uncertsplat.config import build_config, deep_update, load_toml, parse_override
+    from uncertsplat.config import build_config, deep_update, parse_override
 
-    data = load_toml(config_file) if config_file else {}
+    data = _config_file(config_file) if config_file else {}
     data = deep_update(data, {k: v for k, v in explicit.items() if v is not None})
     for o in overrides or []:
         data = deep_update(data, parse_override(o))
@@ -187,10 +204,9 @@ def train(
     set_: SetOpt = None,
 ):
     """Train a variational multi-scale 3DGS model (or a baseline, --method) with full-state checkpoints."""
-    from uncertsplat.config import load_toml
     from uncertsplat.stages import train as stage
 
-    data = load_toml(config) if config else {}
+    data = _config_file(config) if config else {}
     explicit = dict(iterations=iterations, variant=variant, seed=seed)
     cfg = stage.resolve_config(preset, data, method, explicit, set_, source=str(config) if config else None)
     # with --resume, --iterations means "train on to this many steps" (the stored config wins otherwise)

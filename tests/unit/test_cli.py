@@ -107,3 +107,13 @@ def test_a_union_key_reads_as_one_key():
     flat = " ".join(result.output.split())
     assert result.exit_code == 2 and "degrees_of_freedom: Input should be 'fit' or 'gaussian', or input should be " \
         "greater than or equal to 2.1" in flat and "literal" not in flat and "constrained" not in flat
+
+
+def test_a_config_file_with_a_stage_table_says_how_to_write_it(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text("[train]\niterations = 5\n")
+    result = runner.invoke(app, ["train", str(tmp_path), "-o", str(tmp_path / "run"), "--config", str(f),
+                                 "--device", "cpu"])
+    flat = " ".join(result.output.split())
+    assert result.exit_code == 2 and "the file holds a [train] table" in flat and "Remove the [train] line" in flat
+    assert not (tmp_path / "run").exists()

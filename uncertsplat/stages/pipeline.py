@@ -136,7 +136,8 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
     if cfg.photos is not None and not Path(cfg.photos).is_dir() and any(
             st.stage == "reconstruct" and st.input is None for st in cfg.stages):
         # before any output folder exists: the pipeline's photo folder is a placeholder until the user sets it
-        raise UserError("photo folder not found (the pipeline's `photos`)", path=Path(cfg.photos),
+        what = "is a file, not a photo folder" if Path(cfg.photos).exists() else "photo folder not found"
+        raise UserError(f"{what} (the pipeline's `photos`)", path=Path(cfg.photos),
                         hint=f"Give your photos: uncertsplat run {pipeline} -o {output} --set photos=/path/to/photos")
     dev = resolve_device(device or cfg.device)
     root = Path(output)

@@ -92,8 +92,9 @@ def prepare_scene(name: str, entry, out_dir: Path) -> Path:
     if entry.synth is not None:
         return _synth(entry.synth, folder)
     if entry.path is not None:
-        if not Path(entry.path).exists():
-            raise UserError(f"the folder of sweep scene {name!r} does not exist", path=entry.path,
+        if not Path(entry.path).is_dir():
+            what = "is a file, not a folder" if Path(entry.path).exists() else "does not exist"
+            raise UserError(f"the folder of sweep scene {name!r} {what}", path=entry.path,
                             hint=f"Fix scenes.{name}.path in the spec (relative paths are read from the spec's "
                                  f"folder) or set it with --set scenes.{name}.path=FOLDER.")
         return Path(entry.path)
@@ -101,7 +102,8 @@ def prepare_scene(name: str, entry, out_dir: Path) -> Path:
     from uncertsplat.stages import reconstruct
 
     if not Path(entry.photos).is_dir():
-        raise UserError(f"the photos folder of sweep scene {name!r} does not exist", path=entry.photos,
+        what = "is a file, not a folder" if Path(entry.photos).exists() else "does not exist"
+        raise UserError(f"the photos folder of sweep scene {name!r} {what}", path=entry.photos,
                         hint=f"Fix scenes.{name}.photos in the spec or set it with --set scenes.{name}.photos=FOLDER.")
     console.print(f"scene {name}: reconstructing {entry.photos} into {folder}")
     reconstruct.run(Path(entry.photos), folder,
@@ -171,8 +173,9 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
             scene_path = Path(scene) if scene is not None else spec.scene
             if scene_path is None:
                 scene_path = _synth(spec.synth, out_dir / "scene")
-            if not Path(scene_path).exists():
-                raise UserError("the sweep's scene folder does not exist", path=scene_path,
+            if not Path(scene_path).is_dir():
+                what = "is a file, not a folder" if Path(scene_path).exists() else "does not exist"
+                raise UserError(f"the sweep's scene folder {what}", path=scene_path,
                                 hint="Give --scene PATH or remove `scene` from the spec to use a synthetic scene.")
             folders = Path(scene_path)
         all_jobs = make_jobs(spec, out_dir, folders, str(dev), threads=None)
@@ -187,8 +190,8 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         npts = sum(len(j["points"]) for j in todo)
         where = (f"{min(jobs, max(len(todo), 1))} at a time" if executor == "local" else
                  f"on Ray ({address or 'a local instance'}, {cpus_per_job:g} CPU / {gpus_per_job:g} GPU per job)")
-        console.print(f"[bold]sweep[/] {spec.name}: {npts} points to run in {len(todo)} jobs "
-                      f"({len(done)} already done), {where}, device {dev}, {retries} retries")
+        console.print(f"[bold]sweep[/] {spec.name}: {_count(npts, 'point')} to run in {_count(len(todo), 'job')} "
+                      f"({len(done)} already done), {where}, device {dev}, {_count(retries, 'retry', 'retries')}")
         counts = {"done": 0, "failed": 0, "running": 0}
         bar = progress()
         task = bar.add_task("sweep", total=npts, info="")
@@ -257,3 +260,8 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         raise UserError(f"{len(failed)} sweep point(s) failed: {', '.join(failed)}", path=log,
                         hint="See their `error` in sweep.jsonl; run the sweep again to retry only those points.")
     return summary
+
+
+def _count(n: int, one: str, many: str | None = None) -> str:
+    """"1 point", "3 points"."""
+    return f"{n} {one if n == 1 else (many or one + 's')}"

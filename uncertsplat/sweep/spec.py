@@ -147,7 +147,11 @@ class SweepScene(_Strict):
             raise ValueError("`reconstruct` keys only apply to a `photos` scene")
         unknown = sorted(set(self.default) - set(SweepPoint.model_fields))
         if unknown:
-            raise ValueError(f"unknown knob(s) in `default`: {', '.join(unknown)} (knobs: {', '.join(KNOBS)})")
+            import difflib
+
+            close = [c for k in unknown for c in difflib.get_close_matches(k, KNOBS, n=1, cutoff=0.6)]
+            guess = f"did you mean {' or '.join(close)}? " if close else ""
+            raise ValueError(f"unknown knob(s) in `default`: {', '.join(unknown)} ({guess}knobs: {', '.join(KNOBS)})")
         return self
 
 
