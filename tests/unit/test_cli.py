@@ -117,3 +117,9 @@ def test_a_config_file_with_a_stage_table_says_how_to_write_it(tmp_path):
     flat = " ".join(result.output.split())
     assert result.exit_code == 2 and "the file holds a [train] table" in flat and "Remove the [train] line" in flat
     assert not (tmp_path / "run").exists()
+
+
+def test_report_refuses_a_run_given_twice(tmp_path):
+    (tmp_path / "r").mkdir()
+    result = runner.invoke(app, ["report", str(tmp_path / "r"), str(tmp_path / "r" / "."), "-o", str(tmp_path / "o")])
+    assert result.exit_code == 2 and "this run folder is given twice" in " ".join(result.output.split())

@@ -74,6 +74,14 @@ def test_scan_fewer_than_three_images(tmp_path):
         sfm.scan_photos(tmp_path)
 
 
+def test_scan_names_a_broken_photo_before_counting(tmp_path):
+    """One good photo and a text file named .jpg: the broken file is named, not just "only 2 photos"."""
+    write_image(tmp_path / "a.jpg")
+    (tmp_path / "b.jpg").write_bytes(b"not a photo")
+    with pytest.raises(UserError, match=r"1 photo\(s\) cannot be read: b\.jpg"):
+        sfm.scan_photos(tmp_path)
+
+
 def test_scan_names_every_unreadable_file(tmp_path):
     for i in range(3):
         write_image(tmp_path / f"ok{i}.png", seed=i)

@@ -175,6 +175,7 @@ def test_bad_spec_names_the_key(tmp_path):
     ('[scenes.a]\nsynth = {}\nevaluate = { num_samples = 0 }\n', r"s\.toml: scenes\.a\.evaluate\.num_samples: Input"),
     ('scenes = "x"\n', r"s\.toml: scenes: Input should be a valid dictionary"),
     ('train_preset = "tny"\n', r"s\.toml: train_preset: unknown preset 'tny' \(presets: "),
+    ("[scenes]\n", r"the spec's \[scenes\] table names no scene"),
     ('[scenes.a]\nsynth = {}\ndefault = { iteratons = 100 }\n', r"unknown knob\(s\) in `default`: iteratons \(did you mean iterations\?"),
     ('[scenes.a]\nsynth = {}\ntrain_preset = "tinyy"\n', r"s\.toml: scenes\.a\.train_preset: unknown preset 'tinyy'"),
     ('[scenes.a]\nsynth = { preset = "tiny", sede = 3 }\n', r"s\.toml: scenes\.a\.synth\.sede: unknown key"),

@@ -181,9 +181,6 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
             hint = (f"Its sub-folders {list_names([str(d) for d in with_photos], 4)} hold photos: pass one of them, "
                     "or move the photos of one scene into one folder and pass that.")
         raise UserError(f"the photo folder {what}", path=folder, hint=hint)
-    if len(candidates) < min_images:
-        raise UserError(f"only {len(candidates)} photo(s) found; structure-from-motion needs at least {min_images}",
-                        path=folder, hint="Add more overlapping photos of the scene (20 or more works best).")
     photos: list[PhotoInfo] = []
     bad: list[str] = []
     with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool:
@@ -194,9 +191,12 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
         else:
             w, h, o, alpha = header
             photos.append(PhotoInfo(path.name, path, w, h, o, alpha))
-    if bad:
+    if bad:  # before the count: a folder of one good and one broken photo names the broken one
         raise UserError(f"{len(bad)} photo(s) cannot be read: {'; '.join(bad)}", path=folder,
                         hint="Remove or re-export these files (JPEG, PNG or TIFF), then run again.")
+    if len(candidates) < min_images:
+        raise UserError(f"only {len(candidates)} photo(s) found; structure-from-motion needs at least {min_images}",
+                        path=folder, hint="Add more overlapping photos of the scene (20 or more works best).")
     photos = _without_copies(photos, ignored, notes)
     photos = _one_per_stem(photos, ignored, notes)
     with_alpha = [p.name for p in photos if p.alpha]

@@ -71,6 +71,11 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
     paths = [Path(runs)] if isinstance(runs, (str, Path)) else [Path(r) for r in runs]
     if not paths:
         raise UserError("no run folder given", hint="Example: uncertsplat report runs/demo -o report/")
+    seen: set[Path] = set()
+    for p in paths:
+        if p.resolve() in seen:
+            raise UserError("this run folder is given twice", path=p, hint="Give each run once.")
+        seen.add(p.resolve())
     out = Path(out)
     names = _display_names([p for p in paths if p.exists()]) if all(p.exists() for p in paths) else []
     loaded = [load_run(p, name=names[i] if names else None) for i, p in enumerate(paths)]

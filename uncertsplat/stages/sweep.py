@@ -19,7 +19,7 @@ this machine's cores in a process pool of ``jobs`` workers, each a fresh process
 figures are per job) with one torch thread when several run at once (``jobs = 1`` runs them one by one in
 this process); or ``ray``, as Ray tasks with their CPU/GPU request, on a local Ray instance or a cluster.
 Either way a failed job is retried ``retries`` times, only this process appends to ``sweep.jsonl`` (one
-complete line per record), and a progress bar counts done / running / failed points.
+complete line per record), and a progress bar counts done / in progress (handed to a worker) / failed points.
 """
 
 from __future__ import annotations
@@ -192,16 +192,18 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                  f"on Ray ({address or 'a local instance'}, {cpus_per_job:g} CPU / {gpus_per_job:g} GPU per job)")
         console.print(f"[bold]sweep[/] {spec.name}: {_count(npts, 'point')} to run in {_count(len(todo), 'job')} "
                       f"({len(done)} already done), {where}, device {dev}, {_count(retries, 'retry', 'retries')}")
-        counts = {"done": 0, "failed": 0, "running": 0}
+        counts = {"done": 0, "failed": 0}
+        started_jobs: dict[str, int] = {}  # points of the jobs handed out and not recorded yet (a retry: once)
         bar = progress()
         task = bar.add_task("sweep", total=npts, info="")
 
         def show() -> None:
             bar.update(task, completed=counts["done"] + counts["failed"],
-                       info=f"done {counts['done']}  running {counts['running']}  failed {counts['failed']}")
+                       info=f"done {counts['done']}  in progress {sum(started_jobs.values())}  "
+                            f"failed {counts['failed']}")
 
         def started(job: dict) -> None:
-            counts["running"] += len(job["points"])
+            started_jobs[job["job_id"]] = len(job["points"])
             show()
 
         def record(dicts: list[dict]) -> None:
@@ -217,7 +219,8 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                 f.write("".join(r.model_dump_json() + "\n" for r in recs))
                 f.flush()
                 os.fsync(f.fileno())
-            counts["running"] = max(0, counts["running"] - len(recs))
+            for r in recs:
+                started_jobs.pop(r.job, None)
             counts["done"] += sum(r.status == "ok" for r in recs)
             counts["failed"] += sum(r.status != "ok" for r in recs)
             show()

@@ -237,6 +237,9 @@ def load_spec(path: Path, overrides: list[str] | None = None) -> SweepSpec:
     if "scene" in data:
         data["scene"] = anchored(data["scene"])
     scenes = data.get("scenes")
+    if scenes == {}:  # written but empty: the sweep would silently run on the synthetic demo scene
+        raise UserError("the spec's [scenes] table names no scene", path=path,
+                        hint="Add [scenes.NAME] tables (each with path, photos or synth), or remove [scenes].")
     for entry in (scenes.values() if isinstance(scenes, dict) else ()):  # not a table: the validation says so
         if isinstance(entry, dict):
             for key in ("path", "photos"):
