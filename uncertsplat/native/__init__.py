@@ -319,22 +319,6 @@ def single_threaded_torch(device: torch.device | str):
         _state.pop("kernel_threads", None)  # pop, not del: two threads entering at once must not raise here
 
 
-@contextlib.contextmanager
-def all_torch_threads():
-    """Inside ``single_threaded_torch``: torch's ops get their threads back for the block (for work that is one
-    large vectorised pass, e.g. fused Adam over every parameter: 1.2 against 2.1 ms a step on the demo model with
-    2 threads); elsewhere nothing changes."""
-    n = _state.get("kernel_threads")
-    if not n:
-        yield
-        return
-    torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(1)
-
-
 def describe(device: torch.device | str) -> str:
     """Which kernels run on ``device``, in words (for logs and run summaries)."""
     if torch.device(device).type != "cpu":

@@ -539,7 +539,10 @@ class Trainer:
                 scale = self.train_cams.width / cams.width
                 radii = out.radii if scale == 1.0 else out.radii * scale
                 self.densifier.accumulate(step, out.means2d.grad, radii, cams.width, cams.height)
-        with timer("optimizer"), native.all_torch_threads():
+        # on torch's one thread too: fused Adam is faster on two, but torch's second thread then spins after it
+        # (libgomp's wait policy) and takes a core from the next kernels: a bonsai step 21.0 -> 16.0 ms, the demo's
+        # 19.8 -> 15.6 ms, fern's 42.3 -> 37.1 ms (BENCHMARKS.md, "Adam on torch's one thread")
+        with timer("optimizer"):
             if finite:
                 self.bad_steps_in_a_row = 0
                 if cfg.sparse_updates == "dense":
