@@ -134,19 +134,18 @@ def flip_bit(path: Path, offset: int, bit: int = 3) -> None:
 
 def assert_clean_interrupt(rc: int, out: str, *must_contain: str) -> None:
     """Exit code 130 (as for Ctrl-C), an ``interrupted:`` paragraph naming what is asked, and no traceback."""
-    assert rc == 130, f"exit code {rc}, output:\n{out}"
-    assert "Traceback" not in out, out
-    assert "interrupted:" in out, out
-    flat = " ".join(out.split())
-    for s in must_contain:
-        assert s in flat or s in out, f"{s!r} not in output:\n{out}"
+    _assert_clean(rc, out, 130, "interrupted:", must_contain)
 
 
 def assert_clean_error(rc: int, out: str, *must_contain: str) -> None:
     """Exit code 2, an ``error:`` paragraph naming what is asked, and no traceback."""
-    assert rc == 2, f"exit code {rc}, output:\n{out}"
+    _assert_clean(rc, out, 2, "error:", must_contain)
+
+
+def _assert_clean(rc: int, out: str, code: int, label: str, must_contain: tuple[str, ...]) -> None:
+    assert rc == code, f"exit code {rc}, output:\n{out}"
     assert "Traceback" not in out, out
-    assert "error:" in out, out
+    assert label in out, out
     flat = " ".join(out.split())
     for s in must_contain:
         assert s in flat or s in out, f"{s!r} not in output:\n{out}"
