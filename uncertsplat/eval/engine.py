@@ -559,6 +559,8 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
 MASKED_NOTE_BELOW = 0.995
 """``evaluate_views`` notes that its metrics are taken inside the scene's validity masks when these cover less of
 the pixels than this (a mask of every pixel changes nothing)."""
+MASKED_NOTE = "the scene has validity masks"
+"""How that note begins (``stages.evaluate`` looks for it to say so beside the PSNR it prints)."""
 
 
 def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: torch.device, *,
@@ -628,7 +630,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                      "empty-ray and pixel-noise terms (when on)")
     inside = float(masks.float().mean()) if masks is not None else 1.0
     if inside < MASKED_NOTE_BELOW:  # train's held-out PSNR is over whole images: the two differ on such scenes
-        notes.append(f"the scene has validity masks: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
+        notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
                      f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out PSNR "
                      "over whole images")
     terms = ["the spread of the K samples"]

@@ -34,7 +34,7 @@ import torch
 from uncertsplat.config import EvalConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError, run_folder_missing
-from uncertsplat.eval.engine import ViewMaps
+from uncertsplat.eval.engine import MASKED_NOTE, ViewMaps
 from uncertsplat.eval.tails import half_width as _half_width
 from uncertsplat.io.maps import EXR_CHANNELS, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
 from uncertsplat.schemas.runs import RunExposure
@@ -440,7 +440,7 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
                           "degrees of freedom where its held-out views ask for 3.4); views set aside from training "
                           "give a fit that holds for new views: train with --set scene.calibration_holdout=3[/]")
     if report.mean.psnr_render is not None:
-        masked = any(n.startswith("the scene has validity masks") for n in report.notes)
+        masked = any(n.startswith(MASKED_NOTE) for n in report.notes)
         where = " (train's over whole images; these inside the scene's validity masks)" if masked else ""
         console.print(f"PSNR is that of the mean of the {cfg.num_samples} samples; one deterministic render (the "
                       f"expected render, what train reports{where}): {report.mean.psnr_render:.2f} dB")

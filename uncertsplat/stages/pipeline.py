@@ -81,18 +81,20 @@ def _stage_config(stage: PipelineStage):
     return build_config(STAGE_CONFIGS[stage.stage], stage.config, source=f"stage '{stage.name or stage.stage}'")
 
 
-def check_stages(cfg: PipelineConfig, path: Path) -> None:
-    """Every stage's configuration and input, before the first stage runs: a typo in the last stage's keys was
-    found only after the stages before it had run (with real photos, after minutes of reconstruction).
+def check_stages(cfg: PipelineConfig, path: Path) -> list:
+    """Every stage's configuration and input, before the first stage runs (a typo in the last stage's keys was
+    found only after the stages before it had run: with real photos, after minutes of reconstruction); returns the
+    stages' resolved configurations, in order.
 
     Raises:
         UserError: naming the pipeline file, the stage and the key (or the input that names nothing).
     """
     earlier: list[str] = []
+    configs = []
     for stage in cfg.stages:
         name = stage.name or stage.stage
         try:
-            _stage_config(stage)
+            configs.append(_stage_config(stage))
         except UserError as err:
             raise UserError(err.message, path=path, hint=err.hint) from None
         if stage.input is not None and stage.input not in earlier:
@@ -103,6 +105,7 @@ def check_stages(cfg: PipelineConfig, path: Path) -> None:
                                 path=path, hint=f"Earlier stages: {', '.join(earlier) or 'none'}; a folder is read "
                                                 "from the pipeline file's folder.")
         earlier.append(name)
+    return configs
 
 
 def _evaluation_kept(run_dir: Path, cfg, device) -> bool:
@@ -132,7 +135,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
 
     pipeline = Path(pipeline)
     cfg = load_pipeline(pipeline, overrides)
-    check_stages(cfg, pipeline)
+    stage_configs = check_stages(cfg, pipeline)
     if cfg.photos is not None and not Path(cfg.photos).is_dir() and any(
             st.stage == "reconstruct" and st.input is None for st in cfg.stages):
         # before any output folder exists: the pipeline's photo folder is a placeholder until the user sets it
@@ -151,9 +154,8 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
     t_all = time.perf_counter()
     console.print(f"[bold]pipeline[/] {cfg.name} ({pipeline}) -> {root}  device={dev}")
 
-    for stage in cfg.stages:
+    for stage, stage_cfg in zip(cfg.stages, stage_configs, strict=True):
         name = stage.name or stage.stage
-        stage_cfg = _stage_config(stage)
         upstream = stage.input if stage.input is not None else previous
         if stage.stage != "synth" and stage.stage != "report" and upstream is None and not (
             stage.stage == "reconstruct" and cfg.photos is not None

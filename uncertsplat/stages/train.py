@@ -26,13 +26,16 @@ def resolve_config(preset: str | None, data: dict[str, Any], method: str | None,
     """
     from uncertsplat.baselines import method_overrides
     from uncertsplat.config import deep_update, train_config_from
+    from uncertsplat.errors import UserError
 
-    if data and source is not None:
-        train_config_from(preset, data, source=source)  # the file alone: its errors name it
-    if method is not None:
-        data = deep_update(data, method_overrides(method))
-    cfg = train_config_from(preset, deep_update(data, {k: v for k, v in explicit.items() if v is not None}),
-                            overrides)
+    merged = deep_update(data, method_overrides(method)) if method is not None else data
+    try:
+        cfg = train_config_from(preset, deep_update(merged, {k: v for k, v in explicit.items() if v is not None}),
+                                overrides)
+    except UserError:
+        if data and source is not None:
+            train_config_from(preset, data, source=source)  # the file alone: an error of its own names the file
+        raise
     if cfg.variant == "paper" and cfg.method != "variational":
         from uncertsplat.console import console
 

@@ -260,10 +260,7 @@ def check_base_configs(spec: SweepSpec, source: str) -> None:
 
     tables = [(None, "")] + [(name, f"scenes.{name}.") for name in spec.scenes]
     if not spec.scenes and spec.scene is None:  # the single synthetic scene
-        try:
-            SynthConfig.model_validate(spec.synth)
-        except ValidationError as err:
-            raise UserError(format_validation_error(err, source, SynthConfig, key_prefix="synth")) from None
+        build_config(SynthConfig, spec.synth, source=source, key_prefix="synth")
     for name, where in tables:
         entry = spec.scenes[name] if name is not None else None
         own_preset = entry is not None and entry.train_preset is not None
@@ -274,18 +271,13 @@ def check_base_configs(spec: SweepSpec, source: str) -> None:
         for key, model in (("synth", SynthConfig), ("reconstruct", ReconstructConfig)):
             table = getattr(entry, key) if entry is not None else None
             if table:
-                try:
-                    model.model_validate(table)
-                except ValidationError as err:
-                    raise UserError(format_validation_error(err, source, model, key_prefix=f"{where}{key}")) from None
+                build_config(model, table, source=source, key_prefix=f"{where}{key}")
         for key, own, model in (("train", spec.train, TrainConfig), ("evaluate", spec.evaluate, EvalConfig)):
             data = deep_update(own, getattr(entry, key)) if entry is not None else own
-            if key == "train":
-                label = f"{source} (preset {preset})" if preset else source
-                base = train_config_from(preset, {}) if preset else None
-                data = deep_update(json.loads(base.model_dump_json()), data) if base is not None else data
-            else:
-                label = source
+            label = source
+            if key == "train" and preset is not None:  # the preset's keys under the table's, as train_config_from
+                label = f"{source} (preset {preset})"
+                data = deep_update(TRAIN_PRESETS[preset], data)
             try:
                 model.model_validate(data)
             except ValidationError as err:

@@ -761,22 +761,6 @@ void tile_box(const BinArgs& a, S mx, S my, S ex, S ey, int64_t& tx0, int64_t& t
     ty1 = std::max(ty0, static_cast<int64_t>(std::floor(hiy / ts)) + 1);
 }
 
-// True when the alpha >= alpha_min ellipse may reach the tile's pixel-centre rectangle (conservative,
-// NaN keeps the pair): the minimum of the conic form over the rectangle lies on an edge the mean is
-// outside of, so it is the smaller of two clamped 1D minima. nb_c = -b / c and nb_a = -b / a.
-template <typename S>
-bool ellipse_meets_tile(S mx, S my, S ca, S cb, S cc, S nb_c, S nb_a, S limit, int64_t tx, int64_t ty, int64_t ts) {
-    const S x0 = static_cast<S>(tx * ts) + S(0.5) - mx, y0 = static_cast<S>(ty * ts) + S(0.5) - my;
-    const S x1 = x0 + static_cast<S>(ts - 1), y1 = y0 + static_cast<S>(ts - 1);
-    auto clampv = [](S v, S lo, S hi) { return std::min(std::max(v, lo), hi); };
-    const S dxs = clampv(S(0), x0, x1), dys = clampv(S(0), y0, y1);
-    const S dy1 = clampv(nb_c * dxs, y0, y1);
-    const S q1 = ca * dxs * dxs + S(2) * cb * dxs * dy1 + cc * dy1 * dy1;
-    const S dx2 = clampv(nb_a * dys, x0, x1);
-    const S q2 = ca * dx2 * dx2 + S(2) * cb * dx2 * dys + cc * dys * dys;
-    return !(std::min(q1, q2) > limit);
-}
-
 // Sets bits k0..k1 (inclusive) of a mask of 64-bit words.
 inline void set_bits(uint64_t* bits, int64_t k0, int64_t k1) {
     for (int64_t w = k0 >> 6; w <= (k1 >> 6); ++w) {
@@ -786,7 +770,8 @@ inline void set_bits(uint64_t* bits, int64_t k0, int64_t k1) {
 }
 
 // The tiles of one Gaussian's box that its ellipse reaches: box origin (tx0, ty0), width bw and height bh
-// in tiles; bit k of the mask (row-major in the box) is set when tile k passes the test. A box of up to 64
+// in tiles; bit k of the mask (row-major in the box) is set when tile k lies in its row's run of tiles from the
+// first to the last that pass the ellipse test (``row_hits``). A box of up to 64
 // tiles holds its mask in `mask`; a larger one (big = true) keeps ceil(bw bh / 64) words in its worker's
 // pool from word `mask` on (pass 2 gives every worker the same Gaussians as pass 1, so it finds them there).
 struct BoxTiles {
@@ -800,9 +785,6 @@ template <typename S>
 struct EllipseTest {
     S mx, my, ca, cb, cc, nb_c, nb_a, limit;
     int64_t ts;
-    bool operator()(int64_t tx, int64_t ty) const {
-        return ellipse_meets_tile<S>(mx, my, ca, cb, cc, nb_c, nb_a, limit, tx, ty, ts);
-    }
 };
 
 template <typename S>
@@ -815,8 +797,10 @@ EllipseTest<S> ellipse_test(const BinArgs& a, int64_t g, const S* means2d, const
     return {means2d[2 * g], means2d[2 * g + 1], ca, cb, cc, -cb / cc, -cb / ca, thr * S(1.001) + S(1e-3), a.tile_size};
 }
 
-// Bit l of the result: tile (tx + l, ty) passes the ellipse test, for l < n <= LANES; the scalar test's
-// arithmetic on LANES tiles of a row at once.
+// Bit l of the result: tile (tx + l, ty) passes the ellipse test, for l < n <= LANES, LANES tiles of a row at
+// once. The test: the alpha >= alpha_min ellipse may reach the tile's pixel-centre rectangle (conservative, NaN
+// keeps the pair); the minimum of the conic form over the rectangle lies on an edge the mean is outside of, so
+// it is the smaller of two clamped 1D minima (nb_c = -b / c, nb_a = -b / a; rasterize._ellipse_meets_tile).
 template <typename S>
 __attribute__((always_inline)) inline uint64_t row_hits(const EllipseTest<S>& e, int64_t tx, int64_t n, int64_t ty) {
     using V = typename Lanes<S>::V;
