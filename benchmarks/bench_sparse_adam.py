@@ -3,7 +3,7 @@
 The per-Gaussian tensors of a model of N Gaussians at SH degree 3 (means 3, scales 3, quats 4, opacity 1, SH DC 3,
 SH rest 45: 59 numbers per Gaussian), random gradients; the touched rows a random subset (sorted, as
 ``Trainer.touched_rows`` gives them) of each fraction. Every case times ``torch.optim.Adam(fused=True)`` (what
-``sparse_updates = "dense"`` runs) and ``SparseAdam`` (visible and lazy) in the same process, median of
+``sparse_updates = "dense"`` runs) and ``train.adam.Adam`` (visible and lazy) in the same process, median of
 ``--repeats`` timings of ``--steps`` steps, and reports sparse / dense.
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_sparse_adam.py --gaussians 60000 400000
@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from uncertsplat import native
-from uncertsplat.train.sparse_adam import SparseAdam
+from uncertsplat.train.adam import Adam
 
 RESULTS = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
 WIDTHS = {"means": (3,), "scales": (3,), "quats": (4,), "opacities": (), "sh0": (1, 3), "shN": (15, 3)}
@@ -60,7 +60,7 @@ def case(n: int, fraction: float, steps: int, repeats: int, seed: int = 0) -> di
     rows = dict.fromkeys(WIDTHS, touched)
     for mode in ("visible", "lazy"):
         _, groups = params()
-        result[f"{mode}_ms"] = time_steps(SparseAdam(groups, eps=1e-15, lazy=mode == "lazy"), rows, steps, repeats)
+        result[f"{mode}_ms"] = time_steps(Adam(groups, eps=1e-15, lazy=mode == "lazy"), rows, steps, repeats)
         result[f"{mode}_ratio"] = result[f"{mode}_ms"] / result["dense_ms"]
     return result
 

@@ -21,7 +21,8 @@ reference in the same run.
 Every run is trained with ``profile=true`` (``train_summary.json`` ``profile``: seconds per phase of the
 steps: data, sample, render, loss, backward, optimizer, densify, posterior, eval, checkpoint), and
 ``--backward-steps`` steps after training are run under ``torch.profiler`` to split the backward pass by autograd
-node (rasterizer, SSIM, table sampling, KL, other).
+node (rasterizer, SSIM, table sampling, KL, other); one posterior update is split the same way
+(``posterior_breakdown``), and ``outside_rasterizer`` gives the share of the training time outside the rasterizer.
 
 Writes ``benchmarks/results/train_{scene}.json`` and prints the Markdown rows for BENCHMARKS.md.
 """
@@ -95,7 +96,13 @@ def bench(name: str, work: Path, args) -> dict:
     if args.backward_steps and not args.no_profile:
         result["backward"] = backward_breakdown(scene, run, cfg, args.backward_steps, torch.device(args.device))
     if result.get("profile") and result.get("posterior_updates"):
+        result["posterior"] = posterior_breakdown(scene, run, cfg, torch.device(args.device))
         result["curvature_pass"] = curvature_pass(scene, run, cfg, torch.device(args.device))
+    share = rasterizer_share(result)
+    if share is not None:
+        result["outside_rasterizer"] = share
+        print(f"outside the rasterizer: {100 * share['outside']:.1f} % of the phases "
+              f"({100 * share['outside_posterior_counted_outside']:.1f} % counting the posterior updates outside)")
     if result.get("profile"):
         print(profile_line(result))
     if args.compare_kernels:
@@ -176,6 +183,61 @@ def backward_breakdown(scene: Path, run: Path, cfg, steps: int, device: torch.de
         group = next((g for frag, g in BACKWARD_GROUPS.items() if frag in node), "other")
         groups[group] = groups.get(group, 0.0) + e.cpu_time_total / 1e6 / steps
     return {"steps": steps, "num_gaussians": len(trainer.model), "sec_per_step": groups}
+
+
+def posterior_breakdown(scene: Path, run: Path, cfg, device: torch.device) -> dict:
+    """What share of an informed posterior update (``Trainer.update_posterior``, an update before the last) is the
+    rasterizer, measured as the training step's share is: the wall time of its ``render`` calls plus the rasterizer's
+    autograd nodes of its backward passes (``torch.profiler``), over the update's wall time in the same call."""
+    import time
+
+    from torch.profiler import ProfilerActivity, profile
+
+    from uncertsplat import native
+
+    trainer = trainer_from_run(scene, run, cfg, device, extra_steps=10)
+    render, spent = trainer.render, [0.0]
+
+    def timed_render(*a, **k):
+        t0 = time.perf_counter()
+        out = render(*a, **k)
+        spent[0] += time.perf_counter() - t0
+        return out
+
+    trainer.render = timed_render
+    with native.single_threaded_torch(device):  # as train_step calls it
+        t0 = time.perf_counter()
+        trainer.update_posterior()
+        plain = time.perf_counter() - t0
+        spent[0] = 0.0
+        activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+        with profile(activities=activities) as prof:
+            t0 = time.perf_counter()
+            trainer.update_posterior()
+            wall = time.perf_counter() - t0
+    backward = sum(e.cpu_time_total / 1e6 for e in prof.key_averages()
+                   if e.key.startswith("autograd::engine::evaluate_function: ")
+                   and any(frag in e.key for frag, g in BACKWARD_GROUPS.items() if g == "rasterize"))
+    out = {"seconds": plain, "seconds_profiled": wall, "render_forward_s": spent[0], "rasterizer_backward_s": backward,
+           "rasterizer_fraction": (spent[0] + backward) / wall}
+    print(f"posterior update: {plain:.2f} s, rasterizer {100 * out['rasterizer_fraction']:.1f} % (render calls "
+          f"{spent[0]:.2f} s + its backward {backward:.2f} s of {wall:.2f} s under the profiler)")
+    return out
+
+
+def rasterizer_share(r: dict) -> dict | None:
+    """The training time's split between the rasterizer and the rest (issue 19: the rest at most 25 %): the render
+    phase, the rasterizer's part of the backward (``backward``, per step, times the steps) and of the posterior
+    updates (``posterior``' rasterizer fraction) against the sum of the phases; also the older count, which put
+    the posterior updates wholly outside."""
+    prof = r.get("profile")
+    if not prof or "backward" not in r:
+        return None
+    sec = prof["seconds"]
+    total = sum(sec.values())
+    base = sec.get("render", 0.0) + r["backward"]["sec_per_step"].get("rasterize", 0.0) * prof["steps"]
+    post = sec.get("posterior", 0.0) * (r["posterior"]["rasterizer_fraction"] if "posterior" in r else 0.0)
+    return {"outside": 1.0 - (base + post) / total, "outside_posterior_counted_outside": 1.0 - base / total}
 
 
 def curvature_pass(scene: Path, run: Path, cfg, device: torch.device, repeats: int = 2) -> dict:

@@ -321,7 +321,7 @@ class TrainConfig(_Base):
     """Which rows Adam updates each step: ``dense`` every Gaussian (torch's Adam); ``visible`` only the Gaussians
     with a footprint in the step's views (and their offset-table rows), the others' parameters and moments left
     as they are; ``lazy`` as visible, with the skipped steps' decay applied to a row's moments when it comes back
-    (``train.sparse_adam``). Measured in BENCHMARKS.md, "Sparse Adam updates"."""
+    (``train.adam``). Measured in BENCHMARKS.md, "Sparse Adam updates"."""
     drop_rate: float = Field(0.0, ge=0.0, lt=1.0)
     """Leave each Gaussian out of a step's render with probability ``drop_rate x step / iterations`` (the
     others' opacity divided by 1 - rate): a regulariser against fitting the training views with Gaussians no

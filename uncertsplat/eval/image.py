@@ -6,6 +6,7 @@ Images are float HWC in [0, 1]: ``[H,W,3]`` for one view or ``[...,H,W,3]`` for 
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import math
 from pathlib import Path
@@ -162,12 +163,18 @@ def _fused_ssim(pred: Tensor, target: Tensor, padding: str) -> bool:
     return native.use_for(pred, target, supported=fused, dtypes=(torch.float32,), strict=False)
 
 
+@functools.cache
+def _fused_window() -> Tensor:
+    """The fused kernel's window (CPU float32), built once: a training step calls the kernel every time."""
+    return gaussian_window(dtype=torch.float32)
+
+
 def _fused_ssim_l1(pred: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
     """(per-image mean SSIM [...], mean |pred - target| over everything) by the fused kernel."""
     lead, (h, w, ch) = pred.shape[:-3], pred.shape[-3:]
     # the kernel reads the channels of HWC images as planes in place (no permuted copies)
     images = [t.reshape(-1, h, w, ch).contiguous() for t in (pred, target)]
-    window = gaussian_window(dtype=torch.float32)
+    window = _fused_window()
     plane_ssim, plane_l1 = _FusedSSIM.apply(images[0], images[1].detach(), window)
     return plane_ssim.view(-1, ch).mean(-1).reshape(lead), plane_l1.mean()
 

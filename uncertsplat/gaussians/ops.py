@@ -20,7 +20,7 @@ from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.gaussians.prior import Prior, prior_rows
 from uncertsplat.gaussians.variational import absorbed_opacity_logit, expected_gate
 
-# row-aligned optimiser state (``last_step``: train.sparse_adam's lazy decay; new rows get 0, harmless since their
+# row-aligned optimiser state (``last_step``: train.adam's lazy decay; new rows get 0, harmless since their
 # moments are 0)
 _MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq", "last_step")
 
@@ -213,7 +213,7 @@ def truncate_sh(model: GaussianModel, optimizer, degree: int) -> None:
         raise ValueError(f"SH degree must be >= 0, got {degree}")
     keep = (degree + 1) ** 2 - 1  # shN columns of degree `degree`
     old = model.params["shN"]
-    # last_step (train.sparse_adam) is one number per row: it stays
+    # last_step (train.adam) is one number per row: it stays
     new = _replace(optimizer, old, old.detach()[:, :keep], lambda m: m[:, :keep].contiguous() if m.dim() > 1 else m)
     model.params["shN"] = new
     model.sh_degree = degree

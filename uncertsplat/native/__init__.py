@@ -4,8 +4,9 @@
 (``render/rasterize.py``), behind the C interface in ``composite_forward.cpp`` and ``composite_backward.cpp``.
 ``project.cpp``: the per-Gaussian front end, EWA projection and SH colours, forward and backward
 (``render/project.py``, ``render/sh.py``). ``losses.cpp``: fused SSIM (``eval/image.py``) and the KL terms of the
-offset tables (``gaussians/variational.py``), each with its gradient. ``optim.cpp``: Adam on selected rows
-(``train/sparse_adam.py``). ``vmath.h``: vectorisable exp/log; ``parallel.h``: fork-join over threads.
+offset tables (``gaussians/variational.py``), each with its gradient. ``optim.cpp``: Adam, dense over
+several tensors in one call or on selected rows (``train/adam.py``). ``vmath.h``: vectorisable exp/log;
+``parallel.h``: fork-join over threads.
 
 The C++ files have a C ABI and no torch headers, so they need no Python build step: the system C++ compiler
 (``$CXX``, else ``c++``) compiles each file in a process of its own, side by side, and links them (17.5 s on
@@ -34,7 +35,7 @@ from pathlib import Path
 
 import torch
 
-INTERFACE_VERSION = 17
+INTERFACE_VERSION = 18
 CSRC = Path(__file__).with_name("csrc")
 # compiled side by side, one process each (``_build``): the two halves of the rasterizer take most of the time
 SOURCES = (CSRC / "composite_forward.cpp", CSRC / "composite_backward.cpp", CSRC / "losses.cpp", CSRC / "project.cpp",
@@ -202,6 +203,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.us_blur_peak_backward_f32.restype = ctypes.c_int
     lib.us_adam_rows_f32.argtypes = [i64, i64, i64] + [ptr] * 6 + [i64, f64, f64, f64, f64, i64]
     lib.us_adam_rows_f32.restype = ctypes.c_int
+    lib.us_adam_multi_f32.argtypes = [i64] + [ptr] * 7 + [f64, f64, f64, i64, i64, i64]
+    lib.us_adam_multi_f32.restype = ctypes.c_int
     lib.us_version.restype = ctypes.c_int
     lib.us_max_features.restype = ctypes.c_int
 

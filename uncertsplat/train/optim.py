@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import torch
 
+from uncertsplat import native
 from uncertsplat.gaussians.params import PARAM_SPECS, GaussianModel
 from uncertsplat.gaussians.prior import TABLE_SPECS
 from uncertsplat.strategy.schedule import position_lr
-from uncertsplat.train.sparse_adam import SparseAdam
+from uncertsplat.train.adam import Adam
 
 ADAM_EPS = 1e-15
 
@@ -39,20 +40,30 @@ def base_rates(lr_cfg, step: int, total: int, extent: float, *, table_lr_factor:
 def make_optimizer(model: GaussianModel, rates: dict[str, float], sparse: str = "dense") -> torch.optim.Optimizer:
     """Adam (eps 1e-15, as 3DGS) with one named group per tensor of ``model.parameters()``.
 
-    ``sparse``: ``"dense"`` (torch's Adam: every row every step), ``"visible"`` or ``"lazy"``
-    (``train.sparse_adam.SparseAdam``: only the rows the step's views touch; ``TrainConfig.sparse_updates``).
-
-    The fused implementation (one kernel per tensor; several times faster than the default on CPU, where
-    the update of the offset tables was a visible share of a training step; BENCHMARKS.md, "Fused Adam")
-    where torch offers it for the parameters' device; its state has the same layout, so checkpoints load
-    either way.
+    ``sparse``: ``"dense"`` (every row every step), ``"visible"`` or ``"lazy"`` (only the rows the step's views
+    touch; ``TrainConfig.sparse_updates``). Ours (``train.adam.Adam``) where the native kernels take the
+    parameters (CPU float32: one call for every group, with the NaN/Inf check) or the update is sparse; torch's
+    fused Adam otherwise (one kernel per tensor; several times faster than torch's default there). Both keep the
+    same state layout, so checkpoints load either way.
     """
     groups = [{"params": [p], "lr": rates[name], "name": name} for name, p in model.parameters().items()]
-    if sparse != "dense":
-        return SparseAdam(groups, eps=ADAM_EPS, lazy=sparse == "lazy")
+    params = list(model.parameters().values())
+    if sparse != "dense" or native.use_for(*params, dtypes=(torch.float32,), strict=False):
+        return Adam(groups, eps=ADAM_EPS, lazy=sparse == "lazy")
     device = model.device.type
-    fused = device in ("cpu", "cuda") and all(p.dtype.is_floating_point for p in model.parameters().values())
+    fused = device in ("cpu", "cuda") and all(p.dtype.is_floating_point for p in params)
     return torch.optim.Adam(groups, lr=0.0, eps=ADAM_EPS, fused=fused or None)
+
+
+def load_optimizer_state(optimizer: torch.optim.Optimizer, state_dict: dict) -> None:
+    """``optimizer.load_state_dict`` of a checkpoint saved by either Adam (ours on CPU, torch's elsewhere): each
+    group keeps this optimiser's own options (torch's Adam needs its keys, such as ``weight_decay``, and a CUDA run
+    resumed from a CPU checkpoint should stay fused), the rates and moments come from the checkpoint."""
+    saved = state_dict["param_groups"]
+    if len(saved) == len(optimizer.param_groups):
+        saved = [{**{k: v for k, v in mine.items() if k != "params"}, "params": old["params"], "lr": old["lr"]}
+                 for mine, old in zip(optimizer.param_groups, saved, strict=True)]
+    optimizer.load_state_dict({**state_dict, "param_groups": saved})
 
 
 def set_rates(optimizer: torch.optim.Optimizer, rates: dict[str, float]) -> None:

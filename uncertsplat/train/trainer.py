@@ -60,8 +60,9 @@ from uncertsplat.strategy.growth import (
 from uncertsplat.strategy.schedule import sh_degree_at
 from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due
 from uncertsplat.strategy.view_checks import check_views
+from uncertsplat.train.adam import Adam, all_finite
 from uncertsplat.train.losses import total_loss
-from uncertsplat.train.optim import base_rates, make_optimizer, set_rates
+from uncertsplat.train.optim import base_rates, load_optimizer_state, make_optimizer, set_rates
 from uncertsplat.train.profile import PhaseTimer
 from uncertsplat.types import Cameras, GaussianSample, SceneData
 from uncertsplat.uncertainty.curvature import curvature
@@ -294,7 +295,7 @@ class Trainer:
             raise ValueError(f"unsupported trainer state version {state.get('version')}")
         self.model = GaussianModel.from_state_dict(state["model"], self.device)
         self.optimizer = make_optimizer(self.model, self._rates(int(state["step"])), sparse=self.cfg.sparse_updates)
-        self.optimizer.load_state_dict(state["optimizer"])
+        load_optimizer_state(self.optimizer, state["optimizer"])
         self.densifier = self._make_densifier()
         self.densifier.stats = DensifyStats.from_state_dict(state["densify"], self.device)
         self.gen_views = torch.Generator()
@@ -488,10 +489,12 @@ class Trainer:
         degree = sh_degree_at(step, self.model.sh_degree, cfg.sh_degree_interval)
         with timer("data"):
             views = [self._next_view() for _ in range(min(cfg.batch_size, len(self.train_idx)))]
+            # one view: a slice, which shares the image's memory (a list index copies it)
+            pick = slice(views[0], views[0] + 1) if len(views) == 1 else views
             if self.low_cams is not None and step <= self.low_res_until:
-                cams, gt = self.low_cams[views], self.low_images[views]
+                cams, gt = self.low_cams[pick], self.low_images[pick]
             else:
-                cams, gt = self.train_cams[views], self.train_images[views]
+                cams, gt = self.train_cams[pick], self.train_images[pick]
         with timer("sample"):
             if self.informed and cfg.variational.train_on in ("expected", "mean"):
                 if cfg.variant == "ours" and (self._expected is None or not self._expected.fits(self.model)):
@@ -531,24 +534,13 @@ class Trainer:
             losses = total_loss(rgb, gt, kl, ssim_lambda=cfg.ssim_lambda, kl_weight=cfg.variational.kl_weight)
         with timer("backward"):
             losses["loss"].backward()
-            finite = self._all_finite([losses["loss"], *(p.grad for p in self.model.parameters().values()),
-                                       self.exposure.grad if self.exposure is not None else None])
-        if finite and out.means2d.grad is not None:
-            with timer("densify"):
-                # screen radii in the full images' pixels (max_screen_size), whatever this step's resolution
-                scale = self.train_cams.width / cams.width
-                radii = out.radii if scale == 1.0 else out.radii * scale
-                self.densifier.accumulate(step, out.means2d.grad, radii, cams.width, cams.height)
         # on torch's one thread too: fused Adam is faster on two, but torch's second thread then spins after it
         # (libgomp's wait policy) and takes a core from the next kernels: a bonsai step 21.0 -> 16.0 ms, the demo's
         # 19.8 -> 15.6 ms, fern's 42.3 -> 37.1 ms (BENCHMARKS.md, "Adam on torch's one thread")
         with timer("optimizer"):
+            finite = self._update(losses["loss"], out.radii)
             if finite:
                 self.bad_steps_in_a_row = 0
-                if cfg.sparse_updates == "dense":
-                    self.optimizer.step()
-                else:
-                    self.optimizer.step(rows=self.touched_rows(out.radii))
                 if self.exposure_optimizer is not None:
                     self.exposure_optimizer.step()
             else:
@@ -556,6 +548,12 @@ class Trainer:
             self.optimizer.zero_grad(set_to_none=True)
             if self.exposure_optimizer is not None:
                 self.exposure_optimizer.zero_grad(set_to_none=True)
+        if finite and out.means2d.grad is not None:
+            with timer("densify"):
+                # screen radii in the full images' pixels (max_screen_size), whatever this step's resolution
+                scale = self.train_cams.width / cams.width
+                radii = out.radii if scale == 1.0 else out.radii * scale
+                self.densifier.accumulate(step, out.means2d.grad, radii, cams.width, cams.height)
         with timer("eval"):
             if self.check_growth(step) is not None:
                 self._expected = None
@@ -627,12 +625,18 @@ class Trainer:
         self.posterior_updates.append(record)
         return record
 
-    @staticmethod
-    def _all_finite(tensors) -> bool:
-        """True when no element is NaN/Inf. A sum is NaN/Inf as soon as one element is (one pass per
-        tensor instead of isfinite's three); it could only also overflow for values near 1e38 / N."""
-        sums = [t.sum() for t in tensors if t is not None]
-        return bool(torch.isfinite(torch.stack(sums)).all()) if sums else True
+    def _update(self, loss: Tensor, radii: Tensor) -> bool:
+        """The optimisers' update from this step's gradients, unless the loss or a gradient is NaN/Inf (then
+        nothing changes and False is returned). Our Adam checks the parameters' gradients in its own pass
+        (``Adam.step_if_finite``); torch's (on other devices) after a check here."""
+        rows = None if self.cfg.sparse_updates == "dense" else self.touched_rows(radii)
+        exposure = self.exposure.grad if self.exposure is not None else None
+        if isinstance(self.optimizer, Adam):
+            return all_finite([loss, exposure]) and self.optimizer.step_if_finite(rows)
+        if not all_finite([loss, exposure, *(p.grad for p in self.model.parameters().values())]):
+            return False
+        self.optimizer.step()
+        return True
 
     def _skip_non_finite(self, step: int) -> None:
         """A NaN/Inf loss or gradient: skip the update (Adam would spread it into every parameter)."""
@@ -673,7 +677,7 @@ class Trainer:
             return None
         from uncertsplat.io.checkpoints import save_checkpoint
 
-        if not self._all_finite(self.model.parameters().values()):  # never replace a good checkpoint by NaNs
+        if not all_finite(self.model.parameters().values()):  # never replace a good checkpoint by NaNs
             from uncertsplat.errors import UserError
 
             raise UserError(f"the model has NaN/Inf parameters at step {self.step}; no checkpoint written",

@@ -36,12 +36,17 @@ class FlushDenormals {
 };
 
 // Runs fn(worker) for worker = 0 .. workers - 1, worker 0 on the calling thread, and waits for all;
-// every worker runs with denormals flushed (FlushDenormals).
-template <typename Fn>
+// every worker runs with denormals flushed (FlushDenormals) unless FLUSH is false (a kernel that must give
+// torch's bits: torch keeps denormals).
+template <bool FLUSH = true, typename Fn>
 void run_workers(int64_t workers, Fn fn) {
     auto guarded = [&fn](int64_t id) {
-        FlushDenormals ftz;
-        fn(id);
+        if constexpr (FLUSH) {
+            FlushDenormals ftz;
+            fn(id);
+        } else {
+            fn(id);
+        }
     };
     std::vector<std::thread> threads;
     threads.reserve(workers > 1 ? workers - 1 : 0);

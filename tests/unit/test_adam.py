@@ -1,6 +1,8 @@
-"""Sparse Adam updates (``train.sparse_adam``, ``TrainConfig.sparse_updates``)."""
+"""Our Adam (``train.adam``): the dense step in one native call, and the sparse updates (``TrainConfig.sparse_updates``)."""
 
 from __future__ import annotations
+
+import copy
 
 import pytest
 import torch
@@ -9,7 +11,7 @@ from torch import nn
 from tests.e2e.test_train_resume import assert_same_parameters, toy_config, toy_scene
 from uncertsplat import native
 from uncertsplat.io.checkpoints import decode, encode
-from uncertsplat.train.sparse_adam import SparseAdam, adam_rows
+from uncertsplat.train.adam import Adam, adam_rows
 from uncertsplat.train.trainer import Trainer
 
 BACKENDS = ["torch", pytest.param("native", marks=pytest.mark.skipif(native.library() is None,
@@ -36,13 +38,133 @@ def _groups(params, lr=1e-2):
     return [{"params": [p], "lr": lr, "name": f"t{i}"} for i, p in enumerate(params)]
 
 
+NATIVE = pytest.mark.skipif(native.library() is None, reason="native kernels unavailable")
+
+
+@NATIVE
+class TestDense:
+    """The dense step: every group in one native call, with the NaN/Inf check."""
+
+    # sizes with and without a remainder past a 16-float vector, one tensor of 45 floats per row (SH), a scalar row
+    SHAPES = ((97, 3), (64, 4), (97, 15, 3), (97,), (1, 1))
+
+    def _pair(self, lr=3e-1):
+        a, b = _params(shapes=self.SHAPES), _params(shapes=self.SHAPES)
+        ga = [{"params": [p], "lr": lr * (i + 1), "name": f"t{i}"} for i, p in enumerate(a)]
+        gb = [{"params": [p], "lr": lr * (i + 1), "name": f"t{i}"} for i, p in enumerate(b)]
+        return a, b, torch.optim.Adam(ga, lr=0.0, eps=1e-15, fused=True), Adam(gb, eps=1e-15)
+
+    @pytest.mark.parametrize("threads", [1, 2, 3])
+    def test_bit_identical_to_torch_fused_adam(self, threads, monkeypatch):
+        """The default optimiser's numbers did not change with it: parameters, moments and step counts equal torch's
+        fused Adam's on one thread (as training ran it) to the bit, after steps with different learning rates per
+        group, on any number of threads of ours (the elements are split at arbitrary points between them). Bits
+        are compared where torch runs its AVX2 kernel (x86 CPUs with AVX2 or AVX-512); elsewhere to a rounding."""
+        monkeypatch.setattr(native, "kernel_threads", lambda: threads)
+        a, b, theirs, ours = self._pair()
+        torch_threads = torch.get_num_threads()
+        torch.set_num_threads(1)  # torch splits a tensor between its threads, each part with its own scalar tail
+        try:
+            for step in range(12):
+                _grads(a, step)
+                _grads(b, step)
+                if step == 6:  # a group without a gradient skips the step (its count too), as in torch
+                    a[1].grad = b[1].grad = None
+                # one tensor's first moments below float's normal range: torch keeps the denormals
+                a[0].grad.mul_(1e-38)
+                b[0].grad.mul_(1e-38)
+                # rows that never get a gradient (an SH band not switched on yet: the native step skips their cache
+                # lines), and some that get one from step 4 on
+                for p in (a[2], b[2]):
+                    p.grad[: 40 if step < 4 else 20] = 0.0
+                    if step >= 8:  # no gradient but moments: momentum still moves them
+                        p.grad[40:] = 0.0
+                theirs.step()
+                assert ours.step_if_finite()
+        finally:
+            torch.set_num_threads(torch_threads)
+        exact = torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512")
+        for pa, pb in zip(a, b, strict=True):
+            for key in ("exp_avg", "exp_avg_sq", "step"):
+                x, y = ours.state[pb][key], theirs.state[pa][key]
+                assert torch.equal(x, y) if exact else torch.allclose(x, y, rtol=1e-5, atol=1e-7), key
+            assert torch.equal(pb.detach(), pa.detach()) if exact else torch.allclose(pb, pa, rtol=1e-5, atol=1e-6)
+        assert int(ours.state[b[1]]["step"]) == 11
+
+    @pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+    @pytest.mark.parametrize("where", [(0, (0, 0)), (2, (96, 14, 2)), (4, (0, 0))])
+    def test_non_finite_gradient_changes_nothing(self, value, where):
+        """One NaN/Inf anywhere (first element, last element of the largest tensor, a one-element tensor): no
+        parameter, moment or step count moves, and the step says so; the next finite step proceeds."""
+        _, b, _, ours = self._pair()
+        _grads(b, 0)
+        ours.step_if_finite()
+        before = [(p.detach().clone(), {k: v.clone() for k, v in ours.state[p].items()}) for p in b]
+        _grads(b, 1)
+        tensor, index = where
+        b[tensor].grad[index] = value
+        assert not ours.step_if_finite()
+        for p, (p0, state) in zip(b, before, strict=True):
+            assert torch.equal(p.detach(), p0)
+            for k, v in state.items():
+                assert torch.equal(ours.state[p][k], v), k
+        b[tensor].grad[index] = 0.0
+        assert ours.step_if_finite()
+        assert int(ours.state[b[0]]["step"]) == 2
+
+    def test_without_the_check_a_nan_is_applied(self):
+        """``step()`` (torch's interface) does not check: the caller decided (the trainer checks through
+        ``step_if_finite``)."""
+        _, b, _, ours = self._pair()
+        _grads(b, 0)
+        b[0].grad[0, 0] = float("nan")
+        ours.step()
+        assert torch.isnan(b[0].detach()[0, 0])
+
+    def test_checkpoints_load_both_ways(self):
+        """Our state dict loads into torch's Adam (a CPU run resumed on CUDA) and back, and both continue alike;
+        torch's Adam keeps its own options (fused)."""
+        from uncertsplat.train.optim import load_optimizer_state
+
+        a, b, theirs, ours = self._pair()
+        for step in range(3):
+            _grads(b, step)
+            ours.step_if_finite()
+        for pa, pb in zip(a, b, strict=True):
+            pa.data.copy_(pb.detach())
+        load_optimizer_state(theirs, copy.deepcopy(ours.state_dict()))  # as read from a file: no shared tensors
+        assert all(g["fused"] for g in theirs.param_groups) and theirs.param_groups[2]["lr"] == pytest.approx(0.9)
+        _grads(a, 7)
+        _grads(b, 7)
+        theirs.step()
+        ours.step_if_finite()
+        for pa, pb in zip(a, b, strict=True):
+            assert torch.equal(pb.detach(), pa.detach())
+        back = Adam(ours.param_groups, eps=1e-15)
+        load_optimizer_state(back, copy.deepcopy(theirs.state_dict()))
+        assert all(torch.equal(back.state[p]["exp_avg_sq"], ours.state[p]["exp_avg_sq"]) for p in b)
+
+    def test_the_trainer_uses_it_on_the_cpu(self):
+        """``make_optimizer``'s dense Adam on CPU float32 is ours (one call per step), torch's when the native
+        kernels are not used."""
+        from uncertsplat.train.optim import make_optimizer
+
+        scene, tr, te = toy_scene()
+        t = Trainer(scene, toy_config(iterations=1), tr, te)
+        assert isinstance(t.optimizer, Adam)
+        rates = {name: 1e-3 for name in t.model.parameters()}
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setenv("UNCERTSPLAT_RASTERIZER", "torch")
+            assert type(make_optimizer(t.model, rates)) is torch.optim.Adam
+
+
 class TestRows:
     @pytest.mark.parametrize("backend", BACKENDS)
     def test_every_row_equals_torch_adam(self, backend, monkeypatch):
         monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", backend)
         a, b = _params(), _params()
         dense = torch.optim.Adam(_groups(a), eps=1e-15)
-        sparse = SparseAdam(_groups(b), eps=1e-15)
+        sparse = Adam(_groups(b), eps=1e-15)
         for step in range(5):
             _grads(a, step)
             _grads(b, step)
@@ -58,7 +180,7 @@ class TestRows:
     def test_rows_outside_the_list_are_untouched_exactly(self, backend, lazy, monkeypatch):
         monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", backend)
         params = _params()
-        opt = SparseAdam(_groups(params), lazy=lazy)
+        opt = Adam(_groups(params), lazy=lazy)
         _grads(params, 0)
         opt.step()  # every row has moments now
         before = [(p.detach().clone(), opt.state[p]["exp_avg"].clone(), opt.state[p]["exp_avg_sq"].clone())
@@ -102,7 +224,7 @@ class TestRows:
         monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", backend)
         a, b = _params(shapes=((6, 4),)), _params(shapes=((6, 4),))
         dense = torch.optim.Adam(_groups(a), eps=1e-15)
-        lazy = SparseAdam(_groups(b), eps=1e-15, lazy=True)
+        lazy = Adam(_groups(b), eps=1e-15, lazy=True)
         all_rows = {"t0": torch.arange(6)}
         for step in range(6):
             rows = torch.arange(6) if step in (0, 5) else torch.tensor([0, 1])  # rows 2-5 skipped 4 steps
@@ -119,7 +241,7 @@ class TestRows:
 
     def test_empty_row_list_and_no_gradient_change_nothing(self):
         params = _params(shapes=((5, 2),))
-        opt = SparseAdam(_groups(params))
+        opt = Adam(_groups(params))
         p0 = params[0].detach().clone()
         opt.step()  # no gradient yet
         assert not opt.state
