@@ -5,7 +5,8 @@
 ``project.cpp``: the per-Gaussian front end, EWA projection and SH colours, forward and backward
 (``render/project.py``, ``render/sh.py``). ``losses.cpp``: fused SSIM (``eval/image.py``) and the KL terms of the
 offset tables (``gaussians/variational.py``), each with its gradient. ``optim.cpp``: Adam, dense over
-several tensors in one call or on selected rows (``train/adam.py``). ``vmath.h``: vectorisable exp/log;
+several tensors in one call or on selected rows (``train/adam.py``). ``densify.cpp``: a step's densification
+statistics (``strategy/densify.py``). ``vmath.h``: vectorisable exp/log;
 ``parallel.h``: fork-join over threads.
 
 The C++ files have a C ABI and no torch headers, so they need no Python build step: the system C++ compiler
@@ -39,7 +40,7 @@ INTERFACE_VERSION = 18
 CSRC = Path(__file__).with_name("csrc")
 # compiled side by side, one process each (``_build``): the two halves of the rasterizer take most of the time
 SOURCES = (CSRC / "composite_forward.cpp", CSRC / "composite_backward.cpp", CSRC / "losses.cpp", CSRC / "project.cpp",
-           CSRC / "optim.cpp")
+           CSRC / "optim.cpp", CSRC / "densify.cpp")
 HEADERS = (CSRC / "composite.h", CSRC / "vmath.h", CSRC / "parallel.h")
 # -fno-trapping-math lets the compiler vectorise the float->int conversion inside the exp polynomial;
 # -fopenmp-simd honours the `omp simd` hints without linking an OpenMP runtime (torch brings its own).
@@ -205,6 +206,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.us_adam_rows_f32.restype = ctypes.c_int
     lib.us_adam_multi_f32.argtypes = [i64] + [ptr] * 7 + [f64, f64, f64, i64, i64, i64]
     lib.us_adam_multi_f32.restype = ctypes.c_int
+    lib.us_densify_accumulate_f32.argtypes = [i64, i64, ptr, ptr, f64, f64, ptr, ptr, ptr]
+    lib.us_densify_accumulate_f32.restype = ctypes.c_int
     lib.us_version.restype = ctypes.c_int
     lib.us_max_features.restype = ctypes.c_int
 
