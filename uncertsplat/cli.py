@@ -117,10 +117,16 @@ def _stage_config(model, config_file: Path | None, overrides: list[str] | None, 
     from uncertsplat.config import build_config, deep_update, parse_override
 
     data = _config_file(config_file) if config_file else {}
-    data = deep_update(data, {k: v for k, v in explicit.items() if v is not None})
+    given = {k: v for k, v in explicit.items() if v is not None}
+    data = deep_update(data, given)
+    set_keys: set[str] = set()
     for o in overrides or []:
-        data = deep_update(data, parse_override(o))
-    return build_config(model, data, source=str(config_file) if config_file else "command line")
+        parsed = parse_override(o)
+        set_keys.update(parsed)
+        data = deep_update(data, parsed)
+    # a bad value from an option is named by the option (-n 0: "--num-views", not the config key "num_views")
+    names = {k: "--" + k.replace("_", "-") for k in given if k not in set_keys}
+    return build_config(model, data, source=str(config_file) if config_file else "command line", names=names)
 
 
 @app.command()

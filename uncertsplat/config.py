@@ -764,9 +764,10 @@ def _valid_keys(model: type[BaseModel] | None, loc: tuple) -> list[str]:
 
 
 def format_validation_error(err: ValidationError, source: str, model: type[BaseModel] | None = None,
-                            key_prefix: str = "") -> str:
+                            key_prefix: str = "", names: dict[str, str] | None = None) -> str:
     """One readable paragraph from a pydantic ValidationError; an unknown key gets the closest valid ones.
-    ``key_prefix``: where the validated table sits in the file (e.g. "train" for a sweep spec's ``train`` keys)."""
+    ``key_prefix``: where the validated table sits in the file (e.g. "train" for a sweep spec's ``train`` keys).
+    ``names``: what to call a key instead (e.g. the command-line option that gave its value)."""
     import difflib
     import re
 
@@ -776,6 +777,7 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
         # that the alternatives for one key read as one key's
         path = [p for p in e["loc"] if not (isinstance(p, str) and re.search(r"[\[\]'\-]", p))]
         loc = ".".join(str(p) for p in (key_prefix.split(".") if key_prefix else []) + path) or "(root)"
+        loc = (names or {}).get(loc, loc)
         msg = e["msg"].removeprefix("Value error, ")  # our validators' messages are sentences of their own
         msg = re.sub(r" or instance of \w+", "", msg)  # "a valid dictionary or instance of SweepScene"
         if e["type"] == "extra_forbidden":
@@ -793,13 +795,14 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
     return f"invalid configuration in {source}: " + "; ".join(lines)
 
 
-def build_config(model: type[_Base], data: dict, source: str = "config", key_prefix: str = ""):
+def build_config(model: type[_Base], data: dict, source: str = "config", key_prefix: str = "",
+                 names: dict[str, str] | None = None):
     """Validate ``data`` against ``model``; errors become a ``UserError`` naming each bad key (after
-    ``key_prefix``, where ``data`` sits in ``source``)."""
+    ``key_prefix``, where ``data`` sits in ``source``; ``names``: see ``format_validation_error``)."""
     try:
         return model.model_validate(data)
     except ValidationError as err:
-        raise UserError(format_validation_error(err, source, model, key_prefix)) from None
+        raise UserError(format_validation_error(err, source, model, key_prefix, names)) from None
 
 
 def load_toml(path: str | Path) -> dict:

@@ -73,6 +73,10 @@ def test_ensemble_layout_and_spread(ensemble_run):
     summary = json.loads((run / "train_summary.json").read_text())
     assert summary["ensemble_size"] == 2 and len(summary["members"]) == 2
     assert summary["seconds"] == pytest.approx(sum(m["seconds"] for m in summary["members"]))
+    # what training warned about in a member is in the ensemble's own summary, where the report looks
+    assert summary["warnings"] == list(dict.fromkeys(f"member {i + 1}: {w}" for i, m in enumerate(summary["members"])
+                                                     for w in m["warnings"]))
+    assert summary["warnings"], "20-step members fit their photos badly and say so"
     loaded = load_run(run, CPU)
     assert isinstance(loaded, EnsembleRun) and len(loaded.members) == 2
     assert all(m.model.num_carriers == 0 for m in loaded.members)  # plain 3DGS members

@@ -506,3 +506,10 @@ def test_train_notes_training_images_a_downscale_made_tiny():
     (note,) = small_images_notes(150, 100, 40.0)  # 6000 px photos at 40: 7.5 -> about 800 px
     assert "--set scene.downscale=7.5 trains at about 800 px" in note
     assert small_images_notes(402, 300, 2.0) == [] and small_images_notes(100, 75, 1.0) == []
+
+
+@pytest.mark.parametrize(("seconds", "shown"), [(0.0, "< 0.1 s"), (0.04, "< 0.1 s"), (0.43, "0.4 s"), (9.94, "9.9 s"),
+                                                 (12.4, "12 s"), (135.0, "135 s")])
+def test_a_mapping_runs_time_is_never_shown_as_zero(seconds, shown):
+    """The mapping-runs line said "in 0 s" for a small scene's runs."""
+    assert stage._secs(seconds) == shown

@@ -96,7 +96,9 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
             peak_memory_mb=max(s.peak_memory_mb for s in summaries),
             test_psnr_members_mean=sum(psnrs) / len(psnrs) if psnrs else None,
             test_psnr=None,  # the ensemble's own PSNR (of the mean render) comes from `evaluate`
-            variant=cfg.variant, device=str(device), scene=str(scene.resolve()), members=summaries)
+            variant=cfg.variant, device=str(device), scene=str(scene.resolve()), members=summaries,
+            # what training warned about in any member, where the report and `evaluate` look for it
+            warnings=list(dict.fromkeys(f"member {i + 1}: {w}" for i, s in enumerate(summaries) for w in s.warnings)))
         summary.write(run_dir / "train_summary.json")
     psnr_txt = (f", the members' held-out PSNR {summary.test_psnr_members_mean:.2f} dB on average (the ensemble's own "
                 "comes from `evaluate`)" if summary.test_psnr_members_mean is not None else "")

@@ -291,7 +291,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         console.print(f"  {stage:<13} {sec:8.2f} s")
     if len(report.mapping_attempts) > 1:
         runs = ", ".join(f"seed {a.seed}{' relaxed' if a.relaxed else ''}: {a.num_observations:,} observations"
-                         f"{'' if not a.focal_lengths else ' at ' + _focals(a.model_dump())} in {a.seconds:.0f} s"
+                         f"{'' if not a.focal_lengths else ' at ' + _focals(a.model_dump())} in {_secs(a.seconds)}"
                          f"{' (kept)' if a.kept else ''}" for a in report.mapping_attempts)
         verdict = {True: "agreed", False: "[yellow]disagreed[/]", None: "one run of these options"}[report.mapping_agreed]
         console.print(f"  mapping runs ({verdict}): {runs}")
@@ -308,6 +308,13 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                       f"rig radius (max {g['centre_error_max_pct']:.3f} %), rotations {g['rotation_error_mean_deg']:.3f} "
                       f"deg (max {g['rotation_error_max_deg']:.3f}), focal {g['focal_error_mean_pct']:.2f} %")
     return report
+
+
+def _secs(seconds: float) -> str:
+    """A mapping run's time: whole seconds, tenths below 10 s (a small scene maps in a fraction of one)."""
+    if seconds < 0.05:
+        return "< 0.1 s"
+    return f"{seconds:.1f} s" if seconds < 10 else f"{seconds:.0f} s"
 
 
 def _focals(attempt: dict) -> str:
