@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 
@@ -32,6 +33,20 @@ class UserError(Exception):
             text = text if text.rstrip().endswith((".", "!", "?", ":")) else text.rstrip() + "."
             text = f"{text} {self.hint}"
         return text
+
+
+
+@contextlib.contextmanager
+def naming_overrides(overrides: list[str] | None):
+    """Errors raised inside name the ``--set`` values that went into the checked configuration, so that a bad value
+    given on the command line is not blamed on the file alone."""
+    try:
+        yield
+    except UserError as err:
+        if not overrides:
+            raise
+        raise UserError(f"{err.message} (the file's values with --set {' '.join(overrides)})", path=err.path,
+                        hint=err.hint) from None
 
 
 def require_extra(module: str, *, feature: str, extra: str):

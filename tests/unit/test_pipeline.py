@@ -94,6 +94,20 @@ def test_unknown_stage_key_rejected(tmp_path, calls):
         pl.run(p, tmp_path / "out", overrides=["train.iteratons=3"])
 
 
+def test_a_bad_set_value_is_named_with_the_file(tmp_path, calls):
+    """A bad value given with --set is not blamed on the pipeline file alone: the error names the --set values that
+    went in; a file's own mistake is reported without them."""
+    p = _write(tmp_path)
+    with pytest.raises(UserError, match=r"iterations: Input should be .* \(the file's values with --set "
+                                        r"train.iterations=-3 evaluate.seed=1\)"):
+        pl.run(p, tmp_path / "out", overrides=["train.iterations=-3", "evaluate.seed=1"])
+    p.write_text(PIPE.replace('stage = "train"\npreset = "tiny"', 'stage = "train"\npreset = "tiny"\n'
+                                                                 'config = { iterations = -3 }'))
+    with pytest.raises(UserError) as err:
+        pl.run(p, tmp_path / "out")
+    assert "iterations: Input should be" in err.value.message and "--set" not in err.value.message
+
+
 @pytest.mark.parametrize("name", ["demo.toml", "smoke.toml", "photos.toml"])
 def test_shipped_pipelines_validate(name):
     root = Path(__file__).resolve().parents[2] / "pipelines"

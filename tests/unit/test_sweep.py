@@ -163,6 +163,16 @@ def test_bad_spec_names_the_key(tmp_path):
         load_spec(f)
 
 
+def test_a_bad_set_value_is_named_with_the_spec(tmp_path):
+    """--set train.iterations=-3 is not blamed on the spec file alone."""
+    f = tmp_path / "s.toml"
+    f.write_text('name = "x"\n[axes]\nnum_entries = [1]\n')
+    with pytest.raises(UserError, match=r"train\.iterations: Input should be .* \(the file's values with --set "
+                                        r"train\.iterations=-3\)"):
+        load_spec(f, ["train.iterations=-3"])
+    assert load_spec(f, ["train.iterations=3"]).train["iterations"] == 3
+
+
 @pytest.mark.parametrize(("toml", "match"), [
     ("[axes]\nnum_samples = [0, 2]\n", r"s\.toml: axes\.num_samples\.0: Input should be greater than or equal to 1"),
     ('[axes]\nmethod = ["variational", "mcdropout"]\n', r"axes\.method\.1: unknown method 'mcdropout' \(methods: "),

@@ -24,7 +24,7 @@ from uncertsplat.config import (
     train_config_from,
 )
 from uncertsplat.console import console
-from uncertsplat.errors import StageError, UserError
+from uncertsplat.errors import StageError, UserError, naming_overrides
 from uncertsplat.stages.manifest import (
     Manifest,
     fingerprint_folder,
@@ -62,7 +62,8 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
             if "preset" in rest:
                 stage["preset"] = rest.pop("preset")
             stage["config"] = deep_update(stage.get("config", {}), rest)
-    cfg = build_config(PipelineConfig, data, source=str(path))
+    with naming_overrides(overrides):
+        cfg = build_config(PipelineConfig, data, source=str(path))
     if cfg.photos is not None and not cfg.photos.is_absolute():
         cfg.photos = (base / cfg.photos).resolve() if not cfg.photos.exists() else cfg.photos.resolve()
     names = [s.name or s.stage for s in cfg.stages]
@@ -135,7 +136,8 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
 
     pipeline = Path(pipeline)
     cfg = load_pipeline(pipeline, overrides)
-    stage_configs = check_stages(cfg, pipeline)
+    with naming_overrides(overrides):
+        stage_configs = check_stages(cfg, pipeline)
     if cfg.photos is not None and not Path(cfg.photos).is_dir() and any(
             st.stage == "reconstruct" and st.input is None for st in cfg.stages):
         # before any output folder exists: the pipeline's photo folder is a placeholder until the user sets it

@@ -65,7 +65,7 @@ from uncertsplat.config import (
     format_validation_error,
     train_config_from,
 )
-from uncertsplat.errors import UserError
+from uncertsplat.errors import UserError, naming_overrides
 from uncertsplat.provenance import hash_config
 
 KNOBS = ("method", "iterations", "num_entries", "num_samples", "downscale", "ensemble_size", "spawn_fraction")
@@ -247,8 +247,9 @@ def load_spec(path: Path, overrides: list[str] | None = None) -> SweepSpec:
                     entry[key] = anchored(entry[key])
     for o in overrides or []:
         data = deep_update(data, parse_override(o))
-    spec = build_config(SweepSpec, data, source=str(path))
-    check_base_configs(spec, str(path))
+    with naming_overrides(overrides):
+        spec = build_config(SweepSpec, data, source=str(path))
+        check_base_configs(spec, str(path))
     return spec
 
 
