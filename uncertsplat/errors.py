@@ -35,7 +35,6 @@ class UserError(Exception):
         return text
 
 
-
 @contextlib.contextmanager
 def naming_overrides(overrides: list[str] | None):
     """Errors raised inside name the ``--set`` values that went into the checked configuration, so that a bad value
@@ -45,8 +44,9 @@ def naming_overrides(overrides: list[str] | None):
     except UserError as err:
         if not overrides:
             raise
-        raise UserError(f"{err.message} (the file's values with --set {' '.join(overrides)})", path=err.path,
-                        hint=err.hint) from None
+        err.message = f"{err.message} (the file's values with --set {' '.join(overrides)})"
+        err.args = (err.render(),)
+        raise
 
 
 def require_extra(module: str, *, feature: str, extra: str):

@@ -131,11 +131,14 @@ class Densifier:
         c = means2d_grad.shape[0]
         st = self.stats
         grad, radii = means2d_grad.detach(), radii.detach()
-        if native.use_for(grad, radii, st.grad_sum, st.count, st.max_radius, dtypes=(torch.float32,),
-                          strict=False) and grad.is_contiguous() and radii.is_contiguous():
+        n = grad.shape[1]
+        shapes_fit = (grad.shape == (c, n, 2) and radii.shape == (c, n)
+                      and all(t.shape == (n,) and t.is_contiguous() for t in (st.grad_sum, st.count, st.max_radius)))
+        if shapes_fit and grad.is_contiguous() and radii.is_contiguous() and native.use_for(
+                grad, radii, st.grad_sum, st.count, st.max_radius, dtypes=(torch.float32,), strict=False):
             # one pass instead of the ops below, the same bits (native/csrc/densify.cpp); a step's 0.3 ms at 30k
             native.library().us_densify_accumulate_f32(
-                c, grad.shape[1], grad.data_ptr(), radii.data_ptr(), 0.5 * width * c, 0.5 * height * c,
+                c, n, grad.data_ptr(), radii.data_ptr(), 0.5 * width * c, 0.5 * height * c,
                 st.grad_sum.data_ptr(), st.count.data_ptr(), st.max_radius.data_ptr())
             return
         g = grad.clone()

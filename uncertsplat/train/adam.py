@@ -4,7 +4,8 @@ The dense step (``TrainConfig.sparse_updates = "dense"``, the default) updates e
 ``torch.optim.Adam``; on CPU float32 it is one native call for all the groups (``native/csrc/optim.cpp``,
 ``us_adam_multi_f32``) on the kernels' threads, which also checks the gradients for NaN/Inf in the same call
 (``step_if_finite``), instead of one kernel per group, the Python around each, and a separate pass over every
-gradient for the check (BENCHMARKS.md, "One Adam call for every group").
+gradient for the check, with the bits of torch's fused Adam on x86 CPUs (its AVX2 kernel; BENCHMARKS.md, "One
+Adam call for every group").
 
 A view sees part of the model; with dense Adam every other Gaussian still gets an update (its momentum
 keeps moving it) and its moments decay. With ``rows`` only the given rows (the Gaussians with a footprint in the
@@ -22,8 +23,8 @@ Bias correction uses each group's own step count, as torch's Adam. The state lay
 other, and ``gaussians.ops`` edits the rows of every moment together with the parameters.
 
 On CPU float32 the sparse update is one native kernel per tensor that reads and writes only the selected rows;
-elsewhere it is gathered, updated and scattered with torch ops (same arithmetic), and the dense update is
-torch's fused Adam where torch offers it.
+elsewhere it is gathered, updated and scattered with torch ops (same arithmetic), the dense update too
+(``train.optim.make_optimizer`` gives torch's fused Adam instead where the native kernels do not run).
 """
 
 from __future__ import annotations
@@ -71,8 +72,8 @@ class Adam(torch.optim.Optimizer):
 
     @torch.no_grad()
     def step_if_finite(self, rows: dict[str, Tensor] | None = None, *, check_finite: bool = True) -> bool:
-        """:meth:`step`, but with ``check_finite`` only when every gradient is finite: returns False (and changes
-        nothing, moments and step counts included) when one holds a NaN or Inf."""
+        """As :meth:`step`; with ``check_finite`` (the default) it updates only when every gradient is finite, and
+        returns False (changing nothing, moments and step counts included) when one holds a NaN or Inf."""
         live = [g for g in self.param_groups if g["params"][0].grad is not None]
         if rows is None and not self.lazy and self._dense_native(live):
             return self._dense_step(live, check_finite)
@@ -115,10 +116,21 @@ class Adam(torch.optim.Optimizer):
         return state
 
     def _dense_native(self, live: list[dict]) -> bool:
-        """Whether the dense step of these groups is one native call (CPU float32, contiguous, one beta pair)."""
+        """Whether the dense step of these groups is one native call: CPU float32, contiguous, one beta pair, and
+        moments (once they exist) of their parameter's shape (the kernel reads raw pointers: a checkpoint's odd
+        state takes the per-group path, which refuses it)."""
         if not live or len({(tuple(g["betas"]), g["eps"]) for g in live}) != 1:
             return False
         tensors = [g["params"][0] for g in live] + [g["params"][0].grad for g in live]
+        for g in live:
+            p, state = g["params"][0], self.state.get(g["params"][0])
+            if p.grad.shape != p.shape:
+                return False
+            if state:
+                moments = [state.get("exp_avg"), state.get("exp_avg_sq")]
+                if any(m is None or m.shape != p.shape for m in moments):
+                    return False
+                tensors += moments
         return native.use_for(*tensors, dtypes=(torch.float32,), strict=False) and all(
             t.is_contiguous() for t in tensors)
 
@@ -168,6 +180,10 @@ def adam_rows(param: Tensor, grad: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor, 
         rows: [R] long, distinct row indices.
         step: this update's step number (>= 1), for the bias correction.
     """
+    for name, t in (("gradient", grad), ("first moment", exp_avg), ("second moment", exp_avg_sq)):
+        if t.shape != param.shape:  # the kernel reads raw pointers: never hand it a mismatched state
+            raise ValueError(f"Adam's {name} has shape {tuple(t.shape)}, its parameter {tuple(param.shape)} (a "
+                             "checkpoint of another model?)")
     width = param[0].numel() if param.shape[0] else 0
     if last_step is not None and (last_step.dtype != torch.long or last_step.shape != param.shape[:1]):
         raise ValueError(f"last_step must be a long tensor of shape [{param.shape[0]}], not {last_step.dtype} "

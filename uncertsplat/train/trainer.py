@@ -534,9 +534,9 @@ class Trainer:
             losses = total_loss(rgb, gt, kl, ssim_lambda=cfg.ssim_lambda, kl_weight=cfg.variational.kl_weight)
         with timer("backward"):
             losses["loss"].backward()
-        # on torch's one thread too: fused Adam is faster on two, but torch's second thread then spins after it
-        # (libgomp's wait policy) and takes a core from the next kernels: a bonsai step 21.0 -> 16.0 ms, the demo's
-        # 19.8 -> 15.6 ms, fern's 42.3 -> 37.1 ms (BENCHMARKS.md, "Adam on torch's one thread")
+        # on a CPU one native call for every group on the kernels' threads (train.adam); never torch's second
+        # thread, which spins after a parallel region (libgomp's wait policy) and takes a core from the next kernels
+        # (BENCHMARKS.md, "Adam on torch's one thread", "One Adam call for every group")
         with timer("optimizer"):
             finite = self._update(losses["loss"], out.radii)
             if finite:

@@ -15,9 +15,7 @@ extern "C" {
 int us_densify_accumulate_f32(int64_t C, int64_t N, const float* grad, const float* radii, double sx, double sy,
                               float* grad_sum, float* count, float* max_radius) {
     const float fx = static_cast<float>(sx), fy = static_cast<float>(sy);
-#if defined(__clang__)
-#pragma clang fp contract(off)
-#endif
+    // (a contraction could only fuse `norm * vis` into the sum, with vis 0 or 1: the same bits)
     for (int64_t n = 0; n < N; ++n) {
         float total = 0.0f, seen = 0.0f, widest = max_radius[n];
         for (int64_t c = 0; c < C; ++c) {

@@ -95,7 +95,8 @@ inline void torch_adam_vector(int64_t lo, int64_t hi, float* __restrict param, f
 }
 
 // Whether the gradient and both moments of elements [j, j + n) are all zero (either sign): then Adam leaves every
-// one of them, and the parameter, as it is (m = lerp(0, 0) = 0, v = 0, the step 0 / eps = 0).
+// one of them, and the parameter, as it is (m = lerp(0, 0) = 0, v = 0, the step 0 / eps = 0; with eps = 0 torch
+// would write 0 / 0 = NaN there, which no caller asks for: the optimiser's eps is 1e-15).
 inline bool inert(const float* __restrict g, const float* __restrict m, const float* __restrict v, int64_t n) {
     uint32_t acc = 0;
 #pragma omp simd reduction(| : acc)
