@@ -137,12 +137,16 @@ struct ShGradLayout {
 };
 
 inline void load_sh_lanes(int64_t n0, int64_t N, int nb, const ShLayout& sh, const float* means, VF* m, VF* s) {
-    for (int l = 0; l < LANES; ++l) {
-        const int64_t n = std::min<int64_t>(n0 + l, N - 1);
-        for (int i = 0; i < 3; ++i) m[i][l] = means[3 * n + i];
-        for (int i = 0; i < 3; ++i) s[i][l] = sh.dc[n * sh.dc_stride + i];
-        for (int i = 3; i < nb * 3; ++i) s[i][l] = sh.rest[n * sh.rest_stride + i - 3];
-    }
+    // coefficient-major, lanes inner: each vector is one gather (lane l reads Gaussian n0 + l, the last one repeated
+    // past N) instead of LANES scalar stores that the vector load after them must wait for
+    int32_t n[LANES];
+    for (int l = 0; l < LANES; ++l) n[l] = static_cast<int32_t>(std::min<int64_t>(n0 + l, N - 1));
+    for (int i = 0; i < 3; ++i)
+        for (int l = 0; l < LANES; ++l) m[i][l] = means[3 * static_cast<int64_t>(n[l]) + i];
+    for (int i = 0; i < 3; ++i)
+        for (int l = 0; l < LANES; ++l) s[i][l] = sh.dc[n[l] * sh.dc_stride + i];
+    for (int i = 3; i < nb * 3; ++i)
+        for (int l = 0; l < LANES; ++l) s[i][l] = sh.rest[n[l] * sh.rest_stride + i - 3];
 }
 
 void sh_forward(int64_t C, int64_t N, int64_t B, int degree, const ShLayout& sh, const float* means,
