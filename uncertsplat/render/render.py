@@ -98,7 +98,8 @@ def render(
     if sample.position_var is not None:
         log_o = log_o + blur_log_peak(sample, proj.conics, cam_from_world, K, W, H, near, far, eps2d,
                                       backend=backend)  # [C,N]
-    log_o = log_o.expand(C, N)
+    # [C,N]; one camera (a training step): a view whose backward is free, where expand's sums the camera axis
+    log_o = log_o.unsqueeze(0) if (log_o.dim() == 1 and C == 1) else log_o.expand(C, N)
     if composite_image_available(means2d, colors, background=background, backend=backend, compile=compile):
         # the native kernel composites straight into the images, background included
         rgb, depth_expected, alpha = composite_image(means2d, proj.conics, log_o, colors, proj.depths, bins, H, W,
