@@ -142,7 +142,12 @@ class _OldInterface:
             return lambda state: None
         fn = getattr(self._lib, name)
         if self._version < 15 and name in ("us_ssim_forward_f32", "us_ssim_backward_f32"):
-            return _older_ssim(fn, backward=name.endswith("backward_f32"), planar=self._version < 14)
+            older = _older_ssim(fn, backward=name.endswith("backward_f32"), planar=self._version < 14)
+            return older if name.endswith("backward_f32") else _without_target_stats(older)
+        if self._version < 19 and name == "us_ssim_forward_f32":
+            return _without_target_stats(fn)
+        if self._version < 19 and name.startswith("us_backward_image_"):
+            return _rows_to_blocks(fn, torch.float64 if name.endswith("f64") else torch.float32)
         if self._version < 15 and name in ("us_backward_f32", "us_backward_f64"):
             size = 8 if name.endswith("f64") else 4
 
@@ -166,6 +171,34 @@ class _OldInterface:
                 return fn(*(args if self._version >= 11 else args[:-1]))
             return fill
         return fn
+
+
+def _rows_to_blocks(fn, dtype):
+    """The image backward of interface < 19 behind today's call: it summed each Gaussian's gradient into rows [G, 11],
+    today's into one block per input (``composite.h`` PLANAR_START); the rows are rearranged into the blocks after
+    the call (a copy of 11 G numbers, about 2 % of the compositor's backward, which the code of that interface made
+    downstream anyway: each input's strided gradient was copied by the kernel that read it)."""
+    import numpy as np
+
+    def call(*args):
+        G = args[9]
+        rows = torch.empty(G, 11, dtype=dtype)
+        rc = fn(*args[:-1], rows.data_ptr())
+        ctype = ctypes.c_double if dtype == torch.float64 else ctypes.c_float
+        out = torch.from_numpy(np.ctypeslib.as_array(ctypes.cast(args[-1], ctypes.POINTER(ctype)), shape=(11 * G,)))
+        for start, stop in ((0, 2), (2, 5), (5, 6), (6, 9), (9, 10), (10, 11)):
+            out[start * G:stop * G].view(G, stop - start).copy_(rows[:, start:stop])
+        return rc
+    return call
+
+
+def _without_target_stats(fn):
+    """The SSIM forward of interface < 19 behind today's call: no ``ystats`` argument (the target's blurred mean and
+    mean square, given by a caller that keeps them, e.g. training); that kernel blurs the target itself, as it did
+    in every step before."""
+    def call(B, H, W, K, CH, x, y, ystats, *rest):
+        return fn(B, H, W, K, CH, x, y, *rest)
+    return call
 
 
 def _older_ssim(fn, backward: bool, planar: bool):
@@ -249,7 +282,9 @@ def build_reference(ref: str, out_dir: Path):
         k = 4 if version < 14 else 5  # the channel count came with version 14
         lib.us_ssim_forward_f32.argtypes = [i64] * k + [ptr] * 3 + [f64, f64, ptr, ptr, i64]
         lib.us_ssim_backward_f32.argtypes = [i64] * k + [ptr] * 6 + [i64]
-    return (lib if version >= 17 else _OldInterface(lib, version)), version
+    elif version < 19:  # no ystats
+        lib.us_ssim_forward_f32.argtypes = [i64] * 5 + [ptr] * 3 + [f64, f64, ptr, ptr, ptr, i64]
+    return (lib if version >= 19 else _OldInterface(lib, version)), version
 
 
 def alternate(fns: dict, repeats: int) -> dict:
@@ -386,12 +421,12 @@ def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, wid
     win = gaussian_window(dtype=torch.float32)
     threads = native.kernel_threads()
 
-    def forward(lib):
+    def forward(lib, ystats=None):
         def call():
             pm, part = torch.empty(planes, dtype=torch.float64), torch.empty(3, planes, height, width)
             lib.us_ssim_forward_f32(planes, height, width, win.numel(), channels, x.data_ptr(), y.data_ptr(),
-                                    win.data_ptr(), SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, pm.data_ptr(), part.data_ptr(),
-                                    None, threads)
+                                    ystats.data_ptr() if ystats is not None else None, win.data_ptr(),
+                                    SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, pm.data_ptr(), part.data_ptr(), None, threads)
             return pm, part
         return call
 
@@ -407,8 +442,18 @@ def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, wid
 
     (pm_a, part_a), (pm_b, part_b) = parts.values()
     grads = [backward(lib, parts[k][1])() for k, lib in libs.items()]
+    # the current kernels' forward with the target's blurred mean and mean square given (what training keeps for
+    # its photos), against the reference's forward as it is
+    ystats = torch.empty(2, planes, height, width)
+    libs["current"].us_ssim_target_stats_f32(planes, height, width, win.numel(), channels, y.data_ptr(),
+                                             win.data_ptr(), ystats.data_ptr(), threads)
+    given = forward(libs["current"], ystats)()
     return {"case": f"{planes} planes of {width}x{height}" + (f", {channels} channels HWC" if channels > 1 else ""),
             "forward": alternate({k: forward(lib) for k, lib in libs.items()}, repeats),
+            "forward_target_given": alternate({"reference": forward(libs["reference"]),
+                                               "current": forward(libs["current"], ystats)}, repeats),
+            "target_given_same_bits": bool(torch.equal(given[0], parts["current"][0])
+                                           and torch.equal(given[1], parts["current"][1])),
             "backward": alternate({k: backward(lib, parts[k][1]) for k, lib in libs.items()}, repeats),
             "max_mean_difference": float((pm_a - pm_b).abs().max()),
             "max_gradient_difference": float((grads[0] - grads[1]).abs().max())}
@@ -422,6 +467,10 @@ def bench_training(libs: dict, run: Path, scene: Path, rounds: int, block: int) 
 
     cfg = TrainConfig.model_validate_json((run / "config.json").read_text())
     trainer = trainer_from_run(scene, run, cfg, torch.device("cpu"), extra_steps=(rounds + 1) * block * len(libs) + 10)
+    # every photo's SSIM statistics by the current library first (training keeps them from a photo's first step);
+    # a reference of interface < 19 has no such kernel and blurs the photo in every step, as it did
+    with_lib(libs["current"], lambda: [trainer.ssim_cache.get((i, False), trainer.train_images[i:i + 1])
+                                       for i in range(trainer.train_images.shape[0])])()
     (bin_args, bin_kw), comp = capture_render_inputs(with_lib(libs["current"], trainer.train_step))
     per_step = {k: [] for k in libs}
     for r in range(rounds + 1):
@@ -508,6 +557,8 @@ def main() -> None:
             ("SSIM forward (3 x 320x240)", result["ssim"]["forward"]),
             ("SSIM backward", result["ssim"]["backward"]),
             ("SSIM forward (a 401x266 RGB image, HWC)", result["ssim_hwc"]["forward"]),
+            ("SSIM forward, the target's statistics given (current) against blurred (reference)",
+             result["ssim_hwc"]["forward_target_given"]),
             ("SSIM backward (the same)", result["ssim_hwc"]["backward"])]
     if "dense" in result:
         dn, mm = result["dense"], result["dense"]["matmul_2048"]

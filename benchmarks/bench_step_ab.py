@@ -10,6 +10,8 @@ median per mode are compared. ``--what``:
   permuted copies of the channels, L1 as tensor ops.
 - ``train-on``: the informed posterior's Gaussians fitted to the posterior mean's render
   (``variational.train_on = "mean"``, now) against the expected render (``"expected"``, before).
+- ``ssim-cache``: the training photos' SSIM statistics kept (``ssim_cache_mb``, the default 1024 MB, now) against
+  blurring the photo in every step's SSIM (``ssim_cache_mb = 0``, before); the same loss to the bit.
 
 Page faults per step are reported too (fresh pages the allocator got from the system). glibc's malloc thresholds
 must not be set by ``mallopt`` in a "before" mode: setting them turns off its dynamic thresholds for the rest of
@@ -55,7 +57,7 @@ class _PlanarSSIM(torch.autograd.Function):
     def forward(ctx, x, y, window):
         B, H, W = x.shape
         mean, partials = torch.empty(B, dtype=torch.float64), x.new_empty(3, B, H, W)
-        native.library().us_ssim_forward_f32(B, H, W, window.numel(), 1, x.data_ptr(), y.data_ptr(),
+        native.library().us_ssim_forward_f32(B, H, W, window.numel(), 1, x.data_ptr(), y.data_ptr(), None,
                                              window.data_ptr(), image_module.SSIM_C1_DEFAULT,
                                              image_module.SSIM_C2_DEFAULT, mean.data_ptr(), partials.data_ptr(),
                                              None, native.kernel_threads())
@@ -110,11 +112,28 @@ def _train_on_modes(trainer):
     return setter("expected"), setter("mean")
 
 
+def _ssim_cache_modes(trainer):
+    """(set_before, set_now) for ``ssim-cache``: no photo statistics kept, then the trainer's own cache."""
+    from uncertsplat.train.losses import SsimTargetCache
+
+    kept, none = trainer.ssim_cache, SsimTargetCache(0)
+    # every photo's statistics first, as after a training run's first epoch (a photo's first step computes them once)
+    for i in range(trainer.train_images.shape[0]):
+        kept.get((i, False), trainer.train_images[i:i + 1])
+
+    def before():
+        trainer.ssim_cache = none
+
+    def now():
+        trainer.ssim_cache = kept
+    return before, now
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--run", type=Path, required=True, help="a run folder with checkpoints")
     ap.add_argument("--scene", type=Path, required=True, help="the scene of --run")
-    ap.add_argument("--what", choices=["fused-image", "train-on"], default="fused-image")
+    ap.add_argument("--what", choices=["fused-image", "train-on", "ssim-cache"], default="fused-image")
     ap.add_argument("--rounds", type=int, default=16)
     ap.add_argument("--block", type=int, default=10)
     ap.add_argument("--label", default="run")
@@ -124,7 +143,9 @@ def main() -> None:
     cfg = TrainConfig.model_validate(json.loads((args.run / "config.json").read_text()))
     trainer = trainer_from_run(args.scene, args.run, cfg, torch.device("cpu"),
                                extra_steps=2 * args.block * args.rounds + 10)
-    set_before, set_now = _fused_image_modes() if args.what == "fused-image" else _train_on_modes(trainer)
+    modes = {"fused-image": lambda: _fused_image_modes(), "train-on": lambda: _train_on_modes(trainer),
+             "ssim-cache": lambda: _ssim_cache_modes(trainer)}
+    set_before, set_now = modes[args.what]()
     for _ in range(5):  # warm-up
         trainer.train_step()
     seconds: dict[str, list[float]] = {"before": [], "now": []}

@@ -356,6 +356,11 @@ class TrainConfig(_Base):
     exposure_lr: float = Field(2e-3, gt=0.0)
     """Adam learning rate of the exposure parameters (log gain and offset)."""
     ssim_lambda: float = Field(0.2, ge=0.0, le=1.0)
+    ssim_cache_mb: float = Field(1024.0, ge=0.0)
+    """Memory (MB) for the training photos' own SSIM statistics, kept from each photo's first step (8 bytes per pixel
+    and channel: 3 MB for a 400x266 photo): the fused CPU SSIM then blurs three of its five quantities a step, the
+    same loss to the bit (BENCHMARKS.md, "The photos' SSIM statistics kept"). Photos beyond the budget are blurred
+    every step as before. 0: off. Unused on CUDA."""
     tile_size: int = Field(8, ge=2, le=64)
     batch_size: int = Field(1, ge=1)
     init_opacity: float = Field(0.1, gt=0.0, lt=1.0)

@@ -5,7 +5,7 @@ Shapes follow ``uncertsplat.conventions``: C cameras, N Gaussians, H, W image si
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import InitVar, dataclass, field, fields, replace
 from pathlib import Path
 
 import torch
@@ -225,7 +225,8 @@ class RenderOutput:
     Attributes:
         rgb: [C,H,W,3] composited colour including the background.
         alpha: [C,H,W,1] accumulated opacity.
-        depth: [C,H,W,1] alpha-normalised camera z (0 where alpha == 0).
+        depth: [C,H,W,1] alpha-normalised camera z (0 where alpha == 0): given, or computed from ``depth_expected``
+            and ``alpha`` when first read (a training step never reads it: five image-sized tensor ops saved).
         depth_expected: [C,H,W,1] sum of w_i z_i (not normalised).
         means2d: [C,N,2] projected means in pixels; its ``.grad`` after backward is what the
             densification strategy reads (the tensor retains its gradient).
@@ -235,11 +236,27 @@ class RenderOutput:
 
     rgb: Tensor
     alpha: Tensor
-    depth: Tensor
     depth_expected: Tensor
     means2d: Tensor
     radii: Tensor
     depths: Tensor | None = None
+    depth: InitVar[Tensor | None] = None
+
+    def __post_init__(self, depth: Tensor | None) -> None:
+        object.__setattr__(self, "_depth", depth)
+
+
+def _render_depth(self: RenderOutput) -> Tensor:
+    if self._depth is None:
+        hit = self.alpha > 0
+        # A hit pixel has alpha >= 1/255 (its first contribution alone), so the division is safe.
+        object.__setattr__(self, "_depth", torch.where(
+            hit, self.depth_expected / torch.where(hit, self.alpha, torch.ones_like(self.alpha)), 0.0))
+    return self._depth
+
+
+# set after the dataclass is built: its ``depth`` init argument reads the class attribute as the default
+RenderOutput.depth = property(_render_depth, doc="[C,H,W,1] alpha-normalised camera z (0 where alpha == 0).")
 
 
 @dataclass(frozen=True)

@@ -414,6 +414,52 @@ def test_fused_ssim_leaves_other_cases_to_the_reference(monkeypatch):
     assert t.grad is not None and torch.isfinite(t.grad).all()
 
 
+@pytest.mark.parametrize("shape", [(37, 53, 3), (2, 24, 19, 3), (3, 21, 17, 1), (1, 1, 3), (5, 30, 3)])
+def test_fused_ssim_with_the_targets_statistics_given_is_the_same_to_the_bit(monkeypatch, shape):
+    """``ssim_target_stats`` of the target, passed to ``ssim_and_l1``: the kernel reads them instead of blurring
+    the target, and the value, the L1 term and the gradient are the same bits as without them, on 1-3 threads
+    (image widths not a multiple of the lanes, one-pixel images and more tasks than rows included); statistics of
+    another shape are refused."""
+    from uncertsplat.eval.image import ssim_and_l1, ssim_target_stats
+
+    monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "native")
+    g = torch.Generator().manual_seed(7)
+    target = torch.rand(shape, generator=g)
+    pred = (target + 0.2 * torch.randn(shape, generator=g)).clamp(0, 1)
+    stats = ssim_target_stats(target)
+    planes = target[..., 0, 0, 0].numel() * shape[-1]
+    assert stats.shape == (2, planes, shape[-3], shape[-2])
+    before = torch.get_num_threads()
+    try:
+        for threads in (1, 2, 3):
+            torch.set_num_threads(threads)
+            out = []
+            for given in (None, stats):
+                x = pred.clone().requires_grad_()
+                s, l1 = ssim_and_l1(x, target, given)
+                (0.8 * l1 + 0.2 * (1 - s)).backward()
+                out.append((s.detach(), l1.detach(), x.grad))
+            assert all(torch.equal(a, b) for a, b in zip(out[0], out[1], strict=True))
+    finally:
+        torch.set_num_threads(before)
+    with pytest.raises(ValueError, match="target_stats"):
+        ssim_and_l1(pred, target, stats[:, :1])
+
+
+def test_the_targets_statistics_are_its_blurred_mean_and_mean_square(monkeypatch):
+    """What the kernel keeps of a target: the zero-padded 11x11 Gaussian blur of y and of y^2 per channel (the
+    reference's tensor ops, float64); None where the fused kernel does not run (float64)."""
+    from uncertsplat.eval.image import _blur, gaussian_window, ssim_target_stats
+
+    monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "native")
+    y = torch.rand(2, 23, 31, 3, generator=torch.Generator().manual_seed(3))
+    stats = ssim_target_stats(y)
+    planes = y.permute(0, 3, 1, 2).reshape(1, 6, 23, 31).double()
+    ref = _blur(torch.cat([planes, planes * planes], dim=1), gaussian_window(dtype=torch.float64), "same")[0]
+    assert torch.allclose(stats.reshape(12, 23, 31).double(), ref, atol=1e-6)
+    assert ssim_target_stats(y.double()) is None
+
+
 @pytest.mark.parametrize("weights", [(0.8, 0.2), (1.0, 0.0), (0.0, 1.0)])
 @pytest.mark.parametrize("shape", [(37, 53, 3), (2, 24, 19, 3), (3, 21, 19, 1), (1, 1, 3), (3, 2, 1, 2)])
 def test_the_l1_term_from_the_fused_ssim_pass(monkeypatch, shape, weights):

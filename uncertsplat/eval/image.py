@@ -143,16 +143,37 @@ def ssim(
     return per_image.mean() if reduction == "mean" else per_image
 
 
-def ssim_and_l1(pred: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+def ssim_and_l1(pred: Tensor, target: Tensor, target_stats: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """(mean SSIM, mean |pred - target|) of HWC images [...,H,W,Ch] in [0, 1], both differentiable w.r.t. ``pred``:
     the training loss's two image terms. Where :func:`ssim` runs the fused native kernel, both come from its one
     pass over the images (the L1 term's subtraction, absolute value, mean and their backward are a few tensor ops
-    per training step otherwise); elsewhere :func:`ssim` and the plain L1."""
+    per training step otherwise); elsewhere :func:`ssim` and the plain L1.
+
+    ``target_stats``: :func:`ssim_target_stats` of ``target`` (or None), which the fused kernel then reads instead of
+    blurring the target again (a caller whose targets repeat keeps them: the training photos); the same result to
+    the bit. Ignored where the fused kernel does not run."""
     _check_pair(pred, target)
     if _fused_ssim(pred, target, "same"):
-        per_image, l1 = _fused_ssim_l1(pred, target)
+        per_image, l1 = _fused_ssim_l1(pred, target, target_stats)
         return per_image.mean(), l1
     return ssim(pred, target), (pred - target).abs().mean()
+
+
+def ssim_target_stats(target: Tensor) -> Tensor | None:
+    """The blurred mean and mean square of each channel of HWC images [...,H,W,Ch] ([2, n x Ch, H, W], the planes
+    image-major), as the fused SSIM computes them of its target, or None where the fused kernel does not take these
+    images (not a CPU float32 tensor, or the native kernels off). 8 bytes per pixel and channel."""
+    if not _fused_ssim(target, target.detach(), "same"):
+        return None
+    from uncertsplat import native
+
+    h, w, ch = target.shape[-3:]
+    y = target.detach().reshape(-1, h, w, ch).contiguous()
+    out = y.new_empty(2, y.shape[0] * ch, h, w)
+    window = _fused_window()
+    native.library().us_ssim_target_stats_f32(out.shape[1], h, w, window.numel(), ch, y.data_ptr(),
+                                              window.data_ptr(), out.data_ptr(), native.kernel_threads())
+    return out
 
 
 def _fused_ssim(pred: Tensor, target: Tensor, padding: str) -> bool:
@@ -169,26 +190,32 @@ def _fused_window() -> Tensor:
     return gaussian_window(dtype=torch.float32)
 
 
-def _fused_ssim_l1(pred: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
+def _fused_ssim_l1(pred: Tensor, target: Tensor, target_stats: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """(per-image mean SSIM [...], mean |pred - target| over everything) by the fused kernel."""
     lead, (h, w, ch) = pred.shape[:-3], pred.shape[-3:]
     # the kernel reads the channels of HWC images as planes in place (no permuted copies)
     images = [t.reshape(-1, h, w, ch).contiguous() for t in (pred, target)]
+    if target_stats is not None:
+        planes = images[0].shape[0] * ch
+        if target_stats.shape != (2, planes, h, w) or target_stats.dtype != torch.float32:
+            raise ValueError(f"target_stats must be ssim_target_stats(target), [2, {planes}, {h}, {w}] float32; got "
+                             f"{list(target_stats.shape)} {target_stats.dtype}")
+        target_stats = target_stats.contiguous()
     window = _fused_window()
-    plane_ssim, plane_l1 = _FusedSSIM.apply(images[0], images[1].detach(), window)
+    plane_ssim, plane_l1 = _FusedSSIM.apply(images[0], images[1].detach(), window, target_stats)
     return plane_ssim.view(-1, ch).mean(-1).reshape(lead), plane_l1.mean()
 
 
 class _FusedSSIM(torch.autograd.Function):
     """Mean SSIM and mean |x - y| of each channel of images [n,H,W,Ch] by the native kernel ([n*Ch] each,
-    image-major), 11x11 window, zero padding.
+    image-major), 11x11 window, zero padding; ``ystats`` [2, n*Ch, H, W] (or None): y's blurred mean and mean square.
 
     Forward keeps the per-pixel partial derivatives of the SSIM map w.r.t. (mu_x, E[x^2], E[xy]);
     backward blurs them (the zero-padded symmetric blur is its own adjoint) into d loss / d x.
     """
 
     @staticmethod
-    def forward(ctx, x: Tensor, y: Tensor, window: Tensor) -> Tensor:
+    def forward(ctx, x: Tensor, y: Tensor, window: Tensor, ystats: Tensor | None) -> Tensor:
         from uncertsplat import native
 
         lib = native.library()
@@ -197,7 +224,8 @@ class _FusedSSIM(torch.autograd.Function):
         B = n * ch
         plane_mean, plane_l1 = torch.empty(B, dtype=torch.float64), torch.empty(B, dtype=torch.float64)
         partials = x.new_empty(3, B, H, W) if x.requires_grad else None
-        lib.us_ssim_forward_f32(B, H, W, window.numel(), ch, x.data_ptr(), y.data_ptr(), window.data_ptr(),
+        lib.us_ssim_forward_f32(B, H, W, window.numel(), ch, x.data_ptr(), y.data_ptr(),
+                                ystats.data_ptr() if ystats is not None else None, window.data_ptr(),
                                 SSIM_C1_DEFAULT, SSIM_C2_DEFAULT, plane_mean.data_ptr(),
                                 partials.data_ptr() if partials is not None else None, plane_l1.data_ptr(),
                                 native.kernel_threads())
@@ -211,7 +239,7 @@ class _FusedSSIM(torch.autograd.Function):
         x, y, window, partials = ctx.saved_tensors
         n, H, W, ch = x.shape
         if grad is None and grad_l1 is None:
-            return None, None, None
+            return None, None, None, None
         g_plane = grad.to(torch.float32).contiguous() if grad is not None else x.new_zeros(n * ch)
         g_l1 = grad_l1.to(torch.float32).contiguous() if grad_l1 is not None else None
         g_x = torch.empty_like(x)
@@ -219,7 +247,7 @@ class _FusedSSIM(torch.autograd.Function):
                                               window.data_ptr(), partials.data_ptr(), g_plane.data_ptr(),
                                               g_l1.data_ptr() if g_l1 is not None else None, g_x.data_ptr(),
                                               native.kernel_threads())
-        return g_x, None, None
+        return g_x, None, None, None
 
 
 # ------------------------------------------------------------------------------------------------ LPIPS

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import torch
 
-INTERFACE_VERSION = 18
+INTERFACE_VERSION = 19
 CSRC = Path(__file__).with_name("csrc")
 # compiled side by side, one process each (``_build``): the two halves of the rasterizer take most of the time
 SOURCES = (CSRC / "composite_forward.cpp", CSRC / "composite_backward.cpp", CSRC / "losses.cpp", CSRC / "project.cpp",
@@ -182,8 +182,10 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.us_gaussian_kl_f32.restype = f64
     lib.us_scale_kl_f32.argtypes = [i64, ptr, ptr, f64, i64, f64, f64, ptr, ptr, i64]
     lib.us_scale_kl_f32.restype = f64
-    lib.us_ssim_forward_f32.argtypes = [i64] * 5 + [ptr] * 3 + [f64, f64, ptr, ptr, ptr, i64]
+    lib.us_ssim_forward_f32.argtypes = [i64] * 5 + [ptr] * 4 + [f64, f64, ptr, ptr, ptr, i64]
     lib.us_ssim_forward_f32.restype = ctypes.c_int
+    lib.us_ssim_target_stats_f32.argtypes = [i64] * 5 + [ptr] * 3 + [i64]
+    lib.us_ssim_target_stats_f32.restype = ctypes.c_int
     lib.us_ssim_backward_f32.argtypes = [i64] * 5 + [ptr] * 7 + [i64]
     lib.us_ssim_backward_f32.restype = ctypes.c_int
     lib.us_sh_forward_f32.argtypes = [i64] * 4 + [ptr] * 4 + [i64]

@@ -592,7 +592,9 @@ class _CompositeImageNative(torch.autograd.Function):
         grads = [g.to(means2d.dtype).contiguous() if g is not None else None for g in (g_rgb, g_depth, g_alpha)]
         M, G = bins.pair_gauss.numel(), C * N
         g_pair = _scratch(M * 11, means2d.dtype).view(M, 11)  # every row is written by the kernel
-        g_all = means2d.new_empty(G, 11)  # [G, 11]: the kernel sums every pair of each Gaussian
+        # [11 G]: the kernel sums every pair of each Gaussian into one block per input (means [G,2], conics [G,3],
+        # log opacities [G], colours [G,3], depths [G], the constant feature [G]), so each gradient is contiguous
+        g_all = means2d.new_empty(11 * G)
         lib = native.library()
         fn = lib.us_backward_image_f64 if means2d.dtype == torch.float64 else lib.us_backward_image_f32
         rc = fn(*_native_head(bins, 5), G, M, height, width,
@@ -601,9 +603,8 @@ class _CompositeImageNative(torch.autograd.Function):
                 bins.tile_count.data_ptr(), t_final.data_ptr(), last.data_ptr(),
                 *(g.data_ptr() if g is not None else None for g in grads), g_pair.data_ptr(), g_all.data_ptr())
         _check_composite(rc, " backward")
-        g_all = g_all.view(C, N, 11)
-        return (g_all[..., 0:2], g_all[..., 2:5], g_all[..., 5], g_all[..., 6:9], g_all[..., 9], None, None, None,
-                None)
+        return (g_all[:2 * G].view(C, N, 2), g_all[2 * G:5 * G].view(C, N, 3), g_all[5 * G:6 * G].view(C, N),
+                g_all[6 * G:9 * G].view(C, N, 3), g_all[9 * G:10 * G].view(C, N), None, None, None, None)
 
 
 def composite_image(means2d: Tensor, conics: Tensor, log_o: Tensor, colors: Tensor, depths: Tensor,

@@ -115,14 +115,10 @@ def render(
         rgb, depth_expected, alpha = img[..., 0:3], img[..., 3:4], img[..., 4:5]
         if background is not None:
             rgb = rgb + (1.0 - alpha) * background.to(rgb)
-    hit = alpha > 0
-    # A hit pixel has alpha >= 1/255 (its first contribution alone), so the division is safe.
-    depth = torch.where(hit, depth_expected / torch.where(hit, alpha, torch.ones_like(alpha)), 0.0)
     radii = proj.extents.amax(dim=-1)  # [C,N]
-    return RenderOutput(
+    return RenderOutput(  # its depth (normalised by alpha) is computed when read
         rgb=rgb,
         alpha=alpha,
-        depth=depth,
         depth_expected=depth_expected,
         means2d=means2d,
         radii=radii,

@@ -61,7 +61,7 @@ from uncertsplat.strategy.schedule import sh_degree_at
 from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due
 from uncertsplat.strategy.view_checks import check_views
 from uncertsplat.train.adam import Adam, all_finite
-from uncertsplat.train.losses import total_loss
+from uncertsplat.train.losses import SsimTargetCache, total_loss
 from uncertsplat.train.optim import base_rates, load_optimizer_state, make_optimizer, set_rates
 from uncertsplat.train.profile import PhaseTimer
 from uncertsplat.types import Cameras, GaussianSample, SceneData
@@ -135,6 +135,8 @@ class Trainer:
         self.informed = self.variational and cfg.posterior == "informed"
         self.posterior_updates: list[dict] = []  # one record per informed-posterior update (kept in checkpoints)
         self.timer = PhaseTimer(self.device, cfg.profile)  # seconds per phase of this process's steps
+        # the photos' own SSIM statistics, blurred once instead of every step (the same loss to the bit)
+        self.ssim_cache = SsimTargetCache(int(cfg.ssim_cache_mb * 2**20))
         # the table terms of the expected render while the tables stay fixed (dropped whenever the tables or
         # the topology may have changed: posterior updates, densification, growth and SH-band checks)
         self._expected: ExpectedConstants | None = None
@@ -491,10 +493,12 @@ class Trainer:
             views = [self._next_view() for _ in range(min(cfg.batch_size, len(self.train_idx)))]
             # one view: a slice, which shares the image's memory (a list index copies it)
             pick = slice(views[0], views[0] + 1) if len(views) == 1 else views
-            if self.low_cams is not None and step <= self.low_res_until:
+            low = self.low_cams is not None and step <= self.low_res_until
+            if low:
                 cams, gt = self.low_cams[pick], self.low_images[pick]
             else:
                 cams, gt = self.train_cams[pick], self.train_images[pick]
+            gt_stats = self.ssim_cache.get((views[0], low), gt) if len(views) == 1 and cfg.ssim_lambda > 0 else None
         with timer("sample"):
             if self.informed and cfg.variational.train_on in ("expected", "mean"):
                 if cfg.variant == "ours" and (self._expected is None or not self._expected.fits(self.model)):
@@ -531,7 +535,8 @@ class Trainer:
                 gain, offset = centred(self.exposure)
                 idx = torch.as_tensor(views, dtype=torch.long, device=self.device)
                 rgb = expose(rgb, gain[idx], offset[idx])
-            losses = total_loss(rgb, gt, kl, ssim_lambda=cfg.ssim_lambda, kl_weight=cfg.variational.kl_weight)
+            losses = total_loss(rgb, gt, kl, ssim_lambda=cfg.ssim_lambda, kl_weight=cfg.variational.kl_weight,
+                                target_stats=gt_stats)
         with timer("backward"):
             losses["loss"].backward()
         # on a CPU one native call for every group on the kernels' threads (train.adam); never torch's second

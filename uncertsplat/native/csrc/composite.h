@@ -610,13 +610,24 @@ void forward_all(const Params& prm, int64_t G, const S* gp, const S* feat, const
     });
 }
 
+// Where the image backward's per-Gaussian sums go (PLANAR): one contiguous block per input, [G, 2] means, [G, 3]
+// conics, [G] log opacities, [G, 3] colours, [G] depths, [G] the constant feature, so that each input's gradient is
+// one contiguous tensor (the projection and SH kernels read them as they are; strided slices of [G, 11] rows cost
+// a copy each, 0.4 ms of a bonsai training step). Per field f of a pair's row: its block's start (in units of G),
+// the block's width, and f's column in it.
+constexpr int PLANAR_START[11] = {0, 0, 2, 2, 2, 5, 6, 6, 6, 9, 10};
+constexpr int PLANAR_WIDTH[11] = {2, 2, 3, 3, 3, 1, 3, 3, 3, 1, 1};
+constexpr int PLANAR_COLUMN[11] = {0, 1, 0, 1, 2, 0, 0, 1, 2, 0, 0};
+
 // Per-pair gradients first (one thread owns a tile), then per-Gaussian sums in pair order: worker w
 // adds the pairs of the Gaussians in its index range, so every sum is taken in the same order whatever
-// the number of threads (backward is deterministic, and resumed training is bit-identical).
-template <typename S, int F>
+// the number of threads (backward is deterministic, and resumed training is bit-identical). The sums go to
+// g_gauss as rows [G, 6 + F], or (PLANAR, F = IMAGE_F only) as the blocks above.
+template <typename S, int F, bool PLANAR = false>
 void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S* feat, const int32_t* pair_gauss,
                   const int64_t* tile_start, const int64_t* tile_count, const S* t_final, const int32_t* last,
                   const S* g_out, S* g_pair, S* g_gauss, const ImageIO<S>* io = nullptr) {
+    static_assert(!PLANAR || 6 + F == 11, "the planar layout is the image backward's");
     Records<S> rec(G, F);
     gaussian_records<S>(prm, G, F, gp, feat, io, rec.data);
     const LaneGrid<S> grid(prm.tile_size);
@@ -630,14 +641,26 @@ void backward_all(const Params& prm, int64_t G, int64_t M, const S* gp, const S*
     const int64_t reducers = std::max<int64_t>(1, std::min<int64_t>(prm.num_threads, G / 4096 + 1));
     uskern::run_workers(reducers, [&](int64_t w) {
         const int64_t lo = G * w / reducers, hi = G * (w + 1) / reducers;
-        std::fill(g_gauss + lo * (6 + F), g_gauss + hi * (6 + F), S(0));  // the caller need not zero it
+        if constexpr (PLANAR) {  // the caller need not zero it
+            for (int f = 0; f < 11; ++f)
+                if (PLANAR_COLUMN[f] == 0)
+                    std::fill(g_gauss + PLANAR_START[f] * G + lo * PLANAR_WIDTH[f],
+                              g_gauss + PLANAR_START[f] * G + hi * PLANAR_WIDTH[f], S(0));
+        } else {
+            std::fill(g_gauss + lo * (6 + F), g_gauss + hi * (6 + F), S(0));
+        }
         for (int64_t t = 0; t < prm.num_tiles; ++t)  // pairs in ascending order, the written rows only
             for (int64_t k = tile_start[t], k1 = k + tile_used[t]; k < k1; ++k) {
                 const int64_t g = pair_gauss[k];
                 if (g < lo || g >= hi) continue;
                 const S* src = g_pair + k * (6 + F);
-                S* dst = g_gauss + g * (6 + F);
-                for (int f = 0; f < 6 + F; ++f) dst[f] += src[f];
+                if constexpr (PLANAR) {
+                    for (int f = 0; f < 11; ++f)
+                        g_gauss[PLANAR_START[f] * G + g * PLANAR_WIDTH[f] + PLANAR_COLUMN[f]] += src[f];
+                } else {
+                    S* dst = g_gauss + g * (6 + F);
+                    for (int f = 0; f < 6 + F; ++f) dst[f] += src[f];
+                }
             }
     });
 }
@@ -696,7 +719,7 @@ int backward_image(const Params& prm, int64_t G, int64_t M, const ImageIO<S>& io
                    const int64_t* tile_start, const int64_t* tile_count, const S* t_final, const int32_t* last,
                    S* g_pair, S* g_gauss) {
     try {
-        backward_all<S, IMAGE_F>(prm, G, M, nullptr, nullptr, pair_gauss, tile_start, tile_count, t_final, last,
+        backward_all<S, IMAGE_F, true>(prm, G, M, nullptr, nullptr, pair_gauss, tile_start, tile_count, t_final, last,
                                  nullptr, g_pair, g_gauss, &io);
     } catch (const std::bad_alloc&) {
         return 2;

@@ -19,8 +19,8 @@ US_BACKWARD(f32, float)
 US_BACKWARD(f64, double)
 
 // The backward of us_forward_image: d loss / d rgb, depth, alpha (each may be null: 0) -> per-pair rows
-// g_pair [M, 11] (scratch) and per-Gaussian sums g_gauss [G, 11]: mean x, mean y,
-// conic a, b, c, log opacity, colour r, g, b, depth, and the constant feature's (unused).
+// g_pair [M, 11] (scratch) and per-Gaussian sums g_gauss [11 G] in blocks: means [G, 2], conics [G, 3], log
+// opacities [G], colours [G, 3], depths [G], and the constant feature's [G] (unused) (composite.h, PLANAR_START).
 #define US_BACKWARD_IMAGE(SUFFIX, S)                                                                             \
     int us_backward_image_##SUFFIX(int64_t num_tiles, int64_t tiles_x, int64_t tiles_per_cam, int64_t tile_size, \
                                    int64_t num_threads, double alpha_min, double alpha_max, double t_min,       \

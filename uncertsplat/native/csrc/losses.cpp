@@ -168,26 +168,45 @@ void parallel_ranges(int64_t n, int64_t workers, size_t buf_size, Fn fn) {
     });
 }
 
-// Horizontal blur of NQ quantities of one row: out[q][x] = sum_k w[k] f_q(a[x + k], b[x + k]) for the
-// padded input rows a, b; f = (a, b, a^2, b^2, a b) for the forward (NQ = 5, products formed on the
-// fly), f = (a, b, c) of three inputs for the backward.
-template <int NQ>
+// What a horizontal pass blurs, from the padded input rows a, b, c: kFull the SSIM forward's a, b, a^2, b^2, a b
+// (products formed on the fly); kPred the forward's a, a^2, a b when the target's own blurs are given (its b and b^2
+// never change from step to step); kTarget those, b and b^2; kInputs the backward's a, b, c. Each quantity is summed
+// with the same operations in every mode, so a blur is the same to the bit whichever pass computes it.
+enum class HQ { kFull, kPred, kTarget, kInputs };
+template <HQ Q>
+constexpr int num_quantities() {
+    return Q == HQ::kFull ? 5 : (Q == HQ::kTarget ? 2 : 3);
+}
+
+// Horizontal blur of one row: out[q][x] = sum_k w[k] f_q(a[x + k], b[x + k], c[x + k]) for the padded rows a, b, c
+// and the quantities f_q of mode Q.
+template <HQ Q>
 inline void hblur_row(const SsimRows& g, const float* w, const float* a, const float* b, const float* c,
                       float* const* out) {
+    constexpr int NQ = num_quantities<Q>();
     for (int64_t x0 = 0; x0 < g.Wp; x0 += SSIM_LANES) {
         VS acc[NQ] = {};
         for (int64_t k = 0; k < g.K; ++k) {
             const float wk = w[k];
-            const VS va = load_vs(a + x0 + k), vb = load_vs(b + x0 + k);
-            if constexpr (NQ == 5) {
+            if constexpr (Q == HQ::kFull) {
+                const VS va = load_vs(a + x0 + k), vb = load_vs(b + x0 + k);
                 acc[0] += wk * va;
                 acc[1] += wk * vb;
                 acc[2] += wk * (va * va);
                 acc[3] += wk * (vb * vb);
                 acc[4] += wk * (va * vb);
-            } else {
+            } else if constexpr (Q == HQ::kPred) {
+                const VS va = load_vs(a + x0 + k), vb = load_vs(b + x0 + k);
                 acc[0] += wk * va;
-                acc[1] += wk * vb;
+                acc[1] += wk * (va * va);
+                acc[2] += wk * (va * vb);
+            } else if constexpr (Q == HQ::kTarget) {
+                const VS vb = load_vs(b + x0 + k);
+                acc[0] += wk * vb;
+                acc[1] += wk * (vb * vb);
+            } else {
+                acc[0] += wk * load_vs(a + x0 + k);
+                acc[1] += wk * load_vs(b + x0 + k);
                 acc[2] += wk * load_vs(c + x0 + k);
             }
         }
@@ -256,25 +275,58 @@ std::vector<float>& scratch(size_t n) {
     return buf;
 }
 
+// Loads the first n (<= LANES) floats at p into the lanes of a vector (the others 0).
+inline VS load_lanes(const float* p, int64_t n) {
+    if (n == SSIM_LANES) return load_vs(p);
+    VS v{};
+    std::memcpy(&v, p, sizeof(float) * n);
+    return v;
+}
+
+// The SSIM map of LANES pixels from their local statistics; with `partials` given (the first of LANES pixels of the
+// first of three planes `stride` floats apart), also its partial derivatives w.r.t. (mu_x, E[x^2], E[xy]) there
+// (n of the lanes stored). Not inlined: both forwards (the target blurred or given) run this one compiled formula,
+// so the compiler's choice of fused multiply-adds cannot make them differ.
+__attribute__((noinline)) VS ssim_pixels(VS ux, VS uy, VS exx, VS eyy, VS exy, float c1, float c2, float* partials,
+                                         int64_t stride, int64_t n) {
+    const VS sxx = exx - ux * ux, syy = eyy - uy * uy, sxy = exy - ux * uy;
+    const VS a1 = 2.0f * ux * uy + c1, a2 = 2.0f * sxy + c2;
+    const VS b1 = ux * ux + uy * uy + c1, b2 = sxx + syy + c2;
+    // Divide only by b1 b2 >= c1 c2 > 0: a2 = 2 sxy + c2 can be 0 (anti-correlated windows)
+    const VS inv_d = 1.0f / (b1 * b2);
+    const VS s = a1 * a2 * inv_d;
+    if (partials != nullptr) {
+        store_lanes(partials, (2.0f * uy * (a2 - a1) - 2.0f * ux * s * (b2 - b1)) * inv_d, n);
+        store_lanes(partials + stride, -s * b1 * inv_d, n);
+        store_lanes(partials + 2 * stride, 2.0f * a1 * inv_d, n);
+    }
+    return s;
+}
+
 // SSIM of the B planes of x, y (SsimRows: B = images x channels): per-plane mean of the SSIM map into
 // plane_mean [B]; with `partials` [3, B, H, W] given, also the per-pixel partial derivatives of the
 // map w.r.t. (mu_x, E[x^2], E[xy]), which ssim_backward turns into d loss / d x. With `plane_l1` [B] given,
 // also each plane's mean |x - y| (the L1 term of the training loss, from the rows this pass reads anyway).
-void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* x, const float* y,
-                  const float* w, float c1, float c2, double* plane_mean, float* partials, double* plane_l1,
-                  int64_t num_threads) {
+// With `ystats` [2, B, H, W] given (ssim_target_stats of y: its blurred mean and mean square), those are read
+// instead of blurred (TARGET = true): three quantities blurred instead of five, the same result to the bit.
+template <bool TARGET>
+void ssim_forward_impl(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* x, const float* y,
+                       const float* ystats, const float* w, float c1, float c2, double* plane_mean, float* partials,
+                       double* plane_l1, int64_t num_threads) {
+    constexpr HQ MODE = TARGET ? HQ::kPred : HQ::kFull;
+    constexpr int NQ = num_quantities<MODE>();
     const SsimRows g(B, H, W, K, CH);
     const SsimTasks tasks(g, num_threads);
     std::vector<double> row_l1(plane_l1 != nullptr ? static_cast<size_t>(B * H) : 0, 0.0);
     std::vector<double> row_sum(static_cast<size_t>(B * H), 0.0);
     const int64_t HW = H * W;
     const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;  // a padded row and the lanes read past it
-    const size_t ring_len = static_cast<size_t>(5 * K * g.Wp);  // horizontally blurred x, y, xx, yy, xy
+    const size_t ring_len = static_cast<size_t>(NQ * K * g.Wp);  // the horizontally blurred quantities
     parallel_ranges(tasks.count, num_threads, 2 * row_len + ring_len, [&](int64_t t, float* buf) {
         const int64_t b = tasks.plane(t), y0 = tasks.y0(g, t), y1 = tasks.y1(g, t);
         float *pa = buf, *pb = buf + row_len, *ring = buf + 2 * row_len;
-        float* ring_q[5];  // quantity q's K rows
-        for (int q = 0; q < 5; ++q) ring_q[q] = ring + q * K * g.Wp;
+        float* ring_q[NQ];  // quantity q's K rows
+        for (int q = 0; q < NQ; ++q) ring_q[q] = ring + q * K * g.Wp;
         auto ring_slot = [&](int64_t row) { return row % K; };
         int64_t next = std::max<int64_t>(0, y0 - g.r);  // the next row to blur horizontally into the ring
         for (int64_t oy = y0; oy < y1; ++oy) {
@@ -291,32 +343,29 @@ void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const 
                     for (int l = 0; l < SSIM_LANES; ++l) sum += acc[l];
                     row_l1[b * H + next] = sum;
                 }
-                float* out[5];
-                for (int q = 0; q < 5; ++q) out[q] = ring_q[q] + ring_slot(next) * g.Wp;
-                hblur_row<5>(g, w, pa, pb, nullptr, out);
+                float* out[NQ];
+                for (int q = 0; q < NQ; ++q) out[q] = ring_q[q] + ring_slot(next) * g.Wp;
+                hblur_row<MODE>(g, w, pa, pb, nullptr, out);
             }
             VS sum{};
             for (int64_t x0 = 0; x0 < W; x0 += SSIM_LANES) {
                 const int64_t n = std::min<int64_t>(SSIM_LANES, W - x0);
-                VS m[5];
-                vblur<5>(g, w, ring_q, ring_slot, oy, x0, m);
-                const VS ux = m[0], uy = m[1];
-                const VS sxx = m[2] - ux * ux, syy = m[3] - uy * uy, sxy = m[4] - ux * uy;
-                const VS a1 = 2.0f * ux * uy + c1, a2 = 2.0f * sxy + c2;
-                const VS b1 = ux * ux + uy * uy + c1, b2 = sxx + syy + c2;
-                // Divide only by b1 b2 >= c1 c2 > 0: a2 = 2 sxy + c2 can be 0 (anti-correlated windows)
-                const VS inv_d = 1.0f / (b1 * b2);
-                const VS s = a1 * a2 * inv_d;
+                VS m[NQ];
+                vblur<NQ>(g, w, ring_q, ring_slot, oy, x0, m);
+                VS ux, uy, exx, eyy, exy;
+                if constexpr (TARGET) {
+                    const int64_t o = b * HW + oy * W + x0;
+                    ux = m[0], exx = m[1], exy = m[2];
+                    uy = load_lanes(ystats + o, n), eyy = load_lanes(ystats + B * HW + o, n);
+                } else {
+                    ux = m[0], uy = m[1], exx = m[2], eyy = m[3], exy = m[4];
+                }
+                const VS s = ssim_pixels(ux, uy, exx, eyy, exy, c1, c2,
+                                         partials != nullptr ? partials + b * HW + oy * W + x0 : nullptr, B * HW, n);
                 if (n == SSIM_LANES) {
                     sum += s;
                 } else {
                     for (int64_t l = 0; l < n; ++l) sum[l] += s[l];
-                }
-                if (partials != nullptr) {
-                    const int64_t o = b * HW + oy * W + x0;
-                    store_lanes(partials + o, (2.0f * uy * (a2 - a1) - 2.0f * ux * s * (b2 - b1)) * inv_d, n);
-                    store_lanes(partials + B * HW + o, -s * b1 * inv_d, n);
-                    store_lanes(partials + 2 * B * HW + o, 2.0f * a1 * inv_d, n);
                 }
             }
             double total = 0.0;
@@ -332,6 +381,39 @@ void ssim_forward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const 
         for (int64_t yy = 0; yy < H; ++yy) l1 += row_l1[b * H + yy];
         plane_l1[b] = l1 / static_cast<double>(HW);
     }
+}
+
+// The blurred mean and mean square of each plane of y into out [2, B, H, W]: what the SSIM forward computes of its
+// target every time, kept by a caller whose targets repeat (the training photos), with the forward's operations.
+void ssim_target_stats(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* y, const float* w,
+                       float* out, int64_t num_threads) {
+    const SsimRows g(B, H, W, K, CH);
+    const SsimTasks tasks(g, num_threads);
+    const int64_t HW = H * W;
+    const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;
+    parallel_ranges(tasks.count, num_threads, row_len + static_cast<size_t>(2 * K * g.Wp), [&](int64_t t,
+                                                                                           float* buf) {
+        const int64_t b = tasks.plane(t), y0 = tasks.y0(g, t), y1 = tasks.y1(g, t);
+        float *pb = buf, *ring = buf + row_len;
+        float* ring_q[2] = {ring, ring + K * g.Wp};
+        auto ring_slot = [&](int64_t row) { return row % K; };
+        int64_t next = std::max<int64_t>(0, y0 - g.r);
+        for (int64_t oy = y0; oy < y1; ++oy) {
+            for (const int64_t last = std::min<int64_t>(H - 1, oy + g.r); next <= last; ++next) {
+                pad_row(g, y + g.row(b, next), CH, pb);
+                float* row_out[2] = {ring_q[0] + ring_slot(next) * g.Wp, ring_q[1] + ring_slot(next) * g.Wp};
+                hblur_row<HQ::kTarget>(g, w, nullptr, pb, nullptr, row_out);
+            }
+            for (int64_t x0 = 0; x0 < W; x0 += SSIM_LANES) {
+                const int64_t n = std::min<int64_t>(SSIM_LANES, W - x0);
+                VS m[2];
+                vblur<2>(g, w, ring_q, ring_slot, oy, x0, m);
+                const int64_t o = b * HW + oy * W + x0;
+                store_lanes(out + o, m[0], n);
+                store_lanes(out + B * HW + o, m[1], n);
+            }
+        }
+    });
 }
 
 // d loss / d x for loss = sum_b g_plane[b] * plane_mean[b] (+ g_l1[b] * plane_l1[b] when g_l1 is given):
@@ -353,7 +435,7 @@ void ssim_backward(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const
         pad_row(g, partials + (2 * B + b) * HW + yy * W, 1, pc);
         float* out[3];
         for (int q = 0; q < 3; ++q) out[q] = hbuf.data() + (q * B + b) * HWp + yy * g.Wp;
-        hblur_row<3>(g, w, pa, pb, pc, out);
+        hblur_row<HQ::kInputs>(g, w, pa, pb, pc, out);
     });
     parallel_ranges(B * H, workers, 0, [&](int64_t row, float*) {
         const int64_t b = row / H, yy = row % H;
@@ -407,11 +489,25 @@ double us_scale_kl_f32(int64_t n, const float* left, const float* raw, double wp
 // The B planes are the CH channels of B / CH images [H, W, CH] (CH = 1: planes [B, H, W]); returns 1 when B is
 // not a multiple of CH. plane_l1 (forward) and g_l1 (backward) may be null: no L1 term.
 int us_ssim_forward_f32(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* x, const float* y,
-                        const float* w, double c1, double c2, double* plane_mean, float* partials, double* plane_l1,
-                        int64_t num_threads) {
+                        const float* ystats, const float* w, double c1, double c2, double* plane_mean,
+                        float* partials, double* plane_l1, int64_t num_threads) {
     if (CH < 1 || B % CH != 0) return 1;
-    ssim_forward(B, H, W, K, CH, x, y, w, static_cast<float>(c1), static_cast<float>(c2), plane_mean, partials,
-                 plane_l1, num_threads);
+    auto run = [&](auto impl) {
+        impl(B, H, W, K, CH, x, y, ystats, w, static_cast<float>(c1), static_cast<float>(c2), plane_mean, partials,
+             plane_l1, num_threads);
+    };
+    if (ystats != nullptr)
+        run(ssim_forward_impl<true>);
+    else
+        run(ssim_forward_impl<false>);
+    return 0;
+}
+
+// ystats [2, B, H, W]: the blurred mean and mean square of y's planes, for us_ssim_forward_f32's `ystats`.
+int us_ssim_target_stats_f32(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, const float* y, const float* w,
+                             float* ystats, int64_t num_threads) {
+    if (CH < 1 || B % CH != 0) return 1;
+    ssim_target_stats(B, H, W, K, CH, y, w, ystats, num_threads);
     return 0;
 }
 
