@@ -10,6 +10,8 @@ median per mode are compared. ``--what``:
   permuted copies of the channels, L1 as tensor ops.
 - ``train-on``: the informed posterior's Gaussians fitted to the posterior mean's render
   (``variational.train_on = "mean"``, now) against the expected render (``"expected"``, before).
+- ``mean-sample``: a training step's Gaussians from the parameters and the kept table terms in one native pass and
+  its backward (``variational._with_constants``, now) against the five tensor ops and their autograd nodes (before).
 - ``ssim-cache``: the training photos' SSIM statistics kept (``ssim_cache_mb``, the default 1024 MB, now) against
   blurring the photo in every step's SSIM (``ssim_cache_mb = 0``, before); the same loss to the bit.
 
@@ -112,6 +114,21 @@ def _train_on_modes(trainer):
     return setter("expected"), setter("mean")
 
 
+def _mean_sample_modes():
+    """(set_before, set_now) for ``mean-sample``: the tensor ops, then the native pass."""
+    import uncertsplat.gaussians.variational as variational
+
+    now = variational._with_constants
+
+    def before():
+        variational._with_constants = lambda p, offset, factor, gate: (
+            p["means"] + offset, torch.exp(p["scales"]) * factor, torch.sigmoid(p["opacities"]) * gate)
+
+    def after():
+        variational._with_constants = now
+    return before, after
+
+
 def _ssim_cache_modes(trainer):
     """(set_before, set_now) for ``ssim-cache``: no photo statistics kept, then the trainer's own cache."""
     from uncertsplat.train.losses import SsimTargetCache
@@ -133,7 +150,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--run", type=Path, required=True, help="a run folder with checkpoints")
     ap.add_argument("--scene", type=Path, required=True, help="the scene of --run")
-    ap.add_argument("--what", choices=["fused-image", "train-on", "ssim-cache"], default="fused-image")
+    ap.add_argument("--what", choices=["fused-image", "train-on", "ssim-cache", "mean-sample"], default="fused-image")
     ap.add_argument("--rounds", type=int, default=16)
     ap.add_argument("--block", type=int, default=10)
     ap.add_argument("--label", default="run")
@@ -144,7 +161,7 @@ def main() -> None:
     trainer = trainer_from_run(args.scene, args.run, cfg, torch.device("cpu"),
                                extra_steps=2 * args.block * args.rounds + 10)
     modes = {"fused-image": lambda: _fused_image_modes(), "train-on": lambda: _train_on_modes(trainer),
-             "ssim-cache": lambda: _ssim_cache_modes(trainer)}
+             "ssim-cache": lambda: _ssim_cache_modes(trainer), "mean-sample": _mean_sample_modes}
     set_before, set_now = modes[args.what]()
     for _ in range(5):  # warm-up
         trainer.train_step()

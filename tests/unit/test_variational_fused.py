@@ -172,3 +172,74 @@ def test_fused_path_without_gradients_gives_the_same_values(monkeypatch):
         assert torch.equal(getattr(s0, name), getattr(s1, name).detach()), name
     for name in (*KL_FIELDS, "total"):
         torch.testing.assert_close(kl0[name], kl1[name].detach(), rtol=1e-6, atol=0.0, msg=name)
+
+
+class TestMeanGaussiansKernel:
+    """A training step's Gaussians from the parameters and the kept table terms (``variational._with_constants``):
+    the native pass (``native/csrc/sample.cpp``) against the tensor ops, values and gradients, down to the
+    extremes of the logits and log scales, a gate of 0 and 1, and outputs the loss does not use."""
+
+    @staticmethod
+    def _params(n: int, g: torch.Generator, extreme: bool) -> dict[str, torch.Tensor]:
+        scales = torch.randn(n, 3, generator=g) - 3.0
+        logits = 3.0 * torch.randn(n, generator=g)
+        if extreme:
+            scales[:4] = torch.tensor([-80.0, -20.0, 5.0, 40.0])[:, None]
+            logits[:6] = torch.tensor([-100.0, -30.0, -1e-7, 0.0, 30.0, 100.0])
+        return {"means": torch.randn(n, 3, generator=g).requires_grad_(), "scales": scales.requires_grad_(),
+                "opacities": logits.requires_grad_()}
+
+    @staticmethod
+    def _run(params, fn, weights, used=(0, 1, 2)):
+        for t in params.values():
+            t.grad = None
+        out = fn()
+        sum((out[i] * weights[i]).sum() for i in used).backward()
+        return [o.detach() for o in out] + [params[k].grad for k in ("means", "scales", "opacities")]
+
+    @pytest.mark.parametrize("extreme", [False, True])
+    @pytest.mark.parametrize("used", [(0, 1, 2), (1,), (0, 2)])
+    def test_matches_the_tensor_ops(self, extreme, used):
+        from uncertsplat.gaussians.variational import _MeanGaussians, _with_constants
+
+        g = torch.Generator().manual_seed(11)
+        n = 1031  # not a multiple of any vector width
+        params = self._params(n, g, extreme)
+        offset = 0.01 * torch.randn(n, 3, generator=g)
+        factor = torch.rand(n, 3, generator=g) + 0.5
+        gate = torch.rand(n, generator=g)
+        gate[:2] = torch.tensor([0.0, 1.0])
+        weights = [torch.randn(n, 3, generator=g), torch.randn(n, 3, generator=g), torch.randn(n, generator=g)]
+        calls = []
+        original = _MeanGaussians.apply
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(_MeanGaussians, "apply", lambda *a: calls.append(1) or original(*a))
+            fused = self._run(params, lambda: _with_constants(params, offset, factor, gate), weights, used)
+        assert calls, "the native pass did not run"
+        reference = self._run(params, lambda: (params["means"] + offset, torch.exp(params["scales"]) * factor,
+                                               torch.sigmoid(params["opacities"]) * gate), weights, used)
+        for name, a, b in zip(("means", "scales", "opacities", "d means", "d scales", "d opacities"), fused,
+                              reference, strict=True):
+            if b is None:
+                assert a is None or not a.any(), name
+                continue
+            assert torch.isfinite(a).all(), name
+            # 2-3 ulp of float32 (vmath's exp against torch's); below the smallest normal float both are ~0
+            torch.testing.assert_close(a, b, rtol=4e-7, atol=1e-37, msg=name)
+
+    def test_other_cases_take_the_tensor_ops(self):
+        """float64, a constant that needs a gradient, shapes that only broadcast: the tensor ops."""
+        from uncertsplat.gaussians.variational import _MeanGaussians, _with_constants
+
+        g = torch.Generator().manual_seed(3)
+        params = self._params(50, g, False)
+        offset, factor, gate = torch.zeros(50, 3), torch.ones(50, 3), torch.ones(50)
+        calls = []
+        original = _MeanGaussians.apply
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(_MeanGaussians, "apply", lambda *a: calls.append(1) or original(*a))
+            _with_constants({k: v.double() for k, v in params.items()}, offset.double(), factor.double(),
+                            gate.double())
+            _with_constants(params, offset, factor, gate.clone().requires_grad_())
+            _with_constants(params, offset, torch.ones(3), gate)
+        assert not calls

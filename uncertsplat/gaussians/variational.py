@@ -286,9 +286,8 @@ def posterior_mean(model: GaussianModel, *, variant: Variant = "ours", extent: f
         p = model.params
         degree = model.sh_degree if sh_degree is None else min(sh_degree, model.sh_degree)
         # the SH as the table's two tensors (GaussianSample.sh_rest), as expected_render_sample's fast path
-        return GaussianSample(means=p["means"] + constants.offset, quats=p["quats"],
-                              scales=torch.exp(p["scales"]) * constants.mean_factor,
-                              opacities=torch.sigmoid(p["opacities"]) * constants.gate,
+        means, scales, opacities = _with_constants(p, constants.offset, constants.mean_factor, constants.gate)
+        return GaussianSample(means=means, quats=p["quats"], scales=scales, opacities=opacities,
                               sh=p["sh0"], sh_rest=p["shN"], sh_degree=degree)
     t = _tables(model, tables_grad)
     idx = model.carrier_index()
@@ -297,6 +296,52 @@ def posterior_mean(model: GaussianModel, *, variant: Variant = "ours", extent: f
         return _assemble(model, idx, z, z, z[:, 0], variant=variant, sh_degree=sh_degree)
     offset, left, width, gate = _entry_means(t, variant, extent, temperature)
     return _assemble(model, idx, offset, left + 0.5 * width, gate, variant=variant, sh_degree=sh_degree)
+
+
+def _with_constants(p: dict[str, Tensor], offset: Tensor, factor: Tensor, gate: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(means + offset [N,3], exp(log scales) x factor [N,3], sigmoid(opacity logits) x gate [N]): a training step's
+    Gaussians from the parameters and the table terms kept between steps (``ExpectedConstants``). On a CPU with the
+    native kernels one pass forward and one backward (``native/csrc/sample.cpp``) instead of five tensor ops and
+    their autograd nodes; the tensor ops elsewhere."""
+    from uncertsplat import native
+
+    tensors = (p["means"], offset, p["scales"], factor, p["opacities"], gate)
+    n = tensors[0].shape[0]
+    shapes_match = all(t.shape == (n, 3) for t in tensors[:4]) and all(t.shape == (n,) for t in tensors[4:])
+    if (shapes_match and native.use_for(*tensors, dtypes=(torch.float32,), strict=False)
+            and not any(t.requires_grad for t in (offset, factor, gate))):
+        return _MeanGaussians.apply(*tensors)
+    return p["means"] + offset, torch.exp(p["scales"]) * factor, torch.sigmoid(p["opacities"]) * gate
+
+
+class _MeanGaussians(torch.autograd.Function):
+    """``_with_constants`` by the native kernel: gradients to the means, log scales and opacity logits (the table
+    terms are constants)."""
+
+    @staticmethod
+    def forward(ctx, means, offset, scales, factor, opacities, gate):
+        from uncertsplat import native
+
+        ins = [t.detach().contiguous() for t in (means, offset, scales, factor, opacities, gate)]
+        out_means, out_scales, out_opacities = (torch.empty_like(ins[i]) for i in (0, 2, 4))
+        native.library().us_mean_sample_forward_f32(means.shape[0], *(t.data_ptr() for t in ins),
+                                                    out_means.data_ptr(), out_scales.data_ptr(),
+                                                    out_opacities.data_ptr())
+        ctx.save_for_backward(out_scales, ins[4], ins[5])
+        ctx.set_materialize_grads(False)
+        return out_means, out_scales, out_opacities
+
+    @staticmethod
+    def backward(ctx, g_means, g_scales, g_opacities):
+        from uncertsplat import native
+
+        out_scales, opacities, gate = ctx.saved_tensors
+        grads = [None if g is None else g.contiguous() for g in (g_scales, g_opacities)]
+        d_scales, d_opacities = torch.empty_like(out_scales), torch.empty_like(opacities)
+        native.library().us_mean_sample_backward_f32(
+            opacities.shape[0], out_scales.data_ptr(), opacities.data_ptr(), gate.data_ptr(),
+            *(None if g is None else g.data_ptr() for g in grads), d_scales.data_ptr(), d_opacities.data_ptr())
+        return g_means, None, d_scales, None, d_opacities, None
 
 
 def _entry_means(t: dict[str, Tensor], variant: Variant, extent: float,
@@ -408,9 +453,8 @@ def expected_render_sample(model: GaussianModel, *, variant: Variant = "ours", e
         p = model.params
         degree = model.sh_degree if sh_degree is None else min(sh_degree, model.sh_degree)
         # the SH as the table's two tensors (GaussianSample.sh_rest): a training step renders them uncopied
-        return GaussianSample(means=p["means"] + constants.offset, quats=p["quats"],
-                              scales=torch.exp(p["scales"]) * constants.scale_factor,
-                              opacities=torch.sigmoid(p["opacities"]) * constants.gate,
+        means, scales, opacities = _with_constants(p, constants.offset, constants.scale_factor, constants.gate)
+        return GaussianSample(means=means, quats=p["quats"], scales=scales, opacities=opacities,
                               sh=p["sh0"], sh_rest=p["shN"], sh_degree=degree,
                               position_var=constants.position_var)
     pm = posterior_mean(model, variant=variant, extent=extent, temperature=temperature, sh_degree=sh_degree,

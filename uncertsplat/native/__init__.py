@@ -6,7 +6,8 @@
 (``render/project.py``, ``render/sh.py``). ``losses.cpp``: fused SSIM (``eval/image.py``) and the KL terms of the
 offset tables (``gaussians/variational.py``), each with its gradient. ``optim.cpp``: Adam, dense over
 several tensors in one call or on selected rows (``train/adam.py``). ``densify.cpp``: a step's densification
-statistics (``strategy/densify.py``). ``vmath.h``: vectorisable exp/log;
+statistics (``strategy/densify.py``). ``sample.cpp``: a training step's Gaussians from the parameters and the
+posterior's table terms (``gaussians/variational.py``), forward and backward. ``vmath.h``: vectorisable exp/log;
 ``parallel.h``: fork-join over threads.
 
 The C++ files have a C ABI and no torch headers, so they need no Python build step: the system C++ compiler
@@ -40,7 +41,7 @@ INTERFACE_VERSION = 19
 CSRC = Path(__file__).with_name("csrc")
 # compiled side by side, one process each (``_build``): the two halves of the rasterizer take most of the time
 SOURCES = (CSRC / "composite_forward.cpp", CSRC / "composite_backward.cpp", CSRC / "losses.cpp", CSRC / "project.cpp",
-           CSRC / "optim.cpp", CSRC / "densify.cpp")
+           CSRC / "optim.cpp", CSRC / "densify.cpp", CSRC / "sample.cpp")
 HEADERS = (CSRC / "composite.h", CSRC / "vmath.h", CSRC / "parallel.h")
 # -fno-trapping-math lets the compiler vectorise the float->int conversion inside the exp polynomial;
 # -fopenmp-simd honours the `omp simd` hints without linking an OpenMP runtime (torch brings its own).
@@ -186,6 +187,10 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.us_ssim_forward_f32.restype = ctypes.c_int
     lib.us_ssim_target_stats_f32.argtypes = [i64] * 5 + [ptr] * 3 + [i64]
     lib.us_ssim_target_stats_f32.restype = ctypes.c_int
+    lib.us_mean_sample_forward_f32.argtypes = [i64] + [ptr] * 9
+    lib.us_mean_sample_forward_f32.restype = ctypes.c_int
+    lib.us_mean_sample_backward_f32.argtypes = [i64] + [ptr] * 7
+    lib.us_mean_sample_backward_f32.restype = ctypes.c_int
     lib.us_ssim_backward_f32.argtypes = [i64] * 5 + [ptr] * 7 + [i64]
     lib.us_ssim_backward_f32.restype = ctypes.c_int
     lib.us_sh_forward_f32.argtypes = [i64] * 4 + [ptr] * 4 + [i64]
