@@ -22,7 +22,8 @@ Every run is trained with ``profile=true`` (``train_summary.json`` ``profile``: 
 steps: data, sample, render, loss, backward, optimizer, densify, posterior, eval, checkpoint), and
 ``--backward-steps`` steps after training are run under ``torch.profiler`` to split the backward pass by autograd
 node (rasterizer, SSIM, table sampling, KL, other); one posterior update is split the same way
-(``posterior_breakdown``), and ``outside_rasterizer`` gives the share of the training time outside the rasterizer.
+(``posterior_breakdown``) and one periodic test of each kind (``checks_breakdown``: the growth and SH band tests), and
+``outside_rasterizer`` gives the share of the training time outside the rasterizer.
 
 Writes ``benchmarks/results/train_{scene}.json`` and prints the Markdown rows for BENCHMARKS.md.
 """
@@ -98,11 +99,14 @@ def bench(name: str, work: Path, args) -> dict:
     if result.get("profile") and result.get("posterior_updates"):
         result["posterior_update_split"] = posterior_breakdown(scene, run, cfg, torch.device(args.device))
         result["curvature_pass"] = curvature_pass(scene, run, cfg, torch.device(args.device))
+    if result.get("profile"):
+        result["checks_split"] = checks_breakdown(scene, run, cfg, torch.device(args.device))
     share = rasterizer_share(result)
     if share is not None:
         result["outside_rasterizer"] = share
         print(f"outside the rasterizer: {100 * share['outside']:.1f} % of the phases "
-              f"({100 * share['outside_posterior_counted_outside']:.1f} % counting the posterior updates outside)")
+              f"({100 * share['outside_checks_counted_outside']:.1f} % counting the periodic tests outside, "
+              f"{100 * share['outside_posterior_counted_outside']:.1f} % the posterior updates too)")
     if result.get("profile"):
         print(profile_line(result))
     if args.compare_kernels:
@@ -185,15 +189,9 @@ def backward_breakdown(scene: Path, run: Path, cfg, steps: int, device: torch.de
     return {"steps": steps, "num_gaussians": len(trainer.model), "sec_per_step": groups}
 
 
-def posterior_breakdown(scene: Path, run: Path, cfg, device: torch.device) -> dict:
-    """What share of an informed posterior update (``Trainer.update_posterior``, an update before the last) is the
-    rasterizer, measured as the training step's share is: the wall time of its ``render`` calls plus the rasterizer's
-    autograd nodes of its backward passes (``torch.profiler``), over the update's wall time in the same call."""
+def _timed_trainer(scene: Path, run: Path, cfg, device: torch.device):
+    """A trainer at the run's last checkpoint whose ``render`` calls add their wall time to ``spent[0]``."""
     import time
-
-    from torch.profiler import ProfilerActivity, profile
-
-    from uncertsplat import native
 
     trainer = trainer_from_run(scene, run, cfg, device, extra_steps=10)
     render, spent = trainer.render, [0.0]
@@ -205,6 +203,27 @@ def posterior_breakdown(scene: Path, run: Path, cfg, device: torch.device) -> di
         return out
 
     trainer.render = timed_render
+    return trainer, spent
+
+
+def _rasterizer_backward_s(prof) -> float:
+    """Seconds of the rasterizer's autograd nodes under a ``torch.profiler`` run."""
+    return sum(e.cpu_time_total / 1e6 for e in prof.key_averages()
+               if e.key.startswith("autograd::engine::evaluate_function: ")
+               and any(frag in e.key for frag, g in BACKWARD_GROUPS.items() if g == "rasterize"))
+
+
+def posterior_breakdown(scene: Path, run: Path, cfg, device: torch.device) -> dict:
+    """What share of an informed posterior update (``Trainer.update_posterior``, an update before the last) is the
+    rasterizer, measured as the training step's share is: the wall time of its ``render`` calls plus the rasterizer's
+    autograd nodes of its backward passes (``torch.profiler``), over the update's wall time in the same call."""
+    import time
+
+    from torch.profiler import ProfilerActivity, profile
+
+    from uncertsplat import native
+
+    trainer, spent = _timed_trainer(scene, run, cfg, device)
     with native.single_threaded_torch(device):  # as train_step calls it
         t0 = time.perf_counter()
         trainer.update_posterior()
@@ -215,13 +234,59 @@ def posterior_breakdown(scene: Path, run: Path, cfg, device: torch.device) -> di
             t0 = time.perf_counter()
             trainer.update_posterior()
             wall = time.perf_counter() - t0
-    backward = sum(e.cpu_time_total / 1e6 for e in prof.key_averages()
-                   if e.key.startswith("autograd::engine::evaluate_function: ")
-                   and any(frag in e.key for frag, g in BACKWARD_GROUPS.items() if g == "rasterize"))
+    backward = _rasterizer_backward_s(prof)
     out = {"seconds": plain, "seconds_profiled": wall, "render_forward_s": spent[0], "rasterizer_backward_s": backward,
            "rasterizer_fraction": (spent[0] + backward) / wall}
     print(f"posterior update: {plain:.2f} s, rasterizer {100 * out['rasterizer_fraction']:.1f} % (render calls "
           f"{spent[0]:.2f} s + its backward {backward:.2f} s of {wall:.2f} s under the profiler)")
+    return out
+
+
+def checks_breakdown(scene: Path, run: Path, cfg, device: torch.device) -> dict:
+    """What share of the training's periodic tests (the ``eval`` phase: ``Trainer.check_growth``, whose blending
+    weights are one render and backward per view and whose halving cost renders each view twice, and
+    ``Trainer.check_sh_band``, two renders per view) is the rasterizer, measured as ``posterior_breakdown`` measures
+    an update: one test of each kind forced at the run's last checkpoint (their due-step rules patched), the wall
+    time of the ``render`` calls plus the rasterizer's autograd nodes, over the tests' wall time."""
+    import time
+
+    from torch.profiler import ProfilerActivity, profile
+
+    import uncertsplat.train.trainer as trainer_module
+    from uncertsplat import native
+
+    trainer, spent = _timed_trainer(scene, run, cfg, device)
+    tests = {"growth": lambda: trainer.check_growth(trainer.step + 1)}
+    if trainer.model.sh_degree >= 1:
+        tests["sh_band"] = lambda: trainer.check_sh_band(trainer.step + 1)
+    out, wall_all, raster_all = {}, 0.0, 0.0
+    saved = (trainer_module.growth_check_due, trainer_module.at_budget, trainer_module.check_due)
+    try:
+        trainer_module.growth_check_due = lambda step, dcfg: True
+        trainer_module.at_budget = lambda n, budget: False
+        trainer_module.check_due = lambda step, interval, degree, min_gain, done: trainer.model.sh_degree
+        with native.single_threaded_torch(device):  # as train_step calls them
+            for name, test in tests.items():
+                trainer.densifier.grow = True
+                test()  # a warm-up, untimed
+                trainer.densifier.grow = True
+                spent[0] = 0.0
+                activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+                with profile(activities=activities) as prof:
+                    t0 = time.perf_counter()
+                    test()
+                    wall = time.perf_counter() - t0
+                backward = _rasterizer_backward_s(prof)
+                out[name] = {"seconds_profiled": wall, "render_forward_s": spent[0], "rasterizer_backward_s": backward,
+                             "rasterizer_fraction": (spent[0] + backward) / wall}
+                wall_all += wall
+                raster_all += spent[0] + backward
+    finally:
+        trainer_module.growth_check_due, trainer_module.at_budget, trainer_module.check_due = saved
+    out["rasterizer_fraction"] = raster_all / max(wall_all, 1e-12)
+    print("periodic tests: " + ", ".join(f"{k} {v['seconds_profiled']:.2f} s, rasterizer "
+                                         f"{100 * v['rasterizer_fraction']:.1f} %" for k, v in out.items()
+                                         if isinstance(v, dict)))
     return out
 
 
@@ -230,8 +295,9 @@ def rasterizer_share(r: dict) -> dict | None:
     phase, the rasterizer's share of the backward phase (its share of the backward's autograd nodes under the
     profiler, ``backward``, applied to the phase's wall time: the profiler's own overhead inflates the nodes'
     times, 7.8 ms of nodes against 7.2 ms of a bonsai backward) and of the posterior updates (their rasterizer
-    fraction, ``posterior_update_split``), against the sum of the phases; also the count that put the posterior
-    updates wholly outside."""
+    fraction, ``posterior_update_split``) and of the periodic tests (the ``eval`` phase: ``checks_split``), against
+    the sum of the phases; also the counts that put the periodic tests (the twenty-ninth session's) and the
+    posterior updates too (the twenty-eighth's) wholly outside."""
     prof = r.get("profile")
     if not prof or "backward" not in r:
         return None
@@ -242,7 +308,10 @@ def rasterizer_share(r: dict) -> dict | None:
     base = sec.get("render", 0.0) + backward
     split = r.get("posterior_update_split") or {}
     post = sec.get("posterior", 0.0) * split.get("rasterizer_fraction", 0.0)
-    return {"outside": 1.0 - (base + post) / total, "outside_posterior_counted_outside": 1.0 - base / total}
+    checks = sec.get("eval", 0.0) * (r.get("checks_split") or {}).get("rasterizer_fraction", 0.0)
+    return {"outside": 1.0 - (base + post + checks) / total,
+            "outside_checks_counted_outside": 1.0 - (base + post) / total,
+            "outside_posterior_counted_outside": 1.0 - base / total}
 
 
 def curvature_pass(scene: Path, run: Path, cfg, device: torch.device, repeats: int = 2) -> dict:
