@@ -12,8 +12,6 @@ median per mode are compared. ``--what``:
   (``variational.train_on = "mean"``, now) against the expected render (``"expected"``, before).
 - ``mean-sample``: a training step's Gaussians from the parameters and the kept table terms in one native pass and
   its backward (``variational._with_constants``, now) against the five tensor ops and their autograd nodes (before).
-- ``log-opacities``: render's log-opacities in one native pass and its backward (``render.log_opacities``, now)
-  against log(clamp_min(o, tiny)) as tensor ops (before).
 - ``ssim-cache``: the training photos' SSIM statistics kept (``ssim_cache_mb``, the default 1024 MB, now) against
   blurring the photo in every step's SSIM (``ssim_cache_mb = 0``, before); the same loss to the bit.
 
@@ -131,21 +129,6 @@ def _mean_sample_modes():
     return before, after
 
 
-def _log_opacities_modes():
-    """(set_before, set_now) for ``log-opacities``: the tensor ops, then the native pass."""
-    import uncertsplat.render.render  # noqa: F401  (the module, not the function the package exports)
-
-    render_module = sys.modules["uncertsplat.render.render"]
-    now = render_module.log_opacities
-
-    def before():
-        render_module.log_opacities = lambda o, backend=None: torch.log(o.clamp_min(torch.finfo(o.dtype).tiny))
-
-    def after():
-        render_module.log_opacities = now
-    return before, after
-
-
 def _ssim_cache_modes(trainer):
     """(set_before, set_now) for ``ssim-cache``: no photo statistics kept, then the trainer's own cache."""
     from uncertsplat.train.losses import SsimTargetCache
@@ -167,8 +150,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--run", type=Path, required=True, help="a run folder with checkpoints")
     ap.add_argument("--scene", type=Path, required=True, help="the scene of --run")
-    ap.add_argument("--what", choices=["fused-image", "train-on", "ssim-cache", "mean-sample", "log-opacities"],
-                    default="fused-image")
+    ap.add_argument("--what", choices=["fused-image", "train-on", "ssim-cache", "mean-sample"], default="fused-image")
     ap.add_argument("--rounds", type=int, default=16)
     ap.add_argument("--block", type=int, default=10)
     ap.add_argument("--label", default="run")
@@ -179,8 +161,7 @@ def main() -> None:
     trainer = trainer_from_run(args.scene, args.run, cfg, torch.device("cpu"),
                                extra_steps=2 * args.block * args.rounds + 10)
     modes = {"fused-image": lambda: _fused_image_modes(), "train-on": lambda: _train_on_modes(trainer),
-             "ssim-cache": lambda: _ssim_cache_modes(trainer), "mean-sample": _mean_sample_modes,
-             "log-opacities": _log_opacities_modes}
+             "ssim-cache": lambda: _ssim_cache_modes(trainer), "mean-sample": _mean_sample_modes}
     set_before, set_now = modes[args.what]()
     for _ in range(5):  # warm-up
         trainer.train_step()

@@ -7,8 +7,7 @@
 offset tables (``gaussians/variational.py``), each with its gradient. ``optim.cpp``: Adam, dense over
 several tensors in one call or on selected rows (``train/adam.py``). ``densify.cpp``: a step's densification
 statistics (``strategy/densify.py``). ``sample.cpp``: a training step's Gaussians from the parameters and the
-posterior's table terms (``gaussians/variational.py``), and the log-opacities a render composites
-(``render/render.py``), forward and backward. ``vmath.h``: vectorisable exp/log;
+posterior's table terms (``gaussians/variational.py``), forward and backward. ``vmath.h``: vectorisable exp/log;
 ``parallel.h``: fork-join over threads.
 
 The C++ files have a C ABI and no torch headers, so they need no Python build step: the system C++ compiler
@@ -192,10 +191,6 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.us_mean_sample_forward_f32.restype = ctypes.c_int
     lib.us_mean_sample_backward_f32.argtypes = [i64] + [ptr] * 7
     lib.us_mean_sample_backward_f32.restype = ctypes.c_int
-    lib.us_log_opacity_forward_f32.argtypes = [i64, ptr, ptr]
-    lib.us_log_opacity_forward_f32.restype = ctypes.c_int
-    lib.us_log_opacity_backward_f32.argtypes = [i64, ptr, ptr, ptr]
-    lib.us_log_opacity_backward_f32.restype = ctypes.c_int
     lib.us_ssim_backward_f32.argtypes = [i64] * 5 + [ptr] * 7 + [i64]
     lib.us_ssim_backward_f32.restype = ctypes.c_int
     lib.us_sh_forward_f32.argtypes = [i64] * 4 + [ptr] * 4 + [i64]

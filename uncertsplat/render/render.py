@@ -5,7 +5,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .. import native
 from ..types import Cameras, GaussianSample, RenderOutput
 from .project import ALPHA_MAX, clamped_view_angle, project_gaussians
 from .rasterize import bin_gaussians, composite, composite_image, composite_image_available, tiles_to_image
@@ -19,37 +18,6 @@ def near_plane(scene_scale: float) -> float:
     equivariant to a global rescaling of the scene.
     """
     return 0.01 * float(scene_scale)
-
-
-def log_opacities(opacities: Tensor, *, backend: str | None = None) -> Tensor:
-    """log(max(opacity, smallest normal float)) [N] of opacities [N]: what the compositor reads. On a CPU with the
-    native kernels one pass forward and one backward (``native/csrc/sample.cpp``; vmath's log, within a few ulp of
-    torch's) instead of two tensor ops and three in the backward; the tensor ops elsewhere."""
-    if (opacities.dim() == 1 and opacities.is_contiguous()
-            and native.use_for(opacities, backend=backend, dtypes=(torch.float32,), strict=False)):
-        return _LogOpacities.apply(opacities)
-    return torch.log(opacities.clamp_min(torch.finfo(opacities.dtype).tiny))
-
-
-class _LogOpacities(torch.autograd.Function):
-    """``log_opacities`` by the native kernel: the gradient 1 / o where o is at least the bound, else 0 (as
-    torch's clamp_min)."""
-
-    @staticmethod
-    def forward(ctx, opacities: Tensor) -> Tensor:
-        o = opacities.detach()
-        out = torch.empty_like(o)
-        native.library().us_log_opacity_forward_f32(o.shape[0], o.data_ptr(), out.data_ptr())
-        ctx.save_for_backward(o)
-        return out
-
-    @staticmethod
-    def backward(ctx, grad: Tensor) -> Tensor:
-        (o,) = ctx.saved_tensors
-        g = grad.contiguous()
-        d = torch.empty_like(o)
-        native.library().us_log_opacity_backward_f32(o.shape[0], o.data_ptr(), g.data_ptr(), d.data_ptr())
-        return d
 
 
 def render(
@@ -126,7 +94,7 @@ def render(
         sample.opacities.detach(),
         backend=backend,
     )
-    log_o = log_opacities(sample.opacities, backend=backend)  # [N]
+    log_o = torch.log(sample.opacities.clamp_min(torch.finfo(dtype).tiny))  # [N]
     if sample.position_var is not None:
         log_o = log_o + blur_log_peak(sample, proj.conics, cam_from_world, K, W, H, near, far, eps2d,
                                       backend=backend)  # [C,N]

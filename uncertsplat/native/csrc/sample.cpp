@@ -3,13 +3,9 @@
 // exp(log scales) x factor, sigmoid(opacity logits) x gate, in one pass, and the backward in one pass. Five tensor
 // ops and four autograd nodes of every step otherwise (0.5 ms of a bonsai step on a 2-core CPU).
 //
-// Also the log-opacities the compositor reads (render/render.py): log(max(o, FLT_MIN)) and its backward, one pass
-// each instead of two tensor ops forward and three backward.
-//
-// exp, sigmoid and log are vmath.h's (within a few ulp of torch's): the render differs from the tensor ops' in the
+// exp and sigmoid are vmath.h's (within a few ulp of torch's): the render differs from the tensor ops' in the
 // last bits only.
 
-#include <cfloat>
 #include <cstdint>
 
 #include "vmath.h"
@@ -17,7 +13,6 @@
 namespace {
 
 using uskern::vexp;
-using uskern::vlog;
 using uskern::vsigmoid;
 
 }  // namespace
@@ -59,20 +54,6 @@ int us_mean_sample_backward_f32(int64_t n, const float* out_scales, const float*
     } else {
         for (int64_t i = 0; i < n; ++i) d_opacities[i] = 0.0f;
     }
-    return 0;
-}
-
-// out [N] = log(max(o, FLT_MIN)).
-int us_log_opacity_forward_f32(int64_t n, const float* o, float* out) {
-#pragma omp simd
-    for (int64_t i = 0; i < n; ++i) out[i] = vlog(o[i] >= FLT_MIN ? o[i] : FLT_MIN);
-    return 0;
-}
-
-// d [N] = g / o where o >= FLT_MIN, else 0 (the clamp passes no gradient below its bound, as torch's clamp_min).
-int us_log_opacity_backward_f32(int64_t n, const float* o, const float* g, float* d) {
-#pragma omp simd
-    for (int64_t i = 0; i < n; ++i) d[i] = o[i] >= FLT_MIN ? g[i] / o[i] : 0.0f;
     return 0;
 }
 
