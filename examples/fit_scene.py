@@ -1,6 +1,6 @@
 """Fit one scene: generate the small synthetic scene and train a variational 3DGS model on it.
 
-    python examples/fit_scene.py [OUT]        # OUT defaults to example_out/; a few minutes on a 2-core CPU
+    python examples/fit_scene.py [OUT]        # OUT defaults to example_out/; seconds on a 2-core CPU
 
 Writes OUT/scene (images, GT depth, COLMAP model) and OUT/run (config.json, stats.jsonl, checkpoints,
 point_cloud.ply, variational.ply). The same as `uncertsplat synth` followed by `uncertsplat train`.

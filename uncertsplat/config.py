@@ -357,8 +357,8 @@ class TrainConfig(_Base):
     """Adam learning rate of the exposure parameters (log gain and offset)."""
     ssim_lambda: float = Field(0.2, ge=0.0, le=1.0)
     ssim_cache_mb: float = Field(1024.0, ge=0.0)
-    """Memory (MB) for the training photos' own SSIM statistics, kept from each photo's first step (8 bytes per pixel
-    and channel: 3 MB for a 400x266 photo): the fused CPU SSIM then blurs three of its five quantities a step, the
+    """Memory (MiB) for the training photos' own SSIM statistics, kept from each photo's first step (8 bytes per
+    pixel and channel: 2.6 MB for a 401x266 photo): the fused CPU SSIM then blurs three of its five quantities a step, the
     same loss to the bit (BENCHMARKS.md, "The photos' SSIM statistics kept"). Photos beyond the budget are blurred
     every step as before. 0: off. Unused on CUDA."""
     tile_size: int = Field(8, ge=2, le=64)
@@ -768,6 +768,18 @@ def _valid_keys(model: type[BaseModel] | None, loc: tuple) -> list[str]:
     return list(model.model_fields) if model is not None else []
 
 
+def _other_stage(model: type[BaseModel] | None, loc: tuple) -> str | None:
+    """The command whose configuration has ``loc`` (a key unknown to ``model``), e.g. "train" for
+    ``ssim_cache_mb`` given to ``evaluate``: the same ``--set`` keys read differently per command. None when no
+    other stage's model has it (or it is nested)."""
+    stages = {"synth": SynthConfig, "reconstruct": ReconstructConfig, "train": TrainConfig, "evaluate": EvalConfig,
+              "prune": PruneConfig, "select-views": SelectConfig, "view": ViewConfig}
+    if len(loc) != 1:
+        return None
+    return next((name for name, other in stages.items() if other is not model and str(loc[0]) in other.model_fields),
+                None)
+
+
 def format_validation_error(err: ValidationError, source: str, model: type[BaseModel] | None = None,
                             key_prefix: str = "", names: dict[str, str] | None = None) -> str:
     """One readable paragraph from a pydantic ValidationError; an unknown key gets the closest valid ones.
@@ -777,6 +789,7 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
     import re
 
     lines: list[str] = []
+    listed: set[tuple] = set()  # the parents whose valid keys a line has listed already
     for e in err.errors():
         # a union's members appear in the path as tags (literal['fit','gaussian'], constrained-float): left out, so
         # that the alternatives for one key read as one key's
@@ -790,8 +803,16 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
             close = difflib.get_close_matches(str(e["loc"][-1]), valid, n=3, cutoff=0.6)
             prefix = ".".join(str(p) for p in (key_prefix.split(".") if key_prefix else []) + list(e["loc"][:-1]))
             named = [f"{prefix}.{k}" if prefix else k for k in close]
-            msg = ("unknown key" + (f" (did you mean {' or '.join(named)}?)" if named else " (check the spelling)")
-                   + (f"; valid keys here: {', '.join(valid)}" if valid and not named else ""))
+            stage = _other_stage(model, tuple(e["loc"])) if not key_prefix and not named else None
+            if stage is not None:
+                msg = (f"not a setting of this command: `{e['loc'][-1]}` is one of `uncertsplat {stage}`'s "
+                       f"(uncertsplat {stage} ... --set {e['loc'][-1]}=...)")
+            else:
+                msg = "unknown key" + (f" (did you mean {' or '.join(named)}?)" if named else " (check the spelling)")
+            parent = tuple(e["loc"][:-1])
+            if valid and not named and parent not in listed:
+                msg += f"; valid keys here: {', '.join(valid)}"
+                listed.add(parent)
         same = next((i for i, line in enumerate(lines) if line.startswith(f"{loc}: ")), None)
         if same is not None:  # another alternative of a union: one line for the key
             lines[same] += f", or {msg[0].lower()}{msg[1:]}"

@@ -200,6 +200,19 @@ class TestAuto:
         assert alone.sweep.unpruned == alone.metrics.before and alone.metrics.before.ause_mae is not None
         assert alone.metrics.before.psnr_render == pytest.approx(full.metrics.before.psnr_render, abs=0)
 
+    def test_auto_names_the_psnr_its_tolerance_bounds(self, tiny_run_path):  # noqa: F811
+        """The tolerance is checked on the expected render's PSNR; the table's PSNR and ``delta_psnr_db`` are the
+        mean of K samples' renders, which may fall further: a note gives both changes, and the first is within the
+        tolerance."""
+        cfg = PruneConfig(auto=True, tolerance_db=5.0, sweep_ratios=[1.0, 0.7], dry_run=True, **FAST)
+        result = prune.run(tiny_run_path, None, cfg, device=CPU)
+        assert result.counts.removed > 0
+        (note,) = [x for x in result.notes if x.startswith("the tolerance bounds the expected render's PSNR")]
+        m = result.metrics
+        assert f"{m.before.psnr_render:.3f} -> {m.after.psnr_render:.3f} dB" in note
+        assert m.before.psnr_render - m.after.psnr_render <= 5.0
+        assert f"({result.delta_psnr_db.score:+.3f} dB)" in note
+
     def test_cli_tolerance_option(self, tiny_run_path, tmp_path):  # noqa: F811
         res = runner.invoke(app, ["prune", str(tiny_run_path), "--auto", "--tolerance-db", "0", "--dry-run",
                                   "--set", "sweep_ratios=[1.0, 0.3]", "--set", "num_samples=2",

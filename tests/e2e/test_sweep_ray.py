@@ -201,3 +201,19 @@ def test_ctrl_c_cancels_the_ray_jobs_and_keeps_the_finished_records(tmp_path_fac
     ids = [json.loads(line)["id"] for line in log.read_text().splitlines()]
     assert len(ids) == 4 and len(set(ids)) == 4 and again.num_failed == 0
     assert set(ids[: len(done)]) == done
+
+
+def test_an_unreachable_cluster_is_named_before_any_scene_is_made(monkeypatch, tmp_path):
+    """`--address` of a cluster that is not there: one message with what to do, and no synthetic scene generated
+    first (it took 15 s and was left behind in the output folder). Ray's connection is a stand-in that fails as
+    ``ray.init`` does without a cluster (this module's own local instance stays up)."""
+    def no_cluster(*args, **kwargs):
+        raise ConnectionError("Could not find any running Ray instance")
+
+    monkeypatch.setattr(ray, "is_initialized", lambda: False)
+    monkeypatch.setattr(ray, "init", no_cluster)
+    spec = tmp_path / "spec.toml"
+    spec.write_text(SPEC)
+    with pytest.raises(UserError, match="cannot reach the Ray cluster at 'auto'"):
+        sweep.run(spec, tmp_path / "out", device="cpu", executor="ray", address="auto")
+    assert not (tmp_path / "out" / "scene").exists()

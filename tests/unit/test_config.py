@@ -95,6 +95,19 @@ def test_an_unknown_key_gets_the_closest_valid_ones():
         build_config(EvalConfig, {"zzzz": 3})
 
 
+def test_a_key_of_another_command_names_that_command():
+    """A setting given to the wrong command (the README lists train's and evaluate's side by side) says whose it is
+    instead of "check the spelling"; the valid keys are listed once however many keys are wrong."""
+    with pytest.raises(UserError, match=r"ssim_cache_mb: not a setting of this command: `ssim_cache_mb` is one of "
+                                        r"`uncertsplat train`'s \(uncertsplat train \.\.\. --set ssim_cache_mb="):
+        build_config(EvalConfig, {"ssim_cache_mb": 0})
+    with pytest.raises(UserError, match=r"num_samples: .* `uncertsplat evaluate`'s") as info:
+        build_config(TrainConfig, {"num_samples": 4, "resolution": 0, "zzzz": 1})
+    assert str(info.value).count("valid keys here") == 1 and "zzzz: unknown key (check the spelling)" in str(info.value)
+    with pytest.raises(UserError, match="did you mean ssim_cache_mb"):  # a typo of this command's key stays one
+        build_config(TrainConfig, {"ssim_cache_m": 0})
+
+
 def test_a_list_of_bare_names_is_a_list():
     """`--set scene.train_names=[a.png,b.png]` (the shell took the quotes, or none were typed) is the list of those
     names, not a string pydantic refuses as "not a valid list"; numbers in such a list stay numbers."""

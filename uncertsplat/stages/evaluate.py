@@ -11,7 +11,7 @@ engine (``eval.engine``: K samples per view, every metric) and writes into ``RUN
   scene turned to its common orientation (``SceneData.photo_fits``) has its maps turned back, as the photo lies.
 - ``metrics.json``: the ``EvalReport`` (per view by image name, mean, curves, calibration).
 - with ``--split train``, the same files go to ``RUN/eval-train/`` (``eval_dir``): the held-out evaluation in
-  ``RUN/eval/`` stays as it was.
+  ``RUN/eval/`` stays as it was (only the pixel-noise cache ``residual.pt`` below is kept there, for every split).
 - ``config.json``: the resolved ``EvalConfig``.
 - ``residual.pt``: the pixel noise fitted on the training views, with a key of the model and the settings it
   depends on (``stages.residual_cache``): the next ``evaluate`` or ``prune`` of the same model reads it.

@@ -447,6 +447,7 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         result.threshold_effective = float(removed_scores.min()) if removed else None
         result.metrics = PruneMetricSet(before=before, after=after, random=rand)
         _psnr_change(result)
+        _tolerance_note(result, notes, cfg)
 
     if output is None:
         _print_result(result, notes, score_name, cfg)
@@ -457,10 +458,31 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         _evaluate_written(output, result, measure, device)
         notes.append(f"the pruned model's uncertainty metrics are evaluate's ({output / 'eval' / 'metrics.json'}: "
                      "the pruned run evaluated as `evaluate` does, with this K and seed)")
-        result.notes = notes
+        _tolerance_note(result, notes, cfg)
         result.write(output / "prune.json")
     _print_result(result, notes, score_name, cfg)
     return result
+
+
+TOLERANCE_NOTE = "the tolerance bounds the expected render's PSNR"
+
+
+def _tolerance_note(result: PruneReport, notes: list[str], cfg: PruneConfig) -> None:
+    """With ``--auto``: which PSNR the tolerance bounds (the expected render's, ``psnr_render``) and by how much each
+    changed, so that a table or ``delta_psnr_db`` (the mean of the K samples' renders) past the tolerance does not
+    read as a broken promise. Replaces an earlier such note in ``notes`` (and sets ``result.notes``)."""
+    m = result.metrics
+    notes[:] = [n for n in notes if not n.startswith(TOLERANCE_NOTE)]
+    removed = result.counts is not None and result.counts.removed > 0
+    if cfg.auto and removed and m.after is not None and None not in (m.before.psnr_render, m.after.psnr_render):
+        change = m.after.psnr_render - m.before.psnr_render
+        line = (f"{TOLERANCE_NOTE} (psnr_render, one render a view; {cfg.tolerance_db:g} dB): "
+                f"{m.before.psnr_render:.3f} -> {m.after.psnr_render:.3f} dB ({change:+.3f})")
+        if result.delta_psnr_db is not None:
+            line += (f"; the table's PSNR and delta_psnr_db are the mean of the K samples' renders "
+                     f"({result.delta_psnr_db.score:+.3f} dB), which it does not bound")
+        notes.append(line)
+    result.notes = notes
 
 
 def _psnr_change(result: PruneReport) -> None:

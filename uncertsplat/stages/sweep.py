@@ -137,7 +137,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
     from uncertsplat.console import progress
     from uncertsplat.device import resolve_device
     from uncertsplat.report.sweep_page import build_sweep_page
-    from uncertsplat.sweep.executors import EXECUTORS, require_ray, run_local, run_ray
+    from uncertsplat.sweep.executors import EXECUTORS, connect_ray, require_ray, run_local, run_ray
     from uncertsplat.sweep.pareto import plot_pareto, summarize, table_points
     from uncertsplat.sweep.spec import load_spec, make_jobs
 
@@ -154,6 +154,8 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         raise UserError(f"--retries must be at least 0, got {retries}")
     if executor == "ray":
         require_ray()  # before any work, with the install command
+        if address is not None:  # a cluster that cannot be reached: said before any scene is generated
+            connect_ray(address)
     whole = spec  # the summary covers every scene of the spec, whichever of them this call runs
     if only_scenes:
         unknown = [n for n in only_scenes if n not in spec.scenes]

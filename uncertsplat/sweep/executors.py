@@ -133,6 +133,26 @@ def require_ray():
     return require_extra("ray", feature="--executor ray", extra="ray")
 
 
+def connect_ray(address: str | None, num_cpus: int | None = None) -> bool:
+    """Start a local Ray instance (``address`` None; ``num_cpus`` CPUs, default all) or join the cluster at
+    ``address``, unless this process is connected already; True when this call connected. A cluster that cannot be
+    reached is one UserError with what to do (``sweep`` calls this before it prepares any scene)."""
+    ray = require_ray()
+    if ray.is_initialized():
+        return False
+    kwargs = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
+    try:
+        if address is None:
+            ray.init(num_cpus=num_cpus, **kwargs)
+        else:
+            ray.init(address=address, **kwargs)
+    except ConnectionError as err:
+        raise UserError(f"cannot reach the Ray cluster at {address!r} ({err})",
+                        hint="Start it on the head node (ray start --head) and run the sweep there with "
+                             "--address auto, or leave --address out to use this machine only.") from None
+    return True
+
+
 def run_ray(todo: list[dict], *, address: str | None, cpus_per_job: float, gpus_per_job: float, retries: int,
             on_records: OnRecords, on_start: OnStart | None = None, num_cpus: int | None = None,
             run_job: Callable[[dict], list[dict]] | None = None) -> None:
@@ -143,19 +163,7 @@ def run_ray(todo: list[dict], *, address: str | None, cpus_per_job: float, gpus_
     ray = require_ray()
     if run_job is None:
         from uncertsplat.sweep.jobs import run_job
-    started_here = False
-    if not ray.is_initialized():
-        kwargs = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
-        try:
-            if address is None:
-                ray.init(num_cpus=num_cpus, **kwargs)
-            else:
-                ray.init(address=address, **kwargs)
-        except ConnectionError as err:
-            raise UserError(f"cannot reach the Ray cluster at {address!r} ({err})",
-                            hint="Start it on the head node (ray start --head) and run the sweep there with "
-                                 "--address auto, or leave --address out to use this machine only.") from None
-        started_here = True
+    started_here = connect_ray(address, num_cpus)
     total = ray.cluster_resources()
     if cpus_per_job > total.get("CPU", 0) or gpus_per_job > total.get("GPU", 0):
         if started_here:
@@ -203,4 +211,4 @@ def run_ray(todo: list[dict], *, address: str | None, cpus_per_job: float, gpus_
             ray.shutdown()
 
 
-__all__ = ["EXECUTORS", "failed_records", "require_ray", "run_local", "run_ray"]
+__all__ = ["EXECUTORS", "connect_ray", "failed_records", "require_ray", "run_local", "run_ray"]
