@@ -133,8 +133,14 @@ def test_explicit_training_views(tiny_scene_path):  # noqa: F811
     # training views only: the default held-out views stay held out, except those now trained on; the rest unused
     s = load_scene(tiny_scene_path, SceneConfig(train_indices=[0, 1, 2, 3]))
     assert s.split["train"] == (0, 1, 2, 3) and s.split["test"] == (8, 16)
+    # ... and the scene says so (train prints its notes): a held-out view that became a training view
+    (note,) = [n for n in s.notes if "default held-out views" in n]
+    assert "include 1 of the default held-out views (view_000.png)" in note and "2 held out now" in note
     s = load_scene(tiny_scene_path, SceneConfig(train_names=names[:6], test_indices=[12, 13]))
     assert s.split == {"train": (0, 1, 2, 3, 4, 5), "test": (12, 13)}
+    assert not [n for n in s.notes if "default held-out views" in n]  # the held-out views were given
+    assert not [n for n in load_scene(tiny_scene_path, SceneConfig(train_indices=[1, 2])).notes
+                if "default held-out views" in n]  # none taken
     _raises(tiny_scene_path, SceneConfig(train_indices=[1, 2], test_indices=[2, 3]), match="both trained on and held")
     _raises(tiny_scene_path, SceneConfig(train_indices=[24]), match="training indices out of range")
     _raises(tiny_scene_path, SceneConfig(train_names=["x.png"]), match="training image")

@@ -378,6 +378,19 @@ def make_split(names: tuple[str, ...], cfg: SceneConfig, where: Path | None = No
     return _set_aside(split, cfg.calibration_holdout, where) if cfg.calibration_holdout else split
 
 
+def _held_out_taken(names: tuple[str, ...], cfg: SceneConfig, default: dict[str, tuple[int, ...]] | None,
+                    split: dict[str, tuple[int, ...]]) -> list[str]:
+    """The names of the default held-out views that explicit training views took into training (``make_split``:
+    they give way, silently otherwise), [] when the test views were given or none was taken."""
+    explicit_train = cfg.train_names is not None or cfg.train_indices is not None
+    explicit_test = cfg.test_names is not None or cfg.test_indices is not None
+    if not explicit_train or explicit_test:
+        return []
+    test = default.get("test", ()) if default is not None else range(0, len(names), cfg.test_every)
+    train = set(split["train"]) | set(split.get("calibration", ()))
+    return [names[i] for i in test if i in train]
+
+
 def _set_aside(split: dict[str, tuple[int, ...]], n: int, where: Path | None) -> dict[str, tuple[int, ...]]:
     """``split`` with ``n`` of its training views moved to ``"calibration"``: the middle view of each of n equal runs
     of the training views, so that they spread over the capture as the held-out views do."""
@@ -485,6 +498,12 @@ def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torc
     """Split, choose the centre, add random initial points (``random_init`` and no points), normalise;
     ``photo_fits`` and ``notes`` are ``_colmap_cameras``'s (recorded in ``source`` too)."""
     split = make_split(cameras.image_names, cfg, where=Path(source["path"]), default=default_split)
+    taken = _held_out_taken(cameras.image_names, cfg, default_split, split)
+    if taken:
+        notes = [*notes, f"the training views given (scene.train_names / train_indices) include {len(taken)} of the "
+                         f"default held-out views ({', '.join(taken[:4])}{', ...' if len(taken) > 4 else ''}), which "
+                         f"are trained on: {len(split['test'])} held out now (scene.test_names / test_indices "
+                         "choose them)"]
     choice = choose_center(cameras, has_points=points.shape[0] > 0, mode=cfg.center, where=Path(source["path"]))
     if points.shape[0] == 0 and random_init:
         # 100k points (3DGS) for NeRF-synthetic at full size, fewer for small or downscaled scenes: there 100k
