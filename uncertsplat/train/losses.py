@@ -63,7 +63,7 @@ class SsimTargetCache:
             return self._stats[key]
         if self._full or self.budget_bytes <= 0:
             return None
-        need = 8 * target[..., 0, 0, 0].numel() * target.shape[-3] * target.shape[-2] * target.shape[-1]
+        need = 8 * target.numel()  # the two float32 planes of every channel: ssim_target_stats' size
         if self.used_bytes + need > self.budget_bytes:
             self._full = True
             return None
@@ -72,5 +72,5 @@ class SsimTargetCache:
             self._full = True
             return None
         self._stats[key] = stats
-        self.used_bytes += stats.numel() * stats.element_size()
+        self.used_bytes += need
         return stats

@@ -275,6 +275,28 @@ std::vector<float>& scratch(size_t n) {
     return buf;
 }
 
+// The rows of task t (SsimTasks) streamed through a ring of the last K horizontally blurred rows of NQ quantities
+// (`ring`: NQ K Wp floats): before output row oy, every input row its vertical window needs is passed once, in
+// order, to blur_row(row, out) (out[q]: that row's slot of quantity q in the ring); then row_done(oy, ring_q, slot)
+// (ring_q[q]: quantity q's K rows; slot(row): a row's place among them).
+template <int NQ, typename BlurRow, typename RowDone>
+void stream_rows(const SsimRows& g, const SsimTasks& tasks, int64_t t, float* ring, BlurRow blur_row,
+                 RowDone row_done) {
+    const int64_t y0 = tasks.y0(g, t), y1 = tasks.y1(g, t);
+    float* ring_q[NQ];
+    for (int q = 0; q < NQ; ++q) ring_q[q] = ring + q * g.K * g.Wp;
+    auto slot = [&](int64_t row) { return row % g.K; };
+    int64_t next = std::max<int64_t>(0, y0 - g.r);  // the next row to blur horizontally into the ring
+    for (int64_t oy = y0; oy < y1; ++oy) {
+        for (const int64_t last = std::min<int64_t>(g.H - 1, oy + g.r); next <= last; ++next) {
+            float* out[NQ];
+            for (int q = 0; q < NQ; ++q) out[q] = ring_q[q] + slot(next) * g.Wp;
+            blur_row(next, out);
+        }
+        row_done(oy, ring_q, slot);
+    }
+}
+
 // Loads the first n (<= LANES) floats at p into the lanes of a vector (the others 0).
 inline VS load_lanes(const float* p, int64_t n) {
     if (n == SSIM_LANES) return load_vs(p);
@@ -324,34 +346,28 @@ void ssim_forward_impl(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, c
     const size_t ring_len = static_cast<size_t>(NQ * K * g.Wp);  // the horizontally blurred quantities
     parallel_ranges(tasks.count, num_threads, 2 * row_len + ring_len, [&](int64_t t, float* buf) {
         const int64_t b = tasks.plane(t), y0 = tasks.y0(g, t), y1 = tasks.y1(g, t);
-        float *pa = buf, *pb = buf + row_len, *ring = buf + 2 * row_len;
-        float* ring_q[NQ];  // quantity q's K rows
-        for (int q = 0; q < NQ; ++q) ring_q[q] = ring + q * K * g.Wp;
-        auto ring_slot = [&](int64_t row) { return row % K; };
-        int64_t next = std::max<int64_t>(0, y0 - g.r);  // the next row to blur horizontally into the ring
-        for (int64_t oy = y0; oy < y1; ++oy) {
-            for (const int64_t last = std::min<int64_t>(H - 1, oy + g.r); next <= last; ++next) {
-                pad_row(g, x + g.row(b, next), CH, pa);
-                pad_row(g, y + g.row(b, next), CH, pb);
-                if (plane_l1 != nullptr && next >= y0 && next < y1) {  // each row's L1 in the task that owns it
-                    VS acc{};
-                    for (int64_t i = 0; i < g.Wp; i += SSIM_LANES) {
-                        const VS d = load_vs(pa + g.r + i) - load_vs(pb + g.r + i);  // zeros past W on both
-                        acc += d < 0.0f ? -d : d;
-                    }
-                    float sum = 0.0f;
-                    for (int l = 0; l < SSIM_LANES; ++l) sum += acc[l];
-                    row_l1[b * H + next] = sum;
+        float *pa = buf, *pb = buf + row_len;
+        auto blur_row = [&](int64_t row, float* const* out) {
+            pad_row(g, x + g.row(b, row), CH, pa);
+            pad_row(g, y + g.row(b, row), CH, pb);
+            if (plane_l1 != nullptr && row >= y0 && row < y1) {  // each row's L1 in the task that owns it
+                VS acc{};
+                for (int64_t i = 0; i < g.Wp; i += SSIM_LANES) {
+                    const VS d = load_vs(pa + g.r + i) - load_vs(pb + g.r + i);  // zeros past W on both
+                    acc += d < 0.0f ? -d : d;
                 }
-                float* out[NQ];
-                for (int q = 0; q < NQ; ++q) out[q] = ring_q[q] + ring_slot(next) * g.Wp;
-                hblur_row<MODE>(g, w, pa, pb, nullptr, out);
+                float sum = 0.0f;
+                for (int l = 0; l < SSIM_LANES; ++l) sum += acc[l];
+                row_l1[b * H + row] = sum;
             }
+            hblur_row<MODE>(g, w, pa, pb, nullptr, out);
+        };
+        auto row_done = [&](int64_t oy, float* const* ring_q, auto slot) {
             VS sum{};
             for (int64_t x0 = 0; x0 < W; x0 += SSIM_LANES) {
                 const int64_t n = std::min<int64_t>(SSIM_LANES, W - x0);
                 VS m[NQ];
-                vblur<NQ>(g, w, ring_q, ring_slot, oy, x0, m);
+                vblur<NQ>(g, w, ring_q, slot, oy, x0, m);
                 VS ux, uy, exx, eyy, exy;
                 if constexpr (TARGET) {
                     const int64_t o = b * HW + oy * W + x0;
@@ -371,7 +387,8 @@ void ssim_forward_impl(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, c
             double total = 0.0;
             for (int l = 0; l < SSIM_LANES; ++l) total += sum[l];
             row_sum[b * H + oy] = total;
-        }
+        };
+        stream_rows<NQ>(g, tasks, t, buf + 2 * row_len, blur_row, row_done);
     });
     for (int64_t b = 0; b < B; ++b) {
         double total = 0.0, l1 = 0.0;
@@ -393,26 +410,22 @@ void ssim_target_stats(int64_t B, int64_t H, int64_t W, int64_t K, int64_t CH, c
     const int64_t row_len = g.Wp + 2 * g.r + SSIM_LANES;
     parallel_ranges(tasks.count, num_threads, row_len + static_cast<size_t>(2 * K * g.Wp), [&](int64_t t,
                                                                                            float* buf) {
-        const int64_t b = tasks.plane(t), y0 = tasks.y0(g, t), y1 = tasks.y1(g, t);
-        float *pb = buf, *ring = buf + row_len;
-        float* ring_q[2] = {ring, ring + K * g.Wp};
-        auto ring_slot = [&](int64_t row) { return row % K; };
-        int64_t next = std::max<int64_t>(0, y0 - g.r);
-        for (int64_t oy = y0; oy < y1; ++oy) {
-            for (const int64_t last = std::min<int64_t>(H - 1, oy + g.r); next <= last; ++next) {
-                pad_row(g, y + g.row(b, next), CH, pb);
-                float* row_out[2] = {ring_q[0] + ring_slot(next) * g.Wp, ring_q[1] + ring_slot(next) * g.Wp};
-                hblur_row<HQ::kTarget>(g, w, nullptr, pb, nullptr, row_out);
-            }
+        const int64_t b = tasks.plane(t);
+        auto blur_row = [&](int64_t row, float* const* out) {
+            pad_row(g, y + g.row(b, row), CH, buf);
+            hblur_row<HQ::kTarget>(g, w, nullptr, buf, nullptr, out);
+        };
+        auto row_done = [&](int64_t oy, float* const* ring_q, auto slot) {
             for (int64_t x0 = 0; x0 < W; x0 += SSIM_LANES) {
                 const int64_t n = std::min<int64_t>(SSIM_LANES, W - x0);
                 VS m[2];
-                vblur<2>(g, w, ring_q, ring_slot, oy, x0, m);
+                vblur<2>(g, w, ring_q, slot, oy, x0, m);
                 const int64_t o = b * HW + oy * W + x0;
                 store_lanes(out + o, m[0], n);
                 store_lanes(out + B * HW + o, m[1], n);
             }
-        }
+        };
+        stream_rows<2>(g, tasks, t, buf + row_len, blur_row, row_done);
     });
 }
 
