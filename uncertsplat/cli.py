@@ -109,6 +109,10 @@ def _config_file(path: Path) -> dict:
                         f"level (e.g. `iterations = 7000`, not under [{table}])", path=path,
                         hint=f"Remove the [{table}] line; a pipeline file (`uncertsplat run`) is where stages are "
                              "tables.")
+    if isinstance(data.get("stages"), list):  # a whole pipeline given to one command
+        raise UserError("this is a pipeline file (it lists [[stages]]), not one command's --config file", path=path,
+                        hint=f"Run it with `uncertsplat run {path}`, or copy the keys of one stage's `config = {{...}}` "
+                             "into a file of their own for --config.")
     return data
 
 

@@ -834,6 +834,8 @@ def build_config(model: type[_Base], data: dict, source: str = "config", key_pre
 def load_toml(path: str | Path) -> dict:
     """Read a TOML file with errors that name the file."""
     path = Path(path)
+    if path.is_dir():
+        raise UserError("this is a folder, not a config file", path=path, hint="Give the path of a .toml file.")
     if not path.is_file():
         raise UserError("config file not found", path=path)
     try:

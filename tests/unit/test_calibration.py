@@ -83,3 +83,15 @@ def test_spearman_broadcast_std(device):
     std = torch.arange(12, dtype=torch.float32, device=device).reshape(2, 6, 1)
     err = std.expand(2, 6, 3) * 2 + 1
     assert spearman(std, err).value == pytest.approx(1.0)
+
+
+def test_std_factor_notes_name_too_few_views_and_a_factor_these_views_disagree_with():
+    from uncertsplat.stages.evaluate import std_factor_notes
+
+    assert std_factor_notes(12, -1.0, -0.9) == []
+    (few,) = std_factor_notes(2, -1.0, -0.9)
+    assert few == "the std factor rests on 2 views only, too few to trust"
+    (both,) = std_factor_notes(1, -0.01, -0.12)
+    assert both.startswith("the std factor rests on 1 view only") and "makes these views' NLL worse" in both
+    (worse,) = std_factor_notes(8, -0.01, -0.12)
+    assert worse.startswith("the fitted factor makes these views' NLL worse than the raw std does")

@@ -119,6 +119,18 @@ def test_a_config_file_with_a_stage_table_says_how_to_write_it(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+def test_a_pipeline_file_or_a_folder_given_as_config_says_what_it_is(tmp_path):
+    f = tmp_path / "p.toml"
+    f.write_text('name = "x"\n[[stages]]\nstage = "train"\n')
+    for config, expected, hint in ((f, "this is a pipeline file (it lists [[stages]])", f"uncertsplat run {f}"),
+                                   (tmp_path, "this is a folder, not a config file", "Give the path of a .toml file")):
+        result = runner.invoke(app, ["train", str(tmp_path), "-o", str(tmp_path / "run"), "--config", str(config),
+                                     "--device", "cpu"])
+        flat = " ".join(result.output.split())
+        assert result.exit_code == 2 and expected in flat and hint in flat, flat
+        assert not (tmp_path / "run").exists()
+
+
 def test_report_refuses_a_run_given_twice(tmp_path):
     (tmp_path / "r").mkdir()
     result = runner.invoke(app, ["report", str(tmp_path / "r"), str(tmp_path / "r" / "."), "-o", str(tmp_path / "o")])

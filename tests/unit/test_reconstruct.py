@@ -513,3 +513,55 @@ def test_train_notes_training_images_a_downscale_made_tiny():
 def test_a_mapping_runs_time_is_never_shown_as_zero(seconds, shown):
     """The mapping-runs line said "in 0 s" for a small scene's runs."""
     assert stage._secs(seconds) == shown
+
+
+def test_an_interrupted_run_is_recognised_and_started_over(tmp_path, monkeypatch):
+    """Ctrl-C during the work leaves a report marked unfinished; the same command then starts over in that folder
+    instead of refusing it as someone else's files."""
+    from uncertsplat.errors import Interrupted
+
+    photos = _photos(tmp_path)
+    ws = tmp_path / "ws"
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stage.sfm, "stage_inputs", stop)
+    with pytest.raises(Interrupted, match="interrupted") as err:
+        stage.run(photos, ws, ReconstructConfig())
+    assert "same command again" in str(err.value)
+    left = load_report(ws)
+    assert not left.success and left.message.startswith("unfinished")
+    (ws / "database.db").write_bytes(b"half written")
+    monkeypatch.setattr(stage.sfm, "stage_inputs", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("reached")))
+    with pytest.raises(RuntimeError, match="reached"):  # the second run got past the folder check
+        stage.run(photos, ws, ReconstructConfig())
+    assert not (ws / "database.db").exists()  # the unfinished run's files were cleared first
+
+
+def test_registration_hints_name_the_causes_this_run_shows_first():
+    split = stage.registration_hints([13, 7], "exhaustive", 20, ReconstructConfig())
+    assert split[0].startswith("mapping split the photos into 2 groups (13, 7 images")
+    assert split[-1] == "or lower --min-registered (now 0.8)"
+    small = stage.registration_hints([3], "exhaustive", 20, ReconstructConfig(max_image_size=100))
+    assert small[0] == "raise --max-image-size (now 100 px: small images give few features)"
+    plain = stage.registration_hints([15], "sequential", 20, ReconstructConfig())
+    assert plain[0].startswith("take more photos") and "try --matcher exhaustive" in plain[-2]
+
+
+def test_photos_of_formats_not_read_and_other_files_are_named(tmp_path):
+    from uncertsplat.sfm.reconstruct import scan_photos
+
+    photos = _photos(tmp_path)
+    (photos / "IMG_9999.HEIC").write_bytes(b"heic")
+    (photos / "DSC_0001.NEF").write_bytes(b"raw")
+    (photos / "notes.txt").write_text("shot at noon")
+    (photos / ".DS_Store").write_bytes(b"x")
+    scan = scan_photos(photos)
+    assert len(scan.photos) == 3
+    assert ("2 photo(s) in a format this tool does not read left out: DSC_0001.NEF, IMG_9999.HEIC (convert them to "
+            "JPEG or PNG to use them)") in scan.notes
+    assert "other files ignored: notes.txt" in scan.notes  # hidden files are not worth a line
+    (tmp_path / "b").mkdir()
+    plain = scan_photos(_photos(tmp_path / "b"))
+    assert plain.notes == []

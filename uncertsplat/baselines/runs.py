@@ -220,7 +220,10 @@ class LoadedRun:
                             hint="Evaluate a run written by `uncertsplat train`.")
         if not Path(self.scene_path).exists():
             raise UserError(f"the scene this run was trained on is gone: {self.scene_path}", path=self.run_dir,
-                            hint="Restore the scene folder at that path, then run evaluate again.")
+                            hint="Restore the scene folder at that path; or, if you moved it, point the run at its new "
+                                 f"place with `uncertsplat train NEW_SCENE_FOLDER -o {self.run_dir} --resume` (it "
+                                 "checks that the folder holds the run's images and trains no further when the run "
+                                 "is finished). Then run this command again.")
         # rendering a trained run needs no initial points (for a scene without sparse points, making them reads
         # every training view's alpha mask)
         return load_scene(self.scene_path, self.config.scene, initial_points=False)

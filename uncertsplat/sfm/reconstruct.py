@@ -35,6 +35,9 @@ from uncertsplat.io.images import decode_error
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
 """Accepted photo extensions, compared case-insensitively (IMG_0001.JPG is fine)."""
+OTHER_PHOTO_EXTENSIONS = (".heic", ".heif", ".avif", ".webp", ".jxl", ".gif", ".bmp", ".dng", ".cr2", ".cr3",
+                          ".nef", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw")
+"""Photo formats (phones' HEIC, camera RAW, web formats) that are not read: named in a note, not silently ignored."""
 
 ProgressFn = Callable[[int, str], None]
 """``advance(n, info)``: n more units done, ``info`` a short status text."""
@@ -169,6 +172,13 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
     if subfolders:
         notes.append(f"sub-folders are not searched: {', '.join(subfolders)} ignored "
                      "(move their photos into the top folder to use them)")
+    skipped = [n for n in ignored if not n.startswith(".") and not n.endswith("/")]
+    unread = [n for n in skipped if Path(n).suffix.lower() in OTHER_PHOTO_EXTENSIONS]
+    if unread:  # a phone's HEIC beside its JPEGs, camera RAW files: photos the user meant to give
+        notes.append(f"{len(unread)} photo(s) in a format this tool does not read left out: {list_names(unread)} "
+                     "(convert them to JPEG or PNG to use them)")
+    if len(skipped) > len(unread):
+        notes.append(f"other files ignored: {list_names([n for n in skipped if n not in unread])}")
     if not candidates:
         what = "is empty" if not entries else "holds no JPEG, PNG or TIFF photos"
         # a common slip: pointing at a dataset folder whose photos live in a sub-folder (e.g. images/)

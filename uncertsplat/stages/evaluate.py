@@ -214,6 +214,22 @@ def _copy_evaluation(source_eval: Path, out: Path) -> None:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+FEW_CALIBRATION_VIEWS = 4
+"""A std factor fitted on fewer views than this is named as resting on too few."""
+
+
+def std_factor_notes(views: int, nll_fitted: float, nll_raw: float) -> list[str]:
+    """What to say of a std factor fitted on ``views`` views that gives the evaluated views ``nll_fitted`` against
+    ``nll_raw`` with the raw std: that it rests on too few views, or that these views disagree with it."""
+    reasons = []
+    if views < FEW_CALIBRATION_VIEWS:
+        reasons.append(f"the std factor rests on {views} view{'' if views == 1 else 's'} only, too few to trust")
+    if nll_fitted > nll_raw:
+        reasons.append("the fitted factor makes these views' NLL worse than the raw std does (they differ from the "
+                       "views it was fitted on): read the raw numbers")
+    return ["; ".join(reasons)] if reasons else []
+
+
 def run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = False):
     """Evaluate ``run_dir`` and write ``run_dir/eval`` (maps + metrics.json); returns the EvalReport. An evaluation
     already there that measured what this one would (``matching_evaluation``, its maps too) is kept and returned
@@ -425,6 +441,8 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
         console.print(f"std x {report.std_scale:.3g} (fitted on {len(report.calibration_views)} {report.calibration_source}): "
                       f"NLL {m.nll_calibrated:.3f} (raw {m.nll:.3f}), calibration error "
                       f"{m.calibration_error_calibrated:.3f} (raw {m.calibration_error:.3f}); AUSE is unchanged")
+        for note in std_factor_notes(len(report.calibration_views), m.nll_calibrated, m.nll):
+            console.print(f"[yellow]note:[/] {note}")
     if report.degrees_of_freedom is not None:
         m = report.mean
         where = (f"fitted on the {report.calibration_source}" if cfg.degrees_of_freedom == "fit" else "set")
@@ -436,9 +454,10 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
                       f"std, its 99.7 % one +-{_half_width(0.9973, report.degrees_of_freedom):.2f}){gaussian}")
         if cfg.degrees_of_freedom == "fit" and not report.calibration_held_out and report.degrees_of_freedom < 10:
             # heavy tails fitted on training views may be heavier than new views' (light ones say nothing of that)
-            console.print("[dim]training views fit better than new ones, so their tails are heavier (bonsai: 2.75 "
-                          "degrees of freedom where its held-out views ask for 3.4); views set aside from training "
-                          "give a fit that holds for new views: train with --set scene.calibration_holdout=3[/]")
+            console.print("[dim]the tails were fitted on training views, which a model usually fits better than new "
+                          "ones, so new views may ask for lighter tails (bonsai: 2.75 degrees of freedom where its "
+                          "held-out views ask for 3.4); views set aside from training give a fit that holds for new "
+                          "views: train with --set scene.calibration_holdout=3[/]")
     if report.mean.psnr_render is not None:
         masked = any(n.startswith(MASKED_NOTE) for n in report.notes)
         where = " (train's over whole images; these inside the scene's validity masks)" if masked else ""

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from uncertsplat.config import ReconstructConfig
 from uncertsplat.console import console, list_names, progress
-from uncertsplat.errors import UserError
+from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.io.atomic import run_lock
 from uncertsplat.sfm import reconstruct as sfm
 from uncertsplat.sfm.report import (
@@ -103,6 +103,24 @@ def weak_registration_note(weak: dict[str, int], cfg: ReconstructConfig) -> str:
             + "photos between these and their neighbours")
 
 
+def registration_hints(model_sizes: list[int], matcher: str, n: int, cfg: ReconstructConfig) -> list[str]:
+    """What to try when too few of the ``n`` photos registered: the causes this run shows first (mapping split the
+    photos into groups of ``model_sizes`` images; images made smaller than features need), then the general ones."""
+    hints = []
+    if len(model_sizes) > 1:  # the photos form groups that share too few matches
+        hints.append(f"mapping split the photos into {len(model_sizes)} groups ({', '.join(map(str, model_sizes))} "
+                     "images; reconstruct_report.json: models): add photos that link the groups")
+    if cfg.max_image_size < 800:
+        hints.append(f"raise --max-image-size (now {cfg.max_image_size} px: small images give few features)")
+    hints += ["take more photos with more overlap between neighbours", "use sharper images (no motion blur)"]
+    if matcher == "exhaustive" and n > 50:
+        hints.append("for video frames try --matcher sequential")
+    elif matcher == "sequential":
+        hints.append("for unordered photos try --matcher exhaustive")
+    hints.append(f"or lower --min-registered (now {cfg.min_registered})")
+    return hints
+
+
 def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructReport:
     """Run SfM on ``photos`` and write an undistorted workspace plus ``reconstruct_report.json``.
 
@@ -153,139 +171,142 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     n = len(scan.photos)
     distorted = workspace / "distorted"
     database = workspace / "database.db"
-    with run_lock(workspace, "reconstruct"), sfm.colmap_logging():
-        sfm.set_seed(cfg.seed)
-        with watch("stage_inputs"):
-            image_dir, rotated = sfm.stage_inputs(scan, distorted / "input")
-        report.rotated = rotated
-        if rotated:
-            report.notes.append(f"EXIF orientation applied to {len(rotated)} image(s)")
-        matcher = sfm.resolve_matcher(cfg, n)
-        pairs = sfm.image_pairs(scan.names, matcher)
-        report.matcher = matcher
+    try:
+        with run_lock(workspace, "reconstruct"), sfm.colmap_logging():
+            # the report first, marked unfinished: a run stopped by Ctrl-C leaves a workspace that the same command
+            # recognises as its own and starts over in (_prepare_workspace: redo_failed)
+            report.message = "unfinished: the run stopped before it ended"
+            write_report(workspace, report)
+            report.message = ""
+            sfm.set_seed(cfg.seed)
+            with watch("stage_inputs"):
+                image_dir, rotated = sfm.stage_inputs(scan, distorted / "input")
+            report.rotated = rotated
+            if rotated:
+                report.notes.append(f"EXIF orientation applied to {len(rotated)} image(s)")
+            matcher = sfm.resolve_matcher(cfg, n)
+            pairs = sfm.image_pairs(scan.names, matcher)
+            report.matcher = matcher
 
-        with progress() as bar:
-            # ---- features
-            task = bar.add_task("features", total=n, info="")
-            with watch("extract"):
-                keypoints = sfm.extract_features(database, image_dir, groups, cfg,
-                                                 advance=lambda k, s: bar.update(task, advance=k, info=s))
-            missing = [name for name in scan.names if name not in keypoints]
-            if missing:
-                raise fail(f"COLMAP could not read {len(missing)} image(s): {list_names(missing)}",
-                           "Re-export these files as JPEG or PNG, or remove them.")
-            featureless = sorted(name for name, k in keypoints.items() if k == 0)
-            bar.update(task, info=f"{sum(keypoints.values())} keypoints")
-            if featureless:
-                report.notes.append(f"no features found in: {list_names(featureless)}")
+            with progress() as bar:
+                # ---- features
+                task = bar.add_task("features", total=n, info="")
+                with watch("extract"):
+                    keypoints = sfm.extract_features(database, image_dir, groups, cfg,
+                                                     advance=lambda k, s: bar.update(task, advance=k, info=s))
+                missing = [name for name in scan.names if name not in keypoints]
+                if missing:
+                    raise fail(f"COLMAP could not read {len(missing)} image(s): {list_names(missing)}",
+                               "Re-export these files as JPEG or PNG, or remove them.")
+                featureless = sorted(name for name, k in keypoints.items() if k == 0)
+                bar.update(task, info=f"{sum(keypoints.values())} keypoints")
+                if featureless:
+                    report.notes.append(f"no features found in: {list_names(featureless)}")
 
-            # ---- matching
-            task = bar.add_task(f"matching ({matcher})", total=len(pairs), info="")
-            with watch("match"):
-                report.num_verified_pairs = sfm.match_features(
-                    database, pairs, cfg, distorted, advance=lambda k, s: bar.update(task, advance=k, info=s))
+                # ---- matching
+                task = bar.add_task(f"matching ({matcher})", total=len(pairs), info="")
+                with watch("match"):
+                    report.num_verified_pairs = sfm.match_features(
+                        database, pairs, cfg, distorted, advance=lambda k, s: bar.update(task, advance=k, info=s))
 
-            # ---- mapping: runs with other seeds until two agree, relaxed options when too few images register
-            needed = cfg.min_registered * n
-            results: list[sfm.MappingResult] = []
-            summaries: list[dict] = []  # sfm.attempt_summary of each result, made once
-            for relaxed in (False, True):
-                for attempt in range(cfg.mapping_attempts):
-                    seed = cfg.seed + attempt
-                    label = ("mapping (relaxed)" if relaxed else "mapping") + (f", seed {seed}" if attempt else "")
-                    task = bar.add_task(label, total=n, info="")
-                    with watch("map"):
-                        result = sfm.map_incremental(database, image_dir, distorted / "models", cfg, relaxed,
-                                                     advance=lambda k, s, t=task: bar.update(t, advance=k, info=s),
-                                                     seed=seed)
-                    results.append(result)
-                    summaries.append(sfm.attempt_summary(result))
-                    bar.update(task, completed=result.num_registered, info=f"{result.num_registered} registered, "
-                               f"{summaries[-1]['num_observations']} observations")
-                    if result.best is None:
-                        break  # no initial pair: another seed of the same options finds none either
-                    if sfm.agreeing(summaries, len(summaries) - 1):
+                # ---- mapping: runs with other seeds until two agree, relaxed options when too few images register
+                needed = cfg.min_registered * n
+                results: list[sfm.MappingResult] = []
+                summaries: list[dict] = []  # sfm.attempt_summary of each result, made once
+                for relaxed in (False, True):
+                    for attempt in range(cfg.mapping_attempts):
+                        seed = cfg.seed + attempt
+                        label = ("mapping (relaxed)" if relaxed else "mapping") + (f", seed {seed}" if attempt else "")
+                        task = bar.add_task(label, total=n, info="")
+                        with watch("map"):
+                            result = sfm.map_incremental(database, image_dir, distorted / "models", cfg, relaxed,
+                                                         advance=lambda k, s, t=task: bar.update(t, advance=k, info=s),
+                                                         seed=seed)
+                        results.append(result)
+                        summaries.append(sfm.attempt_summary(result))
+                        bar.update(task, completed=result.num_registered, info=f"{result.num_registered} registered, "
+                                   f"{summaries[-1]['num_observations']} observations")
+                        if result.best is None:
+                            break  # no initial pair: another seed of the same options finds none either
+                        if sfm.agreeing(summaries, len(summaries) - 1):
+                            break
+                    if max(r.num_registered for r in results) >= needed or report.num_verified_pairs == 0:
                         break
-                if max(r.num_registered for r in results) >= needed or report.num_verified_pairs == 0:
-                    break
-            kept = sfm.choose_attempt(summaries, needed)
-            result = results[kept]
-            report.retried_relaxed = any(r.relaxed for r in results)
-            report.mapping_attempts = [MappingAttempt(**a, kept=(i == kept)) for i, a in enumerate(summaries)]
-            report.mapping_agreed = sfm.agreeing(summaries, kept) \
-                if cfg.mapping_attempts > 1 and result.best is not None else None
-            if report.mapping_agreed is False:
-                runs = "; ".join(f"seed {a['seed']}{' (relaxed)' if a['relaxed'] else ''}: {a['num_images']} images, "
-                                 f"{a['num_observations']} observations, focal {_focals(a)}" for a in summaries)
-                report.notes.append(f"the {len(summaries)} mapping runs disagree ({runs}); kept seed "
-                                    f"{summaries[kept]['seed']}, which explains the most feature observations. Check "
-                                    f"the poses (train warns when it cannot fit its own views) or raise "
-                                    f"--mapping-attempts")
+                kept = sfm.choose_attempt(summaries, needed)
+                result = results[kept]
+                report.retried_relaxed = any(r.relaxed for r in results)
+                report.mapping_attempts = [MappingAttempt(**a, kept=(i == kept)) for i, a in enumerate(summaries)]
+                report.mapping_agreed = sfm.agreeing(summaries, kept) \
+                    if cfg.mapping_attempts > 1 and result.best is not None else None
+                if report.mapping_agreed is False:
+                    runs = "; ".join(f"seed {a['seed']}{' (relaxed)' if a['relaxed'] else ''}: {a['num_images']} images, "
+                                     f"{a['num_observations']} observations, focal {_focals(a)}" for a in summaries)
+                    report.notes.append(f"the {len(summaries)} mapping runs disagree ({runs}); kept seed "
+                                        f"{summaries[kept]['seed']}, which explains the most feature observations. Check "
+                                        f"the poses (train warns when it cannot fit its own views) or raise "
+                                        f"--mapping-attempts")
 
-        shutil.rmtree(distorted / "models", ignore_errors=True)
-        report.models_found = len(result.models)
-        report.models = [ModelSummary(index=i, num_images=m.num_reg_images(), num_points3d=m.num_points3D(),
-                                      image_names=sfm.registered_names(m), kept=(i == 0))
-                         for i, m in enumerate(result.models)]
-        best = result.best
-        registered = sfm.registered_names(best) if best is not None else []
-        report.images_registered = registered
-        report.images_unregistered = sorted(set(scan.names) - set(registered))
-        report.registered_fraction = len(registered) / n
-        if best is not None:
-            stats = sfm.model_stats(best)
-            report.num_points3d = stats["num_points3d"]
-            report.mean_reprojection_error = stats["mean_reprojection_error"]
-            report.mean_track_length = stats["mean_track_length"]
-            report.mean_observations_per_image = stats["mean_observations_per_image"]
-            report.num_observations = stats["num_observations"]
-            report.cameras = sfm.camera_summaries(best)
-            weak = sfm.weakly_registered(best)
-            if weak:
-                weak_note = weak_registration_note(weak, cfg)
-                report.notes.append(weak_note)
-        if len(result.models) > 1:
-            # COLMAP's later models may re-use photos of the first: only the ones no kept model has are lost
-            kept = {im.name for im in result.models[0].images.values() if im.has_pose}
-            others = {im.name for m in result.models[1:] for im in m.images.values() if im.has_pose}
-            lost = sorted(others - kept)
-            report.notes.append(f"mapping made {len(result.models)} models; kept the largest "
-                                f"({result.models[0].num_reg_images()} images), the others hold "
-                                f"{[m.num_reg_images() for m in result.models[1:]]} images"
-                                + (f", {len(lost)} of them in no kept model: {list_names(lost)}" if lost
-                                   else ", all of them in the kept model too"))
+            shutil.rmtree(distorted / "models", ignore_errors=True)
+            report.models_found = len(result.models)
+            report.models = [ModelSummary(index=i, num_images=m.num_reg_images(), num_points3d=m.num_points3D(),
+                                          image_names=sfm.registered_names(m), kept=(i == 0))
+                             for i, m in enumerate(result.models)]
+            best = result.best
+            registered = sfm.registered_names(best) if best is not None else []
+            report.images_registered = registered
+            report.images_unregistered = sorted(set(scan.names) - set(registered))
+            report.registered_fraction = len(registered) / n
+            if best is not None:
+                stats = sfm.model_stats(best)
+                report.num_points3d = stats["num_points3d"]
+                report.mean_reprojection_error = stats["mean_reprojection_error"]
+                report.mean_track_length = stats["mean_track_length"]
+                report.mean_observations_per_image = stats["mean_observations_per_image"]
+                report.num_observations = stats["num_observations"]
+                report.cameras = sfm.camera_summaries(best)
+                weak = sfm.weakly_registered(best)
+                if weak:
+                    weak_note = weak_registration_note(weak, cfg)
+                    report.notes.append(weak_note)
+            if len(result.models) > 1:
+                # COLMAP's later models may re-use photos of the first: only the ones no kept model has are lost
+                kept = {im.name for im in result.models[0].images.values() if im.has_pose}
+                others = {im.name for m in result.models[1:] for im in m.images.values() if im.has_pose}
+                lost = sorted(others - kept)
+                report.notes.append(f"mapping made {len(result.models)} models; kept the largest "
+                                    f"({result.models[0].num_reg_images()} images), the others hold "
+                                    f"{[m.num_reg_images() for m in result.models[1:]]} images"
+                                    + (f", {len(lost)} of them in no kept model: {list_names(lost)}" if lost
+                                       else ", all of them in the kept model too"))
 
-        if best is None:
-            why = ("no image pair shares enough matching features" if report.num_verified_pairs == 0
-                   else "no initial image pair could be found")
-            raise fail(f"no model could be built: {why}; 0/{n} images registered",
-                       "The photos must overlap: take photos of one scene from nearby viewpoints with "
-                       "60-80% overlap between neighbours, avoid blur and textureless surfaces.")
-        if len(registered) < needed:
-            hints = ["take more photos with more overlap between neighbours",
-                     "use sharper images (no motion blur)"]
-            if matcher == "exhaustive" and n > 50:
-                hints.append("for video frames try --matcher sequential")
-            elif matcher == "sequential":
-                hints.append("for unordered photos try --matcher exhaustive")
-            hints.append(f"or lower --min-registered (now {cfg.min_registered})")
-            raise fail(f"only {len(registered)}/{n} images registered (below --min-registered "
-                       f"{cfg.min_registered}); unregistered: {list_names(report.images_unregistered)}",
-                       "Try: " + "; ".join(hints) + ".")
+            if best is None:
+                why = ("no image pair shares enough matching features" if report.num_verified_pairs == 0
+                       else "no initial image pair could be found")
+                raise fail(f"no model could be built: {why}; 0/{n} images registered",
+                           "The photos must overlap: take photos of one scene from nearby viewpoints with "
+                           "60-80% overlap between neighbours, avoid blur and textureless surfaces.")
+            if len(registered) < needed:
+                hints = registration_hints([m.num_reg_images() for m in result.models], matcher, n, cfg)
+                raise fail(f"only {len(registered)}/{n} images registered (below --min-registered "
+                           f"{cfg.min_registered}); unregistered: {list_names(report.images_unregistered)}",
+                           "Try: " + "; ".join(hints) + ".")
 
-        model_dir = distorted / "sparse" / "0"
-        model_dir.mkdir(parents=True, exist_ok=True)
-        best.write(model_dir)
-        with console.status(f"undistorting {len(registered)} images"), watch("undistort"):
-            report.undistorted_size = sfm.undistort(model_dir, image_dir, workspace, cfg)
+            model_dir = distorted / "sparse" / "0"
+            model_dir.mkdir(parents=True, exist_ok=True)
+            best.write(model_dir)
+            with console.status(f"undistorting {len(registered)} images"), watch("undistort"):
+                report.undistorted_size = sfm.undistort(model_dir, image_dir, workspace, cfg)
 
-        report.ground_truth = _against_ground_truth(photos, workspace)
-        report.success = True
-        report.message = "" if not report.images_unregistered else (
-            f"{len(report.images_unregistered)} image(s) not registered: {list_names(report.images_unregistered)}")
-        report.stage_seconds = dict(watch.seconds)
-        report.total_seconds = round(time.perf_counter() - t_start, 3)
-        write_report(workspace, report)
+            report.ground_truth = _against_ground_truth(photos, workspace)
+            report.success = True
+            report.message = "" if not report.images_unregistered else (
+                f"{len(report.images_unregistered)} image(s) not registered: {list_names(report.images_unregistered)}")
+            report.stage_seconds = dict(watch.seconds)
+            report.total_seconds = round(time.perf_counter() - t_start, 3)
+            write_report(workspace, report)
+    except KeyboardInterrupt:
+        raise Interrupted("reconstruct interrupted; the unfinished workspace is replaced when the same command runs "
+                          "again", path=workspace, hint="Run the same command again to start over.") from None
     console.print(f"reconstruct: {report.summary()} -> {workspace}")
     for stage, sec in report.stage_seconds.items():
         console.print(f"  {stage:<13} {sec:8.2f} s")
