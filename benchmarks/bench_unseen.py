@@ -28,7 +28,7 @@ its densification window scaled to the length). Methods: ``variational`` (our de
 ``expected`` (the informed posterior with the Gaussians fitted to the expected render, the default until 2026-11-28),
 ``sgd`` (the tables learned by SGD with the KL in the loss, the default before issue 18: the prior-only
 reference), ``sandwich`` (the informed posterior with ``variational.sandwich``), ``paper``, ``vi-single``, ``fisher``,
-``ensemble-N``.
+``ensemble-N``, ``vensemble-NxF`` (an ensemble of N of our variational models, each trained for F times the steps).
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_unseen.py --out /tmp/unseen [--iterations 1500]
 
@@ -313,20 +313,30 @@ def main() -> None:
         test = list(range(0, n, 8))
         train = [i for i in range(n) if i not in test]
     its = args.iterations
-    base = {"iterations": its, "seed": args.seed, "eval_every": 10**6, "checkpoint_every": 10**6,
-            "scene": {"train_indices": train, "test_indices": test, "points_from": args.points},
-            "densify": {"until": int(its * 0.65), "spawn_interval": max(its // 10, 1), "max_gaussians": args.max_gaussians},
-            "variational": {"refresh_interval": max(its // 5, 1)}}
-    if args.downscale is not None:
-        base["scene"]["downscale"] = args.downscale
-    if args.keep_schedule:
-        base["densify"] = {"max_gaussians": args.max_gaussians}
-        del base["variational"]
+
+    def schedule(its: int) -> dict:
+        base = {"iterations": its, "seed": args.seed, "eval_every": 10**6, "checkpoint_every": 10**6,
+                "scene": {"train_indices": train, "test_indices": test, "points_from": args.points},
+                "densify": {"until": int(its * 0.65), "spawn_interval": max(its // 10, 1),
+                            "max_gaussians": args.max_gaussians},
+                "variational": {"refresh_interval": max(its // 5, 1)}}
+        if args.downscale is not None:
+            base["scene"]["downscale"] = args.downscale
+        if args.keep_schedule:
+            base["densify"] = {"max_gaussians": args.max_gaussians}
+            del base["variational"]
+        return base
+
     rows = []
     for name in args.methods:
         over = dict(METHODS.get(name, {}))
+        base = schedule(its)
         if name.startswith("ensemble-"):
             over = {"method": "ensemble", "ensemble_size": int(name.split("-")[1])}
+        elif name.startswith("vensemble-"):  # N variational members, each trained for F x the steps: vensemble-NxF
+            n, _, frac = name.split("-")[1].partition("x")
+            over = {"method": "ensemble", "ensemble_size": int(n), "ensemble_members": "variational"}
+            base = schedule(max(1, round(its * float(frac or 1.0))))
         elif name not in METHODS:
             raise SystemExit(f"unknown method {name}")
         from uncertsplat.config import deep_update

@@ -296,7 +296,11 @@ class TrainConfig(_Base):
     method: Literal["variational", "deterministic", "ensemble", "fisher"] = "variational"
     """variational: ours; deterministic: plain 3DGS; ensemble / fisher: baselines (``uncertsplat.baselines``)."""
     ensemble_size: int = Field(10, ge=1, le=1000)
-    """N: independently seeded deterministic members of ``method = "ensemble"`` (seeds seed .. seed + N - 1)."""
+    """N: independently seeded members of ``method = "ensemble"`` (seeds seed .. seed + N - 1)."""
+    ensemble_members: Literal["deterministic", "variational"] = "deterministic"
+    """What each member of ``method = "ensemble"`` is: plain 3DGS (the deep-ensemble baseline: the uncertainty is the
+    members' spread), or our variational model (each sample a posterior sample of one member: the members' spread
+    and each one's posterior together)."""
     fisher: FisherConfig = FisherConfig()
     """Settings of ``method = "fisher"``."""
     variant: Literal["ours", "paper"] = "ours"

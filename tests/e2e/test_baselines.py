@@ -89,6 +89,22 @@ def test_ensemble_layout_and_spread(ensemble_run):
     assert report.mean.ause_mae is not None and report.mean.nll is not None
 
 
+def test_an_ensemble_of_variational_members_samples_their_posteriors(scene_path, tmp_path):
+    """``ensemble_members = "variational"``: each member is our model with its posterior, and an ensemble of one
+    such member still has a spread (its posterior's), unlike an ensemble of one plain 3DGS model."""
+    run = tmp_path / "run"
+    train_run(scene_path, run, quick_cfg(method="ensemble", ensemble_size=1, ensemble_members="variational"), CPU)
+    assert json.loads((member_dir(run, 0) / "config.json").read_text())["method"] == "variational"
+    loaded = load_run(run, CPU)
+    assert isinstance(loaded, EnsembleRun) and loaded.variational_members
+    assert loaded.members[0].model.num_carriers > 0 and "each with its posterior" in loaded.size_text()
+    report = evaluate.run(run, EvalConfig(num_samples=3, max_views=1, residual_views=0, consistency_views=0,
+                                          resolution=0, empty_rays=False, depth_spread=False), device=CPU)
+    assert not any("1 member" in n for n in report.notes)
+    (maps,) = exr_maps(run, report)
+    assert maps["rgb_std.R"].max() > 0, "the member's posterior samples differ"
+
+
 def test_ensemble_of_one_has_zero_spread(ensemble_run, tmp_path):
     # an ensemble folder with N = 1 (member 0 of the N = 2 run; same layout, no retraining)
     run = tmp_path / "ens1"

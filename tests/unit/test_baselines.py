@@ -23,6 +23,8 @@ def test_every_method_resolves_to_a_valid_config_and_label():
         labels[name] = method_label(cfg)
     assert labels["vi-single"] == "vi-single" and labels["paper"] == "paper"
     assert labels["ensemble"] == "ensemble-10" and labels["fisher"] == "fisher"
+    ours = build_config(TrainConfig, {"method": "ensemble", "ensemble_size": 2, "ensemble_members": "variational"})
+    assert method_label(ours) == "ensemble-2-variational"
     assert len(set(labels.values())) == len(labels)
     cfg = build_config(TrainConfig, method_overrides("vi-single"))
     assert cfg.method == "variational" and cfg.variational.num_entries == 1
@@ -56,6 +58,28 @@ def test_ensemble_sampler_uses_each_member_once_per_cycle():
         g.manual_seed(100 + s)
         orders.add(tuple(members.index(fn(g)) for _ in range(3)))
     assert len(orders) > 1
+
+
+def test_variational_members_are_drawn_from_and_still_cycled():
+    """A member given as a function (a variational member's posterior) is drawn from with the view's generator; the
+    draw moving the generator does not break the cycle (each member once per N samples), and the same seed gives the
+    same members and the same draws."""
+    calls = []
+
+    def member(i):
+        def draw(g):
+            x = float(torch.rand((), generator=g))
+            calls.append(i)
+            return (i, x)
+        return draw
+
+    fn = ensemble_sample_fn([member(i) for i in range(3)])
+    g = torch.Generator().manual_seed(7)
+    first = [fn(g) for _ in range(6)]
+    assert sorted(i for i, _ in first[:3]) == [0, 1, 2] and sorted(i for i, _ in first[3:]) == [0, 1, 2]
+    assert len({x for _, x in first}) == 6  # every sample its own draw
+    g.manual_seed(7)
+    assert [fn(g) for _ in range(6)] == first
 
 
 def test_ensemble_of_one_returns_the_same_sample():

@@ -47,9 +47,10 @@ def method_overrides(name: str) -> dict[str, Any]:
 
 
 def method_label(cfg) -> str:
-    """A short name for a resolved TrainConfig (``vi-single``, ``ensemble-10``, ``paper``, ...)."""
+    """A short name for a resolved TrainConfig (``vi-single``, ``ensemble-10``, ``ensemble-2-variational``, ``paper``,
+    ...)."""
     if cfg.method == "ensemble":
-        return f"ensemble-{cfg.ensemble_size}"
+        return f"ensemble-{cfg.ensemble_size}" + ("-variational" if cfg.ensemble_members == "variational" else "")
     if cfg.method in ("fisher", "deterministic"):
         return cfg.method
     if cfg.variational.num_entries == 1:

@@ -1,4 +1,5 @@
-"""Deep-ensemble baseline: N independently seeded deterministic 3DGS models, uncertainty = their spread.
+"""Deep-ensemble baseline: N independently seeded deterministic 3DGS models, uncertainty = their spread; or
+(``TrainConfig.ensemble_members = "variational"``) N of our variational models, each sample a posterior sample of one.
 
 Run folder::
 
@@ -37,17 +38,17 @@ def member_dir(run_dir: Path, i: int) -> Path:
 
 
 def member_config(cfg, i: int):
-    """The deterministic TrainConfig of member ``i`` (seed ``cfg.seed + i``)."""
+    """The TrainConfig of member ``i`` (``cfg.ensemble_members``' method, seed ``cfg.seed + i``)."""
     from uncertsplat.config import TrainConfig, build_config
 
     data = json.loads(cfg.model_dump_json())
-    data.update(method="deterministic", seed=cfg.seed + i)
+    data.update(method=cfg.ensemble_members, seed=cfg.seed + i)
     return build_config(TrainConfig, data, source=f"ensemble member {i}")
 
 
 def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False,
                    on_trainer=None) -> Path:
-    """Train ``cfg.ensemble_size`` deterministic members into ``run_dir/members`` one after the other.
+    """Train ``cfg.ensemble_size`` members (``cfg.ensemble_members``) into ``run_dir/members`` one after the other.
 
     A finished member (``train_summary.json`` present) is kept on ``resume``; an unfinished one resumes
     from its last checkpoint. Returns ``run_dir``.
@@ -114,7 +115,7 @@ class EnsembleRun(LoadedRun):
     members: list[LoadedRun] = field(default_factory=list)
 
     def member_samples(self) -> list[GaussianSample]:
-        """The render-ready Gaussians of every member (deterministic: no posterior)."""
+        """The render-ready Gaussians of every member (a variational member's posterior mean)."""
         from uncertsplat.gaussians.variational import posterior_mean
 
         out = []
@@ -124,20 +125,30 @@ class EnsembleRun(LoadedRun):
                                       temperature=prior.temperature, sh_degree=m.sh_degree))
         return out
 
+    @property
+    def variational_members(self) -> bool:
+        """Whether the members are variational models with a posterior to sample."""
+        return any(m.config.method == "variational" and m.model.num_carriers > 0 for m in self.members)
+
     def sampler(self, scene_scale: float, device: torch.device) -> Sampler:
-        """Samples cycle through the members (``ensemble_sample_fn``); no deterministic render of its own."""
+        """Samples cycle through the members (``ensemble_sample_fn``): each member's render, or with variational
+        members a posterior sample of it; no deterministic render of its own."""
         members = self.member_samples()
-        return Sampler(ensemble_sample_fn(members), self.render_fn(scene_scale, device), empty_std=self.empty_std(),
+        draws = members
+        if self.variational_members:
+            draws = [m.sampler(scene_scale, device).sample_fn for m in self.members]
+        return Sampler(ensemble_sample_fn(draws), self.render_fn(scene_scale, device), empty_std=self.empty_std(),
                        coverage=self.coverage(scene_scale, device, members[0]), mean_sample=members[0],
                        exposure=self.photo_exposure())
 
     def size_text(self) -> str:
         """All members' Gaussians (``model`` is member 0's alone)."""
-        return f"{sum(len(m.model) for m in self.members)} Gaussians in {len(self.members)} members (no posterior)"
+        what = "each with its posterior" if self.variational_members else "no posterior"
+        return f"{sum(len(m.model) for m in self.members)} Gaussians in {len(self.members)} members ({what})"
 
     def eval_notes(self, num_samples: int) -> list[str]:
         n = len(self.members)
-        if n == 1:
+        if n == 1 and not self.variational_members:
             return ["ensemble of 1 member: every sample is the same render, so the samples' spread is 0 everywhere; "
                     "the std holds only the empty-ray, pixel-noise and resolution terms (when on)"]
         if num_samples % n:
@@ -165,8 +176,9 @@ def load_ensemble(run_dir: Path, cfg, device: torch.device | str = "cpu") -> Ens
                        run_dir, first.transparent, mean_exposure([m.exposure for m in members]), members=members)
 
 
-def ensemble_sample_fn(samples: list[GaussianSample]):
-    """A ``sample_fn(generator)`` that cycles through ``samples`` in a random order per sequence.
+def ensemble_sample_fn(samples: list):
+    """A ``sample_fn(generator)`` that cycles through ``samples`` in a random order per sequence; a member given as a
+    function ``generator -> GaussianSample`` (a variational member's posterior) is drawn from with the generator.
 
     A sequence starts whenever the generator is not in the state this function left it in (a fresh
     seed per view, or another generator); it then draws a permutation of the members from the
@@ -186,9 +198,12 @@ def ensemble_sample_fn(samples: list[GaussianSample]):
             state["order"] = torch.randperm(n, generator=generator, device=generator.device).tolist()
             state["pos"] = 0
             current = generator.get_state()
-        member = state["order"][state["pos"]]
+        member = samples[state["order"][state["pos"]]]
         state["pos"] += 1
+        if callable(member):
+            member = member(generator)
+            current = generator.get_state()  # the draw moved it: the sequence goes on from here
         state["expect"] = current
-        return samples[member]
+        return member
 
     return sample_fn
