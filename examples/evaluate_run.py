@@ -25,8 +25,8 @@ def main(run: Path, k: int) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) < 2 or (len(sys.argv) > 2 and not sys.argv[2].isdigit()):
-        sys.exit(__doc__)
+    if len(sys.argv) < 2 or (len(sys.argv) > 2 and not (sys.argv[2].isdigit() and int(sys.argv[2]) >= 1)):
+        sys.exit(__doc__ + "\nK must be a whole number of samples, 1 or more.")
     try:
         main(Path(sys.argv[1]), int(sys.argv[2]) if len(sys.argv) > 2 else 10)
     except UserError as err:  # a wrong path or an unfinished run: the message, not a traceback

@@ -53,6 +53,12 @@ if __name__ == "__main__":
     if len(sys.argv) < 2:
         sys.exit(__doc__)
     try:
-        main(Path(sys.argv[1]), float(sys.argv[2]) if len(sys.argv) > 2 else 0.95)
+        prob = float(sys.argv[2]) if len(sys.argv) > 2 else 0.95
+    except ValueError:
+        prob = -1.0
+    if not 0.0 < prob < 1.0:
+        sys.exit(__doc__ + f"\nP must be a probability between 0 and 1 (exclusive), not {sys.argv[2]}.")
+    try:
+        main(Path(sys.argv[1]), prob)
     except UserError as err:  # e.g. a run not evaluated yet: the message names the file and the command to run
         sys.exit(f"error: {err.render()}")

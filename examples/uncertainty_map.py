@@ -45,8 +45,8 @@ def main(run: Path, view: str, k: int) -> None:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) < 2 or (len(sys.argv) > 3 and not sys.argv[3].isdigit()):
-        sys.exit(__doc__)
+    if len(sys.argv) < 2 or (len(sys.argv) > 3 and not (sys.argv[3].isdigit() and int(sys.argv[3]) >= 1)):
+        sys.exit(__doc__ + "\nK must be a whole number of samples, 1 or more.")
     try:
         main(Path(sys.argv[1]), sys.argv[2] if len(sys.argv) > 2 else "0", int(sys.argv[3]) if len(sys.argv) > 3 else 10)
     except UserError as err:  # a wrong path or view: the message, not a traceback

@@ -225,6 +225,9 @@ def train(
         from uncertsplat.config import ViewConfig, build_config
 
         view_cfg = build_config(ViewConfig, {"port": view_port}, source="command line")
+        from uncertsplat.view.server import check_port
+
+        check_port(view_cfg.host, view_cfg.port, option="--view-port")  # before any run folder is made
     stage.run(scene, output, cfg, device=resolve_device(device), resume=resume,
               extend_to=iterations if resume else None, view=view_cfg, add_views=add_views,
               given=stage.given_keys(preset, data, method, explicit, set_) if resume else None)

@@ -247,7 +247,7 @@ def test_prune_refuses_a_baseline_naming_its_method(which, ensemble_run, fisher_
     from uncertsplat.stages import prune
 
     run = ensemble_run if which == "ensemble" else fisher_run
-    with pytest.raises(UserError, match=f"a {which} run has no per-Gaussian posterior"):
+    with pytest.raises(UserError, match=f"an? {which} run has no per-Gaussian posterior"):
         prune.run(run, tmp_path / "out", PruneConfig(keep_ratio=0.5), device=CPU)
     assert not (tmp_path / "out").exists()
 

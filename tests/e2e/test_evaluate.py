@@ -659,6 +659,10 @@ def test_the_intervals_example_reads_the_predictive_from_the_maps(evaluated, cap
     ("uncertainty_map.py", ["10"], "no held-out view '10'"),
     ("intervals.py", [], "metrics.json"),
     ("evaluate_run.py", ["many"], "python examples/evaluate_run.py RUN [K]"),
+    ("evaluate_run.py", ["0"], "K must be a whole number of samples, 1 or more"),
+    ("uncertainty_map.py", ["0", "0"], "K must be a whole number of samples, 1 or more"),
+    ("intervals.py", ["1.5"], "P must be a probability between 0 and 1 (exclusive), not 1.5"),
+    ("intervals.py", ["abc"], "P must be a probability between 0 and 1 (exclusive), not abc"),
 ])
 def test_the_examples_end_with_a_message_not_a_traceback(tiny_run_path, tmp_path, monkeypatch, script, args, expect):
     """What a user types wrong (a view that is not held out, a run not evaluated yet, K not a number) ends the

@@ -21,7 +21,7 @@ from uncertsplat.sweep.executors import run_local, run_ray
 ray = pytest.importorskip("ray", reason="the ray extra (pip install 'uncertsplat[ray]')")
 
 SPEC = tiny_sweep_spec("ray-sweep", """num_samples = [1, 3, 5]
-num_entries = [2, 4]""")
+iterations = [8, 16]""")
 
 
 @pytest.fixture(scope="module")

@@ -87,6 +87,19 @@ def test_the_paper_variant_with_a_baseline_is_noted(tmp_path):
     assert "changes nothing" not in result.output
 
 
+def test_a_method_that_other_options_take_back_is_noted(tmp_path):
+    """--method paper sets variant = paper; --variant ours takes it back: the run trains ours, and says so. A method
+    whose keys stand (vi-single, paper alone) gets no note."""
+    def note(*args):
+        result = runner.invoke(app, ["train", str(tmp_path / "nowhere"), "-o", str(tmp_path / "run"), *args,
+                                     "--device", "cpu"])
+        return " ".join(result.output.split())
+
+    assert ("note: --method paper was overridden by other options: this run trains method variational, variant ours"
+            in note("--method", "paper", "--variant", "ours"))
+    assert "overridden" not in note("--method", "vi-single") and "overridden" not in note("--method", "paper")
+
+
 def test_tolerance_without_auto_is_refused(tmp_path):
     result = runner.invoke(app, ["prune", str(tmp_path), "-o", str(tmp_path / "p"), "--tolerance-db", "0.2",
                                  "--device", "cpu"])
@@ -146,3 +159,30 @@ def test_a_bad_option_value_is_named_by_its_option(tmp_path):
     result = runner.invoke(app, ["select-views", str(tmp_path), "-n", "2", "--set", "num_views=0"])
     text = " ".join(result.output.split())
     assert "num_views: Input should be" in text and "--num-views" not in text
+
+
+def test_view_addresses_are_checked_at_once_with_the_command_s_own_option(tmp_path):
+    """A busy port is named with the option of the command that took it (train: --view-port) before any run folder
+    exists; a malformed --host fails at once instead of being looked up as a name; port 0 still checks the host."""
+    import socket
+
+    from uncertsplat.errors import UserError
+    from uncertsplat.view.server import check_port
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        result = runner.invoke(app, ["train", str(tmp_path), "-o", str(tmp_path / "run"), "--view", "--view-port",
+                                     str(port), "--device", "cpu"])
+        flat = " ".join(result.output.split())
+        assert result.exit_code == 2 and f"--view-port {port + 1}" in flat and "--port" not in flat.replace(
+            "--view-port", ""), flat
+        assert not (tmp_path / "run").exists()
+    for host in ("999.1.1.1", "1.2.3"):
+        with pytest.raises(UserError, match="not a valid IP address"):
+            check_port(host, 0)
+    with pytest.raises(UserError, match="cannot listen on 10.255.255.1:0"):
+        check_port("10.255.255.1", 0)
+    check_port("127.0.0.1", 0)
+    check_port("localhost", 0)

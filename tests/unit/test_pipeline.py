@@ -94,6 +94,15 @@ def test_unknown_stage_key_rejected(tmp_path, calls):
         pl.run(p, tmp_path / "out", overrides=["train.iteratons=3"])
 
 
+def test_a_synth_stage_preset_is_set_in_its_config(tmp_path, calls):
+    """``--set synth.preset=X`` changes the synth stage's own config key (``preset`` sits beside the config only in
+    train stages)."""
+    p = _write(tmp_path)
+    cfg = pl.load_pipeline(p, overrides=["synth.preset=demo", "train.preset=paper"])
+    synth, train = cfg.stages[0], cfg.stages[1]
+    assert synth.config["preset"] == "demo" and train.preset == "paper"
+
+
 def test_a_bad_set_value_is_named_with_the_file(tmp_path, calls):
     """A bad value given with --set is not blamed on the pipeline file alone: the error names the --set values that
     went in; a file's own mistake is reported without them."""

@@ -186,3 +186,15 @@ class TestScoreChoice:
         chosen, note = choose_score_at_ratio(sweeps, 0.9)
         assert chosen == "gate" and "'free-space' 29.70 dB" in note and "'gate' 30.00 dB" in note
         assert choose_score_at_ratio(self.sweeps([1.0]), 1.0)[0] == "free-space"  # nothing removed: a tie
+
+
+def test_a_threshold_that_removes_most_carriers_is_noted():
+    from uncertsplat.prune.policy import choose_mask
+
+    score = torch.tensor([0.1, 0.2, 0.3, 0.4, 5.0])
+    carriers = torch.tensor([True, True, True, True, False])
+    keep, notes = choose_mask(score, carriers, threshold=-1.0, keep_ratio=None)
+    assert int((~keep).sum()) == 4 and len(notes) == 1
+    assert notes[0].startswith("--threshold -1 removes 4 of the 4 Gaussians that carry a posterior (100%)")
+    keep, notes = choose_mask(score, carriers, threshold=0.35, keep_ratio=None)
+    assert int((~keep).sum()) == 1 and notes == []

@@ -122,6 +122,18 @@ def test_point_configs_apply_knobs():
     assert fixed.densify.until == base.densify.until
 
 
+def test_num_entries_only_matters_to_sgd_tables(tmp_path):
+    """The informed posterior stores one table entry whatever K_table is: its K_table points share one run (and are
+    not labelled vi-single); SGD tables (the paper's variant) keep the knob."""
+    from uncertsplat.baselines import method_label
+
+    s = spec(axes={"num_entries": [1, 5, 20]})
+    informed = [point_configs(s, s.default.model_copy(update={"num_entries": k}))[0] for k in (1, 5, 20)]
+    assert informed[0] == informed[1] == informed[2] and method_label(informed[0]) == "variational"
+    sgd = [point_configs(s, s.default.model_copy(update={"method": "paper", "num_entries": k}))[0] for k in (1, 5)]
+    assert [c.variational.num_entries for c in sgd] == [1, 5] and method_label(sgd[0]) == "vi-single-paper"
+
+
 def test_spawn_fraction_knob_sets_the_spawn_rule_and_only_matters_to_posteriors(tmp_path):
     s = spec(axes={"spawn_fraction": [0.01, 0.1], "method": ["variational", "fisher"]})
     t, _ = point_configs(s, s.default.model_copy(update={"spawn_fraction": 0.1}))
@@ -134,7 +146,7 @@ def test_spawn_fraction_knob_sets_the_spawn_rule_and_only_matters_to_posteriors(
 
 
 def test_jobs_group_points_that_share_training(tmp_path):
-    s = spec(axes={"num_samples": [1, 5, 20], "num_entries": [5]})
+    s = spec(axes={"num_samples": [1, 5, 20], "iterations": [150]})
     jobs = make_jobs(s, tmp_path, tmp_path / "scene", "cpu")
     sizes = sorted(len(j["points"]) for j in jobs)
     assert sizes == [1, 4]  # K only changes evaluation: one training for the 4 K points
@@ -382,3 +394,13 @@ def test_an_interrupted_point_stops_a_sequential_sweep_without_a_retry():
     with pytest.raises(Interrupted, match="step 7"):
         run_local(jobs, jobs=1, retries=2, on_records=got.extend, run_job=run_job)
     assert calls == ["a", "b"] and [r["job"] for r in got] == ["a"]
+
+
+def test_pareto_metrics_must_be_table_columns(tmp_path):
+    f = tmp_path / "s.toml"
+    f.write_text('name = "x"\npareto_x = "foo"\n')
+    with pytest.raises(UserError, match="pareto_x: unknown metric 'foo'; the table's metrics are psnr"):
+        load_spec(f)
+    f.write_text('name = "x"\npareto_y = ["nll", "bar"]\n')
+    with pytest.raises(UserError, match="pareto_y: unknown metric 'bar'"):
+        load_spec(f)

@@ -197,6 +197,17 @@ def test_overwrite_keeps_unrelated_files(tmp_path):
     assert (tmp_path / "scene.json").is_file()
 
 
+def test_a_training_run_is_refused_even_with_overwrite(tmp_path):
+    (tmp_path / "config.json").write_text("{}")
+    (tmp_path / "train_summary.json").write_text("{}")
+    (tmp_path / "scene.json").write_text('{"scene": "elsewhere"}')
+    result = runner.invoke(app, ["synth", str(tmp_path), "--preset", "tiny", "--overwrite", "--set", "num_views=3",
+                                 "--set", "width=16"])
+    flat = " ".join(result.output.split())
+    assert result.exit_code == 2 and "holds a training run" in flat
+    assert (tmp_path / "scene.json").read_text() == '{"scene": "elsewhere"}' and not (tmp_path / "images").exists()
+
+
 def test_unknown_synth_key_is_rejected():
     result = runner.invoke(app, ["synth", "x", "--set", "num_veiws=3"])
     assert result.exit_code == 2 and "num_veiws" in result.output

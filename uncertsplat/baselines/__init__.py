@@ -53,7 +53,7 @@ def method_label(cfg) -> str:
         return f"ensemble-{cfg.ensemble_size}" + ("-variational" if cfg.ensemble_members == "variational" else "")
     if cfg.method in ("fisher", "deterministic"):
         return cfg.method
-    if cfg.variational.num_entries == 1:
+    if cfg.variational.num_entries == 1 and cfg.posterior == "sgd":  # the informed posterior stores one anyway
         return "vi-single" if cfg.variant == "ours" else "vi-single-paper"
     return "variational" if cfg.variant == "ours" else "paper"
 

@@ -157,7 +157,15 @@ def choose_mask(score: Tensor, carriers: Tensor, *, threshold: float | None,
                 keep_ratio: float | None) -> tuple[Tensor | None, list[str]]:
     """The keep mask [N] for a threshold (wins) or a keep ratio, and notes; (None, []) for neither."""
     if threshold is not None:
-        return threshold_mask(score, carriers, threshold), []
+        keep = threshold_mask(score, carriers, threshold)
+        removed, total = int((~keep).sum()), int(carriers.sum())
+        notes = []
+        if total and removed >= 0.5 * total:  # a threshold below most scores: likely not what was meant
+            lo, mid = float(score[carriers].min()), float(score[carriers].median())
+            notes.append(f"--threshold {threshold:g} removes {removed} of the {total} Gaussians that carry a "
+                         f"posterior ({removed / total:.0%}); this score ranges from {lo:.3g} (median {mid:.3g}) on "
+                         "this run: --keep-ratio or --auto choose by the count instead")
+        return keep, notes
     if keep_ratio is None:
         return None, []
     keep = keep_ratio_mask(score, carriers, keep_ratio)

@@ -443,6 +443,9 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
                       f"{m.calibration_error_calibrated:.3f} (raw {m.calibration_error:.3f}); AUSE is unchanged")
         for note in std_factor_notes(len(report.calibration_views), m.nll_calibrated, m.nll):
             console.print(f"[yellow]note:[/] {note}")
+    if report.mean.nll_paper is not None:
+        console.print(f"the paper's NLL (--paper-nll; its KDE formula depends on the resolution: not comparable "
+                      f"with the NLL above): {report.mean.nll_paper:.3f}")
     if report.degrees_of_freedom is not None:
         m = report.mean
         where = (f"fitted on the {report.calibration_source}" if cfg.degrees_of_freedom == "fit" else "set")
@@ -461,7 +464,8 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
     if report.mean.psnr_render is not None:
         masked = any(n.startswith(MASKED_NOTE) for n in report.notes)
         where = " (train's over whole images; these inside the scene's validity masks)" if masked else ""
-        console.print(f"PSNR is that of the mean of the {cfg.num_samples} samples; one deterministic render (the "
+        samples = "the one sample" if cfg.num_samples == 1 else f"the mean of the {cfg.num_samples} samples"
+        console.print(f"PSNR is that of {samples}; one deterministic render (the "
                       f"expected render, what train reports{where}): {report.mean.psnr_render:.2f} dB")
     if report.depth_scale is not None:
         console.print(f"depth scale {report.depth_scale.scale:.4g} ({report.depth_scale.method})")

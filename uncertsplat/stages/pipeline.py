@@ -59,7 +59,7 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
         if not isinstance(rest, dict):
             raise UserError(f"--set {text}: give a key inside the stage, e.g. {head}.seed=1", path=path)
         for stage in matches:
-            if "preset" in rest:
+            if "preset" in rest and stage.get("stage") == "train":  # a train stage's preset sits beside its config
                 stage["preset"] = rest.pop("preset")
             stage["config"] = deep_update(stage.get("config", {}), rest)
     with naming_overrides(overrides):

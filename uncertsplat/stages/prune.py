@@ -328,7 +328,7 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
     model = loaded.model
     if model.num_carriers == 0:
         method = loaded.config.method
-        why = (f"a {method} run has no per-Gaussian posterior" if method in ("deterministic", "ensemble", "fisher")
+        why = (f"{'an' if method[0] in 'aeiou' else 'a'} {method} run has no per-Gaussian posterior" if method in ("deterministic", "ensemble", "fisher")
                else "the run has no Gaussians with a posterior (posterior carriers)")
         raise UserError(f"{why}, so there is no uncertainty to prune by", path=run_dir,
                         hint="Prune a run trained with the variational method (the default) for at least one spawn "

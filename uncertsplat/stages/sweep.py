@@ -139,7 +139,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
     from uncertsplat.report.sweep_page import build_sweep_page
     from uncertsplat.sweep.executors import EXECUTORS, connect_ray, require_ray, run_local, run_ray
     from uncertsplat.sweep.pareto import plot_pareto, summarize, table_points
-    from uncertsplat.sweep.spec import load_spec, make_jobs
+    from uncertsplat.sweep.spec import expand_points, load_spec, make_jobs
 
     spec = load_spec(Path(spec_path), overrides)
     out_dir = Path(out_dir)
@@ -182,6 +182,12 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
             folders = Path(scene_path)
         all_jobs = make_jobs(spec, out_dir, folders, str(dev), threads=None)
         hashes = {p["hash"] for j in all_jobs for p in j["points"]}  # this spec's points only
+        asked = len(spec.seed_values()) * sum(len(expand_points(spec.on_scene(n))) for n in spec.scene_names())
+        if asked > len(hashes):
+            console.print(f"[yellow]note:[/] {_count(asked - len(hashes), 'point')} of the spec train and evaluate "
+                          "exactly as another point and are measured once: a knob that does not matter to the "
+                          "point's method (num_entries with the informed posterior, which stores one table entry; "
+                          "ensemble_size or spawn_fraction without offset tables)")
         log = out_dir / "sweep.jsonl"
         done = {r.hash for r in read_records(log) if r.status == "ok"} if not force else set()
         todo = []

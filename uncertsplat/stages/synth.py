@@ -45,6 +45,11 @@ def run(out: Path, cfg: SynthConfig, overwrite: bool = False) -> Path:
     if out.exists() and not out.is_dir():
         raise UserError("the output path exists and is not a folder", path=out, hint="Choose a folder path.")
     non_empty = out.is_dir() and any(p.name != ".lock" for p in out.iterdir())
+    if non_empty and (out / "config.json").is_file() and any(
+            (out / name).exists() for name in ("train_summary.json", "ckpts", "stats.jsonl", "members")):
+        # a training run: the scene's files would replace its scene.json and mix with its outputs
+        raise UserError("the output folder holds a training run; a scene written into it would break the run "
+                        "(even with --overwrite)", path=out, hint="Choose another folder for the scene.")
     if non_empty and not overwrite:
         same = _same_scene(out, cfg)
         if same is not None:

@@ -36,6 +36,13 @@ def resolve_config(preset: str | None, data: dict[str, Any], method: str | None,
         if data and source is not None:
             train_config_from(preset, data, source=source)  # the file alone: an error of its own names the file
         raise
+    over = method_overrides(method) if method is not None else {}
+    if over.get("method", cfg.method) != cfg.method or over.get("variant", cfg.variant) != cfg.variant:
+        # --method sets keys (paper: variant = "paper") that a later option or --set took back
+        from uncertsplat.console import console
+
+        console.print(f"[yellow]note:[/] --method {method} was overridden by other options: this run trains "
+                      f"method {cfg.method}, variant {cfg.variant}")
     if cfg.variant == "paper" and cfg.method != "variational":
         from uncertsplat.console import console
 

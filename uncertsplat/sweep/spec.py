@@ -190,6 +190,17 @@ class SweepSpec(_Strict):
                 raise ValueError(f"scene name {name!r}: use letters, digits, '_' and '-' (it names folders and ids)")
         return v
 
+    @field_validator("pareto_x", "pareto_y")
+    @classmethod
+    def _pareto_metrics(cls, v: str | list[str]) -> str | list[str]:
+        from uncertsplat.sweep.pareto import TABLE_KEYS
+
+        unknown = [m for m in ([v] if isinstance(v, str) else v) if m not in TABLE_KEYS]
+        if unknown:
+            raise ValueError(f"unknown metric {', '.join(map(repr, unknown))}; the table's metrics are "
+                             f"{', '.join(TABLE_KEYS)}")
+        return v
+
     @field_validator("seeds")
     @classmethod
     def _seed_values(cls, v: list[int]) -> list[int]:
@@ -359,6 +370,10 @@ def point_configs(spec: SweepSpec, point: SweepPoint, scene: str | None = None,
         # no offset tables: K_table and the spawn rule do not matter, so points differing only in them share a run
         densify = tcfg.densify.model_copy(update={"spawn_scale_fraction": base.densify.spawn_scale_fraction})
         tcfg = tcfg.model_copy(update={"variational": TrainConfig().variational, "densify": densify})
+    elif tcfg.posterior == "informed" and point.num_entries is not None:
+        # the informed posterior stores one table entry whatever K_table says: its K_table points share a run
+        tcfg = tcfg.model_copy(update={"variational": tcfg.variational.model_copy(
+            update={"num_entries": base.variational.num_entries})})
     if tcfg.method != "ensemble":
         tcfg = tcfg.model_copy(update={"ensemble_size": TrainConfig().ensemble_size})
     edata = deep_update(spec.evaluate, entry.evaluate) if entry is not None else dict(spec.evaluate)

@@ -52,7 +52,7 @@ class LiveView:
         self._renderer_step = -1
         if self.viewer is None:
             require_viser()
-            check_port(self.cfg.host, self.cfg.port)
+            check_port(self.cfg.host, self.cfg.port, option="--view-port")
             self.viewer = Viewer(self._renderer(trainer), trainer.scene, self.cfg)
             self.viewer.start(worker=False)
             self._status = self.viewer.server.gui.add_markdown("training starts")

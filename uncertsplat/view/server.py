@@ -100,24 +100,59 @@ def require_viser():
     return require_extra("viser", feature="the viewer", extra="view")
 
 
-def check_port(host: str, port: int) -> None:
+HOST_LOOKUP_SECONDS = 5.0
+"""How long a host name (not an address) may take to resolve before ``check_port`` gives up on it."""
+
+
+def _host_address(host: str) -> str:
+    """``host`` as an address to bind: an IP address as it is, a name resolved without waiting on a DNS server that
+    does not answer (a malformed address such as 999.1.1.1 would otherwise be looked up as a name)."""
+    import ipaddress
+    import threading
+
+    hint = "Give --host an address of this machine: 127.0.0.1 for it alone, 0.0.0.0 for every interface."
+    try:
+        return str(ipaddress.ip_address(host))
+    except ValueError:
+        pass
+    if host.replace(".", "").isdigit() or ":" in host:
+        raise UserError(f"--host {host} is not a valid IP address", hint=hint)
+    found: list = []
+
+    def lookup():
+        try:
+            found.append(socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)[0][4][0])
+        except OSError as err:
+            found.append(err)
+
+    worker = threading.Thread(target=lookup, daemon=True)
+    worker.start()
+    worker.join(HOST_LOOKUP_SECONDS)
+    if not found:
+        raise UserError(f"--host {host}: the name did not resolve within {HOST_LOOKUP_SECONDS:g} s", hint=hint)
+    if isinstance(found[0], OSError):
+        raise UserError(f"--host {host}: no such host ({found[0].strerror or found[0]})", hint=hint)
+    return found[0]
+
+
+def check_port(host: str, port: int, option: str = "--port") -> None:
     """Raise a clear UserError when ``host:port`` cannot be listened on (viser itself would silently move to
-    the next port, and the printed URL would then be wrong for an SSH tunnel set up in advance)."""
-    if port == 0:
-        return
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    the next port, and the printed URL would then be wrong for an SSH tunnel set up in advance); with port 0, when
+    ``host`` is not an address of this machine. ``option``: the command's name for the port, for the hint."""
+    address = _host_address(host)
+    family = socket.AF_INET6 if ":" in address else socket.AF_INET
     with socket.socket(family, socket.SOCK_STREAM) as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
-            s.bind((host, port))
+            s.bind((address, port))
         except OSError as err:
             if err.errno == errno.EADDRINUSE:
                 raise UserError(f"port {port} on {host} is already in use (another viewer or server?)",
-                                hint=f"Stop the other program, or choose another port: --port {port + 1} "
-                                     "(--port 0 picks a free one).") from None
+                                hint=f"Stop the other program, or choose another port: {option} {port + 1} "
+                                     f"({option} 0 picks a free one).") from None
             raise UserError(f"cannot listen on {host}:{port} ({err.strerror})",
                             hint="Check --host (127.0.0.1 for this machine only, 0.0.0.0 for every interface) "
-                                 "and --port (1024 and above need no privileges).") from None
+                                 f"and {option} (1024 and above need no privileges).") from None
 
 
 def viewer_url(host: str, port: int) -> str:
