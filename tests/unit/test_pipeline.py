@@ -149,3 +149,9 @@ def test_every_stage_is_checked_before_the_first_runs(tmp_path, calls, override,
     with pytest.raises(UserError, match=match):
         pl.run(p, tmp_path / "out", overrides=[override] if override else None)
     assert calls == [] and not (tmp_path / "out").exists()
+
+
+def test_photos_given_to_a_pipeline_without_reconstruct_are_noted(tmp_path, capsys):
+    p = _write(tmp_path)
+    pl.load_pipeline(p, overrides=["photos=/nowhere"])
+    assert "--set photos is not used: p.toml has no reconstruct stage" in " ".join(capsys.readouterr().err.split())

@@ -35,6 +35,7 @@ from uncertsplat.config import EvalConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError, run_folder_missing
 from uncertsplat.eval.engine import MASKED_NOTE, ViewMaps
+from uncertsplat.eval.tails import MIN_DOF
 from uncertsplat.eval.tails import half_width as _half_width
 from uncertsplat.io.maps import EXR_CHANNELS, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
 from uncertsplat.schemas.runs import RunExposure
@@ -443,6 +444,9 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
                       f"{m.calibration_error_calibrated:.3f} (raw {m.calibration_error:.3f}); AUSE is unchanged")
         for note in std_factor_notes(len(report.calibration_views), m.nll_calibrated, m.nll):
             console.print(f"[yellow]note:[/] {note}")
+    if report.degrees_of_freedom is None and cfg.degrees_of_freedom == "fit" and report.mean.nll is not None:
+        console.print("RGB predictive: the Gaussian (no views to fit the Student-t's tails on: calibration_views = "
+                      "0 or none to use; --set degrees_of_freedom=4 gives heavy tails without them)")
     if report.mean.nll_paper is not None:
         console.print(f"the paper's NLL (--paper-nll; its KDE formula depends on the resolution: not comparable "
                       f"with the NLL above): {report.mean.nll_paper:.3f}")
@@ -455,6 +459,10 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
         console.print(f"RGB predictive: a Student-t with the std and {report.degrees_of_freedom:.3g} degrees of "
                       f"freedom ({where}; its 68 % interval is +-{_half_width(0.6827, report.degrees_of_freedom):.2f} "
                       f"std, its 99.7 % one +-{_half_width(0.9973, report.degrees_of_freedom):.2f}){gaussian}")
+        if cfg.degrees_of_freedom == "fit" and report.degrees_of_freedom <= MIN_DOF + 1e-6:
+            console.print(f"[yellow]note:[/] the tails' fit hit its limit ({MIN_DOF:g} degrees of freedom): the std "
+                          "does not describe these errors' scale (a model that has not fitted its photos yet, or "
+                          "errors the model cannot see); read the NLL and calibration with care")
         if cfg.degrees_of_freedom == "fit" and not report.calibration_held_out and report.degrees_of_freedom < 10:
             # heavy tails fitted on training views may be heavier than new views' (light ones say nothing of that)
             console.print("[dim]the tails were fitted on training views, which a model usually fits better than new "

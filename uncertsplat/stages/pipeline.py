@@ -64,6 +64,12 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
             stage["config"] = deep_update(stage.get("config", {}), rest)
     with naming_overrides(overrides):
         cfg = build_config(PipelineConfig, data, source=str(path))
+    given = {next(iter(parse_override(t))) for t in overrides or []}
+    if "photos" in given and not any(st.stage == "reconstruct" for st in cfg.stages):
+        from uncertsplat.console import console
+
+        console.print(f"[yellow]note:[/] --set photos is not used: {Path(path).name} has no reconstruct stage "
+                      "(pipelines/photos.toml starts from photos)")
     if cfg.photos is not None and not cfg.photos.is_absolute():
         cfg.photos = (base / cfg.photos).resolve() if not cfg.photos.exists() else cfg.photos.resolve()
     names = [s.name or s.stage for s in cfg.stages]
