@@ -88,7 +88,7 @@ def test_spearman_broadcast_std(device):
 def test_std_factor_notes_name_too_few_views_and_a_factor_these_views_disagree_with():
     from uncertsplat.stages.evaluate import std_factor_notes
 
-    assert std_factor_notes(12, -1.0, -0.9) == []
+    assert std_factor_notes(12, -1.0, -0.9) == [] and std_factor_notes(3, -1.0, -0.9) == []
     (few,) = std_factor_notes(2, -1.0, -0.9)
     assert few == "the std factor rests on 2 views only, too few to trust"
     (both,) = std_factor_notes(1, -0.01, -0.12)

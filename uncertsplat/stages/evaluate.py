@@ -215,8 +215,9 @@ def _copy_evaluation(source_eval: Path, out: Path) -> None:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-FEW_CALIBRATION_VIEWS = 4
-"""A std factor fitted on fewer views than this is named as resting on too few."""
+FEW_CALIBRATION_VIEWS = 3
+"""A std factor fitted on fewer views than this is named as resting on too few (3 set aside is the recommended
+``scene.calibration_holdout``; one or two views are what a capture of three or four photos leaves)."""
 
 
 def std_factor_notes(views: int, nll_fitted: float, nll_raw: float) -> list[str]:
