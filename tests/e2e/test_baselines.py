@@ -103,6 +103,13 @@ def test_an_ensemble_of_variational_members_samples_their_posteriors(scene_path,
     assert not any("1 member" in n for n in report.notes)
     (maps,) = exr_maps(run, report)
     assert maps["rgb_std.R"].max() > 0, "the member's posterior samples differ"
+    assert json.loads((run / "train_summary.json").read_text())["num_carriers"] == loaded.members[0].model.num_carriers
+    from uncertsplat.config import PruneConfig
+    from uncertsplat.errors import UserError
+    from uncertsplat.stages import prune
+
+    with pytest.raises(UserError, match="pruned member by member"):
+        prune.run(run, tmp_path / "pruned", PruneConfig(keep_ratio=0.5), device=CPU)
 
 
 def test_ensemble_of_one_has_zero_spread(ensemble_run, tmp_path):

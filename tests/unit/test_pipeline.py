@@ -155,3 +155,22 @@ def test_photos_given_to_a_pipeline_without_reconstruct_are_noted(tmp_path, caps
     p = _write(tmp_path)
     pl.load_pipeline(p, overrides=["photos=/nowhere"])
     assert "--set photos is not used: p.toml has no reconstruct stage" in " ".join(capsys.readouterr().err.split())
+
+
+def test_a_stage_interrupted_with_its_work_kept_stops_the_pipeline_as_an_interruption(tmp_path, monkeypatch):
+    """A stage that stops on Ctrl-C with an Interrupted (train's checkpoint, reconstruct's unfinished report) ends the
+    pipeline as an interruption (exit code 130 in the CLI), not as a failed stage, and records it."""
+    from uncertsplat.errors import Interrupted
+
+    def fake(kind, cfg, up_path, out_dir, device, kwargs):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if kind == "train":
+            raise Interrupted("training interrupted at step 5; checkpoint saved", path=out_dir)
+
+    monkeypatch.setattr(pl, "_run_stage", fake)
+    p = _write(tmp_path)
+    with pytest.raises(Interrupted, match="stage 'train' \\(train\\) interrupted: training interrupted") as err:
+        pl.run(p, tmp_path / "out")
+    assert not isinstance(err.value, StageError) and "stages that finished are skipped" in str(err.value)
+    manifest = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text())
+    assert manifest["status"] == "failed" and "interrupted" in json.dumps(manifest)

@@ -565,3 +565,34 @@ def test_photos_of_formats_not_read_and_other_files_are_named(tmp_path):
     (tmp_path / "b").mkdir()
     plain = scan_photos(_photos(tmp_path / "b"))
     assert plain.notes == []
+
+
+def test_a_run_in_progress_is_not_cleared_by_a_second(tmp_path):
+    """The second command finds the folder locked before it looks at (and would clear) the first one's unfinished
+    workspace; train names an unfinished workspace as stopped, with the command that finishes it."""
+    import fcntl
+
+    from uncertsplat.sfm.report import UNFINISHED, require_successful
+
+    photos = _photos(tmp_path)
+    ws = tmp_path / "ws"
+    write_report(ws, _report(photos=str(photos.resolve()), success=False, message=UNFINISHED))
+    (ws / "database.db").write_bytes(b"being written")
+    with open(ws / ".lock", "a+") as held:
+        fcntl.flock(held.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        with pytest.raises(UserError):
+            stage.run(photos, ws, ReconstructConfig())
+    assert (ws / "database.db").read_bytes() == b"being written" and load_report(ws).message == UNFINISHED
+    with pytest.raises(UserError, match="stopped before it finished") as err:
+        require_successful(ws)
+    assert f"uncertsplat reconstruct {photos.resolve()} -o {ws}" in str(err.value)
+
+
+def test_a_folder_of_photos_in_formats_not_read_says_so(tmp_path):
+    from uncertsplat.sfm.reconstruct import scan_photos
+
+    for i in range(3):
+        (tmp_path / f"IMG_{i}.HEIC").write_bytes(b"heic")
+    with pytest.raises(UserError, match=r"holds no JPEG, PNG or TIFF photos") as err:
+        scan_photos(tmp_path)
+    assert "3 photo(s) in a format this tool does not read (IMG_0.HEIC, IMG_1.HEIC, IMG_2.HEIC)" in str(err.value)

@@ -134,6 +134,17 @@ def test_num_entries_only_matters_to_sgd_tables(tmp_path):
     assert [c.variational.num_entries for c in sgd] == [1, 5] and method_label(sgd[0]) == "vi-single-paper"
 
 
+def test_an_ensemble_of_our_models_keeps_its_posterior_settings_and_k():
+    """Members of our model have offset tables: the sweep keeps their settings and the point's K (a deterministic
+    ensemble's K is N, its table settings irrelevant)."""
+    s = spec(train={"ensemble_members": "variational", "variational": {"refresh_interval": 7}})
+    t, e = point_configs(s, s.default.model_copy(update={"method": "ensemble", "ensemble_size": 2, "num_samples": 6}))
+    assert t.variational.refresh_interval == 7 and t.ensemble_members == "variational" and e.num_samples == 6
+    d, e = point_configs(spec(train={"variational": {"refresh_interval": 7}}),
+                         s.default.model_copy(update={"method": "ensemble", "ensemble_size": 2, "num_samples": 6}))
+    assert d.variational.refresh_interval != 7 and e.num_samples == 2
+
+
 def test_spawn_fraction_knob_sets_the_spawn_rule_and_only_matters_to_posteriors(tmp_path):
     s = spec(axes={"spawn_fraction": [0.01, 0.1], "method": ["variational", "fisher"]})
     t, _ = point_configs(s, s.default.model_copy(update={"spawn_fraction": 0.1}))

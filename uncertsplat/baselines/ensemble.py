@@ -93,7 +93,7 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
         summary = TrainSummary(
             method="ensemble", ensemble_size=n, steps=cfg.iterations, seconds=seconds,
             sec_per_step=seconds / max(cfg.iterations, 1), wall_seconds_this_call=time.perf_counter() - t0,
-            num_gaussians=sum(s.num_gaussians for s in summaries), num_carriers=0,
+            num_gaussians=sum(s.num_gaussians for s in summaries), num_carriers=sum(s.num_carriers for s in summaries),
             peak_memory_mb=max(s.peak_memory_mb for s in summaries),
             test_psnr_members_mean=sum(psnrs) / len(psnrs) if psnrs else None,
             test_psnr=None,  # the ensemble's own PSNR (of the mean render) comes from `evaluate`
@@ -134,9 +134,7 @@ class EnsembleRun(LoadedRun):
         """Samples cycle through the members (``ensemble_sample_fn``): each member's render, or with variational
         members a posterior sample of it; no deterministic render of its own."""
         members = self.member_samples()
-        draws = members
-        if self.variational_members:
-            draws = [m.sampler(scene_scale, device).sample_fn for m in self.members]
+        draws = [m.sample_fn() for m in self.members] if self.variational_members else members
         return Sampler(ensemble_sample_fn(draws), self.render_fn(scene_scale, device), empty_std=self.empty_std(),
                        coverage=self.coverage(scene_scale, device, members[0]), mean_sample=members[0],
                        exposure=self.photo_exposure())

@@ -131,18 +131,22 @@ class LoadedRun:
               "sh_degree": self.sh_degree}
         with torch.no_grad():
             det_sample = variational.expected_render_sample(model, **kw)
+        return Sampler(self.sample_fn(), render_fn, det_sample, empty_std=self.empty_std(),
+                       coverage=self.coverage(scene_scale, device, det_sample), exposure=self.photo_exposure())
+
+    def sample_fn(self):
+        """``sample_fn(generator) -> GaussianSample``: one posterior sample per call (the posterior mean for a
+        deterministic model or one without posterior carriers)."""
+        from uncertsplat.gaussians import variational
+
+        prior, model = self.prior, self.model
+        kw = {"variant": prior.variant, "extent": self.extent, "temperature": prior.temperature,
+              "sh_degree": self.sh_degree}
         if self.config.method == "deterministic" or model.num_carriers == 0:
             mean_sample = variational.posterior_mean(model, **kw)
-
-            def sample_fn(g):
-                return mean_sample
-        else:
-            subset_size = self.config.variational.subset_size
-
-            def sample_fn(g):
-                return variational.sample(model, g, subset_size=subset_size, **kw)
-        return Sampler(sample_fn, render_fn, det_sample, empty_std=self.empty_std(),
-                       coverage=self.coverage(scene_scale, device, det_sample), exposure=self.photo_exposure())
+            return lambda g: mean_sample
+        subset_size = self.config.variational.subset_size
+        return lambda g: variational.sample(model, g, subset_size=subset_size, **kw)
 
     def photo_exposure(self) -> PhotoExposure | None:
         """``exposure`` with the photos as view indices of the run's scene (``Sampler.exposure``), computed once;

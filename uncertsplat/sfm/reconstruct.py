@@ -185,6 +185,9 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
         with_photos = _folders_with_photos(folder)
         hint = (f"Put at least {min_images} overlapping photos ({', '.join(IMAGE_EXTENSIONS)}) "
                 "directly in this folder.")
+        if unread:
+            hint = (f"It holds {len(unread)} photo(s) in a format this tool does not read ({list_names(unread)}): "
+                    "convert them to JPEG or PNG.")
         if len(with_photos) == 1:
             hint = f"Its sub-folder {with_photos[0]} holds photos: pass that folder instead."
         elif with_photos:

@@ -38,12 +38,22 @@ def load_report(workspace: str | Path) -> ReconstructReport | None:
     return ReconstructReport.read_optional(report_path(workspace))
 
 
+UNFINISHED = "unfinished: the run stopped before it ended"
+"""The message of a report written as a reconstruction starts (``stages.reconstruct``): what is left when it was
+stopped (Ctrl-C, a crash) before it could write its outcome."""
+
+
 def require_successful(workspace: str | Path) -> ReconstructReport | None:
     """Refuse a workspace whose reconstruct report says it failed (used by ``train``).
 
     Returns the report, or None for a workspace without one (made by another tool: accepted).
     """
     report = load_report(workspace)
+    if report is not None and not report.success and report.message == UNFINISHED:
+        raise UserError("this workspace comes from a reconstruction that was stopped before it finished",
+                        path=report_path(workspace),
+                        hint=f"Run the same command again to finish it: uncertsplat reconstruct {report.photos} -o "
+                             f"{workspace}")
     if report is not None and not report.success:
         missing = len(report.images_unregistered)
         raise UserError(
@@ -55,5 +65,5 @@ def require_successful(workspace: str | Path) -> ReconstructReport | None:
     return report
 
 
-__all__ = ["REPORT_NAME", "REPORT_SCHEMA_VERSION", "CameraSummary", "MappingAttempt", "ModelSummary", "ReconstructReport",
+__all__ = ["REPORT_NAME", "REPORT_SCHEMA_VERSION", "UNFINISHED", "CameraSummary", "MappingAttempt", "ModelSummary", "ReconstructReport",
            "load_report", "report_path", "require_successful", "write_report"]

@@ -446,8 +446,10 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
         for note in std_factor_notes(len(report.calibration_views), m.nll_calibrated, m.nll):
             console.print(f"[yellow]note:[/] {note}")
     if report.degrees_of_freedom is None and cfg.degrees_of_freedom == "fit" and report.mean.nll is not None:
-        console.print("RGB predictive: the Gaussian (no views to fit the Student-t's tails on: calibration_views = "
-                      "0 or none to use; --set degrees_of_freedom=4 gives heavy tails without them)")
+        why = ("the Gaussian fitted the calibration views' errors best" if report.calibration_views else
+               "no views to fit the Student-t's tails on: calibration_views = 0 or none to use; --set "
+               "degrees_of_freedom=4 gives heavy tails without them")
+        console.print(f"RGB predictive: the Gaussian ({why})")
     if report.mean.nll_paper is not None:
         console.print(f"the paper's NLL (--paper-nll; its KDE formula depends on the resolution: not comparable "
                       f"with the NLL above): {report.mean.nll_paper:.3f}")

@@ -24,7 +24,7 @@ from uncertsplat.config import (
     train_config_from,
 )
 from uncertsplat.console import console
-from uncertsplat.errors import StageError, UserError, naming_overrides
+from uncertsplat.errors import Interrupted, StageError, UserError, naming_overrides
 from uncertsplat.stages.manifest import (
     Manifest,
     fingerprint_folder,
@@ -239,6 +239,11 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
         except KeyboardInterrupt:
             _finish(out_dir, new, "failed", t0, "interrupted")
             raise
+        except Interrupted as err:  # a stage stopped by Ctrl-C that kept its work (train's checkpoint, ...)
+            _finish(out_dir, new, "failed", t0, "interrupted")
+            raise Interrupted(f"stage '{name}' ({stage.stage}) interrupted: {err.message}",
+                              hint="Run the same pipeline command again: the stages that finished are skipped and this "
+                                   "one starts over (its folder kept under .previous/).") from None
         except UserError as err:
             _finish(out_dir, new, "failed", t0, err.render())
             raise StageError(f"stage '{name}' ({stage.stage}) failed: {err.render()}") from None

@@ -326,9 +326,13 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
     loaded = load_run(run_dir, device)
     loaded.warn_if_unfinished()
     model = loaded.model
+    if loaded.config.method == "ensemble" and model.num_carriers > 0:  # members of our model: each can be pruned
+        raise UserError("an ensemble is pruned member by member: its members are runs of their own", path=run_dir,
+                        hint=f"Prune a member, e.g. uncertsplat prune {run_dir / 'members' / 'member_0'} -o OUT.")
     if model.num_carriers == 0:
         method = loaded.config.method
-        why = (f"{'an' if method[0] in 'aeiou' else 'a'} {method} run has no per-Gaussian posterior" if method in ("deterministic", "ensemble", "fisher")
+        article = "an" if method[0] in "aeiou" else "a"
+        why = (f"{article} {method} run has no per-Gaussian posterior" if method in ("deterministic", "ensemble", "fisher")
                else "the run has no Gaussians with a posterior (posterior carriers)")
         raise UserError(f"{why}, so there is no uncertainty to prune by", path=run_dir,
                         hint="Prune a run trained with the variational method (the default) for at least one spawn "

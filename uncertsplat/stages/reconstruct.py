@@ -23,6 +23,7 @@ from uncertsplat.io.atomic import run_lock
 from uncertsplat.sfm import reconstruct as sfm
 from uncertsplat.sfm.report import (
     REPORT_NAME,
+    UNFINISHED,
     MappingAttempt,
     ModelSummary,
     ReconstructReport,
@@ -44,12 +45,11 @@ def _same_options(recorded: dict, cfg: ReconstructConfig) -> bool:
     return then == cfg
 
 
-def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fingerprint: str) -> ReconstructReport | None:
-    """Check the output folder; return an identical finished report to reuse, else make room.
+def _check_output_path(photos: Path, workspace: Path) -> None:
+    """Refuse an output path that is a file, holds the photo folder or lies inside it (before any folder is made).
 
     Raises:
-        UserError: the output folder holds something else (another workspace, other files) and
-            ``cfg.overwrite`` is off, or the photos live inside the output folder.
+        UserError: naming which.
     """
     photos_abs, ws_abs = photos.resolve(), workspace.resolve()
     if ws_abs == photos_abs or ws_abs in photos_abs.parents:
@@ -60,7 +60,19 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
                         hint="Choose an output folder outside the photo folder.")
     if workspace.exists() and not workspace.is_dir():
         raise UserError("the output path is a file, not a folder", path=workspace, hint="Choose another output path.")
-    if not workspace.exists() or not any(workspace.iterdir()):
+
+
+def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fingerprint: str) -> ReconstructReport | None:
+    """Check the output folder; return an identical finished report to reuse, else make room. Called while holding
+    the folder's lock: a run in progress (its report says unfinished) is never cleared by a second one.
+
+    Raises:
+        UserError: the output folder holds something else (another workspace, other files) and
+            ``cfg.overwrite`` is off, or the photos live inside the output folder.
+    """
+    _check_output_path(photos, workspace)
+    photos_abs = photos.resolve()
+    if not workspace.exists() or not any(p.name != ".lock" for p in workspace.iterdir()):  # (our own lock)
         return None
     existing = None
     try:
@@ -74,7 +86,7 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
             and (workspace / "sparse" / "0").is_dir()):
         return existing
     # Our own failed run on the same photos is redone without asking: there is nothing to lose.
-    redo_failed = existing is not None and same_input and not existing.success
+    redo_failed = existing is not None and existing.photos == str(photos_abs) and not existing.success
     if not cfg.overwrite and not redo_failed:
         if existing is not None:
             what = (f"a workspace made from other photos ({existing.photos})" if not same_input
@@ -133,11 +145,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     with watch("scan"):
         scan = sfm.scan_photos(photos)
         fingerprint = scan.fingerprint()
-    reused = _prepare_workspace(photos, workspace, cfg, fingerprint)
-    if reused is not None:
-        console.print(f"reconstruct: {workspace} already holds this reconstruction ({reused.summary()}); "
-                      "nothing to do (pass --overwrite to redo it)")
-        return reused
+    _check_output_path(photos, workspace)
 
     pyv, colv = sfm.versions()
     weak_note = ""  # the photos registered from few points, printed again after the summary
@@ -173,9 +181,14 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     database = workspace / "database.db"
     try:
         with run_lock(workspace, "reconstruct"), sfm.colmap_logging():
+            reused = _prepare_workspace(photos, workspace, cfg, fingerprint)
+            if reused is not None:
+                console.print(f"reconstruct: {workspace} already holds this reconstruction ({reused.summary()}); "
+                              "nothing to do (pass --overwrite to redo it)")
+                return reused
             # the report first, marked unfinished: a run stopped by Ctrl-C leaves a workspace that the same command
             # recognises as its own and starts over in (_prepare_workspace: redo_failed)
-            report.message = "unfinished: the run stopped before it ended"
+            report.message = UNFINISHED
             write_report(workspace, report)
             report.message = ""
             sfm.set_seed(cfg.seed)

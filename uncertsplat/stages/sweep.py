@@ -184,10 +184,10 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         hashes = {p["hash"] for j in all_jobs for p in j["points"]}  # this spec's points only
         asked = len(spec.seed_values()) * sum(len(expand_points(spec.on_scene(n))) for n in spec.scene_names())
         if asked > len(hashes):
-            console.print(f"[yellow]note:[/] {_count(asked - len(hashes), 'point')} of the spec train and evaluate "
-                          "exactly as another point and are measured once: a knob that does not matter to the "
-                          "point's method (num_entries with the informed posterior, which stores one table entry; "
-                          "ensemble_size or spawn_fraction without offset tables)")
+            console.print(f"[yellow]note:[/] {_count(asked - len(hashes), 'point')} of the spec have the same "
+                          "training and evaluation configuration as another point and are measured once (e.g. a "
+                          "knob at the value the preset already gives, num_entries with the informed posterior, "
+                          "which stores one table entry, or ensemble_size and spawn_fraction without offset tables)")
         log = out_dir / "sweep.jsonl"
         done = {r.hash for r in read_records(log) if r.status == "ok"} if not force else set()
         todo = []

@@ -12,6 +12,7 @@ from uncertsplat.console import console, progress
 from uncertsplat.data.synthetic import GENERATOR_VERSION, generate_scene, read_scene_meta, resolve_size
 from uncertsplat.errors import UserError
 from uncertsplat.io.atomic import run_lock
+from uncertsplat.report.loader import RUN_MARKERS
 from uncertsplat.schemas import SynthScene
 
 
@@ -46,7 +47,7 @@ def run(out: Path, cfg: SynthConfig, overwrite: bool = False) -> Path:
         raise UserError("the output path exists and is not a folder", path=out, hint="Choose a folder path.")
     non_empty = out.is_dir() and any(p.name != ".lock" for p in out.iterdir())
     if non_empty and (out / "config.json").is_file() and any(
-            (out / name).exists() for name in ("train_summary.json", "ckpts", "stats.jsonl", "members")):
+            (out / name).exists() for name in RUN_MARKERS if name != "config.json"):
         # a training run: the scene's files would replace its scene.json and mix with its outputs
         raise UserError("the output folder holds a training run; a scene written into it would break the run "
                         "(even with --overwrite)", path=out, hint="Choose another folder for the scene.")

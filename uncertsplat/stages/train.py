@@ -43,7 +43,8 @@ def resolve_config(preset: str | None, data: dict[str, Any], method: str | None,
 
         console.print(f"[yellow]note:[/] --method {method} was overridden by other options: this run trains "
                       f"method {cfg.method}, variant {cfg.variant}")
-    if cfg.variant == "paper" and cfg.method != "variational":
+    if cfg.variant == "paper" and cfg.method != "variational" and not (
+            cfg.method == "ensemble" and cfg.ensemble_members == "variational"):
         from uncertsplat.console import console
 
         console.print(f"[yellow]note:[/] the paper variant shapes the offset tables of the variational model; the "

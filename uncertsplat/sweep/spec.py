@@ -366,7 +366,8 @@ def point_configs(spec: SweepSpec, point: SweepPoint, scene: str | None = None,
         data = deep_update(data, {"densify": {"spawn_scale_fraction": point.spawn_fraction}})
     data = deep_update(data, method_overrides(point.method))  # vi-single's K_table = 1 wins
     tcfg = build_config(TrainConfig, data, source=f"sweep point {point_id(point)}")
-    if tcfg.method in ("ensemble", "fisher", "deterministic"):
+    tables = tcfg.method == "variational" or (tcfg.method == "ensemble" and tcfg.ensemble_members == "variational")
+    if not tables:
         # no offset tables: K_table and the spawn rule do not matter, so points differing only in them share a run
         densify = tcfg.densify.model_copy(update={"spawn_scale_fraction": base.densify.spawn_scale_fraction})
         tcfg = tcfg.model_copy(update={"variational": TrainConfig().variational, "densify": densify})
@@ -375,10 +376,11 @@ def point_configs(spec: SweepSpec, point: SweepPoint, scene: str | None = None,
         tcfg = tcfg.model_copy(update={"variational": tcfg.variational.model_copy(
             update={"num_entries": base.variational.num_entries})})
     if tcfg.method != "ensemble":
-        tcfg = tcfg.model_copy(update={"ensemble_size": TrainConfig().ensemble_size})
+        tcfg = tcfg.model_copy(update={"ensemble_size": TrainConfig().ensemble_size,
+                                       "ensemble_members": TrainConfig().ensemble_members})
     edata = deep_update(spec.evaluate, entry.evaluate) if entry is not None else dict(spec.evaluate)
     edata = deep_update(edata, {"save_maps": False} if seed is None else {"save_maps": False, "seed": seed})
-    if tcfg.method == "ensemble":
+    if tcfg.method == "ensemble" and tcfg.ensemble_members == "deterministic":  # K = N: each member once
         edata["num_samples"] = tcfg.ensemble_size
     elif point.num_samples is not None:
         edata["num_samples"] = point.num_samples

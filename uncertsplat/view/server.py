@@ -121,7 +121,9 @@ def _host_address(host: str) -> str:
 
     def lookup():
         try:
-            found.append(socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)[0][4][0])
+            infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
+            # the IPv4 address where there is one (localhost's ::1 may be off; the viewer binds the name as given)
+            found.append(next((i[4][0] for i in infos if i[0] == socket.AF_INET), infos[0][4][0]))
         except OSError as err:
             found.append(err)
 
