@@ -119,10 +119,11 @@ class EnsembleRun(LoadedRun):
         from uncertsplat.gaussians.variational import posterior_mean
 
         out = []
-        for m in self.members:
-            prior = m.prior
-            out.append(posterior_mean(m.model, variant=prior.variant, extent=m.extent,
-                                      temperature=prior.temperature, sh_degree=m.sh_degree))
+        with torch.no_grad():  # renders to score, nothing to differentiate
+            for m in self.members:
+                prior = m.prior
+                out.append(posterior_mean(m.model, variant=prior.variant, extent=m.extent,
+                                          temperature=prior.temperature, sh_degree=m.sh_degree))
         return out
 
     @property

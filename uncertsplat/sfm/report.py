@@ -52,8 +52,8 @@ def require_successful(workspace: str | Path) -> ReconstructReport | None:
     if report is not None and not report.success and report.message == UNFINISHED:
         raise UserError("this workspace comes from a reconstruction that was stopped before it finished",
                         path=report_path(workspace),
-                        hint=f"Run the same command again to finish it: uncertsplat reconstruct {report.photos} -o "
-                             f"{workspace}")
+                        hint=f"Run the same `uncertsplat reconstruct` command (photos {report.photos}, output "
+                             f"{workspace}, and its options) again: it starts over in this folder.")
     if report is not None and not report.success:
         missing = len(report.images_unregistered)
         raise UserError(

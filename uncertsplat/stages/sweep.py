@@ -184,7 +184,8 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         hashes = {p["hash"] for j in all_jobs for p in j["points"]}  # this spec's points only
         asked = len(spec.seed_values()) * sum(len(expand_points(spec.on_scene(n))) for n in spec.scene_names())
         if asked > len(hashes):
-            console.print(f"[yellow]note:[/] {_count(asked - len(hashes), 'point')} of the spec have the same "
+            extra = asked - len(hashes)
+            console.print(f"[yellow]note:[/] {_count(extra, 'point')} of the spec {'has' if extra == 1 else 'have'} the same "
                           "training and evaluation configuration as another point and are measured once (e.g. a "
                           "knob at the value the preset already gives, num_entries with the informed posterior, "
                           "which stores one table entry, or ensemble_size and spawn_fraction without offset tables)")
