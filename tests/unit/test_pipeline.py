@@ -174,3 +174,18 @@ def test_a_stage_interrupted_with_its_work_kept_stops_the_pipeline_as_an_interru
     assert not isinstance(err.value, StageError) and "stages that finished are skipped" in str(err.value)
     manifest = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text())
     assert manifest["status"] == "failed" and "interrupted" in json.dumps(manifest)
+
+
+def test_a_stage_s_advice_names_the_pipeline_s_keys(tmp_path, monkeypatch):
+    """A failing stage's advice names its command's options (--iterations); the pipeline adds how to set them there
+    (--set train.iterations), and only for options that are the stage's config keys (not --resume)."""
+    def fake(kind, cfg, up_path, out_dir, device, kwargs):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if kind == "train":
+            raise UserError("the run is too short", hint="Raise --iterations, or continue with --resume.")
+
+    monkeypatch.setattr(pl, "_run_stage", fake)
+    with pytest.raises(StageError) as err:
+        pl.run(_write(tmp_path), tmp_path / "out")
+    text = str(err.value)
+    assert "(in this pipeline: --set train.iterations)" in text and "train.resume" not in text

@@ -9,6 +9,7 @@ the outputs of earlier stages intact and the error names the stage.
 
 from __future__ import annotations
 
+import re
 import shutil
 import time
 from pathlib import Path
@@ -246,7 +247,12 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                                    "one starts over (its folder kept under .previous/).") from None
         except UserError as err:
             _finish(out_dir, new, "failed", t0, err.render())
-            raise StageError(f"stage '{name}' ({stage.stage}) failed: {err.render()}") from None
+            text = err.render()
+            # the stage's advice names its command's options; in a pipeline they are its config's keys
+            keys = [o.replace("-", "_") for o in re.findall(r"(?<![\w-])--([a-z][a-z0-9-]*)", text)]
+            keys = list(dict.fromkeys(k for k in keys if k in type(stage_cfg).model_fields))
+            where = (f" (in this pipeline: {', '.join(f'--set {name}.{k}' for k in keys)})" if keys else "")
+            raise StageError(f"stage '{name}' ({stage.stage}) failed: {text}{where}") from None
         except Exception as err:  # an unexpected fault: still say which stage, keep earlier outputs
             _finish(out_dir, new, "failed", t0, f"{type(err).__name__}: {err}")
             raise StageError(

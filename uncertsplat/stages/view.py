@@ -104,8 +104,8 @@ def run(run_dir: Path, cfg: ViewConfig, device: torch.device, *, block: bool = T
         if cfg.port and viewer.port != cfg.port:  # taken between our check and viser's bind
             raise UserError(f"port {cfg.port} was taken while the viewer started", hint="Run the command again.")
         r = viewer.renderer
-        console.print(f"[bold]view[/] {run_dir}: {len(r.loaded.model):,} Gaussians "
-                      f"({r.loaded.model.num_carriers:,} with a posterior), modes: {', '.join(r.modes())}, {device}")
+        console.print(f"[bold]view[/] {run_dir}: {r.loaded.size_text()}, modes: {', '.join(r.modes())}, {device}; "
+                      f"RGB: {r.rgb_source}")
         console.print(f"open [bold]{viewer_url(cfg.host, viewer.port)}[/] in a browser (from another machine: "
                       f"ssh -L {viewer.port}:localhost:{viewer.port} THIS_HOST); Ctrl-C stops")
         if not block:
