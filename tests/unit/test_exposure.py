@@ -200,3 +200,15 @@ class TestTraining:
         for r, v in enumerate(train):
             want = saved[rows[v]] if v in rows else saved.mean(0)
             torch.testing.assert_close(resumed.exposure.detach()[r], want)
+
+
+def test_the_brightness_warning_leads_with_the_caveat_on_a_short_run():
+    from uncertsplat.train.session import SHORT_RUN_STEPS, exposure_warnings
+
+    gains = [0.55, 0.7, 0.9, 1.0]
+    (short,) = exposure_warnings(gains, learned=False, steps=300)
+    assert short.startswith("after only 300 steps the training photos differ in brightness against the model")
+    assert "if a full run says so too" in short and "exposure=affine" in short
+    (full,) = exposure_warnings(gains, learned=False, steps=SHORT_RUN_STEPS)
+    assert full.startswith("the training photos differ in brightness (relative gains 0.55-1.00 on 4 of them)")
+    assert exposure_warnings(gains, learned=True, steps=300) == []

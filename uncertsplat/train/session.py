@@ -292,11 +292,11 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             (run_dir / RunExposure.FILE_NAME).unlink()
         held = trainer.evaluate()
         fit_psnr = trainer.training_psnr()
-        warnings = poor_fit_warnings(fit_psnr, scene) + exposure_warnings(trainer.photo_gains(),
-                                                                          trainer.exposure is not None)
-        if warnings and trainer.step < SHORT_RUN_STEPS:  # both judge a fitted model
+        warnings = poor_fit_warnings(fit_psnr, scene)
+        if warnings and trainer.step < SHORT_RUN_STEPS:  # it judges a fitted model
             warnings = [f"{w} (after only {trainer.step} steps the model may not fit its photos yet: judge this on "
                         "a full run)" for w in warnings]
+        warnings += exposure_warnings(trainer.photo_gains(), trainer.exposure is not None, trainer.step)
         # what loading changed of the photos (turned, cropped, left out) goes into the summary, so the report shows it
         recorded = warnings + [f"scene: {note}" for note in data.notes]
         summary = TrainSummary(**trainer.summary(), test_psnr=held.get("psnr"), test_ssim=held.get("ssim"),
@@ -368,15 +368,22 @@ def small_images_notes(width: int, height: int, downscale: float) -> list[str]:
             f"{photo / better:.0f} px"]
 
 
-def exposure_warnings(gains: list[float], learned: bool) -> list[str]:
+def exposure_warnings(gains: list[float], learned: bool, steps: int | None = None) -> list[str]:
     """The warning for training photos of different brightness (``strategy.exposure.EXPOSURE_SPREAD``) when their
-    exposures were not ``learned``."""
+    exposures were not ``learned``; after fewer than ``SHORT_RUN_STEPS`` ``steps`` it leads with the caveat (a model
+    that has not fitted its photos yet shows such gains on photos of one exposure too)."""
     spread = gain_spread(gains)
     if learned or spread < EXPOSURE_SPREAD:
         return []
-    return [f"the training photos differ in brightness (relative gains {min(gains):.2f}-{max(gains):.2f} on "
-            f"{len(gains)} of them): if they were taken with automatic exposure or white balance, train again with "
-            "--set exposure=affine (a gain and offset per photo, learned with the model)"]
+    gains_text = f"relative gains {min(gains):.2f}-{max(gains):.2f} on {len(gains)} of them"
+    if steps is not None and steps < SHORT_RUN_STEPS:
+        return [f"after only {steps} steps the training photos differ in brightness against the model ({gains_text}), "
+                "as a model this short often shows on photos of one exposure: if a full run says so too, they were "
+                "likely taken with automatic exposure or white balance, and --set exposure=affine learns a gain and "
+                "offset per photo"]
+    return [f"the training photos differ in brightness ({gains_text}): if they were taken with automatic exposure or "
+            "white balance, train again with --set exposure=affine (a gain and offset per photo, learned with the "
+            "model)"]
 
 
 def _psnr_shown(psnr: float) -> float:
