@@ -143,3 +143,15 @@ def test_evaluation_reports_of_versions_1_to_3_read(tmp_path):
     kept = v2 | {"run_sha256": "e" * 64}  # written between the key's arrival and the bump: kept
     path.write_text(json.dumps(kept))
     assert schemas.EvalReport.read(path).run_sha256 == "e" * 64
+
+
+def test_a_version_1_selection_reads_without_pose_lines():
+    from uncertsplat.schemas.select import Selection
+
+    pose = {"name": "v", "score": 1.0, "cam_from_world": [[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]],
+            "position": [0.0, 0.0, 0.0]}
+    old = {"schema_version": 1, "run": "r", "score": "fisher", "candidates": "unused", "num_candidates": 1,
+           "chosen": [{**pose, "rank": 1, "score_when_chosen": 1.0}], "ranking": [pose], "seconds": 1.0,
+           "seconds_per_candidate": 1.0}
+    sel = Selection.from_dict(old)
+    assert sel.schema_version == 2 and sel.chosen[0].pose_line is None and sel.ranking[0].pose_line is None

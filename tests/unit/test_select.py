@@ -155,6 +155,29 @@ class TestCandidates:
         assert cams.image_names == ("cand_0", "cand_5", "cand_9")
         torch.testing.assert_close(cams.cam_from_world, scene.cameras.cam_from_world[[0, 5, 9]], atol=1e-5, rtol=0)
 
+    def test_a_chosen_view_s_pose_line_reads_back_as_the_same_camera(self, scene, tmp_path):
+        """selection.json's pose_line is in the scene's own frame, the one a --candidates file is read in: written
+        and read back, the camera of the run's normalised world comes back."""
+        from uncertsplat.render.project import quat_to_rotmat
+        from uncertsplat.select.candidates import pose_line, rotmat_to_quat
+
+        lines = [pose_line(f"c{i}", scene.cameras.cam_from_world[i], scene.world_from_source) for i in (0, 5, 9)]
+        f = tmp_path / "plan.txt"
+        f.write_text("\n".join(lines) + "\n")
+        cams = read_pose_file(f, scene, scene.world_from_source)
+        torch.testing.assert_close(cams.cam_from_world, scene.cameras.cam_from_world[[0, 5, 9]], atol=1e-5, rtol=0)
+        g = torch.Generator().manual_seed(0)
+        for _ in range(50):  # every branch of the conversion, including rotations by about 180 degrees
+            q = torch.randn(4, generator=g, dtype=torch.float64)
+            q = q / q.norm()
+            q = -q if q[0] < 0 else q
+            torch.testing.assert_close(rotmat_to_quat(quat_to_rotmat(q[None].float())[0].double()), q, atol=1e-6,
+                                       rtol=0)
+        for q in ([0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]):
+            q = torch.tensor(q, dtype=torch.float64)
+            torch.testing.assert_close(rotmat_to_quat(quat_to_rotmat(q[None].float())[0].double()), q, atol=1e-6,
+                                       rtol=0)
+
     @pytest.mark.parametrize("line, message", [
         ("a 1 0 0 0 0 0", "8 fields"),
         ("a 1 0 0 0 0 0 x", "not 7 numbers"),

@@ -17,6 +17,9 @@ class CandidateScore(Strict):
     """[4,4] in the run's normalised world (``RUN/scene.json`` has the similarity to the scene's own)."""
     position: list[float]
     """Camera centre, run world."""
+    pose_line: str | None = None
+    """The same pose as a line of a ``--candidates`` file, ``NAME QW QX QY QZ TX TY TZ`` in the scene's own (COLMAP)
+    frame: what a plan file or a capture tool reads."""
     depth_std: float | None = None
     """variance: the mean depth std of the candidate's render (scene units)."""
 
@@ -32,10 +35,10 @@ class Selection(SchemaFile):
     """``OUT/selection.json``: the views ``select-views`` chose and how."""
 
     FILE_NAME = "selection.json"
-    SCHEMA_VERSION = 1
+    SCHEMA_VERSION = 2
     WRITTEN_BY = "uncertsplat select-views"
 
-    schema_version: int = 1
+    schema_version: int = 2
     run: str
     score: str
     candidates: str
@@ -51,3 +54,8 @@ class Selection(SchemaFile):
     seconds_per_candidate: float
     settings: dict = Field(default_factory=dict)
     """K, resolution, probes, seed, noise (what the score was computed with)."""
+
+    @classmethod
+    def _upgrade(cls, data: dict, version: int) -> dict | None:
+        # version 1 had no pose_line (read as not recorded)
+        return {**data, "schema_version": cls.SCHEMA_VERSION} if version == 1 else None

@@ -135,6 +135,39 @@ def read_pose_file(path: Path, scene: SceneData, world_from_source: Tensor) -> C
                    tuple(names))
 
 
+def rotmat_to_quat(R: Tensor) -> Tensor:
+    """[4] unit quaternion (w, x, y, z), w >= 0, of the rotation matrix ``R`` [3,3] (float64): the inverse of
+    ``quat_to_rotmat`` (from the largest of the four diagonal combinations, so no division by a small number)."""
+    R = R.double()
+    m = [1.0 + R[0, 0] + R[1, 1] + R[2, 2], 1.0 + R[0, 0] - R[1, 1] - R[2, 2],
+         1.0 - R[0, 0] + R[1, 1] - R[2, 2], 1.0 - R[0, 0] - R[1, 1] + R[2, 2]]
+    k = max(range(4), key=lambda i: float(m[i]))
+    r = torch.sqrt(m[k].clamp_min(0.0)) * 2.0  # 4 x the largest component
+    if k == 0:
+        q = torch.stack([r / 4, (R[2, 1] - R[1, 2]) / r, (R[0, 2] - R[2, 0]) / r, (R[1, 0] - R[0, 1]) / r])
+    elif k == 1:
+        q = torch.stack([(R[2, 1] - R[1, 2]) / r, r / 4, (R[0, 1] + R[1, 0]) / r, (R[0, 2] + R[2, 0]) / r])
+    elif k == 2:
+        q = torch.stack([(R[0, 2] - R[2, 0]) / r, (R[0, 1] + R[1, 0]) / r, r / 4, (R[1, 2] + R[2, 1]) / r])
+    else:
+        q = torch.stack([(R[1, 0] - R[0, 1]) / r, (R[0, 2] + R[2, 0]) / r, (R[1, 2] + R[2, 1]) / r, r / 4])
+    q = q / q.norm()
+    return -q if q[0] < 0 else q
+
+
+def pose_line(name: str, cam_from_world: Tensor, world_from_source: Tensor) -> str:
+    """The camera ``cam_from_world`` [4,4] of the run's normalised world as a line of a ``--candidates`` pose file,
+    ``NAME QW QX QY QZ TX TY TZ`` in the scene's own (COLMAP) frame: the inverse of ``read_pose_file``'s mapping."""
+    world_from_source = world_from_source.double()
+    scale = float(torch.linalg.det(world_from_source[:3, :3]).abs() ** (1.0 / 3.0))
+    T = cam_from_world.double().clone()
+    T[:3, :] /= scale
+    cam_from_source = T @ world_from_source
+    q = rotmat_to_quat(cam_from_source[:3, :3])
+    values = [*q.tolist(), *cam_from_source[:3, 3].tolist()]
+    return " ".join([name, *(f"{v:.9g}" for v in values)])
+
+
 def candidates_from_spec(spec: str, scene: SceneData, world_from_source: Tensor, *, radius: float,
                          generator: torch.Generator) -> Candidates:
     """The candidates of a ``--candidates`` value (see the module docstring).

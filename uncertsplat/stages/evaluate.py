@@ -312,7 +312,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     if done is not None:
         console.print(f"[bold]evaluate[/] {run_dir}: already evaluated with these settings, versions and device "
                       f"({out / 'metrics.json'}; --set reuse=false evaluates again)")
-        return done if quiet else _print_report(run_dir, cfg, done, out)
+        return done if quiet else _print_report(run_dir, cfg, done, out, written=False)
     views = load_view_set(scene, indices, depth_folder=cfg.depth_gt)
     with run_lock(run_dir, "evaluate"):
         if not quiet:
@@ -417,8 +417,8 @@ def _reach_notes(sampler, views, device: torch.device) -> list[str]:
     return notes
 
 
-def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
-    """Print ``report``'s table and notes; returns it."""
+def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bool = True):
+    """Print ``report``'s table and notes; returns it. ``written``: this call wrote it (else it was found)."""
     from rich.table import Table
 
     table = Table(title=f"{run_dir.name}: {cfg.split} views (K={cfg.num_samples})")
@@ -480,6 +480,6 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path):
                       f"expected render, what train reports{where}): {report.mean.psnr_render:.2f} dB")
     if report.depth_scale is not None:
         console.print(f"depth scale {report.depth_scale.scale:.4g} ({report.depth_scale.method})")
-    console.print(f"wrote {out / 'metrics.json'} and maps in {out / 'maps'}")
+    console.print(f"{'wrote' if written else 'kept'} {out / 'metrics.json'} and maps in {out / 'maps'}")
     return report
 

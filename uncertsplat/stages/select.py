@@ -80,7 +80,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     from uncertsplat.io.images import resize_image
     from uncertsplat.schemas import RunScene, Selection
     from uncertsplat.schemas.select import CandidateScore, ChosenView
-    from uncertsplat.select.candidates import candidates_from_spec
+    from uncertsplat.select.candidates import candidates_from_spec, pose_line
     from uncertsplat.select.scores import (
         coverage_choice,
         fisher_choice,
@@ -160,9 +160,12 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
             settings["note"] = "ensemble: the Fisher of member 0's Gaussians"
     seconds = time.perf_counter() - t0
 
+    world_from_source = torch.tensor(info.world_from_source, dtype=torch.float64)
+
     def pose(c: int) -> dict:
-        return {"name": cands.cameras.image_names[c], "cam_from_world": cands.cameras.cam_from_world[c].double().tolist(),
-                "position": centres[c].double().tolist(),
+        name, cam = cands.cameras.image_names[c], cands.cameras.cam_from_world[c]
+        return {"name": name, "cam_from_world": cam.double().tolist(), "position": centres[c].double().tolist(),
+                "pose_line": pose_line(name, cam, world_from_source),
                 "depth_std": float(depth_std[c]) if depth_std is not None else None}
 
     def num(x) -> float | None:
