@@ -226,6 +226,20 @@ class TestAddViewsErrors:
         scene = json.loads((run / "config.json").read_text())["scene"]
         assert scene["train_names"] == [*first.train, "view_002.png"] and scene["train_indices"] is None
 
+    def test_views_added_after_densification_are_said_to_get_no_gaussians(self, tiny_scene_path, tmp_path, capsys):
+        run = tmp_path / "late"
+        train_run(tiny_scene_path, run, _cfg(iterations=20, densify={"until": 10},
+                                             scene={"train_names": START}), CPU)
+        capsys.readouterr()
+        train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=25, add_views=["view_002.png"])
+        err = " ".join(capsys.readouterr().err.split())
+        assert "densification ended at step 10 (densify.until) and the checkpoint is at step 20" in err
+        early = tmp_path / "early"
+        train_run(tiny_scene_path, early, _cfg(iterations=10, scene={"train_names": START}), CPU)
+        capsys.readouterr()
+        train_run(tiny_scene_path, early, _cfg(), CPU, resume=True, extend_to=15, add_views=["view_002.png"])
+        assert "densification ended" not in capsys.readouterr().err
+
     def test_a_run_on_every_view_has_none_to_add(self, tiny_scene_path, tmp_path):
         run = tmp_path / "all"
         train_run(tiny_scene_path, run, _cfg(iterations=10), CPU)

@@ -211,6 +211,13 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 raise UserError(f"the run has finished its {cfg.iterations} steps: the added view(s) would never be "
                                 "trained on", path=run_dir,
                                 hint=f"Give the steps to train them with: --iterations N (N > {cfg.iterations}).")
+            if add_views and found is not None and int(found[1]["step"]) >= cfg.densify.until:
+                # the new views' surfaces get no Gaussians of their own: existing ones move and change colour only
+                console.print(f"[yellow]note:[/] densification ended at step {cfg.densify.until} (densify.until) and "
+                              f"the checkpoint is at step {int(found[1]['step'])}: the added view(s) are fitted with "
+                              "the Gaussians the model has, none are grown for them, so what only they show stays "
+                              "poorly fitted; to grow for them, add views before densify.until (a run of more "
+                              "steps, or one started with a later densify.until)")
             if found is None:
                 console.print("[yellow]note:[/] no usable checkpoint in the run folder; starting from step 0")
                 for name in ("stats.jsonl",):
