@@ -34,6 +34,16 @@ def subset_run(tiny_scene_path, tmp_path_factory):
     return run
 
 
+def test_the_console_gives_both_scores_of_a_later_choice(subset_run, tmp_path, capsys):
+    """The second greedy choice is printed with its score when chosen and, where it differs, its score alone (the
+    one selection.json's ranking holds)."""
+    sel = stage.run(subset_run, SelectConfig(score="fisher", num_views=2), CPU, output=tmp_path / "sel")
+    err = " ".join(capsys.readouterr().err.split())
+    second = sel.chosen[1]
+    assert f"{second.score:.6g}" != f"{second.score_when_chosen:.6g}"  # the first choice's information counts
+    assert f"2. {second.name} score {second.score_when_chosen:.6g} (alone {second.score:.6g})" in err
+
+
 @pytest.mark.parametrize("score", ["variance", "unseen", "fisher", "coverage", "random"])
 def test_every_policy_chooses_distinct_unused_views(subset_run, tmp_path, score):
     sel = stage.run(subset_run, SelectConfig(score=score, num_views=3), CPU, output=tmp_path / "sel")

@@ -185,8 +185,10 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         _plot(out / "selection.png", scene.cameras[train].centers, centres, chosen, up,
               f"{run_dir.name}: {cfg.score} chose {', '.join(p.name for p in picked)}")
     for p in picked:
-        console.print(f"  {p.rank}. {p.name}  score "
-                      f"{f'{p.score_when_chosen:.6g}' if p.score_when_chosen is not None else '-'}")
+        when = f"{p.score_when_chosen:.6g}" if p.score_when_chosen is not None else "-"
+        alone = f"{p.score:.6g}" if p.score is not None else "-"
+        # greedy policies score later choices after the earlier ones (score_when_chosen); alone: before any choice
+        console.print(f"  {p.rank}. {p.name}  score {when}" + (f" (alone {alone})" if alone != when else ""))
     console.print(f"chose {len(picked)} of {len(cands)} in {seconds:.2f} s -> {out / Selection.FILE_NAME}, "
                   f"{out / 'selection.png'}")
     if len(picked) < cfg.num_views:
