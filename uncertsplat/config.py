@@ -387,6 +387,11 @@ class TrainConfig(_Base):
         return self
 
     @property
+    def has_offset_tables(self) -> bool:
+        """Whether the run's models carry offset tables: our variational model, or an ensemble of it."""
+        return self.method == "variational" or (self.method == "ensemble" and self.ensemble_members == "variational")
+
+    @property
     def posterior(self) -> str:
         """The posterior that trains: ``variational.posterior``, or its default for the variant (informed for
         'ours', sgd for 'paper')."""

@@ -121,9 +121,7 @@ class EnsembleRun(LoadedRun):
         out = []
         with torch.no_grad():  # renders to score, nothing to differentiate
             for m in self.members:
-                prior = m.prior
-                out.append(posterior_mean(m.model, variant=prior.variant, extent=m.extent,
-                                          temperature=prior.temperature, sh_degree=m.sh_degree))
+                out.append(posterior_mean(m.model, **m.sample_kwargs))
         return out
 
     @property

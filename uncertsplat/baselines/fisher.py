@@ -159,10 +159,8 @@ class FisherRun(LoadedRun):
         """Laplace-posterior samples (``fisher_sample_fn``); no deterministic render of its own."""
         from uncertsplat.gaussians.variational import posterior_mean
 
-        prior = self.prior
         with torch.no_grad():
-            mean = posterior_mean(self.model, variant=prior.variant, extent=self.extent,
-                                  temperature=prior.temperature, sh_degree=self.sh_degree)
+            mean = posterior_mean(self.model, **self.sample_kwargs)
         return Sampler(fisher_sample_fn(self), self.render_fn(scene_scale, device), empty_std=self.empty_std(),
                        coverage=self.coverage(scene_scale, device, mean), mean_sample=mean,
                        exposure=self.photo_exposure())

@@ -77,6 +77,14 @@ class LoadedRun:
 
         return prior_from_config(self.config)
 
+    @property
+    def sample_kwargs(self) -> dict:
+        """The keywords that render this model's posterior (``variational.sample``, ``posterior_mean``,
+        ``expected_render_sample``): its prior's variant and temperature, extent and active SH degree."""
+        prior = self.prior
+        return {"variant": prior.variant, "extent": self.extent, "temperature": prior.temperature,
+                "sh_degree": self.sh_degree}
+
     def empty_std(self) -> tuple[float, float] | None:
         """(colour, depth) std of the unknown surface behind a ray that meets no Gaussian: a colour uniform in
         [0, 1] (std 1 / sqrt(12)) and a depth anywhere within the scene extent; None when the training images
@@ -100,11 +108,8 @@ class LoadedRun:
             scene = self.load_scene()
             train = list(scene.split.get("train", ()))
             if sample is None:
-                prior = self.prior
                 with torch.no_grad():
-                    sample = variational.expected_render_sample(
-                        self.model, variant=prior.variant, extent=self.extent, temperature=prior.temperature,
-                        sh_degree=self.sh_degree)
+                    sample = variational.expected_render_sample(self.model, **self.sample_kwargs)
             value = training_coverage(sample, scene.cameras[train].to(device), self.render_fn(scene_scale, device))
         self._coverage = value
         return value
@@ -126,11 +131,8 @@ class LoadedRun:
         from uncertsplat.gaussians import variational
 
         render_fn = self.render_fn(scene_scale, device)
-        prior, model = self.prior, self.model
-        kw = {"variant": prior.variant, "extent": self.extent, "temperature": prior.temperature,
-              "sh_degree": self.sh_degree}
         with torch.no_grad():
-            det_sample = variational.expected_render_sample(model, **kw)
+            det_sample = variational.expected_render_sample(self.model, **self.sample_kwargs)
         return Sampler(self.sample_fn(), render_fn, det_sample, empty_std=self.empty_std(),
                        coverage=self.coverage(scene_scale, device, det_sample), exposure=self.photo_exposure())
 
@@ -139,9 +141,7 @@ class LoadedRun:
         deterministic model or one without posterior carriers)."""
         from uncertsplat.gaussians import variational
 
-        prior, model = self.prior, self.model
-        kw = {"variant": prior.variant, "extent": self.extent, "temperature": prior.temperature,
-              "sh_degree": self.sh_degree}
+        model, kw = self.model, self.sample_kwargs
         if self.config.method == "deterministic" or model.num_carriers == 0:
             mean_sample = variational.posterior_mean(model, **kw)
             return lambda g: mean_sample

@@ -45,11 +45,13 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
     """
     data = load_toml(path)
     base = Path(path).resolve().parent
+    photos_given = False
     for text in overrides or []:
         parsed = parse_override(text)
         (head, rest), = parsed.items()
         if head in _TOP_LEVEL:
             data[head] = rest
+            photos_given |= head == "photos"
             continue
         stages = data.get("stages", [])
         matches = [s for s in stages if (s.get("name") or s.get("stage")) == head]
@@ -65,8 +67,7 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
             stage["config"] = deep_update(stage.get("config", {}), rest)
     with naming_overrides(overrides):
         cfg = build_config(PipelineConfig, data, source=str(path))
-    given = {next(iter(parse_override(t))) for t in overrides or []}
-    if "photos" in given and not any(st.stage == "reconstruct" for st in cfg.stages):
+    if photos_given and not any(st.stage == "reconstruct" for st in cfg.stages):
         from uncertsplat.console import console
 
         console.print(f"[yellow]note:[/] --set photos is not used: {Path(path).name} has no reconstruct stage "

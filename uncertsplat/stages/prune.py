@@ -127,9 +127,7 @@ class _Measure:
         (``variational.expected_render_sample``)."""
         from uncertsplat.gaussians.variational import expected_render_sample
 
-        prior = self.loaded.prior
-        s = expected_render_sample(model, variant=prior.variant, extent=self.loaded.extent,
-                                   temperature=prior.temperature, sh_degree=self.loaded.sh_degree)
+        s = expected_render_sample(model, **self.loaded.sample_kwargs)
         rgb, alpha = [], []
         for c in range(len(self.cams)):
             out = self.render_fn(s, self.cams[[c]])

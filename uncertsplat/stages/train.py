@@ -43,8 +43,7 @@ def resolve_config(preset: str | None, data: dict[str, Any], method: str | None,
 
         console.print(f"[yellow]note:[/] --method {method} was overridden by other options: this run trains "
                       f"method {cfg.method}, variant {cfg.variant}")
-    if cfg.variant == "paper" and cfg.method != "variational" and not (
-            cfg.method == "ensemble" and cfg.ensemble_members == "variational"):
+    if cfg.variant == "paper" and not cfg.has_offset_tables:
         from uncertsplat.console import console
 
         console.print(f"[yellow]note:[/] the paper variant shapes the offset tables of the variational model; the "

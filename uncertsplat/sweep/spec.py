@@ -366,8 +366,7 @@ def point_configs(spec: SweepSpec, point: SweepPoint, scene: str | None = None,
         data = deep_update(data, {"densify": {"spawn_scale_fraction": point.spawn_fraction}})
     data = deep_update(data, method_overrides(point.method))  # vi-single's K_table = 1 wins
     tcfg = build_config(TrainConfig, data, source=f"sweep point {point_id(point)}")
-    tables = tcfg.method == "variational" or (tcfg.method == "ensemble" and tcfg.ensemble_members == "variational")
-    if not tables:
+    if not tcfg.has_offset_tables:
         # no offset tables: K_table and the spawn rule do not matter, so points differing only in them share a run
         densify = tcfg.densify.model_copy(update={"spawn_scale_fraction": base.densify.spawn_scale_fraction})
         tcfg = tcfg.model_copy(update={"variational": TrainConfig().variational, "densify": densify})

@@ -215,14 +215,12 @@ class FrameRenderer:
         self.device = torch.device(device)
         self.seed = int(seed)
         self.sampler = loaded.sampler(scene_scale, self.device)
-        prior = loaded.prior
         if self.sampler.det_sample is not None:
             self.mean_sample: GaussianSample = self.sampler.det_sample
             self.rgb_source = "the expected render (what train reports)"
         else:
             with torch.no_grad():
-                self.mean_sample = variational.posterior_mean(loaded.model, variant=prior.variant, extent=loaded.extent,
-                                                              temperature=prior.temperature, sh_degree=loaded.sh_degree)
+                self.mean_sample = variational.posterior_mean(loaded.model, **loaded.sample_kwargs)
             member = " of member 0" if loaded.config.method == "ensemble" else ""
             self.rgb_source = f"the trained model's mean{member} ({loaded.config.method} has no expected render)"
         self.score_cameras = score_cameras
