@@ -77,8 +77,17 @@ def test_empty_model():
 
 
 @pytest.mark.parametrize("scale", [1e-3, 1e3])
-def test_kl_is_scale_free_in_ours(scale):
+def test_offsets_are_in_units_of_the_extent(scale):
+    """Ours draws the position offsets in units of the scene extent (which is why its KL, taken in those units, does
+    not depend on the scene's scale); the paper's draws them in world units, whatever the extent."""
     m = random_model(10, torch.Generator().manual_seed(2), carrier_fraction=1.0, perturb_tables=0.2)
-    s = sample(m, torch.Generator().manual_seed(3), extent=scale)
-    assert torch.isfinite(s.means).all()
+    base = m.params["means"].detach()
+    unit = sample(m, torch.Generator().manual_seed(3), extent=1.0).means - base
+    scaled = sample(m, torch.Generator().manual_seed(3), extent=scale).means - base
+    assert unit.abs().max() > 1e-3  # the samples move the Gaussians: the comparison below is not of zeros
+    torch.testing.assert_close(scaled, unit * scale, rtol=1e-3, atol=1e-6 * max(scale, 1.0))
+    paper = random_model(10, torch.Generator().manual_seed(2), carrier_fraction=1.0, perturb_tables=0.2,
+                         prior=Prior(variant="paper"))
+    draw = lambda extent: sample(paper, torch.Generator().manual_seed(3), variant="paper", extent=extent).means  # noqa: E731
+    torch.testing.assert_close(draw(scale), draw(1.0))
     assert torch.isfinite(kl_terms(m, Prior())["total"])

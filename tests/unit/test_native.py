@@ -405,13 +405,24 @@ def test_fused_ssim_gradient_where_the_structure_term_vanishes(monkeypatch):
 
 def test_fused_ssim_leaves_other_cases_to_the_reference(monkeypatch):
     """valid padding, float64 and a target that needs a gradient take the PyTorch path, even when forced."""
+    from uncertsplat.eval import image
+
     monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "native")
+    calls = []
+    fused = image._fused_ssim_l1
+    monkeypatch.setattr(image, "_fused_ssim_l1", lambda *a: calls.append(1) or fused(*a))
     a, b = torch.rand(20, 20, 3), torch.rand(20, 20, 3)
-    assert torch.isfinite(ssim(a, b, padding="valid"))
-    assert torch.isfinite(ssim(a.double(), b.double()))
+    same = float(ssim(a, b))
+    assert calls, "the fused kernel did not take the float32 'same' case"  # the spy sees it when it runs
+    calls.clear()
+    valid = ssim(a, b, padding="valid")
+    torch.testing.assert_close(valid, image.ssim_map(a, b, padding="valid").mean())
+    assert valid != pytest.approx(same, abs=1e-3)  # valid padding is not "same" padding's value
+    torch.testing.assert_close(ssim(a.double(), b.double()), image.ssim_map(a.double(), b.double()).mean())
     t = b.clone().requires_grad_()
     ssim(a, t).backward()
-    assert t.grad is not None and torch.isfinite(t.grad).all()
+    assert t.grad is not None and torch.isfinite(t.grad).all() and t.grad.abs().sum() > 0
+    assert not calls
 
 
 @pytest.mark.parametrize("shape", [(37, 53, 3), (2, 24, 19, 3), (3, 21, 17, 1), (1, 1, 3), (5, 30, 3)])

@@ -188,10 +188,16 @@ def test_random_sequences_stay_aligned(seed):
         loc = torch.round(model.tables["pos_loc"].detach()[:, 0, 0])
         own = torch.round(tag(model)[idx])
         assert ((loc == own) | (loc == 0)).all()
-    # optimisation still works after all that
-    loss = sum(p.square().sum() for p in model.parameters().values())
+    # optimisation still works after all that: every parameter and table row moves down its gradient
+    params = model.parameters()
+    before = {k: p.detach().clone() for k, p in params.items()}
+    loss = sum(p.square().sum() for p in params.values())
     loss.backward()
     opt.step()
+    for k, p in params.items():
+        moved = (p.detach() - before[k]).reshape(len(p), -1).abs().amax(1) > 0
+        assert moved[before[k].reshape(len(p), -1).abs().amax(1) > 0].all(), k
+    assert sum(p.square().sum() for p in params.values()) < loss
 
 
 def test_remove_without_optimizer():

@@ -143,6 +143,10 @@ def test_densifier_uses_posterior_mean_and_keeps_stats_aligned():
     grad[0, 3:10] = 1.0  # hot
     radii = torch.ones(1, 30)
     d.accumulate(10, grad, radii, 64, 48)
+    # the pruned (0:3) and split (3:6) Gaussians' posteriors go; the 6 split children carry one each, a clone of a
+    # carrier (6:10) one of its own
+    rows = model.posterior_row
+    carriers_without_spawns = model.num_carriers - int((rows[:6] >= 0).sum()) + 6 + int((rows[6:10] >= 0).sum())
     state_before = torch.get_rng_state()
     done = d.step(10, model, opt, g)
     assert torch.equal(torch.get_rng_state(), state_before)  # no global RNG use
@@ -150,8 +154,10 @@ def test_densifier_uses_posterior_mean_and_keeps_stats_aligned():
     assert len(model) == 30 + 4 + 3 - 3
     assert d.stats.grad_sum.shape == (len(model),)
     model.check()
-    # split children carry posteriors; large Gaussians spawned
-    assert done["spawned"] >= 0 and (model.posterior_row[-6:] >= 0).all()
+    # split children carry posteriors; large Gaussians spawned (they carry one too, and nothing else gained one)
+    assert (model.posterior_row[-6:] >= 0).all()
+    assert done["spawned"] > 0
+    assert model.num_carriers == carriers_without_spawns + done["spawned"]
 
 
 def test_accumulate_converts_pixel_gradients_to_ndc():

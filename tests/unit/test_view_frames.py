@@ -108,8 +108,16 @@ class TestFrames:
 
     def test_fixed_colour_range(self, renderer, scene, device):
         cam = _train_camera(scene, 0, device=device)
+        from uncertsplat.report.colormaps import colorize
+
         f = renderer.frame(cam, "rgb_std", value_range=(0.0, 1e-9))
         assert f.value_range == (0.0, 1e-9)
+        # coloured over that range: every std above 1e-9 takes the colour map's top colour
+        np.testing.assert_array_equal(f.image, colorize(f.values, "fixed", 0.0, 1e-9))
+        top = colorize(np.ones((1, 1)), "fixed", 0.0, 1.0)[0, 0]
+        assert (f.image[f.values > 1e-9] == top).all() and (f.values > 1e-9).mean() > 0.5
+        wide = renderer.frame(cam, "rgb_std", value_range=(0.0, 1.0))
+        np.testing.assert_array_equal(wide.image, colorize(wide.values, "fixed", 0.0, 1.0))
 
     def test_unknown_mode(self, renderer, scene):
         with pytest.raises(ValueError, match="unknown view mode"):
