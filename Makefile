@@ -8,6 +8,7 @@ PYTEST_ARGS ?=
 .PHONY: setup test test-all lint demo bench clean
 
 $(BIN)/python:
+	@$(PY) -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null || { echo "uncertsplat needs Python 3.11 or newer; '$(PY)' is $$($(PY) --version 2>&1 || echo missing). Install one and run e.g. 'make PY=python3.11 $(MAKECMDGOALS)'." >&2; exit 1; }
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install -q --upgrade pip
 

@@ -8,10 +8,10 @@ resolved config of a stage is written as JSON beside its outputs (``RUN/config.j
 from __future__ import annotations
 
 import json
+import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-import tomllib
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from uncertsplat.errors import UserError

@@ -621,9 +621,15 @@ def test_the_predictive_tails_follow_the_setting(tiny_run_path, monkeypatch):
     # nu from a strided share of the z-scores when there are many; the factor still from all of them
     from uncertsplat.eval import tails
 
+    seen = []
+    fit_dof = tails.fit_dof
+    monkeypatch.setattr(tails, "fit_dof", lambda z: seen.append(z.numel()) or fit_dof(z))
+    fit_std_scale(sampler, scene.split, cfg, cpu, load_views=views)
     monkeypatch.setattr(tails, "FIT_ELEMENTS", 5000)
     strided = fit_std_scale(sampler, scene.split, cfg, cpu, load_views=views)
     assert strided.scale == pytest.approx(fitted.scale, rel=1e-9) and strided.dof is not None
+    every, kept = seen
+    assert every > 2 * 5000 and 0.9 * 5000 < kept <= 5000  # each view strided alike: at most FIT_ELEMENTS in all
     assert strided.dof == pytest.approx(fitted.dof, rel=0.5)
     monkeypatch.undo()
     assert fit_std_scale(sampler, scene.split, cfg.model_copy(update={"degrees_of_freedom": "gaussian"}), cpu,

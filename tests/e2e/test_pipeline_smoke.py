@@ -91,10 +91,18 @@ def test_report_prune_section_equals_prune_json(smoke_out):
 
 
 def test_rerun_skips_unchanged_stages(smoke_out):
+    import tomllib
+
     out, _ = smoke_out
-    result = runner.invoke(app, ["run", str(ROOT / "pipelines" / "smoke.toml"), "-o", str(out), "--device", "cpu"])
+    pipeline = ROOT / "pipelines" / "smoke.toml"
+    stages = tomllib.loads(pipeline.read_text())["stages"]
+    files = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file() and "pipeline" not in p.name}
+    result = runner.invoke(app, ["run", str(pipeline), "-o", str(out), "--device", "cpu"])
     assert result.exit_code == 0, result.output
-    assert result.output.count("skip") >= 5, result.output
+    skipped = re.findall(r"^skip (\S+): unchanged since its last run", result.output, flags=re.M)
+    assert len(skipped) == len(stages) == len(set(skipped)), result.output
+    changed = [p for p, t in files.items() if not p.is_file() or p.stat().st_mtime_ns != t]
+    assert not changed, changed
 
 
 def test_stage_failure_is_reported_clearly(tmp_path):
