@@ -177,7 +177,7 @@ def test_photo_names_with_spaces_are_matched_and_kept(synth_scene, tmp_path):
         assert sorted(im.name for im in db.read_all_images()) == sorted(report.images_registered)
 
 
-def test_too_few_registered_lists_the_images_and_writes_the_report(synth_scene, tmp_path):
+def test_too_few_registered_lists_the_images_and_writes_the_report(synth_scene, tmp_path, capsys):
     photos = tmp_path / "photos"
     photos.mkdir()
     for p in sorted((synth_scene / "images").iterdir())[:12]:  # half the orbit keeps the test short
@@ -195,9 +195,14 @@ def test_too_few_registered_lists_the_images_and_writes_the_report(synth_scene, 
     assert set(strays) <= set(report.images_unregistered)
     assert report.retried_relaxed
     assert not (ws / "images").exists()  # nothing undistorted for a failed run
-    # the failed workspace of the same photos is redone without --overwrite
+    # the failed workspace of the same photos is redone without --overwrite; a black photo among them is named as
+    # such where the unregistered ones are (not only in the report's notes)
+    write_rgb(photos / "black.png", np.zeros((96, 128, 3), np.uint8))
+    capsys.readouterr()
     report = stage.run(photos, ws, CFG.model_copy(update={"min_registered": 0.5}))
-    assert report.success and set(strays) <= set(report.images_unregistered)
+    assert report.success and set([*strays, "black.png"]) <= set(report.images_unregistered)
+    warning = next(line for line in capsys.readouterr().err.splitlines() if "not registered:" in line)
+    assert "black.png: no features found at all" in warning and "stray_a.png" in warning
 
 
 # ------------------------------------------------------------------------------------------ bad input

@@ -457,3 +457,69 @@ def test_photos_of_another_size_are_left_out_or_refused(workspace, monkeypatch):
         _load_with_model(monkeypatch, workspace, changed, SceneConfig(photo_sizes="strict"))
     text = str(info.value)
     assert f"{2 * cam.width}x{cam.height}: 1 image ({name})" in text and "photo_sizes" in text
+
+
+def _same_pose(workspace, name, as_name):
+    """Move ``name``'s camera to ``as_name``'s pose in the workspace's COLMAP model (the same picture taken twice)."""
+    sparse = workspace / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(sparse))
+    ims = {im.name: im for im in rec.images.values()}
+    pose = ims[as_name].cam_from_world()
+    rec.frames[ims[name].frame_id].set_cam_from_world(ims[name].camera_id, pose)
+    rec.write_binary(str(sparse))
+
+
+def test_a_held_out_views_twin_leaves_training(workspace):
+    """A training view at a held-out view's pose (a copy under another name, an exposure bracket) would let the
+    held-out score measure memory: it leaves training, and the scene says which and why."""
+    _same_pose(workspace, "view_005.png", "view_008.png")
+    s = load_scene(workspace, SceneConfig())
+    assert s.split["test"] == (0, 8, 16) and s.split["train"] == tuple(i for i in range(24) if i not in (0, 5, 8, 16))
+    (note,) = [n for n in s.notes if "took the same picture" in n]
+    assert "view_005.png (= view_008.png)" in note and "left out of training" in note
+    # training views given by hand are trained on as given; the note still says what the held-out score measures
+    s = load_scene(workspace, SceneConfig(train_indices=[1, 5, 9]))
+    assert s.split["train"] == (1, 5, 9)
+    (note,) = [n for n in s.notes if "took the same picture" in n]
+    assert "trained on as given" in note
+    # views merely near each other are no twins
+    assert not [n for n in load_scene(workspace, SceneConfig(test_indices=[3])).notes if "same picture" in n]
+    # a twin of a view set aside for calibration (the std factor is fitted there) leaves training too
+    c = load_scene(workspace, SceneConfig(calibration_holdout=3)).split["calibration"][0]
+    twin = next(i for i in (c - 1, c + 1) if i not in (0, 5, 8, 16))
+    _same_pose(workspace, f"view_{twin:03d}.png", f"view_{c:03d}.png")
+    aside = load_scene(workspace, SceneConfig(calibration_holdout=3))
+    assert c in aside.split["calibration"] and twin not in aside.split["train"] and 5 not in aside.split["train"]
+    (note,) = [n for n in aside.notes if "took the same picture" in n]
+    assert f"view_{twin:03d}.png (= view_{c:03d}.png)" in note
+
+
+def test_pose_twins_thresholds():
+    from tests.reference.naive_render import look_at_cameras
+    from uncertsplat.sfm.scene import TWIN_ANGLE_DEG, TWIN_DISTANCE, pose_twins
+    from uncertsplat.types import Cameras
+
+    base = look_at_cameras(4, 64, 48, 50.0, dtype=torch.float64)  # an arc of cameras 4 units from the origin
+
+    def with_fifth(m, focal=50.0):
+        K = torch.cat([base.K, base.K[:1]])
+        K[4, 0, 0] = focal
+        return Cameras(torch.cat([base.cam_from_world, m[None]]), K, 64, 48)
+
+    radius = float((base.centers - base.centers.mean(0)).norm(dim=-1).max())
+    assert pose_twins(with_fifth(base.cam_from_world[2]), [2], [0, 1, 3, 4]) == {2: [4]}
+    assert pose_twins(with_fifth(base.cam_from_world[2]), [4], [0, 1, 2, 3]) == {4: [2]}
+    assert pose_twins(with_fifth(base.cam_from_world[2], focal=60.0), [2], [4]) == {}  # zoomed: another picture
+    moved = base.cam_from_world[2].clone()
+    moved[0, 3] += 1.5 * TWIN_DISTANCE * radius  # a step to the side larger than the threshold
+    assert pose_twins(with_fifth(moved), [2], [4]) == {}
+    moved[0, 3] -= TWIN_DISTANCE * radius  # half the threshold
+    assert pose_twins(with_fifth(moved), [2], [4]) == {2: [4]}
+    turned = base.cam_from_world[2].clone()
+    a = math.radians(1.5 * TWIN_ANGLE_DEG)  # turned about the camera's own centre past the angle
+    Rz = torch.tensor([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]], dtype=torch.float64)
+    c = base.centers[2]
+    turned[:3, :3] = Rz @ turned[:3, :3]
+    turned[:3, 3] = -turned[:3, :3] @ c
+    assert pose_twins(with_fifth(turned), [2], [4]) == {}
+    assert pose_twins(base, [0], [1, 2, 3]) == {} and pose_twins(base, [], [1]) == {}

@@ -20,6 +20,7 @@ chosen as ``SceneData.center`` / ``center_method`` / ``center_reason``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -41,6 +42,11 @@ _RANDOM_POINTS = 100_000  # at most this many random initial points (what 3DGS u
 _PIXELS_PER_RANDOM_POINT = 100  # ... and one per this many training pixels (at the loaded resolution)
 _PIXELS_PER_CARVED_POINT = 50  # ... or this many when the points are carved with alpha masks (see _finish)
 _CARVE_SIZE = 400  # carve random initial points with alpha masks of at most this many pixels on a side
+TWIN_DISTANCE = 0.002
+"""Two cameras whose centres lie closer than this fraction of the rig's radius (``pose_twins``) ..."""
+TWIN_ANGLE_DEG = 0.5
+"""... whose optical axes differ by less than this many degrees and whose focal lengths by less than 2 % took the
+same picture: a copy re-encoded or renamed, an exposure bracket, a burst from a tripod."""
 
 
 # ----------------------------------------------------------------------------------------------- public
@@ -431,6 +437,54 @@ def _train_test(names: tuple[str, ...], cfg: SceneConfig, where: Path | None,
     return {"train": tuple(train), "test": tuple(test)}
 
 
+def pose_twins(cameras: Cameras, held_out: Sequence[int], train: Sequence[int]) -> dict[int, list[int]]:
+    """The training views that took the same picture as a held-out view (``TWIN_DISTANCE``, ``TWIN_ANGLE_DEG``), by
+    held-out index ({} when none).
+
+    A held-out view whose twin is trained on is scored on what the model memorised, not on what it learned: a photo
+    and its copy under another name or format (which a byte comparison does not find), or two frames of an exposure
+    bracket, register at the same pose. Poses are what every capture has; a photo at a new place is no twin of any
+    however alike the two images look.
+    """
+    if not held_out or not train:
+        return {}
+    c = cameras.centers.double()  # [C,3]
+    radius = float((c - c.mean(0)).norm(dim=-1).max())
+    axis = cameras.cam_from_world[:, 2, :3].double()  # [C,3] each camera's optical axis in the world
+    axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    focal = cameras.K[:, 0, 0].double()  # [C]
+    h, t = torch.as_tensor(list(held_out)), torch.as_tensor(list(train))
+    near = torch.cdist(c[h], c[t]) <= TWIN_DISTANCE * max(radius, 1e-12)  # [H,T]
+    aligned = axis[h] @ axis[t].T >= math.cos(math.radians(TWIN_ANGLE_DEG))
+    same_focal = (focal[h, None] - focal[None, t]).abs() <= 0.02 * focal[h, None]
+    twins = near & aligned & same_focal
+    return {int(h[i]): [int(t[j]) for j in twins[i].nonzero()[:, 0]] for i in range(len(h)) if twins[i].any()}
+
+
+def _without_twins(cameras: Cameras, split: dict[str, tuple[int, ...]], cfg: SceneConfig
+                   ) -> tuple[dict[str, tuple[int, ...]], str | None]:
+    """``split`` with the training twins of its held-out and calibration views left out of training (``pose_twins``)
+    and a note naming them; with training views given by hand (scene.train_names / train_indices) they stay, and the
+    note says so."""
+    names = cameras.image_names
+    held_out = [*split["test"], *split.get("calibration", ())]
+    twins = pose_twins(cameras, held_out, split["train"])
+    if not twins:
+        return split, None
+    pairs = [f"{', '.join(names[j] for j in js)} (= {names[i]})" for i, js in sorted(twins.items())]
+    listed = "; ".join(pairs[:4]) + ("; ..." if len(pairs) > 4 else "")
+    what = (f"{sum(map(len, twins.values()))} training view(s) took the same picture as a held-out view (the same "
+            f"camera pose: a copy under another name or format, or an exposure bracket): {listed}")
+    if cfg.train_names is not None or cfg.train_indices is not None:
+        return split, what + "; they are trained on as given, so those held-out scores measure what the model " \
+                             "memorised (leave them out of scene.train_names / train_indices)"
+    drop = {j for js in twins.values() for j in js}
+    kept = tuple(i for i in split["train"] if i not in drop)
+    if not kept:
+        return split, what + "; kept in training, the only views there are"
+    return {**split, "train": kept}, what + "; left out of training, so the held-out scores measure what was learned"
+
+
 def normalization(cameras: Cameras, center: torch.Tensor | None = None) -> tuple[torch.Tensor, float]:
     """The similarity ``world_from_source`` [4,4] (float64) that moves ``center`` [3] (default: the camera
     centroid) to the origin and scales by ``s`` so that the farthest camera is at distance 1 from the camera
@@ -504,6 +558,9 @@ def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torc
                          f"default held-out views ({', '.join(taken[:4])}{', ...' if len(taken) > 4 else ''}), which "
                          f"are trained on: {len(split['test'])} held out now (scene.test_names / test_indices "
                          "choose them)"]
+    split, twin_note = _without_twins(cameras, split, cfg)
+    if twin_note:
+        notes = [*notes, twin_note]
     choice = choose_center(cameras, has_points=points.shape[0] > 0, mode=cfg.center, where=Path(source["path"]))
     if points.shape[0] == 0 and random_init:
         # 100k points (3DGS) for NeRF-synthetic at full size, fewer for small or downscaled scenes: there 100k

@@ -149,6 +149,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
 
     pyv, colv = sfm.versions()
     weak_note = ""  # the photos registered from few points, printed again after the summary
+    featureless: list[str] = []  # photos with no keypoint at all (blank, black, out of focus): named with the unregistered
     report = ReconstructReport(
         success=False, photos=str(photos.resolve()), inputs_fingerprint=fingerprint,
         images_found=scan.names, images_unregistered=scan.names, ignored=scan.ignored, notes=list(scan.notes),
@@ -333,7 +334,10 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         console.print("[yellow]warning:[/] the mapping runs found different geometries; the kept one explains the most "
                       "feature observations (reconstruct_report.json: mapping_attempts)")
     if report.images_unregistered:
-        console.print(f"[yellow]warning:[/] not registered: {list_names(report.images_unregistered)}")
+        blank = [name for name in featureless if name in set(report.images_unregistered)]
+        console.print(f"[yellow]warning:[/] not registered: {list_names(report.images_unregistered)}"
+                      + (f" ({list_names(blank)}: no features found at all, a blank, black or featureless photo)"
+                         if blank else ""))
     if weak_note:
         console.print(f"[yellow]note:[/] {weak_note}")
     if report.ground_truth:
