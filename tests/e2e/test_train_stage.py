@@ -164,3 +164,13 @@ def test_resume_names_only_the_values_the_command_gave(tiny_scene_path, tmp_path
     assert seeded.exit_code == 0, seeded.output
     note = " ".join(seeded.output.split())
     assert "ignoring the given values of: seed" in note and "densify" not in note
+    # --set iterations=N on --resume trains on to N, as --iterations N does
+    longer = CliRunner().invoke(app, [*args, "--resume", "--set", "iterations=8"])
+    assert longer.exit_code == 0 and "continuing to 8 steps" in " ".join(longer.output.split()), longer.output
+    assert json.loads((run / "train_summary.json").read_text())["steps"] == 8
+    # a finished run resumed again says so and trains nothing; without --resume the error says how to go on
+    again = CliRunner().invoke(app, [*args, "--resume"])
+    assert again.exit_code == 0 and "already trained for its 8 steps, nothing to do" in " ".join(again.output.split())
+    assert "resuming from" not in again.output
+    fresh = CliRunner().invoke(app, args)
+    assert fresh.exit_code == 2 and "trained for 8 steps" in fresh.output and "--iterations N" in fresh.output

@@ -596,3 +596,26 @@ def test_a_folder_of_photos_in_formats_not_read_says_so(tmp_path):
     with pytest.raises(UserError, match=r"holds no JPEG, PNG or TIFF photos") as err:
         scan_photos(tmp_path)
     assert "3 photo(s) in a format this tool does not read (IMG_0.HEIC, IMG_1.HEIC, IMG_2.HEIC)" in str(err.value)
+
+
+def test_disagreement_note_names_the_runs_that_agreed_and_why_they_were_not_kept():
+    def run(seed, relaxed, images, obs, focal):
+        return {"seed": seed, "relaxed": relaxed, "num_images": images, "num_observations": obs,
+                "focal_lengths": {"1": focal}}
+
+    # two normal runs agree with each other but register too few images; the relaxed run that registered enough is
+    # kept and nothing confirms it
+    runs = [run(1, False, 5, 282, 574.0), run(2, False, 5, 283, 575.0), run(1, True, 9, 900, 460.0),
+            run(2, True, 9, 500, 900.0)]
+    assert sfm.choose_attempt(runs, 7.0) == 2 and sfm.agreeing(runs, 2) is False
+    note = stage.disagreement_note(runs, 2, 7.0)
+    assert note.startswith("no other mapping run of the same options found the kept run's geometry (seed 1 (relaxed)")
+    assert "seed 1 and seed 2 agree with each other but registered 5 images, fewer than needed (7" in note
+    assert "focal 460" in note and "seed 2 (relaxed): 9 images, 500 observations, focal 900 px" in note
+    # the kept run has the most observations; two others agree on a geometry that explains fewer
+    runs = [run(1, False, 9, 900, 460.0), run(2, False, 9, 600, 800.0), run(3, False, 9, 601, 801.0)]
+    assert sfm.choose_attempt(runs, 7.0) == 0 and sfm.agreeing(runs, 0) is False
+    assert "seed 2 and seed 3 agree with each other but explain fewer feature observations" in \
+        stage.disagreement_note(runs, 0, 7.0)
+    # none agreeing: no such clause
+    assert "agree with each other" not in stage.disagreement_note(runs[:2], 0, 7.0)

@@ -585,3 +585,37 @@ def test_training_section_says_where_growth_stopped(tmp_path):
     assert ("growth test at step 500: switching off the weakest half of the 31,273 Gaussians 8 training views see "
             "(of 32,156) costs 0.077 dB (&lt; 0.25 dB), densification stops growing the model (2 growth test(s) "
             "in all)") in html
+
+
+def test_own_page_is_replaced_anothers_is_not(tmp_path):
+    """An index.html that report did not write (someone's page) is refused, with its figures/ kept."""
+    run = make_run(tmp_path, "r", maps=False, stats=False)
+    site = tmp_path / "site"
+    (site / "figures").mkdir(parents=True)
+    (site / "index.html").write_text("<html>my homepage</html>")
+    (site / "figures" / "logo.png").write_bytes(b"mine")
+    with pytest.raises(UserError, match="index.html is not a page `report` wrote"):
+        stage.run([run], site, ReportConfig())
+    assert (site / "index.html").read_text() == "<html>my homepage</html>" and (site / "figures" / "logo.png").exists()
+    out = tmp_path / "out"
+    stage.run([run], out, ReportConfig(title="my title"))  # its own page, whatever the title, is replaced
+    stage.run([run], out, ReportConfig())
+    assert "<title>uncertsplat report</title>" in (out / "index.html").read_text()
+
+
+def test_an_evaluation_of_an_earlier_model_is_named(tmp_path, capsys):
+    """A run trained further (train --resume) after evaluate: the report says its metrics are the earlier model's."""
+    from uncertsplat.stages.evaluate import run_sha256
+
+    run = make_run(tmp_path, "r", maps=False, stats=False)
+    (run / "variational.ply").write_bytes(b"model at step 100")
+    report = EvalReport.read(run / "eval" / "metrics.json")
+    report.run_sha256 = run_sha256(run, run / "variational.ply")
+    report.write(run / "eval" / "metrics.json")
+    stage.run([run], tmp_path / "out", ReportConfig())
+    assert "earlier state of the run" not in (tmp_path / "out" / "index.html").read_text()
+    (run / "variational.ply").write_bytes(b"model at step 200")
+    capsys.readouterr()
+    stage.run([run], tmp_path / "out", ReportConfig())
+    assert "earlier state of the run" in (tmp_path / "out" / "index.html").read_text()
+    assert f"uncertsplat evaluate {run}" in capsys.readouterr().err.replace("\n", "")

@@ -182,7 +182,19 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
         body.append(f'{title}{kv(facts)}<div data-run="{ri}">{table(header, rows, table_id=f"metrics-{ri}")}</div>')
     if not body:
         body.append(note("No run has eval/metrics.json: run `uncertsplat evaluate RUN` first."))
+    else:
+        body.append(para(METRICS_LEGEND, "legend"))
     w.section("metrics", "Metrics per view", "".join(body))
+
+
+METRICS_LEGEND = (
+    "NLL: of the predictive evaluate writes (the std of every term, Student-t tails where fitted), per pixel and "
+    "channel; the number to compare methods on. NLL, std rescaled: the same with the std times the fitted factor. "
+    "NLL, read as a Gaussian: the same std without the tails. NLL (KDE): a kernel density (Silverman's bandwidth) "
+    "over the K samples' renders alone, without the pixel noise and the other terms; where the samples agree closely "
+    "and the photo differs it runs into the thousands, which says the samples' spread is narrow, not that the "
+    "predictive is wrong. NLL (paper formula): the original code's kernel density with its own bandwidth, not "
+    "comparable with the others.")
 
 
 def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[int, dict[str, ViewMaps]]:

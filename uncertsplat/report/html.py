@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import html
 from collections.abc import Iterable, Sequence
+from pathlib import Path
 from typing import Any
 
 CSS = """
@@ -110,11 +111,28 @@ def table(header: Sequence[str], rows: Sequence[tuple[str, Sequence[Cell | str]]
     return f'<div class="scroll"><table{tid}><thead><tr>{head}</tr></thead><tbody>{"".join(body)}</tbody></table></div>'
 
 
+GENERATOR = "uncertsplat report"
+"""The page's ``<meta name="generator">``: how ``report`` knows a folder's index.html for one of its own (which it
+may replace) from someone else's page (which it must not)."""
+
+
+def is_report_page(path: Path) -> bool:
+    """Whether ``path`` is an HTML page ``page`` wrote (its generator tag, or the default title of pages written
+    before the tag), judged from its first 4 KB; False when it cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096).decode("utf-8", "replace")
+    except OSError:
+        return False
+    return f'<meta name="generator" content="{GENERATOR}">' in head or "<title>uncertsplat report</title>" in head
+
+
 def page(title: str, subtitle: str, nav: Sequence[tuple[str, str]], body: str) -> str:
     links = "".join(f'<a href="#{esc(anchor)}">{esc(label)}</a>' for anchor, label in nav)
     return (
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
         "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
+        f'<meta name="generator" content="{GENERATOR}">'
         f'<link rel="icon" href="data:,">'
         f"<title>{esc(title)}</title><style>{CSS}</style></head><body>"
         f"<header><h1>{esc(title)}</h1><p>{esc(subtitle)}</p></header>"

@@ -161,6 +161,27 @@ def matching_evaluation(run_dir: Path, model_file: Path, cfg: EvalConfig, image_
     return found[0] if found is not None else None
 
 
+def evaluation_is_current(run_dir: Path, report: EvalReport) -> bool | None:
+    """Whether ``report`` (``run_dir``'s eval/metrics.json) scored the run as it is now: its ``run_sha256`` against the
+    hash of the model file evaluate would load now (``variational.ply``, else the newest checkpoint) and the run's
+    config and scene. None when that cannot be told (no hash recorded: an ensemble, or files of older versions; no
+    model file)."""
+    from uncertsplat.io.checkpoints import list_checkpoints
+
+    if report.run_sha256 is None:
+        return None
+    model = Path(run_dir) / "variational.ply"
+    if not model.is_file():
+        found = list_checkpoints(run_dir)
+        if not found:
+            return None
+        model = found[-1][1]
+    try:
+        return run_sha256(Path(run_dir), model) == report.run_sha256
+    except OSError:
+        return None
+
+
 def _matching(run_dir: Path, model_file: Path, cfg: EvalConfig, image_names: list[str],
               device: torch.device) -> tuple[EvalReport, EvalConfig] | None:
     """``matching_evaluation``'s report and the settings it was measured with (``eval/config.json``)."""
@@ -476,8 +497,10 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
         masked = any(n.startswith(MASKED_NOTE) for n in report.notes)
         where = " (train's over whole images; these inside the scene's validity masks)" if masked else ""
         samples = "the one sample" if cfg.num_samples == 1 else f"the mean of the {cfg.num_samples} samples"
+        what = ("what train reports for the held-out views" if cfg.split == "test" else
+                "as train renders them; its 'training views' figure is over at most 8 of them, evenly spaced")
         console.print(f"PSNR is that of {samples}; one deterministic render (the "
-                      f"expected render, what train reports{where}): {report.mean.psnr_render:.2f} dB")
+                      f"expected render, {what}{where}): {report.mean.psnr_render:.2f} dB")
     if report.depth_scale is not None:
         console.print(f"depth scale {report.depth_scale.scale:.4g} ({report.depth_scale.method})")
     console.print(f"{'wrote' if written else 'kept'} {out / 'metrics.json'} and maps in {out / 'maps'}")

@@ -12,6 +12,7 @@ Workspace layout (the COLMAP layout that 3DGS tools read; README, ``uncertsplat 
 
 from __future__ import annotations
 
+import math
 import shutil
 import time
 from pathlib import Path
@@ -102,6 +103,28 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
         elif target.exists() or target.is_symlink():
             target.unlink()
     return None
+
+
+def disagreement_note(summaries: list[dict], kept: int, needed: float) -> str:
+    """The note for a kept mapping run that no other run of its options confirms (``sfm.agreeing`` False): every run,
+    and the runs that did agree among themselves, with why they were not kept."""
+    def label(a: dict) -> str:
+        return f"seed {a['seed']}{' (relaxed)' if a['relaxed'] else ''}"
+
+    runs = "; ".join(f"{label(a)}: {a['num_images']} images, {a['num_observations']} observations, focal {_focals(a)}"
+                     for a in summaries)
+    pairs = [(i, j) for i in range(len(summaries)) for j in range(i + 1, len(summaries))
+             if summaries[i]["relaxed"] == summaries[j]["relaxed"] and sfm.attempts_agree(summaries[i], summaries[j])]
+    text = (f"no other mapping run of the same options found the kept run's geometry ({label(summaries[kept])}, which "
+            "explains the most feature observations of the runs that registered enough images)")
+    if pairs:
+        i, j = pairs[0]
+        a = summaries[i]
+        why = (f"registered {a['num_images']} images, fewer than needed ({math.ceil(needed)}, --min-registered)"
+               if a["num_images"] < needed else "explain fewer feature observations")
+        text += f"; {label(a)} and {label(summaries[j])} agree with each other but {why}"
+    return (f"{text} ({runs}). Check the poses (train warns when it cannot fit its own views) or raise "
+            "--mapping-attempts")
 
 
 def weak_registration_note(weak: dict[str, int], cfg: ReconstructConfig) -> str:
@@ -253,12 +276,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                 report.mapping_agreed = sfm.agreeing(summaries, kept) \
                     if cfg.mapping_attempts > 1 and result.best is not None else None
                 if report.mapping_agreed is False:
-                    runs = "; ".join(f"seed {a['seed']}{' (relaxed)' if a['relaxed'] else ''}: {a['num_images']} images, "
-                                     f"{a['num_observations']} observations, focal {_focals(a)}" for a in summaries)
-                    report.notes.append(f"the {len(summaries)} mapping runs disagree ({runs}); kept seed "
-                                        f"{summaries[kept]['seed']}, which explains the most feature observations. Check "
-                                        f"the poses (train warns when it cannot fit its own views) or raise "
-                                        f"--mapping-attempts")
+                    report.notes.append(disagreement_note(summaries, kept, needed))
 
             shutil.rmtree(distorted / "models", ignore_errors=True)
             report.models_found = len(result.models)

@@ -16,6 +16,8 @@ from uncertsplat.config import ReportConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
 from uncertsplat.io.atomic import atomic_write_bytes, atomic_write_text
+from uncertsplat.report.html import is_report_page
+from uncertsplat.stages.evaluate import evaluation_is_current
 
 INDEX = "index.html"
 FIGURES = "figures"
@@ -40,9 +42,12 @@ def _check_output(out: Path, runs: list[Path]) -> None:
         if out.resolve() == r.resolve():
             raise UserError("the report folder cannot be the run folder itself", path=out,
                             hint=f"Use e.g. -o {r / 'report'}.")
-    if out.is_dir() and any(out.iterdir()) and not (out / INDEX).is_file():
-        raise UserError("the output folder is not empty and holds no earlier report; refusing to write into it",
-                        path=out, hint="Choose a new or empty folder (an earlier report folder is replaced).")
+    if out.is_dir() and any(out.iterdir()) and not is_report_page(out / INDEX):
+        what = ("its index.html is not a page `report` wrote" if (out / INDEX).is_file()
+                else "it holds no earlier report")
+        raise UserError(f"the output folder is not empty and {what}; refusing to write into it (its index.html and "
+                        "figures/ would be replaced)", path=out,
+                        hint="Choose a new or empty folder (a folder of an earlier report is replaced).")
 
 
 def _remove_stale_figures(out: Path, keep: list[str]) -> None:
@@ -80,6 +85,11 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
     names = _display_names([p for p in paths if p.exists()]) if all(p.exists() for p in paths) else []
     loaded = [load_run(p, name=names[i] if names else None) for i, p in enumerate(paths)]
     _check_output(out, paths)
+    for r in loaded:
+        if r.metrics is not None and r.metrics.split == "test" and evaluation_is_current(r.path, r.metrics) is False:
+            r.notes.append(f"its eval/metrics.json scored an earlier state of the run (the model, config or scene "
+                           f"changed since, e.g. by `train --resume`), so the metrics shown are that model's: run "
+                           f"`uncertsplat evaluate {r.path}` again, then this report")
     had_report = (out / INDEX).is_file()
 
     text, figures = build_report(loaded, out, cfg.title, cfg.max_views, atomic_write_bytes)

@@ -86,6 +86,15 @@ def _truncate_stats(path: Path, step: int) -> None:
     atomic_write_text(path, "".join(f"{line}\n" for line in keep))
 
 
+def _summary_steps(run_dir: Path) -> int | None:
+    """The steps ``train_summary.json`` says the run's finished model was trained for (None: none readable)."""
+    try:
+        summary = TrainSummary.read_optional(run_dir / TrainSummary.FILE_NAME)
+    except UserError:
+        return None
+    return summary.steps if summary is not None else None
+
+
 def _check_same_scene(before: RunScene, scene: Path, names: tuple[str, ...], run_dir: Path) -> None:
     """Refuse to resume ``run_dir`` on another scene than the one it was trained on (``scene.json``): its model
     would go on training on other photos and its held-out scores would mix two scenes. A scene folder that was
@@ -170,8 +179,11 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         if not (run_dir / "config.json").is_file():  # files of something else: nothing --resume could continue
             raise UserError("the output folder exists and holds files that are not a training run", path=run_dir,
                             hint="Choose another output folder (-o), or empty this one.")
-        raise UserError("the run folder already exists", path=run_dir,
-                        hint="Add --resume to continue it, or choose another output folder (-o).")
+        steps = _summary_steps(run_dir)
+        raise UserError("the run folder already exists" + (f" and holds a run trained for {steps} steps" if steps
+                                                           else ""), path=run_dir,
+                        hint=("Add --resume --iterations N (N > its steps) to train it on" if steps else
+                              "Add --resume to continue it") + ", or choose another output folder (-o).")
     if add_views and not resume:
         raise UserError("views can only be added to a run that exists (--add-views needs --resume)", path=run_dir,
                         hint="Train the first views, then resume with --add-views.")
@@ -222,6 +234,11 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 console.print("[yellow]note:[/] no usable checkpoint in the run folder; starting from step 0")
                 for name in ("stats.jsonl",):
                     (run_dir / name).unlink(missing_ok=True)
+            elif (int(found[1]["step"]) >= cfg.iterations and not add_views and (run_dir / "variational.ply").is_file()
+                  and _summary_steps(run_dir) == int(found[1]["step"])):
+                console.print(f"{run_dir}: already trained for its {cfg.iterations} steps, nothing to do "
+                              f"(--iterations N with N > {cfg.iterations} trains it on)")
+                return run_dir
             else:
                 path, state = found
                 console.print(f"resuming from {path} (step {state['step']})")
@@ -234,6 +251,12 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         before = RunScene.read_optional(run_dir / RunScene.FILE_NAME) if resume else None
         if before is not None:
             _check_same_scene(before, scene, names, run_dir)
+            index = {n: i for i, n in enumerate(names)}
+            if (not add_views and [names[i] for i in data.split["train"]] != before.train
+                    and all(n in index for n in before.train)):
+                # the scene's split rules changed since the run began (e.g. a held-out view's twin now leaves
+                # training): the run goes on with the views it trained on, which its checkpoint's view order indexes
+                data = replace(data, split={**data.split, "train": tuple(index[n] for n in before.train)})
         atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         views_added = list(before.views_added) if before is not None else []
         if add_views:
