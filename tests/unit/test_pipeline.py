@@ -176,6 +176,38 @@ def test_a_stage_interrupted_with_its_work_kept_stops_the_pipeline_as_an_interru
     assert manifest["status"] == "failed" and "interrupted" in json.dumps(manifest)
 
 
+def test_an_interrupted_train_stage_resumes_from_its_checkpoint(tmp_path, monkeypatch):
+    """Run again after Ctrl-C, the train stage goes on from its checkpoint (same settings and inputs) instead of
+    moving its folder to .previous and training from step 0; with other settings it starts over."""
+    from uncertsplat.errors import Interrupted
+
+    resumed = []
+
+    def fake(kind, cfg, up_path, out_dir, device, kwargs):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if kind == "train":
+            resumed.append(kwargs.get("resume", False))
+            if len(resumed) == 1:
+                (out_dir / "ckpts").mkdir()
+                (out_dir / "ckpts" / "step_000005.pt").write_bytes(b"state")
+                raise Interrupted("training interrupted at step 5; checkpoint saved", path=out_dir)
+
+    monkeypatch.setattr(pl, "_run_stage", fake)
+    p = _write(tmp_path)
+    with pytest.raises(Interrupted) as err:
+        pl.run(p, tmp_path / "out")
+    assert "training resumes from its checkpoint" in str(err.value)
+    pl.run(p, tmp_path / "out")
+    assert resumed == [False, True]
+    assert (tmp_path / "out" / "train" / "ckpts" / "step_000005.pt").is_file()
+    assert not (tmp_path / "out" / ".previous" / "train").exists()
+    # finished now: skipped; other settings: a new run, the old one kept under .previous
+    pl.run(p, tmp_path / "out")
+    assert resumed == [False, True]
+    pl.run(p, tmp_path / "out", overrides=["train.seed=7"])
+    assert resumed == [False, True, False] and (tmp_path / "out" / ".previous" / "train").is_dir()
+
+
 def test_a_stage_s_advice_names_the_pipeline_s_keys(tmp_path, monkeypatch):
     """A failing stage's advice names its command's options (--iterations); the pipeline adds how to set them there
     (--set train.iterations), and only for options that are the stage's config keys (not --resume)."""
@@ -189,3 +221,17 @@ def test_a_stage_s_advice_names_the_pipeline_s_keys(tmp_path, monkeypatch):
         pl.run(_write(tmp_path), tmp_path / "out")
     text = str(err.value)
     assert "(in this pipeline: --set train.iterations)" in text and "train.resume" not in text
+
+
+def test_a_relative_photos_path_is_read_from_where_it_was_written(tmp_path, monkeypatch):
+    """In the file: from the file's folder, even when the current folder has a folder of that name; on the command
+    line: from the current folder."""
+    (tmp_path / "pipes" / "photos").mkdir(parents=True)
+    (tmp_path / "cwd" / "photos").mkdir(parents=True)
+    p = tmp_path / "pipes" / "p.toml"
+    p.write_text('\nphotos = "photos"' + PIPE)
+    monkeypatch.chdir(tmp_path / "cwd")
+    assert pl.load_pipeline(p).photos == (tmp_path / "pipes" / "photos").resolve()
+    assert pl.load_pipeline(p, overrides=["photos=photos"]).photos == (tmp_path / "cwd" / "photos").resolve()
+    (tmp_path / "pipes" / "photos").rmdir()  # only in the current folder: found there (what older versions read)
+    assert pl.load_pipeline(p).photos == (tmp_path / "cwd" / "photos").resolve()

@@ -3,7 +3,8 @@
 Each stage writes into its own folder under the output (``OUT/<name>``; ``evaluate`` writes into the
 run it evaluates, ``RUN/eval``) together with a ``manifest.json``. A stage whose resolved config and
 inputs are unchanged since its last successful run is skipped. A stage that must run again moves its
-previous output to ``OUT/.previous/<name>`` first, so nothing is lost silently. A failing stage leaves
+previous output to ``OUT/.previous/<name>`` first, so nothing is lost silently; a train stage interrupted by
+Ctrl-C resumes from its checkpoint instead when run again with the same settings and inputs. A failing stage leaves
 the outputs of earlier stages intact and the error names the stage.
 """
 
@@ -73,7 +74,11 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
         console.print(f"[yellow]note:[/] --set photos is not used: {Path(path).name} has no reconstruct stage "
                       "(pipelines/photos.toml starts from photos)")
     if cfg.photos is not None and not cfg.photos.is_absolute():
-        cfg.photos = (base / cfg.photos).resolve() if not cfg.photos.exists() else cfg.photos.resolve()
+        # typed on the command line: from the current folder; written in the file: from the file's folder (the
+        # current folder as a fallback, which is what it was read from before)
+        first, second = (Path.cwd(), base) if photos_given else (base, Path.cwd())
+        cfg.photos = (first / cfg.photos if (first / cfg.photos).exists() or not (second / cfg.photos).exists()
+                      else second / cfg.photos).resolve()
     names = [s.name or s.stage for s in cfg.stages]
     dup = {n for n in names if names.count(n) > 1}
     if dup:
@@ -123,6 +128,17 @@ def _evaluation_kept(run_dir: Path, cfg, device) -> bool:
     from uncertsplat.stages import evaluate
 
     return evaluate.kept_evaluation(run_dir, cfg, device) is not None
+
+
+INTERRUPTED = "interrupted"
+"""A stage's manifest ``error`` after Ctrl-C: a train stage with a checkpoint resumes when run with the same settings
+and inputs."""
+
+
+def _has_checkpoint(run_dir: Path) -> bool:
+    from uncertsplat.io.checkpoints import list_checkpoints
+
+    return bool(list_checkpoints(run_dir)) or any(list_checkpoints(m) for m in (run_dir / "members").glob("*"))
 
 
 def _move_previous(out_dir: Path, root: Path, name: str) -> None:
@@ -233,19 +249,27 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             continue
 
         console.print(f"[bold cyan]stage[/] {name} ({stage.stage}) -> {out_dir}")
-        if not (stage.stage == "evaluate" and _evaluation_kept(up_path, stage_cfg, dev)):
+        resume = (not force and stage.stage == "train" and old is not None and old.error == INTERRUPTED
+                  and old.config_hash == new.config_hash and old.input_hashes == new.input_hashes
+                  and _has_checkpoint(out_dir))
+        if resume:
+            kwargs["resume"] = True
+            console.print(f"  resuming '{name}' from its checkpoint (it was interrupted with these settings and inputs)")
+        elif not (stage.stage == "evaluate" and _evaluation_kept(up_path, stage_cfg, dev)):
             _move_previous(out_dir, root, name if stage.stage != "evaluate" else f"{name}-eval")
         t0 = time.perf_counter()
         try:
             _run_stage(stage.stage, stage_cfg, up_path, out_dir, dev, kwargs)
         except KeyboardInterrupt:
-            _finish(out_dir, new, "failed", t0, "interrupted")
+            _finish(out_dir, new, "failed", t0, INTERRUPTED)
             raise
         except Interrupted as err:  # a stage stopped by Ctrl-C that kept its work (train's checkpoint, ...)
-            _finish(out_dir, new, "failed", t0, "interrupted")
+            _finish(out_dir, new, "failed", t0, INTERRUPTED)
+            again = ("training resumes from its checkpoint" if stage.stage == "train" and _has_checkpoint(out_dir)
+                     else "this one starts over (its folder kept under .previous/)")
             raise Interrupted(f"stage '{name}' ({stage.stage}) interrupted: {err.message}",
-                              hint="Run the same pipeline command again: the stages that finished are skipped and this "
-                                   "one starts over (its folder kept under .previous/).") from None
+                              hint=f"Run the same pipeline command again: the stages that finished are skipped and "
+                                   f"{again}.") from None
         except UserError as err:
             _finish(out_dir, new, "failed", t0, err.render())
             text = err.render()
@@ -293,7 +317,8 @@ def _run_stage(kind: str, cfg, up_path: Path | None, out_dir: Path, device, kwar
     elif kind == "train":
         from uncertsplat.stages import train
 
-        train.run(up_path, out_dir, cfg, device=device, resume=False)  # dispatches on the method
+        # dispatches on the method; resume: an interrupted run of the same settings and inputs goes on
+        train.run(up_path, out_dir, cfg, device=device, resume=kwargs.get("resume", False))
     elif kind == "evaluate":
         from uncertsplat.stages import evaluate
 
