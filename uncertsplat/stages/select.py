@@ -184,11 +184,22 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         up = -torch.linalg.inv(scene.cameras[train].cam_from_world.double())[:, :3, 1].mean(0)
         _plot(out / "selection.png", scene.cameras[train].centers, centres, chosen, up,
               f"{run_dir.name}: {cfg.score} chose {', '.join(p.name for p in picked)}")
+    gaps = cfg.score == "fisher" and cfg.gaps > 0
     for p in picked:
         when = f"{p.score_when_chosen:.6g}" if p.score_when_chosen is not None else "-"
         alone = f"{p.score:.6g}" if p.score is not None else "-"
         # greedy policies score later choices after the earlier ones (score_when_chosen); alone: before any choice
-        console.print(f"  {p.rank}. {p.name}  score {when}" + (f" (alone {alone})" if alone != when else ""))
+        if p.score is None and p.score_when_chosen is not None and gaps:
+            why = " (outside the gaps before the earlier choices, which moved them: not scored alone)"
+        else:
+            why = f" (alone {alone})" if alone != when else ""
+        console.print(f"  {p.rank}. {p.name}  score {when}{why}")
+    if cfg.score == "fisher" and len(picked) > 1:
+        console.print("[dim]score: the information a view adds to the model's Fisher information, each after the views "
+                      "chosen before it" + (f"; only candidates in the capture's gaps compete (at least {cfg.gaps:g} x "
+                                            "the largest distance to the views used and chosen so far; --set gaps=0 "
+                                            "lets every candidate compete), so a later choice can score higher than "
+                                            "an earlier one whose gap it was not yet in" if gaps else "") + "[/]")
     console.print(f"chose {len(picked)} of {len(cands)} in {seconds:.2f} s -> {out / Selection.FILE_NAME}, "
                   f"{out / 'selection.png'}")
     if len(picked) < cfg.num_views:
