@@ -268,8 +268,12 @@ def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
                     for j, k in enumerate(loss_keys if not multi else loss_keys[:1]):
                         x, y = stats_series(stats, k)
                         if x.size:
-                            ax.plot(x, y, lw=1.2, ls=styles[j % 4] if multi else "-",
-                                    color=col if multi else None, label=f"{pre}{k}")
+                            # the total wide and pale beneath the terms: where one term is all of it (the KL
+                            # weighs nothing) the two lines coincide, and a thin one would hide the other
+                            wide = k == "loss" and not multi
+                            ax.plot(x, y, lw=3.0 if wide else 1.2, alpha=0.45 if wide else 1.0,
+                                    ls=styles[j % 4] if multi else "-", color=col if multi else None,
+                                    label=f"{pre}{k}")
                     ax.set_title("loss" if multi else "loss terms")
                     ax.set_yscale("symlog", linthresh=linthresh)
                 elif panel == "gaussians":
