@@ -378,7 +378,7 @@ def _prune_facts(p: PruneReport) -> list[tuple[str, str]]:
                                                f"{100.0 * c.removed / max(c.before, 1):.1f} %)"),
                   ("posterior carriers before → after", f"{c.carriers_before:,} → {c.carriers_after:,}")]
     if p.delta_psnr_db is not None:
-        facts.append(("held-out PSNR change", f"{p.delta_psnr_db.score:+.2f} dB by the score, "
+        facts.append(("held-out PSNR change (the mean of the K samples)", f"{p.delta_psnr_db.score:+.2f} dB by the score, "
                                               f"{p.delta_psnr_db.random:+.2f} dB by random removal"))
     facts += [("metric views", f"{len(p.metric_views)} {p.metric_split} views, K = {p.num_samples} samples"),
               ("seed", str(p.seed)), ("source run", p.source_run)]
@@ -442,7 +442,8 @@ def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
                    f"model, shaded: within {sw.tolerance_db:g} dB of it.")
         if best is not None:
             caption += (f" Circled: the largest removal within tolerance (keep ratio {best.keep_ratio:g}, "
-                        f"{best.num_removed:,} removed, {best.psnr_loss_db:.2f} dB lost).")
+                        f"{best.num_removed:,} removed, {best.psnr_loss_db:.2f} dB lost"
+                        f"{' in the expected render' if sw.metric == 'psnr_render' else ''}).")
         html = w.add_figure(f"prune_sweep_run{ri}.png", F.prune_sweep_figure(sw), caption, "pruning sweep")
         body.append(html or note(f"{run.name}: the sweep has no PSNR to plot."))
         body.append(_sweep_table(sw, ri))
