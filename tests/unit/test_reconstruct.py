@@ -403,6 +403,14 @@ def test_train_warns_when_the_model_cannot_fit_its_own_photos(tmp_path):
     (warning,) = poor_fit_warnings(18.9, tmp_path)
     assert str(tmp_path / REPORT_NAME) in warning and "6,084 points" in warning and "1.03 px" in warning
     assert "disagreed" in warning and "--seed" in warning
+    # the workspace a pipeline's reconstruct stage wrote: the advice is that stage's key
+    from uncertsplat.stages.manifest import start_manifest, write_manifest
+
+    write_manifest(tmp_path, start_manifest("reconstruct", "sfm", {"seed": 3}, {}))
+    (staged,) = poor_fit_warnings(18.9, tmp_path)
+    assert "running the pipeline again with --set sfm.seed=4 maps the photos again" in staged
+    assert "--overwrite" not in staged
+    (tmp_path / "manifest.json").unlink()
     (tmp_path / REPORT_NAME).write_text("{not json")  # a damaged report does not fail a finished training
     (damaged,) = poor_fit_warnings(18.9, tmp_path)
     assert "camera poses" in damaged

@@ -376,8 +376,8 @@ def workspace_notes(scene: Path) -> list[str]:
     kept = next((a for a in report.mapping_attempts if a.kept), None)
     which = f" (kept seed {kept.seed}, {kept.num_observations:,} feature observations)" if kept else ""
     return [f"the mapping runs of {scene / 'reconstruct_report.json'} disagreed{which}: if the model fits its own "
-            "training views poorly, `train` says so at the end; `uncertsplat reconstruct` with --overwrite and "
-            "another --seed or more --mapping-attempts maps again"]
+            f"training views poorly, `train` says so at the end; {_map_again_advice(scene)} (or more mapping "
+            "attempts) maps again"]
 
 
 SMALL_TRAINING_SIDE = 200
@@ -422,6 +422,18 @@ def _psnr_shown(psnr: float) -> float:
     return math.floor(psnr * 100.0 + 1e-6) / 100.0
 
 
+def _map_again_advice(scene: Path) -> str:
+    """How to map a workspace's photos again: the reconstruct command, or, for the output of a pipeline's reconstruct
+    stage (its manifest.json), that stage's key in the pipeline."""
+    from uncertsplat.stages.manifest import read_manifest
+
+    manifest = read_manifest(scene)
+    if manifest is not None and manifest.stage == "reconstruct":
+        seed = int(manifest.config.get("seed", 0)) + 1
+        return f"running the pipeline again with --set {manifest.name}.seed={seed}"
+    return "`uncertsplat reconstruct` with --overwrite and another --seed"
+
+
 def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
     """The warning for a model that cannot fit its own training views (``POOR_FIT_PSNR``), naming what to check:
     the SfM health report when the scene is a ``reconstruct`` workspace."""
@@ -434,7 +446,7 @@ def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
         where = (f"the camera poses ({scene / 'reconstruct_report.json'}: {report.num_points3d:,} points, "
                  f"reprojection error {err}"
                  + (", its mapping runs disagreed" if report.mapping_agreed is False else "") +
-                 "; `uncertsplat reconstruct` with --overwrite and another --seed maps the photos again)")
+                 f"; {_map_again_advice(scene)} maps the photos again)")
     return [f"the model fits its own training views at only {_psnr_shown(fit_psnr):.2f} dB (below {POOR_FIT_PSNR:g} dB): "
             f"check {where}, moving objects or exposure changes between the photos"]
 
