@@ -425,9 +425,12 @@ def _psnr_shown(psnr: float) -> float:
 def _map_again_advice(scene: Path) -> str:
     """How to map a workspace's photos again: the reconstruct command, or, for the output of a pipeline's reconstruct
     stage (its manifest.json), that stage's key in the pipeline."""
-    from uncertsplat.stages.manifest import read_manifest
+    from uncertsplat.schemas import Manifest
 
-    manifest = read_manifest(scene)
+    try:
+        manifest = Manifest.read_optional(Path(scene) / Manifest.FILE_NAME)
+    except UserError:  # damaged or of another version: the command's own advice
+        manifest = None
     if manifest is not None and manifest.stage == "reconstruct":
         seed = int(manifest.config.get("seed", 0)) + 1
         return f"running the pipeline again with --set {manifest.name}.seed={seed}"
