@@ -150,3 +150,34 @@ def test_interrupt_writes_checkpoint(tmp_path):
     assert [s for s, _ in list_checkpoints(tmp_path)] == [10, 15]
     path, state = load_latest(tmp_path)
     assert state["step"] == 15 and path.name == "step_000015.pt"
+
+
+def test_the_model_starts_within_its_size_limit():
+    """An initial cloud above densify.max_gaussians is thinned to it (the limit printed is the limit kept), the same
+    points for the same seed, and the trainer says so."""
+    scene, tr, te = toy_scene()
+    n = scene.points.shape[0]
+    cfg = toy_config(densify={"max_gaussians": n // 3})
+    a, b = Trainer(scene, cfg, tr, te), Trainer(scene, cfg, tr, te)
+    assert len(a.model) == n // 3 and torch.equal(a.model.params["means"], b.model.params["means"])
+    (note,) = [t for t in a.init_notes if "more than the model may hold" in t]
+    assert f"{n:,} initial points" in note
+    full = Trainer(scene, toy_config(), tr, te)  # under the limit: every point, no note
+    assert len(full.model) == n and full.init_notes == []
+
+
+def test_few_initial_points_and_points_no_view_sees_are_named():
+    from dataclasses import replace
+
+    from uncertsplat.train.trainer import few_points_notes
+
+    scene, tr, te = toy_scene()
+    cams = scene.cameras[list(scene.split["train"])]
+    assert few_points_notes(scene.points, cams, 0) == []  # ~150 points
+    (note,) = few_points_notes(scene.points[:5], cams, 0)
+    assert "only 5 point(s), 5 of them in view of a training camera" in note and "init_num_random" in note
+    above = torch.tensor([[0.0, 0.0, 50.0]])  # far above the ring of cameras, which look at its centre
+    (note,) = few_points_notes(above, cams, 0)
+    assert "only 1 point(s), 0 of them in view" in note
+    t = Trainer(replace(scene, points=above, points_rgb=torch.ones(1, 3)), toy_config(), tr, te)
+    assert any("0 of them in view" in n for n in t.init_notes)

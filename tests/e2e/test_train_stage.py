@@ -174,3 +174,21 @@ def test_resume_names_only_the_values_the_command_gave(tiny_scene_path, tmp_path
     assert "resuming from" not in again.output
     fresh = CliRunner().invoke(app, args)
     assert fresh.exit_code == 2 and "trained for 8 steps" in fresh.output and "--iterations N" in fresh.output
+
+
+def test_a_run_without_a_posterior_is_named_by_evaluate(tiny_scene_path, tmp_path):  # noqa: F811
+    """Stopped before any Gaussian carries a posterior, a variational run's samples are all the same render: the
+    evaluation notes say so (its metrics looked like any other's); a run with carriers gets no such note."""
+    import dataclasses
+
+    from uncertsplat.gaussians.variational import random_model
+
+    run = tmp_path / "run"
+    stage.run(tiny_scene_path, run, train_config_from("tiny", None, ["iterations=2", "scene.downscale=4.0"]),
+              torch.device("cpu"))
+    loaded = load_run(run)
+    assert loaded.model.num_carriers == 0
+    (note,) = loaded.eval_notes(4)
+    assert "no Gaussian carries a posterior" in note and "model is of step 2" in note
+    carriers = dataclasses.replace(loaded, model=random_model(20, torch.Generator().manual_seed(0)))
+    assert carriers.model.num_carriers > 0 and carriers.eval_notes(4) == []

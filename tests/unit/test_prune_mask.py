@@ -198,3 +198,18 @@ def test_a_threshold_that_removes_most_carriers_is_noted():
     assert notes[0].startswith("--threshold -1 removes 4 of the 4 Gaussians that carry a posterior (100%)")
     keep, notes = choose_mask(score, carriers, threshold=0.35, keep_ratio=None)
     assert int((~keep).sum()) == 1 and notes == []
+
+
+def test_auto_on_a_model_too_small_to_remove_any_gaussian_says_so():
+    """Every keep ratio of a 1-Gaussian model rounds to no removal: --auto must not blame the tolerance."""
+    from uncertsplat.prune.policy import auto_keep_ratio
+    from uncertsplat.schemas.prune import PruneMetrics, PruneSweep, SweepPoint
+
+    m = PruneMetrics(num_gaussians=1, num_carriers=1, psnr=7.19, psnr_render=7.19, coverage=0.01,
+                     variational_ply_bytes=900, point_cloud_ply_bytes=300, seconds=0.1)
+    points = [SweepPoint(keep_ratio=r, num_removed=0, keep_ratio_achieved=1.0, score=m, random=m) for r in (0.9, 0.7)]
+    sweep = PruneSweep(ratios=[1.0, 0.9, 0.7], score="gate", split="test", unpruned=m, points=points,
+                       tolerance_db=0.1, metric="psnr_render")
+    ratio, note = auto_keep_ratio(sweep)
+    assert ratio == 1.0 and "none of the evaluated keep ratios removes a Gaussian" in note
+    assert "--tolerance-db" not in note

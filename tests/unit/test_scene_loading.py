@@ -523,3 +523,29 @@ def test_pose_twins_thresholds():
     turned[:3, 3] = -turned[:3, :3] @ c
     assert pose_twins(with_fifth(turned), [2], [4]) == {}
     assert pose_twins(base, [0], [1, 2, 3]) == {} and pose_twins(base, [], [1]) == {}
+
+
+def test_map_coordinates_keep_their_precision(workspace, tmp_path):
+    """A capture in map coordinates (UTM: millions of metres) loads to the same normalised scene as at the origin:
+    the poses and points stay float64 until they are centred (float32 poses cost 2 dB at 5e6)."""
+    far = tmp_path / "far"
+    shutil.copytree(workspace, far)
+    rec = pycolmap.Reconstruction(str(far / "sparse" / "0"))
+    rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), np.array([5e5, 4.5e6, 0.0])))
+    rec.write_binary(str(far / "sparse" / "0"))
+    near, moved = load_scene(workspace, SceneConfig()), load_scene(far, SceneConfig())
+    scale = near.scene_scale
+    torch.testing.assert_close(moved.cameras.cam_from_world, near.cameras.cam_from_world, rtol=0, atol=1e-5 * scale)
+    torch.testing.assert_close(moved.points, near.points, rtol=0, atol=1e-5 * scale)
+    assert moved.scene_scale == pytest.approx(scale, rel=1e-6)
+
+
+@pytest.mark.parametrize("focal", [0.0, -128.0, float("nan")])
+def test_a_focal_length_that_is_not_positive_is_refused(workspace, focal):
+    sparse = workspace / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(sparse))
+    cam = rec.cameras[1]
+    cam.params = np.array([focal, focal, *cam.params[2:]])
+    rec.write_binary(str(sparse))
+    text = _raises(workspace, match="camera intrinsics that are not usable", name="sparse")
+    assert "focal lengths must be positive and finite" in text and "view_000.png" in text

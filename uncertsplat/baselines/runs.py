@@ -176,6 +176,11 @@ class LoadedRun:
         if self.config.method == "deterministic":
             return ["deterministic model: every sample is the same render, so the samples' spread is 0 everywhere; "
                     "the std holds only the empty-ray, pixel-noise and resolution terms (when on)"]
+        if self.config.method == "variational" and self.model.num_carriers == 0 and len(self.model):
+            return [f"no Gaussian carries a posterior (carriers are made when Gaussians split and at each spawn "
+                    f"step, every {self.config.densify.spawn_interval} steps after step {self.config.densify.start}; "
+                    f"this model is of step {self.step}): every sample is the same render, so the std holds only "
+                    "the empty-ray, pixel-noise and resolution terms (when on); train longer for a posterior"]
         return []
 
     def size_text(self) -> str:

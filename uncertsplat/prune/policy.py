@@ -111,6 +111,9 @@ def auto_keep_ratio(sweep: PruneSweep) -> tuple[float, str | None]:
     if best is not None:
         return best.keep_ratio, None
     first = next((p for p in sweep.points if p.num_removed > 0), None)
+    if first is None:  # every ratio rounds to no removal: a model of a handful of Gaussians
+        return 1.0, ("--auto: none of the evaluated keep ratios removes a Gaussian (the model has too few for them "
+                     "to round to one), so nothing was removed; choose --keep-ratio, or prune a larger model")
     cost = ""
     ref = getattr(sweep.unpruned, sweep.metric)
     if first is not None and ref is not None and getattr(first.score, sweep.metric) is not None:

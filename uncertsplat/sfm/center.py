@@ -167,7 +167,7 @@ def choose_center(cameras: Cameras, has_points: bool, mode: str = "auto", where=
 
 def random_points(cameras: Cameras, choice: CenterChoice, n: int, generator: torch.Generator,
                   carve: tuple[Cameras, Sequence[Tensor | None]] | None = None) -> tuple[Tensor, Tensor, str]:
-    """``n`` random initial points [n,3] (float32, source coordinates) with colours [n,3], and a description.
+    """``n`` random initial points [n,3] (float64, source coordinates) with colours [n,3], and a description.
 
     Around an optical-axes centre the points fill a cube that every camera sees: its half side is the
     half-extent of the median view at the centre's depth along its narrower side (median depth x tan of
@@ -194,7 +194,7 @@ def random_points(cameras: Cameras, choice: CenterChoice, n: int, generator: tor
         what = "a box spanning a third of the camera rig around the camera centroid"
 
     def draw(m: int) -> Tensor:
-        return (mid + (torch.rand(m, 3, generator=generator, dtype=torch.float64) * 2 - 1) * half).float()
+        return mid + (torch.rand(m, 3, generator=generator, dtype=torch.float64) * 2 - 1) * half
 
     if carve is None:
         points = draw(n)
@@ -238,13 +238,13 @@ def carve_points(points: Tensor, cameras: Cameras, masks: Sequence[Tensor | None
     """
     idx = torch.arange(points.shape[0])
     seen_by = torch.zeros(points.shape[0], dtype=torch.bool)  # indexed like idx
-    pts = points.float().cpu()
+    pts = points.double().cpu()  # source coordinates, which may be far from the origin
     for i, mask in enumerate(masks):
         if mask is None or idx.numel() == 0:
             continue
         h, w = mask.shape
-        M = cameras.cam_from_world[i].float().cpu()
-        K = cameras.K[i].float().cpu()
+        M = cameras.cam_from_world[i].double().cpu()
+        K = cameras.K[i].double().cpu()
         p = pts[idx] @ M[:3, :3].T + M[:3, 3]
         z = p[:, 2]
         zs = z.clamp_min(1e-12)

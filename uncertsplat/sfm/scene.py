@@ -155,7 +155,9 @@ def _colmap_cameras(model: ColmapModel, image_dir: Path, sparse: Path, cfg: Scen
         ordered = [fits[im.name] for im in images]
         c2w, K = _fitted_cameras(c2w, K, ordered)
         width, height = ordered[0].width, ordered[0].height
-    cameras = Cameras(c2w.float(), K.float(), width, height, tuple(im.name for im in images))
+    # float64 until the scene is normalised (``_finish``): a capture in map coordinates (UTM: millions of metres)
+    # keeps its centimetres only there, and float32 poses lost 2 dB at 5e6
+    cameras = Cameras(c2w, K, width, height, tuple(im.name for im in images))
     return cameras, paths, (tuple(fits[im.name] for im in images) if fits is not None else None), notes
 
 
@@ -296,7 +298,7 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
                         hint="A COLMAP workspace needs the (undistorted) images in WORKSPACE/images.")
     model = read_colmap_model(sparse)
     cameras, paths, fits, notes = _colmap_cameras(model, image_dir, sparse, cfg)
-    points = torch.tensor(model.points, dtype=torch.float32).reshape(-1, 3)
+    points = torch.tensor(model.points, dtype=torch.float64).reshape(-1, 3)  # source units: float64 (see above)
     rgb = torch.tensor(model.points_rgb, dtype=torch.float32).reshape(-1, 3) / 255.0
     if cfg.points_from == "train":
         keep = _seen_by_training_views(model, cameras.image_names, cfg, sparse)
@@ -546,11 +548,27 @@ def normalized_cam_from_world(cam_from_world: torch.Tensor, world_from_source: t
     return new
 
 
+def _check_intrinsics(cameras: Cameras, where: Path) -> None:
+    """Refuse focal lengths that are not positive and finite (a model edited or written by other tools: a focal of
+    0 trains a model that never changes, a negative one a mirrored scene, both without a word)."""
+    K = cameras.K.double()
+    f = torch.stack([K[:, 0, 0], K[:, 1, 1]], dim=-1)  # [C,2]
+    bad = (~torch.isfinite(f) | (f <= 0)).any(-1) | ~torch.isfinite(K[:, :2, 2]).all(-1)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        names = [cameras.image_names[j] for j in bad.nonzero()[:, 0].tolist()]
+        raise UserError(f"{len(names)} image(s) have camera intrinsics that are not usable ({list_names(names)}: "
+                        f"focal lengths {float(f[i, 0]):g} / {float(f[i, 1]):g} px, principal point "
+                        f"{float(K[i, 0, 2]):g}, {float(K[i, 1, 2]):g}); focal lengths must be positive and finite",
+                        path=where, hint="Fix the camera in the model, or reconstruct the photos again.")
+
+
 def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torch.Tensor, cfg: SceneConfig,
             source: dict, default_split: dict | None = None, random_init: bool = False,
             photo_fits: tuple | None = None, notes: list[str] | tuple[str, ...] = ()) -> SceneData:
     """Split, choose the centre, add random initial points (``random_init`` and no points), normalise;
     ``photo_fits`` and ``notes`` are ``_colmap_cameras``'s (recorded in ``source`` too)."""
+    _check_intrinsics(cameras, Path(source.get("model", source["path"])))
     split = make_split(cameras.image_names, cfg, where=Path(source["path"]), default=default_split)
     taken = _held_out_taken(cameras.image_names, cfg, default_split, split)
     if taken:

@@ -257,7 +257,7 @@ def read_blender(root: Path, cfg: SceneConfig) -> TransformsScene:
     if (root / "points3d.ply").is_file():  # 3DGS reads (and writes its random points to) this file
         xyz, rgb = _read_ply_points(root / "points3d.ply")
         source["ply"] = "points3d.ply"
-    return TransformsScene(cameras, paths, torch.tensor(xyz, dtype=torch.float32),
+    return TransformsScene(cameras, paths, torch.tensor(xyz, dtype=torch.float64),
                            torch.tensor(rgb, dtype=torch.float32).clamp(0, 1),
                            {"train": train, "test": test} if train and test else None, source)
 
@@ -355,5 +355,5 @@ def read_nerfstudio(root: Path, cfg: SceneConfig) -> TransformsScene:
         train = tuple(i for i in range(len(frames)) if i not in set(test))
         split = {"train": train, "test": test} if train else None
         source["split_from"] = key
-    return TransformsScene(cameras, paths, torch.tensor(xyz, dtype=torch.float32),
+    return TransformsScene(cameras, paths, torch.tensor(xyz, dtype=torch.float64),
                            torch.tensor(rgb, dtype=torch.float32).clamp(0, 1), split, source)

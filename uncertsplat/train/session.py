@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from uncertsplat import native
-from uncertsplat.config import TrainConfig, build_config
+from uncertsplat.config import TrainConfig, VariationalConfig, build_config
 from uncertsplat.console import console
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.gaussians.variational import describe_posterior
@@ -84,6 +84,16 @@ def _truncate_stats(path: Path, step: int) -> None:
         except (ValueError, json.JSONDecodeError):
             continue  # a line cut short by a crash
     atomic_write_text(path, "".join(f"{line}\n" for line in keep))
+
+
+def _unused_setting_notes(cfg: TrainConfig) -> list[str]:
+    """Settings given that the configured method does not use (they were taken silently)."""
+    entries = cfg.variational.num_entries
+    if cfg.method == "variational" and cfg.posterior == "informed" and entries != VariationalConfig().num_entries:
+        return [f"variational.num_entries = {entries} is not used by the informed posterior, which gives every entry "
+                "of a table the same values and so stores one; it sets the tables of --set variational.posterior=sgd "
+                "(and --variant paper)"]
+    return []
 
 
 def _summary_steps(run_dir: Path) -> int | None:
@@ -292,7 +302,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                          else "") +
                       f"device {device} ({kernels}), {cfg.iterations} steps, at most "
                       f"{trainer.budget.max_gaussians:,} Gaussians ({trainer.budget.reason})")
-        for note in [*data.notes, *small_images_notes(data.cameras.width, data.cameras.height, cfg.scene.downscale)]:
+        for note in [*data.notes, *small_images_notes(data.cameras.width, data.cameras.height, cfg.scene.downscale),
+                     *trainer.init_notes, *_unused_setting_notes(cfg)]:
             console.print(f"[yellow]note:[/] {note}")
         for text in workspace_notes(scene):
             console.print(f"[yellow]note:[/] {text}")

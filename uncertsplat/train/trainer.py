@@ -94,6 +94,30 @@ class TrainingInterrupted(Exception):
         super().__init__(f"training interrupted at step {step}" + (f"; checkpoint {path}" if path else ""))
 
 
+FEW_POINTS = 100
+"""Below this many initial points ``few_points_notes`` says the model starts from little (a sparse model that
+registered but triangulated almost nothing, or points edited away)."""
+
+
+def few_points_notes(points: Tensor, cameras: Cameras, init_num_random: int) -> list[str]:
+    """A note when the model starts from fewer than ``FEW_POINTS`` points ([N,3], training frame) and how many of them
+    any of the training ``cameras`` sees (in front of it and inside its image): growth from a handful is slow, and
+    from points no view sees it cannot start."""
+    n = points.shape[0]
+    if n >= FEW_POINTS:
+        return []
+    p = points.double().cpu()
+    seen = torch.zeros(n, dtype=torch.bool)
+    for M, K in zip(cameras.cam_from_world.double().cpu(), cameras.K.double().cpu(), strict=True):
+        q = p @ M[:3, :3].T + M[:3, 3]
+        z = q[:, 2].clamp_min(1e-12)
+        u, v = K[0, 0] * q[:, 0] / z + K[0, 2], K[1, 1] * q[:, 1] / z + K[1, 2]
+        seen |= (q[:, 2] > 0) & (u >= 0) & (u < cameras.width) & (v >= 0) & (v < cameras.height)
+    more = "; --set init_num_random=10000 adds random points to grow from" if init_num_random == 0 else ""
+    return [f"the model starts from only {n} point(s), {int(seen.sum())} of them in view of a training camera: it "
+            f"grows slowly from so few{more}"]
+
+
 class Trainer:
     """Trains a ``GaussianModel`` on one scene.
 
@@ -140,6 +164,7 @@ class Trainer:
         # the table terms of the expected render while the tables stay fixed (dropped whenever the tables or
         # the topology may have changed: posterior updates, densification, growth and SH-band checks)
         self._expected: ExpectedConstants | None = None
+        self.init_notes: list[str] = []  # what train prints about the model it starts from (``_init_fresh``)
         if state is None:
             self._init_fresh()
         else:
@@ -178,6 +203,17 @@ class Trainer:
 
             raise UserError("the scene has no sparse points to start from",
                             hint="Set init_num_random (e.g. --set init_num_random=10000).")
+        self.init_notes = few_points_notes(points, self.train_cams, cfg.init_num_random)
+        # the model-size limit holds from the start: a cloud above it is thinned at random (its own generator, so
+        # that the runs below the limit draw what they drew before)
+        cap = gaussian_budget(cfg.densify.max_gaussians, cfg.densify.pixels_per_gaussian, views=len(self.train_idx),
+                              width=self.train_cams.width, height=self.train_cams.height).max_gaussians
+        if points.shape[0] > cap:
+            keep = torch.randperm(points.shape[0], generator=torch.Generator().manual_seed(cfg.seed + 5))[:cap]
+            keep = keep.sort().values.to(self.device)
+            self.init_notes.append(f"the scene's {points.shape[0]:,} initial points are more than the model may hold "
+                                   f"({cap:,} Gaussians): {cap:,} of them, chosen at random, start the model")
+            points, colors = points[keep], colors[keep]
         # The informed posterior gives all entries of a carrier's table the same values (informed_tables), so it
         # stores one: a sample averages equal entries, so K copies would change nothing but the memory (K = 10:
         # 90 % of the tables). Runs trained before keep their K when resumed (the checkpoint's shapes).
