@@ -42,6 +42,18 @@ def test_the_notes_say_what_a_point_no_training_camera_looked_at_gets(evaluated)
     assert any("outside every training image gets the variance of the scene's colours" in n for n in report.notes)
 
 
+def test_save_maps_false_writes_no_maps_and_clears_earlier_ones(tiny_run_path, tmp_path, capsys):  # noqa: F811
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    evaluate.run(run, EvalConfig(num_samples=2, seed=3), device=torch.device("cpu"))
+    assert any((run / "eval" / "maps").iterdir())
+    capsys.readouterr()
+    evaluate.run(run, EvalConfig(num_samples=2, seed=4, save_maps=False), device=torch.device("cpu"))
+    assert not (run / "eval" / "maps").exists()  # the earlier maps belonged to the earlier metrics
+    assert "(no maps: save_maps = false)" in " ".join(capsys.readouterr().err.split())
+    assert EvalReport.from_json((run / "eval" / "metrics.json").read_text()).seed == 4
+
+
 def test_writes_maps_and_metrics(evaluated):
     run, report = evaluated
     data = EvalReport.from_json((run / "eval" / "metrics.json").read_text())

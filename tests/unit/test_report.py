@@ -619,3 +619,22 @@ def test_an_evaluation_of_an_earlier_model_is_named(tmp_path, capsys):
     stage.run([run], tmp_path / "out", ReportConfig())
     assert "earlier state of the run" in (tmp_path / "out" / "index.html").read_text()
     assert f"uncertsplat evaluate {run}" in capsys.readouterr().err.replace("\n", "")
+
+
+def test_runs_without_maps_are_left_out_of_the_side_by_side_not_the_others(tmp_path):
+    """A run without eval maps (a prune --sweep output, save_maps off) among runs with them: the others are still
+    compared, and the page names the one left out (it said the runs shared no view)."""
+    names = ("view_000.png", "view_008.png")
+    scene = make_scene(tmp_path, list(names))
+    a = make_run(tmp_path / "a", "run", names=names, scene=scene, seed=1)
+    b = make_run(tmp_path / "b", "run", names=names, scene=scene, seed=2)
+    c = make_run(tmp_path / "c", "bare", names=names, scene=scene, seed=3, maps=False)
+    out = tmp_path / "report"
+    page = parse(stage.run([a, b, c], out, ReportConfig(max_views=1)))
+    assert "figures/compare_view0.png" in page.imgs
+    html = (out / "index.html").read_text()
+    assert "Left out, no maps: bare." in html and "share no evaluated view" not in html
+    page = parse(stage.run([a, c], out, ReportConfig(max_views=1)))
+    assert "figures/compare_view0.png" not in page.imgs
+    assert "Fewer than two runs have uncertainty maps; side-by-side images left out (no maps: bare)." in \
+        (out / "index.html").read_text()

@@ -241,18 +241,26 @@ def compare_section(w: ReportWriter, runs: list[RunData], loaded: dict[int, dict
                     max_views: int) -> None:
     if len(runs) < 2:
         return
+    # the runs with maps are compared; those without any (no evaluation, or save_maps off) are named
+    with_maps = [ri for ri in range(len(runs)) if loaded.get(ri)]
     common = None
-    for ri in range(len(runs)):
-        names = list(loaded.get(ri, {}))
+    for ri in with_maps:
+        names = list(loaded[ri])
         common = names if common is None else [n for n in common if n in names]
     body = []
-    if not common:
-        body.append(note("The runs share no evaluated view with maps; side-by-side images left out."))
+    without = [runs[ri].name for ri in range(len(runs)) if ri not in with_maps]
+    if len(with_maps) < 2:
+        body.append(note("Fewer than two runs have uncertainty maps; side-by-side images left out"
+                         + (f" (no maps: {', '.join(without)})." if without else ".")))
+    elif not common:
+        body.append(note("The runs with maps share no evaluated view; side-by-side images left out."))
     else:
+        if without:
+            body.append(note(f"Left out, no maps: {', '.join(without)}."))
         body.append(para("One test view across runs. Error and std share one colour scale across all rows.",
                          "legend"))
         for vi, name in enumerate(common[: min(3, max_views)]):
-            views = [(runs[ri].name, loaded[ri][name]) for ri in sorted(loaded)]
+            views = [(runs[ri].name, loaded[ri][name]) for ri in with_maps]
             html = w.add_figure(f"compare_view{vi}.png", F.side_by_side_figure(views, name),
                                 f"{name} across runs", f"{name} side by side")
             body.append(html or note(f"{name}: not enough maps to compare."))

@@ -26,6 +26,7 @@ std over the K samples.
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -354,9 +355,12 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
             sampler, fit = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual,
                                           scene.cameras, scene.split, cfg, device, load_views=train_views,
                                           set_aside_maps=set_aside_maps)
+        if not cfg.save_maps and (out / "maps").is_dir():
+            # an earlier evaluation's maps would sit beside metrics they no longer belong to (the report reads both)
+            shutil.rmtree(out / "maps")
         report = evaluate_views(sampler, views, cfg, device,
                                 on_view=partial(write_view_maps, out / "maps", preview=cfg.preview,
-                                                turns=photo_turns(scene)),
+                                                turns=photo_turns(scene)) if cfg.save_maps else None,
                                 std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
                                 calibration_held_out=bool(scene.split.get("calibration")),
                                 noise_scale=residual.scale if residual is not None else None,
@@ -503,6 +507,7 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
                       f"expected render, {what}{where}): {report.mean.psnr_render:.2f} dB")
     if report.depth_scale is not None:
         console.print(f"depth scale {report.depth_scale.scale:.4g} ({report.depth_scale.method})")
-    console.print(f"{'wrote' if written else 'kept'} {out / 'metrics.json'} and maps in {out / 'maps'}")
+    maps = f" and maps in {out / 'maps'}" if (out / "maps").is_dir() else " (no maps: save_maps = false)"
+    console.print(f"{'wrote' if written else 'kept'} {out / 'metrics.json'}{maps}")
     return report
 
