@@ -269,12 +269,16 @@ def test_the_std_factor_reuses_the_samples_the_noise_level_was_fitted_with(tiny_
     assert calls == [1]
 
 
-def test_no_std_scale_when_disabled_or_scoring_training_views(tiny_run_path, tmp_path):
+def test_no_std_scale_when_disabled_or_scoring_training_views(tiny_run_path, tmp_path, capsys):
     run = tmp_path / "run"
     shutil.copytree(tiny_run_path, run)
     off = evaluate.run(run, EvalConfig(num_samples=2, max_views=1, calibration_views=0), device=torch.device("cpu"))
+    assert "calibration_views = 0 or none to use" in " ".join(capsys.readouterr().err.split())
     held_out = (run / "eval" / "metrics.json").read_bytes()
     on_train = evaluate.run(run, EvalConfig(num_samples=2, max_views=1, split="train"), device=torch.device("cpu"))
+    said = " ".join(capsys.readouterr().err.split())
+    assert "no std factor or tails are fitted when the training views are the ones scored" in said
+    assert "calibration_views = 0" not in said
     for rep in (off, on_train):
         assert rep.std_scale is None and rep.calibration_views == [] and rep.mean.nll_calibrated is None
     # the training views' scores go beside the held-out evaluation, which stays as it was (report and prune read it)
@@ -732,3 +736,11 @@ def test_a_model_that_leaves_its_training_views_empty_gets_a_note(tiny_run_path,
     assert "alpha 0.43" in note and "random_background=true" in note
     printed = capsys.readouterr()
     assert "random_background=true" in " ".join((printed.out + printed.err).split())
+
+
+def test_a_sample_mean_well_below_the_render_is_noted():
+    from uncertsplat.stages.evaluate import few_samples_notes
+
+    (note,) = few_samples_notes(26.61, 29.19, 2)
+    assert note.startswith("the mean of the 2 samples scores 2.58 dB below the one render (26.61 against 29.19 dB)")
+    assert few_samples_notes(28.9, 29.19, 20) == [] and few_samples_notes(None, 29.0, 2) == []

@@ -208,8 +208,9 @@ class TestAddViewsErrors:
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=[held])
         with pytest.raises(UserError, match="already a training view"):
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=[START[0]])
-        with pytest.raises(UserError, match="not in the scene"):
+        with pytest.raises(UserError, match="--add-views nope.png: no photo of that name in the scene") as err:
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["nope.png"])
+        assert "a pose that select-views proposed needs a photo taken there first" in str(err.value)
 
     def test_a_run_with_views_set_aside_takes_none(self, tiny_scene_path, subset_run, tmp_path):
         """More training views would set other views aside for calibration: refused, the run left as it was."""

@@ -198,6 +198,9 @@ def test_a_threshold_that_removes_most_carriers_is_noted():
     assert notes[0].startswith("--threshold -1 removes 4 of the 4 Gaussians that carry a posterior (100%)")
     keep, notes = choose_mask(score, carriers, threshold=0.35, keep_ratio=None)
     assert int((~keep).sum()) == 1 and notes == []
+    keep, notes = choose_mask(score, carriers, threshold=0.5, keep_ratio=None)  # above every carrier's score
+    assert keep.all() and len(notes) == 1
+    assert notes[0].startswith("--threshold 0.5 is above every score (0.4 at most, median")
 
 
 def test_auto_on_a_model_too_small_to_remove_any_gaussian_says_so():
@@ -213,3 +216,26 @@ def test_auto_on_a_model_too_small_to_remove_any_gaussian_says_so():
     ratio, note = auto_keep_ratio(sweep)
     assert ratio == 1.0 and "none of the evaluated keep ratios removes a Gaussian" in note
     assert "--tolerance-db" not in note
+
+
+def test_a_score_that_loses_to_random_removal_is_noted():
+    from types import SimpleNamespace
+
+    from uncertsplat.config import PruneConfig
+    from uncertsplat.stages.prune import RANDOM_NOTE, _random_note
+
+    def result(after, random, removed=5):
+        m = SimpleNamespace(after=SimpleNamespace(psnr_render=after), random=SimpleNamespace(psnr_render=random))
+        return SimpleNamespace(metrics=m, counts=SimpleNamespace(removed=removed), notes=[])
+
+    notes = ["other"]
+    r = result(20.31, 23.43)
+    _random_note(r, notes, "predictive", PruneConfig(keep_ratio=0.8, score="predictive"))
+    assert r.notes == notes and notes[0] == "other"
+    assert notes[1].startswith(f"{RANDOM_NOTE}: 23.43 dB held out against 20.31 dB by 'predictive'")
+    assert "--score auto measures the scores" in notes[1]
+    _random_note(r, notes, "predictive", PruneConfig(keep_ratio=0.8, score="predictive"))
+    assert len(notes) == 2  # replaced, not repeated
+    for quiet in (result(23.40, 23.43), result(23.5, 23.43), result(20.0, 23.4, removed=0)):
+        _random_note(quiet, notes, "gate", PruneConfig(keep_ratio=0.8))
+        assert notes == ["other"]

@@ -415,3 +415,68 @@ def test_pareto_metrics_must_be_table_columns(tmp_path):
     f.write_text('name = "x"\npareto_y = ["nll", "bar"]\n')
     with pytest.raises(UserError, match="pareto_y: unknown metric 'bar'"):
         load_spec(f)
+
+
+def test_an_ensemble_point_is_labelled_with_the_k_it_is_measured_with(tmp_path):
+    """A plain ensemble is evaluated with K = N whatever the point's K: its id and knobs say the K used (they said
+    the spec's K, beside a record of another)."""
+    s = spec(default={"method": "variational", "num_samples": 4},
+             axes={"method": ["ensemble"], "ensemble_size": [2]}, design="grid")
+    points = [p for j in make_jobs(s, tmp_path, tmp_path / "scene", "cpu") for p in j["points"]]
+    (ens,) = [p for p in points if p["knobs"]["method"] == "ensemble"]
+    assert ens["knobs"]["num_samples"] == ens["eval_config"]["num_samples"] == 2 and "_k2" in ens["id"]
+    (default,) = [p for p in points if p["is_default"]]
+    assert default["knobs"]["method"] == "variational" and default["knobs"]["num_samples"] == 4
+
+
+def test_ctrl_c_outside_a_training_stops_the_sweep_with_its_advice(tmp_path, monkeypatch):
+    """Ctrl-C while a point is evaluated (a KeyboardInterrupt, not a training's Interrupted) ends the sweep as an
+    interruption that says how to go on (it printed only 'interrupted')."""
+    from uncertsplat.errors import Interrupted
+    from uncertsplat.stages import sweep
+    from uncertsplat.sweep import executors
+
+    def stopped(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(executors, "run_local", stopped)
+    (tmp_path / "scene").mkdir()
+    f = tmp_path / "s.toml"
+    f.write_text('name = "x"\ntrain_preset = "tiny"\n[default]\niterations = 5\n')
+    with pytest.raises(Interrupted, match="sweep stopped") as err:
+        sweep.run(f, tmp_path / "out", device="cpu", scene=tmp_path / "scene", jobs=1)
+    assert "Run the same sweep command again" in err.value.hint
+
+
+def test_a_sweep_resumed_with_another_default_summarises_this_spec(tmp_path, monkeypatch, capsys):
+    """Run again with the default moved (--set default.num_samples): the records of points both specs share take
+    this spec's ids and default flag, the earlier default's record is left out of the summary, and the counts say
+    what this spec has done (they counted every record of the log)."""
+    from uncertsplat.stages import sweep
+    from uncertsplat.sweep import jobs as sweep_jobs
+
+    def fake(job):  # an ok record per point, no training
+        return [{"id": p["id"], "hash": p["hash"], "job": job["job_id"], "method": job["method_label"],
+                 "knobs": p["knobs"], "is_default": p["is_default"], "status": "ok", "run_dir": job["run_dir"],
+                 "psnr": 20.0, "ause_mae": 0.1, "time": 1.0} for p in job["points"]]
+
+    monkeypatch.setattr(sweep_jobs, "run_job", fake)
+    (tmp_path / "scene").mkdir()
+    f = tmp_path / "s.toml"
+    f.write_text('name = "x"\ntrain_preset = "tiny"\n[default]\niterations = 5\nnum_samples = 4\n'
+                 '[axes]\nnum_samples = [2, 4, 8]\n')
+    out = tmp_path / "out"
+    first = sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1)
+    assert first.default == "variational_it5_k4" and len(first.records) == 3
+    capsys.readouterr()
+    again = sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1, overrides=["default.num_samples=2"])
+    said = " ".join(capsys.readouterr().err.split())
+    assert "0 points to run" in said and "(3 already done)" in said  # k2, k4, k8 are this spec's points too
+    assert again.default == "variational_it5_k2"
+    assert sorted(r.id for r in again.records) == ["variational_it5_k2", "variational_it5_k4", "variational_it5_k8"]
+    assert [r.id for r in again.records if r.is_default] == ["variational_it5_k2"]
+    f.write_text(f.read_text().replace("[2, 4, 8]", "[2, 8]"))  # k4 is no point of the spec now
+    third = sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1, overrides=["default.num_samples=2"])
+    said = " ".join(capsys.readouterr().err.split())
+    assert "also holds 1 point of other settings" in said
+    assert sorted(r.id for r in third.records) == ["variational_it5_k2", "variational_it5_k8"]

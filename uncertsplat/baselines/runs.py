@@ -175,12 +175,12 @@ class LoadedRun:
         """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run."""
         if self.config.method == "deterministic":
             return ["deterministic model: every sample is the same render, so the samples' spread is 0 everywhere; "
-                    "the std holds only the empty-ray, pixel-noise and resolution terms (when on)"]
+                    "the std holds the predictive's other terms (the 'std =' note lists them)"]
         if self.config.method == "variational" and self.model.num_carriers == 0 and len(self.model):
             return [f"no Gaussian carries a posterior (carriers are made when Gaussians split and at each spawn "
                     f"step, every {self.config.densify.spawn_interval} steps after step {self.config.densify.start}; "
                     f"this model is of step {self.step}): every sample is the same render, so the std holds only "
-                    "the empty-ray, pixel-noise and resolution terms (when on); train longer for a posterior"]
+                    "the predictive's other terms (the 'std =' note lists them); train longer for a posterior"]
         return []
 
     def size_text(self) -> str:

@@ -626,14 +626,14 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if not keep:
         notes.append(f"KDE NLL skipped: K={K} > {KDE_MAX_SAMPLES} would keep every sample in memory")
     if K == 1:
-        notes.append("K=1: the samples' spread and the resolution term are 0 everywhere; the std holds only the "
-                     "empty-ray and pixel-noise terms (when on)")
+        notes.append("K=1: the samples' spread and the resolution term are 0 everywhere (one sample has no spread); "
+                     "the std holds the predictive's other terms")
     inside = float(masks.float().mean()) if masks is not None else 1.0
     if inside < MASKED_NOTE_BELOW:  # train's held-out PSNR is over whole images: the two differ on such scenes
         notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
                      f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out PSNR "
                      "over whole images")
-    terms = ["the spread of the K samples"]
+    terms = ["the spread of the K samples" + (" (0: K = 1)" if K == 1 else "")]
     if sampler.residual is not None:
         seen = float(sampler.residual.seen.float().mean()) if sampler.residual.seen.numel() else 0.0
         lev = sampler.residual.leverage_inflation
@@ -653,7 +653,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                          f"{prior:.3f}; {100 * unknown:.1f} % of the Gaussians' colour set mostly by the prior)")
     if cfg.resolution > 0:
         terms.append(f"the resolution term (every Gaussian moved by N(0, ({cfg.resolution:g} x its size)^2), "
-                     f"{cfg.resolution_renders} render{'s' if cfg.resolution_renders > 1 else ''} per sample)")
+                     f"{cfg.resolution_renders} render{'s' if cfg.resolution_renders > 1 else ''} per sample"
+                     + ("; 0 with K = 1)" if K == 1 else ")"))
     if sampler.consistency is not None:
         terms.append(f"the squared difference between the model's renders of each surface point from the view and from "
                      f"the training view nearest in direction that saw it, where that is more than "

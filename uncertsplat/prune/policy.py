@@ -168,6 +168,11 @@ def choose_mask(score: Tensor, carriers: Tensor, *, threshold: float | None,
             notes.append(f"--threshold {threshold:g} removes {removed} of the {total} Gaussians that carry a "
                          f"posterior ({removed / total:.0%}); this score ranges from {lo:.3g} (median {mid:.3g}) on "
                          "this run: --keep-ratio or --auto choose by the count instead")
+        elif total and removed == 0:  # above every score: nothing to prune, likely not what was meant either
+            hi, mid = float(score[carriers].max()), float(score[carriers].median())
+            notes.append(f"--threshold {threshold:g} is above every score ({hi:.3g} at most, median {mid:.3g} on "
+                         "this run), so nothing was removed: a lower threshold, or --keep-ratio or --auto, which "
+                         "choose by the count")
         return keep, notes
     if keep_ratio is None:
         return None, []

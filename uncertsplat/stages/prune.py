@@ -428,8 +428,9 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         score_stats={k: ScoreStats(min=float(v[carriers].min()), median=float(v[carriers].median()),
                                    max=float(v[carriers].max())) for k, v in scores.items()},
         metrics=PruneMetricSet(before=before), sweep=sweep,
-        undo="The source run is unchanged: use it to undo. prune_mask.npy lists the kept indices into its model; "
-             "uncertsplat.stages.prune.rebuild_from_mask(source_run, prune_mask.npy) rebuilds this model.",
+        undo=("The source run is unchanged: use it to undo. prune_mask.npy lists the kept indices into its model; "
+              "uncertsplat.stages.prune.rebuild_from_mask(source_run, prune_mask.npy) rebuilds this model."
+              if keep is not None else "Nothing was removed (a sweep only, no mask): the source run is unchanged."),
     )
     pruned = random_model = None
     # a pruned model that is written is scored by ``evaluate`` itself once it is (``_evaluate_written``): the "after"
@@ -450,6 +451,7 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         result.metrics = PruneMetricSet(before=before, after=after, random=rand)
         _psnr_change(result)
         _tolerance_note(result, notes, cfg)
+        _random_note(result, notes, score_name, cfg)
 
     if output is None:
         _print_result(result, notes, score_name, cfg)
@@ -461,9 +463,31 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         notes.append(f"the pruned model's uncertainty metrics are evaluate's ({output / 'eval' / 'metrics.json'}: "
                      "the pruned run evaluated as `evaluate` does, with this K and seed)")
         _tolerance_note(result, notes, cfg)
+        _random_note(result, notes, score_name, cfg)
         result.write(output / "prune.json")
     _print_result(result, notes, score_name, cfg)
     return result
+
+
+RANDOM_NOTE = "removing random Gaussians instead cost less"
+RANDOM_MARGIN_DB = 0.1
+"""``_random_note``: the held-out PSNR (expected render) by which random removal must beat the score to be noted."""
+
+
+def _random_note(result: PruneReport, notes: list[str], score_name: str, cfg: PruneConfig) -> None:
+    """A note when removing as many random Gaussians kept the held-out PSNR (the expected render's: one render a view,
+    no sampling noise) better than the score's choice by more than ``RANDOM_MARGIN_DB``: the score did not find what
+    the model can spare, on this run. Replaces an earlier such note in ``notes`` (and sets ``result.notes``)."""
+    notes[:] = [n for n in notes if not n.startswith(RANDOM_NOTE)]
+    m = result.metrics
+    if (m.after is not None and m.random is not None and result.counts is not None and result.counts.removed > 0
+            and None not in (m.after.psnr_render, m.random.psnr_render)
+            and m.random.psnr_render - m.after.psnr_render > RANDOM_MARGIN_DB):
+        notes.append(f"{RANDOM_NOTE}: {m.random.psnr_render:.2f} dB held out against {m.after.psnr_render:.2f} dB by "
+                     f"'{score_name}' (expected render): this score did not find what this model can spare"
+                     + ("; --score auto measures the scores on the run and keeps the better one"
+                        if cfg.score != "auto" else "; a smaller removal (--auto) loses less"))
+    result.notes = notes
 
 
 TOLERANCE_NOTE = "the tolerance bounds the expected render's PSNR"

@@ -182,6 +182,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
             folders = Path(scene_path)
         all_jobs = make_jobs(spec, out_dir, folders, str(dev), threads=None)
         hashes = {p["hash"] for j in all_jobs for p in j["points"]}  # this spec's points only
+        current = {p["hash"]: p for j in all_jobs for p in j["points"]}  # (before the done ones leave the jobs)
         asked = len(spec.seed_values()) * sum(len(expand_points(spec.on_scene(n))) for n in spec.scene_names())
         if asked > len(hashes):
             extra = asked - len(hashes)
@@ -190,7 +191,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                           "knob at the value the preset already gives, num_entries with the informed posterior, "
                           "which stores one table entry, or ensemble_size and spawn_fraction without offset tables)")
         log = out_dir / "sweep.jsonl"
-        done = {r.hash for r in read_records(log) if r.status == "ok"} if not force else set()
+        done = {r.hash for r in read_records(log) if r.status == "ok"} & hashes if not force else set()
         todo = []
         for job in all_jobs:
             job["points"] = [p for p in job["points"] if p["hash"] not in done]
@@ -201,6 +202,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                  f"on Ray ({address or 'a local instance'}, {cpus_per_job:g} CPU / {gpus_per_job:g} GPU per job)")
         console.print(f"[bold]sweep[/] {spec.name}: {_count(npts, 'point')} to run in {_count(len(todo), 'job')} "
                       f"({len(done)} already done), {where}, device {dev}, {_count(retries, 'retry', 'retries')}")
+
         counts = {"done": 0, "failed": 0}
         started_jobs: dict[str, int] = {}  # points of the jobs handed out and not recorded yet (a retry: once)
         bar = progress()
@@ -251,12 +253,25 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
             except Interrupted as err:  # a point's training stopped on Ctrl-C: the sweep stops, it does not retry
                 raise Interrupted(f"sweep stopped: {err.message}", hint="Run the same sweep command again: the "
                                   "finished points are kept and the stopped one resumes from its checkpoint.") from None
+            except KeyboardInterrupt:  # Ctrl-C elsewhere (a point's evaluation): the same advice
+                raise Interrupted("sweep stopped", path=out_dir, hint="Run the same sweep command again: the finished "
+                                  "points are kept and the others run again (a trained model is evaluated, not "
+                                  "trained again).") from None
 
         if whole is not spec:  # --scenes: the other scenes' points (a point's hash does not depend on its folder)
             others = {n: out_dir / "scenes" / n for n in whole.scenes if n not in spec.scenes}
-            hashes |= {p["hash"] for j in make_jobs(whole, out_dir, {**folders, **others}, str(dev), threads=None)
+            current = {p["hash"]: p for j in make_jobs(whole, out_dir, {**folders, **others}, str(dev), threads=None)
                        for p in j["points"]}
-        records = [r for r in read_records(log) if r.hash in hashes]
+            hashes |= set(current)
+        # a record measured under an earlier spec for a point of this one (the same configs) takes this spec's id,
+        # knobs and default flag: a changed default made the old default's record claim to be it
+        records = [r.model_copy(update={"id": current[r.hash]["id"], "knobs": current[r.hash]["knobs"],
+                                        "is_default": current[r.hash]["is_default"]})
+                   for r in read_records(log) if r.hash in hashes]
+        stale = len({r.hash for r in read_records(log)} - hashes)
+        if stale:
+            console.print(f"[yellow]note:[/] {log} also holds {_count(stale, 'point')} of other settings (an earlier "
+                          "spec or --set): kept there, left out of this sweep's summary and plot")
         summary = summarize(whole, records)
         summary.write(out_dir / "sweep.json")
         if any(r.status == "ok" for r in summary.records):

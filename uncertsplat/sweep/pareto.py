@@ -217,4 +217,5 @@ def _panels(axes, ok: Sequence[Any], x: str, ys: Sequence[str], methods: list[st
         if heading:
             ax.set_title(heading, fontsize=10)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        if ax.get_legend_handles_labels()[0]:  # a panel with no point to draw (no metric there) has nothing to name
+            ax.legend(fontsize=7)

@@ -434,6 +434,9 @@ def make_jobs(spec: SweepSpec, out_dir: Path, scene: Path | dict[str, Path], dev
         if phash in seen:
             continue  # knobs that do not matter to this method (e.g. N for a variational point)
         seen.add(phash)
+        is_default = p == default
+        if p.num_samples is not None and p.num_samples != ecfg.num_samples:
+            p = p.model_copy(update={"num_samples": ecfg.num_samples})  # the K used (an ensemble's is its N)
         thash = hash_config(tdata)
         label = method_label(tcfg)
         job_id = f"{label}_{thash[:8]}" if name is None else f"{name}.{label}_{thash[:8]}"
@@ -444,5 +447,5 @@ def make_jobs(spec: SweepSpec, out_dir: Path, scene: Path | dict[str, Path], dev
             "method_label": label, "points": []})
         job["points"].append({"id": point_id(p, name, seed), "hash": phash,
                               "knobs": p.model_dump(), "eval_config": edata,
-                              "is_default": p == default})
+                              "is_default": is_default})
     return list(jobs.values())

@@ -254,7 +254,17 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 console.print(f"resuming from {path} (step {state['step']})")
                 _truncate_stats(run_dir / "stats.jsonl", int(state["step"]))
 
-        data = load_scene(scene, cfg.scene)
+        try:
+            data = load_scene(scene, cfg.scene)
+        except UserError as err:
+            unknown = [n for n in add_views or () if "not in the scene: " in err.message and n in err.message]
+            if not unknown:
+                raise
+            raise UserError(f"--add-views {', '.join(unknown)}: no photo of that name in the scene", path=scene,
+                            hint="--add-views takes the names of photos the scene holds but the run did not train on; "
+                                 "a pose that select-views proposed needs a photo taken there first, added to the "
+                                 "scene (reconstruct the photos again with it), then --add-views with its name. "
+                                 + (err.hint or "")) from None
         if not data.split.get("train"):
             raise UserError("the scene has no training views", path=scene, hint="Check test_every / test_names.")
         names = data.cameras.image_names
