@@ -229,8 +229,8 @@ def train(
 
         check_port(view_cfg.host, view_cfg.port, option="--view-port")  # before any run folder is made
     given = stage.given_keys(preset, data, method, explicit, set_) if resume else None
-    if resume and iterations is None and "iterations" in stage.given_keys(None, data, None, {}, set_):
-        iterations = cfg.iterations  # `--set iterations=N` (or a --config file's) means what --iterations N does
+    if resume and iterations is None and "iterations" in stage.given_keys(None, {}, None, {}, set_):
+        iterations = cfg.iterations  # `--set iterations=N` means what --iterations N does (a --config file's does not)
     stage.run(scene, output, cfg, device=resolve_device(device), resume=resume,
               extend_to=iterations if resume else None, view=view_cfg, add_views=add_views, given=given)
 

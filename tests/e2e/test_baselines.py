@@ -220,7 +220,8 @@ def test_an_interrupted_ensemble_resumes_as_one(scene_path, tmp_path):
     with pytest.raises(UserError) as info:
         train_run(scene_path, run, quick_cfg(method="ensemble", ensemble_size=3), CPU, on_trainer=stop_the_second)
     assert info.value.hint.endswith(f"-o {run} --resume")
-    train_run(scene_path, run, quick_cfg(), CPU, resume=True)  # the command's default method: variational
+    # the run's own length given again (`--set iterations=20`, as the first command had it) is nothing to extend
+    train_run(scene_path, run, quick_cfg(), CPU, resume=True, extend_to=20)  # the command's default method
     summary = TrainSummary.read(run / "train_summary.json")
     assert summary.method == "ensemble" and len(summary.members) == 3
     assert all(m.steps == 20 for m in summary.members)

@@ -128,6 +128,11 @@ def test_resume_on_another_scene_is_refused(trained, tiny_scene_path, tmp_path):
     (copy / "scene.json").write_text(json.dumps(info))
     stage.run(other, copy, cfg, torch.device("cpu"), resume=True, extend_to=85)
     assert json.loads((copy / "scene.json").read_text())["scene"] == str(other.resolve())
+    # a finished run moved with its scene: `train NEW_SCENE -o RUN --resume` (what evaluate advises) records the new
+    # folder, though it has nothing left to train
+    (copy / "scene.json").write_text(json.dumps({**info, "scene": str(tmp_path / "gone-too")}))
+    stage.run(other, copy, cfg, torch.device("cpu"), resume=True)
+    assert json.loads((copy / "scene.json").read_text())["scene"] == str(other.resolve())
 
 
 def test_a_resumed_run_keeps_its_posterior_updates(tiny_scene_path, tmp_path):  # noqa: F811

@@ -601,6 +601,19 @@ def test_own_page_is_replaced_anothers_is_not(tmp_path):
     stage.run([run], out, ReportConfig(title="my title"))  # its own page, whatever the title, is replaced
     stage.run([run], out, ReportConfig())
     assert "<title>uncertsplat report</title>" in (out / "index.html").read_text()
+    # a page of the versions before the generator tag, with a title of its own, is still one of ours
+    old = out / "index.html"
+    old.write_text(old.read_text().replace('<meta name="generator" content="uncertsplat report">', "")
+                   .replace("<title>uncertsplat report</title>", "<title>bonsai sweep</title>"))
+    stage.run([run], out, ReportConfig())
+    # a sweep's page is not a report: report -o SWEEP_OUT would replace it
+    from uncertsplat.report.html import page
+
+    sweep_out = tmp_path / "sweep"
+    sweep_out.mkdir()
+    (sweep_out / "index.html").write_text(page("x: sweep", "", [], "", generator="uncertsplat sweep"))
+    with pytest.raises(UserError, match="index.html is not a page `report` wrote"):
+        stage.run([run], sweep_out, ReportConfig())
 
 
 def test_an_evaluation_of_an_earlier_model_is_named(tmp_path, capsys):

@@ -477,6 +477,18 @@ def test_a_held_out_views_twin_leaves_training(workspace):
     assert s.split["test"] == (0, 8, 16) and s.split["train"] == tuple(i for i in range(24) if i not in (0, 5, 8, 16))
     (note,) = [n for n in s.notes if "took the same picture" in n]
     assert "view_005.png (= view_008.png)" in note and "left out of training" in note
+    # ... nor is it offered as a view to add (select-views' unused views)
+    from uncertsplat.select.candidates import unused_views
+    from uncertsplat.sfm.scene import with_training_views
+
+    assert unused_views(s) == []
+    # a run trained before the rule (view_005 among its training views) goes on with, and is measured against, them
+    names = s.cameras.image_names
+    old = with_training_views(s, [names[i] for i in sorted([*s.split["train"], 5])])
+    assert 5 in old.split["train"] and old.split["test"] == s.split["test"]
+    assert not [n for n in old.notes if "took the same picture" in n]
+    assert with_training_views(s, [names[i] for i in s.split["train"]]) is s
+    assert with_training_views(s, ["not-there.png"]) is s
     # training views given by hand are trained on as given; the note still says what the held-out score measures
     s = load_scene(workspace, SceneConfig(train_indices=[1, 5, 9]))
     assert s.split["train"] == (1, 5, 9)
@@ -549,3 +561,27 @@ def test_a_focal_length_that_is_not_positive_is_refused(workspace, focal):
     rec.write_binary(str(sparse))
     text = _raises(workspace, match="camera intrinsics that are not usable", name="sparse")
     assert "focal lengths must be positive and finite" in text and "view_000.png" in text
+
+
+def test_dense_video_frames_are_no_twins_but_brackets_and_paused_frames_are():
+    """Frames evenly spaced along a path (5000 of a dolly shot, far closer than TWIN_DISTANCE of the rig) have no jump
+    to the next frame: none is a twin. Three frames at each stop of the path (an exposure bracket, or the camera
+    paused) are."""
+    from uncertsplat.sfm.scene import pose_twins
+    from uncertsplat.types import Cameras
+
+    def along(x: torch.Tensor) -> Cameras:
+        m = torch.eye(4, dtype=torch.float64).repeat(len(x), 1, 1)
+        m[:, 0, 3] = -x  # R = I: looking down +z, centres at (x, 0, 0)
+        K = torch.tensor([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]], dtype=torch.float64).repeat(len(x), 1, 1)
+        return Cameras(m, K, 64, 48)
+
+    n = 5000
+    video = along(torch.linspace(0.0, 10.0, n, dtype=torch.float64))
+    test = list(range(0, n, 8))
+    assert pose_twins(video, test, [i for i in range(n) if i not in test]) == {}
+    stops = torch.linspace(0.0, 10.0, 50, dtype=torch.float64).repeat_interleave(3)
+    stops = stops + 1e-7 * torch.arange(150, dtype=torch.float64)  # SfM places them a hair apart
+    bracket = along(stops)
+    twins = pose_twins(bracket, [0, 3], [i for i in range(150) if i not in (0, 3)])
+    assert twins == {0: [1, 2], 3: [4, 5]}

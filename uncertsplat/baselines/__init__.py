@@ -83,6 +83,9 @@ def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: boo
     if add_views and cfg.method in ("ensemble", "fisher"):
         raise UserError(f"--add-views is not supported for the {cfg.method} baseline",
                         hint="Grow a variational or deterministic run, or start a new run with the views you want.")
+    if extend_to is not None and resume and (run_dir / "config.json").is_file() \
+            and extend_to == read_run_config(run_dir).iterations:
+        extend_to = None  # the run's own length (e.g. `--set iterations=N` repeating the first command): nothing to extend
     if extend_to is not None and cfg.method in ("ensemble", "fisher"):
         raise UserError(f"--iterations with --resume is not supported for the {cfg.method} baseline",
                         hint="Start a new run with the number of iterations you want.")

@@ -222,7 +222,7 @@ class LoadedRun:
         Raises:
             UserError: the run records no scene, or the scene folder is gone.
         """
-        from uncertsplat.sfm.scene import load_scene
+        from uncertsplat.sfm.scene import load_scene, with_training_views
 
         if self.scene_path is None:
             raise UserError("the run does not record its scene (scene.json is missing)", path=self.run_dir,
@@ -235,7 +235,10 @@ class LoadedRun:
                                  "is finished). Then run this command again.")
         # rendering a trained run needs no initial points (for a scene without sparse points, making them reads
         # every training view's alpha mask)
-        return load_scene(self.scene_path, self.config.scene, initial_points=False)
+        data = load_scene(self.scene_path, self.config.scene, initial_points=False)
+        info = RunScene.read_optional(self.run_dir / RunScene.FILE_NAME)
+        # measured against the views it trained on (a later version's split rules may differ: pose twins)
+        return with_training_views(data, info.train) if info is not None else data
 
 
 def read_run_config(run_dir: Path) -> TrainConfig:

@@ -117,22 +117,28 @@ may replace) from someone else's page (which it must not)."""
 
 
 def is_report_page(path: Path) -> bool:
-    """Whether ``path`` is an HTML page ``page`` wrote (its generator tag, or the default title of pages written
-    before the tag), judged from its first 4 KB; False when it cannot be read."""
+    """Whether ``path`` is an HTML page ``page`` wrote for a report (its generator tag, or for pages written before the
+    tag their head and style sheet), judged from its first 4 KB; False when it cannot be read."""
     try:
         with open(path, "rb") as f:
             head = f.read(4096).decode("utf-8", "replace")
     except OSError:
         return False
-    return f'<meta name="generator" content="{GENERATOR}">' in head or "<title>uncertsplat report</title>" in head
+    if f'<meta name="generator" content="{GENERATOR}">' in head:
+        return True
+    # pages written before the tag (2026-11-29): their head as page() wrote it, with the report's style sheet
+    return (head.startswith("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">")
+            and '<link rel="icon" href="data:,"><title>' in head and "--warn-line:" in head
+            and 'name="generator"' not in head)
 
 
-def page(title: str, subtitle: str, nav: Sequence[tuple[str, str]], body: str) -> str:
+def page(title: str, subtitle: str, nav: Sequence[tuple[str, str]], body: str, generator: str = GENERATOR) -> str:
+    """A whole HTML page; ``generator`` names the command that wrote it (``is_report_page`` reads it back)."""
     links = "".join(f'<a href="#{esc(anchor)}">{esc(label)}</a>' for anchor, label in nav)
     return (
         "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
         "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
-        f'<meta name="generator" content="{GENERATOR}">'
+        f'<meta name="generator" content="{esc(generator)}">'
         f'<link rel="icon" href="data:,">'
         f"<title>{esc(title)}</title><style>{CSS}</style></head><body>"
         f"<header><h1>{esc(title)}</h1><p>{esc(subtitle)}</p></header>"

@@ -111,4 +111,5 @@ def build_sweep_page(summary: SweepSummary, figure_rel: str | None) -> str:
     html_sections = "".join(f'<section id="{a}"><h2>{label}</h2>{b}</section>' for a, label, b in sections)
     title = f"uncertsplat sweep: {summary.name}"
     subtitle = f"{len(ok)} of {len(recs)} points finished — generated {time.strftime('%Y-%m-%d %H:%M:%S')}"
-    return page(title, subtitle, [(a, label) for a, label, _ in sections], html_sections)
+    return page(title, subtitle, [(a, label) for a, label, _ in sections], html_sections,
+                generator="uncertsplat sweep")  # not a report: `report -o` must not replace it

@@ -50,9 +50,16 @@ class Candidates:
 
 
 def unused_views(scene: SceneData) -> list[int]:
-    """Scene indices neither trained on, held out nor set aside for calibration."""
-    used = set(scene.split.get("train", ())) | set(scene.split.get("test", ())) | set(scene.split.get("calibration", ()))
-    return [i for i in range(len(scene.cameras)) if i not in used]
+    """Scene indices neither trained on, held out nor set aside for calibration, nor the pose twin of a view held out
+    or set aside (``sfm.scene.pose_twins``: the same picture, which training on would make that view's score one of
+    memory)."""
+    from uncertsplat.sfm.scene import pose_twins
+
+    held = [*scene.split.get("test", ()), *scene.split.get("calibration", ())]
+    used = set(scene.split.get("train", ())) | set(held)
+    free = [i for i in range(len(scene.cameras)) if i not in used]
+    twins = {j for js in pose_twins(scene.cameras, held, free).values() for j in js}
+    return [i for i in free if i not in twins]
 
 
 def around_views(scene: SceneData, n: int, radius: float, generator: torch.Generator) -> Cameras:

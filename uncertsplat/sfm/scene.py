@@ -43,10 +43,12 @@ _PIXELS_PER_RANDOM_POINT = 100  # ... and one per this many training pixels (at 
 _PIXELS_PER_CARVED_POINT = 50  # ... or this many when the points are carved with alpha masks (see _finish)
 _CARVE_SIZE = 400  # carve random initial points with alpha masks of at most this many pixels on a side
 TWIN_DISTANCE = 0.002
-"""Two cameras whose centres lie closer than this fraction of the rig's radius (``pose_twins``) ..."""
+"""Two cameras whose centres lie closer than this fraction of the rig's radius from its centroid (``pose_twins``) ..."""
 TWIN_ANGLE_DEG = 0.5
-"""... whose optical axes differ by less than this many degrees and whose focal lengths by less than 2 % took the
-same picture: a copy re-encoded or renamed, an exposure bracket, a burst from a tripod."""
+"""... whose optical axes differ by less than this many degrees and whose focal lengths by less than 2 % may have taken
+the same picture: a copy re-encoded or renamed, an exposure bracket, a burst from a tripod ..."""
+TWIN_JUMP = 10.0
+"""... when the next training view lies this many times farther away (``pose_twins``)."""
 
 
 # ----------------------------------------------------------------------------------------------- public
@@ -301,19 +303,21 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
     points = torch.tensor(model.points, dtype=torch.float64).reshape(-1, 3)  # source units: float64 (see above)
     rgb = torch.tensor(model.points_rgb, dtype=torch.float32).reshape(-1, 3) / 255.0
     if cfg.points_from == "train":
-        keep = _seen_by_training_views(model, cameras.image_names, cfg, sparse)
+        keep = _seen_by_training_views(model, cameras, cfg, sparse)
         points, rgb = points[keep], rgb[keep]
     return _finish(cameras, paths, points, rgb, cfg, source={"kind": source, "path": str(path),
                                                             "model": str(sparse)}, photo_fits=fits, notes=notes)
 
 
-def _seen_by_training_views(model: ColmapModel, names: tuple[str, ...], cfg: SceneConfig, where: Path) -> torch.Tensor:
+def _seen_by_training_views(model: ColmapModel, cameras: Cameras, cfg: SceneConfig, where: Path) -> torch.Tensor:
     """[P] bool: points whose track has at least 2 training images (what SfM on those images alone could
     triangulate)."""
     if model.point_images is None:
         raise UserError("points_from = 'train' needs the points' tracks, which this model does not have", path=where,
                         hint="Use points_from = 'all', or a COLMAP model with tracks (points3D.bin / .txt).")
-    train = {names[i] for i in make_split(names, cfg, where=where)["train"]}
+    names = cameras.image_names
+    # the training views as _finish makes them (a held-out view's pose twin is none: its points would leak that view)
+    train = {names[i] for i in _without_twins(cameras, make_split(names, cfg, where=where), cfg)[0]["train"]}
     return torch.tensor([len(train.intersection(t)) >= 2 for t in model.point_images], dtype=torch.bool)
 
 
@@ -440,27 +444,59 @@ def _train_test(names: tuple[str, ...], cfg: SceneConfig, where: Path | None,
 
 
 def pose_twins(cameras: Cameras, held_out: Sequence[int], train: Sequence[int]) -> dict[int, list[int]]:
-    """The training views that took the same picture as a held-out view (``TWIN_DISTANCE``, ``TWIN_ANGLE_DEG``), by
-    held-out index ({} when none).
+    """The training views that took the same picture as a held-out view, by held-out index ({} when none).
 
     A held-out view whose twin is trained on is scored on what the model memorised, not on what it learned: a photo
-    and its copy under another name or format (which a byte comparison does not find), or two frames of an exposure
-    bracket, register at the same pose. Poses are what every capture has; a photo at a new place is no twin of any
-    however alike the two images look.
+    and its copy under another name or format (which a byte comparison does not find), or the frames of an exposure
+    bracket, register at the same pose. Twins of held-out view h are the training views nearest to it up to a jump
+    in distance of ``TWIN_JUMP`` x (a copy at a hair's breadth, the next photo a step away), each within
+    ``TWIN_DISTANCE`` of the rig's radius, ``TWIN_ANGLE_DEG`` of h's optical axis and 2 % of its focal length. Frames of
+    a dense video sit evenly spaced along the path, with no such jump, and are no twins however close; a photo at a new
+    place is no twin of any, however alike the two images look.
     """
     if not held_out or not train:
         return {}
     c = cameras.centers.double()  # [C,3]
-    radius = float((c - c.mean(0)).norm(dim=-1).max())
+    c = c - c.mean(0)  # centred: cdist in map coordinates (millions) would lose the centimetres
+    radius = max(float(c.norm(dim=-1).max()), 1e-12)
     axis = cameras.cam_from_world[:, 2, :3].double()  # [C,3] each camera's optical axis in the world
     axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     focal = cameras.K[:, 0, 0].double()  # [C]
     h, t = torch.as_tensor(list(held_out)), torch.as_tensor(list(train))
-    near = torch.cdist(c[h], c[t]) <= TWIN_DISTANCE * max(radius, 1e-12)  # [H,T]
-    aligned = axis[h] @ axis[t].T >= math.cos(math.radians(TWIN_ANGLE_DEG))
-    same_focal = (focal[h, None] - focal[None, t]).abs() <= 0.02 * focal[h, None]
-    twins = near & aligned & same_focal
-    return {int(h[i]): [int(t[j]) for j in twins[i].nonzero()[:, 0]] for i in range(len(h)) if twins[i].any()}
+    dist = torch.cdist(c[h], c[t])  # [H,T]
+    alike = ((dist <= TWIN_DISTANCE * radius) & (axis[h] @ axis[t].T >= math.cos(math.radians(TWIN_ANGLE_DEG)))
+             & ((focal[h, None] - focal[None, t]).abs() <= 0.02 * focal[h, None]))
+    out: dict[int, list[int]] = {}
+    for i in range(len(h)):
+        d, order = dist[i].sort()
+        floor = 1e-9 * radius
+        for j in range(1, len(order) + 1):
+            if not bool(alike[i, order[j - 1]]):
+                break  # the twins are the nearest views, each alike: a view that is not ends the search
+            if j == len(order) or float(d[j]) >= TWIN_JUMP * max(float(d[j - 1]), floor):
+                out[int(h[i])] = sorted(int(t[k]) for k in order[:j])
+                break
+    return out
+
+
+TWIN_NOTE = "took the same picture as a held-out view"
+"""Words of ``_without_twins``' note (``with_training_views`` drops the note with the split it described)."""
+
+
+def with_training_views(data: SceneData, names: Sequence[str]) -> SceneData:
+    """``data`` training on the views ``names`` (a run's recorded ones, ``RunScene.train``) when its split's differ
+    and the scene holds them all; else ``data`` as it is.
+
+    A run goes on with, and is measured against, the views it trained on, whatever the split rules of a later version
+    say (a held-out view's pose twin now leaves training: ``_without_twins``); the twin note, which described the
+    other split, goes with it."""
+    index = {n: i for i, n in enumerate(data.cameras.image_names)}
+    held = {i for k, v in data.split.items() if k != "train" for i in v}
+    if [data.cameras.image_names[i] for i in data.split["train"]] == list(names) or not names or \
+            not all(n in index for n in names) or any(index[n] in held for n in names):
+        return data  # (recorded views now held out or set aside: another split altogether, not a rule's change)
+    notes = tuple(n for n in data.notes if TWIN_NOTE not in n)
+    return replace(data, split={**data.split, "train": tuple(index[n] for n in names)}, notes=notes)
 
 
 def _without_twins(cameras: Cameras, split: dict[str, tuple[int, ...]], cfg: SceneConfig
@@ -475,8 +511,8 @@ def _without_twins(cameras: Cameras, split: dict[str, tuple[int, ...]], cfg: Sce
         return split, None
     pairs = [f"{', '.join(names[j] for j in js)} (= {names[i]})" for i, js in sorted(twins.items())]
     listed = "; ".join(pairs[:4]) + ("; ..." if len(pairs) > 4 else "")
-    what = (f"{sum(map(len, twins.values()))} training view(s) took the same picture as a held-out view (the same "
-            f"camera pose: a copy under another name or format, or an exposure bracket): {listed}")
+    what = (f"{sum(map(len, twins.values()))} training view(s) {TWIN_NOTE} (the same camera pose: a copy under "
+            f"another name or format, or an exposure bracket): {listed}")
     if cfg.train_names is not None or cfg.train_indices is not None:
         return split, what + "; they are trained on as given, so those held-out scores measure what the model " \
                              "memorised (leave them out of scene.train_names / train_indices)"

@@ -171,8 +171,8 @@ def few_samples_notes(psnr: float | None, psnr_render: float | None, num_samples
     """A note when the mean of the K samples' renders scores ``FEW_SAMPLES_GAP_DB`` below the one deterministic
     render: with few samples their mean keeps 1/K of their spread as noise, which costs PSNR and, since that noise is
     largest where the std is, flatters the AUSE (a sweep's fast few-sample points look better on it than they are)."""
-    if psnr is None or psnr_render is None or psnr_render - psnr <= FEW_SAMPLES_GAP_DB:
-        return []
+    if psnr is None or psnr_render is None or psnr_render - psnr <= FEW_SAMPLES_GAP_DB or num_samples >= 8:
+        return []  # (with many samples a gap is the posterior's own, e.g. samples that blur, not their noise)
     return [f"the mean of the {num_samples} samples scores {psnr_render - psnr:.2f} dB below the one render "
             f"({psnr:.2f} against {psnr_render:.2f} dB): with few samples their mean keeps 1/K of their spread as "
             "noise, which also flatters the AUSE (the noise is largest where the std is); more samples (--num-samples) "
@@ -181,19 +181,19 @@ def few_samples_notes(psnr: float | None, psnr_render: float | None, num_samples
 
 def evaluation_is_current(run_dir: Path, report: EvalReport) -> bool | None:
     """Whether ``report`` (``run_dir``'s eval/metrics.json) scored the run as it is now: its ``run_sha256`` against the
-    hash of the model file evaluate would load now (``variational.ply``, else the newest checkpoint) and the run's
+    hash of the model file evaluate would load now (``variational.ply``, else the newest good checkpoint) and the run's
     config and scene. None when that cannot be told (no hash recorded: an ensemble, or files of older versions; no
     model file)."""
-    from uncertsplat.io.checkpoints import list_checkpoints
+    from uncertsplat.io.checkpoints import load_latest
 
     if report.run_sha256 is None:
         return None
     model = Path(run_dir) / "variational.ply"
     if not model.is_file():
-        found = list_checkpoints(run_dir)
-        if not found:
+        found = load_latest(run_dir, map_location="cpu")  # the newest good one, as evaluate loads it
+        if found is None:
             return None
-        model = found[-1][1]
+        model = found[0]
     try:
         return run_sha256(Path(run_dir), model) == report.run_sha256
     except OSError:

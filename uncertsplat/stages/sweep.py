@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -265,9 +266,13 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
             hashes |= set(current)
         # a record measured under an earlier spec for a point of this one (the same configs) takes this spec's id,
         # knobs and default flag: a changed default made the old default's record claim to be it
+        kept = [r for r in read_records(log) if r.hash in hashes]
+        for r in kept:  # a relabelled point's report (points/ID.json) follows it to its new id
+            src, dst = out_dir / "points" / f"{r.id}.json", out_dir / "points" / f"{current[r.hash]['id']}.json"
+            if dst != src and src.is_file() and not dst.exists():
+                shutil.copy2(src, dst)
         records = [r.model_copy(update={"id": current[r.hash]["id"], "knobs": current[r.hash]["knobs"],
-                                        "is_default": current[r.hash]["is_default"]})
-                   for r in read_records(log) if r.hash in hashes]
+                                        "is_default": current[r.hash]["is_default"]}) for r in kept]
         stale = len({r.hash for r in read_records(log)} - hashes)
         if stale:
             console.print(f"[yellow]note:[/] {log} also holds {_count(stale, 'point')} of other settings (an earlier "

@@ -96,6 +96,15 @@ def _unused_setting_notes(cfg: TrainConfig) -> list[str]:
     return []
 
 
+def _same_scene_path(run_dir: Path, scene: Path) -> bool:
+    """Whether ``run_dir``'s scene.json records ``scene`` as its scene folder."""
+    try:
+        info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
+    except UserError:
+        return False
+    return info is not None and Path(info.scene).resolve() == Path(scene).resolve()
+
+
 def _summary_steps(run_dir: Path) -> int | None:
     """The steps ``train_summary.json`` says the run's finished model was trained for (None: none readable)."""
     try:
@@ -178,7 +187,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     from uncertsplat.data.dataset import load_images
     from uncertsplat.io.checkpoints import load_latest
     from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
-    from uncertsplat.sfm.scene import load_scene
+    from uncertsplat.sfm.scene import load_scene, with_training_views
     from uncertsplat.train.trainer import Trainer, TrainingInterrupted, log_line
 
     scene, run_dir = Path(scene), Path(run_dir)
@@ -245,7 +254,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 for name in ("stats.jsonl",):
                     (run_dir / name).unlink(missing_ok=True)
             elif (int(found[1]["step"]) >= cfg.iterations and not add_views and (run_dir / "variational.ply").is_file()
-                  and _summary_steps(run_dir) == int(found[1]["step"])):
+                  and _summary_steps(run_dir) == int(found[1]["step"]) and _same_scene_path(run_dir, scene)):
+                # (a run resumed on its scene's new folder goes on below: it checks the scene and records the folder)
                 console.print(f"{run_dir}: already trained for its {cfg.iterations} steps, nothing to do "
                               f"(--iterations N with N > {cfg.iterations} trains it on)")
                 return run_dir
@@ -271,12 +281,10 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         before = RunScene.read_optional(run_dir / RunScene.FILE_NAME) if resume else None
         if before is not None:
             _check_same_scene(before, scene, names, run_dir)
-            index = {n: i for i, n in enumerate(names)}
-            if (not add_views and [names[i] for i in data.split["train"]] != before.train
-                    and all(n in index for n in before.train)):
-                # the scene's split rules changed since the run began (e.g. a held-out view's twin now leaves
+            if not add_views:
+                # the scene's split rules may have changed since the run began (a held-out view's twin now leaves
                 # training): the run goes on with the views it trained on, which its checkpoint's view order indexes
-                data = replace(data, split={**data.split, "train": tuple(index[n] for n in before.train)})
+                data = with_training_views(data, before.train)
         atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         views_added = list(before.views_added) if before is not None else []
         if add_views:
