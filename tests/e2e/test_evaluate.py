@@ -6,6 +6,7 @@ import dataclasses
 import json
 import shutil
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ from uncertsplat.config import EvalConfig
 from uncertsplat.data.dataset import load_view_set
 from uncertsplat.eval.engine import StdFit, evaluate_views, fit_residual, fit_std_scale, with_side_terms
 from uncertsplat.io.images import read_exr, read_exr_attribute
-from uncertsplat.io.maps import EXR_CHANNELS, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
+from uncertsplat.io.maps import EXR_CHANNELS, EXR_DEPTH_TO_SOURCE, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
 from uncertsplat.schemas.metrics import EvalReport
 from uncertsplat.schemas.prune import PruneReport
 from uncertsplat.stages import evaluate
@@ -68,6 +69,15 @@ def test_writes_maps_and_metrics(evaluated):
         exr = run / "eval" / "maps" / f"{stem}.exr"
         assert read_exr_attribute(exr, EXR_RGB_PREDICTIVE) == "student-t"
         assert read_exr_attribute(exr, EXR_RGB_DOF) == pytest.approx(report.degrees_of_freedom, rel=1e-6)
+        # the factor to the scene's own units (1 / s of world_from_source): depth_mean x it is the GT depth's scale
+        scale = read_exr_attribute(exr, EXR_DEPTH_TO_SOURCE)
+        world_from_source = json.loads((run / "scene.json").read_text())["world_from_source"]
+        assert scale == pytest.approx(1.0 / world_from_source[0][0], rel=1e-6)
+        scene = Path(json.loads((run / "scene.json").read_text())["scene"])
+        gt_depth = np.load(scene / "depth" / f"{Path(name).stem}.npy").reshape(ch["depth_mean.Z"].shape)
+        hit = np.isfinite(gt_depth) & (gt_depth > 0) & (ch["depth_mean.Z"] > 0)
+        # (the scale is what is checked: s is ~0.25 here; a short run's depths are a few per cent off)
+        assert np.median(ch["depth_mean.Z"][hit] * scale / gt_depth[hit]) == pytest.approx(1.0, abs=0.15)
         for suffix in ("gt", "mean", "error", "std", "error_rank", "std_rank", "depth", "depth_std"):
             assert (run / "eval" / "maps" / f"{stem}_{suffix}.png").is_file()
     m = data.mean

@@ -18,6 +18,10 @@ EXR_RGB_PREDICTIVE = "uncertsplat:rgb_predictive"
 EXR_RGB_DOF = "uncertsplat:rgb_degrees_of_freedom"
 """Header attribute (float, with "student-t"): nu; the central interval of probability p is mean +- w std, w the
 unit-variance t's half-width (``eval.tails.half_width``)."""
+EXR_DEPTH_TO_SOURCE = "uncertsplat:depth_to_source"
+"""Header attribute (float, when the scene knows it): the factor that takes ``depth_mean`` and ``depth_std`` from the
+run's normalised units to the scene's own (a COLMAP model's, a synthetic scene's GT depth): 1 / s of ``RUN/scene.json``'s
+``world_from_source``."""
 
 
 def map_stem(image_name: str) -> str:

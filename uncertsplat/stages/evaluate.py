@@ -38,7 +38,7 @@ from uncertsplat.errors import UserError, run_folder_missing
 from uncertsplat.eval.engine import MASKED_NOTE, ViewMaps
 from uncertsplat.eval.tails import MIN_DOF
 from uncertsplat.eval.tails import half_width as _half_width
-from uncertsplat.io.maps import EXR_CHANNELS, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
+from uncertsplat.io.maps import EXR_CHANNELS, EXR_DEPTH_TO_SOURCE, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
 from uncertsplat.schemas.runs import RunExposure
 
 if TYPE_CHECKING:
@@ -52,11 +52,13 @@ def eval_dir(run_dir: Path, cfg: EvalConfig) -> Path:
     return Path(run_dir) / ("eval" if cfg.split == "test" else "eval-train")
 
 
-def write_view_maps(folder: Path, maps: ViewMaps, preview: str, turns: dict[str, int] | None = None) -> None:
+def write_view_maps(folder: Path, maps: ViewMaps, preview: str, turns: dict[str, int] | None = None,
+                    depth_to_source: float | None = None) -> None:
     """EXR float maps and PNG previews of one view (see the module docstring for the colour scales).
 
     ``turns``: {image name: clockwise quarter turns} of the photos the scene turned to its common orientation
-    (``SceneData.photo_fits``); their maps are turned back, so that each view's maps lie as its photo does."""
+    (``SceneData.photo_fits``); their maps are turned back, so that each view's maps lie as its photo does.
+    ``depth_to_source``: ``SceneData.depth_scale_to_gt``, written to the EXR header (``EXR_DEPTH_TO_SOURCE``)."""
     from uncertsplat.data.dataset import turned_back
     from uncertsplat.io.images import write_exr, write_png
     from uncertsplat.report.colormaps import colorize, rank_colorize
@@ -71,6 +73,8 @@ def write_view_maps(folder: Path, maps: ViewMaps, preview: str, turns: dict[str,
     predictive = {EXR_RGB_PREDICTIVE: "gaussian" if maps.dof is None else "student-t"}
     if maps.dof is not None:
         predictive[EXR_RGB_DOF] = float(maps.dof)
+    if depth_to_source is not None:  # the depths are in the run's normalised units: the factor to the scene's own
+        predictive[EXR_DEPTH_TO_SOURCE] = float(depth_to_source)
     write_exr(folder / f"{stem}.exr", {n: a.numpy() for n, a in zip(EXR_CHANNELS, arrays, strict=True)}, predictive)
     err = (pred - gt).abs().mean(-1).numpy()
     s = std.mean(-1).numpy()
@@ -377,7 +381,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
             shutil.rmtree(out / "maps")
         report = evaluate_views(sampler, views, cfg, device,
                                 on_view=partial(write_view_maps, out / "maps", preview=cfg.preview,
-                                                turns=photo_turns(scene)) if cfg.save_maps else None,
+                                                turns=photo_turns(scene), depth_to_source=scene.depth_scale_to_gt)
+                                if cfg.save_maps else None,
                                 std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
                                 calibration_held_out=bool(scene.split.get("calibration")),
                                 noise_scale=residual.scale if residual is not None else None,
