@@ -614,6 +614,10 @@ def test_own_page_is_replaced_anothers_is_not(tmp_path):
     (sweep_out / "index.html").write_text(page("x: sweep", "", [], "", generator="uncertsplat sweep"))
     with pytest.raises(UserError, match="index.html is not a page `report` wrote"):
         stage.run([run], sweep_out, ReportConfig())
+    # ... nor one written before sweeps had their own tag (it carried the report's)
+    (sweep_out / "index.html").write_text(page("uncertsplat sweep: bonsai", "", [], ""))
+    with pytest.raises(UserError, match="index.html is not a page `report` wrote"):
+        stage.run([run], sweep_out, ReportConfig())
 
 
 def test_an_evaluation_of_an_earlier_model_is_named(tmp_path, capsys):

@@ -486,7 +486,9 @@ def test_a_held_out_views_twin_leaves_training(workspace):
     names = s.cameras.image_names
     old = with_training_views(s, [names[i] for i in sorted([*s.split["train"], 5])])
     assert 5 in old.split["train"] and old.split["test"] == s.split["test"]
-    assert not [n for n in old.notes if "took the same picture" in n]
+    (note,) = [n for n in old.notes if "took the same picture" in n]  # what that run's view_008 score measures
+    assert "view_005.png (= view_008.png)" in note and "the run trained on them" in note
+    assert "left out of training" not in note
     assert with_training_views(s, [names[i] for i in s.split["train"]]) is s
     assert with_training_views(s, ["not-there.png"]) is s
     # training views given by hand are trained on as given; the note still says what the held-out score measures
@@ -570,9 +572,12 @@ def test_dense_video_frames_are_no_twins_but_brackets_and_paused_frames_are():
     from uncertsplat.sfm.scene import pose_twins
     from uncertsplat.types import Cameras
 
-    def along(x: torch.Tensor) -> Cameras:
+    def along(x: torch.Tensor, yaw_deg: torch.Tensor | None = None) -> Cameras:
+        """Cameras at (x, 0, 0) turned by yaw about y (0: looking down +z)."""
+        a = torch.deg2rad(yaw_deg if yaw_deg is not None else torch.zeros_like(x))
         m = torch.eye(4, dtype=torch.float64).repeat(len(x), 1, 1)
-        m[:, 0, 3] = -x  # R = I: looking down +z, centres at (x, 0, 0)
+        m[:, 0, 0], m[:, 0, 2], m[:, 2, 0], m[:, 2, 2] = a.cos(), -a.sin(), a.sin(), a.cos()
+        m[:, :3, 3] = -(m[:, :3, :3] @ torch.stack([x, 0 * x, 0 * x], dim=-1)[..., None])[..., 0]
         K = torch.tensor([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]], dtype=torch.float64).repeat(len(x), 1, 1)
         return Cameras(m, K, 64, 48)
 
@@ -585,3 +590,16 @@ def test_dense_video_frames_are_no_twins_but_brackets_and_paused_frames_are():
     bracket = along(stops)
     twins = pose_twins(bracket, [0, 3], [i for i in range(150) if i not in (0, 3)])
     assert twins == {0: [1, 2], 3: [4, 5]}
+    # a panning shot: each frame turned 0.3 degrees and moved 0.1 % of the path from the last; no twins either
+    pan = along(torch.linspace(0.0, 2.0, 2000, dtype=torch.float64), 0.3 * torch.arange(2000, dtype=torch.float64))
+    test = list(range(0, 2000, 8))
+    assert pose_twins(pan, test, [i for i in range(2000) if i not in test]) == {}
+    # brackets from a turning tripod (3 exposures every 10 degrees, one spot) beside a line of other views: the
+    # bracket frames are twins, the other directions at the same spot are not
+    spot = torch.zeros(36 * 3, dtype=torch.float64) + 1e-6 * torch.arange(108, dtype=torch.float64)
+    x = torch.cat([spot, torch.linspace(1.0, 10.0, 30, dtype=torch.float64)])
+    yaw = torch.cat([10.0 * (torch.arange(108) // 3), torch.zeros(30)]).double()
+    pano = along(x, yaw)
+    held = [0, 9, 30]
+    twins = pose_twins(pano, held, [i for i in range(138) if i not in held])
+    assert twins == {0: [1, 2], 9: [10, 11], 30: [31, 32]}

@@ -480,3 +480,20 @@ def test_a_sweep_resumed_with_another_default_summarises_this_spec(tmp_path, mon
     said = " ".join(capsys.readouterr().err.split())
     assert "also holds 1 point of other settings" in said
     assert sorted(r.id for r in third.records) == ["variational_it5_k2", "variational_it5_k8"]
+
+
+def test_point_reports_follow_their_points_to_new_ids(tmp_path):
+    """Two measured points that trade ids keep their own reports (every report is read before any is written)."""
+    from types import SimpleNamespace
+
+    from uncertsplat.stages.sweep import _move_point_reports
+
+    pts = tmp_path / "points"
+    pts.mkdir()
+    (pts / "a.json").write_text("report of A")
+    (pts / "b.json").write_text("report of B")
+    records = [SimpleNamespace(hash="hA", id="a", status="ok"), SimpleNamespace(hash="hB", id="b", status="ok"),
+               SimpleNamespace(hash="hC", id="c", status="failed")]
+    _move_point_reports(tmp_path, records, {"hA": {"id": "b"}, "hB": {"id": "a"}, "hC": {"id": "d"}})
+    assert (pts / "b.json").read_text() == "report of A" and (pts / "a.json").read_text() == "report of B"
+    assert not (pts / "d.json").exists()

@@ -124,6 +124,8 @@ def is_report_page(path: Path) -> bool:
             head = f.read(4096).decode("utf-8", "replace")
     except OSError:
         return False
+    if "<title>uncertsplat sweep: " in head:  # a sweep's page (those written before their own tag carried this one)
+        return False
     if f'<meta name="generator" content="{GENERATOR}">' in head:
         return True
     # pages written before the tag (2026-11-29): their head as page() wrote it, with the report's style sheet

@@ -48,7 +48,7 @@ TWIN_ANGLE_DEG = 0.5
 """... whose optical axes differ by less than this many degrees and whose focal lengths by less than 2 % may have taken
 the same picture: a copy re-encoded or renamed, an exposure bracket, a burst from a tripod ..."""
 TWIN_JUMP = 10.0
-"""... when the next training view lies this many times farther away (``pose_twins``)."""
+"""... when the next training view's pose differs this many times more (``pose_twins``)."""
 
 
 # ----------------------------------------------------------------------------------------------- public
@@ -448,11 +448,12 @@ def pose_twins(cameras: Cameras, held_out: Sequence[int], train: Sequence[int]) 
 
     A held-out view whose twin is trained on is scored on what the model memorised, not on what it learned: a photo
     and its copy under another name or format (which a byte comparison does not find), or the frames of an exposure
-    bracket, register at the same pose. Twins of held-out view h are the training views nearest to it up to a jump
-    in distance of ``TWIN_JUMP`` x (a copy at a hair's breadth, the next photo a step away), each within
-    ``TWIN_DISTANCE`` of the rig's radius, ``TWIN_ANGLE_DEG`` of h's optical axis and 2 % of its focal length. Frames of
-    a dense video sit evenly spaced along the path, with no such jump, and are no twins however close; a photo at a new
-    place is no twin of any, however alike the two images look.
+    bracket, register at the same pose. A training view's pose differs from held-out view h's by
+    delta = max(centre distance / (``TWIN_DISTANCE`` x the rig's radius), angle between the optical axes /
+    ``TWIN_ANGLE_DEG``) (a focal length more than 2 % off: another picture, never a twin). h's twins are its
+    nearest views by delta up to a jump of ``TWIN_JUMP`` x, each with delta <= 1: a copy or a bracket frame sits a
+    hair's breadth away and the next photo a step away. Frames of a dense video or a panning shot step evenly,
+    with no such jump, however close; a tripod panorama's other directions are far in angle.
     """
     if not held_out or not train:
         return {}
@@ -463,19 +464,17 @@ def pose_twins(cameras: Cameras, held_out: Sequence[int], train: Sequence[int]) 
     axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     focal = cameras.K[:, 0, 0].double()  # [C]
     h, t = torch.as_tensor(list(held_out)), torch.as_tensor(list(train))
-    dist = torch.cdist(c[h], c[t])  # [H,T]
-    alike = ((dist <= TWIN_DISTANCE * radius) & (axis[h] @ axis[t].T >= math.cos(math.radians(TWIN_ANGLE_DEG)))
-             & ((focal[h, None] - focal[None, t]).abs() <= 0.02 * focal[h, None]))
+    chord = torch.cdist(axis[h], axis[t]).clamp(max=2.0)  # [H,T]; the angle from the chord keeps its digits near 0
+    angle = torch.rad2deg(2.0 * torch.asin(chord / 2.0))
+    delta = torch.maximum(torch.cdist(c[h], c[t]) / (TWIN_DISTANCE * radius), angle / TWIN_ANGLE_DEG)
+    delta = delta.masked_fill((focal[h, None] - focal[None, t]).abs() > 0.02 * focal[h, None], math.inf)
+    d, order = delta.sort(dim=1)  # [H,T] nearest first
+    after = torch.cat([d[:, 1:], torch.full_like(d[:, :1], math.inf)], dim=1)  # the next view's delta
+    ends = (d <= 1.0) & (after >= TWIN_JUMP * d.clamp_min(1e-6))  # a twin group can end here
     out: dict[int, list[int]] = {}
-    for i in range(len(h)):
-        d, order = dist[i].sort()
-        floor = 1e-9 * radius
-        for j in range(1, len(order) + 1):
-            if not bool(alike[i, order[j - 1]]):
-                break  # the twins are the nearest views, each alike: a view that is not ends the search
-            if j == len(order) or float(d[j]) >= TWIN_JUMP * max(float(d[j - 1]), floor):
-                out[int(h[i])] = sorted(int(t[k]) for k in order[:j])
-                break
+    for i in ends.any(dim=1).nonzero()[:, 0].tolist():
+        j = int(ends[i].nonzero()[0, 0])  # the first (tightest) group
+        out[int(h[i])] = sorted(int(t[k]) for k in order[i, : j + 1])
     return out
 
 
@@ -495,8 +494,16 @@ def with_training_views(data: SceneData, names: Sequence[str]) -> SceneData:
     if [data.cameras.image_names[i] for i in data.split["train"]] == list(names) or not names or \
             not all(n in index for n in names) or any(index[n] in held for n in names):
         return data  # (recorded views now held out or set aside: another split altogether, not a rule's change)
-    notes = tuple(n for n in data.notes if TWIN_NOTE not in n)
-    return replace(data, split={**data.split, "train": tuple(index[n] for n in names)}, notes=notes)
+    train = tuple(index[n] for n in names)
+    notes = [n for n in data.notes if TWIN_NOTE not in n]
+    twins = pose_twins(data.cameras, sorted(held), train)
+    if twins:  # the recorded views hold a held-out view's twin: its score is one of memory, and the note says so
+        pairs = [f"{', '.join(data.cameras.image_names[j] for j in js)} (= {data.cameras.image_names[i]})"
+                 for i, js in sorted(twins.items())]
+        notes.append(f"{sum(map(len, twins.values()))} training view(s) {TWIN_NOTE} (the same camera pose): "
+                     f"{'; '.join(pairs[:4])}{'; ...' if len(pairs) > 4 else ''}; the run trained on them (its "
+                     "scene.json), so those held-out scores measure what the model memorised")
+    return replace(data, split={**data.split, "train": train}, notes=tuple(notes))
 
 
 def _without_twins(cameras: Cameras, split: dict[str, tuple[int, ...]], cfg: SceneConfig

@@ -185,19 +185,20 @@ def few_samples_notes(psnr: float | None, psnr_render: float | None, num_samples
 
 def evaluation_is_current(run_dir: Path, report: EvalReport) -> bool | None:
     """Whether ``report`` (``run_dir``'s eval/metrics.json) scored the run as it is now: its ``run_sha256`` against the
-    hash of the model file evaluate would load now (``variational.ply``, else the newest good checkpoint) and the run's
+    hash of the model file evaluate would load now (``variational.ply``, else the newest checkpoint) and the run's
     config and scene. None when that cannot be told (no hash recorded: an ensemble, or files of older versions; no
     model file)."""
-    from uncertsplat.io.checkpoints import load_latest
+    from uncertsplat.io.checkpoints import list_checkpoints
 
     if report.run_sha256 is None:
         return None
     model = Path(run_dir) / "variational.ply"
     if not model.is_file():
-        found = load_latest(run_dir, map_location="cpu")  # the newest good one, as evaluate loads it
-        if found is None:
+        # the newest checkpoint (evaluate loads the newest good one: read as stale only after a damaged last one)
+        found = list_checkpoints(run_dir)
+        if not found:
             return None
-        model = found[0]
+        model = found[-1][1]
     try:
         return run_sha256(Path(run_dir), model) == report.run_sha256
     except OSError:

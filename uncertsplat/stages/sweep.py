@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -112,6 +111,18 @@ def prepare_scene(name: str, entry, out_dir: Path) -> Path:
     return folder
 
 
+def _move_point_reports(out_dir: Path, records: list, current: dict[str, dict]) -> None:
+    """Each measured point whose id this spec changes (``make_jobs``: e.g. the default moved) gets its report
+    (``points/ID.json``) under the new id: every report is read before any is written (two points may trade ids),
+    and before the points to run write theirs."""
+    latest = {r.hash: r.id for r in records if r.status == "ok" and r.hash in current}  # the newest record per point
+    moves = {old: current[h]["id"] for h, old in latest.items() if current[h]["id"] != old}
+    texts = {new: (out_dir / "points" / f"{old}.json").read_text(encoding="utf-8") for old, new in moves.items()
+             if (out_dir / "points" / f"{old}.json").is_file()}
+    for new, text in texts.items():
+        atomic_write_text(out_dir / "points" / f"{new}.json", text)
+
+
 def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str = "auto", scene: Path | None = None,
         overrides: list[str] | None = None, force: bool = False, executor: str = "local", address: str | None = None,
         cpus_per_job: float = 1.0, gpus_per_job: float = 0.0, retries: int = 1,
@@ -193,6 +204,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                           "which stores one table entry, or ensemble_size and spawn_fraction without offset tables)")
         log = out_dir / "sweep.jsonl"
         done = {r.hash for r in read_records(log) if r.status == "ok"} & hashes if not force else set()
+        _move_point_reports(out_dir, read_records(log), current)
         todo = []
         for job in all_jobs:
             job["points"] = [p for p in job["points"] if p["hash"] not in done]
@@ -267,10 +279,6 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         # a record measured under an earlier spec for a point of this one (the same configs) takes this spec's id,
         # knobs and default flag: a changed default made the old default's record claim to be it
         kept = [r for r in read_records(log) if r.hash in hashes]
-        for r in kept:  # a relabelled point's report (points/ID.json) follows it to its new id
-            src, dst = out_dir / "points" / f"{r.id}.json", out_dir / "points" / f"{current[r.hash]['id']}.json"
-            if dst != src and src.is_file() and not dst.exists():
-                shutil.copy2(src, dst)
         records = [r.model_copy(update={"id": current[r.hash]["id"], "knobs": current[r.hash]["knobs"],
                                         "is_default": current[r.hash]["is_default"]}) for r in kept]
         stale = len({r.hash for r in read_records(log)} - hashes)

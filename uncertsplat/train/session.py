@@ -22,7 +22,7 @@ import torch
 
 from uncertsplat import native
 from uncertsplat.config import TrainConfig, VariationalConfig, build_config
-from uncertsplat.console import console
+from uncertsplat.console import console, list_names
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.io.atomic import (
@@ -285,6 +285,13 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 # the scene's split rules may have changed since the run began (a held-out view's twin now leaves
                 # training): the run goes on with the views it trained on, which its checkpoint's view order indexes
                 data = with_training_views(data, before.train)
+                now = [names[i] for i in data.split["train"]]
+                if before.train and now != before.train:  # recorded views held out or set aside now, or gone
+                    moved = sorted(set(before.train) - set(now)) or sorted(set(now) - set(before.train))
+                    raise UserError(f"the run trained on other views than this scene's split gives it now "
+                                    f"({list_names(moved)}): its checkpoint's order of views would not match",
+                                    path=run_dir, hint="Resume it on the scene and split it started with, or train a "
+                                                       "new run.")
         atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         views_added = list(before.views_added) if before is not None else []
         if add_views:
