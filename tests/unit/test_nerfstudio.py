@@ -150,3 +150,19 @@ def test_bad_files_are_refused(tiny_scene_path, tmp_path):  # noqa: F811
     _raises(tmp_path / "ns", "no list of 'frames'")
     path.write_text("{")
     _raises(tmp_path / "ns", "cannot read the transforms file")
+
+
+def test_unread_masks_and_an_unused_colmap_model_are_named(tiny_scene_path, tmp_path):  # noqa: F811
+    """A frame's mask_path is not read (its pixels are trained on), and a COLMAP model beside transforms.json is not
+    used: both were silent."""
+    root = tmp_path / "ns"
+    convert(tiny_scene_path, root)
+    meta = json.loads((root / "transforms.json").read_text())
+    meta["frames"][0]["mask_path"] = "masks/view_000.png"
+    (root / "transforms.json").write_text(json.dumps(meta))
+    shutil.copytree(tiny_scene_path / "sparse", root / "sparse")
+    notes = load_scene(root).notes
+    assert any(n.startswith("1 frame(s) of transforms.json name a mask_path: masks are not read") for n in notes)
+    assert any("read as a nerfstudio scene (transforms.json); the folder also holds a COLMAP model" in n for n in notes)
+    shutil.rmtree(root / "sparse")
+    assert not [n for n in load_scene(root).notes if "COLMAP model" in n]

@@ -210,6 +210,20 @@ def test_undistorted_camera_with_zero_distortion_is_accepted(workspace):
     assert scene.cameras.K[0, 0, 0].item() == pytest.approx(fx)
 
 
+@pytest.mark.parametrize("model", ["OPENCV_FISHEYE", "SIMPLE_RADIAL_FISHEYE"])
+def test_a_fisheye_camera_is_refused_even_with_zero_coefficients(workspace, model):
+    """A fisheye of zero coefficients is an equidistant projection, not a pinhole one: it trained as a pinhole."""
+    sparse = workspace / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(sparse))
+    cam = rec.cameras[1]
+    fx, fy, cx, cy = cam.params
+    cam.model = getattr(pycolmap.CameraModelId, model)
+    cam.params = [fx, fy, cx, cy, 0.0, 0.0, 0.0, 0.0] if model == "OPENCV_FISHEYE" else [fx, cx, cy, 0.0]
+    rec.write_binary(str(sparse))
+    text = _raises(workspace, match=f"uses the {model} model, a projection that splatting cannot render")
+    assert "image_undistorter" in text
+
+
 def test_nerf_synthetic(tiny_scene_path, tmp_path):  # noqa: F811
     """Write the tiny scene in the Blender layout (OpenGL axes, RGBA) and load it back."""
     ref = load_scene(tiny_scene_path, SceneConfig(normalize=False))
@@ -279,7 +293,17 @@ def test_images_of_different_sizes_are_refused(workspace):
 
 def test_missing_image_is_refused(workspace):
     (workspace / "images" / "view_010.png").unlink()
-    _raises(workspace, match="missing", name="view_010.png")
+    text = _raises(workspace, match="image 'view_010.png' named in the COLMAP model is missing", name="view_010.png")
+    assert "reconstruct again without it" in text
+
+
+def test_images_whose_names_differ_in_extension_case_are_named(workspace):
+    """Files renamed to .PNG (a copy from another system): the near match is named, not just 'missing'."""
+    for p in sorted((workspace / "images").iterdir()):
+        p.rename(p.with_suffix(".PNG"))
+    text = _raises(workspace, match="24 of the 24 images the COLMAP model names are missing (e.g. 'view_000.png'); "
+                                    "view_000.PNG is there")
+    assert "Rename the files to the model's names" in text
 
 
 def test_truncated_image_is_refused(workspace):
@@ -305,8 +329,11 @@ def test_failed_reconstruction_is_refused(workspace):
 
 
 def test_missing_images_folder(workspace):
-    shutil.rmtree(workspace / "images")
-    _raises(workspace, match="images", name="images")
+    shutil.move(workspace / "images", workspace / "images_4")  # LLFF's downscaled copies only
+    text = _raises(workspace, match="missing images/ folder beside sparse/ (there is images_4)", name="images")
+    assert "--set scene.downscale=N" in text
+    shutil.rmtree(workspace / "images_4")
+    assert "there is" not in _raises(workspace, match="missing images/ folder", name="images")
 
 
 # ------------------------------------------------------------------------------------ photos of several sizes
@@ -603,3 +630,13 @@ def test_dense_video_frames_are_no_twins_but_brackets_and_paused_frames_are():
     held = [0, 9, 30]
     twins = pose_twins(pano, held, [i for i in range(138) if i not in held])
     assert twins == {0: [1, 2], 9: [10, 11], 30: [31, 32]}
+
+
+def test_a_workspace_of_several_models_names_the_unused_ones(workspace):
+    """COLMAP's mapper splits a capture it cannot join: sparse/0 is used and the others are named."""
+    shutil.copytree(workspace / "sparse" / "0", workspace / "sparse" / "1")
+    (note,) = [n for n in load_scene(workspace).notes if "COLMAP models" in n]
+    assert "holds 2 COLMAP models; sparse/0 is used (24 images); the others (sparse/1) are not" in note
+    rec = pycolmap.Reconstruction(str(workspace / "sparse" / "0"))
+    rec.write_text(str(workspace / "sparse" / "0"))  # the same model as .txt beside the .bin
+    assert any("both as .bin and as .txt files: the .bin ones are read" in n for n in load_scene(workspace).notes)

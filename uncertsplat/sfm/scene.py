@@ -33,7 +33,7 @@ from uncertsplat.errors import UserError
 from uncertsplat.io.images import read_image_size
 from uncertsplat.schemas.scene import SynthScene
 from uncertsplat.sfm.center import choose_center, random_points
-from uncertsplat.sfm.colmap_io import ColmapModel, has_model, read_colmap_model
+from uncertsplat.sfm.colmap_io import MODEL_FILES, ColmapModel, has_model, read_colmap_model
 from uncertsplat.sfm.transforms import TransformsScene, read_blender, read_nerfstudio
 from uncertsplat.types import Cameras, SceneData
 
@@ -80,11 +80,46 @@ def load_scene(path: str | Path, cfg: SceneConfig | None = None, *, initial_poin
     meta = read_scene_meta(path)
     if meta is not None:
         return _load_synthetic(path, cfg, meta, initial_points)
+    colmap_too = (["a COLMAP model in sparse/, not used (move the transforms file away to train on it)"]
+                  if (path / "sparse").is_dir() and any(has_model(d) for d in (path / "sparse", *_model_dirs(path)))
+                  else [])
     if any((path / f"transforms_{split}.json").is_file() for split in ("train", "val", "test")):
-        return _from_transforms(read_blender(path, cfg), cfg, initial_points)
+        return _with_notes(_from_transforms(read_blender(path, cfg), cfg, initial_points),
+                           [f"read as a Blender scene (transforms_*.json); the folder also holds {n}"
+                            for n in colmap_too])
     if (path / "transforms.json").is_file():
-        return _from_transforms(read_nerfstudio(path, cfg), cfg, initial_points)
+        return _with_notes(_from_transforms(read_nerfstudio(path, cfg), cfg, initial_points),
+                           [f"read as a nerfstudio scene (transforms.json); the folder also holds {n}"
+                            for n in colmap_too] + _unread_mask_notes(path / "transforms.json"))
     return _load_colmap(path, cfg)
+
+
+def _unread_mask_notes(transforms: Path) -> list[str]:
+    """A note when a nerfstudio transforms file names per-frame masks (``mask_path``), which are not read."""
+    import json
+
+    try:
+        frames = json.loads(transforms.read_text(encoding="utf-8")).get("frames", [])
+    except (OSError, ValueError, AttributeError):
+        return []  # read_nerfstudio has said what is wrong with it
+    n = sum(1 for f in frames if isinstance(f, dict) and f.get("mask_path"))
+    if not n:
+        return []
+    return [f"{n} frame(s) of {transforms.name} name a mask_path: masks are not read, so the masked pixels are "
+            "trained on like any other (a transient object there is fitted into the scene); retouch or crop those "
+            "photos, or leave the frames out"]
+
+
+def _model_dirs(path: Path) -> list[Path]:
+    """The numbered model folders of ``path/sparse`` (sparse/0, sparse/1, ...), in order."""
+    sparse = path / "sparse"
+    if not sparse.is_dir():
+        return []
+    return sorted((d for d in sparse.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name))
+
+
+def _with_notes(data: SceneData, notes: list[str]) -> SceneData:
+    return replace(data, notes=(*data.notes, *notes)) if notes else data
 
 
 def find_sparse_model(path: Path) -> Path:
@@ -116,6 +151,14 @@ def _colmap_cameras(model: ColmapModel, image_dir: Path, sparse: Path, cfg: Scen
         raise UserError("the COLMAP model has no registered images", path=sparse,
                         hint="Re-run `uncertsplat reconstruct` with more overlapping photos.")
     for cam in model.cameras.values():
+        if "FISHEYE" in cam.model or cam.model == "EQUIRECTANGULAR":
+            # not a pinhole projection whatever its coefficients (a fisheye of zero coefficients is equidistant): it
+            # trained as one without a word, 26 dB where the same photos undistorted gave 32
+            raise UserError(
+                f"COLMAP camera {cam.camera_id} uses the {cam.model} model, a projection that splatting cannot render "
+                "(not a pinhole camera, whatever its coefficients)", path=sparse,
+                hint="Undistort the images to a pinhole camera (`colmap image_undistorter`, or `uncertsplat "
+                     "reconstruct` on the photos) and load the undistorted workspace.")
         if cam.model not in ("PINHOLE", "SIMPLE_PINHOLE") and np.any(np.abs(cam.distortion) > 0):
             raise UserError(
                 f"COLMAP camera {cam.camera_id} uses the {cam.model} model with lens distortion "
@@ -138,8 +181,18 @@ def _colmap_cameras(model: ColmapModel, image_dir: Path, sparse: Path, cfg: Scen
     for im in images:
         p = image_dir / im.name
         if not p.is_file():
-            raise UserError(f"image '{im.name}' named in the COLMAP model is missing", path=p,
-                            hint=f"Put the image into {image_dir} or reconstruct again without it.")
+            missing = [m.name for m in images if not (image_dir / m.name).is_file()]
+            stem = Path(im.name).with_suffix("").name.lower()
+            near = sorted(q.name for q in p.parent.glob("*") if q.is_file() and q.stem.lower() == stem) \
+                if p.parent.is_dir() else []
+            what = (f"image '{im.name}' named in the COLMAP model is missing" if len(missing) == 1 else
+                    f"{len(missing)} of the {len(images)} images the COLMAP model names are missing (e.g. '{im.name}')")
+            raise UserError(what + (f"; {list_names(near)} is there: the model's names must match the files' "
+                                    "exactly (extension and its case too)" if near else ""), path=p,
+                            hint=("Rename the files to the model's names, or reconstruct again from them." if near
+                                  else f"Put the image into {image_dir} or reconstruct again without it."
+                                  if len(missing) == 1 else f"Put the images into {image_dir}, or reconstruct again "
+                                  "from the photos you have."))
         cam = model.cameras[im.camera_id]
         w, h = read_image_size(p)
         if (w, h) != (cam.width, cam.height):
@@ -296,10 +349,24 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
     sparse = find_sparse_model(path)
     image_dir = path / "images"
     if not image_dir.is_dir():
-        raise UserError("missing images/ folder beside sparse/", path=image_dir,
-                        hint="A COLMAP workspace needs the (undistorted) images in WORKSPACE/images.")
+        others = sorted(d.name for d in path.glob("images_*") if d.is_dir())  # LLFF's images_4, images_8 ...
+        raise UserError("missing images/ folder beside sparse/" + (f" (there is {', '.join(others)})" if others
+                                                                     else ""), path=image_dir,
+                        hint="A COLMAP workspace needs the (undistorted) images its model was made for in "
+                             "WORKSPACE/images" + (f"; {others[0]} holds downscaled copies: keep the full-size images "
+                                                   "in images/ and use --set scene.downscale=N to train smaller"
+                                                   if others else "") + ".")
     model = read_colmap_model(sparse)
     cameras, paths, fits, notes = _colmap_cameras(model, image_dir, sparse, cfg)
+    others = [d for d in _model_dirs(path) if d != sparse and has_model(d)]
+    if others:  # COLMAP's mapper splits a capture it cannot join into several models: sparse/0 is not always all
+        notes = [*notes, f"the workspace holds {len(others) + 1} COLMAP models; {sparse.relative_to(path)} is used "
+                         f"({len(model.images)} images); the others ({', '.join(str(d.relative_to(path)) for d in others)}) "
+                         "are not: reconstruct again (e.g. more overlap, --matcher exhaustive) to join them"]
+    if any((sparse / f"{n}.bin").is_file() for n in MODEL_FILES) and any((sparse / f"{n}.txt").is_file()
+                                                                          for n in MODEL_FILES):
+        notes = [*notes, f"{sparse} holds the model both as .bin and as .txt files: the .bin ones are read (as COLMAP "
+                         "does); remove the stale ones"]
     points = torch.tensor(model.points, dtype=torch.float64).reshape(-1, 3)  # source units: float64 (see above)
     rgb = torch.tensor(model.points_rgb, dtype=torch.float32).reshape(-1, 3) / 255.0
     if cfg.points_from == "train":
