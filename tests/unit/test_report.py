@@ -614,10 +614,14 @@ def test_own_page_is_replaced_anothers_is_not(tmp_path):
     (sweep_out / "index.html").write_text(page("x: sweep", "", [], "", generator="uncertsplat sweep"))
     with pytest.raises(UserError, match="index.html is not a page `report` wrote"):
         stage.run([run], sweep_out, ReportConfig())
-    # ... nor one written before sweeps had their own tag (it carried the report's)
-    (sweep_out / "index.html").write_text(page("uncertsplat sweep: bonsai", "", [], ""))
+    # ... nor one written before the tags (told by its title)
+    (sweep_out / "index.html").write_text(page("uncertsplat sweep: bonsai", "", [], "").replace(
+        '<meta name="generator" content="uncertsplat report">', ""))
     with pytest.raises(UserError, match="index.html is not a page `report` wrote"):
         stage.run([run], sweep_out, ReportConfig())
+    # a report the user titled like a sweep is still a report
+    stage.run([run], out, ReportConfig(title="uncertsplat sweep: mine"))
+    stage.run([run], out, ReportConfig())
 
 
 def test_an_evaluation_of_an_earlier_model_is_named(tmp_path, capsys):

@@ -124,14 +124,13 @@ def is_report_page(path: Path) -> bool:
             head = f.read(4096).decode("utf-8", "replace")
     except OSError:
         return False
-    if "<title>uncertsplat sweep: " in head:  # a sweep's page (those written before their own tag carried this one)
-        return False
-    if f'<meta name="generator" content="{GENERATOR}">' in head:
-        return True
-    # pages written before the tag (2026-11-29): their head as page() wrote it, with the report's style sheet
+    if 'name="generator"' in head:  # the tag says who wrote it (a sweep's page carries its own)
+        return f'<meta name="generator" content="{GENERATOR}">' in head
+    # pages written before the tag (2026-11-29): their head as page() wrote it, with the report's style sheet; a
+    # sweep's page of then is told by its title
     return (head.startswith("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">")
             and '<link rel="icon" href="data:,"><title>' in head and "--warn-line:" in head
-            and 'name="generator"' not in head)
+            and "<title>uncertsplat sweep: " not in head)
 
 
 def page(title: str, subtitle: str, nav: Sequence[tuple[str, str]], body: str, generator: str = GENERATOR) -> str:

@@ -20,6 +20,7 @@ chosen as ``SceneData.center`` / ``center_method`` / ``center_reason``.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -115,7 +116,8 @@ def _model_dirs(path: Path) -> list[Path]:
     sparse = path / "sparse"
     if not sparse.is_dir():
         return []
-    return sorted((d for d in sparse.iterdir() if d.is_dir() and d.name.isdigit()), key=lambda d: int(d.name))
+    return sorted((d for d in sparse.iterdir() if d.is_dir() and re.fullmatch(r"[0-9]+", d.name)),
+                  key=lambda d: int(d.name))
 
 
 def _with_notes(data: SceneData, notes: list[str]) -> SceneData:
@@ -349,7 +351,8 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
     sparse = find_sparse_model(path)
     image_dir = path / "images"
     if not image_dir.is_dir():
-        others = sorted(d.name for d in path.glob("images_*") if d.is_dir())  # LLFF's images_4, images_8 ...
+        others = sorted((d.name for d in path.glob("images_*") if d.is_dir() and re.fullmatch(r"images_[0-9]+", d.name)),
+                        key=lambda n: int(n.split("_")[1]))  # LLFF's images_4, images_8 ...
         raise UserError("missing images/ folder beside sparse/" + (f" (there is {', '.join(others)})" if others
                                                                      else ""), path=image_dir,
                         hint="A COLMAP workspace needs the (undistorted) images its model was made for in "
@@ -358,12 +361,12 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
                                                    if others else "") + ".")
     model = read_colmap_model(sparse)
     cameras, paths, fits, notes = _colmap_cameras(model, image_dir, sparse, cfg)
-    others = [d for d in _model_dirs(path) if d != sparse and has_model(d)]
+    others = [d for d in _model_dirs(path) if d.resolve() != sparse.resolve() and has_model(d)]
     if others:  # COLMAP's mapper splits a capture it cannot join into several models: sparse/0 is not always all
         notes = [*notes, f"the workspace holds {len(others) + 1} COLMAP models; {sparse.relative_to(path)} is used "
                          f"({len(model.images)} images); the others ({', '.join(str(d.relative_to(path)) for d in others)}) "
                          "are not: reconstruct again (e.g. more overlap, --matcher exhaustive) to join them"]
-    if any((sparse / f"{n}.bin").is_file() for n in MODEL_FILES) and any((sparse / f"{n}.txt").is_file()
+    if all((sparse / f"{n}.bin").is_file() for n in MODEL_FILES) and any((sparse / f"{n}.txt").is_file()
                                                                           for n in MODEL_FILES):
         notes = [*notes, f"{sparse} holds the model both as .bin and as .txt files: the .bin ones are read (as COLMAP "
                          "does); remove the stale ones"]
@@ -530,18 +533,22 @@ def pose_twins(cameras: Cameras, held_out: Sequence[int], train: Sequence[int]) 
     axis = cameras.cam_from_world[:, 2, :3].double()  # [C,3] each camera's optical axis in the world
     axis = axis / axis.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     focal = cameras.K[:, 0, 0].double()  # [C]
-    h, t = torch.as_tensor(list(held_out)), torch.as_tensor(list(train))
-    chord = torch.cdist(axis[h], axis[t]).clamp(max=2.0)  # [H,T]; the angle from the chord keeps its digits near 0
-    angle = torch.rad2deg(2.0 * torch.asin(chord / 2.0))
-    delta = torch.maximum(torch.cdist(c[h], c[t]) / (TWIN_DISTANCE * radius), angle / TWIN_ANGLE_DEG)
-    delta = delta.masked_fill((focal[h, None] - focal[None, t]).abs() > 0.02 * focal[h, None], math.inf)
-    d, order = delta.sort(dim=1)  # [H,T] nearest first
-    after = torch.cat([d[:, 1:], torch.full_like(d[:, :1], math.inf)], dim=1)  # the next view's delta
-    ends = (d <= 1.0) & (after >= TWIN_JUMP * d.clamp_min(1e-6))  # a twin group can end here
+    t = torch.as_tensor(list(train))
     out: dict[int, list[int]] = {}
-    for i in ends.any(dim=1).nonzero()[:, 0].tolist():
-        j = int(ends[i].nonzero()[0, 0])  # the first (tightest) group
-        out[int(h[i])] = sorted(int(t[k]) for k in order[i, : j + 1])
+    held = list(held_out)
+    rows = max(1, 2**22 // max(len(t), 1))  # held-out views per block: a few [rows,T] float64 arrays of 32 MB
+    for start in range(0, len(held), rows):
+        h = torch.as_tensor(held[start:start + rows])
+        chord = torch.cdist(axis[h], axis[t]).clamp(max=2.0)  # [H,T]; the angle from the chord keeps digits near 0
+        angle = torch.rad2deg(2.0 * torch.asin(chord / 2.0))
+        delta = torch.maximum(torch.cdist(c[h], c[t]) / (TWIN_DISTANCE * radius), angle / TWIN_ANGLE_DEG)
+        delta = delta.masked_fill((focal[h, None] - focal[None, t]).abs() > 0.02 * focal[h, None], math.inf)
+        d, order = delta.sort(dim=1)  # [H,T] nearest first
+        after = torch.cat([d[:, 1:], torch.full_like(d[:, :1], math.inf)], dim=1)  # the next view's delta
+        ends = (d <= 1.0) & (after >= TWIN_JUMP * d.clamp_min(1e-6))  # a twin group can end here
+        for i in ends.any(dim=1).nonzero()[:, 0].tolist():
+            j = int(ends[i].nonzero()[0, 0])  # the first (tightest) group
+            out[int(h[i])] = sorted(int(t[k]) for k in order[i, : j + 1])
     return out
 
 

@@ -204,7 +204,12 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                           "which stores one table entry, or ensemble_size and spawn_fraction without offset tables)")
         log = out_dir / "sweep.jsonl"
         done = {r.hash for r in read_records(log) if r.status == "ok"} & hashes if not force else set()
-        _move_point_reports(out_dir, read_records(log), current)
+        everywhere = current  # with --scenes, the other scenes' points too (their reports move with them)
+        if whole is not spec:
+            others = {n: out_dir / "scenes" / n for n in whole.scenes if n not in spec.scenes}
+            everywhere = {p["hash"]: p for j in make_jobs(whole, out_dir, {**folders, **others}, str(dev), threads=None)
+                          for p in j["points"]}
+        _move_point_reports(out_dir, read_records(log), everywhere)
         todo = []
         for job in all_jobs:
             job["points"] = [p for p in job["points"] if p["hash"] not in done]
@@ -272,9 +277,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                                   "trained again).") from None
 
         if whole is not spec:  # --scenes: the other scenes' points (a point's hash does not depend on its folder)
-            others = {n: out_dir / "scenes" / n for n in whole.scenes if n not in spec.scenes}
-            current = {p["hash"]: p for j in make_jobs(whole, out_dir, {**folders, **others}, str(dev), threads=None)
-                       for p in j["points"]}
+            current = everywhere
             hashes |= set(current)
         # a record measured under an earlier spec for a point of this one (the same configs) takes this spec's id,
         # knobs and default flag: a changed default made the old default's record claim to be it

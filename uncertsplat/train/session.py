@@ -290,8 +290,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                     moved = sorted(set(before.train) - set(now)) or sorted(set(now) - set(before.train))
                     raise UserError(f"the run trained on other views than this scene's split gives it now "
                                     f"({list_names(moved)}): its checkpoint's order of views would not match",
-                                    path=run_dir, hint="Resume it on the scene and split it started with, or train a "
-                                                       "new run.")
+                                    path=run_dir, hint="Resume it on a scene folder holding the photos it started "
+                                                       "with (photos added to the folder move the held-out views, "
+                                                       "every scene.test_every-th by name), or train a new run.")
         atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         views_added = list(before.views_added) if before is not None else []
         if add_views:
