@@ -659,3 +659,23 @@ def test_runs_without_maps_are_left_out_of_the_side_by_side_not_the_others(tmp_p
     assert "figures/compare_view0.png" not in page.imgs
     assert "Fewer than two runs have uncertainty maps; side-by-side images left out (no maps: bare)." in \
         (out / "index.html").read_text()
+
+
+def test_the_summary_says_plainly_when_the_std_is_too_small_or_too_large(tmp_path):
+    """The calibration table's 68 % row, in one sentence (a reader had only the diagonal plot to go by)."""
+    from uncertsplat.report.build import calibration_verdict
+
+    m = make_metrics(["view_000.png"])  # observed = 0.8 x nominal: 55 % inside the 68 % interval
+    text = calibration_verdict(m)
+    assert text.startswith("the RGB std is too small on these views (over-confident): 55% of the errors lie inside "
+                           "its central 68% interval")
+    assert "calibration_holdout" not in text  # no fitted factor below 1 to warn of
+    m.std_scale, m.calibration_held_out = 0.8, False
+    assert "(train with --set scene.calibration_holdout=3)" in calibration_verdict(m)
+    m.calibration["rgb"].observed = [x * 1.0 for x in m.calibration["rgb"].nominal]
+    assert calibration_verdict(m) is None
+    m.calibration["rgb"].observed = [min(1.0, x * 1.2) for x in m.calibration["rgb"].nominal]
+    assert "too large on these views (under-confident): 82%" in calibration_verdict(m)
+    run = make_run(tmp_path, "r", maps=False, stats=False)
+    stage.run([run], tmp_path / "out", ReportConfig())
+    assert "over-confident" in (tmp_path / "out" / "index.html").read_text()

@@ -136,6 +136,9 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
             body.append(_missing_metrics_note(run))
         for n in run.notes:
             body.append(note(f"{run.name}: {n}"))
+        verdict = calibration_verdict(run.metrics) if run.metrics is not None else None
+        if verdict:
+            body.append(note(f"{run.name}: {verdict}"))
         if run.metrics is not None:
             if run.metrics.mean.spearman_note:
                 body.append(note(f"{run.name}: Spearman: {run.metrics.mean.spearman_note}"))
@@ -148,6 +151,34 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
             last = updates[-1].model_dump() if updates else None
             body.append(note(f"{run.name} (train): {describe_posterior(post.model_dump(), last)}"))
     w.section("summary", "Summary", "".join(body))
+
+
+CALIBRATION_SLACK = 0.05
+"""``calibration_verdict``: how far the observed share inside the central 68 % interval may lie from 68 % before the
+std is called too small or too large."""
+
+
+def calibration_verdict(m) -> str | None:
+    """One plain sentence on the RGB std's level on the evaluated views: the share of the errors inside the
+    predictive's central 68 % interval against 68 % (None when calibrated within ``CALIBRATION_SLACK`` or not
+    measured)."""
+    table = m.calibration.get("rgb") if m.calibration else None
+    if table is None or not table.ks:
+        return None
+    i = min(range(len(table.ks)), key=lambda j: abs(table.ks[j] - 1.0))
+    seen, nominal = table.observed[i], table.nominal[i]
+    if seen is None or abs(seen - nominal) <= CALIBRATION_SLACK:
+        return None
+    if seen < nominal:
+        what = (f"the RGB std is too small on these views (over-confident): {seen:.0%} of the errors lie inside its "
+                f"central {nominal:.0%} interval")
+        fix = ("; the std factor fitted on training views does not mend it (it was fitted where the model fits "
+               "better): views set aside from training give one that holds for new views "
+               "(train with --set scene.calibration_holdout=3)"
+               if m.std_scale is not None and m.std_scale < 1.0 and not m.calibration_held_out else "")
+        return what + fix
+    return (f"the RGB std is too large on these views (under-confident): {seen:.0%} of the errors lie inside its "
+            f"central {nominal:.0%} interval; the std factor (NLL, std rescaled) corrects the level")
 
 
 def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
@@ -224,7 +255,8 @@ def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[
         loaded[ri] = {}
         shown = names[:max_views]
         if len(names) > len(shown):
-            body.append(para(f"Showing {len(shown)} of {len(names)} views (ReportConfig.max_views).", "muted"))
+            body.append(para(f"Showing {len(shown)} of {len(names)} views (`report --set max_views=N` shows more; "
+                             "the tables list every view).", "muted"))
         for vi, name in enumerate(shown):
             view = load_view(name, run.maps_dir)
             loaded[ri][name] = view
@@ -340,7 +372,10 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
     if with_stats:
         body.append(w.add_figure("timeline.png", F.timeline_figure(with_stats),
                                  "Training timeline from stats.jsonl: loss terms (symlog scale), number of "
-                                 "Gaussians (dashed: those carrying a posterior), held-out PSNR, seconds per step.",
+                                 "Gaussians (dashed: those carrying a posterior), held-out PSNR, seconds per step. "
+                                 "A held-out PSNR that drops at a step and recovers within a few hundred is an "
+                                 "opacity reset (densify.opacity_reset_interval, 3DGS's way to clear floaters: every "
+                                 "opacity is lowered at once and relearned), not a failure.",
                                  "training timeline"))
     for run in runs:
         if not run.stats:

@@ -393,7 +393,10 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         low = low_coverage_notes(sampler.coverage if cfg.empty_rays and sampler.empty_std is not None else None,
                                  loaded.config.iterations)
         few = few_samples_notes(report.mean.psnr, report.mean.psnr_render, cfg.num_samples)
-        report.notes.extend([*reach, *low, *few])
+        # the std factor's caveats go into the report too (the console said them, the page did not)
+        factor = (std_factor_notes(len(report.calibration_views), report.mean.nll_calibrated, report.mean.nll)
+                  if report.std_scale is not None and None not in (report.mean.nll_calibrated, report.mean.nll) else [])
+        report.notes.extend([*reach, *low, *few, *factor])
         if Path(loaded.source).is_file():  # which model and run these numbers belong to (prune reads them back)
             report.run_sha256 = run_sha256(run_dir, Path(loaded.source))
         atomic_write_text(out / "metrics.json", report.to_json() + "\n")
@@ -454,7 +457,8 @@ def _reach_notes(sampler, views, device: torch.device) -> list[str]:
     if beyond:
         listed = ", ".join(f"{name} {100 * f:.0f} %" for name, f in sorted(beyond.items(), key=lambda x: -x[1]))
         notes.append(f"{len(beyond)} of {len(reach)} views show surface that no training photo had in view (the model "
-                     f"extrapolates there, and its std says so): {listed}")
+                     f"extrapolates there; its std is widened for it, and those views' calibration error says whether "
+                     f"by enough): {listed}")
     finer = {name: r[1] for name, r in reach.items() if r[1] >= FINER_NOTE}
     if finer:
         listed = ", ".join(f"{name} x{f:.1f}" for name, f in sorted(finer.items(), key=lambda x: -x[1]))
