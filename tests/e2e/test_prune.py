@@ -169,6 +169,8 @@ class TestAuto:
         assert result.counts.removed == round(0.4 * n)
         best = result.sweep.largest_removal_within_tolerance
         assert best.keep_ratio == 0.6 and best.psnr_loss_db <= 100.0
+        # the choice was made on the held-out views it reports on: said
+        assert any(n.startswith("the keep ratio and the score were chosen on these held-out views") for n in result.notes)
 
     def test_nothing_within_tolerance_removes_nothing_and_says_why(self, tiny_run_path):  # noqa: F811
         # removing 70 % of a trained model always costs PSNR, so a zero tolerance admits no ratio
