@@ -567,8 +567,8 @@ def test_training_section_says_which_sh_bands_the_scene_kept(tmp_path):
                         ShBandCheck(degree=2, step=3000, gain_db=0.012, kept=False, min_gain_db=0.05, views=8)]
     summary.write(run / "train_summary.json")
     html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
-    assert "SH band 1 at step 2000: +0.3100 dB on 8 training views (&gt;= 0.05 dB), kept" in html
-    assert "SH band 2 at step 3000: +0.0120 dB" in html and "dropped: the model keeps degree 1" in html
+    assert "SH band 1 on for one sh_degree_interval, tested at step 2000: +0.3100 dB on 8 training views (&gt;= 0.05 dB), kept" in html
+    assert "SH band 2 on for one sh_degree_interval, tested at step 3000: +0.0120 dB" in html and "dropped: the model keeps degree 1" in html
 
 
 def test_training_section_says_where_growth_stopped(tmp_path):

@@ -191,6 +191,6 @@ class TestTraining:
 
 def test_band_reason_says_what_was_decided():
     b = BandCheck(degree=2, step=3000, gain_db=0.01, kept=False, min_gain_db=0.05, views=8)
-    assert band_reason(b) == ("SH band 2 at step 3000: +0.0100 dB on 8 training views (< 0.05 dB), dropped: the "
+    assert band_reason(b) == ("SH band 2 on for one sh_degree_interval, tested at step 3000: +0.0100 dB on 8 training views (< 0.05 dB), dropped: the "
                               "model keeps degree 1")
     assert band_reason(b.model_copy(update={"kept": True})).endswith("(>= 0.05 dB), kept")

@@ -32,8 +32,8 @@ def band_reason(check: BandCheck) -> str:
     """One line for the log and the report: the band, its measured gain and what was decided."""
     verdict = "kept" if check.kept else f"dropped: the model keeps degree {check.degree - 1}"
     cmp = ">=" if check.kept else "<"
-    return (f"SH band {check.degree} at step {check.step}: {check.gain_db:+.4f} dB on {check.views} training views "
-            f"({cmp} {check.min_gain_db:g} dB), {verdict}")
+    return (f"SH band {check.degree} on for one sh_degree_interval, tested at step {check.step}: {check.gain_db:+.4f} dB on "
+            f"{check.views} training views ({cmp} {check.min_gain_db:g} dB), {verdict}")
 
 
 def check_due(step: int, interval: int, max_degree: int, min_gain_db: float, checked: set[int]) -> int | None:
