@@ -81,18 +81,22 @@ def load_scene(path: str | Path, cfg: SceneConfig | None = None, *, initial_poin
     meta = read_scene_meta(path)
     if meta is not None:
         return _load_synthetic(path, cfg, meta, initial_points)
-    colmap_too = (["a COLMAP model in sparse/, not used (move the transforms file away to train on it)"]
-                  if (path / "sparse").is_dir() and any(has_model(d) for d in (path / "sparse", *_model_dirs(path)))
-                  else [])
     if any((path / f"transforms_{split}.json").is_file() for split in ("train", "val", "test")):
         return _with_notes(_from_transforms(read_blender(path, cfg), cfg, initial_points),
-                           [f"read as a Blender scene (transforms_*.json); the folder also holds {n}"
-                            for n in colmap_too])
+                           _colmap_beside(path, "a Blender scene (transforms_*.json)"))
     if (path / "transforms.json").is_file():
         return _with_notes(_from_transforms(read_nerfstudio(path, cfg), cfg, initial_points),
-                           [f"read as a nerfstudio scene (transforms.json); the folder also holds {n}"
-                            for n in colmap_too] + _unread_mask_notes(path / "transforms.json"))
+                           _colmap_beside(path, "a nerfstudio scene (transforms.json)")
+                           + _unread_mask_notes(path / "transforms.json"))
     return _load_colmap(path, cfg)
+
+
+def _colmap_beside(path: Path, read_as: str) -> list[str]:
+    """A note when a folder read as ``read_as`` (a transforms file) also holds a COLMAP model, which is not used."""
+    if not (path / "sparse").is_dir() or not any(has_model(d) for d in (path / "sparse", *_model_dirs(path))):
+        return []
+    return [f"read as {read_as}; the folder also holds a COLMAP model in sparse/, not used (move the transforms file "
+            "away to train on it)"]
 
 
 def _unread_mask_notes(transforms: Path) -> list[str]:
@@ -572,12 +576,16 @@ def with_training_views(data: SceneData, names: Sequence[str]) -> SceneData:
     notes = [n for n in data.notes if TWIN_NOTE not in n]
     twins = pose_twins(data.cameras, sorted(held), train)
     if twins:  # the recorded views hold a held-out view's twin: its score is one of memory, and the note says so
-        pairs = [f"{', '.join(data.cameras.image_names[j] for j in js)} (= {data.cameras.image_names[i]})"
-                 for i, js in sorted(twins.items())]
         notes.append(f"{sum(map(len, twins.values()))} training view(s) {TWIN_NOTE} (the same camera pose): "
-                     f"{'; '.join(pairs[:4])}{'; ...' if len(pairs) > 4 else ''}; the run trained on them (its "
-                     "scene.json), so those held-out scores measure what the model memorised")
+                     f"{_twin_pairs(data.cameras.image_names, twins)}; the run trained on them (its scene.json), so "
+                     "those held-out scores measure what the model memorised")
     return replace(data, split={**data.split, "train": train}, notes=tuple(notes))
+
+
+def _twin_pairs(names: Sequence[str], twins: dict[int, list[int]]) -> str:
+    """``pose_twins``' result for a note: "twin, twin (= held-out view); ..." (the first four)."""
+    pairs = [f"{', '.join(names[j] for j in js)} (= {names[i]})" for i, js in sorted(twins.items())]
+    return "; ".join(pairs[:4]) + ("; ..." if len(pairs) > 4 else "")
 
 
 def _without_twins(cameras: Cameras, split: dict[str, tuple[int, ...]], cfg: SceneConfig
@@ -590,10 +598,8 @@ def _without_twins(cameras: Cameras, split: dict[str, tuple[int, ...]], cfg: Sce
     twins = pose_twins(cameras, held_out, split["train"])
     if not twins:
         return split, None
-    pairs = [f"{', '.join(names[j] for j in js)} (= {names[i]})" for i, js in sorted(twins.items())]
-    listed = "; ".join(pairs[:4]) + ("; ..." if len(pairs) > 4 else "")
     what = (f"{sum(map(len, twins.values()))} training view(s) {TWIN_NOTE} (the same camera pose: a copy under "
-            f"another name or format, or an exposure bracket): {listed}")
+            f"another name or format, or an exposure bracket): {_twin_pairs(names, twins)}")
     if cfg.train_names is not None or cfg.train_indices is not None:
         return split, what + "; they are trained on as given, so those held-out scores measure what the model " \
                              "memorised (leave them out of scene.train_names / train_indices)"

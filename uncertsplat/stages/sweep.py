@@ -203,13 +203,14 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                           "knob at the value the preset already gives, num_entries with the informed posterior, "
                           "which stores one table entry, or ensemble_size and spawn_fraction without offset tables)")
         log = out_dir / "sweep.jsonl"
-        done = {r.hash for r in read_records(log) if r.status == "ok"} & hashes if not force else set()
+        before = read_records(log)  # what earlier runs of the sweep measured
+        done = {r.hash for r in before if r.status == "ok"} & hashes if not force else set()
         everywhere = current  # with --scenes, the other scenes' points too (their reports move with them)
         if whole is not spec:
             others = {n: out_dir / "scenes" / n for n in whole.scenes if n not in spec.scenes}
             everywhere = {p["hash"]: p for j in make_jobs(whole, out_dir, {**folders, **others}, str(dev), threads=None)
                           for p in j["points"]}
-        _move_point_reports(out_dir, read_records(log), everywhere)
+        _move_point_reports(out_dir, before, everywhere)
         todo = []
         for job in all_jobs:
             job["points"] = [p for p in job["points"] if p["hash"] not in done]
@@ -281,10 +282,11 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
             hashes |= set(current)
         # a record measured under an earlier spec for a point of this one (the same configs) takes this spec's id,
         # knobs and default flag: a changed default made the old default's record claim to be it
-        kept = [r for r in read_records(log) if r.hash in hashes]
+        logged = read_records(log)  # with this run's records
+        kept = [r for r in logged if r.hash in hashes]
         records = [r.model_copy(update={"id": current[r.hash]["id"], "knobs": current[r.hash]["knobs"],
                                         "is_default": current[r.hash]["is_default"]}) for r in kept]
-        stale = len({r.hash for r in read_records(log)} - hashes)
+        stale = len({r.hash for r in logged} - hashes)
         if stale:
             console.print(f"[yellow]note:[/] {log} also holds {_count(stale, 'point')} of other settings (an earlier "
                           "spec or --set): kept there, left out of this sweep's summary and plot")

@@ -46,6 +46,7 @@ from uncertsplat.gaussians.variational import (
 from uncertsplat.io.images import area_resize
 from uncertsplat.render import near_plane, render
 from uncertsplat.render.exposure import centred, expose, exposure_record, fitted_gain, unexpose
+from uncertsplat.render.project import project_points
 from uncertsplat.schemas.runs import RunExposure
 from uncertsplat.strategy.budget import gaussian_budget
 from uncertsplat.strategy.densify import Densifier, DensifyStats
@@ -106,13 +107,10 @@ def few_points_notes(points: Tensor, cameras: Cameras, init_num_random: int) -> 
     n = points.shape[0]
     if n >= FEW_POINTS:
         return []
-    p = points.double().cpu()
-    seen = torch.zeros(n, dtype=torch.bool)
-    for M, K in zip(cameras.cam_from_world.double().cpu(), cameras.K.double().cpu(), strict=True):
-        q = p @ M[:3, :3].T + M[:3, 3]
-        z = q[:, 2].clamp_min(1e-12)
-        u, v = K[0, 0] * q[:, 0] / z + K[0, 2], K[1, 1] * q[:, 1] / z + K[1, 2]
-        seen |= (q[:, 2] > 0) & (u >= 0) & (u < cameras.width) & (v >= 0) & (v < cameras.height)
+    uv, z = project_points(points.double().cpu(), cameras.cam_from_world.cpu(), cameras.K.cpu())  # [C,N,2], [C,N]
+    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < cameras.width) & (uv[..., 1] >= 0) & \
+        (uv[..., 1] < cameras.height)
+    seen = inside.any(0)  # [N]
     more = "; --set init_num_random=10000 adds random points to grow from" if init_num_random == 0 else ""
     return [f"the model starts from only {n} point(s), {int(seen.sum())} of them in view of a training camera: it "
             f"grows slowly from so few{more}"]
@@ -206,8 +204,7 @@ class Trainer:
         self.init_notes = few_points_notes(points, self.train_cams, cfg.init_num_random)
         # the model-size limit holds from the start: a cloud above it is thinned at random (its own generator, so
         # that the runs below the limit draw what they drew before)
-        cap = gaussian_budget(cfg.densify.max_gaussians, cfg.densify.pixels_per_gaussian, views=len(self.train_idx),
-                              width=self.train_cams.width, height=self.train_cams.height).max_gaussians
+        cap = self._budget().max_gaussians
         if points.shape[0] > cap:
             keep = torch.randperm(points.shape[0], generator=torch.Generator().manual_seed(cfg.seed + 5))[:cap]
             keep = keep.sort().values.to(self.device)
@@ -355,11 +352,15 @@ class Trainer:
         self._init_exposure(state)
 
     # -------------------------------------------------------------------------------- helpers
+    def _budget(self):
+        """The model-size limit: the user's, or the scene's from its training pixels (``strategy.budget``)."""
+        d = self.cfg.densify
+        return gaussian_budget(d.max_gaussians, d.pixels_per_gaussian, views=len(self.train_idx),
+                               width=self.train_cams.width, height=self.train_cams.height)
+
     def _make_densifier(self) -> Densifier:
         dcfg = self.cfg.densify
-        # the model-size limit: the user's, or the scene's from its training pixels (strategy.budget)
-        self.budget = gaussian_budget(dcfg.max_gaussians, dcfg.pixels_per_gaussian, views=len(self.train_idx),
-                                      width=self.train_cams.width, height=self.train_cams.height)
+        self.budget = self._budget()
         dcfg = dcfg.model_copy(update={"max_gaussians": self.budget.max_gaussians})
         if not self.variational:  # plain 3DGS: densify, never spawn posteriors
             dcfg = dcfg.model_copy(update={"spawn_interval": 10**9})
