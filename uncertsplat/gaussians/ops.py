@@ -129,6 +129,26 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
     ], dim=-1).reshape(*quats.shape[:-1], 3, 3)
 
 
+def rotmat_to_quat(R: Tensor) -> Tensor:
+    """[4] unit quaternion (w, x, y, z), w >= 0, of the rotation matrix ``R`` [3,3] (float64): the inverse of
+    ``quat_to_rotmat`` (from the largest of the four diagonal combinations, so no division by a small number)."""
+    R = R.double()
+    m = [1.0 + R[0, 0] + R[1, 1] + R[2, 2], 1.0 + R[0, 0] - R[1, 1] - R[2, 2],
+         1.0 - R[0, 0] + R[1, 1] - R[2, 2], 1.0 - R[0, 0] - R[1, 1] + R[2, 2]]
+    k = max(range(4), key=lambda i: float(m[i]))
+    r = torch.sqrt(m[k].clamp_min(0.0)) * 2.0  # 4 x the largest component
+    if k == 0:
+        q = torch.stack([r / 4, (R[2, 1] - R[1, 2]) / r, (R[0, 2] - R[2, 0]) / r, (R[1, 0] - R[0, 1]) / r])
+    elif k == 1:
+        q = torch.stack([(R[2, 1] - R[1, 2]) / r, r / 4, (R[0, 1] + R[1, 0]) / r, (R[0, 2] + R[2, 0]) / r])
+    elif k == 2:
+        q = torch.stack([(R[0, 2] - R[2, 0]) / r, (R[0, 1] + R[1, 0]) / r, r / 4, (R[1, 2] + R[2, 1]) / r])
+    else:
+        q = torch.stack([(R[1, 0] - R[0, 1]) / r, (R[0, 2] + R[2, 0]) / r, (R[1, 2] + R[2, 1]) / r, r / 4])
+    q = q / q.norm()
+    return -q if q[0] < 0 else q
+
+
 def split(model: GaussianModel, optimizer, mask: Tensor, generator: torch.Generator, *, scales: Tensor,
           prior: Prior, n: int = 2, factor: float = 1.6, carry: bool = True) -> None:
     """Replace each Gaussian in ``mask`` by ``n`` children (3DGS split), all carrying a posterior.

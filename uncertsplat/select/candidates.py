@@ -25,7 +25,7 @@ from torch import Tensor
 
 from uncertsplat.data.synthetic import look_at
 from uncertsplat.errors import UserError
-from uncertsplat.gaussians.ops import quat_to_rotmat
+from uncertsplat.gaussians.ops import quat_to_rotmat, rotmat_to_quat
 from uncertsplat.types import Cameras, SceneData
 
 DEFAULT_AROUND = 32
@@ -140,26 +140,6 @@ def read_pose_file(path: Path, scene: SceneData, world_from_source: Tensor) -> C
     first = scene.cameras[[scene.split["train"][0]]]
     return Cameras(torch.stack(rows).float(), first.K.expand(len(rows), 3, 3).clone(), first.width, first.height,
                    tuple(names))
-
-
-def rotmat_to_quat(R: Tensor) -> Tensor:
-    """[4] unit quaternion (w, x, y, z), w >= 0, of the rotation matrix ``R`` [3,3] (float64): the inverse of
-    ``quat_to_rotmat`` (from the largest of the four diagonal combinations, so no division by a small number)."""
-    R = R.double()
-    m = [1.0 + R[0, 0] + R[1, 1] + R[2, 2], 1.0 + R[0, 0] - R[1, 1] - R[2, 2],
-         1.0 - R[0, 0] + R[1, 1] - R[2, 2], 1.0 - R[0, 0] - R[1, 1] + R[2, 2]]
-    k = max(range(4), key=lambda i: float(m[i]))
-    r = torch.sqrt(m[k].clamp_min(0.0)) * 2.0  # 4 x the largest component
-    if k == 0:
-        q = torch.stack([r / 4, (R[2, 1] - R[1, 2]) / r, (R[0, 2] - R[2, 0]) / r, (R[1, 0] - R[0, 1]) / r])
-    elif k == 1:
-        q = torch.stack([(R[2, 1] - R[1, 2]) / r, r / 4, (R[0, 1] + R[1, 0]) / r, (R[0, 2] + R[2, 0]) / r])
-    elif k == 2:
-        q = torch.stack([(R[0, 2] - R[2, 0]) / r, (R[0, 1] + R[1, 0]) / r, r / 4, (R[1, 2] + R[2, 1]) / r])
-    else:
-        q = torch.stack([(R[1, 0] - R[0, 1]) / r, (R[0, 2] + R[2, 0]) / r, (R[1, 2] + R[2, 1]) / r, r / 4])
-    q = q / q.norm()
-    return -q if q[0] < 0 else q
 
 
 def pose_line(name: str, cam_from_world: Tensor, world_from_source: Tensor) -> str:

@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 
 from uncertsplat.baselines.runs import LoadedRun
-from uncertsplat.gaussians.ops import quat_to_rotmat
+from uncertsplat.gaussians.ops import quat_to_rotmat, rotmat_to_quat
 from uncertsplat.report.colormaps import color_range, colorize
 from uncertsplat.types import Cameras, GaussianSample, RenderOutput, _map_tensors
 from uncertsplat.uncertainty.mc import MonteCarloMoments
@@ -114,24 +114,8 @@ def camera_pose(cam_from_world: Tensor, K: Tensor, height: int) -> tuple[np.ndar
 
 
 def rotmat_to_wxyz(R: np.ndarray) -> np.ndarray:
-    """[3,3] rotation -> unit quaternion wxyz with w >= 0 (Shepperd's method: stable for every rotation)."""
-    m = np.asarray(R, dtype=np.float64)
-    tr = np.trace(m)
-    if tr > 0:
-        s = 2.0 * math.sqrt(1.0 + tr)
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    else:
-        i = int(np.argmax(np.diag(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(max(1.0 + m[i, i] - m[j, j] - m[k, k], 1e-300))
-        q = [0.0, 0.0, 0.0, 0.0]
-        q[0] = (m[k, j] - m[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (m[j, i] + m[i, j]) / s
-        q[1 + k] = (m[k, i] + m[i, k]) / s
-    q = np.asarray(q)
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+    """[3,3] rotation -> unit quaternion wxyz with w >= 0, as numpy (``gaussians.ops.rotmat_to_quat``)."""
+    return rotmat_to_quat(torch.from_numpy(np.asarray(R, dtype=np.float64))).numpy()
 
 
 def _surface_depth(out: RenderOutput) -> np.ndarray:
