@@ -76,6 +76,35 @@ def test_plot_pareto_writes_a_png(tmp_path):
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.parametrize(("lo", "hi"), [(40.0, 90.0), (12.0, 45.0), (30.0, 300.0), (5.0, 5000.0)])
+def test_plot_pareto_time_labels_are_plain_and_apart(tmp_path, monkeypatch, lo, hi):
+    """Seconds read as 40, 100 (not 4 x 10^1), and the labels of a short log range do not run into each other."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figs = []
+    monkeypatch.setattr(plt, "close", figs.append)  # keep the figure plot_pareto would close
+    times = [lo * (hi / lo) ** (i / 5) for i in range(6)]
+    recs = [{"id": f"p{i}", "method": "variational", "status": "ok", "time": t, "ause_mae": 0.2 - 0.01 * i,
+             "nll": -3.0 - 0.05 * i, "is_default": i == 0} for i, t in enumerate(times)]
+    plot_pareto(recs, tmp_path / "p.png")
+    fig = figs[0]
+    renderer = fig.canvas.get_renderer()
+    for ax in fig.axes:
+        labels = [t for t in ax.get_xticklabels(minor=False) + ax.get_xticklabels(minor=True)
+                  if t.get_text() and t.get_visible() and lo * 0.9 <= t.get_position()[0] <= hi * 1.1]
+        assert len(labels) >= 2, [t.get_text() for t in labels]  # a reader can place the points
+        for t in labels:
+            assert "times" not in t.get_text() and "^" not in t.get_text(), t.get_text()
+            float(t.get_text().replace("\u2212", "-"))  # a plain number
+        boxes = sorted((t.get_window_extent(renderer) for t in labels), key=lambda b: b.x0)
+        for a, b in zip(boxes, boxes[1:], strict=False):
+            assert a.x1 <= b.x0, "tick labels overlap"
+    plt.close("all")
+
+
 @pytest.mark.parametrize(("values", "expected"), [
     ([0.132, 0.139, 0.17, 0.29, 0.76], ("log", {})),  # AUSE with a K = 1 point: a factor 5.8
     ([0.132, 0.139, 0.17], ("linear", {})),  # close together

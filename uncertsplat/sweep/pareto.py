@@ -184,6 +184,8 @@ def plot_pareto(records: Sequence[Any], path: Path, x: str = "time", ys: Sequenc
 def _panels(axes, ok: Sequence[Any], x: str, ys: Sequence[str], methods: list[str], colour: dict,
             heading: str | None) -> None:
     """One row of ``plot_pareto``'s panels (one per ``ys`` key) for the points ``ok``."""
+    from matplotlib.ticker import LogFormatter
+
     labels = {"time": "training + evaluation time (s)", "train_seconds": "training time (s)",
               "eval_seconds_per_view": "evaluation time per view (s)", "ause_mae": "AUSE (MAE), lower is better",
               "ause_rmse": "AUSE (RMSE), lower is better", "nll": "NLL, lower is better", "psnr": "PSNR (dB)",
@@ -210,6 +212,10 @@ def _panels(axes, ok: Sequence[Any], x: str, ys: Sequence[str], methods: list[st
                            linewidth=1.5, label="default", zorder=4)
         if pts and min(_value(r, x) for r in pts) > 0:
             ax.set_xscale("log")
+            # seconds as plain numbers (40, 100) instead of 4 x 10^1; LogFormatter still labels only as many
+            # of the minor ticks as fit, so a range under a decade gets a few labels that do not collide
+            for axis_fmt in (ax.xaxis.set_major_formatter, ax.xaxis.set_minor_formatter):
+                axis_fmt(LogFormatter(labelOnlyBase=False))
         scale, kw = y_scale([_value(r, y) for r in pts])  # e.g. the NLL of K = 1 (std 0) dwarfs the rest
         ax.set_yscale(scale, **kw)
         ax.set_xlabel(labels.get(x, x))
