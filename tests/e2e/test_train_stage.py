@@ -197,3 +197,37 @@ def test_a_run_without_a_posterior_is_named_by_evaluate(tiny_scene_path, tmp_pat
     assert "no Gaussian carries a posterior" in note and "model is of step 2" in note
     carriers = dataclasses.replace(loaded, model=random_model(20, torch.Generator().manual_seed(0)))
     assert carriers.model.num_carriers > 0 and carriers.eval_notes(4) == []
+
+
+def test_a_scene_whose_cameras_changed_is_refused(tiny_scene_path, tmp_path):  # noqa: F811
+    """A workspace reconstructed again after training (here: the same COLMAP model moved by a similarity, as a new
+    SfM run's arbitrary frame would be) no longer lines up with the model: evaluate's scene load and a resume are
+    refused and name the change, and the run's files stay as they were; the model written back unchanged loads."""
+    pycolmap = pytest.importorskip("pycolmap")
+    import numpy as np
+
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    shutil.copytree(tiny_scene_path / "images", ws / "images")
+    shutil.copytree(tiny_scene_path / "sparse", ws / "sparse")
+    run = tmp_path / "run"
+    cfg = train_config_from("tiny", None, ["iterations=6", "scene.downscale=4.0", "checkpoint_every=3",
+                                           "log_every=3", "eval_every=1000"])
+    stage.run(ws, run, cfg, torch.device("cpu"))
+    recorded = json.loads((run / "scene.json").read_text())["cameras"]
+    assert len(recorded) == 24 and all(len(v) == 13 for v in recorded.values())
+    model = pycolmap.Reconstruction(str(ws / "sparse" / "0"))
+    model.write(str(ws / "sparse" / "0"))  # the same cameras written again: nothing changed
+    load_run(run).load_scene()
+    a = np.deg2rad(0.05)  # a tenth of a pixel at the tiny scene's 32 px across: below what SfM runs agree to
+    turn = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    model.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(turn), np.zeros(3)))
+    model.write(str(ws / "sparse" / "0"))
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    with pytest.raises(UserError, match=r"cameras have changed since this run was trained: 24 of its 24 views' "
+                                        r"cameras .*turned 0\.05 degrees") as err:
+        load_run(run).load_scene()
+    assert "reconstructed again" in err.value.hint and "train" in err.value.hint
+    with pytest.raises(UserError, match="cameras have changed .*training on would spoil it"):
+        stage.run(ws, run, cfg, torch.device("cpu"), resume=True, extend_to=9)
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before

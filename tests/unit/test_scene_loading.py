@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 
 import numpy as np
@@ -17,7 +18,8 @@ from uncertsplat.config import SceneConfig
 from uncertsplat.data.dataset import load_depths, load_images, load_masks
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import read_exr, read_image, write_png
-from uncertsplat.sfm.scene import load_scene
+from uncertsplat.sfm.scene import camera_changes, camera_records, load_scene
+from uncertsplat.types import Cameras
 
 
 @pytest.fixture
@@ -640,3 +642,39 @@ def test_a_workspace_of_several_models_names_the_unused_ones(workspace):
     rec = pycolmap.Reconstruction(str(workspace / "sparse" / "0"))
     rec.write_text(str(workspace / "sparse" / "0"))  # the same model as .txt beside the .bin
     assert any("both as .bin and as .txt files: the .bin ones are read" in n for n in load_scene(workspace).notes)
+
+
+class TestCameraChanges:
+    """``camera_records`` / ``camera_changes``: a run's recorded cameras against the scene as it loads later."""
+
+    @staticmethod
+    def cameras(n: int = 4, turn_deg: float = 0.0, shift: float = 0.0, focal: float = 100.0) -> Cameras:
+        a = math.radians(turn_deg)
+        R = torch.tensor([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        cfw = torch.eye(4).repeat(n, 1, 1)
+        cfw[:, :3, :3] = R
+        cfw[:, :3, 3] = torch.tensor([[0.1 * i + shift, 0.0, 2.0] for i in range(n)])
+        K = torch.tensor([[focal, 0.0, 32.0], [0.0, focal, 24.0], [0.0, 0.0, 1.0]]).repeat(n, 1, 1)
+        return Cameras(cfw, K, 64, 48, tuple(f"v{i}.png" for i in range(n)))
+
+    def test_the_same_cameras_and_float_rounding_are_no_change(self):
+        rec = camera_records(self.cameras(), ["v0.png", "v2.png", "gone.png"])
+        assert sorted(rec) == ["v0.png", "v2.png"] and len(rec["v0.png"]) == 13
+        assert camera_changes(rec, self.cameras(), extent=1.0) is None
+        assert camera_changes(rec, self.cameras(turn_deg=1e-5, shift=1e-7, focal=100.0001), extent=1.0) is None
+        assert camera_changes({}, self.cameras(), extent=1.0) is None
+
+    @pytest.mark.parametrize(("kw", "words"), [({"turn_deg": 0.01}, r"turned 0\.01 degrees"),
+                                                ({"shift": 0.001}, r"moved 0\.1 % of the scene's extent"),
+                                                ({"focal": 101.0}, r"intrinsics .*\[100\.0, 100\.0, 32\.0, 24\.0\] "
+                                                                   r"-> \[101\.0, 101\.0")])
+    def test_a_change_above_the_tolerance_is_named(self, kw, words):
+        rec = camera_records(self.cameras(), ["v0.png", "v1.png", "v2.png", "v3.png"])
+        said = camera_changes(rec, self.cameras(**kw), extent=1.0)
+        assert said is not None and said.startswith("4 of its 4 views' cameras differ"), said
+        assert re.search(words, said), said
+
+    def test_only_views_the_scene_still_holds_are_compared(self):
+        rec = camera_records(self.cameras(), ["v0.png", "v1.png"])
+        assert camera_changes(rec, self.cameras(n=1), extent=1.0) is None  # (the caller checks missing names)
+        assert camera_changes(rec, self.cameras(n=1, turn_deg=1.0), extent=1.0).startswith("1 of its 1 views'")

@@ -74,7 +74,8 @@ def _examples() -> list[SchemaFile]:
                    room={"half_width": 2.0, "floor": -1.0, "ceiling": 1.0},
                    objects=[{"kind": "box", "center": [0, 0, 0], "size": [1, 1, 1], "pattern": "checker"}],
                    config={"preset": "tiny"}),
-        RunScene(scene="/s", extent=1.1, scene_scale=1.0, width=128, height=96, train=["a"], test=["b"]),
+        RunScene(scene="/s", extent=1.1, scene_scale=1.0, width=128, height=96, train=["a"], test=["b"],
+                 cameras={"a": [0.0, 0.0, 2.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 100.0, 100.0, 64.0, 48.0]}),
         single,
         TrainSummary(method="ensemble", variant="ours", steps=100, seconds=25.0, sec_per_step=0.25,
                      num_gaussians=2000, num_carriers=0, peak_memory_mb=512.0, device="cpu", scene="/s",
@@ -230,12 +231,25 @@ def test_version_1_run_scene_and_eval_report_are_converted(tmp_path):
     """scene.json and eval/metrics.json of runs before views could be set aside for calibration (version 1) read
     with none set aside and the std factor fitted on training views."""
     scene = next(e for e in EXAMPLES if isinstance(e, RunScene))
+    scene = scene.model_copy(update={"cameras": {}})  # (version 3's key: not in a version 1 file either)
     got = _as_version_1(scene, "calibration", tmp_path / "scene.json")
-    assert got.schema_version == 2 and got.calibration == [] and got.train == scene.train
+    assert got.schema_version == RunScene.SCHEMA_VERSION and got.calibration == [] and got.train == scene.train
     report = next(e for e in EXAMPLES if isinstance(e, EvalReport))
     got = _as_version_1(report, "calibration_held_out", tmp_path / "metrics.json")
     assert got.schema_version == EvalReport.SCHEMA_VERSION and not got.calibration_held_out and got.mean == report.mean
     assert got.run_sha256 is None
+
+
+def test_version_2_run_scene_reads_with_no_cameras_to_compare(tmp_path):
+    """scene.json of runs before their cameras were recorded (version 2) reads with none: a later load compares
+    nothing (``sfm.scene.camera_changes``) instead of refusing the run."""
+    scene = next(e for e in EXAMPLES if isinstance(e, RunScene))
+    data = json.loads(scene.to_json())
+    data["schema_version"] = 2
+    del data["cameras"]
+    (tmp_path / "scene.json").write_text(json.dumps(data))
+    got = RunScene.read(tmp_path / "scene.json")
+    assert got.schema_version == 3 and got.cameras == {} and got.train == scene.train
 
 
 def test_train_summary_version_1_is_converted(tmp_path):

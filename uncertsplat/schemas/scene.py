@@ -87,10 +87,10 @@ class RunScene(SchemaFile):
     """``RUN/scene.json`` (written by ``train``): which scene a run was trained on and how it was normalised."""
 
     FILE_NAME = "scene.json"
-    SCHEMA_VERSION = 2
+    SCHEMA_VERSION = 3
     WRITTEN_BY = "uncertsplat train"
 
-    schema_version: int = 2
+    schema_version: int = 3
     scene: str
     """Absolute path of the scene folder (COLMAP workspace, Blender/nerfstudio folder, synthetic scene)."""
     source: dict[str, Any] = Field(default_factory=dict)
@@ -116,6 +116,11 @@ class RunScene(SchemaFile):
     """[4,4] similarity from source to world (normalised) coordinates; the identity without normalisation."""
     views_added: list[ViewsAdded] = Field(default_factory=list)
     """Views added to the training set after the run started, in order (``train`` then lists them all)."""
+    cameras: dict[str, list[float]] = Field(default_factory=dict)
+    """{view name: [centre x, y, z, right axis x, y, z, optical axis x, y, z, fx, fy, cx, cy]} of the training,
+    held-out and set-aside views in world (normalised) coordinates and pixels, as trained (``sfm.scene.camera_records``):
+    a scene reconstructed again or edited since no longer lines up with the model, and a later load says so
+    (``sfm.scene.camera_changes``). Empty in runs written before it was recorded (nothing is compared)."""
 
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
@@ -127,4 +132,6 @@ class RunScene(SchemaFile):
                                                                 "that always used the camera centroid"}
         if version == 1:
             return {**data, "calibration": []}
+        if version == 2:  # (no cameras recorded: the default, nothing to compare)
+            return data
         return None

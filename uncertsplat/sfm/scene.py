@@ -588,6 +588,65 @@ def _twin_pairs(names: Sequence[str], twins: dict[int, list[int]]) -> str:
     return "; ".join(pairs[:4]) + ("; ..." if len(pairs) > 4 else "")
 
 
+CAMERA_MOVE = 1e-4
+"""A recorded view's camera counts as changed (``camera_changes``) when its centre moved more than this fraction of
+the scene's extent, an axis turned more than this many radians, or a focal length or principal point moved more than
+this fraction of the image width: far above float rounding (1e-7), far below what a model's render notices (a
+tenth of a pixel at 1000 pixels across)."""
+
+
+def camera_records(cameras: Cameras, names: Sequence[str]) -> dict[str, list[float]]:
+    """{view name: [centre x, y, z, right axis x, y, z, optical axis x, y, z, fx, fy, cx, cy]} of the views ``names``
+    in the scene's normalised world (the run's ``scene.json``: what ``camera_changes`` compares a later load with)."""
+    index = {n: i for i, n in enumerate(cameras.image_names)}
+    sel = [index[n] for n in names if n in index]
+    if not sel:
+        return {}
+    cfw = cameras.cam_from_world[sel].double().cpu()  # [V,4,4]
+    R, t = cfw[:, :3, :3], cfw[:, :3, 3]
+    centre = -(R.transpose(1, 2) @ t[..., None])[..., 0]  # [V,3]
+    K = cameras.K[sel].double().cpu()
+    rows = torch.cat([centre, R[:, 0], R[:, 2]], dim=1).numpy().round(7)  # [V,9]
+    intr = torch.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], dim=1).numpy().round(4)  # [V,4]
+    return {cameras.image_names[i]: [*map(float, r), *map(float, k)] for i, r, k in zip(sel, rows, intr, strict=True)}
+
+
+CAMERAS_CHANGED_HINT = ("The scene folder was reconstructed again or its cameras edited after training (e.g. "
+                        "`reconstruct --overwrite` into the same workspace): restore the workspace the run was trained "
+                        "on, or train a new run on this one (uncertsplat train {scene} -o NEW_RUN).")
+"""Hint of the error for a run whose scene's cameras changed (``camera_changes``): {run}, {scene} filled in."""
+
+
+def camera_changes(recorded: dict[str, list[float]], cameras: Cameras, extent: float) -> str | None:
+    """What changed in the cameras of the views ``recorded`` (``camera_records`` of a run's scene) in the scene
+    ``cameras`` as it loads now, in words (the view that moved most and how many did), or None when none moved by
+    more than ``CAMERA_MOVE``. Views the scene no longer holds are not compared (the caller checks names)."""
+    now = camera_records(cameras, list(recorded))
+    if not now:
+        return None
+    names = list(now)
+    a = torch.tensor([recorded[n] for n in names], dtype=torch.float64)  # [V,13]
+    b = torch.tensor([now[n] for n in names], dtype=torch.float64)
+    moved = (a[:, :3] - b[:, :3]).norm(dim=1) / max(extent, 1e-12)  # [V]
+
+    def angle(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        return torch.atan2(torch.linalg.cross(u, v).norm(dim=1), (u * v).sum(dim=1))
+
+    turned = torch.maximum(angle(a[:, 3:6], b[:, 3:6]), angle(a[:, 6:9], b[:, 6:9]))  # [V] radians
+    intr = (a[:, 9:] - b[:, 9:]).abs().amax(dim=1) / max(cameras.width, 1)  # [V]
+    changed = (moved > CAMERA_MOVE) | (turned > CAMERA_MOVE) | (intr > CAMERA_MOVE)
+    if not bool(changed.any()):
+        return None
+    worst = int(torch.stack([moved, turned, intr]).amax(dim=0).argmax())
+    what = [f"moved {100 * float(moved[worst]):.3g} % of the scene's extent" if moved[worst] > CAMERA_MOVE else "",
+            f"turned {math.degrees(float(turned[worst])):.3g} degrees" if turned[worst] > CAMERA_MOVE else "",
+            "changed its intrinsics (focal length or principal point: "
+            f"{[round(x, 2) for x in a[worst, 9:].tolist()]} -> {[round(x, 2) for x in b[worst, 9:].tolist()]} px)"
+            if intr[worst] > CAMERA_MOVE else ""]
+    return (f"{int(changed.sum())} of its {len(names)} views' cameras differ from those it was trained with "
+            f"({names[worst]}'s camera {', '.join(w for w in what if w)})")
+
+
 def _without_twins(cameras: Cameras, split: dict[str, tuple[int, ...]], cfg: SceneConfig
                    ) -> tuple[dict[str, tuple[int, ...]], str | None]:
     """``split`` with the training twins of its held-out and calibration views left out of training (``pose_twins``)

@@ -187,7 +187,13 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     from uncertsplat.data.dataset import load_images
     from uncertsplat.io.checkpoints import load_latest
     from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
-    from uncertsplat.sfm.scene import load_scene, with_training_views
+    from uncertsplat.sfm.scene import (
+        CAMERAS_CHANGED_HINT,
+        camera_changes,
+        camera_records,
+        load_scene,
+        with_training_views,
+    )
     from uncertsplat.train.trainer import Trainer, TrainingInterrupted, log_line
 
     scene, run_dir = Path(scene), Path(run_dir)
@@ -281,6 +287,11 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         before = RunScene.read_optional(run_dir / RunScene.FILE_NAME) if resume else None
         if before is not None:
             _check_same_scene(before, scene, names, run_dir)
+            changed = camera_changes(before.cameras, data.cameras, data.extent)
+            if changed:
+                raise UserError(f"the scene's cameras have changed since this run was trained: {changed}; the model "
+                                "lines up with the cameras it was trained with, so training on would spoil it",
+                                path=scene, hint=CAMERAS_CHANGED_HINT.format(run=run_dir, scene=scene))
             if not add_views:
                 # the scene's split rules may have changed since the run began (a held-out view's twin now leaves
                 # training): the run goes on with the views it trained on, which its checkpoint's view order indexes
@@ -312,6 +323,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             center=list(data.center) if data.center is not None else None, center_method=data.center_method,
             center_reason=data.center_reason, world_from_source=data.world_from_source.double().tolist(),
             views_added=views_added,
+            cameras=camera_records(data.cameras, [names[i] for k in ("train", "test", "calibration")
+                                                  for i in data.split.get(k, ())] if names else []),
         ).write(run_dir / "scene.json")
         train_images = load_images(data, data.split["train"], device)
         test_images = load_images(data, data.split["test"], device) if data.split.get("test") else None
