@@ -1,9 +1,11 @@
-"""Render the uncertainty of one view of a trained run: K posterior samples -> mean and std maps.
+"""Render the uncertainty of a trained run for a held-out view and for a pose no photo was taken from.
 
     python examples/uncertainty_map.py RUN [VIEW] [K]    # e.g. example_out/run 0 10
 
-VIEW is a held-out (test) view: its position among them (0, 1, ...) or its image name. Writes
-RUN/example_maps/{mean,rgb_std,depth_std}.png.
+VIEW is a held-out (test) view: its position among them (0, 1, ...) or its image name. The second pose lies halfway
+between that view and the training view nearest to it, given in the scene's own coordinates (your COLMAP model's
+frame and units), as a robot's planner would give it. Both get evaluate's whole predictive (``uncertsplat.predict``:
+the same maps as its EXR files). Writes RUN/example_maps/{view,between}_{mean,rgb_std,depth_std}.png.
 """
 
 import sys
@@ -11,43 +13,59 @@ from pathlib import Path
 
 import torch
 
-from uncertsplat.baselines import load_run
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import write_png
+from uncertsplat.predict import Predictor
 from uncertsplat.report.colormaps import colorize
-from uncertsplat.uncertainty.mc import mc_render
 
 
 def main(run: Path, view: str, k: int) -> None:
-    loaded = load_run(run)  # any method: model, resolved TrainConfig, scene path, extent
-    scene = loaded.load_scene()  # same normalisation as in training
-    test = scene.subset("test")
-    names = list(test.image_names)
+    pred = Predictor.load(run, "auto")  # any method; fits (or reads) the side terms evaluate fits
+    scene = pred.scene  # the run's scene as trained: cameras in its normalised world, split, world_from_source
+    test = list(scene.split.get("test", ()))
+    names = [scene.cameras.image_names[i] for i in test]
     j = int(view) if view.isdigit() else (names.index(view) if view in names else -1)
     if not 0 <= j < len(names):
         raise UserError(f"no held-out view '{view}'", path=run,
-                        hint=f"Give 0..{len(names) - 1} or one of: {', '.join(names)}.")
-    cams = test[j]
-    # one posterior sample per call (variational.sample for our model; a baseline's own sampler otherwise), and
-    # the renderer with the run's background, tile size and near plane
-    sampler = loaded.sampler(scene.scene_scale, loaded.model.device)
+                        hint=f"Give 0..{len(names) - 1} or one of: {', '.join(names)}." if names else
+                             "The run holds out no view.")
+    i = test[j]
+    cams = scene.cameras
 
-    # the spread of k samples plus the unknown surface where rays are covered less than the model covers its
-    # training views (``evaluate`` also adds the pixel noise of the Gaussians, ``eval.engine.fit_residual``, fitted
-    # on the training views)
-    maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cams, k, torch.Generator().manual_seed(0),
-                        empty_std=sampler.empty_std, coverage=sampler.coverage)
+    # a pose between the view and its nearest training view, in the scene's own frame: what a user's map gives
+    def centre(m: torch.Tensor) -> torch.Tensor:  # camera centre of a world-to-camera matrix [4,4]
+        return -m[:3, :3].T @ m[:3, 3]
+
+    # the photos' poses in the scene's frame (what its COLMAP model holds): the normalised ones composed with
+    # world_from_source, the camera frame scaled back by its factor s so that each matrix is rigid again
+    cam_from_source = [cams.cam_from_world[n].double() @ scene.world_from_source.double() for n in range(len(cams))]
+    for m in cam_from_source:
+        m[:3] /= pred.scale
+    train = list(scene.split["train"])
+    nearest = min(train, key=lambda n: float((centre(cam_from_source[n]) - centre(cam_from_source[i])).norm()))
+    between = cam_from_source[i].clone()
+    between[:3, 3] = -between[:3, :3] @ ((centre(cam_from_source[i]) + centre(cam_from_source[nearest])) / 2)
+    new = pred.cameras_from_source(between, cams.K[i], cams.width, cams.height, names=("between",))
+
     out = run / "example_maps"
-    write_png(out / "mean.png", maps.rgb_mean[0].clamp(0, 1).numpy())
-    write_png(out / "rgb_std.png", colorize(maps.rgb_std[0].mean(-1)))  # percentile colour scale
-    write_png(out / "depth_std.png", colorize(maps.depth_std[0, ..., 0]))
-    print(f"{cams.image_names[0]}: mean RGB std {maps.rgb_std.mean():.4f}; maps in {out}")
+    for tag, cam in (("view", cams[[i]]), ("between", new)):
+        maps = pred.predict(cam, num_samples=k, seed=0)
+        write_png(out / f"{tag}_mean.png", maps.rgb_mean[0].clamp(0, 1).numpy())
+        write_png(out / f"{tag}_rgb_std.png", colorize(maps.rgb_std[0].mean(-1)))  # percentile colour scale
+        write_png(out / f"{tag}_depth_std.png", colorize(maps.depth_std[0, ..., 0]))
+        print(f"{tag} ({cam.image_names[0]}): mean RGB std {maps.rgb_std.mean():.4f} (x{maps.std_factor or 1:.2f} "
+              f"calibrated), median depth {maps.depth_mean.median():.3g} +- {maps.depth_std.median():.3g} in the "
+              f"scene's units")
+    print(f"the pose between {names[j]} and {scene.cameras.image_names[nearest]}; maps in {out}")
 
 
 if __name__ == "__main__":
-    if len(sys.argv) < 2 or (len(sys.argv) > 3 and not (sys.argv[3].isdigit() and int(sys.argv[3]) >= 1)):
-        sys.exit(__doc__ + "\nK must be a whole number of samples, 1 or more.")
+    args = sys.argv[1:]
+    if not 1 <= len(args) <= 3:
+        sys.exit(__doc__ + f"\nGive RUN, and optionally VIEW and K ({len(args)} arguments given).")
+    if len(args) == 3 and not (args[2].isdigit() and int(args[2]) >= 1):
+        sys.exit(__doc__ + f"\nK must be a whole number of samples, 1 or more, not {args[2]}.")
     try:
-        main(Path(sys.argv[1]), sys.argv[2] if len(sys.argv) > 2 else "0", int(sys.argv[3]) if len(sys.argv) > 3 else 10)
+        main(Path(args[0]), args[1] if len(args) > 1 else "0", int(args[2]) if len(args) > 2 else 10)
     except UserError as err:  # a wrong path or view: the message, not a traceback
         sys.exit(f"error: {err.render()}")

@@ -19,6 +19,7 @@ from uncertsplat.baselines import load_run
 from uncertsplat.cli import app
 from uncertsplat.config import EvalConfig
 from uncertsplat.data.dataset import load_view_set
+from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import StdFit, evaluate_views, fit_residual, fit_std_scale, with_side_terms
 from uncertsplat.io.images import read_exr, read_exr_attribute
 from uncertsplat.io.maps import EXR_CHANNELS, EXR_DEPTH_TO_SOURCE, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
@@ -692,7 +693,9 @@ def test_the_intervals_example_reads_the_predictive_from_the_maps(evaluated, cap
     ("intervals.py", [], "metrics.json"),
     ("evaluate_run.py", ["many"], "python examples/evaluate_run.py RUN [K]"),
     ("evaluate_run.py", ["0"], "K must be a whole number of samples, 1 or more"),
-    ("uncertainty_map.py", ["0", "0"], "K must be a whole number of samples, 1 or more"),
+    ("uncertainty_map.py", ["0", "0"], "K must be a whole number of samples, 1 or more, not 0"),
+    ("uncertainty_map.py", ["0", "2", "extra"], "Give RUN, and optionally VIEW and K (4 arguments given)"),
+    ("evaluate_run.py", ["2", "extra"], "Give RUN, and optionally K (3 arguments given)"),
     ("intervals.py", ["1.5"], "P must be a probability between 0 and 1 (exclusive), not 1.5"),
     ("intervals.py", ["abc"], "P must be a probability between 0 and 1 (exclusive), not abc"),
 ])
@@ -722,7 +725,10 @@ def test_the_map_example_takes_a_view_by_name(tiny_run_path, tmp_path, monkeypat
     name = load_run(run).load_scene().subset("test").image_names[1]
     monkeypatch.setattr(sys, "argv", ["uncertainty_map.py", str(run), name, "2"])
     runpy.run_path(str(Path(__file__).resolve().parents[2] / "examples" / "uncertainty_map.py"), run_name="__main__")
-    assert capsys.readouterr().out.startswith(f"{name}: mean RGB std") and (run / "example_maps" / "rgb_std.png").is_file()
+    out = capsys.readouterr().out
+    assert out.startswith(f"view ({name}): mean RGB std") and "between (between): mean RGB std" in out
+    assert all((run / "example_maps" / f"{tag}_{m}.png").is_file() for tag in ("view", "between")
+               for m in ("mean", "rgb_std", "depth_std"))
 
 
 def test_a_model_that_leaves_its_training_views_empty_gets_a_note(tiny_run_path, tmp_path, monkeypatch, capsys):
@@ -755,3 +761,54 @@ def test_a_sample_mean_well_below_the_render_is_noted():
     assert note.startswith("the mean of the 2 samples scores 2.58 dB below the one render (26.61 against 29.19 dB)")
     assert few_samples_notes(28.9, 29.19, 2) == [] and few_samples_notes(None, 29.0, 2) == []
     assert few_samples_notes(26.61, 29.19, 10) == []  # with many samples a gap is no sampling noise
+
+
+class TestPredictor:
+    """``uncertsplat.predict``: evaluate's predictive for cameras of one's own, from Python."""
+
+    def test_gives_evaluates_maps_for_a_held_out_view(self, evaluated):
+        """The same seed gives the EXR's maps (raw RGB std, depth in the scene's units), and the std factor and tails
+        evaluate fitted; a pose given in the scene's own frame is the scene's camera."""
+        pycolmap = pytest.importorskip("pycolmap")
+        from uncertsplat.eval.engine import _view_seed
+        from uncertsplat.predict import Predictor
+
+        run, report = evaluated
+        cfg = EvalConfig(num_samples=5, seed=3)
+        pred = Predictor.load(run, "cpu", cfg=cfg)
+        assert pred.std_factor == pytest.approx(report.std_scale) and pred.dof == pytest.approx(
+            report.degrees_of_freedom)
+        name = report.image_names[1]
+        i = pred.scene.cameras.image_names.index(name)
+        out = pred.predict(pred.scene.cameras[[i]], seed=_view_seed(cfg, i))
+        exr = run / "eval" / "maps" / f"{map_stem(name)}.exr"
+        ch = read_exr(exr)
+        to_source = read_exr_attribute(exr, EXR_DEPTH_TO_SOURCE)
+        assert out.depth_to_source == pytest.approx(to_source, rel=1e-6)
+        std = np.stack([ch[f"rgb_std.{c}"] for c in "RGB"], -1)
+        np.testing.assert_allclose(out.rgb_std[0].numpy(), std, rtol=1e-3, atol=1e-6)
+        np.testing.assert_allclose(out.depth_std[0, ..., 0].numpy(), ch["depth_std.Z"] * to_source, rtol=1e-3,
+                                   atol=1e-6)
+        np.testing.assert_allclose(out.depth_mean[0, ..., 0].numpy(), ch["depth_mean.Z"] * to_source, rtol=1e-3,
+                                   atol=1e-5)
+        assert out.rgb_std.shape == (1, 96, 128, 3) and out.alpha.shape == (1, 96, 128, 1)
+        # the view's pose in the scene's own frame (the synthetic scene's COLMAP model) is the run's camera
+        model = pycolmap.Reconstruction(str(pred.scene.source["path"]) + "/sparse/0")
+        image = next(im for im in model.images.values() if im.name == name)
+        cfs = torch.eye(4, dtype=torch.float64)
+        cfs[:3] = torch.as_tensor(image.cam_from_world().matrix())
+        cams = pred.cameras_from_source(cfs, pred.scene.cameras.K[i], 128, 96)
+        torch.testing.assert_close(cams.cam_from_world, pred.scene.cameras.cam_from_world[[i]], atol=1e-5, rtol=0)
+        assert cams.image_names == ("pose_0",)
+
+    def test_refuses_what_is_not_a_pose_or_a_sample_count(self, evaluated):
+        from uncertsplat.predict import Predictor
+
+        run, _ = evaluated
+        pred = Predictor.load(run, "cpu", cfg=EvalConfig(num_samples=2, seed=3))
+        scaled = torch.eye(4, dtype=torch.float64)
+        scaled[:3, :3] *= 2.0  # a similarity, not a camera pose
+        with pytest.raises(UserError, match="rigid transforms"):
+            pred.cameras_from_source(scaled, pred.scene.cameras.K[0], 128, 96)
+        with pytest.raises(UserError, match="num_samples must be 1 or more"):
+            pred.predict(pred.scene.cameras[[0]], num_samples=0)

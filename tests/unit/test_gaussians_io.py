@@ -75,6 +75,12 @@ def test_point_cloud_ply_standard_layout(tmp_path):
     np.testing.assert_allclose(v["f_rest_1"], m.params["shN"].detach()[:, 1, 0].numpy())
     has = np.asarray(v["has_posterior"]) > 0
     assert (np.asarray(v["uncertainty_position"])[has] > 0).all() and (np.asarray(v["uncertainty_position"])[~has] == 0).all()
+    # the switch-off chance is prune's gate score, a probability, 0 for a Gaussian without a posterior
+    from uncertsplat.uncertainty.scores import posterior_scores
+
+    off = np.asarray(v["uncertainty_switch_off"])
+    np.testing.assert_allclose(off, posterior_scores(m, extent=2.0)["gate"].numpy(), rtol=1e-5, atol=1e-7)
+    assert ((off >= 0) & (off <= 1)).all() and (off[~has] == 0).all() and off[has].std() > 0
 
 
 def test_reading_a_point_cloud_as_variational_fails_clearly(tmp_path):

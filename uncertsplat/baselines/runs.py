@@ -345,8 +345,12 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu") -> LoadedR
     """Load any run folder for rendering: an ``EnsembleRun``, a ``FisherRun`` or a plain ``LoadedRun``.
 
     Raises:
-        UserError: the folder is not a finished run of its method (the message names the file and the fix).
+        UserError: the folder is not a finished run of its method (the message names the file and the fix), or
+            ``device`` names a CUDA device this machine does not have.
     """
+    from uncertsplat.device import resolve_device
+
+    device = resolve_device(device)  # "auto" too; "cuda" without CUDA: the CLI's error, not torch's assertion
     run_dir = Path(run_dir)
     cfg = read_run_config(run_dir)
     if cfg.method == "ensemble":

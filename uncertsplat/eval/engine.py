@@ -166,9 +166,10 @@ def _shift_fn(sampler: Sampler, cfg: EvalSettings, device: torch.device):
     return resolution_shift(_representative(sampler, device), cfg.resolution)
 
 
-def _predictive(sampler: Sampler, cfg: EvalSettings, cams: Cameras, *, depth: bool = True) -> dict:
-    """The terms ``mc_render`` adds to the samples' spread, as the settings allow (``depth=False``: none of the
-    depth-only ones, for a caller that reads the RGB maps alone)."""
+def predictive_terms(sampler: Sampler, cfg: EvalSettings, cams: Cameras, *, depth: bool = True) -> dict:
+    """The terms ``mc_render`` adds to the samples' spread for ``cams``, as the settings allow (``depth=False``: none
+    of the depth-only ones, for a caller that reads the RGB maps alone): ``mc_render(..., **predictive_terms(...))``
+    is ``evaluate``'s predictive (``uncertsplat.predict`` for any camera)."""
     from uncertsplat.uncertainty.mc import depth_spread
 
     extra = _side_variance(sampler, cams)
@@ -346,7 +347,7 @@ def _rest_of_predictive(sampler: Sampler, cfg: EvalSettings, cameras: Cameras, i
         gen = torch.Generator(device=device).manual_seed(_view_seed(cfg, indices[j]))
         bare = dataclasses.replace(sampler, residual=None, consistency=None)
         maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cam, cfg.num_samples, gen,
-                            **_predictive(bare, cfg, cam, depth=False))
+                            **predictive_terms(bare, cfg, cam, depth=False))
         if keep is not None:
             keep[indices[j]] = (maps.rgb_mean.cpu(), maps.rgb_std.cpu())
         return maps.rgb_std.square().mean(-1, keepdim=True)
@@ -541,7 +542,7 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
         else:
             gen.manual_seed(_view_seed(cfg, i))
             maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cam, cfg.num_samples, gen,
-                                **_predictive(sampler, cfg, cam, depth=False))
+                                **predictive_terms(sampler, cfg, cam, depth=False))
             mean, std = maps.rgb_mean.cpu(), maps.rgb_std.cpu()
         err = mean[0].clamp(0, 1) - views.images[j]
         z = err / std[0].clamp_min(cfg.std_floor)  # [H,W,3]
@@ -684,7 +685,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                 torch.cuda.synchronize(device)
             t0 = time.perf_counter()
             maps, samples = mc_render(sample_fn, render_fn, cams, K, gen, keep_samples=keep,
-                                      **_predictive(sampler, cfg, cams))
+                                      **predictive_terms(sampler, cfg, cams))
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             seconds = time.perf_counter() - t0

@@ -685,11 +685,12 @@ def carrier_uncertainty(model: GaussianModel, *, variant: Variant = "ours", exte
     """Per-Gaussian [N] posterior spreads (0 for non-carriers), all K entries averaged.
 
     ``position``: RMS position std over the 3 axes in world units; ``scale``: mean multiplier width;
-    ``gate``: gate-logit std.
+    ``gate``: gate-logit std; ``switch_off``: the chance that a posterior sample switches the Gaussian (mostly) off
+    (``gate_off_probability`` of the entries' mean, ``prune``'s ``gate`` score).
     """
     n = len(model)
     dev = model.device
-    out = {k: torch.zeros(n, device=dev) for k in ("position", "scale", "gate")}
+    out = {k: torch.zeros(n, device=dev) for k in ("position", "scale", "gate", "switch_off")}
     idx = model.carrier_index()
     if idx.numel() == 0:
         return out
@@ -698,6 +699,7 @@ def carrier_uncertainty(model: GaussianModel, *, variant: Variant = "ours", exte
     out["position"][idx] = sig.square().mean(1).sqrt()
     out["scale"][idx] = _multiplier_width(t).mean(1)
     out["gate"][idx] = F.softplus(t["gate_spread_raw"].mean(1))[:, 0]
+    out["switch_off"][idx] = gate_off_probability(t["gate_loc"].mean(1)[:, 0], out["gate"][idx])
     return out
 
 

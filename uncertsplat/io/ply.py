@@ -4,8 +4,9 @@
 (x y z nx ny nz f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3; log-scales, opacity logits, f_rest
 channel-major as in 3DGS), holding the *posterior mean* (offsets, multipliers and gates baked in), plus
 extra float properties per Gaussian: ``uncertainty_position`` (RMS position std, world units),
-``uncertainty_scale`` (mean multiplier width), ``uncertainty_gate`` (gate-logit std) and
-``has_posterior`` (0/1). Viewers ignore properties they do not know.
+``uncertainty_scale`` (mean multiplier width), ``uncertainty_gate`` (gate-logit std),
+``uncertainty_switch_off`` (the chance a posterior sample switches the Gaussian mostly off: ``prune``'s ``gate``
+score) and ``has_posterior`` (0/1). Viewers ignore properties they do not know.
 
 ``variational.ply`` (``write_variational_ply`` / ``read_variational_ply``): round-trips everything.
 Element ``vertex`` holds the *stored* parameters in the same standard names (so it opens in viewers
@@ -85,7 +86,7 @@ def write_point_cloud_ply(path: str | Path, model: GaussianModel, *, variant: st
         cols = _standard_fields(pm.means, pm.scales.clamp_min(1e-30).log(), pm.quats, torch.log(op / (1 - op)),
                                 model.params["sh0"], model.params["shN"])
         unc = carrier_uncertainty(model, variant=variant, extent=extent)
-    for k in ("position", "scale", "gate"):
+    for k in ("position", "scale", "gate", "switch_off"):
         cols[f"uncertainty_{k}"] = unc[k].cpu().float().numpy()
     cols["has_posterior"] = (model.posterior_row >= 0).cpu().float().numpy()
     return _write(Path(path), [_vertex(cols, len(model))], ["uncertsplat point_cloud posterior-mean"])

@@ -1,0 +1,173 @@
+"""A trained run's predictive at any camera, from Python: what ``evaluate`` writes, for poses of your own.
+
+``evaluate`` scores held-out photos; a robot asks about poses no photo was taken from (a planned view, a pose between
+two photos, one nearer the surface). ``Predictor`` builds the same predictive ``evaluate`` uses (the samples' spread
+and every term it adds: the pixel noise, the edge, colour-posterior, view-consistency, finer-detail, resolution,
+depth-spread and empty-ray terms, with the std factor and the Student-t tails fitted on the training or set-aside
+views) and renders it for any camera, given in the scene's own coordinates and units (your COLMAP model's or map
+frame) or in the run's normalised world::
+
+    from uncertsplat.predict import Predictor
+
+    pred = Predictor.load("RUN")  # fits what evaluate fits (or reads RUN/eval/residual.pt); ~1-30 s by the scene
+    cams = pred.cameras_from_source(cam_from_source, K, width, height)  # [N,4,4] OpenCV world-to-camera, [N,3,3]
+    out = pred.predict(cams, num_samples=10, seed=0)
+    out.depth_mean, out.depth_std  # [N,H,W,1], in the scene's own units
+    out.rgb_mean, out.rgb_std      # [N,H,W,3]; out.std_factor: the factor evaluate fitted (its "calibrated" rows)
+
+The std maps are the raw ones, as in ``evaluate``'s EXR maps (their ``rgb_std`` to the last bit for the same seed);
+multiply the RGB std by ``std_factor`` for the calibrated one, and read it as a Student-t with ``dof`` degrees of
+freedom (``examples/intervals.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from uncertsplat.errors import UserError
+from uncertsplat.types import Cameras
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The predictive of N cameras (``Predictor.predict``).
+
+    Attributes:
+        rgb_mean: [N,H,W,3] the mean of the posterior samples' renders (not clamped).
+        rgb_std: [N,H,W,3] the raw RGB std (``evaluate``'s EXR ``rgb_std``).
+        depth_mean: [N,H,W,1] expected depth along the optical axis, in the scene's own units.
+        depth_std: [N,H,W,1] its std, in the scene's own units.
+        alpha: [N,H,W,1] the samples' mean accumulated opacity (low: the ray meets little of the model).
+        std_factor: the factor ``evaluate`` fits for the RGB std (None: none fitted, e.g. no training view).
+        dof: degrees of freedom of the Student-t the RGB std is read with (None: a Gaussian).
+        depth_to_source: the factor from the run's normalised depth to the scene's units (already applied above).
+        image_names: the cameras' names.
+    """
+
+    rgb_mean: Tensor
+    rgb_std: Tensor
+    depth_mean: Tensor
+    depth_std: Tensor
+    alpha: Tensor
+    std_factor: float | None
+    dof: float | None
+    depth_to_source: float
+    image_names: tuple[str, ...]
+
+
+class Predictor:
+    """``evaluate``'s predictive of one trained run, for any camera (see the module's docstring).
+
+    Attributes:
+        run_dir: the run folder.
+        scene: the run's scene as trained (``SceneData``: cameras in the normalised world, split, normalisation).
+        device: where it renders.
+        std_factor, dof: the fitted std factor and Student-t degrees of freedom (None when not fitted).
+    """
+
+    def __init__(self, run_dir: Path, loaded, scene, sampler, fit, cfg, device: torch.device):
+        self.run_dir, self.loaded, self.scene, self.device = Path(run_dir), loaded, scene, device
+        self._sampler, self._cfg = sampler, cfg
+        self.std_factor: float | None = fit.scale
+        self.dof: float | None = fit.dof
+        T = scene.world_from_source.double()
+        self._world_from_source = T  # [4,4] x_world = s x_source + t
+        self.scale = float(torch.linalg.det(T[:3, :3]).abs() ** (1.0 / 3.0))  # s
+
+    @classmethod
+    def load(cls, run_dir: str | Path, device: str | torch.device = "auto", *, cfg=None) -> Predictor:
+        """The predictive of the run ``run_dir`` (any method: variational, deterministic, ensemble, fisher).
+
+        Args:
+            run_dir: a folder written by ``uncertsplat train``; its scene folder must be where ``scene.json`` says
+                (the side terms are fitted on its training photos).
+            device: ``auto``, ``cpu``, ``cuda[:n]`` or a torch.device.
+            cfg: an ``EvalConfig`` (None: ``evaluate``'s defaults; ``cfg.num_samples`` is ``predict``'s default K).
+
+        Raises:
+            UserError: not a run, its scene is gone or its cameras changed since training, no CUDA device.
+        """
+        from uncertsplat.baselines import load_run
+        from uncertsplat.config import EvalConfig
+        from uncertsplat.data.dataset import load_view_set
+        from uncertsplat.device import resolve_device
+        from uncertsplat.eval.engine import scored_sampler
+        from uncertsplat.stages.residual_cache import fitted_residual
+
+        device = resolve_device(device)
+        cfg = cfg if cfg is not None else EvalConfig()
+        loaded = load_run(run_dir, device)
+        scene = loaded.load_scene()
+        train_views = partial(load_view_set, scene, depth=False)
+        set_aside: dict = {}
+        # the pixel noise as evaluate fits it (read from RUN/eval/residual.pt when evaluate kept one for this model and
+        # these settings; a fitted one is kept there too, as evaluate does)
+        residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
+                                   load_views=train_views, write=True,
+                                   calibration_indices=scene.split.get("calibration", ()), set_aside_maps=set_aside)
+        sampler, fit = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual, scene.cameras,
+                                      scene.split, cfg, device, load_views=train_views, set_aside_maps=set_aside)
+        return cls(Path(run_dir), loaded, scene, sampler, fit, cfg, device)
+
+    def cameras_from_source(self, cam_from_source: Tensor, K: Tensor, width: int, height: int,
+                            names: tuple[str, ...] = ()) -> Cameras:
+        """Cameras given in the scene's own frame (the COLMAP model's, your map's), in the run's normalised world.
+
+        Args:
+            cam_from_source: [N,4,4] or [4,4] rigid world-to-camera transforms (OpenCV axes: x right, y down, z
+                forward), translations in the scene's units (pycolmap's ``Image.cam_from_world().matrix()``).
+            K: [N,3,3] or [3,3] pinhole intrinsics in pixels of a ``width`` x ``height`` image (any size: the render
+                takes it; the run's own is ``scene.cameras.width`` x ``height``).
+            names: N names (default ``pose_0``, ``pose_1``, ...).
+        """
+        from uncertsplat.sfm.scene import normalized_cam_from_world
+
+        cfs = torch.as_tensor(cam_from_source, dtype=torch.float64)
+        cfs = cfs[None] if cfs.ndim == 2 else cfs
+        R = cfs[:, :3, :3]
+        if cfs.shape[-2:] != (4, 4) or not torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64),
+                                                           atol=1e-5):
+            raise UserError("cam_from_source must be [N,4,4] rigid transforms (a rotation and a translation)",
+                            hint="Pass world-to-camera matrices in the scene's units, as pycolmap's "
+                                 "Image.cam_from_world().matrix() gives them (with the row [0, 0, 0, 1]).")
+        Ks = torch.as_tensor(K, dtype=torch.float64)
+        Ks = (Ks[None] if Ks.ndim == 2 else Ks).expand(len(cfs), 3, 3)
+        cfw = normalized_cam_from_world(cfs, self._world_from_source)
+        names = tuple(names) or tuple(f"pose_{i}" for i in range(len(cfs)))
+        return Cameras(cfw.float(), Ks.float().clone(), int(width), int(height), names)
+
+    def predict(self, cameras: Cameras, num_samples: int | None = None, seed: int = 0) -> Prediction:
+        """``evaluate``'s mean and std maps of ``cameras`` (normalised world: ``cameras_from_source`` or
+        ``scene.cameras``); ``num_samples`` posterior samples (None: the config's K), one view at a time with the
+        generator seeded by ``seed`` for each view (the same seed gives the same maps)."""
+        from uncertsplat.eval.engine import predictive_terms
+        from uncertsplat.uncertainty.mc import mc_render
+
+        k = int(num_samples if num_samples is not None else self._cfg.num_samples)
+        if k < 1:
+            raise UserError(f"num_samples must be 1 or more, got {k}")
+        out = []
+        gen = torch.Generator(device=self.device)
+        with torch.no_grad():
+            for j in range(len(cameras)):
+                cam = cameras[[j]].to(self.device)
+                gen.manual_seed(seed)
+                maps, _ = mc_render(self._sampler.sample_fn, self._sampler.render_fn, cam, k, gen,
+                                    **predictive_terms(self._sampler, self._cfg, cam))
+                out.append(maps)
+        to_source = 1.0 / self.scale
+
+        def cat(name: str) -> Tensor:
+            return torch.cat([getattr(m, name) for m in out]).cpu()
+
+        return Prediction(rgb_mean=cat("rgb_mean"), rgb_std=cat("rgb_std"), depth_mean=cat("depth_mean") * to_source,
+                          depth_std=cat("depth_std") * to_source, alpha=cat("alpha_mean"), std_factor=self.std_factor,
+                          dof=self.dof, depth_to_source=to_source, image_names=tuple(cameras.image_names))
+
+
+__all__ = ["Prediction", "Predictor"]
