@@ -235,3 +235,20 @@ def test_a_relative_photos_path_is_read_from_where_it_was_written(tmp_path, monk
     assert pl.load_pipeline(p, overrides=["photos=photos"]).photos == (tmp_path / "cwd" / "photos").resolve()
     (tmp_path / "pipes" / "photos").rmdir()  # only in the current folder: found there (what older versions read)
     assert pl.load_pipeline(p).photos == (tmp_path / "cwd" / "photos").resolve()
+
+
+def test_a_failed_run_never_replaces_the_last_finished_output(tmp_path, calls):
+    """After a finished train stage, a run with other settings that fails (or is stopped) and then another change:
+    the finished output stays in .previous/train, the failed one goes to .previous/train-unfinished."""
+    p = _write(tmp_path)
+    pl.run(p, tmp_path / "out", overrides=["train.iterations=7"])
+    good = (tmp_path / "out" / "train" / "out.txt").read_text()
+    with pytest.raises(StageError, match="boom"):
+        pl.run(p, tmp_path / "out", overrides=["train.seed=99"])
+    assert (tmp_path / "out" / ".previous" / "train" / "out.txt").read_text() == good
+    pl.run(p, tmp_path / "out", overrides=["train.iterations=8"])  # the failed output moves out of the way
+    assert (tmp_path / "out" / ".previous" / "train" / "out.txt").read_text() == good
+    failed = json.loads((tmp_path / "out" / ".previous" / "train-unfinished" / "manifest.json").read_text())
+    assert failed["status"] == "failed"
+    pl.run(p, tmp_path / "out", overrides=["train.iterations=9"])  # finished replaces finished, as before
+    assert json.loads((tmp_path / "out" / ".previous" / "train" / "out.txt").read_text())["iterations"] == 8

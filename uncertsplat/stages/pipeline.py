@@ -141,11 +141,22 @@ def _has_checkpoint(run_dir: Path) -> bool:
     return bool(list_checkpoints(run_dir)) or any(list_checkpoints(m) for m in (run_dir / "members").glob("*"))
 
 
+def _finished_output(folder: Path) -> bool:
+    """Whether ``folder`` holds a stage's finished output (its manifest says done)."""
+    found = read_manifest(folder)
+    return found is not None and found.status == "done"
+
+
 def _move_previous(out_dir: Path, root: Path, name: str) -> None:
-    """Keep one previous generation of a stage's output instead of deleting it."""
+    """Keep one previous generation of a stage's output instead of deleting it: ``.previous/NAME``. An unfinished
+    output (a stage that failed or was stopped) never replaces a finished one there: it goes to
+    ``.previous/NAME-unfinished`` instead, so a failed or interrupted run after a good one loses the good one's work
+    neither then nor at the next change."""
     if not out_dir.exists() or not any(out_dir.iterdir()):
         return
     backup = root / ".previous" / name
+    if not _finished_output(out_dir) and _finished_output(backup):
+        backup = root / ".previous" / f"{name}-unfinished"
     if backup.exists():
         shutil.rmtree(backup)
     backup.parent.mkdir(parents=True, exist_ok=True)
