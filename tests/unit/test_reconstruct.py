@@ -513,7 +513,10 @@ def test_train_notes_training_images_a_downscale_made_tiny():
     assert "50x37" in note and "about 400 px" in note and "--set scene.downscale=1 " in note
     (note,) = small_images_notes(150, 100, 40.0)  # 6000 px photos at 40: 7.5 -> about 800 px
     assert "--set scene.downscale=7.5 trains at about 800 px" in note
+    (note,) = small_images_notes(200, 150, 8.0)  # a phone's photos resized by reconstruct to 1600 px, then 1/8
+    assert "200x150" in note and "--set scene.downscale=2 trains at about 800 px" in note
     assert small_images_notes(402, 300, 2.0) == [] and small_images_notes(100, 75, 1.0) == []
+    assert small_images_notes(504, 378, 8.0) == []  # the paper's LLFF setting
 
 
 @pytest.mark.parametrize(("seconds", "shown"), [(0.0, "< 0.1 s"), (0.04, "< 0.1 s"), (0.43, "0.4 s"), (9.94, "9.9 s"),
@@ -627,3 +630,13 @@ def test_disagreement_note_names_the_runs_that_agreed_and_why_they_were_not_kept
         stage.disagreement_note(runs, 0, 7.0)
     # none agreeing: no such clause
     assert "agree with each other" not in stage.disagreement_note(runs[:2], 0, 7.0)
+
+
+def test_photos_larger_than_max_image_size_are_named():
+    """A phone's 3200x2400 photos are resized to 1600 px in the workspace: the note says so and what the paper
+    preset's 1/8 then trains at; photos that fit get none."""
+    note = stage.resized_note({(3200, 2400): ["a.jpg", "b.jpg"], (800, 600): ["c.jpg"]}, 1600)
+    assert note.startswith("2 photo(s) larger than max_image_size (1600 px on the longest side; up to 3200x2400)")
+    assert "(1600x1200)" in note and "1/8 trains at 200x150" in note and "--max-image-size N" in note
+    assert stage.resized_note({(1600, 1200): ["a.jpg"], (2400, 3200): ["p.jpg"]}, 1600).startswith("1 photo(s)")
+    assert stage.resized_note({(1600, 1200): ["a.jpg"]}, 1600) is None

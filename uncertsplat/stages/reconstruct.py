@@ -105,6 +105,22 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
     return None
 
 
+def resized_note(groups: dict[tuple[int, int], list[str]], max_side: int) -> str | None:
+    """The note for photos (``PhotoScan.size_groups``) larger than ``max_side`` pixels on their longest side, which
+    feature extraction and undistortion shrink to it: the workspace's images, and so every ``scene.downscale`` of
+    ``train``, start from that size, not the photos'. None when every photo fits."""
+    big = {size: names for size, names in groups.items() if max(size) > max_side}
+    if not big:
+        return None
+    count = sum(len(n) for n in big.values())
+    w, h = max(big, key=max)
+    f = max_side / max(w, h)
+    return (f"{count} photo(s) larger than max_image_size ({max_side} px on the longest side; up to {w}x{h}) are "
+            f"resized to it in the workspace's images ({round(w * f)}x{round(h * f)}), and `train`'s scene.downscale "
+            f"divides that size (the paper preset's 1/8 trains at {round(w * f / 8)}x{round(h * f / 8)}); "
+            "--max-image-size N keeps more pixels (slower SfM and training)")
+
+
 def disagreement_note(summaries: list[dict], kept: int, needed: float) -> str:
     """The note for a kept mapping run that no other run of its options confirms (``sfm.agreeing`` False): every run,
     and the runs that did agree among themselves, with why they were not kept."""
@@ -183,6 +199,10 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         console.print(f"[yellow]note:[/] {note}")
     groups = scan.size_groups()
     report.image_sizes = {f"{w}x{h}": len(n) for (w, h), n in groups.items()}
+    large = resized_note(groups, cfg.max_image_size)
+    if large:
+        report.notes.append(large)
+        console.print(f"[yellow]note:[/] {large}")
     if len(groups) > 1:
         # train fits them to one size (sfm.scene: scene.photo_sizes); say so before the mapping's minutes
         sizes = "; ".join(f"{k}: {v}" for k, v in sorted(report.image_sizes.items(), key=lambda kv: -kv[1]))

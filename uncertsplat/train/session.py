@@ -430,9 +430,11 @@ def workspace_notes(scene: Path) -> list[str]:
             "attempts) maps again"]
 
 
-SMALL_TRAINING_SIDE = 200
+SMALL_TRAINING_SIDE = 400
 """A training image whose long side is below this many pixels after ``scene.downscale`` has little detail to fit
-(the paper preset's downscale 8 is for photos of about 4000 px: 400 px photos train at 50 px)."""
+and is smaller than the paper's LLFF setting (504 px: its 1/8 of 4032 px photos). The paper preset's downscale 8 is
+for photos of about 4000 px: 400 px photos train at 50 px, and a phone's photos that ``reconstruct`` resized to its
+``max_image_size`` of 1600 px at 200 px."""
 
 
 def small_images_notes(width: int, height: int, downscale: float) -> list[str]:
