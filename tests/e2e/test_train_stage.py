@@ -231,3 +231,25 @@ def test_a_scene_whose_cameras_changed_is_refused(tiny_scene_path, tmp_path):  #
     with pytest.raises(UserError, match="cameras have changed .*training on would spoil it"):
         stage.run(ws, run, cfg, torch.device("cpu"), resume=True, extend_to=9)
     assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
+
+
+def test_a_start_that_failed_before_training_can_be_run_again(tiny_scene_path, tmp_path):  # noqa: F811
+    """train stopped by a photo it could not read leaves config.json and scene.json; once the photo is mended the
+    same command starts the run (it said "the run folder already exists ... --resume"), while a run with a step
+    trained is still refused."""
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene_path, scene)
+    photo = scene / "images" / "view_001.png"
+    good = photo.read_bytes()
+    photo.write_bytes(good[: len(good) // 3])
+    run = tmp_path / "run"
+    cfg = train_config_from("tiny", None, ["iterations=2", "scene.downscale=4.0", "checkpoint_every=1000",
+                                           "log_every=1", "eval_every=1000"])
+    with pytest.raises(UserError):
+        stage.run(scene, run, cfg, torch.device("cpu"))
+    assert (run / "config.json").is_file() and not list_checkpoints(run)
+    photo.write_bytes(good)
+    stage.run(scene, run, cfg, torch.device("cpu"))
+    assert (run / "train_summary.json").is_file()
+    with pytest.raises(UserError, match="already exists and holds a run trained for 2 steps"):
+        stage.run(scene, run, cfg, torch.device("cpu"))

@@ -114,6 +114,23 @@ def _summary_steps(run_dir: Path) -> int | None:
     return summary.steps if summary is not None else None
 
 
+_STARTED_FILES = ("config.json", "scene.json", "stats.jsonl", ".lock")
+"""What a run folder holds when ``train`` failed before its first checkpoint (a photo it could not read, a bad
+setting found while loading): nothing trained, so the same command may start it again (``_never_trained``)."""
+
+
+def _never_trained(run_dir: Path) -> bool:
+    """Whether ``run_dir`` is a run that failed before training anything: only ``_STARTED_FILES`` and an empty
+    ``ckpts/``, with no step in its ``stats.jsonl``."""
+    for p in run_dir.iterdir():
+        if p.name == "ckpts" and p.is_dir() and not any(p.iterdir()):
+            continue
+        if p.name not in _STARTED_FILES or not p.is_file():
+            return False
+    stats = run_dir / "stats.jsonl"
+    return not stats.is_file() or not stats.read_text(encoding="utf-8", errors="replace").strip()
+
+
 def _check_same_scene(before: RunScene, scene: Path, names: tuple[str, ...], run_dir: Path) -> None:
     """Refuse to resume ``run_dir`` on another scene than the one it was trained on (``scene.json``): its model
     would go on training on other photos and its held-out scores would mix two scenes. A scene folder that was
@@ -200,6 +217,12 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     device = torch.device(device)
     native.requested_backend()  # a bad UNCERTSPLAT_RASTERIZER is refused before the run folder is made
     exists = run_dir.exists() and (not run_dir.is_dir() or any(p.name != ".lock" for p in run_dir.iterdir()))
+    if exists and not resume and (run_dir / "config.json").is_file() and _never_trained(run_dir):
+        # a start that failed before its first step (e.g. a photo it could not read): nothing to keep
+        console.print(f"[yellow]note:[/] {run_dir} holds a run that failed before training anything; starting it again")
+        for name in _STARTED_FILES[:3]:
+            (run_dir / name).unlink(missing_ok=True)
+        exists = False
     if exists and not resume:
         if not (run_dir / "config.json").is_file():  # files of something else: nothing --resume could continue
             raise UserError("the output folder exists and holds files that are not a training run", path=run_dir,
