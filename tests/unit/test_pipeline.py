@@ -252,3 +252,39 @@ def test_a_failed_run_never_replaces_the_last_finished_output(tmp_path, calls):
     assert failed["status"] == "failed"
     pl.run(p, tmp_path / "out", overrides=["train.iterations=9"])  # finished replaces finished, as before
     assert json.loads((tmp_path / "out" / ".previous" / "train" / "out.txt").read_text())["iterations"] == 8
+
+
+def test_photos_touched_or_copied_without_times_are_unchanged(tmp_path, calls):
+    """The photo folder's fingerprint is its files' names and contents: new modification times (a `cp -r`, a sync)
+    skip every stage; a changed photo runs them again; a manifest holding the earlier fingerprint (names, sizes,
+    times) still counts as unchanged."""
+    import os
+
+    from uncertsplat.stages.manifest import fingerprint_folder
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        (photos / f"{i}.jpg").write_bytes(bytes([i]) * 100)
+    p = tmp_path / "p.toml"
+    p.write_text('name = "t"\ndevice = "cpu"\nphotos = "photos"\n[[stages]]\nstage = "reconstruct"\n'
+                 '[[stages]]\nstage = "train"\npreset = "tiny"\n')
+    pl.run(p, tmp_path / "out")
+    calls.clear()
+    for f in photos.iterdir():
+        os.utime(f, (1e9, 1e9))
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    manifest = tmp_path / "out" / "reconstruct" / "manifest.json"
+    data = json.loads(manifest.read_text())
+    data["input_hashes"]["photos"] = fingerprint_folder(photos, legacy=True)
+    manifest.write_text(json.dumps(data))  # as the earlier version wrote it, and the train stage's record of it:
+    train = tmp_path / "out" / "train" / "manifest.json"
+    record = json.loads(train.read_text())
+    record["input_hashes"]["reconstruct"] = pl.read_manifest(manifest.parent).key
+    train.write_text(json.dumps(record))
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    (photos / "1.jpg").write_bytes(b"another photo")
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls] == ["reconstruct", "train"]

@@ -298,6 +298,36 @@ def test_refuses_a_workspace_of_other_photos(tmp_path):
     assert load_report(ws).photos == str(tmp_path / "elsewhere")  # untouched
 
 
+def test_the_same_photos_copied_or_moved_reuse_their_workspace(tmp_path):
+    """The photos' fingerprint is their names and contents: a copy that did not keep the modification times, in
+    another folder, reuses the finished workspace (which then names the new folder); a workspace written with the
+    earlier fingerprint (names, sizes, times) is still taken for the same photos; a changed photo is not."""
+    import os
+    import shutil
+
+    from uncertsplat.sfm.reconstruct import scan_photos
+
+    photos = _photos(tmp_path)
+    scan = scan_photos(photos)
+    ws = tmp_path / "ws"
+    options = ReconstructConfig().model_dump(mode="json", exclude={"overwrite"})
+    write_report(ws, _report(photos=str(photos.resolve()), inputs_fingerprint=scan.fingerprint(), options=options))
+    (ws / "sparse" / "0").mkdir(parents=True)
+    copy = tmp_path / "copy"
+    shutil.copytree(photos, copy, copy_function=shutil.copyfile)  # (no times kept)
+    for p in copy.iterdir():
+        os.utime(p, (1e9, 1e9))
+    assert scan_photos(copy).legacy_fingerprint() != scan.legacy_fingerprint()
+    assert stage.run(copy, ws, ReconstructConfig()).success  # reused: nothing mapped
+    assert load_report(ws).photos == str(copy.resolve())
+    write_report(ws, _report(photos=str(photos.resolve()), inputs_fingerprint=scan.legacy_fingerprint(),
+                             options=options))
+    assert stage.run(photos, ws, ReconstructConfig()).success
+    write_image(copy / "1.png", seed=7)
+    with pytest.raises(UserError, match="other photos"):
+        stage.run(copy, ws, ReconstructConfig())
+
+
 def test_refuses_output_inside_or_around_the_photos(tmp_path):
     photos = _photos(tmp_path)
     with pytest.raises(UserError, match="inside the photo folder"):
@@ -314,7 +344,7 @@ def test_overwrite_removes_only_workspace_entries(tmp_path):
     (ws / "images" / "old.png").write_bytes(b"x")
     (ws / "keep.txt").write_text("mine")
     write_report(ws, _report(photos=str(tmp_path / "elsewhere")))
-    assert stage._prepare_workspace(photos, ws, ReconstructConfig(overwrite=True), "fp") is None
+    assert stage._prepare_workspace(photos, ws, ReconstructConfig(overwrite=True), ("fp",)) is None
     assert sorted(p.name for p in ws.iterdir()) == ["keep.txt"]
 
 

@@ -105,7 +105,17 @@ class PhotoScan:
         return groups
 
     def fingerprint(self) -> str:
-        """Hash of names, byte sizes and modification times: changes when the photo folder changes."""
+        """Hash of the photos' names and contents: changes when the photos change, not when a copy of the folder
+        did not keep the modification times (``cp -r``, a sync, a restore)."""
+        h = hashlib.sha256()
+        for p in self.photos:
+            with p.path.open("rb") as f:
+                h.update(f"{p.name}\0{hashlib.file_digest(f, 'sha256').hexdigest()}\n".encode())
+        return h.hexdigest()[:16]
+
+    def legacy_fingerprint(self) -> str:
+        """The hash of names, byte sizes and modification times that workspaces written before 2026-11-29 hold
+        (``reconstruct`` still takes them for the same photos)."""
         h = hashlib.sha256()
         for p in self.photos:
             st = p.path.stat()

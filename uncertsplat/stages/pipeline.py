@@ -201,6 +201,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                             hint="Put a stage before it, set `input`, or set `photos` for reconstruct.")
         upstreams[name] = upstream
         inputs: dict[str, str] = {}
+        legacy: dict[str, str] = {}  # folder inputs by the manifests' earlier hash (names, sizes, mtimes)
         up_path: Path | None = None
         if upstream is not None:
             if upstream in outputs:
@@ -211,6 +212,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 if not up_path.is_absolute():
                     up_path = (pipeline.resolve().parent / up_path)
                 inputs[str(up_path)] = fingerprint_folder(up_path)
+                legacy[str(up_path)] = fingerprint_folder(up_path, legacy=True)
 
         kwargs: dict = {}
         if stage.stage == "synth":
@@ -219,6 +221,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             if up_path is None:
                 up_path = Path(cfg.photos)
                 inputs["photos"] = fingerprint_folder(up_path)
+                legacy["photos"] = fingerprint_folder(up_path, legacy=True)
             elif kinds.get(upstream) == "synth":
                 up_path = up_path / "images"
             out_dir = root / name
@@ -253,7 +256,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
         new = start_manifest(stage.stage, name, config_dict, inputs)
         old = read_manifest(out_dir)
         if (not force and old is not None and old.status == "done" and old.config_hash == new.config_hash
-                and old.input_hashes == new.input_hashes):
+                and old.input_hashes in (new.input_hashes, {**new.input_hashes, **legacy})):
             console.print(f"[green]skip[/] {name}: unchanged since its last run ({out_dir})")
             outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, old
             previous = name

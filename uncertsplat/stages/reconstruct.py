@@ -63,9 +63,12 @@ def _check_output_path(photos: Path, workspace: Path) -> None:
         raise UserError("the output path is a file, not a folder", path=workspace, hint="Choose another output path.")
 
 
-def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fingerprint: str) -> ReconstructReport | None:
+def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fingerprints: tuple[str, ...]
+                       ) -> ReconstructReport | None:
     """Check the output folder; return an identical finished report to reuse, else make room. Called while holding
     the folder's lock: a run in progress (its report says unfinished) is never cleared by a second one.
+    ``fingerprints``: the photos' (``PhotoScan.fingerprint``, then its legacy form); the same photos moved to another
+    folder are the same input, and the report then records their new folder.
 
     Raises:
         UserError: the output folder holds something else (another workspace, other files) and
@@ -80,14 +83,18 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
         existing = load_report(workspace)
     except UserError:
         existing = None
-    same_input = (existing is not None and existing.photos == str(photos_abs)
-                  and existing.inputs_fingerprint == fingerprint)
+    same_input = existing is not None and existing.inputs_fingerprint in fingerprints
     if (not cfg.overwrite and same_input and existing.success
             and _same_options(existing.options, cfg)
             and (workspace / "sparse" / "0").is_dir()):
+        if existing.photos != str(photos_abs):  # the same photos, moved: the workspace now names their folder
+            console.print(f"[yellow]note:[/] the photos were at {existing.photos}; the same photos (by content) are "
+                          f"now at {photos_abs}")
+            existing.photos = str(photos_abs)
+            write_report(workspace, existing)
         return existing
     # Our own failed run on the same photos is redone without asking: there is nothing to lose.
-    redo_failed = existing is not None and existing.photos == str(photos_abs) and not existing.success
+    redo_failed = existing is not None and (existing.photos == str(photos_abs) or same_input) and not existing.success
     if not cfg.overwrite and not redo_failed:
         if existing is not None:
             what = (f"a workspace made from other photos ({existing.photos})" if not same_input
@@ -225,7 +232,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     database = workspace / "database.db"
     try:
         with run_lock(workspace, "reconstruct"), sfm.colmap_logging():
-            reused = _prepare_workspace(photos, workspace, cfg, fingerprint)
+            reused = _prepare_workspace(photos, workspace, cfg, (fingerprint, scan.legacy_fingerprint()))
             if reused is not None:
                 console.print(f"reconstruct: {workspace} already holds this reconstruction ({reused.summary()}); "
                               "nothing to do (pass --overwrite to redo it)")
