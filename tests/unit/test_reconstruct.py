@@ -119,6 +119,19 @@ def test_scan_leaves_out_exact_copies_and_names_them(tmp_path):
     assert any("p1_copy.png (= p1.png)" in n and "z.png (= p3.png)" in n for n in scan.notes)
 
 
+@pytest.mark.parametrize("copy", ["IMG_4037 (1).jpg", "IMG_4037 - Copy.jpg", "IMG_4037 copy 2.jpg", "IMG_4037-copy.jpg"])
+def test_of_a_photo_and_its_copy_the_original_name_is_kept(tmp_path, copy):
+    """A file manager's copy ("IMG_4037 (1).jpg" sorts before "IMG_4037.jpg": a space before the dot) is the one
+    left out, so the outputs carry the photo's own name."""
+    for i in range(3):
+        write_image(tmp_path / f"IMG_403{i}.jpg", seed=i)
+    write_image(tmp_path / "IMG_4037.jpg", seed=5)
+    (tmp_path / copy).write_bytes((tmp_path / "IMG_4037.jpg").read_bytes())
+    scan = sfm.scan_photos(tmp_path)
+    assert "IMG_4037.jpg" in scan.names and copy not in scan.names and copy in scan.ignored
+    assert any(f"{copy} (= IMG_4037.jpg)" in n for n in scan.notes)
+
+
 def test_scan_refuses_a_folder_of_copies(tmp_path):
     write_image(tmp_path / "a.png")
     for name in ("b.png", "c.png"):

@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import re
 import shutil
 import time
 from collections import Counter
@@ -109,8 +110,7 @@ class PhotoScan:
         did not keep the modification times (``cp -r``, a sync, a restore)."""
         h = hashlib.sha256()
         for p in self.photos:
-            with p.path.open("rb") as f:
-                h.update(f"{p.name}\0{hashlib.file_digest(f, 'sha256').hexdigest()}\n".encode())
+            h.update(f"{p.name}\0{_file_digest(p.path)}\n".encode())
         return h.hexdigest()[:16]
 
     def legacy_fingerprint(self) -> str:
@@ -304,11 +304,19 @@ def _without_copies(photos: list[PhotoInfo], ignored: list[str], notes: list[str
     """
     size = {p.name: p.path.stat().st_size for p in photos}
     shared = Counter(size.values())
-    return _first_of_each(
+    # of a photo and its copies, the one whose name is no copy's ("IMG_1.jpg" beside "IMG_1 (1).jpg" or "IMG_1
+    # copy.jpg", which sort before it by name) is kept, then the first by name
+    order = sorted(photos, key=lambda p: (_COPY_NAME.search(Path(p.name).stem) is not None, p.name))
+    kept = {p.name for p in _first_of_each(
         # a file of a size no other has is no copy: not read
-        photos, lambda p: _file_digest(p.path) if shared[size[p.name]] > 1 else None, ignored, notes,
+        order, lambda p: _file_digest(p.path) if shared[size[p.name]] > 1 else None, ignored, notes,
         lambda dropped: (f"{len(dropped)} photo(s) are exact copies of another and were left out: "
-                         + ", ".join(f"{c} (= {o})" for c, o in sorted(dropped.items()))))
+                         + ", ".join(f"{c} (= {o})" for c, o in sorted(dropped.items()))))}
+    return [p for p in photos if p.name in kept]
+
+
+_COPY_NAME = re.compile(r"(\s*\(\d+\)|[\s_-]*copy(\s*\(?\d+\)?)?)$", re.IGNORECASE)
+"""How file managers name a copy: "IMG_1 (1)" (Windows, browsers), "IMG_1 - Copy", "IMG_1 copy 2" (macOS)."""
 
 
 def stage_inputs(scan: PhotoScan, staging: Path) -> tuple[Path, list[str]]:
