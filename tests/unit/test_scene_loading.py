@@ -440,7 +440,7 @@ def test_photos_a_few_pixels_larger_are_cropped_to_the_common_size(workspace, mo
     assert (scene.cameras.width, scene.cameras.height) == (cam.width, cam.height)
     torch.testing.assert_close(scene.cameras.K, before.cameras.K, atol=1e-4, rtol=0)
     torch.testing.assert_close(load_images(scene, [i])[0], torch.from_numpy(original), atol=0, rtol=0)
-    assert any("cropped" in note for note in scene.notes)
+    assert any(note.startswith("1 photo(s) cropped") and note.endswith(": view_007.png") for note in scene.notes)
 
 
 def test_a_photo_of_another_resolution_of_the_same_shape_is_resized_with_its_camera(workspace, monkeypatch):

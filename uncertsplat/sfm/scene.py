@@ -298,10 +298,10 @@ def _fit_sizes(model: ColmapModel, images: list, sparse: Path) -> tuple[dict, li
     if scaled:
         notes.append(f"{len(scaled)} photo(s) of another resolution of the same shape resized to the scene's (their "
                      f"cameras with them): {list_names(scaled, 8)}")
-    cropped = sum(1 for f in fits.values() if f.scaled != (width, height))
+    cropped = sorted(n for n, f in fits.items() if f.scaled != (width, height))
     if cropped:
-        notes.append(f"{cropped} photo(s) cropped to the {width}x{height} pixels every photo of the scene has "
-                     "(at most a few percent of each side)")
+        notes.append(f"{len(cropped)} photo(s) cropped to the {width}x{height} pixels every photo of the scene has "
+                     f"(at most a few percent of each side): {list_names(cropped, 8)}")
     if left_out:
         notes.append(f"{len(left_out)} photo(s) of another size left out (the scene's is {ref_w}x{ref_h}; "
                      f"scene.photo_sizes): {list_names(left_out, 8)}")

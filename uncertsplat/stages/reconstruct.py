@@ -214,8 +214,9 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         # train fits them to one size (sfm.scene: scene.photo_sizes); say so before the mapping's minutes
         sizes = "; ".join(f"{k}: {v}" for k, v in sorted(report.image_sizes.items(), key=lambda kv: -kv[1]))
         note = (f"{len(groups)} image sizes found ({sizes})" + ("; one camera per size" if cfg.single_camera else "")
-                + ": `train` fits the photos to the most common size (photos of the other orientation turned, a few "
-                "pixels cropped, other sizes left out; scene.photo_sizes)")
+                + ": `train` fits the photos to the most common size (photos of the other orientation turned, "
+                "other resolutions of the same shape resized, a few pixels cropped, other shapes left out; "
+                "scene.photo_sizes)")
         report.notes.append(note)
         console.print(f"[yellow]note:[/] {note}")
 
