@@ -165,6 +165,38 @@ def test_scan_notes_photos_with_an_alpha_channel(tmp_path):
     assert not any("alpha" in n for n in sfm.scan_photos(tmp_path).notes)
 
 
+def test_jpegs_saved_as_jfif_are_photos(tmp_path):
+    """Windows browsers save JPEGs as .jfif (and some tools as .jpe): read as photos (COLMAP reads them too),
+    not listed among the other files."""
+    for i, ext in enumerate((".jfif", ".JFIF", ".jpe")):
+        write_image(tmp_path / f"p{i}.jpg", seed=i)
+        (tmp_path / f"p{i}.jpg").rename(tmp_path / f"p{i}{ext}")
+    scan = sfm.scan_photos(tmp_path)
+    assert scan.names == ["p0.jfif", "p1.JFIF", "p2.jpe"] and not scan.ignored
+
+
+def test_scan_notes_grayscale_photos_among_colour_ones(tmp_path):
+    """A grey photo (one channel, or one with alpha) among colour ones is named; a capture all in grey is not."""
+    for i in range(3):
+        write_image(tmp_path / f"p{i}.jpg", seed=i)
+    for name, channels in (("grey.jpg", 1), ("grey_alpha.png", 2)):
+        out = oiio.ImageOutput.create(str(tmp_path / name))
+        out.open(str(tmp_path / name), oiio.ImageSpec(32, 24, channels, "uint8"))
+        out.write_image(np.random.default_rng(channels).integers(0, 255, (24, 32, channels), dtype=np.uint8))
+        out.close()
+    scan = sfm.scan_photos(tmp_path)
+    assert sorted(p.name for p in scan.photos if p.gray) == ["grey.jpg", "grey_alpha.png"]
+    (note,) = [n for n in scan.notes if "grayscale" in n]
+    assert note.startswith("2 photo(s) are grayscale among colour photos") and "grey.jpg, grey_alpha.png" in note
+    for i in range(3):
+        (tmp_path / f"p{i}.jpg").unlink()
+    out = oiio.ImageOutput.create(str(tmp_path / "grey2.png"))
+    out.open(str(tmp_path / "grey2.png"), oiio.ImageSpec(32, 24, 1, "uint8"))
+    out.write_image(np.zeros((24, 32, 1), dtype=np.uint8))
+    out.close()
+    assert not any("grayscale" in n for n in sfm.scan_photos(tmp_path).notes)
+
+
 def test_size_groups_and_exif_orientation(tmp_path):
     write_image(tmp_path / "a.jpg", 40, 30)
     write_image(tmp_path / "b.jpg", 40, 30, orientation=6)  # stored landscape, shown portrait

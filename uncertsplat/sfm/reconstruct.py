@@ -34,7 +34,7 @@ from uncertsplat.console import list_names
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import decode_error
 
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".jfif", ".jpe", ".png", ".tif", ".tiff")
 """Accepted photo extensions, compared case-insensitively (IMG_0001.JPG is fine)."""
 OTHER_PHOTO_EXTENSIONS = (".heic", ".heif", ".avif", ".webp", ".jxl", ".gif", ".bmp", ".dng", ".cr2", ".cr3",
                           ".nef", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw")
@@ -78,6 +78,8 @@ class PhotoInfo:
     """EXIF orientation 1..8 (1: upright). 5..8 swap width and height when applied."""
     alpha: bool = False
     """The file has an alpha channel (COLMAP and training read its colour channels as they are)."""
+    gray: bool = False
+    """The file has one colour channel (training reads it as R = G = B)."""
 
     @property
     def oriented_size(self) -> tuple[int, int]:
@@ -123,8 +125,8 @@ class PhotoScan:
         return h.hexdigest()[:16]
 
 
-def _read_header(path: Path) -> tuple[int, int, int, bool] | str:
-    """(width, height, orientation, has alpha) from the file header, or the reader's error message.
+def _read_header(path: Path) -> tuple[int, int, int, bool, bool] | str:
+    """(width, height, orientation, has alpha, grayscale) from the file header, or the reader's error message.
 
     Every pixel is decoded too, not only the header: COLMAP reads a truncated JPEG or PNG without a word, filling
     the missing rows with grey or black, and the model would then be trained on them."""
@@ -143,7 +145,8 @@ def _read_header(path: Path) -> tuple[int, int, int, bool] | str:
         if err is not None:
             return f"cannot be decoded to the end: {err}; it may be truncated"
         alpha = spec.alpha_channel >= 0 or spec.nchannels in (2, 4)
-        return spec.width, spec.height, orientation if 1 <= orientation <= 8 else 1, alpha
+        gray = spec.nchannels - (1 if alpha else 0) == 1
+        return spec.width, spec.height, orientation if 1 <= orientation <= 8 else 1, alpha, gray
     finally:
         inp.close()
 
@@ -212,8 +215,8 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
         if isinstance(header, str):
             bad.append(f"{path.name} ({header})")
         else:
-            w, h, o, alpha = header
-            photos.append(PhotoInfo(path.name, path, w, h, o, alpha))
+            w, h, o, alpha, gray = header
+            photos.append(PhotoInfo(path.name, path, w, h, o, alpha, gray))
     if bad:  # before the count: a folder of one good and one broken photo names the broken one
         raise UserError(f"{len(bad)} photo(s) cannot be read: {'; '.join(bad)}", path=folder,
                         hint="Remove or re-export these files (JPEG, PNG or TIFF), then run again.")
@@ -226,6 +229,11 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
     if with_alpha:
         notes.append(f"{len(with_alpha)} photo(s) have an alpha channel, which is not used: structure-from-motion "
                      f"and training see the colour stored under transparent pixels as it is ({list_names(with_alpha, 8)})")
+    gray = [p.name for p in photos if p.gray]
+    if gray and len(gray) < len(photos):
+        notes.append(f"{len(gray)} photo(s) are grayscale among colour photos: training fits the model's colours to "
+                     f"them as grey (R = G = B), which pulls the colour of what they show toward grey; use colour "
+                     f"versions or leave them out ({list_names(gray, 8)})")
     if len(photos) < min_images:
         raise UserError(f"only {len(photos)} different photo(s) found; structure-from-motion needs at least "
                         f"{min_images}", path=folder, hint="Add more overlapping photos of the scene.")
