@@ -165,6 +165,14 @@ def test_scan_notes_photos_with_an_alpha_channel(tmp_path):
     assert not any("alpha" in n for n in sfm.scan_photos(tmp_path).notes)
 
 
+def test_a_broken_link_among_the_photos_is_named_as_one(tmp_path):
+    for i in range(3):
+        write_image(tmp_path / f"p{i}.jpg", seed=i)
+    (tmp_path / "zz.jpg").symlink_to(tmp_path / "gone" / "zz.jpg")
+    with pytest.raises(UserError, match=r"zz\.jpg \(a link to .*gone/zz\.jpg, which does not exist\)"):
+        sfm.scan_photos(tmp_path)
+
+
 def test_jpegs_saved_as_jfif_are_photos(tmp_path):
     """Windows browsers save JPEGs as .jfif (and some tools as .jpe): read as photos (COLMAP reads them too),
     not listed among the other files."""

@@ -213,6 +213,8 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
         headers = list(pool.map(_read_header, candidates))
     for path, header in zip(candidates, headers, strict=True):
         if isinstance(header, str):
+            if path.is_symlink() and not path.exists():  # (the reader only says it could not open the file)
+                header = f"a link to {os.readlink(path)}, which does not exist"
             bad.append(f"{path.name} ({header})")
         else:
             w, h, o, alpha, gray = header
