@@ -180,6 +180,13 @@ class TestAuto:
         assert result.sweep.largest_removal_within_tolerance is None
         (note,) = [x for x in result.notes if x.startswith("--auto")]
         assert "nothing was removed" in note and "70 %" in note and "--tolerance-db" in note
+        # nothing removed: the 'after' row is the 'before' row, which no choice on these views flatters
+        assert not any("chosen on these held-out views" in x for x in result.notes)
+
+    def test_a_score_chosen_alone_is_said_in_the_singular(self, tiny_run_path):  # noqa: F811
+        cfg = PruneConfig(keep_ratio=0.8, dry_run=True, **FAST)
+        result = prune.run(tiny_run_path, None, cfg, device=CPU)
+        assert any(x.startswith("the score was chosen on these held-out views") for x in result.notes)
 
     def test_auto_alone_measures_no_ratio_past_the_first_failure(self, tiny_run_path):  # noqa: F811
         """The decision never looks past the first ratio that fails, so ``--auto`` stops measuring there, and it

@@ -600,6 +600,7 @@ def test_train_notes_training_images_a_downscale_made_tiny():
     assert "200x150" in note and "--set scene.downscale=2 trains at about 800 px" in note
     assert small_images_notes(402, 300, 2.0) == [] and small_images_notes(100, 75, 1.0) == []
     assert small_images_notes(504, 378, 8.0) == []  # the paper's LLFF setting
+    assert small_images_notes(394, 295, 2.0) == []  # fern's workspace (787x590) through pipelines/photos.toml
 
 
 @pytest.mark.parametrize(("seconds", "shown"), [(0.0, "< 0.1 s"), (0.04, "< 0.1 s"), (0.43, "0.4 s"), (9.94, "9.9 s"),

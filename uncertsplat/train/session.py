@@ -453,9 +453,9 @@ def workspace_notes(scene: Path) -> list[str]:
             "attempts) maps again"]
 
 
-SMALL_TRAINING_SIDE = 400
+SMALL_TRAINING_SIDE = 300
 """A training image whose long side is below this many pixels after ``scene.downscale`` has little detail to fit
-and is smaller than the paper's LLFF setting (504 px: its 1/8 of 4032 px photos). The paper preset's downscale 8 is
+(the paper's LLFF setting trains at 504 px, ``pipelines/photos.toml`` at about 400 px). The paper preset's downscale 8 is
 for photos of about 4000 px: 400 px photos train at 50 px, and a phone's photos that ``reconstruct`` resized to its
 ``max_image_size`` of 1600 px at 200 px."""
 
