@@ -101,3 +101,29 @@ def test_racing_processes_never_hold_the_lock_together(tmp_path):
     for (a0, a1), (b0, b1) in zip(spans, spans[1:], strict=False):
         assert b0 >= a1, f"two holders at once: {a0}-{a1} and {b0}-{b1}"
     assert not (tmp_path / ".lock").exists()
+
+
+def test_a_second_pipeline_on_one_output_folder_is_refused(tmp_path):
+    """`uncertsplat run` holds its output folder: a second one there (which moved the first one's stage folders,
+    their locks with them, to .previous while it trained) is refused before it touches anything; an output path
+    that is a file, or lies under one, is named as such."""
+    from uncertsplat.stages import pipeline
+
+    out = tmp_path / "out"
+    (out / "train").mkdir(parents=True)
+    (out / "train" / "kept.txt").write_text("the first run's")
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(out)], env=env(), cwd=ROOT,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "holding"
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(UserError, match="another uncertsplat process"):
+            pipeline.run(ROOT / "pipelines" / "smoke.toml", out)
+        assert (out / "train" / "kept.txt").read_text() == "the first run's" and not (out / ".previous").exists()
+    finally:
+        holder.communicate("\n", timeout=60)
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(UserError, match="the output path is a file, not a folder"):
+        pipeline.run(ROOT / "pipelines" / "smoke.toml", tmp_path / "afile")
+    with pytest.raises(UserError, match="cannot create the folder: .*afile is a file"):
+        pipeline.run(ROOT / "pipelines" / "smoke.toml", tmp_path / "afile" / "out")

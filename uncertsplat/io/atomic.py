@@ -152,6 +152,13 @@ def run_lock(folder: str | Path, command: str = "uncertsplat") -> Iterator[Path]
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
+        if folder.exists() and not folder.is_dir():
+            raise UserError("the output path is a file, not a folder", path=folder,
+                            hint="Choose another output folder (-o).") from None
+        file = next((p for p in folder.parents if p.exists() and not p.is_dir()), None)
+        if file is not None:
+            raise UserError(f"cannot create the folder: {file} is a file, not a folder", path=folder,
+                            hint="Choose another output folder (-o).") from None
         raise UserError(f"cannot create the folder ({err.strerror})", path=folder,
                         hint="Choose an output folder you can write to.") from None
     lock = folder / ".lock"

@@ -27,6 +27,7 @@ from uncertsplat.config import (
 )
 from uncertsplat.console import console
 from uncertsplat.errors import Interrupted, StageError, UserError, naming_overrides
+from uncertsplat.io.atomic import run_lock
 from uncertsplat.stages.manifest import (
     Manifest,
     fingerprint_folder,
@@ -181,133 +182,135 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                         hint=f"Give your photos: uncertsplat run {pipeline} -o {output} --set photos=/path/to/photos")
     dev = resolve_device(device or cfg.device)
     root = Path(output)
-    root.mkdir(parents=True, exist_ok=True)
 
-    outputs: dict[str, Path] = {}
-    kinds: dict[str, str] = {}
-    manifests: dict[str, Manifest] = {}
-    upstreams: dict[str, str | None] = {}
-    previous: str | None = None
-    t_all = time.perf_counter()
-    console.print(f"[bold]pipeline[/] {cfg.name} ({pipeline}) -> {root}  device={dev}")
+    # one pipeline command per output folder: a second one would move the first one's stage folders (and their
+    # locks) to .previous while it writes them
+    with run_lock(root, "run"):
+        outputs: dict[str, Path] = {}
+        kinds: dict[str, str] = {}
+        manifests: dict[str, Manifest] = {}
+        upstreams: dict[str, str | None] = {}
+        previous: str | None = None
+        t_all = time.perf_counter()
+        console.print(f"[bold]pipeline[/] {cfg.name} ({pipeline}) -> {root}  device={dev}")
 
-    for stage, stage_cfg in zip(cfg.stages, stage_configs, strict=True):
-        name = stage.name or stage.stage
-        upstream = stage.input if stage.input is not None else previous
-        if stage.stage != "synth" and stage.stage != "report" and upstream is None and not (
-            stage.stage == "reconstruct" and cfg.photos is not None
-        ):
-            raise UserError(f"stage '{name}' has no input", path=pipeline,
-                            hint="Put a stage before it, set `input`, or set `photos` for reconstruct.")
-        upstreams[name] = upstream
-        inputs: dict[str, str] = {}
-        legacy: dict[str, str] = {}  # folder inputs by the manifests' earlier hash (names, sizes, mtimes)
-        up_path: Path | None = None
-        if upstream is not None:
-            if upstream in outputs:
-                up_path = outputs[upstream]
-                inputs[upstream] = manifests[upstream].key
+        for stage, stage_cfg in zip(cfg.stages, stage_configs, strict=True):
+            name = stage.name or stage.stage
+            upstream = stage.input if stage.input is not None else previous
+            if stage.stage != "synth" and stage.stage != "report" and upstream is None and not (
+                stage.stage == "reconstruct" and cfg.photos is not None
+            ):
+                raise UserError(f"stage '{name}' has no input", path=pipeline,
+                                hint="Put a stage before it, set `input`, or set `photos` for reconstruct.")
+            upstreams[name] = upstream
+            inputs: dict[str, str] = {}
+            legacy: dict[str, str] = {}  # folder inputs by the manifests' earlier hash (names, sizes, mtimes)
+            up_path: Path | None = None
+            if upstream is not None:
+                if upstream in outputs:
+                    up_path = outputs[upstream]
+                    inputs[upstream] = manifests[upstream].key
+                else:
+                    up_path = Path(upstream)
+                    if not up_path.is_absolute():
+                        up_path = (pipeline.resolve().parent / up_path)
+                    inputs[str(up_path)] = fingerprint_folder(up_path)
+                    legacy[str(up_path)] = fingerprint_folder(up_path, legacy=True)
+
+            kwargs: dict = {}
+            if stage.stage == "synth":
+                out_dir = root / name
+            elif stage.stage == "reconstruct":
+                if up_path is None:
+                    up_path = Path(cfg.photos)
+                    inputs["photos"] = fingerprint_folder(up_path)
+                    legacy["photos"] = fingerprint_folder(up_path, legacy=True)
+                elif kinds.get(upstream) == "synth":
+                    up_path = up_path / "images"
+                out_dir = root / name
+            elif stage.stage == "evaluate":
+                from uncertsplat.stages.evaluate import eval_dir
+
+                out_dir = eval_dir(up_path, stage_cfg)
+                synth = [n for n, k in kinds.items() if k == "synth"]
+                # follow the chain back (evaluate <- prune <- train) to the scene the model was trained on
+                node = upstream
+                while node is not None and kinds.get(node) == "prune":
+                    node = upstreams.get(node)
+                trained_on = kinds.get(str(upstreams.get(node)))
+                if synth and stage_cfg.depth_gt is None and trained_on == "reconstruct":
+                    # SfM on a synthetic scene: the GT depth lives with the generator's output; the evaluate
+                    # stage aligns the depth scale (the reconstruction's frame is not the generator's).
+                    stage_cfg = stage_cfg.model_copy(update={"depth_gt": outputs[synth[0]] / "depth"})
+                    inputs[synth[0]] = manifests[synth[0]].key
+            elif stage.stage == "report":
+                runs = [p for n, p in outputs.items() if kinds[n] in ("train", "prune")]
+                if not runs:
+                    raise UserError(f"stage '{name}' needs a train or prune stage before it", path=pipeline)
+                kwargs["runs"] = runs
+                for n, k in kinds.items():
+                    if k in ("train", "prune", "evaluate"):
+                        inputs[n] = manifests[n].key
+                out_dir = root / name
             else:
-                up_path = Path(upstream)
-                if not up_path.is_absolute():
-                    up_path = (pipeline.resolve().parent / up_path)
-                inputs[str(up_path)] = fingerprint_folder(up_path)
-                legacy[str(up_path)] = fingerprint_folder(up_path, legacy=True)
+                out_dir = root / name
 
-        kwargs: dict = {}
-        if stage.stage == "synth":
-            out_dir = root / name
-        elif stage.stage == "reconstruct":
-            if up_path is None:
-                up_path = Path(cfg.photos)
-                inputs["photos"] = fingerprint_folder(up_path)
-                legacy["photos"] = fingerprint_folder(up_path, legacy=True)
-            elif kinds.get(upstream) == "synth":
-                up_path = up_path / "images"
-            out_dir = root / name
-        elif stage.stage == "evaluate":
-            from uncertsplat.stages.evaluate import eval_dir
+            config_dict = stage_cfg.model_dump(mode="json")
+            new = start_manifest(stage.stage, name, config_dict, inputs)
+            old = read_manifest(out_dir)
+            if (not force and old is not None and old.status == "done" and old.config_hash == new.config_hash
+                    and old.input_hashes in (new.input_hashes, {**new.input_hashes, **legacy})):
+                console.print(f"[green]skip[/] {name}: unchanged since its last run ({out_dir})")
+                outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, old
+                previous = name
+                continue
 
-            out_dir = eval_dir(up_path, stage_cfg)
-            synth = [n for n, k in kinds.items() if k == "synth"]
-            # follow the chain back (evaluate <- prune <- train) to the scene the model was trained on
-            node = upstream
-            while node is not None and kinds.get(node) == "prune":
-                node = upstreams.get(node)
-            trained_on = kinds.get(str(upstreams.get(node)))
-            if synth and stage_cfg.depth_gt is None and trained_on == "reconstruct":
-                # SfM on a synthetic scene: the GT depth lives with the generator's output; the evaluate
-                # stage aligns the depth scale (the reconstruction's frame is not the generator's).
-                stage_cfg = stage_cfg.model_copy(update={"depth_gt": outputs[synth[0]] / "depth"})
-                inputs[synth[0]] = manifests[synth[0]].key
-        elif stage.stage == "report":
-            runs = [p for n, p in outputs.items() if kinds[n] in ("train", "prune")]
-            if not runs:
-                raise UserError(f"stage '{name}' needs a train or prune stage before it", path=pipeline)
-            kwargs["runs"] = runs
-            for n, k in kinds.items():
-                if k in ("train", "prune", "evaluate"):
-                    inputs[n] = manifests[n].key
-            out_dir = root / name
-        else:
-            out_dir = root / name
-
-        config_dict = stage_cfg.model_dump(mode="json")
-        new = start_manifest(stage.stage, name, config_dict, inputs)
-        old = read_manifest(out_dir)
-        if (not force and old is not None and old.status == "done" and old.config_hash == new.config_hash
-                and old.input_hashes in (new.input_hashes, {**new.input_hashes, **legacy})):
-            console.print(f"[green]skip[/] {name}: unchanged since its last run ({out_dir})")
-            outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, old
+            console.print(f"[bold cyan]stage[/] {name} ({stage.stage}) -> {out_dir}")
+            resume = (not force and stage.stage == "train" and old is not None and old.error == INTERRUPTED
+                      and old.config_hash == new.config_hash and old.input_hashes == new.input_hashes
+                      and _has_checkpoint(out_dir))
+            if resume:
+                kwargs["resume"] = True
+                console.print(f"  resuming '{name}' from its checkpoint (it was interrupted with these settings and inputs)")
+            elif not (stage.stage == "evaluate" and _evaluation_kept(up_path, stage_cfg, dev)):
+                _move_previous(out_dir, root, name if stage.stage != "evaluate" else f"{name}-eval")
+            t0 = time.perf_counter()
+            try:
+                _run_stage(stage.stage, stage_cfg, up_path, out_dir, dev, kwargs)
+            except KeyboardInterrupt:
+                _finish(out_dir, new, "failed", t0, INTERRUPTED)
+                raise
+            except Interrupted as err:  # a stage stopped by Ctrl-C that kept its work (train's checkpoint, ...)
+                _finish(out_dir, new, "failed", t0, INTERRUPTED)
+                again = ("training resumes from its checkpoint" if stage.stage == "train" and _has_checkpoint(out_dir)
+                         else "this one starts over (its folder kept under .previous/)")
+                raise Interrupted(f"stage '{name}' ({stage.stage}) interrupted: {err.message}",
+                                  hint=f"Run the same pipeline command again: the stages that finished are skipped and "
+                                       f"{again}.") from None
+            except UserError as err:
+                _finish(out_dir, new, "failed", t0, err.render())
+                text = err.render()
+                # the stage's advice names its command's options; in a pipeline they are its config's keys
+                keys = [o.replace("-", "_") for o in re.findall(r"(?<![\w-])--([a-z][a-z0-9-]*)", text)]
+                keys = list(dict.fromkeys(k for k in keys if k in type(stage_cfg).model_fields))
+                where = (f" (in this pipeline: {', '.join(f'--set {name}.{k}' for k in keys)})" if keys else "")
+                raise StageError(f"stage '{name}' ({stage.stage}) failed: {text}{where}") from None
+            except Exception as err:  # an unexpected fault: still say which stage, keep earlier outputs
+                _finish(out_dir, new, "failed", t0, f"{type(err).__name__}: {err}")
+                raise StageError(
+                    f"stage '{name}' ({stage.stage}) failed with an internal error: {type(err).__name__}: {err}",
+                    hint="Earlier stages' outputs are intact; re-run with --debug for the traceback and report it.",
+                ) from err
+            _finish(out_dir, new, "done", t0)
+            console.print(f"  [green]done[/] {name} in {time.perf_counter() - t0:.1f} s")
+            outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, new
             previous = name
-            continue
 
-        console.print(f"[bold cyan]stage[/] {name} ({stage.stage}) -> {out_dir}")
-        resume = (not force and stage.stage == "train" and old is not None and old.error == INTERRUPTED
-                  and old.config_hash == new.config_hash and old.input_hashes == new.input_hashes
-                  and _has_checkpoint(out_dir))
-        if resume:
-            kwargs["resume"] = True
-            console.print(f"  resuming '{name}' from its checkpoint (it was interrupted with these settings and inputs)")
-        elif not (stage.stage == "evaluate" and _evaluation_kept(up_path, stage_cfg, dev)):
-            _move_previous(out_dir, root, name if stage.stage != "evaluate" else f"{name}-eval")
-        t0 = time.perf_counter()
-        try:
-            _run_stage(stage.stage, stage_cfg, up_path, out_dir, dev, kwargs)
-        except KeyboardInterrupt:
-            _finish(out_dir, new, "failed", t0, INTERRUPTED)
-            raise
-        except Interrupted as err:  # a stage stopped by Ctrl-C that kept its work (train's checkpoint, ...)
-            _finish(out_dir, new, "failed", t0, INTERRUPTED)
-            again = ("training resumes from its checkpoint" if stage.stage == "train" and _has_checkpoint(out_dir)
-                     else "this one starts over (its folder kept under .previous/)")
-            raise Interrupted(f"stage '{name}' ({stage.stage}) interrupted: {err.message}",
-                              hint=f"Run the same pipeline command again: the stages that finished are skipped and "
-                                   f"{again}.") from None
-        except UserError as err:
-            _finish(out_dir, new, "failed", t0, err.render())
-            text = err.render()
-            # the stage's advice names its command's options; in a pipeline they are its config's keys
-            keys = [o.replace("-", "_") for o in re.findall(r"(?<![\w-])--([a-z][a-z0-9-]*)", text)]
-            keys = list(dict.fromkeys(k for k in keys if k in type(stage_cfg).model_fields))
-            where = (f" (in this pipeline: {', '.join(f'--set {name}.{k}' for k in keys)})" if keys else "")
-            raise StageError(f"stage '{name}' ({stage.stage}) failed: {text}{where}") from None
-        except Exception as err:  # an unexpected fault: still say which stage, keep earlier outputs
-            _finish(out_dir, new, "failed", t0, f"{type(err).__name__}: {err}")
-            raise StageError(
-                f"stage '{name}' ({stage.stage}) failed with an internal error: {type(err).__name__}: {err}",
-                hint="Earlier stages' outputs are intact; re-run with --debug for the traceback and report it.",
-            ) from err
-        _finish(out_dir, new, "done", t0)
-        console.print(f"  [green]done[/] {name} in {time.perf_counter() - t0:.1f} s")
-        outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, new
-        previous = name
-
-    console.print(f"[bold green]pipeline finished[/] in {time.perf_counter() - t_all:.1f} s")
-    reports = [p for n, p in outputs.items() if kinds[n] == "report"]
-    for r in reports:
-        console.print(f"report: {r / 'index.html'}")
-    return outputs
+        console.print(f"[bold green]pipeline finished[/] in {time.perf_counter() - t_all:.1f} s")
+        reports = [p for n, p in outputs.items() if kinds[n] == "report"]
+        for r in reports:
+            console.print(f"report: {r / 'index.html'}")
+        return outputs
 
 
 def _finish(out_dir: Path, manifest: Manifest, status: str, t0: float, error: str | None = None) -> None:

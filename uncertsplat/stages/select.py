@@ -96,6 +96,8 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     if not run_dir.is_dir():
         raise run_folder_missing(run_dir)
     out = Path(output) if output is not None else run_dir / "select"
+    if out.exists() and not out.is_dir():  # before the scoring's minutes (run_lock says it again at the end)
+        raise UserError("the output path is a file, not a folder", path=out, hint="Choose another output folder (-o).")
     loaded = load_run(run_dir, device)
     loaded.warn_if_unfinished()
     scene = loaded.load_scene()
@@ -178,8 +180,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     sel = Selection(run=str(run_dir), score=cfg.score, candidates=cfg.candidates, num_candidates=len(cands),
                     chosen=picked, ranking=ranking, used=used_names, seconds=seconds,
                     seconds_per_candidate=seconds / max(len(cands), 1), settings=settings)
-    out.mkdir(parents=True, exist_ok=True)
-    with run_lock(out, "select-views"):
+    with run_lock(out, "select-views"):  # (it makes the folder, or says why it cannot)
         sel.write(out / Selection.FILE_NAME)
         up = -torch.linalg.inv(scene.cameras[train].cam_from_world.double())[:, :3, 1].mean(0)
         _plot(out / "selection.png", scene.cameras[train].centers, centres, chosen, up,

@@ -179,8 +179,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         raise UserError("--scene replaces the scene of a single-scene spec, and this spec names "
                         f"{len(spec.scenes)} scenes ({', '.join(spec.scenes)})", path=spec_path,
                         hint="Set one scene's folder with --set scenes.NAME.path=FOLDER instead.")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with run_lock(out_dir, "sweep"):
+    with run_lock(out_dir, "sweep"):  # (it makes the folder, or says why it cannot)
         if spec.scenes:
             folders = {name: prepare_scene(name, entry, out_dir) for name, entry in spec.scenes.items()}
         else:
