@@ -812,3 +812,25 @@ class TestPredictor:
             pred.cameras_from_source(scaled, pred.scene.cameras.K[0], 128, 96)
         with pytest.raises(UserError, match="num_samples must be 1 or more"):
             pred.predict(pred.scene.cameras[[0]], num_samples=0)
+
+
+def test_an_evaluation_stopped_midway_leaves_no_metrics_beside_its_maps(tiny_run_path, tmp_path, monkeypatch):
+    """Ctrl-C after the first view's maps of a new evaluation: the earlier metrics.json is gone with the maps it
+    described, so the next evaluate with the earlier settings evaluates again instead of keeping mixed files."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    first = EvalConfig(num_samples=2, seed=0)
+    evaluate.run(run, first, device=torch.device("cpu"))
+    real = evaluate.write_view_maps
+
+    def stop_after_one(*args, **kwargs):
+        real(*args, **kwargs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(evaluate, "write_view_maps", stop_after_one)
+    with pytest.raises(KeyboardInterrupt):
+        evaluate.run(run, EvalConfig(num_samples=3, seed=7), device=torch.device("cpu"))
+    assert not (run / "eval" / "metrics.json").exists()
+    monkeypatch.setattr(evaluate, "write_view_maps", real)
+    report = evaluate.run(run, first, device=torch.device("cpu"))
+    assert report.num_samples == 2 and report.seed == 0 and (run / "eval" / "metrics.json").is_file()

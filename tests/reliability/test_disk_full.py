@@ -128,6 +128,12 @@ def test_real_file_size_limit_on_image_and_checkpoint_writes(tmp_path):
         with pytest.raises(UserError, match="could not write the file") as err:
             save_checkpoint(tmp_path, 2, {"x": torch.randn(100_000)})
         assert "step_000002.pt" in str(err.value)
+        # torch.save into a file (evaluate's residual.pt) reports the failed write as a RuntimeError
+        from uncertsplat.io.atomic import atomic_write
+
+        with pytest.raises(UserError, match="could not write the file: File too large") as err:
+            atomic_write(tmp_path / "residual.pt", lambda f: torch.save({"x": torch.randn(100_000)}, f))
+        assert "residual.pt" in str(err.value)
     finally:
         resource.setrlimit(resource.RLIMIT_FSIZE, old_limit)
         signal.signal(signal.SIGXFSZ, old_handler)

@@ -59,13 +59,26 @@ def atomic_write_via(path: str | Path, write_tmp: Callable[[str], None], *, what
     except BaseException as err:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
-        if isinstance(err, OSError):
-            why = "the disk is full" if err.errno == errno.ENOSPC else (err.strerror or str(err))
+        os_err = _os_error(err)
+        if os_err is not None:
+            why = "the disk is full" if os_err.errno == errno.ENOSPC else (os_err.strerror or str(os_err))
             raise UserError(f"could not write the {what}: {why}; nothing was left half-written", path=path,
                             hint="Free some space or choose another output folder, then run again.") from None
         raise
     _fsync_dir(path.parent)
     return path
+
+
+def _os_error(err: BaseException) -> OSError | None:
+    """``err`` when it is an OSError, else the OSError it was raised from or during (torch.save reports a full disk
+    as a RuntimeError whose context is the file's OSError), else None."""
+    seen = set()
+    while err is not None and id(err) not in seen:
+        if isinstance(err, OSError):
+            return err
+        seen.add(id(err))
+        err = err.__cause__ or err.__context__
+    return None
 
 
 def atomic_write(path: str | Path, writer: Callable[[IO[bytes]], None]) -> Path:

@@ -380,6 +380,10 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         if not cfg.save_maps and (out / "maps").is_dir():
             # an earlier evaluation's maps would sit beside metrics they no longer belong to (the report reads both)
             shutil.rmtree(out / "maps")
+        elif cfg.save_maps and (out / "metrics.json").is_file():
+            # the maps are rewritten view by view: an evaluation stopped midway left the earlier metrics beside new
+            # maps, which the next evaluate took for a finished one of those settings and the report showed together
+            (out / "metrics.json").unlink()
         report = evaluate_views(sampler, views, cfg, device,
                                 on_view=partial(write_view_maps, out / "maps", preview=cfg.preview,
                                                 turns=photo_turns(scene), depth_to_source=scene.depth_scale_to_gt)
