@@ -253,3 +253,19 @@ def test_a_start_that_failed_before_training_can_be_run_again(tiny_scene_path, t
     assert (run / "train_summary.json").is_file()
     with pytest.raises(UserError, match="already exists and holds a run trained for 2 steps"):
         stage.run(scene, run, cfg, torch.device("cpu"))
+
+
+def test_a_finished_run_without_its_checkpoints_is_not_trained_again(tiny_scene_path, tmp_path):  # noqa: F811
+    """ckpts/ deleted to save disk: --resume says there is nothing to do, --resume --iterations N (more steps) is
+    refused, and the finished model is kept (it trained from step 0 over it)."""
+    run = tmp_path / "run"
+    cfg = train_config_from("tiny", None, ["iterations=4", "scene.downscale=4.0", "checkpoint_every=2",
+                                           "log_every=1", "eval_every=1000"])
+    stage.run(tiny_scene_path, run, cfg, torch.device("cpu"))
+    shutil.rmtree(run / "ckpts")
+    model = (run / "variational.ply").read_bytes()
+    stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True)
+    with pytest.raises(UserError, match="checkpoints are gone .*4 steps"):
+        stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True, extend_to=8)
+    assert (run / "variational.ply").read_bytes() == model
+    assert max(json.loads(x)["step"] for x in (run / "stats.jsonl").read_text().splitlines()) == 4

@@ -278,6 +278,16 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                               "the Gaussians the model has, none are grown for them, so what only they show stays "
                               "poorly fitted; to grow for them, add views before densify.until (a run of more "
                               "steps, or one started with a later densify.until)")
+            finished = _summary_steps(run_dir) if (run_dir / "variational.ply").is_file() else None
+            if found is None and finished:  # a finished model whose checkpoints were deleted (to save disk)
+                if extend_to is None or extend_to <= finished:
+                    console.print(f"{run_dir}: already trained for its {finished} steps, nothing to do (its "
+                                  "checkpoints are gone, so it cannot be trained on)")
+                    return run_dir
+                raise UserError(f"the run's checkpoints are gone (ckpts/ holds none): it cannot go on from its "
+                                f"{finished} steps, and starting from step 0 would replace its finished model",
+                                path=run_dir, hint="Train a new run with the steps you want (-o NEW_RUN --iterations "
+                                                   f"{extend_to}); this one stays as it is.")
             if found is None:
                 console.print("[yellow]note:[/] no usable checkpoint in the run folder; starting from step 0")
                 for name in ("stats.jsonl",):
