@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import os
 
 import numpy as np
 import pytest
@@ -52,6 +53,9 @@ def test_writes_a_valid_pruned_run(pruned, tiny_run_path):  # noqa: F811
     assert result.counts.after == n - round(0.2 * n) or result.counts.after > n - round(0.2 * n)
     assert (out / "config.json").read_bytes() == (tiny_run_path / "config.json").read_bytes()
     assert (out / "scene.json").is_file() and (out / "point_cloud.ply").is_file()
+    umask = os.umask(0)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o777 & ~umask  # as any output folder (the temp folder's 0700 before)
     # the mask reproduces the pruned model from the untouched source run
     kept = np.load(out / "prune_mask.npy")
     assert kept.dtype == np.int64 and len(kept) == len(loaded.model) and np.all(np.diff(kept) > 0)

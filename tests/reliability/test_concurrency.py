@@ -10,7 +10,9 @@ import sys
 
 import pytest
 
+from tests.fixtures import tiny_scene_path  # noqa: F401
 from tests.reliability.helpers import ROOT, env
+from tests.run_fixtures import tiny_run_path  # noqa: F401
 from uncertsplat.errors import UserError
 from uncertsplat.io.atomic import run_lock
 
@@ -127,3 +129,24 @@ def test_a_second_pipeline_on_one_output_folder_is_refused(tmp_path):
         pipeline.run(ROOT / "pipelines" / "smoke.toml", tmp_path / "afile")
     with pytest.raises(UserError, match="cannot create the folder: .*afile is a file"):
         pipeline.run(ROOT / "pipelines" / "smoke.toml", tmp_path / "afile" / "out")
+
+
+def test_prune_refuses_a_run_in_training(tiny_run_path, tmp_path):  # noqa: F811
+    """A run that a live process holds (a training going on) is not pruned: its model is about to change."""
+    import shutil
+
+    from uncertsplat.config import PruneConfig
+    from uncertsplat.stages import prune
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(run)], env=env(), cwd=ROOT,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "holding"
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(UserError, match="another uncertsplat process"):
+            prune.run(run, tmp_path / "out", PruneConfig(keep_ratio=0.9, num_samples=2), "cpu")
+        assert not (tmp_path / "out").exists()
+    finally:
+        holder.communicate("\n", timeout=60)

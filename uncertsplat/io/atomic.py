@@ -32,6 +32,12 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
+def current_umask() -> int:
+    """The process's file-creation mask (read once at import): what a folder made by ``mkdtemp`` (0700) is
+    chmod-ed by to get the permissions any other output has."""
+    return _UMASK
+
+
 def atomic_write_via(path: str | Path, write_tmp: Callable[[str], None], *, what: str = "file") -> Path:
     """Write a file atomically through a writer that takes a file *name* (e.g. OpenImageIO).
 

@@ -51,7 +51,8 @@ import torch
 
 from uncertsplat.config import EvalConfig, PruneConfig
 from uncertsplat.console import console
-from uncertsplat.errors import UserError, run_folder_missing
+from uncertsplat.errors import Interrupted, UserError, run_folder_missing
+from uncertsplat.io.atomic import current_umask
 from uncertsplat.provenance import file_sha256
 from uncertsplat.schemas.prune import (
     PruneCounts,
@@ -284,8 +285,13 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
             score, an output folder equal to / inside / containing the input or already existing.
     """
     from uncertsplat import native
+    from uncertsplat.io.atomic import run_lock
 
-    with native.single_threaded_torch(device):  # torch's own ops on one thread, the kernels on all
+    if not Path(run_dir).is_dir():
+        raise run_folder_missing(Path(run_dir))
+    # the source run's lock: a training run going on there would change the model under the scores (a prune during
+    # `train --resume` pruned the earlier model and named the run as its source), and its eval/ cache is shared
+    with run_lock(run_dir, "prune"), native.single_threaded_torch(device):
         return _run(run_dir, output, cfg, device)
 
 
@@ -467,7 +473,13 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         return result
     _write_output(run_dir, output, cfg, measure, loaded, result, scores, carriers, keep, pruned, random_model, sweep)
     if evaluate_written and keep is not None and result.counts.removed > 0:  # (nothing removed: "after" is "before")
-        _evaluate_written(output, result, measure, device)
+        try:
+            _evaluate_written(output, result, measure, device)
+        except KeyboardInterrupt:
+            raise Interrupted(f"prune stopped while it evaluated the pruned run: the run is written to {output}, but "
+                              "prune.json's 'after' row holds only the expected render's PSNR", path=output,
+                              hint=f"`uncertsplat evaluate {output}` scores the pruned run (its eval/ folder); or "
+                                   f"delete {output} and prune again for a complete prune.json.") from None
         notes.append(f"the pruned model's uncertainty metrics are evaluate's ({output / 'eval' / 'metrics.json'}: "
                      "the pruned run evaluated as `evaluate` does, with this K and seed)")
         _tolerance_note(result, notes, cfg)
@@ -562,6 +574,7 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
 
     output.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
+    os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes it 0700: the pruned run is read like any other
     try:
         writes_model = keep is not None and not cfg.dry_run
         if writes_model:
@@ -592,9 +605,15 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
         if sweep is not None:
             sweep.write(tmp / "sweep.json")
         result.write(tmp / "prune.json")
-        if output.exists():
-            output.rmdir()  # checked empty before any work; rmdir fails (safely) if something appeared since
-        os.rename(tmp, output)
+        try:
+            if output.exists():
+                output.rmdir()  # checked empty before any work; rmdir fails (safely) if something appeared since
+            os.rename(tmp, output)
+        except OSError:
+            if output.exists() and any(output.iterdir()):  # another prune (or anything else) wrote it meanwhile
+                raise UserError("the output folder was written by another process while this prune ran", path=output,
+                                hint="Nothing of this prune was kept; choose another output folder (-o).") from None
+            raise
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
