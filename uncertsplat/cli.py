@@ -47,6 +47,21 @@ def resolve_device(name: str):
 _ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM}
 
 
+_INTERRUPTED = {
+    "evaluate": "nothing of this evaluation was kept (metrics.json is written last, and an earlier one was removed "
+                "with the maps it described); the same command evaluates again",
+    "prune": "nothing was written (the output folder appears only when prune has finished); the same command "
+             "prunes again",
+    "report": "the page was not written; the same command writes the report (its figures again too)",
+    "synth": "the scene folder is unfinished (no scene.json); the same command with --overwrite writes it again",
+    "select_views": "no selection was written; the same command scores the candidates again",
+    "run_pipeline": "the stages that finished are kept (each has a manifest.json); the same command skips them and "
+                    "runs the rest",
+    "view": "the viewer stopped",
+}
+"""What Ctrl-C leaves, by command (function name), for those that do not say it themselves."""
+
+
 def _handle_errors(fn):
     """Turn UserError into a one-paragraph message and exit code 2; Ctrl-C (and an Interrupted error: the work
     stopped on a signal, what was done kept) into exit code 130."""
@@ -63,7 +78,9 @@ def _handle_errors(fn):
             console.print(Text.assemble(label, " ", err.render()), soft_wrap=True)
             raise typer.Exit(130 if isinstance(err, Interrupted) else 2) from None
         except KeyboardInterrupt:
-            console.print("[yellow]interrupted[/]")
+            # (train, sweep and reconstruct say what they kept themselves, as an Interrupted error)
+            said = _INTERRUPTED.get(fn.__name__)
+            console.print(Text.assemble(("interrupted", "yellow"), f": {said}" if said else ""), soft_wrap=True)
             raise typer.Exit(130) from None
         except OSError as err:
             # the environment, not a bug: disk full, quota, file too large, read-only or forbidden folder

@@ -186,3 +186,24 @@ def test_view_addresses_are_checked_at_once_with_the_command_s_own_option(tmp_pa
         check_port("10.255.255.1", 0)
     check_port("127.0.0.1", 0)
     check_port("localhost", 0)
+
+
+@pytest.mark.parametrize(("command", "words"), [("evaluate", "nothing of this evaluation was kept"),
+                                                ("prune", "nothing was written"),
+                                                ("run_pipeline", "the stages that finished are kept")])
+def test_ctrl_c_says_what_was_kept(command, words, capsys):
+    """Ctrl-C in a command that does not say it itself: what it kept and what to run (it printed 'interrupted')."""
+    import typer
+
+    from uncertsplat.cli import _handle_errors
+
+    def stop():
+        raise KeyboardInterrupt
+
+    stop.__name__ = command
+    with pytest.raises(typer.Exit) as exit_:
+        _handle_errors(stop)()
+    assert exit_.value.exit_code == 130
+    said = capsys.readouterr()
+    out = " ".join((said.out + said.err).split())
+    assert out.startswith("interrupted: ") and words in out

@@ -506,6 +506,16 @@ def test_output_folder_rules(tmp_path):
     stage.run([run], out, ReportConfig())  # an earlier report is replaced, stale figures removed
     assert not (out / "figures" / "stale.png").exists()
     assert_figures_consistent(out, parse(out / "index.html"))
+    # a report stopped before its page (Ctrl-C, a full disk) leaves figures only: the same command writes there again
+    stopped = tmp_path / "stopped"
+    (stopped / "figures").mkdir(parents=True)
+    (stopped / "figures" / "half.png").write_bytes(b"part")
+    (stopped / "figures" / ".x.tmp.png").write_bytes(b"")
+    stage.run([run], stopped, ReportConfig())
+    assert not (stopped / "figures" / "half.png").exists() and (stopped / "index.html").is_file()
+    (busy / "figures").mkdir()  # figures beside someone's file: still not ours
+    with pytest.raises(UserError, match="not empty"):
+        stage.run([run], busy, ReportConfig())
 
 
 def test_cli_report(tmp_path):

@@ -42,12 +42,21 @@ def _check_output(out: Path, runs: list[Path]) -> None:
         if out.resolve() == r.resolve():
             raise UserError("the report folder cannot be the run folder itself", path=out,
                             hint=f"Use e.g. -o {r / 'report'}.")
-    if out.is_dir() and any(out.iterdir()) and not is_report_page(out / INDEX):
+    if out.is_dir() and any(out.iterdir()) and not is_report_page(out / INDEX) and not _unfinished_report(out):
         what = ("its index.html is not a page `report` wrote" if (out / INDEX).is_file()
                 else "it holds no earlier report")
         raise UserError(f"the output folder is not empty and {what}; refusing to write into it (its index.html and "
                         "figures/ would be replaced)", path=out,
                         hint="Choose a new or empty folder (a folder of an earlier report is replaced).")
+
+
+def _unfinished_report(out: Path) -> bool:
+    """Whether ``out`` holds only what a report stopped before its page leaves (``figures/`` with PNGs and temp
+    files): the same command may write there again (it refused, having no index.html to recognise)."""
+    entries = list(out.iterdir())
+    fig_dir = out / FIGURES
+    return (all(p == fig_dir for p in entries) and fig_dir.is_dir()
+            and all(f.is_file() and (f.suffix == ".png" or f.name.startswith(".")) for f in fig_dir.iterdir()))
 
 
 def _remove_stale_figures(out: Path, keep: list[str]) -> None:
@@ -90,7 +99,7 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
             r.notes.append(f"its eval/metrics.json scored an earlier state of the run (the model, config or scene "
                            f"changed since, e.g. by `train --resume`), so the metrics shown are that model's: run "
                            f"`uncertsplat evaluate {r.path}` again, then this report")
-    had_report = (out / INDEX).is_file()
+    had_report = (out / INDEX).is_file() or (out.is_dir() and any(out.iterdir()))  # (an unfinished one's figures)
 
     text, figures = build_report(loaded, out, cfg.title, cfg.max_views, atomic_write_bytes)
     if had_report:
