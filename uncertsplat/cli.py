@@ -87,9 +87,11 @@ def _handle_errors(fn):
             if _STATE["debug"] or err.errno not in _ENVIRONMENT_ERRNOS:
                 raise
             where = f"{err.filename}: " if err.filename else ""
-            console.print(Text.assemble(("error:", "bold red"), f" {where}{err.strerror}. Free some space or choose a "
-                                        "folder you can write to, then run again (--resume continues a training run)."),
-                          soft_wrap=True)
+            space = err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+            advice = ("Free some space or choose another output folder" if space
+                      else "Choose an output folder you can write to") + ", then run again" + (
+                " (--resume continues the training run)" if fn.__name__ == "train" else "") + "."
+            console.print(Text.assemble(("error:", "bold red"), f" {where}{err.strerror}. {advice}"), soft_wrap=True)
             raise typer.Exit(2) from None
 
     return wrapper

@@ -207,3 +207,28 @@ def test_ctrl_c_says_what_was_kept(command, words, capsys):
     said = capsys.readouterr()
     out = " ".join((said.out + said.err).split())
     assert out.startswith("interrupted: ") and words in out
+
+
+@pytest.mark.parametrize(("code", "command", "words", "not_words"), [
+    (28, "prune", "Free some space or choose another output folder, then run again.", "--resume"),  # ENOSPC
+    (13, "prune", "Choose an output folder you can write to, then run again.", "space"),  # EACCES
+    (30, "sweep", "Choose an output folder you can write to", "space"),  # EROFS
+    (28, "train", "(--resume continues the training run)", "you can write to"),
+])
+def test_a_file_system_error_gets_the_advice_of_its_kind(code, command, words, not_words, capsys):
+    """A full disk asks for space, a read-only or forbidden folder for another folder; only train mentions --resume."""
+    import os
+
+    import typer
+
+    from uncertsplat.cli import _handle_errors
+
+    def fail():
+        raise OSError(code, os.strerror(code), "/out/x")
+
+    fail.__name__ = command
+    with pytest.raises(typer.Exit):
+        _handle_errors(fail)()
+    said = capsys.readouterr()
+    out = " ".join((said.out + said.err).split())
+    assert out.startswith("error: /out/x: ") and words in out and not_words not in out

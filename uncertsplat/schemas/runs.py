@@ -146,7 +146,7 @@ class TrainSummary(SchemaFile):
 
     FILE_NAME = "train_summary.json"
     SCHEMA_VERSION = 4
-    WRITTEN_BY = "uncertsplat train"
+    WRITTEN_BY = "uncertsplat train SCENE -o RUN --resume"  # (a plain re-run refuses the existing run folder)
 
     schema_version: int = 4
     method: str
