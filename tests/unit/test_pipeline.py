@@ -288,3 +288,16 @@ def test_photos_touched_or_copied_without_times_are_unchanged(tmp_path, calls):
     (photos / "1.jpg").write_bytes(b"another photo")
     pl.run(p, tmp_path / "out")
     assert [k for k, _ in calls] == ["reconstruct", "train"]
+
+
+def test_a_damaged_manifest_is_named_before_its_stage_runs_again(tmp_path, calls, capsys):
+    p = _write(tmp_path)
+    pl.run(p, tmp_path / "out")
+    (tmp_path / "out" / "train" / "manifest.json").write_text('{"stage": "tra')
+    calls.clear()
+    capsys.readouterr()
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls][0] == "train"
+    said = " ".join(capsys.readouterr().err.split())
+    assert "manifest.json cannot be read (damaged or from another version), so 'train' runs again" in said
+    assert (tmp_path / "out" / ".previous").is_dir()

@@ -29,6 +29,7 @@ from uncertsplat.console import console
 from uncertsplat.errors import Interrupted, StageError, UserError, naming_overrides
 from uncertsplat.io.atomic import run_lock
 from uncertsplat.stages.manifest import (
+    MANIFEST,
     Manifest,
     fingerprint_folder,
     read_manifest,
@@ -258,6 +259,9 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             config_dict = stage_cfg.model_dump(mode="json")
             new = start_manifest(stage.stage, name, config_dict, inputs)
             old = read_manifest(out_dir)
+            if old is None and (out_dir / MANIFEST).is_file():
+                console.print(f"[yellow]note:[/] {out_dir / MANIFEST} cannot be read (damaged or from another "
+                              f"version), so '{name}' runs again; its present output is kept under {root / '.previous'}")
             if (not force and old is not None and old.status == "done" and old.config_hash == new.config_hash
                     and old.input_hashes in (new.input_hashes, {**new.input_hashes, **legacy})):
                 console.print(f"[green]skip[/] {name}: unchanged since its last run ({out_dir})")
