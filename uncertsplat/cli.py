@@ -62,6 +62,15 @@ _INTERRUPTED = {
 """What Ctrl-C leaves, by command (function name), for those that do not say it themselves."""
 
 
+def _d(model: str, field: str, extra: str = "") -> str:
+    """The ``[default: X]`` of an option whose value comes from a stage config's field (the option itself defaults
+    to None so that a --config file or --set can give it), for its help text."""
+    import uncertsplat.config as configs
+
+    # (escaped: the help is rich markup, where a bare [default: X] reads as a tag and vanishes)
+    return f"\\[default: {getattr(configs, model).model_fields[field].default}{extra}]"
+
+
 def _handle_errors(fn):
     """Turn UserError into a one-paragraph message and exit code 2; Ctrl-C (and an Interrupted error: the work
     stopped on a signal, what was done kept) into exit code 130."""
@@ -185,18 +194,23 @@ def synth(
 def reconstruct(
     photos: Annotated[Path, typer.Argument(help="Folder of photos (JPEG/PNG/TIFF).")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Workspace folder to write.")],
-    matcher: Annotated[str | None, typer.Option(help="exhaustive, sequential or auto.")] = None,
-    camera_model: Annotated[str | None, typer.Option(help="COLMAP camera model estimated by SfM.")] = None,
+    matcher: Annotated[str | None, typer.Option(
+        help=f"exhaustive, sequential or auto. {_d('ReconstructConfig', 'matcher')}")] = None,
+    camera_model: Annotated[str | None, typer.Option(
+        help=f"COLMAP camera model estimated by SfM. {_d('ReconstructConfig', 'camera_model')}")] = None,
     single_camera: Annotated[
         bool | None, typer.Option("--single-camera/--per-image-camera", help="Share one camera per image size.")
     ] = None,
-    max_image_size: Annotated[int | None, typer.Option(help="Longest image side used.")] = None,
+    max_image_size: Annotated[int | None, typer.Option(
+        help=f"Longest image side used. {_d('ReconstructConfig', 'max_image_size')}")] = None,
     features: Annotated[str | None, typer.Option(
-        help="sift or dsp-sift (matches photos far apart; slower).")] = None,
-    min_registered: Annotated[float | None, typer.Option(help="Minimum registered fraction.")] = None,
+        help=f"sift or dsp-sift (matches photos far apart; slower). {_d('ReconstructConfig', 'features')}")] = None,
+    min_registered: Annotated[float | None, typer.Option(
+        help=f"Minimum registered fraction. {_d('ReconstructConfig', 'min_registered')}")] = None,
     mapping_attempts: Annotated[int | None, typer.Option(
-        help="Mapping runs at most (other seeds) until two agree; the best is kept. 1: a single run.")] = None,
-    seed: Annotated[int | None, typer.Option(help="Random seed.")] = None,
+        help="Mapping runs at most (other seeds) until two agree; the best is kept. 1: a single run. "
+             f"{_d('ReconstructConfig', 'mapping_attempts')}")] = None,
+    seed: Annotated[int | None, typer.Option(help=f"Random seed. {_d('ReconstructConfig', 'seed')}")] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing workspace.")] = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
@@ -218,9 +232,10 @@ def train(
     scene: Annotated[Path, typer.Argument(help="COLMAP workspace, Blender folder (transforms_*.json), nerfstudio folder (transforms.json) or synthetic scene.")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Run folder to write.")],
     preset: Annotated[str | None, typer.Option(help="tiny, demo or paper (see the README).")] = None,
-    iterations: Annotated[int | None, typer.Option(help="Training steps.")] = None,
+    iterations: Annotated[int | None, typer.Option(
+        help=f"Training steps. {_d('TrainConfig', 'iterations', ' without a preset')}")] = None,
     variant: Annotated[str | None, typer.Option(help="ours or paper (the original code's choices).")] = None,
-    seed: Annotated[int | None, typer.Option(help="Random seed.")] = None,
+    seed: Annotated[int | None, typer.Option(help=f"Random seed. {_d('TrainConfig', 'seed')}")] = None,
     method: Annotated[str | None, typer.Option(
         help="variational (default), paper, vi-single, deterministic, ensemble or fisher (baselines).")] = None,
     resume: Annotated[bool, typer.Option(help="Continue from the last good checkpoint in OUTPUT.")] = False,
@@ -258,9 +273,10 @@ def train(
 @_handle_errors
 def evaluate(
     run: Annotated[Path, typer.Argument(help="Run folder written by `train`.")],
-    split: Annotated[str | None, typer.Option(help="test or train.")] = None,
-    num_samples: Annotated[int | None, typer.Option(help="Posterior samples per view (K).")] = None,
-    seed: Annotated[int | None, typer.Option(help="Random seed for sampling.")] = None,
+    split: Annotated[str | None, typer.Option(help=f"test or train. {_d('EvalConfig', 'split')}")] = None,
+    num_samples: Annotated[int | None, typer.Option(
+        help=f"Posterior samples per view (K). {_d('EvalConfig', 'num_samples')}")] = None,
+    seed: Annotated[int | None, typer.Option(help=f"Random seed for sampling. {_d('EvalConfig', 'seed')}")] = None,
     depth_gt: Annotated[Path | None, typer.Option(help="Folder of GT depth maps.")] = None,
     depth_scale: Annotated[str | None, typer.Option(help="auto or a factor to GT depth units.")] = None,
     paper_nll: Annotated[bool | None, typer.Option("--paper-nll", help="Also report the paper's NLL.")] = None,

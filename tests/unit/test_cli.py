@@ -232,3 +232,16 @@ def test_a_file_system_error_gets_the_advice_of_its_kind(code, command, words, n
     said = capsys.readouterr()
     out = " ".join((said.out + said.err).split())
     assert out.startswith("error: /out/x: ") and words in out and not_words not in out
+
+
+@pytest.mark.parametrize(("command", "option", "default"), [("reconstruct", "--max-image-size", "1600"),
+                                                             ("reconstruct", "--mapping-attempts", "4"),
+                                                             ("evaluate", "--num-samples", "10"),
+                                                             ("train", "--iterations", "7000 without a preset")])
+def test_help_shows_the_config_defaults(command, option, default):
+    """Options that default to their stage config's value (None in the signature) show that value in --help."""
+    import re
+
+    res = CliRunner().invoke(app, [command, "--help"], env={"COLUMNS": "200"})
+    line = next(x for x in res.output.splitlines() if option in x)
+    assert re.search(rf"\[default: {re.escape(default)}\]", line), line
