@@ -320,6 +320,9 @@ def test_corrupt_metrics_json_is_a_note(tmp_path):
     html = index.read_text()
     assert f"{run / 'eval' / 'metrics.json'}: not valid JSON" in html
     assert "figures/sparsification_run0.png" not in html
+    # the calibration section says why there is no table, not that evaluate never ran
+    section = html.split('id="calibration"')[1].split("<section")[0]
+    assert "not valid JSON" in section and "run `uncertsplat evaluate` first" not in section
     assert_figures_consistent(tmp_path / "out", parse(index))
 
 

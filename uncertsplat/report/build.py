@@ -331,13 +331,15 @@ def calibration_section(w: ReportWriter, runs: list[RunData]) -> None:
     per_run: list[tuple[str, list[Calibration]]] = []
     for run in runs:
         if run.metrics is None:
+            if run.problem(METRICS) is not None:  # evaluated, but its metrics.json could not be read: say why
+                body.append(note(f"{run.name}: {run.problem(METRICS)}"))
             continue
         cals = calibrations_of(run.metrics)
         if not cals:
             body.append(note(f"{run.name}: eval/metrics.json has no calibration table."))
             continue
         per_run.append((run.name, cals))
-    if not per_run:
+    if not per_run and not body:
         body.append(note("No calibration table available (run `uncertsplat evaluate` first)."))
     else:
         body.append(w.add_figure("calibration.png", F.calibration_figure(per_run),
