@@ -19,6 +19,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("entry point", ("__main__",)),
     # the command line: parses options, picks the device, calls one stage
     ("cli", ("cli",)),
+    # the Python API for poses of one's own: evaluate's predictive (its noise fit and std factor, from stages)
+    ("python api", ("predict",)),
     # one module per command: config in, files out (and the pipeline that chains them)
     ("stages", ("stages",)),
     # the browser viewer: renders any loaded run (through baselines) and colours it like the report; choosing
