@@ -22,7 +22,14 @@ from uncertsplat.data.dataset import load_view_set
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import StdFit, evaluate_views, fit_residual, fit_std_scale, with_side_terms
 from uncertsplat.io.images import read_exr, read_exr_attribute
-from uncertsplat.io.maps import EXR_CHANNELS, EXR_DEPTH_TO_SOURCE, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
+from uncertsplat.io.maps import (
+    EXR_ALPHA_CHANNEL,
+    EXR_CHANNELS,
+    EXR_DEPTH_TO_SOURCE,
+    EXR_RGB_DOF,
+    EXR_RGB_PREDICTIVE,
+    map_stem,
+)
 from uncertsplat.schemas.metrics import EvalReport
 from uncertsplat.schemas.prune import PruneReport
 from uncertsplat.stages import evaluate
@@ -65,6 +72,8 @@ def test_writes_maps_and_metrics(evaluated):
         ch = read_exr(run / "eval" / "maps" / f"{stem}.exr")
         assert set(EXR_CHANNELS) <= set(ch)
         assert ch["rgb_std.R"].shape == (96, 128)
+        assert np.all((ch[EXR_ALPHA_CHANNEL] >= 0) & (ch[EXR_ALPHA_CHANNEL] <= 1 + 1e-6))
+        assert ch[EXR_ALPHA_CHANNEL].mean() > 0.5  # a trained model covers most of its held-out views
         assert np.all(ch["rgb_std.R"] >= 0) and np.all(np.isfinite(ch["depth_mean.Z"]))
         # the header says which predictive the std is the std of
         exr = run / "eval" / "maps" / f"{stem}.exr"

@@ -13,6 +13,9 @@ from pathlib import Path
 EXR_CHANNELS = ("rgb_mean.R", "rgb_mean.G", "rgb_mean.B", "rgb_std.R", "rgb_std.G", "rgb_std.B",
                 "depth_mean.Z", "depth_std.Z")
 """Channels of a view's EXR: MC mean and std of the colour, and of the depth (in the run's world units)."""
+EXR_ALPHA_CHANNEL = "alpha.A"
+"""Channel of a view's EXR (maps written since 2026-11-29): the samples' mean accumulated opacity, in [0, 1]; low
+where a ray meets little of the model (its depth there is mostly the empty-ray term's), to mask such pixels."""
 EXR_RGB_PREDICTIVE = "uncertsplat:rgb_predictive"
 """Header attribute: "student-t" or "gaussian", the family of the RGB predictive whose std ``rgb_std`` holds."""
 EXR_RGB_DOF = "uncertsplat:rgb_degrees_of_freedom"
@@ -30,4 +33,4 @@ def map_stem(image_name: str) -> str:
     return str(p.with_suffix("")).replace("/", "__").replace("\\", "__")
 
 
-__all__ = ["EXR_CHANNELS", "EXR_RGB_DOF", "EXR_RGB_PREDICTIVE", "map_stem"]
+__all__ = ["EXR_ALPHA_CHANNEL", "EXR_CHANNELS", "EXR_RGB_DOF", "EXR_RGB_PREDICTIVE", "map_stem"]

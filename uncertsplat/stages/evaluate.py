@@ -38,7 +38,14 @@ from uncertsplat.errors import UserError, run_folder_missing
 from uncertsplat.eval.engine import MASKED_NOTE, ViewMaps
 from uncertsplat.eval.tails import MIN_DOF
 from uncertsplat.eval.tails import half_width as _half_width
-from uncertsplat.io.maps import EXR_CHANNELS, EXR_DEPTH_TO_SOURCE, EXR_RGB_DOF, EXR_RGB_PREDICTIVE, map_stem
+from uncertsplat.io.maps import (
+    EXR_ALPHA_CHANNEL,
+    EXR_CHANNELS,
+    EXR_DEPTH_TO_SOURCE,
+    EXR_RGB_DOF,
+    EXR_RGB_PREDICTIVE,
+    map_stem,
+)
 from uncertsplat.schemas.runs import RunExposure
 
 if TYPE_CHECKING:
@@ -75,7 +82,10 @@ def write_view_maps(folder: Path, maps: ViewMaps, preview: str, turns: dict[str,
         predictive[EXR_RGB_DOF] = float(maps.dof)
     if depth_to_source is not None:  # the depths are in the run's normalised units: the factor to the scene's own
         predictive[EXR_DEPTH_TO_SOURCE] = float(depth_to_source)
-    write_exr(folder / f"{stem}.exr", {n: a.numpy() for n, a in zip(EXR_CHANNELS, arrays, strict=True)}, predictive)
+    channels = {n: a.numpy() for n, a in zip(EXR_CHANNELS, arrays, strict=True)}
+    if maps.alpha_mean is not None:  # where rays meet little of the model (a reader masks floaters and empty sky)
+        channels[EXR_ALPHA_CHANNEL] = turned_back(maps.alpha_mean, back)[..., 0].numpy()
+    write_exr(folder / f"{stem}.exr", channels, predictive)
     err = (pred - gt).abs().mean(-1).numpy()
     s = std.mean(-1).numpy()
     write_png(folder / f"{stem}_gt.png", gt.numpy())
