@@ -4,6 +4,7 @@ processes racing for one folder (also for a stale lock) never both hold it.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import subprocess
 import sys
@@ -105,6 +106,19 @@ def test_racing_processes_never_hold_the_lock_together(tmp_path):
     assert not (tmp_path / ".lock").exists()
 
 
+@contextlib.contextmanager
+def _held_by_another_process(folder):
+    """``folder``'s lock held by a live process (``_HOLD``) for the duration."""
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(folder)], env=env(), cwd=ROOT,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "holding"
+        assert holder.stdout.readline().strip() == "locked"
+        yield holder
+    finally:
+        holder.communicate("\n", timeout=60)
+
+
 def test_a_second_pipeline_on_one_output_folder_is_refused(tmp_path):
     """`uncertsplat run` holds its output folder: a second one there (which moved the first one's stage folders,
     their locks with them, to .previous while it trained) is refused before it touches anything; an output path
@@ -114,16 +128,9 @@ def test_a_second_pipeline_on_one_output_folder_is_refused(tmp_path):
     out = tmp_path / "out"
     (out / "train").mkdir(parents=True)
     (out / "train" / "kept.txt").write_text("the first run's")
-    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(out)], env=env(), cwd=ROOT,
-                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    try:
-        assert holder.stdout.readline().strip() == "holding"
-        assert holder.stdout.readline().strip() == "locked"
-        with pytest.raises(UserError, match="another uncertsplat process"):
-            pipeline.run(ROOT / "pipelines" / "smoke.toml", out)
-        assert (out / "train" / "kept.txt").read_text() == "the first run's" and not (out / ".previous").exists()
-    finally:
-        holder.communicate("\n", timeout=60)
+    with _held_by_another_process(out), pytest.raises(UserError, match="another uncertsplat process"):
+        pipeline.run(ROOT / "pipelines" / "smoke.toml", out)
+    assert (out / "train" / "kept.txt").read_text() == "the first run's" and not (out / ".previous").exists()
     (tmp_path / "afile").write_text("")
     with pytest.raises(UserError, match="the output path is a file, not a folder"):
         pipeline.run(ROOT / "pipelines" / "smoke.toml", tmp_path / "afile")
@@ -140,13 +147,6 @@ def test_prune_refuses_a_run_in_training(tiny_run_path, tmp_path):  # noqa: F811
 
     run = tmp_path / "run"
     shutil.copytree(tiny_run_path, run)
-    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(run)], env=env(), cwd=ROOT,
-                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    try:
-        assert holder.stdout.readline().strip() == "holding"
-        assert holder.stdout.readline().strip() == "locked"
-        with pytest.raises(UserError, match="another uncertsplat process"):
-            prune.run(run, tmp_path / "out", PruneConfig(keep_ratio=0.9, num_samples=2), "cpu")
-        assert not (tmp_path / "out").exists()
-    finally:
-        holder.communicate("\n", timeout=60)
+    with _held_by_another_process(run), pytest.raises(UserError, match="another uncertsplat process"):
+        prune.run(run, tmp_path / "out", PruneConfig(keep_ratio=0.9, num_samples=2), "cpu")
+    assert not (tmp_path / "out").exists()
