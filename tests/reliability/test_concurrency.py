@@ -28,19 +28,13 @@ with run_lock(sys.argv[1], "test"):
 
 
 def test_live_holder_refuses_second_writer_with_its_pid(tmp_path):
-    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(tmp_path)], env=env(), cwd=ROOT,
-                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    try:
-        assert holder.stdout.readline().strip() == "holding"
-        assert holder.stdout.readline().strip() == "locked"
+    with _held_by_another_process(tmp_path) as holder:
         with pytest.raises(UserError) as err:
             with run_lock(tmp_path, "second"):
                 pass
         msg = str(err.value)
         assert f"PID {holder.pid}" in msg and str(tmp_path) in msg and "another uncertsplat process" in msg
         assert (tmp_path / ".lock").read_text().split()[0] == str(holder.pid)  # untouched by the refusal
-    finally:
-        holder.communicate("\n", timeout=60)
     assert not (tmp_path / ".lock").exists()
     with run_lock(tmp_path):  # free again
         pass
