@@ -122,7 +122,7 @@ def read_maps(run: Path, report: EvalReport, scene) -> tuple[torch.Tensor, torch
 def components(run: Path, device: torch.device) -> dict:
     """The pixel noise, the resolution term and the rest of the predictive on the set-aside and the scored views,
     and the maximum-likelihood weights of the three (a grid)."""
-    from uncertsplat.eval.engine import _predictive, _view_seed, scored_sampler, split_indices
+    from uncertsplat.eval.engine import predictive_terms, scored_sampler, split_indices, view_seed
     from uncertsplat.stages.residual_cache import fitted_residual
     from uncertsplat.uncertainty.mc import mc_render
 
@@ -144,9 +144,9 @@ def components(run: Path, device: torch.device) -> dict:
         for j, i in enumerate(views.indices):
             cam = views.cameras[[j]].to(device)
             for k, (s, c) in variants.items():
-                gen = torch.Generator(device=device).manual_seed(_view_seed(c, i))
+                gen = torch.Generator(device=device).manual_seed(view_seed(c.seed, i))
                 maps, _ = mc_render(s.sample_fn, s.render_fn, cam, c.num_samples, gen,
-                                    **_predictive(s, c, cam, depth=False))
+                                    **predictive_terms(s, c, cam, depth=False))
                 var[k].append(maps.rgb_std[0].cpu().double().square().reshape(-1))
                 if k == "full":
                     err.append((maps.rgb_mean[0].cpu().clamp(0, 1) - views.images[j]).double().reshape(-1))

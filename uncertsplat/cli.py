@@ -48,8 +48,8 @@ _ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, err
 
 
 _INTERRUPTED = {
-    "evaluate": "nothing of this evaluation was kept (metrics.json is written last, and an earlier one was removed "
-                "with the maps it described); the same command evaluates again",
+    "evaluate": "this evaluation has no metrics.json (it is written last, and an earlier one goes once new maps are "
+                "written), so no command takes it for a finished one; the same command evaluates again",
     "prune": "nothing was written (the output folder appears only when prune has finished); the same command "
              "prunes again",
     "report": "the page was not written; the same command writes the report (its figures again too)",

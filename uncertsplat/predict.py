@@ -15,7 +15,8 @@ frame) or in the run's normalised world::
     out.depth_mean, out.depth_std  # [N,H,W,1], in the scene's own units
     out.rgb_mean, out.rgb_std      # [N,H,W,3]; out.std_factor: the factor evaluate fitted (its "calibrated" rows)
 
-The std maps are the raw ones, as in ``evaluate``'s EXR maps (their ``rgb_std`` to the last bit for the same seed);
+The std maps are the raw ones, as in ``evaluate``'s EXR maps (the scene's views get them to the last bit for
+evaluate's ``--seed``);
 multiply the RGB std by ``std_factor`` for the calibrated one, and read it as a Student-t with ``dof`` degrees of
 freedom (``examples/intervals.py``).
 """
@@ -77,7 +78,9 @@ class Predictor:
         self.dof: float | None = fit.dof
         T = scene.world_from_source.double()
         self._world_from_source = T  # [4,4] x_world = s x_source + t
-        self.scale = float(torch.linalg.det(T[:3, :3]).abs() ** (1.0 / 3.0))  # s
+        # s of x_world = s x_source + t: what evaluate's EXR header gives as 1 / depth_to_source
+        self.scale = (1.0 / scene.depth_scale_to_gt if scene.depth_scale_to_gt
+                      else float(torch.linalg.det(T[:3, :3]).abs() ** (1.0 / 3.0)))
 
     @classmethod
     def load(cls, run_dir: str | Path, device: str | torch.device = "auto", *, cfg=None) -> Predictor:
@@ -97,6 +100,7 @@ class Predictor:
         from uncertsplat.data.dataset import load_view_set
         from uncertsplat.device import resolve_device
         from uncertsplat.eval.engine import scored_sampler
+        from uncertsplat.io.atomic import run_lock
         from uncertsplat.stages.residual_cache import fitted_residual
 
         device = resolve_device(device)
@@ -106,10 +110,16 @@ class Predictor:
         train_views = partial(load_view_set, scene, depth=False)
         set_aside: dict = {}
         # the pixel noise as evaluate fits it (read from RUN/eval/residual.pt when evaluate kept one for this model and
-        # these settings; a fitted one is kept there too, as evaluate does)
-        residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
-                                   load_views=train_views, write=True,
-                                   calibration_indices=scene.split.get("calibration", ()), set_aside_maps=set_aside)
+        # these settings; a fitted one is kept there too, as evaluate does, under the run's lock; a read-only run, or
+        # one another process holds, is only read)
+        fit = partial(fitted_residual, loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
+                      load_views=train_views, calibration_indices=scene.split.get("calibration", ()),
+                      set_aside_maps=set_aside)
+        try:
+            with run_lock(run_dir, "predict"):
+                residual = fit(write=True)
+        except UserError:
+            residual = fit(write=False)
         sampler, fit = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual, scene.cameras,
                                       scene.split, cfg, device, load_views=train_views, set_aside_maps=set_aside)
         return cls(Path(run_dir), loaded, scene, sampler, fit, cfg, device)
@@ -143,9 +153,11 @@ class Predictor:
 
     def predict(self, cameras: Cameras, num_samples: int | None = None, seed: int = 0) -> Prediction:
         """``evaluate``'s mean and std maps of ``cameras`` (normalised world: ``cameras_from_source`` or
-        ``scene.cameras``); ``num_samples`` posterior samples (None: the config's K), one view at a time with the
-        generator seeded by ``seed`` for each view (the same seed gives the same maps)."""
-        from uncertsplat.eval.engine import predictive_terms
+        ``scene.cameras``); ``num_samples`` posterior samples (None: the config's K), one view at a time. Each view's
+        generator is seeded as ``evaluate`` seeds it (``eval.engine.view_seed``): a camera named as one of the
+        scene's views by its index there, so that ``seed`` = evaluate's ``--seed`` gives its EXR maps, any other
+        camera by its position in ``cameras``."""
+        from uncertsplat.eval.engine import predictive_terms, view_seed
         from uncertsplat.uncertainty.mc import mc_render
 
         k = int(num_samples if num_samples is not None else self._cfg.num_samples)
@@ -154,9 +166,11 @@ class Predictor:
         out = []
         gen = torch.Generator(device=self.device)
         with torch.no_grad():
+            index = {n: i for i, n in enumerate(self.scene.cameras.image_names)}
             for j in range(len(cameras)):
                 cam = cameras[[j]].to(self.device)
-                gen.manual_seed(seed)
+                name = cameras.image_names[j] if cameras.image_names else None
+                gen.manual_seed(view_seed(seed, index.get(name, j)))
                 maps, _ = mc_render(self._sampler.sample_fn, self._sampler.render_fn, cam, k, gen,
                                     **predictive_terms(self._sampler, self._cfg, cam))
                 out.append(maps)

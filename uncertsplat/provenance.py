@@ -7,8 +7,10 @@ evaluation engine, the sweep and the stages can all use it.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
+import os
 import platform
 from pathlib import Path
 
@@ -16,7 +18,15 @@ from uncertsplat import __version__
 
 
 def file_sha256(path: str | Path) -> str:
-    """The SHA-256 of a file's bytes (hex), read in 1 MiB blocks."""
+    """The SHA-256 of a file's bytes (hex), read in 1 MiB blocks. Kept for the process by the file's identity (path,
+    inode, size, modification time): a scan that fingerprints photos and then compares the same photos for copies
+    reads each once."""
+    st = os.stat(path)
+    return _sha256_of(str(Path(path).resolve()), st.st_ino, st.st_size, st.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=4096)
+def _sha256_of(path: str, inode: int, size: int, mtime_ns: int) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):

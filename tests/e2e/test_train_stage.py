@@ -269,3 +269,11 @@ def test_a_finished_run_without_its_checkpoints_is_not_trained_again(tiny_scene_
         stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True, extend_to=8)
     assert (run / "variational.ply").read_bytes() == model
     assert max(json.loads(x)["step"] for x in (run / "stats.jsonl").read_text().splitlines()) == 4
+    # its scene moved: the resume evaluate advises records the new folder (and trains nothing)
+    moved = tmp_path / "moved"
+    shutil.copytree(tiny_scene_path, moved)
+    info = json.loads((run / "scene.json").read_text())
+    (run / "scene.json").write_text(json.dumps({**info, "scene": str(tmp_path / "gone")}))
+    stage.run(moved, run, cfg, torch.device("cpu"), resume=True)
+    assert json.loads((run / "scene.json").read_text())["scene"] == str(moved.resolve())
+    assert (run / "variational.ply").read_bytes() == model

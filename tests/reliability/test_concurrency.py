@@ -15,7 +15,7 @@ from tests.fixtures import tiny_scene_path  # noqa: F401
 from tests.reliability.helpers import ROOT, env
 from tests.run_fixtures import tiny_run_path  # noqa: F401
 from uncertsplat.errors import UserError
-from uncertsplat.io.atomic import run_lock
+from uncertsplat.io.atomic import lock_holder, run_lock
 
 _HOLD = """
 import sys, time
@@ -141,6 +141,31 @@ def test_prune_refuses_a_run_in_training(tiny_run_path, tmp_path):  # noqa: F811
 
     run = tmp_path / "run"
     shutil.copytree(tiny_run_path, run)
-    with _held_by_another_process(run), pytest.raises(UserError, match="another uncertsplat process"):
-        prune.run(run, tmp_path / "out", PruneConfig(keep_ratio=0.9, num_samples=2), "cpu")
+    with _held_by_another_process(run) as holder:
+        assert lock_holder(run) == f"{holder.pid} test"
+        with pytest.raises(UserError, match=rf"another uncertsplat process \({holder.pid} test\) is working on this run"):
+            prune.run(run, tmp_path / "out", PruneConfig(keep_ratio=0.9, num_samples=2), "cpu")
     assert not (tmp_path / "out").exists()
+    # a reader takes no lock: none held, none made (a read-only run can be pruned, two prunes of one run both run)
+    assert lock_holder(run) is None and lock_holder(tmp_path / "nowhere") is None
+    prune.run(run, tmp_path / "out", PruneConfig(keep_ratio=0.9, num_samples=2, score_views=2, score_samples=2,
+                                               render_views=1, dry_run=True), "cpu")
+    assert not (run / ".lock").exists()
+
+
+def test_a_training_that_is_starting_is_not_taken_for_a_failed_start(tiny_scene_path, tmp_path):  # noqa: F811
+    """Until its first step a starting run holds only config.json and scene.json, as a start that failed does: a
+    second `train` there is refused by the folder's lock and deletes nothing."""
+    import torch
+
+    from uncertsplat.config import train_config_from
+    from uncertsplat.stages import train
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text("{}")
+    (run / "scene.json").write_text("{}")
+    cfg = train_config_from("tiny", None, ["iterations=2", "scene.downscale=4.0"])
+    with _held_by_another_process(run), pytest.raises(UserError, match="another uncertsplat process"):
+        train.run(tiny_scene_path, run, cfg, torch.device("cpu"))
+    assert (run / "config.json").read_text() == "{}" and (run / "scene.json").read_text() == "{}"

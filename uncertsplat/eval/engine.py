@@ -344,7 +344,7 @@ def _rest_of_predictive(sampler: Sampler, cfg: EvalSettings, cameras: Cameras, i
     def explained(cam: Cameras) -> Tensor:
         match = (cameras.cam_from_world == cam.cam_from_world[0]).flatten(1).all(1).nonzero()[:, 0].tolist()
         j = match[0] if match else 0
-        gen = torch.Generator(device=device).manual_seed(_view_seed(cfg, indices[j]))
+        gen = torch.Generator(device=device).manual_seed(view_seed(cfg.seed, indices[j]))
         bare = dataclasses.replace(sampler, residual=None, consistency=None)
         maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cam, cfg.num_samples, gen,
                             **predictive_terms(bare, cfg, cam, depth=False))
@@ -445,9 +445,11 @@ RESIDUAL_SHIFTS = 4
 """Renders of the resolution term per training view when the pixel noise is fitted (``fit_residual``)."""
 
 
-def _view_seed(cfg: EvalSettings, index: int) -> int:
-    # per view (by its index in the scene): the same seed gives the same maps whatever else is evaluated
-    return cfg.seed * 1_000_003 + index
+def view_seed(seed: int, index: int) -> int:
+    """The generator seed of the view at ``index`` in the scene's camera list for an evaluation seeded ``seed``:
+    per view, so that the same seed gives a view the same maps whatever else is evaluated (``uncertsplat.predict``
+    seeds a scene's views the same way)."""
+    return seed * 1_000_003 + index
 
 
 def split_indices(split: Mapping[str, Sequence[int]], cfg: EvalSettings) -> list[int]:
@@ -540,7 +542,7 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
             extra = _side_variance(dataclasses.replace(sampler, exposure=None), cam)  # bare_std has the exposures' term
             std = bare_std if extra is None else (bare_std.square() + extra.cpu().to(bare_std)).sqrt()
         else:
-            gen.manual_seed(_view_seed(cfg, i))
+            gen.manual_seed(view_seed(cfg.seed, i))
             maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cam, cfg.num_samples, gen,
                                 **predictive_terms(sampler, cfg, cam, depth=False))
             mean, std = maps.rgb_mean.cpu(), maps.rgb_std.cpu()
@@ -680,7 +682,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         for j, i in enumerate(views.indices):
             name = views.cameras.image_names[j]
             cams = views.cameras[[j]].to(device)
-            gen.manual_seed(_view_seed(cfg, i))
+            gen.manual_seed(view_seed(cfg.seed, i))
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             t0 = time.perf_counter()

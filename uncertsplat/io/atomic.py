@@ -76,14 +76,13 @@ def atomic_write_via(path: str | Path, write_tmp: Callable[[str], None], *, what
 
 
 def _os_error(err: BaseException) -> OSError | None:
-    """``err`` when it is an OSError, else the OSError it was raised from or during (torch.save reports a full disk
-    as a RuntimeError whose context is the file's OSError), else None."""
-    seen = set()
-    while err is not None and id(err) not in seen:
-        if isinstance(err, OSError):
-            return err
-        seen.add(id(err))
-        err = err.__cause__ or err.__context__
+    """``err`` when it is an OSError; for a RuntimeError, the OSError it was raised from or during (torch.save
+    reports a full disk as a RuntimeError whose context is the file's OSError); else None (a Ctrl-C stays one)."""
+    if isinstance(err, OSError):
+        return err
+    if isinstance(err, RuntimeError):
+        inner = err.__cause__ or err.__context__
+        return inner if isinstance(inner, OSError) else None
     return None
 
 
@@ -154,6 +153,33 @@ def _lock_holder(lock: Path) -> str:
         return lock.read_text().split()[0]
     except (OSError, IndexError):
         return "unknown"
+
+
+def lock_holder(folder: str | Path) -> str | None:
+    """"PID command" of the live process that holds ``folder``'s ``run_lock``, or None when none does: for a reader
+    of the folder (``prune`` reads its source run) that must not start while a writer changes it, and need not lock
+    it itself (two readers do not exclude each other, and a read-only folder can be read). Creates nothing."""
+    import fcntl
+
+    lock = Path(folder) / ".lock"
+    if str(lock.resolve()) in _HELD:  # (this process)
+        return None
+    try:
+        fd = os.open(lock, os.O_RDONLY)
+    except OSError:  # no lock file (or none we may open): nobody holds it
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as err:
+        if err.errno in (errno.EWOULDBLOCK, errno.EACCES):
+            try:
+                return " ".join(lock.read_text().split()[:2]) or "unknown"
+            except OSError:
+                return "unknown"
+        return None
+    finally:
+        os.close(fd)
+    return None
 
 
 @contextlib.contextmanager

@@ -33,6 +33,7 @@ from uncertsplat.config import ReconstructConfig
 from uncertsplat.console import list_names
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import decode_error
+from uncertsplat.provenance import file_sha256
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".jfif", ".jpe", ".png", ".tif", ".tiff")
 """Accepted photo extensions, compared case-insensitively (IMG_0001.JPG is fine)."""
@@ -112,7 +113,7 @@ class PhotoScan:
         did not keep the modification times (``cp -r``, a sync, a restore)."""
         h = hashlib.sha256()
         for p in self.photos:
-            h.update(f"{p.name}\0{_file_digest(p.path)}\n".encode())
+            h.update(f"{p.name}\0{file_sha256(p.path)}\n".encode())
         return h.hexdigest()[:16]
 
     def legacy_fingerprint(self) -> str:
@@ -298,14 +299,6 @@ def _folders_with_photos(folder: Path, depth: int = 2) -> list[Path]:
     return found
 
 
-def _file_digest(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def _without_copies(photos: list[PhotoInfo], ignored: list[str], notes: list[str]) -> list[PhotoInfo]:
     """``photos`` less the byte-for-byte copies of an earlier one (by name), each named in ``ignored`` and a note.
 
@@ -319,7 +312,7 @@ def _without_copies(photos: list[PhotoInfo], ignored: list[str], notes: list[str
     order = sorted(photos, key=lambda p: (_COPY_NAME.search(Path(p.name).stem) is not None, p.name))
     kept = {p.name for p in _first_of_each(
         # a file of a size no other has is no copy: not read
-        order, lambda p: _file_digest(p.path) if shared[size[p.name]] > 1 else None, ignored, notes,
+        order, lambda p: file_sha256(p.path) if shared[size[p.name]] > 1 else None, ignored, notes,
         lambda dropped: (f"{len(dropped)} photo(s) are exact copies of another and were left out: "
                          + ", ".join(f"{c} (= {o})" for c, o in sorted(dropped.items()))))}
     return [p for p in photos if p.name in kept]

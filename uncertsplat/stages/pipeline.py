@@ -271,7 +271,8 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
 
             console.print(f"[bold cyan]stage[/] {name} ({stage.stage}) -> {out_dir}")
             resume = (not force and stage.stage == "train" and old is not None and old.error == INTERRUPTED
-                      and old.config_hash == new.config_hash and old.input_hashes == new.input_hashes
+                      and old.config_hash == new.config_hash
+                      and old.input_hashes in (new.input_hashes, {**new.input_hashes, **legacy})
                       and _has_checkpoint(out_dir))
             if resume:
                 kwargs["resume"] = True

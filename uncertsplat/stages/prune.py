@@ -285,13 +285,17 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
             score, an output folder equal to / inside / containing the input or already existing.
     """
     from uncertsplat import native
-    from uncertsplat.io.atomic import run_lock
+    from uncertsplat.io.atomic import lock_holder
 
     if not Path(run_dir).is_dir():
         raise run_folder_missing(Path(run_dir))
-    # the source run's lock: a training run going on there would change the model under the scores (a prune during
-    # `train --resume` pruned the earlier model and named the run as its source), and its eval/ cache is shared
-    with run_lock(run_dir, "prune"), native.single_threaded_torch(device):
+    holder = lock_holder(run_dir)
+    if holder is not None:  # a training going on there changes the model under the scores (a prune during `train
+        # --resume` pruned the earlier model and named the run as its source); prune only reads the run, so it takes
+        # no lock itself (other prunes of it, and a read-only run, are fine)
+        raise UserError(f"another uncertsplat process ({holder}) is working on this run: its model or evaluation may "
+                        "be changing", path=run_dir, hint="Wait for it to finish, then prune.")
+    with native.single_threaded_torch(device):
         return _run(run_dir, output, cfg, device)
 
 

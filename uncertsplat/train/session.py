@@ -114,6 +114,22 @@ def _summary_steps(run_dir: Path) -> int | None:
     return summary.steps if summary is not None else None
 
 
+def _record_moved_scene(run_dir: Path, scene: Path, cfg: TrainConfig) -> None:
+    """``scene.json`` of the finished run ``run_dir`` pointed at ``scene``, the folder its scene moved to, after the
+    checks a resume makes (``_check_same_scene``: its images; ``camera_changes``: its cameras)."""
+    from uncertsplat.sfm.scene import CAMERAS_CHANGED_HINT, camera_changes, load_scene
+
+    before = RunScene.read(run_dir / RunScene.FILE_NAME)
+    data = load_scene(scene, cfg.scene, initial_points=False)
+    _check_same_scene(before, scene, data.cameras.image_names, run_dir)
+    changed = camera_changes(before.cameras, data.cameras, data.extent)
+    if changed:
+        raise UserError(f"the scene's cameras have changed since this run was trained: {changed}", path=scene,
+                        hint=CAMERAS_CHANGED_HINT.format(run=run_dir, scene=scene))
+    before.scene = str(scene.resolve())
+    before.write(run_dir / RunScene.FILE_NAME)
+
+
 _STARTED_FILES = ("config.json", "scene.json", "stats.jsonl", ".lock")
 """What a run folder holds when ``train`` failed before its first checkpoint (a photo it could not read, a bad
 setting found while loading): nothing trained, so the same command may start it again (``_never_trained``)."""
@@ -218,10 +234,13 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     native.requested_backend()  # a bad UNCERTSPLAT_RASTERIZER is refused before the run folder is made
     exists = run_dir.exists() and (not run_dir.is_dir() or any(p.name != ".lock" for p in run_dir.iterdir()))
     if exists and not resume and (run_dir / "config.json").is_file() and _never_trained(run_dir):
-        # a start that failed before its first step (e.g. a photo it could not read): nothing to keep
-        console.print(f"[yellow]note:[/] {run_dir} holds a run that failed before training anything; starting it again")
-        for name in _STARTED_FILES[:3]:
-            (run_dir / name).unlink(missing_ok=True)
+        # a start that failed before its first step (e.g. a photo it could not read): nothing to keep. Under the
+        # folder's lock: a training that is starting there looks the same until its first step, and is refused
+        with run_lock(run_dir, "train"):
+            console.print(f"[yellow]note:[/] {run_dir} holds a run that failed before training anything; starting "
+                          "it again")
+            for name in _STARTED_FILES[:3]:
+                (run_dir / name).unlink(missing_ok=True)
         exists = False
     if exists and not resume:
         if not (run_dir / "config.json").is_file():  # files of something else: nothing --resume could continue
@@ -281,6 +300,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             finished = _summary_steps(run_dir) if (run_dir / "variational.ply").is_file() else None
             if found is None and finished:  # a finished model whose checkpoints were deleted (to save disk)
                 if extend_to is None or extend_to <= finished:
+                    if not _same_scene_path(run_dir, scene):  # resumed to point it at its scene's new folder
+                        _record_moved_scene(run_dir, scene, cfg)
                     console.print(f"{run_dir}: already trained for its {finished} steps, nothing to do (its "
                                   "checkpoints are gone, so it cannot be trained on)")
                     return run_dir
