@@ -41,7 +41,8 @@ class Prediction:
     Attributes:
         rgb_mean: [N,H,W,3] the mean of the posterior samples' renders (not clamped).
         rgb_std: [N,H,W,3] the raw RGB std (``evaluate``'s EXR ``rgb_std``).
-        depth_mean: [N,H,W,1] expected depth along the optical axis, in the scene's own units.
+        depth_mean: [N,H,W,1] expected depth along the optical axis, in the scene's own units; 0 where the ray meets
+            no Gaussian (no surface known there, not one at distance 0: mask by ``alpha``).
         depth_std: [N,H,W,1] its std, in the scene's own units.
         alpha: [N,H,W,1] the samples' mean accumulated opacity (low: the ray meets little of the model).
         std_factor: the factor ``evaluate`` fits for the RGB std (None: none fitted, e.g. no training view).
@@ -95,16 +96,24 @@ class Predictor:
         Raises:
             UserError: not a run, its scene is gone or its cameras changed since training, no CUDA device.
         """
-        from uncertsplat.baselines import load_run
+        from uncertsplat import native
         from uncertsplat.config import EvalConfig
-        from uncertsplat.data.dataset import load_view_set
         from uncertsplat.device import resolve_device
+
+
+        device = resolve_device(device)
+        cfg = cfg if cfg is not None else EvalConfig()
+        with native.single_threaded_torch(device):  # as evaluate runs (its sums, so its maps, to the last bit)
+            return cls._load(Path(run_dir), device, cfg)
+
+    @classmethod
+    def _load(cls, run_dir: Path, device: torch.device, cfg) -> Predictor:
+        from uncertsplat.baselines import load_run
+        from uncertsplat.data.dataset import load_view_set
         from uncertsplat.eval.engine import scored_sampler
         from uncertsplat.io.atomic import run_lock
         from uncertsplat.stages.residual_cache import fitted_residual
 
-        device = resolve_device(device)
-        cfg = cfg if cfg is not None else EvalConfig()
         loaded = load_run(run_dir, device)
         scene = loaded.load_scene()
         train_views = partial(load_view_set, scene, depth=False)
@@ -122,7 +131,7 @@ class Predictor:
             residual = fit(write=False)
         sampler, fit = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual, scene.cameras,
                                       scene.split, cfg, device, load_views=train_views, set_aside_maps=set_aside)
-        return cls(Path(run_dir), loaded, scene, sampler, fit, cfg, device)
+        return cls(run_dir, loaded, scene, sampler, fit, cfg, device)
 
     def cameras_from_source(self, cam_from_source: Tensor, K: Tensor, width: int, height: int,
                             names: tuple[str, ...] = ()) -> Cameras:
@@ -139,24 +148,46 @@ class Predictor:
 
         cfs = torch.as_tensor(cam_from_source, dtype=torch.float64)
         cfs = cfs[None] if cfs.ndim == 2 else cfs
-        R = cfs[:, :3, :3]
-        if cfs.shape[-2:] != (4, 4) or not torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64),
-                                                           atol=1e-5):
-            raise UserError("cam_from_source must be [N,4,4] rigid transforms (a rotation and a translation)",
+        rigid = cfs.ndim == 3 and cfs.shape[-2:] == (4, 4)
+        if rigid:
+            R = cfs[:, :3, :3]
+            rigid = (torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand_as(R), atol=1e-5)
+                     and bool((torch.linalg.det(R) > 0).all()))  # (a reflection is orthogonal too)
+        if not rigid:
+            raise UserError(f"cam_from_source must be [N,4,4] rigid transforms (a rotation and a translation), got "
+                            f"shape {tuple(cfs.shape)}" + (" with a rotation part that is not one" if cfs.ndim == 3
+                                                            and cfs.shape[-2:] == (4, 4) else ""),
                             hint="Pass world-to-camera matrices in the scene's units, as pycolmap's "
                                  "Image.cam_from_world().matrix() gives them (with the row [0, 0, 0, 1]).")
         Ks = torch.as_tensor(K, dtype=torch.float64)
-        Ks = (Ks[None] if Ks.ndim == 2 else Ks).expand(len(cfs), 3, 3)
-        cfw = normalized_cam_from_world(cfs, self._world_from_source)
+        Ks = Ks[None] if Ks.ndim == 2 else Ks
+        if Ks.ndim != 3 or Ks.shape[-2:] != (3, 3) or len(Ks) not in (1, len(cfs)):
+            raise UserError(f"K must be [3,3] or [N,3,3] with N = {len(cfs)} poses, got shape {tuple(Ks.shape)}")
+        if int(width) < 1 or int(height) < 1:
+            raise UserError(f"the image size must be positive, got {width}x{height}")
         names = tuple(names) or tuple(f"pose_{i}" for i in range(len(cfs)))
-        return Cameras(cfw.float(), Ks.float().clone(), int(width), int(height), names)
+        if len(names) != len(cfs):
+            raise UserError(f"{len(names)} name(s) for {len(cfs)} pose(s): give one name per pose (or none)")
+        cfw = normalized_cam_from_world(cfs, self._world_from_source)
+        return Cameras(cfw.float(), Ks.expand(len(cfs), 3, 3).float().clone(), int(width), int(height), names)
 
     def predict(self, cameras: Cameras, num_samples: int | None = None, seed: int = 0) -> Prediction:
         """``evaluate``'s mean and std maps of ``cameras`` (normalised world: ``cameras_from_source`` or
-        ``scene.cameras``); ``num_samples`` posterior samples (None: the config's K), one view at a time. Each view's
-        generator is seeded as ``evaluate`` seeds it (``eval.engine.view_seed``): a camera named as one of the
-        scene's views by its index there, so that ``seed`` = evaluate's ``--seed`` gives its EXR maps, any other
-        camera by its position in ``cameras``."""
+        ``scene.cameras``), one view at a time. Each view's generator is seeded as ``evaluate`` seeds it
+        (``eval.engine.view_seed``): a camera named as one of the scene's views by its index there, so that ``seed``
+        = evaluate's ``--seed`` gives its EXR maps; any other camera by its pose and intrinsics, so that a pose gets
+        the same maps wherever it stands in a batch.
+
+        ``num_samples``: posterior samples (None: the config's K). The std factor and tails were fitted at the
+        config's K: for another K load with ``cfg=EvalConfig(num_samples=k)``, which fits them at k."""
+        from uncertsplat import native
+
+        with native.single_threaded_torch(self.device):  # as evaluate runs (its sums, so its maps, to the last bit)
+            return self._predict(cameras, num_samples, seed)
+
+    def _predict(self, cameras: Cameras, num_samples: int | None, seed: int) -> Prediction:
+        import hashlib
+
         from uncertsplat.eval.engine import predictive_terms, view_seed
         from uncertsplat.uncertainty.mc import mc_render
 
@@ -170,7 +201,12 @@ class Predictor:
             for j in range(len(cameras)):
                 cam = cameras[[j]].to(self.device)
                 name = cameras.image_names[j] if cameras.image_names else None
-                gen.manual_seed(view_seed(seed, index.get(name, j)))
+                if name in index:
+                    at = index[name]
+                else:  # a pose of one's own: an index from its bytes, past the scene's (which count from 0)
+                    key = torch.cat([cameras.cam_from_world[j].flatten(), cameras.K[j].flatten()]).cpu().numpy()
+                    at = len(index) + int.from_bytes(hashlib.sha256(key.tobytes()).digest()[:5], "little")
+                gen.manual_seed(view_seed(seed, at))
                 maps, _ = mc_render(self._sampler.sample_fn, self._sampler.render_fn, cam, k, gen,
                                     **predictive_terms(self._sampler, self._cfg, cam))
                 out.append(maps)

@@ -820,6 +820,34 @@ class TestPredictor:
             pred.cameras_from_source(scaled, pred.scene.cameras.K[0], 128, 96)
         with pytest.raises(UserError, match="num_samples must be 1 or more"):
             pred.predict(pred.scene.cameras[[0]], num_samples=0)
+        mirrored = torch.diag(torch.tensor([1.0, 1.0, -1.0, 1.0], dtype=torch.float64))  # orthogonal, det -1
+        with pytest.raises(UserError, match="rotation part that is not one"):
+            pred.cameras_from_source(mirrored, pred.scene.cameras.K[0], 128, 96)
+        two = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+        with pytest.raises(UserError, match=r"K must be \[3,3\] or \[N,3,3\] with N = 2"):
+            pred.cameras_from_source(two, pred.scene.cameras.K[:3], 128, 96)
+        with pytest.raises(UserError, match="1 name\\(s\\) for 2 pose"):
+            pred.cameras_from_source(two, pred.scene.cameras.K[0], 128, 96, names=("a",))
+        with pytest.raises(UserError, match="image size must be positive"):
+            pred.cameras_from_source(two, pred.scene.cameras.K[0], 0, 96)
+
+    def test_a_pose_gets_the_same_maps_wherever_it_stands_in_a_batch(self, evaluated):
+        """A pose of one's own is seeded by itself, not by its place: [A, B] and [B, A] give A the same maps."""
+        from uncertsplat.predict import Predictor
+
+        run, _ = evaluated
+        pred = Predictor.load(run, "cpu", cfg=EvalConfig(num_samples=3, seed=3))
+        cams = pred.scene.cameras
+        a = dataclasses.replace(cams[[0]], image_names=("a",))
+        b = dataclasses.replace(cams[[5]], image_names=("b",))
+        both = dataclasses.replace(cams[[0, 5]], image_names=("a", "b"))
+        flipped = dataclasses.replace(cams[[5, 0]], image_names=("b", "a"))
+        first, second = pred.predict(both), pred.predict(flipped)
+        torch.testing.assert_close(first.rgb_std[0], second.rgb_std[1], rtol=0, atol=0)
+        torch.testing.assert_close(first.depth_std[1], second.depth_std[0], rtol=0, atol=0)
+        torch.testing.assert_close(pred.predict(a).rgb_std[0], first.rgb_std[0], rtol=0, atol=0)
+        renamed = dataclasses.replace(cams[[5]], image_names=("another name",))
+        torch.testing.assert_close(pred.predict(renamed).rgb_std[0], pred.predict(b).rgb_std[0], rtol=0, atol=0)
 
 
 def test_an_evaluation_stopped_midway_leaves_no_metrics_beside_its_maps(tiny_run_path, tmp_path, monkeypatch):
