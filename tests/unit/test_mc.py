@@ -83,6 +83,22 @@ def test_mean_std_match_direct_formulas(device):
     assert maps.n_samples == 7 and maps.image_names == ("a.png", "b.png")
 
 
+def test_rgb_std_never_exceeds_that_of_a_colour_in_the_unit_range(device):
+    """Side terms that add up past 0.25 in variance (a render far finer than the photos) give 0.5, the largest std
+    a value in [0, 1] has; the depth std is not bounded."""
+    from uncertsplat.uncertainty.mc import RGB_STD_MAX
+
+    d = Dummy(device)
+    huge = torch.full((C, H, W, 1), 0.5, device=device)  # variance 0.5: std 0.71 before the bound
+    maps, _ = mc_render(d.sample_fn, d.render_fn, _cameras(device), 3, torch.Generator().manual_seed(0),
+                        extra_var=huge, extra_depth_var=huge)
+    assert RGB_STD_MAX == 0.5 and float(maps.rgb_std.max()) == 0.5
+    assert torch.allclose(maps.depth_std.min(), torch.tensor(0.5 ** 0.5, device=device), atol=0.05)
+    small, _ = mc_render(d.sample_fn, d.render_fn, _cameras(device), 3, torch.Generator().manual_seed(0),
+                         extra_var=huge * 0.01)
+    assert float(small.rgb_std.max()) < 0.5  # below the bound, untouched
+
+
 def test_single_sample_std_zero(device):
     d = Dummy(device)
     maps, samples = mc_render(d.sample_fn, d.render_fn, _cameras(device), 1, torch.Generator().manual_seed(0))

@@ -131,10 +131,16 @@ class MonteCarloMoments:
             rgb_var = rgb_var + extra_var.to(rgb_var)
         if extra_depth_var is not None:
             depth_var = depth_var + extra_depth_var.to(depth_var)
-        rgb_std, depth_std = rgb_var.sqrt(), depth_var.sqrt()
+        # a colour in [0, 1] spreads at most 0.5 (half its mass at each end): the side terms, each sized for a
+        # render at the photos' resolution, add up past that on a render several times finer (0.69 at 8x)
+        rgb_std, depth_std = rgb_var.sqrt().clamp_max(RGB_STD_MAX), depth_var.sqrt()
         return UncertaintyMaps(rgb_mean=self.rgb.mean, rgb_std=rgb_std, depth_mean=self.depth.mean,
                                depth_std=depth_std, alpha_mean=self.alpha.mean, n_samples=self.count,
                                image_names=image_names)
+
+
+RGB_STD_MAX = 0.5
+"""The largest RGB std ``mc_render`` gives: that of a value in [0, 1] with half its mass at 0 and half at 1."""
 
 
 @dataclass(frozen=True)
