@@ -245,3 +245,21 @@ def test_viewer_opens_the_pruned_run(pruned):  # noqa: F811
     assert "prune" in r.modes()  # a pruned run keeps its carriers: it can be pruned (and previewed) again
     frame = r.frame(scene.cameras[[0]], "rgb")
     assert frame.image.shape == (scene.cameras.height, scene.cameras.width, 3) and frame.image.std() > 5
+
+
+def test_a_killed_prune_s_staging_folder_is_removed_by_the_next(tiny_run_path, tmp_path):  # noqa: F811
+    """A prune killed while writing left `.OUT.tmp-PID-*` holding a whole model; the next prune into that output
+    removes it when its process is gone, and leaves a live process's."""
+    import subprocess
+    import sys
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    stale = tmp_path / f".out.tmp-{dead.pid}-abc"
+    live = tmp_path / f".out.tmp-{os.getpid()}-def"
+    for p in (stale, live):
+        p.mkdir()
+        (p / "variational.ply").write_bytes(b"x" * 100)
+    cfg = PruneConfig(keep_ratio=0.9, **FAST)
+    prune.run(tiny_run_path, tmp_path / "out", cfg, device=CPU)
+    assert not stale.exists() and live.is_dir() and (tmp_path / "out" / "prune.json").is_file()

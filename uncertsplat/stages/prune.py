@@ -566,6 +566,21 @@ def _evaluate_written(output: Path, result: PruneReport, measure: _Measure, devi
     _psnr_change(result)
 
 
+def _remove_dead_temp_folders(output: Path) -> None:
+    """Remove the staging folders of earlier prunes into ``output`` whose process is gone (killed while writing: each
+    held a whole model); a live one's is another prune at work and stays."""
+    for p in output.parent.glob(f".{output.name}.tmp-*-*"):
+        pid = p.name[len(f".{output.name}.tmp-"):].split("-", 1)[0]
+        if not pid.isdigit() or not p.is_dir():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            shutil.rmtree(p, ignore_errors=True)
+        except OSError:  # alive under another user: not ours to remove
+            pass
+
+
 def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measure, loaded, result: PruneReport,
                   scores: dict, carriers: torch.Tensor, keep, pruned, random_model, sweep) -> None:
     from uncertsplat.data.dataset import photo_turns, turned_back
@@ -577,7 +592,8 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
     from uncertsplat.uncertainty.scores import spread_views
 
     output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-", dir=output.parent))
+    _remove_dead_temp_folders(output)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-{os.getpid()}-", dir=output.parent))
     os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes it 0700: the pruned run is read like any other
     try:
         writes_model = keep is not None and not cfg.dry_run
