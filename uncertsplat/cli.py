@@ -144,10 +144,28 @@ def _config_file(path: Path) -> dict:
     return data
 
 
+def _refuse_two_values(explicit: dict, overrides: list[str] | None) -> None:
+    """An option given on the command line and again by ``--set`` with another value: which one the user meant is
+    not ours to guess (``--set`` won without a word: `--method deterministic --set method=ensemble` trained an
+    ensemble)."""
+    from uncertsplat.config import parse_override
+
+    # (the options that feed a config default to None, so a value here is one the command line gave)
+    given = {k: v for k, v in explicit.items() if v is not None}
+    for text in overrides or []:
+        for key, value in parse_override(text).items():
+            if key in given and not isinstance(value, dict) and value != given[key] and str(value) != str(given[key]):
+                option = "--" + key.replace("_", "-")
+                raise UserError(f"{option} {given[key]} and --set {text.strip()} give {key} two values",
+                                hint=f"Give one of them ({option} or --set {key}=...).")
+
+
 def _stage_config(model, config_file: Path | None, overrides: list[str] | None, explicit: dict):
-    """config file < explicit command-line options < --set overrides."""
+    """config file < explicit command-line options < --set overrides (the same key from both, with two values, is
+    refused: ``_refuse_two_values``)."""
     from uncertsplat.config import build_config, deep_update, parse_override
 
+    _refuse_two_values(explicit, overrides)
     data = _config_file(config_file) if config_file else {}
     given = {k: v for k, v in explicit.items() if v is not None}
     data = deep_update(data, given)
@@ -165,8 +183,10 @@ def _stage_config(model, config_file: Path | None, overrides: list[str] | None, 
 @_handle_errors
 def synth(
     out: Annotated[Path, typer.Argument(help="Output folder for the generated scene.")],
-    preset: Annotated[str, typer.Option(help="tiny (tests, seconds) or demo (the embedded default).")] = "demo",
-    seed: Annotated[int, typer.Option(help="Random seed; the same seed gives the same scene.")] = 0,
+    preset: Annotated[str | None, typer.Option(
+        help=f"tiny (tests, seconds) or demo (the embedded default). {_d('SynthConfig', 'preset')}")] = None,
+    seed: Annotated[int | None, typer.Option(
+        help=f"Random seed; the same seed gives the same scene. {_d('SynthConfig', 'seed')}")] = None,
     layout: Annotated[str | None, typer.Option(
         help="colmap (images/ + sparse/0, the default) or blender (transforms_train/test.json + RGBA PNGs, "
         "the NeRF-synthetic layout, no sparse points).")] = None,
@@ -252,6 +272,7 @@ def train(
 
     data = _config_file(config) if config else {}
     explicit = dict(iterations=iterations, variant=variant, seed=seed)
+    _refuse_two_values({**explicit, "method": method}, set_)
     cfg = stage.resolve_config(preset, data, method, explicit, set_, source=str(config) if config else None)
     # with --resume, --iterations means "train on to this many steps" (the stored config wins otherwise)
     view_cfg = None
@@ -430,6 +451,7 @@ def run_pipeline(
     """Run a chain of stages from a TOML file, skipping stages whose config and inputs are unchanged."""
     from uncertsplat.stages import pipeline as stage
 
+    _refuse_two_values({"device": device}, set_)
     stage.run(pipeline, output, overrides=set_ or [], device=device, force=force)
 
 

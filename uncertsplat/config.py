@@ -8,6 +8,7 @@ resolved config of a stage is written as JSON beside its outputs (``RUN/config.j
 from __future__ import annotations
 
 import json
+import re
 import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -691,12 +692,25 @@ class PipelineStage(_Base):
 
     stage: Literal["synth", "reconstruct", "train", "evaluate", "prune", "report"]
     name: str | None = None
-    """Folder name under the pipeline output (default: the stage kind)."""
+    """Folder name under the pipeline output (default: the stage kind): letters, digits, '_' and '-' (a name is a
+    folder inside OUT and the first part of ``--set NAME.key=value``)."""
     input: str | None = None
     """Name of the stage whose output this stage reads, or a path (default: the previous stage)."""
     preset: str | None = None
     """For train: a preset from TRAIN_PRESETS, applied under the config given here."""
     config: dict[str, Any] = {}
+
+    @field_validator("name")
+    @classmethod
+    def _plain_name(cls, name: str | None) -> str | None:
+        # "../x" or "/x" wrote outside OUT and moved a folder of the user's; "a.b" could not be addressed by --set;
+        # a top-level key's name would be read as that key by --set
+        if name is not None and (not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_-]*", name)
+                                 or name in PipelineConfig.model_fields):
+            raise ValueError(f"{name!r} is not a stage name: use letters, digits, '_' and '-' (it names a folder inside "
+                             "the output and the first part of --set NAME.key=value), not a path and not one of "
+                             f"{', '.join(PipelineConfig.model_fields)}")
+        return name
 
 
 class PipelineConfig(_Base):

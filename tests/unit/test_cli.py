@@ -245,3 +245,25 @@ def test_help_shows_the_config_defaults(command, option, default):
     res = CliRunner().invoke(app, [command, "--help"], env={"COLUMNS": "200"})
     line = next(x for x in res.output.splitlines() if option in x)
     assert re.search(rf"\[default: {re.escape(default)}\]", line), line
+
+
+@pytest.mark.parametrize("args", [["train", "scene", "-o", "r", "--iterations", "5", "--set", "iterations=7"],
+                                  ["train", "scene", "-o", "r", "--method", "deterministic", "--set", "method=ensemble"],
+                                  ["evaluate", "run", "--num-samples", "2", "--set", "num_samples=3"],
+                                  ["synth", "s", "--preset", "demo", "--set", "preset=tiny"],
+                                  ["run", "p.toml", "-o", "o", "--device", "cpu", "--set", "device=cuda"]])
+def test_an_option_and_a_set_with_two_values_are_refused(tmp_path, monkeypatch, args):
+    """--set won without a word (`--method deterministic --set method=ensemble` trained an ensemble; `run` let
+    --device win instead): two values for one key are refused before anything runs."""
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2 and "two values" in res.output, res.output
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_an_option_and_a_set_that_agree_or_a_set_alone_pass(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for args in (["evaluate", "nowhere", "--num-samples", "2", "--set", "num_samples=2"],
+                 ["evaluate", "nowhere", "--set", "num_samples=3"]):
+        res = CliRunner().invoke(app, args)
+        assert "two values" not in res.output and "run folder not found" in " ".join(res.output.split()), res.output

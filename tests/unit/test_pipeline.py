@@ -301,3 +301,15 @@ def test_a_damaged_manifest_is_named_before_its_stage_runs_again(tmp_path, calls
     said = " ".join(capsys.readouterr().err.split())
     assert "manifest.json cannot be read (damaged or from another version), so 'train' runs again" in said
     assert (tmp_path / "out" / ".previous").is_dir()
+
+
+@pytest.mark.parametrize("name", ["../escape", "/tmp/abs", "a/b", "my.synth", "device", ".hidden", ""])
+def test_a_stage_name_that_is_no_plain_folder_name_is_refused(tmp_path, calls, name):
+    """A stage's name is a folder inside OUT and the first part of --set NAME.key: "../x" or an absolute path wrote
+    outside OUT (and moved a folder of the user's to .previous), "a.b" could not be addressed, "device" was read as
+    the top-level key."""
+    p = tmp_path / "p.toml"
+    p.write_text(f'[[stages]]\nstage = "synth"\nname = "{name}"\nconfig = {{ preset = "tiny" }}\n')
+    with pytest.raises(UserError, match="is not a stage name"):
+        pl.run(p, tmp_path / "out")
+    assert calls == [] and not (tmp_path / "out").exists()
