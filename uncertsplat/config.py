@@ -826,10 +826,13 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
             close = difflib.get_close_matches(str(e["loc"][-1]), valid, n=3, cutoff=0.6)
             prefix = ".".join(str(p) for p in (key_prefix.split(".") if key_prefix else []) + list(e["loc"][:-1]))
             named = [f"{prefix}.{k}" if prefix else k for k in close]
-            stage = _other_stage(model, tuple(e["loc"])) if not key_prefix and not named else None
+            # a key that another command has exactly is most likely meant for it (keep_ratio given to train read as
+            # a misspelt iterations); a close key of this command's is named after it
+            stage = _other_stage(model, tuple(e["loc"])) if not key_prefix else None
             if stage is not None:
                 msg = (f"not a setting of this command: `{e['loc'][-1]}` is one of `uncertsplat {stage}`'s "
-                       f"(uncertsplat {stage} ... --set {e['loc'][-1]}=...)")
+                       f"(uncertsplat {stage} ... --set {e['loc'][-1]}=...)"
+                       + (f"; or did you mean {' or '.join(named)}?" if named else ""))
             else:
                 msg = "unknown key" + (f" (did you mean {' or '.join(named)}?)" if named else " (check the spelling)")
             parent = tuple(e["loc"][:-1])

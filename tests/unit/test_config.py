@@ -106,6 +106,11 @@ def test_a_key_of_another_command_names_that_command():
     assert str(info.value).count("valid keys here") == 1 and "zzzz: unknown key (check the spelling)" in str(info.value)
     with pytest.raises(UserError, match="did you mean ssim_cache_mb"):  # a typo of this command's key stays one
         build_config(TrainConfig, {"ssim_cache_m": 0})
+    # another command's key that looks like one of this command's: the other command first (keep_ratio given to
+    # train read as a misspelt iterations)
+    with pytest.raises(UserError, match=r"keep_ratio: not a setting of this command: .*`uncertsplat prune`'s .*; or "
+                                        r"did you mean iterations\?"):
+        build_config(TrainConfig, {"keep_ratio": 0.9})
 
 
 def test_a_list_of_bare_names_is_a_list():
