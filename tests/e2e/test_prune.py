@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 
 import numpy as np
@@ -52,6 +53,7 @@ def test_writes_a_valid_pruned_run(pruned, tiny_run_path):  # noqa: F811
     assert result.counts.before == n and len(loaded.model) == result.counts.after
     assert result.counts.after == n - round(0.2 * n) or result.counts.after > n - round(0.2 * n)
     assert (out / "config.json").read_bytes() == (tiny_run_path / "config.json").read_bytes()
+    assert json.loads((out / "prune_config.json").read_text())["keep_ratio"] == result.keep_ratio  # its settings
     assert (out / "scene.json").is_file() and (out / "point_cloud.ply").is_file()
     umask = os.umask(0)
     os.umask(umask)

@@ -624,6 +624,8 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
         result.written = Written(model=writes_model, folder=str(output))
         if sweep is not None:
             sweep.write(tmp / "sweep.json")
+        # the resolved settings of this prune (config.json beside it is the pruned run's training config)
+        atomic_write_bytes(tmp / "prune_config.json", (cfg.model_dump_json(indent=2) + "\n").encode())
         result.write(tmp / "prune.json")
         try:
             if output.exists():
