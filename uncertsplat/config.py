@@ -720,7 +720,7 @@ class PipelineConfig(_Base):
     photos: Path | None = None
     """Input photo folder for pipelines that start with reconstruct."""
     device: Literal["auto", "cpu", "cuda"] = "auto"
-    stages: list[PipelineStage]
+    stages: list[PipelineStage] = Field(min_length=1)
 
 
 # ----------------------------------------------------------------------------------------------- helpers

@@ -313,3 +313,16 @@ def test_a_stage_name_that_is_no_plain_folder_name_is_refused(tmp_path, calls, n
     with pytest.raises(UserError, match="is not a stage name"):
         pl.run(p, tmp_path / "out")
     assert calls == [] and not (tmp_path / "out").exists()
+
+
+def test_a_pipeline_that_would_do_nothing_says_so(tmp_path, calls, capsys):
+    """No stage is an error (it finished in 0.0 s with exit code 0); photos given to a pipeline that never reads
+    them are named."""
+    p = tmp_path / "p.toml"
+    p.write_text("stages = []\n")
+    with pytest.raises(UserError, match="stages: List should have at least 1 item"):
+        pl.run(p, tmp_path / "out")
+    capsys.readouterr()
+    pl.run(_write(tmp_path), tmp_path / "out", overrides=[f"photos={tmp_path}"])
+    said = " ".join(capsys.readouterr().err.split())
+    assert f"`photos` ({tmp_path}) is not read: no reconstruct stage of this pipeline starts from photos" in said

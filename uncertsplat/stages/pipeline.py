@@ -181,6 +181,9 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
         what = "is a file, not a photo folder" if Path(cfg.photos).exists() else "photo folder not found"
         raise UserError(f"{what} (the pipeline's `photos`)", path=Path(cfg.photos),
                         hint=f"Give your photos: uncertsplat run {pipeline} -o {output} --set photos=/path/to/photos")
+    if cfg.photos is not None and not any(st.stage == "reconstruct" and st.input is None for st in cfg.stages):
+        console.print(f"[yellow]note:[/] `photos` ({cfg.photos}) is not read: no reconstruct stage of this pipeline "
+                      "starts from photos")
     dev = resolve_device(device or cfg.device)
     root = Path(output)
 
