@@ -141,7 +141,14 @@ def _config_file(path: Path) -> dict:
         raise UserError("this is a pipeline file (it lists [[stages]]), not one command's --config file", path=path,
                         hint=f"Run it with `uncertsplat run {path}`, or copy the keys of one stage's `config = {{...}}` "
                              "into a file of their own for --config.")
+    for key in _PATH_KEYS:  # a relative path in the file is read from the file's folder, as a pipeline's photos are
+        if isinstance(data.get(key), str) and data[key] and not Path(data[key]).expanduser().is_absolute():
+            data[key] = str(Path(path).resolve().parent / data[key])
     return data
+
+
+_PATH_KEYS = ("depth_gt",)
+"""The stage configs' path settings (``EvalConfig.depth_gt``): read from a --config file's folder."""
 
 
 def _refuse_two_values(explicit: dict, overrides: list[str] | None) -> None:

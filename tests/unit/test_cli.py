@@ -267,3 +267,17 @@ def test_an_option_and_a_set_that_agree_or_a_set_alone_pass(tmp_path, monkeypatc
                  ["evaluate", "nowhere", "--set", "num_samples=3"]):
         res = CliRunner().invoke(app, args)
         assert "two values" not in res.output and "run folder not found" in " ".join(res.output.split()), res.output
+
+
+def test_a_relative_path_in_a_config_file_is_read_from_the_file_s_folder(tmp_path, monkeypatch):
+    """`depth_gt = "../scene/depth"` in cfgs/eval.toml: from the file's folder wherever the command runs (it was read
+    from the current folder, and the error named --depth-gt); an absolute one is kept."""
+    from uncertsplat.cli import _PATH_KEYS, _config_file
+
+    (tmp_path / "cfgs").mkdir()
+    (tmp_path / "cfgs" / "eval.toml").write_text('num_samples = 2\ndepth_gt = "../scene/depth"\n')
+    (tmp_path / "cfgs" / "abs.toml").write_text(f'depth_gt = "{tmp_path / "elsewhere"}"\n')
+    monkeypatch.chdir("/")
+    assert _PATH_KEYS == ("depth_gt",)
+    assert _config_file(tmp_path / "cfgs" / "eval.toml")["depth_gt"] == str(tmp_path / "cfgs" / ".." / "scene" / "depth")
+    assert _config_file(tmp_path / "cfgs" / "abs.toml")["depth_gt"] == str(tmp_path / "elsewhere")
