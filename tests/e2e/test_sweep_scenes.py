@@ -29,7 +29,7 @@ evaluate = {{ max_views = 1 }}
 path = "{scene_path}"
 [scenes.generated]
 synth = {{ preset = "tiny", seed = 1, num_views = 12 }}
-train = {{ scene = {{ downscale = 8.0 }} }}
+train = {{ scene = {{ max_points = 500 }} }}  # a scene's own train key (the downscale knob would replace downscale)
 [default]
 method = "variational"
 iterations = 12

@@ -526,3 +526,32 @@ def test_point_reports_follow_their_points_to_new_ids(tmp_path):
     _move_point_reports(tmp_path, records, {"hA": {"id": "b"}, "hB": {"id": "a"}, "hC": {"id": "d"}})
     assert (pts / "b.json").read_text() == "report of A" and (pts / "a.json").read_text() == "report of B"
     assert not (pts / "d.json").exists()
+
+
+def test_a_spec_key_that_a_knob_replaces_is_named():
+    """`--set evaluate.num_samples=3` beside `[default] num_samples = 2` had no effect and was recorded as used; a
+    scene's `train.scene.downscale` beside a downscale knob likewise. A knob left at the base config's value, a value
+    equal to the knob's, and train.iterations (the schedule the knob scales) are not named."""
+    from uncertsplat.sweep.spec import shadowed_settings
+
+    s = spec(evaluate={"num_samples": 3})
+    assert shadowed_settings(s) == ["evaluate.num_samples = 3 (the knob `num_samples` sets it: 10)"]
+    assert shadowed_settings(spec(evaluate={"num_samples": 10}, train={"iterations": 20})) == []
+    multi = SweepSpec(train_preset="tiny", default={"method": "variational", "downscale": 4.0},
+                      scenes={"a": {"synth": {"preset": "tiny"}, "train": {"scene": {"downscale": 8.0}}}})
+    assert shadowed_settings(multi) == ["scenes.a.train.scene.downscale = 8.0 (the knob `downscale` sets it: 4.0)"]
+    free = SweepSpec(train_preset="tiny", default={"method": "variational"},
+                     scenes={"a": {"synth": {"preset": "tiny"}, "train": {"scene": {"downscale": 8.0}}}})
+    assert shadowed_settings(free) == []
+
+
+def test_the_sweep_refuses_a_key_a_knob_replaces_before_running(tmp_path):
+    from uncertsplat.stages import sweep as stage
+
+    spec_file = tmp_path / "s.toml"
+    spec_file.write_text('train_preset = "tiny"\nevaluate = { num_samples = 3 }\n[synth]\npreset = "tiny"\n'
+                         '[default]\nmethod = "variational"\nnum_samples = 2\n')
+    with pytest.raises(UserError, match=r"evaluate.num_samples = 3 \(the knob `num_samples` sets it: 2\): a knob of "
+                                        r"the sweep sets this in every point"):
+        stage.run(spec_file, tmp_path / "out", jobs=1, device="cpu")
+    assert not (tmp_path / "out").exists()

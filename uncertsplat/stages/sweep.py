@@ -151,9 +151,15 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
     from uncertsplat.report.sweep_page import build_sweep_page
     from uncertsplat.sweep.executors import EXECUTORS, connect_ray, require_ray, run_local, run_ray
     from uncertsplat.sweep.pareto import plot_pareto, summarize, table_points
-    from uncertsplat.sweep.spec import expand_points, load_spec, make_jobs
+    from uncertsplat.sweep.spec import expand_points, load_spec, make_jobs, shadowed_settings
 
     spec = load_spec(Path(spec_path), overrides)
+    shadowed = shadowed_settings(spec)
+    if shadowed:  # the points set these: the spec's (or --set's) values would have no effect, recorded as used
+        raise UserError(f"{'; '.join(shadowed)}: a knob of the sweep sets this in every point, so the value given "
+                        "here would have no effect", path=Path(spec_path),
+                        hint="Set it through the knob instead (e.g. `[default] iterations = 20`, or --set "
+                             "default.iterations=20 / an axis), or remove the knob from [default] and [axes].")
     out_dir = Path(out_dir)
     dev = resolve_device(device)
     if jobs is None:

@@ -387,6 +387,44 @@ def point_configs(spec: SweepSpec, point: SweepPoint, scene: str | None = None,
     return tcfg, ecfg
 
 
+_KNOB_KEYS = {"method": ("train", "method"), "num_entries": ("train", "variational.num_entries"),
+              "downscale": ("train", "scene.downscale"), "ensemble_size": ("train", "ensemble_size"),
+              "spawn_fraction": ("train", "densify.spawn_scale_fraction"), "num_samples": ("evaluate", "num_samples")}
+"""Each knob's key in the spec's ``train`` / ``evaluate`` tables, which ``point_configs`` replaces with the knob's value
+(``iterations`` is not among them: the spec's ``train.iterations`` is the schedule the knob's steps scale)."""
+
+
+def shadowed_settings(spec: SweepSpec) -> list[str]:
+    """The spec's ``train`` / ``evaluate`` keys (also a scene's) that a knob set by ``default`` or ``axes`` replaces
+    in every point, as "evaluate.num_samples = 3 (the knob `num_samples` sets it: 2)": they had no effect, and the
+    sweep recorded the spec's value as if used."""
+    def value(table: dict, dotted: str):
+        node: Any = table
+        for part in dotted.split("."):
+            if not isinstance(node, dict) or part not in node:
+                return None
+            node = node[part]
+        return node
+
+    out: list[str] = []
+    for name in spec.scene_names():
+        here = spec.on_scene(name)  # [default] as it is on that scene
+        entry = spec.scenes[name] if name is not None else None
+        tables = [("", spec.train, spec.evaluate)] + ([(f"scenes.{name}.", entry.train, entry.evaluate)]
+                                                      if entry is not None else [])
+        for knob, (where, dotted) in _KNOB_KEYS.items():
+            default = getattr(here.default, knob)
+            if default is None and not getattr(here.axes, knob):
+                continue  # the knob is left at the base config's value: the spec's key is what the points use
+            for prefix, train, evaluate in tables:
+                given = value(train if where == "train" else evaluate, dotted)
+                line = (f"{prefix}{where}.{dotted} = {given} (the knob `{knob}` sets it"
+                        + (f": {default}" if default is not None else "") + ")")
+                if given is not None and given != default and line not in out:
+                    out.append(line)
+    return out
+
+
 def point_id(point: SweepPoint, scene: str | None = None, seed: int | None = None) -> str:
     """A readable, file-name-safe id: the scene (if named), method, the knobs that are set and the seed (if set)."""
     parts = [point.method]
