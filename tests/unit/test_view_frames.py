@@ -59,6 +59,19 @@ class TestCameras:
         assert rotmat_to_wxyz(R)[0] >= 0
 
 
+    def test_a_photo_the_run_did_not_train_on_is_no_training_camera(self):
+        """A run on scene.train_names leaves the scene's other photos untrained: they are drawn grey and named "not
+        trained on" (they were blue training cameras with their photos, hiding the gap a user looks for)."""
+        from types import SimpleNamespace
+
+        from uncertsplat.view.server import _ROLE_COLOURS, _ROLE_WORDS, Viewer
+
+        fake = SimpleNamespace(scene=SimpleNamespace(split={"train": (1, 2), "test": (0,), "calibration": (3,)}))
+        roles = [Viewer._role(fake, i) for i in range(5)]
+        assert roles == ["test", "train", "train", "calibration", "unused"]
+        assert _ROLE_WORDS["unused"] == "not trained on" and len(set(_ROLE_COLOURS.values())) == 4
+
+
 class TestFrames:
     def test_rgb_is_the_render_of_the_expected_sample(self, renderer, scene, device):
         from uncertsplat.render import near_plane, render

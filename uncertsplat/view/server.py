@@ -55,6 +55,11 @@ MIN_PREVIEW_SIDE = 96
 """The preview's long side never drops below this many pixels."""
 THUMBNAIL_WIDTH = 160
 PHOTO_WIDTH = 320
+_ROLE_COLOURS = {"train": (40, 90, 220), "test": (230, 120, 20), "calibration": (150, 60, 200), "unused": (140, 140, 140)}
+"""Frustum colours by the camera's part in the run (``Viewer._role``): blue trained on, orange held out, purple
+set aside for the std factor, grey a photo the run did not train on."""
+_ROLE_WORDS = {"train": "training", "test": "held-out", "calibration": "set aside for calibration",
+               "unused": "not trained on"}
 
 
 @dataclass
@@ -302,14 +307,14 @@ class Viewer:
         else:
             size = 0.1 * scene.scene_scale
         self._frustum_size = max(min(size, 0.15 * scene.scene_scale), 1e-3 * scene.scene_scale)
-        test = set(scene.split.get("test", ()))
         aspect = cams.width / cams.height
         for i in range(len(cams)):
             wxyz, pos, fov = camera_pose(cams.cam_from_world[i], cams.K[i], cams.height)
             name = cams.image_names[i] if cams.image_names else f"camera_{i}"
-            colour = (230, 120, 20) if i in test else (40, 90, 220)
+            role = self._role(i)  # a photo the run never trained on is no training camera (a gap to fill is grey)
+            colour = _ROLE_COLOURS[role]
             h = self.server.scene.add_camera_frustum(
-                f"/cameras/{'test' if i in test else 'train'}/{i:05d}", fov=fov, aspect=aspect,
+                f"/cameras/{role}/{i:05d}", fov=fov, aspect=aspect,
                 scale=self._frustum_size, thickness=1.5, thickness_units="screen", color=colour, wxyz=wxyz,
                 position=pos)
             h.on_click(self._click_handler(i, name, wxyz, pos, fov))
@@ -327,6 +332,15 @@ class Viewer:
         self.server.initial_camera.fov = fov
         if self.cfg.thumbnails:
             threading.Thread(target=self._load_thumbnails, name="uncertsplat-thumbnails", daemon=True).start()
+
+    def _role(self, i: int) -> str:
+        """The camera's part in the run: "train" (trained on), "test" (held out), "calibration" (set aside for the
+        std factor) or "unused" (a photo of the scene the run did not train on: scene.train_names, pose twins)."""
+        split = self.scene.split
+        for role in ("test", "calibration", "train"):
+            if i in set(split.get(role, ())):
+                return role
+        return "unused"
 
     def _click_handler(self, i: int, name: str, wxyz, pos, fov):
         def on_click(event) -> None:
@@ -353,7 +367,7 @@ class Viewer:
         return (np.clip(resize_image(img, width, h), 0, 1) * 255 + 0.5).astype(np.uint8)
 
     def _show_photo(self, i: int, name: str) -> None:
-        split = "held-out" if i in set(self.scene.split.get("test", ())) else "training"
+        split = _ROLE_WORDS[self._role(i)]
         try:
             photo = self._read_photo(i, PHOTO_WIDTH)
         except Exception as err:  # a photo moved or unreadable: say so in the panel, keep the viewer running
