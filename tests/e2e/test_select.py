@@ -251,12 +251,19 @@ class TestAddViewsErrors:
         capsys.readouterr()
         train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=25, add_views=["view_002.png"])
         err = " ".join(capsys.readouterr().err.split())
-        assert "densification ended at step 10 (densify.until) and the checkpoint is at step 20" in err
+        assert "no densification step is left after the checkpoint's step 20" in err
+        # the last densification step is the last multiple of the interval before until (80 here, until 100): a
+        # checkpoint there gets the note too (it came only from until on)
+        edge = tmp_path / "edge"
+        train_run(tiny_scene_path, edge, _cfg(iterations=80, scene={"train_names": START}), CPU)
+        capsys.readouterr()
+        train_run(tiny_scene_path, edge, _cfg(), CPU, resume=True, extend_to=85, add_views=["view_002.png"])
+        assert "no densification step is left after the checkpoint's step 80" in " ".join(capsys.readouterr().err.split())
         early = tmp_path / "early"
         train_run(tiny_scene_path, early, _cfg(iterations=10, scene={"train_names": START}), CPU)
         capsys.readouterr()
         train_run(tiny_scene_path, early, _cfg(), CPU, resume=True, extend_to=15, add_views=["view_002.png"])
-        assert "densification ended" not in capsys.readouterr().err
+        assert "no densification step is left" not in capsys.readouterr().err
 
     def test_a_run_on_every_view_has_none_to_add(self, tiny_scene_path, tmp_path):
         run = tmp_path / "all"

@@ -17,6 +17,14 @@ def is_densify_step(step: int, cfg) -> bool:
     return cfg.start < step < cfg.until and step % cfg.interval == 0
 
 
+def densify_steps_after(step: int, cfg) -> bool:
+    """Whether a densification step (``is_densify_step``) comes after ``step``: none does once ``step`` is at or past
+    the last multiple of ``interval`` before ``until`` (the tiny preset's until 250, interval 50: none after 200)."""
+    first = max(step, cfg.start) + 1
+    nxt = -(-first // cfg.interval) * cfg.interval  # the first multiple of interval at or after ``first``
+    return nxt < cfg.until
+
+
 RESET_RECOVERY_STEPS = 1000
 """No opacity reset in the last this many steps of a run (a short ``--iterations`` inside a preset's window): a
 reset needs steps to recover (fern: 5.6 dB held-out PSNR right after one, 28.5 dB 1000 steps later)."""

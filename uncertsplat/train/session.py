@@ -227,6 +227,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         load_scene,
         with_training_views,
     )
+    from uncertsplat.strategy.schedule import densify_steps_after
     from uncertsplat.train.trainer import Trainer, TrainingInterrupted, log_line
 
     scene, run_dir = Path(scene), Path(run_dir)
@@ -290,13 +291,14 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 raise UserError(f"the run has finished its {cfg.iterations} steps: the added view(s) would never be "
                                 "trained on", path=run_dir,
                                 hint=f"Give the steps to train them with: --iterations N (N > {cfg.iterations}).")
-            if add_views and found is not None and int(found[1]["step"]) >= cfg.densify.until:
+            if add_views and found is not None and not densify_steps_after(int(found[1]["step"]), cfg.densify):
                 # the new views' surfaces get no Gaussians of their own: existing ones move and change colour only
-                console.print(f"[yellow]note:[/] densification ended at step {cfg.densify.until} (densify.until) and "
-                              f"the checkpoint is at step {int(found[1]['step'])}: the added view(s) are fitted with "
-                              "the Gaussians the model has, none are grown for them, so what only they show stays "
-                              "poorly fitted; to grow for them, add views before densify.until (a run of more "
-                              "steps, or one started with a later densify.until)")
+                console.print(f"[yellow]note:[/] no densification step is left after the checkpoint's step "
+                              f"{int(found[1]['step'])} (every {cfg.densify.interval} steps before densify.until = "
+                              f"{cfg.densify.until}): the added view(s) are fitted with the Gaussians the model has, "
+                              "none are grown for them, so what only they show stays poorly fitted; to grow for them, "
+                              "add views from an earlier checkpoint (a run of more steps, or one started with a later "
+                              "densify.until)")
             finished = _summary_steps(run_dir) if (run_dir / "variational.ply").is_file() else None
             if found is None and finished:  # a finished model whose checkpoints were deleted (to save disk)
                 if extend_to is None or extend_to <= finished:
