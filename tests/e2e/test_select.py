@@ -211,6 +211,11 @@ class TestAddViewsErrors:
         with pytest.raises(UserError, match="--add-views nope.png: no photo of that name in the scene") as err:
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["nope.png"])
         assert "a pose that select-views proposed needs a photo taken there first" in str(err.value)
+        assert "did you mean" not in str(err.value)
+        # a near miss names the photo (another case, a path before it)
+        for near in ("VIEW_002.PNG", "scene/images/view_002.png"):
+            with pytest.raises(UserError, match=r"no photo of that name in the scene \(did you mean view_002\.png\?\)"):
+                train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=[near])
 
     def test_a_run_with_views_set_aside_takes_none(self, tiny_scene_path, subset_run, tmp_path):
         """More training views would set other views aside for calibration: refused, the run left as it was."""
@@ -238,7 +243,8 @@ class TestAddViewsErrors:
         run = tmp_path / "idx"
         train_run(tiny_scene_path, run, _cfg(iterations=10, scene={"train_indices": [1, 4, 12, 19]}), CPU)
         first = RunScene.read(run / "scene.json")
-        train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=20, add_views=["view_002.png"])
+        train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=20,
+                  add_views=["view_002.png", "view_002.png"])  # (a name given twice is added once)
         info = RunScene.read(run / "scene.json")
         assert sorted(info.train) == sorted([*first.train, "view_002.png"]) and info.test == first.test
         scene = json.loads((run / "config.json").read_text())["scene"]

@@ -114,6 +114,28 @@ def _summary_steps(run_dir: Path) -> int | None:
     return summary.steps if summary is not None else None
 
 
+def _close_names(unknown: list[str], scene: Path, cfg: TrainConfig) -> str:
+    """" (did you mean X?)" for names given to --add-views that are near a photo of the scene (another case, a path
+    before it, a letter or digit off: view_15.png for view_015.png), "" when none is."""
+    import difflib
+
+    from uncertsplat.sfm.scene import load_scene
+
+    try:
+        names = load_scene(scene, cfg.scene.model_copy(update={"train_names": None, "train_indices": None}),
+                           initial_points=False).cameras.image_names
+    except UserError:
+        return ""
+    by_key = {n.casefold(): n for n in names}
+    found = []
+    for name in unknown:
+        key = Path(name).name.casefold()
+        match = by_key.get(key) or next(iter(difflib.get_close_matches(key, list(by_key), n=1, cutoff=0.8)), None)
+        if match is not None:
+            found.append(by_key[match] if match in by_key else match)
+    return f" (did you mean {', '.join(found)}?)" if found else ""
+
+
 def _record_moved_scene(run_dir: Path, scene: Path, cfg: TrainConfig) -> None:
     """``scene.json`` of the finished run ``run_dir`` pointed at ``scene``, the folder its scene moved to, after the
     checks a resume makes (``_check_same_scene``: its images; ``camera_changes``: its cameras)."""
@@ -192,7 +214,9 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
         if name in held:
             raise UserError(f"'{name}' is a held-out view of this run", path=run_dir,
                             hint="Add an unused view (held-out views stay held out so the scores stay comparable).")
-        if name in current or name in added:
+        if name in added:  # given twice on the command line: once is enough
+            continue
+        if name in current:
             raise UserError(f"'{name}' is already a training view of this run", path=run_dir)
         added.append(name)
     scene = cfg.scene.model_copy(update={"train_names": current + added, "train_indices": None})
@@ -332,7 +356,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             unknown = [n for n in add_views or () if "not in the scene: " in err.message and n in err.message]
             if not unknown:
                 raise
-            raise UserError(f"--add-views {', '.join(unknown)}: no photo of that name in the scene", path=scene,
+            raise UserError(f"--add-views {', '.join(unknown)}: no photo of that name in the scene"
+                            + _close_names(unknown, scene, cfg), path=scene,
                             hint="--add-views takes the names of photos the scene holds but the run did not train on; "
                                  "a pose that select-views proposed needs a photo taken there first, added to the "
                                  "scene (reconstruct the photos again with it), then --add-views with its name. "
