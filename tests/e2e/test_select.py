@@ -229,6 +229,20 @@ class TestAddViewsErrors:
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["view_002.png"])
         assert (run / "scene.json").read_text() == before
 
+    def test_select_views_says_up_front_that_such_a_run_takes_none(self, subset_run, tmp_path, capsys):
+        """The refusal came only at `train --add-views`, after choosing: select-views says so when it starts."""
+        run = tmp_path / "run"
+        shutil.copytree(subset_run, run)
+        config = json.loads((run / "config.json").read_text())
+        config["scene"]["calibration_holdout"] = 1
+        (run / "config.json").write_text(json.dumps(config))
+        stage.run(run, SelectConfig(score="fisher", num_views=1), CPU, output=tmp_path / "sel")
+        said = " ".join(capsys.readouterr().err.split())
+        assert "sets 1 view(s) aside for calibration, so `train --resume --add-views` refuses" in said
+        capsys.readouterr()
+        stage.run(subset_run, SelectConfig(score="fisher", num_views=1), CPU, output=tmp_path / "plain")
+        assert "aside for calibration" not in capsys.readouterr().err
+
     def test_a_finished_run_needs_steps_for_the_added_views(self, tiny_scene_path, subset_run, tmp_path):
         """Without --iterations beyond its end the added view would be recorded as trained on with 0 steps."""
         run = tmp_path / "run"

@@ -110,6 +110,11 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     n = min(cfg.num_views, len(cands))
     console.print(f"[bold]select-views[/] {run_dir}: {len(cands)} candidates ({cands.kind}), score '{cfg.score}', "
                   f"choosing {n}, {device}")
+    if loaded.config.scene.calibration_holdout:  # found out only after choosing, at `train --add-views`
+        console.print(f"[yellow]note:[/] this run sets {loaded.config.scene.calibration_holdout} view(s) aside for "
+                      "calibration, so `train --resume --add-views` refuses to add the chosen views (more training "
+                      "views would change which ones are set aside): train a new run on its views and the chosen "
+                      "ones (--set scene.train_names=[...]) to use them")
     settings: dict = {"seed": cfg.seed}
     depth_std = None
     t0 = time.perf_counter()
