@@ -324,3 +324,27 @@ def test_the_default_score_is_fisher(subset_run, tmp_path):
     assert res.exit_code == 0, res.output
     sel = Selection.read(tmp_path / "out" / "selection.json")
     assert sel.score == "fisher" and len(sel.chosen) == 1 and sel.chosen[0].name not in sel.used
+
+
+def test_candidates_that_see_none_of_the_model_are_named(subset_run, tmp_path, capsys):
+    """Poses of the unused views as the file convention wants them: no note; the same poses inverted (camera-to-world,
+    the most common mix-up) look away from the model and are named with how little of it they see."""
+    from uncertsplat.baselines import load_run
+    from uncertsplat.select.candidates import pose_line
+
+    loaded = load_run(subset_run)
+    scene = loaded.load_scene()
+    wfs = torch.tensor(RunScene.read(subset_run / "scene.json").world_from_source, dtype=torch.float64)
+    unused = [i for i in range(len(scene.cameras)) if i not in set(scene.split["train"]) | set(scene.split["test"])]
+    right = [pose_line(f"v{i}", scene.cameras.cam_from_world[i], wfs) for i in unused[:3]]
+    (tmp_path / "right.txt").write_text("\n".join(right) + "\n")
+    stage.run(subset_run, SelectConfig(score="coverage", num_views=1, candidates=str(tmp_path / "right.txt")), CPU,
+              output=tmp_path / "a")
+    assert "see almost none of the model" not in capsys.readouterr().err
+    inverted = [pose_line(f"v{i}", torch.linalg.inv(scene.cameras.cam_from_world[i].double()).float(), wfs)
+                for i in unused[:3]]
+    (tmp_path / "inverted.txt").write_text("\n".join(inverted) + "\n")
+    stage.run(subset_run, SelectConfig(score="coverage", num_views=1, candidates=str(tmp_path / "inverted.txt")), CPU,
+              output=tmp_path / "b")
+    said = " ".join(capsys.readouterr().err.split())
+    assert "3 of 3 candidate(s) see almost none of the model (v" in said and "world-to-camera" in said

@@ -155,6 +155,42 @@ def pose_line(name: str, cam_from_world: Tensor, world_from_source: Tensor) -> s
     return " ".join([name, *(f"{v:.9g}" for v in values)])
 
 
+def seen_fraction(cameras: Cameras, points: Tensor) -> Tensor:
+    """[C] the fraction of ``points`` [N,3] (world) in front of each camera and inside its image: a candidate pose
+    that sees almost none of the model is most likely given in another convention (camera-to-world, x y z w)."""
+    pts = points.to(cameras.cam_from_world).double()
+    out = []
+    for j in range(len(cameras)):
+        cfw = cameras.cam_from_world[j].double()
+        cam = pts @ cfw[:3, :3].T + cfw[:3, 3]  # [N,3]
+        K = cameras.K[j].double()
+        z = cam[:, 2]
+        front = z > 1e-6
+        u = K[0, 0] * cam[:, 0] / z.clamp_min(1e-6) + K[0, 2]
+        v = K[1, 1] * cam[:, 1] / z.clamp_min(1e-6) + K[1, 2]
+        inside = front & (u >= 0) & (u < cameras.width) & (v >= 0) & (v < cameras.height)
+        out.append(inside.double().mean() if len(pts) else torch.zeros((), dtype=torch.float64))
+    return torch.stack(out).float() if out else torch.zeros(0)
+
+
+def blind_candidates_note(candidates: Cameras, train: Cameras, points: Tensor) -> str | None:
+    """The note for candidates that see under a tenth of what the training views see of ``points`` (median): by
+    name, with the fractions, and the two conventions most often mixed up; None when every candidate sees the model."""
+    seen, ref = seen_fraction(candidates, points), seen_fraction(train, points)
+    if not len(seen) or not len(ref):
+        return None
+    usual = float(ref.median())
+    blind = [j for j in range(len(seen)) if float(seen[j]) < 0.1 * usual]
+    if not blind:
+        return None
+    names = candidates.image_names or tuple(f"candidate {j}" for j in range(len(seen)))
+    listed = ", ".join(f"{names[j]} {100 * float(seen[j]):.1f} %" for j in blind[:6]) + (", ..." if len(blind) > 6
+                                                                                      else "")
+    return (f"{len(blind)} of {len(seen)} candidate(s) see almost none of the model ({listed} of its Gaussians in view, "
+            f"the training views {100 * usual:.0f} %): check the pose file's convention (world-to-camera, the "
+            "quaternion as w x y z, the scene's units and frame)")
+
+
 def candidates_from_spec(spec: str, scene: SceneData, world_from_source: Tensor, *, radius: float,
                          generator: torch.Generator) -> Candidates:
     """The candidates of a ``--candidates`` value (see the module docstring).

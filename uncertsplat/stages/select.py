@@ -80,7 +80,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     from uncertsplat.io.images import resize_image
     from uncertsplat.schemas import RunScene, Selection
     from uncertsplat.schemas.select import CandidateScore, ChosenView
-    from uncertsplat.select.candidates import candidates_from_spec, pose_line
+    from uncertsplat.select.candidates import blind_candidates_note, candidates_from_spec, pose_line
     from uncertsplat.select.scores import (
         coverage_choice,
         fisher_choice,
@@ -107,6 +107,10 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                                  radius=cfg.around_radius, generator=gen)
     train = list(scene.split["train"])
     used_names = [scene.cameras.image_names[i] for i in train] if scene.cameras.image_names else []
+    if cands.kind == "file":  # poses of one's own: a convention mixed up gives poses that look away, ranked as any
+        blind = blind_candidates_note(cands.cameras, scene.cameras[train], loaded.model.params["means"].detach())
+        if blind:
+            console.print(f"[yellow]note:[/] {blind}")
     n = min(cfg.num_views, len(cands))
     console.print(f"[bold]select-views[/] {run_dir}: {len(cands)} candidates ({cands.kind}), score '{cfg.score}', "
                   f"choosing {n}, {device}")
