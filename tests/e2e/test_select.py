@@ -152,11 +152,15 @@ def test_unseen_score_is_the_blended_relative_variance(subset_run):
     assert bool(((zero <= mid + 1e-6) & (mid <= one + 1e-6)).all())
 
 
-def test_unseen_needs_a_posterior(tiny_scene_path, tmp_path):
+def test_unseen_needs_a_posterior(tiny_scene_path, tmp_path, capsys):
     run = tmp_path / "det"
     train_run(tiny_scene_path, run, _cfg(iterations=10, method="deterministic", scene={"train_names": START}), CPU)
     with pytest.raises(UserError, match="unseen score reads"):
         stage.run(run, SelectConfig(score="unseen"), CPU)
+    # the variance score runs on it, and says what it is then (it ranked silently by the empty-ray term alone)
+    capsys.readouterr()
+    stage.run(run, SelectConfig(score="variance", num_views=1, num_samples=2), CPU, output=tmp_path / "v")
+    assert "variance score holds only the empty-ray term" in " ".join(capsys.readouterr().err.split())
 
 
 def test_variance_prefers_views_of_what_the_start_views_miss(subset_run, tmp_path):

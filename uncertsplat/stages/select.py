@@ -142,6 +142,12 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
             first = unseen_scores(sample, relative_position_variance(loaded.model, loaded.prior), sampler.render_fn,
                                   low)
         else:
+            if loaded.config.method == "deterministic" or (loaded.model.num_carriers == 0
+                                                            and loaded.config.method != "ensemble"):
+                # every sample is the same model: the score is the unknown surface behind uncovered rays alone
+                console.print("[yellow]note:[/] this run has no posterior (its samples are one model), so the variance "
+                              "score holds only the empty-ray term: how much of each candidate's view the model "
+                              "leaves uncovered; --score fisher or coverage rank by more")
             first, depth_std = variance_scores(sampler.sample_fn, sampler.render_fn, low, cfg.num_samples, cfg.seed,
                                                empty_std=sampler.empty_std, coverage=sampler.coverage)
             settings["num_samples"] = cfg.num_samples
