@@ -161,7 +161,11 @@ def _refuse_two_values(explicit: dict, overrides: list[str] | None) -> None:
     given = {k: v for k, v in explicit.items() if v is not None}
     for text in overrides or []:
         for key, value in parse_override(text).items():
-            if key in given and not isinstance(value, dict) and value != given[key] and str(value) != str(given[key]):
+            if key not in given or isinstance(value, dict):
+                continue
+            same = value == given[key] or str(value) == str(given[key]) or (
+                isinstance(given[key], Path) and isinstance(value, str) and Path(value) == given[key])
+            if not same:
                 option = "--" + key.replace("_", "-")
                 raise UserError(f"{option} {given[key]} and --set {text.strip()} give {key} two values",
                                 hint=f"Give one of them ({option} or --set {key}=...).")

@@ -257,11 +257,13 @@ def test_a_killed_prune_s_staging_folder_is_removed_by_the_next(tiny_run_path, t
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
-    stale = tmp_path / f".out.tmp-{dead.pid}-abc"
-    live = tmp_path / f".out.tmp-{os.getpid()}-def"
-    for p in (stale, live):
+    host = prune._host_tag()
+    stale = tmp_path / f".out.tmp-{host}-{dead.pid}-abc"
+    live = tmp_path / f".out.tmp-{host}-{os.getpid()}-def"
+    elsewhere = tmp_path / f".out.tmp-otherhost-{dead.pid}-ghi"  # another machine's: its PID means nothing here
+    for p in (stale, live, elsewhere):
         p.mkdir()
         (p / "variational.ply").write_bytes(b"x" * 100)
     cfg = PruneConfig(keep_ratio=0.9, **FAST)
     prune.run(tiny_run_path, tmp_path / "out", cfg, device=CPU)
-    assert not stale.exists() and live.is_dir() and (tmp_path / "out" / "prune.json").is_file()
+    assert not stale.exists() and live.is_dir() and elsewhere.is_dir() and (tmp_path / "out" / "prune.json").is_file()

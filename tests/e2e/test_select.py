@@ -286,8 +286,11 @@ class TestAddViewsErrors:
         early = tmp_path / "early"
         train_run(tiny_scene_path, early, _cfg(iterations=10, scene={"train_names": START}), CPU)
         capsys.readouterr()
-        train_run(tiny_scene_path, early, _cfg(), CPU, resume=True, extend_to=15, add_views=["view_002.png"])
+        train_run(tiny_scene_path, early, _cfg(), CPU, resume=True, extend_to=45, add_views=["view_002.png"])  # (densifies at 40)
         assert "no densification step is left" not in capsys.readouterr().err
+        # a resumed run that ends before the next densification step grows nothing either (checkpoint 45, next 60)
+        train_run(tiny_scene_path, early, _cfg(), CPU, resume=True, extend_to=50, add_views=["view_003.png"])
+        assert "and the run ends at 50" in " ".join(capsys.readouterr().err.split())
 
     def test_a_run_on_every_view_has_none_to_add(self, tiny_scene_path, tmp_path):
         run = tmp_path / "all"

@@ -264,7 +264,8 @@ def test_an_option_and_a_set_with_two_values_are_refused(tmp_path, monkeypatch, 
 def test_an_option_and_a_set_that_agree_or_a_set_alone_pass(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     for args in (["evaluate", "nowhere", "--num-samples", "2", "--set", "num_samples=2"],
-                 ["evaluate", "nowhere", "--set", "num_samples=3"]):
+                 ["evaluate", "nowhere", "--set", "num_samples=3"],
+                 ["evaluate", "nowhere", "--depth-gt", "gt/", "--set", "depth_gt=gt/"]):  # (a path typed twice)
         res = CliRunner().invoke(app, args)
         assert "two values" not in res.output and "run folder not found" in " ".join(res.output.split()), res.output
 

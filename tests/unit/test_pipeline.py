@@ -154,7 +154,7 @@ def test_every_stage_is_checked_before_the_first_runs(tmp_path, calls, override,
 def test_photos_given_to_a_pipeline_without_reconstruct_are_noted(tmp_path, capsys):
     p = _write(tmp_path)
     pl.load_pipeline(p, overrides=["photos=/nowhere"])
-    assert "--set photos is not used: p.toml has no reconstruct stage" in " ".join(capsys.readouterr().err.split())
+    assert "--set photos is not used: no reconstruct stage of p.toml starts from photos" in " ".join(capsys.readouterr().err.split())
 
 
 def test_a_stage_interrupted_with_its_work_kept_stops_the_pipeline_as_an_interruption(tmp_path, monkeypatch):
@@ -325,4 +325,9 @@ def test_a_pipeline_that_would_do_nothing_says_so(tmp_path, calls, capsys):
     capsys.readouterr()
     pl.run(_write(tmp_path), tmp_path / "out", overrides=[f"photos={tmp_path}"])
     said = " ".join(capsys.readouterr().err.split())
-    assert f"`photos` ({tmp_path}) is not read: no reconstruct stage of this pipeline starts from photos" in said
+    assert said.count("--set photos is not used: no reconstruct stage of p.toml starts from photos") == 1
+    # a reconstruct after synth reads the synthetic images, not the photos (demo.toml): said too
+    q = tmp_path / "q.toml"
+    q.write_text('[[stages]]\nstage = "synth"\nconfig = { preset = "tiny" }\n[[stages]]\nstage = "reconstruct"\n')
+    pl.load_pipeline(q, [f"photos={tmp_path}"])
+    assert "--set photos is not used: no reconstruct stage of q.toml" in " ".join(capsys.readouterr().err.split())

@@ -530,19 +530,27 @@ def test_point_reports_follow_their_points_to_new_ids(tmp_path):
 
 def test_a_spec_key_that_a_knob_replaces_is_named():
     """`--set evaluate.num_samples=3` beside `[default] num_samples = 2` had no effect and was recorded as used; a
-    scene's `train.scene.downscale` beside a downscale knob likewise. A knob left at the base config's value, a value
-    equal to the knob's, and train.iterations (the schedule the knob scales) are not named."""
+    scene's `train.scene.downscale` beside a downscale knob likewise. Not named: a value equal to the knob's, a knob
+    set only in [axes] (the default point uses the spec's value), a top-level key another scene uses, the informed
+    posterior's num_entries (its one entry is the spec's), train.iterations (the schedule the knob scales)."""
     from uncertsplat.sweep.spec import shadowed_settings
 
-    s = spec(evaluate={"num_samples": 3})
-    assert shadowed_settings(s) == ["evaluate.num_samples = 3 (the knob `num_samples` sets it: 10)"]
+    assert shadowed_settings(spec(evaluate={"num_samples": 3})) == ["evaluate.num_samples = 3 (the knob `num_samples`)"]
     assert shadowed_settings(spec(evaluate={"num_samples": 10}, train={"iterations": 20})) == []
+    axes_only = spec(evaluate={"num_samples": 7}, axes={"num_samples": [2, 4]})
+    axes_only = axes_only.model_copy(update={"default": axes_only.default.model_copy(update={"num_samples": None})})
+    assert shadowed_settings(axes_only) == []
     multi = SweepSpec(train_preset="tiny", default={"method": "variational", "downscale": 4.0},
                       scenes={"a": {"synth": {"preset": "tiny"}, "train": {"scene": {"downscale": 8.0}}}})
-    assert shadowed_settings(multi) == ["scenes.a.train.scene.downscale = 8.0 (the knob `downscale` sets it: 4.0)"]
-    free = SweepSpec(train_preset="tiny", default={"method": "variational"},
-                     scenes={"a": {"synth": {"preset": "tiny"}, "train": {"scene": {"downscale": 8.0}}}})
-    assert shadowed_settings(free) == []
+    assert shadowed_settings(multi) == ["scenes.a.train.scene.downscale = 8.0 (the knob `downscale`)"]
+    two = SweepSpec(train_preset="tiny", train={"scene": {"downscale": 2.0}}, default={"method": "variational"},
+                    scenes={"a": {"synth": {"preset": "tiny"}, "default": {"downscale": 4.0}},
+                            "b": {"synth": {"preset": "tiny"}}})
+    assert shadowed_settings(two) == []  # scene b trains at the spec's 2.0
+    only_a = two.model_copy(update={"scenes": {"a": two.scenes["a"]}})
+    assert shadowed_settings(only_a) == ["train.scene.downscale = 2.0 (the knob `downscale`)"]
+    informed = spec(train={"variational": {"num_entries": 5}})  # the default point sets num_entries = 10
+    assert shadowed_settings(informed) == []
 
 
 def test_the_sweep_refuses_a_key_a_knob_replaces_before_running(tmp_path):
@@ -551,7 +559,7 @@ def test_the_sweep_refuses_a_key_a_knob_replaces_before_running(tmp_path):
     spec_file = tmp_path / "s.toml"
     spec_file.write_text('train_preset = "tiny"\nevaluate = { num_samples = 3 }\n[synth]\npreset = "tiny"\n'
                          '[default]\nmethod = "variational"\nnum_samples = 2\n')
-    with pytest.raises(UserError, match=r"evaluate.num_samples = 3 \(the knob `num_samples` sets it: 2\): a knob of "
-                                        r"the sweep sets this in every point"):
+    with pytest.raises(UserError, match=r"evaluate.num_samples = 3 \(the knob `num_samples`\): the knob sets this in "
+                                        r"every point of the sweep"):
         stage.run(spec_file, tmp_path / "out", jobs=1, device="cpu")
     assert not (tmp_path / "out").exists()

@@ -70,11 +70,11 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
             stage["config"] = deep_update(stage.get("config", {}), rest)
     with naming_overrides(overrides):
         cfg = build_config(PipelineConfig, data, source=str(path))
-    if photos_given and not any(st.stage == "reconstruct" for st in cfg.stages):
+    if photos_given and not _reads_photos(cfg):
         from uncertsplat.console import console
 
-        console.print(f"[yellow]note:[/] --set photos is not used: {Path(path).name} has no reconstruct stage "
-                      "(pipelines/photos.toml starts from photos)")
+        console.print(f"[yellow]note:[/] --set photos is not used: no reconstruct stage of {Path(path).name} starts "
+                      "from photos (pipelines/photos.toml does)")
     if cfg.photos is not None and not cfg.photos.is_absolute():
         # typed on the command line: from the current folder; written in the file: from the file's folder (the
         # current folder as a fallback, which is what it was read from before)
@@ -143,6 +143,12 @@ def _has_checkpoint(run_dir: Path) -> bool:
     return bool(list_checkpoints(run_dir)) or any(list_checkpoints(m) for m in (run_dir / "members").glob("*"))
 
 
+def _reads_photos(cfg: PipelineConfig) -> bool:
+    """Whether a reconstruct stage reads the pipeline's ``photos``: one with no ``input`` and no stage before it (a
+    reconstruct after synth reads the synthetic images)."""
+    return any(st.stage == "reconstruct" and st.input is None and i == 0 for i, st in enumerate(cfg.stages))
+
+
 def _finished_output(folder: Path) -> bool:
     """Whether ``folder`` holds a stage's finished output (its manifest says done)."""
     found = read_manifest(folder)
@@ -175,15 +181,11 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
     cfg = load_pipeline(pipeline, overrides)
     with naming_overrides(overrides):
         stage_configs = check_stages(cfg, pipeline)
-    if cfg.photos is not None and not Path(cfg.photos).is_dir() and any(
-            st.stage == "reconstruct" and st.input is None for st in cfg.stages):
+    if cfg.photos is not None and not Path(cfg.photos).is_dir() and _reads_photos(cfg):
         # before any output folder exists: the pipeline's photo folder is a placeholder until the user sets it
         what = "is a file, not a photo folder" if Path(cfg.photos).exists() else "photo folder not found"
         raise UserError(f"{what} (the pipeline's `photos`)", path=Path(cfg.photos),
                         hint=f"Give your photos: uncertsplat run {pipeline} -o {output} --set photos=/path/to/photos")
-    if cfg.photos is not None and not any(st.stage == "reconstruct" and st.input is None for st in cfg.stages):
-        console.print(f"[yellow]note:[/] `photos` ({cfg.photos}) is not read: no reconstruct stage of this pipeline "
-                      "starts from photos")
     dev = resolve_device(device or cfg.device)
     root = Path(output)
 

@@ -566,12 +566,21 @@ def _evaluate_written(output: Path, result: PruneReport, measure: _Measure, devi
     _psnr_change(result)
 
 
+def _host_tag() -> str:
+    """This machine's name for a staging folder's name (letters and digits only): a PID is only checked on its host."""
+    import re
+    import socket
+
+    return re.sub(r"[^A-Za-z0-9]", "", socket.gethostname())[:32] or "host"
+
+
 def _remove_dead_temp_folders(output: Path) -> None:
     """Remove the staging folders of earlier prunes into ``output`` whose process is gone (killed while writing: each
     held a whole model); a live one's is another prune at work and stays."""
-    for p in output.parent.glob(f".{output.name}.tmp-*-*"):
-        pid = p.name[len(f".{output.name}.tmp-"):].split("-", 1)[0]
-        if not pid.isdigit() or not p.is_dir():
+    host = _host_tag()
+    for p in output.parent.glob(f".{output.name}.tmp-{host}-*-*"):
+        pid = p.name[len(f".{output.name}.tmp-{host}-"):].split("-", 1)[0]
+        if not pid.isdigit() or not p.is_dir():  # (another host's, on a shared file system: not ours to judge)
             continue
         try:
             os.kill(int(pid), 0)
@@ -593,7 +602,7 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
 
     output.parent.mkdir(parents=True, exist_ok=True)
     _remove_dead_temp_folders(output)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-{os.getpid()}-", dir=output.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-{_host_tag()}-{os.getpid()}-", dir=output.parent))
     os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes it 0700: the pruned run is read like any other
     try:
         writes_model = keep is not None and not cfg.dry_run

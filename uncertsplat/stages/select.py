@@ -119,7 +119,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                       "calibration, so `train --resume --add-views` refuses to add the chosen views (more training "
                       "views would change which ones are set aside): train a new run on its views and the chosen "
                       "ones (--set scene.train_names=[...]) to use them")
-    settings: dict = {"seed": cfg.seed}
+    settings: dict = {**cfg.model_dump(mode="json")}  # the resolved settings, then what the score used
     depth_std = None
     t0 = time.perf_counter()
     centres = cands.cameras.centers
@@ -143,7 +143,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                                   low)
         else:
             if loaded.config.method == "deterministic" or (loaded.model.num_carriers == 0
-                                                            and loaded.config.method != "ensemble"):
+                                                            and loaded.config.method not in ("ensemble", "fisher")):
                 # every sample is the same model: the score is the unknown surface behind uncovered rays alone
                 console.print("[yellow]note:[/] this run has no posterior (its samples are one model), so the variance "
                               "score holds only the empty-ray term: how much of each candidate's view the model "

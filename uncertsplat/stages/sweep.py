@@ -154,12 +154,6 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
     from uncertsplat.sweep.spec import expand_points, load_spec, make_jobs, shadowed_settings
 
     spec = load_spec(Path(spec_path), overrides)
-    shadowed = shadowed_settings(spec)
-    if shadowed:  # the points set these: the spec's (or --set's) values would have no effect, recorded as used
-        raise UserError(f"{'; '.join(shadowed)}: a knob of the sweep sets this in every point, so the value given "
-                        "here would have no effect", path=Path(spec_path),
-                        hint="Set it through the knob instead (e.g. `[default] iterations = 20`, or --set "
-                             "default.iterations=20 / an axis), or remove the knob from [default] and [axes].")
     out_dir = Path(out_dir)
     dev = resolve_device(device)
     if jobs is None:
@@ -181,6 +175,12 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
             raise UserError(f"--scenes names {', '.join(unknown)}, which the spec does not have", path=spec_path,
                             hint=f"The spec's scenes: {', '.join(spec.scenes) or 'none (a single-scene spec)'}.")
         spec = spec.model_copy(update={"scenes": {n: e for n, e in spec.scenes.items() if n in only_scenes}})
+    shadowed = shadowed_settings(spec)  # (on the scenes this call runs)
+    if shadowed:  # the points set these: the spec's (or --set's) values would have no effect, recorded as used
+        raise UserError(f"{'; '.join(shadowed)}: the knob sets this in every point of the sweep, so the value given "
+                        "here would have no effect", path=Path(spec_path),
+                        hint="Set it through the knob instead (e.g. `[default] num_samples = 3`, or --set "
+                             "default.num_samples=3 / an axis), or remove the knob from [default].")
     if scene is not None and spec.scenes:
         raise UserError("--scene replaces the scene of a single-scene spec, and this spec names "
                         f"{len(spec.scenes)} scenes ({', '.join(spec.scenes)})", path=spec_path,

@@ -17,12 +17,13 @@ def is_densify_step(step: int, cfg) -> bool:
     return cfg.start < step < cfg.until and step % cfg.interval == 0
 
 
-def densify_steps_after(step: int, cfg) -> bool:
-    """Whether a densification step (``is_densify_step``) comes after ``step``: none does once ``step`` is at or past
-    the last multiple of ``interval`` before ``until`` (the tiny preset's until 250, interval 50: none after 200)."""
+def densify_steps_after(step: int, cfg, last_step: int | None = None) -> bool:
+    """Whether a densification step (``is_densify_step``) comes after ``step`` (and at or before ``last_step``, a
+    run's end): none does once ``step`` is at or past the last multiple of ``interval`` before ``until`` (the tiny
+    preset's until 250, interval 50: none after 200), nor when the run ends before the next one."""
     first = max(step, cfg.start) + 1
     nxt = -(-first // cfg.interval) * cfg.interval  # the first multiple of interval at or after ``first``
-    return nxt < cfg.until
+    return nxt < cfg.until and (last_step is None or nxt <= last_step)
 
 
 RESET_RECOVERY_STEPS = 1000

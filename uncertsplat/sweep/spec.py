@@ -390,38 +390,45 @@ def point_configs(spec: SweepSpec, point: SweepPoint, scene: str | None = None,
 _KNOB_KEYS = {"method": ("train", "method"), "num_entries": ("train", "variational.num_entries"),
               "downscale": ("train", "scene.downscale"), "ensemble_size": ("train", "ensemble_size"),
               "spawn_fraction": ("train", "densify.spawn_scale_fraction"), "num_samples": ("evaluate", "num_samples")}
-"""Each knob's key in the spec's ``train`` / ``evaluate`` tables, which ``point_configs`` replaces with the knob's value
-(``iterations`` is not among them: the spec's ``train.iterations`` is the schedule the knob's steps scale)."""
+"""Each knob's key in the spec's ``train`` / ``evaluate`` tables, which ``point_configs`` may replace with the knob's
+value (``iterations`` is not among them: the spec's ``train.iterations`` is the schedule the knob's steps scale)."""
 
 
 def shadowed_settings(spec: SweepSpec) -> list[str]:
-    """The spec's ``train`` / ``evaluate`` keys (also a scene's) that a knob set by ``default`` or ``axes`` replaces
-    in every point, as "evaluate.num_samples = 3 (the knob `num_samples` sets it: 2)": they had no effect, and the
-    sweep recorded the spec's value as if used."""
-    def value(table: dict, dotted: str):
+    """The spec's ``train`` / ``evaluate`` keys (also a scene's) of a knob that no point of the sweep uses: every
+    point resolves (``point_configs``) to the same configs with the key as without it, because the knob's value
+    replaces it, as "evaluate.num_samples = 3 (the knob `num_samples`)". They had no effect,
+    and the sweep recorded the spec's value as if used. A knob left unset in ``[default]``, the informed posterior's
+    one table entry, a point without offset tables: the spec's value is used there, and nothing is named."""
+    import copy
+
+    def pop(table: dict, dotted: str):
+        *parents, last = dotted.split(".")
         node: Any = table
-        for part in dotted.split("."):
+        for part in parents:
             if not isinstance(node, dict) or part not in node:
                 return None
             node = node[part]
-        return node
+        return node.pop(last, None) if isinstance(node, dict) else None
 
+    def resolved(sp: SweepSpec) -> list[str]:
+        return [tcfg.model_dump_json() + ecfg.model_dump_json() for name in sp.scene_names()
+                for point in expand_points(sp.on_scene(name)) for tcfg, ecfg in [point_configs(sp, point, name)]]
+
+    base = None
     out: list[str] = []
-    for name in spec.scene_names():
-        here = spec.on_scene(name)  # [default] as it is on that scene
-        entry = spec.scenes[name] if name is not None else None
-        tables = [("", spec.train, spec.evaluate)] + ([(f"scenes.{name}.", entry.train, entry.evaluate)]
-                                                      if entry is not None else [])
-        for knob, (where, dotted) in _KNOB_KEYS.items():
-            default = getattr(here.default, knob)
-            if default is None and not getattr(here.axes, knob):
-                continue  # the knob is left at the base config's value: the spec's key is what the points use
-            for prefix, train, evaluate in tables:
-                given = value(train if where == "train" else evaluate, dotted)
-                line = (f"{prefix}{where}.{dotted} = {given} (the knob `{knob}` sets it"
-                        + (f": {default}" if default is not None else "") + ")")
-                if given is not None and given != default and line not in out:
-                    out.append(line)
+    places = [(None, "")] + [(name, f"scenes.{name}.") for name in spec.scenes]
+    for knob, (where, dotted) in _KNOB_KEYS.items():
+        for scene, prefix in places:
+            data = spec.model_dump()
+            holder = data if scene is None else data["scenes"][scene]
+            given = pop(copy.deepcopy(holder[where]), dotted)
+            if given is None or given == getattr(spec.on_scene(scene).default, knob):
+                continue  # (the knob's own value given again: nothing lost)
+            pop(holder[where], dotted)
+            base = resolved(spec) if base is None else base
+            if resolved(type(spec).model_validate(data)) == base:
+                out.append(f"{prefix}{where}.{dotted} = {given} (the knob `{knob}`)")
     return out
 
 

@@ -315,11 +315,12 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 raise UserError(f"the run has finished its {cfg.iterations} steps: the added view(s) would never be "
                                 "trained on", path=run_dir,
                                 hint=f"Give the steps to train them with: --iterations N (N > {cfg.iterations}).")
-            if add_views and found is not None and not densify_steps_after(int(found[1]["step"]), cfg.densify):
+            if add_views and found is not None and not densify_steps_after(int(found[1]["step"]), cfg.densify,
+                                                                           last_step=cfg.iterations):
                 # the new views' surfaces get no Gaussians of their own: existing ones move and change colour only
                 console.print(f"[yellow]note:[/] no densification step is left after the checkpoint's step "
                               f"{int(found[1]['step'])} (every {cfg.densify.interval} steps before densify.until = "
-                              f"{cfg.densify.until}): the added view(s) are fitted with the Gaussians the model has, "
+                              f"{cfg.densify.until}, and the run ends at {cfg.iterations}): the added view(s) are fitted with the Gaussians the model has, "
                               "none are grown for them, so what only they show stays poorly fitted; to grow for them, "
                               "add views from an earlier checkpoint (a run of more steps, or one started with a later "
                               "densify.until)")
