@@ -27,6 +27,16 @@ def _cfg(**over):
     return train_config_from("tiny", deep_update(TINY_RUN_OVERRIDES, {"iterations": 80, **over}))
 
 
+def _with_views_set_aside(subset_run, tmp_path):
+    """A copy of ``subset_run`` whose config sets one view aside for calibration."""
+    run = tmp_path / "run"
+    shutil.copytree(subset_run, run)
+    config = json.loads((run / "config.json").read_text())
+    config["scene"]["calibration_holdout"] = 1
+    (run / "config.json").write_text(json.dumps(config))
+    return run
+
+
 @pytest.fixture(scope="module")
 def subset_run(tiny_scene_path, tmp_path_factory):
     run = tmp_path_factory.mktemp("select") / "run"
@@ -223,11 +233,7 @@ class TestAddViewsErrors:
 
     def test_a_run_with_views_set_aside_takes_none(self, tiny_scene_path, subset_run, tmp_path):
         """More training views would set other views aside for calibration: refused, the run left as it was."""
-        run = tmp_path / "run"
-        shutil.copytree(subset_run, run)
-        config = json.loads((run / "config.json").read_text())
-        config["scene"]["calibration_holdout"] = 1
-        (run / "config.json").write_text(json.dumps(config))
+        run = _with_views_set_aside(subset_run, tmp_path)
         before = (run / "scene.json").read_text()
         with pytest.raises(UserError, match="sets views aside for calibration"):
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["view_002.png"])
@@ -235,11 +241,7 @@ class TestAddViewsErrors:
 
     def test_select_views_says_up_front_that_such_a_run_takes_none(self, subset_run, tmp_path, capsys):
         """The refusal came only at `train --add-views`, after choosing: select-views says so when it starts."""
-        run = tmp_path / "run"
-        shutil.copytree(subset_run, run)
-        config = json.loads((run / "config.json").read_text())
-        config["scene"]["calibration_holdout"] = 1
-        (run / "config.json").write_text(json.dumps(config))
+        run = _with_views_set_aside(subset_run, tmp_path)
         stage.run(run, SelectConfig(score="fisher", num_views=1), CPU, output=tmp_path / "sel")
         said = " ".join(capsys.readouterr().err.split())
         assert "sets 1 view(s) aside for calibration, so `train --resume --add-views` refuses" in said
