@@ -870,3 +870,34 @@ def test_an_evaluation_stopped_midway_leaves_no_metrics_beside_its_maps(tiny_run
     monkeypatch.setattr(evaluate, "write_view_maps", real)
     report = evaluate.run(run, first, device=torch.device("cpu"))
     assert report.num_samples == 2 and report.seed == 0 and (run / "eval" / "metrics.json").is_file()
+
+
+def test_views_the_model_leaves_empty_are_named():
+    """A held-out view whose pixels the model leaves empty (no Gaussian: alpha < 1/2) well beyond its training views'
+    share is named with the fraction (the surface-based reach note cannot see empty rays: 40 % empty, 12 dB); the
+    same share as the training views' (an object scene's background) is not."""
+    from types import SimpleNamespace
+
+    from uncertsplat.stages.evaluate import _empty_view_notes
+    from uncertsplat.types import Cameras
+
+    def cams(shifts, names):
+        cfw = torch.eye(4).repeat(len(shifts), 1, 1)
+        cfw[:, 0, 3] = torch.tensor(shifts, dtype=torch.float32)
+        K = torch.tensor([[10.0, 0, 5], [0, 10.0, 5], [0, 0, 1]]).repeat(len(shifts), 1, 1)
+        return Cameras(cfw, K, 10, 10, tuple(names))
+
+    def render(rep, c):  # alpha 0 on a share of the rows set by the camera's x shift (0.1 empty per unit)
+        share = float(c.cam_from_world[0, 0, 3]) / 10
+        alpha = torch.ones(1, 10, 10, 1)
+        alpha[:, : round(10 * share)] = 0.0
+        return SimpleNamespace(alpha=alpha)
+
+    sampler = SimpleNamespace(det_sample="rep", render_fn=render)
+    train = cams([1.0, 1.0, 1.0, 2.0], [f"t{i}" for i in range(4)])  # 10-20 % empty: a background
+    views = SimpleNamespace(names=["near", "far"], cameras=cams([1.0, 5.0], ["near", "far"]))
+    (note,) = _empty_view_notes(sampler, views, train, torch.device("cpu"))
+    assert note.startswith("1 of 2 views show parts the model holds no surface for") and "far 50 %" in note
+    assert "training views 10 %" in note and "near" not in note.split(":", 1)[1]
+    assert _empty_view_notes(sampler, SimpleNamespace(names=["near"], cameras=cams([1.0], ["near"])), train,
+                             torch.device("cpu")) == []
