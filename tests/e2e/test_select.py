@@ -357,3 +357,25 @@ def test_candidates_that_see_none_of_the_model_are_named(subset_run, tmp_path, c
               output=tmp_path / "b")
     said = " ".join(capsys.readouterr().err.split())
     assert "3 of 3 candidate(s) see almost none of the model (v" in said and "world-to-camera" in said
+
+
+def test_the_selection_plot_shows_the_held_out_views_and_keeps_its_legend_outside(tmp_path, monkeypatch):
+    """The held-out views (a gap's middle, where the scores are measured) were left out of selection.png, and the
+    legend sat over cameras."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from uncertsplat.stages.select import _plot
+
+    figs = []
+    monkeypatch.setattr(plt, "close", figs.append)
+    ring = torch.stack([torch.tensor([torch.cos(t), torch.sin(t), 0.0]) for t in torch.linspace(0, 6.0, 12)])
+    _plot(tmp_path / "s.png", ring[:6], ring[6:10], [0], torch.tensor([0.0, 0.0, 1.0]), "t", held=ring[10:])
+    ax = figs[0].axes[0]
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert "held out (2)" in labels and "used (6)" in labels
+    box = ax.get_legend().get_window_extent(figs[0].canvas.get_renderer())
+    assert box.x0 >= ax.get_window_extent(figs[0].canvas.get_renderer()).x1  # beside the axes, not over them
+    plt.close("all")

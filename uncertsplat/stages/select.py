@@ -19,8 +19,10 @@ from uncertsplat.console import console
 from uncertsplat.errors import UserError, run_folder_missing
 
 
-def _plot(path: Path, used: torch.Tensor, cands: torch.Tensor, chosen: list[int], up: torch.Tensor, title: str) -> None:
-    """The camera centres seen from above (projected on the plane normal to ``up``)."""
+def _plot(path: Path, used: torch.Tensor, cands: torch.Tensor, chosen: list[int], up: torch.Tensor, title: str,
+          held: torch.Tensor | None = None) -> None:
+    """The camera centres seen from above (projected on the plane normal to ``up``): candidates, the views used for
+    training, the held-out ones (``held``: where the scores are measured, a gap's middle often) and the chosen."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -43,6 +45,8 @@ def _plot(path: Path, used: torch.Tensor, cands: torch.Tensor, chosen: list[int]
     ax.scatter(*xy(cands), s=14, c="0.6", label=f"candidates ({len(cands)})")
     if len(used):
         ax.scatter(*xy(used), s=22, c="tab:blue", label=f"used ({len(used)})")
+    if held is not None and len(held):
+        ax.scatter(*xy(held), s=22, c="tab:orange", marker="s", label=f"held out ({len(held)})")
     if chosen:
         cx, cy = xy(cands[chosen])
         ax.scatter(cx, cy, s=60, c="tab:red", marker="*", label=f"chosen ({len(chosen)})")
@@ -51,7 +55,7 @@ def _plot(path: Path, used: torch.Tensor, cands: torch.Tensor, chosen: list[int]
     ax.scatter([0.0], [0.0], s=30, c="k", marker="+", label="scene centre")
     ax.set_aspect("equal")
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=8, loc="best")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # beside the plot: it hid cameras inside
     import io
 
     buf = io.BytesIO()
@@ -198,8 +202,10 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     with run_lock(out, "select-views"):  # (it makes the folder, or says why it cannot)
         sel.write(out / Selection.FILE_NAME)
         up = -torch.linalg.inv(scene.cameras[train].cam_from_world.double())[:, :3, 1].mean(0)
+        held = list(scene.split.get("test", ()))
         _plot(out / "selection.png", scene.cameras[train].centers, centres, chosen, up,
-              f"{run_dir.name}: {cfg.score} chose {', '.join(p.name for p in picked)}")
+              f"{run_dir.name}: {cfg.score} chose {', '.join(p.name for p in picked)}",
+              held=scene.cameras[held].centers if held else None)
     gaps = cfg.score == "fisher" and cfg.gaps > 0
     for p in picked:
         when = f"{p.score_when_chosen:.6g}" if p.score_when_chosen is not None else "-"
