@@ -6,6 +6,7 @@ without a traceback (``--debug`` shows it).
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import sys
@@ -27,7 +28,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 
-_STATE = {"debug": False}
+_STATE = {"debug": False, "process": False}  # process: the command is the whole process (entrypoint)
 
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto (CUDA if available), cpu or cuda.")]
 SetOpt = Annotated[
@@ -71,6 +72,17 @@ def _d(model: str, field: str, extra: str = "") -> str:
     return f"\\[default: {getattr(configs, model).model_fields[field].default}{extra}]"
 
 
+def _ignore_further_interrupts() -> None:
+    """After a Ctrl-C has been handled (what was kept is said, the command exits): a second one, pressed while the
+    interpreter shuts down, printed torch's atexit traceback over the message. The work is saved by then."""
+    import signal
+
+    if not (_STATE["process"] or Path(sys.argv[0]).name == "uncertsplat"):  # (the console script's process)
+        return  # called from Python (a test, a notebook): its Ctrl-C stays its own
+    with contextlib.suppress(ValueError):  # (not the main thread: nothing to change)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _handle_errors(fn):
     """Turn UserError into a one-paragraph message and exit code 2; Ctrl-C (and an Interrupted error: the work
     stopped on a signal, what was done kept) into exit code 130."""
@@ -84,9 +96,12 @@ def _handle_errors(fn):
                 raise
             # the message as plain text: a path or value in it must not be read as markup or an emoji code
             label = ("interrupted:", "bold yellow") if isinstance(err, Interrupted) else ("error:", "bold red")
+            if isinstance(err, Interrupted):
+                _ignore_further_interrupts()
             console.print(Text.assemble(label, " ", err.render()), soft_wrap=True)
             raise typer.Exit(130 if isinstance(err, Interrupted) else 2) from None
         except KeyboardInterrupt:
+            _ignore_further_interrupts()
             # (train, sweep and reconstruct say what they kept themselves, as an Interrupted error)
             said = _INTERRUPTED.get(fn.__name__)
             console.print(Text.assemble(("interrupted", "yellow"), f": {said}" if said else ""), soft_wrap=True)
@@ -467,6 +482,7 @@ def run_pipeline(
 
 
 def entrypoint():  # pragma: no cover
+    _STATE["process"] = True
     sys.exit(app())
 
 

@@ -191,11 +191,14 @@ def test_view_addresses_are_checked_at_once_with_the_command_s_own_option(tmp_pa
 @pytest.mark.parametrize(("command", "words"), [("evaluate", "this evaluation has no metrics.json"),
                                                 ("prune", "nothing was written"),
                                                 ("run_pipeline", "the stages that finished are kept")])
-def test_ctrl_c_says_what_was_kept(command, words, capsys):
+def test_ctrl_c_says_what_was_kept(command, words, capsys, monkeypatch):
     """Ctrl-C in a command that does not say it itself: what it kept and what to run (it printed 'interrupted')."""
     import typer
 
+    from uncertsplat import cli
     from uncertsplat.cli import _handle_errors
+
+    monkeypatch.setitem(cli._STATE, "process", True)  # as `uncertsplat` itself runs
 
     def stop():
         raise KeyboardInterrupt
@@ -204,6 +207,11 @@ def test_ctrl_c_says_what_was_kept(command, words, capsys):
     with pytest.raises(typer.Exit) as exit_:
         _handle_errors(stop)()
     assert exit_.value.exit_code == 130
+    import signal
+
+    # a second Ctrl-C while the interpreter shuts down is ignored (it printed torch's atexit traceback)
+    assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     said = capsys.readouterr()
     out = " ".join((said.out + said.err).split())
     assert out.startswith("interrupted: ") and words in out
