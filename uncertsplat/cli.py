@@ -157,7 +157,8 @@ def _config_file(path: Path) -> dict:
                         hint=f"Run it with `uncertsplat run {path}`, or copy the keys of one stage's `config = {{...}}` "
                              "into a file of their own for --config.")
     for key in _PATH_KEYS:  # a relative path in the file is read from the file's folder, as a pipeline's photos are
-        if isinstance(data.get(key), str) and data[key] and not Path(data[key]).expanduser().is_absolute():
+        if isinstance(data.get(key), str) and data[key] and not data[key].startswith("~") \
+                and not Path(data[key]).is_absolute():
             data[key] = str(Path(path).resolve().parent / data[key])
     return data
 

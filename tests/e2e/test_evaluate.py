@@ -895,9 +895,25 @@ def test_views_the_model_leaves_empty_are_named():
 
     sampler = SimpleNamespace(det_sample="rep", render_fn=render)
     train = cams([1.0, 1.0, 1.0, 2.0], [f"t{i}" for i in range(4)])  # 10-20 % empty: a background
-    views = SimpleNamespace(names=["near", "far"], cameras=cams([1.0, 5.0], ["near", "far"]))
+    views = SimpleNamespace(names=["near", "mid", "far"], cameras=cams([1.0, 2.0, 5.0], ["near", "mid", "far"]))
     (note,) = _empty_view_notes(sampler, views, train, torch.device("cpu"))
-    assert note.startswith("1 of 2 views show parts the model holds no surface for") and "far 50 %" in note
-    assert "training views 10 %" in note and "near" not in note.split(":", 1)[1]
+    assert note.startswith("1 of 3 views show parts the model holds no surface for") and "far 50 %" in note
+    # against the most a training view leaves empty (20 %): "mid" at 20 % is within the training views' own spread
+    assert "training views at most 20 %" in note and "near" not in note.split(":", 1)[1] and "mid" not in note
     assert _empty_view_notes(sampler, SimpleNamespace(names=["near"], cameras=cams([1.0], ["near"])), train,
                              torch.device("cpu")) == []
+
+
+def test_the_empty_view_note_is_asked_only_where_it_means_something(tiny_run_path, tmp_path, monkeypatch):
+    """Held-out views with the empty-ray term on: asked; the training views, or the term off (a transparent scene
+    has none: its empty rays are the photos' background): not asked."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    asked = []
+    monkeypatch.setattr(evaluate, "_empty_view_notes", lambda *a: asked.append(1) or [])
+    quick = dict(num_samples=2, max_views=1, save_maps=False, reuse=False, calibration_views=0)
+    evaluate.run(run, EvalConfig(**quick), device=torch.device("cpu"))
+    assert asked == [1]
+    evaluate.run(run, EvalConfig(**quick, empty_rays=False), device=torch.device("cpu"))
+    evaluate.run(run, EvalConfig(**quick, split="train"), device=torch.device("cpu"))
+    assert asked == [1]

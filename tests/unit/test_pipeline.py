@@ -331,17 +331,3 @@ def test_a_pipeline_that_would_do_nothing_says_so(tmp_path, calls, capsys):
     q.write_text('[[stages]]\nstage = "synth"\nconfig = { preset = "tiny" }\n[[stages]]\nstage = "reconstruct"\n')
     pl.load_pipeline(q, [f"photos={tmp_path}"])
     assert "--set photos is not used: no reconstruct stage of q.toml" in " ".join(capsys.readouterr().err.split())
-
-
-def test_a_relative_depth_gt_in_a_stage_config_is_read_from_the_file_s_folder(tmp_path, monkeypatch):
-    """As `photos` and `input`: the file's value from the file's folder (it was the current folder's), a --set's from
-    the current folder."""
-    (tmp_path / "sub").mkdir()
-    p = tmp_path / "sub" / "p.toml"
-    p.write_text('[[stages]]\nstage = "synth"\nconfig = { preset = "tiny" }\n[[stages]]\nstage = "train"\n'
-                 'preset = "tiny"\n[[stages]]\nstage = "evaluate"\nconfig = { depth_gt = "../gt" }\n')
-    monkeypatch.chdir("/")
-    cfg = pl.load_pipeline(p)
-    assert cfg.stages[2].config["depth_gt"] == str(tmp_path / "sub" / ".." / "gt")
-    cfg = pl.load_pipeline(p, ["evaluate.depth_gt=rel/gt"])
-    assert cfg.stages[2].config["depth_gt"] == "rel/gt"

@@ -48,13 +48,6 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
     """
     data = load_toml(path)
     base = Path(path).resolve().parent
-    for stage in data.get("stages", []) if isinstance(data.get("stages"), list) else []:
-        config = stage.get("config") if isinstance(stage, dict) else None
-        # a relative path in a stage's config (evaluate's depth_gt) is read from the file's folder, as `photos` and
-        # `input` are; one given by --set below stays the current folder's
-        if isinstance(config, dict) and isinstance(config.get("depth_gt"), str) and config["depth_gt"] \
-                and not Path(config["depth_gt"]).expanduser().is_absolute():
-            config["depth_gt"] = str(base / config["depth_gt"])
     photos_given = False
     for text in overrides or []:
         parsed = parse_override(text)
