@@ -212,3 +212,27 @@ def test_the_brightness_warning_leads_with_the_caveat_on_a_short_run():
     (full,) = exposure_warnings(gains, learned=False, steps=SHORT_RUN_STEPS)
     assert full.startswith("the training photos differ in brightness (relative gains 0.55-1.00 on 4 of them)")
     assert exposure_warnings(gains, learned=True, steps=300) == []
+
+
+def test_photo_gains_leave_out_the_views_added_late():
+    """A view added in a gap with --add-views is fitted poorly whatever its exposure: the exposure check reads the
+    views the run started with (one added view raised the brightness warning on photos of one exposure)."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from uncertsplat.train.trainer import Trainer
+
+    seen = []
+    rgb = torch.linspace(0.1, 0.6, 48).reshape(4, 4, 3)  # (a flat render has no gain to fit)
+
+    def render(g, cam):
+        seen.append(cam)
+        return SimpleNamespace(rgb=rgb[None])
+
+    fake = SimpleNamespace(mean_sample=lambda: None, render=render, train_cams=list(range(5)),
+                           photos=lambda idx: [rgb * (1.5 if idx[0] == 3 else 1.0)], train_idx=list(range(5)))
+    gains = Trainer.photo_gains(fake, skip=[3])
+    assert seen == [0, 1, 2, 4] and all(abs(g - 1.0) < 1e-6 for g in gains)
+    seen.clear()
+    assert max(Trainer.photo_gains(fake)) > 1.4 and 3 in seen  # the same photo counted when not skipped

@@ -458,7 +458,11 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         if warnings and trainer.step < SHORT_RUN_STEPS:  # it judges a fitted model
             warnings = [f"{w} (after only {trainer.step} steps the model may not fit its photos yet: judge this on "
                         "a full run)" for w in warnings]
-        warnings += exposure_warnings(trainer.photo_gains(), trainer.exposure is not None, trainer.step)
+        # the views added during the run are left out: one added in a gap is fitted poorly whatever its exposure (a
+        # view added there raised the warning on photos of one exposure)
+        late = {n for added in views_added for n in added.names}
+        skip = [k for k, i in enumerate(data.split["train"]) if names and names[i] in late]
+        warnings += exposure_warnings(trainer.photo_gains(skip=skip), trainer.exposure is not None, trainer.step)
         # what loading changed of the photos (turned, cropped, left out) goes into the summary, so the report shows it
         recorded = warnings + [f"scene: {note}" for note in data.notes]
         summary = TrainSummary(**trainer.summary(), test_psnr=held.get("psnr"), test_ssim=held.get("ssim"),

@@ -19,7 +19,7 @@ import resource
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import torch
@@ -490,13 +490,15 @@ class Trainer:
         return check
 
     @torch.no_grad()
-    def photo_gains(self, max_views: int = 8) -> list[float]:
+    def photo_gains(self, max_views: int = 8, skip: Sequence[int] = ()) -> list[float]:
         """The gain of each of at most ``max_views`` evenly spaced training photos (at the model's exposure: after
         the learned exposures with ``exposure = "affine"``) relative to the deterministic render
-        (``render.exposure.fitted_gain``): all near 1 when the photos share one exposure."""
+        (``render.exposure.fitted_gain``): all near 1 when the photos share one exposure. ``skip``: positions in the
+        training views left out (views added late, which the model has not fitted yet whatever their exposure)."""
         g = self.mean_sample()
-        return [fitted_gain(self.render(g, self.train_cams[i]).rgb[0], self.photos([i])[0])
-                for i in check_views(len(self.train_idx), max_views)]
+        kept = [i for i in range(len(self.train_idx)) if i not in set(skip)]
+        return [fitted_gain(self.render(g, self.train_cams[kept[k]]).rgb[0], self.photos([kept[k]])[0])
+                for k in check_views(len(kept), max_views)]
 
     @torch.no_grad()
     def training_psnr(self, max_views: int = 8) -> float | None:
