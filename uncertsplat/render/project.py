@@ -51,6 +51,14 @@ def project_points(points: Tensor, cam_from_world: Tensor, K: Tensor) -> tuple[T
     return uv.reshape(*lead, *shape, 2), z.reshape(*lead, *shape)
 
 
+def points_in_view(points: Tensor, cameras) -> Tensor:
+    """[C,N] bool: which of ``points`` [N,3] (world) each of the C ``cameras`` (``types.Cameras``) has in front of it
+    and inside its image, in float64 on the CPU (``project_points``)."""
+    uv, z = project_points(points.detach().double().cpu(), cameras.cam_from_world.cpu(), cameras.K.cpu())  # [C,N,2]
+    return (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < cameras.width) & (uv[..., 1] >= 0) & \
+        (uv[..., 1] < cameras.height)
+
+
 class Projection(NamedTuple):
     means2d: Tensor  # [C,N,2] pixels (centres at +0.5)
     conics: Tensor  # [C,N,3] inverse 2D covariance (a, b, c): power = -0.5 (a dx^2 + 2 b dx dy + c dy^2)

@@ -26,6 +26,7 @@ from torch import Tensor
 from uncertsplat.data.synthetic import look_at
 from uncertsplat.errors import UserError
 from uncertsplat.gaussians.ops import quat_to_rotmat, rotmat_to_quat
+from uncertsplat.render.project import points_in_view
 from uncertsplat.types import Cameras, SceneData
 
 DEFAULT_AROUND = 32
@@ -158,19 +159,12 @@ def pose_line(name: str, cam_from_world: Tensor, world_from_source: Tensor) -> s
 def seen_fraction(cameras: Cameras, points: Tensor) -> Tensor:
     """[C] the fraction of ``points`` [N,3] (world) in front of each camera and inside its image: a candidate pose
     that sees almost none of the model is most likely given in another convention (camera-to-world, x y z w)."""
-    pts = points.to(cameras.cam_from_world).double()
-    out = []
-    for j in range(len(cameras)):
-        cfw = cameras.cam_from_world[j].double()
-        cam = pts @ cfw[:3, :3].T + cfw[:3, 3]  # [N,3]
-        K = cameras.K[j].double()
-        z = cam[:, 2]
-        front = z > 1e-6
-        u = K[0, 0] * cam[:, 0] / z.clamp_min(1e-6) + K[0, 2]
-        v = K[1, 1] * cam[:, 1] / z.clamp_min(1e-6) + K[1, 2]
-        inside = front & (u >= 0) & (u < cameras.width) & (v >= 0) & (v < cameras.height)
-        out.append(inside.double().mean() if len(pts) else torch.zeros((), dtype=torch.float64))
-    return torch.stack(out).float() if out else torch.zeros(0)
+    if not len(cameras):
+        return torch.zeros(0)
+    if not len(points):
+        return torch.zeros(len(cameras))
+    # one camera at a time: [C,N] float64 projections of a large model for many candidates would not fit
+    return torch.cat([points_in_view(points, cameras[[j]]).double().mean(1) for j in range(len(cameras))]).float()
 
 
 def blind_candidates_note(candidates: Cameras, train: Cameras, points: Tensor) -> str | None:

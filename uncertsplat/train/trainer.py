@@ -46,7 +46,7 @@ from uncertsplat.gaussians.variational import (
 from uncertsplat.io.images import area_resize
 from uncertsplat.render import near_plane, render
 from uncertsplat.render.exposure import centred, expose, exposure_record, fitted_gain, unexpose
-from uncertsplat.render.project import project_points
+from uncertsplat.render.project import points_in_view
 from uncertsplat.schemas.runs import RunExposure
 from uncertsplat.strategy.budget import gaussian_budget
 from uncertsplat.strategy.densify import Densifier, DensifyStats
@@ -107,10 +107,7 @@ def few_points_notes(points: Tensor, cameras: Cameras, init_num_random: int) -> 
     n = points.shape[0]
     if n >= FEW_POINTS:
         return []
-    uv, z = project_points(points.double().cpu(), cameras.cam_from_world.cpu(), cameras.K.cpu())  # [C,N,2], [C,N]
-    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < cameras.width) & (uv[..., 1] >= 0) & \
-        (uv[..., 1] < cameras.height)
-    seen = inside.any(0)  # [N]
+    seen = points_in_view(points, cameras).any(0)  # [N]
     more = "; --set init_num_random=10000 adds random points to grow from" if init_num_random == 0 else ""
     return [f"the model starts from only {n} point(s), {int(seen.sum())} of them in view of a training camera: it "
             f"grows slowly from so few{more}"]
