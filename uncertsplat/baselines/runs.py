@@ -222,12 +222,7 @@ class LoadedRun:
         Raises:
             UserError: the run records no scene, or the scene folder is gone.
         """
-        from uncertsplat.sfm.scene import (
-            CAMERAS_CHANGED_HINT,
-            camera_changes,
-            load_scene,
-            with_training_views,
-        )
+        from uncertsplat.sfm.scene import load_scene, require_same_cameras, with_training_views
 
         if self.scene_path is None:
             raise UserError("the run does not record its scene (scene.json is missing)", path=self.run_dir,
@@ -244,12 +239,9 @@ class LoadedRun:
         info = RunScene.read_optional(self.run_dir / RunScene.FILE_NAME)
         if info is None:
             return data
-        changed = camera_changes(info.cameras, data.cameras, data.extent)
-        if changed:  # its renders would not line up with the photos: every score would measure the misalignment
-            raise UserError(f"the scene's cameras have changed since this run was trained: {changed}; the model "
-                            "lines up with the cameras it was trained with, so its renders and scores against these "
-                            "would be wrong", path=self.scene_path,
-                            hint=CAMERAS_CHANGED_HINT.format(run=self.run_dir, scene=self.scene_path))
+        # its renders would not line up with the photos: every score would measure the misalignment
+        require_same_cameras(info.cameras, data, Path(self.scene_path),
+                             "its renders and scores against these would be wrong")
         # measured against the views it trained on (a later version's split rules may differ: pose twins)
         return with_training_views(data, info.train)
 

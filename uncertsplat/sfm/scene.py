@@ -602,19 +602,23 @@ def camera_records(cameras: Cameras, names: Sequence[str]) -> dict[str, list[flo
     sel = [index[n] for n in names if n in index]
     if not sel:
         return {}
-    cfw = cameras.cam_from_world[sel].double().cpu()  # [V,4,4]
-    R, t = cfw[:, :3, :3], cfw[:, :3, 3]
-    centre = -(R.transpose(1, 2) @ t[..., None])[..., 0]  # [V,3]
-    K = cameras.K[sel].double().cpu()
-    rows = torch.cat([centre, R[:, 0], R[:, 2]], dim=1).numpy().round(7)  # [V,9]
+    views = cameras[sel].to(device="cpu", dtype=torch.float64)
+    R, K = views.cam_from_world[:, :3, :3], views.K  # [V,3,3]
+    rows = torch.cat([views.centers, R[:, 0], R[:, 2]], dim=1).numpy().round(7)  # [V,9]
     intr = torch.stack([K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2]], dim=1).numpy().round(4)  # [V,4]
     return {cameras.image_names[i]: [*map(float, r), *map(float, k)] for i, r, k in zip(sel, rows, intr, strict=True)}
 
 
-CAMERAS_CHANGED_HINT = ("The scene folder was reconstructed again or its cameras edited after training (e.g. "
-                        "`reconstruct --overwrite` into the same workspace): restore the workspace the run was trained "
-                        "on, or train a new run on this one (uncertsplat train {scene} -o NEW_RUN).")
-"""Hint of the error for a run whose scene's cameras changed (``camera_changes``): {run}, {scene} filled in."""
+def require_same_cameras(recorded: dict[str, list[float]], data: SceneData, scene: Path, why: str) -> None:
+    """Refuse a run's scene whose cameras changed since training (``camera_changes`` of its recorded cameras against
+    ``data`` as loaded from ``scene``); ``why``: what the change would spoil for the command at hand."""
+    changed = camera_changes(recorded, data.cameras, data.extent)
+    if changed:
+        raise UserError(f"the scene's cameras have changed since this run was trained: {changed}; the model lines up "
+                        f"with the cameras it was trained with, so {why}", path=scene,
+                        hint="The scene folder was reconstructed again or its cameras edited after training (e.g. "
+                             "`reconstruct --overwrite` into the same workspace): restore the workspace the run was "
+                             f"trained on, or train a new run on this one (uncertsplat train {scene} -o NEW_RUN).")
 
 
 def camera_changes(recorded: dict[str, list[float]], cameras: Cameras, extent: float) -> str | None:

@@ -139,15 +139,12 @@ def _close_names(unknown: list[str], scene: Path, cfg: TrainConfig) -> str:
 def _record_moved_scene(run_dir: Path, scene: Path, cfg: TrainConfig) -> None:
     """``scene.json`` of the finished run ``run_dir`` pointed at ``scene``, the folder its scene moved to, after the
     checks a resume makes (``_check_same_scene``: its images; ``camera_changes``: its cameras)."""
-    from uncertsplat.sfm.scene import CAMERAS_CHANGED_HINT, camera_changes, load_scene
+    from uncertsplat.sfm.scene import load_scene, require_same_cameras
 
     before = RunScene.read(run_dir / RunScene.FILE_NAME)
     data = load_scene(scene, cfg.scene, initial_points=False)
     _check_same_scene(before, scene, data.cameras.image_names, run_dir)
-    changed = camera_changes(before.cameras, data.cameras, data.extent)
-    if changed:
-        raise UserError(f"the scene's cameras have changed since this run was trained: {changed}", path=scene,
-                        hint=CAMERAS_CHANGED_HINT.format(run=run_dir, scene=scene))
+    require_same_cameras(before.cameras, data, scene, "its renders against these would be wrong")
     before.scene = str(scene.resolve())
     before.write(run_dir / RunScene.FILE_NAME)
 
@@ -244,13 +241,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     from uncertsplat.data.dataset import load_images
     from uncertsplat.io.checkpoints import load_latest
     from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
-    from uncertsplat.sfm.scene import (
-        CAMERAS_CHANGED_HINT,
-        camera_changes,
-        camera_records,
-        load_scene,
-        with_training_views,
-    )
+    from uncertsplat.sfm.scene import camera_records, load_scene, require_same_cameras, with_training_views
     from uncertsplat.strategy.schedule import densify_steps_after
     from uncertsplat.train.trainer import Trainer, TrainingInterrupted, log_line
 
@@ -369,11 +360,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         before = RunScene.read_optional(run_dir / RunScene.FILE_NAME) if resume else None
         if before is not None:
             _check_same_scene(before, scene, names, run_dir)
-            changed = camera_changes(before.cameras, data.cameras, data.extent)
-            if changed:
-                raise UserError(f"the scene's cameras have changed since this run was trained: {changed}; the model "
-                                "lines up with the cameras it was trained with, so training on would spoil it",
-                                path=scene, hint=CAMERAS_CHANGED_HINT.format(run=run_dir, scene=scene))
+            require_same_cameras(before.cameras, data, scene, "training on would spoil it")
             if not add_views:
                 # the scene's split rules may have changed since the run began (a held-out view's twin now leaves
                 # training): the run goes on with the views it trained on, which its checkpoint's view order indexes
