@@ -400,8 +400,6 @@ def shadowed_settings(spec: SweepSpec) -> list[str]:
     replaces it, as "evaluate.num_samples = 3 (the knob `num_samples`)". They had no effect,
     and the sweep recorded the spec's value as if used. A knob left unset in ``[default]``, the informed posterior's
     one table entry, a point without offset tables: the spec's value is used there, and nothing is named."""
-    import copy
-
     def pop(table: dict, dotted: str):
         *parents, last = dotted.split(".")
         node: Any = table
@@ -420,12 +418,10 @@ def shadowed_settings(spec: SweepSpec) -> list[str]:
     places = [(None, "")] + [(name, f"scenes.{name}.") for name in spec.scenes]
     for knob, (where, dotted) in _KNOB_KEYS.items():
         for scene, prefix in places:
-            data = spec.model_dump()
-            holder = data if scene is None else data["scenes"][scene]
-            given = pop(copy.deepcopy(holder[where]), dotted)
+            data = spec.model_dump()  # (a fresh copy: the key is taken out of it)
+            given = pop((data if scene is None else data["scenes"][scene])[where], dotted)
             if given is None or given == getattr(spec.on_scene(scene).default, knob):
                 continue  # (the knob's own value given again: nothing lost)
-            pop(holder[where], dotted)
             base = resolved(spec) if base is None else base
             if resolved(type(spec).model_validate(data)) == base:
                 out.append(f"{prefix}{where}.{dotted} = {given} (the knob `{knob}`)")
