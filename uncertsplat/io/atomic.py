@@ -182,6 +182,22 @@ def lock_holder(folder: str | Path) -> str | None:
     return None
 
 
+def check_output_folder(folder: str | Path) -> None:
+    """Refuse an output folder that is a file, or lies under one (a command says so before its work, and
+    ``run_lock`` before it makes the folder).
+
+    Raises:
+        UserError: naming the file.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise UserError("the output path is a file, not a folder", path=folder, hint="Choose another output folder (-o).")
+    file = next((p for p in folder.parents if p.exists() and not p.is_dir()), None)
+    if file is not None:
+        raise UserError(f"cannot create the folder: {file} is a file, not a folder", path=folder,
+                        hint="Choose another output folder (-o).")
+
+
 @contextlib.contextmanager
 def run_lock(folder: str | Path, command: str = "uncertsplat") -> Iterator[Path]:
     """Hold ``folder/.lock`` (holding our PID) for the duration; refuse when a live process holds it.
@@ -194,16 +210,10 @@ def run_lock(folder: str | Path, command: str = "uncertsplat") -> Iterator[Path]
 
     folder = Path(folder)
     created = not folder.exists()
+    check_output_folder(folder)
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
-        if folder.exists() and not folder.is_dir():
-            raise UserError("the output path is a file, not a folder", path=folder,
-                            hint="Choose another output folder (-o).") from None
-        file = next((p for p in folder.parents if p.exists() and not p.is_dir()), None)
-        if file is not None:
-            raise UserError(f"cannot create the folder: {file} is a file, not a folder", path=folder,
-                            hint="Choose another output folder (-o).") from None
         raise UserError(f"cannot create the folder ({err.strerror})", path=folder,
                         hint="Choose an output folder you can write to.") from None
     lock = folder / ".lock"

@@ -20,7 +20,7 @@ from pathlib import Path
 from uncertsplat.config import ReconstructConfig
 from uncertsplat.console import console, list_names, progress
 from uncertsplat.errors import Interrupted, UserError
-from uncertsplat.io.atomic import run_lock
+from uncertsplat.io.atomic import check_output_folder, run_lock
 from uncertsplat.sfm import reconstruct as sfm
 from uncertsplat.sfm.report import (
     REPORT_NAME,
@@ -59,8 +59,7 @@ def _check_output_path(photos: Path, workspace: Path) -> None:
     if photos_abs in ws_abs.parents:
         raise UserError("the output folder is inside the photo folder", path=workspace,
                         hint="Choose an output folder outside the photo folder.")
-    if workspace.exists() and not workspace.is_dir():
-        raise UserError("the output path is a file, not a folder", path=workspace, hint="Choose another output path.")
+    check_output_folder(workspace)
 
 
 def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fingerprints: tuple[str, ...]

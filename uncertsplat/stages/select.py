@@ -80,7 +80,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     from uncertsplat.baselines import load_run
     from uncertsplat.baselines.fisher import prior_stds
     from uncertsplat.data.dataset import load_images
-    from uncertsplat.io.atomic import run_lock
+    from uncertsplat.io.atomic import check_output_folder, run_lock
     from uncertsplat.io.images import resize_image
     from uncertsplat.schemas import RunScene, Selection
     from uncertsplat.schemas.select import CandidateScore, ChosenView
@@ -100,8 +100,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     if not run_dir.is_dir():
         raise run_folder_missing(run_dir)
     out = Path(output) if output is not None else run_dir / "select"
-    if out.exists() and not out.is_dir():  # before the scoring's minutes (run_lock says it again at the end)
-        raise UserError("the output path is a file, not a folder", path=out, hint="Choose another output folder (-o).")
+    check_output_folder(out)  # before the scoring's minutes (run_lock checks again at the end)
     loaded = load_run(run_dir, device)
     loaded.warn_if_unfinished()
     scene = loaded.load_scene()
