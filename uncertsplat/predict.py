@@ -100,7 +100,6 @@ class Predictor:
         from uncertsplat.config import EvalConfig
         from uncertsplat.device import resolve_device
 
-
         device = resolve_device(device)
         cfg = cfg if cfg is not None else EvalConfig()
         with native.single_threaded_torch(device):  # as evaluate runs (its sums, so its maps, to the last bit)

@@ -99,7 +99,7 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
             r.notes.append(f"its eval/metrics.json scored an earlier state of the run (the model, config or scene "
                            f"changed since, e.g. by `train --resume`), so the metrics shown are that model's: run "
                            f"`uncertsplat evaluate {r.path}` again, then this report")
-    had_report = (out / INDEX).is_file() or (out.is_dir() and any(out.iterdir()))  # (an unfinished one's figures)
+    had_report = out.is_dir() and any(out.iterdir())  # (_check_output let it through: a report, or an unfinished one's figures)
 
     text, figures = build_report(loaded, out, cfg.title, cfg.max_views, atomic_write_bytes)
     if had_report:

@@ -122,7 +122,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                       "calibration, so `train --resume --add-views` refuses to add the chosen views (more training "
                       "views would change which ones are set aside): train a new run on its views and the chosen "
                       "ones (--set scene.train_names=[...]) to use them")
-    settings: dict = {**cfg.model_dump(mode="json")}  # the resolved settings, then what the score used
+    settings: dict = cfg.model_dump(mode="json")  # the resolved settings (K, probes, gaps, ...), then what the score used
     depth_std = None
     t0 = time.perf_counter()
     centres = cands.cameras.centers
@@ -153,7 +153,6 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                               "leaves uncovered; --score fisher or coverage rank by more")
             first, depth_std = variance_scores(sampler.sample_fn, sampler.render_fn, low, cfg.num_samples, cfg.seed,
                                                empty_std=sampler.empty_std, coverage=sampler.coverage)
-            settings["num_samples"] = cfg.num_samples
         chosen = rank_order(first)[:n]
         at = [float(first[j]) for j in chosen]
         settings.update(width=low.width, height=low.height)
@@ -174,8 +173,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                 names=fcfg.params, prior_std=prior_stds(fcfg, loaded.extent), sh_degree=loaded.sh_degree,
                 probes=cfg.probes, seed=cfg.seed, n=n, information=cfg.information,
                 eligible=gap_eligible(centres, scene.cameras[train].centers, cfg.gaps) if cfg.gaps > 0 else None)
-        settings.update(width=low.width, height=low.height, probes=cfg.probes, noise_std=noise,
-                        information=cfg.information, params=list(fcfg.params), gaps=cfg.gaps)
+        settings.update(width=low.width, height=low.height, noise_std=noise, params=list(fcfg.params))
         if loaded.config.method == "ensemble":
             settings["note"] = "ensemble: the Fisher of member 0's Gaussians"
     seconds = time.perf_counter() - t0

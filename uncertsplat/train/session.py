@@ -130,9 +130,10 @@ def _close_names(unknown: list[str], scene: Path, cfg: TrainConfig) -> str:
     found = []
     for name in unknown:
         key = Path(name).name.casefold()
-        match = by_key.get(key) or next(iter(difflib.get_close_matches(key, list(by_key), n=1, cutoff=0.8)), None)
+        match = key if key in by_key else next(iter(difflib.get_close_matches(key, list(by_key), n=1, cutoff=0.8)),
+                                               None)
         if match is not None:
-            found.append(by_key[match] if match in by_key else match)
+            found.append(by_key[match])
     return f" (did you mean {', '.join(found)}?)" if found else ""
 
 
@@ -311,10 +312,10 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 # the new views' surfaces get no Gaussians of their own: existing ones move and change colour only
                 console.print(f"[yellow]note:[/] no densification step is left after the checkpoint's step "
                               f"{int(found[1]['step'])} (every {cfg.densify.interval} steps before densify.until = "
-                              f"{cfg.densify.until}, and the run ends at {cfg.iterations}): the added view(s) are fitted with the Gaussians the model has, "
-                              "none are grown for them, so what only they show stays poorly fitted; to grow for them, "
-                              "add views from an earlier checkpoint (a run of more steps, or one started with a later "
-                              "densify.until)")
+                              f"{cfg.densify.until}, and the run ends at {cfg.iterations}): the added view(s) are "
+                              "fitted with the Gaussians the model has, none are grown for them, so what only they "
+                              "show stays poorly fitted; to grow for them, add views from an earlier checkpoint (a run "
+                              "of more steps, or one started with a later densify.until)")
             finished = _summary_steps(run_dir) if (run_dir / "variational.ply").is_file() else None
             if found is None and finished:  # a finished model whose checkpoints were deleted (to save disk)
                 if extend_to is None or extend_to <= finished:

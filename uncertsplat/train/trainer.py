@@ -493,7 +493,8 @@ class Trainer:
         (``render.exposure.fitted_gain``): all near 1 when the photos share one exposure. ``skip``: positions in the
         training views left out (views added late, which the model has not fitted yet whatever their exposure)."""
         g = self.mean_sample()
-        kept = [i for i in range(len(self.train_idx)) if i not in set(skip)]
+        skip = set(skip)
+        kept = [i for i in range(len(self.train_idx)) if i not in skip]
         return [fitted_gain(self.render(g, self.train_cams[kept[k]]).rgb[0], self.photos([kept[k]])[0])
                 for k in check_views(len(kept), max_views)]
 
