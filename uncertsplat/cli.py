@@ -190,7 +190,7 @@ def _refuse_two_values(explicit: dict, overrides: list[str] | None) -> None:
 def _stage_config(model, config_file: Path | None, overrides: list[str] | None, explicit: dict):
     """config file < explicit command-line options < --set overrides (the same key from both, with two values, is
     refused: ``_refuse_two_values``)."""
-    from uncertsplat.config import build_config, deep_update, parse_override
+    from uncertsplat.config import KeyLines, build_config, deep_update, dotted_keys, parse_override
 
     _refuse_two_values(explicit, overrides)
     data = _config_file(config_file) if config_file else {}
@@ -203,7 +203,12 @@ def _stage_config(model, config_file: Path | None, overrides: list[str] | None, 
         data = deep_update(data, parsed)
     # a bad value from an option is named by the option (-n 0: "--num-views", not the config key "num_views")
     names = {k: "--" + k.replace("_", "-") for k in given if k not in set_keys}
-    return build_config(model, data, source=str(config_file) if config_file else "command line", names=names)
+    where = None
+    if config_file:  # a key the file wrote is named with its line; one an option or --set gave, without
+        replaced = dotted_keys(given).union(*(dotted_keys(parse_override(o)) for o in overrides or []))
+        where = KeyLines(config_file, replaced=replaced)
+    return build_config(model, data, source=str(config_file) if config_file else "command line", names=names,
+                        where=where)
 
 
 @app.command()

@@ -803,11 +803,154 @@ def _other_stage(model: type[BaseModel] | None, loc: tuple) -> str | None:
                 None)
 
 
+# ------------------------------------------------------------------------------------ where a key is written
+def _toml_key(text: str) -> tuple[list[str], str] | None:
+    """The dotted key at the start of ``text`` (bare or quoted parts) and what follows it; None when ``text`` does
+    not start with a key."""
+    parts: list[str] = []
+    i = 0
+    while True:
+        while i < len(text) and text[i] in " \t":
+            i += 1
+        if i < len(text) and text[i] in "\"'":
+            end = text.find(text[i], i + 1)
+            if end < 0:
+                return None
+            parts.append(text[i + 1:end])
+            i = end + 1
+        else:
+            m = re.match(r"[A-Za-z0-9_-]+", text[i:])
+            if m is None:
+                return None
+            parts.append(m.group())
+            i += m.end()
+        while i < len(text) and text[i] in " \t":
+            i += 1
+        if i < len(text) and text[i] == ".":
+            i += 1
+            continue
+        return parts, text[i:]
+
+
+def _toml_depth(text: str, depth: int, string: str | None) -> tuple[int, str | None]:
+    """``depth`` (open brackets and braces) and ``string`` (the delimiter of an open multi-line string) after
+    reading ``text``, one line of a value; comments and the contents of strings are skipped."""
+    i = 0
+    while i < len(text):
+        if string is not None:
+            end = text.find(string, i)
+            if end < 0:
+                return depth, string
+            i, string = end + len(string), None
+            continue
+        c = text[i]
+        if c == "#":
+            break
+        if text.startswith(('"""', "'''"), i):
+            string, i = text[i:i + 3], i + 3
+        elif c in "\"'":
+            end = i + 1
+            while end < len(text) and text[end] != c:
+                end += 2 if c == '"' and text[end] == "\\" else 1
+            i = end + 1
+        else:
+            depth += (c in "[{") - (c in "]}")
+            i += 1
+    return depth, string
+
+
+def toml_key_lines(text: str) -> dict[str, int]:
+    """The line (from 1) on which each key of a TOML document is written, by its dotted path; an entry of an array
+    of tables by its index (``stages.4.stage``). A key inside an inline table or a multi-line array is not listed:
+    it sits on its parent's line (``KeyLines.line`` looks the parent up). Lines it cannot read are skipped: this
+    only serves error messages, the file's values come from ``tomllib``."""
+    out: dict[str, int] = {}
+    table: list[str] = []
+    arrays: dict[tuple[str, ...], int] = {}  # each array of tables' last index
+
+    def indexed(path: list[str]) -> list[str]:  # a path through arrays of tables goes through their last entry
+        full: list[str] = []
+        for part in path:
+            full.append(part)
+            if tuple(full) in arrays:
+                full.append(str(arrays[tuple(full)]))
+        return full
+
+    depth, string = 0, None
+    for number, line in enumerate(text.splitlines(), start=1):
+        if depth or string is not None:  # inside a multi-line value
+            depth, string = _toml_depth(line, depth, string)
+            continue
+        stripped = line.strip()
+        header = re.match(r"(\[\[?)(.*?)(\]\]?)\s*(#.*)?$", stripped) if stripped.startswith("[") else None
+        if header is not None:
+            key = _toml_key(header.group(2))
+            if key is None or key[1].strip():
+                continue
+            if header.group(1) == "[[":
+                path = tuple(indexed(key[0][:-1]) + [key[0][-1]])
+                arrays[path] = arrays.get(path, -1) + 1
+                out.setdefault(".".join(path), number)
+                table = list(path) + [str(arrays[path])]
+            else:
+                table = indexed(key[0])
+            out.setdefault(".".join(table), number)
+            continue
+        key = _toml_key(stripped) if stripped and not stripped.startswith("#") else None
+        if key is None or not key[1].startswith("="):
+            continue
+        out[".".join(table + key[0])] = number
+        depth, string = _toml_depth(key[1][1:], 0, None)
+    return out
+
+
+class KeyLines:
+    """Where the keys of one validated table are written in a TOML file, for an error that gives the line.
+
+    Args:
+        path: the TOML file (read when an error asks for a line, not before).
+        prefix: where the table sits in the file (``stages.2.config``); "" for the whole file.
+        replaced: dotted keys (from the file's top) whose values came from elsewhere (``--set``, an option): an
+            error about one of them, or about a key below one, gets no line of the file.
+    """
+
+    def __init__(self, path: str | Path, prefix: str = "", replaced: set[str] | None = None):
+        self.path, self.prefix, self.replaced = Path(path), prefix, set(replaced or ())
+        self._lines: dict[str, int] | None = None
+
+    def line(self, key: str) -> int | None:
+        """The line of ``key`` (a dotted path below ``prefix``), or of the nearest table or key above it that the
+        file writes; None when the value came from elsewhere or the file cannot be read again."""
+        full = (self.prefix.split(".") if self.prefix else []) + key.split(".")
+        if any(".".join(full[:n]) in self.replaced for n in range(1, len(full) + 1)):
+            return None
+        if self._lines is None:
+            try:
+                self._lines = toml_key_lines(self.path.read_text(encoding="utf-8"))
+            except (OSError, UnicodeDecodeError):
+                self._lines = {}
+        for n in range(len(full), 0, -1):
+            if ".".join(full[:n]) in self._lines:
+                return self._lines[".".join(full[:n])]
+        return None
+
+
+def dotted_keys(data: dict, prefix: str = "") -> set[str]:
+    """The dotted path of every value in a nested dict (``{"a": {"b": 1}}`` -> ``{"a.b"}``)."""
+    out: set[str] = set()
+    for key, value in data.items():
+        path = f"{prefix}.{key}" if prefix else str(key)
+        out |= dotted_keys(value, path) if isinstance(value, dict) and value else {path}
+    return out
+
+
 def format_validation_error(err: ValidationError, source: str, model: type[BaseModel] | None = None,
-                            key_prefix: str = "", names: dict[str, str] | None = None) -> str:
+                            key_prefix: str = "", names: dict[str, str] | None = None,
+                            where: KeyLines | None = None) -> str:
     """One readable paragraph from a pydantic ValidationError; an unknown key gets the closest valid ones.
     ``key_prefix``: where the validated table sits in the file (e.g. "train" for a sweep spec's ``train`` keys).
-    ``names``: what to call a key instead (e.g. the command-line option that gave its value)."""
+    ``names``: what to call a key instead (e.g. the command-line option that gave its value). ``where``: the file's
+    lines, so that each key the file wrote is named with its line."""
     import difflib
     import re
 
@@ -818,7 +961,9 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
         # that the alternatives for one key read as one key's
         path = [p for p in e["loc"] if not (isinstance(p, str) and re.search(r"[\[\]'\-]", p))]
         loc = ".".join(str(p) for p in (key_prefix.split(".") if key_prefix else []) + path) or "(root)"
+        number = where.line(loc) if where is not None and path and loc not in (names or {}) else None
         loc = (names or {}).get(loc, loc)
+        label = f"{loc} (line {number})" if number is not None else loc
         msg = e["msg"].removeprefix("Value error, ")  # our validators' messages are sentences of their own
         msg = re.sub(r" or instance of \w+", "", msg)  # "a valid dictionary or instance of SweepScene"
         if e["type"] == "extra_forbidden":
@@ -839,22 +984,22 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
             if valid and not named and parent not in listed:
                 msg += f"; valid keys here: {', '.join(valid)}"
                 listed.add(parent)
-        same = next((i for i, line in enumerate(lines) if line.startswith(f"{loc}: ")), None)
+        same = next((i for i, line in enumerate(lines) if line.startswith(f"{label}: ")), None)
         if same is not None:  # another alternative of a union: one line for the key
             lines[same] += f", or {msg[0].lower()}{msg[1:]}"
         else:
-            lines.append(f"{loc}: {msg}")
+            lines.append(f"{label}: {msg}")
     return f"invalid configuration in {source}: " + "; ".join(lines)
 
 
 def build_config(model: type[_Base], data: dict, source: str = "config", key_prefix: str = "",
-                 names: dict[str, str] | None = None):
+                 names: dict[str, str] | None = None, where: KeyLines | None = None):
     """Validate ``data`` against ``model``; errors become a ``UserError`` naming each bad key (after
-    ``key_prefix``, where ``data`` sits in ``source``; ``names``: see ``format_validation_error``)."""
+    ``key_prefix``, where ``data`` sits in ``source``; ``names``, ``where``: see ``format_validation_error``)."""
     try:
         return model.model_validate(data)
     except ValidationError as err:
-        raise UserError(format_validation_error(err, source, model, key_prefix, names)) from None
+        raise UserError(format_validation_error(err, source, model, key_prefix, names, where)) from None
 
 
 def load_toml(path: str | Path) -> dict:
@@ -871,9 +1016,9 @@ def load_toml(path: str | Path) -> dict:
 
 
 def train_config_from(preset: str | None, data: dict | None = None, overrides: list[str] | None = None,
-                      source: str | None = None) -> TrainConfig:
+                      source: str | None = None, where: KeyLines | None = None) -> TrainConfig:
     """Resolve a TrainConfig: preset, then ``data`` (e.g. from TOML), then ``key=value`` overrides. ``source``:
-    what an error names (default "train config"), e.g. the TOML file ``data`` came from."""
+    what an error names (default "train config"), e.g. the TOML file ``data`` came from; ``where``: its lines."""
     merged: dict = {}
     if preset is not None:
         if preset not in TRAIN_PRESETS:
@@ -884,5 +1029,5 @@ def train_config_from(preset: str | None, data: dict | None = None, overrides: l
     for o in overrides or []:
         merged = deep_update(merged, parse_override(o))
     label = source or "train config"
-    return build_config(TrainConfig, merged, source=f"{label} (preset {preset})" if preset else label)
+    return build_config(TrainConfig, merged, source=f"{label} (preset {preset})" if preset else label, where=where)
 

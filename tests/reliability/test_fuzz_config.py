@@ -126,3 +126,14 @@ def test_cli_train_with_bad_overrides_exits_2_without_traceback(sets, tmp_path):
     assert res.exception is None or isinstance(res.exception, SystemExit), repr(res.exception)
     assert "Traceback" not in res.output
     assert not (tmp_path / "run").exists()  # nothing written for a refused command
+
+
+@FAST
+@given(text=st.text(alphabet=st.sampled_from(list("ab.=[]{}\"'#\n \t,1")), max_size=80))
+def test_the_line_finder_reads_any_text(text):
+    """The line finder runs in error paths only: on any text (not TOML, unbalanced brackets or quotes) it gives a
+    line within the text or none, never an exception that would hide the error it serves."""
+    from uncertsplat.config import toml_key_lines
+
+    lines = toml_key_lines(text)
+    assert all(1 <= n <= max(1, len(text.splitlines())) for n in lines.values())

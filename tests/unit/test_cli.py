@@ -59,6 +59,24 @@ def test_train_config_file_errors_name_the_file(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+def test_a_config_file_s_mistake_is_named_with_its_line(tmp_path):
+    """`--config FILE` errors give the line of each key the file wrote (train's and another command's); a key an
+    option or --set gave is named without a line of the file."""
+    cfg = tmp_path / "t.toml"
+    cfg.write_text("# settings\niterations = 0\n\n[densify]\nuntill = 5\n")
+    result = runner.invoke(app, ["train", str(tmp_path), "-o", str(tmp_path / "run"), "--config", str(cfg),
+                                 "--device", "cpu"])
+    out = " ".join(result.output.split())
+    assert result.exit_code == 2 and "iterations (line 2): Input should be" in out, result.output
+    assert "densify.untill (line 5): unknown key (did you mean densify.until?)" in out
+    cfg.write_text("num_samples = 0\nseed = 1\n")
+    result = runner.invoke(app, ["evaluate", str(tmp_path), "--config", str(cfg)])
+    assert "num_samples (line 1): Input should be" in " ".join(result.output.split()), result.output
+    result = runner.invoke(app, ["evaluate", str(tmp_path), "--config", str(cfg), "--set", "num_samples=-1"])
+    out = " ".join(result.output.split())
+    assert result.exit_code == 2 and "num_samples: Input should be" in out and "(line" not in out, result.output
+
+
 def test_depth_scale_that_is_neither_auto_nor_a_number(tmp_path):
     result = runner.invoke(app, ["evaluate", str(tmp_path), "--depth-scale", "foo", "--device", "cpu"])
     assert result.exit_code == 2 and "--depth-scale must be auto or a number, not 'foo'" in result.output

@@ -7,11 +7,13 @@ import pytest
 from uncertsplat.config import (
     STAGE_CONFIGS,
     EvalConfig,
+    KeyLines,
     PruneConfig,
     TrainConfig,
     build_config,
     load_toml,
     parse_override,
+    toml_key_lines,
     train_config_from,
 )
 from uncertsplat.errors import UserError
@@ -125,3 +127,57 @@ def test_a_list_of_bare_names_is_a_list():
     assert parse_override("name=001.png")["name"] == "001.png"
     cfg = build_config(SceneConfig, parse_override("train_names=[view_002.png,view_004.png]"))
     assert cfg.train_names == ["view_002.png", "view_004.png"]
+
+
+def test_each_key_s_line_in_a_toml_file(tmp_path):
+    """The line finder on a hand-built file: tables, arrays of tables (by index), dotted and quoted keys, comments,
+    a multi-line array and string whose contents look like keys, inline tables (their keys on the parent's line)."""
+    text = "\n".join([
+        'name = "x"   # a = 1',                     # 1
+        "[[stages]]",                                # 2
+        'stage = "train"',                           # 3
+        "config = { iterations = 5, densify = { until = 3 } }",  # 4
+        "[[stages]]  # the second",                  # 5
+        "stage = 'evaluate'",                        # 6
+        "[stages.config]",                           # 7
+        "num_samples = [",                           # 8
+        "  1, 2,  # seed = 3",                       # 9
+        "]",                                         # 10
+        'note = """',                                # 11
+        "seed = 4",                                  # 12
+        '"""',                                       # 13
+        'scene.downscale = 2.0',                     # 14
+        '"quoted key" . inner = 1',                  # 15
+        "[ densify ]",                               # 16
+        "until = 1",                                 # 17
+    ])
+    lines = toml_key_lines(text)
+    assert lines["name"] == 1 and lines["stages.0"] == 2 and lines["stages.0.stage"] == 3
+    assert lines["stages.0.config"] == 4 and "stages.0.config.iterations" not in lines
+    assert lines["stages.1.stage"] == 6 and lines["stages.1.config"] == 7 and lines["stages.1.config.num_samples"] == 8
+    assert "seed" not in str(sorted(lines)) and lines["stages.1.config.note"] == 11
+    assert lines["stages.1.config.scene.downscale"] == 14 and lines["stages.1.config.quoted key.inner"] == 15
+    assert lines["densify"] == 16 and lines["densify.until"] == 17 and "a" not in lines
+    # a key below one the file writes is found on its parent's line; a replaced key (--set) on none
+    (tmp := tmp_path / "p.toml").write_text(text)
+    where = KeyLines(tmp, prefix="stages.0.config")
+    assert where.line("densify.until") == 4 and where.line("iterations") == 4
+    assert KeyLines(tmp).line("densify.until") == 17 and KeyLines(tmp).line("nothing") is None
+    assert KeyLines(tmp, replaced={"densify"}).line("densify.until") is None
+    assert KeyLines(tmp.with_name("gone.toml")).line("name") is None  # the file gone: no line, no error
+    # a line of this finder's never names a key tomllib does not read the same way
+    import tomllib
+    data = tomllib.loads(text)
+    assert data["stages"][1]["config"]["num_samples"] == [1, 2] and data["densify"]["until"] == 1
+
+
+def test_validation_errors_give_the_line_of_the_key(tmp_path):
+    """Each key's line in the error, after the key; a key named by its option gets none."""
+    path = tmp_path / "t.toml"
+    path.write_text("iterations = 0\n[densify]\nuntill = 5\n")
+    with pytest.raises(UserError, match=r"iterations \(line 1\): Input should be .*; densify\.untill \(line 3\): "
+                                        r"unknown key \(did you mean densify\.until\?\)"):
+        build_config(TrainConfig, load_toml(path), source=str(path), where=KeyLines(path))
+    with pytest.raises(UserError, match=r"--iterations: Input should be"):
+        build_config(TrainConfig, {"iterations": 0}, source=str(path), names={"iterations": "--iterations"},
+                     where=KeyLines(path))

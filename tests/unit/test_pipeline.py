@@ -105,7 +105,7 @@ def test_a_synth_stage_preset_is_set_in_its_config(tmp_path, calls):
 
 def test_a_bad_set_value_is_named_with_the_file(tmp_path, calls):
     """A bad value given with --set is not blamed on the pipeline file alone: the error names the --set values that
-    went in; a file's own mistake is reported without them."""
+    went in (and no line of the file); a file's own mistake is reported without them, with its line."""
     p = _write(tmp_path)
     with pytest.raises(UserError, match=r"iterations: Input should be .* \(the file's values with --set "
                                         r"train.iterations=-3 evaluate.seed=1\)"):
@@ -114,7 +114,10 @@ def test_a_bad_set_value_is_named_with_the_file(tmp_path, calls):
                                                                  'config = { iterations = -3 }'))
     with pytest.raises(UserError) as err:
         pl.run(p, tmp_path / "out")
-    assert "iterations: Input should be" in err.value.message and "--set" not in err.value.message
+    assert "iterations (line 10): Input should be" in err.value.message and "--set" not in err.value.message
+    with pytest.raises(UserError) as err:  # the file's value replaced by --set: the line would name the wrong value
+        pl.run(p, tmp_path / "out", overrides=["train.iterations=-4"])
+    assert "iterations: Input should be" in err.value.message and "(line" not in err.value.message
 
 
 @pytest.mark.parametrize("name", ["demo.toml", "smoke.toml", "photos.toml"])
@@ -320,7 +323,7 @@ def test_a_pipeline_that_would_do_nothing_says_so(tmp_path, calls, capsys):
     them are named."""
     p = tmp_path / "p.toml"
     p.write_text("stages = []\n")
-    with pytest.raises(UserError, match="stages: List should have at least 1 item"):
+    with pytest.raises(UserError, match=r"stages \(line 1\): List should have at least 1 item"):
         pl.run(p, tmp_path / "out")
     capsys.readouterr()
     pl.run(_write(tmp_path), tmp_path / "out", overrides=[f"photos={tmp_path}"])

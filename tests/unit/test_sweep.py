@@ -226,28 +226,28 @@ def test_a_bad_set_value_is_named_with_the_spec(tmp_path):
 
 
 @pytest.mark.parametrize(("toml", "match"), [
-    ("[axes]\nnum_samples = [0, 2]\n", r"s\.toml: axes\.num_samples\.0: Input should be greater than or equal to 1"),
-    ('[axes]\nmethod = ["variational", "mcdropout"]\n', r"axes\.method\.1: unknown method 'mcdropout' \(methods: "),
-    ('[default]\nmethod = "mc"\n', r"default\.method: unknown method 'mc'"),
-    ('train = { iterations = "x" }\n', r"s\.toml \(preset tiny\): train\.iterations: Input should be a valid integer"),
-    ("train = { densify = { untill = 5 } }\n", r"train\.densify\.untill: unknown key \(did you mean train\.densify\.until\?\)"),
-    ("evaluate = { num_sample = 3 }\n", r"evaluate\.num_sample: unknown key \(did you mean evaluate\.num_samples\?\)"),
-    ('[scenes.a]\nsynth = {}\ntrain = { iteraton = 4 }\n', r"scenes\.a\.train\.iteraton: unknown key"),
-    ('evaluate = { num_samples = 0 }\n[scenes.a]\nsynth = {}\n', r"s\.toml: evaluate\.num_samples: Input should be"),
-    ('[scenes.a]\nsynth = {}\nevaluate = { num_samples = 0 }\n', r"s\.toml: scenes\.a\.evaluate\.num_samples: Input"),
-    ('scenes = "x"\n', r"s\.toml: scenes: Input should be a valid dictionary"),
+    ("[axes]\nnum_samples = [0, 2]\n", r"s\.toml: axes\.num_samples\.0 \(line 3\): Input should be greater than or equal to 1"),
+    ('[axes]\nmethod = ["variational", "mcdropout"]\n', r"axes\.method\.1 \(line 3\): unknown method 'mcdropout' \(methods: "),
+    ('[default]\nmethod = "mc"\n', r"default\.method \(line 3\): unknown method 'mc'"),
+    ('train = { iterations = "x" }\n', r"s\.toml \(preset tiny\): train\.iterations \(line 2\): Input should be a valid integer"),
+    ("train = { densify = { untill = 5 } }\n", r"train\.densify\.untill \(line 2\): unknown key \(did you mean train\.densify\.until\?\)"),
+    ("evaluate = { num_sample = 3 }\n", r"evaluate\.num_sample \(line 2\): unknown key \(did you mean evaluate\.num_samples\?\)"),
+    ('[scenes.a]\nsynth = {}\ntrain = { iteraton = 4 }\n', r"scenes\.a\.train\.iteraton \(line 4\): unknown key"),
+    ('evaluate = { num_samples = 0 }\n[scenes.a]\nsynth = {}\n', r"s\.toml: evaluate\.num_samples \(line 2\): Input should be"),
+    ('[scenes.a]\nsynth = {}\nevaluate = { num_samples = 0 }\n', r"s\.toml: scenes\.a\.evaluate\.num_samples \(line 4\): Input"),
+    ('scenes = "x"\n', r"s\.toml: scenes \(line 2\): Input should be a valid dictionary"),
     ('train_preset = "tny"\n', r"s\.toml: train_preset: unknown preset 'tny' \(presets: "),
     ("[scenes]\n", r"the spec's \[scenes\] table names no scene"),
     ('[scenes.a]\nsynth = {}\ndefault = { iteratons = 100 }\n', r"unknown knob\(s\) in `default`: iteratons \(did you mean iterations\?"),
     ('[scenes.a]\nsynth = {}\ntrain_preset = "tinyy"\n', r"s\.toml: scenes\.a\.train_preset: unknown preset 'tinyy'"),
-    ('[scenes.a]\nsynth = { preset = "tiny", sede = 3 }\n', r"s\.toml: scenes\.a\.synth\.sede: unknown key"),
-    ('synth = { preset = "huge" }\n', r"s\.toml: synth\.preset: "),
-    ('[scenes.a]\nphotos = "p"\nreconstruct = { matcher = "fast" }\n', r"s\.toml: scenes\.a\.reconstruct\.matcher: "),
-    ('scenes = ["a"]\n', r"s\.toml: scenes: Input should be a valid dictionary"),
+    ('[scenes.a]\nsynth = { preset = "tiny", sede = 3 }\n', r"s\.toml: scenes\.a\.synth\.sede \(line 3\): unknown key"),
+    ('synth = { preset = "huge" }\n', r"s\.toml: synth\.preset \(line 2\): "),
+    ('[scenes.a]\nphotos = "p"\nreconstruct = { matcher = "fast" }\n', r"s\.toml: scenes\.a\.reconstruct\.matcher \(line 4\): "),
+    ('scenes = ["a"]\n', r"s\.toml: scenes \(line 2\): Input should be a valid dictionary"),
 ])
 def test_bad_knob_values_and_base_keys_are_refused_when_the_spec_is_read(tmp_path, toml, match):
     """Axis values, methods and the spec's train / evaluate keys are checked on reading, each named where it is in
-    the file (an axis value of 0 was a traceback when the points were expanded; a bad `train` key was named as
+    the file, with its line (an axis value of 0 was a traceback when the points were expanded; a bad `train` key was named as
     a key of "train config (preset ...)")."""
     f = tmp_path / "s.toml"
     f.write_text(('' if toml.startswith("train_preset") else 'train_preset = "tiny"\n') + toml)
@@ -439,10 +439,10 @@ def test_an_interrupted_point_stops_a_sequential_sweep_without_a_retry():
 def test_pareto_metrics_must_be_table_columns(tmp_path):
     f = tmp_path / "s.toml"
     f.write_text('name = "x"\npareto_x = "foo"\n')
-    with pytest.raises(UserError, match="pareto_x: unknown metric 'foo'; the table's metrics are psnr"):
+    with pytest.raises(UserError, match="pareto_x \\(line 2\\): unknown metric 'foo'; the table's metrics are psnr"):
         load_spec(f)
     f.write_text('name = "x"\npareto_y = ["nll", "bar"]\n')
-    with pytest.raises(UserError, match="pareto_y: unknown metric 'bar'"):
+    with pytest.raises(UserError, match=r"pareto_y \(line 2\): unknown metric 'bar'"):
         load_spec(f)
 
 

@@ -17,10 +17,12 @@ from pathlib import Path
 
 from uncertsplat.config import (
     STAGE_CONFIGS,
+    KeyLines,
     PipelineConfig,
     PipelineStage,
     build_config,
     deep_update,
+    dotted_keys,
     load_toml,
     parse_override,
     train_config_from,
@@ -68,8 +70,10 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
             if "preset" in rest and stage.get("stage") == "train":  # a train stage's preset sits beside its config
                 stage["preset"] = rest.pop("preset")
             stage["config"] = deep_update(stage.get("config", {}), rest)
+    names = [str(s.get("name") or s.get("stage")) for s in data.get("stages", []) if isinstance(s, dict)]
     with naming_overrides(overrides):
-        cfg = build_config(PipelineConfig, data, source=str(path))
+        cfg = build_config(PipelineConfig, data, source=str(path),
+                           where=KeyLines(path, replaced=_replaced_keys(names, overrides)))
     if photos_given and not _reads_photos(cfg):
         from uncertsplat.console import console
 
@@ -89,28 +93,49 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
     return cfg
 
 
-def _stage_config(stage: PipelineStage):
+def _replaced_keys(names: list[str], overrides: list[str] | None) -> set[str]:
+    """The pipeline file's keys (dotted from its top: ``stages.2.config.num_samples``) whose values the ``--set``
+    ``overrides`` replaced, for the stages called ``names``: an error about one gets no line of the file."""
+    out: set[str] = set()
+    for text in overrides or []:
+        (head, rest), = parse_override(text).items()
+        if head in _TOP_LEVEL or not isinstance(rest, dict):
+            out.add(head)
+            continue
+        for i, name in enumerate(names):
+            if name == head:  # a train stage's preset sits beside its config
+                out |= {f"stages.{i}.preset" if key == "preset" else f"stages.{i}.config.{key}"
+                        for key in dotted_keys(rest)}
+    return out
+
+
+def _stage_config(stage: PipelineStage, where: KeyLines | None = None):
+    """A stage's resolved configuration; ``where``: its ``config`` table's lines in the pipeline file."""
     if stage.stage == "train":
-        return train_config_from(stage.preset, stage.config, source=f"stage '{stage.name or stage.stage}'")
+        return train_config_from(stage.preset, stage.config, source=f"stage '{stage.name or stage.stage}'",
+                                 where=where)
     if stage.preset is not None:
         raise UserError(f"stage '{stage.name or stage.stage}': `preset` applies to train stages only")
-    return build_config(STAGE_CONFIGS[stage.stage], stage.config, source=f"stage '{stage.name or stage.stage}'")
+    return build_config(STAGE_CONFIGS[stage.stage], stage.config, source=f"stage '{stage.name or stage.stage}'",
+                        where=where)
 
 
-def check_stages(cfg: PipelineConfig, path: Path) -> list:
+def check_stages(cfg: PipelineConfig, path: Path, overrides: list[str] | None = None) -> list:
     """Every stage's configuration and input, before the first stage runs (a typo in the last stage's keys was
     found only after the stages before it had run: with real photos, after minutes of reconstruction); returns the
-    stages' resolved configurations, in order.
+    stages' resolved configurations, in order. ``overrides``: the ``--set`` values the stages hold (their keys are
+    not named with a line of the file).
 
     Raises:
-        UserError: naming the pipeline file, the stage and the key (or the input that names nothing).
+        UserError: naming the pipeline file, the stage and the key with its line (or the input that names nothing).
     """
     earlier: list[str] = []
     configs = []
-    for stage in cfg.stages:
+    replaced = _replaced_keys([s.name or s.stage for s in cfg.stages], overrides)
+    for i, stage in enumerate(cfg.stages):
         name = stage.name or stage.stage
         try:
-            configs.append(_stage_config(stage))
+            configs.append(_stage_config(stage, KeyLines(path, prefix=f"stages.{i}.config", replaced=replaced)))
         except UserError as err:
             raise UserError(err.message, path=path, hint=err.hint) from None
         if stage.input is not None and stage.input not in earlier:
@@ -180,7 +205,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
     pipeline = Path(pipeline)
     cfg = load_pipeline(pipeline, overrides)
     with naming_overrides(overrides):
-        stage_configs = check_stages(cfg, pipeline)
+        stage_configs = check_stages(cfg, pipeline, overrides)
     if cfg.photos is not None and not Path(cfg.photos).is_dir() and _reads_photos(cfg):
         # before any output folder exists: the pipeline's photo folder is a placeholder until the user sets it
         what = "is a file, not a photo folder" if Path(cfg.photos).exists() else "photo folder not found"

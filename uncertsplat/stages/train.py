@@ -25,7 +25,7 @@ def resolve_config(preset: str | None, data: dict[str, Any], method: str | None,
         UserError: an unknown method, preset or key, or a value out of range.
     """
     from uncertsplat.baselines import method_overrides
-    from uncertsplat.config import deep_update, train_config_from
+    from uncertsplat.config import KeyLines, deep_update, train_config_from
     from uncertsplat.errors import UserError
 
     merged = deep_update(data, method_overrides(method)) if method is not None else data
@@ -34,7 +34,8 @@ def resolve_config(preset: str | None, data: dict[str, Any], method: str | None,
                                 overrides)
     except UserError:
         if data and source is not None:
-            train_config_from(preset, data, source=source)  # the file alone: an error of its own names the file
+            # the file alone: an error of its own names the file and the line
+            train_config_from(preset, data, source=source, where=KeyLines(source))
         raise
     over = method_overrides(method) if method is not None else {}
     if over.get("method", cfg.method) != cfg.method or over.get("variant", cfg.variant) != cfg.variant:

@@ -59,9 +59,11 @@ from pydantic import (
 
 from uncertsplat.config import (
     EvalConfig,
+    KeyLines,
     TrainConfig,
     build_config,
     deep_update,
+    dotted_keys,
     format_validation_error,
     train_config_from,
 )
@@ -256,23 +258,27 @@ def load_spec(path: Path, overrides: list[str] | None = None) -> SweepSpec:
             for key in ("path", "photos"):
                 if key in entry:
                     entry[key] = anchored(entry[key])
+    replaced: set[str] = set()
     for o in overrides or []:
-        data = deep_update(data, parse_override(o))
+        parsed = parse_override(o)
+        replaced |= dotted_keys(parsed)
+        data = deep_update(data, parsed)
+    where = KeyLines(path, replaced=replaced)
     with naming_overrides(overrides):
-        spec = build_config(SweepSpec, data, source=str(path))
-        check_base_configs(spec, str(path))
+        spec = build_config(SweepSpec, data, source=str(path), where=where)
+        check_base_configs(spec, str(path), where)
     return spec
 
 
-def check_base_configs(spec: SweepSpec, source: str) -> None:
+def check_base_configs(spec: SweepSpec, source: str, lines: KeyLines | None = None) -> None:
     """The spec's ``train_preset``, ``train``, ``evaluate``, ``synth`` and ``reconstruct`` keys (and each scene's) as
-    configs, so that a mistake is refused when the spec is read, named where it is in the file, rather than when a
-    point's job (or the scene's generation or reconstruction) builds its configs."""
+    configs, so that a mistake is refused when the spec is read, named where it is in the file (``lines``: its
+    lines), rather than when a point's job (or the scene's generation or reconstruction) builds its configs."""
     from uncertsplat.config import TRAIN_PRESETS, ReconstructConfig, SynthConfig
 
     tables = [(None, "")] + [(name, f"scenes.{name}.") for name in spec.scenes]
     if not spec.scenes and spec.scene is None:  # the single synthetic scene
-        build_config(SynthConfig, spec.synth, source=source, key_prefix="synth")
+        build_config(SynthConfig, spec.synth, source=source, key_prefix="synth", where=lines)
     for name, where in tables:
         entry = spec.scenes[name] if name is not None else None
         own_preset = entry is not None and entry.train_preset is not None
@@ -283,7 +289,7 @@ def check_base_configs(spec: SweepSpec, source: str) -> None:
         for key, model in (("synth", SynthConfig), ("reconstruct", ReconstructConfig)):
             table = getattr(entry, key) if entry is not None else None
             if table:
-                build_config(model, table, source=source, key_prefix=f"{where}{key}")
+                build_config(model, table, source=source, key_prefix=f"{where}{key}", where=lines)
         for key, own, model in (("train", spec.train, TrainConfig), ("evaluate", spec.evaluate, EvalConfig)):
             data = deep_update(own, getattr(entry, key)) if entry is not None else own
             label = source
@@ -296,7 +302,7 @@ def check_base_configs(spec: SweepSpec, source: str) -> None:
                 # a key of the scene's own table is named there; one of the spec's shared table, there
                 inner = getattr(entry, key) if entry is not None else {}
                 prefix = f"{where}{key}" if entry is not None and _mentions(inner, err) else key
-                raise UserError(format_validation_error(err, label, model, key_prefix=prefix)) from None
+                raise UserError(format_validation_error(err, label, model, key_prefix=prefix, where=lines)) from None
 
 
 def _mentions(table: dict, err: ValidationError) -> bool:
