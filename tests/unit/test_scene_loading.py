@@ -71,6 +71,24 @@ def test_normalisation(tiny_scene_path):  # noqa: F811
     torch.testing.assert_close(load_depths(norm, [2]), load_depths(raw, [2]) * s, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize(("scale", "offset"), [(1.0, 1e7), (1000.0, 5.4e9)])
+def test_the_frame_map_holds_far_from_the_origin(workspace, scale, offset):
+    """A map in UTM-like coordinates (1e7, or millimetres 5e9 from the origin): world_from_source maps each camera's
+    centre, as COLMAP has it in float64, onto the normalised camera to well under a pixel's worth (it was stored in
+    float32: 0.1 run units off at 1e7, so Predictor.cameras_from_source, select-views' pose files and a PLY moved
+    back into the map were 0.3 source units off)."""
+    rec = pycolmap.Reconstruction(str(workspace / "sparse" / "0"))
+    rec.transform(pycolmap.Sim3d(np.hstack([scale * np.eye(3), [[offset], [0.0], [0.0]]])))
+    rec.write(str(workspace / "sparse" / "0"))
+    norm = load_scene(workspace, SceneConfig())
+    T = norm.world_from_source
+    assert T.dtype == torch.float64
+    by_name = {img.name: img.projection_center() for img in rec.images.values()}
+    src = torch.tensor(np.stack([by_name[n] for n in norm.cameras.image_names]), dtype=torch.float64)  # [C,3]
+    mapped = src @ T[:3, :3].T + T[:3, 3]
+    torch.testing.assert_close(mapped, norm.cameras.centers.double(), atol=1e-5, rtol=0)
+
+
 def test_downscale(tiny_scene_path):  # noqa: F811
     full = load_scene(tiny_scene_path)
     half = load_scene(tiny_scene_path, SceneConfig(downscale=2))

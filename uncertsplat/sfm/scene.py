@@ -806,7 +806,7 @@ def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torc
         points=pts,
         points_rgb=rgb.float().clamp(0, 1),
         scene_scale=scene_scale,
-        world_from_source=T.float(),
+        world_from_source=T,  # float64: a map in UTM coordinates (1e6-1e7) loses metres in float32
         depth_scale_to_gt=1.0 / s,
         source=source,
         center=tuple(float(v) for v in choice.center),
