@@ -371,6 +371,12 @@ class TrainConfig(_Base):
     init_opacity: float = Field(0.1, gt=0.0, lt=1.0)
     init_num_random: int = Field(0, ge=0)
     """Add this many random points in the scene box when the sparse cloud is poor."""
+    init_outlier_factor: float = Field(10.0, ge=0.0)
+    """Sparse points farther from the cloud's median point than this many times the larger of the cloud's
+    90th-percentile distance and the cameras' radius start no Gaussian (``gaussians.params.far_points``): a lone
+    point far out (a bad triangulation) becomes a Gaussian as wide as its distance to its nearest neighbour, and a
+    trace of its weight on a ray pulls the depth maps by its distance (one point at 1e6 units: depth abs-rel 0.05 ->
+    374). 0: every point starts a Gaussian."""
     log_every: int = Field(50, ge=1)
     eval_every: int = Field(500, ge=1)
     checkpoint_every: int = Field(1000, ge=1)

@@ -5,6 +5,8 @@ import math
 import pytest
 import torch
 
+from tests.fixtures import tiny_scene_path  # noqa: F401
+from tests.run_fixtures import tiny_run_path  # noqa: F401
 from uncertsplat.config import train_config_from
 from uncertsplat.gaussians.variational import random_model
 from uncertsplat.render import render
@@ -181,3 +183,51 @@ def test_few_initial_points_and_points_no_view_sees_are_named():
     assert "only 1 point(s), 0 of them in view" in note
     t = Trainer(replace(scene, points=above, points_rgb=torch.ones(1, 3)), toy_config(), tr, te)
     assert any("0 of them in view" in n for n in t.init_notes)
+
+
+def test_a_lone_far_point_starts_no_gaussian():
+    """A sparse point far outside the cloud (a bad triangulation at 1e6) starts no Gaussian, with a note that says
+    how to keep it; the random points' box is the rest's; a cloud whose far part is a real share of it keeps it."""
+    from dataclasses import replace
+
+    from uncertsplat.gaussians.params import far_points
+
+    scene, tr, te = toy_scene()
+    n = scene.points.shape[0]
+    far = torch.cat([scene.points, torch.tensor([[1e6, 1e6, 1e6]])])
+    flags = far_points(far, factor=10.0, extent=scene.scene_scale)
+    assert flags.tolist() == [False] * n + [True]
+    background = torch.cat([scene.points, scene.points[: n // 5] * 30])  # a sixth of the cloud 30x out: kept
+    assert not far_points(background, factor=10.0).any()
+    assert not far_points(far, factor=0.0).any() and not far_points(far[-5:], factor=10.0).any()  # off; too few
+    moved = replace(scene, points=far, points_rgb=torch.rand(n + 1, 3))
+    t = Trainer(moved, toy_config(init_num_random=50), tr, te)
+    assert len(t.model) == n + 50 and t.model.params["means"].abs().max() < 100
+    (note,) = [m for m in t.init_notes if "far outside the rest" in m]
+    assert f"1 of the scene's {n + 1:,} sparse points" in note and "init_outlier_factor=0" in note
+    kept = Trainer(moved, toy_config(init_outlier_factor=0), tr, te)
+    assert len(kept.model) == n + 1 and not any("far outside" in m for m in kept.init_notes)
+
+
+def test_a_surface_near_the_cameras_moves_the_near_plane_and_every_stage_renders_with_it(tiny_run_path):  # noqa: F811
+    """A rig radius far larger than the cameras' distance to the surface (a few cameras far out; a close-range
+    capture) would put 1 % of it beyond the surface: the near plane comes in front of the sparse points, train says
+    so, and the run's loaders render with what scene.json records (a run without the record: 1 % of the radius)."""
+    from dataclasses import replace
+
+    from uncertsplat.baselines.runs import load_run
+    from uncertsplat.render import near_plane
+    from uncertsplat.schemas import RunScene
+
+    scene, tr, te = toy_scene()
+    t = Trainer(scene, toy_config(), tr, te)
+    assert t.near == near_plane(scene.scene_scale) and not any("near plane" in m for m in t.init_notes)
+    wide = replace(scene, scene_scale=200.0)  # the radius of two stray cameras 100x out
+    t = Trainer(wide, toy_config(), tr, te)
+    assert t.near < 0.2 * near_plane(200.0) and any("near plane is at" in m for m in t.init_notes)
+    info = RunScene.read(tiny_run_path / "scene.json")
+    assert info.near == pytest.approx(near_plane(info.scene_scale))  # the tiny scene: the plane stays at 1 %
+    loaded = load_run(tiny_run_path, "cpu")
+    assert loaded.near == info.near
+    assert replace(loaded, near=0.123).render_fn(1.0, torch.device("cpu")).keywords["near"] == 0.123
+    assert replace(loaded, near=None).render_fn(2.0, torch.device("cpu")).keywords["near"] == pytest.approx(0.02)

@@ -95,3 +95,32 @@ def test_no_gradients_needed_works(device):
     with torch.no_grad():
         out = render(s, cams)
     assert out.rgb.requires_grad is False and out.alpha.max() > 0
+
+
+def test_the_near_plane_comes_nearer_only_for_a_surface_near_the_cameras():
+    """1 % of the rig radius unless the sparse points' 1st-percentile depth is within 5x of it; then a fifth of
+    that depth, floored at 0.1 % of the default (stray points at a lens)."""
+    from uncertsplat.render import near_plane
+
+    assert near_plane(2.0) == pytest.approx(0.02) and near_plane(2.0, torch.zeros(0)) == pytest.approx(0.02)
+    far = torch.linspace(1.0, 5.0, 1000, dtype=torch.float64)
+    assert near_plane(2.0, far) == pytest.approx(0.02)  # a surface well beyond it: unchanged
+    close = torch.cat([torch.full((20,), 0.005), far])  # 2 % of the depths at 0.005
+    assert near_plane(2.0, close) == pytest.approx(0.001)
+    assert near_plane(2.0, torch.cat([torch.full((50,), 1e-12), far])) == pytest.approx(2e-5)
+    assert near_plane(2.0, torch.full((9,), 1e-3)) == pytest.approx(0.02)  # too few to judge
+
+
+def test_point_depths_are_the_in_view_camera_depths_in_chunks():
+    """point_depths: the camera z of the points each camera has in front of it and inside its image, the same in
+    chunks of cameras (40 here) as in one, and of every k-th point above max_points."""
+    from uncertsplat.render.project import point_depths, project_points
+
+    cams = look_at_cameras(40, 64, 48, focal=60.0, radius=3.0)
+    pts = torch.randn(500, 3, generator=torch.Generator().manual_seed(0)) * 2
+    uv, z = project_points(pts.double(), cams.cam_from_world, cams.K)
+    inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < 64) & (uv[..., 1] >= 0) & (uv[..., 1] < 48)
+    got = point_depths(pts, cams)
+    assert got.dtype == torch.float64 and 0 < got.numel() < 40 * 500
+    torch.testing.assert_close(got.sort().values, z[inside].sort().values)
+    assert point_depths(pts, cams, max_points=100).numel() < got.numel() / 4

@@ -170,7 +170,8 @@ def load_ensemble(run_dir: Path, cfg, device: torch.device | str = "cpu") -> Ens
         members.append(load_single_model(mdir, device))
     first = members[0]
     return EnsembleRun(first.model, cfg, first.scene_path, first.extent, first.step, first.sh_degree, run_dir,
-                       run_dir, first.transparent, mean_exposure([m.exposure for m in members]), members=members)
+                       run_dir, first.transparent, mean_exposure([m.exposure for m in members]), first.near,
+                       members=members)
 
 
 def ensemble_sample_fn(samples: list):

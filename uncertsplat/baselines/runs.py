@@ -60,6 +60,8 @@ class LoadedRun:
     """The training images had real transparency (``RUN/scene.json``): the background is data."""
     exposure: RunExposure | None = None
     """The training photos' learned exposures (``RUN/exposure.json``; ``TrainConfig.exposure``), None without."""
+    near: float | None = None
+    """The near plane the run was trained with (``RUN/scene.json``); None: ``render.near_plane`` of the scale."""
     _coverage: float | None = field(default=None, init=False, repr=False)  # ``coverage``, once computed
     _photo_exposure: PhotoExposure | None = field(default=None, init=False, repr=False)  # ``photo_exposure``, once
 
@@ -120,7 +122,7 @@ class LoadedRun:
 
         bg = torch.tensor(self.config.scene.background, dtype=torch.float32, device=device)
         return functools.partial(render, background=bg, tile_size=self.config.tile_size,
-                                 near=near_plane(scene_scale))
+                                 near=self.near if self.near is not None else near_plane(scene_scale))
 
     def sampler(self, scene_scale: float, device: torch.device) -> Sampler:
         """What the evaluation engine draws samples from: the model's posterior (its mean for a deterministic
@@ -288,6 +290,7 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
     info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
     scene_path = Path(info.scene) if info is not None and info.scene else None
     transparent = bool(info.source.get("transparent", False)) if info is not None else False
+    near = info.near if info is not None else None
     exposure = RunExposure.read_optional(run_dir / RunExposure.FILE_NAME)
     device = torch.device(device)
     ply = run_dir / "variational.ply"
@@ -295,7 +298,7 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
         model, meta = read_variational_ply(ply, device=device)
         extent = float(meta.get("extent", info.extent if info is not None else 1.0))
         return LoadedRun(model, cfg, scene_path, extent, int(meta.get("step", 0)),
-                         int(meta.get("sh_degree_active", model.sh_degree)), ply, run_dir, transparent, exposure)
+                         int(meta.get("sh_degree_active", model.sh_degree)), ply, run_dir, transparent, exposure, near)
     found = load_latest(run_dir, map_location=device)
     if found is None:
         raise UserError("no trained model here (neither variational.ply nor a checkpoint in ckpts/)", path=run_dir,
@@ -308,7 +311,7 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
     if exposure is None and state.get("exposure") is not None and info is not None:
         exposure = checkpoint_exposure(state, info.train)
     return LoadedRun(model, cfg, scene_path, float(state["extent"]), int(state["step"]),
-                     int(state.get("sh_degree_active", model.sh_degree)), path, run_dir, transparent, exposure)
+                     int(state.get("sh_degree_active", model.sh_degree)), path, run_dir, transparent, exposure, near)
 
 
 def checkpoint_exposure(state: dict, train_names: list[str]) -> RunExposure | None:

@@ -204,6 +204,23 @@ def _logit(p: float) -> float:
     return math.log(p / (1.0 - p))
 
 
+def far_points(points: Tensor, *, factor: float, extent: float = 1.0) -> Tensor:
+    """[N] bool: points farther from the cloud's (coordinate-wise) median than ``factor`` times the larger of the
+    cloud's 90th-percentile distance from it and ``extent``; none when ``factor`` is 0 or fewer than 10 points.
+
+    Both references are robust to the few points they judge: a handful of far points moves neither the median nor
+    the 90th percentile, and ``extent`` (the cameras' radius) keeps a point within the cameras' own reach of a small
+    cloud from being judged far.
+    """
+    n = points.shape[0]
+    if factor <= 0 or n < 10:
+        return torch.zeros(n, dtype=torch.bool, device=points.device)
+    p = points.detach().double()
+    dist = (p - p.median(0).values).norm(dim=-1)  # [N]
+    reach = max(float(dist.quantile(0.9)), float(extent))
+    return dist > factor * reach
+
+
 def init_from_points(points: Tensor, colors: Tensor, *, sh_degree: int, num_entries: int,
                      init_opacity: float = 0.1, extent: float = 1.0) -> GaussianModel:
     """A model with one isotropic Gaussian per point and no posterior carriers yet.

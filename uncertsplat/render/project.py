@@ -59,6 +59,22 @@ def points_in_view(points: Tensor, cameras) -> Tensor:
         (uv[..., 1] < cameras.height)
 
 
+def point_depths(points: Tensor, cameras, max_points: int = 20000) -> Tensor:
+    """[M] float64 camera z of ``points`` [N,3] (world) in each of the ``cameras`` (``types.Cameras``) that has the
+    point in front of it and inside its image, on the CPU; every k-th point when there are more than
+    ``max_points`` (the distribution is what matters), a few cameras at a time (memory stays O(points))."""
+    pts = points.detach().double().cpu()
+    pts = pts[:: max(1, -(-pts.shape[0] // max_points))]
+    out = []
+    for lo in range(0, len(cameras), 16):
+        cams = cameras[list(range(lo, min(lo + 16, len(cameras))))]
+        uv, z = project_points(pts, cams.cam_from_world.cpu(), cams.K.cpu())  # [c,P,2], [c,P]
+        inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < cams.width) & (uv[..., 1] >= 0) & \
+            (uv[..., 1] < cams.height)
+        out.append(z[inside])
+    return torch.cat(out) if out else torch.zeros(0, dtype=torch.float64)
+
+
 class Projection(NamedTuple):
     means2d: Tensor  # [C,N,2] pixels (centres at +0.5)
     conics: Tensor  # [C,N,3] inverse 2D covariance (a, b, c): power = -0.5 (a dx^2 + 2 b dx dy + c dy^2)

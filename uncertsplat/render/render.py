@@ -10,14 +10,28 @@ from .project import ALPHA_MAX, clamped_view_angle, project_gaussians
 from .rasterize import bin_gaussians, composite, composite_image, composite_image_available, tiles_to_image
 from .sh import sh_colors, sh_colors_split
 
+NEAR_FRACTION = 0.01
+"""The near plane's default distance, as a fraction of the scene scale (the camera-rig radius)."""
 
-def near_plane(scene_scale: float) -> float:
-    """The near plane every stage renders with: 1% of the scene scale (the camera-rig radius).
+
+def near_plane(scene_scale: float, depths: Tensor | None = None) -> float:
+    """The near plane every stage renders with: 1% of the scene scale (the camera-rig radius), or nearer when the
+    scene's surface is: a fifth of the 1st percentile of ``depths`` (the sparse points' camera z in the training
+    views, ``project.point_depths``; 10 at least) when that is smaller.
 
     Relative to the scene so that training, evaluation and pruning agree and the whole pipeline is
-    equivariant to a global rescaling of the scene.
+    equivariant to a global rescaling of the scene. The radius is the farthest camera's: two stray cameras 100x
+    out put 1 % of it beyond the surface the other cameras see (held out 24.1 -> 12.8 dB), and a close-range
+    inspection (cameras 1 % of the rig's radius from a wall) has its surface there too; the points' depths keep
+    such a surface in front of the plane, and leave every other scene's plane where it was.
     """
-    return 0.01 * float(scene_scale)
+    base = NEAR_FRACTION * float(scene_scale)
+    if depths is None or depths.numel() < 10:
+        return base
+    flat = depths.detach().flatten().double().cpu()
+    k = max(1, int(0.01 * flat.numel()))
+    # (floored: a cloud of stray points at a camera's lens must not put the plane at 0)
+    return max(1e-3 * base, min(base, 0.2 * float(flat.kthvalue(k).values)))
 
 
 def render(

@@ -244,7 +244,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
     from uncertsplat.sfm.scene import camera_records, load_scene, require_same_cameras, with_training_views
     from uncertsplat.strategy.schedule import densify_steps_after
-    from uncertsplat.train.trainer import Trainer, TrainingInterrupted, log_line
+    from uncertsplat.train.trainer import Trainer, TrainingInterrupted, log_line, training_near_plane
 
     scene, run_dir = Path(scene), Path(run_dir)
     device = torch.device(device)
@@ -392,7 +392,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             calibration=[names[i] for i in data.split.get("calibration", ())] if names else [],
             center=list(data.center) if data.center is not None else None, center_method=data.center_method,
             center_reason=data.center_reason, world_from_source=data.world_from_source.double().tolist(),
-            views_added=views_added,
+            views_added=views_added, near=training_near_plane(data),
             cameras=camera_records(data.cameras, [names[i] for k in ("train", "test", "calibration")
                                                   for i in data.split.get(k, ())] if names else []),
         ).write(run_dir / "scene.json")

@@ -30,7 +30,7 @@ from uncertsplat.config import TrainConfig
 from uncertsplat.console import progress
 from uncertsplat.eval.image import psnr, ssim
 from uncertsplat.gaussians.ops import truncate_sh
-from uncertsplat.gaussians.params import GaussianModel, init_from_points, memory_per_gaussian
+from uncertsplat.gaussians.params import GaussianModel, far_points, init_from_points, memory_per_gaussian
 from uncertsplat.gaussians.prior import Prior
 from uncertsplat.gaussians.variational import (
     ExpectedConstants,
@@ -46,7 +46,7 @@ from uncertsplat.gaussians.variational import (
 from uncertsplat.io.images import area_resize
 from uncertsplat.render import near_plane, render
 from uncertsplat.render.exposure import centred, expose, exposure_record, fitted_gain, unexpose
-from uncertsplat.render.project import points_in_view
+from uncertsplat.render.project import point_depths, points_in_view
 from uncertsplat.schemas.runs import RunExposure
 from uncertsplat.strategy.budget import gaussian_budget
 from uncertsplat.strategy.densify import Densifier, DensifyStats
@@ -93,6 +93,14 @@ class TrainingInterrupted(Exception):
     def __init__(self, step: int, path: Path | None):
         self.step, self.path = step, path
         super().__init__(f"training interrupted at step {step}" + (f"; checkpoint {path}" if path else ""))
+
+
+def training_near_plane(scene: SceneData) -> float:
+    """The near plane a run on ``scene`` renders with (``render.near_plane``, from the sparse points' depths in the
+    training views; 1 % of the rig radius without points); ``RUN/scene.json`` records it for the other stages."""
+    train = list(scene.split.get("train", ()))
+    depths = point_depths(scene.points, scene.cameras[train]) if scene.points.shape[0] and train else None
+    return near_plane(scene.scene_scale, depths)
 
 
 FEW_POINTS = 100
@@ -149,7 +157,7 @@ class Trainer:
         self.background = torch.tensor(cfg.scene.background, dtype=torch.float32, device=self.device)
         # training renders over a random colour (cfg.random_background), unless the images' background is data
         self.random_background = cfg.random_background and not bool(scene.source.get("transparent", False))
-        self.near = near_plane(scene.scene_scale)
+        self.near = training_near_plane(scene)
         self.variational = cfg.method == "variational"
         self.informed = self.variational and cfg.posterior == "informed"
         self.posterior_updates: list[dict] = []  # one record per informed-posterior update (kept in checkpoints)
@@ -184,6 +192,15 @@ class Trainer:
         self.gen_background = torch.Generator(device=self.device).manual_seed(cfg.seed + 4)
         points = self.scene.points.to(self.device, torch.float32)
         colors = self.scene.points_rgb.to(self.device, torch.float32)
+        far = far_points(points, factor=cfg.init_outlier_factor, extent=self.extent)  # [P]
+        far_notes = []
+        if far.any():  # before the random points' box, which such a point would stretch too
+            far_notes.append(f"{int(far.sum()):,} of the scene's {points.shape[0]:,} sparse points lie far outside the "
+                             f"rest (more than {cfg.init_outlier_factor:g}x its spread from its middle, up to "
+                             f"{float(points[far].double().norm(dim=-1).max()):.3g}x the cameras' radius from their centre): they "
+                             "start no Gaussian, whose size and depth would come from that distance "
+                             "(--set init_outlier_factor=0 keeps them)")
+            points, colors = points[~far], colors[~far]
         if cfg.init_num_random > 0:
             if points.shape[0] > 0:
                 lo, hi = points.amin(0), points.amax(0)
@@ -198,7 +215,12 @@ class Trainer:
 
             raise UserError("the scene has no sparse points to start from",
                             hint="Set init_num_random (e.g. --set init_num_random=10000).")
-        self.init_notes = few_points_notes(points, self.train_cams, cfg.init_num_random)
+        self.init_notes = far_notes + few_points_notes(points, self.train_cams, cfg.init_num_random)
+        if self.near < near_plane(self.scene.scene_scale):
+            share = 100 * self.near / self.scene.scene_scale
+            self.init_notes.append(f"the near plane is at {share:.2g} % of the cameras' radius (1 % by default): the "
+                                   "sparse points lie that close to the training cameras (a close-range capture, or "
+                                   "a few cameras far from the rest setting the radius)")
         # the model-size limit holds from the start: a cloud above it is thinned at random (its own generator, so
         # that the runs below the limit draw what they drew before)
         cap = self._budget().max_gaussians

@@ -69,7 +69,7 @@ class LiveView:
 
         run_dir = trainer.run_dir if trainer.run_dir is not None else Path(".")
         loaded = LoadedRun(trainer.model, trainer.cfg, None, trainer.extent, trainer.step, trainer.sh_degree,
-                           run_dir, run_dir)
+                           run_dir, run_dir, near=trainer.near)
         score_cams = trainer.train_cams[list(range(0, len(trainer.train_cams), max(1, len(trainer.train_cams) // 8)))]
         return FrameRenderer(loaded, trainer.scene.scene_scale, trainer.device, score_cameras=score_cams,
                              free_space_cameras=trainer.train_cams, seed=self.cfg.seed)
