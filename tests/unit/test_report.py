@@ -504,18 +504,42 @@ def test_output_folder_rules(tmp_path):
     with pytest.raises(UserError, match="run folder itself"):
         stage.run([run], run, ReportConfig())
     out = tmp_path / "out"
-    stage.run([run], out, ReportConfig())
-    (out / "figures" / "stale.png").write_bytes(b"old")
-    stage.run([run], out, ReportConfig())  # an earlier report is replaced, stale figures removed
-    assert not (out / "figures" / "stale.png").exists()
+    shown = make_run(tmp_path, "shown")  # with maps: per-view figures the next report has no more
+    stage.run([shown], out, ReportConfig())
+    assert (out / "figures" / "run0_view0.png").is_file()
+    (out / "figures" / "my_plot.png").write_bytes(b"mine")  # a file of yours beside the report's figures
+    stage.run([run], out, ReportConfig())  # an earlier report is replaced, its stale figures removed
+    assert not (out / "figures" / "run0_view0.png").exists()
+    assert (out / "figures" / "my_plot.png").read_bytes() == b"mine"  # what report did not write is never deleted
+    (out / "figures" / "my_plot.png").unlink()
     assert_figures_consistent(out, parse(out / "index.html"))
-    # a report stopped before its page (Ctrl-C, a full disk) leaves figures only: the same command writes there again
+    # a report stopped before its page (Ctrl-C, a full disk) leaves its marker and figures: the same command writes
+    # there again, and removes the half-written figure it listed
+    from uncertsplat.report import build
+
+    def stopped_build(runs, out_dir, title, max_views, write_bytes):
+        write_bytes(out_dir / "figures" / "half.png", b"part")
+        raise KeyboardInterrupt
+
     stopped = tmp_path / "stopped"
-    (stopped / "figures").mkdir(parents=True)
-    (stopped / "figures" / "half.png").write_bytes(b"part")
+    original = build.build_report
+    build.build_report = stopped_build
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            stage.run([run], stopped, ReportConfig())
+    finally:
+        build.build_report = original
     (stopped / "figures" / ".x.tmp.png").write_bytes(b"")
+    assert not (stopped / "index.html").exists()
     stage.run([run], stopped, ReportConfig())
     assert not (stopped / "figures" / "half.png").exists() and (stopped / "index.html").is_file()
+    # figures alone, without the marker, are not taken for a stopped report: refused, nothing deleted
+    mine = tmp_path / "mine"
+    (mine / "figures").mkdir(parents=True)
+    (mine / "figures" / "my_plot.png").write_bytes(b"keep")
+    with pytest.raises(UserError, match="not empty"):
+        stage.run([run], mine, ReportConfig())
+    assert (mine / "figures" / "my_plot.png").read_bytes() == b"keep"
     (busy / "figures").mkdir()  # figures beside someone's file: still not ours
     with pytest.raises(UserError, match="not empty"):
         stage.run([run], busy, ReportConfig())

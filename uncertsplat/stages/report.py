@@ -10,17 +10,23 @@ last, so a report folder never references a figure that is not there.
 from __future__ import annotations
 
 import contextlib
+import json
+import re
 from pathlib import Path
 
 from uncertsplat.config import ReportConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
-from uncertsplat.io.atomic import atomic_write_bytes, atomic_write_text
+from uncertsplat.io.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
 from uncertsplat.report.html import is_report_page
 from uncertsplat.stages.evaluate import evaluation_is_current
 
 INDEX = "index.html"
 FIGURES = "figures"
+MARKER = ".uncertsplat-report.json"
+"""``OUT/MARKER``: the figures (``figures/NAME``) this command wrote into the folder, kept up to date before each one is
+written. It is how a folder a report stopped in before its page (no index.html yet) is told from someone's folder, and
+which PNGs of an earlier report may be deleted: only those listed here or referenced by its own page, never others."""
 
 
 def _display_names(paths: list[Path]) -> list[str]:
@@ -51,22 +57,40 @@ def _check_output(out: Path, runs: list[Path]) -> None:
 
 
 def _unfinished_report(out: Path) -> bool:
-    """Whether ``out`` holds only what a report stopped before its page leaves (``figures/`` with PNGs and temp
-    files): the same command may write there again (it refused, having no index.html to recognise)."""
-    entries = list(out.iterdir())
+    """Whether ``out`` holds only what a report stopped before its page leaves: its ``MARKER`` and ``figures/`` (a
+    folder of PNGs alone may be anyone's: without the marker it is not taken for a report)."""
     fig_dir = out / FIGURES
-    return (all(p == fig_dir for p in entries) and fig_dir.is_dir()
-            and all(f.is_file() and (f.suffix == ".png" or f.name.startswith(".")) for f in fig_dir.iterdir()))
+    # besides those two, only the temp files of an atomic write cut short (".NAME.xxxx.tmp.EXT")
+    return ((out / MARKER).is_file() and (not fig_dir.exists() or fig_dir.is_dir())
+            and all(p in (fig_dir, out / MARKER) or (p.name.startswith(".") and ".tmp" in p.name)
+                    for p in out.iterdir()))
 
 
-def _remove_stale_figures(out: Path, keep: list[str]) -> None:
-    """Delete PNGs of an earlier report in OUT/figures that the new page does not reference."""
+def _figures_written_before(out: Path) -> set[str]:
+    """Names of the PNGs in ``OUT/figures`` an earlier report wrote: those its ``MARKER`` lists and those its page
+    references (pages written before the marker existed); empty for a folder that holds no report."""
+    names: set[str] = set()
+    try:
+        listed = json.loads((out / MARKER).read_text(encoding="utf-8")).get("figures", [])
+        names.update(Path(n).name for n in listed if isinstance(n, str))
+    except (OSError, ValueError, AttributeError):
+        pass
+    index = out / INDEX
+    if is_report_page(index):
+        with contextlib.suppress(OSError):
+            text = index.read_text(encoding="utf-8", errors="replace")
+            names.update(re.findall(rf'src="{FIGURES}/([^"/]+\.png)"', text))
+    return names
+
+
+def _remove_stale_figures(out: Path, earlier: set[str], keep: list[str]) -> None:
+    """Delete the PNGs of an earlier report (``earlier``) in OUT/figures that the new page does not reference; a file
+    the report did not write (a plot of yours put there) is never touched."""
     fig_dir = out / FIGURES
-    if not fig_dir.is_dir():
-        return
     keep_set = {Path(k).name for k in keep}
-    for p in fig_dir.glob("*.png"):
-        if p.name not in keep_set:
+    for name in earlier - keep_set:
+        p = fig_dir / name
+        if p.is_file():
             with contextlib.suppress(OSError):
                 p.unlink()
 
@@ -99,12 +123,20 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
             r.notes.append(f"its eval/metrics.json scored an earlier state of the run (the model, config or scene "
                            f"changed since, e.g. by `train --resume`), so the metrics shown are that model's: run "
                            f"`uncertsplat evaluate {r.path}` again, then this report")
-    had_report = out.is_dir() and any(out.iterdir())  # (_check_output let it through: a report, or an unfinished one's figures)
+    earlier = _figures_written_before(out)  # (_check_output let it through: empty, a report, or a stopped one's)
+    listed = set(earlier)
 
-    text, figures = build_report(loaded, out, cfg.title, cfg.max_views, atomic_write_bytes)
-    if had_report:
-        _remove_stale_figures(out, figures)
+    def write_figure(path: Path, data: bytes) -> Path:
+        # listed in the marker before it is written, so a report stopped at any point can tell its files from others'
+        if path.name not in listed:
+            listed.add(path.name)
+            atomic_write_json(out / MARKER, {"figures": sorted(listed)})
+        return atomic_write_bytes(path, data)
+
+    text, figures = build_report(loaded, out, cfg.title, cfg.max_views, write_figure)
     index = atomic_write_text(out / INDEX, text)
+    _remove_stale_figures(out, earlier | listed, figures)
+    atomic_write_json(out / MARKER, {"figures": sorted(Path(f).name for f in figures)})
     for r in loaded:
         for n in r.notes:
             console.print(f"[yellow]note[/] {r.name}: {n}")
