@@ -716,3 +716,45 @@ def test_the_summary_says_plainly_when_the_std_is_too_small_or_too_large(tmp_pat
     run = make_run(tmp_path, "r", maps=False, stats=False)
     stage.run([run], tmp_path / "out", ReportConfig())
     assert "over-confident" in (tmp_path / "out" / "index.html").read_text()
+
+
+def test_depth_lengths_are_shown_in_the_scenes_units(tmp_path):
+    """evaluate writes depth maps and depth RMSE/MAE in the run's normalised units (x_run = s x_source + t): the
+    report shows the lengths in the scene's own (x 1/s), says so, and keeps the file's number in data-value."""
+    from uncertsplat.io.images import read_exr, write_exr
+    from uncertsplat.io.maps import EXR_DEPTH_TO_SOURCE
+    from uncertsplat.report import figures
+    from uncertsplat.report.views import load_view
+
+    names = ("view_000.png", "view_008.png")
+    scene = make_scene(tmp_path, list(names))
+    run = make_run(tmp_path, "r", names=names, scene=scene)
+    info = RunScene.read(run / "scene.json")
+    info.world_from_source = [[0.25, 0, 0, 0.1], [0, 0.25, 0, 0], [0, 0, 0.25, 0], [0, 0, 0, 1]]
+    info.write(run / "scene.json")
+    m = EvalReport.read(run / "eval" / "metrics.json")
+    for vm in [m.mean, *m.per_view.values()]:
+        vm.depth_rmse, vm.depth_mae = 0.1447, 0.0786
+    m.write(run / "eval" / "metrics.json")
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    rmse = table_rows(html, "metrics-0")["mean"]
+    cell = next(c for c in rmse if c[0] == "depth_rmse")
+    assert cell == ("depth_rmse", repr(m.mean.depth_rmse), format(4 * m.mean.depth_rmse, ".4f"))
+    assert "Depth RMSE (scene units)" in html and "Depth MAE (scene units)" in html
+    assert "normalised values x4 (1 / the scale of scene.json&#x27;s world_from_source)" in html
+    assert "depth scale" not in html  # the alignment is named for what it is
+    # the maps: the EXR header's factor first, else the run's
+    exr = run / "eval" / "maps" / f"{map_stem(names[0])}.exr"
+    view = load_view(names[0], exr.parent, 4.0)
+    assert view.depth_to_source == 4.0
+    write_exr(exr, read_exr(exr), attributes={EXR_DEPTH_TO_SOURCE: 2.0})
+    view = load_view(names[0], exr.parent, 4.0)
+    assert view.depth_to_source == 2.0
+    panels = {p.title: p for p in figures.view_panels(view)}
+    bar = panels["depth std (scene units)"].bar
+    assert bar.ticks[-1][1] == f"{float(np.percentile(view.depth_std * 2.0, 99)):.3g}"
+    assert "depth mean (scene units)" in panels
+    plain = make_run(tmp_path, "plain", names=names)  # no scene.json: the run's units, named
+    m.write(plain / "eval" / "metrics.json")
+    html = stage.run([plain], tmp_path / "out2", ReportConfig()).read_text()
+    assert "Depth RMSE (run&#x27;s normalised units)" in html

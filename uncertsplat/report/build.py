@@ -9,9 +9,10 @@ recomputed.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -190,13 +191,16 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
             if run.problem(METRICS) is not None:
                 body.append(title + _missing_metrics_note(run))
             continue
-        rows_in = [(name, metric_row(v)) for name, v in m.per_view.items()] + [("mean", metric_row(m.mean))]
+        factor = run.depth_to_source
+        rows_in = [(name, depth_in_scene_units(metric_row(v), factor)) for name, v in m.per_view.items()]
+        rows_in.append(("mean", depth_in_scene_units(metric_row(m.mean), factor)))
         keys = [s.key for s in METRIC_SPECS if any(r[s.key].value is not None for _, r in rows_in)]
         empty = [s.label for s in METRIC_SPECS if s.key not in keys]
+        labels = {k: rows_in[-1][1][k].spec.label for k in keys}
         rows = [(name, [_cell(r[k]) for k in keys]) for name, r in rows_in]
         facts: list[tuple[str, Any]] = [("split", m.split), ("views", len(m.per_view)), ("samples K", m.num_samples)]
         if m.depth_scale is not None:
-            facts.append(("depth scale", f"{m.depth_scale.scale:.6g} ({m.depth_scale.method})"))
+            facts += _depth_facts(m.depth_scale, factor)
         if m.std_floor is not None:
             facts.append(("std floor (NLL)", m.std_floor))
         if m.std_scale is not None:
@@ -209,13 +213,47 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
             facts.append(("LPIPS", m.lpips.reason or "unavailable"))
         if empty:
             facts.append(("not available", ", ".join(empty)))
-        header = ["view"] + [SPEC_BY_KEY[k].label for k in keys]
+        header = ["view"] + [labels[k] for k in keys]
         body.append(f'{title}{kv(facts)}<div data-run="{ri}">{table(header, rows, table_id=f"metrics-{ri}")}</div>')
     if not body:
         body.append(note("No run has eval/metrics.json: run `uncertsplat evaluate RUN` first."))
     else:
         body.append(para(METRICS_LEGEND, "legend"))
     w.section("metrics", "Metrics per view", "".join(body))
+
+
+DEPTH_LENGTH_KEYS = ("depth_rmse", "depth_mae")
+"""Depth metrics that are lengths: ``evaluate`` writes them in the run's normalised units, the report shows them in the
+scene's (``data-value`` keeps the file's number)."""
+
+_DEPTH_METHODS = {"scene": "none: the scene's GT depth has a known scale", "median": "estimated: median ratio",
+                  "lsq": "estimated: least squares", "given": "given with --depth-scale"}
+
+
+def depth_in_scene_units(row: dict[str, MetricValue], factor: float | None) -> dict[str, MetricValue]:
+    """``row`` with its depth lengths (``DEPTH_LENGTH_KEYS``) shown in the scene's units (times ``factor``) and labelled
+    so; without a factor they stay in the run's normalised units, labelled so."""
+    out = dict(row)
+    for k in DEPTH_LENGTH_KEYS:
+        spec = row[k].spec
+        unit = "scene units" if factor is not None else "run's normalised units"
+        out[k] = MetricValue(replace(spec, label=f"{spec.label} ({unit})", scale=spec.scale * (factor or 1.0)),
+                             row[k].value)
+    return out
+
+
+def _depth_facts(info, factor: float | None) -> list[tuple[str, str]]:
+    """What the depth numbers are: the alignment applied to the rendered depth and the units shown."""
+    method = _DEPTH_METHODS.get(info.method, info.method)
+    facts = [("depth alignment", f"rendered depth x{info.scale:.6g} before it is compared with the GT ({method})")]
+    if factor is not None:
+        facts.append(("depth units", f"the scene's own (its GT depth's or COLMAP model's): depth RMSE, MAE and the "
+                                     f"maps are the run's normalised values x{factor:.6g} (1 / the scale of scene.json's "
+                                     f"world_from_source); depth NLL stays per normalised unit (add "
+                                     f"ln {factor:.4g} = {math.log(factor):+.3f} for the scene's)"))
+    else:
+        facts.append(("depth units", "the run's normalised units (no scene.json gives the factor to the scene's)"))
+    return facts
 
 
 METRICS_LEGEND = (
@@ -233,7 +271,8 @@ def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[
     loaded: dict[int, dict[str, ViewMaps]] = {}
     body = [para("Each row: the ground-truth test image and the prediction (the mean of the sampled renders); the "
                  "absolute error and the predicted RGB std on one shared colour scale (same colour = same value); "
-                 "depth mean and std; and the rank-coloured std next to the rank-coloured error (each pixel "
+                 "depth mean and std (in the scene's own units, or the run's normalised ones where the factor is "
+                 "not known, as the panel says); and the rank-coloured std next to the rank-coloured error (each pixel "
                  "coloured by its rank quantile in its own map, so good uncertainty makes the two look alike "
                  "whatever the scales).", "legend")]
     for ri, run in enumerate(runs):
@@ -258,7 +297,7 @@ def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[
             body.append(para(f"Showing {len(shown)} of {len(names)} views (`report --set max_views=N` shows more; "
                              "the tables list every view).", "muted"))
         for vi, name in enumerate(shown):
-            view = load_view(name, run.maps_dir)
+            view = load_view(name, run.maps_dir, run.depth_to_source)
             loaded[ri][name] = view
             html = w.add_figure(f"run{ri}_view{vi}.png", F.view_figure(view, title=name), f"{run.name} — {name}",
                                 f"uncertainty maps of {name}")

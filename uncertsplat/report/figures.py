@@ -75,9 +75,14 @@ def _mapped(x: np.ndarray, cmap: str, vmin: float, vmax: float) -> np.ndarray:
     return colorize(x, mode="fixed", vmin=vmin, vmax=vmax, cmap=cmap)
 
 
-def view_figure(view: ViewMaps, title: str = "") -> bytes | None:
-    """GT, mean, error, RGB std (shared scale), depth mean, depth std, rank(std) vs rank(error): a grid of panels
-    (``report.grid``) with colour bars."""
+def depth_unit(view: ViewMaps) -> str:
+    """What the view's depth maps are drawn in: the scene's units when the factor is known, else the run's."""
+    return "scene units" if view.depth_to_source is not None else "run's normalised units"
+
+
+def view_panels(view: ViewMaps) -> list[Panel]:
+    """The panels of ``view_figure``: GT, mean, error, RGB std (shared scale), depth mean, depth std, rank(std) vs
+    rank(error), with colour bars; depths in the scene's units when ``view.depth_to_source`` is known."""
     std = view.rgb_std_gray
     panels: list[Panel] = []
     if view.gt is not None:
@@ -90,17 +95,27 @@ def view_figure(view: ViewMaps, title: str = "") -> bytes | None:
                             value_bar("inferno", 0.0, vmax)))
     if std is not None:
         panels.append(Panel("RGB std (same scale)", _mapped(std, "inferno", 0.0, vmax), value_bar("inferno", 0.0, vmax)))
+    # a length is worth reading only in the scene's units: the maps hold the run's normalised ones
+    factor = view.depth_to_source or 1.0
+    unit = depth_unit(view)
     if view.depth_mean is not None:
-        d = view.depth_mean
+        d = view.depth_mean * factor
         lo, hi = float(np.percentile(d, 1)), float(np.percentile(d, 99))
         hi = max(hi, lo + 1e-9)
-        panels.append(Panel("depth mean", _mapped(d, "viridis", lo, hi), value_bar("viridis", lo, hi)))
+        panels.append(Panel(f"depth mean ({unit})", _mapped(d, "viridis", lo, hi), value_bar("viridis", lo, hi)))
     if view.depth_std is not None:
-        top = _robust_max(view.depth_std)
-        panels.append(Panel("depth std", _mapped(view.depth_std, "magma", 0.0, top), value_bar("magma", 0.0, top)))
+        d_std = view.depth_std * factor
+        top = _robust_max(d_std)
+        panels.append(Panel(f"depth std ({unit})", _mapped(d_std, "magma", 0.0, top), value_bar("magma", 0.0, top)))
     if std is not None and view.error is not None:
         panels.append(Panel("rank of RGB std", rank_image(std), rank_bar(RANK_CMAP)))
         panels.append(Panel("rank of |error|", rank_image(view.error), rank_bar(RANK_CMAP)))
+    return panels
+
+
+def view_figure(view: ViewMaps, title: str = "") -> bytes | None:
+    """The panels of ``view_panels`` as one grid (``report.grid``), four a row; None when there is none."""
+    panels = view_panels(view)
     if not panels:
         return None
     cols = 4 if len(panels) > 4 else len(panels)

@@ -83,6 +83,17 @@ class RunData:
         return Path(self.scene_info.scene) if self.scene_info is not None else None
 
     @property
+    def depth_to_source(self) -> float | None:
+        """The factor that takes the run's normalised lengths (depth maps, depth RMSE/MAE) to the scene's own units:
+        1 / s of scene.json's ``world_from_source`` (x_run = s x_source + t), as ``evaluate`` writes it into the maps'
+        ``uncertsplat:depth_to_source``; None without a valid scene.json."""
+        if self.scene_info is None:
+            return None
+        m = np.asarray(self.scene_info.world_from_source, dtype=np.float64)
+        s = abs(float(np.linalg.det(m[:3, :3]))) ** (1.0 / 3.0) if m.shape == (4, 4) else 0.0
+        return 1.0 / s if math.isfinite(s) and s > 0 else None
+
+    @property
     def is_pruned(self) -> bool:
         return self.prune is not None or PRUNE in self.problems
 

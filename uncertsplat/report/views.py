@@ -3,7 +3,9 @@
 For an image ``name`` of ``EvalReport.image_names``, ``RUN/eval/maps/{map_stem(name)}.exr`` holds the
 float channels ``EXR_CHANNELS`` (``rgb_mean.R/G/B``, ``rgb_std.R/G/B``, ``depth_mean.Z``, ``depth_std.Z``)
 and ``{stem}_gt.png`` the ground-truth image at the same size. The absolute error is recomputed from the
-two, as ``evaluate`` does for its ``_error.png`` preview. A missing or unreadable file, or an EXR without
+two, as ``evaluate`` does for its ``_error.png`` preview. The depths are in the run's normalised units; the header's
+``uncertsplat:depth_to_source`` (or, in maps without it, the run's scene.json) gives the factor to the scene's own
+units, kept in ``ViewMaps.depth_to_source`` for the figures to label their lengths truthfully. A missing or unreadable file, or an EXR without
 one of the channels, leaves the view's panels out with a note naming the file.
 """
 
@@ -15,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from uncertsplat.errors import UserError
-from uncertsplat.io.maps import EXR_CHANNELS, map_stem
+from uncertsplat.io.maps import EXR_CHANNELS, EXR_DEPTH_TO_SOURCE, map_stem
 
 GT_SUFFIX = "_gt.png"
 
@@ -32,6 +34,8 @@ class ViewMaps:
     depth_std: np.ndarray | None = None  # [H,W]
     error: np.ndarray | None = None  # [H,W] mean absolute RGB error
     note: str = ""
+    depth_to_source: float | None = None
+    """Factor from the maps' normalised depth units to the scene's own (None: unknown, shown in the run's units)."""
 
     @property
     def rgb_std_gray(self) -> np.ndarray | None:
@@ -47,11 +51,15 @@ def gt_path(maps_dir: Path, name: str) -> Path:
     return Path(maps_dir) / f"{map_stem(name)}{GT_SUFFIX}"
 
 
-def load_view(name: str, maps_dir: Path) -> ViewMaps:
-    """Read the maps and GT of one view; missing parts stay None and ``note`` says which file and why."""
-    from uncertsplat.io.images import read_exr, read_image
+def load_view(name: str, maps_dir: Path, depth_to_source: float | None = None) -> ViewMaps:
+    """Read the maps and GT of one view; missing parts stay None and ``note`` says which file and why.
 
-    view = ViewMaps(name=name)
+    ``depth_to_source``: the run's factor to the scene's units (``RunData.depth_to_source``), used when the EXR's
+    header does not carry its own.
+    """
+    from uncertsplat.io.images import read_exr, read_exr_attribute, read_image
+
+    view = ViewMaps(name=name, depth_to_source=depth_to_source)
     problems = []
     exr = exr_path(maps_dir, name)
     if not exr.is_file():
@@ -70,6 +78,9 @@ def load_view(name: str, maps_dir: Path) -> ViewMaps:
                 view.rgb_std = np.stack([ch[f"rgb_std.{c}"] for c in "RGB"], axis=-1)
                 view.depth_mean = ch["depth_mean.Z"]
                 view.depth_std = ch["depth_std.Z"]
+                factor = read_exr_attribute(exr, EXR_DEPTH_TO_SOURCE)
+                if isinstance(factor, (int, float)) and factor > 0:
+                    view.depth_to_source = float(factor)
     gt = gt_path(maps_dir, name)
     if not gt.is_file():
         problems.append(f"{gt.name} not found")
