@@ -758,3 +758,17 @@ def test_depth_lengths_are_shown_in_the_scenes_units(tmp_path):
     m.write(plain / "eval" / "metrics.json")
     html = stage.run([plain], tmp_path / "out2", ReportConfig()).read_text()
     assert "Depth RMSE (run&#x27;s normalised units)" in html
+
+
+def test_timeline_speed_panel_holds_every_run(monkeypatch):
+    """The seconds-per-step panel's limits are set after all runs are drawn (set in the loop, the first run's range
+    froze the top and a slower run's line left the panel)."""
+    from uncertsplat.report import figures
+
+    monkeypatch.setattr(figures, "_png", lambda fig: fig)  # the figure itself, to read its axes
+    fast = [dict(step=s, sec_per_step=0.05) for s in range(0, 100, 10)]
+    slow = [dict(step=s, sec_per_step=5.0) for s in range(0, 100, 10)]
+    fig = figures.timeline_figure([("fast", fast), ("slow", slow)])
+    ax = next(a for a in fig.axes if a.get_title() == "seconds per step")
+    bottom, top = ax.get_ylim()
+    assert bottom == 0 and top >= 5.0

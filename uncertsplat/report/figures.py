@@ -307,7 +307,9 @@ def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
                     x, y = stats_series(stats, "sec_per_step")
                     ax.plot(x, y, color=col, lw=1.0, label=f"{pre}s/step")
                     ax.set_title("seconds per step")
-                    ax.set_ylim(bottom=0)
+            if panel == "speed":
+                # after every run is drawn: set inside the loop, it froze the top at the first run's range
+                ax.set_ylim(bottom=0)
             ax.set_xlabel("step")
             if ax.get_legend_handles_labels()[0]:
                 ax.legend(frameon=False)
