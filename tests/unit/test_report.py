@@ -772,3 +772,28 @@ def test_timeline_speed_panel_holds_every_run(monkeypatch):
     ax = next(a for a in fig.axes if a.get_title() == "seconds per step")
     bottom, top = ax.get_ylim()
     assert bottom == 0 and top >= 5.0
+
+
+def test_summary_names_each_runs_scene_and_resolution_and_warns_when_they_differ(tmp_path):
+    """A run trained at 16x12 (--preset paper) beside runs at 128x96, or on another scene: the summary shows each run's
+    scene and training resolution and says the metrics are not comparable."""
+    names = ("view_000.png", "view_008.png")
+    scene = make_scene(tmp_path, list(names))
+    a = make_run(tmp_path / "a", "run", names=names, scene=scene, maps=False, stats=False)
+    b = make_run(tmp_path / "b", "run", names=names, scene=scene, maps=False, stats=False, seed=1)
+    html = stage.run([a, b], tmp_path / "same", ReportConfig()).read_text()
+    rows = re.findall(r'<tr[^>]*data-row="([^"]*)"><td class="text">[^<]*</td><td class="text">([^<]*)</td>'
+                      r'<td>([^<]*)</td>', html)
+    assert rows[:2] == [("a/run", scene.name, f"{W}x{H}"), ("b/run", scene.name, f"{W}x{H}")]
+    assert "These runs were trained" not in html
+    info = RunScene.read(b / "scene.json")
+    info.width, info.height = 2 * W, 2 * H
+    info.write(b / "scene.json")
+    html = stage.run([a, b], tmp_path / "res", ReportConfig()).read_text()
+    assert (f"These runs were trained at different resolutions (a/run: {W}x{H}, b/run: {2 * W}x{2 * H}): their "
+            "metrics are not comparable") in html
+    other = make_scene(tmp_path / "elsewhere", list(names))
+    info.scene, info.width, info.height = str(other), W, H
+    info.write(b / "scene.json")
+    html = stage.run([a, b], tmp_path / "scn", ReportConfig()).read_text()
+    assert f"These runs were trained on different scenes (a/run: {scene}, b/run: {other}): their" in html

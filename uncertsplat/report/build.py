@@ -114,11 +114,14 @@ def _num_gaussians(run: RunData) -> int | None:
 def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
     rows_by_run = [metric_row(r.metrics.mean) if r.metrics is not None else {} for r in runs]
     keys = [k for k in SUMMARY_KEYS if any(k in row and row[k].value is not None for row in rows_by_run)]
-    header = ["run"] + [SPEC_BY_KEY[k].label for k in keys] + [
+    header = ["run", "scene", "trained at (px)"] + [SPEC_BY_KEY[k].label for k in keys] + [
         "Gaussians", "training time", "s / view (uncertainty)", "samples K"]
     rows = []
     for run, mrow in zip(runs, rows_by_run, strict=True):
-        cells: list[Cell | str] = [_cell(mrow[k]) if k in mrow else Cell("n/a") for k in keys]
+        info = run.scene_info
+        cells: list[Cell | str] = [Cell(Path(info.scene).name if info else "n/a", text_cell=True),
+                                   Cell(f"{info.width}x{info.height}" if info else "n/a")]
+        cells += [_cell(mrow[k]) if k in mrow else Cell("n/a") for k in keys]
         ng = _num_gaussians(run)
         cells.append(_num_cell(ng, ",d", "num_gaussians") if ng is not None else Cell("n/a"))
         ts = run.train_summary.seconds if run.train_summary is not None else None
@@ -130,6 +133,9 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
                      else Cell("n/a"))
         rows.append((run.name, cells))
     body = [table(header, rows, table_id="summary")]
+    mismatch = comparability_note(runs)
+    if mismatch:
+        body.append(note(mismatch))
     body.append(para("Metrics are the means over the evaluated views, exactly as in each run's eval/metrics.json. "
                      "Lower is better for AUSE, NLL and calibration error; higher for PSNR and SSIM.", "legend"))
     for run in runs:
@@ -152,6 +158,26 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
             last = updates[-1].model_dump() if updates else None
             body.append(note(f"{run.name} (train): {describe_posterior(post.model_dump(), last)}"))
     w.section("summary", "Summary", "".join(body))
+
+
+def comparability_note(runs: list[RunData]) -> str | None:
+    """One sentence when the runs were trained on different scenes or at different resolutions (from each scene.json):
+    their metrics then measure different things and must not be ranked against each other. None when they agree, or
+    fewer than two runs say."""
+    known = [r for r in runs if r.scene_info is not None]
+    if len(known) < 2:
+        return None
+    scenes = {str(Path(r.scene_info.scene).resolve()) for r in known}
+    sizes = {(r.scene_info.width, r.scene_info.height) for r in known}
+    what = []
+    if len(scenes) > 1:
+        what.append("on different scenes (" + ", ".join(f"{r.name}: {r.scene_info.scene}" for r in known) + ")")
+    if len(sizes) > 1:
+        what.append("at different resolutions (" + ", ".join(f"{r.name}: {r.scene_info.width}x{r.scene_info.height}"
+                                                          for r in known) + ")")
+    if not what:
+        return None
+    return ("These runs were trained " + " and ".join(what) + ": their metrics are not comparable (PSNR, NLL and the rest are measured on different images).")
 
 
 CALIBRATION_SLACK = 0.05
