@@ -797,3 +797,27 @@ def test_summary_names_each_runs_scene_and_resolution_and_warns_when_they_differ
     info.write(b / "scene.json")
     html = stage.run([a, b], tmp_path / "scn", ReportConfig()).read_text()
     assert f"These runs were trained on different scenes (a/run: {scene}, b/run: {other}): their" in html
+
+
+def test_psnr_inside_the_masks_is_labelled_so(tmp_path):
+    """On a masked scene evaluate's PSNR is inside the masks while train's test_psnr is over whole images: the columns
+    say which (the header when every run is masked, a mark on the masked runs' cells otherwise)."""
+    from uncertsplat.eval.engine import MASKED_NOTE
+
+    masked = make_run(tmp_path, "masked", maps=False)
+    m = EvalReport.read(masked / "eval" / "metrics.json")
+    m.mean.psnr_render = 19.06
+    m.notes = [f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them (30% of the pixels)"]
+    m.write(masked / "eval" / "metrics.json")
+    html = stage.run([masked], tmp_path / "one", ReportConfig()).read_text()
+    assert "<th>PSNR, one render, inside the masks (dB)</th>" in html
+    assert "<th>PSNR, inside the masks (dB)</th>" in html
+    assert "test_psnr is over whole images" in html
+    plain = make_run(tmp_path, "plain", maps=False)
+    html = stage.run([masked, plain], tmp_path / "two", ReportConfig()).read_text()
+    assert "<th>PSNR, one render (dB) †: inside the masks</th>" in html
+    row = table_rows(html, "summary")
+    assert next(t for k, _, t in row["masked"] if k == "psnr_render") == "19.06 †"
+    assert all(not t.endswith("†") for _, _, t in row["plain"])
+    html = stage.run([plain], tmp_path / "none", ReportConfig()).read_text()
+    assert "inside the masks" not in html and "test_psnr is over whole images" not in html

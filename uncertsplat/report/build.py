@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from uncertsplat.eval.engine import MASKED_NOTE
 from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.report import figures as F
 from uncertsplat.report.extract import (
@@ -111,17 +112,45 @@ def _num_gaussians(run: RunData) -> int | None:
 
 
 # ----------------------------------------------------------------------------------------- sections
+MASKED_KEYS = ("psnr", "psnr_render")
+"""Columns ``evaluate`` takes inside a scene's validity masks (``eval.engine.MASKED_NOTE``) that a reader compares with
+numbers over whole images (train's held-out PSNR): labelled so where they are."""
+MASK_MARK = " †"
+
+
+def is_masked(run: RunData) -> bool:
+    """Whether the run's evaluation took its PSNR (and AUSE, NLL, ...) inside the scene's validity masks."""
+    return run.metrics is not None and any(n.startswith(MASKED_NOTE) for n in run.metrics.notes)
+
+
+def _inside_masks(label: str) -> str:
+    """'PSNR, one render (dB)' -> 'PSNR, one render, inside the masks (dB)'."""
+    head, sep, unit = label.rpartition(" (")
+    return f"{head}, inside the masks ({unit}" if sep else f"{label}, inside the masks"
+
+
 def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
     rows_by_run = [metric_row(r.metrics.mean) if r.metrics is not None else {} for r in runs]
     keys = [k for k in SUMMARY_KEYS if any(k in row and row[k].value is not None for row in rows_by_run)]
-    header = ["run", "scene", "trained at (px)"] + [SPEC_BY_KEY[k].label for k in keys] + [
+    masked = [is_masked(r) for r in runs]
+    evaluated = [m for r, m in zip(runs, masked, strict=True) if r.metrics is not None]
+    all_masked, some_masked = bool(evaluated) and all(evaluated), any(evaluated)
+    labels = {k: SPEC_BY_KEY[k].label for k in keys}
+    for k in MASKED_KEYS:
+        if k in labels and some_masked:  # all: the header says it; some: a mark on those runs' cells
+            labels[k] = _inside_masks(labels[k]) if all_masked else f"{labels[k]}{MASK_MARK}: inside the masks"
+    header = ["run", "scene", "trained at (px)"] + [labels[k] for k in keys] + [
         "Gaussians", "training time", "s / view (uncertainty)", "samples K"]
     rows = []
-    for run, mrow in zip(runs, rows_by_run, strict=True):
+    for run, mrow, mask in zip(runs, rows_by_run, masked, strict=True):
         info = run.scene_info
         cells: list[Cell | str] = [Cell(Path(info.scene).name if info else "n/a", text_cell=True),
                                    Cell(f"{info.width}x{info.height}" if info else "n/a")]
-        cells += [_cell(mrow[k]) if k in mrow else Cell("n/a") for k in keys]
+        for k in keys:
+            cell = _cell(mrow[k]) if k in mrow else Cell("n/a")
+            if mask and not all_masked and k in MASKED_KEYS and k in mrow:
+                cell.text += MASK_MARK
+            cells.append(cell)
         ng = _num_gaussians(run)
         cells.append(_num_cell(ng, ",d", "num_gaussians") if ng is not None else Cell("n/a"))
         ts = run.train_summary.seconds if run.train_summary is not None else None
@@ -223,6 +252,8 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
         keys = [s.key for s in METRIC_SPECS if any(r[s.key].value is not None for _, r in rows_in)]
         empty = [s.label for s in METRIC_SPECS if s.key not in keys]
         labels = {k: rows_in[-1][1][k].spec.label for k in keys}
+        if is_masked(run):
+            labels.update({k: _inside_masks(labels[k]) for k in MASKED_KEYS if k in labels})
         rows = [(name, [_cell(r[k]) for k in keys]) for name, r in rows_in]
         facts: list[tuple[str, Any]] = [("split", m.split), ("views", len(m.per_view)), ("samples K", m.num_samples)]
         if m.depth_scale is not None:
@@ -453,6 +484,9 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
             data = s.model_dump(mode="json")
             items = [(k, _short(v)) for k, v in data.items() if v is not None and not isinstance(v, (dict, list))]
             body.append(f"<h4>{esc(run.name)}: train_summary.json</h4>" + kv(items))
+            if is_masked(run) and s.test_psnr is not None:
+                body.append(note(f"{run.name}: test_psnr is over whole images; evaluate's PSNR (Summary, Metrics) is "
+                                 "inside the scene's validity masks, so the two differ for the same render."))
             for warning in s.warnings:  # e.g. a model that cannot fit its own training views
                 body.append(note(f"{run.name}: {warning}"))
             for band in s.sh_bands:  # which SH bands the scene kept, and why
