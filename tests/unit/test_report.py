@@ -821,3 +821,16 @@ def test_psnr_inside_the_masks_is_labelled_so(tmp_path):
     assert all(not t.endswith("†") for _, _, t in row["plain"])
     html = stage.run([plain], tmp_path / "none", ReportConfig()).read_text()
     assert "inside the masks" not in html and "test_psnr is over whole images" not in html
+
+
+def test_an_automatic_prune_says_its_ratio_and_score_were_chosen(tmp_path):
+    """prune --auto writes keep_ratio (the one it chose) with mode "auto": not a ratio the user requested."""
+    run = make_run(tmp_path, "auto", stats=False, maps=False, prune=True)
+    rep = PruneReport.read(run / "prune.json")
+    rep.mode, rep.keep_ratio, rep.score, rep.score_requested, rep.tolerance_db = "auto", 0.7, "gate", "auto", 0.1
+    rep.write(run / "prune.json")
+    text = " ".join(parse(stage.run(run, tmp_path / "out")).text)
+    assert "keep ratio requested" not in text
+    assert "0.700, chosen automatically (prune --auto): the largest removal whose held-out PSNR of the expected " \
+           "render stays within 0.1 dB of the unpruned model's" in text
+    assert "gate (chosen automatically:" in text and "requested: auto" not in text

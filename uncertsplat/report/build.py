@@ -509,9 +509,19 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
 
 # -------------------------------------------------------------------------------------------- pruning
 def _prune_facts(p: PruneReport) -> list[tuple[str, str]]:
-    score = p.score if p.score == p.score_requested else f"{p.score} (requested: {p.score_requested})"
-    facts = [("score", score), ("mode", p.mode),
-             ("keep ratio requested", format_value(p.keep_ratio, ".3f") if p.keep_ratio is not None else "—"),
+    if p.score == p.score_requested:
+        score = p.score
+    elif p.score_requested == "auto":  # prune.json's notes say which scores were tried and what each removed
+        score = f"{p.score} (chosen automatically: of the scores tried, the one that removes the most within tolerance)"
+    else:
+        score = f"{p.score} (requested: {p.score_requested})"
+    if p.mode == "auto":  # no ratio was asked for: --auto chose it, 0.7 is not the user's
+        ratio = ("keep ratio", (format_value(p.keep_ratio, ".3f") if p.keep_ratio is not None else "none") +
+                 f", chosen automatically (prune --auto): the largest removal whose held-out PSNR of the expected "
+                 f"render stays within {p.tolerance_db:g} dB of the unpruned model's")
+    else:
+        ratio = ("keep ratio requested", format_value(p.keep_ratio, ".3f") if p.keep_ratio is not None else "—")
+    facts = [("score", score), ("mode", p.mode), ratio,
              ("keep ratio achieved", format_value(p.keep_ratio_achieved, ".3f")
               if p.keep_ratio_achieved is not None else "—"),
              ("threshold requested", _short(p.threshold)),
