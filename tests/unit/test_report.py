@@ -752,7 +752,7 @@ def test_depth_lengths_are_shown_in_the_scenes_units(tmp_path):
     assert view.depth_to_source == 2.0
     panels = {p.title: p for p in figures.view_panels(view)}
     bar = panels["depth std (scene units)"].bar
-    assert bar.ticks[-1][1] == f"{float(np.percentile(view.depth_std * 2.0, 99)):.3g}"
+    assert bar.ticks[-1][1] == f"≥{float(np.percentile(view.depth_std * 2.0, 99)):.3g}"
     assert "depth mean (scene units)" in panels
     plain = make_run(tmp_path, "plain", names=names)  # no scene.json: the run's units, named
     m.write(plain / "eval" / "metrics.json")
@@ -834,3 +834,22 @@ def test_an_automatic_prune_says_its_ratio_and_score_were_chosen(tmp_path):
     assert "0.700, chosen automatically (prune --auto): the largest removal whose held-out PSNR of the expected " \
            "render stays within 0.1 dB of the unpruned model's" in text
     assert "gate (chosen automatically:" in text and "requested: auto" not in text
+
+
+def test_colour_bars_say_where_they_clip_and_what_they_measure():
+    """The error / std / depth colour bars end at percentiles: an end with pixels beyond it reads ≥ (≤), as an extended
+    colour bar would; one without reads the plain number. The panels name their units."""
+    from uncertsplat.report import figures
+    from uncertsplat.report.views import ViewMaps
+
+    rng = np.random.default_rng(0)
+    err = rng.random((H, W)) * 0.1
+    err[0, 0] = 0.9  # one bright pixel past the 99th percentile
+    view = ViewMaps("v", rgb_std=np.full((H, W, 3), 0.05), error=err, depth_mean=1 + rng.random((H, W)),
+                    depth_std=np.full((H, W), 0.2))
+    panels = {p.title: p for p in figures.view_panels(view)}
+    assert panels["|error| (colour, 0-1)"].bar.ticks[-1][1].startswith("≥")
+    assert panels["RGB std (colour, 0-1)"].bar is panels["|error| (colour, 0-1)"].bar  # one shared scale
+    depth = panels["depth mean (run's normalised units)"].bar.ticks
+    assert depth[0][1].startswith("≤") and depth[-1][1].startswith("≥")
+    assert panels["depth std (run's normalised units)"].bar.ticks[-1][1] == "0.2"  # a constant map: nothing clipped

@@ -331,7 +331,8 @@ def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[
                  "depth mean and std (in the scene's own units, or the run's normalised ones where the factor is "
                  "not known, as the panel says); and the rank-coloured std next to the rank-coloured error (each pixel "
                  "coloured by its rank quantile in its own map, so good uncertainty makes the two look alike "
-                 "whatever the scales).", "legend")]
+                 "whatever the scales). The colour bars end at the 99th percentile (the depth mean's start at the "
+                 "1st): an end labelled ≥ or ≤ has pixels beyond it, drawn in its colour.", "legend")]
     for ri, run in enumerate(runs):
         title = f"<h3>{esc(run.name)}</h3>" if len(runs) > 1 else ""
         if run.metrics is None:

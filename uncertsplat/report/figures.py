@@ -70,6 +70,15 @@ def _robust_max(*arrays: np.ndarray | None, q: float = 99.0) -> float:
     return v if v > 0 else max(float(max(a.max() for a in vals)), 1e-6)
 
 
+def _beyond(top: float, *arrays: np.ndarray | None) -> bool:
+    """Whether any finite value of ``arrays`` lies above ``top`` (the colour bar then says its top is clipped)."""
+    return any(a is not None and bool(np.any(a[np.isfinite(a)] > top)) for a in arrays)
+
+
+RGB_UNIT = "colour, 0-1"
+"""What the error and RGB std maps are measured in: differences of colour channels on the image's 0-1 scale."""
+
+
 # -------------------------------------------------------------------------------------------- per view
 def _mapped(x: np.ndarray, cmap: str, vmin: float, vmax: float) -> np.ndarray:
     return colorize(x, mode="fixed", vmin=vmin, vmax=vmax, cmap=cmap)
@@ -90,11 +99,11 @@ def view_panels(view: ViewMaps) -> list[Panel]:
     if view.rgb_mean is not None:
         panels.append(Panel("mean render", to_uint8(view.rgb_mean)))
     vmax = _robust_max(view.error, std)
+    bar = value_bar("inferno", 0.0, vmax, above=_beyond(vmax, view.error, std))
     if view.error is not None:
-        panels.append(Panel("|error| (RGB mean)", _mapped(view.error, "inferno", 0.0, vmax),
-                            value_bar("inferno", 0.0, vmax)))
+        panels.append(Panel(f"|error| ({RGB_UNIT})", _mapped(view.error, "inferno", 0.0, vmax), bar))
     if std is not None:
-        panels.append(Panel("RGB std (same scale)", _mapped(std, "inferno", 0.0, vmax), value_bar("inferno", 0.0, vmax)))
+        panels.append(Panel(f"RGB std ({RGB_UNIT})", _mapped(std, "inferno", 0.0, vmax), bar))
     # a length is worth reading only in the scene's units: the maps hold the run's normalised ones
     factor = view.depth_to_source or 1.0
     unit = depth_unit(view)
@@ -102,11 +111,15 @@ def view_panels(view: ViewMaps) -> list[Panel]:
         d = view.depth_mean * factor
         lo, hi = float(np.percentile(d, 1)), float(np.percentile(d, 99))
         hi = max(hi, lo + 1e-9)
-        panels.append(Panel(f"depth mean ({unit})", _mapped(d, "viridis", lo, hi), value_bar("viridis", lo, hi)))
+        finite = d[np.isfinite(d)]
+        below = bool(finite.size) and float(finite.min()) < lo
+        panels.append(Panel(f"depth mean ({unit})", _mapped(d, "viridis", lo, hi),
+                            value_bar("viridis", lo, hi, below=below, above=_beyond(hi, d))))
     if view.depth_std is not None:
         d_std = view.depth_std * factor
         top = _robust_max(d_std)
-        panels.append(Panel(f"depth std ({unit})", _mapped(d_std, "magma", 0.0, top), value_bar("magma", 0.0, top)))
+        panels.append(Panel(f"depth std ({unit})", _mapped(d_std, "magma", 0.0, top),
+                            value_bar("magma", 0.0, top, above=_beyond(top, d_std))))
     if std is not None and view.error is not None:
         panels.append(Panel("rank of RGB std", rank_image(std), rank_bar(RANK_CMAP)))
         panels.append(Panel("rank of |error|", rank_image(view.error), rank_bar(RANK_CMAP)))
@@ -128,9 +141,10 @@ def side_by_side_figure(views: Sequence[tuple[str, ViewMaps]], view_name: str) -
     rows = [(label, v) for label, v in views if v.rgb_mean is not None or v.rgb_std is not None]
     if len(rows) < 2:
         return None
-    vmax = _robust_max(*[v.error for _, v in rows], *[v.rgb_std_gray for _, v in rows])
-    bar = value_bar("inferno", 0.0, vmax)
-    titles = ["mean render", "|error|", "RGB std", "rank of RGB std", "rank of |error|"]
+    maps = [v.error for _, v in rows] + [v.rgb_std_gray for _, v in rows]
+    vmax = _robust_max(*maps)
+    bar = value_bar("inferno", 0.0, vmax, above=_beyond(vmax, *maps))
+    titles = ["mean render", f"|error| ({RGB_UNIT})", f"RGB std ({RGB_UNIT})", "rank of RGB std", "rank of |error|"]
     grid = []
     for r, (_, v) in enumerate(rows):
         std = v.rgb_std_gray

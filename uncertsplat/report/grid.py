@@ -45,10 +45,12 @@ class Panel:
     bar: ColourBar | None = None
 
 
-def value_bar(cmap: str, vmin: float, vmax: float) -> ColourBar:
-    """A bar for values from ``vmin`` to ``vmax`` (three ticks)."""
+def value_bar(cmap: str, vmin: float, vmax: float, *, below: bool = False, above: bool = False) -> ColourBar:
+    """A bar for values from ``vmin`` to ``vmax`` (three ticks). ``below`` / ``above``: the map has values past that
+    end, drawn in its colour: the end's label reads "≤" / "≥" (matplotlib's extended colour bar, in words)."""
     mid = 0.5 * (vmin + vmax)
-    return ColourBar(cmap, ((0.0, _num(vmin)), (0.5, _num(mid)), (1.0, _num(vmax))))
+    return ColourBar(cmap, ((0.0, ("≤" if below else "") + _num(vmin)), (0.5, _num(mid)),
+                            (1.0, ("≥" if above else "") + _num(vmax))))
 
 
 def rank_bar(cmap: str) -> ColourBar:
