@@ -389,7 +389,7 @@ def test_prune_section_shows_the_prune_report(tmp_path):
     # spot-check the formats themselves, so a change of format is a deliberate one
     assert rows["after"][0][2] == "24.95" and rows["after"][1][2] == "24.98"
     assert rows["after"][5][2] == "1,071" and rows["after"][6][2] == "1.11"
-    assert {"PSNR (dB)", "SSIM", "AUSE MAE", "NLL", "Gaussians", "PLY size (MB)"} <= set(page.text)
+    assert {"PSNR (dB)", "SSIM", "AUSE MAE", "NLL (nats)", "Gaussians", "PLY size (MB)"} <= set(page.text)
 
     sweep_rows = table_rows(html, "prune-sweep-0")
     assert len(sweep_rows) == len(rep.sweep.points)
@@ -853,3 +853,21 @@ def test_colour_bars_say_where_they_clip_and_what_they_measure():
     depth = panels["depth mean (run's normalised units)"].bar.ticks
     assert depth[0][1].startswith("≤") and depth[-1][1].startswith("≥")
     assert panels["depth std (run's normalised units)"].bar.ticks[-1][1] == "0.2"  # a constant map: nothing clipped
+
+
+def test_units_and_terms_are_said_once(tmp_path):
+    """NLL headers say nats; AUSE and 'carriers' are explained once; an unavailable LPIPS is listed once (with its
+    reason), not again among the metrics not available."""
+    from uncertsplat.schemas.metrics import LpipsStatus
+
+    run = make_run(tmp_path, "r", maps=False)
+    m = EvalReport.read(run / "eval" / "metrics.json")
+    m.lpips = LpipsStatus(available=False, reason="unavailable: no local weights")
+    m.write(run / "eval" / "metrics.json")
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    assert "<th>NLL (nats)</th>" in html and "<th>NLL (KDE, nats)</th>" in html
+    assert "<th>NLL</th>" not in html
+    assert html.count("area under the sparsification error") == 1
+    assert html.count("the Gaussians that carry a posterior") == 1
+    facts = html[html.index('<section id="metrics">'):html.index('<section id="views">')]
+    assert facts.count("LPIPS") == 1 and "unavailable: no local weights" in facts

@@ -166,7 +166,11 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
     if mismatch:
         body.append(note(mismatch))
     body.append(para("Metrics are the means over the evaluated views, exactly as in each run's eval/metrics.json. "
-                     "Lower is better for AUSE, NLL and calibration error; higher for PSNR and SSIM.", "legend"))
+                     "Lower is better for AUSE, NLL and calibration error; higher for PSNR and SSIM. AUSE: the area "
+                     "under the sparsification error, how far removing pixels by their predicted std falls short of "
+                     "removing them by their true error (0: a perfect ranking). NLL: the negative log-likelihood of the "
+                     "photo per pixel and channel, in nats. Carriers: the Gaussians that carry a posterior (the others "
+                     "are plain 3DGS Gaussians).", "legend"))
     for run in runs:
         if run.metrics is None and run.problem(METRICS) is None:
             body.append(_missing_metrics_note(run))
@@ -268,6 +272,7 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
                                             + (f", fitted on the {m.calibration_source}" if m.calibration_views else "")))
         if m.lpips is not None and not m.lpips.available:
             facts.append(("LPIPS", m.lpips.reason or "unavailable"))
+            empty = [e for e in empty if e != SPEC_BY_KEY["lpips"].label]  # said once, with its reason
         if empty:
             facts.append(("not available", ", ".join(empty)))
         header = ["view"] + [labels[k] for k in keys]
@@ -314,8 +319,8 @@ def _depth_facts(info, factor: float | None) -> list[tuple[str, str]]:
 
 
 METRICS_LEGEND = (
-    "NLL: of the predictive evaluate writes (the std of every term, Student-t tails where fitted), per pixel and "
-    "channel; the number to compare methods on. NLL, std rescaled: the same with the std times the fitted factor. "
+    "NLL (nats): of the predictive evaluate writes (the std of every term, Student-t tails where fitted), per pixel "
+    "and channel; the number to compare methods on. NLL, std rescaled: the same with the std times the fitted factor. "
     "NLL, read as a Gaussian: the same std without the tails. NLL (KDE): a kernel density (Silverman's bandwidth) "
     "over the K samples' renders alone, without the pixel noise and the other terms; where the samples agree closely "
     "and the photo differs it runs into the thousands, which says the samples' spread is narrow, not that the "
