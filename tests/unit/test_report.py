@@ -871,3 +871,28 @@ def test_units_and_terms_are_said_once(tmp_path):
     assert html.count("the Gaussians that carry a posterior") == 1
     facts = html[html.index('<section id="metrics">'):html.index('<section id="views">')]
     assert facts.count("LPIPS") == 1 and "unavailable: no local weights" in facts
+
+
+def test_a_model_without_a_posterior_reads_consistently(tmp_path):
+    """A deterministic run: evaluate's note says the samples' spread is 0, so the 'std =' formula says so at its
+    spread term; train's 'test_render: expected render (variational...)' is not shown for a model without carriers."""
+    run = make_run(tmp_path, "det", maps=False)
+    m = EvalReport.read(run / "eval" / "metrics.json")
+    m.notes = ["deterministic model: every sample is the same render, so the samples' spread is 0 everywhere; the std "
+               "holds the predictive's other terms (the 'std =' note lists them)",
+               "std = the spread of the K samples + the pixel noise of the Gaussians on the training views"]
+    m.write(run / "eval" / "metrics.json")
+    summary = TrainSummary.read(run / "train_summary.json")
+    summary.method, summary.num_carriers = "deterministic", 0
+    summary.test_render = "expected render (variational.expected_render_sample)"
+    summary.write(run / "train_summary.json")
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    assert ("std = the spread of the K samples (0 for this model: every sample is the same render) + the pixel noise"
+            in html)
+    assert "expected_render_sample" not in html
+    summary.method, summary.num_carriers = "variational", 600  # a model with a posterior keeps both as they are
+    summary.write(run / "train_summary.json")
+    m.notes = m.notes[1:]
+    m.write(run / "eval" / "metrics.json")
+    html = stage.run([run], tmp_path / "out2", ReportConfig()).read_text()
+    assert "std = the spread of the K samples + the pixel noise" in html and "expected_render_sample" in html

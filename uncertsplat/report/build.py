@@ -182,7 +182,7 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
         if run.metrics is not None:
             if run.metrics.mean.spearman_note:
                 body.append(note(f"{run.name}: Spearman: {run.metrics.mean.spearman_note}"))
-            for n in run.metrics.notes:
+            for n in evaluate_notes(run.metrics.notes):
                 body.append(note(f"{run.name} (evaluate): {n}"))
         post = run.train_summary.posterior if run.train_summary is not None else None
         if post is not None and post.carriers and post.moved_fraction is not None \
@@ -211,6 +211,21 @@ def comparability_note(runs: list[RunData]) -> str | None:
     if not what:
         return None
     return ("These runs were trained " + " and ".join(what) + ": their metrics are not comparable (PSNR, NLL and the rest are measured on different images).")
+
+
+SAME_RENDER = "every sample is the same render"
+"""How evaluate's note on a model without a posterior (deterministic, one ensemble member, no carrier) says that the
+samples' spread is 0."""
+SPREAD_TERM = "std = the spread of the K samples"
+
+
+def evaluate_notes(notes: list[str]) -> list[str]:
+    """evaluate's notes as shown: for a model whose samples are all one render, the 'std =' formula's first term says
+    it is 0 there (it read as if the spread counted, beside the note that says it is 0)."""
+    if not any(SAME_RENDER in n for n in notes):
+        return list(notes)
+    return [n.replace(SPREAD_TERM, f"{SPREAD_TERM} (0 for this model: {SAME_RENDER})", 1)
+            if n.startswith(SPREAD_TERM) and not n.startswith(SPREAD_TERM + " (0") else n for n in notes]
 
 
 CALIBRATION_SLACK = 0.05
@@ -488,7 +503,10 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
         s = run.train_summary
         if s is not None:
             data = s.model_dump(mode="json")
-            items = [(k, _short(v)) for k, v in data.items() if v is not None and not isinstance(v, (dict, list))]
+            # without a carrier the expected render is the model's plain render: naming the variational one misleads
+            skip = {"test_render"} if not s.num_carriers else set()
+            items = [(k, _short(v)) for k, v in data.items()
+                     if v is not None and not isinstance(v, (dict, list)) and k not in skip]
             body.append(f"<h4>{esc(run.name)}: train_summary.json</h4>" + kv(items))
             if is_masked(run) and s.test_psnr is not None:
                 body.append(note(f"{run.name}: test_psnr is over whole images; evaluate's PSNR (Summary, Metrics) is "
