@@ -896,3 +896,29 @@ def test_a_model_without_a_posterior_reads_consistently(tmp_path):
     m.write(run / "eval" / "metrics.json")
     html = stage.run([run], tmp_path / "out2", ReportConfig()).read_text()
     assert "std = the spread of the K samples + the pixel noise" in html and "expected_render_sample" in html
+
+
+def test_an_ensemble_says_its_count_is_the_members_sum_and_draws_their_timelines(tmp_path, monkeypatch):
+    """An ensemble's num_gaussians sums its members': shown so; its timeline is in members/*/stats.jsonl, drawn from
+    there (the report said 'no stats.jsonl')."""
+    from uncertsplat.report import figures
+
+    run = make_run(tmp_path, "ens", maps=False)
+    summary = TrainSummary.read(run / "train_summary.json")
+    summary.method, summary.ensemble_size, summary.num_gaussians = "ensemble", 2, 30526
+    summary.write(run / "train_summary.json")
+    log = (run / "stats.jsonl").read_text()
+    (run / "stats.jsonl").unlink()  # an ensemble run has none of its own
+    for i in range(2):
+        (run / "members" / f"member_{i}").mkdir(parents=True)
+        (run / "members" / f"member_{i}" / "stats.jsonl").write_text(log)
+    drawn = []
+    real = figures.timeline_figure
+    monkeypatch.setattr(figures, "timeline_figure", lambda per_run: drawn.append(per_run) or real(per_run))
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    cell = next(t for k, _, t in table_rows(html, "summary")["ens"] if k == "num_gaussians")
+    assert cell == "30,526 over 2 members"
+    assert "30526 (the sum over 2 members)" in html
+    assert "no stats.jsonl" not in html
+    assert [label for label, _ in drawn[0]] == ["ens members/member_0", "ens members/member_1"]
+    assert "figures/timeline.png" in parse(tmp_path / "out" / "index.html").imgs

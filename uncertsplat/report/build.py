@@ -111,6 +111,14 @@ def _num_gaussians(run: RunData) -> int | None:
     return run.train_summary.num_gaussians if run.train_summary is not None else None
 
 
+def _ensemble_size(run: RunData) -> int | None:
+    """The number of members of an unpruned ensemble run (whose Gaussian count sums theirs), else None."""
+    s = run.train_summary
+    if s is None or run.is_pruned or not s.ensemble_size or s.ensemble_size < 2:
+        return None
+    return s.ensemble_size
+
+
 # ----------------------------------------------------------------------------------------- sections
 MASKED_KEYS = ("psnr", "psnr_render")
 """Columns ``evaluate`` takes inside a scene's validity masks (``eval.engine.MASKED_NOTE``) that a reader compares with
@@ -152,7 +160,11 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
                 cell.text += MASK_MARK
             cells.append(cell)
         ng = _num_gaussians(run)
-        cells.append(_num_cell(ng, ",d", "num_gaussians") if ng is not None else Cell("n/a"))
+        cell = _num_cell(ng, ",d", "num_gaussians") if ng is not None else Cell("n/a")
+        members = _ensemble_size(run)
+        if ng is not None and members:  # the members' sum: the size of no one model
+            cell.text += f" over {members} members"
+        cells.append(cell)
         ts = run.train_summary.seconds if run.train_summary is not None else None
         cells.append(Cell(_fmt_seconds(ts), key="train_seconds", value=ts) if ts is not None else Cell("n/a"))
         m = run.metrics
@@ -487,17 +499,22 @@ def calibration_section(w: ReportWriter, runs: list[RunData]) -> None:
 
 def training_section(w: ReportWriter, runs: list[RunData]) -> None:
     body = []
-    with_stats = [(r.name, r.stats) for r in runs if r.stats]
+    with_stats = []
+    for r in runs:
+        if r.stats:
+            with_stats.append((r.name, r.stats))
+        with_stats += [(f"{r.name} {member}", rows) for member, rows in r.member_stats]
     if with_stats:
         body.append(w.add_figure("timeline.png", F.timeline_figure(with_stats),
-                                 "Training timeline from stats.jsonl: loss terms (symlog scale), number of "
+                                 "Training timeline from stats.jsonl (an ensemble's from each member's, "
+                                 "members/*/stats.jsonl): loss terms (symlog scale), number of "
                                  "Gaussians (dashed: those carrying a posterior), held-out PSNR, seconds per step. "
                                  "A held-out PSNR that drops at a step and recovers within a few hundred is an "
                                  "opacity reset (densify.opacity_reset_interval, 3DGS's way to clear floaters: every "
                                  "opacity is lowered at once and relearned), not a failure.",
                                  "training timeline"))
     for run in runs:
-        if not run.stats:
+        if not run.stats and not run.member_stats:
             body.append(note(f"{run.name}: no stats.jsonl (a pruned run has none; its source run has the timeline)."
                              if run.is_pruned else f"{run.name}: no stats.jsonl; training timeline left out."))
         s = run.train_summary
@@ -507,6 +524,10 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
             skip = {"test_render"} if not s.num_carriers else set()
             items = [(k, _short(v)) for k, v in data.items()
                      if v is not None and not isinstance(v, (dict, list)) and k not in skip]
+            members = _ensemble_size(run)
+            if members:
+                items = [(k, f"{v} (the sum over {members} members)" if k == "num_gaussians" else v)
+                         for k, v in items]
             body.append(f"<h4>{esc(run.name)}: train_summary.json</h4>" + kv(items))
             if is_masked(run) and s.test_psnr is not None:
                 body.append(note(f"{run.name}: test_psnr is over whole images; evaluate's PSNR (Summary, Metrics) is "

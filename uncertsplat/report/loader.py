@@ -22,7 +22,7 @@ file (relative to the run)     model
 ``prune.json``                 :class:`PruneReport`
 ``SCENE/reconstruct_report``   :class:`ReconstructReport`
 ``stats.jsonl``                free-form training log (one JSON object a line; a line cut by a crash
-                               is skipped with a note)
+                               is skipped with a note); an ensemble's are its members' (``members/*/``)
 =============================  ==========================================
 """
 
@@ -52,6 +52,8 @@ MANIFEST = "manifest.json"
 METRICS = "eval/metrics.json"
 PRUNE = "prune.json"
 RECONSTRUCT = "reconstruct_report.json"
+MEMBERS = "members"
+"""An ensemble run's folder of member runs (``members/member_0``, ...), each with its own ``stats.jsonl``."""
 
 @dataclass
 class RunData:
@@ -68,6 +70,9 @@ class RunData:
     manifest: Manifest | None = None
     reconstruct: ReconstructReport | None = None
     reconstruct_path: Path | None = None
+    member_stats: list[tuple[str, list[dict]]] = field(default_factory=list)
+    """An ensemble's training logs, (``members/NAME``, rows) per member with a ``stats.jsonl``: the run itself has
+    none."""
     problems: dict[str, str] = field(default_factory=dict)
     """File (relative to the run, e.g. ``prune.json``) -> one line saying why it could not be read."""
     notes: list[str] = field(default_factory=list)
@@ -189,6 +194,12 @@ def load_run(path: str | Path, name: str | None = None) -> RunData:
     run = RunData(path=path, name=name or path.resolve().name)
     run.config = _read(run, CONFIG, lambda: read_train_config(path / CONFIG))
     run.stats = read_jsonl(path / STATS, run.notes)
+    if not run.stats and (path / MEMBERS).is_dir():  # an ensemble: each member trained alone and logged its steps
+        for member in sorted((p for p in (path / MEMBERS).iterdir() if (p / STATS).is_file()),
+                             key=lambda p: (len(p.name), p.name)):
+            rows = read_jsonl(member / STATS, run.notes)
+            if rows:
+                run.member_stats.append((f"{MEMBERS}/{member.name}", rows))
     run.train_summary = _read(run, SUMMARY, lambda: TrainSummary.read_optional(path / SUMMARY))
     run.manifest = _read(run, MANIFEST, lambda: Manifest.read_optional(path / MANIFEST))
     run.scene_info = _read(run, SCENE, lambda: RunScene.read_optional(path / SCENE))
