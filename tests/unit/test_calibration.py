@@ -94,4 +94,5 @@ def test_std_factor_notes_name_too_few_views_and_a_factor_these_views_disagree_w
     (both,) = std_factor_notes(1, -0.01, -0.12)
     assert both.startswith("the std factor rests on 1 view only") and "makes these views' NLL worse" in both
     (worse,) = std_factor_notes(8, -0.01, -0.12)
-    assert worse.startswith("the fitted factor makes these views' NLL worse than the raw std does")
+    assert worse.startswith("the fitted factor makes these views' NLL worse than the raw std does, by 0.110 nats")
+    assert std_factor_notes(8, -1.6135, -1.6164) == []  # 0.003 nats worse: no disagreement worth a warning

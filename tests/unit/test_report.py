@@ -922,3 +922,24 @@ def test_an_ensemble_says_its_count_is_the_members_sum_and_draws_their_timelines
     assert "no stats.jsonl" not in html
     assert [label for label, _ in drawn[0]] == ["ens members/member_0", "ens members/member_1"]
     assert "figures/timeline.png" in parse(tmp_path / "out" / "index.html").imgs
+
+
+def test_shown_differences_agree_with_the_shown_numbers(tmp_path):
+    """A PSNR change beside 22.66 -> 22.51 reads -0.15, not the stored -0.155 rounded to -0.16; evaluate's warning that
+    the std factor worsens the NLL is not shown for 0.003 nats (older files wrote it for any difference)."""
+    run = make_run(tmp_path, "pruned", stats=False, maps=False, prune=True)
+    rep = PruneReport.read(run / "prune.json")
+    rep.metrics.before.psnr, rep.metrics.after.psnr, rep.metrics.random.psnr = 22.662, 22.507, 21.0
+    rep.delta_psnr_db = PsnrChange(score=-0.155, random=-1.662)
+    rep.write(run / "prune.json")
+    m = EvalReport.read(run / "eval" / "metrics.json")
+    m.mean.nll, m.mean.nll_calibrated = -1.6164, -1.6135
+    m.notes = ["the std factor rests on 2 views only, too few to trust; the fitted factor makes these views' NLL worse "
+               "than the raw std does (they differ from the views it was fitted on): read the raw numbers"]
+    m.write(run / "eval" / "metrics.json")
+    html = stage.run(run, tmp_path / "out").read_text()
+    assert "-0.15 dB (22.66 → 22.51) by the score, -1.66 dB (22.66 → 21.00) by random removal" in html
+    assert "NLL worse" not in html and "the std factor rests on 2 views only, too few to trust" in html
+    m.mean.nll_calibrated = -1.50  # 0.116 nats worse: said
+    m.write(run / "eval" / "metrics.json")
+    assert "NLL worse" in stage.run(run, tmp_path / "out").read_text()

@@ -37,6 +37,7 @@ from uncertsplat.report.html import Cell, details, esc, figure, kv, note, page, 
 from uncertsplat.report.loader import CONFIG, MANIFEST, METRICS, PRUNE, RECONSTRUCT, SCENE, SUMMARY, RunData
 from uncertsplat.report.views import ViewMaps, load_view
 from uncertsplat.schemas import PruneReport, PruneSweep
+from uncertsplat.stages.evaluate import NLL_WORSE_BY
 from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
 
@@ -194,7 +195,7 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
         if run.metrics is not None:
             if run.metrics.mean.spearman_note:
                 body.append(note(f"{run.name}: Spearman: {run.metrics.mean.spearman_note}"))
-            for n in evaluate_notes(run.metrics.notes):
+            for n in evaluate_notes(run.metrics.notes, run.metrics.mean):
                 body.append(note(f"{run.name} (evaluate): {n}"))
         post = run.train_summary.posterior if run.train_summary is not None else None
         if post is not None and post.carriers and post.moved_fraction is not None \
@@ -231,13 +232,28 @@ samples' spread is 0."""
 SPREAD_TERM = "std = the spread of the K samples"
 
 
-def evaluate_notes(notes: list[str]) -> list[str]:
+FACTOR_WORSE = "the fitted factor makes these views' NLL worse"
+"""How evaluate's note (``stages.evaluate.std_factor_notes``) that the std factor worsens the NLL begins."""
+
+
+def evaluate_notes(notes: list[str], mean=None) -> list[str]:
     """evaluate's notes as shown: for a model whose samples are all one render, the 'std =' formula's first term says
-    it is 0 there (it read as if the spread counted, beside the note that says it is 0)."""
-    if not any(SAME_RENDER in n for n in notes):
-        return list(notes)
-    return [n.replace(SPREAD_TERM, f"{SPREAD_TERM} (0 for this model: {SAME_RENDER})", 1)
-            if n.startswith(SPREAD_TERM) and not n.startswith(SPREAD_TERM + " (0") else n for n in notes]
+    it is 0 there (it read as if the spread counted, beside the note that says it is 0); the warning that the fitted std
+    factor worsens the NLL is left out where ``mean`` (``ViewMetrics``) shows it worse by no more than
+    ``NLL_WORSE_BY`` (evaluations written before that threshold warned of 0.003 nats)."""
+    out = list(notes)
+    if any(SAME_RENDER in n for n in out):
+        out = [n.replace(SPREAD_TERM, f"{SPREAD_TERM} (0 for this model: {SAME_RENDER})", 1)
+               if n.startswith(SPREAD_TERM) and not n.startswith(SPREAD_TERM + " (0") else n for n in out]
+    raw, fitted = (mean.nll, mean.nll_calibrated) if mean is not None else (None, None)
+    if raw is not None and fitted is not None and fitted - raw <= NLL_WORSE_BY:
+        kept = []
+        for n in out:  # the note joins its reasons with "; ": keep the others
+            parts = [p for p in n.split("; ") if not p.startswith(FACTOR_WORSE)]
+            if parts:
+                kept.append("; ".join(parts))
+        out = kept
+    return out
 
 
 CALIBRATION_SLACK = 0.05
@@ -577,13 +593,24 @@ def _prune_facts(p: PruneReport) -> list[tuple[str, str]]:
                                                f"{100.0 * c.removed / max(c.before, 1):.1f} %)"),
                   ("posterior carriers before → after", f"{c.carriers_before:,} → {c.carriers_after:,}")]
     if p.delta_psnr_db is not None:
-        facts.append(("held-out PSNR change (the mean of the K samples)", f"{p.delta_psnr_db.score:+.2f} dB by the score, "
-                                              f"{p.delta_psnr_db.random:+.2f} dB by random removal"))
+        facts.append(("held-out PSNR change (the mean of the K samples)",
+                      f"{_psnr_change(p, 'after', p.delta_psnr_db.score)} by the score, "
+                      f"{_psnr_change(p, 'random', p.delta_psnr_db.random)} by random removal"))
     facts += [("metric views", f"{len(p.metric_views)} {p.metric_split} views, K = {p.num_samples} samples"),
               ("seed", str(p.seed)), ("source run", p.source_run)]
     if p.dry_run:
         facts.append(("dry run", "yes: no model written"))
     return facts
+
+
+def _psnr_change(p: PruneReport, row: str, delta: float) -> str:
+    """A PSNR change as the table beside it shows it: the difference of the two PSNRs as rounded there (the stored
+    -0.155 rounds to -0.16, beside 22.66 -> 22.51), with both; the stored change alone where a row has no PSNR."""
+    before, after = p.metrics.before.psnr, getattr(p.metrics, row).psnr if getattr(p.metrics, row) else None
+    if before is None or after is None:
+        return f"{delta:+.3f} dB"
+    b, a = float(format_value(before, ".2f")), float(format_value(after, ".2f"))
+    return f"{a - b:+.2f} dB ({b:.2f} → {a:.2f})"
 
 
 def _prune_table(p: PruneReport, ri: int) -> str:

@@ -274,15 +274,22 @@ FEW_CALIBRATION_VIEWS = 3
 ``scene.calibration_holdout``; one or two views are what a capture of three or four photos leaves)."""
 
 
+NLL_WORSE_BY = 0.01
+"""Nats per pixel and channel the fitted std factor must cost the evaluated views' NLL before ``std_factor_notes`` says
+to read the raw numbers: a few thousandths (0.003 on the tiny scene) is no disagreement worth a warning."""
+
+
 def std_factor_notes(views: int, nll_fitted: float, nll_raw: float) -> list[str]:
     """What to say of a std factor fitted on ``views`` views that gives the evaluated views ``nll_fitted`` against
-    ``nll_raw`` with the raw std: that it rests on too few views, or that these views disagree with it."""
+    ``nll_raw`` with the raw std: that it rests on too few views, or that these views disagree with it (their NLL
+    worse by more than ``NLL_WORSE_BY``)."""
     reasons = []
     if views < FEW_CALIBRATION_VIEWS:
         reasons.append(f"the std factor rests on {views} view{'' if views == 1 else 's'} only, too few to trust")
-    if nll_fitted > nll_raw:
-        reasons.append("the fitted factor makes these views' NLL worse than the raw std does (they differ from the "
-                       "views it was fitted on): read the raw numbers")
+    if nll_fitted - nll_raw > NLL_WORSE_BY:
+        reasons.append(f"the fitted factor makes these views' NLL worse than the raw std does, by "
+                       f"{nll_fitted - nll_raw:.3f} nats (they differ from the views it was fitted on): read the raw "
+                       "numbers")
     return ["; ".join(reasons)] if reasons else []
 
 
