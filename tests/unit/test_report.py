@@ -943,3 +943,18 @@ def test_shown_differences_agree_with_the_shown_numbers(tmp_path):
     m.mean.nll_calibrated = -1.50  # 0.116 nats worse: said
     m.write(run / "eval" / "metrics.json")
     assert "NLL worse" in stage.run(run, tmp_path / "out").read_text()
+
+
+def test_a_run_named_in_another_script_draws_without_glyph_warnings(tmp_path):
+    """Matplotlib's font lacks CJK glyphs: the figures draw boxes for them, without its 'Glyph ... missing' warning."""
+    import warnings
+
+    from uncertsplat.report import figures
+    from uncertsplat.report.extract import calibrations_of
+
+    cals = calibrations_of(make_metrics(["view_000.png"]))
+    stats = [dict(step=s, loss=1.0 / (s + 1), num_gaussians=100 + s, sec_per_step=0.1) for s in range(0, 50, 10)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert figures.calibration_figure([("ünï 名前", cals), ("b", cals)])
+        assert figures.timeline_figure([("ünï 名前", stats), ("b", stats)])

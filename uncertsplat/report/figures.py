@@ -7,7 +7,9 @@ the same colour means the same value); the rank-coloured pair compares orderings
 
 from __future__ import annotations
 
+import functools
 import io
+import warnings
 from collections.abc import Sequence
 
 import matplotlib
@@ -41,6 +43,18 @@ _STYLE = {
 }
 RANK_CMAP = "turbo"  # the colour map of colormaps.rank_colorize (its default)
 RUN_COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf")
+
+
+def _no_missing_glyph_warnings(draw):
+    """``draw`` without matplotlib's "Glyph ... missing from font(s)" warnings: a run named in a script its font lacks
+    (名前) is drawn with boxes in the figure, which cannot be helped without a font; the page shows the name correctly,
+    and the warning, with its source path, only alarmed the console."""
+    @functools.wraps(draw)
+    def quiet(*args, **kwargs):
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=r"Glyph \d+ .*missing from", category=UserWarning)
+            return draw(*args, **kwargs)
+    return quiet
 
 
 def run_color(i: int) -> str:
@@ -161,6 +175,7 @@ def side_by_side_figure(views: Sequence[tuple[str, ViewMaps]], view_name: str) -
 
 
 # ---------------------------------------------------------------------------------------------- curves
+@_no_missing_glyph_warnings
 def sparsification_figure(curves: list[Curve], run_label: str = "") -> bytes | None:
     """One panel per (modality, metric): per-view uncertainty curves (thin), mean curve and oracle."""
     if not curves:
@@ -199,6 +214,7 @@ def sparsification_figure(curves: list[Curve], run_label: str = "") -> bytes | N
         return _png(fig)
 
 
+@_no_missing_glyph_warnings
 def sparsification_compare_figure(per_run: list[tuple[str, list[Curve]]]) -> bytes | None:
     """Mean RGB sparsification curves (MAE) of several runs on one plot, each with its oracle."""
     items = []
@@ -225,6 +241,7 @@ def sparsification_compare_figure(per_run: list[tuple[str, list[Curve]]]) -> byt
         return _png(fig)
 
 
+@_no_missing_glyph_warnings
 def calibration_figure(per_run: list[tuple[str, list[Calibration]]]) -> bytes | None:
     """Reliability plot: observed vs nominal coverage of the predictive's central intervals (a Gaussian's k-sigma ones,
     a Student-t's of the same probabilities), one line per run."""
@@ -262,6 +279,7 @@ _LOSS_KEYS = ("loss", "l1", "photo")
 _PSNR_KEY = "eval_psnr"
 
 
+@_no_missing_glyph_warnings
 def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
     """Training timeline: loss terms, Gaussian (and carrier) count, held-out PSNR, seconds per step."""
     per_run = [(label, s) for label, s in per_run if s]
@@ -332,6 +350,7 @@ def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
 
 
 # ------------------------------------------------------------------------------------------------ prune
+@_no_missing_glyph_warnings
 def prune_sweep_figure(sweep: PruneSweep, label: str = "") -> bytes | None:
     """Held-out PSNR vs keep ratio achieved: the score's removal and random removal of as many Gaussians.
 
