@@ -958,3 +958,28 @@ def test_a_run_named_in_another_script_draws_without_glyph_warnings(tmp_path):
         warnings.simplefilter("error")
         assert figures.calibration_figure([("ünï 名前", cals), ("b", cals)])
         assert figures.timeline_figure([("ünï 名前", stats), ("b", stats)])
+
+
+def test_legends_sit_outside_the_data_and_sigma_labels_do_not_overlap(monkeypatch):
+    """Calibration with five runs, sparsification and a multi-run timeline: one legend below the axes (inside, each
+    covered points or lines); the 2.5σ and 3σ labels (0.988 and 0.997) are not both drawn; the loss panel has a y
+    label."""
+    from uncertsplat.report import figures
+    from uncertsplat.report.extract import calibrations_of, curves_of
+
+    monkeypatch.setattr(figures, "_png", lambda fig: fig)
+    m = make_metrics(["view_000.png"])
+    fig = figures.calibration_figure([(f"run {i}", calibrations_of(m)) for i in range(5)])
+    ax = fig.axes[0]
+    assert ax.get_legend() is None and len(fig.legends) == 1
+    labels = {t.get_text() for t in ax.texts}
+    assert "3σ" in labels and "2.5σ" not in labels and {"0.5σ", "1σ", "2σ"} <= labels
+    fig = figures.sparsification_figure(curves_of(m))
+    assert all(a.get_legend() is None for a in fig.axes) and len(fig.legends) == 1
+    assert "AUSE" in fig.axes[0].get_title()
+    stats = [dict(step=s, loss=1.0 / (s + 1), num_gaussians=100 + s, num_carriers=50, sec_per_step=0.1)
+             for s in range(0, 50, 10)]
+    fig = figures.timeline_figure([("a", stats), ("b", stats)])
+    assert all(a.get_legend() is None for a in fig.axes) and len(fig.legends) == 1
+    assert [t.get_text() for t in fig.legends[0].get_texts()] == ["a", "b", "dashed: Gaussians with a posterior"]
+    assert fig.axes[0].get_ylabel() == "loss (symlog scale)"

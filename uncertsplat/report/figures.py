@@ -70,6 +70,26 @@ def _png(fig) -> bytes:
     return buf.getvalue()
 
 
+def _png_with_legend_below(fig, axes=(), ncol: int = 4, handles=None) -> bytes:
+    """PNG bytes of ``fig`` with one legend below the axes, where it covers no data: of ``handles`` (artists with
+    labels) or else of ``axes``' labelled lines (each label once)."""
+    handles = list(handles or [])
+    labels = [h.get_label() for h in handles]
+    for ax in axes:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            if lab not in labels:
+                handles.append(h)
+                labels.append(lab)
+    fig.tight_layout()
+    if handles:
+        rows = -(-len(labels) // ncol)
+        height = fig.get_figheight()
+        bottom = min(0.45, (0.3 + 0.2 * rows) / height)  # inches of legend rows, as a fraction of the figure
+        fig.legend(handles, labels, loc="lower center", ncol=min(ncol, len(labels)), frameon=False)
+        fig.tight_layout(rect=(0, bottom, 1, 1))
+    return _png(fig)
+
+
 # ---------------------------------------------------------------------------------------------- colour
 def rank_image(x: np.ndarray) -> np.ndarray:
     """Rank-coloured [H,W,3] uint8 (``report.colormaps.rank_colorize``, colour map ``RANK_CMAP``)."""
@@ -197,21 +217,21 @@ def sparsification_figure(curves: list[Curve], run_label: str = "") -> bytes | N
                         label="per view (uncertainty)" if i == 0 else None)
                 ax.plot(c.fractions, c.oracle, color="0.4", alpha=0.25, lw=0.8, ls="--",
                         label="per view (oracle)" if i == 0 else None)
+            ause = ""
             for c in means[:1]:
-                lab = "mean" + (f" (AUSE {c.ause:.4f})" if c.ause is not None else "")
-                ax.plot(c.fractions, c.uncertainty, color="#d62728", lw=2.0, label=f"uncertainty, {lab}")
+                ause = f" (AUSE {c.ause:.4f})" if c.ause is not None else ""
+                ax.plot(c.fractions, c.uncertainty, color="#d62728", lw=2.0, label="uncertainty, mean")
                 ax.plot(c.fractions, c.oracle, color="black", lw=1.6, ls="--", label="oracle, mean")
                 ax.fill_between(c.fractions, c.oracle, c.uncertainty, color="#d62728", alpha=0.12)
             ax.set_xlabel("fraction of pixels removed (most uncertain first)")
             ax.set_ylabel(f"normalised {key[1].upper()}")
-            ax.set_title(f"{'depth' if key[0] else 'RGB'} {key[1].upper()}")
+            ax.set_title(f"{'depth' if key[0] else 'RGB'} {key[1].upper()}{ause}")
             ax.set_xlim(0, 1)
             ax.set_ylim(bottom=0)
-            ax.legend(loc="upper right", frameon=False)
         if run_label:
             fig.suptitle(run_label, fontsize=10)
-        fig.tight_layout()
-        return _png(fig)
+        # one legend below the panels (inside, it sat on the mean curve); the AUSE moved to each panel's title
+        return _png_with_legend_below(fig, axes[0])
 
 
 @_no_missing_glyph_warnings
@@ -236,9 +256,7 @@ def sparsification_compare_figure(per_run: list[tuple[str, list[Curve]]]) -> byt
         ax.set_title("mean sparsification curves (dashed: each run's oracle)")
         ax.set_xlim(0, 1)
         ax.set_ylim(bottom=0)
-        ax.legend(frameon=False)
-        fig.tight_layout()
-        return _png(fig)
+        return _png_with_legend_below(fig, [ax])
 
 
 @_no_missing_glyph_warnings
@@ -249,7 +267,7 @@ def calibration_figure(per_run: list[tuple[str, list[Calibration]]]) -> bytes | 
     if not items:
         return None
     with plt.rc_context(_STYLE):
-        fig, ax = plt.subplots(figsize=(4.4, 4.2))
+        fig, ax = plt.subplots(figsize=(4.4, 4.2) if len(items) <= 2 else (4.4, 4.2 + 0.2 * len(items)))
         ax.plot([0, 1], [0, 1], color="0.5", ls="--", lw=1, label="perfectly calibrated")
         for i, (label, c) in enumerate(items):
             run_i = [lab for lab, _ in per_run].index(label)
@@ -258,7 +276,7 @@ def calibration_figure(per_run: list[tuple[str, list[Calibration]]]) -> bytes | 
             ax.plot(c.nominal, c.observed, marker="o" if not c.depth else "s", color=col,
                     ls="-" if not c.depth else ":", label=name)
             if c.k is not None and i == 0:
-                for k, x, y in zip(c.k, c.nominal, c.observed, strict=False):
+                for k, x, y in _spaced(c.k, c.nominal, c.observed):
                     ax.annotate(f"{k:g}σ", (x, y), textcoords="offset points", xytext=(4, -10), fontsize=7,
                                 color="0.3")
         ax.set_xlim(0, 1)
@@ -267,9 +285,27 @@ def calibration_figure(per_run: list[tuple[str, list[Calibration]]]) -> bytes | 
         ax.set_xlabel("nominal coverage (a Gaussian's ±kσ)")
         ax.set_ylabel("observed fraction inside the interval")
         ax.set_title("reliability (below the diagonal: over-confident)")
-        ax.legend(loc="upper left", frameon=False)
-        fig.tight_layout()
-        return _png(fig)
+        if len(items) <= 2:  # two lines leave the upper left free; more crowd it, so they go below the axes
+            ax.legend(loc="upper left", frameon=False)
+            fig.tight_layout()
+            return _png(fig)
+        return _png_with_legend_below(fig, [ax], ncol=2)
+
+
+LABEL_SPACING = 0.05
+"""Least distance (in coverage, both axes) between two kσ labels of the reliability plot: near 1 the points crowd
+(2.5σ at 0.988, 3σ at 0.997) and their labels overlapped."""
+
+
+def _spaced(ks, xs, ys) -> list[tuple[float, float, float]]:
+    """The (k, x, y) to label, from the largest k down, each at least ``LABEL_SPACING`` from the last one labelled."""
+    out: list[tuple[float, float, float]] = []
+    for k, x, y in sorted(zip(ks, xs, ys, strict=False), key=lambda t: -t[0]):
+        if not (np.isfinite(x) and np.isfinite(y)):
+            continue
+        if not out or np.hypot(x - out[-1][1], y - out[-1][2]) >= LABEL_SPACING:
+            out.append((k, x, y))
+    return out
 
 
 # -------------------------------------------------------------------------------------------- training
@@ -343,10 +379,21 @@ def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
                 # after every run is drawn: set inside the loop, it froze the top at the first run's range
                 ax.set_ylim(bottom=0)
             ax.set_xlabel("step")
-            if ax.get_legend_handles_labels()[0]:
-                ax.legend(frameon=False)
-        fig.tight_layout()
-        return _png(fig)
+            if panel == "loss":
+                ax.set_ylabel("loss (symlog scale)")
+            if not multi and ax.get_legend_handles_labels()[0]:
+                ax.legend(frameon=False, loc="best")
+        if not multi:
+            fig.tight_layout()
+            return _png(fig)
+        # several runs: one legend below the panels (inside, the Gaussian counts' legend covered the lines); the
+        # runs' colours, and the line styles named once
+        from matplotlib.lines import Line2D
+
+        handles = [Line2D([], [], color=run_color(ri), lw=1.6, label=label) for ri, (label, _) in enumerate(per_run)]
+        if "gaussians" in panels and "num_carriers" in keys:
+            handles.append(Line2D([], [], color="0.3", lw=1.2, ls="--", label="dashed: Gaussians with a posterior"))
+        return _png_with_legend_below(fig, ncol=3, handles=handles)
 
 
 # ------------------------------------------------------------------------------------------------ prune
