@@ -389,7 +389,10 @@ def test_prune_section_shows_the_prune_report(tmp_path):
     # spot-check the formats themselves, so a change of format is a deliberate one
     assert rows["after"][0][2] == "24.95" and rows["after"][1][2] == "24.98"
     assert rows["after"][5][2] == "1,071" and rows["after"][6][2] == "1.11"
-    assert {"PSNR (dB)", "SSIM", "AUSE MAE", "NLL (nats)", "Gaussians", "PLY size (MB)"} <= set(page.text)
+    # which file each size is of: the model with its posterior, and the mean-parameter cloud viewers open
+    assert rows["after"][6][0] == "variational_ply_bytes" and rows["after"][7][0] == "point_cloud_ply_bytes"
+    assert {"PSNR (dB)", "SSIM", "AUSE MAE", "NLL (nats)", "Gaussians", "variational.ply (MB)",
+            "point_cloud.ply (MB)"} <= set(page.text)
 
     sweep_rows = table_rows(html, "prune-sweep-0")
     assert len(sweep_rows) == len(rep.sweep.points)

@@ -71,7 +71,8 @@ PRUNE_SPECS: tuple[MetricSpec, ...] = (
     MetricSpec("ause_mae", "AUSE MAE", ".4f", False),
     MetricSpec("nll", "NLL (nats)", ".3f", False),
     MetricSpec("num_gaussians", "Gaussians", ",d", None),
-    MetricSpec("variational_ply_bytes", "PLY size (MB)", ".2f", False, scale=1e-6),
+    MetricSpec("variational_ply_bytes", "variational.ply (MB)", ".2f", False, scale=1e-6),
+    MetricSpec("point_cloud_ply_bytes", "point_cloud.ply (MB)", ".2f", False, scale=1e-6),
 )
 
 
