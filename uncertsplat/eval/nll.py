@@ -37,6 +37,12 @@ SILVERMAN_FACTOR = 1.06
 """Silverman's normal-reference rule: h = 1.06 * std * n^(-1/5) for n samples from a Gaussian."""
 
 
+NLL_WORSE_BY = 0.01
+"""Nats per pixel and channel the fitted std factor must cost the evaluated views' NLL before ``evaluate`` says to read
+the raw numbers (``stages.evaluate.std_factor_notes``, and the report for older files): a few thousandths (0.003 on the
+tiny scene) is no disagreement worth a warning."""
+
+
 def _reduce(values: Tensor, mask: Tensor | None, reduction: Reduction) -> Tensor:
     """Mean over finite, masked elements ("mean"), or the per-element map ("none")."""
     if reduction == "none":

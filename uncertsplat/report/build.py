@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from uncertsplat.eval.engine import MASKED_NOTE
+from uncertsplat.eval.nll import NLL_WORSE_BY
 from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.report import figures as F
 from uncertsplat.report.extract import (
@@ -37,7 +38,6 @@ from uncertsplat.report.html import Cell, details, esc, figure, kv, note, page, 
 from uncertsplat.report.loader import CONFIG, MANIFEST, METRICS, PRUNE, RECONSTRUCT, SCENE, SUMMARY, RunData
 from uncertsplat.report.views import ViewMaps, load_view
 from uncertsplat.schemas import PruneReport, PruneSweep
-from uncertsplat.stages.evaluate import NLL_WORSE_BY
 from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
 

@@ -36,6 +36,7 @@ from uncertsplat.config import EvalConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError, run_folder_missing
 from uncertsplat.eval.engine import MASKED_NOTE, ViewMaps
+from uncertsplat.eval.nll import NLL_WORSE_BY
 from uncertsplat.eval.tails import MIN_DOF
 from uncertsplat.eval.tails import half_width as _half_width
 from uncertsplat.io.maps import (
@@ -272,11 +273,6 @@ def _copy_evaluation(source_eval: Path, out: Path) -> None:
 FEW_CALIBRATION_VIEWS = 3
 """A std factor fitted on fewer views than this is named as resting on too few (3 set aside is the recommended
 ``scene.calibration_holdout``; one or two views are what a capture of three or four photos leaves)."""
-
-
-NLL_WORSE_BY = 0.01
-"""Nats per pixel and channel the fitted std factor must cost the evaluated views' NLL before ``std_factor_notes`` says
-to read the raw numbers: a few thousandths (0.003 on the tiny scene) is no disagreement worth a warning."""
 
 
 def std_factor_notes(views: int, nll_fitted: float, nll_raw: float) -> list[str]:
