@@ -831,12 +831,19 @@ def test_an_automatic_prune_says_its_ratio_and_score_were_chosen(tmp_path):
     run = make_run(tmp_path, "auto", stats=False, maps=False, prune=True)
     rep = PruneReport.read(run / "prune.json")
     rep.mode, rep.keep_ratio, rep.score, rep.score_requested, rep.tolerance_db = "auto", 0.7, "gate", "auto", 0.1
+    rep.notes = ["score auto: the score that removes the most within 0.1 dB of the held-out PSNR is used, 'gate'"]
     rep.write(run / "prune.json")
     text = " ".join(parse(stage.run(run, tmp_path / "out")).text)
     assert "keep ratio requested" not in text
     assert "0.700, chosen automatically (prune --auto): the largest removal whose held-out PSNR of the expected " \
            "render stays within 0.1 dB of the unpruned model's" in text
-    assert "gate (chosen automatically:" in text and "requested: auto" not in text
+    assert "gate (chosen automatically by --score auto: the note below says how)" in text
+    assert "requested: auto" not in text
+    rep.mode, rep.notes = "keep_ratio", []  # --keep-ratio --sweep: score auto took its default, measured no other
+    rep.write(run / "prune.json")
+    text = " ".join(parse(stage.run(run, tmp_path / "out")).text)
+    assert "keep ratio requested" in text and "prune --auto" not in text
+    assert "gate (the default --score auto takes for this run; no other score was measured)" in text
 
 
 def test_colour_bars_say_where_they_clip_and_what_they_measure():

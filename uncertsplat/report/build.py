@@ -572,8 +572,11 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
 def _prune_facts(p: PruneReport) -> list[tuple[str, str]]:
     if p.score == p.score_requested:
         score = p.score
-    elif p.score_requested == "auto":  # prune.json's notes say which scores were tried and what each removed
-        score = f"{p.score} (chosen automatically: of the scores tried, the one that removes the most within tolerance)"
+    elif p.score_requested == "auto":
+        # prune measures the alternatives only with --auto or --keep-ratio (and says how it chose in a note)
+        compared = any(n.startswith("score auto:") for n in p.notes)
+        score = (f"{p.score} (chosen automatically by --score auto: the note below says how)" if compared
+                 else f"{p.score} (the default --score auto takes for this run; no other score was measured)")
     else:
         score = f"{p.score} (requested: {p.score_requested})"
     if p.mode == "auto":  # no ratio was asked for: --auto chose it, 0.7 is not the user's
