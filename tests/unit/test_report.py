@@ -900,6 +900,10 @@ def test_a_model_without_a_posterior_reads_consistently(tmp_path):
     assert ("std = the spread of the K samples (0 for this model: every sample is the same render) + the pixel noise"
             in html)
     assert "expected_render_sample" not in html
+    summary.members = [summary.model_copy()]  # nor in an ensemble's members (the "more" dump)
+    summary.write(run / "train_summary.json")
+    assert "expected_render_sample" not in stage.run([run], tmp_path / "ens", ReportConfig()).read_text()
+    summary.members = []
     summary.method, summary.num_carriers = "variational", 600  # a model with a posterior keeps both as they are
     summary.write(run / "train_summary.json")
     m.notes = m.notes[1:]

@@ -9,6 +9,7 @@ recomputed.
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Callable
@@ -556,9 +557,12 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
             if s.growth:
                 body.append(note(f"{run.name}: {growth_reason(stops[0] if stops else s.growth[-1])} "
                                  f"({len(s.growth)} growth test(s) in all)"))
-            nested = s.model_dump_json(indent=2, include={k for k, v in data.items() if isinstance(v, (dict, list))
-                                                          and v})
-            if nested.strip() != "{}":
+            more = {k: v for k, v in data.items() if isinstance(v, (dict, list)) and v}
+            for member in more.get("members", []):  # an ensemble's members: models without carriers, as above
+                if not member.get("num_carriers"):
+                    member.pop("test_render", None)
+            nested = json.dumps(more, indent=2)
+            if more:
                 body.append(details("more", pre(nested)))
         else:
             body.append(_problem_note(run, SUMMARY))
