@@ -62,6 +62,21 @@ class Prediction:
     image_names: tuple[str, ...]
 
 
+def _evaluation_config(run_dir: Path):
+    """The ``EvalConfig`` of the run's evaluation (``RUN/eval/config.json``: after ``evaluate --num-samples 4`` the
+    defaults fitted another std factor than the evaluation's), ``evaluate``'s defaults when there is none or it
+    cannot be read (a newer or damaged file)."""
+    from pydantic import ValidationError
+
+    from uncertsplat.config import EvalConfig
+
+    path = run_dir / "eval" / "config.json"
+    try:
+        return EvalConfig.model_validate_json(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValidationError):
+        return EvalConfig()
+
+
 class Predictor:
     """``evaluate``'s predictive of one trained run, for any camera (see the module's docstring).
 
@@ -70,11 +85,13 @@ class Predictor:
         scene: the run's scene as trained (``SceneData``: cameras in the normalised world, split, normalisation).
         device: where it renders.
         std_factor, dof: the fitted std factor and Student-t degrees of freedom (None when not fitted).
+        config: the ``EvalConfig`` it was built with (``load``'s ``cfg``, or the run's evaluation's).
     """
 
     def __init__(self, run_dir: Path, loaded, scene, sampler, fit, cfg, device: torch.device):
         self.run_dir, self.loaded, self.scene, self.device = Path(run_dir), loaded, scene, device
         self._sampler, self._cfg = sampler, cfg
+        self.config = cfg
         self.std_factor: float | None = fit.scale
         self.dof: float | None = fit.dof
         T = scene.world_from_source.double()
@@ -91,17 +108,18 @@ class Predictor:
             run_dir: a folder written by ``uncertsplat train``; its scene folder must be where ``scene.json`` says
                 (the side terms are fitted on its training photos).
             device: ``auto``, ``cpu``, ``cuda[:n]`` or a torch.device.
-            cfg: an ``EvalConfig`` (None: ``evaluate``'s defaults; ``cfg.num_samples`` is ``predict``'s default K).
+            cfg: an ``EvalConfig`` (None: the settings of the run's evaluation, ``RUN/eval/config.json``, so that the
+                predictive is the one ``evaluate`` scored; ``evaluate``'s defaults when the run has none;
+                ``cfg.num_samples`` is ``predict``'s default K).
 
         Raises:
             UserError: not a run, its scene is gone or its cameras changed since training, no CUDA device.
         """
         from uncertsplat import native
-        from uncertsplat.config import EvalConfig
         from uncertsplat.device import resolve_device
 
         device = resolve_device(device)
-        cfg = cfg if cfg is not None else EvalConfig()
+        cfg = cfg if cfg is not None else _evaluation_config(Path(run_dir))
         with native.single_threaded_torch(device):  # as evaluate runs (its sums, so its maps, to the last bit)
             return cls._load(Path(run_dir), device, cfg)
 

@@ -786,6 +786,9 @@ class TestPredictor:
         pred = Predictor.load(run, "cpu", cfg=cfg)
         assert pred.std_factor == pytest.approx(report.std_scale) and pred.dof == pytest.approx(
             report.degrees_of_freedom)
+        # no cfg: the evaluation's own settings (eval/config.json, K = 5), not evaluate's defaults (K = 10)
+        default = Predictor.load(run, "cpu")
+        assert default.std_factor == pytest.approx(report.std_scale) and default.config.num_samples == 5
         name = report.image_names[1]
         i = pred.scene.cameras.image_names.index(name)
         out = pred.predict(pred.scene.cameras[[i]], seed=cfg.seed)  # evaluate's --seed: its per-view seeds
