@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 from uncertsplat.baselines import load_run
 from uncertsplat.config import EvalConfig
@@ -183,9 +184,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run", type=Path, help="a run evaluated with maps (RUN/eval/maps)")
     ap.add_argument("--components", action="store_true", help="render the predictive's terms again (slow)")
-    ap.add_argument("--tag", default="demo")
+    ap.add_argument("--tag", default="demo", help="results go to calibration_shape_<tag>.json")
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    path = ROOT / "benchmarks" / "results" / f"calibration_shape_{args.tag}.json"
+    refuse_overwrite(path, overwrite=args.overwrite)
     torch.set_num_threads(2)
     report = EvalReport.read(args.run / "eval" / "metrics.json")
     scene = load_run(args.run, torch.device("cpu")).load_scene()
@@ -196,7 +200,6 @@ def main() -> None:
     if args.components:
         out["components"] = components(args.run, torch.device("cpu"))
     print(json.dumps(out, indent=1))
-    path = ROOT / "benchmarks" / "results" / f"calibration_shape_{args.tag}.json"
     path.write_text(json.dumps(out, indent=1) + "\n")
     print(f"wrote {path}")
 

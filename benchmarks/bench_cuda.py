@@ -26,6 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from _common import add_overwrite_option, refuse_overwrite  # noqa: E402
 from bench_render import PARAMS, make_scene  # noqa: E402
 
 from uncertsplat.render import render  # noqa: E402
@@ -92,7 +93,9 @@ def main():
     ap.add_argument("--blocks", nargs="+", default=["131072", "1048576", "default", "16777216"])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "cuda_blocks.json")
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    refuse_overwrite(args.out, overwrite=args.overwrite)
     device = torch.device(args.device)
     rows = []
     meta = {"date": str(date.today()), "torch": torch.__version__, "device": str(device),

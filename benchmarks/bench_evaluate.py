@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 from uncertsplat.config import EvalConfig
 from uncertsplat.eval.engine import evaluate_views, fit_residual, scored_sampler
@@ -59,7 +60,7 @@ def score_sampler(loaded, scene, cfg: EvalConfig, device: torch.device, *, sprea
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run", type=Path)
-    ap.add_argument("--label", default=None)
+    ap.add_argument("--label", default=None, help="results go to evaluate_<label>.json (default: the run's name)")
     ap.add_argument("--ks", type=int, nargs="+", default=[1, 5, 10, 20])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--depth-gt", type=Path, default=None, help="GT depth folder (reconstructed synthetic scenes)")
@@ -67,7 +68,11 @@ def main() -> None:
     ap.add_argument("--spread-only", action="store_true",
                     help="score the posterior samples' spread alone, not evaluate's full predictive (the script "
                          "before 2026-11-29)")
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    label = args.label or args.run.name
+    out = ROOT / "benchmarks" / "results" / f"evaluate_{label}.json"
+    refuse_overwrite(out, overwrite=args.overwrite)
 
     from uncertsplat.baselines import load_run
     from uncertsplat.data.dataset import load_view_set
@@ -97,8 +102,6 @@ def main() -> None:
             "depth_scale": rep.depth_scale.model_dump() if rep.depth_scale else None,
         })
         print(f"K={k}: {rows[-1]}", flush=True)
-    label = args.label or args.run.name
-    out = ROOT / "benchmarks" / "results" / f"evaluate_{label}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({
         "run": str(args.run), "views": len(views), "gaussians": len(loaded.model) if hasattr(loaded, "model") else None,

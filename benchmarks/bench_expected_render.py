@@ -13,7 +13,7 @@ one (no native kernels: both are ``_blur_log_peak``) is reported as "same path",
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_expected_render.py [--n 40000 --width 320 --height 240]
 
-Writes ``benchmarks/results/expected_render.json``.
+Writes ``--out`` (default ``benchmarks/results/expected_render.json``; an existing file only with ``--overwrite``).
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from _common import add_overwrite_option, refuse_overwrite  # noqa: E402
 from bench_render import make_scene  # noqa: E402
 
 from uncertsplat.render import render  # noqa: E402
@@ -62,7 +63,11 @@ def main() -> None:
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "expected_render.json",
+                    help="the results file")
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    refuse_overwrite(args.out, overwrite=args.overwrite)
     sample, cams = make_scene(args.n, args.width, args.height)
     g = torch.Generator().manual_seed(1)
     # position spreads of 0-60 % of a Gaussian's size, as the informed posterior gives
@@ -142,8 +147,8 @@ def main() -> None:
                                                  for k, (_, ga) in images.items() if k != reference},
               "machine": args.machine, "threads": torch.get_num_threads(), "torch": torch.__version__,
               "date": date.today().isoformat()}
-    path = ROOT / "benchmarks" / "results" / "expected_render.json"
-    path.write_text(json.dumps(result, indent=2) + "\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))
     if same:
         print(f"\n*** SAME PATH: {', '.join(same)} ran the same code as the current variant ({paths[current]}); "

@@ -28,7 +28,7 @@ before 11); images and gradients of both are compared.
 thread, the kernels on ``--threads``); without it torch's intra-op threads wait, spinning, between its ops while the
 kernels' threads run, which on a 2-core machine slows both libraries alike.
 
-Writes ``benchmarks/results/kernels.json`` and prints the Markdown rows for BENCHMARKS.md.
+Writes ``--out`` (default ``benchmarks/results/kernels.json``) and prints the Markdown rows for BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -53,6 +53,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from _common import add_overwrite_option, refuse_overwrite  # noqa: E402
 from bench_render import PARAMS, make_scene  # noqa: E402
 
 from uncertsplat import native  # noqa: E402
@@ -515,7 +516,9 @@ def main() -> None:
                          "ops on one thread, the kernels on --threads), as training, evaluate and prune call them "
                          "since 2026-11-27; the matmul keeps torch's threads")
     ap.add_argument("--out", type=Path, default=RESULTS / "kernels.json")
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    refuse_overwrite(args.out, overwrite=args.overwrite)
     torch.set_num_threads(args.threads)
     if native.library() is None:
         sys.exit(f"the native kernels are unavailable: {native.unavailable_reason()}")

@@ -25,6 +25,7 @@ from datetime import date
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 from uncertsplat.baselines import train_run
 from uncertsplat.config import EvalConfig, deep_update, train_config_from
@@ -63,12 +64,14 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--machine", default=None)
     ap.add_argument("--tmp", type=Path, default=Path("/tmp/bench_low_res"))
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    path = ROOT / "benchmarks" / "results" / f"low_res_{args.label}.json"
+    refuse_overwrite(path, overwrite=args.overwrite)
     device = resolve_device(args.device)
     over = json.loads(args.set)
     out = args.tmp / args.label
     out.mkdir(parents=True, exist_ok=True)
-    path = ROOT / "benchmarks" / "results" / f"low_res_{args.label}.json"
     results: list[dict] = []
     for rep in range(args.repeats):
         order = args.fractions if rep % 2 == 0 else list(reversed(args.fractions))

@@ -25,6 +25,8 @@ import time
 from datetime import date
 from pathlib import Path
 
+from _common import add_overwrite_option, refuse_overwrite
+
 from uncertsplat.config import ReconstructConfig
 from uncertsplat.sfm import reconstruct as sfm
 
@@ -51,8 +53,9 @@ def main() -> None:
     ap.add_argument("--runs", type=Path, help="replay the runs of an earlier results file instead of mapping")
     ap.add_argument("--seeds", type=int, default=8)
     ap.add_argument("--attempts", type=int, default=ReconstructConfig().mapping_attempts)
-    ap.add_argument("--tag", default="scene")
+    ap.add_argument("--tag", default="scene", help="results go to mapping_seeds_<tag>.json (with --runs: the replayed file's tag, so give --overwrite or another --tag)")
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
+    add_overwrite_option(ap)
     args = ap.parse_args()
     cfg = ReconstructConfig()
     runs, seconds = [], []
@@ -62,8 +65,11 @@ def main() -> None:
         seconds = [r["seconds"] for r in earlier["runs"]]
         args.workspace, args.machine = earlier["workspace"], earlier["machine"]
         args.tag = args.tag if args.tag != "scene" else args.runs.stem.removeprefix("mapping_seeds_")
+        refuse_overwrite(ROOT / "benchmarks" / "results" / f"mapping_seeds_{args.tag}.json", overwrite=args.overwrite)
     elif args.workspace is None or args.photos is None:
         ap.error("give WORKSPACE and PHOTOS, or --runs")
+    else:
+        refuse_overwrite(ROOT / "benchmarks" / "results" / f"mapping_seeds_{args.tag}.json", overwrite=args.overwrite)
     with tempfile.TemporaryDirectory(prefix="uncertsplat-mapping-") as tmp:
         for seed in range(args.seeds if args.runs is None else 0):
             t0 = time.perf_counter()

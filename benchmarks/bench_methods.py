@@ -27,6 +27,8 @@ import shutil
 import time
 from pathlib import Path
 
+from _common import add_overwrite_option, refuse_overwrite
+
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results"
 COLUMNS = (("psnr", "PSNR", 2), ("ause_mae", "AUSE-MAE", 3), ("ause_rmse", "AUSE-RMSE", 3), ("nll", "NLL", 2),
@@ -71,7 +73,10 @@ def main() -> None:
     ap.add_argument("--address", default=None)
     ap.add_argument("--cpus-per-job", type=float, default=1.0)
     ap.add_argument("--gpus-per-job", type=float, default=0.0)
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    dest = RESULTS / f"methods_{args.label}.json"
+    refuse_overwrite(dest, RESULTS / f"methods_{args.label}_pareto.png", overwrite=args.overwrite)
 
     from uncertsplat.stages import sweep
 
@@ -90,7 +95,6 @@ def main() -> None:
         "table": summary["table"], "pareto": summary["pareto"], "default": summary["default"],
         "records": summary["records"],
     }
-    dest = RESULTS / f"methods_{args.label}.json"
     dest.write_text(json.dumps(out, indent=2) + "\n")
     if (args.out / "pareto.png").is_file():
         shutil.copyfile(args.out / "pareto.png", RESULTS / f"methods_{args.label}_pareto.png")

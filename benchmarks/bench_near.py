@@ -27,6 +27,7 @@ from functools import partial
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,7 +55,10 @@ def main() -> None:
     ap.add_argument("--set", nargs="*", default=[], help="EvalConfig overrides, e.g. num_samples=10")
     ap.add_argument("--maps", type=Path, default=None, help="also write every view's maps (evaluate's PNGs) here")
     ap.add_argument("--out", type=Path, default=None)
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    out = args.out or ROOT / "benchmarks" / "results" / f"near_{args.label}.json"
+    refuse_overwrite(out, overwrite=args.overwrite)
 
     from uncertsplat.baselines import load_run
     from uncertsplat.config import EvalConfig, SynthConfig
@@ -161,7 +165,6 @@ def main() -> None:
               "fractions": rows, "per_view": per_view,
               "correlation_mean_std_rmse": corr, "machine": f"{platform.machine()}, {torch.get_num_threads()} threads",
               "torch": torch.__version__, "date": date.today().isoformat()}
-    out = args.out or ROOT / "benchmarks" / "results" / f"near_{args.label}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"correlation over the {len(per_view)} views of the mean std with the RMSE: {corr:.2f}")

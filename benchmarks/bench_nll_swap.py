@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_unseen import evaluate_run, observed  # noqa: E402
@@ -41,9 +42,12 @@ def main() -> None:
     ap.add_argument("--methods", nargs="+", required=True)
     ap.add_argument("--dof", type=float, default=3.5, help="nu of the Student-t for every pair")
     ap.add_argument("--samples", type=int, default=10)
-    ap.add_argument("--label", default="sparse")
+    ap.add_argument("--label", default="sparse", help="results go to nll_swap_<label>.json")
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    path = Path(__file__).resolve().parent / "results" / f"nll_swap_{args.label}.json"
+    refuse_overwrite(path, overwrite=args.overwrite)
     device = torch.device("cpu")
     runs = {m: evaluate_run(args.out / m, device, EvalConfig(num_samples=args.samples)) for m in args.methods}
     first = runs[args.methods[0]]
@@ -70,7 +74,6 @@ def main() -> None:
                   "best_factor_on_test": best[1], "nll_at_best_factor": best[0]}
     out = {"label": args.label, "machine": args.machine, "date": time.strftime("%Y-%m-%d"), "dof": args.dof,
            "samples": args.samples, "methods": args.methods, "pairs": pairs, "own": own}
-    path = Path(__file__).resolve().parent / "results" / f"nll_swap_{args.label}.json"
     path.write_text(json.dumps(out, indent=1))
     print("| mean of | std of | NLL | seen / unseen pixels |\n|---|---|---|---|")
     for p in pairs:

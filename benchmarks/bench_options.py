@@ -26,6 +26,7 @@ from datetime import date
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 from uncertsplat.config import EvalConfig, SynthConfig, train_config_from
 from uncertsplat.stages import evaluate as evaluate_stage
@@ -105,9 +106,11 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--work", type=Path, default=None, help="keep scenes and runs here (default: a temp dir)")
     ap.add_argument("--machine", default=None)
+    add_overwrite_option(ap)
     args = ap.parse_args()
     preset = args.preset or {"synthetic-demo": "demo", "tiny": "tiny"}.get(args.scene)
     label = args.label or Path(args.scene).name
+    refuse_overwrite(RESULTS / f"options_{label}.json", overwrite=args.overwrite)
     variants = [parse_variant(v) for v in args.variant]
     device = torch.device(args.device)
     with tempfile.TemporaryDirectory() as tmp:

@@ -28,6 +28,7 @@ from datetime import date
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 RESULTS = Path(__file__).resolve().parent / "results"
 COLUMNS = ("pos_spread_raw", "gate_spread_raw", "scale_width_raw")
@@ -95,12 +96,14 @@ def main() -> None:
     ap.add_argument("--antithetic", action="store_true")
     ap.add_argument("--label", default="run")
     ap.add_argument("--machine", default=None)
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    path = RESULTS / f"posterior_gradients_{args.label}{'_antithetic' if args.antithetic else ''}.json"
+    refuse_overwrite(path, overwrite=args.overwrite)
     res = measure(args.run, args.steps, args.antithetic)
     res.update({"machine": args.machine or platform.processor() or platform.machine(), "date": date.today().isoformat()})
     RESULTS.mkdir(parents=True, exist_ok=True)
-    suffix = "_antithetic" if args.antithetic else ""
-    (RESULTS / f"posterior_gradients_{args.label}{suffix}.json").write_text(json.dumps(res, indent=2) + "\n")
+    path.write_text(json.dumps(res, indent=2) + "\n")
     print(json.dumps(res, indent=2))
 
 

@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 from uncertsplat.baselines import load_run
 from uncertsplat.config import PruneConfig
@@ -209,7 +210,7 @@ def real_floaters(loaded, scene, measure, before, scores, cfg, device):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", type=Path, required=True)
-    ap.add_argument("--label", default="synthetic-demo")
+    ap.add_argument("--label", default="synthetic-demo", help="results go to prune_<label>.json")
     ap.add_argument("--ratios", type=float, nargs="+", default=[1.0, 0.95, 0.9, 0.8, 0.7, 0.6, 0.5])
     ap.add_argument("--num-samples", type=int, default=5)
     ap.add_argument("--floaters", type=float, default=0.02)
@@ -217,7 +218,10 @@ def main():
     ap.add_argument("--only-real-floaters", action="store_true", help="skip the keep-ratio sweep and planted floaters")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    path = ROOT / "benchmarks" / "results" / f"prune_{args.label}.json"
+    refuse_overwrite(path, overwrite=args.overwrite)
     device = torch.device(args.device)
     cfg = PruneConfig(num_samples=args.num_samples)
     loaded = load_run(args.run, device)
@@ -230,7 +234,6 @@ def main():
            "date": time.strftime("%Y-%m-%d"), "num_samples": cfg.num_samples, "seed": cfg.seed,
            "num_gaussians": len(loaded.model), "num_carriers": loaded.model.num_carriers,
            "train_step": loaded.step}
-    path = ROOT / "benchmarks" / "results" / f"prune_{args.label}.json"
     # the unpruned metrics and the scores, once for the real floaters and the keep-ratio curves
     measure = _Measure(loaded, scene, indices, cfg, device)
     before = measure(loaded.model)

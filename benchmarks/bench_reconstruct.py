@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _common import add_overwrite_option, refuse_overwrite
 
 from uncertsplat.config import ReconstructConfig, SynthConfig
 from uncertsplat.sfm import reconstruct as sfm
@@ -94,7 +95,9 @@ def main() -> None:
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
     ap.add_argument("--date", default=time.strftime("%Y-%m-%d"))
     ap.add_argument("--out", type=Path, default=RESULTS)
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    refuse_overwrite(args.out, overwrite=args.overwrite)
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-reconstruct-") as tmp:

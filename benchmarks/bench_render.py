@@ -7,8 +7,11 @@ Every case is timed with both compositors in the same run: ``native`` (the CPU k
 ``uncertsplat.native``, the default on CPU) and ``torch`` (the PyTorch blocks, the reference), and the
 ratio is reported. The dense float64 oracle (tests/reference/naive_render.py) is timed at the smallest size.
 
-    .venv/bin/python benchmarks/bench_render.py            # full table, writes benchmarks/results/render_*.json
-    .venv/bin/python benchmarks/bench_render.py --quick    # one size, for profiling
+    .venv/bin/python benchmarks/bench_render.py --label NAME   # full table: results/render_cpu_2thread-NAME.json
+    .venv/bin/python benchmarks/bench_render.py --quick        # one size, for profiling: results/render_quick.json
+
+Writes ``OUT/render_{device}_{threads}thread[-LABEL].json`` (``render_quick[-LABEL].json`` with ``--quick``;
+``--out``: the folder, default ``benchmarks/results``) and prints the Markdown rows for BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ from datetime import date
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -172,7 +176,7 @@ def one_case(args):
 
 
 def main():
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--case", nargs=4, help=argparse.SUPPRESS)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=5)
@@ -180,10 +184,19 @@ def main():
     ap.add_argument("--quick", action="store_true", help="only 512x384 / 50k")
     ap.add_argument("--compile", action="store_true", help="also time the torch.compile path")
     ap.add_argument("--no-oracle", action="store_true")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results"),
+                    help="the folder of the results file (not the file: see --label)")
+    ap.add_argument("--label", default=None, help="appended to the results file's name: render_cpu_2thread-LABEL.json")
+    add_overwrite_option(ap)
     args = ap.parse_args()
     if args.case:
         return one_case(args)
+    out = Path(args.out)
+    if out.suffix == ".json":  # the file's name was given: its folder would be named *.json
+        ap.error(f"--out is the folder of the results file, not the file ({args.out}); name the file with --label")
+    name = "render_quick" if args.quick else f"render_{args.device}_{args.threads}thread"
+    path = out / (f"{name}-{args.label}.json" if args.label else f"{name}.json")
+    refuse_overwrite(path, overwrite=args.overwrite)
     load_start = os.getloadavg()
     print(f"load average at start: {load_start}", flush=True)
 
@@ -247,10 +260,9 @@ def main():
         "load_average_start": load_start,
         "load_average_end": os.getloadavg(),
     }
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    name = "render_quick.json" if args.quick else f"render_{args.device}_{args.threads}thread.json"
-    (out / name).write_text(json.dumps(result, indent=2))
+    path.write_text(json.dumps(result, indent=2))
+    print(f"wrote {path}")
     print("\n| mode | image | N | fwd ms | fwd+bwd ms | fwd CPU ms | fwd+bwd CPU ms | peak MB | fwd+bwd vs torch |")
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows + ([oracle] if oracle else []):

@@ -32,6 +32,7 @@ from datetime import date
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 from uncertsplat.baselines import train_run
 from uncertsplat.config import EvalConfig, SceneConfig, SelectConfig, deep_update, train_config_from
@@ -116,7 +117,10 @@ def main() -> None:
     ap.add_argument("--select-side", type=int, default=96)
     ap.add_argument("--eval-samples", type=int, default=4)
     ap.add_argument("--tmp", type=Path, default=Path("/tmp/bench_select"))
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    path = ROOT / "benchmarks" / "results" / f"select_{args.label}.json"
+    refuse_overwrite(path, overwrite=args.overwrite)
 
     scene = load_scene(args.scene, SceneConfig(downscale=args.downscale), initial_points=False)
     names = scene.cameras.image_names
@@ -125,7 +129,6 @@ def main() -> None:
     print(f"{args.label}: pool {len(pool)}, start {[names[i] for i in start]}, budget {args.budget}", flush=True)
     out = args.tmp / args.label
     out.mkdir(parents=True, exist_ok=True)
-    path = ROOT / "benchmarks" / "results" / f"select_{args.label}.json"
     results: list[dict] = []
     res: dict = {}
 

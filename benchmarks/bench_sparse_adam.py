@@ -14,7 +14,7 @@ once with the SH rest's gradients and moments all zero (SH bands not switched on
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_sparse_adam.py --gaussians 60000 400000
 
-Writes ``benchmarks/results/sparse_adam.json`` and prints the Markdown rows for BENCHMARKS.md.
+Writes ``--out`` (default ``benchmarks/results/sparse_adam.json``) and prints the Markdown rows for BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from datetime import date
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 from torch import nn
 
 from uncertsplat import native
@@ -120,14 +121,17 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--machine", default=None)
+    ap.add_argument("--out", type=Path, default=RESULTS / "sparse_adam.json", help="the results file")
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    refuse_overwrite(args.out, overwrite=args.overwrite)
     rows = [case(n, f, args.steps, args.repeats) for n in args.gaussians for f in args.fractions]
     dense = [dense_case(n, args.steps, args.repeats) for n in args.gaussians]
     result = {"cases": rows, "dense": dense, "kernels": native.describe("cpu"), "threads": torch.get_num_threads(),
               "machine": args.machine or platform.processor() or platform.machine(), "torch": torch.__version__,
               "date": date.today().isoformat()}
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "sparse_adam.json").write_text(json.dumps(result, indent=2) + "\n")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
     print("| Gaussians | rows touched | dense fused Adam ms | visible ms (ratio) | lazy ms (ratio) |")
     for r in rows:
         print(f"| {r['gaussians']:,} | {r['fraction']:.0%} | {r['dense_ms']:.2f} | {r['visible_ms']:.2f} "

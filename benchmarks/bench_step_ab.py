@@ -39,6 +39,7 @@ from datetime import date
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
@@ -155,7 +156,10 @@ def main() -> None:
     ap.add_argument("--block", type=int, default=10)
     ap.add_argument("--label", default="run")
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    path = RESULTS / f"step_ab_{args.what}_{args.label}.json"
+    refuse_overwrite(path, overwrite=args.overwrite)
 
     cfg = TrainConfig.model_validate(json.loads((args.run / "config.json").read_text()))
     trainer = trainer_from_run(args.scene, args.run, cfg, torch.device("cpu"),
@@ -189,7 +193,6 @@ def main() -> None:
         "ratio_median": statistics.median(seconds["now"]) / statistics.median(seconds["before"]),
     }
     RESULTS.mkdir(parents=True, exist_ok=True)
-    path = RESULTS / f"step_ab_{args.what}_{args.label}.json"
     path.write_text(json.dumps(out, indent=1))
     for k in ("before", "now"):
         v = out["ms_per_step"][k]

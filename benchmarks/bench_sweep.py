@@ -19,7 +19,7 @@ not LPT: it is an estimate, labelled as such).
 
     .venv/bin/python benchmarks/bench_sweep.py [--rounds 2] [--iterations 150]
 
-Writes ``benchmarks/results/sweep_executors.json`` (after every round) and prints the rows for BENCHMARKS.md.
+Writes ``--out`` (default ``benchmarks/results/sweep_executors.json``; after every round) and prints the rows for BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -34,6 +34,8 @@ import sys
 import time
 from datetime import date
 from pathlib import Path
+
+from _common import add_overwrite_option, refuse_overwrite
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -98,7 +100,10 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=2, help="rounds per executor (alternating)")
     ap.add_argument("--iterations", type=int, default=150)
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_sweep"))
+    ap.add_argument("--out", type=Path, default=RESULTS / "sweep_executors.json", help="the results file")
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    refuse_overwrite(args.out, overwrite=args.overwrite)
 
     import shutil
 
@@ -120,7 +125,7 @@ def main() -> None:
               "sweep": {"scene": "tiny synthetic (24 views, 128x96)", "points": 8, "iterations": args.iterations,
                         "workers": 2, "threads_per_job": 1},
               "rounds": []}
-    dest = RESULTS / "sweep_executors.json"
+    dest = args.out
     result["ray_start_stop_seconds"] = ray_start_stop_seconds()
     for rnd in range(args.rounds):
         for executor in ("local", "ray"):
@@ -140,7 +145,7 @@ def main() -> None:
             result["rounds"].append(row)
             print(f"{executor} round {rnd}: wall {wall:.1f} s, work {work:.1f} s, "
                   f"overhead {row['overhead_per_point_seconds']:.2f} worker-s/point")
-            RESULTS.mkdir(parents=True, exist_ok=True)
+            dest.parent.mkdir(parents=True, exist_ok=True)
             dest.write_text(json.dumps(result, indent=2) + "\n")
 
     med = {e: {k: statistics.median(r[k] for r in result["rounds"] if r["executor"] == e)

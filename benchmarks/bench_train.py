@@ -25,7 +25,7 @@ node (rasterizer, SSIM, table sampling, KL, other); one posterior update is spli
 (``posterior_breakdown``) and one periodic test of each kind (``checks_breakdown``: the growth and SH band tests), and
 ``outside_rasterizer`` gives the share of the training time outside the rasterizer.
 
-Writes ``benchmarks/results/train_{scene}.json`` and prints the Markdown rows for BENCHMARKS.md.
+Writes ``benchmarks/results/train_{scene}.json`` (``train_{scene}-{label}.json`` with ``--label``) and prints the Markdown rows for BENCHMARKS.md.
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ from datetime import date
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 from uncertsplat.config import ReconstructConfig, SynthConfig, train_config_from
 from uncertsplat.stages import train as train_stage
@@ -68,6 +69,11 @@ def scene_folder(name: str, work: Path, fern_ws: Path | None, bonsai_ws: Path | 
                                                                         max_image_size=1600)
     reconstruct.run(DATASETS / name / "images", ws, cfg)
     return ws
+
+
+def result_path(scene: str, label: str | None) -> Path:
+    """The results file of ``scene``: ``train_<scene>.json``, or ``train_<scene>-<label>.json``."""
+    return RESULTS / (f"train_{scene}-{label}.json" if label else f"train_{scene}.json")
 
 
 def bench(name: str, work: Path, args) -> dict:
@@ -112,7 +118,7 @@ def bench(name: str, work: Path, args) -> dict:
     if args.compare_kernels:
         result["kernel_comparison"] = compare_kernels(scene, run, cfg, args.compare_kernels, torch.device(args.device))
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / f"train_{name}.json").write_text(json.dumps(result, indent=2) + "\n")
+    result_path(name, args.label).write_text(json.dumps(result, indent=2) + "\n")
     return result
 
 
@@ -437,7 +443,11 @@ def main() -> None:
     ap.add_argument("--no-profile", action="store_true", help="do not time the phases of the steps")
     ap.add_argument("--backward-steps", type=int, default=20, metavar="STEPS",
                     help="profile STEPS steps from the final checkpoint to split the backward pass (0: skip)")
+    ap.add_argument("--label", default=None,
+                    help="results go to train_<scene>-<label>.json (default: train_<scene>.json)")
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    refuse_overwrite(*(result_path(name, args.label) for name in args.scenes), overwrite=args.overwrite)
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)

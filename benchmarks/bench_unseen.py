@@ -66,6 +66,7 @@ import time
 from pathlib import Path
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -253,7 +254,7 @@ def jitter_exposure(scene_dir: Path, sigma: float, seed: int) -> list[float]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("/tmp/bench_unseen"))
-    ap.add_argument("--label", default="synthetic-demo-half-ring")
+    ap.add_argument("--label", default="synthetic-demo-half-ring", help="results go to unseen_<label>.json")
     ap.add_argument("--iterations", type=int, default=1500)
     ap.add_argument("--width", type=int, default=160)
     ap.add_argument("--test-every", type=int, default=2)
@@ -284,7 +285,9 @@ def main() -> None:
                     "in a capture with automatic exposure), keeping the clean photos' sparse points")
     ap.add_argument("--predictives", nargs="+", choices=list(PREDICTIVES), default=list(PREDICTIVES),
                     help="which predictives to evaluate every run with (default: all)")
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    refuse_overwrite(ROOT / "benchmarks" / "results" / f"unseen_{args.label}.json", overwrite=args.overwrite)
 
     from uncertsplat.baselines import train_run
     from uncertsplat.config import SynthConfig, TrainConfig, train_config_from

@@ -33,6 +33,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import torch
+from _common import add_overwrite_option, refuse_overwrite
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -196,7 +197,9 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=1500)
     ap.add_argument("--tmp", type=Path, default=Path("/tmp/bench_view"))
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "view.json")
+    add_overwrite_option(ap)
     args = ap.parse_args()
+    refuse_overwrite(args.out, overwrite=args.overwrite)
     torch.manual_seed(0)
     res = {"machine": platform.processor() or platform.machine(), "threads": torch.get_num_threads(),
            "date": date.today().isoformat(), "run": str(args.run)}
