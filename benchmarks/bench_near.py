@@ -168,7 +168,8 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"correlation over the {len(per_view)} views of the mean std with the RMSE: {corr:.2f}")
-    print("| distance | PSNR | AUSE-MAE | NLL | cal. err | mean RGB std | RMSE |")
+    print("\n| distance | PSNR | AUSE-MAE | NLL | cal. err | mean RGB std | RMSE |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| x{r['fraction']:g} | {r['psnr']:.2f} | {r['ause_mae']:.3f} | {r['nll']:.3f} | "
               f"{r['calibration_error']:.3f} | {r['mean_std']:.4f} | {r['rmse']:.4f} |")

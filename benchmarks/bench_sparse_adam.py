@@ -133,11 +133,13 @@ def main() -> None:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     print("| Gaussians | rows touched | dense fused Adam ms | visible ms (ratio) | lazy ms (ratio) |")
+    print("|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['gaussians']:,} | {r['fraction']:.0%} | {r['dense_ms']:.2f} | {r['visible_ms']:.2f} "
               f"(x{r['visible_ratio']:.2f}) | {r['lazy_ms']:.2f} (x{r['lazy_ratio']:.2f}) |")
     print("\n| Gaussians | torch fused Adam + check ms | one native call ms (ratio) | SH rest inert: torch ms | "
           "native ms (ratio) |")
+    print("|---|---|---|---|---|")
     for r in dense:
         print(f"| {r['gaussians']:,} | {r['torch_ms']:.2f} | {r['native_ms']:.2f} (x{r['ratio']:.2f}) | "
               f"{r['sh_off_torch_ms']:.2f} | {r['sh_off_native_ms']:.2f} (x{r['sh_off_ratio']:.2f}) |")

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import tempfile
 from datetime import date
@@ -46,6 +47,10 @@ from uncertsplat.stages import train as train_stage
 ROOT = Path(__file__).resolve().parents[1]
 DATASETS = ROOT / "../shared/datasets"
 RESULTS = ROOT / "benchmarks" / "results"
+# torch.profiler (the phase timings) prints Kineto's "USDT: ... profiler_start / profiler_stop" lines on every
+# profiled step; Kineto reads its level when the profiler starts, and 6 is above its highest (USDT = 5). A level set
+# in the environment wins.
+os.environ.setdefault("KINETO_LOG_LEVEL", "6")
 
 SCENES = {"tiny": "tiny", "synthetic-demo": "demo", "fern": "paper", "bonsai": "paper"}
 SCENE_OVERRIDES = {"bonsai": ["scene.downscale=2"]}  # as pipelines/photos.toml trains it
