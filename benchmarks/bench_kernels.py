@@ -252,6 +252,21 @@ class _Tolerant:
             return type("Missing", (), {})()
 
 
+def check_reference(ref: str) -> None:
+    """Exit with a message when ``ref`` is no commit of this checkout (a shallow clone lacks the older ones) or has
+    no native kernels, instead of a ``git`` traceback midway."""
+    def git(*cmd: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", *cmd], cwd=ROOT, capture_output=True, text=True)
+
+    if git("rev-parse", "--verify", "--quiet", f"{ref}^{{commit}}").returncode != 0:
+        shallow = git("rev-parse", "--is-shallow-repository").stdout.strip() == "true"
+        sys.exit(f"bench_kernels.py: the reference commit {ref!r} is not in this clone"
+                 + (" (a shallow clone: fetch the full history with `git fetch --unshallow`, then run again)"
+                    if shallow else " (check the revision; `git fetch` if it is on the remote)"))
+    if git("ls-tree", "--name-only", f"{ref}:uncertsplat/native/csrc").returncode != 0:
+        sys.exit(f"bench_kernels.py: revision {ref!r} has no uncertsplat/native/csrc (no native kernels to compare)")
+
+
 def build_reference(ref: str, out_dir: Path):
     """Build the kernels of revision ``ref`` into ``out_dir``; returns the loaded library (wrapped if older)."""
     src = out_dir / "csrc"
@@ -520,6 +535,7 @@ def main() -> None:
     args = ap.parse_args()
     refuse_overwrite(args.out, overwrite=args.overwrite)
     torch.set_num_threads(args.threads)
+    check_reference(args.ref)
     if native.library() is None:
         sys.exit(f"the native kernels are unavailable: {native.unavailable_reason()}")
     with tempfile.TemporaryDirectory() as tmp:
