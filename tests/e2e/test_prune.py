@@ -69,7 +69,9 @@ def test_writes_a_valid_pruned_run(pruned, tiny_run_path):  # noqa: F811
     # scores are extra PLY properties; the removed Gaussians are the highest-scoring carriers
     ply = PlyData.read(str(out / "point_cloud.ply"))
     props = {p.name for p in ply["vertex"].properties}
-    assert {"score_position", "score_scale", "score_gate", f"score_{DEFAULT_SCORE}", "x", "opacity"} <= props
+    assert {"score_position", "score_scale", "score_gate", f"score_{DEFAULT_SCORE}".replace("-", "_"), "x",
+            "opacity"} <= props
+    assert all(p.isidentifier() for p in props)  # score_free_space, not score_free-space
     scores = np.load(out / "scores.npz")
     s = scores[result.score]
     removed = np.setdiff1d(np.arange(n), kept)

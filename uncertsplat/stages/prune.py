@@ -8,7 +8,7 @@ place at the end, so an interrupted prune leaves no half-written run, and an exi
 
 - ``config.json``, ``scene.json``: copied from the input run (so ``evaluate``, ``report`` and ``prune``
   accept ``OUT`` as a run); ``variational.ply`` (the pruned model, what ``baselines.load_run`` reads) and
-  ``point_cloud.ply`` (viewer PLY; the per-Gaussian scores are extra properties ``score_<name>``, and
+  ``point_cloud.ply`` (viewer PLY; the per-Gaussian scores are extra properties ``score_<name>`` (``-`` as ``_``), and
   ``contribution`` when the predictive score was computed). No checkpoints and no ``stats.jsonl``.
 - ``prune_mask.npy``: int64 indices (ascending) of the kept Gaussians in the input run's model. With the
   input run's path and the SHA-256 of its model file (both in ``prune.json``) this makes the pruning
@@ -245,7 +245,8 @@ def _print_table(title: str, rows: list[tuple[str, PruneMetrics]]) -> None:
     from rich.table import Table
 
     table = Table(title=title)
-    for col in ("model", "Gaussians", "PSNR", "PSNR render", "SSIM", "AUSE-MAE", "NLL", "coverage", "PLY MB"):
+    for col in ("model", "Gaussians", "PSNR", "PSNR render", "SSIM", "AUSE-MAE", "NLL", "coverage",
+                "variational.ply MB", "point_cloud.ply MB"):
         table.add_column(col, justify="right")
 
     def f(x, p=3):
@@ -253,7 +254,8 @@ def _print_table(title: str, rows: list[tuple[str, PruneMetrics]]) -> None:
 
     for name, m in rows:
         table.add_row(name, str(m.num_gaussians), f(m.psnr, 2), f(m.psnr_render, 2), f(m.ssim), f(m.ause_mae),
-                      f(m.nll), f(m.coverage), f(m.variational_ply_bytes / 1e6, 2))
+                      f(m.nll), f(m.coverage), f(m.variational_ply_bytes / 1e6, 2),
+                      f(m.point_cloud_ply_bytes / 1e6, 2))
     console.print(table)
 
 
@@ -614,9 +616,10 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
             write_point_cloud_ply(tmp / "point_cloud.ply", pruned, variant=measure.meta["variant"],
                                   extent=loaded.extent, temperature=measure.meta["temperature"])
             kept = keep.to(carriers.device)
+            # names a program can take for identifiers: score_free_space, not score_free-space
             _add_vertex_properties(tmp / "point_cloud.ply",
-                                   {("contribution" if k == "contribution" else f"score_{k}"): v[kept].cpu().numpy()
-                                    for k, v in scores.items()})
+                                   {("contribution" if k == "contribution" else f"score_{k}".replace("-", "_")):
+                                    v[kept].cpu().numpy() for k, v in scores.items()})
         if keep is not None:
             np.save(tmp / "prune_mask.npy", kept_indices(keep).cpu().numpy().astype(np.int64))
         np.savez(tmp / "scores.npz", carriers=carriers.cpu().numpy(),
