@@ -231,3 +231,24 @@ def test_a_surface_near_the_cameras_moves_the_near_plane_and_every_stage_renders
     assert loaded.near == info.near
     assert replace(loaded, near=0.123).render_fn(1.0, torch.device("cpu")).keywords["near"] == 0.123
     assert replace(loaded, near=None).render_fn(2.0, torch.device("cpu")).keywords["near"] == pytest.approx(0.02)
+
+
+def test_a_model_whose_gaussians_carry_no_posterior_says_why():
+    """Gaussians all narrower than the spawn rule's fraction of the rig radius (a small scene seen from far) carry no
+    posterior: train warns, with a fraction that gives half of them one; not before the first spawn step, not for a
+    model without offset tables, not when carriers are common."""
+    from uncertsplat.train.trainer import few_carriers_warning
+
+    scene, tr, te = toy_scene()
+    cfg = toy_config()
+    t = Trainer(scene, cfg, tr, te)
+    assert t.model.num_carriers == 0
+    with torch.no_grad():
+        t.model.params["scales"].fill_(math.log(1e-4 * t.extent))
+    (warning,) = few_carriers_warning(t.model, cfg, t.extent, t.prior, step=30)
+    assert f"only 0 of the {len(t.model):,} Gaussians carry a posterior" in warning
+    suggested = float(warning.split("spawn_scale_fraction=")[1].split()[0])
+    assert suggested < 1.732e-4 < 2 * suggested  # below the median width (sqrt(3) x 1e-4), same order
+    assert few_carriers_warning(t.model, cfg, t.extent, t.prior, step=5) == []  # before the first spawn step (10)
+    det = toy_config(method="deterministic")
+    assert few_carriers_warning(t.model, det, t.extent, t.prior, step=30) == []

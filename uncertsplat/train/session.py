@@ -244,7 +244,13 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
     from uncertsplat.sfm.scene import camera_records, load_scene, require_same_cameras, with_training_views
     from uncertsplat.strategy.schedule import densify_steps_after
-    from uncertsplat.train.trainer import Trainer, TrainingInterrupted, log_line, training_near_plane
+    from uncertsplat.train.trainer import (
+        Trainer,
+        TrainingInterrupted,
+        few_carriers_warning,
+        log_line,
+        training_near_plane,
+    )
 
     scene, run_dir = Path(scene), Path(run_dir)
     device = torch.device(device)
@@ -446,6 +452,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         if warnings and trainer.step < SHORT_RUN_STEPS:  # it judges a fitted model
             warnings = [f"{w} (after only {trainer.step} steps the model may not fit its photos yet: judge this on "
                         "a full run)" for w in warnings]
+        warnings += few_carriers_warning(trainer.model, cfg, trainer.extent, trainer.prior, trainer.step)
         # the views added during the run are left out: one added in a gap is fitted poorly whatever its exposure (a
         # view added there raised the warning on photos of one exposure)
         late = {n for added in views_added for n in added.names}

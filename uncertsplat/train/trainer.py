@@ -103,6 +103,38 @@ def training_near_plane(scene: SceneData) -> float:
     return near_plane(scene.scene_scale, depths)
 
 
+FEW_CARRIERS = 0.1
+"""Below this share of a variational model's Gaussians carrying a posterior, ``few_carriers_warning`` says why (the
+demo and tiny scenes: 98-100 %)."""
+
+
+def few_carriers_warning(model: GaussianModel, cfg: TrainConfig, extent: float, prior: Prior,
+                         step: int) -> list[str]:
+    """The warning for a model with offset tables whose Gaussians mostly carry no posterior (their uncertainty is
+    0): the spawn rule gives one to a Gaussian wider than ``densify.spawn_scale_fraction`` of the cameras' radius,
+    which the Gaussians of a small scene seen from far (a long lens, a rig far larger than the scene) never are;
+    names a fraction that gives one to about half of them. None before the first spawn step (``step``)."""
+    n = len(model)
+    d = cfg.densify
+    first_spawn = (d.start // d.spawn_interval + 1) * d.spawn_interval
+    if not cfg.has_offset_tables or n == 0 or model.num_carriers >= FEW_CARRIERS * n or first_spawn > min(d.until,
+                                                                                                         step):
+        return []
+    with torch.no_grad():
+        pm = posterior_mean(model, variant=prior.variant, extent=extent, temperature=prior.temperature)
+        width = pm.scales.norm(dim=-1)[pm.opacities >= cfg.densify.spawn_min_opacity] / extent  # [M]
+    if width.numel() == 0:
+        return []
+    median = float(width.median())
+    digit = 10.0 ** math.floor(math.log10(0.9 * median))  # rounded down to one digit: below the median, never above
+    suggested = math.floor(0.9 * median / digit) * digit
+    return [f"only {model.num_carriers:,} of the {n:,} Gaussians carry a posterior (the others' uncertainty is 0): "
+            f"a Gaussian gets one when wider than densify.spawn_scale_fraction = {cfg.densify.spawn_scale_fraction:g} "
+            f"of the cameras' radius, and this scene's are smaller (median {median:.2g}: a small scene seen from far, "
+            f"or a long lens); --set densify.spawn_scale_fraction={suggested:.1g} gives one to "
+            "at least half of them"]
+
+
 FEW_POINTS = 100
 """Below this many initial points ``few_points_notes`` says the model starts from little (a sparse model that
 registered but triangulated almost nothing, or points edited away)."""
