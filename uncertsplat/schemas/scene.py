@@ -87,10 +87,10 @@ class RunScene(SchemaFile):
     """``RUN/scene.json`` (written by ``train``): which scene a run was trained on and how it was normalised."""
 
     FILE_NAME = "scene.json"
-    SCHEMA_VERSION = 3
+    SCHEMA_VERSION = 4
     WRITTEN_BY = "uncertsplat train"
 
-    schema_version: int = 3
+    schema_version: int = 4
     scene: str
     """Absolute path of the scene folder (COLMAP workspace, Blender/nerfstudio folder, synthetic scene)."""
     source: dict[str, Any] = Field(default_factory=dict)
@@ -135,6 +135,6 @@ class RunScene(SchemaFile):
                                                                 "that always used the camera centroid"}
         if version == 1:
             return {**data, "calibration": []}
-        if version == 2:  # (no cameras recorded: the default, nothing to compare)
-            return data
+        if version in (2, 3):  # 2: no cameras recorded (the default, nothing to compare); 2 and 3: no near plane (the
+            return data  # default None: 1 % of the scene scale, what those runs rendered with)
         return None
