@@ -246,10 +246,16 @@ def test_version_2_run_scene_reads_with_no_cameras_to_compare(tmp_path):
     scene = next(e for e in EXAMPLES if isinstance(e, RunScene))
     data = json.loads(scene.to_json())
     data["schema_version"] = 2
-    del data["cameras"]
+    del data["cameras"], data["near"]
     (tmp_path / "scene.json").write_text(json.dumps(data))
     got = RunScene.read(tmp_path / "scene.json")
-    assert got.schema_version == 3 and got.cameras == {} and got.train == scene.train
+    assert got.schema_version == RunScene.SCHEMA_VERSION and got.cameras == {} and got.train == scene.train
+    assert got.near is None  # the plane those runs rendered with: 1 % of the scene scale (LoadedRun.render_fn)
+    data["schema_version"] = 3  # cameras recorded, no near plane
+    data["cameras"] = json.loads(scene.to_json())["cameras"]
+    (tmp_path / "scene.json").write_text(json.dumps(data))
+    got = RunScene.read(tmp_path / "scene.json")
+    assert got.near is None and got.cameras == scene.cameras
 
 
 def test_train_summary_version_1_is_converted(tmp_path):
