@@ -331,7 +331,9 @@ def evaluate(
         help=f"Posterior samples per view (K). {_d('EvalConfig', 'num_samples')}")] = None,
     seed: Annotated[int | None, typer.Option(help=f"Random seed for sampling. {_d('EvalConfig', 'seed')}")] = None,
     depth_gt: Annotated[Path | None, typer.Option(help="Folder of GT depth maps.")] = None,
-    depth_scale: Annotated[str | None, typer.Option(help="auto or a factor to GT depth units.")] = None,
+    depth_scale: Annotated[str | None, typer.Option(
+        help="auto (fitted to a --depth-gt folder), scene (its maps are in the scene's own units, e.g. a metric "
+        "COLMAP model's) or a factor from the run's depth to GT depth units.")] = None,
     paper_nll: Annotated[bool | None, typer.Option("--paper-nll", help="Also report the paper's NLL.")] = None,
     device: DeviceOpt = "auto",
     config: ConfigOpt = None,
@@ -343,12 +345,14 @@ def evaluate(
 
     ds: object = None
     if depth_scale is not None:
-        hint = "auto estimates it from the GT depth maps; a number is the factor to GT units."
+        hint = ("auto estimates it from the GT depth maps; scene takes maps in the scene's own units; a number is "
+                "the factor to GT units.")
         try:
             ds = float(depth_scale)
         except ValueError:
-            if depth_scale != "auto":
-                raise UserError(f"--depth-scale must be auto or a number, not {depth_scale!r}", hint=hint) from None
+            if depth_scale not in ("auto", "scene"):
+                raise UserError(f"--depth-scale must be auto, scene or a number, not {depth_scale!r}",
+                                hint=hint) from None
             ds = depth_scale
         if isinstance(ds, float) and not (0.0 < ds < float("inf")):  # checked before any view is rendered
             raise UserError(f"--depth-scale must be a positive number, not {depth_scale}", hint=hint)

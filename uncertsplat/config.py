@@ -449,8 +449,10 @@ class EvalConfig(_Base):
     seed: int = Field(0, ge=0)
     depth_gt: Path | None = None
     """Folder of GT depth maps ({image stem}.npy or .exr); synthetic scenes provide their own."""
-    depth_scale: Literal["auto"] | Annotated[float, Field(gt=0.0)] = "auto"
-    """Factor from rendered depth to GT depth units (> 0); auto estimates it."""
+    depth_scale: Literal["auto", "scene"] | Annotated[float, Field(gt=0.0)] = "auto"
+    """Factor from rendered depth to GT depth units (> 0). auto: the scene's own GT depth is in known units, a
+    ``depth_gt`` folder's factor is fitted (``depth_align``); scene: the ``depth_gt`` maps are in the scene's own
+    units (its COLMAP model's, e.g. a metric map's), the known factor of ``RUN/scene.json``."""
     depth_align: Literal["median", "lsq"] = "median"
     std_floor: float = Field(1e-3, gt=0.0)
     """The NLL uses max(std, std_floor) so a zero std does not give an infinite NLL."""

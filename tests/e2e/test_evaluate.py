@@ -319,6 +319,26 @@ def test_given_depth_gt_folder_estimates_scale(tiny_run_path, tiny_scene_path, t
     assert meta  # the scene records its generator settings
 
 
+def test_a_depth_gt_folder_in_the_scene_s_units_and_a_factor_that_cannot_be_right(tiny_run_path, tiny_scene_path,
+                                                                                    tmp_path):
+    """--depth-scale scene: a folder of maps in the scene's own units (a metric COLMAP model's) is scored with the
+    scene's known factor, as the scene's own GT is (no fitted factor hiding a scale error); a factor given that
+    leaves the GT 4x the render (--depth-scale 1 on such maps) is said, and the metrics are that factor's."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    own = evaluate.run(run, EvalConfig(num_samples=2, max_views=2, save_maps=False), device=torch.device("cpu"))
+    folder = evaluate.run(run, EvalConfig(num_samples=2, max_views=2, save_maps=False, depth_scale="scene",
+                                          depth_gt=tiny_scene_path / "depth"), device=torch.device("cpu"))
+    assert own.depth_scale.method == folder.depth_scale.method == "scene" and folder.depth_scale.scale == 1.0
+    assert folder.mean.depth_rmse == pytest.approx(own.mean.depth_rmse, rel=1e-5)
+    assert not any("probably in other units" in n for n in folder.notes)
+    one = evaluate.run(run, EvalConfig(num_samples=2, max_views=2, save_maps=False, depth_scale=1.0,
+                                       depth_gt=tiny_scene_path / "depth"), device=torch.device("cpu"))
+    (note,) = [n for n in one.notes if "probably in other units" in n]
+    assert note.startswith("with the depth factor given (1), the GT depth is 4.")  # 1 / the scene's 0.247
+    assert one.depth_scale.method == "given" and one.mean.depth_abs_rel > 0.5
+
+
 def test_cli_missing_run_is_clear(tmp_path):
     result = runner.invoke(app, ["evaluate", str(tmp_path / "nope"), "--device", "cpu"])
     assert result.exit_code == 2

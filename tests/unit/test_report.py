@@ -735,9 +735,12 @@ def test_depth_lengths_are_shown_in_the_scenes_units(tmp_path):
     info = RunScene.read(run / "scene.json")
     info.world_from_source = [[0.25, 0, 0, 0.1], [0, 0.25, 0, 0], [0, 0, 0.25, 0], [0, 0, 0, 1]]
     info.write(run / "scene.json")
+    from uncertsplat.schemas.metrics import DepthScaleInfo
+
     m = EvalReport.read(run / "eval" / "metrics.json")
     for vm in [m.mean, *m.per_view.values()]:
         vm.depth_rmse, vm.depth_mae = 0.1447, 0.0786
+    m.depth_scale = DepthScaleInfo(scale=1.0, method="scene", num_pixels=100)  # the scene's own GT depth
     m.write(run / "eval" / "metrics.json")
     html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
     rmse = table_rows(html, "metrics-0")["mean"]
@@ -761,6 +764,14 @@ def test_depth_lengths_are_shown_in_the_scenes_units(tmp_path):
     m.write(plain / "eval" / "metrics.json")
     html = stage.run([plain], tmp_path / "out2", ReportConfig()).read_text()
     assert "Depth RMSE (run&#x27;s normalised units)" in html
+    # GT maps of their own units (--depth-gt, the factor fitted or given): the errors are in those units already,
+    # not multiplied by the scene's factor
+    m.depth_scale = DepthScaleInfo(scale=4.107, method="median", num_pixels=100)
+    m.write(run / "eval" / "metrics.json")
+    html = stage.run([run], tmp_path / "out3", ReportConfig()).read_text()
+    cell = next(c for c in table_rows(html, "metrics-0")["mean"] if c[0] == "depth_rmse")
+    assert cell[2] == format(m.mean.depth_rmse, ".4f") and "Depth RMSE (GT maps&#x27; units)" in html
+    assert "the GT maps&#x27; own: depth RMSE, MAE and NLL" in html
 
 
 def test_timeline_speed_panel_holds_every_run(monkeypatch):

@@ -161,17 +161,22 @@ def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) ->
 
 
 def load_view_set(scene: SceneData, indices: Sequence[int], *, depth: bool = True,
-                  depth_folder: Path | None = None) -> ViewSet:
+                  depth_folder: Path | None = None, folder_in_scene_units: bool = False) -> ViewSet:
     """The views ``indices`` of ``scene`` with their images, masks and GT depth, for evaluation (CPU).
 
     Args:
         depth: load the scene's own GT depth (in its normalised units, so ``depth_known_scale``).
         depth_folder: take GT depth from this folder instead (``load_depth_folder``; scale unknown).
+        folder_in_scene_units: ``depth_folder``'s maps are in the scene's own (source) units: converted to its
+            normalised units as the scene's own GT depth is (``depth_known_scale``).
     """
     indices = [int(i) for i in indices]
     depths, known = None, False
     if depth_folder is not None:  # first: a wrong folder fails before any image is read
         depths = load_depth_folder(depth_folder, scene, indices)
+        if folder_in_scene_units:
+            depths = depths / (scene.depth_scale_to_gt or 1.0)
+            known = True
     elif depth:
         depths = load_depths(scene, indices)
         known = depths is not None

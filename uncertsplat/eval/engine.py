@@ -559,6 +559,30 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
     return StdFit(scale, dof, views.names)
 
 
+IMPLAUSIBLE_DEPTH_RATIO = 2.0
+"""A given depth factor (a number, or the scene's own units) that leaves the GT this many times the scaled render, or
+less than 1/this, at the median, is noted as probably wrong (``implausible_depth_scale_notes``)."""
+
+
+def implausible_depth_scale_notes(depth: Tensor, gt: Tensor, mask: Tensor, scale: float, given) -> list[str]:
+    """A note when the depth factor given (``given``: a number, or the scene's known units) leaves the GT depth
+    ``IMPLAUSIBLE_DEPTH_RATIO`` times the scaled render (or less than its inverse) at the median: GT maps in other
+    units than the factor assumes (``--depth-scale 1`` on maps in the scene's units gave abs-rel 0.76 without a
+    word). The metrics stay those of the factor given."""
+    from uncertsplat.eval.depth import align_depth_scale
+
+    try:
+        ratio = align_depth_scale(depth * scale, gt, mask=mask, method="median").scale
+    except ValueError:  # no valid pixel: the depth metrics say so
+        return []
+    if 1 / IMPLAUSIBLE_DEPTH_RATIO <= ratio <= IMPLAUSIBLE_DEPTH_RATIO:
+        return []
+    what = f"the depth factor given ({given:g})" if isinstance(given, float) else "the scene's own depth units"
+    return [f"with {what}, the GT depth is {ratio:.3g}x the render's at the median: the GT maps are probably in "
+            "other units (--depth-scale auto fits the factor; scene takes maps in the scene's own units); the depth "
+            "metrics are those of the factor given"]
+
+
 MASKED_NOTE_BELOW = 0.995
 """``evaluate_views`` notes that its metrics are taken inside the scene's validity masks when these cover less of
 the pixels than this (a mask of every pixel changes nothing)."""
@@ -754,6 +778,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         elif views.depth_known_scale:
             scale = align_depth_scale(dm, gt_depth, mask=base_mask, method=1.0)
             scale = type(scale)(1.0, "scene", scale.num_pixels)
+        if isinstance(cfg.depth_scale, float) or views.depth_known_scale:
+            notes += implausible_depth_scale_notes(dm, gt_depth, base_mask, scale.scale, cfg.depth_scale)
         else:
             try:
                 scale = align_depth_scale(dm, gt_depth, mask=base_mask, method=cfg.depth_align)

@@ -295,8 +295,11 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
                 body.append(title + _missing_metrics_note(run))
             continue
         factor = run.depth_to_source
-        rows_in = [(name, depth_in_scene_units(metric_row(v), factor)) for name, v in m.per_view.items()]
-        rows_in.append(("mean", depth_in_scene_units(metric_row(m.mean), factor)))
+        # GT maps of unknown units (a --depth-gt folder, its factor fitted or given): the depth errors are in the
+        # maps' own units already (the rendered depth was scaled to them)
+        gt_units = m.depth_scale is not None and m.depth_scale.method != "scene"
+        rows_in = [(name, depth_in_scene_units(metric_row(v), factor, gt_units)) for name, v in m.per_view.items()]
+        rows_in.append(("mean", depth_in_scene_units(metric_row(m.mean), factor, gt_units)))
         keys = [s.key for s in METRIC_SPECS if any(r[s.key].value is not None for _, r in rows_in)]
         empty = [s.label for s in METRIC_SPECS if s.key not in keys]
         labels = {k: rows_in[-1][1][k].spec.label for k in keys}
@@ -336,15 +339,17 @@ _DEPTH_METHODS = {"scene": "none: the scene's GT depth has a known scale", "medi
                   "lsq": "estimated: least squares", "given": "given with --depth-scale"}
 
 
-def depth_in_scene_units(row: dict[str, MetricValue], factor: float | None) -> dict[str, MetricValue]:
+def depth_in_scene_units(row: dict[str, MetricValue], factor: float | None,
+                         gt_units: bool = False) -> dict[str, MetricValue]:
     """``row`` with its depth lengths (``DEPTH_LENGTH_KEYS``) shown in the scene's units (times ``factor``) and labelled
-    so; without a factor they stay in the run's normalised units, labelled so."""
+    so; without a factor they stay in the run's normalised units, labelled so; with ``gt_units`` (the rendered depth
+    was scaled to GT maps of their own units) they are in those units already, labelled so."""
     out = dict(row)
     for k in DEPTH_LENGTH_KEYS:
         spec = row[k].spec
-        unit = "scene units" if factor is not None else "run's normalised units"
-        out[k] = MetricValue(replace(spec, label=f"{spec.label} ({unit})", scale=spec.scale * (factor or 1.0)),
-                             row[k].value)
+        unit = "GT maps' units" if gt_units else "scene units" if factor is not None else "run's normalised units"
+        scale = 1.0 if gt_units else (factor or 1.0)
+        out[k] = MetricValue(replace(spec, label=f"{spec.label} ({unit})", scale=spec.scale * scale), row[k].value)
     return out
 
 
@@ -352,7 +357,11 @@ def _depth_facts(info, factor: float | None) -> list[tuple[str, str]]:
     """What the depth numbers are: the alignment applied to the rendered depth and the units shown."""
     method = _DEPTH_METHODS.get(info.method, info.method)
     facts = [("depth alignment", f"rendered depth x{info.scale:.6g} before it is compared with the GT ({method})")]
-    if factor is not None:
+    if info.method != "scene":
+        facts.append(("depth units", "the GT maps' own: depth RMSE, MAE and NLL compare the rendered depth, scaled "
+                                     "by the alignment, with them"
+                                     + (f"; the depth maps are in the scene's units (x{factor:.6g})" if factor else "")))
+    elif factor is not None:
         facts.append(("depth units", f"the scene's own (its GT depth's or COLMAP model's): depth RMSE, MAE and the "
                                      f"maps are the run's normalised values x{factor:.6g} (1 / the scale of scene.json's "
                                      f"world_from_source); depth NLL stays per normalised unit (add "

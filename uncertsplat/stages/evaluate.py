@@ -370,7 +370,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         console.print(f"[bold]evaluate[/] {run_dir}: already evaluated with these settings, versions and device "
                       f"({out / 'metrics.json'}; --set reuse=false evaluates again)")
         return done if quiet else _print_report(run_dir, cfg, done, out, written=False)
-    views = load_view_set(scene, indices, depth_folder=cfg.depth_gt)
+    views = load_view_set(scene, indices, depth_folder=cfg.depth_gt, folder_in_scene_units=cfg.depth_scale == "scene")
     with run_lock(run_dir, "evaluate"):
         if not quiet:
             console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
