@@ -150,6 +150,16 @@ def test_fisher_variances_and_spread(fisher_run):
         assert bool((v < 0.99 * prior**2).any()), "observed Gaussians must be tighter than the prior"
     summary = json.loads((run / "train_summary.json").read_text())
     assert summary["seconds"] == pytest.approx(summary["train_seconds"] + summary["fisher_seconds"])
+    # the viewer PLY carries the posterior's spreads (they were 0, read as a certain model), the standard layout kept
+    from plyfile import PlyData
+
+    v = PlyData.read(str(run / "point_cloud.ply"))["vertex"].data
+    names = v.dtype.names
+    assert names.index("rot_3") < names.index("uncertainty_position") and len(v) == len(loaded.model)
+    position = loaded.variance["means"].double().mean(1).sqrt().numpy()
+    np.testing.assert_allclose(v["uncertainty_position"], position, rtol=1e-5)
+    assert (v["uncertainty_scale"] > 0).all() and (v["uncertainty_gate"] > 0).all() and (v["has_posterior"] == 1).all()
+    assert (v["uncertainty_switch_off"] == 0).all()
     report = evaluate.run(run, EvalConfig(num_samples=3, max_views=2, seed=1), device=CPU)
     for ch in exr_maps(run, report):
         assert ch["rgb_std.R"].shape == (H, W) and ch["rgb_std.R"].max() > 0

@@ -70,6 +70,21 @@ def prior_stds(fcfg, extent: float) -> dict[str, float]:
             "opacities": fcfg.prior_std_opacities, "sh0": fcfg.prior_std_sh0}
 
 
+def ply_uncertainty(variance: dict[str, Tensor], n: int) -> dict[str, Tensor]:
+    """``point_cloud.ply``'s uncertainty properties [N] from the Laplace posterior ``variance`` (name -> [N,...]), in
+    the variational model's terms (``gaussians.variational.carrier_uncertainty``): ``position`` the RMS position std
+    over the axes (run units), ``scale`` the RMS std of the log-scales (the width of a size multiplier, to first
+    order), ``gate`` the std of the opacity logit (the gate logit's counterpart); ``switch_off`` 0 (no gate to switch
+    off); ``has_posterior`` 1 for every Gaussian (each has a variance). A parameter without a variance gives 0."""
+    def rms(name: str) -> Tensor:
+        v = variance.get(name)
+        return torch.zeros(n) if v is None else v.detach().cpu().double().reshape(n, -1).mean(1).sqrt().float()
+
+    return {"uncertainty_position": rms("means"), "uncertainty_scale": rms("scales"),
+            "uncertainty_gate": rms("opacities"), "uncertainty_switch_off": torch.zeros(n),
+            "has_posterior": torch.ones(n)}
+
+
 def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
     """Estimate the Laplace posterior of the trained deterministic model in ``run_dir`` and write ``fisher.pt``.
 
@@ -137,6 +152,12 @@ def train_fisher(scene: Path, run_dir: Path, cfg, device: torch.device, resume: 
         return run_dir
     console.print(f"[bold]fisher[/]: estimating the Laplace posterior ({cfg.fisher.estimator}) over the training views")
     state = compute_fisher(run_dir, device, seed=cfg.seed)
+    # the viewer PLY carries the posterior's spreads, as a variational run's does (they were 0: read as certain)
+    from uncertsplat.io.ply import set_vertex_properties
+
+    n = int(state["num_gaussians"])
+    set_vertex_properties(run_dir / "point_cloud.ply",
+                          {k: v.numpy() for k, v in ply_uncertainty(state["variance"], n).items()})
     if summary.train_seconds is None:  # a second Fisher pass (resume) must not add the first one's time
         summary.train_seconds = summary.seconds
     summary.fisher_seconds = float(state["seconds"])

@@ -92,6 +92,22 @@ def write_point_cloud_ply(path: str | Path, model: GaussianModel, *, variant: st
     return _write(Path(path), [_vertex(cols, len(model))], ["uncertsplat point_cloud posterior-mean"])
 
 
+def set_vertex_properties(path: str | Path, cols: dict[str, np.ndarray]) -> None:
+    """Set float properties of the ``vertex`` element of a PLY file: a property it has is replaced in place (its
+    position kept), a new one appended; the file is rewritten atomically."""
+    ply = PlyData.read(str(path))
+    v = ply["vertex"].data
+    dtype = v.dtype.descr + [(k, "f4") for k in cols if k not in v.dtype.names]
+    arr = np.empty(len(v), dtype=dtype)
+    for name in v.dtype.names:
+        arr[name] = v[name]
+    for k, c in cols.items():
+        arr[k] = np.asarray(c, dtype=arr.dtype[k])
+    others = [e for e in ply.elements if e.name != "vertex"]
+    new = PlyData([PlyElement.describe(arr, "vertex"), *others], text=False, byte_order="<", comments=ply.comments)
+    atomic_write(Path(path), lambda f: new.write(f))
+
+
 def write_variational_ply(path: str | Path, model: GaussianModel, *, meta: dict | None = None) -> Path:
     """Everything needed to rebuild ``model`` exactly (see the module docstring for the layout)."""
     p = model.params

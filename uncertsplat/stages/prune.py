@@ -218,25 +218,6 @@ class _Measure:
 
 
 # ------------------------------------------------------------------------------------------ helpers
-def _add_vertex_properties(path: Path, cols: dict[str, np.ndarray]) -> None:
-    """Append float properties to the ``vertex`` element of a PLY file (rewritten atomically)."""
-    from plyfile import PlyData, PlyElement
-
-    from uncertsplat.io.atomic import atomic_write
-
-    ply = PlyData.read(str(path))
-    v = ply["vertex"].data
-    dtype = v.dtype.descr + [(k, "f4") for k in cols]
-    arr = np.empty(len(v), dtype=dtype)
-    for name in v.dtype.names:
-        arr[name] = v[name]
-    for k, c in cols.items():
-        arr[k] = np.asarray(c, dtype=np.float32)
-    others = [e for e in ply.elements if e.name != "vertex"]
-    new = PlyData([PlyElement.describe(arr, "vertex"), *others], text=False, byte_order="<", comments=ply.comments)
-    atomic_write(path, lambda f: new.write(f))
-
-
 def _num(x: float | None, digits: int = 2) -> str:
     return "n/a" if x is None else f"{x:.{digits}f}"
 
@@ -598,7 +579,7 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
     from uncertsplat.io.atomic import atomic_write_bytes
     from uncertsplat.io.images import write_png
     from uncertsplat.io.maps import map_stem
-    from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
+    from uncertsplat.io.ply import set_vertex_properties, write_point_cloud_ply, write_variational_ply
     from uncertsplat.prune import kept_indices
     from uncertsplat.uncertainty.scores import spread_views
 
@@ -617,7 +598,7 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
                                   extent=loaded.extent, temperature=measure.meta["temperature"])
             kept = keep.to(carriers.device)
             # names a program can take for identifiers: score_free_space, not score_free-space
-            _add_vertex_properties(tmp / "point_cloud.ply",
+            set_vertex_properties(tmp / "point_cloud.ply",
                                    {("contribution" if k == "contribution" else f"score_{k}".replace("-", "_")):
                                     v[kept].cpu().numpy() for k, v in scores.items()})
         if keep is not None:
