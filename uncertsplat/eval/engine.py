@@ -660,7 +660,10 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
                      f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out PSNR "
                      "over whole images")
-    terms = ["the spread of the K samples" + (" (0: K = 1)" if K == 1 else "")]
+    # a model without a posterior (the run's note says every sample is the same render): its spread term is 0 too
+    same = any("every sample is the same render" in n for n in notes)
+    terms = ["the spread of the K samples" + (" (0: K = 1)" if K == 1 else
+                                              " (0 for this model: every sample is the same render)" if same else "")]
     if sampler.residual is not None:
         seen = float(sampler.residual.seen.float().mean()) if sampler.residual.seen.numel() else 0.0
         lev = sampler.residual.leverage_inflation
