@@ -252,3 +252,18 @@ def test_a_model_whose_gaussians_carry_no_posterior_says_why():
     assert few_carriers_warning(t.model, cfg, t.extent, t.prior, step=5) == []  # before the first spawn step (10)
     det = toy_config(method="deterministic")
     assert few_carriers_warning(t.model, det, t.extent, t.prior, step=30) == []
+
+
+def test_a_very_wide_view_is_named():
+    """A camera that sees more than 150 degrees across gets a note (splatting's linearisation at the edges)."""
+    from dataclasses import replace
+
+    from uncertsplat.train.trainer import wide_view_notes
+
+    scene, tr, te = toy_scene()
+    cams = scene.cameras
+    assert wide_view_notes(cams) == []  # fx 0.9 w: 58 degrees
+    K = cams.K.clone()
+    K[:, 0, 0] = 0.05 * cams.width  # 169 degrees across
+    (note,) = wide_view_notes(replace(cams, K=K))
+    assert note.startswith("a training camera sees 169 degrees across")
