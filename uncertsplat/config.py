@@ -821,10 +821,18 @@ def _toml_key(text: str) -> tuple[list[str], str] | None:
         while i < len(text) and text[i] in " \t":
             i += 1
         if i < len(text) and text[i] in "\"'":
-            end = text.find(text[i], i + 1)
-            if end < 0:
+            quote, end = text[i], i + 1
+            while end < len(text) and text[end] != quote:
+                end += 2 if quote == '"' and text[end] == "\\" else 1  # a basic string's escapes
+            if end >= len(text):
                 return None
-            parts.append(text[i + 1:end])
+            part = text[i + 1:end]
+            if quote == '"' and "\\" in part:
+                try:
+                    part = json.loads(f'"{part}"')  # TOML's basic-string escapes are JSON's (and \UXXXXXXXX)
+                except json.JSONDecodeError:
+                    pass
+            parts.append(part)
             i = end + 1
         else:
             m = re.match(r"[A-Za-z0-9_-]+", text[i:])
@@ -849,7 +857,11 @@ def _toml_depth(text: str, depth: int, string: str | None) -> tuple[int, str | N
             end = text.find(string, i)
             if end < 0:
                 return depth, string
-            i, string = end + len(string), None
+            i = end + len(string)
+            for _ in range(2):  # up to two quotes more belong to the string ('a = """x""""' ends in x")
+                if i < len(text) and text[i] == string[0]:
+                    i += 1
+            string = None
             continue
         c = text[i]
         if c == "#":

@@ -337,6 +337,10 @@ def test_a_depth_gt_folder_in_the_scene_s_units_and_a_factor_that_cannot_be_righ
     (note,) = [n for n in one.notes if "probably in other units" in n]
     assert note.startswith("with the depth factor given (1), the GT depth is 4.")  # 1 / the scene's 0.247
     assert one.depth_scale.method == "given" and one.mean.depth_abs_rel > 0.5
+    own_given = evaluate.run(run, EvalConfig(num_samples=2, max_views=2, save_maps=False, depth_scale=1.0),
+                             device=torch.device("cpu"))  # the scene's own GT (normalised units): said so
+    assert own_given.depth_scale.method == "given-scene"
+    assert own_given.mean.depth_rmse == pytest.approx(own.mean.depth_rmse, rel=1e-5)
 
 
 def test_cli_missing_run_is_clear(tmp_path):

@@ -267,3 +267,39 @@ def test_a_very_wide_view_is_named():
     K[:, 0, 0] = 0.05 * cams.width  # 169 degrees across
     (note,) = wide_view_notes(replace(cams, K=K))
     assert note.startswith("a training camera sees 169 degrees across")
+
+
+def test_gaussians_that_grew_after_the_last_spawn_get_no_larger_fraction_advised():
+    """Wide Gaussians without carriers (they grew after spawning stopped): no advice to raise the fraction, which
+    would give fewer carriers; the warning names densify.until instead."""
+    from uncertsplat.train.trainer import few_carriers_warning
+
+    scene, tr, te = toy_scene()
+    cfg = toy_config()
+    t = Trainer(scene, cfg, tr, te)
+    with torch.no_grad():
+        t.model.params["scales"].fill_(math.log(0.5 * t.extent))
+    (warning,) = few_carriers_warning(t.model, cfg, t.extent, t.prior, step=30)
+    assert "spawn_scale_fraction=" not in warning and "densify.until = 25" in warning
+
+
+def test_a_resumed_run_keeps_the_near_plane_it_was_trained_with(tiny_run_path, tiny_scene_path, tmp_path):  # noqa: F811
+    """A resume renders with the plane scene.json records (one a run recorded, or 1 % for a run that recorded
+    none), not one computed again from the scene: the model was fitted in front of that plane."""
+    import json
+    import shutil
+
+    from uncertsplat.config import train_config_from
+    from uncertsplat.render import near_plane
+    from uncertsplat.schemas import RunScene
+    from uncertsplat.train.session import train_model
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
+    info = RunScene.read(run / "scene.json")
+    info.near = 0.5 * near_plane(info.scene_scale)  # as if recorded by the run
+    info.write(run / "scene.json")
+    step = json.loads((run / "train_summary.json").read_text())["steps"]
+    train_model(tiny_scene_path, run, train_config_from("tiny", {}), torch.device("cpu"), resume=True,
+                extend_to=step + 1)
+    assert RunScene.read(run / "scene.json").near == info.near

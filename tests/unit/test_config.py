@@ -165,6 +165,10 @@ def test_each_key_s_line_in_a_toml_file(tmp_path):
     assert KeyLines(tmp).line("densify.until") == 17 and KeyLines(tmp).line("nothing") is None
     assert KeyLines(tmp, replaced={"densify"}).line("densify.until") is None
     assert KeyLines(tmp.with_name("gone.toml")).line("name") is None  # the file gone: no line, no error
+    # a multi-line string closed by four quotes (the fourth is the string's), escaped quotes in quoted keys
+    assert toml_key_lines('a = ["""\nx""""]\nb = 1\n') == {"a": 1, "b": 3}
+    assert toml_key_lines('"a\\"b" = 1\nc = 2\n') == {'a"b': 1, "c": 2}
+    assert toml_key_lines('["x\\"y"]\nk = 1\n[z]\nk = 2\n')["z.k"] == 4
     # a line of this finder's never names a key tomllib does not read the same way
     import tomllib
     data = tomllib.loads(text)

@@ -772,6 +772,11 @@ def test_depth_lengths_are_shown_in_the_scenes_units(tmp_path):
     cell = next(c for c in table_rows(html, "metrics-0")["mean"] if c[0] == "depth_rmse")
     assert cell[2] == format(m.mean.depth_rmse, ".4f") and "Depth RMSE (GT maps&#x27; units)" in html
     assert "the GT maps&#x27; own: depth RMSE, MAE and NLL" in html
+    m.depth_scale = DepthScaleInfo(scale=1.0, method="given-scene", num_pixels=100)  # a factor vs the scene's own GT
+    m.write(run / "eval" / "metrics.json")
+    html = stage.run([run], tmp_path / "out4", ReportConfig()).read_text()
+    cell = next(c for c in table_rows(html, "metrics-0")["mean"] if c[0] == "depth_rmse")
+    assert cell[2] == format(4 * m.mean.depth_rmse, ".4f") and "Depth RMSE (scene units)" in html
 
 
 def test_timeline_speed_panel_holds_every_run(monkeypatch):

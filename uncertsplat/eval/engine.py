@@ -559,6 +559,10 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
     return StdFit(scale, dof, views.names)
 
 
+GIVEN_SCENE_GT = "given-scene"
+"""``DepthScaleInfo.method`` of a factor given with ``--depth-scale`` against the scene's own GT depth (in the run's
+normalised units, as with method "scene"); "given" is one against a ``--depth-gt`` folder (the folder's units)."""
+
 IMPLAUSIBLE_DEPTH_RATIO = 2.0
 """A given depth factor (a number, or the scene's own units) that leaves the GT this many times the scaled render, or
 less than 1/this, at the median, is noted as probably wrong (``implausible_depth_scale_notes``)."""
@@ -778,6 +782,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             base_mask = base_mask & masks
         if isinstance(cfg.depth_scale, float):
             scale = align_depth_scale(dm, gt_depth, mask=base_mask, method=cfg.depth_scale)
+            if views.depth_known_scale:  # against GT in the run's normalised units (the scene's own), not a folder's
+                scale = type(scale)(scale.scale, GIVEN_SCENE_GT, scale.num_pixels)
         elif views.depth_known_scale:
             scale = align_depth_scale(dm, gt_depth, mask=base_mask, method=1.0)
             scale = type(scale)(1.0, "scene", scale.num_pixels)

@@ -217,7 +217,8 @@ def far_points(points: Tensor, *, factor: float, extent: float = 1.0) -> Tensor:
         return torch.zeros(n, dtype=torch.bool, device=points.device)
     p = points.detach().double()
     dist = (p - p.median(0).values).norm(dim=-1)  # [N]
-    reach = max(float(dist.quantile(0.9)), float(extent))
+    q90 = dist.kthvalue(max(1, math.ceil(0.9 * n))).values  # (quantile refuses more than 16M elements)
+    reach = max(float(q90), float(extent))
     return dist > factor * reach
 
 

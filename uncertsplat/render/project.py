@@ -59,15 +59,17 @@ def points_in_view(points: Tensor, cameras) -> Tensor:
         (uv[..., 1] < cameras.height)
 
 
-def point_depths(points: Tensor, cameras, max_points: int = 20000) -> Tensor:
+def point_depths(points: Tensor, cameras, max_points: int = 20000, max_cameras: int = 100) -> Tensor:
     """[M] float64 camera z of ``points`` [N,3] (world) in each of the ``cameras`` (``types.Cameras``) that has the
-    point in front of it and inside its image, on the CPU; every k-th point when there are more than
-    ``max_points`` (the distribution is what matters), a few cameras at a time (memory stays O(points))."""
+    point in front of it and inside its image, on the CPU; every k-th point and camera above ``max_points`` and
+    ``max_cameras`` (the distribution is what matters: at most 2M depths, 16 MB, however large the capture), a few
+    cameras at a time."""
     pts = points.detach().double().cpu()
     pts = pts[:: max(1, -(-pts.shape[0] // max_points))]
+    chosen = list(range(0, len(cameras), max(1, -(-len(cameras) // max_cameras))))
     out = []
-    for lo in range(0, len(cameras), 16):
-        cams = cameras[list(range(lo, min(lo + 16, len(cameras))))]
+    for lo in range(0, len(chosen), 16):
+        cams = cameras[chosen[lo:lo + 16]]
         uv, z = project_points(pts, cams.cam_from_world.cpu(), cams.K.cpu())  # [c,P,2], [c,P]
         inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < cams.width) & (uv[..., 1] >= 0) & \
             (uv[..., 1] < cams.height)

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from uncertsplat.eval.engine import MASKED_NOTE
+from uncertsplat.eval.engine import GIVEN_SCENE_GT, MASKED_NOTE
 from uncertsplat.eval.nll import NLL_WORSE_BY
 from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.report import figures as F
@@ -297,7 +297,7 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
         factor = run.depth_to_source
         # GT maps of unknown units (a --depth-gt folder, its factor fitted or given): the depth errors are in the
         # maps' own units already (the rendered depth was scaled to them)
-        gt_units = m.depth_scale is not None and m.depth_scale.method != "scene"
+        gt_units = m.depth_scale is not None and m.depth_scale.method not in ("scene", GIVEN_SCENE_GT)
         rows_in = [(name, depth_in_scene_units(metric_row(v), factor, gt_units)) for name, v in m.per_view.items()]
         rows_in.append(("mean", depth_in_scene_units(metric_row(m.mean), factor, gt_units)))
         keys = [s.key for s in METRIC_SPECS if any(r[s.key].value is not None for _, r in rows_in)]
@@ -336,7 +336,8 @@ DEPTH_LENGTH_KEYS = ("depth_rmse", "depth_mae")
 scene's (``data-value`` keeps the file's number)."""
 
 _DEPTH_METHODS = {"scene": "none: the scene's GT depth has a known scale", "median": "estimated: median ratio",
-                  "lsq": "estimated: least squares", "given": "given with --depth-scale"}
+                  "lsq": "estimated: least squares", "given": "given with --depth-scale",
+                  GIVEN_SCENE_GT: "given with --depth-scale, against the scene's own GT depth"}
 
 
 def depth_in_scene_units(row: dict[str, MetricValue], factor: float | None,
@@ -357,7 +358,7 @@ def _depth_facts(info, factor: float | None) -> list[tuple[str, str]]:
     """What the depth numbers are: the alignment applied to the rendered depth and the units shown."""
     method = _DEPTH_METHODS.get(info.method, info.method)
     facts = [("depth alignment", f"rendered depth x{info.scale:.6g} before it is compared with the GT ({method})")]
-    if info.method != "scene":
+    if info.method not in ("scene", GIVEN_SCENE_GT):
         facts.append(("depth units", "the GT maps' own: depth RMSE, MAE and NLL compare the rendered depth, scaled "
                                      "by the alignment, with them"
                                      + (f"; the depth maps are in the scene's units (x{factor:.6g})" if factor else "")))

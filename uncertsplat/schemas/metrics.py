@@ -171,7 +171,8 @@ class DepthScaleInfo(_Strict):
 
     scale: float
     method: str
-    """"median" or "lsq" (estimated over all evaluated views' valid pixels), "given" (--depth-scale),
+    """"median" or "lsq" (estimated over all evaluated views' valid pixels), "given" (--depth-scale against a
+    --depth-gt folder), "given-scene" (--depth-scale against the scene's own GT depth),
     or "scene" (the scene's known factor)."""
     num_pixels: int = 0
 

@@ -115,10 +115,10 @@ class RunScene(SchemaFile):
         default_factory=lambda: [[1.0 if i == j else 0.0 for j in range(4)] for i in range(4)])
     """[4,4] similarity from source to world (normalised) coordinates; the identity without normalisation."""
     views_added: list[ViewsAdded] = Field(default_factory=list)
+    """Views added to the training set after the run started, in order (``train`` then lists them all)."""
     near: float | None = Field(None, gt=0.0)
     """The near plane the run was trained with (``train.trainer.training_near_plane``), which every stage renders it
     with; None (runs before it was recorded): 1 % of ``scene_scale``."""
-    """Views added to the training set after the run started, in order (``train`` then lists them all)."""
     cameras: dict[str, list[float]] = Field(default_factory=dict)
     """{view name: [centre x, y, z, right axis x, y, z, optical axis x, y, z, fx, fy, cx, cy]} of the training,
     held-out and set-aside views in world (normalised) coordinates and pixels, as trained (``sfm.scene.camera_records``):

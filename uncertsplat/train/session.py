@@ -242,6 +242,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     from uncertsplat.data.dataset import load_images
     from uncertsplat.io.checkpoints import load_latest
     from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
+    from uncertsplat.render import near_plane
     from uncertsplat.sfm.scene import camera_records, load_scene, require_same_cameras, with_training_views
     from uncertsplat.strategy.schedule import densify_steps_after
     from uncertsplat.train.trainer import (
@@ -389,6 +390,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         if cfg.random_background and data.source["transparent"]:
             console.print("[yellow]note:[/] random_background is not used: the training images are transparent "
                           "(their background is data)")
+        near = training_near_plane(data)
+        if state is not None and before is not None:  # a resumed model keeps its plane (one recorded none: 1 %)
+            near = before.near if before.near is not None else near_plane(data.scene_scale)
         RunScene(
             scene=str(scene.resolve()), source=data.source, extent=data.extent,
             scene_scale=data.scene_scale,
@@ -398,13 +402,13 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             calibration=[names[i] for i in data.split.get("calibration", ())] if names else [],
             center=list(data.center) if data.center is not None else None, center_method=data.center_method,
             center_reason=data.center_reason, world_from_source=data.world_from_source.double().tolist(),
-            views_added=views_added, near=training_near_plane(data),
+            views_added=views_added, near=near,
             cameras=camera_records(data.cameras, [names[i] for k in ("train", "test", "calibration")
                                                   for i in data.split.get(k, ())] if names else []),
         ).write(run_dir / "scene.json")
         train_images = load_images(data, data.split["train"], device)
         test_images = load_images(data, data.split["test"], device) if data.split.get("test") else None
-        trainer = Trainer(data, cfg, train_images, test_images, run_dir=run_dir, state=state)
+        trainer = Trainer(data, cfg, train_images, test_images, run_dir=run_dir, state=state, near=near)
         if add_views:
             # the checkpoint's queue holds positions in the old list of training views: start a new pass over all
             trainer.view_queue = []

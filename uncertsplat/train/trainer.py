@@ -128,6 +128,11 @@ def few_carriers_warning(model: GaussianModel, cfg: TrainConfig, extent: float, 
     median = float(width.median())
     digit = 10.0 ** math.floor(math.log10(0.9 * median))  # rounded down to one digit: below the median, never above
     suggested = math.floor(0.9 * median / digit) * digit
+    if suggested >= d.spawn_scale_fraction:  # they grew past it after the last spawn step: a smaller one is no cure
+        return [f"only {model.num_carriers:,} of the {n:,} Gaussians carry a posterior (the others' uncertainty is "
+                f"0), though most are wider than densify.spawn_scale_fraction = {d.spawn_scale_fraction:g} of the "
+                f"cameras' radius (median {median:.2g}): they grew after the last spawn step (densify.until = "
+                f"{d.until}); a later densify.until lets them carry one"]
     return [f"only {model.num_carriers:,} of the {n:,} Gaussians carry a posterior (the others' uncertainty is 0): "
             f"a Gaussian gets one when wider than densify.spawn_scale_fraction = {cfg.densify.spawn_scale_fraction:g} "
             f"of the cameras' radius, and this scene's are smaller (median {median:.2g}: a small scene seen from far, "
@@ -182,10 +187,12 @@ class Trainer:
         test_images: [V,H,W,3] images of ``scene.split["test"]`` (held-out PSNR), or None.
         run_dir: where checkpoints and ``stats.jsonl`` go (None: nothing is written).
         state: a ``state_dict()`` to resume from (None: initialise from the scene's points).
+        near: the near plane (None: ``training_near_plane`` of ``scene``; ``train`` passes what ``scene.json``
+            records, so that a resumed model keeps the plane it was trained with).
     """
 
     def __init__(self, scene: SceneData, cfg: TrainConfig, train_images: Tensor, test_images: Tensor | None = None,
-                 run_dir: Path | None = None, state: dict | None = None):
+                 run_dir: Path | None = None, state: dict | None = None, near: float | None = None):
         self.scene, self.cfg = scene, cfg
         self.device = train_images.device
         self.train_idx = list(scene.split["train"])
@@ -208,7 +215,7 @@ class Trainer:
         self.background = torch.tensor(cfg.scene.background, dtype=torch.float32, device=self.device)
         # training renders over a random colour (cfg.random_background), unless the images' background is data
         self.random_background = cfg.random_background and not bool(scene.source.get("transparent", False))
-        self.near = training_near_plane(scene)
+        self.near = near if near is not None else training_near_plane(scene)
         self.variational = cfg.method == "variational"
         self.informed = self.variational and cfg.posterior == "informed"
         self.posterior_updates: list[dict] = []  # one record per informed-posterior update (kept in checkpoints)
