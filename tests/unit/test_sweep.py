@@ -563,3 +563,68 @@ def test_the_sweep_refuses_a_key_a_knob_replaces_before_running(tmp_path):
                                         r"every point of the sweep"):
         stage.run(spec_file, tmp_path / "out", jobs=1, device="cpu")
     assert not (tmp_path / "out").exists()
+
+
+def test_a_changed_synthetic_scene_is_not_taken_for_the_old_one(tmp_path):
+    """The sweep's synthetic scene generated with other settings than the spec's now (--set synth.seed=1 on a sweep
+    made with seed 0) is refused: its points would be reused as the new scene's; --force generates it again."""
+    from uncertsplat.data.synthetic import read_scene_meta
+    from uncertsplat.stages.sweep import SYNTH_SETTINGS, _synth
+
+    folder = tmp_path / "scene"
+    _synth({"preset": "tiny", "seed": 0, "num_views": 6}, folder)
+    stamp = (folder / "scene.json").stat().st_mtime_ns
+    assert _synth({"preset": "tiny", "seed": 0, "num_views": 6}, folder) == folder  # the same: kept as it is
+    assert (folder / "scene.json").stat().st_mtime_ns == stamp
+    with pytest.raises(UserError, match=r"generated with other settings than the spec's now \(seed 0 -> 1\).*--force"):
+        _synth({"preset": "tiny", "seed": 1, "num_views": 6}, folder)
+    with pytest.raises(UserError, match=r"num_views 6 -> 8"):
+        _synth({"preset": "tiny", "seed": 0, "num_views": 8}, folder)
+    _synth({"preset": "tiny", "seed": 1, "num_views": 6}, folder, force=True)
+    assert read_scene_meta(folder).seed == 1 and '"seed": 1' in (folder / SYNTH_SETTINGS).read_text()
+    (folder / SYNTH_SETTINGS).unlink()  # a sweep made before the settings were recorded: scene.json's are compared
+    with pytest.raises(UserError, match=r"seed 1 -> 0"):
+        _synth({"preset": "tiny", "seed": 0, "num_views": 6}, folder)
+
+
+def _sleepy_job(job: dict) -> list[dict]:
+    """A sweep job for the pool tests (module level: spawn workers import it)."""
+    import time
+
+    time.sleep(float(job.get("sleep", 0.2)))
+    return [{"job": job["job_id"], "status": "ok"}]
+
+
+def test_the_pool_gets_a_job_only_when_a_worker_is_free_and_ctrl_c_reaches_every_worker():
+    """A job is handed to the pool only when a worker is free (the pool's queue cannot be taken back: on Ctrl-C a
+    queued job trained to its end in a worker started after the signal); _interrupt_workers signals the live
+    workers, which stop at once."""
+    import time
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+    from multiprocessing import get_context
+
+    from uncertsplat.sweep.executors import _interrupt_workers, _worker_stops_quietly_on_ctrl_c, run_local
+
+    running, most, got = [0], [0], []
+
+    def started(job):
+        running[0] += 1
+        most[0] = max(most[0], running[0])
+
+    def finished(recs):
+        running[0] -= 1
+        got.extend(recs)
+
+    todo = [{"job_id": f"j{i}", "points": [], "sleep": 0.3} for i in range(5)]
+    run_local(todo, jobs=2, retries=0, on_records=finished, on_start=started, run_job=_sleepy_job)
+    assert most[0] == 2 and sorted(r["job"] for r in got) == [f"j{i}" for i in range(5)]
+    with ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"),
+                             initializer=_worker_stops_quietly_on_ctrl_c) as pool:
+        fut = pool.submit(_sleepy_job, {"job_id": "long", "sleep": 60})
+        time.sleep(3.0)  # the worker is up and sleeping
+        t0 = time.perf_counter()
+        _interrupt_workers(pool)
+        with pytest.raises((SystemExit, BrokenProcessPool)):  # the worker's quiet exit on Ctrl-C (130)
+            fut.result(timeout=30)
+        assert time.perf_counter() - t0 < 20

@@ -67,19 +67,61 @@ def read_records(path: Path) -> list[SweepRecord]:
     return out
 
 
-def _synth(keys: dict, folder: Path) -> Path:
-    """The synthetic scene of ``keys`` (SynthConfig) in ``folder``, generated unless it is already there."""
+SYNTH_SETTINGS = "sweep_synth.json"
+"""The ``SynthConfig`` a sweep generated its scene folder with (beside the scene's ``scene.json``)."""
+
+
+def _synth_changes(cfg, folder: Path) -> list[str]:
+    """The settings of ``cfg`` (a ``SynthConfig``) that the scene in ``folder`` was not generated with ("seed 0 ->
+    1"); a scene a sweep made before it recorded its settings is compared on what its ``scene.json`` holds."""
+    from uncertsplat.data.synthetic import read_scene_meta
+
+    recorded = folder / SYNTH_SETTINGS
+    if recorded.is_file():
+        try:
+            old = json.loads(recorded.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            old = None
+        if isinstance(old, dict):
+            new = json.loads(cfg.model_dump_json())
+            return [f"{k} {old.get(k)} -> {v}" for k, v in new.items() if old.get(k) != v]
+    meta = read_scene_meta(folder)
+    keys = ("preset", "seed", "test_every", "layout", "rig", "backdrop")
+    return [f"{k} {getattr(meta, k)} -> {getattr(cfg, k)}" for k in keys if getattr(meta, k) != getattr(cfg, k)]
+
+
+def _synth(keys: dict, folder: Path, force: bool = False) -> Path:
+    """The synthetic scene of ``keys`` (SynthConfig) in ``folder``, generated unless it is already there with these
+    settings; with other settings it is refused (the points measured on it would be reused as the new scene's),
+    or generated again with ``force`` (which measures every point again).
+
+    Raises:
+        UserError: the folder's scene was generated with other settings and ``force`` is not set.
+    """
     from uncertsplat.config import SynthConfig, build_config
     from uncertsplat.data.synthetic import generate_scene, is_synthetic_scene
 
     cfg = build_config(SynthConfig, keys, source="sweep synth")
-    if not is_synthetic_scene(folder):
+    if is_synthetic_scene(folder):
+        changes = _synth_changes(cfg, folder)
+        if not changes:
+            if not (folder / SYNTH_SETTINGS).is_file():
+                atomic_write_text(folder / SYNTH_SETTINGS, cfg.model_dump_json(indent=1))
+            return folder
+        if not force:
+            raise UserError(f"the sweep's synthetic scene was generated with other settings than the spec's now "
+                            f"({', '.join(changes)}): its points would be reused as measurements of the new scene",
+                            path=folder, hint="Run with --force to generate it again and measure every point on it, "
+                                              "or give the sweep another output folder.")
+        console.print(f"generating the synthetic scene again ({', '.join(changes)}) into {folder}")
+    else:
         console.print(f"generating the synthetic scene ({keys}) into {folder}")
-        generate_scene(folder, cfg, overwrite=True)
+    generate_scene(folder, cfg, overwrite=True)
+    atomic_write_text(folder / SYNTH_SETTINGS, cfg.model_dump_json(indent=1))
     return folder
 
 
-def prepare_scene(name: str, entry, out_dir: Path) -> Path:
+def prepare_scene(name: str, entry, out_dir: Path, force: bool = False) -> Path:
     """The folder ``train`` reads for the spec's scene ``name`` (``sweep.spec.SweepScene``).
 
     ``path``: checked to exist; ``synth``: generated into ``OUT/scenes/NAME``; ``photos``: ``reconstruct`` runs
@@ -90,7 +132,7 @@ def prepare_scene(name: str, entry, out_dir: Path) -> Path:
     """
     folder = Path(out_dir) / "scenes" / name
     if entry.synth is not None:
-        return _synth(entry.synth, folder)
+        return _synth(entry.synth, folder, force)
     if entry.path is not None:
         if not Path(entry.path).is_dir():
             what = "is a file, not a folder" if Path(entry.path).exists() else "does not exist"
@@ -187,11 +229,11 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                         hint="Set one scene's folder with --set scenes.NAME.path=FOLDER instead.")
     with run_lock(out_dir, "sweep"):  # (it makes the folder, or says why it cannot)
         if spec.scenes:
-            folders = {name: prepare_scene(name, entry, out_dir) for name, entry in spec.scenes.items()}
+            folders = {name: prepare_scene(name, entry, out_dir, force) for name, entry in spec.scenes.items()}
         else:
             scene_path = Path(scene) if scene is not None else spec.scene
             if scene_path is None:
-                scene_path = _synth(spec.synth, out_dir / "scene")
+                scene_path = _synth(spec.synth, out_dir / "scene", force)
             if not Path(scene_path).is_dir():
                 what = "is a file, not a folder" if Path(scene_path).exists() else "does not exist"
                 raise UserError(f"the sweep's scene folder {what}", path=scene_path,

@@ -81,10 +81,12 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
     for job in todo:
         job["threads"] = 1  # jobs share the cores: oversubscribing threads only slows them all
     ctx = get_context("spawn")  # no fork of a process holding torch threads
-    with ProcessPoolExecutor(max_workers=min(jobs, len(todo)), mp_context=ctx, max_tasks_per_child=1,
+    workers = min(jobs, len(todo))
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, max_tasks_per_child=1,
                              initializer=_worker_stops_quietly_on_ctrl_c) as pool:
         attempts: dict[str, int] = {}
         futures = {}
+        waiting = list(todo)
 
         def submit(job: dict) -> None:
             attempts[job["job_id"]] = attempts.get(job["job_id"], 0) + 1
@@ -92,8 +94,13 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
                 on_start(job)
             futures[pool.submit(run_job, job)] = job
 
-        for job in todo:
-            submit(job)
+        def fill() -> None:
+            # a job is handed to the pool only when a worker is free: the pool's own queue cannot be taken back,
+            # and on Ctrl-C a queued job started a whole training in a worker spawned after the signal
+            while waiting and len(futures) < workers:
+                submit(waiting.pop(0))
+
+        fill()
         try:
             while futures:
                 done, _ = wait(list(futures), return_when=FIRST_COMPLETED)
@@ -106,13 +113,31 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
                     except Exception as err:  # the worker died (e.g. out of memory, killed)
                         recs = failed_records(job, f"{type(err).__name__}: {err}")
                     _settle(job, recs, attempts[job["job_id"]], retries, submit, on_records)
+                fill()
         except KeyboardInterrupt:
             for fut in futures:
                 fut.cancel()
+            _interrupt_workers(pool)
             # wait for the workers, which stop at once (a training one after its step and checkpoint): without the
             # wait the pool's manager thread failed on the pool it was still adjusting (a traceback)
             pool.shutdown(wait=True, cancel_futures=True)
             raise
+
+
+def _interrupt_workers(pool: ProcessPoolExecutor) -> None:
+    """Pass Ctrl-C on to the pool's live workers: one started after the terminal's signal (a finished job's worker
+    is replaced) never saw it, nor does any worker when only the sweep's process is signalled (``kill -INT``), and
+    each trained its job to the end (20 s of a tiny sweep; a whole training at real sizes) before the sweep
+    stopped. A worker that saw it already takes the second signal as the same request."""
+    import os
+    import signal
+
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):  # (the executor keeps no public list)
+        try:
+            if proc.is_alive():
+                os.kill(proc.pid, signal.SIGINT)
+        except (OSError, ValueError):
+            pass
 
 
 def _worker_stops_quietly_on_ctrl_c() -> None:
