@@ -127,6 +127,29 @@ def test_shipped_pipelines_validate(name):
     assert cfg.stages[-1].stage == "report"
     for stage in cfg.stages:
         pl._stage_config(stage)
+    assert len(pl.check_stages(cfg, root / name)) == len(cfg.stages)  # every stage reads what it can
+
+
+@pytest.mark.parametrize(("edit", "match"), [
+    # a report moved before evaluate: evaluate read the report (after synth and train had run)
+    (lambda t: t.replace('[[stages]]\nstage = "evaluate"\n', "").replace('stage = "report"\n',
+                                                                           'stage = "report"\n[[stages]]\n'
+                                                                           'stage = "evaluate"\n'),
+     r"stage 'evaluate' \(evaluate\) reads 'report' \(the stage before it: no `input` given\), a report stage; an "
+     r"evaluate stage reads the output of a train or prune stage\. Set input = \"train\""),
+    (lambda t: t.replace('stage = "evaluate"\n', 'stage = "evaluate"\ninput = "synth"\n'),
+     r"reads 'synth', a synth stage"),
+    # two evaluations of one run into one folder: each run of the pipeline replaced the other's
+    (lambda t: t.replace('stage = "evaluate"\n', 'stage = "evaluate"\nname = "k2"\ninput = "train"\n'
+                                                   '[[stages]]\nstage = "evaluate"\nname = "k8"\ninput = "train"\n'),
+     r"stages 'k2' and 'k8' both evaluate 'train' \(test views\), into the same folder"),
+])
+def test_stages_that_cannot_read_their_input_are_refused_before_any_runs(tmp_path, calls, edit, match):
+    p = tmp_path / "p.toml"
+    p.write_text(edit(PIPE))
+    with pytest.raises(UserError, match=match):
+        pl.run(p, tmp_path / "out")
+    assert calls == [] and not (tmp_path / "out").exists()
 
 
 def test_photos_pipeline_without_photos_says_how_to_give_them(tmp_path, calls):

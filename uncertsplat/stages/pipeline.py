@@ -132,12 +132,27 @@ def check_stages(cfg: PipelineConfig, path: Path, overrides: list[str] | None = 
     earlier: list[str] = []
     configs = []
     replaced = _replaced_keys([s.name or s.stage for s in cfg.stages], overrides)
+    kinds: dict[str, str] = {}
+    evaluated: dict[tuple[str, str], str] = {}  # (the run's stage, split) -> the evaluate stage that writes it
     for i, stage in enumerate(cfg.stages):
         name = stage.name or stage.stage
         try:
             configs.append(_stage_config(stage, KeyLines(path, prefix=f"stages.{i}.config", replaced=replaced)))
         except UserError as err:
             raise UserError(err.message, path=path, hint=err.hint) from None
+        upstream = stage.input if stage.input is not None else (earlier[-1] if earlier else None)
+        if upstream in kinds:
+            _check_upstream(stage, name, upstream, kinds, path)
+            if stage.stage == "evaluate":
+                key = (upstream, configs[-1].split)
+                if key in evaluated:
+                    raise UserError(f"stages '{evaluated[key]}' and '{name}' both evaluate '{upstream}' ({key[1]} "
+                                    "views), into the same folder: each run of the pipeline the second would replace "
+                                    "the first's evaluation", path=path,
+                                    hint="Keep one of them; to compare evaluation settings use `uncertsplat sweep` "
+                                         "(its axes), or `uncertsplat evaluate` on a copy of the run.")
+                evaluated[key] = name
+        kinds[name] = stage.stage
         if stage.input is not None and stage.input not in earlier:
             folder = Path(stage.input)
             folder = folder if folder.is_absolute() else Path(path).resolve().parent / folder
@@ -147,6 +162,27 @@ def check_stages(cfg: PipelineConfig, path: Path, overrides: list[str] | None = 
                                                 "from the pipeline file's folder.")
         earlier.append(name)
     return configs
+
+
+_READS = {"reconstruct": ("synth",), "train": ("synth", "reconstruct"), "evaluate": ("train", "prune"),
+          "prune": ("train", "prune")}
+"""The kinds of stage whose output each kind of stage reads (a report reads every run before it)."""
+
+
+def _check_upstream(stage: PipelineStage, name: str, upstream: str, kinds: dict[str, str], path: Path) -> None:
+    """Refuse a stage whose input (``upstream``, an earlier stage: its ``input``, or the stage before it) is of a
+    kind it cannot read, before any stage runs (an evaluate after a report ran synth and train first, then failed
+    with 'not a training run')."""
+    allowed = _READS.get(stage.stage)
+    if allowed is None or kinds[upstream] in allowed:
+        return
+    fit = [n for n, k in kinds.items() if k in allowed]
+    why = "" if stage.input is not None else " (the stage before it: no `input` given)"
+    article = "an" if stage.stage[0] in "aeiou" else "a"
+    raise UserError(f"stage '{name}' ({stage.stage}) reads '{upstream}'{why}, a {kinds[upstream]} stage; "
+                    f"{article} {stage.stage} stage reads the output of a {' or '.join(allowed)} stage", path=path,
+                    hint=f'Set input = "{fit[-1]}" in its [[stages]] table.' if fit else
+                    f"Put a {' or '.join(allowed)} stage before it.")
 
 
 def _evaluation_kept(run_dir: Path, cfg, device) -> bool:
@@ -263,6 +299,10 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 from uncertsplat.stages.evaluate import eval_dir
 
                 out_dir = eval_dir(up_path, stage_cfg)
+                if upstream not in outputs:  # a run outside the pipeline's folder: evaluate writes into it
+                    console.print(f"[yellow]note:[/] stage '{name}' evaluates the run {up_path}, outside {root}: its "
+                                  f"evaluation is written there ({out_dir}; an earlier one there goes to "
+                                  f"{root / '.previous'})")
                 synth = [n for n, k in kinds.items() if k == "synth"]
                 # follow the chain back (evaluate <- prune <- train) to the scene the model was trained on
                 node = upstream
