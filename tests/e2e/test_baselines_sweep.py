@@ -45,7 +45,7 @@ def test_sweep_writes_one_record_per_point_and_resumes(scene_path, tmp_path):
                     "calibration_error", "time"):
             assert isinstance(r[key], float) and r[key] >= 0, (r["id"], key)
         assert isinstance(r["nll"], float) and math.isfinite(r["nll"])  # a density: may be negative
-        assert r["time"] == pytest.approx(r["train_seconds"] + r["eval_seconds"])
+        assert r["time"] == pytest.approx(r["train_seconds"] + r["calibration_seconds"] + r["eval_seconds"])
     by_id = {r["id"]: r for r in recs}
     assert by_id["variational_it16_kt4_k3_ds4"]["is_default"]
     assert by_id["variational_it16_kt4_k1_ds4"]["num_samples"] == 1

@@ -76,7 +76,7 @@ def test_plot_pareto_writes_a_png(tmp_path):
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-@pytest.mark.parametrize(("lo", "hi"), [(40.0, 90.0), (12.0, 45.0), (30.0, 300.0), (5.0, 5000.0)])
+@pytest.mark.parametrize(("lo", "hi"), [(40.0, 90.0), (12.0, 45.0), (30.0, 300.0), (5.0, 5000.0), (0.7, 3.0), (0.7, 9.0)])
 def test_plot_pareto_time_labels_are_plain_and_apart(tmp_path, monkeypatch, lo, hi):
     """Seconds read as 40, 100 (not 4 x 10^1), and the labels of a short log range do not run into each other."""
     import matplotlib
@@ -628,3 +628,15 @@ def test_the_pool_gets_a_job_only_when_a_worker_is_free_and_ctrl_c_reaches_every
         with pytest.raises((SystemExit, BrokenProcessPool)):  # the worker's quiet exit on Ctrl-C (130)
             fut.result(timeout=30)
         assert time.perf_counter() - t0 < 20
+
+
+def test_pareto_axes_name_what_they_show():
+    """Axis names with units and direction (PSNR was 'PSNR (dB)' with no direction, memory the raw key), titles from
+    the axes asked (it said 'accuracy vs time' for any x), and SSIM's front maximised as PSNR's."""
+    from uncertsplat.sweep.pareto import AXIS_LABELS, HIGHER_IS_BETTER, axis_name
+
+    assert AXIS_LABELS["psnr"] == "PSNR (dB), higher is better" and axis_name("nll") == "NLL (nats)"
+    assert axis_name("peak_memory_mb") == "peak memory (MB)" and axis_name("unknown_key") == "unknown_key"
+    assert {"psnr", "ssim"} <= HIGHER_IS_BETTER
+    pts = [{"time": 1.0, "ssim": 0.8}, {"time": 2.0, "ssim": 0.9}, {"time": 3.0, "ssim": 0.85}]
+    assert [p["ssim"] for p in pareto_front(pts, x="time", y="ssim", minimize_both=False)] == [0.8, 0.9]

@@ -15,13 +15,15 @@ from uncertsplat.schemas.runs import SweepGroup, SweepRecord, SweepSummary
 
 # (SweepRecord field, column header, format)
 COLUMNS: tuple[tuple[str, str, str], ...] = (
-    ("psnr", "PSNR", "{:.2f}"),
+    ("psnr", "PSNR (dB)", "{:.2f}"),
     ("ause_mae", "AUSE-MAE", "{:.4f}"),
     ("ause_rmse", "AUSE-RMSE", "{:.4f}"),
-    ("nll", "NLL", "{:.3f}"),
+    ("nll", "NLL (nats)", "{:.3f}"),
     ("calibration_error", "cal. err", "{:.4f}"),
     ("depth_ause_mae", "depth AUSE", "{:.4f}"),
+    ("time", "time s", "{:.1f}"),
     ("train_seconds", "train s", "{:.1f}"),
+    ("calibration_seconds", "fit s", "{:.1f}"),
     ("eval_seconds_per_view", "eval s/view", "{:.2f}"),
     ("peak_memory_mb", "peak MB", "{:.0f}"),
 )
@@ -100,7 +102,9 @@ def build_sweep_page(summary: SweepSummary, figure_rel: str | None) -> str:
     body = (table(header, rows, table_id="sweep-points", row_attr="data-point") if rows
             else note("No point has finished."))
     body += para("Times are wall-clock seconds on the machine that ran the sweep; when several jobs share "
-                 "the cores they are comparable with each other, not with a quiet machine.", "legend")
+                 "the cores they are comparable with each other, not with a quiet machine. time = train + fit (the "
+                 "predictive's pixel noise and std factor, fitted on the training views) + evaluation of every "
+                 "view.", "legend")
     sections.append(("points", "Points", body))
     if failed:
         frows = [(r.id, [Cell(str(r.stage or "?"), text_cell=True), Cell(str(r.error or ""), text_cell=True)])

@@ -12,8 +12,8 @@ from uncertsplat.schemas.runs import SweepGroup, SweepRecord, SweepSummary
 
 TABLE_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "calibration_error", "nll_calibrated",
               "calibration_error_calibrated", "std_scale", "depth_ause_mae", "depth_ause_rmse", "depth_abs_rel",
-              "spearman", "time", "train_seconds", "eval_seconds_per_view", "peak_memory_mb", "num_gaussians",
-              "num_carriers")
+              "spearman", "time", "train_seconds", "calibration_seconds", "eval_seconds_per_view", "peak_memory_mb",
+              "num_gaussians", "num_carriers")
 """What the sweep's table averages over seeds (``SweepGroup.mean``)."""
 
 
@@ -113,7 +113,7 @@ def summarize(spec, records: Sequence[SweepRecord]) -> SweepSummary:
         rows = [{"id": g.id, **g.mean} for g in table if g.scene == scene and g.seeds]
         for y in spec.pareto_y:
             fronts[front_key(y, spec.pareto_x, scene)] = [
-                p["id"] for p in pareto_front(rows, x=spec.pareto_x, y=y, minimize_both=(y != "psnr"))]
+                p["id"] for p in pareto_front(rows, x=spec.pareto_x, y=y, minimize_both=y not in HIGHER_IS_BETTER)]
     default = next((r for r in recs if r.is_default), None)
     return SweepSummary(name=spec.name, spec=json.loads(spec.model_dump_json()), num_points=len(recs),
                         num_failed=len(recs) - len(ok), default=default.group if default else None,
@@ -144,6 +144,26 @@ def table_points(summary: SweepSummary) -> list[dict]:
     """The rows of ``summary.table`` that have a finished seed, as the plain points ``plot_pareto`` draws."""
     return [{"id": g.id, "method": g.method, "status": "ok", "is_default": g.is_default, "scene": g.scene, **g.mean}
             for g in summary.table if g.seeds]
+
+
+HIGHER_IS_BETTER = frozenset({"psnr", "ssim", "spearman"})
+"""Record keys whose larger values are better (the Pareto front maximises them)."""
+
+AXIS_LABELS = {
+    "time": "training + fitting + evaluation time (s)", "train_seconds": "training time (s)",
+    "eval_seconds_per_view": "evaluation time per view (s)", "peak_memory_mb": "peak memory (MB)",
+    "num_gaussians": "Gaussians", "num_carriers": "Gaussians with a posterior",
+    "ause_mae": "AUSE (MAE), lower is better", "ause_rmse": "AUSE (RMSE), lower is better",
+    "nll": "NLL (nats), lower is better", "nll_calibrated": "NLL, std rescaled (nats), lower is better",
+    "psnr": "PSNR (dB), higher is better", "ssim": "SSIM, higher is better",
+    "calibration_error": "calibration error, lower is better", "depth_ause_mae": "depth AUSE (MAE), lower is better",
+    "spearman": "Spearman (std vs error), higher is better"}
+"""What ``plot_pareto`` calls a record key on its axes (the key itself when it has no entry)."""
+
+
+def axis_name(key: str) -> str:
+    """A short name of ``key`` for a title: its axis label without the direction ("NLL (nats)")."""
+    return AXIS_LABELS.get(key, key).split(", ")[0]
 
 
 def plot_pareto(records: Sequence[Any], path: Path, x: str = "time", ys: Sequence[str] = ("ause_mae", "nll"),
@@ -184,12 +204,9 @@ def plot_pareto(records: Sequence[Any], path: Path, x: str = "time", ys: Sequenc
 def _panels(axes, ok: Sequence[Any], x: str, ys: Sequence[str], methods: list[str], colour: dict,
             heading: str | None) -> None:
     """One row of ``plot_pareto``'s panels (one per ``ys`` key) for the points ``ok``."""
-    from matplotlib.ticker import LogFormatter
+    from matplotlib.ticker import FuncFormatter, LogLocator
 
-    labels = {"time": "training + evaluation time (s)", "train_seconds": "training time (s)",
-              "eval_seconds_per_view": "evaluation time per view (s)", "ause_mae": "AUSE (MAE), lower is better",
-              "ause_rmse": "AUSE (RMSE), lower is better", "nll": "NLL, lower is better", "psnr": "PSNR (dB)",
-              "calibration_error": "calibration error", "depth_ause_mae": "depth AUSE (MAE)"}
+    labels = AXIS_LABELS
     for ax, y in zip(axes, ys, strict=True):
         pts = [r for r in ok if _value(r, x) is not None and _value(r, y) is not None]
         for m in methods:
@@ -197,7 +214,7 @@ def _panels(axes, ok: Sequence[Any], x: str, ys: Sequence[str], methods: list[st
             if sel:
                 ax.scatter([_value(r, x) for r in sel], [_value(r, y) for r in sel], color=colour[m], label=m,
                            s=28, zorder=3)
-        front = pareto_front(pts, x=x, y=y, minimize_both=(y != "psnr"))
+        front = pareto_front(pts, x=x, y=y, minimize_both=y not in HIGHER_IS_BETTER)
         on_front = {id(r) for r in front}
         for r in pts:
             if id(r) in on_front or r.get("is_default"):
@@ -210,12 +227,15 @@ def _panels(axes, ok: Sequence[Any], x: str, ys: Sequence[str], methods: list[st
             if r.get("is_default"):
                 ax.scatter([_value(r, x)], [_value(r, y)], marker="*", s=260, facecolor="none", edgecolor="red",
                            linewidth=1.5, label="default", zorder=4)
-        if pts and min(_value(r, x) for r in pts) > 0:
+        xs = [_value(r, x) for r in pts]
+        if xs and min(xs) > 0 and max(xs) >= 10 * min(xs):  # a log axis where the values span a decade or more
             ax.set_xscale("log")
-            # seconds as plain numbers (40, 100) instead of 4 x 10^1; LogFormatter still labels only as many
-            # of the minor ticks as fit, so a range under a decade gets a few labels that do not collide
-            for axis_fmt in (ax.xaxis.set_major_formatter, ax.xaxis.set_minor_formatter):
-                axis_fmt(LogFormatter(labelOnlyBase=False))
+            # plain numbers at 1, 2, 5 x 10^k (40 s, not 4e+01; a range of 0.7-3 s read '7e-01 8e-01 9e-01 1' and
+            # left the points past 1 without a label)
+            plain = FuncFormatter(lambda v, _: f"{v:g}")
+            ax.xaxis.set_major_formatter(plain)
+            ax.xaxis.set_minor_locator(LogLocator(subs=(2.0, 5.0)))
+            ax.xaxis.set_minor_formatter(plain)
         scale, kw = y_scale([_value(r, y) for r in pts])  # e.g. the NLL of K = 1 (std 0) dwarfs the rest
         ax.set_yscale(scale, **kw)
         ax.set_xlabel(labels.get(x, x))
