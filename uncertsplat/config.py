@@ -18,8 +18,59 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from uncertsplat.errors import UserError
 
 
+def _takes_bool(annotation) -> bool:
+    """Whether a field of type ``annotation`` takes true/false (bool, Any, or a union or literal with a bool)."""
+    import types
+    import typing
+
+    if annotation is bool or annotation is Any:
+        return True
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin is Annotated:
+        return _takes_bool(args[0])
+    if origin in (typing.Union, types.UnionType):
+        return any(_takes_bool(a) for a in args if a is not type(None))
+    if origin is Literal:
+        return any(isinstance(a, bool) for a in args)
+    return not _is_number(annotation)  # only a number field refuses it (a model, a dict, a path: pydantic says)
+
+
+def _is_number(annotation) -> bool:
+    """Whether ``annotation`` is (a union or list of, an Annotated) int or float, as a field's value or items."""
+    import types
+    import typing
+
+    if annotation in (int, float):
+        return True
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin is Annotated:
+        return _is_number(args[0])
+    if origin in (typing.Union, types.UnionType):
+        return any(_is_number(a) for a in args if a is not type(None))
+    if origin in (list, tuple):
+        return bool(args) and all(_is_number(a) for a in args if a is not Ellipsis)
+    return False
+
+
+def refuse_bool_numbers(model: type[BaseModel], field: str, value):
+    """``value`` unchanged, or a ValueError when it is true/false (or a list holding one) for a number field:
+    pydantic reads true as 1 (``num_samples = true`` evaluated with K = 1 without a word)."""
+    annotation = model.model_fields[field].annotation
+    items = value if isinstance(value, list) else [value]
+    if any(isinstance(v, bool) for v in items) and not _takes_bool(annotation):
+        raise ValueError("true/false given where a number is expected")
+    return value
+
+
 class _Base(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_numbers(cls, value, info):
+        return refuse_bool_numbers(cls, info.field_name, value)
 
 
 # ----------------------------------------------------------------------------------------------- synth

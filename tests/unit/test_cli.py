@@ -79,7 +79,7 @@ def test_a_config_file_s_mistake_is_named_with_its_line(tmp_path):
 
 def test_depth_scale_that_is_neither_auto_nor_a_number(tmp_path):
     result = runner.invoke(app, ["evaluate", str(tmp_path), "--depth-scale", "foo", "--device", "cpu"])
-    assert result.exit_code == 2 and "--depth-scale must be auto or a number, not 'foo'" in result.output
+    assert result.exit_code == 2 and "--depth-scale must be auto, scene or a number, not 'foo'" in result.output
     assert "literal" not in result.output
 
 

@@ -185,3 +185,20 @@ def test_validation_errors_give_the_line_of_the_key(tmp_path):
     with pytest.raises(UserError, match=r"--iterations: Input should be"):
         build_config(TrainConfig, {"iterations": 0}, source=str(path), names={"iterations": "--iterations"},
                      where=KeyLines(path))
+
+
+def test_true_or_false_is_not_taken_for_a_number():
+    """pydantic reads true as 1: `num_samples = true` evaluated with K = 1 without a word. A number field (or a list
+    of numbers) refuses true/false; a bool field, and one that takes either, keep taking them."""
+    from uncertsplat.sweep.spec import SweepSpec
+
+    for model, data, key in ((EvalConfig, {"num_samples": True}, "num_samples"),
+                             (TrainConfig, {"scene": {"downscale": False}}, "scene.downscale"),
+                             (TrainConfig, {"scene": {"background": [True, 0, 0]}}, "scene.background")):
+        with pytest.raises(UserError, match=rf"{key}: true/false given where a number is expected"):
+            build_config(model, data)
+    assert build_config(TrainConfig, {"random_background": True}).random_background is True
+    assert build_config(TrainConfig, {"iterations": 5}).iterations == 5
+    for data in ({"default": {"num_samples": True}}, {"axes": {"iterations": [100, False]}}):
+        with pytest.raises(ValueError, match="true/false given where a number is expected"):
+            SweepSpec.model_validate(data)

@@ -65,6 +65,7 @@ from uncertsplat.config import (
     deep_update,
     dotted_keys,
     format_validation_error,
+    refuse_bool_numbers,
     train_config_from,
 )
 from uncertsplat.errors import UserError, naming_overrides
@@ -75,6 +76,11 @@ KNOBS = ("method", "iterations", "num_entries", "num_samples", "downscale", "ens
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_bool_numbers(cls, value, info):
+        return refuse_bool_numbers(cls, info.field_name, value)
 
 
 def _known_method(name: str) -> str:
