@@ -31,8 +31,8 @@ def _takes_bool(annotation) -> bool:
         return _takes_bool(args[0])
     if origin in (typing.Union, types.UnionType):
         return any(_takes_bool(a) for a in args if a is not type(None))
-    if origin is Literal:
-        return any(isinstance(a, bool) for a in args)
+    if origin is Literal:  # only a literal of numbers refuses it (a validator may read a legacy bool into words)
+        return not all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in args)
     return not _is_number(annotation)  # only a number field refuses it (a model, a dict, a path: pydantic says)
 
 
