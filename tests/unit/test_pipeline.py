@@ -357,3 +357,19 @@ def test_a_pipeline_that_would_do_nothing_says_so(tmp_path, calls, capsys):
     q.write_text('[[stages]]\nstage = "synth"\nconfig = { preset = "tiny" }\n[[stages]]\nstage = "reconstruct"\n')
     pl.load_pipeline(q, [f"photos={tmp_path}"])
     assert "--set photos is not used: no reconstruct stage of q.toml" in " ".join(capsys.readouterr().err.split())
+
+
+def test_a_stage_s_relative_depth_folder_is_found_beside_the_pipeline_file(tmp_path, monkeypatch):
+    """evaluate's depth_gt written relative in a pipeline: read from the current folder as before, and from the
+    pipeline file's folder when the current folder has no such path (run from elsewhere, it was 'not found')."""
+    (tmp_path / "cfg" / "depth").mkdir(parents=True)
+    p = tmp_path / "cfg" / "p.toml"
+    p.write_text(PIPE.replace('stage = "evaluate"\n', 'stage = "evaluate"\nconfig = { depth_gt = "depth" }\n'))
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    cfg = pl.load_pipeline(p)
+    assert next(s for s in cfg.stages if s.stage == "evaluate").config["depth_gt"] == str(tmp_path / "cfg" / "depth")
+    (elsewhere / "depth").mkdir()  # the current folder has it: read from there, as always
+    cfg = pl.load_pipeline(p)
+    assert next(s for s in cfg.stages if s.stage == "evaluate").config["depth_gt"] == "depth"

@@ -85,6 +85,13 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
         first, second = (Path.cwd(), base) if photos_given else (base, Path.cwd())
         cfg.photos = (first / cfg.photos if (first / cfg.photos).exists() or not (second / cfg.photos).exists()
                       else second / cfg.photos).resolve()
+    for stage in cfg.stages:  # a stage's relative path (evaluate's depth_gt): from the current folder, as it always
+        # was read, else from the pipeline file's folder (where it failed before: no pipeline's settings change)
+        for key in ("depth_gt",):
+            value = stage.config.get(key)
+            if isinstance(value, str) and value and not Path(value).expanduser().is_absolute() \
+                    and not Path(value).exists() and (base / value).exists():
+                stage.config[key] = str(base / value)
     names = [s.name or s.stage for s in cfg.stages]
     dup = {n for n in names if names.count(n) > 1}
     if dup:
