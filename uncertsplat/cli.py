@@ -121,6 +121,26 @@ def _handle_errors(fn):
     return wrapper
 
 
+def _plain_warnings() -> None:
+    """Our own warnings (e.g. the native kernels' fallback) as one line, ``warning: ...``, like the commands' notes:
+    Python's format added the file, the line number and the source line that raised it. Others keep theirs."""
+    import warnings
+
+    package = str(Path(__file__).resolve().parent)
+    default = warnings.showwarning
+    if getattr(default, "_uncertsplat", False):
+        return
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if str(filename).startswith(package):
+            print(f"warning: {message}", file=file or sys.stderr)
+        else:
+            default(message, category, filename, lineno, file, line)
+
+    show._uncertsplat = True
+    warnings.showwarning = show
+
+
 def _version_callback(value: bool):
     if value:
         typer.echo(f"uncertsplat {__version__}")
@@ -136,6 +156,8 @@ def main(
 ):
     """uncertsplat: reconstruct, train, evaluate, prune and report uncertainty for 3DGS."""
     _STATE["debug"] = debug
+    if not debug:
+        _plain_warnings()
 
 
 _STAGE_TABLES = ("synth", "reconstruct", "train", "evaluate", "prune", "report", "select", "view")
@@ -450,7 +472,8 @@ def view(
 @app.command()
 @_handle_errors
 def sweep(
-    spec: Annotated[Path, typer.Argument(help="Sweep TOML (e.g. pipelines/tradeoff.toml).")],
+    spec: Annotated[Path, typer.Argument(
+        help="Sweep TOML, or the name of one installed with uncertsplat (tradeoff).")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Output folder (runs, sweep.jsonl, pareto.png).")],
     jobs: Annotated[int | None, typer.Option(help="Parallel jobs (default: number of cores; 1 on CUDA).")] = None,
     scene: Annotated[Path | None, typer.Option(help="Scene folder (overrides the spec's).")] = None,
@@ -467,10 +490,11 @@ def sweep(
     set_: SetOpt = None,
 ):
     """Measure the speed-accuracy trade: train/evaluate each point of a sweep and draw the Pareto front."""
+    from uncertsplat.config import shipped_file
     from uncertsplat.stages import sweep as stage
 
     only = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
-    stage.run(spec, output, jobs=jobs, device=device, scene=scene, overrides=set_, force=force, executor=executor,
+    stage.run(shipped_file(spec), output, jobs=jobs, device=device, scene=scene, overrides=set_, force=force, executor=executor,
               address=address, cpus_per_job=cpus_per_job, gpus_per_job=gpus_per_job, retries=retries,
               only_scenes=only)
 
@@ -478,17 +502,19 @@ def sweep(
 @app.command("run")
 @_handle_errors
 def run_pipeline(
-    pipeline: Annotated[Path, typer.Argument(help="Pipeline TOML file (see pipelines/).")],
+    pipeline: Annotated[Path, typer.Argument(
+        help="Pipeline TOML file, or the name of one installed with uncertsplat (demo, smoke, photos).")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Output folder for all stages.")],
     set_: SetOpt = None,
     device: Annotated[str | None, typer.Option("--device", help="auto, cpu or cuda.")] = None,
     force: Annotated[bool, typer.Option(help="Re-run stages even when unchanged.")] = False,
 ):
     """Run a chain of stages from a TOML file, skipping stages whose config and inputs are unchanged."""
+    from uncertsplat.config import shipped_file
     from uncertsplat.stages import pipeline as stage
 
     _refuse_two_values({"device": device}, set_)
-    stage.run(pipeline, output, overrides=set_ or [], device=device, force=force)
+    stage.run(shipped_file(pipeline), output, overrides=set_ or [], device=device, force=force)
 
 
 def entrypoint():  # pragma: no cover

@@ -1073,6 +1073,35 @@ def build_config(model: type[_Base], data: dict, source: str = "config", key_pre
         raise UserError(format_validation_error(err, source, model, key_prefix, names, where)) from None
 
 
+SHIPPED = Path(__file__).resolve().parent / "pipelines"
+"""The pipelines and sweep specs installed with the package (the repository's ``pipelines/`` links here)."""
+
+
+def shipped_file(path: str | Path) -> Path:
+    """``path``, or the installed pipeline / sweep spec it names when there is no such file: a bare name
+    (``photos``, ``photos.toml``) or the repository's path (``pipelines/photos.toml``, what the README types) run
+    from outside the repository, e.g. after ``pip install``.
+
+    Raises:
+        UserError: no such file and no installed one of that name (the installed names listed).
+    """
+    path = Path(path)
+    if path.exists():
+        return path
+    if path.parent in (Path("."), Path("pipelines")):
+        for name in (path.name, f"{path.name}.toml"):
+            if (SHIPPED / name).is_file():
+                return SHIPPED / name
+    raise UserError("file not found", path=path,
+                    hint=f"Those installed with uncertsplat run by name: {', '.join(shipped_names())} "
+                         "(e.g. uncertsplat run photos -o OUT --set photos=PHOTOS).")
+
+
+def shipped_names() -> list[str]:
+    """The installed pipelines' and sweep specs' names (``shipped_file``)."""
+    return sorted(p.stem for p in SHIPPED.glob("*.toml"))
+
+
 def load_toml(path: str | Path) -> dict:
     """Read a TOML file with errors that name the file."""
     path = Path(path)

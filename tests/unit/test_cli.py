@@ -1,10 +1,13 @@
 """CLI wiring through Typer's test runner."""
 
+from pathlib import Path
+
 import pytest
 from typer.testing import CliRunner
 
 from uncertsplat import __version__
 from uncertsplat.cli import app
+from uncertsplat.errors import UserError
 
 runner = CliRunner()
 
@@ -308,3 +311,48 @@ def test_a_relative_path_in_a_config_file_is_read_from_the_file_s_folder(tmp_pat
     assert _PATH_KEYS == ("depth_gt",)
     assert _config_file(tmp_path / "cfgs" / "eval.toml")["depth_gt"] == str(tmp_path / "cfgs" / ".." / "scene" / "depth")
     assert _config_file(tmp_path / "cfgs" / "abs.toml")["depth_gt"] == str(tmp_path / "elsewhere")
+
+
+def test_installed_pipelines_and_specs_run_by_name(tmp_path, monkeypatch):
+    """The pipelines and sweep specs ship inside the package (a pip install had none: `uncertsplat run
+    pipelines/photos.toml` was 'config file not found'); a name, name.toml or the repository's pipelines/ path that
+    is not there finds them; a file that is there wins; anything else lists the names."""
+    import tomllib
+
+    from uncertsplat.config import SHIPPED, shipped_file, shipped_names
+
+    assert {"demo", "photos", "smoke", "tradeoff"} <= set(shipped_names())
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())
+    assert "pipelines/*.toml" in pyproject["tool"]["setuptools"]["package-data"]["uncertsplat"]
+    monkeypatch.chdir(tmp_path)
+    for given in ("photos", "photos.toml", "pipelines/photos.toml"):
+        assert shipped_file(given) == SHIPPED / "photos.toml"
+    (tmp_path / "photos.toml").write_text("name = 'mine'\n")
+    assert shipped_file("photos.toml") == Path("photos.toml")  # the user's own file first
+    with pytest.raises(UserError, match=r"file not found\. Those installed with uncertsplat run by name: demo, "):
+        shipped_file("elsewhere/photos.toml")
+    result = runner.invoke(app, ["run", "nothere", "-o", str(tmp_path / "out")])
+    assert result.exit_code == 2 and "run by name: demo, photos, smoke, tradeoff" in " ".join(result.output.split())
+
+
+def test_our_warnings_read_as_one_line(capsys):
+    """A warning raised in uncertsplat's own code prints as `warning: ...` (Python's format added the file, line
+    and source line); another package's keeps Python's format."""
+    import warnings
+
+    import uncertsplat
+    from uncertsplat.cli import _plain_warnings
+
+    saved, passed = warnings.showwarning, []
+    try:
+        warnings.showwarning = lambda message, category, filename, lineno, file=None, line=None: passed.append(
+            (str(message), filename))  # what showed warnings before (Python's own, or pytest's)
+        _plain_warnings()
+        ours = str(Path(uncertsplat.__file__).parent / "native" / "__init__.py")
+        warnings.showwarning("native CPU kernels unavailable", UserWarning, ours, 252)
+        warnings.showwarning("theirs", UserWarning, "/elsewhere/mod.py", 3)
+    finally:
+        warnings.showwarning = saved
+    err = capsys.readouterr().err
+    assert "warning: native CPU kernels unavailable\n" in err and "native/__init__.py" not in err
+    assert passed == [("theirs", "/elsewhere/mod.py")]

@@ -31,6 +31,7 @@ import os
 import platform
 import shutil
 import subprocess
+import sys
 import tempfile
 import warnings
 from pathlib import Path
@@ -236,6 +237,9 @@ def library() -> ctypes.CDLL | None:
         key.update(_cpu_signature().encode())
         target = cache_dir() / "native" / f"kernels-{key.hexdigest()[:16]}.so"
         if not target.is_file():
+            # the first use on a machine waits for the compiler: said, not a silent pause
+            print(f"building the native CPU kernels (once per machine and CPU, 15-40 s) into {target.parent}",
+                  file=sys.stderr, flush=True)
             try:
                 reason = _build(cxx, target)
             except OSError as err:  # unwritable cache folder, disk full
