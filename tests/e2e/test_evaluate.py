@@ -944,3 +944,29 @@ def test_the_empty_view_note_is_asked_only_where_it_means_something(tiny_run_pat
     evaluate.run(run, EvalConfig(**quick, empty_rays=False), device=torch.device("cpu"))
     evaluate.run(run, EvalConfig(**quick, split="train"), device=torch.device("cpu"))
     assert asked == [1]
+
+
+def test_held_out_views_that_are_near_copies_of_training_photos_are_named(tiny_scene_path):  # noqa: F811
+    """The nearest training view by pose (distance in rig radii + axis angle); a held-out set whose nearest
+    training photos score within 4 dB of the model is named (every n-th frame of a video); the tiny ring's held-out
+    views (the nearest photo about 15 dB) are not."""
+    from uncertsplat.data.dataset import load_images
+    from uncertsplat.eval.image import psnr
+    from uncertsplat.sfm.scene import load_scene
+    from uncertsplat.stages.evaluate import near_copy_notes, nearest_training_views
+
+    scene = load_scene(tiny_scene_path)
+    held, train = list(scene.split["test"]), list(scene.split["train"])
+    near = nearest_training_views(scene.cameras, held, train)
+    c = scene.cameras.centers
+    for i, j in zip(held, near, strict=True):  # on the ring: a neighbour, one step away
+        d = (c[train] - c[i]).norm(dim=-1)
+        assert j in train and (c[j] - c[i]).norm() <= d.min() * 1.01
+    views = load_view_set(scene, held, depth=False)
+    copies = load_images(scene, near)
+    copy = float(torch.stack([psnr(copies[k], views.images[k]) for k in range(len(held))]).mean())
+    assert copy < 20.0
+    assert near_copy_notes(scene, views, copy + 10.0) == []  # a model well above copying: a real test
+    (note,) = near_copy_notes(scene, views, copy + 2.0)
+    assert note.startswith(f"the held-out views are near copies of training photos: the training photo nearest in "
+                           f"pose scores {copy:.2f} dB")
