@@ -595,16 +595,29 @@ def _sleepy_job(job: dict) -> list[dict]:
     return [{"job": job["job_id"], "status": "ok"}]
 
 
-def test_the_pool_gets_a_job_only_when_a_worker_is_free_and_ctrl_c_reaches_every_worker():
+def _job_until_stopped(job: dict) -> str:
+    """A sweep job that trains until the sweep stops it (``train.trainer.STOP_REQUESTED``), at most 60 s."""
+    import time
+
+    from uncertsplat.train.trainer import STOP_REQUESTED
+
+    t0 = time.perf_counter()
+    while time.perf_counter() - t0 < 60:
+        if STOP_REQUESTED.is_set():
+            return "stopped"
+        time.sleep(0.05)
+    return "ran to its end"
+
+
+def test_the_pool_gets_a_job_only_when_a_worker_is_free_and_a_stop_reaches_every_worker():
     """A job is handed to the pool only when a worker is free (the pool's queue cannot be taken back: on Ctrl-C a
-    queued job trained to its end in a worker started after the signal); _interrupt_workers signals the live
-    workers, which stop at once."""
+    queued job trained to its end in a worker started after the signal); the sweep's stop event stops a worker's
+    training as Ctrl-C does, without a second signal (which acted mid-step, after the terminal's first)."""
     import time
     from concurrent.futures import ProcessPoolExecutor
-    from concurrent.futures.process import BrokenProcessPool
     from multiprocessing import get_context
 
-    from uncertsplat.sweep.executors import _interrupt_workers, _worker_stops_quietly_on_ctrl_c, run_local
+    from uncertsplat.sweep.executors import _worker_stops_quietly_on_ctrl_c, run_local
 
     running, most, got = [0], [0], []
 
@@ -619,15 +632,15 @@ def test_the_pool_gets_a_job_only_when_a_worker_is_free_and_ctrl_c_reaches_every
     todo = [{"job_id": f"j{i}", "points": [], "sleep": 0.3} for i in range(5)]
     run_local(todo, jobs=2, retries=0, on_records=finished, on_start=started, run_job=_sleepy_job)
     assert most[0] == 2 and sorted(r["job"] for r in got) == [f"j{i}" for i in range(5)]
-    with ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"),
-                             initializer=_worker_stops_quietly_on_ctrl_c) as pool:
-        fut = pool.submit(_sleepy_job, {"job_id": "long", "sleep": 60})
-        time.sleep(3.0)  # the worker is up and sleeping
+    ctx = get_context("spawn")
+    stop = ctx.RawValue("b", 0)
+    with ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_worker_stops_quietly_on_ctrl_c,
+                             initargs=(stop,)) as pool:
+        fut = pool.submit(_job_until_stopped, {"job_id": "long"})
+        time.sleep(3.0)  # the worker is up and training
         t0 = time.perf_counter()
-        _interrupt_workers(pool)
-        with pytest.raises((SystemExit, BrokenProcessPool)):  # the worker's quiet exit on Ctrl-C (130)
-            fut.result(timeout=30)
-        assert time.perf_counter() - t0 < 20
+        stop.value = 1
+        assert fut.result(timeout=30) == "stopped" and time.perf_counter() - t0 < 20
 
 
 def test_pareto_axes_name_what_they_show():

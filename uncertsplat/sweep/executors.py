@@ -82,8 +82,11 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
         job["threads"] = 1  # jobs share the cores: oversubscribing threads only slows them all
     ctx = get_context("spawn")  # no fork of a process holding torch threads
     workers = min(jobs, len(todo))
+    # the sweep stops: each worker's training stops as on Ctrl-C (_worker_stops_quietly_on_ctrl_c); a raw shared
+    # flag, polled: an Event's set() waits for every waiter to wake, and hung on a worker that had exited
+    stop = ctx.RawValue("b", 0)
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, max_tasks_per_child=1,
-                             initializer=_worker_stops_quietly_on_ctrl_c) as pool:
+                             initializer=_worker_stops_quietly_on_ctrl_c, initargs=(stop,)) as pool:
         attempts: dict[str, int] = {}
         futures = {}
         waiting = list(todo)
@@ -117,36 +120,38 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
         except KeyboardInterrupt:
             for fut in futures:
                 fut.cancel()
-            _interrupt_workers(pool)
+            stop.value = 1
             # wait for the workers, which stop at once (a training one after its step and checkpoint): without the
             # wait the pool's manager thread failed on the pool it was still adjusting (a traceback)
             pool.shutdown(wait=True, cancel_futures=True)
             raise
 
 
-def _interrupt_workers(pool: ProcessPoolExecutor) -> None:
-    """Pass Ctrl-C on to the pool's live workers: one started after the terminal's signal (a finished job's worker
-    is replaced) never saw it, nor does any worker when only the sweep's process is signalled (``kill -INT``), and
-    each trained its job to the end (20 s of a tiny sweep; a whole training at real sizes) before the sweep
-    stopped. A worker that saw it already takes the second signal as the same request."""
-    import os
-    import signal
-
-    for proc in list((getattr(pool, "_processes", None) or {}).values()):  # (the executor keeps no public list)
-        try:
-            if proc.is_alive():
-                os.kill(proc.pid, signal.SIGINT)
-        except (OSError, ValueError):
-            pass
-
-
-def _worker_stops_quietly_on_ctrl_c() -> None:
+def _worker_stops_quietly_on_ctrl_c(stop=None) -> None:
     """Ctrl-C reaches every process of the terminal's group: a pool worker then exits without a traceback (an idle
     one printed KeyboardInterrupt's) while the driver stops the sweep. A training job installs its own handler while
-    it trains (the step finishes, a checkpoint is written, then it stops) and restores this one after."""
+    it trains (the step finishes, a checkpoint is written, then it stops) and restores this one after.
+
+    ``stop`` (a shared flag of the driver's, ``RawValue``): set to 1 when the sweep stops for any reason the workers
+    did not see (Ctrl-C to the driver alone, ``kill -INT``), it stops the worker's training the same way
+    (``train.trainer.STOP_REQUESTED``) without a second signal, which would act mid-step after the terminal's
+    first."""
     import signal
 
     signal.signal(signal.SIGINT, _exit_quietly)
+    if stop is not None:
+        import threading
+
+        def watch() -> None:
+            import time
+
+            while not stop.value:
+                time.sleep(0.1)
+            from uncertsplat.train.trainer import STOP_REQUESTED
+
+            STOP_REQUESTED.set()
+
+        threading.Thread(target=watch, daemon=True, name="sweep-stop").start()
 
 
 def _exit_quietly(signum, frame) -> None:

@@ -103,6 +103,11 @@ def training_near_plane(scene: SceneData) -> float:
     return near_plane(scene.scene_scale, depths)
 
 
+STOP_REQUESTED = threading.Event()
+"""Set by another thread of this process to stop a training as Ctrl-C does (the step finishes, a checkpoint is
+written, then ``TrainingInterrupted``): a sweep's worker sets it when the sweep stops (a second SIGINT would have
+acted at once, mid-step, after the terminal's first)."""
+
 FEW_CARRIERS = 0.1
 """Below this share of a variational model's Gaussians carrying a posterior, ``few_carriers_warning`` says why (the
 demo and tiny scenes: 98-100 %)."""
@@ -875,7 +880,7 @@ class Trainer:
                     if step % cfg.checkpoint_every == 0 and step != until:
                         with self.timer("checkpoint"):
                             self.save_checkpoint()
-                    if self._stop:
+                    if self._stop or STOP_REQUESTED.is_set():
                         path = self.save_checkpoint()
                         raise TrainingInterrupted(step, path)
         finally:
