@@ -30,7 +30,10 @@ def _takes_bool(annotation) -> bool:
     if origin is Annotated:
         return _takes_bool(args[0])
     if origin in (typing.Union, types.UnionType):
-        return any(_takes_bool(a) for a in args if a is not type(None))
+        members = [a for a in args if a is not type(None)]
+        if any(_is_number(a) for a in members):  # "auto" | float: true is no number, and no word either
+            return any(a is bool or a is Any for a in members)
+        return any(_takes_bool(a) for a in members)
     if origin is Literal:  # only a literal of numbers refuses it (a validator may read a legacy bool into words)
         return not all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in args)
     return not _is_number(annotation)  # only a number field refuses it (a model, a dict, a path: pydantic says)
@@ -1086,7 +1089,7 @@ def shipped_file(path: str | Path) -> Path:
         UserError: no such file and no installed one of that name (the installed names listed).
     """
     path = Path(path)
-    if path.exists():
+    if path.is_file():  # (a folder of that name, e.g. the photos of `run photos`, is not the pipeline)
         return path
     if path.parent in (Path("."), Path("pipelines")):
         for name in (path.name, f"{path.name}.toml"):

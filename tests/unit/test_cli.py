@@ -327,6 +327,8 @@ def test_installed_pipelines_and_specs_run_by_name(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     for given in ("photos", "photos.toml", "pipelines/photos.toml"):
         assert shipped_file(given) == SHIPPED / "photos.toml"
+    (tmp_path / "photos").mkdir()  # the user's photo folder of that name (`run photos --set photos=photos`)
+    assert shipped_file("photos") == SHIPPED / "photos.toml"
     (tmp_path / "photos.toml").write_text("name = 'mine'\n")
     assert shipped_file("photos.toml") == Path("photos.toml")  # the user's own file first
     with pytest.raises(UserError, match=r"file not found\. Those installed with uncertsplat run by name: demo, "):

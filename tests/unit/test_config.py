@@ -42,6 +42,10 @@ def test_early_runs_with_random_background_false_load_as_today():
     default of the option built since (TrainConfig.random_background)."""
     old_run = json.loads(TrainConfig().model_dump_json()) | {"random_background": False}
     assert build_config(TrainConfig, old_run) == TrainConfig()
+    for key in ("depth_scale", "residual_scale"):  # "auto" | a number: true is neither
+        with pytest.raises(UserError, match=rf"{key}: true/false given where a number is expected"):
+            build_config(EvalConfig, {key: True})
+    assert build_config(EvalConfig, {"residual_leverage": True}).residual_leverage == "full"  # a legacy bool, read
     assert build_config(TrainConfig, {"random_background": True}).random_background is True
 
 

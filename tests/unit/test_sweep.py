@@ -585,6 +585,9 @@ def test_a_changed_synthetic_scene_is_not_taken_for_the_old_one(tmp_path):
     (folder / SYNTH_SETTINGS).unlink()  # a sweep made before the settings were recorded: scene.json's are compared
     with pytest.raises(UserError, match=r"seed 1 -> 0"):
         _synth({"preset": "tiny", "seed": 0, "num_views": 6}, folder)
+    with pytest.raises(UserError, match=r"num_views 6 -> 12"):  # every setting, not the six it compared before
+        _synth({"preset": "tiny", "seed": 1, "num_views": 12}, folder)
+    assert not (folder / SYNTH_SETTINGS).exists()  # nothing recorded for a scene it was not made with
 
 
 def _sleepy_job(job: dict) -> list[dict]:
@@ -653,3 +656,14 @@ def test_pareto_axes_name_what_they_show():
     assert {"psnr", "ssim"} <= HIGHER_IS_BETTER
     pts = [{"time": 1.0, "ssim": 0.8}, {"time": 2.0, "ssim": 0.9}, {"time": 3.0, "ssim": 0.85}]
     assert [p["ssim"] for p in pareto_front(pts, x="time", y="ssim", minimize_both=False)] == [0.8, 0.9]
+
+
+def test_a_record_written_before_the_fit_was_timed_reads_with_it():
+    """Records of a sweep resumed across the change of `time` (train + eval, then train + fit + eval) sum alike."""
+    from uncertsplat.schemas.runs import SweepRecord
+
+    base = {"id": "a", "hash": "h", "status": "ok", "is_default": False, "job": "j", "method": "variational",
+            "knobs": {}, "train_seconds": 10.0, "eval_seconds": 2.0, "calibration_seconds": 5.0}
+    assert SweepRecord.model_validate({**base, "time": 12.0}).time == 17.0  # written before: the fit added
+    assert SweepRecord.model_validate({**base, "time": 17.0}).time == 17.0
+    assert SweepRecord.model_validate({**base, "time": 12.0, "calibration_seconds": None}).time == 12.0

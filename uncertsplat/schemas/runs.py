@@ -373,12 +373,21 @@ class SweepRecord(Strict):
     peak_memory_scope: str | None = None
     peak_memory_mb: float | None = None
     time: float | None = None
-    """Training plus evaluation seconds (the Pareto x axis)."""
+    """Training, the predictive's fit and evaluation seconds (the Pareto x axis); a record written before the fit
+    was counted (train + eval) is read with it added (``_time_with_the_fit``), so that one table sums alike."""
 
     @field_validator("*", mode="before")
     @classmethod
     def _nonfinite_to_none(cls, v):
         return finite_or_none(v)
+
+    @model_validator(mode="after")
+    def _time_with_the_fit(self):
+        parts = (self.train_seconds, self.eval_seconds, self.calibration_seconds)
+        if self.time is not None and None not in parts and parts[2] > 0 and \
+                abs(self.time - (parts[0] + parts[1])) <= 1e-9 * max(1.0, abs(self.time)):
+            self.time = parts[0] + parts[2] + parts[1]  # written before the fit was counted
+        return self
 
     def get(self, key: str, default: Any = None) -> Any:
         """Field by name (``pareto`` reads records and plain dicts alike)."""

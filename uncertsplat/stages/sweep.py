@@ -82,12 +82,12 @@ def _synth_changes(cfg, folder: Path) -> list[str]:
             old = json.loads(recorded.read_text(encoding="utf-8"))
         except (OSError, ValueError):
             old = None
-        if isinstance(old, dict):
+        if isinstance(old, dict):  # (keys on both sides only: a setting added since is no change)
             new = json.loads(cfg.model_dump_json())
-            return [f"{k} {old.get(k)} -> {v}" for k, v in new.items() if old.get(k) != v]
-    meta = read_scene_meta(folder)
-    keys = ("preset", "seed", "test_every", "layout", "rig", "backdrop")
-    return [f"{k} {getattr(meta, k)} -> {getattr(cfg, k)}" for k in keys if getattr(meta, k) != getattr(cfg, k)]
+            return [f"{k} {old[k]} -> {v}" for k, v in new.items() if k in old and old[k] != v]
+    old = read_scene_meta(folder).config  # the SynthConfig the scene was generated with (scene.json)
+    new = json.loads(cfg.model_dump_json())
+    return [f"{k} {old[k]} -> {v}" for k, v in new.items() if k in old and old[k] != v]
 
 
 def _synth(keys: dict, folder: Path, force: bool = False) -> Path:
