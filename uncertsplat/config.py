@@ -18,22 +18,32 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from uncertsplat.errors import UserError
 
 
+def _parts(annotation) -> tuple:
+    """``annotation`` without Annotated's metadata, with its origin and arguments (``typing.get_origin`` / ``_args``)."""
+    import typing
+
+    while typing.get_origin(annotation) is Annotated:
+        annotation = typing.get_args(annotation)[0]
+    return annotation, typing.get_origin(annotation), typing.get_args(annotation)
+
+
+def _members(args: tuple) -> list:
+    """A union's members other than None."""
+    return [a for a in args if a is not type(None)]
+
+
 def _takes_bool(annotation) -> bool:
     """Whether a field of type ``annotation`` takes true/false (bool, Any, or a union or literal with a bool)."""
     import types
     import typing
 
+    annotation, origin, args = _parts(annotation)
     if annotation is bool or annotation is Any:
         return True
-    origin = typing.get_origin(annotation)
-    args = typing.get_args(annotation)
-    if origin is Annotated:
-        return _takes_bool(args[0])
     if origin in (typing.Union, types.UnionType):
-        members = [a for a in args if a is not type(None)]
-        if any(_is_number(a) for a in members):  # "auto" | float: true is no number, and no word either
-            return any(a is bool or a is Any for a in members)
-        return any(_takes_bool(a) for a in members)
+        if any(_is_number(a) for a in _members(args)):  # "auto" | float: true is no number, and no word either
+            return any(a is bool or a is Any for a in _members(args))
+        return any(_takes_bool(a) for a in _members(args))
     if origin is Literal:  # only a literal of numbers refuses it (a validator may read a legacy bool into words)
         return not all(isinstance(a, (int, float)) and not isinstance(a, bool) for a in args)
     return not _is_number(annotation)  # only a number field refuses it (a model, a dict, a path: pydantic says)
@@ -44,14 +54,11 @@ def _is_number(annotation) -> bool:
     import types
     import typing
 
+    annotation, origin, args = _parts(annotation)
     if annotation in (int, float):
         return True
-    origin = typing.get_origin(annotation)
-    args = typing.get_args(annotation)
-    if origin is Annotated:
-        return _is_number(args[0])
     if origin in (typing.Union, types.UnionType):
-        return any(_is_number(a) for a in args if a is not type(None))
+        return any(_is_number(a) for a in _members(args))
     if origin in (list, tuple):
         return bool(args) and all(_is_number(a) for a in args if a is not Ellipsis)
     return False
