@@ -357,6 +357,7 @@ def test_candidates_that_see_none_of_the_model_are_named(subset_run, tmp_path, c
               output=tmp_path / "b")
     said = " ".join(capsys.readouterr().err.split())
     assert "3 of 3 candidate(s) see almost none of the model (v" in said and "world-to-camera" in said
+    assert "where they face what no photo has seen" in said and "--score variance" in said
 
 
 def test_the_selection_plot_shows_the_held_out_views_and_keeps_its_legend_outside(tmp_path, monkeypatch):

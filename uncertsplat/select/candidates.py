@@ -169,7 +169,9 @@ def seen_fraction(cameras: Cameras, points: Tensor) -> Tensor:
 
 def blind_candidates_note(candidates: Cameras, train: Cameras, points: Tensor) -> str | None:
     """The note for candidates that see under a tenth of what the training views see of ``points`` (median): by
-    name, with the fractions, and the two conventions most often mixed up; None when every candidate sees the model."""
+    name, with the fractions, what such a pose means when it faces unexplored space (a robot's path turned away from
+    what it saw: the fisher score gives it 0) and the conventions most often mixed up; None when every candidate
+    sees the model."""
     seen, ref = seen_fraction(candidates, points), seen_fraction(train, points)
     if not len(seen) or not len(ref):
         return None
@@ -181,8 +183,10 @@ def blind_candidates_note(candidates: Cameras, train: Cameras, points: Tensor) -
     listed = ", ".join(f"{names[j]} {100 * float(seen[j]):.1f} %" for j in blind[:6]) + (", ..." if len(blind) > 6
                                                                                       else "")
     return (f"{len(blind)} of {len(seen)} candidate(s) see almost none of the model ({listed} of its Gaussians in view, "
-            f"the training views {100 * usual:.0f} %): check the pose file's convention (world-to-camera, the "
-            "quaternion as w x y z, the scene's units and frame)")
+            f"the training views {100 * usual:.0f} %): where they face what no photo has seen, the model holds nothing "
+            "there for the fisher score (0: ranked last; --score variance ranks such views by their empty rays); "
+            "otherwise check the pose file's convention (world-to-camera, the quaternion as w x y z, the scene's "
+            "units and frame)")
 
 
 def candidates_from_spec(spec: str, scene: SceneData, world_from_source: Tensor, *, radius: float,
