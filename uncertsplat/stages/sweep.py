@@ -67,27 +67,14 @@ def read_records(path: Path) -> list[SweepRecord]:
     return out
 
 
-SYNTH_SETTINGS = "sweep_synth.json"
-"""The ``SynthConfig`` a sweep generated its scene folder with (beside the scene's ``scene.json``)."""
-
-
 def _synth_changes(cfg, folder: Path) -> list[str]:
     """The settings of ``cfg`` (a ``SynthConfig``) that the scene in ``folder`` was not generated with ("seed 0 ->
-    1"); a scene a sweep made before it recorded its settings is compared on what its ``scene.json`` holds."""
+    1"), from the ``SynthConfig`` its ``scene.json`` records; a setting the recorded one lacks (added since) is no
+    change."""
     from uncertsplat.data.synthetic import read_scene_meta
 
-    recorded = folder / SYNTH_SETTINGS
-    if recorded.is_file():
-        try:
-            old = json.loads(recorded.read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            old = None
-        if isinstance(old, dict):  # (keys on both sides only: a setting added since is no change)
-            new = json.loads(cfg.model_dump_json())
-            return [f"{k} {old[k]} -> {v}" for k, v in new.items() if k in old and old[k] != v]
-    old = read_scene_meta(folder).config  # the SynthConfig the scene was generated with (scene.json)
-    new = json.loads(cfg.model_dump_json())
-    return [f"{k} {old[k]} -> {v}" for k, v in new.items() if k in old and old[k] != v]
+    old = read_scene_meta(folder).config
+    return [f"{k} {old[k]} -> {v}" for k, v in json.loads(cfg.model_dump_json()).items() if k in old and old[k] != v]
 
 
 def _synth(keys: dict, folder: Path, force: bool = False) -> Path:
@@ -105,8 +92,6 @@ def _synth(keys: dict, folder: Path, force: bool = False) -> Path:
     if is_synthetic_scene(folder):
         changes = _synth_changes(cfg, folder)
         if not changes:
-            if not (folder / SYNTH_SETTINGS).is_file():
-                atomic_write_text(folder / SYNTH_SETTINGS, cfg.model_dump_json(indent=1))
             return folder
         if not force:
             raise UserError(f"the sweep's synthetic scene was generated with other settings than the spec's now "
@@ -117,7 +102,6 @@ def _synth(keys: dict, folder: Path, force: bool = False) -> Path:
     else:
         console.print(f"generating the synthetic scene ({keys}) into {folder}")
     generate_scene(folder, cfg, overwrite=True)
-    atomic_write_text(folder / SYNTH_SETTINGS, cfg.model_dump_json(indent=1))
     return folder
 
 
