@@ -780,14 +780,12 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         base_mask = alpha > 0.5
         if masks is not None:
             base_mask = base_mask & masks
-        if isinstance(cfg.depth_scale, float):
-            scale = align_depth_scale(dm, gt_depth, mask=base_mask, method=cfg.depth_scale)
-            if views.depth_known_scale:  # against GT in the run's normalised units (the scene's own), not a folder's
-                scale = type(scale)(scale.scale, GIVEN_SCENE_GT, scale.num_pixels)
-        elif views.depth_known_scale:
-            scale = align_depth_scale(dm, gt_depth, mask=base_mask, method=1.0)
-            scale = type(scale)(1.0, "scene", scale.num_pixels)
-        if isinstance(cfg.depth_scale, float) or views.depth_known_scale:
+        given = isinstance(cfg.depth_scale, float)
+        if given or views.depth_known_scale:  # a factor the user gave, or the scene's own GT's (1)
+            scale = align_depth_scale(dm, gt_depth, mask=base_mask, method=cfg.depth_scale if given else 1.0)
+            # against GT in the run's normalised units (the scene's own) or a --depth-gt folder's
+            method = (GIVEN_SCENE_GT if views.depth_known_scale else "given") if given else "scene"
+            scale = type(scale)(scale.scale, method, scale.num_pixels)
             notes += implausible_depth_scale_notes(dm, gt_depth, base_mask, scale.scale, cfg.depth_scale)
         else:
             try:

@@ -51,12 +51,17 @@ def project_points(points: Tensor, cam_from_world: Tensor, K: Tensor) -> tuple[T
     return uv.reshape(*lead, *shape, 2), z.reshape(*lead, *shape)
 
 
+def _in_image(uv: Tensor, z: Tensor, cameras) -> Tensor:
+    """[C,N] bool: projections (``uv`` [C,N,2], ``z`` [C,N]) in front of the ``cameras`` and inside their image."""
+    return (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < cameras.width) & (uv[..., 1] >= 0) & \
+        (uv[..., 1] < cameras.height)
+
+
 def points_in_view(points: Tensor, cameras) -> Tensor:
     """[C,N] bool: which of ``points`` [N,3] (world) each of the C ``cameras`` (``types.Cameras``) has in front of it
     and inside its image, in float64 on the CPU (``project_points``)."""
     uv, z = project_points(points.detach().double().cpu(), cameras.cam_from_world.cpu(), cameras.K.cpu())  # [C,N,2]
-    return (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < cameras.width) & (uv[..., 1] >= 0) & \
-        (uv[..., 1] < cameras.height)
+    return _in_image(uv, z, cameras)
 
 
 def point_depths(points: Tensor, cameras, max_points: int = 20000, max_cameras: int = 100) -> Tensor:
@@ -71,9 +76,7 @@ def point_depths(points: Tensor, cameras, max_points: int = 20000, max_cameras: 
     for lo in range(0, len(chosen), 16):
         cams = cameras[chosen[lo:lo + 16]]
         uv, z = project_points(pts, cams.cam_from_world.cpu(), cams.K.cpu())  # [c,P,2], [c,P]
-        inside = (z > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < cams.width) & (uv[..., 1] >= 0) & \
-            (uv[..., 1] < cams.height)
-        out.append(z[inside])
+        out.append(z[_in_image(uv, z, cams)])
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.float64)
 
 
