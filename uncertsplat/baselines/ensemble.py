@@ -27,7 +27,7 @@ import torch
 from uncertsplat.baselines.runs import LoadedRun, load_single_model, mean_exposure, read_run_config
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
-from uncertsplat.eval.engine import Sampler
+from uncertsplat.eval.engine import SAME_RENDER, Sampler
 from uncertsplat.io.atomic import atomic_write_text, run_lock
 from uncertsplat.schemas import TrainSummary
 from uncertsplat.types import GaussianSample
@@ -146,7 +146,7 @@ class EnsembleRun(LoadedRun):
     def eval_notes(self, num_samples: int) -> list[str]:
         n = len(self.members)
         if n == 1 and not self.variational_members:
-            return ["ensemble of 1 member: every sample is the same render, so the samples' spread is 0 everywhere; "
+            return [f"ensemble of 1 member: {SAME_RENDER}, so the samples' spread is 0 everywhere; "
                     "the std holds the predictive's other terms (the 'std =' note lists them)"]
         if num_samples % n:
             return [f"K={num_samples} is not a multiple of the {n} ensemble members: members are weighted "

@@ -25,7 +25,7 @@ import torch
 
 from uncertsplat.config import TrainConfig, build_config
 from uncertsplat.errors import UserError
-from uncertsplat.eval.engine import Sampler
+from uncertsplat.eval.engine import SAME_RENDER, Sampler
 from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.gaussians.prior import Prior
 from uncertsplat.render.exposure import PhotoExposure
@@ -176,12 +176,12 @@ class LoadedRun:
     def eval_notes(self, num_samples: int) -> list[str]:
         """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run."""
         if self.config.method == "deterministic":
-            return ["deterministic model: every sample is the same render, so the samples' spread is 0 everywhere; "
+            return [f"deterministic model: {SAME_RENDER}, so the samples' spread is 0 everywhere; "
                     "the std holds the predictive's other terms (the 'std =' note lists them)"]
         if self.config.method == "variational" and self.model.num_carriers == 0 and len(self.model):
             return [f"no Gaussian carries a posterior (carriers are made when Gaussians split and at each spawn "
                     f"step, every {self.config.densify.spawn_interval} steps after step {self.config.densify.start}; "
-                    f"this model is of step {self.step}): every sample is the same render, so the std holds only "
+                    f"this model is of step {self.step}): {SAME_RENDER}, so the std holds only "
                     "the predictive's other terms (the 'std =' note lists them); train longer for a posterior"]
         return []
 

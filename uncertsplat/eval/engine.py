@@ -559,6 +559,10 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
     return StdFit(scale, dof, views.names)
 
 
+SAME_RENDER = "every sample is the same render"
+"""How the notes on a model without a posterior (``LoadedRun.eval_notes``: deterministic, one ensemble member, no
+carrier) say that the samples' spread is 0; ``evaluate_views``' 'std =' note and the report read it."""
+
 GIVEN_SCENE_GT = "given-scene"
 """``DepthScaleInfo.method`` of a factor given with ``--depth-scale`` against the scene's own GT depth (in the run's
 normalised units, as with method "scene"); "given" is one against a ``--depth-gt`` folder (the folder's units)."""
@@ -664,10 +668,10 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
                      f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out PSNR "
                      "over whole images")
-    # a model without a posterior (the run's note says every sample is the same render): its spread term is 0 too
-    same = any("every sample is the same render" in n for n in notes)
+    # a model without a posterior (the run's note says SAME_RENDER): its spread term is 0 too
+    same = any(SAME_RENDER in n for n in notes)
     terms = ["the spread of the K samples" + (" (0: K = 1)" if K == 1 else
-                                              " (0 for this model: every sample is the same render)" if same else "")]
+                                              f" (0 for this model: {SAME_RENDER})" if same else "")]
     if sampler.residual is not None:
         seen = float(sampler.residual.seen.float().mean()) if sampler.residual.seen.numel() else 0.0
         lev = sampler.residual.leverage_inflation

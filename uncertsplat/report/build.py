@@ -17,7 +17,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from uncertsplat.eval.engine import GIVEN_SCENE_GT, MASKED_NOTE
+from uncertsplat.eval.engine import GIVEN_SCENE_GT, MASKED_NOTE, SAME_RENDER
 from uncertsplat.eval.nll import NLL_WORSE_BY
 from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.report import figures as F
@@ -227,9 +227,6 @@ def comparability_note(runs: list[RunData]) -> str | None:
     return ("These runs were trained " + " and ".join(what) + ": their metrics are not comparable (PSNR, NLL and the rest are measured on different images).")
 
 
-SAME_RENDER = "every sample is the same render"
-"""How evaluate's note on a model without a posterior (deterministic, one ensemble member, no carrier) says that the
-samples' spread is 0."""
 SPREAD_TERM = "std = the spread of the K samples"
 
 
