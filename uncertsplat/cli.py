@@ -17,6 +17,7 @@ import typer
 from rich.text import Text
 
 from uncertsplat import __version__
+from uncertsplat.config import STAGE_PATH_KEYS as _PATH_KEYS
 from uncertsplat.console import console
 from uncertsplat.errors import Interrupted, UserError
 
@@ -185,10 +186,6 @@ def _config_file(path: Path) -> dict:
     return data
 
 
-_PATH_KEYS = ("depth_gt",)
-"""The stage configs' path settings (``EvalConfig.depth_gt``): read from a --config file's folder."""
-
-
 def _refuse_two_values(explicit: dict, overrides: list[str] | None) -> None:
     """An option given on the command line and again by ``--set`` with another value: which one the user meant is
     not ours to guess (``--set`` won without a word: `--method deterministic --set method=ensemble` trained an
@@ -219,16 +216,15 @@ def _stage_config(model, config_file: Path | None, overrides: list[str] | None, 
     given = {k: v for k, v in explicit.items() if v is not None}
     data = deep_update(data, given)
     set_keys: set[str] = set()
+    replaced = dotted_keys(given)  # the keys an option or --set gave: an error names none of them with a file line
     for o in overrides or []:
         parsed = parse_override(o)
         set_keys.update(parsed)
+        replaced |= dotted_keys(parsed)
         data = deep_update(data, parsed)
     # a bad value from an option is named by the option (-n 0: "--num-views", not the config key "num_views")
     names = {k: "--" + k.replace("_", "-") for k in given if k not in set_keys}
-    where = None
-    if config_file:  # a key the file wrote is named with its line; one an option or --set gave, without
-        replaced = dotted_keys(given).union(*(dotted_keys(parse_override(o)) for o in overrides or []))
-        where = KeyLines(config_file, replaced=replaced)
+    where = KeyLines(config_file, replaced=replaced) if config_file else None
     return build_config(model, data, source=str(config_file) if config_file else "command line", names=names,
                         where=where)
 

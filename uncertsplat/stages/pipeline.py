@@ -17,6 +17,7 @@ from pathlib import Path
 
 from uncertsplat.config import (
     STAGE_CONFIGS,
+    STAGE_PATH_KEYS,
     KeyLines,
     PipelineConfig,
     PipelineStage,
@@ -87,7 +88,7 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
                       else second / cfg.photos).resolve()
     for stage in cfg.stages:  # a stage's relative path (evaluate's depth_gt): from the current folder, as it always
         # was read, else from the pipeline file's folder (where it failed before: no pipeline's settings change)
-        for key in ("depth_gt",):
+        for key in STAGE_PATH_KEYS:
             value = stage.config.get(key)
             if isinstance(value, str) and value and not Path(value).expanduser().is_absolute() \
                     and not Path(value).exists() and (base / value).exists():
