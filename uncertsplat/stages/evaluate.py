@@ -463,13 +463,14 @@ def near_copy_notes(scene, views, psnr: float | None) -> list[str]:
     held = list(views.indices)
     if psnr is None or not train or not held:
         return []
-    # every k-th held-out view of a large set (the mean is what is compared), one training photo at a time, inside
-    # the views' masks as the model's PSNR is
+    # every k-th held-out view of a large set (the mean is what is compared), one training photo at a time (each
+    # read once: held-out views often share their nearest), inside the views' masks as the model's PSNR is
     pick = list(range(0, len(held), max(1, -(-len(held) // 200))))
     nearest = nearest_training_views(scene.cameras, [held[k] for k in pick], train)
-    scores = []
-    for k, j in zip(pick, nearest, strict=True):
-        copy_image = load_images(scene, [j])[0]  # [H,W,3] at the evaluation's resolution
+    scores, last = [], None
+    for k, j in sorted(zip(pick, nearest, strict=True), key=lambda kj: kj[1]):
+        if j != last:
+            copy_image, last = load_images(scene, [j])[0], j  # [H,W,3] at the evaluation's resolution
         mask = views.masks[k] if views.masks is not None else None
         scores.append(float(image_psnr(copy_image.float(), views.images[k].float(), mask)))
     copy = sum(scores) / len(scores)

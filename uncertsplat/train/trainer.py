@@ -127,22 +127,20 @@ def few_carriers_warning(model: GaussianModel, cfg: TrainConfig, extent: float, 
         return []
     with torch.no_grad():
         pm = posterior_mean(model, variant=prior.variant, extent=extent, temperature=prior.temperature)
-        width = pm.scales.norm(dim=-1)[pm.opacities >= cfg.densify.spawn_min_opacity] / extent  # [M]
+        width = pm.scales.norm(dim=-1)[pm.opacities >= d.spawn_min_opacity] / extent  # [M]
     if width.numel() == 0:
         return []
     median = float(width.median())
     digit = 10.0 ** math.floor(math.log10(0.9 * median))  # rounded down to one digit: below the median, never above
     suggested = math.floor(0.9 * median / digit) * digit
+    few = f"only {model.num_carriers:,} of the {n:,} Gaussians carry a posterior (the others' uncertainty is 0)"
     if suggested >= d.spawn_scale_fraction:  # they grew past it after the last spawn step: a smaller one is no cure
-        return [f"only {model.num_carriers:,} of the {n:,} Gaussians carry a posterior (the others' uncertainty is "
-                f"0), though most are wider than densify.spawn_scale_fraction = {d.spawn_scale_fraction:g} of the "
+        return [f"{few}, though most are wider than densify.spawn_scale_fraction = {d.spawn_scale_fraction:g} of the "
                 f"cameras' radius (median {median:.2g}): they grew after the last spawn step (densify.until = "
                 f"{d.until}); a later densify.until lets them carry one"]
-    return [f"only {model.num_carriers:,} of the {n:,} Gaussians carry a posterior (the others' uncertainty is 0): "
-            f"a Gaussian gets one when wider than densify.spawn_scale_fraction = {cfg.densify.spawn_scale_fraction:g} "
+    return [f"{few}: a Gaussian gets one when wider than densify.spawn_scale_fraction = {d.spawn_scale_fraction:g} "
             f"of the cameras' radius, and this scene's are smaller (median {median:.2g}: a small scene seen from far, "
-            f"or a long lens); --set densify.spawn_scale_fraction={suggested:.1g} gives one to "
-            "at least half of them"]
+            f"or a long lens); --set densify.spawn_scale_fraction={suggested:.1g} gives one to at least half of them"]
 
 
 WIDE_VIEW_DEGREES = 150.0
