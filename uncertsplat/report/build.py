@@ -292,9 +292,7 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
                 body.append(title + _missing_metrics_note(run))
             continue
         factor = run.depth_to_source
-        # GT maps of unknown units (a --depth-gt folder, its factor fitted or given): the depth errors are in the
-        # maps' own units already (the rendered depth was scaled to them)
-        gt_units = m.depth_scale is not None and m.depth_scale.method not in ("scene", GIVEN_SCENE_GT)
+        gt_units = m.depth_scale is not None and in_gt_maps_units(m.depth_scale)
         rows_in = [(name, depth_in_scene_units(metric_row(v), factor, gt_units)) for name, v in m.per_view.items()]
         rows_in.append(("mean", depth_in_scene_units(metric_row(m.mean), factor, gt_units)))
         keys = [s.key for s in METRIC_SPECS if any(r[s.key].value is not None for _, r in rows_in)]
@@ -337,6 +335,13 @@ _DEPTH_METHODS = {"scene": "none: the scene's GT depth has a known scale", "medi
                   GIVEN_SCENE_GT: "given with --depth-scale, against the scene's own GT depth"}
 
 
+def in_gt_maps_units(info) -> bool:
+    """Whether the depth errors of an evaluation (``info``: its ``DepthScaleInfo``) are in the units of GT maps of
+    their own (a --depth-gt folder, the factor fitted or given: the rendered depth was scaled to them), rather than
+    in the run's normalised units (the scene's own GT, with or without a given factor)."""
+    return info.method not in ("scene", GIVEN_SCENE_GT)
+
+
 def depth_in_scene_units(row: dict[str, MetricValue], factor: float | None,
                          gt_units: bool = False) -> dict[str, MetricValue]:
     """``row`` with its depth lengths (``DEPTH_LENGTH_KEYS``) shown in the scene's units (times ``factor``) and labelled
@@ -355,7 +360,7 @@ def _depth_facts(info, factor: float | None) -> list[tuple[str, str]]:
     """What the depth numbers are: the alignment applied to the rendered depth and the units shown."""
     method = _DEPTH_METHODS.get(info.method, info.method)
     facts = [("depth alignment", f"rendered depth x{info.scale:.6g} before it is compared with the GT ({method})")]
-    if info.method not in ("scene", GIVEN_SCENE_GT):
+    if in_gt_maps_units(info):
         facts.append(("depth units", "the GT maps' own: depth RMSE, MAE and NLL compare the rendered depth, scaled "
                                      "by the alignment, with them"
                                      + (f"; the depth maps are in the scene's units (x{factor:.6g})" if factor else "")))
