@@ -34,7 +34,7 @@ def test_nearest_neighbor_chunked_matches_brute_force():
 def test_nearest_neighbor_rows_shrink_for_a_large_cloud(monkeypatch):
     """The distance block is bounded (NN_BLOCK_ELEMENTS): a large cloud is taken in fewer rows at a time (a 48k
     cloud held 1.8 GB in rows of 4096), with the same distances; a small cloud keeps its rows."""
-    from uncertsplat.gaussians import params
+    from uncertsplat.gaussians import neighbors as params
 
     pts = torch.rand(300, 3, generator=torch.Generator().manual_seed(1))
     ref = nearest_neighbor_distance(pts)
@@ -55,6 +55,66 @@ def test_nearest_neighbor_small_inputs():
     assert nearest_neighbor_distance(torch.zeros(1, 3)).tolist() == [0.0]
     two = nearest_neighbor_distance(torch.tensor([[0.0, 0, 0], [3.0, 4, 0]]))
     torch.testing.assert_close(two, torch.tensor([5.0, 5.0]))
+
+
+def _exact_nn(pts: torch.Tensor, k: int = 3) -> torch.Tensor:
+    """float64 differences, no matrix-product expansion: the reference the grid must equal."""
+    p = pts.double()
+    d2 = torch.cdist(p, p, compute_mode="donot_use_mm_for_euclid_dist").square()
+    return d2.topk(k + 1, largest=False).values[:, 1:].mean(1).sqrt()
+
+
+def _clouds() -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(3)
+    uv = torch.rand(1500, 2, generator=g) * 6
+    surface = torch.stack([uv[:, 0], uv[:, 1], torch.sin(uv[:, 0]) * torch.cos(uv[:, 1])], 1)
+    clump = surface.clone()
+    clump[:5] *= 1e4  # far points
+    clump[5:300] = clump[5:300] * 1e-4 + 2.0  # a clump 1e-4 the size of the rest
+    dupes = surface.clone()
+    dupes[10:210] = dupes[10]  # 200 copies of one point
+    line = torch.zeros(1500, 3)
+    line[:, 0] = torch.rand(1500, generator=g)
+    shells = torch.randn(1500, 3, generator=g) * torch.logspace(-3, 3, 1500)[:, None]
+    return {"cube": torch.rand(1500, 3, generator=g), "clump and far points": clump, "duplicates": dupes,
+            "line": line, "far from the origin": surface + 1e5, "shells from 1e-3 to 1e3": shells,
+            "one place": torch.full((1500, 3), 7.0)}
+
+
+@pytest.mark.parametrize("name", list(_clouds()))
+def test_nearest_neighbor_grid_is_exact(monkeypatch, name):
+    """The grid path (clouds above GRID_MIN_POINTS) equals the exact k-NN on clouds that stress each of its
+    branches: small budgets force query chunks and block splits, descents to finer grids for clumps (and the stop for
+    duplicates, which no finer grid separates) and climbs for sparse and far points."""
+    from uncertsplat.gaussians import neighbors
+
+    pts = _clouds()[name]
+    ref = _exact_nn(pts).float()
+    monkeypatch.setattr(neighbors, "GRID_MIN_POINTS", 0)
+    monkeypatch.setattr(neighbors, "NN_BLOCK_ELEMENTS", 1500 * 5)  # brute force only for the last 5 points
+    monkeypatch.setattr(neighbors, "GRID_PAIR_BUDGET", 4096)
+    monkeypatch.setattr(neighbors, "GRID_MAX_CANDIDATES", 32)
+    monkeypatch.setattr(neighbors, "_QUERY_ROWS", 400)
+    for k in (1, 3):
+        ref = _exact_nn(pts, k).float()
+        got = nearest_neighbor_distance(pts, k=k)
+        torch.testing.assert_close(got, ref, rtol=2e-6, atol=1e-30 if name != "one place" else 0.0)
+
+
+def test_nearest_neighbor_grid_fixes_the_brute_force_in_a_clump():
+    """A cloud past GRID_MIN_POINTS takes the grid, whose differences keep a clump's distances; cdist's
+    expanded square gives them as noise (relative error about 1 here), so the brute force is no reference."""
+    from uncertsplat.gaussians import neighbors
+
+    g = torch.Generator().manual_seed(4)
+    n = neighbors.GRID_MIN_POINTS + 500
+    pts = torch.rand(n, 3, generator=g)
+    pts[:400] = pts[:400] * 1e-5 + 0.5
+    got = nearest_neighbor_distance(pts)
+    ref = _exact_nn(pts[:400].double().cpu().clone()).float()  # the clump's own neighbours are in the clump
+    torch.testing.assert_close(got[:400], ref, rtol=1e-5, atol=0.0)
+    brute = neighbors._brute_mean_sq(pts, torch.arange(400), 3).clamp_min(0).sqrt()
+    assert ((brute - ref).abs() / ref).max() > 0.1  # what the grid replaces
 
 
 def test_init_from_points_layout():

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from uncertsplat.gaussians.neighbors import nearest_neighbor_distance
 from uncertsplat.gaussians.prior import empty_tables
 from uncertsplat.render.sh import rgb_to_sh
 
@@ -180,34 +181,6 @@ class GaussianModel:
 
 
 # ----------------------------------------------------------------------------------------- initialisation
-NN_BLOCK_ELEMENTS = 2**26
-"""The distance block ``nearest_neighbor_distance`` holds at once (256 MB of float32): its rows shrink for a cloud
-of more than 16,384 points (a 48k-point one took 1.8 GB in rows of 4096); smaller clouds keep 4096 rows, and the
-same values to the bit."""
-
-
-def nearest_neighbor_distance(points: Tensor, k: int = 3, chunk: int = 4096) -> Tensor:
-    """[P] mean distance of each point to its ``k`` nearest other points.
-
-    Computed in row chunks with ``cdist`` + ``topk``, so memory is O(chunk x P), not O(P^2): at most ``chunk`` rows,
-    fewer for a large cloud (``NN_BLOCK_ELEMENTS``); the time stays O(P^2) (96k points: about 30 s on 2 cores).
-    A single point (no neighbours) gets distance 0 (the caller clamps).
-    """
-    n = points.shape[0]
-    if n <= 1:
-        return torch.zeros(n, dtype=points.dtype, device=points.device)
-    k = min(k, n - 1)
-    chunk = min(chunk, max(64, NN_BLOCK_ELEMENTS // n))
-    out = torch.empty(n, dtype=points.dtype, device=points.device)
-    for start in range(0, n, chunk):
-        block = points[start:start + chunk]
-        d2 = torch.cdist(block, points).square()  # [chunk,P]
-        # the point itself sits at distance 0; take k + 1 smallest and drop the first
-        vals = torch.topk(d2, k + 1, dim=1, largest=False).values[:, 1:]
-        out[start:start + chunk] = vals.clamp_min(0).mean(dim=1).sqrt()
-    return out
-
-
 def _logit(p: float) -> float:
     return math.log(p / (1.0 - p))
 
