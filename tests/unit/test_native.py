@@ -649,6 +649,39 @@ class TestSingleThreadedTorch:
 
         assert _with_threads(2, check) == ((1, 2), (1, 2), 1, 2, 2)
 
+    def test_threads_that_overlap_keep_one_thread_until_the_last_leaves(self):
+        """Two threads inside at once (a pool over Predictor.predict): the first one out used to restore torch's two
+        threads under the other, whose ops (and sums) then ran on two; the last one out restores them."""
+        if native.library() is None:
+            pytest.skip(f"native kernels unavailable: {native.unavailable_reason()}")
+        import threading
+
+        a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
+        seen = {}
+
+        def a():
+            with native.single_threaded_torch("cpu"):
+                a_in.set()
+                b_in.wait(5)
+            a_out.set()
+
+        def b():
+            a_in.wait(5)
+            with native.single_threaded_torch("cpu"):
+                b_in.set()
+                a_out.wait(5)
+                seen["b after a left"] = torch.get_num_threads(), native.kernel_threads()
+
+        def check():
+            threads = [threading.Thread(target=a), threading.Thread(target=b)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join(10)
+            return seen["b after a left"], torch.get_num_threads(), native.kernel_threads()
+
+        assert _with_threads(2, check) == ((1, 2), 2, 2)
+
     def test_restored_after_an_error(self):
         def fail():
             with native.single_threaded_torch("cpu"):

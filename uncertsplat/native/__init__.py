@@ -33,6 +33,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import warnings
 from pathlib import Path
 
@@ -53,6 +54,7 @@ BASE_FLAGS = ("-O3", "-std=c++17", "-fPIC", "-shared", "-pthread", "-fopenmp-sim
 ARCH_FLAGS = ("-march=native",)
 
 _state: dict = {}
+_threads_lock = threading.Lock()  # single_threaded_torch's count of threads inside
 
 
 def cache_dir() -> Path:
@@ -322,18 +324,28 @@ def single_threaded_torch(device: torch.device | str):
     kernels on two (BENCHMARKS.md, "Torch's own ops on one thread"). The kernels start their own threads, so
     they keep the parallelism where it pays. Nothing changes on other devices, without the native kernels,
     or when torch already runs on one thread."""
-    before = torch.get_num_threads()
-    if torch.device(device).type != "cpu" or before <= 1 or "kernel_threads" in _state \
-            or requested_backend() == "torch" or library() is None:
+    if torch.device(device).type != "cpu" or requested_backend() == "torch" or library() is None:
         yield
         return
-    _state["kernel_threads"] = before
-    torch.set_num_threads(1)
+    # Threads may enter at once (a pool over Predictor.predict calls): the first one in lowers torch's count and
+    # the last one out restores it, so no thread's ops run on two threads, nor is torch left on one, by another's
+    # exit.
+    with _threads_lock:
+        if _state.get("single_threaded", 0) == 0:
+            before = torch.get_num_threads()
+            if before <= 1:  # already on one thread: nothing to lower or restore
+                _state.pop("kernel_threads", None)
+            else:
+                _state["kernel_threads"] = before
+                torch.set_num_threads(1)
+        _state["single_threaded"] = _state.get("single_threaded", 0) + 1
     try:
         yield
     finally:
-        torch.set_num_threads(before)
-        _state.pop("kernel_threads", None)  # pop, not del: two threads entering at once must not raise here
+        with _threads_lock:
+            _state["single_threaded"] -= 1
+            if _state["single_threaded"] == 0 and "kernel_threads" in _state:
+                torch.set_num_threads(_state.pop("kernel_threads"))
 
 
 def describe(device: torch.device | str) -> str:
