@@ -112,6 +112,38 @@ def test_an_ensemble_of_variational_members_samples_their_posteriors(scene_path,
         prune.run(run, tmp_path / "pruned", PruneConfig(keep_ratio=0.5), device=CPU)
 
 
+def test_an_ensembles_predictor_gives_threads_the_serial_maps(ensemble_run):
+    """``Predictor.predict`` from two threads at once on an ensemble run: each call gets the maps a serial call gets
+    (one sampler serves every call; its member cycle must not mix the threads' draws)."""
+    import threading
+
+    from uncertsplat.predict import Predictor
+    from uncertsplat.types import Cameras
+
+    light = EvalConfig(num_samples=2, residual_views=0, consistency_views=0, resolution=0)
+    pred = Predictor.load(ensemble_run, "cpu", cfg=light)
+    cams = pred.scene.cameras
+    cams = Cameras(cams.cam_from_world, cams.K, cams.width, cams.height, tuple(f"c{i}" for i in range(len(cams))))
+    views = range(min(6, len(cams)))
+    serial = [pred.predict(cams[[i]], seed=1) for i in views]
+    got: dict[int, list] = {}
+
+    def work(t: int) -> None:
+        got[t] = [pred.predict(cams[[i]], seed=1) for _ in range(3) for i in views]
+
+    threads = [threading.Thread(target=work, args=(t,)) for t in range(2)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert sorted(got) == [0, 1]
+    for out in got.values():
+        for j, o in enumerate(out):
+            ref = serial[j % len(serial)]
+            assert torch.equal(o.rgb_std, ref.rgb_std) and torch.equal(o.rgb_mean, ref.rgb_mean)
+            assert torch.equal(o.depth_std, ref.depth_std)
+
+
 def test_ensemble_of_one_has_zero_spread(ensemble_run, tmp_path):
     # an ensemble folder with N = 1 (member 0 of the N = 2 run; same layout, no retraining)
     run = tmp_path / "ens1"

@@ -82,6 +82,40 @@ def test_variational_members_are_drawn_from_and_still_cycled():
     assert [fn(g) for _ in range(6)] == first
 
 
+def test_ensemble_sampler_gives_each_thread_its_serial_sequence():
+    """Two threads drawing from one sampler at once, each with its own generator (``Predictor.predict`` from a
+    thread pool), get the members a serial draw gives: one thread's draws do not restart the other's cycle."""
+    import threading
+
+    members = [object() for _ in range(3)]
+    seeds, draws = (11, 12), 6
+    serial = {}
+    for s in seeds:
+        fn = ensemble_sample_fn(members)
+        g = torch.Generator().manual_seed(s)
+        serial[s] = [members.index(fn(g)) for _ in range(draws)]
+    shared = ensemble_sample_fn(members)
+    turns = [threading.Event() for _ in range(2 * draws + 1)]  # the draws alternate: thread 0, 1, 0, 1, ...
+    got: dict[int, list[int]] = {}
+
+    def work(t: int) -> None:
+        g = torch.Generator().manual_seed(seeds[t])
+        out = []
+        for d in range(draws):
+            assert turns[2 * d + t].wait(10)
+            out.append(members.index(shared(g)))
+            turns[2 * d + t + 1].set()
+        got[seeds[t]] = out
+
+    threads = [threading.Thread(target=work, args=(t,)) for t in range(2)]
+    for th in threads:
+        th.start()
+    turns[0].set()
+    for th in threads:
+        th.join(20)
+    assert got == serial
+
+
 def test_ensemble_of_one_returns_the_same_sample():
     only = object()
     fn = ensemble_sample_fn([only])

@@ -18,6 +18,7 @@ compares against.
 from __future__ import annotations
 
 import json
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -182,14 +183,20 @@ def ensemble_sample_fn(samples: list):
     seed per view, or another generator); it then draws a permutation of the members from the
     generator and returns them in that order, drawing a new permutation after every full cycle. So K
     samples of one view use each member once when K = N, the same seed gives the same members, and
-    no state leaks between views.
+    no state leaks between views. The sequence is kept per thread, so threads that draw at once (each with its own
+    generator, as ``Predictor.predict`` from a thread pool) each get the members a serial draw gives them.
     """
     if not samples:
         raise ValueError("an ensemble needs at least one member")
     n = len(samples)
-    state: dict = {"expect": None, "order": [], "pos": 0}
+    # per thread: one shared sequence let a second thread's draw restart the first's cycle (the same member drawn
+    # twice in one view, a wrong std without a word)
+    local = threading.local()
 
     def sample_fn(generator: torch.Generator) -> GaussianSample:
+        state = local.__dict__
+        if not state:
+            state.update(expect=None, order=[], pos=0)
         current = generator.get_state()
         fresh = state["expect"] is None or not torch.equal(current, state["expect"])
         if fresh or state["pos"] >= len(state["order"]):
