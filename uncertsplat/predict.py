@@ -119,32 +119,38 @@ class Predictor:
         from uncertsplat.device import resolve_device
 
         device = resolve_device(device)
-        cfg = cfg if cfg is not None else _evaluation_config(Path(run_dir))
+        evaluation = _evaluation_config(Path(run_dir))
+        cfg = cfg if cfg is not None else evaluation
         with native.single_threaded_torch(device):  # as evaluate runs (its sums, so its maps, to the last bit)
-            return cls._load(Path(run_dir), device, cfg)
+            return cls._load(Path(run_dir), device, cfg, evaluation)
 
     @classmethod
-    def _load(cls, run_dir: Path, device: torch.device, cfg) -> Predictor:
+    def _load(cls, run_dir: Path, device: torch.device, cfg, evaluation) -> Predictor:
         from uncertsplat.baselines import load_run
         from uncertsplat.data.dataset import load_view_set
         from uncertsplat.eval.engine import scored_sampler
         from uncertsplat.io.atomic import run_lock
-        from uncertsplat.stages.residual_cache import fitted_residual
+        from uncertsplat.stages.residual_cache import fitted_residual, same_residual_settings
 
         loaded = load_run(run_dir, device)
         scene = loaded.load_scene()
         train_views = partial(load_view_set, scene, depth=False)
         set_aside: dict = {}
         # the pixel noise as evaluate fits it (read from RUN/eval/residual.pt when evaluate kept one for this model and
-        # these settings; a fitted one is kept there too, as evaluate does, under the run's lock; a read-only run, or
-        # one another process holds, is only read)
+        # these settings; a fitted one is kept there too, as evaluate does, under the run's lock, when the settings
+        # are the run's evaluation's: the file is the evaluation's, which evaluate and prune read, so a noise fitted
+        # for other settings is kept in memory only; a read-only run, or one another process holds, is only read)
+        calibration = scene.split.get("calibration", ())
         fit = partial(fitted_residual, loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
-                      load_views=train_views, calibration_indices=scene.split.get("calibration", ()),
-                      set_aside_maps=set_aside)
-        try:
-            with run_lock(run_dir, "predict"):
-                residual = fit(write=True)
-        except UserError:
+                      load_views=train_views, calibration_indices=calibration, set_aside_maps=set_aside)
+        fitted = False
+        if same_residual_settings(cfg, evaluation, set_aside=len(calibration) > 0):
+            try:
+                with run_lock(run_dir, "predict"):
+                    residual, fitted = fit(write=True), True
+            except UserError:
+                pass
+        if not fitted:
             residual = fit(write=False)
         sampler, fit = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual, scene.cameras,
                                       scene.split, cfg, device, load_views=train_views, set_aside_maps=set_aside)

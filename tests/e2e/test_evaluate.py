@@ -858,6 +858,26 @@ class TestPredictor:
         with pytest.raises(UserError, match="image size must be positive"):
             pred.cameras_from_source(two, pred.scene.cameras.K[0], 0, 96)
 
+    def test_a_load_with_other_settings_leaves_the_runs_noise_file_alone(self, evaluated, tmp_path, capsys):
+        """RUN/eval/residual.pt is the evaluation's (evaluate and prune read it): a Predictor with other settings
+        keeps the noise it fits in memory, so a later default load still reads the file."""
+        from uncertsplat.predict import Predictor
+
+        run = tmp_path / "run"
+        shutil.copytree(evaluated[0], run)
+        cache = run / "eval" / "residual.pt"
+        kept = cache.read_bytes()
+        other = Predictor.load(run, "cpu", cfg=EvalConfig(num_samples=2, seed=3, residual_views=4))
+        assert other.config.residual_views == 4
+        assert cache.read_bytes() == kept
+        capsys.readouterr()
+        Predictor.load(run, "cpu")
+        printed = capsys.readouterr()
+        assert "pixel noise: read from" in " ".join((printed.out + printed.err).split())
+        cache.unlink()  # the default load still keeps what it fits
+        Predictor.load(run, "cpu")
+        assert cache.is_file()
+
     def test_a_pose_gets_the_same_maps_wherever_it_stands_in_a_batch(self, evaluated):
         """A pose of one's own is seeded by itself, not by its place: [A, B] and [B, A] give A the same maps."""
         from uncertsplat.predict import Predictor

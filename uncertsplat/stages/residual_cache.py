@@ -55,6 +55,15 @@ def residual_key(loaded, cfg, device: torch.device, set_aside: bool = False) -> 
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
 
+def same_residual_settings(a, b, set_aside: bool = False) -> bool:
+    """Whether the evaluation settings ``a`` and ``b`` fit the same pixel noise (the settings ``residual_key`` reads,
+    with ``set_aside`` as there)."""
+    from uncertsplat.eval.engine import RESIDUAL_SET_ASIDE_SETTINGS, RESIDUAL_SETTINGS
+
+    names = RESIDUAL_SETTINGS + (RESIDUAL_SET_ASIDE_SETTINGS if set_aside else ())
+    return all(getattr(a, k) == getattr(b, k) for k in names)
+
+
 def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torch.device, *,
                     load_views: Callable[[list[int]], ViewSet], write: bool, calibration_indices=(),
                     set_aside_maps: dict | None = None):
@@ -93,4 +102,4 @@ def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torc
     return field
 
 
-__all__ = ["FILE_NAME", "fitted_residual", "residual_key"]
+__all__ = ["FILE_NAME", "fitted_residual", "residual_key", "same_residual_settings"]
