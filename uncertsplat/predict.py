@@ -23,6 +23,8 @@ freedom (``examples/intervals.py``).
 
 from __future__ import annotations
 
+import math
+import operator
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -75,6 +77,106 @@ def _evaluation_config(run_dir: Path):
         return EvalConfig.model_validate_json(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, ValidationError):
         return EvalConfig()
+
+
+TRANSFORMS = ("cam_from_world", "world_from_cam")
+"""The poses ``Predictor.cameras_from_source`` takes: world-to-camera (COLMAP's) or camera-to-world."""
+AXES = ("opencv", "opengl", "blender")
+"""The camera axes it takes: OpenCV's (x right, y down, z forward), OpenGL's = Blender's (x right, y up, z backward)."""
+MAX_SEED = 2**40
+"""The largest seed ``Predictor.predict`` takes (``view_seed`` of it and of any view index stays a 64-bit seed)."""
+_RIGID_HINT = ("Pass world-to-camera matrices in the scene's units, as pycolmap's Image.cam_from_world().matrix() "
+               "gives them ([N,3,4], or [N,4,4] with the row [0, 0, 0, 1]); camera-to-world ones with "
+               "transform=\"world_from_cam\", OpenGL/Blender axes with axes=\"opengl\".")
+
+
+def _whole(value, name: str, minimum: int) -> int:
+    """``value`` as an int: an integer, or a float that is one (320.0); anything else is refused (320.7 was cut to
+    320 without a word)."""
+    if isinstance(value, bool):
+        raise UserError(f"{name} must be a whole number, got {value!r}")
+    try:
+        out = operator.index(value)  # int, numpy and 0-d torch integers
+    except TypeError:
+        if not (isinstance(value, float) and value.is_integer()):
+            raise UserError(f"{name} must be a whole number, got {value!r}") from None
+        out = int(value)
+    if out < minimum:
+        raise UserError(f"{name} must be {minimum} or more, got {out}")
+    return out
+
+
+def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
+    """[N,4,4] float64 world-to-camera transforms with OpenCV axes from ``cameras_from_source``'s poses."""
+    if transform not in TRANSFORMS:
+        raise UserError(f"unknown transform {transform!r}", hint=f"Use one of {', '.join(TRANSFORMS)}.")
+    if axes not in AXES:
+        raise UserError(f"unknown axes {axes!r}", hint=f"Use one of {', '.join(AXES)}.")
+    try:
+        m = torch.as_tensor(poses, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise TypeError(f"cam_from_source must be a tensor or array of poses ([N,4,4] or [N,3,4]), got "
+                        f"{type(poses).__name__}: {e}") from None
+    m = m[None] if m.ndim == 2 else m
+    if m.ndim != 3 or m.shape[-2:] not in ((4, 4), (3, 4)):
+        raise UserError(f"cam_from_source must be [N,4,4] or [N,3,4] rigid transforms (a rotation and a translation), "
+                        f"got shape {tuple(m.shape)}", hint=_RIGID_HINT)
+    if m.shape[-2] == 3:  # pycolmap's Rigid3d.matrix(): the row [0, 0, 0, 1] is implied
+        m = torch.cat([m, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype).expand(len(m), 1, 4)], dim=1)
+    for i in range(len(m)):
+        what = None
+        if not bool(torch.isfinite(m[i]).all()):
+            what = "has entries that are not finite (NaN or infinite)"
+        elif not torch.allclose(m[i, 3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype), rtol=0, atol=1e-6):
+            # the renderer reads the top three rows only, the side terms invert the whole 4x4: the mean would be the
+            # pose's and the std another's
+            what = f"has the last row {[round(float(v), 6) for v in m[i, 3]]}, not [0, 0, 0, 1]"
+        else:
+            R = m[i, :3, :3]
+            if not (torch.allclose(R @ R.T, torch.eye(3, dtype=m.dtype), rtol=0, atol=1e-5)
+                    and float(torch.linalg.det(R)) > 0):  # (a reflection is orthogonal too)
+                what = "has a rotation part that is not one (not orthonormal, or a reflection)"
+        if what is not None:
+            raise UserError(f"cam_from_source must be rigid transforms (a rotation and a translation): pose {i} {what}",
+                            hint=_RIGID_HINT)
+    m = m.clone()
+    m[:, 3] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype)
+    if transform == "world_from_cam":  # the rigid inverse: [R^T, -R^T t]
+        Rt = m[:, :3, :3].transpose(1, 2).clone()
+        m[:, :3, 3:] = -Rt @ m[:, :3, 3:]
+        m[:, :3, :3] = Rt
+    if axes != "opencv":  # OpenGL's camera (y up, z backward) is OpenCV's turned half a turn about x
+        m = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=m.dtype)) @ m
+    return m
+
+
+def _intrinsics(K, n: int) -> Tensor:
+    """[1 or n,3,3] float64 pinhole intrinsics of ``cameras_from_source``: refused when the renderer could not take
+    them as given (it reads fx, fy, cx, cy alone: a skew or another last row would be dropped without a word)."""
+    try:
+        Ks = torch.as_tensor(K, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise TypeError(f"K must be a tensor or array ([3,3] or [N,3,3]), got {type(K).__name__}: {e}") from None
+    Ks = Ks[None] if Ks.ndim == 2 else Ks
+    if Ks.ndim != 3 or Ks.shape[-2:] != (3, 3) or len(Ks) not in (1, n):
+        raise UserError(f"K must be [3,3] or [N,3,3] with N = {n} poses, got shape {tuple(Ks.shape)}")
+    for i in range(len(Ks)):
+        k = Ks[i]
+        fx, fy, cx, cy = (float(v) for v in (k[0, 0], k[1, 1], k[0, 2], k[1, 2]))
+        what = None
+        if not all(math.isfinite(v) and v > 0 for v in (fx, fy)):
+            what = f"has the focal lengths {fx:g} / {fy:g} px: they must be positive and finite"
+        elif not (math.isfinite(cx) and math.isfinite(cy)):
+            what = f"has the principal point {cx:g}, {cy:g}: it must be finite"
+        elif not torch.allclose(k[2], torch.tensor([0.0, 0.0, 1.0], dtype=k.dtype), rtol=0, atol=1e-6):
+            what = f"has the last row {[round(float(v), 6) for v in k[2]]}, not [0, 0, 1]"
+        elif abs(float(k[0, 1])) > 1e-6 * fx or not math.isfinite(float(k[0, 1])) or float(k[1, 0]) != 0.0:
+            what = (f"has the skew K[0,1] = {float(k[0, 1]):g} (or K[1,0] = {float(k[1, 0]):g}): the renderer takes "
+                    "pinhole cameras without skew")
+        if what is not None:
+            where = "K" if len(Ks) == 1 and n != 1 else f"K of pose {i}"
+            raise UserError(f"{where} {what}", hint="Pass [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels.")
+    return Ks
 
 
 class Predictor:
@@ -157,66 +259,80 @@ class Predictor:
         return cls(run_dir, loaded, scene, sampler, fit, cfg, device)
 
     def cameras_from_source(self, cam_from_source: Tensor, K: Tensor, width: int, height: int,
-                            names: tuple[str, ...] = ()) -> Cameras:
+                            names: tuple[str, ...] = (), *, transform: str = "cam_from_world",
+                            axes: str = "opencv") -> Cameras:
         """Cameras given in the scene's own frame (the COLMAP model's, your map's), in the run's normalised world.
 
         Args:
-            cam_from_source: [N,4,4] or [4,4] rigid world-to-camera transforms (OpenCV axes: x right, y down, z
-                forward), translations in the scene's units (pycolmap's ``Image.cam_from_world().matrix()``).
+            cam_from_source: N poses, [N,4,4] or [N,3,4] (or one, [4,4] or [3,4]; a [3,4] gets the row [0, 0, 0, 1]):
+                rigid transforms (a rotation and a translation), translations in the scene's units. By default
+                world-to-camera with OpenCV axes (x right, y down, z forward), as pycolmap's
+                ``Image.cam_from_world().matrix()`` gives them; ``transform`` and ``axes`` take the others.
             K: [N,3,3] or [3,3] pinhole intrinsics in pixels of a ``width`` x ``height`` image (any size: the render
-                takes it; the run's own is ``scene.cameras.width`` x ``height``).
+                takes it; the run's own is ``scene.cameras.width`` x ``height``): positive finite focal lengths, a
+                finite principal point, no skew, last row [0, 0, 1].
+            width, height: the image size in pixels (whole numbers).
             names: N names (default ``pose_0``, ``pose_1``, ...).
+            transform: ``"cam_from_world"`` (world-to-camera, COLMAP's) or ``"world_from_cam"`` (camera-to-world: the
+                camera's pose in the world, as Blender, NeRF's ``transforms.json`` and most robot frames give it).
+            axes: the camera's axes, ``"opencv"`` (x right, y down, z forward: COLMAP, OpenCV, ROS optical frames) or
+                ``"opengl"`` (x right, y up, z backward: OpenGL, Blender, NeRF's ``transforms.json``; ``"blender"``
+                is the same).
+
+        Raises:
+            UserError: a pose or K of the wrong shape, not rigid or not finite, unusable intrinsics (the message names
+                the pose's index), names that do not match the poses, an image size that is not a positive whole
+                number.
         """
         from uncertsplat.sfm.scene import normalized_cam_from_world
 
-        cfs = torch.as_tensor(cam_from_source, dtype=torch.float64)
-        cfs = cfs[None] if cfs.ndim == 2 else cfs
-        rigid = cfs.ndim == 3 and cfs.shape[-2:] == (4, 4)
-        if rigid:
-            R = cfs[:, :3, :3]
-            rigid = (torch.allclose(R @ R.transpose(1, 2), torch.eye(3, dtype=torch.float64).expand_as(R), atol=1e-5)
-                     and bool((torch.linalg.det(R) > 0).all()))  # (a reflection is orthogonal too)
-        if not rigid:
-            raise UserError(f"cam_from_source must be [N,4,4] rigid transforms (a rotation and a translation), got "
-                            f"shape {tuple(cfs.shape)}" + (" with a rotation part that is not one" if cfs.ndim == 3
-                                                            and cfs.shape[-2:] == (4, 4) else ""),
-                            hint="Pass world-to-camera matrices in the scene's units, as pycolmap's "
-                                 "Image.cam_from_world().matrix() gives them (with the row [0, 0, 0, 1]).")
-        Ks = torch.as_tensor(K, dtype=torch.float64)
-        Ks = Ks[None] if Ks.ndim == 2 else Ks
-        if Ks.ndim != 3 or Ks.shape[-2:] != (3, 3) or len(Ks) not in (1, len(cfs)):
-            raise UserError(f"K must be [3,3] or [N,3,3] with N = {len(cfs)} poses, got shape {tuple(Ks.shape)}")
-        if int(width) < 1 or int(height) < 1:
-            raise UserError(f"the image size must be positive, got {width}x{height}")
+        cfs = _cam_from_world(cam_from_source, transform, axes)
+        Ks = _intrinsics(K, len(cfs))
+        width, height = _whole(width, "width", 1), _whole(height, "height", 1)
         names = tuple(names) or tuple(f"pose_{i}" for i in range(len(cfs)))
         if len(names) != len(cfs):
             raise UserError(f"{len(names)} name(s) for {len(cfs)} pose(s): give one name per pose (or none)")
         cfw = normalized_cam_from_world(cfs, self._world_from_source)
-        return Cameras(cfw.float(), Ks.expand(len(cfs), 3, 3).float().clone(), int(width), int(height), names)
+        return Cameras(cfw.float(), Ks.expand(len(cfs), 3, 3).float().clone(), width, height, names)
 
-    def predict(self, cameras: Cameras, num_samples: int | None = None, seed: int = 0) -> Prediction:
+    def predict(self, cameras: Cameras, num_samples: int | None = None, seed: int | None = None) -> Prediction:
         """``evaluate``'s mean and std maps of ``cameras`` (normalised world: ``cameras_from_source`` or
         ``scene.cameras``), one view at a time. Each view's generator is seeded as ``evaluate`` seeds it
         (``eval.engine.view_seed``): a camera named as one of the scene's views by its index there, so that ``seed``
-        = evaluate's ``--seed`` gives its EXR maps; any other camera by its pose and intrinsics, so that a pose gets
-        the same maps wherever it stands in a batch.
+        = evaluate's ``--seed`` gives its EXR maps; any other camera by its pose and intrinsics
+        (``eval.engine.pose_index``), so that a pose gets the same maps wherever it stands in a batch.
 
-        ``num_samples``: posterior samples (None: the config's K). The std factor and tails were fitted at the
-        config's K: for another K load with ``cfg=EvalConfig(num_samples=k)``, which fits them at k."""
+        Args:
+            cameras: a ``Cameras`` batch; an empty one gives an empty ``Prediction`` (maps [0,H,W,C]).
+            num_samples: posterior samples (None: the config's K). The std factor and tails were fitted at the
+                config's K: for another K load with ``cfg=EvalConfig(num_samples=k)``, which fits them at k.
+            seed: the evaluation seed (None: the config's, ``config.seed``: the run's evaluation's unless ``load``
+                was given a ``cfg``, so that the scene's views get ``evaluate``'s EXR maps); 0 to 2**40.
+
+        Calls may come from several threads at once (a thread pool over candidate views), each getting the maps a
+        serial call gets; on a CPU each call runs torch's own ops on one thread, so a pool of about as many threads
+        as cores is what makes use of them.
+
+        Raises:
+            TypeError: ``cameras`` is not a ``Cameras`` (poses as matrices go through ``cameras_from_source``).
+            UserError: ``num_samples`` or ``seed`` not a whole number in range.
+        """
         from uncertsplat import native
 
+        if not isinstance(cameras, Cameras):
+            raise TypeError(f"predict takes a Cameras batch, got {type(cameras).__name__}: give poses as matrices to "
+                            "cameras_from_source(cam_from_source, K, width, height) first, or pass scene.cameras[...]")
+        k = _whole(num_samples if num_samples is not None else self._cfg.num_samples, "num_samples", 1)
+        seed = _whole(seed if seed is not None else self._cfg.seed, "seed", 0)
+        if seed > MAX_SEED:  # torch seeds are 64-bit: view_seed multiplies the seed by about 1e6
+            raise UserError(f"seed must be at most {MAX_SEED} (2**40), got {seed}")
         with native.single_threaded_torch(self.device):  # as evaluate runs (its sums, so its maps, to the last bit)
-            return self._predict(cameras, num_samples, seed)
+            return self._predict(cameras, k, seed)
 
-    def _predict(self, cameras: Cameras, num_samples: int | None, seed: int) -> Prediction:
-        import hashlib
-
-        from uncertsplat.eval.engine import predictive_terms, view_seed
+    def _predict(self, cameras: Cameras, k: int, seed: int) -> Prediction:
+        from uncertsplat.eval.engine import pose_index, predictive_terms, view_seed
         from uncertsplat.uncertainty.mc import mc_render
 
-        k = int(num_samples if num_samples is not None else self._cfg.num_samples)
-        if k < 1:
-            raise UserError(f"num_samples must be 1 or more, got {k}")
         out = []
         gen = torch.Generator(device=self.device)
         with torch.no_grad():
@@ -224,23 +340,24 @@ class Predictor:
             for j in range(len(cameras)):
                 cam = cameras[[j]].to(self.device)
                 name = cameras.image_names[j] if cameras.image_names else None
-                if name in index:
-                    at = index[name]
-                else:  # a pose of one's own: an index from its bytes, past the scene's (which count from 0)
-                    key = torch.cat([cameras.cam_from_world[j].flatten(), cameras.K[j].flatten()]).cpu().numpy()
-                    at = len(index) + int.from_bytes(hashlib.sha256(key.tobytes()).digest()[:5], "little")
+                # a pose of one's own: an index from its bytes, past the scene's (which count from 0)
+                at = index[name] if name in index else len(index) + pose_index(cameras.cam_from_world[j],
+                                                                               cameras.K[j])
                 gen.manual_seed(view_seed(seed, at))
                 maps, _ = mc_render(self._sampler.sample_fn, self._sampler.render_fn, cam, k, gen,
                                     **predictive_terms(self._sampler, self._cfg, cam))
                 out.append(maps)
         to_source = 1.0 / self.scale
 
-        def cat(name: str) -> Tensor:
+        def cat(name: str, channels: int) -> Tensor:
+            if not out:  # no camera: empty maps of the cameras' size
+                return torch.zeros(0, cameras.height, cameras.width, channels)
             return torch.cat([getattr(m, name) for m in out]).cpu()
 
-        return Prediction(rgb_mean=cat("rgb_mean"), rgb_std=cat("rgb_std"), depth_mean=cat("depth_mean") * to_source,
-                          depth_std=cat("depth_std") * to_source, alpha=cat("alpha_mean"), std_factor=self.std_factor,
-                          dof=self.dof, depth_to_source=to_source, image_names=tuple(cameras.image_names))
+        return Prediction(rgb_mean=cat("rgb_mean", 3), rgb_std=cat("rgb_std", 3),
+                          depth_mean=cat("depth_mean", 1) * to_source, depth_std=cat("depth_std", 1) * to_source,
+                          alpha=cat("alpha_mean", 1), std_factor=self.std_factor, dof=self.dof,
+                          depth_to_source=to_source, image_names=tuple(cameras.image_names))
 
 
 __all__ = ["Prediction", "Predictor"]

@@ -855,8 +855,25 @@ class TestPredictor:
             pred.cameras_from_source(two, pred.scene.cameras.K[:3], 128, 96)
         with pytest.raises(UserError, match="1 name\\(s\\) for 2 pose"):
             pred.cameras_from_source(two, pred.scene.cameras.K[0], 128, 96, names=("a",))
-        with pytest.raises(UserError, match="image size must be positive"):
+        with pytest.raises(UserError, match="width must be 1 or more, got 0"):
             pred.cameras_from_source(two, pred.scene.cameras.K[0], 0, 96)
+
+    def test_the_default_seed_is_the_evaluations_and_no_camera_gives_empty_maps(self, evaluated):
+        """``predict()`` after ``evaluate --seed 3`` gives evaluate's maps (it seeded with 0 before); an empty batch
+        gives maps of no camera, not an error from inside."""
+        from uncertsplat.predict import Predictor
+
+        run, report = evaluated
+        pred = Predictor.load(run, "cpu")  # the evaluation's settings: seed 3
+        assert pred.config.seed == 3
+        i = pred.scene.cameras.image_names.index(report.image_names[0])
+        view = pred.scene.cameras[[i]]
+        default = pred.predict(view, num_samples=2)
+        torch.testing.assert_close(default.rgb_std, pred.predict(view, num_samples=2, seed=3).rgb_std, rtol=0, atol=0)
+        assert not torch.equal(default.rgb_std, pred.predict(view, num_samples=2, seed=0).rgb_std)
+        none = pred.predict(pred.scene.cameras[[]])
+        assert none.rgb_std.shape == (0, 96, 128, 3) and none.depth_mean.shape == (0, 96, 128, 1)
+        assert none.image_names == ()
 
     def test_a_load_with_other_settings_leaves_the_runs_noise_file_alone(self, evaluated, tmp_path, capsys):
         """RUN/eval/residual.pt is the evaluation's (evaluate and prune read it): a Predictor with other settings

@@ -452,6 +452,16 @@ def view_seed(seed: int, index: int) -> int:
     return seed * 1_000_003 + index
 
 
+def pose_index(cam_from_world: Tensor, K: Tensor) -> int:
+    """A view index (0 to 2**40) from a camera's pose [4,4] and intrinsics [3,3], for ``view_seed``: a view that is
+    not one of the scene's (``uncertsplat.predict``'s poses of one's own, ``select-views``' candidates) gets the same
+    generator seed wherever it stands in a batch, from its bytes as given (dtype included)."""
+    import hashlib
+
+    key = torch.cat([cam_from_world.flatten(), K.flatten()]).cpu().numpy()
+    return int.from_bytes(hashlib.sha256(key.tobytes()).digest()[:5], "little")
+
+
 def split_indices(split: Mapping[str, Sequence[int]], cfg: EvalSettings) -> list[int]:
     """The views to evaluate: those of ``split[cfg.split]`` (a scene's split), the first ``cfg.max_views`` of them.
 

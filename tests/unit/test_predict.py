@@ -1,0 +1,152 @@
+"""``Predictor.cameras_from_source`` and ``predict``'s argument checks, without a run: a Predictor of a scene whose
+normalisation is a known similarity (the end-to-end tests with a trained run are in tests/e2e/test_evaluate.py)."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from uncertsplat.config import EvalConfig
+from uncertsplat.errors import UserError
+from uncertsplat.predict import Predictor
+from uncertsplat.types import Cameras
+
+K = torch.tensor([[100.0, 0.0, 64.0], [0.0, 90.0, 48.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+
+def bare_predictor(scale: float = 0.5, shift=(1.0, -2.0, 3.0)) -> Predictor:
+    """A Predictor with nothing loaded but the scene's normalisation x_world = scale x_source + shift (all that
+    cameras_from_source reads) and a config (predict's defaults)."""
+    pred = Predictor.__new__(Predictor)
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] *= scale
+    T[:3, 3] = torch.tensor(shift, dtype=torch.float64)
+    pred._world_from_source = T
+    pred._cfg = pred.config = EvalConfig(num_samples=3, seed=4)
+    pred.device = torch.device("cpu")
+    return pred
+
+
+def rotation(angle: float, axis: int) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    i, j = [a for a in range(3) if a != axis]
+    R = torch.eye(3, dtype=torch.float64)
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    return R
+
+
+def a_pose() -> torch.Tensor:
+    """[4,4] an OpenCV cam_from_world with a rotation about every axis and a translation."""
+    M = torch.eye(4, dtype=torch.float64)
+    M[:3, :3] = rotation(0.3, 0) @ rotation(-1.1, 1) @ rotation(2.0, 2)
+    M[:3, 3] = torch.tensor([0.4, -1.5, 7.0], dtype=torch.float64)
+    return M
+
+
+def test_the_four_pose_conventions_of_one_pose_give_the_same_camera():
+    pred = bare_predictor()
+    cv = a_pose()  # cam_from_world, OpenCV axes
+    flip = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))  # OpenCV <-> OpenGL camera axes
+    gl = flip @ cv  # cam_from_world, OpenGL axes
+    expected = pred.cameras_from_source(cv, K, 128, 96)
+    for pose, transform, axes in ((torch.linalg.inv(cv), "world_from_cam", "opencv"), (gl, "cam_from_world", "opengl"),
+                                  (torch.linalg.inv(gl), "world_from_cam", "opengl"),
+                                  (torch.linalg.inv(gl), "world_from_cam", "blender")):
+        got = pred.cameras_from_source(pose, K, 128, 96, transform=transform, axes=axes)
+        torch.testing.assert_close(got.cam_from_world, expected.cam_from_world, atol=1e-6, rtol=0)
+    # a Blender camera looking down its -z: its OpenCV z is the world direction it looks along
+    blender = torch.eye(4, dtype=torch.float64)  # world_from_cam, at the origin, looking along the world's -z
+    cam = bare_predictor(1.0, (0.0, 0.0, 0.0)).cameras_from_source(blender, K, 128, 96, transform="world_from_cam",
+                                                                   axes="blender")
+    world_from_cam = torch.linalg.inv(cam.cam_from_world[0].double())
+    torch.testing.assert_close(world_from_cam[:3, 2], torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))
+    with pytest.raises(UserError, match="unknown transform 'cam_to_world'"):
+        pred.cameras_from_source(cv, K, 128, 96, transform="cam_to_world")
+    with pytest.raises(UserError, match="unknown axes 'ros'"):
+        pred.cameras_from_source(cv, K, 128, 96, axes="ros")
+
+
+def test_three_by_four_poses_get_the_last_row():
+    """[N,3,4] is what pycolmap's Rigid3d.matrix() gives; one pose may come as [3,4] or [4,4], numpy or torch."""
+    pred = bare_predictor()
+    M = a_pose()
+    full = pred.cameras_from_source(torch.stack([M, M.inverse()]), K, 128, 96)
+    short = pred.cameras_from_source(np.stack([M[:3].numpy(), M.inverse()[:3].numpy()]), K.numpy(), 128, 96)
+    torch.testing.assert_close(short.cam_from_world, full.cam_from_world, atol=0, rtol=0)
+    one = pred.cameras_from_source(M[:3], K, 128.0, 96)  # a whole float is a whole number
+    torch.testing.assert_close(one.cam_from_world, full.cam_from_world[:1], atol=0, rtol=0)
+    assert (one.width, one.height) == (128, 96) and isinstance(one.width, int)
+
+
+@pytest.mark.parametrize("change, match", [
+    (lambda M: M.__setitem__((3, 2), 0.5), r"pose 1 has the last row \[0.0, 0.0, 0.5, 1.0\], not \[0, 0, 0, 1\]"),
+    (lambda M: M.__setitem__((0, 3), float("nan")), "pose 1 has entries that are not finite"),
+    (lambda M: M.__setitem__((2, 3), float("inf")), "pose 1 has entries that are not finite"),
+    (lambda M: M.__setitem__((0, 0), 2.0), "pose 1 has a rotation part that is not one"),
+])
+def test_refuses_a_pose_that_is_not_rigid_naming_it(change, match):
+    pred = bare_predictor()
+    bad = a_pose()
+    change(bad)
+    with pytest.raises(UserError, match=match) as err:
+        pred.cameras_from_source(torch.stack([a_pose(), bad]), K, 128, 96)
+    assert "rigid transforms" in str(err.value)
+
+
+@pytest.mark.parametrize("row, col, value, match", [
+    (2, 0, 0.1, r"K of pose 1 has the last row \[0.1, 0.0, 1.0\], not \[0, 0, 1\]"),
+    (2, 2, 2.0, r"K of pose 1 has the last row"),
+    (0, 1, 3.0, r"K of pose 1 has the skew K\[0,1\] = 3"),
+    (0, 0, 0.0, "K of pose 1 has the focal lengths 0 / 90 px: they must be positive and finite"),
+    (1, 1, -90.0, "K of pose 1 has the focal lengths 100 / -90 px"),
+    (0, 0, float("nan"), "K of pose 1 has the focal lengths nan / 90 px"),
+    (1, 1, float("inf"), "K of pose 1 has the focal lengths 100 / inf px"),
+    (0, 2, float("nan"), "K of pose 1 has the principal point nan, 48: it must be finite"),
+])
+def test_refuses_intrinsics_the_renderer_would_not_take_as_given(row, col, value, match):
+    pred = bare_predictor()
+    bad = K.clone()
+    bad[row, col] = value
+    poses = torch.stack([a_pose(), a_pose()])
+    with pytest.raises(UserError, match=match):
+        pred.cameras_from_source(poses, torch.stack([K, bad]), 128, 96)
+    with pytest.raises(UserError, match=match.replace("K of pose 1", "K")):  # one K for both poses
+        pred.cameras_from_source(poses, bad, 128, 96)
+
+
+def test_refuses_sizes_and_counts_that_are_not_whole_numbers():
+    pred = bare_predictor()
+    with pytest.raises(UserError, match="width must be a whole number, got 320.7"):
+        pred.cameras_from_source(a_pose(), K, 320.7, 240)
+    with pytest.raises(UserError, match="height must be 1 or more, got 0"):
+        pred.cameras_from_source(a_pose(), K, 320, 0)
+    cams = pred.cameras_from_source(a_pose(), K, 128, 96)
+    with pytest.raises(UserError, match="num_samples must be a whole number, got 2.7"):
+        pred.predict(cams, num_samples=2.7)
+    with pytest.raises(UserError, match="num_samples must be 1 or more, got 0"):
+        pred.predict(cams, num_samples=0)
+    with pytest.raises(UserError, match=r"seed must be at most 1099511627776 \(2\*\*40\), got 1180591620717411303424"):
+        pred.predict(cams, seed=2**70)
+    with pytest.raises(UserError, match="seed must be 0 or more, got -1"):
+        pred.predict(cams, seed=-1)
+    with pytest.raises(UserError, match="seed must be a whole number, got 1.5"):
+        pred.predict(cams, seed=1.5)
+
+
+def test_predict_says_what_to_pass_for_a_matrix():
+    pred = bare_predictor()
+    for wrong in (a_pose().numpy(), a_pose(), [a_pose()]):
+        with pytest.raises(TypeError, match="predict takes a Cameras batch, got .*cameras_from_source"):
+            pred.predict(wrong)
+
+
+def test_predict_takes_the_configs_seed_and_samples_by_default(monkeypatch):
+    """``predict()`` after ``evaluate --seed 3`` is evaluate's maps: the seed defaults to the config's, not 0."""
+    pred = bare_predictor()
+    seen = []
+    monkeypatch.setattr(Predictor, "_predict", lambda self, cams, k, seed: seen.append((k, seed)))
+    cams = Cameras(torch.eye(4)[None], K.float()[None], 128, 96)
+    pred.predict(cams)
+    pred.predict(cams, num_samples=np.int64(2), seed=0)
+    assert seen == [(3, 4), (2, 0)]
