@@ -10,15 +10,22 @@ frame) or in the run's normalised world::
     from uncertsplat.predict import Predictor
 
     pred = Predictor.load("RUN")  # fits what evaluate fits (or reads RUN/eval/residual.pt); ~1-30 s by the scene
-    cams = pred.cameras_from_source(cam_from_source, K, width, height)  # [N,4,4] OpenCV world-to-camera, [N,3,3]
-    out = pred.predict(cams, num_samples=10, seed=0)
+    cams = pred.cameras_from_source(cam_from_source, K, width, height)  # [N,4,4] or [N,3,4] OpenCV world-to-camera,
+    # [N,3,3]; camera-to-world poses: transform="world_from_cam", OpenGL/Blender axes: axes="opengl"
+    out = pred.predict(cams, num_samples=10)  # seed: the run's evaluation's (evaluate --seed), config.seed
     out.depth_mean, out.depth_std  # [N,H,W,1], in the scene's own units
     out.rgb_mean, out.rgb_std      # [N,H,W,3]; out.std_factor: the factor evaluate fitted (its "calibrated" rows)
+    lower, upper = out.interval(0.95)  # each pixel's central 95 % interval of its colour
 
 The std maps are the raw ones, as in ``evaluate``'s EXR maps (the scene's views get them to the last bit for
-evaluate's ``--seed``);
-multiply the RGB std by ``std_factor`` for the calibrated one, and read it as a Student-t with ``dof`` degrees of
-freedom (``examples/intervals.py``).
+evaluate's ``--seed``, ``predict``'s default); multiply the RGB std by ``std_factor`` for the calibrated one. The
+RGB predictive is a Student-t with ``dof`` degrees of freedom *whose standard deviation is* ``rgb_std``: the
+unit-variance t scaled by the std, i.e. scipy's ``t(df=dof, loc=mean, scale=std * sqrt((dof - 2) / dof))``, not
+``scale=std`` (``eval.tails``; ``Prediction.interval``, ``examples/intervals.py``). ``rgb_mean`` is the samples'
+mean as rendered, not clamped; ``evaluate`` scores, and writes to its EXR maps, the mean clamped to [0, 1].
+
+``predict`` may be called from several threads at once (a thread pool over candidate views: 2-3x on 2 cores with a variational run), each
+call getting the maps a serial call gets.
 """
 
 from __future__ import annotations
@@ -41,11 +48,14 @@ class Prediction:
     """The predictive of N cameras (``Predictor.predict``).
 
     Attributes:
-        rgb_mean: [N,H,W,3] the mean of the posterior samples' renders (not clamped).
-        rgb_std: [N,H,W,3] the raw RGB std (``evaluate``'s EXR ``rgb_std``).
+        rgb_mean: [N,H,W,3] the mean of the posterior samples' renders, not clamped (``evaluate`` scores it, and
+            writes it to its EXR maps, clamped to [0, 1]: ``rgb_mean.clamp(0, 1)`` is that).
+        rgb_std: [N,H,W,3] the raw RGB std (``evaluate``'s EXR ``rgb_std``): the standard deviation of the predictive,
+            a Student-t with ``dof`` degrees of freedom; scipy's ``t`` takes it as ``scale = rgb_std * sqrt((dof - 2)
+            / dof)`` (``interval`` does this).
         depth_mean: [N,H,W,1] expected depth along the optical axis, in the scene's own units; 0 where the ray meets
             no Gaussian (no surface known there, not one at distance 0: mask by ``alpha``).
-        depth_std: [N,H,W,1] its std, in the scene's own units.
+        depth_std: [N,H,W,1] its std, in the scene's own units (read as a Gaussian's, as ``evaluate``'s depth NLL).
         alpha: [N,H,W,1] the samples' mean accumulated opacity (low: the ray meets little of the model).
         std_factor: the factor ``evaluate`` fits for the RGB std (None: none fitted, e.g. no training view).
         dof: degrees of freedom of the Student-t the RGB std is read with (None: a Gaussian).
@@ -62,6 +72,28 @@ class Prediction:
     dof: float | None
     depth_to_source: float
     image_names: tuple[str, ...]
+
+    def interval(self, p: float = 0.95, *, calibrated: bool = False) -> tuple[Tensor, Tensor]:
+        """([N,H,W,3] lower, upper): each pixel's central interval of probability ``p`` for its colour, around the
+        mean ``evaluate`` scores (``rgb_mean`` clamped to [0, 1]): mean +- w std with w the half-width of the
+        unit-variance Student-t with ``dof`` degrees of freedom (``eval.tails.half_width``; the Gaussian's when
+        ``dof`` is None), the std ``rgb_std``, or ``rgb_std * std_factor`` with ``calibrated``.
+
+        Raises:
+            ValueError: ``p`` not in [0, 1).
+            UserError: ``calibrated`` without a fitted std factor.
+        """
+        from uncertsplat.eval.tails import half_width
+
+        std = self.rgb_std
+        if calibrated:
+            if self.std_factor is None:
+                raise UserError("this prediction has no fitted std factor (the run has no view to fit it on)",
+                                hint="Use the raw std (calibrated=False).")
+            std = std * self.std_factor
+        w = half_width(float(p), self.dof)
+        mean = self.rgb_mean.clamp(0, 1)
+        return mean - w * std, mean + w * std
 
 
 def _evaluation_config(run_dir: Path):

@@ -150,3 +150,32 @@ def test_predict_takes_the_configs_seed_and_samples_by_default(monkeypatch):
     pred.predict(cams)
     pred.predict(cams, num_samples=np.int64(2), seed=0)
     assert seen == [(3, 4), (2, 0)]
+
+
+def test_the_interval_reads_the_std_as_the_student_ts_standard_deviation():
+    """``rgb_std`` is the t's standard deviation: scipy's ``scale`` is std * sqrt((dof - 2) / dof); the interval is
+    around the clamped mean that evaluate scores, and ``calibrated`` multiplies the std by the fitted factor."""
+    stats = pytest.importorskip("scipy.stats")
+    from uncertsplat.predict import Prediction
+
+    mean = torch.tensor([0.2, 0.5, 1.3]).reshape(1, 1, 1, 3)
+    std = torch.tensor([0.01, 0.05, 0.1]).reshape(1, 1, 1, 3)
+    zero = torch.zeros(1, 1, 1, 1)
+    pred = Prediction(mean, std, zero, zero, zero + 1, std_factor=0.8, dof=3.5, depth_to_source=1.0,
+                      image_names=("a",))
+    lower, upper = pred.interval(0.9)
+    scale = std.double() * math.sqrt((3.5 - 2) / 3.5)
+    lo, hi = stats.t.interval(0.9, 3.5, loc=mean.double().clamp(0, 1).numpy(), scale=scale.numpy())
+    np.testing.assert_allclose(lower.numpy(), lo, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(upper.numpy(), hi, rtol=0, atol=1e-6)
+    lower_c, upper_c = pred.interval(0.9, calibrated=True)
+    torch.testing.assert_close(upper_c - lower_c, 0.8 * (upper - lower))
+    gauss = Prediction(mean, std, zero, zero, zero + 1, std_factor=None, dof=None, depth_to_source=1.0,
+                       image_names=("a",))
+    lower_g, _ = gauss.interval(0.9)
+    np.testing.assert_allclose(lower_g.numpy(), stats.norm.interval(0.9, loc=mean.clamp(0, 1).numpy(),
+                                                                    scale=std.numpy())[0], rtol=0, atol=1e-6)
+    with pytest.raises(UserError, match="no fitted std factor"):
+        gauss.interval(0.9, calibrated=True)
+    with pytest.raises(ValueError, match="probability must be in"):
+        pred.interval(1.5)
