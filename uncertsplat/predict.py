@@ -24,8 +24,8 @@ unit-variance t scaled by the std, i.e. scipy's ``t(df=dof, loc=mean, scale=std 
 ``scale=std`` (``eval.tails``; ``Prediction.interval``, ``examples/intervals.py``). ``rgb_mean`` is the samples'
 mean as rendered, not clamped; ``evaluate`` scores, and writes to its EXR maps, the mean clamped to [0, 1].
 
-``predict`` may be called from several threads at once (a thread pool over candidate views: 2-3x on 2 cores with a variational run), each
-call getting the maps a serial call gets.
+``predict`` may be called from several threads at once (a thread pool over candidate views: 2-3x on 2 cores with a
+variational run), each call getting the maps a serial call gets.
 """
 
 from __future__ import annotations
