@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import zlib
 
 import pytest
 import torch
@@ -74,6 +75,11 @@ class _Views:
 
     def __init__(self, labels):
         self.labels = list(labels)
+        # a pose per label (fisher_choice seeds a candidate's probes by its pose)
+        self.cam_from_world = torch.eye(4).repeat(len(self.labels), 1, 1)
+        self.cam_from_world[:, 0, 3] = torch.tensor([zlib.crc32(str(v).encode()) % 1000 for v in self.labels],
+                                                     dtype=torch.float32)
+        self.K = torch.eye(3).repeat(len(self.labels), 1, 1)
 
     def __len__(self):
         return len(self.labels)
@@ -132,6 +138,23 @@ class TestFisherInformation:
         torch.testing.assert_close(first, torch.tensor([110 / 24, 9.6, 9.6, 9.6], dtype=torch.float64))
         # then view 1's Fisher joins the precision ([2, 5]): views 2-3 drop to 12 * 4 / (5 * 9), view 0 is next
         assert chosen == [1, 0] and at == pytest.approx([9.6, 110 / 24])
+
+    def test_a_candidates_information_does_not_depend_on_its_place_in_the_list(self, monkeypatch):
+        """Each candidate's probes are seeded by its pose: the candidates in reverse get the same information (the
+        fake curvature returns its generator's draw); seeded by position, they did not."""
+        def fake(params, cameras, images, render_fn, *, noise_std=None, generator=None, **_):
+            return curvature_mod.Curvature({"means": torch.rand(2, generator=generator, dtype=torch.float64)}, 0.1,
+                                           None)
+
+        monkeypatch.setattr(curvature_mod, "curvature", fake)
+
+        def first(labels):
+            return fisher_choice({}, _Views(["train"]), torch.zeros(1, 1, 1, 3), _Views(labels), None,
+                                 names=["means"], prior_std={"means": 1.0}, sh_degree=0, probes=1, seed=3, n=1)[2]
+
+        forward, backward = first(["a", "b", "c", "d"]), first(["d", "c", "b", "a"])
+        torch.testing.assert_close(backward, forward.flip(0), rtol=0, atol=0)
+        assert len(set(forward.tolist())) == 4
 
     def test_cache_off_gives_the_same_choice(self, choose, monkeypatch):
         cached = choose("predictive", 3)

@@ -189,6 +189,7 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
         (chosen positions, their information when chosen, [C] every candidate's information before any choice,
         the training views' noise std used).
     """
+    from uncertsplat.eval.engine import pose_index, view_seed
     from uncertsplat.uncertainty.curvature import curvature
 
     if information not in INFORMATION:
@@ -207,7 +208,9 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
     def view_fisher(c: int) -> dict[str, Tensor]:
         if c in cache:
             return cache[c]
-        g = torch.Generator(device=train_images.device).manual_seed(seed * 1_000_003 + c)
+        # the probes seeded by the candidate's pose, not its place in the list (as variance_scores)
+        at = pose_index(cameras.cam_from_world[c], cameras.K[c])
+        g = torch.Generator(device=train_images.device).manual_seed(view_seed(seed, at))
         f = curvature(params, cameras[[c]], blank, render_fn, names=names, generator=g, sh_degree=sh_degree,
                       probes=probes, noise_std=noise).fisher
         if keep:
