@@ -156,6 +156,62 @@ class TestFisherInformation:
         torch.testing.assert_close(backward, forward.flip(0), rtol=0, atol=0)
         assert len(set(forward.tolist())) == 4
 
+    @pytest.mark.parametrize("information", ["trace", "log-det", "predictive"])
+    @pytest.mark.parametrize("gaps", [False, True])
+    def test_lazy_greedy_chooses_what_recomputing_every_candidate_chooses(self, monkeypatch, information, gaps):
+        """The choice recomputes only the candidate on top each round (a gain only falls as the precision grows):
+        the same views, gains and first scores as the plain greedy that recomputes every candidate every round
+        (written out here), on random diagonals with ties, and far fewer curvatures past the cache."""
+        num, n = 40, 8
+        g = torch.Generator().manual_seed(5)
+        # each candidate sees a window of 12 of 200 parameters, overlapping its neighbours' (a view sees part of
+        # a scene); rounded values: ties
+        diag = torch.zeros(num, 200, dtype=torch.float64)
+        for c in range(num):
+            diag[c, 4 * c: 4 * c + 12] = (torch.rand(12, generator=g, dtype=torch.float64) * 3).round()
+        train = torch.rand(200, generator=g, dtype=torch.float64)
+        calls = []
+
+        def fake(params, cameras, images, render_fn, *, noise_std=None, **_):
+            if noise_std is None:
+                return curvature_mod.Curvature({"means": train.clone()}, 0.1, None)
+            calls.append(cameras.labels[0])
+            return curvature_mod.Curvature({"means": diag[cameras.labels[0]].clone()}, 0.1, None)
+
+        monkeypatch.setattr(curvature_mod, "curvature", fake)
+        monkeypatch.setattr(scores_mod, "CACHE_ELEMENTS", 0)  # every Fisher computed again when needed
+        centres = torch.rand(num, 3, generator=g, dtype=torch.float64)
+        eligible = gap_eligible(centres, torch.zeros(1, 3, dtype=torch.float64), 0.5) if gaps else None
+        chosen, at, first, _ = fisher_choice({}, _Views(["train"]), torch.zeros(1, 1, 1, 3), _Views(range(num)), None,
+                                             names=["means"], prior_std={"means": 1.0}, sh_degree=0, probes=1,
+                                             seed=0, n=n, information=information, eligible=eligible)
+
+        precision = train + 1.0
+        reference_sum = train + diag.sum(0)
+
+        def plain_gain(f):
+            if information == "trace":
+                return float((f / precision).sum())
+            if information == "log-det":
+                return float((0.5 * torch.log1p(f / precision)).sum())
+            return float((reference_sum * f / (precision * (precision + f))).sum())
+
+        want, want_at, want_first = [], [], None
+        for _ in range(n):
+            ok = eligible(want).tolist() if eligible is not None else [True] * num
+            scores = torch.tensor([plain_gain(diag[c]) if ok[c] and c not in want else float("nan")
+                                   for c in range(num)], dtype=torch.float64)
+            want_first = scores if want_first is None else want_first
+            j = scores_mod.best_unchosen(scores, want)
+            want.append(j)
+            want_at.append(float(scores[j]))
+            precision = precision + diag[j]
+        assert chosen == want
+        assert at == pytest.approx(want_at, rel=1e-12)
+        torch.testing.assert_close(first, want_first, equal_nan=True)
+        computed = len(calls) - (num if information == "predictive" else 0)  # predictive sums every candidate first
+        assert computed <= num + 4 * n < n * num / 2, computed  # the plain greedy: about n * num
+
     def test_cache_off_gives_the_same_choice(self, choose, monkeypatch):
         cached = choose("predictive", 3)
         monkeypatch.setattr(scores_mod, "CACHE_ELEMENTS", 0)

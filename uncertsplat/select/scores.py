@@ -150,7 +150,8 @@ def unseen_scores(sample, uncertainty: Tensor, render_fn: Callable, cameras: Cam
 INFORMATION = ("trace", "log-det", "predictive")
 CACHE_ELEMENTS = 2**27
 """fisher_choice keeps every candidate's Fisher in memory up to this many values (512 MB in float32); beyond it,
-each is computed again when needed (same seed, same values)."""
+each is computed again when needed (same seed, same values): about once per candidate and a few times per choice,
+through the lazy greedy."""
 
 
 def gap_eligible(candidates: Tensor, used: Tensor, fraction: float) -> Callable[[list[int]], Tensor]:
@@ -232,22 +233,36 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
             return float(sum(0.5 * torch.log1p(f[k] / precision[k]).sum() for k in names))
         return float(sum((reference[k] * f[k] / (precision[k] * (precision[k] + f[k]))).sum() for k in names))
 
-    def all_scores(chosen: list[int]) -> Tensor:
-        ok = eligible(chosen).tolist() if eligible is not None else [True] * num
-        return torch.tensor([gain(view_fisher(c)) if ok[c] and c not in chosen else float("nan")
-                             for c in range(num)], dtype=torch.float64)
-
-    scores = all_scores([])
-    first = scores.clone()
+    # Lazy greedy: a candidate's gain only falls as the chosen views' Fisher joins the precision (each of the three
+    # informations decreases in it), so a gain computed before is an upper bound of today's. Each round recomputes
+    # only the candidate on top until it stays there, which picks what recomputing every candidate would (ties to
+    # the first) at about one curvature per candidate in all instead of one per candidate per round (past the cache,
+    # 1,000 candidates took 242 s for 20 views).
+    bound = torch.full((num,), float("inf"), dtype=torch.float64)  # inf: not computed yet
+    fresh = torch.zeros(num, dtype=torch.bool)  # computed with the current precision
+    first = None
     chosen, at = [], []
-    for r in range(min(n, num)):
-        j = best_unchosen(scores, chosen)
+    for _ in range(min(n, num)):
+        allowed = torch.tensor(eligible(chosen).tolist() if eligible is not None else [True] * num)
+        if chosen:
+            allowed[chosen] = False
+        if not bool(allowed.any()):
+            break
+        while True:
+            j = best_unchosen(torch.where(allowed, bound, float("nan")), [])
+            if fresh[j]:
+                break
+            bound[j], fresh[j] = gain(view_fisher(j)), True
+        if first is None:  # every candidate allowed now was computed before this first choice (they started at inf)
+            first = torch.where(allowed, bound, float("nan"))
         chosen.append(j)
-        at.append(float(scores[j]))
-        if r + 1 < n:  # the chosen view's information joins the training views', then every candidate again
+        at.append(float(bound[j]))
+        if len(chosen) < n:  # the chosen view's information joins the training views' before the next choice
             f = view_fisher(j)
             precision = {k: precision[k] + f[k] for k in names}
-            scores = all_scores(chosen)
+            fresh[:] = False
+    if first is None:
+        first = torch.full((num,), float("nan"), dtype=torch.float64)
     return chosen, at, first, noise
 
 
