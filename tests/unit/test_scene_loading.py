@@ -183,7 +183,7 @@ def test_views_set_aside_for_calibration(tiny_scene_path):  # noqa: F811
     _raises(tiny_scene_path, SceneConfig(train_indices=[4, 5], calibration_holdout=2), match="calibration_holdout")
     from uncertsplat.sfm.colmap_io import read_colmap_model
 
-    model = read_colmap_model(tiny_scene_path / "sparse" / "0")
+    model = read_colmap_model(tiny_scene_path / "sparse" / "0", tracks=True)
     some = load_scene(tiny_scene_path, SceneConfig(train_indices=list(range(7)), calibration_holdout=1,
                                                    points_from="train"))
     assert some.split["calibration"] == (3,)
@@ -194,7 +194,7 @@ def test_views_set_aside_for_calibration(tiny_scene_path):  # noqa: F811
 def test_points_from_training_views(tiny_scene_path):  # noqa: F811
     from uncertsplat.sfm.colmap_io import read_colmap_model
 
-    model = read_colmap_model(tiny_scene_path / "sparse" / "0")
+    model = read_colmap_model(tiny_scene_path / "sparse" / "0", tracks=True)
     train = {f"view_{i:03d}.png" for i in range(6)}
     expected = sum(len(train.intersection(t)) >= 2 for t in model.point_images)
     full = load_scene(tiny_scene_path, SceneConfig(train_indices=list(range(6))))
@@ -368,7 +368,7 @@ def _with_camera(model, name, camera, cam_from_world):
 
 
 def _load_with_model(monkeypatch, workspace, model, cfg=None):
-    monkeypatch.setattr("uncertsplat.sfm.scene.read_colmap_model", lambda _path: model)
+    monkeypatch.setattr("uncertsplat.sfm.scene.read_colmap_model", lambda _path, **_: model)
     return load_scene(workspace, cfg or SceneConfig())
 
 

@@ -64,12 +64,14 @@ class LoadedRun:
     """The near plane the run was trained with (``RUN/scene.json``); None: ``render.near_plane`` of the scale."""
     _coverage: float | None = field(default=None, init=False, repr=False)  # ``coverage``, once computed
     _photo_exposure: PhotoExposure | None = field(default=None, init=False, repr=False)  # ``photo_exposure``, once
+    _scene: SceneData | None = field(default=None, init=False, repr=False)  # ``load_scene``, once
 
     def with_model(self, model: GaussianModel) -> LoadedRun:
         """This run with another ``model`` (e.g. a pruned subset): what depends on the model is computed again
         (``coverage``), what depends on the scene alone is kept (``photo_exposure``, which reads the scene)."""
         out = dataclasses.replace(self, model=model)
         out._photo_exposure = self._photo_exposure
+        out._scene = self._scene
         return out
 
     @property
@@ -219,11 +221,18 @@ class LoadedRun:
                 "photo's exposure is not known)"]
 
     def load_scene(self) -> SceneData:
-        """The scene the run was trained on, with the run's scene config (same split and downscale).
+        """The scene the run was trained on, with the run's scene config (same split and downscale); read once per
+        loaded run (and its ``with_model`` copies): a COLMAP model of a million points takes seconds to read, and
+        ``evaluate`` and ``prune`` ask for it several times.
 
         Raises:
             UserError: the run records no scene, or the scene folder is gone.
         """
+        if self._scene is None:
+            self._scene = self._read_scene()
+        return self._scene
+
+    def _read_scene(self) -> SceneData:
         from uncertsplat.sfm.scene import load_scene, require_same_cameras, with_training_views
 
         if self.scene_path is None:

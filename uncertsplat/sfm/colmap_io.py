@@ -123,8 +123,12 @@ def check_binary_model(folder: Path) -> None:
         walk(folder / f"{name}.bin", record)
 
 
-def read_colmap_model(folder: str | Path) -> ColmapModel:
+def read_colmap_model(folder: str | Path, *, tracks: bool = False) -> ColmapModel:
     """Read a binary or text COLMAP model folder.
+
+    ``tracks``: list each point's observing images (``point_images``; None without): only ``points_from =
+    "train"`` needs them, and building them walks every observation in Python (about 10 s for a million points
+    seen by 5 images each, most of a load).
 
     Raises:
         UserError: when the folder holds no model or pycolmap cannot parse it.
@@ -164,10 +168,12 @@ def read_colmap_model(folder: str | Path) -> ColmapModel:
     pts = list(rec.points3D.values())
     xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
     rgb = np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3)
-    names = {int(iid): str(im.name) for iid, im in rec.images.items()}
-    tracks = tuple(tuple(sorted({names[int(e.image_id)] for e in p.track.elements if int(e.image_id) in names}))
-                   for p in pts)
-    return ColmapModel(cameras, images, xyz, rgb, tracks)
+    point_images = None
+    if tracks:
+        names = {int(iid): str(im.name) for iid, im in rec.images.items()}
+        point_images = tuple(tuple(sorted({names[int(e.image_id)] for e in p.track.elements
+                                           if int(e.image_id) in names})) for p in pts)
+    return ColmapModel(cameras, images, xyz, rgb, point_images)
 
 
 def write_colmap_model(

@@ -363,7 +363,7 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
                              "WORKSPACE/images" + (f"; {others[0]} holds downscaled copies: keep the full-size images "
                                                    "in images/ and use --set scene.downscale=N to train smaller"
                                                    if others else "") + ".")
-    model = read_colmap_model(sparse)
+    model = read_colmap_model(sparse, tracks=cfg.points_from == "train")
     cameras, paths, fits, notes = _colmap_cameras(model, image_dir, sparse, cfg)
     others = [d for d in _model_dirs(path) if d.resolve() != sparse.resolve() and has_model(d)]
     if others:  # COLMAP's mapper splits a capture it cannot join into several models: sparse/0 is not always all
