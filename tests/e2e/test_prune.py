@@ -269,3 +269,20 @@ def test_a_killed_prune_s_staging_folder_is_removed_by_the_next(tiny_run_path, t
     cfg = PruneConfig(keep_ratio=0.9, **FAST)
     prune.run(tiny_run_path, tmp_path / "out", cfg, device=CPU)
     assert not stale.exists() and live.is_dir() and elsewhere.is_dir() and (tmp_path / "out" / "prune.json").is_file()
+
+
+def test_a_loaded_run_reads_its_scene_once(tiny_run_path, monkeypatch):
+    """``LoadedRun.load_scene`` reads the scene folder once, its ``with_model`` copies (prune's pruned models) share
+    it: a million-point COLMAP model takes seconds to read, and prune --auto read it six times, evaluate twice."""
+    from uncertsplat.sfm import scene as scene_mod
+
+    reads = []
+    real = scene_mod.load_scene
+    monkeypatch.setattr(scene_mod, "load_scene", lambda *a, **k: reads.append(a[0]) or real(*a, **k))
+    loaded = load_run(tiny_run_path, CPU)
+    first = loaded.load_scene()
+    assert loaded.load_scene() is first
+    pruned = loaded.with_model(loaded.model)
+    assert pruned.load_scene() is first
+    assert len(reads) == 1
+    assert load_run(tiny_run_path, CPU).load_scene() is not first and len(reads) == 2  # another load reads again
