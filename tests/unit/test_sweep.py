@@ -666,3 +666,107 @@ def test_a_record_written_before_the_fit_was_timed_reads_with_it():
     assert SweepRecord.model_validate({**base, "time": 12.0}).time == 17.0  # written before: the fit added
     assert SweepRecord.model_validate({**base, "time": 17.0}).time == 17.0
     assert SweepRecord.model_validate({**base, "time": 12.0, "calibration_seconds": None}).time == 12.0
+
+
+def _job_checkpointing_on_ctrl_c(job: dict) -> list[dict]:
+    """A sweep job for the Ctrl-C test: ``quick`` returns at once; ``training`` steps as ``Trainer.fit`` does (its
+    handler: the first SIGINT or SIGTERM asks for a stop and puts the previous handlers back, so a second acts at
+    once) until stopped, then takes a second to write its checkpoint, the file ``checkpoint``. (It leaves out
+    ``train.trainer.STOP_REQUESTED``, set after the driver's Ctrl-C: torch's import would slow the test down.)"""
+    import os
+    import signal
+    import time
+
+    from uncertsplat.errors import Interrupted
+
+    folder = Path(job["dir"])
+    if job["job_id"] == "quick":
+        (folder / "quick.pid").write_text(str(os.getpid()))
+        return [{"job": "quick", "status": "ok"}]
+    stopped = []
+    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def handler(signum, frame):
+        stopped.append(signum)
+        for s, h in old.items():
+            signal.signal(s, h)
+
+    for s in old:
+        signal.signal(s, handler)
+    (folder / "training.pid").write_text(str(os.getpid()))  # (stepping now)
+    t0 = time.monotonic()
+    while not stopped and time.monotonic() - t0 < 60:
+        time.sleep(0.01)  # a step
+    time.sleep(1.0)  # the checkpoint of a big model
+    (folder / "checkpoint").write_text("written")
+    raise Interrupted("training interrupted; checkpoint saved")
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="finds the pool's workers in /proc (Linux)")
+@pytest.mark.parametrize("moment", ["starting", "idle"])
+def test_ctrl_c_lets_a_training_write_its_checkpoint_while_another_worker_is_between_jobs(tmp_path, moment):
+    """Ctrl-C goes to the terminal's whole process group. A pool worker between jobs (here the fresh one that
+    replaced the finished `quick` job's, still starting or idle) died of it, the pool took itself for broken and
+    killed the other workers (SIGTERM), one writing its training's checkpoint after the same Ctrl-C included: the
+    resume then went back to the last periodic checkpoint (about one Ctrl-C in four of a real sweep). A worker
+    between jobs ignores Ctrl-C now, and starts with it blocked, so the checkpoint is written and the sweep exits
+    130."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from tests.fixtures import default_sigint
+
+    driver = (
+        "import sys\n"
+        "from pathlib import Path\n"
+        "from tests.unit.test_sweep import _job_checkpointing_on_ctrl_c\n"
+        "from uncertsplat.sweep.executors import run_local\n"
+        f"d = {str(tmp_path)!r}\n"
+        "todo = [{'job_id': j, 'points': [], 'dir': d} for j in ('quick', 'training')]\n"
+        "def record(recs):\n"
+        "    Path(d, recs[0]['job'] + '.done').write_text('')\n"
+        "try:\n"
+        "    run_local(todo, jobs=2, retries=0, on_records=record, run_job=_job_checkpointing_on_ctrl_c)\n"
+        "except KeyboardInterrupt:\n"
+        "    sys.exit(130)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([sys.executable, "-c", driver], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True, preexec_fn=default_sigint)
+
+    def workers() -> set[int]:
+        """The driver's pool workers (its resource tracker left out); idle: those whose initializer has run (it
+        starts a thread, the sweep's stop watch)."""
+        found = set()
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+                cmdline = (stat.parent / "cmdline").read_bytes()
+                threads = len(list((stat.parent / "task").iterdir()))
+            except (OSError, IndexError, ValueError):
+                continue  # gone meanwhile
+            if ppid == proc.pid and b"spawn_main" in cmdline and (moment == "starting" or threads > 1):
+                found.add(int(stat.parent.name))
+        return found
+
+    try:
+        t0 = time.monotonic()
+        # the quick job recorded, the training stepping, and the worker that replaced the quick one's started (or
+        # idle: waiting for a job)
+        while time.monotonic() - t0 < 60 and proc.poll() is None:
+            pids = [tmp_path / f"{j}.pid" for j in ("quick", "training")]
+            if (tmp_path / "quick.done").exists() and all(p.exists() for p in pids) \
+                    and workers() - {int(p.read_text()) for p in pids}:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None and (tmp_path / "quick.done").exists(), proc.communicate(timeout=30)[0][-3000:]
+        os.killpg(proc.pid, signal.SIGINT)  # what the terminal's Ctrl-C does
+        output = proc.communicate(timeout=60)[0]
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert (tmp_path / "checkpoint").exists(), f"the training was killed writing its checkpoint:\n{output[-3000:]}"
+    assert proc.returncode == 130 and "BrokenProcessPool" not in output, output[-3000:]

@@ -18,8 +18,10 @@ cancelled; the pool's workers stopped) and leaves the finished records in ``swee
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from multiprocessing import get_context
 
@@ -95,7 +97,10 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
             attempts[job["job_id"]] = attempts.get(job["job_id"], 0) + 1
             if on_start:
                 on_start(job)
-            futures[pool.submit(run_job, job)] = job
+            # the pool starts its workers in the thread that submits (and in its manager thread, which the first
+            # submit starts): with SIGINT blocked there, they start with it blocked (_sigint_blocked)
+            with _sigint_blocked():
+                futures[pool.submit(_run_in_worker, run_job, job)] = job
 
         def fill() -> None:
             # a job is handed to the pool only when a worker is free: the pool's own queue cannot be taken back,
@@ -103,15 +108,15 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
             while waiting and len(futures) < workers:
                 submit(waiting.pop(0))
 
-        fill()
         try:
+            fill()
             while futures:
                 done, _ = wait(list(futures), return_when=FIRST_COMPLETED)
                 for fut in done:
                     job = futures.pop(fut)
                     try:
                         recs = fut.result()
-                    except Interrupted:  # a worker's training stopped on a signal: the sweep stops too
+                    except (Interrupted, SystemExit):  # a worker's job stopped on a signal: the sweep stops too
                         raise KeyboardInterrupt from None
                     except Exception as err:  # the worker died (e.g. out of memory, killed)
                         recs = failed_records(job, f"{type(err).__name__}: {err}")
@@ -127,18 +132,43 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
             raise
 
 
+@contextlib.contextmanager
+def _sigint_blocked() -> Iterator[None]:
+    """SIGINT blocked in this thread for the duration (a Ctrl-C meanwhile is delivered when it ends).
+
+    A process, and a thread, started meanwhile inherits the block, so a pool worker starting then cannot die of a
+    Ctrl-C before ``_worker_stops_quietly_on_ctrl_c`` sets it up: a worker that exits without a job's result marks
+    the pool broken, and the pool then kills every other worker (SIGTERM), one writing its training's checkpoint
+    after that same Ctrl-C included (the resume then went back to the last periodic checkpoint)."""
+    if not hasattr(signal, "pthread_sigmask"):  # (not POSIX)
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 def _worker_stops_quietly_on_ctrl_c(stop=None) -> None:
-    """Ctrl-C reaches every process of the terminal's group: a pool worker then exits without a traceback (an idle
-    one printed KeyboardInterrupt's) while the driver stops the sweep. A training job installs its own handler while
-    it trains (the step finishes, a checkpoint is written, then it stops) and restores this one after.
+    """Ctrl-C reaches every process of the terminal's group, pool workers included. A worker *between jobs* (idle,
+    or just started) ignores it: had it exited, the pool, seeing a worker die without a job's result, would have
+    marked itself broken and killed every other worker (SIGTERM), among them those writing their training's
+    checkpoint after the same Ctrl-C; the driver ends idle workers itself when it shuts the pool down. While a job
+    runs (``_run_in_worker``) Ctrl-C ends it quietly: SystemExit(130), sent back as the job's outcome (an idle
+    worker printed KeyboardInterrupt's traceback). A training job installs its own handler while it trains (the step
+    finishes, a checkpoint is written, then it stops) and restores the job's after.
+
+    The worker starts with SIGINT blocked (``_sigint_blocked``): it is ignored here first, then unblocked, so a
+    Ctrl-C that came while the worker started is dropped.
 
     ``stop`` (a shared flag of the driver's, ``RawValue``): set to 1 when the sweep stops for any reason the workers
     did not see (Ctrl-C to the driver alone, ``kill -INT``), it stops the worker's training the same way
     (``train.trainer.STOP_REQUESTED``) without a second signal, which would act mid-step after the terminal's
     first."""
-    import signal
-
-    signal.signal(signal.SIGINT, _exit_quietly)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     if stop is not None:
         import threading
 
@@ -152,6 +182,16 @@ def _worker_stops_quietly_on_ctrl_c(stop=None) -> None:
             STOP_REQUESTED.set()
 
         threading.Thread(target=watch, daemon=True, name="sweep-stop").start()
+
+
+def _run_in_worker(run_job: Callable[[dict], list[dict]], job: dict) -> list[dict]:
+    """``run_job(job)`` in a pool worker, with Ctrl-C ending it quietly (see ``_worker_stops_quietly_on_ctrl_c``);
+    ignored again once it is done, until the worker's next job."""
+    signal.signal(signal.SIGINT, _exit_quietly)
+    try:
+        return run_job(job)
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _exit_quietly(signum, frame) -> None:
