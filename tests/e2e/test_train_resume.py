@@ -154,6 +154,33 @@ def test_interrupt_writes_checkpoint(tmp_path):
     assert state["step"] == 15 and path.name == "step_000015.pt"
 
 
+def test_a_stop_during_the_last_step_skips_its_test_renders(tmp_path):
+    """SIGTERM during a run's last step: the checkpoint is written at once, without the step's test renders (every
+    test view: minutes for hundreds of large photos, while `timeout` waited)."""
+    from uncertsplat.io.checkpoints import load_latest
+    from uncertsplat.train.trainer import TrainingInterrupted
+
+    scene, tr, te = toy_scene()
+    cfg = toy_config()
+    t = Trainer(scene, cfg, tr, te, run_dir=tmp_path)
+    step = t.train_step
+
+    def last_step_then_signal():
+        terms = step()
+        if t.step == cfg.iterations:
+            t._stop = True  # as the signal handler does
+        return terms
+
+    t.train_step = last_step_then_signal
+    renders = []
+    evaluate = t.evaluate
+    t.evaluate = lambda: renders.append(t.step) or evaluate()
+    with pytest.raises(TrainingInterrupted) as info:
+        t.fit()
+    assert info.value.step == cfg.iterations and cfg.iterations not in renders
+    assert load_latest(tmp_path)[1]["step"] == cfg.iterations
+
+
 def test_the_model_starts_within_its_size_limit():
     """An initial cloud above densify.max_gaussians is thinned to it (the limit printed is the limit kept), the same
     points for the same seed, and the trainer says so."""

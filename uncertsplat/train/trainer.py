@@ -853,7 +853,10 @@ class Trainer:
                     window_t += dt
                     window_n += 1
                     step = self.step
-                    evaluated = step % cfg.eval_every == 0 or step == until
+                    # a stop asked for during the step skips its test renders (the checkpoint follows at once: a
+                    # run's last step renders every test view, minutes for hundreds of large photos)
+                    stopping = self._stop or STOP_REQUESTED.is_set()
+                    evaluated = (step % cfg.eval_every == 0 or step == until) and not stopping
                     if evaluated:
                         with self.timer("eval"):
                             last_eval = self.evaluate()
