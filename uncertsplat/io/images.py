@@ -81,16 +81,85 @@ def read_image_size(path: str | Path) -> tuple[int, int]:
 
 
 def _reorient(arr: np.ndarray, orientation: int) -> np.ndarray:
-    """Apply an EXIF orientation (1..8) to an HWC array, using OIIO's own definition of each code."""
+    """Apply an EXIF orientation (1..8) to an HWC float32 or uint8 array (kept in its type: the pixels only move),
+    using OIIO's own definition of each code."""
     if orientation == 1:
         return arr
     h, w, c = arr.shape
-    spec = oiio.ImageSpec(w, h, c, oiio.FLOAT)
+    fmt, dtype = (oiio.UINT8, np.uint8) if arr.dtype == np.uint8 else (oiio.FLOAT, np.float32)
+    spec = oiio.ImageSpec(w, h, c, fmt)
     spec.attribute("Orientation", int(orientation))
     buf = oiio.ImageBuf(spec)
-    buf.set_pixels(oiio.ROI(0, w, 0, h, 0, 1, 0, c), np.ascontiguousarray(arr, dtype=np.float32))
+    buf.set_pixels(oiio.ROI(0, w, 0, h, 0, 1, 0, c), np.ascontiguousarray(arr, dtype=dtype))
     out = oiio.ImageBufAlgo.reorient(buf)
-    return out.get_pixels(oiio.FLOAT).reshape(out.spec().height, out.spec().width, c)
+    return out.get_pixels(fmt).reshape(out.spec().height, out.spec().width, c)
+
+
+def _alpha_index(spec: oiio.ImageSpec) -> int:
+    """The alpha channel's index, -1 for none: the named one, else an unnamed extra channel of a 2/4-channel file."""
+    if spec.alpha_channel < 0 and spec.nchannels in (2, 4):
+        return spec.nchannels - 1
+    return spec.alpha_channel
+
+
+def _opaque_8bit(spec: oiio.ImageSpec) -> bool:
+    """Whether ``read_image`` gives this file's pixels as its 8-bit values / 255 exactly: every channel 8-bit
+    unsigned, no alpha to composite (which mixes in the background), one or at least three colour channels."""
+    return (str(spec.format) == "uint8" and not list(spec.channelformats) and _alpha_index(spec) < 0
+            and (spec.nchannels == 1 or spec.nchannels >= 3))
+
+
+def is_opaque_8bit(path: str | Path) -> bool:
+    """Whether ``read_image_8bit`` reads the image (header only): an 8-bit file without alpha."""
+    path = Path(path)
+    inp = _open(path)
+    try:
+        return _opaque_8bit(inp.spec())
+    finally:
+        inp.close()
+
+
+UINT8_TO_FLOAT = float(np.float32(1.0) / np.float32(255.0))
+"""The factor OpenImageIO turns an 8-bit value into float32 with: ``read_image`` of an 8-bit file gives
+``value * UINT8_TO_FLOAT`` in float32, one rounding (a multiplication by float32(1/255), not a division by 255: the
+two differ in the last bit for 126 of the 256 values)."""
+
+
+def read_image_8bit(path: str | Path) -> np.ndarray:
+    """Read an 8-bit image without alpha (``is_opaque_8bit``) as its stored values: [H,W,3] uint8.
+
+    ``read_image`` of the same file is this times ``UINT8_TO_FLOAT`` in float32, to the bit: the same channels (grey
+    replicated, the first three of more) and EXIF orientation, at a quarter of the memory.
+
+    Raises:
+        UserError: like ``read_image``, naming the file.
+        ValueError: the file is not 8-bit or has alpha (``is_opaque_8bit``): read it with ``read_image``.
+    """
+    path = Path(path)
+    inp = _open(path)
+    try:
+        spec = inp.spec()
+        if not _opaque_8bit(spec):
+            raise ValueError(f"{path} is not an 8-bit image without alpha: read it with read_image")
+        if spec.width * spec.height > MAX_PIXELS:
+            raise UserError(f"the image is {spec.width}x{spec.height} pixels, more than the "
+                            f"{MAX_PIXELS / 1e6:.0f} megapixels read at once", path=path,
+                            hint="Downscale the photo (or check that its header is not corrupted).")
+        data = inp.read_image("uint8")
+        err = _oiio_error(inp)
+        if data is None or err:
+            raise UserError(f"cannot read the image ({_clean_error(err or _oiio_error())}); it may be truncated",
+                            path=path, hint=_UNREADABLE_HINT)
+        orientation = spec.get_int_attribute("Orientation", 1)
+    finally:
+        inp.close()
+    arr = np.asarray(data, dtype=np.uint8)
+    if arr.ndim == 2:
+        arr = arr[..., None]
+    if arr.ndim == 4:  # volume images: first slice, as read_image
+        arr = arr[0]
+    rgb = np.repeat(arr, 3, axis=-1) if arr.shape[-1] == 1 else arr[..., :3]
+    return np.ascontiguousarray(_reorient(np.ascontiguousarray(rgb), orientation))
 
 
 def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:

@@ -239,7 +239,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         UserError: unreadable scene, an existing run folder without ``resume``, nothing to resume, or an
             interruption (Ctrl-C / SIGTERM; a checkpoint was written and ``--resume`` continues).
     """
-    from uncertsplat.data.dataset import load_images
+    from uncertsplat.data.dataset import load_photos
     from uncertsplat.io.checkpoints import load_latest
     from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
     from uncertsplat.render import near_plane
@@ -406,8 +406,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             cameras=camera_records(data.cameras, [names[i] for k in ("train", "test", "calibration")
                                                   for i in data.split.get(k, ())] if names else []),
         ).write(run_dir / "scene.json")
-        train_images = load_images(data, data.split["train"], device)
-        test_images = load_images(data, data.split["test"], device) if data.split.get("test") else None
+        # 8-bit photos stay uint8 (a quarter of float32's memory), converted one at a time where a step uses them
+        train_images = load_photos(data, data.split["train"], device)
+        test_images = load_photos(data, data.split["test"], device) if data.split.get("test") else None
         trainer = Trainer(data, cfg, train_images, test_images, run_dir=run_dir, state=state, near=near)
         if add_views:
             # the checkpoint's queue holds positions in the old list of training views: start a new pass over all

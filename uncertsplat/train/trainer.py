@@ -65,7 +65,7 @@ from uncertsplat.train.adam import Adam, all_finite
 from uncertsplat.train.losses import SsimTargetCache, total_loss
 from uncertsplat.train.optim import base_rates, load_optimizer_state, make_optimizer, set_rates
 from uncertsplat.train.profile import PhaseTimer
-from uncertsplat.types import Cameras, GaussianSample, SceneData
+from uncertsplat.types import Cameras, GaussianSample, Photos, SceneData
 from uncertsplat.uncertainty.curvature import curvature
 from uncertsplat.uncertainty.scores import blending_weights
 
@@ -186,15 +186,17 @@ class Trainer:
     Args:
         scene: the scene (cameras, split, sparse points, extent).
         cfg: resolved training configuration.
-        train_images: [T,H,W,3] images of ``scene.split["train"]``, in that order, on the training device.
-        test_images: [V,H,W,3] images of ``scene.split["test"]`` (held-out PSNR), or None.
+        train_images: [T,H,W,3] images of ``scene.split["train"]``, in that order, on the training device: float32,
+            or ``Photos`` (``data.dataset.load_photos``: 8-bit photos kept as uint8, each converted where it is used).
+        test_images: [V,H,W,3] images of ``scene.split["test"]`` (held-out PSNR), or None; as ``train_images``.
         run_dir: where checkpoints and ``stats.jsonl`` go (None: nothing is written).
         state: a ``state_dict()`` to resume from (None: initialise from the scene's points).
         near: the near plane (None: ``training_near_plane`` of ``scene``; ``train`` passes what ``scene.json``
             records, so that a resumed model keeps the plane it was trained with).
     """
 
-    def __init__(self, scene: SceneData, cfg: TrainConfig, train_images: Tensor, test_images: Tensor | None = None,
+    def __init__(self, scene: SceneData, cfg: TrainConfig, train_images: Tensor | Photos,
+                 test_images: Tensor | Photos | None = None,
                  run_dir: Path | None = None, state: dict | None = None, near: float | None = None):
         self.scene, self.cfg = scene, cfg
         self.device = train_images.device
@@ -210,8 +212,10 @@ class Trainer:
         self.low_cams = self.low_images = None
         if self.low_res_until > 0 and cfg.low_res_scale < 1.0:
             self.low_cams = self.train_cams.scaled(cfg.low_res_scale)
-            self.low_images = area_resize(train_images.permute(0, 3, 1, 2), self.low_cams.height, self.low_cams.width
-                                          ).permute(0, 2, 3, 1).contiguous()  # [T,h,w,3]
+            h, w = self.low_cams.height, self.low_cams.width
+            self.low_images = torch.empty((len(self.train_idx), h, w, 3), dtype=torch.float32, device=self.device)
+            for i in range(len(self.train_idx)):  # one photo at a time: uint8 photos are never all float at once
+                self.low_images[i] = area_resize(train_images[i:i + 1].permute(0, 3, 1, 2), h, w)[0].permute(1, 2, 0)
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.extent = float(scene.extent)
         self.prior = prior_from_config(cfg)
@@ -354,7 +358,7 @@ class Trainer:
             return None
         return exposure_record(self.exposure, [names[i] for i in self.train_idx], self.step)
 
-    def photos(self, views: list[int] | None = None) -> Tensor:
+    def photos(self, views: list[int] | None = None) -> Tensor | Photos:
         """[B,H,W,3] the training photos ``views`` (positions in the training list; None: all) at the model's
         exposure: as they are with ``exposure = "off"`` (``train_images`` itself for all), else with each photo's
         learned exposure taken out (``unexpose``). What the growth and SH-band tests, the training PSNR and the
