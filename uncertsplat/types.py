@@ -359,7 +359,7 @@ class Photos:
         return as_float_photos(self.data)
 
 
-UINT8_PHOTO_SCALE = 1.0 / 255.0
+UINT8_PHOTO_SCALE = torch.tensor(1.0 / 255.0, dtype=torch.float32).item()
 """float32(1/255), by which an 8-bit value becomes ``read_image``'s float32 (``io.images.UINT8_TO_FLOAT``: types
 imports neither numpy nor OpenImageIO; a unit test checks the two are equal)."""
 
