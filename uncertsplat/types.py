@@ -290,7 +290,8 @@ class ViewSet:
         indices: the views' camera indices in their scene. Evaluation seeds each view's generator with
             its index, so a view gets the same samples whichever other views are evaluated with it.
         cameras: the C cameras (``scene.cameras[indices]``); their ``image_names`` name the views.
-        images: [C,H,W,3] float32 GT images in [0, 1] (CPU).
+        images: [C,H,W,3] float32 GT images in [0, 1] (CPU), or ``Photos`` (8-bit photos kept as uint8; indexing
+            gives float32 all the same: ``load_view_set(keep_8bit=True)``).
         masks: [C,H,W,1] bool, True where a pixel counts; None: every pixel counts.
         depths: [C,H,W,1] GT depth, 0 where unknown; None: no GT depth.
         depth_known_scale: ``depths`` are in the scene's own (normalised) world units, so evaluation uses
@@ -299,7 +300,7 @@ class ViewSet:
 
     indices: tuple[int, ...]
     cameras: Cameras
-    images: Tensor
+    images: Tensor | Photos
     masks: Tensor | None = None
     depths: Tensor | None = None
     depth_known_scale: bool = False

@@ -199,7 +199,7 @@ def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) ->
     if not folder.is_dir():
         raise UserError("GT depth folder not found", path=folder, hint="Give --depth-gt a folder of .npy/.exr maps.")
     W, H = scene.cameras.width, scene.cameras.height
-    out = []
+    paths = []  # every map found before any is read: a missing one fails at once
     for i in indices:
         stem = Path(scene.cameras.image_names[i]).stem
         cands = [folder / f"{stem}{ext}" for ext in (".npy", ".exr", ".NPY", ".EXR")]
@@ -207,15 +207,22 @@ def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) ->
         if path is None:
             raise UserError(f"no GT depth map for image '{scene.cameras.image_names[i]}'", path=folder,
                             hint=f"Expected {stem}.npy or {stem}.exr.")
-        out.append(load_depth_map(path, W, H, scene.photo_fits[i] if scene.photo_fits is not None else None))
-    return torch.from_numpy(np.stack(out)[..., None])
+        paths.append(path)
+    out = torch.empty((len(paths), H, W, 1), dtype=torch.float32)  # [C,H,W,1], filled one map at a time
+    for k, (i, path) in enumerate(zip(indices, paths, strict=True)):
+        out[k, ..., 0] = torch.from_numpy(
+            load_depth_map(path, W, H, scene.photo_fits[i] if scene.photo_fits is not None else None))
+    return out
 
 
 def load_view_set(scene: SceneData, indices: Sequence[int], *, depth: bool = True,
-                  depth_folder: Path | None = None, folder_in_scene_units: bool = False) -> ViewSet:
+                  depth_folder: Path | None = None, folder_in_scene_units: bool = False,
+                  keep_8bit: bool = False) -> ViewSet:
     """The views ``indices`` of ``scene`` with their images, masks and GT depth, for evaluation (CPU).
 
     Args:
+        keep_8bit: images as ``load_photos`` gives them (``Photos``: 8-bit photos as uint8, read as float32 equal
+            to ``load_images``'s), for a reader that only indexes them; else a float32 tensor (``load_images``).
         depth: load the scene's own GT depth (in its normalised units, so ``depth_known_scale``).
         depth_folder: take GT depth from this folder instead (``load_depth_folder``; scale unknown).
         folder_in_scene_units: ``depth_folder``'s maps are in the scene's own (source) units: converted to its
@@ -231,5 +238,6 @@ def load_view_set(scene: SceneData, indices: Sequence[int], *, depth: bool = Tru
     elif depth:
         depths = load_depths(scene, indices)
         known = depths is not None
-    return ViewSet(indices=tuple(indices), cameras=scene.cameras[indices], images=load_images(scene, indices),
+    images = load_photos(scene, indices) if keep_8bit else load_images(scene, indices)
+    return ViewSet(indices=tuple(indices), cameras=scene.cameras[indices], images=images,
                    masks=load_masks(scene, indices), depths=depths, depth_known_scale=known)

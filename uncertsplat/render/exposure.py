@@ -96,17 +96,19 @@ class PhotoExposure:
         images = self.unexposed_images(views.indices, views.images)
         return views if images is views.images else dataclasses.replace(views, images=images)
 
-    def unexposed_images(self, indices, images: Tensor) -> Tensor:
-        """``images`` [B,H,W,3] of the scene's views ``indices`` [B], those of training photos brought to the model's
-        exposure (a new tensor; ``images`` itself when none is a training photo)."""
+    def unexposed_images(self, indices, images):
+        """``images`` [B,H,W,3] (a float32 tensor or ``types.Photos``) of the scene's views ``indices`` [B], those of
+        training photos brought to the model's exposure (a new float32 tensor; ``images`` itself when none is a
+        training photo)."""
         rows = {v: r for r, v in enumerate(self.indices)}
         which = [(j, rows[int(v)]) for j, v in enumerate(indices) if int(v) in rows]
         if not which:
             return images
-        out = images.clone()
-        pos = torch.tensor([j for j, _ in which], dtype=torch.long, device=images.device)
+        base = images.float()  # types.Photos: all converted (a new tensor); a float32 tensor: itself
+        out = base.clone() if base is images else base
+        pos = torch.tensor([j for j, _ in which], dtype=torch.long, device=base.device)
         row = torch.tensor([r for _, r in which], dtype=torch.long)
-        out[pos] = unexpose(images[pos], self.gain[row].to(images), self.offset[row].to(images))
+        out[pos] = unexpose(base[pos], self.gain[row].to(base), self.offset[row].to(base))
         return out
 
     def variance(self, rgb: Tensor) -> Tensor:

@@ -370,7 +370,9 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         console.print(f"[bold]evaluate[/] {run_dir}: already evaluated with these settings, versions and device "
                       f"({out / 'metrics.json'}; --set reuse=false evaluates again)")
         return done if quiet else _print_report(run_dir, cfg, done, out, written=False)
-    views = load_view_set(scene, indices, depth_folder=cfg.depth_gt, folder_in_scene_units=cfg.depth_scale == "scene")
+    # 8-bit photos kept as uint8 (a quarter of the memory), each converted where the engine reads it
+    views = load_view_set(scene, indices, depth_folder=cfg.depth_gt, folder_in_scene_units=cfg.depth_scale == "scene",
+                          keep_8bit=True)
     with run_lock(run_dir, "evaluate"):
         if not quiet:
             console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
@@ -378,7 +380,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
             for note in loaded.eval_notes(cfg.num_samples):
                 if note.startswith("K="):  # a choice of the command's that changes what is measured
                     console.print(f"[yellow]note:[/] {note}")
-        train_views = partial(load_view_set, scene, depth=False)
+        train_views = partial(load_view_set, scene, depth=False, keep_8bit=True)  # the residual fit's (64 by default)
         # the set-aside views' K samples, when the noise is fitted here: the std factor's fit reuses them
         set_aside_maps: dict = {}
         residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,

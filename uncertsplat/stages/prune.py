@@ -108,13 +108,13 @@ class _Measure:
         self.render_fn = loaded.render_fn(scene.scene_scale, device)
         self.cams = scene.cameras[indices].to(device)
         # the held-out images and GT depth are read once; every model of a sweep is measured on them
-        self.views = load_view_set(scene, indices)
+        self.views = load_view_set(scene, indices, keep_8bit=True)  # 8-bit photos as uint8, read as float32
         # the pixel noise of the source model's Gaussians, fitted once: a pruned model keeps its Gaussians' noise
         # (read from the source run's evaluation when it fitted the same one; the source run is never written)
         from uncertsplat.stages.residual_cache import fitted_residual
 
         self.residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), self.ecfg, device,
-                                        load_views=partial(load_view_set, scene, depth=False), write=False,
+                                        load_views=partial(load_view_set, scene, depth=False, keep_8bit=True), write=False,
                                         calibration_indices=scene.split.get("calibration", ()))
         self._dof: tuple[float | None] | None = None  # the source's predictive tails, once known (``dof``)
         self.meta = {"variant": loaded.config.variant, "extent": loaded.extent, "step": loaded.step,
@@ -164,7 +164,8 @@ class _Measure:
 
             _, fit = scored_sampler(partial(self.loaded.sampler, self.scene.scene_scale, self.device), self.residual,
                                     self.scene.cameras, self.scene.split, self.ecfg, self.device,
-                                    load_views=partial(load_view_set, self.scene, depth=False))
+                                    load_views=partial(load_view_set, self.scene, depth=False,
+                                                       keep_8bit=True))
             self._dof = (fit.dof,)
         return self._dof[0]
 
