@@ -127,3 +127,8 @@ def test_training_on_uint8_photos_gives_the_float_runs_model_to_the_bit():
     a.fit()
     b.fit()
     assert_same_parameters(a.model, b.model, atol=0.0)
+    # with exposures on, all the photos are unexposed one at a time as they are read: the same numbers
+    assert b.exposure is not None
+    lazy, full = b.photos(), b.photos(list(range(len(tr8))))
+    assert all(torch.equal(lazy[i], full[i]) for i in range(len(tr8)))
+    assert torch.equal(lazy[[0, 2]], full[[0, 2]]) and torch.equal(lazy[1:3], full[1:3])

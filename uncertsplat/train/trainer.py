@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import operator
 import resource
 import signal
 import threading
@@ -178,6 +179,32 @@ def few_points_notes(points: Tensor, cameras: Cameras, init_num_random: int) -> 
     more = "; --set init_num_random=10000 adds random points to grow from" if init_num_random == 0 else ""
     return [f"the model starts from only {n} point(s), {int(seen.sum())} of them in view of a training camera: it "
             f"grows slowly from so few{more}"]
+
+
+class _Unexposed:
+    """Training photos [T,H,W,3] at the model's exposure, each brought there as it is indexed (``unexpose`` of
+    ``photos[index]``, the same numbers as unexposing all and indexing: the operation is per pixel); what
+    ``Trainer.photos()`` gives for all photos with exposures on, to readers that index it one view at a time."""
+
+    def __init__(self, photos: Tensor | Photos, gain: Tensor, offset: Tensor):
+        self.photos, self.gain, self.offset = photos, gain, offset  # [T,H,W,3], [T,3], [T,3]
+
+    def __len__(self) -> int:
+        return len(self.photos)
+
+    def __getitem__(self, index) -> Tensor:
+        if isinstance(index, (slice, list, tuple, Tensor)):
+            return unexpose(self.photos[index], self.gain[index], self.offset[index])
+        i = operator.index(index)  # one view [H,W,3]: unexposed as a batch of one
+        return unexpose(self.photos[i:i + 1], self.gain[i:i + 1], self.offset[i:i + 1])[0]
+
+    @property
+    def shape(self) -> torch.Size:
+        return self.photos.shape
+
+    @property
+    def device(self) -> torch.device:
+        return self.photos.device
 
 
 class Trainer:
@@ -358,7 +385,7 @@ class Trainer:
             return None
         return exposure_record(self.exposure, [names[i] for i in self.train_idx], self.step)
 
-    def photos(self, views: list[int] | None = None) -> Tensor | Photos:
+    def photos(self, views: list[int] | None = None) -> Tensor | Photos | _Unexposed:
         """[B,H,W,3] the training photos ``views`` (positions in the training list; None: all) at the model's
         exposure: as they are with ``exposure = "off"`` (``train_images`` itself for all), else with each photo's
         learned exposure taken out (``unexpose``). What the growth and SH-band tests, the training PSNR and the
@@ -367,7 +394,8 @@ class Trainer:
         if views is None:
             if ex is None:
                 return self.train_images
-            views = list(range(len(self.train_idx)))
+            # each photo unexposed as it is read: all of them at once were two float32 copies of every photo
+            return _Unexposed(self.train_images, *ex)
         images = self.train_images[views]
         if ex is None:
             return images
