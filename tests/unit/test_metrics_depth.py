@@ -49,3 +49,105 @@ def test_no_valid_pixels(device):
         align_depth_scale(z, z)
     m = depth_metrics(z, z)
     assert m.num_pixels == 0 and m.mae != m.mae
+
+
+def _sorted_median(pred, gt, mask=None) -> tuple[float, int]:
+    """The median of gt / pred over the valid pixels by one float64 sort of all of them (the exact path's way)."""
+    from uncertsplat.eval.depth import valid_depth_mask
+
+    valid = valid_depth_mask(pred, gt, mask)
+    srt = torch.sort(gt[valid].double() / pred[valid].double()).values  # [n]
+    n = srt.numel()
+    return float((srt[(n - 1) // 2] + srt[n // 2]) / 2), n
+
+
+@pytest.mark.parametrize("case", ["spread", "ties", "constant", "odd"])
+def test_the_bounded_median_is_the_sorted_one(monkeypatch, case):
+    # small limits force the streamed path, several selection passes and many slices on a small case; the factor
+    # must be the sorted median's to the bit (the same two middle ratios), whether the maps come stacked or a list
+    import uncertsplat.eval.depth as depth
+
+    g = torch.Generator().manual_seed(3)
+    pred = torch.rand(5, 30, 41, 1, generator=g) + 0.1  # [C,H,W,1]
+    gt = pred * (2.0 + 0.3 * torch.randn(pred.shape, generator=g))
+    if case == "ties":
+        gt = torch.round(gt * 4) / 4
+    if case == "constant":
+        gt = 3.0 * torch.ones_like(pred)
+        pred = 1.5 * torch.ones_like(pred)
+    gt[0, :3] = 0.0
+    pred[1, :2] = float("nan")
+    mask = torch.rand(pred.shape[:-1], generator=g) > 0.2  # [C,H,W]
+    if case == "odd":
+        mask[0, 0, 0] = not mask[0, 0, 0]  # flips the count's parity
+    want, n = _sorted_median(pred, gt, mask)
+    monkeypatch.setattr(depth, "EXACT_MAX_PIXELS", 10)
+    monkeypatch.setattr(depth, "GATHER_MAX", 40)
+    monkeypatch.setattr(depth, "SLICE_ELEMENTS", 700)
+    stacked = align_depth_scale(pred, gt, mask=mask)
+    listed = align_depth_scale(list(pred), list(gt), mask=list(mask))
+    assert stacked.scale == listed.scale == want
+    assert stacked.num_pixels == listed.num_pixels == n
+
+
+def test_a_large_case_takes_the_bounded_path_and_gives_the_exact_median(monkeypatch):
+    # above EXACT_MAX_PIXELS (here at its default) the sort of every pixel is never made
+    import uncertsplat.eval.depth as depth
+
+    g = torch.Generator().manual_seed(0)
+    n = depth.EXACT_MAX_PIXELS + 200_001
+    pred = torch.rand(n, generator=g) + 0.05
+    gt = pred * torch.exp(0.5 * torch.randn(n, generator=g))
+    want, m = _sorted_median(pred, gt)
+    calls = []
+    streamed = depth._streamed_median
+    monkeypatch.setattr(depth, "_streamed_median", lambda *a: calls.append(a[-1]) or streamed(*a))
+    got = align_depth_scale(pred, gt)
+    assert calls == [m] and got.num_pixels == m
+    assert got.scale == pytest.approx(want, rel=1e-4) and got.scale == want  # (the brief's tolerance; it is exact)
+    lsq = align_depth_scale(pred, gt, method="lsq").scale
+    assert lsq == pytest.approx(float((pred.double() * gt.double()).sum() / pred.double().square().sum()), rel=1e-12)
+
+
+def test_up_to_the_threshold_every_pixel_is_sorted_at_once(monkeypatch):
+    # the exact path (the committed factors' way) up to EXACT_MAX_PIXELS valid pixels inclusive, the bounded one above
+    import uncertsplat.eval.depth as depth
+
+    g = torch.Generator().manual_seed(1)
+    pred = torch.rand(64, generator=g) + 0.1
+    gt = pred * (1.0 + torch.rand(64, generator=g))
+    calls = []
+    streamed = depth._streamed_median
+    monkeypatch.setattr(depth, "_streamed_median", lambda *a: calls.append(a[-1]) or streamed(*a))
+    monkeypatch.setattr(depth, "EXACT_MAX_PIXELS", 64)
+    exact = align_depth_scale(pred, gt)
+    assert calls == []
+    monkeypatch.setattr(depth, "EXACT_MAX_PIXELS", 63)
+    bounded = align_depth_scale(pred, gt)
+    assert calls == [64] and bounded.scale == exact.scale == _sorted_median(pred, gt)[0]
+
+
+def test_a_scaled_check_needs_no_scaled_copy():
+    # pred_scale multiplies slice by slice: the same factor as scaling the maps first
+    g = torch.Generator().manual_seed(2)
+    pred = torch.rand(3, 8, 9, 1, generator=g) + 0.1
+    gt = 2.0 * pred + 0.01 * torch.rand(pred.shape, generator=g)
+    want = align_depth_scale(pred * 0.37, gt)
+    got = align_depth_scale(list(pred), list(gt), pred_scale=0.37)
+    assert got.scale == want.scale and got.num_pixels == want.num_pixels
+    with pytest.raises(ValueError, match="as many maps"):
+        align_depth_scale(list(pred), list(gt)[:2])
+
+
+def test_the_implausible_factor_note_takes_one_map_a_view():
+    # evaluate passes its views' maps as lists (no stack); the note is the one the stacked maps give
+    from uncertsplat.eval.engine import implausible_depth_scale_notes
+
+    g = torch.Generator().manual_seed(4)
+    depth = torch.rand(3, 6, 7, 1, generator=g) + 0.5  # [C,H,W,1]
+    gt = 3.1 * depth
+    mask = torch.rand(depth.shape, generator=g) > 0.3
+    stacked = implausible_depth_scale_notes(depth, gt, mask, 1.0, 1.0)
+    listed = implausible_depth_scale_notes(list(depth), list(gt), list(mask), 1.0, 1.0)
+    assert stacked == listed and len(listed) == 1 and "3.1x" in listed[0]
+    assert implausible_depth_scale_notes(list(depth), list(gt), list(mask), 3.0, 3.0) == []

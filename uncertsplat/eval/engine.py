@@ -151,9 +151,11 @@ class _ViewResult:
     metrics: dict
     curves: dict
     calibration: object
-    depth_mean: Tensor  # [H,W,1] on CPU
-    depth_std: Tensor
-    alpha: Tensor
+    # kept only when there is GT depth, until the split's depth factor is known (then scored and dropped): each
+    # held-out pixel costs 9 bytes here, not the maps' 12 (alpha is needed only as the mask it gives)
+    depth_mean: Tensor | None = None  # [H,W,1] on CPU
+    depth_std: Tensor | None = None  # [H,W,1]
+    depth_valid: Tensor | None = None  # [H,W,1] bool: alpha > 0.5, inside the view's mask
 
 
 def _shift_fn(sampler: Sampler, cfg: EvalSettings, device: torch.device):
@@ -582,15 +584,17 @@ IMPLAUSIBLE_DEPTH_RATIO = 2.0
 less than 1/this, at the median, is noted as probably wrong (``implausible_depth_scale_notes``)."""
 
 
-def implausible_depth_scale_notes(depth: Tensor, gt: Tensor, mask: Tensor, scale: float, given) -> list[str]:
+def implausible_depth_scale_notes(depth: Tensor | Sequence[Tensor], gt: Tensor | Sequence[Tensor],
+                                  mask: Tensor | Sequence[Tensor], scale: float, given) -> list[str]:
     """A note when the depth factor given (``given``: a number, or the scene's known units) leaves the GT depth
     ``IMPLAUSIBLE_DEPTH_RATIO`` times the scaled render (or less than its inverse) at the median: GT maps in other
     units than the factor assumes (``--depth-scale 1`` on maps in the scene's units gave abs-rel 0.76 without a
-    word). The metrics stay those of the factor given."""
+    word). The metrics stay those of the factor given. ``depth``, ``gt``, ``mask``: stacked [C,H,W,1] or one map a
+    view (``align_depth_scale``, which scales the depth slice by slice: no scaled copy of every map)."""
     from uncertsplat.eval.depth import align_depth_scale
 
     try:
-        ratio = align_depth_scale(depth * scale, gt, mask=mask, method="median").scale
+        ratio = align_depth_scale(depth, gt, mask=mask, method="median", pred_scale=scale).scale
     except ValueError:  # no valid pixel: the depth metrics say so
         return []
     if 1 / IMPLAUSIBLE_DEPTH_RATIO <= ratio <= IMPLAUSIBLE_DEPTH_RATIO:
@@ -771,11 +775,15 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                 if cfg.paper_nll:
                     m["nll_paper"] = float(paper_nll(s_rgb, gt, mask=mask))
             curves = {k: SparsificationCurve.from_result(v) for k, v in sp.items()}
-            results.append(_ViewResult(name, m, {"rgb": sp, "rgb_curves": curves}, cal,
-                                       maps.depth_mean[0].cpu(), maps.depth_std[0].cpu(), maps.alpha_mean[0].cpu()))
+            r = _ViewResult(name, m, {"rgb": sp, "rgb_curves": curves}, cal)
+            d_mean, d_std, a_mean = (t[0].cpu() for t in (maps.depth_mean, maps.depth_std, maps.alpha_mean))
+            if gt_depth is not None:  # the depth metrics wait for the split's one factor (after the loop)
+                valid = a_mean > 0.5
+                r.depth_mean, r.depth_std = d_mean, d_std
+                r.depth_valid = valid & masks[j] if masks is not None else valid
+            results.append(r)
             if on_view is not None:
-                on_view(ViewMaps(name, gt, pred, std, maps.depth_mean[0].cpu(), maps.depth_std[0].cpu(),
-                                 maps.alpha_mean[0].cpu(), dof))
+                on_view(ViewMaps(name, gt, pred, std, d_mean, d_std, a_mean, dof))
             if prog:
                 prog.update(task, advance=1, info=f"{name}: PSNR {m['psnr']:.2f} AUSE {m['ause_mae']:.3f} "
                                                   f"{seconds:.2f}s")
@@ -788,41 +796,41 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     depth_cal = []
     depth_sp_all = []
     if gt_depth is not None:
-        dm = torch.stack([r.depth_mean for r in results])  # [C,H,W,1]
-        ds = torch.stack([r.depth_std for r in results])
-        alpha = torch.stack([r.alpha for r in results])
-        base_mask = alpha > 0.5
-        if masks is not None:
-            base_mask = base_mask & masks
+        # one map a view, never stacked (a stack copied every held-out pixel); align_depth_scale streams over them
+        dm = [r.depth_mean for r in results]  # C x [H,W,1]
+        gts = list(gt_depth.unbind(0))  # C x [H,W,1], views of the set's tensor
+        base_mask = [r.depth_valid for r in results]  # C x [H,W,1] bool
         given = isinstance(cfg.depth_scale, float)
         if given or views.depth_known_scale:  # a factor the user gave, or the scene's own GT's (1)
-            scale = align_depth_scale(dm, gt_depth, mask=base_mask, method=cfg.depth_scale if given else 1.0)
+            scale = align_depth_scale(dm, gts, mask=base_mask, method=cfg.depth_scale if given else 1.0)
             # against GT in the run's normalised units (the scene's own) or a --depth-gt folder's
             method = (GIVEN_SCENE_GT if views.depth_known_scale else "given") if given else "scene"
             scale = type(scale)(scale.scale, method, scale.num_pixels)
-            notes += implausible_depth_scale_notes(dm, gt_depth, base_mask, scale.scale, cfg.depth_scale)
+            notes += implausible_depth_scale_notes(dm, gts, base_mask, scale.scale, cfg.depth_scale)
         else:
             try:
-                scale = align_depth_scale(dm, gt_depth, mask=base_mask, method=cfg.depth_align)
+                scale = align_depth_scale(dm, gts, mask=base_mask, method=cfg.depth_align)
             except ValueError as err:
                 raise UserError(f"cannot align depth with the GT: {err}") from None
         depth_info = DepthScaleInfo(scale=scale.scale, method=scale.method, num_pixels=scale.num_pixels)
+        del dm, base_mask
         for j, r in enumerate(results):
-            valid = valid_depth_mask(dm[j], gt_depth[j], base_mask[j])
-            d_err = dm[j] * scale.scale - gt_depth[j]
-            d_std = ds[j] * scale.scale
+            valid = valid_depth_mask(r.depth_mean, gt_depth[j], r.depth_valid)
+            d_err = r.depth_mean * scale.scale - gt_depth[j]
+            d_std = r.depth_std * scale.scale
             dsp = sparsification_all(d_err, d_std, mask=valid, steps=cfg.ause_steps)
-            dmet = depth_metrics(dm[j], gt_depth[j], scale=scale.scale, mask=valid)
+            dmet = depth_metrics(r.depth_mean, gt_depth[j], scale=scale.scale, mask=valid)
             dcal = calibration(d_err, d_std, mask=valid)
             r.metrics.update(
                 depth_ause_mae=dsp["mae"].ause if dsp["mae"].num_elements else None,
                 depth_ause_rmse=dsp["rmse"].ause if dsp["rmse"].num_elements else None,
                 depth_abs_rel=dmet.abs_rel, depth_rmse=dmet.rmse, depth_mae=dmet.mae,
-                depth_nll=float(gaussian_nll(gt_depth[j], dm[j] * scale.scale, d_std, std_floor=cfg.std_floor,
+                depth_nll=float(gaussian_nll(gt_depth[j], r.depth_mean * scale.scale, d_std, std_floor=cfg.std_floor,
                                              mask=valid)) if dmet.num_pixels else None,
                 depth_spearman=spearman(d_std, d_err.abs(), mask=valid).value,
             )
             r.curves["depth"] = dsp
+            r.depth_mean = r.depth_std = r.depth_valid = None  # scored: the report needs only the numbers
             depth_sp_all.append(dsp)
             if dcal.num_elements:
                 depth_cal.append(dcal)
