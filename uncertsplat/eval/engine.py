@@ -722,6 +722,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     notes.append("std = " + " + ".join(terms))
 
     results: list[_ViewResult] = []
+    kept: tuple[Tensor, Tensor, Tensor] | None = None  # the depth maps the depth metrics wait for (with GT depth)
     gen = torch.Generator(device=device)
     prog = progress() if show_progress else None
     task = prog.add_task("evaluate", total=len(views), info="") if prog else None
@@ -778,9 +779,17 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             r = _ViewResult(name, m, {"rgb": sp, "rgb_curves": curves}, cal)
             d_mean, d_std, a_mean = (t[0].cpu() for t in (maps.depth_mean, maps.depth_std, maps.alpha_mean))
             if gt_depth is not None:  # the depth metrics wait for the split's one factor (after the loop)
-                valid = a_mean > 0.5
-                r.depth_mean, r.depth_std = d_mean, d_std
-                r.depth_valid = valid & masks[j] if masks is not None else valid
+                if kept is None:
+                    # one block per map for all views: kept one tensor a view amid the renders' transient buffers,
+                    # they pinned the allocator's heap (RSS grew by several times their own size)
+                    kept = (d_mean.new_empty((len(views), *d_mean.shape)), d_std.new_empty((len(views), *d_std.shape)),
+                            torch.empty((len(views), *a_mean.shape), dtype=torch.bool))  # [C,H,W,1] each
+                r.depth_mean, r.depth_std, r.depth_valid = kept[0][j], kept[1][j], kept[2][j]
+                r.depth_mean.copy_(d_mean)
+                r.depth_std.copy_(d_std)
+                torch.gt(a_mean, 0.5, out=r.depth_valid)
+                if masks is not None:
+                    r.depth_valid &= masks[j]
             results.append(r)
             if on_view is not None:
                 on_view(ViewMaps(name, gt, pred, std, d_mean, d_std, a_mean, dof))
@@ -813,7 +822,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             except ValueError as err:
                 raise UserError(f"cannot align depth with the GT: {err}") from None
         depth_info = DepthScaleInfo(scale=scale.scale, method=scale.method, num_pixels=scale.num_pixels)
-        del dm, base_mask
+        del dm, base_mask, kept
         for j, r in enumerate(results):
             valid = valid_depth_mask(r.depth_mean, gt_depth[j], r.depth_valid)
             d_err = r.depth_mean * scale.scale - gt_depth[j]
