@@ -13,23 +13,13 @@ import torch
 
 from tests.e2e.test_train_resume import assert_same_parameters, toy_config, toy_scene
 from tests.fixtures import tiny_scene_path  # noqa: F401
+from tests.unit.test_images import _raw_write
 from uncertsplat.config import SceneConfig
 from uncertsplat.data.dataset import load_images, load_photos
 from uncertsplat.io.images import UINT8_TO_FLOAT, is_opaque_8bit, read_image, read_image_8bit
 from uncertsplat.sfm.scene import load_scene
 from uncertsplat.train.trainer import Trainer
 from uncertsplat.types import UINT8_PHOTO_SCALE, Photos, as_float_photos
-
-
-def _write(path, arr, fmt, attrs=None):
-    h, w, c = arr.shape
-    spec = oiio.ImageSpec(w, h, c, fmt)
-    for k, v in (attrs or {}).items():
-        spec.attribute(k, v)
-    out = oiio.ImageOutput.create(str(path))
-    assert out.open(str(path), spec)
-    assert out.write_image(np.ascontiguousarray(arr))
-    out.close()
 
 
 def _every_value(h: int = 16, w: int = 48) -> np.ndarray:
@@ -51,7 +41,7 @@ def test_8bit_read_times_the_scale_is_read_image_to_the_bit(tmp_path, name, attr
     a = _every_value()
     if grey:
         a = a[..., :1]
-    _write(tmp_path / name, a, oiio.UINT8, attrs)
+    _raw_write(tmp_path / name, a, oiio.UINT8, attrs)
     assert is_opaque_8bit(tmp_path / name)
     u8 = read_image_8bit(tmp_path / name)
     ref = read_image(tmp_path / name)
@@ -61,9 +51,9 @@ def test_8bit_read_times_the_scale_is_read_image_to_the_bit(tmp_path, name, attr
 
 def test_16bit_float_and_alpha_files_are_not_read_as_8bit(tmp_path):
     a = _every_value()
-    _write(tmp_path / "a16.png", a.astype(np.uint16) * 257, oiio.UINT16)
-    _write(tmp_path / "a.exr", a.astype(np.float32) / 255, oiio.FLOAT)
-    _write(tmp_path / "rgba.png", np.concatenate([a, a[..., :1]], -1), oiio.UINT8)
+    _raw_write(tmp_path / "a16.png", a.astype(np.uint16) * 257, oiio.UINT16)
+    _raw_write(tmp_path / "a.exr", a.astype(np.float32) / 255, oiio.FLOAT)
+    _raw_write(tmp_path / "rgba.png", np.concatenate([a, a[..., :1]], -1), oiio.UINT8)
     for name in ("a16.png", "a.exr", "rgba.png"):
         assert not is_opaque_8bit(tmp_path / name), name
         with pytest.raises(ValueError):
@@ -91,7 +81,7 @@ def test_load_photos_keeps_resized_photos_float(tiny_scene_path):  # noqa: F811
 def test_load_photos_keeps_16bit_photos_float(tiny_scene_path, tmp_path):  # noqa: F811
     scene = load_scene(tiny_scene_path, SceneConfig())
     a = (read_image(scene.image_paths[0]) * 65535).round().astype(np.uint16)
-    _write(tmp_path / "p16.png", a, oiio.UINT16)
+    _raw_write(tmp_path / "p16.png", a, oiio.UINT16)
     scene16 = replace(scene, image_paths=(tmp_path / "p16.png", *scene.image_paths[1:]))
     photos = load_photos(scene16, [0, 1])
     assert photos.data.dtype == torch.float32

@@ -125,6 +125,31 @@ UINT8_TO_FLOAT = float(np.float32(1.0) / np.float32(255.0))
 two differ in the last bit for 126 of the 256 values)."""
 
 
+def _read_pixels(path: Path, fmt: str, check=None):
+    """(the pixels as OpenImageIO gives them in ``fmt``, the file's spec); ``check(spec)`` may refuse the file first.
+
+    Raises:
+        UserError: the file is missing, not an image, larger than ``MAX_PIXELS`` or cannot be read, naming it.
+    """
+    inp = _open(path)
+    try:
+        spec = inp.spec()
+        if check is not None:
+            check(spec)
+        if spec.width * spec.height > MAX_PIXELS:
+            raise UserError(f"the image is {spec.width}x{spec.height} pixels, more than the "
+                            f"{MAX_PIXELS / 1e6:.0f} megapixels read at once", path=path,
+                            hint="Downscale the photo (or check that its header is not corrupted).")
+        data = inp.read_image(fmt)
+        err = _oiio_error(inp)
+        if data is None or err:
+            raise UserError(f"cannot read the image ({_clean_error(err or _oiio_error())}); it may be truncated",
+                            path=path, hint=_UNREADABLE_HINT)
+    finally:
+        inp.close()
+    return data, spec
+
+
 def read_image_8bit(path: str | Path) -> np.ndarray:
     """Read an 8-bit image without alpha (``is_opaque_8bit``) as its stored values: [H,W,3] uint8.
 
@@ -136,23 +161,13 @@ def read_image_8bit(path: str | Path) -> np.ndarray:
         ValueError: the file is not 8-bit or has alpha (``is_opaque_8bit``): read it with ``read_image``.
     """
     path = Path(path)
-    inp = _open(path)
-    try:
-        spec = inp.spec()
+
+    def refuse(spec) -> None:
         if not _opaque_8bit(spec):
             raise ValueError(f"{path} is not an 8-bit image without alpha: read it with read_image")
-        if spec.width * spec.height > MAX_PIXELS:
-            raise UserError(f"the image is {spec.width}x{spec.height} pixels, more than the "
-                            f"{MAX_PIXELS / 1e6:.0f} megapixels read at once", path=path,
-                            hint="Downscale the photo (or check that its header is not corrupted).")
-        data = inp.read_image("uint8")
-        err = _oiio_error(inp)
-        if data is None or err:
-            raise UserError(f"cannot read the image ({_clean_error(err or _oiio_error())}); it may be truncated",
-                            path=path, hint=_UNREADABLE_HINT)
-        orientation = spec.get_int_attribute("Orientation", 1)
-    finally:
-        inp.close()
+
+    data, spec = _read_pixels(path, "uint8", check=refuse)
+    orientation = spec.get_int_attribute("Orientation", 1)
     arr = np.asarray(data, dtype=np.uint8)
     if arr.ndim == 2:
         arr = arr[..., None]
@@ -177,22 +192,9 @@ def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0)) 
         UserError: naming the file when it is missing, empty, truncated or not an image.
     """
     path = Path(path)
-    inp = _open(path)
-    try:
-        spec = inp.spec()
-        if spec.width * spec.height > MAX_PIXELS:
-            raise UserError(f"the image is {spec.width}x{spec.height} pixels, more than the "
-                            f"{MAX_PIXELS / 1e6:.0f} megapixels read at once", path=path,
-                            hint="Downscale the photo (or check that its header is not corrupted).")
-        data = inp.read_image("float")
-        err = _oiio_error(inp)
-        if data is None or err:
-            raise UserError(f"cannot read the image ({_clean_error(err or _oiio_error())}); it may be truncated",
-                            path=path, hint=_UNREADABLE_HINT)
-        orientation = spec.get_int_attribute("Orientation", 1)
-        alpha_index = spec.alpha_channel
-    finally:
-        inp.close()
+    data, spec = _read_pixels(path, "float")
+    orientation = spec.get_int_attribute("Orientation", 1)
+    alpha_index = spec.alpha_channel
     arr = np.asarray(data, dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[..., None]
