@@ -194,7 +194,7 @@ def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0)) 
     path = Path(path)
     data, spec = _read_pixels(path, "float")
     orientation = spec.get_int_attribute("Orientation", 1)
-    alpha_index = spec.alpha_channel
+    alpha_index = _alpha_index(spec)
     arr = np.asarray(data, dtype=np.float32)
     if arr.ndim == 2:
         arr = arr[..., None]
@@ -202,8 +202,6 @@ def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0)) 
         arr = arr[0]
     arr = np.nan_to_num(arr, nan=0.0, posinf=1.0, neginf=0.0)
     c = arr.shape[-1]
-    if alpha_index < 0 and c in (2, 4):  # an unnamed extra channel in 2/4-channel files is alpha
-        alpha_index = c - 1
     alpha = None
     if 0 <= alpha_index < c:
         alpha = np.clip(arr[..., alpha_index : alpha_index + 1], 0.0, 1.0)
