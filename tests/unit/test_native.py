@@ -649,38 +649,45 @@ class TestSingleThreadedTorch:
 
         assert _with_threads(2, check) == ((1, 2), (1, 2), 1, 2, 2)
 
-    def test_threads_that_overlap_keep_one_thread_until_the_last_leaves(self):
-        """Two threads inside at once (a pool over Predictor.predict): the first one out used to restore torch's two
-        threads under the other, whose ops (and sums) then ran on two; the last one out restores them."""
+    def test_threads_that_overlap_each_keep_their_own_count(self):
+        """Two threads inside at once (a pool over Predictor.predict), the second one a thread that has run torch
+        ops before (its own thread count): inside, each runs torch on one thread and the kernels on its count; after,
+        each has its count back, whichever left first. (A count shared across threads left the first one out on
+        one thread for good, and the second ran its sums on two.)"""
         if native.library() is None:
             pytest.skip(f"native kernels unavailable: {native.unavailable_reason()}")
         import threading
 
-        a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
+        x = torch.rand(2_000_000, generator=torch.Generator().manual_seed(0))
+        b_ready, a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event(), threading.Event()
         seen = {}
 
-        def a():
-            with native.single_threaded_torch("cpu"):
-                a_in.set()
-                b_in.wait(5)
-            a_out.set()
-
         def b():
+            torch.set_num_threads(2)  # a thread of its own count, torch's pool started (a pool thread's earlier work)
+            x.sum()
+            b_ready.set()
             a_in.wait(5)
             with native.single_threaded_torch("cpu"):
                 b_in.set()
                 a_out.wait(5)
-                seen["b after a left"] = torch.get_num_threads(), native.kernel_threads()
+                seen["b inside after a left"] = torch.get_num_threads(), native.kernel_threads()
+            seen["b after"] = torch.get_num_threads(), native.kernel_threads()
 
         def check():
-            threads = [threading.Thread(target=a), threading.Thread(target=b)]
-            for t in threads:
-                t.start()
-            for t in threads:
-                t.join(10)
-            return seen["b after a left"], torch.get_num_threads(), native.kernel_threads()
+            t = threading.Thread(target=b)
+            t.start()
+            b_ready.wait(5)
+            with native.single_threaded_torch("cpu"):
+                a_in.set()
+                b_in.wait(5)
+                seen["a inside"] = torch.get_num_threads(), native.kernel_threads()
+            a_out.set()
+            t.join(10)
+            return seen, torch.get_num_threads(), native.kernel_threads()
 
-        assert _with_threads(2, check) == ((1, 2), 2, 2)
+        got, after, kernels = _with_threads(2, check)
+        assert got == {"a inside": (1, 2), "b inside after a left": (1, 2), "b after": (2, 2)}
+        assert (after, kernels) == (2, 2)
 
     def test_restored_after_an_error(self):
         def fail():

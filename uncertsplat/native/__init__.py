@@ -54,7 +54,7 @@ BASE_FLAGS = ("-O3", "-std=c++17", "-fPIC", "-shared", "-pthread", "-fopenmp-sim
 ARCH_FLAGS = ("-march=native",)
 
 _state: dict = {}
-_threads_lock = threading.Lock()  # single_threaded_torch's count of threads inside
+_per_thread = threading.local()  # single_threaded_torch's nesting depth and the count it lowered, per OS thread
 
 
 def cache_dir() -> Path:
@@ -309,9 +309,9 @@ def use_for(*tensors: torch.Tensor, backend: str | None = None, supported: bool 
 
 
 def kernel_threads() -> int:
-    """Threads a native kernel call uses: torch's intra-op thread count, or the count it had when
+    """Threads a native kernel call uses: torch's intra-op thread count, or the count this thread had when
     ``single_threaded_torch`` lowered it."""
-    return _state.get("kernel_threads") or torch.get_num_threads()
+    return getattr(_per_thread, "kernel_threads", None) or torch.get_num_threads()
 
 
 @contextlib.contextmanager
@@ -323,29 +323,28 @@ def single_threaded_torch(device: torch.device | str):
     more than the arithmetic: a demo training step took x0.74 the time with those ops on one thread and the
     kernels on two (BENCHMARKS.md, "Torch's own ops on one thread"). The kernels start their own threads, so
     they keep the parallelism where it pays. Nothing changes on other devices, without the native kernels,
-    or when torch already runs on one thread."""
+    or when torch already runs on one thread.
+
+    torch's thread count belongs to the OS thread that sets it (OpenMP's), so each thread lowers and restores its
+    own, nested uses counted per thread: threads may enter and leave in any order (a pool over
+    ``Predictor.predict`` calls) and each gets what it gets alone."""
     if torch.device(device).type != "cpu" or requested_backend() == "torch" or library() is None:
         yield
         return
-    # Threads may enter at once (a pool over Predictor.predict calls): the first one in lowers torch's count and
-    # the last one out restores it, so no thread's ops run on two threads, nor is torch left on one, by another's
-    # exit.
-    with _threads_lock:
-        if _state.get("single_threaded", 0) == 0:
-            before = torch.get_num_threads()
-            if before <= 1:  # already on one thread: nothing to lower or restore
-                _state.pop("kernel_threads", None)
-            else:
-                _state["kernel_threads"] = before
-                torch.set_num_threads(1)
-        _state["single_threaded"] = _state.get("single_threaded", 0) + 1
+    depth = getattr(_per_thread, "depth", 0)
+    if depth == 0:
+        before = torch.get_num_threads()
+        _per_thread.kernel_threads = before if before > 1 else None
+        if before > 1:
+            torch.set_num_threads(1)
+    _per_thread.depth = depth + 1
     try:
         yield
     finally:
-        with _threads_lock:
-            _state["single_threaded"] -= 1
-            if _state["single_threaded"] == 0 and "kernel_threads" in _state:
-                torch.set_num_threads(_state.pop("kernel_threads"))
+        _per_thread.depth -= 1
+        if _per_thread.depth == 0 and _per_thread.kernel_threads is not None:
+            torch.set_num_threads(_per_thread.kernel_threads)
+            _per_thread.kernel_threads = None
 
 
 def describe(device: torch.device | str) -> str:
