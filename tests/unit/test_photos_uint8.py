@@ -122,3 +122,31 @@ def test_training_on_uint8_photos_gives_the_float_runs_model_to_the_bit():
     lazy, full = b.photos(), b.photos(list(range(len(tr8))))
     assert all(torch.equal(lazy[i], full[i]) for i in range(len(tr8)))
     assert torch.equal(lazy[[0, 2]], full[[0, 2]]) and torch.equal(lazy[1:3], full[1:3])
+
+
+@pytest.mark.parametrize("dtype", [torch.uint8, torch.float32])
+def test_unexposed_images_never_write_into_the_photos(dtype):
+    """Photos stored as float32 (16-bit, resized or transparent files) give their own tensor from ``float()``: the
+    unexposed images are a new tensor all the same, the caller's photos untouched (they were overwritten)."""
+    from uncertsplat.render.exposure import PhotoExposure
+
+    data = torch.full((2, 3, 4, 3), 128, dtype=torch.uint8)
+    photos = Photos(data if dtype == torch.uint8 else as_float_photos(data))
+    before = photos.float().clone()
+    ex = PhotoExposure((0, 1), torch.tensor([[2.0] * 3, [0.5] * 3]), torch.zeros(2, 3))
+    out = ex.unexposed_images([0, 1], photos)
+    assert not torch.equal(out, before)  # brought to the model's exposure
+    torch.testing.assert_close(photos.float(), before, rtol=0, atol=0)
+
+
+def test_unexposed_photos_take_a_negative_index():
+    """``Trainer.photos()``'s stand-in indexes like a tensor: [-1] is the last photo (it was an empty slice)."""
+    from uncertsplat.render.exposure import unexpose
+    from uncertsplat.train.trainer import _Unexposed
+
+    photos = torch.rand(3, 2, 2, 3, generator=torch.Generator().manual_seed(0))
+    gain, offset = torch.rand(3, 3) + 0.5, torch.rand(3, 3) * 0.1
+    stand_in = _Unexposed(photos, gain, offset)
+    want = unexpose(photos, gain, offset)
+    for i in (-1, -3, 0, 2):
+        torch.testing.assert_close(stand_in[i], want[i], rtol=0, atol=0)

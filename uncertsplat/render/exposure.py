@@ -104,8 +104,8 @@ class PhotoExposure:
         which = [(j, rows[int(v)]) for j, v in enumerate(indices) if int(v) in rows]
         if not which:
             return images
-        base = images.float()  # types.Photos: all converted (a new tensor); a float32 tensor: itself
-        out = base.clone() if base is images else base
+        base = images.float()  # types.Photos of uint8: all converted (a new tensor); of float32, or a tensor: its own
+        out = base.clone() if base is images or base is getattr(images, "data", None) else base
         pos = torch.tensor([j for j, _ in which], dtype=torch.long, device=base.device)
         row = torch.tensor([r for _, r in which], dtype=torch.long)
         out[pos] = unexpose(base[pos], self.gain[row].to(base), self.offset[row].to(base))

@@ -195,7 +195,7 @@ class _Unexposed:
     def __getitem__(self, index) -> Tensor:
         if isinstance(index, (slice, list, tuple, Tensor)):
             return unexpose(self.photos[index], self.gain[index], self.offset[index])
-        i = operator.index(index)  # one view [H,W,3]: unexposed as a batch of one
+        i = operator.index(index) % len(self)  # one view [H,W,3] (negative counts from the end), as a batch of one
         return unexpose(self.photos[i:i + 1], self.gain[i:i + 1], self.offset[i:i + 1])[0]
 
     @property
