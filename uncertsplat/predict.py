@@ -268,7 +268,7 @@ class Predictor:
 
         loaded = load_run(run_dir, device)
         scene = loaded.load_scene()
-        train_views = partial(load_view_set, scene, depth=False)
+        train_views = partial(load_view_set, scene, depth=False, keep_8bit=True)  # as evaluate loads them
         set_aside: dict = {}
         # the pixel noise as evaluate fits it (read from RUN/eval/residual.pt when evaluate kept one for this model and
         # these settings; a fitted one is kept there too, as evaluate does, under the run's lock, when the settings

@@ -5,7 +5,7 @@ grid whose cell size adapts per point: a point is answered from the 27 cells aro
 neighbour lies within one cell size (then no nearer point can lie outside them), else it is asked again on a
 grid twice as coarse; a point whose 27 cells hold too many candidates (a dense clump on a grid set by the rest
 of the cloud) is asked again on a finer grid. Each grid level costs a sort of the cloud, so the time grows about as
-P log P (``benchmarks/bench_init.py``: 96k points 13x faster than the brute force, 1M points in about a minute on
+P log P (``benchmarks/bench_init.py``: 96k points 8x faster than the brute force, 1M points in 60-90 s on
 2 cores where the brute force would take about an hour); the result is exact, from differences of float64
 coordinates (the brute force's ``cdist`` expands the square and loses the distances inside a clump far smaller
 than the cloud).

@@ -66,7 +66,7 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
             console.print("fitting what the training photos showed (the unseen mode, once)...")
             return fit_residual(loaded.sampler(scene_scale, device), scene.split["train"],
                                 EvalConfig(resolution=0.0, edge_noise=False), device,
-                                load_views=partial(load_view_set, scene, depth=False))
+                                load_views=partial(load_view_set, scene, depth=False, keep_8bit=True))
     renderer = FrameRenderer(loaded, scene_scale, device, score_cameras=score_cams, free_space_cameras=free_cams,
                              seed=cfg.seed, unseen_field=fit_unseen)
     return Viewer(renderer, scene, cfg)
