@@ -178,7 +178,18 @@ def test_a_stop_during_the_last_step_skips_its_test_renders(tmp_path):
     with pytest.raises(TrainingInterrupted) as info:
         t.fit()
     assert info.value.step == cfg.iterations and cfg.iterations not in renders
-    assert load_latest(tmp_path)[1]["step"] == cfg.iterations
+    state = load_latest(tmp_path)[1]
+    assert state["step"] == cfg.iterations and state["eval_pending"]
+    # the resume renders the skipped test views first and logs them as that step's record, once
+    resumed = Trainer(scene, cfg, tr, te, state=state)
+    logged = []
+    resumed.on_log = logged.append
+    resumed.fit()
+    assert [r["step"] for r in logged if "eval_psnr" in r] == [cfg.iterations] and not resumed.eval_pending
+    again = Trainer(scene, cfg, tr, te, state=resumed.state_dict())
+    again.on_log = logged.append
+    again.fit()
+    assert [r["step"] for r in logged if "eval_psnr" in r] == [cfg.iterations]  # a finished run: nothing more
 
 
 def test_the_model_starts_within_its_size_limit():

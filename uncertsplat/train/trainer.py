@@ -260,6 +260,8 @@ class Trainer:
         # the topology may have changed: posterior updates, densification, growth and SH-band checks)
         self._expected: ExpectedConstants | None = None
         self.init_notes: list[str] = []  # what train prints about the model it starts from (``_init_fresh``)
+        # a stop skipped the test renders of the step it came in (``fit``): the resume renders and logs them first
+        self.eval_pending = False
         if state is None:
             self._init_fresh()
         else:
@@ -426,6 +428,7 @@ class Trainer:
             "exposure_views": torch.tensor(self.train_idx, dtype=torch.long),
             "exposure_optimizer": self.exposure_optimizer.state_dict() if self.exposure_optimizer is not None else None,
             "exposure_checks": [c.model_dump() for c in self.exposure_checks],
+            "eval_pending": self.eval_pending,
         }
 
     def _restored_generator(self, state: dict, key: str, offset: int) -> torch.Generator:
@@ -462,6 +465,7 @@ class Trainer:
         self.step = int(state["step"])
         self.elapsed = float(state["elapsed"])
         self.exposure_checks = [ExposureCheck(**c) for c in state.get("exposure_checks", [])]
+        self.eval_pending = bool(state.get("eval_pending", False))
         self._init_exposure(state)
 
     # -------------------------------------------------------------------------------- helpers
@@ -870,10 +874,12 @@ class Trainer:
         # the bar's s/step: the mean over this call's steps, so that one step with a posterior update (a second or
         # so; the last step of a run always has one) does not show as the rate
         start_step, start_elapsed = self.step, self.elapsed
-        last_eval = self.evaluate() if self.step == 0 else {}
+        # step 0's test renders, or those a stop skipped (the run's record of that step has no test PSNR)
+        last_eval = self.evaluate() if self.step == 0 or self.eval_pending else {}
         if last_eval:
-            self._log({"step": 0, "eval_psnr": last_eval["psnr"], "eval_ssim": last_eval["ssim"],
+            self._log({"step": self.step, "eval_psnr": last_eval["psnr"], "eval_ssim": last_eval["ssim"],
                        "num_gaussians": len(self.model), "num_carriers": self.model.num_carriers})
+        self.eval_pending = False
         try:
             with progress() as bar:
                 task = bar.add_task("train", total=until, completed=self.step, info="")
@@ -888,7 +894,9 @@ class Trainer:
                     # a stop asked for during the step skips its test renders (the checkpoint follows at once: a
                     # run's last step renders every test view, minutes for hundreds of large photos)
                     stopping = self._stop or STOP_REQUESTED.is_set()
-                    evaluated = (step % cfg.eval_every == 0 or step == until) and not stopping
+                    due = step % cfg.eval_every == 0 or step == until
+                    evaluated = due and not stopping
+                    self.eval_pending = due and stopping
                     if evaluated:
                         with self.timer("eval"):
                             last_eval = self.evaluate()
