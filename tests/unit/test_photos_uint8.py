@@ -16,7 +16,7 @@ from tests.fixtures import tiny_scene_path  # noqa: F401
 from tests.unit.test_images import _raw_write
 from uncertsplat.config import SceneConfig
 from uncertsplat.data.dataset import load_images, load_photos
-from uncertsplat.io.images import UINT8_TO_FLOAT, is_opaque_8bit, read_image, read_image_8bit
+from uncertsplat.io.images import is_opaque_8bit, read_image, read_image_8bit
 from uncertsplat.sfm.scene import load_scene
 from uncertsplat.train.trainer import Trainer
 from uncertsplat.types import UINT8_PHOTO_SCALE, Photos, as_float_photos
@@ -29,7 +29,7 @@ def _every_value(h: int = 16, w: int = 48) -> np.ndarray:
 
 
 def test_the_scale_is_openimageios_conversion():
-    assert UINT8_PHOTO_SCALE == UINT8_TO_FLOAT  # float32(1/255), one definition in each module
+    assert UINT8_PHOTO_SCALE == float(np.float32(1.0) / np.float32(255.0))  # float32(1/255)
     v = torch.arange(256, dtype=torch.uint8)
     # a division by 255 differs from the multiplication in the last bit for some values: the test would see it
     assert not torch.equal(as_float_photos(v), v.float() / 255)

@@ -70,14 +70,18 @@ def decode_error(inp: oiio.ImageInput) -> str | None:
     return None
 
 
-def read_image_size(path: str | Path) -> tuple[int, int]:
-    """(width, height) of an image as displayed (EXIF orientation applied), reading the header only."""
-    path = Path(path)
+def _header(path: Path) -> oiio.ImageSpec:
+    """The image's header (a copy: the file is closed)."""
     inp = _open(path)
     try:
-        return _oriented_size(inp.spec())
+        return inp.spec()
     finally:
         inp.close()
+
+
+def read_image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image as displayed (EXIF orientation applied), reading the header only."""
+    return _oriented_size(_header(Path(path)))
 
 
 def _reorient(arr: np.ndarray, orientation: int) -> np.ndarray:
@@ -111,18 +115,7 @@ def _opaque_8bit(spec: oiio.ImageSpec) -> bool:
 
 def is_opaque_8bit(path: str | Path) -> bool:
     """Whether ``read_image_8bit`` reads the image (header only): an 8-bit file without alpha."""
-    path = Path(path)
-    inp = _open(path)
-    try:
-        return _opaque_8bit(inp.spec())
-    finally:
-        inp.close()
-
-
-UINT8_TO_FLOAT = float(np.float32(1.0) / np.float32(255.0))
-"""The factor OpenImageIO turns an 8-bit value into float32 with: ``read_image`` of an 8-bit file gives
-``value * UINT8_TO_FLOAT`` in float32, one rounding (a multiplication by float32(1/255), not a division by 255: the
-two differ in the last bit for 126 of the 256 values)."""
+    return _opaque_8bit(_header(Path(path)))
 
 
 def _read_pixels(path: Path, fmt: str, check=None):
@@ -153,7 +146,8 @@ def _read_pixels(path: Path, fmt: str, check=None):
 def read_image_8bit(path: str | Path) -> np.ndarray:
     """Read an 8-bit image without alpha (``is_opaque_8bit``) as its stored values: [H,W,3] uint8.
 
-    ``read_image`` of the same file is this times ``UINT8_TO_FLOAT`` in float32, to the bit: the same channels (grey
+    ``read_image`` of the same file is this times ``types.UINT8_PHOTO_SCALE`` (float32(1/255), OpenImageIO's
+    conversion: one multiplication, not a division by 255) in float32, to the bit: the same channels (grey
     replicated, the first three of more) and EXIF orientation, at a quarter of the memory.
 
     Raises:
