@@ -393,16 +393,11 @@ class Trainer:
         learned exposure taken out (``unexpose``). What the growth and SH-band tests, the training PSNR and the
         informed posterior compare the renders with."""
         ex = self.exposures()
-        if views is None:
-            if ex is None:
-                return self.train_images
-            # each photo unexposed as it is read: all of them at once were two float32 copies of every photo
-            return _Unexposed(self.train_images, *ex)
-        images = self.train_images[views]
         if ex is None:
-            return images
-        idx = torch.as_tensor(views, dtype=torch.long, device=self.device).reshape(-1)
-        return unexpose(images, ex[0][idx], ex[1][idx])
+            return self.train_images if views is None else self.train_images[views]
+        # all: each photo unexposed as it is read (all of them at once were two float32 copies of every photo)
+        unexposed = _Unexposed(self.train_images, *ex)
+        return unexposed if views is None else unexposed[views]
 
     def state_dict(self) -> dict:
         """Everything needed to continue exactly (tensors, numbers and strings only)."""
