@@ -32,7 +32,7 @@ def residual_key(loaded, cfg, device: torch.device, set_aside: bool = False) -> 
     type and the versions (and, with ``set_aside``: views set aside from training, where the noise's level is fitted
     given the rest of the predictive, the settings that shape it). None when the model is not one file (an ensemble)
     or a file cannot be read."""
-    from uncertsplat.eval.engine import RESIDUAL_FIT, RESIDUAL_SET_ASIDE_SETTINGS, RESIDUAL_SETTINGS
+    from uncertsplat.eval.engine import RESIDUAL_FIT
     from uncertsplat.provenance import file_sha256, versions
 
     source, run_dir = Path(loaded.source), Path(loaded.run_dir)
@@ -44,8 +44,7 @@ def residual_key(loaded, cfg, device: torch.device, set_aside: bool = False) -> 
             "config": hashlib.sha256((run_dir / "config.json").read_bytes()).hexdigest(),
             "scene": hashlib.sha256((run_dir / "scene.json").read_bytes()).hexdigest()
             if (run_dir / "scene.json").is_file() else None,
-            "settings": {k: getattr(cfg, k) for k in RESIDUAL_SETTINGS
-                         + (RESIDUAL_SET_ASIDE_SETTINGS if set_aside else ())},
+            "settings": _settings(cfg, set_aside),
             "fit": RESIDUAL_FIT,
             "device": device.type,
             "versions": versions(),
@@ -55,13 +54,17 @@ def residual_key(loaded, cfg, device: torch.device, set_aside: bool = False) -> 
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
 
+def _settings(cfg, set_aside: bool) -> dict:
+    """The evaluation settings the pixel noise's fit reads (with ``set_aside``: and those that shape it there)."""
+    from uncertsplat.eval.engine import RESIDUAL_SET_ASIDE_SETTINGS, RESIDUAL_SETTINGS
+
+    return {k: getattr(cfg, k) for k in RESIDUAL_SETTINGS + (RESIDUAL_SET_ASIDE_SETTINGS if set_aside else ())}
+
+
 def same_residual_settings(a, b, set_aside: bool = False) -> bool:
     """Whether the evaluation settings ``a`` and ``b`` fit the same pixel noise (the settings ``residual_key`` reads,
     with ``set_aside`` as there)."""
-    from uncertsplat.eval.engine import RESIDUAL_SET_ASIDE_SETTINGS, RESIDUAL_SETTINGS
-
-    names = RESIDUAL_SETTINGS + (RESIDUAL_SET_ASIDE_SETTINGS if set_aside else ())
-    return all(getattr(a, k) == getattr(b, k) for k in names)
+    return _settings(a, set_aside) == _settings(b, set_aside)
 
 
 def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torch.device, *,
