@@ -98,13 +98,19 @@ def _slices(pred: DepthMaps, gt: DepthMaps, mask: DepthMaps | None) -> Iterator[
             yield p[s:s + rows], g[s:s + rows], (m[s:s + rows] if m is not None else None)
 
 
-def _valid_pairs(pred: DepthMaps, gt: DepthMaps, mask: DepthMaps | None,
-                 pred_scale: float) -> Iterator[tuple[Tensor, Tensor]]:
-    """[n_i] float64 (pred, gt) of each slice's valid pixels, pred times ``pred_scale`` in its own dtype first."""
+def _valid_slices(pred: DepthMaps, gt: DepthMaps, mask: DepthMaps | None,
+                  pred_scale: float) -> Iterator[tuple[Tensor, Tensor, Tensor]]:
+    """(pred times ``pred_scale`` in its own dtype, gt, ``valid_depth_mask``) of each slice of ``_slices``."""
     for p, g, m in _slices(pred, gt, mask):
         if pred_scale != 1.0:
             p = p * pred_scale
-        valid = valid_depth_mask(p, g, m)
+        yield p, g, valid_depth_mask(p, g, m)
+
+
+def _valid_pairs(pred: DepthMaps, gt: DepthMaps, mask: DepthMaps | None,
+                 pred_scale: float) -> Iterator[tuple[Tensor, Tensor]]:
+    """[n_i] float64 (pred, gt) of each slice's valid pixels, pred times ``pred_scale`` in its own dtype first."""
+    for p, g, valid in _valid_slices(pred, gt, mask, pred_scale):
         yield p[valid].to(torch.float64), g[valid].to(torch.float64)
 
 
@@ -209,10 +215,7 @@ def align_depth_scale(
 
 def _count_valid(pred: DepthMaps, gt: DepthMaps, mask: DepthMaps | None, pred_scale: float) -> int:
     """The number of valid pixels (``valid_depth_mask``) of ``pred * pred_scale`` against ``gt``, slice by slice."""
-    n = 0
-    for p, g, m in _slices(pred, gt, mask):
-        n += int(valid_depth_mask(p * pred_scale if pred_scale != 1.0 else p, g, m).sum())
-    return n
+    return sum(int(valid.sum()) for _, _, valid in _valid_slices(pred, gt, mask, pred_scale))
 
 
 def depth_metrics(pred: Tensor, gt: Tensor, *, scale: float = 1.0, mask: Tensor | None = None) -> DepthMetrics:
