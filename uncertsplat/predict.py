@@ -261,13 +261,47 @@ class Predictor:
     @classmethod
     def _load(cls, run_dir: Path, device: torch.device, cfg, evaluation) -> Predictor:
         from uncertsplat.baselines import load_run
+        from uncertsplat.console import console
         from uncertsplat.data.dataset import load_view_set
-        from uncertsplat.eval.engine import scored_sampler
+        from uncertsplat.eval.engine import StdFit, residual_from_state, scored_sampler
         from uncertsplat.io.atomic import run_lock
+        from uncertsplat.stages.predictive_cache import keep_predictive, plain_versions, read_predictive
         from uncertsplat.stages.residual_cache import fitted_residual, same_residual_settings
 
         loaded = load_run(run_dir, device)
-        scene = loaded.load_scene()
+        # what an evaluation of this model with these settings fitted on the photos (RUN/eval/predictive.pt): read
+        # instead of fitted, and all there is where the scene folder is not (a robot has the run, not the photos)
+        kept = read_predictive(loaded, cfg, loaded.scene_path or run_dir)
+        try:
+            scene = loaded.load_scene()
+        except UserError as err:
+            if kept is None:
+                raise UserError(f"{err.message}; and {run_dir / 'eval' / 'predictive.pt'} holds no predictive of "
+                                "this model with these settings, which would stand in for it", path=err.path,
+                                hint=(f"{err.hint} Or r" if err.hint else "R")
+                                + f"un `uncertsplat evaluate {run_dir}` where the scene is (it keeps what the "
+                                "predictive needs in eval/predictive.pt; an ensemble has none) and copy the run "
+                                "folder with its eval/ folder.") from err
+            scene = kept.scene
+            loaded = loaded.with_scene(scene)  # what reads the scene (the empty-ray term's coverage) reads this one
+            where = (f"; on {device.type} the maps differ from evaluate's by the devices' rounding"
+                     if kept.device != device.type else "")
+            console.print(f"[yellow]note:[/] the scene cannot be loaded ({err.message}): the predictive is the one "
+                          f"kept in {run_dir / 'eval' / 'predictive.pt'} (fitted on {kept.device}"
+                          f"{', by another version' if kept.versions != plain_versions() else ''}{where})")
+        else:
+            if kept is not None and (kept.device != device.type or kept.versions != plain_versions()):
+                kept = None  # fitted on another device or by another version: fitted again, as evaluate would
+        new_sampler = partial(loaded.sampler, scene.scene_scale, device)
+        if kept is not None:
+            if scene is not kept.scene:
+                console.print(f"predictive: the pixel noise and std factor read from {run_dir / 'eval' / 'predictive.pt'}"
+                              " (fitted earlier for this model and these settings)")
+            residual = (residual_from_state(new_sampler(), kept.residual_state, device)
+                        if kept.residual_state is not None else None)
+            sampler, fit = scored_sampler(new_sampler, residual, scene.cameras, scene.split, cfg, device,
+                                          load_views=None, known_fit=StdFit(kept.scale, kept.dof, list(kept.names)))
+            return cls(run_dir, loaded, scene, sampler, fit, cfg, device)
         train_views = partial(load_view_set, scene, depth=False, keep_8bit=True)  # as evaluate loads them
         set_aside: dict = {}
         # the pixel noise as evaluate fits it (read from RUN/eval/residual.pt when evaluate kept one for this model and
@@ -286,8 +320,14 @@ class Predictor:
                 pass
         if not fitted:
             residual = fit(write=False)
-        sampler, fit = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual, scene.cameras,
-                                      scene.split, cfg, device, load_views=train_views, set_aside_maps=set_aside)
+        sampler, fit = scored_sampler(new_sampler, residual, scene.cameras, scene.split, cfg, device,
+                                      load_views=train_views, set_aside_maps=set_aside)
+        if cfg.model_dump() == evaluation.model_dump():  # the evaluation's predictive: kept for the next load
+            try:
+                with run_lock(run_dir, "predict"):
+                    keep_predictive(loaded, scene, cfg, residual, fit, device)
+            except (UserError, OSError):
+                pass  # a read-only run, or one another process holds: only read
         return cls(run_dir, loaded, scene, sampler, fit, cfg, device)
 
     def cameras_from_source(self, cam_from_source: Tensor, K: Tensor, width: int, height: int,

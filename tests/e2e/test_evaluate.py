@@ -890,10 +890,74 @@ class TestPredictor:
         capsys.readouterr()
         Predictor.load(run, "cpu")
         printed = capsys.readouterr()
+        assert "pixel noise and std factor read from" in " ".join((printed.out + printed.err).split())
+        (run / "eval" / "predictive.pt").unlink()
+        Predictor.load(run, "cpu")
+        printed = capsys.readouterr()
         assert "pixel noise: read from" in " ".join((printed.out + printed.err).split())
         cache.unlink()  # the default load still keeps what it fits
+        (run / "eval" / "predictive.pt").unlink()
         Predictor.load(run, "cpu")
-        assert cache.is_file()
+        assert cache.is_file() and (run / "eval" / "predictive.pt").is_file()
+
+    def test_a_run_without_its_scene_gives_the_maps_of_one_with_it(self, evaluated, tmp_path, monkeypatch, capsys):
+        """A robot has the run folder, not the photos: evaluate keeps what the predictive fitted on them
+        (eval/predictive.pt), and a load where the scene cannot be read renders the same maps to the bit; without the
+        file, or for other settings, the error says what to run."""
+        from uncertsplat.baselines.runs import LoadedRun
+        from uncertsplat.predict import Predictor
+
+        run = tmp_path / "run"
+        shutil.copytree(evaluated[0], run)
+        with_scene = Predictor.load(run, "cpu")
+        expected = with_scene.predict(with_scene.scene.cameras[[0, 7]], num_samples=3)
+
+        def gone(self):
+            raise UserError(f"the scene this run was trained on is gone: {self.scene_path}", path=self.run_dir)
+
+        monkeypatch.setattr(LoadedRun, "_read_scene", gone)
+        (run / "eval" / "residual.pt").unlink()  # the kept predictive holds its own noise
+        capsys.readouterr()
+        offline = Predictor.load(run, "cpu")
+        printed = capsys.readouterr()
+        assert "is gone" in printed.out + printed.err
+        assert "the predictive is the one kept in" in " ".join((printed.out + printed.err).split())
+        assert offline.std_factor == with_scene.std_factor and offline.dof == with_scene.dof
+        assert offline.scene.split == with_scene.scene.split and offline.scale == with_scene.scale
+        assert torch.equal(offline.scene.cameras.cam_from_world, with_scene.scene.cameras.cam_from_world)
+        got = offline.predict(offline.scene.cameras[[0, 7]], num_samples=3)
+        for name in ("rgb_mean", "rgb_std", "depth_mean", "depth_std", "alpha"):
+            torch.testing.assert_close(getattr(got, name), getattr(expected, name), rtol=0, atol=0)
+        with pytest.raises(UserError, match="holds no predictive of this model with these settings") as info:
+            Predictor.load(run, "cpu", cfg=EvalConfig(num_samples=2, seed=3))
+        assert "uncertsplat evaluate" in str(info.value)
+        (run / "eval" / "predictive.pt").unlink()
+        with pytest.raises(UserError, match="is gone.*holds no predictive"):
+            Predictor.load(run, "cpu")
+
+    def test_the_kept_fit_is_read_on_its_device_and_fitted_again_on_another(self, evaluated, tmp_path, monkeypatch):
+        """With the scene there, a predictive kept for this model and settings is read, not fitted again (the std
+        factor's K renders of the calibration views); one fitted on another device type is fitted again, as
+        evaluate on this device would. An evaluation of the training split leaves the file alone."""
+        from uncertsplat.eval import engine
+        from uncertsplat.predict import Predictor
+
+        run = tmp_path / "run"
+        shutil.copytree(evaluated[0], run)
+        path = run / "eval" / "predictive.pt"
+        kept = path.read_bytes()
+        evaluate.run(run, EvalConfig(num_samples=2, seed=3, split="train", max_views=1, save_maps=False),
+                     device=torch.device("cpu"))
+        assert path.read_bytes() == kept
+        real, calls = engine.fit_std_scale, []
+        monkeypatch.setattr(engine, "fit_std_scale", lambda *a, **k: calls.append(1) or real(*a, **k))
+        read = Predictor.load(run, "cpu")
+        assert calls == [] and read.std_factor == pytest.approx(evaluated[1].std_scale)
+        data = torch.load(path, weights_only=True)
+        torch.save({**data, "device": "cuda"}, path)
+        fitted = Predictor.load(run, "cpu")
+        assert calls == [1] and fitted.std_factor == read.std_factor
+        assert torch.load(path, weights_only=True)["device"] == "cpu"  # the default load keeps its own
 
     def test_a_pose_gets_the_same_maps_wherever_it_stands_in_a_batch(self, evaluated):
         """A pose of one's own is seeded by itself, not by its place: [A, B] and [B, A] give A the same maps."""

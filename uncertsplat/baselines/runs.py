@@ -74,6 +74,13 @@ class LoadedRun:
         out._scene = self._scene
         return out
 
+    def with_scene(self, scene: SceneData) -> LoadedRun:
+        """This run with ``scene`` standing in for its scene folder (``load_scene`` returns it): the scene as an
+        earlier evaluation loaded it (``stages.predictive_cache``), where the folder itself is not."""
+        out = dataclasses.replace(self)
+        out._scene = scene
+        return out
+
     @property
     def prior(self) -> Prior:
         """The ``gaussians.prior.Prior`` (variant, temperature, ...) to sample this model with."""

@@ -230,17 +230,19 @@ def with_side_terms(sampler: Sampler, residual: ResidualField | None, train_came
 
 def scored_sampler(new_sampler: Callable[[], Sampler], residual: ResidualField | None, cameras: Cameras,
                    split: Mapping[str, Sequence[int]], cfg: EvalSettings, device: torch.device, *,
-                   load_views: Callable[[list[int]], ViewSet],
-                   set_aside_maps: dict[int, tuple[Tensor, Tensor]] | None = None
-                   ) -> tuple[Sampler, StdFit]:
+                   load_views: Callable[[list[int]], ViewSet] | None,
+                   set_aside_maps: dict[int, tuple[Tensor, Tensor]] | None = None,
+                   known_fit: StdFit | None = None) -> tuple[Sampler, StdFit]:
     """The sampler an evaluation of a run scores (``with_side_terms``: the pixel noise ``residual`` and the
     view-consistency term of the ``split``'s training ``cameras``), with the std factor and the tails
     ``fit_std_scale`` fits for it. ``new_sampler()`` gives a fresh sampler of the run; the fit is made with one and
     the returned sampler is another (a baseline's sampler may keep state between calls), both with the same side
     terms, built once. ``set_aside_maps``: ``fit_residual``'s, when it fitted the noise in this process
-    (``fit_std_scale``)."""
+    (``fit_std_scale``). ``known_fit``: the fit an earlier evaluation of the same model and settings made
+    (``stages.predictive_cache``), returned as it is: nothing is fitted and ``load_views`` is not called."""
     fitting = with_side_terms(new_sampler(), residual, cameras[list(split.get("train", ()))], cfg, device)
-    fit = fit_std_scale(fitting, split, cfg, device, load_views=load_views, set_aside_maps=set_aside_maps)
+    fit = known_fit if known_fit is not None else fit_std_scale(fitting, split, cfg, device, load_views=load_views,
+                                                                set_aside_maps=set_aside_maps)
     return dataclasses.replace(new_sampler(), residual=residual, consistency=fitting.consistency), fit
 
 

@@ -345,6 +345,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     from uncertsplat.io.atomic import atomic_write_text, run_lock
     from uncertsplat.provenance import hash_config
     from uncertsplat.schemas.metrics import EvalReport
+    from uncertsplat.stages.predictive_cache import keep_predictive
     from uncertsplat.stages.residual_cache import fitted_residual
 
     run_dir = Path(run_dir)
@@ -392,6 +393,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
             sampler, fit = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual,
                                           scene.cameras, scene.split, cfg, device, load_views=train_views,
                                           set_aside_maps=set_aside_maps)
+        if cfg.split == "test":  # what the predictive needs besides the model, for Predictor.load without photos
+            keep_predictive(loaded, scene, cfg, residual, fit, device)
         if not cfg.save_maps and (out / "maps").is_dir():
             # an earlier evaluation's maps would sit beside metrics they no longer belong to (the report reads both)
             shutil.rmtree(out / "maps")

@@ -1,0 +1,148 @@
+"""What ``Predictor`` needs to render a run's predictive where its scene folder is not (``RUN/eval/predictive.pt``).
+
+The predictive ``evaluate`` scores is the model's posterior plus side terms fitted on the scene's photos: the pixel
+noise (``residual_cache``) and the std factor and tails (``eval.engine.fit_std_scale``), and it is rendered in the
+scene's normalised frame, with the view-consistency term of its training cameras. A robot or a planner that queries
+the run's uncertainty at its own poses has the run folder, not the photos (often gigabytes). So ``evaluate`` (and a
+``Predictor.load`` that fits them) keeps these here: the fitted noise's state, the std factor and tails, and the scene's
+cameras, split and normalisation as loaded; ``Predictor.load`` reads them when the scene cannot be loaded.
+
+The file is keyed by the model file, the run's ``config.json`` and ``scene.json`` and every evaluation setting (the
+whole ``EvalConfig``): a file for another model or other settings is not used. Unlike ``residual.pt`` the key leaves
+out the device type and the versions, which are recorded instead: a run evaluated on a desktop's CPU is queried on a
+robot's GPU (the maps then differ from the EXR maps by the devices' rounding, and ``Predictor.load`` says so).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import pickle
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+FILE_NAME = "predictive.pt"
+FORMAT = 1
+"""The layout of the file's dictionary; a file of another layout is not used."""
+
+
+def predictive_key(loaded, cfg) -> str | None:
+    """The key of ``loaded``'s (a ``baselines.LoadedRun``) predictive under the evaluation settings ``cfg``: a
+    SHA-256 over the model file, the run's ``config.json`` and ``scene.json``, the whole ``cfg`` and the noise fit's
+    version. None for a model that is not one file (an ensemble) or a file that cannot be read."""
+    from uncertsplat.eval.engine import RESIDUAL_FIT
+    from uncertsplat.provenance import file_sha256
+
+    source, run_dir = Path(loaded.source), Path(loaded.run_dir)
+    try:
+        if not source.is_file() or not (run_dir / "scene.json").is_file():
+            return None
+        parts = {
+            "model": file_sha256(source),
+            "config": hashlib.sha256((run_dir / "config.json").read_bytes()).hexdigest(),
+            "scene": hashlib.sha256((run_dir / "scene.json").read_bytes()).hexdigest(),
+            "settings": cfg.model_dump(mode="json"),
+            "fit": RESIDUAL_FIT,
+        }
+    except OSError:
+        return None
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def keep_predictive(loaded, scene, cfg, residual, fit, device: torch.device) -> Path | None:
+    """Write ``RUN/eval/predictive.pt`` for ``loaded``'s model under ``cfg``: the pixel noise ``residual`` (a
+    ``ResidualField`` or None), the ``StdFit`` ``fit`` and ``scene``'s cameras, split and normalisation. Returns the
+    path, or None when the model has no key (``predictive_key``). Call it under the run's lock."""
+    from uncertsplat.io.atomic import atomic_write
+
+    key = predictive_key(loaded, cfg)
+    if key is None:
+        return None
+    cams = scene.cameras
+    data = {
+        "format": FORMAT,
+        "key": key,
+        "device": device.type,
+        "versions": plain_versions(),  # plain strings (torch's version is a class weights_only refuses)
+        "residual": residual.state() if residual is not None else None,
+        "std": {"scale": fit.scale, "dof": fit.dof, "names": list(fit.names)},
+        "scene": {
+            "cam_from_world": cams.cam_from_world.detach().cpu().clone(),  # [N,4,4]
+            "K": cams.K.detach().cpu().clone(),  # [N,3,3]
+            "width": int(cams.width), "height": int(cams.height), "names": list(cams.image_names),
+            "split": {k: [int(i) for i in v] for k, v in scene.split.items()},
+            "scene_scale": float(scene.scene_scale),
+            "world_from_source": scene.world_from_source.detach().cpu().clone(),  # [4,4]
+            "depth_scale_to_gt": scene.depth_scale_to_gt,
+        },
+    }
+    path = Path(loaded.run_dir) / "eval" / FILE_NAME
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, lambda f: torch.save(data, f))
+    return path
+
+
+def plain_versions() -> dict[str, str]:
+    """``provenance.versions()`` as plain strings, as the file records them and ``KeptPredictive.versions`` holds."""
+    from uncertsplat.provenance import versions
+
+    return {str(k): str(v) for k, v in versions().items()}
+
+
+@dataclass(frozen=True)
+class KeptPredictive:
+    """``RUN/eval/predictive.pt`` as read (``read_predictive``).
+
+    Attributes:
+        scene: the scene as the evaluation loaded it (``SceneData``: cameras, split, normalisation; no points and
+            no photos: its image paths name files that need not exist).
+        residual_state: ``ResidualField.state()`` of the pixel noise (None: none was fitted).
+        scale, dof: the std factor and the Student-t's degrees of freedom (None: not fitted / Gaussian).
+        names: the images the two were fitted on.
+        device: the device type the side terms were fitted on.
+        versions: the versions that wrote the file.
+    """
+
+    scene: object
+    residual_state: dict | None
+    scale: float | None
+    dof: float | None
+    names: tuple[str, ...]
+    device: str
+    versions: dict
+
+
+def read_predictive(loaded, cfg, scene_folder: str | Path) -> KeptPredictive | None:
+    """``RUN/eval/predictive.pt`` of ``loaded`` when it was written for this model, run and ``cfg``
+    (``predictive_key``); None when there is none, it is for another model or settings, or it cannot be read.
+    ``scene_folder``: where the run's scene was (the image paths are named under it)."""
+    from uncertsplat.types import Cameras, SceneData
+
+    key = predictive_key(loaded, cfg)
+    path = Path(loaded.run_dir) / "eval" / FILE_NAME
+    if key is None or not path.is_file():
+        return None
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+        if not isinstance(data, dict) or data.get("format") != FORMAT or data.get("key") != key:
+            return None
+        s, std = data["scene"], data["std"]
+        cams = Cameras(s["cam_from_world"].float(), s["K"].float(), int(s["width"]), int(s["height"]),
+                       tuple(s["names"]))
+        images = Path(scene_folder) / "images"
+        scene = SceneData(cameras=cams, image_paths=tuple(images / n for n in cams.image_names),
+                          split={k: tuple(v) for k, v in s["split"].items()},
+                          points=torch.zeros(0, 3), points_rgb=torch.zeros(0, 3),
+                          scene_scale=float(s["scene_scale"]), world_from_source=s["world_from_source"],
+                          depth_scale_to_gt=s["depth_scale_to_gt"],
+                          source={"kind": "kept", "path": str(path)})
+        return KeptPredictive(scene=scene, residual_state=data["residual"], scale=std["scale"], dof=std["dof"],
+                              names=tuple(std["names"]), device=str(data["device"]),
+                              versions={str(k): str(v) for k, v in data["versions"].items()})
+    except (OSError, RuntimeError, ValueError, KeyError, TypeError, EOFError, pickle.UnpicklingError):
+        return None
+
+
+__all__ = ["FILE_NAME", "KeptPredictive", "keep_predictive", "plain_versions", "predictive_key", "read_predictive"]
