@@ -55,7 +55,9 @@ def main(run: Path, view: str, k: int) -> None:
         write_png(out / f"{tag}_depth_std.png", colorize(maps.depth_std[0, ..., 0]))
         print(f"{tag} ({cam.image_names[0]}): mean RGB std {maps.rgb_std.mean():.4f} (x{maps.std_factor or 1:.2f} "
               f"calibrated), median depth {maps.depth_mean.median():.3g} +- {maps.depth_std.median():.3g} in the "
-              f"scene's units")
+              f"scene's units; "
+              + ("a photo looked through the pose" if bool(maps.seen_free[0]) else
+                 "no photo looked through the pose (inside an object, behind a wall or unseen): do not trust its maps"))
     print(f"the pose between {names[j]} and {scene.cameras.image_names[nearest]}; maps in {out}")
 
 

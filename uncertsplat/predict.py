@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import operator
+import threading
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -61,6 +62,10 @@ class Prediction:
         dof: degrees of freedom of the Student-t the RGB std is read with (None: a Gaussian).
         depth_to_source: the factor from the run's normalised depth to the scene's units (already applied above).
         image_names: the cameras' names.
+        seen_free: [N] bool, whether a training photo looked through each camera's position before meeting a surface
+            (``Predictor.seen_free``). False for a camera inside an object or behind a wall, whose maps look confident
+            (it sees the inside of a surface the photos saw from outside), and for one in space no photo showed
+            empty: a planner should not take such a pose as reachable. None: not computed.
     """
 
     rgb_mean: Tensor
@@ -72,6 +77,7 @@ class Prediction:
     dof: float | None
     depth_to_source: float
     image_names: tuple[str, ...]
+    seen_free: Tensor | None = None
 
     def interval(self, p: float = 0.95, *, calibrated: bool = False) -> tuple[Tensor, Tensor]:
         """([N,H,W,3] lower, upper): each pixel's central interval of probability ``p`` for its colour, around the
@@ -225,6 +231,7 @@ class Predictor:
     def __init__(self, run_dir: Path, loaded, scene, sampler, fit, cfg, device: torch.device):
         self.run_dir, self.loaded, self.scene, self.device = Path(run_dir), loaded, scene, device
         self._sampler, self._cfg = sampler, cfg
+        self._free, self._free_lock = None, threading.Lock()  # ``_free_space``, built on first use
         self.config = cfg
         self.std_factor: float | None = fit.scale
         self.dof: float | None = fit.dof
@@ -367,6 +374,54 @@ class Predictor:
         cfw = normalized_cam_from_world(cfs, self._world_from_source)
         return Cameras(cfw.float(), Ks.expand(len(cfs), 3, 3).float().clone(), width, height, names)
 
+    def seen_free(self, points, frame: str = "source") -> Tensor:
+        """[P] bool: whether a training photo's ray passed through each point on its way to the surface the model
+        renders there (the point in that photo's image, in front of its camera, nearer than the rendered depth by
+        more than 3 % of it, or where the ray meets nothing): space a photo showed empty. False inside objects and
+        behind walls, where a render is confident but means nothing, and where no photo looked; a planner keeps its
+        poses and paths in the True part. Tested against the renders of up to 64 training views (the
+        view-consistency term's, else rendered once on the first call).
+
+        Args:
+            points: [P,3] or [3] positions, in the scene's own frame and units (``frame="source"``, as
+                ``cameras_from_source`` takes poses) or the run's normalised world (``frame="world"``, as
+                ``scene.cameras``).
+            frame: ``"source"`` or ``"world"``.
+
+        Raises:
+            UserError: points not [P,3] or not finite, an unknown frame.
+        """
+        if frame not in ("source", "world"):
+            raise UserError(f"frame must be 'source' or 'world', got {frame!r}")
+        pts = torch.as_tensor(points, dtype=torch.float64)
+        if pts.ndim == 1:
+            pts = pts[None]
+        if pts.ndim != 2 or pts.shape[-1] != 3:
+            raise UserError(f"points must be [P,3] or [3], got {tuple(pts.shape)}")
+        if not bool(torch.isfinite(pts).all()):
+            bad = int((~torch.isfinite(pts).all(-1)).nonzero()[0, 0])
+            raise UserError(f"point {bad} is not finite: {pts[bad].tolist()}")
+        if frame == "source":
+            T = self._world_from_source
+            pts = pts @ T[:3, :3].T + T[:3, 3]
+        return self._free_space().seen_free(pts.float().to(self.device)).cpu()
+
+    def _free_space(self):
+        """The training renders ``seen_free`` tests against: the view-consistency term's (``ViewConsistency``), or
+        one built for it on the first call when the predictive has none (``consistency_views = 0``)."""
+        from uncertsplat.eval.engine import view_consistency
+
+        if self._sampler.consistency is not None:
+            return self._sampler.consistency
+        with self._free_lock:
+            if self._free is None:
+                train = self.scene.cameras[list(self.scene.split.get("train", ()))]
+                if len(train) == 0:
+                    raise UserError("the run has no training view to tell free space by")
+                cfg = self._cfg.model_copy(update={"consistency_views": 64, "finer_detail": False})
+                self._free = view_consistency(self._sampler, train, cfg, self.device)
+        return self._free
+
     def predict(self, cameras: Cameras, num_samples: int | None = None, seed: int | None = None) -> Prediction:
         """``evaluate``'s mean and std maps of ``cameras`` (normalised world: ``cameras_from_source`` or
         ``scene.cameras``), one view at a time. Each view's generator is seeded as ``evaluate`` seeds it
@@ -429,7 +484,9 @@ class Predictor:
         return Prediction(rgb_mean=cat("rgb_mean", 3), rgb_std=cat("rgb_std", 3),
                           depth_mean=cat("depth_mean", 1) * to_source, depth_std=cat("depth_std", 1) * to_source,
                           alpha=cat("alpha_mean", 1), std_factor=self.std_factor, dof=self.dof,
-                          depth_to_source=to_source, image_names=tuple(cameras.image_names))
+                          depth_to_source=to_source, image_names=tuple(cameras.image_names),
+                          seen_free=self._free_space().seen_free(cameras.centers.to(self.device)).cpu()
+                          if len(cameras) else torch.zeros(0, dtype=torch.bool))
 
 
 __all__ = ["Prediction", "Predictor"]

@@ -959,6 +959,46 @@ class TestPredictor:
         assert calls == [1] and fitted.std_factor == read.std_factor
         assert torch.load(path, weights_only=True)["device"] == "cpu"  # the default load keeps its own
 
+    def test_says_which_poses_and_points_a_photo_showed_empty(self, evaluated):
+        """``seen_free``: the scene's cameras and a point between a camera and the wall its middle pixel sees are in
+        space a photo looked through; a camera beyond the room's wall (whose render looks like any other) is not;
+        the scene's frame and the run's agree; bad points are refused."""
+        from uncertsplat.predict import Predictor
+
+        run, _ = evaluated
+        pred = Predictor.load(run, "cpu", cfg=EvalConfig(num_samples=2, seed=3))
+        cams = pred.scene.cameras
+        test = list(pred.scene.split["test"])
+        out = pred.predict(cams[test[:2]])
+        assert out.seen_free.tolist() == [True, True]
+        train = list(pred.scene.split["train"])
+        cam = cams[[train[0]]]
+        rendered = pred.predict(cam, num_samples=1)
+        depth = rendered.depth_mean[0, ..., 0] / rendered.depth_to_source  # [H,W] the run's units
+        row, col = divmod(int(depth.argmax()), cam.width)  # the farthest surface it sees: the room's wall
+        ray = torch.tensor([col + 0.5, row + 0.5, 1.0]) @ torch.linalg.inv(cam.K[0]).T  # camera z = 1
+        world = lambda z: cam.centers[0] + (ray * z) @ cam.cam_from_world[0, :3, :3]  # noqa: E731
+        d = float(depth[row, col])
+        assert pred.seen_free(torch.stack([world(0.5 * d), world(2.0 * d)]), frame="world").tolist() == [True, False]
+        beyond = cam.cam_from_world.clone()
+        beyond[0, :3, 3] = -(beyond[0, :3, :3] @ world(2.0 * d))  # the camera moved through the wall
+        moved = pred.predict(dataclasses.replace(cam, cam_from_world=beyond, image_names=("beyond",)), num_samples=1)
+        assert moved.seen_free.tolist() == [False]
+        T = pred.scene.world_from_source.double()
+        inside = torch.linalg.solve(T[:3, :3], world(0.5 * d).double() - T[:3, 3])  # the same point in the scene's frame
+        assert pred.seen_free(inside).tolist() == [True]
+        # without the view-consistency term the renders are made for it, once
+        bare = Predictor.load(run, "cpu", cfg=EvalConfig(num_samples=2, seed=3, consistency_views=0))
+        assert bare._sampler.consistency is None
+        assert bare.seen_free(torch.stack([world(0.5 * d), world(2.0 * d)]), frame="world").tolist() == [True, False]
+        assert bare._free is not None and len(bare._free.cameras) == len(train)
+        with pytest.raises(UserError, match="point 1 is not finite"):
+            pred.seen_free([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0]])
+        with pytest.raises(UserError, match=r"points must be \[P,3\]"):
+            pred.seen_free(torch.zeros(4, 2))
+        with pytest.raises(UserError, match="frame must be"):
+            pred.seen_free(torch.zeros(1, 3), frame="camera")
+
     def test_a_pose_gets_the_same_maps_wherever_it_stands_in_a_batch(self, evaluated):
         """A pose of one's own is seeded by itself, not by its place: [A, B] and [B, A] give A the same maps."""
         from uncertsplat.predict import Predictor

@@ -289,6 +289,60 @@ class TestViewConsistency:
         assert vc.rgb.shape == (12, H, W, 3) and vc.depth.shape == (12, H, W)
 
 
+class TestSeenFree:
+    """``ViewConsistency.seen_free``: space a training view's rays passed through before their surface."""
+
+    def _free(self, depth_fn, azimuths=(0.0,)):
+        """The term of cameras at these azimuths (4 units from the origin, looking at it) whose depth maps
+        ``depth_fn(k)`` [H,W] gives, built by hand."""
+        cams = _cameras(azimuths)
+        depth = torch.stack([depth_fn(k) for k in range(len(cams))])
+        rgb = torch.zeros(len(cams), H, W, 3, dtype=torch.float16)
+        return ViewConsistency(_sample(), cams, rgb, depth, gate=1.0)
+
+    def test_before_the_surface_within_the_image_only(self):
+        """A camera on the -z axis 4 units out sees a wall at depth 4 (the plane z = 0): points on its way there
+        are free, points at the wall (within the tolerance) or behind it, behind the camera or outside its image
+        are not."""
+        term = self._free(lambda k: torch.full((H, W), 4.0))
+        pts = torch.tensor([[0.0, 0.0, -3.0],   # 1 unit out of the camera
+                            [0.0, 0.0, -0.2],   # 3.8: 5 % before the wall
+                            [0.0, 0.0, -0.05],  # 3.95: within 3 % of the wall
+                            [0.0, 0.0, 1.0],    # behind the wall
+                            [0.0, 0.0, -5.0],   # behind the camera
+                            [30.0, 0.0, -3.0]])  # in front of it, outside its image
+        assert term.seen_free(pts).tolist() == [True, True, False, False, False, False]
+
+    def test_a_ray_that_meets_nothing_passes_through_everything_in_its_image(self):
+        """Depth 0 (no Gaussian on the ray: sky, an opening) leaves every point in the image free, at any depth."""
+        term = self._free(lambda k: torch.zeros(H, W))
+        assert term.seen_free(torch.tensor([[0.0, 0.0, -3.0], [0.0, 0.0, 50.0]])).tolist() == [True, True]
+
+    def test_one_view_that_saw_through_a_point_is_enough_in_any_chunk(self):
+        """A point hidden from eight views (a wall at depth 1 in each) and seen through by the ninth, in another
+        chunk of ``VIEW_CHUNK``, is free; without the ninth it is not."""
+        assert consistency.VIEW_CHUNK == 8
+        walls = lambda k: torch.full((H, W), 1.0 if k < 8 else 10.0)  # noqa: E731
+        azimuths = [0.0] * 9
+        assert self._free(walls, azimuths).seen_free(torch.tensor([[0.0, 0.0, 0.0]])).tolist() == [True]
+        assert self._free(walls, azimuths[:8]).seen_free(torch.tensor([[0.0, 0.0, 0.0]])).tolist() == [False]
+
+    def test_where_a_photo_was_taken_is_free(self):
+        """A training camera's centre (z = 0 in its own view) and its surroundings within 3 % of the views' median
+        depth are free, behind it too; farther behind it is not."""
+        term = self._free(lambda k: torch.full((H, W), 4.0))
+        pts = torch.tensor([[0.0, 0.0, -4.0], [0.0, 0.0, -4.1], [0.0, 0.0, -4.2]])  # centre, 0.1 and 0.2 behind
+        assert term.seen_free(pts).tolist() == [True, True, False]
+
+    def test_no_points_and_extreme_points(self):
+        term = self._free(lambda k: torch.full((H, W), 4.0))
+        assert term.seen_free(torch.zeros(0, 3)).shape == (0,)
+        far = torch.tensor([[0.0, 0.0, -1e30], [1e30, 1e30, 1e30], [0.0, 0.0, 1e30]])
+        assert term.seen_free(far).tolist() == [False, False, False]
+        empty = self._free(lambda k: torch.zeros(H, W))  # no surface at all: no distance around a camera
+        assert empty.seen_free(torch.tensor([[0.0, 0.0, -4.0], [0.0, 0.0, -2.0]])).tolist() == [False, True]
+
+
 def test_depth_edges_flag_jumps_not_slopes():
     step = torch.ones(8, 10)
     step[:, 5:] = 1.5

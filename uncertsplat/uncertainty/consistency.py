@@ -305,6 +305,32 @@ class ViewConsistency:
         seen = inside & ((z - there[..., 3]).abs() <= DEPTH_TOLERANCE * z)
         return cams, z, inside, there, seen
 
+    @torch.no_grad()
+    def seen_free(self, points: Tensor) -> Tensor:
+        """[P] bool: whether a compared training view's ray passed through each of ``points`` [P,3] (world) on its way
+        to the surface it rendered: the point lands in that view's image, in front of it, nearer than the rendered
+        depth there by more than ``DEPTH_TOLERANCE`` of it (or where the ray meets no Gaussian: depth 0); or within
+        ``DEPTH_TOLERANCE`` of the compared views' median rendered depth from a training camera (``frustum_cameras``),
+        where a photo was taken. False for a point inside an object or behind a wall, and for one no training view
+        looked through: space no photo showed empty."""
+        surface = self.depth[self.depth > 0]
+        near = DEPTH_TOLERANCE * float(surface.float().median()) if surface.numel() else 0.0
+        stood = self.frustum_cameras if self.frustum_cameras is not None else self.cameras
+        free = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
+        for centre in stood.centers.to(points.device).double():  # one camera at a time: no [P,T] distances
+            free |= (points.double() - centre).norm(dim=-1) < near
+        w, h = self.cameras.width, self.cameras.height
+        for k0 in range(0, len(self.cameras), VIEW_CHUNK):
+            cams = self.cameras[k0:k0 + VIEW_CHUNK].to(points.device)
+            uv, z = project_points(points.float(), cams.cam_from_world, cams.K)  # [C,P,2], [C,P]
+            inside = _in_image(uv, z, w, h)  # [C,P]
+            col = uv[..., 0].nan_to_num(0.0).floor().clamp(0, w - 1).long()
+            row = uv[..., 1].nan_to_num(0.0).floor().clamp(0, h - 1).long()
+            depth = self.depth[k0:k0 + VIEW_CHUNK].to(points.device)  # [C,H,W]
+            at = depth[torch.arange(len(cams), device=points.device)[:, None], row, col]  # [C,P]
+            free |= (inside & ((at <= 0.0) | (z < at * (1.0 - DEPTH_TOLERANCE)))).any(0)
+        return free
+
     def _outside_every_image(self, points: Tensor, inside_any: Tensor) -> Tensor:
         """[S] bool: the ``points`` [S,3] outside the image of every training camera, given ``inside_any`` [S] (inside
         some compared view's image): only the others are projected into the other training cameras (usually few)."""
