@@ -238,8 +238,7 @@ class Predictor:
         T = scene.world_from_source.double()
         self._world_from_source = T  # [4,4] x_world = s x_source + t
         # s of x_world = s x_source + t: what evaluate's EXR header gives as 1 / depth_to_source
-        self.scale = (1.0 / scene.depth_scale_to_gt if scene.depth_scale_to_gt
-                      else float(torch.linalg.det(T[:3, :3]).abs() ** (1.0 / 3.0)))
+        self.scale = 1.0 / scene.depth_to_source
 
     @classmethod
     def load(cls, run_dir: str | Path, device: str | torch.device = "auto", *, cfg=None) -> Predictor:

@@ -173,6 +173,14 @@ class SceneData:
         """3DGS "cameras extent": 1.1 x the largest camera distance from the centroid."""
         return 1.1 * self.scene_scale
 
+    @property
+    def depth_to_source(self) -> float:
+        """The factor from the run's normalised depth to the scene's own units: ``depth_scale_to_gt`` when known,
+        else 1 / s of ``world_from_source`` (x_world = s R x_source + t)."""
+        if self.depth_scale_to_gt:
+            return float(self.depth_scale_to_gt)
+        return 1.0 / float(torch.linalg.det(self.world_from_source.double()[:3, :3]).abs() ** (1.0 / 3.0))
+
 
 @dataclass(frozen=True)
 class GaussianSample:

@@ -67,6 +67,12 @@ def _free_port() -> int:
 
 
 class TestServer:
+    def test_the_depth_modes_are_in_the_scenes_units(self, viewer):
+        """`view` gives its renderer the scene's depth factor: the depth modes' values and colour bar are in the
+        scene's units, as the report's and evaluate's EXR maps are."""
+        assert viewer.renderer.depth_units == "scene units"
+        assert viewer.renderer.depth_factor == pytest.approx(viewer.scene.depth_to_source) != 1.0
+
     def test_serves_the_page(self, viewer):
         with urllib.request.urlopen(f"http://127.0.0.1:{viewer.port}/", timeout=30) as r:
             body = r.read().decode("utf-8", "replace")

@@ -100,6 +100,22 @@ class TestFrames:
         assert np.isnan(frame.values[empty]).all() and np.isfinite(frame.values[~empty]).all()
         assert (frame.image[empty] == 0).all()
 
+    def test_depth_modes_show_the_scenes_units_they_name(self, renderer, scene, device):
+        """With the scene's factor the depth and depth-std values are the run's times it, and named scene units (they
+        were the run's normalised units under that name: 4x too small on the tiny scene); without it they say they
+        are the run's units. The depth buffer stays in the run's units (the 3D scene's)."""
+        scaled = FrameRenderer(renderer.loaded, scene.scene_scale, device, depth_to_source=scene.depth_to_source)
+        assert scene.depth_to_source == pytest.approx(1.0 / float(torch.linalg.det(scene.world_from_source[:3, :3]))
+                                                      ** (1.0 / 3.0), rel=1e-6) and scene.depth_to_source != 1.0
+        cam = _train_camera(scene, 1, device=device)
+        run_units, own = renderer.frame(cam, "depth"), scaled.frame(cam, "depth")
+        np.testing.assert_allclose(own.values, run_units.values * scene.depth_to_source, rtol=1e-6)
+        np.testing.assert_array_equal(own.depth, run_units.depth)
+        assert own.unit == "depth (scene units)" and run_units.unit == "depth (the run's normalised units)"
+        std_run, std_own = renderer.frame(cam, "depth_std", num_samples=4), scaled.frame(cam, "depth_std", num_samples=4)
+        np.testing.assert_allclose(std_own.values, std_run.values * scene.depth_to_source, rtol=1e-5, atol=1e-7)
+        assert std_own.unit == "depth std (scene units)"
+
     @pytest.mark.parametrize("mode", ["rgb_std", "depth_std"])
     def test_std_refined_in_steps_equals_drawn_at_once(self, renderer, scene, mode, device):
         cam = _train_camera(scene, 4, device=device)

@@ -67,8 +67,15 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
             return fit_residual(loaded.sampler(scene_scale, device), scene.split["train"],
                                 EvalConfig(resolution=0.0, edge_noise=False), device,
                                 load_views=partial(load_view_set, scene, depth=False, keep_8bit=True))
+    if scene is not None:
+        to_source = scene.depth_to_source
+    elif info is not None:  # the scene's units from the run's record of its normalisation
+        T = torch.tensor(info.world_from_source, dtype=torch.float64)
+        to_source = 1.0 / float(torch.linalg.det(T[:3, :3]).abs() ** (1.0 / 3.0))
+    else:
+        to_source = None
     renderer = FrameRenderer(loaded, scene_scale, device, score_cameras=score_cams, free_space_cameras=free_cams,
-                             seed=cfg.seed, unseen_field=fit_unseen)
+                             seed=cfg.seed, unseen_field=fit_unseen, depth_to_source=to_source)
     return Viewer(renderer, scene, cfg)
 
 

@@ -166,7 +166,8 @@ class StdAccumulator:
         if mode == "rgb_std":
             values, unit = maps.rgb_std[0].mean(-1), "RGB std (mean over channels)"
         else:
-            values, unit = maps.depth_std[0, ..., 0], "depth std (scene units)"
+            values, unit = maps.depth_std[0, ..., 0] * self.renderer.depth_factor, \
+                f"depth std ({self.renderer.depth_units})"
         values = values.float().cpu().numpy()
         image, rng = colour_map(values, value_range)
         d = maps.depth_mean[0, ..., 0]
@@ -188,14 +189,20 @@ class FrameRenderer:
         seed: seed of the std modes' samples (per camera) and of the predictive score.
         unseen_field: returns the run's ``ResidualField`` with its colour posterior (fitted on the training
             views; called once, when the ``unseen`` mode is first shown); None leaves that mode out.
+        depth_to_source: the factor from the run's normalised depth to the scene's units (``SceneData.
+            depth_to_source``), which the depth modes show; None: they show the run's own units, and say so.
     """
 
     def __init__(self, loaded: LoadedRun, scene_scale: float, device: torch.device | str, *,
                  score_cameras: Cameras | None = None, free_space_cameras: Cameras | None = None, seed: int = 0,
-                 unseen_field: Callable[[], ResidualField | None] | None = None):
+                 unseen_field: Callable[[], ResidualField | None] | None = None,
+                 depth_to_source: float | None = None):
         from uncertsplat.gaussians import variational
 
         self.loaded = loaded
+        # the depth modes' values and label (the frames' depth buffers stay in the run's units: the 3D scene's)
+        self.depth_factor = float(depth_to_source) if depth_to_source is not None else 1.0
+        self.depth_units = "scene units" if depth_to_source is not None else "the run's normalised units"
         self.device = torch.device(device)
         self.seed = int(seed)
         self.sampler = loaded.sampler(scene_scale, self.device)
@@ -256,9 +263,9 @@ class FrameRenderer:
                 return Frame(_to_uint8(out.rgb[0]), depth, note=f"RGB: {self.rgb_source}")
             d = out.depth[0, ..., 0].float()
             values = torch.where(out.alpha[0, ..., 0] >= EMPTY_ALPHA, d, torch.full_like(d, float("nan")))
-            values = values.cpu().numpy()
+            values = values.cpu().numpy() * self.depth_factor
             image, rng = colour_map(values, value_range)
-            return Frame(image, depth, rng, "depth (scene units)", 1, "black: no surface", values)
+            return Frame(image, depth, rng, f"depth ({self.depth_units})", 1, "black: no surface", values)
         if mode in STD_MODES:
             acc = self.std_accumulator(cameras)
             acc.add(num_samples)
