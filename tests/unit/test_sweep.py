@@ -362,6 +362,32 @@ def test_table_averages_seeds_and_fronts_are_per_scene():
     assert summary.default == "a.variational" and summary.num_failed == 1
 
 
+def test_points_at_another_resolution_get_fronts_of_their_own(tmp_path):
+    """A downscaled point is scored against smaller photos (a sweep put one on the default's front with NLL -1.44
+    against -1.30): each resolution gets its own front, the figure a row of panels, the page a note."""
+    from uncertsplat.report.sweep_page import build_sweep_page
+    from uncertsplat.sweep.pareto import plot_pareto, split_by_resolution, summarize, table_points
+
+    def at(pid, downscale, **kw):
+        return _record(pid, **kw).model_copy(update={"knobs": {"downscale": downscale}})
+
+    recs = [at("variational_ds1", 1.0, time=4.0, psnr=21.0), at("variational_ds2", 2.0, time=1.0, psnr=22.3),
+            at("fisher_ds1", 1.0, time=3.0, psnr=20.0)]
+    s = SweepSpec(pareto_y=["ause_mae"])
+    summary = summarize(s, recs)
+    assert summary.pareto == {"ause_mae_vs_time @ downscale 1": ["fisher_ds1"],
+                              "ause_mae_vs_time @ downscale 2": ["variational_ds2"]}
+    assert split_by_resolution(summary)
+    assert {p["id"]: p["panel"] for p in table_points(summary)} == {
+        "variational_ds1": "downscale 1", "variational_ds2": "downscale 2", "fisher_ds1": "downscale 1"}
+    assert "each resolution has a front of its own" in " ".join(build_sweep_page(summary, None).split())
+    same = summarize(s, [r.model_copy(update={"knobs": {}}) for r in recs])  # one resolution: one front, no note
+    assert list(same.pareto) == ["ause_mae_vs_time"] and not split_by_resolution(same)
+    assert "a front of its own" not in build_sweep_page(same, None)
+    path = plot_pareto(table_points(summary), tmp_path / "p.png", ys=["ause_mae"], group="panel")
+    assert path.stat().st_size > 1000
+
+
 def test_multi_scene_sweep_refuses_scene_flag_and_missing_folders(tmp_path):
     from uncertsplat.stages import sweep
 

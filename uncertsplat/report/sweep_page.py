@@ -67,6 +67,10 @@ def build_sweep_page(summary: SweepSummary, figure_rel: str | None) -> str:
     head = kv([("points", summary.num_points), ("failed", summary.num_failed),
                ("default (starred)", default or "-"), ("x axis", summary.pareto_x)]
               + [(f"front {name}", ", ".join(ids) or "-") for name, ids in fronts.items()])
+    if any(" @ " in name for name in fronts):  # (sweep.pareto.front_key)
+        head += note("Points trained at another downscale are scored against their photos at that size, so their "
+                     "PSNR, AUSE and NLL do not compare with the others': each resolution has a front of its own "
+                     "(\"@ downscale D\"), and the figure a row of panels.")
     sections.append(("summary", "Summary", head))
     if figure_rel:
         body = figure(figure_rel, "Accuracy vs time: every point coloured by method, the Pareto front as a black "

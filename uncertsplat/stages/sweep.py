@@ -176,7 +176,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
     from uncertsplat.device import resolve_device
     from uncertsplat.report.sweep_page import build_sweep_page
     from uncertsplat.sweep.executors import EXECUTORS, connect_ray, require_ray, run_local, run_ray
-    from uncertsplat.sweep.pareto import axis_name, plot_pareto, summarize, table_points
+    from uncertsplat.sweep.pareto import axis_name, plot_pareto, split_by_resolution, summarize, table_points
     from uncertsplat.sweep.spec import expand_points, load_spec, make_jobs, shadowed_settings
 
     spec = load_spec(Path(spec_path), overrides)
@@ -328,7 +328,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
             plot_pareto(table_points(summary), out_dir / "pareto.png", x=spec.pareto_x, ys=spec.pareto_y,
                         title=f"{spec.name}: {', '.join(axis_name(y) for y in spec.pareto_y)} against "
                               f"{axis_name(spec.pareto_x)}{means} (front in black, default starred)",
-                        group="scene" if spec.scenes else None)
+                        group="panel" if spec.scenes or split_by_resolution(summary) else None)
         fig = "pareto.png" if (out_dir / "pareto.png").is_file() else None
         atomic_write_text(out_dir / "index.html", build_sweep_page(summary, fig))
     console.print(f"wrote {log}, {out_dir / 'sweep.json'}, {out_dir / 'pareto.png'} and {out_dir / 'index.html'}")

@@ -93,9 +93,19 @@ def group_records(records: Sequence[SweepRecord]) -> list[SweepGroup]:
     return out
 
 
-def front_key(y: str, x: str, scene: str | None) -> str:
-    """The ``SweepSummary.pareto`` key of the front of ``y`` against ``x`` (per scene when scenes are named)."""
-    return f"{y}_vs_{x}" if scene is None else f"{scene}: {y}_vs_{x}"
+def resolution(knobs: Mapping[str, Any]) -> str | None:
+    """The resolution a point is trained and scored at, as a front's label: ``downscale D`` when the point sets the
+    downscale knob, None for the spec's own. Its photos are scored at that size, so PSNR, AUSE and NLL compare only
+    with points of the same resolution."""
+    d = knobs.get("downscale")
+    return None if d is None else f"downscale {float(d):g}"
+
+
+def front_key(y: str, x: str, scene: str | None, resolution: str | None = None) -> str:
+    """The ``SweepSummary.pareto`` key of the front of ``y`` against ``x`` (per scene when scenes are named, per
+    resolution when the points are scored at several: ``resolution``)."""
+    key = f"{y}_vs_{x}" if scene is None else f"{scene}: {y}_vs_{x}"
+    return key if resolution is None else f"{key} @ {resolution}"
 
 
 def summarize(spec, records: Sequence[SweepRecord]) -> SweepSummary:
@@ -110,10 +120,15 @@ def summarize(spec, records: Sequence[SweepRecord]) -> SweepSummary:
     table = group_records(recs)
     fronts = {}
     for scene in dict.fromkeys(g.scene for g in table) or [None]:
-        rows = [{"id": g.id, **g.mean} for g in table if g.scene == scene and g.seeds]
-        for y in spec.pareto_y:
-            fronts[front_key(y, spec.pareto_x, scene)] = [
-                p["id"] for p in pareto_front(rows, x=spec.pareto_x, y=y, minimize_both=y not in HIGHER_IS_BETTER)]
+        groups = [g for g in table if g.scene == scene]
+        # points scored at another resolution are scored against other photos: a front of their own each
+        sizes = list(dict.fromkeys(resolution(g.knobs) for g in groups))
+        for size in sizes:
+            rows = [{"id": g.id, **g.mean} for g in groups if g.seeds and resolution(g.knobs) == size]
+            for y in spec.pareto_y:
+                fronts[front_key(y, spec.pareto_x, scene, size if len(sizes) > 1 else None)] = [
+                    p["id"] for p in pareto_front(rows, x=spec.pareto_x, y=y,
+                                                  minimize_both=y not in HIGHER_IS_BETTER)]
     default = next((r for r in recs if r.is_default), None)
     return SweepSummary(name=spec.name, spec=json.loads(spec.model_dump_json()), num_points=len(recs),
                         num_failed=len(recs) - len(ok), default=default.group if default else None,
@@ -141,9 +156,31 @@ def y_scale(values: Sequence[float]) -> tuple[str, dict]:
 
 
 def table_points(summary: SweepSummary) -> list[dict]:
-    """The rows of ``summary.table`` that have a finished seed, as the plain points ``plot_pareto`` draws."""
-    return [{"id": g.id, "method": g.method, "status": "ok", "is_default": g.is_default, "scene": g.scene, **g.mean}
-            for g in summary.table if g.seeds]
+    """The rows of ``summary.table`` that have a finished seed, as the plain points ``plot_pareto`` draws; ``panel``
+    names the front a row is compared in (its scene and, where a scene's points are scored at several resolutions,
+    its ``resolution``), what ``plot_pareto(..., group="panel")`` draws a row of panels for."""
+    sizes: dict = {}
+    for g in summary.table:
+        sizes.setdefault(g.scene, set()).add(resolution(g.knobs))
+    points = []
+    for g in summary.table:
+        if not g.seeds:
+            continue
+        size = resolution(g.knobs) if len(sizes[g.scene]) > 1 else None
+        if size is None and len(sizes[g.scene]) > 1:
+            size = "the spec's resolution"
+        panel = ", ".join(p for p in (f"scene {g.scene}" if g.scene is not None else None, size) if p)
+        points.append({"id": g.id, "method": g.method, "status": "ok", "is_default": g.is_default, "scene": g.scene,
+                       "panel": panel or None, **g.mean})
+    return points
+
+
+def split_by_resolution(summary: SweepSummary) -> bool:
+    """Whether some scene's points are scored at several resolutions (their fronts are drawn apart)."""
+    sizes: dict = {}
+    for g in summary.table:
+        sizes.setdefault(g.scene, set()).add(resolution(g.knobs))
+    return any(len(v) > 1 for v in sizes.values())
 
 
 HIGHER_IS_BETTER = frozenset({"psnr", "ssim", "spearman"})
@@ -172,7 +209,8 @@ def plot_pareto(records: Sequence[Any], path: Path, x: str = "time", ys: Sequenc
 
     Points are coloured by method; the points on the front and the default are labelled by their id (the
     sweep's ``index.html`` lists every point with its values). The y axis follows ``y_scale``. With ``group``
-    (e.g. ``"scene"``), one row of panels per distinct value of that key, each with its own fronts. Written
+    (e.g. ``"scene"``, or ``"panel"``: ``table_points``' scene and resolution, headed by the value alone), one row
+    of panels per distinct value of that key, each with its own fronts. Written
     with matplotlib's Agg backend.
     """
     import matplotlib
@@ -189,7 +227,8 @@ def plot_pareto(records: Sequence[Any], path: Path, x: str = "time", ys: Sequenc
     fig, axes = plt.subplots(len(groups), len(ys), figsize=(6.0 * len(ys), 4.6 * len(groups)), squeeze=False)
     for row, g in enumerate(groups):
         rows = [r for r in ok if group is None or r.get(group) == g]
-        _panels(axes[row], rows, x, ys, methods, colour, None if group is None else f"{group} {g}")
+        _panels(axes[row], rows, x, ys, methods, colour,
+                None if group is None else (str(g) if group == "panel" else f"{group} {g}"))
     fig.suptitle(title)
     fig.tight_layout()
     path = Path(path)
