@@ -31,6 +31,9 @@ class PruneMetrics(Strict):
     """Mean accumulated opacity of the expected render over the metric views (1 = every pixel covered)."""
     variational_ply_bytes: int
     point_cloud_ply_bytes: int
+    """The sizes of this model's two PLY files as ``train`` writes them (what the model costs on disk, alike for
+    before, after and random): the pruned run's own ``point_cloud.ply`` is larger by the ``score_<name>`` columns
+    ``prune`` adds to it for inspection, 4 bytes per Gaussian and score."""
     seconds: float
     """Time to measure this model."""
 
