@@ -75,15 +75,28 @@ def test_rgba_composited_over_background(tmp_path, rng, bg):
     np.testing.assert_allclose(b[0, 0], bg, atol=1e-6)  # fully transparent pixel = background
 
 
-def test_jpeg_exif_orientation_is_applied(tmp_path):
+@pytest.mark.parametrize("suffix", ["jpg", "png"])
+def test_exif_orientation_is_applied_only_when_asked(tmp_path, suffix):
+    """By default the pixels as stored, as COLMAP reads them (a workspace photo with a tag was read turned against its
+    camera); ``exif_orientation=True`` gives the photo as displayed."""
+    from uncertsplat.io.images import read_alpha, read_image_8bit
+
     a = np.zeros((20, 40, 3), np.uint8)  # landscape, bright left half
     a[:, :20] = 255
-    _raw_write(tmp_path / "o.jpg", a, oiio.UINT8, {"Orientation": 6})  # "rotate 90 CW to display"
-    assert read_image_size(tmp_path / "o.jpg") == (20, 40)
-    b = read_image(tmp_path / "o.jpg")
-    assert b.shape == (40, 20, 3)
+    path = tmp_path / f"o.{suffix}"
+    _raw_write(path, a, oiio.UINT8, {"Orientation": 6})  # "rotate 90 CW to display"
+    assert read_image_size(path) == (40, 20) and read_image(path).shape == (20, 40, 3)
+    np.testing.assert_allclose(read_image(path), a / 255.0, atol=0.02)  # (JPEG's rounding)
+    assert np.array_equal(read_image_8bit(path), np.round(read_image(path) * 255).astype(np.uint8))
+    assert read_image_size(path, exif_orientation=True) == (20, 40)
+    b = read_image(path, exif_orientation=True)
+    assert b.shape == (40, 20, 3) and read_image_8bit(path, exif_orientation=True).shape == (40, 20, 3)
     # rotated clockwise, the bright left half becomes the top half
     assert b[:15].mean() > 0.9 and b[25:].mean() < 0.1
+    rgba = np.concatenate([a, np.full((20, 40, 1), 255, np.uint8)], -1)
+    _raw_write(tmp_path / "a.png", rgba, oiio.UINT8, {"Orientation": 6})
+    assert read_alpha(tmp_path / "a.png").shape == (20, 40)
+    assert read_alpha(tmp_path / "a.png", exif_orientation=True).shape == (40, 20)
 
 
 def test_tiff_and_exr_read(tmp_path, rng):

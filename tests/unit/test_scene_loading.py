@@ -696,3 +696,26 @@ class TestCameraChanges:
         rec = camera_records(self.cameras(), ["v0.png", "v1.png"])
         assert camera_changes(rec, self.cameras(n=1), extent=1.0) is None  # (the caller checks missing names)
         assert camera_changes(rec, self.cameras(n=1, turn_deg=1.0), extent=1.0).startswith("1 of its 1 views'")
+
+
+@pytest.mark.parametrize("tag", [3, 6])
+def test_a_workspace_photos_exif_tag_is_ignored_as_colmap_ignores_it(workspace, tag):
+    """COLMAP's cameras describe a photo's pixels as stored (its undistorter keeps a phone photo's tag): a workspace
+    photo tagged 3 (upside down) was read turned against its camera without a word, one tagged 6 refused as the wrong
+    size. Tagged, it loads and reads as the same pixels."""
+    import OpenImageIO as oiio
+
+    cfg = SceneConfig()
+    before = load_scene(workspace, cfg)
+    pixels = load_images(before, [0, 1])
+    for i in (0, 1):
+        path = before.image_paths[i]
+        buf = oiio.ImageBuf(str(path))
+        buf.specmod().attribute("Orientation", tag)
+        assert buf.write(str(path))
+        inp = oiio.ImageInput.open(str(path))
+        assert inp.spec().get_int_attribute("Orientation", 1) == tag
+        inp.close()
+    after = load_scene(workspace, cfg)
+    torch.testing.assert_close(after.cameras.cam_from_world, before.cameras.cam_from_world, rtol=0, atol=0)
+    assert torch.equal(load_images(after, [0, 1]), pixels)

@@ -70,7 +70,7 @@ def _keeps_8bit(scene: SceneData, index: int) -> bool:
     path = scene.image_paths[index]
     if not is_opaque_8bit(path):
         return False
-    w, h = read_image_size(path)  # as displayed (EXIF orientation applied), as read_image gives it
+    w, h = read_image_size(path)  # as stored, as read_image gives it
     fit = scene.photo_fits[index] if scene.photo_fits is not None else None
     if fit is not None:
         if fit.turns % 2:

@@ -79,9 +79,23 @@ def _header(path: Path) -> oiio.ImageSpec:
         inp.close()
 
 
-def read_image_size(path: str | Path) -> tuple[int, int]:
-    """(width, height) of an image as displayed (EXIF orientation applied), reading the header only."""
-    return _oriented_size(_header(Path(path)))
+EXIF_ORIENTATION_NOTE = ("COLMAP and the other tools that give a scene its cameras ignore the EXIF orientation "
+                         "tag: a photo's camera describes its pixels as stored")
+"""Why the readers below ignore the tag by default: a workspace's photo carrying a tag (COLMAP's undistorter keeps
+it) was read turned against its camera, upside down without a word for tag 3, refused as the wrong size for 6 and 8.
+``reconstruct`` stages tagged photos with the tag applied and reset, so its workspaces read the same either way."""
+
+
+def _orientation(spec: oiio.ImageSpec, exif_orientation: bool) -> int:
+    """The EXIF orientation to apply: the tag's with ``exif_orientation``, else 1 (the pixels as stored)."""
+    return spec.get_int_attribute("Orientation", 1) if exif_orientation else 1
+
+
+def read_image_size(path: str | Path, exif_orientation: bool = False) -> tuple[int, int]:
+    """(width, height) of an image, reading the header only: as stored (``EXIF_ORIENTATION_NOTE``), or as displayed
+    with ``exif_orientation`` (the tag applied)."""
+    spec = _header(Path(path))
+    return _oriented_size(spec) if exif_orientation else (spec.width, spec.height)
 
 
 def _reorient(arr: np.ndarray, orientation: int) -> np.ndarray:
@@ -143,12 +157,12 @@ def _read_pixels(path: Path, fmt: str, check=None):
     return data, spec
 
 
-def read_image_8bit(path: str | Path) -> np.ndarray:
+def read_image_8bit(path: str | Path, exif_orientation: bool = False) -> np.ndarray:
     """Read an 8-bit image without alpha (``is_opaque_8bit``) as its stored values: [H,W,3] uint8.
 
     ``read_image`` of the same file is this times ``types.UINT8_PHOTO_SCALE`` (float32(1/255), OpenImageIO's
     conversion: one multiplication, not a division by 255) in float32, to the bit: the same channels (grey
-    replicated, the first three of more) and EXIF orientation, at a quarter of the memory.
+    replicated, the first three of more) and orientation (``exif_orientation`` as there), at a quarter of the memory.
 
     Raises:
         UserError: like ``read_image``, naming the file.
@@ -161,7 +175,7 @@ def read_image_8bit(path: str | Path) -> np.ndarray:
             raise ValueError(f"{path} is not an 8-bit image without alpha: read it with read_image")
 
     data, spec = _read_pixels(path, "uint8", check=refuse)
-    orientation = spec.get_int_attribute("Orientation", 1)
+    orientation = _orientation(spec, exif_orientation)
     arr = np.asarray(data, dtype=np.uint8)
     if arr.ndim == 2:
         arr = arr[..., None]
@@ -171,23 +185,26 @@ def read_image_8bit(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(_reorient(np.ascontiguousarray(rgb), orientation))
 
 
-def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0),
+               exif_orientation: bool = False) -> np.ndarray:
     """Read an image as float32 RGB in [0, 1].
 
     Args:
         path: a PNG (8/16-bit), JPEG, TIFF or EXR file.
         background: RGB colour in [0, 1] under transparent pixels (alpha is composited over it).
+        exif_orientation: apply the file's EXIF orientation tag (the image as displayed); by default the pixels
+            as stored, as the scene's cameras describe them (``EXIF_ORIENTATION_NOTE``).
 
     Returns:
         [H,W,3] float32. Grayscale files are replicated to three channels; EXR values are clipped to
-        [0, 1]; JPEG EXIF orientation is applied.
+        [0, 1].
 
     Raises:
         UserError: naming the file when it is missing, empty, truncated or not an image.
     """
     path = Path(path)
     data, spec = _read_pixels(path, "float")
-    orientation = spec.get_int_attribute("Orientation", 1)
+    orientation = _orientation(spec, exif_orientation)
     alpha_index = _alpha_index(spec)
     arr = np.asarray(data, dtype=np.float32)
     if arr.ndim == 2:
@@ -217,9 +234,10 @@ def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0)) 
     return np.ascontiguousarray(rgb)
 
 
-def read_alpha(path: str | Path) -> np.ndarray | None:
-    """The alpha channel of an image as [H,W] float32 in [0, 1] (EXIF orientation applied), or None when the
-    file has no alpha channel (found from the header alone, without decoding the pixels).
+def read_alpha(path: str | Path, exif_orientation: bool = False) -> np.ndarray | None:
+    """The alpha channel of an image as [H,W] float32 in [0, 1] (oriented as ``read_image`` with the same
+    ``exif_orientation``), or None when the file has no alpha channel (found from the header alone, without decoding
+    the pixels).
 
     Raises:
         UserError: like ``read_image``, naming the file.
@@ -242,7 +260,7 @@ def read_alpha(path: str | Path) -> np.ndarray | None:
         if data is None or err:
             raise UserError(f"cannot read the image ({_clean_error(err or _oiio_error())}); it may be truncated",
                             path=path, hint=_UNREADABLE_HINT)
-        orientation = spec.get_int_attribute("Orientation", 1)
+        orientation = _orientation(spec, exif_orientation)
     finally:
         inp.close()
     arr = np.asarray(data, dtype=np.float32).reshape(spec.height, spec.width, 1)
