@@ -109,7 +109,7 @@ def read_maps(run: Path, report: EvalReport, scene) -> tuple[torch.Tensor, torch
     turns = photo_turns(scene)  # the maps of a turned photo lie as the photo does
     errs, stds = [], []
     for j, name in enumerate(report.image_names):
-        d = read_exr(run / "eval" / "maps" / f"{map_stem(name)}.exr")
+        d = read_exr(run / "eval" / "maps" / f"{map_stem(name, report.image_names)}.exr")
         mean = torch.from_numpy(np.stack([d[f"rgb_mean.{c}"] for c in "RGB"], -1)).double()
         std = torch.from_numpy(np.stack([d[f"rgb_std.{c}"] for c in "RGB"], -1)).double()
         k = turns.get(name, 0)

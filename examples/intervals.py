@@ -30,7 +30,7 @@ def main(run: Path, p: float) -> None:
     turns = photo_turns(scene)  # a photo the scene turned has its maps written as the photo lies
     out = run / "example_intervals"
     for j, name in enumerate(report.image_names):
-        exr = run / "eval" / "maps" / f"{map_stem(name)}.exr"
+        exr = run / "eval" / "maps" / f"{map_stem(name, report.image_names)}.exr"
         maps = read_exr(exr)
         mean = np.stack([maps[f"rgb_mean.{c}"] for c in "RGB"], -1)
         std = np.stack([maps[f"rgb_std.{c}"] for c in "RGB"], -1)
@@ -39,9 +39,8 @@ def main(run: Path, p: float) -> None:
                else None)
         w = half_width(p, dof)  # in stds
         lower, upper = mean - w * std, mean + w * std
-        write_exr(out / f"{map_stem(name)}.exr", {f"{b}.{c}": v[..., i] for b, v in (("lower", lower),
-                                                                                       ("upper", upper))
-                                                      for i, c in enumerate("RGB")})
+        bounds = {f"{b}.{c}": v[..., i] for b, v in (("lower", lower), ("upper", upper)) for i, c in enumerate("RGB")}
+        write_exr(out / f"{map_stem(name, report.image_names)}.exr", bounds)
         photo = turned_back(views.images[j].numpy(), turns.get(name, 0))
         inside = float(((photo >= lower) & (photo <= upper)).mean())
         kind = "Gaussian" if dof is None else f"Student-t, {dof:.3g} degrees of freedom"

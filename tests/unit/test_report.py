@@ -1013,3 +1013,26 @@ def test_legends_sit_outside_the_data_and_sigma_labels_do_not_overlap(monkeypatc
     assert all(a.get_legend() is None for a in fig.axes) and len(fig.legends) == 1
     assert [t.get_text() for t in fig.legends[0].get_texts()] == ["a", "b", "dashed: Gaussians with a posterior"]
     assert fig.axes[0].get_ylabel() == "loss (symlog scale)"
+
+
+def test_two_views_of_one_name_stem_keep_maps_of_their_own(tmp_path):
+    """IMG_1.jpg and IMG_1.png in one workspace wrote their maps to the same IMG_1.exr (the report showed one view's
+    maps under both names): with the evaluated names, each gets its extension in its stem; a name with no twin keeps
+    the plain stem, so every other run's files are named as before."""
+    import torch
+
+    from uncertsplat.eval.engine import ViewMaps
+    from uncertsplat.report.views import load_view
+    from uncertsplat.stages.evaluate import write_view_maps
+
+    names = ["IMG_1.jpg", "IMG_1.png", "sub/b.png"]
+    assert [map_stem(n, names) for n in names] == ["IMG_1_jpg", "IMG_1_png", "sub__b"]
+    assert map_stem("IMG_1.jpg") == "IMG_1" and map_stem("IMG_1", ["IMG_1", "IMG_1.png"]) == "IMG_1_"
+    for k, name in enumerate(names[:2]):
+        gt = torch.full((4, 5, 3), 0.2 + 0.5 * k)
+        depth = torch.full((4, 5, 1), 1.0 + k)
+        write_view_maps(tmp_path, ViewMaps(name, gt, gt, 0.1 * gt, depth, 0.1 * depth), "percentile", among=names)
+    assert (tmp_path / "IMG_1_jpg.exr").is_file() and (tmp_path / "IMG_1_png.exr").is_file()
+    assert not (tmp_path / "IMG_1.exr").exists()
+    a, b = (load_view(n, tmp_path, among=names) for n in names[:2])
+    assert float(a.rgb_mean.mean()) == pytest.approx(0.2) and float(b.rgb_mean.mean()) == pytest.approx(0.7)

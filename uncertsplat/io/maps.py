@@ -8,6 +8,7 @@ writes them, ``report`` reads them, and ``prune`` names its renders the same way
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 EXR_CHANNELS = ("rgb_mean.R", "rgb_mean.G", "rgb_mean.B", "rgb_std.R", "rgb_std.G", "rgb_std.B",
@@ -27,10 +28,19 @@ run's normalised units to the scene's own (a COLMAP model's, a synthetic scene's
 ``world_from_source``."""
 
 
-def map_stem(image_name: str) -> str:
-    """File stem for an image's maps: extension dropped, sub-folders flattened with '__'."""
-    p = Path(image_name)
-    return str(p.with_suffix("")).replace("/", "__").replace("\\", "__")
+def map_stem(image_name: str, among: Sequence[str] = ()) -> str:
+    """File stem for an image's maps: extension dropped, sub-folders flattened with '__'; where another of the names
+    ``among`` (the views whose maps share the folder) has the same stem, the extension is kept as ``_ext``
+    (``IMG_1.jpg`` and ``IMG_1.png``: ``IMG_1_jpg``, ``IMG_1_png``): their maps wrote over each other's."""
+    stem = _plain_stem(image_name)
+    if any(other != image_name and _plain_stem(other) == stem for other in among):
+        suffix = Path(image_name).suffix
+        return stem + ("_" + suffix[1:] if suffix else "_")
+    return stem
+
+
+def _plain_stem(image_name: str) -> str:
+    return str(Path(image_name).with_suffix("")).replace("/", "__").replace("\\", "__")
 
 
 __all__ = ["EXR_ALPHA_CHANNEL", "EXR_CHANNELS", "EXR_RGB_DOF", "EXR_RGB_PREDICTIVE", "map_stem"]

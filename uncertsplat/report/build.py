@@ -416,7 +416,7 @@ def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[
             body.append(para(f"Showing {len(shown)} of {len(names)} views (`report --set max_views=N` shows more; "
                              "the tables list every view).", "muted"))
         for vi, name in enumerate(shown):
-            view = load_view(name, run.maps_dir, run.depth_to_source)
+            view = load_view(name, run.maps_dir, run.depth_to_source, among=names)
             loaded[ri][name] = view
             html = w.add_figure(f"run{ri}_view{vi}.png", F.view_figure(view, title=name), f"{run.name} — {name}",
                                 f"uncertainty maps of {name}")

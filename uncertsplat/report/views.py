@@ -11,6 +11,7 @@ one of the channels, leaves the view's panels out with a note naming the file.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,25 +44,29 @@ class ViewMaps:
         return None if self.rgb_std is None else self.rgb_std.mean(axis=-1)
 
 
-def exr_path(maps_dir: Path, name: str) -> Path:
-    return Path(maps_dir) / f"{map_stem(name)}.exr"
+def exr_path(maps_dir: Path, name: str, among: Sequence[str] = ()) -> Path:
+    """The EXR of view ``name`` among the evaluated views ``among`` (``map_stem``)."""
+    return Path(maps_dir) / f"{map_stem(name, among)}.exr"
 
 
-def gt_path(maps_dir: Path, name: str) -> Path:
-    return Path(maps_dir) / f"{map_stem(name)}{GT_SUFFIX}"
+def gt_path(maps_dir: Path, name: str, among: Sequence[str] = ()) -> Path:
+    """The GT preview of view ``name`` among the evaluated views ``among`` (``map_stem``)."""
+    return Path(maps_dir) / f"{map_stem(name, among)}{GT_SUFFIX}"
 
 
-def load_view(name: str, maps_dir: Path, depth_to_source: float | None = None) -> ViewMaps:
+def load_view(name: str, maps_dir: Path, depth_to_source: float | None = None, among: Sequence[str] = ()
+              ) -> ViewMaps:
     """Read the maps and GT of one view; missing parts stay None and ``note`` says which file and why.
 
     ``depth_to_source``: the run's factor to the scene's units (``RunData.depth_to_source``), used when the EXR's
-    header does not carry its own.
+    header does not carry its own. ``among``: every view the evaluation wrote (``EvalReport.image_names``), which
+    names the files (``map_stem``).
     """
     from uncertsplat.io.images import read_exr, read_exr_attribute, read_image
 
     view = ViewMaps(name=name, depth_to_source=depth_to_source)
     problems = []
-    exr = exr_path(maps_dir, name)
+    exr = exr_path(maps_dir, name, among)
     if not exr.is_file():
         problems.append(f"{exr.name} not found")
     else:
@@ -81,7 +86,7 @@ def load_view(name: str, maps_dir: Path, depth_to_source: float | None = None) -
                 factor = read_exr_attribute(exr, EXR_DEPTH_TO_SOURCE)
                 if isinstance(factor, (int, float)) and factor > 0:
                     view.depth_to_source = float(factor)
-    gt = gt_path(maps_dir, name)
+    gt = gt_path(maps_dir, name, among)
     if not gt.is_file():
         problems.append(f"{gt.name} not found")
     else:

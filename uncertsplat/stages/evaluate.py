@@ -27,6 +27,7 @@ std over the K samples.
 from __future__ import annotations
 
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -61,8 +62,9 @@ def eval_dir(run_dir: Path, cfg: EvalConfig) -> Path:
 
 
 def write_view_maps(folder: Path, maps: ViewMaps, preview: str, turns: dict[str, int] | None = None,
-                    depth_to_source: float | None = None) -> None:
-    """EXR float maps and PNG previews of one view (see the module docstring for the colour scales).
+                    depth_to_source: float | None = None, among: Sequence[str] = ()) -> None:
+    """EXR float maps and PNG previews of one view (see the module docstring for the colour scales), named by
+    ``map_stem(name, among)``: ``among`` the names of every view the evaluation writes.
 
     ``turns``: {image name: clockwise quarter turns} of the photos the scene turned to its common orientation
     (``SceneData.photo_fits``); their maps are turned back, so that each view's maps lie as its photo does.
@@ -72,7 +74,7 @@ def write_view_maps(folder: Path, maps: ViewMaps, preview: str, turns: dict[str,
     from uncertsplat.report.colormaps import colorize, rank_colorize
 
     folder = Path(folder)
-    stem = map_stem(maps.name)
+    stem = map_stem(maps.name, among)
     back = (turns or {}).get(maps.name, 0)
     gt, pred, std, depth_mean, depth_std = (turned_back(t, back) for t in (maps.gt, maps.rgb_mean, maps.rgb_std,
                                                                          maps.depth_mean, maps.depth_std))
@@ -314,7 +316,7 @@ def _finished(run_dir: Path, model_file: Path, cfg: EvalConfig, image_names: lis
         return report
     maps = run_dir / "eval" / "maps"
     if not used.save_maps or used.preview != cfg.preview or not all(
-            (maps / f"{map_stem(n)}.exr").is_file() for n in image_names):
+            (maps / f"{map_stem(n, image_names)}.exr").is_file() for n in image_names):
         return None
     return report
 
@@ -404,7 +406,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
             (out / "metrics.json").unlink()
         report = evaluate_views(sampler, views, cfg, device,
                                 on_view=partial(write_view_maps, out / "maps", preview=cfg.preview,
-                                                turns=photo_turns(scene), depth_to_source=scene.depth_scale_to_gt)
+                                                turns=photo_turns(scene), depth_to_source=scene.depth_scale_to_gt,
+                                                among=views.names)
                                 if cfg.save_maps else None,
                                 std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
                                 calibration_held_out=bool(scene.split.get("calibration")),

@@ -611,9 +611,10 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
             turns = photo_turns(measure.scene)  # each render lies as its photo does (as evaluate's maps)
             for tag, m in (("before", loaded.model), ("after", pruned), ("random", random_model)):
                 rgb, _ = measure.mean_renders(m)
+                among = [measure.scene.cameras.image_names[i] for i in measure.indices]
                 for j in sel:
                     name = measure.scene.cameras.image_names[measure.indices[j]]
-                    write_png(tmp / "renders" / f"{map_stem(name)}_{tag}.png",
+                    write_png(tmp / "renders" / f"{map_stem(name, among)}_{tag}.png",
                               turned_back(rgb[j].numpy(), turns.get(name, 0)))
         result.written = Written(model=writes_model, folder=str(output))
         if sweep is not None:
