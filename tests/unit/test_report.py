@@ -818,6 +818,24 @@ def test_summary_names_each_runs_scene_and_resolution_and_warns_when_they_differ
     assert f"These runs were trained on different scenes (a/run: {scene}, b/run: {other}): their" in html
 
 
+def test_summary_warns_when_the_runs_were_scored_on_different_views(tmp_path):
+    """One run evaluated with --set max_views=1 beside one evaluated in full: their means are over different views,
+    and the summary says which run was scored on which (and how many) views; runs scored on the same views (in any
+    order) get no such note."""
+    names = ("view_000.png", "view_008.png", "view_016.png")
+    scene = make_scene(tmp_path, list(names))
+    one = make_run(tmp_path / "e", "run", names=names[:1], scene=scene, maps=False, stats=False)
+    full = make_run(tmp_path / "f", "run", names=names, scene=scene, maps=False, stats=False, seed=1)
+    html = stage.run([one, full], tmp_path / "rep", ReportConfig()).read_text()
+    assert ("These runs were scored on different views (e/run: 1 test view: view_000.png; f/run: 3 test views: "
+            "view_000.png, view_008.png, view_016.png)") in html
+    assert "These runs were trained" not in html  # same scene, same resolution
+    # the same views, listed in another order
+    same = make_run(tmp_path / "g", "run", names=tuple(reversed(names)), scene=scene, maps=False, stats=False)
+    html = stage.run([full, same], tmp_path / "same", ReportConfig()).read_text()
+    assert "scored on different views" not in html
+
+
 def test_psnr_inside_the_masks_is_labelled_so(tmp_path):
     """On a masked scene evaluate's PSNR is inside the masks while train's test_psnr is over whole images: the columns
     say which (the header when every run is masked, a mark on the masked runs' cells otherwise)."""

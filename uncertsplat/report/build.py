@@ -176,9 +176,9 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
                      else Cell("n/a"))
         rows.append((run.name, cells))
     body = [table(header, rows, table_id="summary")]
-    mismatch = comparability_note(runs)
-    if mismatch:
-        body.append(note(mismatch))
+    for mismatch in (comparability_note(runs), views_note(runs)):
+        if mismatch:
+            body.append(note(mismatch))
     body.append(para("Metrics are the means over the evaluated views, exactly as in each run's eval/metrics.json. "
                      "Lower is better for AUSE, NLL and calibration error; higher for PSNR and SSIM. AUSE: the area "
                      "under the sparsification error, how far removing pixels by their predicted std falls short of "
@@ -225,6 +225,35 @@ def comparability_note(runs: list[RunData]) -> str | None:
     if not what:
         return None
     return ("These runs were trained " + " and ".join(what) + ": their metrics are not comparable (PSNR, NLL and the rest are measured on different images).")
+
+
+VIEWS_LISTED = 6
+"""``views_note`` names a run's evaluated views up to this many, and counts them beyond."""
+
+
+def _evaluated_views(m) -> list[str]:
+    """The views an evaluation (``EvalReport``) scored: its ``image_names``, or its per-view keys in files without
+    them."""
+    return list(m.image_names) or list(m.per_view)
+
+
+def views_note(runs: list[RunData]) -> str | None:
+    """One sentence when the evaluated runs were scored on different views (``EvalReport.image_names`` and split, e.g.
+    one evaluated with ``--set max_views=1``): their means are over different images, so the sentence names which run
+    was scored on which views (how many, and their names up to ``VIEWS_LISTED``). None when they agree (in any order)
+    or fewer than two runs were evaluated."""
+    evaluated = [r for r in runs if r.metrics is not None]
+    if len({(r.metrics.split, frozenset(_evaluated_views(r.metrics))) for r in evaluated}) < 2:
+        return None
+    parts = []
+    for r in evaluated:
+        names = _evaluated_views(r.metrics)
+        listed = ", ".join(names[:VIEWS_LISTED]) + (", …" if len(names) > VIEWS_LISTED else "")
+        parts.append(f"{r.name}: {len(names)} {r.metrics.split} view{'' if len(names) == 1 else 's'}"
+                     + (f": {listed}" if names else ""))
+    return ("These runs were scored on different views (" + "; ".join(parts) + "): their means are over different "
+            "images and do not rank them (evaluate them on the same split and views, e.g. the same max_views, to "
+            "compare).")
 
 
 SPREAD_TERM = "std = the spread of the K samples"
