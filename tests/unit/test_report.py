@@ -880,6 +880,53 @@ def test_an_automatic_prune_says_its_ratio_and_score_were_chosen(tmp_path):
     assert "gate (the default --score auto takes for this run; no other score was measured)" in text
 
 
+def test_a_prune_note_that_its_before_row_is_evaluates_is_checked_against_the_evaluation_now(tmp_path):
+    """prune read its 'before' row's uncertainty metrics from the source run's eval/metrics.json and says so; the source
+    evaluated again since (evaluate SOURCE --num-samples 10 --seed 3): the Summary shows the new evaluation, the table
+    the old one, and the report says which settings each used instead of the claim that no longer holds."""
+    from uncertsplat.stages.prune import METRIC_KEYS, UNPRUNED_FROM_EVALUATE
+
+    names = ("view_000.png", "view_008.png")
+    source = make_run(tmp_path, "source", names=names, maps=False, stats=False)
+    pruned = make_run(tmp_path, "pruned", names=names, maps=False, stats=False, prune=True)
+    m = EvalReport.read(source / "eval" / "metrics.json")
+    rep = PruneReport.read(pruned / "prune.json")
+    claim = (f"{UNPRUNED_FROM_EVALUATE} ({source / 'eval' / 'metrics.json'}: the same model file, views, settings and "
+             "versions)")
+    rep.notes.append(claim)
+    rep.metrics.before = rep.metrics.before.model_copy(update={k: getattr(m.mean, k) for k in METRIC_KEYS})
+    rep.write(pruned / "prune.json")
+
+    def text(out: str, runs=(source, pruned)) -> str:
+        return " ".join(parse(stage.run(list(runs), tmp_path / out, ReportConfig())).text)
+
+    assert claim in text("same") and "when prune ran" not in text("same2")  # the file prune read, unchanged
+    m.num_samples, m.seed = 10, 3
+    m.mean.psnr += 0.5
+    m.write(source / "eval" / "metrics.json")
+    then = (f"the 'before' row's uncertainty metrics were read from {source / 'eval' / 'metrics.json'} when prune ran, "
+            "an evaluation with K = 4, seed 0, 2 test views on cpu; that file now holds another evaluation")
+    shown = text("again")
+    assert claim not in shown
+    assert (then + ", with K = 10, seed 3, 2 test views: the Summary and Metrics for source show the new one, this "
+            "table's 'before' row the one prune read") in shown
+    assert then + ", with K = 10, seed 3, 2 test views: this table's 'before' row is the one prune read" in text(
+        "alone", [pruned])  # the source not in the report
+    m.num_samples, m.seed = 4, 0  # prune's settings, other numbers (the source trained again, say)
+    m.write(source / "eval" / "metrics.json")
+    assert then + " with the same settings and other means (psnr: another model file" in text("retrained")
+    m.num_samples = 10  # a 'before' row prune measured itself (no claim) beside a source evaluated at another K
+    m.write(source / "eval" / "metrics.json")
+    rep.notes.remove(claim)
+    rep.write(pruned / "prune.json")
+    assert ("the Summary's row for source (the source run) is evaluate's, with K = 10, seed 0, 2 test views; this "
+            "table's 'before' row was measured by prune, with K = 4, seed 0, 2 test views on cpu") in text("measured")
+    rep.notes.append(claim)
+    rep.write(pruned / "prune.json")
+    (source / "eval" / "metrics.json").unlink()
+    assert "when prune ran, an evaluation with K = 4, seed 0, 2 test views on cpu; that file is gone" in text("gone")
+
+
 def test_colour_bars_say_where_they_clip_and_what_they_measure():
     """The error / std / depth colour bars end at percentiles: an end with pixels beyond it reads ≥ (≤), as an extended
     colour bar would; one without reads the plain number. The panels name their units."""

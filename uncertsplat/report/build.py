@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import GIVEN_SCENE_GT, MASKED_NOTE, SAME_RENDER
 from uncertsplat.eval.nll import NLL_WORSE_BY
 from uncertsplat.gaussians.variational import describe_posterior
@@ -36,9 +37,21 @@ from uncertsplat.report.extract import (
     prune_row,
 )
 from uncertsplat.report.html import Cell, details, esc, figure, kv, note, page, para, pre, table
-from uncertsplat.report.loader import CONFIG, MANIFEST, METRICS, PRUNE, RECONSTRUCT, SCENE, SUMMARY, RunData
+from uncertsplat.report.loader import (
+    CONFIG,
+    MANIFEST,
+    METRICS,
+    PRUNE,
+    RECONSTRUCT,
+    SCENE,
+    SUMMARY,
+    RunData,
+    one_line,
+)
 from uncertsplat.report.views import ViewMaps, load_view
-from uncertsplat.schemas import PruneReport, PruneSweep
+from uncertsplat.schemas import EvalReport, PruneMetrics, PruneReport, PruneSweep
+from uncertsplat.stages.prune import METRIC_KEYS as PRUNE_EVAL_KEYS
+from uncertsplat.stages.prune import PRUNED_FROM_EVALUATE, UNPRUNED_FROM_EVALUATE
 from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
 
@@ -685,6 +698,100 @@ def _sweep_table(sweep: PruneSweep, ri: int) -> str:
     return table(header, rows, table_id=f"prune-sweep-{ri}")
 
 
+def _evaluation_now(folder: Path, runs: list[RunData]) -> tuple[str, EvalReport | None, str | None]:
+    """(name, evaluation, problem) of ``folder``'s eval/metrics.json as it is now: as loaded for the report when
+    ``folder`` is one of ``runs`` (the Summary shows that one), else read here; evaluation None when the file is absent
+    or invalid (problem: why, when invalid)."""
+    target = folder.resolve()
+    for r in runs:
+        if r.path.resolve() == target:
+            return r.name, r.metrics, r.problem(METRICS)
+    try:
+        return str(folder), EvalReport.read_optional(folder / METRICS), None
+    except UserError as err:
+        return str(folder), None, one_line(err)
+
+
+def _views_text(n: int, split: str) -> str:
+    return f"{n} {split} view{'' if n == 1 else 's'}"
+
+
+def _prune_settings(p: PruneReport) -> str:
+    """The settings prune measured its rows with, as ``_eval_settings`` says an evaluation's."""
+    return f"K = {p.num_samples}, seed {p.seed}, {_views_text(len(p.metric_views), p.metric_split)} on {p.device}"
+
+
+def _eval_settings(m: EvalReport) -> str:
+    seed = "seed not recorded" if m.seed is None else f"seed {m.seed}"
+    return (f"K = {m.num_samples}, {seed}, {_views_text(len(_evaluated_views(m)), m.split)}"
+            + (f" on {m.device}" if m.device else ""))
+
+
+def evaluation_differences(p: PruneReport, m: EvalReport, row: PruneMetrics | None = None) -> list[str]:
+    """How the evaluation ``m`` differs from the settings prune measured with (``p``'s K, seed, split and views,
+    device) and, with ``row`` (a row prune copied ``m``'s means into) and the settings alike, from that row's means:
+    [] when it is the evaluation prune read (or one it would have read)."""
+    out = []
+    if m.num_samples != p.num_samples:
+        out.append("K")
+    if m.seed != p.seed:
+        out.append("seed")
+    if m.split != p.metric_split or set(_evaluated_views(m)) != set(p.metric_views):
+        out.append("views")
+    if m.device is not None and m.device != p.device:
+        out.append("device")
+    if row is not None and not out:
+        # prune copied these means from the file exactly (stages.prune.Measure.unpruned): any change is another
+        # evaluation (another model file, or another of evaluate's settings)
+        out += [k for k in PRUNE_EVAL_KEYS if getattr(row, k) != getattr(m.mean, k)]
+    return out
+
+
+def prune_evaluation_note(text: str, run: RunData, p: PruneReport, runs: list[RunData]) -> str:
+    """prune's note ``text`` as shown: its claim that a row's uncertainty metrics are an evaluate report's
+    (``UNPRUNED_FROM_EVALUATE``: the source run's; ``PRUNED_FROM_EVALUATE``: the pruned run's own) is checked against
+    that eval/metrics.json as it is now, and replaced by what holds when the file was written again since (another K,
+    seed, views or numbers: the Summary then shows the new evaluation, the Pruning table the one prune read) or is
+    gone. Other notes, and claims that still hold, are returned as they are."""
+    if text.startswith(UNPRUNED_FROM_EVALUATE):
+        row_name, folder, row = "before", Path(p.source_run), p.metrics.before
+    elif text.startswith(PRUNED_FROM_EVALUATE):
+        row_name, folder, row = "after", run.path, p.metrics.after
+    else:
+        return text
+    name, m, problem = _evaluation_now(folder, runs)
+    then = (f"the '{row_name}' row's uncertainty metrics were read from {folder / METRICS} when prune ran, an "
+            f"evaluation with {_prune_settings(p)}")
+    if m is None:
+        return then + ("; that file is now unreadable (" + problem + ")" if problem else "; that file is gone") + \
+            ": the row cannot be checked against it"
+    diffs = evaluation_differences(p, m, row)
+    if not diffs:
+        return text
+    shown = any(r.path.resolve() == folder.resolve() for r in runs)
+    now = (f"; that file now holds another evaluation, with {_eval_settings(m)}" if any(
+        d in ("K", "seed", "views", "device") for d in diffs) else
+           f"; that file now holds another evaluation with the same settings and other means ({', '.join(diffs)}: "
+           "another model file or other evaluate settings)")
+    where = (f": the Summary and Metrics for {name} show the new one, this table's '{row_name}' row the one prune read"
+             if shown else f": this table's '{row_name}' row is the one prune read")
+    return then + now + where
+
+
+def _source_settings_note(p: PruneReport, runs: list[RunData]) -> str | None:
+    """When prune measured its 'before' row itself (no ``UNPRUNED_FROM_EVALUATE`` note) and the source run is in the
+    report, evaluated with other settings: a sentence saying which settings the Summary's row and the table used."""
+    if any(n.startswith(UNPRUNED_FROM_EVALUATE) for n in p.notes):
+        return None
+    source = Path(p.source_run).resolve()
+    src = next((r for r in runs if r.path.resolve() == source and r.metrics is not None), None)
+    if src is None or not evaluation_differences(p, src.metrics):
+        return None
+    return (f"the Summary's row for {src.name} (the source run) is evaluate's, with {_eval_settings(src.metrics)}; "
+            f"this table's 'before' row was measured by prune, with {_prune_settings(p)}: they differ by their "
+            "settings, not only by the model")
+
+
 def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
     pruned = [(ri, r) for ri, r in enumerate(runs) if r.is_pruned]
     if not pruned:
@@ -703,7 +810,10 @@ def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
         if p.metrics.after is None:
             body.append(para("No mask was chosen (a sweep only): no 'after' or 'random removal' row.", "muted"))
         for n in p.notes:
-            body.append(note(f"{run.name} (prune): {n}"))
+            body.append(note(f"{run.name} (prune): {prune_evaluation_note(n, run, p, runs)}"))
+        settings = _source_settings_note(p, runs)
+        if settings:
+            body.append(note(f"{run.name} (prune): {settings}"))
         if p.sweep is None:
             body.append(para("No keep-ratio sweep in prune.json (run `uncertsplat prune --sweep` to measure one).",
                              "muted"))

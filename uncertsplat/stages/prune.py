@@ -66,6 +66,11 @@ from uncertsplat.schemas.prune import (
 from uncertsplat.schemas.runs import RunExposure
 
 METRIC_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "depth_ause_mae")
+UNPRUNED_FROM_EVALUATE = "the unpruned model's uncertainty metrics are evaluate's"
+"""How prune's note begins that its 'before' row's ``METRIC_KEYS`` are the source run's ``eval/metrics.json`` means
+(``report`` checks it against that file as it is when the report is made)."""
+PRUNED_FROM_EVALUATE = "the pruned model's uncertainty metrics are evaluate's"
+"""How prune's note begins that its 'after' row's ``METRIC_KEYS`` are the pruned run's ``eval/metrics.json`` means."""
 
 
 # ------------------------------------------------------------------------------------------ checks
@@ -377,7 +382,7 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
     measure = _Measure(loaded, scene, indices, cfg, device)
     before, read_from = measure.unpruned(run_dir)
     if read_from is not None:
-        notes.append(f"the unpruned model's uncertainty metrics are evaluate's ({read_from}: the same model file, "
+        notes.append(f"{UNPRUNED_FROM_EVALUATE} ({read_from}: the same model file, "
                      "views, settings and versions)")
 
     # ---- sweep (also what --auto decides on)
@@ -468,7 +473,7 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
                               "prune.json's 'after' row holds only the expected render's PSNR", path=output,
                               hint=f"`uncertsplat evaluate {output}` scores the pruned run (its eval/ folder); or "
                                    f"delete {output} and prune again for a complete prune.json.") from None
-        notes.append(f"the pruned model's uncertainty metrics are evaluate's ({output / 'eval' / 'metrics.json'}: "
+        notes.append(f"{PRUNED_FROM_EVALUATE} ({output / 'eval' / 'metrics.json'}: "
                      "the pruned run evaluated as `evaluate` does, with this K and seed)")
         _tolerance_note(result, notes, cfg)
         _random_note(result, notes, score_name, cfg)
