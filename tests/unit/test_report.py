@@ -946,6 +946,38 @@ def test_colour_bars_say_where_they_clip_and_what_they_measure():
     assert panels["depth std (run's normalised units)"].bar.ticks[-1][1] == "0.2"  # a constant map: nothing clipped
 
 
+def test_depth_panels_draw_pixels_without_a_surface_grey_and_leave_them_out_of_the_colour_scale(tmp_path):
+    """A transparent scene's background holds no surface: its depth 0 is not a distance. The depth mean and std panels
+    draw such pixels (depth 0, or a mean opacity below 0.5 where the maps carry alpha.A) in a neutral grey, and their
+    colour bars are the surface's percentiles (the depth mean's no longer starts at 0)."""
+    from uncertsplat.io.images import write_exr
+    from uncertsplat.report import figures
+    from uncertsplat.report.views import load_view
+
+    rng = np.random.default_rng(0)
+    depth = (2 + rng.random((H, W))).astype(np.float32)  # [H,W] surfaces 2-3 units away
+    std = np.full((H, W), 0.1, np.float32)
+    alpha = np.ones((H, W), np.float32)
+    depth[:, : W // 2], std[:, : W // 2], alpha[:, : W // 2] = 0.0, 0.0, 0.0  # the left half: the background
+    alpha[0, -1], std[0, -1] = 0.2, 5.0  # a faint pixel: a depth, mostly the empty ray's, and a wide spread
+    rgb = [np.full((H, W), 0.5, np.float32)] * 6
+    channels = {**dict(zip(EXR_CHANNELS, [*rgb, depth, std], strict=True)), "alpha.A": alpha}
+    write_exr(tmp_path / "maps" / f"{map_stem('v.png')}.exr", channels)
+    view = load_view("v.png", tmp_path / "maps")
+    assert view.alpha is not None and int(view.no_surface.sum()) == H * (W // 2) + 1
+    panels = {p.title: p for p in figures.view_panels(view)}
+    mean, spread = panels["depth mean (run's normalised units)"], panels["depth std (run's normalised units)"]
+    surface = np.delete(depth[:, W // 2:].reshape(-1), W // 2 - 1)  # the surface pixels (not the faint one)
+    assert mean.bar.ticks[0][1] == f"≤{float(np.percentile(surface, 1)):.3g}"  # not 0
+    assert spread.bar.ticks[-1][1] == "0.1"  # the surface's spread: not the faint pixel's 5
+    for panel in (mean, spread):
+        grey = (panel.image == np.array(figures.NO_SURFACE_RGB, np.uint8)).all(axis=-1)  # [H,W]
+        assert (grey == view.no_surface).all()
+    # maps written before alpha.A: depth 0 alone says there is no surface
+    view.alpha = None
+    assert int(view.no_surface.sum()) == H * (W // 2)
+
+
 def test_units_and_terms_are_said_once(tmp_path):
     """NLL headers say nats; AUSE and 'carriers' are explained once; an unavailable LPIPS is listed once (with its
     reason), not again among the metrics not available."""

@@ -48,7 +48,7 @@ from uncertsplat.report.loader import (
     RunData,
     one_line,
 )
-from uncertsplat.report.views import ViewMaps, load_view
+from uncertsplat.report.views import SURFACE_MIN_ALPHA, ViewMaps, load_view
 from uncertsplat.schemas import EvalReport, PruneMetrics, PruneReport, PruneSweep
 from uncertsplat.stages.prune import METRIC_KEYS as PRUNE_EVAL_KEYS
 from uncertsplat.stages.prune import PRUNED_FROM_EVALUATE, UNPRUNED_FROM_EVALUATE
@@ -435,7 +435,10 @@ def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[
                  "not known, as the panel says); and the rank-coloured std next to the rank-coloured error (each pixel "
                  "coloured by its rank quantile in its own map, so good uncertainty makes the two look alike "
                  "whatever the scales). The colour bars end at the 99th percentile (the depth mean's start at the "
-                 "1st): an end labelled ≥ or ≤ has pixels beyond it, drawn in its colour.", "legend")]
+                 "1st): an end labelled ≥ or ≤ has pixels beyond it, drawn in its colour. In the depth panels, "
+                 "grey pixels hold no surface (depth 0, or the samples' mean opacity below "
+                 f"{SURFACE_MIN_ALPHA:g} where the maps carry it: a transparent background, empty sky): 0 there is "
+                 "not a distance, and they are left out of the depth colour bars.", "legend")]
     for ri, run in enumerate(runs):
         title = f"<h3>{esc(run.name)}</h3>" if len(runs) > 1 else ""
         if run.metrics is None:
@@ -460,7 +463,12 @@ def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[
         for vi, name in enumerate(shown):
             view = load_view(name, run.maps_dir, run.depth_to_source, among=names)
             loaded[ri][name] = view
-            html = w.add_figure(f"run{ri}_view{vi}.png", F.view_figure(view, title=name), f"{run.name} — {name}",
+            empty = view.no_surface  # [H,W] bool
+            share = float(empty.mean()) if empty is not None and empty.size else 0.0
+            part = f"{share:.0%}" if share >= 0.01 else "under 1 %"
+            caption = f"{run.name} — {name}" + (f"; grey in the depth panels: no surface ({part} of the pixels)"
+                                                 if share > 0 else "")
+            html = w.add_figure(f"run{ri}_view{vi}.png", F.view_figure(view, title=name), caption,
                                 f"uncertainty maps of {name}")
             body.append(f"<h4>{esc(name)}</h4>" + (html or note(f"{name}: no maps could be read ({view.note}).")))
             if view.note and html:

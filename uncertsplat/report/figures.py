@@ -118,6 +118,17 @@ def _mapped(x: np.ndarray, cmap: str, vmin: float, vmax: float) -> np.ndarray:
     return colorize(x, mode="fixed", vmin=vmin, vmax=vmax, cmap=cmap)
 
 
+NO_SURFACE_RGB = (170, 170, 170)
+"""The neutral grey of the depth panels' pixels without a surface (``ViewMaps.no_surface``): in neither colour map."""
+
+
+def _no_surface(image: np.ndarray, empty: np.ndarray | None) -> np.ndarray:
+    """``image`` [H,W,3] uint8 with the pixels of ``empty`` [H,W] (no surface) drawn ``NO_SURFACE_RGB``."""
+    if empty is not None and empty.shape == image.shape[:2]:
+        image[empty] = NO_SURFACE_RGB
+    return image
+
+
 def depth_unit(view: ViewMaps) -> str:
     """What the view's depth maps are drawn in: the scene's units when the factor is known, else the run's."""
     return "scene units" if view.depth_to_source is not None else "run's normalised units"
@@ -141,19 +152,23 @@ def view_panels(view: ViewMaps) -> list[Panel]:
     # a length is worth reading only in the scene's units: the maps hold the run's normalised ones
     factor = view.depth_to_source or 1.0
     unit = depth_unit(view)
+    # depth 0 where no surface is met is not a distance: those pixels are drawn NO_SURFACE_RGB and kept out of the
+    # colour scales (they pinned the depth mean's bar to 0 and drew a transparent scene's background as the nearest)
+    empty = view.no_surface  # [H,W] bool
     if view.depth_mean is not None:
         d = view.depth_mean * factor
-        lo, hi = float(np.percentile(d, 1)), float(np.percentile(d, 99))
+        finite = d[np.isfinite(d) & ~empty]  # [P] the surface's depths
+        lo, hi = (float(np.percentile(finite, 1)), float(np.percentile(finite, 99))) if finite.size else (0.0, 1.0)
         hi = max(hi, lo + 1e-9)
-        finite = d[np.isfinite(d)]
         below = bool(finite.size) and float(finite.min()) < lo
-        panels.append(Panel(f"depth mean ({unit})", _mapped(d, "viridis", lo, hi),
-                            value_bar("viridis", lo, hi, below=below, above=_beyond(hi, d))))
+        panels.append(Panel(f"depth mean ({unit})", _no_surface(_mapped(d, "viridis", lo, hi), empty),
+                            value_bar("viridis", lo, hi, below=below, above=_beyond(hi, finite))))
     if view.depth_std is not None:
         d_std = view.depth_std * factor
-        top = _robust_max(d_std)
-        panels.append(Panel(f"depth std ({unit})", _mapped(d_std, "magma", 0.0, top),
-                            value_bar("magma", 0.0, top, above=_beyond(top, d_std))))
+        surface = d_std if empty is None or empty.shape != d_std.shape else d_std[~empty]  # [P]
+        top = _robust_max(surface) if surface.size else 1.0
+        panels.append(Panel(f"depth std ({unit})", _no_surface(_mapped(d_std, "magma", 0.0, top), empty),
+                            value_bar("magma", 0.0, top, above=_beyond(top, surface))))
     if std is not None and view.error is not None:
         panels.append(Panel("rank of RGB std", rank_image(std), rank_bar(RANK_CMAP)))
         panels.append(Panel("rank of |error|", rank_image(view.error), rank_bar(RANK_CMAP)))
