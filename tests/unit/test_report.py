@@ -427,6 +427,36 @@ def test_prune_report_without_sweep_or_mask(tmp_path):
     assert_figures_consistent(tmp_path / "out", parse(index))
 
 
+def test_a_prune_folder_without_a_model_is_not_sent_to_evaluate(tmp_path):
+    """prune --dry-run -o DRY writes prune.json, scores.npz and the mask but no model: `uncertsplat evaluate DRY` fails
+    (no config.json), so the report does not suggest it; it says what the folder holds and gives the prune command
+    that writes the model (the dry run's source, mode, score, seed and K), then evaluate of that."""
+    run = make_run(tmp_path, "dry", metrics=False, maps=False, stats=False, prune=True)
+    (run / "config.json").unlink()  # a dry run writes none
+    rep = PruneReport.read(run / "prune.json")
+    rep.dry_run, rep.written, rep.source_run, rep.seed = True, Written(model=False, folder=str(run)), \
+        str(tmp_path / "run a"), 3
+    rep.write(run / "prune.json")
+
+    def text(out: str) -> str:
+        return " ".join(parse(stage.run([run], tmp_path / out, ReportConfig())).text)
+
+    shown = text("rep")
+    assert f"uncertsplat evaluate {run}" not in shown and "uncertsplat evaluate RUN" not in shown
+    assert ("dry: a dry-run prune (prune --dry-run): it holds prune.json, scores.npz and prune_mask.npy (the indices "
+            "of the Gaussians it keeps), no model, so there is nothing to evaluate") in shown
+    assert (f"prune without --dry-run, which writes it: `uncertsplat prune '{tmp_path / 'run a'}' -o NEW_RUN "
+            "--keep-ratio 0.9 --score position_spread --set seed=3 --set num_samples=4`, then "
+            "`uncertsplat evaluate NEW_RUN`") in shown
+    rep.dry_run, rep.mode, rep.keep_ratio, rep.counts = False, "sweep", None, None  # --sweep -o OUT: no mask either
+    rep.write(run / "prune.json")
+    shown = text("sweep")
+    assert f"uncertsplat evaluate {run}" not in shown
+    assert ("a prune that measured the sweep only (prune --sweep without --keep-ratio, --threshold or --auto): it "
+            "holds prune.json and scores.npz, no model") in shown
+    assert "prune with --keep-ratio, --threshold or --auto (without --dry-run), which writes one" in shown
+
+
 def test_invalid_prune_json_is_a_note_naming_the_file_and_key(tmp_path):
     run = make_run(tmp_path, "pruned", stats=False, maps=False)
     data = json.loads(make_prune_report(run).to_json())

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import shlex
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -90,7 +91,55 @@ def _file_note(run: RunData, file: str, absent: str) -> str:
     return _problem_note(run, file) or note(f"{run.name}: {absent}")
 
 
-def _missing_metrics_note(run: RunData) -> str:
+def holds_no_model(run: RunData) -> bool:
+    """Whether ``run`` is a prune folder without a model (``prune --dry-run``, or ``--sweep`` alone with -o): it holds
+    prune.json, scores.npz and the mask only, no config.json or PLY, so ``evaluate`` refuses it."""
+    p = run.prune
+    return p is not None and (p.dry_run or (p.written is not None and not p.written.model))
+
+
+def prune_again_command(p: PruneReport) -> str | None:
+    """The ``prune`` command that writes the model a dry run chose (its source, mode, score, seed and K, into
+    NEW_RUN); None for a sweep only, which chose no mask."""
+    from uncertsplat.config import PruneConfig
+
+    mode = {"keep_ratio": f"--keep-ratio {p.keep_ratio:g}" if p.keep_ratio is not None else None,
+            "threshold": f"--threshold {p.threshold:g}" if p.threshold is not None else None,
+            "auto": f"--auto --tolerance-db {p.tolerance_db:g}"}.get(p.mode)
+    if mode is None:
+        return None
+    default = PruneConfig()
+    args = ["uncertsplat", "prune", shlex.quote(p.source_run), "-o", "NEW_RUN", mode]
+    if p.score_requested != default.score:
+        args.append(f"--score {shlex.quote(p.score_requested)}")
+    args += [f"--set {k}={v}" for k, v in (("seed", p.seed), ("num_samples", p.num_samples))
+             if v != getattr(default, k)]
+    return " ".join(args)
+
+
+def _no_model_text(run: RunData) -> str:
+    """What a prune folder without a model holds and what a user can do instead of evaluating it."""
+    p = run.prune
+    what = ("a dry-run prune (prune --dry-run)" if p.dry_run else
+            "a prune that measured the sweep only (prune --sweep without --keep-ratio, --threshold or --auto)")
+    held = "prune.json and scores.npz" if p.counts is None else \
+        "prune.json, scores.npz and prune_mask.npy (the indices of the Gaussians it keeps)"
+    cmd = prune_again_command(p)
+    todo = (f"to measure the pruned model, prune without --dry-run, which writes it: `{cmd}`, then "
+            "`uncertsplat evaluate NEW_RUN`" if cmd else
+            "to measure a pruned model, prune with --keep-ratio, --threshold or --auto (without --dry-run), which "
+            f"writes one (`uncertsplat prune {shlex.quote(p.source_run)} -o NEW_RUN --auto`), then "
+            "`uncertsplat evaluate NEW_RUN`")
+    return (f"{run.name}: {what}: it holds {held}, no model, so there is nothing to evaluate (`uncertsplat evaluate` "
+            f"needs a run's config.json and model); the Pruning section shows what prune measured; {todo}.")
+
+
+def _missing_metrics_note(run: RunData, full: bool = True) -> str:
+    """The note for a run without eval/metrics.json: why it could not be read, what a prune folder without a model
+    is (``full``: with what to do, said once in the Summary), or the command that measures the run."""
+    if holds_no_model(run) and run.problem(METRICS) is None:
+        return note(_no_model_text(run) if full else
+                    f"{run.name}: a prune folder without a model (nothing to evaluate; the Summary says what to do).")
     return _file_note(run, METRICS, f"no eval/metrics.json — run `uncertsplat evaluate {run.path}` to measure "
                                     "the uncertainty; metric sections are left out for this run.")
 
@@ -362,10 +411,17 @@ def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:
         header = ["view"] + [labels[k] for k in keys]
         body.append(f'{title}{kv(facts)}<div data-run="{ri}">{table(header, rows, table_id=f"metrics-{ri}")}</div>')
     if not body:
-        body.append(note("No run has eval/metrics.json: run `uncertsplat evaluate RUN` first."))
+        body.append(note(NO_METRICS if not all(holds_no_model(r) for r in runs) else NO_MODEL))
     else:
         body.append(para(METRICS_LEGEND, "legend"))
     w.section("metrics", "Metrics per view", "".join(body))
+
+
+NO_METRICS = "No run has eval/metrics.json: run `uncertsplat evaluate RUN` first."
+NO_MODEL = ("No run holds a model to evaluate: prune folders without a model (a dry run or a sweep only); the Summary "
+            "says how to write one.")
+"""The Metrics section's note when no run has eval/metrics.json: every run a prune folder without a model, which
+``evaluate`` refuses (``holds_no_model``), or not."""
 
 
 DEPTH_LENGTH_KEYS = ("depth_rmse", "depth_mae")
@@ -514,7 +570,7 @@ def sparsification_section(w: ReportWriter, runs: list[RunData]) -> list[tuple[s
     per_run = []
     for ri, run in enumerate(runs):
         if run.metrics is None:
-            body.append(_missing_metrics_note(run))
+            body.append(_missing_metrics_note(run, full=False))
             continue
         curves = curves_of(run.metrics)
         per_run.append((run.name, curves))
@@ -548,7 +604,9 @@ def calibration_section(w: ReportWriter, runs: list[RunData]) -> None:
             continue
         per_run.append((run.name, cals))
     if not per_run and not body:
-        body.append(note("No calibration table available (run `uncertsplat evaluate` first)."))
+        body.append(note("No calibration table available " + (
+            "(run `uncertsplat evaluate` first)." if not all(holds_no_model(r) for r in runs) else
+            "(no run holds a model to evaluate: the Summary says how to write one).")))
     else:
         body.append(w.add_figure("calibration.png", F.calibration_figure(per_run),
                                  "Observed fraction of errors inside the predictive's central interval vs the "
