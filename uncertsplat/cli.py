@@ -490,7 +490,7 @@ def sweep(
     from uncertsplat.stages import sweep as stage
 
     only = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
-    stage.run(shipped_file(spec), output, jobs=jobs, device=device, scene=scene, overrides=set_, force=force, executor=executor,
+    stage.run(shipped_file(spec, "sweep"), output, jobs=jobs, device=device, scene=scene, overrides=set_, force=force, executor=executor,
               address=address, cpus_per_job=cpus_per_job, gpus_per_job=gpus_per_job, retries=retries,
               only_scenes=only)
 
@@ -510,7 +510,7 @@ def run_pipeline(
     from uncertsplat.stages import pipeline as stage
 
     _refuse_two_values({"device": device}, set_)
-    stage.run(shipped_file(pipeline), output, overrides=set_ or [], device=device, force=force)
+    stage.run(shipped_file(pipeline, "pipeline"), output, overrides=set_ or [], device=device, force=force)
 
 
 def entrypoint():  # pragma: no cover

@@ -7,6 +7,7 @@ resolved config of a stage is written as JSON beside its outputs (``RUN/config.j
 
 from __future__ import annotations
 
+import difflib
 import json
 import re
 import tomllib
@@ -1091,29 +1092,60 @@ SHIPPED = Path(__file__).resolve().parent / "pipelines"
 """The pipelines and sweep specs installed with the package (the repository's ``pipelines/`` links here)."""
 
 
-def shipped_file(path: str | Path) -> Path:
+_KIND_COMMAND = {"pipeline": "run", "sweep": "sweep"}
+_KIND_WORDS = {"pipeline": "a pipeline", "sweep": "a sweep spec"}
+_KIND_PLURAL = {"pipeline": "pipelines", "sweep": "sweep specs", None: "pipelines and sweep specs"}
+
+
+def shipped_file(path: str | Path, kind: str | None = None) -> Path:
     """``path``, or the installed pipeline / sweep spec it names when there is no such file: a bare name
     (``photos``, ``photos.toml``) or the repository's path (``pipelines/photos.toml``, what the README types) run
-    from outside the repository, e.g. after ``pip install``.
+    from outside the repository, e.g. after ``pip install``. ``kind`` (``"pipeline"`` for ``run``, ``"sweep"`` for
+    ``sweep``): a file of the other kind is refused with the command that runs it (a sweep spec given to ``run``
+    failed on every key), and a name not found is offered those of this kind only.
 
     Raises:
-        UserError: no such file and no installed one of that name (the installed names listed).
+        UserError: no such file and no installed one of that name (the installed names listed), or a file of the
+            other kind.
     """
     path = Path(path)
+    found = None
     if path.is_file():  # (a folder of that name, e.g. the photos of `run photos`, is not the pipeline)
-        return path
-    if path.parent in (Path("."), Path("pipelines")):
+        found = path
+    elif path.parent in (Path("."), Path("pipelines")):
         for name in (path.name, f"{path.name}.toml"):
             if (SHIPPED / name).is_file():
-                return SHIPPED / name
-    raise UserError("file not found", path=path,
-                    hint=f"Those installed with uncertsplat run by name: {', '.join(shipped_names())} "
-                         "(e.g. uncertsplat run photos -o OUT --set photos=PHOTOS).")
+                found = SHIPPED / name
+                break
+    if found is None:
+        names = shipped_names(kind)
+        close = difflib.get_close_matches(path.stem, names, n=1)
+        example = ("uncertsplat sweep tradeoff -o OUT" if kind == "sweep" else
+                   "uncertsplat run photos -o OUT --set photos=PHOTOS")
+        what = _KIND_PLURAL[kind]
+        raise UserError("file not found" + (f" (did you mean {close[0]}?)" if close else ""), path=path,
+                        hint=f"The {what} installed with uncertsplat run by name: {', '.join(names)} (e.g. {example}).")
+    actual = _toml_kind(found)
+    if kind is not None and actual is not None and actual != kind:
+        shown = found.stem if found.parent == SHIPPED else str(found)
+        raise UserError(f"this is {_KIND_WORDS[actual]}, not {_KIND_WORDS[kind]}", path=found,
+                        hint=f"Run it with `uncertsplat {_KIND_COMMAND[actual]} {shown} -o OUT`.")
+    return found
 
 
-def shipped_names() -> list[str]:
-    """The installed pipelines' and sweep specs' names (``shipped_file``)."""
-    return sorted(p.stem for p in SHIPPED.glob("*.toml"))
+def _toml_kind(path: Path) -> str | None:
+    """"pipeline" (a TOML with ``stages``), "sweep" (without) or None when the file is not TOML (its reader says
+    why)."""
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return None
+    return "pipeline" if "stages" in data else "sweep"
+
+
+def shipped_names(kind: str | None = None) -> list[str]:
+    """The installed pipelines' and sweep specs' names (``shipped_file``); ``kind``: those of one kind only."""
+    return sorted(p.stem for p in SHIPPED.glob("*.toml") if kind is None or _toml_kind(p) == kind)
 
 
 def load_toml(path: str | Path) -> dict:

@@ -331,10 +331,31 @@ def test_installed_pipelines_and_specs_run_by_name(tmp_path, monkeypatch):
     assert shipped_file("photos") == SHIPPED / "photos.toml"
     (tmp_path / "photos.toml").write_text("name = 'mine'\n")
     assert shipped_file("photos.toml") == Path("photos.toml")  # the user's own file first
-    with pytest.raises(UserError, match=r"file not found\. Those installed with uncertsplat run by name: demo, "):
+    with pytest.raises(UserError, match=r"file not found \(did you mean photos\?\)\. The pipelines and sweep specs "
+                                        r"installed with uncertsplat run by name: demo, "):
         shipped_file("elsewhere/photos.toml")
     result = runner.invoke(app, ["run", "nothere", "-o", str(tmp_path / "out")])
-    assert result.exit_code == 2 and "run by name: demo, photos, smoke, tradeoff" in " ".join(result.output.split())
+    assert result.exit_code == 2 and "pipelines installed with uncertsplat run by name: demo, photos, smoke (" in \
+        " ".join(result.output.split())
+
+
+def test_a_pipeline_and_a_sweep_spec_are_told_apart(tmp_path):
+    """`run tradeoff` (a sweep spec) failed on every key and offered the sweep specs to `run` too: each command now
+    names the other's file and the command that runs it, and offers its own names, with the nearest one."""
+    from uncertsplat.config import shipped_file, shipped_names
+
+    assert shipped_names("sweep") == ["tradeoff"] and "tradeoff" not in shipped_names("pipeline")
+    with pytest.raises(UserError, match=r"this is a sweep spec, not a pipeline\. Run it with `uncertsplat sweep "
+                                        r"tradeoff -o OUT`"):
+        shipped_file("tradeoff", "pipeline")
+    own = tmp_path / "mine.toml"
+    own.write_text("name = 'mine'\n[[stages]]\nkind = 'synth'\n")
+    with pytest.raises(UserError, match=r"this is a pipeline, not a sweep spec\. Run it with `uncertsplat run "):
+        shipped_file(own, "sweep")
+    assert shipped_file(own, "pipeline") == own
+    result = runner.invoke(app, ["sweep", "tradof", "-o", str(tmp_path / "out")])
+    said = " ".join(result.output.split())
+    assert result.exit_code == 2 and "did you mean tradeoff?" in said and "run by name: tradeoff (" in said
 
 
 def test_our_warnings_read_as_one_line(capsys):
