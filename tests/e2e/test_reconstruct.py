@@ -185,19 +185,21 @@ def test_too_few_registered_lists_the_images_and_writes_the_report(synth_scene, 
     strays = ["stray_a.png", "stray_b.png"]
     for k, name in enumerate(strays):
         write_rgb(photos / name, noise_image(100 + k, 128, 96))
+    write_rgb(photos / "black.png", np.zeros((96, 128, 3), np.uint8))
     ws = tmp_path / "ws"
     with pytest.raises(UserError) as err:
         stage.run(photos, ws, CFG.model_copy(update={"min_registered": 1.0}))
-    msg = str(err.value)
+    msg = " ".join(str(err.value).split())
     assert "stray_a.png" in msg and "stray_b.png" in msg and "overlap" in msg
+    # a black photo is named as such in the failure too, and leaving it out is the first thing to try
+    assert "(black.png: no features found at all" in msg and "Try: leave out black.png" in msg
     report = load_report(ws)
     assert report is not None and not report.success
     assert set(strays) <= set(report.images_unregistered)
     assert report.retried_relaxed
     assert not (ws / "images").exists()  # nothing undistorted for a failed run
-    # the failed workspace of the same photos is redone without --overwrite; a black photo among them is named as
-    # such where the unregistered ones are (not only in the report's notes)
-    write_rgb(photos / "black.png", np.zeros((96, 128, 3), np.uint8))
+    # the failed workspace of the same photos is redone without --overwrite; the black photo is named as such where
+    # the unregistered ones are (not only in the report's notes)
     capsys.readouterr()
     report = stage.run(photos, ws, CFG.model_copy(update={"min_registered": 0.5}))
     assert report.success and set([*strays, "black.png"]) <= set(report.images_unregistered)

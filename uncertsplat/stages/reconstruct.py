@@ -346,8 +346,14 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                            "60-80% overlap between neighbours, avoid blur and textureless surfaces.")
             if len(registered) < needed:
                 hints = registration_hints([m.num_reg_images() for m in result.models], matcher, n, cfg)
+                blank = [name for name in featureless if name in set(report.images_unregistered)]
+                if blank:  # no photo of the scene: nothing to match, whatever the options
+                    hints = [f"leave out {list_names(blank)} (no features at all: a blank, black or featureless "
+                             "photo)", *hints]
                 raise fail(f"only {len(registered)}/{n} images registered (below --min-registered "
-                           f"{cfg.min_registered}); unregistered: {list_names(report.images_unregistered)}",
+                           f"{cfg.min_registered}); unregistered: {list_names(report.images_unregistered)}"
+                           + (f" ({list_names(blank)}: no features found at all, a blank, black or featureless "
+                              "photo)" if blank else ""),
                            "Try: " + "; ".join(hints) + ".")
 
             model_dir = distorted / "sparse" / "0"
