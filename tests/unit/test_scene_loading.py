@@ -719,3 +719,15 @@ def test_a_workspace_photos_exif_tag_is_ignored_as_colmap_ignores_it(workspace, 
     after = load_scene(workspace, cfg)
     torch.testing.assert_close(after.cameras.cam_from_world, before.cameras.cam_from_world, rtol=0, atol=0)
     assert torch.equal(load_images(after, [0, 1]), pixels)
+
+
+def test_a_distorted_camera_no_image_uses_is_ignored(workspace):
+    """An edited model's leftover camera that no image uses blocked the whole workspace as distorted."""
+    sparse = workspace / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(sparse))
+    cam = rec.cameras[1]
+    rec.add_camera(pycolmap.Camera(model="OPENCV", width=cam.width, height=cam.height,
+                                   params=[100.0, 100.0, 64.0, 48.0, 0.1, 0.0, 0.0, 0.0], camera_id=7))
+    rec.write_binary(str(sparse))
+    assert 7 in pycolmap.Reconstruction(str(sparse)).cameras
+    assert len(load_scene(workspace).cameras) == 24

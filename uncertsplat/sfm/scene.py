@@ -156,7 +156,10 @@ def _colmap_cameras(model: ColmapModel, image_dir: Path, sparse: Path, cfg: Scen
     if not model.images:
         raise UserError("the COLMAP model has no registered images", path=sparse,
                         hint="Re-run `uncertsplat reconstruct` with more overlapping photos.")
+    used = {im.camera_id for im in model.images}
     for cam in model.cameras.values():
+        if cam.camera_id not in used:  # a camera no image uses (an edited model's leftover) renders nothing
+            continue
         if "FISHEYE" in cam.model or cam.model == "EQUIRECTANGULAR":
             # not a pinhole projection whatever its coefficients (a fisheye of zero coefficients is equidistant): it
             # trained as one without a word, 26 dB where the same photos undistorted gave 32
