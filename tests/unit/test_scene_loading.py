@@ -731,3 +731,35 @@ def test_a_distorted_camera_no_image_uses_is_ignored(workspace):
     rec.write_binary(str(sparse))
     assert 7 in pycolmap.Reconstruction(str(sparse)).cameras
     assert len(load_scene(workspace).cameras) == 24
+
+
+def test_depth_gt_maps_are_found_by_the_images_path_and_never_shared(tmp_path):
+    """`--depth-gt` looked maps up by the bare stem: camA/frame.jpg and camB/frame.jpg both read frame.npy, and
+    camB was scored against camA's depth without a word. A map is found as the images are laid out (camA/frame.npy),
+    by its maps' stem (camA__frame.npy) or, for a name no other image shares, by its stem (x.npy); a shared stem
+    alone is refused, naming the other image."""
+    from types import SimpleNamespace
+
+    from uncertsplat.data.dataset import depth_map_names, load_depth_folder
+
+    names = ("camA/frame.jpg", "camB/frame.jpg", "camA/x.jpg", "IMG_1.jpg", "IMG_1.png")
+    assert depth_map_names("camA/frame.jpg", names) == ["camA/frame", "camA__frame"]
+    assert depth_map_names("camA/x.jpg", names) == ["camA/x", "camA__x", "x"]
+    assert depth_map_names("IMG_1.jpg", names) == ["IMG_1_jpg"]  # (IMG_1 is both twins')
+    cams = Cameras(torch.eye(4).repeat(5, 1, 1), torch.eye(3).repeat(5, 1, 1), 4, 3, names)
+    scene = SimpleNamespace(cameras=cams, photo_fits=None)
+    folder = tmp_path / "gt"
+    (folder / "camA").mkdir(parents=True)
+    np.save(folder / "camA" / "frame.npy", np.full((3, 4), 1.0, np.float32))
+    np.save(folder / "camB__frame.npy", np.full((3, 4), 2.0, np.float32))
+    np.save(folder / "x.npy", np.full((3, 4), 3.0, np.float32))
+    np.save(folder / "frame.npy", np.full((3, 4), 9.0, np.float32))  # what both read before
+    np.save(folder / "IMG_1_jpg.npy", np.full((3, 4), 4.0, np.float32))
+    got = load_depth_folder(folder, scene, [0, 1, 2, 3])
+    assert got[:, 0, 0, 0].tolist() == [1.0, 2.0, 3.0, 4.0]
+    (folder / "camB__frame.npy").unlink()
+    with pytest.raises(UserError, match="no GT depth map for image 'camB/frame.jpg'") as err:
+        load_depth_folder(folder, scene, [1])
+    assert "camB/frame.npy or camB__frame.npy" in str(err.value) and "camA/frame.jpg has the same name" in str(err.value)
+    with pytest.raises(UserError, match="Expected IMG_1_png.npy"):
+        load_depth_folder(folder, scene, [4])

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from uncertsplat.console import list_names
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import (
     is_opaque_8bit,
@@ -186,27 +187,52 @@ def load_masks(scene: SceneData, indices: Sequence[int] | None = None, device=No
     return out
 
 
+def depth_map_names(name: str, names: Sequence[str]) -> list[str]:
+    """The file names (without extension) ``--depth-gt`` looks up for image ``name`` among the scene's ``names``, in
+    order: its path without the extension (``camA/frame`` for ``camA/frame.jpg``: the maps laid out as the images
+    are), its maps' stem (``io.maps.map_stem``: ``camA__frame``, ``IMG_1_jpg`` beside an ``IMG_1.png``) and its bare
+    stem (``frame``) when no other image has it. A name another image shares is never looked up: two views read
+    one map without a word (``camA/frame.jpg`` and ``camB/frame.jpg`` both read ``frame.npy``)."""
+    from uncertsplat.io.maps import map_stem
+
+    rel = Path(name).with_suffix("").as_posix()
+    stem = Path(name).stem
+    out = []
+    if not any(o != name and Path(o).with_suffix("").as_posix() == rel for o in names):
+        out.append(rel)
+    out.append(map_stem(name, names))
+    if not any(o != name and Path(o).stem == stem for o in names):
+        out.append(stem)
+    return list(dict.fromkeys(out))
+
+
 def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) -> Tensor:
-    """GT depth [C,H,W,1] of the cameras ``indices`` from ``folder/{image stem}.npy|.exr`` (``--depth-gt``).
+    """GT depth [C,H,W,1] of the cameras ``indices`` from ``folder/{name}.npy|.exr`` (``--depth-gt``; ``name`` one
+    of ``depth_map_names``).
 
     The maps stay in their own units (their scale to the scene is estimated by evaluation) and are
     resized to the cameras like ``load_depths``.
 
     Raises:
-        UserError: the folder is missing, or holds no map for one of the images (naming it).
+        UserError: the folder is missing, or holds no map for one of the images (naming it and the names looked
+            up).
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise UserError("GT depth folder not found", path=folder, hint="Give --depth-gt a folder of .npy/.exr maps.")
     W, H = scene.cameras.width, scene.cameras.height
+    names = scene.cameras.image_names
     paths = []  # every map found before any is read: a missing one fails at once
     for i in indices:
-        stem = Path(scene.cameras.image_names[i]).stem
-        cands = [folder / f"{stem}{ext}" for ext in (".npy", ".exr", ".NPY", ".EXR")]
+        looked = depth_map_names(names[i], names)
+        cands = [folder / f"{n}{ext}" for n in looked for ext in (".npy", ".exr", ".NPY", ".EXR")]
         path = next((c for c in cands if c.is_file()), None)
         if path is None:
-            raise UserError(f"no GT depth map for image '{scene.cameras.image_names[i]}'", path=folder,
-                            hint=f"Expected {stem}.npy or {stem}.exr.")
+            shared = [o for o in names if o != names[i] and Path(o).stem == Path(names[i]).stem]
+            raise UserError(f"no GT depth map for image '{names[i]}'", path=folder,
+                            hint=f"Expected {' or '.join(f'{n}.npy' for n in looked)} (or .exr)"
+                                 + (f"; {Path(names[i]).stem}.npy alone would be ambiguous: {list_names(shared)} "
+                                    "has the same name" if shared else "") + ".")
         paths.append(path)
     out = torch.empty((len(paths), H, W, 1), dtype=torch.float32)  # [C,H,W,1], filled one map at a time
     for k, (i, path) in enumerate(zip(indices, paths, strict=True)):
