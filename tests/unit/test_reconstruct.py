@@ -216,6 +216,35 @@ def test_size_groups_and_exif_orientation(tmp_path):
     assert groups == {(40, 30): ["a.jpg"], (30, 40): ["b.jpg", "c.jpg"], (64, 48): ["d.jpg"]}
 
 
+def test_two_lenses_of_one_size_get_a_camera_each(tmp_path):
+    """A phone's main and tele lens make photos of one size: one shared camera got a focal length between the two
+    and a distortion of 0.71. The EXIF camera, lens and focal length tell them apart; photos of that size without
+    EXIF join the most common lens; photos of one lens (or none named) stay one group per size."""
+    def exif(path, model, focal, seed):
+        a = np.random.default_rng(seed).integers(0, 255, (30, 40, 3), dtype=np.uint8)
+        spec = oiio.ImageSpec(40, 30, 3, "uint8")
+        if model:
+            spec.attribute("Make", "Phone")
+            spec.attribute("Model", model)
+            spec.attribute("Exif:FocalLength", float(focal))
+        out = oiio.ImageOutput.create(str(path))
+        out.open(str(path), spec)
+        out.write_image(a)
+        out.close()
+
+    for i, (model, focal) in enumerate([("A", 4.0), ("A", 4.0), ("A", 4.0), ("B", 5.0), ("B", 5.0), (None, 0)]):
+        exif(tmp_path / f"p{i}.jpg", model, focal, i)
+    write_image(tmp_path / "q.jpg", 64, 48)
+    scan = sfm.scan_photos(tmp_path)
+    assert {p.name: p.lens for p in scan.photos}["p3.jpg"] == "Phone B 5 mm"
+    assert scan.camera_groups() == {(40, 30, "Phone A 4 mm"): ["p0.jpg", "p1.jpg", "p2.jpg", "p5.jpg"],
+                                    (40, 30, "Phone B 5 mm"): ["p3.jpg", "p4.jpg"], (64, 48, ""): ["q.jpg"]}
+    for i in (3, 4):
+        exif(tmp_path / f"p{i}.jpg", "A", 4.0, i)
+    assert sfm.scan_photos(tmp_path).camera_groups() == {
+        (40, 30, ""): ["p0.jpg", "p1.jpg", "p2.jpg", "p3.jpg", "p4.jpg", "p5.jpg"], (64, 48, ""): ["q.jpg"]}
+
+
 def test_stage_inputs_rotates_by_exif(tmp_path):
     photos = tmp_path / "photos"
     photos.mkdir()

@@ -81,6 +81,9 @@ class PhotoInfo:
     """The file has an alpha channel (COLMAP and training read its colour channels as they are)."""
     gray: bool = False
     """The file has one colour channel (training reads it as R = G = B)."""
+    lens: str = ""
+    """The EXIF camera, lens and focal length that took it ("" when the file has none): a phone's main and tele
+    lenses make photos of one size with different focal lengths (``PhotoScan.camera_groups``)."""
 
     @property
     def oriented_size(self) -> tuple[int, int]:
@@ -108,6 +111,26 @@ class PhotoScan:
             groups.setdefault(p.oriented_size, []).append(p.name)
         return groups
 
+    def camera_groups(self) -> dict[tuple[int, int, str], list[str]]:
+        """(width, height, lens) -> image names: the photos that share one COLMAP camera. Photos of one size are
+        told apart by their EXIF lens and focal length when they name two or more (a phone's main and tele lens: one
+        camera for both made a single focal length between them and a distortion of 0.71, half the field of view);
+        photos of that size without EXIF go with the most common lens."""
+        by_size: dict[tuple[int, int], list[PhotoInfo]] = {}
+        for p in self.photos:
+            by_size.setdefault(p.oriented_size, []).append(p)
+        groups: dict[tuple[int, int, str], list[str]] = {}
+        for (w, h), photos in by_size.items():
+            counts: dict[str, int] = {}
+            for p in photos:
+                if p.lens:
+                    counts[p.lens] = counts.get(p.lens, 0) + 1
+            common = max(counts, key=lambda k: (counts[k], k)) if len(counts) > 1 else ""
+            for p in photos:
+                lens = (p.lens or common) if len(counts) > 1 else ""
+                groups.setdefault((w, h, lens), []).append(p.name)
+        return groups
+
     def fingerprint(self) -> str:
         """Hash of the photos' names and contents: changes when the photos change, not when a copy of the folder
         did not keep the modification times (``cp -r``, a sync, a restore)."""
@@ -126,8 +149,17 @@ class PhotoScan:
         return h.hexdigest()[:16]
 
 
-def _read_header(path: Path) -> tuple[int, int, int, bool, bool] | str:
-    """(width, height, orientation, has alpha, grayscale) from the file header, or the reader's error message.
+def _lens(spec) -> str:
+    """The EXIF camera, lens and focal length of a header ("" when it names none)."""
+    parts = [str(spec.getattribute(k) or "").strip() for k in ("Make", "Model", "Exif:LensModel")]
+    focal = spec.getattribute("Exif:FocalLength")
+    if isinstance(focal, (int, float)) and focal > 0:
+        parts.append(f"{float(focal):g} mm")
+    return " ".join(p for p in parts if p)
+
+
+def _read_header(path: Path) -> tuple[int, int, int, bool, bool, str] | str:
+    """(width, height, orientation, has alpha, grayscale, lens) from the file header, or the reader's error message.
 
     Every pixel is decoded too, not only the header: COLMAP reads a truncated JPEG or PNG without a word, filling
     the missing rows with grey or black, and the model would then be trained on them."""
@@ -147,7 +179,7 @@ def _read_header(path: Path) -> tuple[int, int, int, bool, bool] | str:
             return f"cannot be decoded to the end: {err}; it may be truncated"
         alpha = spec.alpha_channel >= 0 or spec.nchannels in (2, 4)
         gray = spec.nchannels - (1 if alpha else 0) == 1
-        return spec.width, spec.height, orientation if 1 <= orientation <= 8 else 1, alpha, gray
+        return spec.width, spec.height, orientation if 1 <= orientation <= 8 else 1, alpha, gray, _lens(spec)
     finally:
         inp.close()
 
@@ -218,8 +250,8 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
                 header = f"a link to {os.readlink(path)}, which does not exist"
             bad.append(f"{path.name} ({header})")
         else:
-            w, h, o, alpha, gray = header
-            photos.append(PhotoInfo(path.name, path, w, h, o, alpha, gray))
+            w, h, o, alpha, gray, lens = header
+            photos.append(PhotoInfo(path.name, path, w, h, o, alpha, gray, lens))
     if bad:  # before the count: a folder of one good and one broken photo names the broken one
         raise UserError(f"{len(bad)} photo(s) cannot be read: {'; '.join(bad)}", path=folder,
                         hint="Remove or re-export these files (JPEG, PNG or TIFF), then run again.")
@@ -363,14 +395,15 @@ def _chunks(items: Sequence, size: int) -> Iterator[Sequence]:
 def extract_features(
     database: Path,
     image_dir: Path,
-    groups: dict[tuple[int, int], list[str]],
+    groups: dict[tuple, list[str]],
     cfg: ReconstructConfig,
     advance: ProgressFn = _noop,
     chunk_size: int = 8,
 ) -> dict[str, int]:
     """SIFT features for every image into ``database``; returns name -> number of keypoints.
 
-    With ``cfg.single_camera`` every image size gets one shared camera: pycolmap's SINGLE mode
+    With ``cfg.single_camera`` every group (an image size, and a lens where their EXIF names several:
+    ``PhotoScan.camera_groups``) gets one shared camera: pycolmap's SINGLE mode
     would otherwise skip (silently) every image whose size differs from the first. Images are fed
     in chunks so the progress bar moves; later chunks reuse the group's camera.
     """

@@ -218,6 +218,13 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                 "scene.photo_sizes)")
         report.notes.append(note)
         console.print(f"[yellow]note:[/] {note}")
+    cameras = scan.camera_groups()
+    if cfg.single_camera and len(cameras) > len(groups):  # one size, two lenses: a camera each
+        lenses = "; ".join(f"{lens or 'no EXIF'}: {len(n)}" for (_, _, lens), n in cameras.items())
+        note = (f"the photos name {len(cameras)} cameras or lenses in their EXIF ({lenses}): one COLMAP camera "
+                "each (--per-image-camera gives every photo its own)")
+        report.notes.append(note)
+        console.print(f"[yellow]note:[/] {note}")
 
     def fail(message: str, hint: str) -> UserError:
         report.success = False
@@ -256,7 +263,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                 # ---- features
                 task = bar.add_task("features", total=n, info="")
                 with watch("extract"):
-                    keypoints = sfm.extract_features(database, image_dir, groups, cfg,
+                    keypoints = sfm.extract_features(database, image_dir, cameras, cfg,
                                                      advance=lambda k, s: bar.update(task, advance=k, info=s))
                 missing = [name for name in scan.names if name not in keypoints]
                 if missing:
