@@ -231,6 +231,19 @@ class TestAddViewsErrors:
             with pytest.raises(UserError, match=r"no photo of that name in the scene \(did you mean view_002\.png\?\)"):
                 train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=[near])
 
+    def test_a_photo_the_scene_leaves_out_is_named_as_such(self, tiny_scene_path, tmp_path):
+        """A photo in the workspace's images/ that the scene does not hold (left out for its size, or not in the
+        COLMAP model) was 'no photo of that name in the scene'."""
+        scene = tmp_path / "scene"
+        shutil.copytree(tiny_scene_path, scene)
+        run = tmp_path / "run"
+        train_run(scene, run, _cfg(iterations=10, scene={"train_names": START}), CPU)
+        shutil.copy(scene / "images" / "view_002.png", scene / "images" / "extra.png")
+        with pytest.raises(UserError, match=r"--add-views extra.png: the photo is in .*images but not among the "
+                                            r"scene's views: left out for its size") as err:
+            train_run(scene, run, _cfg(), CPU, resume=True, extend_to=20, add_views=["extra.png"])
+        assert "reconstruct again with it" in str(err.value)
+
     def test_a_run_with_views_set_aside_takes_none(self, tiny_scene_path, subset_run, tmp_path):
         """More training views would set other views aside for calibration: refused, the run left as it was."""
         run = _with_views_set_aside(subset_run, tmp_path)

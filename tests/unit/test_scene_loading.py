@@ -763,3 +763,16 @@ def test_depth_gt_maps_are_found_by_the_images_path_and_never_shared(tmp_path):
     assert "camB/frame.npy or camB__frame.npy" in str(err.value) and "camA/frame.jpg has the same name" in str(err.value)
     with pytest.raises(UserError, match="Expected IMG_1_png.npy"):
         load_depth_folder(folder, scene, [4])
+
+
+def test_photos_the_model_does_not_name_are_noted(workspace):
+    """Photos put into a workspace's images/ that its COLMAP model does not hold were ignored without a word."""
+    assert not any("not in the COLMAP model" in n for n in load_scene(workspace).notes)
+    shutil.copy(workspace / "images" / "view_002.png", workspace / "images" / "new shot.png")
+    (workspace / "images" / "more").mkdir()
+    shutil.copy(workspace / "images" / "view_003.png", workspace / "images" / "more" / "b.png")
+    (workspace / "images" / "notes.txt").write_text("not a photo")
+    scene = load_scene(workspace)
+    (note,) = [n for n in scene.notes if "not in the COLMAP model" in n]
+    assert note.startswith("2 photo(s) in") and "more/b.png" in note and "new shot.png" in note
+    assert len(scene.cameras) == 24

@@ -31,7 +31,7 @@ import torch
 from uncertsplat.config import SceneConfig
 from uncertsplat.console import list_names
 from uncertsplat.errors import UserError
-from uncertsplat.io.images import read_image_size
+from uncertsplat.io.images import IMAGE_EXTENSIONS, read_image_size
 from uncertsplat.schemas.scene import SynthScene
 from uncertsplat.sfm.center import choose_center, random_points
 from uncertsplat.sfm.colmap_io import MODEL_FILES, ColmapModel, has_model, read_colmap_model
@@ -373,6 +373,10 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
         notes = [*notes, f"the workspace holds {len(others) + 1} COLMAP models; {sparse.relative_to(path)} is used "
                          f"({len(model.images)} images); the others ({', '.join(str(d.relative_to(path)) for d in others)}) "
                          "are not: reconstruct again (e.g. more overlap, --matcher exhaustive) to join them"]
+    unused = _photos_not_in_model(image_dir, model)
+    if unused:  # photos a user put there for the scene, which it does not hold
+        notes = [*notes, f"{len(unused)} photo(s) in {image_dir} are not in the COLMAP model and are not used: "
+                         f"{list_names(unused, 8)} (reconstruct again with them to use them)"]
     if all((sparse / f"{n}.bin").is_file() for n in MODEL_FILES) and any((sparse / f"{n}.txt").is_file()
                                                                           for n in MODEL_FILES):
         notes = [*notes, f"{sparse} holds the model both as .bin and as .txt files: the .bin ones are read (as COLMAP "
@@ -384,6 +388,14 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
         points, rgb = points[keep], rgb[keep]
     return _finish(cameras, paths, points, rgb, cfg, source={"kind": source, "path": str(path),
                                                             "model": str(sparse)}, photo_fits=fits, notes=notes)
+
+
+def _photos_not_in_model(image_dir: Path, model: ColmapModel) -> list[str]:
+    """The photos (image files, in sub-folders too) under ``image_dir`` that the model does not name, sorted."""
+    named = {im.name for im in model.images}
+    found = (p.relative_to(image_dir).as_posix() for p in image_dir.rglob("*")
+             if p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith(".") and p.is_file())
+    return sorted(n for n in found if n not in named)
 
 
 def _seen_by_training_views(model: ColmapModel, cameras: Cameras, cfg: SceneConfig, where: Path) -> torch.Tensor:

@@ -356,6 +356,13 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             unknown = [n for n in add_views or () if "not in the scene: " in err.message and n in err.message]
             if not unknown:
                 raise
+            on_disk = [n for n in unknown if (Path(scene) / "images" / n).is_file()]
+            if on_disk:  # a photo the scene leaves out (another size, or one its COLMAP model does not hold)
+                raise UserError(f"--add-views {', '.join(on_disk)}: the photo is in {Path(scene) / 'images'} but not "
+                                "among the scene's views: left out for its size (the scene's photos are fitted to one "
+                                "size; another shape is left out, as `train` noted) or not in its COLMAP model",
+                                path=scene, hint="Bring the photo to the scene's size and reconstruct again with it, "
+                                                 "or choose another view.") from None
             raise UserError(f"--add-views {', '.join(unknown)}: no photo of that name in the scene"
                             + _close_names(unknown, scene, cfg), path=scene,
                             hint="--add-views takes the names of photos the scene holds but the run did not train on; "
