@@ -283,3 +283,14 @@ def test_a_finished_run_without_its_checkpoints_is_not_trained_again(tiny_scene_
     stage.run(moved, run, cfg, torch.device("cpu"), resume=True)
     assert json.loads((run / "scene.json").read_text())["scene"] == str(moved.resolve())
     assert (run / "variational.ply").read_bytes() == model
+
+
+def test_views_held_out_by_index_are_named(tiny_scene_path, tmp_path, capsys):  # noqa: F811
+    """Indices count the scene's views after any photo it left out, so `train` names the views they chose (a user's
+    index 11 held out the 11th photo left, not the 11th file of the folder, without a word)."""
+    cfg = train_config_from("tiny", None, ["iterations=2", "scene.downscale=4.0", "scene.test_indices=[3, 7]",
+                                           "eval_every=1000"])
+    stage.run(tiny_scene_path, tmp_path / "run", cfg, torch.device("cpu"))
+    said = " ".join(capsys.readouterr().err.split())
+    assert "held out (scene.test_indices / train_indices count the scene's 24 views, in name order): view_003.png, " \
+           "view_007.png" in said

@@ -429,6 +429,11 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                          else "") +
                       f"device {device} ({kernels}), {cfg.iterations} steps, at most "
                       f"{trainer.budget.max_gaussians:,} Gaussians ({trainer.budget.reason})")
+        if cfg.scene.test_indices is not None or cfg.scene.train_indices is not None:
+            # indices count the scene's views, after any photo left out: the names say which views they are
+            held = [data.cameras.image_names[i] for i in data.split.get("test", ())]
+            console.print(f"held out (scene.test_indices / train_indices count the scene's {len(names)} views, in name "
+                          f"order): {list_names(held, 10) if held else 'none'}")
         for note in [*data.notes, *small_images_notes(data.cameras.width, data.cameras.height, cfg.scene.downscale),
                      *trainer.init_notes, *_unused_setting_notes(cfg)]:
             console.print(f"[yellow]note:[/] {note}")
