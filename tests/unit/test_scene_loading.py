@@ -776,3 +776,13 @@ def test_photos_the_model_does_not_name_are_noted(workspace):
     (note,) = [n for n in scene.notes if "not in the COLMAP model" in n]
     assert note.startswith("2 photo(s) in") and "more/b.png" in note and "new shot.png" in note
     assert len(scene.cameras) == 24
+
+
+def test_photos_with_alpha_in_a_workspace_are_noted(workspace):
+    """A workspace photo with transparency is composited over the background colour: said, not silent."""
+    assert not any("alpha channel" in n for n in load_scene(workspace).notes)
+    path = workspace / "images" / "view_004.png"
+    rgb = read_image(path)
+    write_png(path, np.concatenate([rgb, np.ones_like(rgb[..., :1])], -1))
+    (note,) = [n for n in load_scene(workspace, SceneConfig(background=(1.0, 1.0, 1.0))).notes if "alpha channel" in n]
+    assert note.startswith("1 photo(s) have an alpha channel") and "[1.0, 1.0, 1.0]" in note and "view_004.png" in note

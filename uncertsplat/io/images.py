@@ -127,6 +127,11 @@ def _opaque_8bit(spec: oiio.ImageSpec) -> bool:
             and (spec.nchannels == 1 or spec.nchannels >= 3))
 
 
+def has_alpha(path: str | Path) -> bool:
+    """Whether the image has an alpha channel (``read_image`` composites it over a background), from the header."""
+    return _alpha_index(_header(Path(path))) >= 0
+
+
 def is_opaque_8bit(path: str | Path) -> bool:
     """Whether ``read_image_8bit`` reads the image (header only): an 8-bit file without alpha."""
     return _opaque_8bit(_header(Path(path)))

@@ -31,7 +31,7 @@ import torch
 from uncertsplat.config import SceneConfig
 from uncertsplat.console import list_names
 from uncertsplat.errors import UserError
-from uncertsplat.io.images import IMAGE_EXTENSIONS, read_image_size
+from uncertsplat.io.images import IMAGE_EXTENSIONS, has_alpha, read_image_size
 from uncertsplat.schemas.scene import SynthScene
 from uncertsplat.sfm.center import choose_center, random_points
 from uncertsplat.sfm.colmap_io import MODEL_FILES, ColmapModel, has_model, read_colmap_model
@@ -373,6 +373,11 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
         notes = [*notes, f"the workspace holds {len(others) + 1} COLMAP models; {sparse.relative_to(path)} is used "
                          f"({len(model.images)} images); the others ({', '.join(str(d.relative_to(path)) for d in others)}) "
                          "are not: reconstruct again (e.g. more overlap, --matcher exhaustive) to join them"]
+    with_alpha = [p.relative_to(image_dir).as_posix() for p in paths if has_alpha(p)]
+    if with_alpha:  # (reconstruct's own workspaces hold none: COLMAP's undistorter writes the colour channels)
+        notes = [*notes, f"{len(with_alpha)} photo(s) have an alpha channel: where they are transparent, training "
+                         f"sees them composited over scene.background {list(cfg.background)} "
+                         f"({list_names(with_alpha, 8)})"]
     unused = _photos_not_in_model(image_dir, model)
     if unused:  # photos a user put there for the scene, which it does not hold
         notes = [*notes, f"{len(unused)} photo(s) in {image_dir} are not in the COLMAP model and are not used: "
