@@ -51,8 +51,8 @@ from uncertsplat.report.loader import (
 )
 from uncertsplat.report.views import SURFACE_MIN_ALPHA, ViewMaps, load_view
 from uncertsplat.schemas import EvalReport, PruneMetrics, PruneReport, PruneSweep
-from uncertsplat.stages.prune import METRIC_KEYS as PRUNE_EVAL_KEYS
-from uncertsplat.stages.prune import PRUNED_FROM_EVALUATE, UNPRUNED_FROM_EVALUATE
+from uncertsplat.schemas.prune import METRIC_KEYS as PRUNE_EVAL_KEYS
+from uncertsplat.schemas.prune import PRUNED_FROM_EVALUATE, UNPRUNED_FROM_EVALUATE
 from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
 

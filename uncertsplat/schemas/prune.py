@@ -8,6 +8,14 @@ from pydantic import Field, field_validator
 
 from uncertsplat.schemas.base import SchemaFile, Strict, finite_or_none
 
+METRIC_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "depth_ause_mae")
+"""The ``PruneMetrics`` keys that are ``evaluate``'s metrics (the means over the metric views)."""
+UNPRUNED_FROM_EVALUATE = "the unpruned model's uncertainty metrics are evaluate's"
+"""How prune's note begins that its 'before' row's ``METRIC_KEYS`` are the source run's ``eval/metrics.json`` means
+(``report`` checks it against that file as it is when the report is made)."""
+PRUNED_FROM_EVALUATE = "the pruned model's uncertainty metrics are evaluate's"
+"""How prune's note begins that its 'after' row's ``METRIC_KEYS`` are the pruned run's ``eval/metrics.json`` means."""
+
 
 class PruneMetrics(Strict):
     """Held-out metrics of one model (the unpruned, the pruned, or the random-removal baseline).

@@ -55,6 +55,9 @@ from uncertsplat.errors import Interrupted, UserError, run_folder_missing
 from uncertsplat.io.atomic import current_umask
 from uncertsplat.provenance import file_sha256
 from uncertsplat.schemas.prune import (
+    METRIC_KEYS,
+    PRUNED_FROM_EVALUATE,
+    UNPRUNED_FROM_EVALUATE,
     PruneCounts,
     PruneMetrics,
     PruneMetricSet,
@@ -64,13 +67,6 @@ from uncertsplat.schemas.prune import (
     Written,
 )
 from uncertsplat.schemas.runs import RunExposure
-
-METRIC_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "depth_ause_mae")
-UNPRUNED_FROM_EVALUATE = "the unpruned model's uncertainty metrics are evaluate's"
-"""How prune's note begins that its 'before' row's ``METRIC_KEYS`` are the source run's ``eval/metrics.json`` means
-(``report`` checks it against that file as it is when the report is made)."""
-PRUNED_FROM_EVALUATE = "the pruned model's uncertainty metrics are evaluate's"
-"""How prune's note begins that its 'after' row's ``METRIC_KEYS`` are the pruned run's ``eval/metrics.json`` means."""
 
 
 # ------------------------------------------------------------------------------------------ checks
