@@ -1133,14 +1133,21 @@ def shipped_file(path: str | Path, kind: str | None = None) -> Path:
     return found
 
 
+_SWEEP_KEYS = frozenset({"axes", "default", "design", "pareto_x", "pareto_y", "seeds", "scenes", "synth",
+                         "train_preset"})
+"""Keys only a sweep spec has (``sweep.spec.SweepSpec``); a pipeline has ``stages``."""
+
+
 def _toml_kind(path: Path) -> str | None:
-    """"pipeline" (a TOML with ``stages``), "sweep" (without) or None when the file is not TOML (its reader says
-    why)."""
+    """"pipeline" (a TOML with ``stages``), "sweep" (one with a sweep spec's keys) or None: not TOML, or neither
+    (a mistyped file: the command's own reader names the key)."""
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
         return None
-    return "pipeline" if "stages" in data else "sweep"
+    if "stages" in data:
+        return "pipeline"
+    return "sweep" if _SWEEP_KEYS & set(data) else None
 
 
 def shipped_names(kind: str | None = None) -> list[str]:

@@ -278,6 +278,7 @@ class Predictor:
         # what an evaluation of this model with these settings fitted on the photos (RUN/eval/predictive.pt): read
         # instead of fitted, and all there is where the scene folder is not (a robot has the run, not the photos)
         kept = read_predictive(loaded, cfg, loaded.scene_path or run_dir)
+        on_file = kept is not None  # the evaluation's, whatever device it was fitted on: never replaced here
         try:
             scene = loaded.load_scene()
         except UserError as err:
@@ -328,7 +329,7 @@ class Predictor:
             residual = fit(write=False)
         sampler, fit = scored_sampler(new_sampler, residual, scene.cameras, scene.split, cfg, device,
                                       load_views=train_views, set_aside_maps=set_aside)
-        if cfg.model_dump() == evaluation.model_dump():  # the evaluation's predictive: kept for the next load
+        if not on_file and cfg.model_dump() == evaluation.model_dump():  # the evaluation's: kept for the next load
             try:
                 with run_lock(run_dir, "predict"):
                     keep_predictive(loaded, scene, cfg, residual, fit, device)

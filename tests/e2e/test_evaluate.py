@@ -935,10 +935,29 @@ class TestPredictor:
         with pytest.raises(UserError, match="is gone.*holds no predictive"):
             Predictor.load(run, "cpu")
 
+    def test_an_evaluation_kept_as_it_is_still_leaves_the_predictive(self, evaluated, tmp_path, capsys):
+        """A run evaluated before eval/predictive.pt existed: `evaluate` again said "already evaluated" and wrote
+        nothing, though the Predictor's error sent the user there. It now writes the file from its metrics and the
+        noise, the same predictive a fresh fit gives."""
+        from uncertsplat.predict import Predictor
+
+        run = tmp_path / "run"
+        shutil.copytree(evaluated[0], run)
+        path = run / "eval" / "predictive.pt"
+        fresh = torch.load(path, weights_only=True)
+        path.unlink()
+        capsys.readouterr()
+        evaluate.run(run, EvalConfig(num_samples=5, seed=3), device=torch.device("cpu"))
+        assert "already evaluated" in " ".join(capsys.readouterr().err.split())
+        kept = torch.load(path, weights_only=True)
+        assert kept["key"] == fresh["key"] and kept["std"] == fresh["std"]
+        assert Predictor.load(run, "cpu").std_factor == evaluated[1].std_scale
+
     def test_the_kept_fit_is_read_on_its_device_and_fitted_again_on_another(self, evaluated, tmp_path, monkeypatch):
         """With the scene there, a predictive kept for this model and settings is read, not fitted again (the std
         factor's K renders of the calibration views); one fitted on another device type is fitted again, as
-        evaluate on this device would. An evaluation of the training split leaves the file alone."""
+        evaluate on this device would, and leaves the file as it is. An evaluation of the training split leaves the
+        file alone."""
         from uncertsplat.eval import engine
         from uncertsplat.predict import Predictor
 
@@ -957,7 +976,8 @@ class TestPredictor:
         torch.save({**data, "device": "cuda"}, path)
         fitted = Predictor.load(run, "cpu")
         assert calls == [1] and fitted.std_factor == read.std_factor
-        assert torch.load(path, weights_only=True)["device"] == "cpu"  # the default load keeps its own
+        # the file is the evaluation's (a robot on that device reads it): a load on another device leaves it
+        assert torch.load(path, weights_only=True)["device"] == "cuda"
 
     def test_says_which_poses_and_points_a_photo_showed_empty(self, evaluated):
         """``seen_free``: the scene's cameras and a point between a camera and the wall its middle pixel sees are in

@@ -353,6 +353,9 @@ def test_a_pipeline_and_a_sweep_spec_are_told_apart(tmp_path):
     with pytest.raises(UserError, match=r"this is a pipeline, not a sweep spec\. Run it with `uncertsplat run "):
         shipped_file(own, "sweep")
     assert shipped_file(own, "pipeline") == own
+    typo = tmp_path / "typo.toml"  # a pipeline with a mistyped key is neither: its reader names the key
+    typo.write_text("[[stage]]\nkind = 'synth'\n")
+    assert shipped_file(typo, "pipeline") == typo and shipped_file(typo, "sweep") == typo
     result = runner.invoke(app, ["sweep", "tradof", "-o", str(tmp_path / "out")])
     said = " ".join(result.output.split())
     assert result.exit_code == 2 and "did you mean tradeoff?" in said and "run by name: tradeoff (" in said

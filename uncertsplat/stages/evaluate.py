@@ -370,6 +370,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     done = (_finished(run_dir, Path(loaded.source), cfg, [scene.cameras.image_names[i] for i in indices], device)
             if cfg.split == "test" else None)
     if done is not None:
+        _keep_missing_predictive(run_dir, loaded, scene, cfg, done, device)
         console.print(f"[bold]evaluate[/] {run_dir}: already evaluated with these settings, versions and device "
                       f"({out / 'metrics.json'}; --set reuse=false evaluates again)")
         return done if quiet else _print_report(run_dir, cfg, done, out, written=False)
@@ -437,6 +438,29 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     for note in [*reach, *low, *few]:
         console.print(f"note: {note}")
     return _print_report(run_dir, cfg, report, out)
+
+
+def _keep_missing_predictive(run_dir: Path, loaded, scene, cfg: EvalConfig, report, device: torch.device) -> None:
+    """An evaluation kept as it is ("already evaluated") still leaves ``eval/predictive.pt`` (what ``Predictor``
+    needs without the photos) when the file is missing or for other settings (a run evaluated before the file
+    existed): the std factor, tails and the views they were fitted on from its metrics (the same numbers: JSON keeps a
+    float to the bit), the pixel noise from ``residual.pt`` (else fitted, as the evaluation fitted it)."""
+    from functools import partial
+
+    from uncertsplat.data.dataset import load_view_set
+    from uncertsplat.eval.engine import StdFit
+    from uncertsplat.io.atomic import run_lock
+    from uncertsplat.stages.predictive_cache import keep_predictive, read_predictive
+    from uncertsplat.stages.residual_cache import fitted_residual
+
+    if cfg.split != "test" or read_predictive(loaded, cfg, scene.source.get("path", run_dir)) is not None:
+        return
+    with run_lock(run_dir, "evaluate"):
+        residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
+                                   load_views=partial(load_view_set, scene, depth=False, keep_8bit=True), write=True,
+                                   calibration_indices=scene.split.get("calibration", ()))
+        fit = StdFit(report.std_scale, report.degrees_of_freedom, list(report.calibration_views))
+        keep_predictive(loaded, scene, cfg, residual, fit, device)
 
 
 NEAR_COPY_DB = 4.0

@@ -220,8 +220,9 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         console.print(f"[yellow]note:[/] {note}")
     cameras = scan.camera_groups()
     if cfg.single_camera and len(cameras) > len(groups):  # one size, two lenses: a camera each
-        lenses = "; ".join(f"{lens or 'no EXIF'}: {len(n)}" for (_, _, lens), n in cameras.items())
-        note = (f"the photos name {len(cameras)} cameras or lenses in their EXIF ({lenses}): one COLMAP camera "
+        split = {(w, h) for (w, h, lens) in cameras if lens}  # (a size of one lens keeps the key "")
+        lenses = "; ".join(f"{w}x{h} {lens}: {len(n)}" for (w, h, lens), n in cameras.items() if (w, h) in split)
+        note = (f"photos of one size name several cameras or lenses in their EXIF ({lenses}): one COLMAP camera "
                 "each (--per-image-camera gives every photo its own)")
         report.notes.append(note)
         console.print(f"[yellow]note:[/] {note}")
