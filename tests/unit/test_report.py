@@ -448,6 +448,19 @@ def test_a_prune_folder_without_a_model_is_not_sent_to_evaluate(tmp_path):
     assert (f"prune without --dry-run, which writes it: `uncertsplat prune '{tmp_path / 'run a'}' -o NEW_RUN "
             "--keep-ratio 0.9 --score position_spread --set seed=3 --set num_samples=4`, then "
             "`uncertsplat evaluate NEW_RUN`") in shown
+    # with the folder's prune_config.json, every setting that chose the mask, numbers as they were
+    from uncertsplat.config import PruneConfig
+    from uncertsplat.report.build import prune_again_command
+
+    cfg = PruneConfig(threshold=0.123456789, dry_run=True, free_space_views=4, seed=3, score="free-space")
+    (run / "prune_config.json").write_text(cfg.model_dump_json())
+    rep.mode, rep.keep_ratio, rep.threshold = "threshold", None, 0.123456789
+    rep.write(run / "prune.json")
+    assert "-o NEW_RUN --threshold 0.123456789 --score position_spread --set seed=3 --set free_space_views=4`" in \
+        text("cfg")
+    assert prune_again_command(rep, cfg.model_dump(mode="json")).endswith("--set seed=3 --set free_space_views=4")
+    (run / "prune_config.json").unlink()
+    rep.mode, rep.keep_ratio, rep.threshold = "keep_ratio", 0.9, None
     rep.dry_run, rep.mode, rep.keep_ratio, rep.counts = False, "sweep", None, None  # --sweep -o OUT: no mask either
     rep.write(run / "prune.json")
     shown = text("sweep")

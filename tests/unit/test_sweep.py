@@ -386,6 +386,17 @@ def test_points_at_another_resolution_get_fronts_of_their_own(tmp_path):
     assert "a front of its own" not in build_sweep_page(same, None)
     path = plot_pareto(table_points(summary), tmp_path / "p.png", ys=["ause_mae"], group="panel")
     assert path.stat().st_size > 1000
+    # a point that leaves the knob unset trains at the spec's downscale: it shares that resolution's front
+    recs = [at("variational", None, time=4.0, psnr=21.0), at("variational_ds1", 1.0, time=3.0, psnr=20.0),
+            at("variational_ds2", 2.0, time=1.0, psnr=22.3)]
+    summary = summarize(s, recs)
+    assert summary.pareto == {"ause_mae_vs_time @ downscale 1": ["variational_ds1"],
+                              "ause_mae_vs_time @ downscale 2": ["variational_ds2"]}
+    assert {p["id"]: p["panel"] for p in table_points(summary, s)} == {
+        "variational": "downscale 1", "variational_ds1": "downscale 1", "variational_ds2": "downscale 2"}
+    halved = SweepSpec(pareto_y=["ause_mae"], train={"scene": {"downscale": 2.0}})  # the spec's own is 2
+    assert list(summarize(halved, recs).pareto) == ["ause_mae_vs_time @ downscale 2",
+                                                    "ause_mae_vs_time @ downscale 1"]
 
 
 def test_multi_scene_sweep_refuses_scene_flag_and_missing_folders(tmp_path):

@@ -98,22 +98,33 @@ def holds_no_model(run: RunData) -> bool:
     return p is not None and (p.dry_run or (p.written is not None and not p.written.model))
 
 
-def prune_again_command(p: PruneReport) -> str | None:
-    """The ``prune`` command that writes the model a dry run chose (its source, mode, score, seed and K, into
-    NEW_RUN); None for a sweep only, which chose no mask."""
+PRUNE_MODE_KEYS = ("keep_ratio", "threshold", "auto", "tolerance_db", "score", "dry_run", "sweep", "sweep_ratios")
+"""``PruneConfig`` keys the command's flags give (or that a model-writing prune must not repeat): the others of a dry
+run's ``prune_config.json`` are passed on as ``--set``."""
+
+
+def prune_again_command(p: PruneReport, config: dict | None = None) -> str | None:
+    """The ``prune`` command that writes the model a dry run chose, into NEW_RUN: its source, mode and score, and
+    every other setting of its ``prune_config.json`` (``config``) that is not the default (without it: the seed and K
+    ``prune.json`` records), numbers as they were (``repr``: a threshold of 0.123456789 is not rounded); None for a
+    sweep only, which chose no mask."""
     from uncertsplat.config import PruneConfig
 
-    mode = {"keep_ratio": f"--keep-ratio {p.keep_ratio:g}" if p.keep_ratio is not None else None,
-            "threshold": f"--threshold {p.threshold:g}" if p.threshold is not None else None,
-            "auto": f"--auto --tolerance-db {p.tolerance_db:g}"}.get(p.mode)
+    mode = {"keep_ratio": f"--keep-ratio {p.keep_ratio!r}" if p.keep_ratio is not None else None,
+            "threshold": f"--threshold {p.threshold!r}" if p.threshold is not None else None,
+            "auto": f"--auto --tolerance-db {p.tolerance_db!r}"}.get(p.mode)
     if mode is None:
         return None
-    default = PruneConfig()
+    default = PruneConfig().model_dump(mode="json")
     args = ["uncertsplat", "prune", shlex.quote(p.source_run), "-o", "NEW_RUN", mode]
-    if p.score_requested != default.score:
+    if p.score_requested != default["score"]:
         args.append(f"--score {shlex.quote(p.score_requested)}")
-    args += [f"--set {k}={v}" for k, v in (("seed", p.seed), ("num_samples", p.num_samples))
-             if v != getattr(default, k)]
+    given = config if config is not None else {"seed": p.seed, "num_samples": p.num_samples}
+    for k, v in given.items():
+        if k in PRUNE_MODE_KEYS or k not in default or v == default[k]:
+            continue
+        value = json.dumps(v) if not isinstance(v, float) else repr(v)
+        args.append(f"--set {shlex.quote(f'{k}={value}')}")
     return " ".join(args)
 
 
@@ -124,7 +135,11 @@ def _no_model_text(run: RunData) -> str:
             "a prune that measured the sweep only (prune --sweep without --keep-ratio, --threshold or --auto)")
     held = "prune.json and scores.npz" if p.counts is None else \
         "prune.json, scores.npz and prune_mask.npy (the indices of the Gaussians it keeps)"
-    cmd = prune_again_command(p)
+    try:  # the dry run's whole configuration: every setting that chose its mask
+        config = json.loads((run.path / "prune_config.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        config = None
+    cmd = prune_again_command(p, config if isinstance(config, dict) else None)
     todo = (f"to measure the pruned model, prune without --dry-run, which writes it: `{cmd}`, then "
             "`uncertsplat evaluate NEW_RUN`" if cmd else
             "to measure a pruned model, prune with --keep-ratio, --threshold or --auto (without --dry-run), which "

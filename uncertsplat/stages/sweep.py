@@ -325,10 +325,10 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         summary.write(out_dir / "sweep.json")
         if any(r.status == "ok" for r in summary.records):
             means = " (means over seeds)" if spec.seeds else ""
-            plot_pareto(table_points(summary), out_dir / "pareto.png", x=spec.pareto_x, ys=spec.pareto_y,
+            plot_pareto(table_points(summary, whole), out_dir / "pareto.png", x=spec.pareto_x, ys=spec.pareto_y,
                         title=f"{spec.name}: {', '.join(axis_name(y) for y in spec.pareto_y)} against "
                               f"{axis_name(spec.pareto_x)}{means} (front in black, default starred)",
-                        group="panel" if spec.scenes or split_by_resolution(summary) else None)
+                        group="panel" if spec.scenes or split_by_resolution(summary, whole) else None)
         fig = "pareto.png" if (out_dir / "pareto.png").is_file() else None
         atomic_write_text(out_dir / "index.html", build_sweep_page(summary, fig))
     console.print(f"wrote {log}, {out_dir / 'sweep.json'}, {out_dir / 'pareto.png'} and {out_dir / 'index.html'}")

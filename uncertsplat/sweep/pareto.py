@@ -93,12 +93,29 @@ def group_records(records: Sequence[SweepRecord]) -> list[SweepGroup]:
     return out
 
 
-def resolution(knobs: Mapping[str, Any]) -> str | None:
-    """The resolution a point is trained and scored at, as a front's label: ``downscale D`` when the point sets the
-    downscale knob, None for the spec's own. Its photos are scored at that size, so PSNR, AUSE and NLL compare only
-    with points of the same resolution."""
+def resolution(knobs: Mapping[str, Any], spec=None, scene: str | None = None) -> str | None:
+    """The resolution a point is trained and scored at, as a front's label: ``downscale D``, the downscale its
+    training config resolves to on ``scene`` (``spec.point_configs``: the knob, else the spec's ``train`` or
+    preset), or the knob alone without ``spec``; None when neither says. Its photos are scored at that size, so
+    PSNR, AUSE and NLL compare only with points of the same resolution."""
     d = knobs.get("downscale")
+    if spec is not None:
+        from uncertsplat.sweep.spec import SweepPoint, point_configs
+
+        try:
+            d = point_configs(spec, SweepPoint(**knobs), scene)[0].scene.downscale
+        except (ValueError, TypeError, KeyError):  # a record of another spec: its knob, as recorded
+            pass
     return None if d is None else f"downscale {float(d):g}"
+
+
+def _resolutions(table: Sequence[SweepGroup], spec=None) -> dict[str, str | None]:
+    """Each row's ``resolution`` label, None for every row of a scene whose rows share one (nothing to split)."""
+    labels = {g.id: resolution(g.knobs, spec, g.scene) for g in table}
+    sizes: dict = {}
+    for g in table:
+        sizes.setdefault(g.scene, set()).add(labels[g.id])
+    return {g.id: labels[g.id] if len(sizes[g.scene]) > 1 else None for g in table}
 
 
 def front_key(y: str, x: str, scene: str | None, resolution: str | None = None) -> str:
@@ -119,14 +136,14 @@ def summarize(spec, records: Sequence[SweepRecord]) -> SweepSummary:
     ok = [r for r in recs if r.status == "ok"]
     table = group_records(recs)
     fronts = {}
+    sizes_of = _resolutions(table, spec)
     for scene in dict.fromkeys(g.scene for g in table) or [None]:
         groups = [g for g in table if g.scene == scene]
         # points scored at another resolution are scored against other photos: a front of their own each
-        sizes = list(dict.fromkeys(resolution(g.knobs) for g in groups))
-        for size in sizes:
-            rows = [{"id": g.id, **g.mean} for g in groups if g.seeds and resolution(g.knobs) == size]
+        for size in dict.fromkeys(sizes_of[g.id] for g in groups):
+            rows = [{"id": g.id, **g.mean} for g in groups if g.seeds and sizes_of[g.id] == size]
             for y in spec.pareto_y:
-                fronts[front_key(y, spec.pareto_x, scene, size if len(sizes) > 1 else None)] = [
+                fronts[front_key(y, spec.pareto_x, scene, size)] = [
                     p["id"] for p in pareto_front(rows, x=spec.pareto_x, y=y,
                                                   minimize_both=y not in HIGHER_IS_BETTER)]
     default = next((r for r in recs if r.is_default), None)
@@ -155,32 +172,24 @@ def y_scale(values: Sequence[float]) -> tuple[str, dict]:
     return "linear", {}
 
 
-def table_points(summary: SweepSummary) -> list[dict]:
+def table_points(summary: SweepSummary, spec=None) -> list[dict]:
     """The rows of ``summary.table`` that have a finished seed, as the plain points ``plot_pareto`` draws; ``panel``
     names the front a row is compared in (its scene and, where a scene's points are scored at several resolutions,
-    its ``resolution``), what ``plot_pareto(..., group="panel")`` draws a row of panels for."""
-    sizes: dict = {}
-    for g in summary.table:
-        sizes.setdefault(g.scene, set()).add(resolution(g.knobs))
+    its ``resolution`` with ``spec``), what ``plot_pareto(..., group="panel")`` draws a row of panels for."""
+    sizes_of = _resolutions(summary.table, spec)
     points = []
     for g in summary.table:
         if not g.seeds:
             continue
-        size = resolution(g.knobs) if len(sizes[g.scene]) > 1 else None
-        if size is None and len(sizes[g.scene]) > 1:
-            size = "the spec's resolution"
-        panel = ", ".join(p for p in (f"scene {g.scene}" if g.scene is not None else None, size) if p)
+        panel = ", ".join(p for p in (f"scene {g.scene}" if g.scene is not None else None, sizes_of[g.id]) if p)
         points.append({"id": g.id, "method": g.method, "status": "ok", "is_default": g.is_default, "scene": g.scene,
                        "panel": panel or None, **g.mean})
     return points
 
 
-def split_by_resolution(summary: SweepSummary) -> bool:
+def split_by_resolution(summary: SweepSummary, spec=None) -> bool:
     """Whether some scene's points are scored at several resolutions (their fronts are drawn apart)."""
-    sizes: dict = {}
-    for g in summary.table:
-        sizes.setdefault(g.scene, set()).add(resolution(g.knobs))
-    return any(len(v) > 1 for v in sizes.values())
+    return any(v is not None for v in _resolutions(summary.table, spec).values())
 
 
 HIGHER_IS_BETTER = frozenset({"psnr", "ssim", "spearman"})
