@@ -320,7 +320,7 @@ def test_given_depth_gt_folder_estimates_scale(tiny_run_path, tiny_scene_path, t
 
 
 def test_a_depth_gt_folder_in_the_scene_s_units_and_a_factor_that_cannot_be_right(tiny_run_path, tiny_scene_path,
-                                                                                    tmp_path):
+                                                                                    tmp_path, capsys):
     """--depth-scale scene: a folder of maps in the scene's own units (a metric COLMAP model's) is scored with the
     scene's known factor, as the scene's own GT is (no fitted factor hiding a scale error); a factor given that
     leaves the GT 4x the render (--depth-scale 1 on such maps) is said, and the metrics are that factor's."""
@@ -332,10 +332,13 @@ def test_a_depth_gt_folder_in_the_scene_s_units_and_a_factor_that_cannot_be_righ
     assert own.depth_scale.method == folder.depth_scale.method == "scene" and folder.depth_scale.scale == 1.0
     assert folder.mean.depth_rmse == pytest.approx(own.mean.depth_rmse, rel=1e-5)
     assert not any("probably in other units" in n for n in folder.notes)
+    capsys.readouterr()
     one = evaluate.run(run, EvalConfig(num_samples=2, max_views=2, save_maps=False, depth_scale=1.0,
                                        depth_gt=tiny_scene_path / "depth"), device=torch.device("cpu"))
     (note,) = [n for n in one.notes if "probably in other units" in n]
     assert note.startswith("with the depth factor given (1), the GT depth is 4.")  # 1 / the scene's 0.247
+    # on the console too (it was in metrics.json and the report only)
+    assert "warning: with the depth factor given (1), the GT depth is 4." in " ".join(capsys.readouterr().err.split())
     assert one.depth_scale.method == "given" and one.mean.depth_abs_rel > 0.5
     own_given = evaluate.run(run, EvalConfig(num_samples=2, max_views=2, save_maps=False, depth_scale=1.0),
                              device=torch.device("cpu"))  # the scene's own GT (normalised units): said so
@@ -1131,3 +1134,21 @@ def test_held_out_views_that_are_near_copies_of_training_photos_are_named(tiny_s
     (note,) = near_copy_notes(scene, views, copy + 2.0)
     assert note.startswith(f"the held-out views are near copies of training photos: the training photo nearest in "
                            f"pose scores {copy:.2f} dB")
+
+
+def test_masks_that_leave_no_pixel_are_a_clear_error(tiny_run_path, tmp_path, monkeypatch):
+    """Every evaluated view's mask empty (all black, or inverted) ended in a traceback from the curves' mean."""
+    from uncertsplat.data import dataset
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    real = dataset.load_masks
+
+    def empty(scene, indices=None, device=None):
+        m = real(scene, indices, device)
+        return None if m is None else torch.zeros_like(m)
+
+    monkeypatch.setattr(dataset, "load_masks", empty)
+    with pytest.raises(UserError, match=r"the validity masks of the \d+ evaluated view\(s\) mark no pixel valid"):
+        evaluate.run(run, EvalConfig(num_samples=2, max_views=2, save_maps=False, reuse=False),
+                     device=torch.device("cpu"))

@@ -786,3 +786,54 @@ def test_photos_with_alpha_in_a_workspace_are_noted(workspace):
     write_png(path, np.concatenate([rgb, np.ones_like(rgb[..., :1])], -1))
     (note,) = [n for n in load_scene(workspace, SceneConfig(background=(1.0, 1.0, 1.0))).notes if "alpha channel" in n]
     assert note.startswith("1 photo(s) have an alpha channel") and "[1.0, 1.0, 1.0]" in note and "view_004.png" in note
+
+
+def test_the_depth_of_a_layered_exr_is_its_depth_channel(tmp_path):
+    """A layered EXR (Blender's ViewLayer.Combined.R/G/B/A + ViewLayer.Depth.Z; evaluate's own maps) was read from its
+    first channel, the red or the alpha, without a word."""
+    from uncertsplat.data.dataset import read_depth_file
+    from uncertsplat.io.images import write_exr
+
+    depth = np.full((3, 4), 2.5, np.float32)
+    other = np.full((3, 4), 0.25, np.float32)
+    blender = {f"ViewLayer.Combined.{c}": other for c in "RGBA"} | {"ViewLayer.Depth.Z": depth}
+    ours = {"alpha.A": other, "depth_mean.Z": depth, "depth_std.Z": other, "rgb_mean.R": other}
+    for name, channels in (("blender", blender), ("ours", ours), ("one", {"R": depth}), ("z", {"Z": depth})):
+        write_exr(tmp_path / f"{name}.exr", channels)
+        np.testing.assert_array_equal(read_depth_file(tmp_path / f"{name}.exr"), depth, err_msg=name)
+    write_exr(tmp_path / "rgb.exr", {"R": depth, "G": other, "B": other})  # a colour image: which one?
+    with pytest.raises(UserError, match="cannot tell which channel of the EXR holds depth: .*R"):
+        read_depth_file(tmp_path / "rgb.exr")
+    write_exr(tmp_path / "grey.exr", {"R": depth, "G": depth, "B": depth})
+    np.testing.assert_array_equal(read_depth_file(tmp_path / "grey.exr"), depth)
+
+
+def test_a_depth_map_of_another_shape_is_refused_and_no_surface_is_invalid(tmp_path):
+    """A transposed map was stretched to its photo (AbsRel 0.55 against 0.07, no word); Blender's 1e10 where a ray
+    meets nothing counted as a depth (RMSE 4e8)."""
+    from uncertsplat.data.dataset import load_depth_map
+
+    d = np.full((96, 128), 3.0, np.float32)
+    d[0, 0] = 1e10
+    np.save(tmp_path / "ok.npy", d)
+    got = load_depth_map(tmp_path / "ok.npy", 64, 48)
+    assert got.shape == (48, 64) and got.max() == pytest.approx(3.0)  # (the corner averaged with invalid 0)
+    np.save(tmp_path / "half.npy", d[::2, ::2])  # another resolution of the same shape: resized
+    assert load_depth_map(tmp_path / "half.npy", 128, 96).shape == (96, 128)
+    np.save(tmp_path / "t.npy", d.T.copy())
+    with pytest.raises(UserError, match="the depth map is 96x128, another shape than its photo's 128x96"):
+        load_depth_map(tmp_path / "t.npy", 128, 96)
+
+
+def test_masks_of_zero_and_one_mark_their_ones_valid(workspace):
+    """A boolean mask saved as 0 and 1 (not 255) marked every pixel invalid; 0/255 masks are read as before."""
+    from types import SimpleNamespace
+
+    cams = Cameras(torch.eye(4).repeat(2, 1, 1), torch.eye(3).repeat(2, 1, 1), 4, 3, ("a.png", "b.png"))
+    m = np.zeros((3, 4, 1), np.float32)
+    m[1:, 2:] = 1.0
+    write_png(workspace / "a.png", m / 255.0)  # values 0 and 1
+    write_png(workspace / "b.png", m)  # values 0 and 255
+    scene = SimpleNamespace(cameras=cams, mask_paths=(workspace / "a.png", workspace / "b.png"))
+    masks = load_masks(scene)
+    assert masks.shape == (2, 3, 4, 1) and torch.equal(masks[0], masks[1]) and int(masks[0].sum()) == 4

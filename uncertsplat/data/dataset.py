@@ -123,8 +123,37 @@ def fit_photo(fit: PhotoFit, image: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(image[fit.y0:fit.y0 + fit.height, fit.x0:fit.x0 + fit.width])
 
 
+def depth_channel(channels: dict[str, np.ndarray], path: Path) -> str:
+    """The channel of an EXR that holds depth: ``Z`` or ``depth``; else the one channel whose last name part is ``Z``
+    (a layered file: Blender's ``ViewLayer.Depth.Z``; of several, the one named for depth and not a std, as
+    ``depth_mean.Z`` of ``evaluate``'s maps); else the only channel, or ``Y`` / ``R`` of a grey image. A layered
+    file read its first channel (Blender's red, evaluate's alpha) without a word.
+
+    Raises:
+        UserError: no channel can be told to be depth, naming the channels.
+    """
+    names = list(channels)
+    for exact in ("Z", "depth", "Depth", "DEPTH"):
+        if exact in channels:
+            return exact
+    zs = [k for k in names if k.split(".")[-1] in ("Z", "z", "depth", "Depth")]
+    if len(zs) > 1:
+        zs = [k for k in zs if "depth" in k.lower() and "std" not in k.lower()] or zs
+    if len(zs) == 1:
+        return zs[0]
+    if len(names) == 1:
+        return names[0]
+    if not zs:
+        grey = [k for k in ("Y", "R") if k in channels]
+        if grey == ["Y"] or (grey == ["R"] and all(np.array_equal(channels["R"], channels[c]) for c in ("G", "B")
+                                                   if c in channels)):
+            return grey[0]
+    raise UserError(f"cannot tell which channel of the EXR holds depth: {', '.join(names)}", path=path,
+                    hint="Write the depth as a channel named Z (or depth), or as a one-channel EXR or a .npy file.")
+
+
 def read_depth_file(path: Path) -> np.ndarray:
-    """A GT depth map [H,W] float32 from .npy, or from .exr (channel Z, depth, Y or R, else the first)."""
+    """A GT depth map [H,W] float32 from .npy, or from .exr (the channel ``depth_channel`` finds)."""
     path = Path(path)
     if path.suffix.lower() == ".npy":
         try:
@@ -134,8 +163,7 @@ def read_depth_file(path: Path) -> np.ndarray:
                             hint="The file may be truncated; regenerate the scene.") from None
     else:
         channels = read_exr(path)
-        key = next((k for k in ("Z", "depth", "Y", "R") if k in channels), next(iter(channels)))
-        arr = channels[key]
+        arr = channels[depth_channel(channels, path)]
     arr = np.asarray(arr, dtype=np.float32)
     if arr.ndim == 3 and arr.shape[-1] == 1:
         arr = arr[..., 0]
@@ -144,11 +172,32 @@ def read_depth_file(path: Path) -> np.ndarray:
     return arr
 
 
+NO_SURFACE_DEPTH = 1e9
+"""GT depths at or beyond this are "no surface" (Blender writes 1e10 where a ray meets nothing) and count as invalid:
+left in, one such pixel made a view's depth RMSE 4e8."""
+SHAPE_TOLERANCE = 0.02
+"""A depth map whose width / height differs from its photo's by more than this fraction is another shape, refused:
+resized to the photo it was stretched (a transposed map: AbsRel 0.55 against 0.07, no word)."""
+
+
 def load_depth_map(path: Path, width: int, height: int, fit: PhotoFit | None = None) -> np.ndarray:
-    """One depth map [H,W] float32 resized to ``width`` x ``height``; non-finite or <= 0 becomes 0 (invalid). ``fit``:
-    its photo's ``PhotoFit``, applied first (the map turned and cropped as the photo is)."""
+    """One depth map [H,W] float32 resized to ``width`` x ``height``; non-finite, <= 0 or ``NO_SURFACE_DEPTH`` and
+    beyond becomes 0 (invalid). ``fit``: its photo's ``PhotoFit``, applied first (the map turned and cropped as the
+    photo is).
+
+    Raises:
+        UserError: the map is not of its photo's shape (``SHAPE_TOLERANCE``), naming both sizes.
+    """
     d = read_depth_file(path)
-    d = np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+    d = np.where(np.isfinite(d) & (d > 0) & (d < NO_SURFACE_DEPTH), d, 0.0).astype(np.float32)
+    # the photo as stored: its fit turns it to turned_width x turned_height
+    w, h = ((fit.turned_width, fit.turned_height) if fit.turns % 2 == 0 else (fit.turned_height, fit.turned_width)) \
+        if fit is not None else (width, height)
+    if abs(np.log((d.shape[1] / d.shape[0]) / (w / h))) > SHAPE_TOLERANCE:
+        raise UserError(f"the depth map is {d.shape[1]}x{d.shape[0]}, another shape than its photo's {w}x{h} "
+                        "(stretched to it, it would be scored against the wrong pixels)", path=path,
+                        hint="Give each photo a depth map of its own shape (any resolution of it); a transposed or "
+                             "cropped map needs turning or padding first.")
     if fit is not None:
         d = fit_photo(fit, d)
     return resize_image(d, width, height)
@@ -183,7 +232,9 @@ def load_masks(scene: SceneData, indices: Sequence[int] | None = None, device=No
     out = torch.empty((len(idx), H, W, 1), dtype=torch.bool, device=device)  # [C,H,W,1], filled as load_images
     for k, i in enumerate(idx):
         m = read_image(scene.mask_paths[i])[..., 0]
-        out[k, ..., 0] = torch.from_numpy(resize_image((m > 0.5).astype(np.float32), W, H) >= 1.0 - 1e-6)
+        # valid: white; a mask of 0 and 1 (not 255), as many tools save a boolean, marks its valid pixels 1/255
+        cut = 0.0 if 0.0 < float(m.max()) <= 1.5 / 255.0 else 0.5
+        out[k, ..., 0] = torch.from_numpy(resize_image((m > cut).astype(np.float32), W, H) >= 1.0 - 1e-6)
     return out
 
 

@@ -581,6 +581,9 @@ GIVEN_SCENE_GT = "given-scene"
 """``DepthScaleInfo.method`` of a factor given with ``--depth-scale`` against the scene's own GT depth (in the run's
 normalised units, as with method "scene"); "given" is one against a ``--depth-gt`` folder (the folder's units)."""
 
+IMPLAUSIBLE_DEPTH_NOTE = "the GT maps are probably in other units"
+"""What ``implausible_depth_scale_notes``' note says (``stages.evaluate`` prints the notes that say it: a warning
+about every depth number, which only metrics.json and the report held)."""
 IMPLAUSIBLE_DEPTH_RATIO = 2.0
 """A given depth factor (a number, or the scene's own units) that leaves the GT this many times the scaled render, or
 less than 1/this, at the median, is noted as probably wrong (``implausible_depth_scale_notes``)."""
@@ -602,8 +605,8 @@ def implausible_depth_scale_notes(depth: Tensor | Sequence[Tensor], gt: Tensor |
     if 1 / IMPLAUSIBLE_DEPTH_RATIO <= ratio <= IMPLAUSIBLE_DEPTH_RATIO:
         return []
     what = f"the depth factor given ({given:g})" if isinstance(given, float) else "the scene's own depth units"
-    return [f"with {what}, the GT depth is {ratio:.3g}x the render's at the median: the GT maps are probably in "
-            "other units (--depth-scale auto fits the factor; scene takes maps in the scene's own units); the depth "
+    return [f"with {what}, the GT depth is {ratio:.3g}x the render's at the median: {IMPLAUSIBLE_DEPTH_NOTE} "
+            "(--depth-scale auto fits the factor; scene takes maps in the scene's own units); the depth "
             "metrics are those of the factor given"]
 
 
@@ -668,6 +671,10 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if len(views) == 0:
         raise UserError("no view to evaluate in this split",
                         hint="Use --split train, or a scene with held-out views.")
+    if views.masks is not None and not bool(views.masks.any()):  # (the curves' mean had no view: a traceback)
+        raise UserError(f"the validity masks of the {len(views)} evaluated view(s) mark no pixel valid, so there is "
+                        "nothing to score", hint="A mask marks the pixels to score white (non-zero): check the "
+                                                 "scene's masks (all black, or inverted?).")
     sample_fn, render_fn, det_sample = sampler.sample_fn, sampler.render_fn, sampler.det_sample
     images, masks, gt_depth = views.images, views.masks, views.depths
     lp_ok, lp_reason = lpips_available()
