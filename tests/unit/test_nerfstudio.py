@@ -166,3 +166,16 @@ def test_unread_masks_and_an_unused_colmap_model_are_named(tiny_scene_path, tmp_
     assert any("read as a nerfstudio scene (transforms.json); the folder also holds a COLMAP model" in n for n in notes)
     shutil.rmtree(root / "sparse")
     assert not [n for n in load_scene(root).notes if "COLMAP model" in n]
+
+
+def test_intrinsics_of_larger_images_are_refused(tiny_scene_path, tmp_path):  # noqa: F811
+    """Full-resolution intrinsics with downscaled files (no w / h to compare): the principal point (256, 192) lies
+    outside the 128x96 images. It trained off-centre, several dB worse, with warnings that blamed the poses."""
+    _, meta = convert(tiny_scene_path, tmp_path / "ns")
+    for k in ("fl_x", "fl_y", "cx", "cy"):
+        meta[k] *= 4
+    del meta["w"], meta["h"]
+    (tmp_path / "ns" / "transforms.json").write_text(json.dumps(meta))
+    text = _raises(tmp_path / "ns", "view 'images/view_000.png' (and 23 more")
+    assert "principal point at (256, 192), outside its 128x96 image" in text, text
+    assert "seem to belong to images of about 512x384 pixels" in text, text

@@ -837,3 +837,15 @@ def test_masks_of_zero_and_one_mark_their_ones_valid(workspace):
     scene = SimpleNamespace(cameras=cams, mask_paths=(workspace / "a.png", workspace / "b.png"))
     masks = load_masks(scene)
     assert masks.shape == (2, 3, 4, 1) and torch.equal(masks[0], masks[1]) and int(masks[0].sum()) == 4
+
+
+def test_a_principal_point_outside_the_image_is_refused(workspace):
+    """A COLMAP camera whose principal point lies outside its images (intrinsics of another image size) is refused,
+    naming the view and the size the intrinsics seem to belong to, as for every loader (``_check_intrinsics``)."""
+    sparse = workspace / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(sparse))
+    cam = rec.cameras[1]
+    cam.params = np.array([*cam.params[:2], 200.0, 48.0])  # cx beyond the 128-pixel width
+    rec.write_binary(str(sparse))
+    text = _raises(workspace, match="principal point at (200, 48), outside its 128x96 image", name="sparse")
+    assert "view 'view_000.png'" in text and "about 400x96" in text, text

@@ -447,7 +447,7 @@ def _load_synthetic(path: Path, cfg: SceneConfig, meta: SynthScene, initial_poin
 def _from_transforms(found: TransformsScene, cfg: SceneConfig, initial_points: bool = True) -> SceneData:
     """SceneData of a Blender / nerfstudio folder (random initial points when it has no point cloud)."""
     return _finish(found.cameras, list(found.paths), found.points, found.points_rgb, cfg, source=found.source,
-                   default_split=found.split, random_init=initial_points)
+                   default_split=found.split, random_init=initial_points, intrinsics_from=found.file)
 
 
 # ------------------------------------------------------------------------------------- split, normalise
@@ -756,7 +756,9 @@ def normalized_cam_from_world(cam_from_world: torch.Tensor, world_from_source: t
 
 def _check_intrinsics(cameras: Cameras, where: Path) -> None:
     """Refuse focal lengths that are not positive and finite (a model edited or written by other tools: a focal of
-    0 trains a model that never changes, a negative one a mirrored scene, both without a word)."""
+    0 trains a model that never changes, a negative one a mirrored scene, both without a word), and a principal point
+    outside the image (intrinsics of the full-size photos given with downscaled files: the model trains, off-centre,
+    several dB worse, and the warnings blame the poses)."""
     K = cameras.K.double()
     f = torch.stack([K[:, 0, 0], K[:, 1, 1]], dim=-1)  # [C,2]
     bad = (~torch.isfinite(f) | (f <= 0)).any(-1) | ~torch.isfinite(K[:, :2, 2]).all(-1)
@@ -767,14 +769,32 @@ def _check_intrinsics(cameras: Cameras, where: Path) -> None:
                         f"focal lengths {float(f[i, 0]):g} / {float(f[i, 1]):g} px, principal point "
                         f"{float(K[i, 0, 2]):g}, {float(K[i, 1, 2]):g}); focal lengths must be positive and finite",
                         path=where, hint="Fix the camera in the model, or reconstruct the photos again.")
+    W, H = cameras.width, cameras.height
+    c = K[:, :2, 2]  # [C,2]
+    outside = (c[:, 0] < 0) | (c[:, 0] > W) | (c[:, 1] < 0) | (c[:, 1] > H)
+    if bool(outside.any()):
+        i = int(outside.nonzero()[0, 0])
+        names = [cameras.image_names[j] for j in outside.nonzero()[:, 0].tolist()]
+        cx, cy = float(c[i, 0]), float(c[i, 1])
+        # a principal point is near the image centre: twice it is about the size the intrinsics were measured at
+        size = f"about {abs(2 * cx):.0f}x{abs(2 * cy):.0f}"
+        raise UserError(f"view '{names[0]}'" + (f" (and {len(names) - 1} more: {list_names(names[1:], 4)})"
+                                                 if len(names) > 1 else "")
+                        + f" has its principal point at ({cx:g}, {cy:g}), outside its {W}x{H} image; the intrinsics "
+                        f"seem to belong to images of {size} pixels", path=where,
+                        hint=f"Give the intrinsics of the {W}x{H} images that are read (scale the focal lengths and the "
+                             "principal point by the ratio of the sizes), or the images the intrinsics were measured "
+                             "on.")
 
 
 def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torch.Tensor, cfg: SceneConfig,
             source: dict, default_split: dict | None = None, random_init: bool = False,
-            photo_fits: tuple | None = None, notes: list[str] | tuple[str, ...] = ()) -> SceneData:
+            photo_fits: tuple | None = None, notes: list[str] | tuple[str, ...] = (),
+            intrinsics_from: Path | None = None) -> SceneData:
     """Split, choose the centre, add random initial points (``random_init`` and no points), normalise;
-    ``photo_fits`` and ``notes`` are ``_colmap_cameras``'s (recorded in ``source`` too)."""
-    _check_intrinsics(cameras, Path(source.get("model", source["path"])))
+    ``photo_fits`` and ``notes`` are ``_colmap_cameras``'s (recorded in ``source`` too); ``intrinsics_from`` is the
+    file that gave the intrinsics (for errors; default: the COLMAP model, else the scene folder)."""
+    _check_intrinsics(cameras, intrinsics_from or Path(source.get("model", source["path"])))
     split = make_split(cameras.image_names, cfg, where=Path(source["path"]), default=default_split)
     taken = _held_out_taken(cameras.image_names, cfg, default_split, split)
     if taken:

@@ -57,6 +57,7 @@ class TransformsScene:
         points: [P,3] initial points (P = 0 when the folder has none), points_rgb [P,3] in [0, 1].
         split: the dataset's own train/test indices, or None.
         source: what was read (for ``SceneData.source``).
+        file: the transforms file the cameras come from (the folder when they come from several), for errors.
     """
 
     cameras: Cameras
@@ -65,6 +66,7 @@ class TransformsScene:
     points_rgb: Tensor  # [P,3]
     split: dict[str, tuple[int, ...]] | None
     source: dict
+    file: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -257,9 +259,11 @@ def read_blender(root: Path, cfg: SceneConfig) -> TransformsScene:
     if (root / "points3d.ply").is_file():  # 3DGS reads (and writes its random points to) this file
         xyz, rgb = _read_ply_points(root / "points3d.ply")
         source["ply"] = "points3d.ply"
+    files = {fr.file for fr in frames}
     return TransformsScene(cameras, paths, torch.tensor(xyz, dtype=torch.float64),
                            torch.tensor(rgb, dtype=torch.float32).clamp(0, 1),
-                           {"train": train, "test": test} if train and test else None, source)
+                           {"train": train, "test": test} if train and test else None, source,
+                           next(iter(files)) if len(files) == 1 else root)
 
 
 # -------------------------------------------------------------------------------------------- nerfstudio
@@ -356,4 +360,4 @@ def read_nerfstudio(root: Path, cfg: SceneConfig) -> TransformsScene:
         split = {"train": train, "test": test} if train else None
         source["split_from"] = key
     return TransformsScene(cameras, paths, torch.tensor(xyz, dtype=torch.float64),
-                           torch.tensor(rgb, dtype=torch.float32).clamp(0, 1), split, source)
+                           torch.tensor(rgb, dtype=torch.float32).clamp(0, 1), split, source, path)
