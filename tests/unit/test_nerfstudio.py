@@ -179,3 +179,48 @@ def test_intrinsics_of_larger_images_are_refused(tiny_scene_path, tmp_path):  # 
     text = _raises(tmp_path / "ns", "view 'images/view_000.png' (and 23 more")
     assert "principal point at (256, 192), outside its 128x96 image" in text, text
     assert "seem to belong to images of about 512x384 pixels" in text, text
+
+
+def _truncated(path):
+    """``path`` (a PLY) rewritten as binary and cut short, as an interrupted copy leaves it."""
+    from plyfile import PlyData
+
+    ply = PlyData.read(str(path))
+    ply.text = False  # binary, as nerfstudio writes it
+    ply.write(str(path))
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) - 100])
+
+
+def test_unreadable_values_and_point_clouds_are_named(tiny_scene_path, tmp_path):  # noqa: F811
+    """A truncated point cloud, ``"w": "abc"`` and ``"k1": "abc"`` were tracebacks (plyfile's PlyElementParseError,
+    ValueError from int() / float()): now UserErrors naming the file and the key."""
+    root = tmp_path / "ns"
+    _, meta = convert(tiny_scene_path, root)
+    path = root / "transforms.json"
+    path.write_text(json.dumps({**meta, "w": "abc"}))
+    text = _raises(root, "'w' must be a number, got \"abc\"")
+    assert "the file's value" in text
+    path.write_text(json.dumps({**meta, "w": 127.5}))
+    _raises(root, "'w' must be a whole number of pixels, got 127.5")
+    path.write_text(json.dumps({**meta, "k1": "abc"}))
+    _raises(root, "'k1' must be a number, got \"abc\"")
+    bad = json.loads(json.dumps(meta))
+    bad["frames"][2]["fl_y"] = [1, 2]
+    path.write_text(json.dumps(bad))
+    _raises(root, "'fl_y' must be a number, got [1, 2] (the frame's value, frame 'images/view_002.png')")
+    path.write_text(json.dumps(meta))
+    _truncated(root / "sparse_pc.ply")
+    with pytest.raises(UserError) as info:
+        load_scene(root)
+    text = str(info.value)
+    assert "sparse_pc.ply: cannot read the point cloud named by ply_file_path in transforms.json" in text, text
+    assert "early end-of-file" in text, text
+    # a Blender folder's points3d.ply (3DGS's initial points) is read the same way
+    blender = tmp_path / "blender"
+    shutil.copytree(root / "images", blender / "images")
+    (blender / "transforms_train.json").write_text(json.dumps({k: v for k, v in meta.items()
+                                                               if k not in ("applied_transform", "ply_file_path")}))
+    shutil.copy(root / "sparse_pc.ply", blender / "points3d.ply")
+    with pytest.raises(UserError, match="points3d.ply: cannot read the point cloud beside the transforms files"):
+        load_scene(blender)

@@ -134,13 +134,29 @@ def _value(fr: _Frame, key: str):
     return fr.meta.get(key) if v is None else v
 
 
+def _number(fr: _Frame, key: str) -> float | None:
+    """A frame's (else the file's) value of ``key`` as a float, None when absent; UserError naming the key when it is
+    not a number (``"k1": "abc"`` was a ValueError traceback)."""
+    v = _value(fr, key)
+    if v is None:
+        return None
+    try:
+        if isinstance(v, bool):  # float(True) is 1.0: a JSON true is no number
+            raise TypeError
+        return float(v)
+    except (TypeError, ValueError):
+        where = "frame's" if fr.entry.get(key) is not None else "file's"
+        raise UserError(f"'{key}' must be a number, got {json.dumps(v)} (the {where} value, frame '{fr.name}')",
+                        path=fr.file, hint=f"Write {key} as a number, or remove it.") from None
+
+
 def _check_model(fr: _Frame) -> None:
     model = _value(fr, "camera_model")
     if model is not None and str(model).upper() not in PINHOLE_MODELS:
         raise UserError(f"frame '{fr.name}' uses the camera model {model}, which is not a pinhole camera",
                         path=fr.file, hint=_UNDISTORT_HINT)
-    dist = {k: _value(fr, k) for k in DISTORTION_KEYS}
-    bad = {k: float(v) for k, v in dist.items() if v is not None and float(v) != 0.0}
+    dist = {k: _number(fr, k) for k in DISTORTION_KEYS}
+    bad = {k: v for k, v in dist.items() if v is not None and v != 0.0}
     if bad:
         raise UserError(
             f"frame '{fr.name}' has lens distortion ({', '.join(f'{k}={v:g}' for k, v in bad.items())}), which "
@@ -149,24 +165,18 @@ def _check_model(fr: _Frame) -> None:
 
 def _intrinsics(fr: _Frame, w: int, h: int) -> np.ndarray:
     """K [3,3] of a frame: fl_x / fl_y (or camera_angle_x / _y), cx / cy (default: the image centre)."""
-    try:
-        fx = _value(fr, "fl_x")
-        if fx is None and _value(fr, "camera_angle_x") is not None:
-            fx = 0.5 * w / math.tan(0.5 * float(_value(fr, "camera_angle_x")))
-        if fx is None:
-            raise UserError(f"no focal length for frame '{fr.name}' (fl_x or camera_angle_x)", path=fr.file,
-                            hint="Add camera_angle_x (radians) or fl_x (pixels) to the file or the frame.")
-        fy = _value(fr, "fl_y")
-        if fy is None and _value(fr, "camera_angle_y") is not None:
-            fy = 0.5 * h / math.tan(0.5 * float(_value(fr, "camera_angle_y")))
-        fx = float(fx)
-        fy = fx if fy is None else float(fy)
-        cx = _value(fr, "cx")
-        cy = _value(fr, "cy")
-        cx = w / 2.0 if cx is None else float(cx)
-        cy = h / 2.0 if cy is None else float(cy)
-    except (TypeError, ValueError) as err:
-        raise UserError(f"frame '{fr.name}': intrinsics must be numbers ({err})", path=fr.file) from None
+    fx, fy = _number(fr, "fl_x"), _number(fr, "fl_y")
+    if fx is None and (angle_x := _number(fr, "camera_angle_x")) is not None:
+        fx = 0.5 * w / math.tan(0.5 * angle_x)
+    if fx is None:
+        raise UserError(f"no focal length for frame '{fr.name}' (fl_x or camera_angle_x)", path=fr.file,
+                        hint="Add camera_angle_x (radians) or fl_x (pixels) to the file or the frame.")
+    if fy is None and (angle_y := _number(fr, "camera_angle_y")) is not None:
+        fy = 0.5 * h / math.tan(0.5 * angle_y)
+    fy = fx if fy is None else fy
+    cx, cy = _number(fr, "cx"), _number(fr, "cy")
+    cx = w / 2.0 if cx is None else cx
+    cy = h / 2.0 if cy is None else cy
     if not all(math.isfinite(v) for v in (fx, fy, cx, cy)) or fx <= 0 or fy <= 0:
         raise UserError(f"frame '{fr.name}': invalid intrinsics fx={fx:g} fy={fy:g} cx={cx:g} cy={cy:g}",
                         path=fr.file)
@@ -175,8 +185,13 @@ def _intrinsics(fr: _Frame, w: int, h: int) -> np.ndarray:
 
 def _size(fr: _Frame, root: Path) -> tuple[int, int]:
     """(w, h) of a frame: its ``w`` / ``h`` keys, else the image's own size."""
-    w, h = _value(fr, "w"), _value(fr, "h")
+    w, h = _number(fr, "w"), _number(fr, "h")
     if w is not None and h is not None:
+        for key, v in (("w", w), ("h", h)):
+            if not (math.isfinite(v) and v >= 1 and v.is_integer()):
+                raise UserError(f"'{key}' must be a whole number of pixels, got {v:g} (frame '{fr.name}')",
+                                path=fr.file, hint=f"Write the image {'width' if key == 'w' else 'height'} as an "
+                                "integer, or remove w and h (the images' own size is read).")
         return int(w), int(h)
     p = root / fr.name
     if not p.is_file():
@@ -257,7 +272,7 @@ def read_blender(root: Path, cfg: SceneConfig) -> TransformsScene:
     source = {"kind": "nerf_synthetic", "path": str(root), "images": folder}
     xyz, rgb = np.zeros((0, 3)), np.zeros((0, 3))
     if (root / "points3d.ply").is_file():  # 3DGS reads (and writes its random points to) this file
-        xyz, rgb = _read_ply_points(root / "points3d.ply")
+        xyz, rgb = _read_ply_points(root / "points3d.ply", "beside the transforms files (3DGS's initial points)")
         source["ply"] = "points3d.ply"
     files = {fr.file for fr in frames}
     return TransformsScene(cameras, paths, torch.tensor(xyz, dtype=torch.float64),
@@ -279,18 +294,21 @@ def _similarity(A: np.ndarray, path: Path) -> tuple[np.ndarray, float]:
     return R, s
 
 
-def _read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    from plyfile import PlyData
+def _read_ply_points(path: Path, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """xyz [P,3] and rgb [P,3] in [0, 1] of a PLY point cloud (``what``: where it comes from, for errors)."""
+    from plyfile import PlyData, PlyParseError
 
     if not path.is_file():
-        raise UserError("the point cloud named by ply_file_path is missing", path=path,
+        raise UserError(f"the point cloud {what} is missing", path=path,
                         hint="Restore the file, or remove ply_file_path to start from random points.")
     try:
         v = PlyData.read(str(path))["vertex"].data
         xyz = np.stack([v["x"], v["y"], v["z"]], -1).astype(np.float64)
-    except (OSError, ValueError, KeyError, IndexError) as err:
-        raise UserError(f"cannot read the point cloud ({err})", path=path,
-                        hint="Expected a PLY file with a vertex element holding x, y, z (and red, green, blue).") from None
+    except (OSError, ValueError, KeyError, IndexError, PlyParseError) as err:
+        # PlyParseError: a truncated or malformed file (plyfile's own errors are no ValueError)
+        raise UserError(f"cannot read the point cloud {what} ({err})", path=path,
+                        hint="Expected a complete PLY file with a vertex element holding x, y, z (and red, green, "
+                             "blue): write it again, or remove it to start from random points.") from None
     names = v.dtype.names or ()
     if all(c in names for c in ("red", "green", "blue")):
         rgb = np.stack([v["red"], v["green"], v["blue"]], -1)
@@ -317,7 +335,7 @@ def read_nerfstudio(root: Path, cfg: SceneConfig) -> TransformsScene:
     xyz = np.zeros((0, 3))
     rgb = np.zeros((0, 3))
     if meta.get("ply_file_path"):
-        xyz, rgb = _read_ply_points(root / str(meta["ply_file_path"]))
+        xyz, rgb = _read_ply_points(root / str(meta["ply_file_path"]), f"named by ply_file_path in {path.name}")
         source["ply"] = str(meta["ply_file_path"])
 
     w2c = cameras.cam_from_world.double().numpy()
