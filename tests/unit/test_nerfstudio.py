@@ -224,3 +224,25 @@ def test_unreadable_values_and_point_clouds_are_named(tiny_scene_path, tmp_path)
     shutil.copy(root / "sparse_pc.ply", blender / "points3d.ply")
     with pytest.raises(UserError, match="points3d.ply: cannot read the point cloud beside the transforms files"):
         load_scene(blender)
+
+
+def test_file_paths_without_extension_find_upper_case_files(tiny_scene_path, tmp_path):  # noqa: F811
+    """``images/view_000`` finds ``images/view_000.JPG`` (cameras' own spelling): only lower-case .png / .jpg /
+    .jpeg / .exr were tried, and the error named a ``.png`` that never existed."""
+    root = tmp_path / "ns"
+    ref, meta = convert(tiny_scene_path, root)
+    for i, fr in enumerate(meta["frames"]):
+        stem = fr["file_path"][: -len(".png")]
+        ext = (".PNG", ".Png", ".png")[i % 3]  # any case: as the files are on disk
+        (root / fr["file_path"]).rename(root / (stem + ext))
+        fr["file_path"] = stem
+    path = root / "transforms.json"
+    path.write_text(json.dumps(meta))
+    scene = load_scene(root, SceneConfig(normalize=False))
+    assert scene.cameras.image_names[:3] == ("images/view_000.PNG", "images/view_001.Png", "images/view_002.png")
+    assert all(p.is_file() for p in scene.image_paths)
+    torch.testing.assert_close(scene.cameras.cam_from_world, ref.cameras.cam_from_world, atol=1e-5, rtol=0)
+    (root / "images" / "view_001.Png").rename(root / "images" / "view_001.webp")
+    text = _raises(root, "no image for 'images/view_001' named in transforms.json")
+    assert ".png, .jpg, .jpeg, .exr (in any case)" in text and "there is view_001.webp" in text, text
+    assert "view_001.png" not in text, text

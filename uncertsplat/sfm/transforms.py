@@ -94,15 +94,45 @@ def _read_json(path: Path, expect: str) -> dict:
     return meta
 
 
+_GUESSED_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr")
+"""Tried, in this order and in any case, for a ``file_path`` without an image extension (``./train/r_0``)."""
+
+
 def _image_name(root: Path, file_path: str) -> str:
-    """The image's path relative to ``root`` (``./train/r_0`` -> ``train/r_0.png`` when that file exists)."""
+    """The image's path relative to ``root``: ``file_path``, or with its extension found on disk (``./train/r_0`` ->
+    ``train/r_0.png``, ``images/IMG_1`` -> ``images/IMG_1.JPG``); unchanged (no extension) when no such file exists
+    (``_missing_image`` says what was looked for)."""
     rel = str(file_path).replace("\\", "/").removeprefix("./")
-    if Path(rel).suffix.lower() not in IMAGE_EXTENSIONS:
-        for ext in (".png", ".jpg", ".jpeg", ".exr"):
-            if (root / (rel + ext)).is_file():
-                return rel + ext
-        return rel + ".png"
+    if Path(rel).suffix.lower() in IMAGE_EXTENSIONS:
+        return rel
+    for ext in _GUESSED_EXTENSIONS:  # the common spellings first: no folder listing for most datasets
+        for e in (ext, ext.upper()):
+            if (root / (rel + e)).is_file():
+                return rel + e
+    # any other case (.Jpg): compared with the folder's own names, as a case-sensitive file system stores them
+    folder, base = (root / rel).parent, Path(rel).name
+    if folder.is_dir():
+        found = {p.name[len(base):].lower(): p.name[len(base):] for p in folder.iterdir()
+                 if p.name.startswith(base + ".") and p.is_file()}  # extension (as on disk) by its lower case
+        for ext in _GUESSED_EXTENSIONS:
+            if ext in found:
+                return rel + found[ext]
     return rel
+
+
+def _missing_image(name: str, root: Path, file: Path) -> UserError:
+    """The error for a frame whose image file does not exist (naming what was looked for)."""
+    if Path(name).suffix.lower() in IMAGE_EXTENSIONS:
+        return UserError(f"image '{name}' named in {file.name} is missing", path=root / name,
+                         hint="Check that the dataset was extracted completely.")
+    tried = ", ".join(_GUESSED_EXTENSIONS)
+    folder, base = (root / name).parent, Path(name).name
+    others = sorted(p.name for p in folder.iterdir() if p.name.startswith(base + ".")) if folder.is_dir() else []
+    return UserError(f"no image for '{name}' named in {file.name}: its file_path has no image extension and no file "
+                     f"'{name}' with {tried} (in any case) exists"
+                     + (f" (there is {', '.join(others[:3])})" if others else ""), path=root / name,
+                     hint="Check that the dataset was extracted completely, or write file_path with the image's "
+                          "extension.")
 
 
 def _frames(root: Path, meta: dict, path: Path, split: str | None) -> list[_Frame]:
@@ -195,8 +225,7 @@ def _size(fr: _Frame, root: Path) -> tuple[int, int]:
         return int(w), int(h)
     p = root / fr.name
     if not p.is_file():
-        raise UserError(f"image '{fr.name}' named in the transforms file is missing", path=p,
-                        hint="Check that the dataset was extracted completely.")
+        raise _missing_image(fr.name, root, fr.file)
     return read_image_size(p)
 
 
@@ -227,8 +256,7 @@ def _cameras(root: Path, frames: list[_Frame], cfg: SceneConfig,
         paths = tuple(root / fr.name for fr in frames)
         for fr, p in zip(frames, paths, strict=True):
             if not p.is_file():
-                raise UserError(f"image '{fr.name}' named in the transforms file is missing", path=p,
-                                hint="Check that the dataset was extracted completely.")
+                raise _missing_image(fr.name, root, fr.file)
             w, h = read_image_size(p)
             if (w, h) != (width, height):
                 raise UserError(f"image is {w}x{h} but the transforms file says {width}x{height} "
