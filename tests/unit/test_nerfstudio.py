@@ -153,16 +153,21 @@ def test_bad_files_are_refused(tiny_scene_path, tmp_path):  # noqa: F811
 
 
 def test_unread_masks_and_an_unused_colmap_model_are_named(tiny_scene_path, tmp_path):  # noqa: F811
-    """A frame's mask_path is not read (its pixels are trained on), and a COLMAP model beside transforms.json is not
-    used: both were silent."""
+    """A frame's mask_path and depth_file_path are not read (its pixels are trained on), and a COLMAP model beside
+    transforms.json is not used: all were silent."""
     root = tmp_path / "ns"
     convert(tiny_scene_path, root)
     meta = json.loads((root / "transforms.json").read_text())
     meta["frames"][0]["mask_path"] = "masks/view_000.png"
+    for fr in meta["frames"][:2]:  # nerfstudio's depth (16-bit PNG, mm): not read either, and evaluate takes --depth-gt
+        fr["depth_file_path"] = fr["file_path"].replace("images/", "depth/")
     (root / "transforms.json").write_text(json.dumps(meta))
     shutil.copytree(tiny_scene_path / "sparse", root / "sparse")
     notes = load_scene(root).notes
     assert any(n.startswith("1 frame(s) of transforms.json name a mask_path: masks are not read") for n in notes)
+    (depth,) = [n for n in notes if "depth_file_path" in n]
+    assert depth.startswith("2 frame(s) of transforms.json name a depth_file_path: depth maps are not read")
+    assert "--depth-gt" in depth
     assert any("read as a nerfstudio scene (transforms.json); the folder also holds a COLMAP model" in n for n in notes)
     shutil.rmtree(root / "sparse")
     assert not [n for n in load_scene(root).notes if "COLMAP model" in n]

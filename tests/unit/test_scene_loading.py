@@ -849,3 +849,14 @@ def test_a_principal_point_outside_the_image_is_refused(workspace):
     rec.write_binary(str(sparse))
     text = _raises(workspace, match="principal point at (200, 48), outside its 128x96 image", name="sparse")
     assert "view 'view_000.png'" in text and "about 400x96" in text, text
+
+
+def test_a_workspace_masks_folder_is_noted_as_not_read(tiny_scene_path, workspace):  # noqa: F811
+    """A COLMAP workspace's masks/ folder was never mentioned: it is not read (every pixel is trained on); a synthetic
+    scene's masks/ are read (validity masks for evaluation) and get no note."""
+    assert not any("masks" in n for n in load_scene(workspace).notes)
+    shutil.copytree(tiny_scene_path / "masks", workspace / "masks")
+    (note,) = [n for n in load_scene(workspace).notes if "masks" in n]
+    assert note.startswith(f"{workspace / 'masks'} (24 file(s)) is not read: every pixel") and "uncertsplat synth" in note
+    assert load_scene(tiny_scene_path).mask_paths is not None
+    assert not any("masks" in n and "not read" in n for n in load_scene(tiny_scene_path).notes)

@@ -87,7 +87,7 @@ def load_scene(path: str | Path, cfg: SceneConfig | None = None, *, initial_poin
     if (path / "transforms.json").is_file():
         return _with_notes(_from_transforms(read_nerfstudio(path, cfg), cfg, initial_points),
                            _colmap_beside(path, "a nerfstudio scene (transforms.json)")
-                           + _unread_mask_notes(path / "transforms.json"))
+                           + _unread_frame_notes(path / "transforms.json"))
     return _load_colmap(path, cfg)
 
 
@@ -99,20 +99,42 @@ def _colmap_beside(path: Path, read_as: str) -> list[str]:
             "away to train on it)"]
 
 
-def _unread_mask_notes(transforms: Path) -> list[str]:
-    """A note when a nerfstudio transforms file names per-frame masks (``mask_path``), which are not read."""
+def _unread_frame_notes(transforms: Path) -> list[str]:
+    """Notes when a nerfstudio transforms file names per-frame masks (``mask_path``) or depth maps
+    (``depth_file_path``), which are not read: both were silent."""
     import json
 
     try:
         frames = json.loads(transforms.read_text(encoding="utf-8")).get("frames", [])
     except (OSError, ValueError, AttributeError):
         return []  # read_nerfstudio has said what is wrong with it
-    n = sum(1 for f in frames if isinstance(f, dict) and f.get("mask_path"))
+    count = lambda key: sum(1 for f in frames if isinstance(f, dict) and f.get(key))  # noqa: E731
+    notes = []
+    if n := count("mask_path"):
+        notes.append(f"{n} frame(s) of {transforms.name} name a mask_path: masks are not read, so the masked pixels "
+                     "are trained on like any other (a transient object there is fitted into the scene); retouch or "
+                     "crop those photos, or leave the frames out")
+    if n := count("depth_file_path"):
+        notes.append(f"{n} frame(s) of {transforms.name} name a depth_file_path: depth maps are not read (training "
+                     "fits the photos alone); to score the rendered depth against them, give `uncertsplat evaluate "
+                     "--depth-gt FOLDER` a folder of .npy / .exr maps (nerfstudio's 16-bit PNGs hold millimetres)")
+    return notes
+
+
+def _unread_masks_folder(path: Path) -> list[str]:
+    """A note when a COLMAP workspace holds a ``masks/`` folder (COLMAP's and other tools' per-photo masks): it is not
+    read, and every pixel is trained on (only ``uncertsplat synth`` scenes' masks are read, as evaluation's validity
+    masks)."""
+    masks = path / "masks"
+    if not masks.is_dir():
+        return []
+    n = sum(1 for p in masks.rglob("*") if p.is_file())
     if not n:
         return []
-    return [f"{n} frame(s) of {transforms.name} name a mask_path: masks are not read, so the masked pixels are "
-            "trained on like any other (a transient object there is fitted into the scene); retouch or crop those "
-            "photos, or leave the frames out"]
+    return [f"{masks} ({n} file(s)) is not read: every pixel of the photos is trained on and scored (a transient "
+            "object a mask covers is fitted into the scene); uncertsplat reads masks only in scenes made by "
+            "`uncertsplat synth` (validity masks for evaluation), and composites an RGBA photo's transparent pixels "
+            "over scene.background; retouch or crop those photos, or leave them out"]
 
 
 def _model_dirs(path: Path) -> list[Path]:
@@ -382,6 +404,8 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
     if unused:  # photos a user put there for the scene, which it does not hold
         notes = [*notes, f"{len(unused)} photo(s) in {image_dir} are not in the COLMAP model and are not used: "
                          f"{list_names(unused, 8)} (reconstruct again with them to use them)"]
+    if source == "colmap":  # (a synthetic scene's masks/ are read: _load_synthetic)
+        notes = [*notes, *_unread_masks_folder(path)]
     if all((sparse / f"{n}.bin").is_file() for n in MODEL_FILES) and any((sparse / f"{n}.txt").is_file()
                                                                           for n in MODEL_FILES):
         notes = [*notes, f"{sparse} holds the model both as .bin and as .txt files: the .bin ones are read (as COLMAP "
