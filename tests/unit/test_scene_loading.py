@@ -765,6 +765,35 @@ def test_depth_gt_maps_are_found_by_the_images_path_and_never_shared(tmp_path):
         load_depth_folder(folder, scene, [4])
 
 
+def test_depth_gt_maps_of_another_type_are_named_with_how_to_convert(tmp_path):
+    """nerfstudio writes depth as 16-bit PNGs in millimetres: `--depth-gt` refused them with "Expected view_000.npy
+    (or .exr)" as if there were none. The error names the file found and how to convert it."""
+    from types import SimpleNamespace
+
+    import PIL.Image
+
+    from uncertsplat.data.dataset import load_depth_folder
+
+    names = ("images/view_000.png", "images/view_001.png")
+    cams = Cameras(torch.eye(4).repeat(2, 1, 1), torch.eye(3).repeat(2, 1, 1), 4, 3, names)
+    scene = SimpleNamespace(cameras=cams, photo_fits=None)
+    folder = tmp_path / "depth"
+    folder.mkdir()
+    mm = np.full((3, 4), 2500, np.uint16)
+    PIL.Image.fromarray(mm).save(folder / "view_000.png")
+    with pytest.raises(UserError, match="no GT depth map for image 'images/view_000.png'") as err:
+        load_depth_folder(folder, scene, [0])
+    text = str(err.value)
+    assert "view_000.png exists, but only .npy and .exr maps are read" in text, text
+    assert "np.save('view_000.npy', np.asarray(PIL.Image.open('view_000.png'), np.float32) / 1000.0)" in text, text
+    # the conversion the error gives reads the map in metres
+    np.save(folder / "view_000.npy", np.asarray(PIL.Image.open(folder / "view_000.png"), np.float32) / 1000.0)
+    torch.testing.assert_close(load_depth_folder(folder, scene, [0]), torch.full((1, 3, 4, 1), 2.5))
+    with pytest.raises(UserError) as err:  # nothing of that name at all: no word about conversion
+        load_depth_folder(folder, scene, [1])
+    assert "only .npy and .exr" not in str(err.value)
+
+
 def test_photos_the_model_does_not_name_are_noted(workspace):
     """Photos put into a workspace's images/ that its COLMAP model does not hold were ignored without a word."""
     assert not any("not in the COLMAP model" in n for n in load_scene(workspace).notes)

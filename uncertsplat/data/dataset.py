@@ -257,6 +257,25 @@ def depth_map_names(name: str, names: Sequence[str]) -> list[str]:
     return list(dict.fromkeys(out))
 
 
+def _other_depth_files(folder: Path, looked: Sequence[str]) -> str:
+    """For ``load_depth_folder``'s error: the files of a looked-up name with an extension that is not read (nerfstudio
+    writes depth as 16-bit PNGs in millimetres: they were refused as if absent), and how to convert them; else ""."""
+    found = []
+    for n in looked:
+        where = (folder / n).parent
+        if where.is_dir():
+            found += sorted(p for p in where.iterdir() if p.stem == Path(n).name and p.is_file()
+                            and p.suffix.lower() not in (".npy", ".exr"))
+    if not found:
+        return ""
+    rel = found[0].relative_to(folder).as_posix()
+    npy = Path(rel).with_suffix(".npy").as_posix()
+    return (f"; {list_names([p.relative_to(folder).as_posix() for p in found], 3)} exists, but only .npy and .exr "
+            f"maps are read: convert each map, e.g. with numpy and PIL, np.save('{npy}', "
+            f"np.asarray(PIL.Image.open('{rel}'), np.float32) / 1000.0) for a 16-bit PNG in millimetres (nerfstudio's) "
+            "to metres (--depth-scale auto fits the scale of any unit)")
+
+
 def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) -> Tensor:
     """GT depth [C,H,W,1] of the cameras ``indices`` from ``folder/{name}.npy|.exr`` (``--depth-gt``; ``name`` one
     of ``depth_map_names``).
@@ -283,7 +302,8 @@ def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) ->
             raise UserError(f"no GT depth map for image '{names[i]}'", path=folder,
                             hint=f"Expected {' or '.join(f'{n}.npy' for n in looked)} (or .exr)"
                                  + (f"; {Path(names[i]).stem}.npy alone would be ambiguous: {list_names(shared)} "
-                                    "has the same name" if shared else "") + ".")
+                                    "has the same name" if shared else "")
+                                 + _other_depth_files(folder, looked) + ".")
         paths.append(path)
     out = torch.empty((len(paths), H, W, 1), dtype=torch.float32)  # [C,H,W,1], filled one map at a time
     for k, (i, path) in enumerate(zip(indices, paths, strict=True)):
