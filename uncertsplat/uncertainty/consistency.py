@@ -154,7 +154,7 @@ class ViewConsistency:
     frustum_cameras: Cameras | None = None
     palette_var: float = 0.0
     finer_detail: float = 0.0
-    _stacks: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # ``_stack``'s, when they fit
+    _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # ``_stack``'s and ``_near``
 
     @classmethod
     @torch.no_grad()
@@ -308,18 +308,27 @@ class ViewConsistency:
         seen = inside & ((z - there[..., 3]).abs() <= DEPTH_TOLERANCE * z)
         return cams, z, inside, there, seen
 
+    def _near(self) -> float:
+        """``DEPTH_TOLERANCE`` x the compared renders' median surface depth (0 without surface): how near a training
+        camera ``seen_free`` counts as where a photo was taken. Computed once (a median of every rendered pixel)."""
+        near = self._cache.get("near")
+        if near is None:
+            surface = self.depth[self.depth > 0]
+            near = self._cache["near"] = DEPTH_TOLERANCE * float(surface.float().median()) if surface.numel() else 0.0
+        return near
+
     def _stack(self, k0: int, dtype: torch.dtype) -> Tensor:
         """[C,4,H,W] the compared views ``k0`` .. ``k0 + VIEW_CHUNK``'s rgb and depth in ``dtype`` (a view of the
         [C,H,W,4] stack), kept for the next lookup when every chunk's fits in ``STACK_BYTES`` (the same tensor, so
         the same samples to the bit)."""
         key = (k0, VIEW_CHUNK, dtype)
-        found = self._stacks.get(key)
+        found = self._cache.get(key)
         if found is not None:
             return found
         image = torch.cat([self.rgb[k0:k0 + VIEW_CHUNK].to(dtype),
                            self.depth[k0:k0 + VIEW_CHUNK].to(dtype)[..., None]], -1).permute(0, 3, 1, 2)
         if self.depth.numel() * 4 * image.element_size() <= STACK_BYTES:
-            self._stacks[key] = image  # (two threads may both build it: the same values)
+            self._cache[key] = image  # (two threads may both build it: the same values)
         return image
 
     @torch.no_grad()
@@ -330,8 +339,7 @@ class ViewConsistency:
         ``DEPTH_TOLERANCE`` of the compared views' median rendered depth from a training camera (``frustum_cameras``),
         where a photo was taken. False for a point inside an object or behind a wall, and for one no training view
         looked through: space no photo showed empty."""
-        surface = self.depth[self.depth > 0]
-        near = DEPTH_TOLERANCE * float(surface.float().median()) if surface.numel() else 0.0
+        near = self._near()
         stood = self.frustum_cameras if self.frustum_cameras is not None else self.cameras
         free = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
         for centre in stood.centers.to(points.device).double():  # one camera at a time: no [P,T] distances
