@@ -182,6 +182,11 @@ class SceneConfig(_Base):
     """Scene centre used for normalisation and for random initial points. auto: where the optical axes meet
     for an inward-facing rig without sparse points (Blender / nerfstudio scenes), else the camera centroid
     (COLMAP scenes, forward-facing captures). The choice and its reason are recorded in RUN/scene.json."""
+    principal_point_outside: bool = False
+    """Accept cameras whose principal point lies outside their image (crops of a larger photo, one side of a
+    rectified pair). Off by default: that is what intrinsics measured on images of another size look like (a
+    nerfstudio folder with full-size intrinsics and downscaled files trained off-centre, 13.6 dB for 19.4), and the
+    scene is refused, naming the view."""
     photo_sizes: Literal["fit", "strict"] = "fit"
     """A COLMAP workspace whose images come in more than one size (portrait and landscape photos, two cameras).
     fit: the most common size is the scene's; a photo of the other orientation is turned a quarter turn (its
@@ -502,22 +507,33 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
 
 
 # --------------------------------------------------------------------------------------------- evaluate
+EVAL_SEED_MAX = 2**40
+"""The largest seed of the stages whose per-view seeds are ``seed x 1,000,003 + index`` (``eval.engine.view_seed``):
+every one stays a 64-bit seed (a larger seed was a traceback from torch; ``predict.MAX_SEED`` is this)."""
+MAX_DEGREES_OF_FREEDOM = 1000.0
+"""The largest Student-t nu accepted (``eval.tails.MAX_DOF``, where a fit reads as the Gaussian): far beyond, the
+t's log-density loses its digits (1e15 gave an NLL of 17.7 for -1.56, 1e300 a traceback)."""
+
+
 class EvalConfig(_Base):
     """Uncertainty rendering and metrics (``uncertsplat evaluate``)."""
 
     split: Literal["test", "train"] = "test"
     num_samples: int = Field(10, ge=1, le=10_000)
     """K_eval: posterior samples per view (cost grows linearly)."""
-    seed: int = Field(0, ge=0)
+    seed: int = Field(0, ge=0, le=EVAL_SEED_MAX)
     depth_gt: Path | None = None
     """Folder of GT depth maps ({image stem}.npy or .exr); synthetic scenes provide their own."""
-    depth_scale: Literal["auto", "scene"] | Annotated[float, Field(gt=0.0)] = "auto"
+    depth_scale: Literal["auto", "scene"] | Annotated[float, Field(gt=0.0, le=1e30)] = "auto"
     """Factor from rendered depth to GT depth units (> 0). auto: the scene's own GT depth is in known units, a
     ``depth_gt`` folder's factor is fitted (``depth_align``); scene: the ``depth_gt`` maps are in the scene's own
     units (its COLMAP model's, e.g. a metric map's), the known factor of ``RUN/scene.json``."""
     depth_align: Literal["median", "lsq"] = "median"
-    std_floor: float = Field(1e-3, gt=0.0)
-    """The NLL uses max(std, std_floor) so a zero std does not give an infinite NLL."""
+    std_floor: float = Field(1e-3, gt=0.0, le=0.01)
+    """The NLL uses max(std, std_floor) so a zero std does not give an infinite NLL. At most 0.01 (1 % of the colour
+    range): the std factor is fitted with the floor under the raw std and applied before the metrics' floor, which
+    agree only while the floor is well below the std (a floor of 0.1 made the calibrated calibration error 0.14
+    against a raw 0.03)."""
     paper_nll: bool = False
     """Also report the original code's KDE NLL formula (not comparable with a correct NLL)."""
     ause_steps: int = Field(100, ge=2, le=10_000)
@@ -535,7 +551,7 @@ class EvalConfig(_Base):
     """Fit one factor for the RGB std on this many evenly spaced training views (0: none); the metrics
     ``nll_calibrated`` and ``calibration_error_calibrated`` use std x factor, the maps keep the raw std.
     Costs K renders per view; only with ``split = "test"``."""
-    degrees_of_freedom: Literal["fit", "gaussian"] | Annotated[float, Field(ge=2.1)] = "fit"
+    degrees_of_freedom: Literal["fit", "gaussian"] | Annotated[float, Field(ge=2.1, le=MAX_DEGREES_OF_FREEDOM)] = "fit"
     """The RGB predictive's tails: a Student-t with the predicted std and nu degrees of freedom (``eval.tails``), or
     the Gaussian. A pixel's error given its std is heavy-tailed (the std estimates the error's scale, which varies
     around it): z-scores with a kurtosis of 9-14 on the demo, fern and bonsai, which a Gaussian of the right
@@ -665,8 +681,8 @@ class PruneConfig(_Base):
     sweep: bool = False
     sweep_ratios: list[float] = [1.0, 0.95, 0.9, 0.8, 0.7, 0.6, 0.5]
     dry_run: bool = False
-    seed: int = Field(0, ge=0)
-    num_samples: int = Field(10, ge=1)
+    seed: int = Field(0, ge=0, le=EVAL_SEED_MAX)
+    num_samples: int = Field(10, ge=1, le=10_000)
     score_views: int = Field(8, ge=1)
     """Predictive score: at most this many training views (evenly spaced) are rendered."""
     score_samples: int = Field(4, ge=2)
@@ -727,9 +743,10 @@ class SelectConfig(_Base):
     this fraction of the largest such distance compete (``select.scores.gap_eligible``); the others get no score.
     0: every candidate (FisherRF's choice, which picked views next to ones just added), 1: coverage's farthest
     ones. 0.5, the one value tried, is the default since 2026-11-27."""
-    around_radius: float = Field(1.0, gt=0.0)
-    """around: largest move of a candidate from its training camera, in median camera spacings."""
-    seed: int = 0
+    around_radius: float = Field(1.0, gt=0.0, le=1000.0)
+    """around: largest move of a candidate from its training camera, in median camera spacings (at most 1000: far
+    beyond, the candidates' poses were not finite numbers)."""
+    seed: int = Field(0, ge=0, le=EVAL_SEED_MAX)
 
 
 class ViewConfig(_Base):

@@ -40,6 +40,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from uncertsplat.config import EVAL_SEED_MAX
 from uncertsplat.errors import UserError
 from uncertsplat.types import Cameras
 
@@ -121,7 +122,7 @@ TRANSFORMS = ("cam_from_world", "world_from_cam")
 """The poses ``Predictor.cameras_from_source`` takes: world-to-camera (COLMAP's) or camera-to-world."""
 AXES = ("opencv", "opengl", "blender")
 """The camera axes it takes: OpenCV's (x right, y down, z forward), OpenGL's = Blender's (x right, y up, z backward)."""
-MAX_SEED = 2**40
+MAX_SEED = EVAL_SEED_MAX
 """The largest seed ``Predictor.predict`` takes (``view_seed`` of it and of any view index stays a 64-bit seed)."""
 _RIGID_HINT = ("Pass world-to-camera matrices in the scene's units, as pycolmap's Image.cam_from_world().matrix() "
                "gives them ([N,3,4], or [N,4,4] with the row [0, 0, 0, 1]); camera-to-world ones with "

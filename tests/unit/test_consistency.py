@@ -469,3 +469,13 @@ def test_the_finer_detail_term_stays_finite_at_the_extremes(device, monkeypatch)
     monkeypatch.setattr(consistency, "_footprint", lambda points, camera: footprint(points, camera) * 1e-30)
     var = vc.variance(_cameras([25.0], focal=60.0, device=device), render_fn)
     assert torch.isfinite(var).all() and (var >= 0).all() and float(var.max()) > 1.0  # r^2 = 1e12 times g
+
+
+def test_seen_free_in_blocks_of_points_is_the_same(monkeypatch):
+    """Many points are tested a block at a time (4M points took 2.8 GB at once): the same answer."""
+    vc = ViewConsistency(_sample(), _cameras([0.0, 90.0]), torch.zeros(2, H, W, 3, dtype=torch.float16),
+                         torch.full((2, H, W), 4.0), gate=1.0)
+    pts = torch.randn(1000, 3, generator=torch.Generator().manual_seed(0)) * 3
+    whole = vc.seen_free(pts)
+    monkeypatch.setattr(consistency, "FREE_POINTS_CHUNK", 7)
+    assert torch.equal(vc.seen_free(pts), whole) and 0 < int(whole.sum()) < 1000

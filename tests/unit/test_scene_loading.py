@@ -850,8 +850,10 @@ def test_a_depth_map_of_another_shape_is_refused_and_no_surface_is_invalid(tmp_p
     np.save(tmp_path / "half.npy", d[::2, ::2])  # another resolution of the same shape: resized
     assert load_depth_map(tmp_path / "half.npy", 128, 96).shape == (96, 128)
     np.save(tmp_path / "t.npy", d.T.copy())
-    with pytest.raises(UserError, match="the depth map is 96x128, another shape than its photo's 128x96"):
+    with pytest.raises(UserError, match="the depth map is 96x128, another shape than its view's 128x96"):
         load_depth_map(tmp_path / "t.npy", 128, 96)
+    # a view downscaled 5x rounds each side (26x19): its photo's own map is its shape, within that rounding
+    assert load_depth_map(tmp_path / "ok.npy", 26, 19).shape == (19, 26)
 
 
 def test_masks_of_zero_and_one_mark_their_ones_valid(workspace):
@@ -878,6 +880,9 @@ def test_a_principal_point_outside_the_image_is_refused(workspace):
     rec.write_binary(str(sparse))
     text = _raises(workspace, match="principal point at (200, 48), outside its 128x96 image", name="sparse")
     assert "view 'view_000.png'" in text and "about 400x96" in text, text
+    # a crop of a larger photo has its optical centre outside it: accepted when said so
+    scene = load_scene(workspace, SceneConfig(principal_point_outside=True))
+    assert float(scene.cameras.K[0, 0, 2]) == pytest.approx(200.0)
 
 
 def test_a_workspace_masks_folder_is_noted_as_not_read(tiny_scene_path, workspace):  # noqa: F811
@@ -889,3 +894,12 @@ def test_a_workspace_masks_folder_is_noted_as_not_read(tiny_scene_path, workspac
     assert note.startswith(f"{workspace / 'masks'} (24 file(s)) is not read: every pixel") and "uncertsplat synth" in note
     assert load_scene(tiny_scene_path).mask_paths is not None
     assert not any("masks" in n and "not read" in n for n in load_scene(tiny_scene_path).notes)
+
+
+def test_depth_gt_given_the_images_folder_says_so(tiny_scene_path):  # noqa: F811
+    """--depth-gt pointed at the scene's own images: the error told the user to convert their photo into depth."""
+    from uncertsplat.data.dataset import load_depth_folder
+
+    scene = load_scene(tiny_scene_path)
+    with pytest.raises(UserError, match="view_000.png there is the scene's own photo: give the GT depth's folder"):
+        load_depth_folder(tiny_scene_path / "images", scene, [0])

@@ -190,11 +190,14 @@ def load_depth_map(path: Path, width: int, height: int, fit: PhotoFit | None = N
     """
     d = read_depth_file(path)
     d = np.where(np.isfinite(d) & (d > 0) & (d < NO_SURFACE_DEPTH), d, 0.0).astype(np.float32)
-    # the photo as stored: its fit turns it to turned_width x turned_height
+    # the photo as stored: its fit turns it to turned_width x turned_height; without one, the view's size (the photo
+    # downscaled, each side rounded: up to a pixel's slack in its shape)
     w, h = ((fit.turned_width, fit.turned_height) if fit.turns % 2 == 0 else (fit.turned_height, fit.turned_width)) \
         if fit is not None else (width, height)
-    if abs(np.log((d.shape[1] / d.shape[0]) / (w / h))) > SHAPE_TOLERANCE:
-        raise UserError(f"the depth map is {d.shape[1]}x{d.shape[0]}, another shape than its photo's {w}x{h} "
+    slack = 0.0 if fit is not None else 1.0 / w + 1.0 / h
+    if abs(np.log((d.shape[1] / d.shape[0]) / (w / h))) > SHAPE_TOLERANCE + slack:
+        what = "its photo's" if fit is not None else "its view's"
+        raise UserError(f"the depth map is {d.shape[1]}x{d.shape[0]}, another shape than {what} {w}x{h} "
                         "(stretched to it, it would be scored against the wrong pixels)", path=path,
                         hint="Give each photo a depth map of its own shape (any resolution of it); a transposed or "
                              "cropped map needs turning or padding first.")
@@ -257,15 +260,21 @@ def depth_map_names(name: str, names: Sequence[str]) -> list[str]:
     return list(dict.fromkeys(out))
 
 
-def _other_depth_files(folder: Path, looked: Sequence[str]) -> str:
+def _other_depth_files(folder: Path, looked: Sequence[str], photos: Sequence[Path] = ()) -> str:
     """For ``load_depth_folder``'s error: the files of a looked-up name with an extension that is not read (nerfstudio
-    writes depth as 16-bit PNGs in millimetres: they were refused as if absent), and how to convert them; else ""."""
+    writes depth as 16-bit PNGs in millimetres: they were refused as if absent), and how to convert them; else "".
+    The scene's own ``photos`` are not depth maps: a folder of them (``--depth-gt`` given the images) is said to
+    be that."""
     found = []
     for n in looked:
         where = (folder / n).parent
         if where.is_dir():
             found += sorted(p for p in where.iterdir() if p.stem == Path(n).name and p.is_file()
                             and p.suffix.lower() not in (".npy", ".exr"))
+    own = {Path(p).resolve() for p in photos}
+    if found and all(p.resolve() in own for p in found):
+        return f"; {found[0].relative_to(folder).as_posix()} there is the scene's own photo: give the GT depth's folder"
+    found = [p for p in found if p.resolve() not in own]
     if not found:
         return ""
     rel = found[0].relative_to(folder).as_posix()
@@ -303,7 +312,7 @@ def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) ->
                             hint=f"Expected {' or '.join(f'{n}.npy' for n in looked)} (or .exr)"
                                  + (f"; {Path(names[i]).stem}.npy alone would be ambiguous: {list_names(shared)} "
                                     "has the same name" if shared else "")
-                                 + _other_depth_files(folder, looked) + ".")
+                                 + _other_depth_files(folder, looked, getattr(scene, "image_paths", ())) + ".")
         paths.append(path)
     out = torch.empty((len(paths), H, W, 1), dtype=torch.float32)  # [C,H,W,1], filled one map at a time
     for k, (i, path) in enumerate(zip(indices, paths, strict=True)):

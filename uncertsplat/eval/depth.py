@@ -17,6 +17,7 @@ same factor (std of s * D is s * std of D); AUSE is scale-invariant in any case.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -181,7 +182,7 @@ def align_depth_scale(
     if not isinstance(method, str):
         n = _count_valid(pred, gt, mask, pred_scale)
         scale = float(method)
-        if not (scale > 0 and torch.isfinite(torch.tensor(scale))):
+        if not (scale > 0 and math.isfinite(scale)):
             raise ValueError(f"a given depth scale must be a positive finite number, got {method}")
         return DepthScale(scale, "given", n)
     if method not in ("median", "lsq"):

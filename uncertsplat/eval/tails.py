@@ -27,7 +27,8 @@ from torch import Tensor
 MIN_DOF = 2.1
 """Smallest nu fitted or accepted: at 2 the variance is infinite, so a std cannot describe the distribution."""
 MAX_DOF = 1000.0
-"""Largest nu fitted; a fit at this end is reported as the Gaussian (the two differ by less than 1e-3 in coverage)."""
+"""Largest nu fitted; a fit at this end is reported as the Gaussian (the two differ by less than 1e-3 in coverage).
+``config.MAX_DEGREES_OF_FREEDOM``, the largest nu accepted, is this (tested)."""
 FIT_ELEMENTS = 1_000_000
 """At most this many z-scores (evenly strided) enter ``fit_dof``: more change nu in the third digit."""
 MIN_FIT_ELEMENTS = 1000

@@ -778,11 +778,12 @@ def normalized_cam_from_world(cam_from_world: torch.Tensor, world_from_source: t
     return new
 
 
-def _check_intrinsics(cameras: Cameras, where: Path) -> None:
+def _check_intrinsics(cameras: Cameras, where: Path, outside_ok: bool = False) -> None:
     """Refuse focal lengths that are not positive and finite (a model edited or written by other tools: a focal of
-    0 trains a model that never changes, a negative one a mirrored scene, both without a word), and a principal point
-    outside the image (intrinsics of the full-size photos given with downscaled files: the model trains, off-centre,
-    several dB worse, and the warnings blame the poses)."""
+    0 trains a model that never changes, a negative one a mirrored scene, both without a word), and, unless
+    ``outside_ok`` (``SceneConfig.principal_point_outside``), a principal point outside the image (intrinsics of the
+    full-size photos given with downscaled files: the model trains, off-centre, several dB worse, and the warnings
+    blame the poses)."""
     K = cameras.K.double()
     f = torch.stack([K[:, 0, 0], K[:, 1, 1]], dim=-1)  # [C,2]
     bad = (~torch.isfinite(f) | (f <= 0)).any(-1) | ~torch.isfinite(K[:, :2, 2]).all(-1)
@@ -796,19 +797,21 @@ def _check_intrinsics(cameras: Cameras, where: Path) -> None:
     W, H = cameras.width, cameras.height
     c = K[:, :2, 2]  # [C,2]
     outside = (c[:, 0] < 0) | (c[:, 0] > W) | (c[:, 1] < 0) | (c[:, 1] > H)
-    if bool(outside.any()):
+    if bool(outside.any()) and not outside_ok:
         i = int(outside.nonzero()[0, 0])
         names = [cameras.image_names[j] for j in outside.nonzero()[:, 0].tolist()]
         cx, cy = float(c[i, 0]), float(c[i, 1])
         # a principal point is near the image centre: twice it is about the size the intrinsics were measured at
-        size = f"about {abs(2 * cx):.0f}x{abs(2 * cy):.0f}"
+        size = (f"; the intrinsics seem to belong to images of about {2 * cx:.0f}x{2 * cy:.0f} pixels"
+                if cx > 0 and cy > 0 else "")
         raise UserError(f"view '{names[0]}'" + (f" (and {len(names) - 1} more: {list_names(names[1:], 4)})"
                                                  if len(names) > 1 else "")
-                        + f" has its principal point at ({cx:g}, {cy:g}), outside its {W}x{H} image; the intrinsics "
-                        f"seem to belong to images of {size} pixels", path=where,
+                        + f" has its principal point at ({cx:g}, {cy:g}), outside its {W}x{H} image{size}",
+                        path=where,
                         hint=f"Give the intrinsics of the {W}x{H} images that are read (scale the focal lengths and the "
                              "principal point by the ratio of the sizes), or the images the intrinsics were measured "
-                             "on.")
+                             "on; views cropped from larger photos, whose optical centre lies outside them, take "
+                             "--set scene.principal_point_outside=true.")
 
 
 def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torch.Tensor, cfg: SceneConfig,
@@ -818,7 +821,8 @@ def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torc
     """Split, choose the centre, add random initial points (``random_init`` and no points), normalise;
     ``photo_fits`` and ``notes`` are ``_colmap_cameras``'s (recorded in ``source`` too); ``intrinsics_from`` is the
     file that gave the intrinsics (for errors; default: the COLMAP model, else the scene folder)."""
-    _check_intrinsics(cameras, intrinsics_from or Path(source.get("model", source["path"])))
+    _check_intrinsics(cameras, intrinsics_from or Path(source.get("model", source["path"])),
+                      outside_ok=cfg.principal_point_outside)
     split = make_split(cameras.image_names, cfg, where=Path(source["path"]), default=default_split)
     taken = _held_out_taken(cameras.image_names, cfg, default_split, split)
     if taken:

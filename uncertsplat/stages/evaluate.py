@@ -384,6 +384,9 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
             for note in loaded.eval_notes(cfg.num_samples):
                 if note.startswith("K="):  # a choice of the command's that changes what is measured
                     console.print(f"[yellow]note:[/] {note}")
+            if cfg.residual_views == 0 and cfg.residual_scale != "auto":  # (it scales a noise not fitted)
+                console.print(f"[yellow]note:[/] residual_scale = {cfg.residual_scale} has no effect with "
+                              "residual_views = 0: there is no pixel noise to scale")
         train_views = partial(load_view_set, scene, depth=False, keep_8bit=True)  # the residual fit's (64 by default)
         # the set-aside views' K samples, when the noise is fitted here: the std factor's fit reuses them
         set_aside_maps: dict = {}

@@ -90,6 +90,8 @@ STACK_BYTES = 256 * 2**20
 """The compared renders are kept as the ready [C,4,H,W] stacks each lookup samples (``_compared_at``) when all of them
 fit in this many bytes: rebuilding a chunk's stack from the float16 renders for each evaluated view cost more than
 the lookup itself on a small view (44 of 162 ms of a 32x24 prediction on the demo run)."""
+FREE_POINTS_CHUNK = 65536
+"""Points ``seen_free`` tests at once (about 600 bytes each while they are looked up: 4M points took 2.8 GB)."""
 MAX_FINER = 1e6
 """The largest r the finer-detail term takes (its square stays a float32 number)."""
 STEP_VARIANCE = 1.0 / 12.0
@@ -339,6 +341,9 @@ class ViewConsistency:
         ``DEPTH_TOLERANCE`` of the compared views' median rendered depth from a training camera (``frustum_cameras``),
         where a photo was taken. False for a point inside an object or behind a wall, and for one no training view
         looked through: space no photo showed empty."""
+        if points.shape[0] > FREE_POINTS_CHUNK:  # a block at a time: [C,P] lookups of every point grew to GBs
+            return torch.cat([self.seen_free(points[k:k + FREE_POINTS_CHUNK])
+                              for k in range(0, points.shape[0], FREE_POINTS_CHUNK)])
         near = self._near()
         stood = self.frustum_cameras if self.frustum_cameras is not None else self.cameras
         free = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
