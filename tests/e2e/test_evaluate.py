@@ -1152,3 +1152,18 @@ def test_masks_that_leave_no_pixel_are_a_clear_error(tiny_run_path, tmp_path, mo
     with pytest.raises(UserError, match=r"the validity masks of the \d+ evaluated view\(s\) mark no pixel valid"):
         evaluate.run(run, EvalConfig(num_samples=2, max_views=2, save_maps=False, reuse=False),
                      device=torch.device("cpu"))
+
+
+def test_a_std_of_zero_everywhere_is_said(tiny_run_path, tmp_path):
+    """One sample with every side term off: a std of 0 at every pixel, whose NLL and calibration measure the floor
+    (a helper saw a std factor of x66.6 that changed nothing, and no word)."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    off = dict(residual_views=0, consistency_views=0, resolution=0.0, empty_rays=False, depth_spread=False,
+               edge_noise=False, colour_posterior=False)
+    report = evaluate.run(run, EvalConfig(num_samples=1, max_views=1, save_maps=False, reuse=False, **off),
+                          device=torch.device("cpu"))
+    assert any(n.startswith("every pixel's RGB std is 0") for n in report.notes)
+    report = evaluate.run(run, EvalConfig(num_samples=2, max_views=1, save_maps=False, reuse=False),
+                          device=torch.device("cpu"))
+    assert not any(n.startswith("every pixel's RGB std is 0") for n in report.notes)

@@ -581,6 +581,8 @@ GIVEN_SCENE_GT = "given-scene"
 """``DepthScaleInfo.method`` of a factor given with ``--depth-scale`` against the scene's own GT depth (in the run's
 normalised units, as with method "scene"); "given" is one against a ``--depth-gt`` folder (the folder's units)."""
 
+ZERO_STD_NOTE = "every pixel's RGB std is 0"
+"""How ``evaluate_views``' note begins when no pixel has a std (``stages.evaluate`` prints it)."""
 IMPLAUSIBLE_DEPTH_NOTE = "the GT maps are probably in other units"
 """What ``implausible_depth_scale_notes``' note says (``stages.evaluate`` prints the notes that say it: a warning
 about every depth number, which only metrics.json and the report held)."""
@@ -681,6 +683,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     K = cfg.num_samples
     keep = K <= KDE_MAX_SAMPLES
     notes = list(notes)
+    std_max = 0.0  # the largest RGB std of any pixel (0: the NLL and calibration measure only the floor)
     if not keep:
         notes.append(f"KDE NLL skipped: K={K} > {KDE_MAX_SAMPLES} would keep every sample in memory")
     if K == 1:
@@ -752,6 +755,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             seconds = time.perf_counter() - t0
             pred = maps.rgb_mean[0].cpu().clamp(0, 1)
             std = maps.rgb_std[0].cpu()
+            std_max = max(std_max, float(std.max())) if std.numel() else std_max
             gt = images[j]
             mask = masks[j] if masks is not None else None
             err = pred - gt
@@ -853,6 +857,9 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             if dcal.num_elements:
                 depth_cal.append(dcal)
 
+    if std_max == 0.0:
+        notes.append(f"{ZERO_STD_NOTE} (one sample and every side term off?): the NLL and calibration measure the "
+                     f"std floor ({cfg.std_floor:g}), not the model, and a std factor changes nothing")
     per_view = {r.name: ViewMetrics(**r.metrics) for r in results}
     curves = {}
     for r in results:

@@ -36,7 +36,7 @@ import torch
 from uncertsplat.config import EvalConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError, run_folder_missing
-from uncertsplat.eval.engine import IMPLAUSIBLE_DEPTH_NOTE, MASKED_NOTE, ViewMaps
+from uncertsplat.eval.engine import IMPLAUSIBLE_DEPTH_NOTE, MASKED_NOTE, ZERO_STD_NOTE, ViewMaps
 from uncertsplat.eval.nll import NLL_WORSE_BY
 from uncertsplat.eval.tails import MIN_DOF
 from uncertsplat.eval.tails import half_width as _half_width
@@ -438,7 +438,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         atomic_write_text(out / "config.json", cfg.model_dump_json(indent=2) + "\n")
     if quiet:
         return report
-    depth_units = [n for n in report.notes if IMPLAUSIBLE_DEPTH_NOTE in n]  # (made by the engine)
+    depth_units = [n for n in report.notes if IMPLAUSIBLE_DEPTH_NOTE in n or n.startswith(ZERO_STD_NOTE)]
     for note in depth_units:
         console.print(f"[yellow]warning:[/] {note}")
     for note in [*reach, *low, *few]:
