@@ -272,7 +272,12 @@ class Predictor:
         from uncertsplat.data.dataset import load_view_set
         from uncertsplat.eval.engine import StdFit, residual_from_state, scored_sampler
         from uncertsplat.io.atomic import run_lock
-        from uncertsplat.stages.predictive_cache import keep_predictive, plain_versions, read_predictive
+        from uncertsplat.stages.predictive_cache import (
+            keep_predictive,
+            plain_versions,
+            predictive_problem,
+            read_predictive,
+        )
         from uncertsplat.stages.residual_cache import fitted_residual, same_residual_settings
 
         loaded = load_run(run_dir, device)
@@ -284,12 +289,15 @@ class Predictor:
             scene = loaded.load_scene()
         except UserError as err:
             if kept is None:
-                raise UserError(f"{err.message}; and {run_dir / 'eval' / 'predictive.pt'} holds no predictive of "
-                                "this model with these settings, which would stand in for it", path=err.path,
-                                hint=(f"{err.hint} Or r" if err.hint else "R")
-                                + f"un `uncertsplat evaluate {run_dir}` where the scene is (it keeps what the "
-                                "predictive needs in eval/predictive.pt; an ensemble has none) and copy the run "
-                                "folder with its eval/ folder.") from err
+                problem = predictive_problem(loaded, cfg)
+                ensemble = problem.startswith("an ensemble")
+                raise UserError(f"{err.message}; and the predictive kept beside the run cannot stand in for it: "
+                                f"{problem}", path=err.path,
+                                hint=(err.hint or "Restore the scene folder.") if ensemble else
+                                (f"{err.hint} Or r" if err.hint else "R")
+                                + f"un `uncertsplat evaluate {run_dir}` where the scene is, with the settings you load "
+                                "(it keeps what the predictive needs in eval/predictive.pt), and copy the run folder "
+                                "with its eval/ folder.") from err
             scene = kept.scene
             loaded = loaded.with_scene(scene)  # what reads the scene (the empty-ray term's coverage) reads this one
             where = (f"; on {device.type} the maps differ from evaluate's by the devices' rounding"

@@ -21,6 +21,7 @@ from uncertsplat.config import EvalConfig
 from uncertsplat.data.dataset import load_view_set
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import StdFit, evaluate_views, fit_residual, fit_std_scale, with_side_terms
+from uncertsplat.io.checkpoints import decode, encode
 from uncertsplat.io.images import read_exr, read_exr_attribute
 from uncertsplat.io.maps import (
     EXR_ALPHA_CHANNEL,
@@ -931,11 +932,24 @@ class TestPredictor:
         got = offline.predict(offline.scene.cameras[[0, 7]], num_samples=3)
         for name in ("rgb_mean", "rgb_std", "depth_mean", "depth_std", "alpha"):
             torch.testing.assert_close(getattr(got, name), getattr(expected, name), rtol=0, atol=0)
-        with pytest.raises(UserError, match="holds no predictive of this model with these settings") as info:
+        with pytest.raises(UserError, match="cannot stand in for it: .*predictive.pt holds the predictive of other "
+                                            "settings: num_samples = 5 there, 2 here") as info:
             Predictor.load(run, "cpu", cfg=EvalConfig(num_samples=2, seed=3))
         assert "uncertsplat evaluate" in str(info.value)
-        (run / "eval" / "predictive.pt").unlink()
-        with pytest.raises(UserError, match="is gone.*holds no predictive"):
+        # settings that change no number (what is written, which views are scored) read the evaluation's file
+        assert Predictor.load(run, "cpu", cfg=EvalConfig(num_samples=5, seed=3, save_maps=False, max_views=1,
+                                                         reuse=False)).std_factor == with_scene.std_factor
+        path = run / "eval" / "predictive.pt"
+        data = bytearray(path.read_bytes())
+        data[len(data) // 2] ^= 0x10  # one flipped bit: the checksum finds it, nothing damaged is rendered
+        path.write_bytes(bytes(data))
+        with pytest.raises(UserError, match="is gone.*predictive.pt cannot be read .*checksum mismatch"):
+            Predictor.load(run, "cpu")
+        path.write_bytes(b".")  # (a file torch's unpickler fails on with an IndexError)
+        with pytest.raises(UserError, match="is gone.*predictive.pt cannot be read"):
+            Predictor.load(run, "cpu")
+        path.unlink()
+        with pytest.raises(UserError, match="is gone.*predictive.pt is missing"):
             Predictor.load(run, "cpu")
 
     def test_an_evaluation_kept_as_it_is_still_leaves_the_predictive(self, evaluated, tmp_path, capsys):
@@ -947,12 +961,12 @@ class TestPredictor:
         run = tmp_path / "run"
         shutil.copytree(evaluated[0], run)
         path = run / "eval" / "predictive.pt"
-        fresh = torch.load(path, weights_only=True)
+        fresh = decode(path.read_bytes())
         path.unlink()
         capsys.readouterr()
         evaluate.run(run, EvalConfig(num_samples=5, seed=3), device=torch.device("cpu"))
         assert "already evaluated" in " ".join(capsys.readouterr().err.split())
-        kept = torch.load(path, weights_only=True)
+        kept = decode(path.read_bytes())
         assert kept["key"] == fresh["key"] and kept["std"] == fresh["std"]
         assert Predictor.load(run, "cpu").std_factor == evaluated[1].std_scale
 
@@ -975,12 +989,12 @@ class TestPredictor:
         monkeypatch.setattr(engine, "fit_std_scale", lambda *a, **k: calls.append(1) or real(*a, **k))
         read = Predictor.load(run, "cpu")
         assert calls == [] and read.std_factor == pytest.approx(evaluated[1].std_scale)
-        data = torch.load(path, weights_only=True)
-        torch.save({**data, "device": "cuda"}, path)
+        data = decode(path.read_bytes())
+        path.write_bytes(encode({**data, "device": "cuda"}))
         fitted = Predictor.load(run, "cpu")
         assert calls == [1] and fitted.std_factor == read.std_factor
         # the file is the evaluation's (a robot on that device reads it): a load on another device leaves it
-        assert torch.load(path, weights_only=True)["device"] == "cuda"
+        assert decode(path.read_bytes())["device"] == "cuda"
 
     def test_says_which_poses_and_points_a_photo_showed_empty(self, evaluated):
         """``seen_free``: the scene's cameras and a point between a camera and the wall its middle pixel sees are in

@@ -17,21 +17,24 @@ from __future__ import annotations
 
 import hashlib
 import json
-import pickle
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
 FILE_NAME = "predictive.pt"
-FORMAT = 1
-"""The layout of the file's dictionary; a file of another layout is not used."""
+FORMAT = 2
+"""The layout of the file's dictionary; a file of another layout is not used (1: without ``parts``, unchecked)."""
+UNUSED_SETTINGS = ("save_maps", "preview", "reuse", "max_views", "depth_gt", "depth_scale", "depth_align",
+                   "paper_nll", "ause_steps")
+"""Evaluation settings the predictive does not depend on (what is written or scored, not what is predicted): left
+out of the key, so that ``Predictor.load(run, cfg=EvalConfig(save_maps=False))`` reads the evaluation's file."""
 
 
-def predictive_key(loaded, cfg) -> str | None:
-    """The key of ``loaded``'s (a ``baselines.LoadedRun``) predictive under the evaluation settings ``cfg``: a
-    SHA-256 over the model file, the run's ``config.json`` and ``scene.json``, the whole ``cfg`` and the noise fit's
-    version. None for a model that is not one file (an ensemble) or a file that cannot be read."""
+def _parts(loaded, cfg) -> dict | None:
+    """What the key hashes: the model file's, the run's ``config.json`` and ``scene.json``'s SHA-256, the settings
+    the predictive depends on and the noise fit's version; None for a model that is not one file (an ensemble) or a
+    file that cannot be read."""
     from uncertsplat.eval.engine import RESIDUAL_FIT
     from uncertsplat.provenance import file_sha256
 
@@ -39,15 +42,27 @@ def predictive_key(loaded, cfg) -> str | None:
     try:
         if not source.is_file() or not (run_dir / "scene.json").is_file():
             return None
-        parts = {
+        return {
             "model": file_sha256(source),
             "config": hashlib.sha256((run_dir / "config.json").read_bytes()).hexdigest(),
             "scene": hashlib.sha256((run_dir / "scene.json").read_bytes()).hexdigest(),
-            "settings": cfg.model_dump(mode="json"),
+            "settings": cfg.model_dump(mode="json", exclude=set(UNUSED_SETTINGS)),
             "fit": RESIDUAL_FIT,
         }
     except OSError:
         return None
+
+
+def predictive_key(loaded, cfg) -> str | None:
+    """The key of ``loaded``'s (a ``baselines.LoadedRun``) predictive under the evaluation settings ``cfg``: a
+    SHA-256 over ``_parts`` (the model file, the run's ``config.json`` and ``scene.json``, the settings but
+    ``UNUSED_SETTINGS``, the noise fit's version). None for a model that is not one file (an ensemble) or a file
+    that cannot be read."""
+    parts = _parts(loaded, cfg)
+    return None if parts is None else _key(parts)
+
+
+def _key(parts: dict) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -55,15 +70,17 @@ def keep_predictive(loaded, scene, cfg, residual, fit, device: torch.device) -> 
     """Write ``RUN/eval/predictive.pt`` for ``loaded``'s model under ``cfg``: the pixel noise ``residual`` (a
     ``ResidualField`` or None), the ``StdFit`` ``fit`` and ``scene``'s cameras, split and normalisation. Returns the
     path, or None when the model has no key (``predictive_key``). Call it under the run's lock."""
-    from uncertsplat.io.atomic import atomic_write
+    from uncertsplat.io.atomic import atomic_write_bytes
+    from uncertsplat.io.checkpoints import encode
 
-    key = predictive_key(loaded, cfg)
-    if key is None:
+    parts = _parts(loaded, cfg)
+    if parts is None:
         return None
     cams = scene.cameras
     data = {
         "format": FORMAT,
-        "key": key,
+        "key": _key(parts),
+        "parts": json.dumps(parts, sort_keys=True, default=str),
         "device": device.type,
         "versions": plain_versions(),  # plain strings (torch's version is a class weights_only refuses)
         "residual": residual.state() if residual is not None else None,
@@ -80,7 +97,7 @@ def keep_predictive(loaded, scene, cfg, residual, fit, device: torch.device) -> 
     }
     path = Path(loaded.run_dir) / "eval" / FILE_NAME
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, lambda f: torch.save(data, f))
+    atomic_write_bytes(path, encode(data))  # checksummed as a checkpoint: a flipped bit is found, not rendered
     return path
 
 
@@ -116,18 +133,37 @@ class KeptPredictive:
 
 def read_predictive(loaded, cfg, scene_folder: str | Path) -> KeptPredictive | None:
     """``RUN/eval/predictive.pt`` of ``loaded`` when it was written for this model, run and ``cfg``
-    (``predictive_key``); None when there is none, it is for another model or settings, or it cannot be read.
-    ``scene_folder``: where the run's scene was (the image paths are named under it)."""
+    (``predictive_key``); None when there is none, it is for another model or settings, or it cannot be read
+    (``predictive_problem`` says which). ``scene_folder``: where the run's scene was (the image paths are named
+    under it)."""
+    return _read(loaded, cfg, scene_folder)[0]
+
+
+def predictive_problem(loaded, cfg) -> str:
+    """Why ``read_predictive`` found nothing, for an error: the file is missing, damaged, of another format, for an
+    ensemble (no single model file), for another model or run, or for other settings (naming them)."""
+    return _read(loaded, cfg, Path(loaded.run_dir))[1]
+
+
+def _read(loaded, cfg, scene_folder: str | Path) -> tuple[KeptPredictive | None, str]:
+    from uncertsplat.io.checkpoints import decode
     from uncertsplat.types import Cameras, SceneData
 
-    key = predictive_key(loaded, cfg)
     path = Path(loaded.run_dir) / "eval" / FILE_NAME
-    if key is None or not path.is_file():
-        return None
+    parts = _parts(loaded, cfg)
+    if parts is None:
+        return None, "an ensemble's predictive is not kept (it has no single model file)"
+    if not path.is_file():
+        return None, f"{path} is missing"
     try:
-        data = torch.load(path, map_location="cpu", weights_only=True)
-        if not isinstance(data, dict) or data.get("format") != FORMAT or data.get("key") != key:
-            return None
+        data = decode(path.read_bytes(), path)
+    except Exception as err:  # noqa: BLE001 - a damaged or foreign file is as good as none: the reason is said
+        return None, f"{path} cannot be read ({getattr(err, 'message', err)})"
+    try:
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            return None, f"{path} is of another format (written by another version)"
+        if data.get("key") != _key(parts):
+            return None, f"{path} holds the predictive of {_difference(json.loads(data['parts']), parts)}"
         s, std = data["scene"], data["std"]
         cams = Cameras(s["cam_from_world"].float(), s["K"].float(), int(s["width"]), int(s["height"]),
                        tuple(s["names"]))
@@ -138,11 +174,24 @@ def read_predictive(loaded, cfg, scene_folder: str | Path) -> KeptPredictive | N
                           scene_scale=float(s["scene_scale"]), world_from_source=s["world_from_source"],
                           depth_scale_to_gt=s["depth_scale_to_gt"],
                           source={"kind": "kept", "path": str(path)})
-        return KeptPredictive(scene=scene, residual_state=data["residual"], scale=std["scale"], dof=std["dof"],
+        kept = KeptPredictive(scene=scene, residual_state=data["residual"], scale=std["scale"], dof=std["dof"],
                               names=tuple(std["names"]), device=str(data["device"]),
                               versions={str(k): str(v) for k, v in data["versions"].items()})
-    except (OSError, RuntimeError, ValueError, KeyError, TypeError, EOFError, pickle.UnpicklingError):
-        return None
+    except Exception as err:  # noqa: BLE001 - a well-formed file of an unexpected content: not used, said why
+        return None, f"{path} cannot be read ({type(err).__name__}: {err})"
+    return kept, ""
 
 
-__all__ = ["FILE_NAME", "KeptPredictive", "keep_predictive", "plain_versions", "predictive_key", "read_predictive"]
+def _difference(kept: dict, now: dict) -> str:
+    """What differs between a file's ``_parts`` and the ones asked for, in words."""
+    if kept.get("model") != now["model"] or kept.get("config") != now["config"] or kept.get("scene") != now["scene"]:
+        return "another model or run (trained on since, or another run's file)"
+    a, b = kept.get("settings", {}), now["settings"]
+    keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+    if keys:
+        return "other settings: " + ", ".join(f"{k} = {a.get(k)!r} there, {b.get(k)!r} here" for k in keys[:4])
+    return "another version of the noise fit"
+
+
+__all__ = ["FILE_NAME", "KeptPredictive", "keep_predictive", "plain_versions", "predictive_key", "predictive_problem",
+           "read_predictive"]

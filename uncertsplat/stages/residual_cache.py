@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import pickle
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -77,20 +76,21 @@ def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torc
     fitted here): as ``fit_residual``'s."""
     from uncertsplat.console import console
     from uncertsplat.eval.engine import fit_residual, residual_from_state, residual_indices
-    from uncertsplat.io.atomic import atomic_write
+    from uncertsplat.io.atomic import atomic_write_bytes
+    from uncertsplat.io.checkpoints import decode, encode
 
     sampler = loaded.sampler(scene_scale, device)
     key = residual_key(loaded, cfg, device, set_aside=len(calibration_indices) > 0)
     path = Path(loaded.run_dir) / "eval" / FILE_NAME
     if key is not None and path.is_file():
         try:
-            data = torch.load(path, map_location="cpu", weights_only=True)
+            data = decode(path.read_bytes(), path, map_location="cpu")
             if isinstance(data, dict) and data.get("key") == key:
                 field = residual_from_state(sampler, data["state"], device)
                 console.print(f"pixel noise: read from {path} (fitted earlier for this model and these settings)")
                 return field
-        except (OSError, RuntimeError, ValueError, KeyError, EOFError, pickle.UnpicklingError):
-            pass  # unreadable or for another model: fit it again (and replace it below)
+        except Exception:  # noqa: BLE001 - damaged (checksum), of the unchecked older format, or another model's: fit
+            pass  # it again (and replace it below)
     views = len(residual_indices(train_indices, cfg))
     t0 = time.perf_counter()
     with console.status(f"fitting the pixel noise on {views} training views"):
@@ -101,7 +101,7 @@ def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torc
     if write and key is not None and field is not None:
         state = {"key": key, "state": field.state()}
         path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write(path, lambda f: torch.save(state, f))
+        atomic_write_bytes(path, encode(state))  # checksummed as a checkpoint: a flipped bit is found, not used
     return field
 
 
