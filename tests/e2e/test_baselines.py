@@ -288,6 +288,18 @@ def test_an_unfinished_run_is_evaluated_with_a_note(scene_path, tmp_path):
     assert load_run(run, CPU).unfinished_notes() == [note]
     train_run(scene_path, run, quick_cfg(), CPU, resume=True)
     assert load_run(run, CPU).unfinished_notes() == []
+    # a --resume that carries the finished run on and is stopped: its variational.ply is the step-20 model, and
+    # every command scored that one without a word while the checkpoints went on (views added counted as trained)
+
+    def stop_later(trainer):
+        trainer.on_log = lambda rec: setattr(trainer, "_stop", rec["step"] >= 30)
+
+    with pytest.raises(Interrupted):
+        train_run(scene_path, run, quick_cfg(), CPU, resume=True, extend_to=40, on_trainer=stop_later)
+    loaded = load_run(run, CPU)
+    assert loaded.source.suffix == ".pt" and loaded.step == 30
+    (note,) = loaded.unfinished_notes()
+    assert "step 30 of 40" in note
 
 
 @pytest.mark.parametrize("which", ["ensemble", "fisher"])

@@ -300,7 +300,7 @@ def load_single_model(run_dir: str | Path, device: torch.device | str = "cpu") -
 
 
 def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) -> LoadedRun:
-    from uncertsplat.io.checkpoints import CorruptCheckpoint, load_latest
+    from uncertsplat.io.checkpoints import CorruptCheckpoint, list_checkpoints, load_latest
     from uncertsplat.io.ply import read_variational_ply
 
     info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
@@ -312,9 +312,15 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
     ply = run_dir / "variational.ply"
     if ply.is_file():
         model, meta = read_variational_ply(ply, device=device)
-        extent = float(meta.get("extent", info.extent if info is not None else 1.0))
-        return LoadedRun(model, cfg, scene_path, extent, int(meta.get("step", 0)),
-                         int(meta.get("sh_degree_active", model.sh_degree)), ply, run_dir, transparent, exposure, near)
+        newest = max((step for step, _ in list_checkpoints(run_dir)), default=-1)
+        # a --resume stopped (Ctrl-C, a crash) before it wrote its model leaves the PLY of the steps before it, and
+        # checkpoints past them: the newer model is the checkpoint's (``unfinished_notes`` says so), not the PLY
+        # every command otherwise scored without a word (views added since counted as trained, as scene.json says)
+        if "step" not in meta or newest <= int(meta["step"]):
+            extent = float(meta.get("extent", info.extent if info is not None else 1.0))
+            return LoadedRun(model, cfg, scene_path, extent, int(meta.get("step", 0)),
+                             int(meta.get("sh_degree_active", model.sh_degree)), ply, run_dir, transparent, exposure,
+                             near)
     found = load_latest(run_dir, map_location=device)
     if found is None:
         raise UserError("no trained model here (neither variational.ply nor a checkpoint in ckpts/)", path=run_dir,
