@@ -366,8 +366,10 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             raise UserError(f"--add-views {', '.join(unknown)}: no photo of that name in the scene"
                             + _close_names(unknown, scene, cfg), path=scene,
                             hint="--add-views takes the names of photos the scene holds but the run did not train on; "
-                                 "a pose that select-views proposed needs a photo taken there first, added to the "
-                                 "scene (reconstruct the photos again with it), then --add-views with its name. "
+                                 "a pose that select-views proposed needs a photo taken there first, and a new photo "
+                                 "changes the scene's frame (another reconstruction, and the normalisation over its "
+                                 "cameras), which a run refuses: train a new run on the grown scene (its "
+                                 "scene.train_names to start from the same views). "
                                  + (err.hint or "")) from None
         if not data.split.get("train"):
             raise UserError("the scene has no training views", path=scene, hint="Check test_every / test_names.")
