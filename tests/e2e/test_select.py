@@ -244,6 +244,31 @@ class TestAddViewsErrors:
             train_run(scene, run, _cfg(), CPU, resume=True, extend_to=20, add_views=["extra.png"])
         assert "reconstruct again with it" in str(err.value)
 
+    def test_added_views_on_a_scene_whose_held_out_views_moved_are_refused(self, tiny_scene_path, tmp_path):
+        """A photo put back into the workspace moves the held-out views (every 8th by name): --add-views went on with
+        a view the run held out left unused (or trainable) and another set scored, without a word."""
+        pycolmap = pytest.importorskip("pycolmap")
+        ws = tmp_path / "ws"
+        shutil.copytree(tiny_scene_path / "images", ws / "images")
+        shutil.copytree(tiny_scene_path / "sparse", ws / "sparse")
+        full = tmp_path / "full"
+        shutil.copytree(ws / "sparse" / "0", full)
+        rec = pycolmap.Reconstruction(str(ws / "sparse" / "0"))
+        rec.deregister_frame(next(im for im in rec.images.values() if im.name == "view_010.png").frame_id)
+        rec.write_binary(str(ws / "sparse" / "0"))
+        (ws / "images" / "view_010.png").rename(tmp_path / "view_010.png")
+        run = tmp_path / "run"
+        keep = {"train_names": START, "normalize": False}  # (the normalisation would move every camera too)
+        train_run(ws, run, _cfg(iterations=10, scene=keep), CPU)
+        before = (run / "scene.json").read_text()
+        shutil.rmtree(ws / "sparse" / "0")
+        shutil.copytree(full, ws / "sparse" / "0")
+        (tmp_path / "view_010.png").rename(ws / "images" / "view_010.png")
+        with pytest.raises(UserError, match="the scene holds out other views than the run did"):
+            train_run(ws, run, _cfg(iterations=10, scene=keep), CPU, resume=True, extend_to=20,
+                      add_views=["view_010.png"])
+        assert (run / "scene.json").read_text() == before
+
     def test_a_run_with_views_set_aside_takes_none(self, tiny_scene_path, subset_run, tmp_path):
         """More training views would set other views aside for calibration: refused, the run left as it was."""
         run = _with_views_set_aside(subset_run, tmp_path)

@@ -390,6 +390,14 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                                     path=run_dir, hint="Resume it on a scene folder holding the photos it started "
                                                        "with (photos added to the folder move the held-out views, "
                                                        "every scene.test_every-th by name), or train a new run.")
+            held = [names[i] for i in data.split.get("test", ())]
+            if add_views and before.test and held != before.test:  # (the plain resume's check is the one above)
+                moved = sorted(set(before.test) ^ set(held))
+                raise UserError(f"the scene holds out other views than the run did ({list_names(moved)}): a view the "
+                                "run held out could be trained on, and its scores would no longer compare",
+                                path=run_dir, hint="Add views on the scene folder the run started with (photos added "
+                                                   "to the folder move the held-out views, every scene.test_every-th "
+                                                   "by name), or train a new run.")
         atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         views_added = list(before.views_added) if before is not None else []
         if add_views:
