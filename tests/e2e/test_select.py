@@ -418,3 +418,14 @@ def test_the_selection_plot_shows_the_held_out_views_and_keeps_its_legend_outsid
     box = ax.get_legend().get_window_extent(figs[0].canvas.get_renderer())
     assert box.x0 >= ax.get_window_extent(figs[0].canvas.get_renderer()).x1  # beside the axes, not over them
     plt.close("all")
+
+
+def test_a_run_that_cannot_grow_says_so_when_choosing(tiny_scene_path, tmp_path, capsys):
+    """select-views chose views for an ensemble that `train --add-views` then refused, without a word."""
+    run = tmp_path / "ens"
+    train_run(tiny_scene_path, run, _cfg(iterations=10, method="ensemble", ensemble_size=2,
+                                         scene={"train_names": START}), CPU)
+    capsys.readouterr()
+    stage.run(run, SelectConfig(score="coverage"), CPU, output=tmp_path / "sel")
+    said = " ".join(capsys.readouterr().err.split())
+    assert "`train --resume --add-views` does not grow an ensemble run" in said

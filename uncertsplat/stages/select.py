@@ -122,6 +122,11 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                       "calibration, so `train --resume --add-views` refuses to add the chosen views (more training "
                       "views would change which ones are set aside): train a new run on its views and the chosen "
                       "ones (--set scene.train_names=[...]) to use them")
+    if loaded.config.method in ("ensemble", "fisher"):  # found out only after choosing, at `train --add-views`
+        article = "an" if loaded.config.method[0] in "aeiou" else "a"
+        console.print(f"[yellow]note:[/] `train --resume --add-views` does not grow {article} {loaded.config.method} run: "
+                      "to use the chosen views, train a new run on its views and the chosen ones "
+                      "(--set scene.train_names=[...])")
     settings: dict = cfg.model_dump(mode="json")  # the resolved settings (K, probes, gaps, ...), then what the score used
     depth_std = None
     t0 = time.perf_counter()
