@@ -214,6 +214,17 @@ class TestAddViewsErrors:
             train_run(tiny_scene_path, tmp_path / "new", _cfg(scene={"train_names": START}), CPU,
                       add_views=["view_002.png"])
 
+    def test_a_view_added_again_is_named_with_its_step(self, tiny_scene_path, subset_run, tmp_path):
+        """A training stopped right after adding a view left it recorded as trained; the same --add-views again was
+        refused without a word on what to do."""
+        run = tmp_path / "run"
+        shutil.copytree(subset_run, run)
+        train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["view_002.png"])
+        with pytest.raises(UserError, match=r"'view_002.png' is already a training view of this run \(added at "
+                                            r"step 80\)") as err:
+            train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=100, add_views=["view_002.png"])
+        assert "`--resume` alone" in str(err.value)
+
     def test_held_out_or_trained_views_are_refused(self, tiny_scene_path, subset_run, tmp_path):
         run = tmp_path / "run"
         shutil.copytree(subset_run, run)

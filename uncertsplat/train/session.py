@@ -215,7 +215,11 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
         if name in added:  # given twice on the command line: once is enough
             continue
         if name in current:
-            raise UserError(f"'{name}' is already a training view of this run", path=run_dir)
+            recent = bool(info is not None and info.views_added and name in info.views_added[-1].names)
+            raise UserError(f"'{name}' is already a training view of this run"
+                            + (f" (added at step {info.views_added[-1].step})" if recent else ""), path=run_dir,
+                            hint="A training stopped after adding it (before its next checkpoint) goes on with "
+                                 "`--resume` alone, which trains it." if recent else None)
         added.append(name)
     scene = cfg.scene.model_copy(update={"train_names": current + added, "train_indices": None})
     return cfg.model_copy(update={"scene": scene}), added
