@@ -440,3 +440,14 @@ def test_a_run_that_cannot_grow_says_so_when_choosing(tiny_scene_path, tmp_path,
     stage.run(run, SelectConfig(score="coverage"), CPU, output=tmp_path / "sel")
     said = " ".join(capsys.readouterr().err.split())
     assert "`train --resume --add-views` does not grow an ensemble run" in said
+
+
+def test_a_planned_pose_named_as_a_photo_is_said(subset_run, tmp_path, capsys):
+    """A plan line named like a training photo was chosen without comment; `--add-views` of that name then added (or
+    refused) the photo, not the pose."""
+    poses = tmp_path / "plan.txt"
+    poses.write_text(f"{START[0]} 1 0 0 0 0 0 4\nfresh 0.7071067811865476 0 0.7071067811865476 0 0 0 4\n")
+    capsys.readouterr()
+    stage.run(subset_run, SelectConfig(score="coverage", candidates=str(poses)), CPU, output=tmp_path / "sel")
+    said = " ".join(capsys.readouterr().err.split())
+    assert f"1 planned pose(s) carry the name of a photo of the scene ({START[0]})" in said

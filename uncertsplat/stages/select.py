@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from uncertsplat.config import SelectConfig
-from uncertsplat.console import console
+from uncertsplat.console import console, list_names
 from uncertsplat.errors import UserError, run_folder_missing
 
 
@@ -114,6 +114,12 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         blind = blind_candidates_note(cands.cameras, scene.cameras[train], loaded.model.params["means"].detach())
         if blind:
             console.print(f"[yellow]note:[/] {blind}")
+        photos = set(scene.cameras.image_names)
+        named = [n for n in cands.cameras.image_names if n in photos]
+        if named:  # `--add-views NAME` adds the photo of that name, not the planned pose
+            console.print(f"[yellow]note:[/] {len(named)} planned pose(s) carry the name of a photo of the scene "
+                          f"({list_names(named, 5)}): `train --add-views` takes photos, so a chosen one adds that "
+                          "photo (or is refused as trained or held out), not the pose; name planned poses apart")
     n = min(cfg.num_views, len(cands))
     console.print(f"[bold]select-views[/] {run_dir}: {len(cands)} candidates ({cands.kind}), score '{cfg.score}', "
                   f"choosing {n}, {device}")
