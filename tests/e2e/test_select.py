@@ -225,6 +225,21 @@ class TestAddViewsErrors:
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=100, add_views=["view_002.png"])
         assert "`--resume` alone" in str(err.value)
 
+    def test_a_resume_from_before_views_were_added_records_when_they_train(self, tiny_scene_path, tmp_path, capsys):
+        """Resumed from a checkpoint before views were added (the later ones gone), the run trained them from that
+        step while views_added still said the later one, without a word."""
+        run = tmp_path / "run"
+        cfg = _cfg(iterations=40, checkpoint_every=20, scene={"train_names": START})
+        train_run(tiny_scene_path, run, cfg, CPU)
+        train_run(tiny_scene_path, run, cfg, CPU, resume=True, extend_to=60, add_views=["view_002.png"])
+        assert [v.step for v in RunScene.read(run / "scene.json").views_added] == [40]
+        for step in (40, 60):
+            (run / "ckpts" / f"step_{step:06d}.pt").unlink(missing_ok=True)
+        capsys.readouterr()
+        train_run(tiny_scene_path, run, cfg, CPU, resume=True, extend_to=60)
+        assert [v.step for v in RunScene.read(run / "scene.json").views_added] == [20]
+        assert "resuming from step 20, before view_002.png were added" in " ".join(capsys.readouterr().err.split())
+
     def test_held_out_or_trained_views_are_refused(self, tiny_scene_path, subset_run, tmp_path):
         run = tmp_path / "run"
         shutil.copytree(subset_run, run)

@@ -404,6 +404,13 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                                                    "by name), or train a new run.")
         atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         views_added = list(before.views_added) if before is not None else []
+        if state is not None and not add_views and any(v.step > int(state["step"]) for v in views_added):
+            # resumed from a checkpoint before views were added (later ones gone): they train from here on
+            step = int(state["step"])
+            late = [n for v in views_added if v.step > step for n in v.names]
+            views_added = [ViewsAdded(step=min(v.step, step), names=v.names) for v in views_added]
+            console.print(f"[yellow]note:[/] resuming from step {step}, before {list_names(late)} were added: they "
+                          f"train from step {step} on (views_added in scene.json says so)")
         if add_views:
             views_added.append(ViewsAdded(step=int(state["step"]) if state is not None else 0, names=list(add_views)))
         # the images' transparency decides the empty-ray term (evaluate) and whether random_background applies
