@@ -211,3 +211,24 @@ def test_no_opacity_reset_in_the_last_steps_of_a_run():
         got = [s for s in (1000, 2000, 3000) if d.step(s, model, None, torch.Generator())["reset"]]
         assert got == resets, (iterations, got)
         assert all(s <= iterations - RESET_RECOVERY_STEPS for s in got)
+
+
+def test_the_last_tenth_of_a_run_never_densifies():
+    """A run shortened below its preset's densify.until densified at its last step (fern, 1500 of the paper's 7000
+    steps: 14k untrained Gaussians, 1.5 dB held out). The last SETTLE_FRACTION grows nothing, nor tests growth; every
+    preset's own schedule ends before it."""
+    from uncertsplat.config import train_config_from
+    from uncertsplat.strategy.growth import growth_check_due
+    from uncertsplat.strategy.schedule import SETTLE_FRACTION, densify_end, densify_steps_after
+
+    cfg = DensifyConfig(start=500, until=4000, interval=100)
+    assert SETTLE_FRACTION == 0.1
+    assert is_densify_step(1500, cfg) and not is_densify_step(1500, cfg, iterations=1500)
+    assert is_densify_step(1300, cfg, iterations=1500) and is_densify_step(1350 // 100 * 100, cfg, iterations=1500)
+    assert not is_densify_step(1400, cfg, iterations=1500)  # past 0.9 x 1500 + 1 = 1351
+    assert densify_steps_after(1300, cfg) and not densify_steps_after(1300, cfg, last_step=1500)
+    grow = cfg.model_copy(update={"growth_check_interval": 250})
+    assert growth_check_due(1500, grow) and not growth_check_due(1500, grow, iterations=1500)
+    for preset in ("tiny", "demo", "paper", None):
+        c = train_config_from(preset)
+        assert densify_end(c.densify, c.iterations) == c.densify.until, preset

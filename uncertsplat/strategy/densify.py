@@ -156,7 +156,7 @@ class Densifier:
         cfg = self.cfg
         done = {"cloned": 0, "split": 0, "pruned": 0, "spawned": 0, "reset": 0}
         changed = False
-        if is_densify_step(step, cfg):
+        if is_densify_step(step, cfg, self.iterations):
             with torch.no_grad():
                 pm = posterior_mean(model, variant=self.prior.variant, extent=self.extent,
                                     temperature=self.prior.temperature)

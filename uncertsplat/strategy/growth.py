@@ -37,16 +37,19 @@ from uncertsplat.strategy.view_checks import psnr_gain_db
 from uncertsplat.types import Cameras, GaussianSample
 
 
-def growth_check_due(step: int, cfg) -> bool:
+def growth_check_due(step: int, cfg, iterations: int | None = None) -> bool:
     """Whether the growth test runs before the densification of ``step`` (a ``DensifyConfig``).
 
-    Every ``growth_check_interval`` steps strictly inside the densification window (``start < step < until``),
-    never when ``growth_min_gain_db`` is 0, and never in the ``RESET_RECOVERY_STEPS`` after an opacity reset
-    (the model's images are then still recovering, and would call any half of it cheap).
+    Every ``growth_check_interval`` steps strictly inside the densification window (``start < step <
+    schedule.densify_end``: ``until``, or the last ``SETTLE_FRACTION`` of a run of ``iterations`` steps), never when
+    ``growth_min_gain_db`` is 0, and never in the ``RESET_RECOVERY_STEPS`` after an opacity reset (the model's images
+    are then still recovering, and would call any half of it cheap).
     """
+    from uncertsplat.strategy.schedule import densify_end
+
     if cfg.growth_min_gain_db <= 0 or step <= 0 or step % cfg.growth_check_interval:
         return False
-    if not cfg.start < step < cfg.until:
+    if not cfg.start < step < densify_end(cfg, iterations):
         return False
     reset = cfg.opacity_reset_interval
     return not (reset > 0 and step > reset and step % reset <= RESET_RECOVERY_STEPS)

@@ -86,6 +86,19 @@ def _truncate_stats(path: Path, step: int) -> None:
     atomic_write_text(path, "".join(f"{line}\n" for line in keep))
 
 
+def _settle_notes(cfg: TrainConfig) -> list[str]:
+    """A note when the run is too short for its ``densify.until``: densification stops at the last
+    ``schedule.SETTLE_FRACTION`` of its steps instead (a shortened preset densified at its last step)."""
+    from uncertsplat.strategy.schedule import SETTLE_FRACTION, densify_end
+
+    end = densify_end(cfg.densify, cfg.iterations)
+    if end >= cfg.densify.until or cfg.densify.start >= end:
+        return []
+    return [f"densification stops before step {int(end)}, not at densify.until = {cfg.densify.until}: the last "
+            f"{SETTLE_FRACTION:.0%} of a run's {cfg.iterations} steps train the Gaussians without growing new ones "
+            "(grown at the end, they would be left untrained); --set densify.until=N chooses an earlier end"]
+
+
 def _unused_setting_notes(cfg: TrainConfig) -> list[str]:
     """Settings given that the configured method does not use (they were taken silently)."""
     entries = cfg.variational.num_entries
@@ -456,7 +469,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             console.print(f"held out (scene.test_indices / train_indices count the scene's {len(names)} views, in name "
                           f"order): {list_names(held, 10) if held else 'none'}")
         for note in [*data.notes, *small_images_notes(data.cameras.width, data.cameras.height, cfg.scene.downscale),
-                     *trainer.init_notes, *_unused_setting_notes(cfg)]:
+                     *trainer.init_notes, *_unused_setting_notes(cfg), *_settle_notes(cfg)]:
             console.print(f"[yellow]note:[/] {note}")
         for text in workspace_notes(scene):
             console.print(f"[yellow]note:[/] {text}")

@@ -519,7 +519,7 @@ class Trainer:
         half of the model is worth less than ``densify.growth_min_gain_db``. Returns the test, or None (none due,
         growth already stopped, or the model at its budget: ``strategy.growth.at_budget``)."""
         dcfg = self.cfg.densify
-        if not self.densifier.grow or not growth_check_due(step, dcfg):
+        if not self.densifier.grow or not growth_check_due(step, dcfg, self.cfg.iterations):
             return None
         if at_budget(len(self.model), self.budget.max_gaussians):
             return None
