@@ -754,7 +754,8 @@ def test_the_summary_says_plainly_when_the_std_is_too_small_or_too_large(tmp_pat
                            "its central 68% interval")
     assert "calibration_holdout" not in text  # no fitted factor below 1 to warn of
     m.std_scale, m.calibration_held_out = 0.8, False
-    assert "(train with --set scene.calibration_holdout=3)" in calibration_verdict(m)
+    assert ("(train with --set scene.calibration_holdout=3; in a pipeline, --set train.scene.calibration_holdout=3)"
+            in calibration_verdict(m))
     m.calibration["rgb"].observed = [x * 1.0 for x in m.calibration["rgb"].nominal]
     assert calibration_verdict(m) is None
     m.calibration["rgb"].observed = [min(1.0, x * 1.2) for x in m.calibration["rgb"].nominal]

@@ -381,7 +381,7 @@ def calibration_verdict(m) -> str | None:
                 f"central {nominal:.0%} interval")
         fix = ("; the std factor fitted on training views does not mend it (it was fitted where the model fits "
                "better): views set aside from training give one that holds for new views "
-               "(train with --set scene.calibration_holdout=3)"
+               "(train with --set scene.calibration_holdout=3; in a pipeline, --set train.scene.calibration_holdout=3)"
                if m.std_scale is not None and m.std_scale < 1.0 and not m.calibration_held_out else "")
         return what + fix
     return (f"the RGB std is too large on these views (under-confident): {seen:.0%} of the errors lie inside its "

@@ -674,7 +674,8 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
             console.print("[dim]the tails were fitted on training views, which a model usually fits better than new "
                           "ones, so new views may ask for lighter tails (bonsai: 2.75 degrees of freedom where its "
                           "held-out views ask for 3.4); views set aside from training give a fit that holds for new "
-                          "views: train with --set scene.calibration_holdout=3[/]")
+                          "views: train with --set scene.calibration_holdout=3 (in a pipeline, `uncertsplat run`: "
+                          "--set train.scene.calibration_holdout=3)[/]")
     if report.mean.psnr_render is not None:
         masked = any(n.startswith(MASKED_NOTE) for n in report.notes)
         where = " (train's over whole images; these inside the scene's validity masks)" if masked else ""
