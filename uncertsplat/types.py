@@ -176,10 +176,17 @@ class SceneData:
     @property
     def depth_to_source(self) -> float:
         """The factor from the run's normalised depth to the scene's own units: ``depth_scale_to_gt`` when known,
-        else 1 / s of ``world_from_source`` (x_world = s R x_source + t)."""
+        else 1 / s of ``world_from_source`` (``similarity_scale``)."""
         if self.depth_scale_to_gt:
             return float(self.depth_scale_to_gt)
-        return 1.0 / float(torch.linalg.det(self.world_from_source.double()[:3, :3]).abs() ** (1.0 / 3.0))
+        return 1.0 / similarity_scale(self.world_from_source)
+
+
+def similarity_scale(world_from_source) -> float:
+    """s of a similarity [4,4] (x_world = s R x_source + t; a tensor, array or nested list): the cube root of its
+    3x3 part's absolute determinant, in float64 (0 for a degenerate one)."""
+    m = torch.as_tensor(world_from_source, dtype=torch.float64)
+    return float(torch.linalg.det(m[:3, :3]).abs() ** (1.0 / 3.0))
 
 
 @dataclass(frozen=True)

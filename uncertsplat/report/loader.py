@@ -39,6 +39,7 @@ import numpy as np
 from uncertsplat.config import TrainConfig, build_config
 from uncertsplat.errors import UserError
 from uncertsplat.schemas import EvalReport, Manifest, PruneReport, ReconstructReport, RunScene, TrainSummary
+from uncertsplat.types import similarity_scale
 
 # Files whose presence makes a folder a run folder (at least one is needed).
 RUN_MARKERS = ("config.json", "stats.jsonl", "train_summary.json", "eval/metrics.json", "prune.json",
@@ -95,7 +96,7 @@ class RunData:
         if self.scene_info is None:
             return None
         m = np.asarray(self.scene_info.world_from_source, dtype=np.float64)
-        s = abs(float(np.linalg.det(m[:3, :3]))) ** (1.0 / 3.0) if m.shape == (4, 4) else 0.0
+        s = similarity_scale(m) if m.shape == (4, 4) else 0.0
         return 1.0 / s if math.isfinite(s) and s > 0 else None
 
     @property

@@ -27,7 +27,7 @@ from uncertsplat.data.synthetic import look_at
 from uncertsplat.errors import UserError
 from uncertsplat.gaussians.ops import quat_to_rotmat, rotmat_to_quat
 from uncertsplat.render.project import points_in_view
-from uncertsplat.types import Cameras, SceneData
+from uncertsplat.types import Cameras, SceneData, similarity_scale
 
 DEFAULT_AROUND = 32
 
@@ -100,7 +100,7 @@ def read_pose_file(path: Path, scene: SceneData, world_from_source: Tensor) -> C
     rows: list[Tensor] = []
     names: list[str] = []
     source_from_world = torch.linalg.inv(world_from_source.double())
-    scale = float(torch.linalg.det(world_from_source[:3, :3].double()).abs() ** (1.0 / 3.0))
+    scale = similarity_scale(world_from_source)
     for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), start=1):
         text = line.strip()
         if not text or text.startswith("#"):
@@ -147,7 +147,7 @@ def pose_line(name: str, cam_from_world: Tensor, world_from_source: Tensor) -> s
     """The camera ``cam_from_world`` [4,4] of the run's normalised world as a line of a ``--candidates`` pose file,
     ``NAME QW QX QY QZ TX TY TZ`` in the scene's own (COLMAP) frame: the inverse of ``read_pose_file``'s mapping."""
     world_from_source = world_from_source.double()
-    scale = float(torch.linalg.det(world_from_source[:3, :3]).abs() ** (1.0 / 3.0))
+    scale = similarity_scale(world_from_source)
     T = cam_from_world.double().clone()
     T[:3, :] /= scale
     cam_from_source = T @ world_from_source

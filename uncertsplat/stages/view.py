@@ -29,6 +29,7 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
     """
     from uncertsplat.baselines import load_run
     from uncertsplat.schemas import RunScene
+    from uncertsplat.types import similarity_scale
     from uncertsplat.uncertainty.scores import spread_views
     from uncertsplat.view.frames import FrameRenderer
     from uncertsplat.view.server import Viewer
@@ -70,8 +71,7 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
     if scene is not None:
         to_source = scene.depth_to_source
     elif info is not None:  # the scene's units from the run's record of its normalisation
-        T = torch.tensor(info.world_from_source, dtype=torch.float64)
-        to_source = 1.0 / float(torch.linalg.det(T[:3, :3]).abs() ** (1.0 / 3.0))
+        to_source = 1.0 / similarity_scale(info.world_from_source)
     else:
         to_source = None
     renderer = FrameRenderer(loaded, scene_scale, device, score_cameras=score_cams, free_space_cameras=free_cams,
