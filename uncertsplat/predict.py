@@ -272,24 +272,18 @@ class Predictor:
         from uncertsplat.data.dataset import load_view_set
         from uncertsplat.eval.engine import StdFit, residual_from_state, scored_sampler
         from uncertsplat.io.atomic import run_lock
-        from uncertsplat.stages.predictive_cache import (
-            keep_predictive,
-            plain_versions,
-            predictive_problem,
-            read_predictive,
-        )
+        from uncertsplat.stages.predictive_cache import keep_predictive, plain_versions, read_predictive
         from uncertsplat.stages.residual_cache import fitted_residual, same_residual_settings
 
         loaded = load_run(run_dir, device)
         # what an evaluation of this model with these settings fitted on the photos (RUN/eval/predictive.pt): read
         # instead of fitted, and all there is where the scene folder is not (a robot has the run, not the photos)
-        kept = read_predictive(loaded, cfg, loaded.scene_path or run_dir)
+        kept, problem = read_predictive(loaded, cfg, loaded.scene_path or run_dir)
         on_file = kept is not None  # the evaluation's, whatever device it was fitted on: never replaced here
         try:
             scene = loaded.load_scene()
         except UserError as err:
             if kept is None:
-                problem = predictive_problem(loaded, cfg)
                 ensemble = problem.startswith("an ensemble")
                 raise UserError(f"{err.message}; and the predictive kept beside the run cannot stand in for it: "
                                 f"{problem}", path=err.path,
@@ -427,7 +421,10 @@ class Predictor:
                 train = self.scene.cameras[list(self.scene.split.get("train", ()))]
                 if len(train) == 0:
                     raise UserError("the run has no training view to tell free space by")
-                cfg = self._cfg.model_copy(update={"consistency_views": 64, "finer_detail": False})
+                from uncertsplat.config import EvalConfig
+
+                views = EvalConfig.model_fields["consistency_views"].default  # (64: what the docstring promises)
+                cfg = self._cfg.model_copy(update={"consistency_views": views, "finer_detail": False})
                 self._free = view_consistency(self._sampler, train, cfg, self.device)
         return self._free
 

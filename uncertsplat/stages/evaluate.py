@@ -459,7 +459,7 @@ def _keep_missing_predictive(run_dir: Path, loaded, scene, cfg: EvalConfig, repo
     from uncertsplat.stages.predictive_cache import keep_predictive, read_predictive
     from uncertsplat.stages.residual_cache import fitted_residual
 
-    if cfg.split != "test" or read_predictive(loaded, cfg, scene.source.get("path", run_dir)) is not None:
+    if cfg.split != "test" or read_predictive(loaded, cfg, scene.source.get("path", run_dir))[0] is not None:
         return
     with run_lock(run_dir, "evaluate"):
         residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,

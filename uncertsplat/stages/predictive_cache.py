@@ -32,25 +32,16 @@ out of the key, so that ``Predictor.load(run, cfg=EvalConfig(save_maps=False))``
 
 
 def _parts(loaded, cfg) -> dict | None:
-    """What the key hashes: the model file's, the run's ``config.json`` and ``scene.json``'s SHA-256, the settings
-    the predictive depends on and the noise fit's version; None for a model that is not one file (an ensemble) or a
-    file that cannot be read."""
+    """What the key hashes: the model file's, the run's ``config.json`` and ``scene.json``'s SHA-256
+    (``residual_cache.run_digests``), the settings the predictive depends on and the noise fit's version; None for a
+    model that is not one file (an ensemble), a run without ``scene.json`` or a file that cannot be read."""
     from uncertsplat.eval.engine import RESIDUAL_FIT
-    from uncertsplat.provenance import file_sha256
+    from uncertsplat.stages.residual_cache import run_digests
 
-    source, run_dir = Path(loaded.source), Path(loaded.run_dir)
-    try:
-        if not source.is_file() or not (run_dir / "scene.json").is_file():
-            return None
-        return {
-            "model": file_sha256(source),
-            "config": hashlib.sha256((run_dir / "config.json").read_bytes()).hexdigest(),
-            "scene": hashlib.sha256((run_dir / "scene.json").read_bytes()).hexdigest(),
-            "settings": cfg.model_dump(mode="json", exclude=set(UNUSED_SETTINGS)),
-            "fit": RESIDUAL_FIT,
-        }
-    except OSError:
+    digests = run_digests(loaded)
+    if digests is None or digests["scene"] is None:
         return None
+    return {**digests, "settings": cfg.model_dump(mode="json", exclude=set(UNUSED_SETTINGS)), "fit": RESIDUAL_FIT}
 
 
 def predictive_key(loaded, cfg) -> str | None:
@@ -131,21 +122,11 @@ class KeptPredictive:
     versions: dict
 
 
-def read_predictive(loaded, cfg, scene_folder: str | Path) -> KeptPredictive | None:
-    """``RUN/eval/predictive.pt`` of ``loaded`` when it was written for this model, run and ``cfg``
-    (``predictive_key``); None when there is none, it is for another model or settings, or it cannot be read
-    (``predictive_problem`` says which). ``scene_folder``: where the run's scene was (the image paths are named
-    under it)."""
-    return _read(loaded, cfg, scene_folder)[0]
-
-
-def predictive_problem(loaded, cfg) -> str:
-    """Why ``read_predictive`` found nothing, for an error: the file is missing, damaged, of another format, for an
-    ensemble (no single model file), for another model or run, or for other settings (naming them)."""
-    return _read(loaded, cfg, Path(loaded.run_dir))[1]
-
-
-def _read(loaded, cfg, scene_folder: str | Path) -> tuple[KeptPredictive | None, str]:
+def read_predictive(loaded, cfg, scene_folder: str | Path) -> tuple[KeptPredictive | None, str]:
+    """(``RUN/eval/predictive.pt`` of ``loaded`` when it was written for this model, run and ``cfg``
+    (``predictive_key``), else None; "", else why not for an error: the file is missing, damaged, of another format,
+    an ensemble's (no single model file), for another model or run, or for other settings, naming them).
+    ``scene_folder``: where the run's scene was (the image paths are named under it)."""
     from uncertsplat.io.checkpoints import decode
     from uncertsplat.types import Cameras, SceneData
 
@@ -193,5 +174,4 @@ def _difference(kept: dict, now: dict) -> str:
     return "another version of the noise fit"
 
 
-__all__ = ["FILE_NAME", "KeptPredictive", "keep_predictive", "plain_versions", "predictive_key", "predictive_problem",
-           "read_predictive"]
+__all__ = ["FILE_NAME", "KeptPredictive", "keep_predictive", "plain_versions", "predictive_key", "read_predictive"]

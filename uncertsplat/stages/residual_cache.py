@@ -25,31 +25,40 @@ FILE_NAME = "residual.pt"
 
 
 
-def residual_key(loaded, cfg, device: torch.device, set_aside: bool = False) -> str | None:
-    """The key of the pixel noise ``fit_residual`` would fit for ``loaded`` (a ``baselines.LoadedRun``) with
-    ``cfg``: a SHA-256 over the model file, the run's config and scene files, the settings it reads, the device
-    type and the versions (and, with ``set_aside``: views set aside from training, where the noise's level is fitted
-    given the rest of the predictive, the settings that shape it). None when the model is not one file (an ensemble)
-    or a file cannot be read."""
-    from uncertsplat.eval.engine import RESIDUAL_FIT
-    from uncertsplat.provenance import file_sha256, versions
+def run_digests(loaded) -> dict | None:
+    """{"model", "config", "scene"}: the SHA-256 of ``loaded``'s (a ``baselines.LoadedRun``) model file and of its
+    run's ``config.json`` and ``scene.json`` (None for a run without one), what a kept fit of the run is keyed by
+    (here and ``predictive_cache``); None when the model is not one file (an ensemble) or a file cannot be read."""
+    from uncertsplat.provenance import file_sha256
 
     source, run_dir = Path(loaded.source), Path(loaded.run_dir)
     try:
         if not source.is_file():
             return None
-        parts = {
+        return {
             "model": file_sha256(source),
             "config": hashlib.sha256((run_dir / "config.json").read_bytes()).hexdigest(),
             "scene": hashlib.sha256((run_dir / "scene.json").read_bytes()).hexdigest()
             if (run_dir / "scene.json").is_file() else None,
-            "settings": _settings(cfg, set_aside),
-            "fit": RESIDUAL_FIT,
-            "device": device.type,
-            "versions": versions(),
         }
     except OSError:
         return None
+
+
+def residual_key(loaded, cfg, device: torch.device, set_aside: bool = False) -> str | None:
+    """The key of the pixel noise ``fit_residual`` would fit for ``loaded`` (a ``baselines.LoadedRun``) with
+    ``cfg``: a SHA-256 over the model file, the run's config and scene files (``run_digests``), the settings it
+    reads, the device type and the versions (and, with ``set_aside``: views set aside from training, where the
+    noise's level is fitted given the rest of the predictive, the settings that shape it). None when the model is not
+    one file (an ensemble) or a file cannot be read."""
+    from uncertsplat.eval.engine import RESIDUAL_FIT
+    from uncertsplat.provenance import versions
+
+    digests = run_digests(loaded)
+    if digests is None:
+        return None
+    parts = {**digests, "settings": _settings(cfg, set_aside), "fit": RESIDUAL_FIT, "device": device.type,
+             "versions": versions()}
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
 
@@ -105,4 +114,4 @@ def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torc
     return field
 
 
-__all__ = ["FILE_NAME", "fitted_residual", "residual_key", "same_residual_settings"]
+__all__ = ["FILE_NAME", "fitted_residual", "residual_key", "run_digests", "same_residual_settings"]

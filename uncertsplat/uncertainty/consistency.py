@@ -347,8 +347,9 @@ class ViewConsistency:
         near = self._near()
         stood = self.frustum_cameras if self.frustum_cameras is not None else self.cameras
         free = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
+        at_f64 = points.double()
         for centre in stood.centers.to(points.device).double():  # one camera at a time: no [P,T] distances
-            free |= (points.double() - centre).norm(dim=-1) < near
+            free |= (at_f64 - centre).norm(dim=-1) < near
         w, h = self.cameras.width, self.cameras.height
         for k0 in range(0, len(self.cameras), VIEW_CHUNK):
             cams = self.cameras[k0:k0 + VIEW_CHUNK].to(points.device)
