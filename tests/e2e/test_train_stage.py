@@ -199,8 +199,8 @@ def test_a_run_without_a_posterior_is_named_by_evaluate(tiny_scene_path, tmp_pat
     from uncertsplat.stages import evaluate
 
     report = evaluate.run(run, EvalConfig(num_samples=2, max_views=1, save_maps=False), device=torch.device("cpu"))
-    (std,) = [n for n in report.notes if n.startswith("std = ")]  # its formula agrees: the spread term is 0
-    assert std.startswith("std = the spread of the K samples (0 for this model: every sample is the same render) + ")
+    (std,) = [n for n in report.notes if n.startswith("std² = ")]  # its formula agrees: the spread term is 0
+    assert std.startswith("std² = the variance of the K samples (0 for this model: every sample is the same render) + ")
     carriers = dataclasses.replace(loaded, model=random_model(20, torch.Generator().manual_seed(0)))
     assert carriers.model.num_carriers > 0 and carriers.eval_notes(4) == []
 

@@ -14,9 +14,11 @@ from uncertsplat.gaussians.prior import Prior
 from uncertsplat.gaussians.variational import (
     expected_gate,
     gate_off_probability,
+    informed_position_prior,
     informed_tables,
     mean_params,
     posterior_mean,
+    posterior_summary,
     random_model,
 )
 from uncertsplat.types import Cameras, RenderOutput
@@ -153,6 +155,36 @@ class TestExtremes:
                 assert bool(torch.isfinite(v).all())
             for v in model.params.values():
                 assert bool(torch.isfinite(v).all())
+
+    def test_summary_measures_against_the_per_carrier_prior(self):
+        """train_summary's posterior block for the informed posterior: unseen carriers (F = 0) sit exactly at the
+        per-carrier prior the update used (KL 0 for the position, spread ratio 1) and a carrier no larger than
+        the config's std is measured the same either way, while against the config's single std a carrier larger
+        than it reads as a posterior wider than its prior (ratio > 1)."""
+        prior = Prior()
+        model = _model()
+        cams = torch.tensor([[0.0, 0.0, -6.0], [5.0, 0.0, 0.0]])
+        kw = dict(extent=EXTENT, position_prior_scale=1.0, camera_centers=cams, position_depth_fraction=0.1)
+        informed_tables(model, _fisher(model), prior, **kw)
+        std = informed_position_prior(model, prior, **kw)  # [P] table units
+        torch.testing.assert_close(F.softplus(model.tables["pos_spread_raw"][:, 0, 0]), std, rtol=1e-5, atol=1e-9)
+        per = posterior_summary(model, prior, position_prior_std=std)
+        assert per["position_prior"] == "per_carrier"
+        assert per["position_spread_ratio"]["q10"] == pytest.approx(1.0, rel=1e-4)
+        assert per["position_spread_ratio"]["q90"] == pytest.approx(1.0, rel=1e-4)
+        fixed = posterior_summary(model, prior)
+        assert fixed["position_prior"] == "config" and fixed["position_spread_ratio"]["q90"] > 1.5
+        # the gate and the scale width keep the config's prior at F = 0: nothing moved at all
+        assert per["moved_fraction"] == 0.0 and per["kl_nats"]["q90"] == pytest.approx(0.0, abs=1e-4)
+        assert fixed["moved_fraction"] > 0.5
+        # with data the per-carrier ratio is the Laplace shrinkage, never above 1
+        fisher = _fisher(model)
+        fisher["means"] = torch.rand(len(model), 3, generator=torch.Generator().manual_seed(1)) * 1e4
+        informed_tables(model, fisher, prior, **kw)
+        s = posterior_summary(model, prior, position_prior_std=informed_position_prior(model, prior, **kw))
+        assert s["position_spread_ratio"]["q90"] <= 1.0 + 1e-5 and s["position_spread_ratio"]["q10"] < 0.5
+        with pytest.raises(ValueError, match="one std per carrier"):
+            posterior_summary(model, prior, position_prior_std=std[:-1])
 
     def test_no_carriers(self):
         g = torch.Generator().manual_seed(0)

@@ -1054,8 +1054,9 @@ def test_a_model_without_a_posterior_reads_consistently(tmp_path):
     summary.test_render = "expected render (variational.expected_render_sample)"
     summary.write(run / "train_summary.json")
     html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
-    assert ("std = the spread of the K samples (0 for this model: every sample is the same render) + the pixel noise"
-            in html)
+    # an evaluation written before the formula said its terms are variances: shown in today's words
+    assert ("std² = the variance of the K samples (0 for this model: every sample is the same render) + the pixel "
+            "noise" in html) and "std = the spread" not in html
     assert "expected_render_sample" not in html
     summary.members = [summary.model_copy()]  # nor in an ensemble's members (the "more" dump)
     summary.write(run / "train_summary.json")
@@ -1066,7 +1067,7 @@ def test_a_model_without_a_posterior_reads_consistently(tmp_path):
     m.notes = m.notes[1:]
     m.write(run / "eval" / "metrics.json")
     html = stage.run([run], tmp_path / "out2", ReportConfig()).read_text()
-    assert "std = the spread of the K samples + the pixel noise" in html and "expected_render_sample" in html
+    assert "std² = the variance of the K samples + the pixel noise" in html and "expected_render_sample" in html
 
 
 def test_an_ensemble_says_its_count_is_the_members_sum_and_draws_their_timelines(tmp_path, monkeypatch):

@@ -148,7 +148,7 @@ class EnsembleRun(LoadedRun):
         n = len(self.members)
         if n == 1 and not self.variational_members:
             return [f"ensemble of 1 member: {SAME_RENDER}, so the samples' spread is 0 everywhere; "
-                    "the std holds the predictive's other terms (the 'std =' note lists them)"]
+                    "the std holds the predictive's other terms (the 'std² =' note lists them)"]
         if num_samples % n:
             return [f"K={num_samples} is not a multiple of the {n} ensemble members: members are weighted "
                     f"unequally (K = {n} uses each member once)"]

@@ -186,12 +186,12 @@ class LoadedRun:
         """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run."""
         if self.config.method == "deterministic":
             return [f"deterministic model: {SAME_RENDER}, so the samples' spread is 0 everywhere; "
-                    "the std holds the predictive's other terms (the 'std =' note lists them)"]
+                    "the std holds the predictive's other terms (the 'std² =' note lists them)"]
         if self.config.method == "variational" and self.model.num_carriers == 0 and len(self.model):
             return [f"no Gaussian carries a posterior (carriers are made when Gaussians split and at each spawn "
                     f"step, every {self.config.densify.spawn_interval} steps after step {self.config.densify.start}; "
                     f"this model is of step {self.step}): {SAME_RENDER}, so the std holds only "
-                    "the predictive's other terms (the 'std =' note lists them); train longer for a posterior"]
+                    "the predictive's other terms (the 'std² =' note lists them); train longer for a posterior"]
         return []
 
     def size_text(self) -> str:

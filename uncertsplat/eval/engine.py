@@ -34,6 +34,10 @@ from uncertsplat.types import Cameras, GaussianSample, RenderOutput, ViewSet
 from uncertsplat.uncertainty.consistency import STEP_VARIANCE, ViewConsistency
 from uncertsplat.uncertainty.residual import C0, ResidualField
 
+STD_TERMS = "std² = "
+"""How the note that lists the predictive's terms begins: they are variances and add as such (the std is the root of
+their sum), the first the K samples' own."""
+
 KDE_MAX_SAMPLES = 64
 """The KDE NLL keeps every sample of a view in memory; above this K it is skipped (and noted)."""
 
@@ -575,7 +579,7 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
 
 SAME_RENDER = "every sample is the same render"
 """How the notes on a model without a posterior (``LoadedRun.eval_notes``: deterministic, one ensemble member, no
-carrier) say that the samples' spread is 0; ``evaluate_views``' 'std =' note and the report read it."""
+carrier) say that the samples' spread is 0; ``evaluate_views``' 'std² =' note and the report read it."""
 
 GIVEN_SCENE_GT = "given-scene"
 """``DepthScaleInfo.method`` of a factor given with ``--depth-scale`` against the scene's own GT depth (in the run's
@@ -696,7 +700,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                      "over whole images")
     # a model without a posterior (the run's note says SAME_RENDER): its spread term is 0 too
     same = any(SAME_RENDER in n for n in notes)
-    terms = ["the spread of the K samples" + (" (0: K = 1)" if K == 1 else
+    terms = ["the variance of the K samples" + (" (0: K = 1)" if K == 1 else
                                               f" (0 for this model: {SAME_RENDER})" if same else "")]
     if sampler.residual is not None:
         seen = float(sampler.residual.seen.float().mean()) if sampler.residual.seen.numel() else 0.0
@@ -726,12 +730,12 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                      f"compared; a point outside every training image gets the variance of the scene's colours in "
                      f"their renders, {sampler.consistency.palette_var:.4f})")
     if cfg.depth_spread:
-        terms.append("for depth, the spread of the depths each ray blends (the model's deterministic render)")
+        terms.append("for depth, the variance of the depths each ray blends (the model's deterministic render)")
     if cfg.empty_rays and sampler.empty_std is not None:
         terms.append(f"an unknown surface where rays are covered less than the model covers its training views "
                      f"(alpha {sampler.coverage:.3f}; colour std {sampler.empty_std[0]:.3f}, depth "
                      f"std {sampler.empty_std[1]:.3g})")
-    notes.append("std = " + " + ".join(terms))
+    notes.append(STD_TERMS + " + ".join(terms))
 
     results: list[_ViewResult] = []
     kept: tuple[Tensor, Tensor, Tensor] | None = None  # the depth maps the depth metrics wait for (with GT depth)
@@ -904,5 +908,5 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     )
 
 
-__all__ = ["KDE_MAX_SAMPLES", "EvalSettings", "Sampler", "StdFit", "ViewMaps", "calibration_indices",
+__all__ = ["KDE_MAX_SAMPLES", "STD_TERMS", "EvalSettings", "Sampler", "StdFit", "ViewMaps", "calibration_indices",
            "evaluate_views", "fit_std_scale", "split_indices"]

@@ -556,11 +556,9 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
     old_mult = t["scale_left"].mean(1) + 0.5 * _multiplier_width(t)
 
     # position
-    own = before.scales[idx].log().mean(1).exp()  # [P] geometric-mean size, world units
-    prior_std = torch.clamp(position_prior_scale * own, min=prior.position_std * unit)  # [P]
-    if camera_centers is not None and camera_centers.shape[0]:
-        depth = torch.cdist(before.means[idx].double(), camera_centers.to(idx.device).double()).amin(1)  # [P]
-        prior_std = torch.minimum(prior_std, (position_depth_fraction * depth).to(prior_std.dtype))
+    prior_std = _position_prior_std(before.means[idx], before.scales[idx], prior, unit=unit,
+                                    position_prior_scale=position_prior_scale, camera_centers=camera_centers,
+                                    position_depth_fraction=position_depth_fraction)  # [P] world units
     dis = disagreement or {}
     var = _posterior_variance(fisher["means"][idx], prior_std[:, None].square(),
                               dis["means"][idx] if "means" in dis else None)  # [P,3]
@@ -595,11 +593,13 @@ def informed_tables(model: GaussianModel, fisher: dict[str, Tensor], prior: Prio
     return {"carriers": P, "data_dominated": float(data_dominated), "gate_off_median": float(p_off.median())}
 
 
-def gaussian_kl(loc: Tensor, spread_raw: Tensor, prior_loc: float, prior_std: float) -> Tensor:
-    """Elementwise KL(N(loc, softplus(spread_raw)^2) || N(prior_loc, prior_std^2)), finite at extremes."""
+def gaussian_kl(loc: Tensor, spread_raw: Tensor, prior_loc: float, prior_std: float | Tensor) -> Tensor:
+    """Elementwise KL(N(loc, softplus(spread_raw)^2) || N(prior_loc, prior_std^2)), finite at extremes
+    (``prior_std`` a number or a tensor that broadcasts against ``loc``)."""
     std = F.softplus(spread_raw)
     log_std = log_softplus(spread_raw)
-    return math.log(prior_std) - log_std + (std.square() + (loc - prior_loc).square()) / (2.0 * prior_std**2) - 0.5
+    log_prior = torch.log(prior_std) if isinstance(prior_std, Tensor) else math.log(prior_std)
+    return log_prior - log_std + (std.square() + (loc - prior_loc).square()) / (2.0 * prior_std**2) - 0.5
 
 
 def scale_kl(left: Tensor, width_raw: Tensor, prior_width: float, variant: Variant) -> Tensor:
@@ -703,6 +703,35 @@ def carrier_uncertainty(model: GaussianModel, *, variant: Variant = "ours", exte
     return out
 
 
+def _position_prior_std(means: Tensor, scales: Tensor, prior: Prior, *, unit: float, position_prior_scale: float,
+                        camera_centers: Tensor | None, position_depth_fraction: float) -> Tensor:
+    """The informed posterior's position prior std per carrier, world units [P] (``informed_tables``: the larger
+    of the config's and the carrier's own size, at most a fraction of its distance to the nearest camera).
+    ``means`` [P,3], ``scales`` [P,3]: the carriers' posterior-mean positions and sizes."""
+    own = scales.log().mean(1).exp()  # [P] geometric-mean size, world units
+    prior_std = torch.clamp(position_prior_scale * own, min=prior.position_std * unit)  # [P]
+    if camera_centers is not None and camera_centers.shape[0]:
+        depth = torch.cdist(means.double(), camera_centers.to(means.device).double()).amin(1)  # [P]
+        prior_std = torch.minimum(prior_std, (position_depth_fraction * depth).to(prior_std.dtype))
+    return prior_std
+
+
+@torch.no_grad()
+def informed_position_prior(model: GaussianModel, prior: Prior, *, extent: float = 1.0,
+                            position_prior_scale: float = 1.0, camera_centers: Tensor | None = None,
+                            position_depth_fraction: float = 0.1) -> Tensor:
+    """The position prior std the informed posterior gives each carrier, in table units [P] (the unit
+    ``posterior_summary`` measures the tables in): the same arguments as ``informed_tables``, evaluated at the
+    model's current posterior mean (which an informed update leaves unchanged, so right after the update it is the
+    prior the update used)."""
+    idx = model.carrier_index()
+    unit = _unit(prior.variant, extent)
+    mean = posterior_mean(model, variant=prior.variant, extent=extent, temperature=prior.temperature)
+    return _position_prior_std(mean.means[idx], mean.scales[idx], prior, unit=unit,
+                               position_prior_scale=position_prior_scale, camera_centers=camera_centers,
+                               position_depth_fraction=position_depth_fraction) / unit
+
+
 def gate_off_probability(loc: Tensor, spread: Tensor) -> Tensor:
     """P(gate < 1/2) = P(nu + tau eta < 0) = Phi(-nu / tau) for a gate logit N(nu, tau^2) (``spread`` = tau > 0).
 
@@ -717,7 +746,7 @@ about what a 10 % change of one spread costs (KL(N(0, 0.9^2) || N(0, 1)) = 0.010
 
 
 @torch.no_grad()
-def posterior_summary(model: GaussianModel, prior: Prior) -> dict:
+def posterior_summary(model: GaussianModel, prior: Prior, *, position_prior_std: Tensor | None = None) -> dict:
     """How far the learned posteriors are from the prior: a diagnostic of what the data taught the tables.
 
     A carrier whose posterior still equals the prior carries no information from the data, so its
@@ -732,21 +761,36 @@ def posterior_summary(model: GaussianModel, prior: Prior) -> dict:
     * ``scale_width_ratio``: multiplier interval width / w_p (mean over the axes).
     * ``gate_off``: P(gate < 1/2) = Phi(-nu / tau), and ``gate_off_prior``, the prior's value.
 
+    ``position_prior_std`` [P] (table units; ``informed_position_prior``): the informed posterior's prior, which
+    is per carrier (a Gaussian is located to within its own size before any data); the position KL and spread
+    ratio are then measured against it (``position_prior`` "per_carrier"), not against the config's single std
+    ("config"), which a carrier larger than it would exceed (ratios above 1 that read as a posterior wider than
+    its prior).
+
     Distributions are given as quantiles ``q10``, ``q50``, ``q90``. Returns plain Python numbers (JSON);
     with no carriers every distribution is None.
     """
     t = {k: v.detach().float() for k, v in model.tables.items()}
     p = model.num_carriers
     gate_off_prior = float(gate_off_probability(torch.tensor(prior.gate_mean), torch.tensor(prior.gate_std)))
-    out: dict = {"carriers": p, "moved_kl_nats": MOVED_KL_NATS, "gate_off_prior": gate_off_prior}
+    out: dict = {"carriers": p, "moved_kl_nats": MOVED_KL_NATS, "gate_off_prior": gate_off_prior,
+                 "position_prior": "config" if position_prior_std is None else "per_carrier"}
     keys = ("kl_nats", "position_spread_ratio", "scale_width_ratio", "gate_off")
     if p == 0:
         return {**out, "moved_fraction": None, **{k: None for k in keys}}
-    kl = (gaussian_kl(t["pos_loc"], t["pos_spread_raw"], 0.0, prior.position_std).sum(2)
+    if position_prior_std is None:
+        pos_std: float | Tensor = prior.position_std
+    else:
+        if position_prior_std.shape != (p,):
+            raise ValueError(f"position_prior_std has shape {tuple(position_prior_std.shape)}, expected ({p},), one "
+                             "std per carrier")
+        pos_std = position_prior_std.detach().float().to(t["pos_loc"].device)
+    pos_std_t = pos_std[:, None, None] if isinstance(pos_std, Tensor) else pos_std  # broadcasts over [P,K,3]
+    kl = (gaussian_kl(t["pos_loc"], t["pos_spread_raw"], 0.0, pos_std_t).sum(2)
           + scale_kl(t["scale_left"], t["scale_width_raw"], prior.scale_width, prior.variant).sum(2)
           + gaussian_kl(t["gate_loc"], t["gate_spread_raw"], prior.gate_mean, prior.gate_std).sum(2)).mean(1)  # [P]
     m = {k: v.mean(1) for k, v in t.items()}  # [P,D]
-    spread = log_softplus(m["pos_spread_raw"]).mean(1).exp() / prior.position_std
+    spread = log_softplus(m["pos_spread_raw"]).mean(1).exp() / pos_std
     width = F.softplus(m["scale_width_raw"]).clamp(MIN_WIDTH, MAX_WIDTH).mean(1) / prior.scale_width
     gate_off = gate_off_probability(m["gate_loc"][:, 0], F.softplus(m["gate_spread_raw"])[:, 0])
     q = torch.tensor([0.1, 0.5, 0.9], device=kl.device)

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from uncertsplat.errors import UserError
-from uncertsplat.eval.engine import GIVEN_SCENE_GT, MASKED_NOTE, SAME_RENDER
+from uncertsplat.eval.engine import GIVEN_SCENE_GT, MASKED_NOTE, SAME_RENDER, STD_TERMS
 from uncertsplat.eval.nll import NLL_WORSE_BY
 from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.report import figures as F
@@ -333,7 +333,9 @@ def views_note(runs: list[RunData]) -> str | None:
             "compare).")
 
 
-SPREAD_TERM = "std = the spread of the K samples"
+SPREAD_TERM = STD_TERMS + "the variance of the K samples"
+OLD_SPREAD_TERM = "std = the spread of the K samples"
+"""How older evaluations began the formula (it read as a sum of stds; the terms always added as variances)."""
 
 
 FACTOR_WORSE = "the fitted factor makes these views' NLL worse"
@@ -341,11 +343,12 @@ FACTOR_WORSE = "the fitted factor makes these views' NLL worse"
 
 
 def evaluate_notes(notes: list[str], mean=None) -> list[str]:
-    """evaluate's notes as shown: for a model whose samples are all one render, the 'std =' formula's first term says
+    """evaluate's notes as shown: for a model whose samples are all one render, the 'std² =' formula's first term says
     it is 0 there (it read as if the spread counted, beside the note that says it is 0); the warning that the fitted std
     factor worsens the NLL is left out where ``mean`` (``ViewMetrics``) shows it worse by no more than
     ``NLL_WORSE_BY`` (evaluations written before that threshold warned of 0.003 nats)."""
-    out = list(notes)
+    # written before as "std = the spread ... + ...": the same terms, which always added as variances
+    out = [SPREAD_TERM + n[len(OLD_SPREAD_TERM):] if n.startswith(OLD_SPREAD_TERM) else n for n in notes]
     if any(SAME_RENDER in n for n in out):
         out = [n.replace(SPREAD_TERM, f"{SPREAD_TERM} (0 for this model: {SAME_RENDER})", 1)
                if n.startswith(SPREAD_TERM) and not n.startswith(SPREAD_TERM + " (0") else n for n in out]

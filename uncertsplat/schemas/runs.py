@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
@@ -27,6 +27,9 @@ class PosteriorSummary(Strict):
     moved_kl_nats: float
     """A carrier "moved" when its KL from the prior exceeds this many nats."""
     gate_off_prior: float
+    position_prior: Literal["config", "per_carrier"] = "config"
+    """What the position KL and spread ratio are measured against: the config's single std, or the informed
+    posterior's per-carrier prior (its own size, capped by its depth); "config" in summaries written before."""
     moved_fraction: float | None
     kl_nats: Quantiles | None
     position_spread_ratio: Quantiles | None

@@ -37,6 +37,7 @@ from uncertsplat.gaussians.variational import (
     ExpectedConstants,
     expected_constants,
     expected_render_sample,
+    informed_position_prior,
     informed_tables,
     mean_params,
     posterior_mean,
@@ -927,6 +928,18 @@ class Trainer:
             self.save_checkpoint()
         return last
 
+    def posterior_summary(self) -> dict:
+        """``variational.posterior_summary`` of the model; for the informed posterior measured against the
+        per-carrier prior its updates use (the config's single position std is not that posterior's prior)."""
+        if not self.informed:
+            return posterior_summary(self.model, self.prior)
+        vcfg = self.cfg.variational
+        std = informed_position_prior(self.model, self.prior, extent=self.extent,
+                                      position_prior_scale=vcfg.position_prior_scale,
+                                      camera_centers=self.train_cams.centers,
+                                      position_depth_fraction=vcfg.position_depth_fraction)
+        return posterior_summary(self.model, self.prior, position_prior_std=std)
+
     def summary(self) -> dict:
         mem = memory_per_gaussian(self.model, table_moments=not self.informed)
         return {"steps": self.step, "seconds": self.elapsed,
@@ -940,7 +953,7 @@ class Trainer:
                 "growth": [g.model_dump() for g in self.growth],
                 "exposure_checks": [c.model_dump() for c in self.exposure_checks],
                 "variant": self.cfg.variant, "method": self.cfg.method,
-                "posterior": posterior_summary(self.model, self.prior),
+                "posterior": self.posterior_summary(),
                 "posterior_updates": self.posterior_updates, "budget": self.budget.as_dict(),
                 **({"profile": self.timer.summary()} if self.timer.enabled else {})}
 
