@@ -434,15 +434,17 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
               if keep is not None else "Nothing was removed (a sweep only, no mask): the source run is unchanged."),
     )
     pruned = random_model = None
-    # a pruned model that is written is scored by ``evaluate`` itself once it is (``_evaluate_written``): the "after"
-    # row is then the pruned run's own evaluation, and an ``evaluate`` of it with the same settings has nothing to redo
+    # the pruned model is scored by ``evaluate`` itself (``_evaluate_written``): the "after" row is the pruned run's own
+    # evaluation (its pixel noise, tails and std factor fitted on it, where the sweep's rows keep the source's so that
+    # they compare), and an ``evaluate`` of the written run with the same settings has nothing to redo; a dry run
+    # evaluates it in a temporary folder, so that its "after" row is the one the same prune with -o writes
     evaluate_written = output is not None and not cfg.dry_run
     if keep is not None:
         removed = int((~keep).sum())
         pruned = apply_keep(model, keep)
         rand_keep = random_keep(n, removed, cfg.seed)
         random_model = apply_keep(model, rand_keep)
-        after = before if removed == 0 else measure(pruned, keep, full=not evaluate_written)
+        after = before if removed == 0 else measure(pruned, keep, full=not (evaluate_written or cfg.dry_run))
         rand = before if removed == 0 else measure(random_model, rand_keep)
         removed_scores = score[~keep]
         result.counts = PruneCounts(before=n, after=n - removed, removed=removed, carriers_before=model.num_carriers,
@@ -453,6 +455,13 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         if removed == 0:  # the 'after' row is the 'before' row: no choice of these views flatters it
             notes[:] = [n for n in notes if CHOSEN_NOTE not in n]
         _psnr_change(result)
+        if cfg.dry_run and removed > 0:
+            with tempfile.TemporaryDirectory(prefix="uncertsplat-prune-dry-") as tmp:
+                _write_model(Path(tmp), run_dir, loaded, measure.meta, pruned, keep, carriers, scores)
+                _evaluate_written(Path(tmp), result, measure, device, save_maps=False)
+            notes.append("the 'after' row's uncertainty metrics are the pruned model evaluated as `evaluate` does "
+                         f"(K = {cfg.num_samples}, seed {cfg.seed}; in a temporary folder, not kept): the same prune with "
+                         "-o writes that evaluation as the pruned run's eval/")
         _tolerance_note(result, notes, cfg)
         _random_note(result, notes, score_name, cfg)
 
@@ -539,13 +548,15 @@ def _print_result(result: PruneReport, notes: list[str], score_name: str, cfg: P
         console.print(f"[yellow]note:[/] {note}")
 
 
-def _evaluate_written(output: Path, result: PruneReport, measure: _Measure, device: torch.device) -> None:
+def _evaluate_written(output: Path, result: PruneReport, measure: _Measure, device: torch.device,
+                      save_maps: bool = True) -> None:
     """Evaluate the pruned run just written to ``output`` as ``evaluate`` does (``output/eval``), and take its held-out
-    means as the "after" row of ``result``."""
+    means as the "after" row of ``result`` (a dry run's: a temporary folder, without the maps)."""
     from uncertsplat.stages import evaluate
 
-    console.print(f"evaluating the pruned run {output} as `evaluate` does")
-    report = evaluate.run(output, measure.ecfg.model_copy(update={"save_maps": True}), device, quiet=True)
+    console.print(f"evaluating the pruned run {output} as `evaluate` does" if save_maps else
+                  "evaluating the pruned model as `evaluate` would (in a temporary folder, removed after)")
+    report = evaluate.run(output, measure.ecfg.model_copy(update={"save_maps": save_maps}), device, quiet=True)
     after = result.metrics.after
     result.metrics.after = after.model_copy(update={k: getattr(report.mean, k) for k in METRIC_KEYS})
     _psnr_change(result)
@@ -575,13 +586,32 @@ def _remove_dead_temp_folders(output: Path) -> None:
             pass
 
 
+def _write_model(folder: Path, run_dir: Path, loaded, meta: dict, pruned, keep: torch.Tensor, carriers: torch.Tensor,
+                 scores: dict) -> None:
+    """The pruned run's own files in ``folder``: the source's config, scene and exposure, the pruned PLYs (the point
+    cloud with each kept Gaussian's scores)."""
+    from uncertsplat.io.atomic import atomic_write_bytes
+    from uncertsplat.io.ply import set_vertex_properties, write_point_cloud_ply, write_variational_ply
+
+    for name in ("config.json", "scene.json", RunExposure.FILE_NAME):
+        if (run_dir / name).is_file():
+            atomic_write_bytes(folder / name, (run_dir / name).read_bytes())
+    write_variational_ply(folder / "variational.ply", pruned, meta=meta)
+    write_point_cloud_ply(folder / "point_cloud.ply", pruned, variant=meta["variant"],
+                          extent=loaded.extent, temperature=meta["temperature"])
+    kept = keep.to(carriers.device)
+    # names a program can take for identifiers: score_free_space, not score_free-space
+    set_vertex_properties(folder / "point_cloud.ply",
+                          {("contribution" if k == "contribution" else f"score_{k}".replace("-", "_")):
+                           v[kept].cpu().numpy() for k, v in scores.items()})
+
+
 def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measure, loaded, result: PruneReport,
                   scores: dict, carriers: torch.Tensor, keep, pruned, random_model, sweep) -> None:
     from uncertsplat.data.dataset import photo_turns, turned_back
     from uncertsplat.io.atomic import atomic_write_bytes
     from uncertsplat.io.images import write_png
     from uncertsplat.io.maps import map_stem
-    from uncertsplat.io.ply import set_vertex_properties, write_point_cloud_ply, write_variational_ply
     from uncertsplat.prune import kept_indices
     from uncertsplat.uncertainty.scores import spread_views
 
@@ -592,17 +622,7 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
     try:
         writes_model = keep is not None and not cfg.dry_run
         if writes_model:
-            for name in ("config.json", "scene.json", RunExposure.FILE_NAME):
-                if (run_dir / name).is_file():
-                    atomic_write_bytes(tmp / name, (run_dir / name).read_bytes())
-            write_variational_ply(tmp / "variational.ply", pruned, meta=measure.meta)
-            write_point_cloud_ply(tmp / "point_cloud.ply", pruned, variant=measure.meta["variant"],
-                                  extent=loaded.extent, temperature=measure.meta["temperature"])
-            kept = keep.to(carriers.device)
-            # names a program can take for identifiers: score_free_space, not score_free-space
-            set_vertex_properties(tmp / "point_cloud.ply",
-                                   {("contribution" if k == "contribution" else f"score_{k}".replace("-", "_")):
-                                    v[kept].cpu().numpy() for k, v in scores.items()})
+            _write_model(tmp, run_dir, loaded, measure.meta, pruned, keep, carriers, scores)
         if keep is not None:
             np.save(tmp / "prune_mask.npy", kept_indices(keep).cpu().numpy().astype(np.int64))
         np.savez(tmp / "scores.npz", carriers=carriers.cpu().numpy(),
