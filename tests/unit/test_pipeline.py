@@ -373,3 +373,32 @@ def test_a_stage_s_relative_depth_folder_is_found_beside_the_pipeline_file(tmp_p
     (elsewhere / "depth").mkdir()  # the current folder has it: read from there, as always
     cfg = pl.load_pipeline(p)
     assert next(s for s in cfg.stages if s.stage == "evaluate").config["depth_gt"] == "depth"
+
+
+def test_a_rerun_that_holds_out_other_views_says_so(tmp_path, monkeypatch, capsys):
+    """A photo removed from the folder moves the every-8th split: the train stage run again scores other held-out
+    photos, and the two runs' metrics do not compare. The pipeline says which views moved and how to keep them."""
+    from uncertsplat.schemas.scene import RunScene
+
+    views = [f"v{i:02d}.png" for i in range(17)]
+
+    def fake(kind, cfg, up_path, out_dir, device, kwargs):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if kind == "train":
+            names = views if cfg.iterations != 7 else views[1:]  # the second run: the first photo is gone
+            test = names[::8]
+            RunScene(scene=str(up_path), extent=1.0, scene_scale=1.0, width=4, height=3, test=test,
+                     train=[n for n in names if n not in test]).write(out_dir / "scene.json")
+
+    monkeypatch.setattr(pl, "_run_stage", fake)
+    p = _write(tmp_path)
+    pl.run(p, tmp_path / "out")
+    assert "holds out other views" not in capsys.readouterr().err  # no previous run
+    pl.run(p, tmp_path / "out", overrides=["train.iterations=7"])
+    text = " ".join(capsys.readouterr().err.split())
+    assert "this run holds out other views than the previous one" in text
+    assert "no longer held out: v00.png, v08.png, v16.png; newly held out: v01.png, v09.png" in text
+    # the earlier held-out photos still in the scene, as the command line takes them
+    assert """--set 'train.scene.test_names=["v08.png", "v16.png"]'""" in text
+    assert pl.held_out_change(tmp_path / "out" / "train", tmp_path / "out" / "train") is None  # the same views
+    assert pl.held_out_change(tmp_path / "nowhere", tmp_path / "out" / "train") is None

@@ -10,6 +10,7 @@ the outputs of earlier stages intact and the error names the stage.
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import time
@@ -224,6 +225,36 @@ def _finished_output(folder: Path) -> bool:
     return found is not None and found.status == "done"
 
 
+def held_out_change(previous: Path, run_dir: Path, stage: str = "train") -> str | None:
+    """A sentence when the run in ``run_dir`` holds out other views than the earlier run kept in ``previous`` (its
+    ``.previous`` generation; ``stage`` names the train stage in the advice): the split follows the photos' sorted order (``scene.test_every``), so a photo added to
+    or removed from the folder moves it, and the two runs' held-out metrics then score other photos. None when either
+    has no readable scene.json or they hold out the same views."""
+    from uncertsplat.schemas.scene import RunScene
+
+    try:
+        old, now = RunScene.read(previous / "scene.json"), RunScene.read(run_dir / "scene.json")
+    except Exception:  # no earlier run (or one from another version): nothing to compare
+        return None
+    if list(old.test) == list(now.test):
+        return None
+    present = set(now.train) | set(now.test) | set(now.calibration)
+    kept = [n for n in old.test if n in present]  # the earlier held-out photos still in the scene
+    kept = kept if len(kept) <= 20 else []  # (longer: too long for a command line)
+    gone = [n for n in old.test if n not in set(now.test)]
+    added = [n for n in now.test if n not in set(old.test)]
+
+    def names(xs: list[str]) -> str:
+        return ", ".join(xs[:5]) + (f" and {len(xs) - 5} more" if len(xs) > 5 else "")
+
+    what = "; ".join(p for p in (f"no longer held out: {names(gone)}" if gone else "",
+                                 f"newly held out: {names(added)}" if added else "") if p)
+    return (f"this run holds out other views than the previous one ({previous}): {what}. The split follows the photos' "
+            "sorted order, so a photo added or removed moves it; the two runs' held-out metrics score different photos "
+            "and do not compare" + (f" (to hold out the earlier ones again: --set '{stage}.scene.test_names="
+                                     f"{json.dumps(kept)}')." if kept else "."))
+
+
 def _move_previous(out_dir: Path, root: Path, name: str) -> None:
     """Keep one previous generation of a stage's output instead of deleting it: ``.previous/NAME``. An unfinished
     output (a stage that failed or was stopped) never replaces a finished one there: it goes to
@@ -386,6 +417,10 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 ) from err
             _finish(out_dir, new, "done", t0)
             console.print(f"  [green]done[/] {name} in {time.perf_counter() - t0:.1f} s")
+            if stage.stage == "train":
+                moved = held_out_change(root / ".previous" / name, out_dir, name)
+                if moved:
+                    console.print(f"[yellow]note:[/] {moved}")
             outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, new
             previous = name
 
