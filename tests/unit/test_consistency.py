@@ -479,3 +479,19 @@ def test_seen_free_in_blocks_of_points_is_the_same(monkeypatch):
     whole = vc.seen_free(pts)
     monkeypatch.setattr(consistency, "FREE_POINTS_CHUNK", 7)
     assert torch.equal(vc.seen_free(pts), whole) and 0 < int(whole.sum()) < 1000
+
+
+def test_a_lone_difference_spreads_as_a_fading_blob_not_a_square():
+    """``_window_mean``: one large squared difference falls off with the distance from its pixel (the box drew a
+    hard-edged 5x5 square of equal values around it); a constant field stays constant up to the image's border;
+    nothing leaves the window."""
+    from uncertsplat.uncertainty.consistency import BLUR, _window_mean
+
+    v = torch.zeros(15, 17)
+    v[7, 8] = 1.0
+    out = _window_mean(v)
+    centre, side, edge, corner = float(out[7, 8]), float(out[7, 9]), float(out[7, 8 + BLUR]), float(out[9, 10])
+    assert centre > side > edge > corner > 0.0
+    assert float(out[7, 8 + BLUR + 1]) == 0.0 and float(out[7 + BLUR + 1, 8]) == 0.0
+    assert float(out.sum()) == pytest.approx(1.0, rel=1e-6)  # inside the image the weights sum to 1
+    torch.testing.assert_close(_window_mean(torch.full((6, 4), 0.3)), torch.full((6, 4), 0.3))

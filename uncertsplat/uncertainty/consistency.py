@@ -17,7 +17,7 @@ smallest angle. Its weight grows with that angle: 0 up to the ``gate``, ``GATE_S
 spacing (the median angle between a training view and its nearest neighbour, seen from the model's median Gaussian),
 1 from twice the gate on, linearly in between: a view as close to a training view as a gap in the capture leaves is
 what the rest of the predictive was fitted for, and the difference there is resampling. The squared differences are
-averaged over a ``(2 BLUR + 1)^2`` window (a single difference is a noisy estimate of a variance). Where the surface
+averaged over a ``(2 BLUR + 1)^2`` window with binomial weights (a single difference is a noisy estimate of a variance). Where the surface
 is Lambertian and its depth right, the training view's render is what the photo showed, so the difference is the
 evaluated view's error itself; where the surface's colour changes with the direction, it is a change no training
 view showed either.
@@ -54,6 +54,7 @@ Pure tensors: a sample, cameras and a renderer (``render_fn(sample, cameras) -> 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -80,7 +81,7 @@ GATE_SPACINGS = 2.0
 nearest training view; at one spacing the term fired on a dense capture's held-out views (demo scene at 160x120:
 NLL -2.635 -> -2.597), at two it leaves them as they were and still finds the half ring's other side."""
 BLUR = 2
-"""Half-width in pixels of the window the squared differences are averaged over."""
+"""Half-width in pixels of the window the squared differences are averaged over (``_window_mean``)."""
 MIN_GATE = 1.0
 """Degrees: the smallest ``gate`` (a capture of one view, or of views from one place)."""
 VIEW_CHUNK = 8
@@ -230,7 +231,7 @@ class ViewConsistency:
             unlooked = self._outside_every_image(points, inside_any)  # [S] (best = inf there: no view saw them)
             diff = torch.where(unlooked, torch.full_like(diff, self.palette_var), diff)  # weight 1 there (best = inf)
         full = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(0, where, diff * weight)
-        out = _box_mean(full.reshape(h, w))[None, ..., None]
+        out = _window_mean(full.reshape(h, w))[None, ..., None]
         if self.finer_detail > 0.0:  # not averaged: the edges it follows are a pixel wide
             # r capped at 1e6 so that r^2 stays a float32 number (a footprint near 0 would overflow to inf, and
             # inf x a zero gradient is NaN); a view a million times finer than every photo is far past any capture
@@ -410,13 +411,21 @@ def _depth_edges(depth: Tensor) -> Tensor:
     return ((hi - lo) > DEPTH_JUMP * depth[None, None])[0, 0]
 
 
-def _box_mean(values: Tensor) -> Tensor:
-    """[H,W] the mean of ``values`` [H,W] over each ``(2 BLUR + 1)^2`` window (its part inside the image). Pixels
-    without a difference count as 0: averaged over the found ones alone, the few pixels at an occlusion's edge that
-    find a view, often with a large difference, would spread over the whole window (half ring: AUSE-MAE 0.193
-    against 0.174, NLL -1.08 against -1.17)."""
+def _window_mean(values: Tensor) -> Tensor:
+    """[H,W] the weighted mean of ``values`` [H,W] over each ``(2 BLUR + 1)^2`` window (its part inside the image),
+    with binomial weights (1 4 6 4 1 along each axis): a lone large difference spreads as a round blob that fades
+    from its pixel, where a flat box drew a hard-edged square around it (a report panel showed one). The same
+    numbers as the box within noise (2026-11-29: demo AUSE-MAE 0.1247 against 0.1249, NLL -3.4327 against -3.4321;
+    half ring unseen-surface RGB AUC 0.948 against 0.949, AUSE-MAE 0.122 against 0.124; sparse views 0.121 against
+    0.122). Pixels without a difference count as 0: averaged over the found ones alone, the few pixels at an
+    occlusion's edge that find a view, often with a large difference, would spread over the whole window (half ring:
+    AUSE-MAE 0.193 against 0.174, NLL -1.08 against -1.17)."""
     k = 2 * BLUR + 1
-    return F.avg_pool2d(values[None, None], k, stride=1, padding=BLUR, count_include_pad=False)[0, 0]
+    w1 = torch.tensor([math.comb(k - 1, i) for i in range(k)], dtype=values.dtype, device=values.device)  # [k]
+    w2 = (w1[:, None] * w1[None, :])[None, None]  # [1,1,k,k]
+    num = F.conv2d(values[None, None], w2, padding=BLUR)
+    den = F.conv2d(torch.ones_like(values)[None, None], w2, padding=BLUR)  # the window's weight inside the image
+    return (num / den)[0, 0]
 
 
 __all__ = ["ViewConsistency", "capture_spacing"]
