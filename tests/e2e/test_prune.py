@@ -109,6 +109,34 @@ def test_the_pruned_run_is_evaluated_as_evaluate_does_and_evaluate_keeps_it(prun
     assert again == report and "already evaluated" in " ".join(capsys.readouterr().err.split())
 
 
+def test_the_pruned_run_counts_empty_rays_against_its_source_s_coverage(pruned, tiny_run_path, tmp_path):  # noqa: F811
+    """Pruning changes the model, not what the photos showed: the pruned run's evaluation takes the source model's
+    coverage (recorded in prune.json), where its own would sink with the Gaussians removed (to 0.001 for a prune to
+    0.1 %, and then no ray counts as empty)."""
+    from uncertsplat.baselines.runs import load_run as load
+
+    out, result, _ = pruned
+    src = load(tiny_run_path, CPU)
+    scene = src.load_scene()
+    own = src.coverage(scene.scene_scale, CPU)
+    assert result.source_coverage == pytest.approx(own) and PruneReport.read(out / "prune.json").source_coverage == own
+    pruned_run = load(out, CPU)
+    assert pruned_run.coverage(scene.scene_scale, CPU) == own
+    # the pruned model's own coverage is lower: what the evaluation used before it was recorded
+    from uncertsplat.gaussians import variational
+    from uncertsplat.uncertainty.mc import training_coverage
+
+    sample = variational.expected_render_sample(pruned_run.model, **pruned_run.sample_kwargs)
+    train = list(scene.split["train"])
+    assert training_coverage(sample, scene.cameras[train], pruned_run.render_fn(scene.scene_scale, CPU)) < own
+    # a prune.json that does not read: the run's own coverage, as before
+    copy = tmp_path / "copy"
+    import shutil
+    shutil.copytree(out, copy)
+    (copy / "prune.json").write_text("{")
+    assert load(copy, CPU).coverage(scene.scene_scale, CPU) < own
+
+
 def test_a_dry_run_reports_the_after_row_the_written_prune_does(pruned, tiny_run_path):  # noqa: F811
     """--dry-run previews the prune: its 'after' row is the pruned model evaluated as `evaluate` does, as the written
     prune's (it kept the source's fitted noise and tails: AUSE 0.189 against 0.184 on the demo run)."""

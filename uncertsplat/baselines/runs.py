@@ -66,12 +66,15 @@ class LoadedRun:
     _photo_exposure: PhotoExposure | None = field(default=None, init=False, repr=False)  # ``photo_exposure``, once
     _scene: SceneData | None = field(default=None, init=False, repr=False)  # ``load_scene``, once
 
-    def with_model(self, model: GaussianModel) -> LoadedRun:
+    def with_model(self, model: GaussianModel, coverage: float | None = None) -> LoadedRun:
         """This run with another ``model`` (e.g. a pruned subset): what depends on the model is computed again
-        (``coverage``), what depends on the scene alone is kept (``photo_exposure``, which reads the scene)."""
+        (``coverage``, unless given: a pruned subset is measured against its source's, as ``source_coverage``), what
+        depends on the scene alone is kept (``photo_exposure``, which reads the scene)."""
         out = dataclasses.replace(self, model=model)
         out._photo_exposure = self._photo_exposure
         out._scene = self._scene
+        if coverage is not None:
+            out._coverage = coverage
         return out
 
     def with_scene(self, scene: SceneData) -> LoadedRun:
@@ -106,13 +109,18 @@ class LoadedRun:
         """The opacity the model reaches on the surfaces its training views saw (``uncertainty.mc.
         training_coverage`` over the scene's training cameras; ``Sampler.coverage``), computed once per loaded
         run. ``sample``: the Gaussians to render (default: the model's expected render). 1 when the empty-ray
-        term does not apply (transparent training images) or the run records no scene.
+        term does not apply (transparent training images) or the run records no scene. A pruned run (``prune.json``
+        beside its model) takes its source model's (``PruneReport.source_coverage``): pruning changed the model,
+        not what the photos showed, and a model pruned to a few Gaussians would otherwise call nothing empty.
         """
         cached = getattr(self, "_coverage", None)
         if cached is not None:
             return cached
         value = 1.0
-        if self.empty_std() is not None and self.scene_path is not None:
+        source = self.source_coverage()
+        if self.empty_std() is not None and source is not None:
+            value = source
+        elif self.empty_std() is not None and self.scene_path is not None:
             from uncertsplat.gaussians import variational
             from uncertsplat.uncertainty.mc import training_coverage
 
@@ -124,6 +132,19 @@ class LoadedRun:
             value = training_coverage(sample, scene.cameras[train].to(device), self.render_fn(scene_scale, device))
         self._coverage = value
         return value
+
+    def source_coverage(self) -> float | None:
+        """The unpruned source model's coverage a pruned run records (``PruneReport.source_coverage``; None: not a
+        pruned run, one pruned before it was recorded, or its prune.json unreadable)."""
+        from uncertsplat.schemas.prune import PruneReport
+
+        path = self.run_dir / PruneReport.FILE_NAME
+        if not path.is_file():
+            return None
+        try:
+            return PruneReport.read(path).source_coverage
+        except Exception:  # a damaged or foreign prune.json: the run's own coverage, as before it was recorded
+            return None
 
     def render_fn(self, scene_scale: float, device: torch.device) -> Callable:
         """``render_fn(sample, cameras)`` with the run's background, tile size and near plane (as in training)."""

@@ -145,10 +145,10 @@ class PruneReport(SchemaFile):
     """``OUT/prune.json``: what ``prune`` removed, by which score, and what it cost on held-out views."""
 
     FILE_NAME = "prune.json"
-    SCHEMA_VERSION = 2
+    SCHEMA_VERSION = 3
     WRITTEN_BY = "uncertsplat prune"
 
-    schema_version: int = 2
+    schema_version: int = 3
     source_run: str
     source_model: str
     source_model_sha256: str
@@ -167,6 +167,10 @@ class PruneReport(SchemaFile):
     score_seconds: float
     dry_run: bool
     device: str
+    source_coverage: float | None = Field(None, gt=0.0, le=1.0)
+    """The opacity the source model reached on its training views' surfaces (``LoadedRun.coverage``): the pruned
+    run's evaluation counts its rays as partly empty below this, not below its own (a model pruned to 0.1 % covers
+    0.001 of its training pixels and would call nothing empty). None in files before version 3."""
     notes: list[str] = Field(default_factory=list)
     score_stats: dict[str, ScoreStats]
     metrics: PruneMetricSet
@@ -183,7 +187,10 @@ class PruneReport(SchemaFile):
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
         # version 0 (no schema_version key) had version 1's layout, its sweep without the version and tolerance;
-        # version 1's metrics had no expected-render PSNR (None) and its sweep decided on the samples' mean
+        # version 1's metrics had no expected-render PSNR (None) and its sweep decided on the samples' mean; version 2
+        # had no source_coverage (None: the pruned run's evaluation measures its own, as it did)
+        if version == 2:
+            return data
         if version not in (0, 1):
             return None
         sweep = data.get("sweep")

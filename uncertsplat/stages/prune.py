@@ -118,6 +118,9 @@ class _Measure:
                                         load_views=partial(load_view_set, scene, depth=False, keep_8bit=True), write=False,
                                         calibration_indices=scene.split.get("calibration", ()))
         self._dof: tuple[float | None] | None = None  # the source's predictive tails, once known (``dof``)
+        # every pruned model's rays are counted empty against the source's coverage (``PruneReport.source_coverage``)
+        self.source_coverage = (loaded.coverage(scene.scene_scale, device) if loaded.empty_std() is not None
+                                else None)
         self.meta = {"variant": loaded.config.variant, "extent": loaded.extent, "step": loaded.step,
                      "sh_degree_active": loaded.sh_degree,
                      "temperature": loaded.config.variational.gate_temperature}
@@ -195,7 +198,7 @@ class _Measure:
         uncertainty = {}
         if full:
             dof = self.dof()
-            loaded = self.loaded.with_model(model)
+            loaded = self.loaded.with_model(model, coverage=self.source_coverage)
             residual = self.residual
             if residual is not None and keep is not None:
                 residual = residual.subset(keep.to(residual.variance.device))
@@ -425,7 +428,7 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         num_samples=cfg.num_samples, metric_split=split, metric_views=[scene.cameras.image_names[i] for i in indices],
         score_views=list((free_cams if score_name == "free-space" else score_cams).image_names),
         score_seconds=score_seconds, dry_run=cfg.dry_run,
-        device=str(device), notes=notes,
+        device=str(device), notes=notes, source_coverage=measure.source_coverage,
         score_stats={k: ScoreStats(min=float(v[carriers].min()), median=float(v[carriers].median()),
                                    max=float(v[carriers].max())) for k, v in scores.items()},
         metrics=PruneMetricSet(before=before), sweep=sweep,
@@ -458,6 +461,7 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         if cfg.dry_run and removed > 0:
             with tempfile.TemporaryDirectory(prefix="uncertsplat-prune-dry-") as tmp:
                 _write_model(Path(tmp), run_dir, loaded, measure.meta, pruned, keep, carriers, scores)
+                result.write(Path(tmp) / PruneReport.FILE_NAME)  # its source_coverage, as the written run's
                 _evaluate_written(Path(tmp), result, measure, device, save_maps=False)
             notes.append("the 'after' row's uncertainty metrics are the pruned model evaluated as `evaluate` does "
                          f"(K = {cfg.num_samples}, seed {cfg.seed}; in a temporary folder, not kept): the same prune with "
