@@ -24,8 +24,8 @@ unit-variance t scaled by the std, i.e. scipy's ``t(df=dof, loc=mean, scale=std 
 ``scale=std`` (``eval.tails``; ``Prediction.interval``, ``examples/intervals.py``). ``rgb_mean`` is the samples'
 mean as rendered, not clamped; ``evaluate`` scores, and writes to its EXR maps, the mean clamped to [0, 1].
 
-``predict`` may be called from several threads at once (a thread pool over candidate views: 2-3x on 2 cores with a
-variational run), each call getting the maps a serial call gets.
+``predict`` may be called from several threads at once, each call getting the maps a serial call gets (not faster
+than one after another where the kernels already use every core: x0.75-1.32 with a pool of 2 on 2 cores).
 """
 
 from __future__ import annotations
@@ -175,6 +175,9 @@ def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
             if not (torch.allclose(R @ R.T, torch.eye(3, dtype=m.dtype), rtol=0, atol=1e-5)
                     and float(torch.linalg.det(R)) > 0):  # (a reflection is orthogonal too)
                 what = "has a rotation part that is not one (not orthonormal, or a reflection)"
+                if str(getattr(poses, "dtype", "")).rsplit(".", 1)[-1] in ("float16", "bfloat16", "half"):
+                    what += (f" to 1e-5; the poses are {str(poses.dtype).rsplit('.', 1)[-1]}, whose 2-3 significant "
+                             "digits cannot hold a rotation that closely: pass them as float32 or float64")
         if what is not None:
             raise UserError(f"cam_from_source must be rigid transforms (a rotation and a translation): pose {i} {what}",
                             hint=_RIGID_HINT)
@@ -189,9 +192,11 @@ def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
     return m
 
 
-def _intrinsics(K, n: int) -> Tensor:
+def _intrinsics(K, n: int, width: int, height: int, outside_ok: bool = False) -> Tensor:
     """[1 or n,3,3] float64 pinhole intrinsics of ``cameras_from_source``: refused when the renderer could not take
-    them as given (it reads fx, fy, cx, cy alone: a skew or another last row would be dropped without a word)."""
+    them as given (it reads fx, fy, cx, cy alone: a skew or another last row would be dropped without a word), and,
+    unless ``outside_ok``, with the principal point outside the ``width`` x ``height`` image (a full-size photo's K
+    given with a smaller size renders a zoomed, off-centre patch whose std looks more certain, not an error)."""
     try:
         Ks = torch.as_tensor(K, dtype=torch.float64)
     except (TypeError, ValueError, RuntimeError) as e:
@@ -212,9 +217,17 @@ def _intrinsics(K, n: int) -> Tensor:
         elif abs(float(k[0, 1])) > 1e-6 * fx or not math.isfinite(float(k[0, 1])) or float(k[1, 0]) != 0.0:
             what = (f"has the skew K[0,1] = {float(k[0, 1]):g} (or K[1,0] = {float(k[1, 0]):g}): the renderer takes "
                     "pinhole cameras without skew")
+        hint = "Pass [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels."
+        if what is None and not outside_ok and not (0.0 <= cx <= width and 0.0 <= cy <= height):
+            what = (f"has its principal point at ({cx:g}, {cy:g}), outside the {width}x{height} image"
+                    + (f"; it seems to belong to images of about {2 * cx:.0f}x{2 * cy:.0f} pixels"
+                       if cx > 0 and cy > 0 else ""))
+            hint = (f"Scale fx, fy, cx and cy by the ratio of the sizes for a {width}x{height} render (or pass the "
+                    "size the intrinsics were measured at); a crop whose optical centre lies outside it takes "
+                    "principal_point_outside=True.")
         if what is not None:
             where = "K" if len(Ks) == 1 and n != 1 else f"K of pose {i}"
-            raise UserError(f"{where} {what}", hint="Pass [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels.")
+            raise UserError(f"{where} {what}", hint=hint)
     return Ks
 
 
@@ -342,7 +355,7 @@ class Predictor:
 
     def cameras_from_source(self, cam_from_source: Tensor, K: Tensor, width: int, height: int,
                             names: tuple[str, ...] = (), *, transform: str = "cam_from_world",
-                            axes: str = "opencv") -> Cameras:
+                            axes: str = "opencv", principal_point_outside: bool = False) -> Cameras:
         """Cameras given in the scene's own frame (the COLMAP model's, your map's), in the run's normalised world.
 
         Args:
@@ -360,17 +373,20 @@ class Predictor:
             axes: the camera's axes, ``"opencv"`` (x right, y down, z forward: COLMAP, OpenCV, ROS optical frames) or
                 ``"opengl"`` (x right, y up, z backward: OpenGL, Blender, NeRF's ``transforms.json``; ``"blender"``
                 is the same).
+            principal_point_outside: accept a principal point outside the image (a crop of a larger view); refused
+                by default, as ``train`` refuses it (``SceneConfig.principal_point_outside``): it is what the full-size
+                photo's K given with a smaller image size looks like.
 
         Raises:
-            UserError: a pose or K of the wrong shape, not rigid or not finite, unusable intrinsics (the message names
-                the pose's index), names that do not match the poses, an image size that is not a positive whole
-                number.
+            UserError: a pose or K of the wrong shape, not rigid or not finite, unusable intrinsics or a principal
+                point outside the image (the message names the pose's index), names that do not match the poses, an
+                image size that is not a positive whole number.
         """
         from uncertsplat.sfm.scene import normalized_cam_from_world
 
         cfs = _cam_from_world(cam_from_source, transform, axes)
-        Ks = _intrinsics(K, len(cfs))
         width, height = _whole(width, "width", 1), _whole(height, "height", 1)
+        Ks = _intrinsics(K, len(cfs), width, height, principal_point_outside)
         names = tuple(names) or tuple(f"pose_{i}" for i in range(len(cfs)))
         if len(names) != len(cfs):
             raise UserError(f"{len(names)} name(s) for {len(cfs)} pose(s): give one name per pose (or none)")
@@ -397,10 +413,13 @@ class Predictor:
         if frame not in ("source", "world"):
             raise UserError(f"frame must be 'source' or 'world', got {frame!r}")
         pts = torch.as_tensor(points, dtype=torch.float64)
-        if pts.ndim == 1:
+        given = tuple(pts.shape)
+        if pts.ndim == 1 and pts.numel() == 0:  # an empty list of points (a planner's empty waypoint list): [0,3]
+            pts = pts.reshape(0, 3)
+        elif pts.ndim == 1:
             pts = pts[None]
         if pts.ndim != 2 or pts.shape[-1] != 3:
-            raise UserError(f"points must be [P,3] or [3], got {tuple(pts.shape)}")
+            raise UserError(f"points must be [P,3] or [3], got {given}")
         if not bool(torch.isfinite(pts).all()):
             bad = int((~torch.isfinite(pts).all(-1)).nonzero()[0, 0])
             raise UserError(f"point {bad} is not finite: {pts[bad].tolist()}")

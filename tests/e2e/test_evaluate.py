@@ -945,6 +945,9 @@ class TestPredictor:
         path.write_bytes(bytes(data))
         with pytest.raises(UserError, match="is gone.*predictive.pt cannot be read .*checksum mismatch"):
             Predictor.load(run, "cpu")
+        torch.save({"format": 1}, path)  # a plain torch file, as versions before the checksum wrote: said so
+        with pytest.raises(UserError, match="is gone.*predictive.pt was written by an earlier version"):
+            Predictor.load(run, "cpu")
         path.write_bytes(b".")  # (a file torch's unpickler fails on with an IndexError)
         with pytest.raises(UserError, match="is gone.*predictive.pt cannot be read"):
             Predictor.load(run, "cpu")
@@ -1031,8 +1034,11 @@ class TestPredictor:
         assert bare._free is not None and len(bare._free.cameras) == len(train)
         with pytest.raises(UserError, match="point 1 is not finite"):
             pred.seen_free([[0.0, 0.0, 0.0], [float("nan"), 0.0, 0.0]])
-        with pytest.raises(UserError, match=r"points must be \[P,3\]"):
+        with pytest.raises(UserError, match=r"points must be \[P,3\] or \[3\], got \(4, 2\)"):
             pred.seen_free(torch.zeros(4, 2))
+        with pytest.raises(UserError, match=r"got \(2,\)"):  # the shape given, not the one made of it
+            pred.seen_free([1.0, 2.0])
+        assert pred.seen_free([]).shape == (0,) and pred.seen_free(np.zeros((0, 3))).shape == (0,)  # no waypoints
         with pytest.raises(UserError, match="frame must be"):
             pred.seen_free(torch.zeros(1, 3), frame="camera")
 

@@ -115,6 +115,32 @@ def test_refuses_intrinsics_the_renderer_would_not_take_as_given(row, col, value
         pred.cameras_from_source(poses, bad, 128, 96)
 
 
+def test_refuses_a_principal_point_outside_the_image_unless_told():
+    """A 4032x3024 photo's K with a 320x240 size rendered a 12x-zoomed, off-centre patch whose std looked more
+    certain than the right camera's, without a word (``train`` refuses the same mistake)."""
+    pred = bare_predictor()
+    full = torch.tensor([[3000.0, 0.0, 2016.0], [0.0, 3000.0, 1512.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    with pytest.raises(UserError, match=r"K has its principal point at \(2016, 1512\), outside the 320x240 image; it "
+                                        r"seems to belong to images of about 4032x3024 pixels") as err:
+        pred.cameras_from_source(torch.stack([a_pose(), a_pose()]), full, 320, 240)
+    assert "principal_point_outside=True" in err.value.hint
+    cams = pred.cameras_from_source(a_pose(), full, 320, 240, principal_point_outside=True)  # a crop: accepted
+    assert float(cams.K[0, 0, 2]) == 2016.0
+    # on the image's border is inside; K of another size that fits is the user's to choose
+    edge = K.clone()
+    edge[0, 2], edge[1, 2] = 128.0, 0.0
+    pred.cameras_from_source(a_pose(), edge, 128, 96)
+    with pytest.raises(UserError, match="K of pose 1 has its principal point at"):
+        pred.cameras_from_source(torch.stack([a_pose(), a_pose()]), torch.stack([K, full]), 128, 96)
+
+
+def test_half_precision_poses_are_told_to_pass_float32():
+    pose = a_pose().to(torch.float16)
+    with pytest.raises(UserError, match="the poses are float16, whose 2-3 significant digits cannot hold a rotation"):
+        bare_predictor().cameras_from_source(pose, K, 128, 96)
+    bare_predictor().cameras_from_source(a_pose().float(), K, 128, 96)  # the pose in float32 is taken
+
+
 def test_refuses_sizes_and_counts_that_are_not_whole_numbers():
     pred = bare_predictor()
     with pytest.raises(UserError, match="width must be a whole number, got 320.7"):

@@ -136,8 +136,12 @@ def read_predictive(loaded, cfg, scene_folder: str | Path) -> tuple[KeptPredicti
         return None, "an ensemble's predictive is not kept (it has no single model file)"
     if not path.is_file():
         return None, f"{path} is missing"
+    raw = path.read_bytes()
+    if raw[:4] == b"PK\x03\x04":  # a plain torch file: what versions before the checksum (2026-11-29) wrote
+        return None, (f"{path} was written by an earlier version of uncertsplat (before the file carried a checksum); "
+                      "`uncertsplat evaluate` where the scene is writes it again")
     try:
-        data = decode(path.read_bytes(), path)
+        data = decode(raw, path)
     except Exception as err:  # noqa: BLE001 - a damaged or foreign file is as good as none: the reason is said
         return None, f"{path} cannot be read ({getattr(err, 'message', err)})"
     try:
