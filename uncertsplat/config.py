@@ -530,7 +530,8 @@ class EvalConfig(_Base):
     units (its COLMAP model's, e.g. a metric map's), the known factor of ``RUN/scene.json``."""
     depth_align: Literal["median", "lsq"] = "median"
     std_floor: float = Field(1e-3, gt=0.0, le=0.01)
-    """The NLL uses max(std, std_floor) so a zero std does not give an infinite NLL. At most 0.01 (1 % of the colour
+    """The NLL uses max(std, std_floor) so a zero std does not give an infinite NLL (the depth NLL: std_floor in the
+    run's normalised units, carried into the GT maps' units with the depths). At most 0.01 (1 % of the colour
     range): the std factor is fitted with the floor under the raw std and applied before the metrics' floor, which
     agree only while the floor is well below the std (a floor of 0.1 made the calibrated calibration error 0.14
     against a raw 0.03)."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import shutil
 from functools import partial
 from pathlib import Path
@@ -318,6 +319,24 @@ def test_given_depth_gt_folder_estimates_scale(tiny_run_path, tiny_scene_path, t
     assert rep.depth_scale.method == "median"
     assert rep.depth_scale.scale > 0 and np.isfinite(rep.depth_scale.scale)
     assert meta  # the scene records its generator settings
+
+
+def test_the_depth_nll_of_gt_maps_in_other_units_moves_by_the_log_of_the_unit_alone(tiny_run_path, tiny_scene_path,
+                                                                                     tmp_path):
+    """The same GT maps written in km (x0.001): every depth length scales, so the depth NLL moves by ln 0.001 and
+    nothing more (its std floor was taken in the maps' units: +1.34 nats beyond that at x0.001)."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    km = tmp_path / "depth_km"
+    km.mkdir()
+    for p in (tiny_scene_path / "depth").glob("*.npy"):
+        np.save(km / p.name, np.load(p) * 1e-3)
+    cfg = dict(num_samples=2, max_views=2, save_maps=False, reuse=False)
+    base = evaluate.run(run, EvalConfig(**cfg, depth_gt=tiny_scene_path / "depth"), device=torch.device("cpu"))
+    small = evaluate.run(run, EvalConfig(**cfg, depth_gt=km), device=torch.device("cpu"))
+    assert small.depth_scale.scale == pytest.approx(base.depth_scale.scale * 1e-3, rel=1e-5)
+    assert small.mean.depth_rmse == pytest.approx(base.mean.depth_rmse * 1e-3, rel=1e-4)
+    assert small.mean.depth_nll == pytest.approx(base.mean.depth_nll + math.log(1e-3), abs=1e-3)
 
 
 def test_a_depth_gt_folder_in_the_scene_s_units_and_a_factor_that_cannot_be_right(tiny_run_path, tiny_scene_path,

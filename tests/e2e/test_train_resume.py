@@ -243,6 +243,19 @@ def test_a_lone_far_point_starts_no_gaussian():
     assert len(t.model) == n + 50 and t.model.params["means"].abs().max() < 100
     (note,) = [m for m in t.init_notes if "far outside the rest" in m]
     assert f"1 of the scene's {n + 1:,} sparse points" in note and "init_outlier_factor=0" in note
+    centers = scene.cameras.centers.double()
+    reach = float((torch.tensor([1e6] * 3, dtype=torch.float64) - centers.mean(0)).norm()) / float(
+        (centers - centers.mean(0)).norm(dim=-1).max())
+    assert f"up to {reach:.3g}x the cameras' radius from their centre" in note
+    # the same scene in millimetres, not normalised (scene.normalize = false): the same ratio (it was the point's
+    # distance from the origin in the scene's units, 1000x larger)
+    cams = scene.cameras
+    cfw = cams.cam_from_world.clone()
+    cfw[:, :3, 3] *= 1000.0
+    mm = replace(moved, points=moved.points * 1000.0,
+                 cameras=type(cams)(cfw, cams.K, cams.width, cams.height, cams.image_names))
+    (note_mm,) = [m for m in Trainer(mm, toy_config(init_num_random=50), tr, te).init_notes if "far outside" in m]
+    assert f"up to {reach:.3g}x the cameras' radius" in note_mm
     kept = Trainer(moved, toy_config(init_outlier_factor=0), tr, te)
     assert len(kept.model) == n + 1 and not any("far outside" in m for m in kept.init_notes)
 

@@ -789,7 +789,14 @@ def test_depth_lengths_are_shown_in_the_scenes_units(tmp_path):
     html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
     rmse = table_rows(html, "metrics-0")["mean"]
     cell = next(c for c in rmse if c[0] == "depth_rmse")
-    assert cell == ("depth_rmse", repr(m.mean.depth_rmse), format(4 * m.mean.depth_rmse, ".4f"))
+    assert cell == ("depth_rmse", repr(m.mean.depth_rmse), format(4 * m.mean.depth_rmse, ".4g"))  # 0.5788
+    # a scene in km (a factor of 0.001): the digits are kept, where a fixed 4 decimals showed 0.0006 / 0.0003
+    info.world_from_source = [[1000.0, 0, 0, 0.1], [0, 1000.0, 0, 0], [0, 0, 1000.0, 0], [0, 0, 0, 1]]
+    info.write(run / "scene.json")
+    km = table_rows(stage.run([run], tmp_path / "km", ReportConfig()).read_text(), "metrics-0")["mean"]
+    assert next(c for c in km if c[0] == "depth_rmse")[2] == "0.0001447"
+    info.world_from_source = [[0.25, 0, 0, 0.1], [0, 0.25, 0, 0], [0, 0, 0.25, 0], [0, 0, 0, 1]]
+    info.write(run / "scene.json")
     assert "Depth RMSE (scene units)" in html and "Depth MAE (scene units)" in html
     assert "normalised values x4 (1 / the scale of scene.json&#x27;s world_from_source)" in html
     assert "depth scale" not in html  # the alignment is named for what it is

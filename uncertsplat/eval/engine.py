@@ -734,7 +734,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if cfg.empty_rays and sampler.empty_std is not None:
         terms.append(f"an unknown surface where rays are covered less than the model covers its training views "
                      f"(alpha {sampler.coverage:.3f}; colour std {sampler.empty_std[0]:.3f}, depth "
-                     f"std {sampler.empty_std[1]:.3g})")
+                     f"std {sampler.empty_std[1]:.3g} in the run's normalised units)")
     notes.append(STD_TERMS + " + ".join(terms))
 
     results: list[_ViewResult] = []
@@ -851,8 +851,11 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                 depth_ause_mae=dsp["mae"].ause if dsp["mae"].num_elements else None,
                 depth_ause_rmse=dsp["rmse"].ause if dsp["rmse"].num_elements else None,
                 depth_abs_rel=dmet.abs_rel, depth_rmse=dmet.rmse, depth_mae=dmet.mae,
-                depth_nll=float(gaussian_nll(gt_depth[j], r.depth_mean * scale.scale, d_std, std_floor=cfg.std_floor,
-                                             mask=valid)) if dmet.num_pixels else None,
+                # the floor in the run's normalised units, carried into the GT's like the depths: taken in the GT's own
+                # units it depended on them (maps written in km or mm moved the NLL by 1.3 nats beyond ln f)
+                depth_nll=float(gaussian_nll(gt_depth[j], r.depth_mean * scale.scale, d_std,
+                                             std_floor=cfg.std_floor * scale.scale, mask=valid))
+                if dmet.num_pixels else None,
                 depth_spearman=spearman(d_std, d_err.abs(), mask=valid).value,
             )
             r.curves["depth"] = dsp

@@ -51,8 +51,8 @@ METRIC_SPECS: tuple[MetricSpec, ...] = (
     MetricSpec("depth_ause_mae", "Depth AUSE MAE", ".4f", False),
     MetricSpec("depth_ause_rmse", "Depth AUSE RMSE", ".4f", False),
     MetricSpec("depth_abs_rel", "Depth AbsRel", ".4f", False),
-    MetricSpec("depth_rmse", "Depth RMSE", ".4f", False),
-    MetricSpec("depth_mae", "Depth MAE", ".4f", False),
+    MetricSpec("depth_rmse", "Depth RMSE", ".4g", False),  # lengths in the scene's units: any magnitude
+    MetricSpec("depth_mae", "Depth MAE", ".4g", False),
     MetricSpec("depth_nll", "Depth NLL (nats)", ".3f", False),
     MetricSpec("depth_spearman", "Depth Spearman", ".3f", True),
     MetricSpec("seconds", "MC time (s)", ".3f", False),

@@ -290,9 +290,14 @@ class Trainer:
         far = far_points(points, factor=cfg.init_outlier_factor, extent=self.extent)  # [P]
         far_notes = []
         if far.any():  # before the random points' box, which such a point would stretch too
+            # in the cameras' radius from their centre (the normalised frame's unit, but also without normalisation)
+            centers = self.scene.cameras.centers.double()  # [C,3]
+            mid = centers.mean(0)
+            radius = float((centers - mid).norm(dim=-1).max()) or 1.0
+            reach = float((points[far].double() - mid.to(points.device)).norm(dim=-1).max()) / radius
             far_notes.append(f"{int(far.sum()):,} of the scene's {points.shape[0]:,} sparse points lie far outside the "
                              f"rest (more than {cfg.init_outlier_factor:g}x its spread from its middle, up to "
-                             f"{float(points[far].double().norm(dim=-1).max()):.3g}x the cameras' radius from their centre): they "
+                             f"{reach:.3g}x the cameras' radius from their centre): they "
                              "start no Gaussian, whose size and depth would come from that distance "
                              "(--set init_outlier_factor=0 keeps them)")
             points, colors = points[~far], colors[~far]
