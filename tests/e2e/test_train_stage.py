@@ -239,6 +239,67 @@ def test_a_scene_whose_cameras_changed_is_refused(tiny_scene_path, tmp_path):  #
     assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before
 
 
+def test_a_scene_aligned_to_other_units_after_training_is_evaluated_in_them(tiny_scene_path, tmp_path):  # noqa: F811
+    """The COLMAP model scaled x1000 after training (aligned to millimetres): its cameras agree in the run's frame, so
+    the run loads, with a note; evaluate scores it again in the new units (it kept the old evaluation, whose maps'
+    depths were in the old ones, while the Predictor used the new), and keeps an evaluation made in them."""
+    pycolmap = pytest.importorskip("pycolmap")
+    import numpy as np
+
+    from uncertsplat.config import EvalConfig
+    from uncertsplat.io.images import read_exr_attribute
+    from uncertsplat.io.maps import EXR_DEPTH_TO_SOURCE
+    from uncertsplat.schemas import EvalReport
+    from uncertsplat.sfm.scene import frame_change
+    from uncertsplat.stages import evaluate
+
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    shutil.copytree(tiny_scene_path / "images", ws / "images")
+    shutil.copytree(tiny_scene_path / "sparse", ws / "sparse")
+    run = tmp_path / "run"
+    cfg = train_config_from("tiny", None, ["iterations=6", "scene.downscale=4.0", "eval_every=1000"])
+    stage.run(ws, run, cfg, torch.device("cpu"))
+    ecfg = EvalConfig(num_samples=2, max_views=1)
+    evaluate.run(run, ecfg, device=torch.device("cpu"))
+
+    def factor():
+        return read_exr_attribute(next((run / "eval" / "maps").glob("*.exr")), EXR_DEPTH_TO_SOURCE)
+
+    before = factor()
+
+    def scale(s):
+        model = pycolmap.Reconstruction(str(ws / "sparse" / "0"))
+        model.transform(pycolmap.Sim3d(s, pycolmap.Rotation3d(), np.zeros(3)))
+        model.write(str(ws / "sparse" / "0"))
+
+    scale(1000.0)
+    loaded = load_run(run)
+    loaded.load_scene()
+    assert "its units are 1000x the ones the run was trained in" in loaded.frame_note
+    evaluate.run(run, ecfg, device=torch.device("cpu"))
+    assert factor() == pytest.approx(1000.0 * before, rel=1e-5)
+    report = EvalReport.read(run / "eval" / "metrics.json")
+    assert any("frame is not the one the run was trained in" in n for n in report.notes)
+    written = (run / "eval" / "metrics.json").read_bytes()
+    evaluate.run(run, ecfg, device=torch.device("cpu"))  # made in these units: kept
+    assert (run / "eval" / "metrics.json").read_bytes() == written
+    scale(0.001)  # back to the frame it was trained in: the mm evaluation is not kept
+    again = load_run(run)
+    again.load_scene()
+    assert again.frame_note is None
+    evaluate.run(run, ecfg, device=torch.device("cpu"))
+    assert factor() == pytest.approx(before, rel=1e-5)
+    # the comparison itself
+    T = np.eye(4)
+    T[:3, :3] *= 0.25
+    moved = T.copy()
+    moved[:3, :3] *= 1e-3
+    moved[:3, 3] = [0.5, 0.0, 0.0]
+    assert frame_change(T, T) is None
+    assert frame_change(T, moved) == "its units are 1000x the ones the run was trained in, its origin moved"
+
+
 def test_a_start_that_failed_before_training_can_be_run_again(tiny_scene_path, tmp_path):  # noqa: F811
     """train stopped by a photo it could not read leaves config.json and scene.json; once the photo is mended the
     same command starts the run (it said "the run folder already exists ... --resume"), while a run with a step

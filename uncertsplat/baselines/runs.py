@@ -65,6 +65,9 @@ class LoadedRun:
     _coverage: float | None = field(default=None, init=False, repr=False)  # ``coverage``, once computed
     _photo_exposure: PhotoExposure | None = field(default=None, init=False, repr=False)  # ``photo_exposure``, once
     _scene: SceneData | None = field(default=None, init=False, repr=False)  # ``load_scene``, once
+    frame_note: str | None = field(default=None, init=False, repr=False)
+    """Set by ``load_scene``: how the scene folder's source frame differs from the one scene.json records
+    (``sfm.scene.frame_change``), or None."""
 
     def with_model(self, model: GaussianModel, coverage: float | None = None) -> LoadedRun:
         """This run with another ``model`` (e.g. a pruned subset): what depends on the model is computed again
@@ -72,7 +75,7 @@ class LoadedRun:
         depends on the scene alone is kept (``photo_exposure``, which reads the scene)."""
         out = dataclasses.replace(self, model=model)
         out._photo_exposure = self._photo_exposure
-        out._scene = self._scene
+        out._scene, out.frame_note = self._scene, self.frame_note
         if coverage is not None:
             out._coverage = coverage
         return out
@@ -81,7 +84,7 @@ class LoadedRun:
         """This run with ``scene`` standing in for its scene folder (``load_scene`` returns it): the scene as an
         earlier evaluation loaded it (``stages.predictive_cache``), where the folder itself is not."""
         out = dataclasses.replace(self)
-        out._scene = scene
+        out._scene, out.frame_note = scene, self.frame_note
         return out
 
     @property
@@ -261,7 +264,7 @@ class LoadedRun:
         return self._scene
 
     def _read_scene(self) -> SceneData:
-        from uncertsplat.sfm.scene import load_scene, require_same_cameras, with_training_views
+        from uncertsplat.sfm.scene import frame_change, load_scene, require_same_cameras, with_training_views
 
         if self.scene_path is None:
             raise UserError("the run does not record its scene (scene.json is missing)", path=self.run_dir,
@@ -281,6 +284,14 @@ class LoadedRun:
         # its renders would not line up with the photos: every score would measure the misalignment
         require_same_cameras(info.cameras, data, Path(self.scene_path),
                              "its renders and scores against these would be wrong")
+        change = frame_change(info.world_from_source, data.world_from_source)
+        if change is not None:
+            from uncertsplat.console import console
+
+            self.frame_note = (f"the scene folder's frame is not the one the run was trained in ({change}; its cameras "
+                               "agree): depths and poses in the scene's units follow the folder as it is now, not "
+                               "scene.json's world_from_source")
+            console.print(f"[yellow]note:[/] {self.frame_note}")
         # measured against the views it trained on (a later version's split rules may differ: pose twins)
         return with_training_views(data, info.train)
 

@@ -482,7 +482,7 @@ def _depth_facts(info, factor: float | None) -> list[tuple[str, str]]:
                                      + (f"; the depth maps are in the scene's units (x{factor:.6g})" if factor else "")))
     elif factor is not None:
         facts.append(("depth units", f"the scene's own (its GT depth's or COLMAP model's): depth RMSE, MAE and the "
-                                     f"maps are the run's normalised values x{factor:.6g} (1 / the scale of scene.json's "
+                                     f"maps are the run's normalised values x{factor:.6g} (1 / the scale of the scene's "
                                      f"world_from_source); depth NLL stays per normalised unit (add "
                                      f"ln {factor:.4g} = {math.log(factor):+.3f} for the scene's)"))
     else:

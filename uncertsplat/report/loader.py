@@ -92,12 +92,34 @@ class RunData:
     def depth_to_source(self) -> float | None:
         """The factor that takes the run's normalised lengths (depth maps, depth RMSE/MAE) to the scene's own units:
         1 / s of scene.json's ``world_from_source`` (x_run = s x_source + t), as ``evaluate`` writes it into the maps'
-        ``uncertsplat:depth_to_source``; None without a valid scene.json."""
+        ``uncertsplat:depth_to_source``; None without a valid scene.json. The evaluation's own factor (the header of its
+        first map) where it has maps: an evaluation made after the scene folder's frame changed (a model aligned to
+        metres after training) is in the folder's units, which scene.json does not record."""
+        written = self._maps_factor()
+        if written is not None:
+            return written
         if self.scene_info is None:
             return None
         m = np.asarray(self.scene_info.world_from_source, dtype=np.float64)
         s = similarity_scale(m) if m.shape == (4, 4) else 0.0
         return 1.0 / s if math.isfinite(s) and s > 0 else None
+
+    def _maps_factor(self) -> float | None:
+        """``uncertsplat:depth_to_source`` of the first EXR map of the evaluation (read once), None without one."""
+        if not hasattr(self, "_maps_factor_value"):
+            from uncertsplat.io.images import read_exr_attribute
+            from uncertsplat.io.maps import EXR_DEPTH_TO_SOURCE
+
+            value = None
+            maps = sorted(self.maps_dir.glob("*.exr")) if self.maps_dir.is_dir() else []
+            if maps:
+                try:
+                    got = read_exr_attribute(maps[0], EXR_DEPTH_TO_SOURCE)
+                    value = float(got) if isinstance(got, (int, float)) and math.isfinite(got) and got > 0 else None
+                except Exception:  # an unreadable map: scene.json's factor (the maps' own problems are said elsewhere)
+                    value = None
+            self._maps_factor_value = value
+        return self._maps_factor_value
 
     @property
     def is_pruned(self) -> bool:

@@ -36,7 +36,7 @@ from uncertsplat.schemas.scene import SynthScene
 from uncertsplat.sfm.center import choose_center, random_points
 from uncertsplat.sfm.colmap_io import MODEL_FILES, ColmapModel, has_model, read_colmap_model
 from uncertsplat.sfm.transforms import TransformsScene, read_blender, read_nerfstudio
-from uncertsplat.types import Cameras, SceneData
+from uncertsplat.types import Cameras, SceneData, similarity_scale
 
 _POINT_SEED = 0  # seeds random initial points (Blender, nerfstudio) and point subsampling: loading is deterministic
 _RANDOM_POINTS = 100_000  # at most this many random initial points (what 3DGS uses for Blender scenes) ...
@@ -663,6 +663,38 @@ def require_same_cameras(recorded: dict[str, list[float]], data: SceneData, scen
                         hint="The scene folder was reconstructed again or its cameras edited after training (e.g. "
                              "`reconstruct --overwrite` into the same workspace): restore the workspace the run was "
                              f"trained on, or train a new run on this one (uncertsplat train {scene} -o NEW_RUN).")
+
+
+FRAME_CHANGE = 1e-6
+"""``frame_change``: the relative change of a scene's normalisation beyond which its source frame counts as changed."""
+
+
+def frame_change(recorded, now) -> str | None:
+    """How the scene folder's source frame differs from the one a run recorded (``RunScene.world_from_source`` against
+    ``SceneData.world_from_source`` as loaded now, both [4,4] world-from-source similarities), in words, or None when
+    they agree within ``FRAME_CHANGE``. The run's cameras may agree in its normalised world while the folder's frame
+    changed as a whole: a COLMAP model aligned to metres after training (``model_aligner``), or moved or turned.
+    Depths and poses in the scene's units then follow the folder as it is now."""
+    a = torch.as_tensor(recorded, dtype=torch.float64)
+    b = torch.as_tensor(now, dtype=torch.float64)
+    if a.shape != (4, 4) or b.shape != (4, 4):
+        return None
+    sa, sb = similarity_scale(a), similarity_scale(b)
+    if not (sa > 0 and sb > 0):
+        return None
+    # the same world point from either frame: x_source_now = S x_source_then with S = b^-1 a
+    S = torch.linalg.inv(b) @ a
+    ratio = sa / sb  # the source units grew by this
+    rest = S[:3, :3] / ratio - torch.eye(3, dtype=torch.float64)
+    shift = float(S[:3, 3].norm()) * sb  # in the run's normalised units
+    parts = []
+    if abs(ratio - 1.0) > FRAME_CHANGE:
+        parts.append(f"its units are {ratio:.6g}x the ones the run was trained in")
+    if float(rest.abs().max()) > FRAME_CHANGE:
+        parts.append("it is turned")
+    if shift > FRAME_CHANGE:
+        parts.append("its origin moved")
+    return ", ".join(parts) if parts else None
 
 
 def camera_changes(recorded: dict[str, list[float]], cameras: Cameras, extent: float) -> str | None:

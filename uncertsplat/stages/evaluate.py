@@ -26,6 +26,7 @@ std over the K samples.
 
 from __future__ import annotations
 
+import math
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
@@ -334,8 +335,27 @@ def kept_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device):
         scene = loaded.load_scene()
     except UserError:
         return None
+    if not _in_frame(loaded, scene, eval_dir(run_dir, cfg)):
+        return None
     names = [scene.cameras.image_names[i] for i in split_indices(scene.split, cfg)]
     return _finished(Path(run_dir), Path(loaded.source), cfg, names, device)
+
+
+def _in_frame(loaded, scene, out: Path) -> bool:
+    """Whether an evaluation kept in ``out`` is in the scene folder's frame as it loads now (the folder's frame can
+    change after training: a model aligned to metres): its maps' ``uncertsplat:depth_to_source`` is the folder's
+    factor; without maps (or a factor in them), when the frame is the one the run was trained in
+    (``LoadedRun.frame_note``)."""
+    from uncertsplat.io.images import read_exr_attribute
+
+    maps = sorted((out / "maps").glob("*.exr")) if (out / "maps").is_dir() else []
+    try:
+        factor = read_exr_attribute(maps[0], EXR_DEPTH_TO_SOURCE) if maps else None
+    except Exception:  # an unreadable map: evaluated again
+        return False
+    if not isinstance(factor, (int, float)):
+        return loaded.frame_note is None
+    return math.isclose(float(factor), float(scene.depth_scale_to_gt), rel_tol=1e-5)
 
 
 def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = False):
@@ -367,8 +387,9 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     unfinished = loaded.warn_if_unfinished()
     scene = loaded.load_scene()
     indices = split_indices(scene.split, cfg)
+    # (an evaluation made in another frame of the scene folder holds maps and depths in that frame's units: again)
     done = (_finished(run_dir, Path(loaded.source), cfg, [scene.cameras.image_names[i] for i in indices], device)
-            if cfg.split == "test" else None)
+            if cfg.split == "test" and _in_frame(loaded, scene, out) else None)
     if done is not None:
         _keep_missing_predictive(run_dir, loaded, scene, cfg, done, device)
         console.print(f"[bold]evaluate[/] {run_dir}: already evaluated with these settings, versions and device "
@@ -416,7 +437,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
                                 std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
                                 calibration_held_out=bool(scene.split.get("calibration")),
                                 noise_scale=residual.scale if residual is not None else None,
-                                notes=loaded.eval_notes(cfg.num_samples) + loaded.exposure_notes() + unfinished,
+                                notes=loaded.eval_notes(cfg.num_samples) + loaded.exposure_notes() + unfinished
+                                + ([loaded.frame_note] if loaded.frame_note else []),
                                 config_hash=hash_config(cfg.model_dump(mode="json")))
         reach = _reach_notes(sampler, views, device) + (_empty_view_notes(
             sampler, views, scene.cameras[list(scene.split.get("train", ()))], device)
