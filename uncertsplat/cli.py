@@ -282,6 +282,9 @@ def reconstruct(
              f"{_d('ReconstructConfig', 'mapping_attempts')}")] = None,
     seed: Annotated[int | None, typer.Option(help=f"Random seed. {_d('ReconstructConfig', 'seed')}")] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing workspace.")] = False,
+    extend: Annotated[bool, typer.Option(
+        help="Add the photos new in PHOTOS to the workspace, its cameras kept where they are (then `train --resume "
+             "--add-views`).")] = False,
     config: ConfigOpt = None,
     set_: SetOpt = None,
 ):
@@ -291,7 +294,8 @@ def reconstruct(
 
     explicit = dict(matcher=matcher, camera_model=camera_model, single_camera=single_camera,
                     max_image_size=max_image_size, features=features, min_registered=min_registered,
-                    mapping_attempts=mapping_attempts, seed=seed, overwrite=overwrite or None)
+                    mapping_attempts=mapping_attempts, seed=seed, overwrite=overwrite or None,
+                    extend=extend or None)
     cfg = _stage_config(ReconstructConfig, config, set_, explicit)
     stage.run(photos, output, cfg)
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import difflib
 import json
+import math
 import re
 import tomllib
 from pathlib import Path
@@ -144,6 +145,18 @@ class ReconstructConfig(_Base):
     """Threads for COLMAP (-1: all cores)."""
     overwrite: bool = False
     """Replace an existing workspace in the output folder."""
+    extend: bool = False
+    """Add the photos that are new in the photo folder to the existing workspace: registered into its model with
+    every camera already there fixed (pose and intrinsics), with the workspace's own options (the others
+    given are not used), so that a run trained on it can go on with them (``train --resume --add-views``). Without
+    it, a changed photo folder asks for --overwrite, a new reconstruction in a new frame."""
+
+    @model_validator(mode="after")
+    def _extend_or_overwrite(self):
+        if self.extend and self.overwrite:
+            raise ValueError("extend and overwrite exclude each other: --extend keeps the workspace, --overwrite "
+                             "replaces it")
+        return self
 
 
 # ------------------------------------------------------------------------------------------------ scene
@@ -174,6 +187,11 @@ class SceneConfig(_Base):
     normalize: bool = True
     """Move the scene centre (``center``) to the origin and scale the scene so that the camera rig has radius 1
     about its centroid (recorded as world_from_source)."""
+    world_from_source: list[list[float]] | None = None
+    """A fixed normalisation ([4,4] similarity, x_world = s R x_source + t) instead of the one ``normalize`` computes
+    from the cameras. ``train --resume --add-views`` sets it to the run's own when photos joined the scene after the
+    run began (``reconstruct --extend``): the cameras the run trained with keep their place in its world, where the
+    normalisation over the grown set of cameras would move them all."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Colour composited under images with an alpha channel, and rendered background."""
     max_points: int = Field(200_000, ge=1)
@@ -198,6 +216,23 @@ class SceneConfig(_Base):
     carve: bool = True
     """Random initial points (no sparse points) of a scene whose training images have real transparency: keep
     only those inside the alpha > 0.5 foreground of every training view that sees them (space carving)."""
+
+    @field_validator("world_from_source")
+    @classmethod
+    def _check_frame(cls, v):
+        if v is None:
+            return v
+        m = [list(map(float, row)) for row in v]
+        if len(m) != 4 or any(len(row) != 4 for row in m) or not all(math.isfinite(x) for row in m for x in row):
+            raise ValueError("world_from_source must be a 4x4 matrix of finite numbers")
+        if m[3] != [0.0, 0.0, 0.0, 1.0]:
+            raise ValueError(f"world_from_source's last row must be [0, 0, 0, 1], got {m[3]}")
+        det = (m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+               + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]))
+        if not det > 0.0:
+            raise ValueError("world_from_source must be a similarity with a positive scale (its 3x3 part's "
+                             f"determinant is {det:g})")
+        return m
 
     @field_validator("background")
     @classmethod

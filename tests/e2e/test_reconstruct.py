@@ -308,3 +308,84 @@ def test_same_seed_single_thread_is_bitwise_reproducible(synth_scene, tmp_path):
         centres.append(np.stack([c[n] for n in sorted(c)]))
     assert len(centres[0]) >= 5
     np.testing.assert_array_equal(centres[0], centres[1])
+
+
+def _digest(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.name != ".lock"}
+
+
+def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, tmp_path):
+    """The active-learning loop with real photos: a workspace of 20 photos, a run trained on it; two new photos
+    put into the folder join the workspace (`reconstruct --extend`) with every camera there kept, and the run goes
+    on with them (`train --resume --add-views`) in its own frame and with its own held-out views; bad inputs leave the
+    workspace as it was."""
+    import torch
+
+    from uncertsplat.baselines import load_run
+    from uncertsplat.config import train_config_from
+    from uncertsplat.schemas import RunScene
+    from uncertsplat.stages import train as train_stage
+
+    names = sorted(p.name for p in (synth_scene / "images").iterdir())
+    new = ["view_003.png", "view_009.png"]
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for n in names[:20]:
+        if n not in new:
+            shutil.copy(synth_scene / "images" / n, photos / n)
+    ws = tmp_path / "ws"
+    stage.run(photos, ws, CFG)
+    before = pycolmap.Reconstruction(ws / "sparse" / "0")
+    run = tmp_path / "run"
+    cfg = train_config_from("tiny", None, ["iterations=6", "scene.downscale=4.0", "eval_every=1000",
+                                           "checkpoint_every=6"])
+    train_stage.run(ws, run, cfg, torch.device("cpu"))
+    trained = RunScene.read(run / "scene.json")
+
+    with pytest.raises(UserError, match="no new photo"):
+        stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
+    with pytest.raises(UserError, match="needs a finished workspace"):
+        stage.run(photos, tmp_path / "nowhere", CFG.model_copy(update={"extend": True}))
+    with pytest.raises(ValueError, match="exclude each other"):
+        ReconstructConfig(extend=True, overwrite=True)
+    # the plain command on the grown folder points to --extend
+    for n in new:
+        shutil.copy(synth_scene / "images" / n, photos / n)
+    with pytest.raises(UserError, match="other photos") as err:
+        stage.run(photos, ws, CFG)
+    assert "--extend" in err.value.hint
+    # a photo of nothing the others show does not register: said, and nothing changes
+    write_rgb(photos / "view_zzz.png", noise_image(7, 320, 240))
+    untouched = _digest(ws)
+    shutil.move(photos / new[0], tmp_path / new[0])
+    shutil.move(photos / new[1], tmp_path / new[1])
+    with pytest.raises(UserError, match="none of the 1 new photo"):
+        stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
+    assert _digest(ws) == untouched and not (ws / ".extend_tmp").exists()
+    (photos / "view_zzz.png").unlink()
+    for n in new:
+        shutil.move(tmp_path / n, photos / n)
+    gone = photos / names[1]
+    shutil.move(gone, tmp_path / "aside.png")
+    with pytest.raises(UserError, match="lacks 1 of the photos the workspace registered"):
+        stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
+    shutil.move(tmp_path / "aside.png", gone)
+
+    report = stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
+    assert report.success and set(new) <= set(report.images_registered) and len(report.images_registered) == 20
+    assert any(n.startswith("extended with 2 photo(s)") for n in report.notes)
+    after = pycolmap.Reconstruction(ws / "sparse" / "0")
+    moved, params = sfm.pose_changes(before, after)
+    assert moved < 1e-12 and params == 0.0
+    assert all((ws / "images" / n).read_bytes() == untouched[f"images/{n}"] for n in names[:20] if n not in new)
+    assert stage.run(photos, ws, CFG) == report  # the grown folder is now the workspace's input
+
+    train_stage.run(ws, run, cfg.model_copy(update={"iterations": 9}), torch.device("cpu"), resume=True,
+                    extend_to=9, add_views=new)
+    grown = RunScene.read(run / "scene.json")
+    assert grown.test == trained.test and grown.world_from_source == trained.world_from_source
+    assert sorted(grown.train) == sorted(trained.train + new) and grown.views_added[-1].names == new
+    loaded = load_run(run)
+    scene = loaded.load_scene()
+    assert loaded.frame_note is None and [scene.cameras.image_names[i] for i in scene.split["test"]] == trained.test

@@ -268,11 +268,12 @@ class TestAddViewsErrors:
         with pytest.raises(UserError, match=r"--add-views extra.png: the photo is in .*images but not among the "
                                             r"scene's views: left out for its size") as err:
             train_run(scene, run, _cfg(), CPU, resume=True, extend_to=20, add_views=["extra.png"])
-        assert "reconstruct again with it" in str(err.value)
+        assert "--extend" in str(err.value)  # how a photo added to the folder joins a workspace
 
-    def test_added_views_on_a_scene_whose_held_out_views_moved_are_refused(self, tiny_scene_path, tmp_path):
-        """A photo put back into the workspace moves the held-out views (every 8th by name): --add-views went on with
-        a view the run held out left unused (or trainable) and another set scored, without a word."""
+    def test_added_views_on_a_scene_whose_split_moved_keep_the_run_s_held_out_views(self, tiny_scene_path, tmp_path):
+        """A photo put back into the workspace moves the every-8th split by name: --add-views went on with a view the
+        run held out left unused (or trainable) and another set scored, without a word (then it was refused). The run
+        now keeps its own held-out views (written into its config as scene.test_names), so its scores compare."""
         pycolmap = pytest.importorskip("pycolmap")
         ws = tmp_path / "ws"
         shutil.copytree(tiny_scene_path / "images", ws / "images")
@@ -290,10 +291,12 @@ class TestAddViewsErrors:
         shutil.rmtree(ws / "sparse" / "0")
         shutil.copytree(full, ws / "sparse" / "0")
         (tmp_path / "view_010.png").rename(ws / "images" / "view_010.png")
-        with pytest.raises(UserError, match="the scene holds out other views than the run did"):
-            train_run(ws, run, _cfg(iterations=10, scene=keep), CPU, resume=True, extend_to=20,
-                      add_views=["view_010.png"])
-        assert (run / "scene.json").read_text() == before
+        held = json.loads(before)["test"]
+        assert "view_017.png" in held  # (the 23 photos' every 8th; with view_010 back it would be view_016)
+        train_run(ws, run, _cfg(iterations=10, scene=keep), CPU, resume=True, extend_to=20, add_views=["view_010.png"])
+        after = json.loads((run / "scene.json").read_text())
+        assert after["test"] == held and "view_010.png" in after["train"] and "view_016.png" not in after["test"]
+        assert json.loads((run / "config.json").read_text())["scene"]["test_names"] == held
 
     def test_a_run_with_views_set_aside_takes_none(self, tiny_scene_path, subset_run, tmp_path):
         """More training views would set other views aside for calibration: refused, the run left as it was."""
@@ -361,9 +364,10 @@ class TestAddViewsErrors:
     def test_a_run_on_every_view_has_none_to_add(self, tiny_scene_path, tmp_path):
         run = tmp_path / "all"
         train_run(tiny_scene_path, run, _cfg(iterations=10), CPU)
-        with pytest.raises(UserError, match="no unused view to add"):
+        with pytest.raises(UserError, match="already a training view of this run .it trains on every photo") as err:
             train_run(tiny_scene_path, run, _cfg(iterations=10), CPU, resume=True, extend_to=20,
                       add_views=["view_002.png"])
+        assert "--extend" in err.value.hint  # how a new photo joins
         with pytest.raises(UserError, match="no unused view"):
             stage.run(run, SelectConfig(), CPU)
 

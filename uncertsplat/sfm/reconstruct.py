@@ -399,13 +399,15 @@ def extract_features(
     cfg: ReconstructConfig,
     advance: ProgressFn = _noop,
     chunk_size: int = 8,
+    cameras: dict[tuple, int] | None = None,
 ) -> dict[str, int]:
     """SIFT features for every image into ``database``; returns name -> number of keypoints.
 
     With ``cfg.single_camera`` every group (an image size, and a lens where their EXIF names several:
     ``PhotoScan.camera_groups``) gets one shared camera: pycolmap's SINGLE mode
     would otherwise skip (silently) every image whose size differs from the first. Images are fed
-    in chunks so the progress bar moves; later chunks reuse the group's camera.
+    in chunks so the progress bar moves; later chunks reuse the group's camera. ``cameras``: a group's camera already
+    in the database (photos added to a workspace share the camera of their group's photos there).
     """
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = cfg.camera_model
@@ -416,8 +418,8 @@ def extract_features(
         extraction.sift.estimate_affine_shape = True
         extraction.sift.domain_size_pooling = True
     mode = pycolmap.CameraMode.SINGLE if cfg.single_camera else pycolmap.CameraMode.PER_IMAGE
-    for names in groups.values():
-        camera_id = -1
+    for key, names in groups.items():
+        camera_id = (cameras or {}).get(key, -1) if cfg.single_camera else -1
         for chunk in _chunks(names, chunk_size):
             reader.existing_camera_id = camera_id
             pycolmap.extract_features(database, image_dir, image_names=list(chunk), camera_mode=mode,
@@ -623,6 +625,56 @@ def map_incremental(
                                           next_image_callback=on_next_image)
     ordered = sorted(models.values(), key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
     return MappingResult(models=ordered, relaxed=relaxed, seed=seed, seconds=round(time.perf_counter() - t0, 3))
+
+
+def map_into(database: Path, image_dir: Path, model_dir: Path, scratch: Path, cfg: ReconstructConfig,
+             advance: ProgressFn = _noop) -> pycolmap.Reconstruction | None:
+    """Register the database's images that the model in ``model_dir`` lacks into it: incremental mapping that starts
+    from that model with its frames (poses) and cameras (intrinsics) held fixed, so every image already there keeps
+    its camera (within rounding, 1e-15 measured) and the new ones are posed in the same frame. Returns the grown model (None: mapping found
+    none), written nowhere."""
+    if scratch.exists():
+        shutil.rmtree(scratch)
+    scratch.mkdir(parents=True)
+    start = pycolmap.Reconstruction(model_dir)
+    opts = mapper_options(cfg)
+    opts.fix_existing_frames = True
+    opts.constant_cameras = set(start.cameras)  # a new camera (another lens) is refined, the ones there are not
+    pycolmap.set_random_seed(cfg.seed)
+    models = pycolmap.incremental_mapping(database, image_dir, scratch, opts, input_path=model_dir,
+                                          next_image_callback=lambda: advance(1, ""))
+    known = set(registered_names(start))
+    # the model that grew from the given one holds its images (mapping may start further, separate models)
+    grown = [m for m in models.values() if known <= set(registered_names(m))]
+    return max(grown, key=lambda m: m.num_reg_images()) if grown else None
+
+
+def read_model(model_dir: Path) -> pycolmap.Reconstruction:
+    """The COLMAP model in ``model_dir``."""
+    return pycolmap.Reconstruction(Path(model_dir))
+
+
+def database_cameras(database: Path) -> dict[str, int]:
+    """{image name: COLMAP camera id} of every image in ``database``."""
+    with pycolmap.Database.open(database) as db:
+        return {im.name: im.camera_id for im in db.read_all_images()}
+
+
+def pose_changes(before: pycolmap.Reconstruction, after: pycolmap.Reconstruction) -> tuple[float, float]:
+    """(the largest change of any camera pose matrix entry, of any camera parameter) between the images and cameras
+    ``before`` holds and the same ones in ``after``; inf for an image ``after`` lost."""
+    poses = {im.name: im.cam_from_world().matrix() for im in after.images.values() if im.has_pose}
+    worst = 0.0
+    for im in before.images.values():
+        if im.has_pose:
+            got = poses.get(im.name)
+            worst = max(worst, float("inf") if got is None else float(np.abs(got - im.cam_from_world().matrix()).max()))
+    params = 0.0
+    for cid, cam in before.cameras.items():
+        other = after.cameras[cid] if cid in after.cameras else None
+        params = max(params, float("inf") if other is None
+                     else float(np.abs(np.asarray(other.params) - np.asarray(cam.params)).max()))
+    return worst, params
 
 
 AGREE_OBSERVATIONS = 0.05

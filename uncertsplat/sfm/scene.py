@@ -884,12 +884,18 @@ def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torc
         g = torch.Generator().manual_seed(_POINT_SEED)
         keep = torch.randperm(points.shape[0], generator=g)[: cfg.max_points].sort().values
         points, rgb = points[keep], rgb[keep]
-    if cfg.normalize:
+    if cfg.world_from_source is not None:  # a run's own frame, kept as photos join its scene
+        T = torch.tensor(cfg.world_from_source, dtype=torch.float64)
+        s = similarity_scale(T)
+    elif cfg.normalize:
         T, s = normalization(cameras, choice.center)
     else:
         T, s = torch.eye(4, dtype=torch.float64), 1.0
     new = normalized_cam_from_world(cameras.cam_from_world, T)
-    pts = (points.double() * s + T[:3, 3]).float()
+    if cfg.world_from_source is not None:  # (a given similarity may turn the scene too)
+        pts = (points.double() @ T[:3, :3].T + T[:3, 3]).float()
+    else:
+        pts = (points.double() * s + T[:3, 3]).float()
     cams = Cameras(new.float(), cameras.K.float(), cameras.width, cameras.height, cameras.image_names)
     scene_scale = float((cams.centers.double() - cams.centers.double().mean(0)).norm(dim=-1).max())
     if cfg.downscale != 1.0:

@@ -100,8 +100,12 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
                     else "a workspace made with other options")
         else:
             what = "other files (not an uncertsplat workspace)"
+        grown = (existing is not None and existing.success and existing.photos == str(photos_abs)
+                 and (workspace / "distorted" / "sparse" / "0").is_dir())
         raise UserError(f"the output folder already holds {what}", path=workspace,
-                        hint="Choose another output folder, or pass --overwrite to replace it.")
+                        hint="Choose another output folder, or pass --overwrite to replace it"
+                             + ("; photos added to the folder join the workspace with --extend, every camera there "
+                                "kept (a run trained on it can then train on them)." if grown else "."))
     for name in _OWNED:
         target = workspace / name
         if target.is_dir() and not target.is_symlink():
@@ -185,6 +189,8 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     with ``success: false`` first, then a UserError lists the unregistered images and what to try.
     """
     photos, workspace = Path(photos), Path(workspace)
+    if cfg.extend:
+        return extend(photos, workspace, cfg)
     watch = sfm.Stopwatch()
     t_start = time.perf_counter()
     with watch("scan"):
@@ -199,7 +205,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         success=False, photos=str(photos.resolve()), inputs_fingerprint=fingerprint,
         images_found=scan.names, images_unregistered=scan.names, ignored=scan.ignored, notes=list(scan.notes),
         pycolmap_version=pyv, colmap_version=colv,
-        options=cfg.model_dump(mode="json", exclude={"overwrite"}),
+        options=cfg.model_dump(mode="json", exclude={"overwrite", "extend"}),
     )
     for note in scan.notes:
         console.print(f"[yellow]note:[/] {note}")
@@ -404,6 +410,157 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         console.print(f"  against the synthetic scene's GT cameras: centres {g['centre_error_mean_pct']:.3f} % of the "
                       f"rig radius (max {g['centre_error_max_pct']:.3f} %), rotations {g['rotation_error_mean_deg']:.3f} "
                       f"deg (max {g['rotation_error_max_deg']:.3f}), focal {g['focal_error_mean_pct']:.2f} %")
+    return report
+
+
+def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructReport:
+    """Register the photos in ``photos`` that ``workspace`` (made by ``run``) does not hold into its model, every
+    camera already there kept where it is (``sfm.map_into``: poses and intrinsics held fixed), with the
+    workspace's own options (its report's); a run trained on the workspace then trains on them with
+    ``train --resume --add-views`` (its frame and held-out views stay). Features and matches are computed for the new
+    photos only (each against every photo); the images are undistorted again. The workspace is changed only at the
+    end, once the new model is checked (a failure or Ctrl-C before leaves it as it was).
+
+    Raises:
+        UserError: not a finished workspace of this stage, the photo folder lacks photos the workspace registered,
+            no new photo, none of them registered, or a camera already there moved.
+    """
+    photos, workspace = Path(photos), Path(workspace)
+    existing = load_report(workspace) if workspace.is_dir() else None
+    needed = [workspace / "database.db", workspace / "distorted" / "sparse" / "0", workspace / "sparse" / "0"]
+    if existing is None or not existing.success or any(not p.exists() for p in needed):
+        raise UserError("--extend needs a finished workspace of `uncertsplat reconstruct` (its report, database.db, "
+                        "distorted/sparse/0)", path=workspace,
+                        hint=f"Reconstruct the photos first: uncertsplat reconstruct {photos} -o {workspace}")
+    ws_cfg = ReconstructConfig.model_validate({**existing.options, "num_threads": cfg.num_threads})
+    scan = sfm.scan_photos(photos)
+    _check_output_path(photos, workspace)
+    missing = sorted(set(existing.images_registered) - set(scan.names))
+    if missing:
+        raise UserError(f"{photos} lacks {len(missing)} of the photos the workspace registered ({list_names(missing)})",
+                        path=photos, hint="Give the folder the workspace was made from, with the new photos added to "
+                                          f"it ({existing.photos}).")
+    new = [n for n in scan.names if n not in set(existing.images_found)]
+    if not new:
+        raise UserError(f"no new photo in {photos}: the workspace holds every one of its {len(scan.names)} photos",
+                        path=photos, hint="Put the new photos into the folder beside the others and run this again.")
+    console.print(f"[bold]reconstruct --extend[/] {workspace}: {len(new)} new photo(s) ({list_names(new)}) into its "
+                  f"{len(existing.images_registered)} registered ones, their cameras fixed; the workspace's options")
+    stage_dir = workspace / ".extend_tmp"
+    watch = sfm.Stopwatch()
+    t_start = time.perf_counter()
+    try:
+        with run_lock(workspace, "reconstruct"), sfm.colmap_logging():
+            if stage_dir.exists():
+                shutil.rmtree(stage_dir)
+            stage_dir.mkdir()
+            database = stage_dir / "database.db"
+            shutil.copy2(workspace / "database.db", database)
+            old_model = workspace / "distorted" / "sparse" / "0"
+            before = sfm.read_model(old_model)
+            with watch("stage_inputs"):
+                image_dir, rotated = sfm.stage_inputs(scan, stage_dir / "input")
+            known = sfm.database_cameras(database)
+            groups = {key: [n for n in names if n in set(new)] for key, names in scan.camera_groups().items()}
+            cameras = {key: next(known[n] for n in names if n in known)
+                       for key, names in scan.camera_groups().items() if any(n in known for n in names)}
+            pairs = [(a, b) for i, a in enumerate(scan.names) for b in scan.names[i + 1:]
+                     if a in set(new) or b in set(new)]
+            with progress() as bar:
+                task = bar.add_task("features (new photos)", total=len(new), info="")
+                with watch("extract"):
+                    keypoints = sfm.extract_features(database, image_dir, {k: v for k, v in groups.items() if v},
+                                                     ws_cfg, advance=lambda k, i: bar.update(task, advance=k, info=i),
+                                                     cameras=cameras)
+                unread = [n for n in new if n not in keypoints]
+                if unread:
+                    raise UserError(f"COLMAP could not read {len(unread)} new photo(s): {list_names(unread)}",
+                                    path=photos, hint="Re-export these files as JPEG or PNG, or remove them.")
+                task = bar.add_task("matching (new against all)", total=len(pairs), info="")
+                with watch("match"):
+                    sfm.match_features(database, pairs, ws_cfg, stage_dir,
+                                       advance=lambda k, i: bar.update(task, advance=k, info=i))
+                task = bar.add_task("registering", total=len(new), info="")
+                with watch("map"):
+                    grown = sfm.map_into(database, image_dir, old_model, stage_dir / "models", ws_cfg,
+                                         advance=lambda k, i: bar.update(task, advance=k, info=i))
+            registered = sfm.registered_names(grown) if grown is not None else []
+            added = sorted(set(registered) - set(existing.images_registered))
+            if not added:
+                raise UserError(f"none of the {len(new)} new photo(s) registered ({list_names(new)}): the workspace is "
+                                "unchanged", path=photos,
+                                hint="A new photo must overlap the others (share features with photos near it); a "
+                                     "photo of another place, blurred or too far from the capture does not register.")
+            moved, params = sfm.pose_changes(before, grown)
+            if moved > 1e-9 or params > 1e-9:  # fixed frames and cameras: a change is a fault, never kept
+                raise UserError(f"registering the new photos moved the cameras already there (pose entries by up to "
+                                f"{moved:.3g}, camera parameters by {params:.3g}): the workspace is unchanged",
+                                path=workspace, hint="Reconstruct all the photos again into a new workspace (and train "
+                                                     "a new run on it).")
+            model_dir = stage_dir / "distorted" / "sparse" / "0"
+            model_dir.mkdir(parents=True)
+            grown.write(model_dir)
+            with console.status(f"undistorting {len(registered)} images"), watch("undistort"):
+                sizes = sfm.undistort(model_dir, image_dir, stage_dir, ws_cfg)
+            # the workspace's images of the photos already there must come out as they were (the run was trained on
+            # them): a photo edited since would be a silent change of a training view
+            changed = [n for n in existing.images_registered
+                       if (workspace / "images" / n).read_bytes() != (stage_dir / "images" / n).read_bytes()]
+            if changed:
+                raise UserError(f"{len(changed)} photo(s) already in the workspace changed since it was made "
+                                f"({list_names(changed)}): the workspace is unchanged", path=photos,
+                                hint="Put back the photos as they were, or reconstruct again into a new workspace.")
+            report = existing.model_copy(deep=True)
+            report.inputs_fingerprint = scan.fingerprint()
+            report.photos = str(photos.resolve())
+            report.images_found = scan.names
+            report.images_registered = registered
+            report.images_unregistered = sorted(set(scan.names) - set(registered))
+            report.registered_fraction = len(registered) / len(scan.names)
+            report.undistorted_size = sizes
+            report.image_sizes = {f"{w}x{h}": len(n) for (w, h), n in scan.size_groups().items()}
+            report.rotated = sorted(set(report.rotated) | set(rotated))
+            stats = sfm.model_stats(grown)
+            report.num_points3d = stats["num_points3d"]
+            report.mean_reprojection_error = stats["mean_reprojection_error"]
+            report.mean_track_length = stats["mean_track_length"]
+            report.mean_observations_per_image = stats["mean_observations_per_image"]
+            report.num_observations = stats["num_observations"]
+            report.cameras = sfm.camera_summaries(grown)
+            not_added = sorted(set(new) - set(added))
+            report.notes.append(f"extended with {len(added)} photo(s) ({list_names(added)})"
+                                + (f", {len(not_added)} not registered ({list_names(not_added)})" if not_added else "")
+                                + f"; the {len(existing.images_registered)} cameras already there kept (poses and intrinsics fixed) "
+                                  "(reconstruct --extend)")
+            report.total_seconds = round(report.total_seconds + time.perf_counter() - t_start, 3)
+            # swap the new parts in: the model, the images, the database, then the report that names them
+            for part in (Path("distorted") / "sparse" / "0", Path("sparse") / "0", Path("images"),
+                         Path("database.db")):
+                old = workspace / part
+                aside = stage_dir / "old" / part
+                aside.parent.mkdir(parents=True, exist_ok=True)
+                old.rename(aside)
+                (stage_dir / part).rename(old)
+            if (stage_dir / "input").is_dir() and image_dir == stage_dir / "input":
+                target = workspace / "distorted" / "input"
+                if target.exists():
+                    shutil.rmtree(target)
+                (stage_dir / "input").rename(target)
+            write_report(workspace, report)
+            shutil.rmtree(stage_dir, ignore_errors=True)
+    except KeyboardInterrupt:
+        shutil.rmtree(stage_dir, ignore_errors=True)
+        raise Interrupted("reconstruct --extend interrupted: the workspace is as it was", path=workspace,
+                          hint="Run the same command again.") from None
+    except BaseException:
+        shutil.rmtree(stage_dir, ignore_errors=True)
+        raise
+    console.print(f"reconstruct --extend: {len(added)} of {len(new)} new photo(s) registered ({list_names(added)}); "
+                  f"the {len(existing.images_registered)} cameras already there unchanged -> {workspace}")
+    if not_added:
+        console.print(f"[yellow]warning:[/] not registered: {list_names(not_added)}")
+    console.print(f"Next: a run trained on {workspace} trains on them with [bold]uncertsplat train {workspace} -o RUN "
+                  f"--resume --add-views {','.join(added)}[/]")
     return report
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from uncertsplat import native
-from uncertsplat.config import TrainConfig, VariationalConfig, build_config
+from uncertsplat.config import SceneConfig, TrainConfig, VariationalConfig, build_config
 from uncertsplat.console import console, list_names
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.gaussians.variational import describe_posterior
@@ -202,8 +202,8 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
     """``cfg`` with the views ``add`` appended to its explicit training names, and those names.
 
     Raises:
-        UserError: the run trains on every image that is not held out (nothing can be added), sets views aside for
-            calibration, or a view is held out or already trained on.
+        UserError: the run records no training views, sets views aside for calibration, or a view is held out or
+            already trained on.
     """
     if cfg.scene.calibration_holdout:
         # the views set aside are chosen over the training views: more training views would set others aside, and a
@@ -212,10 +212,9 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
                         "would change which ones", path=run_dir,
                         hint="Train a new run on the views you want (scene.train_names), with views set aside or not.")
     info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
-    if cfg.scene.train_names is None and (cfg.scene.train_indices is None or info is None):
-        raise UserError("this run trains on every image that is not held out, so there is no unused view to add",
-                        path=run_dir, hint="Start the run on a subset of the images (--set scene.train_names=[...]) "
-                                           "to add views later.")
+    if cfg.scene.train_names is None and info is None:
+        raise UserError("this run records no training views (scene.json is missing), so views cannot be added to "
+                        "them", path=run_dir, hint="Add views to a run written by `uncertsplat train`.")
     held = set(info.test) if info is not None else set()
     # a run started on scene.train_indices continues on the names of those views (scene.json), so that the added
     # ones join them whatever their place in the sorted image list
@@ -229,12 +228,26 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
             continue
         if name in current:
             recent = bool(info is not None and info.views_added and name in info.views_added[-1].names)
+            every = cfg.scene.train_names is None and cfg.scene.train_indices is None
             raise UserError(f"'{name}' is already a training view of this run"
-                            + (f" (added at step {info.views_added[-1].step})" if recent else ""), path=run_dir,
+                            + (f" (added at step {info.views_added[-1].step})" if recent else
+                               " (it trains on every photo of its scene that is not held out)" if every else ""),
+                            path=run_dir,
                             hint="A training stopped after adding it (before its next checkpoint) goes on with "
-                                 "`--resume` alone, which trains it." if recent else None)
+                                 "`--resume` alone, which trains it." if recent else
+                                 "New photos join a workspace of `uncertsplat reconstruct` with `uncertsplat "
+                                 "reconstruct PHOTOS -o WORKSPACE --extend` (every camera there kept); then add them "
+                                 "here." if every else None)
         added.append(name)
-    scene = cfg.scene.model_copy(update={"train_names": current + added, "train_indices": None})
+    update: dict = {"train_names": current + added, "train_indices": None}
+    if info is not None:
+        # the run keeps its frame and its held-out views whatever joined the scene since (photos added by
+        # `reconstruct --extend`: the normalisation over the grown set of cameras, and the every-n-th split by name,
+        # would move them)
+        update["world_from_source"] = cfg.scene.world_from_source or info.world_from_source
+        if info.test and cfg.scene.test_names is None:
+            update.update(test_names=list(info.test), test_indices=None)
+    scene = SceneConfig.model_validate({**cfg.scene.model_dump(), **update})
     return cfg.model_copy(update={"scene": scene}), added
 
 
@@ -378,15 +391,16 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 raise UserError(f"--add-views {', '.join(on_disk)}: the photo is in {Path(scene) / 'images'} but not "
                                 "among the scene's views: left out for its size (the scene's photos are fitted to one "
                                 "size; another shape is left out, as `train` noted) or not in its COLMAP model",
-                                path=scene, hint="Bring the photo to the scene's size and reconstruct again with it, "
-                                                 "or choose another view.") from None
+                                path=scene, hint="Bring the photo to the scene's size; a photo added to the photo "
+                                                 "folder joins a workspace of `uncertsplat reconstruct` with "
+                                                 f"`uncertsplat reconstruct PHOTOS -o {scene} --extend` (its cameras "
+                                                 "kept); or choose another view.") from None
             raise UserError(f"--add-views {', '.join(unknown)}: no photo of that name in the scene"
                             + _close_names(unknown, scene, cfg), path=scene,
                             hint="--add-views takes the names of photos the scene holds but the run did not train on; "
-                                 "a pose that select-views proposed needs a photo taken there first, and a new photo "
-                                 "changes the scene's frame (another reconstruction, and the normalisation over its "
-                                 "cameras), which a run refuses: train a new run on the grown scene (its "
-                                 "scene.train_names to start from the same views). "
+                                 "a pose that select-views proposed needs a photo taken there first: put it into the "
+                                 f"photo folder, `uncertsplat reconstruct PHOTOS -o {scene} --extend` registers it into "
+                                 "this workspace with every camera there kept, and the run then adds it here. "
                                  + (err.hint or "")) from None
         if not data.split.get("train"):
             raise UserError("the scene has no training views", path=scene, hint="Check test_every / test_names.")
