@@ -235,6 +235,15 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     if len(picked) < cfg.num_views:
         console.print(f"[yellow]note:[/] {cfg.num_views} views were asked for and only {len(cands)} candidates "
                       "were there: every one is chosen")
+    folder = loaded.scene_path or "SCENE"
+    if picked and cands.kind == "unused":  # photos of the scene: the run trains on them as they are
+        console.print(f"Next: [bold]uncertsplat train {folder} -o {run_dir} --resume --iterations N --add-views "
+                      f"{','.join(p.name for p in picked)}[/]")
+    elif picked:  # poses: a photo is taken at each first
+        console.print(f"Next: take a photo at each chosen pose ({out / Selection.FILE_NAME}), put them into the photo "
+                      f"folder, [bold]uncertsplat reconstruct PHOTOS -o {folder} --extend[/] (a COLMAP workspace of "
+                      f"`reconstruct`: its cameras kept), then [bold]uncertsplat train {folder} -o {run_dir} --resume "
+                      "--iterations N --add-views NEW_PHOTOS[/]")
     return sel
 
 
