@@ -381,6 +381,15 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
     assert all((ws / "images" / n).read_bytes() == untouched[f"images/{n}"] for n in names[:20] if n not in new)
     assert stage.run(photos, ws, CFG) == report  # the grown folder is now the workspace's input
 
+    # the run, before it trains on them, still loads (evaluate, select-views) and resumes in its own frame, with its
+    # held-out views: the normalisation over 20 cameras moved every one of its 18 (refused as cameras that changed)
+    old_run = load_run(run)
+    seen = old_run.load_scene()
+    assert [seen.cameras.image_names[i] for i in seen.split["test"]] == trained.test
+    assert set(new) <= set(seen.cameras.image_names) and old_run.frame_note is None
+    train_stage.run(ws, run, cfg.model_copy(update={"iterations": 7}), torch.device("cpu"), resume=True, extend_to=7)
+    assert RunScene.read(run / "scene.json").train == trained.train
+
     train_stage.run(ws, run, cfg.model_copy(update={"iterations": 9}), torch.device("cpu"), resume=True,
                     extend_to=9, add_views=new)
     grown = RunScene.read(run / "scene.json")

@@ -264,7 +264,14 @@ class LoadedRun:
         return self._scene
 
     def _read_scene(self) -> SceneData:
-        from uncertsplat.sfm.scene import frame_change, load_scene, require_same_cameras, with_training_views
+        from uncertsplat.sfm.scene import (
+            frame_change,
+            in_run_frame,
+            load_scene,
+            photos_joined,
+            require_same_cameras,
+            with_training_views,
+        )
 
         if self.scene_path is None:
             raise UserError("the run does not record its scene (scene.json is missing)", path=self.run_dir,
@@ -281,6 +288,15 @@ class LoadedRun:
         info = RunScene.read_optional(self.run_dir / RunScene.FILE_NAME)
         if info is None:
             return data
+        joined = photos_joined([*info.train, *info.test, *info.calibration], data)
+        if joined and info.cameras:  # photos added since (reconstruct --extend): the run's frame and held-out views
+            data = load_scene(self.scene_path, in_run_frame(self.config.scene, info.world_from_source, info.test),
+                              initial_points=False)
+            from uncertsplat.console import console, list_names
+
+            console.print(f"[yellow]note:[/] the scene holds {len(joined)} photo(s) this run has not seen "
+                          f"({list_names(joined)}; added since it began): loaded in the run's frame, with its "
+                          "held-out views (`train --resume --add-views` trains on them)")
         # its renders would not line up with the photos: every score would measure the misalignment
         require_same_cameras(info.cameras, data, Path(self.scene_path),
                              "its renders and scores against these would be wrong")

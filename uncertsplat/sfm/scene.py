@@ -665,6 +665,23 @@ def require_same_cameras(recorded: dict[str, list[float]], data: SceneData, scen
                              f"trained on, or train a new run on this one (uncertsplat train {scene} -o NEW_RUN).")
 
 
+def photos_joined(recorded_views: set[str] | list[str], data: SceneData) -> list[str]:
+    """The scene's views a run does not know (``recorded_views``: its training, held-out and set-aside views), in the
+    scene's order: photos added to the scene after the run began (``reconstruct --extend``)."""
+    known = set(recorded_views)
+    return [n for n in data.cameras.image_names if n not in known]
+
+
+def in_run_frame(cfg: SceneConfig, world_from_source, test: list[str]) -> SceneConfig:
+    """``cfg`` with a run's own frame (``world_from_source``, [4,4]) and held-out views (``test``; the config's own
+    when it names them) fixed: how a scene that photos joined since the run began is loaded for it, where the
+    normalisation over the grown set of cameras and the every-n-th split by name would move them."""
+    update: dict = {"world_from_source": cfg.world_from_source or [list(map(float, r)) for r in world_from_source]}
+    if test and cfg.test_names is None:
+        update.update(test_names=list(test), test_indices=None)
+    return SceneConfig.model_validate({**cfg.model_dump(), **update})
+
+
 FRAME_CHANGE = 1e-6
 """``frame_change``: the relative change of a scene's normalisation beyond which its source frame counts as changed."""
 

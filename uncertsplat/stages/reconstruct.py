@@ -531,7 +531,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             report.notes.append(f"extended with {len(added)} photo(s) ({list_names(added)})"
                                 + (f", {len(not_added)} not registered ({list_names(not_added)})" if not_added else "")
                                 + f"; the {len(existing.images_registered)} cameras already there kept (poses and intrinsics fixed) "
-                                  "(reconstruct --extend)")
+                                  f"(reconstruct --extend, {time.perf_counter() - t_start:.1f} s)")
             report.total_seconds = round(report.total_seconds + time.perf_counter() - t_start, 3)
             # swap the new parts in: the model, the images, the database, then the report that names them
             for part in (Path("distorted") / "sparse" / "0", Path("sparse") / "0", Path("images"),

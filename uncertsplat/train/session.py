@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from uncertsplat import native
-from uncertsplat.config import SceneConfig, TrainConfig, VariationalConfig, build_config
+from uncertsplat.config import TrainConfig, VariationalConfig, build_config
 from uncertsplat.console import console, list_names
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.gaussians.variational import describe_posterior
@@ -153,10 +153,12 @@ def _close_names(unknown: list[str], scene: Path, cfg: TrainConfig) -> str:
 def _record_moved_scene(run_dir: Path, scene: Path, cfg: TrainConfig) -> None:
     """``scene.json`` of the finished run ``run_dir`` pointed at ``scene``, the folder its scene moved to, after the
     checks a resume makes (``_check_same_scene``: its images; ``camera_changes``: its cameras)."""
-    from uncertsplat.sfm.scene import load_scene, require_same_cameras
+    from uncertsplat.sfm.scene import in_run_frame, load_scene, photos_joined, require_same_cameras
 
     before = RunScene.read(run_dir / RunScene.FILE_NAME)
     data = load_scene(scene, cfg.scene, initial_points=False)
+    if before.cameras and photos_joined([*before.train, *before.test, *before.calibration], data):
+        data = load_scene(scene, in_run_frame(cfg.scene, before.world_from_source, before.test), initial_points=False)
     _check_same_scene(before, scene, data.cameras.image_names, run_dir)
     require_same_cameras(before.cameras, data, scene, "its renders against these would be wrong")
     before.scene = str(scene.resolve())
@@ -239,15 +241,14 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
                                  "reconstruct PHOTOS -o WORKSPACE --extend` (every camera there kept); then add them "
                                  "here." if every else None)
         added.append(name)
-    update: dict = {"train_names": current + added, "train_indices": None}
+    scene = cfg.scene.model_copy(update={"train_names": current + added, "train_indices": None})
     if info is not None:
         # the run keeps its frame and its held-out views whatever joined the scene since (photos added by
         # `reconstruct --extend`: the normalisation over the grown set of cameras, and the every-n-th split by name,
         # would move them)
-        update["world_from_source"] = cfg.scene.world_from_source or info.world_from_source
-        if info.test and cfg.scene.test_names is None:
-            update.update(test_names=list(info.test), test_indices=None)
-    scene = SceneConfig.model_validate({**cfg.scene.model_dump(), **update})
+        from uncertsplat.sfm.scene import in_run_frame
+
+        scene = in_run_frame(scene, info.world_from_source, info.test)
     return cfg.model_copy(update={"scene": scene}), added
 
 
@@ -273,7 +274,14 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     from uncertsplat.io.checkpoints import load_latest
     from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
     from uncertsplat.render import near_plane
-    from uncertsplat.sfm.scene import camera_records, load_scene, require_same_cameras, with_training_views
+    from uncertsplat.sfm.scene import (
+        camera_records,
+        in_run_frame,
+        load_scene,
+        photos_joined,
+        require_same_cameras,
+        with_training_views,
+    )
     from uncertsplat.strategy.schedule import densify_steps_after
     from uncertsplat.train.trainer import (
         Trainer,
@@ -404,8 +412,13 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                                  + (err.hint or "")) from None
         if not data.split.get("train"):
             raise UserError("the scene has no training views", path=scene, hint="Check test_every / test_names.")
-        names = data.cameras.image_names
         before = RunScene.read_optional(run_dir / RunScene.FILE_NAME) if resume else None
+        if before is not None and not add_views and before.cameras and photos_joined(
+                [*before.train, *before.test, *before.calibration], data):
+            # photos joined the scene since the run began (reconstruct --extend): it goes on in its frame, with its
+            # held-out views (`--add-views` trains on the new ones)
+            data = load_scene(scene, in_run_frame(cfg.scene, before.world_from_source, before.test))
+        names = data.cameras.image_names
         if before is not None:
             _check_same_scene(before, scene, names, run_dir)
             require_same_cameras(before.cameras, data, scene, "training on would spoil it")
