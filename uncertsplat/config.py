@@ -188,7 +188,7 @@ class SceneConfig(_Base):
     """Move the scene centre (``center``) to the origin and scale the scene so that the camera rig has radius 1
     about its centroid (recorded as world_from_source)."""
     world_from_source: list[list[float]] | None = None
-    """A fixed normalisation ([4,4] similarity, x_world = s R x_source + t) instead of the one ``normalize`` computes
+    """A fixed normalisation ([4,4]: x_world = s x_source + t, s > 0) instead of the one ``normalize`` computes
     from the cameras. ``train --resume --add-views`` sets it to the run's own when photos joined the scene after the
     run began (``reconstruct --extend``): the cameras the run trained with keep their place in its world, where the
     normalisation over the grown set of cameras would move them all."""
@@ -227,11 +227,11 @@ class SceneConfig(_Base):
             raise ValueError("world_from_source must be a 4x4 matrix of finite numbers")
         if m[3] != [0.0, 0.0, 0.0, 1.0]:
             raise ValueError(f"world_from_source's last row must be [0, 0, 0, 1], got {m[3]}")
-        det = (m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-               + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]))
-        if not det > 0.0:
-            raise ValueError("world_from_source must be a similarity with a positive scale (its 3x3 part's "
-                             f"determinant is {det:g})")
+        s = m[0][0]
+        # a scale and a shift, as the normalisation makes them (the cameras are moved by those alone)
+        if not (s > 0.0 and all(m[i][j] == (s if i == j else 0.0) for i in range(3) for j in range(3))):
+            raise ValueError("world_from_source must scale by one positive number and shift (s on the diagonal of "
+                             f"its 3x3 part, 0 elsewhere), got {[row[:3] for row in m[:3]]}")
         return m
 
     @field_validator("background")

@@ -342,6 +342,14 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
                                            "checkpoint_every=6"])
     train_stage.run(ws, run, cfg, torch.device("cpu"))
     trained = RunScene.read(run / "scene.json")
+    # runs whose split depends on the scene's list: views set aside for calibration, training views by index
+    others = {}
+    for tag, scene_cfg in (("calibration", "scene.calibration_holdout=2"), ("indices", "scene.train_indices=[1,4,10,12]")):
+        others[tag] = tmp_path / f"run_{tag}"
+        train_stage.run(ws, others[tag], train_config_from("tiny", None, ["iterations=3", "scene.downscale=4.0",
+                                                                          "eval_every=1000", scene_cfg]),
+                        torch.device("cpu"))
+    recorded = {tag: RunScene.read(r / "scene.json") for tag, r in others.items()}
 
     with pytest.raises(UserError, match="no new photo"):
         stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
@@ -387,14 +395,45 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
     seen = old_run.load_scene()
     assert [seen.cameras.image_names[i] for i in seen.split["test"]] == trained.test
     assert set(new) <= set(seen.cameras.image_names) and old_run.frame_note is None
+    for tag, r in others.items():  # their views as recorded, whatever the grown list's order and count
+        got = load_run(r).load_scene()
+        for split in ("train", "test", "calibration"):
+            assert [got.cameras.image_names[i] for i in got.split.get(split, ())] == getattr(recorded[tag], split)
     train_stage.run(ws, run, cfg.model_copy(update={"iterations": 7}), torch.device("cpu"), resume=True, extend_to=7)
-    assert RunScene.read(run / "scene.json").train == trained.train
+    resumed = RunScene.read(run / "scene.json")
+    assert resumed.train == trained.train and resumed.extent == trained.extent  # (not the grown cameras' extent)
 
     train_stage.run(ws, run, cfg.model_copy(update={"iterations": 9}), torch.device("cpu"), resume=True,
                     extend_to=9, add_views=new)
     grown = RunScene.read(run / "scene.json")
     assert grown.test == trained.test and grown.world_from_source == trained.world_from_source
+    assert grown.extent == trained.extent
     assert sorted(grown.train) == sorted(trained.train + new) and grown.views_added[-1].names == new
     loaded = load_run(run)
     scene = loaded.load_scene()
     assert loaded.frame_note is None and [scene.cameras.image_names[i] for i in scene.split["test"]] == trained.test
+
+
+def test_an_extend_stopped_while_it_swapped_is_undone(tmp_path):
+    """``reconstruct --extend`` swaps the grown parts in one by one, the originals aside: stopped (or killed) half
+    way, the originals go back (the next command's first step too); once the report is in, the grown workspace
+    stays."""
+    ws = tmp_path / "ws"
+    parts = [Path("distorted/sparse/0"), Path("sparse/0"), Path("images")]
+    for part in parts:
+        (ws / part).mkdir(parents=True)
+        (ws / part / "f").write_text("grown")
+    (ws / "database.db").write_text("grown")
+    (ws / REPORT_NAME).write_text("old report")
+    aside = ws / stage.EXTEND_DIR / "old"
+    for part in parts[:2]:  # two of four parts swapped when it stopped
+        (aside / part).mkdir(parents=True)
+        (aside / part / "f").write_text("original")
+    stage._recover_extend(ws)
+    assert [(ws / p / "f").read_text() for p in parts] == ["original", "original", "grown"]
+    assert not (ws / stage.EXTEND_DIR).exists()
+    (aside / "images").mkdir(parents=True)  # every part and the report swapped: complete, kept
+    (aside / "images" / "f").write_text("original")
+    (aside / REPORT_NAME).write_text("old report")
+    stage._recover_extend(ws)
+    assert (ws / "images" / "f").read_text() == "grown" and not (ws / stage.EXTEND_DIR).exists()

@@ -273,7 +273,7 @@ class TestAddViewsErrors:
     def test_added_views_on_a_scene_whose_split_moved_keep_the_run_s_held_out_views(self, tiny_scene_path, tmp_path):
         """A photo put back into the workspace moves the every-8th split by name: --add-views went on with a view the
         run held out left unused (or trainable) and another set scored, without a word (then it was refused). The run
-        now keeps its own held-out views (written into its config as scene.test_names), so its scores compare."""
+        now keeps its own held-out views (``sfm.scene.load_for_run``), so its scores compare."""
         pycolmap = pytest.importorskip("pycolmap")
         ws = tmp_path / "ws"
         shutil.copytree(tiny_scene_path / "images", ws / "images")
@@ -296,7 +296,10 @@ class TestAddViewsErrors:
         train_run(ws, run, _cfg(iterations=10, scene=keep), CPU, resume=True, extend_to=20, add_views=["view_010.png"])
         after = json.loads((run / "scene.json").read_text())
         assert after["test"] == held and "view_010.png" in after["train"] and "view_016.png" not in after["test"]
-        assert json.loads((run / "config.json").read_text())["scene"]["test_names"] == held
+        from uncertsplat.baselines import load_run
+
+        scene = load_run(run).load_scene()  # evaluate scores the views the run held out, not the scene's split now
+        assert [scene.cameras.image_names[i] for i in scene.split["test"]] == held
 
     def test_a_run_with_views_set_aside_takes_none(self, tiny_scene_path, subset_run, tmp_path):
         """More training views would set other views aside for calibration: refused, the run left as it was."""

@@ -260,6 +260,10 @@ def test_a_scene_aligned_to_other_units_after_training_is_evaluated_in_them(tiny
     run = tmp_path / "run"
     cfg = train_config_from("tiny", None, ["iterations=6", "scene.downscale=4.0", "eval_every=1000"])
     stage.run(ws, run, cfg, torch.device("cpu"))
+    subset = tmp_path / "subset"  # a run on some of the photos (the others unused, as select-views grows them)
+    stage.run(ws, subset, train_config_from("tiny", None, ["iterations=3", "scene.downscale=4.0", "eval_every=1000",
+                                                           "scene.train_names=[view_001.png,view_005.png,view_009.png]"]),
+              torch.device("cpu"))
     ecfg = EvalConfig(num_samples=2, max_views=1)
     evaluate.run(run, ecfg, device=torch.device("cpu"))
 
@@ -277,6 +281,9 @@ def test_a_scene_aligned_to_other_units_after_training_is_evaluated_in_them(tiny
     loaded = load_run(run)
     loaded.load_scene()
     assert "its units are 1000x the ones the run was trained in" in loaded.frame_note
+    part = load_run(subset)  # its unused photos are no photos joined since: the same frame change, not a refusal
+    part.load_scene()
+    assert "its units are 1000x" in part.frame_note
     evaluate.run(run, ecfg, device=torch.device("cpu"))
     assert factor() == pytest.approx(1000.0 * before, rel=1e-5)
     report = EvalReport.read(run / "eval" / "metrics.json")

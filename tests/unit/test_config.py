@@ -206,3 +206,20 @@ def test_true_or_false_is_not_taken_for_a_number():
     for data in ({"default": {"num_samples": True}}, {"axes": {"iterations": [100, False]}}):
         with pytest.raises(ValueError, match="true/false given where a number is expected"):
             SweepSpec.model_validate(data)
+
+
+def test_a_fixed_scene_frame_is_a_scale_and_a_shift():
+    """``scene.world_from_source`` (a run's own frame, written by no one but kept for a user): the normalisation only
+    scales and shifts, and the cameras are moved by those alone; a turn gave NaN or unturned cameras without a word."""
+    from uncertsplat.config import SceneConfig
+
+    ok = [[0.25, 0, 0, 1.0], [0, 0.25, 0, -2.0], [0, 0, 0.25, 0.5], [0, 0, 0, 1]]
+    assert SceneConfig(world_from_source=ok).world_from_source[1][3] == -2.0
+    turn = [[0.0, -0.25, 0, 0], [0.25, 0.0, 0, 0], [0, 0, 0.25, 0], [0, 0, 0, 1]]
+    for bad, match in ((turn, "scale by one positive number and shift"),
+                       ([[-1.0, 0, 0, 0], [0, -1.0, 0, 0], [0, 0, -1.0, 0], [0, 0, 0, 1]], "positive"),
+                       ([[1.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 1.0, 1]], "last row"),
+                       ([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]], "4x4"),
+                       ([[float("nan"), 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1]], "finite")):
+        with pytest.raises(ValueError, match=match):
+            SceneConfig(world_from_source=bad)

@@ -402,3 +402,15 @@ def test_a_rerun_that_holds_out_other_views_says_so(tmp_path, monkeypatch, capsy
     assert """--set 'train.scene.test_names=["v08.png", "v16.png"]'""" in text
     assert pl.held_out_change(tmp_path / "out" / "train", tmp_path / "out" / "train") is None  # the same views
     assert pl.held_out_change(tmp_path / "nowhere", tmp_path / "out" / "train") is None
+
+
+def test_extend_is_refused_as_a_pipeline_setting(tmp_path, calls):
+    """A pipeline moves a stage's workspace aside before it runs the stage again, so --extend would find none: said
+    before anything runs, with the command that grows the workspace."""
+    p = tmp_path / "p.toml"
+    p.write_text('name = "t"\ndevice = "cpu"\nphotos = "ph"\n[[stages]]\nstage = "reconstruct"\n'
+                 'config = { extend = true }\n')
+    (tmp_path / "ph").mkdir()
+    with pytest.raises(UserError, match="extend is a step of its own") as err:
+        pl.run(p, tmp_path / "out")
+    assert "--extend" in err.value.hint and calls == []

@@ -266,9 +266,7 @@ class LoadedRun:
     def _read_scene(self) -> SceneData:
         from uncertsplat.sfm.scene import (
             frame_change,
-            in_run_frame,
-            load_scene,
-            photos_joined,
+            load_for_run,
             require_same_cameras,
             with_training_views,
         )
@@ -284,19 +282,15 @@ class LoadedRun:
                                  "is finished). Then run this command again.")
         # rendering a trained run needs no initial points (for a scene without sparse points, making them reads
         # every training view's alpha mask)
-        data = load_scene(self.scene_path, self.config.scene, initial_points=False)
         info = RunScene.read_optional(self.run_dir / RunScene.FILE_NAME)
+        # photos that joined the scene since (reconstruct --extend) move the normalisation and the split: the run's own
+        data, own = load_for_run(Path(self.scene_path), self.config.scene, info, initial_points=False)
         if info is None:
             return data
-        joined = photos_joined([*info.train, *info.test, *info.calibration], data)
-        if joined and info.cameras:  # photos added since (reconstruct --extend): the run's frame and held-out views
-            data = load_scene(self.scene_path, in_run_frame(self.config.scene, info.world_from_source, info.test),
-                              initial_points=False)
-            from uncertsplat.console import console, list_names
+        if own is not None:
+            from uncertsplat.console import console
 
-            console.print(f"[yellow]note:[/] the scene holds {len(joined)} photo(s) this run has not seen "
-                          f"({list_names(joined)}; added since it began): loaded in the run's frame, with its "
-                          "held-out views (`train --resume --add-views` trains on them)")
+            console.print(f"[yellow]note:[/] {own}")
         # its renders would not line up with the photos: every score would measure the misalignment
         require_same_cameras(info.cameras, data, Path(self.scene_path),
                              "its renders and scores against these would be wrong")

@@ -665,21 +665,48 @@ def require_same_cameras(recorded: dict[str, list[float]], data: SceneData, scen
                              f"trained on, or train a new run on this one (uncertsplat train {scene} -o NEW_RUN).")
 
 
-def photos_joined(recorded_views: set[str] | list[str], data: SceneData) -> list[str]:
-    """The scene's views a run does not know (``recorded_views``: its training, held-out and set-aside views), in the
-    scene's order: photos added to the scene after the run began (``reconstruct --extend``)."""
-    known = set(recorded_views)
-    return [n for n in data.cameras.image_names if n not in known]
-
-
-def in_run_frame(cfg: SceneConfig, world_from_source, test: list[str]) -> SceneConfig:
-    """``cfg`` with a run's own frame (``world_from_source``, [4,4]) and held-out views (``test``; the config's own
-    when it names them) fixed: how a scene that photos joined since the run began is loaded for it, where the
-    normalisation over the grown set of cameras and the every-n-th split by name would move them."""
-    update: dict = {"world_from_source": cfg.world_from_source or [list(map(float, r)) for r in world_from_source]}
-    if test and cfg.test_names is None:
+def in_run_frame(cfg: SceneConfig, world_from_source, test: list[str], pool: list[str]) -> SceneConfig:
+    """``cfg`` with a run's own frame (``world_from_source``, [4,4]), held-out views (``test``) and pool of training
+    and set-aside views (``pool``, unless the config names its training views) fixed: how a scene that photos
+    joined since the run began (``reconstruct --extend``) is loaded for it, where the normalisation over the grown
+    set of cameras, the every-n-th split by name and the views set aside over the grown pool would move them."""
+    update: dict = {"world_from_source": [list(map(float, r)) for r in world_from_source]}
+    if test:
         update.update(test_names=list(test), test_indices=None)
+    if cfg.train_names is None and pool:
+        update.update(train_names=list(pool), train_indices=None)
     return SceneConfig.model_validate({**cfg.model_dump(), **update})
+
+
+def load_for_run(scene: Path, cfg: SceneConfig, info, initial_points: bool = True) -> tuple[SceneData, str | None]:
+    """The scene as the run of ``info`` (its ``RunScene``) sees it, and a note when that took its own frame: loaded
+    as ``cfg`` says; where the run's recorded cameras no longer line up in the normalised world, or its held-out
+    views moved, loaded again in the run's frame with its split and scale (``in_run_frame``), which is kept when the
+    cameras line up there: photos joined the scene since the run began (``reconstruct --extend``), whose cameras
+    moved the normalisation over all of them. Otherwise the first load is returned, for the caller's checks to
+    refuse (a scene reconstructed again matches in neither frame)."""
+    from dataclasses import replace
+
+    data = load_scene(scene, cfg, initial_points=initial_points)
+    if info is None or not info.cameras:
+        return data, None
+    names = data.cameras.image_names
+    held = [names[i] for i in data.split.get("test", ())]
+    moved = camera_changes(info.cameras, data.cameras, data.extent) is not None
+    if not moved and (not info.test or held == list(info.test)):
+        return data, None
+    try:
+        own = load_scene(scene, in_run_frame(cfg, info.world_from_source, info.test,
+                                             [*info.train, *info.calibration]), initial_points=initial_points)
+    except UserError:  # (a recorded view gone from the scene: the caller's checks say so)
+        return data, None
+    own = replace(own, scene_scale=float(info.scene_scale))
+    if camera_changes(info.cameras, own.cameras, own.extent) is not None:
+        return data, None
+    why = ("the scene's cameras, normalised over all of them, no longer line up with this run's (photos joined the "
+           "scene since it began: reconstruct --extend)" if moved else
+           "the scene's split by name holds out other views than this run did (photos joined or came back since)")
+    return own, why + ": loaded in the run's own frame and scale (scene.json), with its held-out views"
 
 
 FRAME_CHANGE = 1e-6
@@ -909,10 +936,7 @@ def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torc
     else:
         T, s = torch.eye(4, dtype=torch.float64), 1.0
     new = normalized_cam_from_world(cameras.cam_from_world, T)
-    if cfg.world_from_source is not None:  # (a given similarity may turn the scene too)
-        pts = (points.double() @ T[:3, :3].T + T[:3, 3]).float()
-    else:
-        pts = (points.double() * s + T[:3, 3]).float()
+    pts = (points.double() * s + T[:3, 3]).float()
     cams = Cameras(new.float(), cameras.K.float(), cameras.width, cameras.height, cameras.image_names)
     scene_scale = float((cams.centers.double() - cams.centers.double().mean(0)).norm(dim=-1).max())
     if cfg.downscale != 1.0:

@@ -149,6 +149,13 @@ def check_stages(cfg: PipelineConfig, path: Path, overrides: list[str] | None = 
             configs.append(_stage_config(stage, KeyLines(path, prefix=f"stages.{i}.config", replaced=replaced)))
         except UserError as err:
             raise UserError(err.message, path=path, hint=err.hint) from None
+        if stage.stage == "reconstruct" and getattr(configs[-1], "extend", False):
+            # a pipeline moves a stage's earlier output aside before it runs it again: there is no workspace to grow
+            raise UserError(f"stage '{name}': extend is a step of its own, not a pipeline setting (the pipeline "
+                            "replaces the stage's workspace when its photos change)", path=path,
+                            hint=f"Grow the workspace the pipeline wrote with `uncertsplat reconstruct PHOTOS -o "
+                                 f"OUT/{name} --extend`, then train its run on with `uncertsplat train OUT/{name} -o "
+                                 "RUN --resume --add-views NAMES`.")
         upstream = stage.input if stage.input is not None else (earlier[-1] if earlier else None)
         if upstream in kinds:
             _check_upstream(stage, name, upstream, kinds, path)

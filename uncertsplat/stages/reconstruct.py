@@ -33,7 +33,7 @@ from uncertsplat.sfm.report import (
 )
 
 # What a workspace written by this stage consists of: --overwrite removes these and nothing else.
-_OWNED = ("images", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", REPORT_NAME)
+_OWNED = ("images", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", ".extend_tmp", REPORT_NAME)
 
 
 def _same_options(recorded: dict, cfg: ReconstructConfig) -> bool:
@@ -413,6 +413,49 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     return report
 
 
+EXTEND_DIR = ".extend_tmp"
+"""Where ``extend`` builds the grown workspace; ``EXTEND_DIR/old`` holds the parts it replaced while it swaps them."""
+_SWAPPED = (Path("distorted") / "sparse" / "0", Path("sparse") / "0", Path("images"), Path("database.db"))
+
+
+def _swap_in(workspace: Path, stage_dir: Path, report: ReconstructReport, staged_input: bool) -> None:
+    """Move the grown parts from ``stage_dir`` into ``workspace``, each original first to ``stage_dir/old`` (where
+    ``_recover_extend`` finds them if this stops half way), the report that names them last, then drop the
+    originals."""
+    if staged_input:  # rotated copies of EXIF-tagged photos, as `run` keeps them (a superset of the ones there)
+        target = workspace / "distorted" / "input"
+        if target.exists():
+            shutil.rmtree(target)
+        (stage_dir / "input").rename(target)
+    write_report(stage_dir, report)
+    for part in (*_SWAPPED, Path(REPORT_NAME)):  # the report last: once it is in, the swap is complete
+        aside = stage_dir / "old" / part
+        aside.parent.mkdir(parents=True, exist_ok=True)
+        (workspace / part).rename(aside)
+        (stage_dir / part).rename(workspace / part)
+    shutil.rmtree(stage_dir, ignore_errors=True)
+
+
+def _recover_extend(workspace: Path) -> None:
+    """Clear what an ``extend`` left (stopped, or killed): once its report was swapped in, the grown workspace is
+    complete and only the staging folder goes; before, every part it had moved aside goes back (the grown one in its
+    place is dropped), so the workspace is the one it started from."""
+    stage_dir = workspace / EXTEND_DIR
+    if not stage_dir.exists():
+        return
+    if not (stage_dir / "old" / REPORT_NAME).exists():
+        for part in _SWAPPED:
+            aside = stage_dir / "old" / part
+            if aside.exists():
+                target = workspace / part
+                if target.is_dir() and not target.is_symlink():
+                    shutil.rmtree(target)
+                elif target.exists():
+                    target.unlink()
+                aside.rename(target)
+    shutil.rmtree(stage_dir, ignore_errors=True)
+
+
 def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructReport:
     """Register the photos in ``photos`` that ``workspace`` (made by ``run``) does not hold into its model, every
     camera already there kept where it is (``sfm.map_into``: poses and intrinsics held fixed), with the
@@ -446,13 +489,12 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                         path=photos, hint="Put the new photos into the folder beside the others and run this again.")
     console.print(f"[bold]reconstruct --extend[/] {workspace}: {len(new)} new photo(s) ({list_names(new)}) into its "
                   f"{len(existing.images_registered)} registered ones, their cameras fixed; the workspace's options")
-    stage_dir = workspace / ".extend_tmp"
+    stage_dir = workspace / EXTEND_DIR
     watch = sfm.Stopwatch()
     t_start = time.perf_counter()
     try:
         with run_lock(workspace, "reconstruct"), sfm.colmap_logging():
-            if stage_dir.exists():
-                shutil.rmtree(stage_dir)
+            _recover_extend(workspace)  # an earlier --extend killed while it swapped: its originals back first
             stage_dir.mkdir()
             database = stage_dir / "database.db"
             shutil.copy2(workspace / "database.db", database)
@@ -533,27 +575,13 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                                 + f"; the {len(existing.images_registered)} cameras already there kept (poses and intrinsics fixed) "
                                   f"(reconstruct --extend, {time.perf_counter() - t_start:.1f} s)")
             report.total_seconds = round(report.total_seconds + time.perf_counter() - t_start, 3)
-            # swap the new parts in: the model, the images, the database, then the report that names them
-            for part in (Path("distorted") / "sparse" / "0", Path("sparse") / "0", Path("images"),
-                         Path("database.db")):
-                old = workspace / part
-                aside = stage_dir / "old" / part
-                aside.parent.mkdir(parents=True, exist_ok=True)
-                old.rename(aside)
-                (stage_dir / part).rename(old)
-            if (stage_dir / "input").is_dir() and image_dir == stage_dir / "input":
-                target = workspace / "distorted" / "input"
-                if target.exists():
-                    shutil.rmtree(target)
-                (stage_dir / "input").rename(target)
-            write_report(workspace, report)
-            shutil.rmtree(stage_dir, ignore_errors=True)
+            _swap_in(workspace, stage_dir, report, image_dir == stage_dir / "input")
     except KeyboardInterrupt:
-        shutil.rmtree(stage_dir, ignore_errors=True)
+        _recover_extend(workspace)
         raise Interrupted("reconstruct --extend interrupted: the workspace is as it was", path=workspace,
                           hint="Run the same command again.") from None
     except BaseException:
-        shutil.rmtree(stage_dir, ignore_errors=True)
+        _recover_extend(workspace)
         raise
     console.print(f"reconstruct --extend: {len(added)} of {len(new)} new photo(s) registered ({list_names(added)}); "
                   f"the {len(existing.images_registered)} cameras already there unchanged -> {workspace}")

@@ -153,12 +153,10 @@ def _close_names(unknown: list[str], scene: Path, cfg: TrainConfig) -> str:
 def _record_moved_scene(run_dir: Path, scene: Path, cfg: TrainConfig) -> None:
     """``scene.json`` of the finished run ``run_dir`` pointed at ``scene``, the folder its scene moved to, after the
     checks a resume makes (``_check_same_scene``: its images; ``camera_changes``: its cameras)."""
-    from uncertsplat.sfm.scene import in_run_frame, load_scene, photos_joined, require_same_cameras
+    from uncertsplat.sfm.scene import load_for_run, require_same_cameras
 
     before = RunScene.read(run_dir / RunScene.FILE_NAME)
-    data = load_scene(scene, cfg.scene, initial_points=False)
-    if before.cameras and photos_joined([*before.train, *before.test, *before.calibration], data):
-        data = load_scene(scene, in_run_frame(cfg.scene, before.world_from_source, before.test), initial_points=False)
+    data, _ = load_for_run(scene, cfg.scene, before, initial_points=False)
     _check_same_scene(before, scene, data.cameras.image_names, run_dir)
     require_same_cameras(before.cameras, data, scene, "its renders against these would be wrong")
     before.scene = str(scene.resolve())
@@ -242,13 +240,6 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
                                  "here." if every else None)
         added.append(name)
     scene = cfg.scene.model_copy(update={"train_names": current + added, "train_indices": None})
-    if info is not None:
-        # the run keeps its frame and its held-out views whatever joined the scene since (photos added by
-        # `reconstruct --extend`: the normalisation over the grown set of cameras, and the every-n-th split by name,
-        # would move them)
-        from uncertsplat.sfm.scene import in_run_frame
-
-        scene = in_run_frame(scene, info.world_from_source, info.test)
     return cfg.model_copy(update={"scene": scene}), added
 
 
@@ -276,9 +267,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     from uncertsplat.render import near_plane
     from uncertsplat.sfm.scene import (
         camera_records,
-        in_run_frame,
-        load_scene,
-        photos_joined,
+        load_for_run,
         require_same_cameras,
         with_training_views,
     )
@@ -388,8 +377,12 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 console.print(f"resuming from {path} (step {state['step']})")
                 _truncate_stats(run_dir / "stats.jsonl", int(state["step"]))
 
+        before = RunScene.read_optional(run_dir / RunScene.FILE_NAME) if resume else None
+        own = None
         try:
-            data = load_scene(scene, cfg.scene)
+            # photos joined the scene since the run began (reconstruct --extend): it goes on in its own frame and
+            # scale, with its held-out views (`--add-views` trains on the new ones)
+            data, own = load_for_run(scene, cfg.scene, before)
         except UserError as err:
             unknown = [n for n in add_views or () if "not in the scene: " in err.message and n in err.message]
             if not unknown:
@@ -412,12 +405,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                                  + (err.hint or "")) from None
         if not data.split.get("train"):
             raise UserError("the scene has no training views", path=scene, hint="Check test_every / test_names.")
-        before = RunScene.read_optional(run_dir / RunScene.FILE_NAME) if resume else None
-        if before is not None and not add_views and before.cameras and photos_joined(
-                [*before.train, *before.test, *before.calibration], data):
-            # photos joined the scene since the run began (reconstruct --extend): it goes on in its frame, with its
-            # held-out views (`--add-views` trains on the new ones)
-            data = load_scene(scene, in_run_frame(cfg.scene, before.world_from_source, before.test))
+        if own is not None:
+            console.print(f"[yellow]note:[/] {own}")
         names = data.cameras.image_names
         if before is not None:
             _check_same_scene(before, scene, names, run_dir)
