@@ -205,6 +205,18 @@ def test_a_run_without_a_posterior_is_named_by_evaluate(tiny_scene_path, tmp_pat
     assert carriers.model.num_carriers > 0 and carriers.eval_notes(4) == []
 
 
+def _trained_on_a_workspace(tiny_scene_path, tmp_path, *settings: str):
+    """(workspace, run, config): the tiny scene's images and COLMAP model copied to ``ws``, a run of 6 steps on it."""
+    ws = tmp_path / "ws"
+    ws.mkdir()
+    shutil.copytree(tiny_scene_path / "images", ws / "images")
+    shutil.copytree(tiny_scene_path / "sparse", ws / "sparse")
+    run = tmp_path / "run"
+    cfg = train_config_from("tiny", None, ["iterations=6", "scene.downscale=4.0", "eval_every=1000", *settings])
+    stage.run(ws, run, cfg, torch.device("cpu"))
+    return ws, run, cfg
+
+
 def test_a_scene_whose_cameras_changed_is_refused(tiny_scene_path, tmp_path):  # noqa: F811
     """A workspace reconstructed again after training (here: the same COLMAP model moved by a similarity, as a new
     SfM run's arbitrary frame would be) no longer lines up with the model: evaluate's scene load and a resume are
@@ -212,14 +224,7 @@ def test_a_scene_whose_cameras_changed_is_refused(tiny_scene_path, tmp_path):  #
     pycolmap = pytest.importorskip("pycolmap")
     import numpy as np
 
-    ws = tmp_path / "ws"
-    ws.mkdir()
-    shutil.copytree(tiny_scene_path / "images", ws / "images")
-    shutil.copytree(tiny_scene_path / "sparse", ws / "sparse")
-    run = tmp_path / "run"
-    cfg = train_config_from("tiny", None, ["iterations=6", "scene.downscale=4.0", "checkpoint_every=3",
-                                           "log_every=3", "eval_every=1000"])
-    stage.run(ws, run, cfg, torch.device("cpu"))
+    ws, run, cfg = _trained_on_a_workspace(tiny_scene_path, tmp_path, "checkpoint_every=3", "log_every=3")
     recorded = json.loads((run / "scene.json").read_text())["cameras"]
     assert len(recorded) == 24 and all(len(v) == 13 for v in recorded.values())
     model = pycolmap.Reconstruction(str(ws / "sparse" / "0"))
@@ -253,13 +258,7 @@ def test_a_scene_aligned_to_other_units_after_training_is_evaluated_in_them(tiny
     from uncertsplat.sfm.scene import frame_change
     from uncertsplat.stages import evaluate
 
-    ws = tmp_path / "ws"
-    ws.mkdir()
-    shutil.copytree(tiny_scene_path / "images", ws / "images")
-    shutil.copytree(tiny_scene_path / "sparse", ws / "sparse")
-    run = tmp_path / "run"
-    cfg = train_config_from("tiny", None, ["iterations=6", "scene.downscale=4.0", "eval_every=1000"])
-    stage.run(ws, run, cfg, torch.device("cpu"))
+    ws, run, cfg = _trained_on_a_workspace(tiny_scene_path, tmp_path)
     subset = tmp_path / "subset"  # a run on some of the photos (the others unused, as select-views grows them)
     stage.run(ws, subset, train_config_from("tiny", None, ["iterations=3", "scene.downscale=4.0", "eval_every=1000",
                                                            "scene.train_names=[view_001.png,view_005.png,view_009.png]"]),

@@ -182,6 +182,15 @@ def registration_hints(model_sizes: list[int], matcher: str, n: int, cfg: Recons
     return hints
 
 
+def _model_facts(report: ReconstructReport, model) -> None:
+    """The kept model's points, reprojection error, track length, observations and cameras into ``report``."""
+    stats = sfm.model_stats(model)
+    for key in ("num_points3d", "mean_reprojection_error", "mean_track_length", "mean_observations_per_image",
+                "num_observations"):
+        setattr(report, key, stats[key])
+    report.cameras = sfm.camera_summaries(model)
+
+
 def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructReport:
     """Run SfM on ``photos`` and write an undistorted workspace plus ``reconstruct_report.json``.
 
@@ -330,13 +339,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
             report.images_unregistered = sorted(set(scan.names) - set(registered))
             report.registered_fraction = len(registered) / n
             if best is not None:
-                stats = sfm.model_stats(best)
-                report.num_points3d = stats["num_points3d"]
-                report.mean_reprojection_error = stats["mean_reprojection_error"]
-                report.mean_track_length = stats["mean_track_length"]
-                report.mean_observations_per_image = stats["mean_observations_per_image"]
-                report.num_observations = stats["num_observations"]
-                report.cameras = sfm.camera_summaries(best)
+                _model_facts(report, best)
                 weak = sfm.weakly_registered(best)
                 if weak:
                     weak_note = weak_registration_note(weak, cfg)
@@ -562,13 +565,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             report.undistorted_size = sizes
             report.image_sizes = {f"{w}x{h}": len(n) for (w, h), n in scan.size_groups().items()}
             report.rotated = sorted(set(report.rotated) | set(rotated))
-            stats = sfm.model_stats(grown)
-            report.num_points3d = stats["num_points3d"]
-            report.mean_reprojection_error = stats["mean_reprojection_error"]
-            report.mean_track_length = stats["mean_track_length"]
-            report.mean_observations_per_image = stats["mean_observations_per_image"]
-            report.num_observations = stats["num_observations"]
-            report.cameras = sfm.camera_summaries(grown)
+            _model_facts(report, grown)
             not_added = sorted(set(new) - set(added))
             report.notes.append(f"extended with {len(added)} photo(s) ({list_names(added)})"
                                 + (f", {len(not_added)} not registered ({list_names(not_added)})" if not_added else "")
