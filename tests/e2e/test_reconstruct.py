@@ -413,6 +413,26 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
     scene = loaded.load_scene()
     assert loaded.frame_note is None and [scene.cameras.image_names[i] for i in scene.split["test"]] == trained.test
 
+    # a held-out photo saved again (other bytes, the same picture), an exact copy of a workspace photo whose name sorts
+    # first, a photo of nothing here: the copy is left out (the workspace's name kept, said), the other two join the
+    # folder, only the re-saved one registers, and neither can be trained on
+    held = trained.test[0]
+    again = read_rgb(photos / held).copy()
+    again[0, 0] ^= 1
+    write_rgb(photos / "resaved.png", again)
+    shutil.copy(photos / names[1], photos / "0000.png")
+    write_rgb(photos / "zz_noise.png", noise_image(7, 320, 240))
+    report = stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
+    assert "0000.png" in report.ignored and names[1] in report.images_registered
+    assert any("exact copies" in n and "0000.png" in n for n in report.notes)
+    assert "resaved.png" in report.images_registered and "zz_noise.png" in report.images_unregistered
+    with pytest.raises(UserError, match=f"took the same picture as the held-out view {held}"):
+        train_stage.run(ws, run, cfg.model_copy(update={"iterations": 12}), torch.device("cpu"), resume=True,
+                        extend_to=12, add_views=["resaved.png"])
+    with pytest.raises(UserError, match="the reconstruction did not register it .listed under images_unregistered"):
+        train_stage.run(ws, run, cfg.model_copy(update={"iterations": 12}), torch.device("cpu"), resume=True,
+                        extend_to=12, add_views=["zz_noise.png"])
+
 
 def test_an_extend_stopped_while_it_swapped_is_undone(tmp_path):
     """``reconstruct --extend`` swaps the grown parts in one by one, the originals aside: stopped (or killed) half
@@ -437,3 +457,26 @@ def test_an_extend_stopped_while_it_swapped_is_undone(tmp_path):
     (aside / REPORT_NAME).write_text("old report")
     stage._recover_extend(ws)
     assert (ws / "images" / "f").read_text() == "grown" and not (ws / stage.EXTEND_DIR).exists()
+    # killed between the report's two moves: no report in the workspace; the grown one is moved in
+    (ws / REPORT_NAME).rename(tmp_path / "r")
+    aside.mkdir(parents=True)
+    (aside / REPORT_NAME).write_text("old report")
+    (ws / stage.EXTEND_DIR / REPORT_NAME).write_text("grown report")
+    with pytest.raises(UserError, match="stopped while it replaced this workspace's parts") as err:
+        from uncertsplat.sfm.scene import load_scene
+
+        load_scene(ws)  # train, evaluate: said, with the command that mends it
+    assert "reconstruct" in err.value.hint
+    stage._recover_extend(ws)
+    assert (ws / REPORT_NAME).read_text() == "grown report" and not (ws / stage.EXTEND_DIR).exists()
+
+
+def test_extend_names_new_photos_of_another_shape():
+    """A square crop added to a 4:3 workspace registers, but `train` leaves it out of the scene: --extend said to add
+    it; it now names it, and the other orientation of the same shape still counts as fitting."""
+    from types import SimpleNamespace
+
+    report = SimpleNamespace(undistorted_size={"a.jpg": [800, 600], "b.jpg": [800, 600], "sq.jpg": [600, 600],
+                                               "tall.jpg": [600, 800], "small.jpg": [400, 300]})
+    odd, common = stage._other_shapes(report, ["sq.jpg", "tall.jpg", "small.jpg"])
+    assert odd == ["sq.jpg"] and common == (800, 600)

@@ -59,7 +59,14 @@ def unused_views(scene: SceneData) -> list[int]:
     held = [*scene.split.get("test", ()), *scene.split.get("calibration", ())]
     used = set(scene.split.get("train", ())) | set(held)
     free = [i for i in range(len(scene.cameras)) if i not in used]
-    twins = {j for js in pose_twins(scene.cameras, held, free).values() for j in js}
+    found = pose_twins(scene.cameras, held, free)
+    twins = {j for js in found.values() for j in js}
+    if twins:  # said, not dropped silently ("only N candidates were there" named none)
+        from uncertsplat.console import console
+
+        names = scene.cameras.image_names
+        pairs = ", ".join(f"{names[j]} (as {names[h]})" for h, js in found.items() for j in js)
+        console.print(f"[yellow]note:[/] left out of the candidates as the same picture as a held-out view: {pairs}")
     return [i for i in free if i not in twins]
 
 

@@ -184,11 +184,12 @@ def _read_header(path: Path) -> tuple[int, int, int, bool, bool, str] | str:
         inp.close()
 
 
-def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
+def scan_photos(folder: str | Path, min_images: int = 3, prefer: set[str] | frozenset[str] = frozenset()) -> PhotoScan:
     """List the photos of ``folder`` (not recursive) and read their headers.
 
     JPEG, PNG and TIFF files of any extension case are used; sub-folders, hidden files and other
-    files are ignored (and named in ``ignored``).
+    files are ignored (and named in ``ignored``). Of photos that are copies of each other or share a name stem, one
+    is kept: a name in ``prefer`` first (a workspace's photos, when ``reconstruct --extend`` scans the grown folder).
 
     Raises:
         UserError: the folder is missing or empty, holds fewer than ``min_images`` photos, or some
@@ -258,8 +259,8 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
     if len(candidates) < min_images:
         raise UserError(f"only {len(candidates)} photo(s) found; structure-from-motion needs at least {min_images}",
                         path=folder, hint="Add more overlapping photos of the scene (20 or more works best).")
-    photos = _without_copies(photos, ignored, notes)
-    photos = _one_per_stem(photos, ignored, notes)
+    photos = _without_copies(photos, ignored, notes, prefer)
+    photos = _one_per_stem(photos, ignored, notes, prefer)
     with_alpha = [p.name for p in photos if p.alpha]
     if with_alpha:
         notes.append(f"{len(with_alpha)} photo(s) have an alpha channel, which is not used: structure-from-motion "
@@ -275,17 +276,21 @@ def scan_photos(folder: str | Path, min_images: int = 3) -> PhotoScan:
     return PhotoScan(folder=folder, photos=photos, ignored=ignored, notes=notes)
 
 
-def _one_per_stem(photos: list[PhotoInfo], ignored: list[str], notes: list[str]) -> list[PhotoInfo]:
-    """``photos`` with one photo per name stem (the first by name), the others named in ``ignored`` and a note.
+def _one_per_stem(photos: list[PhotoInfo], ignored: list[str], notes: list[str],
+                  prefer: set[str] | frozenset[str] = frozenset()) -> list[PhotoInfo]:
+    """``photos`` with one photo per name stem (one in ``prefer``, else the first by name), the others named in
+    ``ignored`` and a note.
 
     ``IMG_0001.jpg`` beside ``IMG_0001.png`` is most often one shot saved twice; and `evaluate` names a view's
     maps by the stem (``io.maps.map_stem``), so the two would write over each other's.
     """
-    return _first_of_each(
-        photos, lambda p: Path(p.name).stem.casefold(), ignored, notes,
+    order = sorted(photos, key=lambda p: (p.name not in prefer, p.name))
+    kept = {p.name for p in _first_of_each(
+        order, lambda p: Path(p.name).stem.casefold(), ignored, notes,
         lambda dropped: (f"{len(dropped)} photo(s) share their name with another up to the extension and were left "
                          "out (often one shot saved in two formats; rename one to use both): "
-                         + ", ".join(f"{d} (beside {k})" for d, k in sorted(dropped.items()))))
+                         + ", ".join(f"{d} (beside {k})" for d, k in sorted(dropped.items()))))}
+    return [p for p in photos if p.name in kept]
 
 
 def _first_of_each(photos: list[PhotoInfo], key: Callable[[PhotoInfo], object], ignored: list[str],
@@ -331,7 +336,8 @@ def _folders_with_photos(folder: Path, depth: int = 2) -> list[Path]:
     return found
 
 
-def _without_copies(photos: list[PhotoInfo], ignored: list[str], notes: list[str]) -> list[PhotoInfo]:
+def _without_copies(photos: list[PhotoInfo], ignored: list[str], notes: list[str],
+                    prefer: set[str] | frozenset[str] = frozenset()) -> list[PhotoInfo]:
     """``photos`` less the byte-for-byte copies of an earlier one (by name), each named in ``ignored`` and a note.
 
     A copy adds nothing to the reconstruction, and one copy in training with its twin held out would make the
@@ -341,7 +347,8 @@ def _without_copies(photos: list[PhotoInfo], ignored: list[str], notes: list[str
     shared = Counter(size.values())
     # of a photo and its copies, the one whose name is no copy's ("IMG_1.jpg" beside "IMG_1 (1).jpg" or "IMG_1
     # copy.jpg", which sort before it by name) is kept, then the first by name
-    order = sorted(photos, key=lambda p: (_COPY_NAME.search(Path(p.name).stem) is not None, p.name))
+    order = sorted(photos, key=lambda p: (p.name not in prefer, _COPY_NAME.search(Path(p.name).stem) is not None,
+                                          p.name))
     kept = {p.name for p in _first_of_each(
         # a file of a size no other has is no copy: not read
         order, lambda p: file_sha256(p.path) if shared[size[p.name]] > 1 else None, ignored, notes,

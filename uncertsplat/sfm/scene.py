@@ -76,6 +76,10 @@ def load_scene(path: str | Path, cfg: SceneConfig | None = None, *, initial_poin
     if not any(path.iterdir()):
         raise UserError("the scene folder is empty", path=path,
                         hint="Run `uncertsplat reconstruct PHOTOS -o FOLDER` or `uncertsplat synth FOLDER` first.")
+    if (path / ".extend_tmp" / "old").is_dir():  # stages.reconstruct.EXTEND_DIR, killed while it swapped its parts
+        raise UserError("a `reconstruct --extend` was stopped while it replaced this workspace's parts", path=path,
+                        hint=f"Run `uncertsplat reconstruct PHOTOS -o {path}` (or with --extend) again: it puts the "
+                             "workspace back as it was first.")
     from uncertsplat.data.synthetic import read_scene_meta
 
     meta = read_scene_meta(path)

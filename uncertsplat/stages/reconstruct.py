@@ -200,6 +200,9 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     photos, workspace = Path(photos), Path(workspace)
     if cfg.extend:
         return extend(photos, workspace, cfg)
+    if (workspace / EXTEND_DIR).exists():  # an --extend stopped or killed: the workspace as it was, before any check
+        with run_lock(workspace, "reconstruct"):
+            _recover_extend(workspace)
     watch = sfm.Stopwatch()
     t_start = time.perf_counter()
     with watch("scan"):
@@ -446,7 +449,12 @@ def _recover_extend(workspace: Path) -> None:
     stage_dir = workspace / EXTEND_DIR
     if not stage_dir.exists():
         return
-    if not (stage_dir / "old" / REPORT_NAME).exists():
+    if (stage_dir / "old" / REPORT_NAME).exists():
+        # every part was in when the report's swap began: finish it (killed between its two moves, the workspace had
+        # no report at all)
+        if (stage_dir / REPORT_NAME).exists() and not (workspace / REPORT_NAME).exists():
+            (stage_dir / REPORT_NAME).rename(workspace / REPORT_NAME)
+    else:
         for part in _SWAPPED:
             aside = stage_dir / "old" / part
             if aside.exists():
@@ -472,6 +480,9 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             no new photo, none of them registered, or a camera already there moved.
     """
     photos, workspace = Path(photos), Path(workspace)
+    if (workspace / EXTEND_DIR).exists():  # an earlier --extend stopped or killed: its workspace back first
+        with run_lock(workspace, "reconstruct"):
+            _recover_extend(workspace)
     existing = load_report(workspace) if workspace.is_dir() else None
     needed = [workspace / "database.db", workspace / "distorted" / "sparse" / "0", workspace / "sparse" / "0"]
     if existing is None or not existing.success or any(not p.exists() for p in needed):
@@ -479,8 +490,12 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                         "distorted/sparse/0)", path=workspace,
                         hint=f"Reconstruct the photos first: uncertsplat reconstruct {photos} -o {workspace}")
     ws_cfg = ReconstructConfig.model_validate({**existing.options, "num_threads": cfg.num_threads})
-    scan = sfm.scan_photos(photos)
+    # of copies and photos sharing a name stem the workspace's own are kept (a new copy sorted first took its place)
+    scan = sfm.scan_photos(photos, prefer=set(existing.images_found))
     _check_output_path(photos, workspace)
+    for note in scan.notes:
+        if note not in existing.notes:
+            console.print(f"[yellow]note:[/] {note}")
     missing = sorted(set(existing.images_registered) - set(scan.names))
     if missing:
         raise UserError(f"{photos} lacks {len(missing)} of the photos the workspace registered ({list_names(missing)})",
@@ -488,7 +503,10 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                                           f"it ({existing.photos}).")
     new = [n for n in scan.names if n not in set(existing.images_found)]
     if not new:
-        raise UserError(f"no new photo in {photos}: the workspace holds every one of its {len(scan.names)} photos",
+        left = sorted(set(scan.ignored) - set(existing.ignored))
+        raise UserError(f"no new photo in {photos}: the workspace holds every one of its {len(scan.names)} photos"
+                        + (f" (left out: {list_names(left)}, copies of a photo or sharing its name: the notes above)"
+                           if left else ""),
                         path=photos, hint="Put the new photos into the folder beside the others and run this again.")
     console.print(f"[bold]reconstruct --extend[/] {workspace}: {len(new)} new photo(s) ({list_names(new)}) into its "
                   f"{len(existing.images_registered)} registered ones, their cameras fixed; the workspace's options")
@@ -558,6 +576,8 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             report = existing.model_copy(deep=True)
             report.inputs_fingerprint = scan.fingerprint()
             report.photos = str(photos.resolve())
+            report.ignored = scan.ignored
+            report.notes.extend(n for n in scan.notes if n not in report.notes)
             report.images_found = scan.names
             report.images_registered = registered
             report.images_unregistered = sorted(set(scan.names) - set(registered))
@@ -584,9 +604,34 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                   f"the {len(existing.images_registered)} cameras already there unchanged -> {workspace}")
     if not_added:
         console.print(f"[yellow]warning:[/] not registered: {list_names(not_added)}")
-    console.print(f"Next: a run trained on {workspace} trains on them with [bold]uncertsplat train {workspace} -o RUN "
-                  f"--resume --add-views {','.join(added)}[/]")
+    odd, common = _other_shapes(report, added)
+    if odd:
+        console.print(f"[yellow]note:[/] {list_names(odd)}: another shape than the workspace's photos ({common[0]}x"
+                      f"{common[1]} undistorted): `train` leaves them out of its scene (scene.photo_sizes: a photo of "
+                      "that shape in either orientation joins, resized)")
+    usable = [n for n in added if n not in set(odd)]
+    if usable:
+        console.print(f"Next: a run trained on {workspace} trains on them with [bold]uncertsplat train {workspace} -o "
+                      f"RUN --resume --add-views {','.join(usable)}[/]")
     return report
+
+
+def _other_shapes(report: ReconstructReport, names: list[str]) -> tuple[list[str], tuple[int, int]]:
+    """(of ``names``, the photos whose undistorted image has another aspect ratio, in either orientation, than the
+    workspace's most common size (``sfm.scene.PHOTO_SHAPE_TOLERANCE``): `train` leaves those out of the scene; that
+    size)."""
+    from uncertsplat.sfm.scene import PHOTO_SHAPE_TOLERANCE
+
+    sizes = {n: tuple(wh) for n, wh in (report.undistorted_size or {}).items()}
+    if not sizes:
+        return [], (0, 0)
+    common = max(set(sizes.values()), key=list(sizes.values()).count)
+    aspect = common[0] / common[1]
+
+    def fits(w: int, h: int) -> bool:
+        return any(abs(a / aspect - 1.0) <= PHOTO_SHAPE_TOLERANCE for a in (w / h, h / w))
+
+    return [n for n in names if n in sizes and not fits(*sizes[n])], common
 
 
 def _secs(seconds: float) -> str:
