@@ -7,6 +7,7 @@ import json
 import math
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pycolmap  # tests may build odd COLMAP models directly; the package goes through sfm/colmap_io
@@ -650,6 +651,32 @@ def test_dense_video_frames_are_no_twins_but_brackets_and_paused_frames_are():
     held = [0, 9, 30]
     twins = pose_twins(pano, held, [i for i in range(138) if i not in held])
     assert twins == {0: [1, 2], 9: [10, 11], 30: [31, 32]}
+
+
+def test_added_views_are_twins_only_as_the_split_finds_them():
+    """``train --add-views`` refuses an added view that took a held-out view's picture, judged against every training
+    view as the split judges: the next frame of a dense video (no jump from its neighbours) is added; a copy (a hair's
+    breadth away) is refused. Judged against the added view alone, the video frame read as a twin."""
+    from types import SimpleNamespace
+
+    from uncertsplat.train.session import _refuse_twins_of_held_out
+    from uncertsplat.types import Cameras
+
+    n = 3000  # a step of 0.0033, a third of TWIN_DISTANCE x the radius of 5
+    x = torch.linspace(0.0, 10.0, n, dtype=torch.float64)
+    x = torch.cat([x, x[8:9] + 1e-7])  # the last: a copy of frame 8 saved again
+    m = torch.eye(4, dtype=torch.float64).repeat(len(x), 1, 1)
+    m[:, 0, 3] = -x
+    K = torch.tensor([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]], dtype=torch.float64).repeat(len(x), 1, 1)
+    cams = Cameras(m, K, 64, 48, tuple(f"f{i:04d}.png" for i in range(len(x))))
+    test = tuple(range(0, n, 8))
+    unused = {9, n}  # the frame after held-out frame 8, and the copy of frame 8
+    train = tuple(i for i in range(n) if i not in test and i not in unused)
+    data = SimpleNamespace(cameras=cams, split={"train": (*train, 9), "test": test})
+    _refuse_twins_of_held_out(data, ["f0009.png"], Path("run"))  # the next frame: added
+    data = SimpleNamespace(cameras=cams, split={"train": (*train, n), "test": test})
+    with pytest.raises(UserError, match=f"f{n:04d}.png took the same picture as the held-out view f0008.png"):
+        _refuse_twins_of_held_out(data, [f"f{n:04d}.png"], Path("run"))
 
 
 def test_a_workspace_of_several_models_names_the_unused_ones(workspace):

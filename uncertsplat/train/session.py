@@ -205,9 +205,13 @@ def _refuse_twins_of_held_out(data, add: list[str], run_dir: Path) -> None:
     from uncertsplat.sfm.scene import pose_twins
 
     names = data.cameras.image_names
-    index = {n: i for i, n in enumerate(names)}
+    added = {i for i, n in enumerate(names) if n in set(add)}
     held = [*data.split.get("test", ()), *data.split.get("calibration", ())]
-    twins = pose_twins(data.cameras, held, [index[n] for n in add if n in index])
+    # against every training view with the added ones, as the split finds twins: a frame of a dense video next to a
+    # held-out one steps as evenly from it as its other neighbours do (no twin), a copy sits a hair's breadth away
+    pool = sorted(set(data.split.get("train", ())) | added)
+    twins = {h: [t for t in ts if t in added] for h, ts in pose_twins(data.cameras, held, pool).items()}
+    twins = {h: ts for h, ts in twins.items() if ts}
     if twins:
         h, (t, *_) = next(iter(twins.items()))
         raise UserError(f"--add-views {names[t]} took the same picture as the held-out view {names[h]} (the same pose: "
