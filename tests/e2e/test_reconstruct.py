@@ -315,7 +315,7 @@ def _digest(folder: Path) -> dict[str, bytes]:
             if p.is_file() and p.name != ".lock"}
 
 
-def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, tmp_path):
+def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, tmp_path, capsys):
     """The active-learning loop with real photos: a workspace of 20 photos, a run trained on it; two new photos
     put into the folder join the workspace (`reconstruct --extend`) with every camera there kept, and the run goes
     on with them (`train --resume --add-views`) in its own frame and with its own held-out views; bad inputs leave the
@@ -422,9 +422,11 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
     write_rgb(photos / "resaved.png", again)
     shutil.copy(photos / names[1], photos / "0000.png")
     write_rgb(photos / "zz_noise.png", noise_image(7, 320, 240))
+    capsys.readouterr()
     report = stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
     assert "0000.png" in report.ignored and names[1] in report.images_registered
-    assert any("exact copies" in n and "0000.png" in n for n in report.notes)
+    said = " ".join(capsys.readouterr().err.split())
+    assert "exact copies of another and were left out: 0000.png" in said
     assert "resaved.png" in report.images_registered and "zz_noise.png" in report.images_unregistered
     with pytest.raises(UserError, match=f"took the same picture as the held-out view {held}"):
         train_stage.run(ws, run, cfg.model_copy(update={"iterations": 12}), torch.device("cpu"), resume=True,
@@ -449,6 +451,11 @@ def test_an_extend_stopped_while_it_swapped_is_undone(tmp_path):
     for part in parts[:2]:  # two of four parts swapped when it stopped
         (aside / part).mkdir(parents=True)
         (aside / part / "f").write_text("original")
+    from uncertsplat.sfm.scene import load_scene
+
+    with pytest.raises(UserError, match="stopped while it replaced this workspace's parts") as err:
+        load_scene(ws)  # train, evaluate: said, with the command that mends it
+    assert "reconstruct" in err.value.hint
     stage._recover_extend(ws)
     assert [(ws / p / "f").read_text() for p in parts] == ["original", "original", "grown"]
     assert not (ws / stage.EXTEND_DIR).exists()
@@ -462,13 +469,14 @@ def test_an_extend_stopped_while_it_swapped_is_undone(tmp_path):
     aside.mkdir(parents=True)
     (aside / REPORT_NAME).write_text("old report")
     (ws / stage.EXTEND_DIR / REPORT_NAME).write_text("grown report")
-    with pytest.raises(UserError, match="stopped while it replaced this workspace's parts") as err:
-        from uncertsplat.sfm.scene import load_scene
-
-        load_scene(ws)  # train, evaluate: said, with the command that mends it
-    assert "reconstruct" in err.value.hint
     stage._recover_extend(ws)
     assert (ws / REPORT_NAME).read_text() == "grown report" and not (ws / stage.EXTEND_DIR).exists()
+    # killed while the finished swap's staging folder was removed: it was renamed first, so what is left of it is
+    # only leftovers (its report marker may be gone before the originals: no half-made state to misread)
+    (ws / stage.EXTEND_DONE / "old" / "images").mkdir(parents=True)
+    (ws / stage.EXTEND_DONE / "old" / "images" / "f").write_text("original")
+    stage._recover_extend(ws)
+    assert not (ws / stage.EXTEND_DONE).exists() and (ws / "images" / "f").read_text() == "grown"
 
 
 def test_extend_names_new_photos_of_another_shape():
@@ -477,6 +485,8 @@ def test_extend_names_new_photos_of_another_shape():
     from types import SimpleNamespace
 
     report = SimpleNamespace(undistorted_size={"a.jpg": [800, 600], "b.jpg": [800, 600], "sq.jpg": [600, 600],
-                                               "tall.jpg": [600, 800], "small.jpg": [400, 300]})
-    odd, common = stage._other_shapes(report, ["sq.jpg", "tall.jpg", "small.jpg"])
+                                               "tall.jpg": [600, 800], "small.jpg": [400, 300],
+                                               "cropped.jpg": [800, 572]})
+    # a size within 5 % is cropped in, another of the same shape resized, either orientation: as train fits them
+    odd, common = stage._other_shapes(report, ["sq.jpg", "tall.jpg", "small.jpg", "cropped.jpg"])
     assert odd == ["sq.jpg"] and common == (800, 600)

@@ -679,6 +679,26 @@ def test_added_views_are_twins_only_as_the_split_finds_them():
         _refuse_twins_of_held_out(data, [f"f{n:04d}.png"], Path("run"))
 
 
+def test_select_views_judges_twins_as_the_split_does():
+    """select-views' candidates: the frame after a held-out one in a dense capture is a candidate (judged against
+    the free views alone, it read as a twin and was left out with a note)."""
+    from types import SimpleNamespace
+
+    from uncertsplat.select.candidates import unused_views
+    from uncertsplat.types import Cameras
+
+    n = 3000
+    x = torch.linspace(0.0, 10.0, n, dtype=torch.float64)
+    m = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
+    m[:, 0, 3] = -x
+    K = torch.tensor([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]], dtype=torch.float64).repeat(n, 1, 1)
+    test = tuple(range(0, n, 8))
+    free = {9, 100, 1001}
+    scene = SimpleNamespace(cameras=Cameras(m, K, 64, 48), split={
+        "test": test, "train": tuple(i for i in range(n) if i not in test and i not in free)})
+    assert unused_views(scene) == [9, 100, 1001]
+
+
 def test_a_workspace_of_several_models_names_the_unused_ones(workspace):
     """COLMAP's mapper splits a capture it cannot join: sparse/0 is used and the others are named."""
     shutil.copytree(workspace / "sparse" / "0", workspace / "sparse" / "1")

@@ -76,10 +76,11 @@ def load_scene(path: str | Path, cfg: SceneConfig | None = None, *, initial_poin
     if not any(path.iterdir()):
         raise UserError("the scene folder is empty", path=path,
                         hint="Run `uncertsplat reconstruct PHOTOS -o FOLDER` or `uncertsplat synth FOLDER` first.")
-    if (path / ".extend_tmp" / "old").is_dir():  # stages.reconstruct.EXTEND_DIR, killed while it swapped its parts
+    aside = path / ".extend_tmp" / "old"  # stages.reconstruct.EXTEND_DIR: killed while it swapped the workspace's parts
+    if aside.is_dir() and not (aside / "reconstruct_report.json").exists():  # (once the report moved, it is complete)
         raise UserError("a `reconstruct --extend` was stopped while it replaced this workspace's parts", path=path,
-                        hint=f"Run `uncertsplat reconstruct PHOTOS -o {path}` (or with --extend) again: it puts the "
-                             "workspace back as it was first.")
+                        hint=f"Run `uncertsplat reconstruct PHOTOS -o {path}` (or with --extend) again: it first "
+                             "undoes the half-made swap.")
     from uncertsplat.data.synthetic import read_scene_meta
 
     meta = read_scene_meta(path)
@@ -276,6 +277,23 @@ def _sizes_by_name(model: ColmapModel, images: list) -> str:
     return "; ".join(parts)
 
 
+def size_fit(w: int, h: int, ref_w: int, ref_h: int) -> str | None:
+    """How a photo of ``w`` x ``h`` (turned to the scene's orientation) joins a scene of ``ref_w`` x ``ref_h`` under
+    ``SceneConfig.photo_sizes`` = "fit": "crop" (within ``PHOTO_SIZE_TOLERANCE``), "resize" (the same shape within
+    ``PHOTO_SHAPE_TOLERANCE``), or None: left out."""
+    if abs(w - ref_w) <= PHOTO_SIZE_TOLERANCE * ref_w and abs(h - ref_h) <= PHOTO_SIZE_TOLERANCE * ref_h:
+        return "crop"
+    if abs(w / h - ref_w / ref_h) <= PHOTO_SHAPE_TOLERANCE * ref_w / ref_h:
+        return "resize"
+    return None
+
+
+def common_size(counts: dict[tuple[int, int], int]) -> tuple[int, int]:
+    """The scene's size of photos of several sizes ({(width, height): count}): the most common; among equals the
+    larger, then the wider (deterministic)."""
+    return max(counts, key=lambda s: (counts[s], s[0] * s[1], s[0]))
+
+
 def _fit_sizes(model: ColmapModel, images: list, sparse: Path) -> tuple[dict, list[str]]:
     """``SceneConfig.photo_sizes`` = "fit" for ``images`` of more than one size: {name: PhotoFit} of the photos
     that join the scene, and the notes that say what was turned, cropped and left out.
@@ -289,8 +307,7 @@ def _fit_sizes(model: ColmapModel, images: list, sparse: Path) -> tuple[dict, li
     for im in images:
         cam = model.cameras[im.camera_id]
         counts[(cam.width, cam.height)] = counts.get((cam.width, cam.height), 0) + 1
-    # the most common size; among equals the larger, then the wider (deterministic)
-    ref_w, ref_h = max(counts, key=lambda s: (counts[s], s[0] * s[1], s[0]))
+    ref_w, ref_h = common_size(counts)
     cams = {im.name: model.cameras[im.camera_id] for im in images}
     # photos of the other orientation (a square one is of both)
     other = {n for n, c in cams.items() if (c.width >= c.height) != (ref_w >= ref_h) and c.width != c.height}
@@ -302,10 +319,10 @@ def _fit_sizes(model: ColmapModel, images: list, sparse: Path) -> tuple[dict, li
         cam = cams[im.name]
         turns = _quarter_turns(im.cam_from_world, up) if im.name in other else 0
         w, h = (cam.height, cam.width) if turns else (cam.width, cam.height)
-        if abs(w - ref_w) <= PHOTO_SIZE_TOLERANCE * ref_w and abs(h - ref_h) <= PHOTO_SIZE_TOLERANCE * ref_h:
+        fit = size_fit(w, h, ref_w, ref_h)
+        if fit == "crop":
             turned[im.name] = (turns, w, h, w, h)
-        elif abs(w / h - ref_w / ref_h) <= PHOTO_SHAPE_TOLERANCE * ref_w / ref_h:
-            # another camera's resolution of the same shape: resized to the common width
+        elif fit == "resize":  # another camera's resolution of the same shape: resized to the common width
             turned[im.name] = (turns, w, h, ref_w, max(1, round(h * ref_w / w)))
         else:
             left_out.append(f"{im.name} ({cam.width}x{cam.height})")

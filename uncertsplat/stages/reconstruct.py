@@ -33,7 +33,8 @@ from uncertsplat.sfm.report import (
 )
 
 # What a workspace written by this stage consists of: --overwrite removes these and nothing else.
-_OWNED = ("images", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", ".extend_tmp", REPORT_NAME)
+_OWNED = ("images", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", ".extend_tmp", ".extend_done",
+          REPORT_NAME)
 
 
 def _same_options(recorded: dict, cfg: ReconstructConfig) -> bool:
@@ -200,7 +201,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     photos, workspace = Path(photos), Path(workspace)
     if cfg.extend:
         return extend(photos, workspace, cfg)
-    if (workspace / EXTEND_DIR).exists():  # an --extend stopped or killed: the workspace as it was, before any check
+    if (workspace / EXTEND_DIR).exists() or (workspace / EXTEND_DONE).exists():  # an --extend stopped or killed: the workspace as it was, before any check
         with run_lock(workspace, "reconstruct"):
             _recover_extend(workspace)
     watch = sfm.Stopwatch()
@@ -421,6 +422,8 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
 
 EXTEND_DIR = ".extend_tmp"
 """Where ``extend`` builds the grown workspace; ``EXTEND_DIR/old`` holds the parts it replaced while it swaps them."""
+EXTEND_DONE = ".extend_done"
+"""``EXTEND_DIR`` renamed once nothing in it is needed, then removed."""
 _SWAPPED = (Path("distorted") / "sparse" / "0", Path("sparse") / "0", Path("images"), Path("database.db"))
 
 
@@ -439,7 +442,7 @@ def _swap_in(workspace: Path, stage_dir: Path, report: ReconstructReport, staged
         aside.parent.mkdir(parents=True, exist_ok=True)
         (workspace / part).rename(aside)
         (stage_dir / part).rename(workspace / part)
-    shutil.rmtree(stage_dir, ignore_errors=True)
+    _drop_staging(workspace)
 
 
 def _recover_extend(workspace: Path) -> None:
@@ -447,6 +450,7 @@ def _recover_extend(workspace: Path) -> None:
     complete and only the staging folder goes; before, every part it had moved aside goes back (the grown one in its
     place is dropped), so the workspace is the one it started from."""
     stage_dir = workspace / EXTEND_DIR
+    shutil.rmtree(workspace / EXTEND_DONE, ignore_errors=True)  # a finished one's leftovers
     if not stage_dir.exists():
         return
     if (stage_dir / "old" / REPORT_NAME).exists():
@@ -464,7 +468,16 @@ def _recover_extend(workspace: Path) -> None:
                 elif target.exists():
                     target.unlink()
                 aside.rename(target)
-    shutil.rmtree(stage_dir, ignore_errors=True)
+    _drop_staging(workspace)
+
+
+def _drop_staging(workspace: Path) -> None:
+    """Delete the staging folder in one step that cannot leave a half: renamed first (its report marker and the
+    originals go together), then removed (a kill while it is removed leaves only ``EXTEND_DONE``, dropped later)."""
+    done = workspace / EXTEND_DONE
+    shutil.rmtree(done, ignore_errors=True)
+    (workspace / EXTEND_DIR).rename(done)
+    shutil.rmtree(done, ignore_errors=True)
 
 
 def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructReport:
@@ -480,7 +493,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             no new photo, none of them registered, or a camera already there moved.
     """
     photos, workspace = Path(photos), Path(workspace)
-    if (workspace / EXTEND_DIR).exists():  # an earlier --extend stopped or killed: its workspace back first
+    if (workspace / EXTEND_DIR).exists() or (workspace / EXTEND_DONE).exists():  # an earlier --extend stopped or killed: its workspace back first
         with run_lock(workspace, "reconstruct"):
             _recover_extend(workspace)
     existing = load_report(workspace) if workspace.is_dir() else None
@@ -491,7 +504,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                         hint=f"Reconstruct the photos first: uncertsplat reconstruct {photos} -o {workspace}")
     ws_cfg = ReconstructConfig.model_validate({**existing.options, "num_threads": cfg.num_threads})
     # of copies and photos sharing a name stem the workspace's own are kept (a new copy sorted first took its place)
-    scan = sfm.scan_photos(photos, prefer=set(existing.images_found))
+    scan = sfm.scan_photos(photos, prefer=set(existing.images_registered))
     _check_output_path(photos, workspace)
     for note in scan.notes:
         if note not in existing.notes:
@@ -576,8 +589,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             report = existing.model_copy(deep=True)
             report.inputs_fingerprint = scan.fingerprint()
             report.photos = str(photos.resolve())
-            report.ignored = scan.ignored
-            report.notes.extend(n for n in scan.notes if n not in report.notes)
+            report.ignored = scan.ignored  # (the scan's notes were printed; the report keeps its first scan's)
             report.images_found = scan.names
             report.images_registered = registered
             report.images_unregistered = sorted(set(scan.names) - set(registered))
@@ -617,19 +629,22 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
 
 
 def _other_shapes(report: ReconstructReport, names: list[str]) -> tuple[list[str], tuple[int, int]]:
-    """(of ``names``, the photos whose undistorted image has another aspect ratio, in either orientation, than the
-    workspace's most common size (``sfm.scene.PHOTO_SHAPE_TOLERANCE``): `train` leaves those out of the scene; that
+    """(of ``names``, the photos whose undistorted image `train` leaves out of the scene: neither within the size
+    tolerance of the workspace's common size nor of its shape, in either orientation (``sfm.scene.size_fit``); that
     size)."""
-    from uncertsplat.sfm.scene import PHOTO_SHAPE_TOLERANCE
+    from collections import Counter
+
+    from uncertsplat.sfm.scene import common_size, size_fit
 
     sizes = {n: tuple(wh) for n, wh in (report.undistorted_size or {}).items()}
     if not sizes:
         return [], (0, 0)
-    common = max(set(sizes.values()), key=list(sizes.values()).count)
-    aspect = common[0] / common[1]
+    common = common_size(dict(Counter(sizes.values())))
 
-    def fits(w: int, h: int) -> bool:
-        return any(abs(a / aspect - 1.0) <= PHOTO_SHAPE_TOLERANCE for a in (w / h, h / w))
+    def fits(w: int, h: int) -> bool:  # as `train` fits it: turned to the scene's orientation first
+        if (w >= h) != (common[0] >= common[1]) and w != h:
+            w, h = h, w
+        return size_fit(w, h, *common) is not None
 
     return [n for n in names if n in sizes and not fits(*sizes[n])], common
 
