@@ -445,15 +445,16 @@ def _swap_in(workspace: Path, stage_dir: Path, report: ReconstructReport, staged
     _drop_staging(workspace)
 
 
-def _recover_extend(workspace: Path) -> None:
+def _recover_extend(workspace: Path) -> bool:
     """Clear what an ``extend`` left (stopped, or killed): once its report was swapped in, the grown workspace is
     complete and only the staging folder goes; before, every part it had moved aside goes back (the grown one in its
-    place is dropped), so the workspace is the one it started from."""
+    place is dropped), so the workspace is the one it started from. Returns whether the workspace is the grown one."""
     stage_dir = workspace / EXTEND_DIR
     shutil.rmtree(workspace / EXTEND_DONE, ignore_errors=True)  # a finished one's leftovers
     if not stage_dir.exists():
-        return
-    if (stage_dir / "old" / REPORT_NAME).exists():
+        return False
+    grown = (stage_dir / "old" / REPORT_NAME).exists()
+    if grown:
         # every part was in when the report's swap began: finish it (killed between its two moves, the workspace had
         # no report at all)
         if (stage_dir / REPORT_NAME).exists() and not (workspace / REPORT_NAME).exists():
@@ -469,6 +470,7 @@ def _recover_extend(workspace: Path) -> None:
                     target.unlink()
                 aside.rename(target)
     _drop_staging(workspace)
+    return grown
 
 
 def _drop_staging(workspace: Path) -> None:
@@ -493,7 +495,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             no new photo, none of them registered, or a camera already there moved.
     """
     photos, workspace = Path(photos), Path(workspace)
-    if (workspace / EXTEND_DIR).exists() or (workspace / EXTEND_DONE).exists():  # an earlier --extend stopped or killed: its workspace back first
+    if (workspace / EXTEND_DIR).exists() or (workspace / EXTEND_DONE).exists():  # an earlier one stopped or killed
         with run_lock(workspace, "reconstruct"):
             _recover_extend(workspace)
     existing = load_report(workspace) if workspace.is_dir() else None
@@ -601,14 +603,15 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             not_added = sorted(set(new) - set(added))
             report.notes.append(f"extended with {len(added)} photo(s) ({list_names(added)})"
                                 + (f", {len(not_added)} not registered ({list_names(not_added)})" if not_added else "")
-                                + f"; the {len(existing.images_registered)} cameras already there kept (poses and intrinsics fixed) "
-                                  f"(reconstruct --extend, {time.perf_counter() - t_start:.1f} s)")
+                                + f"; the {len(existing.images_registered)} cameras already there kept (poses and "
+                                  f"intrinsics fixed) (reconstruct --extend, {time.perf_counter() - t_start:.1f} s)")
             report.total_seconds = round(report.total_seconds + time.perf_counter() - t_start, 3)
             _swap_in(workspace, stage_dir, report, image_dir == stage_dir / "input")
     except KeyboardInterrupt:
-        _recover_extend(workspace)
-        raise Interrupted("reconstruct --extend interrupted: the workspace is as it was", path=workspace,
-                          hint="Run the same command again.") from None
+        grown = _recover_extend(workspace)
+        raise Interrupted("reconstruct --extend interrupted " + ("after its last step: the workspace holds the new "
+                                                                 "photos" if grown else ": the workspace is as it was"),
+                          path=workspace, hint="Run the same command again." if not grown else None) from None
     except BaseException:
         _recover_extend(workspace)
         raise
