@@ -708,21 +708,33 @@ def load_for_run(scene: Path, cfg: SceneConfig, info, initial_points: bool = Tru
     refuse (a scene reconstructed again matches in neither frame)."""
     from dataclasses import replace
 
-    data = load_scene(scene, cfg, initial_points=initial_points)
+    try:
+        data, failed = load_scene(scene, cfg, initial_points=initial_points), None
+    except UserError as err:  # e.g. the every-n-th split over the grown list holding out a view given to train on
+        if info is None or not info.cameras:
+            raise
+        data, failed = None, err
     if info is None or not info.cameras:
         return data, None
-    names = data.cameras.image_names
-    held = [names[i] for i in data.split.get("test", ())]
-    moved = camera_changes(info.cameras, data.cameras, data.extent) is not None
-    if not moved and (not info.test or held == list(info.test)):
-        return data, None
+    if data is not None:
+        names = data.cameras.image_names
+        held = [names[i] for i in data.split.get("test", ())]
+        moved = camera_changes(info.cameras, data.cameras, data.extent) is not None
+        if not moved and (not info.test or held == list(info.test)):
+            return data, None
+    else:
+        moved = True
     try:
         own = load_scene(scene, in_run_frame(cfg, info.world_from_source, info.test,
                                              [*info.train, *info.calibration]), initial_points=initial_points)
     except UserError:  # (a recorded view gone from the scene: the caller's checks say so)
+        if failed is not None:
+            raise failed from None
         return data, None
     own = replace(own, scene_scale=float(info.scene_scale))
     if camera_changes(info.cameras, own.cameras, own.extent) is not None:
+        if failed is not None:
+            raise failed
         return data, None
     why = ("the scene's cameras, normalised over all of them, no longer line up with this run's (photos joined the "
            "scene since it began: reconstruct --extend)" if moved else
