@@ -189,8 +189,8 @@ class SceneConfig(_Base):
     about its centroid (recorded as world_from_source)."""
     world_from_source: list[list[float]] | None = None
     """A fixed normalisation ([4,4]: x_world = s x_source + t, s > 0) instead of the one ``normalize`` computes
-    from the cameras. ``train --resume --add-views`` sets it to the run's own when photos joined the scene after the
-    run began (``reconstruct --extend``): the cameras the run trained with keep their place in its world, where the
+    from the cameras. A run's scene that photos joined after the run began (``reconstruct --extend``) is loaded with
+    the run's own (``sfm.scene.load_for_run``): the cameras it trained with keep their place in its world, where the
     normalisation over the grown set of cameras would move them all."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Colour composited under images with an alpha channel, and rendered background."""

@@ -175,9 +175,10 @@ def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
             if not (torch.allclose(R @ R.T, torch.eye(3, dtype=m.dtype), rtol=0, atol=1e-5)
                     and float(torch.linalg.det(R)) > 0):  # (a reflection is orthogonal too)
                 what = "has a rotation part that is not one (not orthonormal, or a reflection)"
-                if str(getattr(poses, "dtype", "")).rsplit(".", 1)[-1] in ("float16", "bfloat16", "half"):
-                    what += (f" to 1e-5; the poses are {str(poses.dtype).rsplit('.', 1)[-1]}, whose 2-3 significant "
-                             "digits cannot hold a rotation that closely: pass them as float32 or float64")
+                given = str(getattr(poses, "dtype", "")).rsplit(".", 1)[-1]  # torch.float16 or numpy's float16
+                if given in ("float16", "bfloat16", "half"):
+                    what += (f" to 1e-5; the poses are {given}, whose 2-3 significant digits cannot hold a rotation "
+                             "that closely: pass them as float32 or float64")
         if what is not None:
             raise UserError(f"cam_from_source must be rigid transforms (a rotation and a translation): pose {i} {what}",
                             hint=_RIGID_HINT)

@@ -287,17 +287,15 @@ class LoadedRun:
         data, own = load_for_run(Path(self.scene_path), self.config.scene, info, initial_points=False)
         if info is None:
             return data
-        if own is not None:
-            from uncertsplat.console import console
+        from uncertsplat.console import console
 
+        if own is not None:
             console.print(f"[yellow]note:[/] {own}")
         # its renders would not line up with the photos: every score would measure the misalignment
         require_same_cameras(info.cameras, data, Path(self.scene_path),
                              "its renders and scores against these would be wrong")
         change = frame_change(info.world_from_source, data.world_from_source)
         if change is not None:
-            from uncertsplat.console import console
-
             self.frame_note = (f"the scene folder's frame is not the one the run was trained in ({change}; its cameras "
                                "agree): depths and poses in the scene's units follow the folder as it is now, not "
                                "scene.json's world_from_source")

@@ -28,6 +28,19 @@ run's normalised units to the scene's own (a COLMAP model's, a synthetic scene's
 ``world_from_source``."""
 
 
+def written_depth_to_source(maps_dir: Path) -> float | None:
+    """``EXR_DEPTH_TO_SOURCE`` of the first EXR map in ``maps_dir`` (by name): the factor an evaluation wrote its depths
+    with; None without a map or without a positive finite factor in it (an unreadable map raises what the reader
+    raises)."""
+    import math
+
+    from uncertsplat.io.images import read_exr_attribute
+
+    maps = sorted(Path(maps_dir).glob("*.exr")) if Path(maps_dir).is_dir() else []
+    got = read_exr_attribute(maps[0], EXR_DEPTH_TO_SOURCE) if maps else None
+    return float(got) if isinstance(got, (int, float)) and math.isfinite(got) and got > 0 else None
+
+
 def map_stem(image_name: str, among: Sequence[str] = ()) -> str:
     """File stem for an image's maps: extension dropped, sub-folders flattened with '__'; where another of the names
     ``among`` (the views whose maps share the folder) has the same stem, the extension is kept as ``_ext``

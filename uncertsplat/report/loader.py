@@ -107,18 +107,12 @@ class RunData:
     def _maps_factor(self) -> float | None:
         """``uncertsplat:depth_to_source`` of the first EXR map of the evaluation (read once), None without one."""
         if not hasattr(self, "_maps_factor_value"):
-            from uncertsplat.io.images import read_exr_attribute
-            from uncertsplat.io.maps import EXR_DEPTH_TO_SOURCE
+            from uncertsplat.io.maps import written_depth_to_source
 
-            value = None
-            maps = sorted(self.maps_dir.glob("*.exr")) if self.maps_dir.is_dir() else []
-            if maps:
-                try:
-                    got = read_exr_attribute(maps[0], EXR_DEPTH_TO_SOURCE)
-                    value = float(got) if isinstance(got, (int, float)) and math.isfinite(got) and got > 0 else None
-                except Exception:  # an unreadable map: scene.json's factor (the maps' own problems are said elsewhere)
-                    value = None
-            self._maps_factor_value = value
+            try:
+                self._maps_factor_value = written_depth_to_source(self.maps_dir)
+            except Exception:  # an unreadable map: scene.json's factor (the maps' own problems are said elsewhere)
+                self._maps_factor_value = None
         return self._maps_factor_value
 
     @property

@@ -52,18 +52,14 @@ class Candidates:
 
 def unused_views(scene: SceneData) -> list[int]:
     """Scene indices neither trained on, held out nor set aside for calibration, nor the pose twin of a view held out
-    or set aside (``sfm.scene.pose_twins``: the same picture, which training on would make that view's score one of
+    or set aside (``sfm.scene.held_out_twins``: the same picture, which training on would make that view's score one of
     memory)."""
-    from uncertsplat.sfm.scene import pose_twins
+    from uncertsplat.sfm.scene import held_out_twins
 
     held = [*scene.split.get("test", ()), *scene.split.get("calibration", ())]
     used = set(scene.split.get("train", ())) | set(held)
     free = [i for i in range(len(scene.cameras)) if i not in used]
-    # judged against every training view with the free ones, as the split judges: the next frame of a dense capture
-    # steps as evenly from a held-out one as its other neighbours do (no twin); alone it read as one
-    pool = sorted(set(scene.split.get("train", ())) | set(free))
-    found = {h: [j for j in js if j in set(free)] for h, js in pose_twins(scene.cameras, held, pool).items()}
-    found = {h: js for h, js in found.items() if js}
+    found = held_out_twins(scene.cameras, scene.split, free)
     twins = {j for js in found.values() for j in js}
     if twins:  # said, not dropped silently ("only N candidates were there" named none)
         from uncertsplat.console import console

@@ -635,15 +635,16 @@ def map_incremental(
 
 
 def map_into(database: Path, image_dir: Path, model_dir: Path, scratch: Path, cfg: ReconstructConfig,
-             advance: ProgressFn = _noop) -> pycolmap.Reconstruction | None:
+             advance: ProgressFn = _noop, start: pycolmap.Reconstruction | None = None
+             ) -> pycolmap.Reconstruction | None:
     """Register the database's images that the model in ``model_dir`` lacks into it: incremental mapping that starts
     from that model with its frames (poses) and cameras (intrinsics) held fixed, so every image already there keeps
-    its camera (within rounding, 1e-15 measured) and the new ones are posed in the same frame. Returns the grown model (None: mapping found
-    none), written nowhere."""
+    its camera (within rounding, 1e-15 measured) and the new ones are posed in the same frame. ``start``: that model,
+    when the caller has read it. Returns the grown model (None: mapping found none), written nowhere."""
     if scratch.exists():
         shutil.rmtree(scratch)
     scratch.mkdir(parents=True)
-    start = pycolmap.Reconstruction(model_dir)
+    start = start if start is not None else pycolmap.Reconstruction(model_dir)
     opts = mapper_options(cfg)
     opts.fix_existing_frames = True
     opts.constant_cameras = set(start.cameras)  # a new camera (another lens) is refined, the ones there are not

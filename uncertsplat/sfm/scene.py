@@ -621,6 +621,18 @@ def pose_twins(cameras: Cameras, held_out: Sequence[int], train: Sequence[int]) 
     return out
 
 
+def held_out_twins(cameras: Cameras, split: dict, among: Sequence[int]) -> dict[int, list[int]]:
+    """Of the views ``among`` (added or candidate views), those that took the same picture as a held-out or set-aside
+    view of ``split``, by that view's index ({} when none). Judged against every training view with them, as the
+    split judges (``pose_twins``): the next frame of a dense capture steps as evenly from a held-out one as its
+    other neighbours do (no twin), where against ``among`` alone it read as one; a copy sits a hair's breadth away."""
+    among = set(among)
+    held = [*split.get("test", ()), *split.get("calibration", ())]
+    pool = sorted(set(split.get("train", ())) | among)
+    found = {h: [t for t in ts if t in among] for h, ts in pose_twins(cameras, held, pool).items()}
+    return {h: ts for h, ts in found.items() if ts}
+
+
 TWIN_NOTE = "took the same picture as a held-out view"
 """Words of ``_without_twins``' note (``with_training_views`` drops the note with the split it described)."""
 

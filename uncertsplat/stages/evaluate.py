@@ -346,16 +346,15 @@ def _in_frame(loaded, scene, out: Path) -> bool:
     change after training: a model aligned to metres): its maps' ``uncertsplat:depth_to_source`` is the folder's
     factor; without maps (or a factor in them), when the frame is the one the run was trained in
     (``LoadedRun.frame_note``)."""
-    from uncertsplat.io.images import read_exr_attribute
+    from uncertsplat.io.maps import written_depth_to_source
 
-    maps = sorted((out / "maps").glob("*.exr")) if (out / "maps").is_dir() else []
     try:
-        factor = read_exr_attribute(maps[0], EXR_DEPTH_TO_SOURCE) if maps else None
+        factor = written_depth_to_source(out / "maps")
     except Exception:  # an unreadable map: evaluated again
         return False
-    if not isinstance(factor, (int, float)):
+    if factor is None:
         return loaded.frame_note is None
-    return math.isclose(float(factor), float(scene.depth_scale_to_gt), rel_tol=1e-5)
+    return math.isclose(factor, float(scene.depth_scale_to_gt), rel_tol=1e-5)
 
 
 def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = False):

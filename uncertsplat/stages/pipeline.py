@@ -234,9 +234,9 @@ def _finished_output(folder: Path) -> bool:
 
 def held_out_change(previous: Path, run_dir: Path, stage: str = "train") -> str | None:
     """A sentence when the run in ``run_dir`` holds out other views than the earlier run kept in ``previous`` (its
-    ``.previous`` generation; ``stage`` names the train stage in the advice): the split follows the photos' sorted order (``scene.test_every``), so a photo added to
-    or removed from the folder moves it, and the two runs' held-out metrics then score other photos. None when either
-    has no readable scene.json or they hold out the same views."""
+    ``.previous`` generation; ``stage`` names the train stage in the advice): the split follows the photos' sorted
+    order (``scene.test_every``), so a photo added to or removed from the folder moves it, and the two runs' held-out
+    metrics then score other photos. None when either has no readable scene.json or they hold out the same views."""
     from uncertsplat.schemas.scene import RunScene
 
     try:

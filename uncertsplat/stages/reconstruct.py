@@ -516,7 +516,8 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
         raise UserError(f"{photos} lacks {len(missing)} of the photos the workspace registered ({list_names(missing)})",
                         path=photos, hint="Give the folder the workspace was made from, with the new photos added to "
                                           f"it ({existing.photos}).")
-    new = [n for n in scan.names if n not in set(existing.images_found)]
+    found_before = set(existing.images_found)
+    new = [n for n in scan.names if n not in found_before]
     if not new:
         left = sorted(set(scan.ignored) - set(existing.ignored))
         raise UserError(f"no new photo in {photos}: the workspace holds every one of its {len(scan.names)} photos"
@@ -539,11 +540,12 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             with watch("stage_inputs"):
                 image_dir, rotated = sfm.stage_inputs(scan, stage_dir / "input")
             known = sfm.database_cameras(database)
-            groups = {key: [n for n in names if n in set(new)] for key, names in scan.camera_groups().items()}
+            is_new = set(new)
+            groups = {key: [n for n in names if n in is_new] for key, names in scan.camera_groups().items()}
             cameras = {key: next(known[n] for n in names if n in known)
                        for key, names in scan.camera_groups().items() if any(n in known for n in names)}
             pairs = [(a, b) for i, a in enumerate(scan.names) for b in scan.names[i + 1:]
-                     if a in set(new) or b in set(new)]
+                     if a in is_new or b in is_new]
             with progress() as bar:
                 task = bar.add_task("features (new photos)", total=len(new), info="")
                 with watch("extract"):
@@ -561,7 +563,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                 task = bar.add_task("registering", total=len(new), info="")
                 with watch("map"):
                     grown = sfm.map_into(database, image_dir, old_model, stage_dir / "models", ws_cfg,
-                                         advance=lambda k, i: bar.update(task, advance=k, info=i))
+                                         advance=lambda k, i: bar.update(task, advance=k, info=i), start=before)
             registered = sfm.registered_names(grown) if grown is not None else []
             added = sorted(set(registered) - set(existing.images_registered))
             if not added:
@@ -624,7 +626,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
         console.print(f"[yellow]note:[/] {list_names(odd)}: another shape than the workspace's photos ({common[0]}x"
                       f"{common[1]} undistorted): `train` leaves them out of its scene (scene.photo_sizes: a photo of "
                       "that shape in either orientation joins, resized)")
-    usable = [n for n in added if n not in set(odd)]
+    usable = [n for n in added if n not in odd]
     if usable:
         console.print(f"Next: a run trained on {workspace} trains on them with [bold]uncertsplat train {workspace} -o "
                       f"RUN --resume --add-views {','.join(usable)}[/]")

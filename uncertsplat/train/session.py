@@ -199,19 +199,14 @@ def _check_same_scene(before: RunScene, scene: Path, names: tuple[str, ...], run
 
 
 def _refuse_twins_of_held_out(data, add: list[str], run_dir: Path) -> None:
-    """Refuse added views that took the same picture as a held-out or set-aside view (``sfm.scene.pose_twins``: a
+    """Refuse added views that took the same picture as a held-out or set-aside view (``sfm.scene.held_out_twins``: a
     photo saved again under another name registers at its pose): trained on, the held-out score measures what the
     model memorised (a helper's re-saved copy of a held-out fern photo: that view 25.92 -> 28.27 dB)."""
-    from uncertsplat.sfm.scene import pose_twins
+    from uncertsplat.sfm.scene import held_out_twins
 
     names = data.cameras.image_names
-    added = {i for i, n in enumerate(names) if n in set(add)}
-    held = [*data.split.get("test", ()), *data.split.get("calibration", ())]
-    # against every training view with the added ones, as the split finds twins: a frame of a dense video next to a
-    # held-out one steps as evenly from it as its other neighbours do (no twin), a copy sits a hair's breadth away
-    pool = sorted(set(data.split.get("train", ())) | added)
-    twins = {h: [t for t in ts if t in added] for h, ts in pose_twins(data.cameras, held, pool).items()}
-    twins = {h: ts for h, ts in twins.items() if ts}
+    adding = set(add)
+    twins = held_out_twins(data.cameras, data.split, [i for i, n in enumerate(names) if n in adding])
     if twins:
         h, (t, *_) = next(iter(twins.items()))
         raise UserError(f"--add-views {names[t]} took the same picture as the held-out view {names[h]} (the same pose: "
@@ -424,7 +419,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 report = load_report(scene)
             except UserError:
                 report = None
-            failed = [n for n in unknown if report is not None and n in set(report.images_unregistered)]
+            unregistered = set(report.images_unregistered) if report is not None else set()
+            failed = [n for n in unknown if n in unregistered]
             if failed:  # in the photo folder, reconstructed (--extend), and not registered: not a missing photo
                 raise UserError(f"--add-views {', '.join(failed)}: the reconstruction did not register it (listed under "
                                 f"images_unregistered in {Path(scene) / 'reconstruct_report.json'}): it has no camera "
