@@ -42,7 +42,7 @@ from torch import Tensor
 
 from uncertsplat.config import EVAL_SEED_MAX
 from uncertsplat.errors import UserError
-from uncertsplat.types import Cameras
+from uncertsplat.types import Cameras, intrinsics_size_guess, principal_point_outside
 
 
 @dataclass(frozen=True)
@@ -219,10 +219,9 @@ def _intrinsics(K, n: int, width: int, height: int, outside_ok: bool = False) ->
             what = (f"has the skew K[0,1] = {float(k[0, 1]):g} (or K[1,0] = {float(k[1, 0]):g}): the renderer takes "
                     "pinhole cameras without skew")
         hint = "Pass [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels."
-        if what is None and not outside_ok and not (0.0 <= cx <= width and 0.0 <= cy <= height):
+        if what is None and not outside_ok and bool(principal_point_outside(k, width, height)):
             what = (f"has its principal point at ({cx:g}, {cy:g}), outside the {width}x{height} image"
-                    + (f"; it seems to belong to images of about {2 * cx:.0f}x{2 * cy:.0f} pixels"
-                       if cx > 0 and cy > 0 else ""))
+                    + intrinsics_size_guess(cx, cy))
             hint = (f"Scale fx, fy, cx and cy by the ratio of the sizes for a {width}x{height} render (or pass the "
                     "size the intrinsics were measured at); a crop whose optical centre lies outside it takes "
                     "principal_point_outside=True.")

@@ -22,6 +22,20 @@ def _map_tensors(obj, fn):
     return replace(obj, **changes)
 
 
+def principal_point_outside(K: Tensor, width: int, height: int) -> Tensor:
+    """[C] bool: which of the [C,3,3] intrinsics ``K`` put the principal point outside a ``width`` x ``height``
+    image (the edges count as inside). Both ``train``'s scene check and the ``Predictor`` refuse such cameras unless
+    told they are crops: usually a full-size photo's intrinsics given with a smaller image."""
+    c = K[..., :2, 2].double()  # [C,2]
+    return (c[..., 0] < 0) | (c[..., 0] > width) | (c[..., 1] < 0) | (c[..., 1] > height)
+
+
+def intrinsics_size_guess(cx: float, cy: float) -> str:
+    """The size a principal point at (``cx``, ``cy``) suggests (it sits near the image centre), as a clause for an
+    error message; empty when the point gives no guess."""
+    return f"; the intrinsics seem to belong to images of about {2 * cx:.0f}x{2 * cy:.0f} pixels" if cx > 0 and cy > 0 else ""
+
+
 @dataclass(frozen=True)
 class Cameras:
     """A batch of pinhole cameras sharing one image size.

@@ -380,8 +380,13 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
         stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
     shutil.move(tmp_path / "aside.png", gone)
 
+    first = load_report(ws)
     report = stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
     assert report.success and set(new) <= set(report.images_registered) and len(report.images_registered) == 20
+    # the extension's time is counted in the stages as in the total (it kept the first run's stages before)
+    for k in ("extract", "match", "map", "undistort"):
+        assert report.stage_seconds[k] > first.stage_seconds[k], k
+    assert report.total_seconds > first.total_seconds
     assert any(n.startswith("extended with 2 photo(s)") for n in report.notes)
     after = pycolmap.Reconstruction(ws / "sparse" / "0")
     moved, params = sfm.pose_changes(before, after)

@@ -115,13 +115,26 @@ def test_refuses_intrinsics_the_renderer_would_not_take_as_given(row, col, value
         pred.cameras_from_source(poses, bad, 128, 96)
 
 
+def test_principal_point_outside_counts_the_edges_as_inside():
+    """The one condition ``train``'s scene check and the ``Predictor`` share: the image's edges are inside, a point
+    a hair beyond any edge is outside, per camera of a batch."""
+    from uncertsplat.types import intrinsics_size_guess, principal_point_outside
+
+    def K(cx, cy):
+        return torch.tensor([[100.0, 0.0, cx], [0.0, 100.0, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    Ks = torch.stack([K(0, 0), K(320, 240), K(160, 120), K(-1e-9, 5), K(320.001, 5), K(5, 240.5), K(5, -3)])
+    assert principal_point_outside(Ks, 320, 240).tolist() == [False, False, False, True, True, True, True]
+    assert intrinsics_size_guess(2016, 1512).endswith("about 4032x3024 pixels")
+    assert intrinsics_size_guess(-5, 100) == ""  # no size to suggest from a negative point
+
+
 def test_refuses_a_principal_point_outside_the_image_unless_told():
     """A 4032x3024 photo's K with a 320x240 size rendered a 12x-zoomed, off-centre patch whose std looked more
     certain than the right camera's, without a word (``train`` refuses the same mistake)."""
     pred = bare_predictor()
     full = torch.tensor([[3000.0, 0.0, 2016.0], [0.0, 3000.0, 1512.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
-    with pytest.raises(UserError, match=r"K has its principal point at \(2016, 1512\), outside the 320x240 image; it "
-                                        r"seems to belong to images of about 4032x3024 pixels") as err:
+    with pytest.raises(UserError, match=r"K has its principal point at \(2016, 1512\), outside the 320x240 image; the "
+                                        r"intrinsics seem to belong to images of about 4032x3024 pixels") as err:
         pred.cameras_from_source(torch.stack([a_pose(), a_pose()]), full, 320, 240)
     assert "principal_point_outside=True" in err.value.hint
     cams = pred.cameras_from_source(a_pose(), full, 320, 240, principal_point_outside=True)  # a crop: accepted

@@ -36,7 +36,13 @@ from uncertsplat.schemas.scene import SynthScene
 from uncertsplat.sfm.center import choose_center, random_points
 from uncertsplat.sfm.colmap_io import MODEL_FILES, ColmapModel, has_model, read_colmap_model
 from uncertsplat.sfm.transforms import TransformsScene, read_blender, read_nerfstudio
-from uncertsplat.types import Cameras, SceneData, similarity_scale
+from uncertsplat.types import (
+    Cameras,
+    SceneData,
+    intrinsics_size_guess,
+    principal_point_outside,
+    similarity_scale,
+)
 
 _POINT_SEED = 0  # seeds random initial points (Blender, nerfstudio) and point subsampling: loading is deterministic
 _RANDOM_POINTS = 100_000  # at most this many random initial points (what 3DGS uses for Blender scenes) ...
@@ -916,15 +922,12 @@ def _check_intrinsics(cameras: Cameras, where: Path, outside_ok: bool = False) -
                         f"{float(K[i, 0, 2]):g}, {float(K[i, 1, 2]):g}); focal lengths must be positive and finite",
                         path=where, hint="Fix the camera in the model, or reconstruct the photos again.")
     W, H = cameras.width, cameras.height
-    c = K[:, :2, 2]  # [C,2]
-    outside = (c[:, 0] < 0) | (c[:, 0] > W) | (c[:, 1] < 0) | (c[:, 1] > H)
+    outside = principal_point_outside(K, W, H)  # [C]
     if bool(outside.any()) and not outside_ok:
         i = int(outside.nonzero()[0, 0])
         names = [cameras.image_names[j] for j in outside.nonzero()[:, 0].tolist()]
-        cx, cy = float(c[i, 0]), float(c[i, 1])
-        # a principal point is near the image centre: twice it is about the size the intrinsics were measured at
-        size = (f"; the intrinsics seem to belong to images of about {2 * cx:.0f}x{2 * cy:.0f} pixels"
-                if cx > 0 and cy > 0 else "")
+        cx, cy = float(K[i, 0, 2]), float(K[i, 1, 2])
+        size = intrinsics_size_guess(cx, cy)
         raise UserError(f"view '{names[0]}'" + (f" (and {len(names) - 1} more: {list_names(names[1:], 4)})"
                                                  if len(names) > 1 else "")
                         + f" has its principal point at ({cx:g}, {cy:g}), outside its {W}x{H} image{size}",

@@ -608,6 +608,10 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                                 + f"; the {len(existing.images_registered)} cameras already there kept (poses and "
                                   f"intrinsics fixed) (reconstruct --extend, {time.perf_counter() - t_start:.1f} s)")
             report.total_seconds = round(report.total_seconds + time.perf_counter() - t_start, 3)
+            # the workspace's time per stage, every extension's included (as total_seconds)
+            report.stage_seconds = {k: round(report.stage_seconds.get(k, 0.0) + watch.seconds.get(k, 0.0), 3)
+                                    for k in [*report.stage_seconds, *(k for k in watch.seconds
+                                                                       if k not in report.stage_seconds)]}
             _swap_in(workspace, stage_dir, report, image_dir == stage_dir / "input")
     except KeyboardInterrupt:
         grown = _recover_extend(workspace)
