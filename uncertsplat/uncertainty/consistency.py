@@ -91,6 +91,9 @@ STACK_BYTES = 256 * 2**20
 """The compared renders are kept as the ready [C,4,H,W] stacks each lookup samples (``_compared_at``) when all of them
 fit in this many bytes: rebuilding a chunk's stack from the float16 renders for each evaluated view cost more than
 the lookup itself on a small view (44 of 162 ms of a 32x24 prediction on the demo run)."""
+POINTS_CHUNK = 65536
+"""Surface points of an evaluated view ``variance`` and ``reach`` look up at once (their [C,S] lookups took about
+0.6 KB a pixel for a whole view)."""
 FREE_POINTS_CHUNK = 65536
 """Points ``seen_free`` tests at once (about 600 bytes each while they are looked up: 4M points took 2.8 GB)."""
 MAX_FINER = 1e6
@@ -208,29 +211,12 @@ class ViewConsistency:
         rgb, where, points = found  # [H,W,3], [S], [S,3]
         h, w = rgb.shape[:2]
         colour = rgb.reshape(-1, 3)[where]  # [S,3]
-        to_view = F.normalize(camera.centers[0].to(points) - points, dim=-1)  # [S,3]
-        best = torch.full_like(points[:, 0], float("inf"))  # [S] angle of the chosen view
-        diff = torch.zeros_like(colour[:, 0])  # [S]
-        inside_any = torch.zeros_like(points[:, 0], dtype=torch.bool)  # [S] in some compared view's image
-        foot = _footprint(points, camera)  # [S]
-        finest = torch.full_like(foot, float("inf"))  # [S] the finest seeing view's footprint over this view's
-        for k0 in range(0, len(self.cameras), VIEW_CHUNK):
-            cams, z, inside, there, seen = self._compared_at(points, k0, rgb.dtype)
-            inside_any |= inside.any(0)
-            if self.finer_detail > 0.0:
-                finest = torch.minimum(finest, _finest_ratio(cams, z, seen, foot))
-            angle = _angle(F.normalize(cams.centers.to(points)[:, None] - points, dim=-1), to_view)  # [C,S]
-            angle = torch.where(seen, angle, torch.full_like(angle, float("inf")))
-            nearest, k = angle.min(0)  # [S]: the first of equal angles, as views in order
-            better = nearest < best
-            sq = (colour - there.gather(0, k[None, :, None].expand(1, -1, 4))[0, :, :3]).square().mean(-1)  # [S]
-            diff = torch.where(better, sq, diff)
-            best = torch.where(better, nearest, best)
-        weight = ((best - self.gate) / self.gate).clamp(0.0, 1.0).to(rgb.dtype)  # diff is 0 where no view saw it
-        if self.palette_var > 0.0:
-            unlooked = self._outside_every_image(points, inside_any)  # [S] (best = inf there: no view saw them)
-            diff = torch.where(unlooked, torch.full_like(diff, self.palette_var), diff)  # weight 1 there (best = inf)
-        full = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(0, where, diff * weight)
+        # a block of points at a time: each point's lookups are its own, and [C,S] lookups of a whole large view
+        # took 0.6 KB a pixel (1280x960: 0.9 GB)
+        terms = [self._term_of(points[b:b + POINTS_CHUNK], colour[b:b + POINTS_CHUNK], camera)
+                 for b in range(0, points.shape[0], POINTS_CHUNK)]
+        term, finest = torch.cat([t[0] for t in terms]), torch.cat([t[1] for t in terms])  # [S], [S]
+        full = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(0, where, term)
         out = _window_mean(full.reshape(h, w))[None, ..., None]
         if self.finer_detail > 0.0:  # not averaged: the edges it follows are a pixel wide
             # r capped at 1e6 so that r^2 stays a float32 number (a footprint near 0 would overflow to inf, and
@@ -242,6 +228,35 @@ class ViewConsistency:
                 0, where, ((r2 - 1.0) * self.finer_detail * g).to(rgb.dtype))
             out = out + detail.reshape(1, h, w, 1).to(out)
         return out
+
+    def _term_of(self, points: Tensor, colour: Tensor, camera: Cameras) -> tuple[Tensor, Tensor]:
+        """For surface ``points`` [S,3] of the evaluated ``camera`` with their rendered ``colour`` [S,3]: the
+        consistency term before the window mean [S] (the gated squared difference to the nearest seeing view, the
+        palette's variance where no training camera holds the point) and the finest seeing view's footprint over
+        this view's [S] (inf where none sees it; only with ``finer_detail``)."""
+        to_view = F.normalize(camera.centers[0].to(points) - points, dim=-1)  # [S,3]
+        best = torch.full_like(points[:, 0], float("inf"))  # [S] angle of the chosen view
+        diff = torch.zeros_like(colour[:, 0])  # [S]
+        inside_any = torch.zeros_like(points[:, 0], dtype=torch.bool)  # [S] in some compared view's image
+        foot = _footprint(points, camera)  # [S]
+        finest = torch.full_like(foot, float("inf"))  # [S] the finest seeing view's footprint over this view's
+        for k0 in range(0, len(self.cameras), VIEW_CHUNK):
+            cams, z, inside, there, seen = self._compared_at(points, k0, colour.dtype)
+            inside_any |= inside.any(0)
+            if self.finer_detail > 0.0:
+                finest = torch.minimum(finest, _finest_ratio(cams, z, seen, foot))
+            angle = _angle(F.normalize(cams.centers.to(points)[:, None] - points, dim=-1), to_view)  # [C,S]
+            angle = torch.where(seen, angle, torch.full_like(angle, float("inf")))
+            nearest, k = angle.min(0)  # [S]: the first of equal angles, as views in order
+            better = nearest < best
+            sq = (colour - there.gather(0, k[None, :, None].expand(1, -1, 4))[0, :, :3]).square().mean(-1)  # [S]
+            diff = torch.where(better, sq, diff)
+            best = torch.where(better, nearest, best)
+        weight = ((best - self.gate) / self.gate).clamp(0.0, 1.0).to(colour.dtype)  # diff is 0 where no view saw it
+        if self.palette_var > 0.0:
+            unlooked = self._outside_every_image(points, inside_any)  # [S] (best = inf there: no view saw them)
+            diff = torch.where(unlooked, torch.full_like(diff, self.palette_var), diff)  # weight 1 there (best = inf)
+        return diff * weight, finest
 
     @torch.no_grad()
     def unlooked_fraction(self, camera: Cameras,
@@ -265,14 +280,19 @@ class ViewConsistency:
         if found is None:
             return 0.0, 1.0
         points = found[2]  # [S,3]
-        foot = _footprint(points, camera)  # [S]
-        finest = torch.full_like(foot, float("inf"))  # [S] the finest seeing view's footprint / this view's
-        inside_any = torch.zeros_like(foot, dtype=torch.bool)  # [S] in some compared view's image
-        for k0 in range(0, len(self.cameras), VIEW_CHUNK):
-            cams, z, inside, _, seen = self._compared_at(points, k0, points.dtype)
-            inside_any |= inside.any(0)
-            finest = torch.minimum(finest, _finest_ratio(cams, z, seen, foot))
-        unlooked = float(self._outside_every_image(points, inside_any).float().mean())
+        unlooked, finest = [], []
+        for b in range(0, points.shape[0], POINTS_CHUNK):  # a block at a time, as ``variance``
+            block = points[b:b + POINTS_CHUNK]
+            foot = _footprint(block, camera)  # [B]
+            fine = torch.full_like(foot, float("inf"))  # [B] the finest seeing view's footprint / this view's
+            inside_any = torch.zeros_like(foot, dtype=torch.bool)  # [B] in some compared view's image
+            for k0 in range(0, len(self.cameras), VIEW_CHUNK):
+                cams, z, inside, _, seen = self._compared_at(block, k0, block.dtype)
+                inside_any |= inside.any(0)
+                fine = torch.minimum(fine, _finest_ratio(cams, z, seen, foot))
+            unlooked.append(self._outside_every_image(block, inside_any))
+            finest.append(fine)
+        unlooked, finest = float(torch.cat(unlooked).float().mean()), torch.cat(finest)
         seen_any = torch.isfinite(finest)
         if not bool(seen_any.any()):
             return unlooked, 1.0
