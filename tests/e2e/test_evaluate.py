@@ -898,6 +898,25 @@ class TestPredictor:
         assert none.rgb_std.shape == (0, 96, 128, 3) and none.depth_mean.shape == (0, 96, 128, 1)
         assert none.image_names == ()
 
+    def test_a_pose_written_two_ways_gets_the_same_maps(self, evaluated):
+        """A pose of one's own seeds its samples from its values (``eval.engine.pose_index``): the same camera given
+        in float64 or in float32 gets the same maps (its bytes seeded each way differently, so the std maps of one
+        pose differed by their Monte Carlo noise); another pose gets other noise."""
+        from uncertsplat.predict import Predictor
+        from uncertsplat.types import Cameras
+
+        run, _ = evaluated
+        pred = Predictor.load(run, "cpu", cfg=EvalConfig(num_samples=2, seed=3))
+        cfw = pred.scene.cameras.cam_from_world[:1].double().clone()
+        cfw[0, 0, 3] += 0.0123456789  # not a scene view: seeded by its pose
+        K = pred.scene.cameras.K[:1].double()
+        a = pred.predict(Cameras(cfw, K, 128, 96, ("mine",)))
+        b = pred.predict(Cameras(cfw.float(), K.float(), 128, 96, ("mine",)))
+        assert torch.equal(a.rgb_std, b.rgb_std) and torch.equal(a.depth_std, b.depth_std)
+        cfw[0, 1, 3] += 1e-3
+        c = pred.predict(Cameras(cfw, K, 128, 96, ("mine",)))
+        assert not torch.equal(a.rgb_std, c.rgb_std)
+
     def test_a_load_with_other_settings_leaves_the_runs_noise_file_alone(self, evaluated, tmp_path, capsys):
         """RUN/eval/residual.pt is the evaluation's (evaluate and prune read it): a Predictor with other settings
         keeps the noise it fits in memory, so a later default load still reads the file."""

@@ -463,10 +463,11 @@ def view_seed(seed: int, index: int) -> int:
 def pose_index(cam_from_world: Tensor, K: Tensor) -> int:
     """A view index (0 to 2**40) from a camera's pose [4,4] and intrinsics [3,3], for ``view_seed``: a view that is
     not one of the scene's (``uncertsplat.predict``'s poses of one's own, ``select-views``' candidates) gets the same
-    generator seed wherever it stands in a batch, from its bytes as given (dtype included)."""
+    generator seed wherever it stands in a batch. From the float32 values: the same pose written two ways (float64
+    or float32, a world_from_cam inverted in float64) gets the same seed, where its float64 bytes gave two."""
     import hashlib
 
-    key = torch.cat([cam_from_world.flatten(), K.flatten()]).cpu().numpy()
+    key = torch.cat([cam_from_world.flatten(), K.flatten()]).float().cpu().numpy()
     return int.from_bytes(hashlib.sha256(key.tobytes()).digest()[:5], "little")
 
 
