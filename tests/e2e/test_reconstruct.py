@@ -397,7 +397,11 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
     # the run, before it trains on them, still loads (evaluate, select-views) and resumes in its own frame, with its
     # held-out views: the normalisation over 20 cameras moved every one of its 18 (refused as cameras that changed)
     old_run = load_run(run)
+    capsys.readouterr()
     seen = old_run.load_scene()
+    said = " ".join(capsys.readouterr().err.split())
+    assert "loaded in the run's own frame" in said and "2 view(s) it has not trained on" in said, said
+    assert "--resume --add-views NAMES" in said
     assert [seen.cameras.image_names[i] for i in seen.split["test"]] == trained.test
     assert set(new) <= set(seen.cameras.image_names) and old_run.frame_note is None
     for tag, r in others.items():  # their views as recorded, whatever the grown list's order and count
@@ -415,8 +419,11 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
     assert grown.extent == trained.extent
     assert sorted(grown.train) == sorted(trained.train + new) and grown.views_added[-1].names == new
     loaded = load_run(run)
+    capsys.readouterr()
     scene = loaded.load_scene()
     assert loaded.frame_note is None and [scene.cameras.image_names[i] for i in scene.split["test"]] == trained.test
+    said = " ".join(capsys.readouterr().err.split())  # trained on them: a reminder, with nothing left to add
+    assert "loaded in the run's own frame" in said and "has not trained on" not in said, said
 
     # a held-out photo saved again (other bytes, the same picture), an exact copy of a workspace photo whose name sorts
     # first, a photo of nothing here: the copy is left out (the workspace's name kept, said), the other two join the

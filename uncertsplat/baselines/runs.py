@@ -290,7 +290,16 @@ class LoadedRun:
         from uncertsplat.console import console
 
         if own is not None:
-            console.print(f"[yellow]note:[/] {own}")
+            known = {*info.train, *info.test, *info.calibration}
+            new = [n for n in data.cameras.image_names if n not in known]
+            if new:  # what the user can do about it: train on them
+                from uncertsplat.console import list_names
+
+                console.print(f"[yellow]note:[/] {own}; {len(new)} view(s) it has not trained on "
+                              f"({list_names(new)}): `uncertsplat train {self.scene_path} -o {self.run_dir} --resume "
+                              "--add-views NAMES` trains on them")
+            else:  # the run already trains on the grown scene: a reminder, not news
+                console.print(f"[dim]note: {own}[/]")
         # its renders would not line up with the photos: every score would measure the misalignment
         require_same_cameras(info.cameras, data, Path(self.scene_path),
                              "its renders and scores against these would be wrong")
