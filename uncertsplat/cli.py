@@ -13,6 +13,10 @@ import sys
 from pathlib import Path
 from typing import Annotated
 
+# numpy before any torch: torch's C start-up imports numpy and swallows an error raised there, so a Ctrl-C landing
+# in that import was lost (the command ran on, or failed later with torch half set up); imported here, in Python,
+# the interrupt stops the command
+import numpy  # noqa: F401, I001
 import typer
 from rich.text import Text
 

@@ -45,6 +45,17 @@ def test_python_dash_m_runs_the_same_cli():
     assert "Usage: uncertsplat" in result.stdout
 
 
+def test_numpy_is_imported_before_torch():
+    """torch's C start-up imports numpy and swallows an error raised in it: a Ctrl-C landing there was lost (a
+    helper's pipeline ran to its end after the interrupt, 3 times in 30). The CLI imports numpy first, in Python."""
+    import subprocess
+    import sys
+
+    code = "import sys, uncertsplat.cli; print('numpy' in sys.modules and 'torch' not in sys.modules)"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.stdout.strip() == "True", result.stdout + result.stderr
+
+
 def test_train_config_file_errors_name_the_file(tmp_path):
     """A typo in `train --config FILE` names FILE (as the other commands do); a typo in --set does not blame it."""
     bad = tmp_path / "tc_bad.toml"
