@@ -445,7 +445,8 @@ class TrainConfig(_Base):
     ``low_res_scale``, area-averaged: the rasterizer's cost is per pixel, and the early steps, which place and
     grow the Gaussians, need the coarse picture more than the fine one. The steps after it, and every evaluation,
     growth and SH-band test, use the full images. The phase ends at step ``low_res_fraction x iterations`` of the
-    run's current ``iterations`` (a resume that extends them extends it). 0: off. Measured in BENCHMARKS.md,
+    run's current ``iterations`` (a resume that extends them extends it while the run is still in the phase; a run
+    already past it stays at full resolution). 0: off. Measured in BENCHMARKS.md,
     "Training at half resolution first"."""
     low_res_scale: float = Field(0.5, gt=0.0, le=1.0)
     """The image scale of the low-resolution steps (``low_res_fraction``)."""

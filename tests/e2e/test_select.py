@@ -328,6 +328,24 @@ class TestAddViewsErrors:
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, add_views=["view_002.png"])
         assert {n: (run / n).read_text() for n in before} == before
 
+    def test_an_added_photo_that_cannot_be_read_leaves_the_run_as_it_was(self, tiny_scene_path, tmp_path):
+        """config.json and scene.json named the added view before its photo was read: a truncated photo then failed
+        every later command on the run (a plain --resume too, and --add-views of another photo), mended only by
+        editing both files. They are written once the photos read."""
+        scene = tmp_path / "scene"
+        shutil.copytree(tiny_scene_path, scene)
+        run = tmp_path / "run"
+        train_run(scene, run, _cfg(iterations=10, scene={"train_names": START}), CPU)
+        before = {n: (run / n).read_text() for n in ("config.json", "scene.json")}
+        photo = scene / "images" / "view_002.png"
+        photo.write_bytes(photo.read_bytes()[: photo.stat().st_size // 2])
+        with pytest.raises(UserError, match="view_002.png"):
+            train_run(scene, run, _cfg(), CPU, resume=True, extend_to=20, add_views=["view_002.png"])
+        assert {n: (run / n).read_text() for n in before} == before
+        train_run(scene, run, _cfg(), CPU, resume=True, extend_to=20, add_views=["view_003.png"])  # another: trains
+        info = RunScene.read(run / "scene.json")
+        assert "view_003.png" in info.train and "view_002.png" not in info.train
+
     def test_a_run_started_on_indices_grows_by_name(self, tiny_scene_path, tmp_path):
         """scene.train_indices: the run continues on the names of those views, with the added one."""
         run = tmp_path / "idx"

@@ -354,3 +354,114 @@ def test_a_resumed_run_keeps_the_near_plane_it_was_trained_with(tiny_run_path, t
     train_model(tiny_scene_path, run, train_config_from("tiny", {}), torch.device("cpu"), resume=True,
                 extend_to=step + 1)
     assert RunScene.read(run / "scene.json").near == info.near
+
+
+class TestResumeAtTheEdges:
+    """What a review of resume found (2026-11-29): a stop while the last checkpoint is written, a resume told to
+    stop at its checkpoint's step, views that joined since the checkpoint, counters and generators the checkpoint
+    did not carry, a finished low-resolution phase."""
+
+    def test_a_ctrl_c_while_the_last_checkpoint_is_written_keeps_it(self, tmp_path):
+        """The handlers were restored before the last checkpoint: a Ctrl-C while it was written (seconds for a large
+        model) lost every step since the last periodic one. Now the write finishes, then the stop is honoured."""
+        import os
+        import signal
+
+        from uncertsplat.io.checkpoints import list_checkpoints
+        from uncertsplat.train.trainer import TrainingInterrupted
+
+        scene, tr, te = toy_scene()
+        cfg = toy_config()
+        t = Trainer(scene, cfg, tr, te, run_dir=tmp_path)
+        save = t.save_checkpoint
+
+        def save_with_a_signal():
+            if t.step == cfg.iterations:
+                os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C while the last checkpoint is being written
+            return save()
+
+        t.save_checkpoint = save_with_a_signal
+        with pytest.raises(TrainingInterrupted) as info:
+            t.fit()
+        assert info.value.step == cfg.iterations
+        assert list_checkpoints(tmp_path)[-1][0] == cfg.iterations
+
+    def test_a_resume_told_to_stop_at_its_checkpoint_makes_the_last_update(self):
+        """--resume --iterations N with N the checkpoint's step trains no step, and the update of a run's last step
+        is made inside one: the tables kept the last refresh's (the prior before the first)."""
+        from uncertsplat.io.checkpoints import decode, encode
+
+        scene, tr, te = toy_scene()
+        cfg = toy_config()
+        part = Trainer(scene, cfg, tr, te)
+        part.fit(until=17)
+        assert part.informed and all(u["step"] != 17 for u in part.posterior_updates)
+        short = cfg.model_copy(update={"iterations": 17})
+        resumed = Trainer(scene, short, tr, te, state=decode(encode(part.state_dict())))
+        resumed.fit()
+        last = resumed.posterior_updates[-1]
+        assert (last["step"], last["views"], last["probes"]) == (17, len(resumed.train_idx), short.variational.probes)
+        again = Trainer(scene, short, tr, te, state=resumed.state_dict())
+        again.fit()  # finished with its update: none more
+        assert len(again.posterior_updates) == len(resumed.posterior_updates)
+
+    def test_views_that_joined_since_the_checkpoint_start_a_new_pass_and_keep_their_exposures_by_name(self):
+        """The checkpoint's queue holds positions in its own list of training views: a view added (or a resume after
+        an --add-views killed before its first checkpoint) indexed other views. And photos that joined the scene
+        (reconstruct --extend) move the others' indices: exposures are matched by name."""
+        from dataclasses import replace
+
+        from uncertsplat.io.checkpoints import decode, encode
+
+        scene, tr, te = toy_scene()  # train views 1, 2, 3, 5, 6, 7
+        cfg = toy_config(exposure="affine")
+        fewer = replace(scene, split={**scene.split, "train": (1, 2, 3, 6, 7)})
+        part = Trainer(fewer, cfg, tr[[0, 1, 2, 4, 5]], te)
+        part.fit(until=12)
+        with torch.no_grad():
+            part.exposure.copy_(torch.randn(part.exposure.shape, generator=torch.Generator().manual_seed(0)) * 0.1)
+        state = decode(encode(part.state_dict()))
+        assert part.view_queue  # (mid-pass)
+        same = Trainer(fewer, cfg, tr[[0, 1, 2, 4, 5]], te, state=state)
+        assert same.view_queue == part.view_queue
+        grown = Trainer(scene, cfg, tr, te, state=state)
+        assert grown.view_queue == []
+        # a photo that sorts first joined the scene: every index moved by one, the names did not
+        cams = scene.cameras
+        new = Cameras(torch.cat([cams.cam_from_world[:1], cams.cam_from_world]), torch.cat([cams.K[:1], cams.K]),
+                      cams.width, cams.height, ("a_new.png", *cams.image_names))
+        shifted = replace(fewer, cameras=new, split={"train": (2, 3, 4, 7, 8), "test": (1, 5)})
+        moved = Trainer(shifted, cfg, tr[[0, 1, 2, 4, 5]], te, state=state)
+        assert moved.view_queue == part.view_queue
+        torch.testing.assert_close(moved.exposure, part.exposure, rtol=0, atol=0)
+
+    def test_another_device_types_generator_state_is_reseeded_with_a_note(self):
+        """A CPU generator's state is 5056 bytes, a CUDA one's 16: a run resumed with another --device failed in
+        set_state with a traceback. It goes on, seeded from the saved state, and says so."""
+        scene, tr, te = toy_scene()
+        cfg = toy_config()
+        part = Trainer(scene, cfg, tr, te)
+        part.fit(until=5)
+        state = part.state_dict()
+        state["gen_noise"] = torch.arange(16, dtype=torch.uint8)  # as a CUDA generator writes it
+        t = Trainer(scene, cfg, tr, te, state=state)
+        assert any("another device type" in n for n in t.init_notes)
+        t.fit(until=8)
+        again = Trainer(scene, cfg, tr, te, state=state)  # the same seed from the same state
+        again.fit(until=8)
+        assert_same_parameters(t.model, again.model, atol=0)
+
+    def test_an_extended_run_past_its_low_resolution_phase_stays_at_full_resolution(self):
+        """The phase is a fraction of the run's steps: extending a run that had left it sent it back to half
+        resolution for the stretched part. It stretches only while the run is still in it."""
+        scene, tr, te = toy_scene()
+        cfg = toy_config(low_res_fraction=0.3)  # steps 1-9 of 30
+        longer = cfg.model_copy(update={"iterations": 60})
+        done = Trainer(scene, cfg, tr, te)
+        done.fit(until=12)
+        past = Trainer(scene, longer, tr, te, state=done.state_dict())
+        assert past.low_res_until == 9 and past.low_images is None
+        early = Trainer(scene, cfg, tr, te)
+        early.fit(until=5)
+        within = Trainer(scene, longer, tr, te, state=early.state_dict())
+        assert within.low_res_until == 18 and within.low_images is not None

@@ -105,7 +105,10 @@ def test_persistent_nan_stops_with_a_clear_error_and_good_checkpoints(tmp_path, 
     monkeypatch.undo()
     resumed = Trainer(scene, cfg, tr, te, run_dir=tmp_path, state=good)
     resumed.fit()
-    assert resumed.step == 30 and resumed.skipped_steps == 0
+    # the steps skipped before the checkpoint are the run's (steps 10-12): kept across the resume, the streak of bad
+    # steps with them (it ends at the first good step)
+    assert good["skipped_steps"] == 3 and good["bad_steps_in_a_row"] == 3
+    assert resumed.step == 30 and resumed.skipped_steps == 3 and resumed.bad_steps_in_a_row == 0
 
 
 def test_exploding_learning_rate_is_caught_not_saved_as_a_nan_model(tmp_path, capsys):

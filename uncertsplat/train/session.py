@@ -466,7 +466,6 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                                                    "by name), or train a new run.")
             if add_views:
                 _refuse_twins_of_held_out(data, add_views, run_dir)
-        atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         views_added = list(before.views_added) if before is not None else []
         if state is not None and not add_views and any(v.step > int(state["step"]) for v in views_added):
             # resumed from a checkpoint before views were added (later ones gone): they train from here on
@@ -485,7 +484,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         near = training_near_plane(data)
         if state is not None and before is not None:  # a resumed model keeps its plane (one recorded none: 1 %)
             near = before.near if before.near is not None else near_plane(data.scene_scale)
-        RunScene(
+        run_scene = RunScene(
             scene=str(scene.resolve()), source=data.source, extent=data.extent,
             scene_scale=data.scene_scale,
             width=data.cameras.width, height=data.cameras.height,
@@ -497,14 +496,16 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             views_added=views_added, near=near,
             cameras=camera_records(data.cameras, [names[i] for k in ("train", "test", "calibration")
                                                   for i in data.split.get(k, ())] if names else []),
-        ).write(run_dir / "scene.json")
+        )
         # 8-bit photos stay uint8 (a quarter of float32's memory), converted one at a time where a step uses them
         train_images = load_photos(data, data.split["train"], device)
         test_images = load_photos(data, data.split["test"], device) if data.split.get("test") else None
         trainer = Trainer(data, cfg, train_images, test_images, run_dir=run_dir, state=state, near=near)
+        # recorded once the photos read and the model is built: an added photo that cannot be read left both files
+        # naming it, and every later command failed on it (a run only mended by editing them)
+        atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
+        run_scene.write(run_dir / "scene.json")
         if add_views:
-            # the checkpoint's queue holds positions in the old list of training views: start a new pass over all
-            trainer.view_queue = []
             console.print(f"added {len(add_views)} training view(s) at step {trainer.step}: {', '.join(add_views)} "
                           f"({len(data.split['train'])} in all)")
         kernels = native.describe(device)

@@ -263,6 +263,8 @@ class Trainer:
         self.init_notes: list[str] = []  # what train prints about the model it starts from (``_init_fresh``)
         # a stop skipped the test renders of the step it came in (``fit``): the resume renders and logs them first
         self.eval_pending = False
+        self.skipped_steps = 0  # steps whose update was skipped because of a NaN/Inf loss or gradient
+        self.bad_steps_in_a_row = 0
         if state is None:
             self._init_fresh()
         else:
@@ -275,8 +277,6 @@ class Trainer:
         self.on_growth: Callable[[GrowthCheck], None] | None = None  # told of each growth test (likewise)
         self.on_exposure: Callable[[ExposureCheck], None] | None = None  # told of each exposure test (likewise)
         self._stop = False
-        self.skipped_steps = 0  # steps whose update was skipped because of a NaN/Inf loss or gradient
-        self.bad_steps_in_a_row = 0
 
     # ----------------------------------------------------------------------------------- state
     def _init_fresh(self) -> None:
@@ -361,17 +361,38 @@ class Trainer:
         same = False
         if saved is not None:
             saved = saved.to(self.device, torch.float32)
-            rows = {int(v): r for r, v in enumerate(state["exposure_views"].tolist())}
+            # by name where the checkpoint has them: photos that joined the scene since (reconstruct --extend) move
+            # the others' indices
+            rows = {v: r for r, v in enumerate(self._saved_views(state))}
             params[:] = saved.mean(0)  # a view the checkpoint has no row for: the others' centre
-            for r, v in enumerate(self.train_idx):
+            now = self._view_keys(state)
+            for r, v in enumerate(now):
                 if v in rows:
                     params[r] = saved[rows[v]]
-            same = list(rows) == list(self.train_idx)
+            same = list(rows) == now
         self._start_exposure(params)
         if same and state.get("exposure_optimizer") is not None:
             self.exposure_optimizer.load_state_dict(state["exposure_optimizer"])
             for group in self.exposure_optimizer.param_groups:  # the config's rate, as for the model's groups
                 group["lr"] = self.cfg.exposure_lr
+
+    def _train_names(self) -> list[str]:
+        """The training views' names, in training order ([] for a scene without names)."""
+        names = self.scene.cameras.image_names
+        return [names[i] for i in self.train_idx] if names else []
+
+    @staticmethod
+    def _saved_views(state: dict) -> list:
+        """The checkpoint's training views in its order: their names, or, in checkpoints from before they were
+        kept (or without names), their indices in the scene."""
+        if state.get("train_names"):
+            return list(state["train_names"])
+        saved = state.get("exposure_views")
+        return [int(i) for i in saved.tolist()] if saved is not None else []
+
+    def _view_keys(self, state: dict) -> list:
+        """This trainer's training views, keyed as ``_saved_views(state)`` keys the checkpoint's."""
+        return self._train_names() if state.get("train_names") else list(self.train_idx)
 
     def _start_exposure(self, params: Tensor) -> None:
         """Learn the photos' exposures from ``params`` [T,2,3] on, with a fresh optimiser."""
@@ -427,19 +448,37 @@ class Trainer:
             "growth": [g.model_dump() for g in self.growth],
             "exposure": self.exposure.detach().clone() if self.exposure is not None else None,
             "exposure_views": torch.tensor(self.train_idx, dtype=torch.long),
+            "train_names": self._train_names(),
             "exposure_optimizer": self.exposure_optimizer.state_dict() if self.exposure_optimizer is not None else None,
             "exposure_checks": [c.model_dump() for c in self.exposure_checks],
             "eval_pending": self.eval_pending,
+            "skipped_steps": self.skipped_steps,
+            "bad_steps_in_a_row": self.bad_steps_in_a_row,
         }
 
     def _restored_generator(self, state: dict, key: str, offset: int) -> torch.Generator:
         """The generator ``state[key]`` on the training device; seeded as a fresh run's (seed + ``offset``) for a
-        checkpoint written before its option existed."""
+        checkpoint written before its option existed. A state another device type wrote (a CPU generator's 5056
+        bytes for a CUDA one's 16: a run resumed with another --device) cannot be set: the generator is seeded
+        from the state's bytes and the step instead, with a note (the run goes on, not bit for bit as it would
+        have on its own device)."""
         gen = torch.Generator(device=self.device)
-        if key in state:
-            gen.set_state(state[key].cpu())  # generator states are CPU byte tensors
-        else:
+        if key not in state:
             gen.manual_seed(self.cfg.seed + offset)
+            return gen
+        saved = state[key].cpu()  # generator states are CPU byte tensors
+        try:
+            gen.set_state(saved)
+        except RuntimeError:
+            import hashlib
+
+            digest = hashlib.sha256(saved.numpy().tobytes() + str(int(state["step"])).encode()).digest()
+            gen.manual_seed(int.from_bytes(digest[:8], "little") >> 1)
+            note = (f"the checkpoint's random generators were written on another device type than {self.device.type}: "
+                    "they are seeded from their saved state here, so the run goes on, but not bit for bit as it "
+                    "would have on the device it was trained on")
+            if note not in self.init_notes:
+                self.init_notes.append(note)
         return gen
 
     def _load_state(self, state: dict) -> None:
@@ -452,11 +491,15 @@ class Trainer:
         self.densifier.stats = DensifyStats.from_state_dict(state["densify"], self.device)
         self.gen_views = torch.Generator()
         self.gen_views.set_state(state["gen_views"].cpu())
-        self.gen_noise = torch.Generator(device=self.device)
-        self.gen_noise.set_state(state["gen_noise"].cpu())  # generator states are CPU byte tensors
+        self.gen_noise = self._restored_generator(state, "gen_noise", 1)
         self.gen_drop = self._restored_generator(state, "gen_drop", 3)
         self.gen_background = self._restored_generator(state, "gen_background", 4)
         self.view_queue = [int(i) for i in state["view_queue"].tolist()]
+        saved_views = self._saved_views(state)
+        if saved_views and saved_views != self._view_keys(state):
+            # the queue holds positions in the checkpoint's list of training views, which views joined since
+            # (--add-views, or a plain --resume after one stopped before its first checkpoint): a new pass over all
+            self.view_queue = []
         self.sh_bands = [BandCheck(**b) for b in state.get("sh_bands", [])]  # absent in checkpoints from before
         # the updates before the checkpoint (absent in checkpoints from before: the summary then lists this
         # process's updates only)
@@ -467,6 +510,15 @@ class Trainer:
         self.elapsed = float(state["elapsed"])
         self.exposure_checks = [ExposureCheck(**c) for c in state.get("exposure_checks", [])]
         self.eval_pending = bool(state.get("eval_pending", False))
+        self.skipped_steps = int(state.get("skipped_steps", 0))
+        self.bad_steps_in_a_row = int(state.get("bad_steps_in_a_row", 0))
+        # a run extended past a low-resolution phase it finished trains on at full resolution (the phase stretches
+        # with the run only while it is still in it)
+        saved_cfg = json.loads(state["config"]) if isinstance(state.get("config"), str) else {}
+        ended = int(float(saved_cfg.get("low_res_fraction", 0.0)) * int(saved_cfg.get("iterations", 0)))
+        if self.step >= ended:
+            self.low_res_until = min(self.low_res_until, ended)
+            self.low_cams = self.low_images = None  # never read again
         self._init_exposure(state)
 
     # -------------------------------------------------------------------------------- helpers
@@ -925,13 +977,32 @@ class Trainer:
                     if self._stop or STOP_REQUESTED.is_set():
                         path = self.save_checkpoint()
                         raise TrainingInterrupted(step, path)
+            if self.step == until:
+                if until == cfg.iterations and self._final_update_missing():
+                    # a resume told to stop at its checkpoint's step (--iterations N, N = that step) trains no step,
+                    # and the update of a run's last step is made inside one: without this, the tables stayed as
+                    # the last refresh left them (the prior, before the first)
+                    with self.timer("posterior"):
+                        self.update_posterior()
+                # written while a stop waits for it (a Ctrl-C during the write lost every step since the last
+                # periodic checkpoint), then the stop is honoured
+                path = self.save_checkpoint()
+                if self._stop or STOP_REQUESTED.is_set():
+                    raise TrainingInterrupted(self.step, path)
         finally:
             if old:
                 for s, h in old.items():
                     signal.signal(s, h)
-        if self.step == until:
-            self.save_checkpoint()
         return last
+
+    def _final_update_missing(self) -> bool:
+        """Whether an informed run at its last step lacks the update of that step (every training view, the
+        final number of probes): the update ``train_step`` makes at the run's last step."""
+        if not self.informed:
+            return False
+        u = self.posterior_updates[-1] if self.posterior_updates else None
+        return (u is None or u.get("step") != self.step or u.get("views") != len(self.train_idx)
+                or u.get("probes") != self.cfg.variational.probes)
 
     def posterior_summary(self) -> dict:
         """``variational.posterior_summary`` of the model; for the informed posterior measured against the
