@@ -88,6 +88,23 @@ class TestServer:
         with pytest.raises(UserError, match="config.json is missing"):
             stage.build(tmp_path, ViewConfig(), torch.device("cpu"))
 
+    def test_a_run_without_its_scene_opens_without_cameras(self, tiny_run_path, tmp_path, capsys):
+        """A run copied without its scene: the note said the viewer goes on without cameras and photos, then the
+        empty-ray term's coverage (rendered from the training cameras) failed on the same missing scene."""
+        import json
+        import shutil
+
+        run = tmp_path / "run"
+        shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns(".lock"))
+        info = json.loads((run / "scene.json").read_text())
+        info["scene"] = str(tmp_path / "gone")
+        (run / "scene.json").write_text(json.dumps(info))
+        capsys.readouterr()
+        v = stage.build(run, ViewConfig(port=0, thumbnails=False), torch.device("cpu"))
+        said = " ".join(capsys.readouterr().err.split())
+        assert v.scene is None and "no cameras or photos in the viewer" in said and "empty-ray term" in said, said
+        assert v.renderer.loaded.coverage(1.0, torch.device("cpu")) == 1.0
+
     def test_without_viser_one_message_with_the_install_command(self, monkeypatch, tiny_run_path):
         monkeypatch.setitem(sys.modules, "viser", None)  # import viser -> ImportError
         with pytest.raises(UserError, match=r"pip install 'uncertsplat\[view\]'"):

@@ -44,7 +44,10 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
     try:
         scene = loaded.load_scene()
     except UserError as err:  # the model is still worth looking at without its photos
-        console.print(f"[yellow]note:[/] no cameras or photos in the viewer: {err.render()}", soft_wrap=True)
+        console.print(f"[yellow]note:[/] no cameras or photos in the viewer, and its std modes leave out the "
+                      f"empty-ray term (measured on the training views): {err.render()}", soft_wrap=True)
+        # (the term's coverage is rendered from the training cameras: the viewer stopped there with the same error)
+        loaded = loaded.with_model(loaded.model, coverage=1.0)
     info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
     scene_scale = scene.scene_scale if scene is not None else (info.scene_scale if info is not None else 1.0)
     score_cams = free_cams = None
