@@ -184,9 +184,12 @@ def _config_file(path: Path) -> dict:
                         hint=f"Run it with `uncertsplat run {path}`, or copy the keys of one stage's `config = {{...}}` "
                              "into a file of their own for --config.")
     for key in _PATH_KEYS:  # a relative path in the file is read from the file's folder, as a pipeline's photos are
-        if isinstance(data.get(key), str) and data[key] and not data[key].startswith("~") \
-                and not Path(data[key]).is_absolute():
-            data[key] = str(Path(path).resolve().parent / data[key])
+        value = data.get(key)
+        if isinstance(value, str) and value and not value.startswith("~") and not Path(value).is_absolute():
+            there = Path(path).resolve().parent / value
+            # (candidates may be a word, unused or around[:N]: a file only where the file's folder holds one)
+            if key != "candidates" or there.exists():
+                data[key] = str(there)
     return data
 
 

@@ -409,6 +409,29 @@ def test_cli_with_a_pose_file(subset_run, tmp_path):
     assert res.exit_code == 2 and "line 2" in res.output and "8 fields" in res.output
 
 
+def test_a_config_files_pose_file_is_read_from_its_folder(subset_run, tmp_path, monkeypatch):
+    """`candidates = "plan.txt"` in a --config file was read from the current folder (depth_gt from the file's),
+    and the error did not say where it looked; the words unused and around[:N] stay words."""
+    sub = tmp_path / "sub"
+    sub.mkdir()
+    (sub / "plan.txt").write_text("front 1 0 0 0 0 0 4\n")
+    (sub / "select.toml").write_text('candidates = "plan.txt"\nscore = "coverage"\n')
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(app, ["select-views", str(subset_run), "--config", "sub/select.toml", "-o",
+                                   str(tmp_path / "out"), "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    assert Selection.read(tmp_path / "out" / "selection.json").chosen[0].name == "front"
+    (sub / "select.toml").write_text('candidates = "missing.txt"\n')
+    res = CliRunner().invoke(app, ["select-views", str(subset_run), "--config", "sub/select.toml", "-o",
+                                   str(tmp_path / "out2"), "--device", "cpu"])
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and f"looked for {tmp_path / 'missing.txt'}" in said, said
+    (sub / "select.toml").write_text('candidates = "around:2"\nscore = "coverage"\n')
+    res = CliRunner().invoke(app, ["select-views", str(subset_run), "--config", "sub/select.toml", "-o",
+                                   str(tmp_path / "out3"), "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+
+
 def test_cli_errors_print_the_message_as_given(subset_run, tmp_path):
     """An error that quotes what the user typed shows it verbatim: `around:x:` is not an emoji, `[red]` not markup."""
     res = CliRunner().invoke(app, ["select-views", str(subset_run), "--candidates", "around:x", "-o",

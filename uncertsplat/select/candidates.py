@@ -102,8 +102,11 @@ def read_pose_file(path: Path, scene: SceneData, world_from_source: Tensor) -> C
     """
     path = Path(path)
     if not path.is_file():
-        raise UserError("candidate pose file not found", path=path,
-                        hint="Give 'unused', 'around[:N]' or a file of lines 'NAME QW QX QY QZ TX TY TZ'.")
+        raise UserError("candidate pose file not found" + ("" if path.is_absolute() else f" (looked for {path.resolve()}:"
+                                                                  " a relative path is read from the current folder, "
+                                                                  "or from the folder of a --config file that gives "
+                                                                  "it)"),
+                        path=path, hint="Give 'unused', 'around[:N]' or a file of lines 'NAME QW QX QY QZ TX TY TZ'.")
     rows: list[Tensor] = []
     names: list[str] = []
     source_from_world = torch.linalg.inv(world_from_source.double())
