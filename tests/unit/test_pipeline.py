@@ -286,7 +286,7 @@ def test_photos_touched_or_copied_without_times_are_unchanged(tmp_path, calls):
     times) still counts as unchanged."""
     import os
 
-    from uncertsplat.stages.manifest import fingerprint_folder
+    from uncertsplat.stages.manifest import fingerprints
 
     photos = tmp_path / "photos"
     photos.mkdir()
@@ -303,7 +303,7 @@ def test_photos_touched_or_copied_without_times_are_unchanged(tmp_path, calls):
     assert calls == []
     manifest = tmp_path / "out" / "reconstruct" / "manifest.json"
     data = json.loads(manifest.read_text())
-    data["input_hashes"]["photos"] = fingerprint_folder(photos, legacy=True)
+    data["input_hashes"]["photos"] = fingerprints(photos)[2]
     manifest.write_text(json.dumps(data))  # as the earlier version wrote it, and the train stage's record of it:
     train = tmp_path / "out" / "train" / "manifest.json"
     record = json.loads(train.read_text())
@@ -314,6 +314,67 @@ def test_photos_touched_or_copied_without_times_are_unchanged(tmp_path, calls):
     (photos / "1.jpg").write_bytes(b"another photo")
     pl.run(p, tmp_path / "out")
     assert [k for k, _ in calls] == ["reconstruct", "train"]
+
+
+def test_notes_and_leftovers_beside_the_photos_are_not_inputs(tmp_path, calls):
+    """The fingerprint covered every file of an input folder: a notes.txt beside the photos, an editor's backup or a
+    .DS_Store retrained the whole pipeline. A manifest holding the fingerprint of every file (written before) still
+    counts as unchanged; a photo added counts."""
+    from uncertsplat.stages.manifest import fingerprints
+
+    photos = tmp_path / "photos"
+    (photos / "sub").mkdir(parents=True)
+    for i in range(3):
+        (photos / f"{i}.jpg").write_bytes(bytes([i]) * 100)
+    p = tmp_path / "p.toml"
+    p.write_text('name = "t"\ndevice = "cpu"\nphotos = "photos"\n[[stages]]\nstage = "reconstruct"\n'
+                 '[[stages]]\nstage = "train"\npreset = "tiny"\n')
+    pl.run(p, tmp_path / "out")
+    calls.clear()
+    (photos / "notes.txt").write_text("taken at noon")
+    (photos / "README.md").write_text("my capture")
+    (photos / ".DS_Store").write_bytes(b"x")
+    (photos / "0.jpg~").write_bytes(b"backup")
+    (photos / "sub" / ".0.jpg.swp").write_bytes(b"swap")
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    manifest = tmp_path / "out" / "reconstruct" / "manifest.json"
+    data = json.loads(manifest.read_text())
+    data["input_hashes"]["photos"] = fingerprints(photos)[1]  # as the version before wrote it: every file
+    manifest.write_text(json.dumps(data))
+    train = tmp_path / "out" / "train" / "manifest.json"
+    record = json.loads(train.read_text())
+    record["input_hashes"]["reconstruct"] = pl.read_manifest(manifest.parent).key
+    train.write_text(json.dumps(record))
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    (photos / "sub" / "3.jpg").write_bytes(b"a photo in a subfolder")
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls] == ["reconstruct", "train"]
+
+
+def test_a_stage_whose_output_is_gone_runs_again(tmp_path, calls, capsys):
+    """The skip read the manifest alone: with a trained model deleted, every stage was skipped (the report pointing
+    at figures that were gone) and a later change failed in the next stage. A stage with a recorded output gone
+    runs again, and says why; checkpoints and the evaluation's caches are not outputs (a resume rotates them)."""
+    p = _write(tmp_path)
+    pl.run(p, tmp_path / "out")
+    recorded = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text())["outputs"]
+    assert recorded == ["out.txt"]
+    (tmp_path / "out" / "train" / "ckpts").mkdir()
+    (tmp_path / "out" / "train" / "ckpts" / "step_000001.pt").write_bytes(b"")
+    assert pl.stage_outputs(tmp_path / "out" / "train") == ["out.txt"]  # (ckpts/ and the stage's eval/ manifest)
+    calls.clear()
+    (tmp_path / "out" / "train" / "out.txt").unlink()
+    capsys.readouterr()
+    pl.run(p, tmp_path / "out")
+    said = " ".join(capsys.readouterr().err.split())
+    assert "train's output out.txt is gone from" in said and "it runs again" in said, said
+    # the train folder, its evaluation inside, went to .previous: that evaluation runs again too; synth is kept
+    assert [k for k, _ in calls] == ["train", "evaluate"]
+    calls.clear()
+    pl.run(p, tmp_path / "out")
+    assert calls == []
 
 
 def test_a_damaged_manifest_is_named_before_its_stage_runs_again(tmp_path, calls, capsys):

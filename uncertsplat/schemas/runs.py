@@ -275,10 +275,10 @@ class Manifest(SchemaFile):
     """``STAGE/manifest.json``: what one pipeline stage ran with and whether it finished."""
 
     FILE_NAME = "manifest.json"
-    SCHEMA_VERSION = 1
+    SCHEMA_VERSION = 2
     WRITTEN_BY = "uncertsplat run"
 
-    schema_version: int = 1
+    schema_version: int = 2
     stage: str
     name: str
     config_hash: str
@@ -292,11 +292,15 @@ class Manifest(SchemaFile):
     seconds: float | None = None
     error: str | None = None
     versions: dict[str, str] = Field(default_factory=dict)
+    outputs: list[str] = Field(default_factory=list)
+    """The files the finished stage left in its folder (relative paths; ``stages.manifest.stage_outputs``: not its
+    checkpoints or caches): a stage with one of them gone runs again rather than being skipped."""
 
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
-        # version 0 (before schema_version existed) had the same keys
-        return data if version == 0 else None
+        # version 0 (before schema_version existed) had version 1's keys; version 1 recorded no outputs (none are
+        # checked)
+        return data if version in (0, 1) else None
 
     @property
     def key(self) -> str:

@@ -23,30 +23,87 @@ from uncertsplat.schemas.runs import Manifest
 MANIFEST = "manifest.json"
 
 
-def fingerprint_folder(folder: Path, max_files: int = 100_000, *, legacy: bool = False) -> str:
-    """Hash of the relative names and contents of the files under ``folder``: a copy that did not keep the
-    modification times (``cp -r``, a sync, a restore) is the same input (sha256 reads 0.9-2 GB/s: a second or two
-    for a phone capture of 300 photos). ``legacy``: the hash of names, sizes and mtimes that manifests written before
-    2026-11-29 hold, which the pipeline still accepts as unchanged."""
-    h = hashlib.sha256()
+_NOT_READ = ("*~", "*.swp", "*.swo", "*.bak", "*.orig", "*.tmp", "Thumbs.db", "desktop.ini")
+"""Files no stage reads wherever they are: editors' and systems' leftovers (hidden files are skipped too)."""
+_NOT_READ_AT_TOP = ("*.txt", "*.md", "*.pdf", "*.log")
+"""Files no stage reads at the top of an input folder (a user's notes; COLMAP text models are under sparse/)."""
+
+
+def _read_by_stages(rel: Path) -> bool:
+    """Whether a file at ``rel`` in an input folder may be read by a stage: not hidden (nor in a hidden folder: the
+    lock, ``reconstruct --extend``'s staging), not a leftover of ``_NOT_READ``, not a note at the top."""
+    if any(part.startswith(".") for part in rel.parts):
+        return False
+    if any(rel.match(pattern) for pattern in _NOT_READ):
+        return False
+    return not (len(rel.parts) == 1 and any(rel.match(pattern) for pattern in _NOT_READ_AT_TOP))
+
+
+def fingerprints(folder: Path, max_files: int = 100_000) -> tuple[str, str, str]:
+    """(``fingerprint_folder``, the same over every file (what manifests written before 2026-11-30 hold), the
+    names, sizes and mtimes of every file (before 2026-11-29)) of ``folder`` in one pass: the pipeline takes an input
+    as unchanged when a stage's manifest holds any of them."""
     folder = Path(folder)
     if not folder.exists():
-        return "missing"
+        return "missing", "missing", "missing"
+    read, every, legacy = hashlib.sha256(), hashlib.sha256(), hashlib.sha256()
     for i, p in enumerate(sorted(folder.rglob("*"))):
         if i >= max_files:
             break
         if p.is_file():
-            if legacy:
-                st = p.stat()
-                h.update(f"{p.relative_to(folder)}|{st.st_size}|{int(st.st_mtime)}\n".encode())
-            else:
-                try:
-                    digest = file_sha256(p)
-                except OSError:  # unreadable (or gone since the listing): its size and time stand for it
-                    st = p.stat() if p.exists() else None
-                    digest = f"{st.st_size}|{st.st_mtime_ns}" if st is not None else "gone"
-                h.update(f"{p.relative_to(folder)}|{digest}\n".encode())
-    return h.hexdigest()[:16]
+            rel = p.relative_to(folder)
+            st = p.stat()
+            legacy.update(f"{rel}|{st.st_size}|{int(st.st_mtime)}\n".encode())
+            try:
+                digest = file_sha256(p)
+            except OSError:  # unreadable (or gone since the listing): its size and time stand for it
+                digest = f"{st.st_size}|{st.st_mtime_ns}" if p.exists() else "gone"
+            line = f"{rel}|{digest}\n".encode()
+            every.update(line)
+            if _read_by_stages(rel):
+                read.update(line)
+    return read.hexdigest()[:16], every.hexdigest()[:16], legacy.hexdigest()[:16]
+
+
+def fingerprint_folder(folder: Path, max_files: int = 100_000) -> str:
+    """Hash of the relative names and contents of the files under ``folder`` that a stage may read
+    (``_read_by_stages``: not a note beside the photos, an editor's backup or a hidden file, each of which retrained
+    a pipeline): a copy that did not keep the modification times (``cp -r``, a sync, a restore) is the same input
+    (sha256 reads 0.9-2 GB/s: a second or two for a phone capture of 300 photos)."""
+    return fingerprints(folder, max_files)[0]
+
+
+_NOT_OUTPUTS = ("ckpts/*", "predictive.pt", "residual.pt", MANIFEST)
+"""A stage folder's files that ``stage_outputs`` leaves out: checkpoints (a later resume rotates them; the model is in
+the PLY) and the evaluation's caches (rebuilt when gone), and the manifest itself."""
+
+
+def stage_outputs(folder: Path, max_files: int = 10_000) -> list[str]:
+    """The files a finished stage left in ``folder`` (relative paths, sorted), but for its checkpoints, caches and
+    hidden files (``_NOT_OUTPUTS``; the lock) and the folders of stages inside it (their own manifest): what must
+    still be there for the stage to be skipped."""
+    folder = Path(folder)
+    found: list[str] = []
+    # another stage's output inside this one (an evaluate stage's eval/ in its run): that stage's own
+    nested = {m.parent.relative_to(folder) for m in folder.rglob(MANIFEST) if m.parent != folder} \
+        if folder.is_dir() else set()
+    for p in sorted(folder.rglob("*")) if folder.is_dir() else ():
+        rel = p.relative_to(folder)
+        if not p.is_file() or any(part.startswith(".") for part in rel.parts):
+            continue
+        if any(n in rel.parents for n in nested):
+            continue
+        if any(rel.match(pattern) for pattern in _NOT_OUTPUTS):  # (matched from the right: at any depth)
+            continue
+        found.append(rel.as_posix())
+        if len(found) >= max_files:
+            break
+    return found
+
+
+def missing_outputs(folder: Path, manifest: Manifest) -> list[str]:
+    """The files of ``manifest.outputs`` no longer in ``folder`` (none for a manifest that recorded none)."""
+    return [name for name in manifest.outputs if not (Path(folder) / name).is_file()]
 
 
 def read_manifest(folder: Path) -> Manifest | None:
@@ -76,5 +133,5 @@ def start_manifest(stage: str, name: str, config: dict, inputs: dict[str, str]) 
     )
 
 
-__all__ = ["MANIFEST", "Manifest", "fingerprint_folder", "hash_config", "read_manifest", "start_manifest", "versions",
-           "write_manifest"]
+__all__ = ["MANIFEST", "Manifest", "fingerprint_folder", "fingerprints", "hash_config", "missing_outputs",
+           "read_manifest", "stage_outputs", "start_manifest", "versions", "write_manifest"]

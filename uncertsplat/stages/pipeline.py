@@ -35,8 +35,10 @@ from uncertsplat.io.atomic import run_lock
 from uncertsplat.stages.manifest import (
     MANIFEST,
     Manifest,
-    fingerprint_folder,
+    fingerprints,
+    missing_outputs,
     read_manifest,
+    stage_outputs,
     start_manifest,
     write_manifest,
 )
@@ -317,7 +319,9 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                                 hint="Put a stage before it, set `input`, or set `photos` for reconstruct.")
             upstreams[name] = upstream
             inputs: dict[str, str] = {}
-            legacy: dict[str, str] = {}  # folder inputs by the manifests' earlier hash (names, sizes, mtimes)
+            # folder inputs by the manifests' earlier hashes: of every file (notes and backups too), and before that
+            # of names, sizes and mtimes
+            earlier: tuple[dict[str, str], dict[str, str]] = ({}, {})
             up_path: Path | None = None
             if upstream is not None:
                 if upstream in outputs:
@@ -327,8 +331,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                     up_path = Path(upstream)
                     if not up_path.is_absolute():
                         up_path = (pipeline.resolve().parent / up_path)
-                    inputs[str(up_path)] = fingerprint_folder(up_path)
-                    legacy[str(up_path)] = fingerprint_folder(up_path, legacy=True)
+                    inputs[str(up_path)], earlier[0][str(up_path)], earlier[1][str(up_path)] = fingerprints(up_path)
 
             kwargs: dict = {}
             if stage.stage == "synth":
@@ -336,8 +339,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             elif stage.stage == "reconstruct":
                 if up_path is None:
                     up_path = Path(cfg.photos)
-                    inputs["photos"] = fingerprint_folder(up_path)
-                    legacy["photos"] = fingerprint_folder(up_path, legacy=True)
+                    inputs["photos"], earlier[0]["photos"], earlier[1]["photos"] = fingerprints(up_path)
                 elif kinds.get(upstream) == "synth":
                     up_path = up_path / "images"
                 out_dir = root / name
@@ -378,8 +380,15 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             if old is None and (out_dir / MANIFEST).is_file():
                 console.print(f"[yellow]note:[/] {out_dir / MANIFEST} cannot be read (damaged or from another "
                               f"version), so '{name}' runs again; its present output is kept under {root / '.previous'}")
+            same_inputs = old is not None and old.input_hashes in (new.input_hashes,
+                                                                   *({**new.input_hashes, **e} for e in earlier))
+            gone = missing_outputs(out_dir, old) if old is not None and old.status == "done" else []
+            if gone and not force and old.config_hash == new.config_hash and same_inputs:
+                console.print(f"[yellow]note:[/] {name}'s output {gone[0]}" + (f" (and {len(gone) - 1} more file(s))"
+                                                                               if len(gone) > 1 else "")
+                              + f" is gone from {out_dir}: it runs again")
             if (not force and old is not None and old.status == "done" and old.config_hash == new.config_hash
-                    and old.input_hashes in (new.input_hashes, {**new.input_hashes, **legacy})):
+                    and same_inputs and not gone):
                 console.print(f"[green]skip[/] {name}: unchanged since its last run ({out_dir})")
                 outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, old
                 previous = name
@@ -388,8 +397,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             console.print(f"[bold cyan]stage[/] {name} ({stage.stage}) -> {out_dir}")
             resume = (not force and stage.stage == "train" and old is not None and old.error == INTERRUPTED
                       and old.config_hash == new.config_hash
-                      and old.input_hashes in (new.input_hashes, {**new.input_hashes, **legacy})
-                      and _has_checkpoint(out_dir))
+                      and same_inputs and _has_checkpoint(out_dir))
             if resume:
                 kwargs["resume"] = True
                 console.print(f"  resuming '{name}' from its checkpoint (it was interrupted with these settings and inputs)")
@@ -443,6 +451,7 @@ def _finish(out_dir: Path, manifest: Manifest, status: str, t0: float, error: st
     manifest.finished_at = time.time()
     manifest.seconds = time.perf_counter() - t0
     manifest.error = error
+    manifest.outputs = stage_outputs(out_dir) if status == "done" else []
     if out_dir.exists() or status == "done":
         write_manifest(out_dir, manifest)
 
