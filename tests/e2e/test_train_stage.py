@@ -307,9 +307,9 @@ def test_a_scene_aligned_to_other_units_after_training_is_evaluated_in_them(tiny
 
 
 def test_a_start_that_failed_before_training_can_be_run_again(tiny_scene_path, tmp_path):  # noqa: F811
-    """train stopped by a photo it could not read leaves config.json and scene.json; once the photo is mended the
-    same command starts the run (it said "the run folder already exists ... --resume"), while a run with a step
-    trained is still refused."""
+    """train stopped by a photo it could not read left config.json and scene.json, and the same command said "the run
+    folder already exists ... --resume"; it now records them once the photos read, so nothing is left to refuse:
+    once the photo is mended the same command starts the run, while a run with a step trained is still refused."""
     scene = tmp_path / "scene"
     shutil.copytree(tiny_scene_path, scene)
     photo = scene / "images" / "view_001.png"
@@ -320,7 +320,7 @@ def test_a_start_that_failed_before_training_can_be_run_again(tiny_scene_path, t
                                            "log_every=1", "eval_every=1000"])
     with pytest.raises(UserError):
         stage.run(scene, run, cfg, torch.device("cpu"))
-    assert (run / "config.json").is_file() and not list_checkpoints(run)
+    assert not (run / "config.json").is_file() and not list_checkpoints(run)
     photo.write_bytes(good)
     stage.run(scene, run, cfg, torch.device("cpu"))
     assert (run / "train_summary.json").is_file()

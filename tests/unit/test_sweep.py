@@ -236,10 +236,12 @@ def test_a_bad_set_value_is_named_with_the_spec(tmp_path):
     ('evaluate = { num_samples = 0 }\n[scenes.a]\nsynth = {}\n', r"s\.toml: evaluate\.num_samples \(line 2\): Input should be"),
     ('[scenes.a]\nsynth = {}\nevaluate = { num_samples = 0 }\n', r"s\.toml: scenes\.a\.evaluate\.num_samples \(line 4\): Input"),
     ('scenes = "x"\n', r"s\.toml: scenes \(line 2\): Input should be a valid dictionary"),
-    ('train_preset = "tny"\n', r"s\.toml: train_preset: unknown preset 'tny' \(presets: "),
+    ('train_preset = "tny"\n', r"s\.toml: train_preset \(line 1\): unknown preset 'tny' \(presets: "),
+    ('scene = "x"\nsynth = { preset = "tiny" }\n', r"gives both `scene` and `synth` \(line 3\)"),
+    ('[scenes.a]\nsynth = {}\n[synth]\npreset = "tiny"\n', r"gives both `scenes` and `synth` \(line 4\)"),
     ("[scenes]\n", r"the spec's \[scenes\] table names no scene"),
     ('[scenes.a]\nsynth = {}\ndefault = { iteratons = 100 }\n', r"unknown knob\(s\) in `default`: iteratons \(did you mean iterations\?"),
-    ('[scenes.a]\nsynth = {}\ntrain_preset = "tinyy"\n', r"s\.toml: scenes\.a\.train_preset: unknown preset 'tinyy'"),
+    ('[scenes.a]\nsynth = {}\ntrain_preset = "tinyy"\n', r"s\.toml: scenes\.a\.train_preset \(line 4\): unknown preset 'tinyy'"),
     ('[scenes.a]\nsynth = { preset = "tiny", sede = 3 }\n', r"s\.toml: scenes\.a\.synth\.sede \(line 3\): unknown key"),
     ('synth = { preset = "huge" }\n', r"s\.toml: synth\.preset \(line 2\): "),
     ('[scenes.a]\nphotos = "p"\nreconstruct = { matcher = "fast" }\n', r"s\.toml: scenes\.a\.reconstruct\.matcher \(line 4\): "),
@@ -253,6 +255,19 @@ def test_bad_knob_values_and_base_keys_are_refused_when_the_spec_is_read(tmp_pat
     f.write_text(('' if toml.startswith("train_preset") else 'train_preset = "tiny"\n') + toml)
     with pytest.raises(UserError, match=match):
         load_spec(f)
+
+
+def test_empty_axes_and_seeds_are_said_and_a_scene_set_on_the_command_line_replaces_synth(tmp_path, capsys):
+    """`axes.iterations = []` and `seeds = []` were taken without a word (a list emptied by mistake runs one point);
+    a scene given with --set replaces the file's synthetic scene, as --scene does."""
+    f = tmp_path / "s.toml"
+    f.write_text('train_preset = "tiny"\nseeds = []\nsynth = { preset = "tiny" }\n[axes]\niterations = []\n')
+    capsys.readouterr()
+    spec = load_spec(f)
+    said = " ".join(capsys.readouterr().err.split())
+    assert "axes.iterations, seeds = [] leave the knob at its default" in said, said
+    assert spec.seeds == [] and spec.axes.iterations == []
+    assert load_spec(f, [f"scene={tmp_path}"]).scene == tmp_path
 
 
 # ------------------------------------------------------------------------------------------ scenes and seeds
@@ -546,6 +561,82 @@ def test_a_sweep_resumed_with_another_default_summarises_this_spec(tmp_path, mon
     said = " ".join(capsys.readouterr().err.split())
     assert "also holds 1 point of other settings" in said
     assert sorted(r.id for r in third.records) == ["variational_it5_k2", "variational_it5_k8"]
+
+
+def _fake_jobs(monkeypatch, log=None):
+    """Sweep jobs that train nothing: an ok record per point whose report names the point's hash."""
+    from uncertsplat.sweep import jobs as sweep_jobs
+
+    def fake(job):
+        if log is not None:
+            log.extend(p["id"] for p in job["points"])
+        return [{"id": p["id"], "hash": p["hash"], "job": job["job_id"], "method": job["method_label"],
+                 "knobs": p["knobs"], "is_default": p["is_default"], "status": "ok", "run_dir": job["run_dir"],
+                 "psnr": 20.0, "ause_mae": 0.1, "time": 1.0, "point_report": f'{{"hash": "{p["hash"]}"}}'}
+                for p in job["points"]]
+
+    monkeypatch.setattr(sweep_jobs, "run_job", fake)
+
+
+def test_a_point_of_other_settings_never_replaces_a_points_report(tmp_path, monkeypatch):
+    """points/ID.json was named by id alone: a run with --set train.seed=1 (other hashes, the same ids) replaced the
+    seed-0 reports, the only copies, while sweep.json went on showing seed 0's records; a deleted report was never
+    written again. Every report is kept by hash and points/ID.json follows the spec's records."""
+    from uncertsplat.stages import sweep
+
+    _fake_jobs(monkeypatch)
+    (tmp_path / "scene").mkdir()
+    f = tmp_path / "s.toml"
+    f.write_text('name = "x"\ntrain_preset = "tiny"\n[default]\niterations = 5\n')
+    out = tmp_path / "out"
+    (rec,) = sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1).records
+    report = out / "points" / f"{rec.id}.json"
+    assert rec.hash in report.read_text()
+    (other,) = sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1,
+                         overrides=["train.seed=1"]).records
+    assert other.id == rec.id and other.hash != rec.hash and other.hash in report.read_text()
+    assert sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1).records[0].hash == rec.hash
+    assert rec.hash in report.read_text()  # this spec's point's report again
+    assert {p.stem for p in (out / "points" / "by_hash").iterdir()} == {rec.hash, other.hash}
+    report.unlink()
+    sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1)
+    assert rec.hash in report.read_text()
+
+
+def test_a_scene_folder_that_changed_is_refused_or_trained_again(tmp_path, monkeypatch, capsys):
+    """A sweep on a scene of one's own reused every point after a photo of the scene changed (or after --scene named
+    another folder): refused now, with --force training and measuring again (its runs removed: a finished run of
+    the same config was reused as it was); notes beside the scene's files are no change."""
+    from uncertsplat.stages import sweep
+
+    measured: list[str] = []
+    _fake_jobs(monkeypatch, measured)
+    scene = tmp_path / "scene"
+    (scene / "images").mkdir(parents=True)
+    (scene / "images" / "a.png").write_bytes(b"a photo")
+    f = tmp_path / "s.toml"
+    f.write_text('name = "x"\ntrain_preset = "tiny"\n[default]\niterations = 5\n')
+    out = tmp_path / "out"
+    sweep.run(f, out, device="cpu", scene=scene, jobs=1)
+    assert len(measured) == 1
+    (scene / "notes.txt").write_text("taken at noon")
+    sweep.run(f, out, device="cpu", scene=scene, jobs=1)
+    assert len(measured) == 1
+    (scene / "images" / "a.png").write_bytes(b"the photo edited")
+    with pytest.raises(UserError, match=r"not the one its points were measured on .*'s files changed") as err:
+        sweep.run(f, out, device="cpu", scene=scene, jobs=1)
+    assert "--force" in err.value.hint
+    other = tmp_path / "other"
+    other.mkdir()
+    with pytest.raises(UserError, match="moved from"):
+        sweep.run(f, out, device="cpu", scene=other, jobs=1)
+    (out / "runs" / "stale").mkdir(parents=True)
+    capsys.readouterr()
+    sweep.run(f, out, device="cpu", scene=scene, jobs=1, force=True)
+    assert len(measured) == 2 and not (out / "runs").exists()
+    assert "trained on the scene before it changed" in " ".join(capsys.readouterr().err.split())
+    sweep.run(f, out, device="cpu", scene=scene, jobs=1)  # the edited scene is now the sweep's
+    assert len(measured) == 2
 
 
 def test_point_reports_follow_their_points_to_new_ids(tmp_path):

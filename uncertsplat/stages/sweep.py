@@ -6,8 +6,12 @@ Writes into ``OUT/``:
   ``synth`` or ``photos``), made once by this process before any job;
 - ``runs/{job}/`` (named scenes: ``runs/{scene}/{job}/``): one run folder per training config (reused when
   unchanged: a sweep resumes);
-- ``points/{point}.json``: the full ``EvalReport`` of each point (written by this process from what the job
-  returns: workers write only into their run folders);
+- ``points/{point}.json``: the full ``EvalReport`` of each point of the spec as it is now (written by this process
+  from what the job returns: workers write only into their run folders), and ``points/by_hash/{hash}.json``: every
+  point's ever measured, by its settings' hash (a point of other settings under the same id, e.g. after
+  ``--set train.seed=1``, never replaces another's; ``points/{point}.json`` is rebuilt from it when gone);
+- ``scene_inputs.json``: the fingerprints of the scene folders of one's own the points were measured on (a
+  changed or other folder is refused, or with ``--force`` trained on again);
 - ``sweep.jsonl``: one JSON record per point (appended as jobs finish; see ``sweep.jobs.run_job``);
 - ``sweep.json``: the summary: spec, records (latest per point), the table (mean and spread over seeds of each
   point on each scene), default, Pareto fronts (per scene);
@@ -77,10 +81,11 @@ def _synth_changes(cfg, folder: Path) -> list[str]:
     return [f"{k} {old[k]} -> {v}" for k, v in json.loads(cfg.model_dump_json()).items() if k in old and old[k] != v]
 
 
-def _synth(keys: dict, folder: Path, force: bool = False) -> Path:
+def _synth(keys: dict, folder: Path, force: bool = False, runs: Path | None = None) -> Path:
     """The synthetic scene of ``keys`` (SynthConfig) in ``folder``, generated unless it is already there with these
     settings; with other settings it is refused (the points measured on it would be reused as the new scene's),
-    or generated again with ``force`` (which measures every point again).
+    or generated again with ``force`` (which measures every point again: the run folders trained on it, ``runs``,
+    are removed).
 
     Raises:
         UserError: the folder's scene was generated with other settings and ``force`` is not set.
@@ -99,10 +104,69 @@ def _synth(keys: dict, folder: Path, force: bool = False) -> Path:
                             path=folder, hint="Run with --force to generate it again and measure every point on it, "
                                               "or give the sweep another output folder.")
         console.print(f"generating the synthetic scene again ({', '.join(changes)}) into {folder}")
+        if runs is not None:  # trained on the scene before (a finished run of the same config was reused as it was)
+            _drop_runs(runs)
     else:
         console.print(f"generating the synthetic scene ({keys}) into {folder}")
     generate_scene(folder, cfg, overwrite=True)
     return folder
+
+
+SCENE_INPUTS = "scene_inputs.json"
+"""``OUT/scene_inputs.json``: the scene folders of one's own a sweep measured on, with their fingerprints
+(``_check_scene_inputs``)."""
+
+
+def _runs_of(out_dir: Path, name: str | None) -> Path:
+    """The folder of the runs trained on scene ``name`` (None: the single scene's)."""
+    return out_dir / "runs" / name if name is not None else out_dir / "runs"
+
+
+def _drop_runs(runs: Path) -> None:
+    """Remove the run folders ``runs`` (``_runs_of``): their models are of a scene that changed, and a finished run of
+    the same config is otherwise reused as it is."""
+    import shutil
+
+    if runs.is_dir():
+        console.print(f"[yellow]note:[/] removing {runs}: trained on the scene before it changed")
+        shutil.rmtree(runs)
+
+
+def _check_scene_inputs(out_dir: Path, folders: dict[str | None, Path], force: bool, measured: bool) -> None:
+    """Refuse a scene folder of one's own (``scene = PATH``, ``--scene``, ``[scenes.NAME] path``) whose files or
+    place changed since the sweep measured points on it (``measured``): a point's hash is its settings', so the
+    points would be reused as measurements of the changed scene (and an unfinished run resumed on it). With
+    ``force`` the runs on it are removed, to be trained again. Scenes the sweep makes in ``OUT`` have their own
+    checks (``_synth``, ``reconstruct``). Records the folders' fingerprints."""
+    from uncertsplat.stages.manifest import fingerprint_folder
+
+    path = out_dir / SCENE_INPUTS
+    try:
+        recorded = json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
+    except (OSError, ValueError):
+        recorded = {}  # (damaged: recorded again below)
+    now, changed = dict(recorded), []
+    for name, folder in folders.items():
+        folder = Path(folder).resolve()
+        if out_dir.resolve() in folder.parents:
+            continue
+        key = name or ""
+        entry = {"path": str(folder), "fingerprint": fingerprint_folder(folder)}
+        old = recorded.get(key)
+        if isinstance(old, dict) and old != entry:
+            what = (f"moved from {old.get('path')} to {folder}" if old.get("path") != str(folder)
+                    else f"{folder}'s files changed")
+            changed.append((name, what))
+        now[key] = entry
+    if changed and measured and not force:
+        names = "; ".join(f"scene {n!r}: {w}" if n else w for n, w in changed)
+        raise UserError(f"the sweep's scene is not the one its points were measured on ({names}): they would be "
+                        "reused as measurements of it", path=out_dir,
+                        hint="Run with --force to train and measure every point again on it, or give the sweep "
+                             "another output folder (-o).")
+    for name, _ in changed:
+        _drop_runs(_runs_of(out_dir, name))
+    atomic_write_text(path, json.dumps(now, indent=2) + "\n")
 
 
 def prepare_scene(name: str, entry, out_dir: Path, force: bool = False) -> Path:
@@ -116,7 +180,7 @@ def prepare_scene(name: str, entry, out_dir: Path, force: bool = False) -> Path:
     """
     folder = Path(out_dir) / "scenes" / name
     if entry.synth is not None:
-        return _synth(entry.synth, folder, force)
+        return _synth(entry.synth, folder, force, runs=_runs_of(out_dir, name))
     if entry.path is not None:
         if not Path(entry.path).is_dir():
             what = "is a file, not a folder" if Path(entry.path).exists() else "does not exist"
@@ -147,6 +211,30 @@ def _move_point_reports(out_dir: Path, records: list, current: dict[str, dict]) 
              if (out_dir / "points" / f"{old}.json").is_file()}
     for new, text in texts.items():
         atomic_write_text(out_dir / "points" / f"{new}.json", text)
+
+
+BY_HASH = "by_hash"
+"""``points/by_hash/``: every point report by its settings' hash (module docstring)."""
+
+
+def _sync_point_reports(out_dir: Path, records: list) -> None:
+    """``points/{id}.json`` of every measured point of the summary ``records`` as its report by hash says (rewritten
+    where another setting's report under the same id replaced it, or gone); a report gone from both is named (a
+    sweep from before reports were kept by hash keeps its ``points/`` as it was)."""
+    gone = []
+    for r in records:
+        if r.status != "ok":
+            continue
+        src, dst = out_dir / "points" / BY_HASH / f"{r.hash}.json", out_dir / "points" / f"{r.id}.json"
+        if src.is_file():
+            text = src.read_text(encoding="utf-8")
+            if not dst.is_file() or dst.read_text(encoding="utf-8") != text:
+                atomic_write_text(dst, text)
+        elif not dst.is_file():
+            gone.append(r.id)
+    if gone:
+        console.print(f"[yellow]note:[/] the report of {_count(len(gone), 'point')} is gone ({', '.join(gone)}: "
+                      f"points/ID.json): its record in sweep.jsonl stands; --force measures every point again")
 
 
 def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str = "auto", scene: Path | None = None,
@@ -217,12 +305,14 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         else:
             scene_path = Path(scene) if scene is not None else spec.scene
             if scene_path is None:
-                scene_path = _synth(spec.synth, out_dir / "scene", force)
+                scene_path = _synth(spec.synth, out_dir / "scene", force, runs=_runs_of(out_dir, None))
             if not Path(scene_path).is_dir():
                 what = "is a file, not a folder" if Path(scene_path).exists() else "does not exist"
                 raise UserError(f"the sweep's scene folder {what}", path=scene_path,
                                 hint="Give --scene PATH or remove `scene` from the spec to use a synthetic scene.")
             folders = Path(scene_path)
+        measured = any(r.status == "ok" for r in read_records(out_dir / "sweep.jsonl"))
+        _check_scene_inputs(out_dir, folders if isinstance(folders, dict) else {None: folders}, force, measured)
         all_jobs = make_jobs(spec, out_dir, folders, str(dev), threads=None)
         hashes = {p["hash"] for j in all_jobs for p in j["points"]}  # this spec's points only
         current = {p["hash"]: p for j in all_jobs for p in j["points"]}  # (before the done ones leave the jobs)
@@ -272,6 +362,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                 r.setdefault("executor", executor)
                 report = r.pop("point_report", None)
                 if report is not None:
+                    atomic_write_text(out_dir / "points" / BY_HASH / f"{r['hash']}.json", report + "\n")
                     atomic_write_text(out_dir / "points" / f"{r['id']}.json", report + "\n")
             recs = [SweepRecord.model_validate(r) for r in dicts]  # a writer bug fails here, not in a later read
             # one write of whole lines from this process only: a crash leaves no half record (read_records skips a
@@ -323,6 +414,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                           "spec or --set): kept there, left out of this sweep's summary and plot")
         summary = summarize(whole, records)
         summary.write(out_dir / "sweep.json")
+        _sync_point_reports(out_dir, summary.records)
         if any(r.status == "ok" for r in summary.records):
             means = " (means over seeds)" if spec.seeds else ""
             plot_pareto(table_points(summary, whole), out_dir / "pareto.png", x=spec.pareto_x, ys=spec.pareto_y,

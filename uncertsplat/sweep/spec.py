@@ -270,6 +270,22 @@ def load_spec(path: Path, overrides: list[str] | None = None) -> SweepSpec:
         replaced |= dotted_keys(parsed)
         data = deep_update(data, parsed)
     where = KeyLines(path, replaced=replaced)
+    given = [k for k in ("scene", "scenes") if data.get(k)]
+    if given and "synth" in data and any(k in replaced or k.startswith(given[0] + ".") for k in replaced):
+        data.pop("synth")  # a scene set with --set replaces the file's synthetic one, as --scene does
+    elif given and "synth" in data:  # written in the file together: one would be left unused without a word
+        line = where.line("synth")
+        raise UserError(f"the spec gives both `{given[0]}` and `synth`" + (f" (line {line})" if line else "")
+                        + ": `synth` generates the scene when the spec names none, so it would not be used",
+                        path=path, hint=f"Remove `synth`, or `{given[0]}` to sweep the synthetic scene.")
+    empty = [f"axes.{k}" for k, v in (data.get("axes") or {}).items() if v == []]
+    empty += ["seeds"] if data.get("seeds") == [] else []
+    if empty:
+        from uncertsplat.console import console
+
+        console.print(f"[yellow]note:[/] {', '.join(empty)} = [] "
+                      + ("leave" if len(empty) > 1 else "leaves") + " the knob at its default, as leaving "
+                      + ("them" if len(empty) > 1 else "it") + " out does (seeds = []: the configs' own seed, once)")
     with naming_overrides(overrides):
         spec = build_config(SweepSpec, data, source=str(path), where=where)
         check_base_configs(spec, str(path), where)
@@ -290,8 +306,11 @@ def check_base_configs(spec: SweepSpec, source: str, lines: KeyLines | None = No
         own_preset = entry is not None and entry.train_preset is not None
         preset = entry.train_preset if own_preset else spec.train_preset
         if preset is not None and preset not in TRAIN_PRESETS:
-            raise UserError(f"invalid configuration in {source}: {where if own_preset else ''}train_preset: unknown "
-                            f"preset '{preset}' (presets: {', '.join(TRAIN_PRESETS)})")
+            key = f"{where if own_preset else ''}train_preset"
+            number = lines.line(key) if lines is not None else None
+            raise UserError(f"invalid configuration in {source}: {key}"
+                            + (f" (line {number})" if number is not None else "")
+                            + f": unknown preset '{preset}' (presets: {', '.join(TRAIN_PRESETS)})")
         for key, model in (("synth", SynthConfig), ("reconstruct", ReconstructConfig)):
             table = getattr(entry, key) if entry is not None else None
             if table:
