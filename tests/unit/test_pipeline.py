@@ -377,6 +377,36 @@ def test_a_stage_whose_output_is_gone_runs_again(tmp_path, calls, capsys):
     assert calls == []
 
 
+def test_an_output_made_again_by_hand_with_other_settings_runs_again(tmp_path, calls, capsys):
+    """`uncertsplat evaluate RUN --num-samples 4` on the pipeline's run replaced its evaluation, and the next `run`
+    skipped the stage as unchanged (its manifest said K = 10, metrics.json K = 4): the evaluation's and the run's
+    own record of their settings must be the stage's."""
+    from uncertsplat.provenance import hash_config
+
+    p = _write(tmp_path)
+    pl.run(p, tmp_path / "out")
+    metrics = tmp_path / "out" / "train" / "eval" / "metrics.json"
+    ran = json.loads((tmp_path / "out" / "train" / "eval" / "manifest.json").read_text())
+    metrics.write_text(json.dumps({"config_hash": ran["config_hash"]}))  # as the stage wrote it
+    calls.clear()
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    metrics.write_text(json.dumps({"config_hash": "another"}))
+    capsys.readouterr()
+    pl.run(p, tmp_path / "out")
+    said = " ".join(capsys.readouterr().err.split())
+    assert [k for k, _ in calls] == ["evaluate"] and "was made again since with other settings" in said, said
+    trained = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text())
+    (tmp_path / "out" / "train" / "config.json").write_text(json.dumps(trained["config"]))
+    assert hash_config(trained["config"]) == trained["config_hash"]
+    calls.clear()
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    (tmp_path / "out" / "train" / "config.json").write_text(json.dumps({**trained["config"], "iterations": 99}))
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls] == ["train", "evaluate"]
+
+
 def test_a_damaged_manifest_is_named_before_its_stage_runs_again(tmp_path, calls, capsys):
     p = _write(tmp_path)
     pl.run(p, tmp_path / "out")

@@ -382,13 +382,17 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                               f"version), so '{name}' runs again; its present output is kept under {root / '.previous'}")
             same_inputs = old is not None and old.input_hashes in (new.input_hashes,
                                                                    *({**new.input_hashes, **e} for e in earlier))
-            gone = missing_outputs(out_dir, old) if old is not None and old.status == "done" else []
-            if gone and not force and old.config_hash == new.config_hash and same_inputs:
-                console.print(f"[yellow]note:[/] {name}'s output {gone[0]}" + (f" (and {len(gone) - 1} more file(s))"
-                                                                               if len(gone) > 1 else "")
-                              + f" is gone from {out_dir}: it runs again")
+            changed = None
+            if old is not None and old.status == "done" and not force and old.config_hash == new.config_hash \
+                    and same_inputs:
+                gone = missing_outputs(out_dir, old)
+                changed = (f"{name}'s output {gone[0]}" + (f" (and {len(gone) - 1} more file(s))" if len(gone) > 1
+                                                          else "") + f" is gone from {out_dir}" if gone
+                           else _made_again(stage.stage, out_dir, old))
+                if changed:
+                    console.print(f"[yellow]note:[/] {changed}: it runs again")
             if (not force and old is not None and old.status == "done" and old.config_hash == new.config_hash
-                    and same_inputs and not gone):
+                    and same_inputs and not changed):
                 console.print(f"[green]skip[/] {name}: unchanged since its last run ({out_dir})")
                 outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, old
                 previous = name
@@ -444,6 +448,27 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
         for r in reports:
             console.print(f"report: {r / 'index.html'}")
         return outputs
+
+
+def _made_again(kind: str, out_dir: Path, manifest: Manifest) -> str | None:
+    """Why the output in ``out_dir`` is no longer the one the finished stage of ``manifest`` made, or None: the run's
+    ``config.json`` (train) or the evaluation's ``metrics.json`` (evaluate) records other settings than the stage
+    ran with (an `evaluate --num-samples 4` of the pipeline's run, a `train --resume --iterations`)."""
+    from uncertsplat.provenance import hash_config
+
+    file, key = {"train": ("config.json", None), "evaluate": ("metrics.json", "config_hash")}.get(kind, (None, None))
+    if file is None or not (out_dir / file).is_file():
+        return None
+    try:
+        data = json.loads((out_dir / file).read_text(encoding="utf-8"))
+        found = hash_config(data) if key is None else data.get(key)
+    except (OSError, ValueError):
+        return f"{out_dir / file} cannot be read"
+    if not found or found == manifest.config_hash:  # (an evaluation from before it recorded its hash: taken as made)
+        return None
+    what = "run" if kind == "train" else "evaluation"
+    return (f"the {what} in {out_dir} was made again since with other settings than this stage's ({file}; e.g. "
+            f"`uncertsplat {kind}` run on it by hand)")
 
 
 def _finish(out_dir: Path, manifest: Manifest, status: str, t0: float, error: str | None = None) -> None:
