@@ -294,8 +294,31 @@ def test_without_a_compiler_it_warns_once_and_uses_pytorch(monkeypatch):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # the second render does not warn again
         render(s, cams)
-    with pytest.raises(RuntimeError, match="native kernels are unavailable: no C\\+\\+ compiler"):
+    with pytest.raises(UserError, match="native kernels are unavailable: no C\\+\\+ compiler") as err:
         render(s, cams, backend="native")
+    assert "unset UNCERTSPLAT_RASTERIZER" in err.value.hint
+
+
+def test_native_asked_for_without_a_compiler_is_refused_before_any_work(monkeypatch, tmp_path, capsys):
+    """UNCERTSPLAT_RASTERIZER=native without a compiler warned of a fallback to PyTorch, then failed with a
+    traceback at the first kernel call, a half-made run folder left: refused at once, as one message, no fallback
+    warning; a CXX that is not found is said, not passed over."""
+    from uncertsplat.config import train_config_from
+    from uncertsplat.train.session import train_model
+
+    monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "native")
+    monkeypatch.setattr(native, "_state", {})
+    monkeypatch.setattr(native, "_compiler", lambda: None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no "using the PyTorch implementations" warning: it would not
+        with pytest.raises(UserError, match="UNCERTSPLAT_RASTERIZER=native, but the native kernels are unavailable"):
+            train_model(tmp_path / "scene", tmp_path / "run", train_config_from("tiny"), torch.device("cpu"))
+    assert not (tmp_path / "run").exists()
+    monkeypatch.undo()
+    monkeypatch.setenv("CXX", str(tmp_path / "no-such-c++"))
+    capsys.readouterr()
+    assert native._compiler() is not None  # (this machine has c++)
+    assert f"CXX={tmp_path / 'no-such-c++'} is not a compiler found on the PATH" in capsys.readouterr().err
 
 
 def test_an_unwritable_cache_folder_means_pytorch_kernels_not_a_crash(monkeypatch, tmp_path):

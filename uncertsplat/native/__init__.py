@@ -82,8 +82,16 @@ def _cpu_signature() -> str:
 
 
 def _compiler() -> str | None:
-    for name in (os.environ.get("CXX"), "c++", "g++", "clang++"):
-        if name and shutil.which(name):
+    """``$CXX``, else the first of c++, g++ and clang++ on the PATH; a ``$CXX`` that is not found is said (it was
+    passed over without a word, the kernels built with another compiler)."""
+    given = os.environ.get("CXX", "").strip()
+    if given and shutil.which(given):
+        return shutil.which(given)
+    for name in ("c++", "g++", "clang++"):
+        if shutil.which(name):
+            if given:
+                print(f"warning: CXX={given} is not a compiler found on the PATH; building with {shutil.which(name)}",
+                      file=sys.stderr, flush=True)
             return shutil.which(name)
     return None
 
@@ -254,7 +262,7 @@ def library() -> ctypes.CDLL | None:
                     reason, lib = f"{target} has interface version {lib.us_version()}, not {INTERFACE_VERSION}", None
             except (OSError, AttributeError) as err:
                 reason, lib = f"could not load {target}: {err}", None
-    if lib is None:
+    if lib is None and requested_backend() != "native":  # (native: the caller's error says it, not a fallback)
         warnings.warn(f"native CPU kernels unavailable, using the PyTorch implementations (slower): {reason}", stacklevel=2)
     _state["lib"], _state["reason"] = lib, reason
     return lib
@@ -303,9 +311,26 @@ def use_for(*tensors: torch.Tensor, backend: str | None = None, supported: bool 
         return False
     if library() is None:
         if backend == "native":
-            raise RuntimeError(f"the native kernels are unavailable: {unavailable_reason()}")
+            raise native_unavailable()
         return False
     return True
+
+
+def native_unavailable():
+    """The ``UserError`` of ``UNCERTSPLAT_RASTERIZER=native`` where the kernels cannot be built or loaded."""
+    from uncertsplat.errors import UserError
+
+    return UserError(f"UNCERTSPLAT_RASTERIZER=native, but the native kernels are unavailable: {unavailable_reason()}",
+                     hint="Install a C++ compiler (g++, or set CXX to one), or unset UNCERTSPLAT_RASTERIZER to take the "
+                          "PyTorch kernels (much slower on a CPU: README, \"Speed on a CPU\").")
+
+
+def require_requested(device: torch.device | str) -> None:
+    """Refuse ``UNCERTSPLAT_RASTERIZER=native`` on a CPU where the kernels are unavailable, before any work (a
+    command's first kernel call raised it after the run folder was made); builds them if needed. Also refuses a
+    bad value of the variable (``requested_backend``)."""
+    if requested_backend() == "native" and torch.device(device).type == "cpu" and library() is None:
+        raise native_unavailable()
 
 
 def kernel_threads() -> int:

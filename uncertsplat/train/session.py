@@ -299,7 +299,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
 
     scene, run_dir = Path(scene), Path(run_dir)
     device = torch.device(device)
-    native.requested_backend()  # a bad UNCERTSPLAT_RASTERIZER is refused before the run folder is made
+    # a bad UNCERTSPLAT_RASTERIZER, or =native without the kernels, is refused before the run folder is made
+    native.require_requested(device)
     exists = run_dir.exists() and (not run_dir.is_dir() or any(p.name != ".lock" for p in run_dir.iterdir()))
     if exists and not resume and (run_dir / "config.json").is_file() and _never_trained(run_dir):
         # a start that failed before its first step (e.g. a photo it could not read): nothing to keep. Under the
