@@ -351,8 +351,18 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
                         torch.device("cpu"))
     recorded = {tag: RunScene.read(r / "scene.json") for tag, r in others.items()}
 
-    with pytest.raises(UserError, match="no new photo"):
+    with pytest.raises(UserError, match="no new photo") as err:
         stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
+    assert "not the ones the workspace was made from" not in str(err.value)
+    # a photo edited since, none added: said with the first refusal (only after a whole extension before)
+    first = sorted(photos.iterdir())[0]
+    kept = first.read_bytes()
+    edited = read_rgb(first).copy()
+    edited[0, 0] ^= 1
+    write_rgb(first, edited)
+    with pytest.raises(UserError, match="not the ones the workspace was made from .a photo edited or replaced"):
+        stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
+    first.write_bytes(kept)
     with pytest.raises(UserError, match="needs a finished workspace"):
         stage.run(photos, tmp_path / "nowhere", CFG.model_copy(update={"extend": True}))
     with pytest.raises(ValueError, match="exclude each other"):

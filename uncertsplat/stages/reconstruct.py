@@ -520,10 +520,17 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
     new = [n for n in scan.names if n not in found_before]
     if not new:
         left = sorted(set(scan.ignored) - set(existing.ignored))
+        # the same photos, other contents: a photo edited or replaced since (said only after a whole extension before)
+        edited = existing.inputs_fingerprint not in ("", scan.fingerprint(), scan.legacy_fingerprint())
         raise UserError(f"no new photo in {photos}: the workspace holds every one of its {len(scan.names)} photos"
                         + (f" (left out: {list_names(left)}, copies of a photo or sharing its name: the notes above)"
-                           if left else ""),
-                        path=photos, hint="Put the new photos into the folder beside the others and run this again.")
+                           if left else "")
+                        + ("; and the folder's photos are not the ones the workspace was made from (a photo edited "
+                           "or replaced since: --extend keeps the cameras and images already there, so it would be "
+                           "refused with new photos too)" if edited else ""),
+                        path=photos, hint="Put back the photos the workspace was made from, or reconstruct the folder "
+                                          "into a new workspace (and train a new run on it)." if edited else
+                        "Put the new photos into the folder beside the others and run this again.")
     console.print(f"[bold]reconstruct --extend[/] {workspace}: {len(new)} new photo(s) ({list_names(new)}) into its "
                   f"{len(existing.images_registered)} registered ones, their cameras fixed; the workspace's options")
     stage_dir = workspace / EXTEND_DIR
