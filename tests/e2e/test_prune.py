@@ -72,6 +72,8 @@ def test_writes_a_valid_pruned_run(pruned, tiny_run_path):  # noqa: F811
     assert {"score_position", "score_scale", "score_gate", f"score_{DEFAULT_SCORE}".replace("-", "_"), "x",
             "opacity"} <= props
     assert all(p.isidentifier() for p in props)  # score_free_space, not score_free-space
+    degree = loaded.sh_degree  # the pruned point cloud keeps the bands the source renders with, as train's
+    assert sum(p.startswith("f_rest_") for p in props) == 3 * ((degree + 1) ** 2 - 1)
     scores = np.load(out / "scores.npz")
     s = scores[result.score]
     removed = np.setdiff1d(np.arange(n), kept)

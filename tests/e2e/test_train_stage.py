@@ -38,6 +38,12 @@ def test_outputs_and_psnr_gain(trained):
     initial = lines[0]["eval_psnr"]
     summary = json.loads((run / "train_summary.json").read_text())
     assert summary["steps"] == 80 and summary["num_carriers"] > 0
+    # the point cloud holds the SH bands the run renders with (80 steps: degree 0, while the model stores 3)
+    from plyfile import PlyData
+
+    rest = [p.name for p in PlyData.read(str(run / "point_cloud.ply"))["vertex"].properties
+            if p.name.startswith("f_rest_")]
+    assert len(rest) == 3 * ((summary["sh_degree_active"] + 1) ** 2 - 1), (len(rest), summary["sh_degree_active"])
     assert summary["test_psnr"] > initial + 2.0, (initial, summary["test_psnr"])
     # the fit of its own photos is recorded, and above the held-out views' (those it never saw)
     assert summary["train_psnr"] > summary["test_psnr"], (summary["train_psnr"], summary["test_psnr"])

@@ -83,6 +83,19 @@ def test_point_cloud_ply_standard_layout(tmp_path):
     assert ((off >= 0) & (off <= 1)).all() and (off[~has] == 0).all() and off[has].std() > 0
 
 
+@pytest.mark.parametrize("degree", [0, 1, 2])
+def test_point_cloud_ply_holds_the_bands_the_model_renders_with(tmp_path, degree):
+    """A run shorter than the first SH band test stores degree 3 while rendering with degree 0: its point cloud had
+    45 all-zero f_rest columns (a viewer read degree 3; INRIA's load_ply, given the run's degree 0, asserted)."""
+    m = random_model(20, torch.Generator().manual_seed(2), sh_degree=3)
+    v = PlyData.read(str(write_point_cloud_ply(tmp_path / "p.ply", m, sh_degree=degree)))["vertex"]
+    rest = sorted(int(p.name.removeprefix("f_rest_")) for p in v.properties if p.name.startswith("f_rest_"))
+    bands = (degree + 1) ** 2 - 1
+    assert rest == list(range(3 * bands))
+    if bands:  # channel-major over the kept bands: f_rest_{bands} is the first green coefficient
+        np.testing.assert_allclose(v[f"f_rest_{bands}"], m.params["shN"].detach()[:, 0, 1].numpy())
+
+
 def test_reading_a_point_cloud_as_variational_fails_clearly(tmp_path):
     m = random_model(5, torch.Generator().manual_seed(3))
     path = write_point_cloud_ply(tmp_path / "point_cloud.ply", m)

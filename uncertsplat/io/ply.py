@@ -74,17 +74,23 @@ def _write(path: Path, elements: list[PlyElement], comments: list[str]) -> Path:
 
 
 def write_point_cloud_ply(path: str | Path, model: GaussianModel, *, variant: str = "ours", extent: float = 1.0,
-                          temperature: float = 0.2) -> Path:
+                          temperature: float = 0.2, sh_degree: int | None = None) -> Path:
     """Viewer-compatible PLY of the posterior mean with extra per-Gaussian uncertainty properties.
 
     Not the expected render (``variational.expected_render_sample``): its position blur needs a per-view
-    opacity correction that a standard viewer cannot apply.
+    opacity correction that a standard viewer cannot apply. ``sh_degree``: the SH degree the model renders with
+    (the run's active one; None: every band it stores): the ``f_rest_*`` of the bands above it are left out (a run
+    shorter than the first band test stores degree 3 whose higher bands are all 0: 45 zero columns a viewer read as
+    degree 3).
     """
     with torch.no_grad():
         pm = posterior_mean(model, variant=variant, extent=extent, temperature=temperature)
         op = pm.opacities.clamp(1e-7, 1 - 1e-7)
+        shN = model.params["shN"]  # [N,B-1,3]
+        if sh_degree is not None:
+            shN = shN[:, : (int(sh_degree) + 1) ** 2 - 1]
         cols = _standard_fields(pm.means, pm.scales.clamp_min(1e-30).log(), pm.quats, torch.log(op / (1 - op)),
-                                model.params["sh0"], model.params["shN"])
+                                model.params["sh0"], shN)
         unc = carrier_uncertainty(model, variant=variant, extent=extent)
     for k in ("position", "scale", "gate", "switch_off"):
         cols[f"uncertainty_{k}"] = unc[k].cpu().float().numpy()

@@ -179,7 +179,8 @@ class _Measure:
         with tempfile.TemporaryDirectory(prefix="uncertsplat-prune-") as tmp:
             v = write_variational_ply(Path(tmp) / "variational.ply", model, meta=self.meta)
             p = write_point_cloud_ply(Path(tmp) / "point_cloud.ply", model, variant=self.meta["variant"],
-                                      extent=self.loaded.extent, temperature=self.meta["temperature"])
+                                      extent=self.loaded.extent, temperature=self.meta["temperature"],
+                                      sh_degree=self.meta["sh_degree_active"])
             return {"variational_ply_bytes": v.stat().st_size, "point_cloud_ply_bytes": p.stat().st_size}
 
     def __call__(self, model, keep: torch.Tensor | None = None, full: bool = True) -> PruneMetrics:
@@ -602,7 +603,7 @@ def _write_model(folder: Path, run_dir: Path, loaded, meta: dict, pruned, keep: 
             atomic_write_bytes(folder / name, (run_dir / name).read_bytes())
     write_variational_ply(folder / "variational.ply", pruned, meta=meta)
     write_point_cloud_ply(folder / "point_cloud.ply", pruned, variant=meta["variant"],
-                          extent=loaded.extent, temperature=meta["temperature"])
+                          extent=loaded.extent, temperature=meta["temperature"], sh_degree=meta.get("sh_degree_active"))
     kept = keep.to(carriers.device)
     # names a program can take for identifiers: score_free_space, not score_free-space
     set_vertex_properties(folder / "point_cloud.ply",

@@ -542,7 +542,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         meta = {"variant": cfg.variant, "extent": trainer.extent, "step": trainer.step,
                 "sh_degree_active": trainer.sh_degree, "temperature": cfg.variational.gate_temperature}
         write_point_cloud_ply(run_dir / "point_cloud.ply", trainer.model, variant=cfg.variant, extent=trainer.extent,
-                              temperature=cfg.variational.gate_temperature)
+                              temperature=cfg.variational.gate_temperature, sh_degree=trainer.sh_degree)
         write_variational_ply(run_dir / "variational.ply", trainer.model, meta=meta)
         exposure = trainer.exposure_record(names)
         if exposure is not None:
