@@ -240,7 +240,7 @@ class TestAddViewsErrors:
         assert [v.step for v in RunScene.read(run / "scene.json").views_added] == [20]
         assert "resuming from step 20, before view_002.png were added" in " ".join(capsys.readouterr().err.split())
 
-    def test_held_out_or_trained_views_are_refused(self, tiny_scene_path, subset_run, tmp_path):
+    def test_held_out_or_trained_views_are_refused(self, tiny_scene_path, subset_run, tmp_path, capsys):
         run = tmp_path / "run"
         shutil.copytree(subset_run, run)
         held = RunScene.read(run / "scene.json").test[0]
@@ -248,9 +248,12 @@ class TestAddViewsErrors:
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=[held])
         with pytest.raises(UserError, match="already a training view"):
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=[START[0]])
+        capsys.readouterr()
         with pytest.raises(UserError, match="--add-views nope.png: no photo of that name in the scene") as err:
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["nope.png"])
         assert "a pose that select-views proposed needs a photo taken there first" in str(err.value)
+        said = capsys.readouterr().err  # nothing said of a resume that is refused (it warned, then refused)
+        assert "resuming from" not in said and "none are grown" not in said, said
         assert "did you mean" not in str(err.value)
         # a near miss names the photo (another case, a path before it)
         for near in ("VIEW_002.PNG", "scene/images/view_002.png"):

@@ -329,6 +329,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
 
     with run_lock(run_dir, "train"):
         state = None
+        later: list[str] = []  # what the resume says once the scene and the added views are checked
         if resume:
             remove_stale_temp_files(run_dir, run_dir / "ckpts")  # left by a killed process; we hold the lock
             stored = read_json(run_dir / "config.json")
@@ -362,7 +363,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             if add_views and found is not None and not densify_steps_after(int(found[1]["step"]), cfg.densify,
                                                                            last_step=cfg.iterations):
                 # the new views' surfaces get no Gaussians of their own: existing ones move and change colour only
-                console.print(f"[yellow]note:[/] no densification step is left after the checkpoint's step "
+                # (said once the views are known to be the scene's: an unknown name is refused below)
+                later.append(f"[yellow]note:[/] no densification step is left after the checkpoint's step "
                               f"{int(found[1]['step'])} (every {cfg.densify.interval} steps before densify.until = "
                               f"{cfg.densify.until}, and the run ends at {cfg.iterations}): the added view(s) are "
                               "fitted with the Gaussians the model has, none are grown for them, so what only they "
@@ -392,7 +394,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 return run_dir
             else:
                 path, state = found
-                console.print(f"resuming from {path} (step {state['step']})")
+                later.insert(0, f"resuming from {path} (step {state['step']})")
                 _truncate_stats(run_dir / "stats.jsonl", int(state["step"]))
 
         before = RunScene.read_optional(run_dir / RunScene.FILE_NAME) if resume else None
@@ -467,6 +469,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                                                    "by name), or train a new run.")
             if add_views:
                 _refuse_twins_of_held_out(data, add_views, run_dir)
+        for line in later:
+            console.print(line)
         views_added = list(before.views_added) if before is not None else []
         if state is not None and not add_views and any(v.step > int(state["step"]) for v in views_added):
             # resumed from a checkpoint before views were added (later ones gone): they train from here on
