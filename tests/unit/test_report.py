@@ -597,9 +597,13 @@ def test_cli_report(tmp_path):
     from uncertsplat.cli import app
 
     run = make_run(tmp_path, "r", maps=False, stats=False)
-    res = CliRunner().invoke(app, ["report", str(run), "-o", str(tmp_path / "out")])
+    res = CliRunner().invoke(app, ["report", str(run), "-o", str(tmp_path / "out"), "--set", "title=Mine"])
     assert res.exit_code == 0, res.output
     assert (tmp_path / "out" / "index.html").is_file()
+    # its config beside it, as every stage's (the README said so; nothing recorded it)
+    assert json.loads((tmp_path / "out" / "report_config.json").read_text()) == {"title": "Mine", "max_views": 6}
+    res = CliRunner().invoke(app, ["report", str(run), "-o", str(tmp_path / "out")])  # a report's folder: replaced
+    assert res.exit_code == 0, res.output
     res = CliRunner().invoke(app, ["report", str(tmp_path / "missing"), "-o", str(tmp_path / "o2")])
     assert res.exit_code == 2
     assert "missing" in res.output

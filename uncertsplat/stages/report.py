@@ -23,6 +23,8 @@ from uncertsplat.stages.evaluate import evaluation_is_current
 
 INDEX = "index.html"
 FIGURES = "figures"
+CONFIG = "report_config.json"
+"""``OUT/CONFIG``: the ``ReportConfig`` the page was written with (title, max_views)."""
 MARKER = ".uncertsplat-report.json"
 """``OUT/MARKER``: the figures (``figures/NAME``) this command wrote into the folder, kept up to date before each one is
 written. It is how a folder a report stopped in before its page (no index.html yet) is told from someone's folder, and
@@ -62,7 +64,7 @@ def _unfinished_report(out: Path) -> bool:
     fig_dir = out / FIGURES
     # besides those two, only the temp files of an atomic write cut short (".NAME.xxxx.tmp.EXT")
     return ((out / MARKER).is_file() and (not fig_dir.exists() or fig_dir.is_dir())
-            and all(p in (fig_dir, out / MARKER) or (p.name.startswith(".") and ".tmp" in p.name)
+            and all(p in (fig_dir, out / MARKER, out / CONFIG) or (p.name.startswith(".") and ".tmp" in p.name)
                     for p in out.iterdir()))
 
 
@@ -137,6 +139,7 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
     index = atomic_write_text(out / INDEX, text)
     _remove_stale_figures(out, earlier | listed, figures)
     atomic_write_json(out / MARKER, {"figures": sorted(Path(f).name for f in figures)})
+    atomic_write_json(out / CONFIG, cfg.model_dump(mode="json"))  # as every stage writes its config beside its outputs
     for r in loaded:
         for n in r.notes:
             console.print(f"[yellow]note[/] {r.name}: {n}")
