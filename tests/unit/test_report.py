@@ -591,6 +591,21 @@ def test_output_folder_rules(tmp_path):
         stage.run([run], busy, ReportConfig())
 
 
+def test_a_run_whose_training_stopped_says_so_with_the_command_that_finishes_it(tmp_path):
+    """A run stopped at step 75 of 100 showed n/a and sent the reader to `evaluate`; a finished one says nothing."""
+    from uncertsplat.report.loader import load_run
+
+    run = make_run(tmp_path, "r", maps=False, stats=False)
+    (run / "ckpts").mkdir()
+    (run / "ckpts" / "step_000100.pt").write_bytes(b"")
+    assert not any("not finished" in n for n in load_run(run).notes)
+    (run / "ckpts" / "step_000100.pt").unlink()
+    (run / "ckpts" / "step_000075.pt").write_bytes(b"")
+    (run / "train_summary.json").unlink(missing_ok=True)
+    notes = " ".join(load_run(run).notes)
+    assert "training is not finished: its newest checkpoint is step 75 of 100" in notes and "--resume" in notes
+
+
 def test_cli_report(tmp_path):
     from typer.testing import CliRunner
 

@@ -222,12 +222,36 @@ def load_run(path: str | Path, name: str | None = None) -> RunData:
     run.scene_info = _read(run, SCENE, lambda: RunScene.read_optional(path / SCENE))
     run.prune = _read(run, PRUNE, lambda: PruneReport.read_optional(path / PRUNE))
     run.metrics = _read(run, METRICS, lambda: EvalReport.read_optional(path / METRICS))
+    run.notes.extend(_training_notes(run))
     scene = run.scene_path
     if scene is not None:
         rp = scene / RECONSTRUCT
         run.reconstruct = _read(run, RECONSTRUCT, lambda: ReconstructReport.read_optional(rp))
         run.reconstruct_path = rp if run.reconstruct is not None else None
     return run
+
+
+def _training_notes(run: RunData) -> list[str]:
+    """What the page says of a training that is not finished: a process training the run now, or a run stopped
+    before its last step (no train_summary.json past its newest checkpoint), with the command that finishes it
+    (the page showed n/a and sent the reader to `evaluate`)."""
+    from uncertsplat.io.atomic import lock_holder
+    from uncertsplat.io.checkpoints import list_checkpoints
+
+    notes = []
+    holder = lock_holder(run.path)
+    if holder is not None:
+        notes.append(f"another process ({holder}) is writing this run now: the page shows it as it was when read")
+    found = list_checkpoints(run.path)
+    if run.config is None or not found:
+        return notes
+    step, total = found[-1][0], run.config.iterations
+    summary_steps = run.train_summary.steps if run.train_summary is not None else None
+    if step < total and (summary_steps is None or summary_steps < step):
+        scene = run.scene_path if run.scene_path is not None else "SCENE"
+        notes.append(f"training is not finished: its newest checkpoint is step {step} of {total} (`uncertsplat train "
+                     f"{scene} -o {run.path} --resume` finishes it; `evaluate` then scores the finished model)")
+    return notes
 
 
 # --------------------------------------------------------------------------------------------- helpers
