@@ -381,24 +381,24 @@ def test_an_output_made_again_by_hand_with_other_settings_runs_again(tmp_path, c
     """`uncertsplat evaluate RUN --num-samples 4` on the pipeline's run replaced its evaluation, and the next `run`
     skipped the stage as unchanged (its manifest said K = 10, metrics.json K = 4): the evaluation's and the run's
     own record of their settings must be the stage's."""
-    from uncertsplat.provenance import hash_config
-
     p = _write(tmp_path)
     pl.run(p, tmp_path / "out")
-    metrics = tmp_path / "out" / "train" / "eval" / "metrics.json"
-    ran = json.loads((tmp_path / "out" / "train" / "eval" / "manifest.json").read_text())
-    metrics.write_text(json.dumps({"config_hash": ran["config_hash"]}))  # as the stage wrote it
+    used = tmp_path / "out" / "train" / "eval" / "config.json"
+    ran = json.loads((tmp_path / "out" / "train" / "eval" / "manifest.json").read_text())["config"]
+    used.write_text(json.dumps(ran))  # as the stage wrote it
     calls.clear()
     pl.run(p, tmp_path / "out")
     assert calls == []
-    metrics.write_text(json.dumps({"config_hash": "another"}))
+    used.write_text(json.dumps({**ran, "preview": not ran["preview"]}))  # what it writes, not what it measures
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    used.write_text(json.dumps({**ran, "num_samples": 4}))
     capsys.readouterr()
     pl.run(p, tmp_path / "out")
     said = " ".join(capsys.readouterr().err.split())
     assert [k for k, _ in calls] == ["evaluate"] and "was made again since with other settings" in said, said
     trained = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text())
     (tmp_path / "out" / "train" / "config.json").write_text(json.dumps(trained["config"]))
-    assert hash_config(trained["config"]) == trained["config_hash"]
     calls.clear()
     pl.run(p, tmp_path / "out")
     assert calls == []

@@ -452,23 +452,26 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
 
 def _made_again(kind: str, out_dir: Path, manifest: Manifest) -> str | None:
     """Why the output in ``out_dir`` is no longer the one the finished stage of ``manifest`` made, or None: the run's
-    ``config.json`` (train) or the evaluation's ``metrics.json`` (evaluate) records other settings than the stage
-    ran with (an `evaluate --num-samples 4` of the pipeline's run, a `train --resume --iterations`)."""
-    from uncertsplat.provenance import hash_config
+    ``config.json`` (train) or the evaluation's ``config.json`` (evaluate; but for the settings that change only what
+    it writes, ``OUTPUT_SETTINGS``) records other settings than the stage ran with (an `evaluate --num-samples 4` of
+    the pipeline's run, a `train --resume --iterations`)."""
+    from uncertsplat.stages.evaluate import OUTPUT_SETTINGS
 
-    file, key = {"train": ("config.json", None), "evaluate": ("metrics.json", "config_hash")}.get(kind, (None, None))
-    if file is None or not (out_dir / file).is_file():
+    if kind not in ("train", "evaluate") or not (out_dir / "config.json").is_file():
         return None
+    ignore = set(OUTPUT_SETTINGS) if kind == "evaluate" else set()
     try:
-        data = json.loads((out_dir / file).read_text(encoding="utf-8"))
-        found = hash_config(data) if key is None else data.get(key)
+        found = json.loads((out_dir / "config.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
-        return f"{out_dir / file} cannot be read"
-    if not found or found == manifest.config_hash:  # (an evaluation from before it recorded its hash: taken as made)
+        return f"{out_dir / 'config.json'} cannot be read"
+    if not isinstance(found, dict):
+        return f"{out_dir / 'config.json'} is not a config"
+    if {k: v for k, v in found.items() if k not in ignore} == {k: v for k, v in manifest.config.items()
+                                                                 if k not in ignore}:
         return None
     what = "run" if kind == "train" else "evaluation"
-    return (f"the {what} in {out_dir} was made again since with other settings than this stage's ({file}; e.g. "
-            f"`uncertsplat {kind}` run on it by hand)")
+    return (f"the {what} in {out_dir} was made again since with other settings than this stage's (its config.json; "
+            f"e.g. `uncertsplat {kind}` run on it by hand)")
 
 
 def _finish(out_dir: Path, manifest: Manifest, status: str, t0: float, error: str | None = None) -> None:
