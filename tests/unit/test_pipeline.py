@@ -351,6 +351,28 @@ def test_notes_and_leftovers_beside_the_photos_are_not_inputs(tmp_path, calls):
     (photos / "sub" / "3.jpg").write_bytes(b"a photo in a subfolder")
     pl.run(p, tmp_path / "out")
     assert [k for k, _ in calls] == ["reconstruct", "train"]
+    # the pipeline's output inside its photo folder is not an input (its own files changed it with every call)
+    calls.clear()
+    pl.run(p, photos / "out")
+    pl.run(p, photos / "out")
+    assert [k for k, _ in calls] == ["reconstruct", "train"]
+
+
+def test_a_nested_stage_s_files_are_not_its_parent_s_outputs(tmp_path):
+    """prune writes its evaluation into prune/eval; an evaluate stage after it then owns that folder (its manifest)
+    and may write other files there: they are not prune's outputs gone (prune and the evaluation ran again on every
+    call)."""
+    from uncertsplat.stages.manifest import missing_outputs
+
+    (tmp_path / "eval").mkdir()
+    (tmp_path / "a.txt").write_text("")
+    m = pl.Manifest(stage="prune", name="prune", config_hash="c", input_hashes={}, config={}, status="done",
+                    started_at=0.0, outputs=["a.txt", "eval/maps/v.exr", "eval/metrics.json"])
+    assert missing_outputs(tmp_path, m) == ["eval/maps/v.exr", "eval/metrics.json"]
+    (tmp_path / "eval" / "manifest.json").write_text("{}")
+    assert missing_outputs(tmp_path, m) == []
+    (tmp_path / "a.txt").unlink()
+    assert missing_outputs(tmp_path, m) == ["a.txt"]
 
 
 def test_a_stage_whose_output_is_gone_runs_again(tmp_path, calls, capsys):

@@ -268,6 +268,10 @@ def test_empty_axes_and_seeds_are_said_and_a_scene_set_on_the_command_line_repla
     assert "axes.iterations, seeds = [] leave the knob at its default" in said, said
     assert spec.seeds == [] and spec.axes.iterations == []
     assert load_spec(f, [f"scene={tmp_path}"]).scene == tmp_path
+    both = tmp_path / "both.toml"
+    both.write_text(f'train_preset = "tiny"\nscene = "{tmp_path}"\nsynth = {{ preset = "tiny" }}\n')
+    with pytest.raises(UserError, match="gives both `scene` and `synth`"):  # another --set does not let it through
+        load_spec(both, ["default.iterations=60"])
 
 
 # ------------------------------------------------------------------------------------------ scenes and seeds
@@ -637,6 +641,11 @@ def test_a_scene_folder_that_changed_is_refused_or_trained_again(tmp_path, monke
     assert "trained on the scene before it changed" in " ".join(capsys.readouterr().err.split())
     sweep.run(f, out, device="cpu", scene=scene, jobs=1)  # the edited scene is now the sweep's
     assert len(measured) == 2
+    # the sweep's output inside its scene folder is not part of the scene (its runs and records changed it each time)
+    inner = scene / "sweep"
+    sweep.run(f, inner, device="cpu", scene=scene, jobs=1)
+    sweep.run(f, inner, device="cpu", scene=scene, jobs=1)
+    assert len(measured) == 3
 
 
 def test_point_reports_follow_their_points_to_new_ids(tmp_path):

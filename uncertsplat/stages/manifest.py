@@ -39,17 +39,22 @@ def _read_by_stages(rel: Path) -> bool:
     return not (len(rel.parts) == 1 and any(rel.match(pattern) for pattern in _NOT_READ_AT_TOP))
 
 
-def fingerprints(folder: Path, max_files: int = 100_000) -> tuple[str, str, str]:
+def fingerprints(folder: Path, max_files: int = 100_000, skip: Path | None = None) -> tuple[str, str, str]:
     """(``fingerprint_folder``, the same over every file (what manifests written before 2026-11-30 hold), the
     names, sizes and mtimes of every file (before 2026-11-29)) of ``folder`` in one pass: the pipeline takes an input
-    as unchanged when a stage's manifest holds any of them."""
+    as unchanged when a stage's manifest holds any of them. ``skip``: a folder inside ``folder`` left out (the
+    command's own output folder, written there: it would change the input with every call)."""
     folder = Path(folder)
     if not folder.exists():
         return "missing", "missing", "missing"
+    skip = Path(skip).resolve() if skip is not None else None
+    inside = skip is not None and folder.resolve() in skip.parents
     read, every, legacy = hashlib.sha256(), hashlib.sha256(), hashlib.sha256()
     for i, p in enumerate(sorted(folder.rglob("*"))):
         if i >= max_files:
             break
+        if inside and (p.resolve() == skip or skip in p.resolve().parents):
+            continue
         if p.is_file():
             rel = p.relative_to(folder)
             st = p.stat()
@@ -65,12 +70,12 @@ def fingerprints(folder: Path, max_files: int = 100_000) -> tuple[str, str, str]
     return read.hexdigest()[:16], every.hexdigest()[:16], legacy.hexdigest()[:16]
 
 
-def fingerprint_folder(folder: Path, max_files: int = 100_000) -> str:
+def fingerprint_folder(folder: Path, max_files: int = 100_000, skip: Path | None = None) -> str:
     """Hash of the relative names and contents of the files under ``folder`` that a stage may read
     (``_read_by_stages``: not a note beside the photos, an editor's backup or a hidden file, each of which retrained
     a pipeline): a copy that did not keep the modification times (``cp -r``, a sync, a restore) is the same input
     (sha256 reads 0.9-2 GB/s: a second or two for a phone capture of 300 photos)."""
-    return fingerprints(folder, max_files)[0]
+    return fingerprints(folder, max_files, skip)[0]
 
 
 _NOT_OUTPUTS = ("ckpts/*", "predictive.pt", "residual.pt", MANIFEST)
@@ -102,8 +107,14 @@ def stage_outputs(folder: Path, max_files: int = 10_000) -> list[str]:
 
 
 def missing_outputs(folder: Path, manifest: Manifest) -> list[str]:
-    """The files of ``manifest.outputs`` no longer in ``folder`` (none for a manifest that recorded none)."""
-    return [name for name in manifest.outputs if not (Path(folder) / name).is_file()]
+    """The files of ``manifest.outputs`` no longer in ``folder`` (none for a manifest that recorded none), but for
+    those under a subfolder another stage now owns (its own manifest: prune's ``eval/``, evaluated again by an
+    evaluate stage after it, which may write other files there)."""
+    folder = Path(folder)
+    owned = {m.parent.relative_to(folder) for m in folder.rglob(MANIFEST) if m.parent != folder} \
+        if folder.is_dir() else set()
+    return [name for name in manifest.outputs if not (folder / name).is_file()
+            and not any(o in Path(name).parents for o in owned)]
 
 
 def read_manifest(folder: Path) -> Manifest | None:

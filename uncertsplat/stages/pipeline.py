@@ -331,7 +331,8 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                     up_path = Path(upstream)
                     if not up_path.is_absolute():
                         up_path = (pipeline.resolve().parent / up_path)
-                    inputs[str(up_path)], earlier[0][str(up_path)], earlier[1][str(up_path)] = fingerprints(up_path)
+                    inputs[str(up_path)], earlier[0][str(up_path)], earlier[1][str(up_path)] = fingerprints(
+                        up_path, skip=root)
 
             kwargs: dict = {}
             if stage.stage == "synth":
@@ -339,7 +340,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             elif stage.stage == "reconstruct":
                 if up_path is None:
                     up_path = Path(cfg.photos)
-                    inputs["photos"], earlier[0]["photos"], earlier[1]["photos"] = fingerprints(up_path)
+                    inputs["photos"], earlier[0]["photos"], earlier[1]["photos"] = fingerprints(up_path, skip=root)
                 elif kinds.get(upstream) == "synth":
                     up_path = up_path / "images"
                 out_dir = root / name

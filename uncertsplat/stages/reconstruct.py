@@ -521,13 +521,14 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
     if not new:
         left = sorted(set(scan.ignored) - set(existing.ignored))
         # the same photos, other contents: a photo edited or replaced since (said only after a whole extension before)
-        edited = existing.inputs_fingerprint not in ("", scan.fingerprint(), scan.legacy_fingerprint())
+        edited = (set(scan.names) == set(existing.images_found)  # (a photo left out since changes it too)
+                  and existing.inputs_fingerprint not in ("", scan.fingerprint(), scan.legacy_fingerprint()))
         raise UserError(f"no new photo in {photos}: the workspace holds every one of its {len(scan.names)} photos"
                         + (f" (left out: {list_names(left)}, copies of a photo or sharing its name: the notes above)"
                            if left else "")
                         + ("; and the folder's photos are not the ones the workspace was made from (a photo edited "
-                           "or replaced since: --extend keeps the cameras and images already there, so it would be "
-                           "refused with new photos too)" if edited else ""),
+                           "or replaced since: --extend keeps the cameras and images already there, so one the "
+                           "workspace registered must stay as it was)" if edited else ""),
                         path=photos, hint="Put back the photos the workspace was made from, or reconstruct the folder "
                                           "into a new workspace (and train a new run on it)." if edited else
                         "Put the new photos into the folder beside the others and run this again.")

@@ -151,7 +151,7 @@ def _check_scene_inputs(out_dir: Path, folders: dict[str | None, Path], force: b
         if out_dir.resolve() in folder.parents:
             continue
         key = name or ""
-        entry = {"path": str(folder), "fingerprint": fingerprint_folder(folder)}
+        entry = {"path": str(folder), "fingerprint": fingerprint_folder(folder, skip=out_dir)}
         old = recorded.get(key)
         if isinstance(old, dict) and old != entry:
             what = (f"moved from {old.get('path')} to {folder}" if old.get("path") != str(folder)

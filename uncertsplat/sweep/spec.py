@@ -271,7 +271,7 @@ def load_spec(path: Path, overrides: list[str] | None = None) -> SweepSpec:
         data = deep_update(data, parsed)
     where = KeyLines(path, replaced=replaced)
     given = [k for k in ("scene", "scenes") if data.get(k)]
-    if given and "synth" in data and any(k in replaced or k.startswith(given[0] + ".") for k in replaced):
+    if given and "synth" in data and (given[0] in replaced or any(k.startswith(given[0] + ".") for k in replaced)):
         data.pop("synth")  # a scene set with --set replaces the file's synthetic one, as --scene does
     elif given and "synth" in data:  # written in the file together: one would be left unused without a word
         line = where.line("synth")
