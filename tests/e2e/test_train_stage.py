@@ -200,7 +200,7 @@ def test_a_run_without_a_posterior_is_named_by_evaluate(tiny_scene_path, tmp_pat
     loaded = load_run(run)
     assert loaded.model.num_carriers == 0
     (note,) = loaded.eval_notes(4)
-    assert "no Gaussian carries a posterior" in note and "model is of step 2" in note
+    assert "no Gaussian carries a posterior" in note and "the run stopped at step 2, before its first spawn" in note
     from uncertsplat.config import EvalConfig
     from uncertsplat.stages import evaluate
 
@@ -209,6 +209,12 @@ def test_a_run_without_a_posterior_is_named_by_evaluate(tiny_scene_path, tmp_pat
     assert std.startswith("std² = the variance of the K samples (0 for this model: every sample is the same render) + ")
     carriers = dataclasses.replace(loaded, model=random_model(20, torch.Generator().manual_seed(0)))
     assert carriers.model.num_carriers > 0 and carriers.eval_notes(4) == []
+    # prune refuses it with the same reason (it said: train "for at least one spawn interval")
+    from uncertsplat.config import PruneConfig
+    from uncertsplat.stages import prune
+
+    with pytest.raises(UserError, match="no uncertainty to prune by: the run stopped at step 2, before its first"):
+        prune.run(run, tmp_path / "pruned", PruneConfig(keep_ratio=0.9), torch.device("cpu"))
 
 
 def _trained_on_a_workspace(tiny_scene_path, tmp_path, *settings: str):

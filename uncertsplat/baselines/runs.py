@@ -212,10 +212,13 @@ class LoadedRun:
             return [f"deterministic model: {SAME_RENDER}, so the samples' spread is 0 everywhere; "
                     "the std holds the predictive's other terms (the 'std² =' note lists them)"]
         if self.config.method == "variational" and self.model.num_carriers == 0 and len(self.model):
-            return [f"no Gaussian carries a posterior (carriers are made when Gaussians split and at each spawn "
-                    f"step, every {self.config.densify.spawn_interval} steps after step {self.config.densify.start}; "
-                    f"this model is of step {self.step}): {SAME_RENDER}, so the std holds only "
-                    "the predictive's other terms (the 'std² =' note lists them); train longer for a posterior"]
+            from uncertsplat.train.trainer import no_carriers_reason
+
+            why = no_carriers_reason(self.config, self.step) or (
+                "its Gaussians are all narrower than the spawn rule asks (densify.spawn_scale_fraction; train "
+                "warned with the fraction that gives them one)")
+            return [f"no Gaussian carries a posterior: {SAME_RENDER}, so the std holds only the predictive's other "
+                    f"terms (the 'std² =' note lists them); {why}"]
         return []
 
     def size_text(self) -> str:

@@ -402,7 +402,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
             console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
                           f"{loaded.size_text()}, {device}")
             for note in loaded.eval_notes(cfg.num_samples):
-                if note.startswith("K="):  # a choice of the command's that changes what is measured
+                # a choice of the command's that changes what is measured, or a posterior that is not there
+                if note.startswith(("K=", "no Gaussian carries a posterior")):
                     console.print(f"[yellow]note:[/] {note}")
             if cfg.residual_views == 0 and cfg.residual_scale != "auto":  # (it scales a noise not fitted)
                 console.print(f"[yellow]note:[/] residual_scale = {cfg.residual_scale} has no effect with "

@@ -331,9 +331,14 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         article = "an" if method[0] in "aeiou" else "a"
         why = (f"{article} {method} run has no per-Gaussian posterior" if method in ("deterministic", "ensemble", "fisher")
                else "the run has no Gaussians with a posterior (posterior carriers)")
-        raise UserError(f"{why}, so there is no uncertainty to prune by", path=run_dir,
-                        hint="Prune a run trained with the variational method (the default) for at least one spawn "
-                             "interval (densify.spawn_interval steps).")
+        from uncertsplat.train.trainer import no_carriers_reason
+
+        reason = no_carriers_reason(loaded.config, loaded.step) if method == "variational" else None
+        raise UserError(f"{why}, so there is no uncertainty to prune by" + (f": {reason}" if reason else ""),
+                        path=run_dir,
+                        hint="Prune a run trained with the variational method (the default) past its first spawn "
+                             "step." if method != "variational" else
+                        "Prune a run whose Gaussians carry a posterior (train's closing lines say how many do).")
     scene = loaded.load_scene()
     notes: list[str] = []
     split = "test"

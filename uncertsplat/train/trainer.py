@@ -115,6 +115,28 @@ FEW_CARRIERS = 0.1
 demo and tiny scenes: 98-100 %)."""
 
 
+def first_spawn_step(cfg: TrainConfig) -> int:
+    """The first step at which Gaussians get a posterior (``densify.spawn_interval`` steps after ``densify.start``)."""
+    d = cfg.densify
+    return (d.start // d.spawn_interval + 1) * d.spawn_interval
+
+
+def no_carriers_reason(cfg: TrainConfig, step: int) -> str | None:
+    """Why a model of ``cfg`` trained to ``step`` has no Gaussian with a posterior when that follows from its
+    settings, with what to do; None when it should have some (a spawn step was reached: a scene whose Gaussians are
+    narrower than the spawn rule asks, ``few_carriers_warning``). Gaussians get a posterior at the spawn steps, which
+    come only while densification runs (``densify.until``)."""
+    d, first = cfg.densify, first_spawn_step(cfg)
+    if first > d.until:
+        return (f"no spawn step comes while densification runs (the first would be step {first}, after densify.until "
+                f"= {d.until}), so no Gaussian gets a posterior whatever the run's length: set densify.until above "
+                f"{first} for one")
+    if step < first:
+        return (f"the run stopped at step {step}, before its first spawn step ({first}): train it on past it "
+                f"(`train --resume --iterations N`, N > {first}) for a posterior")
+    return None
+
+
 def few_carriers_warning(model: GaussianModel, cfg: TrainConfig, extent: float, prior: Prior,
                          step: int) -> list[str]:
     """The warning for a model with offset tables whose Gaussians mostly carry no posterior (their uncertainty is
@@ -123,10 +145,12 @@ def few_carriers_warning(model: GaussianModel, cfg: TrainConfig, extent: float, 
     names a fraction that gives one to about half of them. None before the first spawn step (``step``)."""
     n = len(model)
     d = cfg.densify
-    first_spawn = (d.start // d.spawn_interval + 1) * d.spawn_interval
-    if not cfg.has_offset_tables or n == 0 or model.num_carriers >= FEW_CARRIERS * n or first_spawn > min(d.until,
-                                                                                                         step):
+    if not cfg.has_offset_tables or n == 0 or model.num_carriers >= FEW_CARRIERS * n:
         return []
+    reason = no_carriers_reason(cfg, step)
+    if reason is not None:  # what the settings decide: said only where nothing carries one (a short test run)
+        return [f"no Gaussian carries a posterior, so the uncertainty is only the predictive's other terms: {reason}"
+                ] if model.num_carriers == 0 else []
     with torch.no_grad():
         pm = posterior_mean(model, variant=prior.variant, extent=extent, temperature=prior.temperature)
         width = pm.scales.norm(dim=-1)[pm.opacities >= d.spawn_min_opacity] / extent  # [M]
