@@ -339,6 +339,32 @@ def test_the_depth_nll_of_gt_maps_in_other_units_moves_by_the_log_of_the_unit_al
     assert small.mean.depth_nll == pytest.approx(base.mean.depth_nll + math.log(1e-3), abs=1e-3)
 
 
+def test_depth_maps_with_no_usable_depth_and_depth_metrics_on_few_pixels_are_said(tiny_run_path, tiny_scene_path,
+                                                                                   tmp_path):
+    """Maps in nanometres (every depth >= 1e9, read as no surface) were 'no valid pixel to align depth', naming
+    neither the rule nor the folder; a model pruned to a few Gaussians (a depth NLL of 20,826 on 2 pixels a view)
+    gave depth metrics without a word."""
+    from uncertsplat.config import PruneConfig
+    from uncertsplat.stages import prune
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    nm = tmp_path / "depth_nm"
+    nm.mkdir()
+    for p in (tiny_scene_path / "depth").glob("*.npy"):
+        np.save(nm / p.name, np.load(p) * 1e10)
+    cfg = dict(num_samples=2, max_views=2, save_maps=False, reuse=False)
+    with pytest.raises(UserError, match="the GT maps hold no usable depth at all: .* 1e[+]09 and above are read as "
+                                        "no surface") as err:
+        evaluate.run(run, EvalConfig(**cfg, depth_gt=nm), device=torch.device("cpu"))
+    assert "depth_nm" in str(err.value) and "larger ones" in err.value.hint
+    base = evaluate.run(run, EvalConfig(**cfg), device=torch.device("cpu"))
+    assert not any(n.startswith("the depth metrics rest on ") for n in base.notes)
+    prune.run(run, tmp_path / "few", PruneConfig(keep_ratio=0.002, score="gate"), torch.device("cpu"))
+    rep = evaluate.run(tmp_path / "few", EvalConfig(**cfg), device=torch.device("cpu"))
+    assert any(n.startswith("the depth metrics rest on ") and "with a GT depth" in n for n in rep.notes), rep.notes
+
+
 def test_a_depth_gt_folder_in_the_scene_s_units_and_a_factor_that_cannot_be_right(tiny_run_path, tiny_scene_path,
                                                                                     tmp_path, capsys):
     """--depth-scale scene: a folder of maps in the scene's own units (a metric COLMAP model's) is scored with the

@@ -21,6 +21,7 @@ import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Protocol
 
 import torch
@@ -54,6 +55,8 @@ class EvalSettings(Protocol):
     paper_nll: bool
     depth_scale: str | float
     """"auto", or a factor from rendered depth to GT depth units."""
+    depth_gt: Path | None
+    """The GT depth folder given (None: the scene's own); named in errors about it."""
     depth_align: str
     max_views: int | None
     """Evaluate only the first n views of the split (None: all)."""
@@ -460,6 +463,11 @@ def view_seed(seed: int, index: int) -> int:
     return seed * 1_000_003 + index
 
 
+FEW_DEPTH_PIXELS = 0.05
+"""Below this fraction of the pixels with a GT depth, the evaluation notes that its depth metrics rest on few pixels
+(a helper's model pruned to 5 Gaussians scored a depth NLL of 20,826 on 2 pixels a view, without a word)."""
+
+
 def pose_index(cam_from_world: Tensor, K: Tensor) -> int:
     """A view index (0 to 2**40) from a camera's pose [4,4] and intrinsics [3,3], for ``view_seed``: a view that is
     not one of the scene's (``uncertsplat.predict``'s poses of one's own, ``select-views``' candidates) gets the same
@@ -838,15 +846,26 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             try:
                 scale = align_depth_scale(dm, gts, mask=base_mask, method=cfg.depth_align)
             except ValueError as err:
-                raise UserError(f"cannot align depth with the GT: {err}") from None
+                from uncertsplat.data.dataset import NO_SURFACE_DEPTH
+
+                none = not any(bool((g > 0).any()) for g in gts)
+                raise UserError(f"cannot align depth with the GT: {err}" + (
+                    f"; the GT maps hold no usable depth at all: values of 0 or below, not finite, or of "
+                    f"{NO_SURFACE_DEPTH:g} and above are read as no surface (Blender writes 1e10 there)" if none
+                    else ""), path=cfg.depth_gt,
+                    hint="Depth maps stored in units that make every depth that large (nanometres) must be stored in "
+                         "larger ones." if none else None) from None
         depth_info = DepthScaleInfo(scale=scale.scale, method=scale.method, num_pixels=scale.num_pixels)
         del dm, base_mask, kept
+        scored_px = with_gt_px = 0  # the depth metrics' pixels, against those with a GT depth
         for j, r in enumerate(results):
             valid = valid_depth_mask(r.depth_mean, gt_depth[j], r.depth_valid)
             d_err = r.depth_mean * scale.scale - gt_depth[j]
             d_std = r.depth_std * scale.scale
             dsp = sparsification_all(d_err, d_std, mask=valid, steps=cfg.ause_steps)
             dmet = depth_metrics(r.depth_mean, gt_depth[j], scale=scale.scale, mask=valid)
+            scored_px += int(dmet.num_pixels)
+            with_gt_px += int((gt_depth[j] > 0).sum())
             dcal = calibration(d_err, d_std, mask=valid)
             r.metrics.update(
                 depth_ause_mae=dsp["mae"].ause if dsp["mae"].num_elements else None,
@@ -864,6 +883,11 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             depth_sp_all.append(dsp)
             if dcal.num_elements:
                 depth_cal.append(dcal)
+        if with_gt_px and scored_px < FEW_DEPTH_PIXELS * with_gt_px:
+            notes.append(f"the depth metrics rest on {scored_px:,} pixel(s), {100.0 * scored_px / with_gt_px:.2g} % of "
+                         f"the {with_gt_px:,} with a GT depth (scored where the model covers a pixel, alpha >= 0.5, "
+                         "and renders a depth): they say little about the model's depth (a model pruned to a few "
+                         "Gaussians, or one that did not fit)")
 
     if std_max == 0.0:
         notes.append(f"{ZERO_STD_NOTE} (one sample and every side term off?): the NLL and calibration measure the "
