@@ -213,6 +213,10 @@ def _refuse_two_values(explicit: dict, overrides: list[str] | None) -> None:
                                 hint=f"Give one of them ({option} or --set {key}=...).")
 
 
+_SHORT = {"num_views": "-n/"}
+"""The options with a short form besides their long one (named both ways in an error about their value)."""
+
+
 def _stage_config(model, config_file: Path | None, overrides: list[str] | None, explicit: dict):
     """config file < explicit command-line options < --set overrides (the same key from both, with two values, is
     refused: ``_refuse_two_values``)."""
@@ -229,8 +233,8 @@ def _stage_config(model, config_file: Path | None, overrides: list[str] | None, 
         set_keys.update(parsed)
         replaced |= dotted_keys(parsed)
         data = deep_update(data, parsed)
-    # a bad value from an option is named by the option (-n 0: "--num-views", not the config key "num_views")
-    names = {k: "--" + k.replace("_", "-") for k in given if k not in set_keys}
+    # a bad value from an option is named by the option (-n 0: "-n/--num-views", not the config key "num_views")
+    names = {k: _SHORT.get(k, "") + "--" + k.replace("_", "-") for k in given if k not in set_keys}
     where = KeyLines(config_file, replaced=replaced) if config_file else None
     return build_config(model, data, source=str(config_file) if config_file else "command line", names=names,
                         where=where)

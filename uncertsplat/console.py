@@ -35,6 +35,11 @@ def progress(transient: bool = False) -> Progress:
     )
 
 
+def count(n: int, one: str, many: str | None = None) -> str:
+    """"1 Gaussian", "3 Gaussians" (``many``: the plural when it is not ``one`` + "s"); thousands separated."""
+    return f"{n:,} {one if n == 1 else (many or one + 's')}"
+
+
 def list_names(names: list[str], limit: int = 15) -> str:
     """``names`` joined by commas for a message, the first ``limit`` of them and how many more."""
     shown = ", ".join(names[:limit])

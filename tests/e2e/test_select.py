@@ -405,7 +405,9 @@ def test_cli_with_a_pose_file(subset_run, tmp_path):
     sel = Selection.read(tmp_path / "out" / "selection.json")
     assert sel.num_candidates == 2 and sel.chosen[0].name in ("front", "side")
     said = " ".join(res.output.split())
-    assert "Next: take a photo at each chosen pose" in said and "--extend" in said  # how a photo joins the run
+    # how a photo joins the run: a synthetic scene is no workspace of `reconstruct`, which --extend grows
+    assert "Next: take a photo at each chosen pose" in said and "add it to the scene" in said
+    assert "--extend" not in said
     poses.write_text("front 1 0 0 0 0 0 4\nside 1 0 0\n")
     res = CliRunner().invoke(app, ["select-views", str(subset_run), "--candidates", str(poses), "--score",
                                    "coverage", "-o", str(tmp_path / "out2"), "--device", "cpu"])

@@ -183,11 +183,11 @@ def test_report_refuses_a_run_given_twice(tmp_path):
 
 
 def test_a_bad_option_value_is_named_by_its_option(tmp_path):
-    """``-n 0`` is reported as ``--num-views``, the option the user typed; the same value through ``--set`` keeps
-    the config key the user typed there."""
+    """``-n 0`` is reported as ``-n/--num-views``, the option the user typed; the same value through ``--set``
+    keeps the config key the user typed there."""
     result = runner.invoke(app, ["select-views", str(tmp_path), "-n", "0"])
     assert result.exit_code != 0
-    assert "--num-views: Input should be greater than or equal to 1" in " ".join(result.output.split())
+    assert "-n/--num-views: Input should be greater than or equal to 1" in " ".join(result.output.split())
     result = runner.invoke(app, ["select-views", str(tmp_path), "--set", "num_views=0"])
     text = " ".join(result.output.split())
     assert "num_views: Input should be" in text and "--num-views" not in text

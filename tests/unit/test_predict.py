@@ -102,6 +102,7 @@ def test_refuses_a_pose_that_is_not_rigid_naming_it(change, match):
     (1, 1, -90.0, "K of pose 1 has the focal lengths 100 / -90 px"),
     (0, 0, float("nan"), "K of pose 1 has the focal lengths nan / 90 px"),
     (1, 1, float("inf"), "K of pose 1 has the focal lengths 100 / inf px"),
+    (0, 0, 1e39, "K of pose 1 has the focal lengths 1e[+]39 / 90 px: they must be positive and finite in float32"),
     (0, 2, float("nan"), "K of pose 1 has the principal point nan, 48: it must be finite"),
 ])
 def test_refuses_intrinsics_the_renderer_would_not_take_as_given(row, col, value, match):

@@ -950,3 +950,12 @@ def test_depth_gt_given_the_images_folder_says_so(tiny_scene_path):  # noqa: F81
     scene = load_scene(tiny_scene_path)
     with pytest.raises(UserError, match="view_000.png there is the scene's own photo: give the GT depth's folder"):
         load_depth_folder(tiny_scene_path / "images", scene, [0])
+
+
+def test_an_empty_list_of_training_views_is_named_as_such(workspace):
+    """`--set 'scene.train_names=[]'` was 'the test split takes all 24 images and leaves no training view': the list
+    the user emptied is named."""
+    with pytest.raises(UserError, match=r"scene.train_names is empty: no training view"):
+        load_scene(workspace, SceneConfig(train_names=[]))
+    with pytest.raises(UserError, match=r"scene.train_indices is empty"):
+        load_scene(workspace, SceneConfig(train_indices=[]))

@@ -583,6 +583,11 @@ def _train_test(names: tuple[str, ...], cfg: SceneConfig, where: Path | None,
         raise UserError(f"image(s) both trained on and held out: {', '.join(names[i] for i in both)}", path=where,
                         hint="An image is either a training or a held-out view; fix train_* or test_*.")
     if not train:
+        if cfg.train_names == [] or cfg.train_indices == []:  # the user's own empty list, not the held-out views
+            key = "train_names" if cfg.train_names == [] else "train_indices"
+            raise UserError(f"scene.{key} is empty: no training view", path=where,
+                            hint=f"Give the views to train on in scene.{key}, or leave it out to train on every "
+                                 "view that is not held out.")
         raise UserError(f"the test split takes all {n} images and leaves no training view", path=where,
                         hint="Hold out fewer images (test_names / test_indices / a larger test_every).")
     return {"train": tuple(train), "test": tuple(test)}
@@ -913,7 +918,9 @@ def _check_intrinsics(cameras: Cameras, where: Path, outside_ok: bool = False) -
     blame the poses)."""
     K = cameras.K.double()
     f = torch.stack([K[:, 0, 0], K[:, 1, 1]], dim=-1)  # [C,2]
-    bad = (~torch.isfinite(f) | (f <= 0)).any(-1) | ~torch.isfinite(K[:, :2, 2]).all(-1)
+    # (beyond float32's range a focal length is inf in the renderer: nothing is drawn)
+    bad = (~torch.isfinite(f) | (f <= 0) | (f >= torch.finfo(torch.float32).max)).any(-1) \
+        | ~torch.isfinite(K[:, :2, 2]).all(-1)
     if bool(bad.any()):
         i = int(bad.nonzero()[0, 0])
         names = [cameras.image_names[j] for j in bad.nonzero()[:, 0].tolist()]

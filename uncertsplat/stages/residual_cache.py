@@ -83,7 +83,7 @@ def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torc
     kept there for the next evaluation. None when ``cfg.residual_views`` is 0 or there is no training view.
     ``calibration_indices``: views set aside from training and ``set_aside_maps`` (filled only when the noise is
     fitted here): as ``fit_residual``'s."""
-    from uncertsplat.console import console
+    from uncertsplat.console import console, count
     from uncertsplat.eval.engine import fit_residual, residual_from_state, residual_indices
     from uncertsplat.io.atomic import atomic_write_bytes
     from uncertsplat.io.checkpoints import decode, encode
@@ -106,7 +106,7 @@ def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torc
         field = fit_residual(sampler, train_indices, cfg, device, load_views=load_views,
                              calibration_indices=calibration_indices, set_aside_maps=set_aside_maps)
     if field is not None:
-        console.print(f"pixel noise: fitted on {views} training views in {time.perf_counter() - t0:.1f} s")
+        console.print(f"pixel noise: fitted on {count(views, 'training view')} in {time.perf_counter() - t0:.1f} s")
     if write and key is not None and field is not None:
         state = {"key": key, "state": field.state()}
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -240,10 +240,17 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         console.print(f"Next: [bold]uncertsplat train {folder} -o {run_dir} --resume --iterations N --add-views "
                       f"{','.join(p.name for p in picked)}[/]")
     elif picked:  # poses: a photo is taken at each first
-        console.print(f"Next: take a photo at each chosen pose ({out / Selection.FILE_NAME}), put them into the photo "
-                      f"folder, [bold]uncertsplat reconstruct PHOTOS -o {folder} --extend[/] (a COLMAP workspace of "
-                      f"`reconstruct`: its cameras kept), then [bold]uncertsplat train {folder} -o {run_dir} --resume "
-                      "--iterations N --add-views NEW_PHOTOS[/]")
+        from uncertsplat.sfm.report import REPORT_NAME
+
+        if (Path(folder) / REPORT_NAME).is_file():  # a workspace of `reconstruct`: a new photo joins it
+            console.print(f"Next: take a photo at each chosen pose ({out / Selection.FILE_NAME}), put them into the "
+                          f"photo folder, [bold]uncertsplat reconstruct PHOTOS -o {folder} --extend[/] (its cameras "
+                          f"kept), then [bold]uncertsplat train {folder} -o {run_dir} --resume --iterations N "
+                          "--add-views NEW_PHOTOS[/]")
+        else:  # (--extend grows workspaces of reconstruct only)
+            console.print(f"Next: take a photo at each chosen pose ({out / Selection.FILE_NAME}) and add it to the "
+                          f"scene {folder} with its camera, as the scene's own tool writes them, then [bold]uncertsplat "
+                          f"train {folder} -o {run_dir} --resume --iterations N --add-views NEW_PHOTOS[/]")
     return sel
 
 

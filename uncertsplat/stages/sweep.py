@@ -34,7 +34,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from uncertsplat.console import console
+from uncertsplat.console import console, count
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.io.atomic import atomic_write_text, run_lock
 from uncertsplat.schemas.base import describe_validation_error, key_problems
@@ -233,7 +233,7 @@ def _sync_point_reports(out_dir: Path, records: list) -> None:
         elif not dst.is_file():
             gone.append(r.id)
     if gone:
-        console.print(f"[yellow]note:[/] the report of {_count(len(gone), 'point')} is gone ({', '.join(gone)}: "
+        console.print(f"[yellow]note:[/] the report of {count(len(gone), 'point')} is gone ({', '.join(gone)}: "
                       f"points/ID.json): its record in sweep.jsonl stands; --force measures every point again")
 
 
@@ -319,7 +319,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         asked = len(spec.seed_values()) * sum(len(expand_points(spec.on_scene(n))) for n in spec.scene_names())
         if asked > len(hashes):
             extra = asked - len(hashes)
-            console.print(f"[yellow]note:[/] {_count(extra, 'point')} of the spec {'has' if extra == 1 else 'have'} the same "
+            console.print(f"[yellow]note:[/] {count(extra, 'point')} of the spec {'has' if extra == 1 else 'have'} the same "
                           "training and evaluation configuration as another point and are measured once (e.g. a "
                           "knob at the value the preset already gives, num_entries with the informed posterior, "
                           "which stores one table entry, or ensemble_size and spawn_fraction without offset tables)")
@@ -340,8 +340,8 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         npts = sum(len(j["points"]) for j in todo)
         where = (f"{min(jobs, max(len(todo), 1))} at a time" if executor == "local" else
                  f"on Ray ({address or 'a local instance'}, {cpus_per_job:g} CPU / {gpus_per_job:g} GPU per job)")
-        console.print(f"[bold]sweep[/] {spec.name}: {_count(npts, 'point')} to run in {_count(len(todo), 'job')} "
-                      f"({len(done)} already done), {where}, device {dev}, {_count(retries, 'retry', 'retries')}")
+        console.print(f"[bold]sweep[/] {spec.name}: {count(npts, 'point')} to run in {count(len(todo), 'job')} "
+                      f"({len(done)} already done), {where}, device {dev}, {count(retries, 'retry', 'retries')}")
 
         counts = {"done": 0, "failed": 0}
         started_jobs: dict[str, int] = {}  # points of the jobs handed out and not recorded yet (a retry: once)
@@ -410,7 +410,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                                         "is_default": current[r.hash]["is_default"]}) for r in kept]
         stale = len({r.hash for r in logged} - hashes)
         if stale:
-            console.print(f"[yellow]note:[/] {log} also holds {_count(stale, 'point')} of other settings (an earlier "
+            console.print(f"[yellow]note:[/] {log} also holds {count(stale, 'point')} of other settings (an earlier "
                           "spec or --set): kept there, left out of this sweep's summary and plot")
         summary = summarize(whole, records)
         summary.write(out_dir / "sweep.json")
@@ -431,6 +431,3 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
     return summary
 
 
-def _count(n: int, one: str, many: str | None = None) -> str:
-    """"1 point", "3 points"."""
-    return f"{n} {one if n == 1 else (many or one + 's')}"

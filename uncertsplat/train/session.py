@@ -22,7 +22,7 @@ import torch
 
 from uncertsplat import native
 from uncertsplat.config import TrainConfig, VariationalConfig, build_config
-from uncertsplat.console import console, list_names
+from uncertsplat.console import console, count, list_names
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.io.atomic import (
@@ -514,12 +514,12 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             console.print(f"added {len(add_views)} training view(s) at step {trainer.step}: {', '.join(add_views)} "
                           f"({len(data.split['train'])} in all)")
         kernels = native.describe(device)
-        console.print(f"training {len(trainer.model)} Gaussians on {len(data.split['train'])} views "
+        console.print(f"training {count(len(trainer.model), 'Gaussian')} on {count(len(data.split['train']), 'view')} "
                       f"({data.cameras.width}x{data.cameras.height}), {len(data.split.get('test', ()))} held out, "
                       + (f"{len(data.split['calibration'])} set aside for calibration, " if data.split.get("calibration")
                          else "") +
                       f"device {device} ({kernels}), {cfg.iterations} steps, at most "
-                      f"{trainer.budget.max_gaussians:,} Gaussians ({trainer.budget.reason})")
+                      f"{count(trainer.budget.max_gaussians, 'Gaussian')} ({trainer.budget.reason})")
         if cfg.scene.test_indices is not None or cfg.scene.train_indices is not None:
             # indices count the scene's views, after any photo left out: the names say which views they are
             held = [data.cameras.image_names[i] for i in data.split.get("test", ())]
