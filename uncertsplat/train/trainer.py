@@ -142,7 +142,8 @@ def few_carriers_warning(model: GaussianModel, cfg: TrainConfig, extent: float, 
     """The warning for a model with offset tables whose Gaussians mostly carry no posterior (their uncertainty is
     0): the spawn rule gives one to a Gaussian wider than ``densify.spawn_scale_fraction`` of the cameras' radius,
     which the Gaussians of a small scene seen from far (a long lens, a rig far larger than the scene) never are;
-    names a fraction that gives one to about half of them. None before the first spawn step (``step``)."""
+    names a fraction that gives one to about half of them. Where the settings decide it (densification off, or a
+    run stopped before its first spawn step: ``no_carriers_reason``), that reason, only when no Gaussian carries one."""
     n = len(model)
     d = cfg.densify
     if not cfg.has_offset_tables or n == 0 or model.num_carriers >= FEW_CARRIERS * n:
