@@ -40,8 +40,8 @@ def _read_by_stages(rel: Path) -> bool:
 
 
 def fingerprints(folder: Path, max_files: int = 100_000, skip: Path | None = None) -> tuple[str, str, str]:
-    """(``fingerprint_folder``, the same over every file (what manifests written before 2026-11-30 hold), the
-    names, sizes and mtimes of every file (before 2026-11-29)) of ``folder`` in one pass: the pipeline takes an input
+    """(``fingerprint_folder``, the same over every file (what manifests held before 2026-11-29's thirty-eighth
+    session), the names, sizes and mtimes of every file (before that day)) of ``folder`` in one pass: the pipeline takes an input
     as unchanged when a stage's manifest holds any of them. ``skip``: a folder inside ``folder`` left out (the
     command's own output folder, written there: it would change the input with every call)."""
     folder = Path(folder)
@@ -57,7 +57,10 @@ def fingerprints(folder: Path, max_files: int = 100_000, skip: Path | None = Non
             continue
         if p.is_file():
             rel = p.relative_to(folder)
-            st = p.stat()
+            try:
+                st = p.stat()
+            except OSError:  # gone since the listing
+                continue
             legacy.update(f"{rel}|{st.st_size}|{int(st.st_mtime)}\n".encode())
             try:
                 digest = file_sha256(p)
