@@ -27,3 +27,7 @@ Devices
     No device literals in the library. The device comes from the input tensors; the CLI chooses it once
     (``--device auto|cpu|cuda``).
 """
+
+NO_SURFACE_DEPTH = 1e9
+"""GT depths at or beyond this are "no surface" (Blender writes 1e10 where a ray meets nothing) and count as invalid:
+left in, one such pixel made a view's depth RMSE 4e8."""

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from uncertsplat.console import list_names
+from uncertsplat.conventions import NO_SURFACE_DEPTH
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import (
     is_opaque_8bit,
@@ -172,9 +173,6 @@ def read_depth_file(path: Path) -> np.ndarray:
     return arr
 
 
-NO_SURFACE_DEPTH = 1e9
-"""GT depths at or beyond this are "no surface" (Blender writes 1e10 where a ray meets nothing) and count as invalid:
-left in, one such pixel made a view's depth RMSE 4e8."""
 SHAPE_TOLERANCE = 0.02
 """A depth map whose width / height differs from its photo's by more than this fraction is another shape, refused:
 resized to the photo it was stretched (a transposed map: AbsRel 0.55 against 0.07, no word)."""

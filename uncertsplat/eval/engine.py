@@ -846,7 +846,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             try:
                 scale = align_depth_scale(dm, gts, mask=base_mask, method=cfg.depth_align)
             except ValueError as err:
-                from uncertsplat.data.dataset import NO_SURFACE_DEPTH
+                from uncertsplat.conventions import NO_SURFACE_DEPTH
 
                 none = not any(bool((g > 0).any()) for g in gts)
                 raise UserError(f"cannot align depth with the GT: {err}" + (
