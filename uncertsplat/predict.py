@@ -293,6 +293,7 @@ class Predictor:
         from uncertsplat.stages.residual_cache import fitted_residual, same_residual_settings
 
         loaded = load_run(run_dir, device)
+        loaded.warn_if_unfinished()  # (a run still training: its newest checkpoint is what is predicted)
         # what an evaluation of this model with these settings fitted on the photos (RUN/eval/predictive.pt): read
         # instead of fitted, and all there is where the scene folder is not (a robot has the run, not the photos)
         kept, problem = read_predictive(loaded, cfg, loaded.scene_path or run_dir)

@@ -471,3 +471,15 @@ class TestResumeAtTheEdges:
         early.fit(until=5)
         within = Trainer(scene, longer, tr, te, state=early.state_dict())
         assert within.low_res_until == 18 and within.low_images is not None
+
+
+def test_a_run_folder_removed_under_a_training_is_named_as_such(tmp_path):
+    """A run folder moved away by another command while training wrote to it was 'could not append to the training
+    log (No such file or directory)... Free some space': a full disk, wrongly."""
+    from uncertsplat.errors import UserError
+
+    scene, tr, te = toy_scene()
+    t = Trainer(scene, toy_config(), tr, te, run_dir=tmp_path / "gone")
+    with pytest.raises(UserError, match="the run folder is gone while training wrote to it") as err:
+        t._log({"step": 1})
+    assert "Free some space" not in err.value.hint

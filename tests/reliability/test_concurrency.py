@@ -169,3 +169,66 @@ def test_a_training_that_is_starting_is_not_taken_for_a_failed_start(tiny_scene_
     with _held_by_another_process(run), pytest.raises(UserError, match="another uncertsplat process"):
         train.run(tiny_scene_path, run, cfg, torch.device("cpu"))
     assert (run / "config.json").read_text() == "{}" and (run / "scene.json").read_text() == "{}"
+
+
+def test_the_lock_refusal_names_the_holder_s_command(tmp_path):
+    with _held_by_another_process(tmp_path) as holder, pytest.raises(UserError) as err:
+        with run_lock(tmp_path, "second"):
+            pass
+    assert f"(PID {holder.pid}, test)" in str(err.value) and "Wait for it to finish" in err.value.hint
+
+
+def test_a_pipeline_does_not_replace_a_stage_folder_another_process_writes(tmp_path, monkeypatch):
+    """`train --resume` of the pipeline's run by hand, then `uncertsplat run` with a changed setting: the pipeline
+    moved the run to .previous and trained its own into the same path while the other kept writing there (their
+    stats.jsonl interleaved, a config of 300 steps beside a summary of 6000). Refused before anything moves."""
+    from uncertsplat.stages import pipeline as pl
+
+    def fake(kind, cfg, up_path, out_dir, device, kwargs):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "out.txt").write_text(kind)
+
+    monkeypatch.setattr(pl, "_run_stage", fake)
+    p = tmp_path / "p.toml"
+    p.write_text('name = "t"\ndevice = "cpu"\n[[stages]]\nstage = "synth"\nconfig = { preset = "tiny" }\n'
+                 '[[stages]]\nstage = "train"\npreset = "tiny"\n')
+    out = tmp_path / "out"
+    pl.run(p, out)
+    with _held_by_another_process(out / "train") as holder:
+        with pytest.raises(UserError, match=rf"stage 'train' would replace .*train, which another uncertsplat "
+                                            rf"process \(PID {holder.pid} test\) is writing now"):
+            pl.run(p, out, overrides=["train.iterations=9"])
+        assert (out / "train" / "out.txt").is_file() and not (out / ".previous" / "train").exists()
+    pl.run(p, out, overrides=["train.iterations=9"])  # free again: the stage runs, the earlier run kept aside
+    assert (out / ".previous" / "train" / "out.txt").is_file()
+
+
+def test_a_sweep_neither_trains_into_nor_deletes_a_run_another_process_writes(tmp_path, monkeypatch):
+    """A sweep found a run of its own extended by hand (another config.json) and removed it with shutil.rmtree,
+    while that `train --resume` was still writing it: a run another process holds is left alone (the point fails,
+    said), and one of other settings is moved aside, not deleted."""
+    import uncertsplat.baselines as baselines
+    from uncertsplat.config import train_config_from
+    from uncertsplat.sweep import jobs
+
+    run = tmp_path / "runs" / "variational_x"
+    run.mkdir(parents=True)
+    (run / "config.json").write_text(json.dumps({"iterations": 6000}))
+    job = {"run_dir": str(run), "job_id": "variational_x", "scene": str(tmp_path),
+           "train_config": json.loads(train_config_from("tiny").model_dump_json())}
+    with _held_by_another_process(run) as holder:
+        with pytest.raises(UserError, match=rf"another uncertsplat process \(PID {holder.pid} test\) is writing this "
+                                            "point's run now"):
+            jobs._train(job, "cpu")
+    assert json.loads((run / "config.json").read_text()) == {"iterations": 6000}
+
+    class Trained(Exception):
+        pass
+
+    def fake_train(*args, **kwargs):
+        raise Trained
+
+    monkeypatch.setattr(baselines, "train_run", fake_train)
+    with pytest.raises(Trained):
+        jobs._train(job, "cpu")
+    assert json.loads((run.parent / "variational_x.replaced" / "config.json").read_text()) == {"iterations": 6000}

@@ -527,3 +527,13 @@ def test_extend_is_refused_as_a_pipeline_setting(tmp_path, calls):
     with pytest.raises(UserError, match="extend is a step of its own") as err:
         pl.run(p, tmp_path / "out")
     assert "--extend" in err.value.hint and calls == []
+
+
+def test_a_report_without_a_run_before_it_is_refused_before_any_stage_runs(tmp_path, calls):
+    """Found only at the report's turn, after the stages before it had run (an external evaluate, then report)."""
+    p = tmp_path / "p.toml"
+    p.write_text('name = "t"\ndevice = "cpu"\n[[stages]]\nstage = "synth"\nconfig = { preset = "tiny" }\n'
+                 '[[stages]]\nstage = "report"\n')
+    with pytest.raises(UserError, match="stage 'report' needs a train or prune stage before it"):
+        pl.run(p, tmp_path / "out")
+    assert calls == []

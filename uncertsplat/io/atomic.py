@@ -236,11 +236,16 @@ def run_lock(folder: str | Path, command: str = "uncertsplat") -> Iterator[Path]
             os.close(fd)
             if err.errno not in (errno.EWOULDBLOCK, errno.EACCES):
                 raise UserError(f"cannot lock the folder ({err.strerror})", path=folder) from None
-            pid = _lock_holder(lock)
+            try:
+                holder = " ".join(lock.read_text().split()[:2]) or "unknown"
+            except OSError:
+                holder = "unknown"
+            pid, _, cmd = holder.partition(" ")
             raise UserError(
-                f"another uncertsplat process (PID {pid}) is writing to this folder",
+                f"another uncertsplat process (PID {pid}{', ' + cmd if cmd else ''}) is writing to this folder",
                 path=folder,
-                hint="Wait for it to finish or choose another output folder.",
+                hint="Wait for it to finish (or stop it), then run this again; a command that writes its own output "
+                     "can be given another output folder instead.",
             ) from None
         try:  # a holder may have released (unlinked) the file between our open and flock: lock the current one
             same = os.fstat(fd).st_ino == os.stat(lock).st_ino

@@ -31,7 +31,7 @@ from uncertsplat.config import (
 )
 from uncertsplat.console import console
 from uncertsplat.errors import Interrupted, StageError, UserError, naming_overrides
-from uncertsplat.io.atomic import run_lock
+from uncertsplat.io.atomic import lock_holder, run_lock
 from uncertsplat.stages.manifest import (
     MANIFEST,
     Manifest,
@@ -170,6 +170,11 @@ def check_stages(cfg: PipelineConfig, path: Path, overrides: list[str] | None = 
                                     hint="Keep one of them; to compare evaluation settings use `uncertsplat sweep` "
                                          "(its axes), or `uncertsplat evaluate` on a copy of the run.")
                 evaluated[key] = name
+        if stage.stage == "report" and not any(k in ("train", "prune") for k in kinds.values()):
+            # (found when the report's turn came, after the stages before it had run)
+            raise UserError(f"stage '{name}' needs a train or prune stage before it (a report shows the pipeline's "
+                            "runs)", path=path, hint="Put a train stage before it, or run `uncertsplat report RUN` "
+                                                     "on a run of your own.")
         kinds[name] = stage.stage
         if stage.input is not None and stage.input not in earlier:
             folder = Path(stage.input)
@@ -399,6 +404,15 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 previous = name
                 continue
 
+            # a folder another process writes (a `train --resume` of the pipeline's run, an evaluate of it) is neither
+            # moved aside nor written: the two would mix (a helper's pipeline trained into a run being resumed by hand)
+            for folder in dict.fromkeys([out_dir, *([up_path] if stage.stage == "evaluate" and up_path else [])]):
+                holder = lock_holder(folder)
+                if holder is not None:
+                    raise UserError(f"stage '{name}' would replace {folder}, which another uncertsplat process "
+                                    f"(PID {holder}) is writing now", path=folder,
+                                    hint="Wait for it to finish, then run the pipeline again (a stage whose output was "
+                                         "changed by hand runs again, with a note).")
             console.print(f"[bold cyan]stage[/] {name} ({stage.stage}) -> {out_dir}")
             resume = (not force and stage.stage == "train" and old is not None and old.error == INTERRUPTED
                       and old.config_hash == new.config_hash

@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 import time
 import traceback
 from pathlib import Path
 
 import torch
 
-from uncertsplat.errors import Interrupted
+from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.schemas import TrainSummary
 
 RECORD_KEYS = ("psnr", "psnr_render", "ssim", "ause_mae", "ause_rmse", "nll", "nll_kde", "calibration_error",
@@ -33,10 +34,15 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
     """Train the job's run unless it is finished; returns (train_summary, trained_now)."""
     from uncertsplat.baselines import train_run
     from uncertsplat.config import TrainConfig, build_config
+    from uncertsplat.io.atomic import lock_holder
 
     run_dir = Path(job["run_dir"])
     summary_path = run_dir / "train_summary.json"
     cfg = build_config(TrainConfig, job["train_config"], source=f"sweep job {job['job_id']}")
+    holder = lock_holder(run_dir) if run_dir.is_dir() else None
+    if holder is not None:  # (a `train --resume` of it by hand: the sweep removed the run under it)
+        raise UserError(f"another uncertsplat process (PID {holder}) is writing this point's run now", path=run_dir,
+                        hint="Wait for it to finish, then run the sweep again.")
     if summary_path.is_file() and (run_dir / "config.json").is_file():
         stored = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
         if stored == json.loads(cfg.model_dump_json()):
@@ -49,7 +55,13 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
     if resume:
         stored = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
         if stored != json.loads(cfg.model_dump_json()):
-            shutil.rmtree(run_dir)  # another config under the same id: never mix them
+            # another config under the same id (a run extended by hand): never mixed, never lost without a word
+            aside = run_dir.with_name(f"{run_dir.name}.replaced")
+            if aside.exists():
+                shutil.rmtree(aside)
+            run_dir.rename(aside)
+            print(f"note: {run_dir} held a run of other settings than the sweep's (changed by hand?): moved to {aside}",
+                  file=sys.stderr, flush=True)
             resume = False
     train_run(Path(job["scene"]), run_dir, cfg, device, resume=resume)
     return TrainSummary.read(summary_path), True

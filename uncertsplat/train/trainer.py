@@ -932,6 +932,11 @@ class Trainer:
             except OSError as err:  # disk full: a clear message; a line cut short is dropped on resume
                 from uncertsplat.errors import UserError
 
+                if not self.run_dir.is_dir():  # moved or removed under the training, not a full disk
+                    raise UserError("the run folder is gone while training wrote to it (moved or removed by another "
+                                    "command?)", path=self.run_dir,
+                                    hint="Find what replaced it (an `uncertsplat run` or `sweep` owning this folder "
+                                         "does so when its settings change); the training cannot go on here.") from None
                 raise UserError(f"could not append to the training log ({err.strerror})",
                                 path=self.run_dir / "stats.jsonl",
                                 hint="Free some space, then continue with --resume.") from None
