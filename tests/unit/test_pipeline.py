@@ -280,14 +280,8 @@ def test_a_failed_run_never_replaces_the_last_finished_output(tmp_path, calls):
     assert json.loads((tmp_path / "out" / ".previous" / "train" / "out.txt").read_text())["iterations"] == 8
 
 
-def test_photos_touched_or_copied_without_times_are_unchanged(tmp_path, calls):
-    """The photo folder's fingerprint is its files' names and contents: new modification times (a `cp -r`, a sync)
-    skip every stage; a changed photo runs them again; a manifest holding the earlier fingerprint (names, sizes,
-    times) still counts as unchanged."""
-    import os
-
-    from uncertsplat.stages.manifest import fingerprints
-
+def _photos_pipeline(tmp_path: Path, calls) -> tuple[Path, Path]:
+    """(photos, pipeline file): 3 photos, a reconstruct and a train stage on them, run once (``calls`` cleared)."""
     photos = tmp_path / "photos"
     photos.mkdir()
     for i in range(3):
@@ -297,18 +291,36 @@ def test_photos_touched_or_copied_without_times_are_unchanged(tmp_path, calls):
                  '[[stages]]\nstage = "train"\npreset = "tiny"\n')
     pl.run(p, tmp_path / "out")
     calls.clear()
+    return photos, p
+
+
+def _as_recorded_before(out: Path, photos_hash: str) -> None:
+    """The reconstruct stage's manifest holding ``photos_hash`` for its photos (as an earlier version wrote it), and
+    the train stage's record of that manifest."""
+    manifest = out / "reconstruct" / "manifest.json"
+    data = json.loads(manifest.read_text())
+    data["input_hashes"]["photos"] = photos_hash
+    manifest.write_text(json.dumps(data))
+    train = out / "train" / "manifest.json"
+    record = json.loads(train.read_text())
+    record["input_hashes"]["reconstruct"] = pl.read_manifest(manifest.parent).key
+    train.write_text(json.dumps(record))
+
+
+def test_photos_touched_or_copied_without_times_are_unchanged(tmp_path, calls):
+    """The photo folder's fingerprint is its files' names and contents: new modification times (a `cp -r`, a sync)
+    skip every stage; a changed photo runs them again; a manifest holding the earlier fingerprint (names, sizes,
+    times) still counts as unchanged."""
+    import os
+
+    from uncertsplat.stages.manifest import fingerprints
+
+    photos, p = _photos_pipeline(tmp_path, calls)
     for f in photos.iterdir():
         os.utime(f, (1e9, 1e9))
     pl.run(p, tmp_path / "out")
     assert calls == []
-    manifest = tmp_path / "out" / "reconstruct" / "manifest.json"
-    data = json.loads(manifest.read_text())
-    data["input_hashes"]["photos"] = fingerprints(photos)[2]
-    manifest.write_text(json.dumps(data))  # as the earlier version wrote it, and the train stage's record of it:
-    train = tmp_path / "out" / "train" / "manifest.json"
-    record = json.loads(train.read_text())
-    record["input_hashes"]["reconstruct"] = pl.read_manifest(manifest.parent).key
-    train.write_text(json.dumps(record))
+    _as_recorded_before(tmp_path / "out", fingerprints(photos)[2])  # names, sizes and times
     pl.run(p, tmp_path / "out")
     assert calls == []
     (photos / "1.jpg").write_bytes(b"another photo")
@@ -322,15 +334,8 @@ def test_notes_and_leftovers_beside_the_photos_are_not_inputs(tmp_path, calls):
     counts as unchanged; a photo added counts."""
     from uncertsplat.stages.manifest import fingerprints
 
-    photos = tmp_path / "photos"
-    (photos / "sub").mkdir(parents=True)
-    for i in range(3):
-        (photos / f"{i}.jpg").write_bytes(bytes([i]) * 100)
-    p = tmp_path / "p.toml"
-    p.write_text('name = "t"\ndevice = "cpu"\nphotos = "photos"\n[[stages]]\nstage = "reconstruct"\n'
-                 '[[stages]]\nstage = "train"\npreset = "tiny"\n')
-    pl.run(p, tmp_path / "out")
-    calls.clear()
+    photos, p = _photos_pipeline(tmp_path, calls)
+    (photos / "sub").mkdir()
     (photos / "notes.txt").write_text("taken at noon")
     (photos / "README.md").write_text("my capture")
     (photos / ".DS_Store").write_bytes(b"x")
@@ -338,14 +343,7 @@ def test_notes_and_leftovers_beside_the_photos_are_not_inputs(tmp_path, calls):
     (photos / "sub" / ".0.jpg.swp").write_bytes(b"swap")
     pl.run(p, tmp_path / "out")
     assert calls == []
-    manifest = tmp_path / "out" / "reconstruct" / "manifest.json"
-    data = json.loads(manifest.read_text())
-    data["input_hashes"]["photos"] = fingerprints(photos)[1]  # as the version before wrote it: every file
-    manifest.write_text(json.dumps(data))
-    train = tmp_path / "out" / "train" / "manifest.json"
-    record = json.loads(train.read_text())
-    record["input_hashes"]["reconstruct"] = pl.read_manifest(manifest.parent).key
-    train.write_text(json.dumps(record))
+    _as_recorded_before(tmp_path / "out", fingerprints(photos)[1])  # as the version before wrote it: every file
     pl.run(p, tmp_path / "out")
     assert calls == []
     (photos / "sub" / "3.jpg").write_bytes(b"a photo in a subfolder")
