@@ -303,10 +303,13 @@ def test_a_model_whose_gaussians_carry_no_posterior_says_why():
     # before the first spawn step (10): why, and what to do (a helper's 80-step runs and --set densify.until=0 said
     # nothing, and evaluate's note said "train longer", which cannot help the second)
     (early,) = few_carriers_warning(t.model, cfg, t.extent, t.prior, step=5)
-    assert "the run stopped at step 5, before its first spawn step (10)" in early and "--iterations" in early
+    assert "the run stopped at step 5, before its first spawn step (10)" in early and "N >= 10" in early
+    from uncertsplat.train.trainer import first_spawn_step
+
     off = toy_config(densify={"until": 0})
     (never,) = few_carriers_warning(t.model, off, t.extent, t.prior, step=30)
-    assert "no spawn step comes while densification runs" in never and "densify.until above 10" in never
+    first = first_spawn_step(off)
+    assert "no spawn step comes while densification runs" in never and f"densify.until to {first} or more " in never
     det = toy_config(method="deterministic")
     assert few_carriers_warning(t.model, det, t.extent, t.prior, step=30) == []
 

@@ -215,6 +215,10 @@ def test_a_run_without_a_posterior_is_named_by_evaluate(tiny_scene_path, tmp_pat
 
     with pytest.raises(UserError, match="no uncertainty to prune by: the run stopped at step 2, before its first"):
         prune.run(run, tmp_path / "pruned", PruneConfig(keep_ratio=0.9), torch.device("cpu"))
+    # a prune's output with no carrier left: pruning removed them (not the spawn rule, of which train said nothing)
+    (run / "prune.json").write_text("{}")
+    (note,) = load_run(run).eval_notes(4)
+    assert "pruning removed every Gaussian that carried one" in note and "spawn" not in note
 
 
 def _trained_on_a_workspace(tiny_scene_path, tmp_path, *settings: str):

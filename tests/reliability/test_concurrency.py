@@ -217,10 +217,20 @@ def test_a_sweep_neither_trains_into_nor_deletes_a_run_another_process_writes(tm
     job = {"run_dir": str(run), "job_id": "variational_x", "scene": str(tmp_path),
            "train_config": json.loads(train_config_from("tiny").model_dump_json())}
     with _held_by_another_process(run) as holder:
-        with pytest.raises(UserError, match=rf"another uncertsplat process \(PID {holder.pid} test\) is writing this "
+        with pytest.raises(UserError, match=rf"another uncertsplat process \(PID {holder.pid} test\) holds this "
                                             "point's run now"):
             jobs._train(job, "cpu")
     assert json.loads((run / "config.json").read_text()) == {"iterations": 6000}
+    # a finished run of the sweep's own settings that another process only reads (an evaluate holds its lock too) is
+    # reused as before
+    done = tmp_path / "runs" / "variational_done"
+    done.mkdir()
+    (done / "config.json").write_text(json.dumps(job["train_config"]))
+    (done / "train_summary.json").write_text("{}")
+    monkeypatch.setattr(jobs.TrainSummary, "read", classmethod(lambda cls, path: "the finished summary"))
+    with _held_by_another_process(done):
+        assert jobs._train({**job, "run_dir": str(done)}, "cpu") == ("the finished summary", False)
+    monkeypatch.undo()
 
     class Trained(Exception):
         pass
@@ -232,3 +242,9 @@ def test_a_sweep_neither_trains_into_nor_deletes_a_run_another_process_writes(tm
     with pytest.raises(Trained):
         jobs._train(job, "cpu")
     assert json.loads((run.parent / "variational_x.replaced" / "config.json").read_text()) == {"iterations": 6000}
+    run.mkdir()  # changed by hand again: the earlier replaced run stays
+    (run / "config.json").write_text(json.dumps({"iterations": 7000}))
+    with pytest.raises(Trained):
+        jobs._train(job, "cpu")
+    assert json.loads((run.parent / "variational_x.replaced" / "config.json").read_text()) == {"iterations": 6000}
+    assert json.loads((run.parent / "variational_x.replaced2" / "config.json").read_text()) == {"iterations": 7000}

@@ -212,11 +212,14 @@ class LoadedRun:
             return [f"deterministic model: {SAME_RENDER}, so the samples' spread is 0 everywhere; "
                     "the std holds the predictive's other terms (the 'std² =' note lists them)"]
         if self.config.method == "variational" and self.model.num_carriers == 0 and len(self.model):
+            from uncertsplat.schemas.prune import PruneReport
             from uncertsplat.train.trainer import no_carriers_reason
 
-            why = no_carriers_reason(self.config, self.step) or (
+            pruned = (self.run_dir / PruneReport.FILE_NAME).is_file()
+            why = ("pruning removed every Gaussian that carried one (prune removes only those; a smaller share "
+                   "removed keeps some)" if pruned else no_carriers_reason(self.config, self.step) or (
                 "its Gaussians are all narrower than the spawn rule asks (densify.spawn_scale_fraction; train "
-                "warned with the fraction that gives them one)")
+                "warned with the fraction that gives them one)"))
             return [f"no Gaussian carries a posterior: {SAME_RENDER}, so the std holds only the predictive's other "
                     f"terms (the 'std² =' note lists them); {why}"]
         return []

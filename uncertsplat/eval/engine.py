@@ -865,7 +865,9 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             dsp = sparsification_all(d_err, d_std, mask=valid, steps=cfg.ause_steps)
             dmet = depth_metrics(r.depth_mean, gt_depth[j], scale=scale.scale, mask=valid)
             scored_px += int(dmet.num_pixels)
-            with_gt_px += int((gt_depth[j] > 0).sum())
+            # (inside the view's validity mask, where the metrics are scored at all)
+            has_gt = gt_depth[j] > 0
+            with_gt_px += int((has_gt & masks[j] if masks is not None else has_gt).sum())
             dcal = calibration(d_err, d_std, mask=valid)
             r.metrics.update(
                 depth_ause_mae=dsp["mae"].ause if dsp["mae"].num_elements else None,
@@ -883,7 +885,10 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             depth_sp_all.append(dsp)
             if dcal.num_elements:
                 depth_cal.append(dcal)
-        if with_gt_px and scored_px < FEW_DEPTH_PIXELS * with_gt_px:
+        if with_gt_px and scored_px == 0:
+            notes.append(f"no depth metric could be computed: none of the {with_gt_px:,} pixels with a GT depth is "
+                         "covered by the model (alpha >= 0.5) with a rendered depth")
+        elif with_gt_px and scored_px < FEW_DEPTH_PIXELS * with_gt_px:
             notes.append(f"the depth metrics rest on {scored_px:,} pixel(s), {100.0 * scored_px / with_gt_px:.2g} % of "
                          f"the {with_gt_px:,} with a GT depth (scored where the model covers a pixel, alpha >= 0.5, "
                          "and renders a depth): they say little about the model's depth (a model pruned to a few "

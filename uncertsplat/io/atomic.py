@@ -148,13 +148,6 @@ def remove_stale_temp_files(*folders: str | Path) -> list[Path]:
 _HELD: dict[str, int] = {}  # locks this process holds (re-entering one is allowed), by resolved path
 
 
-def _lock_holder(lock: Path) -> str:
-    try:
-        return lock.read_text().split()[0]
-    except (OSError, IndexError):
-        return "unknown"
-
-
 def lock_holder(folder: str | Path) -> str | None:
     """"PID command" of the live process that holds ``folder``'s ``run_lock``, or None when none does: for a reader
     of the folder (``prune`` reads its source run) that must not start while a writer changes it, and need not lock

@@ -39,16 +39,18 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
     run_dir = Path(job["run_dir"])
     summary_path = run_dir / "train_summary.json"
     cfg = build_config(TrainConfig, job["train_config"], source=f"sweep job {job['job_id']}")
-    holder = lock_holder(run_dir) if run_dir.is_dir() else None
-    if holder is not None:  # (a `train --resume` of it by hand: the sweep removed the run under it)
-        raise UserError(f"another uncertsplat process (PID {holder}) is writing this point's run now", path=run_dir,
-                        hint="Wait for it to finish, then run the sweep again.")
     if summary_path.is_file() and (run_dir / "config.json").is_file():
         stored = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
         if stored == json.loads(cfg.model_dump_json()):
             summary = TrainSummary.read(summary_path)
             if cfg.method != "fisher" or summary.fisher_seconds is not None:
                 return summary, False
+    # past the reuse of a finished run (an evaluate of it holds its lock too, and reading it is safe): what follows
+    # removes, moves or trains the run, under a `train --resume` of it by hand it would mix or destroy both
+    holder = lock_holder(run_dir) if run_dir.is_dir() else None
+    if holder is not None:
+        raise UserError(f"another uncertsplat process (PID {holder}) holds this point's run now", path=run_dir,
+                        hint="Wait for it to finish, then run the sweep again.")
     resume = (run_dir / "config.json").is_file()
     if run_dir.exists() and not resume:
         shutil.rmtree(run_dir)  # a job that died before writing anything useful
@@ -57,8 +59,10 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
         if stored != json.loads(cfg.model_dump_json()):
             # another config under the same id (a run extended by hand): never mixed, never lost without a word
             aside = run_dir.with_name(f"{run_dir.name}.replaced")
-            if aside.exists():
-                shutil.rmtree(aside)
+            n = 1
+            while aside.exists():  # an earlier replaced run stays too
+                n += 1
+                aside = run_dir.with_name(f"{run_dir.name}.replaced{n}")
             run_dir.rename(aside)
             print(f"note: {run_dir} held a run of other settings than the sweep's (changed by hand?): moved to {aside}",
                   file=sys.stderr, flush=True)

@@ -127,13 +127,13 @@ def no_carriers_reason(cfg: TrainConfig, step: int) -> str | None:
     narrower than the spawn rule asks, ``few_carriers_warning``). Gaussians get a posterior at the spawn steps, which
     come only while densification runs (``densify.until``)."""
     d, first = cfg.densify, first_spawn_step(cfg)
-    if first > d.until:
+    if first > d.until:  # (spawn steps come while densify.start < step <= densify.until)
         return (f"no spawn step comes while densification runs (the first would be step {first}, after densify.until "
-                f"= {d.until}), so no Gaussian gets a posterior whatever the run's length: set densify.until above "
-                f"{first} for one")
+                f"= {d.until}), so no Gaussian gets a posterior whatever the run's length: set densify.until to "
+                f"{first} or more for one")
     if step < first:
-        return (f"the run stopped at step {step}, before its first spawn step ({first}): train it on past it "
-                f"(`train --resume --iterations N`, N > {first}) for a posterior")
+        return (f"the run stopped at step {step}, before its first spawn step ({first}): train it on to that step "
+                f"(`train --resume --iterations N`, N >= {first}) for a posterior")
     return None
 
 
@@ -934,9 +934,8 @@ class Trainer:
 
                 if not self.run_dir.is_dir():  # moved or removed under the training, not a full disk
                     raise UserError("the run folder is gone while training wrote to it (moved or removed by another "
-                                    "command?)", path=self.run_dir,
-                                    hint="Find what replaced it (an `uncertsplat run` or `sweep` owning this folder "
-                                         "does so when its settings change); the training cannot go on here.") from None
+                                    "program?)", path=self.run_dir,
+                                    hint="Find what moved or removed it; the training cannot go on here.") from None
                 raise UserError(f"could not append to the training log ({err.strerror})",
                                 path=self.run_dir / "stats.jsonl",
                                 hint="Free some space, then continue with --resume.") from None
