@@ -42,7 +42,7 @@ from torch import Tensor
 
 from uncertsplat.config import EVAL_SEED_MAX
 from uncertsplat.errors import UserError
-from uncertsplat.types import Cameras, intrinsics_size_guess, principal_point_outside
+from uncertsplat.types import Cameras, focal_unusable, intrinsics_size_guess, principal_point_outside
 
 
 @dataclass(frozen=True)
@@ -193,9 +193,6 @@ def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
     return m
 
 
-_FLOAT32_MAX = float(torch.finfo(torch.float32).max)
-
-
 def _intrinsics(K, n: int, width: int, height: int, outside_ok: bool = False) -> Tensor:
     """[1 or n,3,3] float64 pinhole intrinsics of ``cameras_from_source``: refused when the renderer could not take
     them as given (it reads fx, fy, cx, cy alone: a skew or another last row would be dropped without a word), and,
@@ -212,8 +209,7 @@ def _intrinsics(K, n: int, width: int, height: int, outside_ok: bool = False) ->
         k = Ks[i]
         fx, fy, cx, cy = (float(v) for v in (k[0, 0], k[1, 1], k[0, 2], k[1, 2]))
         what = None
-        if not all(math.isfinite(v) and v > 0 and v < _FLOAT32_MAX for v in (fx, fy)):
-            # (the renderer works in float32: 1e39 px became inf and rendered nothing)
+        if bool(focal_unusable(k)):
             what = f"has the focal lengths {fx:g} / {fy:g} px: they must be positive and finite in float32"
         elif not (math.isfinite(cx) and math.isfinite(cy)):
             what = f"has the principal point {cx:g}, {cy:g}: it must be finite"

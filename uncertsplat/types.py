@@ -30,6 +30,14 @@ def principal_point_outside(K: Tensor, width: int, height: int) -> Tensor:
     return (c[..., 0] < 0) | (c[..., 0] > width) | (c[..., 1] < 0) | (c[..., 1] > height)
 
 
+def focal_unusable(K: Tensor) -> Tensor:
+    """[C] bool: which of the [C,3,3] intrinsics ``K`` have a focal length (fx or fy) the renderer cannot use: not
+    finite, not positive, or beyond float32's range (the renderer works in float32: 1e39 px became inf and drew
+    nothing). ``train``'s scene check and the ``Predictor`` refuse them."""
+    f = torch.stack([K[..., 0, 0], K[..., 1, 1]], dim=-1).double()  # [C,2]
+    return (~torch.isfinite(f) | (f <= 0) | (f >= torch.finfo(torch.float32).max)).any(-1)
+
+
 def intrinsics_size_guess(cx: float, cy: float) -> str:
     """The size a principal point at (``cx``, ``cy``) suggests (it sits near the image centre), as a clause for an
     error message; empty when the point gives no guess."""

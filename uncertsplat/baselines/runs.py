@@ -293,14 +293,12 @@ class LoadedRun:
         data, own = load_for_run(Path(self.scene_path), self.config.scene, info, initial_points=False)
         if info is None:
             return data
-        from uncertsplat.console import console
+        from uncertsplat.console import console, list_names
 
         if own is not None:
             known = {*info.train, *info.test, *info.calibration}
             new = [n for n in data.cameras.image_names if n not in known]
             if new:  # what the user can do about it: train on them
-                from uncertsplat.console import list_names
-
                 console.print(f"[yellow]note:[/] {own}; {len(new)} view(s) it has not trained on "
                               f"({list_names(new)}): `uncertsplat train {self.scene_path} -o {self.run_dir} --resume "
                               "--add-views NAMES` trains on them")

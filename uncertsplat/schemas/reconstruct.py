@@ -14,6 +14,9 @@ from pydantic import ConfigDict, Field
 from uncertsplat.schemas.base import SchemaFile, Strict
 
 REPORT_NAME = "reconstruct_report.json"
+EXTEND_DIR = ".extend_tmp"
+"""Where ``reconstruct --extend`` builds the grown workspace inside it; ``EXTEND_DIR/old`` holds the parts it
+replaced while it swaps them (``stages.reconstruct.extend``; ``sfm.scene.load_scene`` refuses a half-made swap)."""
 REPORT_SCHEMA_VERSION = 2
 
 

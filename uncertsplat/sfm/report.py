@@ -11,6 +11,7 @@ from pathlib import Path
 
 from uncertsplat.errors import UserError
 from uncertsplat.schemas.reconstruct import (
+    EXTEND_DIR,
     REPORT_NAME,
     REPORT_SCHEMA_VERSION,
     CameraSummary,
@@ -65,5 +66,5 @@ def require_successful(workspace: str | Path) -> ReconstructReport | None:
     return report
 
 
-__all__ = ["REPORT_NAME", "REPORT_SCHEMA_VERSION", "UNFINISHED", "CameraSummary", "MappingAttempt", "ModelSummary", "ReconstructReport",
+__all__ = ["EXTEND_DIR", "REPORT_NAME", "REPORT_SCHEMA_VERSION", "UNFINISHED", "CameraSummary", "MappingAttempt", "ModelSummary", "ReconstructReport",
            "load_report", "report_path", "require_successful", "write_report"]

@@ -32,6 +32,7 @@ from uncertsplat.config import SceneConfig
 from uncertsplat.console import list_names
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import IMAGE_EXTENSIONS, has_alpha, read_image_size
+from uncertsplat.schemas.reconstruct import EXTEND_DIR, REPORT_NAME
 from uncertsplat.schemas.scene import SynthScene
 from uncertsplat.sfm.center import choose_center, random_points
 from uncertsplat.sfm.colmap_io import MODEL_FILES, ColmapModel, has_model, read_colmap_model
@@ -39,6 +40,7 @@ from uncertsplat.sfm.transforms import TransformsScene, read_blender, read_nerfs
 from uncertsplat.types import (
     Cameras,
     SceneData,
+    focal_unusable,
     intrinsics_size_guess,
     principal_point_outside,
     similarity_scale,
@@ -82,8 +84,8 @@ def load_scene(path: str | Path, cfg: SceneConfig | None = None, *, initial_poin
     if not any(path.iterdir()):
         raise UserError("the scene folder is empty", path=path,
                         hint="Run `uncertsplat reconstruct PHOTOS -o FOLDER` or `uncertsplat synth FOLDER` first.")
-    aside = path / ".extend_tmp" / "old"  # stages.reconstruct.EXTEND_DIR: killed while it swapped the workspace's parts
-    if aside.is_dir() and not (aside / "reconstruct_report.json").exists():  # (once the report moved, it is complete)
+    aside = path / EXTEND_DIR / "old"  # `reconstruct --extend` killed while it swapped the workspace's parts
+    if aside.is_dir() and not (aside / REPORT_NAME).exists():  # (once the report moved, it is complete)
         raise UserError("a `reconstruct --extend` was stopped while it replaced this workspace's parts", path=path,
                         hint=f"Run `uncertsplat reconstruct PHOTOS -o {path}` (or with --extend) again: it first "
                              "undoes the half-made swap.")
@@ -294,6 +296,12 @@ def size_fit(w: int, h: int, ref_w: int, ref_h: int) -> str | None:
     return None
 
 
+def other_orientation(w: int, h: int, ref_w: int, ref_h: int) -> bool:
+    """Whether a ``w`` x ``h`` photo is of the other orientation than a scene of ``ref_w`` x ``ref_h`` (portrait in a
+    landscape scene or the reverse; a square one is of both): ``SceneConfig.photo_sizes`` = "fit" turns it."""
+    return (w >= h) != (ref_w >= ref_h) and w != h
+
+
 def common_size(counts: dict[tuple[int, int], int]) -> tuple[int, int]:
     """The scene's size of photos of several sizes ({(width, height): count}): the most common; among equals the
     larger, then the wider (deterministic)."""
@@ -316,7 +324,7 @@ def _fit_sizes(model: ColmapModel, images: list, sparse: Path) -> tuple[dict, li
     ref_w, ref_h = common_size(counts)
     cams = {im.name: model.cameras[im.camera_id] for im in images}
     # photos of the other orientation (a square one is of both)
-    other = {n for n, c in cams.items() if (c.width >= c.height) != (ref_w >= ref_h) and c.width != c.height}
+    other = {n for n, c in cams.items() if other_orientation(c.width, c.height, ref_w, ref_h)}
     up = _scene_up([im for im in images if im.name not in other])
     # name -> (turns, width, height after turning, width, height after resizing)
     turned: dict[str, tuple[int, int, int, int, int]] = {}
@@ -918,9 +926,7 @@ def _check_intrinsics(cameras: Cameras, where: Path, outside_ok: bool = False) -
     blame the poses)."""
     K = cameras.K.double()
     f = torch.stack([K[:, 0, 0], K[:, 1, 1]], dim=-1)  # [C,2]
-    # (beyond float32's range a focal length is inf in the renderer: nothing is drawn)
-    bad = (~torch.isfinite(f) | (f <= 0) | (f >= torch.finfo(torch.float32).max)).any(-1) \
-        | ~torch.isfinite(K[:, :2, 2]).all(-1)
+    bad = focal_unusable(K) | ~torch.isfinite(K[:, :2, 2]).all(-1)
     if bool(bad.any()):
         i = int(bad.nonzero()[0, 0])
         names = [cameras.image_names[j] for j in bad.nonzero()[:, 0].tolist()]

@@ -92,9 +92,7 @@ def stage_outputs(folder: Path, max_files: int = 10_000) -> list[str]:
     still be there for the stage to be skipped."""
     folder = Path(folder)
     found: list[str] = []
-    # another stage's output inside this one (an evaluate stage's eval/ in its run): that stage's own
-    nested = {m.parent.relative_to(folder) for m in folder.rglob(MANIFEST) if m.parent != folder} \
-        if folder.is_dir() else set()
+    nested = _nested_stages(folder)
     for p in sorted(folder.rglob("*")) if folder.is_dir() else ():
         rel = p.relative_to(folder)
         if not p.is_file() or any(part.startswith(".") for part in rel.parts):
@@ -114,10 +112,17 @@ def missing_outputs(folder: Path, manifest: Manifest) -> list[str]:
     those under a subfolder another stage now owns (its own manifest: prune's ``eval/``, evaluated again by an
     evaluate stage after it, which may write other files there)."""
     folder = Path(folder)
-    owned = {m.parent.relative_to(folder) for m in folder.rglob(MANIFEST) if m.parent != folder} \
-        if folder.is_dir() else set()
+    owned = _nested_stages(folder)
     return [name for name in manifest.outputs if not (folder / name).is_file()
             and not any(o in Path(name).parents for o in owned)]
+
+
+def _nested_stages(folder: Path) -> set[Path]:
+    """The subfolders of ``folder`` (relative) that hold a stage's output of their own, by their manifest: an evaluate
+    stage's ``eval/`` inside its run, a prune's evaluation once an evaluate stage owns it."""
+    if not folder.is_dir():
+        return set()
+    return {m.parent.relative_to(folder) for m in folder.rglob(MANIFEST) if m.parent != folder}
 
 
 def read_manifest(folder: Path) -> Manifest | None:

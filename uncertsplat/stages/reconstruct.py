@@ -23,6 +23,7 @@ from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.io.atomic import check_output_folder, run_lock
 from uncertsplat.sfm import reconstruct as sfm
 from uncertsplat.sfm.report import (
+    EXTEND_DIR,
     REPORT_NAME,
     UNFINISHED,
     MappingAttempt,
@@ -199,11 +200,12 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     with ``success: false`` first, then a UserError lists the unregistered images and what to try.
     """
     photos, workspace = Path(photos), Path(workspace)
-    if cfg.extend:
-        return extend(photos, workspace, cfg)
-    if (workspace / EXTEND_DIR).exists() or (workspace / EXTEND_DONE).exists():  # an --extend stopped or killed: the workspace as it was, before any check
+    # an --extend stopped or killed: the workspace as it was (or grown), before any check of it
+    if (workspace / EXTEND_DIR).exists() or (workspace / EXTEND_DONE).exists():
         with run_lock(workspace, "reconstruct"):
             _recover_extend(workspace)
+    if cfg.extend:
+        return extend(photos, workspace, cfg)
     watch = sfm.Stopwatch()
     t_start = time.perf_counter()
     with watch("scan"):
@@ -420,8 +422,6 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     return report
 
 
-EXTEND_DIR = ".extend_tmp"
-"""Where ``extend`` builds the grown workspace; ``EXTEND_DIR/old`` holds the parts it replaced while it swaps them."""
 EXTEND_DONE = ".extend_done"
 """``EXTEND_DIR`` renamed once nothing in it is needed, then removed."""
 _SWAPPED = (Path("distorted") / "sparse" / "0", Path("sparse") / "0", Path("images"), Path("database.db"))
@@ -488,17 +488,15 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
     workspace's own options (its report's); a run trained on the workspace then trains on them with
     ``train --resume --add-views`` (its frame and held-out views stay). Features and matches are computed for the new
     photos only (each against every photo); the images are undistorted again. The workspace is changed only at the
-    end, once the new model is checked (a failure or Ctrl-C before leaves it as it was).
+    end, once the new model is checked (a failure or Ctrl-C before leaves it as it was). Called by ``run`` with
+    ``cfg.extend``, once it has undone an extension that was stopped.
 
     Raises:
         UserError: not a finished workspace of this stage, the photo folder lacks photos the workspace registered,
             no new photo, none of them registered, or a camera already there moved.
     """
     photos, workspace = Path(photos), Path(workspace)
-    if (workspace / EXTEND_DIR).exists() or (workspace / EXTEND_DONE).exists():  # an earlier one stopped or killed
-        with run_lock(workspace, "reconstruct"):
-            _recover_extend(workspace)
-    existing = load_report(workspace) if workspace.is_dir() else None
+    existing = load_report(workspace) if workspace.is_dir() else None  # (``run`` undid a stopped extension first)
     needed = [workspace / "database.db", workspace / "distorted" / "sparse" / "0", workspace / "sparse" / "0"]
     if existing is None or not existing.success or any(not p.exists() for p in needed):
         raise UserError("--extend needs a finished workspace of `uncertsplat reconstruct` (its report, database.db, "
@@ -651,7 +649,7 @@ def _other_shapes(report: ReconstructReport, names: list[str]) -> tuple[list[str
     size)."""
     from collections import Counter
 
-    from uncertsplat.sfm.scene import common_size, size_fit
+    from uncertsplat.sfm.scene import common_size, other_orientation, size_fit
 
     sizes = {n: tuple(wh) for n, wh in (report.undistorted_size or {}).items()}
     if not sizes:
@@ -659,7 +657,7 @@ def _other_shapes(report: ReconstructReport, names: list[str]) -> tuple[list[str
     common = common_size(dict(Counter(sizes.values())))
 
     def fits(w: int, h: int) -> bool:  # as `train` fits it: turned to the scene's orientation first
-        if (w >= h) != (common[0] >= common[1]) and w != h:
+        if other_orientation(w, h, *common):
             w, h = h, w
         return size_fit(w, h, *common) is not None
 

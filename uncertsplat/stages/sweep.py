@@ -311,8 +311,10 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                 raise UserError(f"the sweep's scene folder {what}", path=scene_path,
                                 hint="Give --scene PATH or remove `scene` from the spec to use a synthetic scene.")
             folders = Path(scene_path)
-        measured = any(r.status == "ok" for r in read_records(out_dir / "sweep.jsonl"))
-        _check_scene_inputs(out_dir, folders if isinstance(folders, dict) else {None: folders}, force, measured)
+        log = out_dir / "sweep.jsonl"
+        before = read_records(log)  # what earlier runs of the sweep measured
+        _check_scene_inputs(out_dir, folders if isinstance(folders, dict) else {None: folders}, force,
+                            measured=any(r.status == "ok" for r in before))
         all_jobs = make_jobs(spec, out_dir, folders, str(dev), threads=None)
         hashes = {p["hash"] for j in all_jobs for p in j["points"]}  # this spec's points only
         current = {p["hash"]: p for j in all_jobs for p in j["points"]}  # (before the done ones leave the jobs)
@@ -323,8 +325,6 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                           "training and evaluation configuration as another point and are measured once (e.g. a "
                           "knob at the value the preset already gives, num_entries with the informed posterior, "
                           "which stores one table entry, or ensemble_size and spawn_fraction without offset tables)")
-        log = out_dir / "sweep.jsonl"
-        before = read_records(log)  # what earlier runs of the sweep measured
         done = {r.hash for r in before if r.status == "ok"} & hashes if not force else set()
         everywhere = current  # with --scenes, the other scenes' points too (their reports move with them)
         if whole is not spec:
