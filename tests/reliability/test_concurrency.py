@@ -142,8 +142,8 @@ def test_prune_refuses_a_run_in_training(tiny_run_path, tmp_path):  # noqa: F811
     run = tmp_path / "run"
     shutil.copytree(tiny_run_path, run)
     with _held_by_another_process(run) as holder:
-        assert lock_holder(run) == f"{holder.pid} test"
-        with pytest.raises(UserError, match=rf"another uncertsplat process \({holder.pid} test\) is working on this run"):
+        assert lock_holder(run) == f"PID {holder.pid}, test"
+        with pytest.raises(UserError, match=rf"another uncertsplat process \(PID {holder.pid}, test\) is working on this run"):
             prune.run(run, tmp_path / "out", PruneConfig(keep_ratio=0.9, num_samples=2), "cpu")
     assert not (tmp_path / "out").exists()
     # a reader takes no lock: none held, none made (a read-only run can be pruned, two prunes of one run both run)
@@ -196,7 +196,7 @@ def test_a_pipeline_does_not_replace_a_stage_folder_another_process_writes(tmp_p
     pl.run(p, out)
     with _held_by_another_process(out / "train") as holder:
         with pytest.raises(UserError, match=rf"stage 'train' would replace .*train, which another uncertsplat "
-                                            rf"process \(PID {holder.pid} test\) is writing now"):
+                                            rf"process \(PID {holder.pid}, test\) is writing now"):
             pl.run(p, out, overrides=["train.iterations=9"])
         assert (out / "train" / "out.txt").is_file() and not (out / ".previous" / "train").exists()
     pl.run(p, out, overrides=["train.iterations=9"])  # free again: the stage runs, the earlier run kept aside
@@ -217,7 +217,7 @@ def test_a_sweep_neither_trains_into_nor_deletes_a_run_another_process_writes(tm
     job = {"run_dir": str(run), "job_id": "variational_x", "scene": str(tmp_path),
            "train_config": json.loads(train_config_from("tiny").model_dump_json())}
     with _held_by_another_process(run) as holder:
-        with pytest.raises(UserError, match=rf"another uncertsplat process \(PID {holder.pid} test\) holds this "
+        with pytest.raises(UserError, match=rf"another uncertsplat process \(PID {holder.pid}, test\) holds this "
                                             "point's run now"):
             jobs._train(job, "cpu")
     assert json.loads((run / "config.json").read_text()) == {"iterations": 6000}

@@ -148,8 +148,17 @@ def remove_stale_temp_files(*folders: str | Path) -> list[Path]:
 _HELD: dict[str, int] = {}  # locks this process holds (re-entering one is allowed), by resolved path
 
 
+def _holder(lock: Path) -> str:
+    """How a lock's holder is named in every message: "PID 123, train" (what its file says; "unknown" unreadable)."""
+    try:
+        pid, _, cmd = " ".join(lock.read_text().split()[:2]).partition(" ")
+    except OSError:
+        pid, cmd = "", ""
+    return f"PID {pid or 'unknown'}{', ' + cmd if cmd else ''}"
+
+
 def lock_holder(folder: str | Path) -> str | None:
-    """"PID command" of the live process that holds ``folder``'s ``run_lock``, or None when none does: for a reader
+    """"PID n, command" of the live process that holds ``folder``'s ``run_lock``, or None when none does: for a reader
     of the folder (``prune`` reads its source run) that must not start while a writer changes it, and need not lock
     it itself (two readers do not exclude each other, and a read-only folder can be read). Creates nothing."""
     import fcntl
@@ -164,12 +173,7 @@ def lock_holder(folder: str | Path) -> str | None:
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except OSError as err:
-        if err.errno in (errno.EWOULDBLOCK, errno.EACCES):
-            try:
-                return " ".join(lock.read_text().split()[:2]) or "unknown"
-            except OSError:
-                return "unknown"
-        return None
+        return _holder(lock) if err.errno in (errno.EWOULDBLOCK, errno.EACCES) else None
     finally:
         os.close(fd)
     return None
@@ -229,13 +233,8 @@ def run_lock(folder: str | Path, command: str = "uncertsplat") -> Iterator[Path]
             os.close(fd)
             if err.errno not in (errno.EWOULDBLOCK, errno.EACCES):
                 raise UserError(f"cannot lock the folder ({err.strerror})", path=folder) from None
-            try:
-                holder = " ".join(lock.read_text().split()[:2]) or "unknown"
-            except OSError:
-                holder = "unknown"
-            pid, _, cmd = holder.partition(" ")
             raise UserError(
-                f"another uncertsplat process (PID {pid}{', ' + cmd if cmd else ''}) is writing to this folder",
+                f"another uncertsplat process ({_holder(lock)}) is writing to this folder",
                 path=folder,
                 hint="Wait for it to finish (or stop it), then run this again; a command that writes its own output "
                      "can be given another output folder instead.",

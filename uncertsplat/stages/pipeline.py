@@ -410,7 +410,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 holder = lock_holder(folder)
                 if holder is not None:
                     raise UserError(f"stage '{name}' would replace {folder}, which another uncertsplat process "
-                                    f"(PID {holder}) is writing now", path=folder,
+                                    f"({holder}) is writing now", path=folder,
                                     hint="Wait for it to finish, then run the pipeline again (a stage whose output was "
                                          "changed by hand runs again, with a note).")
             console.print(f"[bold cyan]stage[/] {name} ({stage.stage}) -> {out_dir}")

@@ -49,7 +49,7 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
     # removes, moves or trains the run, under a `train --resume` of it by hand it would mix or destroy both
     holder = lock_holder(run_dir) if run_dir.is_dir() else None
     if holder is not None:
-        raise UserError(f"another uncertsplat process (PID {holder}) holds this point's run now", path=run_dir,
+        raise UserError(f"another uncertsplat process ({holder}) holds this point's run now", path=run_dir,
                         hint="Wait for it to finish, then run the sweep again.")
     resume = (run_dir / "config.json").is_file()
     if run_dir.exists() and not resume:
