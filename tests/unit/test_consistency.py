@@ -139,6 +139,7 @@ class TestViewConsistency:
         render_fn = _plane_render(nearer=frozenset({30}))
         vc, _ = _term(azimuths, gate=2.0, render_fn=render_fn, device=device)
         test = _cameras([40.0], focal=60.0, device=device)  # 10 degrees from the hidden 30, 12 from 52: the visible 52 wins
+        monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "torch")  # (the native lookup takes every view in one pass)
         maps = {}
         for chunk in (1, 3, consistency.VIEW_CHUNK):
             monkeypatch.setattr(consistency, "VIEW_CHUNK", chunk)
@@ -491,6 +492,7 @@ def test_a_view_looked_up_in_blocks_of_points_is_the_same(monkeypatch):
                              palette_var=0.25)
     wide = _cameras([-30.0], focal=6.0)  # far round: part of its plane outside both training images
     zoom = _cameras([25.0], focal=60.0)  # between them, finer than either photo
+    monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "torch")  # (the native lookup takes every point in one pass)
     whole = {name: (vc.variance(cam, render_fn), vc.reach(cam, render_fn)) for name, cam in
              (("wide", wide), ("zoom", zoom))}
     monkeypatch.setattr(consistency, "POINTS_CHUNK", 7)
@@ -514,3 +516,97 @@ def test_a_lone_difference_spreads_as_a_fading_blob_not_a_square():
     assert float(out[7, 8 + BLUR + 1]) == 0.0 and float(out[7 + BLUR + 1, 8]) == 0.0
     assert float(out.sum()) == pytest.approx(1.0, rel=1e-6)  # inside the image the weights sum to 1
     torch.testing.assert_close(_window_mean(torch.full((6, 4), 0.3)), torch.full((6, 4), 0.3))
+
+
+def test_the_window_mean_is_the_binomial_convolution_over_the_part_inside_the_image():
+    """``_window_mean``'s shifted sums against the 5x5 binomial convolution they replaced (numerator and the window's
+    weight inside the image, each a ``conv2d``), on images down to one pixel and in float64."""
+    import torch.nn.functional as F
+
+    from uncertsplat.uncertainty.consistency import BLUR, _window_mean
+
+    k = 2 * BLUR + 1
+    gen = torch.Generator().manual_seed(0)
+    for shape, dtype in [((1, 1), torch.float32), ((1, 9), torch.float32), ((3, 2), torch.float32),
+                         ((17, 5), torch.float32), ((48, 64), torch.float32), ((7, 6), torch.float64)]:
+        v = torch.rand(shape, generator=gen, dtype=dtype)
+        w1 = torch.tensor([math.comb(k - 1, i) for i in range(k)], dtype=dtype)
+        w2 = (w1[:, None] * w1[None, :])[None, None]
+        expect = (F.conv2d(v[None, None], w2, padding=BLUR) / F.conv2d(torch.ones_like(v)[None, None], w2,
+                                                                       padding=BLUR))[0, 0]
+        torch.testing.assert_close(_window_mean(v), expect)
+
+
+class TestNativeLookup:
+    """``native/csrc/consistency.cpp`` against the tensor ops (``ViewConsistency._lookup_torch``): random compared
+    renders (colours and depths, some of them nearer than the points so that a view does not see them) and points
+    in front of, beside and behind the cameras."""
+
+    @pytest.fixture(autouse=True)
+    def needs_native(self):
+        from uncertsplat import native
+
+        if native.library() is None:
+            pytest.skip(f"native kernels unavailable: {native.unavailable_reason()}")
+
+    def _case(self, seed: int, views: int = 11):
+        gen = torch.Generator().manual_seed(seed)
+        azimuths = (torch.rand(views, generator=gen) * 160 - 80).tolist()
+        train = _cameras(azimuths, focal=20.0)
+        points = torch.rand(3000, 3, generator=gen) * torch.tensor([6.0, 4.0, 2.0]) - torch.tensor([3.0, 2.0, 1.0])
+        points[:50] = torch.rand(50, 3, generator=gen) * 20 - 10  # some behind or beside every camera
+        # each view's depth at each pixel: the points' own depth there would be about 4; a random part nearer
+        depth = torch.full((views, H, W), 4.0) + torch.randn(views, H, W, generator=gen) * 0.8
+        depth[torch.rand(views, H, W, generator=gen) < 0.2] = 0.0  # rays that met nothing
+        rgb = torch.rand(views, H, W, 3, generator=gen).half()
+        vc = ViewConsistency(_sample(), train, rgb, depth, gate=3.0)
+        test = _cameras([float(torch.rand(1, generator=gen)) * 100 - 50], focal=30.0)
+        colour = torch.rand(points.shape[0], 3, generator=gen)
+        return vc, test, points, colour
+
+    @pytest.mark.parametrize("seed", [0, 1, 2])
+    def test_the_same_views_differences_and_reach_as_the_tensor_ops(self, seed):
+        vc, test, points, colour = self._case(seed)
+        foot = consistency._footprint(points, test)
+        stack = vc._native_stack(points)
+        assert stack is not None
+        best, diff, inside, finest = vc._lookup_native(points, test, colour, foot, stack)
+        with torch.no_grad():
+            ref = vc._lookup_torch(points, test, colour, foot)
+        assert torch.equal(inside, ref[2]) and 0 < int(inside.sum()) < points.shape[0]
+        seen = torch.isfinite(ref[0])
+        assert torch.equal(torch.isfinite(best), seen) and 0 < int(seen.sum()) < int(inside.sum())
+        # the angle of the nearest view: acos near 0 degrees resolves about 0.02 degrees of a float32 cosine
+        torch.testing.assert_close(best[seen], ref[0][seen], atol=0.1, rtol=1e-4)
+        torch.testing.assert_close(diff, ref[1], atol=1e-6, rtol=1e-4)
+        torch.testing.assert_close(finest, ref[3], atol=0.0, rtol=1e-5)
+        assert float(diff[~seen].abs().max()) == 0.0 and bool(torch.isinf(finest[~seen]).all())
+
+    def test_without_colour_or_footprint_only_what_was_asked(self):
+        vc, test, points, _ = self._case(3)
+        best, diff, inside, finest = vc._lookup_native(points, test, None, None, vc._native_stack(points))
+        assert float(diff.abs().max()) == 0.0 and bool(torch.isinf(finest).all())
+        ref = vc._lookup_torch(points, test, None, None)
+        assert torch.equal(inside, ref[2]) and torch.equal(torch.isfinite(best), torch.isfinite(ref[0]))
+
+    def test_a_view_gets_the_same_term_and_reach_either_way(self, monkeypatch):
+        """Through ``variance`` and ``reach``: the maps of the two paths agree to rounding."""
+        render_fn = _plane_render(nearer=frozenset({30}))
+        vc = dataclasses.replace(ViewConsistency.of(_sample(), _cameras([-40.0, 0.0, 30.0, 52.0], focal=12.0), render_fn,
+                                                    finer_detail=0.1), gate=2.0, palette_var=0.25)
+        for cam in (_cameras([40.0], focal=60.0), _cameras([-70.0], focal=6.0)):
+            native_map, native_reach = vc.variance(cam, render_fn), vc.reach(cam, render_fn)
+            monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "torch")
+            torch.testing.assert_close(native_map, vc.variance(cam, render_fn), atol=1e-6, rtol=1e-4)
+            assert native_reach == pytest.approx(vc.reach(cam, render_fn), rel=1e-5)
+            monkeypatch.delenv("UNCERTSPLAT_RASTERIZER")
+            assert float(native_map.max()) > 0.0
+
+    def test_no_points_and_one_view(self):
+        vc, test, points, colour = self._case(4, views=1)
+        stack = vc._native_stack(points)
+        best, diff, inside, finest = vc._lookup_native(points[:0], test, colour[:0], None, stack)
+        assert best.shape == diff.shape == inside.shape == finest.shape == (0,)
+        best, _, inside, _ = vc._lookup_native(points, test, colour, None, stack)
+        ref = vc._lookup_torch(points, test, colour, None)
+        assert torch.equal(inside, ref[2]) and torch.equal(torch.isfinite(best), torch.isfinite(ref[0]))

@@ -7,7 +7,9 @@
 offset tables (``gaussians/variational.py``), each with its gradient. ``optim.cpp``: Adam, dense over
 several tensors in one call or on selected rows (``train/adam.py``). ``densify.cpp``: a step's densification
 statistics (``strategy/densify.py``). ``sample.cpp``: a training step's Gaussians from the parameters and the
-posterior's table terms (``gaussians/variational.py``), forward and backward. ``vmath.h``: vectorisable exp/log;
+posterior's table terms (``gaussians/variational.py``), forward and backward. ``consistency.cpp``: the
+view-consistency term's lookups of surface points in the compared training views (``uncertainty/consistency.py``).
+``vmath.h``: vectorisable exp/log;
 ``parallel.h``: fork-join over threads.
 
 The C++ files have a C ABI and no torch headers, so they need no Python build step: the system C++ compiler
@@ -39,11 +41,11 @@ from pathlib import Path
 
 import torch
 
-INTERFACE_VERSION = 19
+INTERFACE_VERSION = 20
 CSRC = Path(__file__).with_name("csrc")
 # compiled side by side, one process each (``_build``): the two halves of the rasterizer take most of the time
 SOURCES = (CSRC / "composite_forward.cpp", CSRC / "composite_backward.cpp", CSRC / "losses.cpp", CSRC / "project.cpp",
-           CSRC / "optim.cpp", CSRC / "densify.cpp", CSRC / "sample.cpp")
+           CSRC / "optim.cpp", CSRC / "densify.cpp", CSRC / "sample.cpp", CSRC / "consistency.cpp")
 HEADERS = (CSRC / "composite.h", CSRC / "vmath.h", CSRC / "parallel.h")
 # -fno-trapping-math lets the compiler vectorise the float->int conversion inside the exp polynomial;
 # -fopenmp-simd honours the `omp simd` hints without linking an OpenMP runtime (torch brings its own).
@@ -226,6 +228,8 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.us_adam_multi_f32.restype = ctypes.c_int
     lib.us_densify_accumulate_f32.argtypes = [i64, i64, ptr, ptr, f64, f64, ptr, ptr, ptr]
     lib.us_densify_accumulate_f32.restype = ctypes.c_int
+    lib.us_consistency_lookup_f32.argtypes = [i64] * 4 + [ptr] * 6 + [f64] * 3 + [ptr] * 5 + [i64]
+    lib.us_consistency_lookup_f32.restype = ctypes.c_int
     lib.us_version.restype = ctypes.c_int
     lib.us_max_features.restype = ctypes.c_int
 

@@ -49,7 +49,10 @@ already averaged (r = 1) being ``(r^2 - 1) g / 12``. Together ``(r^2 - 1) (delta
 NLL -3.07 -> -3.17, AUSE-MAE 0.120 -> 0.114; the held-out views at the capture's distance unchanged (BENCHMARKS.md,
 "Detail finer than any photo recorded").
 
-Pure tensors: a sample, cameras and a renderer (``render_fn(sample, cameras) -> RenderOutput``).
+Pure tensors: a sample, cameras and a renderer (``render_fn(sample, cameras) -> RenderOutput``). On a CPU the lookups
+of the points in the compared views run in a native kernel (``native/csrc/consistency.cpp``: a 1280x960 view against
+the demo's 35 views in 0.5 s, 10 s as tensor ops); elsewhere, or with ``UNCERTSPLAT_RASTERIZER=torch``, as blocks of
+tensor ops, the same values to rounding.
 """
 
 from __future__ import annotations
@@ -85,15 +88,17 @@ BLUR = 2
 MIN_GATE = 1.0
 """Degrees: the smallest ``gate`` (a capture of one view, or of views from one place)."""
 VIEW_CHUNK = 8
-"""Training views a pixel's point is projected into at once (``ViewConsistency.variance``): their renders are sampled
-as one batch (4 float32 channels per pixel of each)."""
+"""Training views a pixel's point is projected into at once by the tensor ops (``ViewConsistency._lookup_torch``; the
+native kernel takes them all in one pass): their renders are sampled as one batch (4 float32 channels per pixel of
+each)."""
 STACK_BYTES = 256 * 2**20
 """The compared renders are kept as the ready [C,4,H,W] stacks each lookup samples (``_compared_at``) when all of them
 fit in this many bytes: rebuilding a chunk's stack from the float16 renders for each evaluated view cost more than
-the lookup itself on a small view (44 of 162 ms of a 32x24 prediction on the demo run)."""
+the lookup itself on a small view (44 of 162 ms of a 32x24 prediction on the demo run). The native kernel's
+[T,H,W,4] stack is kept under the same bound."""
 POINTS_CHUNK = 65536
-"""Surface points of an evaluated view ``variance`` and ``reach`` look up at once (their [C,S] lookups took about
-0.6 KB a pixel for a whole view)."""
+"""Surface points of an evaluated view the tensor ops look up at once (their [C,S] lookups took about 0.6 KB a pixel
+for a whole view; the native kernel keeps a point's lookups in registers)."""
 FREE_POINTS_CHUNK = 65536
 """Points ``seen_free`` tests at once (about 600 bytes each while they are looked up: 4M points took 2.8 GB)."""
 MAX_FINER = 1e6
@@ -211,11 +216,7 @@ class ViewConsistency:
         rgb, where, points = found  # [H,W,3], [S], [S,3]
         h, w = rgb.shape[:2]
         colour = rgb.reshape(-1, 3)[where]  # [S,3]
-        # a block of points at a time: each point's lookups are its own, and [C,S] lookups of a whole large view
-        # took 0.6 KB a pixel (1280x960: 0.9 GB)
-        terms = [self._term_of(points[b:b + POINTS_CHUNK], colour[b:b + POINTS_CHUNK], camera)
-                 for b in range(0, points.shape[0], POINTS_CHUNK)]
-        term, finest = torch.cat([t[0] for t in terms]), torch.cat([t[1] for t in terms])  # [S], [S]
+        term, finest = self._term_of(points, colour, camera)  # [S], [S]
         full = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(0, where, term)
         out = _window_mean(full.reshape(h, w))[None, ..., None]
         if self.finer_detail > 0.0:  # not averaged: the edges it follows are a pixel wide
@@ -234,29 +235,96 @@ class ViewConsistency:
         consistency term before the window mean [S] (the gated squared difference to the nearest seeing view, the
         palette's variance where no training camera holds the point) and the finest seeing view's footprint over
         this view's [S] (inf where none sees it; only with ``finer_detail``)."""
-        to_view = F.normalize(camera.centers[0].to(points) - points, dim=-1)  # [S,3]
-        best = torch.full_like(points[:, 0], float("inf"))  # [S] angle of the chosen view
-        diff = torch.zeros_like(colour[:, 0])  # [S]
-        inside_any = torch.zeros_like(points[:, 0], dtype=torch.bool)  # [S] in some compared view's image
-        foot = _footprint(points, camera)  # [S]
-        finest = torch.full_like(foot, float("inf"))  # [S] the finest seeing view's footprint over this view's
-        for k0 in range(0, len(self.cameras), VIEW_CHUNK):
-            cams, z, inside, there, seen = self._compared_at(points, k0, colour.dtype)
-            inside_any |= inside.any(0)
-            if self.finer_detail > 0.0:
-                finest = torch.minimum(finest, _finest_ratio(cams, z, seen, foot))
-            angle = _angle(F.normalize(cams.centers.to(points)[:, None] - points, dim=-1), to_view)  # [C,S]
-            angle = torch.where(seen, angle, torch.full_like(angle, float("inf")))
-            nearest, k = angle.min(0)  # [S]: the first of equal angles, as views in order
-            better = nearest < best
-            sq = (colour - there.gather(0, k[None, :, None].expand(1, -1, 4))[0, :, :3]).square().mean(-1)  # [S]
-            diff = torch.where(better, sq, diff)
-            best = torch.where(better, nearest, best)
+        best, diff, inside_any, finest = self._lookup(points, camera, colour, self.finer_detail > 0.0)
         weight = ((best - self.gate) / self.gate).clamp(0.0, 1.0).to(colour.dtype)  # diff is 0 where no view saw it
         if self.palette_var > 0.0:
             unlooked = self._outside_every_image(points, inside_any)  # [S] (best = inf there: no view saw them)
             diff = torch.where(unlooked, torch.full_like(diff, self.palette_var), diff)  # weight 1 there (best = inf)
         return diff * weight, finest
+
+    def _lookup(self, points: Tensor, camera: Cameras, colour: Tensor | None, fine: bool
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The compared views at surface ``points`` [S,3] of the evaluated ``camera``: the angle in degrees to the
+        nearest view that sees each point [S] (inf where none does), the mean over the channels of the squared
+        difference between ``colour`` [S,3] and that view's render there [S] (0 where none sees it; zeros without
+        ``colour``), whether some compared view's image holds the point [S] and, with ``fine``, the finest seeing
+        view's footprint over this view's [S] (inf where none sees it; all inf without ``fine``). On a CPU with the
+        native kernels one pass over the points (``native/csrc/consistency.cpp``), else ``POINTS_CHUNK`` points and
+        ``VIEW_CHUNK`` views of tensor ops at a time."""
+        foot = _footprint(points, camera) if fine else None  # [S]
+        stack = self._native_stack(points)
+        if stack is not None:
+            return self._lookup_native(points, camera, colour, foot, stack)
+        parts = [self._lookup_torch(points[b:b + POINTS_CHUNK], camera,
+                                    None if colour is None else colour[b:b + POINTS_CHUNK],
+                                    None if foot is None else foot[b:b + POINTS_CHUNK])
+                 for b in range(0, points.shape[0], POINTS_CHUNK)]
+        best, diff, inside_any, finest = (torch.cat([p[i] for p in parts]) for i in range(4))
+        return best, diff, inside_any, finest
+
+    def _lookup_torch(self, points: Tensor, camera: Cameras, colour: Tensor | None, foot: Tensor | None
+                      ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``_lookup`` of one block of points in tensor ops (``foot``: [S] or None for no finest ratio)."""
+        to_view = F.normalize(camera.centers[0].to(points) - points, dim=-1)  # [S,3]
+        best = torch.full_like(points[:, 0], float("inf"))  # [S] angle of the chosen view
+        diff = torch.zeros_like(points[:, 0])  # [S]
+        inside_any = torch.zeros_like(points[:, 0], dtype=torch.bool)  # [S] in some compared view's image
+        finest = torch.full_like(points[:, 0], float("inf"))  # [S] the finest seeing view's footprint over this view's
+        for k0 in range(0, len(self.cameras), VIEW_CHUNK):
+            cams, z, inside, there, seen = self._compared_at(points, k0, points.dtype)
+            inside_any |= inside.any(0)
+            if foot is not None:
+                finest = torch.minimum(finest, _finest_ratio(cams, z, seen, foot))
+            angle = _angle(F.normalize(cams.centers.to(points)[:, None] - points, dim=-1), to_view)  # [C,S]
+            angle = torch.where(seen, angle, torch.full_like(angle, float("inf")))
+            nearest, k = angle.min(0)  # [S]: the first of equal angles, as views in order
+            better = nearest < best
+            if colour is not None:
+                sq = (colour - there.gather(0, k[None, :, None].expand(1, -1, 4))[0, :, :3]).square().mean(-1)  # [S]
+                diff = torch.where(better, sq, diff)
+            best = torch.where(better, nearest, best)
+        return best, diff, inside_any, finest
+
+    def _lookup_native(self, points: Tensor, camera: Cameras, colour: Tensor | None, foot: Tensor | None,
+                       stack: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``_lookup`` by the native kernel (``stack``: ``_native_stack``'s)."""
+        from uncertsplat import native
+
+        s = points.shape[0]
+        pts = points.contiguous()
+        col = None if colour is None else colour.float().contiguous()
+        ft = None if foot is None else foot.float().contiguous()
+        cams = self.cameras
+        world = cams.cam_from_world.float().contiguous()
+        K, centers = cams.K.float().contiguous(), cams.centers.float().contiguous()
+        eye = camera.centers[0].double().tolist()
+        best_cos, diff = torch.empty(s), torch.zeros(s)
+        inside_any, finest = torch.empty(s, dtype=torch.uint8), torch.full((s,), float("inf"))
+        native.library().us_consistency_lookup_f32(
+            s, len(cams), cams.height, cams.width, pts.data_ptr(), 0 if col is None else col.data_ptr(),
+            world.data_ptr(), K.data_ptr(), centers.data_ptr(), stack.data_ptr(), *eye,
+            0 if ft is None else ft.data_ptr(), best_cos.data_ptr(), diff.data_ptr(), inside_any.data_ptr(),
+            0 if ft is None else finest.data_ptr(), native.kernel_threads())
+        none = best_cos < -1.5  # no view sees the point
+        best = torch.where(none, torch.full_like(best_cos, float("inf")), torch.rad2deg(torch.acos(best_cos)))
+        return best, diff, inside_any.bool(), finest
+
+    def _native_stack(self, points: Tensor) -> Tensor | None:
+        """[T,H,W,4] float32: every compared view's rgb and depth, for the native lookup; None where it does not
+        run (another device, no native kernels, ``UNCERTSPLAT_RASTERIZER=torch``). Kept for the next call when it
+        fits in ``STACK_BYTES``."""
+        from uncertsplat import native
+
+        if points.dtype != torch.float32 or not native.use_for(points, self.depth, dtypes=(torch.float32,),
+                                                                strict=False):
+            return None
+        found = self._cache.get("native")
+        if found is not None:
+            return found
+        stack = torch.cat([self.rgb.float(), self.depth.float()[..., None]], -1).contiguous()  # [T,H,W,4]
+        if stack.numel() * stack.element_size() <= STACK_BYTES:
+            self._cache["native"] = stack
+        return stack
 
     @torch.no_grad()
     def unlooked_fraction(self, camera: Cameras,
@@ -280,19 +348,8 @@ class ViewConsistency:
         if found is None:
             return 0.0, 1.0
         points = found[2]  # [S,3]
-        unlooked, finest = [], []
-        for b in range(0, points.shape[0], POINTS_CHUNK):  # a block at a time, as ``variance``
-            block = points[b:b + POINTS_CHUNK]
-            foot = _footprint(block, camera)  # [B]
-            fine = torch.full_like(foot, float("inf"))  # [B] the finest seeing view's footprint / this view's
-            inside_any = torch.zeros_like(foot, dtype=torch.bool)  # [B] in some compared view's image
-            for k0 in range(0, len(self.cameras), VIEW_CHUNK):
-                cams, z, inside, _, seen = self._compared_at(block, k0, block.dtype)
-                inside_any |= inside.any(0)
-                fine = torch.minimum(fine, _finest_ratio(cams, z, seen, foot))
-            unlooked.append(self._outside_every_image(block, inside_any))
-            finest.append(fine)
-        unlooked, finest = float(torch.cat(unlooked).float().mean()), torch.cat(finest)
+        _, _, inside_any, finest = self._lookup(points, camera, None, True)
+        unlooked = float(self._outside_every_image(points, inside_any).float().mean())
         seen_any = torch.isfinite(finest)
         if not bool(seen_any.any()):
             return unlooked, 1.0
@@ -440,12 +497,27 @@ def _window_mean(values: Tensor) -> Tensor:
     0.122). Pixels without a difference count as 0: averaged over the found ones alone, the few pixels at an
     occlusion's edge that find a view, often with a large difference, would spread over the whole window (half ring:
     AUSE-MAE 0.193 against 0.174, NLL -1.08 against -1.17)."""
+    h, w = values.shape
+    # shifted sums along each axis (separable): a 5x5 conv2d of one channel took 80 ms at 1280x960, these 15 ms
+    num = _binomial_sum(_binomial_sum(F.pad(values, (BLUR, BLUR, BLUR, BLUR)), 1, w), 0, h)  # [H,W]
+    ones_w = _binomial_sum(values.new_ones(1, w + 2 * BLUR).index_fill_(1, _rim(w, values.device), 0.0), 1, w)[0]
+    ones_h = _binomial_sum(values.new_ones(h + 2 * BLUR, 1).index_fill_(0, _rim(h, values.device), 0.0), 0, h)[:, 0]
+    return num / (ones_h[:, None] * ones_w[None, :])  # the window's weight inside the image
+
+
+def _binomial_sum(padded: Tensor, dim: int, size: int) -> Tensor:
+    """The sum along ``dim`` of ``padded`` (``BLUR`` extra entries at each end) over each window of ``2 BLUR + 1``
+    with binomial weights (1 4 6 4 1), ``size`` entries."""
     k = 2 * BLUR + 1
-    w1 = torch.tensor([math.comb(k - 1, i) for i in range(k)], dtype=values.dtype, device=values.device)  # [k]
-    w2 = (w1[:, None] * w1[None, :])[None, None]  # [1,1,k,k]
-    num = F.conv2d(values[None, None], w2, padding=BLUR)
-    den = F.conv2d(torch.ones_like(values)[None, None], w2, padding=BLUR)  # the window's weight inside the image
-    return (num / den)[0, 0]
+    out = padded.narrow(dim, 0, size).clone()  # (weight 1)
+    for i in range(1, k):
+        out.add_(padded.narrow(dim, i, size), alpha=math.comb(k - 1, i))
+    return out
+
+
+def _rim(size: int, device: torch.device) -> Tensor:
+    """The indices of the ``BLUR`` padding entries at each end of an axis of ``size`` entries padded by them."""
+    return torch.cat([torch.arange(BLUR), torch.arange(size + BLUR, size + 2 * BLUR)]).to(device)
 
 
 __all__ = ["ViewConsistency", "capture_spacing"]
