@@ -145,6 +145,18 @@ def _whole(value, name: str, minimum: int) -> int:
     return out
 
 
+def _contiguous(values):
+    """``values`` as torch takes them: a tensor detached (a pose with ``requires_grad`` warned from deep inside), a
+    numpy array with negative strides (``np.flip``, ``a[::-1]``) copied, which ``torch.as_tensor`` refuses."""
+    if isinstance(values, torch.Tensor):
+        return values.detach()
+    if type(values).__module__ == "numpy" and hasattr(values, "strides") and any(st < 0 for st in values.strides):
+        import numpy as np
+
+        return np.ascontiguousarray(values)
+    return values
+
+
 def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
     """[N,4,4] float64 world-to-camera transforms with OpenCV axes from ``cameras_from_source``'s poses."""
     if transform not in TRANSFORMS:
@@ -152,7 +164,7 @@ def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
     if axes not in AXES:
         raise UserError(f"unknown axes {axes!r}", hint=f"Use one of {', '.join(AXES)}.")
     try:
-        m = torch.as_tensor(poses, dtype=torch.float64)
+        m = torch.as_tensor(_contiguous(poses), dtype=torch.float64)
     except (TypeError, ValueError, RuntimeError) as e:
         raise TypeError(f"cam_from_source must be a tensor or array of poses ([N,4,4] or [N,3,4]), got "
                         f"{type(poses).__name__}: {e}") from None
@@ -172,22 +184,26 @@ def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
             what = f"has the last row {[round(float(v), 6) for v in m[i, 3]]}, not [0, 0, 0, 1]"
         else:
             R = m[i, :3, :3]
-            if not (torch.allclose(R @ R.T, torch.eye(3, dtype=m.dtype), rtol=0, atol=1e-5)
-                    and float(torch.linalg.det(R)) > 0):  # (a reflection is orthogonal too)
-                what = "has a rotation part that is not one (not orthonormal, or a reflection)"
+            off = float((R @ R.T - torch.eye(3, dtype=m.dtype)).abs().max())  # how far from orthonormal
+            if not (off <= 1e-5 and float(torch.linalg.det(R)) > 0):  # (a reflection is orthogonal too)
+                what = ("has a rotation part that is a reflection (determinant < 0)" if off <= 1e-5 else
+                        f"has a rotation part that is not orthonormal: R R^T is {off:.1e} off the identity (at most "
+                        "1e-5 is taken; a pose with a scale, a sim(3), is not rigid: divide its rotation by the scale,"
+                        " or re-orthonormalise it, e.g. by its SVD)")
                 given = str(getattr(poses, "dtype", "")).rsplit(".", 1)[-1]  # torch.float16 or numpy's float16
-                if given in ("float16", "bfloat16", "half"):
-                    what += (f" to 1e-5; the poses are {given}, whose 2-3 significant digits cannot hold a rotation "
-                             "that closely: pass them as float32 or float64")
+                if given in ("float16", "bfloat16", "half") and off > 1e-5:
+                    what += (f"; the poses are {given}, whose 2-3 significant digits cannot hold a rotation that "
+                             "closely: pass them as float32 or float64")
         if what is not None:
             raise UserError(f"cam_from_source must be rigid transforms (a rotation and a translation): pose {i} {what}",
                             hint=_RIGID_HINT)
     m = m.clone()
     m[:, 3] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype)
-    if transform == "world_from_cam":  # the rigid inverse: [R^T, -R^T t]
-        Rt = m[:, :3, :3].transpose(1, 2).clone()
-        m[:, :3, 3:] = -Rt @ m[:, :3, 3:]
-        m[:, :3, :3] = Rt
+    if transform == "world_from_cam":
+        # the matrix inverse, not [R^T, -R^T t]: a robot's rotation is orthonormal to its float precision only, and
+        # a pose inverted elsewhere (np.linalg.inv) then came back 1e-8 off the world-to-camera matrix it was made
+        # from, so it got another seed (``pose_index``) and other maps (a helper: 20 poses of 20)
+        m = torch.linalg.inv(m)
     if axes != "opencv":  # OpenGL's camera (y up, z backward) is OpenCV's turned half a turn about x
         m = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=m.dtype)) @ m
     return m
@@ -272,6 +288,9 @@ class Predictor:
         from uncertsplat import native
         from uncertsplat.device import resolve_device
 
+        if Path(run_dir).is_file():  # (it said "config.json is missing" of RUN/config.json)
+            raise UserError("Predictor.load takes a run folder, not a file in it", path=run_dir,
+                            hint=f"Pass the folder: Predictor.load({str(Path(run_dir).parent)!r}).")
         device = resolve_device(device)
         evaluation = _evaluation_config(Path(run_dir))
         cfg = cfg if cfg is not None else evaluation
@@ -312,7 +331,7 @@ class Predictor:
                      if kept.device != device.type else "")
             console.print(f"[yellow]note:[/] the scene cannot be loaded ({err.message}): the predictive is the one "
                           f"kept in {run_dir / 'eval' / 'predictive.pt'} (fitted on {kept.device}"
-                          f"{', by another version' if kept.versions != plain_versions() else ''}{where})")
+                          f"{', by another version or build of uncertsplat' if kept.versions != plain_versions() else ''}{where})")
         else:
             if kept is not None and (kept.device != device.type or kept.versions != plain_versions()):
                 kept = None  # fitted on another device or by another version: fitted again, as evaluate would
@@ -388,7 +407,8 @@ class Predictor:
         cfs = _cam_from_world(cam_from_source, transform, axes)
         width, height = _whole(width, "width", 1), _whole(height, "height", 1)
         Ks = _intrinsics(K, len(cfs), width, height, principal_point_outside)
-        names = tuple(names) or tuple(f"pose_{i}" for i in range(len(cfs)))
+        names = (names,) if isinstance(names, str) else tuple(names)  # one name, not its letters
+        names = names or tuple(f"pose_{i}" for i in range(len(cfs)))
         if len(names) != len(cfs):
             raise UserError(f"{len(names)} name(s) for {len(cfs)} pose(s): give one name per pose (or none)")
         cfw = normalized_cam_from_world(cfs, self._world_from_source)
@@ -413,7 +433,11 @@ class Predictor:
         """
         if frame not in ("source", "world"):
             raise UserError(f"frame must be 'source' or 'world', got {frame!r}")
-        pts = torch.as_tensor(points, dtype=torch.float64)
+        try:
+            pts = torch.as_tensor(_contiguous(points), dtype=torch.float64)
+        except (TypeError, ValueError, RuntimeError) as e:
+            raise UserError(f"points must be a tensor or array of [P,3] positions, got {type(points).__name__}: {e}"
+                            ) from None
         given = tuple(pts.shape)
         if pts.ndim == 1 and pts.numel() == 0:  # an empty list of points (a planner's empty waypoint list): [0,3]
             pts = pts.reshape(0, 3)

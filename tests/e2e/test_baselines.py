@@ -165,6 +165,10 @@ def test_ensemble_of_one_has_zero_spread(ensemble_run, tmp_path):
     assert all(ch["rgb_std.R"].max() > 0 for ch in exr_maps(run, report))
     stored = EvalReport.from_json((run / "eval" / "metrics.json").read_text())
     assert any("ensemble of 1 member" in n for n in stored.notes)
+    # its K samples are one render: a kernel density of them measures its bandwidth (a report showed 2,700 nats beside
+    # -2.5 for the other runs), so none is given, and the note says why
+    assert stored.mean.nll_kde is None and all(m.nll_kde is None for m in stored.per_view.values())
+    assert any(n.startswith("KDE NLL not computed: the samples are one render") for n in stored.notes)
 
 
 def test_fisher_variances_and_spread(fisher_run):

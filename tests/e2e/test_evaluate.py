@@ -897,7 +897,7 @@ class TestPredictor:
         with pytest.raises(UserError, match="num_samples must be 1 or more"):
             pred.predict(pred.scene.cameras[[0]], num_samples=0)
         mirrored = torch.diag(torch.tensor([1.0, 1.0, -1.0, 1.0], dtype=torch.float64))  # orthogonal, det -1
-        with pytest.raises(UserError, match="rotation part that is not one"):
+        with pytest.raises(UserError, match="rotation part that is a reflection"):
             pred.cameras_from_source(mirrored, pred.scene.cameras.K[0], 128, 96)
         two = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
         with pytest.raises(UserError, match=r"K must be \[3,3\] or \[N,3,3\] with N = 2"):
@@ -1253,6 +1253,9 @@ def test_a_std_of_zero_everywhere_is_said(tiny_run_path, tmp_path):
     report = evaluate.run(run, EvalConfig(num_samples=1, max_views=1, save_maps=False, reuse=False, **off),
                           device=torch.device("cpu"))
     assert any(n.startswith("every pixel's RGB std is 0") for n in report.notes)
+    # nor a kernel density of that one render (it measured its bandwidth: 2,700 nats beside -2.5)
+    assert report.mean.nll_kde is None and any(n.startswith("KDE NLL not computed") for n in report.notes)
     report = evaluate.run(run, EvalConfig(num_samples=2, max_views=1, save_maps=False, reuse=False),
                           device=torch.device("cpu"))
     assert not any(n.startswith("every pixel's RGB std is 0") for n in report.notes)
+    assert report.mean.nll_kde is not None and not any(n.startswith("KDE NLL not") for n in report.notes)

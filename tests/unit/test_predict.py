@@ -67,6 +67,53 @@ def test_the_four_pose_conventions_of_one_pose_give_the_same_camera():
         pred.cameras_from_source(cv, K, 128, 96, axes="ros")
 
 
+def test_a_pose_given_camera_to_world_gets_the_seed_of_its_world_to_camera_matrix():
+    """A robot's camera-to-world pose is often the float64 inverse of a world-to-camera one whose rotation is
+    orthonormal to float32's precision only; inverted back as [R^T, -R^T t] it came 1e-8 off the matrix it was made
+    from, so ``pose_index`` seeded it apart and its maps differed (20 poses of 20). Now the same seed, for rotations
+    about every axis and about one (entries exactly 0 one way, 1e-17 or -0.0 the other)."""
+    from uncertsplat.eval.engine import pose_index
+
+    pred = bare_predictor()
+    gen = np.random.default_rng(0)
+    poses = []
+    for i in range(20):
+        M = np.eye(4)
+        angles = gen.uniform(-3, 3, 3)
+        R = (rotation(angles[0], 0) @ rotation(angles[1], 1) @ rotation(angles[2], 2)) if i % 2 else rotation(
+            angles[0], i % 3)
+        M[:3, :3] = R.float().double().numpy()  # orthonormal to float32's precision, as a map's poses are
+        M[:3, 3] = gen.normal(0, 5, 3)
+        poses.append(M)
+    for M in poses:
+        a = pred.cameras_from_source(M, K, 128, 96)
+        b = pred.cameras_from_source(np.linalg.inv(M), K, 128, 96, transform="world_from_cam")
+        assert pose_index(a.cam_from_world[0], a.K[0]) == pose_index(b.cam_from_world[0], b.K[0])
+    other = poses[0].copy()
+    other[0, 3] += 1e-4
+    a = pred.cameras_from_source(poses[0], K, 128, 96)
+    c = pred.cameras_from_source(other, K, 128, 96)
+    assert pose_index(a.cam_from_world[0], a.K[0]) != pose_index(c.cam_from_world[0], c.K[0])
+
+
+def test_arrays_with_negative_strides_a_pose_that_needs_grad_and_one_name():
+    """``np.flip`` or ``a[::-1]`` of poses (torch refused their negative strides), a tensor with ``requires_grad``
+    (torch warned from inside), and ``names="cam"`` for one pose (split into its letters: "3 name(s)")."""
+    import warnings
+
+    pred = bare_predictor()
+    M = a_pose().numpy()
+    expected = pred.cameras_from_source(np.stack([M, np.linalg.inv(M)]), K, 128, 96)
+    flipped = pred.cameras_from_source(np.stack([np.linalg.inv(M), M])[::-1], K.numpy()[None][::-1], 128, 96)
+    torch.testing.assert_close(flipped.cam_from_world, expected.cam_from_world, atol=0, rtol=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        pred.cameras_from_source(torch.from_numpy(M).requires_grad_(), K, 128, 96)
+    assert pred.cameras_from_source(M, K, 128, 96, names="cam").image_names == ("cam",)
+    with pytest.raises(UserError, match=r"1 name\(s\) for 2 pose\(s\)"):
+        pred.cameras_from_source(np.stack([M, M]), K, 128, 96, names="cam")
+
+
 def test_three_by_four_poses_get_the_last_row():
     """[N,3,4] is what pycolmap's Rigid3d.matrix() gives; one pose may come as [3,4] or [4,4], numpy or torch."""
     pred = bare_predictor()
@@ -83,7 +130,8 @@ def test_three_by_four_poses_get_the_last_row():
     (lambda M: M.__setitem__((3, 2), 0.5), r"pose 1 has the last row \[0.0, 0.0, 0.5, 1.0\], not \[0, 0, 0, 1\]"),
     (lambda M: M.__setitem__((0, 3), float("nan")), "pose 1 has entries that are not finite"),
     (lambda M: M.__setitem__((2, 3), float("inf")), "pose 1 has entries that are not finite"),
-    (lambda M: M.__setitem__((0, 0), 2.0), "pose 1 has a rotation part that is not one"),
+    (lambda M: M.__setitem__((0, 0), 2.0), "pose 1 has a rotation part that is not orthonormal: R R\\^T is 4.0e\\+00 off"),
+    (lambda M: M[:3, 0].neg_(), r"pose 1 has a rotation part that is a reflection \(determinant < 0\)"),
 ])
 def test_refuses_a_pose_that_is_not_rigid_naming_it(change, match):
     pred = bare_predictor()
@@ -219,3 +267,10 @@ def test_the_interval_reads_the_std_as_the_student_ts_standard_deviation():
         gauss.interval(0.9, calibrated=True)
     with pytest.raises(ValueError, match="probability must be in"):
         pred.interval(1.5)
+
+
+def test_load_names_a_file_given_for_the_run_folder(tmp_path):
+    (tmp_path / "config.json").write_text("{}")
+    with pytest.raises(UserError, match="takes a run folder, not a file in it") as err:
+        Predictor.load(tmp_path / "config.json")
+    assert str(tmp_path) in err.value.hint

@@ -471,11 +471,14 @@ FEW_DEPTH_PIXELS = 0.05
 def pose_index(cam_from_world: Tensor, K: Tensor) -> int:
     """A view index (0 to 2**40) from a camera's pose [4,4] and intrinsics [3,3], for ``view_seed``: a view that is
     not one of the scene's (``uncertsplat.predict``'s poses of one's own, ``select-views``' candidates) gets the same
-    generator seed wherever it stands in a batch. From the float32 values: the same pose written two ways (float64
-    or float32, a world_from_cam inverted in float64) gets the same seed, where its float64 bytes gave two."""
+    generator seed wherever it stands in a batch. From the float32 values, entries below 1e-7 taken as 0: the same pose written
+    two ways (float64 or float32, a world_from_cam inverted in float64, an entry 0 or -0.0 or 1e-17) gets the same
+    seed, where its float64 bytes gave two."""
     import hashlib
 
-    key = torch.cat([cam_from_world.flatten(), K.flatten()]).float().cpu().numpy()
+    key = torch.cat([cam_from_world.flatten(), K.flatten()]).float().cpu()
+    # an entry that is 0 one way is 1e-17 or -0.0 another (a rotation about one axis inverted, or negated): all one
+    key = torch.where(key.abs() < 1e-7, torch.zeros_like(key), key).numpy()
     return int.from_bytes(hashlib.sha256(key.tobytes()).digest()[:5], "little")
 
 
@@ -694,11 +697,17 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     images, masks, gt_depth = views.images, views.masks, views.depths
     lp_ok, lp_reason = lpips_available()
     K = cfg.num_samples
-    keep = K <= KDE_MAX_SAMPLES
     notes = list(notes)
+    same = any(SAME_RENDER in n for n in notes)  # a model without a posterior (the run's note says so)
+    # a KDE of one render (K = 1, or a model whose samples are all one) measures its bandwidth floor, not the model:
+    # a helper's report showed NLL (KDE) 2,700-3,000 for such runs beside -2.5 for the others
+    keep = K <= KDE_MAX_SAMPLES and K > 1 and not same
     std_max = 0.0  # the largest RGB std of any pixel (0: the NLL and calibration measure only the floor)
-    if not keep:
+    if K > KDE_MAX_SAMPLES:
         notes.append(f"KDE NLL skipped: K={K} > {KDE_MAX_SAMPLES} would keep every sample in memory")
+    elif K == 1 or same:
+        notes.append("KDE NLL" + (" and the paper's NLL" if cfg.paper_nll else "") + " not computed: the samples are "
+                     "one render (a kernel density of one value measures its bandwidth, not the model)")
     if K == 1:
         notes.append("K=1: the samples' spread and the resolution term are 0 everywhere (one sample has no spread); "
                      "the std holds the predictive's other terms")
@@ -707,8 +716,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
                      f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out PSNR "
                      "over whole images")
-    # a model without a posterior (the run's note says SAME_RENDER): its spread term is 0 too
-    same = any(SAME_RENDER in n for n in notes)
+    # a model without a posterior: its spread term is 0 too
     terms = ["the variance of the K samples" + (" (0: K = 1)" if K == 1 else
                                               f" (0 for this model: {SAME_RENDER})" if same else "")]
     if sampler.residual is not None:
