@@ -28,6 +28,14 @@ Devices
     (``--device auto|cpu|cuda``).
 """
 
+from pathlib import Path
+
 NO_SURFACE_DEPTH = 1e9
 """GT depths at or beyond this are "no surface" (Blender writes 1e10 where a ray meets nothing) and count as invalid:
 left in, one such pixel made a view's depth RMSE 4e8."""
+
+
+def ensemble_member_dir(run_dir: str | Path, i: int) -> Path:
+    """Where an ensemble run keeps its member ``i``: ``RUN/members/member_i``, a run of its own (``train`` writes it,
+    ``report`` reads its log and summary)."""
+    return Path(run_dir) / "members" / f"member_{i}"

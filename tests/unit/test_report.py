@@ -779,6 +779,13 @@ def test_the_summary_says_plainly_when_the_std_is_too_small_or_too_large(tmp_pat
     assert calibration_verdict(m) is None
     m.calibration["rgb"].observed = [min(1.0, x * 1.2) for x in m.calibration["rgb"].nominal]
     assert "too large on these views (under-confident): 82%" in calibration_verdict(m)
+    # the factor's correction claimed only where its NLL is not worse (a helper's stopped run: NLL -2.567 -> -2.526
+    # beside "the std factor corrects the level")
+    m.std_scale, m.mean.nll, m.mean.nll_calibrated = 0.626, -2.567, -2.526
+    assert calibration_verdict(m).endswith("the std factor fitted on other views does not correct it here (its NLL is "
+                                           "worse)")
+    m.mean.nll_calibrated = -2.7
+    assert calibration_verdict(m).endswith("the std factor (NLL, std rescaled) corrects the level")
     run = make_run(tmp_path, "r", maps=False, stats=False)
     stage.run([run], tmp_path / "out", ReportConfig())
     assert "over-confident" in (tmp_path / "out" / "index.html").read_text()
@@ -1124,6 +1131,29 @@ def test_an_ensemble_says_its_count_is_the_members_sum_and_draws_their_timelines
     assert "figures/timeline.png" in parse(tmp_path / "out" / "index.html").imgs
 
 
+def test_an_ensemble_stopped_before_its_last_member_says_so_and_not_evaluate(tmp_path):
+    """Ctrl-C during member 2 of 3: no train_summary.json of the run, members 0 and 1 trained. The page told the reader
+    to run `evaluate`, which refuses an ensemble with a member unfinished; now it says 2 of 3 members are trained and
+    gives the command that trains the others."""
+    run = make_run(tmp_path, "ens", maps=False, metrics=False)
+    cfg = TrainConfig(seed=0, iterations=100, method="ensemble", ensemble_size=3)
+    (run / "config.json").write_text(cfg.model_dump_json(indent=2))
+    summary = (run / "train_summary.json").read_text()
+    (run / "train_summary.json").unlink()
+    for i in range(3):
+        (run / "members" / f"member_{i}").mkdir(parents=True)
+        if i < 2:
+            (run / "members" / f"member_{i}" / "train_summary.json").write_text(summary)
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    assert "training is not finished: 2 of the ensemble&#x27;s 3 members are trained" in html or \
+        "training is not finished: 2 of the ensemble's 3 members are trained" in html
+    assert f"-o {run} --method ensemble --resume" in html
+    assert "1 of the ensemble" in html and f"run `uncertsplat evaluate {run}` to measure" not in html
+    (run / "members" / "member_2" / "train_summary.json").write_text(summary)  # the last member done, no run summary
+    html = stage.run([run], tmp_path / "out2", ReportConfig()).read_text()
+    assert "members are trained" not in html
+
+
 def test_shown_differences_agree_with_the_shown_numbers(tmp_path):
     """A PSNR change beside 22.66 -> 22.51 reads -0.15, not the stored -0.155 rounded to -0.16; evaluate's warning that
     the std factor worsens the NLL is not shown for 0.003 nats (older files wrote it for any difference)."""
@@ -1183,6 +1213,25 @@ def test_legends_sit_outside_the_data_and_sigma_labels_do_not_overlap(monkeypatc
     assert all(a.get_legend() is None for a in fig.axes) and len(fig.legends) == 1
     assert [t.get_text() for t in fig.legends[0].get_texts()] == ["a", "b", "dashed: Gaussians with a posterior"]
     assert fig.axes[0].get_ylabel() == "loss (symlog scale)"
+
+
+def test_a_legend_of_long_run_names_fits_the_figure(monkeypatch):
+    """Two runs named as a sweep names them (about 40 characters each, AUSE appended) in the 5.5-inch sparsification
+    figure, and six in the calibration figure: the legend ran off both edges in four columns. Now it lies inside the
+    figure, in fewer columns (or a wider figure)."""
+    from uncertsplat.report import figures
+    from uncertsplat.report.extract import calibrations_of, curves_of
+
+    monkeypatch.setattr(figures, "_png", lambda fig: fig)
+    m = make_metrics(["view_000.png"])
+    names = ["bonsai_capture2_variational_seed0", "bonsai_capture2_deterministic_seed0"]
+    for fig in (figures.sparsification_compare_figure([(n, curves_of(m)) for n in names]),
+                figures.calibration_figure([(f"{names[i % 2]}_{i}", calibrations_of(m)) for i in range(6)])):
+        fig.canvas.draw()
+        box, width = fig.legends[0].get_window_extent(), fig.get_figwidth() * fig.dpi
+        assert box.x0 >= 0 and box.x1 <= width and box.y0 >= 0
+        for ax in fig.axes:  # the legend below the axes, not over them
+            assert box.y1 <= ax.get_window_extent().y0 + 1
 
 
 def test_two_views_of_one_name_stem_keep_maps_of_their_own(tmp_path):

@@ -68,8 +68,18 @@ def test_keys_change_only_with_a_new_schema_version(cls):
 
 
 def write_keys() -> None:
-    """Record the schemas' current versions and keys (after a version bump with its conversion)."""
-    KEYS_FILE.write_text(json.dumps(current(), indent=1) + "\n")
+    """Record the schemas' current versions and keys (after a version bump with its conversion). Refuses a schema
+    whose keys changed at the version recorded: rewriting the file for another schema's bump recorded
+    ``posterior.position_prior`` of train_summary.json at version 4, and every summary written before it was refused
+    (a helper regenerating the demo's report, 2026-11-29)."""
+    stored = json.loads(KEYS_FILE.read_text())
+    now = current()
+    changed = [name for name, entry in now.items()
+               if name in stored and entry["version"] == stored[name]["version"] and entry["keys"] != stored[name]["keys"]]
+    if changed:
+        raise SystemExit(f"the keys of {', '.join(changed)} changed without a new schema version: raise SCHEMA_VERSION "
+                         "and convert the older version in _upgrade first")
+    KEYS_FILE.write_text(json.dumps(now, indent=1) + "\n")
 
 
 OLD = DATA / "outputs_v0.1_2026-11-27"
@@ -96,6 +106,34 @@ def test_files_of_the_previous_version_read(cls, name):
             old["metrics"]["before"]["psnr"])
     else:
         assert got.metric == "psnr" and got.unpruned.psnr_render is None and len(got.points) == len(old["points"])
+
+
+def test_a_version_4_train_summary_reads_its_posterior_as_measured_against_the_config():
+    """``make demo``'s train_summary.json of 2026-11-29 (version 4, before ``posterior.position_prior``): it read as
+    "key 'posterior.position_prior' is missing", and the report showed no Gaussians, no training time and no posterior
+    note. Now version 5, its posterior measured against the config's std ("config"), every other value kept."""
+    path = DATA / "outputs_2026-11-29" / "train_summary.json"
+    old = json.loads(path.read_text())
+    assert old["schema_version"] == 4 and "position_prior" not in old["posterior"]
+    got = TrainSummary.read(path)
+    assert got.schema_version == 5 and got.posterior.position_prior == "config"
+    assert got.posterior.carriers == old["posterior"]["carriers"] and got.steps == old["steps"]
+    member = {**old, "members": [], "posterior": dict(old["posterior"])}
+    both = TrainSummary.from_dict({**old, "method": "ensemble", "members": [member]})  # in members too
+    assert both.members[0].posterior.position_prior == "config"
+
+
+def test_write_keys_refuses_keys_changed_at_the_same_version(monkeypatch, tmp_path):
+    keys = tmp_path / "schema_keys.json"
+    stored = current()
+    stored["TrainSummary"]["keys"] = [k for k in stored["TrainSummary"]["keys"] if k != "posterior.position_prior"]
+    keys.write_text(json.dumps(stored))
+    import tests.unit.test_schema_versions as this
+
+    monkeypatch.setattr(this, "KEYS_FILE", keys)
+    with pytest.raises(SystemExit, match="the keys of TrainSummary changed without a new schema version"):
+        this.write_keys()
+    assert json.loads(keys.read_text()) == stored  # untouched
 
 
 def test_version_1_files_that_already_have_the_new_keys_keep_them(tmp_path):

@@ -27,15 +27,14 @@ import torch
 
 from uncertsplat.baselines.runs import LoadedRun, load_single_model, mean_exposure, read_run_config
 from uncertsplat.console import console
+from uncertsplat.conventions import ensemble_member_dir
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import SAME_RENDER, Sampler
 from uncertsplat.io.atomic import atomic_write_text, run_lock
 from uncertsplat.schemas import TrainSummary
 from uncertsplat.types import GaussianSample
 
-
-def member_dir(run_dir: Path, i: int) -> Path:
-    return Path(run_dir) / "members" / f"member_{i}"
+member_dir = ensemble_member_dir
 
 
 def member_config(cfg, i: int):

@@ -48,6 +48,7 @@ from uncertsplat.report.loader import (
     SUMMARY,
     RunData,
     one_line,
+    unfinished_members,
 )
 from uncertsplat.report.views import SURFACE_MIN_ALPHA, ViewMaps, load_view
 from uncertsplat.schemas import EvalReport, PruneMetrics, PruneReport, PruneSweep
@@ -155,6 +156,11 @@ def _missing_metrics_note(run: RunData, full: bool = True) -> str:
     if holds_no_model(run) and run.problem(METRICS) is None:
         return note(_no_model_text(run) if full else
                     f"{run.name}: a prune folder without a model (nothing to evaluate; the Summary says what to do).")
+    members = unfinished_members(run)
+    if members is not None and run.problem(METRICS) is None:  # `evaluate` refuses it until every member is trained
+        return note(f"{run.name}: no eval/metrics.json, and {members[1] - members[0]} of the ensemble's {members[1]} "
+                    "members are not trained yet: finish training (the note above), then `uncertsplat evaluate "
+                    f"{run.path}`; metric sections are left out for this run.")
     return _file_note(run, METRICS, f"no eval/metrics.json — run `uncertsplat evaluate {run.path}` to measure "
                                     "the uncertainty; metric sections are left out for this run.")
 
@@ -387,8 +393,14 @@ def calibration_verdict(m) -> str | None:
                "(train with --set scene.calibration_holdout=3; in a pipeline, --set train.scene.calibration_holdout=3)"
                if m.std_scale is not None and m.std_scale < 1.0 and not m.calibration_held_out else "")
         return what + fix
-    return (f"the RGB std is too large on these views (under-confident): {seen:.0%} of the errors lie inside its "
-            f"central {nominal:.0%} interval; the std factor (NLL, std rescaled) corrects the level")
+    what = (f"the RGB std is too large on these views (under-confident): {seen:.0%} of the errors lie inside its "
+            f"central {nominal:.0%} interval")
+    raw, fitted = m.mean.nll, m.mean.nll_calibrated
+    if m.std_scale is None or raw is None or fitted is None:
+        return what
+    if fitted - raw > NLL_WORSE_BY:  # (a factor fitted where the model fits better overshoots here: said below)
+        return what + "; the std factor fitted on other views does not correct it here (its NLL is worse)"
+    return what + "; the std factor (NLL, std rescaled) corrects the level"
 
 
 def metrics_section(w: ReportWriter, runs: list[RunData]) -> None:

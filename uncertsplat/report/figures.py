@@ -82,10 +82,26 @@ def _png_with_legend_below(fig, axes=(), ncol: int = 4, handles=None) -> bytes:
                 labels.append(lab)
     fig.tight_layout()
     if handles:
+        # as many columns as fit the figure's width: four long run names side by side ran off both edges of a
+        # 5.5-inch figure (a helper's two-run report could not tell whose AUSE was whose); one column that is still
+        # too wide widens the figure
+        ncol = min(ncol, len(labels))
+        while True:
+            legend = fig.legend(handles, labels, loc="lower center", ncol=ncol, frameon=False)
+            fig.canvas.draw()
+            width = legend.get_window_extent().width / fig.dpi + 0.2  # inches, with a margin
+            if width <= fig.get_figwidth() or ncol == 1:
+                break
+            legend.remove()
+            ncol -= 1
+        if width > fig.get_figwidth():
+            fig.set_figwidth(width)
         rows = -(-len(labels) // ncol)
         height = fig.get_figheight()
-        bottom = min(0.45, (0.3 + 0.2 * rows) / height)  # inches of legend rows, as a fraction of the figure
-        fig.legend(handles, labels, loc="lower center", ncol=min(ncol, len(labels)), frameon=False)
+        bottom = min(0.6, (0.3 + 0.2 * rows) / height)  # inches of legend rows, as a fraction of the figure
+        if rows * 0.2 + 0.3 > 0.6 * height:  # more rows than the figure's lower part holds: a taller figure
+            fig.set_figheight((rows * 0.2 + 0.3) / 0.6)
+            bottom = 0.6
         fig.tight_layout(rect=(0, bottom, 1, 1))
     return _png(fig)
 

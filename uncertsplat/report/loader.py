@@ -242,6 +242,13 @@ def _training_notes(run: RunData) -> list[str]:
     holder = lock_holder(run.path)
     if holder is not None:
         notes.append(f"another process ({holder}) is writing this run now: the page shows it as it was when read")
+    members = unfinished_members(run)
+    if members is not None:  # (its checkpoints are the members': the run folder holds none)
+        scene = run.scene_path if run.scene_path is not None else "SCENE"
+        notes.append(f"training is not finished: {members[0]} of the ensemble's {members[1]} members are trained "
+                     f"(`uncertsplat train {scene} -o {run.path} --method ensemble --resume` trains the others; "
+                     "`evaluate` needs them all)")
+        return notes
     found = list_checkpoints(run.path)
     if run.config is None or not found:
         return notes
@@ -252,6 +259,18 @@ def _training_notes(run: RunData) -> list[str]:
         notes.append(f"training is not finished: its newest checkpoint is step {step} of {total} (`uncertsplat train "
                      f"{scene} -o {run.path} --resume` finishes it; `evaluate` then scores the finished model)")
     return notes
+
+
+def unfinished_members(run: RunData) -> tuple[int, int] | None:
+    """(members trained, members in all) of an ensemble run stopped before its last member finished (no
+    train_summary.json of its own); None for every other run."""
+    from uncertsplat.conventions import ensemble_member_dir
+
+    if run.config is None or run.config.method != "ensemble" or run.train_summary is not None:
+        return None
+    total = run.config.ensemble_size
+    done = sum((ensemble_member_dir(run.path, i) / SUMMARY).is_file() for i in range(total))
+    return (done, total) if done < total else None
 
 
 # --------------------------------------------------------------------------------------------- helpers

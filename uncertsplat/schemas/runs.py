@@ -148,10 +148,10 @@ class TrainSummary(SchemaFile):
     """
 
     FILE_NAME = "train_summary.json"
-    SCHEMA_VERSION = 4
+    SCHEMA_VERSION = 5
     WRITTEN_BY = "uncertsplat train SCENE -o RUN --resume"  # (a plain re-run refuses the existing run folder)
 
-    schema_version: int = 4
+    schema_version: int = 5
     method: str
     variant: str
     steps: int
@@ -217,12 +217,15 @@ class TrainSummary(SchemaFile):
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
         # version 1 had no informed posterior (no updates); versions 1 and 2 neither the fit on the training views
-        # nor the warnings; versions 1-3 no exposure tests; in the run and in its members
-        if version not in (1, 2, 3):
+        # nor the warnings; versions 1-3 no exposure tests; versions 1-4 no posterior.position_prior (measured
+        # against the config's std then); in the run and in its members
+        if version not in (1, 2, 3, 4):
             return None
 
         def up(d: dict) -> dict:
             d = {"train_psnr": None, "warnings": [], "exposure_checks": [], **d, "schema_version": cls.SCHEMA_VERSION}
+            if isinstance(d.get("posterior"), dict):
+                d["posterior"] = {"position_prior": "config", **d["posterior"]}
             return {**d, "posterior_updates": []} if version == 1 else d
 
         return {**up(data), "members": [up(m) for m in data.get("members", [])]}
