@@ -46,12 +46,20 @@ def source_fingerprint() -> str:
     install) are told apart. A helper's ``Predictor.load`` read a pixel noise and std factor that an older build had
     fitted (the same version string), and rendered maps 0.045 off the evaluation's; with the fingerprint among the
     ``versions`` it fits them again, as ``evaluate`` then does. About 5 ms, once a process."""
-    root = Path(__file__).resolve().parent
+    return fingerprint_of(Path(__file__).resolve().parent)
+
+
+def fingerprint_of(root: Path) -> str:
+    """``source_fingerprint`` of the code under ``root``: 12 hex digits of the SHA-256 of every ``.py``, ``.cpp`` and
+    ``.h`` file's path and bytes (``__pycache__`` left out; an unreadable file by its name alone)."""
     h = hashlib.sha256()
     for path in sorted(root.rglob("*")):
         if path.suffix in (".py", ".cpp", ".h") and "__pycache__" not in path.parts and path.is_file():
-            h.update(path.relative_to(root).as_posix().encode() + b"\0")
-            h.update(path.read_bytes())
+            try:
+                data = path.read_bytes()
+            except OSError:  # unreadable, or gone while walked: its name still counts
+                data = b"?"
+            h.update(path.relative_to(root).as_posix().encode() + b"\0" + data)
     return h.hexdigest()[:12]
 
 

@@ -568,9 +568,8 @@ class TestNativeLookup:
     def test_the_same_views_differences_and_reach_as_the_tensor_ops(self, seed):
         vc, test, points, colour = self._case(seed)
         foot = consistency._footprint(points, test)
-        stack = vc._native_stack(points)
-        assert stack is not None
-        best, diff, inside, finest = vc._lookup_native(points, test, colour, foot, stack)
+        assert vc._native(points)
+        best, diff, inside, finest = vc._lookup_native(points, test, colour, foot)
         with torch.no_grad():
             ref = vc._lookup_torch(points, test, colour, foot)
         assert torch.equal(inside, ref[2]) and 0 < int(inside.sum()) < points.shape[0]
@@ -584,7 +583,7 @@ class TestNativeLookup:
 
     def test_without_colour_or_footprint_only_what_was_asked(self):
         vc, test, points, _ = self._case(3)
-        best, diff, inside, finest = vc._lookup_native(points, test, None, None, vc._native_stack(points))
+        best, diff, inside, finest = vc._lookup_native(points, test, None, None)
         assert float(diff.abs().max()) == 0.0 and bool(torch.isinf(finest).all())
         ref = vc._lookup_torch(points, test, None, None)
         assert torch.equal(inside, ref[2]) and torch.equal(torch.isfinite(best), torch.isfinite(ref[0]))
@@ -604,9 +603,38 @@ class TestNativeLookup:
 
     def test_no_points_and_one_view(self):
         vc, test, points, colour = self._case(4, views=1)
-        stack = vc._native_stack(points)
-        best, diff, inside, finest = vc._lookup_native(points[:0], test, colour[:0], None, stack)
+        best, diff, inside, finest = vc._lookup_native(points[:0], test, colour[:0], None)
         assert best.shape == diff.shape == inside.shape == finest.shape == (0,)
-        best, _, inside, _ = vc._lookup_native(points, test, colour, None, stack)
+        best, _, inside, _ = vc._lookup_native(points, test, colour, None)
         ref = vc._lookup_torch(points, test, colour, None)
         assert torch.equal(inside, ref[2]) and torch.equal(torch.isfinite(best), torch.isfinite(ref[0]))
+
+    def test_float64_as_torch_default_dtype_changes_nothing(self):
+        """The outputs are float32 whatever torch's default dtype (a float64 default read the kernel's float32 as
+        doubles: angles of 89.7 against 9.8 degrees, a finest ratio of 1e306)."""
+        vc, test, points, colour = self._case(5)
+        expect = vc._lookup_native(points, test, colour, consistency._footprint(points, test))
+        before = torch.get_default_dtype()
+        torch.set_default_dtype(torch.float64)
+        try:
+            got = vc._lookup_native(points, test, colour, consistency._footprint(points, test))
+        finally:
+            torch.set_default_dtype(before)
+        for a, b in zip(got, expect, strict=True):
+            assert a.dtype == b.dtype and torch.equal(a, b)
+
+    def test_an_image_without_pixels_is_refused_not_read(self):
+        """A compared render of width or height 0: the kernel returns -1 before reading anything (its in-image test
+        took u = 0 as inside and read before the buffer), and ``_native`` sends such renders to the tensor ops."""
+        from uncertsplat import native
+
+        vc = ViewConsistency(_sample(), _cameras([0.0], width=0), torch.zeros(1, H, 0, 3, dtype=torch.float16),
+                             torch.zeros(1, H, 0), gate=1.0)
+        pts = torch.zeros(4, 3)
+        assert not vc._native(pts)
+        out = torch.zeros(4)
+        code = native.library().us_consistency_lookup_f32(
+            4, 1, H, 0, pts.data_ptr(), 0, vc.cameras.cam_from_world.contiguous().data_ptr(),
+            vc.cameras.K.contiguous().data_ptr(), vc.cameras.centers.contiguous().data_ptr(), 0, 0, 1, 0.0, 0.0,
+            -4.0, 0, out.data_ptr(), 0, torch.zeros(4, dtype=torch.uint8).data_ptr(), 0, 1)
+        assert code == -1

@@ -228,7 +228,7 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.us_adam_multi_f32.restype = ctypes.c_int
     lib.us_densify_accumulate_f32.argtypes = [i64, i64, ptr, ptr, f64, f64, ptr, ptr, ptr]
     lib.us_densify_accumulate_f32.restype = ctypes.c_int
-    lib.us_consistency_lookup_f32.argtypes = [i64] * 4 + [ptr] * 6 + [f64] * 3 + [ptr] * 5 + [i64]
+    lib.us_consistency_lookup_f32.argtypes = [i64] * 4 + [ptr] * 7 + [i64] + [f64] * 3 + [ptr] * 5 + [i64]
     lib.us_consistency_lookup_f32.restype = ctypes.c_int
     lib.us_version.restype = ctypes.c_int
     lib.us_max_features.restype = ctypes.c_int

@@ -94,8 +94,8 @@ each)."""
 STACK_BYTES = 256 * 2**20
 """The compared renders are kept as the ready [C,4,H,W] stacks each lookup samples (``_compared_at``) when all of them
 fit in this many bytes: rebuilding a chunk's stack from the float16 renders for each evaluated view cost more than
-the lookup itself on a small view (44 of 162 ms of a 32x24 prediction on the demo run). The native kernel's
-[T,H,W,4] stack is kept under the same bound."""
+the lookup itself on a small view (44 of 162 ms of a 32x24 prediction on the demo run). (The native kernel reads
+the kept renders themselves.)"""
 POINTS_CHUNK = 65536
 """Surface points of an evaluated view the tensor ops look up at once (their [C,S] lookups took about 0.6 KB a pixel
 for a whole view; the native kernel keeps a point's lookups in registers)."""
@@ -238,7 +238,7 @@ class ViewConsistency:
         best, diff, inside_any, finest = self._lookup(points, camera, colour, self.finer_detail > 0.0)
         weight = ((best - self.gate) / self.gate).clamp(0.0, 1.0).to(colour.dtype)  # diff is 0 where no view saw it
         if self.palette_var > 0.0:
-            unlooked = self._outside_every_image(points, inside_any)  # [S] (best = inf there: no view saw them)
+            unlooked = self._unlooked(points, inside_any)  # [S] (best = inf there: no view saw them)
             diff = torch.where(unlooked, torch.full_like(diff, self.palette_var), diff)  # weight 1 there (best = inf)
         return diff * weight, finest
 
@@ -252,9 +252,8 @@ class ViewConsistency:
         native kernels one pass over the points (``native/csrc/consistency.cpp``), else ``POINTS_CHUNK`` points and
         ``VIEW_CHUNK`` views of tensor ops at a time."""
         foot = _footprint(points, camera) if fine else None  # [S]
-        stack = self._native_stack(points)
-        if stack is not None:
-            return self._lookup_native(points, camera, colour, foot, stack)
+        if self._native(points):
+            return self._lookup_native(points, camera, colour, foot)
         parts = [self._lookup_torch(points[b:b + POINTS_CHUNK], camera,
                                     None if colour is None else colour[b:b + POINTS_CHUNK],
                                     None if foot is None else foot[b:b + POINTS_CHUNK])
@@ -285,46 +284,43 @@ class ViewConsistency:
             best = torch.where(better, nearest, best)
         return best, diff, inside_any, finest
 
-    def _lookup_native(self, points: Tensor, camera: Cameras, colour: Tensor | None, foot: Tensor | None,
-                       stack: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """``_lookup`` by the native kernel (``stack``: ``_native_stack``'s)."""
+    def _lookup_native(self, points: Tensor, camera: Cameras, colour: Tensor | None, foot: Tensor | None
+                       ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``_lookup`` by the native kernel (``_native``), reading the kept renders as they are (float16 colours,
+        float32 depths)."""
         from uncertsplat import native
 
-        s = points.shape[0]
+        s, f32 = points.shape[0], torch.float32
         pts = points.contiguous()
-        col = None if colour is None else colour.float().contiguous()
-        ft = None if foot is None else foot.float().contiguous()
+        col = None if colour is None else colour.to(f32).contiguous()
+        ft = None if foot is None else foot.to(f32).contiguous()
         cams = self.cameras
-        world = cams.cam_from_world.float().contiguous()
-        K, centers = cams.K.float().contiguous(), cams.centers.float().contiguous()
+        world = cams.cam_from_world.to(f32).contiguous()
+        K, centers = cams.K.to(f32).contiguous(), cams.centers.to(f32).contiguous()
+        depth = self.depth.to(f32).contiguous()  # (the kept renders: already so)
+        rgb = self.rgb.contiguous() if self.rgb.dtype == torch.float16 else self.rgb.to(f32).contiguous()
         eye = camera.centers[0].double().tolist()
-        best_cos, diff = torch.empty(s), torch.zeros(s)
-        inside_any, finest = torch.empty(s, dtype=torch.uint8), torch.full((s,), float("inf"))
-        native.library().us_consistency_lookup_f32(
+        # float32 whatever torch's default dtype (a float64 default read the kernel's float32 as doubles)
+        best_cos, diff = torch.empty(s, dtype=f32), torch.zeros(s, dtype=f32)
+        inside_any, finest = torch.empty(s, dtype=torch.uint8), torch.full((s,), float("inf"), dtype=f32)
+        done = native.library().us_consistency_lookup_f32(
             s, len(cams), cams.height, cams.width, pts.data_ptr(), 0 if col is None else col.data_ptr(),
-            world.data_ptr(), K.data_ptr(), centers.data_ptr(), stack.data_ptr(), *eye,
-            0 if ft is None else ft.data_ptr(), best_cos.data_ptr(), diff.data_ptr(), inside_any.data_ptr(),
-            0 if ft is None else finest.data_ptr(), native.kernel_threads())
+            world.data_ptr(), K.data_ptr(), centers.data_ptr(), depth.data_ptr(), rgb.data_ptr(),
+            int(rgb.dtype == torch.float16), *eye, 0 if ft is None else ft.data_ptr(), best_cos.data_ptr(),
+            diff.data_ptr(), inside_any.data_ptr(), 0 if ft is None else finest.data_ptr(), native.kernel_threads())
+        if done != 0:
+            raise RuntimeError(f"the consistency lookup failed (code {done})")
         none = best_cos < -1.5  # no view sees the point
         best = torch.where(none, torch.full_like(best_cos, float("inf")), torch.rad2deg(torch.acos(best_cos)))
         return best, diff, inside_any.bool(), finest
 
-    def _native_stack(self, points: Tensor) -> Tensor | None:
-        """[T,H,W,4] float32: every compared view's rgb and depth, for the native lookup; None where it does not
-        run (another device, no native kernels, ``UNCERTSPLAT_RASTERIZER=torch``). Kept for the next call when it
-        fits in ``STACK_BYTES``."""
+    def _native(self, points: Tensor) -> bool:
+        """Whether the native kernel looks up ``points``: float32 points on a CPU with the kernels (not
+        ``UNCERTSPLAT_RASTERIZER=torch``), compared renders of a size with pixels."""
         from uncertsplat import native
 
-        if points.dtype != torch.float32 or not native.use_for(points, self.depth, dtypes=(torch.float32,),
-                                                                strict=False):
-            return None
-        found = self._cache.get("native")
-        if found is not None:
-            return found
-        stack = torch.cat([self.rgb.float(), self.depth.float()[..., None]], -1).contiguous()  # [T,H,W,4]
-        if stack.numel() * stack.element_size() <= STACK_BYTES:
-            self._cache["native"] = stack
-        return stack
+        return (points.dtype == torch.float32 and self.depth.numel() > 0
+                and native.use_for(points, self.depth, dtypes=(torch.float32,), strict=False))
 
     @torch.no_grad()
     def unlooked_fraction(self, camera: Cameras,
@@ -349,7 +345,7 @@ class ViewConsistency:
             return 0.0, 1.0
         points = found[2]  # [S,3]
         _, _, inside_any, finest = self._lookup(points, camera, None, True)
-        unlooked = float(self._outside_every_image(points, inside_any).float().mean())
+        unlooked = float(self._unlooked(points, inside_any).float().mean())
         seen_any = torch.isfinite(finest)
         if not bool(seen_any.any()):
             return unlooked, 1.0
@@ -439,6 +435,12 @@ class ViewConsistency:
             at = depth[torch.arange(len(cams), device=points.device)[:, None], row, col]  # [C,P]
             free |= (inside & ((at <= 0.0) | (z < at * (1.0 - DEPTH_TOLERANCE)))).any(0)
         return free
+
+    def _unlooked(self, points: Tensor, inside_any: Tensor) -> Tensor:
+        """``_outside_every_image`` of ``POINTS_CHUNK`` points at a time (its projections of a whole large view into
+        the other training cameras, [C,S] each, ran to hundreds of MB)."""
+        return torch.cat([self._outside_every_image(points[b:b + POINTS_CHUNK], inside_any[b:b + POINTS_CHUNK])
+                          for b in range(0, points.shape[0], POINTS_CHUNK)]) if points.shape[0] else ~inside_any
 
     def _outside_every_image(self, points: Tensor, inside_any: Tensor) -> Tensor:
         """[S] bool: the ``points`` [S,3] outside the image of every training camera, given ``inside_any`` [S] (inside

@@ -3,7 +3,8 @@
 // view's rendered depth, sampled bilinearly), and the seeing view at the smallest angle to the evaluated view's
 // direction chosen. The PyTorch path does it in about 40 tensor ops per block of points and chunk of views, each
 // writing a [views, points] array; here one pass per point keeps its running best in registers (a 1280x960 view
-// against 35 views: 42M point-view pairs). The same arithmetic as the PyTorch path in the same order (projection,
+// against 35 views: 42M point-view pairs), reading the renders as they are kept (float16 colours, float32 depths: no
+// float32 copy of every view). The same arithmetic as the PyTorch path in the same order (projection,
 // grid_sample's bilinear weights with border padding and align_corners=False, the tolerance test), except that the
 // nearest view is found by the largest cosine and only its angle is taken (acos is decreasing: the same view but
 // where two cosines differ by less than acos can tell apart).
@@ -11,6 +12,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <limits>
 
 #include "parallel.h"
@@ -33,19 +35,45 @@ inline float source_coord(float u, int64_t size) {
     return std::min(s - 1.0f, std::max(x, 0.0f));
 }
 
-// Bilinear sample of channel `ch` of one view's [H, W, 4] texels at source coordinates (x, y) (in the image after
+// A float16 number's value (exact: every float16 is a float32).
+inline float half_to_float(uint16_t h) {
+    const uint32_t sign = static_cast<uint32_t>(h & 0x8000u) << 16;
+    uint32_t exponent = (h >> 10) & 0x1fu, mantissa = h & 0x3ffu, bits;
+    if (exponent == 0) {
+        if (mantissa == 0) {
+            bits = sign;
+        } else {  // subnormal: normalise it
+            exponent = 127 - 15 + 1;
+            while (!(mantissa & 0x400u)) mantissa <<= 1, --exponent;
+            bits = sign | (exponent << 23) | ((mantissa & 0x3ffu) << 13);
+        }
+    } else if (exponent == 31) {
+        bits = sign | 0x7f800000u | (mantissa << 13);  // inf, NaN
+    } else {
+        bits = sign | ((exponent + 127 - 15) << 23) | (mantissa << 13);
+    }
+    float f;
+    std::memcpy(&f, &bits, sizeof f);
+    return f;
+}
+
+inline float load(const float* p) { return *p; }
+inline float load(const uint16_t* p) { return half_to_float(*p); }
+
+// Bilinear sample of channel `ch` of one view's [H, W, C] values at source coordinates (x, y) (in the image after
 // source_coord's clip; corners outside it weigh nothing, as in grid_sample).
-inline float bilinear(const float* img, int64_t H, int64_t W, float x, float y, int ch) {
+template <typename T>
+inline float bilinear(const T* img, int64_t H, int64_t W, int64_t C, float x, float y, int64_t ch) {
     const float x0f = std::floor(x), y0f = std::floor(y);
     const int64_t x0 = static_cast<int64_t>(x0f), y0 = static_cast<int64_t>(y0f);
     const float x1f = x0f + 1.0f, y1f = y0f + 1.0f;
     const float nw = (x1f - x) * (y1f - y), ne = (x - x0f) * (y1f - y);
     const float sw = (x1f - x) * (y - y0f), se = (x - x0f) * (y - y0f);
     const bool x1in = x0 + 1 < W, y1in = y0 + 1 < H;
-    float v = img[(y0 * W + x0) * 4 + ch] * nw;
-    if (x1in) v += img[(y0 * W + x0 + 1) * 4 + ch] * ne;
-    if (y1in) v += img[((y0 + 1) * W + x0) * 4 + ch] * sw;
-    if (x1in && y1in) v += img[((y0 + 1) * W + x0 + 1) * 4 + ch] * se;
+    float v = load(img + (y0 * W + x0) * C + ch) * nw;
+    if (x1in) v += load(img + (y0 * W + x0 + 1) * C + ch) * ne;
+    if (y1in) v += load(img + ((y0 + 1) * W + x0) * C + ch) * sw;
+    if (x1in && y1in) v += load(img + ((y0 + 1) * W + x0 + 1) * C + ch) * se;
     return v;
 }
 
@@ -54,16 +82,19 @@ inline float bilinear(const float* img, int64_t H, int64_t W, float x, float y, 
 extern "C" {
 
 // points [S, 3], colour [S, 3] (the evaluated view's render; null: no difference taken), cam_from_world [T, 4, 4],
-// K [T, 3, 3], centers [T, 3], stack [T, H, W, 4] (each compared view's rendered rgb and depth), eye: the evaluated
+// K [T, 3, 3], centers [T, 3], depth [T, H, W] (each compared view's rendered depth), rgb [T, H, W, 3] (its rendered
+// colours: float16 when rgb_half, else float32; read only at each point's chosen view), eye: the evaluated
 // camera's centre, foot [S] (its pixel footprint at each point; null: no finest ratio). Writes, per point: best_cos
 // (the cosine of the nearest seeing view's angle; -2 where none sees it), diff (the mean over the channels of the
 // squared difference to that view's render; 0 where none sees it; only with colour), inside_any (1 where some view's
 // image holds the point, in front) and finest (the smallest seeing view's footprint z / K[0][0] over foot; inf where
-// none sees it; only with foot).
+// none sees it; only with foot). Returns -1 for an empty image (H or W 0), which no point lands in.
 int us_consistency_lookup_f32(int64_t S, int64_t T, int64_t H, int64_t W, const float* points, const float* colour,
-                              const float* cam_from_world, const float* K, const float* centers, const float* stack,
-                              double eye_x, double eye_y, double eye_z, const float* foot, float* best_cos,
-                              float* diff, uint8_t* inside_any, float* finest, int64_t threads) {
+                              const float* cam_from_world, const float* K, const float* centers, const float* depth,
+                              const void* rgb, int64_t rgb_half, double eye_x, double eye_y, double eye_z,
+                              const float* foot, float* best_cos, float* diff, uint8_t* inside_any, float* finest,
+                              int64_t threads) {
+    if (H <= 0 || W <= 0) return -1;
     if (S <= 0) return 0;
     View* views = new View[T > 0 ? T : 1];
     for (int64_t t = 0; t < T; ++t) {
@@ -98,7 +129,7 @@ int us_consistency_lookup_f32(int64_t S, int64_t T, int64_t H, int64_t W, const 
             }
             for (int64_t t = 0; t < T; ++t) {
                 const View& v = views[t];
-                const float* img = stack + t * H * W * 4;
+                const float* img = depth + t * H * W;
                 for (int64_t i = 0; i < n; ++i) {
                     const float* p = points + (b0 + i) * 3;
                     const float x = p[0] * v.r[0] + p[1] * v.r[1] + p[2] * v.r[2] + v.t[0];
@@ -111,7 +142,7 @@ int us_consistency_lookup_f32(int64_t S, int64_t T, int64_t H, int64_t W, const 
                     if (!(z > 1e-9f && u >= 0.0f && u <= wf && w >= 0.0f && w <= hf)) continue;
                     any[i] = true;
                     const float sx = source_coord(u, W), sy = source_coord(w, H);
-                    const float there = bilinear(img, H, W, sx, sy, 3);
+                    const float there = bilinear(img, H, W, 1, sx, sy, 0);
                     if (!(std::fabs(z - there) <= kDepthTolerance * z)) continue;
                     if (foot != nullptr) fine[i] = std::min(fine[i], (z / v.fx) / foot[b0 + i]);
                     float d[3] = {v.c[0] - p[0], v.c[1] - p[1], v.c[2] - p[2]};
@@ -130,9 +161,12 @@ int us_consistency_lookup_f32(int64_t S, int64_t T, int64_t H, int64_t W, const 
                 if (diff == nullptr) continue;
                 float sq = 0.0f;
                 if (best_t[i] >= 0 && colour != nullptr) {
-                    const float* img = stack + best_t[i] * H * W * 4;
+                    const int64_t at = best_t[i] * H * W * 3;
                     for (int c = 0; c < 3; ++c) {
-                        const float e = colour[s * 3 + c] - bilinear(img, H, W, best_x[i], best_y[i], c);
+                        const float there =
+                            rgb_half ? bilinear(static_cast<const uint16_t*>(rgb) + at, H, W, 3, best_x[i], best_y[i], c)
+                                     : bilinear(static_cast<const float*>(rgb) + at, H, W, 3, best_x[i], best_y[i], c);
+                        const float e = colour[s * 3 + c] - there;
                         sq += e * e;
                     }
                     sq /= 3.0f;
