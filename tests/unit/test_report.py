@@ -589,6 +589,12 @@ def test_output_folder_rules(tmp_path):
     (busy / "figures").mkdir()  # figures beside someone's file: still not ours
     with pytest.raises(UserError, match="not empty"):
         stage.run([run], busy, ReportConfig())
+    # a folder holding only a file manager's hidden files is empty to a user (it was refused as "not empty")
+    finder = tmp_path / "finder"
+    finder.mkdir()
+    (finder / ".DS_Store").write_bytes(b"\0")
+    stage.run([run], finder, ReportConfig())
+    assert (finder / "index.html").is_file() and (finder / ".DS_Store").read_bytes() == b"\0"
 
 
 def test_a_run_whose_training_stopped_says_so_with_the_command_that_finishes_it(tmp_path):
@@ -926,12 +932,12 @@ def test_psnr_inside_the_masks_is_labelled_so(tmp_path):
     m.notes = [f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them (30% of the pixels)"]
     m.write(masked / "eval" / "metrics.json")
     html = stage.run([masked], tmp_path / "one", ReportConfig()).read_text()
-    assert "<th>PSNR, one render, inside the masks (dB)</th>" in html
+    assert "<th>PSNR, expected render, inside the masks (dB)</th>" in html
     assert "<th>PSNR, inside the masks (dB)</th>" in html
     assert "test_psnr is over whole images" in html
     plain = make_run(tmp_path, "plain", maps=False)
     html = stage.run([masked, plain], tmp_path / "two", ReportConfig()).read_text()
-    assert "<th>PSNR, one render (dB) †: inside the masks</th>" in html
+    assert "<th>PSNR, expected render (dB) †: inside the masks</th>" in html
     row = table_rows(html, "summary")
     assert next(t for k, _, t in row["masked"] if k == "psnr_render") == "19.06 †"
     assert all(not t.endswith("†") for _, _, t in row["plain"])
@@ -1129,6 +1135,18 @@ def test_an_ensemble_says_its_count_is_the_members_sum_and_draws_their_timelines
     assert "no stats.jsonl" not in html
     assert [label for label, _ in drawn[0]] == ["ens members/member_0", "ens members/member_1"]
     assert "figures/timeline.png" in parse(tmp_path / "out" / "index.html").imgs
+
+
+def test_runs_evaluated_with_different_k_are_said_to_be_so(tmp_path):
+    """A run of K = 1 beside one of K = 4 was ranked without a word; now a note names each run's K."""
+    a, b = make_run(tmp_path, "a", maps=False), make_run(tmp_path, "b", maps=False, seed=1)
+    html = stage.run([a, b], tmp_path / "same", ReportConfig()).read_text()
+    assert "different numbers of samples" not in html
+    m = EvalReport.read(b / "eval" / "metrics.json")
+    m.num_samples = 1
+    m.write(b / "eval" / "metrics.json")
+    html = stage.run([a, b], tmp_path / "other", ReportConfig()).read_text()
+    assert "These runs were evaluated with different numbers of samples (a: K = 4; b: K = 1)" in html
 
 
 def test_an_ensemble_stopped_before_its_last_member_says_so_and_not_evaluate(tmp_path):

@@ -217,7 +217,7 @@ def is_masked(run: RunData) -> bool:
 
 
 def _inside_masks(label: str) -> str:
-    """'PSNR, one render (dB)' -> 'PSNR, one render, inside the masks (dB)'."""
+    """'PSNR, expected render (dB)' -> 'PSNR, expected render, inside the masks (dB)'."""
     head, sep, unit = label.rpartition(" (")
     return f"{head}, inside the masks ({unit}" if sep else f"{label}, inside the masks"
 
@@ -259,7 +259,7 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
                      else Cell("n/a"))
         rows.append((run.name, cells))
     body = [table(header, rows, table_id="summary")]
-    for mismatch in (comparability_note(runs), views_note(runs)):
+    for mismatch in (comparability_note(runs), views_note(runs), samples_note(runs)):
         if mismatch:
             body.append(note(mismatch))
     body.append(para("Metrics are the means over the evaluated views, exactly as in each run's eval/metrics.json. "
@@ -337,6 +337,18 @@ def views_note(runs: list[RunData]) -> str | None:
     return ("These runs were scored on different views (" + "; ".join(parts) + "): their means are over different "
             "images and do not rank them (evaluate them on the same split and views, e.g. the same max_views, to "
             "compare).")
+
+
+def samples_note(runs: list[RunData]) -> str | None:
+    """One sentence when the evaluated runs drew different numbers of samples K (a helper's six-run report ranked a
+    run of K = 1 beside runs of K = 10 without a word); None when they agree or fewer than two were evaluated."""
+    evaluated = [r for r in runs if r.metrics is not None]
+    if len({r.metrics.num_samples for r in evaluated}) < 2:
+        return None
+    parts = "; ".join(f"{r.name}: K = {r.metrics.num_samples}" for r in evaluated)
+    return (f"These runs were evaluated with different numbers of samples ({parts}): the samples' spread, and its "
+            "Monte Carlo noise, change with K, so their AUSE, NLL and calibration do not rank the models alone "
+            "(evaluate them with the same --num-samples to compare).")
 
 
 SPREAD_TERM = STD_TERMS + "the variance of the K samples"

@@ -33,7 +33,7 @@ class MetricSpec:
 # Order = column order in the tables; every numeric ViewMetrics field has a column (tests check both ways).
 METRIC_SPECS: tuple[MetricSpec, ...] = (
     MetricSpec("psnr", "PSNR (dB)", ".2f", True),
-    MetricSpec("psnr_render", "PSNR, one render (dB)", ".2f", True),
+    MetricSpec("psnr_render", "PSNR, expected render (dB)", ".2f", True),
     MetricSpec("ssim", "SSIM", ".4f", True),
     MetricSpec("lpips", "LPIPS", ".4f", False),
     MetricSpec("ause_mae", "AUSE MAE", ".4f", False),

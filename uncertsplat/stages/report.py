@@ -50,7 +50,10 @@ def _check_output(out: Path, runs: list[Path]) -> None:
         if out.resolve() == r.resolve():
             raise UserError("the report folder cannot be the run folder itself", path=out,
                             hint=f"Use e.g. -o {r / 'report'}.")
-    if out.is_dir() and any(out.iterdir()) and not is_report_page(out / INDEX) and not _unfinished_report(out):
+    # hidden files (a file manager's .DS_Store, Thumbs.db is not hidden but is the same kind) do not make a folder
+    # anyone's: a folder holding only them was refused as "not empty"
+    own = [p for p in out.iterdir() if not p.name.startswith(".") and p.name != "Thumbs.db"] if out.is_dir() else []
+    if own and not is_report_page(out / INDEX) and not _unfinished_report(out):
         what = ("its index.html is not a page `report` wrote" if (out / INDEX).is_file()
                 else "it holds no earlier report")
         raise UserError(f"the output folder is not empty and {what}; refusing to write into it (its index.html and "
