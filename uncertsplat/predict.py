@@ -204,6 +204,7 @@ def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
         # a pose inverted elsewhere (np.linalg.inv) then came back 1e-8 off the world-to-camera matrix it was made
         # from, so it got another seed (``pose_index``) and other maps (a helper: 20 poses of 20)
         m = torch.linalg.inv(m)
+        m[:, 3] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype)  # (as given, not as rounded by the inverse)
     if axes != "opencv":  # OpenGL's camera (y up, z backward) is OpenCV's turned half a turn about x
         m = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=m.dtype)) @ m
     return m
@@ -329,9 +330,9 @@ class Predictor:
             loaded = loaded.with_scene(scene)  # what reads the scene (the empty-ray term's coverage) reads this one
             where = (f"; on {device.type} the maps differ from evaluate's by the devices' rounding"
                      if kept.device != device.type else "")
+            other = ", by another version or build of uncertsplat" if kept.versions != plain_versions() else ""
             console.print(f"[yellow]note:[/] the scene cannot be loaded ({err.message}): the predictive is the one "
-                          f"kept in {run_dir / 'eval' / 'predictive.pt'} (fitted on {kept.device}"
-                          f"{', by another version or build of uncertsplat' if kept.versions != plain_versions() else ''}{where})")
+                          f"kept in {run_dir / 'eval' / 'predictive.pt'} (fitted on {kept.device}{other}{where})")
         else:
             if kept is not None and (kept.device != device.type or kept.versions != plain_versions()):
                 kept = None  # fitted on another device or by another version: fitted again, as evaluate would

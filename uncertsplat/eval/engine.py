@@ -471,9 +471,9 @@ FEW_DEPTH_PIXELS = 0.05
 def pose_index(cam_from_world: Tensor, K: Tensor) -> int:
     """A view index (0 to 2**40) from a camera's pose [4,4] and intrinsics [3,3], for ``view_seed``: a view that is
     not one of the scene's (``uncertsplat.predict``'s poses of one's own, ``select-views``' candidates) gets the same
-    generator seed wherever it stands in a batch. From the float32 values, entries below 1e-7 taken as 0: the same pose written
-    two ways (float64 or float32, a world_from_cam inverted in float64, an entry 0 or -0.0 or 1e-17) gets the same
-    seed, where its float64 bytes gave two."""
+    generator seed wherever it stands in a batch. From the float32 values, entries below 1e-7 taken as 0: the same
+    pose written two ways (float64 or float32, a world_from_cam inverted in float64, an entry 0 or -0.0 or 1e-17) gets
+    the same seed, where its float64 bytes gave two."""
     import hashlib
 
     key = torch.cat([cam_from_world.flatten(), K.flatten()]).float().cpu()
