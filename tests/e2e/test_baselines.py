@@ -287,7 +287,7 @@ def test_an_unfinished_run_is_evaluated_with_a_note(scene_path, tmp_path):
     with pytest.raises(Interrupted):
         train_run(scene_path, run, quick_cfg(), CPU, on_trainer=stop)
     report = evaluate.run(run, EvalConfig(num_samples=2, max_views=1), device=CPU)
-    (note,) = [n for n in report.notes if "not finished training" in n]
+    (note,) = [n for n in report.notes if "training is not finished: its newest checkpoint is step" in n]
     assert "step 10 of 20" in note and f"-o {run} --resume" in note
     assert load_run(run, CPU).unfinished_notes() == [note]
     train_run(scene_path, run, quick_cfg(), CPU, resume=True)

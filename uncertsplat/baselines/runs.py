@@ -233,9 +233,10 @@ class LoadedRun:
         resumed): what is measured is that checkpoint. None for finished runs (their model is ``variational.ply``)."""
         if self.source.suffix != ".pt" or self.step >= self.config.iterations:
             return []
-        scene = self.scene_path if self.scene_path is not None else "SCENE"
-        return [f"the run has not finished training: its model is the checkpoint of step {self.step} of "
-                f"{self.config.iterations} (`uncertsplat train {scene} -o {self.run_dir} --resume` finishes it)"]
+        from uncertsplat.io.checkpoints import unfinished_training
+
+        return [unfinished_training(self.step, self.config.iterations, self.scene_path, self.run_dir)
+                + "; what is measured is that checkpoint"]
 
     def warn_if_unfinished(self) -> list[str]:
         """``unfinished_notes``, each also printed as a warning; returns them."""

@@ -43,6 +43,13 @@ def checkpoint_path(run_dir: str | Path, step: int) -> Path:
     return checkpoint_dir(run_dir) / f"step_{step:06d}.pt"
 
 
+def unfinished_training(step: int, total: int, scene: str | Path | None, run_dir: str | Path) -> str:
+    """How every command says a run's model is a training checkpoint before its last step: the one text of the
+    report's note and of the warning of the commands that load the run (they said it in two texts)."""
+    return (f"training is not finished: its newest checkpoint is step {step} of {total} (`uncertsplat train "
+            f"{scene if scene is not None else 'SCENE'} -o {run_dir} --resume` finishes it)")
+
+
 def list_checkpoints(run_dir: str | Path) -> list[tuple[int, Path]]:
     """(step, path) of every checkpoint file in ``RUN/ckpts``, oldest first."""
     folder = checkpoint_dir(run_dir)

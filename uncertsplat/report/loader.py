@@ -236,7 +236,7 @@ def _training_notes(run: RunData) -> list[str]:
     before its last step (no train_summary.json past its newest checkpoint), with the command that finishes it
     (the page showed n/a and sent the reader to `evaluate`)."""
     from uncertsplat.io.atomic import lock_holder
-    from uncertsplat.io.checkpoints import list_checkpoints
+    from uncertsplat.io.checkpoints import list_checkpoints, unfinished_training
 
     notes = []
     holder = lock_holder(run.path)
@@ -255,9 +255,8 @@ def _training_notes(run: RunData) -> list[str]:
     step, total = found[-1][0], run.config.iterations
     summary_steps = run.train_summary.steps if run.train_summary is not None else None
     if step < total and (summary_steps is None or summary_steps < step):
-        scene = run.scene_path if run.scene_path is not None else "SCENE"
-        notes.append(f"training is not finished: its newest checkpoint is step {step} of {total} (`uncertsplat train "
-                     f"{scene} -o {run.path} --resume` finishes it; `evaluate` then scores the finished model)")
+        notes.append(unfinished_training(step, total, run.scene_path, run.path)
+                     + "; `evaluate` then scores the finished model")
     return notes
 
 
