@@ -404,7 +404,7 @@ def prune(
     threshold: Annotated[float | None, typer.Option(help="Remove Gaussians whose score exceeds this.")] = None,
     auto: Annotated[bool, typer.Option(help="Strongest pruning within --tolerance-db of the unpruned PSNR.")] = False,
     tolerance_db: Annotated[float | None, typer.Option(help="PSNR loss --auto may accept, in dB (default 0.1).")] = None,
-    score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (with --auto or --keep-ratio: free-space and gate both tried, the one that prunes more within the tolerance kept; else free-space), free-space, gate, position, scale or predictive (see the README).")] = None,
+    score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (with --auto or --keep-ratio: free-space and gate both tried, the one that prunes more within the tolerance kept; else free-space), free-space, gate, position, scale, or predictive (for --dry-run and --sweep only: it ranks the Gaussians the image needs most first; see the README).")] = None,
     dry_run: Annotated[bool, typer.Option(help="Report only; write no model.")] = False,
     sweep: Annotated[bool, typer.Option(help="Evaluate a range of keep ratios.")] = False,
     device: DeviceOpt = "auto",

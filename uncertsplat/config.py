@@ -783,6 +783,13 @@ class SelectConfig(_Base):
     around_radius: float = Field(1.0, gt=0.0, le=1000.0)
     """around: largest move of a candidate from its training camera, in median camera spacings (at most 1000: far
     beyond, the candidates' poses were not finite numbers)."""
+    plausible_only: bool = True
+    """Planned poses (a file's, ``around``) compete only where a camera can stand: a candidate whose centre lies
+    behind the surface every training photo that looked toward it rendered (inside an object, behind a wall:
+    ``ViewConsistency.seen_behind``), or farther from every training camera than ``FAR_CAPTURES`` x the capture's size
+    (the larger of its cameras' spread and the median depth the photos see), gets no score and is ranked last, with a
+    note. A helper's plan file had a pose 28 units into the fern and one 200 scene radii away ranked first by every
+    score. false: every candidate competes. The scene's unused photos are not tested (a camera stood at each)."""
     seed: int = Field(0, ge=0, le=EVAL_SEED_MAX)
 
 

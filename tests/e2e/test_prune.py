@@ -16,7 +16,7 @@ from tests.fixtures import tiny_scene_path  # noqa: F401
 from tests.run_fixtures import tiny_run_path  # noqa: F401
 from uncertsplat.baselines import load_run
 from uncertsplat.cli import app
-from uncertsplat.config import PruneConfig
+from uncertsplat.config import PruneConfig, TrainConfig
 from uncertsplat.errors import UserError
 from uncertsplat.gaussians.variational import random_model
 from uncertsplat.io.ply import write_variational_ply
@@ -247,7 +247,8 @@ class TestAuto:
         curve is measured, uncertainty included, and the choice is the same."""
         common = dict(auto=True, tolerance_db=0.0, sweep_ratios=[1.0, 0.5, 0.3, 0.2], dry_run=True, **FAST)
         alone = prune.run(tiny_run_path, None, PruneConfig(**common), device=CPU)
-        full = prune.run(tiny_run_path, None, PruneConfig(**common, sweep=True), device=CPU)
+        # (--sweep measures one score: the one --auto kept, the nearest miss where no score removes anything)
+        full = prune.run(tiny_run_path, None, PruneConfig(**common, sweep=True, score=alone.score), device=CPU)
         assert [p.keep_ratio for p in full.sweep.points] == [1.0, 0.5, 0.3, 0.2]
         assert [p.keep_ratio for p in alone.sweep.points] == [1.0, 0.5]  # removing half fails a zero tolerance
         assert alone.keep_ratio == full.keep_ratio == 1.0
@@ -331,3 +332,38 @@ def test_a_loaded_run_reads_its_scene_once(tiny_run_path, monkeypatch):
     assert pruned.load_scene() is first
     assert len(reads) == 1
     assert load_run(tiny_run_path, CPU).load_scene() is not first and len(reads) == 2  # another load reads again
+
+
+def test_a_pruned_run_is_not_trained_on_and_select_views_names_its_source(pruned, tiny_scene_path, tmp_path,
+                                                                           capsys):  # noqa: F811
+    """A pruned run holds a model and config.json but no checkpoint: `train --resume` there started from step 0 and
+    wrote a new model over the pruned one (select-views had suggested it); now it is refused, naming the source run,
+    and select-views suggests adding the views to the source run."""
+    import shutil
+
+    from uncertsplat.baselines import train_run
+    from uncertsplat.config import SelectConfig
+    from uncertsplat.stages import select
+
+    out, result, _ = pruned
+    run = tmp_path / "pruned"
+    shutil.copytree(out, run)
+    model = (run / "variational.ply").read_bytes()
+    cfg = TrainConfig.model_validate_json((run / "config.json").read_text())
+    with pytest.raises(UserError, match="this folder is a pruned model") as err:
+        train_run(tiny_scene_path, run, cfg.model_copy(update={"iterations": cfg.iterations + 10}), CPU, resume=True)
+    assert result.source_run in err.value.hint and (run / "variational.ply").read_bytes() == model
+    select.run(run, SelectConfig(score="coverage", candidates="around:3"), CPU, output=tmp_path / "sel")
+    said = " ".join(capsys.readouterr().err.split())
+    assert f"is a pruned model (prune.json): the views are added to its source run {result.source_run}" in said
+    assert f"-o {run} --resume" not in said
+
+
+def test_a_model_is_not_pruned_by_the_predictive_score(tiny_run_path, tmp_path):  # noqa: F811
+    """It ranks the Gaussians the images need most first (fern at keep 0.8: 27.1 -> 8.2 dB, and the note that said so
+    came after the model was written): refused before any work, no folder made; --dry-run still measures it."""
+    out = tmp_path / "out"
+    for cfg in (PruneConfig(keep_ratio=0.8, score="predictive"), PruneConfig(auto=True, score="predictive")):
+        with pytest.raises(UserError, match="the predictive score ranks first the Gaussians") as err:
+            prune.run(tiny_run_path, out, cfg, device=CPU)
+        assert "--dry-run or --sweep" in err.value.hint and not out.exists()

@@ -479,6 +479,35 @@ def test_candidates_that_see_none_of_the_model_are_named(subset_run, tmp_path, c
     assert "where they face what no photo has seen" in said and "--score variance" in said
 
 
+@pytest.mark.parametrize("score", ["coverage", "fisher"])
+def test_a_planned_pose_far_outside_the_capture_is_ranked_last(subset_run, tmp_path, capsys, score):
+    """A plan with two unused views' poses and the first moved 100 capture sizes away: coverage and fisher's gap rule
+    both put the far one first (the gap rule measured every other pose against it, so they got no score). It is
+    now ranked last with no score and named; ``plausible_only=false`` lets it compete again."""
+    from uncertsplat.baselines import load_run
+    from uncertsplat.select.candidates import pose_line
+
+    loaded = load_run(subset_run)
+    scene = loaded.load_scene()
+    wfs = torch.tensor(RunScene.read(subset_run / "scene.json").world_from_source, dtype=torch.float64)
+    unused = [i for i in range(len(scene.cameras)) if i not in set(scene.split["train"]) | set(scene.split["test"])]
+    far = torch.linalg.inv(scene.cameras.cam_from_world[unused[0]].double())
+    far[:3, 3] *= 100.0  # the same direction, 100 times as far from the scene's centre
+    lines = [pose_line("far", torch.linalg.inv(far).float(), wfs)]
+    lines += [pose_line(f"v{i}", scene.cameras.cam_from_world[i], wfs) for i in unused[1:3]]
+    (tmp_path / "plan.txt").write_text("\n".join(lines) + "\n")
+    cfg = SelectConfig(score=score, num_views=1, candidates=str(tmp_path / "plan.txt"))
+    sel = stage.run(subset_run, cfg, CPU, output=tmp_path / "a")
+    said = " ".join(capsys.readouterr().err.split())
+    assert sel.chosen[0].name != "far" and sel.ranking[-1].name == "far" and sel.ranking[-1].score is None
+    assert "1 candidate (far) lies over 2 capture sizes from every training camera" in said
+    assert "plausible_only=false" in said
+    sel = stage.run(subset_run, cfg.model_copy(update={"plausible_only": False}), CPU, output=tmp_path / "b")
+    assert "capture sizes" not in capsys.readouterr().err
+    # when it competes: coverage's farthest, and for fisher the only one in the gaps it set
+    assert sel.chosen[0].name == "far"
+
+
 def test_the_selection_plot_shows_the_held_out_views_and_keeps_its_legend_outside(tmp_path, monkeypatch):
     """The held-out views (a gap's middle, where the scores are measured) were left out of selection.png, and the
     legend sat over cameras."""
@@ -498,6 +527,31 @@ def test_the_selection_plot_shows_the_held_out_views_and_keeps_its_legend_outsid
     assert "held out (2)" in labels and "used (6)" in labels
     box = ax.get_legend().get_window_extent(figs[0].canvas.get_renderer())
     assert box.x0 >= ax.get_window_extent(figs[0].canvas.get_renderer()).x1  # beside the axes, not over them
+    plt.close("all")
+
+
+def test_a_forward_facing_grid_is_drawn_from_the_front(tmp_path, monkeypatch):
+    """Cameras on an upright 3x3 grid (a forward-facing capture, y down as OpenCV's up is -y) were drawn from above,
+    as a line with the chosen views on top of each other; a ring stays drawn from above."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from uncertsplat.stages.select import _plot
+
+    figs = []
+    monkeypatch.setattr(plt, "close", figs.append)
+    grid = torch.tensor([[x, y, 0.0] for x in (-1.0, 0.0, 1.0) for y in (-1.0, 0.0, 1.0)])
+    up = torch.tensor([0.0, -1.0, 0.0])
+    _plot(tmp_path / "g.png", grid, grid + torch.tensor([0.5, 0.5, 0.0]), [0, 4], up, "grid")
+    ax = figs[-1].axes[0]
+    xs, ys = ax.collections[1].get_offsets().T  # the used cameras
+    assert len(set(round(float(x), 6) for x in xs)) == 3 and len(set(round(float(y), 6) for y in ys)) == 3
+    assert "seen from the front" in ax.get_title()
+    ring = torch.stack([torch.tensor([torch.cos(t), 0.0, torch.sin(t)]) for t in torch.linspace(0, 6.0, 12)])
+    _plot(tmp_path / "r.png", ring, ring * 1.1, [0], up, "ring")
+    assert "seen from above" in figs[-1].axes[0].get_title()
     plt.close("all")
 
 

@@ -335,6 +335,23 @@ class TestSeenFree:
         pts = torch.tensor([[0.0, 0.0, -4.0], [0.0, 0.0, -4.1], [0.0, 0.0, -4.2]])  # centre, 0.1 and 0.2 behind
         assert term.seen_free(pts).tolist() == [True, True, False]
 
+    def test_behind_what_every_view_that_holds_it_saw(self):
+        """``seen_behind``: a point behind the wall of the one view that holds it is behind; in front of the wall,
+        outside every image, behind the camera or where the ray met nothing (depth 0) it is not; a second view that
+        sees through the point (its wall farther, in another chunk) clears it."""
+        term = self._free(lambda k: torch.full((H, W), 4.0))
+        pts = torch.tensor([[0.0, 0.0, 1.0],    # behind the wall (depth 5 against 4)
+                            [0.0, 0.0, 0.05],   # within 3 % behind it: at the wall, not behind
+                            [0.0, 0.0, -3.0],   # in front of it
+                            [30.0, 0.0, 1.0],   # outside the image
+                            [0.0, 0.0, -5.0]])  # behind the camera
+        assert term.seen_behind(pts).tolist() == [True, False, False, False, False]
+        assert self._free(lambda k: torch.zeros(H, W)).seen_behind(pts[:1]).tolist() == [False]
+        walls = lambda k: torch.full((H, W), 4.0 if k < 8 else 10.0)  # noqa: E731
+        assert self._free(walls, [0.0] * 9).seen_behind(pts[:1]).tolist() == [False]
+        assert self._free(walls, [0.0] * 8).seen_behind(pts[:1]).tolist() == [True]
+        assert term.seen_behind(torch.zeros(0, 3)).shape == (0,)
+
     def test_no_points_and_extreme_points(self):
         term = self._free(lambda k: torch.full((H, W), 4.0))
         assert term.seen_free(torch.zeros(0, 3)).shape == (0,)

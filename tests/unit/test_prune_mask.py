@@ -179,6 +179,19 @@ class TestScoreChoice:
         assert choose_score_by_removal(sweeps)[0] == "free-space"
         assert choose_score_by_removal(self.sweeps([1.0, 0.9], tolerance_db=0.0))[0] == "gate"
 
+    def test_where_none_removes_anything_the_nearest_miss_is_quoted(self):
+        """Neither score's smallest removal stays within the tolerance: the note of ``--auto`` quoted the default's
+        cost (0.40 dB on a helper's fern run) where the other's cost 0.06; now the score whose smallest removal cost
+        least is kept, and its cost quoted."""
+        from uncertsplat.prune.policy import auto_keep_ratio, choose_score_by_removal
+
+        sweeps = self.sweeps([1.0, 0.6])  # 24 removed: free-space 1.15 dB, gate 0.35 dB, both over 0.1
+        assert all(sw.largest_removal_within_tolerance is None for sw in sweeps.values())
+        chosen, _ = choose_score_by_removal(sweeps)
+        assert chosen == "gate"
+        keep, note = auto_keep_ratio(sweeps[chosen])
+        assert keep == 1.0 and "the smallest removal tried, 40 %, cost 0.35 dB" in note
+
     def test_at_a_keep_ratio_the_higher_psnr_is_chosen(self):
         from uncertsplat.prune.policy import choose_score_at_ratio
 

@@ -194,7 +194,8 @@ def blind_candidates_note(candidates: Cameras, train: Cameras, points: Tensor) -
                                                                                       else "")
     return (f"{len(blind)} of {len(seen)} candidate(s) see almost none of the model ({listed} of its Gaussians in view, "
             f"the training views {100 * usual:.0f} %): where they face what no photo has seen, the model holds nothing "
-            "there for the fisher score (0: ranked last; --score variance ranks such views by their empty rays); "
+            "there, and the fisher score measures only the few Gaussians they see (--score variance ranks such views "
+            "by their empty rays); "
             "otherwise check the pose file's convention (world-to-camera, the quaternion as w x y z, the scene's "
             "units and frame)")
 

@@ -75,22 +75,26 @@ def nearest_used_distance(candidates: Tensor, used: Tensor) -> Tensor:
     return torch.full((c.shape[0],), float("inf"), dtype=torch.float64)
 
 
-def coverage_choice(candidates: Tensor, used: Tensor, n: int) -> tuple[list[int], list[float], Tensor]:
+def coverage_choice(candidates: Tensor, used: Tensor, n: int,
+                    allowed: Tensor | None = None) -> tuple[list[int], list[float], Tensor]:
     """Greedy farthest-point choice of ``n`` candidates.
 
     Args:
         candidates: [C,3] candidate camera centres.
         used: [U,3] centres of the cameras used already (U may be 0: then the first pick is candidate 0).
-        n: how many to choose (at most C).
+        n: how many to choose (at most the allowed ones).
+        allowed: [C] bool, the candidates that compete (None: all); the others get no score (NaN).
 
     Returns:
         (chosen positions, their distance when chosen, [C] every candidate's distance before any choice).
     """
     c = candidates.double()
     dist = nearest_used_distance(c, used)
+    if allowed is not None:
+        dist = torch.where(allowed.to(torch.bool).cpu(), dist, torch.full_like(dist, float("nan")))
     first = dist.clone()
     chosen, at = [], []
-    for _ in range(min(n, c.shape[0])):
+    for _ in range(min(n, int((~torch.isnan(dist)).sum()) if allowed is not None else c.shape[0])):
         j = best_unchosen(dist, chosen)
         chosen.append(j)
         at.append(float(dist[j]))
@@ -154,11 +158,13 @@ each is computed again when needed (same seed, same values): about once per cand
 through the lazy greedy."""
 
 
-def gap_eligible(candidates: Tensor, used: Tensor, fraction: float) -> Callable[[list[int]], Tensor]:
+def gap_eligible(candidates: Tensor, used: Tensor, fraction: float,
+                 allowed: Tensor | None = None) -> Callable[[list[int]], Tensor]:
     """The candidates that lie in the capture's gaps: ``f(chosen)`` gives the [C] mask of the candidates whose
     distance to the nearest camera used (``used`` [U,3] and the ``chosen`` positions so far) is at least
     ``fraction`` x the largest such distance among the candidates not chosen yet (0: every candidate; 1:
-    coverage's farthest ones). ``candidates``: [C,3] centres."""
+    coverage's farthest ones). ``candidates``: [C,3] centres; ``allowed`` [C] bool: only those compete, and only
+    they set the largest distance (a pose far outside the capture, not allowed, put every other out of the gaps)."""
     c = candidates.double()
     base = nearest_used_distance(c, used)
 
@@ -166,7 +172,7 @@ def gap_eligible(candidates: Tensor, used: Tensor, fraction: float) -> Callable[
         dist = base.clone()
         for j in chosen:
             dist = torch.minimum(dist, (c - c[j]).norm(dim=1))
-        free = torch.ones_like(dist, dtype=torch.bool)
+        free = torch.ones_like(dist, dtype=torch.bool) if allowed is None else allowed.to(torch.bool).cpu().clone()
         free[chosen] = False
         if not bool(free.any()):
             return free

@@ -15,27 +15,41 @@ import numpy as np
 import torch
 
 from uncertsplat.config import SelectConfig
-from uncertsplat.console import console, list_names
+from uncertsplat.console import console, count, list_names
 from uncertsplat.errors import UserError, run_folder_missing
 
 
 def _plot(path: Path, used: torch.Tensor, cands: torch.Tensor, chosen: list[int], up: torch.Tensor, title: str,
           held: torch.Tensor | None = None) -> None:
-    """The camera centres seen from above (projected on the plane normal to ``up``): candidates, the views used for
-    training, the held-out ones (``held``: where the scores are measured, a gap's middle often) and the chosen."""
+    """The camera centres on the plane they spread over: candidates, the views used for training, the held-out ones
+    (``held``: where the scores are measured, a gap's middle often) and the chosen. Seen from above (on the plane
+    normal to ``up``) when the training cameras spread over a level plane (a ring, a walk), from the front when they
+    stand on an upright one (a forward-facing grid, which the view from above drew as a line, its chosen views on top
+    of each other)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     from uncertsplat.io.atomic import atomic_write_bytes
 
     up = up.double() / up.double().norm().clamp_min(1e-12)
-    a = torch.linalg.cross(up, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
-    if float(a.norm()) < 0.1:
-        a = torch.linalg.cross(up, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
-    a = a / a.norm()
-    b = torch.linalg.cross(up, a)
+    normal, side = up, "above"
+    if len(used) >= 3:  # the plane of the training cameras' two widest spreads
+        centred = used.double() - used.double().mean(0)
+        normal = torch.linalg.svd(centred, full_matrices=True).Vh[2]
+        if abs(float(normal @ up)) >= 0.7:
+            normal = up
+        else:
+            side = "the front"
+    b = up - (up @ normal) * normal  # the plot's vertical: up, on the plane (for a level plane, any)
+    if side == "above" or float(b.norm()) < 0.1:
+        b = torch.linalg.cross(normal, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
+        if float(b.norm()) < 0.1:
+            b = torch.linalg.cross(normal, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    b = b / b.norm()
+    a = torch.linalg.cross(b, normal)
 
     def xy(p):
         p = p.double()
@@ -54,7 +68,9 @@ def _plot(path: Path, used: torch.Tensor, cands: torch.Tensor, chosen: list[int]
             ax.annotate(str(k + 1), (x, y), textcoords="offset points", xytext=(5, 5), color="tab:red")
     ax.scatter([0.0], [0.0], s=30, c="k", marker="+", label="scene centre")
     ax.set_aspect("equal")
-    ax.set_title(title, fontsize=9)
+    ax.set_title(f"{title}\n(the cameras seen from {side}; the run's normalised units)", fontsize=9)
+    ax.xaxis.set_major_locator(MaxNLocator(5))  # (tick labels ran into each other on a narrow capture)
+    ax.yaxis.set_major_locator(MaxNLocator(5))
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # beside the plot: it hid cameras inside
     import io
 
@@ -62,6 +78,57 @@ def _plot(path: Path, used: torch.Tensor, cands: torch.Tensor, chosen: list[int]
     fig.savefig(buf, format="png", bbox_inches="tight")
     plt.close(fig)
     atomic_write_bytes(path, buf.getvalue())
+
+
+def _only(scores: torch.Tensor, allowed: torch.Tensor | None) -> torch.Tensor:
+    """``scores`` [C] with no score (NaN: ranked last) for the candidates not ``allowed`` [C] (None: all allowed)."""
+    return scores if allowed is None else torch.where(allowed, scores, torch.full_like(scores, float("nan")))
+
+
+FAR_CAPTURES = 2.0
+"""``SelectConfig.plausible_only``: a candidate farther than this many capture sizes from every training camera is not
+a next photo of this capture (the model there is a speck; the gap rule measured every other candidate against it)."""
+
+
+def _plausible(loaded, scene, train: list[int], cands, cfg: SelectConfig, device: torch.device
+               ) -> torch.Tensor | None:
+    """[C] bool: the candidates that compete under ``SelectConfig.plausible_only`` (planned poses whose centre is not
+    inside or behind what the training photos saw, nor ``FAR_CAPTURES`` capture sizes from them), with a note naming
+    the others; None when every candidate competes (the setting off, the scene's unused photos, all plausible, or
+    none: then every one competes, said so)."""
+    from uncertsplat.config import EvalConfig
+    from uncertsplat.eval.engine import view_consistency
+    from uncertsplat.select.scores import nearest_used_distance
+    from uncertsplat.uncertainty.consistency import DEPTH_TOLERANCE
+
+    if not cfg.plausible_only or cands.kind == "unused" or not train:
+        return None
+    views = EvalConfig(finer_detail=False)  # every training view up to the default 64, as Predictor.seen_free
+    looked = view_consistency(loaded.sampler(scene.scene_scale, device), scene.cameras[train].to(device), views,
+                              device)
+    centres, used = cands.cameras.centers.double(), scene.cameras[train].centers.double()
+    inside = looked.seen_behind(centres.float().to(device)).cpu()  # [C]
+    spread = float(torch.cdist(used, used).max()) if len(train) > 1 else 0.0
+    size = max(spread, looked._near() / DEPTH_TOLERANCE)  # (the compared renders' median surface depth)
+    far = nearest_used_distance(centres, used) > FAR_CAPTURES * size if size > 0 else torch.zeros_like(inside)
+    ok = ~(inside | far)
+    if bool(ok.all()):
+        return None
+    names = cands.cameras.image_names
+    if not bool(ok.any()):
+        console.print(f"[yellow]note:[/] every one of the {count(len(cands), 'candidate')} lies inside or behind what "
+                      f"the photos saw, or over {FAR_CAPTURES:g} capture sizes away: they all compete; check the poses' "
+                      "convention (world-to-camera, the quaternion as w x y z, the scene's units and frame)")
+        return None
+    for mask, where in ((inside, "inside or behind what every photo that looked toward them saw (an object, a wall)"),
+                        (far & ~inside, f"over {FAR_CAPTURES:g} capture sizes from every training camera ({size:.3g} "
+                                        "units a capture size, in the run's normalised world)")):
+        out = [names[j] for j in range(len(cands)) if bool(mask[j])]
+        if out:
+            console.print(f"[yellow]note:[/] {count(len(out), 'candidate')} ({list_names(out, 6)}) "
+                          f"{'lie' if len(out) > 1 else 'lies'} {where}: no score, ranked last (--set "
+                          "plausible_only=false lets them compete)")
+    return ok
 
 
 def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | None = None):
@@ -82,7 +149,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     from uncertsplat.data.dataset import load_images
     from uncertsplat.io.atomic import check_output_folder, run_lock
     from uncertsplat.io.images import resize_image
-    from uncertsplat.schemas import RunScene, Selection
+    from uncertsplat.schemas import PruneReport, RunScene, Selection
     from uncertsplat.schemas.select import CandidateScore, ChosenView
     from uncertsplat.select.candidates import blind_candidates_note, candidates_from_spec, pose_line
     from uncertsplat.select.scores import (
@@ -120,9 +187,11 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
             console.print(f"[yellow]note:[/] {len(named)} planned pose(s) carry the name of a photo of the scene "
                           f"({list_names(named, 5)}): `train --add-views` takes photos, so a chosen one adds that "
                           "photo (or is refused as trained or held out), not the pose; name planned poses apart")
-    n = min(cfg.num_views, len(cands))
-    console.print(f"[bold]select-views[/] {run_dir}: {len(cands)} candidates ({cands.kind}), score '{cfg.score}', "
-                  f"choosing {n}, {device}")
+    centres = cands.cameras.centers
+    allowed = _plausible(loaded, scene, train, cands, cfg, device)  # [C] bool, or None: every one competes
+    n = min(cfg.num_views, len(cands) if allowed is None else int(allowed.sum()))
+    console.print(f"[bold]select-views[/] {run_dir}: {count(len(cands), 'candidate')} ({cands.kind}), score "
+                  f"'{cfg.score}', choosing {n}, {device}")
     if loaded.config.scene.calibration_holdout:  # found out only after choosing, at `train --add-views`
         console.print(f"[yellow]note:[/] this run sets {loaded.config.scene.calibration_holdout} view(s) aside for "
                       "calibration, so `train --resume --add-views` refuses to add the chosen views (more training "
@@ -136,11 +205,11 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     settings: dict = cfg.model_dump(mode="json")  # the resolved settings (K, probes, gaps, ...), then what the score used
     depth_std = None
     t0 = time.perf_counter()
-    centres = cands.cameras.centers
     if cfg.score == "coverage":
-        chosen, at, first = coverage_choice(centres, scene.cameras[train].centers, n)
+        chosen, at, first = coverage_choice(centres, scene.cameras[train].centers, n, allowed)
     elif cfg.score == "random":
-        first = torch.rand(len(cands), generator=torch.Generator().manual_seed(cfg.seed), dtype=torch.float64)
+        first = _only(torch.rand(len(cands), generator=torch.Generator().manual_seed(cfg.seed), dtype=torch.float64),
+                      allowed)
         chosen = rank_order(first)[:n]
         at = [float(first[j]) for j in chosen]
     elif cfg.score in ("unseen", "variance"):  # scores rendered from the posterior at the candidates
@@ -164,6 +233,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                               "leaves uncovered; --score fisher or coverage rank by more")
             first, depth_std = variance_scores(sampler.sample_fn, sampler.render_fn, low, cfg.num_samples, cfg.seed,
                                                empty_std=sampler.empty_std, coverage=sampler.coverage)
+        first = _only(first, allowed)
         chosen = rank_order(first)[:n]
         at = [float(first[j]) for j in chosen]
         settings.update(width=low.width, height=low.height)
@@ -183,7 +253,8 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                 params, low_train.to(device), images.to(device), low.to(device), loaded.render_fn(scene.scene_scale, device),
                 names=fcfg.params, prior_std=prior_stds(fcfg, loaded.extent), sh_degree=loaded.sh_degree,
                 probes=cfg.probes, seed=cfg.seed, n=n, information=cfg.information,
-                eligible=gap_eligible(centres, scene.cameras[train].centers, cfg.gaps) if cfg.gaps > 0 else None)
+                eligible=(gap_eligible(centres, scene.cameras[train].centers, cfg.gaps, allowed) if cfg.gaps > 0 else
+                          None if allowed is None else (lambda chosen: allowed.clone())))
         settings.update(width=low.width, height=low.height, noise_std=noise, params=list(fcfg.params))
         if loaded.config.method == "ensemble":
             settings["note"] = "ensemble: the Fisher of member 0's Gaussians"
@@ -236,6 +307,11 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         console.print(f"[yellow]note:[/] {cfg.num_views} views were asked for and only {len(cands)} candidates "
                       "were there: every one is chosen")
     folder = loaded.scene_path or "SCENE"
+    pruned = PruneReport.read_optional(run_dir / PruneReport.FILE_NAME)
+    if pruned is not None and picked:  # no checkpoint to add views to: `train --resume` there is refused
+        console.print(f"[yellow]note:[/] {run_dir} is a pruned model (prune.json): the views are added to its source "
+                      f"run {pruned.source_run}, which is then pruned again")
+        run_dir = Path(pruned.source_run)
     if picked and cands.kind == "unused":  # photos of the scene: the run trains on them as they are
         console.print(f"Next: [bold]uncertsplat train {folder} -o {run_dir} --resume --iterations N --add-views "
                       f"{','.join(p.name for p in picked)}[/]")

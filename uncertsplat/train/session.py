@@ -260,6 +260,16 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
     return cfg.model_copy(update={"scene": scene}), added
 
 
+def _prune_source(run_dir: Path) -> str | None:
+    """The run a prune output was pruned from (prune.json's ``source_run``), None when it cannot be read."""
+    from uncertsplat.schemas import PruneReport
+
+    try:
+        return PruneReport.read(run_dir / "prune.json").source_run
+    except UserError:
+        return None
+
+
 def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False,
                 extend_to: int | None = None, on_trainer=None, add_views: list[str] | None = None,
                 given: set[str] | None = None, done_label: str = "done", resume_dir: Path | None = None) -> Path:
@@ -326,6 +336,15 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     if resume and not (run_dir / "config.json").is_file():
         raise UserError("nothing to resume: no config.json in the run folder", path=run_dir,
                         hint="Start a new run without --resume.")
+    if resume and (run_dir / "prune.json").is_file():
+        # a prune output holds a model and config.json but no checkpoint: a --resume started from step 0 in it and
+        # wrote a new model over the pruned one, beside a prune.json and evaluation of neither (a helper followed
+        # select-views' advice there)
+        source = _prune_source(run_dir)
+        raise UserError("this folder is a pruned model (prune.json), not a training run: it has no checkpoint to go on "
+                        "from, and a training here would replace the pruned model", path=run_dir,
+                        hint=f"Resume its source run{f' ({source})' if source else ''} with the same arguments, then "
+                             "prune it again.")
 
     with run_lock(run_dir, "train"):
         state = None

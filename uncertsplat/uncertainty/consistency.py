@@ -436,6 +436,32 @@ class ViewConsistency:
             free |= (inside & ((at <= 0.0) | (z < at * (1.0 - DEPTH_TOLERANCE)))).any(0)
         return free
 
+    @torch.no_grad()
+    def seen_behind(self, points: Tensor) -> Tensor:
+        """[P] bool: whether every compared training view whose image holds each of ``points`` [P,3] (world), in front
+        of it, rendered a surface nearer than the point (by more than ``DEPTH_TOLERANCE`` of its depth), and at least
+        one holds it: every photo that looked toward the point saw something in front of it, so it lies inside an
+        object or behind a wall. False for a point no compared view holds (nothing is known there: a photo's own
+        camera stood at such places) and for one a view saw through (``seen_free``)."""
+        if points.shape[0] > FREE_POINTS_CHUNK:  # a block at a time, as seen_free
+            return torch.cat([self.seen_behind(points[k:k + FREE_POINTS_CHUNK])
+                              for k in range(0, points.shape[0], FREE_POINTS_CHUNK)])
+        held = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
+        passed = torch.zeros_like(held)  # some view holds it and does not see a surface in front of it
+        w, h = self.cameras.width, self.cameras.height
+        for k0 in range(0, len(self.cameras), VIEW_CHUNK):
+            cams = self.cameras[k0:k0 + VIEW_CHUNK].to(points.device)
+            uv, z = project_points(points.float(), cams.cam_from_world, cams.K)  # [C,P,2], [C,P]
+            inside = _in_image(uv, z, w, h)  # [C,P]
+            col = uv[..., 0].nan_to_num(0.0).floor().clamp(0, w - 1).long()
+            row = uv[..., 1].nan_to_num(0.0).floor().clamp(0, h - 1).long()
+            at = self.depth[k0:k0 + VIEW_CHUNK].to(points.device)[torch.arange(len(cams), device=points.device)[:, None],
+                                                                   row, col]  # [C,P]
+            behind = (at > 0.0) & (z > at * (1.0 + DEPTH_TOLERANCE))
+            held |= inside.any(0)
+            passed |= (inside & ~behind).any(0)
+        return held & ~passed
+
     def _unlooked(self, points: Tensor, inside_any: Tensor) -> Tensor:
         """``_outside_every_image`` of ``POINTS_CHUNK`` points at a time (its projections of a whole large view into
         the other training cameras, [C,S] each, ran to hundreds of MB)."""
