@@ -89,6 +89,32 @@ def test_non_finite_step_is_skipped_with_a_message(kind, tmp_path, monkeypatch, 
     assert t.summary()["skipped_steps"] == 1
 
 
+def test_a_model_pruned_to_nothing_stops_with_a_clear_error(tmp_path, monkeypatch):
+    """Densification that removes every Gaussian (a threshold above every opacity): the run trained an empty model on
+    and failed with a traceback writing its PLY; now it stops at that step, naming the threshold."""
+    from uncertsplat.strategy import densify
+
+    scene, tr, te = toy_scene()
+    t = Trainer(scene, toy_config(iterations=30), tr, te, run_dir=tmp_path)
+    monkeypatch.setattr(densify, "prune_decisions", lambda opacities, **kw: torch.ones_like(opacities, dtype=torch.bool))
+    with pytest.raises(UserError, match=r"every Gaussian was removed at step 10: densification prunes those whose "
+                                        r"opacity is below densify.min_opacity = 0.005"):
+        t.fit()
+
+
+def test_a_divergence_before_any_checkpoint_says_there_is_none(tmp_path, monkeypatch):
+    """Diverged at step 2 with no checkpoint written: the message said the checkpoints on disk were the last good state
+    and suggested --resume, which takes the run's own (diverging) settings; now it says none was written and that the
+    folder can be deleted or another one given."""
+    scene, tr, te = toy_scene()
+    t = Trainer(scene, toy_config(iterations=30, checkpoint_every=1000), tr, te, run_dir=tmp_path)
+    _poison("nan-loss", t, set(range(1, 100)), monkeypatch)
+    with pytest.raises(UserError) as err:
+        t.fit()
+    assert "no checkpoint was written before it" in str(err.value) and not list_checkpoints(tmp_path)
+    assert "-o NEW_RUN" in err.value.hint and "can be deleted" in err.value.hint and "--resume" not in err.value.hint
+
+
 def test_persistent_nan_stops_with_a_clear_error_and_good_checkpoints(tmp_path, monkeypatch):
     scene, tr, te = toy_scene()
     cfg = toy_config(iterations=30, checkpoint_every=4)
@@ -98,6 +124,8 @@ def test_persistent_nan_stops_with_a_clear_error_and_good_checkpoints(tmp_path, 
         t.fit()
     msg = str(err.value)
     assert "training diverged" in msg and f"steps 10-{9 + MAX_BAD_STEPS}" in msg and "learning rate" in msg
+    assert "the checkpoints on disk are the last good state" in msg and "-o NEW_RUN" in err.value.hint
+    assert "--resume goes on from the last good checkpoint" in err.value.hint
     assert [s for s, _ in list_checkpoints(tmp_path)] == [4, 8, 12]  # step 12: parameters of step 9, unchanged
     good = load_checkpoint(list_checkpoints(tmp_path)[-1][1])
     assert all(torch.isfinite(v).all() for v in good["model"]["params"].values())
@@ -122,3 +150,12 @@ def test_exploding_learning_rate_is_caught_not_saved_as_a_nan_model(tmp_path, ca
     for _, p in list_checkpoints(tmp_path):
         state = load_checkpoint(p)
         assert all(torch.isfinite(v).all() for v in state["model"]["params"].values()), p
+
+
+def test_an_outlier_filter_that_takes_every_point_says_so(tmp_path):
+    """``init_outlier_factor`` tiny: every sparse point is an outlier. It said "the scene has no sparse points", of
+    a scene with thousands."""
+    scene, tr, te = toy_scene()
+    with pytest.raises(UserError, match="no sparse point is left to start from: .* sparse points lie far outside") as e:
+        Trainer(scene, toy_config(init_outlier_factor=1e-12), tr, te, run_dir=tmp_path)
+    assert "init_outlier_factor" in e.value.hint

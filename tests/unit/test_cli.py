@@ -127,9 +127,13 @@ def test_a_method_that_other_options_take_back_is_noted(tmp_path):
                                      "--device", "cpu"])
         return " ".join(result.output.split())
 
-    assert ("note: --method paper was overridden by other options: this run trains method variational, variant ours"
-            in note("--method", "paper", "--variant", "ours"))
+    assert ("note: --method paper was overridden by other options (variant = 'ours'): this run trains method "
+            "variational, variant ours" in note("--method", "paper", "--variant", "ours"))
     assert "overridden" not in note("--method", "vi-single") and "overridden" not in note("--method", "paper")
+    # vi-single's one-entry SGD posterior taken back by --set (only method and variant were compared: no word)
+    said = note("--method", "vi-single", "--set", "variational.num_entries=5")
+    assert "--method vi-single was overridden by other options (variational.num_entries = 5)" in said
+    assert "posterior sgd" in said
 
 
 def test_tolerance_without_auto_is_refused(tmp_path):

@@ -41,6 +41,17 @@ class TestSchedule:
     def test_zero_threshold_tests_nothing(self):
         assert not growth_check_due(250, self.CFG.model_copy(update={"growth_min_gain_db": 0.0}))
 
+    def test_only_resets_that_happen_pause_the_tests(self):
+        """A reset interval under the recovery window, or a run too short for any reset (none in a run's last 1000
+        steps), switched every growth test off: the test assumed a reset at every multiple of the interval."""
+        often = DensifyConfig(start=0, until=4000, opacity_reset_interval=30, growth_check_interval=25)
+        assert not growth_check_due(75, often, iterations=5000)  # the resets at 30 and 60 happened
+        assert growth_check_due(75, often, iterations=150)  # a run of 150 steps has no reset at all
+        assert growth_check_due(25, often, iterations=5000)  # before the first
+        late = self.CFG.model_copy(update={"opacity_reset_interval": 1500})  # no reset in a run's last 1000 steps:
+        assert growth_check_due(1750, late, iterations=2400)  # none at 1500 in a run of 2400 steps
+        assert not growth_check_due(1750, late, iterations=5000)  # in one of 5000, 250 steps after it
+
     def test_without_resets_every_interval_is_due(self):
         cfg = self.CFG.model_copy(update={"opacity_reset_interval": 0})
         assert growth_check_due(3250, cfg) and growth_check_due(3750, cfg)

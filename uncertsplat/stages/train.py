@@ -38,12 +38,25 @@ def resolve_config(preset: str | None, data: dict[str, Any], method: str | None,
             train_config_from(preset, data, source=source, where=KeyLines(source))
         raise
     over = method_overrides(method) if method is not None else {}
-    if over.get("method", cfg.method) != cfg.method or over.get("variant", cfg.variant) != cfg.variant:
-        # --method sets keys (paper: variant = "paper") that a later option or --set took back
+
+    def taken_back(want: dict, have: dict, prefix: str = "") -> list[str]:
+        """The keys --method set (nested) whose value in the config is another."""
+        out = []
+        for k, v in want.items():
+            if isinstance(v, dict):
+                out += taken_back(v, have.get(k, {}), f"{prefix}{k}.")
+            elif have.get(k, v) != v:
+                out.append(f"{prefix}{k} = {have.get(k)!r}")
+        return out
+
+    back = taken_back(over, cfg.model_dump(mode="json"))
+    if back:
+        # --method sets keys (paper: variant = "paper"; vi-single: the SGD posterior of one entry) that a later option
+        # or --set took back (only method and variant were looked at: vi-single with another num_entries said nothing)
         from uncertsplat.console import console
 
-        console.print(f"[yellow]note:[/] --method {method} was overridden by other options: this run trains "
-                      f"method {cfg.method}, variant {cfg.variant}")
+        console.print(f"[yellow]note:[/] --method {method} was overridden by other options ({', '.join(back)}): this "
+                      f"run trains method {cfg.method}, variant {cfg.variant}, posterior {cfg.posterior}")
     if cfg.variant == "paper" and not cfg.has_offset_tables:
         from uncertsplat.console import console
 

@@ -51,8 +51,21 @@ def growth_check_due(step: int, cfg, iterations: int | None = None) -> bool:
         return False
     if not cfg.start < step < densify_end(cfg, iterations):
         return False
-    reset = cfg.opacity_reset_interval
-    return not (reset > 0 and step > reset and step % reset <= RESET_RECOVERY_STEPS)
+    return not reset_within(step, cfg, iterations)
+
+
+def reset_within(step: int, cfg, iterations: int | None = None) -> bool:
+    """Whether an opacity reset took place in the ``RESET_RECOVERY_STEPS`` before ``step`` (the resets
+    ``schedule.is_opacity_reset_step`` makes: none in a run's last steps, none after ``until``). The growth test assumed
+    one at every multiple of the interval, so an interval under the recovery (or a run too short for resets) switched
+    every test off."""
+    from uncertsplat.strategy.schedule import is_opacity_reset_step
+
+    n = cfg.opacity_reset_interval
+    if n <= 0:
+        return False
+    first = max(n, -(-(step - RESET_RECOVERY_STEPS) // n) * n)  # the first multiple of n in the window, past step 0
+    return any(is_opacity_reset_step(m, cfg, iterations) for m in range(first, step, n))
 
 
 # A model with at least this fraction of its budget is at the budget: the growth test is skipped (module docstring).

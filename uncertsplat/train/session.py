@@ -99,14 +99,44 @@ def _settle_notes(cfg: TrainConfig) -> list[str]:
             "(grown at the end, they would be left untrained); --set densify.until=N chooses an earlier end"]
 
 
+def _reset_notes(cfg: TrainConfig) -> list[str]:
+    """A note when the run's opacity resets all fall in its last ``RESET_RECOVERY_STEPS`` steps, where none is made:
+    a short run took ``densify.opacity_reset_interval`` without a word and reset nothing."""
+    from uncertsplat.strategy.schedule import RESET_RECOVERY_STEPS, is_opacity_reset_step
+
+    d = cfg.densify
+    n = d.opacity_reset_interval
+    asked = range(n, min(d.until, cfg.iterations + 1), n) if n > 0 else range(0)
+    if not asked or any(is_opacity_reset_step(m, d, cfg.iterations) for m in asked):
+        return []
+    return [f"no opacity reset in this run: none is made in a run's last {RESET_RECOVERY_STEPS} steps (the model needs "
+            f"them to recover from one), and every multiple of densify.opacity_reset_interval = {n} before "
+            f"densify.until falls there in a run of {cfg.iterations} steps"]
+
+
 def _unused_setting_notes(cfg: TrainConfig) -> list[str]:
     """Settings given that the configured method does not use (they were taken silently)."""
+    out = []
     entries = cfg.variational.num_entries
     if cfg.method == "variational" and cfg.posterior == "informed" and entries != VariationalConfig().num_entries:
-        return [f"variational.num_entries = {entries} is not used by the informed posterior, which gives every entry "
-                "of a table the same values and so stores one; it sets the tables of --set variational.posterior=sgd "
-                "(and --variant paper)"]
-    return []
+        out.append(f"variational.num_entries = {entries} is not used by the informed posterior, which gives every "
+                   "entry of a table the same values and so stores one; it sets the tables of --set "
+                   "variational.posterior=sgd (and --variant paper)")
+    default = TrainConfig()
+    unused = []
+    if cfg.method != "ensemble":
+        unused += [k for k in ("ensemble_size", "ensemble_members") if getattr(cfg, k) != getattr(default, k)]
+    if cfg.method != "fisher" and cfg.fisher != default.fisher:
+        unused.append("fisher.*")
+    if not cfg.has_offset_tables and cfg.variational != default.variational:
+        unused.append("variational.*")
+    if cfg.exposure == "off" and cfg.exposure_lr != default.exposure_lr:
+        unused.append("exposure_lr (exposure is off)")
+    if cfg.low_res_fraction == 0 and cfg.low_res_scale != default.low_res_scale:
+        unused.append("low_res_scale (low_res_fraction is 0)")
+    if unused:
+        out.append(f"settings this run does not use (method {cfg.method}): {', '.join(unused)}")
+    return out
 
 
 def _same_scene_path(run_dir: Path, scene: Path) -> bool:
@@ -545,7 +575,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             console.print(f"held out (scene.test_indices / train_indices count the scene's {len(names)} views, in name "
                           f"order): {list_names(held, 10) if held else 'none'}")
         for note in [*data.notes, *small_images_notes(data.cameras.width, data.cameras.height, cfg.scene.downscale),
-                     *trainer.init_notes, *_unused_setting_notes(cfg), *_settle_notes(cfg)]:
+                     *trainer.init_notes, *_unused_setting_notes(cfg), *_settle_notes(cfg), *_reset_notes(cfg)]:
             console.print(f"[yellow]note:[/] {note}")
         for text in workspace_notes(scene):
             console.print(f"[yellow]note:[/] {text}")

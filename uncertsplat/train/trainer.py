@@ -338,6 +338,9 @@ class Trainer:
         if points.shape[0] == 0:
             from uncertsplat.errors import UserError
 
+            if far_notes:  # the outlier filter took every one (a tiny init_outlier_factor): said, not "none"
+                raise UserError(f"no sparse point is left to start from: {far_notes[0]}",
+                                hint="Raise init_outlier_factor (or 0 to keep every point), or set init_num_random.")
             raise UserError("the scene has no sparse points to start from",
                             hint="Set init_num_random (e.g. --set init_num_random=10000).")
         self.init_notes = far_notes + few_points_notes(points, self.train_cams, cfg.init_num_random) + \
@@ -802,6 +805,14 @@ class Trainer:
             done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise)
             if any(done.values()):
                 self._expected = None
+        if len(self.model) == 0:  # (trained on as an empty model, it ended in a traceback writing its PLY)
+            from uncertsplat.errors import UserError
+
+            raise UserError(f"every Gaussian was removed at step {step}: densification prunes those whose opacity "
+                            f"is below densify.min_opacity = {cfg.densify.min_opacity:g} (or that grew too large), and "
+                            "none was left to train", path=self.run_dir,
+                            hint="Check the settings that lower or threshold opacities (densify.min_opacity, "
+                                 "variational.gate_prior_mean, the learning rates) and train again into a new folder.")
         self.step = step
         timer.steps += 1
         if self.informed and (step % cfg.variational.refresh_interval == 0 or step == cfg.iterations):
@@ -888,13 +899,21 @@ class Trainer:
         console.print(f"[yellow]warning:[/] step {step}: the loss or a gradient is NaN/Inf; update skipped "
                       "(parameters unchanged)")
         if self.bad_steps_in_a_row >= MAX_BAD_STEPS:
+            from uncertsplat.io.checkpoints import list_checkpoints
+
+            saved = self.run_dir is not None and bool(list_checkpoints(self.run_dir))
+            rates = "lr.means_init=..., lr.scales=..." + (", exposure_lr=..." if self.cfg.exposure != "off" else "")
+            # (--resume takes the run's stored settings, so lower rates need a new run; with no checkpoint the folder
+            # holds nothing to go on from, and a plain start there is refused as an existing run)
             raise UserError(
                 f"training diverged: the loss or gradients were NaN/Inf for {self.bad_steps_in_a_row} steps in a "
-                f"row (steps {step - self.bad_steps_in_a_row + 1}-{step}); the model was not changed by them and "
-                "the checkpoints on disk are the last good state",
+                f"row (steps {step - self.bad_steps_in_a_row + 1}-{step}); the model was not changed by them"
+                + ("; the checkpoints on disk are the last good state" if saved else
+                   "; no checkpoint was written before it"),
                 path=self.run_dir,
-                hint="Lower the learning rates (--set lr.means_init=..., lr.scales=...) or check the input "
-                "images, then start again (or --resume from the last good checkpoint).")
+                hint=f"Train again into a new folder (-o NEW_RUN) with lower learning rates (--set {rates}), or check "
+                     "the input images" + ("; --resume goes on from the last good checkpoint with this run's own "
+                                           "settings" if saved else f"; {self.run_dir} can be deleted") + ".")
 
     # ------------------------------------------------------------------------------------- loop
     def _install_signal_handlers(self):

@@ -1,0 +1,33 @@
+"""The notes ``train`` prints about its own settings before training (``train.session``): settings the run does not
+use, and opacity resets that the run's length leaves out. A helper's sweep of every knob found both taken silently."""
+
+from __future__ import annotations
+
+from uncertsplat.config import train_config_from
+from uncertsplat.train.session import _reset_notes, _settle_notes, _unused_setting_notes
+
+
+def test_settings_the_method_does_not_use_are_named():
+    assert _unused_setting_notes(train_config_from(None, {})) == []
+    cfg = train_config_from(None, {"method": "deterministic", "ensemble_size": 3, "fisher": {"probes": 4},
+                                   "variational": {"kl_weight": 2.0}, "exposure_lr": 1e-2, "low_res_scale": 0.25})
+    (note,) = _unused_setting_notes(cfg)
+    assert note == ("settings this run does not use (method deterministic): ensemble_size, fisher.*, variational.*, "
+                    "exposure_lr (exposure is off), low_res_scale (low_res_fraction is 0)")
+    used = train_config_from(None, {"method": "ensemble", "ensemble_size": 3, "ensemble_members": "variational",
+                                    "variational": {"kl_weight": 2.0}, "exposure": "affine", "exposure_lr": 1e-2})
+    assert _unused_setting_notes(used) == []
+    informed = train_config_from(None, {"variational": {"num_entries": 5}})
+    assert _unused_setting_notes(informed)[0].startswith("variational.num_entries = 5 is not used by the informed")
+
+
+def test_a_run_whose_resets_all_fall_in_its_last_steps_says_so():
+    """No reset is made in a run's last 1000 steps: a 900-step run with resets every 100 steps resets nothing."""
+    short = train_config_from(None, {"iterations": 900, "densify": {"until": 800, "opacity_reset_interval": 100}})
+    (note,) = _reset_notes(short)
+    assert note.startswith("no opacity reset in this run") and "opacity_reset_interval = 100" in note
+    long = short.model_copy(update={"iterations": 3000})
+    assert _reset_notes(long) == []
+    off = train_config_from(None, {"iterations": 900, "densify": {"opacity_reset_interval": 0}})
+    assert _reset_notes(off) == []
+    assert _settle_notes(train_config_from(None, {})) == []  # the default schedule fits its steps
