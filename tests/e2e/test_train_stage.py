@@ -377,3 +377,11 @@ def test_views_held_out_by_index_are_named(tiny_scene_path, tmp_path, capsys):  
     said = " ".join(capsys.readouterr().err.split())
     assert "held out (scene.test_indices / train_indices count the scene's 24 views, in name order): view_003.png, " \
            "view_007.png" in said
+
+
+def test_a_batch_larger_than_the_views_is_said(tiny_scene_path, tmp_path, capsys):  # noqa: F811
+    """batch_size above the training views was clamped to them without a word."""
+    cfg = train_config_from("tiny", None, ["iterations=2", "scene.downscale=4.0", "batch_size=1000"])
+    stage.run(tiny_scene_path, tmp_path / "run", cfg, torch.device("cpu"))
+    said = " ".join(capsys.readouterr().err.split())
+    assert "batch_size = 1000 is more than the" in said and "each step renders all" in said

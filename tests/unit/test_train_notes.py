@@ -31,3 +31,18 @@ def test_a_run_whose_resets_all_fall_in_its_last_steps_says_so():
     off = train_config_from(None, {"iterations": 900, "densify": {"opacity_reset_interval": 0}})
     assert _reset_notes(off) == []
     assert _settle_notes(train_config_from(None, {})) == []  # the default schedule fits its steps
+
+
+def test_settings_that_give_no_posterior_are_said_before_training():
+    """densify.start beyond the run's steps: the whole run trained, then "no posterior" came with advice to raise
+    densify.until, which a run that ends first does not reach."""
+    from uncertsplat.train.session import _posterior_notes
+
+    assert _posterior_notes(train_config_from(None, {})) == []
+    late = train_config_from(None, {"iterations": 150, "densify": {"start": 1000000}})
+    (note,) = _posterior_notes(late)
+    assert "densification starts at step 1000000 (densify.start), after the run's 150 steps" in note
+    assert "lower densify.start" in note
+    off = train_config_from(None, {"iterations": 5000, "densify": {"until": 0}})
+    assert "set densify.until to" in _posterior_notes(off)[0]
+    assert _posterior_notes(train_config_from(None, {"method": "deterministic", "densify": {"until": 0}})) == []

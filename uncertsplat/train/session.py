@@ -99,6 +99,15 @@ def _settle_notes(cfg: TrainConfig) -> list[str]:
             "(grown at the end, they would be left untrained); --set densify.until=N chooses an earlier end"]
 
 
+def _posterior_notes(cfg: TrainConfig) -> list[str]:
+    """Said before training when the settings give no Gaussian a posterior over the whole run (it was said only
+    after it: a helper's densify.start beyond the run's steps trained all of it for a model without uncertainty)."""
+    from uncertsplat.train.trainer import no_carriers_reason
+
+    reason = no_carriers_reason(cfg, cfg.iterations) if cfg.has_offset_tables else None
+    return [f"no Gaussian will carry a posterior in this run: {reason}"] if reason else []
+
+
 def _reset_notes(cfg: TrainConfig) -> list[str]:
     """A note when the run's opacity resets all fall in its last ``RESET_RECOVERY_STEPS`` steps, where none is made:
     a short run took ``densify.opacity_reset_interval`` without a word and reset nothing."""
@@ -574,8 +583,13 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             held = [data.cameras.image_names[i] for i in data.split.get("test", ())]
             console.print(f"held out (scene.test_indices / train_indices count the scene's {len(names)} views, in name "
                           f"order): {list_names(held, 10) if held else 'none'}")
+        views = len(data.split["train"])
+        batch = ([f"batch_size = {cfg.batch_size} is more than the {views} training views: each step renders all "
+                  f"{views}"] if cfg.batch_size > views else [])
         for note in [*data.notes, *small_images_notes(data.cameras.width, data.cameras.height, cfg.scene.downscale),
-                     *trainer.init_notes, *_unused_setting_notes(cfg), *_settle_notes(cfg), *_reset_notes(cfg)]:
+                     *batch,
+                     *trainer.init_notes, *_unused_setting_notes(cfg), *_settle_notes(cfg), *_reset_notes(cfg),
+                     *_posterior_notes(cfg)]:
             console.print(f"[yellow]note:[/] {note}")
         for text in workspace_notes(scene):
             console.print(f"[yellow]note:[/] {text}")

@@ -127,6 +127,9 @@ def no_carriers_reason(cfg: TrainConfig, step: int) -> str | None:
     narrower than the spawn rule asks, ``few_carriers_warning``). Gaussians get a posterior at the spawn steps, which
     come only while densification runs (``densify.until``)."""
     d, first = cfg.densify, first_spawn_step(cfg)
+    if first > d.until and d.start >= cfg.iterations:  # (raising until would not help a run that ends first)
+        return (f"densification starts at step {d.start} (densify.start), after the run's {cfg.iterations} steps, so "
+                "no Gaussian gets a posterior: lower densify.start below the run's length")
     if first > d.until:  # (spawn steps come while densify.start < step <= densify.until)
         return (f"no spawn step comes while densification runs (the first would be step {first}, after densify.until "
                 f"= {d.until}), so no Gaussian gets a posterior whatever the run's length: set densify.until to "
