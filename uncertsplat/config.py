@@ -358,7 +358,7 @@ class DensifyConfig(_Base):
     spawn_interval: int = Field(1000, ge=1)
     spawn_scale_fraction: float = Field(0.01, gt=0.0)
     """Spawn: carry a posterior when ||scale|| > this * extent ..."""
-    spawn_min_opacity: float = Field(0.0005, ge=0.0, lt=1.0)
+    spawn_min_opacity: float = Field(0.0005, ge=0.0)
     """... and opacity >= this."""
 
 
@@ -412,9 +412,10 @@ class TrainConfig(_Base):
     """paper: the original code's choices (log-scale multiplier, absolute position prior)."""
 
     iterations: int = Field(7000, ge=1)
-    seed: int = Field(0, ge=0, le=2**62)
-    """At most 2**62: the trainer's generators take seed + a few, an ensemble's members seed + i, and torch's seeds
-    are 64-bit (2**64 was a traceback at the start; an ensemble near it trained members before failing on one)."""
+    seed: int = Field(0, ge=0, le=2**63 - 2048)
+    """At most 2**63 - 2048: the trainer's generators take seed + a few, an ensemble's members seed + i (at most 1000),
+    and torch's seeds are signed 64-bit (2**64 was a traceback at the start; an ensemble near the top trained members
+    before failing on one)."""
     profile: bool = False
     """Time every phase of a training step (data, sample, render, loss, backward, optimizer, densify, posterior
     update, evaluation, checkpoints) into ``train_summary.json`` ``profile``; on CUDA this synchronises the
@@ -498,12 +499,6 @@ class TrainConfig(_Base):
         if self.variational.posterior == "informed" and self.variant == "paper":
             raise ValueError("variational.posterior = 'informed' needs variant 'ours' (the paper variant learns its "
                              "tables by SGD); drop one of the two settings")
-        if self.init_opacity <= self.densify.min_opacity:
-            # every Gaussian starts below the pruning threshold: the first densification step removed them all and
-            # the run trained an empty model to a traceback at its end
-            raise ValueError(f"init_opacity ({self.init_opacity:g}) must be above densify.min_opacity "
-                             f"({self.densify.min_opacity:g}): the first densification step removes every Gaussian "
-                             "below it, so the model would start empty")
         return self
 
     @property

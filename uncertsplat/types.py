@@ -241,6 +241,23 @@ class GaussianSample:
     position_var: Tensor | None = None  # [N]
     sh_rest: Tensor | None = None  # [N,B-1,3]
 
+    def __post_init__(self):
+        # every tensor one row per Gaussian: the native kernels read N rows of each by pointer, so a [1,3] scales
+        # beside [N,3] means rendered memory past its end (a developer's hand-built sample: images from run to run)
+        n = self.means.shape[0] if self.means.ndim == 2 else -1
+        want = {"means": (3,), "quats": (4,), "scales": (3,), "opacities": (), "position_var": ()}
+        for name, tail in want.items():
+            t = getattr(self, name)
+            if t is not None and tuple(t.shape) != (n, *tail):
+                raise ValueError(f"GaussianSample.{name} must be [N{''.join(f',{d}' for d in tail)}] with N = "
+                                 f"{self.means.shape[0] if self.means.ndim else '?'} (the rows of means [N,3]), got "
+                                 f"{tuple(t.shape)}")
+        for name in ("sh", "sh_rest"):
+            t = getattr(self, name)
+            if t is not None and (t.ndim != 3 or t.shape[0] != n or t.shape[2] != 3):
+                raise ValueError(f"GaussianSample.{name} must be [N,B,3] with N = {self.means.shape[0]} (the rows of "
+                                 f"means), got {tuple(t.shape)}")
+
     def __len__(self) -> int:
         return self.means.shape[0]
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -355,8 +356,22 @@ def test_a_pruned_run_is_not_trained_on_and_select_views_names_its_source(pruned
     assert result.source_run in err.value.hint and (run / "variational.ply").read_bytes() == model
     select.run(run, SelectConfig(score="coverage", candidates="around:3"), CPU, output=tmp_path / "sel")
     said = " ".join(capsys.readouterr().err.split())
-    assert f"is a pruned model (prune.json): the views are added to its source run {result.source_run}" in said
+    assert f"is a pruned model (prune.json): the views are added to the run it was pruned from, {result.source_run}" \
+        in said
     assert f"-o {run} --resume" not in said
+    # a prune of a prune: the training run at the chain's start, not the first prune (refused too)
+    again = tmp_path / "again"
+    shutil.copytree(run, again)
+    rep = PruneReport.read(again / "prune.json")
+    rep.source_run = str(run)
+    rep.write(again / "prune.json")
+    assert PruneReport.training_run(again) == Path(result.source_run) == PruneReport.training_run(run)
+    with pytest.raises(UserError) as err:
+        train_run(tiny_scene_path, again, cfg, CPU, resume=True)
+    assert result.source_run in err.value.hint and str(run) + " " not in err.value.hint
+    rep.source_run = str(again)  # a loop: no training run to name
+    rep.write(again / "prune.json")
+    assert PruneReport.training_run(again) is None and PruneReport.training_run(tiny_scene_path) is None
 
 
 def test_a_model_is_not_pruned_by_the_predictive_score(tiny_run_path, tmp_path):  # noqa: F811

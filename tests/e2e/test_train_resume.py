@@ -306,7 +306,11 @@ def test_a_model_whose_gaussians_carry_no_posterior_says_why():
     assert "the run stopped at step 5, before its first spawn step (10)" in early and "N >= 10" in early
     from uncertsplat.train.trainer import first_spawn_step
 
-    off = toy_config(densify={"until": 0})
+    off = toy_config(densify={"start": 5, "until": 0})  # densification off in a run that reaches its start
+    late = toy_config(densify={"until": 0})  # ... and one that ends before its start (100)
+    (never_late,) = few_carriers_warning(t.model, late, t.extent, t.prior, step=30)
+    assert "densification starts at step 100 (densify.start), after the run's 30 steps" in never_late
+    assert "with densify.until past the first spawn step after it (densify.until is 0)" in never_late
     (never,) = few_carriers_warning(t.model, off, t.extent, t.prior, step=30)
     first = first_spawn_step(off)
     assert "no spawn step comes while densification runs" in never and f"densify.until to {first} or more " in never

@@ -63,16 +63,16 @@ def test_range_checked():
 @pytest.mark.parametrize("override, match", [
     ({"fisher": {"params": []}}, "fisher.params"),  # it trained the whole model, then failed at the Fisher pass
     ({"seed": 2**64}, "seed"),  # a traceback from torch's generator (an ensemble: after some members trained)
-    ({"init_opacity": 0.001}, "init_opacity .0.001. must be above densify.min_opacity .0.005."),
-    ({"init_opacity": 0.3, "densify": {"min_opacity": 0.5}}, "must be above densify.min_opacity"),
-    ({"densify": {"spawn_min_opacity": 1.5}}, "spawn_min_opacity"),
+    ({"seed": 2**63 - 2047}, "seed"),  # member seed + i and the trainer's seed + 4 must stay signed 64-bit
 ])
 def test_training_settings_that_could_only_fail_later_are_refused(override, match):
     from uncertsplat.config import TrainConfig
 
     with pytest.raises(UserError, match=match):
         build_config(TrainConfig, override)
-    build_config(TrainConfig, {"seed": 2**62, "init_opacity": 0.006})  # the bounds themselves are taken
+    # the bound itself is taken, and a run stored with settings that trained (an init_opacity below the pruning
+    # threshold, which densification need not reach) still loads
+    build_config(TrainConfig, {"seed": 2**63 - 2048, "init_opacity": 0.004})
 
 
 def test_prune_modes_exclusive():

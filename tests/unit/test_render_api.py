@@ -124,3 +124,45 @@ def test_point_depths_are_the_in_view_camera_depths_in_chunks():
     assert got.dtype == torch.float64 and 0 < got.numel() < 40 * 500
     torch.testing.assert_close(got.sort().values, z[inside].sort().values)
     assert point_depths(pts, cams, max_points=100).numel() < got.numel() / 4
+
+
+def test_camera_gradients_on_every_backend_and_bad_backends_refused():
+    """The native projection has no camera gradient: a float32 CPU render by default gave cam_from_world.grad and
+    K.grad of None (the PyTorch path gave them). A render whose cameras need grad takes the PyTorch projection, the
+    same gradients; "native" asked for then is refused; a backend name that is none of the three ran the native
+    kernels without a word."""
+    import dataclasses
+
+    s = random_scene(60, torch.Generator().manual_seed(3), sh_degree=1)
+    cams = look_at_cameras(2, 30, 20, focal=25.0)
+    grads = {}
+    for backend in (None, "torch"):
+        pose, K = cams.cam_from_world.clone().requires_grad_(), cams.K.clone().requires_grad_()
+        out = render(s, dataclasses.replace(cams, cam_from_world=pose, K=K), backend=backend)
+        (out.rgb.square().sum() + out.depth.sum()).backward()
+        assert pose.grad is not None and K.grad is not None and float(pose.grad.abs().sum()) > 0
+        grads[backend] = (pose.grad, K.grad)
+    torch.testing.assert_close(grads[None][0], grads["torch"][0], rtol=1e-3, atol=1e-4)
+    torch.testing.assert_close(grads[None][1], grads["torch"][1], rtol=1e-3, atol=1e-4)
+    with pytest.raises(ValueError, match="no gradient for the cameras"):
+        render(s, dataclasses.replace(cams, cam_from_world=cams.cam_from_world.clone().requires_grad_()),
+               backend="native")
+    for bad in ("Torch", "cuda", "pytorch"):
+        with pytest.raises(ValueError, match="backend must be None, 'auto', 'native' or 'torch'"):
+            render(s, cams, backend=bad)
+
+
+def test_a_sample_with_rows_that_do_not_match_its_means_is_refused():
+    """[1,3] scales beside [N,3] means: the native kernels read N rows of each and rendered memory past its end
+    (images that changed from run to run); every per-Gaussian tensor must have the means' N rows."""
+    from uncertsplat.types import GaussianSample
+
+    s = random_scene(20, torch.Generator().manual_seed(4), sh_degree=1)
+    import dataclasses
+
+    for field, bad in (("scales", s.scales[:1]), ("opacities", s.opacities[:1]), ("sh", s.sh[:1]),
+                       ("quats", s.quats[:, :3]), ("position_var", torch.zeros(3))):
+        with pytest.raises(ValueError, match=f"GaussianSample.{field} must be"):
+            dataclasses.replace(s, **{field: bad})
+    assert len(GaussianSample(means=torch.zeros(0, 3), quats=torch.zeros(0, 4), scales=torch.zeros(0, 3),
+                              opacities=torch.zeros(0), sh=torch.zeros(0, 1, 3))) == 0

@@ -12,8 +12,12 @@ def test_settings_the_method_does_not_use_are_named():
     cfg = train_config_from(None, {"method": "deterministic", "ensemble_size": 3, "fisher": {"probes": 4},
                                    "variational": {"kl_weight": 2.0}, "exposure_lr": 1e-2, "low_res_scale": 0.25})
     (note,) = _unused_setting_notes(cfg)
-    assert note == ("settings this run does not use (method deterministic): ensemble_size, fisher.*, variational.*, "
+    assert note == ("settings this run does not use (method deterministic): ensemble_size, variational.*, "
                     "exposure_lr (exposure is off), low_res_scale (low_res_fraction is 0)")
+    # an ensemble's member keeps its ensemble's keys (each member said they were unused); fisher.* is never named,
+    # select-views' fisher score reads it for any run
+    member = train_config_from(None, {"method": "deterministic", "ensemble_size": 3, "fisher": {"probes": 4}})
+    assert _unused_setting_notes(member, member=True) == []
     used = train_config_from(None, {"method": "ensemble", "ensemble_size": 3, "ensemble_members": "variational",
                                     "variational": {"kl_weight": 2.0}, "exposure": "affine", "exposure_lr": 1e-2})
     assert _unused_setting_notes(used) == []
@@ -46,3 +50,7 @@ def test_settings_that_give_no_posterior_are_said_before_training():
     off = train_config_from(None, {"iterations": 5000, "densify": {"until": 0}})
     assert "set densify.until to" in _posterior_notes(off)[0]
     assert _posterior_notes(train_config_from(None, {"method": "deterministic", "densify": {"until": 0}})) == []
+
+    short = train_config_from(None, {"iterations": 60, "densify": {"start": 50, "spawn_interval": 100}})
+    assert _posterior_notes(short) == ["no Gaussian will carry a posterior in this run: the run's 60 steps end before "
+                                       "its first spawn step (100): give it --iterations 100 or more for a posterior"]

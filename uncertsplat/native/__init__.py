@@ -356,7 +356,9 @@ def single_threaded_torch(device: torch.device | str):
 
     torch's thread count belongs to the OS thread that sets it (OpenMP's), so each thread lowers and restores its
     own, nested uses counted per thread: threads may enter and leave in any order (a pool over
-    ``Predictor.predict`` calls) and each gets what it gets alone."""
+    ``Predictor.predict`` calls) and each gets what it gets alone. torch also takes the count last set as the one a
+    thread starts with: another thread whose first parallel torch op falls inside this window starts on one thread
+    and keeps it (a host application's thread; README, "From Python")."""
     if torch.device(device).type != "cpu" or requested_backend() == "torch" or library() is None:
         yield
         return

@@ -72,8 +72,20 @@ def render(
         RenderOutput with rgb [C,H,W,3], alpha [C,H,W,1], depth [C,H,W,1] (alpha-normalised camera z,
         0 where alpha == 0), depth_expected [C,H,W,1], means2d [C,N,2] (pixels; it retains its gradient:
         read ``out.means2d.grad`` after backward), radii [C,N] (float pixels, 0 = culled), depths [C,N].
-        Gradients flow to means, quats, scales, opacities and sh.
+        Gradients flow to means, quats, scales, opacities and sh, and to the cameras' ``cam_from_world`` and ``K``
+        when those require it (the native projection has no camera gradient: such a render takes the PyTorch
+        projection and SH, the same images to rounding).
     """
+    if backend not in (None, "auto", "native", "torch"):  # ("Torch" or "cuda" ran the native kernels without a word)
+        raise ValueError(f"backend must be None, 'auto', 'native' or 'torch', got {backend!r}")
+    front = backend  # projection and SH colours: the parts that see the cameras
+    if backend != "torch" and (cameras.cam_from_world.requires_grad or cameras.K.requires_grad):
+        # the native projection returns no gradient for the cameras (a pose refined through it got None); binning and
+        # compositing take screen-space inputs, whose gradients reach the cameras through the PyTorch projection
+        if backend == "native":
+            raise ValueError("backend 'native' has no gradient for the cameras (cam_from_world or K requires grad): "
+                             "use backend 'torch' or None")
+        front = "torch"
     C, N = len(cameras), len(sample)
     W, H = cameras.width, cameras.height
     dtype = sample.means.dtype
@@ -84,7 +96,7 @@ def render(
         scales = torch.sqrt(scales * scales + sample.position_var.clamp_min(0.0)[:, None])
     proj = project_gaussians(
         sample.means, sample.quats, scales, sample.opacities, cam_from_world, K, W, H, near, far, eps2d,
-        backend=backend,
+        backend=front,
     )
     means2d = proj.means2d
     if means2d.requires_grad:
@@ -92,9 +104,9 @@ def render(
 
     centers = -(cam_from_world[:, :3, :3].transpose(1, 2) @ cam_from_world[:, :3, 3:])[..., 0]  # [C,3]
     if sample.sh_rest is None:
-        colors = sh_colors(sample.sh_degree, sample.sh, sample.means, centers, backend=backend)  # [C,N,3]
+        colors = sh_colors(sample.sh_degree, sample.sh, sample.means, centers, backend=front)  # [C,N,3]
     else:
-        colors = sh_colors_split(sample.sh_degree, sample.sh, sample.sh_rest, sample.means, centers, backend=backend)
+        colors = sh_colors_split(sample.sh_degree, sample.sh, sample.sh_rest, sample.means, centers, backend=front)
 
     bins = bin_gaussians(
         means2d.detach(),
@@ -111,7 +123,7 @@ def render(
     log_o = torch.log(sample.opacities.clamp_min(torch.finfo(dtype).tiny))  # [N]
     if sample.position_var is not None:
         log_o = log_o + blur_log_peak(sample, proj.conics, cam_from_world, K, W, H, near, far, eps2d,
-                                      backend=backend)  # [C,N]
+                                      backend=front)  # [C,N]
     # [C,N]; one camera (a training step): a view whose backward is free, where expand's sums the camera axis
     log_o = log_o.unsqueeze(0) if (log_o.dim() == 1 and C == 1) else log_o.expand(C, N)
     if composite_image_available(means2d, colors, background=background, backend=backend, compile=compile):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, field_validator
@@ -183,6 +184,24 @@ class PruneReport(SchemaFile):
     sweep: PruneSweep | None = None
     undo: str
     written: Written | None = None
+
+    @classmethod
+    def training_run(cls, run_dir: str | Path) -> Path | None:
+        """The training run a prune output descends from, following ``source_run`` through prunes of prunes (a prune
+        of a prune named the first prune, which has no checkpoint either); None when ``run_dir`` is no prune output or
+        a prune.json on the way cannot be read (or loops)."""
+        from uncertsplat.errors import UserError
+
+        here, seen = Path(run_dir), set()
+        while (here / cls.FILE_NAME).is_file():
+            if here.resolve() in seen:
+                return None
+            seen.add(here.resolve())
+            try:
+                here = Path(cls.read(here / cls.FILE_NAME).source_run)
+            except UserError:
+                return None
+        return here if seen else None
 
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:

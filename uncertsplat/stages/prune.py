@@ -477,8 +477,9 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
                 result.write(Path(tmp) / PruneReport.FILE_NAME)  # its source_coverage, as the written run's
                 _evaluate_written(Path(tmp), result, measure, device, save_maps=False)
             notes.append("the 'after' row's uncertainty metrics are the pruned model evaluated as `evaluate` does "
-                         f"(K = {cfg.num_samples}, seed {cfg.seed}; in a temporary folder, not kept): the same prune with "
-                         "-o writes that evaluation as the pruned run's eval/")
+                         f"(K = {cfg.num_samples}, seed {cfg.seed}; in a temporary folder, not kept)"
+                         + ("" if cfg.score == "predictive" else  # (a model is not written by it)
+                            ": the same prune with -o writes that evaluation as the pruned run's eval/"))
         _tolerance_note(result, notes, cfg)
         _random_note(result, notes, score_name, cfg)
 

@@ -116,9 +116,10 @@ def _plausible(loaded, scene, train: list[int], cands, cfg: SelectConfig, device
         return None
     names = cands.cameras.image_names
     if not bool(ok.any()):
-        console.print(f"[yellow]note:[/] every one of the {count(len(cands), 'candidate')} lies inside or behind what "
-                      f"the photos saw, or over {FAR_CAPTURES:g} capture sizes away: they all compete; check the poses' "
-                      "convention (world-to-camera, the quaternion as w x y z, the scene's units and frame)")
+        which = "the candidate lies" if len(cands) == 1 else f"every one of the {len(cands)} candidates lies"
+        console.print(f"[yellow]note:[/] {which} inside or behind what the photos saw, or over {FAR_CAPTURES:g} capture "
+                      "sizes away: it competes all the same (nothing else does); check the poses' convention "
+                      "(world-to-camera, the quaternion as w x y z, the scene's units and frame)")
         return None
     for mask, where in ((inside, "inside or behind what every photo that looked toward them saw (an object, a wall)"),
                         (far & ~inside, f"over {FAR_CAPTURES:g} capture sizes from every training camera ({size:.3g} "
@@ -282,7 +283,9 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         sel.write(out / Selection.FILE_NAME)
         up = -torch.linalg.inv(scene.cameras[train].cam_from_world.double())[:, :3, 1].mean(0)
         held = list(scene.split.get("test", ()))
-        _plot(out / "selection.png", scene.cameras[train].centers, centres, chosen, up,
+        drawn = list(range(len(cands))) if allowed is None else [j for j in range(len(cands)) if bool(allowed[j])]
+        # (a pose far outside the capture, ranked last, set the axes and squashed every other into a strip)
+        _plot(out / "selection.png", scene.cameras[train].centers, centres[drawn], [drawn.index(c) for c in chosen], up,
               f"{run_dir.name}: {cfg.score} chose {', '.join(p.name for p in picked)}",
               held=scene.cameras[held].centers if held else None)
     gaps = cfg.score == "fisher" and cfg.gaps > 0
@@ -304,14 +307,15 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     console.print(f"chose {len(picked)} of {len(cands)} in {seconds:.2f} s -> {out / Selection.FILE_NAME}, "
                   f"{out / 'selection.png'}")
     if len(picked) < cfg.num_views:
-        console.print(f"[yellow]note:[/] {cfg.num_views} views were asked for and only {len(cands)} candidates "
-                      "were there: every one is chosen")
+        competing = len(cands) if allowed is None else int(allowed.sum())
+        console.print(f"[yellow]note:[/] {cfg.num_views} views were asked for and only {count(competing, 'candidate')} "
+                      f"{'competed' if allowed is not None else 'were there'}: every one is chosen")
     folder = loaded.scene_path or "SCENE"
-    pruned = PruneReport.read_optional(run_dir / PruneReport.FILE_NAME)
-    if pruned is not None and picked:  # no checkpoint to add views to: `train --resume` there is refused
-        console.print(f"[yellow]note:[/] {run_dir} is a pruned model (prune.json): the views are added to its source "
-                      f"run {pruned.source_run}, which is then pruned again")
-        run_dir = Path(pruned.source_run)
+    source = PruneReport.training_run(run_dir)
+    if source is not None and picked:  # no checkpoint to add views to: `train --resume` there is refused
+        console.print(f"[yellow]note:[/] {run_dir} is a pruned model (prune.json): the views are added to the run it "
+                      f"was pruned from, {source}, which is then pruned again")
+        run_dir = source
     if picked and cands.kind == "unused":  # photos of the scene: the run trains on them as they are
         console.print(f"Next: [bold]uncertsplat train {folder} -o {run_dir} --resume --iterations N --add-views "
                       f"{','.join(p.name for p in picked)}[/]")

@@ -31,7 +31,7 @@ from uncertsplat.io.atomic import (
     remove_stale_temp_files,
     run_lock,
 )
-from uncertsplat.schemas import RunExposure, RunScene, TrainSummary
+from uncertsplat.schemas import PruneReport, RunExposure, RunScene, TrainSummary
 from uncertsplat.schemas.scene import ViewsAdded
 from uncertsplat.strategy.exposure import EXPOSURE_SPREAD, exposure_reason, gain_spread
 from uncertsplat.strategy.growth import growth_reason
@@ -104,7 +104,7 @@ def _posterior_notes(cfg: TrainConfig) -> list[str]:
     after it: a helper's densify.start beyond the run's steps trained all of it for a model without uncertainty)."""
     from uncertsplat.train.trainer import no_carriers_reason
 
-    reason = no_carriers_reason(cfg, cfg.iterations) if cfg.has_offset_tables else None
+    reason = no_carriers_reason(cfg, cfg.iterations, planned=True) if cfg.has_offset_tables else None
     return [f"no Gaussian will carry a posterior in this run: {reason}"] if reason else []
 
 
@@ -123,8 +123,9 @@ def _reset_notes(cfg: TrainConfig) -> list[str]:
             f"densify.until falls there in a run of {cfg.iterations} steps"]
 
 
-def _unused_setting_notes(cfg: TrainConfig) -> list[str]:
-    """Settings given that the configured method does not use (they were taken silently)."""
+def _unused_setting_notes(cfg: TrainConfig, member: bool = False) -> list[str]:
+    """Settings given that the configured method does not use (they were taken silently); ``member``: the run is an
+    ensemble's member (its config keeps the ensemble's keys)."""
     out = []
     entries = cfg.variational.num_entries
     if cfg.method == "variational" and cfg.posterior == "informed" and entries != VariationalConfig().num_entries:
@@ -133,10 +134,9 @@ def _unused_setting_notes(cfg: TrainConfig) -> list[str]:
                    "variational.posterior=sgd (and --variant paper)")
     default = TrainConfig()
     unused = []
-    if cfg.method != "ensemble":
+    if cfg.method != "ensemble" and not member:  # (a member's config keeps its ensemble's size)
         unused += [k for k in ("ensemble_size", "ensemble_members") if getattr(cfg, k) != getattr(default, k)]
-    if cfg.method != "fisher" and cfg.fisher != default.fisher:
-        unused.append("fisher.*")
+    # (fisher.* is not named: select-views' fisher score reads it for a run of any method)
     if not cfg.has_offset_tables and cfg.variational != default.variational:
         unused.append("variational.*")
     if cfg.exposure == "off" and cfg.exposure_lr != default.exposure_lr:
@@ -299,16 +299,6 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
     return cfg.model_copy(update={"scene": scene}), added
 
 
-def _prune_source(run_dir: Path) -> str | None:
-    """The run a prune output was pruned from (prune.json's ``source_run``), None when it cannot be read."""
-    from uncertsplat.schemas import PruneReport
-
-    try:
-        return PruneReport.read(run_dir / "prune.json").source_run
-    except UserError:
-        return None
-
-
 def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resume: bool = False,
                 extend_to: int | None = None, on_trainer=None, add_views: list[str] | None = None,
                 given: set[str] | None = None, done_label: str = "done", resume_dir: Path | None = None) -> Path:
@@ -379,7 +369,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         # a prune output holds a model and config.json but no checkpoint: a --resume started from step 0 in it and
         # wrote a new model over the pruned one, beside a prune.json and evaluation of neither (a helper followed
         # select-views' advice there)
-        source = _prune_source(run_dir)
+        source = PruneReport.training_run(run_dir)
         raise UserError("this folder is a pruned model (prune.json), not a training run: it has no checkpoint to go on "
                         "from, and a training here would replace the pruned model", path=run_dir,
                         hint=f"Resume its source run{f' ({source})' if source else ''} with the same arguments, then "
@@ -588,7 +578,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                   f"{views}"] if cfg.batch_size > views else [])
         for note in [*data.notes, *small_images_notes(data.cameras.width, data.cameras.height, cfg.scene.downscale),
                      *batch,
-                     *trainer.init_notes, *_unused_setting_notes(cfg), *_settle_notes(cfg), *_reset_notes(cfg),
+                     *trainer.init_notes, *_unused_setting_notes(cfg, run_dir.parent.name == "members"), *_settle_notes(cfg), *_reset_notes(cfg),
                      *_posterior_notes(cfg)]:
             console.print(f"[yellow]note:[/] {note}")
         for text in workspace_notes(scene):

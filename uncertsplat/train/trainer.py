@@ -121,19 +121,25 @@ def first_spawn_step(cfg: TrainConfig) -> int:
     return (d.start // d.spawn_interval + 1) * d.spawn_interval
 
 
-def no_carriers_reason(cfg: TrainConfig, step: int) -> str | None:
+def no_carriers_reason(cfg: TrainConfig, step: int, planned: bool = False) -> str | None:
     """Why a model of ``cfg`` trained to ``step`` has no Gaussian with a posterior when that follows from its
     settings, with what to do; None when it should have some (a spawn step was reached: a scene whose Gaussians are
     narrower than the spawn rule asks, ``few_carriers_warning``). Gaussians get a posterior at the spawn steps, which
-    come only while densification runs (``densify.until``)."""
+    come only while densification runs (``densify.until``). ``planned``: said before training, of a run of ``step``
+    steps."""
     d, first = cfg.densify, first_spawn_step(cfg)
     if first > d.until and d.start >= cfg.iterations:  # (raising until would not help a run that ends first)
         return (f"densification starts at step {d.start} (densify.start), after the run's {cfg.iterations} steps, so "
-                "no Gaussian gets a posterior: lower densify.start below the run's length")
+                "no Gaussian gets a posterior: lower densify.start below the run's length"
+                + (f", with densify.until past the first spawn step after it (densify.until is {d.until})"
+                   if d.until <= d.start else ""))
     if first > d.until:  # (spawn steps come while densify.start < step <= densify.until)
         return (f"no spawn step comes while densification runs (the first would be step {first}, after densify.until "
                 f"= {d.until}), so no Gaussian gets a posterior whatever the run's length: set densify.until to "
                 f"{first} or more for one")
+    if step < first and planned:  # (said before training: the run's length, not a stop)
+        return (f"the run's {step} steps end before its first spawn step ({first}): give it --iterations {first} or "
+                "more for a posterior")
     if step < first:
         return (f"the run stopped at step {step}, before its first spawn step ({first}): train it on to that step "
                 f"(`train --resume --iterations N`, N >= {first}) for a posterior")
@@ -916,7 +922,9 @@ class Trainer:
                 path=self.run_dir,
                 hint=f"Train again into a new folder (-o NEW_RUN) with lower learning rates (--set {rates}), or check "
                      "the input images" + ("; --resume goes on from the last good checkpoint with this run's own "
-                                           "settings" if saved else f"; {self.run_dir} can be deleted") + ".")
+                                           "settings" if saved else
+                                           f"; {self.run_dir} can be deleted" if self.run_dir is not None else "")
+                     + ".")
 
     # ------------------------------------------------------------------------------------- loop
     def _install_signal_handlers(self):
