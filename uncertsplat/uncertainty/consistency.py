@@ -424,17 +424,21 @@ class ViewConsistency:
         at_f64 = points.double()
         for centre in stood.centers.to(points.device).double():  # one camera at a time: no [P,T] distances
             free |= (at_f64 - centre).norm(dim=-1) < near
+        for inside, z, at in self._rendered_depths_at(points):
+            free |= (inside & ((at <= 0.0) | (z < at * (1.0 - DEPTH_TOLERANCE)))).any(0)
+        return free
+
+    def _rendered_depths_at(self, points: Tensor):
+        """For each chunk of ``VIEW_CHUNK`` compared views: whether their images hold ``points`` [P,3] (in front)
+        [C,P], the points' depths in them [C,P] and the rendered depth at the pixel each lands in [C,P] (nearest)."""
         w, h = self.cameras.width, self.cameras.height
         for k0 in range(0, len(self.cameras), VIEW_CHUNK):
             cams = self.cameras[k0:k0 + VIEW_CHUNK].to(points.device)
             uv, z = project_points(points.float(), cams.cam_from_world, cams.K)  # [C,P,2], [C,P]
-            inside = _in_image(uv, z, w, h)  # [C,P]
             col = uv[..., 0].nan_to_num(0.0).floor().clamp(0, w - 1).long()
             row = uv[..., 1].nan_to_num(0.0).floor().clamp(0, h - 1).long()
             depth = self.depth[k0:k0 + VIEW_CHUNK].to(points.device)  # [C,H,W]
-            at = depth[torch.arange(len(cams), device=points.device)[:, None], row, col]  # [C,P]
-            free |= (inside & ((at <= 0.0) | (z < at * (1.0 - DEPTH_TOLERANCE)))).any(0)
-        return free
+            yield _in_image(uv, z, w, h), z, depth[torch.arange(len(cams), device=points.device)[:, None], row, col]
 
     @torch.no_grad()
     def seen_behind(self, points: Tensor) -> Tensor:
@@ -448,15 +452,7 @@ class ViewConsistency:
                               for k in range(0, points.shape[0], FREE_POINTS_CHUNK)])
         held = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
         passed = torch.zeros_like(held)  # some view holds it and does not see a surface in front of it
-        w, h = self.cameras.width, self.cameras.height
-        for k0 in range(0, len(self.cameras), VIEW_CHUNK):
-            cams = self.cameras[k0:k0 + VIEW_CHUNK].to(points.device)
-            uv, z = project_points(points.float(), cams.cam_from_world, cams.K)  # [C,P,2], [C,P]
-            inside = _in_image(uv, z, w, h)  # [C,P]
-            col = uv[..., 0].nan_to_num(0.0).floor().clamp(0, w - 1).long()
-            row = uv[..., 1].nan_to_num(0.0).floor().clamp(0, h - 1).long()
-            at = self.depth[k0:k0 + VIEW_CHUNK].to(points.device)[torch.arange(len(cams), device=points.device)[:, None],
-                                                                   row, col]  # [C,P]
+        for inside, z, at in self._rendered_depths_at(points):
             behind = (at > 0.0) & (z > at * (1.0 + DEPTH_TOLERANCE))
             held |= inside.any(0)
             passed |= (inside & ~behind).any(0)
