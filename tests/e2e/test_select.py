@@ -508,6 +508,29 @@ def test_a_planned_pose_far_outside_the_capture_is_ranked_last(subset_run, tmp_p
     assert sel.chosen[0].name == "far"
 
 
+def test_a_pose_ranked_last_does_not_join_the_predictive_information(subset_run, tmp_path, monkeypatch):
+    """information=predictive scores what a candidate takes off the renders of the capture's views, the training
+    views and every candidate: a pose left out of the competition (here one of three, set so by hand) is no view of
+    the capture, so the other two score as in a plan without it."""
+    from uncertsplat.baselines import load_run
+    from uncertsplat.select.candidates import pose_line
+
+    scene = load_run(subset_run).load_scene()
+    wfs = torch.tensor(RunScene.read(subset_run / "scene.json").world_from_source, dtype=torch.float64)
+    unused = [i for i in range(len(scene.cameras)) if i not in set(scene.split["train"]) | set(scene.split["test"])]
+    lines = [pose_line(f"v{i}", scene.cameras.cam_from_world[i], wfs) for i in unused[:3]]
+    (tmp_path / "three.txt").write_text("\n".join(lines) + "\n")
+    (tmp_path / "two.txt").write_text("\n".join(lines[1:]) + "\n")
+    scores = {}
+    for name, left_out in (("three", torch.tensor([False, True, True])), ("two", None)):
+        monkeypatch.setattr(stage, "_plausible", lambda *args, out=left_out: out)
+        cfg = SelectConfig(num_views=1, information="predictive", gaps=0.0, candidates=str(tmp_path / f"{name}.txt"))
+        scores[name] = {c.name: c.score for c in stage.run(subset_run, cfg, CPU, output=tmp_path / name).ranking}
+    assert scores["three"][f"v{unused[0]}"] is None
+    for k in scores["two"]:
+        assert scores["three"][k] == pytest.approx(scores["two"][k], rel=1e-6)
+
+
 def test_the_selection_plot_shows_the_held_out_views_and_keeps_its_legend_outside(tmp_path, monkeypatch):
     """The held-out views (a gap's middle, where the scores are measured) were left out of selection.png, and the
     legend sat over cameras."""

@@ -385,3 +385,12 @@ def test_a_batch_larger_than_the_views_is_said(tiny_scene_path, tmp_path, capsys
     stage.run(tiny_scene_path, tmp_path / "run", cfg, torch.device("cpu"))
     said = " ".join(capsys.readouterr().err.split())
     assert "batch_size = 1000 is more than the" in said and "each step renders all" in said
+
+
+def test_a_low_resolution_phase_of_a_few_pixels_is_said(tiny_scene_path, tmp_path, capsys):  # noqa: F811
+    """low_res_scale = 1e-12 trained the phase on 1x1 images without a word."""
+    cfg = train_config_from("tiny", None, ["iterations=4", "scene.downscale=4.0", "low_res_fraction=0.5",
+                                           "low_res_scale=1e-12"])
+    stage.run(tiny_scene_path, tmp_path / "run", cfg, torch.device("cpu"))
+    said = " ".join(capsys.readouterr().err.split())
+    assert "the low-resolution phase (its first 2 steps) trains on 1x1 images (low_res_scale = 1e-12)" in said

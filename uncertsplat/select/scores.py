@@ -187,10 +187,12 @@ def gap_eligible(candidates: Tensor, used: Tensor, fraction: float,
 def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_images: Tensor, cameras: Cameras,
                   render_fn: Callable, *, names: Sequence[str], prior_std: dict[str, float], sh_degree: int,
                   probes: int, seed: int, n: int, information: str = "trace",
-                  eligible: Callable[[list[int]], Tensor] | None = None
+                  eligible: Callable[[list[int]], Tensor] | None = None, competing: Tensor | None = None
                   ) -> tuple[list[int], list[float], Tensor, float]:
     """Greedy FisherRF choice of ``n`` candidates (see the module docstring). ``eligible`` (``gap_eligible``)
-    restricts each choice to the candidates its mask allows; the others are not scored (NaN).
+    restricts each choice to the candidates its mask allows; the others are not scored (NaN). ``competing`` [C] bool:
+    the candidates that compete at all (``SelectConfig.plausible_only``); only they join the ``predictive``
+    information's reference (a pose inside an object is no view of the capture).
 
     Returns:
         (chosen positions, their information when chosen, [C] every candidate's information before any choice,
@@ -228,6 +230,8 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
     if information == "predictive":  # the capture's views: the training views' Fisher plus every candidate's
         reference = {k: base.fisher[k].clone() for k in names}
         for c in range(num):
+            if competing is not None and not bool(competing[c]):
+                continue
             f = view_fisher(c)
             for k in names:
                 reference[k] += f[k]

@@ -255,7 +255,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                 names=fcfg.params, prior_std=prior_stds(fcfg, loaded.extent), sh_degree=loaded.sh_degree,
                 probes=cfg.probes, seed=cfg.seed, n=n, information=cfg.information,
                 eligible=(gap_eligible(centres, scene.cameras[train].centers, cfg.gaps, allowed) if cfg.gaps > 0 else
-                          None if allowed is None else (lambda chosen: allowed.clone())))
+                          None if allowed is None else (lambda chosen: allowed.clone())), competing=allowed)
         settings.update(width=low.width, height=low.height, noise_std=noise, params=list(fcfg.params))
         if loaded.config.method == "ensemble":
             settings["note"] = "ensemble: the Fisher of member 0's Gaussians"
