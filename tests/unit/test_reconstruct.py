@@ -526,6 +526,15 @@ def test_train_warns_when_the_model_cannot_fit_its_own_photos(tmp_path):
     (tmp_path / REPORT_NAME).write_text("{not json")  # a damaged report does not fail a finished training
     (damaged,) = poor_fit_warnings(18.9, tmp_path)
     assert "camera poses" in damaged
+    # settings of the fit changed from their defaults come first (a helper's lr.scales of 1e12 was blamed on photos)
+    from uncertsplat.config import train_config_from
+
+    (changed,) = poor_fit_warnings(18.9, tmp_path, train_config_from(None, {"lr": {"scales": 1e12},
+                                                                            "variational": {"gate_prior_mean": -5.0}}))
+    assert "check the settings changed from their defaults (lr.scales, variational.gate_prior_mean), the camera" \
+        in changed
+    (same,) = poor_fit_warnings(18.9, tmp_path, train_config_from("demo", {}))  # a preset changes none of them
+    assert "changed from their defaults" not in same
 
 
 def test_train_notes_disagreeing_mapping_runs_before_it_starts(tmp_path):

@@ -615,7 +615,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             (run_dir / RunExposure.FILE_NAME).unlink()
         held = trainer.evaluate()
         fit_psnr = trainer.training_psnr()
-        warnings = poor_fit_warnings(fit_psnr, scene)
+        warnings = poor_fit_warnings(fit_psnr, scene, cfg)
         if warnings and trainer.step < SHORT_RUN_STEPS:  # it judges a fitted model
             warnings = [f"{w} (after only {trainer.step} steps the model may not fit its photos yet: judge this on "
                         "a full run)" for w in warnings]
@@ -737,11 +737,25 @@ def _map_again_advice(scene: Path) -> str:
     return "`uncertsplat reconstruct` with --overwrite and another --seed"
 
 
-def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
+def _changed_fit_settings(cfg: TrainConfig | None) -> list[str]:
+    """The settings of how the model fits (learning rates, the gate's prior, the first opacity) that ``cfg`` sets
+    apart from their defaults (no preset changes them)."""
+    if cfg is None:
+        return []
+    default = TrainConfig()
+    out = [f"lr.{k}" for k, v in cfg.lr.model_dump().items() if v != getattr(default.lr, k)]
+    if cfg.variational.gate_prior_mean != default.variational.gate_prior_mean:
+        out.append("variational.gate_prior_mean")
+    return out + (["init_opacity"] if cfg.init_opacity != default.init_opacity else [])
+
+
+def poor_fit_warnings(fit_psnr: float | None, scene: Path, cfg: TrainConfig | None = None) -> list[str]:
     """The warning for a model that cannot fit its own training views (``POOR_FIT_PSNR``), naming what to check:
-    the SfM health report when the scene is a ``reconstruct`` workspace."""
+    the settings of the fit the run changed from their defaults (``cfg``; a helper's lr.scales of 1e12 was blamed on
+    the photos), the SfM health report when the scene is a ``reconstruct`` workspace."""
     if fit_psnr is None or fit_psnr >= POOR_FIT_PSNR:
         return []
+    changed = _changed_fit_settings(cfg)
     where = "the camera poses"
     report = _workspace_report(scene)
     if report is not None:
@@ -750,8 +764,9 @@ def poor_fit_warnings(fit_psnr: float | None, scene: Path) -> list[str]:
                  f"reprojection error {err}"
                  + (", its mapping runs disagreed" if report.mapping_agreed is False else "") +
                  f"; {_map_again_advice(scene)} maps the photos again)")
+    first = (f"the settings changed from their defaults ({', '.join(changed)}), " if changed else "")
     return [f"the model fits its own training views at only {_psnr_shown(fit_psnr):.2f} dB (below {POOR_FIT_PSNR:g} dB): "
-            f"check {where}, moving objects or exposure changes between the photos"]
+            f"check {first}{where}, moving objects or exposure changes between the photos"]
 
 
 __all__ = ["POOR_FIT_PSNR", "exposure_warnings", "poor_fit_warnings", "small_images_notes", "train_model",
