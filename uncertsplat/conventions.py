@@ -35,7 +35,11 @@ NO_SURFACE_DEPTH = 1e9
 left in, one such pixel made a view's depth RMSE 4e8."""
 
 
+ENSEMBLE_MEMBERS = "members"
+"""The folder of an ensemble run that holds its members (``ensemble_member_dir``)."""
+
+
 def ensemble_member_dir(run_dir: str | Path, i: int) -> Path:
     """Where an ensemble run keeps its member ``i``: ``RUN/members/member_i``, a run of its own (``train`` writes it,
     ``report`` reads its log and summary)."""
-    return Path(run_dir) / "members" / f"member_{i}"
+    return Path(run_dir) / ENSEMBLE_MEMBERS / f"member_{i}"

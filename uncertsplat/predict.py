@@ -457,6 +457,7 @@ class Predictor:
     def _free_space(self):
         """The training renders ``seen_free`` tests against: the view-consistency term's (``ViewConsistency``), or
         one built for it on the first call when the predictive has none (``consistency_views = 0``)."""
+        from uncertsplat.config import EvalConfig
         from uncertsplat.eval.engine import view_consistency
 
         if self._sampler.consistency is not None:
@@ -466,11 +467,8 @@ class Predictor:
                 train = self.scene.cameras[list(self.scene.split.get("train", ()))]
                 if len(train) == 0:
                     raise UserError("the run has no training view to tell free space by")
-                from uncertsplat.config import EvalConfig
-
-                views = EvalConfig.model_fields["consistency_views"].default  # (64: what the docstring promises)
-                cfg = self._cfg.model_copy(update={"consistency_views": views, "finer_detail": False})
-                self._free = view_consistency(self._sampler, train, cfg, self.device)
+                # every training view up to the default 64 (what the docstring says), as select-views' poses
+                self._free = view_consistency(self._sampler, train, EvalConfig(finer_detail=False), self.device)
         return self._free
 
     def predict(self, cameras: Cameras, num_samples: int | None = None, seed: int | None = None) -> Prediction:

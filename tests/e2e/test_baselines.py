@@ -16,10 +16,11 @@ from typer.testing import CliRunner
 
 from tests.fixtures import tiny_scene
 from uncertsplat.baselines import load_run, train_run
-from uncertsplat.baselines.ensemble import EnsembleRun, member_dir
+from uncertsplat.baselines.ensemble import EnsembleRun
 from uncertsplat.baselines.fisher import FISHER_FILE, FisherRun
 from uncertsplat.cli import app
 from uncertsplat.config import EvalConfig, deep_update, train_config_from
+from uncertsplat.conventions import ensemble_member_dir
 from uncertsplat.data.dataset import load_view_set
 from uncertsplat.eval.engine import evaluate_views, fit_residual, with_side_terms
 from uncertsplat.io.images import read_exr
@@ -67,7 +68,7 @@ def test_ensemble_layout_and_spread(ensemble_run):
     run = ensemble_run
     assert json.loads((run / "config.json").read_text())["method"] == "ensemble"
     assert (run / "scene.json").is_file()
-    members = [json.loads((member_dir(run, i) / "config.json").read_text()) for i in range(2)]
+    members = [json.loads((ensemble_member_dir(run, i) / "config.json").read_text()) for i in range(2)]
     assert [m["method"] for m in members] == ["deterministic", "deterministic"]
     assert [m["seed"] for m in members] == [0, 1]
     summary = json.loads((run / "train_summary.json").read_text())
@@ -94,7 +95,7 @@ def test_an_ensemble_of_variational_members_samples_their_posteriors(scene_path,
     such member still has a spread (its posterior's), unlike an ensemble of one plain 3DGS model."""
     run = tmp_path / "run"
     train_run(scene_path, run, quick_cfg(method="ensemble", ensemble_size=1, ensemble_members="variational"), CPU)
-    assert json.loads((member_dir(run, 0) / "config.json").read_text())["method"] == "variational"
+    assert json.loads((ensemble_member_dir(run, 0) / "config.json").read_text())["method"] == "variational"
     loaded = load_run(run, CPU)
     assert isinstance(loaded, EnsembleRun) and loaded.variational_members
     assert loaded.members[0].model.num_carriers > 0 and "each with its posterior" in loaded.size_text()

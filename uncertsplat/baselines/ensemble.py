@@ -34,8 +34,6 @@ from uncertsplat.io.atomic import atomic_write_text, run_lock
 from uncertsplat.schemas import TrainSummary
 from uncertsplat.types import GaussianSample
 
-member_dir = ensemble_member_dir
-
 
 def member_config(cfg, i: int):
     """The TrainConfig of member ``i`` (``cfg.ensemble_members``' method, seed ``cfg.seed + i``)."""
@@ -77,7 +75,7 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
         atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         summaries = []
         for i in range(n):
-            mdir = member_dir(run_dir, i)
+            mdir = ensemble_member_dir(run_dir, i)
             done = mdir / "train_summary.json"
             if not done.is_file():
                 console.print(f"[bold]ensemble[/] member {i + 1}/{n} (seed {cfg.seed + i})")
@@ -87,7 +85,8 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
             elif resume:
                 console.print(f"[bold]ensemble[/] member {i + 1}/{n} (seed {cfg.seed + i}): trained before")
             summaries.append(TrainSummary.read(done))
-        atomic_write_text(run_dir / "scene.json", (member_dir(run_dir, 0) / "scene.json").read_text(encoding="utf-8"))
+        first_scene = ensemble_member_dir(run_dir, 0) / "scene.json"
+        atomic_write_text(run_dir / "scene.json", first_scene.read_text(encoding="utf-8"))
         psnrs = [s.test_psnr for s in summaries if s.test_psnr is not None]
         seconds = sum(s.seconds for s in summaries)
         summary = TrainSummary(
@@ -163,7 +162,7 @@ def load_ensemble(run_dir: Path, cfg, device: torch.device | str = "cpu") -> Ens
     run_dir = Path(run_dir)
     members = []
     for i in range(cfg.ensemble_size):
-        mdir = member_dir(run_dir, i)
+        mdir = ensemble_member_dir(run_dir, i)
         if not (mdir / "train_summary.json").is_file():
             raise UserError(f"ensemble member {i} is missing or unfinished", path=mdir,
                             hint=f"Finish it with: uncertsplat train SCENE -o {run_dir} --method ensemble --resume")

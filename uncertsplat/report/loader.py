@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from uncertsplat.config import TrainConfig, build_config
+from uncertsplat.conventions import ENSEMBLE_MEMBERS, ensemble_member_dir
 from uncertsplat.errors import UserError
 from uncertsplat.schemas import EvalReport, Manifest, PruneReport, ReconstructReport, RunScene, TrainSummary
 from uncertsplat.types import similarity_scale
@@ -53,7 +54,7 @@ MANIFEST = "manifest.json"
 METRICS = "eval/metrics.json"
 PRUNE = "prune.json"
 RECONSTRUCT = "reconstruct_report.json"
-MEMBERS = "members"
+MEMBERS = ENSEMBLE_MEMBERS
 """An ensemble run's folder of member runs (``members/member_0``, ...), each with its own ``stats.jsonl``."""
 
 @dataclass
@@ -263,8 +264,6 @@ def _training_notes(run: RunData) -> list[str]:
 def unfinished_members(run: RunData) -> tuple[int, int] | None:
     """(members trained, members in all) of an ensemble run stopped before its last member finished (no
     train_summary.json of its own); None for every other run."""
-    from uncertsplat.conventions import ensemble_member_dir
-
     if run.config is None or run.config.method != "ensemble" or run.train_summary is not None:
         return None
     total = run.config.ensemble_size

@@ -75,6 +75,14 @@ def nearest_used_distance(candidates: Tensor, used: Tensor) -> Tensor:
     return torch.full((c.shape[0],), float("inf"), dtype=torch.float64)
 
 
+def only_allowed(scores: Tensor, allowed: Tensor | None) -> Tensor:
+    """``scores`` [C] with no score (NaN: ranked last by ``rank_order``) for the candidates not ``allowed`` [C] bool
+    (None: all allowed)."""
+    if allowed is None:
+        return scores
+    return torch.where(allowed.to(torch.bool).to(scores.device), scores, torch.full_like(scores, float("nan")))
+
+
 def coverage_choice(candidates: Tensor, used: Tensor, n: int,
                     allowed: Tensor | None = None) -> tuple[list[int], list[float], Tensor]:
     """Greedy farthest-point choice of ``n`` candidates.
@@ -89,12 +97,10 @@ def coverage_choice(candidates: Tensor, used: Tensor, n: int,
         (chosen positions, their distance when chosen, [C] every candidate's distance before any choice).
     """
     c = candidates.double()
-    dist = nearest_used_distance(c, used)
-    if allowed is not None:
-        dist = torch.where(allowed.to(torch.bool).cpu(), dist, torch.full_like(dist, float("nan")))
+    dist = only_allowed(nearest_used_distance(c, used), allowed)
     first = dist.clone()
     chosen, at = [], []
-    for _ in range(min(n, int((~torch.isnan(dist)).sum()) if allowed is not None else c.shape[0])):
+    for _ in range(min(n, c.shape[0] if allowed is None else int(allowed.sum()))):
         j = best_unchosen(dist, chosen)
         chosen.append(j)
         at.append(float(dist[j]))
@@ -276,5 +282,5 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
     return chosen, at, first, noise
 
 
-__all__ = ["INFORMATION", "SCORES", "best_unchosen", "coverage_choice", "fisher_choice", "gap_eligible", "low_resolution",
+__all__ = ["INFORMATION", "SCORES", "best_unchosen", "coverage_choice", "fisher_choice", "gap_eligible", "low_resolution", "only_allowed",
            "nearest_used_distance", "rank_order", "relative_position_variance", "unseen_scores", "variance_scores"]

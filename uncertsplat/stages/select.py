@@ -80,11 +80,6 @@ def _plot(path: Path, used: torch.Tensor, cands: torch.Tensor, chosen: list[int]
     atomic_write_bytes(path, buf.getvalue())
 
 
-def _only(scores: torch.Tensor, allowed: torch.Tensor | None) -> torch.Tensor:
-    """``scores`` [C] with no score (NaN: ranked last) for the candidates not ``allowed`` [C] (None: all allowed)."""
-    return scores if allowed is None else torch.where(allowed, scores, torch.full_like(scores, float("nan")))
-
-
 FAR_CAPTURES = 2.0
 """``SelectConfig.plausible_only``: a candidate farther than this many capture sizes from every training camera is not
 a next photo of this capture (the model there is a speck; the gap rule measured every other candidate against it)."""
@@ -99,17 +94,16 @@ def _plausible(loaded, scene, train: list[int], cands, cfg: SelectConfig, device
     from uncertsplat.config import EvalConfig
     from uncertsplat.eval.engine import view_consistency
     from uncertsplat.select.scores import nearest_used_distance
-    from uncertsplat.uncertainty.consistency import DEPTH_TOLERANCE
 
     if not cfg.plausible_only or cands.kind == "unused" or not train:
         return None
-    views = EvalConfig(finer_detail=False)  # every training view up to the default 64, as Predictor.seen_free
-    looked = view_consistency(loaded.sampler(scene.scene_scale, device), scene.cameras[train].to(device), views,
-                              device)
+    # every training view up to the default 64, as Predictor.seen_free
+    looked = view_consistency(loaded.sampler(scene.scene_scale, device), scene.cameras[train].to(device),
+                              EvalConfig(finer_detail=False), device)
     centres, used = cands.cameras.centers.double(), scene.cameras[train].centers.double()
     inside = looked.seen_behind(centres.float().to(device)).cpu()  # [C]
     spread = float(torch.cdist(used, used).max()) if len(train) > 1 else 0.0
-    size = max(spread, looked._near() / DEPTH_TOLERANCE)  # (the compared renders' median surface depth)
+    size = max(spread, looked.median_surface_depth())
     far = nearest_used_distance(centres, used) > FAR_CAPTURES * size if size > 0 else torch.zeros_like(inside)
     ok = ~(inside | far)
     if bool(ok.all()):
@@ -158,6 +152,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         fisher_choice,
         gap_eligible,
         low_resolution,
+        only_allowed,
         rank_order,
         relative_position_variance,
         unseen_scores,
@@ -209,8 +204,8 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     if cfg.score == "coverage":
         chosen, at, first = coverage_choice(centres, scene.cameras[train].centers, n, allowed)
     elif cfg.score == "random":
-        first = _only(torch.rand(len(cands), generator=torch.Generator().manual_seed(cfg.seed), dtype=torch.float64),
-                      allowed)
+        first = only_allowed(torch.rand(len(cands), generator=torch.Generator().manual_seed(cfg.seed),
+                                        dtype=torch.float64), allowed)
         chosen = rank_order(first)[:n]
         at = [float(first[j]) for j in chosen]
     elif cfg.score in ("unseen", "variance"):  # scores rendered from the posterior at the candidates
@@ -234,7 +229,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                               "leaves uncovered; --score fisher or coverage rank by more")
             first, depth_std = variance_scores(sampler.sample_fn, sampler.render_fn, low, cfg.num_samples, cfg.seed,
                                                empty_std=sampler.empty_std, coverage=sampler.coverage)
-        first = _only(first, allowed)
+        first = only_allowed(first, allowed)
         chosen = rank_order(first)[:n]
         at = [float(first[j]) for j in chosen]
         settings.update(width=low.width, height=low.height)
@@ -254,8 +249,9 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                 params, low_train.to(device), images.to(device), low.to(device), loaded.render_fn(scene.scene_scale, device),
                 names=fcfg.params, prior_std=prior_stds(fcfg, loaded.extent), sh_degree=loaded.sh_degree,
                 probes=cfg.probes, seed=cfg.seed, n=n, information=cfg.information,
-                eligible=(gap_eligible(centres, scene.cameras[train].centers, cfg.gaps, allowed) if cfg.gaps > 0 else
-                          None if allowed is None else (lambda chosen: allowed.clone())), competing=allowed)
+                # (gaps 0 with candidates left out: the gap rule at fraction 0 is the allowed ones not chosen yet)
+                eligible=(gap_eligible(centres, scene.cameras[train].centers, cfg.gaps, allowed)
+                          if cfg.gaps > 0 or allowed is not None else None), competing=allowed)
         settings.update(width=low.width, height=low.height, noise_std=noise, params=list(fcfg.params))
         if loaded.config.method == "ensemble":
             settings["note"] = "ensemble: the Fisher of member 0's Gaussians"

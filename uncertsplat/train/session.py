@@ -23,6 +23,7 @@ import torch
 from uncertsplat import native
 from uncertsplat.config import TrainConfig, VariationalConfig, build_config
 from uncertsplat.console import console, count, list_names
+from uncertsplat.conventions import ENSEMBLE_MEMBERS
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.io.atomic import (
@@ -574,18 +575,18 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             console.print(f"held out (scene.test_indices / train_indices count the scene's {len(names)} views, in name "
                           f"order): {list_names(held, 10) if held else 'none'}")
         views = len(data.split["train"])
-        batch = ([f"batch_size = {cfg.batch_size} is more than the {views} training views: each step renders all "
-                  f"{views}"] if cfg.batch_size > views else [])
+        run_notes = ([f"batch_size = {cfg.batch_size} is more than the {views} training views: each step renders all "
+                      f"{views}"] if cfg.batch_size > views else [])
         if trainer.low_res_until > 0 and trainer.low_cams is not None and min(trainer.low_cams.width,
                                                                                trainer.low_cams.height) < 16:
             # (a scale of 1e-12 trained on 1x1 images without a word: 1.3 dB and 40 % of the Gaussians lost)
-            batch.append(f"the low-resolution phase (its first {trainer.low_res_until} steps) trains on "
-                         f"{trainer.low_cams.width}x{trainer.low_cams.height} images (low_res_scale = "
-                         f"{cfg.low_res_scale:g}), too few pixels to place Gaussians by")
+            run_notes.append(f"the low-resolution phase (its first {trainer.low_res_until} steps) trains on "
+                             f"{trainer.low_cams.width}x{trainer.low_cams.height} images (low_res_scale = "
+                             f"{cfg.low_res_scale:g}), too few pixels to place Gaussians by")
+        member = run_dir.parent.name == ENSEMBLE_MEMBERS
         for note in [*data.notes, *small_images_notes(data.cameras.width, data.cameras.height, cfg.scene.downscale),
-                     *batch,
-                     *trainer.init_notes, *_unused_setting_notes(cfg, run_dir.parent.name == "members"), *_settle_notes(cfg), *_reset_notes(cfg),
-                     *_posterior_notes(cfg)]:
+                     *run_notes, *trainer.init_notes, *_unused_setting_notes(cfg, member), *_settle_notes(cfg),
+                     *_reset_notes(cfg), *_posterior_notes(cfg)]:
             console.print(f"[yellow]note:[/] {note}")
         for text in workspace_notes(scene):
             console.print(f"[yellow]note:[/] {text}")

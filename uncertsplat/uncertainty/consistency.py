@@ -384,14 +384,19 @@ class ViewConsistency:
         seen = inside & ((z - there[..., 3]).abs() <= DEPTH_TOLERANCE * z)
         return cams, z, inside, there, seen
 
-    def _near(self) -> float:
-        """``DEPTH_TOLERANCE`` x the compared renders' median surface depth (0 without surface): how near a training
-        camera ``seen_free`` counts as where a photo was taken. Computed once (a median of every rendered pixel)."""
-        near = self._cache.get("near")
-        if near is None:
+    def median_surface_depth(self) -> float:
+        """The compared renders' median rendered depth over their pixels with a surface (0 without one): the depth the
+        photos see, a scale of the capture. Computed once (a median of every rendered pixel)."""
+        depth = self._cache.get("median_depth")
+        if depth is None:
             surface = self.depth[self.depth > 0]
-            near = self._cache["near"] = DEPTH_TOLERANCE * float(surface.float().median()) if surface.numel() else 0.0
-        return near
+            depth = self._cache["median_depth"] = float(surface.float().median()) if surface.numel() else 0.0
+        return depth
+
+    def _near(self) -> float:
+        """``DEPTH_TOLERANCE`` x ``median_surface_depth``: how near a training camera ``seen_free`` counts as where a
+        photo was taken."""
+        return DEPTH_TOLERANCE * self.median_surface_depth()
 
     def _stack(self, k0: int, dtype: torch.dtype) -> Tensor:
         """[C,4,H,W] the compared views ``k0`` .. ``k0 + VIEW_CHUNK``'s rgb and depth in ``dtype`` (a view of the
