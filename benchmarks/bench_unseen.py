@@ -21,7 +21,8 @@ without the edge term (``EvalConfig.edge_noise``); ``no-depth-spread`` is ``full
 each ray blends (``EvalConfig.depth_spread``); ``resolution-1`` is ``full`` with one render of the resolution
 term per sample (``EvalConfig.resolution_renders``, 2 since 2026-11-27); ``no-consistency`` is ``full`` without
 the view-consistency term (``EvalConfig.consistency_views``); ``no-finer`` is ``full`` without the finer-detail term
-(``EvalConfig.finer_detail``).
+(``EvalConfig.finer_detail``); ``no-hidden-depth`` is ``full`` without the depth variance of the surface points no
+compared training view sees (``EvalConfig.hidden_depth``).
 
 Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
 its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),
@@ -129,6 +130,7 @@ PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alph
     "resolution-1": ({"resolution_renders": 1}, False),  # full with one resolution render per sample (before 11-27)
     "no-consistency": ({"consistency_views": 0}, False),  # full without the view-consistency term (before 11-27)
     "no-finer": ({"finer_detail": False}, False),  # full without the finer-detail term (before 11-28)
+    "no-hidden-depth": ({"hidden_depth": False}, False),  # full without the hidden points' depth term (before 11-30)
 }
 
 

@@ -361,6 +361,111 @@ class TestSeenFree:
         assert empty.seen_free(torch.tensor([[0.0, 0.0, -4.0], [0.0, 0.0, -2.0]])).tolist() == [False, True]
 
 
+
+def _expected_gap(free_below: float) -> float:
+    """The fraction of the depth ``_free_gap`` finds when the ray is seen empty exactly below ``free_below`` of the
+    depth: 1 - s of its first sample s (from 1 - the tolerance down to 0, geometrically) below that."""
+    g = consistency.DEPTH_TOLERANCE * (1.0 / consistency.DEPTH_TOLERANCE) ** (
+        torch.arange(consistency.GAP_SAMPLES, dtype=torch.float64) / (consistency.GAP_SAMPLES - 1))
+    return float(g[(1.0 - g) < free_below].min())
+
+
+class TestHiddenDepth:
+    """``ViewConsistency.hidden_depth_variance``: the depth variance of the surface points no compared view sees."""
+
+    def test_a_point_every_photo_saw_has_nothing(self, device):
+        vc, render_fn = _term([0.0, 50.0], gate=4.0, device=device)
+        var = vc.hidden_depth_variance(_cameras([20.0], focal=60.0, device=device), render_fn)
+        assert var.shape == (1, H, W, 1) and var.device.type == torch.device(device).type
+        assert float(var.abs().max()) == 0.0
+
+    def test_behind_an_occluder_the_stretch_no_photo_saw_empty(self, device):
+        """The one training camera stands where the evaluated one does (a narrower view, so every evaluated ray is
+        one of its rays) and rendered something at half the wall's depth: the wall's points are hidden from it, and
+        along each evaluated ray it saw empty space only nearer than 0.485 of the depth (the occluder less the 3 %
+        tolerance). So L is 0.515 of the depth, as the samples find it (at most one step, 1.2x, above), and the
+        variance L^2 / 12 that of a point uniform on the stretch."""
+        render_fn = _plane_render(nearer=frozenset({0}))
+        vc, _ = _term([0.0], gate=4.0, render_fn=render_fn, device=device)
+        test = _cameras([0.0], focal=20.0, device=device)
+        var = vc.hidden_depth_variance(test, _plane_render())[0, ..., 0].cpu().double()  # [H,W] the wall itself
+        gap = _expected_gap(0.5 * (1.0 - consistency.DEPTH_TOLERANCE))
+        assert 0.515 <= gap <= 0.515 * 1.21
+        torch.testing.assert_close(var, torch.full_like(var, (gap * 4.0) ** 2 / 12.0), rtol=1e-4, atol=0.0)
+
+    def test_outside_every_photo_the_whole_depth(self, device):
+        """A wider evaluated view from the training camera's place: its corners lie outside the training image, so no
+        photo saw any of those rays empty (but at the camera, where the photo was taken): L is the whole depth; its
+        centre is seen and has nothing."""
+        render_fn = _plane_render()
+        narrow = ViewConsistency.of(_sample(device), _cameras([0.0], focal=60.0, device=device), render_fn)
+        test = _cameras([0.0], focal=6.0, device=device)
+        var = narrow.hidden_depth_variance(test, render_fn)[0, ..., 0].cpu()
+        assert float(var[H // 2, W // 2]) == 0.0
+        depth = render_fn(None, test).depth[0, 0, 0, 0].cpu()
+        assert float(var[0, 0]) == pytest.approx(float(depth) ** 2 / 12.0, rel=1e-5)
+
+    def test_marching_every_kth_point_gives_its_gap_to_the_next(self, monkeypatch, device):
+        """Above ``GAP_POINTS`` hidden points every k-th is marched: the occluder's stretch is the same fraction of
+        every point's depth, so the map is the one of every point marched."""
+        render_fn = _plane_render(nearer=frozenset({0}))
+        vc, _ = _term([0.0], gate=4.0, render_fn=render_fn, device=device)
+        test = _cameras([10.0], focal=20.0, device=device)
+        every = vc.hidden_depth_variance(test, _plane_render())
+        monkeypatch.setattr(consistency, "GAP_POINTS", 7)
+        some = vc.hidden_depth_variance(test, _plane_render())
+        assert float(every.min()) > 0.0
+        torch.testing.assert_close(some, every, rtol=0.2, atol=0.0)  # neighbours' gaps differ by a sample step at most
+
+    def test_off_by_default_nowhere_a_compared_view_and_edges(self, device):
+        """``variance`` alone returns no depth term; a compared training view gets zeros without a render; a view
+        without surface gets zeros; ``variances`` gives the RGB term of ``variance`` beside it."""
+        render_fn = _plane_render(nearer=frozenset({0}))
+        vc, _ = _term([0.0, 50.0], gate=4.0, render_fn=render_fn, device=device)
+        test = _cameras([20.0], focal=60.0, device=device)
+        rgb, depth = vc.variances(test, render_fn, hidden_depth=True)
+        assert torch.equal(rgb, vc.variance(test, render_fn))
+        assert vc.variances(test, render_fn, hidden_depth=False)[1] is None
+
+        def no_render(sample, cameras):
+            raise AssertionError("a compared training view needs no render")
+
+        assert float(vc.hidden_depth_variance(vc.cameras[[0]], no_render).abs().max()) == 0.0
+
+        def empty(sample, cameras):
+            out = render_fn(sample, cameras)
+            return dataclasses.replace(out, alpha=torch.zeros_like(out.alpha))
+
+        assert float(vc.hidden_depth_variance(test, empty).abs().max()) == 0.0
+        with pytest.raises(ValueError, match="one camera"):
+            vc.hidden_depth_variance(_cameras([10.0, 20.0], device=device), render_fn)
+
+    def test_the_predictive_adds_it_to_the_depth_variance_only_when_asked(self, monkeypatch):
+        """``eval.engine.predictive_terms``: the hidden points' depth variance joins the depths a ray blends in
+        ``extra_depth_var``; not with ``hidden_depth`` off, nor for a caller of the RGB maps alone."""
+        from types import SimpleNamespace
+
+        from uncertsplat.eval import engine
+
+        render_fn = _plane_render(nearer=frozenset({0}))
+        vc, _ = _term([0.0], gate=4.0, render_fn=render_fn)
+        test = _cameras([0.0], focal=20.0)
+        sampler = SimpleNamespace(residual=None, consistency=vc, exposure=None, render_fn=_plane_render(),
+                                  empty_std=None, coverage=1.0, det_sample=_sample(), mean_sample=None)
+        cfg = SimpleNamespace(hidden_depth=True, depth_spread=False, empty_rays=False, resolution=0.0,
+                              resolution_renders=1)
+        terms = engine.predictive_terms(sampler, cfg, test)
+        torch.testing.assert_close(terms["extra_depth_var"], vc.hidden_depth_variance(test, _plane_render()))
+        assert float(terms["extra_depth_var"].min()) > 0.0
+        assert engine.predictive_terms(sampler, cfg, test, depth=False)["extra_depth_var"] is None
+        cfg.hidden_depth = False
+        assert engine.predictive_terms(sampler, cfg, test)["extra_depth_var"] is None
+        cfg.hidden_depth, cfg.depth_spread = True, True
+        monkeypatch.setattr(engine, "_representative", lambda s, d: s.det_sample)
+        monkeypatch.setattr("uncertsplat.uncertainty.mc.depth_spread", lambda *a: torch.full((1, H, W, 1), 0.5))
+        both = engine.predictive_terms(sampler, cfg, test)["extra_depth_var"]
+        torch.testing.assert_close(both, vc.hidden_depth_variance(test, _plane_render()) + 0.5)
+
 def test_depth_edges_flag_jumps_not_slopes():
     step = torch.ones(8, 10)
     step[:, 5:] = 1.5

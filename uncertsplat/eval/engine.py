@@ -82,6 +82,10 @@ class EvalSettings(Protocol):
     """Training views the view-consistency term compares each evaluated view with (``view_consistency``; 0: none)."""
     depth_spread: bool
     """Add the variance of the depths each ray blends (``uncertainty.mc.depth_spread``) to the depth variance."""
+    hidden_depth: bool
+    """Add the depth variance of the surface points no compared training view sees
+    (``ViewConsistency.hidden_depth_variance``; part of the view-consistency term, so none when ``consistency_views``
+    is 0)."""
     edge_noise: bool
     """Split the pixel noise into an edge term ``delta^2 |grad I|^2`` and the per-Gaussian rest
     (``uncertainty.residual.fit_edge_scale``; ``fit_residual_field`` fits it in its own pass)."""
@@ -181,28 +185,38 @@ def predictive_terms(sampler: Sampler, cfg: EvalSettings, cams: Cameras, *, dept
     is ``evaluate``'s predictive (``uncertsplat.predict`` for any camera)."""
     from uncertsplat.uncertainty.mc import depth_spread
 
-    extra = _side_variance(sampler, cams)
+    extra, hidden = _side_variance(sampler, cams, hidden_depth=depth and cfg.hidden_depth)
     spread = depth_spread(_representative(sampler, cams.device), cams, sampler.render_fn) \
         if cfg.depth_spread and depth else None
+    if hidden is not None:
+        spread = hidden if spread is None else spread + hidden.to(spread)
     return {"empty_std": sampler.empty_std if cfg.empty_rays else None, "coverage": sampler.coverage,
             "extra_var": extra, "extra_depth_var": spread, "shift_fn": _shift_fn(sampler, cfg, cams.device),
             "shift_renders": cfg.resolution_renders}
 
 
-def _side_variance(sampler: Sampler, cams: Cameras) -> Tensor | None:
+def _side_variance(sampler: Sampler, cams: Cameras, *, hidden_depth: bool = False
+                   ) -> tuple[Tensor | None, Tensor | None]:
     """[C,H,W,1] the RGB variance of the sampler's side terms, the pixel noise and the view-consistency term (None
-    without either): what ``mc_render`` adds to the samples' spread as ``extra_var``."""
+    without either): what ``mc_render`` adds to the samples' spread as ``extra_var``; and with ``hidden_depth`` the
+    depth variance of the view-consistency term's hidden points (``ViewConsistency.hidden_depth_variance``, from the
+    same render and lookup; None without the term or ``hidden_depth``)."""
     extra = sampler.residual.blended(cams, sampler.render_fn) if sampler.residual is not None else None
+    hidden = None
     if sampler.consistency is not None:
-        term = torch.cat([sampler.consistency.variance(cams[[j]], sampler.render_fn) for j in range(len(cams))])
+        parts = [sampler.consistency.variances(cams[[j]], sampler.render_fn, hidden_depth=hidden_depth)
+                 for j in range(len(cams))]
+        term = torch.cat([p[0] for p in parts])
         extra = term if extra is None else extra + term
+        if hidden_depth:
+            hidden = torch.cat([p[1] for p in parts])
     if sampler.exposure is not None:
         rep = _representative(sampler, cams.device)
         with torch.no_grad():
             term = torch.cat([sampler.exposure.variance(sampler.render_fn(rep, cams[[j]]).rgb)
                               for j in range(len(cams))])
         extra = term if extra is None else extra + term
-    return extra
+    return extra, hidden
 
 
 def evenly_spaced(items: Sequence[int], n: int) -> list[int]:
@@ -569,7 +583,7 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
         cam = views.cameras[[j]].to(device)
         if set_aside_maps is not None and i in set_aside_maps:
             mean, bare_std = set_aside_maps[i]
-            extra = _side_variance(dataclasses.replace(sampler, exposure=None), cam)  # bare_std has the exposures' term
+            extra = _side_variance(dataclasses.replace(sampler, exposure=None), cam)[0]  # bare_std has the exposures' term
             std = bare_std if extra is None else (bare_std.square() + extra.cpu().to(bare_std)).sqrt()
         else:
             gen.manual_seed(view_seed(cfg.seed, i))
@@ -748,6 +762,9 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                      f"their renders, {sampler.consistency.palette_var:.4f})")
     if cfg.depth_spread:
         terms.append("for depth, the variance of the depths each ray blends (the model's deterministic render)")
+    if cfg.hidden_depth and sampler.consistency is not None:
+        terms.append("for depth, where no compared training view sees a surface point, L^2 / 12 with L the stretch "
+                     "of the view's ray in front of it that no training view saw empty")
     if cfg.empty_rays and sampler.empty_std is not None:
         terms.append(f"an unknown surface where rays are covered less than the model covers its training views "
                      f"(alpha {sampler.coverage:.3f}; colour std {sampler.empty_std[0]:.3f}, depth "
