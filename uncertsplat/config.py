@@ -669,10 +669,9 @@ class EvalConfig(_Base):
     hidden_depth: bool = True
     """Where no compared training view sees a pixel's surface point (hidden behind what every photo holding it saw, or
     outside them all), add ``L^2 / 12`` to the depth variance (a point uniform on a stretch of length L), L the stretch
-    of the view's ray in front of the point that no training view saw empty: a surface anywhere on it would have
-    looked the same to every photo
-    (``uncertainty.consistency``, "A surface no photo saw"; 20 points along each such ray tested against the
-    compared views' renders). Nothing is fitted. Measured (BENCHMARKS.md, "A depth no photo pinned down"). Needs the
+    of the view's ray in front of the point that no compared training view saw empty: a surface anywhere on it would
+    have looked the same to every photo (``uncertainty.consistency``, "A surface no photo saw"; up to 20 points along
+    each such ray tested against the compared views' renders). Nothing is fitted. Measured (BENCHMARKS.md, "A depth no photo pinned down"). Needs the
     view-consistency term (``consistency_views`` > 0), whose renders and lookup it uses. False: none."""
     edge_noise: bool = True
     """Split the pixel noise into an edge term and the per-Gaussian rest (``uncertainty.residual``, "The edge

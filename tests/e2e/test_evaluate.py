@@ -1003,6 +1003,13 @@ class TestPredictor:
         # settings that change no number (what is written, which views are scored) read the evaluation's file
         assert Predictor.load(run, "cpu", cfg=EvalConfig(num_samples=5, seed=3, save_maps=False, max_views=1,
                                                          reuse=False)).std_factor == with_scene.std_factor
+        # nor does the hidden points' depth term, computed at each prediction (files written before it still read)
+        no_hidden = Predictor.load(run, "cpu", cfg=EvalConfig(num_samples=5, seed=3, hidden_depth=False))
+        assert no_hidden.std_factor == with_scene.std_factor
+        flat = no_hidden.predict(offline.scene.cameras[[0, 7]], num_samples=3)
+        torch.testing.assert_close(flat.rgb_std, expected.rgb_std, rtol=0, atol=0)
+        assert bool((flat.depth_std <= expected.depth_std).all())
+        assert not torch.equal(flat.depth_std, expected.depth_std)  # the tiny scene has hidden points
         path = run / "eval" / "predictive.pt"
         data = bytearray(path.read_bytes())
         data[len(data) // 2] ^= 0x10  # one flipped bit: the checksum finds it, nothing damaged is rendered

@@ -364,10 +364,22 @@ class TestSeenFree:
 
 def _expected_gap(free_below: float) -> float:
     """The fraction of the depth ``_free_gap`` finds when the ray is seen empty exactly below ``free_below`` of the
-    depth: 1 - s of its first sample s (from 1 - the tolerance down to 0, geometrically) below that."""
+    depth: 1 - s of its first sample s (from 1 - the tolerance toward the camera, geometrically) below that; 1 when
+    no sample is."""
     g = consistency.DEPTH_TOLERANCE * (1.0 / consistency.DEPTH_TOLERANCE) ** (
-        torch.arange(consistency.GAP_SAMPLES, dtype=torch.float64) / (consistency.GAP_SAMPLES - 1))
-    return float(g[(1.0 - g) < free_below].min())
+        torch.arange(consistency.GAP_SAMPLES, dtype=torch.float64) / consistency.GAP_SAMPLES)
+    below = g[(1.0 - g) < free_below]
+    return float(below.min()) if below.numel() else 1.0
+
+
+def _occluder_by_column(sample: GaussianSample, cameras: Cameras) -> RenderOutput:
+    """The plane, hidden by something nearer whose depth grows across the image: 0.2 of the plane's at the left
+    edge to 0.8 at the right (so a point behind it has a stretch seen empty that changes along each row)."""
+    out = _plane_render()(sample, cameras)
+    w = cameras.width
+    frac = 0.2 + 0.6 * (torch.arange(w, dtype=torch.float32, device=out.depth.device) + 0.5) / w  # [W]
+    depth = out.depth * frac[None, None, :, None]
+    return dataclasses.replace(out, depth=depth, depth_expected=depth)
 
 
 class TestHiddenDepth:
@@ -405,19 +417,33 @@ class TestHiddenDepth:
         depth = render_fn(None, test).depth[0, 0, 0, 0].cpu()
         assert float(var[0, 0]) == pytest.approx(float(depth) ** 2 / 12.0, rel=1e-5)
 
-    def test_marching_every_kth_point_gives_its_gap_to_the_next(self, monkeypatch, device):
-        """Above ``GAP_POINTS`` hidden points every k-th is marched: the occluder's stretch is the same fraction of
-        every point's depth, so the map is the one of every point marched."""
-        render_fn = _plane_render(nearer=frozenset({0}))
-        vc, _ = _term([0.0], gate=4.0, render_fn=render_fn, device=device)
-        test = _cameras([10.0], focal=20.0, device=device)
-        every = vc.hidden_depth_variance(test, _plane_render())
-        monkeypatch.setattr(consistency, "GAP_POINTS", 7)
-        some = vc.hidden_depth_variance(test, _plane_render())
-        assert float(every.min()) > 0.0
-        torch.testing.assert_close(some, every, rtol=0.2, atol=0.0)  # neighbours' gaps differ by a sample step at most
+    def test_above_the_cap_one_point_per_square_cell_is_marched(self, monkeypatch, device):
+        """Above ``GAP_POINTS`` hidden points the view is cut into t x t cells (t the smallest, at least 2, that
+        leaves at most ``GAP_POINTS`` cells with points), the first point of each cell (row order) is marched and the
+        cell's others take its stretch as a fraction of their own depth. The occluder's depth changes across the
+        training image, so the stretches differ from point to point and a wrong source shows."""
+        vc = ViewConsistency.of(_sample(device), _cameras([0.0], focal=6.0, device=device), _occluder_by_column)
+        test = _cameras([0.0], focal=20.0, device=device)
+        plane = _plane_render()
+        every = vc.hidden_depth_variance(test, plane)[0, ..., 0].cpu().double()  # [H,W]
+        depth = plane(None, test).depth[0, ..., 0].cpu().double()
+        rel = (12.0 * every).sqrt() / depth  # each point's stretch over its depth
+        assert float(every.min()) > 0.0 and float(rel.max() - rel.min()) > 0.2  # every point hidden, stretches differ
+        for cap in (7, 100, H * W - 1):
+            monkeypatch.setattr(consistency, "GAP_POINTS", cap)
+            some = vc.hidden_depth_variance(test, plane)[0, ..., 0].cpu().double()
+            t = 2
+            while math.ceil(H / t) * math.ceil(W / t) > cap:
+                t += 1
+            expect = torch.empty_like(every)
+            for r in range(H):
+                for c in range(W):
+                    first = rel[r // t * t, c // t * t]  # every pixel is hidden: a cell's first is its corner
+                    expect[r, c] = (first * depth[r, c]) ** 2 / 12.0
+            torch.testing.assert_close(some, expect, rtol=1e-5, atol=0.0)
+            assert len(torch.unique(some / depth.square())) <= cap
 
-    def test_off_by_default_nowhere_a_compared_view_and_edges(self, device):
+    def test_none_unless_asked_nothing_for_a_compared_view_or_without_surface(self, device):
         """``variance`` alone returns no depth term; a compared training view gets zeros without a render; a view
         without surface gets zeros; ``variances`` gives the RGB term of ``variance`` beside it."""
         render_fn = _plane_render(nearer=frozenset({0}))

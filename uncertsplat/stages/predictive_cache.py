@@ -26,9 +26,12 @@ FILE_NAME = "predictive.pt"
 FORMAT = 2
 """The layout of the file's dictionary; a file of another layout is not used (1: without ``parts``, unchecked)."""
 UNUSED_SETTINGS = ("save_maps", "preview", "reuse", "max_views", "depth_gt", "depth_scale", "depth_align",
-                   "paper_nll", "ause_steps")
-"""Evaluation settings the predictive does not depend on (what is written or scored, not what is predicted): left
-out of the key, so that ``Predictor.load(run, cfg=EvalConfig(save_maps=False))`` reads the evaluation's file."""
+                   "paper_nll", "ause_steps", "hidden_depth")
+"""Evaluation settings the file's content does not depend on: what is written or scored, not what is predicted, and
+``hidden_depth``, a depth term computed at each prediction from the view-consistency term's renders (the file's
+noise and std factor are fitted on the RGB); left out of the key, so that ``Predictor.load(run,
+cfg=EvalConfig(save_maps=False))`` reads the evaluation's file, and files written before ``hidden_depth`` existed
+still read."""
 
 
 def _parts(loaded, cfg) -> dict | None:

@@ -52,12 +52,16 @@ NLL -3.07 -> -3.17, AUSE-MAE 0.120 -> 0.114; the held-out views at the capture's
 A surface no photo saw (``ViewConsistency.hidden_depth_variance``, for the depth std). A surface point of the
 evaluated view that no compared training view sees (hidden behind what every photo holding it saw in front of it, or
 outside them all) has a depth the photos did not pin down: a surface anywhere on the stretch of the view's ray in
-front of it that no training ray passed through empty (``seen_free``) would have looked the same to every photo. With
+front of it that no compared view's ray passed through empty (``seen_free``) would have looked the same to every
+photo. With
 L that stretch's length (``_free_gap``; the whole depth where no photo saw any of the ray empty), the point gets the
 depth variance ``L^2 / 12``, that of a point uniform on the stretch; nothing is fitted. (The mean squared distance of
 such a point from the stretch's end, where the render puts the surface, is ``L^2 / 3``: measured too, it made the
 depth std too wide where the model's surface came from points other photos triangulated.) Seen points get nothing:
-the photos that see them put the surface there. Measured (BENCHMARKS.md, "A depth no photo pinned down"): trained on
+the photos that see them put the surface there. Not covered: a floater, a surface the model renders where the photos
+saw through (its point is not seen, but the space just in front of it is: it gets the tolerance's stretch only, while
+the real surface lies behind; ``prune``'s free-space score finds those). Measured (BENCHMARKS.md, "A depth no photo
+pinned down"): trained on
 one half of the demo ring, the unseen-surface depth ROC AUC 0.925 -> 0.939 with every initial point, 0.949 -> 0.952
 with the training views' points; 5 sparse views 0.896 -> 0.937; depth NLL and AUSE within 0.03 nats and 0.002.
 
@@ -114,11 +118,12 @@ for a whole view; the native kernel keeps a point's lookups in registers)."""
 FREE_POINTS_CHUNK = 65536
 """Points ``seen_free`` tests at once (about 600 bytes each while they are looked up: 4M points took 2.8 GB)."""
 GAP_SAMPLES = 20
-"""Points along an evaluated view's ray at which ``_free_gap`` tests whether a training view saw the space empty:
-fractions of the rendered depth from 1 - ``DEPTH_TOLERANCE`` down to the camera, each step 1.2x the last's distance
-from the surface (the gap is found to within a fifth of itself)."""
+"""Points along an evaluated view's ray at which ``_free_gap`` tests whether a compared training view saw the space
+empty: fractions of the rendered depth from 1 - ``DEPTH_TOLERANCE`` toward the camera, each 1.19x the last's distance
+from the surface (the gap is found to within a fifth of itself; ``_gap_fractions``)."""
 GAP_POINTS = 65536
-"""At most this many hidden points of a view are marched (``_free_gap``; 20 points each); beyond, every k-th."""
+"""At most this many hidden points of a view are marched (``_free_gap``; 20 points each); beyond, one per square
+cell of the view, the cell's others taking its stretch."""
 MAX_FINER = 1e6
 """The largest r the finer-detail term takes (its square stays a float32 number)."""
 STEP_VARIANCE = 1.0 / 12.0
@@ -234,11 +239,13 @@ class ViewConsistency:
         if len(camera) != 1:
             raise ValueError(f"one camera at a time, got {len(camera)}")
         zero = torch.zeros(1, camera.height, camera.width, 1, device=self.depth.device)
+        no_depth = torch.zeros(1, camera.height, camera.width, 1, dtype=torch.float32, device=self.depth.device) \
+            if hidden_depth else None
         if self._is_compared(camera):  # its own render is the nearest: 0 everywhere
-            return zero, (zero.clone() if hidden_depth else None)
+            return zero, no_depth
         found = self._surface_points(camera, render_fn)
         if found is None:
-            return zero, (zero.clone() if hidden_depth else None)
+            return zero, no_depth
         rgb, where, points, z = found  # [H,W,3], [S], [S,3], [S]
         h, w = rgb.shape[:2]
         colour = rgb.reshape(-1, 3)[where]  # [S,3]
@@ -246,7 +253,7 @@ class ViewConsistency:
         depth_var = None
         if hidden_depth:
             hidden = (~seen).nonzero()[:, 0]  # [Q] indices into the surface points
-            gap = self._free_gap(points[hidden], z[hidden], camera)  # [Q]
+            gap = self._free_gap(points[hidden], z[hidden], camera, where[hidden])  # [Q]
             depth_var = torch.zeros(h * w, dtype=torch.float32, device=rgb.device).index_copy_(
                 0, where[hidden], (gap.square() / 12.0).float()).reshape(1, h, w, 1)
         full = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(0, where, term)
@@ -284,25 +291,32 @@ class ViewConsistency:
         edges and where the pixel has no surface; 0 everywhere for a compared training view."""
         return self.variances(camera, render_fn, hidden_depth=True)[1]
 
-    def _free_gap(self, points: Tensor, z: Tensor, camera: Cameras) -> Tensor:
+    def _free_gap(self, points: Tensor, z: Tensor, camera: Cameras, pixels: Tensor) -> Tensor:
         """[Q] the length, in the evaluated ``camera``'s depth units, of the stretch in front of each of ``points``
-        [Q,3] (at depths ``z`` [Q]) along its ray from the camera that no compared training view saw empty
-        (``seen_free``): the rendered depth times 1 - s, s the largest of ``GAP_SAMPLES`` fractions of the depth
-        (from 1 - ``DEPTH_TOLERANCE`` down to the camera, geometrically) at which the ray's point is seen empty; the
-        whole depth when none is. Above ``GAP_POINTS`` points, every k-th one (in the order given, the view's rows)
-        is marched and its next k - 1 take its gap."""
+        [Q,3] (at depths ``z`` [Q], in the view's pixels ``pixels`` [Q], flat indices) along its ray from the camera
+        that no compared training view saw empty (``seen_free``): the rendered depth times 1 - s, s the largest of
+        ``GAP_SAMPLES`` fractions of the depth (``_gap_fractions``) at which the ray's point is seen empty; the whole
+        depth when none is. Above ``GAP_POINTS`` points, the view is cut into square cells of t x t pixels (t the
+        smallest that leaves at most ``GAP_POINTS`` cells holding points), the first point of each cell (in the
+        view's row order) is marched, and the cell's others take its stretch as a fraction of their own depth."""
         q = points.shape[0]
         if q == 0:
             return z.new_zeros(0)
-        k = max(1, math.ceil(q / GAP_POINTS))
-        marched = points[::k]  # [M,3]
-        g = DEPTH_TOLERANCE * (1.0 / DEPTH_TOLERANCE) ** torch.linspace(0.0, 1.0, GAP_SAMPLES, dtype=torch.float64)
-        s = (1.0 - g).clamp_min(0.0).to(points)  # [N] from 0.97 down to 0 (the camera)
+        source = torch.arange(q, device=points.device)  # [Q] the point whose march each point takes
+        if q > GAP_POINTS:
+            source = _cell_firsts(pixels, camera.width, q)
+        marched = torch.unique(source)  # [M] sorted
+        start = points[marched]  # [M,3]
         eye = camera.centers[0].to(points)  # [3]
-        along = eye + s[:, None, None] * (marched - eye)  # [N,M,3] the ray's points at s x the depth
-        free = self.seen_free(along.reshape(-1, 3)).reshape(GAP_SAMPLES, -1)  # [N,M]
-        nearest = torch.where(free, s[:, None], torch.zeros_like(free, dtype=s.dtype)).amax(0)  # [M] 0: none free
-        rel = (1.0 - nearest).repeat_interleave(k)[:q]  # [Q]
+        nearest = torch.zeros(marched.shape[0], dtype=points.dtype, device=points.device)  # [M] 0: none free
+        left = torch.arange(marched.shape[0], device=points.device)  # the marched points not found free yet
+        for frac in _gap_fractions().tolist():  # from the surface toward the camera: the first free one is the largest
+            free = self.seen_free(eye + frac * (start[left] - eye))  # [L]
+            nearest[left[free]] = frac
+            left = left[~free]  # most points of a surface hidden by the model's own noise are done at the first
+            if left.numel() == 0:
+                break
+        rel = (1.0 - nearest)[torch.searchsorted(marched, source)]  # [Q]
         return rel.to(z) * z
 
     def _lookup(self, points: Tensor, camera: Cameras, colour: Tensor | None, fine: bool
@@ -555,6 +569,31 @@ class ViewConsistency:
     def _is_compared(self, camera: Cameras) -> bool:
         """Whether ``camera`` is one of the compared training views (e.g. one the std factor is fitted on)."""
         return bool(_same_camera(camera.to(self.cameras.cam_from_world.device), self.cameras).any())
+
+
+def _cell_firsts(pixels: Tensor, width: int, count: int) -> Tensor:
+    """[Q] for each of ``count`` points in the flat pixel indices ``pixels`` [Q] (ascending, of an image ``width``
+    wide), the index of the first point in its square cell of t x t pixels, t the smallest that leaves at most
+    ``GAP_POINTS`` cells holding points."""
+    rows, cols = pixels // width, pixels % width
+    t = max(2, math.ceil(math.sqrt(count / GAP_POINTS)))
+    while True:
+        cell = (rows // t) * (width // t + 1) + cols // t  # [Q]
+        cells, inverse = torch.unique(cell, return_inverse=True)
+        if cells.numel() <= GAP_POINTS:
+            break
+        t += 1
+    first = torch.full((cells.numel(),), count, dtype=torch.long, device=pixels.device)
+    first.scatter_reduce_(0, inverse, torch.arange(count, device=pixels.device), reduce="amin")
+    return first[inverse]
+
+
+def _gap_fractions() -> Tensor:
+    """[GAP_SAMPLES] float64 the fractions s of the rendered depth ``_free_gap`` tests: 1 - g, g from
+    ``DEPTH_TOLERANCE`` in geometric steps toward the camera (g = 1, the camera itself, is left out: a stretch that
+    reaches it is the whole depth whatever is found there), 1.19x apart at 20 samples, the last s = 0.16."""
+    k = torch.arange(GAP_SAMPLES, dtype=torch.float64)
+    return 1.0 - DEPTH_TOLERANCE * (1.0 / DEPTH_TOLERANCE) ** (k / GAP_SAMPLES)
 
 
 def _in_image(uv: Tensor, z: Tensor, width: int, height: int) -> Tensor:
