@@ -270,7 +270,8 @@ class VariationalConfig(_Base):
     'paper'."""
     refresh_interval: int = Field(500, ge=1)
     """Steps between two informed-posterior updates (each costs one render and ``probes`` backward
-    passes per training view used)."""
+    passes per training view used). A step that resets the opacities (``densify.opacity_reset_interval``) has no
+    update: its model is nearly transparent, and the tables fitted to it were the prior's until the next."""
     refresh_views: int = Field(64, ge=0)
     """Training views an update before the last step uses at most (drawn at random; the Fisher is scaled to all
     views); the last update uses every view. 0: every view every time."""

@@ -394,3 +394,33 @@ def test_a_low_resolution_phase_of_a_few_pixels_is_said(tiny_scene_path, tmp_pat
     stage.run(tiny_scene_path, tmp_path / "run", cfg, torch.device("cpu"))
     said = " ".join(capsys.readouterr().err.split())
     assert "the low-resolution phase (its first 2 steps) trains on 1x1 images (low_res_scale = 1e-12)" in said
+
+
+def test_a_reset_steps_test_is_of_the_model_before_the_reset(tiny_scene_path, tmp_path, monkeypatch):  # noqa: F811
+    """An opacity reset leaves every Gaussian nearly transparent; the held-out test logged at that step read 5-8 dB
+    (fern, bonsai: a collapse in the console, stats.jsonl and the report's curve, gone a few hundred steps later).
+    The step's test is now rendered before the reset: every test sees opacities above the reset's 0.01, and the
+    reset step's PSNR is no collapse. The informed posterior is not updated at that step."""
+    from uncertsplat.strategy import schedule
+    from uncertsplat.train.trainer import Trainer
+
+    monkeypatch.setattr(schedule, "RESET_RECOVERY_STEPS", 10)  # (a reset in an 80-step run)
+    seen = []
+    evaluate = Trainer.evaluate
+
+    def watched(self, *args, **kwargs):
+        seen.append((self.step, float(self.mean_sample().opacities.detach().max())))
+        return evaluate(self, *args, **kwargs)
+
+    monkeypatch.setattr(Trainer, "evaluate", watched)
+    cfg = train_config_from("tiny", None, SHORT + ["densify.opacity_reset_interval=40", "variational.refresh_interval=20"])
+    assert schedule.is_opacity_reset_step(40, cfg.densify, cfg.iterations)
+    stage.run(tiny_scene_path, tmp_path / "run", cfg, torch.device("cpu"))
+    assert all(opacity > 0.02 for _, opacity in seen), seen
+    records = map(json.loads, (tmp_path / "run" / "stats.jsonl").read_text().splitlines())
+    logged = {r["step"]: r["eval_psnr"] for r in records if "eval_psnr" in r}
+    assert sorted(logged) == [0, 40, 80]
+    assert logged[40] > logged[0], logged
+    # nor is the posterior fitted to the reset model (its tables fell back to the prior for refresh_interval steps)
+    summary = json.loads((tmp_path / "run" / "train_summary.json").read_text())
+    assert [u["step"] for u in summary["posterior_updates"]] == [20, 60, 80]

@@ -60,7 +60,7 @@ from uncertsplat.strategy.growth import (
     halving_cost_db,
     weakest_half,
 )
-from uncertsplat.strategy.schedule import sh_degree_at
+from uncertsplat.strategy.schedule import is_opacity_reset_step, sh_degree_at
 from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due
 from uncertsplat.strategy.view_checks import check_views
 from uncertsplat.train.adam import Adam, all_finite
@@ -297,6 +297,11 @@ class Trainer:
         self.init_notes: list[str] = []  # what train prints about the model it starts from (``_init_fresh``)
         # a stop skipped the test renders of the step it came in (``fit``): the resume renders and logs them first
         self.eval_pending = False
+        # the held-out test of a step that resets the opacities, rendered before the reset (``train_step``): after
+        # it every Gaussian is nearly transparent and the test read 5-8 dB, a collapse in the log and the report's
+        # curve that training recovers from within a few hundred steps
+        self._test_before_reset: dict[str, float] | None = None
+        self._fit_until: int | None = None  # the step ``fit`` trains to (it tests the model there)
         self.skipped_steps = 0  # steps whose update was skipped because of a NaN/Inf loss or gradient
         self.bad_steps_in_a_row = 0
         if state is None:
@@ -810,6 +815,11 @@ class Trainer:
             if self.check_growth(step) is not None:
                 self._expected = None
             self.check_exposure(step)
+        due = step % cfg.eval_every == 0 or step == self._fit_until  # (as ``fit`` decides)
+        stopping = self._stop or STOP_REQUESTED.is_set()
+        if due and not stopping and is_opacity_reset_step(step, cfg.densify, cfg.iterations):
+            with timer("eval"):
+                self._test_before_reset = self.evaluate()
         with timer("densify"):
             done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise)
             if any(done.values()):
@@ -824,7 +834,11 @@ class Trainer:
                                  "variational.gate_prior_mean, the learning rates) and train again into a new folder.")
         self.step = step
         timer.steps += 1
-        if self.informed and (step % cfg.variational.refresh_interval == 0 or step == cfg.iterations):
+        # not at a step that reset the opacities: fitted to a model whose every Gaussian is nearly transparent, the
+        # tables fell back to the prior for the next refresh_interval steps (bonsai's update at step 3000: 0.4 % of
+        # the carriers' position spreads set by the data, against 75 % at step 2500; noise 0.34 against 0.08)
+        if self.informed and (step % cfg.variational.refresh_interval == 0 or step == cfg.iterations) \
+                and not done.get("reset"):
             with timer("posterior"):
                 self.update_posterior()
         result = {k: float(v.detach()) for k, v in losses.items()}
@@ -980,6 +994,7 @@ class Trainer:
         """
         cfg = self.cfg
         until = cfg.iterations if until is None else min(until, cfg.iterations)
+        self._fit_until = until
         old = self._install_signal_handlers()
         last: dict = {}
         window_t, window_n = 0.0, 0
@@ -1007,11 +1022,12 @@ class Trainer:
                     # run's last step renders every test view, minutes for hundreds of large photos)
                     stopping = self._stop or STOP_REQUESTED.is_set()
                     due = step % cfg.eval_every == 0 or step == until
-                    evaluated = due and not stopping
-                    self.eval_pending = due and stopping
+                    before_reset, self._test_before_reset = self._test_before_reset, None  # (rendered already)
+                    evaluated = due and (not stopping or before_reset is not None)
+                    self.eval_pending = due and not evaluated
                     if evaluated:
                         with self.timer("eval"):
-                            last_eval = self.evaluate()
+                            last_eval = before_reset if before_reset is not None else self.evaluate()
                     if step % cfg.log_every == 0 or step == until or evaluated or "skipped" in terms:
                         last = {"step": step, **{k: round(v, 7) for k, v in terms.items()},
                                 "num_gaussians": len(self.model), "num_carriers": self.model.num_carriers,
