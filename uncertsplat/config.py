@@ -594,6 +594,13 @@ class EvalConfig(_Base):
     """Fit one factor for the RGB std on this many evenly spaced training views (0: none); the metrics
     ``nll_calibrated`` and ``calibration_error_calibrated`` use std x factor, the maps keep the raw std.
     Costs K renders per view; only with ``split = "test"``."""
+    resolution_on_training_views: bool = False
+    """Keep the resolution term in the predictive the std factor is fitted on, when it is fitted on training views
+    (no views set aside). The term stands for what the training images cannot show, Gaussians trading places unseen
+    in them, and on those images it exceeded the residuals the model left, so the factor came out low and made new
+    views' std too narrow: held-out NLL with the factor fitted without it, fern -2.347 -> -2.421, bonsai -0.815 ->
+    -0.921, the demo -3.308 -> -3.267 (Gaussian; BENCHMARKS.md, "The std factor on training views without the
+    resolution term"). True: the factor as before 2026-11-30."""
     degrees_of_freedom: Literal["fit", "gaussian"] | Annotated[float, Field(ge=2.1, le=MAX_DEGREES_OF_FREEDOM)] = "fit"
     """The RGB predictive's tails: a Student-t with the predicted std and nu degrees of freedom (``eval.tails``), or
     the Gaussian. A pixel's error given its std is heavy-tailed (the std estimates the error's scale, which varies

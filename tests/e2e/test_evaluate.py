@@ -196,6 +196,40 @@ def test_std_scale_is_fitted_on_the_views_set_aside_from_training(tiny_run_path,
     assert rep.degrees_of_freedom is not None and again.dof == pytest.approx(rep.degrees_of_freedom, rel=1e-5)
 
 
+
+def test_on_training_views_the_factor_is_fitted_without_the_resolution_term(tiny_run_path, monkeypatch):
+    """The resolution term stands for what the training images cannot show, so the factor fitted on training views
+    leaves it out (``resolution_on_training_views`` keeps it); on views set aside it stays: they are new views."""
+    from uncertsplat.eval import engine
+
+    loaded = load_run(tiny_run_path, "cpu")
+    scene = loaded.load_scene()
+    cpu = torch.device("cpu")
+    used = []
+    terms = engine.predictive_terms
+
+    def watched(sampler, cfg, cams, **kwargs):
+        used.append(cfg.resolution)
+        return terms(sampler, cfg, cams, **kwargs)
+
+    monkeypatch.setattr(engine, "predictive_terms", watched)
+    views = partial(load_view_set, scene, depth=False)
+    ecfg = EvalConfig(num_samples=2, calibration_views=2, residual_views=0, consistency_views=0)
+    assert ecfg.resolution > 0 and not ecfg.resolution_on_training_views
+    sampler = loaded.sampler(scene.scene_scale, cpu)
+    train = list(scene.split["train"])
+    without = fit_std_scale(sampler, {"train": train}, ecfg, cpu, load_views=views)
+    assert used == [0.0, 0.0]
+    used.clear()
+    kept = fit_std_scale(sampler, {"train": train}, ecfg.model_copy(update={"resolution_on_training_views": True}),
+                         cpu, load_views=views)
+    assert used == [ecfg.resolution] * 2
+    assert without.scale > kept.scale  # (the term only adds variance: without it the std is narrower)
+    used.clear()
+    aside = fit_std_scale(sampler, {"train": train[2:], "calibration": train[:2]}, ecfg, cpu, load_views=views)
+    assert used == [ecfg.resolution] * 2 and aside.names == [scene.cameras.image_names[i] for i in train[:2]]
+
+
 def test_the_noise_level_is_fitted_on_the_views_set_aside_from_training(tiny_run_path):
     """``residual_scale = "fit"`` with views set aside fits the noise's level on them: noisier set-aside images give a
     larger level, and without them the level comes from the training views alone (the set-aside images unread);

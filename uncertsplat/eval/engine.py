@@ -16,6 +16,7 @@ the unbiased std over the K samples.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import time
@@ -61,6 +62,9 @@ class EvalSettings(Protocol):
     max_views: int | None
     """Evaluate only the first n views of the split (None: all)."""
     calibration_views: int
+    resolution_on_training_views: bool
+    """Keep the resolution term in the predictive the std factor is fitted on when that is fitted on training views
+    (``fit_std_scale``)."""
     degrees_of_freedom: str | float
     """"fit" (nu of the RGB predictive's Student-t fitted with the std factor, ``fit_std_scale``), "gaussian", or nu."""
     empty_rays: bool
@@ -535,6 +539,15 @@ class StdFit:
     names: list[str] = dataclasses.field(default_factory=list)
 
 
+def _without_resolution(cfg: EvalSettings) -> EvalSettings:
+    """``cfg`` with the resolution term off (a copy)."""
+    if hasattr(cfg, "model_copy"):
+        return cfg.model_copy(update={"resolution": 0.0})
+    out = copy.copy(cfg)
+    out.resolution = 0.0
+    return out
+
+
 def _fixed_dof(cfg: EvalSettings) -> float | None:
     """``cfg.degrees_of_freedom`` when it is a number; None for "gaussian" and "fit"."""
     return float(cfg.degrees_of_freedom) if not isinstance(cfg.degrees_of_freedom, str) else None
@@ -552,7 +565,10 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
     variance right. With ``cfg.degrees_of_freedom`` "fit", the Student-t's nu is then fitted by maximum likelihood
     to the same z-scores divided by s (``eval.tails.fit_dof``): the shape, whatever the level. Training views fit
     better than held-out ones, so a factor fitted on them errs low; views set aside from training
-    (``split["calibration"]``) do not have that bias.
+    (``split["calibration"]``) do not have that bias. On training views the predictive is fitted without the
+    resolution term unless ``cfg.resolution_on_training_views``: the term stands for what the training images
+    cannot show (Gaussians trading places unseen in them), and on those images it exceeded the residuals the model
+    left (BENCHMARKS.md, "The std factor on training views without the resolution term").
 
     Args:
         sampler: the run's sampler (build a fresh one: a baseline's sampler may keep state between calls).
@@ -573,6 +589,8 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
     chosen = calibration_indices(split, cfg)
     if not chosen:
         return StdFit(dof=_fixed_dof(cfg))
+    on_training = not split.get("calibration")  # (calibration_indices: the views set aside when there are some)
+    fit_cfg = _without_resolution(cfg) if on_training and not cfg.resolution_on_training_views else cfg
     views = load_views(chosen)  # as they are: a photo at its own exposure, what the exposures' spread predicts
     gen = torch.Generator(device=device)
     # the factor from every z-score; nu from at most FIT_ELEMENTS of them, strided per view, so that large photos
@@ -588,7 +606,7 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
         else:
             gen.manual_seed(view_seed(cfg.seed, i))
             maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cam, cfg.num_samples, gen,
-                                **predictive_terms(sampler, cfg, cam, depth=False))
+                                **predictive_terms(sampler, fit_cfg, cam, depth=False))
             mean, std = maps.rgb_mean.cpu(), maps.rgb_std.cpu()
         err = mean[0].clamp(0, 1) - views.images[j]
         z = err / std[0].clamp_min(cfg.std_floor)  # [H,W,3]
