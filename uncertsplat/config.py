@@ -643,8 +643,8 @@ class EvalConfig(_Base):
     (``eval.engine.fit_noise_scale``) on the views set aside from training when the scene has some
     (``SceneConfig.calibration_holdout``), else on training views. ``auto`` (the default): ``fit`` on views set
     aside, 1 without them. Fitted on training views it calibrates views like the training ones (demo: std factor
-    0.63 -> 0.88, calibration error 0.100 -> 0.055; fern 0.85 -> 1.00, 0.052 -> 0.035) but makes the std too small
-    where the model renders worse than on its training views (NLL: sparse views -2.61 -> -2.34, half-ring 0.26 ->
+    0.63 -> 0.88, both fitted with the resolution term as before 2026-11-30, calibration error 0.100 -> 0.055; fern
+    0.85 -> 1.00, 0.052 -> 0.035) but makes the std too small where the model renders worse than on its training views (NLL: sparse views -2.61 -> -2.34, half-ring 0.26 ->
     1.52, bonsai -1.00 -> -0.75; BENCHMARKS.md, "The pixel noise's level"), hence 1 there; fitted on views set
     aside it improves the raw NLL and calibration error on the demo, fern and bonsai (BENCHMARKS.md, "Views set
     aside for calibration")."""

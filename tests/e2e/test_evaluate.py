@@ -1300,3 +1300,15 @@ def test_a_std_of_zero_everywhere_is_said(tiny_run_path, tmp_path):
                           device=torch.device("cpu"))
     assert not any(n.startswith("every pixel's RGB std is 0") for n in report.notes)
     assert report.mean.nll_kde is not None and not any(n.startswith("KDE NLL not") for n in report.notes)
+
+
+def test_files_kept_before_the_training_views_fit_changed_read_with_the_old_fit():
+    """``predictive.pt`` files written before ``resolution_on_training_views`` existed hold a factor fitted with the
+    resolution term: the default (false) fits another and does not read them; ``true`` keys as they were keyed."""
+    from uncertsplat.stages.predictive_cache import UNUSED_SETTINGS, key_settings
+
+    old = EvalConfig().model_dump(mode="json", exclude=set(UNUSED_SETTINGS))
+    del old["resolution_on_training_views"]  # (what a file written before the setting holds)
+    assert key_settings(EvalConfig(resolution_on_training_views=True)) == old
+    assert key_settings(EvalConfig())["resolution_on_training_views"] is False
+    assert "hidden_depth" not in key_settings(EvalConfig(hidden_depth=False))

@@ -424,3 +424,69 @@ def test_a_reset_steps_test_is_of_the_model_before_the_reset(tiny_scene_path, tm
     # nor is the posterior fitted to the reset model (its tables fell back to the prior for refresh_interval steps)
     summary = json.loads((tmp_path / "run" / "train_summary.json").read_text())
     assert [u["step"] for u in summary["posterior_updates"]] == [20, 60, 80]
+
+
+def test_a_stop_during_a_reset_step_keeps_its_test_of_the_model_before_the_reset(tiny_scene_path, tmp_path,  # noqa: F811
+                                                                               monkeypatch):
+    """A Ctrl-C during the reset step's render and backward: the step completes, its test (rendered before the
+    reset) is logged with it, and the resume does not test the reset model in its place."""
+    from uncertsplat.errors import Interrupted
+    from uncertsplat.strategy import schedule
+    from uncertsplat.train.trainer import Trainer
+
+    monkeypatch.setattr(schedule, "RESET_RECOVERY_STEPS", 10)
+    seen = []
+    evaluate, check = Trainer.evaluate, Trainer.check_exposure
+
+    def watched(self, *args, **kwargs):
+        seen.append(float(self.mean_sample().opacities.detach().max()))
+        return evaluate(self, *args, **kwargs)
+
+    def stop_at_40(self, step):  # a signal arriving mid-step (check_exposure runs after the backward)
+        if step == 40:
+            self._stop = True
+        return check(self, step)
+
+    monkeypatch.setattr(Trainer, "evaluate", watched)
+    monkeypatch.setattr(Trainer, "check_exposure", stop_at_40)
+    cfg = train_config_from("tiny", None, SHORT + ["densify.opacity_reset_interval=40"])
+    run = tmp_path / "run"
+    with pytest.raises(Interrupted, match="at step 40"):
+        stage.run(tiny_scene_path, run, cfg, torch.device("cpu"))
+    monkeypatch.setattr(Trainer, "check_exposure", check)
+    stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True)
+    logged = [r for r in map(json.loads, (run / "stats.jsonl").read_text().splitlines()) if "eval_psnr" in r]
+    assert [r["step"] for r in logged] == [0, 40, 80]
+    assert all(opacity > 0.02 for opacity in seen), seen
+    assert logged[1]["eval_psnr"] > logged[0]["eval_psnr"]
+
+
+def test_steps_outside_fit_leave_no_test_for_it(monkeypatch):
+    """``train_step`` called directly (tests, benchmarks) through a reset step renders no test, so the next ``fit``
+    tests its own steps, not with one kept from before."""
+    from tests.e2e.test_train_resume import toy_config, toy_scene
+    from uncertsplat.strategy import schedule
+    from uncertsplat.train.trainer import Trainer
+
+    monkeypatch.setattr(schedule, "RESET_RECOVERY_STEPS", 5)
+    calls = []
+    evaluate = Trainer.evaluate
+
+    def watched(self, *args, **kwargs):
+        calls.append(self.step)
+        return evaluate(self, *args, **kwargs)
+
+    monkeypatch.setattr(Trainer, "evaluate", watched)
+    scene, tr, te = toy_scene()
+    cfg = toy_config()
+    trainer = Trainer(scene, cfg, tr, te)
+    assert schedule.is_opacity_reset_step(20, cfg.densify, cfg.iterations) and 20 % cfg.eval_every == 0
+    trainer.fit(until=5)  # (a fit before: what it knew of its own steps ends with it)
+    calls.clear()
+    for _ in range(15):
+        trainer.train_step()
+    assert trainer.step == 20 and calls == []
+    logged = []
+    trainer.on_log = logged.append
+    trainer.fit(until=21)
+    assert calls == [21] and [r["step"] for r in logged if "eval_psnr" in r] == [21]

@@ -44,7 +44,17 @@ def _parts(loaded, cfg) -> dict | None:
     digests = run_digests(loaded)
     if digests is None or digests["scene"] is None:
         return None
-    return {**digests, "settings": cfg.model_dump(mode="json", exclude=set(UNUSED_SETTINGS)), "fit": RESIDUAL_FIT}
+    return {**digests, "settings": key_settings(cfg), "fit": RESIDUAL_FIT}
+
+
+def key_settings(cfg) -> dict:
+    """The evaluation settings ``cfg`` as the key holds them: all but ``UNUSED_SETTINGS``, and
+    ``resolution_on_training_views`` only when it is false (true fits the std factor as every file written before the
+    setting existed did, so those files still read with it)."""
+    settings = cfg.model_dump(mode="json", exclude=set(UNUSED_SETTINGS))
+    if settings.get("resolution_on_training_views") is True:
+        del settings["resolution_on_training_views"]
+    return settings
 
 
 def predictive_key(loaded, cfg) -> str | None:
@@ -181,4 +191,5 @@ def _difference(kept: dict, now: dict) -> str:
     return "another version of the noise fit"
 
 
-__all__ = ["FILE_NAME", "KeptPredictive", "keep_predictive", "plain_versions", "predictive_key", "read_predictive"]
+__all__ = ["FILE_NAME", "KeptPredictive", "keep_predictive", "key_settings", "plain_versions", "predictive_key",
+           "read_predictive"]

@@ -301,7 +301,8 @@ class Trainer:
         # it every Gaussian is nearly transparent and the test read 5-8 dB, a collapse in the log and the report's
         # curve that training recovers from within a few hundred steps
         self._test_before_reset: dict[str, float] | None = None
-        self._fit_until: int | None = None  # the step ``fit`` trains to (it tests the model there)
+        self._test_seconds = 0.0  # its renders' time, which ``fit`` keeps out of the training time as every test's
+        self._fit_until: int | None = None  # the step ``fit`` trains to (it tests the model there); None outside fit
         self.skipped_steps = 0  # steps whose update was skipped because of a NaN/Inf loss or gradient
         self.bad_steps_in_a_row = 0
         if state is None:
@@ -815,11 +816,18 @@ class Trainer:
             if self.check_growth(step) is not None:
                 self._expected = None
             self.check_exposure(step)
-        due = step % cfg.eval_every == 0 or step == self._fit_until  # (as ``fit`` decides)
-        stopping = self._stop or STOP_REQUESTED.is_set()
-        if due and not stopping and is_opacity_reset_step(step, cfg.densify, cfg.iterations):
-            with timer("eval"):
-                self._test_before_reset = self.evaluate()
+        if self._fit_until is not None and (step % cfg.eval_every == 0 or step == self._fit_until) \
+                and is_opacity_reset_step(step, cfg.densify, cfg.iterations):  # a test due (as ``fit`` decides)
+            # rendered even when a stop came in during the step: the resume would test the reset model (a reset step
+            # is never a run's last, whose test renders every held-out view)
+            t0, before = time.perf_counter(), self.step
+            self.step = step  # the step's SH degree, as a test after the step renders it
+            try:
+                with timer("eval"):
+                    self._test_before_reset = self.evaluate()
+            finally:
+                self.step = before
+            self._test_seconds = time.perf_counter() - t0
         with timer("densify"):
             done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise)
             if any(done.values()):
@@ -994,7 +1002,7 @@ class Trainer:
         """
         cfg = self.cfg
         until = cfg.iterations if until is None else min(until, cfg.iterations)
-        self._fit_until = until
+        self._fit_until, self._test_before_reset, self._test_seconds = until, None, 0.0
         old = self._install_signal_handlers()
         last: dict = {}
         window_t, window_n = 0.0, 0
@@ -1013,7 +1021,8 @@ class Trainer:
                 while self.step < until:
                     t0 = time.perf_counter()
                     terms = self.train_step()
-                    dt = time.perf_counter() - t0
+                    dt = time.perf_counter() - t0 - self._test_seconds  # (tests are not training time)
+                    self._test_seconds = 0.0
                     self.elapsed += dt
                     window_t += dt
                     window_n += 1
@@ -1065,6 +1074,7 @@ class Trainer:
                 if self._stop or STOP_REQUESTED.is_set():
                     raise TrainingInterrupted(self.step, path)
         finally:
+            self._fit_until = None
             if old:
                 for s, h in old.items():
                     signal.signal(s, h)
