@@ -1312,3 +1312,27 @@ def test_files_kept_before_the_training_views_fit_changed_read_with_the_old_fit(
     assert key_settings(EvalConfig(resolution_on_training_views=True)) == old
     assert key_settings(EvalConfig())["resolution_on_training_views"] is False
     assert "hidden_depth" not in key_settings(EvalConfig(hidden_depth=False))
+    # a file keyed with true written in (the commit that added the setting) reads with true too
+    from uncertsplat.stages.predictive_cache import _accepted_keys, _difference, _key
+
+    parts = {"model": "m", "config": "c", "scene": "s", "settings": key_settings(EvalConfig(resolution_on_training_views=True)),
+             "fit": 1}
+    written_in = {**parts, "settings": {**parts["settings"], "resolution_on_training_views": True}}
+    assert _key(written_in) in _accepted_keys(parts) and _key(parts) in _accepted_keys(parts)
+    default = {**parts, "settings": key_settings(EvalConfig())}
+    assert _accepted_keys(default) == {_key(default)}
+    # the difference says what the file lacks and how to read it, not "None there"
+    said = _difference(parts, default)
+    assert "resolution_on_training_views = not in the file (written before the setting existed; --set " \
+           "resolution_on_training_views=true reads it), False here" in said and "None" not in said
+    assert _difference(written_in, parts) == "another version of the noise fit"  # (no setting differs)
+
+
+def test_the_std_formula_names_every_term_the_run_has(evaluated):
+    """metrics.json's ``std² =`` note lists the terms of the predictive: with the defaults the view-consistency term
+    with its finer-detail part and, for depth, the depths a ray blends and the hidden points' term (a helper found
+    the finer-detail term missing from it)."""
+    _, report = evaluated
+    (std,) = [n for n in report.notes if n.startswith("std² = ")]
+    for part in ("nearest in direction", "finer-detail coefficient", "depths each ray blends", "L^2 / 12"):
+        assert part in std, part

@@ -778,6 +778,10 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                      f"{sampler.consistency.gate:.1f} degrees away ({len(sampler.consistency.cameras)} training views "
                      f"compared; a point outside every training image gets the variance of the scene's colours in "
                      f"their renders, {sampler.consistency.palette_var:.4f})")
+        if sampler.consistency.finer_detail > 0.0:
+            terms.append("where the view resolves a surface point finer than the training views that see it (r times: "
+                         "nearer or zoomed in), (r^2 - 1) x the finer-detail coefficient x the squared gradient of the "
+                         "view's render")
     if cfg.depth_spread:
         terms.append("for depth, the variance of the depths each ray blends (the model's deterministic render)")
     if cfg.hidden_depth and sampler.consistency is not None:

@@ -47,14 +47,29 @@ def _parts(loaded, cfg) -> dict | None:
     return {**digests, "settings": key_settings(cfg), "fit": RESIDUAL_FIT}
 
 
+LEFT_OUT_WHEN = {"resolution_on_training_views": True}
+"""Settings the key leaves out at these values: the files written before the setting existed were fitted as that
+value fits, so they still read with it (``key_settings``)."""
+
+
 def key_settings(cfg) -> dict:
-    """The evaluation settings ``cfg`` as the key holds them: all but ``UNUSED_SETTINGS``, and
-    ``resolution_on_training_views`` only when it is false (true fits the std factor as every file written before the
-    setting existed did, so those files still read with it)."""
+    """The evaluation settings ``cfg`` as the key holds them: all but ``UNUSED_SETTINGS``, and those of
+    ``LEFT_OUT_WHEN`` only at other values."""
     settings = cfg.model_dump(mode="json", exclude=set(UNUSED_SETTINGS))
-    if settings.get("resolution_on_training_views") is True:
-        del settings["resolution_on_training_views"]
+    for name, value in LEFT_OUT_WHEN.items():
+        if name in settings and settings[name] == value:
+            del settings[name]
     return settings
+
+
+def _accepted_keys(parts: dict) -> set[str]:
+    """The keys a file may hold for ``parts``: its own, and where a ``LEFT_OUT_WHEN`` setting is left out, the one
+    with it written in (files of the commit that added ``resolution_on_training_views`` keyed it so)."""
+    keys = {_key(parts)}
+    for name, value in LEFT_OUT_WHEN.items():
+        if name not in parts["settings"]:
+            keys.add(_key({**parts, "settings": {**parts["settings"], name: value}}))
+    return keys
 
 
 def predictive_key(loaded, cfg) -> str | None:
@@ -160,7 +175,7 @@ def read_predictive(loaded, cfg, scene_folder: str | Path) -> tuple[KeptPredicti
     try:
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             return None, f"{path} is of another format (written by another version)"
-        if data.get("key") != _key(parts):
+        if data.get("key") not in _accepted_keys(parts):
             return None, f"{path} holds the predictive of {_difference(json.loads(data['parts']), parts)}"
         s, std = data["scene"], data["std"]
         cams = Cameras(s["cam_from_world"].float(), s["K"].float(), int(s["width"]), int(s["height"]),
@@ -185,11 +200,24 @@ def _difference(kept: dict, now: dict) -> str:
     if kept.get("model") != now["model"] or kept.get("config") != now["config"] or kept.get("scene") != now["scene"]:
         return "another model or run (trained on since, or another run's file)"
     a, b = kept.get("settings", {}), now["settings"]
-    keys = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+    b = {**{k: v for k, v in LEFT_OUT_WHEN.items() if k not in b}, **b}  # (left out of the key at that value)
+
+    def there(k: str) -> str:
+        if k in a:
+            return f"{a[k]!r} there"
+        was = f"; --set {k}={str(LEFT_OUT_WHEN[k]).lower()} reads it" if k in LEFT_OUT_WHEN else ""
+        return f"not in the file (written before the setting existed{was})"
+
+    def differs(k: str) -> bool:
+        if k not in a and k in LEFT_OUT_WHEN:  # a file from before the setting: fitted as its left-out value fits
+            return b.get(k) != LEFT_OUT_WHEN[k]
+        return a.get(k) != b.get(k)
+
+    keys = sorted(k for k in set(a) | set(b) if differs(k))
     if keys:
-        return "other settings: " + ", ".join(f"{k} = {a.get(k)!r} there, {b.get(k)!r} here" for k in keys[:4])
+        return "other settings: " + ", ".join(f"{k} = {there(k)}, {b.get(k)!r} here" for k in keys[:4])
     return "another version of the noise fit"
 
 
-__all__ = ["FILE_NAME", "KeptPredictive", "keep_predictive", "key_settings", "plain_versions", "predictive_key",
-           "read_predictive"]
+__all__ = ["FILE_NAME", "LEFT_OUT_WHEN", "KeptPredictive", "keep_predictive", "key_settings", "plain_versions",
+           "predictive_key", "read_predictive"]

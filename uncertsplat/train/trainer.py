@@ -818,8 +818,8 @@ class Trainer:
             self.check_exposure(step)
         if self._fit_until is not None and (step % cfg.eval_every == 0 or step == self._fit_until) \
                 and is_opacity_reset_step(step, cfg.densify, cfg.iterations):  # a test due (as ``fit`` decides)
-            # rendered even when a stop came in during the step: the resume would test the reset model (a reset step
-            # is never a run's last, whose test renders every held-out view)
+            # rendered even when a stop came in during the step (the stop's checkpoint waits for one test's renders):
+            # else the resume would test the reset model in its place
             t0, before = time.perf_counter(), self.step
             self.step = step  # the step's SH degree, as a test after the step renders it
             try:
@@ -1009,13 +1009,13 @@ class Trainer:
         # the bar's s/step: the mean over this call's steps, so that one step with a posterior update (a second or
         # so; the last step of a run always has one) does not show as the rate
         start_step, start_elapsed = self.step, self.elapsed
-        # step 0's test renders, or those a stop skipped (the run's record of that step has no test PSNR)
-        last_eval = self.evaluate() if self.step == 0 or self.eval_pending else {}
-        if last_eval:
-            self._log({"step": self.step, "eval_psnr": last_eval["psnr"], "eval_ssim": last_eval["ssim"],
-                       "num_gaussians": len(self.model), "num_carriers": self.model.num_carriers})
-        self.eval_pending = False
         try:
+            # step 0's test renders, or those a stop skipped (the run's record of that step has no test PSNR)
+            last_eval = self.evaluate() if self.step == 0 or self.eval_pending else {}
+            if last_eval:
+                self._log({"step": self.step, "eval_psnr": last_eval["psnr"], "eval_ssim": last_eval["ssim"],
+                           "num_gaussians": len(self.model), "num_carriers": self.model.num_carriers})
+            self.eval_pending = False
             with progress() as bar:
                 task = bar.add_task("train", total=until, completed=self.step, info="")
                 while self.step < until:
