@@ -14,27 +14,18 @@ Writes ``benchmarks/results/consistency_<label>.json`` and prints the Markdown r
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
-import platform
 import statistics
 import time
 from datetime import date
-from pathlib import Path
 
 import torch
-from _common import RESULTS, add_overwrite_option, refuse_overwrite
+from _common import RESULTS, add_prediction_options, held_out_camera, refuse_overwrite, scaled_camera
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path)
-    ap.add_argument("--widths", type=int, nargs="+", default=[320, 1280])
-    ap.add_argument("--samples", type=int, default=10)
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--label", default="demo")
-    ap.add_argument("--machine", default=platform.processor() or platform.machine())
-    add_overwrite_option(ap)
+    add_prediction_options(ap, "demo")
     args = ap.parse_args()
     out_path = RESULTS / f"consistency_{args.label}.json"
     refuse_overwrite(out_path, overwrite=args.overwrite)
@@ -45,10 +36,7 @@ def main() -> None:
     torch.set_grad_enabled(False)
     pred = Predictor.load(args.run)
     plain = Predictor.load(args.run, cfg=pred._cfg.model_copy(update={"consistency_views": 0}))
-    cams = pred.scene.cameras
-    train = set(pred.scene.split.get("train", ()))
-    test = [i for i in range(len(cams)) if i not in train] or [len(cams) - 1]
-    cam = cams[[test[0]]]
+    cam = held_out_camera(pred)
     native = ViewConsistency._native
 
     def tensor_ops(self, points):
@@ -58,10 +46,7 @@ def main() -> None:
         p.predict(cam, num_samples=1)
     rows = []
     for width in args.widths:
-        s = width / cam.width
-        K = cam.K.clone()
-        K[:, :2] *= s
-        view = dataclasses.replace(cam, K=K, width=width, height=round(cam.height * s))
+        view = scaled_camera(cam, width)
         times: dict[str, list[float]] = {"native": [], "tensor ops": [], "term off": []}
         stds = {}
         for _ in range(args.repeats):
