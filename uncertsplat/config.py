@@ -644,10 +644,10 @@ class EvalConfig(_Base):
     (``SceneConfig.calibration_holdout``), else on training views. ``auto`` (the default): ``fit`` on views set
     aside, 1 without them. Fitted on training views it calibrates views like the training ones (demo: std factor
     0.63 -> 0.88, both fitted with the resolution term as before 2026-11-30, calibration error 0.100 -> 0.055; fern
-    0.85 -> 1.00, 0.052 -> 0.035) but makes the std too small where the model renders worse than on its training views (NLL: sparse views -2.61 -> -2.34, half-ring 0.26 ->
-    1.52, bonsai -1.00 -> -0.75; BENCHMARKS.md, "The pixel noise's level"), hence 1 there; fitted on views set
-    aside it improves the raw NLL and calibration error on the demo, fern and bonsai (BENCHMARKS.md, "Views set
-    aside for calibration")."""
+    0.85 -> 1.00, 0.052 -> 0.035) but makes the std too small where the model renders worse than on its training
+    views (NLL: sparse views -2.61 -> -2.34, half-ring 0.26 -> 1.52, bonsai -1.00 -> -0.75; BENCHMARKS.md, "The
+    pixel noise's level"), hence 1 there; fitted on views set aside it improves the raw NLL and calibration error on
+    the demo, fern and bonsai (BENCHMARKS.md, "Views set aside for calibration")."""
     colour_posterior: bool = True
     """Add the colour the model does not know to the RGB std: the Laplace posterior of each Gaussian's colour (its
     SH coefficients) given the training pixels it is blended into, seen from the evaluated view
@@ -679,8 +679,9 @@ class EvalConfig(_Base):
     outside them all), add ``L^2 / 12`` to the depth variance (a point uniform on a stretch of length L), L the stretch
     of the view's ray in front of the point that no compared training view saw empty: a surface anywhere on it would
     have looked the same to every photo (``uncertainty.consistency``, "A surface no photo saw"; up to 20 points along
-    each such ray tested against the compared views' renders). Nothing is fitted. Measured (BENCHMARKS.md, "A depth no photo pinned down"). Needs the
-    view-consistency term (``consistency_views`` > 0), whose renders and lookup it uses. False: none."""
+    each such ray tested against the compared views' renders). Nothing is fitted. Measured (BENCHMARKS.md, "A depth
+    no photo pinned down"). Needs the view-consistency term (``consistency_views`` > 0), whose renders and lookup it
+    uses. False: none."""
     edge_noise: bool = True
     """Split the pixel noise into an edge term and the per-Gaussian rest (``uncertainty.residual``, "The edge
     term"): a misplacement of delta pixels changes a pixel by about delta x the image gradient there, so each

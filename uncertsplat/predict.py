@@ -3,9 +3,9 @@
 ``evaluate`` scores held-out photos; a robot asks about poses no photo was taken from (a planned view, a pose between
 two photos, one nearer the surface). ``Predictor`` builds the same predictive ``evaluate`` uses (the samples' spread
 and every term it adds: the pixel noise, the edge, colour-posterior, view-consistency, finer-detail, resolution,
-depth-spread, hidden-depth and empty-ray terms, with the std factor and the Student-t tails fitted on the training or set-aside
-views) and renders it for any camera, given in the scene's own coordinates and units (your COLMAP model's or map
-frame) or in the run's normalised world::
+depth-spread, hidden-depth and empty-ray terms, with the std factor and the Student-t tails fitted on the training or
+set-aside views) and renders it for any camera, given in the scene's own coordinates and units (your COLMAP model's
+or map frame) or in the run's normalised world::
 
     from uncertsplat.predict import Predictor
 

@@ -816,8 +816,8 @@ class Trainer:
             if self.check_growth(step) is not None:
                 self._expected = None
             self.check_exposure(step)
-        if self._fit_until is not None and (step % cfg.eval_every == 0 or step == self._fit_until) \
-                and is_opacity_reset_step(step, cfg.densify, cfg.iterations):  # a test due (as ``fit`` decides)
+        if self._fit_until is not None and self._test_due(step) \
+                and is_opacity_reset_step(step, cfg.densify, cfg.iterations):
             # rendered even when a stop came in during the step (the stop's checkpoint waits for one test's renders):
             # else the resume would test the reset model in its place
             t0, before = time.perf_counter(), self.step
@@ -1030,7 +1030,7 @@ class Trainer:
                     # a stop asked for during the step skips its test renders (the checkpoint follows at once: a
                     # run's last step renders every test view, minutes for hundreds of large photos)
                     stopping = self._stop or STOP_REQUESTED.is_set()
-                    due = step % cfg.eval_every == 0 or step == until
+                    due = self._test_due(step)
                     before_reset, self._test_before_reset = self._test_before_reset, None  # (rendered already)
                     evaluated = due and (not stopping or before_reset is not None)
                     self.eval_pending = due and not evaluated
@@ -1079,6 +1079,11 @@ class Trainer:
                 for s, h in old.items():
                     signal.signal(s, h)
         return last
+
+    def _test_due(self, step: int) -> bool:
+        """Whether ``fit`` tests the model on the held-out views after ``step``: every ``eval_every`` steps and at the
+        step it trains to."""
+        return step % self.cfg.eval_every == 0 or step == self._fit_until
 
     def _final_update_missing(self) -> bool:
         """Whether an informed run at its last step lacks the update of that step (every training view, the

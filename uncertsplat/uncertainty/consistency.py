@@ -53,17 +53,16 @@ A surface no photo saw (``ViewConsistency.hidden_depth_variance``, for the depth
 evaluated view that no compared training view sees (hidden behind what every photo holding it saw in front of it, or
 outside them all) has a depth the photos did not pin down: a surface anywhere on the stretch of the view's ray in
 front of it that no compared view's ray passed through empty (``seen_free``) would have looked the same to every
-photo. With
-L that stretch's length (``_free_gap``; the whole depth where no photo saw any of the ray empty), the point gets the
-depth variance ``L^2 / 12``, that of a point uniform on the stretch; nothing is fitted. (The mean squared distance of
-such a point from the stretch's end, where the render puts the surface, is ``L^2 / 3``: measured too, it made the
-depth std too wide where the model's surface came from points other photos triangulated.) Seen points get nothing:
-the photos that see them put the surface there. Not covered: a floater, a surface the model renders where the photos
-saw through (its point is not seen, but the space just in front of it is: it gets the tolerance's stretch only, while
-the real surface lies behind; ``prune``'s free-space score finds those). Measured (BENCHMARKS.md, "A depth no photo
-pinned down"): trained on
-one half of the demo ring, the unseen-surface depth ROC AUC 0.925 -> 0.939 with every initial point, 0.949 -> 0.952
-with the training views' points; 5 sparse views 0.896 -> 0.937; depth NLL and AUSE within 0.03 nats and 0.002.
+photo. With L that stretch's length (``_free_gap``; the whole depth where no photo saw any of the ray empty), the
+point gets the depth variance ``L^2 / 12``, that of a point uniform on the stretch; nothing is fitted. (The mean
+squared distance of such a point from the stretch's end, where the render puts the surface, is ``L^2 / 3``: measured
+too, it made the depth std too wide where the model's surface came from points other photos triangulated.) Seen
+points get nothing: the photos that see them put the surface there. Not covered: a floater, a surface the model
+renders where the photos saw through (its point is not seen, but the space just in front of it is: it gets the
+tolerance's stretch only, while the real surface lies behind; ``prune``'s free-space score finds those). Measured
+(BENCHMARKS.md, "A depth no photo pinned down"): trained on one half of the demo ring, the unseen-surface depth ROC
+AUC 0.925 -> 0.939 with every initial point, 0.949 -> 0.952 with the training views' points; 5 sparse views 0.896 ->
+0.937; depth NLL and AUSE within 0.03 nats and 0.002.
 
 Pure tensors: a sample, cameras and a renderer (``render_fn(sample, cameras) -> RenderOutput``). On a CPU the lookups
 of the points in the compared views run in a native kernel (``native/csrc/consistency.cpp``: the term of a 1280x960
@@ -287,8 +286,8 @@ class ViewConsistency:
                               render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
         """[1,H,W,1] the depth variance of one evaluated ``camera``'s hidden surface points (module docstring, "A
         surface no photo saw"): ``L^2 / 12`` where no compared training view sees the pixel's point, L the stretch of
-        the view's ray in front of it that no training view saw empty (``_free_gap``); 0 elsewhere, on the depth
-        edges and where the pixel has no surface; 0 everywhere for a compared training view."""
+        the view's ray in front of it that no compared training view saw empty (``_free_gap``); 0 elsewhere, on the
+        depth edges and where the pixel has no surface; 0 everywhere for a compared training view."""
         return self.variances(camera, render_fn, hidden_depth=True)[1]
 
     def _free_gap(self, points: Tensor, z: Tensor, camera: Cameras, pixels: Tensor) -> Tensor:
