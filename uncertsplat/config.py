@@ -356,12 +356,6 @@ class DensifyConfig(_Base):
     after densification starts sees a model that has not fitted yet)."""
     growth_check_views: int = Field(8, ge=1)
     """Training views rendered for each growth test (three renders each)."""
-    growth_reserve_views: int = Field(0, ge=0)
-    """Training views the growth test sets aside: they stay out of the optimisation until growth stops, the model
-    reaches ``max_gaussians`` or densification ends, and the test renders them (and only them), so that it measures
-    what the weakest half is worth on photos the model has not fitted. 0, or fewer than
-    ``strategy.growth.RESERVE_MIN_TRAINING`` views left to train on: the test renders ``growth_check_views`` training
-    views the model fits."""
     spawn_interval: int = Field(1000, ge=1)
     spawn_scale_fraction: float = Field(0.01, gt=0.0)
     """Spawn: carry a posterior when ||scale|| > this * extent ..."""

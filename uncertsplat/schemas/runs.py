@@ -93,18 +93,13 @@ class GrowthCheck(Strict):
     seen: int
     """Gaussians with a footprint in the test's views; the weakest half of them was switched off."""
     cost_db: float
-    """The test views' PSNR of the whole model minus that without the weakest half."""
-    psnr_db: float | None = None
-    """The test views' PSNR with the whole model (None in summaries from before it was recorded)."""
+    """Training-view PSNR of the whole model minus that without the weakest half."""
     min_gain_db: float
     stopped: bool
     """``cost_db < min_gain_db`` here and in the ``growth_patience - 1`` tests before: no Gaussians were added after
     this step."""
     views: int
     """Training views rendered."""
-    reserved: bool = False
-    """The views were set aside from the optimisation until this test (``DensifyConfig.growth_reserve_views``):
-    ``cost_db`` is on photos the model has not fitted."""
 
 
 class ExposureCheck(Strict):

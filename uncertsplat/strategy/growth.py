@@ -33,7 +33,7 @@ from torch import Tensor
 
 from uncertsplat.schemas.runs import GrowthCheck
 from uncertsplat.strategy.schedule import RESET_RECOVERY_STEPS
-from uncertsplat.strategy.view_checks import gain_db, squared_error
+from uncertsplat.strategy.view_checks import psnr_gain_db
 from uncertsplat.types import Cameras, GaussianSample
 
 
@@ -78,21 +78,6 @@ def at_budget(gaussians: int, max_gaussians: int) -> bool:
     return gaussians >= AT_BUDGET * max_gaussians
 
 
-# Fewest views a run must keep training on for the growth test to set any aside (``reserved_views``): below it
-# (e.g. the 4-5 views of a sparse capture) every photo trains and the test renders training views.
-RESERVE_MIN_TRAINING = 8
-
-
-def reserved_views(num_views: int, reserve: int) -> list[int]:
-    """Positions in the training list (``range(num_views)``) that the growth test keeps out of the optimisation
-    while it decides (``DensifyConfig.growth_reserve_views``): ``reserve`` of them spread evenly, each in the middle
-    of its share of the list, so that its neighbours in a capture's order see what it sees. Empty when ``reserve``
-    is 0 or fewer than ``RESERVE_MIN_TRAINING`` views would be left to train on."""
-    if reserve <= 0 or num_views - reserve < RESERVE_MIN_TRAINING:
-        return []
-    return sorted({min(num_views - 1, int((i + 0.5) * num_views / reserve)) for i in range(reserve)})
-
-
 def weakest_half(weights: Tensor) -> Tensor:
     """[N] bool: the half (rounded down) of the Gaussians with ``weights > 0`` that has the smallest weights.
 
@@ -107,21 +92,17 @@ def weakest_half(weights: Tensor) -> Tensor:
 
 
 def halving_cost_db(sample: GaussianSample, off: Tensor, cameras: Cameras, images: Tensor,
-                    render_fn: Callable[[GaussianSample, Cameras], Tensor]) -> tuple[float, float]:
-    """The views' PSNR lost (dB) when the Gaussians in ``off`` [N] are switched off (opacity 0), and their PSNR with
-    the whole model: ``view_checks.gain_db`` of the two summed squared errors (0 when nothing changes, +inf when
-    the whole model is exact), and ``10 log10(values / squared error)`` (+inf likewise).
+                    render_fn: Callable[[GaussianSample, Cameras], Tensor]) -> float:
+    """Training-view PSNR lost (dB) when the Gaussians in ``off`` [N] are switched off (opacity 0):
+    ``view_checks.psnr_gain_db`` of the whole model over the rest (0 when nothing changes).
 
     Args:
         sample: the Gaussians to render. off: [N] bool, those to switch off.
-        cameras: [V] cameras. images: [V,H,W,3] their photos.
+        cameras: [V] training cameras. images: [V,H,W,3] their photos.
         render_fn: (sample, camera) -> [1,H,W,3] image in [0, 1].
     """
     without = replace(sample, opacities=torch.where(off, torch.zeros_like(sample.opacities), sample.opacities))
-    whole = squared_error(sample, cameras, images, render_fn)
-    cost = gain_db(whole, squared_error(without, cameras, images, render_fn))
-    values = len(cameras) * cameras.height * cameras.width * 3
-    return cost, gain_db(whole, float(values))
+    return psnr_gain_db(sample, without, cameras, images, render_fn)
 
 
 def growth_reason(check: GrowthCheck) -> str:
@@ -131,9 +112,8 @@ def growth_reason(check: GrowthCheck) -> str:
                else "growth goes on until the half is this cheap at consecutive tests" if cheap else "growth goes on")
     cmp = "<" if cheap else ">="
     return (f"growth test at step {check.step}: switching off the weakest half of the {check.seen:,} Gaussians "
-            f"{check.views} training views {'set aside ' if check.reserved else ''}see (of {check.gaussians:,}) costs {check.cost_db:.3f} dB "
+            f"{check.views} training views see (of {check.gaussians:,}) costs {check.cost_db:.3f} dB "
             f"({cmp} {check.min_gain_db:g} dB), {verdict}")
 
 
-__all__ = ["AT_BUDGET", "RESERVE_MIN_TRAINING", "GrowthCheck", "at_budget", "growth_check_due", "growth_reason",
-           "halving_cost_db", "reserved_views", "weakest_half"]
+__all__ = ["AT_BUDGET", "GrowthCheck", "at_budget", "growth_check_due", "growth_reason", "halving_cost_db", "weakest_half"]

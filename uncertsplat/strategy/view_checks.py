@@ -34,24 +34,14 @@ def psnr_gain_db(sample: GaussianSample, other: GaussianSample, cameras: Cameras
     The squared errors are summed over all the views' pixels before the ratio, so a view with large errors weighs
     more. Two identical renders give exactly 0; a perfect ``sample`` (and an imperfect ``other``) +inf.
     """
-    return gain_db(squared_error(sample, cameras, images, render_fn),
-                   squared_error(other, cameras, images, render_fn))
-
-
-@torch.no_grad()
-def squared_error(sample: GaussianSample, cameras: Cameras, images: Tensor,
-                  render_fn: Callable[[GaussianSample, Cameras], Tensor]) -> float:
-    """The squared error of ``sample``'s renders (clamped to [0, 1]) summed over every pixel and channel of the
-    views (float64 sums; arguments as ``psnr_gain_db``)."""
-    total = 0.0
-    for i in range(len(cameras)):
-        pred = render_fn(sample, cameras[i])[0].clamp(0, 1)
-        total += float((pred - images[i]).square().sum(dtype=torch.float64))
-    return total
-
-
-def gain_db(mine: float, theirs: float) -> float:
-    """``10 log10(theirs / mine)`` for two summed squared errors: exactly 0 when equal, +inf when ``mine`` is 0."""
+    sse = []
+    for g in (sample, other):
+        total = 0.0
+        for i in range(len(cameras)):
+            pred = render_fn(g, cameras[i])[0].clamp(0, 1)
+            total += float((pred - images[i]).square().sum(dtype=torch.float64))
+        sse.append(total)
+    mine, theirs = sse
     if mine == theirs:
         return 0.0
     if mine <= 0.0:
@@ -59,4 +49,4 @@ def gain_db(mine: float, theirs: float) -> float:
     return 10.0 * math.log10(max(theirs, 1e-300) / mine)
 
 
-__all__ = ["check_views", "gain_db", "psnr_gain_db", "squared_error"]
+__all__ = ["check_views", "psnr_gain_db"]

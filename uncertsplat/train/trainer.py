@@ -58,10 +58,9 @@ from uncertsplat.strategy.growth import (
     at_budget,
     growth_check_due,
     halving_cost_db,
-    reserved_views,
     weakest_half,
 )
-from uncertsplat.strategy.schedule import densify_end, is_opacity_reset_step, sh_degree_at
+from uncertsplat.strategy.schedule import is_opacity_reset_step, sh_degree_at
 from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due
 from uncertsplat.strategy.view_checks import check_views
 from uncertsplat.train.adam import Adam, all_finite
@@ -306,13 +305,6 @@ class Trainer:
         self._fit_until: int | None = None  # the step ``fit`` trains to (it tests the model there); None outside fit
         self.skipped_steps = 0  # steps whose update was skipped because of a NaN/Inf loss or gradient
         self.bad_steps_in_a_row = 0
-        # the training views the growth test sets aside while it decides (DensifyConfig.growth_reserve_views):
-        # out of the optimisation while ``reserve_open``, which closes once and for all (``_close_reserve``)
-        dcfg = cfg.densify
-        self.reserve = (reserved_views(len(self.train_idx), dcfg.growth_reserve_views)
-                        if dcfg.growth_min_gain_db > 0 else [])
-        self.reserve_open = bool(self.reserve)
-        self.reserve_closed: dict | None = None  # {"step", "reason"} once the views joined training
         if state is None:
             self._init_fresh()
         else:
@@ -497,9 +489,6 @@ class Trainer:
             "sh_bands": [b.model_dump() for b in self.sh_bands],
             "posterior_updates": [dict(u) for u in self.posterior_updates],
             "growth": [g.model_dump() for g in self.growth],
-            "reserve": list(self.reserve),
-            "reserve_open": self.reserve_open,
-            "reserve_closed": self.reserve_closed,
             "exposure": self.exposure.detach().clone() if self.exposure is not None else None,
             "exposure_views": torch.tensor(self.train_idx, dtype=torch.long),
             "train_names": self._train_names(),
@@ -560,17 +549,6 @@ class Trainer:
         self.posterior_updates = [dict(u) for u in state.get("posterior_updates", [])]
         self.growth = [GrowthCheck(**g) for g in state.get("growth", [])]  # likewise
         self.densifier.grow = not any(g.stopped for g in self.growth)
-        # a checkpoint from before the option trains on every view, and so does one whose set-aside views are not
-        # this process's (views joined since: the test renders training views from here on)
-        saved = [int(i) for i in state.get("reserve", [])]
-        self.reserve_closed = state.get("reserve_closed")
-        self.reserve_open = bool(state.get("reserve_open", False))
-        if self.reserve_open and saved != self.reserve:
-            self.reserve_open = False
-            self.init_notes.append("the training views changed while the growth test had views set aside: they "
-                                   "join training now, and the test renders training views from here on")
-            saved = []
-        self.reserve = saved
         self.step = int(state["step"])
         self.elapsed = float(state["elapsed"])
         self.exposure_checks = [ExposureCheck(**c) for c in state.get("exposure_checks", [])]
@@ -642,37 +620,26 @@ class Trainer:
         half of the model is worth less than ``densify.growth_min_gain_db``. Returns the test, or None (none due,
         growth already stopped, or the model at its budget: ``strategy.growth.at_budget``)."""
         dcfg = self.cfg.densify
-        if self.reserve_open:  # the views set aside join training once the test has nothing left to decide
-            if not self.densifier.grow:
-                self._close_reserve(step, "growth stopped")
-            elif at_budget(len(self.model), self.budget.max_gaussians):
-                self._close_reserve(step, f"the model reached its budget of {self.budget.max_gaussians:,} Gaussians")
-            elif step + 1 >= densify_end(dcfg, self.cfg.iterations):
-                self._close_reserve(step, "densification ended")
-        if self.reserve_closed is not None:
-            return None  # decided: by the test, the budget, or the end of densification
         if not self.densifier.grow or not growth_check_due(step, dcfg, self.cfg.iterations):
             return None
         if at_budget(len(self.model), self.budget.max_gaussians):
             return None
-        views = self.reserve if self.reserve_open else check_views(len(self.train_idx), dcfg.growth_check_views)
+        views = check_views(len(self.train_idx), dcfg.growth_check_views)
         cams, images = self.train_cams[views], self.photos(views)
         g = self.mean_sample()
         with torch.enable_grad():  # the blending weights come from one backward pass per view
             weights = blending_weights(g, cams, render_fn=self.render)  # [N]
         off = weakest_half(weights)
-        cost, quality = halving_cost_db(g, off, cams, images, lambda s, cam: self.render(s, cam).rgb)
+        cost = halving_cost_db(g, off, cams, images, lambda s, cam: self.render(s, cam).rgb)
         # the tests before this one that must also have found the half cheap (growth_patience - 1 of them)
         before = self.growth[len(self.growth) - dcfg.growth_patience + 1:] if dcfg.growth_patience > 1 else []
         cheap = cost < dcfg.growth_min_gain_db and len(before) == dcfg.growth_patience - 1 and all(
             b.cost_db < b.min_gain_db for b in before)
         check = GrowthCheck(step=step, gaussians=len(self.model), seen=int((weights > 0).sum()),
                             cost_db=round(min(cost, 1e3), 4), min_gain_db=dcfg.growth_min_gain_db, stopped=cheap,
-                            views=len(views), reserved=self.reserve_open, psnr_db=round(min(quality, 1e3), 4))
+                            views=len(views))
         self.growth.append(check)
         self.densifier.grow = not check.stopped
-        if check.stopped:
-            self._close_reserve(step, "growth stopped")
         if self.on_growth is not None:
             self.on_growth(check)
         return check
@@ -687,30 +654,8 @@ class Trainer:
 
     def _next_view(self) -> int:
         if not self.view_queue:
-            order = torch.randperm(len(self.train_idx), generator=self.gen_views).tolist()
-            # the views the growth test sets aside are left out of each pass while it decides (the same draws)
-            self.view_queue = [i for i in order if i not in self.reserve] if self.reserve_open else order
+            self.view_queue = torch.randperm(len(self.train_idx), generator=self.gen_views).tolist()
         return self.view_queue.pop()
-
-    def trained_views(self) -> list[int]:
-        """Positions in the training list the optimisation uses now: all but the views the growth test has set
-        aside while it decides (``reserve_open``)."""
-        if not self.reserve_open:
-            return list(range(len(self.train_idx)))
-        return [i for i in range(len(self.train_idx)) if i not in self.reserve]
-
-    def reserve_record(self) -> dict:
-        """What ``train_summary.json`` says of the views the growth test set aside: which (names where the scene
-        has them, else positions in the training list), and when and why they joined training (None: not yet)."""
-        names = self._train_names()
-        return {"views": [names[i] for i in self.reserve] if names else list(self.reserve),
-                "joined_training": self.reserve_closed}
-
-    def _close_reserve(self, step: int, reason: str) -> None:
-        """The views set aside for the growth test join training from the step after ``step`` (once and for all)."""
-        if self.reserve_open:
-            self.reserve_open = False
-            self.reserve_closed = {"step": step, "reason": reason}
 
     def mean_sample(self) -> GaussianSample:
         """The deterministic Gaussians at the current SH degree (what a plain render shows): the expected
@@ -745,7 +690,7 @@ class Trainer:
         Returns the test, or None when none is due."""
         if not exposure_check_due(step, self.cfg, self.exposure is not None):
             return None
-        gains = self.photo_gains(skip=self.reserve if self.reserve_open else ())
+        gains = self.photo_gains()
         spread = gain_spread(gains)
         check = ExposureCheck(step=step, views=len(gains), gain_min=round(min(gains, default=1.0), 4),
                               gain_max=round(max(gains, default=1.0), 4), spread=round(spread, 4),
@@ -798,8 +743,7 @@ class Trainer:
                     self._expected = None
         degree = sh_degree_at(step, self.model.sh_degree, cfg.sh_degree_interval)
         with timer("data"):
-            trained = len(self.train_idx) - (len(self.reserve) if self.reserve_open else 0)
-            views = [self._next_view() for _ in range(min(cfg.batch_size, trained))]
+            views = [self._next_view() for _ in range(min(cfg.batch_size, len(self.train_idx)))]
             # one view: a slice, which shares the image's memory (a list index copies it)
             pick = slice(views[0], views[0] + 1) if len(views) == 1 else views
             low = self.low_cams is not None and step <= self.low_res_until
@@ -936,12 +880,8 @@ class Trainer:
         params = mean_params(self.model, variant=self.cfg.variant, extent=self.extent,
                              temperature=self.prior.temperature)
         degree = self.sh_degree
-        trained = self.trained_views()  # not the views the growth test has set aside, which the model has not fitted
-        t = len(trained)
-        if self.reserve_open:
-            cams, images = self.train_cams[trained], self.photos(trained)
-        else:
-            cams, images = self.train_cams, self.photos()
+        t = len(self.train_idx)
+        cams, images = self.train_cams, self.photos()
         last = self.step >= self.cfg.iterations
         n = t if (vcfg.refresh_views == 0 or last) else min(vcfg.refresh_views, t)
         if n < t:
@@ -1177,7 +1117,6 @@ class Trainer:
                 "skipped_steps": self.skipped_steps,
                 "sh_degree_active": self.sh_degree, "sh_bands": [b.model_dump() for b in self.sh_bands],
                 "growth": [g.model_dump() for g in self.growth],
-                **({"growth_reserve": self.reserve_record()} if self.reserve else {}),
                 "exposure_checks": [c.model_dump() for c in self.exposure_checks],
                 "variant": self.cfg.variant, "method": self.cfg.method,
                 "posterior": self.posterior_summary(),
