@@ -22,7 +22,8 @@ each ray blends (``EvalConfig.depth_spread``); ``resolution-1`` is ``full`` with
 term per sample (``EvalConfig.resolution_renders``, 2 since 2026-11-27); ``no-consistency`` is ``full`` without
 the view-consistency term (``EvalConfig.consistency_views``); ``no-finer`` is ``full`` without the finer-detail term
 (``EvalConfig.finer_detail``); ``no-hidden-depth`` is ``full`` without the depth variance of the surface points no
-compared training view sees (``EvalConfig.hidden_depth``).
+compared training view sees (``EvalConfig.hidden_depth``); ``noise-fit`` is ``full`` with the pixel noise's level
+fitted on the training views (``EvalConfig.residual_scale = "fit"``; without views set aside the default is 1).
 
 Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
 its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),
@@ -131,6 +132,7 @@ PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alph
     "no-consistency": ({"consistency_views": 0}, False),  # full without the view-consistency term (before 11-27)
     "no-finer": ({"finer_detail": False}, False),  # full without the finer-detail term (before 11-28)
     "no-hidden-depth": ({"hidden_depth": False}, False),  # full without the hidden points' depth term (before 11-30)
+    "noise-fit": ({"residual_scale": "fit"}, False),  # full with the pixel noise's level fitted on training views
 }
 
 

@@ -44,7 +44,16 @@ def _parts(loaded, cfg) -> dict | None:
     digests = run_digests(loaded)
     if digests is None or digests["scene"] is None:
         return None
-    return {**digests, "settings": key_settings(cfg), "fit": RESIDUAL_FIT}
+    parts = {**digests, "settings": key_settings(cfg), "fit": RESIDUAL_FIT}
+    if cfg.residual_scale == "fit":
+        parts["std_fit"] = STD_FIT_WITH_FITTED_NOISE
+    return parts
+
+
+STD_FIT_WITH_FITTED_NOISE = 2
+"""How the std factor is fitted where ``residual_scale = "fit"`` (part of the key with that setting only): 2 since
+the factor on training views keeps the resolution term the noise's level was fitted with (files from before hold a
+factor fitted without it, x1.7 on the demo, and are not used)."""
 
 
 LEFT_OUT_WHEN = {"resolution_on_training_views": True}
@@ -216,7 +225,7 @@ def _difference(kept: dict, now: dict) -> str:
     keys = sorted(k for k in set(a) | set(b) if differs(k))
     if keys:
         return "other settings: " + ", ".join(f"{k} = {there(k)}, {b.get(k)!r} here" for k in keys[:4])
-    return "another version of the noise fit"
+    return "another version of the noise fit or of the std factor's"
 
 
 __all__ = ["FILE_NAME", "LEFT_OUT_WHEN", "KeptPredictive", "keep_predictive", "key_settings", "plain_versions",
