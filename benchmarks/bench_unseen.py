@@ -11,7 +11,7 @@ observed / unobserved from GT depth (``eval.observed.observed_mask``). Per metho
 * mean std on unobserved / observed pixels, and on pixels whose rays meet no Gaussian (alpha < 0.5);
 * the evaluation metrics on those views: PSNR, AUSE-MAE, NLL, calibration error, the fitted std factor.
 
-Each run is evaluated four ways (``PREDICTIVES``, ``--predictives`` picks some): ``full`` (what ``evaluate``
+Each run is evaluated with every one of the ``PREDICTIVES`` (``--predictives`` picks some): ``full`` (what ``evaluate``
 writes), ``before`` (the predictive before the coverage and resolution terms: every alpha < 1 counts as empty, no
 resolution term), ``spread`` (the samples' spread alone) and ``leverage`` (``full`` with
 ``EvalConfig.residual_leverage = "full"``); ``no-leverage`` is ``full`` without the relative leverage (the default
@@ -23,7 +23,8 @@ term per sample (``EvalConfig.resolution_renders``, 2 since 2026-11-27); ``no-co
 the view-consistency term (``EvalConfig.consistency_views``); ``no-finer`` is ``full`` without the finer-detail term
 (``EvalConfig.finer_detail``); ``no-hidden-depth`` is ``full`` without the depth variance of the surface points no
 compared training view sees (``EvalConfig.hidden_depth``); ``noise-fit`` is ``full`` with the pixel noise's level
-fitted on the training views (``EvalConfig.residual_scale = "fit"``; without views set aside the default is 1).
+fitted (``EvalConfig.residual_scale = "fit"``: on the training views, or on the views set aside where there are
+some, as the default does; without them the default's level is 1).
 
 Every method trains with the same seed, scene, split and schedule (``--iterations`` steps of the demo preset,
 its densification window scaled to the length). Methods: ``variational`` (our default, informed posterior),

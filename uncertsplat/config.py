@@ -600,8 +600,9 @@ class EvalConfig(_Base):
     in them, and on those images it exceeded the residuals the model left, so the factor came out low and made new
     views' std too narrow: held-out NLL with the factor fitted without it, fern -2.347 -> -2.421, bonsai -0.815 ->
     -0.921, the demo -3.308 -> -3.267 (Gaussian; BENCHMARKS.md, "The std factor on training views without the
-    resolution term"). True: the factor as before 2026-11-30. With ``residual_scale = "fit"`` and no views set
-    aside the term is kept regardless: the noise's level was fitted on those views given it."""
+    resolution term"). True: the factor as before 2026-11-30. With ``residual_scale = "fit"`` (and a pixel noise,
+    ``residual_views`` > 0) and no views set aside the term is kept regardless: the noise's level was fitted on those
+    views given it."""
     degrees_of_freedom: Literal["fit", "gaussian"] | Annotated[float, Field(ge=2.1, le=MAX_DEGREES_OF_FREEDOM)] = "fit"
     """The RGB predictive's tails: a Student-t with the predicted std and nu degrees of freedom (``eval.tails``), or
     the Gaussian. A pixel's error given its std is heavy-tailed (the std estimates the error's scale, which varies

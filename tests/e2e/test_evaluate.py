@@ -226,11 +226,18 @@ def test_on_training_views_the_factor_is_fitted_without_the_resolution_term(tiny
     assert used == [ecfg.resolution] * 2
     assert without.scale > kept.scale  # (the term only adds variance: without it the std is narrower)
     used.clear()
-    # a noise level fitted on the training views was fitted given the term: the factor keeps it (the noise is off
-    # here, residual_views=0, so the factor equals the one fitted with the term)
-    fitted = fit_std_scale(sampler, {"train": train}, ecfg.model_copy(update={"residual_scale": "fit"}), cpu,
-                           load_views=views)
-    assert used == [ecfg.resolution] * 2 and fitted.scale == kept.scale
+    # a noise level fitted on the training views was fitted given the term: the factor keeps it; without a noise
+    # (residual_views=0) nothing was fitted given it, and a noise of a set level was not fitted at all
+    fit = ecfg.model_copy(update={"residual_scale": "fit"})
+    assert fit_std_scale(sampler, {"train": train}, fit, cpu, load_views=views).scale == without.scale
+    assert used == [0.0, 0.0]
+    used.clear()
+    for scale, kept_term in (("fit", True), (1.0, False), (0.5, False)):
+        noisy = ecfg.model_copy(update={"residual_scale": scale, "residual_views": 2})
+        field = fit_residual(loaded.sampler(scene.scene_scale, cpu), train, noisy, cpu, load_views=views)
+        used.clear()
+        fit_std_scale(dataclasses.replace(sampler, residual=field), {"train": train}, noisy, cpu, load_views=views)
+        assert used == ([ecfg.resolution] if kept_term else [0.0]) * 2, scale
     used.clear()
     aside = fit_std_scale(sampler, {"train": train[2:], "calibration": train[:2]}, ecfg, cpu, load_views=views)
     assert used == [ecfg.resolution] * 2 and aside.names == [scene.cameras.image_names[i] for i in train[:2]]
@@ -1334,7 +1341,7 @@ def test_files_kept_before_the_training_views_fit_changed_read_with_the_old_fit(
     assert _difference(written_in, parts) == "another version of the noise fit or of the std factor's"  # (none differs)
 
 
-def test_files_with_a_fitted_noise_level_from_before_the_factor_kept_the_resolution_term_are_not_read(tiny_run_path):
+def test_files_with_a_fitted_noise_level_from_before_the_factor_kept_the_term_are_not_read(tiny_run_path):
     """With ``residual_scale = "fit"`` the std factor on training views is now fitted with the resolution term the
     noise's level was fitted with: files from before hold another factor (x1.7 against x0.84 on the demo) and are
     keyed apart; the other settings' keys are unchanged."""
@@ -1344,8 +1351,9 @@ def test_files_with_a_fitted_noise_level_from_before_the_factor_kept_the_resolut
     fitted = _parts(loaded, EvalConfig(residual_scale="fit"))
     assert fitted["std_fit"] == STD_FIT_WITH_FITTED_NOISE == 2
     before = {k: v for k, v in fitted.items() if k != "std_fit"}
-    assert _key(before) not in _accepted_keys(fitted)
-    for cfg in (EvalConfig(), EvalConfig(residual_scale=1.0)):
+    written_in = {**before, "settings": {**before["settings"], "resolution_on_training_views": True}}
+    assert not {_key(before), _key(written_in)} & _accepted_keys(fitted)
+    for cfg in (EvalConfig(), EvalConfig(residual_scale=1.0), EvalConfig(residual_scale="fit", residual_views=0)):
         assert "std_fit" not in _parts(loaded, cfg)
 
 

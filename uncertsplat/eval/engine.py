@@ -569,7 +569,7 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
     resolution term unless ``cfg.resolution_on_training_views``: the term stands for what the training images
     cannot show (Gaussians trading places unseen in them), and on those images it exceeded the residuals the model
     left (BENCHMARKS.md, "The std factor on training views without the resolution term"); and unless the pixel
-    noise's level was fitted on those views (``cfg.residual_scale`` "fit"), given the term.
+    noise's level was fitted on those views given the term (``cfg.residual_scale`` "fit", with a noise field).
 
     Args:
         sampler: the run's sampler (build a fresh one: a baseline's sampler may keep state between calls).
@@ -595,7 +595,7 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
     # resolution term in the predictive: the factor is fitted on that same predictive (without it, the demo's came
     # out x1.7 and made the calibrated NLL 0.13 nats worse than the raw; BENCHMARKS.md, "The std factor where the
     # noise's level was fitted on training views")
-    with_resolution = cfg.resolution_on_training_views or noise_scale_mode(cfg) == "fit"
+    with_resolution = cfg.resolution_on_training_views or (noise_scale_mode(cfg) == "fit" and sampler.residual is not None)
     fit_cfg = _without_resolution(cfg) if on_training and not with_resolution else cfg
     views = load_views(chosen)  # as they are: a photo at its own exposure, what the exposures' spread predicts
     gen = torch.Generator(device=device)

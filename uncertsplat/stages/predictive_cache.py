@@ -45,15 +45,16 @@ def _parts(loaded, cfg) -> dict | None:
     if digests is None or digests["scene"] is None:
         return None
     parts = {**digests, "settings": key_settings(cfg), "fit": RESIDUAL_FIT}
-    if cfg.residual_scale == "fit":
+    if cfg.residual_scale == "fit" and cfg.residual_views > 0:
         parts["std_fit"] = STD_FIT_WITH_FITTED_NOISE
     return parts
 
 
 STD_FIT_WITH_FITTED_NOISE = 2
-"""How the std factor is fitted where ``residual_scale = "fit"`` (part of the key with that setting only): 2 since
-the factor on training views keeps the resolution term the noise's level was fitted with (files from before hold a
-factor fitted without it, x1.7 on the demo, and are not used)."""
+"""How the std factor is fitted where ``residual_scale = "fit"`` with a pixel noise (part of the key with those
+settings only): 2 since the factor on training views keeps the resolution term the noise's level was fitted with
+(files from before hold a factor fitted without it, x1.7 on the demo, and are not used). Conservative: a run with
+views set aside, whose factor did not change, is keyed apart too (its file is fitted again where the scene is)."""
 
 
 LEFT_OUT_WHEN = {"resolution_on_training_views": True}
