@@ -303,19 +303,42 @@ def test_a_model_whose_gaussians_carry_no_posterior_says_why():
     # before the first spawn step (10): why, and what to do (a helper's 80-step runs and --set densify.until=0 said
     # nothing, and evaluate's note said "train longer", which cannot help the second)
     (early,) = few_carriers_warning(t.model, cfg, t.extent, t.prior, step=5)
-    assert "the run stopped at step 5, before its first spawn step (10)" in early and "N >= 10" in early
-    from uncertsplat.train.trainer import first_spawn_step
+    assert "the run stopped at step 5, before Gaussians first get a posterior (step 10)" in early
+    assert "N >= 10" in early
 
     off = toy_config(densify={"start": 5, "until": 0})  # densification off in a run that reaches its start
     late = toy_config(densify={"until": 0})  # ... and one that ends before its start (100)
     (never_late,) = few_carriers_warning(t.model, late, t.extent, t.prior, step=30)
     assert "densification starts at step 100 (densify.start), after the run's 30 steps" in never_late
-    assert "with densify.until past the first spawn step after it (densify.until is 0)" in never_late
+    assert "with densify.until past the first densification step after it (densify.until is 0)" in never_late
     (never,) = few_carriers_warning(t.model, off, t.extent, t.prior, step=30)
-    first = first_spawn_step(off)
-    assert "no spawn step comes while densification runs" in never and f"densify.until to {first} or more " in never
+    # (its densify settings replace toy_config's: interval 100, spawn_interval 1000)
+    assert "densification has no step before densify.until = 0 (the first would be step 100)" in never
+    assert "the first would be step 1000" in never and "densify.until to 101 or more " in never
     det = toy_config(method="deterministic")
     assert few_carriers_warning(t.model, det, t.extent, t.prior, step=30) == []
+
+
+@pytest.mark.parametrize(("iterations", "stopped", "said"), [
+    (300, None, None),  # split children carry a posterior from step 200 (a helper's 300-step fern run: 1042 of 1326)
+    (150, None, "the run's 150 steps end before Gaussians first get a posterior"),
+    (7000, 150, "the run stopped at step 150, before Gaussians first get a posterior (step 200)"),
+    (7000, 250, None)])
+def test_a_posterior_comes_with_the_first_split_not_only_the_first_spawn(iterations, stopped, said):
+    """Gaussians first carry a posterior as the children of a split, at the first densification step: the paper
+    preset's step 200, not its first spawn step (1000). A 300-step run was told it would have none."""
+    from uncertsplat.config import train_config_from
+    from uncertsplat.train.session import _posterior_notes
+    from uncertsplat.train.trainer import no_carriers_reason, posterior_steps_needed
+
+    cfg = train_config_from("paper", None, [f"iterations={iterations}"])
+    reason = no_carriers_reason(cfg, stopped or iterations, planned=stopped is None)
+    assert (reason is None) == (said is None) and (said is None or said in reason)
+    assert bool(_posterior_notes(cfg)) == (iterations < 200)
+    # the fewest steps: the first split (200) must come before the run's last 10 %, which never densifies
+    assert posterior_steps_needed(cfg) == 222
+    if iterations == 150:
+        assert "--iterations 222 or more" in reason
 
 
 def test_a_very_wide_view_is_named():

@@ -200,7 +200,7 @@ def test_a_run_without_a_posterior_is_named_by_evaluate(tiny_scene_path, tmp_pat
     loaded = load_run(run)
     assert loaded.model.num_carriers == 0
     (note,) = loaded.eval_notes(4)
-    assert "no Gaussian carries a posterior" in note and "the run stopped at step 2, before its first spawn" in note
+    assert "no Gaussian carries a posterior" in note and "the run's 2 steps end before Gaussians first get a posterior" in note
     from uncertsplat.config import EvalConfig
     from uncertsplat.stages import evaluate
 
@@ -213,7 +213,7 @@ def test_a_run_without_a_posterior_is_named_by_evaluate(tiny_scene_path, tmp_pat
     from uncertsplat.config import PruneConfig
     from uncertsplat.stages import prune
 
-    with pytest.raises(UserError, match="no uncertainty to prune by: the run stopped at step 2, before its first"):
+    with pytest.raises(UserError, match="no uncertainty to prune by: the run's 2 steps end before Gaussians first"):
         prune.run(run, tmp_path / "pruned", PruneConfig(keep_ratio=0.9), torch.device("cpu"))
     # a prune's output with no carrier left: pruning removed them (not the spawn rule, of which train said nothing)
     (run / "prune.json").write_text("{}")

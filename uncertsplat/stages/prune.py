@@ -343,8 +343,8 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         reason = no_carriers_reason(loaded.config, loaded.step) if method == "variational" else None
         raise UserError(f"{why}, so there is no uncertainty to prune by" + (f": {reason}" if reason else ""),
                         path=run_dir,
-                        hint="Prune a run trained with the variational method (the default) past its first spawn "
-                             "step." if method != "variational" else
+                        hint="Prune a run trained with the variational method (the default) past its first "
+                             "densification step." if method != "variational" else
                         "Prune a run whose Gaussians carry a posterior (train's closing lines say how many do).")
     scene = loaded.load_scene()
     notes: list[str] = []

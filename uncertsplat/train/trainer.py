@@ -60,7 +60,7 @@ from uncertsplat.strategy.growth import (
     halving_cost_db,
     weakest_half,
 )
-from uncertsplat.strategy.schedule import is_opacity_reset_step, sh_degree_at
+from uncertsplat.strategy.schedule import SETTLE_FRACTION, is_opacity_reset_step, sh_degree_at
 from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due
 from uncertsplat.strategy.view_checks import check_views
 from uncertsplat.train.adam import Adam, all_finite
@@ -121,28 +121,74 @@ def first_spawn_step(cfg: TrainConfig) -> int:
     return (d.start // d.spawn_interval + 1) * d.spawn_interval
 
 
+def first_split_step(cfg: TrainConfig) -> int:
+    """The first densification step of ``cfg``'s schedule (``densify.interval`` steps after ``densify.start``), where
+    the children of split Gaussians first carry a posterior, if it comes before densification ends."""
+    d = cfg.densify
+    return (d.start // d.interval + 1) * d.interval
+
+
+def _earliest_posterior_step(cfg: TrainConfig, iterations: int) -> int | None:
+    """The first step of a run of ``iterations`` steps at which some Gaussian may get a posterior: its first
+    densification step (split children carry one; ``schedule.is_densify_step``) or its first spawn step
+    (``schedule.is_spawn_step``), whichever comes first within the run; None when neither does."""
+    from uncertsplat.strategy.schedule import densify_end
+
+    d = cfg.densify
+    split, spawn = first_split_step(cfg), first_spawn_step(cfg)
+    steps = [s for s, ok in ((split, split < densify_end(d, iterations)), (spawn, spawn <= d.until))
+             if ok and s <= iterations]
+    return min(steps) if steps else None
+
+
+def posterior_steps_needed(cfg: TrainConfig) -> int | None:
+    """The fewest steps a run of ``cfg``'s settings needs for some Gaussian to get a posterior
+    (``_earliest_posterior_step``; a run's last ``SETTLE_FRACTION`` never densifies, so a split step needs a run
+    somewhat longer than it); None when no run length gives one (densification has no step before
+    ``densify.until`` and no spawn step comes up to it)."""
+    d = cfg.densify
+    split, spawn = first_split_step(cfg), first_spawn_step(cfg)
+    found = []
+    if split < d.until:  # the fewest n with (1 - SETTLE_FRACTION) n + 1 > split, checked against rounding
+        n = max(split, math.floor((split - 1) / (1.0 - SETTLE_FRACTION)) + 1)
+        while _earliest_posterior_step(cfg, n) != split:
+            n += 1
+        while n > split and _earliest_posterior_step(cfg, n - 1) == split:
+            n -= 1
+        found.append(n)
+    if spawn <= d.until:
+        found.append(spawn)
+    return min(found) if found else None
+
+
 def no_carriers_reason(cfg: TrainConfig, step: int, planned: bool = False) -> str | None:
     """Why a model of ``cfg`` trained to ``step`` has no Gaussian with a posterior when that follows from its
-    settings, with what to do; None when it should have some (a spawn step was reached: a scene whose Gaussians are
-    narrower than the spawn rule asks, ``few_carriers_warning``). Gaussians get a posterior at the spawn steps, which
-    come only while densification runs (``densify.until``). ``planned``: said before training, of a run of ``step``
-    steps."""
-    d, first = cfg.densify, first_spawn_step(cfg)
-    if first > d.until and d.start >= cfg.iterations:  # (raising until would not help a run that ends first)
+    settings, with what to do; None when it may have some (a densification or spawn step was reached: a scene whose
+    Gaussians are narrower than the spawn rule asks, ``few_carriers_warning``). Gaussians get a posterior as the
+    children of a split (from the first densification step) and at the spawn steps, which come only while
+    densification runs (``densify.until``). ``planned``: said before training, of a run of ``step`` steps."""
+    d = cfg.densify
+    needed = posterior_steps_needed(cfg)
+    if needed is None and d.start >= cfg.iterations:  # (raising until would not help a run that ends first)
         return (f"densification starts at step {d.start} (densify.start), after the run's {cfg.iterations} steps, so "
                 "no Gaussian gets a posterior: lower densify.start below the run's length"
-                + (f", with densify.until past the first spawn step after it (densify.until is {d.until})"
+                + (f", with densify.until past the first densification step after it (densify.until is {d.until})"
                    if d.until <= d.start else ""))
-    if first > d.until:  # (spawn steps come while densify.start < step <= densify.until)
-        return (f"no spawn step comes while densification runs (the first would be step {first}, after densify.until "
-                f"= {d.until}), so no Gaussian gets a posterior whatever the run's length: set densify.until to "
-                f"{first} or more for one")
-    if step < first and planned:  # (said before training: the run's length, not a stop)
-        return (f"the run's {step} steps end before its first spawn step ({first}): give it --iterations {first} or "
-                "more for a posterior")
-    if step < first:
-        return (f"the run stopped at step {step}, before its first spawn step ({first}): train it on to that step "
-                f"(`train --resume --iterations N`, N >= {first}) for a posterior")
+    if needed is None:
+        fix = min(first_split_step(cfg) + 1, first_spawn_step(cfg))
+        return (f"densification has no step before densify.until = {d.until} (the first would be step "
+                f"{first_split_step(cfg)}) and no spawn step comes by then (the first would be step "
+                f"{first_spawn_step(cfg)}), so no Gaussian gets a posterior whatever the run's length: set "
+                f"densify.until to {fix} or more for one")
+    earliest = _earliest_posterior_step(cfg, cfg.iterations)
+    if earliest is None:
+        return (f"the run's {cfg.iterations} steps end before Gaussians first get a posterior (split children from "
+                f"the first densification step, spawned ones from the first spawn step; a run's last "
+                f"{SETTLE_FRACTION:.0%} never densifies): give it --iterations {needed} or more for a posterior")
+    if step < earliest:
+        return (f"the run stopped at step {step}, before Gaussians first get a posterior (step {earliest}): train it "
+                f"on to that step (`train --resume`, or `--iterations N` with N >= {max(needed, earliest)}) for a "
+                "posterior")
     return None
 
 
@@ -152,7 +198,8 @@ def few_carriers_warning(model: GaussianModel, cfg: TrainConfig, extent: float, 
     0): the spawn rule gives one to a Gaussian wider than ``densify.spawn_scale_fraction`` of the cameras' radius,
     which the Gaussians of a small scene seen from far (a long lens, a rig far larger than the scene) never are;
     names a fraction that gives one to about half of them. Where the settings decide it (densification off, or a
-    run stopped before its first spawn step: ``no_carriers_reason``), that reason, only when no Gaussian carries one."""
+    run stopped before its first densification or spawn step: ``no_carriers_reason``), that reason, only when no
+    Gaussian carries one."""
     n = len(model)
     d = cfg.densify
     if not cfg.has_offset_tables or n == 0 or model.num_carriers >= FEW_CARRIERS * n:
