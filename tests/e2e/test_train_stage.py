@@ -200,7 +200,8 @@ def test_a_run_without_a_posterior_is_named_by_evaluate(tiny_scene_path, tmp_pat
     loaded = load_run(run)
     assert loaded.model.num_carriers == 0
     (note,) = loaded.eval_notes(4)
-    assert "no Gaussian carries a posterior" in note and "the run's 2 steps end before Gaussians first get a posterior" in note
+    assert "no Gaussian carries a posterior" in note
+    assert "the run's 2 steps end before Gaussians first get a posterior" in note
     from uncertsplat.config import EvalConfig
     from uncertsplat.stages import evaluate
 
