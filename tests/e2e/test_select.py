@@ -318,9 +318,15 @@ class TestAddViewsErrors:
         stage.run(run, SelectConfig(score="fisher", num_views=1), CPU, output=tmp_path / "sel")
         said = " ".join(capsys.readouterr().err.split())
         assert "sets 1 view(s) aside for calibration, so `train --resume --add-views` refuses" in said
+        # and its Next line does not give that command (a helper ran it as told, and it was refused)
+        (nxt,) = [line for line in said.split("Next: ")[1:]]
+        assert "--resume" not in nxt.replace("`--resume --add-views` refuses this run", "")
+        assert "it sets views aside for calibration) train a new run" in nxt and "-o NEW_RUN" in nxt
+        assert "scene.train_names=" in nxt and str(run / "scene.json") in nxt
         capsys.readouterr()
         stage.run(subset_run, SelectConfig(score="fisher", num_views=1), CPU, output=tmp_path / "plain")
-        assert "aside for calibration" not in capsys.readouterr().err
+        plain = " ".join(capsys.readouterr().err.split())
+        assert "aside for calibration" not in plain and f"-o {subset_run} --resume --iterations N --add-views" in plain
 
     def test_a_finished_run_needs_steps_for_the_added_views(self, tiny_scene_path, subset_run, tmp_path):
         """Without --iterations beyond its end the added view would be recorded as trained on with 0 steps."""

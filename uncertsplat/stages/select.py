@@ -188,13 +188,16 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     n = min(cfg.num_views, len(cands) if allowed is None else int(allowed.sum()))
     console.print(f"[bold]select-views[/] {run_dir}: {count(len(cands), 'candidate')} ({cands.kind}), score "
                   f"'{cfg.score}', choosing {n}, {device}")
+    cannot_grow = None  # why `train --resume --add-views` refuses this run (the Next line then says what to do)
     if loaded.config.scene.calibration_holdout:  # found out only after choosing, at `train --add-views`
+        cannot_grow = "it sets views aside for calibration"
         console.print(f"[yellow]note:[/] this run sets {loaded.config.scene.calibration_holdout} view(s) aside for "
                       "calibration, so `train --resume --add-views` refuses to add the chosen views (more training "
                       "views would change which ones are set aside): train a new run on its views and the chosen "
                       "ones (--set scene.train_names=[...]) to use them")
     if loaded.config.method in ("ensemble", "fisher"):  # found out only after choosing, at `train --add-views`
         article = "an" if loaded.config.method[0] in "aeiou" else "a"
+        cannot_grow = f"it is {article} {loaded.config.method} run"
         console.print(f"[yellow]note:[/] `train --resume --add-views` does not grow {article} {loaded.config.method} run: "
                       "to use the chosen views, train a new run on its views and the chosen ones "
                       "(--set scene.train_names=[...])")
@@ -312,21 +315,25 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         console.print(f"[yellow]note:[/] {run_dir} is a pruned model (prune.json): the views are added to the run it "
                       f"was pruned from, {source}, which is then pruned again")
         run_dir = source
+    added = ",".join(p.name for p in picked) if cands.kind == "unused" else "NEW_PHOTOS"
+    if cannot_grow is None:
+        train_next = f"[bold]uncertsplat train {folder} -o {run_dir} --resume --iterations N --add-views {added}[/]"
+    else:  # the command the note above said is refused: a new run instead
+        train_next = (f"(`--resume --add-views` refuses this run: {cannot_grow}) train a new run on its views and "
+                      f"these, [bold]uncertsplat train {folder} -o NEW_RUN --set 'scene.train_names=[...]'[/] with the "
+                      f"names in {run_dir / 'scene.json'}'s training and calibration lists and {added}")
     if picked and cands.kind == "unused":  # photos of the scene: the run trains on them as they are
-        console.print(f"Next: [bold]uncertsplat train {folder} -o {run_dir} --resume --iterations N --add-views "
-                      f"{','.join(p.name for p in picked)}[/]")
+        console.print(f"Next: {train_next}")
     elif picked:  # poses: a photo is taken at each first
         from uncertsplat.sfm.report import REPORT_NAME
 
         if (Path(folder) / REPORT_NAME).is_file():  # a workspace of `reconstruct`: a new photo joins it
             console.print(f"Next: take a photo at each chosen pose ({out / Selection.FILE_NAME}), put them into the "
                           f"photo folder, [bold]uncertsplat reconstruct PHOTOS -o {folder} --extend[/] (its cameras "
-                          f"kept), then [bold]uncertsplat train {folder} -o {run_dir} --resume --iterations N "
-                          "--add-views NEW_PHOTOS[/]")
+                          f"kept), then {train_next}")
         else:  # (--extend grows workspaces of reconstruct only)
             console.print(f"Next: take a photo at each chosen pose ({out / Selection.FILE_NAME}) and add it to the "
-                          f"scene {folder} with its camera, as the scene's own tool writes them, then [bold]uncertsplat "
-                          f"train {folder} -o {run_dir} --resume --iterations N --add-views NEW_PHOTOS[/]")
+                          f"scene {folder} with its camera, as the scene's own tool writes them, then {train_next}")
     return sel
 
 
