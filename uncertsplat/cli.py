@@ -68,6 +68,13 @@ _INTERRUPTED = {
 """What Ctrl-C leaves, by command (function name), for those that do not say it themselves."""
 
 
+def _d_flag(model: str, field: str, on: str, off: str) -> str:
+    """``_d`` for an on/off flag pair: the name of the flag the field's default stands for."""
+    import uncertsplat.config as configs
+
+    return f"\\[default: {on if getattr(configs, model).model_fields[field].default else off}]"
+
+
 def _d(model: str, field: str, extra: str = "") -> str:
     """The ``[default: X]`` of an option whose value comes from a stage config's field (the option itself defaults
     to None so that a --config file or --set can give it), for its help text."""
@@ -280,7 +287,8 @@ def reconstruct(
     camera_model: Annotated[str | None, typer.Option(
         help=f"COLMAP camera model estimated by SfM. {_d('ReconstructConfig', 'camera_model')}")] = None,
     single_camera: Annotated[
-        bool | None, typer.Option("--single-camera/--per-image-camera", help="Share one camera per image size.")
+        bool | None, typer.Option("--single-camera/--per-image-camera", help="Share one camera per image size. "
+                                  + _d_flag("ReconstructConfig", "single_camera", "single-camera", "per-image-camera"))
     ] = None,
     max_image_size: Annotated[int | None, typer.Option(
         help=f"Longest image side used. {_d('ReconstructConfig', 'max_image_size')}")] = None,

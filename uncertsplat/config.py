@@ -1246,7 +1246,8 @@ def load_toml(path: str | Path) -> dict:
     if path.is_dir():
         raise UserError("this is a folder, not a config file", path=path, hint="Give the path of a .toml file.")
     if not path.is_file():
-        raise UserError("config file not found", path=path)
+        raise UserError("config file not found", path=path,
+                        hint=f"Check the path (a relative one is read from {Path.cwd()}).")
     try:
         return tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:

@@ -84,6 +84,8 @@ def test_affine_exposures_are_learned_evaluated_and_kept_by_prune(exposed_scene,
     report = evaluate.run(run, cfg, torch.device("cpu"))
     assert np.isfinite(report.mean.nll) and report.mean.psnr > 10
     assert any(n.startswith("exposure of ") and "part of the RGB std" in n for n in report.notes), report.notes
+    (std,) = [n for n in report.notes if n.startswith("std² = ")]  # the formula names the term too (a helper's audit)
+    assert "training photos' learned exposures" in std
 
     out = tmp_path / "pruned"
     prune.run(run, out, PruneConfig(keep_ratio=0.9, num_samples=2), torch.device("cpu"))

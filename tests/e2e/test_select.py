@@ -252,6 +252,8 @@ class TestAddViewsErrors:
         with pytest.raises(UserError, match="--add-views nope.png: no photo of that name in the scene") as err:
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["nope.png"])
         assert "a pose that select-views proposed needs a photo taken there first" in str(err.value)
+        # a synthetic scene is no reconstruct workspace: --extend, which refuses it, is not suggested (a helper's audit)
+        assert "--extend registers new photos" in str(err.value) and "reconstruct PHOTOS" not in str(err.value)
         said = capsys.readouterr().err  # nothing said of a resume that is refused (it warned, then refused)
         assert "resuming from" not in said and "none are grown" not in said, said
         assert "did you mean" not in str(err.value)

@@ -884,6 +884,21 @@ def test_the_depth_of_a_layered_exr_is_its_depth_channel(tmp_path):
     np.testing.assert_array_equal(read_depth_file(tmp_path / "grey.exr"), depth)
 
 
+def test_a_depth_map_that_is_not_one_is_refused_with_what_to_write_instead(tmp_path):
+    """A user's --depth-gt map of three channels said only its shape, and a truncated one told them to regenerate
+    the scene (a helper's audit): both say what to write."""
+    from uncertsplat.data.dataset import read_depth_file
+
+    np.save(tmp_path / "rgb.npy", np.zeros((4, 5, 3), np.float32))
+    with pytest.raises(UserError, match=r"must be 2-D \(one depth per pixel\), got shape \(4, 5, 3\)") as err:
+        read_depth_file(tmp_path / "rgb.npy")
+    assert "HxW" in err.value.hint
+    (tmp_path / "cut.npy").write_bytes((tmp_path / "rgb.npy").read_bytes()[:100])
+    with pytest.raises(UserError, match="cannot read the depth map") as err:
+        read_depth_file(tmp_path / "cut.npy")
+    assert "write it again" in err.value.hint and "uncertsplat synth" in err.value.hint
+
+
 def test_a_depth_map_of_another_shape_is_refused_and_no_surface_is_invalid(tmp_path):
     """A transposed map was stretched to its photo (AbsRel 0.55 against 0.07, no word); Blender's 1e10 where a ray
     meets nothing counted as a depth (RMSE 4e8)."""

@@ -161,7 +161,8 @@ def read_depth_file(path: Path) -> np.ndarray:
             arr = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as err:
             raise UserError(f"cannot read the depth map ({err})", path=path,
-                            hint="The file may be truncated; regenerate the scene.") from None
+                            hint="The file may be truncated or not a NumPy array: write it again (np.save of an "
+                                 "HxW float array), or regenerate the scene if `uncertsplat synth` wrote it.") from None
     else:
         channels = read_exr(path)
         arr = channels[depth_channel(channels, path)]
@@ -169,7 +170,9 @@ def read_depth_file(path: Path) -> np.ndarray:
     if arr.ndim == 3 and arr.shape[-1] == 1:
         arr = arr[..., 0]
     if arr.ndim != 2:
-        raise UserError(f"depth map must be 2-D, got shape {arr.shape}", path=path)
+        raise UserError(f"depth map must be 2-D (one depth per pixel), got shape {arr.shape}", path=path,
+                        hint="Save one channel per map: an HxW array in .npy, or an EXR with a Z (or depth) channel; "
+                             "a colour-coded depth image cannot be read as depth.")
     return arr
 
 

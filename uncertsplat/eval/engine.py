@@ -595,7 +595,8 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
     # resolution term in the predictive: the factor is fitted on that same predictive (without it, the demo's came
     # out x1.7 and made the calibrated NLL 0.13 nats worse than the raw; BENCHMARKS.md, "The std factor where the
     # noise's level was fitted on training views")
-    with_resolution = cfg.resolution_on_training_views or (noise_scale_mode(cfg) == "fit" and sampler.residual is not None)
+    fitted_noise = noise_scale_mode(cfg) == "fit" and sampler.residual is not None
+    with_resolution = cfg.resolution_on_training_views or fitted_noise
     fit_cfg = _without_resolution(cfg) if on_training and not with_resolution else cfg
     views = load_views(chosen)  # as they are: a photo at its own exposure, what the exposures' spread predicts
     gen = torch.Generator(device=device)
@@ -793,6 +794,9 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if cfg.hidden_depth and sampler.consistency is not None:
         terms.append("for depth, where no compared training view sees a surface point, L^2 / 12 with L the stretch "
                      "of the view's ray in front of it that no training view saw empty")
+    if sampler.exposure is not None:
+        terms.append(f"the spread of the {len(sampler.exposure.indices)} training photos' learned exposures at the "
+                     "rendered colour (a new photo's exposure is not known)")
     if cfg.empty_rays and sampler.empty_std is not None:
         terms.append(f"an unknown surface where rays are covered less than the model covers its training views "
                      f"(alpha {sampler.coverage:.3f}; colour std {sampler.empty_std[0]:.3f}, depth "

@@ -481,12 +481,16 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                                      "another closer to the capture's viewpoints (overlap, no blur), put it into the "
                                      "photo folder under a new name and run `reconstruct --extend`; or add another "
                                      "photo.") from None
+            join = (f"put it into the photo folder, `uncertsplat reconstruct PHOTOS -o {scene} --extend` registers it "
+                    "into this workspace with every camera there kept, and the run then adds it here. "
+                    if report is not None else  # (--extend grows workspaces of reconstruct only)
+                    "add it to the scene with its camera, as the scene's own tool writes them (this scene is not a "
+                    "workspace of `uncertsplat reconstruct`, whose --extend registers new photos), and the run then "
+                    "adds it here. ")
             raise UserError(f"--add-views {', '.join(unknown)}: no photo of that name in the scene"
                             + _close_names(unknown, scene, cfg), path=scene,
                             hint="--add-views takes the names of photos the scene holds but the run did not train on; "
-                                 "a pose that select-views proposed needs a photo taken there first: put it into the "
-                                 f"photo folder, `uncertsplat reconstruct PHOTOS -o {scene} --extend` registers it into "
-                                 "this workspace with every camera there kept, and the run then adds it here. "
+                                 "a pose that select-views proposed needs a photo taken there first: " + join
                                  + (err.hint or "")) from None
         if not data.split.get("train"):
             raise UserError("the scene has no training views", path=scene, hint="Check test_every / test_names.")
