@@ -259,6 +259,8 @@ def test_single_run_report_has_every_section_and_exact_numbers(tmp_path):
     for sec in ("summary", "metrics", "views", "sparsification", "calibration", "training", "provenance"):
         assert sec in page.ids, sec
     assert "prune" not in page.ids  # no prune.json: no pruning section
+    ids = re.findall(r'\bid="([^"]+)"', index.read_text())
+    assert len(ids) == len(set(ids)), sorted(i for i in ids if ids.count(i) > 1)  # (the summary's table took "summary")
     # a per-view figure per view, sparsification, calibration and timeline figures
     assert {"figures/run0_view0.png", "figures/run0_view1.png", "figures/sparsification_run0.png",
             "figures/calibration.png", "figures/timeline.png"} <= set(page.imgs)
@@ -392,7 +394,7 @@ def test_prune_section_shows_the_prune_report(tmp_path):
     # which file each size is of: the model with its posterior, and the mean-parameter cloud viewers open
     assert rows["after"][6][0] == "variational_ply_bytes" and rows["after"][7][0] == "point_cloud_ply_bytes"
     assert {"PSNR (dB)", "SSIM", "AUSE MAE", "NLL (nats)", "Gaussians", "variational.ply (MB)",
-            "point_cloud.ply (MB)"} <= set(page.text)
+            "point_cloud.ply without scores (MB)"} <= set(page.text)
 
     sweep_rows = table_rows(html, "prune-sweep-0")
     assert len(sweep_rows) == len(rep.sweep.points)
@@ -792,6 +794,9 @@ def test_the_summary_says_plainly_when_the_std_is_too_small_or_too_large(tmp_pat
                                            "worse)")
     m.mean.nll_calibrated = -2.7
     assert calibration_verdict(m).endswith("the std factor (NLL, std rescaled) corrects the level")
+    # a factor above 1 widens a std already too wide, whatever its NLL (a helper's audit: "corrects the level")
+    m.std_scale, m.mean.nll_calibrated = 1.2, -2.562
+    assert calibration_verdict(m).endswith("the std factor fitted on other views (x1.2) widens it further")
     run = make_run(tmp_path, "r", maps=False, stats=False)
     stage.run([run], tmp_path / "out", ReportConfig())
     assert "over-confident" in (tmp_path / "out" / "index.html").read_text()
@@ -938,7 +943,7 @@ def test_psnr_inside_the_masks_is_labelled_so(tmp_path):
     plain = make_run(tmp_path, "plain", maps=False)
     html = stage.run([masked, plain], tmp_path / "two", ReportConfig()).read_text()
     assert "<th>PSNR, expected render (dB) †: inside the masks</th>" in html
-    row = table_rows(html, "summary")
+    row = table_rows(html, "summary-table")
     assert next(t for k, _, t in row["masked"] if k == "psnr_render") == "19.06 †"
     assert all(not t.endswith("†") for _, _, t in row["plain"])
     html = stage.run([plain], tmp_path / "none", ReportConfig()).read_text()
@@ -1129,7 +1134,7 @@ def test_an_ensemble_says_its_count_is_the_members_sum_and_draws_their_timelines
     real = figures.timeline_figure
     monkeypatch.setattr(figures, "timeline_figure", lambda per_run: drawn.append(per_run) or real(per_run))
     html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
-    cell = next(t for k, _, t in table_rows(html, "summary")["ens"] if k == "num_gaussians")
+    cell = next(t for k, _, t in table_rows(html, "summary-table")["ens"] if k == "num_gaussians")
     assert cell == "30,526 over 2 members"
     assert "30526 (the sum over 2 members)" in html
     assert "no stats.jsonl" not in html
@@ -1230,7 +1235,13 @@ def test_legends_sit_outside_the_data_and_sigma_labels_do_not_overlap(monkeypatc
     fig = figures.timeline_figure([("a", stats), ("b", stats)])
     assert all(a.get_legend() is None for a in fig.axes) and len(fig.legends) == 1
     assert [t.get_text() for t in fig.legends[0].get_texts()] == ["a", "b", "dashed: Gaussians with a posterior"]
-    assert fig.axes[0].get_ylabel() == "loss (symlog scale)"
+    assert fig.axes[0].get_ylabel() == "loss (symlog scale)"  # (1 to 0.024: over a decade)
+    # a short run's losses within a decade: a linear axis with numbers on it (symlog's powers of ten left none)
+    short = [dict(step=s, loss=0.21 - 0.001 * s, num_gaussians=100) for s in range(0, 80, 10)]
+    fig = figures.timeline_figure([("a", short), ("b", short)])
+    assert fig.axes[0].get_ylabel() == "loss" and fig.axes[0].get_yscale() == "linear"
+    # twenty runs, twenty colours (an ensemble's ten members and more repeated the first eight)
+    assert len({figures.run_color(i) for i in range(20)}) == 20
 
 
 def test_a_legend_of_long_run_names_fits_the_figure(monkeypatch):
@@ -1273,3 +1284,28 @@ def test_two_views_of_one_name_stem_keep_maps_of_their_own(tmp_path):
     assert not (tmp_path / "IMG_1.exr").exists()
     a, b = (load_view(n, tmp_path, among=names) for n in names[:2])
     assert float(a.rgb_mean.mean()) == pytest.approx(0.2) and float(b.rgb_mean.mean()) == pytest.approx(0.7)
+
+
+def test_the_sweep_caption_loses_what_the_table_beside_it_shows(tmp_path):
+    """The caption's "dB lost" was the stored 0.0569 ("0.06") beside a table reading 32.66 -> 32.61 (a helper's
+    audit): it is the difference of the rounded PSNRs, with both."""
+    from uncertsplat.report.build import _sweep_loss
+
+    sw = make_prune_report(tmp_path / "run").sweep
+    best = sw.largest_removal_within_tolerance
+    sw.unpruned.psnr, sw.points[1].score.psnr, best.psnr_loss_db = 32.6641, 32.6072, 0.0569
+    assert _sweep_loss(sw, best) == "0.05 dB (32.66 → 32.61)"
+    sw.points[1].score.psnr = None  # no PSNR in the table's row: the stored loss
+    assert _sweep_loss(sw, best) == "0.06 dB"
+
+
+def test_ratios_the_sweep_did_not_measure_are_named(tmp_path):
+    """``prune --auto`` stops at the first ratio past the tolerance; the report listed 3 rows of a 6-ratio sweep
+    without a word (a helper's audit)."""
+    run = make_run(tmp_path, "run_a")
+    report = make_prune_report(run)
+    report.sweep.ratios = [1.0, 0.9, 0.7, 0.5, 0.3, 0.2]
+    report.write(run / "prune.json")
+    stage.run(run, tmp_path / "out")
+    text = " ".join((tmp_path / "out" / "index.html").read_text().split())
+    assert "Keep ratios 0.3, 0.2 of the sweep were not measured" in text

@@ -258,7 +258,7 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
         cells.append(Cell(str(m.num_samples), key="num_samples", value=m.num_samples) if m is not None
                      else Cell("n/a"))
         rows.append((run.name, cells))
-    body = [table(header, rows, table_id="summary")]
+    body = [table(header, rows, table_id="summary-table")]  # (the section is "summary": an id is unique)
     for mismatch in (comparability_note(runs), views_note(runs), samples_note(runs)):
         if mismatch:
             body.append(note(mismatch))
@@ -410,6 +410,8 @@ def calibration_verdict(m) -> str | None:
     raw, fitted = m.mean.nll, m.mean.nll_calibrated
     if m.std_scale is None or raw is None or fitted is None:
         return what
+    if m.std_scale >= 1.0:  # it widens a std that is already too wide: nothing to correct with it
+        return what + f"; the std factor fitted on other views (x{m.std_scale:.3g}) widens it further"
     if fitted - raw > NLL_WORSE_BY:  # (a factor fitted where the model fits better overshoots here: said below)
         return what + "; the std factor fitted on other views does not correct it here (its NLL is worse)"
     return what + "; the std factor (NLL, std rescaled) corrects the level"
@@ -788,6 +790,20 @@ def _prune_table(p: PruneReport, ri: int) -> str:
     return table(["model"] + [s.label for s in PRUNE_SPECS], rows, table_id=f"prune-{ri}")
 
 
+def _sweep_loss(sweep: PruneSweep, best) -> str:
+    """The PSNR the sweep's chosen removal loses, as the sweep table beside it shows it: the difference of the two
+    PSNRs as rounded there (the stored 0.0569 read "0.06 dB" beside 32.66 -> 32.61), with both; the stored loss where
+    the table has no such row."""
+    point = next((q for q in sweep.points if q.num_removed == best.num_removed and q.keep_ratio == best.keep_ratio),
+                 None)
+    before = getattr(sweep.unpruned, sweep.metric)
+    after = getattr(point.score, sweep.metric) if point is not None else None
+    if before is None or after is None:
+        return f"{best.psnr_loss_db:.2f} dB"
+    b, a = float(format_value(before, ".2f")), float(format_value(after, ".2f"))
+    return f"{b - a:.2f} dB ({b:.2f} → {a:.2f})"
+
+
 def _sweep_table(sweep: PruneSweep, ri: int) -> str:
     best = sweep.largest_removal_within_tolerance
     rows = []
@@ -934,11 +950,16 @@ def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
                    f"model, shaded: within {sw.tolerance_db:g} dB of it.")
         if best is not None:
             caption += (f" Circled: the largest removal within tolerance (keep ratio {best.keep_ratio:g}, "
-                        f"{best.num_removed:,} removed, {best.psnr_loss_db:.2f} dB lost"
+                        f"{best.num_removed:,} removed, {_sweep_loss(sw, best)} lost"
                         f"{' in the expected render' if sw.metric == 'psnr_render' else ''}).")
         html = w.add_figure(f"prune_sweep_run{ri}.png", F.prune_sweep_figure(sw), caption, "pruning sweep")
         body.append(html or note(f"{run.name}: the sweep has no PSNR to plot."))
         body.append(_sweep_table(sw, ri))
+        measured = {q.keep_ratio for q in sw.points}
+        missing = [r for r in sw.ratios if r not in measured]
+        if missing:  # (a reader counted 3 rows against the 6 ratios of prune.json's sweep)
+            body.append(para(f"Keep ratios {', '.join(f'{r:g}' for r in missing)} of the sweep were not measured: "
+                             "`prune --auto` stops at the first ratio past the tolerance.", "muted"))
         if best is None:
             body.append(para(f"No removal stays within {sw.tolerance_db:g} dB of the unpruned PSNR.", "muted"))
     w.section("prune", "Pruning", "".join(body))

@@ -72,7 +72,8 @@ PRUNE_SPECS: tuple[MetricSpec, ...] = (
     MetricSpec("nll", "NLL (nats)", ".3f", False),
     MetricSpec("num_gaussians", "Gaussians", ",d", None),
     MetricSpec("variational_ply_bytes", "variational.ply (MB)", ".2f", False, scale=1e-6),
-    MetricSpec("point_cloud_ply_bytes", "point_cloud.ply (MB)", ".2f", False, scale=1e-6),
+    # (as train writes it: the pruned run's own file is larger by the score_* columns prune adds)
+    MetricSpec("point_cloud_ply_bytes", "point_cloud.ply without scores (MB)", ".2f", False, scale=1e-6),
 )
 
 

@@ -42,7 +42,11 @@ _STYLE = {
     "figure.facecolor": "white",
 }
 RANK_CMAP = "turbo"  # the colour map of colormaps.rank_colorize (its default)
-RUN_COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf")
+# 20 distinct colours, the strong ones first: an ensemble's 10 members beside other runs repeated the first 8 (a
+# helper's audit: member_8 in member_0's colour); beyond 20 they repeat
+RUN_COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b", "#e377c2", "#17becf",
+              "#393b79", "#637939", "#8c6d31", "#843c39", "#7b4173", "#bcbd22", "#7f7f7f", "#aec7e8",
+              "#ff9896", "#98df8a", "#c5b0d5", "#ffbb78")
 
 
 def _no_missing_glyph_warnings(draw):
@@ -55,6 +59,11 @@ def _no_missing_glyph_warnings(draw):
             warnings.filterwarnings("ignore", message=r"Glyph \d+ .*missing from", category=UserWarning)
             return draw(*args, **kwargs)
     return quiet
+
+
+LINEAR_LOSS_RANGE = 20.0
+"""The training figure's loss panel is linear when its largest loss value is below this many times its smallest
+positive one (else symlog)."""
 
 
 def run_color(i: int) -> str:
@@ -360,6 +369,9 @@ def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
     positive = np.concatenate([stats_series(s, k)[1] for _, s in per_run for k in loss_keys] or [np.zeros(0)])
     positive = positive[positive > 0]
     linthresh = float(np.clip(np.percentile(positive, 5), 1e-8, 1e-2)) if positive.size else 1e-3
+    # losses within a decade or so (a short run's 0.13-0.21) get a linear axis: symlog put its ticks at powers of ten
+    # only, and such a panel had no number on its axis (a helper's audit)
+    symlog = not (positive.size and float(positive.max()) < LINEAR_LOSS_RANGE * float(positive.min()))
     panels = []
     if loss_keys:
         panels.append("loss")
@@ -389,7 +401,8 @@ def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
                                     ls=styles[j % 4] if multi else "-", color=col if multi else None,
                                     label=f"{pre}{k}")
                     ax.set_title("loss" if multi else "loss terms")
-                    ax.set_yscale("symlog", linthresh=linthresh)
+                    if symlog:
+                        ax.set_yscale("symlog", linthresh=linthresh)
                 elif panel == "gaussians":
                     x, y = stats_series(stats, "num_gaussians")
                     ax.plot(x, y, color=col, lw=1.4, label=f"{pre}Gaussians")
@@ -411,7 +424,7 @@ def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
                 ax.set_ylim(bottom=0)
             ax.set_xlabel("step")
             if panel == "loss":
-                ax.set_ylabel("loss (symlog scale)")
+                ax.set_ylabel("loss (symlog scale)" if symlog else "loss")
             if not multi and ax.get_legend_handles_labels()[0]:
                 ax.legend(frameon=False, loc="best")
         if not multi:

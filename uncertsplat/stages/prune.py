@@ -240,7 +240,7 @@ def _print_table(title: str, rows: list[tuple[str, PruneMetrics]]) -> None:
 
     table = Table(title=title)
     for col in ("model", "Gaussians", "PSNR dB", "PSNR dB, expected render", "SSIM", "AUSE-MAE", "NLL nats", "coverage",
-                "variational.ply MB", "point_cloud.ply MB"):
+                "variational.ply MB", "point_cloud.ply MB, no scores"):
         table.add_column(col, justify="right")
 
     def f(x, p=3):
