@@ -396,6 +396,11 @@ class FisherConfig(_Base):
     prior_std_sh0: float = Field(0.1, gt=0.0)
 
 
+TRAIN_SEED_MAX = 2**32 - 2048
+"""The largest training seed (``TrainConfig.seed``): its generators' seeds, seed + a few and an ensemble member's
+seed + i, stay below 2**32, all of which torch's CPU generator keeps."""
+
+
 class TrainConfig(_Base):
     """Training (``uncertsplat train``)."""
 
@@ -413,10 +418,10 @@ class TrainConfig(_Base):
     """paper: the original code's choices (log-scale multiplier, absolute position prior)."""
 
     iterations: int = Field(7000, ge=1)
-    seed: int = Field(0, ge=0, le=2**63 - 2048)
-    """At most 2**63 - 2048: the trainer's generators take seed + a few, an ensemble's members seed + i (at most 1000),
-    and torch's seeds are signed 64-bit (2**64 was a traceback at the start; an ensemble near the top trained members
-    before failing on one)."""
+    seed: int = Field(0, ge=0, le=TRAIN_SEED_MAX)
+    """At most 2**32 - 2048: the trainer's generators take seed + a few, an ensemble's members seed + i (at most
+    1000), and torch's CPU generator keeps a seed's low 32 bits (seeds s and s + 2**32 trained the same model; 2**64
+    was a traceback at the start)."""
     profile: bool = False
     """Time every phase of a training step (data, sample, render, loss, backward, optimizer, densify, posterior
     update, evaluation, checkpoints) into ``train_summary.json`` ``profile``; on CUDA this synchronises the
@@ -549,9 +554,11 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
 
 
 # --------------------------------------------------------------------------------------------- evaluate
-EVAL_SEED_MAX = 2**40
+EVAL_SEED_MAX = 2**32 - 1
 """The largest seed of the stages whose per-view seeds are ``seed x 1,000,003 + index`` (``eval.engine.view_seed``):
-every one stays a 64-bit seed (a larger seed was a traceback from torch; ``predict.MAX_SEED`` is this)."""
+torch's CPU generator keeps a seed's low 32 bits, so seeds s and s + 2**32 gave the same maps (a helper's 2**32 and
+2**40 repeated seed 0; the view seeds of two seeds below 2**32 differ in those bits, 1,000,003 being odd); every
+view seed stays a 64-bit one (``predict.MAX_SEED`` is this)."""
 MAX_DEGREES_OF_FREEDOM = 1000.0
 """The largest Student-t nu accepted (``eval.tails.MAX_DOF``, where a fit reads as the Gaussian): far beyond, the
 t's log-density loses its digits (1e15 gave an NLL of 17.7 for -1.56, 1e300 a traceback)."""
@@ -571,12 +578,13 @@ class EvalConfig(_Base):
     ``depth_gt`` folder's factor is fitted (``depth_align``); scene: the ``depth_gt`` maps are in the scene's own
     units (its COLMAP model's, e.g. a metric map's), the known factor of ``RUN/scene.json``."""
     depth_align: Literal["median", "lsq"] = "median"
-    std_floor: float = Field(1e-3, gt=0.0, le=0.01)
+    std_floor: float = Field(1e-3, ge=1e-18, le=0.01)
     """The NLL uses max(std, std_floor) so a zero std does not give an infinite NLL (the depth NLL: std_floor in the
     run's normalised units, carried into the GT maps' units with the depths). At most 0.01 (1 % of the colour
     range): the std factor is fitted with the floor under the raw std and applied before the metrics' floor, which
     agree only while the floor is well below the std (a floor of 0.1 made the calibrated calibration error 0.14
-    against a raw 0.03)."""
+    against a raw 0.03). At least 1e-18, whose square float32 still holds (1e-50 was 0 there: with every other
+    term off a zero std divided the errors and the NLL was no number)."""
     paper_nll: bool = False
     """Also report the original code's KDE NLL formula (not comparable with a correct NLL)."""
     ause_steps: int = Field(100, ge=2, le=10_000)
@@ -639,7 +647,7 @@ class EvalConfig(_Base):
     evaluation); 0: off, the std is the samples' spread (and the empty-ray term) only. Fewer views cost ranking
     (BENCHMARKS.md, "How many training views the pixel noise is fitted on": bonsai's AUSE-MAE 0.336 with its 42 views,
     0.348 with 16, for 3.4 s of a 29 s evaluation)."""
-    residual_scale: Literal["auto", "fit"] | Annotated[float, Field(gt=0.0)] = "auto"
+    residual_scale: Literal["auto", "fit"] | Annotated[float, Field(gt=0.0, le=1e30)] = "auto"
     """The pixel noise's level: a factor for the fitted per-Gaussian noise (1: each Gaussian's mean squared training
     residual itself), or ``fit``: the maximum-likelihood factor given the rest of the predictive
     (``eval.engine.fit_noise_scale``) on the views set aside from training when the scene has some
@@ -649,7 +657,8 @@ class EvalConfig(_Base):
     0.85 -> 1.00, 0.052 -> 0.035) but makes the std too small where the model renders worse than on its training
     views (NLL: sparse views -2.61 -> -2.34, half-ring 0.26 -> 1.52, bonsai -1.00 -> -0.75; BENCHMARKS.md, "The
     pixel noise's level"), hence 1 there; fitted on views set aside it improves the raw NLL and calibration error on
-    the demo, fern and bonsai (BENCHMARKS.md, "Views set aside for calibration")."""
+    the demo, fern and bonsai (BENCHMARKS.md, "Views set aside for calibration"). A factor at most 1e30 (1e300
+    overflowed float32: the std was no number in every pixel)."""
     colour_posterior: bool = True
     """Add the colour the model does not know to the RGB std: the Laplace posterior of each Gaussian's colour (its
     SH coefficients) given the training pixels it is blended into, seen from the evaluated view

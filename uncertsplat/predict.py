@@ -483,7 +483,7 @@ class Predictor:
             num_samples: posterior samples (None: the config's K). The std factor and tails were fitted at the
                 config's K: for another K load with ``cfg=EvalConfig(num_samples=k)``, which fits them at k.
             seed: the evaluation seed (None: the config's, ``config.seed``: the run's evaluation's unless ``load``
-                was given a ``cfg``, so that the scene's views get ``evaluate``'s EXR maps); 0 to 2**40.
+                was given a ``cfg``, so that the scene's views get ``evaluate``'s EXR maps); 0 to 2**32 - 1.
 
         Calls may come from several threads at once (a thread pool over candidate views), each getting the maps a
         serial call gets; on a CPU each call runs torch's own ops on one thread, so a pool of about as many threads
@@ -500,8 +500,8 @@ class Predictor:
                             "cameras_from_source(cam_from_source, K, width, height) first, or pass scene.cameras[...]")
         k = _whole(num_samples if num_samples is not None else self._cfg.num_samples, "num_samples", 1)
         seed = _whole(seed if seed is not None else self._cfg.seed, "seed", 0)
-        if seed > MAX_SEED:  # torch seeds are 64-bit: view_seed multiplies the seed by about 1e6
-            raise UserError(f"seed must be at most {MAX_SEED} (2**40), got {seed}")
+        if seed > MAX_SEED:  # torch's CPU generator keeps a seed's low 32 bits (config.EVAL_SEED_MAX)
+            raise UserError(f"seed must be at most {MAX_SEED} (2**32 - 1), got {seed}")
         with native.single_threaded_torch(self.device):  # as evaluate runs (its sums, so its maps, to the last bit)
             return self._predict(cameras, k, seed)
 

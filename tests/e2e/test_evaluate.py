@@ -18,7 +18,7 @@ from tests.fixtures import tiny_scene_path  # noqa: F401
 from tests.run_fixtures import tiny_run_path  # noqa: F401
 from uncertsplat.baselines import load_run
 from uncertsplat.cli import app
-from uncertsplat.config import EvalConfig
+from uncertsplat.config import EvalConfig, build_config
 from uncertsplat.data.dataset import load_view_set
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import StdFit, evaluate_views, fit_residual, fit_std_scale, with_side_terms
@@ -1365,3 +1365,29 @@ def test_the_std_formula_names_every_term_the_run_has(evaluated):
     (std,) = [n for n in report.notes if n.startswith("std² = ")]
     for part in ("nearest in direction", "finer-detail coefficient", "depths each ray blends", "L^2 / 12"):
         assert part in std, part
+
+
+def test_a_std_that_is_no_number_is_said_and_the_console_survives_it(tiny_run_path, tmp_path, monkeypatch):
+    """A NaN std read as 0 ("every pixel's RGB std is 0 (one sample and every side term off?)") under K = 10 with
+    every term on, and a NaN NLL ended the console's std-factor line in a traceback after metrics.json was written (a
+    helper's residual_scale=1e300, now refused by the config): the NaN is named, and the line prints '-'."""
+    from uncertsplat.eval.engine import NOT_A_NUMBER_NOTE
+    from uncertsplat.uncertainty import mc
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    real = mc.mc_render
+
+    def nan_std(*args, **kwargs):
+        maps, extra = real(*args, **kwargs)
+        maps.rgb_std[0, :4, :4] = float("nan")
+        return maps, extra
+
+    monkeypatch.setattr(mc, "mc_render", nan_std)
+    report = evaluate.run(run, EvalConfig(num_samples=2, max_views=1, save_maps=False, reuse=False),
+                          device=torch.device("cpu"))
+    assert any(n.startswith(NOT_A_NUMBER_NOTE) for n in report.notes), report.notes
+    assert not any(n.startswith("every pixel's RGB std is 0") for n in report.notes)
+    for bad in ({"residual_scale": 1e300}, {"std_floor": 1e-50}):
+        with pytest.raises(UserError, match="invalid configuration"):
+            build_config(EvalConfig, bad)

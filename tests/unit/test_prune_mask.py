@@ -138,8 +138,8 @@ def test_apply_keep_rejects_wrong_shape():
 
 class TestScoreChoice:
     """``--score auto``: the default and its alternatives are swept with the same measure, and the one that removes
-    the most within the tolerance (``--auto``) or keeps the higher PSNR at the asked ratio (``--keep-ratio``) is used;
-    the default wins ties."""
+    the most within the tolerance (``--auto``, the cheaper among equal removals) or keeps the higher PSNR at the asked
+    ratio (``--keep-ratio``) is used; the default wins full ties."""
 
     @staticmethod
     def sweeps(ratios, tolerance_db=0.1, full=False):
@@ -172,11 +172,13 @@ class TestScoreChoice:
         chosen, note = choose_score_by_removal(sweeps)
         assert chosen == "gate" and "'free-space' 0 Gaussians" in note and "'gate' 12 Gaussians" in note
 
-    def test_the_default_wins_a_tie(self):
+    def test_equal_removals_go_to_the_cheaper_then_to_the_default(self):
         from uncertsplat.prune.policy import choose_score_by_removal
 
-        sweeps = self.sweeps([1.0, 0.9], tolerance_db=100.0)  # both remove 6
-        assert choose_score_by_removal(sweeps)[0] == "free-space"
+        sweeps = self.sweeps([1.0, 0.9], tolerance_db=100.0)  # both remove 6: free-space 0.3 dB, gate nothing
+        assert choose_score_by_removal(sweeps)[0] == "gate"  # (the default won and kept the worse model)
+        same = {"free-space": sweeps["gate"], "gate": sweeps["gate"]}  # removal and cost equal: the default
+        assert choose_score_by_removal(same)[0] == "free-space"
         assert choose_score_by_removal(self.sweeps([1.0, 0.9], tolerance_db=0.0))[0] == "gate"
 
     def test_where_none_removes_anything_the_nearest_miss_is_quoted(self):

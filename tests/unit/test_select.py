@@ -290,6 +290,7 @@ class TestCandidates:
         ("a 0 0 0 0 1 2 3", "quaternion is zero"),
         ("a 2 0 0 0 1 2 3", "norm 2"),
         ("a 1 0 0 0 nan 0 0", "non-finite"),
+        ("a 1 0 0 0 0 0 1e300", "too far away to compute with"),  # (finite, inf in float32: ranked first)
     ])
     def test_a_bad_pose_names_its_line(self, scene, tmp_path, line, message):
         f = tmp_path / "poses.txt"

@@ -353,6 +353,28 @@ def load_single_model(run_dir: str | Path, device: torch.device | str = "cpu") -
     return _load_single(run_dir, read_run_config(run_dir), device)
 
 
+def refuse_non_finite(model: GaussianModel, path: Path) -> None:
+    """Raise a ``UserError`` naming ``path`` when ``model`` holds a NaN anywhere or an infinite position: its renders
+    and every uncertainty term built from them would be NaN (a helper's model with 5 NaN positions of 9,428 scored
+    finite metrics from maps whose std was NaN in 98 % of the pixels, and `prune` failed with a traceback)."""
+    bad = []
+    for name, t in model.parameters().items():
+        x = t.detach()
+        if x.numel() == 0:
+            continue
+        wrong = ~torch.isfinite(x) if name == "means" else torch.isnan(x)
+        rows = int(wrong.reshape(x.shape[0], -1).any(1).sum())
+        if rows:
+            what = "Gaussian" if name in model.params else "posterior carrier"
+            bad.append(f"{name} of {rows:,} {what}{'s' if rows > 1 else ''}")
+    if bad:
+        raise UserError(f"the model holds values that are not numbers ({', '.join(bad)}; NaN, or an infinite "
+                        "position): its renders and uncertainty would be NaN", path=path,
+                        hint="Train it again, or resume from a checkpoint written before this happened "
+                             "(`uncertsplat train SCENE -o RUN --resume`); a model file changed outside uncertsplat "
+                             "must keep every value a finite number.")
+
+
 def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) -> LoadedRun:
     from uncertsplat.io.checkpoints import CorruptCheckpoint, list_checkpoints, load_latest
     from uncertsplat.io.ply import read_variational_ply
@@ -366,6 +388,7 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
     ply = run_dir / "variational.ply"
     if ply.is_file():
         model, meta = read_variational_ply(ply, device=device)
+        refuse_non_finite(model, ply)
         newest = max((step for step, _ in list_checkpoints(run_dir)), default=-1)
         # a --resume stopped (Ctrl-C, a crash) before it wrote its model leaves the PLY of the steps before it, and
         # checkpoints past them: the newer model is the checkpoint's (``unfinished_notes`` says so), not the PLY
@@ -384,6 +407,7 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
         model = GaussianModel.from_state_dict(state["model"], device)
     except (KeyError, ValueError) as err:  # a good checksum over an inconsistent model: written by other code
         raise CorruptCheckpoint(f"the model in the checkpoint is inconsistent ({err})", path=path) from None
+    refuse_non_finite(model, path)
     if exposure is None and state.get("exposure") is not None and info is not None:
         exposure = checkpoint_exposure(state, info.train)
     return LoadedRun(model, cfg, scene_path, float(state["extent"]), int(state["step"]),
@@ -436,4 +460,5 @@ def load_run(run_dir: str | Path, device: torch.device | str = "cpu") -> LoadedR
     return base
 
 
-__all__ = ["LoadedRun", "checkpoint_exposure", "load_run", "load_single_model", "mean_exposure", "read_run_config"]
+__all__ = ["LoadedRun", "checkpoint_exposure", "load_run", "load_single_model", "mean_exposure", "read_run_config",
+           "refuse_non_finite"]

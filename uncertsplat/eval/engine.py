@@ -638,6 +638,8 @@ normalised units, as with method "scene"); "given" is one against a ``--depth-gt
 
 ZERO_STD_NOTE = "every pixel's RGB std is 0"
 """How ``evaluate_views``' note begins when no pixel has a std (``stages.evaluate`` prints it)."""
+NOT_A_NUMBER_NOTE = "the RGB std is not a number (NaN or inf)"
+"""How ``evaluate_views``' note begins when some pixel's std is NaN or inf (``stages.evaluate`` prints it)."""
 IMPLAUSIBLE_DEPTH_NOTE = "the GT maps are probably in other units"
 """What ``implausible_depth_scale_notes``' note says (``stages.evaluate`` prints the notes that say it: a warning
 about every depth number, which only metrics.json and the report held)."""
@@ -742,6 +744,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     # a helper's report showed NLL (KDE) 2,700-3,000 for such runs beside -2.5 for the others
     keep = K <= KDE_MAX_SAMPLES and K > 1 and not same
     std_max = 0.0  # the largest RGB std of any pixel (0: the NLL and calibration measure only the floor)
+    not_numbers = 0  # RGB std values that are NaN or inf (a NaN read as 0 above: "every pixel's std is 0")
     if K > KDE_MAX_SAMPLES:
         notes.append(f"KDE NLL skipped: K={K} > {KDE_MAX_SAMPLES} would keep every sample in memory")
     elif K == 1 or same:
@@ -825,7 +828,9 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             seconds = time.perf_counter() - t0
             pred = maps.rgb_mean[0].cpu().clamp(0, 1)
             std = maps.rgb_std[0].cpu()
-            std_max = max(std_max, float(std.max())) if std.numel() else std_max
+            finite = torch.isfinite(std)
+            not_numbers += int(std.numel() - finite.sum())
+            std_max = max(std_max, float(std[finite].max())) if bool(finite.any()) else std_max
             gt = images[j]
             mask = masks[j] if masks is not None else None
             err = pred - gt
@@ -951,7 +956,10 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                          "and renders a depth): they say little about the model's depth (a model pruned to a few "
                          "Gaussians, or one that did not fit)")
 
-    if std_max == 0.0:
+    if not_numbers:
+        notes.append(f"{NOT_A_NUMBER_NOTE} in {not_numbers:,} values of the views' maps: a model or setting beyond what "
+                     "float32 holds; the metrics of those pixels are not to be trusted")
+    if std_max == 0.0 and not not_numbers:
         notes.append(f"{ZERO_STD_NOTE} (one sample and every side term off?): the NLL and calibration measure the "
                      f"std floor ({cfg.std_floor:g}), not the model, and a std factor changes nothing")
     per_view = {r.name: ViewMetrics(**r.metrics) for r in results}

@@ -140,6 +140,11 @@ def read_pose_file(path: Path, scene: SceneData, world_from_source: Tensor) -> C
         # by s gives a rigid cam_from_world whose depths are in world units
         T = cam_from_source @ source_from_world
         T[:3, :] *= scale
+        if not bool(torch.isfinite(T.float()).all()):  # (1e300 passed as finite, became inf / NaN, and ranked first)
+            raise UserError(f"line {number}: the camera lies too far away to compute with (translation "
+                            f"{max(abs(v) for v in values[4:]):.3g} in the scene's units)", path=path,
+                            hint="Check TX TY TZ: the translation of the world-to-camera pose, in the units of the "
+                                 "scene's own frame (its COLMAP model's).")
         rows.append(T)
         names.append(fields[0])
     if not rows:

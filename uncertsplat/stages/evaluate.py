@@ -37,7 +37,13 @@ import torch
 from uncertsplat.config import EvalConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError, run_folder_missing
-from uncertsplat.eval.engine import IMPLAUSIBLE_DEPTH_NOTE, MASKED_NOTE, ZERO_STD_NOTE, ViewMaps
+from uncertsplat.eval.engine import (
+    IMPLAUSIBLE_DEPTH_NOTE,
+    MASKED_NOTE,
+    NOT_A_NUMBER_NOTE,
+    ZERO_STD_NOTE,
+    ViewMaps,
+)
 from uncertsplat.eval.nll import NLL_WORSE_BY
 from uncertsplat.eval.tails import MIN_DOF
 from uncertsplat.eval.tails import half_width as _half_width
@@ -278,14 +284,14 @@ FEW_CALIBRATION_VIEWS = 3
 ``scene.calibration_holdout``; one or two views are what a capture of three or four photos leaves)."""
 
 
-def std_factor_notes(views: int, nll_fitted: float, nll_raw: float) -> list[str]:
+def std_factor_notes(views: int, nll_fitted: float | None, nll_raw: float | None) -> list[str]:
     """What to say of a std factor fitted on ``views`` views that gives the evaluated views ``nll_fitted`` against
     ``nll_raw`` with the raw std: that it rests on too few views, or that these views disagree with it (their NLL
     worse by more than ``NLL_WORSE_BY``)."""
     reasons = []
     if views < FEW_CALIBRATION_VIEWS:
         reasons.append(f"the std factor rests on {views} view{'' if views == 1 else 's'} only, too few to trust")
-    if nll_fitted - nll_raw > NLL_WORSE_BY:
+    if nll_fitted is not None and nll_raw is not None and nll_fitted - nll_raw > NLL_WORSE_BY:
         reasons.append(f"the fitted factor makes these views' NLL worse than the raw std does, by "
                        f"{nll_fitted - nll_raw:.3f} nats (they differ from the views it was fitted on): read the raw "
                        "numbers")
@@ -460,7 +466,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         atomic_write_text(out / "config.json", cfg.model_dump_json(indent=2) + "\n")
     if quiet:
         return report
-    depth_units = [n for n in report.notes if IMPLAUSIBLE_DEPTH_NOTE in n or n.startswith(ZERO_STD_NOTE)]
+    depth_units = [n for n in report.notes
+                   if IMPLAUSIBLE_DEPTH_NOTE in n or n.startswith((ZERO_STD_NOTE, NOT_A_NUMBER_NOTE))]
     for note in depth_units:
         console.print(f"[yellow]warning:[/] {note}")
     for note in [*reach, *low, *few]:
@@ -667,9 +674,12 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
                           f"{report.calibration_source})")
     if report.std_scale is not None:
         m = report.mean
+        def g(x):  # (a metric with no valid pixel is None: the line is printed all the same)
+            return "-" if x is None else f"{x:.3f}"
+
         console.print(f"std x {report.std_scale:.3g} (fitted on {len(report.calibration_views)} {report.calibration_source}): "
-                      f"NLL {m.nll_calibrated:.3f} (raw {m.nll:.3f}), calibration error "
-                      f"{m.calibration_error_calibrated:.3f} (raw {m.calibration_error:.3f}); AUSE is unchanged")
+                      f"NLL {g(m.nll_calibrated)} (raw {g(m.nll)}), calibration error "
+                      f"{g(m.calibration_error_calibrated)} (raw {g(m.calibration_error)}); AUSE is unchanged")
         for note in std_factor_notes(len(report.calibration_views), m.nll_calibrated, m.nll):
             console.print(f"[yellow]note:[/] {note}")
     if report.degrees_of_freedom is None and cfg.degrees_of_freedom == "fit" and report.mean.nll is not None:
