@@ -396,9 +396,10 @@ class FisherConfig(_Base):
     prior_std_sh0: float = Field(0.1, gt=0.0)
 
 
-TRAIN_SEED_MAX = 2**32 - 2048
-"""The largest training seed (``TrainConfig.seed``): its generators' seeds, seed + a few and an ensemble member's
-seed + i, stay below 2**32, all of which torch's CPU generator keeps."""
+TRAIN_SEED_MAX = 2**32 - 8
+"""The largest training seed (``TrainConfig.seed``; an ensemble's, plus its ``ensemble_size - 1``, the seed of its
+last member): the trainer's generators take seed + at most 5, and all stay below 2**32, which torch's CPU generator
+keeps whole."""
 
 
 class TrainConfig(_Base):
@@ -419,9 +420,9 @@ class TrainConfig(_Base):
 
     iterations: int = Field(7000, ge=1)
     seed: int = Field(0, ge=0, le=TRAIN_SEED_MAX)
-    """At most 2**32 - 2048: the trainer's generators take seed + a few, an ensemble's members seed + i (at most
-    1000), and torch's CPU generator keeps a seed's low 32 bits (seeds s and s + 2**32 trained the same model; 2**64
-    was a traceback at the start)."""
+    """At most ``TRAIN_SEED_MAX`` (2**32 - 8; an ensemble: with its last member's seed, seed + ensemble_size - 1):
+    the trainer's generators take seed + a few, and torch's CPU generator keeps a seed's low 32 bits (seeds s and
+    s + 2**32 trained the same model; 2**64 was a traceback at the start)."""
     profile: bool = False
     """Time every phase of a training step (data, sample, render, loss, backward, optimizer, densify, posterior
     update, evaluation, checkpoints) into ``train_summary.json`` ``profile``; on CUDA this synchronises the
@@ -499,6 +500,14 @@ class TrainConfig(_Base):
     variational: VariationalConfig = VariationalConfig()
     densify: DensifyConfig = DensifyConfig()
     lr: LearningRates = LearningRates()
+
+    @model_validator(mode="after")
+    def _members_seeds(self):
+        if self.method == "ensemble" and self.seed + self.ensemble_size - 1 > TRAIN_SEED_MAX:
+            raise ValueError(f"seed: an ensemble's members take seeds seed .. seed + ensemble_size - 1, and the last, "
+                             f"{self.seed + self.ensemble_size - 1}, is over {TRAIN_SEED_MAX} (torch's CPU generator "
+                             f"keeps 32 bits): give a seed of at most {TRAIN_SEED_MAX - self.ensemble_size + 1}")
+        return self
 
     @model_validator(mode="after")
     def _posterior_for_variant(self):

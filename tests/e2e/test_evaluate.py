@@ -1369,8 +1369,8 @@ def test_the_std_formula_names_every_term_the_run_has(evaluated):
 
 def test_a_std_that_is_no_number_is_said_and_the_console_survives_it(tiny_run_path, tmp_path, monkeypatch):
     """A NaN std read as 0 ("every pixel's RGB std is 0 (one sample and every side term off?)") under K = 10 with
-    every term on, and a NaN NLL ended the console's std-factor line in a traceback after metrics.json was written (a
-    helper's residual_scale=1e300, now refused by the config): the NaN is named, and the line prints '-'."""
+    every term on (a helper's residual_scale=1e300, now refused by the config, as is a std floor below what float32
+    squares): the NaN is named, and the evaluation with its console lines finishes."""
     from uncertsplat.eval.engine import NOT_A_NUMBER_NOTE
     from uncertsplat.uncertainty import mc
 

@@ -323,7 +323,8 @@ def test_a_model_whose_gaussians_carry_no_posterior_says_why():
     (300, None, None),  # split children carry a posterior from step 200 (a helper's 300-step fern run: 1042 of 1326)
     (150, None, "the run's 150 steps end before Gaussians first get a posterior"),
     (7000, 150, "the run stopped at step 150, before Gaussians first get a posterior (step 200)"),
-    (7000, 250, None)])
+    (7000, 250, "no densification step split a Gaussian"),  # (asked of a model without one: no split made any)
+    (7000, 1000, None)])
 def test_a_posterior_comes_with_the_first_split_not_only_the_first_spawn(iterations, stopped, said):
     """Gaussians first carry a posterior as the children of a split, at the first densification step: the paper
     preset's step 200, not its first spawn step (1000). A 300-step run was told it would have none."""
@@ -339,6 +340,25 @@ def test_a_posterior_comes_with_the_first_split_not_only_the_first_spawn(iterati
     assert posterior_steps_needed(cfg) == 222
     if iterations == 150:
         assert "--iterations 222 or more" in reason
+
+
+def test_the_first_posterior_step_with_a_spawn_before_any_split_and_splits_that_made_none():
+    """A first spawn step before the first split (spawn_interval 50) looped for ever before training (a review); a
+    model that had its densification steps but no carrier (at its budget from the start: nothing split) was told
+    its Gaussians were too narrow, though its first spawn step never came."""
+    from uncertsplat.config import train_config_from
+    from uncertsplat.train.trainer import no_carriers_reason, posterior_steps_needed
+
+    early_spawn = train_config_from(None, {"densify": {"spawn_interval": 50}})  # spawn 150, split 200
+    assert posterior_steps_needed(early_spawn) == 150
+    wide = train_config_from(None, {"densify": {"interval": 1500}})  # split 1500, spawn 1000
+    assert posterior_steps_needed(wide) == 1000
+    cfg = train_config_from("paper", None, ["iterations=7000"])  # split at 200, spawn at 1000
+    said = no_carriers_reason(cfg, 500)  # (asked of a model with no carrier)
+    assert said.startswith("no densification step split a Gaussian") and "before its first spawn step (1000)" in said
+    assert "N >= 1000" in said
+    assert no_carriers_reason(cfg, 500, planned=True) is None  # before training a split may yet come
+    assert no_carriers_reason(cfg, 1500) is None  # past the spawn step: the spawn rule's widths (its own warning)
 
 
 def test_a_very_wide_view_is_named():

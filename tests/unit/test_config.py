@@ -63,7 +63,7 @@ def test_range_checked():
 @pytest.mark.parametrize("override, match", [
     ({"fisher": {"params": []}}, "fisher.params"),  # it trained the whole model, then failed at the Fisher pass
     ({"seed": 2**64}, "seed"),  # a traceback from torch's generator (an ensemble: after some members trained)
-    ({"seed": 2**32 - 2047}, "seed"),  # member seed + i and the trainer's seed + 4 must stay below 2**32
+    ({"seed": 2**32 - 7}, "seed"),  # the trainer's seed + 5 must stay below 2**32
     ({"seed": 2**32}, "seed"),  # torch's CPU generator keeps the low 32 bits: the same model as seed 0
 ])
 def test_training_settings_that_could_only_fail_later_are_refused(override, match):
@@ -73,7 +73,11 @@ def test_training_settings_that_could_only_fail_later_are_refused(override, matc
         build_config(TrainConfig, override)
     # the bound itself is taken, and a run stored with settings that trained (an init_opacity below the pruning
     # threshold, which densification need not reach) still loads
-    build_config(TrainConfig, {"seed": 2**32 - 2048, "init_opacity": 0.004})
+    build_config(TrainConfig, {"seed": 2**32 - 8, "init_opacity": 0.004})
+    # an ensemble's last member takes seed + ensemble_size - 1: refused up front (member 1 failed after member 0)
+    with pytest.raises(UserError, match=r"the last, 4294967297, is over 4294967288 .* at most 4294967279"):
+        build_config(TrainConfig, {"method": "ensemble", "seed": 2**32 - 8})
+    build_config(TrainConfig, {"method": "ensemble", "seed": 2**32 - 17})  # 10 members: the last at 2**32 - 8
 
 
 def test_prune_modes_exclusive():

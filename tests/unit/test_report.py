@@ -1237,7 +1237,7 @@ def test_legends_sit_outside_the_data_and_sigma_labels_do_not_overlap(monkeypatc
     assert [t.get_text() for t in fig.legends[0].get_texts()] == ["a", "b", "dashed: Gaussians with a posterior"]
     assert fig.axes[0].get_ylabel() == "loss (symlog scale)"  # (1 to 0.024: over a decade)
     # a short run's losses within a decade: a linear axis with numbers on it (symlog's powers of ten left none)
-    short = [dict(step=s, loss=0.21 - 0.001 * s, num_gaussians=100) for s in range(0, 80, 10)]
+    short = [dict(step=s, loss=0.21 - 0.001 * s, kl_total=1e-4, num_gaussians=100) for s in range(0, 80, 10)]
     fig = figures.timeline_figure([("a", short), ("b", short)])
     assert fig.axes[0].get_ylabel() == "loss" and fig.axes[0].get_yscale() == "linear"
     # twenty runs, twenty colours (an ensemble's ten members and more repeated the first eight)

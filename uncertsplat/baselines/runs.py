@@ -362,7 +362,9 @@ def refuse_non_finite(model: GaussianModel, path: Path) -> None:
         x = t.detach()
         if x.numel() == 0:
             continue
-        wrong = ~torch.isfinite(x) if name == "means" else torch.isnan(x)
+        # a position, or a table's position terms, at infinity samples an infinite position; elsewhere inf is a
+        # limit a render takes (an opacity logit of +inf is opacity 1)
+        wrong = ~torch.isfinite(x) if name == "means" or name.startswith("pos_") else torch.isnan(x)
         rows = int(wrong.reshape(x.shape[0], -1).any(1).sum())
         if rows:
             what = "Gaussian" if name in model.params else "posterior carrier"
@@ -370,9 +372,9 @@ def refuse_non_finite(model: GaussianModel, path: Path) -> None:
     if bad:
         raise UserError(f"the model holds values that are not numbers ({', '.join(bad)}; NaN, or an infinite "
                         "position): its renders and uncertainty would be NaN", path=path,
-                        hint="Train it again, or resume from a checkpoint written before this happened "
-                             "(`uncertsplat train SCENE -o RUN --resume`); a model file changed outside uncertsplat "
-                             "must keep every value a finite number.")
+                        hint="Train it again (training never writes such values: it skips the steps that would), "
+                             "or restore the file from a copy; a model file changed outside uncertsplat must keep "
+                             "every value a finite number.")
 
 
 def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) -> LoadedRun:
@@ -388,12 +390,12 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
     ply = run_dir / "variational.ply"
     if ply.is_file():
         model, meta = read_variational_ply(ply, device=device)
-        refuse_non_finite(model, ply)
         newest = max((step for step, _ in list_checkpoints(run_dir)), default=-1)
         # a --resume stopped (Ctrl-C, a crash) before it wrote its model leaves the PLY of the steps before it, and
         # checkpoints past them: the newer model is the checkpoint's (``unfinished_notes`` says so), not the PLY
         # every command otherwise scored without a word (views added since counted as trained, as scene.json says)
         if "step" not in meta or newest <= int(meta["step"]):
+            refuse_non_finite(model, ply)  # (a newer checkpoint stands in for the file: that one is checked)
             extent = float(meta.get("extent", info.extent if info is not None else 1.0))
             return LoadedRun(model, cfg, scene_path, extent, int(meta.get("step", 0)),
                              int(meta.get("sh_degree_active", model.sh_degree)), ply, run_dir, transparent, exposure,

@@ -410,7 +410,7 @@ def calibration_verdict(m) -> str | None:
     raw, fitted = m.mean.nll, m.mean.nll_calibrated
     if m.std_scale is None or raw is None or fitted is None:
         return what
-    if m.std_scale >= 1.0:  # it widens a std that is already too wide: nothing to correct with it
+    if m.std_scale > 1.0:  # it widens a std that is already too wide: nothing to correct with it
         return what + f"; the std factor fitted on other views (x{m.std_scale:.3g}) widens it further"
     if fitted - raw > NLL_WORSE_BY:  # (a factor fitted where the model fits better overshoots here: said below)
         return what + "; the std factor fitted on other views does not correct it here (its NLL is worse)"
@@ -798,7 +798,7 @@ def _sweep_loss(sweep: PruneSweep, best) -> str:
                  None)
     before = getattr(sweep.unpruned, sweep.metric)
     after = getattr(point.score, sweep.metric) if point is not None else None
-    if before is None or after is None:
+    if before is None or after is None or not (math.isfinite(before) and math.isfinite(after)):
         return f"{best.psnr_loss_db:.2f} dB"
     b, a = float(format_value(before, ".2f")), float(format_value(after, ".2f"))
     return f"{b - a:.2f} dB ({b:.2f} → {a:.2f})"

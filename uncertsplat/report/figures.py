@@ -366,7 +366,8 @@ def timeline_figure(per_run: list[tuple[str, list[dict]]]) -> bytes | None:
     loss_keys = [k for k in _LOSS_KEYS if k in keys]
     loss_keys += sorted(k for k in keys if k.startswith("kl_") and k not in loss_keys)
     # symlog's linear zone sits below the smallest typical term, so small KL terms stay readable
-    positive = np.concatenate([stats_series(s, k)[1] for _, s in per_run for k in loss_keys] or [np.zeros(0)])
+    drawn = loss_keys if not multi else loss_keys[:1]  # (several runs: their totals only)
+    positive = np.concatenate([stats_series(s, k)[1] for _, s in per_run for k in drawn] or [np.zeros(0)])
     positive = positive[positive > 0]
     linthresh = float(np.clip(np.percentile(positive, 5), 1e-8, 1e-2)) if positive.size else 1e-3
     # losses within a decade or so (a short run's 0.13-0.21) get a linear axis: symlog put its ticks at powers of ten

@@ -149,11 +149,13 @@ def posterior_steps_needed(cfg: TrainConfig) -> int | None:
     d = cfg.densify
     split, spawn = first_split_step(cfg), first_spawn_step(cfg)
     found = []
-    if split < d.until:  # the fewest n with (1 - SETTLE_FRACTION) n + 1 > split, checked against rounding
+    if split < d.until:  # the fewest n with split < densify_end (the settle rule), checked against rounding
+        from uncertsplat.strategy.schedule import densify_end
+
         n = max(split, math.floor((split - 1) / (1.0 - SETTLE_FRACTION)) + 1)
-        while _earliest_posterior_step(cfg, n) != split:
+        while not split < densify_end(d, n):  # (monotone in n: ends; a first spawn step earlier never enters here)
             n += 1
-        while n > split and _earliest_posterior_step(cfg, n - 1) == split:
+        while n > split and split < densify_end(d, n - 1):
             n -= 1
         found.append(n)
     if spawn <= d.until:
@@ -163,10 +165,11 @@ def posterior_steps_needed(cfg: TrainConfig) -> int | None:
 
 def no_carriers_reason(cfg: TrainConfig, step: int, planned: bool = False) -> str | None:
     """Why a model of ``cfg`` trained to ``step`` has no Gaussian with a posterior when that follows from its
-    settings, with what to do; None when it may have some (a densification or spawn step was reached: a scene whose
-    Gaussians are narrower than the spawn rule asks, ``few_carriers_warning``). Gaussians get a posterior as the
-    children of a split (from the first densification step) and at the spawn steps, which come only while
-    densification runs (``densify.until``). ``planned``: said before training, of a run of ``step`` steps."""
+    settings, with what to do; None when it may have some (a spawn step was reached: a scene whose Gaussians are
+    narrower than the spawn rule asks, ``few_carriers_warning``). Gaussians get a posterior as the children of a
+    split (from the first densification step) and at the spawn steps, which come only while densification runs
+    (``densify.until``). ``planned``: said before training, of a run of ``step`` steps, where a split may yet come
+    (None then once one can); else said of a model that has no carrier, whose splits therefore made none."""
     d = cfg.densify
     needed = posterior_steps_needed(cfg)
     if needed is None and d.start >= cfg.iterations:  # (raising until would not help a run that ends first)
@@ -189,6 +192,15 @@ def no_carriers_reason(cfg: TrainConfig, step: int, planned: bool = False) -> st
         return (f"the run stopped at step {step}, before Gaussians first get a posterior (step {earliest}): train it "
                 f"on to that step (`train --resume`, or `--iterations N` with N >= {max(needed, earliest)}) for a "
                 "posterior")
+    spawn = first_spawn_step(cfg)
+    if not planned and spawn <= d.until and step < spawn:
+        # said of a model without carriers: its densification steps split none (none grew, or the model was at its
+        # budget from the start), and its first spawn step did not come
+        end = "stopped at" if step < cfg.iterations else "ended at"
+        return (f"no densification step split a Gaussian (split children carry a posterior: none grew, or the model "
+                f"was at its budget, densify.max_gaussians), and the run {end} step {step}, before its first spawn "
+                f"step ({spawn}): train it on past that step (`train --resume --iterations N`, N >= "
+                f"{max(spawn, needed)}) for a posterior")
     return None
 
 
