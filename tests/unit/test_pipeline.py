@@ -535,3 +535,22 @@ def test_a_report_without_a_run_before_it_is_refused_before_any_stage_runs(tmp_p
     with pytest.raises(UserError, match="stage 'report' needs a train or prune stage before it"):
         pl.run(p, tmp_path / "out")
     assert calls == []
+
+
+def test_a_folder_the_pipeline_did_not_write_is_kept_apart_and_never_replaced(tmp_path, calls):
+    """OUT/train trained by hand went into the one-generation rotation (.previous/train) and the next change deleted
+    it (a helper's audit): a folder without a manifest is kept under a name no later generation takes."""
+    p = _write(tmp_path)
+    mine = tmp_path / "out" / "train"
+    mine.mkdir(parents=True)
+    (mine / "NOTES.txt").write_text("my own run")
+    pl.run(p, tmp_path / "out")
+    kept = tmp_path / "out" / ".previous" / "train-not-from-this-pipeline"
+    assert (kept / "NOTES.txt").read_text() == "my own run"
+    pl.run(p, tmp_path / "out", overrides=["train.iterations=7"])  # a change: the pipeline's train rotates
+    pl.run(p, tmp_path / "out", overrides=["train.iterations=8"])
+    assert (kept / "NOTES.txt").read_text() == "my own run"
+    assert json.loads((tmp_path / "out" / ".previous" / "train" / "out.txt").read_text())["iterations"] == 7
+    (tmp_path / "out" / "train" / "manifest.json").unlink()  # a second such folder takes a numbered name
+    pl.run(p, tmp_path / "out", overrides=["train.iterations=9"])
+    assert (tmp_path / "out" / ".previous" / "train-not-from-this-pipeline-2" / "out.txt").is_file()

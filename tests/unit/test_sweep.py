@@ -907,3 +907,22 @@ def test_ctrl_c_lets_a_training_write_its_checkpoint_while_another_worker_is_bet
             proc.wait()
     assert (tmp_path / "checkpoint").exists(), f"the training was killed writing its checkpoint:\n{output[-3000:]}"
     assert proc.returncode == 130 and "BrokenProcessPool" not in output, output[-3000:]
+
+
+def test_a_switch_between_the_sweeps_own_scene_and_one_of_yours_is_refused(tmp_path):
+    """A sweep measured on its generated scene, then given --scene (or the reverse), reused every point as the other
+    scene's: the generated scene was not recorded (a helper's audit)."""
+    from uncertsplat.errors import UserError
+    from uncertsplat.stages.sweep import _check_scene_inputs
+
+    own, theirs = tmp_path / "out" / "scene", tmp_path / "mine"
+    for folder in (own, theirs):
+        folder.mkdir(parents=True)
+        (folder / "scene.json").write_text("{}")
+    _check_scene_inputs(tmp_path / "out", {None: own}, force=False, measured=False)
+    _check_scene_inputs(tmp_path / "out", {None: own}, force=False, measured=True)  # the same: no word
+    with pytest.raises(UserError, match=r"not the one its points were measured on \(moved from .*out/scene to"):
+        _check_scene_inputs(tmp_path / "out", {None: theirs}, force=False, measured=True)
+    _check_scene_inputs(tmp_path / "out", {None: theirs}, force=True, measured=True)  # --force: measured again
+    with pytest.raises(UserError, match=r"moved from .*mine to .*out/scene"):
+        _check_scene_inputs(tmp_path / "out", {None: own}, force=False, measured=True)

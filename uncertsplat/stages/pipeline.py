@@ -273,8 +273,22 @@ def _move_previous(out_dir: Path, root: Path, name: str) -> None:
     """Keep one previous generation of a stage's output instead of deleting it: ``.previous/NAME``. An unfinished
     output (a stage that failed or was stopped) never replaces a finished one there: it goes to
     ``.previous/NAME-unfinished`` instead, so a failed or interrupted run after a good one loses the good one's work
-    neither then nor at the next change."""
+    neither then nor at the next change. A folder without a stage's manifest is not the pipeline's: it goes to
+    ``.previous/NAME-not-from-this-pipeline`` (numbered when taken) and is never replaced."""
     if not out_dir.exists() or not any(out_dir.iterdir()):
+        return
+    if not (out_dir / MANIFEST).is_file():
+        # not a stage's output (a run trained by hand into OUT/train, notes of the user's): kept apart, under a name no
+        # later generation takes (in the rotation, the next change deleted it: a helper's hand-trained run was lost)
+        backup = root / ".previous" / f"{name}-not-from-this-pipeline"
+        k = 1
+        while backup.exists():
+            k += 1
+            backup = root / ".previous" / f"{name}-not-from-this-pipeline-{k}"
+        backup.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(str(out_dir), str(backup))
+        console.print(f"  {out_dir} was not written by this pipeline (no {MANIFEST}): moved to {backup}, where it stays "
+                      "until you delete it")
         return
     backup = root / ".previous" / name
     if not _finished_output(out_dir) and _finished_output(backup):

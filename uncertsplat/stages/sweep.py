@@ -134,10 +134,11 @@ def _drop_runs(runs: Path) -> None:
 
 def _check_scene_inputs(out_dir: Path, folders: dict[str | None, Path], force: bool, measured: bool) -> None:
     """Refuse a scene folder of one's own (``scene = PATH``, ``--scene``, ``[scenes.NAME] path``) whose files or
-    place changed since the sweep measured points on it (``measured``): a point's hash is its settings', so the
-    points would be reused as measurements of the changed scene (and an unfinished run resumed on it). With
-    ``force`` the runs on it are removed, to be trained again. Scenes the sweep makes in ``OUT`` have their own
-    checks (``_synth``, ``reconstruct``). Records the folders' fingerprints."""
+    place changed since the sweep measured points on it (``measured``), and a switch between such a folder and a
+    scene the sweep makes in ``OUT``: a point's hash is its settings', so the points would be reused as measurements
+    of the changed scene (and an unfinished run resumed on it). With ``force`` the runs on it are removed, to be
+    trained again. Scenes the sweep makes have their own checks of their content (``_synth``, ``reconstruct``).
+    Records the folders' fingerprints (the sweep's own scenes by place)."""
     from uncertsplat.stages.manifest import fingerprint_folder
 
     path = out_dir / SCENE_INPUTS
@@ -148,10 +149,13 @@ def _check_scene_inputs(out_dir: Path, folders: dict[str | None, Path], force: b
     now, changed = dict(recorded), []
     for name, folder in folders.items():
         folder = Path(folder).resolve()
-        if out_dir.resolve() in folder.parents:
-            continue
         key = name or ""
-        entry = {"path": str(folder), "fingerprint": fingerprint_folder(folder, skip=out_dir)}
+        if out_dir.resolve() in folder.parents:
+            # made by the sweep (its own checks: ``_synth``, ``reconstruct``), recorded by place only: a sweep that
+            # measured on it and is then given --scene (or the reverse) reused every point as the other scene's
+            entry = {"path": str(folder), "made_by_the_sweep": True}
+        else:
+            entry = {"path": str(folder), "fingerprint": fingerprint_folder(folder, skip=out_dir)}
         old = recorded.get(key)
         if isinstance(old, dict) and old != entry:
             what = (f"moved from {old.get('path')} to {folder}" if old.get("path") != str(folder)
