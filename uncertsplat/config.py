@@ -201,10 +201,11 @@ class SceneConfig(_Base):
     for an inward-facing rig without sparse points (Blender / nerfstudio scenes), else the camera centroid
     (COLMAP scenes, forward-facing captures). The choice and its reason are recorded in RUN/scene.json."""
     principal_point_outside: bool = False
-    """Accept cameras whose principal point lies outside their image (crops of a larger photo, one side of a
-    rectified pair). Off by default: that is what intrinsics measured on images of another size look like (a
-    nerfstudio folder with full-size intrinsics and downscaled files trained off-centre, 13.6 dB for 19.4), and the
-    scene is refused, naming the view."""
+    """Accept cameras whose principal point lies outside their image or in its outer 5 % (crops of a larger photo,
+    one side of a rectified pair). Off by default: that is what intrinsics measured on images of another size look
+    like (a nerfstudio folder with full-size intrinsics and downscaled files trained off-centre, 13.6 dB for 19.4;
+    halved files put the principal point on the corner: 14.8 dB for 19.5), and the scene is refused, naming the
+    view."""
     photo_sizes: Literal["fit", "strict"] = "fit"
     """A COLMAP workspace whose images come in more than one size (portrait and landscape photos, two cameras).
     fit: the most common size is the scene's; a photo of the other orientation is turned a quarter turn (its

@@ -30,6 +30,22 @@ def principal_point_outside(K: Tensor, width: int, height: int) -> Tensor:
     return (c[..., 0] < 0) | (c[..., 0] > width) | (c[..., 1] < 0) | (c[..., 1] > height)
 
 
+EDGE_MARGIN = 0.05
+"""``principal_point_near_edge``: the outer fraction of an image's width and height (each side) a photo's principal
+point is not expected in."""
+
+
+def principal_point_near_edge(K: Tensor, width: int, height: int) -> Tensor:
+    """[C] bool: which of the [C,3,3] intrinsics ``K`` put the principal point in the outer ``EDGE_MARGIN`` of a
+    ``width`` x ``height`` image, or outside it: a photo's optical centre lies near its middle, and one at the corner
+    is mostly the intrinsics of photos twice the size given with halved files (their principal point lands exactly on
+    the corner, which ``principal_point_outside`` counts as inside)."""
+    c = K[..., :2, 2].double()  # [C,2]
+    m = EDGE_MARGIN
+    return ((c[..., 0] < m * width) | (c[..., 0] > (1 - m) * width)
+            | (c[..., 1] < m * height) | (c[..., 1] > (1 - m) * height))
+
+
 def focal_unusable(K: Tensor) -> Tensor:
     """[C] bool: which of the [C,3,3] intrinsics ``K`` have a focal length (fx or fy) the renderer cannot use: not
     finite, not positive, or beyond float32's range (the renderer works in float32: 1e39 px became inf and drew

@@ -184,6 +184,13 @@ def test_intrinsics_of_larger_images_are_refused(tiny_scene_path, tmp_path):  # 
     text = _raises(tmp_path / "ns", "view 'images/view_000.png' (and 23 more")
     assert "principal point at (256, 192), outside its 128x96 image" in text, text
     assert "seem to belong to images of about 512x384 pixels" in text, text
+    # twice the size: the principal point lands on the corner, which counted as inside (a helper's audit: 14.8 dB
+    # against 19.5 with the right intrinsics, and no word)
+    for k in ("fl_x", "fl_y", "cx", "cy"):
+        meta[k] /= 2
+    (tmp_path / "ns" / "transforms.json").write_text(json.dumps(meta))
+    text = _raises(tmp_path / "ns", "principal point at (128, 96), at the edge of its 128x96 image")
+    assert "256x192" in text, text
 
 
 def _truncated(path):

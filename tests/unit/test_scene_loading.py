@@ -974,3 +974,58 @@ def test_an_empty_list_of_training_views_is_named_as_such(workspace):
         load_scene(workspace, SceneConfig(train_names=[]))
     with pytest.raises(UserError, match=r"scene.train_indices is empty"):
         load_scene(workspace, SceneConfig(train_indices=[]))
+
+
+@pytest.mark.parametrize(("angle", "said"), [(40.0, "40 degrees is 0.6981"), (200.0, "between 0 and pi"),
+                                             (0.0, "between 0 and pi")])
+def test_a_field_of_view_in_degrees_is_refused(tmp_path, angle, said):
+    """camera_angle_x = 40 (degrees, read as radians) trained at a 132-degree view, 53.13 at 164, and 60 was a
+    negative focal length with no word of units (a helper's audit)."""
+    root = tmp_path / "deg"
+    frames = []
+    for i in range(3):
+        write_png(root / "train" / f"v{i}.png", np.full((6, 8, 3), 0.5, np.float32))
+        c2w = np.eye(4)
+        c2w[0, 3] = 0.1 * i
+        frames.append({"file_path": f"./train/v{i}", "transform_matrix": c2w.tolist()})
+    (root / "transforms_train.json").write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
+    with pytest.raises(UserError, match=rf"camera_angle_x = {angle:g} is no field of view in radians") as err:
+        load_scene(root, SceneConfig(normalize=False))
+    assert said in err.value.hint
+
+
+def _old_text_model(workspace, tmp_path, edit):
+    """The workspace's model as an old-style text model (cameras, images and points3D only), ``edit`` applied to
+    the lines of images.txt that hold poses."""
+    folder = tmp_path / "txt"
+    folder.mkdir(parents=True)
+    pycolmap.Reconstruction(str(workspace / "sparse" / "0")).write_text(str(folder))
+    for extra in ("frames.txt", "rigs.txt"):
+        (folder / extra).unlink(missing_ok=True)
+    lines = (folder / "images.txt").read_text().splitlines()
+    poses = [i for i, line in enumerate(lines) if line and not line.startswith("#")][::2]
+    edit(lines, poses)
+    (folder / "images.txt").write_text("\n".join(lines) + "\n")
+    return folder
+
+
+def test_a_colmap_pose_that_is_no_rotation_or_a_name_listed_twice_is_refused(workspace, tmp_path):
+    """A doubled quaternion gave skewed camera axes and a zero one the identity, and two images of one name both
+    trained on one photo, without a word (a helper's audit; the transforms loaders refuse such files)."""
+    from uncertsplat.sfm.colmap_io import read_colmap_model
+
+    def doubled(lines, poses):
+        f = lines[poses[1]].split()
+        f[1:5] = [str(2 * float(v)) for v in f[1:5]]
+        lines[poses[1]] = " ".join(f)
+
+    def same_name(lines, poses):
+        name = lines[poses[0]].split()[-1]
+        f = lines[poses[1]].split()
+        lines[poses[1]] = " ".join(f[:-1] + [name])
+
+    assert len(read_colmap_model(_old_text_model(workspace, tmp_path / "a", lambda lines, poses: None)).images) > 2
+    with pytest.raises(UserError, match="rotation quaternion of norm 2, not 1"):
+        read_colmap_model(_old_text_model(workspace, tmp_path / "b", doubled))
+    with pytest.raises(UserError, match="lists image 'view_.*' twice"):
+        read_colmap_model(_old_text_model(workspace, tmp_path / "c", same_name))

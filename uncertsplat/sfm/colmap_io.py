@@ -162,9 +162,24 @@ def read_colmap_model(folder: str | Path, *, tracks: bool = False) -> ColmapMode
     for _, im in rec.images.items():
         if not im.has_pose:
             continue
+        pose = im.cam_from_world()
+        norm = float(np.linalg.norm(np.asarray(pose.rotation.quat, dtype=np.float64)))
+        if not abs(norm - 1.0) <= 1e-3:  # (a doubled one made skewed camera axes, a zero one the identity: no word)
+            raise UserError(f"image '{im.name}' of the COLMAP model has a rotation quaternion of norm {norm:.4g}, "
+                            "not 1, so its pose is no rotation", path=folder,
+                            hint="Write unit quaternions QW QX QY QZ in images.txt (divide by their norm), or "
+                                 "re-run `uncertsplat reconstruct`.")
         M = np.eye(4)
-        M[:3, :4] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
+        M[:3, :4] = np.asarray(pose.matrix(), dtype=np.float64)
         images.append(ColmapImage(name=str(im.name), camera_id=int(im.camera_id), cam_from_world=M))
+    seen: set[str] = set()
+    twice = sorted({im.name for im in images if im.name in seen or seen.add(im.name)})
+    if twice:  # (both trained on one photo at two poses, and scene.json's cameras kept one: the loaders of
+        # transforms files refuse this as well)
+        raise UserError(f"the COLMAP model lists image {twice[0]!r} twice" + (f" (and {len(twice) - 1} more name(s))"
+                                                                             if len(twice) > 1 else ""),
+                        path=folder, hint="Give each image of images.txt its own file name, or re-run "
+                                          "`uncertsplat reconstruct`.")
     pts = list(rec.points3D.values())
     xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
     rgb = np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3)

@@ -42,6 +42,7 @@ from uncertsplat.types import (
     SceneData,
     focal_unusable,
     intrinsics_size_guess,
+    principal_point_near_edge,
     principal_point_outside,
     similarity_scale,
 )
@@ -921,9 +922,10 @@ def normalized_cam_from_world(cam_from_world: torch.Tensor, world_from_source: t
 def _check_intrinsics(cameras: Cameras, where: Path, outside_ok: bool = False) -> None:
     """Refuse focal lengths that are not positive and finite (a model edited or written by other tools: a focal of
     0 trains a model that never changes, a negative one a mirrored scene, both without a word), and, unless
-    ``outside_ok`` (``SceneConfig.principal_point_outside``), a principal point outside the image (intrinsics of the
-    full-size photos given with downscaled files: the model trains, off-centre, several dB worse, and the warnings
-    blame the poses)."""
+    ``outside_ok`` (``SceneConfig.principal_point_outside``), a principal point outside the image or in its outer
+    ``types.EDGE_MARGIN`` (intrinsics of the full-size photos given with downscaled files: the model trains,
+    off-centre, several dB worse, and the warnings blame the poses; halved files put it on the corner, which counted
+    as inside)."""
     K = cameras.K.double()
     f = torch.stack([K[:, 0, 0], K[:, 1, 1]], dim=-1)  # [C,2]
     bad = focal_unusable(K) | ~torch.isfinite(K[:, :2, 2]).all(-1)
@@ -935,7 +937,7 @@ def _check_intrinsics(cameras: Cameras, where: Path, outside_ok: bool = False) -
                         f"{float(K[i, 0, 2]):g}, {float(K[i, 1, 2]):g}); focal lengths must be positive and finite",
                         path=where, hint="Fix the camera in the model, or reconstruct the photos again.")
     W, H = cameras.width, cameras.height
-    outside = principal_point_outside(K, W, H)  # [C]
+    outside = principal_point_outside(K, W, H) | principal_point_near_edge(K, W, H)  # [C]
     if bool(outside.any()) and not outside_ok:
         i = int(outside.nonzero()[0, 0])
         names = [cameras.image_names[j] for j in outside.nonzero()[:, 0].tolist()]
@@ -943,7 +945,9 @@ def _check_intrinsics(cameras: Cameras, where: Path, outside_ok: bool = False) -
         size = intrinsics_size_guess(cx, cy)
         raise UserError(f"view '{names[0]}'" + (f" (and {len(names) - 1} more: {list_names(names[1:], 4)})"
                                                  if len(names) > 1 else "")
-                        + f" has its principal point at ({cx:g}, {cy:g}), outside its {W}x{H} image{size}",
+                        + f" has its principal point at ({cx:g}, {cy:g}), "
+                        + ("outside" if bool(principal_point_outside(K[i], W, H)) else "at the edge of")
+                        + f" its {W}x{H} image{size}",
                         path=where,
                         hint=f"Give the intrinsics of the {W}x{H} images that are read (scale the focal lengths and the "
                              "principal point by the ratio of the sizes), or the images the intrinsics were measured "

@@ -196,6 +196,14 @@ def _check_model(fr: _Frame) -> None:
 def _intrinsics(fr: _Frame, w: int, h: int) -> np.ndarray:
     """K [3,3] of a frame: fl_x / fl_y (or camera_angle_x / _y), cx / cy (default: the image centre)."""
     fx, fy = _number(fr, "fl_x"), _number(fr, "fl_y")
+    for key in ("camera_angle_x", "camera_angle_y"):
+        angle = _number(fr, key)
+        if angle is not None and not 0.0 < angle < math.pi:  # (degrees read as radians: 40 trained at 132 degrees)
+            hint = (f"Write it in radians: {angle:g} degrees is {math.radians(angle):.4g}." if math.pi <= angle < 180.0
+                    else "Write the field of view in radians, between 0 and pi (a pinhole camera sees less than "
+                         "180 degrees).")
+            raise UserError(f"frame '{fr.name}': {key} = {angle:g} is no field of view in radians (0 to pi)",
+                            path=fr.file, hint=hint)
     if fx is None and (angle_x := _number(fr, "camera_angle_x")) is not None:
         fx = 0.5 * w / math.tan(0.5 * angle_x)
     if fx is None:
