@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -551,6 +552,18 @@ def test_a_folder_the_pipeline_did_not_write_is_kept_apart_and_never_replaced(tm
     pl.run(p, tmp_path / "out", overrides=["train.iterations=8"])
     assert (kept / "NOTES.txt").read_text() == "my own run"
     assert json.loads((tmp_path / "out" / ".previous" / "train" / "out.txt").read_text())["iterations"] == 7
-    (tmp_path / "out" / "train" / "manifest.json").unlink()  # a second such folder takes a numbered name
+    # a folder of its own without a manifest (a stage killed before writing it) takes the rotation, as an unfinished
+    # output beside the finished one (a review: it was kept apart, one more copy at every such kill)
+    (tmp_path / "out" / "train" / "manifest.json").unlink()
     pl.run(p, tmp_path / "out", overrides=["train.iterations=9"])
-    assert (tmp_path / "out" / ".previous" / "train-not-from-this-pipeline-2" / "out.txt").is_file()
+    assert json.loads((tmp_path / "out" / ".previous" / "train-unfinished" / "out.txt").read_text())["iterations"] == 8
+    assert not (tmp_path / "out" / ".previous" / "train-not-from-this-pipeline-2").exists()
+    # a second folder it never wrote takes a numbered name
+    shutil.rmtree(tmp_path / "out" / "report")
+    theirs = tmp_path / "out" / "report"
+    theirs.mkdir()
+    (theirs / "mine.txt").write_text("x")
+    (tmp_path / "out" / ".stages_started.json").write_text(json.dumps(["synth", "train", "evaluate"]))
+    (tmp_path / "out" / ".previous" / "report-not-from-this-pipeline").mkdir(parents=True)
+    pl.run(p, tmp_path / "out", overrides=["train.iterations=10"])
+    assert (tmp_path / "out" / ".previous" / "report-not-from-this-pipeline-2" / "mine.txt").is_file()

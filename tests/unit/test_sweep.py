@@ -921,8 +921,13 @@ def test_a_switch_between_the_sweeps_own_scene_and_one_of_yours_is_refused(tmp_p
         (folder / "scene.json").write_text("{}")
     _check_scene_inputs(tmp_path / "out", {None: own}, force=False, measured=False)
     _check_scene_inputs(tmp_path / "out", {None: own}, force=False, measured=True)  # the same: no word
-    with pytest.raises(UserError, match=r"not the one its points were measured on \(moved from .*out/scene to"):
+    with pytest.raises(UserError, match=r"measured on \(moved from the scene the sweep made \(.*out/scene\) to"):
         _check_scene_inputs(tmp_path / "out", {None: theirs}, force=False, measured=True)
     _check_scene_inputs(tmp_path / "out", {None: theirs}, force=True, measured=True)  # --force: measured again
-    with pytest.raises(UserError, match=r"moved from .*mine to .*out/scene"):
+    with pytest.raises(UserError, match=r"moved from .*mine to the scene the sweep made \(.*out/scene\)"):
         _check_scene_inputs(tmp_path / "out", {None: own}, force=False, measured=True)
+    # the sweep's folder moved elsewhere, its own scene with it: it goes on (a review: refused, and --force deleted
+    # every run)
+    _check_scene_inputs(tmp_path / "out", {None: own}, force=True, measured=True)
+    (tmp_path / "out").rename(tmp_path / "moved")
+    _check_scene_inputs(tmp_path / "moved", {None: tmp_path / "moved" / "scene"}, force=False, measured=True)

@@ -942,17 +942,19 @@ def _check_intrinsics(cameras: Cameras, where: Path, outside_ok: bool = False) -
         i = int(outside.nonzero()[0, 0])
         names = [cameras.image_names[j] for j in outside.nonzero()[:, 0].tolist()]
         cx, cy = float(K[i, 0, 2]), float(K[i, 1, 2])
-        size = intrinsics_size_guess(cx, cy)
+        beyond = bool(principal_point_outside(K[i], W, H))
+        # the size the intrinsics suggest, where both coordinates point there (near one edge only: no guess)
+        size = intrinsics_size_guess(cx, cy) if beyond or (cx > W / 2 and cy > H / 2) else ""
         raise UserError(f"view '{names[0]}'" + (f" (and {len(names) - 1} more: {list_names(names[1:], 4)})"
                                                  if len(names) > 1 else "")
                         + f" has its principal point at ({cx:g}, {cy:g}), "
-                        + ("outside" if bool(principal_point_outside(K[i], W, H)) else "at the edge of")
+                        + ("outside" if beyond else "at the edge of")
                         + f" its {W}x{H} image{size}",
                         path=where,
                         hint=f"Give the intrinsics of the {W}x{H} images that are read (scale the focal lengths and the "
                              "principal point by the ratio of the sizes), or the images the intrinsics were measured "
-                             "on; views cropped from larger photos, whose optical centre lies outside them, take "
-                             "--set scene.principal_point_outside=true.")
+                             "on; views cropped from larger photos, whose optical centre lies outside them or near "
+                             "their edge, take --set scene.principal_point_outside=true.")
 
 
 def _finish(cameras: Cameras, paths: list[Path], points: torch.Tensor, rgb: torch.Tensor, cfg: SceneConfig,

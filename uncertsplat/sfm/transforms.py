@@ -196,8 +196,8 @@ def _check_model(fr: _Frame) -> None:
 def _intrinsics(fr: _Frame, w: int, h: int) -> np.ndarray:
     """K [3,3] of a frame: fl_x / fl_y (or camera_angle_x / _y), cx / cy (default: the image centre)."""
     fx, fy = _number(fr, "fl_x"), _number(fr, "fl_y")
-    for key in ("camera_angle_x", "camera_angle_y"):
-        angle = _number(fr, key)
+    for key, given in (("camera_angle_x", fx), ("camera_angle_y", fy)):
+        angle = _number(fr, key) if given is None else None  # (an angle beside fl_x / fl_y is not read)
         if angle is not None and not 0.0 < angle < math.pi:  # (degrees read as radians: 40 trained at 132 degrees)
             hint = (f"Write it in radians: {angle:g} degrees is {math.radians(angle):.4g}." if math.pi <= angle < 180.0
                     else "Write the field of view in radians, between 0 and pi (a pinhole camera sees less than "

@@ -269,17 +269,39 @@ def held_out_change(previous: Path, run_dir: Path, stage: str = "train") -> str 
                                      f"{json.dumps(kept)}')." if kept else "."))
 
 
+STARTED = ".stages_started.json"
+"""``OUT/.stages_started.json``: the names of the stages this pipeline has started in ``OUT`` (``_move_previous``
+tells a folder of its own that lost its manifest, a stage killed before it, from one it never wrote)."""
+
+
+def _started(root: Path) -> set[str]:
+    try:
+        return set(json.loads((root / STARTED).read_text(encoding="utf-8")))
+    except (OSError, ValueError, TypeError):
+        return set()
+
+
+def _mark_started(root: Path, name: str) -> None:
+    from uncertsplat.io.atomic import atomic_write_text
+
+    names = _started(root)
+    if name not in names:
+        atomic_write_text(root / STARTED, json.dumps(sorted(names | {name})) + "\n")
+
+
 def _move_previous(out_dir: Path, root: Path, name: str) -> None:
     """Keep one previous generation of a stage's output instead of deleting it: ``.previous/NAME``. An unfinished
     output (a stage that failed or was stopped) never replaces a finished one there: it goes to
     ``.previous/NAME-unfinished`` instead, so a failed or interrupted run after a good one loses the good one's work
-    neither then nor at the next change. A folder without a stage's manifest is not the pipeline's: it goes to
-    ``.previous/NAME-not-from-this-pipeline`` (numbered when taken) and is never replaced."""
+    neither then nor at the next change. A folder without a manifest where no stage of this pipeline ever ran is
+    not the pipeline's: it goes to ``.previous/NAME-not-from-this-pipeline`` (numbered when taken), never replaced."""
     if not out_dir.exists() or not any(out_dir.iterdir()):
         return
-    if not (out_dir / MANIFEST).is_file():
-        # not a stage's output (a run trained by hand into OUT/train, notes of the user's): kept apart, under a name no
-        # later generation takes (in the rotation, the next change deleted it: a helper's hand-trained run was lost)
+    if not (out_dir / MANIFEST).is_file() and not name.endswith("-eval") and name not in _started(root):
+        # no stage of this pipeline ever wrote here (a run trained by hand into OUT/train, notes of the user's): kept
+        # apart, under a name no later generation takes (in the rotation, the next change deleted it: a helper's
+        # hand-trained run was lost). A stage of its own killed before its manifest, and an evaluation a prune stage
+        # wrote (RUN/eval), take the rotation.
         backup = root / ".previous" / f"{name}-not-from-this-pipeline"
         k = 1
         while backup.exists():
@@ -436,6 +458,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 console.print(f"  resuming '{name}' from its checkpoint (it was interrupted with these settings and inputs)")
             elif not (stage.stage == "evaluate" and _evaluation_kept(up_path, stage_cfg, dev)):
                 _move_previous(out_dir, root, name if stage.stage != "evaluate" else f"{name}-eval")
+            _mark_started(root, name)
             t0 = time.perf_counter()
             try:
                 _run_stage(stage.stage, stage_cfg, up_path, out_dir, dev, kwargs)

@@ -151,14 +151,19 @@ def _check_scene_inputs(out_dir: Path, folders: dict[str | None, Path], force: b
         folder = Path(folder).resolve()
         key = name or ""
         if out_dir.resolve() in folder.parents:
-            # made by the sweep (its own checks: ``_synth``, ``reconstruct``), recorded by place only: a sweep that
-            # measured on it and is then given --scene (or the reverse) reused every point as the other scene's
-            entry = {"path": str(folder), "made_by_the_sweep": True}
+            # made by the sweep (its own checks: ``_synth``, ``reconstruct``), recorded by its place in OUT only (a
+            # sweep folder moved elsewhere goes on): a sweep that measured on it and is then given --scene (or the
+            # reverse) reused every point as the other scene's
+            entry = {"path": folder.relative_to(out_dir.resolve()).as_posix(), "made_by_the_sweep": True}
         else:
             entry = {"path": str(folder), "fingerprint": fingerprint_folder(folder, skip=out_dir)}
         old = recorded.get(key)
         if isinstance(old, dict) and old != entry:
-            what = (f"moved from {old.get('path')} to {folder}" if old.get("path") != str(folder)
+            def where(e: dict) -> str:
+                return (f"the scene the sweep made ({out_dir / e.get('path', '')})" if e.get("made_by_the_sweep")
+                        else str(e.get("path")))
+
+            what = (f"moved from {where(old)} to {where(entry)}" if old.get("path") != entry["path"]
                     else f"{folder}'s files changed")
             changed.append((name, what))
         now[key] = entry
