@@ -957,8 +957,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                          "Gaussians, or one that did not fit)")
 
     if not_numbers:
-        notes.append(f"{NOT_A_NUMBER_NOTE} in {not_numbers:,} values of the views' maps: a model or setting beyond what "
-                     "float32 holds; the metrics of those pixels are not to be trusted")
+        notes.append(f"{NOT_A_NUMBER_NOTE} in {not_numbers:,} values of the views' maps: a model or setting beyond "
+                     "what float32 holds; the metrics of those pixels are not to be trusted")
     if std_max == 0.0 and not not_numbers:
         notes.append(f"{ZERO_STD_NOTE} (one sample and every side term off?): the NLL and calibration measure the "
                      f"std floor ({cfg.std_floor:g}), not the model, and a std factor changes nothing")

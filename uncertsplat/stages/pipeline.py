@@ -309,8 +309,8 @@ def _move_previous(out_dir: Path, root: Path, name: str) -> None:
             backup = root / ".previous" / f"{name}-not-from-this-pipeline-{k}"
         backup.parent.mkdir(parents=True, exist_ok=True)
         shutil.move(str(out_dir), str(backup))
-        console.print(f"  {out_dir} was not written by this pipeline (no {MANIFEST}): moved to {backup}, where it stays "
-                      "until you delete it")
+        console.print(f"  {out_dir} was not written by this pipeline (no {MANIFEST}): moved to {backup}, where it "
+                      "stays until you delete it")
         return
     backup = root / ".previous" / name
     if not _finished_output(out_dir) and _finished_output(backup):
