@@ -10,6 +10,7 @@ import functools
 import os
 import shutil
 import tempfile
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -172,8 +173,7 @@ def read_colmap_model(folder: str | Path, *, tracks: bool = False) -> ColmapMode
         M = np.eye(4)
         M[:3, :4] = np.asarray(pose.matrix(), dtype=np.float64)
         images.append(ColmapImage(name=str(im.name), camera_id=int(im.camera_id), cam_from_world=M))
-    seen: set[str] = set()
-    twice = sorted({im.name for im in images if im.name in seen or seen.add(im.name)})
+    twice = sorted(n for n, k in Counter(im.name for im in images).items() if k > 1)
     if twice:  # (both trained on one photo at two poses, and scene.json's cameras kept one: the loaders of
         # transforms files refuse this as well)
         raise UserError(f"the COLMAP model lists image {twice[0]!r} twice" + (f" (and {len(twice) - 1} more name(s))"

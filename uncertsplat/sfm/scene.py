@@ -937,7 +937,7 @@ def _check_intrinsics(cameras: Cameras, where: Path, outside_ok: bool = False) -
                         f"{float(K[i, 0, 2]):g}, {float(K[i, 1, 2]):g}); focal lengths must be positive and finite",
                         path=where, hint="Fix the camera in the model, or reconstruct the photos again.")
     W, H = cameras.width, cameras.height
-    outside = principal_point_outside(K, W, H) | principal_point_near_edge(K, W, H)  # [C]
+    outside = principal_point_near_edge(K, W, H)  # [C] (outside the image too)
     if bool(outside.any()) and not outside_ok:
         i = int(outside.nonzero()[0, 0])
         names = [cameras.image_names[j] for j in outside.nonzero()[:, 0].tolist()]

@@ -289,19 +289,19 @@ def _mark_started(root: Path, name: str) -> None:
         atomic_write_text(root / STARTED, json.dumps(sorted(names | {name})) + "\n")
 
 
-def _move_previous(out_dir: Path, root: Path, name: str) -> None:
+def _move_previous(out_dir: Path, root: Path, name: str, own: bool = False) -> None:
     """Keep one previous generation of a stage's output instead of deleting it: ``.previous/NAME``. An unfinished
     output (a stage that failed or was stopped) never replaces a finished one there: it goes to
     ``.previous/NAME-unfinished`` instead, so a failed or interrupted run after a good one loses the good one's work
-    neither then nor at the next change. A folder without a manifest where no stage of this pipeline ever ran is
-    not the pipeline's: it goes to ``.previous/NAME-not-from-this-pipeline`` (numbered when taken), never replaced."""
+    neither then nor at the next change. A folder without a manifest that is not ``own`` (no stage of this pipeline
+    ever ran there) is not the pipeline's: it goes to ``.previous/NAME-not-from-this-pipeline`` (numbered when taken),
+    never replaced."""
     if not out_dir.exists() or not any(out_dir.iterdir()):
         return
-    if not (out_dir / MANIFEST).is_file() and not name.endswith("-eval") and name not in _started(root):
+    if not own and not (out_dir / MANIFEST).is_file():
         # no stage of this pipeline ever wrote here (a run trained by hand into OUT/train, notes of the user's): kept
         # apart, under a name no later generation takes (in the rotation, the next change deleted it: a helper's
-        # hand-trained run was lost). A stage of its own killed before its manifest, and an evaluation a prune stage
-        # wrote (RUN/eval), take the rotation.
+        # hand-trained run was lost)
         backup = root / ".previous" / f"{name}-not-from-this-pipeline"
         k = 1
         while backup.exists():
@@ -457,7 +457,10 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 kwargs["resume"] = True
                 console.print(f"  resuming '{name}' from its checkpoint (it was interrupted with these settings and inputs)")
             elif not (stage.stage == "evaluate" and _evaluation_kept(up_path, stage_cfg, dev)):
-                _move_previous(out_dir, root, name if stage.stage != "evaluate" else f"{name}-eval")
+                # a stage of its own killed before its manifest, and an evaluation a prune stage wrote (RUN/eval), take
+                # the rotation
+                _move_previous(out_dir, root, name if stage.stage != "evaluate" else f"{name}-eval",
+                               own=stage.stage == "evaluate" or name in _started(root))
             _mark_started(root, name)
             t0 = time.perf_counter()
             try:

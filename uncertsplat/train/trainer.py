@@ -60,7 +60,7 @@ from uncertsplat.strategy.growth import (
     halving_cost_db,
     weakest_half,
 )
-from uncertsplat.strategy.schedule import SETTLE_FRACTION, is_opacity_reset_step, sh_degree_at
+from uncertsplat.strategy.schedule import SETTLE_FRACTION, densify_end, is_opacity_reset_step, sh_degree_at
 from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due
 from uncertsplat.strategy.view_checks import check_views
 from uncertsplat.train.adam import Adam, all_finite
@@ -132,8 +132,6 @@ def _earliest_posterior_step(cfg: TrainConfig, iterations: int) -> int | None:
     """The first step of a run of ``iterations`` steps at which some Gaussian may get a posterior: its first
     densification step (split children carry one; ``schedule.is_densify_step``) or its first spawn step
     (``schedule.is_spawn_step``), whichever comes first within the run; None when neither does."""
-    from uncertsplat.strategy.schedule import densify_end
-
     d = cfg.densify
     split, spawn = first_split_step(cfg), first_spawn_step(cfg)
     steps = [s for s, ok in ((split, split < densify_end(d, iterations)), (spawn, spawn <= d.until))
@@ -150,8 +148,6 @@ def posterior_steps_needed(cfg: TrainConfig) -> int | None:
     split, spawn = first_split_step(cfg), first_spawn_step(cfg)
     found = []
     if split < d.until:  # the fewest n with split < densify_end (the settle rule), checked against rounding
-        from uncertsplat.strategy.schedule import densify_end
-
         n = max(split, math.floor((split - 1) / (1.0 - SETTLE_FRACTION)) + 1)
         while not split < densify_end(d, n):  # (monotone in n: ends; a first spawn step earlier never enters here)
             n += 1
