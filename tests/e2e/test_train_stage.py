@@ -125,7 +125,7 @@ def test_resume_on_another_scene_is_refused(trained, tiny_scene_path, tmp_path):
         stage.run(other, copy, cfg, torch.device("cpu"), resume=True, extend_to=85)
     # moved: the recorded folder is gone; a scene without one of the run's images is not the same scene
     info = json.loads((copy / "scene.json").read_text())
-    info["scene"] = str(tmp_path / "moved-away")
+    info.update(scene=str(tmp_path / "moved-away"), scene_from_run=None)  # (the copy's relative path finds the scene)
     (copy / "scene.json").write_text(json.dumps({**info, "test": [*info["test"], "elsewhere.png"]}))
     with pytest.raises(UserError, match="1 of its images are not in .*elsewhere.png"):
         stage.run(other, copy, cfg, torch.device("cpu"), resume=True, extend_to=85)
@@ -139,6 +139,47 @@ def test_resume_on_another_scene_is_refused(trained, tiny_scene_path, tmp_path):
     (copy / "scene.json").write_text(json.dumps({**info, "scene": str(tmp_path / "gone-too")}))
     stage.run(other, copy, cfg, torch.device("cpu"), resume=True)
     assert json.loads((copy / "scene.json").read_text())["scene"] == str(other.resolve())
+
+
+def test_a_run_moved_or_copied_with_its_scene_reads_the_scene_beside_it(trained, tiny_scene_path, tmp_path):  # noqa: F811
+    """A project folder (a pipeline's output: the scene and the run side by side) copied or moved elsewhere: every
+    command reads the scene beside the run, not the folder the run was trained at (gone, or another copy), and a
+    resume on the copy's own scene is accepted; a run moved alone, or one written before scene_from_run was
+    recorded, reads the recorded folder as before."""
+    run, cfg = trained
+    first = tmp_path / "first"
+    shutil.copytree(tiny_scene_path, first / "scene")
+    shutil.copytree(run, first / "run")
+    info = json.loads((first / "run" / "scene.json").read_text())
+    assert info["scene_from_run"] is not None  # written by train
+    info.update(scene=str((first / "scene").resolve()), scene_from_run="../scene")
+    (first / "run" / "scene.json").write_text(json.dumps(info))
+    assert load_run(first / "run").scene_path == (first / "scene").resolve()  # not moved: the recorded folder
+    copy = tmp_path / "copy"
+    shutil.copytree(first, copy)
+    loaded = load_run(copy / "run")
+    assert loaded.scene_path == copy.resolve() / "scene"
+    assert loaded.load_scene().cameras.image_names
+    # resumed on its own copy: accepted (nothing left to train) and recorded; on the first project's: refused
+    stage.run(copy / "scene", copy / "run", cfg, torch.device("cpu"), resume=True)
+    recorded = json.loads((copy / "run" / "scene.json").read_text())
+    assert (recorded["scene"], recorded["scene_from_run"]) == (str((copy / "scene").resolve()), "../scene")
+    with pytest.raises(UserError, match="that scene is still at .*copy"):
+        stage.run(first / "scene", copy / "run", cfg, torch.device("cpu"), resume=True)
+    # moved: the place it was trained at is gone
+    moved = tmp_path / "moved"
+    first.rename(moved)
+    assert load_run(moved / "run").scene_path == moved.resolve() / "scene"
+    # a run moved alone finds nothing beside it: the recorded folder (here gone, said as before)
+    alone = tmp_path / "alone"
+    shutil.copytree(moved / "run", alone)
+    assert load_run(alone).scene_path == first.resolve() / "scene"
+    with pytest.raises(UserError, match="is gone"):
+        load_run(alone).load_scene()
+    # a scene.json of schema version 4 (no scene_from_run) reads the recorded folder
+    old = {k: v for k, v in info.items() if k != "scene_from_run"}
+    (moved / "run" / "scene.json").write_text(json.dumps({**old, "schema_version": 4}))
+    assert load_run(moved / "run").scene_path == first.resolve() / "scene"
 
 
 def test_a_resumed_run_keeps_its_posterior_updates(tiny_scene_path, tmp_path):  # noqa: F811

@@ -296,6 +296,10 @@ class LoadedRun:
             return data
         from uncertsplat.console import console, list_names
 
+        if Path(self.scene_path) != Path(info.scene):  # said once: the cameras are compared below all the same
+            console.print(f"[dim]note: the run was trained on the scene at {info.scene}; it was moved or copied "
+                          f"together with it, which is read at {self.scene_path}[/]")
+
         if own is not None:
             known = {*info.train, *info.test, *info.calibration}
             new = [n for n in data.cameras.image_names if n not in known]
@@ -382,7 +386,7 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
     from uncertsplat.io.ply import read_variational_ply
 
     info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
-    scene_path = Path(info.scene) if info is not None and info.scene else None
+    scene_path = info.scene_folder(run_dir) if info is not None and info.scene else None
     transparent = bool(info.source.get("transparent", False)) if info is not None else False
     near = info.near if info is not None else None
     exposure = RunExposure.read_optional(run_dir / RunExposure.FILE_NAME)

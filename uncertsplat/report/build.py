@@ -297,11 +297,11 @@ def comparability_note(runs: list[RunData]) -> str | None:
     known = [r for r in runs if r.scene_info is not None]
     if len(known) < 2:
         return None
-    scenes = {str(Path(r.scene_info.scene).resolve()) for r in known}
+    scenes = {str(r.scene_path.resolve()) for r in known}
     sizes = {(r.scene_info.width, r.scene_info.height) for r in known}
     what = []
     if len(scenes) > 1:
-        what.append("on different scenes (" + ", ".join(f"{r.name}: {r.scene_info.scene}" for r in known) + ")")
+        what.append("on different scenes (" + ", ".join(f"{r.name}: {r.scene_path}" for r in known) + ")")
     if len(sizes) > 1:
         what.append("at different resolutions (" + ", ".join(f"{r.name}: {r.scene_info.width}x{r.scene_info.height}"
                                                           for r in known) + ")")

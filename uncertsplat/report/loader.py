@@ -86,8 +86,8 @@ class RunData:
 
     @property
     def scene_path(self) -> Path | None:
-        """The scene folder the run was trained on (``RunScene.scene``), None without a valid scene.json."""
-        return Path(self.scene_info.scene) if self.scene_info is not None else None
+        """The scene folder the run was trained on (``RunScene.scene_folder``), None without a valid scene.json."""
+        return self.scene_info.scene_folder(self.path) if self.scene_info is not None else None
 
     @property
     def depth_to_source(self) -> float | None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import Field
@@ -87,12 +89,16 @@ class RunScene(SchemaFile):
     """``RUN/scene.json`` (written by ``train``): which scene a run was trained on and how it was normalised."""
 
     FILE_NAME = "scene.json"
-    SCHEMA_VERSION = 4
+    SCHEMA_VERSION = 5
     WRITTEN_BY = "uncertsplat train"
 
-    schema_version: int = 4
+    schema_version: int = 5
     scene: str
     """Absolute path of the scene folder (COLMAP workspace, Blender/nerfstudio folder, synthetic scene)."""
+    scene_from_run: str | None = None
+    """The same folder relative to the run folder (None: written before it was recorded, or on another drive), so that
+    a run moved or copied together with its scene (a pipeline's output folder) reads the scene beside it
+    (``scene_folder``)."""
     source: dict[str, Any] = Field(default_factory=dict)
     """What was loaded (``SceneData.source``): kind, path, background, downscale, ..."""
     extent: float
@@ -135,6 +141,26 @@ class RunScene(SchemaFile):
                                                                 "that always used the camera centroid"}
         if version == 1:
             return {**data, "calibration": []}
-        if version in (2, 3):  # 2: no cameras recorded (the default, nothing to compare); 2 and 3: no near plane (the
-            return data  # default None: 1 % of the scene scale, what those runs rendered with)
-        return None
+        if version in (2, 3, 4):  # 2: no cameras recorded (the default, nothing to compare); 2 and 3: no near plane
+            return data  # (the default None: 1 % of the scene scale, what those runs rendered with); 2-4: no
+        return None  # scene_from_run (None: the absolute path alone, as those versions read it)
+
+    def scene_folder(self, run_dir: str | Path) -> Path:
+        """The scene folder of the run in ``run_dir``: the one at ``scene_from_run`` from where the run is now when that
+        is a folder (a run moved or copied with its scene reads its own copy, not the place it was trained at, which
+        may be gone or another copy), else ``scene``. A run that has not moved gets ``scene`` either way."""
+        recorded = Path(self.scene)
+        if self.scene_from_run is not None:
+            here = Path(os.path.normpath(Path(run_dir).resolve() / self.scene_from_run))
+            if here.is_dir():
+                return here if here.resolve() != recorded.resolve() else recorded
+        return recorded
+
+    @staticmethod
+    def relative_path(scene: Path, run_dir: Path) -> str | None:
+        """``scene`` relative to ``run_dir`` (both resolved) for ``scene_from_run``; None where there is no such path
+        (another drive)."""
+        try:
+            return os.path.relpath(Path(scene).resolve(), Path(run_dir).resolve())
+        except ValueError:
+            return None

@@ -155,6 +155,7 @@ def _same_scene_path(run_dir: Path, scene: Path) -> bool:
         info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
     except UserError:
         return False
+    # the recorded path, not ``scene_folder``: a run copied with its scene, resumed on that copy, records it
     return info is not None and Path(info.scene).resolve() == Path(scene).resolve()
 
 
@@ -200,6 +201,7 @@ def _record_moved_scene(run_dir: Path, scene: Path, cfg: TrainConfig) -> None:
     _check_same_scene(before, scene, data.cameras.image_names, run_dir)
     require_same_cameras(before.cameras, data, scene, "its renders against these would be wrong")
     before.scene = str(scene.resolve())
+    before.scene_from_run = RunScene.relative_path(scene, run_dir)
     before.write(run_dir / RunScene.FILE_NAME)
 
 
@@ -223,8 +225,9 @@ def _never_trained(run_dir: Path) -> bool:
 def _check_same_scene(before: RunScene, scene: Path, names: tuple[str, ...], run_dir: Path) -> None:
     """Refuse to resume ``run_dir`` on another scene than the one it was trained on (``scene.json``): its model
     would go on training on other photos and its held-out scores would mix two scenes. A scene folder that was
-    moved (the recorded path is gone) is accepted when it holds every image the run trained on and held out."""
-    recorded = Path(before.scene)
+    moved (the recorded path is gone) is accepted when it holds every image the run trained on and held out; a run
+    moved or copied with its scene resumes on the scene beside it (``RunScene.scene_folder``)."""
+    recorded = before.scene_folder(run_dir)
     if recorded.resolve() == scene.resolve():
         return
     missing = sorted((set(before.train) | set(before.test) | set(before.calibration)) - set(names))
@@ -543,7 +546,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         if state is not None and before is not None:  # a resumed model keeps its plane (one recorded none: 1 %)
             near = before.near if before.near is not None else near_plane(data.scene_scale)
         run_scene = RunScene(
-            scene=str(scene.resolve()), source=data.source, extent=data.extent,
+            scene=str(scene.resolve()), scene_from_run=RunScene.relative_path(scene, run_dir), source=data.source,
+            extent=data.extent,
             scene_scale=data.scene_scale,
             width=data.cameras.width, height=data.cameras.height,
             train=[names[i] for i in data.split["train"]] if names else [],
