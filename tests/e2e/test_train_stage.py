@@ -404,7 +404,7 @@ def test_a_finished_run_without_its_checkpoints_is_not_trained_again(tiny_scene_
     moved = tmp_path / "moved"
     shutil.copytree(tiny_scene_path, moved)
     info = json.loads((run / "scene.json").read_text())
-    (run / "scene.json").write_text(json.dumps({**info, "scene": str(tmp_path / "gone")}))
+    (run / "scene.json").write_text(json.dumps({**info, "scene": str(tmp_path / "gone"), "scene_from_run": "../gone"}))
     stage.run(moved, run, cfg, torch.device("cpu"), resume=True)
     assert json.loads((run / "scene.json").read_text())["scene"] == str(moved.resolve())
     assert (run / "variational.ply").read_bytes() == model

@@ -97,7 +97,7 @@ class TestServer:
         run = tmp_path / "run"
         shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns(".lock"))
         info = json.loads((run / "scene.json").read_text())
-        info["scene"] = str(tmp_path / "gone")
+        info.update(scene=str(tmp_path / "gone"), scene_from_run="../gone")
         (run / "scene.json").write_text(json.dumps(info))
         capsys.readouterr()
         v = stage.build(run, ViewConfig(port=0, thumbnails=False), torch.device("cpu"))

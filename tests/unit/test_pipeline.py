@@ -398,6 +398,49 @@ def test_a_stage_whose_output_is_gone_runs_again(tmp_path, calls, capsys):
     assert calls == []
 
 
+def test_a_stage_whose_data_file_changed_size_runs_again(tmp_path, monkeypatch, capsys):
+    """An output damaged in place (a copy cut short, a file truncated by a full disk while written again) was taken as
+    unchanged: the manifest held the names alone. The files that hold data (models, maps, figures) are recorded with
+    their sizes; one of another size makes its stage run again. A JSON record rewritten at another size (a command
+    run again by hand: other timings) does not."""
+    ran: list[str] = []
+
+    def fake(kind, cfg, up_path, out_dir, device, kwargs):
+        ran.append(kind)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "model.ply").write_bytes(b"x" * 1000)
+        (out_dir / "record.json").write_text('{"seconds": 1.5}')
+
+    monkeypatch.setattr(pl, "_run_stage", fake)
+    p = _write(tmp_path)
+    pl.run(p, tmp_path / "out")
+    manifest = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text())
+    assert manifest["output_sizes"] == {"model.ply": 1000}
+    ran.clear()
+    (tmp_path / "out" / "train" / "record.json").write_text('{"seconds": 12.25}')
+    pl.run(p, tmp_path / "out")
+    assert ran == []
+    with open(tmp_path / "out" / "train" / "model.ply", "r+b") as f:
+        f.truncate(600)
+    capsys.readouterr()
+    pl.run(p, tmp_path / "out")
+    said = " ".join(capsys.readouterr().err.split())
+    assert "train's output model.ply in" in said and "is not the size the stage left" in said, said
+    assert ran == ["train", "evaluate"]  # (its evaluation inside went to .previous with it)
+    assert (tmp_path / "out" / ".previous" / "train" / "model.ply").stat().st_size == 600  # kept, not deleted
+    ran.clear()
+    pl.run(p, tmp_path / "out")
+    assert ran == []
+    # a manifest of version 2 (no sizes) compares none
+    m = tmp_path / "out" / "train" / "manifest.json"
+    m.write_text(json.dumps({**{k: v for k, v in json.loads(m.read_text()).items() if k != "output_sizes"},
+                             "schema_version": 2}))
+    with open(tmp_path / "out" / "train" / "model.ply", "r+b") as f:
+        f.truncate(10)
+    pl.run(p, tmp_path / "out")
+    assert ran == []
+
+
 def test_an_output_made_again_by_hand_with_other_settings_runs_again(tmp_path, calls, capsys):
     """`uncertsplat evaluate RUN --num-samples 4` on the pipeline's run replaced its evaluation, and the next `run`
     skipped the stage as unchanged (its manifest said K = 10, metrics.json K = 4): the evaluation's and the run's

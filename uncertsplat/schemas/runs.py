@@ -278,10 +278,10 @@ class Manifest(SchemaFile):
     """``STAGE/manifest.json``: what one pipeline stage ran with and whether it finished."""
 
     FILE_NAME = "manifest.json"
-    SCHEMA_VERSION = 2
+    SCHEMA_VERSION = 3
     WRITTEN_BY = "uncertsplat run"
 
-    schema_version: int = 2
+    schema_version: int = 3
     stage: str
     name: str
     config_hash: str
@@ -298,12 +298,16 @@ class Manifest(SchemaFile):
     outputs: list[str] = Field(default_factory=list)
     """The files the finished stage left in its folder (relative paths; ``stages.manifest.stage_outputs``: not its
     checkpoints or caches): a stage with one of them gone runs again rather than being skipped."""
+    output_sizes: dict[str, int] = Field(default_factory=dict)
+    """The bytes of each of ``outputs`` that holds data (``stages.manifest.SIZED_OUTPUTS``: models, maps, figures) when
+    the stage finished: a stage with one of another size since (a copy cut short, a disk that filled while a file was
+    written again in place) runs again rather than being skipped."""
 
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
         # version 0 (before schema_version existed) had version 1's keys; version 1 recorded no outputs (none are
-        # checked)
-        return data if version in (0, 1) else None
+        # checked), versions 0-2 no sizes (none are compared)
+        return data if version in (0, 1, 2) else None
 
     @property
     def key(self) -> str:

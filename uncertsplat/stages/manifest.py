@@ -117,6 +117,47 @@ def missing_outputs(folder: Path, manifest: Manifest) -> list[str]:
             and not any(o in Path(name).parents for o in owned)]
 
 
+def resized_outputs(folder: Path, manifest: Manifest) -> list[str]:
+    """The files of ``manifest.output_sizes`` still in ``folder`` whose size is not the one the stage left (a copy cut
+    short, a file truncated by a full disk while written again in place), but for those a stage nested inside now
+    owns (as ``missing_outputs``). Contents are not compared: reading every map and model at each `run` would cost
+    seconds where sizes cost a stat each, and a model file carries its own checksum."""
+    folder = Path(folder)
+    owned = _nested_stages(folder) if manifest.output_sizes else set()
+    found = []
+    for name, size in manifest.output_sizes.items():
+        path = folder / name
+        if any(o in Path(name).parents for o in owned):
+            continue
+        try:
+            now = path.stat().st_size
+        except OSError:  # gone: missing_outputs names it
+            continue
+        if now != size:
+            found.append(name)
+    return found
+
+
+SIZED_OUTPUTS = (".ply", ".exr", ".png", ".jpg", ".jpeg", ".pt", ".npz", ".npy", ".bin")
+"""The outputs whose size ``output_sizes`` records: the files that hold the data (models, maps, figures, COLMAP
+models), the same bytes whenever the stage makes them again with the same settings. Not the JSON and HTML records: a
+command run again by hand with the stage's settings rewrites them with other timings (each is checked where read)."""
+
+
+def output_sizes(folder: Path, names: list[str]) -> dict[str, int]:
+    """{name: bytes} of the files ``names`` in ``folder`` that end in ``SIZED_OUTPUTS`` (those that cannot be read
+    left out)."""
+    sizes = {}
+    for name in names:
+        if not name.lower().endswith(SIZED_OUTPUTS):
+            continue
+        try:
+            sizes[name] = (Path(folder) / name).stat().st_size
+        except OSError:
+            continue
+    return sizes
+
+
 def _nested_stages(folder: Path) -> set[Path]:
     """The subfolders of ``folder`` (relative) that hold a stage's output of their own, by their manifest: an evaluate
     stage's ``eval/`` inside its run, a prune's evaluation once an evaluate stage owns it."""
@@ -153,4 +194,5 @@ def start_manifest(stage: str, name: str, config: dict, inputs: dict[str, str]) 
 
 
 __all__ = ["MANIFEST", "Manifest", "fingerprint_folder", "fingerprints", "hash_config", "missing_outputs",
-           "read_manifest", "stage_outputs", "start_manifest", "versions", "write_manifest"]
+           "output_sizes", "read_manifest", "resized_outputs", "stage_outputs", "start_manifest", "versions",
+           "write_manifest"]

@@ -37,7 +37,9 @@ from uncertsplat.stages.manifest import (
     Manifest,
     fingerprints,
     missing_outputs,
+    output_sizes,
     read_manifest,
+    resized_outputs,
     stage_outputs,
     start_manifest,
     write_manifest,
@@ -427,10 +429,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             changed = None
             if old is not None and old.status == "done" and not force and old.config_hash == new.config_hash \
                     and same_inputs:
-                gone = missing_outputs(out_dir, old)
-                changed = (f"{name}'s output {gone[0]}" + (f" (and {len(gone) - 1} more file(s))" if len(gone) > 1
-                                                          else "") + f" is gone from {out_dir}" if gone
-                           else _made_again(stage.stage, out_dir, old))
+                changed = _changed_output(name, stage.stage, out_dir, old)
                 if changed:
                     console.print(f"[yellow]note:[/] {changed}: it runs again")
             if (not force and old is not None and old.status == "done" and old.config_hash == new.config_hash
@@ -505,6 +504,25 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
         return outputs
 
 
+def _changed_output(name: str, kind: str, out_dir: Path, manifest: Manifest) -> str | None:
+    """Why the finished stage ``name``'s output in ``out_dir`` is not the one it left, or None: a file gone, the
+    stage made again by hand with other settings (``_made_again``), or a file of another size (``resized_outputs``)."""
+
+    def files(found: list[str]) -> str:
+        return f"{name}'s output {found[0]}" + (f" (and {len(found) - 1} more file(s))" if len(found) > 1 else "")
+
+    gone = missing_outputs(out_dir, manifest)
+    if gone:
+        return f"{files(gone)} is gone from {out_dir}"
+    again = _made_again(kind, out_dir, manifest)
+    if again:
+        return again
+    resized = resized_outputs(out_dir, manifest)
+    if resized:
+        return f"{files(resized)} in {out_dir} is not the size the stage left (damaged, or written again since)"
+    return None
+
+
 def _made_again(kind: str, out_dir: Path, manifest: Manifest) -> str | None:
     """Why the output in ``out_dir`` is no longer the one the finished stage of ``manifest`` made, or None: the run's
     ``config.json`` (train) or the evaluation's ``config.json`` (evaluate; but for the settings that change only what
@@ -535,6 +553,7 @@ def _finish(out_dir: Path, manifest: Manifest, status: str, t0: float, error: st
     manifest.seconds = time.perf_counter() - t0
     manifest.error = error
     manifest.outputs = stage_outputs(out_dir) if status == "done" else []
+    manifest.output_sizes = output_sizes(out_dir, manifest.outputs)
     if out_dir.exists() or status == "done":
         write_manifest(out_dir, manifest)
 
