@@ -21,6 +21,7 @@ import argparse
 import json
 import platform
 import time
+from dataclasses import replace
 from datetime import date
 from pathlib import Path
 
@@ -33,13 +34,14 @@ TOLERANCE = 0.03
 than this fraction of the distance beyond it."""
 
 
-def occupied(spec, points: torch.Tensor) -> torch.Tensor:
-    """[P] bool: ``points`` [P,3] (the synthetic scene's frame) inside one of its objects or outside its room."""
+def occupied(spec, points: torch.Tensor, objects_only: bool = False) -> torch.Tensor:
+    """[P] bool: ``points`` [P,3] (the synthetic scene's frame) inside one of its objects or outside its room (not
+    that with ``objects_only``)."""
     from uncertsplat.data.synthetic import CEIL, FLOOR, ROOM
 
     p = points.double()
     out = torch.zeros(p.shape[0], dtype=torch.bool)
-    if spec.room:
+    if spec.room and not objects_only:
         out |= (p[:, 0].abs() > ROOM) | (p[:, 1].abs() > ROOM) | (p[:, 2] < FLOOR) | (p[:, 2] > CEIL)
     for obj in spec.objects:
         c = torch.tensor(obj.center, dtype=torch.float64)
@@ -51,6 +53,22 @@ def occupied(spec, points: torch.Tensor) -> torch.Tensor:
         else:  # cylinder: vertical axis through the centre
             d = p - c
             out |= (d[:, :2].norm(dim=-1) < obj.size[0]) & (d[:, 2].abs() < obj.size[1])
+    return out
+
+
+def inside_objects(spec, per_object: int, g: torch.Generator) -> list[tuple[str, torch.Tensor]]:
+    """[(object kind and index, [n,3] points drawn uniformly inside it)] for each of the scene's objects: what a
+    planner must never take for free space (a pose inside an object renders confidently)."""
+    out = []
+    for i, obj in enumerate(spec.objects):
+        c = torch.tensor(obj.center, dtype=torch.float64)
+        r = float(torch.tensor(obj.size, dtype=torch.float64).norm())  # encloses every kind's extent
+        one = replace(spec, objects=(obj,), room=False)
+        kept = []
+        while sum(len(k) for k in kept) < per_object:
+            cand = c + r * (2 * torch.rand(4 * per_object, 3, generator=g, dtype=torch.float64) - 1)
+            kept.append(cand[occupied(one, cand, objects_only=True)])
+        out.append((f"{obj.kind} {i}", torch.cat(kept)[:per_object]))
     return out
 
 
@@ -83,6 +101,7 @@ def main() -> None:
     ap.add_argument("--fractions", type=float, nargs="+", default=[0.5, 0.9, 1.05, 1.2, 2.0])
     ap.add_argument("--samples", type=int, default=4, help="posterior samples of the moved cameras' renders")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--object-points", type=int, default=2000, help="points drawn inside each object")
     ap.add_argument("--label", default="demo")
     add_overwrite_option(ap)
     args = ap.parse_args()
@@ -132,6 +151,9 @@ def main() -> None:
         "looked_through_of_said_free": share(oracle, free_said),
         "seconds": round(seconds, 3), "seconds_per_point": seconds / args.points,
     }
+    # inside each object (the uniform points hold few of them: most occupied points lie beyond the walls)
+    points["said_free_inside_objects"] = {
+        name: round(float(pred.seen_free(p).double().mean()), 4) for name, p in inside_objects(spec, args.object_points, g)}
 
     # held-out cameras moved along their optical axes into or past what their middle pixel sees
     moved = []
@@ -170,7 +192,9 @@ def main() -> None:
     print(json.dumps({"points": points, "moved": by_fraction}, indent=2))
     print(f"\n| {args.label} | {points['occupied']:,} / {points['free']:,} | {points['said_free_of_occupied']} | "
           f"{points['said_free_of_looked_through']} | {points['said_free_of_free_not_looked_through']} | "
-          f"{points['free_of_said_free']} | {1e6 * points['seconds_per_point']:.1f} us |")
+          f"{points['free_of_said_free']} | "
+          + ", ".join(f"{v:.2%}" for v in points["said_free_inside_objects"].values())
+          + f" | {1e6 * points['seconds_per_point']:.1f} us |")
     print(f"wrote {out_path}")
 
 

@@ -1,11 +1,12 @@
 """Render the uncertainty of a trained run for a held-out view and for a pose no photo was taken from.
 
-    python examples/uncertainty_map.py RUN [VIEW] [K]    # e.g. example_out/run 0 10
+    python examples/uncertainty_map.py RUN [VIEW] [K]    # e.g. example_out/run 0 10 (K: the evaluation's)
 
 VIEW is a held-out (test) view: its position among them (0, 1, ...) or its image name. The second pose lies halfway
 between that view and the training view nearest to it, given in the scene's own coordinates (your COLMAP model's
-frame and units), as a robot's planner would give it. Both get evaluate's whole predictive (``uncertsplat.predict``:
-the same maps as its EXR files). Writes RUN/example_maps/{view,between}_{mean,rgb_std,depth_std}.png.
+frame and units), as a robot's planner would give it. Both get evaluate's whole predictive (``uncertsplat.predict``;
+without K, at the run's evaluation's K and seed: the held-out view's maps are its EXR files'). Writes
+RUN/example_maps/{view,between}_{mean,rgb_std,depth_std}.png.
 """
 
 import sys
@@ -19,7 +20,7 @@ from uncertsplat.predict import Predictor
 from uncertsplat.report.colormaps import colorize
 
 
-def main(run: Path, view: str, k: int) -> None:
+def main(run: Path, view: str, k: int | None) -> None:
     pred = Predictor.load(run, "auto")  # any method; fits (or reads) the side terms evaluate fits
     scene = pred.scene  # the run's scene as trained: cameras in its normalised world, split, world_from_source
     test = list(scene.split.get("test", ()))
@@ -49,7 +50,7 @@ def main(run: Path, view: str, k: int) -> None:
 
     out = run / "example_maps"
     for tag, cam in (("view", cams[[i]]), ("between", new)):
-        maps = pred.predict(cam, num_samples=k, seed=0)
+        maps = pred.predict(cam, num_samples=k)  # None: the evaluation's K; its seed
         write_png(out / f"{tag}_mean.png", maps.rgb_mean[0].clamp(0, 1).numpy())
         write_png(out / f"{tag}_rgb_std.png", colorize(maps.rgb_std[0].mean(-1)))  # percentile colour scale
         write_png(out / f"{tag}_depth_std.png", colorize(maps.depth_std[0, ..., 0]))
@@ -68,6 +69,6 @@ if __name__ == "__main__":
     if len(args) == 3 and not (args[2].isdigit() and int(args[2]) >= 1):
         sys.exit(__doc__ + f"\nK must be a whole number of samples, 1 or more, not {args[2]}.")
     try:
-        main(Path(args[0]), args[1] if len(args) > 1 else "0", int(args[2]) if len(args) > 2 else 10)
+        main(Path(args[0]), args[1] if len(args) > 1 else "0", int(args[2]) if len(args) > 2 else None)
     except UserError as err:  # a wrong path or view: the message, not a traceback
         sys.exit(f"error: {err.render()}")

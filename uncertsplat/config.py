@@ -588,6 +588,12 @@ class EvalConfig(_Base):
     ``depth_gt`` folder's factor is fitted (``depth_align``); scene: the ``depth_gt`` maps are in the scene's own
     units (its COLMAP model's, e.g. a metric map's), the known factor of ``RUN/scene.json``."""
     depth_align: Literal["median", "lsq"] = "median"
+
+    @field_validator("depth_gt", mode="after")
+    @classmethod
+    def _depth_gt_home(cls, v: Path | None) -> Path | None:
+        return _home(v)
+
     std_floor: float = Field(1e-3, ge=1e-18, le=0.01)
     """The NLL uses max(std, std_floor) so a zero std does not give an infinite NLL (the depth NLL: std_floor in the
     run's normalised units, carried into the GT maps' units with the depths). At most 0.01 (1 % of the colour
@@ -895,8 +901,19 @@ class PipelineConfig(_Base):
     device: Literal["auto", "cpu", "cuda"] = "auto"
     stages: list[PipelineStage] = Field(min_length=1)
 
+    @field_validator("photos", mode="after")
+    @classmethod
+    def _photos_home(cls, v: Path | None) -> Path | None:
+        return _home(v)
+
 
 # ----------------------------------------------------------------------------------------------- helpers
+def _home(path: Path | None) -> Path | None:
+    """``path`` with a leading ``~`` taken as the home folder, as a shell would (a TOML file's or ``--set``'s path is
+    not seen by one: ``~/photos`` was looked for in a folder named ``~``)."""
+    return path.expanduser() if path is not None and str(path).startswith("~") else path
+
+
 STAGE_CONFIGS: dict[str, type[_Base]] = {
     "synth": SynthConfig,
     "reconstruct": ReconstructConfig,

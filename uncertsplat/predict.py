@@ -42,7 +42,13 @@ from torch import Tensor
 
 from uncertsplat.config import EVAL_SEED_MAX
 from uncertsplat.errors import UserError
-from uncertsplat.types import Cameras, focal_unusable, intrinsics_size_guess, principal_point_outside
+from uncertsplat.types import (
+    Cameras,
+    focal_unusable,
+    intrinsics_size_guess,
+    principal_point_near_edge,
+    principal_point_outside,
+)
 
 
 @dataclass(frozen=True)
@@ -62,7 +68,8 @@ class Prediction:
         std_factor: the factor ``evaluate`` fits for the RGB std (None: none fitted, e.g. no training view).
         dof: degrees of freedom of the Student-t the RGB std is read with (None: a Gaussian).
         depth_to_source: the factor from the run's normalised depth to the scene's units (already applied above).
-        image_names: the cameras' names.
+        image_names: the cameras' names (``pose_0``, ``pose_1``, ... for cameras given without names, as
+            ``Predictor.cameras_from_source`` names them).
         seen_free: [N] bool, whether a training photo looked through each camera's position before meeting a surface
             (``Predictor.seen_free``). False for a camera inside an object or behind a wall, whose maps look confident
             (it sees the inside of a surface the photos saw from outside), and for one in space no photo showed
@@ -146,10 +153,24 @@ def _whole(value, name: str, minimum: int) -> int:
 
 
 def _contiguous(values):
-    """``values`` as torch takes them: a tensor detached (a pose with ``requires_grad`` warned from deep inside), a
+    """``values`` as torch takes them: a tensor detached (a pose with ``requires_grad`` warned from deep inside) and on
+    the CPU (the checks compare with CPU constants: a robot's poses on the GPU ended in torch's device error), a
     numpy array with negative strides (``np.flip``, ``a[::-1]``) copied, which ``torch.as_tensor`` refuses."""
     if isinstance(values, torch.Tensor):
-        return values.detach()
+        return values.detach().cpu()
+    if isinstance(values, (list, tuple)) and values and all(isinstance(v, torch.Tensor) for v in values):
+        try:  # a list of poses as tensors: one tensor (torch.as_tensor takes a list of one-element tensors only)
+            return torch.stack([v.detach().cpu() for v in values])
+        except RuntimeError:  # of different shapes: the caller's message says what it takes
+            return values
+    if (isinstance(values, (list, tuple)) and values
+            and all(type(v).__module__ == "numpy" and hasattr(v, "shape") for v in values)):
+        import numpy as np  # (torch.as_tensor of a list of arrays warns that it is very slow)
+
+        try:
+            return np.stack(values)
+        except ValueError:
+            return values
     if type(values).__module__ == "numpy" and hasattr(values, "strides") and any(st < 0 for st in values.strides):
         import numpy as np
 
@@ -213,10 +234,11 @@ def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
 def _intrinsics(K, n: int, width: int, height: int, outside_ok: bool = False) -> Tensor:
     """[1 or n,3,3] float64 pinhole intrinsics of ``cameras_from_source``: refused when the renderer could not take
     them as given (it reads fx, fy, cx, cy alone: a skew or another last row would be dropped without a word), and,
-    unless ``outside_ok``, with the principal point outside the ``width`` x ``height`` image (a full-size photo's K
-    given with a smaller size renders a zoomed, off-centre patch whose std looks more certain, not an error)."""
+    unless ``outside_ok``, with the principal point outside the ``width`` x ``height`` image or in its outer
+    ``types.EDGE_MARGIN`` (a full-size photo's K given with a smaller size renders a zoomed, off-centre patch whose
+    std looks more certain, not an error; halved, its principal point lands exactly on the corner)."""
     try:
-        Ks = torch.as_tensor(K, dtype=torch.float64)
+        Ks = torch.as_tensor(_contiguous(K), dtype=torch.float64)
     except (TypeError, ValueError, RuntimeError) as e:
         raise TypeError(f"K must be a tensor or array ([3,3] or [N,3,3]), got {type(K).__name__}: {e}") from None
     Ks = Ks[None] if Ks.ndim == 2 else Ks
@@ -236,12 +258,15 @@ def _intrinsics(K, n: int, width: int, height: int, outside_ok: bool = False) ->
             what = (f"has the skew K[0,1] = {float(k[0, 1]):g} (or K[1,0] = {float(k[1, 0]):g}): the renderer takes "
                     "pinhole cameras without skew")
         hint = "Pass [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels."
-        if what is None and not outside_ok and bool(principal_point_outside(k, width, height)):
-            what = (f"has its principal point at ({cx:g}, {cy:g}), outside the {width}x{height} image"
-                    + intrinsics_size_guess(cx, cy))
+        # near the edge too: a K twice the size with halved width and height puts it exactly on the corner
+        if what is None and not outside_ok and bool(principal_point_near_edge(k, width, height)):
+            beyond = bool(principal_point_outside(k, width, height))
+            what = (f"has its principal point at ({cx:g}, {cy:g}), {'outside' if beyond else 'at the edge of'} the "
+                    f"{width}x{height} image"
+                    + (intrinsics_size_guess(cx, cy) if beyond or (cx > width / 2 and cy > height / 2) else ""))
             hint = (f"Scale fx, fy, cx and cy by the ratio of the sizes for a {width}x{height} render (or pass the "
-                    "size the intrinsics were measured at); a crop whose optical centre lies outside it takes "
-                    "principal_point_outside=True.")
+                    "size the intrinsics were measured at); a crop whose optical centre lies outside it or near its "
+                    "edge takes principal_point_outside=True.")
         if what is not None:
             where = "K" if len(Ks) == 1 and n != 1 else f"K of pose {i}"
             raise UserError(f"{where} {what}", hint=hint)
@@ -394,13 +419,13 @@ class Predictor:
             axes: the camera's axes, ``"opencv"`` (x right, y down, z forward: COLMAP, OpenCV, ROS optical frames) or
                 ``"opengl"`` (x right, y up, z backward: OpenGL, Blender, NeRF's ``transforms.json``; ``"blender"``
                 is the same).
-            principal_point_outside: accept a principal point outside the image (a crop of a larger view); refused
-                by default, as ``train`` refuses it (``SceneConfig.principal_point_outside``): it is what the full-size
-                photo's K given with a smaller image size looks like.
+            principal_point_outside: accept a principal point outside the image or in its outer 5 % (a crop of a
+                larger view); refused by default, as ``train`` refuses it (``SceneConfig.principal_point_outside``): it
+                is what the full-size photo's K given with a smaller image size looks like.
 
         Raises:
             UserError: a pose or K of the wrong shape, not rigid or not finite, unusable intrinsics or a principal
-                point outside the image (the message names the pose's index), names that do not match the poses, an
+                point outside the image or near its edge (the message names the pose's index), names that do not match the poses, an
                 image size that is not a positive whole number.
         """
         from uncertsplat.sfm.scene import normalized_cam_from_world
@@ -533,7 +558,8 @@ class Predictor:
         return Prediction(rgb_mean=cat("rgb_mean", 3), rgb_std=cat("rgb_std", 3),
                           depth_mean=cat("depth_mean", 1) * to_source, depth_std=cat("depth_std", 1) * to_source,
                           alpha=cat("alpha_mean", 1), std_factor=self.std_factor, dof=self.dof,
-                          depth_to_source=to_source, image_names=tuple(cameras.image_names),
+                          depth_to_source=to_source,
+                          image_names=tuple(cameras.image_names) or tuple(f"pose_{i}" for i in range(len(cameras))),
                           seen_free=self._free_space().seen_free(cameras.centers.to(self.device)).cpu()
                           if len(cameras) else torch.zeros(0, dtype=torch.bool))
 

@@ -90,18 +90,45 @@ class Cameras:
         return self.cam_from_world.shape[0]
 
     def __getitem__(self, idx) -> Cameras:
-        """Select cameras by int, slice, list of ints or bool/long tensor."""
-        if isinstance(idx, int):
-            idx = [idx]
-        if isinstance(idx, slice):
-            sel = list(range(len(self)))[idx]
-        elif isinstance(idx, Tensor):
-            sel = (idx.nonzero().flatten() if idx.dtype == torch.bool else idx).tolist()
-        else:
-            sel = list(idx)
+        """Select cameras as numpy and torch index: an integer (Python, numpy or a 0-d tensor, e.g. ``score.argmax()``),
+        a slice, a sequence of integers (list, array, long tensor; negative ones count from the end) or a mask of
+        ``len(self)`` booleans (list, array or bool tensor, e.g. ``Prediction.seen_free``). Always a ``Cameras``.
+
+        Raises:
+            IndexError: an index out of range, a mask of another length, or something that is neither.
+        """
+        sel = self._selection(idx)
         index = torch.as_tensor(sel, dtype=torch.long, device=self.K.device)
         names = tuple(self.image_names[i] for i in sel) if self.image_names else ()
         return Cameras(self.cam_from_world[index], self.K[index], self.width, self.height, names)
+
+    def _selection(self, idx) -> list[int]:
+        """``idx`` (as ``__getitem__`` takes it) as a list of indices in [0, len(self))."""
+        import numpy as np
+
+        n = len(self)
+        if isinstance(idx, slice):
+            return list(range(n))[idx]
+        if isinstance(idx, Tensor):
+            idx = idx.detach().cpu().numpy()
+        try:
+            arr = np.asarray(idx)
+        except (TypeError, ValueError) as err:  # (a ragged list)
+            raise IndexError(f"cameras are selected by integers, a slice or a mask of booleans, not {idx!r}") from err
+        if arr.dtype == np.bool_:
+            if arr.ndim != 1 or arr.shape[0] != n:  # a single True would select camera 1 as an integer
+                raise IndexError(f"a mask of booleans selecting cameras must hold one per camera ({n}), found "
+                                 f"shape {list(arr.shape)}")
+            return np.flatnonzero(arr).tolist()
+        if arr.size == 0 and arr.ndim == 1:
+            return []
+        if arr.ndim > 1 or not np.issubdtype(arr.dtype, np.integer):
+            raise IndexError(f"cameras are selected by integers, a slice or a mask of booleans, not {idx!r}")
+        flat = arr.reshape(-1).tolist()
+        bad = [i for i in flat if not -n <= i < n]
+        if bad:
+            raise IndexError(f"camera index {bad[0]} is out of range for {n} camera(s)")
+        return [i % n for i in flat]
 
     @property
     def device(self) -> torch.device:

@@ -1179,9 +1179,10 @@ class TestPredictor:
         torch.testing.assert_close(pred.predict(renamed).rgb_std[0], pred.predict(b).rgb_std[0], rtol=0, atol=0)
 
 
-def test_an_evaluation_stopped_midway_leaves_no_metrics_beside_its_maps(tiny_run_path, tmp_path, monkeypatch):
-    """Ctrl-C after the first view's maps of a new evaluation: the earlier metrics.json is gone with the maps it
-    described, so the next evaluate with the earlier settings evaluates again instead of keeping mixed files."""
+def test_an_evaluation_stopped_midway_keeps_the_earlier_one_whole(tiny_run_path, tmp_path, monkeypatch):
+    """Ctrl-C (or a full disk, kill -9) after the first view's maps of a new evaluation: the earlier evaluation, its
+    metrics.json and its maps, is left as it was (deleting its metrics first lost it; keeping them beside new maps mixed
+    two evaluations), and the next evaluate with the earlier settings keeps it; a killed one's staging folder goes."""
     run = tmp_path / "run"
     shutil.copytree(tiny_run_path, run)
     first = EvalConfig(num_samples=2, seed=0)
@@ -1192,13 +1193,24 @@ def test_an_evaluation_stopped_midway_leaves_no_metrics_beside_its_maps(tiny_run
         real(*args, **kwargs)
         raise KeyboardInterrupt
 
+    before = {p.relative_to(run / "eval"): p.read_bytes() for p in (run / "eval").rglob("*")
+              if p.is_file() and p.parent.name == "maps" or p.name in ("metrics.json", "config.json")}
     monkeypatch.setattr(evaluate, "write_view_maps", stop_after_one)
     with pytest.raises(KeyboardInterrupt):
         evaluate.run(run, EvalConfig(num_samples=3, seed=7), device=torch.device("cpu"))
-    assert not (run / "eval" / "metrics.json").exists()
+    after = {p.relative_to(run / "eval"): p.read_bytes() for p in (run / "eval").rglob("*")
+             if p.is_file() and p.parent.name == "maps" or p.name in ("metrics.json", "config.json")}
+    assert after == before
+    (run / "eval" / ".maps-999999").mkdir(exist_ok=True)  # as a kill -9 leaves it
     monkeypatch.setattr(evaluate, "write_view_maps", real)
-    report = evaluate.run(run, first, device=torch.device("cpu"))
-    assert report.num_samples == 2 and report.seed == 0 and (run / "eval" / "metrics.json").is_file()
+    report = evaluate.run(run, EvalConfig(num_samples=3, seed=7), device=torch.device("cpu"))
+    assert report.num_samples == 3 and not list((run / "eval").glob(".maps-*"))
+    assert sorted(p.name for p in (run / "eval" / "maps").iterdir()) == sorted(
+        p.name for p in before if p.parent.name == "maps")
+    (run / "eval").rename(tmp_path / "moved-eval")
+    (run / "eval").write_text("")
+    with pytest.raises(UserError, match="the evaluation's folder eval is a file, not a folder"):
+        evaluate.run(run, first, device=torch.device("cpu"))
 
 
 def test_views_the_model_leaves_empty_are_named():

@@ -56,6 +56,11 @@ def test_writes_a_valid_pruned_run(pruned, tiny_run_path):  # noqa: F811
     assert (out / "config.json").read_bytes() == (tiny_run_path / "config.json").read_bytes()
     assert json.loads((out / "prune_config.json").read_text())["keep_ratio"] == result.keep_ratio  # its settings
     assert (out / "scene.json").is_file() and (out / "point_cloud.ply").is_file()
+    # the source's scene record, with the scene's path relative to the pruned run (not the source's: from another
+    # folder it named whatever lay there)
+    source, written = (json.loads((d / "scene.json").read_text()) for d in (tiny_run_path, out))
+    assert {**written, "scene_from_run": None} == {**source, "scene_from_run": None}
+    assert (out / written["scene_from_run"]).resolve() == Path(source["scene"]).resolve()
     umask = os.umask(0)
     os.umask(umask)
     assert out.stat().st_mode & 0o777 == 0o777 & ~umask  # as any output folder (the temp folder's 0700 before)

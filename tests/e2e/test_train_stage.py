@@ -141,11 +141,11 @@ def test_resume_on_another_scene_is_refused(trained, tiny_scene_path, tmp_path):
     assert json.loads((copy / "scene.json").read_text())["scene"] == str(other.resolve())
 
 
-def test_a_run_moved_or_copied_with_its_scene_reads_the_scene_beside_it(trained, tiny_scene_path, tmp_path):  # noqa: F811
-    """A project folder (a pipeline's output: the scene and the run side by side) copied or moved elsewhere: every
-    command reads the scene beside the run, not the folder the run was trained at (gone, or another copy), and a
-    resume on the copy's own scene is accepted; a run moved alone, or one written before scene_from_run was
-    recorded, reads the recorded folder as before."""
+def test_a_run_moved_with_its_scene_finds_the_scene_beside_it(trained, tiny_scene_path, tmp_path, capsys):  # noqa: F811
+    """A project folder (a pipeline's output: the scene and the run side by side) moved elsewhere: every command finds
+    the scene beside the run once the place it was trained at is gone, and says so. Never while that place exists: a
+    folder beside a run copied alone into another project, or beside a run kept inside its scene and moved out of
+    it, may be another scene with the same cameras (a helper's runs scored against another project's photos)."""
     run, cfg = trained
     first = tmp_path / "first"
     shutil.copytree(tiny_scene_path, first / "scene")
@@ -154,28 +154,37 @@ def test_a_run_moved_or_copied_with_its_scene_reads_the_scene_beside_it(trained,
     assert info["scene_from_run"] is not None  # written by train
     info.update(scene=str((first / "scene").resolve()), scene_from_run="../scene")
     (first / "run" / "scene.json").write_text(json.dumps(info))
-    assert load_run(first / "run").scene_path == (first / "scene").resolve()  # not moved: the recorded folder
+    assert load_run(first / "run").scene_path == (first / "scene").resolve()
+    # copied: the original is still there, and read (the copy's own folder beside it could be anything)
     copy = tmp_path / "copy"
     shutil.copytree(first, copy)
-    loaded = load_run(copy / "run")
-    assert loaded.scene_path == copy.resolve() / "scene"
-    assert loaded.load_scene().cameras.image_names
-    # resumed on its own copy: accepted (nothing left to train) and recorded; on the first project's: refused
-    stage.run(copy / "scene", copy / "run", cfg, torch.device("cpu"), resume=True)
-    recorded = json.loads((copy / "run" / "scene.json").read_text())
-    assert (recorded["scene"], recorded["scene_from_run"]) == (str((copy / "scene").resolve()), "../scene")
-    with pytest.raises(UserError, match="that scene is still at .*copy"):
-        stage.run(first / "scene", copy / "run", cfg, torch.device("cpu"), resume=True)
-    # moved: the place it was trained at is gone
+    assert load_run(copy / "run").scene_path == (first / "scene").resolve()
+    with pytest.raises(UserError, match="that scene is still at .*first"):
+        stage.run(copy / "scene", copy / "run", cfg, torch.device("cpu"), resume=True)
+    # the original moved away: each project reads its own scene, and says which
     moved = tmp_path / "moved"
     first.rename(moved)
-    assert load_run(moved / "run").scene_path == moved.resolve() / "scene"
-    # a run moved alone finds nothing beside it: the recorded folder (here gone, said as before)
+    for project in (moved, copy):
+        loaded = load_run(project / "run")
+        assert loaded.scene_path == project.resolve() / "scene"
+        capsys.readouterr()
+        assert loaded.load_scene().cameras.image_names
+        said = " ".join(capsys.readouterr().err.split())
+        assert "is gone; reading the folder at the same place relative to the run" in said, said
+    stage.run(copy / "scene", copy / "run", cfg, torch.device("cpu"), resume=True)  # recorded, nothing trained
+    recorded = json.loads((copy / "run" / "scene.json").read_text())
+    assert (recorded["scene"], recorded["scene_from_run"]) == (str((copy / "scene").resolve()), "../scene")
+    # a run moved alone finds nothing beside it: the recorded folder (gone, said as before)
     alone = tmp_path / "alone"
     shutil.copytree(moved / "run", alone)
     assert load_run(alone).scene_path == first.resolve() / "scene"
     with pytest.raises(UserError, match="is gone"):
         load_run(alone).load_scene()
+    # another scene beside a run whose own scene exists is never read
+    other = tmp_path / "other"
+    shutil.copytree(tiny_scene_path, other / "scene")
+    shutil.copytree(copy / "run", other / "run")
+    assert load_run(other / "run").scene_path == (copy / "scene").resolve()
     # a scene.json of schema version 4 (no scene_from_run) reads the recorded folder
     old = {k: v for k, v in info.items() if k != "scene_from_run"}
     (moved / "run" / "scene.json").write_text(json.dumps({**old, "schema_version": 4}))

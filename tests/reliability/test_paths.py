@@ -45,3 +45,21 @@ def test_missing_unicode_path_is_named_in_the_error(tmp_path):
     assert res.returncode == 2 and "Traceback" not in res.stderr
     assert "pas là ✗" in res.stderr
     assert not (tmp_path / "sortie").exists()
+
+
+def test_names_near_the_file_system_limit_are_written(tmp_path):
+    """A legal name of 220-255 characters made the temporary sibling's name (``.NAME.XXXXXXXX.tmp``) longer than the
+    file system's 255 and ended a write in a traceback (prune's only after it had scored and evaluated): the temporary
+    name keeps the start and a hash of a long one, whole up to 100 characters."""
+    import tempfile
+
+    from uncertsplat.io.atomic import TEMP_STEM, atomic_write_text, temp_stem
+
+    long_name = "n" * 250 + ".json"
+    written = atomic_write_text(tmp_path / long_name, "{}\n")
+    assert written.read_text() == "{}\n" and [p.name for p in tmp_path.iterdir()] == [long_name]  # no temp left
+    assert temp_stem("short") == "short" and len(temp_stem("x" * 255)) == TEMP_STEM
+    assert temp_stem("x" * 255) != temp_stem("x" * 254)  # two long names stay apart
+    # a folder's staging sibling (prune, synth, reconstruct's model): the same stem
+    folder = Path(tempfile.mkdtemp(prefix=f".{temp_stem('d' * 250)}.tmp-host-1-", dir=tmp_path))
+    assert folder.is_dir() and len(folder.name) < 255

@@ -610,3 +610,93 @@ def test_a_folder_the_pipeline_did_not_write_is_kept_apart_and_never_replaced(tm
     (tmp_path / "out" / ".previous" / "report-not-from-this-pipeline").mkdir(parents=True)
     pl.run(p, tmp_path / "out", overrides=["train.iterations=10"])
     assert (tmp_path / "out" / ".previous" / "report-not-from-this-pipeline-2" / "mine.txt").is_file()
+
+
+def test_a_project_moved_with_its_pipeline_file_skips_its_stages(tmp_path, calls, capsys):
+    """A stage reading a folder beside the pipeline file (``input = "scene"``) was keyed by the folder's resolved path:
+    the project moved elsewhere trained again from scratch (and the next move lost the first run from .previous).
+    Keyed as the file writes it, the moved project skips every stage; a manifest keyed the old way is taken too."""
+    project = tmp_path / "a"
+    (project / "scene" / "images").mkdir(parents=True)
+    (project / "scene" / "images" / "a.png").write_text("x")
+    p = project / "p.toml"
+    p.write_text('name = "m"\n[[stages]]\nstage = "train"\ninput = "scene"\npreset = "tiny"\n')
+    pl.run(p, project / "out")
+    assert [k for k, _ in calls] == ["train"]
+    recorded = json.loads((project / "out" / "train" / "manifest.json").read_text())["input_hashes"]
+    assert list(recorded) == ["scene"]
+    calls.clear()
+    project.rename(tmp_path / "b")
+    pl.run(tmp_path / "b" / "p.toml", tmp_path / "b" / "out")
+    assert calls == []
+    # the layout of before: keyed by the resolved path of the folder
+    m = tmp_path / "b" / "out" / "train" / "manifest.json"
+    data = json.loads(m.read_text())
+    data["input_hashes"] = {str((tmp_path / "b" / "scene").resolve()): recorded["scene"]}
+    m.write_text(json.dumps(data))
+    pl.run(tmp_path / "b" / "p.toml", tmp_path / "b" / "out")
+    assert calls == []
+    (tmp_path / "b" / "scene" / "images" / "a.png").write_text("y")  # its contents changed: it runs again
+    pl.run(tmp_path / "b" / "p.toml", tmp_path / "b" / "out")
+    assert [k for k, _ in calls] == ["train"]
+
+
+def test_a_home_folder_in_a_path_setting_is_expanded(monkeypatch, tmp_path):
+    """``photos = "~/..."`` in a pipeline file or ``--set depth_gt=~/...`` was looked for in a folder named ``~``
+    (no shell expands them there)."""
+    from uncertsplat.config import EvalConfig, PipelineConfig
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert PipelineConfig(photos="~/shots", stages=[{"stage": "synth"}]).photos == tmp_path / "shots"
+    assert EvalConfig(depth_gt="~/depth").depth_gt == tmp_path / "depth"
+    assert EvalConfig(depth_gt="depth").depth_gt == Path("depth")  # relative paths as they were
+
+
+def test_a_training_killed_without_a_word_resumes_from_its_checkpoint(tmp_path, monkeypatch):
+    """A train stage killed by ``kill -9`` (the OOM killer) or ended by a full disk left checkpoints and no manifest of
+    its start (or a failed one): the next `run` moved the folder to .previous and trained from step 0. The pipeline
+    records the key each stage was started with; started again with it, the training resumes."""
+    seen: list[tuple[str, bool]] = []
+    fail: dict[str, type[BaseException] | None] = {"train": None}
+
+    class Killed(BaseException):  # nothing of the stage's own handling runs, as under SIGKILL
+        pass
+
+    def fake(kind, cfg, up_path, out_dir, device, kwargs):
+        seen.append((kind, bool(kwargs.get("resume"))))
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if kind == "train":
+            (out_dir / "ckpts").mkdir(exist_ok=True)
+            (out_dir / "ckpts" / "step_000002.pt").write_bytes(b"x")
+            if fail["train"] is not None:
+                raise fail["train"]()
+        (out_dir / "out.txt").write_text("done")
+
+    monkeypatch.setattr(pl, "_run_stage", fake)
+    monkeypatch.setattr(pl, "_has_checkpoint", lambda d: (d / "ckpts").is_dir())
+    p = _write(tmp_path)
+    fail["train"] = Killed
+    with pytest.raises(Killed):
+        pl.run(p, tmp_path / "out")
+    assert not (tmp_path / "out" / "train" / "manifest.json").exists()
+    fail["train"] = None
+    seen.clear()
+    pl.run(p, tmp_path / "out")
+    assert seen[:2] == [("train", True), ("evaluate", False)]
+    assert not (tmp_path / "out" / ".previous" / "train").exists()  # nothing moved aside
+    # another setting since: it trains anew (the killed one's checkpoints are not this run's)
+    fail["train"] = Killed
+    with pytest.raises(Killed):
+        pl.run(p, tmp_path / "out", overrides=["train.iterations=7"])
+    fail["train"] = None
+    seen.clear()
+    pl.run(p, tmp_path / "out")
+    assert seen[0] == ("train", False)
+    # a failure the stage reported (a full disk): resumed too
+    fail["train"] = lambda: UserError("the disk is full")
+    with pytest.raises(pl.StageError):
+        pl.run(p, tmp_path / "out", overrides=["train.iterations=9"])
+    fail["train"] = None
+    seen.clear()
+    pl.run(p, tmp_path / "out", overrides=["train.iterations=9"])
+    assert seen[0] == ("train", True)

@@ -296,9 +296,10 @@ class LoadedRun:
             return data
         from uncertsplat.console import console, list_names
 
-        if Path(self.scene_path) != Path(info.scene):  # said once: the cameras are compared below all the same
-            console.print(f"[dim]note: the run was trained on the scene at {info.scene}; it was moved or copied "
-                          f"together with it, which is read at {self.scene_path}[/]")
+        if Path(self.scene_path) != Path(info.scene):  # (the cameras and the views' names are compared below)
+            console.print(f"[yellow]note:[/] the scene this run was trained on, {info.scene}, is gone; reading the "
+                          f"folder at the same place relative to the run, {self.scene_path} (the run was moved with "
+                          f"it); `uncertsplat train {self.scene_path} -o {self.run_dir} --resume` records it")
 
         if own is not None:
             known = {*info.train, *info.test, *info.calibration}

@@ -38,6 +38,21 @@ def current_umask() -> int:
     return _UMASK
 
 
+TEMP_STEM = 100
+"""The most characters of a file's or folder's name its temporary sibling's name keeps (``temp_stem``)."""
+
+
+def temp_stem(name: str) -> str:
+    """``name`` as a temporary sibling's name holds it: whole up to ``TEMP_STEM`` characters, else its start and a
+    hash of the whole (a legal name of 220-255 characters made ``.NAME.XXXXXXXX.tmp`` longer than a file system's 255,
+    and the write ended in a traceback after the work was done)."""
+    if len(name) <= TEMP_STEM:
+        return name
+    import hashlib
+
+    return name[:TEMP_STEM - 9] + "~" + hashlib.sha256(name.encode()).hexdigest()[:8]
+
+
 def atomic_write_via(path: str | Path, write_tmp: Callable[[str], None], *, what: str = "file") -> Path:
     """Write a file atomically through a writer that takes a file *name* (e.g. OpenImageIO).
 
@@ -51,7 +66,8 @@ def atomic_write_via(path: str | Path, write_tmp: Callable[[str], None], *, what
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=f".{temp_stem(path.stem)}.", suffix=f".tmp{path.suffix[:16]}",
+                                   dir=path.parent)
         os.close(fd)
     except OSError as err:
         raise UserError(f"cannot write here ({err.strerror})", path=path.parent,

@@ -97,7 +97,7 @@ class RunScene(SchemaFile):
     """Absolute path of the scene folder (COLMAP workspace, Blender/nerfstudio folder, synthetic scene)."""
     scene_from_run: str | None = None
     """The same folder relative to the run folder (None: written before it was recorded, or on another drive), so that
-    a run moved or copied together with its scene (a pipeline's output folder) reads the scene beside it
+    a run moved together with its scene (a pipeline's output folder) finds the scene beside it once ``scene`` is gone
     (``scene_folder``)."""
     source: dict[str, Any] = Field(default_factory=dict)
     """What was loaded (``SceneData.source``): kind, path, background, downscale, ..."""
@@ -146,15 +146,17 @@ class RunScene(SchemaFile):
         return None  # scene_from_run (None: the absolute path alone, as those versions read it)
 
     def scene_folder(self, run_dir: str | Path) -> Path:
-        """The scene folder of the run in ``run_dir``: the one at ``scene_from_run`` from where the run is now when that
-        is a folder (a run moved or copied with its scene reads its own copy, not the place it was trained at, which
-        may be gone or another copy), else ``scene``. A run that has not moved gets ``scene`` either way."""
+        """The scene folder of the run in ``run_dir``: ``scene`` while it exists, else the folder at ``scene_from_run``
+        from where the run is now, if there is one (a run moved together with its scene, the original gone), else
+        ``scene`` (the caller says it is gone). Never the folder beside the run while ``scene`` exists: whatever sits
+        there may be another scene (a run copied alone into another project, one kept inside its scene and moved out
+        of it), and nothing here can tell a copy from another scene with the same cameras; the loader then compares
+        the cameras and the views' names with the run's."""
         recorded = Path(self.scene)
-        if self.scene_from_run is not None:
-            here = Path(os.path.normpath(Path(run_dir).resolve() / self.scene_from_run))
-            if here.is_dir():
-                return here if here.resolve() != recorded.resolve() else recorded
-        return recorded
+        if recorded.exists() or self.scene_from_run is None:
+            return recorded
+        here = Path(os.path.normpath(Path(run_dir).resolve() / self.scene_from_run))
+        return here if here.is_dir() else recorded
 
     @staticmethod
     def relative_path(scene: Path, run_dir: Path) -> str | None:

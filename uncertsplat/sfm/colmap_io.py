@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from uncertsplat.errors import UserError
+from uncertsplat.io.atomic import temp_stem
 
 MODEL_FILES = ("cameras", "images", "points3D")
 
@@ -241,7 +242,7 @@ def write_colmap_model(
         rec.add_point3D(np.asarray(points[p], np.float64), track, rgb[p])
 
     folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=f".{temp_stem(folder.name)}.", dir=folder.parent))
     try:
         rec.write_binary(str(tmp))
         if folder.exists():

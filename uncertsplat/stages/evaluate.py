@@ -27,6 +27,7 @@ std over the K samples.
 from __future__ import annotations
 
 import math
+import os
 import shutil
 from collections.abc import Sequence
 from pathlib import Path
@@ -56,6 +57,7 @@ from uncertsplat.io.maps import (
     map_stem,
 )
 from uncertsplat.schemas.runs import RunExposure
+from uncertsplat.schemas.scene import RunScene
 
 if TYPE_CHECKING:
     from uncertsplat.schemas.metrics import EvalReport
@@ -109,12 +111,32 @@ def write_view_maps(folder: Path, maps: ViewMaps, preview: str, turns: dict[str,
 
 
 
+def _put_in_place(out: Path, maps: Path | None, report, cfg: EvalConfig) -> None:
+    """The finished evaluation into ``out``: ``maps`` (its staging folder; None: no maps, and an earlier evaluation's
+    are removed, which would sit beside metrics they do not belong to) as ``out/maps``, then ``metrics.json`` and
+    ``config.json``. The earlier metrics.json goes first, so that a stop between the steps (milliseconds) leaves an
+    evaluation without metrics (evaluated again), never new maps beside old metrics."""
+    from uncertsplat.io.atomic import atomic_write_text
+
+    (out / "metrics.json").unlink(missing_ok=True)
+    old = out / f".maps-old-{os.getpid()}"
+    if (out / "maps").is_dir():
+        (out / "maps").rename(old)
+    if maps is not None:
+        if not maps.is_dir():  # no view written (none had maps to write): an empty folder, as before
+            maps.mkdir(parents=True)
+        maps.rename(out / "maps")
+    atomic_write_text(out / "metrics.json", report.to_json() + "\n")
+    atomic_write_text(out / "config.json", cfg.model_dump_json(indent=2) + "\n")
+    shutil.rmtree(old, ignore_errors=True)
+
+
 def same_model_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device) -> Path | None:
     """The ``eval`` folder of ``run_dir``'s source run when evaluating ``run_dir`` would repeat it exactly, else None.
 
     That is when ``run_dir`` is a ``prune`` output (``prune.json``) whose ``variational.ply`` is byte for byte the
     source run's (the SHA-256 ``prune.json`` recorded, of both files as they are now), whose ``config.json`` and
-    ``scene.json`` equal the source's, and the source's ``eval/metrics.json`` was written with this config (its
+    ``scene.json`` equal the source's (but for the scene's path relative to each), and the source's ``eval/metrics.json`` was written with this config (its
     hash), by the same versions (uncertsplat, Python, torch) on the same device, with its maps and config beside it.
     Any file missing or unreadable: None (evaluate as usual).
     """
@@ -131,9 +153,14 @@ def same_model_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device) 
         source = Path(pruned.source_run)
         if source.resolve() == run_dir.resolve():
             return None
-        for name in ("config.json", "scene.json"):
-            if (run_dir / name).read_bytes() != (source / name).read_bytes():
-                return None
+        if (run_dir / "config.json").read_bytes() != (source / "config.json").read_bytes():
+            return None
+        # scene.json alike but for where the scene lies from each (prune writes its own relative path)
+        scenes = [RunScene.read(d / RunScene.FILE_NAME) for d in (run_dir, source)]
+        if ({**scenes[0].model_dump(), "scene": None, "scene_from_run": None}
+                != {**scenes[1].model_dump(), "scene": None, "scene_from_run": None}
+                or scenes[0].scene_folder(run_dir).resolve() != scenes[1].scene_folder(source).resolve()):
+            return None
         here, there = (d / RunExposure.FILE_NAME for d in (run_dir, source))
         if (here.read_bytes() if here.is_file() else None) != (there.read_bytes() if there.is_file() else None):
             return None
@@ -369,7 +396,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     from uncertsplat.baselines import load_run
     from uncertsplat.data.dataset import load_view_set, photo_turns
     from uncertsplat.eval.engine import evaluate_views, scored_sampler, split_indices
-    from uncertsplat.io.atomic import atomic_write_text, run_lock
+    from uncertsplat.io.atomic import run_lock
     from uncertsplat.provenance import hash_config
     from uncertsplat.schemas.metrics import EvalReport
     from uncertsplat.stages.predictive_cache import keep_predictive
@@ -379,6 +406,9 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     if not run_dir.is_dir():
         raise run_folder_missing(run_dir)
     out = eval_dir(run_dir, cfg)
+    if out.exists() and not out.is_dir():  # (every write into it failed deep inside, the residual fit's first)
+        raise UserError(f"the evaluation's folder {out.name} is a file, not a folder", path=out,
+                        hint="Move or delete that file, then run this command again.")
     with run_lock(run_dir, "evaluate"):
         reusable = same_model_evaluation(run_dir, cfg, device)
         if reusable is not None:
@@ -428,15 +458,15 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
                                           set_aside_maps=set_aside_maps)
         if cfg.split == "test":  # what the predictive needs besides the model, for Predictor.load without photos
             keep_predictive(loaded, scene, cfg, residual, fit, device)
-        if not cfg.save_maps and (out / "maps").is_dir():
-            # an earlier evaluation's maps would sit beside metrics they no longer belong to (the report reads both)
-            shutil.rmtree(out / "maps")
-        elif cfg.save_maps and (out / "metrics.json").is_file():
-            # the maps are rewritten view by view: an evaluation stopped midway left the earlier metrics beside new
-            # maps, which the next evaluate took for a finished one of those settings and the report showed together
-            (out / "metrics.json").unlink()
+        # the maps are written into a folder of their own and put in place with metrics.json once every view is
+        # scored: an evaluation that fails midway (a full disk, kill -9) leaves the earlier one whole, where deleting
+        # its metrics.json first lost it (and one kept left it beside new maps); under the lock, a staging folder
+        # found here is a killed evaluation's
+        for stale in out.glob(".maps-*"):
+            shutil.rmtree(stale, ignore_errors=True)
+        staging = out / f".maps-{os.getpid()}"
         report = evaluate_views(sampler, views, cfg, device,
-                                on_view=partial(write_view_maps, out / "maps", preview=cfg.preview,
+                                on_view=partial(write_view_maps, staging, preview=cfg.preview,
                                                 turns=photo_turns(scene), depth_to_source=scene.depth_scale_to_gt,
                                                 among=views.names)
                                 if cfg.save_maps else None,
@@ -462,8 +492,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         report.notes.extend([*reach, *low, *few, *factor])
         if Path(loaded.source).is_file():  # which model and run these numbers belong to (prune reads them back)
             report.run_sha256 = run_sha256(run_dir, Path(loaded.source))
-        atomic_write_text(out / "metrics.json", report.to_json() + "\n")
-        atomic_write_text(out / "config.json", cfg.model_dump_json(indent=2) + "\n")
+        _put_in_place(out, staging if cfg.save_maps else None, report, cfg)
     if quiet:
         return report
     depth_units = [n for n in report.notes

@@ -219,8 +219,8 @@ def _evaluation_kept(run_dir: Path, cfg, device) -> bool:
 
 
 INTERRUPTED = "interrupted"
-"""A stage's manifest ``error`` after Ctrl-C: a train stage with a checkpoint resumes when run with the same settings
-and inputs."""
+"""A stage's manifest ``error`` after Ctrl-C (a train stage with a checkpoint resumes when run with the same settings
+and inputs, as after any other end before it finished)."""
 
 
 def _has_checkpoint(run_dir: Path) -> bool:
@@ -272,23 +272,32 @@ def held_out_change(previous: Path, run_dir: Path, stage: str = "train") -> str 
 
 
 STARTED = ".stages_started.json"
-"""``OUT/.stages_started.json``: the names of the stages this pipeline has started in ``OUT`` (``_move_previous``
-tells a folder of its own that lost its manifest, a stage killed before it, from one it never wrote)."""
+"""``OUT/.stages_started.json``: {name: the manifest key (settings and inputs) it was last started with} of the stages
+this pipeline has started in ``OUT`` (``_move_previous`` tells a folder of its own that lost its manifest, a stage
+killed before it, from one it never wrote; a train stage killed with ``kill -9`` or ended by a full disk resumes from
+its checkpoint when started again with the same key). Before 2026-11-30 a list of names (keys unknown)."""
+
+
+def _started_keys(root: Path) -> dict[str, str | None]:
+    try:
+        found = json.loads((root / STARTED).read_text(encoding="utf-8"))
+    except (OSError, ValueError, TypeError):
+        return {}
+    if isinstance(found, list):
+        return {str(n): None for n in found}
+    return {str(k): (v if isinstance(v, str) else None) for k, v in found.items()} if isinstance(found, dict) else {}
 
 
 def _started(root: Path) -> set[str]:
-    try:
-        return set(json.loads((root / STARTED).read_text(encoding="utf-8")))
-    except (OSError, ValueError, TypeError):
-        return set()
+    return set(_started_keys(root))
 
 
-def _mark_started(root: Path, name: str) -> None:
+def _mark_started(root: Path, name: str, key: str) -> None:
     from uncertsplat.io.atomic import atomic_write_text
 
-    names = _started(root)
-    if name not in names:
-        atomic_write_text(root / STARTED, json.dumps(sorted(names | {name})) + "\n")
+    keys = _started_keys(root)
+    if keys.get(name) != key:
+        atomic_write_text(root / STARTED, json.dumps({**keys, name: key}, indent=1, sort_keys=True) + "\n")
 
 
 def _move_previous(out_dir: Path, root: Path, name: str, own: bool = False) -> None:
@@ -365,6 +374,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             # folder inputs by the manifests' earlier hashes: of every file (notes and backups too), and before that
             # of names, sizes and mtimes
             earlier: tuple[dict[str, str], dict[str, str]] = ({}, {})
+            renamed: dict[str, str] = {}
             up_path: Path | None = None
             if upstream is not None:
                 if upstream in outputs:
@@ -374,8 +384,11 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                     up_path = Path(upstream)
                     if not up_path.is_absolute():
                         up_path = (pipeline.resolve().parent / up_path)
-                    inputs[str(up_path)], earlier[0][str(up_path)], earlier[1][str(up_path)] = fingerprints(
-                        up_path, skip=root)
+                    # keyed as the file writes it (a project moved with its pipeline file keeps its key), where
+                    # manifests before 2026-11-30 keyed the resolved path: that key is taken too (``renamed``)
+                    inputs[upstream], earlier[0][upstream], earlier[1][upstream] = fingerprints(up_path, skip=root)
+                    if str(up_path) != upstream:
+                        renamed[upstream] = str(up_path)
 
             kwargs: dict = {}
             if stage.stage == "synth":
@@ -424,8 +437,9 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             if old is None and (out_dir / MANIFEST).is_file():
                 console.print(f"[yellow]note:[/] {out_dir / MANIFEST} cannot be read (damaged or from another "
                               f"version), so '{name}' runs again; its present output is kept under {root / '.previous'}")
-            same_inputs = old is not None and old.input_hashes in (new.input_hashes,
-                                                                   *({**new.input_hashes, **e} for e in earlier))
+            taken = [new.input_hashes, *({**new.input_hashes, **e} for e in earlier)]
+            taken += [{renamed.get(k, k): v for k, v in d.items()} for d in taken] if renamed else []
+            same_inputs = old is not None and old.input_hashes in taken
             changed = None
             if old is not None and old.status == "done" and not force and old.config_hash == new.config_hash \
                     and same_inputs:
@@ -449,18 +463,23 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                                     hint="Wait for it to finish, then run the pipeline again (a stage whose output was "
                                          "changed by hand runs again, with a note).")
             console.print(f"[bold cyan]stage[/] {name} ({stage.stage}) -> {out_dir}")
-            resume = (not force and stage.stage == "train" and old is not None and old.error == INTERRUPTED
-                      and old.config_hash == new.config_hash
-                      and same_inputs and _has_checkpoint(out_dir))
+            # a training that did not finish with these settings and inputs goes on from its checkpoint: stopped
+            # (Ctrl-C), failed (a full disk), or killed before it could say so (kill -9, the OOM killer: its folder
+            # has no manifest of this start, but the pipeline recorded the start's key)
+            unfinished = (old is None or old.status != "done") and (
+                (old is not None and old.config_hash == new.config_hash and same_inputs)
+                or _started_keys(root).get(name) == new.key)
+            resume = not force and stage.stage == "train" and unfinished and _has_checkpoint(out_dir)
             if resume:
                 kwargs["resume"] = True
-                console.print(f"  resuming '{name}' from its checkpoint (it was interrupted with these settings and inputs)")
+                console.print(f"  resuming '{name}' from its checkpoint (it did not finish with these settings and "
+                              "inputs)")
             elif not (stage.stage == "evaluate" and _evaluation_kept(up_path, stage_cfg, dev)):
                 # a stage of its own killed before its manifest, and an evaluation a prune stage wrote (RUN/eval), take
                 # the rotation
                 _move_previous(out_dir, root, name if stage.stage != "evaluate" else f"{name}-eval",
                                own=stage.stage == "evaluate" or name in _started(root))
-            _mark_started(root, name)
+            _mark_started(root, name, new.key)
             t0 = time.perf_counter()
             try:
                 _run_stage(stage.stage, stage_cfg, up_path, out_dir, dev, kwargs)

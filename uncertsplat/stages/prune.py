@@ -52,7 +52,7 @@ import torch
 from uncertsplat.config import EvalConfig, PruneConfig
 from uncertsplat.console import console
 from uncertsplat.errors import Interrupted, UserError, run_folder_missing
-from uncertsplat.io.atomic import current_umask
+from uncertsplat.io.atomic import current_umask, temp_stem
 from uncertsplat.provenance import file_sha256
 from uncertsplat.schemas.prune import (
     METRIC_KEYS,
@@ -67,6 +67,7 @@ from uncertsplat.schemas.prune import (
     Written,
 )
 from uncertsplat.schemas.runs import RunExposure
+from uncertsplat.schemas.scene import RunScene
 
 
 # ------------------------------------------------------------------------------------------ checks
@@ -592,8 +593,8 @@ def _remove_dead_temp_folders(output: Path) -> None:
     """Remove the staging folders of earlier prunes into ``output`` whose process is gone (killed while writing: each
     held a whole model); a live one's is another prune at work and stays."""
     host = _host_tag()
-    for p in output.parent.glob(f".{output.name}.tmp-{host}-*-*"):
-        pid = p.name[len(f".{output.name}.tmp-{host}-"):].split("-", 1)[0]
+    for p in output.parent.glob(f".{temp_stem(output.name)}.tmp-{host}-*-*"):
+        pid = p.name[len(f".{temp_stem(output.name)}.tmp-{host}-"):].split("-", 1)[0]
         if not pid.isdigit() or not p.is_dir():  # (another host's, on a shared file system: not ours to judge)
             continue
         try:
@@ -611,9 +612,14 @@ def _write_model(folder: Path, run_dir: Path, loaded, meta: dict, pruned, keep: 
     from uncertsplat.io.atomic import atomic_write_bytes
     from uncertsplat.io.ply import set_vertex_properties, write_point_cloud_ply, write_variational_ply
 
-    for name in ("config.json", "scene.json", RunExposure.FILE_NAME):
+    for name in ("config.json", RunExposure.FILE_NAME):
         if (run_dir / name).is_file():
             atomic_write_bytes(folder / name, (run_dir / name).read_bytes())
+    info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
+    if info is not None:  # its path relative to the run, from here (the staging folder is the output's sibling)
+        scene = info.scene_folder(run_dir)
+        info.scene, info.scene_from_run = str(scene.resolve()), RunScene.relative_path(scene, folder)
+        info.write(folder / RunScene.FILE_NAME)
     write_variational_ply(folder / "variational.ply", pruned, meta=meta)
     write_point_cloud_ply(folder / "point_cloud.ply", pruned, variant=meta["variant"],
                           extent=loaded.extent, temperature=meta["temperature"], sh_degree=meta.get("sh_degree_active"))
@@ -635,7 +641,8 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
 
     output.parent.mkdir(parents=True, exist_ok=True)
     _remove_dead_temp_folders(output)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{output.name}.tmp-{_host_tag()}-{os.getpid()}-", dir=output.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=f".{temp_stem(output.name)}.tmp-{_host_tag()}-{os.getpid()}-",
+                                dir=output.parent))
     os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes it 0700: the pruned run is read like any other
     try:
         writes_model = keep is not None and not cfg.dry_run

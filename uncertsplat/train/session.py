@@ -225,9 +225,8 @@ def _never_trained(run_dir: Path) -> bool:
 def _check_same_scene(before: RunScene, scene: Path, names: tuple[str, ...], run_dir: Path) -> None:
     """Refuse to resume ``run_dir`` on another scene than the one it was trained on (``scene.json``): its model
     would go on training on other photos and its held-out scores would mix two scenes. A scene folder that was
-    moved (the recorded path is gone) is accepted when it holds every image the run trained on and held out; a run
-    moved or copied with its scene resumes on the scene beside it (``RunScene.scene_folder``)."""
-    recorded = before.scene_folder(run_dir)
+    moved (the recorded path is gone) is accepted when it holds every image the run trained on and held out."""
+    recorded = Path(before.scene)
     if recorded.resolve() == scene.resolve():
         return
     missing = sorted((set(before.train) | set(before.test) | set(before.calibration)) - set(names))

@@ -114,6 +114,10 @@ the kept renders themselves.)"""
 POINTS_CHUNK = 65536
 """Surface points of an evaluated view the tensor ops look up at once (their [C,S] lookups took about 0.6 KB a pixel
 for a whole view; the native kernel keeps a point's lookups in registers)."""
+FREE_AROUND = 1
+"""Pixels around a point's own whose nearest rendered surface ``seen_free`` compares it with: a point counts as seen
+free by a view only where the view's ray and its neighbours' passed it (measured in BENCHMARKS.md, "Space a photo
+looked through, inside the objects")."""
 FREE_POINTS_CHUNK = 65536
 """Points ``seen_free`` tests at once (about 600 bytes each while they are looked up: 4M points took 2.8 GB)."""
 GAP_SAMPLES = 20
@@ -310,7 +314,7 @@ class ViewConsistency:
         nearest = torch.zeros(marched.shape[0], dtype=points.dtype, device=points.device)  # [M] 0: none free
         left = torch.arange(marched.shape[0], device=points.device)  # the marched points not found free yet
         for frac in _gap_fractions().tolist():  # from the surface toward the camera: the first free one is the largest
-            free = self.seen_free(eye + frac * (start[left] - eye))  # [L]
+            free = self.seen_free(eye + frac * (start[left] - eye), around=0)  # [L] (as measured: ray by ray)
             nearest[left[free]] = frac
             left = left[~free]  # most points of a surface hidden by the model's own noise are done at the first
             if left.numel() == 0:
@@ -489,15 +493,16 @@ class ViewConsistency:
         return image
 
     @torch.no_grad()
-    def seen_free(self, points: Tensor) -> Tensor:
+    def seen_free(self, points: Tensor, around: int = FREE_AROUND) -> Tensor:
         """[P] bool: whether a compared training view's ray passed through each of ``points`` [P,3] (world) on its way
         to the surface it rendered: the point lands in that view's image, in front of it, nearer than the rendered
         depth there by more than ``DEPTH_TOLERANCE`` of it (or where the ray meets no Gaussian: depth 0); or within
         ``DEPTH_TOLERANCE`` of the compared views' median rendered depth from a training camera (``frustum_cameras``),
         where a photo was taken. False for a point inside an object or behind a wall, and for one no training view
-        looked through: space no photo showed empty."""
+        looked through: space no photo showed empty. With ``around`` r > 0 the rendered depth compared is the nearest
+        one within r pixels (``FREE_AROUND``: at an outline the render blends the object with what lies behind it)."""
         if points.shape[0] > FREE_POINTS_CHUNK:  # a block at a time: [C,P] lookups of every point grew to GBs
-            return torch.cat([self.seen_free(points[k:k + FREE_POINTS_CHUNK])
+            return torch.cat([self.seen_free(points[k:k + FREE_POINTS_CHUNK], around)
                               for k in range(0, points.shape[0], FREE_POINTS_CHUNK)])
         near = self._near()
         stood = self.frustum_cameras if self.frustum_cameras is not None else self.cameras
@@ -505,13 +510,14 @@ class ViewConsistency:
         at_f64 = points.double()
         for centre in stood.centers.to(points.device).double():  # one camera at a time: no [P,T] distances
             free |= (at_f64 - centre).norm(dim=-1) < near
-        for inside, z, at in self._rendered_depths_at(points):
+        for inside, z, at in self._rendered_depths_at(points, nearest_around=around):
             free |= (inside & ((at <= 0.0) | (z < at * (1.0 - DEPTH_TOLERANCE)))).any(0)
         return free
 
-    def _rendered_depths_at(self, points: Tensor):
+    def _rendered_depths_at(self, points: Tensor, nearest_around: int = 0):
         """For each chunk of ``VIEW_CHUNK`` compared views: whether their images hold ``points`` [P,3] (in front)
-        [C,P], the points' depths in them [C,P] and the rendered depth at the pixel each lands in [C,P] (nearest)."""
+        [C,P], the points' depths in them [C,P] and the rendered depth at the pixel each lands in [C,P] (nearest);
+        with ``nearest_around`` r > 0, the nearest surface rendered within r pixels of it (``_nearest_surface``)."""
         w, h = self.cameras.width, self.cameras.height
         for k0 in range(0, len(self.cameras), VIEW_CHUNK):
             cams = self.cameras[k0:k0 + VIEW_CHUNK].to(points.device)
@@ -519,6 +525,8 @@ class ViewConsistency:
             col = uv[..., 0].nan_to_num(0.0).floor().clamp(0, w - 1).long()
             row = uv[..., 1].nan_to_num(0.0).floor().clamp(0, h - 1).long()
             depth = self.depth[k0:k0 + VIEW_CHUNK].to(points.device)  # [C,H,W]
+            if nearest_around > 0:
+                depth = _nearest_surface(depth.float(), nearest_around)
             yield _in_image(uv, z, w, h), z, depth[torch.arange(len(cams), device=points.device)[:, None], row, col]
 
     @torch.no_grad()
@@ -607,6 +615,15 @@ def _same_camera(a: Cameras, b: Cameras) -> Tensor:
         return torch.zeros(len(b), dtype=torch.bool)
     pose = (b.cam_from_world - a.cam_from_world.to(b.cam_from_world)).abs().flatten(1).amax(1) <= 1e-6
     return pose & ((b.K - a.K.to(b.K)).abs().flatten(1).amax(1) <= 1e-6)
+
+
+def _nearest_surface(depth: Tensor, r: int) -> Tensor:
+    """[C,H,W] the nearest rendered depth within ``r`` pixels of each pixel of ``depth`` [C,H,W] (0, a ray that met
+    nothing, counts as no surface; 0 where none is near): at an object's outline the rendered depth blends the object
+    with what lies behind it, and a point inside the object looked free from there."""
+    far = torch.where(depth > 0, depth, torch.full_like(depth, float("inf")))
+    near = -F.max_pool2d(-far[:, None], 2 * r + 1, stride=1, padding=r)[:, 0]
+    return torch.where(torch.isfinite(near), near, torch.zeros_like(near))
 
 
 def _depth_edges(depth: Tensor) -> Tensor:
