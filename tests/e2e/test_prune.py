@@ -387,3 +387,22 @@ def test_a_model_is_not_pruned_by_the_predictive_score(tiny_run_path, tmp_path):
         with pytest.raises(UserError, match="the predictive score ranks first the Gaussians") as err:
             prune.run(tiny_run_path, out, cfg, device=CPU)
         assert "--dry-run or --sweep" in err.value.hint and not out.exists()
+
+
+def test_an_evaluation_that_fails_after_the_model_is_written_says_what_works(tiny_run_path, tmp_path, monkeypatch):  # noqa: F811
+    """A full disk while prune evaluated the pruned run it had written: the evaluation's advice ("free some space, then
+    run again") led to a prune refused because its output exists. The message says the run is written and that
+    `uncertsplat evaluate OUT` scores it."""
+    from uncertsplat.stages import evaluate
+
+    def full(*args, **kwargs):
+        raise UserError("cannot write here (the disk is full)", path=tmp_path / "out" / "eval" / "maps",
+                        hint="Free some space, then run again.")
+
+    monkeypatch.setattr(evaluate, "run", full)
+    with pytest.raises(UserError) as err:
+        prune.run(tiny_run_path, tmp_path / "out", PruneConfig(keep_ratio=0.8, **FAST), device=CPU)
+    said = err.value.render()
+    assert "prune wrote the pruned run to" in said and "then its evaluation failed" in said, said
+    assert f"`uncertsplat evaluate {tmp_path / 'out'}`" in said and "Free some space" in said, said
+    assert (tmp_path / "out" / "variational.ply").is_file()

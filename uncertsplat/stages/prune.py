@@ -497,6 +497,12 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
                               "prune.json's 'after' row holds only the expected render's PSNR", path=output,
                               hint=f"`uncertsplat evaluate {output}` scores the pruned run (its eval/ folder); or "
                                    f"delete {output} and prune again for a complete prune.json.") from None
+        except UserError as err:  # (a full disk while it wrote the maps): its own advice, "run again", would be refused
+            raise UserError(f"prune wrote the pruned run to {output}, then its evaluation failed: {err.message}",
+                            path=err.path or output,
+                            hint=(f"{err.hint} " if err.hint else "") + f"Then `uncertsplat evaluate {output}` scores the "
+                                 f"pruned run (running prune again into {output} is refused: the folder exists; "
+                                 f"delete it first for a complete prune.json).") from None
         notes.append(f"{PRUNED_FROM_EVALUATE} ({output / 'eval' / 'metrics.json'}: "
                      "the pruned run evaluated as `evaluate` does, with this K and seed)")
         _tolerance_note(result, notes, cfg)
