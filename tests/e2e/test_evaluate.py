@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import shutil
 from functools import partial
 from pathlib import Path
@@ -575,6 +576,25 @@ class TestPrunedRunThatRemovedNothing:
         copied_files = sorted(p.name for p in (kept / "eval").iterdir())
         assert copied_files == ["config.json", "maps", "metrics.json", "residual.pt"]
         assert evaluate.same_model_evaluation(kept, SAME_CFG, torch.device("cpu")) == src / "eval"
+
+    def test_a_copy_in_another_folder_is_this_run_s_current_evaluation(self, same_model_runs, tmp_path):
+        """A prune written one folder deeper records the scene's path relative to itself, so its scene.json is not
+        the source's byte for byte: the copied metrics carried the source's run_sha256, and the report called the
+        evaluation one of an earlier state of the run (a review)."""
+        from uncertsplat.stages.evaluate import evaluation_is_current
+
+        src, kept = same_model_runs
+        deeper = tmp_path / "a" / "b" / "kept"
+        deeper.parent.mkdir(parents=True)
+        shutil.copytree(kept, deeper, ignore=shutil.ignore_patterns("eval"))
+        info = json.loads((deeper / "scene.json").read_text())
+        info["scene_from_run"] = os.path.relpath(info["scene"], deeper)
+        (deeper / "scene.json").write_text(json.dumps(info))
+        assert (deeper / "scene.json").read_bytes() != (src / "scene.json").read_bytes()
+        assert evaluate.same_model_evaluation(deeper, SAME_CFG, torch.device("cpu")) == src / "eval"
+        report = evaluate.run(deeper, SAME_CFG, device=torch.device("cpu"))
+        assert "copied from" in report.notes[-1]
+        assert evaluation_is_current(deeper, EvalReport.read(deeper / "eval" / "metrics.json"))
 
     def test_anything_else_is_evaluated(self, same_model_runs, tmp_path):
         src, kept = same_model_runs

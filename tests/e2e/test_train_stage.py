@@ -185,6 +185,11 @@ def test_a_run_moved_with_its_scene_finds_the_scene_beside_it(trained, tiny_scen
     shutil.copytree(tiny_scene_path, other / "scene")
     shutil.copytree(copy / "run", other / "run")
     assert load_run(other / "run").scene_path == (copy / "scene").resolve()
+    # a run kept inside its scene records no relative path: moved out, any folder above it would pass for the scene
+    from uncertsplat.schemas.scene import RunScene
+
+    assert RunScene.relative_path(tmp_path, tmp_path / "runs" / "r1") is None
+    assert RunScene.relative_path(tmp_path / "scene", tmp_path / "runs" / "r1") == "../../scene"
     # a scene.json of schema version 4 (no scene_from_run) reads the recorded folder
     old = {k: v for k, v in info.items() if k != "scene_from_run"}
     (moved / "run" / "scene.json").write_text(json.dumps({**old, "schema_version": 4}))

@@ -161,8 +161,10 @@ class RunScene(SchemaFile):
     @staticmethod
     def relative_path(scene: Path, run_dir: Path) -> str | None:
         """``scene`` relative to ``run_dir`` (both resolved) for ``scene_from_run``; None where there is no such path
-        (another drive)."""
+        (another drive), and for a run kept inside its scene (``..`` alone: moved out, any folder above it would
+        pass for the scene)."""
         try:
-            return os.path.relpath(Path(scene).resolve(), Path(run_dir).resolve())
+            rel = os.path.relpath(Path(scene).resolve(), Path(run_dir).resolve())
         except ValueError:
             return None
+        return None if all(part == ".." for part in Path(rel).parts) else rel

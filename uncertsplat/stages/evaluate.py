@@ -276,9 +276,11 @@ def _matching(run_dir: Path, model_file: Path, cfg: EvalConfig, image_names: lis
     return report, used
 
 
-def _copy_evaluation(source_eval: Path, out: Path) -> None:
-    """Copy ``source_eval``'s maps, metrics and config to ``out``, adding a note to the metrics; the copy is built
-    beside ``out`` and renamed into place, so a failure leaves ``out`` as it was."""
+def _copy_evaluation(source_eval: Path, out: Path, run_dir: Path) -> None:
+    """Copy ``source_eval``'s maps, metrics and config to ``out`` (``run_dir``'s evaluation), adding a note to the
+    metrics and ``run_dir``'s own ``run_sha256`` (its scene.json may differ from the source's in the scene's relative
+    path alone: the copy was taken for an earlier state of the run and evaluated again); the copy is built beside
+    ``out`` and renamed into place, so a failure leaves ``out`` as it was."""
     import shutil
     import tempfile
 
@@ -298,6 +300,8 @@ def _copy_evaluation(source_eval: Path, out: Path) -> None:
         report.notes.append(f"copied from {source_eval}: this run's model file is that run's, unchanged (prune "
                             "removed nothing), and it was evaluated with the same settings, versions and device "
                             "(--set reuse=false evaluates again)")
+        if report.run_sha256 is not None:
+            report.run_sha256 = run_sha256(run_dir, run_dir / "variational.ply")
         (staged / "metrics.json").write_text(report.to_json() + "\n", encoding="utf-8")
         if out.exists():
             shutil.rmtree(out)
@@ -412,7 +416,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     with run_lock(run_dir, "evaluate"):
         reusable = same_model_evaluation(run_dir, cfg, device)
         if reusable is not None:
-            _copy_evaluation(reusable, out)
+            _copy_evaluation(reusable, out, run_dir)
     if reusable is not None:
         console.print(f"[bold]evaluate[/] {run_dir}: its model is {reusable.parent}'s, unchanged (prune removed "
                       f"nothing), evaluated there with the same settings: copied {reusable} "
