@@ -208,3 +208,21 @@ class TestAreaResize:
 
         with pytest.raises(ValueError, match="only downscales"):
             area_resize(torch.zeros(4, 4), 5, 4)
+
+
+def test_a_photo_without_read_permission_is_named_as_such(tmp_path, rng, monkeypatch):
+    """A photo of mode 000 was called a damaged file ("re-export or remove it"): OpenImageIO says only that it could
+    not open it. (Run as root, which reads any file, the denial is simulated.)"""
+    from uncertsplat.io import images
+
+    path = tmp_path / "a.png"
+    write_png(path, rng.random((4, 5, 3)).astype(np.float32))
+    monkeypatch.setattr(oiio.ImageInput, "open", staticmethod(lambda name: None))
+    monkeypatch.setattr(images.os, "access", lambda p, mode: False)
+    with pytest.raises(UserError, match="permission denied") as err:
+        read_image(path)
+    assert "chmod" in err.value.hint
+    monkeypatch.setattr(images.os, "access", lambda p, mode: True)  # readable, and still not opened: damaged
+    with pytest.raises(UserError, match="cannot read the image") as err:
+        read_image(path)
+    assert "re-export" in err.value.hint

@@ -8,6 +8,7 @@ rename), so an interrupted run never leaves a half-written image under its final
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -49,7 +50,12 @@ def _open(path: Path) -> oiio.ImageInput:
         raise UserError("image file is empty (0 bytes)", path=path, hint=_UNREADABLE_HINT)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise UserError(f"cannot read the image ({_clean_error(_oiio_error())})", path=path, hint=_UNREADABLE_HINT)
+        error = _clean_error(_oiio_error())
+        if path.is_file() and not os.access(path, os.R_OK):  # (OpenImageIO says "could not open": read as damaged)
+            raise UserError("the image cannot be opened: permission denied", path=path,
+                            hint="Give yourself read permission (e.g. chmod a+r on the photos), or run as a user "
+                                 "who has it.")
+        raise UserError(f"cannot read the image ({error})", path=path, hint=_UNREADABLE_HINT)
     return inp
 
 

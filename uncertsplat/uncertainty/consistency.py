@@ -501,33 +501,35 @@ class ViewConsistency:
         where a photo was taken. False for a point inside an object or behind a wall, and for one no training view
         looked through: space no photo showed empty. With ``around`` r > 0 the rendered depth compared is the nearest
         one within r pixels (``FREE_AROUND``: at an outline the render blends the object with what lies behind it)."""
-        if points.shape[0] > FREE_POINTS_CHUNK:  # a block at a time: [C,P] lookups of every point grew to GBs
-            return torch.cat([self.seen_free(points[k:k + FREE_POINTS_CHUNK], around)
-                              for k in range(0, points.shape[0], FREE_POINTS_CHUNK)])
         near = self._near()
         stood = self.frustum_cameras if self.frustum_cameras is not None else self.cameras
         free = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
         at_f64 = points.double()
         for centre in stood.centers.to(points.device).double():  # one camera at a time: no [P,T] distances
             free |= (at_f64 - centre).norm(dim=-1) < near
-        for inside, z, at in self._rendered_depths_at(points, nearest_around=around):
-            free |= (inside & ((at <= 0.0) | (z < at * (1.0 - DEPTH_TOLERANCE)))).any(0)
+        for sl, inside, z, at in self._rendered_depths_at(points, nearest_around=around):
+            free[sl] |= (inside & ((at <= 0.0) | (z < at * (1.0 - DEPTH_TOLERANCE)))).any(0)
         return free
 
     def _rendered_depths_at(self, points: Tensor, nearest_around: int = 0):
-        """For each chunk of ``VIEW_CHUNK`` compared views: whether their images hold ``points`` [P,3] (in front)
-        [C,P], the points' depths in them [C,P] and the rendered depth at the pixel each lands in [C,P] (nearest);
-        with ``nearest_around`` r > 0, the nearest surface rendered within r pixels of it (``_nearest_surface``)."""
+        """For each chunk of ``VIEW_CHUNK`` compared views and each block of ``FREE_POINTS_CHUNK`` of ``points`` [P,3]
+        (the [C,P] lookups of every point at once grew to GBs): the block's slice of the points, whether the views'
+        images hold them (in front) [C,S], their depths in them [C,S] and the rendered depth at the pixel each lands
+        in [C,S] (nearest); with ``nearest_around`` r > 0, the nearest surface rendered within r pixels of it
+        (``_nearest_surface``, once per view chunk, not per block)."""
         w, h = self.cameras.width, self.cameras.height
         for k0 in range(0, len(self.cameras), VIEW_CHUNK):
             cams = self.cameras[k0:k0 + VIEW_CHUNK].to(points.device)
-            uv, z = project_points(points.float(), cams.cam_from_world, cams.K)  # [C,P,2], [C,P]
-            col = uv[..., 0].nan_to_num(0.0).floor().clamp(0, w - 1).long()
-            row = uv[..., 1].nan_to_num(0.0).floor().clamp(0, h - 1).long()
             depth = self.depth[k0:k0 + VIEW_CHUNK].to(points.device)  # [C,H,W]
             if nearest_around > 0:
                 depth = _nearest_surface(depth.float(), nearest_around)
-            yield _in_image(uv, z, w, h), z, depth[torch.arange(len(cams), device=points.device)[:, None], row, col]
+            views = torch.arange(len(cams), device=points.device)[:, None]
+            for p0 in range(0, points.shape[0], FREE_POINTS_CHUNK):
+                sl = slice(p0, p0 + FREE_POINTS_CHUNK)
+                uv, z = project_points(points[sl].float(), cams.cam_from_world, cams.K)  # [C,S,2], [C,S]
+                col = uv[..., 0].nan_to_num(0.0).floor().clamp(0, w - 1).long()
+                row = uv[..., 1].nan_to_num(0.0).floor().clamp(0, h - 1).long()
+                yield sl, _in_image(uv, z, w, h), z, depth[views, row, col]
 
     @torch.no_grad()
     def seen_behind(self, points: Tensor) -> Tensor:
@@ -536,15 +538,12 @@ class ViewConsistency:
         one holds it: every photo that looked toward the point saw something in front of it, so it lies inside an
         object or behind a wall. False for a point no compared view holds (nothing is known there: a photo's own
         camera stood at such places) and for one a view saw through (``seen_free``)."""
-        if points.shape[0] > FREE_POINTS_CHUNK:  # a block at a time, as seen_free
-            return torch.cat([self.seen_behind(points[k:k + FREE_POINTS_CHUNK])
-                              for k in range(0, points.shape[0], FREE_POINTS_CHUNK)])
         held = torch.zeros(points.shape[0], dtype=torch.bool, device=points.device)
         passed = torch.zeros_like(held)  # some view holds it and does not see a surface in front of it
-        for inside, z, at in self._rendered_depths_at(points):
+        for sl, inside, z, at in self._rendered_depths_at(points):
             behind = (at > 0.0) & (z > at * (1.0 + DEPTH_TOLERANCE))
-            held |= inside.any(0)
-            passed |= (inside & ~behind).any(0)
+            held[sl] |= inside.any(0)
+            passed[sl] |= (inside & ~behind).any(0)
         return held & ~passed
 
     def _unlooked(self, points: Tensor, inside_any: Tensor) -> Tensor:
