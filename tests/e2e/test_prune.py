@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -368,7 +369,7 @@ def test_a_pruned_run_is_not_trained_on_and_select_views_names_its_source(pruned
     again = tmp_path / "again"
     shutil.copytree(run, again)
     rep = PruneReport.read(again / "prune.json")
-    rep.source_run = str(run)
+    rep.source_run, rep.source_from_run = str(run), None
     rep.write(again / "prune.json")
     assert PruneReport.training_run(again) == Path(result.source_run) == PruneReport.training_run(run)
     with pytest.raises(UserError) as err:
@@ -406,3 +407,27 @@ def test_an_evaluation_that_fails_after_the_model_is_written_says_what_works(tin
     assert "prune wrote the pruned run to" in said and "then its evaluation failed" in said, said
     assert f"`uncertsplat evaluate {tmp_path / 'out'}`" in said and "Free some space" in said, said
     assert (tmp_path / "out" / "variational.ply").is_file()
+
+
+def test_a_moved_project_s_prune_reads_its_own_source_run(pruned, tiny_run_path, tmp_path):  # noqa: F811
+    """prune.json named its source run by an absolute path: a project moved (or copied) elsewhere, with another project
+    at the old place, compared its report with that other run and advised commands on it. The source's path relative
+    to the prune is recorded too; the one of the two that holds the model prune read (by its SHA-256) is read."""
+    out, result, _ = pruned
+    written = PruneReport.read(out / "prune.json")
+    assert (out / written.source_from_run).resolve() == tiny_run_path.resolve()
+    project = tmp_path / "moved"
+    shutil.copytree(tiny_run_path, project / "src", ignore=shutil.ignore_patterns(".lock"))
+    shutil.copytree(out, project / "pr")
+    rep = PruneReport.read(project / "pr" / "prune.json")
+    rep.source_from_run = "../src"
+    rep.write(project / "pr" / "prune.json")
+    assert rep.source_folder(project / "pr") == project.resolve() / "src"  # its own copy, the original there too
+    assert PruneReport.training_run(project / "pr") == project.resolve() / "src"
+    with open(project / "src" / "variational.ply", "ab") as f:  # not the model prune read: the recorded run
+        f.write(b"\0")
+    assert rep.source_folder(project / "pr") == Path(rep.source_run)
+    old = json.loads((project / "pr" / "prune.json").read_text())
+    old.pop("source_from_run")
+    (project / "pr" / "prune.json").write_text(json.dumps({**old, "schema_version": 3}))
+    assert PruneReport.read(project / "pr" / "prune.json").source_folder(project / "pr") == Path(rep.source_run)

@@ -104,11 +104,12 @@ PRUNE_MODE_KEYS = ("keep_ratio", "threshold", "auto", "tolerance_db", "score", "
 run's ``prune_config.json`` are passed on as ``--set``."""
 
 
-def prune_again_command(p: PruneReport, config: dict | None = None) -> str | None:
+def prune_again_command(p: PruneReport, config: dict | None = None, run_dir: Path | None = None) -> str | None:
     """The ``prune`` command that writes the model a dry run chose, into NEW_RUN: its source, mode and score, and
     every other setting of its ``prune_config.json`` (``config``) that is not the default (without it: the seed and K
     ``prune.json`` records), numbers as they were (``repr``: a threshold of 0.123456789 is not rounded); None for a
-    sweep only, which chose no mask."""
+    sweep only, which chose no mask. ``run_dir``: the dry run's folder, from which its source is found
+    (``PruneReport.source_folder``: a project moved elsewhere names its own)."""
     from uncertsplat.config import PruneConfig
 
     mode = {"keep_ratio": f"--keep-ratio {p.keep_ratio!r}" if p.keep_ratio is not None else None,
@@ -117,7 +118,8 @@ def prune_again_command(p: PruneReport, config: dict | None = None) -> str | Non
     if mode is None:
         return None
     default = PruneConfig().model_dump(mode="json")
-    args = ["uncertsplat", "prune", shlex.quote(p.source_run), "-o", "NEW_RUN", mode]
+    source = p.source_folder(run_dir) if run_dir is not None else Path(p.source_run)
+    args = ["uncertsplat", "prune", shlex.quote(str(source)), "-o", "NEW_RUN", mode]
     if p.score_requested != default["score"]:
         args.append(f"--score {shlex.quote(p.score_requested)}")
     given = config if config is not None else {"seed": p.seed, "num_samples": p.num_samples}
@@ -140,11 +142,11 @@ def _no_model_text(run: RunData) -> str:
         config = json.loads((run.path / "prune_config.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
         config = None
-    cmd = prune_again_command(p, config if isinstance(config, dict) else None)
+    cmd = prune_again_command(p, config if isinstance(config, dict) else None, run.path)
     todo = (f"to measure the pruned model, prune without --dry-run, which writes it: `{cmd}`, then "
             "`uncertsplat evaluate NEW_RUN`" if cmd else
             "to measure a pruned model, prune with --keep-ratio, --threshold or --auto (without --dry-run), which "
-            f"writes one (`uncertsplat prune {shlex.quote(p.source_run)} -o NEW_RUN --auto`), then "
+            f"writes one (`uncertsplat prune {shlex.quote(str(p.source_folder(run.path)))} -o NEW_RUN --auto`), then "
             "`uncertsplat evaluate NEW_RUN`")
     return (f"{run.name}: {what}: it holds {held}, no model, so there is nothing to evaluate (`uncertsplat evaluate` "
             f"needs a run's config.json and model); the Pruning section shows what prune measured; {todo}.")
@@ -878,7 +880,7 @@ def prune_evaluation_note(text: str, run: RunData, p: PruneReport, runs: list[Ru
     seed, views or numbers: the Summary then shows the new evaluation, the Pruning table the one prune read) or is
     gone. Other notes, and claims that still hold, are returned as they are."""
     if text.startswith(UNPRUNED_FROM_EVALUATE):
-        row_name, folder, row = "before", Path(p.source_run), p.metrics.before
+        row_name, folder, row = "before", p.source_folder(run.path), p.metrics.before
     elif text.startswith(PRUNED_FROM_EVALUATE):
         row_name, folder, row = "after", run.path, p.metrics.after
     else:
@@ -902,12 +904,12 @@ def prune_evaluation_note(text: str, run: RunData, p: PruneReport, runs: list[Ru
     return then + now + where
 
 
-def _source_settings_note(p: PruneReport, runs: list[RunData]) -> str | None:
+def _source_settings_note(p: PruneReport, run: RunData, runs: list[RunData]) -> str | None:
     """When prune measured its 'before' row itself (no ``UNPRUNED_FROM_EVALUATE`` note) and the source run is in the
     report, evaluated with other settings: a sentence saying which settings the Summary's row and the table used."""
     if any(n.startswith(UNPRUNED_FROM_EVALUATE) for n in p.notes):
         return None
-    source = Path(p.source_run).resolve()
+    source = p.source_folder(run.path).resolve()
     src = next((r for r in runs if r.path.resolve() == source and r.metrics is not None), None)
     if src is None or not evaluation_differences(p, src.metrics):
         return None
@@ -935,7 +937,7 @@ def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
             body.append(para("No mask was chosen (a sweep only): no 'after' or 'random removal' row.", "muted"))
         for n in p.notes:
             body.append(note(f"{run.name} (prune): {prune_evaluation_note(n, run, p, runs)}"))
-        settings = _source_settings_note(p, runs)
+        settings = _source_settings_note(p, run, runs)
         if settings:
             body.append(note(f"{run.name} (prune): {settings}"))
         if p.sweep is None:

@@ -146,13 +146,16 @@ class PruneReport(SchemaFile):
     """``OUT/prune.json``: what ``prune`` removed, by which score, and what it cost on held-out views."""
 
     FILE_NAME = "prune.json"
-    SCHEMA_VERSION = 3
+    SCHEMA_VERSION = 4
     WRITTEN_BY = "uncertsplat prune"
 
-    schema_version: int = 3
+    schema_version: int = 4
     source_run: str
     source_model: str
     source_model_sha256: str
+    source_from_run: str | None = None
+    """``source_run`` relative to the prune's output folder (None: before version 4, or on another drive), so that a
+    project moved or copied elsewhere finds its own source run (``source_folder``)."""
     score: str
     score_requested: str
     mode: str
@@ -185,6 +188,29 @@ class PruneReport(SchemaFile):
     undo: str
     written: Written | None = None
 
+    def source_folder(self, run_dir: str | Path) -> Path:
+        """The source run of the prune output in ``run_dir``: the folder at ``source_from_run`` from there, else
+        ``source_run``, whichever holds the model prune read (``source_model`` with ``source_model_sha256``: a
+        project moved or copied elsewhere reads its own source, not another project's run that took the old place);
+        when neither does (the source trained on since, or gone), ``source_run`` as recorded."""
+        import os
+
+        from uncertsplat.provenance import file_sha256
+
+        recorded = Path(self.source_run)
+        candidates = [recorded]
+        if self.source_from_run is not None:
+            here = Path(os.path.normpath(Path(run_dir).resolve() / self.source_from_run))
+            if here.resolve() != recorded.resolve():
+                candidates.insert(0, here)
+        for folder in candidates:
+            try:
+                if file_sha256(folder / self.source_model) == self.source_model_sha256:
+                    return folder
+            except OSError:
+                continue
+        return recorded
+
     @classmethod
     def training_run(cls, run_dir: str | Path) -> Path | None:
         """The training run a prune output descends from, following ``source_run`` through prunes of prunes (a prune
@@ -198,7 +224,7 @@ class PruneReport(SchemaFile):
                 return None
             seen.add(here.resolve())
             try:
-                here = Path(cls.read(here / cls.FILE_NAME).source_run)
+                here = cls.read(here / cls.FILE_NAME).source_folder(here)
             except UserError:
                 return None
         return here if seen else None
@@ -207,8 +233,9 @@ class PruneReport(SchemaFile):
     def _upgrade(cls, data: dict, version: int) -> dict | None:
         # version 0 (no schema_version key) had version 1's layout, its sweep without the version and tolerance;
         # version 1's metrics had no expected-render PSNR (None) and its sweep decided on the samples' mean; version 2
-        # had no source_coverage (None: the pruned run's evaluation measures its own, as it did)
-        if version == 2:
+        # had no source_coverage (None: the pruned run's evaluation measures its own, as it did); versions 0-3 no
+        # source_from_run (None: source_run alone, as they read it)
+        if version in (2, 3):
             return data
         if version not in (0, 1):
             return None

@@ -150,7 +150,7 @@ def same_model_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device) 
         pruned = PruneReport.read_optional(run_dir / PruneReport.FILE_NAME)
         if pruned is None or pruned.source_model != "variational.ply":
             return None
-        source = Path(pruned.source_run)
+        source = pruned.source_folder(run_dir)
         if source.resolve() == run_dir.resolve():
             return None
         if (run_dir / "config.json").read_bytes() != (source / "config.json").read_bytes():

@@ -673,6 +673,10 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
             sweep.write(tmp / "sweep.json")
         # the resolved settings of this prune (config.json beside it is the pruned run's training config)
         atomic_write_bytes(tmp / "prune_config.json", (cfg.model_dump_json(indent=2) + "\n").encode())
+        try:  # (tmp is the output's sibling: the same path from either)
+            result.source_from_run = os.path.relpath(run_dir.resolve(), output.resolve())
+        except ValueError:  # another drive
+            result.source_from_run = None
         result.write(tmp / "prune.json")
         try:
             if output.exists():
