@@ -577,6 +577,11 @@ def test_output_folder_rules(tmp_path):
             stage.run([run], stopped, ReportConfig())
     finally:
         build.build_report = original
+    # its figures were staged apart and removed: what an earlier version left (the half-written figure it listed, in
+    # place, and an atomic write's temp file) is made here
+    assert not (stopped / "figures" / "half.png").exists() and not list(stopped.glob(".figures.tmp-*"))
+    (stopped / "figures").mkdir()
+    (stopped / "figures" / "half.png").write_bytes(b"part")
     (stopped / "figures" / ".x.tmp.png").write_bytes(b"")
     assert not (stopped / "index.html").exists()
     stage.run([run], stopped, ReportConfig())
@@ -1309,3 +1314,33 @@ def test_ratios_the_sweep_did_not_measure_are_named(tmp_path):
     stage.run(run, tmp_path / "out")
     text = " ".join((tmp_path / "out" / "index.html").read_text().split())
     assert "Keep ratios 0.3, 0.2 of the sweep were not measured" in text
+
+
+def test_a_report_that_fails_midway_leaves_the_earlier_one_whole(tmp_path, monkeypatch):
+    """Figures were written in place and the page last: a report that failed midway (a full disk) left the earlier
+    page showing its numbers beside figures of the new one. They are now written apart and put in place with the
+    page; a killed report's staging folder goes at the next."""
+    run = make_run(tmp_path, "r")
+    out = tmp_path / "out"
+    stage.run([run], out, ReportConfig())
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    real, calls = stage.atomic_write_bytes, []
+
+    def full_after_two(path, data):
+        calls.append(path)
+        if len(calls) > 2:
+            raise UserError("cannot write here (the disk is full)", path=path)
+        return real(path, data)
+
+    monkeypatch.setattr(stage, "atomic_write_bytes", full_after_two)
+    with pytest.raises(UserError, match="the disk is full"):
+        stage.run([run], out, ReportConfig(title="another"))
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert {k: v for k, v in after.items() if k.name != stage.MARKER} == {
+        k: v for k, v in before.items() if k.name != stage.MARKER}
+    assert not list(out.glob(".figures.tmp-*"))
+    monkeypatch.setattr(stage, "atomic_write_bytes", real)
+    (out / ".figures.tmp-999999").mkdir()  # as a kill leaves it
+    index = stage.run([run], out, ReportConfig(title="another"))
+    assert "another" in index.read_text() and not list(out.glob(".figures.tmp-*"))
+    assert_figures_consistent(out, parse(index))

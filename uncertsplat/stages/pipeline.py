@@ -434,9 +434,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             config_dict = stage_cfg.model_dump(mode="json")
             new = start_manifest(stage.stage, name, config_dict, inputs)
             old = read_manifest(out_dir)
-            if old is None and (out_dir / MANIFEST).is_file():
-                console.print(f"[yellow]note:[/] {out_dir / MANIFEST} cannot be read (damaged or from another "
-                              f"version), so '{name}' runs again; its present output is kept under {root / '.previous'}")
+            unreadable = old is None and (out_dir / MANIFEST).is_file()  # (said below, once it is known what follows)
             taken = [new.input_hashes, *({**new.input_hashes, **e} for e in earlier)]
             taken += [{renamed.get(k, k): v for k, v in d.items()} for d in taken] if renamed else []
             same_inputs = old is not None and old.input_hashes in taken
@@ -470,6 +468,11 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 (old is not None and old.config_hash == new.config_hash and same_inputs)
                 or _started_keys(root).get(name) == new.key)
             resume = not force and stage.stage == "train" and unfinished and _has_checkpoint(out_dir)
+            if unreadable:
+                console.print(f"[yellow]note:[/] {out_dir / MANIFEST} cannot be read (damaged or from another "
+                              f"version), so '{name}' runs again; " + (
+                                  "its training resumes from its checkpoint (started with these settings and inputs)"
+                                  if resume else f"its present output is kept under {root / '.previous'}"))
             if resume:
                 kwargs["resume"] = True
                 console.print(f"  resuming '{name}' from its checkpoint (it did not finish with these settings and "

@@ -3,15 +3,18 @@
 The page is self-contained (inline CSS, no scripts, fonts or network access); figures are PNG files
 beside it. Every input is read through its schema and is optional (see ``uncertsplat.report.loader``): a
 run that was not evaluated gets a note instead of metric sections, and a file that is present but invalid
-is named in a note with the key or version that is wrong. All files are written atomically; ``index.html`` is written
-last, so a report folder never references a figure that is not there.
+is named in a note with the key or version that is wrong. All files are written atomically; the figures into a staging
+folder first, put in place with ``index.html`` last, so a report folder never references a figure that is not there
+and a report that fails midway leaves the earlier page with its own figures.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
 import re
+import shutil
 from pathlib import Path
 
 from uncertsplat.config import ReportConfig
@@ -130,16 +133,29 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
                            f"`uncertsplat evaluate {r.path}` again, then this report")
     earlier = _figures_written_before(out)  # (_check_output let it through: empty, a report, or a stopped one's)
     listed = set(earlier)
+    # the figures are written apart and put in place with the page: a report that fails midway (a full disk, a kill)
+    # leaves the earlier page with its own figures, where writing them in place showed old numbers beside new maps
+    for stale in out.glob(f".{FIGURES}.tmp-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    staging = out / f".{FIGURES}.tmp-{os.getpid()}"
+    staged: dict[Path, Path] = {}
 
     def write_figure(path: Path, data: bytes) -> Path:
         # listed in the marker before it is written, so a report stopped at any point can tell its files from others'
         if path.name not in listed:
             listed.add(path.name)
             atomic_write_json(out / MARKER, {"figures": sorted(listed)})
-        return atomic_write_bytes(path, data)
+        staged[path] = atomic_write_bytes(staging / path.relative_to(out), data)
+        return path
 
-    text, figures = build_report(loaded, out, cfg.title, cfg.max_views, write_figure)
-    index = atomic_write_text(out / INDEX, text)
+    try:
+        text, figures = build_report(loaded, out, cfg.title, cfg.max_views, write_figure)
+        for final, written in staged.items():
+            final.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(written, final)
+        index = atomic_write_text(out / INDEX, text)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     _remove_stale_figures(out, earlier | listed, figures)
     atomic_write_json(out / MARKER, {"figures": sorted(Path(f).name for f in figures)})
     atomic_write_json(out / CONFIG, cfg.model_dump(mode="json"))  # as every stage writes its config beside its outputs
