@@ -606,3 +606,51 @@ def test_a_planned_pose_named_as_a_photo_is_said(subset_run, tmp_path, capsys):
     stage.run(subset_run, SelectConfig(score="coverage", candidates=str(poses)), CPU, output=tmp_path / "sel")
     said = " ".join(capsys.readouterr().err.split())
     assert f"1 planned pose(s) carry the name of a photo of the scene ({START[0]})" in said
+
+
+def test_a_planned_pose_at_a_held_out_view_s_pose_does_not_compete(subset_run, tmp_path, capsys):
+    """A plan holding a held-out view's exact pose ranked it first with no word, though `train --add-views` refuses
+    the photo taken there (it is the held-out photo again): it gets no score and is named."""
+    from uncertsplat.baselines import load_run
+    from uncertsplat.select.candidates import pose_line
+
+    loaded = load_run(subset_run)
+    scene = loaded.load_scene()
+    wfs = torch.tensor(RunScene.read(subset_run / "scene.json").world_from_source, dtype=torch.float64)
+    unused = [i for i in range(len(scene.cameras)) if i not in set(scene.split["train"]) | set(scene.split["test"])]
+    held = list(scene.split["test"])[0]
+    lines = [pose_line("again", scene.cameras.cam_from_world[held], wfs)]
+    lines += [pose_line(f"v{i}", scene.cameras.cam_from_world[i], wfs) for i in unused[:2]]
+    (tmp_path / "plan.txt").write_text("\n".join(lines) + "\n")
+    sel = stage.run(subset_run, SelectConfig(score="coverage", num_views=1, candidates=str(tmp_path / "plan.txt")),
+                    CPU, output=tmp_path / "out")
+    said = " ".join(capsys.readouterr().err.split())
+    assert "1 candidate (again) lies at a held-out view's pose" in said, said
+    assert sel.chosen[0].name != "again"
+
+
+def test_the_variance_score_s_depth_std_is_in_the_scene_s_units(subset_run, tmp_path, monkeypatch):
+    """selection.json's depth_std is documented in the scene's own units and was written in the run's normalised
+    ones (a helper: 0.45 where Predictor gave 1.95, the scene's scale 0.247 apart)."""
+    from uncertsplat.baselines import load_run
+    from uncertsplat.select import scores
+
+    def known(sample_fn, render_fn, cameras, num_samples, seed, **kwargs):
+        return torch.linspace(1.0, 2.0, len(cameras), dtype=torch.float64), torch.full((len(cameras),), 0.5)
+
+    monkeypatch.setattr(scores, "variance_scores", known)
+    sel = stage.run(subset_run, SelectConfig(score="variance", num_views=1, candidates="around:4"), CPU,
+                    output=tmp_path / "out")
+    factor = load_run(subset_run).load_scene().depth_to_source
+    assert factor != 1.0 and sel.chosen[0].depth_std == pytest.approx(0.5 * factor, rel=1e-6)
+
+
+def test_the_last_round_s_selection_is_kept(subset_run, tmp_path, capsys):
+    """Each round's select-views replaced RUN/select/selection.json without a word; the photos of the last round may
+    not be taken yet: it is kept as selection.previous.json (one generation)."""
+    cfg = SelectConfig(score="coverage", num_views=1, candidates="around:3")
+    first = stage.run(subset_run, cfg, CPU, output=tmp_path / "sel")
+    second = stage.run(subset_run, cfg.model_copy(update={"num_views": 2}), CPU, output=tmp_path / "sel")
+    assert "is kept as selection.previous.json" in " ".join(capsys.readouterr().err.split())
+    assert Selection.read(tmp_path / "sel" / "selection.previous.json") == first
+    assert Selection.read(tmp_path / "sel" / "selection.json") == second

@@ -329,3 +329,38 @@ class TestCandidates:
         src = scene.cameras[scene.split["train"]].cam_from_world
         for T in still.cam_from_world:
             assert float((src - T).abs().amax((1, 2)).min()) < 1e-4
+
+    def test_around_views_are_named_apart_from_the_scene_s_photos(self, scene):
+        """A capture naming each photo by its candidate (around_012.png) was offered around_012 again the next
+        round: the names then take the next round's prefix."""
+        import dataclasses
+
+        assert around_views(scene, 3, 1.0, torch.Generator()).image_names == ("around_000", "around_001", "around_002")
+        names = list(scene.cameras.image_names)
+        names[0], names[1] = "around_001.png", "around2_000.jpg"
+        taken = dataclasses.replace(scene, cameras=dataclasses.replace(scene.cameras, image_names=tuple(names)))
+        assert around_views(taken, 3, 1.0, torch.Generator()).image_names == ("around3_000", "around3_001",
+                                                                               "around3_002")
+
+
+def test_a_candidate_behind_a_surface_from_every_nearby_camera_is_walled_off():
+    """A pose under the floor lies where no photo's frame reached, so nothing said it was behind anything, and the
+    fisher score ranked it first (2.3x the best real candidate): its way from each of its nearest training cameras
+    crosses space the photos saw behind the floor. One clear way is enough (a pose behind a pillar seen from its
+    nearest camera)."""
+    from types import SimpleNamespace
+
+    from uncertsplat.stages.select import _walled_off
+
+    def seen_behind(points):  # under the floor (z < -1), and inside a thin pillar at x = 1 for y < 0.5
+        return (points[:, 2] < -1.0) | ((points[:, 0] - 1.0).abs() < 0.05) & (points[:, 1] < 0.5) & (points[:, 2] > 0)
+
+    looked = SimpleNamespace(seen_behind=seen_behind)
+    used = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 1.0], [0.0, 2.0, 1.0], [3.0, 5.0, 1.0]], dtype=torch.float64)
+    cands = torch.tensor([[0.0, 0.5, -3.0],   # under the floor: walled off from all three nearest
+                          [0.5, 1.0, 1.0],    # in the open
+                          [2.0, 0.0, 1.0],    # behind the pillar from camera 0, clear from camera 1 and 2
+                          [0.0, 0.5, -0.5]],  # low, above the floor
+                         dtype=torch.float64)
+    assert _walled_off(looked, cands, used, torch.device("cpu")).tolist() == [True, False, False, False]
+    assert _walled_off(looked, cands[:0], used, torch.device("cpu")).tolist() == []

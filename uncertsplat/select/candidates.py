@@ -90,7 +90,14 @@ def around_views(scene: SceneData, n: int, radius: float, generator: torch.Gener
         target = centres[j] + forward * max(float(centres[j].norm()), spacing)  # as far as the scene centre
         out.append(look_at(centres[j] + offset, target, up))
     K = cams.K[[0] * n] if n else cams.K[:0]
-    names = tuple(f"around_{i:03d}" for i in range(n))
+    # apart from the scene's photos: a capture that names each photo by its candidate (around_012.png) was offered
+    # around_012 again in the next round, and a script writing photos by name would replace the first
+    stems = {Path(name).stem for name in scene.cameras.image_names}
+    prefix, round_ = "around", 1
+    while any(f"{prefix}_{i:03d}" in stems for i in range(n)):
+        round_ += 1
+        prefix = f"around{round_}"
+    names = tuple(f"{prefix}_{i:03d}" for i in range(n))
     return Cameras(torch.stack(out).float() if out else cams.cam_from_world[:0], K, cams.width, cams.height, names)
 
 

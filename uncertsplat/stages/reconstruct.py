@@ -639,7 +639,8 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
     usable = [n for n in added if n not in odd]
     if usable:
         console.print(f"Next: a run trained on {workspace} trains on them with [bold]uncertsplat train {workspace} -o "
-                      f"RUN --resume --add-views {','.join(usable)}[/]")
+                      f"RUN --resume --add-views {','.join(usable)} --iterations N[/] (N: the steps to train to, past "
+                      "the run's own: a finished run has none left for them)")
     return report
 
 

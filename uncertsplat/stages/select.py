@@ -8,6 +8,7 @@ used, candidates, the chosen ones numbered). ``OUT`` defaults to ``RUN/select``.
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -85,6 +86,44 @@ FAR_CAPTURES = 2.0
 a next photo of this capture (the model there is a speck; the gap rule measured every other candidate against it)."""
 
 
+WAY_CAMERAS = 3
+"""``_walled_off``: the training cameras (the nearest) a candidate's way is tested from."""
+WAY_POINTS = 24
+"""``_walled_off``: points tested along each way."""
+
+
+def _walled_off(looked, centres: torch.Tensor, used: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """[C] bool: the candidates at ``centres`` [C,3] whose straight way from every one of their ``WAY_CAMERAS`` nearest
+    training cameras (``used`` [T,3]) passes a point ``seen_behind`` (inside an object, or behind a surface every photo
+    that looked there saw in front of it). One clear way is enough: a pose behind a pillar seen from its nearest camera
+    is reached from the next."""
+    if not len(centres) or not len(used):
+        return torch.zeros(len(centres), dtype=torch.bool)
+    k = min(WAY_CAMERAS, len(used))
+    nearest = torch.cdist(centres, used).topk(k, largest=False).indices  # [C,k]
+    starts = used[nearest]  # [C,k,3]
+    f = torch.arange(1, WAY_POINTS + 1, dtype=centres.dtype) / WAY_POINTS  # (0, 1]: not the camera itself
+    points = starts[:, :, None] + f[None, None, :, None] * (centres[:, None, None] - starts[:, :, None])  # [C,k,S,3]
+    behind = looked.seen_behind(points.reshape(-1, 3).float().to(device)).cpu().view(len(centres), k, WAY_POINTS)
+    return behind.any(-1).all(-1)
+
+
+def _held_out_twins(scene, cands) -> torch.Tensor:
+    """[C] bool: the candidates at a held-out or set-aside view's pose (``sfm.scene.held_out_twins``, judged with the
+    training views as a split is)."""
+    from uncertsplat.sfm.scene import held_out_twins
+    from uncertsplat.types import Cameras
+
+    n = len(scene.cameras)
+    both = Cameras(torch.cat([scene.cameras.cam_from_world, cands.cameras.cam_from_world.to(scene.cameras.device)]),
+                   torch.cat([scene.cameras.K, cands.cameras.K.to(scene.cameras.device)]), scene.cameras.width,
+                   scene.cameras.height)
+    twin = torch.zeros(len(cands), dtype=torch.bool)
+    for ts in held_out_twins(both, scene.split, range(n, n + len(cands))).values():
+        twin[[t - n for t in ts]] = True
+    return twin
+
+
 def _plausible(loaded, scene, train: list[int], cands, cfg: SelectConfig, device: torch.device
                ) -> torch.Tensor | None:
     """[C] bool: the candidates that compete under ``SelectConfig.plausible_only`` (planned poses whose centre is not
@@ -102,10 +141,15 @@ def _plausible(loaded, scene, train: list[int], cands, cfg: SelectConfig, device
                               EvalConfig(finer_detail=False), device)
     centres, used = cands.cameras.centers.double(), scene.cameras[train].centers.double()
     inside = looked.seen_behind(centres.float().to(device)).cpu()  # [C]
+    # or walled off: the way to it from each of its nearest training cameras crosses space every photo that looked
+    # toward it saw a surface in front of (a floor, a wall): a pose under the floor lies where no photo's frame
+    # reached, so only its way there tells (a helper's such poses were ranked first, 2.3x the best real one)
+    inside |= _walled_off(looked, centres, used, device)
     spread = float(torch.cdist(used, used).max()) if len(train) > 1 else 0.0
     size = max(spread, looked.median_surface_depth())
     far = nearest_used_distance(centres, used) > FAR_CAPTURES * size if size > 0 else torch.zeros_like(inside)
-    ok = ~(inside | far)
+    twin = _held_out_twins(scene, cands)
+    ok = ~(inside | far | twin)
     if bool(ok.all()):
         return None
     names = cands.cameras.image_names
@@ -115,9 +159,14 @@ def _plausible(loaded, scene, train: list[int], cands, cfg: SelectConfig, device
                       "sizes away: it competes all the same (nothing else does); check the poses' convention "
                       "(world-to-camera, the quaternion as w x y z, the scene's units and frame)")
         return None
-    for mask, where in ((inside, "inside or behind what every photo that looked toward them saw (an object, a wall)"),
+    for mask, where in ((inside, "inside or behind what every photo that looked toward them saw (an object, a wall), or "
+                                 "beyond such a surface from every nearby training camera (under a floor, outside a "
+                                 "wall)"),
                         (far & ~inside, f"over {FAR_CAPTURES:g} capture sizes from every training camera ({size:.3g} "
-                                        "units a capture size, in the run's normalised world)")):
+                                        "units a capture size, in the run's normalised world)"),
+                        (twin & ~inside & ~far, "at a held-out view's pose (a photo taken there is the held-out photo "
+                                                "again, which `train --add-views` refuses: it would score what the "
+                                                "model memorised)")):
         out = [names[j] for j in range(len(cands)) if bool(mask[j])]
         if out:
             console.print(f"[yellow]note:[/] {count(len(out), 'candidate')} ({list_names(out, 6)}) "
@@ -266,7 +315,8 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         name, cam = cands.cameras.image_names[c], cands.cameras.cam_from_world[c]
         return {"name": name, "cam_from_world": cam.double().tolist(), "position": centres[c].double().tolist(),
                 "pose_line": pose_line(name, cam, world_from_source),
-                "depth_std": float(depth_std[c]) if depth_std is not None else None}
+                # in the scene's own units, as the schema says (the run's normalised units before: x the scale)
+                "depth_std": float(depth_std[c]) * scene.depth_to_source if depth_std is not None else None}
 
     def num(x) -> float | None:
         x = float(x)
@@ -279,6 +329,11 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                     chosen=picked, ranking=ranking, used=used_names, seconds=seconds,
                     seconds_per_candidate=seconds / max(len(cands), 1), settings=settings)
     with run_lock(out, "select-views"):  # (it makes the folder, or says why it cannot)
+        earlier = out / Selection.FILE_NAME
+        if earlier.is_file():  # the last round's choice, which its photos may still be taken from: one generation kept
+            kept = out / "selection.previous.json"
+            os.replace(earlier, kept)
+            console.print(f"[dim]the earlier {Selection.FILE_NAME} is kept as {kept.name}[/]")
         sel.write(out / Selection.FILE_NAME)
         up = -torch.linalg.inv(scene.cameras[train].cam_from_world.double())[:, :3, 1].mean(0)
         held = list(scene.split.get("test", ()))
