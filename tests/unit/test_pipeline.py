@@ -700,3 +700,22 @@ def test_a_training_killed_without_a_word_resumes_from_its_checkpoint(tmp_path, 
     seen.clear()
     pl.run(p, tmp_path / "out", overrides=["train.iterations=9"])
     assert seen[0] == ("train", True)
+
+
+def test_add_views_names_holding_commas_and_spaces(tmp_path):
+    """``--add-views`` split every value at commas, so a photo named ``IMG 4045, final.jpg`` could never be added,
+    and the Next line printed such names unquoted. A value that is a photo's name is kept whole, and the Next line
+    quotes one flag per name where a shell or the split would cut it."""
+    import shlex
+
+    from uncertsplat.console import add_views_args
+    from uncertsplat.train.session import _split_names
+
+    (tmp_path / "images").mkdir()
+    (tmp_path / "images" / "IMG 4045, final é.jpg").write_bytes(b"")
+    assert _split_names(["a.png,b.png", " c.png "], tmp_path) == ["a.png", "b.png", "c.png"]
+    assert _split_names(["IMG 4045, final é.jpg"], tmp_path) == ["IMG 4045, final é.jpg"]
+    assert _split_names(["IMG 4045, final é.jpg"], None) == ["IMG 4045", "final é.jpg"]
+    assert add_views_args(["a.png", "b.png"]) == "--add-views a.png,b.png"
+    args = shlex.split(add_views_args(["IMG 4045, final é.jpg", "b.png"]))
+    assert args == ["--add-views", "IMG 4045, final é.jpg", "--add-views", "b.png"]

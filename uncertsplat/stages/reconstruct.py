@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 from uncertsplat.config import ReconstructConfig
-from uncertsplat.console import console, list_names, progress
+from uncertsplat.console import add_views_args, console, list_names, progress
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.io.atomic import check_output_folder, run_lock
 from uncertsplat.sfm import reconstruct as sfm
@@ -639,7 +639,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
     usable = [n for n in added if n not in odd]
     if usable:
         console.print(f"Next: a run trained on {workspace} trains on them with [bold]uncertsplat train {workspace} -o "
-                      f"RUN --resume --add-views {','.join(usable)} --iterations N[/] (N: the steps to train to, past "
+                      f"RUN --resume {add_views_args(usable)} --iterations N[/] (N: the steps to train to, past "
                       "the run's own: a finished run has none left for them)")
     return report
 

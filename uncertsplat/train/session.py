@@ -257,7 +257,22 @@ def _refuse_twins_of_held_out(data, add: list[str], run_dir: Path) -> None:
                         hint="Add another photo; the held-out views stay held out so that the scores compare.")
 
 
-def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tuple[TrainConfig, list[str]]:
+def _split_names(add: list[str], scene: Path | None) -> list[str]:
+    """``--add-views`` values as image names: each split at commas ("a.png,b.png", as the Next lines print them), but
+    a value that is itself the name of a photo of ``scene`` (in its ``images/`` or at its top) kept whole ("IMG 4045,
+    final.jpg" could not be added)."""
+    out: list[str] = []
+    for item in add:
+        whole = item.strip()
+        if "," in whole and scene is not None and any((Path(scene) / sub / whole).is_file() for sub in ("images", ".")):
+            out.append(whole)
+        else:
+            out.extend(n.strip() for n in item.split(",") if n.strip())
+    return out
+
+
+def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str],
+                        scene: Path | None = None) -> tuple[TrainConfig, list[str]]:
     """``cfg`` with the views ``add`` appended to its explicit training names, and those names.
 
     Raises:
@@ -279,7 +294,7 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str]) -> tupl
     # ones join them whatever their place in the sorted image list
     current = list(cfg.scene.train_names) if cfg.scene.train_names is not None else list(info.train)
     added: list[str] = []
-    for name in [n.strip() for item in add for n in item.split(",") if n.strip()]:  # "a.png,b.png" or repeated
+    for name in _split_names(add, scene):  # "a.png,b.png" or repeated
         if name in held:
             raise UserError(f"'{name}' is a held-out view of this run", path=run_dir,
                             hint="Add an unused view (held-out views stay held out so the scores stay comparable).")
@@ -397,7 +412,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                               f"given values of: {', '.join(diff)}")
             cfg = build_config(TrainConfig, stored, source=str(run_dir / "config.json"))
             if add_views:
-                cfg, add_views = _add_training_views(cfg, run_dir, list(add_views))
+                cfg, add_views = _add_training_views(cfg, run_dir, list(add_views), scene)
             found = load_latest(run_dir, map_location=device)
             if extend_to is not None and extend_to != cfg.iterations:
                 done = int(found[1]["step"]) if found is not None else 0
