@@ -779,6 +779,38 @@ def weakly_registered(rec: pycolmap.Reconstruction, fraction: float = WEAK_FRACT
     return dict(sorted(((n, c) for n, c in counts.items() if c < fraction * median), key=lambda kv: (kv[1], kv[0])))
 
 
+FAR_REGISTRATION = 10.0
+"""``far_weak_registrations``: a weakly registered photo whose camera lies more than this many times the median
+photo's distance from the cameras' median centre is taken for a wrong pose."""
+
+
+def far_weak_registrations(rec: pycolmap.Reconstruction, weak: dict[str, int]) -> dict[str, float]:
+    """Of the weakly registered photos ``weak`` (``weakly_registered``), those whose camera lies more than
+    ``FAR_REGISTRATION`` times the median photo's distance from the median camera centre (name -> that ratio): a pose
+    resting on a few points, far outside the capture, is not where the photo was taken (a helper's mirrored copy of a
+    fern photo: 13 points, 60 units out where every other camera lies within 5, facing away; trained on, it grew a
+    ghost scene and its distance shrank the run's frame 12x). Needs at least 5 registered photos."""
+    ids = list(rec.reg_image_ids())
+    if len(ids) < 5 or not weak:
+        return {}
+    centres = {rec.image(i).name: np.asarray(rec.image(i).projection_center(), dtype=np.float64) for i in ids}
+    middle = np.median(np.stack(list(centres.values())), axis=0)
+    dist = {n: float(np.linalg.norm(c - middle)) for n, c in centres.items()}
+    typical = float(np.median(list(dist.values())))
+    if not typical > 0:
+        return {}
+    return {n: dist[n] / typical for n in weak if n in dist and dist[n] > FAR_REGISTRATION * typical}
+
+
+def leave_out(rec: pycolmap.Reconstruction, names: Sequence[str]) -> None:
+    """Deregister the photos ``names`` from ``rec`` (their frames; their observations go with them)."""
+    wanted = set(names)
+    for i in list(rec.reg_image_ids()):
+        image = rec.image(i)
+        if image.name in wanted:
+            rec.deregister_frame(image.frame_id)
+
+
 def camera_summaries(rec: pycolmap.Reconstruction) -> list[dict]:
     counts: dict[int, int] = {}
     for i in rec.reg_image_ids():

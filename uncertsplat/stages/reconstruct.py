@@ -155,6 +155,16 @@ def disagreement_note(summaries: list[dict], kept: int, needed: float) -> str:
             "--mapping-attempts")
 
 
+def far_registration_note(far: dict[str, float], counts: dict[str, int]) -> str:
+    """The note naming the photos left out as registered far outside the capture on few points
+    (``sfm.far_weak_registrations``: name -> distance in median photo distances; ``counts``: their observations)."""
+    return ("left out of the model: " + list_names([f"{n} ({r:.0f}x the median photo's distance from the capture's "
+                                                    f"middle, on {counts.get(n, 0)} points)" for n, r in far.items()])
+            + ": a pose on so few points so far outside the capture is not where the photo was taken (a mirrored or "
+              "edited photo, or one of another scene); trained on, it would grow a ghost scene and shrink the run's "
+              "frame. If it is a real photo from far away, add photos between it and the others")
+
+
 def weak_registration_note(weak: dict[str, int], cfg: ReconstructConfig) -> str:
     """The note naming the weakly registered photos (``sfm.weakly_registered``: name -> feature observations); it
     suggests only the matching options this run did not use."""
@@ -340,13 +350,25 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                                           image_names=sfm.registered_names(m), kept=(i == 0))
                              for i, m in enumerate(result.models)]
             best = result.best
+            far: dict[str, float] = {}
+            if best is not None:
+                weak = sfm.weakly_registered(best)
+                # a pose on a few points far outside the capture is not where the photo was taken: left out before
+                # the model is written, so that no stage trains on it or takes its distance for the rig's size
+                far = sfm.far_weak_registrations(best, weak)
+                if far:
+                    sfm.leave_out(best, list(far))
+                    report.notes.append(far_registration_note(far, weak))
+                    report.models[0].image_names = sfm.registered_names(best)  # (the kept model, as written)
+                    report.models[0].num_images = best.num_reg_images()
+                    weak = {k: v for k, v in weak.items() if k not in far}
+                    console.print(f"[yellow]warning:[/] {report.notes[-1]}")
             registered = sfm.registered_names(best) if best is not None else []
             report.images_registered = registered
             report.images_unregistered = sorted(set(scan.names) - set(registered))
             report.registered_fraction = len(registered) / n
             if best is not None:
                 _model_facts(report, best)
-                weak = sfm.weakly_registered(best)
                 if weak:
                     weak_note = weak_registration_note(weak, cfg)
                     report.notes.append(weak_note)
