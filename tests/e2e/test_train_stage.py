@@ -79,6 +79,12 @@ def test_existing_run_is_refused(trained, tiny_scene_path, tmp_path):  # noqa: F
     with pytest.raises(UserError, match="not a training run") as e:
         stage.run(tiny_scene_path, other, cfg, torch.device("cpu"))
     assert "--resume" not in e.value.hint and (other / "notes.txt").read_text() == "mine"
+    # a run of another scene: --resume would be refused on this one, so its own scene is named instead
+    elsewhere = tmp_path / "elsewhere"
+    shutil.copytree(tiny_scene_path, elsewhere)
+    with pytest.raises(UserError, match=r"holds a run of another scene \(") as e:
+        stage.run(elsewhere, run, cfg, torch.device("cpu"))
+    assert f"uncertsplat train {tiny_scene_path.resolve()} -o {run} --resume" in e.value.hint
 
 
 def test_resume_from_middle_checkpoint_is_exact(trained, tiny_scene_path, tmp_path):  # noqa: F811

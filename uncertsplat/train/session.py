@@ -373,6 +373,15 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             raise UserError("the output folder exists and holds files that are not a training run", path=run_dir,
                             hint="Choose another output folder (-o), or empty this one.")
         steps = _summary_steps(run_dir)
+        try:
+            before = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
+        except UserError:
+            before = None
+        if before is not None and Path(before.scene).exists() and not _same_scene_path(run_dir, scene):
+            # --resume would be refused on this scene: say whose run it is instead of advising it
+            raise UserError(f"the run folder already exists and holds a run of another scene ({before.scene})",
+                            path=run_dir, hint="Choose another output folder (-o) for this scene, or resume that run "
+                                               f"on its own: uncertsplat train {before.scene} -o {run_dir} --resume")
         raise UserError("the run folder already exists" + (f" and holds a run trained for {steps} steps" if steps
                                                            else ""), path=run_dir,
                         hint=("Add --resume --iterations N (N > its steps) to train it on" if steps else
