@@ -798,7 +798,12 @@ def test_the_summary_says_plainly_when_the_std_is_too_small_or_too_large(tmp_pat
     assert calibration_verdict(m).endswith("the std factor fitted on other views does not correct it here (its NLL is "
                                            "worse)")
     m.mean.nll_calibrated = -2.7
-    assert calibration_verdict(m).endswith("the std factor (NLL, std rescaled) corrects the level")
+    m.mean.calibration_error, m.mean.calibration_error_calibrated = 0.12, 0.03
+    assert calibration_verdict(m).endswith("the std factor (x0.626, NLL std rescaled) corrects the level")
+    # one that moves little is not said to correct it (a helper: x0.95 took 0.085 to 0.078)
+    m.mean.calibration_error, m.mean.calibration_error_calibrated = 0.085, 0.078
+    assert calibration_verdict(m).endswith("the std factor (x0.626, NLL std rescaled) narrows it a little: "
+                                           "calibration error 0.085 -> 0.078")
     # a factor above 1 widens a std already too wide, whatever its NLL (a helper's audit: "corrects the level")
     m.std_scale, m.mean.nll_calibrated = 1.2, -2.562
     assert calibration_verdict(m).endswith("the std factor fitted on other views (x1.2) widens it further")
