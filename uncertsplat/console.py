@@ -15,8 +15,21 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
+
+class _Console(Console):
+    """rich's console, with ``rewrite`` (None: off) applied to each text printed: a pipeline stage's advice names its
+    command's options (``--set exposure=affine``), which in a pipeline are that stage's keys (``stages.pipeline``)."""
+
+    rewrite = None
+
+    def print(self, *objects, **kwargs) -> None:  # noqa: D102
+        if self.rewrite is not None:
+            objects = tuple(self.rewrite(o) if isinstance(o, str) else o for o in objects)
+        super().print(*objects, **kwargs)
+
+
 # Outside a terminal (CI logs, pipes) rich would wrap tables at 80 columns; give them room.
-console = Console(stderr=True, highlight=False, width=None if sys.stderr.isatty() else 140)
+console = _Console(stderr=True, highlight=False, width=None if sys.stderr.isatty() else 140)
 
 
 def progress(transient: bool = False) -> Progress:

@@ -46,8 +46,10 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("gaussians", ("gaussians",)),
     ("render", ("render",)),
     ("native", ("native",)),
-    # the records written to disk (one pydantic model per JSON file) and what a result was computed with
-    ("records", ("schemas", "provenance")),
+    # the records written to disk (one pydantic model per JSON file)
+    ("records", ("schemas",)),
+    # what a result was computed with (versions, files' SHA-256: a prune record finds its source run by the model's)
+    ("provenance", ("provenance",)),
     # files without models: atomic writes, images, checkpoint containers, the layout of evaluate's maps;
     # the configs; the device choice
     ("files and settings", ("io", "io.atomic", "io.images", "io.checkpoints", "io.maps", "config", "device")),

@@ -719,3 +719,33 @@ def test_add_views_names_holding_commas_and_spaces(tmp_path):
     assert add_views_args(["a.png", "b.png"]) == "--add-views a.png,b.png"
     args = shlex.split(add_views_args(["IMG 4045, final é.jpg", "b.png"]))
     assert args == ["--add-views", "IMG 4045, final é.jpg", "--add-views", "b.png"]
+
+
+def test_a_stage_s_advice_is_given_in_the_pipeline_s_words(tmp_path, monkeypatch, capsys):
+    """Notes printed during `uncertsplat run` gave the single command's form (`--set exposure=affine`, `--features
+    dsp-sift`), which a pipeline refuses: they name the stage's keys (`--set train.exposure=affine`), as its errors
+    already did; text that speaks of pipelines itself is left alone."""
+    from uncertsplat.config import TrainConfig
+    from uncertsplat.console import console
+
+    fields = TrainConfig.model_fields
+    assert pl.pipeline_advice("train", fields, "--set exposure=affine learns a gain") == \
+        "--set train.exposure=affine learns a gain"
+    assert pl.pipeline_advice("t2", fields, "give --set 'scene.downscale=1' or --iterations N") == \
+        "give --set 't2.scene.downscale=1' or --iterations N (in this pipeline: --set t2.iterations)"
+    assert pl.pipeline_advice("train", fields, "--set nothing_of_its=1 --resume") == "--set nothing_of_its=1 --resume"
+    kept = "train with --set scene.calibration_holdout=3 (in a pipeline: --set train.scene.calibration_holdout=3)"
+    assert pl.pipeline_advice("train", fields, kept) == kept
+
+    def fake(kind, cfg, up_path, out_dir, device, kwargs):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "out.txt").write_text("x")
+        if kind == "train":
+            console.print("[yellow]warning:[/] photos of other exposures: --set exposure=affine learns a gain")
+
+    monkeypatch.setattr(pl, "_run_stage", fake)
+    capsys.readouterr()
+    pl.run(_write(tmp_path), tmp_path / "out")
+    said = " ".join(capsys.readouterr().err.split())
+    assert "--set train.exposure=affine learns a gain" in said, said
+    assert console.rewrite is None  # off once the stage ends

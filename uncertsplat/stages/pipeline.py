@@ -14,6 +14,7 @@ import json
 import re
 import shutil
 import time
+from functools import partial
 from pathlib import Path
 
 from uncertsplat.config import (
@@ -485,7 +486,11 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             _mark_started(root, name, new.key)
             t0 = time.perf_counter()
             try:
-                _run_stage(stage.stage, stage_cfg, up_path, out_dir, dev, kwargs)
+                console.rewrite = partial(pipeline_advice, name, type(stage_cfg).model_fields)
+                try:
+                    _run_stage(stage.stage, stage_cfg, up_path, out_dir, dev, kwargs)
+                finally:
+                    console.rewrite = None
             except KeyboardInterrupt:
                 _finish(out_dir, new, "failed", t0, INTERRUPTED)
                 raise
@@ -498,12 +503,8 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                                        f"{again}.") from None
             except UserError as err:
                 _finish(out_dir, new, "failed", t0, err.render())
-                text = err.render()
-                # the stage's advice names its command's options; in a pipeline they are its config's keys
-                keys = [o.replace("-", "_") for o in re.findall(r"(?<![\w-])--([a-z][a-z0-9-]*)", text)]
-                keys = list(dict.fromkeys(k for k in keys if k in type(stage_cfg).model_fields))
-                where = (f" (in this pipeline: {', '.join(f'--set {name}.{k}' for k in keys)})" if keys else "")
-                raise StageError(f"stage '{name}' ({stage.stage}) failed: {text}{where}") from None
+                text = pipeline_advice(name, type(stage_cfg).model_fields, err.render())
+                raise StageError(f"stage '{name}' ({stage.stage}) failed: {text}") from None
             except Exception as err:  # an unexpected fault: still say which stage, keep earlier outputs
                 _finish(out_dir, new, "failed", t0, f"{type(err).__name__}: {err}")
                 raise StageError(
@@ -543,6 +544,20 @@ def _changed_output(name: str, kind: str, out_dir: Path, manifest: Manifest) -> 
     if resized:
         return f"{files(resized)} in {out_dir} is not the size the stage left (damaged, or written again since)"
     return None
+
+
+def pipeline_advice(name: str, fields, text: str) -> str:
+    """``text`` (a stage's message) with its advice in a pipeline's words: ``--set key=value`` of one of the stage's
+    ``fields`` as ``--set NAME.key=value``, and the command's options that are its keys (``--features dsp-sift``)
+    named after it as ``--set NAME.features``. Text that speaks of pipelines already is left as it is."""
+    if "pipeline" in text:
+        return text
+    text = re.sub(r"--set (['\"]?)([a-z_][a-z0-9_]*)([.=])",
+                  lambda m: f"--set {m.group(1)}{name}.{m.group(2)}{m.group(3)}" if m.group(2) in fields else m.group(0),
+                  text)
+    keys = [o.replace("-", "_") for o in re.findall(r"(?<![\w-])--([a-z][a-z0-9-]*)", text)]
+    keys = list(dict.fromkeys(k for k in keys if k in fields and k != "set"))
+    return text + (f" (in this pipeline: {', '.join(f'--set {name}.{k}' for k in keys)})" if keys else "")
 
 
 def _made_again(kind: str, out_dir: Path, manifest: Manifest) -> str | None:
