@@ -300,10 +300,13 @@ def reconstruct(
         help="Mapping runs at most (other seeds) until two agree; the best is kept. 1: a single run. "
              f"{_d('ReconstructConfig', 'mapping_attempts')}")] = None,
     seed: Annotated[int | None, typer.Option(help=f"Random seed. {_d('ReconstructConfig', 'seed')}")] = None,
-    overwrite: Annotated[bool, typer.Option(help="Replace an existing workspace.")] = False,
-    extend: Annotated[bool, typer.Option(
+    # (None when not given: a --config file's value stands; --no-overwrite given overrides the file's true)
+    overwrite: Annotated[bool | None, typer.Option("--overwrite/--no-overwrite",
+                                                   help="Replace an existing workspace.")] = None,
+    extend: Annotated[bool | None, typer.Option(
+        "--extend/--no-extend",
         help="Add the photos new in PHOTOS to the workspace, its cameras kept where they are (then `train --resume "
-             "--add-views`).")] = False,
+             "--add-views`).")] = None,
     config: ConfigOpt = None,
     set_: SetOpt = None,
 ):
@@ -313,8 +316,7 @@ def reconstruct(
 
     explicit = dict(matcher=matcher, camera_model=camera_model, single_camera=single_camera,
                     max_image_size=max_image_size, features=features, min_registered=min_registered,
-                    mapping_attempts=mapping_attempts, seed=seed, overwrite=overwrite or None,
-                    extend=extend or None)
+                    mapping_attempts=mapping_attempts, seed=seed, overwrite=overwrite, extend=extend)
     cfg = _stage_config(ReconstructConfig, config, set_, explicit)
     stage.run(photos, output, cfg)
 
@@ -375,7 +377,8 @@ def evaluate(
     depth_scale: Annotated[str | None, typer.Option(
         help="auto (fitted to a --depth-gt folder), scene (its maps are in the scene's own units, e.g. a metric "
         "COLMAP model's) or a factor from the run's depth to GT depth units.")] = None,
-    paper_nll: Annotated[bool | None, typer.Option("--paper-nll", help="Also report the paper's NLL.")] = None,
+    paper_nll: Annotated[bool | None, typer.Option("--paper-nll/--no-paper-nll",
+                                                   help="Also report the paper's NLL.")] = None,
     device: DeviceOpt = "auto",
     config: ConfigOpt = None,
     set_: SetOpt = None,
@@ -410,11 +413,12 @@ def prune(
     output: Annotated[Path | None, typer.Option("-o", "--output", help="New run folder.")] = None,
     keep_ratio: Annotated[float | None, typer.Option(help="Fraction of Gaussians to keep, in (0, 1].")] = None,
     threshold: Annotated[float | None, typer.Option(help="Remove Gaussians whose score exceeds this.")] = None,
-    auto: Annotated[bool, typer.Option(help="Strongest pruning within --tolerance-db of the unpruned PSNR.")] = False,
+    auto: Annotated[bool | None, typer.Option(
+        "--auto/--no-auto", help="Strongest pruning within --tolerance-db of the unpruned PSNR.")] = None,
     tolerance_db: Annotated[float | None, typer.Option(help="PSNR loss --auto may accept, in dB (default 0.1).")] = None,
     score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (with --auto or --keep-ratio: free-space and gate both tried, the one that prunes more within the tolerance kept; else free-space), free-space, gate, position, scale, or predictive (for --dry-run and --sweep only: it ranks the Gaussians the image needs most first; see the README).")] = None,
-    dry_run: Annotated[bool, typer.Option(help="Report only; write no model.")] = False,
-    sweep: Annotated[bool, typer.Option(help="Evaluate a range of keep ratios.")] = False,
+    dry_run: Annotated[bool | None, typer.Option("--dry-run/--no-dry-run", help="Report only; write no model.")] = None,
+    sweep: Annotated[bool | None, typer.Option("--sweep/--no-sweep", help="Evaluate a range of keep ratios.")] = None,
     device: DeviceOpt = "auto",
     config: ConfigOpt = None,
     set_: SetOpt = None,
@@ -423,8 +427,8 @@ def prune(
     from uncertsplat.config import PruneConfig
     from uncertsplat.stages import prune as stage
 
-    explicit = dict(keep_ratio=keep_ratio, threshold=threshold, auto=auto or None, tolerance_db=tolerance_db,
-                    score=score, dry_run=dry_run or None, sweep=sweep or None)
+    explicit = dict(keep_ratio=keep_ratio, threshold=threshold, auto=auto, tolerance_db=tolerance_db,
+                    score=score, dry_run=dry_run, sweep=sweep)
     cfg = _stage_config(PruneConfig, config, set_, explicit)
     if tolerance_db is not None and not cfg.auto:
         raise UserError("--tolerance-db only applies to --auto (the strongest pruning within that PSNR loss)",

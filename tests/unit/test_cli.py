@@ -397,3 +397,30 @@ def test_our_warnings_read_as_one_line(capsys):
     err = capsys.readouterr().err
     assert "warning: native CPU kernels unavailable\n" in err and "native/__init__.py" not in err
     assert passed == [("theirs", "/elsewhere/mod.py")]
+
+
+@pytest.mark.parametrize("command, flag, key, extra", [
+    ("prune", "--no-dry-run", "dry_run", ["-o", "OUT", "--keep-ratio", "0.9"]),
+    ("prune", "--no-auto", "auto", []),
+    ("prune", "--no-sweep", "sweep", []),
+    ("reconstruct", "--no-overwrite", "overwrite", ["-o", "WS"]),
+    ("reconstruct", "--no-extend", "extend", ["-o", "WS"]),
+    ("evaluate", "--no-paper-nll", "paper_nll", []),
+])
+def test_a_no_flag_overrides_a_config_file_s_true(tmp_path, monkeypatch, command, flag, key, extra):
+    """`--no-X` counted as not given (stored as `flag or None`), so a --config file's `X = true` stood: a
+    --no-overwrite rebuilt a workspace, a --no-dry-run did a dry run. Given, it wins; not given, the file's stands."""
+    from uncertsplat.stages import evaluate, prune, reconstruct
+
+    seen = {}
+    module = {"prune": prune, "reconstruct": reconstruct, "evaluate": evaluate}[command]
+    monkeypatch.setattr(module, "run", lambda *a, **k: seen.update(cfg=next(x for x in (*a, *k.values())
+                                                                          if hasattr(x, key))))
+    (tmp_path / "c.toml").write_text(f"{key} = true\n")
+    folder = tmp_path / "in"
+    folder.mkdir()
+    args = [a.replace("OUT", str(tmp_path / "o")).replace("WS", str(tmp_path / "ws")) for a in extra]
+    for given, expected in (([flag], False), ([], True)):
+        res = runner.invoke(app, [command, str(folder), *args, "--config", str(tmp_path / "c.toml"), *given])
+        assert res.exit_code == 0, res.output
+        assert getattr(seen.pop("cfg"), key) is expected
