@@ -339,3 +339,19 @@ def test_viewer_renders_baseline_runs(which, ensemble_run, fisher_run):
     assert r.frame(cam, "rgb").image.std() > 5
     std = r.frame(cam, "rgb_std", num_samples=4)
     assert std.samples == 4 and np.nanmax(std.values) > 0
+
+
+def test_an_ensemble_whose_scene_is_refused_leaves_no_run_behind(scene_path, tmp_path):
+    """The ensemble wrote config.json and members/ before its first member read the scene: a scene error left them,
+    the same command was then refused as an existing run, and --resume went on with the failed settings. Nothing
+    trained, nothing is left; a member that trained something keeps the run."""
+    from uncertsplat.errors import UserError
+
+    run = tmp_path / "run"
+    bad = quick_cfg(method="ensemble", ensemble_size=2, scene={"test_names": ["no_such_view.png"]})
+    for _ in range(2):  # the same command again: the same scene error, not "already exists"
+        with pytest.raises(UserError, match="no_such_view.png"):
+            train_run(scene_path, run, bad, CPU)
+        assert not (run / "config.json").exists() and not (run / "members").exists()
+    train_run(scene_path, run, quick_cfg(method="ensemble", ensemble_size=1), CPU)
+    assert (run / "train_summary.json").is_file()

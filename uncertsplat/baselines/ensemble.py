@@ -18,6 +18,7 @@ compares against.
 from __future__ import annotations
 
 import json
+import shutil
 import threading
 import time
 from dataclasses import dataclass, field
@@ -44,6 +45,26 @@ def member_config(cfg, i: int):
     return build_config(TrainConfig, data, source=f"ensemble member {i}")
 
 
+def _train_members(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool, on_trainer) -> list:
+    """Train (or keep, or resume) each member of the ensemble ``cfg`` in ``run_dir/members``; their summaries."""
+    from uncertsplat.train.session import train_model
+
+    n = cfg.ensemble_size
+    summaries = []
+    for i in range(n):
+        mdir = ensemble_member_dir(run_dir, i)
+        done = mdir / "train_summary.json"
+        if not done.is_file():
+            console.print(f"[bold]ensemble[/] member {i + 1}/{n} (seed {cfg.seed + i})")
+            started = mdir.exists() and (mdir / "config.json").is_file()
+            train_model(scene, mdir, member_config(cfg, i), device=device, resume=started, on_trainer=on_trainer,
+                        done_label=f"member {i + 1}/{n} trained", resume_dir=run_dir)
+        elif resume:
+            console.print(f"[bold]ensemble[/] member {i + 1}/{n} (seed {cfg.seed + i}): trained before")
+        summaries.append(TrainSummary.read(done))
+    return summaries
+
+
 def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False,
                    on_trainer=None) -> Path:
     """Train ``cfg.ensemble_size`` members (``cfg.ensemble_members``) into ``run_dir/members`` one after the other.
@@ -54,8 +75,6 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
     Raises:
         UserError: an existing run folder without ``resume``, a stored config of another method.
     """
-    from uncertsplat.train.session import train_model
-
     scene, run_dir = Path(scene), Path(run_dir)
     exists = run_dir.exists() and (not run_dir.is_dir() or any(p.name != ".lock" for p in run_dir.iterdir()))
     if exists and not resume:
@@ -73,18 +92,16 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
     t0 = time.perf_counter()
     with run_lock(run_dir, "train"):
         atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
-        summaries = []
-        for i in range(n):
-            mdir = ensemble_member_dir(run_dir, i)
-            done = mdir / "train_summary.json"
-            if not done.is_file():
-                console.print(f"[bold]ensemble[/] member {i + 1}/{n} (seed {cfg.seed + i})")
-                started = mdir.exists() and (mdir / "config.json").is_file()
-                train_model(scene, mdir, member_config(cfg, i), device=device, resume=started, on_trainer=on_trainer,
-                            done_label=f"member {i + 1}/{n} trained", resume_dir=run_dir)
-            elif resume:
-                console.print(f"[bold]ensemble[/] member {i + 1}/{n} (seed {cfg.seed + i}): trained before")
-            summaries.append(TrainSummary.read(done))
+        try:
+            summaries = _train_members(scene, run_dir, cfg, device, resume, on_trainer)
+        except UserError:
+            if not exists and not any(run_dir.glob("members/*/ckpts/*")):
+                # nothing trained (a scene the first member refused): the folder this call made goes, as a single
+                # run's does, so the same command can run again (it was refused as an existing run, and --resume
+                # went on with the failed settings)
+                shutil.rmtree(run_dir / "members", ignore_errors=True)
+                (run_dir / "config.json").unlink(missing_ok=True)
+            raise
         first_scene = ensemble_member_dir(run_dir, 0) / "scene.json"
         atomic_write_text(run_dir / "scene.json", first_scene.read_text(encoding="utf-8"))
         psnrs = [s.test_psnr for s in summaries if s.test_psnr is not None]
