@@ -40,7 +40,8 @@ SetOpt = Annotated[
     list[str] | None,
     typer.Option("--set", help="Override a config key: key=value, dots for nested keys (repeatable)."),
 ]
-ConfigOpt = Annotated[Path | None, typer.Option("--config", help="TOML file with this stage's config.")]
+ConfigOpt = Annotated[Path | None, typer.Option(
+    "--config", help="TOML file with this stage's config (or a config.json an output folder holds).")]
 
 
 def resolve_device(name: str):
@@ -176,10 +177,21 @@ _STAGE_TABLES = ("synth", "reconstruct", "train", "evaluate", "prune", "report",
 
 
 def _config_file(path: Path) -> dict:
-    """A --config file's keys; one that holds a single stage table (``[train]``) is refused with the fix."""
+    """A --config file's keys (TOML, or JSON for a ``.json`` file: the config.json an output folder holds, given back
+    to run the same settings again); one that holds a single stage table (``[train]``) is refused with the fix."""
+    import json
+
     from uncertsplat.config import load_toml
 
-    data = load_toml(path)
+    if Path(path).suffix.lower() == ".json" and Path(path).is_file():
+        try:
+            data = json.loads(Path(path).read_text(encoding="utf-8"))
+        except (ValueError, UnicodeDecodeError) as err:
+            raise UserError(f"not a valid JSON file ({err})", path=path) from None
+        if not isinstance(data, dict):
+            raise UserError("a --config file holds the command's keys as one object", path=path)
+    else:
+        data = load_toml(path)
     if len(data) == 1 and next(iter(data)) in _STAGE_TABLES and isinstance(next(iter(data.values())), dict):
         (table,) = data
         raise UserError(f"the file holds a [{table}] table, but a --config file holds the command's keys at its top "

@@ -424,3 +424,20 @@ def test_a_no_flag_overrides_a_config_file_s_true(tmp_path, monkeypatch, command
         res = runner.invoke(app, [command, str(folder), *args, "--config", str(tmp_path / "c.toml"), *given])
         assert res.exit_code == 0, res.output
         assert getattr(seen.pop("cfg"), key) is expected
+
+
+def test_a_config_json_an_output_folder_holds_is_taken_by_config(tmp_path):
+    """--config read TOML only, so no config.json an output folder holds could be given back to run the same settings
+    ("not a valid TOML file ... line 1, column 1"); a .json file is read as JSON, its nulls kept as they were written."""
+    from uncertsplat.cli import _config_file
+    from uncertsplat.config import EvalConfig, TrainConfig, build_config, train_config_from
+
+    cfg = train_config_from("tiny", None, ["iterations=123", "scene.test_names=[\"a.png\"]"])
+    (tmp_path / "config.json").write_text(cfg.model_dump_json(indent=2))
+    assert build_config(TrainConfig, _config_file(tmp_path / "config.json")) == cfg
+    ev = EvalConfig(num_samples=3, max_views=None)
+    (tmp_path / "eval.json").write_text(ev.model_dump_json())
+    assert build_config(EvalConfig, _config_file(tmp_path / "eval.json")) == ev
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(UserError, match="not a valid JSON file"):
+        _config_file(tmp_path / "bad.json")
