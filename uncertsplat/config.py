@@ -1168,6 +1168,11 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
         label = f"{loc} (line {number})" if number is not None else loc
         msg = e["msg"].removeprefix("Value error, ")  # our validators' messages are sentences of their own
         msg = re.sub(r" or instance of \w+", "", msg)  # "a valid dictionary or instance of SweepScene"
+        if e["type"] == "string_type" and not isinstance(e.get("input"), (dict, type(None))):
+            # `--set title=2024` (or a date, true, [draft]) is read as that value's type: text is quoted
+            msg += (f" (found {e.get('input')!r}: a text that reads as a number, date, true/false or list is given "
+                    f"in quotes: --set '{e['loc'][-1]}=\"{e.get('input')}\"', or {e['loc'][-1]} = \"{e.get('input')}\" "
+                    "in a file)")
         if e["type"] == "extra_forbidden":
             valid = _valid_keys(model, tuple(e["loc"]))
             close = difflib.get_close_matches(str(e["loc"][-1]), valid, n=3, cutoff=0.6)

@@ -441,3 +441,13 @@ def test_a_config_json_an_output_folder_holds_is_taken_by_config(tmp_path):
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(UserError, match="not a valid JSON file"):
         _config_file(tmp_path / "bad.json")
+
+
+def test_a_text_setting_given_a_number_says_to_quote_it(tmp_path):
+    """`--set title=2024` is read as a number and refused as "Input should be a valid string" with no word on how to
+    give the text 2024."""
+    from uncertsplat.config import ReportConfig, build_config, parse_override
+
+    with pytest.raises(UserError, match=r"""--set 'title="2024"', or title = "2024" in a file"""):
+        build_config(ReportConfig, parse_override("title=2024"), source="command line")
+    assert build_config(ReportConfig, parse_override('title="2024"')).title == "2024"
