@@ -119,6 +119,10 @@ def test_a_bad_set_value_is_named_with_the_file(tmp_path, calls):
     with pytest.raises(UserError) as err:  # the file's value replaced by --set: the line would name the wrong value
         pl.run(p, tmp_path / "out", overrides=["train.iterations=-4"])
     assert "iterations: Input should be" in err.value.message and "(line" not in err.value.message
+    # synth's preset is a key of its config (a train stage's sits beside it): the line named the file's good value
+    with pytest.raises(UserError) as err:
+        pl.run(p, tmp_path / "out", overrides=["synth.preset=bogus"])
+    assert "preset: Input should be" in err.value.message and "(line" not in err.value.message
 
 
 @pytest.mark.parametrize("name", ["demo.toml", "smoke.toml", "photos.toml"])

@@ -78,9 +78,10 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
                 stage["preset"] = rest.pop("preset")
             stage["config"] = deep_update(stage.get("config", {}), rest)
     names = [str(s.get("name") or s.get("stage")) for s in data.get("stages", []) if isinstance(s, dict)]
+    kinds = [str(s.get("stage")) for s in data.get("stages", []) if isinstance(s, dict)]
     with naming_overrides(overrides):
         cfg = build_config(PipelineConfig, data, source=str(path),
-                           where=KeyLines(path, replaced=_replaced_keys(names, overrides)))
+                           where=KeyLines(path, replaced=_replaced_keys(names, overrides, kinds)))
     if photos_given and not _reads_photos(cfg):
         from uncertsplat.console import console
 
@@ -107,9 +108,10 @@ def load_pipeline(path: Path, overrides: list[str] | None = None) -> PipelineCon
     return cfg
 
 
-def _replaced_keys(names: list[str], overrides: list[str] | None) -> set[str]:
+def _replaced_keys(names: list[str], overrides: list[str] | None, kinds: list[str] | None = None) -> set[str]:
     """The pipeline file's keys (dotted from its top: ``stages.2.config.num_samples``) whose values the ``--set``
-    ``overrides`` replaced, for the stages called ``names``: an error about one gets no line of the file."""
+    ``overrides`` replaced, for the stages called ``names`` (of the stage kinds ``kinds``): an error about one gets no
+    line of the file."""
     out: set[str] = set()
     for text in overrides or []:
         (head, rest), = parse_override(text).items()
@@ -117,8 +119,9 @@ def _replaced_keys(names: list[str], overrides: list[str] | None) -> set[str]:
             out.add(head)
             continue
         for i, name in enumerate(names):
-            if name == head:  # a train stage's preset sits beside its config
-                out |= {f"stages.{i}.preset" if key == "preset" else f"stages.{i}.config.{key}"
+            if name == head:  # a train stage's preset sits beside its config (synth's is in its config)
+                train = kinds is None or kinds[i] == "train"
+                out |= {f"stages.{i}.preset" if key == "preset" and train else f"stages.{i}.config.{key}"
                         for key in dotted_keys(rest)}
     return out
 
@@ -145,7 +148,7 @@ def check_stages(cfg: PipelineConfig, path: Path, overrides: list[str] | None = 
     """
     earlier: list[str] = []
     configs = []
-    replaced = _replaced_keys([s.name or s.stage for s in cfg.stages], overrides)
+    replaced = _replaced_keys([s.name or s.stage for s in cfg.stages], overrides, [s.stage for s in cfg.stages])
     kinds: dict[str, str] = {}
     evaluated: dict[tuple[str, str], str] = {}  # (the run's stage, split) -> the evaluate stage that writes it
     for i, stage in enumerate(cfg.stages):
