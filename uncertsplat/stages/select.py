@@ -108,19 +108,23 @@ def _walled_off(looked, centres: torch.Tensor, used: torch.Tensor, device: torch
     return behind.any(-1).all(-1)
 
 
-def _held_out_twins(scene, cands) -> torch.Tensor:
-    """[C] bool: the candidates at a held-out or set-aside view's pose (``sfm.scene.held_out_twins``, judged with the
-    training views as a split is)."""
+def _held_out_twins(scene, cands, among: torch.Tensor) -> torch.Tensor:
+    """[C] bool: of the candidates ``among`` ([C] bool), those at a held-out or set-aside view's pose
+    (``sfm.scene.held_out_twins``, judged with the training views as a split is; the others are left out of the
+    judging: a pose far out would widen the rig whose radius sets how near a twin is)."""
     from uncertsplat.sfm.scene import held_out_twins
     from uncertsplat.types import Cameras
 
-    n = len(scene.cameras)
-    both = Cameras(torch.cat([scene.cameras.cam_from_world, cands.cameras.cam_from_world.to(scene.cameras.device)]),
-                   torch.cat([scene.cameras.K, cands.cameras.K.to(scene.cameras.device)]), scene.cameras.width,
-                   scene.cameras.height)
+    n, idx = len(scene.cameras), among.nonzero()[:, 0]
     twin = torch.zeros(len(cands), dtype=torch.bool)
-    for ts in held_out_twins(both, scene.split, range(n, n + len(cands))).values():
-        twin[[t - n for t in ts]] = True
+    if not len(idx):
+        return twin
+    device = scene.cameras.device
+    both = Cameras(torch.cat([scene.cameras.cam_from_world, cands.cameras.cam_from_world[idx].to(device)]),
+                   torch.cat([scene.cameras.K, cands.cameras.K[idx].to(device)]), scene.cameras.width,
+                   scene.cameras.height)
+    for ts in held_out_twins(both, scene.split, range(n, n + len(idx))).values():
+        twin[idx[[t - n for t in ts]]] = True
     return twin
 
 
@@ -148,7 +152,7 @@ def _plausible(loaded, scene, train: list[int], cands, cfg: SelectConfig, device
     spread = float(torch.cdist(used, used).max()) if len(train) > 1 else 0.0
     size = max(spread, looked.median_surface_depth())
     far = nearest_used_distance(centres, used) > FAR_CAPTURES * size if size > 0 else torch.zeros_like(inside)
-    twin = _held_out_twins(scene, cands)
+    twin = _held_out_twins(scene, cands, ~(inside | far))
     ok = ~(inside | far | twin)
     if bool(ok.all()):
         return None
