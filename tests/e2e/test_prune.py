@@ -424,6 +424,9 @@ def test_a_moved_project_s_prune_reads_its_own_source_run(pruned, tiny_run_path,
     rep.write(project / "pr" / "prune.json")
     assert rep.source_folder(project / "pr") == project.resolve() / "src"  # its own copy, the original there too
     assert PruneReport.training_run(project / "pr") == project.resolve() / "src"
+    from uncertsplat.report.build import _prune_facts
+
+    assert ("source run", str(project.resolve() / "src")) in _prune_facts(rep, project / "pr")  # the page's row
     with open(project / "src" / "variational.ply", "ab") as f:  # not the model prune read: the recorded run
         f.write(b"\0")
     assert rep.source_folder(project / "pr") == Path(rep.source_run)

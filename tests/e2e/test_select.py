@@ -654,3 +654,28 @@ def test_the_last_round_s_selection_is_kept(subset_run, tmp_path, capsys):
     assert "is kept as selection.previous.json" in " ".join(capsys.readouterr().err.split())
     assert Selection.read(tmp_path / "sel" / "selection.previous.json") == first
     assert Selection.read(tmp_path / "sel" / "selection.json") == second
+
+
+def test_candidates_all_at_held_out_poses_are_refused_not_chosen(subset_run, tmp_path, capsys):
+    """With no candidate left but those at a held-out view's pose, they competed (the note blamed the poses'
+    convention) and one was chosen, which `train --add-views` then refuses (a review): refused with the reason; beside
+    a pose far out, that one competes and the twin does not."""
+    from uncertsplat.baselines import load_run
+    from uncertsplat.select.candidates import pose_line
+
+    loaded = load_run(subset_run)
+    scene = loaded.load_scene()
+    wfs = torch.tensor(RunScene.read(subset_run / "scene.json").world_from_source, dtype=torch.float64)
+    held = list(scene.split["test"])[0]
+    twin = pose_line("again", scene.cameras.cam_from_world[held], wfs)
+    (tmp_path / "one.txt").write_text(twin + "\n")
+    with pytest.raises(UserError, match=r"every candidate lies at a held-out view's pose \(again\)"):
+        stage.run(subset_run, SelectConfig(score="coverage", num_views=1, candidates=str(tmp_path / "one.txt")), CPU,
+                  output=tmp_path / "a")
+    far = scene.cameras.cam_from_world[held].clone()
+    far[:3, 3] += 1000.0  # far outside the capture
+    (tmp_path / "two.txt").write_text(twin + "\n" + pose_line("far", far, wfs) + "\n")
+    sel = stage.run(subset_run, SelectConfig(score="coverage", num_views=1, candidates=str(tmp_path / "two.txt")),
+                    CPU, output=tmp_path / "b")
+    said = " ".join(capsys.readouterr().err.split())
+    assert [c.name for c in sel.chosen] == ["far"] and "1 candidate at a held-out view's pose (again) does not compete" in said

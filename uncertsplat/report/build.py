@@ -744,7 +744,7 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
 
 
 # -------------------------------------------------------------------------------------------- pruning
-def _prune_facts(p: PruneReport) -> list[tuple[str, str]]:
+def _prune_facts(p: PruneReport, run_dir: Path | None = None) -> list[tuple[str, str]]:
     if p.score == p.score_requested:
         score = p.score
     elif p.score_requested == "auto":
@@ -775,7 +775,8 @@ def _prune_facts(p: PruneReport) -> list[tuple[str, str]]:
                       f"{_psnr_change(p, 'after', p.delta_psnr_db.score)} by the score, "
                       f"{_psnr_change(p, 'random', p.delta_psnr_db.random)} by random removal"))
     facts += [("metric views", f"{len(p.metric_views)} {p.metric_split} views, K = {p.num_samples} samples"),
-              ("seed", str(p.seed)), ("source run", p.source_run)]
+              ("seed", str(p.seed)),
+              ("source run", str(p.source_folder(run_dir)) if run_dir is not None else p.source_run)]
     if p.dry_run:
         facts.append(("dry run", "yes: no model written"))
     return facts
@@ -936,7 +937,7 @@ def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
         if p is None:
             body.append(_problem_note(run, PRUNE))
             continue
-        body.append(kv(_prune_facts(p)))
+        body.append(kv(_prune_facts(p, run.path)))
         body.append(_prune_table(p, ri))
         if p.metrics.after is None:
             body.append(para("No mask was chosen (a sweep only): no 'after' or 'random removal' row.", "muted"))

@@ -158,11 +158,20 @@ def _plausible(loaded, scene, train: list[int], cands, cfg: SelectConfig, device
         return None
     names = cands.cameras.image_names
     if not bool(ok.any()):
-        which = "the candidate lies" if len(cands) == 1 else f"every one of the {len(cands)} candidates lies"
+        twins = [names[j] for j in range(len(cands)) if bool(twin[j])]
+        if len(twins) == len(cands):  # the photo taken there would be refused: no choice to make
+            raise UserError(f"every candidate lies at a held-out view's pose ({list_names(twins, 6)}): a photo taken "
+                            "there is the held-out photo again, which `train --add-views` refuses",
+                            hint="Give poses elsewhere (or --candidates around:N, or the scene's unused photos).")
+        rest = int((~twin).sum())
+        which = "the candidate lies" if rest == 1 else f"every one of the {rest} candidates lies"
         console.print(f"[yellow]note:[/] {which} inside or behind what the photos saw, or over {FAR_CAPTURES:g} capture "
-                      "sizes away: it competes all the same (nothing else does); check the poses' convention "
-                      "(world-to-camera, the quaternion as w x y z, the scene's units and frame)")
-        return None
+                      f"sizes away: {'it competes' if rest == 1 else 'they compete'} all the same (nothing else does); "
+                      "check the poses' convention (world-to-camera, the quaternion as w x y z, the scene's units and "
+                      "frame)" + (f"; {count(len(twins), 'candidate')} at a held-out view's pose "
+                                  f"({list_names(twins, 6)}) {'does' if len(twins) == 1 else 'do'} not compete"
+                                  if twins else ""))
+        return ~twin if twins else None
     for mask, where in ((inside, "inside or behind what every photo that looked toward them saw (an object, a wall), or "
                                  "beyond such a surface from every nearby training camera (under a floor, outside a "
                                  "wall)"),
