@@ -67,6 +67,16 @@ def test_sweep_writes_one_record_per_point_and_resumes(scene_path, tmp_path):
     # a second run finds every point done: nothing is trained or evaluated again
     summary2 = sweep.run(spec, out, jobs=1, device="cpu", scene=scene_path)
     assert len(read_jsonl(out / "sweep.jsonl")) == 3 and summary2.num_points == 3
+    # points measured under other conditions (another thread count: an earlier --jobs 2) are reused with a note
+    lines = (out / "sweep.jsonl").read_text().splitlines()
+    first = json.loads(lines[0])
+    (out / "sweep.jsonl").write_text("\n".join([json.dumps({**first, "threads": 7}), *lines[1:]]) + "\n")
+    from uncertsplat.console import console
+
+    with console.capture() as captured:
+        sweep.run(spec, out, jobs=1, device="cpu", scene=scene_path)
+    said = " ".join(captured.get().split())
+    assert "the points were measured under 2 conditions (cpu," in said and "7 threads" in said, said
 
 
 @pytest.mark.slow

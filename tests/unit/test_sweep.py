@@ -931,3 +931,35 @@ def test_a_switch_between_the_sweeps_own_scene_and_one_of_yours_is_refused(tmp_p
     _check_scene_inputs(tmp_path / "out", {None: own}, force=True, measured=True)
     (tmp_path / "out").rename(tmp_path / "moved")
     _check_scene_inputs(tmp_path / "moved", {None: tmp_path / "moved" / "scene"}, force=False, measured=True)
+
+
+def test_a_higher_is_better_x_axis_is_maximised():
+    """pareto_x = "psnr" (accepted, and drawn "higher is better") was minimised: every point came out on the front
+    where the one with both the best PSNR and the best AUSE dominates the others (a helper's sweep)."""
+    pts = [{"id": "default", "psnr": 19.36, "ause": 0.276}, {"id": "b", "psnr": 18.9, "ause": 0.30},
+           {"id": "c", "psnr": 17.2, "ause": 0.29}]
+    assert [p["id"] for p in pareto_front(pts, x="psnr", y="ause")] == ["default"]
+    pts.append({"id": "d", "psnr": 16.0, "ause": 0.2})  # worse PSNR, better AUSE: on the front too
+    assert [p["id"] for p in pareto_front(pts, x="psnr", y="ause")] == ["default", "d"]
+    assert [p["id"] for p in pareto_front(pts, x="psnr", y="ause", maximize_x=False)] == ["d"]
+
+
+def test_a_point_s_peak_memory_is_its_own():
+    """Points trained one after another in one process (--jobs 1) each reported the process's peak so far (a
+    1,000-Gaussian point 482 MB, 430 MB alone): the peak starts over at each point (Linux's VmHWM)."""
+    import sys
+
+    import numpy as np
+    import torch
+
+    from uncertsplat.train.trainer import peak_memory_mb, reset_peak_memory
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the high-water mark is reset through Linux's /proc")
+    cpu = torch.device("cpu")
+    big = np.ones(40_000_000)  # 305 MiB touched
+    big.sum()
+    high = peak_memory_mb(cpu)
+    del big
+    reset_peak_memory(cpu)
+    assert peak_memory_mb(cpu) < high - 200

@@ -421,6 +421,12 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         if stale:
             console.print(f"[yellow]note:[/] {log} also holds {count(stale, 'point')} of other settings (an earlier "
                           "spec or --set): kept there, left out of this sweep's summary and plot")
+        conditions = sorted({(r.device or "?", r.threads or 0) for r in records if r.status == "ok"})
+        if len(conditions) > 1:  # a point's hash holds its settings, not where it ran: its timings stay as measured
+            console.print(f"[yellow]note:[/] the points were measured under {len(conditions)} conditions ("
+                          + ", ".join(f"{d}, {t} thread{'s' if t != 1 else ''}" for d, t in conditions)
+                          + "; sweep.jsonl's device and threads say which): their times and memory compare across "
+                          "them only as far as those do; a sweep into a new folder measures every point under one")
         summary = summarize(whole, records)
         summary.write(out_dir / "sweep.json")
         _sync_point_reports(out_dir, summary.records)

@@ -67,6 +67,9 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
             print(f"note: {run_dir} held a run of other settings than the sweep's (changed by hand?): moved to {aside}",
                   file=sys.stderr, flush=True)
             resume = False
+    from uncertsplat.train.trainer import reset_peak_memory
+
+    reset_peak_memory(device)  # the point's own peak, not that of the points trained before it in this process
     train_run(Path(job["scene"]), run_dir, cfg, device, resume=resume)
     return TrainSummary.read(summary_path), True
 
@@ -137,6 +140,7 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     from uncertsplat.data.dataset import load_view_set
     from uncertsplat.eval.engine import evaluate_views, fit_residual, scored_sampler, split_indices
     from uncertsplat.provenance import hash_config
+    from uncertsplat.train.trainer import reset_peak_memory
 
     ecfg = build_config(EvalConfig, point["eval_config"], source=f"sweep point {point['id']}")
     run_dir = Path(job["run_dir"])
@@ -151,8 +155,7 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     sampler, fit = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual, scene.cameras,
                                   scene.split, ecfg, device, load_views=train_views)
     calibration_seconds = time.perf_counter() - t_cal
-    if device.type == "cuda":
-        torch.cuda.reset_peak_memory_stats(device)
+    reset_peak_memory(device)  # the evaluation's own peak
     t0 = time.perf_counter()
     views = load_view_set(scene, indices)  # the scene's own GT depth (a sweep point has no --depth-gt)
     report = evaluate_views(sampler, views, ecfg, device, show_progress=False,
@@ -168,8 +171,8 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     out.update(eval_seconds_per_view=per_view, eval_seconds=per_view * len(indices), eval_wall_seconds=wall,
                num_views=len(indices), num_samples=ecfg.num_samples, notes=list(report.notes),
                eval_peak_memory_mb=_peak_mb(device),
-               peak_memory_scope="device" if device.type == "cuda" else "process (max RSS, includes training "
-                                                                        "when trained in the same process)")
+               peak_memory_scope="device" if device.type == "cuda" else "process (peak RSS of the phase: memory "
+                                                                        "in use when it began counts)")
     # the driver writes OUT/points/{id}.json from this text: a worker writes nothing outside its run folder, so a
     # cluster whose nodes share no disk still gets every point's report on the driver's
     out["point_report"] = report.to_json()

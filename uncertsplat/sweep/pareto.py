@@ -28,22 +28,26 @@ def _value(point: Any, key: str) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def pareto_front(points: Sequence[Any], x: str = "time", y: str = "ause", minimize_both: bool = True) -> list[Any]:
-    """The points no other point dominates, sorted by ``x`` (then ``y``).
+def pareto_front(points: Sequence[Any], x: str = "time", y: str = "ause", minimize_both: bool = True,
+                 maximize_x: bool | None = None) -> list[Any]:
+    """The points no other point dominates, sorted from the best ``x`` (then ``y``).
 
-    ``x`` is always minimised (a cost); ``y`` is minimised when ``minimize_both`` (AUSE, NLL) and
-    maximised otherwise (PSNR). A point dominates another when it is at least as good in both and
-    strictly better in one, so exact duplicates all stay on the front. Points whose ``x`` or ``y`` is
-    missing or not finite are ignored.
+    ``x`` is minimised (a cost), or maximised where ``maximize_x`` (default: when ``x`` is one of
+    ``HIGHER_IS_BETTER``: a sweep's ``pareto_x = "psnr"`` was minimised, and every point came out on the front);
+    ``y`` is minimised when ``minimize_both`` (AUSE, NLL) and maximised otherwise (PSNR). A point dominates another
+    when it is at least as good in both and strictly better in one, so exact duplicates all stay on the front.
+    Points whose ``x`` or ``y`` is missing or not finite are ignored.
 
     Args:
         points: mappings (``point[x]``) or objects (``point.x``).
         x, y: the keys to compare.
         minimize_both: minimise ``y`` too (else maximise it).
+        maximize_x: maximise ``x`` (None: by the key, ``HIGHER_IS_BETTER``).
     """
     sign = 1.0 if minimize_both else -1.0
+    x_sign = -1.0 if (x in HIGHER_IS_BETTER if maximize_x is None else maximize_x) else 1.0
     valid = [(p, _value(p, x), _value(p, y)) for p in points]
-    valid = [(p, a, sign * b) for p, a, b in valid if a is not None and b is not None]
+    valid = [(p, x_sign * a, sign * b) for p, a, b in valid if a is not None and b is not None]
     # sweep by increasing cost; a point is on the front iff its y beats every cheaper-or-equal point's
     order = sorted(range(len(valid)), key=lambda i: (valid[i][1], valid[i][2]))
     front, best = [], math.inf
