@@ -176,6 +176,27 @@ class TestRenderLoop:
         assert (state.last["width"], state.last["height"]) == (1000, 500)
         viewer.gui_side.value = viewer.cfg.max_side
 
+    def test_a_client_s_values_beyond_the_panel_are_bounded(self, viewer):
+        """viser passes on what a client sends: a resolution of 8192 (the slider stops at 2048) rendered 8192x8192 in
+        4 GB, samples of 1e9 refined without end, a field of view of 0 divided by zero and a mode no dropdown offers
+        raised in every frame (a helper's client)."""
+        viewer.set_mode("rgb")
+        client = FakeClient(viewer.scene, 0, canvas=(100000, 100000))
+        viewer.gui_side.value = 8192
+        state = self._state(viewer, client, moving=False)
+        viewer.serve(state)
+        assert max(state.last["width"], state.last["height"]) == 2048
+        viewer.gui_side.value = viewer.cfg.max_side
+        client.camera.fov = 0.0
+        assert viewer._camera(state, 64).K[0, 0, 0] < 1e6  # a finite focal length
+        viewer.gui_mode.value = "no such mode"
+        assert viewer.mode == next(iter(viewer._label_to_mode.values()))
+        viewer.set_mode("rgb")
+        from uncertsplat.view.server import _within
+
+        assert _within(1e9, 2, 128, 16) == 128 and _within(float("nan"), 0.5, 1.0, 0.9) == 0.9
+        assert _within("abc", 128, 2048, 1024) == 1024  # (a client's text, which viser passes on)
+
     def test_switching_mode_rerenders(self, viewer):
         viewer.set_mode("rgb")
         client = FakeClient(viewer.scene, 2)

@@ -118,6 +118,9 @@ def run(run_dir: Path, cfg: ViewConfig, device: torch.device, *, block: bool = T
                       f"RGB: {r.rgb_source}")
         console.print(f"open [bold]{viewer_url(cfg.host, viewer.port)}[/] in a browser (from another machine: "
                       f"ssh -L {viewer.port}:localhost:{viewer.port} THIS_HOST); Ctrl-C stops")
+        if cfg.host not in ("127.0.0.1", "localhost", "::1"):  # (said where it happens, not only in --help)
+            console.print(f"[yellow]warning:[/] listening on {cfg.host}: anyone who can reach port {viewer.port} of "
+                          "this machine can see the run's photos, cameras and renders (the viewer has no password)")
         if not block:
             return viewer
         with _sigterm_as_ctrl_c():

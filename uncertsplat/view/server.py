@@ -77,6 +77,21 @@ class ViewState:
     last: dict = field(default_factory=dict)
 
 
+MIN_FOV, MAX_FOV = 0.01, 3.1
+"""Radians: the vertical field of view a client's camera is taken at, at most (a value sent outside it is clamped)."""
+
+
+def _within(value, lo: float, hi: float, default: float) -> float:
+    """A panel or camera value as a number in [``lo``, ``hi``]: viser passes on what a client sends, beyond the
+    slider's range too (a resolution of 8192 rendered 8192x8192 in 4 GB; 32768 would need 64 GB; samples of 1e9
+    refined without end), or not a number (``default`` then)."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        return float(default)
+    return float(default) if x != x else min(max(x, lo), hi)
+
+
 def _fit(aspect: float, long_side: int) -> tuple[int, int]:
     """(width, height) with the given aspect (width / height) and long side."""
     long_side = max(int(long_side), 8)
@@ -260,7 +275,8 @@ class Viewer:
 
     @property
     def mode(self) -> str:
-        return self._label_to_mode[self.gui_mode.value]
+        # (a value no dropdown offers, sent by a client, reads as the first mode: it raised KeyError in every frame)
+        return self._label_to_mode.get(self.gui_mode.value, next(iter(self._label_to_mode.values())))
 
     def set_mode(self, mode: str) -> None:
         """Switch every view to ``mode`` (a ``VIEW_MODES`` key), as choosing it in the panel does."""
@@ -429,12 +445,13 @@ class Viewer:
         cam = v.client.camera
         aspect = float(cam.aspect) if cam.aspect and cam.aspect > 0 else 4 / 3
         w, h = _fit(aspect, long_side)
-        return viewer_camera(cam.wxyz, cam.position, float(cam.fov), w, h, self.renderer.device)
+        fov = _within(cam.fov, MIN_FOV, MAX_FOV, 1.0)  # (0 divided by zero; above pi rendered a mirrored frame)
+        return viewer_camera(cam.wxyz, cam.position, fov, w, h, self.renderer.device)
 
     def _full_side(self, v: ViewState) -> int:
         cam = v.client.camera
         canvas = max(int(cam.image_width or 0), int(cam.image_height or 0))
-        side = int(self.gui_side.value)
+        side = int(_within(self.gui_side.value, 128, 2048, self.cfg.max_side))
         return min(side, canvas) if canvas > 0 else side
 
     def _preview_side(self, v: ViewState, mode: str, renders: int) -> int:
@@ -470,7 +487,7 @@ class Viewer:
                 v.accumulator = self.renderer.std_accumulator(self._camera(v, self._full_side(v)))
                 v.accumulator_version = version
             cams = v.accumulator.cameras
-            k_total = int(self.gui_samples.value)
+            k_total = int(_within(self.gui_samples.value, 2, 128, self.cfg.still_samples))
             step = min(k_move, k_total - v.accumulator.count)
             v.accumulator.add(step)
             frame = v.accumulator.frame(mode, value_range)
@@ -490,7 +507,7 @@ class Viewer:
             v.shown_version, v.shown_full = version, full
 
     def _frame(self, cams: Cameras, mode: str, samples: int, value_range) -> Frame:
-        keep = float(self.gui_keep.value)
+        keep = _within(self.gui_keep.value, 0.5, 1.0, 0.9)
         return self.renderer.frame(cams, mode, num_samples=samples, value_range=value_range,
                                    score=str(self.gui_score.value), keep_ratio=keep,
                                    hide_removed=bool(self.gui_hide.value))
