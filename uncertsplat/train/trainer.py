@@ -100,6 +100,7 @@ def peak_memory_mb(device: torch.device) -> float:
 def reset_peak_memory(device: torch.device) -> None:
     """Start ``peak_memory_mb`` over from the memory in use now: a sweep's points trained one after another in one
     process each reported the peak of every point before it (a 1,000-Gaussian point 482 MB, 430 MB alone)."""
+    device = torch.device(device)  # (a sweep job's may be its name)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
         return
