@@ -130,6 +130,25 @@ class TestFrames:
         assert not np.allclose(first.values, steps.values)  # more samples: a different estimate
         assert np.nanmax(steps.values) > 0
 
+    def test_a_std_frame_says_what_its_samples_are(self, renderer, scene, device):
+        """A deterministic run's std modes said "K = 16 posterior samples" of 16 equal renders, an ensemble's the
+        same of draws among two members (a helper)."""
+        from types import SimpleNamespace
+
+        cam = _train_camera(scene, 0, device=device)
+        assert renderer.frame(cam, "rgb_std", num_samples=4).note == "K = 4 posterior samples"
+        real = renderer.loaded
+        try:
+            renderer.loaded = SimpleNamespace(config=real.config.model_copy(update={"method": "deterministic"}),
+                                              model=real.model)
+            assert renderer.samples_label(16).startswith("16 equal renders: the model has no posterior")
+            renderer.loaded = SimpleNamespace(config=real.config.model_copy(update={"method": "ensemble",
+                                                                                    "ensemble_size": 2}),
+                                              model=real.model)
+            assert renderer.samples_label(16) == "K = 16 draws among its 2 members"
+        finally:
+            renderer.loaded = real
+
     def test_std_mode_differs_from_rgb(self, renderer, scene, device):
         cam = _train_camera(scene, 0, device=device)
         assert np.abs(renderer.frame(cam, "rgb_std").image.astype(int) -

@@ -172,7 +172,7 @@ class StdAccumulator:
         image, rng = colour_map(values, value_range)
         d = maps.depth_mean[0, ..., 0]
         depth = torch.where(maps.alpha_mean[0, ..., 0] >= 0.5, d, torch.full_like(d, float("inf"))).cpu().numpy()
-        return Frame(image, depth, rng, unit, self.count, f"K = {self.count} posterior samples", values)
+        return Frame(image, depth, rng, unit, self.count, self.renderer.samples_label(self.count), values)
 
 
 class FrameRenderer:
@@ -227,6 +227,15 @@ class FrameRenderer:
         return not (self.loaded.config.method == "deterministic" or
                     (self.loaded.config.method in ("variational", "paper", "vi-single")
                      and self.loaded.model.num_carriers == 0))
+
+    def samples_label(self, count: int) -> str:
+        """What a std frame of ``count`` samples rests on: a deterministic model's "K = 16 posterior samples" were 16
+        equal renders, and an ensemble's draw among a few members."""
+        if not self.has_posterior:
+            return f"{count} equal renders: the model has no posterior, the std is the empty-ray term alone"
+        if self.loaded.config.method == "ensemble":
+            return f"K = {count} draws among its {self.loaded.config.ensemble_size} members"
+        return f"K = {count} posterior samples"
 
     @property
     def prune_available(self) -> bool:
