@@ -28,6 +28,25 @@ def finite_or_none(v: Any) -> Any:
     return v
 
 
+def path_from(folder: str | Path, target: str | Path) -> str | None:
+    """``target`` relative to ``folder`` (both resolved), as a record keeps a place it points at beside its own
+    (``RunScene.scene_from_run``, ``PruneReport.source_from_run``); None where there is no such path (another drive)."""
+    import os
+
+    try:
+        return os.path.relpath(Path(target).resolve(), Path(folder).resolve())
+    except ValueError:
+        return None
+
+
+def resolve_from(folder: str | Path, relative: str) -> Path:
+    """The place ``relative`` (``path_from``'s) names from where ``folder`` is now (a record moved with what it points
+    at finds it there)."""
+    import os
+
+    return Path(os.path.normpath(Path(folder).resolve() / relative))
+
+
 class Strict(BaseModel):
     """A nested record: unknown keys are errors, non-finite floats are written as ``null``."""
 

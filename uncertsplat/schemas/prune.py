@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator
 
-from uncertsplat.schemas.base import SchemaFile, Strict, finite_or_none
+from uncertsplat.schemas.base import SchemaFile, Strict, finite_or_none, resolve_from
 
 METRIC_KEYS = ("psnr", "ssim", "ause_mae", "ause_rmse", "nll", "depth_ause_mae")
 """The ``PruneMetrics`` keys that are ``evaluate``'s metrics (the means over the metric views)."""
@@ -193,14 +193,12 @@ class PruneReport(SchemaFile):
         ``source_run``, whichever holds the model prune read (``source_model`` with ``source_model_sha256``: a
         project moved or copied elsewhere reads its own source, not another project's run that took the old place);
         when neither does (the source trained on since, or gone), ``source_run`` as recorded."""
-        import os
-
         from uncertsplat.provenance import file_sha256
 
         recorded = Path(self.source_run)
         candidates = [recorded]
         if self.source_from_run is not None:
-            here = Path(os.path.normpath(Path(run_dir).resolve() / self.source_from_run))
+            here = resolve_from(run_dir, self.source_from_run)
             if here.resolve() != recorded.resolve():
                 candidates.insert(0, here)
         for folder in candidates:

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import Field
 
-from uncertsplat.schemas.base import SchemaFile, Strict
+from uncertsplat.schemas.base import SchemaFile, Strict, path_from, resolve_from
 
 
 class SynthIntrinsics(Strict):
@@ -155,7 +154,7 @@ class RunScene(SchemaFile):
         recorded = Path(self.scene)
         if recorded.exists() or self.scene_from_run is None:
             return recorded
-        here = Path(os.path.normpath(Path(run_dir).resolve() / self.scene_from_run))
+        here = resolve_from(run_dir, self.scene_from_run)
         return here if here.is_dir() else recorded
 
     @staticmethod
@@ -163,8 +162,5 @@ class RunScene(SchemaFile):
         """``scene`` relative to ``run_dir`` (both resolved) for ``scene_from_run``; None where there is no such path
         (another drive), and for a run kept inside its scene (``..`` alone: moved out, any folder above it would
         pass for the scene)."""
-        try:
-            rel = os.path.relpath(Path(scene).resolve(), Path(run_dir).resolve())
-        except ValueError:
-            return None
-        return None if all(part == ".." for part in Path(rel).parts) else rel
+        rel = path_from(run_dir, scene)
+        return None if rel is None or all(part == ".." for part in Path(rel).parts) else rel

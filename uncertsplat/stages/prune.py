@@ -54,6 +54,7 @@ from uncertsplat.console import console
 from uncertsplat.errors import Interrupted, UserError, run_folder_missing
 from uncertsplat.io.atomic import current_umask, temp_stem
 from uncertsplat.provenance import file_sha256
+from uncertsplat.schemas.base import path_from
 from uncertsplat.schemas.prune import (
     METRIC_KEYS,
     PRUNED_FROM_EVALUATE,
@@ -673,10 +674,7 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
             sweep.write(tmp / "sweep.json")
         # the resolved settings of this prune (config.json beside it is the pruned run's training config)
         atomic_write_bytes(tmp / "prune_config.json", (cfg.model_dump_json(indent=2) + "\n").encode())
-        try:  # (tmp is the output's sibling: the same path from either)
-            result.source_from_run = os.path.relpath(run_dir.resolve(), output.resolve())
-        except ValueError:  # another drive
-            result.source_from_run = None
+        result.source_from_run = path_from(output, run_dir)  # (tmp is the output's sibling: the same path from either)
         result.write(tmp / "prune.json")
         try:
             if output.exists():
