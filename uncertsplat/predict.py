@@ -42,13 +42,7 @@ from torch import Tensor
 
 from uncertsplat.config import EVAL_SEED_MAX
 from uncertsplat.errors import UserError
-from uncertsplat.types import (
-    Cameras,
-    focal_unusable,
-    intrinsics_size_guess,
-    principal_point_near_edge,
-    principal_point_outside,
-)
+from uncertsplat.types import Cameras, focal_unusable, principal_point_near_edge, principal_point_place
 
 
 @dataclass(frozen=True)
@@ -260,10 +254,7 @@ def _intrinsics(K, n: int, width: int, height: int, outside_ok: bool = False) ->
         hint = "Pass [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] in pixels."
         # near the edge too: a K twice the size with halved width and height puts it exactly on the corner
         if what is None and not outside_ok and bool(principal_point_near_edge(k, width, height)):
-            beyond = bool(principal_point_outside(k, width, height))
-            what = (f"has its principal point at ({cx:g}, {cy:g}), {'outside' if beyond else 'at the edge of'} the "
-                    f"{width}x{height} image"
-                    + (intrinsics_size_guess(cx, cy) if beyond or (cx > width / 2 and cy > height / 2) else ""))
+            what = f"has its principal point {principal_point_place(k, width, height)}"
             hint = (f"Scale fx, fy, cx and cy by the ratio of the sizes for a {width}x{height} render (or pass the "
                     "size the intrinsics were measured at); a crop whose optical centre lies outside it or near its "
                     "edge takes principal_point_outside=True.")

@@ -46,6 +46,16 @@ def principal_point_near_edge(K: Tensor, width: int, height: int) -> Tensor:
             | (c[..., 1] < m * height) | (c[..., 1] > (1 - m) * height))
 
 
+def principal_point_place(K: Tensor, width: int, height: int, whose: str = "the") -> str:
+    """Where the [3,3] intrinsics ``K`` put the principal point that ``principal_point_near_edge`` refused, for an
+    error message: "at (cx, cy), outside (or at the edge of) WHOSE WxH image", with the image size the intrinsics
+    suggest where both coordinates point there (``intrinsics_size_guess``; near one edge only: no guess)."""
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    beyond = bool(principal_point_outside(K, width, height))
+    size = intrinsics_size_guess(cx, cy) if beyond or (cx > width / 2 and cy > height / 2) else ""
+    return f"at ({cx:g}, {cy:g}), {'outside' if beyond else 'at the edge of'} {whose} {width}x{height} image{size}"
+
+
 def focal_unusable(K: Tensor) -> Tensor:
     """[C] bool: which of the [C,3,3] intrinsics ``K`` have a focal length (fx or fy) the renderer cannot use: not
     finite, not positive, or beyond float32's range (the renderer works in float32: 1e39 px became inf and drew

@@ -41,9 +41,8 @@ from uncertsplat.types import (
     Cameras,
     SceneData,
     focal_unusable,
-    intrinsics_size_guess,
     principal_point_near_edge,
-    principal_point_outside,
+    principal_point_place,
     similarity_scale,
 )
 
@@ -941,15 +940,9 @@ def _check_intrinsics(cameras: Cameras, where: Path, outside_ok: bool = False) -
     if bool(outside.any()) and not outside_ok:
         i = int(outside.nonzero()[0, 0])
         names = [cameras.image_names[j] for j in outside.nonzero()[:, 0].tolist()]
-        cx, cy = float(K[i, 0, 2]), float(K[i, 1, 2])
-        beyond = bool(principal_point_outside(K[i], W, H))
-        # the size the intrinsics suggest, where both coordinates point there (near one edge only: no guess)
-        size = intrinsics_size_guess(cx, cy) if beyond or (cx > W / 2 and cy > H / 2) else ""
         raise UserError(f"view '{names[0]}'" + (f" (and {len(names) - 1} more: {list_names(names[1:], 4)})"
                                                  if len(names) > 1 else "")
-                        + f" has its principal point at ({cx:g}, {cy:g}), "
-                        + ("outside" if beyond else "at the edge of")
-                        + f" its {W}x{H} image{size}",
+                        + f" has its principal point {principal_point_place(K[i], W, H, 'its')}",
                         path=where,
                         hint=f"Give the intrinsics of the {W}x{H} images that are read (scale the focal lengths and the "
                              "principal point by the ratio of the sizes), or the images the intrinsics were measured "
