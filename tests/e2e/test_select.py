@@ -54,7 +54,7 @@ def test_the_console_gives_both_scores_of_a_later_choice(subset_run, tmp_path, c
     assert f"2. {second.name} score {second.score_when_chosen:.6g} (alone {second.score:.6g})" in err
     assert "each after the views chosen before it; only candidates in the capture's gaps compete (at least 0.5 x" in err
     # a choice that joined the gaps only after the earlier ones has no score alone, and says why
-    sel = stage.run(subset_run, SelectConfig(score="fisher", num_views=6), CPU, output=tmp_path / "sel6")
+    sel = stage.run(subset_run, SelectConfig(score="fisher", num_views=12), CPU, output=tmp_path / "sel12")
     err = " ".join(capsys.readouterr().err.split())
     late = [c for c in sel.chosen if c.score is None]
     assert late, [(c.name, c.score) for c in sel.chosen]

@@ -41,17 +41,18 @@ class TestRanking:
         assert chosen == [0, 1, 2]
 
 
-def test_a_candidates_variance_score_does_not_depend_on_its_place_in_the_list(monkeypatch):
-    """Each candidate's generator is seeded by its pose (as ``Predictor.predict`` seeds a pose of one's own), so a
-    plan file read in reverse gives every pose the same score (seeded by position, a pose's score moved by up to
-    3.5 % on the demo)."""
+def test_a_candidates_variance_score_depends_on_neither_its_place_in_the_list_nor_its_poses_last_digits(monkeypatch):
+    """Every candidate is scored with the same draws (one seed): a plan file read in reverse gives every pose the same
+    score (seeded by position, a pose's score moved by up to 3.5 % on the demo), and so does a pose one float32
+    rounding away (seeded by the pose's values, a pose read back from selection.json's pose_line moved by up to
+    8.7 %). The fake score is the generator's draw plus the camera's x offset."""
     from types import SimpleNamespace
 
     from uncertsplat.types import Cameras
     from uncertsplat.uncertainty import mc
 
-    def draws(sample_fn, render_fn, cams, k, gen, **kw):  # the score is what the generator gives
-        x = torch.rand(1, cams.height, cams.width, 1, generator=gen)
+    def draws(sample_fn, render_fn, cams, k, gen, **kw):
+        x = torch.rand(1, cams.height, cams.width, 1, generator=gen, dtype=torch.float64) + cams.cam_from_world[0, 0, 3]
         return SimpleNamespace(rgb_std=x.expand(-1, -1, -1, 3), depth_std=x), None
 
     monkeypatch.setattr(mc, "mc_render", draws)
@@ -64,7 +65,10 @@ def test_a_candidates_variance_score_does_not_depend_on_its_place_in_the_list(mo
     rgb_rev, depth_rev = scores_mod.variance_scores(None, None, cams[back], 2, 7, empty_std=None)
     torch.testing.assert_close(rgb_rev, rgb[back], rtol=0, atol=0)
     torch.testing.assert_close(depth_rev, depth[back], rtol=0, atol=0)
-    assert len(set(rgb.tolist())) == 5
+    nudged = w2c.clone()
+    nudged[:, :3, :3] = torch.nextafter(nudged[:, :3, :3], torch.tensor(2.0))  # a rotation read back from its quaternion
+    rgb_nudged, _ = scores_mod.variance_scores(None, None, Cameras(nudged, K, 16, 12), 2, 7, empty_std=None)
+    torch.testing.assert_close(rgb_nudged, rgb, rtol=0, atol=0)
     assert not torch.equal(scores_mod.variance_scores(None, None, cams, 2, 8, empty_std=None)[0], rgb)  # the seed
 
 
@@ -75,7 +79,7 @@ class _Views:
 
     def __init__(self, labels):
         self.labels = list(labels)
-        # a pose per label (fisher_choice seeds a candidate's probes by its pose)
+        # a pose per label (the fake curvatures read it)
         self.cam_from_world = torch.eye(4).repeat(len(self.labels), 1, 1)
         self.cam_from_world[:, 0, 3] = torch.tensor([zlib.crc32(str(v).encode()) % 1000 for v in self.labels],
                                                      dtype=torch.float32)
@@ -139,22 +143,28 @@ class TestFisherInformation:
         # then view 1's Fisher joins the precision ([2, 5]): views 2-3 drop to 12 * 4 / (5 * 9), view 0 is next
         assert chosen == [1, 0] and at == pytest.approx([9.6, 110 / 24])
 
-    def test_a_candidates_information_does_not_depend_on_its_place_in_the_list(self, monkeypatch):
-        """Each candidate's probes are seeded by its pose: the candidates in reverse get the same information (the
-        fake curvature returns its generator's draw); seeded by position, they did not."""
+    def test_a_candidates_information_depends_on_neither_its_place_nor_its_poses_last_digits(self, monkeypatch):
+        """Every candidate's probes come from one seed: the candidates in reverse get the same information, and so
+        does a pose one float32 rounding away (the fake curvature returns its generator's draw plus the candidate's
+        x offset); seeded by position, or by the pose's values, they did not."""
         def fake(params, cameras, images, render_fn, *, noise_std=None, generator=None, **_):
-            return curvature_mod.Curvature({"means": torch.rand(2, generator=generator, dtype=torch.float64)}, 0.1,
-                                           None)
+            shift = 0.0 if noise_std is None else float(cameras.cam_from_world[0, 0, 3])
+            return curvature_mod.Curvature({"means": torch.rand(2, generator=generator, dtype=torch.float64) + shift},
+                                           0.1, None)
 
         monkeypatch.setattr(curvature_mod, "curvature", fake)
 
-        def first(labels):
-            return fisher_choice({}, _Views(["train"]), torch.zeros(1, 1, 1, 3), _Views(labels), None,
-                                 names=["means"], prior_std={"means": 1.0}, sh_degree=0, probes=1, seed=3, n=1)[2]
+        def first(views, seed=3):
+            return fisher_choice({}, _Views(["train"]), torch.zeros(1, 1, 1, 3), views, None,
+                                 names=["means"], prior_std={"means": 1.0}, sh_degree=0, probes=1, seed=seed, n=1)[2]
 
-        forward, backward = first(["a", "b", "c", "d"]), first(["d", "c", "b", "a"])
+        forward, backward = first(_Views(["a", "b", "c", "d"])), first(_Views(["d", "c", "b", "a"]))
         torch.testing.assert_close(backward, forward.flip(0), rtol=0, atol=0)
         assert len(set(forward.tolist())) == 4
+        nudged = _Views(["a", "b", "c", "d"])
+        nudged.cam_from_world[:, :3, :3] = torch.nextafter(nudged.cam_from_world[:, :3, :3], torch.tensor(2.0))
+        torch.testing.assert_close(first(nudged), forward, rtol=0, atol=0)
+        assert not torch.equal(first(_Views(["a", "b", "c", "d"]), seed=4), forward)
 
     @pytest.mark.parametrize("information", ["trace", "log-det", "predictive"])
     @pytest.mark.parametrize("gaps", [False, True])

@@ -114,16 +114,15 @@ def variance_scores(sample_fn: Callable, render_fn: Callable, cameras: Cameras, 
     """([C] mean RGB std, [C] mean depth std) of each candidate (one seeded generator per candidate); ``empty_std``
     and ``coverage`` as in ``uncertainty.mc.mc_render``.
 
-    A candidate's generator is seeded by its pose and intrinsics (``eval.engine.pose_index``, as
-    ``uncertsplat.predict`` seeds a pose of one's own), not by its place in the list: the same pose gets the same
-    score however the candidates are ordered (a plan file read in reverse moved a score by up to 3.5 %)."""
-    from uncertsplat.eval.engine import pose_index, view_seed
+    Every candidate is scored with the same draws (a generator seeded by ``seed`` alone; common random numbers):
+    candidates are compared on the same K posterior samples, and a candidate's score depends neither on its place in
+    the list (a plan file read in reverse moved a score by up to 3.5 % when the seed followed the place) nor on the
+    last digits of its pose (seeded by the pose's values, a pose read back from its own ``pose_line`` moved too)."""
     from uncertsplat.uncertainty.mc import mc_render
 
     rgb, depth = [], []
     for c in range(len(cameras)):
-        at = pose_index(cameras.cam_from_world[c], cameras.K[c])
-        gen = torch.Generator(device=cameras.device).manual_seed(view_seed(seed, at))
+        gen = torch.Generator(device=cameras.device).manual_seed(seed)
         maps, _ = mc_render(sample_fn, render_fn, cameras[[c]], num_samples, gen, empty_std=empty_std,
                             coverage=coverage)
         rgb.append(float(maps.rgb_std.mean()))
@@ -204,7 +203,7 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
         (chosen positions, their information when chosen, [C] every candidate's information before any choice,
         the training views' noise std used).
     """
-    from uncertsplat.eval.engine import pose_index, view_seed
+    from uncertsplat.eval.engine import view_seed
     from uncertsplat.uncertainty.curvature import curvature
 
     if information not in INFORMATION:
@@ -223,9 +222,11 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
     def view_fisher(c: int) -> dict[str, Tensor]:
         if c in cache:
             return cache[c]
-        # the probes seeded by the candidate's pose, not its place in the list (as variance_scores)
-        at = pose_index(cameras.cam_from_world[c], cameras.K[c])
-        g = torch.Generator(device=train_images.device).manual_seed(view_seed(seed, at))
+        # every candidate's probes from one seed (as variance_scores): not its place in the list, nor its pose's last
+        # digits (seeded by the pose's values, a pose read back from its own pose_line scored up to 8.7 % apart
+        # with one probe, and the order of the demo's top candidates changed); a stream apart from the training
+        # views' probes
+        g = torch.Generator(device=train_images.device).manual_seed(view_seed(seed, 1))
         f = curvature(params, cameras[[c]], blank, render_fn, names=names, generator=g, sh_degree=sh_degree,
                       probes=probes, noise_std=noise).fisher
         if keep:
