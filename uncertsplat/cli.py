@@ -512,7 +512,8 @@ def sweep(
     output: Annotated[Path, typer.Option("-o", "--output", help="Output folder (runs, sweep.jsonl, pareto.png).")],
     jobs: Annotated[int | None, typer.Option(help="Parallel jobs (default: number of cores; 1 on CUDA).")] = None,
     scene: Annotated[Path | None, typer.Option(help="Scene folder (overrides the spec's).")] = None,
-    force: Annotated[bool, typer.Option(help="Recompute points that already have a record.")] = False,
+    force: Annotated[bool, typer.Option(help="Measure every point again, those with a record too: each run is "
+                                        "trained again (its training time measured now) and evaluated.")] = False,
     executor: Annotated[str, typer.Option(help="local (this machine's cores) or ray (a Ray instance or cluster).")] = "local",
     address: Annotated[str | None, typer.Option(
         help="ray: 'auto' joins a running cluster; left out, a local Ray instance starts.")] = None,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -963,3 +964,38 @@ def test_a_point_s_peak_memory_is_its_own():
     del big
     reset_peak_memory(cpu)
     assert peak_memory_mb(cpu) < high - 200
+
+
+def test_force_trains_a_finished_run_again_once(tmp_path, monkeypatch):
+    """`sweep --force` evaluated every point again but reused each finished run, so a point's training time was an
+    earlier sweep's: a run finished before the forced sweep started is trained again from step 0; one it trained
+    itself (a retry of a point whose evaluation failed) and an unfinished one (resumed) are not started over."""
+    import time
+
+    import uncertsplat.baselines as baselines
+    from uncertsplat.config import train_config_from
+    from uncertsplat.sweep import jobs
+
+    calls = []
+
+    def fake_train(scene, run_dir, cfg, device, resume):
+        calls.append((Path(run_dir).exists(), resume))
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "config.json").write_text(cfg.model_dump_json())
+        (run_dir / "train_summary.json").write_text("{}")
+
+    monkeypatch.setattr(baselines, "train_run", fake_train)
+    monkeypatch.setattr(jobs.TrainSummary, "read", classmethod(lambda cls, path: "summary"))
+    run = tmp_path / "runs" / "variational_x"
+    tcfg = json.loads(train_config_from("tiny").model_dump_json())
+    job = {"run_dir": str(run), "job_id": "variational_x", "scene": str(tmp_path), "train_config": tcfg}
+    assert jobs._train(job, "cpu") == ("summary", True) and calls == [(False, False)]
+    (run / "weights.bin").write_text("the earlier training")
+    assert jobs._train(job, "cpu") == ("summary", False)  # reused without --force
+    assert jobs._train({**job, "retrain_before": None}, "cpu") == ("summary", False)
+    forced = {**job, "retrain_before": time.time() + 1}  # the run finished before the forced sweep started
+    assert jobs._train(forced, "cpu") == ("summary", True)
+    assert calls[-1] == (False, False) and not (run / "weights.bin").exists()  # from step 0, the old run removed
+    assert jobs._train({**job, "retrain_before": time.time() - 60}, "cpu") == ("summary", False)  # trained since
+    (run / "train_summary.json").unlink()  # unfinished: resumed, forced or not
+    assert jobs._train(forced, "cpu") == ("summary", True) and calls[-1] == (True, True)

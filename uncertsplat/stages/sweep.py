@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from pathlib import Path
 
 from pydantic import ValidationError
@@ -259,7 +260,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         device: auto, cpu or cuda (every job uses it).
         scene: a scene folder overriding the spec's.
         overrides: ``key=value`` overrides of the spec (e.g. ``train.iterations=300``).
-        force: recompute points that already have an ``ok`` record.
+        force: measure every point again, those with an ``ok`` record too: their runs are trained again.
         executor: local or ray (``sweep.executors``).
         address: ray only: None starts a local Ray instance (``jobs`` CPUs when given), "auto" joins a cluster.
         cpus_per_job, gpus_per_job: ray only: the resources each job asks for (and its torch threads).
@@ -342,8 +343,10 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                           for p in j["points"]}
         _move_point_reports(out_dir, before, everywhere)
         todo = []
+        started_at = time.time()
         for job in all_jobs:
             job["points"] = [p for p in job["points"] if p["hash"] not in done]
+            job["retrain_before"] = started_at if force else None  # measured again: trained again (jobs._train)
             if job["points"]:
                 todo.append(job)
         npts = sum(len(j["points"]) for j in todo)

@@ -39,7 +39,12 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
     run_dir = Path(job["run_dir"])
     summary_path = run_dir / "train_summary.json"
     cfg = build_config(TrainConfig, job["train_config"], source=f"sweep job {job['job_id']}")
-    if summary_path.is_file() and (run_dir / "config.json").is_file():
+    # ``retrain_before`` (sweep --force: its start): a run finished before it is trained again, so the point's
+    # training time is measured now, not carried over from an earlier sweep (an unfinished run resumes, and one this
+    # sweep trained is kept for a retry of its evaluation)
+    before = job.get("retrain_before")
+    retrain = before is not None and summary_path.is_file() and summary_path.stat().st_mtime < before
+    if summary_path.is_file() and (run_dir / "config.json").is_file() and not retrain:
         stored = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
         if stored == json.loads(cfg.model_dump_json()):
             summary = TrainSummary.read(summary_path)
@@ -51,7 +56,7 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
     if holder is not None:
         raise UserError(f"another uncertsplat process ({holder}) holds this point's run now", path=run_dir,
                         hint="Wait for it to finish, then run the sweep again.")
-    resume = (run_dir / "config.json").is_file()
+    resume = (run_dir / "config.json").is_file() and not retrain
     if run_dir.exists() and not resume:
         shutil.rmtree(run_dir)  # a job that died before writing anything useful
     if resume:
