@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 from pathlib import Path
@@ -999,3 +1000,94 @@ def test_force_trains_a_finished_run_again_once(tmp_path, monkeypatch):
     assert jobs._train({**job, "retrain_before": time.time() - 60}, "cpu") == ("summary", False)  # trained since
     (run / "train_summary.json").unlink()  # unfinished: resumed, forced or not
     assert jobs._train(forced, "cpu") == ("summary", True) and calls[-1] == (True, True)
+
+
+def _job_until_orphaned(job: dict) -> list[dict]:
+    """A sweep job for the orphan test: ``quick`` returns at once; ``training`` steps until the sweep stops it
+    (``train.trainer.STOP_REQUESTED``), then writes the file ``checkpoint``."""
+    import os
+    import time
+
+    folder = Path(job["dir"])
+    (folder / f"{job['job_id']}.pid").write_text(str(os.getpid()))
+    if job["job_id"] == "quick":
+        return [{"job": "quick", "status": "ok"}]
+    from uncertsplat.train.trainer import STOP_REQUESTED
+
+    t0 = time.monotonic()
+    while not STOP_REQUESTED.is_set() and time.monotonic() - t0 < 120:
+        time.sleep(0.02)  # a step
+    (folder / "checkpoint").write_text("written" if STOP_REQUESTED.is_set() else "ran to its end")
+    return [{"job": "training", "status": "ok"}]
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="finds the pool's workers in /proc (Linux)")
+def test_the_workers_of_a_sweep_killed_with_sigkill_end(tmp_path):
+    """A sweep killed without a word (kill -9, the OOM killer) left its pool's workers: an idle one waited for jobs
+    forever, a training one trained on to its end. Each worker now sees its parent go: a training stops as on Ctrl-C
+    (its checkpoint written) and every worker ends."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    driver = (
+        "from pathlib import Path\n"
+        "from tests.unit.test_sweep import _job_until_orphaned\n"
+        "from uncertsplat.sweep.executors import run_local\n"
+        f"d = {str(tmp_path)!r}\n"
+        "todo = [{'job_id': j, 'points': [], 'dir': d} for j in ('quick', 'training')]\n"
+        "def record(recs):\n"
+        "    Path(d, recs[0]['job'] + '.done').write_text('')\n"
+        "run_local(todo, jobs=2, retries=0, on_records=record, run_job=_job_until_orphaned)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    proc = subprocess.Popen([sys.executable, "-c", driver], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+
+    def workers() -> set[int]:
+        found = set()
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+                cmdline = (stat.parent / "cmdline").read_bytes()
+            except (OSError, IndexError, ValueError):
+                continue
+            if ppid == proc.pid and b"spawn_main" in cmdline:
+                found.add(int(stat.parent.name))
+        return found
+
+    def alive(pid: int) -> bool:
+        try:
+            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            return False
+        return state != "Z"  # (a zombie has ended; its new parent reaps it)
+
+    try:
+        t0 = time.monotonic()
+        pool: set[int] = set()
+        while time.monotonic() - t0 < 60 and proc.poll() is None:
+            pool = workers()
+            training = tmp_path / "training.pid"
+            # the quick job recorded, the training stepping, and an idle worker beside it (the quick one's successor)
+            if (tmp_path / "quick.done").exists() and training.exists() and pool - {int(training.read_text())}:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None and (tmp_path / "quick.done").exists(), proc.communicate(timeout=30)[0][-3000:]
+        assert len(pool) >= 2
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 60 and any(alive(p) for p in pool):
+            time.sleep(0.1)
+        left = [p for p in pool if alive(p)]
+    finally:
+        for p in workers() | pool:
+            with contextlib.suppress(OSError):
+                os.kill(p, signal.SIGKILL)
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert not left, f"workers still running after the sweep was killed: {left}"
+    assert (tmp_path / "checkpoint").read_text() == "written"

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import threading
 import traceback
 from collections.abc import Callable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -165,32 +166,46 @@ def _worker_stops_quietly_on_ctrl_c(stop=None) -> None:
     ``stop`` (a shared flag of the driver's, ``RawValue``): set to 1 when the sweep stops for any reason the workers
     did not see (Ctrl-C to the driver alone, ``kill -INT``), it stops the worker's training the same way
     (``train.trainer.STOP_REQUESTED``) without a second signal, which would act mid-step after the terminal's
-    first."""
+    first.
+
+    The driver gone without a word (``kill -9``, the OOM killer): its workers were left waiting for jobs forever
+    (and a training one trained on to its end). The same watch sees the worker's parent change, stops a training
+    the same way (its checkpoint written, so the next sweep resumes it) and ends the worker once no job runs."""
+    import os
+    import time
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if hasattr(signal, "pthread_sigmask"):
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-    if stop is not None:
-        import threading
+    parent = os.getppid()
 
-        def watch() -> None:
-            import time
+    def watch() -> None:
+        while True:
+            time.sleep(0.1)
+            orphaned = os.getppid() != parent
+            if orphaned and not _BUSY.is_set():
+                os._exit(1)
+            if orphaned or (stop is not None and stop.value):
+                from uncertsplat.train.trainer import STOP_REQUESTED  # (torch: imported only when needed)
 
-            while not stop.value:
-                time.sleep(0.1)
-            from uncertsplat.train.trainer import STOP_REQUESTED
+                STOP_REQUESTED.set()
 
-            STOP_REQUESTED.set()
+    threading.Thread(target=watch, daemon=True, name="sweep-stop").start()
 
-        threading.Thread(target=watch, daemon=True, name="sweep-stop").start()
+
+_BUSY = threading.Event()
+"""Set in a pool worker while it runs a job (``_run_in_worker``): an orphaned worker ends only between jobs."""
 
 
 def _run_in_worker(run_job: Callable[[dict], list[dict]], job: dict) -> list[dict]:
     """``run_job(job)`` in a pool worker, with Ctrl-C ending it quietly (see ``_worker_stops_quietly_on_ctrl_c``);
     ignored again once it is done, until the worker's next job."""
     signal.signal(signal.SIGINT, _exit_quietly)
+    _BUSY.set()
     try:
         return run_job(job)
     finally:
+        _BUSY.clear()
         signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
