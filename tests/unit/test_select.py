@@ -294,6 +294,28 @@ class TestCandidates:
             torch.testing.assert_close(rotmat_to_quat(quat_to_rotmat(q[None].float())[0].double()), q, atol=1e-6,
                                        rtol=0)
 
+    @pytest.mark.parametrize("offset", [0.0, 1e5, 1e6, 1e7])
+    def test_a_pose_line_far_from_the_scene_s_origin_reads_back_at_its_centre(self, scene, tmp_path, offset):
+        """A georeferenced scene (translations of 1e6): the float32 rotation's departure from a rotation times the
+        translation, and 9 digits, put a candidate read back from its own pose_line 0.016 of the scene's radius
+        away at 1e6 (0.17 at 1e7); its centre now comes back to 1e-5 of the radius (15 digits)."""
+        from uncertsplat.select.candidates import pose_line
+
+        far = scene.world_from_source.double().clone()
+        far[:3, 3] -= far[:3, :3] @ torch.tensor([offset, -offset, 0.5 * offset], dtype=torch.float64)
+        g = torch.Generator().manual_seed(1)
+        cands = around_views(scene, 8, 1.0, g)
+        # float32 rotations a float32 round off a rotation, as a run's cameras are
+        T = cands.cam_from_world.clone()
+        T[:, :3, :3] += 1e-7 * torch.randn(8, 3, 3, generator=g)
+        lines = [pose_line(f"c{i}", T[i], far) for i in range(8)]
+        f = tmp_path / "plan.txt"
+        f.write_text("\n".join(lines) + "\n")
+        back = read_pose_file(f, scene, far)
+        centres = -torch.linalg.solve(T[:, :3, :3].double(), T[:, :3, 3:].double())[..., 0]
+        assert float((back.centers.double() - centres).norm(dim=1).max()) < 1e-5 * scene.scene_scale
+        torch.testing.assert_close(back.cam_from_world[:, :3, :3], cands.cam_from_world[:, :3, :3], atol=1e-5, rtol=0)
+
     @pytest.mark.parametrize("line, message", [
         ("a 1 0 0 0 0 0", "8 fields"),
         ("a 1 0 0 0 0 0 x", "not 7 numbers"),
@@ -339,6 +361,25 @@ class TestCandidates:
         src = scene.cameras[scene.split["train"]].cam_from_world
         for T in still.cam_from_world:
             assert float((src - T).abs().amax((1, 2)).min()) < 1e-4
+
+    def test_around_views_turn_with_the_scene(self, scene):
+        """A scene turned (the same capture in another frame: the run's cameras turned with it) gets its candidates
+        turned: the offsets are drawn in each camera's axes (along the world's, they moved by up to 0.38 of the
+        scene's radius and another view was chosen)."""
+        import dataclasses
+
+        from uncertsplat.gaussians.ops import quat_to_rotmat
+
+        turn = torch.eye(4, dtype=torch.float64)
+        turn[:3, :3] = quat_to_rotmat(torch.tensor([[0.8, 0.1, -0.5, 0.3]], dtype=torch.float64))[0]
+        world_from_turned = torch.linalg.inv(turn)  # x_turned = turn x: a camera's cam_from_turned = T turn^-1
+        cams = scene.cameras
+        turned = dataclasses.replace(scene, cameras=dataclasses.replace(
+            cams, cam_from_world=(cams.cam_from_world.double() @ world_from_turned).float()))
+        a = around_views(scene, 10, 1.0, torch.Generator().manual_seed(4))
+        b = around_views(turned, 10, 1.0, torch.Generator().manual_seed(4))
+        torch.testing.assert_close(b.cam_from_world.double(), a.cam_from_world.double() @ world_from_turned,
+                                   atol=2e-5, rtol=0)
 
     def test_around_views_are_named_apart_from_the_scene_s_photos(self, scene):
         """A capture naming each photo by its candidate (around_012.png) was offered around_012 again the next
