@@ -82,6 +82,7 @@ def test_synthetic_scene_registers_and_matches_gt(synth_scene, tmp_path):
     assert report.success
     assert report.images_registered == names and report.images_unregistered == []
     assert report.registered_fraction == 1.0
+    assert not [n for n in report.notes if "camera it shares" in n]  # every photo fits the one camera
     assert report.num_points3d > 100
     assert 0 < report.mean_reprojection_error < 1.5
     assert set(report.stage_seconds) >= {"extract", "match", "map", "undistort"}
@@ -126,6 +127,34 @@ def test_synthetic_scene_registers_and_matches_gt(synth_scene, tmp_path):
     # other options: refused without --overwrite
     with pytest.raises(UserError, match="other options"):
         stage.run(synth_scene / "images", ws, CFG.model_copy(update={"seed": 1}))
+
+
+def test_a_cropped_photo_saved_at_full_size_gets_a_camera_of_its_own(synth_scene, tmp_path, capsys):
+    """One photo cropped to its middle 1/1.3 and saved at the full size (a digital zoom) shared the capture's camera
+    and bent every photo's focal length towards its own (fern: 156 -> 200 px; bonsai: 395 -> 471): it is found by
+    the focal length it fits alone and mapped again with a camera of its own, the others' focal length back at the
+    scene's."""
+    from uncertsplat.stages.reconstruct import OWN_CAMERA
+
+    photos = tmp_path / "photos"
+    shutil.copytree(synth_scene / "images", photos)
+    names = sorted(p.name for p in photos.iterdir())
+    zoomed = names[5]
+    buf = oiio.ImageBuf(str(photos / zoomed))
+    w, h = buf.spec().width, buf.spec().height
+    cut = oiio.ImageBufAlgo.cut(buf, oiio.ROI(round(w * 0.115), round(w * 0.885), round(h * 0.115), round(h * 0.885)))
+    write_rgb(photos / zoomed, oiio.ImageBufAlgo.resize(cut, roi=oiio.ROI(0, w, 0, h)).get_pixels(oiio.UINT8)[..., :3])
+    report = stage.run(photos, tmp_path / "ws", CFG)
+    assert report.success and report.images_registered == names
+    (note,) = [n for n in report.notes if n.startswith(OWN_CAMERA)]
+    assert f": {zoomed} +" in note and "mapped again with a camera of its own" in note
+    assert OWN_CAMERA in " ".join(capsys.readouterr().err.split())
+    truth = next(iter(pycolmap.Reconstruction(synth_scene / "sparse" / "0").cameras.values())).mean_focal_length()
+    rec = pycolmap.Reconstruction(tmp_path / "ws" / "distorted" / "sparse" / "0")
+    focal = {rec.image(i).name: rec.image(i).camera.mean_focal_length() for i in rec.reg_image_ids()}
+    assert len({rec.image(i).camera_id for i in rec.reg_image_ids()}) == 2
+    assert max(abs(f / truth - 1) for n, f in focal.items() if n != zoomed) < 0.02
+    assert focal[zoomed] / truth == pytest.approx(1 / 0.77, rel=0.05)
 
 
 def test_mixed_sizes_and_exif_orientation(synth_scene, tmp_path):

@@ -219,14 +219,17 @@ def test_size_groups_and_exif_orientation(tmp_path):
 def test_two_lenses_of_one_size_get_a_camera_each(tmp_path):
     """A phone's main and tele lens make photos of one size: one shared camera got a focal length between the two
     and a distortion of 0.71. The EXIF camera, lens and focal length tell them apart; photos of that size without
-    EXIF join the most common lens; photos of one lens (or none named) stay one group per size."""
-    def exif(path, model, focal, seed):
+    EXIF join the most common lens; photos of one lens (or none named) stay one group per size. A digital zoom
+    (EXIF DigitalZoomRatio above 1) is another focal length in pixels through the same lens: a group of its own."""
+    def exif(path, model, focal, seed, zoom=None):
         a = np.random.default_rng(seed).integers(0, 255, (30, 40, 3), dtype=np.uint8)
         spec = oiio.ImageSpec(40, 30, 3, "uint8")
         if model:
             spec.attribute("Make", "Phone")
             spec.attribute("Model", model)
             spec.attribute("Exif:FocalLength", float(focal))
+        if zoom is not None:
+            spec.attribute("Exif:DigitalZoomRatio", float(zoom))
         out = oiio.ImageOutput.create(str(path))
         out.open(str(path), spec)
         out.write_image(a)
@@ -243,6 +246,11 @@ def test_two_lenses_of_one_size_get_a_camera_each(tmp_path):
         exif(tmp_path / f"p{i}.jpg", "A", 4.0, i)
     assert sfm.scan_photos(tmp_path).camera_groups() == {
         (40, 30, ""): ["p0.jpg", "p1.jpg", "p2.jpg", "p3.jpg", "p4.jpg", "p5.jpg"], (64, 48, ""): ["q.jpg"]}
+    exif(tmp_path / "p3.jpg", "A", 4.0, 3, zoom=1.0)  # no zoom written as 1 (or 0): the same lens
+    exif(tmp_path / "p4.jpg", "A", 4.0, 4, zoom=2.0)
+    assert sfm.scan_photos(tmp_path).camera_groups() == {
+        (40, 30, "Phone A 4 mm"): ["p0.jpg", "p1.jpg", "p2.jpg", "p3.jpg", "p5.jpg"],
+        (40, 30, "Phone A 4 mm digital zoom 2x"): ["p4.jpg"], (64, 48, ""): ["q.jpg"]}
 
 
 def test_stage_inputs_rotates_by_exif(tmp_path):

@@ -176,6 +176,29 @@ def weak_registration_note(weak: dict[str, int], cfg: ReconstructConfig) -> str:
             + "photos between these and their neighbours")
 
 
+OWN_CAMERA = "a photo that does not fit the camera it shares"
+
+
+def own_camera_note(odd: dict[str, float], shared: str, model) -> str:
+    """The note for the photos ``sfm.focal_outliers`` found (name -> own / shared focal length); ``shared``: the
+    shared camera's focal length before (``_focals``); ``model``: the model mapped again with their own cameras, or
+    None when that registered fewer photos and the first model was kept."""
+    each = ", ".join(f"{name} {100 * (r - 1):+.0f} %" for name, r in odd.items())
+    what = (f"{OWN_CAMERA} with the other photos of its size: {each} (the focal length each fits alone, against "
+            f"the others'; a crop saved at full size, a digital zoom or another camera), which bends every photo's "
+            f"focal length towards its own (shared: {shared})")
+    if model is None:
+        return (what + "; mapped again with a camera of its own, fewer photos registered, so the first model is "
+                "kept: leave such photos out, or run with --per-image-camera")
+    own = {model.image(i).camera_id for i in model.reg_image_ids() if model.image(i).name in odd}
+    used = {model.image(i).camera_id for i in model.reg_image_ids()} - own
+    px = ", ".join(f"{model.cameras[c].mean_focal_length():.0f}" for c in sorted(own))
+    now = ", ".join(f"{model.cameras[c].mean_focal_length():.0f}" for c in sorted(used))
+    return what + (f"; mapped again with a camera of its own ({px} px): the others' focal length is now {now} px"
+                   if own else "; mapped again with a camera of its own, it did not register (the others' focal "
+                   f"length is now {now} px)")
+
+
 def registration_hints(model_sizes: list[int], matcher: str, n: int, cfg: ReconstructConfig) -> list[str]:
     """What to try when too few of the ``n`` photos registered: the causes this run shows first (mapping split the
     photos into groups of ``model_sizes`` images; images made smaller than features need), then the general ones."""
@@ -314,29 +337,51 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
 
                 # ---- mapping: runs with other seeds until two agree, relaxed options when too few images register
                 needed = cfg.min_registered * n
-                results: list[sfm.MappingResult] = []
-                summaries: list[dict] = []  # sfm.attempt_summary of each result, made once
-                for relaxed in (False, True):
-                    for attempt in range(cfg.mapping_attempts):
-                        seed = cfg.seed + attempt
-                        label = ("mapping (relaxed)" if relaxed else "mapping") + (f", seed {seed}" if attempt else "")
-                        task = bar.add_task(label, total=n, info="")
-                        with watch("map"):
-                            result = sfm.map_incremental(database, image_dir, distorted / "models", cfg, relaxed,
-                                                         advance=lambda k, s, t=task: bar.update(t, advance=k, info=s),
-                                                         seed=seed)
-                        results.append(result)
-                        summaries.append(sfm.attempt_summary(result))
-                        bar.update(task, completed=result.num_registered, info=f"{result.num_registered} registered, "
-                                   f"{summaries[-1]['num_observations']} observations")
-                        if result.best is None:
-                            break  # no initial pair: another seed of the same options finds none either
-                        if sfm.agreeing(summaries, len(summaries) - 1):
+
+                def mapping(db: Path, again: str = "") -> tuple[list[sfm.MappingResult], list[dict], int]:
+                    results: list[sfm.MappingResult] = []
+                    summaries: list[dict] = []  # sfm.attempt_summary of each result, made once
+                    for relaxed in (False, True):
+                        for attempt in range(cfg.mapping_attempts):
+                            seed = cfg.seed + attempt
+                            label = (("mapping (relaxed)" if relaxed else "mapping") + again
+                                     + (f", seed {seed}" if attempt else ""))
+                            task = bar.add_task(label, total=n, info="")
+                            with watch("map"):
+                                result = sfm.map_incremental(
+                                    db, image_dir, distorted / "models", cfg, relaxed, seed=seed,
+                                    advance=lambda k, s, t=task: bar.update(t, advance=k, info=s))
+                            results.append(result)
+                            summaries.append(sfm.attempt_summary(result))
+                            bar.update(task, completed=result.num_registered, info=f"{result.num_registered} "
+                                       f"registered, {summaries[-1]['num_observations']} observations")
+                            if result.best is None:
+                                break  # no initial pair: another seed of the same options finds none either
+                            if sfm.agreeing(summaries, len(summaries) - 1):
+                                break
+                        if max(r.num_registered for r in results) >= needed or report.num_verified_pairs == 0:
                             break
-                    if max(r.num_registered for r in results) >= needed or report.num_verified_pairs == 0:
-                        break
-                kept = sfm.choose_attempt(summaries, needed)
+                    return results, summaries, sfm.choose_attempt(summaries, needed)
+
+                results, summaries, kept = mapping(database)
                 result = results[kept]
+                # a photo that does not fit the camera it shares (a crop saved at full size, a digital zoom) bends
+                # every photo's focal length towards its own: mapped again with a camera of its own
+                odd = sfm.focal_outliers(result.best) if cfg.single_camera and result.best is not None else {}
+                if odd:
+                    shared = _focals(summaries[kept])
+                    trial = workspace / "database.own_cameras.db"  # the database the kept model was mapped from stays
+                    shutil.copy2(database, trial)
+                    sfm.own_cameras(trial, list(odd))
+                    again = mapping(trial, ", own cameras")
+                    if again[0][again[2]].num_registered >= result.num_registered:
+                        results, summaries, kept = again
+                        result = results[kept]
+                        trial.replace(database)
+                        report.notes.append(own_camera_note(odd, shared, result.best))
+                    else:
+                        trial.unlink()
+                        report.notes.append(own_camera_note(odd, shared, None))
                 report.retried_relaxed = any(r.relaxed for r in results)
                 report.mapping_attempts = [MappingAttempt(**a, kept=(i == kept)) for i, a in enumerate(summaries)]
                 report.mapping_agreed = sfm.agreeing(summaries, kept) \
@@ -436,6 +481,9 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                          if blank else ""))
     if weak_note:
         console.print(f"[yellow]note:[/] {weak_note}")
+    for note in report.notes:
+        if note.startswith(OWN_CAMERA):
+            console.print(f"[yellow]warning:[/] {note}")
     if report.ground_truth:
         g = report.ground_truth
         console.print(f"  against the synthetic scene's GT cameras: centres {g['centre_error_mean_pct']:.3f} % of the "
