@@ -196,7 +196,8 @@ def _check_model(fr: _Frame) -> None:
 def _intrinsics(fr: _Frame, w: int, h: int) -> np.ndarray:
     """K [3,3] of a frame: fl_x / fl_y (or camera_angle_x / _y), cx / cy (default: the image centre)."""
     fx, fy = _number(fr, "fl_x"), _number(fr, "fl_y")
-    for key, given in (("camera_angle_x", fx), ("camera_angle_y", fy)):
+    focal = {}
+    for key, given, side in (("camera_angle_x", fx, w), ("camera_angle_y", fy, h)):
         angle = _number(fr, key) if given is None else None  # (an angle beside fl_x / fl_y is not read)
         if angle is not None and not 0.0 < angle < math.pi:  # (degrees read as radians: 40 trained at 132 degrees)
             hint = (f"Write it in radians: {angle:g} degrees is {math.radians(angle):.4g}." if math.pi <= angle < 180.0
@@ -204,13 +205,11 @@ def _intrinsics(fr: _Frame, w: int, h: int) -> np.ndarray:
                          "180 degrees).")
             raise UserError(f"frame '{fr.name}': {key} = {angle:g} is no field of view in radians (0 to pi)",
                             path=fr.file, hint=hint)
-    if fx is None and (angle_x := _number(fr, "camera_angle_x")) is not None:
-        fx = 0.5 * w / math.tan(0.5 * angle_x)
+        focal[key] = given if angle is None else 0.5 * side / math.tan(0.5 * angle)
+    fx, fy = focal["camera_angle_x"], focal["camera_angle_y"]
     if fx is None:
         raise UserError(f"no focal length for frame '{fr.name}' (fl_x or camera_angle_x)", path=fr.file,
                         hint="Add camera_angle_x (radians) or fl_x (pixels) to the file or the frame.")
-    if fy is None and (angle_y := _number(fr, "camera_angle_y")) is not None:
-        fy = 0.5 * h / math.tan(0.5 * angle_y)
     fy = fx if fy is None else fy
     cx, cy = _number(fr, "cx"), _number(fr, "cy")
     cx = w / 2.0 if cx is None else cx
