@@ -92,7 +92,7 @@ def stage_outputs(folder: Path, max_files: int = 10_000) -> list[str]:
     still be there for the stage to be skipped."""
     folder = Path(folder)
     found: list[str] = []
-    nested = _nested_stages(folder)
+    nested = nested_stages(folder)
     for p in sorted(folder.rglob("*")) if folder.is_dir() else ():
         rel = p.relative_to(folder)
         if not p.is_file() or any(part.startswith(".") for part in rel.parts):
@@ -107,23 +107,25 @@ def stage_outputs(folder: Path, max_files: int = 10_000) -> list[str]:
     return found
 
 
-def missing_outputs(folder: Path, manifest: Manifest) -> list[str]:
+def missing_outputs(folder: Path, manifest: Manifest, owned: set[Path] | None = None) -> list[str]:
     """The files of ``manifest.outputs`` no longer in ``folder`` (none for a manifest that recorded none), but for
     those under a subfolder another stage now owns (its own manifest: prune's ``eval/``, evaluated again by an
-    evaluate stage after it, which may write other files there)."""
+    evaluate stage after it, which may write other files there). ``owned``: those subfolders, when the caller has
+    looked them up (``nested_stages``; a walk of the whole folder)."""
     folder = Path(folder)
-    owned = _nested_stages(folder)
+    owned = nested_stages(folder) if owned is None else owned
     return [name for name in manifest.outputs if not (folder / name).is_file()
             and not any(o in Path(name).parents for o in owned)]
 
 
-def resized_outputs(folder: Path, manifest: Manifest) -> list[str]:
+def resized_outputs(folder: Path, manifest: Manifest, owned: set[Path] | None = None) -> list[str]:
     """The files of ``manifest.output_sizes`` still in ``folder`` whose size is not the one the stage left (a copy cut
     short, a file truncated by a full disk while written again in place), but for those a stage nested inside now
     owns (as ``missing_outputs``). Contents are not compared: reading every map and model at each `run` would cost
     seconds where sizes cost a stat each, and a model file carries its own checksum."""
     folder = Path(folder)
-    owned = _nested_stages(folder) if manifest.output_sizes else set()
+    if owned is None:
+        owned = nested_stages(folder) if manifest.output_sizes else set()
     found = []
     for name, size in manifest.output_sizes.items():
         path = folder / name
@@ -158,7 +160,7 @@ def output_sizes(folder: Path, names: list[str]) -> dict[str, int]:
     return sizes
 
 
-def _nested_stages(folder: Path) -> set[Path]:
+def nested_stages(folder: Path) -> set[Path]:
     """The subfolders of ``folder`` (relative) that hold a stage's output of their own, by their manifest: an evaluate
     stage's ``eval/`` inside its run, a prune's evaluation once an evaluate stage owns it."""
     if not folder.is_dir():
@@ -193,6 +195,6 @@ def start_manifest(stage: str, name: str, config: dict, inputs: dict[str, str]) 
     )
 
 
-__all__ = ["MANIFEST", "Manifest", "fingerprint_folder", "fingerprints", "hash_config", "missing_outputs",
+__all__ = ["MANIFEST", "Manifest", "fingerprint_folder", "fingerprints", "hash_config", "missing_outputs", "nested_stages",
            "output_sizes", "read_manifest", "resized_outputs", "stage_outputs", "start_manifest", "versions",
            "write_manifest"]

@@ -38,6 +38,7 @@ from uncertsplat.stages.manifest import (
     Manifest,
     fingerprints,
     missing_outputs,
+    nested_stages,
     output_sizes,
     read_manifest,
     resized_outputs,
@@ -537,13 +538,14 @@ def _changed_output(name: str, kind: str, out_dir: Path, manifest: Manifest) -> 
     def files(found: list[str]) -> str:
         return f"{name}'s output {found[0]}" + (f" (and {len(found) - 1} more file(s))" if len(found) > 1 else "")
 
-    gone = missing_outputs(out_dir, manifest)
+    owned = nested_stages(out_dir)  # (one walk of the folder for both checks)
+    gone = missing_outputs(out_dir, manifest, owned)
     if gone:
         return f"{files(gone)} is gone from {out_dir}"
     again = _made_again(kind, out_dir, manifest)
     if again:
         return again
-    resized = resized_outputs(out_dir, manifest)
+    resized = resized_outputs(out_dir, manifest, owned)
     if resized:
         return f"{files(resized)} in {out_dir} is not the size the stage left (damaged, or written again since)"
     return None
