@@ -164,6 +164,23 @@ def remove_stale_temp_files(*folders: str | Path) -> list[Path]:
 _HELD: dict[str, int] = {}  # locks this process holds (re-entering one is allowed), by resolved path
 
 
+@contextlib.contextmanager
+def staging_folder(out: str | Path, prefix: str) -> Iterator[Path]:
+    """``out / f"{prefix}{pid}"``, a folder to write a stage's outputs into before they are put in place, removed at
+    the end with whatever is left in it (put in place, they are gone from it). Folders of ``prefix`` found first are a
+    killed run's and removed: call it under the output's lock (``run_lock``)."""
+    import shutil
+
+    out = Path(out)
+    for stale in out.glob(f"{prefix}*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    staging = out / f"{prefix}{os.getpid()}"
+    try:
+        yield staging
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
 def _holder(lock: Path) -> str:
     """How a lock's holder is named in every message: "PID 123, train" (what its file says; "unknown" unreadable)."""
     try:

@@ -400,7 +400,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     from uncertsplat.baselines import load_run
     from uncertsplat.data.dataset import load_view_set, photo_turns
     from uncertsplat.eval.engine import evaluate_views, scored_sampler, split_indices
-    from uncertsplat.io.atomic import run_lock
+    from uncertsplat.io.atomic import run_lock, staging_folder
     from uncertsplat.provenance import hash_config
     from uncertsplat.schemas.metrics import EvalReport
     from uncertsplat.stages.predictive_cache import keep_predictive
@@ -465,38 +465,36 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         # the maps are written into a folder of their own and put in place with metrics.json once every view is
         # scored: an evaluation that fails midway (a full disk, kill -9) leaves the earlier one whole, where deleting
         # its metrics.json first lost it (and one kept left it beside new maps); under the lock, a staging folder
-        # found here is a killed evaluation's
-        for stale in out.glob(".maps-*"):
-            shutil.rmtree(stale, ignore_errors=True)
-        staging = out / f".maps-{os.getpid()}"
-        report = evaluate_views(sampler, views, cfg, device,
-                                on_view=partial(write_view_maps, staging, preview=cfg.preview,
-                                                turns=photo_turns(scene), depth_to_source=scene.depth_scale_to_gt,
-                                                among=views.names)
-                                if cfg.save_maps else None,
-                                std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
-                                calibration_held_out=bool(scene.split.get("calibration")),
-                                noise_scale=residual.scale if residual is not None else None,
-                                notes=loaded.eval_notes(cfg.num_samples) + loaded.exposure_notes() + unfinished
-                                + ([loaded.frame_note] if loaded.frame_note else []),
-                                config_hash=hash_config(cfg.model_dump(mode="json")))
-        reach = _reach_notes(sampler, views, device) + (_empty_view_notes(
-            sampler, views, scene.cameras[list(scene.split.get("train", ()))], device)
-            if cfg.split == "test" and cfg.empty_rays and sampler.empty_std is not None else [])
-        # (on training views, or where an empty ray is the photo's background (a transparent scene: no empty-ray
-        # term), a view's empty share says nothing of what no photo saw)
-        low = low_coverage_notes(sampler.coverage if cfg.empty_rays and sampler.empty_std is not None else None,
-                                 loaded.config.iterations)
-        few = few_samples_notes(report.mean.psnr, report.mean.psnr_render, cfg.num_samples)
-        if cfg.split == "test":  # held-out views one video frame from training ones flatter the model
-            few += near_copy_notes(scene, views, report.mean.psnr)
-        # the std factor's caveats go into the report too (the console said them, the page did not)
-        factor = (std_factor_notes(len(report.calibration_views), report.mean.nll_calibrated, report.mean.nll)
-                  if report.std_scale is not None and None not in (report.mean.nll_calibrated, report.mean.nll) else [])
-        report.notes.extend([*reach, *low, *few, *factor])
-        if Path(loaded.source).is_file():  # which model and run these numbers belong to (prune reads them back)
-            report.run_sha256 = run_sha256(run_dir, Path(loaded.source))
-        _put_in_place(out, staging if cfg.save_maps else None, report, cfg)
+        # found here is a killed evaluation's (staging_folder removes it)
+        with staging_folder(out, ".maps-") as staging:
+            report = evaluate_views(sampler, views, cfg, device,
+                                    on_view=partial(write_view_maps, staging, preview=cfg.preview,
+                                                    turns=photo_turns(scene), depth_to_source=scene.depth_scale_to_gt,
+                                                    among=views.names)
+                                    if cfg.save_maps else None,
+                                    std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
+                                    calibration_held_out=bool(scene.split.get("calibration")),
+                                    noise_scale=residual.scale if residual is not None else None,
+                                    notes=loaded.eval_notes(cfg.num_samples) + loaded.exposure_notes() + unfinished
+                                    + ([loaded.frame_note] if loaded.frame_note else []),
+                                    config_hash=hash_config(cfg.model_dump(mode="json")))
+            reach = _reach_notes(sampler, views, device) + (_empty_view_notes(
+                sampler, views, scene.cameras[list(scene.split.get("train", ()))], device)
+                if cfg.split == "test" and cfg.empty_rays and sampler.empty_std is not None else [])
+            # (on training views, or where an empty ray is the photo's background (a transparent scene: no empty-ray
+            # term), a view's empty share says nothing of what no photo saw)
+            low = low_coverage_notes(sampler.coverage if cfg.empty_rays and sampler.empty_std is not None else None,
+                                     loaded.config.iterations)
+            few = few_samples_notes(report.mean.psnr, report.mean.psnr_render, cfg.num_samples)
+            if cfg.split == "test":  # held-out views one video frame from training ones flatter the model
+                few += near_copy_notes(scene, views, report.mean.psnr)
+            # the std factor's caveats go into the report too (the console said them, the page did not)
+            factor = (std_factor_notes(len(report.calibration_views), report.mean.nll_calibrated, report.mean.nll)
+                      if report.std_scale is not None and None not in (report.mean.nll_calibrated, report.mean.nll) else [])
+            report.notes.extend([*reach, *low, *few, *factor])
+            if Path(loaded.source).is_file():  # which model and run these numbers belong to (prune reads them back)
+                report.run_sha256 = run_sha256(run_dir, Path(loaded.source))
+            _put_in_place(out, staging if cfg.save_maps else None, report, cfg)
     if quiet:
         return report
     depth_units = [n for n in report.notes

@@ -14,13 +14,12 @@ import contextlib
 import json
 import os
 import re
-import shutil
 from pathlib import Path
 
 from uncertsplat.config import ReportConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError
-from uncertsplat.io.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text
+from uncertsplat.io.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text, staging_folder
 from uncertsplat.report.html import is_report_page
 from uncertsplat.stages.evaluate import evaluation_is_current
 
@@ -135,27 +134,23 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
     listed = set(earlier)
     # the figures are written apart and put in place with the page: a report that fails midway (a full disk, a kill)
     # leaves the earlier page with its own figures, where writing them in place showed old numbers beside new maps
-    for stale in out.glob(f".{FIGURES}.tmp-*"):
-        shutil.rmtree(stale, ignore_errors=True)
-    staging = out / f".{FIGURES}.tmp-{os.getpid()}"
     staged: dict[Path, Path] = {}
+    with staging_folder(out, f".{FIGURES}.tmp-") as staging:
 
-    def write_figure(path: Path, data: bytes) -> Path:
-        # listed in the marker before it is written, so a report stopped at any point can tell its files from others'
-        if path.name not in listed:
-            listed.add(path.name)
-            atomic_write_json(out / MARKER, {"figures": sorted(listed)})
-        staged[path] = atomic_write_bytes(staging / path.relative_to(out), data)
-        return path
+        def write_figure(path: Path, data: bytes) -> Path:
+            # listed in the marker before it is written, so a report stopped at any point can tell its files from
+            # others'
+            if path.name not in listed:
+                listed.add(path.name)
+                atomic_write_json(out / MARKER, {"figures": sorted(listed)})
+            staged[path] = atomic_write_bytes(staging / path.relative_to(out), data)
+            return path
 
-    try:
         text, figures = build_report(loaded, out, cfg.title, cfg.max_views, write_figure)
         for final, written in staged.items():
             final.parent.mkdir(parents=True, exist_ok=True)
             os.replace(written, final)
         index = atomic_write_text(out / INDEX, text)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
     _remove_stale_figures(out, earlier | listed, figures)
     atomic_write_json(out / MARKER, {"figures": sorted(Path(f).name for f in figures)})
     atomic_write_json(out / CONFIG, cfg.model_dump(mode="json"))  # as every stage writes its config beside its outputs
