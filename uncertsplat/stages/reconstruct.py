@@ -177,19 +177,21 @@ def weak_registration_note(weak: dict[str, int], cfg: ReconstructConfig) -> str:
 
 
 OWN_CAMERA = "a photo that does not fit the camera it shares"
+OWN_CAMERA_ROUNDS = 3
+"""At most this many photos get a camera of their own (``sfm.focal_outliers``), one per mapping again."""
 
 
 def own_camera_note(odd: dict[str, float], shared: str, model) -> str:
     """The note for the photos ``sfm.focal_outliers`` found (name -> own / shared focal length); ``shared``: the
     shared camera's focal length before (``_focals``); ``model``: the model mapped again with their own cameras, or
-    None when that registered fewer photos and the first model was kept."""
+    None when that registered fewer photos and the model before was kept."""
     each = ", ".join(f"{name} {100 * (r - 1):+.0f} %" for name, r in odd.items())
     what = (f"{OWN_CAMERA} with the other photos of its size: {each} (the focal length each fits alone, against "
             f"the others'; a crop saved at full size, a digital zoom or another camera), which bends every photo's "
             f"focal length towards its own (shared: {shared})")
     if model is None:
-        return (what + "; mapped again with a camera of its own, fewer photos registered, so the first model is "
-                "kept: leave such photos out, or run with --per-image-camera")
+        return (what + "; mapped again with a camera of its own, fewer photos registered, so the model where it "
+                "shares the camera is kept: leave such photos out, or run with --per-image-camera")
     own = {model.image(i).camera_id for i in model.reg_image_ids() if model.image(i).name in odd}
     used = {model.image(i).camera_id for i in model.reg_image_ids()} - own
     px = ", ".join(f"{model.cameras[c].mean_focal_length():.0f}" for c in sorted(own))
@@ -366,22 +368,32 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                 results, summaries, kept = mapping(database)
                 result = results[kept]
                 # a photo that does not fit the camera it shares (a crop saved at full size, a digital zoom) bends
-                # every photo's focal length towards its own: mapped again with a camera of its own
-                odd = sfm.focal_outliers(result.best) if cfg.single_camera and result.best is not None else {}
-                if odd:
-                    shared = _focals(summaries[kept])
+                # every photo's focal length towards its own: mapped again with a camera of its own. One photo per
+                # round, the farthest out: the bent model put a second bonsai photo 4 % off beside a crop's 8 %, and
+                # it fits the shared camera again once the crop has its own
+                own: dict[str, float] = {}
+                shared, refused = _focals(summaries[kept]), None
+                for _ in range(OWN_CAMERA_ROUNDS if cfg.single_camera else 0):
+                    found = sfm.focal_outliers(result.best) if result.best is not None else {}
+                    if not found:
+                        break
+                    worst = max(found, key=lambda name: abs(math.log(found[name])))
                     trial = workspace / "database.own_cameras.db"  # the database the kept model was mapped from stays
                     shutil.copy2(database, trial)
-                    sfm.own_cameras(trial, list(odd))
-                    again = mapping(trial, ", own cameras")
-                    if again[0][again[2]].num_registered >= result.num_registered:
-                        results, summaries, kept = again
-                        result = results[kept]
-                        trial.replace(database)
-                        report.notes.append(own_camera_note(odd, shared, result.best))
-                    else:
+                    sfm.own_cameras(trial, [worst])
+                    again = mapping(trial, ", own camera")
+                    if again[0][again[2]].num_registered < result.num_registered:
                         trial.unlink()
-                        report.notes.append(own_camera_note(odd, shared, None))
+                        refused = {worst: found[worst]}
+                        break
+                    results, summaries, kept = again
+                    result = results[kept]
+                    trial.replace(database)
+                    own[worst] = found[worst]
+                if own:
+                    report.notes.append(own_camera_note(own, shared, result.best))
+                if refused:
+                    report.notes.append(own_camera_note(refused, _focals(summaries[kept]), None))
                 report.retried_relaxed = any(r.relaxed for r in results)
                 report.mapping_attempts = [MappingAttempt(**a, kept=(i == kept)) for i, a in enumerate(summaries)]
                 report.mapping_agreed = sfm.agreeing(summaries, kept) \
