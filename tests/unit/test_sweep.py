@@ -967,39 +967,63 @@ def test_a_point_s_peak_memory_is_its_own():
     assert peak_memory_mb(cpu) < high - 200
 
 
-def test_force_trains_a_finished_run_again_once(tmp_path, monkeypatch):
+def test_force_trains_a_finished_run_again_beside_it(tmp_path, monkeypatch):
     """`sweep --force` evaluated every point again but reused each finished run, so a point's training time was an
-    earlier sweep's: a run finished before the forced sweep started is trained again from step 0; one it trained
-    itself (a retry of a point whose evaluation failed) and an unfinished one (resumed) are not started over."""
+    earlier sweep's: a run finished before the forced sweep started is trained again from step 0, beside it, and put
+    in its place when done; one it trained itself (a retry of a point whose evaluation failed) and an unfinished one
+    (resumed) are not started over. A review of the first version: a forced sweep stopped midway had deleted the
+    finished run (a later sweep without --force kept its records for models that were gone), and a run changed by
+    hand was deleted instead of moved aside."""
     import time
 
     import uncertsplat.baselines as baselines
     from uncertsplat.config import train_config_from
+    from uncertsplat.errors import Interrupted
     from uncertsplat.sweep import jobs
 
     calls = []
 
     def fake_train(scene, run_dir, cfg, device, resume):
-        calls.append((Path(run_dir).exists(), resume))
+        calls.append((Path(run_dir).name, resume))
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / "config.json").write_text(cfg.model_dump_json())
+        if stop_training:
+            raise Interrupted("training interrupted; checkpoint saved")
         (run_dir / "train_summary.json").write_text("{}")
+        (run_dir / "weights.bin").write_text(f"training {len(calls)}")
 
+    stop_training = False
     monkeypatch.setattr(baselines, "train_run", fake_train)
     monkeypatch.setattr(jobs.TrainSummary, "read", classmethod(lambda cls, path: "summary"))
     run = tmp_path / "runs" / "variational_x"
     tcfg = json.loads(train_config_from("tiny").model_dump_json())
     job = {"run_dir": str(run), "job_id": "variational_x", "scene": str(tmp_path), "train_config": tcfg}
-    assert jobs._train(job, "cpu") == ("summary", True) and calls == [(False, False)]
-    (run / "weights.bin").write_text("the earlier training")
+    assert jobs._train(job, "cpu") == ("summary", True) and calls == [("variational_x", False)]
     assert jobs._train(job, "cpu") == ("summary", False)  # reused without --force
     assert jobs._train({**job, "retrain_before": None}, "cpu") == ("summary", False)
     forced = {**job, "retrain_before": time.time() + 1}  # the run finished before the forced sweep started
-    assert jobs._train(forced, "cpu") == ("summary", True)
-    assert calls[-1] == (False, False) and not (run / "weights.bin").exists()  # from step 0, the old run removed
+    stop_training = True  # Ctrl-C during the forced training: the finished run stands as it was
+    with pytest.raises(Interrupted):
+        jobs._train(forced, "cpu")
+    assert (run / "weights.bin").read_text() == "training 1" and (run / "train_summary.json").is_file()
+    assert jobs._train(job, "cpu") == ("summary", False)  # a sweep without --force reuses it
+    stop_training = False
+    assert jobs._train(forced, "cpu") == ("summary", True)  # --force again: the new training resumed, then swapped
+    assert calls[-1] == ("variational_x.retrain", True)
+    assert (run / "weights.bin").read_text() == f"training {len(calls)}"
+    assert sorted(p.name for p in run.parent.iterdir()) == ["variational_x"]
     assert jobs._train({**job, "retrain_before": time.time() - 60}, "cpu") == ("summary", False)  # trained since
     (run / "train_summary.json").unlink()  # unfinished: resumed, forced or not
-    assert jobs._train(forced, "cpu") == ("summary", True) and calls[-1] == (True, True)
+    assert jobs._train(forced, "cpu") == ("summary", True) and calls[-1] == ("variational_x", True)
+    # changed by hand (train --resume --iterations N): moved aside with a note, forced or not
+    (run / "config.json").write_text(json.dumps({**tcfg, "iterations": tcfg["iterations"] + 1}))
+    assert jobs._train(forced, "cpu") == ("summary", True) and calls[-1] == ("variational_x", False)
+    assert json.loads((run.parent / "variational_x.replaced" / "config.json").read_text())["iterations"] == \
+        tcfg["iterations"] + 1
+    # killed between the swap's two renames: the next sweep finishes the swap
+    run.rename(run.parent / "variational_x.retrained")
+    assert jobs._train(job, "cpu") == ("summary", False) and run.is_dir()
+    assert not (run.parent / "variational_x.retrained").exists()
 
 
 def _job_until_orphaned(job: dict) -> list[dict]:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import shutil
 import time
+from collections import Counter
 from pathlib import Path
 
 from uncertsplat.config import ReconstructConfig
@@ -33,9 +34,11 @@ from uncertsplat.sfm.report import (
     write_report,
 )
 
+OWN_CAMERAS_DB = "database.own_cameras.db"
+"""The copy of the database a photo gets a camera of its own in, mapped from, then put in place of it."""
 # What a workspace written by this stage consists of: --overwrite removes these and nothing else.
 _OWNED = ("images", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", ".extend_tmp", ".extend_done",
-          REPORT_NAME)
+          REPORT_NAME, OWN_CAMERAS_DB, f"{OWN_CAMERAS_DB}-wal", f"{OWN_CAMERAS_DB}-shm")
 
 
 def _same_options(recorded: dict, cfg: ReconstructConfig) -> bool:
@@ -378,7 +381,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                     if not found:
                         break
                     worst = max(found, key=lambda name: abs(math.log(found[name])))
-                    trial = workspace / "database.own_cameras.db"  # the database the kept model was mapped from stays
+                    trial = workspace / OWN_CAMERAS_DB  # the database the kept model was mapped from stays
                     shutil.copy2(database, trial)
                     sfm.own_cameras(trial, [worst])
                     again = mapping(trial, ", own camera")
@@ -630,7 +633,9 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             known = sfm.database_cameras(database)
             is_new = set(new)
             groups = {key: [n for n in names if n in is_new] for key, names in scan.camera_groups().items()}
-            cameras = {key: next(known[n] for n in names if n in known)
+            # a group's camera is the one most of its photos there use: a photo reconstruct gave a camera of its own
+            # (a crop saved at full size) was the first of its group by name, and new photos took its focal length
+            cameras = {key: Counter(known[n] for n in names if n in known).most_common(1)[0][0]
                        for key, names in scan.camera_groups().items() if any(n in known for n in names)}
             pairs = [(a, b) for i, a in enumerate(scan.names) for b in scan.names[i + 1:]
                      if a in is_new or b in is_new]

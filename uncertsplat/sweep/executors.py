@@ -19,6 +19,7 @@ cancelled; the pool's workers stopped) and leaves the finished records in ``swee
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import threading
 import traceback
@@ -89,7 +90,7 @@ def run_local(todo: list[dict], *, jobs: int, retries: int, on_records: OnRecord
     # flag, polled: an Event's set() waits for every waiter to wake, and hung on a worker that had exited
     stop = ctx.RawValue("b", 0)
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, max_tasks_per_child=1,
-                             initializer=_worker_stops_quietly_on_ctrl_c, initargs=(stop,)) as pool:
+                             initializer=_worker_stops_quietly_on_ctrl_c, initargs=(stop, os.getpid())) as pool:
         attempts: dict[str, int] = {}
         futures = {}
         waiting = list(todo)
@@ -151,7 +152,7 @@ def _sigint_blocked() -> Iterator[None]:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
-def _worker_stops_quietly_on_ctrl_c(stop=None) -> None:
+def _worker_stops_quietly_on_ctrl_c(stop=None, driver: int | None = None) -> None:
     """Ctrl-C reaches every process of the terminal's group, pool workers included. A worker *between jobs* (idle,
     or just started) ignores it: had it exited, the pool, seeing a worker die without a job's result, would have
     marked itself broken and killed every other worker (SIGTERM), among them those writing their training's
@@ -170,14 +171,15 @@ def _worker_stops_quietly_on_ctrl_c(stop=None) -> None:
 
     The driver gone without a word (``kill -9``, the OOM killer): its workers were left waiting for jobs forever
     (and a training one trained on to its end). The same watch sees the worker's parent change, stops a training
-    the same way (its checkpoint written, so the next sweep resumes it) and ends the worker once no job runs."""
-    import os
+    the same way (its checkpoint written, so the next sweep resumes it) and ends the worker once no job runs.
+    ``driver``: the driver's PID, passed in: a worker still starting when the driver died read its new parent as its
+    own and waited forever."""
     import time
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if hasattr(signal, "pthread_sigmask"):
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
-    parent = os.getppid()
+    parent = os.getppid() if driver is None else driver
 
     def watch() -> None:
         while True:

@@ -30,50 +30,77 @@ def _peak_mb(device: torch.device) -> float:
     return float(peak_memory_mb(device))
 
 
+def _same_config(run_dir: Path, cfg) -> bool:
+    """Whether ``run_dir/config.json`` holds ``cfg`` (False when absent or unreadable)."""
+    try:
+        return json.loads((run_dir / "config.json").read_text(encoding="utf-8")) == json.loads(cfg.model_dump_json())
+    except (OSError, ValueError):
+        return False
+
+
 def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
-    """Train the job's run unless it is finished; returns (train_summary, trained_now)."""
+    """Train the job's run unless it is finished; returns (train_summary, trained_now).
+
+    ``job["retrain_before"]`` (sweep --force: its start): a run finished before it is trained again, so the point's
+    training time is measured now, not carried over from an earlier sweep. The new training goes into
+    ``RUN.retrain`` beside the finished run, which stays until it is done: a forced sweep stopped midway leaves the run
+    its records measured (deleted first, the records of a later sweep without --force described models that were
+    gone), and the next --force resumes the new training. A run this sweep trained is kept for a retry of its
+    evaluation; an unfinished run resumes either way."""
     from uncertsplat.baselines import train_run
     from uncertsplat.config import TrainConfig, build_config
     from uncertsplat.io.atomic import lock_holder
+    from uncertsplat.train.trainer import reset_peak_memory
 
     run_dir = Path(job["run_dir"])
     summary_path = run_dir / "train_summary.json"
     cfg = build_config(TrainConfig, job["train_config"], source=f"sweep job {job['job_id']}")
-    # ``retrain_before`` (sweep --force: its start): a run finished before it is trained again, so the point's
-    # training time is measured now, not carried over from an earlier sweep (an unfinished run resumes, and one this
-    # sweep trained is kept for a retry of its evaluation)
+    fresh, old = run_dir.with_name(f"{run_dir.name}.retrain"), run_dir.with_name(f"{run_dir.name}.retrained")
+    if not run_dir.exists():  # a forced training killed between its two renames: the swap finished
+        if (fresh / "train_summary.json").is_file():
+            fresh.rename(run_dir)
+        elif old.is_dir():
+            old.rename(run_dir)
+    if old.exists() and run_dir.exists():
+        shutil.rmtree(old)
     before = job.get("retrain_before")
-    retrain = before is not None and summary_path.is_file() and summary_path.stat().st_mtime < before
-    if summary_path.is_file() and (run_dir / "config.json").is_file() and not retrain:
-        stored = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
-        if stored == json.loads(cfg.model_dump_json()):
-            summary = TrainSummary.read(summary_path)
-            if cfg.method != "fisher" or summary.fisher_seconds is not None:
-                return summary, False
+    finished = summary_path.is_file() and _same_config(run_dir, cfg)
+    retrain = finished and before is not None and summary_path.stat().st_mtime < before
+    if finished and not retrain:
+        summary = TrainSummary.read(summary_path)
+        if cfg.method != "fisher" or summary.fisher_seconds is not None:
+            return summary, False
     # past the reuse of a finished run (an evaluate of it holds its lock too, and reading it is safe): what follows
     # removes, moves or trains the run, under a `train --resume` of it by hand it would mix or destroy both
-    holder = lock_holder(run_dir) if run_dir.is_dir() else None
-    if holder is not None:
-        raise UserError(f"another uncertsplat process ({holder}) holds this point's run now", path=run_dir,
-                        hint="Wait for it to finish, then run the sweep again.")
-    resume = (run_dir / "config.json").is_file() and not retrain
+    for folder in (run_dir, fresh):
+        holder = lock_holder(folder) if folder.is_dir() else None
+        if holder is not None:
+            raise UserError(f"another uncertsplat process ({holder}) holds this point's run now", path=folder,
+                            hint="Wait for it to finish, then run the sweep again.")
+    if retrain:
+        resume = _same_config(fresh, cfg)
+        if fresh.exists() and not resume:
+            shutil.rmtree(fresh)
+        reset_peak_memory(device)  # the point's own peak, not that of the points trained before it in this process
+        train_run(Path(job["scene"]), fresh, cfg, device, resume=resume)
+        run_dir.rename(old)
+        fresh.rename(run_dir)  # (beside each other: the run's paths relative to itself hold)
+        shutil.rmtree(old)
+        return TrainSummary.read(summary_path), True
+    resume = (run_dir / "config.json").is_file()
     if run_dir.exists() and not resume:
         shutil.rmtree(run_dir)  # a job that died before writing anything useful
-    if resume:
-        stored = json.loads((run_dir / "config.json").read_text(encoding="utf-8"))
-        if stored != json.loads(cfg.model_dump_json()):
-            # another config under the same id (a run extended by hand): never mixed, never lost without a word
-            aside = run_dir.with_name(f"{run_dir.name}.replaced")
-            n = 1
-            while aside.exists():  # an earlier replaced run stays too
-                n += 1
-                aside = run_dir.with_name(f"{run_dir.name}.replaced{n}")
-            run_dir.rename(aside)
-            print(f"note: {run_dir} held a run of other settings than the sweep's (changed by hand?): moved to {aside}",
-                  file=sys.stderr, flush=True)
-            resume = False
-    from uncertsplat.train.trainer import reset_peak_memory
-
+    if resume and not _same_config(run_dir, cfg):
+        # another config under the same id (a run extended by hand): never mixed, never lost without a word
+        aside = run_dir.with_name(f"{run_dir.name}.replaced")
+        n = 1
+        while aside.exists():  # an earlier replaced run stays too
+            n += 1
+            aside = run_dir.with_name(f"{run_dir.name}.replaced{n}")
+        run_dir.rename(aside)
+        print(f"note: {run_dir} held a run of other settings than the sweep's (changed by hand?): moved to {aside}",
+              file=sys.stderr, flush=True)
+        resume = False
     reset_peak_memory(device)  # the point's own peak, not that of the points trained before it in this process
     train_run(Path(job["scene"]), run_dir, cfg, device, resume=resume)
     return TrainSummary.read(summary_path), True
