@@ -138,8 +138,10 @@ def test_a_cropped_photo_saved_at_full_size_gets_a_camera_of_its_own(synth_scene
 
     photos = tmp_path / "photos"
     shutil.copytree(synth_scene / "images", photos)
+    later = sorted(p.name for p in photos.iterdir())[-1]  # added with --extend below
+    (photos / later).unlink()
     names = sorted(p.name for p in photos.iterdir())
-    zoomed = names[5]
+    zoomed = names[0]  # the first of its group by name
     buf = oiio.ImageBuf(str(photos / zoomed))
     w, h = buf.spec().width, buf.spec().height
     cut = oiio.ImageBufAlgo.cut(buf, oiio.ROI(round(w * 0.115), round(w * 0.885), round(h * 0.115), round(h * 0.885)))
@@ -155,6 +157,13 @@ def test_a_cropped_photo_saved_at_full_size_gets_a_camera_of_its_own(synth_scene
     assert len({rec.image(i).camera_id for i in rec.reg_image_ids()}) == 2
     assert max(abs(f / truth - 1) for n, f in focal.items() if n != zoomed) < 0.02
     assert focal[zoomed] / truth == pytest.approx(1 / 0.77, rel=0.05)
+    # a photo added later joins the camera its group's photos share, not the odd first one's (a review: it took the
+    # crop's focal length)
+    shutil.copy2(synth_scene / "images" / later, photos / later)
+    stage.run(photos, tmp_path / "ws", CFG.model_copy(update={"extend": True}))
+    rec = pycolmap.Reconstruction(tmp_path / "ws" / "distorted" / "sparse" / "0")
+    camera = {rec.image(i).name: rec.image(i).camera_id for i in rec.reg_image_ids()}
+    assert camera[later] == camera[names[1]] != camera[zoomed]
 
 
 def test_mixed_sizes_and_exif_orientation(synth_scene, tmp_path):
