@@ -582,7 +582,7 @@ class EvalConfig(_Base):
     """K_eval: posterior samples per view (cost grows linearly)."""
     seed: int = Field(0, ge=0, le=EVAL_SEED_MAX)
     depth_gt: Path | None = None
-    """Folder of GT depth maps ({image stem}.npy or .exr); synthetic scenes provide their own."""
+    """Folder of GT depth maps ({image stem}.npy, .exr, 16-bit .png or float .tif); synthetic scenes provide their own."""
     depth_scale: Literal["auto", "scene"] | Annotated[float, Field(gt=0.0, le=1e30)] = "auto"
     """Factor from rendered depth to GT depth units (> 0). auto: the scene's own GT depth is in known units, a
     ``depth_gt`` folder's factor is fitted (``depth_align``); scene: the ``depth_gt`` maps are in the scene's own

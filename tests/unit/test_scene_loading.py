@@ -812,33 +812,49 @@ def test_depth_gt_maps_are_found_by_the_images_path_and_never_shared(tmp_path):
         load_depth_folder(folder, scene, [4])
 
 
-def test_depth_gt_maps_of_another_type_are_named_with_how_to_convert(tmp_path):
-    """nerfstudio writes depth as 16-bit PNGs in millimetres: `--depth-gt` refused them with "Expected view_000.npy
-    (or .exr)" as if there were none. The error names the file found and how to convert it."""
+def test_depth_gt_as_16_bit_png_and_float_tiff_is_read_as_stored(tmp_path):
+    """A depth camera's, nerfstudio's or TUM RGB-D's depth comes as one-channel 16-bit PNGs (millimetres, or another
+    fixed step; 0 for none): `--depth-gt` refused them (only .npy and .exr) and told the user to convert. They are read
+    now as their stored values (not scaled to [0, 1] as an image reader would; the unit is fitted by --depth-scale
+    auto or given), as are float TIFFs; an 8-bit or colour picture of depth, or the scene's own photo, is refused;
+    another type is named with how to convert it."""
     from types import SimpleNamespace
 
+    import OpenImageIO as oiio
     import PIL.Image
 
     from uncertsplat.data.dataset import load_depth_folder
 
-    names = ("images/view_000.png", "images/view_001.png")
-    cams = Cameras(torch.eye(4).repeat(2, 1, 1), torch.eye(3).repeat(2, 1, 1), 4, 3, names)
-    scene = SimpleNamespace(cameras=cams, photo_fits=None)
+    names = ("images/view_000.png", "images/view_001.png", "images/view_002.png")
+    cams = Cameras(torch.eye(4).repeat(3, 1, 1), torch.eye(3).repeat(3, 1, 1), 4, 3, names)
     folder = tmp_path / "depth"
     folder.mkdir()
-    mm = np.full((3, 4), 2500, np.uint16)
+    photo = tmp_path / "images" / "view_002.png"
+    photo.parent.mkdir()
+    scene = SimpleNamespace(cameras=cams, photo_fits=None, image_paths=[photo.parent / n.split("/")[1] for n in names])
+    mm = np.array([[0, 1, 2500, 65535]] * 3, np.uint16)
     PIL.Image.fromarray(mm).save(folder / "view_000.png")
-    with pytest.raises(UserError, match="no GT depth map for image 'images/view_000.png'") as err:
+    got = load_depth_folder(folder, scene, [0])[0, ..., 0]
+    assert got[0].tolist() == [0.0, 1.0, 2500.0, 65535.0]  # 0 stays "no depth" (load_depth_map)
+    metres = np.full((3, 4, 1), 2.5, np.float32)
+    out = oiio.ImageOutput.create(str(folder / "view_001.tif"))
+    out.open(str(folder / "view_001.tif"), oiio.ImageSpec(4, 3, 1, "float"))
+    out.write_image(metres)
+    out.close()
+    torch.testing.assert_close(load_depth_folder(folder, scene, [1]), torch.full((1, 3, 4, 1), 2.5))
+    PIL.Image.fromarray(np.full((3, 4), 200, np.uint8)).save(folder / "view_000.png")
+    with pytest.raises(UserError, match="8-bit values"):
         load_depth_folder(folder, scene, [0])
-    text = str(err.value)
-    assert "view_000.png exists, but only .npy and .exr maps are read" in text, text
-    assert "np.save('view_000.npy', np.asarray(PIL.Image.open('view_000.png'), np.float32) / 1000.0)" in text, text
-    # the conversion the error gives reads the map in metres
-    np.save(folder / "view_000.npy", np.asarray(PIL.Image.open(folder / "view_000.png"), np.float32) / 1000.0)
-    torch.testing.assert_close(load_depth_folder(folder, scene, [0]), torch.full((1, 3, 4, 1), 2.5))
-    with pytest.raises(UserError) as err:  # nothing of that name at all: no word about conversion
-        load_depth_folder(folder, scene, [1])
-    assert "only .npy and .exr" not in str(err.value)
+    PIL.Image.fromarray(np.zeros((3, 4, 3), np.uint8)).save(folder / "view_000.png")
+    with pytest.raises(UserError, match="3 channels, not one: a colour picture of depth"):
+        load_depth_folder(folder, scene, [0])
+    PIL.Image.fromarray(np.zeros((3, 4, 3), np.uint8)).save(photo)
+    with pytest.raises(UserError, match="view_002.png in the GT depth folder is the scene's own photo"):
+        load_depth_folder(photo.parent, scene, [2])
+    (folder / "view_002.pfm").write_bytes(b"PF")
+    with pytest.raises(UserError, match="no GT depth map for image 'images/view_002.png'") as err:
+        load_depth_folder(folder, scene, [2])
+    assert "view_002.pfm exists, but only .npy, .exr, .png, .tif, .tiff maps are read" in str(err.value)
 
 
 def test_photos_the_model_does_not_name_are_noted(workspace):
@@ -963,7 +979,7 @@ def test_depth_gt_given_the_images_folder_says_so(tiny_scene_path):  # noqa: F81
     from uncertsplat.data.dataset import load_depth_folder
 
     scene = load_scene(tiny_scene_path)
-    with pytest.raises(UserError, match="view_000.png there is the scene's own photo: give the GT depth's folder"):
+    with pytest.raises(UserError, match="view_000.png in the GT depth folder is the scene's own photo"):
         load_depth_folder(tiny_scene_path / "images", scene, [0])
 
 

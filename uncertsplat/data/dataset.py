@@ -18,6 +18,7 @@ from uncertsplat.conventions import NO_SURFACE_DEPTH
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import (
     is_opaque_8bit,
+    read_depth_image,
     read_exr,
     read_image,
     read_image_8bit,
@@ -153,10 +154,17 @@ def depth_channel(channels: dict[str, np.ndarray], path: Path) -> str:
                     hint="Write the depth as a channel named Z (or depth), or as a one-channel EXR or a .npy file.")
 
 
+DEPTH_EXTENSIONS = (".npy", ".exr", ".png", ".tif", ".tiff")
+"""The GT depth maps read, in the order a name is looked up (``load_depth_folder``)."""
+
+
 def read_depth_file(path: Path) -> np.ndarray:
-    """A GT depth map [H,W] float32 from .npy, or from .exr (the channel ``depth_channel`` finds)."""
+    """A GT depth map [H,W] float32 from .npy, from .exr (the channel ``depth_channel`` finds), or from a one-channel
+    16-bit PNG or float TIFF (``io.images.read_depth_image``: the stored values, e.g. millimetres)."""
     path = Path(path)
-    if path.suffix.lower() == ".npy":
+    if path.suffix.lower() in (".png", ".tif", ".tiff"):
+        arr = read_depth_image(path)
+    elif path.suffix.lower() == ".npy":
         try:
             arr = np.load(path, allow_pickle=False)
         except (OSError, ValueError) as err:
@@ -262,16 +270,15 @@ def depth_map_names(name: str, names: Sequence[str]) -> list[str]:
 
 
 def _other_depth_files(folder: Path, looked: Sequence[str], photos: Sequence[Path] = ()) -> str:
-    """For ``load_depth_folder``'s error: the files of a looked-up name with an extension that is not read (nerfstudio
-    writes depth as 16-bit PNGs in millimetres: they were refused as if absent), and how to convert them; else "".
-    The scene's own ``photos`` are not depth maps: a folder of them (``--depth-gt`` given the images) is said to
-    be that."""
+    """For ``load_depth_folder``'s error: the files of a looked-up name with an extension that is not read, and how to
+    convert them; else "". The scene's own ``photos`` are not depth maps: a folder of them (``--depth-gt`` given the
+    images) is said to be that."""
     found = []
     for n in looked:
         where = (folder / n).parent
         if where.is_dir():
             found += sorted(p for p in where.iterdir() if p.stem == Path(n).name and p.is_file()
-                            and p.suffix.lower() not in (".npy", ".exr"))
+                            and p.suffix.lower() not in DEPTH_EXTENSIONS)
     own = {Path(p).resolve() for p in photos}
     if found and all(p.resolve() in own for p in found):
         return f"; {found[0].relative_to(folder).as_posix()} there is the scene's own photo: give the GT depth's folder"
@@ -280,15 +287,14 @@ def _other_depth_files(folder: Path, looked: Sequence[str], photos: Sequence[Pat
         return ""
     rel = found[0].relative_to(folder).as_posix()
     npy = Path(rel).with_suffix(".npy").as_posix()
-    return (f"; {list_names([p.relative_to(folder).as_posix() for p in found], 3)} exists, but only .npy and .exr "
-            f"maps are read: convert each map, e.g. with numpy and PIL, np.save('{npy}', "
-            f"np.asarray(PIL.Image.open('{rel}'), np.float32) / 1000.0) for a 16-bit PNG in millimetres (nerfstudio's) "
-            "to metres (--depth-scale auto fits the scale of any unit)")
+    return (f"; {list_names([p.relative_to(folder).as_posix() for p in found], 3)} exists, but only "
+            f"{', '.join(DEPTH_EXTENSIONS)} maps are read: convert each map to an HxW float array, "
+            f"np.save('{npy}', depth) (--depth-scale auto fits the scale of any unit)")
 
 
 def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) -> Tensor:
-    """GT depth [C,H,W,1] of the cameras ``indices`` from ``folder/{name}.npy|.exr`` (``--depth-gt``; ``name`` one
-    of ``depth_map_names``).
+    """GT depth [C,H,W,1] of the cameras ``indices`` from ``folder/{name}.npy|.exr|.png|.tif`` (``--depth-gt``;
+    ``name`` one of ``depth_map_names``; ``DEPTH_EXTENSIONS``).
 
     The maps stay in their own units (their scale to the scene is estimated by evaluation) and are
     resized to the cameras like ``load_depths``.
@@ -299,18 +305,23 @@ def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) ->
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise UserError("GT depth folder not found", path=folder, hint="Give --depth-gt a folder of .npy/.exr maps.")
+        raise UserError("GT depth folder not found", path=folder,
+                        hint="Give --depth-gt a folder of depth maps (.npy, .exr, 16-bit .png or float .tif).")
     W, H = scene.cameras.width, scene.cameras.height
     names = scene.cameras.image_names
     paths = []  # every map found before any is read: a missing one fails at once
     for i in indices:
         looked = depth_map_names(names[i], names)
-        cands = [folder / f"{n}{ext}" for n in looked for ext in (".npy", ".exr", ".NPY", ".EXR")]
+        cands = [folder / f"{n}{ext}" for n in looked for e in DEPTH_EXTENSIONS for ext in (e, e.upper())]
         path = next((c for c in cands if c.is_file()), None)
+        own = {Path(p).resolve() for p in getattr(scene, "image_paths", ())}
+        if path is not None and path.resolve() in own:  # (--depth-gt given the photos' folder)
+            raise UserError(f"{path.name} in the GT depth folder is the scene's own photo", path=folder,
+                            hint="Give --depth-gt the folder of the depth maps, not of the photos.")
         if path is None:
             shared = [o for o in names if o != names[i] and Path(o).stem == Path(names[i]).stem]
             raise UserError(f"no GT depth map for image '{names[i]}'", path=folder,
-                            hint=f"Expected {' or '.join(f'{n}.npy' for n in looked)} (or .exr)"
+                            hint=f"Expected {' or '.join(f'{n}.npy' for n in looked)} (or .exr, .png, .tif)"
                                  + (f"; {Path(names[i]).stem}.npy alone would be ambiguous: {list_names(shared)} "
                                     "has the same name" if shared else "")
                                  + _other_depth_files(folder, looked, getattr(scene, "image_paths", ())) + ".")

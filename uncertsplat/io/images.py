@@ -356,6 +356,39 @@ def write_exr(path: str | Path, channels: dict[str, np.ndarray], attributes: dic
                         attributes={"compression": "zip", **(attributes or {})})
 
 
+def read_depth_image(path: str | Path) -> np.ndarray:
+    """A depth map stored as an image: [H,W] float32 of a one-channel 16-bit integer (a depth camera's, nerfstudio's
+    or TUM RGB-D's PNG, in millimetres or another fixed step; 0 for no depth) or float (TIFF) file, the stored values
+    themselves, not scaled to [0, 1]: the unit is fitted or given by ``evaluate --depth-scale``.
+
+    Raises:
+        UserError: the file is not one channel (a colour picture of depth cannot be read as depth), or has 8-bit
+            values (256 levels: a picture of depth, not its measurement), naming it.
+    """
+    path = Path(path)
+
+    def refuse(spec) -> None:
+        channels = spec.nchannels - (1 if _alpha_index(spec) >= 0 else 0)
+        if channels != 1:
+            raise UserError(f"the depth map has {spec.nchannels} channels, not one: a colour picture of depth (a "
+                            "colour map) cannot be read as depth", path=path,
+                            hint="Give the depth itself: a one-channel 16-bit PNG (e.g. millimetres), a float TIFF "
+                                 "or EXR, or an HxW .npy array.")
+        if spec.format.basetype in (oiio.UINT8, oiio.INT8):
+            raise UserError("the depth map has 8-bit values (256 levels): a picture of depth, not its measurement",
+                            path=path, hint="Give the depth as a 16-bit PNG (e.g. millimetres), a float TIFF or EXR, "
+                                            "or an HxW .npy array.")
+
+    # read in its own type: OpenImageIO's conversion of integers to float scales them to [0, 1]
+    stored = {oiio.UINT16: "uint16", oiio.INT16: "int16", oiio.UINT32: "uint32", oiio.INT32: "int32"}
+    fmt = stored.get(_header(path).format.basetype, "float")
+    data, spec = _read_pixels(path, fmt, check=refuse)
+    arr = np.asarray(data).astype(np.float32)
+    if arr.ndim == 3:
+        arr = arr[..., 0]  # (a grey + alpha file: the grey)
+    return arr
+
+
 def read_exr_attribute(path: str | Path, name: str):
     """One header attribute of an image file (``write_exr``'s ``attributes``), or None when it has none."""
     path = Path(path)

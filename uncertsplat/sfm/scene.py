@@ -130,7 +130,7 @@ def _unread_frame_notes(transforms: Path) -> list[str]:
     if n := count("depth_file_path"):
         notes.append(f"{n} frame(s) of {transforms.name} name a depth_file_path: depth maps are not read (training "
                      "fits the photos alone); to score the rendered depth against them, give `uncertsplat evaluate "
-                     "--depth-gt FOLDER` a folder of .npy / .exr maps (nerfstudio's 16-bit PNGs hold millimetres)")
+                     "--depth-gt FOLDER` the folder of those maps (16-bit PNGs are read as stored: millimetres for nerfstudio's)")
     return notes
 
 
