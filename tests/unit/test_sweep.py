@@ -841,6 +841,48 @@ def _job_checkpointing_on_ctrl_c(job: dict) -> list[dict]:
     raise Interrupted("training interrupted; checkpoint saved")
 
 
+def _pool_driver(tmp_path: Path, job: str, **popen):
+    """A sweep driver in a process of its own (its own session): ``run_local`` of the jobs ``quick`` and ``training``
+    on two workers, with ``tests.unit.test_sweep.<job>`` as the job, each record a file ``JOB.done``; Ctrl-C exits
+    130."""
+    import os
+    import subprocess
+    import sys
+
+    driver = (
+        "import sys\n"
+        "from pathlib import Path\n"
+        f"from tests.unit.test_sweep import {job}\n"
+        "from uncertsplat.sweep.executors import run_local\n"
+        f"d = {str(tmp_path)!r}\n"
+        "todo = [{'job_id': j, 'points': [], 'dir': d} for j in ('quick', 'training')]\n"
+        "def record(recs):\n"
+        "    Path(d, recs[0]['job'] + '.done').write_text('')\n"
+        "try:\n"
+        f"    run_local(todo, jobs=2, retries=0, on_records=record, run_job={job})\n"
+        "except KeyboardInterrupt:\n"
+        "    sys.exit(130)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    return subprocess.Popen([sys.executable, "-c", driver], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, start_new_session=True, **popen)
+
+
+def _pool_workers(driver: int, started_only: bool = False) -> set[int]:
+    """The pool workers of the process ``driver`` (its resource tracker left out); ``started_only``: those whose
+    initializer has run (it starts a thread, the sweep's stop watch)."""
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            cmdline = (stat.parent / "cmdline").read_bytes()
+            threads = len(list((stat.parent / "task").iterdir()))
+        except (OSError, IndexError, ValueError):
+            continue  # gone meanwhile
+        if ppid == driver and b"spawn_main" in cmdline and (not started_only or threads > 1):
+            found.add(int(stat.parent.name))
+    return found
+
+
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="finds the pool's workers in /proc (Linux)")
 @pytest.mark.parametrize("moment", ["starting", "idle"])
 def test_ctrl_c_lets_a_training_write_its_checkpoint_while_another_worker_is_between_jobs(tmp_path, moment):
@@ -858,37 +900,11 @@ def test_ctrl_c_lets_a_training_write_its_checkpoint_while_another_worker_is_bet
 
     from tests.fixtures import default_sigint
 
-    driver = (
-        "import sys\n"
-        "from pathlib import Path\n"
-        "from tests.unit.test_sweep import _job_checkpointing_on_ctrl_c\n"
-        "from uncertsplat.sweep.executors import run_local\n"
-        f"d = {str(tmp_path)!r}\n"
-        "todo = [{'job_id': j, 'points': [], 'dir': d} for j in ('quick', 'training')]\n"
-        "def record(recs):\n"
-        "    Path(d, recs[0]['job'] + '.done').write_text('')\n"
-        "try:\n"
-        "    run_local(todo, jobs=2, retries=0, on_records=record, run_job=_job_checkpointing_on_ctrl_c)\n"
-        "except KeyboardInterrupt:\n"
-        "    sys.exit(130)\n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.Popen([sys.executable, "-c", driver], cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, start_new_session=True, preexec_fn=default_sigint)
+    proc = _pool_driver(tmp_path, "_job_checkpointing_on_ctrl_c", preexec_fn=default_sigint)
 
     def workers() -> set[int]:
-        """The driver's pool workers (its resource tracker left out); idle: those whose initializer has run (it
-        starts a thread, the sweep's stop watch)."""
-        found = set()
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-                cmdline = (stat.parent / "cmdline").read_bytes()
-                threads = len(list((stat.parent / "task").iterdir()))
-            except (OSError, IndexError, ValueError):
-                continue  # gone meanwhile
-            if ppid == proc.pid and b"spawn_main" in cmdline and (moment == "starting" or threads > 1):
-                found.add(int(stat.parent.name))
-        return found
+        """The driver's pool workers; idle: those whose initializer has run."""
+        return _pool_workers(proc.pid, started_only=moment == "idle")
 
     try:
         t0 = time.monotonic()
@@ -1056,30 +1072,10 @@ def test_the_workers_of_a_sweep_killed_with_sigkill_end(tmp_path):
     import sys
     import time
 
-    driver = (
-        "from pathlib import Path\n"
-        "from tests.unit.test_sweep import _job_until_orphaned\n"
-        "from uncertsplat.sweep.executors import run_local\n"
-        f"d = {str(tmp_path)!r}\n"
-        "todo = [{'job_id': j, 'points': [], 'dir': d} for j in ('quick', 'training')]\n"
-        "def record(recs):\n"
-        "    Path(d, recs[0]['job'] + '.done').write_text('')\n"
-        "run_local(todo, jobs=2, retries=0, on_records=record, run_job=_job_until_orphaned)\n")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    proc = subprocess.Popen([sys.executable, "-c", driver], cwd=ROOT, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    proc = _pool_driver(tmp_path, "_job_until_orphaned")
 
     def workers() -> set[int]:
-        found = set()
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
-                cmdline = (stat.parent / "cmdline").read_bytes()
-            except (OSError, IndexError, ValueError):
-                continue
-            if ppid == proc.pid and b"spawn_main" in cmdline:
-                found.add(int(stat.parent.name))
-        return found
+        return _pool_workers(proc.pid)
 
     def alive(pid: int) -> bool:
         try:
