@@ -151,3 +151,23 @@ def test_the_implausible_factor_note_takes_one_map_a_view():
     listed = implausible_depth_scale_notes(list(depth), list(gt), list(mask), 1.0, 1.0)
     assert stacked == listed and len(listed) == 1 and "3.1x" in listed[0]
     assert implausible_depth_scale_notes(list(depth), list(gt), list(mask), 3.0, 3.0) == []
+
+
+def test_the_implausible_factor_note_names_a_power_of_ten_of_the_scenes_units():
+    """Millimetre maps of a metric scene: with the scene's units the GT is 1000x the render, with --depth-scale 1000 it
+    is still 4x (the factor is from the run's units, not the scene's); the note names the factor (the scene's units
+    per run unit x 1000), and the scene's own units when the maps are in them, but no factor off every power of ten."""
+    from uncertsplat.eval.engine import implausible_depth_scale_notes
+
+    depth = torch.full((1, 4, 5, 1), 2.0)  # the run's units
+    mask = torch.ones_like(depth, dtype=torch.bool)
+    to_source = 4.0  # the scene's metres per run unit
+    gt_mm = depth * to_source * 1000.0
+    (scene,) = implausible_depth_scale_notes(depth, gt_mm / to_source, mask, 1.0, "scene", to_source)
+    assert "1e+03x the render's" in scene and "--depth-scale 4000, the run's depth to the maps' units" in scene
+    (given,) = implausible_depth_scale_notes(depth, gt_mm, mask, 1000.0, 1000.0, to_source)
+    assert "4x the render's" in given and "--depth-scale 4000," in given
+    (metres,) = implausible_depth_scale_notes(depth, depth * to_source, mask, 1.0, 1.0, to_source)
+    assert "(maps in the scene's own units: --depth-scale scene;" in metres
+    (odd,) = implausible_depth_scale_notes(depth, depth * 22.0, mask, 1.0, 1.0, to_source)  # 5.5x the scene's
+    assert "--depth-scale auto fits the factor" in odd and "the run's depth to the maps' units" not in odd

@@ -812,6 +812,27 @@ def test_depth_gt_maps_are_found_by_the_images_path_and_never_shared(tmp_path):
         load_depth_folder(folder, scene, [4])
 
 
+@pytest.mark.parametrize("size", [(16, 12), (4, 3), (8, 6)])
+def test_a_depth_map_s_holes_are_not_blended_into_its_depths_when_resized(tmp_path, size):
+    """A depth camera's map at half the photos' size, with holes (0) at its border and beyond its range: the
+    bilinear upscale averaged the 0 into the neighbouring depths (pixels at 402 mm where the surface lies at 9 m;
+    abs_rel 0.28 where the same map at full size scored 0.02). A resized pixel keeps a depth only where every source
+    pixel under it has one; a map of the photo's size is read as it is."""
+    from uncertsplat.data.dataset import load_depth_map
+
+    d = np.full((6, 8), 5.0, np.float32)
+    d[0, :] = 0.0  # the border
+    d[:, 5] = np.inf  # beyond the range (written as inf here)
+    d[3, 2] = np.nan
+    np.save(tmp_path / "d.npy", d)
+    out = load_depth_map(tmp_path / "d.npy", *size)
+    assert out.shape == (size[1], size[0])
+    assert set(np.unique(out).tolist()) == {0.0, 5.0}  # no depth between a hole's 0 and the surface's 5
+    assert (out > 0).mean() > 0.2
+    if size == (8, 6):
+        np.testing.assert_array_equal(out > 0, np.isfinite(d) & (d > 0))
+
+
 def test_depth_gt_as_16_bit_png_and_float_tiff_is_read_as_stored(tmp_path):
     """A depth camera's, nerfstudio's or TUM RGB-D's depth comes as one-channel 16-bit PNGs (millimetres, or another
     fixed step; 0 for none): `--depth-gt` refused them (only .npy and .exr) and told the user to convert. They are read
@@ -846,11 +867,21 @@ def test_depth_gt_as_16_bit_png_and_float_tiff_is_read_as_stored(tmp_path):
     with pytest.raises(UserError, match="8-bit values"):
         load_depth_folder(folder, scene, [0])
     PIL.Image.fromarray(np.zeros((3, 4, 3), np.uint8)).save(folder / "view_000.png")
-    with pytest.raises(UserError, match="3 channels, not one: a colour picture of depth"):
+    with pytest.raises(UserError, match="3 channels, not one: a colour image"):
         load_depth_folder(folder, scene, [0])
     PIL.Image.fromarray(np.zeros((3, 4, 3), np.uint8)).save(photo)
     with pytest.raises(UserError, match="view_002.png in the GT depth folder is the scene's own photo"):
         load_depth_folder(photo.parent, scene, [2])
+    out = oiio.ImageOutput.create(str(photo.with_suffix(".tif")))  # a depth beside its photo: read, the photo not
+    out.open(str(photo.with_suffix(".tif")), oiio.ImageSpec(4, 3, 1, "float"))
+    out.write_image(metres)
+    out.close()
+    torch.testing.assert_close(load_depth_folder(photo.parent, scene, [2]), torch.full((1, 3, 4, 1), 2.5))
+    (folder / "depth_000.png").write_bytes(b"")  # named otherwise: the error says what the folder holds
+    (folder / "view_000.png").unlink()
+    with pytest.raises(UserError, match="no GT depth map for image 'images/view_000.png'") as err:
+        load_depth_folder(folder, scene, [0])
+    assert "the folder holds depth_000.png, view_001.tif: a map is found by its photo's name" in str(err.value)
     (folder / "view_002.pfm").write_bytes(b"PF")
     with pytest.raises(UserError, match="no GT depth map for image 'images/view_002.png'") as err:
         load_depth_folder(folder, scene, [2])

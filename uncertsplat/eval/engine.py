@@ -651,12 +651,16 @@ less than 1/this, at the median, is noted as probably wrong (``implausible_depth
 
 
 def implausible_depth_scale_notes(depth: Tensor | Sequence[Tensor], gt: Tensor | Sequence[Tensor],
-                                  mask: Tensor | Sequence[Tensor], scale: float, given) -> list[str]:
+                                  mask: Tensor | Sequence[Tensor], scale: float, given,
+                                  to_source: float | None = None) -> list[str]:
     """A note when the depth factor given (``given``: a number, or the scene's known units) leaves the GT depth
     ``IMPLAUSIBLE_DEPTH_RATIO`` times the scaled render (or less than its inverse) at the median: GT maps in other
     units than the factor assumes (``--depth-scale 1`` on maps in the scene's units gave abs-rel 0.76 without a
     word). The metrics stay those of the factor given. ``depth``, ``gt``, ``mask``: stacked [C,H,W,1] or one map a
-    view (``align_depth_scale``, which scales the depth slice by slice: no scaled copy of every map)."""
+    view (``align_depth_scale``, which scales the depth slice by slice: no scaled copy of every map). ``to_source``:
+    the scene's units per run unit; when the right factor lies within 15 % of a power of ten of them (maps in
+    millimetres of a metric scene: the scene's factor x 1000), the note gives it (a user tried 1000 and got another
+    warning: the factor is from the run's units, not the scene's)."""
     from uncertsplat.eval.depth import align_depth_scale
 
     try:
@@ -666,9 +670,18 @@ def implausible_depth_scale_notes(depth: Tensor | Sequence[Tensor], gt: Tensor |
     if 1 / IMPLAUSIBLE_DEPTH_RATIO <= ratio <= IMPLAUSIBLE_DEPTH_RATIO:
         return []
     what = f"the depth factor given ({given:g})" if isinstance(given, float) else "the scene's own depth units"
+    hint = "(--depth-scale auto fits the factor; scene takes maps in the scene's own units)"
+    if to_source:
+        # the factor from the run's depth to the maps' units this median asks for, as a power of ten of the scene's
+        right = ratio * (given if isinstance(given, float) else to_source)
+        power = math.log10(right / to_source)
+        if abs(power - round(power)) < math.log10(1.15):
+            tens = 10.0 ** round(power)
+            hint = ("(maps in the scene's own units: --depth-scale scene" if round(power) == 0 else
+                    f"(maps in the scene's units x {tens:g}, e.g. millimetres of a scene in metres for 1000: "
+                    f"--depth-scale {to_source * tens:.6g}, the run's depth to the maps' units") +                 "; --depth-scale auto fits the factor instead)"
     return [f"with {what}, the GT depth is {ratio:.3g}x the render's at the median: {IMPLAUSIBLE_DEPTH_NOTE} "
-            "(--depth-scale auto fits the factor; scene takes maps in the scene's own units); the depth "
-            "metrics are those of the factor given"]
+            f"{hint}; the depth metrics are those of the factor given"]
 
 
 MASKED_NOTE_BELOW = 0.995
@@ -682,7 +695,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                    on_view: Callable[[ViewMaps], None] | None = None, show_progress: bool = True,
                    std_scale: float | None = None, calibration_views: list[str] | None = None,
                    calibration_held_out: bool = False, dof: float | None = None,
-                   noise_scale: float | None = None,
+                   noise_scale: float | None = None, depth_to_source: float | None = None,
                    notes: Sequence[str] = (), config_hash: str = "") -> EvalReport:
     """Render K posterior samples of each view and compute every metric.
 
@@ -704,6 +717,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         calibration_held_out: whether the scene set views aside from training, on which the std factor and a fitted
             noise level were then fitted (recorded).
         noise_scale: the factor the sampler's pixel noise carries (``ResidualField.scale``; recorded).
+        depth_to_source: the scene's units per run unit (``SceneData.depth_scale_to_gt``), when known: a note on a
+            given depth factor that looks wrong then names the factor of maps in a power of ten of those units.
         notes: notes about the run to record (``LoadedRun.eval_notes``); the engine adds its own.
         config_hash: the hash of the full evaluation config (recorded in the report).
 
@@ -905,7 +920,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             # against GT in the run's normalised units (the scene's own) or a --depth-gt folder's
             method = (GIVEN_SCENE_GT if views.depth_known_scale else "given") if given else "scene"
             scale = type(scale)(scale.scale, method, scale.num_pixels)
-            notes += implausible_depth_scale_notes(dm, gts, base_mask, scale.scale, cfg.depth_scale)
+            notes += implausible_depth_scale_notes(dm, gts, base_mask, scale.scale, cfg.depth_scale, depth_to_source)
         else:
             try:
                 scale = align_depth_scale(dm, gts, mask=base_mask, method=cfg.depth_align)

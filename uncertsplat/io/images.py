@@ -370,8 +370,8 @@ def read_depth_image(path: str | Path) -> np.ndarray:
     def refuse(spec) -> None:
         channels = spec.nchannels - (1 if _alpha_index(spec) >= 0 else 0)
         if channels != 1:
-            raise UserError(f"the depth map has {spec.nchannels} channels, not one: a colour picture of depth (a "
-                            "colour map) cannot be read as depth", path=path,
+            raise UserError(f"the depth map has {spec.nchannels} channels, not one: a colour image (a photo, or a "
+                            "colour picture of depth) cannot be read as depth", path=path,
                             hint="Give the depth itself: a one-channel 16-bit PNG (e.g. millimetres), a float TIFF "
                                  "or EXR, or an HxW .npy array.")
         if spec.format.basetype in (oiio.UINT8, oiio.INT8):

@@ -39,6 +39,7 @@ from uncertsplat.config import EvalConfig
 from uncertsplat.console import console
 from uncertsplat.errors import UserError, run_folder_missing
 from uncertsplat.eval.engine import (
+    GIVEN_SCENE_GT,
     IMPLAUSIBLE_DEPTH_NOTE,
     MASKED_NOTE,
     NOT_A_NUMBER_NOTE,
@@ -433,7 +434,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         _keep_missing_predictive(run_dir, loaded, scene, cfg, done, device)
         console.print(f"[bold]evaluate[/] {run_dir}: already evaluated with these settings, versions and device "
                       f"({out / 'metrics.json'}; --set reuse=false evaluates again)")
-        return done if quiet else _print_report(run_dir, cfg, done, out, written=False)
+        return done if quiet else _print_report(run_dir, cfg, done, out, written=False,
+                                                depth_to_source=scene.depth_to_source)
     # 8-bit photos kept as uint8 (a quarter of the memory), each converted where the engine reads it
     views = load_view_set(scene, indices, depth_folder=cfg.depth_gt, folder_in_scene_units=cfg.depth_scale == "scene",
                           keep_8bit=True)
@@ -475,6 +477,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
                                     std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
                                     calibration_held_out=bool(scene.split.get("calibration")),
                                     noise_scale=residual.scale if residual is not None else None,
+                                    depth_to_source=scene.depth_to_source,
                                     notes=loaded.eval_notes(cfg.num_samples) + loaded.exposure_notes() + unfinished
                                     + ([loaded.frame_note] if loaded.frame_note else []),
                                     config_hash=hash_config(cfg.model_dump(mode="json")))
@@ -503,7 +506,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         console.print(f"[yellow]warning:[/] {note}")
     for note in [*reach, *low, *few]:
         console.print(f"note: {note}")
-    return _print_report(run_dir, cfg, report, out)
+    return _print_report(run_dir, cfg, report, out, depth_to_source=scene.depth_to_source)
 
 
 def _keep_missing_predictive(run_dir: Path, loaded, scene, cfg: EvalConfig, report, device: torch.device) -> None:
@@ -682,8 +685,10 @@ def _reach_notes(sampler, views, device: torch.device) -> list[str]:
     return notes
 
 
-def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bool = True):
-    """Print ``report``'s table and notes; returns it. ``written``: this call wrote it (else it was found)."""
+def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bool = True,
+                  depth_to_source: float | None = None):
+    """Print ``report``'s table and notes; returns it. ``written``: this call wrote it (else it was found).
+    ``depth_to_source``: the scene's units per run unit, said beside depth metrics in the run's units."""
     from rich.table import Table
 
     table = Table(title=f"{run_dir.name}: {cfg.split} views (K={cfg.num_samples})")
@@ -752,7 +757,12 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
         console.print(f"PSNR is that of {samples}; one deterministic render (the "
                       f"expected render, {what}{where}): {report.mean.psnr_render:.2f} dB")
     if report.depth_scale is not None:
-        console.print(f"depth scale {report.depth_scale.scale:.4g} ({report.depth_scale.method})")
+        # the depth metrics' unit, which a robotics user read as metres on a metric scene (4.4 cm for 17.8)
+        units = "the maps' own units" if report.depth_scale.method not in ("scene", GIVEN_SCENE_GT) or \
+            not depth_to_source else (f"the run's normalised units: x {depth_to_source:.4g} for the scene's own "
+                                      "(metres, if it is metric)")
+        console.print(f"depth scale {report.depth_scale.scale:.4g} ({report.depth_scale.method}); the depth metrics "
+                      f"are in {units}")
     maps = f" and maps in {out / 'maps'}" if (out / "maps").is_dir() else " (no maps: save_maps = false)"
     console.print(f"{'wrote' if written else 'kept'} {out / 'metrics.json'}{maps}")
     return report
