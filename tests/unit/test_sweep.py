@@ -1111,3 +1111,25 @@ def test_the_workers_of_a_sweep_killed_with_sigkill_end(tmp_path):
             proc.wait()
     assert not left, f"workers still running after the sweep was killed: {left}"
     assert (tmp_path / "checkpoint").read_text() == "written"
+
+
+def test_a_swap_killed_between_its_renames_is_finished_before_any_point_is_skipped(tmp_path, monkeypatch):
+    """A forced training killed between its two renames left RUN missing beside RUN.retrain / RUN.retrained; the
+    recovery ran only inside a point's training, which a sweep skips for a point with a record: the next sweep said
+    "already done" with the run folder its record names gone (a review). The sweep finishes the swap for every point
+    first."""
+    from uncertsplat.stages import sweep
+
+    _fake_jobs(monkeypatch)
+    (tmp_path / "scene").mkdir()
+    f = tmp_path / "s.toml"
+    f.write_text('name = "x"\ntrain_preset = "tiny"\n[default]\niterations = 5\n')
+    out = tmp_path / "out"
+    (rec,) = sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1).records
+    run = Path(rec.run_dir)
+    (run.parent / f"{run.name}.retrain").mkdir(parents=True)  # the new training, finished, not yet in place
+    (run.parent / f"{run.name}.retrain" / "train_summary.json").write_text("{}")
+    (run.parent / f"{run.name}.retrained").mkdir()  # the old one, moved aside
+    sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1)
+    assert (run / "train_summary.json").is_file()
+    assert sorted(p.name for p in run.parent.iterdir()) == [run.name]

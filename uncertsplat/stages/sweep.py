@@ -274,6 +274,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
     from uncertsplat.device import resolve_device
     from uncertsplat.report.sweep_page import build_sweep_page
     from uncertsplat.sweep.executors import EXECUTORS, connect_ray, require_ray, run_local, run_ray
+    from uncertsplat.sweep.jobs import finish_swap
     from uncertsplat.sweep.pareto import axis_name, plot_pareto, split_by_resolution, summarize, table_points
     from uncertsplat.sweep.spec import expand_points, load_spec, make_jobs, shadowed_settings
 
@@ -326,6 +327,8 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         _check_scene_inputs(out_dir, folders if isinstance(folders, dict) else {None: folders}, force,
                             measured=any(r.status == "ok" for r in before))
         all_jobs = make_jobs(spec, out_dir, folders, str(dev), threads=None)
+        for job in all_jobs:  # (a point whose record stands is not trained again: its run folder must be there)
+            finish_swap(Path(job["run_dir"]))
         hashes = {p["hash"] for j in all_jobs for p in j["points"]}  # this spec's points only
         current = {p["hash"]: p for j in all_jobs for p in j["points"]}  # (before the done ones leave the jobs)
         asked = len(spec.seed_values()) * sum(len(expand_points(spec.on_scene(n))) for n in spec.scene_names())
@@ -395,6 +398,15 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                 else:
                     console.print(f"  [red]{r.id} failed[/] in {r.stage}: {r.error}")
 
+        # what the same command does next: with --force every point is trained again, this sweep's too (a review:
+        # the advice said the finished points were kept)
+        again = ("Run the same sweep command again: the finished points are kept, the stopped one resumes from its "
+                 "checkpoint, and a point whose training had not started runs (a trained model is evaluated, not "
+                 "trained again)." if not force else
+                 "Without --force, the same command keeps what is measured: the points this sweep measured with their "
+                 "new records, the others (the stopped one too) with their earlier ones and runs; the stopped "
+                 "point's new training stays in its run folder's .retrain beside it. With --force again, every point "
+                 "is trained again, the stopped one resumed from its checkpoint.")
         with bar:
             try:
                 if executor == "ray":
@@ -404,12 +416,9 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                 else:
                     run_local(todo, jobs=jobs, retries=retries, on_records=record, on_start=started)
             except Interrupted as err:  # a point's training stopped on Ctrl-C: the sweep stops, it does not retry
-                raise Interrupted(f"sweep stopped: {err.message}", hint="Run the same sweep command again: the "
-                                  "finished points are kept and the stopped one resumes from its checkpoint.") from None
+                raise Interrupted(f"sweep stopped: {err.message}", hint=again) from None
             except KeyboardInterrupt:  # Ctrl-C elsewhere (a point's evaluation): the same advice
-                raise Interrupted("sweep stopped", path=out_dir, hint="Run the same sweep command again: the finished "
-                                  "points are kept and the others run again (a trained model is evaluated, not "
-                                  "trained again).") from None
+                raise Interrupted("sweep stopped", path=out_dir, hint=again) from None
 
         if whole is not spec:  # --scenes: the other scenes' points (a point's hash does not depend on its folder)
             current = everywhere

@@ -38,6 +38,26 @@ def _same_config(run_dir: Path, cfg) -> bool:
         return False
 
 
+def retrain_folders(run_dir: Path) -> tuple[Path, Path]:
+    """(``RUN.retrain``, ``RUN.retrained``): where ``sweep --force`` trains a finished run again, and the finished run
+    while the new one takes its place (``_train``)."""
+    return run_dir.with_name(f"{run_dir.name}.retrain"), run_dir.with_name(f"{run_dir.name}.retrained")
+
+
+def finish_swap(run_dir: Path) -> None:
+    """A forced training killed between its two renames (``_train``): the new run put in place (or the old one back
+    when the new one is not finished), the old one removed. The sweep calls it for every point before it decides
+    which are done: a point with a record is not trained again, and its run folder was missing."""
+    fresh, old = retrain_folders(run_dir)
+    if not run_dir.exists():
+        if (fresh / "train_summary.json").is_file():
+            fresh.rename(run_dir)
+        elif old.is_dir():
+            old.rename(run_dir)
+    if old.exists() and run_dir.exists():
+        shutil.rmtree(old)
+
+
 def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
     """Train the job's run unless it is finished; returns (train_summary, trained_now).
 
@@ -55,14 +75,8 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
     run_dir = Path(job["run_dir"])
     summary_path = run_dir / "train_summary.json"
     cfg = build_config(TrainConfig, job["train_config"], source=f"sweep job {job['job_id']}")
-    fresh, old = run_dir.with_name(f"{run_dir.name}.retrain"), run_dir.with_name(f"{run_dir.name}.retrained")
-    if not run_dir.exists():  # a forced training killed between its two renames: the swap finished
-        if (fresh / "train_summary.json").is_file():
-            fresh.rename(run_dir)
-        elif old.is_dir():
-            old.rename(run_dir)
-    if old.exists() and run_dir.exists():
-        shutil.rmtree(old)
+    fresh, old = retrain_folders(run_dir)
+    finish_swap(run_dir)
     before = job.get("retrain_before")
     finished = summary_path.is_file() and _same_config(run_dir, cfg)
     retrain = finished and before is not None and summary_path.stat().st_mtime < before
