@@ -37,18 +37,15 @@ test-all: setup
 
 # The tests of the tensor code once more with CUDA emulated on the CPU (tests/fake_cuda.py, --device fake-cuda):
 # a CPU tensor, a CPU generator or host access (.numpy(), data_ptr) in a CUDA computation fails here, without a
-# GPU; numerics, memory and CUDA kernels it cannot check. ~1.5 min on 2 cores. One process, as the emulator collects
+# GPU; numerics, memory and CUDA kernels it cannot check. ~3 min on 2 cores. One process, as the emulator collects
 # the session's findings and fails the run on any; two threads, as in `make test TEST_WORKERS=0`.
-FAKE_CUDA_TESTS ?= tests/unit/test_fake_cuda.py tests/unit/test_mc.py tests/unit/test_scores.py \
-	tests/unit/test_select.py tests/unit/test_predict.py tests/unit/test_consistency.py \
-	tests/unit/test_view_frames.py tests/unit/test_binning.py tests/unit/test_variational.py \
-	tests/unit/test_variational_fused.py tests/unit/test_informed_posterior.py tests/unit/test_exposure.py \
-	tests/unit/test_residual.py tests/unit/test_baselines.py tests/unit/test_budget.py tests/unit/test_cli.py \
-	tests/unit/test_ause.py tests/unit/test_calibration.py tests/unit/test_nll.py tests/unit/test_tails.py \
-	tests/unit/test_metrics_image.py tests/unit/test_metrics_depth.py tests/unit/test_prune_mask.py \
-	tests/unit/test_render_api.py tests/unit/test_strategy.py tests/unit/test_pipeline.py \
-	tests/numerics/test_render_parity.py tests/numerics/test_render_extremes.py \
-	tests/numerics/test_render_position_var.py tests/numerics/test_render_gradcheck.py
+FAKE_CUDA_TESTS ?= tests/unit/test_fake_cuda.py tests/e2e/test_cuda_paths.py tests/unit/test_mc.py \
+	tests/unit/test_scores.py tests/unit/test_consistency.py tests/unit/test_view_frames.py \
+	tests/unit/test_binning.py tests/unit/test_ause.py tests/unit/test_calibration.py tests/unit/test_nll.py \
+	tests/unit/test_tails.py tests/unit/test_metrics_image.py tests/unit/test_metrics_depth.py \
+	tests/unit/test_prune_mask.py tests/unit/test_render_api.py tests/numerics/test_render_parity.py \
+	tests/numerics/test_render_extremes.py tests/numerics/test_render_position_var.py \
+	tests/numerics/test_render_gradcheck.py
 
 test-fake-cuda: setup
 	OMP_NUM_THREADS=2 $(BIN)/python -m pytest -q -p no:xdist --device fake-cuda $(FAKE_CUDA_TESTS) $(PYTEST_ARGS)
