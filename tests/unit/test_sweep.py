@@ -584,10 +584,9 @@ def _fake_jobs(monkeypatch, log=None):
     monkeypatch.setattr(sweep_jobs, "run_job", fake)
 
 
-def test_a_point_of_other_settings_never_replaces_a_points_report(tmp_path, monkeypatch):
-    """points/ID.json was named by id alone: a run with --set train.seed=1 (other hashes, the same ids) replaced the
-    seed-0 reports, the only copies, while sweep.json went on showing seed 0's records; a deleted report was never
-    written again. Every report is kept by hash and points/ID.json follows the spec's records."""
+def _one_point_sweep(tmp_path, monkeypatch):
+    """(spec, output folder, its record): a one-point sweep of fake jobs (``_fake_jobs``) on an empty scene folder,
+    run once."""
     from uncertsplat.stages import sweep
 
     _fake_jobs(monkeypatch)
@@ -596,6 +595,16 @@ def test_a_point_of_other_settings_never_replaces_a_points_report(tmp_path, monk
     f.write_text('name = "x"\ntrain_preset = "tiny"\n[default]\niterations = 5\n')
     out = tmp_path / "out"
     (rec,) = sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1).records
+    return f, out, rec
+
+
+def test_a_point_of_other_settings_never_replaces_a_points_report(tmp_path, monkeypatch):
+    """points/ID.json was named by id alone: a run with --set train.seed=1 (other hashes, the same ids) replaced the
+    seed-0 reports, the only copies, while sweep.json went on showing seed 0's records; a deleted report was never
+    written again. Every report is kept by hash and points/ID.json follows the spec's records."""
+    from uncertsplat.stages import sweep
+
+    f, out, rec = _one_point_sweep(tmp_path, monkeypatch)
     report = out / "points" / f"{rec.id}.json"
     assert rec.hash in report.read_text()
     (other,) = sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1,
@@ -1120,12 +1129,7 @@ def test_a_swap_killed_between_its_renames_is_finished_before_any_point_is_skipp
     first."""
     from uncertsplat.stages import sweep
 
-    _fake_jobs(monkeypatch)
-    (tmp_path / "scene").mkdir()
-    f = tmp_path / "s.toml"
-    f.write_text('name = "x"\ntrain_preset = "tiny"\n[default]\niterations = 5\n')
-    out = tmp_path / "out"
-    (rec,) = sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1).records
+    f, out, rec = _one_point_sweep(tmp_path, monkeypatch)
     run = Path(rec.run_dir)
     (run.parent / f"{run.name}.retrain").mkdir(parents=True)  # the new training, finished, not yet in place
     (run.parent / f"{run.name}.retrain" / "train_summary.json").write_text("{}")
