@@ -431,6 +431,7 @@ def test_a_depth_gt_folder_in_the_scene_s_units_and_a_factor_that_cannot_be_righ
                                        depth_gt=tiny_scene_path / "depth"), device=torch.device("cpu"))
     (note,) = [n for n in one.notes if "probably in other units" in n]
     assert note.startswith("with the depth factor given (1), the GT depth is 4.")  # 1 / the scene's 0.247
+    assert "(maps in the scene's own units: --depth-scale scene;" in note  # the factor named, as a robotics user needed
     # on the console too (it was in metrics.json and the report only)
     assert "warning: with the depth factor given (1), the GT depth is 4." in " ".join(capsys.readouterr().err.split())
     assert one.depth_scale.method == "given" and one.mean.depth_abs_rel > 0.5
@@ -438,6 +439,12 @@ def test_a_depth_gt_folder_in_the_scene_s_units_and_a_factor_that_cannot_be_righ
                              device=torch.device("cpu"))  # the scene's own GT (normalised units): said so
     assert own_given.depth_scale.method == "given-scene"
     assert own_given.mean.depth_rmse == pytest.approx(own.mean.depth_rmse, rel=1e-5)
+    # a wrong factor on the scene's own GT (in the run's units: 1 is right) names no power of the scene's units
+    off = evaluate.run(run, EvalConfig(num_samples=2, max_views=2, save_maps=False, depth_scale=40.0),
+                       device=torch.device("cpu"))
+    (note,) = [n for n in off.notes if "probably in other units" in n]
+    assert "--depth-scale auto fits the factor" in note and "the run's depth to the maps' units" not in note
+    assert "the depth metrics are in the run's normalised units: x 4." in " ".join(capsys.readouterr().err.split())
 
 
 def test_cli_missing_run_is_clear(tmp_path):

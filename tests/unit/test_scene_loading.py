@@ -882,6 +882,19 @@ def test_depth_gt_as_16_bit_png_and_float_tiff_is_read_as_stored(tmp_path):
     with pytest.raises(UserError, match="no GT depth map for image 'images/view_000.png'") as err:
         load_depth_folder(folder, scene, [0])
     assert "the folder holds depth_000.png, view_001.tif: a map is found by its photo's name" in str(err.value)
+    (folder / "more").mkdir()  # five entries: four shown
+    (folder / "zz.npy").write_bytes(b"")
+    with pytest.raises(UserError) as err:
+        load_depth_folder(folder, scene, [0])
+    assert "the folder holds depth_000.png, more/, view_001.tif, zz.npy: a map" in str(err.value)
+    (folder / "yy.npy").write_bytes(b"")
+    with pytest.raises(UserError) as err:
+        load_depth_folder(folder, scene, [0])
+    assert "the folder holds depth_000.png, more/, view_001.tif, yy.npy, ...: a map" in str(err.value)
+    nested = tmp_path / "nested"
+    (nested / "x").mkdir(parents=True)  # the maps one level down
+    with pytest.raises(UserError, match=r"the folder holds only folders \(x/\): give the one that holds the maps"):
+        load_depth_folder(nested, scene, [0])
     (folder / "view_002.pfm").write_bytes(b"PF")
     with pytest.raises(UserError, match="no GT depth map for image 'images/view_002.png'") as err:
         load_depth_folder(folder, scene, [2])

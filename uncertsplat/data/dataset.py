@@ -300,11 +300,13 @@ def _other_depth_files(folder: Path, looked: Sequence[str], photos: Sequence[Pat
 def _folder_holds(folder: Path) -> str:
     """For ``load_depth_folder``'s error when no file has a looked-up name: a few of the files the folder holds (maps
     named otherwise, ``depth_000.png`` for ``view_000.png``, need renaming), or that it holds none."""
-    files = sorted(p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))[:4]
-    if not files:
-        return "; the folder holds no file"
-    return (f"; the folder holds {', '.join(files)}{', ...' if len(files) == 4 else ''}: a map is found by its "
-            "photo's name (rename the maps after the photos)")
+    entries = sorted(p.name + ("/" if p.is_dir() else "") for p in folder.iterdir() if not p.name.startswith("."))
+    if not entries:
+        return "; the folder is empty"
+    shown = ", ".join(entries[:4]) + (", ..." if len(entries) > 4 else "")
+    if not any(not e.endswith("/") for e in entries):  # (the maps one level down)
+        return f"; the folder holds only folders ({shown}): give the one that holds the maps"
+    return f"; the folder holds {shown}: a map is found by its photo's name (rename the maps after the photos)"
 
 
 def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) -> Tensor:

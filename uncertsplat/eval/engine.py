@@ -920,7 +920,9 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             # against GT in the run's normalised units (the scene's own) or a --depth-gt folder's
             method = (GIVEN_SCENE_GT if views.depth_known_scale else "given") if given else "scene"
             scale = type(scale)(scale.scale, method, scale.num_pixels)
-            notes += implausible_depth_scale_notes(dm, gts, base_mask, scale.scale, cfg.depth_scale, depth_to_source)
+            # (the power of ten of the scene's units is a hint for maps of one's own: the scene's own GT needs 1)
+            notes += implausible_depth_scale_notes(dm, gts, base_mask, scale.scale, cfg.depth_scale,
+                                                   depth_to_source if cfg.depth_gt is not None else None)
         else:
             try:
                 scale = align_depth_scale(dm, gts, mask=base_mask, method=cfg.depth_align)

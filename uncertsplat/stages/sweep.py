@@ -404,9 +404,10 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                  "checkpoint, and a point whose training had not started runs (a trained model is evaluated, not "
                  "trained again)." if not force else
                  "Without --force, the same command keeps what is measured: the points this sweep measured with their "
-                 "new records, the others (the stopped one too) with their earlier ones and runs; the stopped "
-                 "point's new training stays in its run folder's .retrain beside it. With --force again, every point "
-                 "is trained again, the stopped one resumed from its checkpoint.")
+                 "new records, the others with their earlier ones; a stopped point that had a record keeps it and its "
+                 "run (its new training waits in the run folder's .retrain), one that had none resumes from its "
+                 "checkpoint. With --force again, every point is trained again, a stopped training resumed from its "
+                 "checkpoint.")
         with bar:
             try:
                 if executor == "ray":
