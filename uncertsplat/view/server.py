@@ -78,6 +78,9 @@ class ViewState:
 
 
 MIN_FOV, MAX_FOV = 0.01, 3.1
+SAMPLES_RANGE, SIDE_RANGE, KEEP_RANGE = (2, 128), (128, 2048), (0.5, 1.0)
+"""The panel's sliders (still samples K, still resolution, prune keep ratio): their ranges, and what a value a client
+sends is clamped to (``_within``)."""
 """Radians: the vertical field of view a client's camera is taken at, at most (a value sent outside it is clamped)."""
 
 
@@ -246,11 +249,11 @@ class Viewer:
         self.gui_mode = gui.add_dropdown("Mode", tuple(labels), initial_value=labels[0],
                                          hint="What the view shows: the render, its depth, the posterior's std, or "
                                               "the Gaussians prune would remove.")
-        self.gui_samples = gui.add_slider("Samples (still)", min=2, max=128, step=2,
+        self.gui_samples = gui.add_slider("Samples (still)", min=SAMPLES_RANGE[0], max=SAMPLES_RANGE[1], step=2,
                                           initial_value=self.cfg.still_samples,
                                           hint="Posterior samples of a still std frame (K); moving frames use "
                                                f"{self.cfg.moving_samples}.")
-        self.gui_side = gui.add_slider("Resolution (still)", min=128, max=2048, step=32,
+        self.gui_side = gui.add_slider("Resolution (still)", min=SIDE_RANGE[0], max=SIDE_RANGE[1], step=32,
                                        initial_value=self.cfg.max_side,
                                        hint="Long side in pixels of a still frame; moving frames are smaller.")
         self.gui_lock = gui.add_checkbox("Lock colour range", initial_value=False,
@@ -259,7 +262,8 @@ class Viewer:
         with gui.add_folder("Prune preview", expand_by_default=True) as self.gui_prune_folder:
             scores = r.score_names() if r.prune_available else ["gate"]
             self.gui_score = gui.add_dropdown("Score", tuple(scores), initial_value=scores[0])
-            self.gui_keep = gui.add_slider("Keep ratio", min=0.5, max=1.0, step=0.01, initial_value=0.9,
+            self.gui_keep = gui.add_slider("Keep ratio", min=KEEP_RANGE[0], max=KEEP_RANGE[1], step=0.01,
+                                           initial_value=0.9,
                                            hint="Preview of prune --keep-ratio: the removed Gaussians are coloured.")
             self.gui_hide = gui.add_checkbox("Show only what is kept", initial_value=False)
         self.gui_cameras = gui.add_checkbox("Show cameras", initial_value=True)
@@ -451,7 +455,7 @@ class Viewer:
     def _full_side(self, v: ViewState) -> int:
         cam = v.client.camera
         canvas = max(int(cam.image_width or 0), int(cam.image_height or 0))
-        side = int(_within(self.gui_side.value, 128, 2048, self.cfg.max_side))
+        side = int(_within(self.gui_side.value, *SIDE_RANGE, self.cfg.max_side))
         return min(side, canvas) if canvas > 0 else side
 
     def _preview_side(self, v: ViewState, mode: str, renders: int) -> int:
@@ -487,7 +491,7 @@ class Viewer:
                 v.accumulator = self.renderer.std_accumulator(self._camera(v, self._full_side(v)))
                 v.accumulator_version = version
             cams = v.accumulator.cameras
-            k_total = int(_within(self.gui_samples.value, 2, 128, self.cfg.still_samples))
+            k_total = int(_within(self.gui_samples.value, *SAMPLES_RANGE, self.cfg.still_samples))
             step = min(k_move, k_total - v.accumulator.count)
             v.accumulator.add(step)
             frame = v.accumulator.frame(mode, value_range)
@@ -507,7 +511,7 @@ class Viewer:
             v.shown_version, v.shown_full = version, full
 
     def _frame(self, cams: Cameras, mode: str, samples: int, value_range) -> Frame:
-        keep = _within(self.gui_keep.value, 0.5, 1.0, 0.9)
+        keep = _within(self.gui_keep.value, *KEEP_RANGE, 0.9)
         return self.renderer.frame(cams, mode, num_samples=samples, value_range=value_range,
                                    score=str(self.gui_score.value), keep_ratio=keep,
                                    hide_removed=bool(self.gui_hide.value))
