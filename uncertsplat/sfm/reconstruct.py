@@ -827,6 +827,11 @@ def focal_outliers(rec: pycolmap.Reconstruction) -> dict[str, float]:
     for i in rec.reg_image_ids():
         image = rec.image(i)
         by_camera.setdefault(image.camera_id, []).append(image)
+    estimation = pycolmap.AbsolutePoseEstimationOptions()
+    estimation.estimate_focal_length = True
+    refinement = pycolmap.AbsolutePoseRefinementOptions()
+    refinement.refine_focal_length = True
+    refinement.refine_extra_params = False
     out: dict[str, float] = {}
     for camera_id, images in by_camera.items():
         if len(images) < 3:
@@ -841,11 +846,6 @@ def focal_outliers(rec: pycolmap.Reconstruction) -> dict[str, float]:
             xyz = np.array([rec.points3D[p.point3D_id].xyz for p in seen], dtype=np.float64)
             own = pycolmap.Camera(model=shared.model, width=shared.width, height=shared.height,
                                   params=shared.params.copy())
-            estimation = pycolmap.AbsolutePoseEstimationOptions()
-            estimation.estimate_focal_length = True
-            refinement = pycolmap.AbsolutePoseRefinementOptions()
-            refinement.refine_focal_length = True
-            refinement.refine_extra_params = False
             if pycolmap.estimate_and_refine_absolute_pose(xy, xyz, own, estimation, refinement) is None:
                 continue
             if own.mean_focal_length() > 0:
