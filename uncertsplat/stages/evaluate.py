@@ -736,7 +736,7 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
                     f"{m.calibration_error_gaussian:.3f}")
         console.print(f"RGB predictive: a Student-t with the std and {report.degrees_of_freedom:.3g} degrees of "
                       f"freedom ({where}; its 68 % interval is +-{_half_width(0.6827, report.degrees_of_freedom):.2f} "
-                      f"std, its 99.7 % one +-{_half_width(0.9973, report.degrees_of_freedom):.2f}){gaussian}")
+                      f"std, its 99.73 % (3-sigma) one +-{_half_width(0.9973, report.degrees_of_freedom):.2f}){gaussian}")
         if cfg.degrees_of_freedom == "fit" and report.degrees_of_freedom <= MIN_DOF + 1e-6:
             console.print(f"[yellow]note:[/] the tails' fit hit its limit ({MIN_DOF:g} degrees of freedom): the std "
                           "does not describe these errors' scale (a model that has not fitted its photos yet, or "
