@@ -22,7 +22,7 @@ from rich.text import Text
 
 from uncertsplat import __version__
 from uncertsplat.config import STAGE_PATH_KEYS as _PATH_KEYS
-from uncertsplat.console import console
+from uncertsplat.console import console, q
 from uncertsplat.errors import Interrupted, UserError
 
 app = typer.Typer(
@@ -34,6 +34,20 @@ app = typer.Typer(
 )
 
 _STATE = {"debug": False, "process": False}  # process: the command is the whole process (entrypoint)
+
+
+def _streams_that_cannot_fail() -> None:
+    """Output in an encoding without the characters we (and rich's help layout: its ellipsis) print, e.g. under
+    PYTHONIOENCODING=ascii or a latin-1 locale: a character the stream cannot hold is written as a replacement
+    instead of failing the command with UnicodeEncodeError."""
+    for stream in (sys.stdout, sys.stderr):
+        enc = (getattr(stream, "encoding", None) or "").lower().replace("-", "").replace("_", "")
+        if enc and enc != "utf8" and hasattr(stream, "reconfigure"):
+            with contextlib.suppress(ValueError, OSError):
+                stream.reconfigure(errors="backslashreplace")
+
+
+_streams_that_cannot_fail()
 
 DeviceOpt = Annotated[str, typer.Option("--device", help="auto (CUDA if available), cpu or cuda.")]
 SetOpt = Annotated[
@@ -105,8 +119,9 @@ def _handle_errors(fn):
         try:
             return fn(*args, **kwargs)
         except UserError as err:
-            if _STATE["debug"]:
-                raise
+            if _STATE["debug"]:  # the traceback, then the exit code of a user error, as without --debug
+                console.print_exception()
+                raise typer.Exit(130 if isinstance(err, Interrupted) else 2) from None
             # the message as plain text: a path or value in it must not be read as markup or an emoji code
             label = ("interrupted:", "bold yellow") if isinstance(err, Interrupted) else ("error:", "bold red")
             if isinstance(err, Interrupted):
@@ -200,7 +215,7 @@ def _config_file(path: Path) -> dict:
                              "tables.")
     if isinstance(data.get("stages"), list):  # a whole pipeline given to one command
         raise UserError("this is a pipeline file (it lists [[stages]]), not one command's --config file", path=path,
-                        hint=f"Run it with `uncertsplat run {path}`, or copy the keys of one stage's `config = {{...}}` "
+                        hint=f"Run it with `uncertsplat run {q(path)}`, or copy the keys of one stage's `config = {{...}}` "
                              "into a file of their own for --config.")
     for key in _PATH_KEYS:  # a relative path in the file is read from the file's folder, as a pipeline's photos are
         value = data.get(key)
@@ -286,7 +301,7 @@ def synth(
     cfg = _stage_config(SynthConfig, None, set_, explicit)
     stage.run(out, cfg, overwrite=overwrite)
     # the next command a user types (not printed by the stage: inside `run` the pipeline trains it)
-    console.print(f"Next: [bold]uncertsplat train {out} -o RUN --preset {cfg.preset}[/]")
+    console.print(f"Next: [bold]uncertsplat train {q(out)} -o RUN --preset {cfg.preset}[/]")
 
 
 @app.command()

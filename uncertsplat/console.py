@@ -2,23 +2,63 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import re
 import sys
+import time
 
 from rich.console import Console
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
     Progress,
+    TaskID,
     TextColumn,
     TimeElapsedColumn,
     TimeRemainingColumn,
 )
+from rich.table import Column
+
+# The markup tags our own messages use ("[yellow]note:[/]", "[bold]", "[dim]", ...). Any other bracketed text is the
+# user's (a folder named `scene[v2]`, a photo `IMG [2].jpg`): rich would read it as a tag and drop it, or fail on a
+# closing `[/]` that has nothing to close, so it is escaped before rich parses the markup.
+_STYLE_WORDS = frozenset({"bold", "dim", "italic", "underline", "yellow", "red", "green", "cyan", "blue", "magenta"})
+_TAG = re.compile(r"(\\*)\[([a-z#/@][^\[]*?)\]")
+
+
+def escape_foreign_markup(text: str) -> str:
+    """``text`` with every ``[...]`` that is not one of our style tags escaped, so rich prints it as it is: a tag of
+    ours is a style (``[yellow]``, ``[bold red]``) or the close of one that is open (``[/]``, ``[/bold]``)."""
+    out, at, depth = [], 0, 0
+    for m in _TAG.finditer(text):
+        tag = m.group(2)
+        if m.group(1):  # escaped already
+            continue
+        closing = tag.startswith("/")
+        words = (tag[1:] if closing else tag).split()
+        ours = all(w in _STYLE_WORDS for w in words) and (bool(words) or closing)
+        if ours and closing and depth > 0:
+            depth -= 1
+        elif ours and not closing:
+            depth += 1
+        else:
+            out.append(text[at:m.start()] + "\\")
+            at = m.start()
+    out.append(text[at:])
+    return "".join(out)
+
+
+def env_flag(name: str) -> bool:
+    """Whether the environment variable ``name`` is set to something that means yes (not "", 0, false, no, off)."""
+    return os.environ.get(name, "").strip().lower() not in ("", "0", "false", "no", "off")
 
 
 class _Console(Console):
     """rich's console, with ``rewrite`` (None: off) applied to each text printed: a pipeline stage's advice names its
-    command's options (``--set exposure=affine``), which in a pipeline are that stage's keys (``stages.pipeline``)."""
+    command's options (``--set exposure=affine``), which in a pipeline are that stage's keys (``stages.pipeline``).
+    Text of the user's (paths, names) is never read as markup (``escape_foreign_markup``), and a reader that went
+    away (``uncertsplat train ... | head``) stops the output, not the work: a training goes on to its end."""
 
     rewrite = None
 
@@ -27,25 +67,128 @@ class _Console(Console):
             objects = tuple(self.rewrite(o) if isinstance(o, str) else o for o in objects)
         super().print(*objects, **kwargs)
 
+    def log(self, *objects, **kwargs) -> None:  # noqa: D102
+        if self.is_terminal:
+            super().log(*objects, **kwargs)
+        else:  # (rich's log pads each line to the width with the time in a column: one plain line instead)
+            self.print(time.strftime("[%H:%M:%S]"), *objects, **kwargs)
 
-# Outside a terminal (CI logs, pipes) rich would wrap tables at 80 columns; give them room.
-console = _Console(stderr=True, highlight=False, width=None if sys.stderr.isatty() else 140)
+    def render_str(self, text: str, **kwargs):  # noqa: D102
+        markup = kwargs.get("markup")
+        if markup or (markup is None and self._markup):
+            text = escape_foreign_markup(text)
+        return super().render_str(text, **kwargs)
+
+    def on_broken_pipe(self) -> None:
+        """The reader of our output closed it (``uncertsplat train ... 2>&1 | head``): later output goes nowhere,
+        and the command goes on (rich's own handler exits with 1, which stopped a training without its
+        checkpoint)."""
+        self.quiet = True
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        for stream in (sys.stdout, sys.stderr):
+            with contextlib.suppress(OSError, ValueError, AttributeError):
+                os.dup2(devnull, stream.fileno())
+
+
+# Outside a terminal (CI logs, pipes, a cluster's log file) a line is written whole, never broken at a width (a path
+# or a suggested command stays one line to copy); tables get 140 columns there. rich's emoji codes are off: a name
+# such as `:cd:` is the user's, not an emoji.
+_TTY = sys.stderr.isatty()
+console = _Console(stderr=True, highlight=False, emoji=False, log_path=False, soft_wrap=not _TTY,
+                   width=None if _TTY else 140)
+
+
+class _Progress(Progress):
+    """rich's progress bars; where the console cannot redraw a bar (a log file, a pipe, TERM=dumb) rich shows it only
+    when it ends, so there a plain line is written at every tenth of a task and at least once a minute: `tail -f` on a
+    cluster's log shows the work moving."""
+
+    LINE_EVERY_S = 60.0
+    QUIET_FIRST_S = 10.0
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._lines: dict[TaskID, tuple[int, float]] = {}  # task -> (tenths written, time of the last line)
+
+    def update(self, task_id: TaskID, **kwargs) -> None:  # noqa: D102
+        super().update(task_id, **kwargs)
+        self._line(task_id)
+
+    def advance(self, task_id: TaskID, advance: float = 1) -> None:  # noqa: D102
+        super().advance(task_id, advance)
+        self._line(task_id)
+
+    def _line(self, task_id: TaskID) -> None:
+        if self.disable or self.console.is_interactive:
+            return
+        task = next((t for t in self.tasks if t.id == task_id), None)
+        if task is None or not task.total:
+            return
+        now = time.monotonic()
+        tenths, last = self._lines.get(task_id, (int(10 * task.completed / task.total), now))
+        reached = int(10 * task.completed / task.total)
+        # (a task done within seconds needs no lines: its bar is printed when it ends)
+        if (reached > tenths and (task.elapsed or 0) >= self.QUIET_FIRST_S) or now - last >= self.LINE_EVERY_S:
+            if task.completed < task.total:  # (the finished bar itself is printed when the bars stop)
+                info = task.fields.get("info") or ""
+                elapsed = int(task.elapsed or 0)
+                self.console.print(f"{task.description}: {int(task.completed)}/{int(task.total)} "
+                                   f"({elapsed // 60}:{elapsed % 60:02d}){'  ' + info if info else ''}",
+                                   markup=False)
+            tenths, last = reached, now
+        self._lines[task_id] = (tenths, last)
 
 
 def progress(transient: bool = False) -> Progress:
-    """A progress bar with counts and elapsed/remaining time; disabled when not a terminal in CI."""
-    disable = bool(os.environ.get("UNCERTSPLAT_NO_PROGRESS")) or (not sys.stderr.isatty() and bool(os.environ.get("CI")))
-    return Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        TextColumn("{task.fields[info]}"),
+    """A progress bar with counts and elapsed/remaining time; disabled when not a terminal in CI (or with
+    UNCERTSPLAT_NO_PROGRESS=1). The counts and times never give way to the info text in a narrow terminal."""
+    disable = env_flag("UNCERTSPLAT_NO_PROGRESS") or (not sys.stderr.isatty() and env_flag("CI"))
+    # rich shrinks every column alike when a row is too wide (an 80-column terminal showed "tr… 300/… 0:00…"): the
+    # info text alone gets what the bar, counts and times leave
+    bar = 40 if console.width >= 120 else 20 if console.width >= 100 else 10
+    info_width = max(8, console.width - bar - 40)  # (a description of 12, counts 9, times 2 x 7, the gaps)
+    return _Progress(
+        TextColumn("[bold]{task.description}", table_column=Column(no_wrap=True, max_width=24, overflow="ellipsis")),
+        BarColumn(bar_width=bar),
+        MofNCompleteColumn(table_column=Column(no_wrap=True)),
+        TimeElapsedColumn(table_column=Column(no_wrap=True)),
+        TimeRemainingColumn(table_column=Column(no_wrap=True)),
+        TextColumn("{task.fields[info]}", markup=False,
+                   table_column=Column(no_wrap=True, overflow="ellipsis", max_width=info_width)),
         console=console,
         transient=transient,
         disable=disable,
     )
+
+
+def print_table(table) -> None:
+    """Print a rich ``Table``; where the console is narrower than the table's natural width (rich would cut its
+    numbers and paths to "-1.5…" and "/home/…"), each row as one line of header=value pairs instead, whole."""
+    from rich.measure import Measurement
+
+    natural = Measurement.get(console, console.options.update_width(100_000), table).maximum
+    if natural <= console.width:
+        console.print(table)
+        return
+    if table.title:
+        console.print(str(table.title), markup=False)
+    columns = table.columns
+    rows = zip(*(list(c.cells) for c in columns), strict=True)
+    for row in rows:
+        cells = [str(c) for c in row]
+        if table.show_header:
+            first, rest = cells[0], [f"{columns[i].header}={c}" for i, c in enumerate(cells) if i > 0]
+            console.print("  " + first + ": " + "; ".join(rest), soft_wrap=False)
+        else:
+            console.print("  " + ": ".join(cells))
+
+
+def q(path) -> str:
+    """``path`` as a shell takes it in a command we suggest (quoted where it holds a space, a quote or another
+    character a shell reads): the command can be copied as printed."""
+    import shlex
+
+    return shlex.quote(str(path))
 
 
 def count(n: int, one: str, many: str | None = None) -> str:

@@ -41,6 +41,7 @@ import torch
 from torch import Tensor
 
 from uncertsplat.config import EVAL_SEED_MAX
+from uncertsplat.console import q
 from uncertsplat.errors import UserError
 from uncertsplat.types import Cameras, focal_unusable, principal_point_near_edge, principal_point_place
 
@@ -339,7 +340,7 @@ class Predictor:
                                 f"{problem}", path=err.path,
                                 hint=(err.hint or "Restore the scene folder.") if ensemble else
                                 (f"{err.hint} Or r" if err.hint else "R")
-                                + f"un `uncertsplat evaluate {run_dir}` where the scene is, with the settings you load "
+                                + f"un `uncertsplat evaluate {q(run_dir)}` where the scene is, with the settings you load "
                                 "(it keeps what the predictive needs in eval/predictive.pt), and copy the run folder "
                                 "with its eval/ folder.") from err
             scene = kept.scene

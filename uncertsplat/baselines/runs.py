@@ -24,6 +24,7 @@ from pathlib import Path
 import torch
 
 from uncertsplat.config import TrainConfig, build_config
+from uncertsplat.console import q
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import SAME_RENDER, Sampler
 from uncertsplat.gaussians.params import GaussianModel
@@ -299,14 +300,14 @@ class LoadedRun:
         if Path(self.scene_path) != Path(info.scene):  # (the cameras and the views' names are compared below)
             console.print(f"[yellow]note:[/] the scene this run was trained on, {info.scene}, is gone; reading the "
                           f"folder at the same place relative to the run, {self.scene_path} (the run was moved with "
-                          f"it); `uncertsplat train {self.scene_path} -o {self.run_dir} --resume` records it")
+                          f"it); `uncertsplat train {q(self.scene_path)} -o {q(self.run_dir)} --resume` records it")
 
         if own is not None:
             known = {*info.train, *info.test, *info.calibration}
             new = [n for n in data.cameras.image_names if n not in known]
             if new:  # what the user can do about it: train on them
                 console.print(f"[yellow]note:[/] {own}; {len(new)} view(s) it has not trained on "
-                              f"({list_names(new)}): `uncertsplat train {self.scene_path} -o {self.run_dir} --resume "
+                              f"({list_names(new)}): `uncertsplat train {q(self.scene_path)} -o {q(self.run_dir)} --resume "
                               "--add-views NAMES` trains on them")
             else:  # the run already trains on the grown scene: a reminder, not news
                 console.print(f"[dim]note: {own}[/]")

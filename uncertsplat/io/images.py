@@ -9,6 +9,7 @@ rename), so an interrupted run never leaves a half-written image under its final
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -43,12 +44,25 @@ def _clean_error(text: str) -> str:
     return lines[0] if lines else "unknown error"
 
 
+def _nameable(path: Path | str) -> str:
+    """``path`` as the text OpenImageIO takes; a name the file system's encoding could not decode (non-ASCII names
+    under a C/POSIX locale with Python's UTF-8 mode off) is refused with the fix, not a TypeError from the binding."""
+    text = str(path)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise UserError("this path cannot be passed to the image library under the current locale (its name is not "
+                        f"valid in the file system encoding {sys.getfilesystemencoding()})", path=path,
+                        hint="Run under a UTF-8 locale, e.g. LC_ALL=C.UTF-8, or with PYTHONUTF8=1.") from None
+    return text
+
+
 def _open(path: Path) -> oiio.ImageInput:
     if not path.exists():
         raise UserError("image file not found", path=path, hint="Check the path and the image folder.")
     if path.is_file() and path.stat().st_size == 0:
         raise UserError("image file is empty (0 bytes)", path=path, hint=_UNREADABLE_HINT)
-    inp = oiio.ImageInput.open(str(path))
+    inp = oiio.ImageInput.open(_nameable(path))
     if inp is None:
         error = _clean_error(_oiio_error())
         if path.is_file() and not os.access(path, os.R_OK):  # (OpenImageIO says "could not open": read as damaged)
@@ -293,6 +307,8 @@ def _write_array(path: Path, arr: np.ndarray, fmt, channel_names: Sequence[str] 
         spec.channelnames = tuple(channel_names)
     for k, v in (attributes or {}).items():
         spec.attribute(k, v)
+
+    _nameable(path)
 
     def write(tmp: str) -> None:
         out = oiio.ImageOutput.create(tmp)

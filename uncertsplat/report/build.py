@@ -18,6 +18,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from uncertsplat.console import q
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import GIVEN_SCENE_GT, MASKED_NOTE, SAME_RENDER, STD_TERMS
 from uncertsplat.eval.nll import NLL_WORSE_BY
@@ -163,7 +164,7 @@ def _missing_metrics_note(run: RunData, full: bool = True) -> str:
         return note(f"{run.name}: no eval/metrics.json, and {members[1] - members[0]} of the ensemble's {members[1]} "
                     "members are not trained yet: finish training (the note above), then `uncertsplat evaluate "
                     f"{run.path}`; metric sections are left out for this run.")
-    return _file_note(run, METRICS, f"no eval/metrics.json — run `uncertsplat evaluate {run.path}` to measure "
+    return _file_note(run, METRICS, f"no eval/metrics.json — run `uncertsplat evaluate {q(run.path)}` to measure "
                                     "the uncertainty; metric sections are left out for this run.")
 
 

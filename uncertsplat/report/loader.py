@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from uncertsplat.config import TrainConfig, build_config
+from uncertsplat.console import q
 from uncertsplat.conventions import ENSEMBLE_MEMBERS, ensemble_member_dir
 from uncertsplat.errors import UserError
 from uncertsplat.schemas import EvalReport, Manifest, PruneReport, ReconstructReport, RunScene, TrainSummary
@@ -247,7 +248,7 @@ def _training_notes(run: RunData) -> list[str]:
     if members is not None:  # (its checkpoints are the members': the run folder holds none)
         scene = run.scene_path if run.scene_path is not None else "SCENE"
         notes.append(f"training is not finished: {members[0]} of the ensemble's {members[1]} members are trained "
-                     f"(`uncertsplat train {scene} -o {run.path} --method ensemble --resume` trains the others; "
+                     f"(`uncertsplat train {q(scene)} -o {q(run.path)} --method ensemble --resume` trains the others; "
                      "`evaluate` needs them all)")
         return notes
     found = list_checkpoints(run.path)

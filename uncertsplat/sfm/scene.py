@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from uncertsplat.config import SceneConfig
-from uncertsplat.console import list_names
+from uncertsplat.console import list_names, q
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import IMAGE_EXTENSIONS, has_alpha, read_image_size
 from uncertsplat.schemas.reconstruct import EXTEND_DIR, REPORT_NAME
@@ -714,7 +714,7 @@ def require_same_cameras(recorded: dict[str, list[float]], data: SceneData, scen
                         f"with the cameras it was trained with, so {why}", path=scene,
                         hint="The scene folder was reconstructed again or its cameras edited after training (e.g. "
                              "`reconstruct --overwrite` into the same workspace): restore the workspace the run was "
-                             f"trained on, or train a new run on this one (uncertsplat train {scene} -o NEW_RUN).")
+                             f"trained on, or train a new run on this one (uncertsplat train {q(scene)} -o NEW_RUN).")
 
 
 def in_run_frame(cfg: SceneConfig, world_from_source, test: list[str], pool: list[str]) -> SceneConfig:

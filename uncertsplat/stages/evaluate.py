@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from uncertsplat.config import EvalConfig
-from uncertsplat.console import console
+from uncertsplat.console import console, print_table
 from uncertsplat.errors import UserError, run_folder_missing
 from uncertsplat.eval.engine import (
     GIVEN_SCENE_GT,
@@ -702,7 +702,7 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
     for name, v in rows:
         table.add_row(name, f(v.psnr, 2), f(v.ssim), f(v.ause_mae), f(v.ause_rmse), f(v.nll), f(v.calibration_error),
                       f(v.spearman), f(v.depth_ause_mae), f(v.seconds, 2))
-    console.print(table)
+    print_table(table)
     if report.noise_scale is not None:
         # a fitted level is worth a line (1, the default without views set aside, is not)
         if cfg.residual_scale == "fit" or (cfg.residual_scale == "auto" and report.calibration_held_out):

@@ -30,7 +30,7 @@ from uncertsplat.config import (
     parse_override,
     train_config_from,
 )
-from uncertsplat.console import console
+from uncertsplat.console import console, q
 from uncertsplat.errors import Interrupted, StageError, UserError, naming_overrides
 from uncertsplat.io.atomic import lock_holder, run_lock
 from uncertsplat.stages.manifest import (
@@ -351,7 +351,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
         # before any output folder exists: the pipeline's photo folder is a placeholder until the user sets it
         what = "is a file, not a photo folder" if Path(cfg.photos).exists() else "photo folder not found"
         raise UserError(f"{what} (the pipeline's `photos`)", path=Path(cfg.photos),
-                        hint=f"Give your photos: uncertsplat run {pipeline} -o {output} --set photos=/path/to/photos")
+                        hint=f"Give your photos: uncertsplat run {q(pipeline)} -o {q(output)} --set photos=/path/to/photos")
     dev = resolve_device(device or cfg.device)
     root = Path(output)
 

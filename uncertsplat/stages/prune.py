@@ -50,7 +50,7 @@ import numpy as np
 import torch
 
 from uncertsplat.config import EvalConfig, PruneConfig
-from uncertsplat.console import console
+from uncertsplat.console import console, print_table, q
 from uncertsplat.errors import Interrupted, UserError, run_folder_missing
 from uncertsplat.io.atomic import current_umask, temp_stem
 from uncertsplat.provenance import file_sha256
@@ -252,7 +252,7 @@ def _print_table(title: str, rows: list[tuple[str, PruneMetrics]]) -> None:
         table.add_row(name, str(m.num_gaussians), f(m.psnr, 2), f(m.psnr_render, 2), f(m.ssim), f(m.ause_mae),
                       f(m.nll), f(m.coverage), f(m.variational_ply_bytes / 1e6, 2),
                       f(m.point_cloud_ply_bytes / 1e6, 2))
-    console.print(table)
+    print_table(table)
 
 
 def rebuild_from_mask(run_dir: str | Path, mask_file: str | Path, device: torch.device | str = "cpu"):
@@ -334,7 +334,7 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
     model = loaded.model
     if loaded.config.method == "ensemble" and model.num_carriers > 0:  # members of our model: each can be pruned
         raise UserError("an ensemble is pruned member by member: its members are runs of their own", path=run_dir,
-                        hint=f"Prune a member, e.g. uncertsplat prune {run_dir / 'members' / 'member_0'} -o OUT.")
+                        hint=f"Prune a member, e.g. uncertsplat prune {q(run_dir / 'members' / 'member_0')} -o OUT.")
     if model.num_carriers == 0:
         method = loaded.config.method
         article = "an" if method[0] in "aeiou" else "a"
@@ -496,12 +496,12 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         except KeyboardInterrupt:
             raise Interrupted(f"prune stopped while it evaluated the pruned run: the run is written to {output}, but "
                               "prune.json's 'after' row holds only the expected render's PSNR", path=output,
-                              hint=f"`uncertsplat evaluate {output}` scores the pruned run (its eval/ folder); or "
+                              hint=f"`uncertsplat evaluate {q(output)}` scores the pruned run (its eval/ folder); or "
                                    f"delete {output} and prune again for a complete prune.json.") from None
         except UserError as err:  # (a full disk while it wrote the maps): its own advice, "run again", would be refused
             raise UserError(f"prune wrote the pruned run to {output}, then its evaluation failed: {err.message}",
                             path=err.path or output,
-                            hint=(f"{err.hint} " if err.hint else "") + f"Then `uncertsplat evaluate {output}` scores the "
+                            hint=(f"{err.hint} " if err.hint else "") + f"Then `uncertsplat evaluate {q(output)}` scores the "
                                  f"pruned run (running prune again into {output} is refused: the folder exists; "
                                  f"delete it first for a complete prune.json).") from None
         notes.append(f"{PRUNED_FROM_EVALUATE} ({output / 'eval' / 'metrics.json'}: "

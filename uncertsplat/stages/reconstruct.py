@@ -19,7 +19,7 @@ from collections import Counter
 from pathlib import Path
 
 from uncertsplat.config import ReconstructConfig
-from uncertsplat.console import add_views_args, console, list_names, progress
+from uncertsplat.console import add_views_args, console, list_names, progress, q
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.io.atomic import check_output_folder, run_lock
 from uncertsplat.sfm import reconstruct as sfm
@@ -586,7 +586,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
     if existing is None or not existing.success or any(not p.exists() for p in needed):
         raise UserError("--extend needs a finished workspace of `uncertsplat reconstruct` (its report, database.db, "
                         "distorted/sparse/0)", path=workspace,
-                        hint=f"Reconstruct the photos first: uncertsplat reconstruct {photos} -o {workspace}")
+                        hint=f"Reconstruct the photos first: uncertsplat reconstruct {q(photos)} -o {q(workspace)}")
     ws_cfg = ReconstructConfig.model_validate({**existing.options, "num_threads": cfg.num_threads})
     # of copies and photos sharing a name stem the workspace's own are kept (a new copy sorted first took its place)
     scan = sfm.scan_photos(photos, prefer=set(existing.images_registered))
@@ -725,7 +725,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                       "that shape in either orientation joins, resized)")
     usable = [n for n in added if n not in odd]
     if usable:
-        console.print(f"Next: a run trained on {workspace} trains on them with [bold]uncertsplat train {workspace} -o "
+        console.print(f"Next: a run trained on {workspace} trains on them with [bold]uncertsplat train {q(workspace)} -o "
                       f"RUN --resume {add_views_args(usable)} --iterations N[/] (N: the steps to train to, past "
                       "the run's own: a finished run has none left for them)")
     return report

@@ -17,7 +17,7 @@ import re
 from pathlib import Path
 
 from uncertsplat.config import ReportConfig
-from uncertsplat.console import console
+from uncertsplat.console import console, q
 from uncertsplat.errors import UserError
 from uncertsplat.io.atomic import atomic_write_bytes, atomic_write_json, atomic_write_text, staging_folder
 from uncertsplat.report.html import is_report_page
@@ -129,7 +129,7 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
         if r.metrics is not None and r.metrics.split == "test" and evaluation_is_current(r.path, r.metrics) is False:
             r.notes.append(f"its eval/metrics.json scored an earlier state of the run (the model, config or scene "
                            f"changed since, e.g. by `train --resume`), so the metrics shown are that model's: run "
-                           f"`uncertsplat evaluate {r.path}` again, then this report")
+                           f"`uncertsplat evaluate {q(r.path)}` again, then this report")
     earlier = _figures_written_before(out)  # (_check_output let it through: empty, a report, or a stopped one's)
     listed = set(earlier)
     # the figures are written apart and put in place with the page: a report that fails midway (a full disk, a kill)

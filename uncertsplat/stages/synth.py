@@ -8,7 +8,7 @@ from pathlib import Path
 from rich.table import Table
 
 from uncertsplat.config import SynthConfig
-from uncertsplat.console import console, progress
+from uncertsplat.console import console, print_table, progress
 from uncertsplat.data.synthetic import GENERATOR_VERSION, generate_scene, read_scene_meta, resolve_size
 from uncertsplat.errors import UserError
 from uncertsplat.io.atomic import run_lock
@@ -89,5 +89,5 @@ def run(out: Path, cfg: SynthConfig, overwrite: bool = False) -> Path:
     if cfg.layout == "colmap":
         table.add_row("sparse/0/", f"COLMAP model: PINHOLE camera, GT poses, {meta.num_points} points")
     table.add_row("scene.json", "preset, seed, layout, rig, intrinsics, image names, test views")
-    console.print(table)
+    print_table(table)
     return out

@@ -14,6 +14,7 @@ from typing import Any
 import torch
 
 from uncertsplat.config import TrainConfig
+from uncertsplat.console import q
 
 
 def resolve_config(preset: str | None, data: dict[str, Any], method: str | None, explicit: dict[str, Any],
@@ -120,5 +121,5 @@ def run(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.device, resu
             from uncertsplat.console import console
 
             console.print(f"the viewer drew {live.frames} frames ({live.share:.1%} of the training time); it closes "
-                          f"now: `uncertsplat view {run_dir}` shows the trained model")
+                          f"now: `uncertsplat view {q(run_dir)}` shows the trained model")
         live.close()

@@ -22,7 +22,7 @@ import torch
 
 from uncertsplat import native
 from uncertsplat.config import TrainConfig, VariationalConfig, build_config
-from uncertsplat.console import console, count, list_names
+from uncertsplat.console import console, count, list_names, q
 from uncertsplat.conventions import ENSEMBLE_MEMBERS
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.gaussians.variational import describe_posterior
@@ -234,7 +234,7 @@ def _check_same_scene(before: RunScene, scene: Path, names: tuple[str, ...], run
         why = (f"{len(missing)} of its images are not in {scene} (e.g. {missing[0]})" if missing
                else f"that scene is still at {recorded}")
         raise UserError(f"the run was trained on {recorded}, not on {scene}: {why}", path=run_dir,
-                        hint=f"Resume it on its own scene: uncertsplat train {recorded} -o {run_dir} --resume "
+                        hint=f"Resume it on its own scene: uncertsplat train {q(recorded)} -o {q(run_dir)} --resume "
                              "(or train the other scene into a new run folder).")
     console.print(f"[yellow]note:[/] the run's scene was at {recorded} (gone); resuming on {scene}, which holds "
                   "all of its images")
@@ -381,7 +381,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             # --resume would be refused on this scene: say whose run it is instead of advising it
             raise UserError(f"the run folder already exists and holds a run of another scene ({before.scene})",
                             path=run_dir, hint="Choose another output folder (-o) for this scene, or resume that run "
-                                               f"on its own: uncertsplat train {before.scene} -o {run_dir} --resume")
+                                               f"on its own: uncertsplat train {q(before.scene)} -o {q(run_dir)} --resume")
         raise UserError("the run folder already exists" + (f" and holds a run trained for {steps} steps" if steps
                                                            else ""), path=run_dir,
                         hint=("Add --resume --iterations N (N > its steps) to train it on" if steps else
@@ -632,7 +632,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             trainer.fit()
         except TrainingInterrupted as err:
             raise Interrupted(f"training interrupted at step {err.step}; checkpoint saved ({err.path})",
-                              hint=f"Continue with: uncertsplat train {scene} -o {resume_dir or run_dir} --resume") from None
+                              hint=f"Continue with: uncertsplat train {q(scene)} -o {q(resume_dir or run_dir)} --resume") from None
 
         meta = {"variant": cfg.variant, "extent": trainer.extent, "step": trainer.step,
                 "sh_degree_active": trainer.sh_degree, "temperature": cfg.variational.gate_temperature}
