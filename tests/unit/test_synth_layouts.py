@@ -150,3 +150,59 @@ def test_cli_synth_layout_options(tmp_path):
     assert bad.exit_code == 2 and "layout" in bad.output and "Traceback" not in bad.output
     text = runner.invoke(app, ["synth", "--help"]).output
     assert "--layout" in text and "--rig" in text and "--backdrop" in text
+
+
+def _plain_copy(blender, out):
+    """The synthetic Blender scene as a user's own RGBA capture: its transforms and images, no masks/ or scene.json."""
+    out.mkdir()
+    for name in ("train", "test", "transforms_train.json", "transforms_test.json"):
+        src = blender / name
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, out / name)
+    return out
+
+
+def test_transparent_photos_are_scored_on_their_objects(pair, tmp_path):
+    # a user's RGBA capture has no masks/: the photos' alpha stands for them, else the background it is composited
+    # over (trivially right) made its metrics look far better than its objects are
+    _, blender = pair
+    synth = load_scene(blender, SceneConfig(normalize=False))
+    plain = load_scene(_plain_copy(blender, tmp_path / "plain"), SceneConfig(normalize=False))
+    assert any("evaluate scores their objects only" in n for n in plain.notes)
+    order = [_by_stem(plain)[n.rsplit("/", 1)[-1]] for n in synth.cameras.image_names]
+    own = load_masks(synth, list(range(len(order))))[..., 0]
+    from_alpha = load_masks(plain, order)[..., 0]
+    assert 0.05 < float(from_alpha.float().mean()) < 0.95
+    # alpha >= 0.5 against the synthetic masks' centre ray: the same pixels but for a few on the silhouettes
+    assert float((own != from_alpha).float().mean()) < 0.02
+
+
+def test_opaque_alpha_gives_no_masks(tmp_path):
+    cfg = dict(preset="tiny", num_views=3, width=24, layout="blender")
+    scene_dir = generate_scene(tmp_path / "room", SynthConfig(**cfg))  # RGBA files, alpha 1 everywhere
+    plain = load_scene(_plain_copy(scene_dir, tmp_path / "plain"), SceneConfig(normalize=False))
+    assert load_masks(plain) is None
+
+
+def test_unseen_score_leaves_a_known_background_out():
+    from uncertsplat.select.scores import unseen_scores
+    from uncertsplat.types import Cameras
+
+    cams = Cameras(K=torch.eye(3).expand(2, 3, 3).clone(), cam_from_world=torch.eye(4).expand(2, 4, 4).clone(),
+                   width=4, height=2)
+    blended = {0: torch.full((2, 4), 0.25), 1: torch.full((2, 4), 0.25)}
+    alpha = {0: torch.ones(2, 4), 1: torch.zeros(2, 4)}  # view 1: every ray meets nothing
+
+    def fake_blend(sample, u, cam, render_fn):
+        c = int(cam.cam_from_world[0, 0, 3])
+        return blended[c], alpha[c]
+
+    cams.cam_from_world[1, 0, 3] = 1.0
+    import uncertsplat.uncertainty.residual as residual
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(residual, "blend_values", fake_blend)
+    try:
+        assert unseen_scores(None, None, None, cams).tolist() == [0.25, 1.25]
+        assert unseen_scores(None, None, None, cams, empty_unknown=False).tolist() == [0.25, 0.25]
+    finally:
+        mp.undo()

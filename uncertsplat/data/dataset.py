@@ -237,13 +237,22 @@ def load_depths(scene: SceneData, indices: Sequence[int] | None = None, device=N
     return out
 
 
+ALPHA_MASK_AT = 0.5
+"""A transparent photo's pixel is scored where its alpha (averaged over the source pixels under it) reaches this:
+the object, not the background it is composited over."""
+
+
 def load_masks(scene: SceneData, indices: Sequence[int] | None = None, device=None) -> Tensor | None:
     """Validity masks [C,H,W,1] bool, or None when the scene has none.
 
-    A downscaled pixel is valid only when every source pixel under it is valid.
+    A scene's own masks (a synthetic scene's ``masks/``): a downscaled pixel is valid only when every source pixel
+    under it is valid. Without them, photos with real transparency (an alpha channel below 1 somewhere: an object
+    capture with its background removed, NeRF-synthetic's RGBA) are scored on their objects, alpha >=
+    ``ALPHA_MASK_AT``: the background they are composited over is trivially right, and counted in it made a model's
+    AUSE 0.048 and NLL -4.7 where its objects scored 0.285 and -0.46.
     """
     if scene.mask_paths is None:
-        return None
+        return _alpha_masks(scene, indices, device)
     W, H = scene.cameras.width, scene.cameras.height
     idx = _indices(scene, indices)
     out = torch.empty((len(idx), H, W, 1), dtype=torch.bool, device=device)  # [C,H,W,1], filled as load_images
@@ -253,6 +262,26 @@ def load_masks(scene: SceneData, indices: Sequence[int] | None = None, device=No
         cut = 0.0 if 0.0 < float(m.max()) <= 1.5 / 255.0 else 0.5
         out[k, ..., 0] = torch.from_numpy(resize_image((m > cut).astype(np.float32), W, H) >= 1.0 - 1e-6)
     return out
+
+
+def _alpha_masks(scene: SceneData, indices: Sequence[int] | None, device) -> Tensor | None:
+    """``load_masks`` from the photos' alpha channels, or None when none of these photos is transparent."""
+    from uncertsplat.io.images import read_alpha
+
+    W, H = scene.cameras.width, scene.cameras.height
+    idx = _indices(scene, indices)
+    out = torch.ones((len(idx), H, W, 1), dtype=torch.bool, device=device)
+    transparent = False
+    for k, i in enumerate(idx):
+        a = read_alpha(scene.image_paths[i])
+        if a is None or bool((a >= 1.0).all()):
+            continue
+        transparent = True
+        if scene.photo_fits is not None:  # turned and cropped as its photo (read_photo)
+            a = fit_photo(scene.photo_fits[i], a[..., None])[..., 0]
+        out[k, ..., 0] = torch.from_numpy(resize_image(np.ascontiguousarray(a, dtype=np.float32), W, H)
+                                          >= ALPHA_MASK_AT)
+    return out if transparent else None
 
 
 def depth_map_names(name: str, names: Sequence[str]) -> list[str]:

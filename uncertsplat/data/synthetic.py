@@ -441,13 +441,16 @@ def look_at(center: Tensor, target: Tensor, up: Tensor) -> Tensor:
     return M
 
 
-def hemisphere_cameras(num_views: int, width: int, height: int, seed: int) -> tuple[Tensor, Tensor]:
+def hemisphere_cameras(num_views: int, width: int, height: int, seed: int,
+                       test_every: int = 8) -> tuple[Tensor, Tensor]:
     """GT cameras spread over the upper hemisphere of radius ``HEMI_RADIUS`` around ``LOOK_AT``, all looking
     exactly at it (the NeRF-synthetic rig).
 
-    Elevations are even in area (sin(elevation) evenly spaced over ``HEMI_ELEVATION``, jittered) and the
-    azimuths follow a golden-angle spiral, so the views cover the hemisphere evenly for any count and
-    every ``test_every``-th view samples all elevations.
+    Elevations are even in area (sin(elevation) evenly spaced over ``HEMI_ELEVATION``, jittered), so every
+    ``test_every``-th view (the held-out ones) samples all elevations. The azimuths follow two golden-angle
+    spirals, one through the held-out views and one through the others: one spiral through all of them put every
+    8th view 20 degrees after the one before (8 golden angles are 20 degrees short of three turns), so the held-out
+    views of 40 sat within 100 degrees of each other, on one side of the object.
 
     Returns:
         cam_from_world [C,4,4] float64 (OpenCV axes), K [3,3] float64 (shared PINHOLE intrinsics).
@@ -464,7 +467,10 @@ def hemisphere_cameras(num_views: int, width: int, height: int, seed: int) -> tu
     for i in range(num_views):
         u = (i + 0.5 + _rand(g, -0.3, 0.3)) / num_views
         el = math.asin(lo + (hi - lo) * u)
-        az = az0 + i * golden
+        if i % test_every == 0:
+            az = az0 + (i // test_every) * golden
+        else:  # (the k-th of the others, offset by half a golden angle from the held-out spiral)
+            az = az0 + (0.5 + (i - i // test_every - 1)) * golden
         center = target + HEMI_RADIUS * torch.tensor(
             [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)], dtype=torch.float64)
         mats.append(look_at(center, target, up))
@@ -641,7 +647,7 @@ _OUTPUTS = {"colmap": ("images", "depth", "masks", "sparse", "scene.json"),
 def make_cameras(cfg: SynthConfig, num_views: int, width: int, height: int) -> tuple[Tensor, Tensor]:
     """The GT cameras of ``cfg.rig``: cam_from_world [C,4,4] float64 (OpenCV axes), K [3,3] float64."""
     if cfg.rig == "hemisphere":
-        return hemisphere_cameras(num_views, width, height, cfg.seed)
+        return hemisphere_cameras(num_views, width, height, cfg.seed, cfg.test_every)
     return orbit_cameras(num_views, width, height, cfg.seed)
 
 

@@ -774,7 +774,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if inside < MASKED_NOTE_BELOW:  # train's held-out PSNR is over whole images: the two differ on such scenes
         notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
                      f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out PSNR "
-                     "over whole images")
+                     "over whole images; the masks are a synthetic scene's, or the objects of transparent photos "
+                     "(alpha >= 0.5: the background they are composited over left out)")
     # a model without a posterior: its spread term is 0 too
     terms = ["the variance of the K samples" + (" (0: K = 1)" if K == 1 else
                                               f" (0 for this model: {SAME_RENDER})" if same else "")]

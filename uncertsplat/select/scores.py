@@ -21,7 +21,9 @@
 - ``unseen``: the share of the candidate's view that shows what the data has not pinned down: each carrier's
   position variance relative to the prior's (1 = the prior: no view constrains it; near 0: the data sets it;
   ``gaussians.variational``'s tables), blended like a colour over the candidate's pixels, plus the
-  transmittance left behind the last Gaussian (a ray that meets nothing shows the unknown). Unlike the RGB std
+  transmittance left behind the last Gaussian (a ray that meets nothing shows the unknown; not where the training
+  photos were transparent: such a ray shows the known background, and counted it ranked an object capture's
+  candidates by how much background they showed, Spearman 0.81). Unlike the RGB std
   it does not grow with the texture or the edges in view, only with the posterior (one render per candidate).
   ``gaps`` (``SelectConfig.gaps``) lets only the candidates in the capture's gaps compete (``gap_eligible``): a
   candidate at least that fraction of the farthest candidate's distance from the cameras used, so the Fisher
@@ -145,14 +147,16 @@ def relative_position_variance(model, prior) -> Tensor:
 
 
 @torch.no_grad()
-def unseen_scores(sample, uncertainty: Tensor, render_fn: Callable, cameras: Cameras) -> Tensor:
-    """[C] the mean over each candidate's pixels of ``sum_i w_i u_i + (1 - alpha)`` (see the module docstring)."""
+def unseen_scores(sample, uncertainty: Tensor, render_fn: Callable, cameras: Cameras, *,
+                  empty_unknown: bool = True) -> Tensor:
+    """[C] the mean over each candidate's pixels of ``sum_i w_i u_i + (1 - alpha)`` (see the module docstring);
+    ``empty_unknown`` False (transparent training photos: the background is known): ``sum_i w_i u_i`` alone."""
     from uncertsplat.uncertainty.residual import blend_values
 
     out = []
     for c in range(len(cameras)):
         blended, alpha = blend_values(sample, uncertainty, cameras[[c]], render_fn)
-        out.append(float((blended + (1.0 - alpha)).mean()))
+        out.append(float((blended + (1.0 - alpha) if empty_unknown else blended).mean()))
     return torch.tensor(out, dtype=torch.float64)
 
 

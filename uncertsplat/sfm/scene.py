@@ -430,11 +430,8 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
         notes = [*notes, f"the workspace holds {len(others) + 1} COLMAP models; {sparse.relative_to(path)} is used "
                          f"({len(model.images)} images); the others ({', '.join(str(d.relative_to(path)) for d in others)}) "
                          "are not: reconstruct again (e.g. more overlap, --matcher exhaustive) to join them"]
-    with_alpha = [p.relative_to(image_dir).as_posix() for p in paths if has_alpha(p)]
-    if with_alpha:  # (reconstruct's own workspaces hold none: COLMAP's undistorter writes the colour channels)
-        notes = [*notes, f"{len(with_alpha)} photo(s) have an alpha channel: where they are transparent, training "
-                         f"sees them composited over scene.background {list(cfg.background)} "
-                         f"({list_names(with_alpha, 8)})"]
+    # (reconstruct's own workspaces hold none: COLMAP's undistorter writes the colour channels)
+    notes = [*notes, *_alpha_note(paths, image_dir, cfg)]
     unused = _photos_not_in_model(image_dir, model)
     if unused:  # photos a user put there for the scene, which it does not hold
         notes = [*notes, f"{len(unused)} photo(s) in {image_dir} are not in the COLMAP model and are not used: "
@@ -505,8 +502,28 @@ def _load_synthetic(path: Path, cfg: SceneConfig, meta: SynthScene, initial_poin
 
 def _from_transforms(found: TransformsScene, cfg: SceneConfig, initial_points: bool = True) -> SceneData:
     """SceneData of a Blender / nerfstudio folder (random initial points when it has no point cloud)."""
-    return _finish(found.cameras, list(found.paths), found.points, found.points_rgb, cfg, source=found.source,
+    data = _finish(found.cameras, list(found.paths), found.points, found.points_rgb, cfg, source=found.source,
                    default_split=found.split, random_init=initial_points, intrinsics_from=found.file)
+    root = Path(found.file) if Path(found.file).is_dir() else Path(found.file).parent
+    return _with_notes(data, _alpha_note(list(found.paths), root, cfg))
+
+
+def _alpha_note(paths: list[Path], root: Path, cfg: SceneConfig) -> list[str]:
+    """The note on photos with an alpha channel: the background training sees them over, and what evaluate
+    scores (the NeRF-synthetic layout said nothing, and its white background is not our default)."""
+    with_alpha = []
+    for p in paths:
+        if has_alpha(p):
+            try:
+                with_alpha.append(p.relative_to(root).as_posix())
+            except ValueError:
+                with_alpha.append(p.name)
+    if not with_alpha:
+        return []
+    return [f"{len(with_alpha)} photo(s) have an alpha channel: where they are transparent, training sees them "
+            f"composited over scene.background {list(cfg.background)} (NeRF-synthetic's is white: --set "
+            "'scene.background=[1,1,1]'), and evaluate scores their objects only (alpha >= 0.5) "
+            f"({list_names(with_alpha, 8)})"]
 
 
 # ------------------------------------------------------------------------------------- split, normalise

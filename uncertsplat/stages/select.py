@@ -284,7 +284,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
             sample = sampler.det_sample if sampler.det_sample is not None else sampler.sample_fn(
                 torch.Generator(device=device).manual_seed(cfg.seed))
             first = unseen_scores(sample, relative_position_variance(loaded.model, loaded.prior), sampler.render_fn,
-                                  low)
+                                  low, empty_unknown=not loaded.transparent)
         else:
             if loaded.config.method == "deterministic" or (loaded.model.num_carriers == 0
                                                             and loaded.config.method not in ("ensemble", "fisher")):
