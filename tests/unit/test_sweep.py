@@ -992,7 +992,7 @@ def test_a_point_s_peak_memory_is_its_own():
     assert peak_memory_mb(cpu) < high - 200
 
 
-def test_force_trains_a_finished_run_again_beside_it(tmp_path, monkeypatch):
+def test_force_trains_a_finished_run_again_beside_it(tmp_path, monkeypatch, capsys):
     """`sweep --force` evaluated every point again but reused each finished run, so a point's training time was an
     earlier sweep's: a run finished before the forced sweep started is trained again from step 0, beside it, and put
     in its place when done; one it trained itself (a retry of a point whose evaluation failed) and an unfinished one
@@ -1033,8 +1033,10 @@ def test_force_trains_a_finished_run_again_beside_it(tmp_path, monkeypatch):
     assert (run / "weights.bin").read_text() == "training 1" and (run / "train_summary.json").is_file()
     assert jobs._train(job, "cpu") == ("summary", False)  # a sweep without --force reuses it
     stop_training = False
+    capsys.readouterr()
     assert jobs._train(forced, "cpu") == ("summary", True)  # --force again: the new training resumed, then swapped
     assert calls[-1] == ("variational_x.retrain", True)
+    assert f"retrained: {run} (trained in variational_x.retrain" in capsys.readouterr().err
     assert (run / "weights.bin").read_text() == f"training {len(calls)}"
     assert sorted(p.name for p in run.parent.iterdir()) == ["variational_x"]
     assert jobs._train({**job, "retrain_before": time.time() - 60}, "cpu") == ("summary", False)  # trained since

@@ -100,6 +100,9 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
         run_dir.rename(old)
         fresh.rename(run_dir)  # (beside each other: the run's paths relative to itself hold)
         shutil.rmtree(old)
+        # (train's own last line named the folder it trained in, RUN.retrain, which is gone now)
+        print(f"retrained: {run_dir} (trained in {fresh.name}, now in place of the finished run)", file=sys.stderr,
+              flush=True)
         return TrainSummary.read(summary_path), True
     resume = (run_dir / "config.json").is_file()
     if run_dir.exists() and not resume:
