@@ -281,6 +281,12 @@ def main() -> None:
     ap.add_argument("--arc-fraction", type=float, default=0.2, help="arc protocol: the last fraction of the capture")
     ap.add_argument("--preset", default="demo", help="training preset (paper for LLFF-like photos)")
     ap.add_argument("--downscale", type=float, default=None)
+    ap.add_argument("--rig", choices=["ring", "hemisphere"], default="ring",
+                    help="the synthetic scene's cameras: a ring around a room, or a hemisphere over objects (with "
+                    "--backdrop transparent, an object capture as NeRF-synthetic's)")
+    ap.add_argument("--backdrop", choices=["room", "transparent"], default="room")
+    ap.add_argument("--layout", choices=["colmap", "blender"], default="colmap",
+                    help="blender: no sparse points (random initial points, carved by the photos' alpha)")
     ap.add_argument("--points", choices=["train", "all"], default="train",
                     help="initial points: those the training views see (as SfM on them would give), or all")
     ap.add_argument("--set", action="append", default=[], help="key=value for every method's TrainConfig")
@@ -304,7 +310,8 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     scene_dir = args.scene if args.scene is not None else args.out / "scene"
     if args.scene is None and not (scene_dir / "scene.json").is_file():
-        generate_scene(scene_dir, SynthConfig(preset="demo", seed=0, width=args.width))
+        generate_scene(scene_dir, SynthConfig(preset="demo", seed=0, width=args.width, rig=args.rig,
+                                              backdrop=args.backdrop, layout=args.layout))
         if args.exposure_jitter > 0:
             jitter_exposure(scene_dir, args.exposure_jitter, args.seed)
     if args.protocol == "half-ring":
@@ -368,7 +375,7 @@ def main() -> None:
     out = {"label": args.label, "machine": args.machine, "date": time.strftime("%Y-%m-%d"),
            "torch": torch.__version__, "iterations": its, "width": args.width, "train_views": train,
            "test_views": test, "seed": args.seed, "samples": args.samples, "set": args.set, "protocol": args.protocol,
-           "exposure_jitter": args.exposure_jitter,
+           "exposure_jitter": args.exposure_jitter, "rig": args.rig, "backdrop": args.backdrop, "layout": args.layout,
            "rows": rows}
     path = ROOT / "benchmarks" / "results" / f"unseen_{args.label}.json"
     path.write_text(json.dumps(out, indent=1))

@@ -191,6 +191,52 @@ class TestViewConsistency:
         assert float(looked[0, -1]) == 0.0  # a training camera held the corner: not "never looked at"
         assert float(looked[H // 2, W // 2]) == pytest.approx(d0, rel=0.02)
 
+    def test_a_point_every_compared_view_holds_but_none_sees_gets_the_palette_by_the_angle(self, device):
+        """Both training views render something nearer than the plane (the far side of an object: every camera looks
+        at it, so its points lie inside the images that do not see them): the plane's point is hidden in both, and gets
+        the palette's variance weighted as a seen point's difference, by the angle to the nearest view whose image
+        holds it (the evaluated view at 38 degrees, the 50-degree view 12 degrees off): in full beyond twice the gate,
+        half at 12 / 8, nothing within it. (Before, such a point got nothing: an object capture's unseen side had
+        less variance than its seen side, RGB AUC 0.68.)"""
+        hidden = _plane_render(nearer=frozenset({0, 50}))
+        base = ViewConsistency.of(_sample(device), _cameras([0.0, 50.0], focal=6.0, device=device), hidden)
+        assert base.palette_var > 0.0
+        test = _cameras([38.0], focal=60.0, device=device)
+        centre = {g: float(dataclasses.replace(base, gate=g).variance(test, _plane_render())[0, H // 2, W // 2, 0])
+                  for g in (4.0, 8.0, 20.0)}
+        assert centre[4.0] == pytest.approx(base.palette_var, rel=1e-3)
+        assert centre[8.0] == pytest.approx(0.5 * base.palette_var, rel=0.05)
+        assert centre[20.0] == 0.0
+        assert float(dataclasses.replace(base, gate=4.0, palette_var=0.0).variance(
+            test, _plane_render()).abs().max()) == 0.0
+
+    def test_rays_through_space_no_photo_saw_empty_on_transparent_scenes(self, device):
+        """``unseen_empty`` (transparent training photos: no empty-ray term): a ray of the evaluated view that meets
+        little of the model, through space behind what the training views rendered (no photo saw it empty), gets
+        ``(1 - alpha)^2`` times the palette's variance; nothing without the flag or where the ray is opaque."""
+        render_fn = _plane_render()
+        sample = GaussianSample(means=torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, 1.5]]),
+                                quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(2, 1), scales=torch.full((2, 3), 0.1),
+                                opacities=torch.ones(2), sh=torch.zeros(2, 1, 3), sh_degree=0).to(device)
+        vc = dataclasses.replace(ViewConsistency.of(sample, _cameras([0.0, 50.0], focal=6.0, device=device),
+                                                    render_fn), gate=4.0)
+        test = _cameras([20.0], focal=60.0, device=device)
+
+        def faint(alpha):
+            def fn(s, cameras):
+                out = render_fn(s, cameras)
+                return dataclasses.replace(out, alpha=torch.full_like(out.alpha, alpha),
+                                           depth=torch.zeros_like(out.depth))
+            return fn
+
+        assert float(vc.variance(test, faint(0.0)).abs().max()) == 0.0  # (not asked for: an opaque-photo scene)
+        on = dataclasses.replace(vc, unseen_empty=True)
+        for alpha in (0.0, 0.5):
+            var = on.variance(test, faint(alpha))[0, ..., 0]
+            torch.testing.assert_close(var, torch.full_like(var, (1 - alpha) ** 2 * vc.palette_var), rtol=1e-4,
+                                       atol=0)
+        assert float(on.variance(test, faint(1.0)).abs().max()) == 0.0
+
     def test_the_palette_counts_only_surface_pixels(self, device):
         """Pixels without a surface (alpha below ``MIN_ALPHA``: the background of an object scene) are not colours of
         the scene; a single colour has no variance."""
@@ -581,10 +627,18 @@ class TestFinerDetail:
             return "term"
 
         monkeypatch.setattr(engine.ViewConsistency, "of", of)
-        sampler = SimpleNamespace(det_sample=_sample(), mean_sample=None, render_fn=None)
-        cfg = SimpleNamespace(consistency_views=4, finer_detail=True)
+        sampler = SimpleNamespace(det_sample=_sample(), mean_sample=None, render_fn=None, empty_std=(0.29, 1.0))
+        cfg = SimpleNamespace(consistency_views=4, finer_detail=True, empty_rays=True)
         assert engine.view_consistency(sampler, _cameras([0.0, 50.0]), cfg, torch.device("cpu"), 0.04) == "term"
         assert got["finer_detail"] == pytest.approx(0.04 + STEP_VARIANCE) and STEP_VARIANCE == pytest.approx(1 / 12)
+        assert got["unseen_empty"] is False  # opaque photos: the empty-ray term covers rays that meet nothing
+        sampler.empty_std = None  # transparent photos: the rays through space no photo saw empty instead
+        engine.view_consistency(sampler, _cameras([0.0, 50.0]), cfg, torch.device("cpu"), 0.04)
+        assert got["unseen_empty"] is True
+        cfg.empty_rays = False
+        engine.view_consistency(sampler, _cameras([0.0, 50.0]), cfg, torch.device("cpu"), 0.04)
+        assert got["unseen_empty"] is False
+        cfg.empty_rays, sampler.empty_std = True, (0.29, 1.0)
         cfg.finer_detail = False
         engine.view_consistency(sampler, _cameras([0.0, 50.0]), cfg, torch.device("cpu"), 0.04)
         assert got["finer_detail"] == 0.0

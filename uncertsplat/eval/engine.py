@@ -241,7 +241,8 @@ def view_consistency(sampler: Sampler, train_cameras: Cameras, cfg: EvalSettings
     chosen = evenly_spaced(range(len(train_cameras)), cfg.consistency_views)
     finer = edge_scale + STEP_VARIANCE if cfg.finer_detail else 0.0
     return ViewConsistency.of(_representative(sampler, device), train_cameras[chosen].to(device), sampler.render_fn,
-                              frustum_cameras=train_cameras.to(device), finer_detail=finer)
+                              frustum_cameras=train_cameras.to(device), finer_detail=finer,
+                              unseen_empty=sampler.empty_std is None and cfg.empty_rays)
 
 
 def with_side_terms(sampler: Sampler, residual: ResidualField | None, train_cameras: Cameras, cfg: EvalSettings,

@@ -30,10 +30,19 @@ the data say nothing about. Nothing is fitted. It replaced the mean of the view'
 error of a point seen only from afar), which is a floor rather than the level: on the demo ring trained on one half,
 the unobserved pixels' squared error was 1.13x the predicted variance with it and 0.87x with the palette's, the
 unseen-surface ROC AUC 0.932 -> 0.954, and views with too few far differences to average (sparse captures) got the
-level at all (BENCHMARKS.md, "A colour nobody saw"). Points inside some training image but hidden there by the
-model's own surfaces get nothing: on real photos that test fails on depth noise as often as on occlusion (fern's
-extrapolated arc: AUSE-MAE 0.187 -> 0.213 when they got a level; BENCHMARKS.md, "Surfaces no training camera looked
-at").
+level at all (BENCHMARKS.md, "A colour nobody saw"). A point inside some compared training image but seen by none
+(hidden there by the model's own surfaces: the far side of an object, where every camera looks at the object) gets
+the palette's variance weighted as a seen point's difference is, by the angle to the nearest compared view whose image
+holds it (0 within the gate, in full from twice it): on real photos the visibility test fails on depth noise as often
+as on occlusion, but there the views that hold the point are near (fern's extrapolated arc: AUSE-MAE 0.187 -> 0.213
+when every hidden point got a level, 0.188 -> 0.215 with the palette's and no gate, 0.188 unchanged with the gate;
+the object half-hemisphere's unseen-surface RGB AUC 0.678 -> 0.821).
+
+Rays that meet little of the model on a scene whose training images are transparent (``unseen_empty``: the empty-ray
+term is off there, the background being data): where a ray's alpha is below ``EMPTY_MAX_ALPHA`` and some of its
+``EMPTY_SAMPLES`` points between the model's nearest and farthest Gaussians lies in space no compared training view
+saw empty (``seen_free``), a surface there would have been seen by no photo: the pixel gets ``(1 - alpha)^2
+palette_var`` (the far side of an object that SfM never triangulated, rendered as background).
 
 Detail finer than any photo recorded (``ViewConsistency.finer_detail``). A view nearer than the capture, or zoomed in,
 resolves a surface point r times finer than the finest compared training view that sees it (r: that view's pixel
@@ -129,6 +138,10 @@ GAP_POINTS = 65536
 cell of the view, the cell's others taking its stretch."""
 MAX_FINER = 1e6
 """The largest r the finer-detail term takes (its square stays a float32 number)."""
+EMPTY_MAX_ALPHA = 0.99
+"""``ViewConsistency._unseen_empty`` marches the rays whose rendered alpha is below this."""
+EMPTY_SAMPLES = 12
+"""Points ``ViewConsistency._unseen_empty`` tests along each marched ray."""
 STEP_VARIANCE = 1.0 / 12.0
 """Pixels^2: the mean squared difference between a step and a linear ramp one pixel wide over that pixel, per squared
 gradient of the ramp (the finer-detail term's ``(r^2 - 1) / 12``; module docstring)."""
@@ -191,13 +204,17 @@ class ViewConsistency:
     frustum_cameras: Cameras | None = None
     palette_var: float = 0.0
     finer_detail: float = 0.0
+    unseen_empty: bool = False
+    """Transparent training images (no empty-ray term): rays that meet little of the model through space no photo saw
+    empty get ``(1 - alpha)^2 palette_var`` (``_unseen_empty``)."""
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # ``_stack``'s and ``_near``
 
     @classmethod
     @torch.no_grad()
     def of(cls, sample: GaussianSample, cameras: Cameras,
            render_fn: Callable[[GaussianSample, Cameras], RenderOutput],
-           frustum_cameras: Cameras | None = None, finer_detail: float = 0.0) -> ViewConsistency:
+           frustum_cameras: Cameras | None = None, finer_detail: float = 0.0,
+           unseen_empty: bool = False) -> ViewConsistency:
         """The term for ``sample`` and the training ``cameras`` (one render each, kept), the gate from their
         spacing seen from the model's median Gaussian; ``frustum_cameras``: all training cameras when ``cameras``
         is a subset of them; ``finer_detail``: the attribute of that name (0: no finer-detail term).
@@ -223,14 +240,16 @@ class ViewConsistency:
         if count > 1:  # the unbiased variance of each channel, then their mean
             palette = float(((total_sq - total.square() / count) / (count - 1)).clamp_min(0.0).mean())
         return cls(sample, cameras, torch.stack(rgb), torch.stack(depth),
-                   GATE_SPACINGS * capture_spacing(cameras.centers, point), frustum_cameras, palette, finer_detail)
+                   GATE_SPACINGS * capture_spacing(cameras.centers, point), frustum_cameras, palette, finer_detail,
+                   unseen_empty)
 
     @torch.no_grad()
     def variance(self, camera: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
-        """[1,H,W,1] the term for one evaluated ``camera`` (module docstring); 0 where the pixel has no surface,
-        within the gate and where training views hold the pixel's point but none sees it; ``palette_var`` where no
-        training camera holds it; plus the finer-detail term where the view resolves a point finer than the compared
-        views that see it."""
+        """[1,H,W,1] the term for one evaluated ``camera`` (module docstring); 0 where the pixel has no surface and
+        within the gate; ``palette_var`` where no training camera holds the pixel's point, and weighted by the angle to
+        the nearest compared view holding it where those views hold it but none sees it; plus the finer-detail term
+        where the view resolves a point finer than the compared views that see it, and on transparent scenes the
+        rays that meet little of the model through space no photo saw empty (``_unseen_empty``)."""
         return self.variances(camera, render_fn, hidden_depth=False)[0]
 
     @torch.no_grad()
@@ -246,9 +265,10 @@ class ViewConsistency:
             if hidden_depth else None
         if self._is_compared(camera):  # its own render is the nearest: 0 everywhere
             return zero, no_depth
+        empty = self._unseen_empty(camera, render_fn) if self.unseen_empty and self.palette_var > 0.0 else None
         found = self._surface_points(camera, render_fn)
         if found is None:
-            return zero, no_depth
+            return (zero if empty is None else empty.to(zero)), no_depth
         rgb, where, points, z = found  # [H,W,3], [S], [S,3], [S]
         h, w = rgb.shape[:2]
         colour = rgb.reshape(-1, 3)[where]  # [S,3]
@@ -270,6 +290,8 @@ class ViewConsistency:
             detail = torch.zeros(h * w, dtype=rgb.dtype, device=rgb.device).index_copy_(
                 0, where, ((r2 - 1.0) * self.finer_detail * g).to(rgb.dtype))
             out = out + detail.reshape(1, h, w, 1).to(out)
+        if empty is not None:
+            out = out + empty.to(out)
         return out, depth_var
 
     def _term_of(self, points: Tensor, colour: Tensor, camera: Cameras) -> tuple[Tensor, Tensor, Tensor]:
@@ -283,7 +305,48 @@ class ViewConsistency:
         if self.palette_var > 0.0:
             unlooked = self._unlooked(points, inside_any)  # [S] (best = inf there: no view saw them)
             diff = torch.where(unlooked, torch.full_like(diff, self.palette_var), diff)  # weight 1 there (best = inf)
+            hidden = (~torch.isfinite(best) & inside_any).nonzero()[:, 0]  # held by compared images, seen by none
+            if hidden.numel():
+                far = ((self._holding_angle(points[hidden], camera) - self.gate) / self.gate).clamp(0.0, 1.0)
+                diff = diff.index_copy(0, hidden, self.palette_var * far.to(diff.dtype))
         return diff * weight, finest, torch.isfinite(best)
+
+    def _holding_angle(self, points: Tensor, camera: Cameras) -> Tensor:
+        """[Q] degrees from the evaluated ``camera``'s direction at ``points`` [Q,3] to the nearest compared training
+        view whose image holds the point (in front of it, seen or not); inf where none holds it."""
+        to_view = F.normalize(camera.centers[0].to(points) - points, dim=-1)  # [Q,3]
+        best = torch.full_like(points[:, 0], float("inf"))
+        for k0 in range(0, len(self.cameras), VIEW_CHUNK):
+            cams = self.cameras[k0:k0 + VIEW_CHUNK]
+            uv, z = project_points(points, cams.cam_from_world.to(points), cams.K.to(points))  # [C,Q,2], [C,Q]
+            inside = _in_image(uv, z, self.cameras.width, self.cameras.height)  # [C,Q]
+            angle = _angle(F.normalize(cams.centers.to(points)[:, None] - points, dim=-1), to_view)  # [C,Q]
+            best = torch.minimum(best, torch.where(inside, angle, torch.full_like(angle, float("inf"))).min(0).values)
+        return best
+
+    def _unseen_empty(self, camera: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
+        """[1,H,W,1] ``(1 - alpha)^2 palette_var`` where the evaluated ``camera``'s ray meets little of the model
+        (alpha < ``EMPTY_MAX_ALPHA``) and some of its ``EMPTY_SAMPLES`` points between the model's nearest and
+        farthest Gaussians (their centres' 1st and 99th depth percentiles in this view) lies in space no compared
+        training view saw empty (``seen_free``, ray by ray); 0 elsewhere (module docstring)."""
+        alpha = render_fn(self.sample, camera).alpha[0, ..., 0].float()  # [H,W]
+        h, w = alpha.shape
+        out = torch.zeros(1, h, w, 1, dtype=torch.float32, device=alpha.device)
+        pix = (alpha < EMPTY_MAX_ALPHA).flatten().nonzero()[:, 0]  # [P]
+        if pix.numel() == 0 or self.sample.means.shape[0] == 0:
+            return out
+        _, zg = project_points(self.sample.means.detach().float(), camera.cam_from_world.float(), camera.K.float())
+        zg = zg[0][zg[0] > 0]
+        if zg.numel() < 2:
+            return out
+        lo, hi = torch.quantile(zg, torch.tensor([0.01, 0.99], device=zg.device)).tolist()
+        unseen = torch.zeros(pix.shape[0], dtype=torch.bool, device=alpha.device)
+        for d in torch.linspace(lo, hi, EMPTY_SAMPLES).tolist():
+            at = unproject(torch.full((h, w), d, dtype=torch.float32, device=alpha.device),
+                           camera.cam_from_world[0].float(), camera.K[0].float()).reshape(-1, 3)[pix]  # [P,3]
+            unseen |= ~self.seen_free(at, around=0)
+        out.view(-1).index_copy_(0, pix, (1.0 - alpha.flatten()[pix]).square() * self.palette_var * unseen.float())
+        return out
 
     @torch.no_grad()
     def hidden_depth_variance(self, camera: Cameras,
