@@ -22,7 +22,7 @@ from rich.text import Text
 
 from uncertsplat import __version__
 from uncertsplat.config import STAGE_PATH_KEYS as _PATH_KEYS
-from uncertsplat.console import console, q
+from uncertsplat.console import console, q, qm
 from uncertsplat.errors import Interrupted, UserError
 
 app = typer.Typer(
@@ -301,7 +301,7 @@ def synth(
     cfg = _stage_config(SynthConfig, None, set_, explicit)
     stage.run(out, cfg, overwrite=overwrite)
     # the next command a user types (not printed by the stage: inside `run` the pipeline trains it)
-    console.print(f"Next: [bold]uncertsplat train {q(out)} -o RUN --preset {cfg.preset}[/]")
+    console.print(f"Next: [bold]uncertsplat train {qm(out)} -o RUN --preset {cfg.preset}[/]")
 
 
 @app.command()

@@ -29,22 +29,25 @@ _TAG = re.compile(r"(\\*)\[([a-z#/@][^\[]*?)\]")
 
 def escape_foreign_markup(text: str) -> str:
     """``text`` with every ``[...]`` that is not one of our style tags escaped, so rich prints it as it is: a tag of
-    ours is a style (``[yellow]``, ``[bold red]``) or the close of one that is open (``[/]``, ``[/bold]``)."""
-    out, at, depth = [], 0, 0
+    ours is a style (``[yellow]``, ``[bold red]``) or the close of the style open last (``[/]``, ``[/bold]``); a
+    user's ``[/]`` after our tags are closed, ``[v2]`` or ``[/bold]`` that closes nothing is text. A user's text
+    inside one of our tags is escaped where it is put there (``qm``): a ``[/]`` in it would close ours."""
+    out, at, stack = [], 0, []
     for m in _TAG.finditer(text):
-        tag = m.group(2)
-        if m.group(1):  # escaped already
+        slashes, tag = m.group(1), m.group(2)
+        if len(slashes) % 2:  # escaped already: rich prints it as text
             continue
         closing = tag.startswith("/")
-        words = (tag[1:] if closing else tag).split()
-        ours = all(w in _STYLE_WORDS for w in words) and (bool(words) or closing)
-        if ours and closing and depth > 0:
-            depth -= 1
-        elif ours and not closing:
-            depth += 1
-        else:
-            out.append(text[at:m.start()] + "\\")
-            at = m.start()
+        name = " ".join((tag[1:] if closing else tag).split())
+        if not closing and name and all(w in _STYLE_WORDS for w in name.split()):
+            stack.append(name)
+            continue
+        if closing and stack and name in ("", stack[-1]):
+            stack.pop()
+            continue
+        bracket = m.start() + len(slashes)
+        out.append(text[at:bracket] + "\\")
+        at = bracket
     out.append(text[at:])
     return "".join(out)
 
@@ -85,9 +88,8 @@ class _Console(Console):
         checkpoint)."""
         self.quiet = True
         devnull = os.open(os.devnull, os.O_WRONLY)
-        for stream in (sys.stdout, sys.stderr):
-            with contextlib.suppress(OSError, ValueError, AttributeError):
-                os.dup2(devnull, stream.fileno())
+        with contextlib.suppress(OSError, ValueError, AttributeError):  # (our stream only: stdout may be fine)
+            os.dup2(devnull, self.file.fileno())
 
 
 # Outside a terminal (CI logs, pipes, a cluster's log file) a line is written whole, never broken at a width (a path
@@ -145,8 +147,8 @@ def progress(transient: bool = False) -> Progress:
     disable = env_flag("UNCERTSPLAT_NO_PROGRESS") or (not sys.stderr.isatty() and env_flag("CI"))
     # rich shrinks every column alike when a row is too wide (an 80-column terminal showed "tr… 300/… 0:00…"): the
     # info text alone gets what the bar, counts and times leave
-    bar = 40 if console.width >= 120 else 20 if console.width >= 100 else 10
-    info_width = max(8, console.width - bar - 40)  # (a description of 12, counts 9, times 2 x 7, the gaps)
+    bar = 40 if console.width >= 160 else 20 if console.width >= 100 else 10
+    info_width = max(8, console.width - bar - 52)  # (a description of up to 24, counts 9, times 2 x 7, the gaps)
     return _Progress(
         TextColumn("[bold]{task.description}", table_column=Column(no_wrap=True, max_width=24, overflow="ellipsis")),
         BarColumn(bar_width=bar),
@@ -171,16 +173,16 @@ def print_table(table) -> None:
         console.print(table)
         return
     if table.title:
-        console.print(str(table.title), markup=False)
+        console.print(table.title)
     columns = table.columns
-    rows = zip(*(list(c.cells) for c in columns), strict=True)
-    for row in rows:
+    for row in zip(*(list(c.cells) for c in columns), strict=True):
         cells = [str(c) for c in row]
         if table.show_header:
-            first, rest = cells[0], [f"{columns[i].header}={c}" for i, c in enumerate(cells) if i > 0]
-            console.print("  " + first + ": " + "; ".join(rest), soft_wrap=False)
+            rest = [f"{columns[i].header}={c}" if str(columns[i].header) else c
+                    for i, c in enumerate(cells) if i > 0 and c != ""]
+            console.print("  " + cells[0] + ": " + "; ".join(rest))
         else:
-            console.print("  " + ": ".join(cells))
+            console.print("  " + ": ".join(c for c in cells if c != ""))
 
 
 def q(path) -> str:
@@ -189,6 +191,19 @@ def q(path) -> str:
     import shlex
 
     return shlex.quote(str(path))
+
+
+def esc(text) -> str:
+    """A user's ``text`` (a path, photo names) to put inside one of our markup tags (``[dim]note: {esc(x)}[/]``):
+    its brackets escaped, so ``S[/]`` neither closes the tag nor vanishes."""
+    from rich.markup import escape
+
+    return escape(str(text))
+
+
+def qm(path) -> str:
+    """``q(path)`` for a command inside one of our markup tags (``[bold]uncertsplat train {qm(scene)} ...[/]``)."""
+    return esc(q(path))
 
 
 def count(n: int, one: str, many: str | None = None) -> str:

@@ -30,6 +30,20 @@ class TestMarkupOfUserText:
         if "[bold]" not in text:
             assert out.rstrip("\n") == f"note: wrote {text}"
 
+    @pytest.mark.parametrize("name", ["S[/]", "S2 [red]x", "S3[/bold]", "a\\[x]"])
+    def test_user_text_inside_our_tags(self, name):
+        # (a review: a user's [/] inside our [bold]...[/] closed ours, and the suggested command printed wrong)
+        from uncertsplat.console import qm
+
+        c = _capture()
+        c.print(f"Next: [bold]uncertsplat train {qm(name)} -o RUN[/]")
+        assert c.file.getvalue() == f"Next: uncertsplat train {q(name)} -o RUN\n"
+
+    def test_a_close_that_matches_no_open_tag_is_text(self):
+        c = _capture()
+        c.print("[yellow]note:[/] [yellow]x /data/a[/bold]b[/]")
+        assert c.file.getvalue() == "note: x /data/a[/bold]b\n"
+
     def test_our_tags_still_style(self):
         assert escape_foreign_markup("[bold red]x[/] [dim]y[/dim] z[/]") == "[bold red]x[/] [dim]y[/dim] z\\[/]"
         assert escape_foreign_markup("[v2]") == "\\[v2]"
@@ -110,6 +124,16 @@ class TestNarrowTerminal:
         out = c.file.getvalue()
         assert "NLL=-1.518" in out and "…" not in out and "view_000.png:" in out
 
+    def test_rows_are_whole_lines_in_a_log_file(self, monkeypatch):
+        c = _capture(width=60, terminal=False)
+        monkeypatch.setattr(ucon, "console", c)
+        t = self._table()
+        t.add_row("view_008.png", "22.56", "0.727", "0.193", "0.228", "-1.668", "0.011", "0.588", "")
+        ucon.print_table(t)
+        lines = c.file.getvalue().splitlines()
+        assert lines[0] == "run: test views" and len(lines) == 3
+        assert lines[2].endswith("Spearman=0.588")  # (an empty cell left out)
+
     def test_table_when_it_fits(self, monkeypatch):
         c = _capture(width=140, terminal=True)
         monkeypatch.setattr(ucon, "console", c)
@@ -141,6 +165,17 @@ def test_help_in_an_ascii_stream():
              {"PYTHONIOENCODING": "ascii", "COLUMNS": "60"})
     assert r.returncode == 0, r.stderr.decode(errors="replace")[-2000:]
     assert b"Usage" in r.stdout
+
+
+def test_a_closed_stderr_leaves_stdout_alone(tmp_path):
+    code = ("import os, sys\n"
+            "r, w = os.pipe(); os.close(r); os.dup2(w, 2)\n"
+            "from uncertsplat.console import console\n"
+            "print('before', flush=True)\n"
+            "for i in range(3): console.print('line', i)\n"
+            "print('after', flush=True)\n")
+    r = _run(code, {})
+    assert r.returncode == 0 and r.stdout.split() == [b"before", b"after"]
 
 
 def test_closed_pipe_does_not_stop_the_work(tmp_path):

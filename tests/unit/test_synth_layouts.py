@@ -4,6 +4,7 @@ loads to the same GT cameras, images and depth from either layout."""
 from __future__ import annotations
 
 import json
+import math
 import shutil
 
 import numpy as np
@@ -206,3 +207,21 @@ def test_unseen_score_leaves_a_known_background_out():
         assert unseen_scores(None, None, None, cams, empty_unknown=False).tolist() == [0.25, 0.25]
     finally:
         mp.undo()
+
+
+@pytest.mark.parametrize(("views", "every"), [(24, 8), (40, 8), (100, 8), (60, 3)])
+def test_hemisphere_held_out_views_on_every_side_and_apart(views, every):
+    """The held-out views (every ``every``-th) lie around the object (one spiral through all views put every 8th 20
+    degrees of azimuth after the one before: 40 views' held-out ones within 100 degrees), and each as far from a
+    training view as the views' spacing (two spirals, one per set, put one 4 degrees from a training view)."""
+    c2w, _ = hemisphere_cameras(views, 32, 24, seed=1, test_every=every)
+    centres = -(c2w[:, :3, :3].transpose(1, 2) @ c2w[:, :3, 3:])[..., 0] - torch.tensor(LOOK_AT, dtype=torch.float64)
+    d = centres / centres.norm(dim=1, keepdim=True)
+    test = [i for i in range(views) if i % every == 0]
+    train = [i for i in range(views) if i % every]
+    az = torch.sort(torch.rad2deg(torch.atan2(d[test, 1], d[test, 0])) % 360).values
+    gap = float(torch.diff(torch.cat([az, az[:1] + 360])).max())
+    assert gap < 2 * 360 / len(test)  # (evenly spread: 360 / n; the one spiral: 280 for 40 views, 119 for 100)
+    spacing = math.degrees(math.sqrt(2 * math.pi * 0.8 / views))  # the hemisphere band's area per view
+    nearest = torch.rad2deg(torch.acos((d[test] @ d[train].T).clamp(-1, 1))).min()
+    assert float(nearest) > 0.6 * spacing

@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 
 from uncertsplat.baselines.runs import LoadedRun, load_single_model, mean_exposure, read_run_config
-from uncertsplat.console import console
+from uncertsplat.console import console, q
 from uncertsplat.conventions import ensemble_member_dir
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import SAME_RENDER, Sampler
@@ -182,7 +182,7 @@ def load_ensemble(run_dir: Path, cfg, device: torch.device | str = "cpu") -> Ens
         mdir = ensemble_member_dir(run_dir, i)
         if not (mdir / "train_summary.json").is_file():
             raise UserError(f"ensemble member {i} is missing or unfinished", path=mdir,
-                            hint=f"Finish it with: uncertsplat train SCENE -o {run_dir} --method ensemble --resume")
+                            hint=f"Finish it with: uncertsplat train SCENE -o {q(run_dir)} --method ensemble --resume")
         members.append(load_single_model(mdir, device))
     first = members[0]
     return EnsembleRun(first.model, cfg, first.scene_path, first.extent, first.step, first.sh_degree, run_dir,

@@ -31,7 +31,7 @@ import torch
 from torch import Tensor
 
 from uncertsplat.baselines.runs import LoadedRun, load_single_model
-from uncertsplat.console import console
+from uncertsplat.console import console, q
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import Sampler
 from uncertsplat.schemas import TrainSummary
@@ -200,7 +200,7 @@ def load_fisher(base: LoadedRun) -> FisherRun:
     path = run_dir / FISHER_FILE
     if not path.is_file():
         raise UserError(f"{FISHER_FILE} is missing: the Fisher posterior was never computed", path=run_dir,
-                        hint=f"Finish it with: uncertsplat train SCENE -o {run_dir} --method fisher --resume")
+                        hint=f"Finish it with: uncertsplat train SCENE -o {q(run_dir)} --method fisher --resume")
     try:
         state = torch.load(path, map_location=torch.device(device), weights_only=True)
     except Exception as err:  # a truncated or foreign file

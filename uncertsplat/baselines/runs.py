@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 
 from uncertsplat.config import TrainConfig, build_config
-from uncertsplat.console import q
+from uncertsplat.console import esc, q
 from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import SAME_RENDER, Sampler
 from uncertsplat.gaussians.params import GaussianModel
@@ -285,7 +285,7 @@ class LoadedRun:
         if not Path(self.scene_path).exists():
             raise UserError(f"the scene this run was trained on is gone: {self.scene_path}", path=self.run_dir,
                             hint="Restore the scene folder at that path; or, if you moved it, point the run at its new "
-                                 f"place with `uncertsplat train NEW_SCENE_FOLDER -o {self.run_dir} --resume` (it "
+                                 f"place with `uncertsplat train NEW_SCENE_FOLDER -o {q(self.run_dir)} --resume` (it "
                                  "checks that the folder holds the run's images and trains no further when the run "
                                  "is finished). Then run this command again.")
         # rendering a trained run needs no initial points (for a scene without sparse points, making them reads
@@ -310,7 +310,7 @@ class LoadedRun:
                               f"({list_names(new)}): `uncertsplat train {q(self.scene_path)} -o {q(self.run_dir)} --resume "
                               "--add-views NAMES` trains on them")
             else:  # the run already trains on the grown scene: a reminder, not news
-                console.print(f"[dim]note: {own}[/]")
+                console.print(f"[dim]note: {esc(own)}[/]")
         # its renders would not line up with the photos: every score would measure the misalignment
         require_same_cameras(info.cameras, data, Path(self.scene_path),
                              "its renders and scores against these would be wrong")

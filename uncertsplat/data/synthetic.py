@@ -446,11 +446,13 @@ def hemisphere_cameras(num_views: int, width: int, height: int, seed: int,
     """GT cameras spread over the upper hemisphere of radius ``HEMI_RADIUS`` around ``LOOK_AT``, all looking
     exactly at it (the NeRF-synthetic rig).
 
-    Elevations are even in area (sin(elevation) evenly spaced over ``HEMI_ELEVATION``, jittered), so every
-    ``test_every``-th view (the held-out ones) samples all elevations. The azimuths follow two golden-angle
-    spirals, one through the held-out views and one through the others: one spiral through all of them put every
-    8th view 20 degrees after the one before (8 golden angles are 20 degrees short of three turns), so the held-out
-    views of 40 sat within 100 degrees of each other, on one side of the object.
+    The positions follow one golden-angle spiral (elevations even in area: sin(elevation) evenly spaced over
+    ``HEMI_ELEVATION``, jittered), so the views cover the hemisphere evenly for any count. The held-out views (every
+    ``test_every``-th) are the spiral's points chosen farthest from each other (from its middle), the others its
+    remaining points in order: held-out views on every side, each as far from a training view as the spiral's
+    spacing. (Every 8th point of the spiral itself lay 20 degrees of azimuth after the one before, since 8 golden
+    angles are 20 degrees short of three turns: the held-out views of 40 sat within 100 degrees, on one side of the
+    object; two spirals, one through each set, put a held-out view 4 degrees from a training one.)
 
     Returns:
         cam_from_world [C,4,4] float64 (OpenCV axes), K [3,3] float64 (shared PINHOLE intrinsics).
@@ -463,17 +465,24 @@ def hemisphere_cameras(num_views: int, width: int, height: int, seed: int,
     lo, hi = (math.sin(math.radians(e)) for e in HEMI_ELEVATION)
     golden = math.pi * (3.0 - math.sqrt(5.0))
     az0 = _rand(g, 0.0, 2 * math.pi)
-    mats = []
-    for i in range(num_views):
-        u = (i + 0.5 + _rand(g, -0.3, 0.3)) / num_views
+    dirs = []
+    for j in range(num_views):
+        u = (j + 0.5 + _rand(g, -0.3, 0.3)) / num_views
         el = math.asin(lo + (hi - lo) * u)
-        if i % test_every == 0:
-            az = az0 + (i // test_every) * golden
-        else:  # (the k-th of the others, offset by half a golden angle from the held-out spiral)
-            az = az0 + (0.5 + (i - i // test_every - 1)) * golden
-        center = target + HEMI_RADIUS * torch.tensor(
-            [math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)], dtype=torch.float64)
-        mats.append(look_at(center, target, up))
+        az = az0 + j * golden
+        dirs.append([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+    dirs_t = torch.tensor(dirs, dtype=torch.float64).reshape(-1, 3)  # [C,3] unit directions from the target
+    held = []
+    if num_views:
+        held = [num_views // 2]  # farthest-point sampling from the middle of the spiral
+        near = (dirs_t @ dirs_t[held[0]]).clamp(-1.0, 1.0).acos()  # [C] angle to the nearest chosen point
+        for _ in range((num_views + test_every - 1) // test_every - 1):
+            held.append(int(torch.argmax(near)))
+            near = torch.minimum(near, (dirs_t @ dirs_t[held[-1]]).clamp(-1.0, 1.0).acos())
+    chosen = set(held)
+    held_iter, rest_iter = iter(held), iter(j for j in range(num_views) if j not in chosen)
+    order = [next(held_iter) if i % test_every == 0 else next(rest_iter) for i in range(num_views)]
+    mats = [look_at(target + HEMI_RADIUS * dirs_t[j], target, up) for j in order]
     return torch.stack(mats), K
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from uncertsplat.console import console
+from uncertsplat.console import console, q
 from uncertsplat.errors import UserError
 from uncertsplat.io.atomic import atomic_write_bytes
 
@@ -47,7 +47,7 @@ def unfinished_training(step: int, total: int, scene: str | Path | None, run_dir
     """How every command says a run's model is a training checkpoint before its last step: the one text of the
     report's note and of the warning of the commands that load the run (they said it in two texts)."""
     return (f"training is not finished: its newest checkpoint is step {step} of {total} (`uncertsplat train "
-            f"{scene if scene is not None else 'SCENE'} -o {run_dir} --resume` finishes it)")
+            f"{q(scene) if scene is not None else 'SCENE'} -o {q(run_dir)} --resume` finishes it)")
 
 
 def list_checkpoints(run_dir: str | Path) -> list[tuple[int, Path]]:

@@ -163,7 +163,7 @@ def _missing_metrics_note(run: RunData, full: bool = True) -> str:
     if members is not None and run.problem(METRICS) is None:  # `evaluate` refuses it until every member is trained
         return note(f"{run.name}: no eval/metrics.json, and {members[1] - members[0]} of the ensemble's {members[1]} "
                     "members are not trained yet: finish training (the note above), then `uncertsplat evaluate "
-                    f"{run.path}`; metric sections are left out for this run.")
+                    f"{q(run.path)}`; metric sections are left out for this run.")
     return _file_note(run, METRICS, f"no eval/metrics.json — run `uncertsplat evaluate {q(run.path)}` to measure "
                                     "the uncertainty; metric sections are left out for this run.")
 

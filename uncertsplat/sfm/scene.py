@@ -87,7 +87,7 @@ def load_scene(path: str | Path, cfg: SceneConfig | None = None, *, initial_poin
     aside = path / EXTEND_DIR / "old"  # `reconstruct --extend` killed while it swapped the workspace's parts
     if aside.is_dir() and not (aside / REPORT_NAME).exists():  # (once the report moved, it is complete)
         raise UserError("a `reconstruct --extend` was stopped while it replaced this workspace's parts", path=path,
-                        hint=f"Run `uncertsplat reconstruct PHOTOS -o {path}` (or with --extend) again: it first "
+                        hint=f"Run `uncertsplat reconstruct PHOTOS -o {q(path)}` (or with --extend) again: it first "
                              "undoes the half-made swap.")
     from uncertsplat.data.synthetic import read_scene_meta
 

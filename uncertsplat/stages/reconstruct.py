@@ -19,7 +19,7 @@ from collections import Counter
 from pathlib import Path
 
 from uncertsplat.config import ReconstructConfig
-from uncertsplat.console import add_views_args, console, list_names, progress, q
+from uncertsplat.console import add_views_args, console, esc, list_names, progress, q, qm
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.io.atomic import check_output_folder, run_lock
 from uncertsplat.sfm import reconstruct as sfm
@@ -725,8 +725,8 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                       "that shape in either orientation joins, resized)")
     usable = [n for n in added if n not in odd]
     if usable:
-        console.print(f"Next: a run trained on {workspace} trains on them with [bold]uncertsplat train {q(workspace)} -o "
-                      f"RUN --resume {add_views_args(usable)} --iterations N[/] (N: the steps to train to, past "
+        console.print(f"Next: a run trained on {workspace} trains on them with [bold]uncertsplat train {qm(workspace)} -o "
+                      f"RUN --resume {esc(add_views_args(usable))} --iterations N[/] (N: the steps to train to, past "
                       "the run's own: a finished run has none left for them)")
     return report
 

@@ -51,7 +51,7 @@ def _check_output(out: Path, runs: list[Path]) -> None:
     for r in runs:
         if out.resolve() == r.resolve():
             raise UserError("the report folder cannot be the run folder itself", path=out,
-                            hint=f"Use e.g. -o {r / 'report'}.")
+                            hint=f"Use e.g. -o {q(r / 'report')}.")
     # hidden files (a file manager's .DS_Store, Thumbs.db is not hidden but is the same kind) do not make a folder
     # anyone's: a folder holding only them was refused as "not empty"
     own = [p for p in out.iterdir() if not p.name.startswith(".") and p.name != "Thumbs.db"] if out.is_dir() else []

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from uncertsplat.config import SelectConfig
-from uncertsplat.console import console, count, list_names, q
+from uncertsplat.console import console, count, esc, list_names, qm
 from uncertsplat.errors import UserError, run_folder_missing
 
 
@@ -385,10 +385,10 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         run_dir = source
     added = ",".join(p.name for p in picked) if cands.kind == "unused" else "NEW_PHOTOS"
     if cannot_grow is None:
-        train_next = f"[bold]uncertsplat train {q(folder)} -o {q(run_dir)} --resume --iterations N --add-views {added}[/]"
+        train_next = f"[bold]uncertsplat train {qm(folder)} -o {qm(run_dir)} --resume --iterations N --add-views {esc(added)}[/]"
     else:  # the command the note above said is refused: a new run instead
         train_next = (f"(`--resume --add-views` refuses this run: {cannot_grow}) train a new run on its views and "
-                      f"these, [bold]uncertsplat train {q(folder)} -o NEW_RUN --set 'scene.train_names=[...]'[/] with the "
+                      f"these, [bold]uncertsplat train {qm(folder)} -o NEW_RUN --set 'scene.train_names=[...]'[/] with the "
                       f"names in {run_dir / 'scene.json'}'s training and calibration lists and {added}")
     if picked and cands.kind == "unused":  # photos of the scene: the run trains on them as they are
         console.print(f"Next: {train_next}")
@@ -397,7 +397,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
 
         if (Path(folder) / REPORT_NAME).is_file():  # a workspace of `reconstruct`: a new photo joins it
             console.print(f"Next: take a photo at each chosen pose ({out / Selection.FILE_NAME}), put them into the "
-                          f"photo folder, [bold]uncertsplat reconstruct PHOTOS -o {q(folder)} --extend[/] (its cameras "
+                          f"photo folder, [bold]uncertsplat reconstruct PHOTOS -o {qm(folder)} --extend[/] (its cameras "
                           f"kept), then {train_next}")
         else:  # (--extend grows workspaces of reconstruct only)
             console.print(f"Next: take a photo at each chosen pose ({out / Selection.FILE_NAME}) and add it to the "

@@ -490,7 +490,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                                 "size; another shape is left out, as `train` noted) or not in its COLMAP model",
                                 path=scene, hint="Bring the photo to the scene's size; a photo added to the photo "
                                                  "folder joins a workspace of `uncertsplat reconstruct` with "
-                                                 f"`uncertsplat reconstruct PHOTOS -o {scene} --extend` (its cameras "
+                                                 f"`uncertsplat reconstruct PHOTOS -o {q(scene)} --extend` (its cameras "
                                                  "kept); or choose another view.") from None
             from uncertsplat.sfm.report import load_report
 
@@ -508,7 +508,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                                      "another closer to the capture's viewpoints (overlap, no blur), put it into the "
                                      "photo folder under a new name and run `reconstruct --extend`; or add another "
                                      "photo.") from None
-            join = (f"put it into the photo folder, `uncertsplat reconstruct PHOTOS -o {scene} --extend` registers it "
+            join = (f"put it into the photo folder, `uncertsplat reconstruct PHOTOS -o {q(scene)} --extend` registers it "
                     "into this workspace with every camera there kept, and the run then adds it here. "
                     if report is not None else  # (--extend grows workspaces of reconstruct only)
                     "add it to the scene with its camera, as the scene's own tool writes them (this scene is not a "
@@ -672,7 +672,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         # time beside it, when this command ran the whole training, so the line agrees with the clock
         wall = time.perf_counter() - started
         wall_txt = (f" ({wall:.1f} s with its test renders and checkpoints)"
-                    if first_step == 0 and wall > 1.02 * trainer.elapsed else "")
+                    if first_step == 0 and wall > 1.02 * trainer.elapsed and f"{wall:.1f}" != f"{trainer.elapsed:.1f}"
+                    else "")
         console.print(f"{done_label}: {trainer.step} steps in {trainer.elapsed:.1f} s{wall_txt}, {len(trainer.model)} Gaussians "
                       f"({trainer.model.num_carriers} with a posterior){psnr_txt}{fit_txt} -> {run_dir}")
         for warning in warnings:
