@@ -205,6 +205,10 @@ class TestViewConsistency:
         centre = {g: float(dataclasses.replace(base, gate=g).variance(test, _plane_render())[0, H // 2, W // 2, 0])
                   for g in (4.0, 8.0, 20.0)}
         assert centre[4.0] == pytest.approx(base.palette_var, rel=1e-3)
+        with pytest.MonkeyPatch.context() as mp:  # the angles in blocks of points: the same
+            mp.setattr(consistency, "POINTS_CHUNK", 7)
+            blocks = dataclasses.replace(base, gate=4.0).variance(test, _plane_render())
+        torch.testing.assert_close(blocks, dataclasses.replace(base, gate=4.0).variance(test, _plane_render()))
         assert centre[8.0] == pytest.approx(0.5 * base.palette_var, rel=0.05)
         assert centre[20.0] == 0.0
         assert float(dataclasses.replace(base, gate=4.0, palette_var=0.0).variance(
@@ -236,6 +240,18 @@ class TestViewConsistency:
             torch.testing.assert_close(var, torch.full_like(var, (1 - alpha) ** 2 * vc.palette_var), rtol=1e-4,
                                        atol=0)
         assert float(on.variance(test, faint(1.0)).abs().max()) == 0.0
+        # the depth percentiles of a subsample of the Gaussians (torch.quantile takes at most 2^24 values)
+        many = dataclasses.replace(on, sample=GaussianSample(
+            means=torch.linspace(-1.0, 1.5, 1000)[:, None] * torch.tensor([[0.0, 0.0, 1.0]]),
+            quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(1000, 1), scales=torch.full((1000, 3), 0.1),
+            opacities=torch.ones(1000), sh=torch.zeros(1000, 1, 3), sh_degree=0).to(device))
+        sizes, quantile = [], torch.quantile
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(consistency, "QUANTILE_POINTS", 100)
+            mp.setattr(torch, "quantile", lambda x, *a, **k: sizes.append(x.numel()) or quantile(x, *a, **k))
+            var = many.variance(test, faint(0.0))[0, ..., 0]
+        assert sizes and max(sizes) <= 100
+        torch.testing.assert_close(var, torch.full_like(var, vc.palette_var), rtol=1e-4, atol=0)
 
     def test_the_palette_counts_only_surface_pixels(self, device):
         """Pixels without a surface (alpha below ``MIN_ALPHA``: the background of an object scene) are not colours of

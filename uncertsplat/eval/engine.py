@@ -806,7 +806,10 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                      f"the training view nearest in direction that saw it, where that is more than "
                      f"{sampler.consistency.gate:.1f} degrees away ({len(sampler.consistency.cameras)} training views "
                      f"compared; a point outside every training image gets the variance of the scene's colours in "
-                     f"their renders, {sampler.consistency.palette_var:.4f})")
+                     f"their renders, {sampler.consistency.palette_var:.4f}, and one they hold but none sees gets it "
+                     "weighted by its angle to the nearest of them"
+                     + ("; transparent photos: a ray that meets little of the model through space no photo saw empty "
+                        "gets (1 - alpha)^2 of it)" if sampler.consistency.unseen_empty else ")"))
         if sampler.consistency.finer_detail > 0.0:
             terms.append("where the view resolves a surface point finer than the training views that see it (r times: "
                          "nearer or zoomed in), (r^2 - 1) x the finer-detail coefficient x the squared gradient of the "

@@ -8,7 +8,7 @@ from pathlib import Path
 from rich.table import Table
 
 from uncertsplat.config import SynthConfig
-from uncertsplat.console import console, print_table, progress
+from uncertsplat.console import console, esc, print_table, progress
 from uncertsplat.data.synthetic import GENERATOR_VERSION, generate_scene, read_scene_meta, resolve_size
 from uncertsplat.errors import UserError
 from uncertsplat.io.atomic import run_lock
@@ -74,7 +74,7 @@ def run(out: Path, cfg: SynthConfig, overwrite: bool = False) -> Path:
     table = Table(title=f"synthetic scene '{cfg.preset}' (seed {cfg.seed}) in {elapsed:.1f} s", show_header=False)
     table.add_column(style="bold")
     table.add_column()
-    table.add_row("folder", str(out))
+    table.add_row("folder", esc(out))
     table.add_row("views", f"{num_views} at {width}x{height} on a {cfg.rig} rig, test views: {len(meta.test_views)} "
                   f"(every {cfg.test_every}th)")
     pixels = "RGB" if cfg.backdrop == "room" and cfg.layout == "colmap" else "RGBA"

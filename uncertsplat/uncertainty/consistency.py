@@ -141,6 +141,8 @@ MAX_FINER = 1e6
 EMPTY_MAX_ALPHA = 0.99
 """``ViewConsistency._unseen_empty`` marches the rays whose rendered alpha is below this."""
 EMPTY_SAMPLES = 12
+QUANTILE_POINTS = 1_000_000
+"""``_unseen_empty`` takes the depth percentiles of at most about this many Gaussians (every k-th)."""
 """Points ``ViewConsistency._unseen_empty`` tests along each marched ray."""
 STEP_VARIANCE = 1.0 / 12.0
 """Pixels^2: the mean squared difference between a step and a linear ramp one pixel wide over that pixel, per squared
@@ -265,8 +267,9 @@ class ViewConsistency:
             if hidden_depth else None
         if self._is_compared(camera):  # its own render is the nearest: 0 everywhere
             return zero, no_depth
-        empty = self._unseen_empty(camera, render_fn) if self.unseen_empty and self.palette_var > 0.0 else None
-        found = self._surface_points(camera, render_fn)
+        rendered = render_fn(self.sample, camera)  # (one render for both: the surface points and the faint rays)
+        empty = self._unseen_empty(camera, rendered) if self.unseen_empty and self.palette_var > 0.0 else None
+        found = self._surface_of(rendered, camera)
         if found is None:
             return (zero if empty is None else empty.to(zero)), no_depth
         rgb, where, points, z = found  # [H,W,3], [S], [S,3], [S]
@@ -313,23 +316,28 @@ class ViewConsistency:
 
     def _holding_angle(self, points: Tensor, camera: Cameras) -> Tensor:
         """[Q] degrees from the evaluated ``camera``'s direction at ``points`` [Q,3] to the nearest compared training
-        view whose image holds the point (in front of it, seen or not); inf where none holds it."""
-        to_view = F.normalize(camera.centers[0].to(points) - points, dim=-1)  # [Q,3]
+        view whose image holds the point (in front of it, seen or not); inf where none holds it. In blocks of
+        ``POINTS_CHUNK`` points, as the lookups: a large view's far side held 581 MB at once."""
         best = torch.full_like(points[:, 0], float("inf"))
-        for k0 in range(0, len(self.cameras), VIEW_CHUNK):
-            cams = self.cameras[k0:k0 + VIEW_CHUNK]
-            uv, z = project_points(points, cams.cam_from_world.to(points), cams.K.to(points))  # [C,Q,2], [C,Q]
-            inside = _in_image(uv, z, self.cameras.width, self.cameras.height)  # [C,Q]
-            angle = _angle(F.normalize(cams.centers.to(points)[:, None] - points, dim=-1), to_view)  # [C,Q]
-            best = torch.minimum(best, torch.where(inside, angle, torch.full_like(angle, float("inf"))).min(0).values)
+        for p0 in range(0, points.shape[0], POINTS_CHUNK):
+            block = points[p0:p0 + POINTS_CHUNK]
+            to_view = F.normalize(camera.centers[0].to(block) - block, dim=-1)  # [B,3]
+            for k0 in range(0, len(self.cameras), VIEW_CHUNK):
+                cams = self.cameras[k0:k0 + VIEW_CHUNK]
+                uv, z = project_points(block, cams.cam_from_world.to(block), cams.K.to(block))  # [C,B,2], [C,B]
+                inside = _in_image(uv, z, self.cameras.width, self.cameras.height)  # [C,B]
+                angle = _angle(F.normalize(cams.centers.to(block)[:, None] - block, dim=-1), to_view)  # [C,B]
+                nearest = torch.where(inside, angle, torch.full_like(angle, float("inf"))).min(0).values
+                best[p0:p0 + POINTS_CHUNK] = torch.minimum(best[p0:p0 + POINTS_CHUNK], nearest)
         return best
 
-    def _unseen_empty(self, camera: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
-        """[1,H,W,1] ``(1 - alpha)^2 palette_var`` where the evaluated ``camera``'s ray meets little of the model
-        (alpha < ``EMPTY_MAX_ALPHA``) and some of its ``EMPTY_SAMPLES`` points between the model's nearest and
-        farthest Gaussians (their centres' 1st and 99th depth percentiles in this view) lies in space no compared
-        training view saw empty (``seen_free``, ray by ray); 0 elsewhere (module docstring)."""
-        alpha = render_fn(self.sample, camera).alpha[0, ..., 0].float()  # [H,W]
+    def _unseen_empty(self, camera: Cameras, rendered: RenderOutput) -> Tensor:
+        """[1,H,W,1] ``(1 - alpha)^2 palette_var`` where the evaluated ``camera``'s ray (its render ``rendered``)
+        meets little of the model (alpha < ``EMPTY_MAX_ALPHA``) and some of its ``EMPTY_SAMPLES`` points between the
+        model's nearest and farthest Gaussians (their centres' 1st and 99th depth percentiles in this view) lies in
+        space no compared training view saw empty (``seen_free``, ray by ray; a ray found so is not marched further);
+        0 elsewhere (module docstring)."""
+        alpha = rendered.alpha[0, ..., 0].float()  # [H,W]
         h, w = alpha.shape
         out = torch.zeros(1, h, w, 1, dtype=torch.float32, device=alpha.device)
         pix = (alpha < EMPTY_MAX_ALPHA).flatten().nonzero()[:, 0]  # [P]
@@ -339,12 +347,18 @@ class ViewConsistency:
         zg = zg[0][zg[0] > 0]
         if zg.numel() < 2:
             return out
+        zg = zg[:: max(1, zg.numel() // QUANTILE_POINTS)]  # (torch.quantile takes at most 2^24 values)
         lo, hi = torch.quantile(zg, torch.tensor([0.01, 0.99], device=zg.device)).tolist()
+        rays = unproject(torch.ones(h, w, dtype=torch.float32, device=alpha.device), camera.cam_from_world[0].float(),
+                         camera.K[0].float()).reshape(-1, 3)[pix] - camera.centers[0].float()  # [P,3] per unit depth
+        todo = torch.arange(pix.shape[0], device=alpha.device)  # rays not yet found to pass unseen space
         unseen = torch.zeros(pix.shape[0], dtype=torch.bool, device=alpha.device)
         for d in torch.linspace(lo, hi, EMPTY_SAMPLES).tolist():
-            at = unproject(torch.full((h, w), d, dtype=torch.float32, device=alpha.device),
-                           camera.cam_from_world[0].float(), camera.K[0].float()).reshape(-1, 3)[pix]  # [P,3]
-            unseen |= ~self.seen_free(at, around=0)
+            if todo.numel() == 0:
+                break
+            hit = ~self.seen_free(camera.centers[0].float() + d * rays[todo], around=0)  # [T]
+            unseen[todo[hit]] = True
+            todo = todo[~hit]
         out.view(-1).index_copy_(0, pix, (1.0 - alpha.flatten()[pix]).square() * self.palette_var * unseen.float())
         return out
 
@@ -499,7 +513,11 @@ class ViewConsistency:
         """The model's render of one ``camera``: its rgb [H,W,3], the flat indices [S] of its surface pixels (alpha
         >= ``MIN_ALPHA``, a depth, off the depth edges), their points at the rendered depth [S,3] and that depth [S];
         None without surface."""
-        out = render_fn(self.sample, camera)
+        return self._surface_of(render_fn(self.sample, camera), camera)
+
+    @staticmethod
+    def _surface_of(out: RenderOutput, camera: Cameras) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+        """``_surface_points`` of the render ``out`` of ``camera``."""
         # float32 throughout: a pixel's point and its projection need far less than float32's 1e-7 relative
         rgb, depth, alpha = out.rgb[0], out.depth[0, ..., 0], out.alpha[0, ..., 0]  # [H,W,3], [H,W], [H,W]
         surface = (alpha >= MIN_ALPHA) & (depth > 0) & ~_depth_edges(depth)
