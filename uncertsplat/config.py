@@ -643,7 +643,8 @@ class EvalConfig(_Base):
     the pixel: add the std of an unknown colour (uniform in [0, 1]: 0.289) and an unknown depth (the scene
     extent), weighted by (1 - alpha / coverage)_+^2 (``uncertainty.mc.mc_render``). Not for scenes whose training
     images are transparent (the background is then data): there a ray that meets little of the model through space
-    no photo saw empty gets (1 - alpha)^2 of the view-consistency term's palette variance instead
+    no photo saw empty gets (1 - alpha)^2 of the view-consistency term's palette variance instead, and below alpha
+    0.5 the depth variance of a surface anywhere between the model's nearest and farthest Gaussians
     (``uncertainty.consistency.ViewConsistency.unseen_empty``). False: neither."""
     resolution: float = Field(0.3, ge=0.0, le=10.0)
     """The resolution term: however many views constrain it, a Gaussian's position is known only to within this

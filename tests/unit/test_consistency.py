@@ -251,6 +251,15 @@ class TestViewConsistency:
             mp.setattr(torch, "quantile", lambda x, *a, **k: sizes.append(x.numel()) or quantile(x, *a, **k))
             var = many.variance(test, faint(0.0))[0, ..., 0]
         assert sizes and max(sizes) <= 100
+        # the depth of a faint ray through unseen space (no surface point: alpha < MIN_ALPHA): an unknown surface
+        # anywhere between the model's nearest and farthest Gaussians, (1 - alpha)^2 (hi - lo)^2 / 12
+        _, z = consistency.project_points(sample.means.float(), test.cam_from_world.float(), test.K.float())
+        lo, hi = torch.quantile(z[0], torch.tensor([0.01, 0.99], device=z.device)).tolist()
+        for alpha, weight in ((0.0, 1.0), (0.25, 0.5625), (0.6, 0.0)):  # (0.6: a surface point, its own terms)
+            _, depth_var = on.variances(test, faint(alpha))
+            torch.testing.assert_close(depth_var[0, ..., 0], torch.full((H, W), weight * (hi - lo) ** 2 / 12.0,
+                                                                        device=depth_var.device), rtol=1e-4, atol=0)
+        assert float(vc.variances(test, faint(0.0))[1].abs().max()) == 0.0  # (opaque photos: not this term)
         torch.testing.assert_close(var, torch.full_like(var, vc.palette_var), rtol=1e-4, atol=0)
 
     def test_the_palette_counts_only_surface_pixels(self, device):
@@ -466,6 +475,13 @@ class TestHiddenDepth:
         gap = _expected_gap(0.5 * (1.0 - consistency.DEPTH_TOLERANCE))
         assert 0.515 <= gap <= 0.515 * 1.21
         torch.testing.assert_close(var, torch.full_like(var, (gap * 4.0) ** 2 / 12.0), rtol=1e-4, atol=0.0)
+        # transparent photos (an object's far side): the stretch behind the point up to space a photo saw empty
+        # counts too; here no photo saw behind the wall empty, so the whole marched stretch (to 1.84 of the depth)
+        behind = float(consistency._behind_fractions()[-1]) - 1.0
+        assert behind == pytest.approx(0.84, abs=0.01)
+        far = dataclasses.replace(vc, unseen_empty=True).hidden_depth_variance(test, _plane_render())[0, ..., 0]
+        torch.testing.assert_close(far.cpu().double(), torch.full_like(var, ((gap + behind) * 4.0) ** 2 / 12.0),
+                                   rtol=1e-4, atol=0.0)
 
     def test_outside_every_photo_the_whole_depth(self, device):
         """A wider evaluated view from the training camera's place: its corners lie outside the training image, so no
