@@ -643,9 +643,10 @@ class EvalConfig(_Base):
     the pixel: add the std of an unknown colour (uniform in [0, 1]: 0.289) and an unknown depth (the scene
     extent), weighted by (1 - alpha / coverage)_+^2 (``uncertainty.mc.mc_render``). Not for scenes whose training
     images are transparent (the background is then data): there a ray that meets little of the model through space
-    no photo saw empty gets (1 - alpha)^2 of the view-consistency term's palette variance instead, and below alpha
-    0.5 the depth variance of a surface anywhere between the model's nearest and farthest Gaussians
-    (``uncertainty.consistency.ViewConsistency.unseen_empty``). False: neither."""
+    no photo saw empty gets (1 - alpha)^2 of the view-consistency term's palette variance instead, and (with
+    ``hidden_depth``) below alpha 0.5 the depth variance of a surface anywhere between the model's nearest and
+    farthest Gaussians, and a hidden point's depth stretch counts the space behind it too
+    (``uncertainty.consistency.ViewConsistency.unseen_empty``). False: none of these."""
     resolution: float = Field(0.3, ge=0.0, le=10.0)
     """The resolution term: however many views constrain it, a Gaussian's position is known only to within this
     fraction of its own size (geometric mean of its axes), since neighbouring Gaussians can trade places that
@@ -709,9 +710,11 @@ class EvalConfig(_Base):
     outside them all), add ``L^2 / 12`` to the depth variance (a point uniform on a stretch of length L), L the stretch
     of the view's ray in front of the point that no compared training view saw empty: a surface anywhere on it would
     have looked the same to every photo (``uncertainty.consistency``, "A surface no photo saw"; up to 20 points along
-    each such ray tested against the compared views' renders). Nothing is fitted. Measured (BENCHMARKS.md, "A depth
-    no photo pinned down"). Needs the view-consistency term (``consistency_views`` > 0), whose renders and lookup it
-    uses. False: none."""
+    each such ray tested against the compared views' renders). On scenes whose photos are transparent (with
+    ``empty_rays``), L counts the stretch behind the point too, up to where a photo saw empty (20 more points), and
+    the faint rays through unseen space get their depth variance (``empty_rays``). Nothing is fitted. Measured
+    (BENCHMARKS.md, "A depth no photo pinned down", "The far side of an object"). Needs the view-consistency term
+    (``consistency_views`` > 0), whose renders and lookup it uses. False: none."""
     edge_noise: bool = True
     """Split the pixel noise into an edge term and the per-Gaussian rest (``uncertainty.residual``, "The edge
     term"): a misplacement of delta pixels changes a pixel by about delta x the image gradient there, so each

@@ -809,7 +809,10 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                      f"their renders, {sampler.consistency.palette_var:.4f}, and one they hold but none sees gets it "
                      "weighted by its angle to the nearest of them"
                      + ("; transparent photos: a ray that meets little of the model through space no photo saw empty "
-                        "gets (1 - alpha)^2 of it)" if sampler.consistency.unseen_empty else ")"))
+                        "gets (1 - alpha)^2 of it" + (", and below alpha 0.5 the depth variance of a surface anywhere "
+                                                      "between the model's nearest and farthest Gaussians, (1 - "
+                                                      "alpha)^2 (hi - lo)^2 / 12)" if cfg.hidden_depth else ")")
+                        if sampler.consistency.unseen_empty else ")"))
         if sampler.consistency.finer_detail > 0.0:
             terms.append("where the view resolves a surface point finer than the training views that see it (r times: "
                          "nearer or zoomed in), (r^2 - 1) x the finer-detail coefficient x the squared gradient of the "
@@ -818,7 +821,9 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         terms.append("for depth, the variance of the depths each ray blends (the model's deterministic render)")
     if cfg.hidden_depth and sampler.consistency is not None:
         terms.append("for depth, where no compared training view sees a surface point, L^2 / 12 with L the stretch "
-                     "of the view's ray in front of it that no training view saw empty")
+                     "of the view's ray in front of it that no training view saw empty"
+                     + (" and, the photos being transparent, the stretch behind it up to where a photo saw empty"
+                        if sampler.consistency.unseen_empty else ""))
     if sampler.exposure is not None:
         terms.append(f"the spread of the {len(sampler.exposure.indices)} training photos' learned exposures at the "
                      "rendered colour (a new photo's exposure is not known)")

@@ -383,8 +383,10 @@ class ViewConsistency:
                               render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
         """[1,H,W,1] the depth variance of one evaluated ``camera``'s hidden surface points (module docstring, "A
         surface no photo saw"): ``L^2 / 12`` where no compared training view sees the pixel's point, L the stretch of
-        the view's ray in front of it that no compared training view saw empty (``_free_gap``); 0 elsewhere, on the
-        depth edges and where the pixel has no surface; 0 everywhere for a compared training view."""
+        the view's ray in front of it that no compared training view saw empty (``_free_gap``; with ``unseen_empty``
+        the stretch behind it too); 0 elsewhere, on the depth edges and where the pixel has no surface (but, with
+        ``unseen_empty``, the faint rays through unseen space: ``_unseen_empty``); 0 everywhere for a compared
+        training view."""
         return self.variances(camera, render_fn, hidden_depth=True)[1]
 
     def _free_gap(self, points: Tensor, z: Tensor, camera: Cameras, pixels: Tensor) -> Tensor:
@@ -392,7 +394,9 @@ class ViewConsistency:
         [Q,3] (at depths ``z`` [Q], in the view's pixels ``pixels`` [Q], flat indices) along its ray from the camera
         that no compared training view saw empty (``seen_free``): the rendered depth times 1 - s, s the largest of
         ``GAP_SAMPLES`` fractions of the depth (``_gap_fractions``) at which the ray's point is seen empty; the whole
-        depth when none is. Above ``GAP_POINTS`` points, the view is cut into square cells of t x t pixels (t the
+        depth when none is; with ``unseen_empty`` (transparent photos) plus the stretch behind the point up to the
+        first of ``_behind_fractions`` at which the ray is seen empty (0.84 of the depth when none is). Above
+        ``GAP_POINTS`` points, the view is cut into square cells of t x t pixels (t the
         smallest that leaves at most ``GAP_POINTS`` cells holding points), the first point of each cell (in the
         view's row order) is marched, and the cell's others take its stretch as a fraction of their own depth."""
         q = points.shape[0]
