@@ -168,7 +168,7 @@ def test_transparent_photos_are_scored_on_their_objects(pair, tmp_path):
     _, blender = pair
     synth = load_scene(blender, SceneConfig(normalize=False))
     plain = load_scene(_plain_copy(blender, tmp_path / "plain"), SceneConfig(normalize=False))
-    assert any("evaluate scores their objects only" in n for n in plain.notes)
+    assert any("evaluate scores them only where alpha >= 0.5" in n for n in plain.notes)
     order = [_by_stem(plain)[n.rsplit("/", 1)[-1]] for n in synth.cameras.image_names]
     own = load_masks(synth, list(range(len(order))))[..., 0]
     from_alpha = load_masks(plain, order)[..., 0]

@@ -522,7 +522,7 @@ def _alpha_note(paths: list[Path], root: Path, cfg: SceneConfig) -> list[str]:
         return []
     return [f"{len(with_alpha)} photo(s) have an alpha channel: where they are transparent, training sees them "
             f"composited over scene.background {list(cfg.background)} (NeRF-synthetic's is white: --set "
-            "'scene.background=[1,1,1]'), and evaluate scores their objects only (alpha >= 0.5) "
+            "'scene.background=[1,1,1]'), and evaluate scores them only where alpha >= 0.5 (their objects) "
             f"({list_names(with_alpha, 8)})"]
 
 
