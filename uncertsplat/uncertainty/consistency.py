@@ -146,9 +146,9 @@ MAX_FINER = 1e6
 EMPTY_MAX_ALPHA = 0.99
 """``ViewConsistency._unseen_empty`` marches the rays whose rendered alpha is below this."""
 EMPTY_SAMPLES = 12
+"""Points ``ViewConsistency._unseen_empty`` tests along each marched ray."""
 QUANTILE_POINTS = 1_000_000
 """``_unseen_empty`` takes the depth percentiles of at most about this many Gaussians (every k-th)."""
-"""Points ``ViewConsistency._unseen_empty`` tests along each marched ray."""
 STEP_VARIANCE = 1.0 / 12.0
 """Pixels^2: the mean squared difference between a step and a linear ramp one pixel wide over that pixel, per squared
 gradient of the ramp (the finer-detail term's ``(r^2 - 1) / 12``; module docstring)."""
@@ -213,7 +213,8 @@ class ViewConsistency:
     finer_detail: float = 0.0
     unseen_empty: bool = False
     """Transparent training images (no empty-ray term): rays that meet little of the model through space no photo saw
-    empty get ``(1 - alpha)^2 palette_var`` (``_unseen_empty``)."""
+    empty get ``(1 - alpha)^2 palette_var`` and, below ``MIN_ALPHA``, a depth variance (``_unseen_empty``); a hidden
+    point's depth stretch counts the space behind it too (``_free_gap``)."""
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # ``_stack``'s and ``_near``
 
     @classmethod
