@@ -920,9 +920,10 @@ def test_ctrl_c_lets_a_training_write_its_checkpoint_while_another_worker_is_bet
         # the quick job recorded, the training stepping, and the worker that replaced the quick one's started (or
         # idle: waiting for a job)
         while time.monotonic() - t0 < 60 and proc.poll() is None:
-            pids = [tmp_path / f"{j}.pid" for j in ("quick", "training")]
-            if (tmp_path / "quick.done").exists() and all(p.exists() for p in pids) \
-                    and workers() - {int(p.read_text()) for p in pids}:
+            # (a pid file is written by its job while this reads: an empty one is not there yet)
+            pids = [p.read_text().strip() if p.exists() else "" for p in
+                    (tmp_path / f"{j}.pid" for j in ("quick", "training"))]
+            if (tmp_path / "quick.done").exists() and all(pids) and workers() - {int(p) for p in pids}:
                 break
             time.sleep(0.05)
         assert proc.poll() is None and (tmp_path / "quick.done").exists(), proc.communicate(timeout=30)[0][-3000:]
@@ -1101,8 +1102,9 @@ def test_the_workers_of_a_sweep_killed_with_sigkill_end(tmp_path):
         while time.monotonic() - t0 < 60 and proc.poll() is None:
             pool = workers()
             training = tmp_path / "training.pid"
+            pid = training.read_text().strip() if training.exists() else ""  # (empty while its job writes it)
             # the quick job recorded, the training stepping, and an idle worker beside it (the quick one's successor)
-            if (tmp_path / "quick.done").exists() and training.exists() and pool - {int(training.read_text())}:
+            if (tmp_path / "quick.done").exists() and pid and pool - {int(pid)}:
                 break
             time.sleep(0.05)
         assert proc.poll() is None and (tmp_path / "quick.done").exists(), proc.communicate(timeout=30)[0][-3000:]
