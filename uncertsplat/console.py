@@ -220,8 +220,6 @@ def list_names(names: list[str], limit: int = 15) -> str:
 def add_views_args(names: list[str]) -> str:
     """``--add-views`` for ``names`` as a shell takes them: one comma-joined value, or one quoted flag per name where a
     name holds a comma, a space or another character a shell reads (``IMG 4045, final.jpg``)."""
-    import shlex
-
-    if all(shlex.quote(n) == n and "," not in n for n in names):
+    if all(q(n) == n and "," not in n for n in names):
         return "--add-views " + ",".join(names)
-    return " ".join(f"--add-views {shlex.quote(n)}" for n in names)
+    return " ".join(f"--add-views {q(n)}" for n in names)

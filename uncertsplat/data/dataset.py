@@ -252,7 +252,7 @@ def load_masks(scene: SceneData, indices: Sequence[int] | None = None, device=No
     AUSE 0.048 and NLL -4.7 where its objects scored 0.285 and -0.46.
     """
     if scene.mask_paths is None:
-        return _alpha_masks(scene, indices, device)
+        return _object_masks(scene, indices, device)
     W, H = scene.cameras.width, scene.cameras.height
     idx = _indices(scene, indices)
     out = torch.empty((len(idx), H, W, 1), dtype=torch.bool, device=device)  # [C,H,W,1], filled as load_images
@@ -264,7 +264,7 @@ def load_masks(scene: SceneData, indices: Sequence[int] | None = None, device=No
     return out
 
 
-def _alpha_masks(scene: SceneData, indices: Sequence[int] | None, device) -> Tensor | None:
+def _object_masks(scene: SceneData, indices: Sequence[int] | None, device) -> Tensor | None:
     """``load_masks`` from the photos' alpha channels, or None when none of these photos is transparent."""
     from uncertsplat.io.images import read_alpha
 

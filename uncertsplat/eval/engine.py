@@ -802,17 +802,19 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                      f"{cfg.resolution_renders} render{'s' if cfg.resolution_renders > 1 else ''} per sample"
                      + ("; 0 with K = 1)" if K == 1 else ")"))
     if sampler.consistency is not None:
+        faint = ""  # the rays through space no photo saw empty, on transparent photos
+        if sampler.consistency.unseen_empty:
+            faint = "; transparent photos: a ray that meets little of the model through space no photo saw empty gets " \
+                    "(1 - alpha)^2 of it"
+            if cfg.hidden_depth:
+                faint += (", and below alpha 0.5 the depth variance of a surface anywhere between the model's nearest "
+                          "and farthest Gaussians, (1 - alpha)^2 (hi - lo)^2 / 12")
         terms.append(f"the squared difference between the model's renders of each surface point from the view and from "
                      f"the training view nearest in direction that saw it, where that is more than "
                      f"{sampler.consistency.gate:.1f} degrees away ({len(sampler.consistency.cameras)} training views "
                      f"compared; a point outside every training image gets the variance of the scene's colours in "
                      f"their renders, {sampler.consistency.palette_var:.4f}, and one they hold but none sees gets it "
-                     "weighted by its angle to the nearest of them"
-                     + ("; transparent photos: a ray that meets little of the model through space no photo saw empty "
-                        "gets (1 - alpha)^2 of it" + (", and below alpha 0.5 the depth variance of a surface anywhere "
-                                                      "between the model's nearest and farthest Gaussians, (1 - "
-                                                      "alpha)^2 (hi - lo)^2 / 12)" if cfg.hidden_depth else ")")
-                        if sampler.consistency.unseen_empty else ")"))
+                     f"weighted by its angle to the nearest of them{faint})")
         if sampler.consistency.finer_detail > 0.0:
             terms.append("where the view resolves a surface point finer than the training views that see it (r times: "
                          "nearer or zoomed in), (r^2 - 1) x the finer-detail coefficient x the squared gradient of the "

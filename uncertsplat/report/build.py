@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import math
-import shlex
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -120,15 +119,15 @@ def prune_again_command(p: PruneReport, config: dict | None = None, run_dir: Pat
         return None
     default = PruneConfig().model_dump(mode="json")
     source = p.source_folder(run_dir) if run_dir is not None else Path(p.source_run)
-    args = ["uncertsplat", "prune", shlex.quote(str(source)), "-o", "NEW_RUN", mode]
+    args = ["uncertsplat", "prune", q(source), "-o", "NEW_RUN", mode]
     if p.score_requested != default["score"]:
-        args.append(f"--score {shlex.quote(p.score_requested)}")
+        args.append(f"--score {q(p.score_requested)}")
     given = config if config is not None else {"seed": p.seed, "num_samples": p.num_samples}
     for k, v in given.items():
         if k in PRUNE_MODE_KEYS or k not in default or v == default[k]:
             continue
         value = json.dumps(v) if not isinstance(v, float) else repr(v)
-        args.append(f"--set {shlex.quote(f'{k}={value}')}")
+        args.append(f"--set {q(f'{k}={value}')}")
     return " ".join(args)
 
 
@@ -147,7 +146,7 @@ def _no_model_text(run: RunData) -> str:
     todo = (f"to measure the pruned model, prune without --dry-run, which writes it: `{cmd}`, then "
             "`uncertsplat evaluate NEW_RUN`" if cmd else
             "to measure a pruned model, prune with --keep-ratio, --threshold or --auto (without --dry-run), which "
-            f"writes one (`uncertsplat prune {shlex.quote(str(p.source_folder(run.path)))} -o NEW_RUN --auto`), then "
+            f"writes one (`uncertsplat prune {q(p.source_folder(run.path))} -o NEW_RUN --auto`), then "
             "`uncertsplat evaluate NEW_RUN`")
     return (f"{run.name}: {what}: it holds {held}, no model, so there is nothing to evaluate (`uncertsplat evaluate` "
             f"needs a run's config.json and model); the Pruning section shows what prune measured; {todo}.")

@@ -418,9 +418,10 @@ class ViewConsistency:
             if left.numel() == 0:
                 break
         if self.unseen_empty:  # transparent photos: and the stretch behind, up to space some photo saw empty
-            behind = torch.full_like(nearest, float(_behind_fractions()[-1] - 1.0))  # none found: the last sample's
+            fractions = _behind_fractions()
+            behind = torch.full_like(nearest, float(fractions[-1] - 1.0))  # none found: the last sample's
             left = torch.arange(marched.shape[0], device=points.device)
-            for frac in _behind_fractions().tolist():  # from the surface away from the camera: the first free one
+            for frac in fractions.tolist():  # from the surface away from the camera: the first free one
                 free = self.seen_free(eye + frac * (start[left] - eye), around=0)
                 behind[left[free]] = frac - 1.0
                 left = left[~free]
