@@ -104,9 +104,19 @@ class TestLogFiles:
     @pytest.mark.parametrize(("value", "on"), [("", False), ("0", False), ("false", False), ("off", False),
                                                ("1", True), ("yes", True)])
     def test_env_flags(self, monkeypatch, value, on):
+        # CI services set CI=true and give no terminal, which disables the bars on its own: read the flag alone
+        monkeypatch.delenv("CI", raising=False)
         monkeypatch.setenv("UNCERTSPLAT_NO_PROGRESS", value)
         assert ucon.env_flag("UNCERTSPLAT_NO_PROGRESS") is on
         assert ucon.progress().disable is on
+
+    @pytest.mark.parametrize(("ci", "tty", "off"), [("true", False, True), ("true", True, False),
+                                                    ("0", False, False)])
+    def test_ci_without_a_terminal_disables_the_bars(self, monkeypatch, ci, tty, off):
+        monkeypatch.delenv("UNCERTSPLAT_NO_PROGRESS", raising=False)
+        monkeypatch.setenv("CI", ci)
+        monkeypatch.setattr(ucon.sys.stderr, "isatty", lambda: tty, raising=False)
+        assert ucon.progress().disable is off
 
 
 class TestNarrowTerminal:
