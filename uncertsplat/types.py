@@ -211,7 +211,10 @@ class SceneData:
         scene_scale: radius of the camera rig after normalisation (the "extent" of 3DGS is 1.1 x this).
         world_from_source: [4,4] similarity applied to the source coordinates (recorded, invertible).
         depth_paths: optional GT depth per camera (camera z in source units, .npy or .exr).
-        mask_paths: optional validity mask per camera.
+        mask_paths: optional validity mask per camera (None for a camera without one: every pixel valid). A pixel
+            is valid where its mask is white; a downscaled pixel only where every source pixel under it is.
+        masks_train: whether training leaves the pixels outside the masks out too (masks a user brought: a transient
+            object, the rig, the sky), not only the scoring (a synthetic scene's masks mark where its GT is defined).
         depth_scale_to_gt: factor from world (normalised) depth to GT depth units, when known.
         source: what was loaded ("colmap", "nerf_synthetic", "nerfstudio", "synthetic") and from where.
         center: source coordinates of the scene centre (the world origin after normalisation, and the middle
@@ -231,7 +234,8 @@ class SceneData:
     scene_scale: float
     world_from_source: Tensor  # [4,4]
     depth_paths: tuple[Path, ...] | None = None
-    mask_paths: tuple[Path, ...] | None = None
+    mask_paths: tuple[Path | None, ...] | None = None
+    masks_train: bool = False
     depth_scale_to_gt: float | None = None
     source: dict = field(default_factory=dict)
     center: tuple[float, float, float] | None = None
@@ -403,6 +407,7 @@ class ViewSet:
         depths: [C,H,W,1] GT depth, 0 where unknown; None: no GT depth.
         depth_known_scale: ``depths`` are in the scene's own (normalised) world units, so evaluation uses
             them as they are instead of estimating a scale.
+        masks_trained: the masks are the photos' own, which training left out too (``SceneData.masks_train``).
     """
 
     indices: tuple[int, ...]
@@ -411,6 +416,7 @@ class ViewSet:
     masks: Tensor | None = None
     depths: Tensor | None = None
     depth_known_scale: bool = False
+    masks_trained: bool = False
 
     def __len__(self) -> int:
         return len(self.indices)

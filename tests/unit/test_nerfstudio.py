@@ -152,19 +152,33 @@ def test_bad_files_are_refused(tiny_scene_path, tmp_path):  # noqa: F811
     _raises(tmp_path / "ns", "cannot read the transforms file")
 
 
-def test_unread_masks_and_an_unused_colmap_model_are_named(tiny_scene_path, tmp_path):  # noqa: F811
-    """A frame's mask_path and depth_file_path are not read (its pixels are trained on), and a COLMAP model beside
-    transforms.json is not used: all were silent."""
+def test_masks_read_depth_unread_and_an_unused_colmap_model_are_named(tiny_scene_path, tmp_path):  # noqa: F811
+    """A frame's mask_path is read (its black pixels neither trained on nor scored: test_masks.py), its
+    depth_file_path is not (said so), and a COLMAP model beside transforms.json is not used: all were silent."""
+    from uncertsplat.data.dataset import load_masks
+
     root = tmp_path / "ns"
     convert(tiny_scene_path, root)
     meta = json.loads((root / "transforms.json").read_text())
-    meta["frames"][0]["mask_path"] = "masks/view_000.png"
+    meta["frames"][0]["mask_path"] = "./masks/view_000.png"
     for fr in meta["frames"][:2]:  # nerfstudio's depth (16-bit PNG, mm): not read either, and evaluate takes --depth-gt
         fr["depth_file_path"] = fr["file_path"].replace("images/", "depth/")
     (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(UserError, match="names a mask_path that does not exist") as info:
+        load_scene(root)
+    assert str(root / "masks" / "view_000.png") in str(info.value)
+    (root / "masks").mkdir()
+    mask = np.ones((96, 128, 3), dtype=np.float32)
+    mask[:10] = 0.0
+    write_png(root / "masks" / "view_000.png", mask)
     shutil.copytree(tiny_scene_path / "sparse", root / "sparse")
-    notes = load_scene(root).notes
-    assert any(n.startswith("1 frame(s) of transforms.json name a mask_path: masks are not read") for n in notes)
+    scene = load_scene(root)
+    notes = scene.notes
+    assert any(n.startswith("masks: 1 of 24 photos have one (transforms.json's mask_path)") for n in notes), notes
+    assert scene.masks_train and scene.mask_paths[0] == root / "masks" / "view_000.png"
+    assert all(m is None for m in scene.mask_paths[1:])
+    got = load_masks(scene, [0, 1])
+    assert not bool(got[0, :10].any()) and bool(got[0, 10:].all()) and bool(got[1].all())
     (depth,) = [n for n in notes if "depth_file_path" in n]
     assert depth.startswith("2 frame(s) of transforms.json name a depth_file_path: depth maps are not read")
     assert "--depth-gt" in depth

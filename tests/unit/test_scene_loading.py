@@ -987,7 +987,7 @@ def test_masks_of_zero_and_one_mark_their_ones_valid(workspace):
     m[1:, 2:] = 1.0
     write_png(workspace / "a.png", m / 255.0)  # values 0 and 1
     write_png(workspace / "b.png", m)  # values 0 and 255
-    scene = SimpleNamespace(cameras=cams, mask_paths=(workspace / "a.png", workspace / "b.png"))
+    scene = SimpleNamespace(cameras=cams, mask_paths=(workspace / "a.png", workspace / "b.png"), photo_fits=None)
     masks = load_masks(scene)
     assert masks.shape == (2, 3, 4, 1) and torch.equal(masks[0], masks[1]) and int(masks[0].sum()) == 4
 
@@ -1007,15 +1007,18 @@ def test_a_principal_point_outside_the_image_is_refused(workspace):
     assert float(scene.cameras.K[0, 0, 2]) == pytest.approx(200.0)
 
 
-def test_a_workspace_masks_folder_is_noted_as_not_read(tiny_scene_path, workspace):  # noqa: F811
-    """A COLMAP workspace's masks/ folder was never mentioned: it is not read (every pixel is trained on); a synthetic
-    scene's masks/ are read (validity masks for evaluation) and get no note."""
+def test_a_workspace_masks_are_trained_with_a_synthetic_scene_s_are_scored_only(tiny_scene_path, workspace):  # noqa: F811
+    """A COLMAP workspace's masks/ are the user's (transients, the rig): training leaves their black pixels out too;
+    a synthetic scene's masks/ mark where its GT is defined and only the scoring reads them (test_masks.py has the
+    rest)."""
     assert not any("masks" in n for n in load_scene(workspace).notes)
     shutil.copytree(tiny_scene_path / "masks", workspace / "masks")
-    (note,) = [n for n in load_scene(workspace).notes if "masks" in n]
-    assert note.startswith(f"{workspace / 'masks'} (24 file(s)) is not read: every pixel") and "uncertsplat synth" in note
-    assert load_scene(tiny_scene_path).mask_paths is not None
-    assert not any("masks" in n and "not read" in n for n in load_scene(tiny_scene_path).notes)
+    scene = load_scene(workspace)
+    (note,) = [n for n in scene.notes if "masks" in n]
+    assert note.startswith("masks: 24 of 24 photos have one in") and scene.masks_train, note
+    synthetic = load_scene(tiny_scene_path)
+    assert synthetic.mask_paths is not None and not synthetic.masks_train
+    assert not any(n.startswith("masks:") for n in synthetic.notes)
 
 
 def test_depth_gt_given_the_images_folder_says_so(tiny_scene_path):  # noqa: F811

@@ -90,7 +90,7 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
 
     Returns the stored dict (variances, Fisher diagonals, noise std, timings).
     """
-    from uncertsplat.data.dataset import load_images
+    from uncertsplat.data.dataset import load_images, load_masks
     from uncertsplat.io.atomic import atomic_write_bytes
 
     run_dir = Path(run_dir)
@@ -100,6 +100,7 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
     idx = list(data.split["train"])
     cams = data.cameras[idx].to(device)
     images = load_images(data, idx, device)
+    masks = load_masks(data, idx, device) if data.masks_train else None  # [T,H,W,1]: the pixels training fitted
     exposure = loaded.photo_exposure()
     if exposure is not None:  # the photos at the model's exposure, as training compared them
         images = exposure.unexposed_images(idx, images)
@@ -112,13 +113,14 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
     names = tuple(n for n in PARAM_ORDER if n in fcfg.params)
     if fcfg.estimator == "ggn":  # the noise (when "auto") and the curvature from one render per view
         curv = curvature(params, cams, images, render_fn, names=names, generator=gen, sh_degree=loaded.sh_degree,
-                         probes=fcfg.probes, noise_std=given)
+                         probes=fcfg.probes, noise_std=given, masks=masks)
         noise, fisher = curv.noise_std, curv.fisher
     else:  # the empirical Fisher's pass needs the noise first
         noise = given if given is not None else residual_noise_std(params, cams, images, render_fn,
-                                                                   sh_degree=loaded.sh_degree)
+                                                                   sh_degree=loaded.sh_degree, masks=masks)
         fisher = fisher_diagonal(params, cams, images, render_fn, names=names, noise_std=noise, generator=gen,
-                                 sh_degree=loaded.sh_degree, estimator="empirical", probes=fcfg.probes)
+                                 sh_degree=loaded.sh_degree, estimator="empirical", probes=fcfg.probes,
+                                 masks=masks)
     var = posterior_variance(fisher, prior_stds(fcfg, loaded.extent))
     seconds = time.perf_counter() - t0
     state = {

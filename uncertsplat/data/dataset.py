@@ -255,13 +255,37 @@ def load_masks(scene: SceneData, indices: Sequence[int] | None = None, device=No
         return _object_masks(scene, indices, device)
     W, H = scene.cameras.width, scene.cameras.height
     idx = _indices(scene, indices)
-    out = torch.empty((len(idx), H, W, 1), dtype=torch.bool, device=device)  # [C,H,W,1], filled as load_images
+    out = torch.ones((len(idx), H, W, 1), dtype=torch.bool, device=device)  # [C,H,W,1], filled as load_images
     for k, i in enumerate(idx):
-        m = read_image(scene.mask_paths[i])[..., 0]
-        # valid: white; a mask of 0 and 1 (not 255), as many tools save a boolean, marks its valid pixels 1/255
-        cut = 0.0 if 0.0 < float(m.max()) <= 1.5 / 255.0 else 0.5
-        out[k, ..., 0] = torch.from_numpy(resize_image((m > cut).astype(np.float32), W, H) >= 1.0 - 1e-6)
+        if scene.mask_paths[i] is not None:  # (a photo without a mask: every pixel valid)
+            fit = scene.photo_fits[i] if scene.photo_fits is not None else None
+            out[k, ..., 0] = torch.from_numpy(load_mask(scene.mask_paths[i], W, H, fit))
     return out
+
+
+def load_mask(path: Path, width: int, height: int, fit: PhotoFit | None = None) -> np.ndarray:
+    """One mask [H,W] bool at ``width`` x ``height``: valid where the file is white (above half its range; a mask of
+    0 and 1, as many tools save a boolean, where it is 1), and a resized pixel only where every source pixel under
+    it is. ``fit``: its photo's ``PhotoFit``, applied first.
+
+    Raises:
+        UserError: the mask is not of its photo's shape (``SHAPE_TOLERANCE``), naming both sizes.
+    """
+    m = read_image(path)[..., 0]
+    cut = 0.0 if 0.0 < float(m.max()) <= 1.5 / 255.0 else 0.5
+    valid = (m > cut).astype(np.float32)
+    w, h = ((fit.turned_width, fit.turned_height) if fit.turns % 2 == 0 else (fit.turned_height, fit.turned_width)) \
+        if fit is not None else (width, height)
+    slack = 0.0 if fit is not None else 1.0 / w + 1.0 / h
+    if abs(np.log((valid.shape[1] / valid.shape[0]) / (w / h))) > SHAPE_TOLERANCE + slack:
+        what = "its photo's" if fit is not None else "its view's"
+        raise UserError(f"the mask is {valid.shape[1]}x{valid.shape[0]}, another shape than {what} {w}x{h} "
+                        "(stretched to it, it would leave out other pixels than it marks)", path=path,
+                        hint="Give each photo a mask of its own shape (any resolution of it), white where the "
+                             "pixels count and black where they do not.")
+    if fit is not None:
+        valid = fit_photo(fit, valid)
+    return resize_image(valid, width, height) >= 1.0 - 1e-6
 
 
 def _object_masks(scene: SceneData, indices: Sequence[int] | None, device) -> Tensor | None:
@@ -407,4 +431,5 @@ def load_view_set(scene: SceneData, indices: Sequence[int], *, depth: bool = Tru
         known = depths is not None
     images = load_photos(scene, indices) if keep_8bit else load_images(scene, indices)
     return ViewSet(indices=tuple(indices), cameras=scene.cameras[indices], images=images,
-                   masks=load_masks(scene, indices), depths=depths, depth_known_scale=known)
+                   masks=load_masks(scene, indices), depths=depths, depth_known_scale=known,
+                   masks_trained=scene.masks_train)

@@ -690,6 +690,8 @@ MASKED_NOTE_BELOW = 0.995
 the pixels than this (a mask of every pixel changes nothing)."""
 MASKED_NOTE = "the scene has validity masks"
 """How that note begins (``stages.evaluate`` looks for it to say so beside the PSNR it prints)."""
+PHOTO_MASKS_NOTE = "the masks are the photos' own"
+"""What that note says when the masks are the photos' own (``ViewSet.masks_trained``: train's PSNR is inside them)."""
 
 
 def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: torch.device, *,
@@ -773,10 +775,16 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                      "the std holds the predictive's other terms")
     inside = float(masks.float().mean()) if masks is not None else 1.0
     if inside < MASKED_NOTE_BELOW:  # train's held-out PSNR is over whole images: the two differ on such scenes
-        notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
-                     f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out PSNR "
-                     "over whole images; the masks are a synthetic scene's, or the objects of transparent photos "
-                     "(alpha >= 0.5: the background they are composited over left out)")
+        if views.masks_trained:
+            notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
+                         f"({inside:.0%} of the pixels of these views; SSIM over whole images black outside them), "
+                         f"as train's held-out PSNR and SSIM; {PHOTO_MASKS_NOTE}, whose black pixels training left "
+                         "out too")
+        else:
+            notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
+                         f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out "
+                         "PSNR over whole images; the masks are a synthetic scene's, or the objects of transparent "
+                         "photos (alpha >= 0.5: the background they are composited over left out)")
     # a model without a posterior: its spread term is 0 too
     terms = ["the variance of the K samples" + (" (0: K = 1)" if K == 1 else
                                               f" (0 for this model: {SAME_RENDER})" if same else "")]
@@ -867,7 +875,11 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             cal = calibration(err, std, mask=mask, dof=dof)
             sm = spearman(std, err.abs(), mask=mask)
             m = dict(
-                psnr=float(psnr(pred, gt, mask)), ssim=float(ssim(pred, gt)),
+                # SSIM's windows need whole images: outside the photos' own masks (which training left out) both are
+                # 0, as in training's loss; a synthetic scene's masks leave both as they are
+                psnr=float(psnr(pred, gt, mask)),
+                ssim=float(ssim(pred * mask, gt * mask) if views.masks_trained and mask is not None
+                           else ssim(pred, gt)),
                 ause_mae=sp["mae"].ause, ause_mse=sp["mse"].ause, ause_rmse=sp["rmse"].ause,
                 nll=float(predictive_nll(gt, pred, std, dof, std_floor=cfg.std_floor, mask=mask)),
                 calibration_error=cal.calibration_error, spearman=sm.value, spearman_note=sm.reason,

@@ -98,8 +98,11 @@ def load_scene(path: str | Path, cfg: SceneConfig | None = None, *, initial_poin
         return _with_notes(_from_transforms(read_blender(path, cfg), cfg, initial_points),
                            _colmap_beside(path, "a Blender scene (transforms_*.json)"))
     if (path / "transforms.json").is_file():
-        return _with_notes(_from_transforms(read_nerfstudio(path, cfg), cfg, initial_points),
-                           _colmap_beside(path, "a nerfstudio scene (transforms.json)")
+        data = _from_transforms(read_nerfstudio(path, cfg), cfg, initial_points)
+        masks, mask_notes = _nerfstudio_masks(path, data.cameras.image_names)
+        if masks is not None:
+            data = replace(data, mask_paths=masks, masks_train=True)
+        return _with_notes(data, _colmap_beside(path, "a nerfstudio scene (transforms.json)") + mask_notes
                            + _unread_frame_notes(path / "transforms.json"))
     return _load_colmap(path, cfg)
 
@@ -112,9 +115,47 @@ def _colmap_beside(path: Path, read_as: str) -> list[str]:
             "away to train on it)"]
 
 
+def _nerfstudio_masks(root: Path, names: Sequence[str]) -> tuple[tuple[Path | None, ...] | None, list[str]]:
+    """The masks a nerfstudio ``transforms.json`` names (a frame's ``mask_path``, relative to ``root``), one per image
+    name (None for a frame without one), or None when no frame names one; and the note on them.
+
+    Raises:
+        UserError: a frame names a mask file that does not exist.
+    """
+    import json
+
+    from uncertsplat.sfm.transforms import image_name
+
+    try:
+        frames = json.loads((root / "transforms.json").read_text(encoding="utf-8")).get("frames", [])
+    except (OSError, ValueError, AttributeError):
+        return None, []  # read_nerfstudio has said what is wrong with it
+    named = {image_name(root, f["file_path"]): str(f["mask_path"]).replace("\\", "/").removeprefix("./")
+             for f in frames if isinstance(f, dict) and f.get("mask_path") and f.get("file_path")}
+    if not named:
+        return None, []
+    found = []
+    for n in names:
+        rel = named.get(n)
+        if rel is not None and not (root / rel).is_file():
+            raise UserError(f"frame '{n}' of transforms.json names a mask_path that does not exist",
+                            path=root / rel, hint="Put the mask there, or remove the frame's mask_path to train "
+                                                  "on every pixel of its photo.")
+        found.append(root / rel if rel is not None else None)
+    have = sum(m is not None for m in found)
+    if not have:
+        return None, []
+    note = (f"masks: {have} of {len(names)} photos have one (transforms.json's mask_path); their black pixels are "
+            "neither trained on nor scored")
+    missing = [n for n, m in zip(names, found, strict=True) if m is None]
+    if missing:
+        note += f" (every pixel of the other {len(missing)} is: {list_names(missing, 4)})"
+    return tuple(found), [note]
+
+
 def _unread_frame_notes(transforms: Path) -> list[str]:
-    """Notes when a nerfstudio transforms file names per-frame masks (``mask_path``) or depth maps
-    (``depth_file_path``), which are not read: both were silent."""
+    """A note when a nerfstudio transforms file names per-frame depth maps (``depth_file_path``), which are not
+    read (it was silent)."""
     import json
 
     try:
@@ -123,10 +164,6 @@ def _unread_frame_notes(transforms: Path) -> list[str]:
         return []  # read_nerfstudio has said what is wrong with it
     count = lambda key: sum(1 for f in frames if isinstance(f, dict) and f.get(key))  # noqa: E731
     notes = []
-    if n := count("mask_path"):
-        notes.append(f"{n} frame(s) of {transforms.name} name a mask_path: masks are not read, so the masked pixels "
-                     "are trained on like any other (a transient object there is fitted into the scene); retouch or "
-                     "crop those photos, or leave the frames out")
     if n := count("depth_file_path"):
         notes.append(f"{n} frame(s) of {transforms.name} name a depth_file_path: depth maps are not read (training "
                      "fits the photos alone); to score the rendered depth against them, give `uncertsplat evaluate "
@@ -134,20 +171,42 @@ def _unread_frame_notes(transforms: Path) -> list[str]:
     return notes
 
 
-def _unread_masks_folder(path: Path) -> list[str]:
-    """A note when a COLMAP workspace holds a ``masks/`` folder (COLMAP's and other tools' per-photo masks): it is not
-    read, and every pixel is trained on (only ``uncertsplat synth`` scenes' masks are read, as evaluation's validity
-    masks)."""
-    masks = path / "masks"
-    if not masks.is_dir():
-        return []
-    n = sum(1 for p in masks.rglob("*") if p.is_file())
-    if not n:
-        return []
-    return [f"{masks} ({n} file(s)) is not read: every pixel of the photos is trained on and scored (a transient "
-            "object a mask covers is fitted into the scene); uncertsplat reads masks only in scenes made by "
-            "`uncertsplat synth` (validity masks for evaluation), and composites an RGBA photo's transparent pixels "
-            "over scene.background; retouch or crop those photos, or leave them out"]
+def mask_file(folder: Path, name: str) -> Path | None:
+    """The mask of image ``name`` (its path relative to the images folder) in ``folder``, or None: COLMAP's name
+    (``IMG_1.jpg.png``), the image's own name (``IMG_1.jpg``), then its stem as a PNG (``IMG_1.png``), in sub-folders
+    as the images are."""
+    for candidate in (f"{name}.png", name, Path(name).with_suffix(".png").as_posix()):
+        path = folder / candidate
+        if path.is_file():
+            return path
+    return None
+
+
+def _workspace_masks(path: Path, names: Sequence[str]) -> tuple[tuple[Path | None, ...] | None, list[str]]:
+    """The masks of a COLMAP workspace's images in ``path/masks`` (``mask_file``), one per name (None for a photo
+    without one), or None when the folder holds none of them; and the notes on what was found."""
+    folder = path / "masks"
+    if not folder.is_dir():
+        return None, []
+    found = tuple(mask_file(folder, n) for n in names)
+    have = sum(m is not None for m in found)
+    if not have:
+        n = sum(1 for p in folder.rglob("*") if p.is_file())
+        if not n:
+            return None, []
+        example = names[0] if names else "IMG_1.jpg"
+        return None, [f"{folder} ({n} file(s)) holds no mask named for any photo (photo {example}'s would be "
+                      f"{example}.png, {example} or {Path(example).with_suffix('.png').as_posix()} there): not read, "
+                      "every pixel is trained on and scored"]
+    missing = [n for n, m in zip(names, found, strict=True) if m is None]
+    note = (f"masks: {have} of {len(names)} photos have one in {folder}; their black pixels are neither trained on "
+            "nor scored")
+    if missing:
+        note += f" (every pixel of the other {len(missing)} is: {list_names(missing, 4)})"
+    if (path / REPORT_NAME).is_file():  # reconstruct's images/ are the photos undistorted, and masks/ are not its
+        note += ("; `reconstruct` undistorted the photos into images/, so masks drawn on the photos as taken are off "
+                 "by the lens's distortion there: draw them on the workspace's images")
+    return found, [note]
 
 
 def _model_dirs(path: Path) -> list[Path]:
@@ -436,8 +495,10 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
     if unused:  # photos a user put there for the scene, which it does not hold
         notes = [*notes, f"{len(unused)} photo(s) in {image_dir} are not in the COLMAP model and are not used: "
                          f"{list_names(unused, 8)} (reconstruct again with them to use them)"]
-    if source == "colmap":  # (a synthetic scene's masks/ are read: _load_synthetic)
-        notes = [*notes, *_unread_masks_folder(path)]
+    masks = None
+    if source == "colmap":  # (a synthetic scene's masks/ are its own: _load_synthetic)
+        masks, mask_notes = _workspace_masks(path, cameras.image_names)
+        notes = [*notes, *mask_notes]
     if all((sparse / f"{n}.bin").is_file() for n in MODEL_FILES) and any((sparse / f"{n}.txt").is_file()
                                                                           for n in MODEL_FILES):
         notes = [*notes, f"{sparse} holds the model both as .bin and as .txt files: the .bin ones are read (as COLMAP "
@@ -447,8 +508,9 @@ def _load_colmap(path: Path, cfg: SceneConfig, source: str = "colmap") -> SceneD
     if cfg.points_from == "train":
         keep = _seen_by_training_views(model, cameras, cfg, sparse)
         points, rgb = points[keep], rgb[keep]
-    return _finish(cameras, paths, points, rgb, cfg, source={"kind": source, "path": str(path),
+    data = _finish(cameras, paths, points, rgb, cfg, source={"kind": source, "path": str(path),
                                                             "model": str(sparse)}, photo_fits=fits, notes=notes)
+    return data if masks is None else replace(data, mask_paths=masks, masks_train=True)
 
 
 def _photos_not_in_model(image_dir: Path, model: ColmapModel) -> list[str]:

@@ -98,7 +98,7 @@ _GUESSED_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr")
 """Tried, in this order and in any case, for a ``file_path`` without an image extension (``./train/r_0``)."""
 
 
-def _image_name(root: Path, file_path: str) -> str:
+def image_name(root: Path, file_path: str) -> str:
     """The image's path relative to ``root``: ``file_path``, or with its extension found on disk (``./train/r_0`` ->
     ``train/r_0.png``, ``images/IMG_1`` -> ``images/IMG_1.JPG``); unchanged (no extension) when no such file exists
     (``_missing_image`` says what was looked for)."""
@@ -140,7 +140,7 @@ def _frames(root: Path, meta: dict, path: Path, split: str | None) -> list[_Fram
     for i, fr in enumerate(meta["frames"]):
         try:
             c2w = np.asarray(fr["transform_matrix"], dtype=np.float64)
-            name = _image_name(root, fr["file_path"])
+            name = image_name(root, fr["file_path"])
         except (KeyError, TypeError, ValueError) as err:
             raise UserError(f"frame {i} needs 'file_path' and a numeric 'transform_matrix' ({err!r})",
                             path=path) from None
@@ -403,7 +403,7 @@ def read_nerfstudio(root: Path, cfg: SceneConfig) -> TransformsScene:
     key = next((k for k in ("test_filenames", "val_filenames") if meta.get(k)), None)
     if key is not None:
         index = {fr.name: i for i, fr in enumerate(frames)}
-        wanted = [_image_name(root, n) for n in meta[key]]
+        wanted = [image_name(root, n) for n in meta[key]]
         missing = [n for n in wanted if n not in index]
         if missing:
             raise UserError(f"{key} names images that are not frames: {', '.join(missing[:5])}", path=path,

@@ -43,6 +43,7 @@ from uncertsplat.eval.engine import (
     IMPLAUSIBLE_DEPTH_NOTE,
     MASKED_NOTE,
     NOT_A_NUMBER_NOTE,
+    PHOTO_MASKS_NOTE,
     ZERO_STD_NOTE,
     ViewMaps,
 )
@@ -749,8 +750,9 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
                           "views: train with --set scene.calibration_holdout=3 (in a pipeline, `uncertsplat run`: "
                           "--set train.scene.calibration_holdout=3)[/]")
     if report.mean.psnr_render is not None:
-        masked = any(n.startswith(MASKED_NOTE) for n in report.notes)
-        where = " (train's over whole images; these inside the scene's validity masks)" if masked else ""
+        masked = [n for n in report.notes if n.startswith(MASKED_NOTE)]
+        where = "" if not masked else " (inside the photos' masks, as train's)" if PHOTO_MASKS_NOTE in masked[0] \
+            else " (train's over whole images; these inside the scene's validity masks)"
         samples = "the one sample" if cfg.num_samples == 1 else f"the mean of the {cfg.num_samples} samples"
         what = ("what train reports for the held-out views" if cfg.split == "test" else
                 "as train renders them; its 'training views' figure is over at most 8 of them, evenly spaced")

@@ -92,7 +92,7 @@ def weakest_half(weights: Tensor) -> Tensor:
 
 
 def halving_cost_db(sample: GaussianSample, off: Tensor, cameras: Cameras, images: Tensor,
-                    render_fn: Callable[[GaussianSample, Cameras], Tensor]) -> float:
+                    render_fn: Callable[[GaussianSample, Cameras], Tensor], masks: Tensor | None = None) -> float:
     """Training-view PSNR lost (dB) when the Gaussians in ``off`` [N] are switched off (opacity 0):
     ``view_checks.psnr_gain_db`` of the whole model over the rest (0 when nothing changes).
 
@@ -100,9 +100,10 @@ def halving_cost_db(sample: GaussianSample, off: Tensor, cameras: Cameras, image
         sample: the Gaussians to render. off: [N] bool, those to switch off.
         cameras: [V] training cameras. images: [V,H,W,3] their photos.
         render_fn: (sample, camera) -> [1,H,W,3] image in [0, 1].
+        masks: [V,H,W,1] bool, the pixels that count, or None for all.
     """
     without = replace(sample, opacities=torch.where(off, torch.zeros_like(sample.opacities), sample.opacities))
-    return psnr_gain_db(sample, without, cameras, images, render_fn)
+    return psnr_gain_db(sample, without, cameras, images, render_fn, masks)
 
 
 def growth_reason(check: GrowthCheck) -> str:

@@ -53,7 +53,7 @@ def check_due(step: int, interval: int, max_degree: int, min_gain_db: float, che
 
 @torch.no_grad()
 def band_gain_db(sample: GaussianSample, degree: int, cameras: Cameras, images: Tensor,
-                 render_fn: Callable[[GaussianSample, Cameras], Tensor]) -> float:
+                 render_fn: Callable[[GaussianSample, Cameras], Tensor], masks: Tensor | None = None) -> float:
     """Training-view PSNR gain (dB) of SH band ``degree``: ``10 log10(mse without / mse with)``.
 
     Args:
@@ -61,10 +61,11 @@ def band_gain_db(sample: GaussianSample, degree: int, cameras: Cameras, images: 
         degree: the band tested (>= 1); "with" renders degrees 0..degree, "without" 0..degree - 1.
         cameras: [V] training cameras. images: [V,H,W,3] their photos.
         render_fn: (sample, camera) -> [1,H,W,3] image in [0, 1].
+        masks: [V,H,W,1] bool, the pixels that count, or None for all.
 
     As ``view_checks.psnr_gain_db``: two identical renders (no band content) give exactly 0.
     """
     if degree < 1:
         raise ValueError(f"band degree must be >= 1, got {degree}")
     return psnr_gain_db(replace(sample, sh_degree=degree), replace(sample, sh_degree=degree - 1), cameras, images,
-                        render_fn)
+                        render_fn, masks)

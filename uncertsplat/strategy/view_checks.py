@@ -23,13 +23,14 @@ def check_views(num_views: int, max_views: int) -> list[int]:
 
 @torch.no_grad()
 def psnr_gain_db(sample: GaussianSample, other: GaussianSample, cameras: Cameras, images: Tensor,
-                 render_fn: Callable[[GaussianSample, Cameras], Tensor]) -> float:
+                 render_fn: Callable[[GaussianSample, Cameras], Tensor], masks: Tensor | None = None) -> float:
     """How much better ``sample`` renders the views than ``other`` (dB): ``10 log10(mse other / mse sample)``.
 
     Args:
         sample, other: the two sets of Gaussians.
         cameras: [V] training cameras. images: [V,H,W,3] their photos.
         render_fn: (sample, camera) -> [1,H,W,3] image in [0, 1].
+        masks: [V,H,W,1] bool, the pixels that count (the photos' masks), or None for all.
 
     The squared errors are summed over all the views' pixels before the ratio, so a view with large errors weighs
     more. Two identical renders give exactly 0; a perfect ``sample`` (and an imperfect ``other``) +inf.
@@ -39,7 +40,8 @@ def psnr_gain_db(sample: GaussianSample, other: GaussianSample, cameras: Cameras
         total = 0.0
         for i in range(len(cameras)):
             pred = render_fn(g, cameras[i])[0].clamp(0, 1)
-            total += float((pred - images[i]).square().sum(dtype=torch.float64))
+            sq = (pred - images[i]).square()  # [H,W,3]
+            total += float((sq if masks is None else sq * masks[i]).sum(dtype=torch.float64))
         sse.append(total)
     mine, theirs = sse
     if mine == theirs:

@@ -336,7 +336,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         UserError: unreadable scene, an existing run folder without ``resume``, nothing to resume, or an
             interruption (Ctrl-C / SIGTERM; a checkpoint was written and ``--resume`` continues).
     """
-    from uncertsplat.data.dataset import load_photos
+    from uncertsplat.data.dataset import load_masks, load_photos
     from uncertsplat.io.checkpoints import load_latest
     from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
     from uncertsplat.render import near_plane
@@ -586,7 +586,10 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         # 8-bit photos stay uint8 (a quarter of float32's memory), converted one at a time where a step uses them
         train_images = load_photos(data, data.split["train"], device)
         test_images = load_photos(data, data.split["test"], device) if data.split.get("test") else None
-        trainer = Trainer(data, cfg, train_images, test_images, run_dir=run_dir, state=state, near=near)
+        masks = {k: load_masks(data, data.split[k], device) if data.masks_train and data.split.get(k) else None
+                 for k in ("train", "test")}  # [T,H,W,1], [V,H,W,1]: a user's masks (SceneData.masks_train)
+        trainer = Trainer(data, cfg, train_images, test_images, run_dir=run_dir, state=state, near=near,
+                          train_masks=masks["train"], test_masks=masks["test"])
         # recorded once the photos read and the model is built: an added photo that cannot be read left both files
         # naming it, and every later command failed on it (a run only mended by editing them)
         atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")

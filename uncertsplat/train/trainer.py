@@ -332,11 +332,18 @@ class Trainer:
         state: a ``state_dict()`` to resume from (None: initialise from the scene's points).
         near: the near plane (None: ``training_near_plane`` of ``scene``; ``train`` passes what ``scene.json``
             records, so that a resumed model keeps the plane it was trained with).
+        train_masks: [T,H,W,1] bool, the pixels of the training photos that count (``SceneData.masks_train``: the
+            masks a user brought), or None for every pixel. The others are set to 0 in ``train_images`` (in place)
+            and in each render before the loss, so that nothing of them reaches the loss, not even through SSIM's
+            windows across a mask's edge; nor the posterior's noise and curvature, the exposure fit or the checks.
+        test_masks: [V,H,W,1] bool, likewise for the held-out PSNR and SSIM (``test_images`` set to 0 outside), or
+            None.
     """
 
     def __init__(self, scene: SceneData, cfg: TrainConfig, train_images: Tensor | Photos,
                  test_images: Tensor | Photos | None = None,
-                 run_dir: Path | None = None, state: dict | None = None, near: float | None = None):
+                 run_dir: Path | None = None, state: dict | None = None, near: float | None = None,
+                 train_masks: Tensor | None = None, test_masks: Tensor | None = None):
         self.scene, self.cfg = scene, cfg
         self.device = train_images.device
         self.train_idx = list(scene.split["train"])
@@ -346,6 +353,13 @@ class Trainer:
         self.train_images, self.test_images = train_images, test_images
         if train_images.shape[0] != len(self.train_idx):
             raise ValueError("train_images must have one image per training view")
+        self.train_masks, self.test_masks = train_masks, test_masks
+        for images, masks in ((train_images, train_masks), (test_images, test_masks)):
+            if masks is not None:
+                if images is None or masks.shape != (*images.shape[:3], 1):
+                    raise ValueError("masks must be [C,H,W,1], one per image")
+                (images.data if isinstance(images, Photos) else images).masked_fill_(~masks.expand(images.shape), 0)
+        self.low_masks = None
         # the low-resolution phase's images and cameras (cfg.low_res_fraction), area-averaged once
         self.low_res_until = int(cfg.low_res_fraction * cfg.iterations)
         self.low_cams = self.low_images = None
@@ -355,6 +369,10 @@ class Trainer:
             self.low_images = torch.empty((len(self.train_idx), h, w, 3), dtype=torch.float32, device=self.device)
             for i in range(len(self.train_idx)):  # one photo at a time: uint8 photos are never all float at once
                 self.low_images[i] = area_resize(train_images[i:i + 1].permute(0, 3, 1, 2), h, w)[0].permute(1, 2, 0)
+            if train_masks is not None:  # a low pixel counts only where every pixel under it does
+                self.low_masks = area_resize(train_masks.permute(0, 3, 1, 2).float(), h, w).permute(0, 2, 3, 1) \
+                    >= 1.0 - 1e-6  # [T,h,w,1]
+                self.low_images.masked_fill_(~self.low_masks.expand(self.low_images.shape), 0)
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.extent = float(scene.extent)
         self.prior = prior_from_config(cfg)
@@ -638,7 +656,7 @@ class Trainer:
         ended = int(float(saved_cfg.get("low_res_fraction", 0.0)) * int(saved_cfg.get("iterations", 0)))
         if self.step >= ended:
             self.low_res_until = min(self.low_res_until, ended)
-            self.low_cams = self.low_images = None  # never read again
+            self.low_cams = self.low_images = self.low_masks = None  # never read again
         self._init_exposure(state)
 
     # -------------------------------------------------------------------------------- helpers
@@ -680,7 +698,7 @@ class Trainer:
         sample = expected_render_sample(self.model, variant=cfg.variant, extent=self.extent,
                                         temperature=self.prior.temperature, sh_degree=d)
         gain = band_gain_db(sample, d, self.train_cams[views], self.photos(views),
-                            lambda g, cam: self.render(g, cam).rgb)
+                            lambda g, cam: self.render(g, cam).rgb, masks=self._train_masks(views))
         # a perfect fit with the band gives +inf; JSON has no infinity
         check = BandCheck(degree=d, step=step, gain_db=round(min(gain, 1e3), 4), kept=gain >= cfg.sh_min_gain_db,
                           min_gain_db=cfg.sh_min_gain_db, views=len(views))
@@ -707,7 +725,8 @@ class Trainer:
         with torch.enable_grad():  # the blending weights come from one backward pass per view
             weights = blending_weights(g, cams, render_fn=self.render)  # [N]
         off = weakest_half(weights)
-        cost = halving_cost_db(g, off, cams, images, lambda s, cam: self.render(s, cam).rgb)
+        cost = halving_cost_db(g, off, cams, images, lambda s, cam: self.render(s, cam).rgb,
+                               masks=self._train_masks(views))
         # the tests before this one that must also have found the half cheap (growth_patience - 1 of them)
         before = self.growth[len(self.growth) - dcfg.growth_patience + 1:] if dcfg.growth_patience > 1 else []
         cheap = cost < dcfg.growth_min_gain_db and len(before) == dcfg.growth_patience - 1 and all(
@@ -755,9 +774,10 @@ class Trainer:
         n = len(self.test_idx) if max_views is None else min(max_views, len(self.test_idx))
         for i in range(n):
             out = self.render(g, self.test_cams[i])
-            pred = out.rgb[0].clamp(0, 1)
-            ps.append(float(psnr(pred, self.test_images[i])))
-            ss.append(float(ssim(pred, self.test_images[i])))
+            pred, photo = out.rgb[0].clamp(0, 1), self.test_images[i]
+            m = self.test_masks[i] if self.test_masks is not None else None  # [H,W,1]
+            ps.append(float(psnr(pred, photo, m)))
+            ss.append(float(ssim(pred if m is None else pred * m, photo)))  # (the photo is 0 outside its mask)
         return {"psnr": sum(ps) / n, "ssim": sum(ss) / n}
 
     @torch.no_grad()
@@ -788,8 +808,14 @@ class Trainer:
         g = self.mean_sample()
         skip = set(skip)
         kept = [i for i in range(len(self.train_idx)) if i not in skip]
-        return [fitted_gain(self.render(g, self.train_cams[kept[k]]).rgb[0], self.photos([kept[k]])[0])
-                for k in check_views(len(kept), max_views)]
+        gains = []
+        for k in check_views(len(kept), max_views):
+            render, photo = self.render(g, self.train_cams[kept[k]]).rgb[0], self.photos([kept[k]])[0]  # [H,W,3]
+            if self.train_masks is not None:  # the pixels that count, [P,3]
+                m = self.train_masks[kept[k]][..., 0]
+                render, photo = render[m], photo[m]
+            gains.append(fitted_gain(render, photo))
+        return gains
 
     @torch.no_grad()
     def training_psnr(self, max_views: int = 8) -> float | None:
@@ -799,8 +825,14 @@ class Trainer:
         if not chosen:
             return None
         g = self.mean_sample()
-        return sum(float(psnr(self.render(g, self.train_cams[i]).rgb[0].clamp(0, 1), self.photos([i])[0]))
-                   for i in chosen) / len(chosen)
+        masks = self._train_masks(chosen)
+        return sum(float(psnr(self.render(g, self.train_cams[i]).rgb[0].clamp(0, 1), self.photos([i])[0],
+                              None if masks is None else masks[k]))
+                   for k, i in enumerate(chosen)) / len(chosen)
+
+    def _train_masks(self, views: Sequence[int]) -> Tensor | None:
+        """[V,H,W,1] the masks of training views ``views`` (positions in the training views), or None."""
+        return None if self.train_masks is None else self.train_masks[list(views)]
 
     # ----------------------------------------------------------------------------------- steps
     def train_step(self) -> dict[str, float]:
@@ -865,6 +897,8 @@ class Trainer:
                 gain, offset = centred(self.exposure)
                 idx = torch.as_tensor(views, dtype=torch.long, device=self.device)
                 rgb = expose(rgb, gain[idx], offset[idx])
+            if self.train_masks is not None:  # 0 outside the mask, as the photo is there: no loss, no gradient
+                rgb = rgb * (self.low_masks if low else self.train_masks)[pick]
             losses = total_loss(rgb, gt, kl, ssim_lambda=cfg.ssim_lambda, kl_weight=cfg.variational.kl_weight,
                                 target_stats=gt_stats)
         with timer("backward"):
@@ -967,9 +1001,10 @@ class Trainer:
         # one render per view: the noise (RMS residual), the curvature, and at the last update with
         # ``sandwich`` the views' disagreement (at every update it cost 2 dB: the config's docstring)
         probes = vcfg.probes if last else vcfg.refresh_probes
+        masks = self.train_masks if n == t or self.train_masks is None else self.train_masks[pick]
         curv = curvature(params, cams, images, self.render, names=("means", "scales", "opacities"),
                          generator=self.gen_noise, sh_degree=degree, probes=probes,
-                         disagreement=vcfg.sandwich and last)
+                         disagreement=vcfg.sandwich and last, masks=masks)
         noise, fisher, disagreement = curv.noise_std, curv.fisher, curv.disagreement
         if n < t:
             fisher = {k: v * (t / n) for k, v in fisher.items()}

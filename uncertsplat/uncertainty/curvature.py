@@ -36,12 +36,12 @@ def activate(params: dict[str, Tensor], sh_degree: int, delta: dict[str, Tensor]
 
 
 def residual_noise_std(params: dict[str, Tensor], cameras: Cameras, images: Tensor, render_fn, *, sh_degree: int,
-                       floor: float = 1.0 / 255.0) -> float:
+                       floor: float = 1.0 / 255.0, masks: Tensor | None = None) -> float:
     """RMS of ``render - image`` over every training pixel channel (at least ``floor``).
 
     Args:
         params: stored per-Gaussian parameters (``GaussianModel.params``).
-        cameras: T training cameras; images: [T,H,W,3].
+        cameras: T training cameras; images: [T,H,W,3]; masks: [T,H,W,1] bool, the pixels that count (None: all).
     """
     total, count = 0.0, 0
     with torch.no_grad():
@@ -49,15 +49,18 @@ def residual_noise_std(params: dict[str, Tensor], cameras: Cameras, images: Tens
         for i in range(len(cameras)):
             out = render_fn(g, cameras[[i]])
             r = out.rgb[0] - images[i].to(out.rgb.device)
+            if masks is not None:
+                m = masks[i].to(r)
+                r = r * m
             total += float(r.square().sum())
-            count += r.numel()
+            count += r.numel() if masks is None else int(m.sum()) * r.shape[-1]
     return max(math.sqrt(total / max(count, 1)), floor)
 
 
 def fisher_diagonal(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
                     render_fn: Callable[[GaussianSample, Cameras], RenderOutput], *, names: tuple[str, ...],
                     noise_std: float, generator: torch.Generator, sh_degree: int, estimator: str = "ggn",
-                    probes: int = 2) -> dict[str, Tensor]:
+                    probes: int = 2, masks: Tensor | None = None) -> dict[str, Tensor]:
     """Diagonal Fisher information of the Gaussian pixel likelihood, summed over the training views.
 
     Args:
@@ -70,6 +73,7 @@ def fisher_diagonal(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
         sh_degree: SH degree to render with.
         estimator: ``"ggn"`` or ``"empirical"`` (module docstring).
         probes: probe vectors per view (``ggn``).
+        masks: [T,H,W,1] bool, the pixels that count (the photos' masks), or None for all.
 
     Returns:
         name -> [N,...] non-negative tensor shaped like ``params[name]``.
@@ -78,7 +82,7 @@ def fisher_diagonal(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
         raise ValueError(f"unknown estimator {estimator!r}")
     if estimator == "ggn":
         return curvature(params, cameras, images, render_fn, names=names, generator=generator, sh_degree=sh_degree,
-                         probes=probes, noise_std=noise_std).fisher
+                         probes=probes, noise_std=noise_std, masks=masks).fisher
     leaves = {n: params[n].detach().clone().requires_grad_(True) for n in names}
     fixed = {k: v.detach() for k, v in params.items()}
     acc = {n: torch.zeros_like(v) for n, v in leaves.items()}
@@ -87,6 +91,8 @@ def fisher_diagonal(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
         sample = activate({**fixed, **leaves}, sh_degree)
         rgb = render_fn(sample, cameras[[i]]).rgb[0]  # [H,W,3]
         r = rgb - images[i].to(rgb.device)
+        if masks is not None:
+            r = r * masks[i].to(r)
         grads = torch.autograd.grad(r.square().sum() * (0.5 * inv_var), list(leaves.values()), allow_unused=True)
         for n, gr in zip(leaves, grads, strict=True):
             if gr is not None:
@@ -109,13 +115,14 @@ class Curvature:
 def curvature(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
               render_fn: Callable[[GaussianSample, Cameras], RenderOutput], *, names: tuple[str, ...],
               generator: torch.Generator, sh_degree: int, probes: int = 2, noise_std: float | None = None,
-              disagreement: bool = False, floor: float = 1.0 / 255.0) -> Curvature:
+              disagreement: bool = False, floor: float = 1.0 / 255.0, masks: Tensor | None = None) -> Curvature:
     """The diagonal Fisher (``fisher_diagonal``'s ``ggn`` estimator, the same probes), the likelihood's noise and,
     optionally, how much the training views disagree, from one render per view.
 
     With ``noise_std`` None the noise is the RMS residual of these renders (``residual_noise_std``); every term
     is accumulated without it and scaled at the end (the Fisher by 1 / s^2), so the residual pass and the
-    curvature pass are one.
+    curvature pass are one. ``masks`` [T,H,W,1] bool: the pixels that count (the photos' masks; None: all), the
+    others in neither the noise nor the curvature.
 
     The disagreement is the variance over the T views of each view's score (the gradient of its Gaussian
     log-likelihood), times T: ``D = T/(T-1) sum_v (g_v - mean g)^2``. For a correctly specified model (pixels
@@ -135,10 +142,15 @@ def curvature(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
         sample = activate({**fixed, **leaves}, sh_degree)
         rgb = render_fn(sample, cameras[[i]]).rgb[0]  # [H,W,3]
         r = (rgb - images[i].to(rgb.device)).detach()
+        m = masks[i].to(rgb) if masks is not None else None  # [H,W,1]
+        if m is not None:
+            r = r * m
         sq_sum += float(r.square().sum())
-        count += r.numel()
+        count += r.numel() if m is None else int(m.sum()) * r.shape[-1]
         for p in range(probes):
             z = torch.randint(0, 2, rgb.shape, generator=generator, device=generator.device).to(rgb) * 2 - 1
+            if m is not None:
+                z = z * m
             grads = torch.autograd.grad((rgb * z).sum(), list(leaves.values()), retain_graph=disagreement or p < probes - 1,
                                         allow_unused=True)
             for n, gr in zip(leaves, grads, strict=True):

@@ -1,0 +1,167 @@
+"""A user's masks (a COLMAP workspace's ``masks/``): found under COLMAP's names and the others tools use, read at
+their photos' shape, and what they leave out is neither trained on nor scored: a transient object painted into the
+masked pixels changes nothing of the model, its posterior or its metrics."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from tests.e2e.test_train_resume import toy_config, toy_scene
+from tests.fixtures import tiny_scene_path  # noqa: F401
+from uncertsplat.data.dataset import load_masks
+from uncertsplat.errors import UserError
+from uncertsplat.io.images import read_image, write_png
+from uncertsplat.sfm.scene import load_scene, mask_file
+from uncertsplat.train.trainer import Trainer
+
+
+def _block(h: int, w: int) -> np.ndarray:
+    """[h,w] float32 mask: 1 everywhere but a block of the middle-left (a transient object's place)."""
+    m = np.ones((h, w), dtype=np.float32)
+    m[h // 4:3 * h // 4, w // 8:w // 2] = 0.0
+    return m
+
+
+@pytest.fixture
+def masked_workspace(tiny_scene_path, tmp_path):  # noqa: F811
+    """A COLMAP workspace of the tiny scene whose every photo has a mask with a black block (COLMAP's names)."""
+    ws = tmp_path / "ws"
+    shutil.copytree(tiny_scene_path / "images", ws / "images")
+    shutil.copytree(tiny_scene_path / "sparse", ws / "sparse")
+    (ws / "masks").mkdir()
+    for photo in sorted((ws / "images").iterdir()):
+        h, w = read_image(photo).shape[:2]
+        write_png(ws / "masks" / f"{photo.name}.png", np.repeat(_block(h, w)[..., None], 3, axis=-1))
+    return ws
+
+
+def _paint(ws, colour=(1.0, 0.0, 1.0)) -> None:
+    """Paint every photo of ``ws`` inside its mask's black block (a magenta person walking through)."""
+    for photo in sorted((ws / "images").iterdir()):
+        im = read_image(photo)
+        im[_block(*im.shape[:2]) == 0.0] = colour
+        write_png(photo, im)
+
+
+class TestFindingMasks:
+    def test_the_names_tools_use(self, tmp_path):
+        (tmp_path / "a").mkdir()
+        for name in ("IMG_1.jpg.png", "IMG_2.jpg", "a/IMG_3.png"):
+            (tmp_path / name).write_bytes(b"x")
+        assert mask_file(tmp_path, "IMG_1.jpg") == tmp_path / "IMG_1.jpg.png"  # COLMAP's
+        assert mask_file(tmp_path, "IMG_2.jpg") == tmp_path / "IMG_2.jpg"  # the photo's own name
+        assert mask_file(tmp_path, "a/IMG_3.jpg") == tmp_path / "a" / "IMG_3.png"  # its stem, in its sub-folder
+        assert mask_file(tmp_path, "IMG_3.jpg") is None
+        (tmp_path / "IMG_2.jpg.png").write_bytes(b"x")
+        assert mask_file(tmp_path, "IMG_2.jpg") == tmp_path / "IMG_2.jpg.png"  # COLMAP's first
+
+    def test_a_workspace_reads_its_masks_for_training_and_scoring(self, masked_workspace):
+        for p in list((masked_workspace / "masks").iterdir())[:3]:  # three photos without a mask
+            p.unlink()
+        scene = load_scene(masked_workspace)
+        assert scene.masks_train and scene.mask_paths is not None
+        assert sum(m is None for m in scene.mask_paths) == 3
+        (note,) = [n for n in scene.notes if n.startswith("masks:")]
+        assert "21 of 24 photos have one" in note and "every pixel of the other 3 is" in note, note
+        masks = load_masks(scene)  # [24,H,W,1]
+        unmasked = [i for i, m in enumerate(scene.mask_paths) if m is None]
+        assert bool(masks[unmasked].all())
+        masked = [i for i, m in enumerate(scene.mask_paths) if m is not None]
+        expect = torch.from_numpy(_block(scene.cameras.height, scene.cameras.width) > 0.5)
+        assert all(torch.equal(masks[i, ..., 0], expect) for i in masked)
+
+    def test_downscaled_a_pixel_counts_only_where_every_pixel_under_it_does(self, masked_workspace):
+        from uncertsplat.config import SceneConfig
+
+        full = load_masks(load_scene(masked_workspace))[0, ..., 0].float()  # [96,128]
+        half = load_masks(load_scene(masked_workspace, SceneConfig(downscale=2)))[0, ..., 0]  # [48,64]
+        expect = full.reshape(48, 2, 64, 2).amin(dim=(1, 3)) > 0.5
+        assert torch.equal(half, expect)
+
+    def test_a_folder_of_other_names_is_said_to_be_unread(self, masked_workspace):
+        for p in (masked_workspace / "masks").iterdir():
+            p.rename(p.with_name("mask_" + p.name))
+        scene = load_scene(masked_workspace)
+        assert scene.mask_paths is None and not scene.masks_train
+        (note,) = [n for n in scene.notes if "masks" in n]
+        assert "holds no mask named for any photo" in note and "view_000.png.png" in note, note
+
+    def test_a_mask_of_another_shape_is_refused_by_name(self, masked_workspace):
+        bad = masked_workspace / "masks" / "view_003.png.png"
+        write_png(bad, np.ones((40, 128, 3), dtype=np.float32))
+        scene = load_scene(masked_workspace)
+        with pytest.raises(UserError) as info:
+            load_masks(scene, [3])
+        assert "the mask is 128x40, another shape than its view's 128x96" in str(info.value)
+        assert "view_003.png.png" in str(info.value)
+
+
+def _toy_trainer(images_painted: bool, masked: bool, **extra) -> Trainer:
+    scene, tr, te = toy_scene()
+    h, w = tr.shape[1:3]
+    block = torch.from_numpy(_block(h, w) > 0.5)[None, ..., None]  # [1,H,W,1]
+    if images_painted:
+        tr = torch.where(block, tr, torch.tensor([1.0, 0.0, 1.0]))
+        te = torch.where(block, te, torch.tensor([0.0, 1.0, 0.0]))
+    masks = {"train_masks": block.expand(len(tr), -1, -1, -1).clone(),
+             "test_masks": block.expand(len(te), -1, -1, -1).clone()} if masked else {}
+    return Trainer(scene, toy_config(**extra), tr.clone(), te.clone(), **masks)
+
+
+class TestTrainingLeavesMaskedPixelsOut:
+    @pytest.mark.parametrize("extra", [{}, {"low_res_fraction": 0.4, "low_res_scale": 0.5},
+                                       {"exposure": "affine"}])
+    def test_what_the_masks_cover_changes_nothing(self, extra):
+        """Two trainings whose photos differ only under the masks end with the same parameters to the bit, the
+        same posterior updates, SH-band and growth tests and held-out scores; without masks they differ (the
+        check can fail)."""
+        runs = {}
+        for painted in (False, True):
+            t = _toy_trainer(painted, masked=True, **extra)
+            t.fit()
+            runs[painted] = t
+        a, b = runs[False], runs[True]
+        assert a.posterior_updates, "the toy run must update its posterior for the check to cover it"
+        for name, p in a.model.parameters().items():
+            assert torch.equal(p, b.model.parameters()[name]), name
+        assert [u["noise_std"] for u in a.posterior_updates] == [u["noise_std"] for u in b.posterior_updates]
+        assert a.sh_bands == b.sh_bands and a.growth == b.growth
+        assert a.evaluate() == b.evaluate()
+        assert a.training_psnr() == b.training_psnr() and a.photo_gains() == b.photo_gains()
+        plain = _toy_trainer(True, masked=False, **extra)
+        plain.fit()
+        assert not torch.equal(plain.model.parameters()["sh0"], a.model.parameters()["sh0"])
+
+    def test_masks_of_another_shape_are_refused(self):
+        scene, tr, te = toy_scene()
+        with pytest.raises(ValueError, match=r"masks must be \[C,H,W,1\]"):
+            Trainer(scene, toy_config(), tr, te, train_masks=torch.ones(len(tr), 5, 5, 1, dtype=torch.bool))
+
+
+def test_a_transient_under_the_masks_leaves_training_and_evaluation_as_they_were(masked_workspace, tmp_path):
+    """End to end (train, then evaluate): the workspace's photos painted under their masks give the same model
+    file and the same metrics, and evaluate says the masks were the photos' own."""
+    from tests.run_fixtures import train_tiny_run
+    from uncertsplat.config import EvalConfig
+    from uncertsplat.eval.engine import PHOTO_MASKS_NOTE
+    from uncertsplat.stages import evaluate
+
+    painted = tmp_path / "painted"
+    shutil.copytree(masked_workspace, painted)
+    _paint(painted)
+    metrics = []
+    for ws in (masked_workspace, painted):
+        run = train_tiny_run(ws, tmp_path / f"run_{ws.name}", iterations=60)
+        evaluate.run(run, EvalConfig(num_samples=3, seed=1, save_maps=False), device=torch.device("cpu"), quiet=True)
+        metrics.append(json.loads((run / "eval" / "metrics.json").read_text()))
+        assert (run / "variational.ply").is_file()
+    a, b = ((tmp_path / f"run_{n}" / "variational.ply").read_bytes() for n in ("ws", "painted"))
+    assert a == b
+    assert any(PHOTO_MASKS_NOTE in n for n in metrics[0]["notes"]), metrics[0]["notes"]
+    for key in ("psnr", "ssim", "ause_mae", "nll", "calibration_error"):
+        assert metrics[0]["mean"][key] == metrics[1]["mean"][key], key
