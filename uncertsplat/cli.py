@@ -327,6 +327,9 @@ def reconstruct(
         help="Mapping runs at most (other seeds) until two agree; the best is kept. 1: a single run. "
              f"{_d('ReconstructConfig', 'mapping_attempts')}")] = None,
     seed: Annotated[int | None, typer.Option(help=f"Random seed. {_d('ReconstructConfig', 'seed')}")] = None,
+    masks: Annotated[Path | None, typer.Option(
+        help="Folder of masks for the photos (IMG_1.jpg.png, IMG_1.jpg or IMG_1.png; black: not the scene): no "
+             "features there, and the workspace's masks/ leave those pixels out of training and scoring.")] = None,
     # (None when not given: a --config file's value stands; --no-overwrite given overrides the file's true)
     overwrite: Annotated[bool | None, typer.Option("--overwrite/--no-overwrite",
                                                    help="Replace an existing workspace.")] = None,
@@ -343,7 +346,7 @@ def reconstruct(
 
     explicit = dict(matcher=matcher, camera_model=camera_model, single_camera=single_camera,
                     max_image_size=max_image_size, features=features, min_registered=min_registered,
-                    mapping_attempts=mapping_attempts, seed=seed, overwrite=overwrite, extend=extend)
+                    mapping_attempts=mapping_attempts, seed=seed, overwrite=overwrite, extend=extend, masks=masks)
     cfg = _stage_config(ReconstructConfig, config, set_, explicit)
     stage.run(photos, output, cfg)
 

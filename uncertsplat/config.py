@@ -128,6 +128,12 @@ class ReconstructConfig(_Base):
     over several region sizes), which match across wider changes of view; more observations per photo and better
     poses on captures whose photos are far apart, for more extraction time (BENCHMARKS.md, "Features for photos far
     apart")."""
+    masks: Path | None = None
+    """A folder of masks for the photos (the mask of ``a/IMG_1.jpg``: ``a/IMG_1.jpg.png`` as COLMAP names it,
+    ``a/IMG_1.jpg`` or ``a/IMG_1.png``), white where the photo shows the scene and black where not (a person walking
+    through, the rig, the sky): no feature is taken under black pixels, and the workspace gets ``masks/``, each mask
+    undistorted as its image is, which ``train`` and ``evaluate`` read (README, "Masks"). A photo without a mask
+    counts every pixel."""
     guided_matching: bool = False
     """After a pair's geometry is verified, match its features again constrained by that geometry (more inlier
     matches per pair; matching takes several times longer)."""

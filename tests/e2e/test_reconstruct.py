@@ -553,3 +553,59 @@ def test_extend_names_new_photos_of_another_shape():
     # a size within 5 % is cropped in, another of the same shape resized, either orientation: as train fits them
     odd, common = stage._other_shapes(report, ["sq.jpg", "tall.jpg", "small.jpg", "cropped.jpg"])
     assert odd == ["sq.jpg"] and common == (800, 600)
+
+
+def test_masks_keep_features_off_and_come_undistorted_into_the_workspace(synth_scene, tmp_path):
+    """``--masks``: no feature under a mask's black pixels; the workspace's masks/ are the masks undistorted as their
+    images (a mask drawn on an EXIF-turned photo as stored turned alike), read by training; other masks are other
+    inputs; bad masks are refused by name."""
+    from uncertsplat.sfm.scene import load_scene
+
+    photos, masks = tmp_path / "photos", tmp_path / "masks"
+    photos.mkdir()
+    masks.mkdir()
+    names = sorted(p.name for p in (synth_scene / "images").iterdir())
+    turned = names[3]
+    for name in names:
+        arr = read_rgb(synth_scene / "images" / name)
+        h, w = arr.shape[:2]
+        m = np.full((h, w, 3), 255, np.uint8)
+        m[:, : w // 4] = 0  # the left quarter of the upright photo is not the scene
+        if name == turned:  # stored sideways with its EXIF tag, its mask drawn on it as stored
+            write_rgb(photos / name, np.rot90(arr, k=1), orientation=6)
+            m = np.rot90(m, k=1)
+        else:
+            shutil.copy(synth_scene / "images" / name, photos / name)
+        write_rgb(masks / f"{name}.png", np.ascontiguousarray(m))
+    cfg = CFG.model_copy(update={"masks": masks})
+    ws = tmp_path / "ws"
+    report = stage.run(photos, ws, cfg)
+    assert report.success and report.rotated == [turned]
+    assert any(n.startswith(f"masks: {len(names)} of {len(names)} photos have one") for n in report.notes)
+    with pycolmap.Database.open(ws / "database.db") as db:
+        for image in db.read_all_images():
+            kp = db.read_keypoints(image.image_id)
+            assert len(kp) > 0 and float(kp[:, 0].min()) >= w / 4 - 1.0, image.name
+    rec = pycolmap.Reconstruction(ws / "sparse" / "0")
+    for image in rec.images.values():
+        m = read_rgb(ws / "masks" / f"{image.name}.png")[..., 0] > 127
+        assert m.shape == (image.camera.height, image.camera.width)
+        cut = image.camera.width // 4
+        assert not m[:, : cut - 3].any() and m[:, cut + 3:].all(), image.name
+    scene = load_scene(ws)
+    assert scene.masks_train and all(p is not None for p in scene.mask_paths)
+    assert any(n.startswith("masks:") and "`reconstruct` undistorted the photos" in n for n in scene.notes)
+    # the same photos and masks: reused; a mask changed: other inputs
+    assert stage.run(photos, ws, cfg) == report
+    write_rgb(masks / f"{names[0]}.png", np.full((h, w, 3), 255, np.uint8))
+    with pytest.raises(UserError, match="made from other photos or masks"):
+        stage.run(photos, ws, cfg)
+    # bad masks: named
+    write_rgb(masks / f"{names[0]}.png", np.full((h // 2, w, 3), 255, np.uint8))
+    with pytest.raises(UserError, match=f"the mask is {w}x{h // 2}, another shape than its photo") as info:
+        stage.run(photos, tmp_path / "ws2", cfg)
+    assert f"{names[0]}.png" in str(info.value)
+    with pytest.raises(UserError, match="the masks folder does not exist"):
+        stage.run(photos, tmp_path / "ws3", CFG.model_copy(update={"masks": tmp_path / "nothing"}))
+    with pytest.raises(UserError, match="--masks with --extend"):
+        stage.run(photos, ws, CFG.model_copy(update={"masks": masks, "extend": True}))

@@ -397,6 +397,88 @@ def stage_inputs(scan: PhotoScan, staging: Path) -> tuple[Path, list[str]]:
     return staging, [p.name for p in rotate]
 
 
+def combined_fingerprint(*parts: str) -> str:
+    """One fingerprint of several inputs' (the photos', their masks')."""
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+def stage_masks(scan: PhotoScan, masks: Path, staging: Path) -> list[str]:
+    """Write the masks of ``scan``'s photos from the user's folder ``masks`` (``sfm.scene.mask_file``'s names) into
+    ``staging`` as COLMAP reads them: ``NAME.png`` (0 or 255) at each photo's size as COLMAP reads the photo (turned
+    by its EXIF orientation where ``stage_inputs`` turns it; a mask drawn on the photo as stored is turned alike).
+    A photo without a mask gets none (every pixel counts). Returns the names of the photos without one.
+
+    Raises:
+        UserError: a mask of another shape than its photo (either way up), naming both.
+    """
+    from uncertsplat.io.images import _reorient, read_image, resize_image, write_png
+    from uncertsplat.sfm.scene import mask_file
+
+    if staging.exists():
+        shutil.rmtree(staging)
+    staging.mkdir(parents=True)
+    without = []
+    for p in scan.photos:
+        found = mask_file(masks, p.name)
+        if found is None:
+            without.append(p.name)
+            continue
+        m = read_image(found)[..., :1]  # [h,w,1]
+        cut = 0.0 if 0.0 < float(m.max()) <= 1.5 / 255.0 else 0.5  # (a 0/1 mask: its ones)
+        valid = (m > cut).astype(np.float32)
+        w, h = p.oriented_size
+        h_m, w_m = valid.shape[:2]
+        same = lambda a, b: abs(np.log((a[0] / a[1]) / (b[0] / b[1]))) <= 0.02 + 1.0 / a[0] + 1.0 / a[1]  # noqa: E731
+        if p.orientation != 1 and not same((w, h), (w_m, h_m)) and same((p.width, p.height), (w_m, h_m)):
+            valid = _reorient(valid, p.orientation)  # drawn on the photo as stored: turned as COLMAP's copy is
+        elif not same((w, h), (w_m, h_m)):
+            raise UserError(f"the mask is {w_m}x{h_m}, another shape than its photo {p.name} ({w}x{h})", path=found,
+                            hint="Give each photo a mask of its own shape (any resolution of it), white where "
+                                 "features may be found and the pixels trained on, black where not.")
+        valid = resize_image(np.ascontiguousarray(valid), w, h)[..., 0] >= 0.5
+        target = staging / f"{p.name}.png"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        write_png(target, np.repeat(valid[..., None].astype(np.float32), 3, axis=-1))
+    return without
+
+
+def undistort_masks(distorted_model: Path, model: Path, staged: Path, out: Path) -> int:
+    """The staged masks (``stage_masks``, of the photos as COLMAP read them) of the images registered in ``model``
+    (the undistorted PINHOLE model ``undistort`` wrote), carried to its images: each pixel of an undistorted image
+    takes the mask's value where its ray meets the photo (``distorted_model``'s camera), nearest pixel, 0 (left out)
+    outside the photo. Written to ``out/NAME.png`` as ``sfm.scene`` reads a workspace's masks; returns how many."""
+    from uncertsplat.io.images import read_image, write_png
+
+    before = pycolmap.Reconstruction(distorted_model)
+    after = pycolmap.Reconstruction(model)
+    cams_before = {im.name: im.camera for im in before.images.values()}
+    if out.exists():
+        shutil.rmtree(out)
+    written = 0
+    for image in after.images.values():
+        src = staged / f"{image.name}.png"
+        if not src.is_file() or image.name not in cams_before:
+            continue
+        mask = read_image(src)[..., 0] >= 0.5  # [H0,W0] at the photo's size as COLMAP read it
+        cam, old = image.camera, cams_before[image.name]
+        v, u = np.mgrid[0:cam.height, 0:cam.width]
+        pix = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], axis=-1).astype(np.float64)  # pixel centres (COLMAP's)
+        xy = cam.cam_from_img(pix)  # [P,2] on the plane z = 1
+        uv = old.img_from_cam(np.concatenate([xy, np.ones((len(xy), 1))], axis=-1))  # [P,2] in the photo
+        # the staged mask may be of another size than the camera (a photo read smaller): scaled to it
+        sx, sy = mask.shape[1] / old.width, mask.shape[0] / old.height
+        x = np.floor(uv[:, 0] * sx).astype(np.int64)
+        y = np.floor(uv[:, 1] * sy).astype(np.int64)
+        inside = np.isfinite(uv).all(-1) & (x >= 0) & (y >= 0) & (x < mask.shape[1]) & (y < mask.shape[0])
+        valid = np.zeros(len(pix), dtype=bool)
+        valid[inside] = mask[y[inside], x[inside]]
+        target = out / f"{image.name}.png"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        write_png(target, np.repeat(valid.reshape(cam.height, cam.width, 1).astype(np.float32), 3, axis=-1))
+        written += 1
+    return written
+
+
 # ------------------------------------------------------------------------------------------ features
 def _chunks(items: Sequence, size: int) -> Iterator[Sequence]:
     for i in range(0, len(items), size):
@@ -411,8 +493,10 @@ def extract_features(
     advance: ProgressFn = _noop,
     chunk_size: int = 8,
     cameras: dict[tuple, int] | None = None,
+    masks: Path | None = None,
 ) -> dict[str, int]:
-    """SIFT features for every image into ``database``; returns name -> number of keypoints.
+    """SIFT features for every image into ``database``; returns name -> number of keypoints. ``masks``: a folder of
+    COLMAP-named masks (``stage_masks``): no feature is taken under their black pixels.
 
     With ``cfg.single_camera`` every group (an image size, and a lens where their EXIF names several:
     ``PhotoScan.camera_groups``) gets one shared camera: pycolmap's SINGLE mode
@@ -422,6 +506,8 @@ def extract_features(
     """
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = cfg.camera_model
+    if masks is not None:
+        reader.mask_path = str(masks)
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.num_threads = cfg.num_threads
     extraction.max_image_size = cfg.max_image_size

@@ -37,8 +37,18 @@ from uncertsplat.sfm.report import (
 OWN_CAMERAS_DB = "database.own_cameras.db"
 """The copy of the database a photo gets a camera of its own in, mapped from, then put in place of it."""
 # What a workspace written by this stage consists of: --overwrite removes these and nothing else.
-_OWNED = ("images", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", ".extend_tmp", ".extend_done",
+_OWNED = ("images", "masks", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", ".extend_tmp", ".extend_done",
           REPORT_NAME, OWN_CAMERAS_DB, f"{OWN_CAMERAS_DB}-wal", f"{OWN_CAMERAS_DB}-shm")
+
+
+def _inputs_fingerprint(scan, masks: Path | None) -> str:
+    """The fingerprint of a reconstruction's inputs: the photos' (``PhotoScan.fingerprint``), with their masks'
+    folder when there is one (other masks are other inputs: a workspace is not reused for them)."""
+    if masks is None or not masks.is_dir():
+        return scan.fingerprint()
+    from uncertsplat.stages.manifest import fingerprint_folder
+
+    return sfm.combined_fingerprint(scan.fingerprint(), fingerprint_folder(masks))
 
 
 def _same_options(recorded: dict, cfg: ReconstructConfig) -> bool:
@@ -101,7 +111,8 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
     redo_failed = existing is not None and (existing.photos == str(photos_abs) or same_input) and not existing.success
     if not cfg.overwrite and not redo_failed:
         if existing is not None:
-            what = (f"a workspace made from other photos ({existing.photos})" if not same_input
+            what = (f"a workspace made from other photos{' or masks' if cfg.masks is not None else ''} "
+                    f"({existing.photos})" if not same_input
                     else "a workspace made with other options")
         else:
             what = "other files (not an uncertsplat workspace)"
@@ -242,13 +253,25 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     if (workspace / EXTEND_DIR).exists() or (workspace / EXTEND_DONE).exists():
         with run_lock(workspace, "reconstruct"):
             _recover_extend(workspace)
+    if cfg.masks is not None:
+        if cfg.extend:
+            raise UserError("--masks with --extend: an extension takes the workspace's own options, and photos "
+                            "added with masks are not supported yet", path=cfg.masks,
+                            hint="Reconstruct all the photos again with their masks into a new workspace (or "
+                                 "--overwrite), or --extend without masks (the new photos count every pixel).")
+        if not cfg.masks.is_dir():
+            raise UserError("the masks folder does not exist" if not cfg.masks.exists() else
+                            "--masks needs a folder of masks, one per photo", path=cfg.masks,
+                            hint="Give the folder that holds the photos' masks (IMG_1.jpg.png, IMG_1.jpg or IMG_1.png "
+                                 "for IMG_1.jpg, in sub-folders as the photos).")
+        cfg = cfg.model_copy(update={"masks": cfg.masks.resolve()})  # (recorded: the same folder from anywhere)
     if cfg.extend:
         return extend(photos, workspace, cfg)
     watch = sfm.Stopwatch()
     t_start = time.perf_counter()
     with watch("scan"):
         scan = sfm.scan_photos(photos)
-        fingerprint = scan.fingerprint()
+        fingerprint = _inputs_fingerprint(scan, cfg.masks)
     _check_output_path(photos, workspace)
 
     pyv, colv = sfm.versions()
@@ -312,6 +335,20 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
             sfm.set_seed(cfg.seed)
             with watch("stage_inputs"):
                 image_dir, rotated = sfm.stage_inputs(scan, distorted / "input")
+                mask_dir = None
+                if cfg.masks is not None:
+                    mask_dir = distorted / "masks"
+                    without = sfm.stage_masks(scan, cfg.masks, mask_dir)
+                    if len(without) == len(scan.photos):
+                        raise UserError(f"{cfg.masks} holds no mask named for any photo (photo "
+                                        f"{scan.names[0]}'s would be {scan.names[0]}.png, {scan.names[0]} or "
+                                        f"{Path(scan.names[0]).with_suffix('.png').as_posix()})", path=cfg.masks,
+                                        hint="Name each mask after its photo, in sub-folders as the photos are.")
+                    note = f"masks: {len(scan.photos) - len(without)} of {n} photos have one in {cfg.masks}" + (
+                        f" (every pixel of the other {len(without)} counts: {list_names(without, 4)})"
+                        if without else "")
+                    report.notes.append(note)
+                    console.print(f"[yellow]note:[/] {esc(note)}")
             report.rotated = rotated
             if rotated:
                 report.notes.append(f"EXIF orientation applied to {len(rotated)} image(s)")
@@ -324,7 +361,8 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                 task = bar.add_task("features", total=n, info="")
                 with watch("extract"):
                     keypoints = sfm.extract_features(database, image_dir, cameras, cfg,
-                                                     advance=lambda k, s: bar.update(task, advance=k, info=s))
+                                                     advance=lambda k, s: bar.update(task, advance=k, info=s),
+                                                     masks=mask_dir)
                 missing = [name for name in scan.names if name not in keypoints]
                 if missing:
                     raise fail(f"COLMAP could not read {len(missing)} image(s): {list_names(missing)}",
@@ -466,6 +504,8 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
             best.write(model_dir)
             with console.status(f"undistorting {len(registered)} images"), watch("undistort"):
                 report.undistorted_size = sfm.undistort(model_dir, image_dir, workspace, cfg)
+                if mask_dir is not None:  # the photos' masks as their images are: undistorted the same way
+                    sfm.undistort_masks(model_dir, workspace / "sparse" / "0", mask_dir, workspace / "masks")
 
             report.ground_truth = _against_ground_truth(photos, workspace)
             report.success = True
@@ -605,7 +645,8 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
         left = sorted(set(scan.ignored) - set(existing.ignored))
         # the same photos, other contents: a photo edited or replaced since (said only after a whole extension before)
         edited = (set(scan.names) == set(existing.images_found)  # (a photo left out since changes it too)
-                  and existing.inputs_fingerprint not in ("", scan.fingerprint(), scan.legacy_fingerprint()))
+                  and existing.inputs_fingerprint not in ("", _inputs_fingerprint(scan, ws_cfg.masks),
+                                                          scan.legacy_fingerprint()))
         raise UserError(f"no new photo in {photos}: the workspace holds every one of its {len(scan.names)} photos"
                         + (f" (left out: {list_names(left)}, copies of a photo or sharing its name: the notes above)"
                            if left else "")
@@ -617,6 +658,9 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                         "Put the new photos into the folder beside the others and run this again.")
     console.print(f"[bold]reconstruct --extend[/] {workspace}: {len(new)} new photo(s) ({list_names(new)}) into its "
                   f"{len(existing.images_registered)} registered ones, their cameras fixed; the workspace's options")
+    if ws_cfg.masks is not None:  # (the masks/ of the photos there stay valid: their cameras and images do not change)
+        console.print(f"[yellow]note:[/] the workspace was made with masks ({esc(str(ws_cfg.masks))}); the new photos "
+                      "get none (every pixel of them counts)")
     stage_dir = workspace / EXTEND_DIR
     watch = sfm.Stopwatch()
     t_start = time.perf_counter()
@@ -684,7 +728,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                                 f"({list_names(changed)}): the workspace is unchanged", path=photos,
                                 hint="Put back the photos as they were, or reconstruct again into a new workspace.")
             report = existing.model_copy(deep=True)
-            report.inputs_fingerprint = scan.fingerprint()
+            report.inputs_fingerprint = _inputs_fingerprint(scan, ws_cfg.masks)
             report.photos = str(photos.resolve())
             report.ignored = scan.ignored  # (the scan's notes were printed; the report keeps its first scan's)
             report.images_found = scan.names
