@@ -165,3 +165,24 @@ def test_a_transient_under_the_masks_leaves_training_and_evaluation_as_they_were
     assert any(PHOTO_MASKS_NOTE in n for n in metrics[0]["notes"]), metrics[0]["notes"]
     for key in ("psnr", "ssim", "ause_mae", "nll", "calibration_error"):
         assert metrics[0]["mean"][key] == metrics[1]["mean"][key], key
+
+
+def test_the_curvature_and_noise_leave_masked_pixels_out():
+    """``curvature`` (the informed posterior's, the Fisher baseline's, select-views' fisher score): the same Fisher
+    and noise whatever the photos hold under their masks; without masks the painted pixels raise the noise."""
+    from uncertsplat.uncertainty.curvature import curvature
+
+    t = _toy_trainer(False, masked=False, iterations=10)
+    params = {k: v.detach() for k, v in t.model.params.items()}
+    images = t.train_images.clone()  # [T,H,W,3]
+    block = torch.from_numpy(_block(*images.shape[1:3]) > 0.5)[None, ..., None].expand(len(images), -1, -1, -1)
+    painted = torch.where(block, images, torch.tensor([1.0, 0.0, 1.0]))
+
+    def run(imgs, masks):
+        gen = torch.Generator().manual_seed(0)
+        return curvature(params, t.train_cams, imgs, t.render, names=("means", "opacities"), generator=gen,
+                         sh_degree=0, probes=2, masks=masks)
+
+    a, b = run(images, block), run(painted, block)
+    assert a.noise_std == b.noise_std and all(torch.equal(a.fisher[k], b.fisher[k]) for k in a.fisher)
+    assert run(painted, None).noise_std > 2 * run(images, None).noise_std

@@ -196,12 +196,13 @@ def gap_eligible(candidates: Tensor, used: Tensor, fraction: float,
 def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_images: Tensor, cameras: Cameras,
                   render_fn: Callable, *, names: Sequence[str], prior_std: dict[str, float], sh_degree: int,
                   probes: int, seed: int, n: int, information: str = "trace",
-                  eligible: Callable[[list[int]], Tensor] | None = None, competing: Tensor | None = None
-                  ) -> tuple[list[int], list[float], Tensor, float]:
+                  eligible: Callable[[list[int]], Tensor] | None = None, competing: Tensor | None = None,
+                  train_masks: Tensor | None = None) -> tuple[list[int], list[float], Tensor, float]:
     """Greedy FisherRF choice of ``n`` candidates (see the module docstring). ``eligible`` (``gap_eligible``)
     restricts each choice to the candidates its mask allows; the others are not scored (NaN). ``competing`` [C] bool:
     the candidates that compete at all (``SelectConfig.plausible_only``); only they join the ``predictive``
-    information's reference (a pose inside an object is no view of the capture).
+    information's reference (a pose inside an object is no view of the capture). ``train_masks`` [T,H,W,1] bool: the
+    training photos' pixels that count (their masks, as training left the others out), or None.
 
     Returns:
         (chosen positions, their information when chosen, [C] every candidate's information before any choice,
@@ -215,7 +216,7 @@ def fisher_choice(params: dict[str, Tensor], train_cameras: Cameras, train_image
     gen = torch.Generator(device=train_images.device).manual_seed(seed)
     names = tuple(names)
     base = curvature(params, train_cameras, train_images, render_fn, names=names, generator=gen,
-                     sh_degree=sh_degree, probes=probes)
+                     sh_degree=sh_degree, probes=probes, masks=train_masks)
     noise = base.noise_std
     precision = {k: base.fisher[k] + 1.0 / prior_std[k] ** 2 for k in names}
     blank = torch.zeros(1, cameras.height, cameras.width, 3, device=train_images.device)

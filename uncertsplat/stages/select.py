@@ -203,7 +203,7 @@ def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | N
 def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | None = None):
     from uncertsplat.baselines import load_run
     from uncertsplat.baselines.fisher import prior_stds
-    from uncertsplat.data.dataset import load_images
+    from uncertsplat.data.dataset import load_images, load_masks
     from uncertsplat.io.atomic import check_output_folder, run_lock
     from uncertsplat.io.images import resize_image
     from uncertsplat.schemas import PruneReport, RunScene, Selection
@@ -306,6 +306,11 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
             photos = exposure.unexposed_images(train, photos)
         images = torch.from_numpy(np.stack([resize_image(im.numpy(), low_train.width, low_train.height)
                                             for im in photos]))
+        masks = None
+        if scene.masks_train:  # the photos' own masks, as training left their other pixels out (a low pixel counts
+            # only where every pixel under it does)
+            masks = torch.from_numpy(np.stack([resize_image(m.float().numpy(), low_train.width, low_train.height)
+                                               >= 1.0 - 1e-6 for m in load_masks(scene, train)])).to(device)
         fcfg = loaded.config.fisher
         params = {k: v.detach() for k, v in loaded.model.params.items()}
         low = low_resolution(cands.cameras, cfg.max_side)
@@ -316,7 +321,8 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                 probes=cfg.probes, seed=cfg.seed, n=n, information=cfg.information,
                 # (gaps 0 with candidates left out: the gap rule at fraction 0 is the allowed ones not chosen yet)
                 eligible=(gap_eligible(centres, scene.cameras[train].centers, cfg.gaps, allowed)
-                          if cfg.gaps > 0 or allowed is not None else None), competing=allowed)
+                          if cfg.gaps > 0 or allowed is not None else None), competing=allowed,
+                train_masks=masks)
         settings.update(width=low.width, height=low.height, noise_std=noise, params=list(fcfg.params))
         if loaded.config.method == "ensemble":
             settings["note"] = "ensemble: the Fisher of member 0's Gaussians"
