@@ -1032,7 +1032,9 @@ def test_force_trains_a_finished_run_again_beside_it(tmp_path, monkeypatch, caps
     with pytest.raises(Interrupted):
         jobs._train(forced, "cpu")
     assert (run / "weights.bin").read_text() == "training 1" and (run / "train_summary.json").is_file()
-    assert jobs._train(job, "cpu") == ("summary", False)  # a sweep without --force reuses it
+    capsys.readouterr()
+    assert jobs._train(job, "cpu") == ("summary", False)  # a sweep without --force reuses it, naming the leftover
+    assert f"note: {run}.retrain holds a training that `sweep --force` began" in capsys.readouterr().err
     stop_training = False
     capsys.readouterr()
     assert jobs._train(forced, "cpu") == ("summary", True)  # --force again: the new training resumed, then swapped

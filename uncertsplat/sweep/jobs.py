@@ -83,6 +83,10 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
     if finished and not retrain:
         summary = TrainSummary.read(summary_path)
         if cfg.method != "fisher" or summary.fisher_seconds is not None:
+            if fresh.is_dir():  # a forced retraining stopped midway, which this sweep (no --force) leaves alone
+                print(f"note: {fresh} holds a training that `sweep --force` began and did not finish: the next "
+                      "--force resumes it; without --force it is not used (delete it to drop it)", file=sys.stderr,
+                      flush=True)
             return summary, False
     # past the reuse of a finished run (an evaluate of it holds its lock too, and reading it is safe): what follows
     # removes, moves or trains the run, under a `train --resume` of it by hand it would mix or destroy both
