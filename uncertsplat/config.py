@@ -1221,10 +1221,10 @@ def build_config(model: type[_Base], data: dict, source: str = "config", key_pre
         raise UserError(format_validation_error(err, source, model, key_prefix, names, where)) from None
 
 
-STAGE_PATH_KEYS = ("depth_gt", "candidates")
-"""The stage configs' path settings (``EvalConfig.depth_gt``, ``SelectConfig.candidates`` when it names a file): a
-relative one is read from the folder of the file that wrote it (a --config file's; a pipeline file's where the
-current folder has no such path)."""
+STAGE_PATH_KEYS = ("depth_gt", "candidates", "masks")
+"""The stage configs' path settings (``EvalConfig.depth_gt``, ``SelectConfig.candidates`` when it names a file,
+``ReconstructConfig.masks``): a relative one is read from the folder of the file that wrote it (a --config file's; a
+pipeline file's where the current folder has no such path)."""
 
 SHIPPED = Path(__file__).resolve().parent / "pipelines"
 """The pipelines and sweep specs installed with the package (the repository's ``pipelines/`` links here)."""

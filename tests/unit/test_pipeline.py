@@ -333,6 +333,32 @@ def test_photos_touched_or_copied_without_times_are_unchanged(tmp_path, calls):
     assert [k for k, _ in calls] == ["reconstruct", "train"]
 
 
+def test_the_photos_masks_are_an_input_of_reconstruct(tmp_path, calls, monkeypatch):
+    """A reconstruct stage's ``masks`` (relative: from the pipeline file's folder) are an input as its photos are: a
+    mask changed runs reconstruct and train again; the same masks skip both."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (tmp_path / "masks").mkdir()
+    for i in range(3):
+        (photos / f"{i}.jpg").write_bytes(bytes([i]) * 100)
+        (tmp_path / "masks" / f"{i}.jpg.png").write_bytes(bytes([i + 7]) * 50)
+    p = tmp_path / "p.toml"
+    p.write_text('name = "t"\ndevice = "cpu"\nphotos = "photos"\n[[stages]]\nstage = "reconstruct"\n'
+                 'config = { masks = "masks" }\n[[stages]]\nstage = "train"\npreset = "tiny"\n')
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls] == ["reconstruct", "train"]
+    given = json.loads((tmp_path / "out" / "reconstruct" / "out.txt").read_text())["masks"]
+    assert Path(given) == tmp_path / "masks"
+    calls.clear()
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    (tmp_path / "masks" / "1.jpg.png").write_bytes(b"another mask")
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls] == ["reconstruct", "train"]
+
+
 def test_notes_and_leftovers_beside_the_photos_are_not_inputs(tmp_path, calls):
     """The fingerprint covered every file of an input folder: a notes.txt beside the photos, an editor's backup or a
     .DS_Store retrained the whole pipeline. A manifest holding the fingerprint of every file (written before) still
