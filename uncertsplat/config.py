@@ -129,8 +129,8 @@ class ReconstructConfig(_Base):
     poses on captures whose photos are far apart, for more extraction time (BENCHMARKS.md, "Features for photos far
     apart")."""
     masks: Path | None = None
-    """A folder of masks for the photos (the mask of ``a/IMG_1.jpg``: ``a/IMG_1.jpg.png`` as COLMAP names it,
-    ``a/IMG_1.jpg`` or ``a/IMG_1.png``), white where the photo shows the scene and black where not (a person walking
+    """A folder of masks for the photos (the mask of ``IMG_1.jpg``: ``IMG_1.jpg.png`` as COLMAP names it,
+    ``IMG_1.jpg`` or ``IMG_1.png``), white where the photo shows the scene and black where not (a person walking
     through, the rig, the sky): no feature is taken under black pixels, and the workspace gets ``masks/``, each mask
     undistorted as its image is, which ``train`` and ``evaluate`` read (README, "Masks"). A photo without a mask
     counts every pixel."""

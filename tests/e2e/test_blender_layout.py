@@ -126,7 +126,7 @@ def test_evaluate_says_its_metrics_are_taken_inside_the_masks(scenes, colmap_run
     res = CliRunner().invoke(app, ["evaluate", str(root / "run_colmap"), "--num-samples", "2", "--set", "max_views=1",
                                    "--device", "cpu"])
     assert res.exit_code == 0, res.output
-    assert ("what train reports for the held-out views (train's over whole images; these inside the scene's validity "
+    assert ("what train reports for the held-out views; train's over whole images, these inside the scene's validity "
             "masks)") in " ".join(res.output.split())
     report = EvalReport.from_json((root / "run_colmap" / "eval" / "metrics.json").read_text())
     (note,) = [n for n in report.notes if n.startswith("the scene has validity masks")]

@@ -565,36 +565,46 @@ def test_masks_keep_features_off_and_come_undistorted_into_the_workspace(synth_s
     photos.mkdir()
     masks.mkdir()
     names = sorted(p.name for p in (synth_scene / "images").iterdir())
-    turned = names[3]
+    turned, upside_down, bare = names[3], names[7], names[10]
     for name in names:
         arr = read_rgb(synth_scene / "images" / name)
         h, w = arr.shape[:2]
         m = np.full((h, w, 3), 255, np.uint8)
         m[:, : w // 4] = 0  # the left quarter of the upright photo is not the scene
-        if name == turned:  # stored sideways with its EXIF tag, its mask drawn on it as stored
-            write_rgb(photos / name, np.rot90(arr, k=1), orientation=6)
-            m = np.rot90(m, k=1)
+        if name in (turned, upside_down):  # stored turned with its EXIF tag, its mask drawn on it as stored
+            k, tag = (1, 6) if name == turned else (2, 3)
+            write_rgb(photos / name, np.rot90(arr, k=k), orientation=tag)
+            m = np.rot90(m, k=k)
         else:
             shutil.copy(synth_scene / "images" / name, photos / name)
-        write_rgb(masks / f"{name}.png", np.ascontiguousarray(m))
+        if name != bare:  # (a photo without a mask counts every pixel)
+            write_rgb(masks / f"{name}.png", np.ascontiguousarray(m))
     cfg = CFG.model_copy(update={"masks": masks})
     ws = tmp_path / "ws"
     report = stage.run(photos, ws, cfg)
-    assert report.success and report.rotated == [turned]
-    assert any(n.startswith(f"masks: {len(names)} of {len(names)} photos have one") for n in report.notes)
+    assert report.success and report.rotated == sorted([turned, upside_down]) and bare in report.images_registered
+    assert any(n.startswith(f"masks: {len(names) - 1} of {len(names)} photos have one") and bare in n
+               for n in report.notes)
     with pycolmap.Database.open(ws / "database.db") as db:
         for image in db.read_all_images():
             kp = db.read_keypoints(image.image_id)
-            assert len(kp) > 0 and float(kp[:, 0].min()) >= w / 4 - 1.0, image.name
+            if image.name == bare:
+                assert float(kp[:, 0].min()) < w / 4 - 1.0  # features found where the others' masks are black
+            else:
+                assert len(kp) > 0 and float(kp[:, 0].min()) >= w / 4 - 1.0, image.name
     rec = pycolmap.Reconstruction(ws / "sparse" / "0")
+    assert not (ws / "masks" / f"{bare}.png").exists()
     for image in rec.images.values():
+        if image.name == bare:
+            continue
         m = read_rgb(ws / "masks" / f"{image.name}.png")[..., 0] > 127
         assert m.shape == (image.camera.height, image.camera.width)
         cut = image.camera.width // 4
         assert not m[:, : cut - 3].any() and m[:, cut + 3:].all(), image.name
     scene = load_scene(ws)
-    assert scene.masks_train and all(p is not None for p in scene.mask_paths)
-    assert any(n.startswith("masks:") and "`reconstruct` undistorted the photos" in n for n in scene.notes)
+    assert scene.masks_train and sum(p is None for p in scene.mask_paths) == 1
+    (note,) = [n for n in scene.notes if n.startswith("masks:")]
+    assert "`reconstruct` undistorted the photos" not in note  # (its own masks are undistorted already)
     # the same photos and masks: reused; a mask changed: other inputs
     assert stage.run(photos, ws, cfg) == report
     write_rgb(masks / f"{names[0]}.png", np.full((h, w, 3), 255, np.uint8))

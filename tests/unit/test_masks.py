@@ -186,3 +186,106 @@ def test_the_curvature_and_noise_leave_masked_pixels_out():
     a, b = run(images, block), run(painted, block)
     assert a.noise_std == b.noise_std and all(torch.equal(a.fisher[k], b.fisher[k]) for k in a.fisher)
     assert run(painted, None).noise_std > 2 * run(images, None).noise_std
+
+
+class TestMaskValues:
+    """``io.images.read_mask``: the ways tools save a mask."""
+
+    def _write_rgba(self, path, rgb, alpha):
+        import OpenImageIO as oiio
+
+        arr = np.concatenate([rgb, alpha[..., None]], axis=-1).astype(np.uint8)
+        spec = oiio.ImageSpec(arr.shape[1], arr.shape[0], 4, "uint8")
+        spec.alpha_channel = 3
+        out = oiio.ImageOutput.create(str(path))
+        out.open(str(path), spec)
+        out.write_image(np.ascontiguousarray(arr))
+        out.close()
+
+    def test_white_a_zero_one_mask_a_palette_colour_and_alpha(self, tmp_path):
+        from uncertsplat.io.images import read_mask
+
+        expect = np.zeros((6, 8), dtype=bool)
+        expect[:, 3:] = True
+        write_png(tmp_path / "white.png", np.repeat(expect[..., None].astype(np.float32), 3, axis=-1))
+        write_png(tmp_path / "ones.png", np.repeat(expect[..., None].astype(np.float32), 3, axis=-1) / 255.0)
+        green = np.zeros((6, 8, 3), dtype=np.float32)
+        green[expect] = (0.0, 1.0, 0.0)  # a palette mask's index 1 as its colour
+        write_png(tmp_path / "green.png", green)
+        black_in_alpha = np.zeros((6, 8, 3))
+        self._write_rgba(tmp_path / "alpha_black.png", black_in_alpha, expect * 255)
+        self._write_rgba(tmp_path / "alpha_white.png", black_in_alpha + 255, expect * 255)
+        both = np.zeros((6, 8, 3))
+        both[:, 5:] = 255  # white only on part of where alpha holds: colour and alpha together
+        self._write_rgba(tmp_path / "both.png", both, expect * 255)
+        for name in ("white", "ones", "green", "alpha_black", "alpha_white"):
+            assert np.array_equal(read_mask(tmp_path / f"{name}.png"), expect), name
+        got = read_mask(tmp_path / "both.png")
+        assert got[:, 5:].all() and not got[:, :5].any()
+
+    def test_a_mask_that_leaves_no_pixel_is_refused_by_name(self, masked_workspace):
+        write_png(masked_workspace / "masks" / "view_005.png.png", np.zeros((96, 128, 3), dtype=np.float32))
+        scene = load_scene(masked_workspace)
+        with pytest.raises(UserError, match=r"the mask leaves no pixel of its photo \(view_005.png\)") as info:
+            load_masks(scene)
+        assert "view_005.png.png" in str(info.value)
+
+
+def test_the_training_coverage_is_taken_inside_the_masks():
+    """The empty-ray term's level (``training_coverage``): a masked-out sky is no surface the model should cover."""
+    from uncertsplat.uncertainty.mc import training_coverage
+
+    t = _toy_trainer(False, masked=False, iterations=10)
+    sample = t.mean_sample()
+    alpha = t.render(sample, t.train_cams[[0]]).alpha[0]  # [H,W,1]
+    lit = alpha > 0.5  # the pixels the model covers
+    everywhere = training_coverage(sample, t.train_cams[[0]], t.render, quantile=0.05)
+    inside = training_coverage(sample, t.train_cams[[0]], t.render, quantile=0.05, masks_of=lambda pick: lit[None])
+    assert everywhere < 0.5 < inside
+
+
+def test_ssim_inside_a_mask_is_not_inflated_by_what_it_leaves_out():
+    from uncertsplat.eval.image import masked_ssim, ssim
+
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(48, 64, 3, generator=g)
+    pred = (target + 0.2 * torch.randn(48, 64, 3, generator=g)).clamp(0, 1)
+    mask = torch.zeros(48, 64, 1, dtype=torch.bool)
+    mask[:, 32:] = True
+    inside = masked_ssim(pred, target, mask)
+    other = torch.where(mask, pred, torch.rand(48, 64, 3, generator=g))  # anything outside the mask
+    assert masked_ssim(other, target, mask) == inside
+    assert inside < float(ssim(pred * mask, target * mask)) - 0.05  # the zeros outside would count as matching
+
+
+def test_masks_added_or_changed_after_training_are_said_and_scored_again(masked_workspace, tmp_path):
+    """The run records the masks it was trained with (scene.json): masks added after training are scored inside but
+    not called the ones training left out; a mask changed since makes evaluate score again instead of reusing."""
+    from tests.run_fixtures import train_tiny_run
+    from uncertsplat.config import EvalConfig
+    from uncertsplat.eval.engine import PHOTO_MASKS_NOTE
+    from uncertsplat.schemas.scene import RunScene
+    from uncertsplat.stages import evaluate
+
+    masks = masked_workspace / "masks"
+    aside = tmp_path / "masks_aside"
+    masks.rename(aside)
+    run = train_tiny_run(masked_workspace, tmp_path / "run", iterations=40)
+    assert RunScene.read(run / "scene.json").masks == {}
+    aside.rename(masks)  # added after training
+    cfg = EvalConfig(num_samples=2, seed=1, save_maps=False)
+    evaluate.run(run, cfg, device=torch.device("cpu"), quiet=True)
+    notes = json.loads((run / "eval" / "metrics.json").read_text())["notes"]
+    assert not any(PHOTO_MASKS_NOTE in n for n in notes)
+    assert any("or the photos' own added after training" in n for n in notes), notes
+
+    trained = train_tiny_run(masked_workspace, tmp_path / "run2", iterations=40)
+    recorded = RunScene.read(trained / "scene.json").masks
+    assert len(recorded) == 24 and set(recorded.values()) != {""}
+    evaluate.run(trained, cfg, device=torch.device("cpu"), quiet=True)
+    first = (trained / "eval" / "metrics.json").stat().st_mtime_ns
+    evaluate.run(trained, cfg, device=torch.device("cpu"), quiet=True)
+    assert (trained / "eval" / "metrics.json").stat().st_mtime_ns == first  # the same masks: reused
+    write_png(masks / "view_000.png.png", np.ones((96, 128, 3), dtype=np.float32))  # a held-out view's mask
+    evaluate.run(trained, cfg, device=torch.device("cpu"), quiet=True)
+    assert (trained / "eval" / "metrics.json").stat().st_mtime_ns != first  # scored again, inside the new mask

@@ -987,7 +987,8 @@ def test_masks_of_zero_and_one_mark_their_ones_valid(workspace):
     m[1:, 2:] = 1.0
     write_png(workspace / "a.png", m / 255.0)  # values 0 and 1
     write_png(workspace / "b.png", m)  # values 0 and 255
-    scene = SimpleNamespace(cameras=cams, mask_paths=(workspace / "a.png", workspace / "b.png"), photo_fits=None)
+    scene = SimpleNamespace(cameras=cams, mask_paths=(workspace / "a.png", workspace / "b.png"), photo_fits=None,
+                            masks_train=True)
     masks = load_masks(scene)
     assert masks.shape == (2, 3, 4, 1) and torch.equal(masks[0], masks[1]) and int(masks[0].sum()) == 4
 

@@ -133,7 +133,13 @@ class LoadedRun:
             if sample is None:
                 with torch.no_grad():
                     sample = variational.expected_render_sample(self.model, **self.sample_kwargs)
-            value = training_coverage(sample, scene.cameras[train].to(device), self.render_fn(scene_scale, device))
+            masks_of = None
+            if scene.masks_train:  # the pixels training fitted: a masked-out sky or passer-by is no surface to cover
+                from uncertsplat.data.dataset import load_masks
+
+                masks_of = lambda pick: load_masks(scene, [train[j] for j in pick])  # noqa: E731
+            value = training_coverage(sample, scene.cameras[train].to(device), self.render_fn(scene_scale, device),
+                                      masks_of=masks_of)
         self._coverage = value
         return value
 

@@ -23,6 +23,7 @@ from uncertsplat.io.images import (
     read_image,
     read_image_8bit,
     read_image_size,
+    read_mask,
     resize_image,
 )
 from uncertsplat.types import PhotoFit, Photos, SceneData, ViewSet
@@ -260,20 +261,24 @@ def load_masks(scene: SceneData, indices: Sequence[int] | None = None, device=No
         if scene.mask_paths[i] is not None:  # (a photo without a mask: every pixel valid)
             fit = scene.photo_fits[i] if scene.photo_fits is not None else None
             out[k, ..., 0] = torch.from_numpy(load_mask(scene.mask_paths[i], W, H, fit))
+            if scene.masks_train and not bool(out[k].any()):  # (its photo would train and score on nothing)
+                raise UserError(f"the mask leaves no pixel of its photo ({scene.cameras.image_names[i]}) at "
+                                f"{W}x{H}: it is all black there", path=scene.mask_paths[i],
+                                hint="White marks the pixels that count; is it inverted, or held in an alpha channel "
+                                     "that is 0 everywhere? Give that photo no mask to count every pixel, or leave "
+                                     "the photo out.")
     return out
 
 
 def load_mask(path: Path, width: int, height: int, fit: PhotoFit | None = None) -> np.ndarray:
-    """One mask [H,W] bool at ``width`` x ``height``: valid where the file is white (above half its range; a mask of
-    0 and 1, as many tools save a boolean, where it is 1), and a resized pixel only where every source pixel under
-    it is. ``fit``: its photo's ``PhotoFit``, applied first.
+    """One mask [H,W] bool at ``width`` x ``height``: valid where the file is white (``io.images.read_mask``: a 0/1
+    mask's ones, a palette's colour, alpha), and a resized pixel only where every source pixel under it is. ``fit``:
+    its photo's ``PhotoFit``, applied first.
 
     Raises:
         UserError: the mask is not of its photo's shape (``SHAPE_TOLERANCE``), naming both sizes.
     """
-    m = read_image(path)[..., 0]
-    cut = 0.0 if 0.0 < float(m.max()) <= 1.5 / 255.0 else 0.5
-    valid = (m > cut).astype(np.float32)
+    valid = read_mask(path).astype(np.float32)  # [h,w]
     w, h = ((fit.turned_width, fit.turned_height) if fit.turns % 2 == 0 else (fit.turned_height, fit.turned_width)) \
         if fit is not None else (width, height)
     slack = 0.0 if fit is not None else 1.0 / w + 1.0 / h

@@ -733,7 +733,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     """
     from uncertsplat.eval.calibration import calibration, mean_calibration, spearman
     from uncertsplat.eval.depth import align_depth_scale, depth_metrics, valid_depth_mask
-    from uncertsplat.eval.image import lpips, lpips_available, psnr, ssim
+    from uncertsplat.eval.image import lpips, lpips_available, masked_ssim, psnr, ssim
     from uncertsplat.eval.nll import gaussian_nll, kde_nll, paper_nll, predictive_nll
     from uncertsplat.eval.sparsification import mean_curves, sparsification_all
     from uncertsplat.provenance import versions
@@ -777,14 +777,15 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if inside < MASKED_NOTE_BELOW:  # train's held-out PSNR is over whole images: the two differ on such scenes
         if views.masks_trained:
             notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
-                         f"({inside:.0%} of the pixels of these views; SSIM over whole images black outside them), "
-                         f"as train's held-out PSNR and SSIM; {PHOTO_MASKS_NOTE}, whose black pixels training left "
-                         "out too")
+                         f"({inside:.0%} of the pixels of these views; SSIM too, with both images black outside "
+                         f"them), as train's held-out PSNR and SSIM; {PHOTO_MASKS_NOTE}, whose black pixels training "
+                         "left out too")
         else:
             notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
                          f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out "
-                         "PSNR over whole images; the masks are a synthetic scene's, or the objects of transparent "
-                         "photos (alpha >= 0.5: the background they are composited over left out)")
+                         "PSNR over whole images; the masks are a synthetic scene's, the objects of transparent "
+                         "photos (alpha >= 0.5: the background they are composited over left out), or the photos' "
+                         "own added after training")
     # a model without a posterior: its spread term is 0 too
     terms = ["the variance of the K samples" + (" (0: K = 1)" if K == 1 else
                                               f" (0 for this model: {SAME_RENDER})" if same else "")]
@@ -875,11 +876,11 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             cal = calibration(err, std, mask=mask, dof=dof)
             sm = spearman(std, err.abs(), mask=mask)
             m = dict(
-                # SSIM's windows need whole images: outside the photos' own masks (which training left out) both are
-                # 0, as in training's loss; a synthetic scene's masks leave both as they are
+                # inside the photos' own masks (which training left out); a synthetic scene's masks leave SSIM
+                # over whole images
                 psnr=float(psnr(pred, gt, mask)),
-                ssim=float(ssim(pred * mask, gt * mask) if views.masks_trained and mask is not None
-                           else ssim(pred, gt)),
+                ssim=(masked_ssim(pred, gt, mask) if views.masks_trained and mask is not None
+                      else float(ssim(pred, gt))),
                 ause_mae=sp["mae"].ause, ause_mse=sp["mse"].ause, ause_rmse=sp["rmse"].ause,
                 nll=float(predictive_nll(gt, pred, std, dof, std_floor=cfg.std_floor, mask=mask)),
                 calibration_error=cal.calibration_error, spearman=sm.value, spearman_note=sm.reason,

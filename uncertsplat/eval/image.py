@@ -119,6 +119,16 @@ def ssim_map(
     return out.reshape(*lead, *out.shape[1:])
 
 
+def masked_ssim(pred: Tensor, target: Tensor, mask: Tensor) -> float:
+    """SSIM of HWC images [H,W,3] inside ``mask`` [H,W,1] bool: the mean of ``ssim_map`` over the pixels that count,
+    with both images 0 outside them (what lies there, a passer-by a photo's mask left out, enters no window). The
+    plain mean of the map would count the masked pixels as matching (two zeros: about 1)."""
+    m = mask.to(pred.dtype)
+    smap = ssim_map(pred * m, target * m)  # [H,W,3]
+    inside = mask.expand_as(smap)
+    return float(smap[inside].mean()) if bool(inside.any()) else float("nan")
+
+
 def ssim(
     pred: Tensor,
     target: Tensor,

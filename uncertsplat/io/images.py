@@ -293,6 +293,30 @@ def read_alpha(path: str | Path, exif_orientation: bool = False) -> np.ndarray |
     return np.ascontiguousarray(_reorient(arr, orientation)[..., 0])
 
 
+def read_mask(path: str | Path) -> np.ndarray:
+    """A mask file as [H,W] bool, True where a pixel counts (as stored: no EXIF orientation applied).
+
+    White counts: a value above half the file's range in any colour channel (a palette mask's index colour, green
+    or red, counts as white), or, for a mask saved as 0 and 1 (a boolean, as many tools save it), its ones. With an
+    alpha channel, only where alpha is at least 0.5; and where the colour is one value wherever alpha is (the mask
+    held in the alpha alone, painted black or white), the alpha alone decides.
+
+    Raises:
+        UserError: like ``read_image``, naming the file.
+    """
+    level = read_image(path).max(axis=-1)  # [H,W] (premultiplied by its alpha: 0 where alpha is 0)
+    alpha = read_alpha(path)
+    if alpha is not None:
+        held = alpha >= 0.5
+        shown = level[held]
+        if shown.size == 0 or float(shown.max() - shown.min()) < 1.5 / 255.0:
+            return held
+        level = np.where(held, level / np.maximum(alpha, 0.5), 0.0)  # the colour itself where alpha holds it
+    top = float(level.max()) if level.size else 0.0
+    cut = 0.0 if 0.0 < top <= 1.5 / 255.0 else 0.5
+    return level > cut
+
+
 # ------------------------------------------------------------------------------------------------ writing
 def _atomic_oiio(path: Path, write: Callable[[str], None]) -> Path:
     """Let ``write(tmp_name)`` create the image under a temp name with the same extension, then rename."""

@@ -88,10 +88,10 @@ class RunScene(SchemaFile):
     """``RUN/scene.json`` (written by ``train``): which scene a run was trained on and how it was normalised."""
 
     FILE_NAME = "scene.json"
-    SCHEMA_VERSION = 5
+    SCHEMA_VERSION = 6
     WRITTEN_BY = "uncertsplat train"
 
-    schema_version: int = 5
+    schema_version: int = 6
     scene: str
     """Absolute path of the scene folder (COLMAP workspace, Blender/nerfstudio folder, synthetic scene)."""
     scene_from_run: str | None = None
@@ -129,6 +129,11 @@ class RunScene(SchemaFile):
     held-out and set-aside views in world (normalised) coordinates and pixels, as trained (``sfm.scene.camera_records``):
     a scene reconstructed again or edited since no longer lines up with the model, and a later load says so
     (``sfm.scene.camera_changes``). Empty in runs written before it was recorded (nothing is compared)."""
+    masks: dict[str, str] = Field(default_factory=dict)
+    """{view name: SHA-256 of its mask file} of the photos' own masks the run was trained with (``SceneData
+    .masks_train``; the training, held-out and set-aside views that have one); empty: every pixel was trained on
+    (and in every run written before masks were read). ``evaluate`` compares them with the scene's masks now
+    (``sfm.scene.mask_hashes``)."""
 
     @classmethod
     def _upgrade(cls, data: dict, version: int) -> dict | None:
@@ -140,9 +145,10 @@ class RunScene(SchemaFile):
                                                                 "that always used the camera centroid"}
         if version == 1:
             return {**data, "calibration": []}
-        if version in (2, 3, 4):  # 2: no cameras recorded (the default, nothing to compare); 2 and 3: no near plane
-            return data  # (the default None: 1 % of the scene scale, what those runs rendered with); 2-4: no
-        return None  # scene_from_run (None: the absolute path alone, as those versions read it)
+        if version in (2, 3, 4, 5):  # 2: no cameras recorded (the default, nothing to compare); 2 and 3: no near
+            return data  # plane (the default None: 1 % of the scene scale, what those runs rendered with); 2-4: no
+        return None  # scene_from_run (None: the absolute path alone, as those versions read it); 2-5: no masks (none
+        # was read then: every pixel trained on, the default {})
 
     def scene_folder(self, run_dir: str | Path) -> Path:
         """The scene folder of the run in ``run_dir``: ``scene`` while it exists, else the folder at ``scene_from_run``

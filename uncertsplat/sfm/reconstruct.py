@@ -188,8 +188,10 @@ def _read_header(path: Path) -> tuple[int, int, int, bool, bool, str] | str:
         inp.close()
 
 
-def scan_photos(folder: str | Path, min_images: int = 3, prefer: set[str] | frozenset[str] = frozenset()) -> PhotoScan:
-    """List the photos of ``folder`` (not recursive) and read their headers.
+def scan_photos(folder: str | Path, min_images: int = 3, prefer: set[str] | frozenset[str] = frozenset(),
+                masks: Path | None = None) -> PhotoScan:
+    """List the photos of ``folder`` (not recursive) and read their headers. ``masks``: the photos' masks folder
+    (``reconstruct --masks``), not named among the ignored sub-folders when it lies in ``folder``.
 
     JPEG, PNG and TIFF files of any extension case are used; sub-folders, hidden files and other
     files are ignored (and named in ``ignored``). Of photos that are copies of each other or share a name stem, one
@@ -214,7 +216,8 @@ def scan_photos(folder: str | Path, min_images: int = 3, prefer: set[str] | froz
         if entry.name.startswith("."):
             ignored.append(entry.name)  # .DS_Store, ._IMG_0001.JPG (macOS resource forks), ...
         elif entry.is_dir():
-            subfolders.append(entry.name)
+            if masks is None or entry.resolve() != Path(masks).resolve():
+                subfolders.append(entry.name)
             ignored.append(entry.name + "/")
         elif entry.suffix.lower() in IMAGE_EXTENSIONS:
             candidates.append(entry)
@@ -403,15 +406,17 @@ def combined_fingerprint(*parts: str) -> str:
 
 
 def stage_masks(scan: PhotoScan, masks: Path, staging: Path) -> list[str]:
-    """Write the masks of ``scan``'s photos from the user's folder ``masks`` (``sfm.scene.mask_file``'s names) into
-    ``staging`` as COLMAP reads them: ``NAME.png`` (0 or 255) at each photo's size as COLMAP reads the photo (turned
-    by its EXIF orientation where ``stage_inputs`` turns it; a mask drawn on the photo as stored is turned alike).
-    A photo without a mask gets none (every pixel counts). Returns the names of the photos without one.
+    """Write the masks of ``scan``'s photos from the user's folder ``masks`` (``sfm.scene.mask_file``'s names,
+    ``io.images.read_mask``'s values) into ``staging`` as COLMAP reads them: ``NAME.png`` (0 or 255) at each photo's
+    size as COLMAP reads the photo. A mask is drawn on its photo as stored (as most tools read a photo: without its
+    EXIF orientation), and turned as ``stage_inputs`` turns the photo; one whose shape fits only the turned photo is
+    taken as drawn on it. A photo without a mask gets a white one (COLMAP skips a photo whose mask is missing).
+    Returns the names of the photos without one.
 
     Raises:
-        UserError: a mask of another shape than its photo (either way up), naming both.
+        UserError: a mask of another shape than its photo (either way up), or one that leaves no pixel, naming it.
     """
-    from uncertsplat.io.images import _reorient, read_image, resize_image, write_png
+    from uncertsplat.io.images import _reorient, read_mask, resize_image, write_png
     from uncertsplat.sfm.scene import mask_file
 
     if staging.exists():
@@ -420,33 +425,42 @@ def stage_masks(scan: PhotoScan, masks: Path, staging: Path) -> list[str]:
     without = []
     for p in scan.photos:
         found = mask_file(masks, p.name)
+        w, h = p.oriented_size
         if found is None:
             without.append(p.name)
-            continue
-        m = read_image(found)[..., :1]  # [h,w,1]
-        cut = 0.0 if 0.0 < float(m.max()) <= 1.5 / 255.0 else 0.5  # (a 0/1 mask: its ones)
-        valid = (m > cut).astype(np.float32)
-        w, h = p.oriented_size
-        h_m, w_m = valid.shape[:2]
-        same = lambda a, b: abs(np.log((a[0] / a[1]) / (b[0] / b[1]))) <= 0.02 + 1.0 / a[0] + 1.0 / a[1]  # noqa: E731
-        if p.orientation != 1 and not same((w, h), (w_m, h_m)) and same((p.width, p.height), (w_m, h_m)):
-            valid = _reorient(valid, p.orientation)  # drawn on the photo as stored: turned as COLMAP's copy is
-        elif not same((w, h), (w_m, h_m)):
-            raise UserError(f"the mask is {w_m}x{h_m}, another shape than its photo {p.name} ({w}x{h})", path=found,
-                            hint="Give each photo a mask of its own shape (any resolution of it), white where "
-                                 "features may be found and the pixels trained on, black where not.")
-        valid = resize_image(np.ascontiguousarray(valid), w, h)[..., 0] >= 0.5
+            valid = np.ones((h, w), dtype=bool)
+        else:
+            valid = read_mask(found)  # [h,w] as stored
+            h_m, w_m = valid.shape
+            same = lambda a, b: abs(np.log((a[0] / a[1]) / (b[0] / b[1]))) <= 0.02 + 1.0 / a[0] + 1.0 / a[1]  # noqa: E731
+            turned_only = p.orientation in (5, 6, 7, 8) and same((w, h), (w_m, h_m)) \
+                and not same((p.width, p.height), (w_m, h_m))
+            if not same((p.width, p.height), (w_m, h_m)) and not turned_only:
+                raise UserError(f"the mask is {w_m}x{h_m}, another shape than its photo {p.name} ({p.width}x"
+                                f"{p.height} as stored)", path=found,
+                                hint="Give each photo a mask of its own shape (any resolution of it), white where "
+                                     "features may be found and the pixels trained on, black where not.")
+            if p.orientation != 1 and not turned_only:  # drawn on the photo as stored: turned as COLMAP's copy is
+                valid = _reorient(valid[..., None].astype(np.float32), p.orientation)[..., 0] >= 0.5
+            valid = resize_image(np.ascontiguousarray(valid[..., None], dtype=np.float32), w, h)[..., 0] >= 0.5
+            if not valid.any():
+                raise UserError(f"the mask leaves no pixel of its photo {p.name}: it is all black", path=found,
+                                hint="White marks the pixels that count; is it inverted, or held in an alpha channel "
+                                     "that is 0 everywhere? Give that photo no mask to count every pixel.")
         target = staging / f"{p.name}.png"
         target.parent.mkdir(parents=True, exist_ok=True)
         write_png(target, np.repeat(valid[..., None].astype(np.float32), 3, axis=-1))
     return without
 
 
-def undistort_masks(distorted_model: Path, model: Path, staged: Path, out: Path) -> int:
+def undistort_masks(distorted_model: Path, model: Path, staged: Path, out: Path,
+                    skip: Sequence[str] = ()) -> int:
     """The staged masks (``stage_masks``, of the photos as COLMAP read them) of the images registered in ``model``
-    (the undistorted PINHOLE model ``undistort`` wrote), carried to its images: each pixel of an undistorted image
-    takes the mask's value where its ray meets the photo (``distorted_model``'s camera), nearest pixel, 0 (left out)
-    outside the photo. Written to ``out/NAME.png`` as ``sfm.scene`` reads a workspace's masks; returns how many."""
+    (the undistorted PINHOLE model ``undistort`` wrote), carried to its images: a pixel of an undistorted image counts
+    where its ray meets the photo (``distorted_model``'s camera) inside it and every one of the (up to four) mask pixels
+    the undistorter's bilinear interpolation blends there counts, so that no pixel mixes in what a mask left out.
+    Written to ``out/NAME.png`` as ``sfm.scene`` reads a workspace's masks, except for the photos in ``skip`` (no mask
+    of their own: every pixel counts); returns how many were written."""
     from uncertsplat.io.images import read_image, write_png
 
     before = pycolmap.Reconstruction(distorted_model)
@@ -454,24 +468,28 @@ def undistort_masks(distorted_model: Path, model: Path, staged: Path, out: Path)
     cams_before = {im.name: im.camera for im in before.images.values()}
     if out.exists():
         shutil.rmtree(out)
+    skip = set(skip)
     written = 0
     for image in after.images.values():
         src = staged / f"{image.name}.png"
-        if not src.is_file() or image.name not in cams_before:
+        if image.name in skip or not src.is_file() or image.name not in cams_before:
             continue
         mask = read_image(src)[..., 0] >= 0.5  # [H0,W0] at the photo's size as COLMAP read it
+        h0, w0 = mask.shape
         cam, old = image.camera, cams_before[image.name]
         v, u = np.mgrid[0:cam.height, 0:cam.width]
         pix = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], axis=-1).astype(np.float64)  # pixel centres (COLMAP's)
         xy = cam.cam_from_img(pix)  # [P,2] on the plane z = 1
         uv = old.img_from_cam(np.concatenate([xy, np.ones((len(xy), 1))], axis=-1))  # [P,2] in the photo
-        # the staged mask may be of another size than the camera (a photo read smaller): scaled to it
-        sx, sy = mask.shape[1] / old.width, mask.shape[0] / old.height
-        x = np.floor(uv[:, 0] * sx).astype(np.int64)
-        y = np.floor(uv[:, 1] * sy).astype(np.int64)
-        inside = np.isfinite(uv).all(-1) & (x >= 0) & (y >= 0) & (x < mask.shape[1]) & (y < mask.shape[0])
-        valid = np.zeros(len(pix), dtype=bool)
-        valid[inside] = mask[y[inside], x[inside]]
+        # (the staged mask may be of another size than the camera: a photo COLMAP read smaller; scaled to it)
+        x, y = uv[:, 0] * (w0 / old.width), uv[:, 1] * (h0 / old.height)
+        inside = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (y >= 0) & (x < w0) & (y < h0)
+        valid = inside.copy()
+        x0 = np.floor(np.where(inside, x, 0.5) - 0.5).astype(np.int64)  # the bilinear neighbours' corner
+        y0 = np.floor(np.where(inside, y, 0.5) - 0.5).astype(np.int64)
+        for dy in (0, 1):
+            for dx in (0, 1):
+                valid &= mask[np.clip(y0 + dy, 0, h0 - 1), np.clip(x0 + dx, 0, w0 - 1)]
         target = out / f"{image.name}.png"
         target.parent.mkdir(parents=True, exist_ok=True)
         write_png(target, np.repeat(valid.reshape(cam.height, cam.width, 1).astype(np.float32), 3, axis=-1))

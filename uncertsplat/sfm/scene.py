@@ -182,6 +182,39 @@ def mask_file(folder: Path, name: str) -> Path | None:
     return None
 
 
+def mask_hashes(scene: SceneData, names: Sequence[str] | None = None) -> dict[str, str]:
+    """{view name: SHA-256 of its mask file} of the photos' own masks (``SceneData.masks_train``) of the views
+    ``names`` (all when None) that have one; empty for a scene without them (``RunScene.masks`` records them)."""
+    from uncertsplat.provenance import file_sha256
+
+    if not scene.masks_train or scene.mask_paths is None:
+        return {}
+    wanted = None if names is None else set(names)
+    return {n: file_sha256(p) for n, p in zip(scene.cameras.image_names, scene.mask_paths, strict=True)
+            if p is not None and (wanted is None or n in wanted)}
+
+
+def mask_changes(recorded: dict[str, str], now: dict[str, str], names: Sequence[str]) -> str | None:
+    """What differs between the masks a run ``recorded`` and the scene's masks ``now`` (``mask_hashes``) for the
+    views ``names``, in words; None when nothing does."""
+    changed = [n for n in names if recorded.get(n) != now.get(n)]
+    if not changed:
+        return None
+    added = [n for n in changed if n not in recorded]
+    gone = [n for n in changed if n not in now]
+    edited = [n for n in changed if n in recorded and n in now]
+    parts = [f"{what} for {list_names(group, 4)}" for what, group in
+             (("a mask added", added), ("its mask removed", gone), ("its mask changed", edited)) if group]
+    return "; ".join(parts)
+
+
+def mask_names(photo: str) -> str:
+    """The names ``mask_file`` looks up for ``photo``, for a message: "photo IMG_1.jpg's would be IMG_1.jpg.png,
+    IMG_1.jpg or IMG_1.png"."""
+    names = list(dict.fromkeys((f"{photo}.png", photo, Path(photo).with_suffix(".png").as_posix())))
+    return f"photo {photo}'s would be " + (", ".join(names[:-1]) + " or " + names[-1])
+
+
 def _workspace_masks(path: Path, names: Sequence[str]) -> tuple[tuple[Path | None, ...] | None, list[str]]:
     """The masks of a COLMAP workspace's images in ``path/masks`` (``mask_file``), one per name (None for a photo
     without one), or None when the folder holds none of them; and the notes on what was found."""
@@ -194,19 +227,28 @@ def _workspace_masks(path: Path, names: Sequence[str]) -> tuple[tuple[Path | Non
         n = sum(1 for p in folder.rglob("*") if p.is_file())
         if not n:
             return None, []
-        example = names[0] if names else "IMG_1.jpg"
-        return None, [f"{folder} ({n} file(s)) holds no mask named for any photo (photo {example}'s would be "
-                      f"{example}.png, {example} or {Path(example).with_suffix('.png').as_posix()} there): not read, "
-                      "every pixel is trained on and scored"]
+        return None, [f"{folder} ({n} file(s)) holds no mask named for any photo ({mask_names(names[0] if names else 'IMG_1.jpg')}"
+                      "): not read, every pixel is trained on and scored"]
     missing = [n for n, m in zip(names, found, strict=True) if m is None]
     note = (f"masks: {have} of {len(names)} photos have one in {folder}; their black pixels are neither trained on "
             "nor scored")
     if missing:
         note += f" (every pixel of the other {len(missing)} is: {list_names(missing, 4)})"
-    if (path / REPORT_NAME).is_file():  # reconstruct's images/ are the photos undistorted, and masks/ are not its
+    if (path / REPORT_NAME).is_file() and not _reconstructed_with_masks(path):
+        # reconstruct's images/ are the photos undistorted, and these masks/ are not its own (--masks)
         note += ("; `reconstruct` undistorted the photos into images/, so masks drawn on the photos as taken are off "
-                 "by the lens's distortion there: draw them on the workspace's images")
+                 "by the lens's distortion there: draw them on the workspace's images, or reconstruct with --masks")
     return found, [note]
+
+
+def _reconstructed_with_masks(path: Path) -> bool:
+    """Whether ``reconstruct --masks`` made the workspace ``path`` (its masks/ undistorted as its images)."""
+    import json
+
+    try:
+        return bool(json.loads((path / REPORT_NAME).read_text(encoding="utf-8")).get("options", {}).get("masks"))
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def _model_dirs(path: Path) -> list[Path]:

@@ -30,6 +30,7 @@ import math
 import os
 import shutil
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -202,6 +203,25 @@ def run_sha256(run_dir: Path, model_file: Path) -> str:
     if exposure.is_file():  # only when present: the runs without one keep the hash they were evaluated under
         parts.append(file_sha256(exposure))
     return hashlib.sha256(" ".join(parts).encode()).hexdigest()
+
+
+def _mask_record(run_dir: Path, scene, indices) -> tuple[str | None, bool]:
+    """(a note when the photos' masks of the evaluated and training views differ from those the run was trained with,
+    else None; whether the run was trained with masks at all: ``RunScene.masks``)."""
+    from uncertsplat.schemas.scene import RunScene
+    from uncertsplat.sfm.scene import mask_changes, mask_hashes
+
+    info = RunScene.read_optional(Path(run_dir) / RunScene.FILE_NAME)
+    recorded = info.masks if info is not None else {}
+    now = mask_hashes(scene)
+    names = scene.cameras.image_names
+    changed = mask_changes(recorded, now, list(dict.fromkeys(
+        [names[i] for i in indices] + [names[i] for i in scene.split.get("train", ())])))
+    if changed is None:
+        return None, bool(recorded)
+    what = ("the photos' masks were added after this run was trained (it was trained on every pixel)" if not recorded
+            else f"the photos' masks changed since this run was trained ({changed})")
+    return f"{what}: the metrics are taken inside the masks as they are now", bool(recorded)
 
 
 def matching_evaluation(run_dir: Path, model_file: Path, cfg: EvalConfig, image_names: list[str],
@@ -428,9 +448,11 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     unfinished = loaded.warn_if_unfinished()
     scene = loaded.load_scene()
     indices = split_indices(scene.split, cfg)
-    # (an evaluation made in another frame of the scene folder holds maps and depths in that frame's units: again)
+    masks_note, trained_masks = _mask_record(run_dir, scene, indices)
+    # (an evaluation made in another frame of the scene folder holds maps and depths in that frame's units: again;
+    # one made before the photos' masks changed scored other pixels: again)
     done = (_finished(run_dir, Path(loaded.source), cfg, [scene.cameras.image_names[i] for i in indices], device)
-            if cfg.split == "test" and _in_frame(loaded, scene, out) else None)
+            if cfg.split == "test" and _in_frame(loaded, scene, out) and masks_note is None else None)
     if done is not None:
         _keep_missing_predictive(run_dir, loaded, scene, cfg, done, device)
         console.print(f"[bold]evaluate[/] {run_dir}: already evaluated with these settings, versions and device "
@@ -440,6 +462,9 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     # 8-bit photos kept as uint8 (a quarter of the memory), each converted where the engine reads it
     views = load_view_set(scene, indices, depth_folder=cfg.depth_gt, folder_in_scene_units=cfg.depth_scale == "scene",
                           keep_8bit=True)
+    views = replace(views, masks_trained=views.masks_trained and trained_masks)
+    if masks_note is not None and not quiet:
+        console.print(f"[yellow]note:[/] {masks_note}")
     with run_lock(run_dir, "evaluate"):
         if not quiet:
             console.print(f"[bold]evaluate[/] {run_dir}: {len(indices)} {cfg.split} views, K={cfg.num_samples}, "
@@ -751,8 +776,8 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
                           "--set train.scene.calibration_holdout=3)[/]")
     if report.mean.psnr_render is not None:
         masked = [n for n in report.notes if n.startswith(MASKED_NOTE)]
-        where = "" if not masked else " (inside the photos' masks, as train's)" if PHOTO_MASKS_NOTE in masked[0] \
-            else " (train's over whole images; these inside the scene's validity masks)"
+        where = "" if not masked else "; inside the photos' masks, as train's" if PHOTO_MASKS_NOTE in masked[0] \
+            else "; train's over whole images, these inside the scene's validity masks"
         samples = "the one sample" if cfg.num_samples == 1 else f"the mean of the {cfg.num_samples} samples"
         what = ("what train reports for the held-out views" if cfg.split == "test" else
                 "as train renders them; its 'training views' figure is over at most 8 of them, evenly spaced")

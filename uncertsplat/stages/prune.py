@@ -226,7 +226,10 @@ class _Measure:
                        for j in range(len(rgb))]
         out = PruneMetrics(num_gaussians=len(model), num_carriers=model.num_carriers, **uncertainty,
                            psnr_render=sum(render_psnr) / len(render_psnr) if render_psnr else None,
-                           coverage=float(alpha.mean()), **self.file_sizes(model), seconds=time.perf_counter() - t0)
+                           # (inside the photos' own masks: a masked-out sky is no surface to cover)
+                           coverage=float(alpha[masks.to(alpha.device)].mean() if masks is not None
+                                          and self.views.masks_trained else alpha.mean()),
+                           **self.file_sizes(model), seconds=time.perf_counter() - t0)
         if key is not None:
             self._cache[(key, full)] = out
         return out

@@ -122,7 +122,9 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
                         hint="Choose another output folder, or pass --overwrite to replace it"
                              + ("; photos added to the folder join the workspace with --extend, every camera there "
                                 "kept (a run trained on it can then train on them)." if grown else "."))
-    for name in _OWNED:
+    # masks/ is this stage's only when --masks wrote it: masks drawn by hand on the workspace's images stay
+    ours = [n for n in _OWNED if n != "masks" or (existing is not None and existing.options.get("masks"))]
+    for name in ours:
         target = workspace / name
         if target.is_dir() and not target.is_symlink():
             shutil.rmtree(target)
@@ -263,14 +265,14 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
             raise UserError("the masks folder does not exist" if not cfg.masks.exists() else
                             "--masks needs a folder of masks, one per photo", path=cfg.masks,
                             hint="Give the folder that holds the photos' masks (IMG_1.jpg.png, IMG_1.jpg or IMG_1.png "
-                                 "for IMG_1.jpg, in sub-folders as the photos).")
+                                 "for IMG_1.jpg).")
         cfg = cfg.model_copy(update={"masks": cfg.masks.resolve()})  # (recorded: the same folder from anywhere)
     if cfg.extend:
         return extend(photos, workspace, cfg)
     watch = sfm.Stopwatch()
     t_start = time.perf_counter()
     with watch("scan"):
-        scan = sfm.scan_photos(photos)
+        scan = sfm.scan_photos(photos, masks=cfg.masks)
         fingerprint = _inputs_fingerprint(scan, cfg.masks)
     _check_output_path(photos, workspace)
 
@@ -340,10 +342,10 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                     mask_dir = distorted / "masks"
                     without = sfm.stage_masks(scan, cfg.masks, mask_dir)
                     if len(without) == len(scan.photos):
-                        raise UserError(f"{cfg.masks} holds no mask named for any photo (photo "
-                                        f"{scan.names[0]}'s would be {scan.names[0]}.png, {scan.names[0]} or "
-                                        f"{Path(scan.names[0]).with_suffix('.png').as_posix()})", path=cfg.masks,
-                                        hint="Name each mask after its photo, in sub-folders as the photos are.")
+                        from uncertsplat.sfm.scene import mask_names
+
+                        raise UserError(f"{cfg.masks} holds no mask named for any photo ({mask_names(scan.names[0])})",
+                                        path=cfg.masks, hint="Name each mask after its photo.")
                     note = f"masks: {len(scan.photos) - len(without)} of {n} photos have one in {cfg.masks}" + (
                         f" (every pixel of the other {len(without)} counts: {list_names(without, 4)})"
                         if without else "")
@@ -505,7 +507,8 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
             with console.status(f"undistorting {len(registered)} images"), watch("undistort"):
                 report.undistorted_size = sfm.undistort(model_dir, image_dir, workspace, cfg)
                 if mask_dir is not None:  # the photos' masks as their images are: undistorted the same way
-                    sfm.undistort_masks(model_dir, workspace / "sparse" / "0", mask_dir, workspace / "masks")
+                    sfm.undistort_masks(model_dir, workspace / "sparse" / "0", mask_dir, workspace / "masks",
+                                        skip=without)
 
             report.ground_truth = _against_ground_truth(photos, workspace)
             report.success = True

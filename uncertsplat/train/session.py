@@ -343,6 +343,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     from uncertsplat.sfm.scene import (
         camera_records,
         load_for_run,
+        mask_changes,
+        mask_hashes,
         require_same_cameras,
         with_training_views,
     )
@@ -582,7 +584,14 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             views_added=views_added, near=near,
             cameras=camera_records(data.cameras, [names[i] for k in ("train", "test", "calibration")
                                                   for i in data.split.get(k, ())] if names else []),
+            masks=mask_hashes(data, [names[i] for k in ("train", "test", "calibration")
+                                     for i in data.split.get(k, ())] if names else []),
         )
+        if state is not None and before is not None:  # a resume goes on with the masks the scene has now: say so
+            changed = mask_changes(before.masks, run_scene.masks, run_scene.train + run_scene.test)
+            if changed:
+                console.print(f"[yellow]note:[/] the photos' masks changed since this run was trained ({changed}): "
+                              "training goes on with them as they are now")
         # 8-bit photos stay uint8 (a quarter of float32's memory), converted one at a time where a step uses them
         train_images = load_photos(data, data.split["train"], device)
         test_images = load_photos(data, data.split["test"], device) if data.split.get("test") else None

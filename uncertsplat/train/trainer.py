@@ -29,7 +29,7 @@ from torch import Tensor
 from uncertsplat import native
 from uncertsplat.config import TrainConfig
 from uncertsplat.console import progress
-from uncertsplat.eval.image import psnr, ssim
+from uncertsplat.eval.image import masked_ssim, psnr, ssim
 from uncertsplat.gaussians.ops import truncate_sh
 from uncertsplat.gaussians.params import GaussianModel, far_points, init_from_points, memory_per_gaussian
 from uncertsplat.gaussians.prior import Prior
@@ -777,7 +777,7 @@ class Trainer:
             pred, photo = out.rgb[0].clamp(0, 1), self.test_images[i]
             m = self.test_masks[i] if self.test_masks is not None else None  # [H,W,1]
             ps.append(float(psnr(pred, photo, m)))
-            ss.append(float(ssim(pred if m is None else pred * m, photo)))  # (the photo is 0 outside its mask)
+            ss.append(float(ssim(pred, photo)) if m is None else masked_ssim(pred, photo, m))
         return {"psnr": sum(ps) / n, "ssim": sum(ss) / n}
 
     @torch.no_grad()
