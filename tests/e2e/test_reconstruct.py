@@ -600,7 +600,7 @@ def test_masks_keep_features_off_and_come_undistorted_into_the_workspace(synth_s
         m = read_rgb(ws / "masks" / f"{image.name}.png")[..., 0] > 127
         assert m.shape == (image.camera.height, image.camera.width)
         cut = image.camera.width // 4
-        assert not m[:, : cut - 3].any() and m[:, cut + 3:].all(), image.name
+        assert not m[:, : cut - 3].any() and m[2:-2, cut + 3:-2].all(), image.name  # (COLMAP blanks a border)
     scene = load_scene(ws)
     assert scene.masks_train and sum(p is None for p in scene.mask_paths) == 1
     (note,) = [n for n in scene.notes if n.startswith("masks:")]

@@ -218,7 +218,9 @@ class TestMaskValues:
         both = np.zeros((6, 8, 3))
         both[:, 5:] = 255  # white only on part of where alpha holds: colour and alpha together
         self._write_rgba(tmp_path / "both.png", both, expect * 255)
-        for name in ("white", "ones", "green", "alpha_black", "alpha_white"):
+        self._write_rgba(tmp_path / "ones_opaque.png", np.repeat(expect[..., None], 3, axis=-1),
+                         np.full((6, 8), 255))  # a 0/1 mask converted to RGBA: its alpha opaque everywhere
+        for name in ("white", "ones", "green", "alpha_black", "alpha_white", "ones_opaque"):
             assert np.array_equal(read_mask(tmp_path / f"{name}.png"), expect), name
         got = read_mask(tmp_path / "both.png")
         assert got[:, 5:].all() and not got[:, :5].any()
@@ -286,6 +288,56 @@ def test_masks_added_or_changed_after_training_are_said_and_scored_again(masked_
     first = (trained / "eval" / "metrics.json").stat().st_mtime_ns
     evaluate.run(trained, cfg, device=torch.device("cpu"), quiet=True)
     assert (trained / "eval" / "metrics.json").stat().st_mtime_ns == first  # the same masks: reused
+    original = (masks / "view_000.png.png").read_bytes()
     write_png(masks / "view_000.png.png", np.ones((96, 128, 3), dtype=np.float32))  # a held-out view's mask
     evaluate.run(trained, cfg, device=torch.device("cpu"), quiet=True)
-    assert (trained / "eval" / "metrics.json").stat().st_mtime_ns != first  # scored again, inside the new mask
+    second = (trained / "eval" / "metrics.json").stat().st_mtime_ns
+    assert second != first  # scored again, inside the new mask
+    evaluate.run(trained, cfg, device=torch.device("cpu"), quiet=True)
+    assert (trained / "eval" / "metrics.json").stat().st_mtime_ns == second  # and kept while the masks stay
+    (masks / "view_000.png.png").write_bytes(original)
+    evaluate.run(trained, cfg, device=torch.device("cpu"), quiet=True)
+    assert (trained / "eval" / "metrics.json").stat().st_mtime_ns != second  # the mask put back: scored again
+    # a finished run resumed (on a moved scene, say) trains nothing: the masks it was trained with stay recorded;
+    # the noise fit kept for the run is keyed by the masks as they are now
+    from tests.run_fixtures import TINY_RUN_OVERRIDES
+    from uncertsplat.baselines import load_run
+    from uncertsplat.config import deep_update, train_config_from
+    from uncertsplat.stages import train
+    from uncertsplat.stages.residual_cache import run_digests
+
+    before = run_digests(load_run(trained, torch.device("cpu")))
+    write_png(masks / "view_001.png.png", np.ones((96, 128, 3), dtype=np.float32))  # a training view's mask
+    assert run_digests(load_run(trained, torch.device("cpu")))["masks"] != before["masks"]
+    tcfg = train_config_from("tiny", deep_update(TINY_RUN_OVERRIDES, {"iterations": 40}))
+    train.run(masked_workspace, trained, tcfg, device=torch.device("cpu"), resume=True)
+    assert RunScene.read(trained / "scene.json").masks == recorded
+
+
+@pytest.mark.parametrize("max_size", [0, 150])  # warped directly; warped at the photo's size, then filtered down
+def test_an_undistorted_mask_keeps_no_pixel_the_undistorter_blends_with_a_masked_one(max_size):
+    """``reconstruct --masks`` carries each mask to its undistorted image (``sfm.reconstruct.undistorted_mask``):
+    COLMAP's own undistortion of the mask as an image is fully white on every pixel kept, and nearly every fully
+    white pixel is kept."""
+    import pycolmap
+
+    from uncertsplat.sfm.reconstruct import undistorted_mask
+
+    old = pycolmap.Camera.create_from_model_id(1, pycolmap.CameraModelId.SIMPLE_RADIAL, 300.0, 400, 300)
+    old.params = np.array([300.0, 200.0, 150.0, -0.15])
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:300, 0:400]
+    mask = np.ones((300, 400), dtype=bool)
+    for _ in range(12):  # discs left out
+        cx, cy, r = rng.uniform(0, 400), rng.uniform(0, 300), rng.uniform(10, 40)
+        mask &= (xx - cx) ** 2 + (yy - cy) ** 2 > r * r
+    options = pycolmap.UndistortCameraOptions()
+    if max_size:
+        options.max_image_size = max_size
+    bitmap = pycolmap.Bitmap.from_array(np.repeat((mask * 255).astype(np.uint8)[..., None], 3, axis=-1))
+    image, cam = pycolmap.undistort_image(options, bitmap, old)
+    blended = image.to_array()[..., 0]  # [H,W] uint8
+    kept = undistorted_mask(mask, cam, old)
+    assert kept.shape == blended.shape
+    assert int((blended[kept] < 255).sum()) == 0
+    assert kept.sum() >= 0.9 * (blended == 255).sum()

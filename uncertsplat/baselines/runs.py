@@ -134,7 +134,10 @@ class LoadedRun:
                 with torch.no_grad():
                     sample = variational.expected_render_sample(self.model, **self.sample_kwargs)
             masks_of = None
-            if scene.masks_train:  # the pixels training fitted: a masked-out sky or passer-by is no surface to cover
+            from uncertsplat.sfm.scene import trained_with_masks
+
+            if scene.masks_train and trained_with_masks(self.run_dir):
+                # the pixels training fitted: a masked-out sky or passer-by is no surface to cover
                 from uncertsplat.data.dataset import load_masks
 
                 masks_of = lambda pick: load_masks(scene, [train[j] for j in pick])  # noqa: E731

@@ -298,15 +298,15 @@ def read_mask(path: str | Path) -> np.ndarray:
 
     White counts: a value above half the file's range in any colour channel (a palette mask's index colour, green
     or red, counts as white), or, for a mask saved as 0 and 1 (a boolean, as many tools save it), its ones. With an
-    alpha channel, only where alpha is at least 0.5; and where the colour is one value wherever alpha is (the mask
-    held in the alpha alone, painted black or white), the alpha alone decides.
+    alpha channel that is not opaque everywhere, only where alpha is at least 0.5; and where the colour is one value
+    wherever alpha is (the mask held in the alpha alone, painted black or white), the alpha alone decides.
 
     Raises:
         UserError: like ``read_image``, naming the file.
     """
     level = read_image(path).max(axis=-1)  # [H,W] (premultiplied by its alpha: 0 where alpha is 0)
     alpha = read_alpha(path)
-    if alpha is not None:
+    if alpha is not None and not bool((alpha >= 0.5).all()):  # (an alpha opaque everywhere says nothing)
         held = alpha >= 0.5
         shown = level[held]
         if shown.size == 0 or float(shown.max() - shown.min()) < 1.5 / 255.0:

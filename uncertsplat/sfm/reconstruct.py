@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import math
 import os
 import re
 import shutil
@@ -216,9 +217,9 @@ def scan_photos(folder: str | Path, min_images: int = 3, prefer: set[str] | froz
         if entry.name.startswith("."):
             ignored.append(entry.name)  # .DS_Store, ._IMG_0001.JPG (macOS resource forks), ...
         elif entry.is_dir():
-            if masks is None or entry.resolve() != Path(masks).resolve():
+            if masks is None or entry.resolve() != Path(masks).resolve():  # (the masks folder: no photos there)
                 subfolders.append(entry.name)
-            ignored.append(entry.name + "/")
+                ignored.append(entry.name + "/")
         elif entry.suffix.lower() in IMAGE_EXTENSIONS:
             candidates.append(entry)
         else:
@@ -457,10 +458,13 @@ def undistort_masks(distorted_model: Path, model: Path, staged: Path, out: Path,
                     skip: Sequence[str] = ()) -> int:
     """The staged masks (``stage_masks``, of the photos as COLMAP read them) of the images registered in ``model``
     (the undistorted PINHOLE model ``undistort`` wrote), carried to its images: a pixel of an undistorted image counts
-    where its ray meets the photo (``distorted_model``'s camera) inside it and every one of the (up to four) mask pixels
-    the undistorter's bilinear interpolation blends there counts, so that no pixel mixes in what a mask left out.
-    Written to ``out/NAME.png`` as ``sfm.scene`` reads a workspace's masks, except for the photos in ``skip`` (no mask
-    of their own: every pixel counts); returns how many were written."""
+    where every mask pixel the undistorter can blend into it counts, so that no counted pixel mixes in what a mask
+    left out. COLMAP warps each pixel centre's ray into the photo and interpolates bilinearly (a point whose four
+    neighbours are not all inside the photo is left blank); an image less than half the photo's size
+    (``max_image_size``) is warped at the photo's size, then filtered down: there every sub-pixel sample of the
+    output pixel is tested and the result shrunk by one pixel. Written to ``out/NAME.png`` as ``sfm.scene`` reads a
+    workspace's masks, except for the photos in ``skip`` (no mask of their own: every pixel counts); returns how many
+    were written."""
     from uncertsplat.io.images import read_image, write_png
 
     before = pycolmap.Reconstruction(distorted_model)
@@ -475,26 +479,52 @@ def undistort_masks(distorted_model: Path, model: Path, staged: Path, out: Path,
         if image.name in skip or not src.is_file() or image.name not in cams_before:
             continue
         mask = read_image(src)[..., 0] >= 0.5  # [H0,W0] at the photo's size as COLMAP read it
-        h0, w0 = mask.shape
-        cam, old = image.camera, cams_before[image.name]
-        v, u = np.mgrid[0:cam.height, 0:cam.width]
-        pix = np.stack([u.ravel() + 0.5, v.ravel() + 0.5], axis=-1).astype(np.float64)  # pixel centres (COLMAP's)
-        xy = cam.cam_from_img(pix)  # [P,2] on the plane z = 1
-        uv = old.img_from_cam(np.concatenate([xy, np.ones((len(xy), 1))], axis=-1))  # [P,2] in the photo
-        # (the staged mask may be of another size than the camera: a photo COLMAP read smaller; scaled to it)
-        x, y = uv[:, 0] * (w0 / old.width), uv[:, 1] * (h0 / old.height)
-        inside = np.isfinite(x) & np.isfinite(y) & (x >= 0) & (y >= 0) & (x < w0) & (y < h0)
-        valid = inside.copy()
-        x0 = np.floor(np.where(inside, x, 0.5) - 0.5).astype(np.int64)  # the bilinear neighbours' corner
-        y0 = np.floor(np.where(inside, y, 0.5) - 0.5).astype(np.int64)
-        for dy in (0, 1):
-            for dx in (0, 1):
-                valid &= mask[np.clip(y0 + dy, 0, h0 - 1), np.clip(x0 + dx, 0, w0 - 1)]
+        valid = undistorted_mask(mask, image.camera, cams_before[image.name])
         target = out / f"{image.name}.png"
         target.parent.mkdir(parents=True, exist_ok=True)
-        write_png(target, np.repeat(valid.reshape(cam.height, cam.width, 1).astype(np.float32), 3, axis=-1))
+        write_png(target, np.repeat(valid[..., None].astype(np.float32), 3, axis=-1))
         written += 1
     return written
+
+
+def undistorted_mask(mask: np.ndarray, cam, old) -> np.ndarray:
+    """[H,W] bool: the pixels of the undistorted camera ``cam`` that ``undistort_masks`` keeps for the photo's
+    ``mask`` [H0,W0] bool of the distorted camera ``old`` (pycolmap cameras)."""
+    scale = min(cam.width / old.width, cam.height / old.height)
+    sub = 1 if scale >= 0.5 else math.ceil(1.0 / scale)  # (pycolmap's direct_warp_min_scale: 0.5)
+    valid = _undistorted_valid(mask, cam, old, sub)
+    if sub > 1:  # the filter that brings the full-size warp down reaches a pixel beyond each output pixel
+        pad = np.pad(valid, 1, constant_values=False)
+        valid = np.logical_and.reduce([pad[1 + dy:1 + dy + valid.shape[0], 1 + dx:1 + dx + valid.shape[1]]
+                                       for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+    return valid
+
+
+def _undistorted_valid(mask: np.ndarray, cam, old, sub: int, rows: int = 64) -> np.ndarray:
+    """[H,W] bool for ``undistort_masks``: each pixel of ``cam`` (undistorted) whose ``sub`` x ``sub`` samples all map
+    into ``old``'s photo (``mask`` [H0,W0], scaled to ``old``'s size) with their four bilinear neighbours inside and
+    counted. In blocks of ``rows`` rows (a large image's samples at once held GBs)."""
+    h0, w0 = mask.shape
+    sx, sy = w0 / old.width, h0 / old.height
+    offsets = (np.arange(sub) + 0.5) / sub  # sample positions inside a pixel (0.5: its centre, COLMAP's)
+    out = np.zeros((cam.height, cam.width), dtype=bool)
+    for r0 in range(0, cam.height, rows):
+        r1 = min(r0 + rows, cam.height)
+        v, u = np.mgrid[r0:r1, 0:cam.width]
+        pu = (u[..., None, None] + offsets[None, None, None, :]).repeat(sub, axis=2)  # [R,W,sub,sub]
+        pv = (v[..., None, None] + offsets[None, None, :, None]).repeat(sub, axis=3)
+        pix = np.stack([pu.ravel(), pv.ravel()], axis=-1).astype(np.float64)
+        xy = cam.cam_from_img(pix)  # [P,2] on the plane z = 1
+        uv = old.img_from_cam(np.concatenate([xy, np.ones((len(xy), 1))], axis=-1))  # [P,2] in the photo
+        x, y = uv[:, 0] * sx - 0.5, uv[:, 1] * sy - 0.5  # (pixel centres at +0.5)
+        finite = np.isfinite(x) & np.isfinite(y)
+        x0 = np.floor(np.where(finite, x, -2.0)).astype(np.int64)
+        y0 = np.floor(np.where(finite, y, -2.0)).astype(np.int64)
+        ok = finite & (x0 >= 0) & (y0 >= 0) & (x0 + 1 < w0) & (y0 + 1 < h0)
+        xs, ys = np.clip(x0, 0, w0 - 2), np.clip(y0, 0, h0 - 2)
+        ok &= mask[ys, xs] & mask[ys, xs + 1] & mask[ys + 1, xs] & mask[ys + 1, xs + 1]
+        out[r0:r1] = ok.reshape(r1 - r0, cam.width, sub * sub).all(-1)
+    return out
 
 
 # ------------------------------------------------------------------------------------------ features

@@ -194,6 +194,64 @@ def mask_hashes(scene: SceneData, names: Sequence[str] | None = None) -> dict[st
             if p is not None and (wanted is None or n in wanted)}
 
 
+def user_mask_files(path: Path, names: Sequence[str]) -> dict[str, Path]:
+    """{image name: mask file} of the photos' own masks (``SceneData.masks_train``) of the views ``names`` in the scene
+    folder ``path``, found as ``load_scene`` finds them but without loading the scene (a COLMAP workspace's
+    ``masks/``, nerfstudio's ``mask_path``); empty for a synthetic or Blender scene, or without masks."""
+    from uncertsplat.data.synthetic import read_scene_meta
+
+    path = Path(path)
+    try:
+        if read_scene_meta(path) is not None or any((path / f"transforms_{s}.json").is_file()
+                                                    for s in ("train", "val", "test")):
+            return {}
+        if (path / "transforms.json").is_file():
+            found, _ = _nerfstudio_masks(path, names)
+        else:
+            found, _ = _workspace_masks(path, names)
+    except (UserError, OSError, ValueError):
+        return {}  # (the loader says what is wrong with the folder)
+    return {} if found is None else {n: p for n, p in zip(names, found, strict=True) if p is not None}
+
+
+def trained_with_masks(run_dir: Path) -> bool:
+    """Whether the run in ``run_dir`` was trained with the photos' own masks (``RunScene.masks``): its metrics are
+    taken inside them as its training's were; masks added to the scene since are scored inside but not so called."""
+    from uncertsplat.schemas.scene import RunScene
+
+    try:
+        info = RunScene.read_optional(Path(run_dir) / RunScene.FILE_NAME)
+    except (UserError, OSError, ValueError):
+        return False
+    return info is not None and bool(info.masks)
+
+
+def run_mask_digest(run_dir: Path) -> str | None:
+    """One SHA-256 of the photos' own masks, as they are now, of the views the run in ``run_dir`` trains, holds out
+    and sets aside (``RUN/scene.json``): what an evaluation scored with besides the run's files (``stages.evaluate
+    .run_sha256``, the kept noise fit's key); None without masks or without a readable scene.json."""
+    import hashlib
+
+    from uncertsplat.provenance import file_sha256
+    from uncertsplat.schemas.scene import RunScene
+
+    try:
+        info = RunScene.read_optional(Path(run_dir) / RunScene.FILE_NAME)
+    except (UserError, OSError, ValueError):
+        return None
+    if info is None:
+        return None
+    names = list(dict.fromkeys([*info.train, *info.test, *info.calibration]))
+    files = user_mask_files(info.scene_folder(run_dir), names)
+    if not files:
+        return None
+    try:
+        lines = [f"{n}:{file_sha256(files[n])}" for n in sorted(files)]
+    except OSError:
+        return "unreadable"
+    return hashlib.sha256("\n".join(lines).encode()).hexdigest()
+
+
 def mask_changes(recorded: dict[str, str], now: dict[str, str], names: Sequence[str]) -> str | None:
     """What differs between the masks a run ``recorded`` and the scene's masks ``now`` (``mask_hashes``) for the
     views ``names``, in words; None when nothing does."""

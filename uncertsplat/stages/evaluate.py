@@ -168,6 +168,9 @@ def same_model_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device) 
         if (here.read_bytes() if here.is_file() else None) != (there.read_bytes() if there.is_file() else None):
             return None
         previous = EvalReport.read_optional(source / EvalReport.FILE_NAME)
+        if previous is not None and previous.run_sha256 is not None \
+                and previous.run_sha256 != run_sha256(source, source / "variational.ply"):
+            return None  # the source's evaluation is of its files (or the photos' masks) as they were: not now
         if (previous is None or previous.config_hash != hash_config(cfg.model_dump(mode="json"))
                 or previous.device != str(device) or previous.versions != versions()
                 or not (source / "eval" / "config.json").is_file() or not (source / "eval" / "maps").is_dir()):
@@ -186,7 +189,8 @@ OUTPUT_SETTINGS = ("save_maps", "preview", "reuse")
 
 def run_sha256(run_dir: Path, model_file: Path) -> str:
     """SHA-256 over what an evaluation of ``run_dir`` scores: ``model_file`` and the run's ``config.json`` and
-    ``scene.json`` (either may be missing), and its ``exposure.json`` when it has one.
+    ``scene.json`` (either may be missing), its ``exposure.json`` when it has one, and the photos' own masks as they
+    are now when the scene has them (``sfm.scene.run_mask_digest``: other masks score other pixels).
 
     Raises:
         OSError: the model file cannot be read.
@@ -202,6 +206,11 @@ def run_sha256(run_dir: Path, model_file: Path) -> str:
     exposure = Path(run_dir) / RunExposure.FILE_NAME
     if exposure.is_file():  # only when present: the runs without one keep the hash they were evaluated under
         parts.append(file_sha256(exposure))
+    from uncertsplat.sfm.scene import run_mask_digest
+
+    masks = run_mask_digest(run_dir)
+    if masks is not None:  # likewise: a scene without masks keeps its runs' hashes
+        parts.append(f"masks:{masks}")
     return hashlib.sha256(" ".join(parts).encode()).hexdigest()
 
 
@@ -213,10 +222,10 @@ def _mask_record(run_dir: Path, scene, indices) -> tuple[str | None, bool]:
 
     info = RunScene.read_optional(Path(run_dir) / RunScene.FILE_NAME)
     recorded = info.masks if info is not None else {}
-    now = mask_hashes(scene)
     names = scene.cameras.image_names
-    changed = mask_changes(recorded, now, list(dict.fromkeys(
-        [names[i] for i in indices] + [names[i] for i in scene.split.get("train", ())])))
+    compared = list(dict.fromkeys([names[i] for i in indices] + [names[i] for k in ("train", "calibration")
+                                                                for i in scene.split.get(k, ())]))
+    changed = mask_changes(recorded, mask_hashes(scene, compared), compared)
     if changed is None:
         return None, bool(recorded)
     what = ("the photos' masks were added after this run was trained (it was trained on every pixel)" if not recorded
@@ -450,9 +459,9 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     indices = split_indices(scene.split, cfg)
     masks_note, trained_masks = _mask_record(run_dir, scene, indices)
     # (an evaluation made in another frame of the scene folder holds maps and depths in that frame's units: again;
-    # one made before the photos' masks changed scored other pixels: again)
+    # one made with other masks of the photos scored other pixels: again, by its run_sha256)
     done = (_finished(run_dir, Path(loaded.source), cfg, [scene.cameras.image_names[i] for i in indices], device)
-            if cfg.split == "test" and _in_frame(loaded, scene, out) and masks_note is None else None)
+            if cfg.split == "test" and _in_frame(loaded, scene, out) else None)
     if done is not None:
         _keep_missing_predictive(run_dir, loaded, scene, cfg, done, device)
         console.print(f"[bold]evaluate[/] {run_dir}: already evaluated with these settings, versions and device "

@@ -124,6 +124,10 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
                                 "kept (a run trained on it can then train on them)." if grown else "."))
     # masks/ is this stage's only when --masks wrote it: masks drawn by hand on the workspace's images stay
     ours = [n for n in _OWNED if n != "masks" or (existing is not None and existing.options.get("masks"))]
+    if "masks" not in ours and (workspace / "masks").is_dir() and cfg.masks is None:
+        console.print(f"[yellow]note:[/] {esc(str(workspace / 'masks'))} is kept (reconstruct did not make it): its "
+                      "masks were drawn on the images the workspace had, which are made again now; check that they "
+                      "still fit them")
     for name in ours:
         target = workspace / name
         if target.is_dir() and not target.is_symlink():
@@ -261,6 +265,9 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                             "added with masks are not supported yet", path=cfg.masks,
                             hint="Reconstruct all the photos again with their masks into a new workspace (or "
                                  "--overwrite), or --extend without masks (the new photos count every pixel).")
+        if cfg.masks.resolve() == Path(photos).resolve():
+            raise UserError("--masks names the photo folder itself: every photo would be its own mask",
+                            path=cfg.masks, hint="Keep the masks in a folder of their own.")
         if not cfg.masks.is_dir():
             raise UserError("the masks folder does not exist" if not cfg.masks.exists() else
                             "--masks needs a folder of masks, one per photo", path=cfg.masks,

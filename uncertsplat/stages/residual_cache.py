@@ -27,15 +27,17 @@ FILE_NAME = "residual.pt"
 
 def run_digests(loaded) -> dict | None:
     """{"model", "config", "scene"}: the SHA-256 of ``loaded``'s (a ``baselines.LoadedRun``) model file and of its
-    run's ``config.json`` and ``scene.json`` (None for a run without one), what a kept fit of the run is keyed by
-    (here and ``predictive_cache``); None when the model is not one file (an ensemble) or a file cannot be read."""
+    run's ``config.json`` and ``scene.json`` (None for a run without one), and "masks" where the photos have their
+    own (``sfm.scene.run_mask_digest``), what a kept fit of the run is keyed by (here and ``predictive_cache``); None
+    when the model is not one file (an ensemble) or a file cannot be read."""
     from uncertsplat.provenance import file_sha256
+    from uncertsplat.sfm.scene import run_mask_digest
 
     source, run_dir = Path(loaded.source), Path(loaded.run_dir)
     try:
         if not source.is_file():
             return None
-        return {
+        out = {
             "model": file_sha256(source),
             "config": hashlib.sha256((run_dir / "config.json").read_bytes()).hexdigest(),
             "scene": hashlib.sha256((run_dir / "scene.json").read_bytes()).hexdigest()
@@ -43,6 +45,8 @@ def run_digests(loaded) -> dict | None:
         }
     except OSError:
         return None
+    masks = run_mask_digest(run_dir)  # the noise is fitted inside the training photos' masks: other masks, another fit
+    return out if masks is None else {**out, "masks": masks}
 
 
 def residual_key(loaded, cfg, device: torch.device, set_aside: bool = False) -> str | None:

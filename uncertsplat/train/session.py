@@ -589,7 +589,10 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         )
         if state is not None and before is not None:  # a resume goes on with the masks the scene has now: say so
             changed = mask_changes(before.masks, run_scene.masks, run_scene.train + run_scene.test)
-            if changed:
+            if changed and int(state["step"]) >= cfg.iterations and not add_views:
+                # nothing left to train: the model is the one the recorded masks trained (evaluate compares them)
+                run_scene = run_scene.model_copy(update={"masks": before.masks})
+            elif changed:
                 console.print(f"[yellow]note:[/] the photos' masks changed since this run was trained ({changed}): "
                               "training goes on with them as they are now")
         # 8-bit photos stay uint8 (a quarter of float32's memory), converted one at a time where a step uses them
