@@ -9,6 +9,11 @@ import os
 import pytest
 
 os.environ.setdefault("UNCERTSPLAT_NO_PROGRESS", "1")
+# a CI service's settings that make typer and rich write colour codes or cut help at their width (GitHub Actions sets
+# GITHUB_ACTIONS, many pipelines FORCE_COLOR): the tests read plain text. Colour there is what a user asked for; the
+# tests of it set these themselves. (Before typer or rich is imported; subprocesses inherit it.)
+for _name in ("GITHUB_ACTIONS", "FORCE_COLOR", "PY_COLORS", "TTY_COMPATIBLE", "TTY_INTERACTIVE", "TERMINAL_WIDTH"):
+    os.environ.pop(_name, None)
 # OpenMP threads that spin while waiting make torch 10-20x slower when another process shares the
 # 2 cores (seen with parallel test workers); passive waiting costs nothing on an idle machine.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

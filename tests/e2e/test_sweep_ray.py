@@ -26,9 +26,15 @@ iterations = [8, 16]""")
 
 @pytest.fixture(scope="module")
 def local_ray():
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    import shutil
+    import tempfile
+
+    # a short ASCII folder of its own: ray's sockets fail under a long or non-ASCII TMPDIR (a CI's)
+    temp = tempfile.mkdtemp(prefix="rc", dir="/tmp")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False, _temp_dir=temp)
     yield
     ray.shutdown()
+    shutil.rmtree(temp, ignore_errors=True)
 
 
 def _job(name: str) -> dict:

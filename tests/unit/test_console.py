@@ -15,8 +15,11 @@ from uncertsplat.console import _Console, escape_foreign_markup, q
 
 
 def _capture(width: int = 140, terminal: bool = False) -> _Console:
-    return _Console(file=io.StringIO(), width=width, force_terminal=terminal, highlight=False, emoji=False,
-                    log_path=False, soft_wrap=not terminal, color_system=None)
+    # (a height too: rich takes a dumb terminal's 80x25 over the width given without one; interactive as the
+    # terminal, whatever TTY_INTERACTIVE says)
+    return _Console(file=io.StringIO(), width=width, height=25, force_terminal=terminal,
+                    force_interactive=terminal, highlight=False, emoji=False, log_path=False,
+                    soft_wrap=not terminal, color_system=None)
 
 
 class TestMarkupOfUserText:

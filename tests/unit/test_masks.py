@@ -310,8 +310,14 @@ def test_masks_added_or_changed_after_training_are_said_and_scored_again(masked_
     write_png(masks / "view_001.png.png", np.ones((96, 128, 3), dtype=np.float32))  # a training view's mask
     assert run_digests(load_run(trained, torch.device("cpu")))["masks"] != before["masks"]
     tcfg = train_config_from("tiny", deep_update(TINY_RUN_OVERRIDES, {"iterations": 40}))
-    train.run(masked_workspace, trained, tcfg, device=torch.device("cpu"), resume=True)
+    moved = tmp_path / "moved_ws"
+    shutil.copytree(masked_workspace, moved)
+    shutil.rmtree(masked_workspace)  # the scene moved (the run is pointed at its new place)
+    digest_gone = run_digests(load_run(trained, torch.device("cpu")))  # away from its photos: the trained masks'
+    assert digest_gone["masks"] == before["masks"]
+    train.run(moved, trained, tcfg, device=torch.device("cpu"), resume=True)
     assert RunScene.read(trained / "scene.json").masks == recorded
+    assert RunScene.read(trained / "scene.json").scene == str(moved.resolve())
 
 
 @pytest.mark.parametrize("max_size", [0, 150])  # warped directly; warped at the photo's size, then filtered down

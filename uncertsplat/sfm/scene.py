@@ -197,20 +197,22 @@ def mask_hashes(scene: SceneData, names: Sequence[str] | None = None) -> dict[st
 def user_mask_files(path: Path, names: Sequence[str]) -> dict[str, Path]:
     """{image name: mask file} of the photos' own masks (``SceneData.masks_train``) of the views ``names`` in the scene
     folder ``path``, found as ``load_scene`` finds them but without loading the scene (a COLMAP workspace's
-    ``masks/``, nerfstudio's ``mask_path``); empty for a synthetic or Blender scene, or without masks."""
+    ``masks/``, nerfstudio's ``mask_path``); empty for a synthetic or Blender scene, or without masks.
+
+    Raises:
+        UserError, OSError: a folder or transforms file that cannot be read (a nerfstudio frame naming a mask that
+            is gone, a folder without permission).
+    """
     from uncertsplat.data.synthetic import read_scene_meta
 
     path = Path(path)
-    try:
-        if read_scene_meta(path) is not None or any((path / f"transforms_{s}.json").is_file()
-                                                    for s in ("train", "val", "test")):
-            return {}
-        if (path / "transforms.json").is_file():
-            found, _ = _nerfstudio_masks(path, names)
-        else:
-            found, _ = _workspace_masks(path, names)
-    except (UserError, OSError, ValueError):
-        return {}  # (the loader says what is wrong with the folder)
+    if read_scene_meta(path) is not None or any((path / f"transforms_{s}.json").is_file()
+                                                for s in ("train", "val", "test")):
+        return {}
+    if (path / "transforms.json").is_file():
+        found, _ = _nerfstudio_masks(path, names)
+    else:
+        found, _ = _workspace_masks(path, names)
     return {} if found is None else {n: p for n, p in zip(names, found, strict=True) if p is not None}
 
 
@@ -226,12 +228,20 @@ def trained_with_masks(run_dir: Path) -> bool:
     return info is not None and bool(info.masks)
 
 
+def _digest_of(hashes: dict[str, str]) -> str:
+    """``run_mask_digest``'s one SHA-256 of {view name: SHA-256 of its mask}."""
+    import hashlib
+
+    return hashlib.sha256("\n".join(f"{n}:{hashes[n]}" for n in sorted(hashes)).encode()).hexdigest()
+
+
 def run_mask_digest(run_dir: Path) -> str | None:
     """One SHA-256 of the photos' own masks, as they are now, of the views the run in ``run_dir`` trains, holds out
     and sets aside (``RUN/scene.json``): what an evaluation scored with besides the run's files (``stages.evaluate
-    .run_sha256``, the kept noise fit's key); None without masks or without a readable scene.json."""
-    import hashlib
-
+    .run_sha256``, the kept noise fit's key). None without masks or without a readable scene.json; where the scene
+    folder is gone (a run used away from its photos), the digest of the masks the run was trained with
+    (``RunScene.masks``), as the scene gave it while they were unchanged; "unreadable" where the masks cannot be
+    read (never the digest of no masks)."""
     from uncertsplat.provenance import file_sha256
     from uncertsplat.schemas.scene import RunScene
 
@@ -239,17 +249,18 @@ def run_mask_digest(run_dir: Path) -> str | None:
         info = RunScene.read_optional(Path(run_dir) / RunScene.FILE_NAME)
     except (UserError, OSError, ValueError):
         return None
-    if info is None:
+    if info is None or not info.scene:
         return None
     names = list(dict.fromkeys([*info.train, *info.test, *info.calibration]))
-    files = user_mask_files(info.scene_folder(run_dir), names)
-    if not files:
-        return None
     try:
-        lines = [f"{n}:{file_sha256(files[n])}" for n in sorted(files)]
-    except OSError:
+        folder = info.scene_folder(run_dir)
+        if not folder.is_dir():
+            return _digest_of(info.masks) if info.masks else None
+        files = user_mask_files(folder, names)
+        hashes = {n: file_sha256(p) for n, p in files.items()}
+    except (UserError, OSError, ValueError, TypeError, AttributeError):
         return "unreadable"
-    return hashlib.sha256("\n".join(lines).encode()).hexdigest()
+    return _digest_of(hashes) if hashes else None
 
 
 def mask_changes(recorded: dict[str, str], now: dict[str, str], names: Sequence[str]) -> str | None:

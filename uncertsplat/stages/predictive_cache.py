@@ -209,6 +209,8 @@ def _difference(kept: dict, now: dict) -> str:
     """What differs between a file's ``_parts`` and the ones asked for, in words."""
     if kept.get("model") != now["model"] or kept.get("config") != now["config"] or kept.get("scene") != now["scene"]:
         return "another model or run (trained on since, or another run's file)"
+    if kept.get("masks") != now.get("masks"):
+        return "other masks of the photos (added, removed or changed since it was fitted)"
     a, b = kept.get("settings", {}), now["settings"]
     b = {**{k: v for k, v in LEFT_OUT_WHEN.items() if k not in b}, **b}  # (left out of the key at that value)
 

@@ -124,7 +124,7 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
                                 "kept (a run trained on it can then train on them)." if grown else "."))
     # masks/ is this stage's only when --masks wrote it: masks drawn by hand on the workspace's images stay
     ours = [n for n in _OWNED if n != "masks" or (existing is not None and existing.options.get("masks"))]
-    if "masks" not in ours and (workspace / "masks").is_dir() and cfg.masks is None:
+    if "masks" not in ours and (workspace / "masks").is_dir() and cfg.masks is None and existing is not None:
         console.print(f"[yellow]note:[/] {esc(str(workspace / 'masks'))} is kept (reconstruct did not make it): its "
                       "masks were drawn on the images the workspace had, which are made again now; check that they "
                       "still fit them")

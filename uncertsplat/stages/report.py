@@ -127,8 +127,9 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
     _check_output(out, paths)
     for r in loaded:
         if r.metrics is not None and r.metrics.split == "test" and evaluation_is_current(r.path, r.metrics) is False:
-            r.notes.append(f"its eval/metrics.json scored an earlier state of the run (the model, config or scene "
-                           f"changed since, e.g. by `train --resume`), so the metrics shown are that model's: run "
+            r.notes.append(f"its eval/metrics.json scored an earlier state of the run (the model, config or scene, or "
+                           f"the photos' masks, changed since, e.g. by `train --resume`), so the metrics shown are "
+                           f"that model's: run "
                            f"`uncertsplat evaluate {q(r.path)}` again, then this report")
     earlier = _figures_written_before(out)  # (_check_output let it through: empty, a report, or a stopped one's)
     listed = set(earlier)

@@ -588,7 +588,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                                      for i in data.split.get(k, ())] if names else []),
         )
         if state is not None and before is not None:  # a resume goes on with the masks the scene has now: say so
-            changed = mask_changes(before.masks, run_scene.masks, run_scene.train + run_scene.test)
+            changed = mask_changes(before.masks, run_scene.masks,
+                                   run_scene.train + run_scene.test + run_scene.calibration)
             if changed and int(state["step"]) >= cfg.iterations and not add_views:
                 # nothing left to train: the model is the one the recorded masks trained (evaluate compares them)
                 run_scene = run_scene.model_copy(update={"masks": before.masks})
