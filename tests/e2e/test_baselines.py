@@ -20,6 +20,7 @@ from uncertsplat.baselines.ensemble import EnsembleRun
 from uncertsplat.baselines.fisher import FISHER_FILE, FisherRun
 from uncertsplat.cli import app
 from uncertsplat.config import EvalConfig, deep_update, train_config_from
+from uncertsplat.console import q
 from uncertsplat.conventions import ensemble_member_dir
 from uncertsplat.data.dataset import load_view_set
 from uncertsplat.eval.engine import evaluate_views, fit_residual, with_side_terms
@@ -266,7 +267,7 @@ def test_an_interrupted_ensemble_resumes_as_one(scene_path, tmp_path):
 
     with pytest.raises(UserError) as info:
         train_run(scene_path, run, quick_cfg(method="ensemble", ensemble_size=3), CPU, on_trainer=stop_the_second)
-    assert info.value.hint.endswith(f"-o {run} --resume")
+    assert info.value.hint.endswith(f"-o {q(run)} --resume")
     # the run's own length given again (`--set iterations=20`, as the first command had it) is nothing to extend
     train_run(scene_path, run, quick_cfg(), CPU, resume=True, extend_to=20)  # the command's default method
     summary = TrainSummary.read(run / "train_summary.json")
@@ -289,7 +290,7 @@ def test_an_unfinished_run_is_evaluated_with_a_note(scene_path, tmp_path):
         train_run(scene_path, run, quick_cfg(), CPU, on_trainer=stop)
     report = evaluate.run(run, EvalConfig(num_samples=2, max_views=1), device=CPU)
     (note,) = [n for n in report.notes if "training is not finished: its newest checkpoint is step" in n]
-    assert "step 10 of 20" in note and f"-o {run} --resume" in note
+    assert "step 10 of 20" in note and f"-o {q(run)} --resume" in note
     assert load_run(run, CPU).unfinished_notes() == [note]
     train_run(scene_path, run, quick_cfg(), CPU, resume=True)
     assert load_run(run, CPU).unfinished_notes() == []

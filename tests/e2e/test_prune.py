@@ -19,6 +19,7 @@ from tests.run_fixtures import tiny_run_path  # noqa: F401
 from uncertsplat.baselines import load_run
 from uncertsplat.cli import app
 from uncertsplat.config import PruneConfig, TrainConfig
+from uncertsplat.console import q
 from uncertsplat.errors import UserError
 from uncertsplat.gaussians.variational import random_model
 from uncertsplat.io.ply import write_variational_ply
@@ -405,7 +406,7 @@ def test_an_evaluation_that_fails_after_the_model_is_written_says_what_works(tin
         prune.run(tiny_run_path, tmp_path / "out", PruneConfig(keep_ratio=0.8, **FAST), device=CPU)
     said = err.value.render()
     assert "prune wrote the pruned run to" in said and "then its evaluation failed" in said, said
-    assert f"`uncertsplat evaluate {tmp_path / 'out'}`" in said and "Free some space" in said, said
+    assert f"`uncertsplat evaluate {q(tmp_path / 'out')}`" in said and "Free some space" in said, said
     assert (tmp_path / "out" / "variational.ply").is_file()
 
 

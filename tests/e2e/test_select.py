@@ -15,6 +15,7 @@ from tests.run_fixtures import TINY_RUN_OVERRIDES
 from uncertsplat.baselines import train_run
 from uncertsplat.cli import app
 from uncertsplat.config import SelectConfig, deep_update, train_config_from
+from uncertsplat.console import q
 from uncertsplat.errors import UserError
 from uncertsplat.schemas import RunScene, Selection
 from uncertsplat.stages import select as stage
@@ -328,7 +329,7 @@ class TestAddViewsErrors:
         capsys.readouterr()
         stage.run(subset_run, SelectConfig(score="fisher", num_views=1), CPU, output=tmp_path / "plain")
         plain = " ".join(capsys.readouterr().err.split())
-        assert "aside for calibration" not in plain and f"-o {subset_run} --resume --iterations N --add-views" in plain
+        assert "aside for calibration" not in plain and f"-o {q(subset_run)} --resume --iterations N --add-views" in plain
 
     def test_a_finished_run_needs_steps_for_the_added_views(self, tiny_scene_path, subset_run, tmp_path):
         """Without --iterations beyond its end the added view would be recorded as trained on with 0 steps."""

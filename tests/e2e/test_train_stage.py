@@ -10,6 +10,7 @@ from tests.e2e.test_train_resume import assert_same_parameters
 from tests.fixtures import tiny_scene_path  # noqa: F401
 from uncertsplat.baselines import load_run
 from uncertsplat.config import train_config_from
+from uncertsplat.console import q
 from uncertsplat.errors import UserError
 from uncertsplat.io.checkpoints import list_checkpoints
 from uncertsplat.stages import train as stage
@@ -84,7 +85,7 @@ def test_existing_run_is_refused(trained, tiny_scene_path, tmp_path):  # noqa: F
     shutil.copytree(tiny_scene_path, elsewhere)
     with pytest.raises(UserError, match=r"holds a run of another scene \(") as e:
         stage.run(elsewhere, run, cfg, torch.device("cpu"))
-    assert f"uncertsplat train {tiny_scene_path.resolve()} -o {run} --resume" in e.value.hint
+    assert f"uncertsplat train {q(tiny_scene_path.resolve())} -o {q(run)} --resume" in e.value.hint
 
 
 def test_resume_from_middle_checkpoint_is_exact(trained, tiny_scene_path, tmp_path):  # noqa: F811

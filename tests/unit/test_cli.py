@@ -7,6 +7,7 @@ from typer.testing import CliRunner
 
 from uncertsplat import __version__
 from uncertsplat.cli import app
+from uncertsplat.console import q
 from uncertsplat.errors import UserError
 
 runner = CliRunner()
@@ -171,7 +172,7 @@ def test_a_config_file_with_a_stage_table_says_how_to_write_it(tmp_path):
 def test_a_pipeline_file_or_a_folder_given_as_config_says_what_it_is(tmp_path):
     f = tmp_path / "p.toml"
     f.write_text('name = "x"\n[[stages]]\nstage = "train"\n')
-    for config, expected, hint in ((f, "this is a pipeline file (it lists [[stages]])", f"uncertsplat run {f}"),
+    for config, expected, hint in ((f, "this is a pipeline file (it lists [[stages]])", f"uncertsplat run {q(f)}"),
                                    (tmp_path, "this is a folder, not a config file", "Give the path of a .toml file")):
         result = runner.invoke(app, ["train", str(tmp_path), "-o", str(tmp_path / "run"), "--config", str(config),
                                      "--device", "cpu"])

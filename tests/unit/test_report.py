@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from uncertsplat.config import ReportConfig, TrainConfig
+from uncertsplat.console import q
 from uncertsplat.errors import UserError
 from uncertsplat.io.maps import EXR_CHANNELS, map_stem
 from uncertsplat.report import extract
@@ -754,7 +755,7 @@ def test_an_evaluation_of_an_earlier_model_is_named(tmp_path, capsys):
     capsys.readouterr()
     stage.run([run], tmp_path / "out", ReportConfig())
     assert "earlier state of the run" in (tmp_path / "out" / "index.html").read_text()
-    assert f"uncertsplat evaluate {run}" in capsys.readouterr().err.replace("\n", "")
+    assert f"uncertsplat evaluate {q(run)}" in capsys.readouterr().err.replace("\n", "")
 
 
 def test_runs_without_maps_are_left_out_of_the_side_by_side_not_the_others(tmp_path):
@@ -1180,8 +1181,10 @@ def test_an_ensemble_stopped_before_its_last_member_says_so_and_not_evaluate(tmp
     html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
     assert "training is not finished: 2 of the ensemble&#x27;s 3 members are trained" in html or \
         "training is not finished: 2 of the ensemble's 3 members are trained" in html
-    assert f"-o {run} --method ensemble --resume" in html
-    assert "1 of the ensemble" in html and f"run `uncertsplat evaluate {run}` to measure" not in html
+    from html import escape
+
+    assert f"-o {escape(q(run))} --method ensemble --resume" in html
+    assert "1 of the ensemble" in html and f"run `uncertsplat evaluate {escape(q(run))}` to measure" not in html
     (run / "members" / "member_2" / "train_summary.json").write_text(summary)  # the last member done, no run summary
     html = stage.run([run], tmp_path / "out2", ReportConfig()).read_text()
     assert "members are trained" not in html
