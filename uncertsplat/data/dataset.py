@@ -190,6 +190,20 @@ SHAPE_TOLERANCE = 0.02
 resized to the photo it was stretched (a transposed map: AbsRel 0.55 against 0.07, no word)."""
 
 
+def _check_shape(shape: tuple[int, int], width: int, height: int, fit: PhotoFit | None, path: Path, what: str,
+                 why: str, hint: str) -> None:
+    """Refuse a map of a photo (``what``: "the depth map", "the mask") of ``shape`` (h, w) whose aspect is not its
+    photo's (``SHAPE_TOLERANCE``): the photo as stored, which its ``fit`` turns to turned_width x turned_height;
+    without one, the view's ``width`` x ``height`` (the photo downscaled, each side rounded: a pixel's slack)."""
+    w, h = ((fit.turned_width, fit.turned_height) if fit.turns % 2 == 0 else (fit.turned_height, fit.turned_width)) \
+        if fit is not None else (width, height)
+    slack = 0.0 if fit is not None else 1.0 / w + 1.0 / h
+    if abs(np.log((shape[1] / shape[0]) / (w / h))) > SHAPE_TOLERANCE + slack:
+        whose = "its photo's" if fit is not None else "its view's"
+        raise UserError(f"{what} is {shape[1]}x{shape[0]}, another shape than {whose} {w}x{h} ({why})", path=path,
+                        hint=hint)
+
+
 def load_depth_map(path: Path, width: int, height: int, fit: PhotoFit | None = None) -> np.ndarray:
     """One depth map [H,W] float32 resized to ``width`` x ``height``; non-finite, <= 0 or ``NO_SURFACE_DEPTH`` and
     beyond becomes 0 (invalid), and so does a resized pixel any invalid source pixel contributes to. ``fit``: its
@@ -200,17 +214,10 @@ def load_depth_map(path: Path, width: int, height: int, fit: PhotoFit | None = N
     """
     d = read_depth_file(path)
     d = np.where(np.isfinite(d) & (d > 0) & (d < NO_SURFACE_DEPTH), d, 0.0).astype(np.float32)
-    # the photo as stored: its fit turns it to turned_width x turned_height; without one, the view's size (the photo
-    # downscaled, each side rounded: up to a pixel's slack in its shape)
-    w, h = ((fit.turned_width, fit.turned_height) if fit.turns % 2 == 0 else (fit.turned_height, fit.turned_width)) \
-        if fit is not None else (width, height)
-    slack = 0.0 if fit is not None else 1.0 / w + 1.0 / h
-    if abs(np.log((d.shape[1] / d.shape[0]) / (w / h))) > SHAPE_TOLERANCE + slack:
-        what = "its photo's" if fit is not None else "its view's"
-        raise UserError(f"the depth map is {d.shape[1]}x{d.shape[0]}, another shape than {what} {w}x{h} "
-                        "(stretched to it, it would be scored against the wrong pixels)", path=path,
-                        hint="Give each photo a depth map of its own shape (any resolution of it); a transposed or "
-                             "cropped map needs turning or padding first.")
+    _check_shape(d.shape[:2], width, height, fit, path, "the depth map",
+                 "stretched to it, it would be scored against the wrong pixels",
+                 "Give each photo a depth map of its own shape (any resolution of it); a transposed or cropped map "
+                 "needs turning or padding first.")
     # resized with its validity: a pixel keeps a depth only where every source pixel it is made of has one (a depth
     # camera's holes, 0, were averaged into their neighbours: a map at half the photos' size scored abs_rel 0.28
     # where the same depth at full size scored 0.02, pixels at 402 mm where the surface lies at 9 m)
@@ -279,15 +286,10 @@ def load_mask(path: Path, width: int, height: int, fit: PhotoFit | None = None) 
         UserError: the mask is not of its photo's shape (``SHAPE_TOLERANCE``), naming both sizes.
     """
     valid = read_mask(path).astype(np.float32)  # [h,w]
-    w, h = ((fit.turned_width, fit.turned_height) if fit.turns % 2 == 0 else (fit.turned_height, fit.turned_width)) \
-        if fit is not None else (width, height)
-    slack = 0.0 if fit is not None else 1.0 / w + 1.0 / h
-    if abs(np.log((valid.shape[1] / valid.shape[0]) / (w / h))) > SHAPE_TOLERANCE + slack:
-        what = "its photo's" if fit is not None else "its view's"
-        raise UserError(f"the mask is {valid.shape[1]}x{valid.shape[0]}, another shape than {what} {w}x{h} "
-                        "(stretched to it, it would leave out other pixels than it marks)", path=path,
-                        hint="Give each photo a mask of its own shape (any resolution of it), white where the "
-                             "pixels count and black where they do not.")
+    _check_shape(valid.shape[:2], width, height, fit, path, "the mask",
+                 "stretched to it, it would leave out other pixels than it marks",
+                 "Give each photo a mask of its own shape (any resolution of it), white where the pixels count and "
+                 "black where they do not.")
     if fit is not None:
         valid = fit_photo(fit, valid)
     return resize_image(valid, width, height) >= 1.0 - 1e-6
