@@ -25,6 +25,7 @@ from uncertsplat.io.images import (
     read_image_size,
     read_mask,
     resize_image,
+    resize_mask,
 )
 from uncertsplat.types import PhotoFit, Photos, SceneData, ViewSet
 
@@ -190,6 +191,12 @@ SHAPE_TOLERANCE = 0.02
 resized to the photo it was stretched (a transposed map: AbsRel 0.55 against 0.07, no word)."""
 
 
+def shape_fits(width: int, height: int, photo_width: int, photo_height: int, slack: float = 0.0) -> bool:
+    """Whether a map of ``width`` x ``height`` is of the shape of a photo ``photo_width`` x ``photo_height`` (any
+    resolution of it): their aspects within ``SHAPE_TOLERANCE`` plus ``slack`` (in log ratio)."""
+    return abs(np.log((width / height) / (photo_width / photo_height))) <= SHAPE_TOLERANCE + slack
+
+
 def _check_shape(shape: tuple[int, int], width: int, height: int, fit: PhotoFit | None, path: Path, what: str,
                  why: str, hint: str) -> None:
     """Refuse a map of a photo (``what``: "the depth map", "the mask") of ``shape`` (h, w) whose aspect is not its
@@ -197,8 +204,7 @@ def _check_shape(shape: tuple[int, int], width: int, height: int, fit: PhotoFit 
     without one, the view's ``width`` x ``height`` (the photo downscaled, each side rounded: a pixel's slack)."""
     w, h = ((fit.turned_width, fit.turned_height) if fit.turns % 2 == 0 else (fit.turned_height, fit.turned_width)) \
         if fit is not None else (width, height)
-    slack = 0.0 if fit is not None else 1.0 / w + 1.0 / h
-    if abs(np.log((shape[1] / shape[0]) / (w / h))) > SHAPE_TOLERANCE + slack:
+    if not shape_fits(shape[1], shape[0], w, h, 0.0 if fit is not None else 1.0 / w + 1.0 / h):
         whose = "its photo's" if fit is not None else "its view's"
         raise UserError(f"{what} is {shape[1]}x{shape[0]}, another shape than {whose} {w}x{h} ({why})", path=path,
                         hint=hint)
@@ -285,14 +291,14 @@ def load_mask(path: Path, width: int, height: int, fit: PhotoFit | None = None) 
     Raises:
         UserError: the mask is not of its photo's shape (``SHAPE_TOLERANCE``), naming both sizes.
     """
-    valid = read_mask(path).astype(np.float32)  # [h,w]
+    valid = read_mask(path)  # [h,w]
     _check_shape(valid.shape[:2], width, height, fit, path, "the mask",
                  "stretched to it, it would leave out other pixels than it marks",
                  "Give each photo a mask of its own shape (any resolution of it), white where the pixels count and "
                  "black where they do not.")
     if fit is not None:
-        valid = fit_photo(fit, valid)
-    return resize_image(valid, width, height) >= 1.0 - 1e-6
+        valid = fit_photo(fit, valid.astype(np.float32))
+    return resize_mask(valid, width, height)
 
 
 def _object_masks(scene: SceneData, indices: Sequence[int] | None, device) -> Tensor | None:

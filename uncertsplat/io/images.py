@@ -459,6 +459,12 @@ def read_exr(path: str | Path) -> dict[str, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------------------------- resizing
+def resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
+    """A validity mask [H,W] or [H,W,1] (bool or 0/1) at ``width`` x ``height``, bool, of the same layout: a resized
+    pixel counts only where every source pixel under it does (``resize_image``'s area average is 1 there)."""
+    return resize_image(np.asarray(mask, dtype=np.float32), width, height) >= 1.0 - 1e-6
+
+
 def resize_image(arr: np.ndarray, width: int, height: int) -> np.ndarray:
     """Resize an [H,W,C] (or [H,W]) float array to (width, height).
 

@@ -417,6 +417,7 @@ def stage_masks(scan: PhotoScan, masks: Path, staging: Path) -> list[str]:
     Raises:
         UserError: a mask of another shape than its photo (either way up), or one that leaves no pixel, naming it.
     """
+    from uncertsplat.data.dataset import shape_fits
     from uncertsplat.io.images import _reorient, read_mask, resize_image, write_png
     from uncertsplat.sfm.scene import mask_file
 
@@ -433,7 +434,7 @@ def stage_masks(scan: PhotoScan, masks: Path, staging: Path) -> list[str]:
         else:
             valid = read_mask(found)  # [h,w] as stored
             h_m, w_m = valid.shape
-            same = lambda a, b: abs(np.log((a[0] / a[1]) / (b[0] / b[1]))) <= 0.02 + 1.0 / a[0] + 1.0 / a[1]  # noqa: E731
+            same = lambda a, b: shape_fits(*b, *a, 1.0 / a[0] + 1.0 / a[1])  # noqa: E731 (b a map of photo a)
             turned_only = p.orientation in (5, 6, 7, 8) and same((w, h), (w_m, h_m)) \
                 and not same((p.width, p.height), (w_m, h_m))
             if not same((p.width, p.height), (w_m, h_m)) and not turned_only:

@@ -142,15 +142,9 @@ def _nerfstudio_masks(root: Path, names: Sequence[str]) -> tuple[tuple[Path | No
                             path=root / rel, hint="Put the mask there, or remove the frame's mask_path to train "
                                                   "on every pixel of its photo.")
         found.append(root / rel if rel is not None else None)
-    have = sum(m is not None for m in found)
-    if not have:
+    if all(m is None for m in found):
         return None, []
-    note = (f"masks: {have} of {len(names)} photos have one (transforms.json's mask_path); their black pixels are "
-            "neither trained on nor scored")
-    missing = [n for n, m in zip(names, found, strict=True) if m is None]
-    if missing:
-        note += f" (every pixel of the other {len(missing)} is: {list_names(missing, 4)})"
-    return tuple(found), [note]
+    return tuple(found), [masks_note(names, found, "(transforms.json's mask_path)")]
 
 
 def _unread_frame_notes(transforms: Path) -> list[str]:
@@ -277,6 +271,14 @@ def mask_changes(recorded: dict[str, str], now: dict[str, str], names: Sequence[
     return "; ".join(parts)
 
 
+def masks_note(names: Sequence[str], found: Sequence[object | None], where: str) -> str:
+    """The note on the masks ``found`` (None for a photo without one) of the photos ``names``, from ``where``."""
+    missing = [n for n, m in zip(names, found, strict=True) if m is None]
+    return (f"masks: {len(names) - len(missing)} of {len(names)} photos have one {where}; their black pixels are "
+            "neither trained on nor scored" + (f" (every pixel of the other {len(missing)} is: "
+                                               f"{list_names(missing, 4)})" if missing else ""))
+
+
 def mask_names(photo: str) -> str:
     """The names ``mask_file`` looks up for ``photo``, for a message: "photo IMG_1.jpg's would be IMG_1.jpg.png,
     IMG_1.jpg or IMG_1.png"."""
@@ -298,11 +300,7 @@ def _workspace_masks(path: Path, names: Sequence[str]) -> tuple[tuple[Path | Non
             return None, []
         return None, [f"{folder} ({n} file(s)) holds no mask named for any photo ({mask_names(names[0] if names else 'IMG_1.jpg')}"
                       "): not read, every pixel is trained on and scored"]
-    missing = [n for n, m in zip(names, found, strict=True) if m is None]
-    note = (f"masks: {have} of {len(names)} photos have one in {folder}; their black pixels are neither trained on "
-            "nor scored")
-    if missing:
-        note += f" (every pixel of the other {len(missing)} is: {list_names(missing, 4)})"
+    note = masks_note(names, found, f"in {folder}")
     if (path / REPORT_NAME).is_file() and not _reconstructed_with_masks(path):
         # reconstruct's images/ are the photos undistorted, and these masks/ are not its own (--masks)
         note += ("; `reconstruct` undistorted the photos into images/, so masks drawn on the photos as taken are off "

@@ -404,10 +404,9 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                     inputs["photos"], earlier[0]["photos"], earlier[1]["photos"] = fingerprints(up_path, skip=root)
                 elif kinds.get(upstream) == "synth":
                     up_path = up_path / "images"
-                if getattr(stage_cfg, "masks", None) is not None and Path(stage_cfg.masks).is_dir():
+                if stage_cfg.masks is not None and stage_cfg.masks.is_dir():
                     # the photos' masks are an input as the photos are: other masks, another workspace
-                    inputs["masks"], earlier[0]["masks"], earlier[1]["masks"] = fingerprints(Path(stage_cfg.masks),
-                                                                                              skip=root)
+                    inputs["masks"], earlier[0]["masks"], earlier[1]["masks"] = fingerprints(stage_cfg.masks, skip=root)
                 out_dir = root / name
             elif stage.stage == "evaluate":
                 from uncertsplat.stages.evaluate import eval_dir

@@ -348,14 +348,15 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                 if cfg.masks is not None:
                     mask_dir = distorted / "masks"
                     without = sfm.stage_masks(scan, cfg.masks, mask_dir)
+                    from uncertsplat.sfm.scene import mask_names, masks_note
+
                     if len(without) == len(scan.photos):
-                        from uncertsplat.sfm.scene import mask_names
 
                         raise UserError(f"{cfg.masks} holds no mask named for any photo ({mask_names(scan.names[0])})",
                                         path=cfg.masks, hint="Name each mask after its photo.")
-                    note = f"masks: {len(scan.photos) - len(without)} of {n} photos have one in {cfg.masks}" + (
-                        f" (every pixel of the other {len(without)} counts: {list_names(without, 4)})"
-                        if without else "")
+                    missing = set(without)
+                    note = masks_note(scan.names, [None if p in missing else p for p in scan.names],
+                                      f"in {cfg.masks}")
                     report.notes.append(note)
                     console.print(f"[yellow]note:[/] {esc(note)}")
             report.rotated = rotated

@@ -205,7 +205,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     from uncertsplat.baselines.fisher import prior_stds
     from uncertsplat.data.dataset import load_images, load_masks
     from uncertsplat.io.atomic import check_output_folder, run_lock
-    from uncertsplat.io.images import resize_image
+    from uncertsplat.io.images import resize_image, resize_mask
     from uncertsplat.schemas import PruneReport, RunScene, Selection
     from uncertsplat.schemas.select import CandidateScore, ChosenView
     from uncertsplat.select.candidates import blind_candidates_note, candidates_from_spec, pose_line
@@ -309,8 +309,8 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         masks = None
         if scene.masks_train:  # the photos' own masks, as training left their other pixels out (a low pixel counts
             # only where every pixel under it does)
-            masks = torch.from_numpy(np.stack([resize_image(m.float().numpy(), low_train.width, low_train.height)
-                                               >= 1.0 - 1e-6 for m in load_masks(scene, train)])).to(device)
+            masks = torch.from_numpy(np.stack([resize_mask(m.numpy(), low_train.width, low_train.height)
+                                               for m in load_masks(scene, train)])).to(device)
         fcfg = loaded.config.fisher
         params = {k: v.detach() for k, v in loaded.model.params.items()}
         low = low_resolution(cands.cameras, cfg.max_side)

@@ -571,6 +571,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         near = training_near_plane(data)
         if state is not None and before is not None:  # a resumed model keeps its plane (one recorded none: 1 %)
             near = before.near if before.near is not None else near_plane(data.scene_scale)
+        recorded_views = [names[i] for k in ("train", "test", "calibration") for i in data.split.get(k, ())] \
+            if names else []  # (the views whose cameras and masks scene.json records)
         run_scene = RunScene(
             scene=str(scene.resolve()), scene_from_run=RunScene.relative_path(scene, run_dir), source=data.source,
             extent=data.extent,
@@ -582,10 +584,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             center=list(data.center) if data.center is not None else None, center_method=data.center_method,
             center_reason=data.center_reason, world_from_source=data.world_from_source.double().tolist(),
             views_added=views_added, near=near,
-            cameras=camera_records(data.cameras, [names[i] for k in ("train", "test", "calibration")
-                                                  for i in data.split.get(k, ())] if names else []),
-            masks=mask_hashes(data, [names[i] for k in ("train", "test", "calibration")
-                                     for i in data.split.get(k, ())] if names else []),
+            cameras=camera_records(data.cameras, recorded_views), masks=mask_hashes(data, recorded_views),
         )
         if state is not None and before is not None:  # a resume goes on with the masks the scene has now: say so
             changed = mask_changes(before.masks, run_scene.masks,

@@ -1001,7 +1001,7 @@ class Trainer:
         # one render per view: the noise (RMS residual), the curvature, and at the last update with
         # ``sandwich`` the views' disagreement (at every update it cost 2 dB: the config's docstring)
         probes = vcfg.probes if last else vcfg.refresh_probes
-        masks = self.train_masks if n == t or self.train_masks is None else self.train_masks[pick]
+        masks = self._train_masks(pick) if n < t else self.train_masks
         curv = curvature(params, cams, images, self.render, names=("means", "scales", "opacities"),
                          generator=self.gen_noise, sh_degree=degree, probes=probes,
                          disagreement=vcfg.sandwich and last, masks=masks)

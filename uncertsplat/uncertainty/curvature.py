@@ -35,6 +35,16 @@ def activate(params: dict[str, Tensor], sh_degree: int, delta: dict[str, Tensor]
                           opacities=torch.sigmoid(get("opacities")), sh=sh, sh_degree=sh_degree)
 
 
+def _masked_residual(rgb: Tensor, image: Tensor, mask: Tensor | None) -> tuple[Tensor, int]:
+    """``rgb - image`` [H,W,3] with 0 outside ``mask`` [H,W,1] bool (None: every pixel counts), and how many
+    pixel channels count."""
+    r = rgb - image.to(rgb.device)
+    if mask is None:
+        return r, r.numel()
+    m = mask.to(r)
+    return r * m, int(m.sum()) * r.shape[-1]
+
+
 def residual_noise_std(params: dict[str, Tensor], cameras: Cameras, images: Tensor, render_fn, *, sh_degree: int,
                        floor: float = 1.0 / 255.0, masks: Tensor | None = None) -> float:
     """RMS of ``render - image`` over every training pixel channel (at least ``floor``).
@@ -47,13 +57,9 @@ def residual_noise_std(params: dict[str, Tensor], cameras: Cameras, images: Tens
     with torch.no_grad():
         g = activate(params, sh_degree)
         for i in range(len(cameras)):
-            out = render_fn(g, cameras[[i]])
-            r = out.rgb[0] - images[i].to(out.rgb.device)
-            if masks is not None:
-                m = masks[i].to(r)
-                r = r * m
+            r, n = _masked_residual(render_fn(g, cameras[[i]]).rgb[0], images[i], None if masks is None else masks[i])
             total += float(r.square().sum())
-            count += r.numel() if masks is None else int(m.sum()) * r.shape[-1]
+            count += n
     return max(math.sqrt(total / max(count, 1)), floor)
 
 
@@ -90,9 +96,7 @@ def fisher_diagonal(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
     for i in range(len(cameras)):
         sample = activate({**fixed, **leaves}, sh_degree)
         rgb = render_fn(sample, cameras[[i]]).rgb[0]  # [H,W,3]
-        r = rgb - images[i].to(rgb.device)
-        if masks is not None:
-            r = r * masks[i].to(r)
+        r, _ = _masked_residual(rgb, images[i], None if masks is None else masks[i])
         grads = torch.autograd.grad(r.square().sum() * (0.5 * inv_var), list(leaves.values()), allow_unused=True)
         for n, gr in zip(leaves, grads, strict=True):
             if gr is not None:
@@ -141,16 +145,14 @@ def curvature(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
     for i in range(t):
         sample = activate({**fixed, **leaves}, sh_degree)
         rgb = render_fn(sample, cameras[[i]]).rgb[0]  # [H,W,3]
-        r = (rgb - images[i].to(rgb.device)).detach()
-        m = masks[i].to(rgb) if masks is not None else None  # [H,W,1]
-        if m is not None:
-            r = r * m
+        m = masks[i] if masks is not None else None  # [H,W,1]
+        r, n = _masked_residual(rgb.detach(), images[i], m)
         sq_sum += float(r.square().sum())
-        count += r.numel() if m is None else int(m.sum()) * r.shape[-1]
+        count += n
         for p in range(probes):
             z = torch.randint(0, 2, rgb.shape, generator=generator, device=generator.device).to(rgb) * 2 - 1
             if m is not None:
-                z = z * m
+                z = z * m.to(z)
             grads = torch.autograd.grad((rgb * z).sum(), list(leaves.values()), retain_graph=disagreement or p < probes - 1,
                                         allow_unused=True)
             for n, gr in zip(leaves, grads, strict=True):
