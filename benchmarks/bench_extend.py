@@ -33,7 +33,7 @@ UNCERTSPLAT = [sys.executable, "-m", "uncertsplat"]
 def call(*args: str) -> float:
     """Run an uncertsplat command (its output to the log), return its wall seconds."""
     t0 = time.perf_counter()
-    with open(LOG, "a") as log:
+    with open(LOG, "a", encoding="utf-8") as log:
         log.write(f"\n$ uncertsplat {' '.join(args)}\n")
         log.flush()
         subprocess.run([*UNCERTSPLAT, *args], check=True, stdout=log, stderr=subprocess.STDOUT)
@@ -41,7 +41,7 @@ def call(*args: str) -> float:
 
 
 def metrics(run: Path) -> dict:
-    m = json.loads((run / "eval" / "metrics.json").read_text())["mean"]
+    m = json.loads((run / "eval" / "metrics.json").read_text(encoding="utf-8"))["mean"]
     return {k: m.get(k) for k in ("psnr", "psnr_render", "ause_mae", "nll", "calibration_error")}
 
 
@@ -92,15 +92,15 @@ def main() -> None:
     from uncertsplat.sfm import reconstruct as sfm
 
     agreement = sfm.pose_accuracy(ws / "sparse" / "0", ws_full / "sparse" / "0")
-    report = json.loads((ws / "reconstruct_report.json").read_text())
+    report = json.loads((ws / "reconstruct_report.json").read_text(encoding="utf-8"))
     added = sorted(set(withheld) & set(report["images_registered"]))
     total = str(args.steps + args.more)
     t_added = call("train", str(ws), "-o", str(run), "--resume", "--iterations", total, "--add-views", ",".join(added))
     t_plain = call("train", str(ws), "-o", str(plain), "--resume", "--iterations", total)
     for r in (run, plain):
         call("evaluate", str(r), "--num-samples", str(args.samples))
-    held = json.loads((run / "scene.json").read_text())["test"]
-    assert held == json.loads((plain / "scene.json").read_text())["test"]
+    held = json.loads((run / "scene.json").read_text(encoding="utf-8"))["test"]
+    assert held == json.loads((plain / "scene.json").read_text(encoding="utf-8"))["test"]
     out = {"label": args.label, "machine": args.machine, "date": time.strftime("%Y-%m-%d"), "photos": len(names),
            "withheld": withheld, "added": added, "held_out": held, "steps": args.steps, "more": args.more,
            "set": args.set, "seconds": {"reconstruct_first": t_first, "extend": t_extend, "reconstruct_all": t_full,

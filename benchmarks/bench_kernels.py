@@ -481,7 +481,7 @@ def bench_training(libs: dict, run: Path, scene: Path, rounds: int, block: int) 
 
     from uncertsplat.config import TrainConfig
 
-    cfg = TrainConfig.model_validate_json((run / "config.json").read_text())
+    cfg = TrainConfig.model_validate_json((run / "config.json").read_text(encoding="utf-8"))
     trainer = trainer_from_run(scene, run, cfg, torch.device("cpu"), extra_steps=(rounds + 1) * block * len(libs) + 10)
     # every photo's SSIM statistics by the current library first (training keeps them from a photo's first step);
     # a reference of interface < 19 has no such kernel and blurs the photo in every step, as it did
@@ -562,7 +562,7 @@ def main() -> None:
             result["ssim_hwc"] = bench_ssim(libs, args.repeats, height=266, width=401, channels=3)
         if args.run:
             result["train"] = bench_training(libs, args.run, args.scene or Path(json.loads(
-                (args.run / "train_summary.json").read_text())["scene"]), args.rounds, args.block)
+                (args.run / "train_summary.json").read_text(encoding="utf-8"))["scene"]), args.rounds, args.block)
         native._state["lib"] = libs["current"]
         rasterize.PAIR_INDEX_DTYPE = torch.int32
         result["load_average_end"] = os.getloadavg()

@@ -43,7 +43,7 @@ def one_run(scene: Path, preset: str, over: dict, fraction: float, scale: float,
     t = time.perf_counter()
     train_run(scene, run, cfg, device)
     seconds = time.perf_counter() - t
-    summary = json.loads((run / "train_summary.json").read_text())
+    summary = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))
     rep = evaluate_stage.run(run, EvalConfig(num_samples=eval_samples, save_maps=False), device)
     m = rep.mean
     return {"fraction": fraction, "scale": scale, "train_seconds": seconds, "train_psnr": summary["test_psnr"],

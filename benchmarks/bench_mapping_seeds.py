@@ -60,7 +60,7 @@ def main() -> None:
     cfg = ReconstructConfig()
     runs, seconds = [], []
     if args.runs is not None:
-        earlier = json.loads(args.runs.read_text())
+        earlier = json.loads(args.runs.read_text(encoding="utf-8"))
         runs = [{k: v for k, v in r.items() if k not in ("right", "seconds")} for r in earlier["runs"]]
         seconds = [r["seconds"] for r in earlier["runs"]]
         args.workspace, args.machine = earlier["workspace"], earlier["machine"]

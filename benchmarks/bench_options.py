@@ -63,9 +63,9 @@ def run_variant(scene: Path, work: Path, preset: str | None, common: list[str], 
 
         shutil.rmtree(run)
     train_stage.run(scene, run, cfg, device)
-    summary = json.loads((run / "train_summary.json").read_text())
+    summary = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))
     evaluate_stage.run(run, EvalConfig(num_samples=samples), device)
-    metrics = json.loads((run / "eval" / "metrics.json").read_text())
+    metrics = json.loads((run / "eval" / "metrics.json").read_text(encoding="utf-8"))
     prof = summary.get("profile") or {}
     return {
         "name": name, "overrides": extra,

@@ -161,7 +161,7 @@ def main() -> None:
     path = RESULTS / f"step_ab_{args.what}_{args.label}.json"
     refuse_overwrite(path, overwrite=args.overwrite)
 
-    cfg = TrainConfig.model_validate(json.loads((args.run / "config.json").read_text()))
+    cfg = TrainConfig.model_validate(json.loads((args.run / "config.json").read_text(encoding="utf-8")))
     trainer = trainer_from_run(args.scene, args.run, cfg, torch.device("cpu"),
                                extra_steps=2 * args.block * args.rounds + 10)
     modes = {"fused-image": lambda: _fused_image_modes(), "train-on": lambda: _train_on_modes(trainer),

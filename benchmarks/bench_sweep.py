@@ -84,7 +84,7 @@ def methods_job_seconds() -> dict[str, dict[str, float]]:
         path = RESULTS / name
         if not path.is_file():
             continue
-        data = json.loads(path.read_text())
+        data = json.loads(path.read_text(encoding="utf-8"))
         per = {}
         for r in data.get("table", []):
             if r.get("train_seconds") is None:

@@ -94,8 +94,8 @@ def bench(name: str, work: Path, args) -> dict:
 
         shutil.rmtree(run)
     train_stage.run(scene, run, cfg, torch.device(args.device))
-    summary = json.loads((run / "train_summary.json").read_text())
-    stats = [json.loads(x) for x in (run / "stats.jsonl").read_text().splitlines()]
+    summary = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))
+    stats = [json.loads(x) for x in (run / "stats.jsonl").read_text(encoding="utf-8").splitlines()]
     result = {
         **summary, "scene_path": summary.get("scene"),
         "scene": name, "preset": SCENES[name], "overrides": overrides, "device": args.device,

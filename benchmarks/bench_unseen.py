@@ -245,7 +245,7 @@ def jitter_exposure(scene_dir: Path, sigma: float, seed: int) -> list[float]:
 
     from uncertsplat.io.images import read_image, write_png
 
-    meta = json.loads((scene_dir / "scene.json").read_text())
+    meta = json.loads((scene_dir / "scene.json").read_text(encoding="utf-8"))
     rng = np.random.default_rng(seed)
     gains = [float(np.exp(rng.normal(0.0, sigma))) for _ in meta["image_names"]]
     for name, gain in zip(meta["image_names"], gains, strict=True):
@@ -361,10 +361,10 @@ def main() -> None:
         t0 = time.perf_counter()
         if not (run_dir / "train_summary.json").is_file():
             train_run(scene_dir, run_dir, cfg, device)
-        elif TrainConfig.model_validate_json((run_dir / "config.json").read_text()) != cfg:
+        elif TrainConfig.model_validate_json((run_dir / "config.json").read_text(encoding="utf-8")) != cfg:
             raise SystemExit(f"{run_dir} holds a run trained with another configuration (protocol, --set, "
                              f"--iterations ...): choose another --out, or delete it to train again")
-        train_s = json.loads((run_dir / "train_summary.json").read_text())["seconds"]
+        train_s = json.loads((run_dir / "train_summary.json").read_text(encoding="utf-8"))["seconds"]
         rec = {"method": name, "train_seconds": train_s, "wall_seconds": time.perf_counter() - t0}
         # the full predictive (the default), the one before the coverage and resolution terms, the spread alone
         for kind in args.predictives:

@@ -55,9 +55,9 @@ def resume_without_key(scene: Path, run: Path, tmp: Path, section: str, key: str
     old = tmp / "old"
     shutil.copytree(run, old, ignore=shutil.ignore_patterns("eval"))
     cfg_path = old / "config.json"
-    data = json.loads(cfg_path.read_text())
+    data = json.loads(cfg_path.read_text(encoding="utf-8"))
     data[section].pop(key)
     cfg_path.write_text(json.dumps(data))
-    step = json.loads((old / "train_summary.json").read_text())["steps"]
+    step = json.loads((old / "train_summary.json").read_text(encoding="utf-8"))["steps"]
     train_model(scene, old, train_config_from("tiny", {}), torch.device("cpu"), resume=True, extend_to=step + steps)
-    return json.loads(cfg_path.read_text())
+    return json.loads(cfg_path.read_text(encoding="utf-8"))

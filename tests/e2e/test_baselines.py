@@ -67,12 +67,12 @@ def fisher_run(scene_path, tmp_path_factory):
 
 def test_ensemble_layout_and_spread(ensemble_run):
     run = ensemble_run
-    assert json.loads((run / "config.json").read_text())["method"] == "ensemble"
+    assert json.loads((run / "config.json").read_text(encoding="utf-8"))["method"] == "ensemble"
     assert (run / "scene.json").is_file()
-    members = [json.loads((ensemble_member_dir(run, i) / "config.json").read_text()) for i in range(2)]
+    members = [json.loads((ensemble_member_dir(run, i) / "config.json").read_text(encoding="utf-8")) for i in range(2)]
     assert [m["method"] for m in members] == ["deterministic", "deterministic"]
     assert [m["seed"] for m in members] == [0, 1]
-    summary = json.loads((run / "train_summary.json").read_text())
+    summary = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))
     assert summary["ensemble_size"] == 2 and len(summary["members"]) == 2
     assert summary["seconds"] == pytest.approx(sum(m["seconds"] for m in summary["members"]))
     # what training warned about in a member is in the ensemble's own summary, where the report looks
@@ -96,7 +96,7 @@ def test_an_ensemble_of_variational_members_samples_their_posteriors(scene_path,
     such member still has a spread (its posterior's), unlike an ensemble of one plain 3DGS model."""
     run = tmp_path / "run"
     train_run(scene_path, run, quick_cfg(method="ensemble", ensemble_size=1, ensemble_members="variational"), CPU)
-    assert json.loads((ensemble_member_dir(run, 0) / "config.json").read_text())["method"] == "variational"
+    assert json.loads((ensemble_member_dir(run, 0) / "config.json").read_text(encoding="utf-8"))["method"] == "variational"
     loaded = load_run(run, CPU)
     assert isinstance(loaded, EnsembleRun) and loaded.variational_members
     assert loaded.members[0].model.num_carriers > 0 and "each with its posterior" in loaded.size_text()
@@ -105,7 +105,7 @@ def test_an_ensemble_of_variational_members_samples_their_posteriors(scene_path,
     assert not any("1 member" in n for n in report.notes)
     (maps,) = exr_maps(run, report)
     assert maps["rgb_std.R"].max() > 0, "the member's posterior samples differ"
-    assert json.loads((run / "train_summary.json").read_text())["num_carriers"] == loaded.members[0].model.num_carriers
+    assert json.loads((run / "train_summary.json").read_text(encoding="utf-8"))["num_carriers"] == loaded.members[0].model.num_carriers
     from uncertsplat.config import PruneConfig
     from uncertsplat.errors import UserError
     from uncertsplat.stages import prune
@@ -150,7 +150,7 @@ def test_ensemble_of_one_has_zero_spread(ensemble_run, tmp_path):
     # an ensemble folder with N = 1 (member 0 of the N = 2 run; same layout, no retraining)
     run = tmp_path / "ens1"
     shutil.copytree(ensemble_run, run, ignore=shutil.ignore_patterns("member_1", "eval"))
-    cfg = json.loads((run / "config.json").read_text())
+    cfg = json.loads((run / "config.json").read_text(encoding="utf-8"))
     cfg["ensemble_size"] = 1
     (run / "config.json").write_text(json.dumps(cfg))
     # the samples' spread alone (no empty-ray term, no pixel noise, no depth spread along the rays, no view consistency)
@@ -165,7 +165,7 @@ def test_ensemble_of_one_has_zero_spread(ensemble_run, tmp_path):
     # ... and the default predictive adds the pixel noise of the member's Gaussians
     report = evaluate.run(run, EvalConfig(num_samples=3, max_views=2), device=CPU)
     assert all(ch["rgb_std.R"].max() > 0 for ch in exr_maps(run, report))
-    stored = EvalReport.from_json((run / "eval" / "metrics.json").read_text())
+    stored = EvalReport.from_json((run / "eval" / "metrics.json").read_text(encoding="utf-8"))
     assert any("ensemble of 1 member" in n for n in stored.notes)
     # its K samples are one render: a kernel density of them measures its bandwidth (a report showed 2,700 nats beside
     # -2.5 for the other runs), so none is given, and the note says why
@@ -186,7 +186,7 @@ def test_fisher_variances_and_spread(fisher_run):
         assert v.shape == loaded.model.params[name].shape
         assert torch.all(v > 0) and torch.all(v <= prior**2 * (1 + 1e-5))
         assert bool((v < 0.99 * prior**2).any()), "observed Gaussians must be tighter than the prior"
-    summary = json.loads((run / "train_summary.json").read_text())
+    summary = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))
     assert summary["seconds"] == pytest.approx(summary["train_seconds"] + summary["fisher_seconds"])
     # the viewer PLY carries the posterior's spreads (they were 0, read as a certain model), the standard layout kept
     from plyfile import PlyData
@@ -225,7 +225,7 @@ def test_vi_single_through_the_cli(scene_path, tmp_path):
                                    "--set", "eval_every=1000", "--set", "checkpoint_every=1000",
                                    "--set", "densify={start=5, until=15, interval=5, spawn_interval=10}"])
     assert res.exit_code == 0, res.output
-    cfg = json.loads((run / "config.json").read_text())
+    cfg = json.loads((run / "config.json").read_text(encoding="utf-8"))
     assert cfg["method"] == "variational" and cfg["variational"]["num_entries"] == 1
     loaded = load_run(run, CPU)
     assert loaded.model.num_entries == 1 and loaded.model.num_carriers > 0

@@ -24,7 +24,7 @@ def scene_path(tmp_path_factory):
 
 
 def read_jsonl(path):
-    return [json.loads(line) for line in path.read_text().splitlines()]
+    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines()]
 
 
 def test_sweep_writes_one_record_per_point_and_resumes(scene_path, tmp_path):
@@ -58,7 +58,7 @@ def test_sweep_writes_one_record_per_point_and_resumes(scene_path, tmp_path):
     assert (out / "pareto.png").read_bytes()[:4] == b"\x89PNG"
     assert (out / "points" / "fisher_it16_kt4_k3_ds4.json").is_file()
     # the page shows the figure and one row per point, with the numbers of sweep.json
-    page = (out / "index.html").read_text()
+    page = (out / "index.html").read_text(encoding="utf-8")
     assert 'src="pareto.png"' in page
     for r in summary.records:
         assert f'data-point="{r.id}"' in page
@@ -68,7 +68,7 @@ def test_sweep_writes_one_record_per_point_and_resumes(scene_path, tmp_path):
     summary2 = sweep.run(spec, out, jobs=1, device="cpu", scene=scene_path)
     assert len(read_jsonl(out / "sweep.jsonl")) == 3 and summary2.num_points == 3
     # points measured under other conditions (another thread count: an earlier --jobs 2) are reused with a note
-    lines = (out / "sweep.jsonl").read_text().splitlines()
+    lines = (out / "sweep.jsonl").read_text(encoding="utf-8").splitlines()
     first = json.loads(lines[0])
     (out / "sweep.jsonl").write_text("\n".join([json.dumps({**first, "threads": 7}), *lines[1:]]) + "\n")
     from uncertsplat.console import console

@@ -71,7 +71,7 @@ def test_same_points_same_psnr(scenes, tmp_path):
     psnr_b, info_b = _train(ws, tmp_path / "b", "densify.until=0")
     assert info_b.source["ply"] == "points3d.ply" and info_b.center_method == info_c.center_method
     assert info_b.test == [f"test/{n}" for n in info_c.test]
-    first = [json.loads((tmp_path / r / "stats.jsonl").read_text().splitlines()[0])["eval_psnr"] for r in "cb"]
+    first = [json.loads((tmp_path / r / "stats.jsonl").read_text(encoding="utf-8").splitlines()[0])["eval_psnr"] for r in "cb"]
     assert abs(first[0] - first[1]) < 1e-3  # the same initial render
     print(f"held-out PSNR after 300 steps: COLMAP layout {psnr_c:.3f} dB, Blender layout {psnr_b:.3f} dB")
     assert abs(psnr_b - psnr_c) < 0.1, (psnr_b, psnr_c)
@@ -128,7 +128,7 @@ def test_evaluate_says_its_metrics_are_taken_inside_the_masks(scenes, colmap_run
     assert res.exit_code == 0, res.output
     assert ("what train reports for the held-out views; train's over whole images, these inside the scene's validity "
             "masks)") in " ".join(res.output.split())
-    report = EvalReport.from_json((root / "run_colmap" / "eval" / "metrics.json").read_text())
+    report = EvalReport.from_json((root / "run_colmap" / "eval" / "metrics.json").read_text(encoding="utf-8"))
     (note,) = [n for n in report.notes if n.startswith("the scene has validity masks")]
     share = float(note.split("(")[1].split("%")[0]) / 100
     assert 0.2 < share < 0.5 and "train's held-out PSNR over whole images" in note

@@ -63,12 +63,12 @@ def test_save_maps_false_writes_no_maps_and_clears_earlier_ones(tiny_run_path, t
     evaluate.run(run, EvalConfig(num_samples=2, seed=4, save_maps=False), device=torch.device("cpu"))
     assert not (run / "eval" / "maps").exists()  # the earlier maps belonged to the earlier metrics
     assert "(no maps: save_maps = false)" in " ".join(capsys.readouterr().err.split())
-    assert EvalReport.from_json((run / "eval" / "metrics.json").read_text()).seed == 4
+    assert EvalReport.from_json((run / "eval" / "metrics.json").read_text(encoding="utf-8")).seed == 4
 
 
 def test_writes_maps_and_metrics(evaluated):
     run, report = evaluated
-    data = EvalReport.from_json((run / "eval" / "metrics.json").read_text())
+    data = EvalReport.from_json((run / "eval" / "metrics.json").read_text(encoding="utf-8"))
     assert data.image_names == report.image_names and len(data.image_names) == 3  # every 8th of 24 views
     for name in data.image_names:
         stem = map_stem(name)
@@ -84,9 +84,9 @@ def test_writes_maps_and_metrics(evaluated):
         assert read_exr_attribute(exr, EXR_RGB_DOF) == pytest.approx(report.degrees_of_freedom, rel=1e-6)
         # the factor to the scene's own units (1 / s of world_from_source): depth_mean x it is the GT depth's scale
         scale = read_exr_attribute(exr, EXR_DEPTH_TO_SOURCE)
-        world_from_source = json.loads((run / "scene.json").read_text())["world_from_source"]
+        world_from_source = json.loads((run / "scene.json").read_text(encoding="utf-8"))["world_from_source"]
         assert scale == pytest.approx(1.0 / world_from_source[0][0], rel=1e-6)
-        scene = Path(json.loads((run / "scene.json").read_text())["scene"])
+        scene = Path(json.loads((run / "scene.json").read_text(encoding="utf-8"))["scene"])
         gt_depth = np.load(scene / "depth" / f"{Path(name).stem}.npy").reshape(ch["depth_mean.Z"].shape)
         hit = np.isfinite(gt_depth) & (gt_depth > 0) & (ch["depth_mean.Z"] > 0)
         # (the scale is what is checked: s is ~0.25 here; a short run's depths are a few per cent off)
@@ -98,7 +98,7 @@ def test_writes_maps_and_metrics(evaluated):
     assert m.ause_mae is not None and m.nll is not None and m.nll_kde is not None
     # the one deterministic render `train` reports (the expected render) scores near the mean of K samples
     assert m.psnr_render is not None and abs(m.psnr_render - m.psnr) < 1.5
-    summary = json.loads((run / "train_summary.json").read_text())
+    summary = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))
     assert m.psnr_render == pytest.approx(summary["test_psnr"], abs=1e-3)  # the same render, the same views
     # the synthetic scene has GT depth in the run's own units: the scale is known, not estimated
     assert data.depth_scale.method == "scene" and data.depth_scale.scale == 1.0
@@ -167,7 +167,7 @@ def test_std_scale_is_fitted_on_the_views_set_aside_from_training(tiny_run_path,
     run = tmp_path / "run"
     shutil.copytree(tiny_run_path, run)
     cfg_path = run / "config.json"
-    config = json.loads(cfg_path.read_text())
+    config = json.loads(cfg_path.read_text(encoding="utf-8"))
     config["scene"]["calibration_holdout"] = 2
     cfg_path.write_text(json.dumps(config))
     ecfg = EvalConfig(num_samples=2, max_views=1, residual_views=2)
@@ -179,7 +179,7 @@ def test_std_scale_is_fitted_on_the_views_set_aside_from_training(tiny_run_path,
     assert len(held) == 2 and rep.calibration_views == held and rep.calibration_held_out
     assert rep.noise_scale is not None and rep.noise_scale != 1.0  # residual_scale "auto": fitted on the views aside
     assert not set(held) & {names[i] for i in scene.split["train"]}
-    saved = EvalReport.from_json((run / "eval" / "metrics.json").read_text())
+    saved = EvalReport.from_json((run / "eval" / "metrics.json").read_text(encoding="utf-8"))
     assert saved.calibration_held_out and saved.calibration_views == held
     # the engine fits the same factor on the scene's split, and another one on its training views
     cpu = torch.device("cpu")
@@ -363,7 +363,7 @@ def test_given_depth_gt_folder_estimates_scale(tiny_run_path, tiny_scene_path, t
     rep = evaluate.run(run, EvalConfig(num_samples=2, depth_gt=tiny_scene_path / "depth", max_views=2),
                        device=torch.device("cpu"))
     # GT is in the generator's units; the run is normalised, so the estimated scale undoes that
-    meta = json.loads((tiny_scene_path / "scene.json").read_text())
+    meta = json.loads((tiny_scene_path / "scene.json").read_text(encoding="utf-8"))
     assert rep.depth_scale.method == "median"
     assert rep.depth_scale.scale > 0 and np.isfinite(rep.depth_scale.scale)
     assert meta  # the scene records its generator settings
@@ -481,7 +481,7 @@ def test_the_pixel_noise_level_is_fitted_and_recorded(tiny_run_path, tmp_path):
     none = evaluate.run(run, EvalConfig(**base, residual_views=0), device=cpu)
     assert fit.noise_scale is not None and fit.noise_scale > 0 and fit.noise_scale != 1.0
     assert (one.noise_scale, half.noise_scale, none.noise_scale) == (1.0, 0.5, None)
-    assert json.loads((run / "eval" / "metrics.json").read_text())["noise_scale"] is None  # the last run's
+    assert json.loads((run / "eval" / "metrics.json").read_text(encoding="utf-8"))["noise_scale"] is None  # the last run's
     name = next(iter(one.per_view))
     assert half.per_view[name].nll != one.per_view[name].nll
     # the leverage changes the std (each Gaussian's noise / (1 - h)), not the prediction; the default is relative to
@@ -513,7 +513,7 @@ def test_the_edge_term_is_fitted_recorded_and_changes_only_the_std(tiny_run_path
     prediction is unchanged and the std is not; off, the report records 0."""
     run, off, on = _off_and_on(tiny_run_path, tmp_path, "edge_noise")
     assert off.edge_scale == 0.0 and on.edge_scale is not None and on.edge_scale > 0.0
-    assert json.loads((run / "eval" / "metrics.json").read_text())["edge_scale"] == on.edge_scale
+    assert json.loads((run / "eval" / "metrics.json").read_text(encoding="utf-8"))["edge_scale"] == on.edge_scale
     assert any("edge term" in n for n in on.notes) and not any("edge term" in n for n in off.notes)
     name = next(iter(on.per_view))
     assert on.per_view[name].psnr == off.per_view[name].psnr
@@ -594,7 +594,7 @@ class TestPrunedRunThatRemovedNothing:
         deeper = tmp_path / "a" / "b" / "kept"
         deeper.parent.mkdir(parents=True)
         shutil.copytree(kept, deeper, ignore=shutil.ignore_patterns("eval"))
-        info = json.loads((deeper / "scene.json").read_text())
+        info = json.loads((deeper / "scene.json").read_text(encoding="utf-8"))
         info["scene_from_run"] = os.path.relpath(info["scene"], deeper)
         (deeper / "scene.json").write_text(json.dumps(info))
         assert (deeper / "scene.json").read_bytes() != (src / "scene.json").read_bytes()
@@ -900,7 +900,7 @@ def test_a_model_that_leaves_its_training_views_empty_gets_a_note(tiny_run_path,
     cfg = EvalConfig(num_samples=2, max_views=1, calibration_views=0, reuse=False, save_maps=False)
     plain = evaluate.run(run, cfg, device=torch.device("cpu"))  # 120 steps
     assert not any("covers its own training views" in n for n in plain.notes)
-    config = json.loads((run / "config.json").read_text())
+    config = json.loads((run / "config.json").read_text(encoding="utf-8"))
     (run / "config.json").write_text(json.dumps({**config, "iterations": 7000}))  # read as a full run
     monkeypatch.setattr(LoadedRun, "coverage", lambda self, *a, **k: 0.43)
     low = evaluate.run(run, cfg, device=torch.device("cpu"))

@@ -25,7 +25,7 @@ def exposed_scene(tiny_scene_path, tmp_path_factory) -> Path:  # noqa: F811
     """The tiny scene with each training photo's brightness scaled by one of ``GAINS``."""
     scene = tmp_path_factory.mktemp("exposure") / "scene"
     shutil.copytree(tiny_scene_path, scene)
-    meta = json.loads((scene / "scene.json").read_text())
+    meta = json.loads((scene / "scene.json").read_text(encoding="utf-8"))
     held = set(meta["test_views"])
     for i, name in enumerate(n for n in meta["image_names"] if n not in held):
         path = scene / "images" / name
@@ -62,7 +62,7 @@ def test_affine_exposures_are_learned_evaluated_and_kept_by_prune(exposed_scene,
     summary = TrainSummary.read(run / TrainSummary.FILE_NAME)
     assert not any("differ in brightness" in w for w in summary.warnings), summary.warnings
     record = RunExposure.read(run / RunExposure.FILE_NAME)
-    meta = json.loads((exposed_scene / "scene.json").read_text())
+    meta = json.loads((exposed_scene / "scene.json").read_text(encoding="utf-8"))
     train_names = [n for n in meta["image_names"] if n not in set(meta["test_views"])]
     assert record.images == train_names and record.step == summary.steps
     # the learned gains follow the photos' brightness

@@ -82,7 +82,7 @@ def test_unobserved_surface_gets_more_spread(half_ring_runs):
 
 def test_updates_are_recorded(half_ring_runs):
     runs, train, _ = half_ring_runs
-    summary = json.loads((runs["informed"] / "train_summary.json").read_text())
+    summary = json.loads((runs["informed"] / "train_summary.json").read_text(encoding="utf-8"))
     steps = [u["step"] for u in summary["posterior_updates"]]
     assert steps == [100, 200, 300]
     assert [u["views"] for u in summary["posterior_updates"]] == [5, 5, len(train)]
@@ -90,7 +90,7 @@ def test_updates_are_recorded(half_ring_runs):
     assert [u["probes"] for u in summary["posterior_updates"]] == [1, 1, 2]
     last = summary["posterior_updates"][-1]
     assert 0.0 < last["data_dominated"] < 1.0 and last["noise_std"] > 0
-    assert json.loads((runs["sgd"] / "train_summary.json").read_text())["posterior_updates"] == []
+    assert json.loads((runs["sgd"] / "train_summary.json").read_text(encoding="utf-8"))["posterior_updates"] == []
 
 
 def test_a_run_from_before_the_informed_posterior_resumes_with_sgd_tables(tiny_scene_path, tiny_run_path,  # noqa: F811
@@ -104,19 +104,19 @@ def test_a_run_from_before_the_informed_posterior_resumes_with_sgd_tables(tiny_s
     run = tmp_path / "old"
     shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
     cfg_path = run / "config.json"
-    data = json.loads(cfg_path.read_text())
+    data = json.loads(cfg_path.read_text(encoding="utf-8"))
     data["variational"].pop("posterior")
     data["variational"].pop("refresh_interval"), data["variational"].pop("refresh_views")
     data["variational"].pop("probes"), data["variational"].pop("position_prior_scale")
     data["scene"].pop("train_names"), data["scene"].pop("train_indices"), data["scene"].pop("points_from")
     cfg_path.write_text(json.dumps(data))
-    step = json.loads((run / "train_summary.json").read_text())["steps"]
+    step = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))["steps"]
     cfg = train_config_from("tiny", {})
     train_model(tiny_scene_path, run, cfg, CPU, resume=True, extend_to=step + 100)
-    summary = json.loads((run / "train_summary.json").read_text())
+    summary = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))
     # no informed update after the resume (those before it came with the checkpoint)
     assert summary["steps"] == step + 100 and all(u["step"] <= step for u in summary["posterior_updates"])
-    assert json.loads(cfg_path.read_text())["variational"]["posterior"] in (None, "sgd")
+    assert json.loads(cfg_path.read_text(encoding="utf-8"))["variational"]["posterior"] in (None, "sgd")
 
 
 def test_an_informed_run_from_before_train_on_resumes_on_samples(tiny_scene_path, tiny_run_path,  # noqa: F811

@@ -26,7 +26,7 @@ def smoke_out(tmp_path_factory):
 def test_every_stage_wrote_its_outputs(smoke_out):
     out, _ = smoke_out
     for name in ("synth", "train", "prune", "report"):
-        manifest = json.loads((out / name / "manifest.json").read_text())
+        manifest = json.loads((out / name / "manifest.json").read_text(encoding="utf-8"))
         assert manifest["status"] == "done", name
     assert (out / "train" / "eval" / "metrics.json").is_file()
     assert (out / "train" / "point_cloud.ply").is_file() and (out / "train" / "variational.ply").is_file()
@@ -39,10 +39,10 @@ def test_the_pruned_runs_evaluation_is_prunes_own(smoke_out):
     text = " ".join(output.split())
     assert "evaluate " + str(out / "prune") + ": already evaluated with these settings" in text
     assert not (out / ".previous" / "evaluate_pruned-eval").exists()
-    manifest = json.loads((out / "prune" / "eval" / "manifest.json").read_text())
+    manifest = json.loads((out / "prune" / "eval" / "manifest.json").read_text(encoding="utf-8"))
     assert manifest["status"] == "done"
-    report = json.loads((out / "prune" / "eval" / "metrics.json").read_text())
-    pruned = json.loads((out / "prune" / "prune.json").read_text())
+    report = json.loads((out / "prune" / "eval" / "metrics.json").read_text(encoding="utf-8"))
+    pruned = json.loads((out / "prune" / "prune.json").read_text(encoding="utf-8"))
     assert pruned["metrics"]["after"]["nll"] == report["mean"]["nll"]
 
 
@@ -55,7 +55,7 @@ def test_report_references_every_figure_and_matches_metrics(smoke_out):
         assert (out / "report" / src).is_file(), src
     figures = {p.name for p in (out / "report" / "figures").iterdir()}
     assert figures == {Path(s).name for s in srcs if s.startswith("figures/")}
-    metrics = json.loads((out / "train" / "eval" / "metrics.json").read_text())
+    metrics = json.loads((out / "train" / "eval" / "metrics.json").read_text(encoding="utf-8"))
     psnr = metrics["mean"]["psnr"]
     values = [float(v) for v in re.findall(r'data-key="psnr"[^>]*data-value="([^"]+)"', html)]
     assert any(v == pytest.approx(psnr, rel=1e-9) for v in values), "the report shows metrics.json's PSNR"
@@ -95,7 +95,7 @@ def test_rerun_skips_unchanged_stages(smoke_out):
 
     out, _ = smoke_out
     pipeline = ROOT / "pipelines" / "smoke.toml"
-    stages = tomllib.loads(pipeline.read_text())["stages"]
+    stages = tomllib.loads(pipeline.read_text(encoding="utf-8"))["stages"]
     files = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file() and "pipeline" not in p.name}
     result = runner.invoke(app, ["run", str(pipeline), "-o", str(out), "--device", "cpu"])
     assert result.exit_code == 0, result.output

@@ -56,11 +56,11 @@ def test_writes_a_valid_pruned_run(pruned, tiny_run_path):  # noqa: F811
     assert result.counts.before == n and len(loaded.model) == result.counts.after
     assert result.counts.after == n - round(0.2 * n) or result.counts.after > n - round(0.2 * n)
     assert (out / "config.json").read_bytes() == (tiny_run_path / "config.json").read_bytes()
-    assert json.loads((out / "prune_config.json").read_text())["keep_ratio"] == result.keep_ratio  # its settings
+    assert json.loads((out / "prune_config.json").read_text(encoding="utf-8"))["keep_ratio"] == result.keep_ratio  # its settings
     assert (out / "scene.json").is_file() and (out / "point_cloud.ply").is_file()
     # the source's scene record, with the scene's path relative to the pruned run (not the source's: from another
     # folder it named whatever lay there)
-    source, written = (json.loads((d / "scene.json").read_text()) for d in (tiny_run_path, out))
+    source, written = (json.loads((d / "scene.json").read_text(encoding="utf-8")) for d in (tiny_run_path, out))
     assert {**written, "scene_from_run": None} == {**source, "scene_from_run": None}
     assert (out / written["scene_from_run"]).resolve() == Path(source["scene"]).resolve()
     umask = os.umask(0)
@@ -188,7 +188,7 @@ def test_bad_inputs(tiny_run_path, tmp_path):  # noqa: F811
     (existing / "keep.txt").write_text("mine")
     with pytest.raises(UserError, match="already exists"):
         prune.run(tiny_run_path, existing, cfg, device=CPU)
-    assert (existing / "keep.txt").read_text() == "mine" and len(list(existing.iterdir())) == 1
+    assert (existing / "keep.txt").read_text(encoding="utf-8") == "mine" and len(list(existing.iterdir())) == 1
     with pytest.raises(UserError, match="no output folder"):
         prune.run(tiny_run_path, None, cfg, device=CPU)
     with pytest.raises(UserError, match="no pruning mode"):
@@ -357,7 +357,7 @@ def test_a_pruned_run_is_not_trained_on_and_select_views_names_its_source(pruned
     run = tmp_path / "pruned"
     shutil.copytree(out, run)
     model = (run / "variational.ply").read_bytes()
-    cfg = TrainConfig.model_validate_json((run / "config.json").read_text())
+    cfg = TrainConfig.model_validate_json((run / "config.json").read_text(encoding="utf-8"))
     with pytest.raises(UserError, match="this folder is a pruned model") as err:
         train_run(tiny_scene_path, run, cfg.model_copy(update={"iterations": cfg.iterations + 10}), CPU, resume=True)
     assert result.source_run in err.value.hint and (run / "variational.ply").read_bytes() == model
@@ -431,7 +431,7 @@ def test_a_moved_project_s_prune_reads_its_own_source_run(pruned, tiny_run_path,
     with open(project / "src" / "variational.ply", "ab") as f:  # not the model prune read: the recorded run
         f.write(b"\0")
     assert rep.source_folder(project / "pr") == Path(rep.source_run)
-    old = json.loads((project / "pr" / "prune.json").read_text())
+    old = json.loads((project / "pr" / "prune.json").read_text(encoding="utf-8"))
     old.pop("source_from_run")
     (project / "pr" / "prune.json").write_text(json.dumps({**old, "schema_version": 3}))
     assert PruneReport.read(project / "pr" / "prune.json").source_folder(project / "pr") == Path(rep.source_run)

@@ -105,7 +105,7 @@ def test_synthetic_scene_registers_and_matches_gt(synth_scene, tmp_path):
         img = rec.image(i)
         h, w = read_rgb(ws / "images" / img.name).shape[:2]
         assert (w, h) == (img.camera.width, img.camera.height)
-    on_disk = json.loads((ws / REPORT_NAME).read_text())
+    on_disk = json.loads((ws / REPORT_NAME).read_text(encoding="utf-8"))
     assert on_disk["success"] is True and on_disk["pycolmap_version"] == pycolmap.__version__
 
     gt = sfm.camera_centers(synth_scene / "sparse" / "0")
@@ -520,26 +520,26 @@ def test_an_extend_stopped_while_it_swapped_is_undone(tmp_path):
         load_scene(ws)  # train, evaluate: said, with the command that mends it
     assert "reconstruct" in err.value.hint
     stage._recover_extend(ws)
-    assert [(ws / p / "f").read_text() for p in parts] == ["original", "original", "grown"]
+    assert [(ws / p / "f").read_text(encoding="utf-8") for p in parts] == ["original", "original", "grown"]
     assert not (ws / stage.EXTEND_DIR).exists()
     (aside / "images").mkdir(parents=True)  # every part and the report swapped: complete, kept
     (aside / "images" / "f").write_text("original")
     (aside / REPORT_NAME).write_text("old report")
     stage._recover_extend(ws)
-    assert (ws / "images" / "f").read_text() == "grown" and not (ws / stage.EXTEND_DIR).exists()
+    assert (ws / "images" / "f").read_text(encoding="utf-8") == "grown" and not (ws / stage.EXTEND_DIR).exists()
     # killed between the report's two moves: no report in the workspace; the grown one is moved in
     (ws / REPORT_NAME).rename(tmp_path / "r")
     aside.mkdir(parents=True)
     (aside / REPORT_NAME).write_text("old report")
     (ws / stage.EXTEND_DIR / REPORT_NAME).write_text("grown report")
     stage._recover_extend(ws)
-    assert (ws / REPORT_NAME).read_text() == "grown report" and not (ws / stage.EXTEND_DIR).exists()
+    assert (ws / REPORT_NAME).read_text(encoding="utf-8") == "grown report" and not (ws / stage.EXTEND_DIR).exists()
     # killed while the finished swap's staging folder was removed: it was renamed first, so what is left of it is
     # only leftovers (its report marker may be gone before the originals: no half-made state to misread)
     (ws / stage.EXTEND_DONE / "old" / "images").mkdir(parents=True)
     (ws / stage.EXTEND_DONE / "old" / "images" / "f").write_text("original")
     stage._recover_extend(ws)
-    assert not (ws / stage.EXTEND_DONE).exists() and (ws / "images" / "f").read_text() == "grown"
+    assert not (ws / stage.EXTEND_DONE).exists() and (ws / "images" / "f").read_text(encoding="utf-8") == "grown"
 
 
 def test_extend_names_new_photos_of_another_shape():

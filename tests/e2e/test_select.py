@@ -32,7 +32,7 @@ def _with_views_set_aside(subset_run, tmp_path):
     """A copy of ``subset_run`` whose config sets one view aside for calibration."""
     run = tmp_path / "run"
     shutil.copytree(subset_run, run)
-    config = json.loads((run / "config.json").read_text())
+    config = json.loads((run / "config.json").read_text(encoding="utf-8"))
     config["scene"]["calibration_holdout"] = 1
     (run / "config.json").write_text(json.dumps(config))
     return run
@@ -201,8 +201,8 @@ def test_two_rounds_of_the_loop(tiny_scene_path, subset_run, tmp_path):
     info = RunScene.read(run / "scene.json")
     assert [(v.step, v.names) for v in info.views_added] == [(80, [added[0]]), (100, [added[1]])]
     assert sorted(info.train) == sorted(START + added)
-    assert json.loads((run / "config.json").read_text())["scene"]["train_names"] == START + added
-    summary = json.loads((run / "train_summary.json").read_text())
+    assert json.loads((run / "config.json").read_text(encoding="utf-8"))["scene"]["train_names"] == START + added
+    summary = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))
     assert summary["steps"] == 120
     # the next selection no longer offers them
     sel = stage.run(run, SelectConfig(score="coverage", num_views=1), CPU)
@@ -293,14 +293,14 @@ class TestAddViewsErrors:
         run = tmp_path / "run"
         keep = {"train_names": START, "normalize": False}  # (the normalisation would move every camera too)
         train_run(ws, run, _cfg(iterations=10, scene=keep), CPU)
-        before = (run / "scene.json").read_text()
+        before = (run / "scene.json").read_text(encoding="utf-8")
         shutil.rmtree(ws / "sparse" / "0")
         shutil.copytree(full, ws / "sparse" / "0")
         (tmp_path / "view_010.png").rename(ws / "images" / "view_010.png")
         held = json.loads(before)["test"]
         assert "view_017.png" in held  # (the 23 photos' every 8th; with view_010 back it would be view_016)
         train_run(ws, run, _cfg(iterations=10, scene=keep), CPU, resume=True, extend_to=20, add_views=["view_010.png"])
-        after = json.loads((run / "scene.json").read_text())
+        after = json.loads((run / "scene.json").read_text(encoding="utf-8"))
         assert after["test"] == held and "view_010.png" in after["train"] and "view_016.png" not in after["test"]
         from uncertsplat.baselines import load_run
 
@@ -310,10 +310,10 @@ class TestAddViewsErrors:
     def test_a_run_with_views_set_aside_takes_none(self, tiny_scene_path, subset_run, tmp_path):
         """More training views would set other views aside for calibration: refused, the run left as it was."""
         run = _with_views_set_aside(subset_run, tmp_path)
-        before = (run / "scene.json").read_text()
+        before = (run / "scene.json").read_text(encoding="utf-8")
         with pytest.raises(UserError, match="sets views aside for calibration"):
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["view_002.png"])
-        assert (run / "scene.json").read_text() == before
+        assert (run / "scene.json").read_text(encoding="utf-8") == before
 
     def test_select_views_says_up_front_that_such_a_run_takes_none(self, subset_run, tmp_path, capsys):
         """The refusal came only at `train --add-views`, after choosing: select-views says so when it starts."""
@@ -335,10 +335,10 @@ class TestAddViewsErrors:
         """Without --iterations beyond its end the added view would be recorded as trained on with 0 steps."""
         run = tmp_path / "run"
         shutil.copytree(subset_run, run)
-        before = {n: (run / n).read_text() for n in ("config.json", "scene.json")}
+        before = {n: (run / n).read_text(encoding="utf-8") for n in ("config.json", "scene.json")}
         with pytest.raises(UserError, match="would never be trained on"):
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, add_views=["view_002.png"])
-        assert {n: (run / n).read_text() for n in before} == before
+        assert {n: (run / n).read_text(encoding="utf-8") for n in before} == before
 
     def test_an_added_photo_that_cannot_be_read_leaves_the_run_as_it_was(self, tiny_scene_path, tmp_path):
         """config.json and scene.json named the added view before its photo was read: a truncated photo then failed
@@ -348,12 +348,12 @@ class TestAddViewsErrors:
         shutil.copytree(tiny_scene_path, scene)
         run = tmp_path / "run"
         train_run(scene, run, _cfg(iterations=10, scene={"train_names": START}), CPU)
-        before = {n: (run / n).read_text() for n in ("config.json", "scene.json")}
+        before = {n: (run / n).read_text(encoding="utf-8") for n in ("config.json", "scene.json")}
         photo = scene / "images" / "view_002.png"
         photo.write_bytes(photo.read_bytes()[: photo.stat().st_size // 2])
         with pytest.raises(UserError, match="view_002.png"):
             train_run(scene, run, _cfg(), CPU, resume=True, extend_to=20, add_views=["view_002.png"])
-        assert {n: (run / n).read_text() for n in before} == before
+        assert {n: (run / n).read_text(encoding="utf-8") for n in before} == before
         train_run(scene, run, _cfg(), CPU, resume=True, extend_to=20, add_views=["view_003.png"])  # another: trains
         info = RunScene.read(run / "scene.json")
         assert "view_003.png" in info.train and "view_002.png" not in info.train
@@ -367,7 +367,7 @@ class TestAddViewsErrors:
                   add_views=["view_002.png", "view_002.png"])  # (a name given twice is added once)
         info = RunScene.read(run / "scene.json")
         assert sorted(info.train) == sorted([*first.train, "view_002.png"]) and info.test == first.test
-        scene = json.loads((run / "config.json").read_text())["scene"]
+        scene = json.loads((run / "config.json").read_text(encoding="utf-8"))["scene"]
         assert scene["train_names"] == [*first.train, "view_002.png"] and scene["train_indices"] is None
 
     def test_views_added_after_densification_are_said_to_get_no_gaussians(self, tiny_scene_path, tmp_path, capsys):

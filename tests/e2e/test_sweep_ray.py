@@ -131,7 +131,7 @@ def test_ray_gives_the_local_executors_records(local_ray, tmp_path_factory, tmp_
             assert getattr(b[k], key) == pytest.approx(getattr(a[k], key), rel=1e-4, abs=1e-6), (k, key)
     # re-running skips every finished point
     again = sweep.run(spec, tmp_path / "ray", device="cpu", scene=scene, executor="ray")
-    lines = (tmp_path / "ray" / "sweep.jsonl").read_text().splitlines()
+    lines = (tmp_path / "ray" / "sweep.jsonl").read_text(encoding="utf-8").splitlines()
     assert len(lines) == 4 and again.num_points == 4
     assert all(json.loads(line)["status"] == "ok" for line in lines)
     assert Path(tmp_path / "ray" / "pareto.png").is_file()
@@ -174,7 +174,7 @@ def test_ctrl_c_cancels_the_ray_jobs_and_keeps_the_finished_records(tmp_path_fac
     log = out / "sweep.jsonl"
     t0 = time.monotonic()
     while time.monotonic() - t0 < 240 and proc.poll() is None:
-        if log.is_file() and log.read_text().strip():
+        if log.is_file() and log.read_text(encoding="utf-8").strip():
             break
         time.sleep(0.2)
     assert proc.poll() is None, proc.communicate()[0][-3000:]
@@ -183,7 +183,7 @@ def test_ctrl_c_cancels_the_ray_jobs_and_keeps_the_finished_records(tmp_path_fac
     output = proc.communicate(timeout=120)[0]
     assert proc.returncode == 130, output[-3000:]
     assert "interrupted" in output and "Traceback" not in output, output[-3000:]
-    lines = log.read_text().splitlines()
+    lines = log.read_text(encoding="utf-8").splitlines()
     assert 1 <= len(lines) < 4
     recs = [json.loads(line) for line in lines]  # every line a whole record
     assert all(r["status"] == "ok" and r["executor"] == "ray" for r in recs)
@@ -204,7 +204,7 @@ def test_ctrl_c_cancels_the_ray_jobs_and_keeps_the_finished_records(tmp_path_fac
     # the same command (here on the local executor: the records do not depend on it) runs only the rest
     done = {r["id"] for r in recs}
     again = sweep.run(spec, out, jobs=2, device="cpu", scene=scene)
-    ids = [json.loads(line)["id"] for line in log.read_text().splitlines()]
+    ids = [json.loads(line)["id"] for line in log.read_text(encoding="utf-8").splitlines()]
     assert len(ids) == 4 and len(set(ids)) == 4 and again.num_failed == 0
     assert set(ids[: len(done)]) == done
 

@@ -47,7 +47,7 @@ def test_one_spec_runs_every_point_on_every_scene_and_seed(scene_path, tmp_path)
     out = tmp_path / "out"
     res = CliRunner().invoke(app, ["sweep", str(spec), "-o", str(out), "--jobs", "1", "--device", "cpu"])
     assert res.exit_code == 0, res.output
-    recs = [json.loads(line) for line in (out / "sweep.jsonl").read_text().splitlines()]
+    recs = [json.loads(line) for line in (out / "sweep.jsonl").read_text(encoding="utf-8").splitlines()]
     assert len(recs) == 8 and all(r["status"] == "ok" for r in recs)  # 2 points x 2 scenes x 2 seeds
     assert {(r["scene"], r["seed"]) for r in recs} == {(s, k) for s in ("given", "generated") for k in (0, 1)}
     assert len({r["run_dir"] for r in recs}) == 4  # K shares a training run; scenes and seeds do not
@@ -70,12 +70,12 @@ def test_one_spec_runs_every_point_on_every_scene_and_seed(scene_path, tmp_path)
     assert set(summary.pareto) == {f"{s}: {y}_vs_time" for s in ("given", "generated") for y in ("ause_mae", "nll")}
     for key, ids in summary.pareto.items():
         assert ids and all(i.startswith(key.split(":")[0] + ".") for i in ids)  # a front never mixes scenes
-    page = (out / "index.html").read_text()
+    page = (out / "index.html").read_text(encoding="utf-8")
     assert 'id="sweep-table"' in page and f'data-group="{g.id}"' in page
     assert (out / "pareto.png").read_bytes()[:4] == b"\x89PNG"
 
     again = sweep.run(spec, out, jobs=1, device="cpu")  # everything done: nothing runs again
-    assert len((out / "sweep.jsonl").read_text().splitlines()) == 8 and again.num_points == 8
+    assert len((out / "sweep.jsonl").read_text(encoding="utf-8").splitlines()) == 8 and again.num_points == 8
     # one scene again (--scenes): the summary still covers both (it held only the scene run before)
     one = sweep.run(spec, out, jobs=1, device="cpu", only_scenes=["given"])
     assert one.num_points == 8 and {g.id for g in one.table} == set(table)

@@ -406,7 +406,7 @@ def test_a_resumed_run_keeps_the_near_plane_it_was_trained_with(tiny_run_path, t
     info = RunScene.read(run / "scene.json")
     info.near = 0.5 * near_plane(info.scene_scale)  # as if recorded by the run
     info.write(run / "scene.json")
-    step = json.loads((run / "train_summary.json").read_text())["steps"]
+    step = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))["steps"]
     train_model(tiny_scene_path, run, train_config_from("tiny", {}), torch.device("cpu"), resume=True,
                 extend_to=step + 1)
     assert RunScene.read(run / "scene.json").near == info.near

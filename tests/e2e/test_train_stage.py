@@ -34,10 +34,10 @@ def test_outputs_and_psnr_gain(trained):
     for name in ("config.json", "scene.json", "stats.jsonl", "point_cloud.ply", "variational.ply",
                  "train_summary.json"):
         assert (run / name).is_file(), name
-    assert json.loads((run / "config.json").read_text()) == json.loads(cfg.model_dump_json())
-    lines = [json.loads(x) for x in (run / "stats.jsonl").read_text().splitlines()]
+    assert json.loads((run / "config.json").read_text(encoding="utf-8")) == json.loads(cfg.model_dump_json())
+    lines = [json.loads(x) for x in (run / "stats.jsonl").read_text(encoding="utf-8").splitlines()]
     initial = lines[0]["eval_psnr"]
-    summary = json.loads((run / "train_summary.json").read_text())
+    summary = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))
     assert summary["steps"] == 80 and summary["num_carriers"] > 0
     # the point cloud holds the SH bands the run renders with (80 steps: degree 0, while the model stores 3)
     from plyfile import PlyData
@@ -79,7 +79,7 @@ def test_existing_run_is_refused(trained, tiny_scene_path, tmp_path):  # noqa: F
     (other / "notes.txt").write_text("mine")
     with pytest.raises(UserError, match="not a training run") as e:
         stage.run(tiny_scene_path, other, cfg, torch.device("cpu"))
-    assert "--resume" not in e.value.hint and (other / "notes.txt").read_text() == "mine"
+    assert "--resume" not in e.value.hint and (other / "notes.txt").read_text(encoding="utf-8") == "mine"
     # a run of another scene: --resume would be refused on this one, so its own scene is named instead
     elsewhere = tmp_path / "elsewhere"
     shutil.copytree(tiny_scene_path, elsewhere)
@@ -101,7 +101,7 @@ def test_resume_from_middle_checkpoint_is_exact(trained, tiny_scene_path, tmp_pa
     a, b = load_run(run).model, load_run(copy).model
     assert torch.equal(a.posterior_row, b.posterior_row)
     assert_same_parameters(a, b)
-    steps = [json.loads(x)["step"] for x in (copy / "stats.jsonl").read_text().splitlines()]
+    steps = [json.loads(x)["step"] for x in (copy / "stats.jsonl").read_text(encoding="utf-8").splitlines()]
     assert steps == sorted(steps) and len(steps) == len(set(steps))  # no duplicated log lines
 
 
@@ -111,9 +111,9 @@ def test_resume_with_more_iterations_trains_on(tiny_scene_path, tmp_path):  # no
                                            "log_every=1", "eval_every=1000"])
     stage.run(tiny_scene_path, run, cfg, torch.device("cpu"))
     stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True, extend_to=9)
-    steps = [json.loads(line)["step"] for line in (run / "stats.jsonl").read_text().splitlines()]
+    steps = [json.loads(line)["step"] for line in (run / "stats.jsonl").read_text(encoding="utf-8").splitlines()]
     assert max(steps) == 9
-    assert json.loads((run / "config.json").read_text())["iterations"] == 9
+    assert json.loads((run / "config.json").read_text(encoding="utf-8"))["iterations"] == 9
     with pytest.raises(UserError, match="cannot shorten"):
         stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True, extend_to=4)
 
@@ -131,7 +131,7 @@ def test_resume_on_another_scene_is_refused(trained, tiny_scene_path, tmp_path):
     with pytest.raises(UserError, match="was trained on .*: that scene is still at"):
         stage.run(other, copy, cfg, torch.device("cpu"), resume=True, extend_to=85)
     # moved: the recorded folder is gone; a scene without one of the run's images is not the same scene
-    info = json.loads((copy / "scene.json").read_text())
+    info = json.loads((copy / "scene.json").read_text(encoding="utf-8"))
     info.update(scene=str(tmp_path / "moved-away"), scene_from_run=None)  # (the copy's relative path finds the scene)
     (copy / "scene.json").write_text(json.dumps({**info, "test": [*info["test"], "elsewhere.png"]}))
     with pytest.raises(UserError, match="1 of its images are not in .*elsewhere.png"):
@@ -140,12 +140,12 @@ def test_resume_on_another_scene_is_refused(trained, tiny_scene_path, tmp_path):
     assert (copy / "stats.jsonl").read_bytes() == before["stats.jsonl"]
     (copy / "scene.json").write_text(json.dumps(info))
     stage.run(other, copy, cfg, torch.device("cpu"), resume=True, extend_to=85)
-    assert json.loads((copy / "scene.json").read_text())["scene"] == str(other.resolve())
+    assert json.loads((copy / "scene.json").read_text(encoding="utf-8"))["scene"] == str(other.resolve())
     # a finished run moved with its scene: `train NEW_SCENE -o RUN --resume` (what evaluate advises) records the new
     # folder, though it has nothing left to train
     (copy / "scene.json").write_text(json.dumps({**info, "scene": str(tmp_path / "gone-too")}))
     stage.run(other, copy, cfg, torch.device("cpu"), resume=True)
-    assert json.loads((copy / "scene.json").read_text())["scene"] == str(other.resolve())
+    assert json.loads((copy / "scene.json").read_text(encoding="utf-8"))["scene"] == str(other.resolve())
 
 
 def test_a_run_moved_with_its_scene_finds_the_scene_beside_it(trained, tiny_scene_path, tmp_path, capsys):  # noqa: F811
@@ -157,7 +157,7 @@ def test_a_run_moved_with_its_scene_finds_the_scene_beside_it(trained, tiny_scen
     first = tmp_path / "first"
     shutil.copytree(tiny_scene_path, first / "scene")
     shutil.copytree(run, first / "run")
-    info = json.loads((first / "run" / "scene.json").read_text())
+    info = json.loads((first / "run" / "scene.json").read_text(encoding="utf-8"))
     assert info["scene_from_run"] is not None  # written by train
     info.update(scene=str((first / "scene").resolve()), scene_from_run="../scene")
     (first / "run" / "scene.json").write_text(json.dumps(info))
@@ -179,7 +179,7 @@ def test_a_run_moved_with_its_scene_finds_the_scene_beside_it(trained, tiny_scen
         said = " ".join(capsys.readouterr().err.split())
         assert "is gone; reading the folder at the same place relative to the run" in said, said
     stage.run(copy / "scene", copy / "run", cfg, torch.device("cpu"), resume=True)  # recorded, nothing trained
-    recorded = json.loads((copy / "run" / "scene.json").read_text())
+    recorded = json.loads((copy / "run" / "scene.json").read_text(encoding="utf-8"))
     assert (recorded["scene"], recorded["scene_from_run"]) == (str((copy / "scene").resolve()), "../scene")
     # a run moved alone finds nothing beside it: the recorded folder (gone, said as before)
     alone = tmp_path / "alone"
@@ -210,12 +210,12 @@ def test_a_resumed_run_keeps_its_posterior_updates(tiny_scene_path, tmp_path):  
     cfg = train_config_from("tiny", None, ["iterations=40", "scene.downscale=4.0", "checkpoint_every=20",
                                            "log_every=10", "eval_every=1000", "variational.refresh_interval=10"])
     stage.run(tiny_scene_path, run, cfg, torch.device("cpu"))
-    full = json.loads((run / "train_summary.json").read_text())["posterior_updates"]
+    full = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))["posterior_updates"]
     assert [u["step"] for u in full] == [10, 20, 30, 40]
     (run / "ckpts" / "step_000040.pt").unlink()
     (run / "train_summary.json").unlink()
     stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True)
-    resumed = json.loads((run / "train_summary.json").read_text())["posterior_updates"]
+    resumed = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))["posterior_updates"]
     assert [u["step"] for u in resumed] == [10, 20, 30, 40]
     assert [u["noise_std"] for u in resumed] == pytest.approx([u["noise_std"] for u in full])
 
@@ -240,7 +240,7 @@ def test_resume_names_only_the_values_the_command_gave(tiny_scene_path, tmp_path
     # --set iterations=N on --resume trains on to N, as --iterations N does
     longer = CliRunner().invoke(app, [*args, "--resume", "--set", "iterations=8"])
     assert longer.exit_code == 0 and "continuing to 8 steps" in " ".join(longer.output.split()), longer.output
-    assert json.loads((run / "train_summary.json").read_text())["steps"] == 8
+    assert json.loads((run / "train_summary.json").read_text(encoding="utf-8"))["steps"] == 8
     # a finished run resumed again says so and trains nothing; without --resume the error says how to go on
     again = CliRunner().invoke(app, [*args, "--resume"])
     assert again.exit_code == 0 and "already trained for its 8 steps, nothing to do" in " ".join(again.output.split())
@@ -304,7 +304,7 @@ def test_a_scene_whose_cameras_changed_is_refused(tiny_scene_path, tmp_path):  #
     import numpy as np
 
     ws, run, cfg = _trained_on_a_workspace(tiny_scene_path, tmp_path, "checkpoint_every=3", "log_every=3")
-    recorded = json.loads((run / "scene.json").read_text())["cameras"]
+    recorded = json.loads((run / "scene.json").read_text(encoding="utf-8"))["cameras"]
     assert len(recorded) == 24 and all(len(v) == 13 for v in recorded.values())
     model = pycolmap.Reconstruction(str(ws / "sparse" / "0"))
     model.write(str(ws / "sparse" / "0"))  # the same cameras written again: nothing changed
@@ -420,14 +420,14 @@ def test_a_finished_run_without_its_checkpoints_is_not_trained_again(tiny_scene_
     with pytest.raises(UserError, match="checkpoints are gone .*4 steps"):
         stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True, extend_to=8)
     assert (run / "variational.ply").read_bytes() == model
-    assert max(json.loads(x)["step"] for x in (run / "stats.jsonl").read_text().splitlines()) == 4
+    assert max(json.loads(x)["step"] for x in (run / "stats.jsonl").read_text(encoding="utf-8").splitlines()) == 4
     # its scene moved: the resume evaluate advises records the new folder (and trains nothing)
     moved = tmp_path / "moved"
     shutil.copytree(tiny_scene_path, moved)
-    info = json.loads((run / "scene.json").read_text())
+    info = json.loads((run / "scene.json").read_text(encoding="utf-8"))
     (run / "scene.json").write_text(json.dumps({**info, "scene": str(tmp_path / "gone"), "scene_from_run": "../gone"}))
     stage.run(moved, run, cfg, torch.device("cpu"), resume=True)
-    assert json.loads((run / "scene.json").read_text())["scene"] == str(moved.resolve())
+    assert json.loads((run / "scene.json").read_text(encoding="utf-8"))["scene"] == str(moved.resolve())
     assert (run / "variational.ply").read_bytes() == model
 
 
@@ -480,12 +480,12 @@ def test_a_reset_steps_test_is_of_the_model_before_the_reset(tiny_scene_path, tm
     assert schedule.is_opacity_reset_step(40, cfg.densify, cfg.iterations)
     stage.run(tiny_scene_path, tmp_path / "run", cfg, torch.device("cpu"))
     assert all(opacity > 0.02 for _, opacity in seen), seen
-    records = map(json.loads, (tmp_path / "run" / "stats.jsonl").read_text().splitlines())
+    records = map(json.loads, (tmp_path / "run" / "stats.jsonl").read_text(encoding="utf-8").splitlines())
     logged = {r["step"]: r["eval_psnr"] for r in records if "eval_psnr" in r}
     assert sorted(logged) == [0, 40, 80]
     assert logged[40] > logged[0], logged
     # nor is the posterior fitted to the reset model (its tables fell back to the prior for refresh_interval steps)
-    summary = json.loads((tmp_path / "run" / "train_summary.json").read_text())
+    summary = json.loads((tmp_path / "run" / "train_summary.json").read_text(encoding="utf-8"))
     assert [u["step"] for u in summary["posterior_updates"]] == [20, 60, 80]
 
 
@@ -518,7 +518,7 @@ def test_a_stop_during_a_reset_step_keeps_its_test_of_the_model_before_the_reset
         stage.run(tiny_scene_path, run, cfg, torch.device("cpu"))
     monkeypatch.setattr(Trainer, "check_exposure", check)
     stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True)
-    logged = [r for r in map(json.loads, (run / "stats.jsonl").read_text().splitlines()) if "eval_psnr" in r]
+    logged = [r for r in map(json.loads, (run / "stats.jsonl").read_text(encoding="utf-8").splitlines()) if "eval_psnr" in r]
     assert [r["step"] for r in logged] == [0, 40, 80]
     assert all(opacity > 0.02 for opacity in seen), seen
     assert logged[1]["eval_psnr"] > logged[0]["eval_psnr"]

@@ -96,7 +96,7 @@ class TestServer:
 
         run = tmp_path / "run"
         shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns(".lock"))
-        info = json.loads((run / "scene.json").read_text())
+        info = json.loads((run / "scene.json").read_text(encoding="utf-8"))
         info.update(scene=str(tmp_path / "gone"), scene_from_run="../gone")
         (run / "scene.json").write_text(json.dumps(info))
         capsys.readouterr()

@@ -34,7 +34,7 @@ def test_live_holder_refuses_second_writer_with_its_pid(tmp_path):
                 pass
         msg = str(err.value)
         assert f"PID {holder.pid}" in msg and str(tmp_path) in msg and "another uncertsplat process" in msg
-        assert (tmp_path / ".lock").read_text().split()[0] == str(holder.pid)  # untouched by the refusal
+        assert (tmp_path / ".lock").read_text(encoding="utf-8").split()[0] == str(holder.pid)  # untouched by the refusal
     assert not (tmp_path / ".lock").exists()
     with run_lock(tmp_path):  # free again
         pass
@@ -47,7 +47,7 @@ def test_stale_lock_is_taken_over(tmp_path, content):
     with run_lock(tmp_path, "train") as lock:
         import os
 
-        assert lock.read_text().split()[0] == str(os.getpid())
+        assert lock.read_text(encoding="utf-8").split()[0] == str(os.getpid())
     assert not (tmp_path / ".lock").exists()
 
 
@@ -124,7 +124,7 @@ def test_a_second_pipeline_on_one_output_folder_is_refused(tmp_path):
     (out / "train" / "kept.txt").write_text("the first run's")
     with _held_by_another_process(out), pytest.raises(UserError, match="another uncertsplat process"):
         pipeline.run(ROOT / "pipelines" / "smoke.toml", out)
-    assert (out / "train" / "kept.txt").read_text() == "the first run's" and not (out / ".previous").exists()
+    assert (out / "train" / "kept.txt").read_text(encoding="utf-8") == "the first run's" and not (out / ".previous").exists()
     (tmp_path / "afile").write_text("")
     with pytest.raises(UserError, match="the output path is a file, not a folder"):
         pipeline.run(ROOT / "pipelines" / "smoke.toml", tmp_path / "afile")
@@ -168,7 +168,7 @@ def test_a_training_that_is_starting_is_not_taken_for_a_failed_start(tiny_scene_
     cfg = train_config_from("tiny", None, ["iterations=2", "scene.downscale=4.0"])
     with _held_by_another_process(run), pytest.raises(UserError, match="another uncertsplat process"):
         train.run(tiny_scene_path, run, cfg, torch.device("cpu"))
-    assert (run / "config.json").read_text() == "{}" and (run / "scene.json").read_text() == "{}"
+    assert (run / "config.json").read_text(encoding="utf-8") == "{}" and (run / "scene.json").read_text(encoding="utf-8") == "{}"
 
 
 def test_the_lock_refusal_names_the_holder_s_command(tmp_path):
@@ -220,7 +220,7 @@ def test_a_sweep_neither_trains_into_nor_deletes_a_run_another_process_writes(tm
         with pytest.raises(UserError, match=rf"another uncertsplat process \(PID {holder.pid}, test\) holds this "
                                             "point's run now"):
             jobs._train(job, "cpu")
-    assert json.loads((run / "config.json").read_text()) == {"iterations": 6000}
+    assert json.loads((run / "config.json").read_text(encoding="utf-8")) == {"iterations": 6000}
     # a finished run of the sweep's own settings that another process only reads (an evaluate holds its lock too) is
     # reused as before
     done = tmp_path / "runs" / "variational_done"
@@ -241,10 +241,10 @@ def test_a_sweep_neither_trains_into_nor_deletes_a_run_another_process_writes(tm
     monkeypatch.setattr(baselines, "train_run", fake_train)
     with pytest.raises(Trained):
         jobs._train(job, "cpu")
-    assert json.loads((run.parent / "variational_x.replaced" / "config.json").read_text()) == {"iterations": 6000}
+    assert json.loads((run.parent / "variational_x.replaced" / "config.json").read_text(encoding="utf-8")) == {"iterations": 6000}
     run.mkdir()  # changed by hand again: the earlier replaced run stays
     (run / "config.json").write_text(json.dumps({"iterations": 7000}))
     with pytest.raises(Trained):
         jobs._train(job, "cpu")
-    assert json.loads((run.parent / "variational_x.replaced" / "config.json").read_text()) == {"iterations": 6000}
-    assert json.loads((run.parent / "variational_x.replaced2" / "config.json").read_text()) == {"iterations": 7000}
+    assert json.loads((run.parent / "variational_x.replaced" / "config.json").read_text(encoding="utf-8")) == {"iterations": 6000}
+    assert json.loads((run.parent / "variational_x.replaced2" / "config.json").read_text(encoding="utf-8")) == {"iterations": 7000}

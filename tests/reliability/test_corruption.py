@@ -92,7 +92,7 @@ def test_resume_falls_back_to_previous_good_checkpoint_and_says_so(small_run, tm
     flip_bit(checkpoint_path(run, 6), 5000)
     truncate(checkpoint_path(run, 4), 0.5)
     capsys.readouterr()
-    scene = Path(json.loads((run / "scene.json").read_text())["scene"])
+    scene = Path(json.loads((run / "scene.json").read_text(encoding="utf-8"))["scene"])
     train.run(scene, run, small_config(), device=torch.device("cpu"), resume=True)
     err = " ".join(capsys.readouterr().err.split())
     assert "step_000006.pt: checksum mismatch" in err and "step_000004.pt: checksum mismatch" in err, err
@@ -102,7 +102,7 @@ def test_resume_falls_back_to_previous_good_checkpoint_and_says_so(small_run, tm
     assert [s for s, _ in list_checkpoints(run)] == [2, 4, 6]
     for _, p in list_checkpoints(run):
         load_checkpoint(p)
-    stats = [json.loads(line)["step"] for line in (run / "stats.jsonl").read_text().splitlines()]
+    stats = [json.loads(line)["step"] for line in (run / "stats.jsonl").read_text(encoding="utf-8").splitlines()]
     assert [s for s in stats if s] == [1, 2, 3, 4, 5, 6]
 
 
@@ -111,7 +111,7 @@ def test_damaged_run_config_is_reported_not_a_traceback(small_run, tmp_path):
     from uncertsplat.stages import train
 
     run = _copy(small_run, tmp_path)
-    scene = Path(json.loads((run / "scene.json").read_text())["scene"])
+    scene = Path(json.loads((run / "scene.json").read_text(encoding="utf-8"))["scene"])
     truncate(run / "config.json", 0.5)
     with pytest.raises(UserError, match="config.json"):
         train.run(scene, run, small_config(), device=torch.device("cpu"), resume=True)
@@ -152,7 +152,7 @@ def test_damaged_metrics_json_is_left_out_of_the_report_with_a_note(small_run, t
     run = _copy(small_run, tmp_path)
     (run / "eval").mkdir()
     (run / "eval" / "metrics.json").write_text('{"mean": {"psnr": 20.0, "ause_mae": 0.1}, "per_view": {"a')
-    (run / "stats.jsonl").write_text((small_run / "stats.jsonl").read_text() + '{"step": 7, "lo')
+    (run / "stats.jsonl").write_text((small_run / "stats.jsonl").read_text(encoding="utf-8") + '{"step": 7, "lo')
     data = load_run(run)
     assert data.metrics is None
     notes = " ".join(data.notes)

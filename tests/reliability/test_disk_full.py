@@ -91,7 +91,7 @@ def test_atomic_write_failure_is_clear_and_leaves_the_old_file(tmp_path, monkeyp
     assert str(target) in text or str(target.parent) in text
     if code == errno.ENOSPC and where != "mkstemp":
         assert "disk is full" in text
-    assert json.loads(target.read_text()) == {"old": 1}
+    assert json.loads(target.read_text(encoding="utf-8")) == {"old": 1}
     assert not temp_leftovers(tmp_path)
 
 

@@ -84,7 +84,7 @@ def test_non_finite_step_is_skipped_with_a_message(kind, tmp_path, monkeypatch, 
     for _, p in list_checkpoints(tmp_path):
         state = load_checkpoint(p)
         assert all(torch.isfinite(v).all() for v in state["model"]["params"].values())
-    logged = [json.loads(line) for line in (tmp_path / "stats.jsonl").read_text().splitlines()]
+    logged = [json.loads(line) for line in (tmp_path / "stats.jsonl").read_text(encoding="utf-8").splitlines()]
     assert [r["step"] for r in logged if r.get("skipped")] == [3]
     assert t.summary()["skipped_steps"] == 1
 

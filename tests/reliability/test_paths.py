@@ -57,7 +57,7 @@ def test_names_near_the_file_system_limit_are_written(tmp_path):
 
     long_name = "n" * 250 + ".json"
     written = atomic_write_text(tmp_path / long_name, "{}\n")
-    assert written.read_text() == "{}\n" and [p.name for p in tmp_path.iterdir()] == [long_name]  # no temp left
+    assert written.read_text(encoding="utf-8") == "{}\n" and [p.name for p in tmp_path.iterdir()] == [long_name]  # no temp left
     assert temp_stem("short") == "short" and len(temp_stem("x" * 255)) == TEMP_STEM
     assert temp_stem("x" * 255) != temp_stem("x" * 254)  # two long names stay apart
     # a folder's staging sibling (prune, synth, reconstruct's model): the same stem

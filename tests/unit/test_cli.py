@@ -340,7 +340,7 @@ def test_installed_pipelines_and_specs_run_by_name(tmp_path, monkeypatch):
     from uncertsplat.config import SHIPPED, shipped_file, shipped_names
 
     assert {"demo", "photos", "smoke", "tradeoff"} <= set(shipped_names())
-    pyproject = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text())
+    pyproject = tomllib.loads((Path(__file__).resolve().parents[2] / "pyproject.toml").read_text(encoding="utf-8"))
     assert "pipelines/*.toml" in pyproject["tool"]["setuptools"]["package-data"]["uncertsplat"]
     monkeypatch.chdir(tmp_path)
     for given in ("photos", "photos.toml", "pipelines/photos.toml"):

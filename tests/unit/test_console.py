@@ -199,4 +199,4 @@ def test_closed_pipe_does_not_stop_the_work(tmp_path):
             f"open({str(tmp_path / 'done')!r}, 'w').write('ok')\n")
     r = _run(code, {})
     assert r.returncode == 0
-    assert (tmp_path / "done").read_text() == "ok"
+    assert (tmp_path / "done").read_text(encoding="utf-8") == "ok"

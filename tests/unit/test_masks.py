@@ -158,7 +158,7 @@ def test_a_transient_under_the_masks_leaves_training_and_evaluation_as_they_were
     for ws in (masked_workspace, painted):
         run = train_tiny_run(ws, tmp_path / f"run_{ws.name}", iterations=60)
         evaluate.run(run, EvalConfig(num_samples=3, seed=1, save_maps=False), device=torch.device("cpu"), quiet=True)
-        metrics.append(json.loads((run / "eval" / "metrics.json").read_text()))
+        metrics.append(json.loads((run / "eval" / "metrics.json").read_text(encoding="utf-8")))
         assert (run / "variational.ply").is_file()
     a, b = ((tmp_path / f"run_{n}" / "variational.ply").read_bytes() for n in ("ws", "painted"))
     assert a == b
@@ -277,7 +277,7 @@ def test_masks_added_or_changed_after_training_are_said_and_scored_again(masked_
     aside.rename(masks)  # added after training
     cfg = EvalConfig(num_samples=2, seed=1, save_maps=False)
     evaluate.run(run, cfg, device=torch.device("cpu"), quiet=True)
-    notes = json.loads((run / "eval" / "metrics.json").read_text())["notes"]
+    notes = json.loads((run / "eval" / "metrics.json").read_text(encoding="utf-8"))["notes"]
     assert not any(PHOTO_MASKS_NOTE in n for n in notes)
     assert any("or the photos' own added after training" in n for n in notes), notes
 

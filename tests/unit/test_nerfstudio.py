@@ -159,7 +159,7 @@ def test_masks_read_depth_unread_and_an_unused_colmap_model_are_named(tiny_scene
 
     root = tmp_path / "ns"
     convert(tiny_scene_path, root)
-    meta = json.loads((root / "transforms.json").read_text())
+    meta = json.loads((root / "transforms.json").read_text(encoding="utf-8"))
     meta["frames"][0]["mask_path"] = "./masks/view_000.png"
     for fr in meta["frames"][:2]:  # nerfstudio's depth (16-bit PNG, mm): not read either, and evaluate takes --depth-gt
         fr["depth_file_path"] = fr["file_path"].replace("images/", "depth/")

@@ -341,7 +341,7 @@ def test_report_roundtrip_and_atomic_write(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == [REPORT_NAME]  # no temp file left
     back = load_report(tmp_path)
     assert back == rep
-    assert json.loads((tmp_path / REPORT_NAME).read_text())["success"] is True
+    assert json.loads((tmp_path / REPORT_NAME).read_text(encoding="utf-8"))["success"] is True
 
 
 def test_require_successful_refuses_a_failed_workspace(tmp_path):
@@ -375,7 +375,7 @@ def test_refuses_an_output_folder_with_other_files(tmp_path):
     (ws / "thesis.docx").write_text("precious")
     with pytest.raises(UserError, match="--overwrite"):
         stage.run(photos, ws, ReconstructConfig())
-    assert (ws / "thesis.docx").read_text() == "precious"
+    assert (ws / "thesis.docx").read_text(encoding="utf-8") == "precious"
 
 
 def test_refuses_a_workspace_of_other_photos(tmp_path):
@@ -719,7 +719,7 @@ def test_a_run_in_progress_is_not_cleared_by_a_second(tmp_path):
     ws = tmp_path / "ws"
     write_report(ws, _report(photos=str(photos.resolve()), success=False, message=UNFINISHED))
     (ws / "database.db").write_bytes(b"being written")
-    with open(ws / ".lock", "a+") as held:
+    with open(ws / ".lock", "a+", encoding="utf-8") as held:
         fcntl.flock(held.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         with pytest.raises(UserError):
             stage.run(photos, ws, ReconstructConfig())

@@ -260,7 +260,7 @@ def test_single_run_report_has_every_section_and_exact_numbers(tmp_path):
     for sec in ("summary", "metrics", "views", "sparsification", "calibration", "training", "provenance"):
         assert sec in page.ids, sec
     assert "prune" not in page.ids  # no prune.json: no pruning section
-    ids = re.findall(r'\bid="([^"]+)"', index.read_text())
+    ids = re.findall(r'\bid="([^"]+)"', index.read_text(encoding="utf-8"))
     assert len(ids) == len(set(ids)), sorted(i for i in ids if ids.count(i) > 1)  # (the summary's table took "summary")
     # a per-view figure per view, sparsification, calibration and timeline figures
     assert {"figures/run0_view0.png", "figures/run0_view1.png", "figures/sparsification_run0.png",
@@ -295,7 +295,7 @@ def test_missing_inputs_give_notes_not_a_crash(tmp_path):
     page = parse(index)
     assert page.imgs == []
     assert_figures_consistent(out, page)
-    html = index.read_text()
+    html = index.read_text(encoding="utf-8")
     assert "no eval/metrics.json" in html
     assert "no stats.jsonl" in html
     assert "uncertsplat evaluate" in html
@@ -310,7 +310,7 @@ def test_metrics_without_maps_and_corrupt_lines(tmp_path):
     index = stage.run([run], tmp_path / "out", ReportConfig())
     page = parse(index)
     assert_figures_consistent(tmp_path / "out", page)
-    html = index.read_text()
+    html = index.read_text(encoding="utf-8")
     assert "no eval/maps/ folder" in html
     assert "1 unreadable line(s) skipped" in html
     assert "figures/sparsification_run0.png" in page.imgs
@@ -320,7 +320,7 @@ def test_corrupt_metrics_json_is_a_note(tmp_path):
     run = make_run(tmp_path, "r", maps=False)
     (run / "eval" / "metrics.json").write_text('{"per_view": {')
     index = stage.run([run], tmp_path / "out", ReportConfig())
-    html = index.read_text()
+    html = index.read_text(encoding="utf-8")
     assert f"{run / 'eval' / 'metrics.json'}: not valid JSON" in html
     assert "figures/sparsification_run0.png" not in html
     # the calibration section says why there is no table, not that evaluate never ran
@@ -363,7 +363,7 @@ def test_several_runs_side_by_side_and_pruning(tmp_path):
     assert {"figures/compare_view0.png", "figures/prune_sweep_run1.png", "figures/sparsification_compare.png",
             "figures/run0_view0.png", "figures/run1_view0.png"} <= set(page.imgs)
     assert "figures/run0_view1.png" not in page.imgs  # max_views=1
-    html = index.read_text()
+    html = index.read_text(encoding="utf-8")
     assert "x/run" in html and "y/run" in html  # same folder names are disambiguated
     # both runs' mean PSNRs are in the summary table, each exactly
     for r in (a, b):
@@ -379,7 +379,7 @@ def test_prune_section_shows_the_prune_report(tmp_path):
     run = make_run(tmp_path, "pruned", stats=False, prune=True)
     rep = PruneReport.read(run / "prune.json")
     index = stage.run(run, tmp_path / "out")
-    html = index.read_text()
+    html = index.read_text(encoding="utf-8")
     page = parse(index)
     assert "prune" in page.ids and "figures/prune_sweep_run0.png" in page.imgs
 
@@ -423,7 +423,7 @@ def test_prune_report_without_sweep_or_mask(tmp_path):
     rep.counts = rep.keep_ratio_achieved = rep.delta_psnr_db = None
     rep.write(run / "prune.json")
     index = stage.run(run, tmp_path / "out")
-    html = index.read_text()
+    html = index.read_text(encoding="utf-8")
     assert list(table_rows(html, "prune-0")) == ["before"]
     assert "No mask was chosen" in html and "No keep-ratio sweep in prune.json" in html
     assert "prune_sweep" not in html
@@ -479,7 +479,7 @@ def test_invalid_prune_json_is_a_note_naming_the_file_and_key(tmp_path):
     data["metrics_before_after"] = data.pop("metrics")  # a renamed key
     (run / "prune.json").write_text(json.dumps(data))
     index = stage.run(run, tmp_path / "out")
-    html = index.read_text()
+    html = index.read_text(encoding="utf-8")
     page = parse(index)
     assert "prune" in page.ids  # the section is there, with the reason instead of the numbers
     section = re.search(r'<section id="prune">(.*?)</section>', html, re.S).group(1)
@@ -494,14 +494,14 @@ def test_invalid_files_are_notes_not_guesses(tmp_path):
     """An invalid scene.json, train_summary.json or config.json: each named in a note, its section left out."""
     scene = make_scene(tmp_path, ["view_000.png", "view_008.png"])
     run = make_run(tmp_path, "r", maps=False, scene=scene)
-    data = json.loads((run / "scene.json").read_text())
+    data = json.loads((run / "scene.json").read_text(encoding="utf-8"))
     data["scene_path"] = data.pop("scene")  # the report must not look under another name
     (run / "scene.json").write_text(json.dumps(data))
     (run / "train_summary.json").write_text(json.dumps({"schema_version": 99}))
-    cfg = json.loads((run / "config.json").read_text())
+    cfg = json.loads((run / "config.json").read_text(encoding="utf-8"))
     cfg["iteratoins"] = 5
     (run / "config.json").write_text(json.dumps(cfg))
-    html = stage.run(run, tmp_path / "out").read_text()
+    html = stage.run(run, tmp_path / "out").read_text(encoding="utf-8")
     assert "key &#x27;scene&#x27; is missing" in html and str(run / "scene.json") in html
     assert "reconstruction health" not in html  # no scene path: no guess at one
     assert "schema version 99 is newer" in html and str(run / "train_summary.json") in html
@@ -514,7 +514,7 @@ def test_exr_without_a_channel_is_a_note_naming_the_file(tmp_path):
     run = make_run(tmp_path, "r")
     exr = run / "eval" / "maps" / "view_000.exr"
     write_exr(exr, {"rgb_mean.R": np.zeros((H, W), np.float32)})
-    html = stage.run(run, tmp_path / "out").read_text()
+    html = stage.run(run, tmp_path / "out").read_text(encoding="utf-8")
     assert f"{exr}: channel(s) rgb_mean.G" in html
 
 
@@ -538,7 +538,7 @@ def test_strings_are_escaped(tmp_path):
     m.notes = ["<script>alert(1)</script>"]
     m.write(run / "eval" / "metrics.json")
     index = stage.run([run], tmp_path / "out", ReportConfig(title="<i>t</i>"))
-    html = index.read_text()
+    html = index.read_text(encoding="utf-8")
     assert "<script>" not in html and "<i>t</i>" not in html
     assert "&lt;script&gt;" in html and "a&lt;b&gt;&amp;&quot;c&quot;" in html
 
@@ -630,7 +630,7 @@ def test_cli_report(tmp_path):
     assert res.exit_code == 0, res.output
     assert (tmp_path / "out" / "index.html").is_file()
     # its config beside it, as every stage's (the README said so; nothing recorded it)
-    assert json.loads((tmp_path / "out" / "report_config.json").read_text()) == {"title": "Mine", "max_views": 6}
+    assert json.loads((tmp_path / "out" / "report_config.json").read_text(encoding="utf-8")) == {"title": "Mine", "max_views": 6}
     res = CliRunner().invoke(app, ["report", str(run), "-o", str(tmp_path / "out")])  # a report's folder: replaced
     assert res.exit_code == 0, res.output
     res = CliRunner().invoke(app, ["report", str(tmp_path / "missing"), "-o", str(tmp_path / "o2")])
@@ -648,9 +648,9 @@ def test_summary_says_how_far_the_posterior_moved(tmp_path):
     summary.posterior = PosteriorSummary(**post)
     summary.write(run / "train_summary.json")
     old = make_run(tmp_path, "old", maps=False)  # a summary whose posterior lacks keys: a note naming it
-    s_old = json.loads((old / "train_summary.json").read_text())
+    s_old = json.loads((old / "train_summary.json").read_text(encoding="utf-8"))
     (old / "train_summary.json").write_text(json.dumps({**s_old, "posterior": {"carriers": 3, "moved_fraction": 0.5}}))
-    html = stage.run([run, old], tmp_path / "out", ReportConfig()).read_text()
+    html = stage.run([run, old], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
     assert "r (train): posterior: 0.0 % of" in html and "moved from the prior" in html
     assert "old (train): posterior" not in html
     assert f"{old / 'train_summary.json'}" in html and "key &#x27;posterior.moved_kl_nats&#x27; is missing" in html
@@ -664,13 +664,13 @@ def test_metrics_section_states_the_fitted_std_scale(tmp_path):
     m.mean.nll_calibrated = -2.74
     m.write(run / "eval" / "metrics.json")
     plain = make_run(tmp_path, "plain", maps=False)  # no std_scale: no fact, no crash
-    html = stage.run([run, plain], tmp_path / "out", ReportConfig()).read_text()
+    html = stage.run([run, plain], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
     assert "x1.9, fitted on 8 training views" in html
     assert html.count("std scale (calibrated NLL)") == 1
     assert "NLL, std rescaled" in html  # the summary column
     m.calibration_views, m.calibration_held_out = ["view_003.png", "view_010.png"], True
     m.write(run / "eval" / "metrics.json")
-    html = stage.run([run], tmp_path / "out2", ReportConfig()).read_text()
+    html = stage.run([run], tmp_path / "out2", ReportConfig()).read_text(encoding="utf-8")
     assert "x1.9, fitted on 2 views set aside from training" in html
 
 
@@ -682,7 +682,7 @@ def test_training_section_says_which_sh_bands_the_scene_kept(tmp_path):
     summary.sh_bands = [ShBandCheck(degree=1, step=2000, gain_db=0.31, kept=True, min_gain_db=0.05, views=8),
                         ShBandCheck(degree=2, step=3000, gain_db=0.012, kept=False, min_gain_db=0.05, views=8)]
     summary.write(run / "train_summary.json")
-    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
     assert "SH band 1 on for one sh_degree_interval, tested at step 2000: +0.3100 dB on 8 training views (&gt;= 0.05 dB), kept" in html
     assert "SH band 2 on for one sh_degree_interval, tested at step 3000: +0.0120 dB" in html and "dropped: the model keeps degree 1" in html
 
@@ -697,7 +697,7 @@ def test_training_section_says_where_growth_stopped(tmp_path):
                       GrowthCheck(step=500, gaussians=32156, seen=31273, cost_db=0.077, min_gain_db=0.25,
                                   stopped=True, views=8)]
     summary.write(run / "train_summary.json")
-    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
     assert ("growth test at step 500: switching off the weakest half of the 31,273 Gaussians 8 training views see "
             "(of 32,156) costs 0.077 dB (&lt; 0.25 dB), densification stops growing the model (2 growth test(s) "
             "in all)") in html
@@ -712,14 +712,14 @@ def test_own_page_is_replaced_anothers_is_not(tmp_path):
     (site / "figures" / "logo.png").write_bytes(b"mine")
     with pytest.raises(UserError, match="index.html is not a page `report` wrote"):
         stage.run([run], site, ReportConfig())
-    assert (site / "index.html").read_text() == "<html>my homepage</html>" and (site / "figures" / "logo.png").exists()
+    assert (site / "index.html").read_text(encoding="utf-8") == "<html>my homepage</html>" and (site / "figures" / "logo.png").exists()
     out = tmp_path / "out"
     stage.run([run], out, ReportConfig(title="my title"))  # its own page, whatever the title, is replaced
     stage.run([run], out, ReportConfig())
-    assert "<title>uncertsplat report</title>" in (out / "index.html").read_text()
+    assert "<title>uncertsplat report</title>" in (out / "index.html").read_text(encoding="utf-8")
     # a page of the versions before the generator tag, with a title of its own, is still one of ours
     old = out / "index.html"
-    old.write_text(old.read_text().replace('<meta name="generator" content="uncertsplat report">', "")
+    old.write_text(old.read_text(encoding="utf-8").replace('<meta name="generator" content="uncertsplat report">', "")
                    .replace("<title>uncertsplat report</title>", "<title>bonsai sweep</title>"))
     stage.run([run], out, ReportConfig())
     # a sweep's page is not a report: report -o SWEEP_OUT would replace it
@@ -750,11 +750,11 @@ def test_an_evaluation_of_an_earlier_model_is_named(tmp_path, capsys):
     report.run_sha256 = run_sha256(run, run / "variational.ply")
     report.write(run / "eval" / "metrics.json")
     stage.run([run], tmp_path / "out", ReportConfig())
-    assert "earlier state of the run" not in (tmp_path / "out" / "index.html").read_text()
+    assert "earlier state of the run" not in (tmp_path / "out" / "index.html").read_text(encoding="utf-8")
     (run / "variational.ply").write_bytes(b"model at step 200")
     capsys.readouterr()
     stage.run([run], tmp_path / "out", ReportConfig())
-    assert "earlier state of the run" in (tmp_path / "out" / "index.html").read_text()
+    assert "earlier state of the run" in (tmp_path / "out" / "index.html").read_text(encoding="utf-8")
     assert f"uncertsplat evaluate {q(run)}" in capsys.readouterr().err.replace("\n", "")
 
 
@@ -769,12 +769,12 @@ def test_runs_without_maps_are_left_out_of_the_side_by_side_not_the_others(tmp_p
     out = tmp_path / "report"
     page = parse(stage.run([a, b, c], out, ReportConfig(max_views=1)))
     assert "figures/compare_view0.png" in page.imgs
-    html = (out / "index.html").read_text()
+    html = (out / "index.html").read_text(encoding="utf-8")
     assert "Left out, no maps: bare." in html and "share no evaluated view" not in html
     page = parse(stage.run([a, c], out, ReportConfig(max_views=1)))
     assert "figures/compare_view0.png" not in page.imgs
     assert "Fewer than two runs have uncertainty maps; side-by-side images left out (no maps: bare)." in \
-        (out / "index.html").read_text()
+        (out / "index.html").read_text(encoding="utf-8")
 
 
 def test_the_summary_says_plainly_when_the_std_is_too_small_or_too_large(tmp_path):
@@ -810,7 +810,7 @@ def test_the_summary_says_plainly_when_the_std_is_too_small_or_too_large(tmp_pat
     assert calibration_verdict(m).endswith("the std factor fitted on other views (x1.2) widens it further")
     run = make_run(tmp_path, "r", maps=False, stats=False)
     stage.run([run], tmp_path / "out", ReportConfig())
-    assert "over-confident" in (tmp_path / "out" / "index.html").read_text()
+    assert "over-confident" in (tmp_path / "out" / "index.html").read_text(encoding="utf-8")
 
 
 def test_depth_lengths_are_shown_in_the_scenes_units(tmp_path):
@@ -834,14 +834,14 @@ def test_depth_lengths_are_shown_in_the_scenes_units(tmp_path):
         vm.depth_rmse, vm.depth_mae = 0.1447, 0.0786
     m.depth_scale = DepthScaleInfo(scale=1.0, method="scene", num_pixels=100)  # the scene's own GT depth
     m.write(run / "eval" / "metrics.json")
-    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
     rmse = table_rows(html, "metrics-0")["mean"]
     cell = next(c for c in rmse if c[0] == "depth_rmse")
     assert cell == ("depth_rmse", repr(m.mean.depth_rmse), format(4 * m.mean.depth_rmse, ".4g"))  # 0.5788
     # a scene in km (a factor of 0.001): the digits are kept, where a fixed 4 decimals showed 0.0006 / 0.0003
     info.world_from_source = [[1000.0, 0, 0, 0.1], [0, 1000.0, 0, 0], [0, 0, 1000.0, 0], [0, 0, 0, 1]]
     info.write(run / "scene.json")
-    km = table_rows(stage.run([run], tmp_path / "km", ReportConfig()).read_text(), "metrics-0")["mean"]
+    km = table_rows(stage.run([run], tmp_path / "km", ReportConfig()).read_text(encoding="utf-8"), "metrics-0")["mean"]
     assert next(c for c in km if c[0] == "depth_rmse")[2] == "0.0001447"
     info.world_from_source = [[0.25, 0, 0, 0.1], [0, 0.25, 0, 0], [0, 0, 0.25, 0], [0, 0, 0, 1]]
     info.write(run / "scene.json")
@@ -861,19 +861,19 @@ def test_depth_lengths_are_shown_in_the_scenes_units(tmp_path):
     assert "depth mean (scene units)" in panels
     plain = make_run(tmp_path, "plain", names=names)  # no scene.json: the run's units, named
     m.write(plain / "eval" / "metrics.json")
-    html = stage.run([plain], tmp_path / "out2", ReportConfig()).read_text()
+    html = stage.run([plain], tmp_path / "out2", ReportConfig()).read_text(encoding="utf-8")
     assert "Depth RMSE (run&#x27;s normalised units)" in html
     # GT maps of their own units (--depth-gt, the factor fitted or given): the errors are in those units already,
     # not multiplied by the scene's factor
     m.depth_scale = DepthScaleInfo(scale=4.107, method="median", num_pixels=100)
     m.write(run / "eval" / "metrics.json")
-    html = stage.run([run], tmp_path / "out3", ReportConfig()).read_text()
+    html = stage.run([run], tmp_path / "out3", ReportConfig()).read_text(encoding="utf-8")
     cell = next(c for c in table_rows(html, "metrics-0")["mean"] if c[0] == "depth_rmse")
     assert cell[2] == format(m.mean.depth_rmse, ".4f") and "Depth RMSE (GT maps&#x27; units)" in html
     assert "the GT maps&#x27; own: depth RMSE, MAE and NLL" in html
     m.depth_scale = DepthScaleInfo(scale=1.0, method="given-scene", num_pixels=100)  # a factor vs the scene's own GT
     m.write(run / "eval" / "metrics.json")
-    html = stage.run([run], tmp_path / "out4", ReportConfig()).read_text()
+    html = stage.run([run], tmp_path / "out4", ReportConfig()).read_text(encoding="utf-8")
     cell = next(c for c in table_rows(html, "metrics-0")["mean"] if c[0] == "depth_rmse")
     # in the units the evaluation wrote its maps in (their header's factor, 2 above), where scene.json says 4: an
     # evaluation made after the scene folder's frame changed (aligned to metres after training) is in the folder's
@@ -901,7 +901,7 @@ def test_summary_names_each_runs_scene_and_resolution_and_warns_when_they_differ
     scene = make_scene(tmp_path, list(names))
     a = make_run(tmp_path / "a", "run", names=names, scene=scene, maps=False, stats=False)
     b = make_run(tmp_path / "b", "run", names=names, scene=scene, maps=False, stats=False, seed=1)
-    html = stage.run([a, b], tmp_path / "same", ReportConfig()).read_text()
+    html = stage.run([a, b], tmp_path / "same", ReportConfig()).read_text(encoding="utf-8")
     rows = re.findall(r'<tr[^>]*data-row="([^"]*)"><td class="text">[^<]*</td><td class="text">([^<]*)</td>'
                       r'<td>([^<]*)</td>', html)
     assert rows[:2] == [("a/run", scene.name, f"{W}x{H}"), ("b/run", scene.name, f"{W}x{H}")]
@@ -909,13 +909,13 @@ def test_summary_names_each_runs_scene_and_resolution_and_warns_when_they_differ
     info = RunScene.read(b / "scene.json")
     info.width, info.height = 2 * W, 2 * H
     info.write(b / "scene.json")
-    html = stage.run([a, b], tmp_path / "res", ReportConfig()).read_text()
+    html = stage.run([a, b], tmp_path / "res", ReportConfig()).read_text(encoding="utf-8")
     assert (f"These runs were trained at different resolutions (a/run: {W}x{H}, b/run: {2 * W}x{2 * H}): their "
             "metrics are not comparable") in html
     other = make_scene(tmp_path / "elsewhere", list(names))
     info.scene, info.width, info.height = str(other), W, H
     info.write(b / "scene.json")
-    html = stage.run([a, b], tmp_path / "scn", ReportConfig()).read_text()
+    html = stage.run([a, b], tmp_path / "scn", ReportConfig()).read_text(encoding="utf-8")
     assert f"These runs were trained on different scenes (a/run: {scene}, b/run: {other}): their" in html
 
 
@@ -927,13 +927,13 @@ def test_summary_warns_when_the_runs_were_scored_on_different_views(tmp_path):
     scene = make_scene(tmp_path, list(names))
     one = make_run(tmp_path / "e", "run", names=names[:1], scene=scene, maps=False, stats=False)
     full = make_run(tmp_path / "f", "run", names=names, scene=scene, maps=False, stats=False, seed=1)
-    html = stage.run([one, full], tmp_path / "rep", ReportConfig()).read_text()
+    html = stage.run([one, full], tmp_path / "rep", ReportConfig()).read_text(encoding="utf-8")
     assert ("These runs were scored on different views (e/run: 1 test view: view_000.png; f/run: 3 test views: "
             "view_000.png, view_008.png, view_016.png)") in html
     assert "These runs were trained" not in html  # same scene, same resolution
     # the same views, listed in another order
     same = make_run(tmp_path / "g", "run", names=tuple(reversed(names)), scene=scene, maps=False, stats=False)
-    html = stage.run([full, same], tmp_path / "same", ReportConfig()).read_text()
+    html = stage.run([full, same], tmp_path / "same", ReportConfig()).read_text(encoding="utf-8")
     assert "scored on different views" not in html
 
 
@@ -947,17 +947,17 @@ def test_psnr_inside_the_masks_is_labelled_so(tmp_path):
     m.mean.psnr_render = 19.06
     m.notes = [f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them (30% of the pixels)"]
     m.write(masked / "eval" / "metrics.json")
-    html = stage.run([masked], tmp_path / "one", ReportConfig()).read_text()
+    html = stage.run([masked], tmp_path / "one", ReportConfig()).read_text(encoding="utf-8")
     assert "<th>PSNR, expected render, inside the masks (dB)</th>" in html
     assert "<th>PSNR, inside the masks (dB)</th>" in html
     assert "test_psnr is over whole images" in html
     plain = make_run(tmp_path, "plain", maps=False)
-    html = stage.run([masked, plain], tmp_path / "two", ReportConfig()).read_text()
+    html = stage.run([masked, plain], tmp_path / "two", ReportConfig()).read_text(encoding="utf-8")
     assert "<th>PSNR, expected render (dB) †: inside the masks</th>" in html
     row = table_rows(html, "summary-table")
     assert next(t for k, _, t in row["masked"] if k == "psnr_render") == "19.06 †"
     assert all(not t.endswith("†") for _, _, t in row["plain"])
-    html = stage.run([plain], tmp_path / "none", ReportConfig()).read_text()
+    html = stage.run([plain], tmp_path / "none", ReportConfig()).read_text(encoding="utf-8")
     assert "inside the masks" not in html and "test_psnr is over whole images" not in html
 
 
@@ -1088,7 +1088,7 @@ def test_units_and_terms_are_said_once(tmp_path):
     m = EvalReport.read(run / "eval" / "metrics.json")
     m.lpips = LpipsStatus(available=False, reason="unavailable: no local weights")
     m.write(run / "eval" / "metrics.json")
-    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
     assert "<th>NLL (nats)</th>" in html and "<th>NLL (KDE, nats)</th>" in html
     assert "<th>NLL</th>" not in html
     assert html.count("area under the sparsification error") == 1
@@ -1110,20 +1110,20 @@ def test_a_model_without_a_posterior_reads_consistently(tmp_path):
     summary.method, summary.num_carriers = "deterministic", 0
     summary.test_render = "expected render (variational.expected_render_sample)"
     summary.write(run / "train_summary.json")
-    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
     # an evaluation written before the formula said its terms are variances: shown in today's words
     assert ("std² = the variance of the K samples (0 for this model: every sample is the same render) + the pixel "
             "noise" in html) and "std = the spread" not in html
     assert "expected_render_sample" not in html
     summary.members = [summary.model_copy()]  # nor in an ensemble's members (the "more" dump)
     summary.write(run / "train_summary.json")
-    assert "expected_render_sample" not in stage.run([run], tmp_path / "ens", ReportConfig()).read_text()
+    assert "expected_render_sample" not in stage.run([run], tmp_path / "ens", ReportConfig()).read_text(encoding="utf-8")
     summary.members = []
     summary.method, summary.num_carriers = "variational", 600  # a model with a posterior keeps both as they are
     summary.write(run / "train_summary.json")
     m.notes = m.notes[1:]
     m.write(run / "eval" / "metrics.json")
-    html = stage.run([run], tmp_path / "out2", ReportConfig()).read_text()
+    html = stage.run([run], tmp_path / "out2", ReportConfig()).read_text(encoding="utf-8")
     assert "std² = the variance of the K samples + the pixel noise" in html and "expected_render_sample" in html
 
 
@@ -1136,7 +1136,7 @@ def test_an_ensemble_says_its_count_is_the_members_sum_and_draws_their_timelines
     summary = TrainSummary.read(run / "train_summary.json")
     summary.method, summary.ensemble_size, summary.num_gaussians = "ensemble", 2, 30526
     summary.write(run / "train_summary.json")
-    log = (run / "stats.jsonl").read_text()
+    log = (run / "stats.jsonl").read_text(encoding="utf-8")
     (run / "stats.jsonl").unlink()  # an ensemble run has none of its own
     for i in range(2):
         (run / "members" / f"member_{i}").mkdir(parents=True)
@@ -1144,7 +1144,7 @@ def test_an_ensemble_says_its_count_is_the_members_sum_and_draws_their_timelines
     drawn = []
     real = figures.timeline_figure
     monkeypatch.setattr(figures, "timeline_figure", lambda per_run: drawn.append(per_run) or real(per_run))
-    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
     cell = next(t for k, _, t in table_rows(html, "summary-table")["ens"] if k == "num_gaussians")
     assert cell == "30,526 over 2 members"
     assert "30526 (the sum over 2 members)" in html
@@ -1156,12 +1156,12 @@ def test_an_ensemble_says_its_count_is_the_members_sum_and_draws_their_timelines
 def test_runs_evaluated_with_different_k_are_said_to_be_so(tmp_path):
     """A run of K = 1 beside one of K = 4 was ranked without a word; now a note names each run's K."""
     a, b = make_run(tmp_path, "a", maps=False), make_run(tmp_path, "b", maps=False, seed=1)
-    html = stage.run([a, b], tmp_path / "same", ReportConfig()).read_text()
+    html = stage.run([a, b], tmp_path / "same", ReportConfig()).read_text(encoding="utf-8")
     assert "different numbers of samples" not in html
     m = EvalReport.read(b / "eval" / "metrics.json")
     m.num_samples = 1
     m.write(b / "eval" / "metrics.json")
-    html = stage.run([a, b], tmp_path / "other", ReportConfig()).read_text()
+    html = stage.run([a, b], tmp_path / "other", ReportConfig()).read_text(encoding="utf-8")
     assert "These runs were evaluated with different numbers of samples (a: K = 4; b: K = 1)" in html
 
 
@@ -1172,13 +1172,13 @@ def test_an_ensemble_stopped_before_its_last_member_says_so_and_not_evaluate(tmp
     run = make_run(tmp_path, "ens", maps=False, metrics=False)
     cfg = TrainConfig(seed=0, iterations=100, method="ensemble", ensemble_size=3)
     (run / "config.json").write_text(cfg.model_dump_json(indent=2))
-    summary = (run / "train_summary.json").read_text()
+    summary = (run / "train_summary.json").read_text(encoding="utf-8")
     (run / "train_summary.json").unlink()
     for i in range(3):
         (run / "members" / f"member_{i}").mkdir(parents=True)
         if i < 2:
             (run / "members" / f"member_{i}" / "train_summary.json").write_text(summary)
-    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text()
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
     assert "training is not finished: 2 of the ensemble&#x27;s 3 members are trained" in html or \
         "training is not finished: 2 of the ensemble's 3 members are trained" in html
     from html import escape
@@ -1186,7 +1186,7 @@ def test_an_ensemble_stopped_before_its_last_member_says_so_and_not_evaluate(tmp
     assert f"-o {escape(q(run))} --method ensemble --resume" in html
     assert "1 of the ensemble" in html and f"run `uncertsplat evaluate {escape(q(run))}` to measure" not in html
     (run / "members" / "member_2" / "train_summary.json").write_text(summary)  # the last member done, no run summary
-    html = stage.run([run], tmp_path / "out2", ReportConfig()).read_text()
+    html = stage.run([run], tmp_path / "out2", ReportConfig()).read_text(encoding="utf-8")
     assert "members are trained" not in html
 
 
@@ -1203,12 +1203,12 @@ def test_shown_differences_agree_with_the_shown_numbers(tmp_path):
     m.notes = ["the std factor rests on 2 views only, too few to trust; the fitted factor makes these views' NLL worse "
                "than the raw std does (they differ from the views it was fitted on): read the raw numbers"]
     m.write(run / "eval" / "metrics.json")
-    html = stage.run(run, tmp_path / "out").read_text()
+    html = stage.run(run, tmp_path / "out").read_text(encoding="utf-8")
     assert "-0.15 dB (22.66 → 22.51) by the score, -1.66 dB (22.66 → 21.00) by random removal" in html
     assert "NLL worse" not in html and "the std factor rests on 2 views only, too few to trust" in html
     m.mean.nll_calibrated = -1.50  # 0.116 nats worse: said
     m.write(run / "eval" / "metrics.json")
-    assert "NLL worse" in stage.run(run, tmp_path / "out").read_text()
+    assert "NLL worse" in stage.run(run, tmp_path / "out").read_text(encoding="utf-8")
 
 
 def test_a_run_named_in_another_script_draws_without_glyph_warnings(tmp_path):
@@ -1320,7 +1320,7 @@ def test_ratios_the_sweep_did_not_measure_are_named(tmp_path):
     report.sweep.ratios = [1.0, 0.9, 0.7, 0.5, 0.3, 0.2]
     report.write(run / "prune.json")
     stage.run(run, tmp_path / "out")
-    text = " ".join((tmp_path / "out" / "index.html").read_text().split())
+    text = " ".join((tmp_path / "out" / "index.html").read_text(encoding="utf-8").split())
     assert "Keep ratios 0.3, 0.2 of the sweep were not measured" in text
 
 
@@ -1350,5 +1350,5 @@ def test_a_report_that_fails_midway_leaves_the_earlier_one_whole(tmp_path, monke
     monkeypatch.setattr(stage, "atomic_write_bytes", real)
     (out / ".figures.tmp-999999").mkdir()  # as a kill leaves it
     index = stage.run([run], out, ReportConfig(title="another"))
-    assert "another" in index.read_text() and not list(out.glob(".figures.tmp-*"))
+    assert "another" in index.read_text(encoding="utf-8") and not list(out.glob(".figures.tmp-*"))
     assert_figures_consistent(out, parse(index))

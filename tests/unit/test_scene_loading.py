@@ -1066,7 +1066,7 @@ def _old_text_model(workspace, tmp_path, edit):
     pycolmap.Reconstruction(str(workspace / "sparse" / "0")).write_text(str(folder))
     for extra in ("frames.txt", "rigs.txt"):
         (folder / extra).unlink(missing_ok=True)
-    lines = (folder / "images.txt").read_text().splitlines()
+    lines = (folder / "images.txt").read_text(encoding="utf-8").splitlines()
     poses = [i for i, line in enumerate(lines) if line and not line.startswith("#")][::2]
     edit(lines, poses)
     (folder / "images.txt").write_text("\n".join(lines) + "\n")

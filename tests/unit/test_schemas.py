@@ -99,7 +99,7 @@ class TestEverySchema:
         path = doc.write(tmp_path / "f.json")
         again = type(doc).read(path)
         assert again == doc
-        assert json.loads(path.read_text())["schema_version"] == type(doc).SCHEMA_VERSION
+        assert json.loads(path.read_text(encoding="utf-8"))["schema_version"] == type(doc).SCHEMA_VERSION
 
     def test_missing_key_names_the_file_and_the_key(self, doc, tmp_path):
         data = json.loads(doc.to_json())

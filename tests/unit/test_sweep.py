@@ -562,7 +562,7 @@ def test_a_sweep_resumed_with_another_default_summarises_this_spec(tmp_path, mon
     assert again.default == "variational_it5_k2"
     assert sorted(r.id for r in again.records) == ["variational_it5_k2", "variational_it5_k4", "variational_it5_k8"]
     assert [r.id for r in again.records if r.is_default] == ["variational_it5_k2"]
-    f.write_text(f.read_text().replace("[2, 4, 8]", "[2, 8]"))  # k4 is no point of the spec now
+    f.write_text(f.read_text(encoding="utf-8").replace("[2, 4, 8]", "[2, 8]"))  # k4 is no point of the spec now
     third = sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1, overrides=["default.num_samples=2"])
     said = " ".join(capsys.readouterr().err.split())
     assert "also holds 1 point of other settings" in said
@@ -606,16 +606,16 @@ def test_a_point_of_other_settings_never_replaces_a_points_report(tmp_path, monk
 
     f, out, rec = _one_point_sweep(tmp_path, monkeypatch)
     report = out / "points" / f"{rec.id}.json"
-    assert rec.hash in report.read_text()
+    assert rec.hash in report.read_text(encoding="utf-8")
     (other,) = sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1,
                          overrides=["train.seed=1"]).records
-    assert other.id == rec.id and other.hash != rec.hash and other.hash in report.read_text()
+    assert other.id == rec.id and other.hash != rec.hash and other.hash in report.read_text(encoding="utf-8")
     assert sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1).records[0].hash == rec.hash
-    assert rec.hash in report.read_text()  # this spec's point's report again
+    assert rec.hash in report.read_text(encoding="utf-8")  # this spec's point's report again
     assert {p.stem for p in (out / "points" / "by_hash").iterdir()} == {rec.hash, other.hash}
     report.unlink()
     sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1)
-    assert rec.hash in report.read_text()
+    assert rec.hash in report.read_text(encoding="utf-8")
 
 
 def test_a_scene_folder_that_changed_is_refused_or_trained_again(tmp_path, monkeypatch, capsys):
@@ -672,7 +672,7 @@ def test_point_reports_follow_their_points_to_new_ids(tmp_path):
     records = [SimpleNamespace(hash="hA", id="a", status="ok"), SimpleNamespace(hash="hB", id="b", status="ok"),
                SimpleNamespace(hash="hC", id="c", status="failed")]
     _move_point_reports(tmp_path, records, {"hA": {"id": "b"}, "hB": {"id": "a"}, "hC": {"id": "d"}})
-    assert (pts / "b.json").read_text() == "report of A" and (pts / "a.json").read_text() == "report of B"
+    assert (pts / "b.json").read_text(encoding="utf-8") == "report of A" and (pts / "a.json").read_text(encoding="utf-8") == "report of B"
     assert not (pts / "d.json").exists()
 
 
@@ -882,7 +882,7 @@ def _pool_workers(driver: int, started_only: bool = False) -> set[int]:
     found = set()
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
-            ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            ppid = int(stat.read_text(encoding="utf-8").rsplit(")", 1)[1].split()[1])
             cmdline = (stat.parent / "cmdline").read_bytes()
             threads = len(list((stat.parent / "task").iterdir()))
         except (OSError, IndexError, ValueError):
@@ -921,7 +921,7 @@ def test_ctrl_c_lets_a_training_write_its_checkpoint_while_another_worker_is_bet
         # idle: waiting for a job)
         while time.monotonic() - t0 < 60 and proc.poll() is None:
             # (a pid file is written by its job while this reads: an empty one is not there yet)
-            pids = [p.read_text().strip() if p.exists() else "" for p in
+            pids = [p.read_text(encoding="utf-8").strip() if p.exists() else "" for p in
                     (tmp_path / f"{j}.pid" for j in ("quick", "training"))]
             if (tmp_path / "quick.done").exists() and all(pids) and workers() - {int(p) for p in pids}:
                 break
@@ -1031,7 +1031,7 @@ def test_force_trains_a_finished_run_again_beside_it(tmp_path, monkeypatch, caps
     stop_training = True  # Ctrl-C during the forced training: the finished run stands as it was
     with pytest.raises(Interrupted):
         jobs._train(forced, "cpu")
-    assert (run / "weights.bin").read_text() == "training 1" and (run / "train_summary.json").is_file()
+    assert (run / "weights.bin").read_text(encoding="utf-8") == "training 1" and (run / "train_summary.json").is_file()
     capsys.readouterr()
     assert jobs._train(job, "cpu") == ("summary", False)  # a sweep without --force reuses it, naming the leftover
     assert f"note: {run}.retrain holds a training that `sweep --force` began" in capsys.readouterr().err
@@ -1040,7 +1040,7 @@ def test_force_trains_a_finished_run_again_beside_it(tmp_path, monkeypatch, caps
     assert jobs._train(forced, "cpu") == ("summary", True)  # --force again: the new training resumed, then swapped
     assert calls[-1] == ("variational_x.retrain", True)
     assert f"retrained: {run} (trained in variational_x.retrain" in capsys.readouterr().err
-    assert (run / "weights.bin").read_text() == f"training {len(calls)}"
+    assert (run / "weights.bin").read_text(encoding="utf-8") == f"training {len(calls)}"
     assert sorted(p.name for p in run.parent.iterdir()) == ["variational_x"]
     assert jobs._train({**job, "retrain_before": time.time() - 60}, "cpu") == ("summary", False)  # trained since
     (run / "train_summary.json").unlink()  # unfinished: resumed, forced or not
@@ -1048,7 +1048,7 @@ def test_force_trains_a_finished_run_again_beside_it(tmp_path, monkeypatch, caps
     # changed by hand (train --resume --iterations N): moved aside with a note, forced or not
     (run / "config.json").write_text(json.dumps({**tcfg, "iterations": tcfg["iterations"] + 1}))
     assert jobs._train(forced, "cpu") == ("summary", True) and calls[-1] == ("variational_x", False)
-    assert json.loads((run.parent / "variational_x.replaced" / "config.json").read_text())["iterations"] == \
+    assert json.loads((run.parent / "variational_x.replaced" / "config.json").read_text(encoding="utf-8"))["iterations"] == \
         tcfg["iterations"] + 1
     # killed between the swap's two renames: the next sweep finishes the swap
     run.rename(run.parent / "variational_x.retrained")
@@ -1093,7 +1093,7 @@ def test_the_workers_of_a_sweep_killed_with_sigkill_end(tmp_path):
 
     def alive(pid: int) -> bool:
         try:
-            state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+            state = Path(f"/proc/{pid}/stat").read_text(encoding="utf-8").rsplit(")", 1)[1].split()[0]
         except OSError:
             return False
         return state != "Z"  # (a zombie has ended; its new parent reaps it)
@@ -1104,7 +1104,7 @@ def test_the_workers_of_a_sweep_killed_with_sigkill_end(tmp_path):
         while time.monotonic() - t0 < 60 and proc.poll() is None:
             pool = workers()
             training = tmp_path / "training.pid"
-            pid = training.read_text().strip() if training.exists() else ""  # (empty while its job writes it)
+            pid = training.read_text(encoding="utf-8").strip() if training.exists() else ""  # (empty while its job writes it)
             # the quick job recorded, the training stepping, and an idle worker beside it (the quick one's successor)
             if (tmp_path / "quick.done").exists() and pid and pool - {int(pid)}:
                 break
@@ -1125,7 +1125,7 @@ def test_the_workers_of_a_sweep_killed_with_sigkill_end(tmp_path):
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
     assert not left, f"workers still running after the sweep was killed: {left}"
-    assert (tmp_path / "checkpoint").read_text() == "written"
+    assert (tmp_path / "checkpoint").read_text(encoding="utf-8") == "written"
 
 
 def test_a_swap_killed_between_its_renames_is_finished_before_any_point_is_skipped(tmp_path, monkeypatch):

@@ -43,8 +43,8 @@ def test_blender_files(pair):
     assert (meta.layout, meta.rig, meta.backdrop, meta.room) == ("blender", "hemisphere", "transparent", None)
     assert meta.look_at == list(LOOK_AT) and meta.num_points == 0
     assert meta.test_views == ["view_000.png", "view_008.png"]
-    train = json.loads((blender / "transforms_train.json").read_text())
-    test = json.loads((blender / "transforms_test.json").read_text())
+    train = json.loads((blender / "transforms_train.json").read_text(encoding="utf-8"))
+    test = json.loads((blender / "transforms_test.json").read_text(encoding="utf-8"))
     assert set(train) == {"camera_angle_x", "frames"} and len(train["frames"]) == 7 and len(test["frames"]) == 2
     assert test["frames"][1]["file_path"] == "./test/view_008"
     c2w = np.array(train["frames"][0]["transform_matrix"])
@@ -115,7 +115,7 @@ def test_overwrite_switches_layout_and_old_scenes_still_load(tmp_path):
     generate_scene(out, SynthConfig(**cfg), overwrite=True)
     assert not (out / "train").exists() and not (out / "transforms_train.json").exists()
     # a scene.json written before the schema (no schema_version, layout, rig, ...) is a COLMAP ring scene
-    meta = json.loads((out / "scene.json").read_text())
+    meta = json.loads((out / "scene.json").read_text(encoding="utf-8"))
     for key in ("schema_version", "layout", "rig", "backdrop", "look_at"):
         del meta[key]
     (out / "scene.json").write_text(json.dumps(meta))

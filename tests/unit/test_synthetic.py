@@ -36,7 +36,7 @@ def test_same_seed_same_bytes_other_seed_differs(tmp_path):
 
 
 def test_layout_and_metadata(tiny_scene_path):  # noqa: F811
-    meta = json.loads((tiny_scene_path / "scene.json").read_text())
+    meta = json.loads((tiny_scene_path / "scene.json").read_text(encoding="utf-8"))
     n, w, h, _ = resolve_size(SynthConfig(preset="tiny"))
     assert (meta["width"], meta["height"], meta["num_views"]) == (w, h, n) == (128, 96, 24)
     names = meta["image_names"]
@@ -160,7 +160,7 @@ def test_cli_synth_writes_a_scene(tmp_path):
     result = runner.invoke(app, ["synth", str(out), "--preset", "tiny", "--seed", "2",
                                  "--set", "num_views=4", "--set", "width=32"])
     assert result.exit_code == 0, result.output
-    meta = json.loads((out / "scene.json").read_text())
+    meta = json.loads((out / "scene.json").read_text(encoding="utf-8"))
     assert (meta["seed"], meta["num_views"], meta["width"]) == (2, 4, 32)
     assert len(list((out / "images").glob("*.png"))) == 4
     assert not (out / ".lock").exists()
@@ -177,7 +177,7 @@ def test_cli_synth_writes_a_scene(tmp_path):
     forced = runner.invoke(app, ["synth", str(out), "--preset", "tiny", "--seed", "5", "--overwrite",
                                  "--set", "num_views=4", "--set", "width=32"])
     assert forced.exit_code == 0, forced.output
-    assert json.loads((out / "scene.json").read_text())["seed"] == 5
+    assert json.loads((out / "scene.json").read_text(encoding="utf-8"))["seed"] == 5
 
 
 def test_cli_synth_refuses_a_foreign_folder(tmp_path):
@@ -193,7 +193,7 @@ def test_overwrite_keeps_unrelated_files(tmp_path):
 
     (tmp_path / "notes.txt").write_text("mine")
     synth.run(tmp_path, SynthConfig(preset="tiny", num_views=3, width=16), overwrite=True)
-    assert (tmp_path / "notes.txt").read_text() == "mine"
+    assert (tmp_path / "notes.txt").read_text(encoding="utf-8") == "mine"
     assert (tmp_path / "scene.json").is_file()
 
 
@@ -205,7 +205,7 @@ def test_a_training_run_is_refused_even_with_overwrite(tmp_path):
                                  "--set", "width=16"])
     flat = " ".join(result.output.split())
     assert result.exit_code == 2 and "holds a training run" in flat
-    assert (tmp_path / "scene.json").read_text() == '{"scene": "elsewhere"}' and not (tmp_path / "images").exists()
+    assert (tmp_path / "scene.json").read_text(encoding="utf-8") == '{"scene": "elsewhere"}' and not (tmp_path / "images").exists()
 
 
 def test_unknown_synth_key_is_rejected():

@@ -184,7 +184,7 @@ def staging_folder(out: str | Path, prefix: str) -> Iterator[Path]:
 def _holder(lock: Path) -> str:
     """How a lock's holder is named in every message: "PID 123, train" (what its file says; "unknown" unreadable)."""
     try:
-        pid, _, cmd = " ".join(lock.read_text().split()[:2]).partition(" ")
+        pid, _, cmd = " ".join(lock.read_text(encoding="utf-8").split()[:2]).partition(" ")
     except OSError:
         pid, cmd = "", ""
     return f"PID {pid or 'unknown'}{', ' + cmd if cmd else ''}"
