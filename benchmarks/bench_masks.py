@@ -67,6 +67,14 @@ def paint(src: Path, dst: Path, train_names: set[str], fraction: float, radius: 
     return painted
 
 
+VARIANTS = ("clean", "clean+detect", "transients", "transients+detect", "masked")
+
+
+def count_painted(src: Path, ws: Path, train_names: set[str]) -> int:
+    """How many training photos of workspace ``ws`` differ from the scene's."""
+    return sum((ws / "images" / n).read_bytes() != (src / "images" / n).read_bytes() for n in train_names)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scene", type=Path, default=None, help="a COLMAP workspace (default: the synthetic demo scene)")
@@ -77,6 +85,8 @@ def main() -> None:
     ap.add_argument("--fraction", type=float, default=0.5, help="share of the training photos with a transient")
     ap.add_argument("--radius", type=float, default=0.15, help="the disc's radius over the image's short side")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS),
+                    help="clean / transients / masked photos; +detect: trained with transients.detect = true")
     ap.add_argument("--num-samples", type=int, default=10)
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_masks"))
     ap.add_argument("--label", default="demo")
@@ -94,6 +104,9 @@ def main() -> None:
 
     device = torch.device("cpu")
     args.work.mkdir(parents=True, exist_ok=True)
+    for photos in ("clean", "transients", "masked"):  # painted again: --fraction, --radius or --seed may differ
+        if (args.work / photos).exists():
+            shutil.rmtree(args.work / photos)
     scene = args.scene
     if scene is None:
         scene = args.work / "scene"
@@ -111,23 +124,25 @@ def main() -> None:
             node = node.setdefault(p, {})
         node[last] = json.loads(value)
     cfg = train_config_from(args.preset, deep_update({"iterations": args.iterations}, overrides))
+    detect = train_config_from(args.preset, deep_update(cfg.model_dump(), {"transients": {"detect": True}}))
     rows = []
-    for variant in ("clean", "transients", "masked"):
-        ws = args.work / variant
-        if ws.exists():
-            shutil.rmtree(ws)
-        ws.mkdir()
-        painted = paint(scene, ws, train_names, 0.0 if variant == "clean" else args.fraction, args.radius,
-                        args.seed, masks=variant == "masked")
+    for variant in args.variants:
+        photos = variant.removesuffix("+detect")
+        ws = args.work / photos
+        if not ws.exists():  # (the +detect variants train on the same workspace)
+            ws.mkdir(parents=True)
+            paint(scene, ws, train_names, 0.0 if photos == "clean" else args.fraction, args.radius, args.seed,
+                  masks=photos == "masked")
+        painted = count_painted(scene, ws, train_names)
         run = args.work / f"run_{variant}"
         if run.exists():
             shutil.rmtree(run)
         t0 = time.perf_counter()
-        train.run(ws, run, cfg, device=device)
+        train.run(ws, run, detect if variant.endswith("+detect") else cfg, device=device)
         seconds = time.perf_counter() - t0
         report = evaluate.run(run, EvalConfig(num_samples=args.num_samples, seed=0, save_maps=False), device,
                               quiet=True)
-        summary = json.loads((run / "train_summary.json").read_text())
+        summary = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))
         m = report.mean
         rows.append({"variant": variant, "painted_photos": painted, "train_views": len(train_names),
                      "psnr": m.psnr, "ssim": m.ssim, "ause_mae": m.ause_mae, "nll": m.nll,

@@ -403,6 +403,33 @@ class FisherConfig(_Base):
     prior_std_sh0: float = Field(0.1, gt=0.0)
 
 
+class TransientsConfig(_Base):
+    """Transient objects in the training photos (a person walking through, a car that left), found from the
+    residual and left out of the loss (``train.transients``)."""
+
+    detect: bool = False
+    """Find them: from step ``start x iterations`` on, each step's regions whose residual stands far above the
+    photo's typical residual are left out of its loss, as a mask a user brought would leave them (each photo's last
+    regions also out of the posterior's noise and curvature and the training checks). Off by default: a photo
+    without transients loses nothing but the test's cost, measured in BENCHMARKS.md, "Transient objects found from
+    the residual"; masks a user brings (README, "Masks") are exact where this is a guess."""
+    start: float = Field(0.5, ge=0.0, le=1.0)
+    """The share of the iterations before the first test: before it the model is far from every photo."""
+    threshold: float = Field(5.0, gt=1.0)
+    """A pixel is a candidate when its residual (mean absolute over the channels) is this many times the photo's
+    median residual."""
+    window: float = Field(0.06, gt=0.0, le=0.5)
+    """The square window, as a share of the image's short side (at least 3 pixels): a region is transient where a
+    share ``core`` of a window's pixels are candidates, and is widened by half a window. Bands of large residual
+    narrower than that (the silhouettes and edges the model has not sharpened yet) stay in the loss; objects
+    smaller than it are not found."""
+    core: float = Field(0.7, gt=0.0, le=1.0)
+    """The share of a window's pixels that must be candidates for its centre to be transient."""
+    max_share: float = Field(0.5, gt=0.0, le=1.0)
+    """A photo whose transient regions would cover more than this share of it keeps every pixel in that step (a
+    model far from that photo, not an object in front of it)."""
+
+
 TRAIN_SEED_MAX = 2**32 - 8
 """The largest training seed (``TrainConfig.seed``; an ensemble's, plus its ``ensemble_size - 1``, the seed of its
 last member): the trainer's generators take seed + at most 5, and all stay below 2**32, which torch's CPU generator
@@ -469,6 +496,8 @@ class TrainConfig(_Base):
     "Training at half resolution first"."""
     low_res_scale: float = Field(0.5, gt=0.0, le=1.0)
     """The image scale of the low-resolution steps (``low_res_fraction``)."""
+    transients: TransientsConfig = TransientsConfig()
+    """Transient objects in the training photos found from the residual (``TransientsConfig``)."""
     exposure: Literal["off", "auto", "affine"] = "off"
     """``affine``: each training photo gets a gain and an offset per colour channel, learned with the model, so that
     photos of different exposure or white balance (automatic exposure, outdoor light) are not fitted with floaters

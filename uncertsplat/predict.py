@@ -319,7 +319,6 @@ class Predictor:
     def _load(cls, run_dir: Path, device: torch.device, cfg, evaluation) -> Predictor:
         from uncertsplat.baselines import load_run
         from uncertsplat.console import console
-        from uncertsplat.data.dataset import load_view_set
         from uncertsplat.eval.engine import StdFit, residual_from_state, scored_sampler
         from uncertsplat.io.atomic import run_lock
         from uncertsplat.stages.predictive_cache import keep_predictive, plain_versions, read_predictive
@@ -363,7 +362,7 @@ class Predictor:
             sampler, fit = scored_sampler(new_sampler, residual, scene.cameras, scene.split, cfg, device,
                                           load_views=None, known_fit=StdFit(kept.scale, kept.dof, list(kept.names)))
             return cls(run_dir, loaded, scene, sampler, fit, cfg, device)
-        train_views = partial(load_view_set, scene, depth=False, keep_8bit=True)  # as evaluate loads them
+        train_views = loaded.training_views(scene)  # as evaluate loads them
         set_aside: dict = {}
         # the pixel noise as evaluate fits it (read from RUN/eval/residual.pt when evaluate kept one for this model and
         # these settings; a fitted one is kept there too, as evaluate does, under the run's lock, when the settings

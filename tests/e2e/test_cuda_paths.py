@@ -72,3 +72,33 @@ def test_the_other_methods_train_and_evaluate_on_cuda(cuda_run, tmp_path, method
     train_run(cuda_run / "synth", tmp_path / method, cfg, torch.device("cuda"))
     report = evaluate.run(tmp_path / method, EvalConfig(num_samples=2), torch.device("cuda"), quiet=True)
     assert report.mean.psnr > 5
+
+
+def test_transients_found_and_left_out_on_cuda(cuda_run, tmp_path):
+    """`transients.detect` on the device: the step's test and the kept masks, the written folder, then evaluate's fits
+    and the Fisher baseline's curvature without them."""
+    import shutil
+
+    from uncertsplat.baselines import train_run
+    from uncertsplat.config import EvalConfig, train_config_from
+    from uncertsplat.data.dataset import TRANSIENTS_FOLDER
+    from uncertsplat.io.images import read_image, write_png
+    from uncertsplat.sfm.scene import load_scene
+    from uncertsplat.stages import evaluate
+
+    ws = tmp_path / "ws"
+    shutil.copytree(cuda_run / "synth", ws)
+    scene = load_scene(ws)
+    for i in scene.split["train"][:3]:
+        path = ws / "images" / scene.cameras.image_names[i]
+        im = read_image(path)
+        h, w = im.shape[:2]
+        im[h // 4:h // 2, w // 4:w // 2] = (1.0, 0.0, 1.0)
+        write_png(path, im)
+    for method in ("variational", "fisher"):
+        cfg = train_config_from("tiny", {"iterations": 150, "method": method,
+                                         "transients": {"detect": True, "start": 0.3, "window": 0.1, "core": 0.5}})
+        train_run(ws, tmp_path / method, cfg, torch.device("cuda"))
+        assert any((tmp_path / method / TRANSIENTS_FOLDER).iterdir())
+        report = evaluate.run(tmp_path / method, EvalConfig(num_samples=2), torch.device("cuda"), quiet=True)
+        assert report.mean.psnr > 5 and any("transient objects training found" in n for n in report.notes)

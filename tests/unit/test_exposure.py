@@ -232,7 +232,7 @@ def test_photo_gains_leave_out_the_views_added_late():
 
     fake = SimpleNamespace(mean_sample=lambda: None, render=render, train_cams=list(range(5)),
                            photos=lambda idx: [rgb * (1.5 if idx[0] == 3 else 1.0)], train_idx=list(range(5)),
-                           train_masks=None)
+                           train_masks=None, _train_masks=lambda views: None)
     gains = Trainer.photo_gains(fake, skip=[3])
     assert seen == [0, 1, 2, 4] and all(abs(g - 1.0) < 1e-6 for g in gains)
     seen.clear()

@@ -54,7 +54,7 @@ def test_runs_all_then_skips_unchanged(tmp_path, calls):
     assert [k for k, _ in calls] == ["synth", "train", "evaluate", "report"]
     assert outs["evaluate"] == tmp_path / "out" / "train" / "eval"
     for name in ["synth", "train", "report"]:
-        m = json.loads((tmp_path / "out" / name / "manifest.json").read_text())
+        m = json.loads((tmp_path / "out" / name / "manifest.json").read_text(encoding="utf-8"))
         assert m["status"] == "done"
     calls.clear()
     pl.run(p, tmp_path / "out")
@@ -75,7 +75,7 @@ def test_failure_names_stage_and_keeps_earlier_outputs(tmp_path, calls):
     with pytest.raises(StageError, match=r"stage 'train' \(train\) failed: .*boom"):
         pl.run(p, tmp_path / "out", overrides=["train.seed=99"])
     assert (tmp_path / "out" / "synth" / "out.txt").exists()
-    m = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text())
+    m = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text(encoding="utf-8"))
     assert m["status"] == "failed" and "boom" in m["error"]
     # the failed stage re-runs next time, the finished one is skipped
     calls.clear()
@@ -133,6 +133,26 @@ def test_shipped_pipelines_validate(name):
     for stage in cfg.stages:
         pl._stage_config(stage)
     assert len(pl.check_stages(cfg, root / name)) == len(cfg.stages)  # every stage reads what it can
+
+
+@pytest.mark.parametrize("name", ["demo.toml", "smoke.toml", "photos.toml"])
+def test_the_settings_a_shipped_pipeline_suggests_in_comments_validate(name, tmp_path):
+    """Each commented ``# config = {...}`` line is a setting the file suggests for the next stage below it: uncommented
+    in that stage's place, the pipeline still validates (a renamed key would otherwise live on in the comment)."""
+    text = (Path(__file__).resolve().parents[2] / "pipelines" / name).read_text(encoding="utf-8")
+    lines = text.splitlines()
+    suggested = [i for i, line in enumerate(lines) if line.startswith("# config = {")]
+    for i in suggested:
+        stage_line = next(j for j in range(i, len(lines)) if lines[j].startswith("stage = "))
+        config_line = next(j for j in range(stage_line, len(lines)) if lines[j].startswith("config = "))
+        edited = lines.copy()
+        edited[config_line] = lines[i][2:]
+        (tmp_path / name).write_text("\n".join(edited) + "\n", encoding="utf-8")
+        cfg = pl.load_pipeline(tmp_path / name)
+        assert lines[i][2:] in (tmp_path / name).read_text(encoding="utf-8")
+        for stage in cfg.stages:
+            pl._stage_config(stage)
+    assert len(suggested) >= (4 if name == "photos.toml" else 0)
 
 
 @pytest.mark.parametrize(("edit", "match"), [
@@ -203,7 +223,7 @@ def test_a_stage_interrupted_with_its_work_kept_stops_the_pipeline_as_an_interru
     with pytest.raises(Interrupted, match="stage 'train' \\(train\\) interrupted: training interrupted") as err:
         pl.run(p, tmp_path / "out")
     assert not isinstance(err.value, StageError) and "stages that finished are skipped" in str(err.value)
-    manifest = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text())
+    manifest = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text(encoding="utf-8"))
     assert manifest["status"] == "failed" and "interrupted" in json.dumps(manifest)
 
 
@@ -273,16 +293,16 @@ def test_a_failed_run_never_replaces_the_last_finished_output(tmp_path, calls):
     the finished output stays in .previous/train, the failed one goes to .previous/train-unfinished."""
     p = _write(tmp_path)
     pl.run(p, tmp_path / "out", overrides=["train.iterations=7"])
-    good = (tmp_path / "out" / "train" / "out.txt").read_text()
+    good = (tmp_path / "out" / "train" / "out.txt").read_text(encoding="utf-8")
     with pytest.raises(StageError, match="boom"):
         pl.run(p, tmp_path / "out", overrides=["train.seed=99"])
-    assert (tmp_path / "out" / ".previous" / "train" / "out.txt").read_text() == good
+    assert (tmp_path / "out" / ".previous" / "train" / "out.txt").read_text(encoding="utf-8") == good
     pl.run(p, tmp_path / "out", overrides=["train.iterations=8"])  # the failed output moves out of the way
-    assert (tmp_path / "out" / ".previous" / "train" / "out.txt").read_text() == good
-    failed = json.loads((tmp_path / "out" / ".previous" / "train-unfinished" / "manifest.json").read_text())
+    assert (tmp_path / "out" / ".previous" / "train" / "out.txt").read_text(encoding="utf-8") == good
+    failed = json.loads((tmp_path / "out" / ".previous" / "train-unfinished" / "manifest.json").read_text(encoding="utf-8"))
     assert failed["status"] == "failed"
     pl.run(p, tmp_path / "out", overrides=["train.iterations=9"])  # finished replaces finished, as before
-    assert json.loads((tmp_path / "out" / ".previous" / "train" / "out.txt").read_text())["iterations"] == 8
+    assert json.loads((tmp_path / "out" / ".previous" / "train" / "out.txt").read_text(encoding="utf-8"))["iterations"] == 8
 
 
 def _photos_pipeline(tmp_path: Path, calls) -> tuple[Path, Path]:
@@ -303,11 +323,11 @@ def _as_recorded_before(out: Path, photos_hash: str) -> None:
     """The reconstruct stage's manifest holding ``photos_hash`` for its photos (as an earlier version wrote it), and
     the train stage's record of that manifest."""
     manifest = out / "reconstruct" / "manifest.json"
-    data = json.loads(manifest.read_text())
+    data = json.loads(manifest.read_text(encoding="utf-8"))
     data["input_hashes"]["photos"] = photos_hash
     manifest.write_text(json.dumps(data))
     train = out / "train" / "manifest.json"
-    record = json.loads(train.read_text())
+    record = json.loads(train.read_text(encoding="utf-8"))
     record["input_hashes"]["reconstruct"] = pl.read_manifest(manifest.parent).key
     train.write_text(json.dumps(record))
 
@@ -349,7 +369,7 @@ def test_the_photos_masks_are_an_input_of_reconstruct(tmp_path, calls, monkeypat
     monkeypatch.chdir(tmp_path / "elsewhere")
     pl.run(p, tmp_path / "out")
     assert [k for k, _ in calls] == ["reconstruct", "train"]
-    given = json.loads((tmp_path / "out" / "reconstruct" / "out.txt").read_text())["masks"]
+    given = json.loads((tmp_path / "out" / "reconstruct" / "out.txt").read_text(encoding="utf-8"))["masks"]
     assert Path(given) == tmp_path / "masks"
     calls.clear()
     pl.run(p, tmp_path / "out")
@@ -410,7 +430,7 @@ def test_a_stage_whose_output_is_gone_runs_again(tmp_path, calls, capsys):
     runs again, and says why; checkpoints and the evaluation's caches are not outputs (a resume rotates them)."""
     p = _write(tmp_path)
     pl.run(p, tmp_path / "out")
-    recorded = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text())["outputs"]
+    recorded = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text(encoding="utf-8"))["outputs"]
     assert recorded == ["out.txt"]
     (tmp_path / "out" / "train" / "ckpts").mkdir()
     (tmp_path / "out" / "train" / "ckpts" / "step_000001.pt").write_bytes(b"")
@@ -444,7 +464,7 @@ def test_a_stage_whose_data_file_changed_size_runs_again(tmp_path, monkeypatch, 
     monkeypatch.setattr(pl, "_run_stage", fake)
     p = _write(tmp_path)
     pl.run(p, tmp_path / "out")
-    manifest = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text())
+    manifest = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text(encoding="utf-8"))
     assert manifest["output_sizes"] == {"model.ply": 1000}
     ran.clear()
     (tmp_path / "out" / "train" / "record.json").write_text('{"seconds": 12.25}')
@@ -463,7 +483,7 @@ def test_a_stage_whose_data_file_changed_size_runs_again(tmp_path, monkeypatch, 
     assert ran == []
     # a manifest of version 2 (no sizes) compares none
     m = tmp_path / "out" / "train" / "manifest.json"
-    m.write_text(json.dumps({**{k: v for k, v in json.loads(m.read_text()).items() if k != "output_sizes"},
+    m.write_text(json.dumps({**{k: v for k, v in json.loads(m.read_text(encoding="utf-8")).items() if k != "output_sizes"},
                              "schema_version": 2}))
     with open(tmp_path / "out" / "train" / "model.ply", "r+b") as f:
         f.truncate(10)
@@ -478,7 +498,7 @@ def test_an_output_made_again_by_hand_with_other_settings_runs_again(tmp_path, c
     p = _write(tmp_path)
     pl.run(p, tmp_path / "out")
     used = tmp_path / "out" / "train" / "eval" / "config.json"
-    ran = json.loads((tmp_path / "out" / "train" / "eval" / "manifest.json").read_text())["config"]
+    ran = json.loads((tmp_path / "out" / "train" / "eval" / "manifest.json").read_text(encoding="utf-8"))["config"]
     used.write_text(json.dumps(ran))  # as the stage wrote it
     calls.clear()
     pl.run(p, tmp_path / "out")
@@ -491,7 +511,7 @@ def test_an_output_made_again_by_hand_with_other_settings_runs_again(tmp_path, c
     pl.run(p, tmp_path / "out")
     said = " ".join(capsys.readouterr().err.split())
     assert [k for k, _ in calls] == ["evaluate"] and "was made again since with other settings" in said, said
-    trained = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text())
+    trained = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text(encoding="utf-8"))
     (tmp_path / "out" / "train" / "config.json").write_text(json.dumps(trained["config"]))
     calls.clear()
     pl.run(p, tmp_path / "out")
@@ -620,16 +640,16 @@ def test_a_folder_the_pipeline_did_not_write_is_kept_apart_and_never_replaced(tm
     (mine / "NOTES.txt").write_text("my own run")
     pl.run(p, tmp_path / "out")
     kept = tmp_path / "out" / ".previous" / "train-not-from-this-pipeline"
-    assert (kept / "NOTES.txt").read_text() == "my own run"
+    assert (kept / "NOTES.txt").read_text(encoding="utf-8") == "my own run"
     pl.run(p, tmp_path / "out", overrides=["train.iterations=7"])  # a change: the pipeline's train rotates
     pl.run(p, tmp_path / "out", overrides=["train.iterations=8"])
-    assert (kept / "NOTES.txt").read_text() == "my own run"
-    assert json.loads((tmp_path / "out" / ".previous" / "train" / "out.txt").read_text())["iterations"] == 7
+    assert (kept / "NOTES.txt").read_text(encoding="utf-8") == "my own run"
+    assert json.loads((tmp_path / "out" / ".previous" / "train" / "out.txt").read_text(encoding="utf-8"))["iterations"] == 7
     # a folder of its own without a manifest (a stage killed before writing it) takes the rotation, as an unfinished
     # output beside the finished one (a review: it was kept apart, one more copy at every such kill)
     (tmp_path / "out" / "train" / "manifest.json").unlink()
     pl.run(p, tmp_path / "out", overrides=["train.iterations=9"])
-    assert json.loads((tmp_path / "out" / ".previous" / "train-unfinished" / "out.txt").read_text())["iterations"] == 8
+    assert json.loads((tmp_path / "out" / ".previous" / "train-unfinished" / "out.txt").read_text(encoding="utf-8"))["iterations"] == 8
     assert not (tmp_path / "out" / ".previous" / "train-not-from-this-pipeline-2").exists()
     # a second folder it never wrote takes a numbered name
     shutil.rmtree(tmp_path / "out" / "report")
@@ -653,7 +673,7 @@ def test_a_project_moved_with_its_pipeline_file_skips_its_stages(tmp_path, calls
     p.write_text('name = "m"\n[[stages]]\nstage = "train"\ninput = "scene"\npreset = "tiny"\n')
     pl.run(p, project / "out")
     assert [k for k, _ in calls] == ["train"]
-    recorded = json.loads((project / "out" / "train" / "manifest.json").read_text())["input_hashes"]
+    recorded = json.loads((project / "out" / "train" / "manifest.json").read_text(encoding="utf-8"))["input_hashes"]
     assert list(recorded) == ["scene"]
     calls.clear()
     project.rename(tmp_path / "b")
@@ -661,7 +681,7 @@ def test_a_project_moved_with_its_pipeline_file_skips_its_stages(tmp_path, calls
     assert calls == []
     # the layout of before: keyed by the resolved path of the folder
     m = tmp_path / "b" / "out" / "train" / "manifest.json"
-    data = json.loads(m.read_text())
+    data = json.loads(m.read_text(encoding="utf-8"))
     data["input_hashes"] = {str((tmp_path / "b" / "scene").resolve()): recorded["scene"]}
     m.write_text(json.dumps(data))
     pl.run(tmp_path / "b" / "p.toml", tmp_path / "b" / "out")

@@ -50,7 +50,7 @@ def test_keys_change_only_with_a_new_schema_version(cls):
     """To change a schema: raise its SCHEMA_VERSION (and the ``schema_version`` field's default), convert the older
     version in ``_upgrade``, then write the new keys with
     ``python -c "from tests.unit.test_schema_versions import write_keys; write_keys()"``."""
-    stored = json.loads(KEYS_FILE.read_text())[cls.__name__]
+    stored = json.loads(KEYS_FILE.read_text(encoding="utf-8"))[cls.__name__]
     now = current()[cls.__name__]
     assert cls.model_fields["schema_version"].default == cls.SCHEMA_VERSION, "the field's default is the version"
     if now["version"] == stored["version"]:
@@ -72,7 +72,7 @@ def write_keys() -> None:
     whose keys changed at the version recorded: rewriting the file for another schema's bump recorded
     ``posterior.position_prior`` of train_summary.json at version 4, and every summary written before it was refused
     (a helper regenerating the demo's report, 2026-11-29)."""
-    stored = json.loads(KEYS_FILE.read_text())
+    stored = json.loads(KEYS_FILE.read_text(encoding="utf-8"))
     now = current()
     changed = [name for name, entry in now.items()
                if name in stored and entry["version"] == stored[name]["version"] and entry["keys"] != stored[name]["keys"]]
@@ -93,7 +93,7 @@ def test_files_of_the_previous_version_read(cls, name):
     expected-render prune decision) read, with the new keys at their "not recorded" values."""
     got = cls.read(OLD / name)
     assert got.schema_version == cls.SCHEMA_VERSION
-    old = json.loads((OLD / name).read_text())
+    old = json.loads((OLD / name).read_text(encoding="utf-8"))
     assert old["schema_version"] < cls.SCHEMA_VERSION  # the file really is of an older version
     if cls is ReconstructReport:
         assert got.mapping_attempts == [] and got.mapping_agreed is None and got.num_observations is None
@@ -111,12 +111,12 @@ def test_files_of_the_previous_version_read(cls, name):
 def test_a_version_4_train_summary_reads_its_posterior_as_measured_against_the_config():
     """``make demo``'s train_summary.json of 2026-11-29 (version 4, before ``posterior.position_prior``): it read as
     "key 'posterior.position_prior' is missing", and the report showed no Gaussians, no training time and no posterior
-    note. Now version 5, its posterior measured against the config's std ("config"), every other value kept."""
+    note. Now upgraded, its posterior measured against the config's std ("config"), every other value kept."""
     path = DATA / "outputs_2026-11-29" / "train_summary.json"
-    old = json.loads(path.read_text())
+    old = json.loads(path.read_text(encoding="utf-8"))
     assert old["schema_version"] == 4 and "position_prior" not in old["posterior"]
     got = TrainSummary.read(path)
-    assert got.schema_version == 5 and got.posterior.position_prior == "config"
+    assert got.schema_version == TrainSummary.SCHEMA_VERSION and got.posterior.position_prior == "config"
     assert got.posterior.carriers == old["posterior"]["carriers"] and got.steps == old["steps"]
     member = {**old, "members": [], "posterior": dict(old["posterior"])}
     both = TrainSummary.from_dict({**old, "method": "ensemble", "members": [member]})  # in members too
@@ -133,19 +133,19 @@ def test_write_keys_refuses_keys_changed_at_the_same_version(monkeypatch, tmp_pa
     monkeypatch.setattr(this, "KEYS_FILE", keys)
     with pytest.raises(SystemExit, match="the keys of TrainSummary changed without a new schema version"):
         this.write_keys()
-    assert json.loads(keys.read_text()) == stored  # untouched
+    assert json.loads(keys.read_text(encoding="utf-8")) == stored  # untouched
 
 
 def test_version_1_files_that_already_have_the_new_keys_keep_them(tmp_path):
     """Files written on 2026-11-27 between the keys' arrival and the version bump carry them at version 1: the
     conversion keeps what they say (a sweep that decided on the expected render stays so)."""
-    sweep = json.loads((OLD / "sweep.json").read_text())
+    sweep = json.loads((OLD / "sweep.json").read_text(encoding="utf-8"))
     sweep.update(metric="psnr_render", uncertainty_measured=False)
     path = tmp_path / "sweep.json"
     path.write_text(json.dumps(sweep))
     got = PruneSweep.read(path)
     assert got.metric == "psnr_render" and not got.uncertainty_measured
-    report = json.loads((OLD / "reconstruct_report.json").read_text())
+    report = json.loads((OLD / "reconstruct_report.json").read_text(encoding="utf-8"))
     report.update(mapping_attempts=[], mapping_agreed=True, num_observations=1234)
     path = tmp_path / "reconstruct_report.json"
     path.write_text(json.dumps(report))

@@ -65,6 +65,18 @@ def _train_members(scene: Path, run_dir: Path, cfg, device: torch.device, resume
     return summaries
 
 
+def _members_transients(summaries: list[TrainSummary]) -> dict[str, float] | None:
+    """{photo: the largest share any member left out} of the members' ``transients`` (None: detection off)."""
+    found = [s.transients for s in summaries if s.transients is not None]
+    if not found:
+        return None
+    out: dict[str, float] = {}
+    for shares in found:
+        for name, share in shares.items():
+            out[name] = max(share, out.get(name, 0.0))
+    return out
+
+
 def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False,
                    on_trainer=None) -> Path:
     """Train ``cfg.ensemble_size`` members (``cfg.ensemble_members``) into ``run_dir/members`` one after the other.
@@ -115,7 +127,8 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
             test_psnr=None,  # the ensemble's own PSNR (of the mean render) comes from `evaluate`
             variant=cfg.variant, device=str(device), scene=str(scene.resolve()), members=summaries,
             # what training warned about in any member, where the report and `evaluate` look for it
-            warnings=list(dict.fromkeys(f"member {i + 1}: {w}" for i, s in enumerate(summaries) for w in s.warnings)))
+            warnings=list(dict.fromkeys(f"member {i + 1}: {w}" for i, s in enumerate(summaries) for w in s.warnings)),
+            transients=_members_transients(summaries))
         summary.write(run_dir / "train_summary.json")
     psnr_txt = (f", the members' held-out PSNR {summary.test_psnr_members_mean:.2f} dB on average (the ensemble's own "
                 "comes from `evaluate`)" if summary.test_psnr_members_mean is not None else "")
@@ -154,12 +167,16 @@ class EnsembleRun(LoadedRun):
                        coverage=self.coverage(scene_scale, device, members[0]), mean_sample=members[0],
                        exposure=self.photo_exposure())
 
+    def transient_runs(self) -> list[Path]:
+        """Each member's run folder: a region any member's training left out is left out of the fits."""
+        return [m.run_dir for m in self.members]
+
     def size_text(self) -> str:
         """All members' Gaussians (``model`` is member 0's alone)."""
         what = "each with its posterior" if self.variational_members else "no posterior"
         return f"{sum(len(m.model) for m in self.members)} Gaussians in {len(self.members)} members ({what})"
 
-    def eval_notes(self, num_samples: int) -> list[str]:
+    def _method_notes(self, num_samples: int) -> list[str]:
         n = len(self.members)
         if n == 1 and not self.variational_members:
             return [f"ensemble of 1 member: {SAME_RENDER}, so the samples' spread is 0 everywhere; "

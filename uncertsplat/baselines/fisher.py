@@ -90,7 +90,7 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
 
     Returns the stored dict (variances, Fisher diagonals, noise std, timings).
     """
-    from uncertsplat.data.dataset import load_images, load_masks
+    from uncertsplat.data.dataset import load_images, load_masks, without_transients
     from uncertsplat.io.atomic import atomic_write_bytes
 
     run_dir = Path(run_dir)
@@ -101,6 +101,8 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
     cams = data.cameras[idx].to(device)
     images = load_images(data, idx, device)
     masks = load_masks(data, idx, device) if data.masks_train else None  # [T,H,W,1]: the pixels training fitted
+    masks = without_transients(masks, data, idx, run_dir)  # (and without the transients it left out)
+    masks = masks.to(device) if masks is not None else None
     exposure = loaded.photo_exposure()
     if exposure is not None:  # the photos at the model's exposure, as training compared them
         images = exposure.unexposed_images(idx, images)
@@ -188,7 +190,7 @@ class FisherRun(LoadedRun):
                        coverage=self.coverage(scene_scale, device, mean), mean_sample=mean,
                        exposure=self.photo_exposure())
 
-    def eval_notes(self, num_samples: int) -> list[str]:
+    def _method_notes(self, num_samples: int) -> list[str]:
         fcfg = self.config.fisher
         return [f"fisher: Laplace posterior ({fcfg.estimator} diagonal Fisher, observation noise std "
                 f"{self.noise_std:.4g}) sampled by perturbing {', '.join(sorted(self.variance))}"]

@@ -133,14 +133,16 @@ class LoadedRun:
             if sample is None:
                 with torch.no_grad():
                     sample = variational.expected_render_sample(self.model, **self.sample_kwargs)
-            masks_of = None
+            from uncertsplat.data.dataset import load_masks, without_transients
             from uncertsplat.sfm.scene import trained_with_masks
 
-            if scene.masks_train and trained_with_masks(self.run_dir):
-                # the pixels training fitted: a masked-out sky or passer-by is no surface to cover
-                from uncertsplat.data.dataset import load_masks
+            users = scene.masks_train and trained_with_masks(self.run_dir)
 
-                masks_of = lambda pick: load_masks(scene, [train[j] for j in pick])  # noqa: E731
+            def masks_of(pick):
+                # the pixels training fitted: a masked-out sky or passer-by is no surface to cover
+                views = [train[j] for j in pick]
+                return without_transients(load_masks(scene, views) if users else None, scene, views,
+                                          self.transient_runs())
             value = training_coverage(sample, scene.cameras[train].to(device), self.render_fn(scene_scale, device),
                                       masks_of=masks_of)
         self._coverage = value
@@ -166,6 +168,19 @@ class LoadedRun:
         bg = torch.tensor(self.config.scene.background, dtype=torch.float32, device=device)
         return functools.partial(render, background=bg, tile_size=self.config.tile_size,
                                  near=self.near if self.near is not None else near_plane(scene_scale))
+
+    def training_views(self, scene: SceneData) -> Callable:
+        """``load(indices) -> ViewSet``: the training views of ``scene`` as the fits on them read them (8-bit photos
+        kept as uint8, no depth), inside the photos' masks and without the transient regions this run's training
+        found in them (``data.dataset.TRANSIENTS_FOLDER``)."""
+        from uncertsplat.data.dataset import load_view_set
+
+        return functools.partial(load_view_set, scene, depth=False, keep_8bit=True, transients=self.transient_runs())
+
+    def transient_runs(self) -> list[Path]:
+        """The run folders whose ``transients/`` (``data.dataset.TRANSIENTS_FOLDER``) hold what training left out of
+        this model's photos: the run's own (an ensemble: its members')."""
+        return [self.run_dir]
 
     def sampler(self, scene_scale: float, device: torch.device) -> Sampler:
         """What the evaluation engine draws samples from: the model's posterior (its mean for a deterministic
@@ -218,6 +233,18 @@ class LoadedRun:
 
     def eval_notes(self, num_samples: int) -> list[str]:
         """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run."""
+        from uncertsplat.data.dataset import TRANSIENTS_FOLDER
+
+        folders = [r / TRANSIENTS_FOLDER for r in self.transient_runs()]
+        found = {p.relative_to(f).as_posix() for f in folders if f.is_dir() for p in f.rglob("*.png")}
+        where = folders[0] if len(folders) == 1 else f"the members' {TRANSIENTS_FOLDER}/ folders"
+        notes = [f"the transient objects training found in {len(found)} training photo(s) ({where}) are left out "
+                 "of the fits on the training views (the pixel noise, the std factor), as training left them out"
+                 ] if found else []
+        return notes + self._method_notes(num_samples)
+
+    def _method_notes(self, num_samples: int) -> list[str]:
+        """``eval_notes``' part on the kind of model (a baseline's own)."""
         if self.config.method == "deterministic":
             return [f"deterministic model: {SAME_RENDER}, so the samples' spread is 0 everywhere; "
                     "the std holds the predictive's other terms (the 'std² =' note lists them)"]

@@ -419,9 +419,41 @@ def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) ->
     return out
 
 
+TRANSIENTS_FOLDER = "transients"
+"""``RUN/transients/``: the training photos' transient regions ``train`` found (``TrainConfig.transients``), one
+mask per photo with any, under COLMAP's name (``IMG_1.jpg.png``), black on the regions: ``evaluate``, ``prune``,
+``view`` and ``predict`` leave them out of the fits on the training views as training left them out."""
+
+
+def transient_mask_paths(run_dir: Path, names: Sequence[str]) -> dict[str, Path]:
+    """{image name: its mask in ``RUN/transients/``} of the training photos ``names`` with one."""
+    folder = Path(run_dir) / TRANSIENTS_FOLDER
+    if not folder.is_dir():
+        return {}
+    return {n: folder / f"{n}.png" for n in names if (folder / f"{n}.png").is_file()}
+
+
+def without_transients(masks: Tensor | None, scene: SceneData, indices: Sequence[int],
+                       runs: Path | Sequence[Path]) -> Tensor | None:
+    """``masks`` [C,H,W,1] bool of the views ``indices`` (None: every pixel counts) without the transient regions
+    the run folder(s) ``runs`` found in them (``TRANSIENTS_FOLDER``; an ensemble's members: a region any of them
+    left out); ``masks`` itself when none was found there."""
+    names = [scene.cameras.image_names[i] for i in indices]
+    out = masks
+    W, H = scene.cameras.width, scene.cameras.height
+    for run_dir in [runs] if isinstance(runs, (str, Path)) else runs:
+        found = transient_mask_paths(run_dir, names)
+        if found and out is masks:
+            out = torch.ones((len(names), H, W, 1), dtype=torch.bool) if masks is None else masks.clone()
+        for k, n in enumerate(names):
+            if n in found:
+                out[k, ..., 0] &= torch.from_numpy(load_mask(found[n], W, H)).to(out.device)
+    return out
+
+
 def load_view_set(scene: SceneData, indices: Sequence[int], *, depth: bool = True,
                   depth_folder: Path | None = None, folder_in_scene_units: bool = False,
-                  keep_8bit: bool = False) -> ViewSet:
+                  keep_8bit: bool = False, transients: Path | Sequence[Path] | None = None) -> ViewSet:
     """The views ``indices`` of ``scene`` with their images, masks and GT depth, for evaluation (CPU).
 
     Args:
@@ -431,6 +463,8 @@ def load_view_set(scene: SceneData, indices: Sequence[int], *, depth: bool = Tru
         depth_folder: take GT depth from this folder instead (``load_depth_folder``; scale unknown).
         folder_in_scene_units: ``depth_folder``'s maps are in the scene's own (source) units: converted to its
             normalised units as the scene's own GT depth is (``depth_known_scale``).
+        transients: a run folder (or several: an ensemble's members): the transient regions its training found in
+            these views (``TRANSIENTS_FOLDER``) are left out of their masks.
     """
     indices = [int(i) for i in indices]
     depths, known = None, False
@@ -443,6 +477,9 @@ def load_view_set(scene: SceneData, indices: Sequence[int], *, depth: bool = Tru
         depths = load_depths(scene, indices)
         known = depths is not None
     images = load_photos(scene, indices) if keep_8bit else load_images(scene, indices)
+    masks = load_masks(scene, indices)
+    if transients is not None:
+        masks = without_transients(masks, scene, indices, transients)
     return ViewSet(indices=tuple(indices), cameras=scene.cameras[indices], images=images,
-                   masks=load_masks(scene, indices), depths=depths, depth_known_scale=known,
+                   masks=masks, depths=depths, depth_known_scale=known,
                    masks_trained=scene.masks_train)

@@ -56,6 +56,7 @@ from uncertsplat.schemas.prune import METRIC_KEYS as PRUNE_EVAL_KEYS
 from uncertsplat.schemas.prune import PRUNED_FROM_EVALUATE, UNPRUNED_FROM_EVALUATE
 from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
+from uncertsplat.train.transients import transients_note
 
 
 @dataclass
@@ -728,6 +729,8 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
             if s.growth:
                 body.append(note(f"{run.name}: {growth_reason(stops[0] if stops else s.growth[-1])} "
                                  f"({len(s.growth)} growth test(s) in all)"))
+            if s.transients is not None:  # which photos held transient objects, left out of training
+                body.append(note(f"{run.name}: {transients_note(s.transients)}"))
             more = {k: v for k, v in data.items() if isinstance(v, (dict, list)) and v}
             for member in more.get("members", []):  # an ensemble's members: models without carriers, as above
                 if not member.get("num_carriers"):

@@ -148,10 +148,10 @@ class TrainSummary(SchemaFile):
     """
 
     FILE_NAME = "train_summary.json"
-    SCHEMA_VERSION = 5
+    SCHEMA_VERSION = 6
     WRITTEN_BY = "uncertsplat train SCENE -o RUN --resume"  # (a plain re-run refuses the existing run folder)
 
-    schema_version: int = 5
+    schema_version: int = 6
     method: str
     variant: str
     steps: int
@@ -199,6 +199,9 @@ class TrainSummary(SchemaFile):
     exposure_checks: list[ExposureCheck] = Field(default_factory=list)
     """The exposure tests (``exposure = "auto"``) and whether they switched on the photos' exposures (empty: none ran,
     e.g. ``exposure`` "off" or "affine", or runs from before the test)."""
+    transients: dict[str, float] | None = None
+    """{training photo: share of its pixels left out as transient} of the photos in which training found transient
+    objects (``TrainConfig.transients``; their masks in ``RUN/transients/``); None with the detection off."""
     # ---- fisher
     train_seconds: float | None = None
     fisher_seconds: float | None = None
@@ -218,8 +221,8 @@ class TrainSummary(SchemaFile):
     def _upgrade(cls, data: dict, version: int) -> dict | None:
         # version 1 had no informed posterior (no updates); versions 1 and 2 neither the fit on the training views
         # nor the warnings; versions 1-3 no exposure tests; versions 1-4 no posterior.position_prior (measured
-        # against the config's std then); in the run and in its members
-        if version not in (1, 2, 3, 4):
+        # against the config's std then); versions 1-5 no transients (none were found); in the run and its members
+        if version not in (1, 2, 3, 4, 5):
             return None
 
         def up(d: dict) -> dict:

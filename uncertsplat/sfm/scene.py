@@ -231,11 +231,31 @@ def _digest_of(hashes: dict[str, str]) -> str:
 
 def run_mask_digest(run_dir: Path) -> str | None:
     """One SHA-256 of the photos' own masks, as they are now, of the views the run in ``run_dir`` trains, holds out
-    and sets aside (``RUN/scene.json``): what an evaluation scored with besides the run's files (``stages.evaluate
-    .run_sha256``, the kept noise fit's key). None without masks or without a readable scene.json; where the scene
-    folder is gone (a run used away from its photos), the digest of the masks the run was trained with
-    (``RunScene.masks``), as the scene gave it while they were unchanged; "unreadable" where the masks cannot be
-    read (never the digest of no masks)."""
+    and sets aside (``RUN/scene.json``), and of the transient regions its training found (``RUN/transients/``,
+    ``data.dataset.TRANSIENTS_FOLDER``): what an evaluation scored with besides the run's model and settings
+    (``stages.evaluate.run_sha256``, the kept noise fit's key). None without either; where the scene folder is gone
+    (a run used away from its photos), the photos' part is the digest of the masks the run was trained with
+    (``RunScene.masks``), as the scene gave it while they were unchanged; "unreadable" where a mask cannot be read
+    (never the digest of no masks)."""
+    from uncertsplat.conventions import ENSEMBLE_MEMBERS
+    from uncertsplat.data.dataset import TRANSIENTS_FOLDER
+    from uncertsplat.provenance import file_sha256
+
+    photos = _photo_mask_digest(run_dir)
+    run_dir = Path(run_dir)
+    # the run's own, and an ensemble's members' (each member's training left its own regions out)
+    folders = [run_dir / TRANSIENTS_FOLDER, *sorted((run_dir / ENSEMBLE_MEMBERS).glob(f"*/{TRANSIENTS_FOLDER}"))]
+    try:
+        found = {p.relative_to(run_dir).as_posix(): file_sha256(p)
+                 for f in folders if f.is_dir() for p in sorted(f.rglob("*.png"))}
+    except OSError:
+        return "unreadable"
+    # (the runs without transients keep the digest they were evaluated under)
+    return _digest_of({"photos": photos or "-", "transients": _digest_of(found)}) if found else photos
+
+
+def _photo_mask_digest(run_dir: Path) -> str | None:
+    """``run_mask_digest``'s part of the photos' own masks."""
     from uncertsplat.provenance import file_sha256
     from uncertsplat.schemas.scene import RunScene
 

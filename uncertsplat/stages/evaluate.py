@@ -485,7 +485,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
             if cfg.residual_views == 0 and cfg.residual_scale != "auto":  # (it scales a noise not fitted)
                 console.print(f"[yellow]note:[/] residual_scale = {cfg.residual_scale} has no effect with "
                               "residual_views = 0: there is no pixel noise to scale")
-        train_views = partial(load_view_set, scene, depth=False, keep_8bit=True)  # the residual fit's (64 by default)
+        train_views = loaded.training_views(scene)  # the residual fit's (64 by default)
         # the set-aside views' K samples, when the noise is fitted here: the std factor's fit reuses them
         set_aside_maps: dict = {}
         residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
@@ -549,9 +549,7 @@ def _keep_missing_predictive(run_dir: Path, loaded, scene, cfg: EvalConfig, repo
     needs without the photos) when the file is missing or for other settings (a run evaluated before the file
     existed): the std factor, tails and the views they were fitted on from its metrics (the same numbers: JSON keeps a
     float to the bit), the pixel noise from ``residual.pt`` (else fitted, as the evaluation fitted it)."""
-    from functools import partial
 
-    from uncertsplat.data.dataset import load_view_set
     from uncertsplat.eval.engine import StdFit
     from uncertsplat.io.atomic import run_lock
     from uncertsplat.stages.predictive_cache import keep_predictive, read_predictive
@@ -561,7 +559,7 @@ def _keep_missing_predictive(run_dir: Path, loaded, scene, cfg: EvalConfig, repo
         return
     with run_lock(run_dir, "evaluate"):
         residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), cfg, device,
-                                   load_views=partial(load_view_set, scene, depth=False, keep_8bit=True), write=True,
+                                   load_views=loaded.training_views(scene), write=True,
                                    calibration_indices=scene.split.get("calibration", ()))
         fit = StdFit(report.std_scale, report.degrees_of_freedom, list(report.calibration_views))
         keep_predictive(loaded, scene, cfg, residual, fit, device)

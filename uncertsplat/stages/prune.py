@@ -128,7 +128,7 @@ class _Measure:
         from uncertsplat.stages.residual_cache import fitted_residual
 
         self.residual = fitted_residual(loaded, scene.scene_scale, scene.split.get("train", ()), self.ecfg, device,
-                                        load_views=partial(load_view_set, scene, depth=False, keep_8bit=True), write=False,
+                                        load_views=loaded.training_views(scene), write=False,
                                         calibration_indices=scene.split.get("calibration", ()))
         self._dof: tuple[float | None] | None = None  # the source's predictive tails, once known (``dof``)
         # every pruned model's rays are counted empty against the source's coverage (``PruneReport.source_coverage``)
@@ -176,13 +176,11 @@ class _Measure:
         is scored with, so that their NLLs compare: read from the source's evaluation when ``unpruned`` found one,
         else fitted once here."""
         if self._dof is None:  # as `evaluate` fits it
-            from uncertsplat.data.dataset import load_view_set
             from uncertsplat.eval.engine import scored_sampler
 
             _, fit = scored_sampler(partial(self.loaded.sampler, self.scene.scene_scale, self.device), self.residual,
                                     self.scene.cameras, self.scene.split, self.ecfg, self.device,
-                                    load_views=partial(load_view_set, self.scene, depth=False,
-                                                       keep_8bit=True))
+                                    load_views=self.loaded.training_views(self.scene))
             self._dof = (fit.dof,)
         return self._dof[0]
 
@@ -623,12 +621,17 @@ def _write_model(folder: Path, run_dir: Path, loaded, meta: dict, pruned, keep: 
                  scores: dict) -> None:
     """The pruned run's own files in ``folder``: the source's config, scene and exposure, the pruned PLYs (the point
     cloud with each kept Gaussian's scores)."""
+    import shutil
+
+    from uncertsplat.data.dataset import TRANSIENTS_FOLDER
     from uncertsplat.io.atomic import atomic_write_bytes
     from uncertsplat.io.ply import set_vertex_properties, write_point_cloud_ply, write_variational_ply
 
     for name in ("config.json", RunExposure.FILE_NAME):
         if (run_dir / name).is_file():
             atomic_write_bytes(folder / name, (run_dir / name).read_bytes())
+    if (run_dir / TRANSIENTS_FOLDER).is_dir():  # what training left out of the photos, which pruning does not change
+        shutil.copytree(run_dir / TRANSIENTS_FOLDER, folder / TRANSIENTS_FOLDER)
     info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
     if info is not None:  # its path relative to the run, from here (the staging folder is the output's sibling)
         scene = info.scene_folder(run_dir)

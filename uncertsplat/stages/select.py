@@ -203,7 +203,7 @@ def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | N
 def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | None = None):
     from uncertsplat.baselines import load_run
     from uncertsplat.baselines.fisher import prior_stds
-    from uncertsplat.data.dataset import load_images, load_masks
+    from uncertsplat.data.dataset import load_images, load_masks, without_transients
     from uncertsplat.io.atomic import check_output_folder, run_lock
     from uncertsplat.io.images import resize_image, resize_mask
     from uncertsplat.schemas import PruneReport, RunScene, Selection
@@ -306,11 +306,12 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
             photos = exposure.unexposed_images(train, photos)
         images = torch.from_numpy(np.stack([resize_image(im.numpy(), low_train.width, low_train.height)
                                             for im in photos]))
-        masks = None
-        if scene.masks_train:  # the photos' own masks, as training left their other pixels out (a low pixel counts
-            # only where every pixel under it does)
-            masks = torch.from_numpy(np.stack([resize_mask(m.numpy(), low_train.width, low_train.height)
-                                               for m in load_masks(scene, train)])).to(device)
+        # the photos' own masks and the transients training found, as training left those pixels out (a low pixel
+        # counts only where every pixel under it does)
+        full = without_transients(load_masks(scene, train) if scene.masks_train else None, scene, train,
+                                  loaded.transient_runs())
+        masks = None if full is None else torch.from_numpy(np.stack(
+            [resize_mask(m.numpy(), low_train.width, low_train.height) for m in full])).to(device)
         fcfg = loaded.config.fisher
         params = {k: v.detach() for k, v in loaded.model.params.items()}
         low = low_resolution(cands.cameras, cfg.max_side)

@@ -61,16 +61,14 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
             # the colour posterior as `evaluate` fits it, without the resolution term's shifted renders and the edge
             # term's fit (they only refine the noise of what the photos showed; the colour posterior divides by the
             # whole noise either way)
-            from functools import partial
 
             from uncertsplat.config import EvalConfig
-            from uncertsplat.data.dataset import load_view_set
             from uncertsplat.eval.engine import fit_residual
 
             console.print("fitting what the training photos showed (the unseen mode, once)...")
             return fit_residual(loaded.sampler(scene_scale, device), scene.split["train"],
                                 EvalConfig(resolution=0.0, edge_noise=False), device,
-                                load_views=partial(load_view_set, scene, depth=False, keep_8bit=True))
+                                load_views=loaded.training_views(scene))
     if scene is not None:
         to_source = scene.depth_to_source
     elif info is not None:  # the scene's units from the run's record of its normalisation

@@ -202,7 +202,7 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     indices = split_indices(scene.split, ecfg)
     t_cal = time.perf_counter()
     # as `evaluate` does; not in the timed part
-    train_views = partial(load_view_set, scene, depth=False, keep_8bit=True)  # as evaluate loads them
+    train_views = loaded.training_views(scene)  # as evaluate loads them
     residual = fit_residual(loaded.sampler(scene.scene_scale, device), scene.split.get("train", ()), ecfg, device,
                             load_views=train_views, calibration_indices=scene.split.get("calibration", ()))
     sampler, fit = scored_sampler(partial(loaded.sampler, scene.scene_scale, device), residual, scene.cameras,

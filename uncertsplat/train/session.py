@@ -662,6 +662,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             console.print(exposure.describe())
         elif (run_dir / RunExposure.FILE_NAME).exists():  # an earlier training of this folder learned exposures
             (run_dir / RunExposure.FILE_NAME).unlink()
+        transients = _write_transients(run_dir, trainer, names)
         held = trainer.evaluate()
         fit_psnr = trainer.training_psnr()
         warnings = poor_fit_warnings(fit_psnr, scene, cfg)
@@ -679,7 +680,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         summary = TrainSummary(**trainer.summary(), test_psnr=held.get("psnr"), test_ssim=held.get("ssim"),
                                test_render="expected render (variational.expected_render_sample)",
                                num_test_views=len(data.split.get("test", ())), device=str(device), kernels=kernels,
-                               scene=str(scene.resolve()), train_psnr=fit_psnr, warnings=recorded)
+                               scene=str(scene.resolve()), train_psnr=fit_psnr, warnings=recorded,
+                               transients=transients)
         summary.write(run_dir / "train_summary.json")
         psnr_txt = f", held-out PSNR {held['psnr']:.2f} dB" if held else ""
         fit_txt = f", training views {_psnr_shown(fit_psnr):.2f} dB" if fit_psnr is not None else ""
@@ -706,6 +708,34 @@ POOR_FIT_PSNR = 20.0
 """A model whose render of its own training views stays below this PSNR (dB) gets a warning: 3DGS fits the photos it
 trains on far better than that when the cameras are right (the demo scene 33 dB and more, fern and bonsai 25-30 dB
 at the paper's 7000 steps); bonsai trained on an SfM run caught in a wrong focal length fitted them at 18.9 dB."""
+
+
+def _write_transients(run_dir: Path, trainer, names) -> dict[str, float] | None:
+    """``RUN/transients/`` (``data.dataset.TRANSIENTS_FOLDER``): the transient regions training found, one mask per
+    training photo with any (white where the pixels count, COLMAP's name: a workspace's ``masks/`` takes them as
+    they are); an earlier training's folder is replaced. Returns {photo: share of its pixels left out}, or None with
+    ``transients.detect`` off (and no folder)."""
+    import shutil
+
+    from uncertsplat.data.dataset import TRANSIENTS_FOLDER
+    from uncertsplat.io.images import write_png
+    from uncertsplat.train.transients import transients_note
+
+    folder, partial = run_dir / TRANSIENTS_FOLDER, run_dir / f"{TRANSIENTS_FOLDER}.partial"
+    for old in (partial, folder):  # (the folder last: a crash between the two leaves the new one whole or none)
+        if old.exists():
+            shutil.rmtree(old)
+    if not trainer.cfg.transients.detect:
+        return None
+    regions = trainer.transient_regions(names)
+    shares = {}
+    for name, keep in regions.items():
+        write_png(partial / f"{name}.png", keep.cpu().numpy())
+        shares[name] = round(1.0 - float(keep.float().mean()), 4)
+    if regions:
+        partial.rename(folder)
+    console.print(transients_note(shares, len(trainer.train_idx)) + (f" ({folder})" if regions else ""))
+    return shares
 
 
 def _workspace_report(scene: Path):

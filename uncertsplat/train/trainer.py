@@ -67,6 +67,7 @@ from uncertsplat.train.adam import Adam, all_finite
 from uncertsplat.train.losses import SsimTargetCache, total_loss
 from uncertsplat.train.optim import base_rates, load_optimizer_state, make_optimizer, set_rates
 from uncertsplat.train.profile import PhaseTimer
+from uncertsplat.train.transients import pack_mask, transient_masks, unpack_mask
 from uncertsplat.types import Cameras, GaussianSample, Photos, SceneData
 from uncertsplat.uncertainty.curvature import curvature
 from uncertsplat.uncertainty.scores import blending_weights
@@ -400,6 +401,12 @@ class Trainer:
         self._fit_until: int | None = None  # the step ``fit`` trains to (it tests the model there); None outside fit
         self.skipped_steps = 0  # steps whose update was skipped because of a NaN/Inf loss or gradient
         self.bad_steps_in_a_row = 0
+        # each training view's pixels that count after its last full-resolution step found transient objects in it
+        # (cfg.transients; position in the training views -> its [H,W,1] bool mask packed a bit per pixel on the CPU
+        # (transients.pack_mask), absent where the last test found none)
+        self.transient_keep: dict[int, Tensor] = {}
+        # the first step that tests for them: fixed by the run's first iterations once passed (``_load_state``)
+        self.transients_from = int(cfg.transients.start * cfg.iterations)
         if state is None:
             self._init_fresh()
         else:
@@ -552,6 +559,12 @@ class Trainer:
             return None
         return exposure_record(self.exposure, [names[i] for i in self.train_idx], self.step)
 
+    def transient_regions(self, names) -> dict[str, Tensor]:
+        """{training photo name: [H,W] bool, its pixels that count} of the photos whose last full-resolution step
+        found transient objects in them (``cfg.transients``; ``names``: the scene's image names, indexed by its view
+        indices), in the training views' order."""
+        return {names[self.train_idx[v]]: self.transient_mask(v)[..., 0] for v in sorted(self.transient_keep)}
+
     def photos(self, views: list[int] | None = None) -> Tensor | Photos | _Unexposed:
         """[B,H,W,3] the training photos ``views`` (positions in the training list; None: all) at the model's
         exposure: as they are with ``exposure = "off"`` (``train_images`` itself for all), else with each photo's
@@ -592,6 +605,9 @@ class Trainer:
             "eval_pending": self.eval_pending,
             "skipped_steps": self.skipped_steps,
             "bad_steps_in_a_row": self.bad_steps_in_a_row,
+            "transient_views": torch.tensor(sorted(self.transient_keep), dtype=torch.long),
+            "transient_keep": (torch.stack([self.transient_keep[v] for v in sorted(self.transient_keep)])
+                               if self.transient_keep else torch.zeros((0, 0), dtype=torch.uint8)),  # packed bits
         }
 
     def _restored_generator(self, state: dict, key: str, offset: int) -> torch.Generator:
@@ -650,10 +666,24 @@ class Trainer:
         self.eval_pending = bool(state.get("eval_pending", False))
         self.skipped_steps = int(state.get("skipped_steps", 0))
         self.bad_steps_in_a_row = int(state.get("bad_steps_in_a_row", 0))
+        self.transient_keep = {}
+        if "transient_views" in state:
+            # positions in the checkpoint's training views, kept by name where views joined since (--add-views)
+            keys = self._view_keys(state)
+            where = {key: k for k, key in enumerate(keys)}
+            h, w = self.train_images.shape[1:3]
+            for v, packed in zip(state["transient_views"].tolist(), state["transient_keep"], strict=True):
+                key = saved_views[v] if saved_views and v < len(saved_views) else None
+                if key in where and packed.numel() == (h * w + 7) // 8:
+                    self.transient_keep[where[key]] = packed.cpu().clone()
         # a run extended past a low-resolution phase it finished trains on at full resolution (the phase stretches
         # with the run only while it is still in it)
         saved_cfg = json.loads(state["config"]) if isinstance(state.get("config"), str) else {}
         ended = int(float(saved_cfg.get("low_res_fraction", 0.0)) * int(saved_cfg.get("iterations", 0)))
+        began = int(float(saved_cfg.get("transients", {}).get("start", 1.0)) * int(saved_cfg.get("iterations", 0)))
+        if self.step > began:  # a run extended after its test began keeps testing (the photos' known regions
+            # would otherwise be trained on again until the start of the longer run)
+            self.transients_from = min(self.transients_from, began)
         if self.step >= ended:
             self.low_res_until = min(self.low_res_until, ended)
             self.low_cams = self.low_images = self.low_masks = None  # never read again
@@ -811,8 +841,9 @@ class Trainer:
         gains = []
         for k in check_views(len(kept), max_views):
             render, photo = self.render(g, self.train_cams[kept[k]]).rgb[0], self.photos([kept[k]])[0]  # [H,W,3]
-            if self.train_masks is not None:  # the pixels that count, [P,3]
-                m = self.train_masks[kept[k]][..., 0]
+            masks = self._train_masks([kept[k]])
+            if masks is not None:  # the pixels that count, [P,3]
+                m = masks[0, ..., 0]
                 render, photo = render[m], photo[m]
             gains.append(fitted_gain(render, photo))
         return gains
@@ -831,8 +862,46 @@ class Trainer:
                    for k, i in enumerate(chosen)) / len(chosen)
 
     def _train_masks(self, views: Sequence[int]) -> Tensor | None:
-        """[V,H,W,1] the masks of training views ``views`` (positions in the training views), or None."""
-        return None if self.train_masks is None else self.train_masks[list(views)]
+        """[V,H,W,1] the pixels that count of training views ``views`` (positions in the training views): a user's
+        masks without the transient regions last found in them (``cfg.transients``), or None for all."""
+        views = list(views)
+        masks = None if self.train_masks is None else self.train_masks[views]  # (a list index copies)
+        hit = [k for k, v in enumerate(views) if v in self.transient_keep]
+        if not hit:
+            return masks
+        if masks is None:
+            masks = torch.ones((len(views), *self.train_images.shape[1:3], 1), dtype=torch.bool, device=self.device)
+        for k in hit:
+            masks[k] &= self.transient_mask(views[k])
+        return masks
+
+    def transient_mask(self, view: int) -> Tensor:
+        """[H,W,1] bool, the pixels that count of training view ``view`` (a position in the training views) after
+        the transient regions last found in it (every pixel where none was)."""
+        h, w = self.train_images.shape[1:3]
+        if view not in self.transient_keep:
+            return torch.ones((h, w, 1), dtype=torch.bool, device=self.device)
+        return unpack_mask(self.transient_keep[view], h, w, self.device)
+
+    def _drop_transients(self, step: int, views: list[int], rgb: Tensor, gt: Tensor, low: bool,
+                         pick) -> Tensor | None:
+        """``cfg.transients``: [B,H,W,1] bool, this step's pixels that count without the transient regions its
+        render shows in its photos (None: no test at this step, or none found). A full-resolution step keeps each
+        view's result for the posterior and the checks (``_train_masks``)."""
+        tcfg = self.cfg.transients
+        if not tcfg.detect or step <= self.transients_from:
+            return None
+        valid = None if self.train_masks is None else (self.low_masks if low else self.train_masks)[pick]
+        keep = transient_masks(rgb, gt, threshold=tcfg.threshold, window=tcfg.window, core=tcfg.core,
+                               max_share=tcfg.max_share, valid=valid)  # [B,H,W,1]
+        found = ~keep.flatten(1).all(1)  # [B]
+        if not low:
+            for k, v in enumerate(views):
+                if found[k]:
+                    self.transient_keep[v] = pack_mask(keep[k])
+                else:
+                    self.transient_keep.pop(v, None)
+        return keep if bool(found.any()) else None
 
     # ----------------------------------------------------------------------------------- steps
     def train_step(self) -> dict[str, float]:
@@ -899,6 +968,9 @@ class Trainer:
                 rgb = expose(rgb, gain[idx], offset[idx])
             if self.train_masks is not None:  # 0 outside the mask, as the photo is there: no loss, no gradient
                 rgb = rgb * (self.low_masks if low else self.train_masks)[pick]
+            keep = self._drop_transients(step, views, rgb, gt, low, pick)
+            if keep is not None:  # 0 on the transients in render and photo (the photo's SSIM statistics differ)
+                rgb, gt, gt_stats = rgb * keep, gt * keep, None
             losses = total_loss(rgb, gt, kl, ssim_lambda=cfg.ssim_lambda, kl_weight=cfg.variational.kl_weight,
                                 target_stats=gt_stats)
         with timer("backward"):
@@ -1001,7 +1073,8 @@ class Trainer:
         # one render per view: the noise (RMS residual), the curvature, and at the last update with
         # ``sandwich`` the views' disagreement (at every update it cost 2 dB: the config's docstring)
         probes = vcfg.probes if last else vcfg.refresh_probes
-        masks = self._train_masks(pick) if n < t else self.train_masks
+        masks = self._train_masks(pick) if n < t else \
+            (self._train_masks(range(t)) if self.transient_keep else self.train_masks)
         curv = curvature(params, cams, images, self.render, names=("means", "scales", "opacities"),
                          generator=self.gen_noise, sh_degree=degree, probes=probes,
                          disagreement=vcfg.sandwich and last, masks=masks)

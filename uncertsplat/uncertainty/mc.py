@@ -252,7 +252,7 @@ between."""
 @torch.no_grad()
 def training_coverage(sample: GaussianSample, cameras: Cameras, render_fn: RenderFn, *,
                       quantile: float = COVERAGE_QUANTILE, max_views: int = 8,
-                      masks_of: Callable[[list[int]], Tensor] | None = None) -> float:
+                      masks_of: Callable[[list[int]], Tensor | None] | None = None) -> float:
     """The opacity the model reaches on the surfaces its training views saw: the ``quantile`` of the rendered
     alpha over every pixel of at most ``max_views`` evenly spaced training cameras (``mc_render``'s
     ``coverage``). At least 1e-3, so a model that covers nothing still gives a valid value; 1 without cameras.
@@ -262,7 +262,7 @@ def training_coverage(sample: GaussianSample, cameras: Cameras, render_fn: Rende
         cameras: the training cameras (images are not needed).
         render_fn: renders a sample for cameras.
         masks_of: the masks [k,H,W,1] bool of the training cameras at the given positions (the photos' own masks:
-            the pixels training fitted), or None for every pixel.
+            the pixels training fitted; it may give None), or None: every pixel.
     """
     if not 0.0 <= quantile < 1.0:
         raise ValueError(f"quantile must be in [0, 1), got {quantile}")
@@ -271,7 +271,8 @@ def training_coverage(sample: GaussianSample, cameras: Cameras, render_fn: Rende
         return 1.0
     k = min(max_views, n)
     pick = sorted({round(j * (n - 1) / max(k - 1, 1)) for j in range(k)})
-    masks = masks_of(pick).cpu() if masks_of is not None else None  # [k,H,W,1]
+    masks = masks_of(pick) if masks_of is not None else None  # [k,H,W,1], or None: every pixel
+    masks = masks.cpu() if masks is not None else None
     alphas = [render_fn(sample, cameras[[i]]).alpha[0].float().cpu()[masks[j] if masks is not None else ...]
               .flatten() for j, i in enumerate(pick)]
     a = torch.cat(alphas)
