@@ -70,7 +70,8 @@ def test_sweep_writes_one_record_per_point_and_resumes(scene_path, tmp_path):
     # points measured under other conditions (another thread count: an earlier --jobs 2) are reused with a note
     lines = (out / "sweep.jsonl").read_text(encoding="utf-8").splitlines()
     first = json.loads(lines[0])
-    (out / "sweep.jsonl").write_text("\n".join([json.dumps({**first, "threads": 7}), *lines[1:]]) + "\n")
+    (out / "sweep.jsonl").write_text("\n".join([json.dumps({**first, "threads": 7}), *lines[1:]]) + "\n",
+                                     encoding="utf-8")
     from uncertsplat.console import console
 
     with console.capture() as captured:

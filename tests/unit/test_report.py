@@ -720,7 +720,7 @@ def test_own_page_is_replaced_anothers_is_not(tmp_path):
     # a page of the versions before the generator tag, with a title of its own, is still one of ours
     old = out / "index.html"
     old.write_text(old.read_text(encoding="utf-8").replace('<meta name="generator" content="uncertsplat report">', "")
-                   .replace("<title>uncertsplat report</title>", "<title>bonsai sweep</title>"))
+                   .replace("<title>uncertsplat report</title>", "<title>bonsai sweep</title>"), encoding="utf-8")
     stage.run([run], out, ReportConfig())
     # a sweep's page is not a report: report -o SWEEP_OUT would replace it
     from uncertsplat.report.html import page

@@ -187,6 +187,9 @@ class TestTrainerLeavesTransientsOut:
         assert longer.transients_from == 30
         fresh = Trainer(scene, toy_config(iterations=200, **kw), tr, te)
         assert fresh.transients_from == 100
+        longer.fit(until=80)  # the longer run stopped again, then resumed with its own (200-step) settings
+        again = Trainer(scene, toy_config(iterations=200, **kw), tr, te, state=decode(encode(longer.state_dict())))
+        assert again.transients_from == 30
         early = _painted_trainer()  # (start 0.1: a run stopped before its test began stretches it with the run)
         early.fit(until=5)
         stretched = Trainer(early.scene, toy_config(iterations=600, transients=early.cfg.transients.model_dump()),
@@ -321,7 +324,49 @@ def test_the_note_names_the_photos_and_their_share():
 
     text = transients_note({"a.png": 0.1, "b.png": 0.3}, 20)
     assert "found in 2 of 20 training photos (a.png, b.png; 20.0% of their pixels on average)" in text
-    assert transients_note({}, 5).startswith("transients: found in none of 5 training photos")
+    assert text.endswith("the run's transients/ folder")
+    assert transients_note({}, 5).startswith("transients: found in none of the 5 training photos;")
+    assert transients_note({}) == "transients: found in no training photo; every pixel trained"
+    assert transients_note({"a.png": 0.1}, where="the members' transients/ folders").endswith("folders")
+
+
+def test_the_folder_is_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
+    """A stop while the new masks are written keeps the last whole folder, and the next write goes on from it."""
+    from types import SimpleNamespace
+
+    import uncertsplat.io.images as images
+    from uncertsplat.train.session import _write_transients
+
+    def trainer(regions, detect=True):
+        return SimpleNamespace(cfg=SimpleNamespace(transients=SimpleNamespace(detect=detect)), train_idx=[0, 1, 2],
+                               transient_regions=lambda names: regions)
+
+    keep = torch.ones(4, 6, dtype=torch.bool)
+    keep[0, 0] = False
+    assert _write_transients(tmp_path, trainer({"a.png": keep, "b.png": keep}), None) == {
+        "a.png": round(1 / 24, 4), "b.png": round(1 / 24, 4)}
+    assert sorted(p.name for p in (tmp_path / "transients").iterdir()) == ["a.png.png", "b.png.png"]
+    real, calls = images.write_png, []
+
+    def failing(path, arr):
+        calls.append(path)
+        if len(calls) == 2:
+            raise OSError("disk full")
+        return real(path, arr)
+
+    monkeypatch.setattr(images, "write_png", failing)
+    with pytest.raises(OSError):
+        _write_transients(tmp_path, trainer({"c.png": keep, "d.png": keep}), None)
+    assert sorted(p.name for p in (tmp_path / "transients").iterdir()) == ["a.png.png", "b.png.png"]
+    monkeypatch.setattr(images, "write_png", real)
+    _write_transients(tmp_path, trainer({"c.png": keep}), None)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["transients"]
+    assert [p.name for p in (tmp_path / "transients").iterdir()] == ["c.png.png"]
+    (tmp_path / "transients").rename(tmp_path / "transients.old")  # a stop between the swap's two renames
+    assert _write_transients(tmp_path, trainer({}), None) == {}
+    assert sorted(p.name for p in tmp_path.iterdir()) == [], "none found: no folder (the stale one gone)"
+    _write_transients(tmp_path, trainer({"a.png": keep}), None)
+    assert _write_transients(tmp_path, trainer({}, detect=False), None) is None and not any(tmp_path.iterdir())
 
 
 def test_an_ensembles_members_leave_out_every_region_any_of_them_found(tmp_path):
@@ -356,9 +401,10 @@ def test_an_ensembles_members_leave_out_every_region_any_of_them_found(tmp_path)
                             num_gaussians=1, num_carriers=0, peak_memory_mb=0.0, device="cpu", scene="s",
                             transients=shares)
 
-    assert _members_transients([summary(None), summary(None)]) is None
-    assert _members_transients([summary({"a.png": 0.1}), summary({"a.png": 0.3, "c.png": 1.0})]) == {
-        "a.png": 0.3, "c.png": 1.0}
+    assert _members_transients([summary(None), summary(None)], members) is None
+    # the shares of what the fits leave out: a.png's two pixels (of 24), one from each member
+    assert _members_transients([summary({"a.png": 0.0417}), summary({"a.png": 0.0417, "c.png": 1.0})], members) == {
+        "a.png": round(2 / 24, 4), "c.png": 1.0}
 
 
 class SimpleScene:

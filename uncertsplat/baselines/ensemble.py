@@ -65,16 +65,24 @@ def _train_members(scene: Path, run_dir: Path, cfg, device: torch.device, resume
     return summaries
 
 
-def _members_transients(summaries: list[TrainSummary]) -> dict[str, float] | None:
-    """{photo: the largest share any member left out} of the members' ``transients`` (None: detection off)."""
-    found = [s.transients for s in summaries if s.transients is not None]
-    if not found:
+def _members_transients(summaries: list[TrainSummary], members: list[Path]) -> dict[str, float] | None:
+    """{photo: the share of its pixels any member left out} of the members' regions (``members``: their run folders;
+    what the ensemble's fits leave out), None with the detection off (``summaries``' ``transients``)."""
+    import numpy as np
+
+    from uncertsplat.data.dataset import TRANSIENTS_FOLDER
+    from uncertsplat.io.images import read_mask
+
+    if all(s.transients is None for s in summaries):
         return None
-    out: dict[str, float] = {}
-    for shares in found:
-        for name, share in shares.items():
-            out[name] = max(share, out.get(name, 0.0))
-    return out
+    kept: dict[str, np.ndarray] = {}  # photo -> [H,W] bool, the pixels every member kept
+    for run_dir in members:
+        folder = run_dir / TRANSIENTS_FOLDER
+        for path in sorted(folder.rglob("*.png")) if folder.is_dir() else []:
+            name = path.relative_to(folder).as_posix().removesuffix(".png")
+            mask = read_mask(path)
+            kept[name] = mask if name not in kept or kept[name].shape != mask.shape else kept[name] & mask
+    return {name: round(1.0 - float(m.mean()), 4) for name, m in sorted(kept.items())}
 
 
 def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False,
@@ -128,7 +136,7 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
             variant=cfg.variant, device=str(device), scene=str(scene.resolve()), members=summaries,
             # what training warned about in any member, where the report and `evaluate` look for it
             warnings=list(dict.fromkeys(f"member {i + 1}: {w}" for i, s in enumerate(summaries) for w in s.warnings)),
-            transients=_members_transients(summaries))
+            transients=_members_transients(summaries, [ensemble_member_dir(run_dir, i) for i in range(n)]))
         summary.write(run_dir / "train_summary.json")
     psnr_txt = (f", the members' held-out PSNR {summary.test_psnr_members_mean:.2f} dB on average (the ensemble's own "
                 "comes from `evaluate`)" if summary.test_psnr_members_mean is not None else "")

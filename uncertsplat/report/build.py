@@ -730,7 +730,8 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
                 body.append(note(f"{run.name}: {growth_reason(stops[0] if stops else s.growth[-1])} "
                                  f"({len(s.growth)} growth test(s) in all)"))
             if s.transients is not None:  # which photos held transient objects, left out of training
-                body.append(note(f"{run.name}: {transients_note(s.transients)}"))
+                where = "the members' transients/ folders" if s.method == "ensemble" else "the run's transients/ folder"
+                body.append(note(f"{run.name}: {transients_note(s.transients, where=where)}"))
             more = {k: v for k, v in data.items() if isinstance(v, (dict, list)) and v}
             for member in more.get("members", []):  # an ensemble's members: models without carriers, as above
                 if not member.get("num_carriers"):

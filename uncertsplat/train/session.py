@@ -721,19 +721,30 @@ def _write_transients(run_dir: Path, trainer, names) -> dict[str, float] | None:
     from uncertsplat.io.images import write_png
     from uncertsplat.train.transients import transients_note
 
-    folder, partial = run_dir / TRANSIENTS_FOLDER, run_dir / f"{TRANSIENTS_FOLDER}.partial"
-    for old in (partial, folder):  # (the folder last: a crash between the two leaves the new one whole or none)
-        if old.exists():
+    folder = run_dir / TRANSIENTS_FOLDER
+    partial, old = folder.with_name(f"{TRANSIENTS_FOLDER}.partial"), folder.with_name(f"{TRANSIENTS_FOLDER}.old")
+    if old.exists():  # an earlier call stopped while it swapped the folders: the one it moved aside was whole
+        if folder.exists():
             shutil.rmtree(old)
+        else:
+            old.rename(folder)
+    if partial.exists():  # (one that stopped while it wrote: incomplete)
+        shutil.rmtree(partial)
     if not trainer.cfg.transients.detect:
+        if folder.exists():
+            shutil.rmtree(folder)
         return None
     regions = trainer.transient_regions(names)
     shares = {}
-    for name, keep in regions.items():
+    for name, keep in regions.items():  # the new masks beside the old ones, then swapped: never none of either
         write_png(partial / f"{name}.png", keep.cpu().numpy())
         shares[name] = round(1.0 - float(keep.float().mean()), 4)
+    if folder.exists():
+        folder.rename(old)
     if regions:
         partial.rename(folder)
+    if old.exists():
+        shutil.rmtree(old)
     console.print(transients_note(shares, len(trainer.train_idx)) + (f" ({folder})" if regions else ""))
     return shares
 

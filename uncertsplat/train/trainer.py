@@ -605,6 +605,7 @@ class Trainer:
             "eval_pending": self.eval_pending,
             "skipped_steps": self.skipped_steps,
             "bad_steps_in_a_row": self.bad_steps_in_a_row,
+            "transients_from": self.transients_from,
             "transient_views": torch.tensor(sorted(self.transient_keep), dtype=torch.long),
             "transient_keep": (torch.stack([self.transient_keep[v] for v in sorted(self.transient_keep)])
                                if self.transient_keep else torch.zeros((0, 0), dtype=torch.uint8)),  # packed bits
@@ -680,7 +681,9 @@ class Trainer:
         # with the run only while it is still in it)
         saved_cfg = json.loads(state["config"]) if isinstance(state.get("config"), str) else {}
         ended = int(float(saved_cfg.get("low_res_fraction", 0.0)) * int(saved_cfg.get("iterations", 0)))
-        began = int(float(saved_cfg.get("transients", {}).get("start", 1.0)) * int(saved_cfg.get("iterations", 0)))
+        # (the step the checkpoint's run tests from; checkpoints without it: its config's start, of its iterations)
+        began = int(state.get("transients_from", float(saved_cfg.get("transients", {}).get("start", 1.0))
+                              * int(saved_cfg.get("iterations", 0))))
         if self.step > began:  # a run extended after its test began keeps testing (the photos' known regions
             # would otherwise be trained on again until the start of the longer run)
             self.transients_from = min(self.transients_from, began)

@@ -93,18 +93,20 @@ def unpack_mask(packed: Tensor, height: int, width: int, device=None) -> Tensor:
     return torch.from_numpy(bits).reshape(height, width, 1).to(device)
 
 
-def transients_note(shares: dict[str, float], photos: int | None = None) -> str:
+def transients_note(shares: dict[str, float], photos: int | None = None,
+                    where: str = "the run's transients/ folder") -> str:
     """What training found, in words: ``shares`` {photo: share of its pixels left out} (``TrainSummary.transients``)
-    of the photos with any, out of ``photos`` training photos (None: not said)."""
+    of the photos with any, out of ``photos`` training photos (None: not said), their masks in ``where``."""
     from uncertsplat.console import count, list_names
 
-    of = f" of {count(photos, 'training photo')}" if photos is not None else " training photo(s)"
     if not shares:
-        return f"transients: found in none{of}; every pixel trained"
+        return (f"transients: found in none of the {count(photos, 'training photo')}" if photos is not None
+                else "transients: found in no training photo") + "; every pixel trained"
+    of = f" of {count(photos, 'training photo')}" if photos is not None else " training photo(s)"
     mean = sum(shares.values()) / len(shares)
     return (f"transients: found in {len(shares)}{of} ({list_names(list(shares), 4)}; {mean:.1%} of their pixels on "
-            "average), left out of the loss, the posterior and the fits on the training views; their masks are in "
-            "the run's transients/ folder")
+            f"average), left out of the loss, the posterior and the fits on the training views; their masks are in "
+            f"{where}")
 
 
 __all__ = ["box_count", "pack_mask", "unpack_mask", "transient_masks", "transients_note", "window_pixels",
