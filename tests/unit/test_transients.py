@@ -414,3 +414,15 @@ class SimpleScene:
         from types import SimpleNamespace
 
         self.cameras = SimpleNamespace(image_names=names, width=width, height=height)
+
+
+def test_regions_in_nearly_every_photo_are_warned_about():
+    """Passers-by are seldom in nearly every photo; a part of the scene the model cannot fit is (bonsai: 40 of 42)."""
+    from uncertsplat.train.transients import transients_warning
+
+    shares = {f"{i}.png": 0.05 for i in range(40)}
+    text = transients_warning(shares, 42)
+    assert text is not None and text.startswith("transients were found in 40 of the 42 training photos")
+    assert transients_warning(dict(list(shares.items())[:31]), 42) is None  # (below 3/4 of them)
+    assert transients_warning(shares, 42 * 2) is None and transients_warning({}, 42) is None
+    assert transients_warning(None, 42) is None and transients_warning({"a": 0.1, "b": 0.1}, 2) is None

@@ -38,6 +38,7 @@ from uncertsplat.schemas.scene import ViewsAdded
 from uncertsplat.strategy.exposure import EXPOSURE_SPREAD, exposure_reason, gain_spread
 from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
+from uncertsplat.train.transients import transients_warning
 
 # What a run trained with when its config.json predates a key (every dump has the key since), per config section;
 # a callable gets the stored section: variational.posterior, before the informed posterior existed: SGD tables;
@@ -675,6 +676,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         late = {n for added in views_added for n in added.names}
         skip = [k for k, i in enumerate(data.split["train"]) if names and names[i] in late]
         warnings += exposure_warnings(trainer.photo_gains(skip=skip), trainer.exposure is not None, trainer.step)
+        warnings += [w for w in [transients_warning(transients, len(data.split["train"]))] if w]
         # what loading changed of the photos (turned, cropped, left out) goes into the summary, so the report shows it
         recorded = warnings + [f"scene: {note}" for note in data.notes]
         summary = TrainSummary(**trainer.summary(), test_psnr=held.get("psnr"), test_ssim=held.get("ssim"),

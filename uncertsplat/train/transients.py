@@ -93,6 +93,24 @@ def unpack_mask(packed: Tensor, height: int, width: int, device=None) -> Tensor:
     return torch.from_numpy(bits).reshape(height, width, 1).to(device)
 
 
+EVERYWHERE_SHARE = 0.75
+"""``transients_warning``: regions in at least this share of the training photos (and at least 4) look like parts of
+the scene the model cannot fit rather than objects that came and went."""
+
+
+def transients_warning(shares: dict[str, float] | None, photos: int) -> str | None:
+    """A warning when training found transient regions in nearly every one of its ``photos`` training photos
+    (``EVERYWHERE_SHARE``): passers-by are seldom in nearly every photo, while a part of the scene the model renders
+    poorly in every view is (bonsai at 20 dB held out: its flowers and table cloth in 40 of 42 photos, 0.33 dB lost on
+    clean photos; BENCHMARKS.md, "Transient objects found from the residual"). None otherwise."""
+    if not shares or photos < 4 or len(shares) < EVERYWHERE_SHARE * photos:
+        return None
+    return (f"transients were found in {len(shares)} of the {photos} training photos: objects that come and go are "
+            "seldom in nearly every photo, so these may be parts of the scene the model cannot fit yet (fine detail, "
+            "reflections), left out of its training. Look at the run's transients/ folder (black: left out); if they "
+            "cover the scene itself, train again without transients.detect, or with a higher transients.threshold")
+
+
 def transients_note(shares: dict[str, float], photos: int | None = None,
                     where: str = "the run's transients/ folder") -> str:
     """What training found, in words: ``shares`` {photo: share of its pixels left out} (``TrainSummary.transients``)
@@ -109,5 +127,5 @@ def transients_note(shares: dict[str, float], photos: int | None = None,
             f"{where}")
 
 
-__all__ = ["box_count", "pack_mask", "unpack_mask", "transient_masks", "transients_note", "window_pixels",
-           "MEDIAN_FLOOR"]
+__all__ = ["box_count", "pack_mask", "unpack_mask", "transient_masks", "transients_note", "transients_warning",
+           "window_pixels", "EVERYWHERE_SHARE", "MEDIAN_FLOOR"]
