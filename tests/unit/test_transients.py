@@ -426,3 +426,30 @@ def test_regions_in_nearly_every_photo_are_warned_about():
     assert transients_warning(dict(list(shares.items())[:31]), 42) is None  # (below 3/4 of them)
     assert transients_warning(shares, 42 * 2) is None and transients_warning({}, 42) is None
     assert transients_warning(None, 42) is None and transients_warning({"a": 0.1, "b": 0.1}, 2) is None
+
+
+def test_the_test_switches_itself_off_when_nearly_every_photo_has_regions():
+    """Regions in three quarters of the photos or more after a pass over them are parts of the scene the model
+    cannot fit (bonsai's flowers), not transients: the test stops, every pixel trains again, train warns; a resume
+    keeps it stopped."""
+    from uncertsplat.io.checkpoints import decode, encode
+    from uncertsplat.train.transients import transients_warning
+
+    scene, tr, te = toy_scene()
+    tr = tr.clone()
+    tr[:, 8:20, 10:24] = torch.tensor([1.0, 0.0, 1.0])  # (the block in every training photo)
+    cfg = toy_config(iterations=60, transients={"detect": True, "start": 0.1, "window": 0.1, "core": 0.5})
+    t = Trainer(scene, cfg, tr, te)
+    t.fit(until=40)
+    stopped = t.transients_stopped
+    assert stopped is not None and stopped["of"] == len(t.train_idx) and stopped["photos"] >= 0.75 * stopped["of"]
+    assert t.transient_keep == {} and t._train_masks(range(len(t.train_idx))) is None
+    resumed = Trainer(scene, cfg, tr, te, state=decode(encode(t.state_dict())))
+    assert resumed.transients_stopped == stopped
+    resumed.fit()
+    assert resumed.transient_keep == {}
+    text = transients_warning({}, len(t.train_idx), stopped)
+    assert text.startswith(f"transients: the test switched itself off at step {stopped['step']}")
+    one = _painted_trainer()  # (one photo of six painted: it goes on)
+    one.fit()
+    assert one.transients_stopped is None and 0 in one.transient_keep

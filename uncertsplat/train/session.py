@@ -676,7 +676,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         late = {n for added in views_added for n in added.names}
         skip = [k for k, i in enumerate(data.split["train"]) if names and names[i] in late]
         warnings += exposure_warnings(trainer.photo_gains(skip=skip), trainer.exposure is not None, trainer.step)
-        warnings += [w for w in [transients_warning(transients, len(data.split["train"]))] if w]
+        warnings += [w for w in [transients_warning(transients, len(data.split["train"]), trainer.transients_stopped)]
+                     if w]
         # what loading changed of the photos (turned, cropped, left out) goes into the summary, so the report shows it
         recorded = warnings + [f"scene: {note}" for note in data.notes]
         summary = TrainSummary(**trainer.summary(), test_psnr=held.get("psnr"), test_ssim=held.get("ssim"),

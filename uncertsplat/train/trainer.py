@@ -67,7 +67,7 @@ from uncertsplat.train.adam import Adam, all_finite
 from uncertsplat.train.losses import SsimTargetCache, total_loss
 from uncertsplat.train.optim import base_rates, load_optimizer_state, make_optimizer, set_rates
 from uncertsplat.train.profile import PhaseTimer
-from uncertsplat.train.transients import pack_mask, transient_masks, unpack_mask
+from uncertsplat.train.transients import EVERYWHERE_SHARE, pack_mask, transient_masks, unpack_mask
 from uncertsplat.types import Cameras, GaussianSample, Photos, SceneData
 from uncertsplat.uncertainty.curvature import curvature
 from uncertsplat.uncertainty.scores import blending_weights
@@ -407,6 +407,9 @@ class Trainer:
         self.transient_keep: dict[int, Tensor] = {}
         # the first step that tests for them: fixed by the run's first iterations once passed (``_load_state``)
         self.transients_from = int(cfg.transients.start * cfg.iterations)
+        # {"step", "photos", "of"} when the test switched itself off (regions in nearly every photo after a pass over
+        # them: parts of the scene the model cannot fit, not transients; ``_drop_transients``), else None
+        self.transients_stopped: dict[str, int] | None = None
         if state is None:
             self._init_fresh()
         else:
@@ -606,6 +609,7 @@ class Trainer:
             "skipped_steps": self.skipped_steps,
             "bad_steps_in_a_row": self.bad_steps_in_a_row,
             "transients_from": self.transients_from,
+            "transients_stopped": dict(self.transients_stopped) if self.transients_stopped else {},
             "transient_views": torch.tensor(sorted(self.transient_keep), dtype=torch.long),
             "transient_keep": (torch.stack([self.transient_keep[v] for v in sorted(self.transient_keep)])
                                if self.transient_keep else torch.zeros((0, 0), dtype=torch.uint8)),  # packed bits
@@ -684,6 +688,7 @@ class Trainer:
         # (the step the checkpoint's run tests from; checkpoints without it: its config's start, of its iterations)
         began = int(state.get("transients_from", float(saved_cfg.get("transients", {}).get("start", 1.0))
                               * int(saved_cfg.get("iterations", 0))))
+        self.transients_stopped = dict(state["transients_stopped"]) if state.get("transients_stopped") else None
         if self.step > began:  # a run extended after its test began keeps testing (the photos' known regions
             # would otherwise be trained on again until the start of the longer run)
             self.transients_from = min(self.transients_from, began)
@@ -892,7 +897,7 @@ class Trainer:
         render shows in its photos (None: no test at this step, or none found). A full-resolution step keeps each
         view's result for the posterior and the checks (``_train_masks``)."""
         tcfg = self.cfg.transients
-        if not tcfg.detect or step <= self.transients_from:
+        if not tcfg.detect or step <= self.transients_from or self.transients_stopped is not None:
             return None
         valid = None if self.train_masks is None else (self.low_masks if low else self.train_masks)[pick]
         keep = transient_masks(rgb, gt, threshold=tcfg.threshold, window=tcfg.window, core=tcfg.core,
@@ -904,6 +909,15 @@ class Trainer:
                     self.transient_keep[v] = pack_mask(keep[k])
                 else:
                     self.transient_keep.pop(v, None)
+            t = len(self.train_idx)
+            per_pass = -(-t // max(len(views), 1))  # steps for a pass over the training photos
+            if (t >= 4 and (step - self.transients_from) % per_pass == 0
+                    and len(self.transient_keep) >= EVERYWHERE_SHARE * t):
+                # passers-by are seldom in nearly every photo; what the model renders poorly in every view is (bonsai:
+                # its flowers in 40 of 42 photos, -0.33 dB): stop, and train every pixel again from here on
+                self.transients_stopped = {"step": step, "photos": len(self.transient_keep), "of": t}
+                self.transient_keep.clear()
+                return None
         return keep if bool(found.any()) else None
 
     # ----------------------------------------------------------------------------------- steps

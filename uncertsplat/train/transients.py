@@ -98,11 +98,19 @@ EVERYWHERE_SHARE = 0.75
 the scene the model cannot fit rather than objects that came and went."""
 
 
-def transients_warning(shares: dict[str, float] | None, photos: int) -> str | None:
+def transients_warning(shares: dict[str, float] | None, photos: int, stopped: dict | None = None) -> str | None:
     """A warning when training found transient regions in nearly every one of its ``photos`` training photos
     (``EVERYWHERE_SHARE``): passers-by are seldom in nearly every photo, while a part of the scene the model renders
     poorly in every view is (bonsai at 20 dB held out: its flowers and table cloth in 40 of 42 photos, 0.33 dB lost on
-    clean photos; BENCHMARKS.md, "Transient objects found from the residual"). None otherwise."""
+    clean photos; BENCHMARKS.md, "Transient objects found from the residual"). ``stopped``: the trainer's record of
+    the test switching itself off for that reason after a pass over the photos (``Trainer.transients_stopped``).
+    None otherwise."""
+    if stopped:
+        return (f"transients: the test switched itself off at step {stopped['step']}: after a pass over the photos it "
+                f"had found regions in {stopped['photos']} of the {stopped['of']} training photos, and objects that "
+                "come and go are seldom in nearly every photo; these were parts of the scene the model cannot fit yet "
+                "(fine detail, reflections), trained on again from then on. Masks of the photos (README, \"Masks\") "
+                "leave real transients out where this cannot")
     if not shares or photos < 4 or len(shares) < EVERYWHERE_SHARE * photos:
         return None
     return (f"transients were found in {len(shares)} of the {photos} training photos: objects that come and go are "
