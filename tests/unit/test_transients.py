@@ -339,7 +339,7 @@ def test_the_folder_is_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
 
     def trainer(regions, detect=True):
         return SimpleNamespace(cfg=SimpleNamespace(transients=SimpleNamespace(detect=detect)), train_idx=[0, 1, 2],
-                               transient_regions=lambda names: regions)
+                               transient_regions=lambda names: regions, transients_stopped=None)
 
     keep = torch.ones(4, 6, dtype=torch.bool)
     keep[0, 0] = False
@@ -402,6 +402,15 @@ def test_an_ensembles_members_leave_out_every_region_any_of_them_found(tmp_path)
                             transients=shares)
 
     assert _members_transients([summary(None), summary(None)], members) is None
+    # a photo whose members' masks differ in shape (members at other resolutions): the largest member's share,
+    # whatever the members' order
+    other = tmp_path / "other"
+    write_png(other / TRANSIENTS_FOLDER / "b.png.png", torch.zeros(2, 3, dtype=torch.bool).numpy())
+    write_png(members[0] / TRANSIENTS_FOLDER / "b.png.png", torch.ones(4, 6, dtype=torch.bool).numpy())
+    both = [summary({"b.png": 0.1}), summary({"b.png": 1.0})]
+    assert _members_transients(both, [members[0], other])["b.png"] == 1.0
+    assert _members_transients(both[::-1], [other, members[0]])["b.png"] == 1.0
+    (members[0] / TRANSIENTS_FOLDER / "b.png.png").unlink()
     # the shares of what the fits leave out: a.png's two pixels (of 24), one from each member
     assert _members_transients([summary({"a.png": 0.0417}), summary({"a.png": 0.0417, "c.png": 1.0})], members) == {
         "a.png": round(2 / 24, 4), "c.png": 1.0}
@@ -426,6 +435,7 @@ def test_regions_in_nearly_every_photo_are_warned_about():
     assert transients_warning(dict(list(shares.items())[:31]), 42) is None  # (below 3/4 of them)
     assert transients_warning(shares, 42 * 2) is None and transients_warning({}, 42) is None
     assert transients_warning(None, 42) is None and transients_warning({"a": 0.1, "b": 0.1}, 2) is None
+    assert transients_warning({"a": 0.1, "b": 0.1, "c": 0.1}, 3) is None  # (fewer than 4 photos say nothing)
 
 
 def test_the_test_switches_itself_off_when_nearly_every_photo_has_regions():
@@ -450,6 +460,12 @@ def test_the_test_switches_itself_off_when_nearly_every_photo_has_regions():
     assert resumed.transient_keep == {}
     text = transients_warning({}, len(t.train_idx), stopped)
     assert text.startswith(f"transients: the test switched itself off at step {stopped['step']}")
+    assert transients_warning(None, len(t.train_idx), stopped) is None  # (the detection off in that run)
+    from uncertsplat.train.transients import transients_note
+
+    note = transients_note({}, len(t.train_idx), stopped=stopped)
+    assert note.startswith(f"transients: the test switched itself off at step {stopped['step']} (regions in")
+    assert "found in none" not in note
     one = _painted_trainer()  # (one photo of six painted: it goes on)
     one.fit()
     assert one.transients_stopped is None and 0 in one.transient_keep

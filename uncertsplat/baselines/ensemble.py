@@ -76,13 +76,19 @@ def _members_transients(summaries: list[TrainSummary], members: list[Path]) -> d
     if all(s.transients is None for s in summaries):
         return None
     kept: dict[str, np.ndarray] = {}  # photo -> [H,W] bool, the pixels every member kept
+    apart: set[str] = set()  # photos whose members' masks differ in shape (members trained at other resolutions)
     for run_dir in members:
         folder = run_dir / TRANSIENTS_FOLDER
         for path in sorted(folder.rglob("*.png")) if folder.is_dir() else []:
             name = path.relative_to(folder).as_posix().removesuffix(".png")
             mask = read_mask(path)
-            kept[name] = mask if name not in kept or kept[name].shape != mask.shape else kept[name] & mask
-    return {name: round(1.0 - float(m.mean()), 4) for name, m in sorted(kept.items())}
+            if name in kept and kept[name].shape != mask.shape:
+                apart.add(name)
+            kept[name] = mask if name not in kept or name in apart else kept[name] & mask
+    shares = {name: round(1.0 - float(m.mean()), 4) for name, m in sorted(kept.items())}
+    for name in apart:  # no union to take: the largest member's share
+        shares[name] = max((s.transients or {}).get(name, 0.0) for s in summaries)
+    return shares
 
 
 def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False,

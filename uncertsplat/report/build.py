@@ -729,7 +729,9 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
             if s.growth:
                 body.append(note(f"{run.name}: {growth_reason(stops[0] if stops else s.growth[-1])} "
                                  f"({len(s.growth)} growth test(s) in all)"))
-            if s.transients is not None:  # which photos held transient objects, left out of training
+            stopped = any(w.startswith("transients: the test switched itself off") for w in s.warnings)
+            if s.transients is not None and not stopped:  # which photos held transient objects, left out of training
+                # (a test that switched itself off: its warning, above, says so)
                 where = "the members' transients/ folders" if s.method == "ensemble" else "the run's transients/ folder"
                 body.append(note(f"{run.name}: {transients_note(s.transients, where=where)}"))
             more = {k: v for k, v in data.items() if isinstance(v, (dict, list)) and v}

@@ -748,7 +748,8 @@ def _write_transients(run_dir: Path, trainer, names) -> dict[str, float] | None:
         partial.rename(folder)
     if old.exists():
         shutil.rmtree(old)
-    console.print(transients_note(shares, len(trainer.train_idx)) + (f" ({folder})" if regions else ""))
+    console.print(transients_note(shares, len(trainer.train_idx), stopped=trainer.transients_stopped)
+                  + (f" ({folder})" if regions else ""))
     return shares
 
 

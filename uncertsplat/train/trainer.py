@@ -67,7 +67,7 @@ from uncertsplat.train.adam import Adam, all_finite
 from uncertsplat.train.losses import SsimTargetCache, total_loss
 from uncertsplat.train.optim import base_rates, load_optimizer_state, make_optimizer, set_rates
 from uncertsplat.train.profile import PhaseTimer
-from uncertsplat.train.transients import EVERYWHERE_SHARE, pack_mask, transient_masks, unpack_mask
+from uncertsplat.train.transients import EVERYWHERE_SHARE, MIN_PHOTOS, pack_mask, transient_masks, unpack_mask
 from uncertsplat.types import Cameras, GaussianSample, Photos, SceneData
 from uncertsplat.uncertainty.curvature import curvature
 from uncertsplat.uncertainty.scores import blending_weights
@@ -911,7 +911,7 @@ class Trainer:
                     self.transient_keep.pop(v, None)
             t = len(self.train_idx)
             per_pass = -(-t // max(len(views), 1))  # steps for a pass over the training photos
-            if (t >= 4 and (step - self.transients_from) % per_pass == 0
+            if (t >= MIN_PHOTOS and (step - self.transients_from) % per_pass == 0
                     and len(self.transient_keep) >= EVERYWHERE_SHARE * t):
                 # passers-by are seldom in nearly every photo; what the model renders poorly in every view is (bonsai:
                 # its flowers in 40 of 42 photos, -0.33 dB): stop, and train every pixel again from here on

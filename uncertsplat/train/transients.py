@@ -94,8 +94,11 @@ def unpack_mask(packed: Tensor, height: int, width: int, device=None) -> Tensor:
 
 
 EVERYWHERE_SHARE = 0.75
-"""``transients_warning``: regions in at least this share of the training photos (and at least 4) look like parts of
-the scene the model cannot fit rather than objects that came and went."""
+"""``transients_warning``: regions in at least this share of the training photos (of at least ``MIN_PHOTOS``) look
+like parts of the scene the model cannot fit rather than objects that came and went."""
+
+MIN_PHOTOS = 4
+"""The fewest training photos a share of them says anything of (three of three may all hold a passer-by)."""
 
 
 def transients_warning(shares: dict[str, float] | None, photos: int, stopped: dict | None = None) -> str | None:
@@ -105,13 +108,15 @@ def transients_warning(shares: dict[str, float] | None, photos: int, stopped: di
     clean photos; BENCHMARKS.md, "Transient objects found from the residual"). ``stopped``: the trainer's record of
     the test switching itself off for that reason after a pass over the photos (``Trainer.transients_stopped``).
     None otherwise."""
+    if shares is None:  # (the detection off in this run)
+        return None
     if stopped:
         return (f"transients: the test switched itself off at step {stopped['step']}: after a pass over the photos it "
                 f"had found regions in {stopped['photos']} of the {stopped['of']} training photos, and objects that "
                 "come and go are seldom in nearly every photo; these were parts of the scene the model cannot fit yet "
                 "(fine detail, reflections), trained on again from then on. Masks of the photos (README, \"Masks\") "
                 "leave real transients out where this cannot")
-    if not shares or photos < 4 or len(shares) < EVERYWHERE_SHARE * photos:
+    if not shares or photos < MIN_PHOTOS or len(shares) < EVERYWHERE_SHARE * photos:
         return None
     return (f"transients were found in {len(shares)} of the {photos} training photos: objects that come and go are "
             "seldom in nearly every photo, so these may be parts of the scene the model cannot fit yet (fine detail, "
@@ -120,11 +125,16 @@ def transients_warning(shares: dict[str, float] | None, photos: int, stopped: di
 
 
 def transients_note(shares: dict[str, float], photos: int | None = None,
-                    where: str = "the run's transients/ folder") -> str:
+                    where: str = "the run's transients/ folder", stopped: dict | None = None) -> str:
     """What training found, in words: ``shares`` {photo: share of its pixels left out} (``TrainSummary.transients``)
-    of the photos with any, out of ``photos`` training photos (None: not said), their masks in ``where``."""
+    of the photos with any, out of ``photos`` training photos (None: not said), their masks in ``where``;
+    ``stopped``: the trainer's record of the test switching itself off (``transients_warning`` says why)."""
     from uncertsplat.console import count, list_names
 
+    if stopped:
+        return (f"transients: the test switched itself off at step {stopped['step']} (regions in {stopped['photos']} "
+                f"of the {stopped['of']} photos; the warning below says why); every pixel trained from then on, no "
+                "masks written")
     if not shares:
         return (f"transients: found in none of the {count(photos, 'training photo')}" if photos is not None
                 else "transients: found in no training photo") + "; every pixel trained"
@@ -136,4 +146,4 @@ def transients_note(shares: dict[str, float], photos: int | None = None,
 
 
 __all__ = ["box_count", "pack_mask", "unpack_mask", "transient_masks", "transients_note", "transients_warning",
-           "window_pixels", "EVERYWHERE_SHARE", "MEDIAN_FLOOR"]
+           "window_pixels", "EVERYWHERE_SHARE", "MEDIAN_FLOOR", "MIN_PHOTOS"]
