@@ -411,9 +411,9 @@ class TransientsConfig(_Base):
     """Find them: from step ``start x iterations`` on, each step's regions whose residual stands far above the
     photo's typical residual are left out of its loss, as a mask a user brought would leave them (each photo's last
     regions also out of the posterior's noise and curvature and the training checks). After each pass over the
-    photos, a test that has found regions in three quarters of them or more (of at least 4) switches itself off (parts of the scene
-    the model cannot fit, not objects that came and went: bonsai's flowers at 20 dB) and ``train`` warns. Off by
-    default: on scenes the model fits well a photo without transients loses nothing but the test's cost; measured in
+    photos, a test that has found regions in three quarters of them or more (of at least 4) switches itself off
+    (parts of the scene the model cannot fit, not objects that came and went: bonsai's flowers at 20 dB) and
+    ``train`` warns. Off by default: on scenes the model fits well a photo without transients loses nothing but the test's cost; measured in
     BENCHMARKS.md, "Transient objects found from the residual". Masks a user brings (README, "Masks") are exact where
     this is a guess."""
     start: float = Field(0.5, ge=0.0, le=1.0)

@@ -70,7 +70,7 @@ def _members_transients(summaries: list[TrainSummary], members: list[Path]) -> d
     what the ensemble's fits leave out), None with the detection off (``summaries``' ``transients``)."""
     import numpy as np
 
-    from uncertsplat.data.dataset import TRANSIENTS_FOLDER
+    from uncertsplat.data.dataset import transient_mask_files
     from uncertsplat.io.images import read_mask
 
     if all(s.transients is None for s in summaries):
@@ -78,9 +78,7 @@ def _members_transients(summaries: list[TrainSummary], members: list[Path]) -> d
     kept: dict[str, np.ndarray] = {}  # photo -> [H,W] bool, the pixels every member kept
     apart: set[str] = set()  # photos whose members' masks differ in shape (members trained at other resolutions)
     for run_dir in members:
-        folder = run_dir / TRANSIENTS_FOLDER
-        for path in sorted(folder.rglob("*.png")) if folder.is_dir() else []:
-            name = path.relative_to(folder).as_posix().removesuffix(".png")
+        for name, path in transient_mask_files(run_dir).items():
             mask = read_mask(path)
             if name in kept and kept[name].shape != mask.shape:
                 apart.add(name)

@@ -233,11 +233,11 @@ class LoadedRun:
 
     def eval_notes(self, num_samples: int) -> list[str]:
         """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run."""
-        from uncertsplat.data.dataset import TRANSIENTS_FOLDER
+        from uncertsplat.data.dataset import TRANSIENTS_FOLDER, transient_mask_files
 
-        folders = [r / TRANSIENTS_FOLDER for r in self.transient_runs()]
-        found = {p.relative_to(f).as_posix() for f in folders if f.is_dir() for p in f.rglob("*.png")}
-        where = folders[0] if len(folders) == 1 else f"the members' {TRANSIENTS_FOLDER}/ folders"
+        runs = self.transient_runs()
+        found = {name for r in runs for name in transient_mask_files(r)}
+        where = runs[0] / TRANSIENTS_FOLDER if len(runs) == 1 else f"the members' {TRANSIENTS_FOLDER}/ folders"
         notes = [f"the transient objects training found in {len(found)} training photo(s) ({where}) are left out "
                  "of the fits on the training views (the pixel noise, the std factor), as training left them out"
                  ] if found else []

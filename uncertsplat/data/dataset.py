@@ -425,12 +425,19 @@ mask per photo with any, under COLMAP's name (``IMG_1.jpg.png``), black on the r
 ``view`` and ``predict`` leave them out of the fits on the training views as training left them out."""
 
 
-def transient_mask_paths(run_dir: Path, names: Sequence[str]) -> dict[str, Path]:
-    """{image name: its mask in ``RUN/transients/``} of the training photos ``names`` with one."""
+def transient_mask_files(run_dir: Path) -> dict[str, Path]:
+    """{image name: its mask} of every mask in ``RUN/transients/`` (``IMG_1.jpg.png`` is ``IMG_1.jpg``'s), in name
+    order; empty without the folder."""
     folder = Path(run_dir) / TRANSIENTS_FOLDER
     if not folder.is_dir():
         return {}
-    return {n: folder / f"{n}.png" for n in names if (folder / f"{n}.png").is_file()}
+    return {p.relative_to(folder).as_posix().removesuffix(".png"): p for p in sorted(folder.rglob("*.png"))}
+
+
+def transient_mask_paths(run_dir: Path, names: Sequence[str]) -> dict[str, Path]:
+    """{image name: its mask in ``RUN/transients/``} of the training photos ``names`` with one."""
+    wanted = set(names)
+    return {n: p for n, p in transient_mask_files(run_dir).items() if n in wanted}
 
 
 def without_transients(masks: Tensor | None, scene: SceneData, indices: Sequence[int],

@@ -56,6 +56,7 @@ from uncertsplat.schemas.prune import METRIC_KEYS as PRUNE_EVAL_KEYS
 from uncertsplat.schemas.prune import PRUNED_FROM_EVALUATE, UNPRUNED_FROM_EVALUATE
 from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
+from uncertsplat.train.transients import STOPPED as TRANSIENTS_STOPPED
 from uncertsplat.train.transients import transients_note
 
 
@@ -729,7 +730,7 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
             if s.growth:
                 body.append(note(f"{run.name}: {growth_reason(stops[0] if stops else s.growth[-1])} "
                                  f"({len(s.growth)} growth test(s) in all)"))
-            stopped = any(w.startswith("transients: the test switched itself off") for w in s.warnings)
+            stopped = any(w.startswith(TRANSIENTS_STOPPED) for w in s.warnings)
             if s.transients is not None and not stopped:  # which photos held transient objects, left out of training
                 # (a test that switched itself off: its warning, above, says so)
                 where = "the members' transients/ folders" if s.method == "ensemble" else "the run's transients/ folder"

@@ -238,16 +238,16 @@ def run_mask_digest(run_dir: Path) -> str | None:
     (``RunScene.masks``), as the scene gave it while they were unchanged; "unreadable" where a mask cannot be read
     (never the digest of no masks)."""
     from uncertsplat.conventions import ENSEMBLE_MEMBERS
-    from uncertsplat.data.dataset import TRANSIENTS_FOLDER
+    from uncertsplat.data.dataset import TRANSIENTS_FOLDER, transient_mask_files
     from uncertsplat.provenance import file_sha256
 
     photos = _photo_mask_digest(run_dir)
     run_dir = Path(run_dir)
     # the run's own, and an ensemble's members' (each member's training left its own regions out)
-    folders = [run_dir / TRANSIENTS_FOLDER, *sorted((run_dir / ENSEMBLE_MEMBERS).glob(f"*/{TRANSIENTS_FOLDER}"))]
+    runs = [run_dir, *(f.parent for f in sorted((run_dir / ENSEMBLE_MEMBERS).glob(f"*/{TRANSIENTS_FOLDER}")))]
     try:
         found = {p.relative_to(run_dir).as_posix(): file_sha256(p)
-                 for f in folders if f.is_dir() for p in sorted(f.rglob("*.png"))}
+                 for r in runs for p in transient_mask_files(r).values()}
     except OSError:
         return "unreadable"
     # (the runs without transients keep the digest they were evaluated under)

@@ -873,8 +873,10 @@ class Trainer:
         """[V,H,W,1] the pixels that count of training views ``views`` (positions in the training views): a user's
         masks without the transient regions last found in them (``cfg.transients``), or None for all."""
         views = list(views)
-        masks = None if self.train_masks is None else self.train_masks[views]  # (a list index copies)
         hit = [k for k, v in enumerate(views) if v in self.transient_keep]
+        if not hit and views == list(range(len(self.train_idx))):
+            return self.train_masks  # (every view, nothing to take out: no copy of them all)
+        masks = None if self.train_masks is None else self.train_masks[views]  # (a list index copies)
         if not hit:
             return masks
         if masks is None:
@@ -1090,8 +1092,7 @@ class Trainer:
         # one render per view: the noise (RMS residual), the curvature, and at the last update with
         # ``sandwich`` the views' disagreement (at every update it cost 2 dB: the config's docstring)
         probes = vcfg.probes if last else vcfg.refresh_probes
-        masks = self._train_masks(pick) if n < t else \
-            (self._train_masks(range(t)) if self.transient_keep else self.train_masks)
+        masks = self._train_masks(pick if n < t else range(t))
         curv = curvature(params, cams, images, self.render, names=("means", "scales", "opacities"),
                          generator=self.gen_noise, sh_degree=degree, probes=probes,
                          disagreement=vcfg.sandwich and last, masks=masks)

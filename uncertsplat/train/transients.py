@@ -97,6 +97,9 @@ EVERYWHERE_SHARE = 0.75
 """``transients_warning``: regions in at least this share of the training photos (of at least ``MIN_PHOTOS``) look
 like parts of the scene the model cannot fit rather than objects that came and went."""
 
+STOPPED = "transients: the test switched itself off"
+"""How ``transients_warning``'s warning for a test that switched itself off begins (the report finds it by it)."""
+
 MIN_PHOTOS = 4
 """The fewest training photos a share of them says anything of (three of three may all hold a passer-by)."""
 
@@ -111,7 +114,7 @@ def transients_warning(shares: dict[str, float] | None, photos: int, stopped: di
     if shares is None:  # (the detection off in this run)
         return None
     if stopped:
-        return (f"transients: the test switched itself off at step {stopped['step']}: after a pass over the photos it "
+        return (f"{STOPPED} at step {stopped['step']}: after a pass over the photos it "
                 f"had found regions in {stopped['photos']} of the {stopped['of']} training photos, and objects that "
                 "come and go are seldom in nearly every photo; these were parts of the scene the model cannot fit yet "
                 "(fine detail, reflections), trained on again from then on. Masks of the photos (README, \"Masks\") "
@@ -132,7 +135,7 @@ def transients_note(shares: dict[str, float], photos: int | None = None,
     from uncertsplat.console import count, list_names
 
     if stopped:
-        return (f"transients: the test switched itself off at step {stopped['step']} (regions in {stopped['photos']} "
+        return (f"{STOPPED} at step {stopped['step']} (regions in {stopped['photos']} "
                 f"of the {stopped['of']} photos; the warning below says why); every pixel trained from then on, no "
                 "masks written")
     if not shares:
@@ -146,4 +149,4 @@ def transients_note(shares: dict[str, float], photos: int | None = None,
 
 
 __all__ = ["box_count", "pack_mask", "unpack_mask", "transient_masks", "transients_note", "transients_warning",
-           "window_pixels", "EVERYWHERE_SHARE", "MEDIAN_FLOOR", "MIN_PHOTOS"]
+           "window_pixels", "EVERYWHERE_SHARE", "MEDIAN_FLOOR", "MIN_PHOTOS", "STOPPED"]
