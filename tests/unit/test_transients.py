@@ -314,6 +314,27 @@ def test_a_run_writes_its_transients_and_the_fits_on_its_training_views_leave_th
                    torch.device("cpu"))
     assert calls and calls[0] is not None and all(bool((~m).any()) for m in calls[0])
 
+    # evaluate --split train scores the training views without them, as training's loss left them out; the
+    # held-out views have none
+    from uncertsplat.config import EvalConfig
+    from uncertsplat.stages import evaluate
+
+    scored = []
+    real_views = engine.evaluate_views
+
+    def views_spy(sampler, views, *args, notes=(), **kw):
+        scored.append((views, list(notes)))
+        return real_views(sampler, views, *args, notes=notes, **kw)
+
+    monkeypatch.setattr(engine, "evaluate_views", views_spy)
+    for split in ("train", "test"):
+        evaluate.run(run, EvalConfig(split=split, num_samples=2, save_maps=False), torch.device("cpu"), quiet=True)
+    (train_views, train_notes), (test_views, test_notes) = scored
+    k = train_views.names.index(painted[0])
+    assert train_views.masks is not None and not train_views.masks[k].all() and train_views.masks_trained
+    assert any("and of these training views' scores" in n for n in train_notes)
+    assert test_views.masks is None and not any("these training views' scores" in n for n in test_notes)
+
     plain = train_tiny_run(ws, tmp_path / "plain", iterations=40)
     assert not (plain / TRANSIENTS_FOLDER).exists() and load_run(plain).eval_notes(4) == []
     assert TrainSummary.read(plain / "train_summary.json").transients is None

@@ -231,15 +231,17 @@ class LoadedRun:
                                              torch.tensor(self.exposure.offset, dtype=torch.float32))
         return self._photo_exposure
 
-    def eval_notes(self, num_samples: int) -> list[str]:
-        """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run."""
+    def eval_notes(self, num_samples: int, scored: bool = False) -> list[str]:
+        """Notes an evaluation with ``num_samples`` samples adds to its report for this kind of run (``scored``: of
+        the training views, which it scores without their transient regions)."""
         from uncertsplat.data.dataset import TRANSIENTS_FOLDER, transient_mask_files
 
         runs = self.transient_runs()
         found = {name for r in runs for name in transient_mask_files(r)}
         where = runs[0] / TRANSIENTS_FOLDER if len(runs) == 1 else f"the members' {TRANSIENTS_FOLDER}/ folders"
         notes = [f"the transient objects training found in {len(found)} training photo(s) ({where}) are left out "
-                 "of the fits on the training views (the pixel noise, the std factor), as training left them out"
+                 "of the fits on the training views (the pixel noise, the std factor)"
+                 + (" and of these training views' scores" if scored else "") + ", as training left them out"
                  ] if found else []
         return notes + self._method_notes(num_samples)
 

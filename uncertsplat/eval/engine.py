@@ -778,8 +778,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         if views.masks_trained:
             notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
                          f"({inside:.0%} of the pixels of these views; SSIM too, with both images black outside "
-                         f"them), as train's held-out PSNR and SSIM; {PHOTO_MASKS_NOTE}, whose black pixels training "
-                         "left out too")
+                         f"them), as train's held-out PSNR and SSIM; {PHOTO_MASKS_NOTE} or the transient regions training "
+                         "found, whose black pixels training left out too")
         else:
             notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
                          f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out "

@@ -429,7 +429,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     from functools import partial
 
     from uncertsplat.baselines import load_run
-    from uncertsplat.data.dataset import load_view_set, photo_turns
+    from uncertsplat.data.dataset import load_view_set, photo_turns, transient_mask_files
     from uncertsplat.eval.engine import evaluate_views, scored_sampler, split_indices
     from uncertsplat.io.atomic import run_lock, staging_folder
     from uncertsplat.provenance import hash_config
@@ -469,9 +469,14 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         return done if quiet else _print_report(run_dir, cfg, done, out, written=False,
                                                 depth_to_source=scene.depth_to_source)
     # 8-bit photos kept as uint8 (a quarter of the memory), each converted where the engine reads it
+    # (the training views scored without the transient regions training left out of them, as its loss did)
     views = load_view_set(scene, indices, depth_folder=cfg.depth_gt, folder_in_scene_units=cfg.depth_scale == "scene",
-                          keep_8bit=True)
-    views = replace(views, masks_trained=views.masks_trained and trained_masks)
+                          keep_8bit=True, transients=loaded.transient_runs() if cfg.split == "train" else None)
+    # masks training used: the photos' own it was trained with, or (photos without masks) the transient regions it
+    # found in the training views scored
+    scored_transients = cfg.split == "train" and any(transient_mask_files(r) for r in loaded.transient_runs())
+    views = replace(views, masks_trained=(views.masks_trained and trained_masks)
+                    or (scored_transients and not views.masks_trained))
     if masks_note is not None and not quiet:
         console.print(f"[yellow]note:[/] {masks_note}")
     with run_lock(run_dir, "evaluate"):
@@ -513,7 +518,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
                                     calibration_held_out=bool(scene.split.get("calibration")),
                                     noise_scale=residual.scale if residual is not None else None,
                                     depth_to_source=scene.depth_to_source,
-                                    notes=loaded.eval_notes(cfg.num_samples) + loaded.exposure_notes() + unfinished
+                                    notes=loaded.eval_notes(cfg.num_samples, scored=cfg.split == "train")
+                                    + loaded.exposure_notes() + unfinished
                                     + ([loaded.frame_note] if loaded.frame_note else []),
                                     config_hash=hash_config(cfg.model_dump(mode="json")))
             reach = _reach_notes(sampler, views, device) + (_empty_view_notes(
