@@ -112,6 +112,26 @@ def test_blending_weights_sum_to_the_rendered_alpha(device):
     torch.testing.assert_close(blending_weights(s1, cams[[0]], render_fn=render)[0], a1, rtol=1e-4, atol=1e-7)
 
 
+def test_blending_weights_count_only_the_pixels_a_mask_lets_count(device):
+    """With masks the weights sum to the rendered alpha inside them: a Gaussian seen only where no pixel counts (a
+    masked-out sky) weighs nothing (the growth test's weakest half, whose cost is taken inside the masks too)."""
+    model, _, cams = planted_scene(device=device)
+    from uncertsplat.gaussians.variational import posterior_mean
+
+    s = posterior_mean(model)
+    with torch.no_grad():
+        alpha = render(s, cams).alpha  # [C,H,W,1]
+    masks = torch.zeros_like(alpha, dtype=torch.bool)
+    masks[:, :, : cams.width // 2] = True  # the left half of every view
+    w = blending_weights(s, cams, render_fn=render, masks=masks)
+    torch.testing.assert_close(w.sum(), (alpha * masks).sum() / (cams.width * cams.height), rtol=1e-4, atol=1e-6)
+    assert float(w.sum()) < float(blending_weights(s, cams, render_fn=render).sum())
+    none = blending_weights(s, cams, render_fn=render, masks=torch.zeros_like(masks))
+    assert bool((none == 0).all())
+    every = blending_weights(s, cams, render_fn=render, masks=torch.ones_like(masks))
+    torch.testing.assert_close(every, blending_weights(s, cams, render_fn=render))
+
+
 @pytest.mark.parametrize("name", SCORE_NAMES)
 def test_planted_floaters_rank_above_the_surface(device, name):
     model, is_floater, cams = planted_scene(device=device)

@@ -30,7 +30,6 @@ import math
 import os
 import shutil
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -214,9 +213,9 @@ def run_sha256(run_dir: Path, model_file: Path) -> str:
     return hashlib.sha256(" ".join(parts).encode()).hexdigest()
 
 
-def _mask_record(run_dir: Path, scene, indices) -> tuple[str | None, bool]:
-    """(a note when the photos' masks of the evaluated and training views differ from those the run was trained with,
-    else None; whether the run was trained with masks at all: ``RunScene.masks``)."""
+def _mask_note(run_dir: Path, scene, indices) -> str | None:
+    """A note when the photos' masks of the evaluated and training views differ from those the run was trained with,
+    else None."""
     from uncertsplat.schemas.scene import RunScene
     from uncertsplat.sfm.scene import mask_changes, mask_hashes
 
@@ -227,10 +226,10 @@ def _mask_record(run_dir: Path, scene, indices) -> tuple[str | None, bool]:
                                                                 for i in scene.split.get(k, ())]))
     changed = mask_changes(recorded, mask_hashes(scene, compared), compared)
     if changed is None:
-        return None, bool(recorded)
+        return None
     what = ("the photos' masks were added after this run was trained (it was trained on every pixel)" if not recorded
             else f"the photos' masks changed since this run was trained ({changed})")
-    return f"{what}: the metrics are taken inside the masks as they are now", bool(recorded)
+    return f"{what}: the metrics are taken inside the masks as they are now"
 
 
 def matching_evaluation(run_dir: Path, model_file: Path, cfg: EvalConfig, image_names: list[str],
@@ -434,6 +433,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     from uncertsplat.io.atomic import run_lock, staging_folder
     from uncertsplat.provenance import hash_config
     from uncertsplat.schemas.metrics import EvalReport
+    from uncertsplat.sfm.scene import masks_as_trained
     from uncertsplat.stages.predictive_cache import keep_predictive
     from uncertsplat.stages.residual_cache import fitted_residual
 
@@ -457,7 +457,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     unfinished = loaded.warn_if_unfinished()
     scene = loaded.load_scene()
     indices = split_indices(scene.split, cfg)
-    masks_note, trained_masks = _mask_record(run_dir, scene, indices)
+    masks_note = _mask_note(run_dir, scene, indices)
     # (an evaluation made in another frame of the scene folder holds maps and depths in that frame's units: again;
     # one made with other masks of the photos scored other pixels: again, by its run_sha256)
     done = (_finished(run_dir, Path(loaded.source), cfg, [scene.cameras.image_names[i] for i in indices], device)
@@ -472,11 +472,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     # (the training views scored without the transient regions training left out of them, as its loss did)
     views = load_view_set(scene, indices, depth_folder=cfg.depth_gt, folder_in_scene_units=cfg.depth_scale == "scene",
                           keep_8bit=True, transients=loaded.transient_runs() if cfg.split == "train" else None)
-    # masks training used: the photos' own it was trained with, or (photos without masks) the transient regions it
-    # found in the training views scored
-    scored_transients = cfg.split == "train" and any(transient_mask_files(r) for r in loaded.transient_runs())
-    views = replace(views, masks_trained=(views.masks_trained and trained_masks)
-                    or (scored_transients and not views.masks_trained))
+    views = masks_as_trained(views, run_dir, transients_scored=cfg.split == "train" and any(
+        transient_mask_files(r) for r in loaded.transient_runs()))
     if masks_note is not None and not quiet:
         console.print(f"[yellow]note:[/] {masks_note}")
     with run_lock(run_dir, "evaluate"):

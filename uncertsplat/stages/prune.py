@@ -38,7 +38,6 @@ ratios it walks by their render only (the K samples' uncertainty metrics are mea
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import os
 import shutil
@@ -113,16 +112,15 @@ class _Measure:
 
     def __init__(self, loaded, scene, indices: list[int], cfg: PruneConfig, device: torch.device):
         from uncertsplat.data.dataset import load_view_set
-        from uncertsplat.sfm.scene import trained_with_masks
+        from uncertsplat.sfm.scene import masks_as_trained
 
         self.loaded, self.scene, self.indices, self.device = loaded, scene, indices, device
         self.ecfg = EvalConfig(num_samples=cfg.num_samples, seed=cfg.seed, save_maps=False)
         self.render_fn = loaded.render_fn(scene.scene_scale, device)
         self.cams = scene.cameras[indices].to(device)
         # the held-out images and GT depth are read once; every model of a sweep is measured on them
-        self.views = load_view_set(scene, indices, keep_8bit=True)  # 8-bit photos as uint8, read as float32
-        if self.views.masks_trained and not trained_with_masks(loaded.run_dir):  # (as evaluate scores such a run)
-            self.views = dataclasses.replace(self.views, masks_trained=False)
+        # (8-bit photos kept as uint8, read as float32; masked as evaluate scores the run)
+        self.views = masks_as_trained(load_view_set(scene, indices, keep_8bit=True), loaded.run_dir)
         # the pixel noise of the source model's Gaussians, fitted once: a pruned model keeps its Gaussians' noise
         # (read from the source run's evaluation when it fitted the same one; the source run is never written)
         from uncertsplat.stages.residual_cache import fitted_residual

@@ -760,11 +760,11 @@ class Trainer:
         views = check_views(len(self.train_idx), dcfg.growth_check_views)
         cams, images = self.train_cams[views], self.photos(views)
         g = self.mean_sample()
+        masks = self._train_masks(views)  # (a Gaussian seen only where no pixel counts weighs nothing)
         with torch.enable_grad():  # the blending weights come from one backward pass per view
-            weights = blending_weights(g, cams, render_fn=self.render)  # [N]
+            weights = blending_weights(g, cams, render_fn=self.render, masks=masks)  # [N]
         off = weakest_half(weights)
-        cost = halving_cost_db(g, off, cams, images, lambda s, cam: self.render(s, cam).rgb,
-                               masks=self._train_masks(views))
+        cost = halving_cost_db(g, off, cams, images, lambda s, cam: self.render(s, cam).rgb, masks=masks)
         # the tests before this one that must also have found the half cheap (growth_patience - 1 of them)
         before = self.growth[len(self.growth) - dcfg.growth_patience + 1:] if dcfg.growth_patience > 1 else []
         cheap = cost < dcfg.growth_min_gain_db and len(before) == dcfg.growth_patience - 1 and all(

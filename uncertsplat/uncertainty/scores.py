@@ -121,12 +121,14 @@ def posterior_scores(model: GaussianModel, *, variant: Variant = "ours", extent:
     return out
 
 
-def blending_weights(sample_: GaussianSample, cameras: Cameras, *, render_fn) -> Tensor:
+def blending_weights(sample_: GaussianSample, cameras: Cameras, *, render_fn, masks: Tensor | None = None) -> Tensor:
     """[N] blending weight of each Gaussian accumulated over ``cameras``, in units of one view's pixels.
 
     Computed through one backward pass (see the module docstring): every Gaussian gets SH DC 0 and no
     higher bands, so the red channel is 0.5 x sum_i T_i alpha_i, and its gradient w.r.t. the DC is C0 x
     that sum per Gaussian. ``render_fn(sample, cameras)`` must not add a background that depends on it.
+    ``masks``: [C,H,W,1] bool, the pixels that count in each view (None: all); a Gaussian seen only where they are
+    False (a masked-out sky, a passer-by's region) weighs 0 there.
     """
     n = len(sample_)
     dc = torch.zeros(n, 1, 3, device=sample_.means.device, dtype=sample_.means.dtype, requires_grad=True)
@@ -136,7 +138,8 @@ def blending_weights(sample_: GaussianSample, cameras: Cameras, *, render_fn) ->
         if dc.grad is not None:
             dc.grad = None
         out = render_fn(plain, cameras[[c]])
-        out.rgb[..., 0].sum().backward()
+        red = out.rgb[..., 0]  # [1,H,W]
+        (red if masks is None else red * masks[c, ..., 0]).sum().backward()
         total += dc.grad[:, 0, 0].detach() / C0
     return total / float(cameras.width * cameras.height)
 
