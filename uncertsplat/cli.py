@@ -329,7 +329,8 @@ def reconstruct(
     seed: Annotated[int | None, typer.Option(help=f"Random seed. {_d('ReconstructConfig', 'seed')}")] = None,
     masks: Annotated[Path | None, typer.Option(
         help="Folder of masks for the photos (IMG_1.jpg.png, IMG_1.jpg or IMG_1.png; black: not the scene): no "
-             "features there, and the workspace's masks/ leave those pixels out of training and scoring.")] = None,
+             "features there, and the workspace's masks/ leave those pixels out of training and scoring (with "
+             "--extend: the new photos' masks, for a workspace made without them).")] = None,
     # (None when not given: a --config file's value stands; --no-overwrite given overrides the file's true)
     overwrite: Annotated[bool | None, typer.Option("--overwrite/--no-overwrite",
                                                    help="Replace an existing workspace.")] = None,

@@ -617,5 +617,101 @@ def test_masks_keep_features_off_and_come_undistorted_into_the_workspace(synth_s
     assert f"{names[0]}.png" in str(info.value)
     with pytest.raises(UserError, match="the masks folder does not exist"):
         stage.run(photos, tmp_path / "ws3", CFG.model_copy(update={"masks": tmp_path / "nothing"}))
-    with pytest.raises(UserError, match="--masks with --extend"):
-        stage.run(photos, ws, CFG.model_copy(update={"masks": masks, "extend": True}))
+
+
+def _masked_photos(synth_scene, tmp_path, names):
+    """``names`` of the synthetic scene's photos copied to tmp_path/photos, each with a mask in tmp_path/masks whose
+    left quarter is black."""
+    photos, masks = tmp_path / "photos", tmp_path / "masks"
+    photos.mkdir(exist_ok=True)
+    masks.mkdir(exist_ok=True)
+    for name in names:
+        shutil.copy(synth_scene / "images" / name, photos / name)
+        h, w = read_rgb(photos / name).shape[:2]
+        m = np.full((h, w, 3), 255, np.uint8)
+        m[:, : w // 4] = 0
+        write_rgb(masks / f"{name}.png", m)
+    return photos, masks
+
+
+def _assert_left_quarter_masked(ws: Path, names) -> None:
+    """The workspace's masks of ``names`` are the left-quarter masks undistorted, and no feature lies under them."""
+    rec = pycolmap.Reconstruction(ws / "sparse" / "0")
+    cams = {im.name: im.camera for im in rec.images.values()}
+    for name in names:
+        m = read_rgb(ws / "masks" / f"{name}.png")[..., 0] > 127
+        cut = cams[name].width // 4
+        assert m.shape == (cams[name].height, cams[name].width)
+        assert not m[:, : cut - 3].any() and m[2:-2, cut + 3:-2].all(), name
+    with pycolmap.Database.open(ws / "database.db") as db:
+        for image in db.read_all_images():
+            if image.name in names:
+                w = cams[image.name].width
+                assert float(db.read_keypoints(image.image_id)[:, 0].min()) >= w / 4 - 1.0, image.name
+
+
+def test_extend_reads_the_new_photos_masks_from_the_workspaces_folder(synth_scene, tmp_path):
+    """A workspace made with --masks: photos added with --extend take their masks from the same folder, undistorted
+    into masks/ beside the others' (kept to the byte); --masks naming another folder is refused while the
+    workspace's is there."""
+    names = sorted(p.name for p in (synth_scene / "images").iterdir())
+    later = [names[13]]  # (a photo between two others of the ring; the last two did not register with fixed poses)
+    photos, masks = _masked_photos(synth_scene, tmp_path, [n for n in names if n not in later])
+    ws = tmp_path / "ws"
+    assert stage.run(photos, ws, CFG.model_copy(update={"masks": masks})).success
+    before = {p.name: p.read_bytes() for p in (ws / "masks").iterdir()}
+    _masked_photos(synth_scene, tmp_path, later)  # (the new photos and their masks into the same folders)
+    other = tmp_path / "other_masks"
+    shutil.copytree(masks, other)
+    with pytest.raises(UserError, match="the workspace was made with the masks in"):
+        stage.run(photos, ws, CFG.model_copy(update={"masks": other, "extend": True}))
+    report = stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
+    assert set(later) <= set(report.images_registered)
+    assert any(n.startswith("new photos' masks: 1 of 1 photos have one") for n in report.notes), report.notes
+    assert all((ws / "masks" / n).read_bytes() == b for n, b in before.items())
+    _assert_left_quarter_masked(ws, later)
+    assert load_report(ws).options["masks"] == str(masks.resolve())
+
+
+def test_extend_with_masks_gives_a_workspace_without_them_its_masks_folder(synth_scene, tmp_path):
+    """--extend --masks on a workspace made without masks: the new photos' masks come into a masks/ of their own
+    (the others count every pixel), and the folder is recorded for later extensions."""
+    from uncertsplat.sfm.scene import load_scene
+
+    names = sorted(p.name for p in (synth_scene / "images").iterdir())
+    later = names[13]
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for name in names:
+        if name == later:
+            continue
+        shutil.copy(synth_scene / "images" / name, photos / name)
+    ws = tmp_path / "ws"
+    assert stage.run(photos, ws, CFG).success and not (ws / "masks").exists()
+    _, masks = _masked_photos(synth_scene, tmp_path, [later])
+    report = stage.run(photos, ws, CFG.model_copy(update={"masks": masks, "extend": True}))
+    assert later in report.images_registered
+    assert sorted(p.name for p in (ws / "masks").iterdir()) == [f"{later}.png"]
+    _assert_left_quarter_masked(ws, [later])
+    scene = load_scene(ws)
+    assert scene.masks_train and sum(p is not None for p in scene.mask_paths) == 1
+
+
+def test_an_extend_that_brought_masks_and_stopped_takes_them_out_again(tmp_path):
+    """Stopped while it swapped: a masks/ the extension brought into a workspace without one goes (the marker
+    ``NO_MASKS``); a workspace's own masks/ moved aside comes back."""
+    ws = tmp_path / "ws"
+    (ws / "masks").mkdir(parents=True)
+    (ws / "masks" / "a.png").write_text("grown")
+    (ws / REPORT_NAME).write_text("old report")
+    aside = ws / stage.EXTEND_DIR / "old"
+    aside.mkdir(parents=True)
+    (aside / stage.NO_MASKS).touch()
+    stage._recover_extend(ws)
+    assert not (ws / "masks").exists() and not (ws / stage.EXTEND_DIR).exists()
+    (ws / "masks").mkdir()
+    (ws / "masks" / "a.png").write_text("grown")
+    (aside / "masks").mkdir(parents=True)
+    (aside / "masks" / "a.png").write_text("original")
+    stage._recover_extend(ws)
+    assert (ws / "masks" / "a.png").read_text(encoding="utf-8") == "original"

@@ -260,11 +260,6 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         with run_lock(workspace, "reconstruct"):
             _recover_extend(workspace)
     if cfg.masks is not None:
-        if cfg.extend:
-            raise UserError("--masks with --extend: an extension takes the workspace's own options, and photos "
-                            "added with masks are not supported yet", path=cfg.masks,
-                            hint="Reconstruct all the photos again with their masks into a new workspace (or "
-                                 "--overwrite), or --extend without masks (the new photos count every pixel).")
         if cfg.masks.resolve() == Path(photos).resolve():
             raise UserError("--masks names the photo folder itself: every photo would be its own mask",
                             path=cfg.masks, hint="Keep the masks in a folder of their own.")
@@ -563,22 +558,68 @@ EXTEND_DONE = ".extend_done"
 _SWAPPED = (Path("distorted") / "sparse" / "0", Path("sparse") / "0", Path("images"), Path("database.db"))
 
 
-def _swap_in(workspace: Path, stage_dir: Path, report: ReconstructReport, staged_input: bool) -> None:
+def _swap_in(workspace: Path, stage_dir: Path, report: ReconstructReport, staged_input: bool,
+             masks: bool = False) -> None:
     """Move the grown parts from ``stage_dir`` into ``workspace``, each original first to ``stage_dir/old`` (where
     ``_recover_extend`` finds them if this stops half way), the report that names them last, then drop the
-    originals."""
+    originals. ``masks``: ``stage_dir/masks`` too (``_grown_masks``); a workspace without masks/ before gets a marker
+    ``old/NO_MASKS`` first, so that a stop takes the new folder out again."""
     if staged_input:  # rotated copies of EXIF-tagged photos, as `run` keeps them (a superset of the ones there)
         target = workspace / "distorted" / "input"
         if target.exists():
             shutil.rmtree(target)
         (stage_dir / "input").rename(target)
     write_report(stage_dir, report)
-    for part in (*_SWAPPED, Path(REPORT_NAME)):  # the report last: once it is in, the swap is complete
+    if masks and not (workspace / "masks").exists():
+        (stage_dir / "old").mkdir(exist_ok=True)
+        (stage_dir / "old" / NO_MASKS).touch()
+    for part in (*_SWAPPED, *([Path("masks")] if masks else []), Path(REPORT_NAME)):  # the report last: once it is
+        # in, the swap is complete
         aside = stage_dir / "old" / part
         aside.parent.mkdir(parents=True, exist_ok=True)
-        (workspace / part).rename(aside)
+        if (workspace / part).exists():  # (masks/: absent in a workspace made without them)
+            (workspace / part).rename(aside)
         (stage_dir / part).rename(workspace / part)
     _drop_staging(workspace)
+
+
+NO_MASKS = "NO_MASKS"
+"""``_swap_in``'s marker in ``EXTEND_DIR/old``: the workspace had no masks/ before the extension gave it one."""
+
+
+def _extension_masks(recorded: Path | None, given: Path | None) -> Path | None:
+    """The folder ``reconstruct --extend`` reads the new photos' masks from: ``--masks`` (``given``) or the one the
+    workspace was made with (``recorded``, its report's options) while it is there; None for none.
+
+    Raises:
+        UserError: ``given`` is another folder than the workspace's own, which is still there (a workspace reads its
+            photos' masks from one folder: later extensions and the reuse of the workspace go by it).
+    """
+    if given is not None and recorded is not None and Path(recorded).is_dir() \
+            and Path(given).resolve() != Path(recorded).resolve():
+        raise UserError(f"--masks {given}: the workspace was made with the masks in {recorded}, and reads the new "
+                        "photos' masks from there", path=given,
+                        hint=f"Put the new photos' masks into {recorded} and run --extend without --masks.")
+    if given is not None:
+        return Path(given)
+    return Path(recorded) if recorded is not None and Path(recorded).is_dir() else None
+
+
+def _grown_masks(workspace: Path, stage_dir: Path, model_dir: Path, staged: Path, without: list[str]) -> None:
+    """``stage_dir/masks``: the workspace's masks/ (kept as they are: their photos' cameras and images do not change)
+    with the new photos' ``staged`` masks (``sfm.stage_masks``) undistorted as their images (``sfm.undistort_masks``,
+    from the grown distorted model ``model_dir`` to ``stage_dir/sparse/0``); a photo in ``without`` gets none."""
+    out = stage_dir / "masks"
+    if (workspace / "masks").is_dir():
+        shutil.copytree(workspace / "masks", out)
+    new = stage_dir / "new_masks"
+    sfm.undistort_masks(model_dir, stage_dir / "sparse" / "0", staged, new, skip=without)
+    out.mkdir(exist_ok=True)
+    if new.is_dir():
+        for mask in sorted(new.rglob("*.png")):
+            target = out / mask.relative_to(new)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            mask.replace(target)
 
 
 def _recover_extend(workspace: Path) -> bool:
@@ -596,7 +637,9 @@ def _recover_extend(workspace: Path) -> bool:
         if (stage_dir / REPORT_NAME).exists() and not (workspace / REPORT_NAME).exists():
             (stage_dir / REPORT_NAME).rename(workspace / REPORT_NAME)
     else:
-        for part in _SWAPPED:
+        if (stage_dir / "old" / NO_MASKS).exists():  # (a masks/ the extension brought in: out again)
+            shutil.rmtree(workspace / "masks", ignore_errors=True)
+        for part in (*_SWAPPED, Path("masks")):
             aside = stage_dir / "old" / part
             if aside.exists():
                 target = workspace / part
@@ -667,11 +710,13 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                         path=photos, hint="Put back the photos the workspace was made from, or reconstruct the folder "
                                           "into a new workspace (and train a new run on it)." if edited else
                         "Put the new photos into the folder beside the others and run this again.")
+    masks = _extension_masks(ws_cfg.masks, cfg.masks)
     console.print(f"[bold]reconstruct --extend[/] {workspace}: {len(new)} new photo(s) ({list_names(new)}) into its "
                   f"{len(existing.images_registered)} registered ones, their cameras fixed; the workspace's options")
-    if ws_cfg.masks is not None:  # (the masks/ of the photos there stay valid: their cameras and images do not change)
-        console.print(f"[yellow]note:[/] the workspace was made with masks ({esc(str(ws_cfg.masks))}); the new photos "
-                      "get none (every pixel of them counts)")
+    if ws_cfg.masks is not None and masks is None:  # (the masks/ of the photos there stay valid: their cameras and
+        # images do not change)
+        console.print(f"[yellow]note:[/] the workspace was made with masks from {esc(str(ws_cfg.masks))}, which is no "
+                      "longer there; the new photos get none (every pixel of them counts; --masks DIR reads theirs)")
     stage_dir = workspace / EXTEND_DIR
     watch = sfm.Stopwatch()
     t_start = time.perf_counter()
@@ -683,10 +728,23 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             shutil.copy2(workspace / "database.db", database)
             old_model = workspace / "distorted" / "sparse" / "0"
             before = sfm.read_model(old_model)
+            is_new = set(new)
             with watch("stage_inputs"):
                 image_dir, rotated = sfm.stage_inputs(scan, stage_dir / "input")
+                mask_dir, without = None, []
+                if masks is not None:  # the new photos' masks, as `run` stages every photo's
+                    mask_dir = stage_dir / "staged_masks"
+                    without = sfm.stage_masks(sfm.PhotoScan(scan.folder, [p for p in scan.photos if p.name in is_new]),
+                                              masks, mask_dir)
+                    from uncertsplat.sfm.scene import mask_names, masks_note
+
+                    if cfg.masks is not None and len(without) == len(new):
+                        raise UserError(f"{masks} holds no mask named for any new photo ({mask_names(new[0])})",
+                                        path=masks, hint="Name each mask after its photo.")
+                    mask_note = "new photos' " + masks_note(new, [None if n in set(without) else n for n in new],
+                                                            f"in {masks}")
+                    console.print(f"[yellow]note:[/] {esc(mask_note)}")
             known = sfm.database_cameras(database)
-            is_new = set(new)
             groups = {key: [n for n in names if n in is_new] for key, names in scan.camera_groups().items()}
             # a group's camera is the one most of its photos there use: a photo reconstruct gave a camera of its own
             # (a crop saved at full size) was the first of its group by name, and new photos took its focal length
@@ -699,7 +757,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                 with watch("extract"):
                     keypoints = sfm.extract_features(database, image_dir, {k: v for k, v in groups.items() if v},
                                                      ws_cfg, advance=lambda k, i: bar.update(task, advance=k, info=i),
-                                                     cameras=cameras)
+                                                     cameras=cameras, masks=mask_dir)
                 unread = [n for n in new if n not in keypoints]
                 if unread:
                     raise UserError(f"COLMAP could not read {len(unread)} new photo(s): {list_names(unread)}",
@@ -730,6 +788,8 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             grown.write(model_dir)
             with console.status(f"undistorting {len(registered)} images"), watch("undistort"):
                 sizes = sfm.undistort(model_dir, image_dir, stage_dir, ws_cfg)
+                if mask_dir is not None:  # the workspace's masks/ with the new photos' undistorted as their images
+                    _grown_masks(workspace, stage_dir, model_dir, mask_dir, without)
             # the workspace's images of the photos already there must come out as they were (the run was trained on
             # them): a photo edited since would be a silent change of a training view
             changed = [n for n in existing.images_registered
@@ -739,7 +799,10 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                                 f"({list_names(changed)}): the workspace is unchanged", path=photos,
                                 hint="Put back the photos as they were, or reconstruct again into a new workspace.")
             report = existing.model_copy(deep=True)
-            report.inputs_fingerprint = _inputs_fingerprint(scan, ws_cfg.masks)
+            if masks is not None:  # (the folder later extensions read the new photos' masks from)
+                report.options["masks"] = str(masks)
+                report.notes.append(mask_note)
+            report.inputs_fingerprint = _inputs_fingerprint(scan, masks if masks is not None else ws_cfg.masks)
             report.photos = str(photos.resolve())
             report.ignored = scan.ignored  # (the scan's notes were printed; the report keeps its first scan's)
             report.images_found = scan.names
@@ -760,7 +823,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             report.stage_seconds = {k: round(report.stage_seconds.get(k, 0.0) + watch.seconds.get(k, 0.0), 3)
                                     for k in [*report.stage_seconds, *(k for k in watch.seconds
                                                                        if k not in report.stage_seconds)]}
-            _swap_in(workspace, stage_dir, report, image_dir == stage_dir / "input")
+            _swap_in(workspace, stage_dir, report, image_dir == stage_dir / "input", masks=mask_dir is not None)
     except KeyboardInterrupt:
         grown = _recover_extend(workspace)
         raise Interrupted("reconstruct --extend interrupted " + ("after its last step: the workspace holds the new "
