@@ -623,7 +623,7 @@ def _masked_photos(synth_scene, tmp_path, names):
     """``names`` of the synthetic scene's photos copied to tmp_path/photos, each with a mask in tmp_path/masks whose
     left quarter is black."""
     photos, masks = tmp_path / "photos", tmp_path / "masks"
-    photos.mkdir(exist_ok=True)
+    photos.mkdir(parents=True, exist_ok=True)
     masks.mkdir(exist_ok=True)
     for name in names:
         shutil.copy(synth_scene / "images" / name, photos / name)
@@ -653,9 +653,11 @@ def _assert_left_quarter_masked(ws: Path, names) -> None:
 def test_extend_reads_the_new_photos_masks_from_the_workspaces_folder(synth_scene, tmp_path):
     """A workspace made with --masks: photos added with --extend take their masks from the same folder, undistorted
     into masks/ beside the others' (kept to the byte); --masks naming another folder is refused while the
-    workspace's is there."""
+    workspace's is there; a mask of a photo already there edited since is refused as an edited photo is."""
     names = sorted(p.name for p in (synth_scene / "images").iterdir())
     later = [names[13]]  # (a photo between two others of the ring; the last two did not register with fixed poses)
+    last = names[5]  # (added by a second extension)
+    names = [n for n in names if n != last]
     photos, masks = _masked_photos(synth_scene, tmp_path, [n for n in names if n not in later])
     ws = tmp_path / "ws"
     assert stage.run(photos, ws, CFG.model_copy(update={"masks": masks})).success
@@ -671,6 +673,15 @@ def test_extend_reads_the_new_photos_masks_from_the_workspaces_folder(synth_scen
     assert all((ws / "masks" / n).read_bytes() == b for n, b in before.items())
     _assert_left_quarter_masked(ws, later)
     assert load_report(ws).options["masks"] == str(masks.resolve())
+    # a second photo with an old photo's mask edited since: refused, the workspace as it was
+    _masked_photos(synth_scene, tmp_path, [last])
+    h, w = read_rgb(photos / names[0]).shape[:2]
+    write_rgb(masks / f"{names[0]}.png", np.full((h, w, 3), 255, np.uint8))
+    grown = {p.name: p.read_bytes() for p in (ws / "masks").iterdir()}
+    with pytest.raises(UserError, match=r"the masks of 1 photo\(s\) already in the workspace changed") as err:
+        stage.run(photos, ws, CFG.model_copy(update={"extend": True}))
+    assert names[0] in str(err.value)
+    assert {p.name: p.read_bytes() for p in (ws / "masks").iterdir()} == grown
 
 
 def test_extend_with_masks_gives_a_workspace_without_them_its_masks_folder(synth_scene, tmp_path):
@@ -688,7 +699,17 @@ def test_extend_with_masks_gives_a_workspace_without_them_its_masks_folder(synth
         shutil.copy(synth_scene / "images" / name, photos / name)
     ws = tmp_path / "ws"
     assert stage.run(photos, ws, CFG).success and not (ws / "masks").exists()
+    # a folder with masks of the photos already there: their features were taken without them
+    _, old = _masked_photos(synth_scene, tmp_path / "old", names[:2])
+    shutil.copy(synth_scene / "images" / later, photos / later)
+    with pytest.raises(UserError, match=r"holds masks of 2 photo\(s\) the workspace was made without masks"):
+        stage.run(photos, ws, CFG.model_copy(update={"masks": old, "extend": True}))
+    # masks drawn on the workspace's images by hand: not taken over
+    (ws / "masks").mkdir()
     _, masks = _masked_photos(synth_scene, tmp_path, [later])
+    with pytest.raises(UserError, match="a masks/ folder that reconstruct did not make"):
+        stage.run(photos, ws, CFG.model_copy(update={"masks": masks, "extend": True}))
+    (ws / "masks").rmdir()
     report = stage.run(photos, ws, CFG.model_copy(update={"masks": masks, "extend": True}))
     assert later in report.images_registered
     assert sorted(p.name for p in (ws / "masks").iterdir()) == [f"{later}.png"]

@@ -587,39 +587,68 @@ NO_MASKS = "NO_MASKS"
 """``_swap_in``'s marker in ``EXTEND_DIR/old``: the workspace had no masks/ before the extension gave it one."""
 
 
-def _extension_masks(recorded: Path | None, given: Path | None) -> Path | None:
-    """The folder ``reconstruct --extend`` reads the new photos' masks from: ``--masks`` (``given``) or the one the
-    workspace was made with (``recorded``, its report's options) while it is there; None for none.
+def _extension_masks(recorded: Path | None, given: Path | None, workspace: Path,
+                     registered: list[str]) -> Path | None:
+    """The folder ``reconstruct --extend`` reads the photos' masks from: the one the workspace was made with
+    (``recorded``, its report's options) while it is there, else ``--masks`` (``given``); None for none.
 
     Raises:
         UserError: ``given`` is another folder than the workspace's own, which is still there (a workspace reads its
-            photos' masks from one folder: later extensions and the reuse of the workspace go by it).
+            photos' masks from one folder: later extensions and the reuse of the workspace go by it); for a
+            workspace made without masks, ``given`` holds masks of photos already there (``registered``: their
+            features were taken without them; only a new reconstruction takes them in), or the workspace has a
+            masks/ drawn by hand (reconstruct would own it from then on, and replace it with the next --overwrite).
     """
+    from uncertsplat.sfm.scene import mask_file
+
     if given is not None and recorded is not None and Path(recorded).is_dir() \
             and Path(given).resolve() != Path(recorded).resolve():
         raise UserError(f"--masks {given}: the workspace was made with the masks in {recorded}, and reads the new "
                         "photos' masks from there", path=given,
                         hint=f"Put the new photos' masks into {recorded} and run --extend without --masks.")
-    if given is not None:
-        return Path(given)
-    return Path(recorded) if recorded is not None and Path(recorded).is_dir() else None
+    if recorded is not None and Path(recorded).is_dir():
+        return Path(recorded)
+    if given is None:
+        return None
+    if recorded is None:
+        old = [n for n in registered if mask_file(given, n) is not None]
+        if old:
+            raise UserError(f"--masks {given} holds masks of {len(old)} photo(s) the workspace was made without masks "
+                            f"({list_names(old)}): --extend adds only the new photos' masks", path=given,
+                            hint="Reconstruct all the photos with --masks into a new workspace (or --overwrite), or "
+                                 "give --extend a folder that holds only the new photos' masks.")
+        if (workspace / "masks").is_dir():
+            raise UserError("the workspace has a masks/ folder that reconstruct did not make (masks drawn on its "
+                            "images): --extend --masks would take it over", path=workspace / "masks",
+                            hint="Draw the new photos' masks into it by hand as well, on their images once --extend "
+                                 "without --masks has added them.")
+    return Path(given)
 
 
-def _grown_masks(workspace: Path, stage_dir: Path, model_dir: Path, staged: Path, without: list[str]) -> None:
-    """``stage_dir/masks``: the workspace's masks/ (kept as they are: their photos' cameras and images do not change)
-    with the new photos' ``staged`` masks (``sfm.stage_masks``) undistorted as their images (``sfm.undistort_masks``,
-    from the grown distorted model ``model_dir`` to ``stage_dir/sparse/0``); a photo in ``without`` gets none."""
+def _grown_masks(workspace: Path, stage_dir: Path, model_dir: Path, staged: Path, without: list[str],
+                 registered: list[str], source: Path) -> None:
+    """``stage_dir/masks``: the ``staged`` masks (``sfm.stage_masks``, of every photo) undistorted as their images
+    (``sfm.undistort_masks``, from the grown distorted model ``model_dir`` to ``stage_dir/sparse/0``); a photo in
+    ``without`` gets none. The photos already there (``registered``) must come out as the workspace has them, as
+    their images must: a mask edited or added since in ``source`` (the user's folder) would be a silent change of a
+    training view.
+
+    Raises:
+        UserError: the masks of photos already in the workspace changed since it was made, naming them.
+    """
     out = stage_dir / "masks"
-    if (workspace / "masks").is_dir():
-        shutil.copytree(workspace / "masks", out)
-    new = stage_dir / "new_masks"
-    sfm.undistort_masks(model_dir, stage_dir / "sparse" / "0", staged, new, skip=without)
+    sfm.undistort_masks(model_dir, stage_dir / "sparse" / "0", staged, out, skip=without)
     out.mkdir(exist_ok=True)
-    if new.is_dir():
-        for mask in sorted(new.rglob("*.png")):
-            target = out / mask.relative_to(new)
-            target.parent.mkdir(parents=True, exist_ok=True)
-            mask.replace(target)
+
+    def content(folder: Path, name: str) -> bytes | None:
+        path = folder / f"{name}.png"
+        return path.read_bytes() if path.is_file() else None
+
+    changed = [n for n in registered if content(workspace / "masks", n) != content(out, n)]
+    if changed:
+        raise UserError(f"the masks of {len(changed)} photo(s) already in the workspace changed since it was made "
+                        f"({list_names(changed)}): the workspace is unchanged", path=source,
+                        hint="Put back the masks as they were, or reconstruct again with them into a new workspace.")
 
 
 def _recover_extend(workspace: Path) -> bool:
@@ -683,7 +712,8 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                         hint=f"Reconstruct the photos first: uncertsplat reconstruct {q(photos)} -o {q(workspace)}")
     ws_cfg = ReconstructConfig.model_validate({**existing.options, "num_threads": cfg.num_threads})
     # of copies and photos sharing a name stem the workspace's own are kept (a new copy sorted first took its place)
-    scan = sfm.scan_photos(photos, prefer=set(existing.images_registered))
+    masks = _extension_masks(ws_cfg.masks, cfg.masks, workspace, existing.images_registered)
+    scan = sfm.scan_photos(photos, prefer=set(existing.images_registered), masks=masks)
     _check_output_path(photos, workspace)
     for note in scan.notes:
         if note not in existing.notes:
@@ -710,7 +740,6 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                         path=photos, hint="Put back the photos the workspace was made from, or reconstruct the folder "
                                           "into a new workspace (and train a new run on it)." if edited else
                         "Put the new photos into the folder beside the others and run this again.")
-    masks = _extension_masks(ws_cfg.masks, cfg.masks)
     console.print(f"[bold]reconstruct --extend[/] {workspace}: {len(new)} new photo(s) ({list_names(new)}) into its "
                   f"{len(existing.images_registered)} registered ones, their cameras fixed; the workspace's options")
     if ws_cfg.masks is not None and masks is None:  # (the masks/ of the photos there stay valid: their cameras and
@@ -732,13 +761,13 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             with watch("stage_inputs"):
                 image_dir, rotated = sfm.stage_inputs(scan, stage_dir / "input")
                 mask_dir, without = None, []
-                if masks is not None:  # the new photos' masks, as `run` stages every photo's
+                if masks is not None:  # every photo's masks, as `run` stages them (the ones already there are
+                    # undistorted again and compared with the workspace's: _grown_masks)
                     mask_dir = stage_dir / "staged_masks"
-                    without = sfm.stage_masks(sfm.PhotoScan(scan.folder, [p for p in scan.photos if p.name in is_new]),
-                                              masks, mask_dir)
+                    without = sfm.stage_masks(scan, masks, mask_dir)
                     from uncertsplat.sfm.scene import mask_names, masks_note
 
-                    if cfg.masks is not None and len(without) == len(new):
+                    if cfg.masks is not None and is_new <= set(without):
                         raise UserError(f"{masks} holds no mask named for any new photo ({mask_names(new[0])})",
                                         path=masks, hint="Name each mask after its photo.")
                     mask_note = "new photos' " + masks_note(new, [None if n in set(without) else n for n in new],
@@ -788,8 +817,9 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             grown.write(model_dir)
             with console.status(f"undistorting {len(registered)} images"), watch("undistort"):
                 sizes = sfm.undistort(model_dir, image_dir, stage_dir, ws_cfg)
-                if mask_dir is not None:  # the workspace's masks/ with the new photos' undistorted as their images
-                    _grown_masks(workspace, stage_dir, model_dir, mask_dir, without)
+                if mask_dir is not None:  # the photos' masks undistorted as their images, the ones there unchanged
+                    _grown_masks(workspace, stage_dir, model_dir, mask_dir, without, existing.images_registered,
+                                 masks)
             # the workspace's images of the photos already there must come out as they were (the run was trained on
             # them): a photo edited since would be a silent change of a training view
             changed = [n for n in existing.images_registered
