@@ -114,7 +114,8 @@ def test_blending_weights_sum_to_the_rendered_alpha(device):
 
 def test_blending_weights_count_only_the_pixels_a_mask_lets_count(device):
     """With masks the weights sum to the rendered alpha inside them: a Gaussian seen only where no pixel counts (a
-    masked-out sky) weighs nothing (the growth test's weakest half, whose cost is taken inside the masks too)."""
+    masked-out sky) weighs nothing, so the growth test picks its weakest half among the Gaussians the counted pixels
+    see (its cost is taken inside the masks too: those others cost nothing either way)."""
     model, _, cams = planted_scene(device=device)
     from uncertsplat.gaussians.variational import posterior_mean
 
@@ -122,7 +123,8 @@ def test_blending_weights_count_only_the_pixels_a_mask_lets_count(device):
     with torch.no_grad():
         alpha = render(s, cams).alpha  # [C,H,W,1]
     masks = torch.zeros_like(alpha, dtype=torch.bool)
-    masks[:, :, : cams.width // 2] = True  # the left half of every view
+    for c in range(len(cams)):  # a band of its own in each view
+        masks[c, :, c * cams.width // (2 * len(cams)): cams.width // 2 + c * cams.width // (2 * len(cams))] = True
     w = blending_weights(s, cams, render_fn=render, masks=masks)
     torch.testing.assert_close(w.sum(), (alpha * masks).sum() / (cams.width * cams.height), rtol=1e-4, atol=1e-6)
     assert float(w.sum()) < float(blending_weights(s, cams, render_fn=render).sum())

@@ -4,6 +4,7 @@ each view's regions through a checkpoint."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -334,6 +335,26 @@ def test_a_run_writes_its_transients_and_the_fits_on_its_training_views_leave_th
     assert train_views.masks is not None and not train_views.masks[k].all() and train_views.masks_trained
     assert any("and of these training views' scores" in n for n in train_notes)
     assert test_views.masks is None and not any("these training views' scores" in n for n in test_notes)
+    # a sweep point's evaluation of the training views scores them as evaluate does
+    jobs._evaluate({"run_dir": str(run)}, {"id": 1, "eval_config": {"split": "train", "num_samples": 2,
+                                                                    "save_maps": False}}, torch.device("cpu"))
+    sweep_views, sweep_notes = scored[-1]
+    assert torch.equal(sweep_views.masks, train_views.masks) and sweep_views.masks_trained
+    assert any("and of these training views' scores" in n for n in sweep_notes)
+    # masks of the photos added since training: the transient regions are left out of them too, but the masks are
+    # not the ones training used (it trained on every pixel of the rest)
+    (ws / "masks").mkdir()
+    for n in names:
+        h, w = read_image(ws / "images" / n).shape[:2]
+        corner = np.ones((h, w, 3), np.float32)
+        corner[: h // 8, : w // 8] = 0.0
+        write_png(ws / "masks" / f"{n}.png", corner)
+    evaluate.run(run, EvalConfig(split="train", num_samples=2, save_maps=False), torch.device("cpu"), quiet=True)
+    masked_views, _ = scored[-1]
+    k = masked_views.names.index(painted[0])
+    assert not masked_views.masks_trained and not masked_views.masks[k, : h // 8, : w // 8].any()
+    assert not masked_views.masks[k].all() and (~masked_views.masks[k]).sum() > (~train_views.masks[k]).sum()
+    shutil.rmtree(ws / "masks")
 
     plain = train_tiny_run(ws, tmp_path / "plain", iterations=40)
     assert not (plain / TRANSIENTS_FOLDER).exists() and load_run(plain).eval_notes(4) == []

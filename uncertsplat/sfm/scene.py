@@ -225,10 +225,9 @@ def trained_with_masks(run_dir: Path) -> bool:
 def masks_as_trained(views, run_dir: Path, transients_scored: bool = False):
     """``views`` (``types.ViewSet``) with ``masks_trained`` saying whether its masks are those the run in ``run_dir``
     trained with, as evaluate and prune score it: the photos' own masks when it was trained with them (masks added to
-    the scene since are scored inside but not so called); for photos without masks, the transient regions its
-    training found when they are in them (``transients_scored``: evaluate --split train)."""
-    own = views.masks_trained and trained_with_masks(run_dir)
-    return replace(views, masks_trained=own or (transients_scored and not views.masks_trained))
+    the scene since are scored inside but not so called); or the transient regions its training found, when they
+    are the only masks of the views (``transients_scored``: ``LoadedRun.scored_views`` of training views)."""
+    return replace(views, masks_trained=(views.masks_trained and trained_with_masks(run_dir)) or transients_scored)
 
 
 def _digest_of(hashes: dict[str, str]) -> str:

@@ -428,12 +428,11 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     from functools import partial
 
     from uncertsplat.baselines import load_run
-    from uncertsplat.data.dataset import load_view_set, photo_turns, transient_mask_files
+    from uncertsplat.data.dataset import photo_turns
     from uncertsplat.eval.engine import evaluate_views, scored_sampler, split_indices
     from uncertsplat.io.atomic import run_lock, staging_folder
     from uncertsplat.provenance import hash_config
     from uncertsplat.schemas.metrics import EvalReport
-    from uncertsplat.sfm.scene import masks_as_trained
     from uncertsplat.stages.predictive_cache import keep_predictive
     from uncertsplat.stages.residual_cache import fitted_residual
 
@@ -468,12 +467,10 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
                       f"({out / 'metrics.json'}; --set reuse=false evaluates again)")
         return done if quiet else _print_report(run_dir, cfg, done, out, written=False,
                                                 depth_to_source=scene.depth_to_source)
-    # 8-bit photos kept as uint8 (a quarter of the memory), each converted where the engine reads it
-    # (the training views scored without the transient regions training left out of them, as its loss did)
-    views = load_view_set(scene, indices, depth_folder=cfg.depth_gt, folder_in_scene_units=cfg.depth_scale == "scene",
-                          keep_8bit=True, transients=loaded.transient_runs() if cfg.split == "train" else None)
-    views = masks_as_trained(views, run_dir, transients_scored=cfg.split == "train" and any(
-        transient_mask_files(r) for r in loaded.transient_runs()))
+    # 8-bit photos kept as uint8 (a quarter of the memory), each converted where the engine reads it; the training
+    # views without the transient regions training left out of them, as its loss did
+    views = loaded.scored_views(scene, indices, cfg.split, depth_folder=cfg.depth_gt,
+                                folder_in_scene_units=cfg.depth_scale == "scene", keep_8bit=True)
     if masks_note is not None and not quiet:
         console.print(f"[yellow]note:[/] {masks_note}")
     with run_lock(run_dir, "evaluate"):

@@ -190,7 +190,6 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
 
     from uncertsplat.baselines import load_run
     from uncertsplat.config import EvalConfig, build_config
-    from uncertsplat.data.dataset import load_view_set
     from uncertsplat.eval.engine import evaluate_views, fit_residual, scored_sampler, split_indices
     from uncertsplat.provenance import hash_config
     from uncertsplat.train.trainer import reset_peak_memory
@@ -210,12 +209,14 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     calibration_seconds = time.perf_counter() - t_cal
     reset_peak_memory(device)  # the evaluation's own peak
     t0 = time.perf_counter()
-    views = load_view_set(scene, indices)  # the scene's own GT depth (a sweep point has no --depth-gt)
+    # the scene's own GT depth (a sweep point has no --depth-gt); masked as evaluate scores the run
+    views = loaded.scored_views(scene, indices, ecfg.split)
     report = evaluate_views(sampler, views, ecfg, device, show_progress=False,
                             std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
                             calibration_held_out=bool(scene.split.get("calibration")),
                             noise_scale=residual.scale if residual is not None else None,
-                            notes=loaded.eval_notes(ecfg.num_samples) + loaded.exposure_notes(),
+                            notes=loaded.eval_notes(ecfg.num_samples, scored=ecfg.split == "train")
+                            + loaded.exposure_notes(),
                             config_hash=hash_config(ecfg.model_dump(mode="json")))
     wall = time.perf_counter() - t0
     out = {k: getattr(report.mean, k) for k in RECORD_KEYS}
