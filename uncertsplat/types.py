@@ -407,7 +407,10 @@ class ViewSet:
         depths: [C,H,W,1] GT depth, 0 where unknown; None: no GT depth.
         depth_known_scale: ``depths`` are in the scene's own (normalised) world units, so evaluation uses
             them as they are instead of estimating a scale.
-        masks_trained: the masks are the photos' own, which training left out too (``SceneData.masks_train``).
+        masks_trained: the masks are the photos' own, which training left out too (``SceneData.masks_train``), or
+            the transient regions training found (``transients_out``) where the views have no masks of their own.
+        transients_out: the masks leave out the transient regions training found in these (training) views
+            (``LoadedRun.scored_views``).
     """
 
     indices: tuple[int, ...]
@@ -417,6 +420,7 @@ class ViewSet:
     depths: Tensor | None = None
     depth_known_scale: bool = False
     masks_trained: bool = False
+    transients_out: bool = False
 
     def __len__(self) -> int:
         return len(self.indices)

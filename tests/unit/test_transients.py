@@ -333,8 +333,13 @@ def test_a_run_writes_its_transients_and_the_fits_on_its_training_views_leave_th
     (train_views, train_notes), (test_views, test_notes) = scored
     k = train_views.names.index(painted[0])
     assert train_views.masks is not None and not train_views.masks[k].all() and train_views.masks_trained
-    assert any("and of these training views' scores" in n for n in train_notes)
-    assert test_views.masks is None and not any("these training views' scores" in n for n in test_notes)
+    assert any("and of these training views' scores" in n for n in train_notes) and train_views.transients_out
+    from uncertsplat.eval.engine import TRANSIENT_MASKS_NOTE
+    from uncertsplat.schemas.metrics import EvalReport
+
+    written = EvalReport.read(run / "eval-train" / "metrics.json").notes
+    assert any(TRANSIENT_MASKS_NOTE in n for n in written), written
+    assert test_views.masks is None and not test_views.transients_out and not any("these training views' scores" in n for n in test_notes)
     # a sweep point's evaluation of the training views scores them as evaluate does
     jobs._evaluate({"run_dir": str(run)}, {"id": 1, "eval_config": {"split": "train", "num_samples": 2,
                                                                     "save_maps": False}}, torch.device("cpu"))
@@ -353,6 +358,9 @@ def test_a_run_writes_its_transients_and_the_fits_on_its_training_views_leave_th
     masked_views, _ = scored[-1]
     k = masked_views.names.index(painted[0])
     assert not masked_views.masks_trained and not masked_views.masks[k, : h // 8, : w // 8].any()
+    written = EvalReport.read(run / "eval-train" / "metrics.json").notes
+    assert not any(TRANSIENT_MASKS_NOTE in n for n in written)
+    assert any("the transient regions training found in these views are left out too" in n for n in written)
     assert not masked_views.masks[k].all() and (~masked_views.masks[k]).sum() > (~train_views.masks[k]).sum()
     shutil.rmtree(ws / "masks")
 

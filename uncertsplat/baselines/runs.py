@@ -191,7 +191,7 @@ class LoadedRun:
         if split == "train":
             masks = without_transients(views.masks, scene, views.indices, self.transient_runs())
             transients = views.masks is None and masks is not None  # (a scene's or photos' masks: not training's)
-            views = dataclasses.replace(views, masks=masks)
+            views = dataclasses.replace(views, masks=masks, transients_out=masks is not views.masks)
         return masks_as_trained(views, self.run_dir, transients_scored=transients)
 
     def transient_runs(self) -> list[Path]:

@@ -692,6 +692,8 @@ MASKED_NOTE = "the scene has validity masks"
 """How that note begins (``stages.evaluate`` looks for it to say so beside the PSNR it prints)."""
 PHOTO_MASKS_NOTE = "the masks are the photos' own"
 """What that note says when the masks are the photos' own (``ViewSet.masks_trained``: train's PSNR is inside them)."""
+TRANSIENT_MASKS_NOTE = "the masks leave out the transient regions training found in these views"
+"""What it says when they leave out the transient regions training found (``ViewSet.transients_out``)."""
 
 
 def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: torch.device, *,
@@ -778,14 +780,18 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         if views.masks_trained:
             notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
                          f"({inside:.0%} of the pixels of these views; SSIM too, with both images black outside "
-                         f"them), as train's held-out PSNR and SSIM; {PHOTO_MASKS_NOTE} or the transient regions training "
-                         "found, whose black pixels training left out too")
+                         "them), as train's held-out PSNR and SSIM; "
+                         + (f"{TRANSIENT_MASKS_NOTE} (and the photos' own masks, where it trained with them), which "
+                            "training left out too" if views.transients_out else
+                            f"{PHOTO_MASKS_NOTE}, whose black pixels training left out too"))
         else:
             notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
                          f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out "
                          "PSNR over whole images; the masks are a synthetic scene's, the objects of transparent "
                          "photos (alpha >= 0.5: the background they are composited over left out), or the photos' "
-                         "own added after training")
+                         "own added after training"
+                         + ("; the transient regions training found in these views are left out too"
+                            if views.transients_out else ""))
     # a model without a posterior: its spread term is 0 too
     terms = ["the variance of the K samples" + (" (0: K = 1)" if K == 1 else
                                               f" (0 for this model: {SAME_RENDER})" if same else "")]

@@ -44,6 +44,7 @@ from uncertsplat.eval.engine import (
     MASKED_NOTE,
     NOT_A_NUMBER_NOTE,
     PHOTO_MASKS_NOTE,
+    TRANSIENT_MASKS_NOTE,
     ZERO_STD_NOTE,
     ViewMaps,
 )
@@ -784,6 +785,7 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
     if report.mean.psnr_render is not None:
         masked = [n for n in report.notes if n.startswith(MASKED_NOTE)]
         where = "" if not masked else "; inside the photos' masks, as train's" if PHOTO_MASKS_NOTE in masked[0] \
+            else "; without the transient regions training found, as train's" if TRANSIENT_MASKS_NOTE in masked[0] \
             else "; train's over whole images, these inside the scene's validity masks"
         samples = "the one sample" if cfg.num_samples == 1 else f"the mean of the {cfg.num_samples} samples"
         what = ("what train reports for the held-out views" if cfg.split == "test" else
