@@ -684,9 +684,11 @@ def test_extend_reads_the_new_photos_masks_from_the_workspaces_folder(synth_scen
     assert {p.name: p.read_bytes() for p in (ws / "masks").iterdir()} == grown
 
 
-def test_extend_with_masks_gives_a_workspace_without_them_its_masks_folder(synth_scene, tmp_path):
+def test_extend_with_masks_gives_a_workspace_without_them_its_masks_folder(synth_scene, tmp_path, monkeypatch):
     """--extend --masks on a workspace made without masks: the new photos' masks come into a masks/ of their own
-    (the others count every pixel), and the folder is recorded for later extensions."""
+    (the others count every pixel), and the folder is recorded for later extensions; stopped after every part was
+    swapped in but before the report, the workspace is the one it was, without masks/."""
+    from uncertsplat.errors import Interrupted
     from uncertsplat.sfm.scene import load_scene
 
     names = sorted(p.name for p in (synth_scene / "images").iterdir())
@@ -710,6 +712,20 @@ def test_extend_with_masks_gives_a_workspace_without_them_its_masks_folder(synth
     with pytest.raises(UserError, match="a masks/ folder that reconstruct did not make"):
         stage.run(photos, ws, CFG.model_copy(update={"masks": masks, "extend": True}))
     (ws / "masks").rmdir()
+    untouched = _digest(ws)
+    real_rename = Path.rename
+
+    def stop_at_the_report(self, target):  # Ctrl-C as the old report is moved aside: every part is in by then
+        if self.name == REPORT_NAME and Path(target).parent.name == "old":
+            assert (ws / "masks").is_dir()
+            raise KeyboardInterrupt
+        return real_rename(self, target)
+
+    with monkeypatch.context() as m:
+        m.setattr(Path, "rename", stop_at_the_report)
+        with pytest.raises(Interrupted, match="the workspace is as it was"):
+            stage.run(photos, ws, CFG.model_copy(update={"masks": masks, "extend": True}))
+    assert _digest(ws) == untouched and not (ws / "masks").exists()
     report = stage.run(photos, ws, CFG.model_copy(update={"masks": masks, "extend": True}))
     assert later in report.images_registered
     assert sorted(p.name for p in (ws / "masks").iterdir()) == [f"{later}.png"]
