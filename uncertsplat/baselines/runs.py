@@ -178,13 +178,13 @@ class LoadedRun:
         return functools.partial(load_view_set, scene, depth=False, keep_8bit=True, transients=self.transient_runs())
 
     def scored_views(self, scene: SceneData, indices, split: str, **load) -> ViewSet:
-        """The views ``indices`` of ``scene`` as evaluate and sweep score them (``data.dataset.load_view_set``, with
-        ``load`` passed on): training views (``split`` "train") without the transient regions this run's training
-        found in them, as its loss left them out; ``masks_trained`` saying whether the masks are those training used
-        (``sfm.scene.masks_as_trained``): the photos' own when it trained with them, or, for photos without masks of
-        their own, the transient regions."""
+        """The views ``indices`` of ``scene`` as evaluate, sweep and prune score them (``data.dataset.load_view_set``,
+        with ``load`` passed on): training views (``split`` "train") without the transient regions this run's
+        training found in them, as its loss left them out; ``masks_trained`` saying whether the masks are those
+        training used: the photos' own when it trained with them (masks added to the scene since are scored inside
+        but not so called), or, for photos without masks of their own, the transient regions."""
         from uncertsplat.data.dataset import load_view_set, without_transients
-        from uncertsplat.sfm.scene import masks_as_trained
+        from uncertsplat.sfm.scene import trained_with_masks
 
         views = load_view_set(scene, indices, **load)
         transients = False
@@ -192,7 +192,8 @@ class LoadedRun:
             masks = without_transients(views.masks, scene, views.indices, self.transient_runs())
             transients = views.masks is None and masks is not None  # (a scene's or photos' masks: not training's)
             views = dataclasses.replace(views, masks=masks, transients_out=masks is not views.masks)
-        return masks_as_trained(views, self.run_dir, transients_scored=transients)
+        return dataclasses.replace(views, masks_trained=(views.masks_trained and trained_with_masks(self.run_dir))
+                                   or transients)
 
     def transient_runs(self) -> list[Path]:
         """The run folders whose ``transients/`` (``data.dataset.TRANSIENTS_FOLDER``) hold what training left out of

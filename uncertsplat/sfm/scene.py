@@ -222,14 +222,6 @@ def trained_with_masks(run_dir: Path) -> bool:
     return info is not None and bool(info.masks)
 
 
-def masks_as_trained(views, run_dir: Path, transients_scored: bool = False):
-    """``views`` (``types.ViewSet``) with ``masks_trained`` saying whether its masks are those the run in ``run_dir``
-    trained with, as evaluate and prune score it: the photos' own masks when it was trained with them (masks added to
-    the scene since are scored inside but not so called); or the transient regions its training found, when they
-    are the only masks of the views (``transients_scored``: ``LoadedRun.scored_views`` of training views)."""
-    return replace(views, masks_trained=(views.masks_trained and trained_with_masks(run_dir)) or transients_scored)
-
-
 def _digest_of(hashes: dict[str, str]) -> str:
     """``run_mask_digest``'s one SHA-256 of {view name: SHA-256 of its mask}."""
     import hashlib

@@ -111,16 +111,13 @@ class _Measure:
     """Held-out metrics of a model (MC uncertainty via ``evaluate_views``), coverage and file sizes."""
 
     def __init__(self, loaded, scene, indices: list[int], cfg: PruneConfig, device: torch.device):
-        from uncertsplat.data.dataset import load_view_set
-        from uncertsplat.sfm.scene import masks_as_trained
-
         self.loaded, self.scene, self.indices, self.device = loaded, scene, indices, device
         self.ecfg = EvalConfig(num_samples=cfg.num_samples, seed=cfg.seed, save_maps=False)
         self.render_fn = loaded.render_fn(scene.scene_scale, device)
         self.cams = scene.cameras[indices].to(device)
         # the held-out images and GT depth are read once; every model of a sweep is measured on them
         # (8-bit photos kept as uint8, read as float32; masked as evaluate scores the run)
-        self.views = masks_as_trained(load_view_set(scene, indices, keep_8bit=True), loaded.run_dir)
+        self.views = loaded.scored_views(scene, indices, "test", keep_8bit=True)
         # the pixel noise of the source model's Gaussians, fitted once: a pruned model keeps its Gaussians' noise
         # (read from the source run's evaluation when it fitted the same one; the source run is never written)
         from uncertsplat.stages.residual_cache import fitted_residual
