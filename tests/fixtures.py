@@ -68,3 +68,20 @@ def default_sigint() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def fail_png_write(monkeypatch, nth: int) -> list:
+    """Make ``io.images.write_png`` raise ``OSError("disk full")`` at its ``nth`` call (the others write); returns
+    the list of the paths it was called with."""
+    import uncertsplat.io.images as images
+
+    real, calls = images.write_png, []
+
+    def failing(path, pixels):
+        calls.append(path)
+        if len(calls) == nth:
+            raise OSError("disk full")
+        return real(path, pixels)
+
+    monkeypatch.setattr(images, "write_png", failing)
+    return calls

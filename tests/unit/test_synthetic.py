@@ -251,18 +251,9 @@ class TestViewsOnThreads:
         assert seen == [(i, 4) for i in range(1, 5)]
 
     def test_a_failed_write_leaves_no_folder_behind(self, tmp_path, monkeypatch):
-        import uncertsplat.io.images as images
+        from tests.fixtures import fail_png_write
 
-        real = images.write_png
-        calls = []
-
-        def failing(path, pixels):
-            calls.append(path)
-            if len(calls) == 5:
-                raise OSError("disk full")
-            return real(path, pixels)
-
-        monkeypatch.setattr(images, "write_png", failing)
+        fail_png_write(monkeypatch, 5)
         with pytest.raises(OSError, match="disk full"):
             self._with_threads(2, lambda: generate_scene(tmp_path / "s", SynthConfig(**SMALL)))
         assert not (tmp_path / "s").exists()

@@ -396,15 +396,10 @@ def test_the_folder_is_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
     assert _write_transients(tmp_path, trainer({"a.png": keep, "b.png": keep}), None) == {
         "a.png": round(1 / 24, 4), "b.png": round(1 / 24, 4)}
     assert sorted(p.name for p in (tmp_path / "transients").iterdir()) == ["a.png.png", "b.png.png"]
-    real, calls = images.write_png, []
+    from tests.fixtures import fail_png_write
 
-    def failing(path, arr):
-        calls.append(path)
-        if len(calls) == 2:
-            raise OSError("disk full")
-        return real(path, arr)
-
-    monkeypatch.setattr(images, "write_png", failing)
+    real = images.write_png
+    fail_png_write(monkeypatch, 2)
     with pytest.raises(OSError):
         _write_transients(tmp_path, trainer({"c.png": keep, "d.png": keep}), None)
     assert sorted(p.name for p in (tmp_path / "transients").iterdir()) == ["a.png.png", "b.png.png"]

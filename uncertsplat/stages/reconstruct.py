@@ -767,11 +767,11 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                     without = sfm.stage_masks(scan, masks, mask_dir)
                     from uncertsplat.sfm.scene import mask_names, masks_note
 
-                    if cfg.masks is not None and is_new <= set(without):
+                    bare = set(without)
+                    if cfg.masks is not None and is_new <= bare:
                         raise UserError(f"{masks} holds no mask named for any new photo ({mask_names(new[0])})",
                                         path=masks, hint="Name each mask after its photo.")
-                    mask_note = "new photos' " + masks_note(new, [None if n in set(without) else n for n in new],
-                                                            f"in {masks}")
+                    mask_note = "new photos' " + masks_note(new, [None if n in bare else n for n in new], f"in {masks}")
                     console.print(f"[yellow]note:[/] {esc(mask_note)}")
             known = sfm.database_cameras(database)
             groups = {key: [n for n in names if n in is_new] for key, names in scan.camera_groups().items()}
