@@ -280,10 +280,21 @@ def test_masks_added_or_changed_after_training_are_said_and_scored_again(masked_
     notes = json.loads((run / "eval" / "metrics.json").read_text(encoding="utf-8"))["notes"]
     assert not any(PHOTO_MASKS_NOTE in n for n in notes)
     assert any("or the photos' own added after training" in n for n in notes), notes
+    # what is computed from the fit (the coverage, the Fisher curvature, select-views) takes the pixels training
+    # fitted: every one, as its loss did not leave the added masks' out
+    from uncertsplat.baselines import load_run
+    from uncertsplat.data.dataset import load_masks
+
+    loaded = load_run(run, torch.device("cpu"))
+    scene = loaded.load_scene()
+    train_idx = list(scene.split["train"])
+    assert scene.masks_train and loaded.training_masks(scene, train_idx) is None
 
     trained = train_tiny_run(masked_workspace, tmp_path / "run2", iterations=40)
     recorded = RunScene.read(trained / "scene.json").masks
     assert len(recorded) == 24 and set(recorded.values()) != {""}
+    fitted = load_run(trained, torch.device("cpu")).training_masks(scene, train_idx)
+    assert fitted is not None and torch.equal(fitted, load_masks(scene, train_idx)) and not bool(fitted.all())
     evaluate.run(trained, cfg, device=torch.device("cpu"), quiet=True)
     first = (trained / "eval" / "metrics.json").stat().st_mtime_ns
     evaluate.run(trained, cfg, device=torch.device("cpu"), quiet=True)
@@ -301,7 +312,6 @@ def test_masks_added_or_changed_after_training_are_said_and_scored_again(masked_
     # a finished run resumed (on a moved scene, say) trains nothing: the masks it was trained with stay recorded;
     # the noise fit kept for the run is keyed by the masks as they are now
     from tests.run_fixtures import TINY_RUN_OVERRIDES
-    from uncertsplat.baselines import load_run
     from uncertsplat.config import deep_update, train_config_from
     from uncertsplat.stages import train
     from uncertsplat.stages.residual_cache import run_digests

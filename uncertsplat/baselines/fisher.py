@@ -90,7 +90,7 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
 
     Returns the stored dict (variances, Fisher diagonals, noise std, timings).
     """
-    from uncertsplat.data.dataset import load_images, load_masks, without_transients
+    from uncertsplat.data.dataset import load_images
     from uncertsplat.io.atomic import atomic_write_bytes
 
     run_dir = Path(run_dir)
@@ -100,9 +100,7 @@ def compute_fisher(run_dir: Path, device: torch.device, seed: int = 0) -> dict:
     idx = list(data.split["train"])
     cams = data.cameras[idx].to(device)
     images = load_images(data, idx, device)
-    masks = load_masks(data, idx, device) if data.masks_train else None  # [T,H,W,1]: the pixels training fitted
-    masks = without_transients(masks, data, idx, run_dir)  # (and without the transients it left out)
-    masks = masks.to(device) if masks is not None else None
+    masks = loaded.training_masks(data, idx, device)  # [T,H,W,1]: the pixels training fitted
     exposure = loaded.photo_exposure()
     if exposure is not None:  # the photos at the model's exposure, as training compared them
         images = exposure.unexposed_images(idx, images)

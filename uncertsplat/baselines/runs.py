@@ -17,11 +17,12 @@ import dataclasses
 import functools
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
+from torch import Tensor
 
 from uncertsplat.config import TrainConfig, build_config
 from uncertsplat.console import esc, q
@@ -133,16 +134,9 @@ class LoadedRun:
             if sample is None:
                 with torch.no_grad():
                     sample = variational.expected_render_sample(self.model, **self.sample_kwargs)
-            from uncertsplat.data.dataset import load_masks, without_transients
-            from uncertsplat.sfm.scene import trained_with_masks
 
-            users = scene.masks_train and trained_with_masks(self.run_dir)
-
-            def masks_of(pick):
-                # the pixels training fitted: a masked-out sky or passer-by is no surface to cover
-                views = [train[j] for j in pick]
-                return without_transients(load_masks(scene, views) if users else None, scene, views,
-                                          self.transient_runs())
+            def masks_of(pick):  # a masked-out sky or passer-by is no surface to cover
+                return self.training_masks(scene, [train[j] for j in pick])
             value = training_coverage(sample, scene.cameras[train].to(device), self.render_fn(scene_scale, device),
                                       masks_of=masks_of)
         self._coverage = value
@@ -168,6 +162,21 @@ class LoadedRun:
         bg = torch.tensor(self.config.scene.background, dtype=torch.float32, device=device)
         return functools.partial(render, background=bg, tile_size=self.config.tile_size,
                                  near=self.near if self.near is not None else near_plane(scene_scale))
+
+    def training_masks(self, scene: SceneData, indices: Sequence[int], device=None) -> Tensor | None:
+        """[C,H,W,1] bool: the pixels of the training views ``indices`` of ``scene`` that this run's training fitted,
+        for what is computed from that fit (the training coverage, the Fisher curvature, ``select-views``' Fisher
+        score): inside the photos' own masks when it trained with them (``sfm.scene.trained_with_masks``; masks
+        added to the scene since are not, as its loss did not leave those pixels out), without the transient regions
+        it found (``transient_runs``). None: every pixel was fitted."""
+        from uncertsplat.data.dataset import load_masks, without_transients
+        from uncertsplat.sfm.scene import trained_with_masks
+
+        indices = [int(i) for i in indices]
+        users = scene.masks_train and trained_with_masks(self.run_dir)
+        masks = without_transients(load_masks(scene, indices) if users else None, scene, indices,
+                                   self.transient_runs())
+        return None if masks is None else masks.to(device)
 
     def training_views(self, scene: SceneData) -> Callable:
         """``load(indices) -> ViewSet``: the training views of ``scene`` as the fits on them read them (8-bit photos

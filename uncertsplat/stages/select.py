@@ -203,7 +203,7 @@ def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | N
 def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | None = None):
     from uncertsplat.baselines import load_run
     from uncertsplat.baselines.fisher import prior_stds
-    from uncertsplat.data.dataset import load_images, load_masks, without_transients
+    from uncertsplat.data.dataset import load_images
     from uncertsplat.io.atomic import check_output_folder, run_lock
     from uncertsplat.io.images import resize_image, resize_mask
     from uncertsplat.schemas import PruneReport, RunScene, Selection
@@ -306,10 +306,8 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
             photos = exposure.unexposed_images(train, photos)
         images = torch.from_numpy(np.stack([resize_image(im.numpy(), low_train.width, low_train.height)
                                             for im in photos]))
-        # the photos' own masks and the transients training found, as training left those pixels out (a low pixel
-        # counts only where every pixel under it does)
-        full = without_transients(load_masks(scene, train) if scene.masks_train else None, scene, train,
-                                  loaded.transient_runs())
+        # the pixels training fitted (a low pixel counts only where every pixel under it does)
+        full = loaded.training_masks(scene, train)
         masks = None if full is None else torch.from_numpy(np.stack(
             [resize_mask(m.numpy(), low_train.width, low_train.height) for m in full])).to(device)
         fcfg = loaded.config.fisher
