@@ -197,6 +197,11 @@ class TestRenderLoop:
         assert _within(1e9, 2, 128, 16) == 128 and _within(float("nan"), 0.5, 1.0, 0.9) == 0.9
         assert _within("abc", 128, 2048, 1024) == 1024  # (a client's text, which viser passes on)
 
+    def test_url_of_an_ipv6_host(self):
+        assert view_server.viewer_url("2001:db8::1", 8080) == "http://[2001:db8::1]:8080"
+        assert view_server.viewer_url("::1", 8080) == "http://localhost:8080"
+        assert view_server.viewer_url("example.org", 80) == "http://example.org:80"
+
     def test_switching_mode_rerenders(self, viewer):
         viewer.set_mode("rgb")
         client = FakeClient(viewer.scene, 2)
@@ -276,6 +281,34 @@ class TestLiveView:
             live.close()
         assert len(client.frames) == 1  # the first frame costs something, then the budget (0) is spent
 
+    def test_a_frame_that_fails_leaves_the_training_running(self, tiny_scene_path, tmp_path, monkeypatch):
+        """A frame too large for the device's memory, or a browser's canvas of NaN pixels, is said in the panel:
+        the training it watches goes on to its model (it ended the run, nothing saved: a helper's review)."""
+        from uncertsplat.view.frames import FrameRenderer
+        from uncertsplat.view.live import LiveView
+
+        real, calls = FrameRenderer.frame, []
+
+        def frame(self, *args, **kwargs):
+            calls.append(1)
+            if len(calls) % 3 == 2:
+                raise RuntimeError("CUDA out of memory (simulated)")
+            return real(self, *args, **kwargs)
+
+        monkeypatch.setattr(FrameRenderer, "frame", frame)
+        live = LiveView(ViewConfig(port=0, thumbnails=False), budget=1.0, refresh=0.0)
+        try:
+            client = _train_watched(tiny_scene_path, tmp_path / "run", live, iterations=30)
+            viewer = live.viewer
+            client.camera.image_width = float("nan")  # (a canvas of NaN pixels: the setting's side)
+            client.camera.image_height = float("nan")
+            assert viewer._full_side(viewer._views[client.client_id]) == viewer.cfg.max_side
+        finally:
+            live.close()
+        assert (tmp_path / "run" / "variational.ply").is_file()
+        assert len(calls) > 3 and 0 < len(client.frames) < len(calls)
+        assert "CUDA out of memory (simulated)" in viewer.last_error
+
     def test_without_a_browser_nothing_is_rendered(self, tiny_scene_path, tmp_path):
         from uncertsplat.view.live import LiveView
 
@@ -324,6 +357,23 @@ def test_ctrl_c_ends_cleanly(tiny_run_path, tmp_path, sig):
 
 
 # ---------------------------------------------------------------------------------------------------- browser
+@pytest.mark.parametrize("setting", [{"max_side": 4096}, {"max_side": 64}, {"still_samples": 1024}])
+def test_settings_beyond_the_sliders_usual_range_widen_them(tiny_run_path, setting):
+    """The config allows a still frame's side of 64-4096 and up to 1024 samples; the panel's sliders stop at 128-2048
+    and 2-128 by default, and viser refused a start value outside them (a traceback)."""
+    v = stage.build(tiny_run_path, ViewConfig(port=0, thumbnails=False, **setting), torch.device("cpu"))
+    v.start(worker=False)
+    try:
+        slider = v.gui_side if "max_side" in setting else v.gui_samples
+        value = next(iter(setting.values()))
+        assert slider.value == value and slider.min <= value <= slider.max
+        client = FakeClient(v.scene, 0, canvas=(5000, 5000))
+        if "max_side" in setting:
+            assert v._full_side(view_server.ViewState(client)) == value
+    finally:
+        v.stop()
+
+
 def test_page_in_headless_chromium(viewer, tmp_path):
     from tests.e2e.cdp import Browser, find_chromium
 

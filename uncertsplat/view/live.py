@@ -92,8 +92,8 @@ class LiveView:
         with viewer._lock:
             views = list(viewer._views.values())
         pushed = viewer.frames_pushed
-        for v in views:
-            viewer.serve(v)
+        for v in views:  # (a failed frame is said in the panel: the training goes on)
+            viewer.serve_or_report(v)
         if viewer.frames_pushed > pushed:
             self._shown_at = time.perf_counter()
             self.frames += viewer.frames_pushed - pushed

@@ -95,6 +95,11 @@ def _within(value, lo: float, hi: float, default: float) -> float:
     return float(default) if x != x else min(max(x, lo), hi)
 
 
+def _widened(bounds: tuple[int, int], value: int) -> tuple[int, int]:
+    """A slider's ``bounds`` widened to hold ``value`` (a setting the config allows beyond the usual range)."""
+    return min(bounds[0], int(value)), max(bounds[1], int(value))
+
+
 def _fit(aspect: float, long_side: int) -> tuple[int, int]:
     """(width, height) with the given aspect (width / height) and long side."""
     long_side = max(int(long_side), 8)
@@ -182,6 +187,8 @@ def check_port(host: str, port: int, option: str = "--port") -> None:
 
 def viewer_url(host: str, port: int) -> str:
     shown = "localhost" if host in ("0.0.0.0", "127.0.0.1", "::", "::1") else host
+    if ":" in shown:  # an IPv6 address: a URL needs it in brackets
+        shown = f"[{shown.strip('[]')}]"
     return f"http://{shown}:{port}"
 
 
@@ -249,11 +256,15 @@ class Viewer:
         self.gui_mode = gui.add_dropdown("Mode", tuple(labels), initial_value=labels[0],
                                          hint="What the view shows: the render, its depth, the posterior's std, or "
                                               "the Gaussians prune would remove.")
-        self.gui_samples = gui.add_slider("Samples (still)", min=SAMPLES_RANGE[0], max=SAMPLES_RANGE[1], step=2,
+        # (a setting beyond a slider's usual range widens it: the config allows what the panel should show)
+        self._samples_range = _widened(SAMPLES_RANGE, self.cfg.still_samples)
+        self._side_range = _widened(SIDE_RANGE, self.cfg.max_side)
+        self.gui_samples = gui.add_slider("Samples (still)", min=self._samples_range[0], max=self._samples_range[1],
+                                          step=2,
                                           initial_value=self.cfg.still_samples,
                                           hint="Posterior samples of a still std frame (K); moving frames use "
                                                f"{self.cfg.moving_samples}.")
-        self.gui_side = gui.add_slider("Resolution (still)", min=SIDE_RANGE[0], max=SIDE_RANGE[1], step=32,
+        self.gui_side = gui.add_slider("Resolution (still)", min=self._side_range[0], max=self._side_range[1], step=32,
                                        initial_value=self.cfg.max_side,
                                        hint="Long side in pixels of a still frame; moving frames are smaller.")
         self.gui_lock = gui.add_checkbox("Lock colour range", initial_value=False,
@@ -437,13 +448,18 @@ class Viewer:
             for v in views:
                 if self._stop.is_set():
                     return
-                try:
-                    self.serve(v)
-                except Exception as err:  # keep serving: a failed frame is shown in the panel, not fatal
-                    self.last_error = f"{type(err).__name__}: {err}"
-                    self.gui_status.content = f"**render failed**: {html.escape(self.last_error)}"
-                    with self._lock:
-                        v.shown_version, v.shown_full = v.version, True
+                self.serve_or_report(v)
+
+    def serve_or_report(self, v: ViewState) -> None:
+        """``serve``, a failure shown in the panel instead of raised: a frame too large for the device's memory or a
+        client's odd camera must neither stop the viewer nor a training run it watches (``view.live``)."""
+        try:
+            self.serve(v)
+        except Exception as err:
+            self.last_error = f"{type(err).__name__}: {err}"
+            self.gui_status.content = f"**render failed**: {html.escape(self.last_error)}"
+            with self._lock:  # (not tried again until the camera moves)
+                v.shown_version, v.shown_full = v.version, True
 
     def _camera(self, v: ViewState, long_side: int) -> Cameras:
         cam = v.client.camera
@@ -454,8 +470,8 @@ class Viewer:
 
     def _full_side(self, v: ViewState) -> int:
         cam = v.client.camera
-        canvas = max(int(cam.image_width or 0), int(cam.image_height or 0))
-        side = int(_within(self.gui_side.value, *SIDE_RANGE, self.cfg.max_side))
+        canvas = int(max(_within(cam.image_width, 0, 1 << 16, 0), _within(cam.image_height, 0, 1 << 16, 0)))
+        side = int(_within(self.gui_side.value, *self._side_range, self.cfg.max_side))
         return min(side, canvas) if canvas > 0 else side
 
     def _preview_side(self, v: ViewState, mode: str, renders: int) -> int:
@@ -491,7 +507,7 @@ class Viewer:
                 v.accumulator = self.renderer.std_accumulator(self._camera(v, self._full_side(v)))
                 v.accumulator_version = version
             cams = v.accumulator.cameras
-            k_total = int(_within(self.gui_samples.value, *SAMPLES_RANGE, self.cfg.still_samples))
+            k_total = int(_within(self.gui_samples.value, *self._samples_range, self.cfg.still_samples))
             step = min(k_move, k_total - v.accumulator.count)
             v.accumulator.add(step)
             frame = v.accumulator.frame(mode, value_range)
