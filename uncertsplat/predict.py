@@ -131,6 +131,10 @@ _RIGID_HINT = ("Pass world-to-camera matrices in the scene's units, as pycolmap'
                "transform=\"world_from_cam\", OpenGL/Blender axes with axes=\"opengl\".")
 
 
+_PREDICTED = ("rgb_mean", "rgb_std", "depth_mean", "depth_std", "alpha_mean")
+"""The maps of ``mc_render`` a ``Prediction`` holds."""
+
+
 def _whole(value, name: str, minimum: int) -> int:
     """``value`` as an int: an integer, or a float that is one (320.0); anything else is refused (320.7 was cut to
     320 without a word)."""
@@ -139,9 +143,13 @@ def _whole(value, name: str, minimum: int) -> int:
     try:
         out = operator.index(value)  # int, numpy and 0-d torch integers
     except TypeError:
-        if not (isinstance(value, float) and value.is_integer()):
+        try:  # a float of any kind (numpy's float32 of a camera-info array, a 0-d torch tensor) that is whole
+            x = None if isinstance(value, (str, bytes)) else float(value)
+        except (TypeError, ValueError, RuntimeError):
+            x = None
+        if x is None or not x.is_integer():
             raise UserError(f"{name} must be a whole number, got {value!r}") from None
-        out = int(value)
+        out = int(x)
     if out < minimum:
         raise UserError(f"{name} must be {minimum} or more, got {out}")
     return out
@@ -538,13 +546,16 @@ class Predictor:
                 gen.manual_seed(view_seed(seed, at))
                 maps, _ = mc_render(self._sampler.sample_fn, self._sampler.render_fn, cam, k, gen,
                                     **predictive_terms(self._sampler, self._cfg, cam))
-                out.append(maps)
+                # each view's maps to the CPU as it is done: kept on the device, a batch of poses would hold them
+                # all there (75 MB a view at 1920x1080), and joined there, twice that
+                out.append({n: getattr(maps, n).cpu() for n in _PREDICTED})
+                del maps  # (not held on the device while the next view renders)
         to_source = 1.0 / self.scale
 
         def cat(name: str, channels: int) -> Tensor:
             if not out:  # no camera: empty maps of the cameras' size
                 return torch.zeros(0, cameras.height, cameras.width, channels)
-            return torch.cat([getattr(m, name) for m in out]).cpu()
+            return torch.cat([m[name] for m in out])
 
         return Prediction(rgb_mean=cat("rgb_mean", 3), rgb_std=cat("rgb_std", 3),
                           depth_mean=cat("depth_mean", 1) * to_source, depth_std=cat("depth_std", 1) * to_source,

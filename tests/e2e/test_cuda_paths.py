@@ -49,13 +49,30 @@ def test_select_views_scores_candidates_on_cuda(cuda_run, tmp_path, score):
     assert len(sel.chosen) == 2
 
 
-def test_the_predictor_on_cuda(cuda_run):
-    from uncertsplat.predict import Predictor
+def test_the_predictor_on_cuda(cuda_run, monkeypatch):
+    """The maps come back on the CPU, and no view's maps stay on the device while the next view renders (a batch of
+    poses held them all there, then joined them there: twice the batch's maps)."""
+    import gc
+    import weakref
 
+    from uncertsplat.predict import Predictor
+    from uncertsplat.uncertainty import mc
+
+    real, kept = mc.mc_render, []
+
+    def mc_render(*args, **kwargs):
+        gc.collect()
+        assert all(ref() is None for ref in kept), "an earlier view's maps are still on the device"
+        maps, rest = real(*args, **kwargs)
+        kept.append(weakref.ref(maps.rgb_std))
+        return maps, rest
+
+    monkeypatch.setattr(mc, "mc_render", mc_render)
     pred = Predictor.load(cuda_run / "train", "cuda")
-    cams = pred.scene.cameras[[0, 1]]
+    cams = pred.scene.cameras[[0, 1, 2]]
     out = pred.predict(cams.to(torch.device("cuda")), num_samples=2)
-    assert bool(torch.isfinite(out.depth_std).all()) and out.depth_std.shape[0] == 2  # (maps come back on the CPU)
+    assert len(kept) == 3 and out.rgb_std.device.type == "cpu"
+    assert bool(torch.isfinite(out.depth_std).all()) and out.depth_std.shape[0] == 3
     points = pred.scene.cameras.centers[:3].to(torch.device("cuda"))
     assert pred.seen_free(points).shape == (3,)
 

@@ -237,7 +237,14 @@ def test_refuses_sizes_and_counts_that_are_not_whole_numbers():
         pred.cameras_from_source(a_pose(), K, 320.7, 240)
     with pytest.raises(UserError, match="height must be 1 or more, got 0"):
         pred.cameras_from_source(a_pose(), K, 320, 0)
-    cams = pred.cameras_from_source(a_pose(), K, 128, 96)
+    with pytest.raises(UserError, match="width must be a whole number, got np.float32"):
+        pred.cameras_from_source(a_pose(), K, np.float32(320.5), 240)
+    with pytest.raises(UserError, match="width must be a whole number, got '320'"):
+        pred.cameras_from_source(a_pose(), K, "320", 240)
+    # whole sizes as camera-info arrays and tensors hold them (float32 was called "not whole")
+    for w, h in ((np.float32(128.0), np.float64(96.0)), (torch.tensor(128.0), torch.tensor(96, dtype=torch.int16))):
+        cams = pred.cameras_from_source(a_pose(), K, w, h)
+        assert (cams.width, cams.height) == (128, 96)
     with pytest.raises(UserError, match="num_samples must be a whole number, got 2.7"):
         pred.predict(cams, num_samples=2.7)
     with pytest.raises(UserError, match="num_samples must be 1 or more, got 0"):

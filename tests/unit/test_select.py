@@ -294,6 +294,23 @@ class TestCandidates:
             torch.testing.assert_close(rotmat_to_quat(quat_to_rotmat(q[None].float())[0].double()), q, atol=1e-6,
                                        rtol=0)
 
+    def test_names_with_spaces_and_a_byte_order_mark_read_back(self, scene, tmp_path):
+        """A photo's name may hold spaces (`--candidates unused` on "Photo 1.jpg"): its pose_line reads back under
+        that name; a file an editor saved with a byte-order mark reads as without it (its first comment was read as
+        a pose, its first name began with the mark)."""
+        from uncertsplat.select.candidates import pose_line
+
+        names = ["IMG 0042.jpg", "two  spaces", "c9"]
+        lines = [pose_line(n, scene.cameras.cam_from_world[i], scene.world_from_source)
+                 for n, i in zip(names, (0, 5, 9), strict=True)]
+        for head in ("# planned poses\n", ""):
+            f = tmp_path / "plan.txt"
+            f.write_text(head + "\n".join(lines) + "\n", encoding="utf-8-sig")
+            cams = read_pose_file(f, scene, scene.world_from_source)
+            assert cams.image_names == tuple(names)
+            torch.testing.assert_close(cams.cam_from_world, scene.cameras.cam_from_world[[0, 5, 9]], atol=1e-5,
+                                       rtol=0)
+
     @pytest.mark.parametrize("offset", [0.0, 1e5, 1e6, 1e7])
     def test_a_pose_line_far_from_the_scene_s_origin_reads_back_at_its_centre(self, scene, tmp_path, offset):
         """A georeferenced scene (translations of 1e6): the float32 rotation's departure from a rotation times the

@@ -10,7 +10,8 @@
 - a file of poses, one per line: ``NAME QW QX QY QZ TX TY TZ``, the camera-from-world rotation (unit
   quaternion, scalar first) and translation as in COLMAP's ``images.txt``, in the coordinates of the scene the
   run was trained on (its COLMAP model or transforms file; ``RUN/scene.json`` records the similarity to the
-  run's normalised world). Blank lines and lines starting with ``#`` are skipped. The cameras take the
+  run's normalised world); NAME is what comes before the last seven numbers (it may hold spaces). Blank lines
+  and lines starting with ``#`` are skipped. The cameras take the
   intrinsics and image size of the run's first training view.
 """
 
@@ -121,11 +122,12 @@ def read_pose_file(path: Path, scene: SceneData, world_from_source: Tensor) -> C
     names: list[str] = []
     source_from_world = torch.linalg.inv(world_from_source.double())
     scale = similarity_scale(world_from_source)
-    for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), start=1):
+    # (utf-8-sig: a file an editor saved with a byte-order mark, whose first name or comment would begin with it)
+    for number, line in enumerate(path.read_text(encoding="utf-8-sig", errors="replace").splitlines(), start=1):
         text = line.strip()
         if not text or text.startswith("#"):
             continue
-        fields = text.split()
+        fields = text.rsplit(None, 7)  # the name is what comes before the 7 numbers: a photo's name may hold spaces
         if len(fields) != 8:
             raise UserError(f"line {number}: expected 'NAME QW QX QY QZ TX TY TZ' (8 fields), found {len(fields)}: "
                             f"{text[:80]!r}", path=path)
