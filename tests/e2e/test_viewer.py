@@ -226,6 +226,10 @@ class TestRenderLoop:
         state = self._state(viewer, client, moving=False)
         viewer.serve(state)
         assert "removes" in viewer.gui_bar.content and "--keep-ratio 0.7" in viewer.gui_bar.content
+        # the predictive score is a study: prune writes no model by it, so the note names the dry run
+        assert "predictive" in viewer.renderer.score_names()
+        frame = viewer.renderer.prune_frame(viewer._camera(state, 64), score="predictive", keep_ratio=0.7)
+        assert "prune --dry-run --keep-ratio 0.7 --score predictive" in frame.note and "removes" not in frame.note
 
     def test_unseen_mode_from_the_runs_photos(self, viewer):
         # `view` builds the mode from the run's training photos: fitted on first use, served like the depth mode
@@ -236,6 +240,24 @@ class TestRenderLoop:
         state = self._state(viewer, client, moving=False)
         viewer.serve(state)
         assert "no photo showed" in viewer.gui_bar.content and viewer.renderer._unseen is not None
+
+    def test_an_unseen_fit_that_fails_is_not_done_again_at_every_move(self, viewer):
+        from uncertsplat.view.frames import FrameRenderer
+
+        calls = []
+
+        def fails():
+            calls.append(1)
+            raise RuntimeError("out of memory (simulated)")
+
+        r = viewer.renderer
+        fresh = FrameRenderer(r.loaded, viewer.scene.scene_scale, torch.device("cpu"), unseen_field=fails)
+        cams = viewer._camera(self._state(viewer, FakeClient(viewer.scene, 0), moving=False), 64)
+        with pytest.raises(RuntimeError, match="simulated"):
+            fresh.unseen_frame(cams)
+        with pytest.raises(ValueError, match="could not be fitted .*simulated"):
+            fresh.unseen_frame(cams)
+        assert len(calls) == 1
 
 
 def _train_watched(scene, out, live, iterations=60):

@@ -105,8 +105,8 @@ def run(run_dir: Path, cfg: ViewConfig, device: torch.device, *, block: bool = T
     Raises:
         UserError: see ``build``; the port in use or not allowed.
     """
+    check_port(cfg.host, cfg.port)  # (before the run is loaded: a large model takes a while to be told)
     viewer = build(run_dir, cfg, device)
-    check_port(cfg.host, cfg.port)
     try:
         viewer.start()
         if cfg.port and viewer.port != cfg.port:  # taken between our check and viser's bind

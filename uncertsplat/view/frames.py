@@ -219,6 +219,7 @@ class FrameRenderer:
         self._scores: dict[str, Tensor] = {}
         self._unseen_fn = unseen_field
         self._unseen: ResidualField | None = None
+        self._unseen_failed: str | None = None  # why the fit failed (it is not tried again)
 
     # ---- what the run offers
     @property
@@ -290,11 +291,19 @@ class FrameRenderer:
         """The ``unseen`` frame (module docstring): ``sqrt(colour posterior blended + empty-ray variance)``."""
         if self._unseen_fn is None:
             raise ValueError("this viewer has no training photos to know what they showed (unseen mode)")
+        if self._unseen_failed is not None:  # (a fit that failed is not done again at every move of the camera)
+            raise ValueError(self._unseen_failed)
         if self._unseen is None:
-            with torch.enable_grad():  # the fit's sums come from backward passes
-                self._unseen = self._unseen_fn()
-            if self._unseen is None or self._unseen.colour_evidence is None:
-                raise ValueError("the run's colour posterior could not be fitted (no training views)")
+            try:
+                with torch.enable_grad():  # the fit's sums come from backward passes
+                    fitted = self._unseen_fn()
+            except Exception as err:
+                self._unseen_failed = f"the run's colour posterior could not be fitted ({type(err).__name__}: {err})"
+                raise
+            if fitted is None or fitted.colour_evidence is None:
+                self._unseen_failed = "the run's colour posterior could not be fitted (no training views)"
+                raise ValueError(self._unseen_failed)
+            self._unseen = fitted
         out = self.render_mean(cameras)
         # the mean render as a single sample: no spread, the empty-ray term as `evaluate` adds it, the colour term
         moments = MonteCarloMoments(self.sampler.coverage)
@@ -351,6 +360,9 @@ class FrameRenderer:
         keep = self.keep_mask(score, keep_ratio)
         n, removed = len(keep), int((~keep).sum())
         note = f"prune --keep-ratio {keep_ratio:.3g} --score {score} removes {removed:,} of {n:,} Gaussians"
+        if score == "predictive":  # (prune writes no model by it: it ranks first what the images need most)
+            note = (f"prune --dry-run --keep-ratio {keep_ratio:.3g} --score predictive ranks these {removed:,} of "
+                    f"{n:,} Gaussians first (a study: prune writes no model by this score)")
         sample = self.mean_sample
         if hide_removed:
             out = self.sampler.render_fn(_subset(sample, keep), cameras)
