@@ -280,15 +280,27 @@ def _train_watched(scene, out, live, iterations=60):
 
 
 class TestLiveView:
-    def test_draws_the_model_as_it_trains(self, tiny_scene_path, tmp_path):
+    def test_draws_the_model_as_it_trains(self, tiny_scene_path, tmp_path, monkeypatch):
+        from uncertsplat.view.frames import VIEW_MODES
         from uncertsplat.view.live import LiveView
 
         live = LiveView(ViewConfig(port=0, thumbnails=False), budget=1.0, refresh=0.0)
+        live_modes = []
+        real = view_server.Viewer.offer_modes
+
+        def offer_modes(viewer):
+            real(viewer)
+            live_modes.append(tuple(viewer.gui_mode.options))
+
+        monkeypatch.setattr(view_server.Viewer, "offer_modes", offer_modes)
         try:
             client = _train_watched(tiny_scene_path, tmp_path / "run", live)
         finally:
             live.close()
+        modes_at_start = live_modes[0]
         assert live.frames == len(client.frames) > 10
+        # the prune preview is offered once Gaussians carry a posterior (the panel was built at step 0, before any)
+        assert VIEW_MODES["prune"] not in modes_at_start and VIEW_MODES["prune"] in live_modes[-1]
         # the first frame shows the initial points, the last the trained model
         assert np.abs(client.frames[0].astype(int) - client.frames[-1].astype(int)).mean() > 3
         assert (tmp_path / "run" / "variational.ply").is_file()

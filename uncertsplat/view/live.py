@@ -88,6 +88,7 @@ class LiveView:
                     for v in viewer._views.values():
                         v.version += 1
             viewer.renderer = self._renderer(trainer)
+            viewer.offer_modes()  # (the prune preview once Gaussians carry a posterior)
             self._renderer_step = trainer.step
         with viewer._lock:
             views = list(viewer._views.values())

@@ -288,6 +288,19 @@ class Viewer:
         self.gui_cameras.on_update(self._on_show_cameras)
         self._update_visibility()
 
+    def offer_modes(self) -> None:
+        """The panel's modes and prune scores made those of the current renderer: ``train --view`` starts before any
+        Gaussian carries a posterior and gets a new renderer as the training goes (the prune preview then becomes
+        available)."""
+        r = self.renderer
+        labels = tuple(VIEW_MODES[m] for m in r.modes())
+        if tuple(self._label_to_mode) != labels:
+            self._label_to_mode = {VIEW_MODES[m]: m for m in r.modes()}
+            self.gui_mode.options = labels  # (viser keeps the value where it is still offered)
+        scores = tuple(r.score_names() if r.prune_available else ["gate"])
+        if tuple(self.gui_score.options) != scores:
+            self.gui_score.options = scores
+
     @property
     def mode(self) -> str:
         # (a value no dropdown offers, sent by a client, reads as the first mode: it raised KeyError in every frame)
