@@ -178,6 +178,22 @@ class LoadedRun:
                                    self.transient_runs())
         return None if masks is None else masks.to(device)
 
+    def position_prior_std(self, scene: SceneData) -> Tensor | None:
+        """[P] the position prior std of each carrier (table units) that the run's informed posterior was fitted
+        against (``variational.informed_position_prior`` at the training cameras of ``scene``: the reference of
+        training's posterior summary); None where the config's single ``prior.position_std`` is the prior (the
+        learned posterior, or a run without carriers)."""
+        cfg = self.config
+        if cfg.method != "variational" or cfg.posterior != "informed" or not self.model.num_carriers:
+            return None
+        from uncertsplat.gaussians.variational import informed_position_prior
+
+        vcfg = cfg.variational
+        centres = scene.cameras[list(scene.split["train"])].centers.to(self.model.device)
+        return informed_position_prior(self.model, self.prior, extent=self.extent,
+                                       position_prior_scale=vcfg.position_prior_scale, camera_centers=centres,
+                                       position_depth_fraction=vcfg.position_depth_fraction)
+
     def training_views(self, scene: SceneData) -> Callable:
         """``load(indices) -> ViewSet``: the training views of ``scene`` as the fits on them read them (8-bit photos
         kept as uint8, no depth), inside the photos' masks and without the transient regions this run's training

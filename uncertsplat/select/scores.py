@@ -132,16 +132,19 @@ def variance_scores(sample_fn: Callable, render_fn: Callable, cameras: Cameras, 
     return torch.tensor(rgb, dtype=torch.float64), torch.tensor(depth, dtype=torch.float64)
 
 
-def relative_position_variance(model, prior) -> Tensor:
+def relative_position_variance(model, prior, position_prior_std: Tensor | None = None) -> Tensor:
     """[N] each Gaussian's posterior position variance over the prior's (geometric mean over the axes, at most
-    1); 0 for Gaussians without a posterior (deterministic)."""
+    1); 0 for Gaussians without a posterior (deterministic). ``position_prior_std`` [P] (table units): the prior of
+    each carrier where it has its own (the informed posterior's, ``LoadedRun.position_prior_std``); None: the
+    config's single ``prior.position_std``."""
     from uncertsplat.gaussians.variational import log_softplus
 
     u = torch.zeros(len(model), device=model.device)
     idx = model.carrier_index()
     if idx.numel():
         raw = model.tables["pos_spread_raw"].detach().float().mean(1)  # [P,3]
-        ratio = log_softplus(raw).mean(1).exp() / prior.position_std
+        ref = prior.position_std if position_prior_std is None else position_prior_std.float().to(raw.device)
+        ratio = log_softplus(raw).mean(1).exp() / ref
         u[idx] = ratio.square().clamp(0.0, 1.0)
     return u
 

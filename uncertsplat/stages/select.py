@@ -283,8 +283,10 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         if cfg.score == "unseen":
             sample = sampler.det_sample if sampler.det_sample is not None else sampler.sample_fn(
                 torch.Generator(device=device).manual_seed(cfg.seed))
-            first = unseen_scores(sample, relative_position_variance(loaded.model, loaded.prior), sampler.render_fn,
-                                  low, empty_unknown=not loaded.transparent)
+            # (against the prior each carrier's posterior was fitted with: the informed posterior's is its own,
+            # and against the config's single std nearly every Gaussian read as constrained by no view)
+            u = relative_position_variance(loaded.model, loaded.prior, loaded.position_prior_std(scene))
+            first = unseen_scores(sample, u, sampler.render_fn, low, empty_unknown=not loaded.transparent)
         else:
             if loaded.config.method == "deterministic" or (loaded.model.num_carriers == 0
                                                             and loaded.config.method not in ("ensemble", "fisher")):
