@@ -35,6 +35,19 @@ def test_same_seed_same_bytes_other_seed_differs(tmp_path):
     assert fa["images/view_000.png"] != fc["images/view_000.png"]
 
 
+def test_every_folder_gets_the_permissions_of_any_output(tmp_path):
+    """Folders built in a temporary folder and renamed into place (the scene, its COLMAP model) were left 0700 by
+    mkdtemp: unreadable to the other users of a shared disk (a Ray sweep's workers)."""
+    from uncertsplat.io.atomic import current_umask
+
+    out = generate_scene(tmp_path / "new" / "scene", SynthConfig(**SMALL, seed=3))
+    want = 0o777 & ~current_umask()
+    folders = [out, *(p for p in out.rglob("*") if p.is_dir())]
+    assert any(p.name == "0" and p.parent.name == "sparse" for p in folders)
+    assert {p.relative_to(tmp_path).as_posix(): oct(p.stat().st_mode & 0o777) for p in folders} == \
+        {p.relative_to(tmp_path).as_posix(): oct(want) for p in folders}
+
+
 def test_layout_and_metadata(tiny_scene_path):  # noqa: F811
     meta = json.loads((tiny_scene_path / "scene.json").read_text(encoding="utf-8"))
     n, w, h, _ = resolve_size(SynthConfig(preset="tiny"))

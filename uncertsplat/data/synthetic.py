@@ -44,7 +44,6 @@ import contextlib
 import math
 import os
 import shutil
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -738,7 +737,7 @@ def generate_scene(out: Path, cfg: SynthConfig, overwrite: bool = False,
 
 
 def _generate(out: Path, cfg: SynthConfig, overwrite: bool, on_view, workers: int = 1) -> Path:
-    from uncertsplat.io.atomic import atomic_write, atomic_write_json, temp_stem
+    from uncertsplat.io.atomic import atomic_write, atomic_write_json, temp_folder, temp_stem
     from uncertsplat.io.images import write_png
     from uncertsplat.sfm.colmap_io import write_colmap_model
 
@@ -758,7 +757,7 @@ def _generate(out: Path, cfg: SynthConfig, overwrite: bool, on_view, workers: in
     test = [f"{n}.png" for n, t in zip(names, is_test, strict=True) if t]
 
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{temp_stem(out.name)}.synth-", dir=out.parent))
+    tmp = temp_folder(f".{temp_stem(out.name)}.synth-", out.parent)
     try:
         images, depths = [], []
         # closing(): an error while writing stops the render threads before the temporary folder goes

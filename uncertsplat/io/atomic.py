@@ -38,6 +38,15 @@ def current_umask() -> int:
     return _UMASK
 
 
+def temp_folder(prefix: str, parent: Path) -> Path:
+    """A new folder in ``parent`` (``tempfile.mkdtemp``) with the permissions the process's other outputs get: one
+    that is renamed into place as an output would otherwise stay 0700, unreadable to other users of a shared
+    disk."""
+    tmp = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+    os.chmod(tmp, 0o777 & ~current_umask())
+    return tmp
+
+
 TEMP_STEM = 100
 """The most characters of a file's or folder's name its temporary sibling's name keeps (``temp_stem``)."""
 

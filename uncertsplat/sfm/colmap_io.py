@@ -9,7 +9,6 @@ from __future__ import annotations
 import functools
 import os
 import shutil
-import tempfile
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -18,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from uncertsplat.errors import UserError
-from uncertsplat.io.atomic import temp_stem
+from uncertsplat.io.atomic import temp_folder, temp_stem
 
 MODEL_FILES = ("cameras", "images", "points3D")
 
@@ -242,7 +241,7 @@ def write_colmap_model(
         rec.add_point3D(np.asarray(points[p], np.float64), track, rgb[p])
 
     folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{temp_stem(folder.name)}.", dir=folder.parent))
+    tmp = temp_folder(f".{temp_stem(folder.name)}.", folder.parent)
     try:
         rec.write_binary(str(tmp))
         if folder.exists():

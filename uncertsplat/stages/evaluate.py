@@ -313,12 +313,12 @@ def _copy_evaluation(source_eval: Path, out: Path, run_dir: Path) -> None:
     path alone: the copy was taken for an earlier state of the run and evaluated again); the copy is built beside
     ``out`` and renamed into place, so a failure leaves ``out`` as it was."""
     import shutil
-    import tempfile
 
+    from uncertsplat.io.atomic import temp_folder
     from uncertsplat.schemas.metrics import EvalReport
     from uncertsplat.stages.residual_cache import FILE_NAME
 
-    tmp = Path(tempfile.mkdtemp(prefix=".eval-copy-", dir=out.parent))
+    tmp = temp_folder(".eval-copy-", out.parent)
     try:
         staged = tmp / "eval"
         # what evaluate writes, nothing else (a pipeline's manifest there belongs to the source's stage)

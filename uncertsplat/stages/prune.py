@@ -52,7 +52,7 @@ import torch
 from uncertsplat.config import EvalConfig, PruneConfig
 from uncertsplat.console import console, print_table, q
 from uncertsplat.errors import Interrupted, UserError, run_folder_missing
-from uncertsplat.io.atomic import current_umask, temp_stem
+from uncertsplat.io.atomic import temp_folder, temp_stem
 from uncertsplat.provenance import file_sha256
 from uncertsplat.schemas.base import path_from
 from uncertsplat.schemas.prune import (
@@ -653,9 +653,7 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
 
     output.parent.mkdir(parents=True, exist_ok=True)
     _remove_dead_temp_folders(output)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{temp_stem(output.name)}.tmp-{_host_tag()}-{os.getpid()}-",
-                                dir=output.parent))
-    os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes it 0700: the pruned run is read like any other
+    tmp = temp_folder(f".{temp_stem(output.name)}.tmp-{_host_tag()}-{os.getpid()}-", output.parent)
     try:
         writes_model = keep is not None and not cfg.dry_run
         if writes_model:
