@@ -9,6 +9,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from tests.fixtures import tiny_scene_path  # noqa: F401
+from tests.run_fixtures import tiny_run_path  # noqa: F401
 from uncertsplat.cli import app
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -112,3 +114,15 @@ def test_stage_failure_is_reported_clearly(tmp_path):
     result = runner.invoke(app, ["run", str(bad), "-o", str(tmp_path / "o"), "--device", "cpu"])
     assert result.exit_code == 2
     assert "stage 'train' (train) failed" in result.output and "Traceback" not in result.output
+
+
+def test_an_output_folder_that_is_another_commands_output_is_refused(tiny_scene_path, tiny_run_path, tmp_path):
+    """A pipeline writes one folder per stage into -o: into a training run or a scene they mixed with its files
+    (and a scene's runs then saw their scene changed). Refused before anything is written; other folders are fine."""
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    for out, what in ((tiny_run_path, "a training run"), (tiny_scene_path, "a scene"), (afile, "is a file")):
+        before = sorted(p.name for p in out.iterdir()) if out.is_dir() else None
+        result = runner.invoke(app, ["run", str(ROOT / "pipelines" / "smoke.toml"), "-o", str(out), "--device", "cpu"])
+        assert result.exit_code == 2 and what in " ".join(result.output.split()), result.output
+        assert (sorted(p.name for p in out.iterdir()) if out.is_dir() else None) == before

@@ -338,6 +338,31 @@ def _move_previous(out_dir: Path, root: Path, name: str, own: bool = False) -> N
     console.print(f"  previous output of '{name}' moved to {backup}")
 
 
+def _refuse_other_outputs(root: Path) -> None:
+    """Refuse an output folder that is another command's output: a pipeline writes one folder per stage into it,
+    which would mix with a training run's files or become part of a scene (whose runs then see their scene changed).
+
+    Raises:
+        UserError: ``root`` is a file, a training run, a pruned run, or a scene or COLMAP workspace.
+    """
+    if root.exists() and not root.is_dir():
+        raise UserError("the output path is a file", path=root,
+                        hint="Give -o a folder (new, or one an earlier `uncertsplat run` wrote).")
+    if not root.is_dir():
+        return
+    what = None
+    if (root / "config.json").is_file() and any((root / n).exists() for n in ("stats.jsonl", "train_summary.json",
+                                                                               "ckpts", "prune.json")):
+        what = "a training run" if not (root / "prune.json").is_file() else "a pruned run"
+    elif (root / "images").is_dir() or (root / "sparse").is_dir() or any(
+            (root / n).is_file() for n in ("transforms.json", "transforms_train.json", "reconstruct_report.json")):
+        what = "a scene (photos and their cameras)"
+    if what is not None:
+        raise UserError(f"the output folder holds {what}: the pipeline's stage folders written into it would mix "
+                        "with it", path=root,
+                        hint="Choose a new folder for -o: the pipeline writes one folder per stage into it.")
+
+
 def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, device: str | None = None,
         force: bool = False) -> dict[str, Path]:
     """Run the pipeline into ``output``; returns the output folder of each stage by name."""
@@ -354,6 +379,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                         hint=f"Give your photos: uncertsplat run {q(pipeline)} -o {q(output)} --set photos=/path/to/photos")
     dev = resolve_device(device or cfg.device)
     root = Path(output)
+    _refuse_other_outputs(root)
 
     # one pipeline command per output folder: a second one would move the first one's stage folders (and their
     # locks) to .previous while it writes them
