@@ -828,7 +828,8 @@ class PruneConfig(_Base):
     def _one_mode(self):
         modes = [self.keep_ratio is not None, self.threshold is not None, self.auto]
         if sum(modes) > 1:
-            raise ValueError("give only one of keep_ratio, threshold, auto")
+            raise ValueError("give only one of --keep-ratio, --threshold and --auto (keep_ratio, threshold and auto "
+                             "in a config file)")
         if any(not (0.0 < r <= 1.0) for r in self.sweep_ratios):
             raise ValueError("sweep_ratios must be in (0, 1]")
         return self
@@ -1238,6 +1239,8 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
         same = next((i for i, line in enumerate(lines) if line.startswith(f"{label}: ")), None)
         if same is not None:  # another alternative of a union: one line for the key
             lines[same] += f", or {msg[0].lower()}{msg[1:]}"
+        elif loc == "(root)":  # a rule over several keys (a model validator): its message names them
+            lines.append(msg)
         else:
             lines.append(f"{label}: {msg}")
     return f"invalid configuration in {source}: " + "; ".join(lines)

@@ -121,6 +121,17 @@ def test_an_unknown_key_gets_the_closest_valid_ones():
         build_config(EvalConfig, {"zzzz": 3})
 
 
+def test_a_rule_over_several_keys_is_said_without_an_internal_location():
+    """A model validator's message (``prune --keep-ratio 0.8 --auto``) read "(root): give only one of keep_ratio,
+    threshold, auto": no "(root)", and the options' names."""
+    from uncertsplat.config import PruneConfig
+
+    with pytest.raises(UserError) as info:
+        build_config(PruneConfig, {"keep_ratio": 0.8, "auto": True}, source="the command line")
+    text = info.value.render()
+    assert "(root)" not in text and "give only one of --keep-ratio, --threshold and --auto" in text
+
+
 def test_a_key_of_another_command_names_that_command():
     """A setting given to the wrong command (the README lists train's and evaluate's side by side) says whose it is
     instead of "check the spelling"; the valid keys are listed once however many keys are wrong."""
