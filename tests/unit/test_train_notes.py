@@ -35,6 +35,11 @@ def test_a_run_whose_resets_all_fall_in_its_last_steps_says_so():
     off = train_config_from(None, {"iterations": 900, "densify": {"opacity_reset_interval": 0}})
     assert _reset_notes(off) == []
     assert _settle_notes(train_config_from(None, {})) == []  # the default schedule fits its steps
+    # a run too short for its densify.until: a resumed one is not told to set what the resume ignores
+    short = train_config_from(None, {"iterations": 200})
+    (fresh,) = _settle_notes(short)
+    (resumed,) = _settle_notes(short, resume=True)
+    assert "--set densify.until=N" in fresh and "--set" not in resumed and "keeps its stored densify.until" in resumed
 
 
 def test_settings_that_give_no_posterior_are_said_before_training():

@@ -89,9 +89,10 @@ def _truncate_stats(path: Path, step: int) -> None:
     atomic_write_text(path, "".join(f"{line}\n" for line in keep))
 
 
-def _settle_notes(cfg: TrainConfig) -> list[str]:
+def _settle_notes(cfg: TrainConfig, resume: bool = False) -> list[str]:
     """A note when the run is too short for its ``densify.until``: densification stops at the last
-    ``schedule.SETTLE_FRACTION`` of its steps instead (a shortened preset densified at its last step)."""
+    ``schedule.SETTLE_FRACTION`` of its steps instead (a shortened preset densified at its last step). ``resume``:
+    the run goes on with its stored configuration, so the note does not offer a setting it would ignore."""
     from uncertsplat.strategy.schedule import SETTLE_FRACTION, densify_end
 
     end = densify_end(cfg.densify, cfg.iterations)
@@ -99,7 +100,9 @@ def _settle_notes(cfg: TrainConfig) -> list[str]:
         return []
     return [f"densification stops before step {int(end)}, not at densify.until = {cfg.densify.until}: the last "
             f"{SETTLE_FRACTION:.0%} of a run's {cfg.iterations} steps train the Gaussians without growing new ones "
-            "(grown at the end, they would be left untrained); --set densify.until=N chooses an earlier end"]
+            "(grown at the end, they would be left untrained); "
+            + ("a resumed run keeps its stored densify.until" if resume else
+               "--set densify.until=N chooses an earlier end")]
 
 
 def _posterior_notes(cfg: TrainConfig) -> list[str]:
@@ -633,7 +636,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                              f"{cfg.low_res_scale:g}), too few pixels to place Gaussians by")
         member = run_dir.parent.name == ENSEMBLE_MEMBERS
         for note in [*data.notes, *small_images_notes(data.cameras.width, data.cameras.height, cfg.scene.downscale),
-                     *run_notes, *trainer.init_notes, *_unused_setting_notes(cfg, member), *_settle_notes(cfg),
+                     *run_notes, *trainer.init_notes, *_unused_setting_notes(cfg, member), *_settle_notes(cfg, resume),
                      *_reset_notes(cfg), *_posterior_notes(cfg)]:
             console.print(f"[yellow]note:[/] {note}")
         for text in workspace_notes(scene):
