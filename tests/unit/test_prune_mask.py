@@ -170,7 +170,8 @@ class TestScoreChoice:
         assert sweeps["free-space"].largest_removal_within_tolerance is None  # 6 important rows: 0.3 dB
         assert sweeps["gate"].largest_removal_within_tolerance.keep_ratio == 0.8
         chosen, note = choose_score_by_removal(sweeps)
-        assert chosen == "gate" and "'free-space' 0 Gaussians" in note and "'gate' 12 Gaussians" in note
+        assert chosen == "gate" and "'free-space' 0 Gaussians, its smallest removal 0.3" in note
+        assert "'gate' 12 Gaussians for 0.0" in note
 
     def test_equal_removals_go_to_the_cheaper_then_to_the_default(self):
         from uncertsplat.prune.policy import choose_score_by_removal
@@ -189,8 +190,9 @@ class TestScoreChoice:
 
         sweeps = self.sweeps([1.0, 0.6])  # 24 removed: free-space 1.15 dB, gate 0.35 dB, both over 0.1
         assert all(sw.largest_removal_within_tolerance is None for sw in sweeps.values())
-        chosen, _ = choose_score_by_removal(sweeps)
-        assert chosen == "gate"
+        chosen, said = choose_score_by_removal(sweeps)
+        assert chosen == "gate"  # (each one's smallest removal said, which decided: "0 Gaussians" alone did not)
+        assert "'free-space' 0 Gaussians, its smallest removal 1.15 dB; 'gate' 0 Gaussians, its smallest removal 0.35 dB" in said
         keep, note = auto_keep_ratio(sweeps[chosen])
         assert keep == 1.0 and "the smallest removal tried, 40 %, cost 0.35 dB" in note
 

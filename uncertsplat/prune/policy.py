@@ -151,7 +151,15 @@ def choose_score_by_removal(sweeps: dict[str, PruneSweep]) -> tuple[str, str]:
         return best.psnr_loss_db if best is not None and best.num_removed > 0 else _first_cost(sweeps[n])
 
     chosen = max(names, key=lambda n: (_removal(sweeps[n]), -cost(n), -names.index(n)))
-    what = "; ".join(f"'{n}' {_removal(sweeps[n])} Gaussians" for n in names)
+
+    def said(n: str) -> str:  # (the cost too: where both remove as many, it is what decided)
+        c = cost(n)
+        removed = _removal(sweeps[n])
+        if c == float("inf"):
+            return f"'{n}' {removed} Gaussians"
+        return (f"'{n}' {removed} Gaussians for {c:.2f} dB" if removed else
+                f"'{n}' 0 Gaussians, its smallest removal {c:.2f} dB")
+    what = "; ".join(said(n) for n in names)
     return chosen, (f"score auto: the score that removes the most within {sweeps[chosen].tolerance_db} dB of the "
                     f"held-out PSNR is used, '{chosen}' ({what})")
 
