@@ -146,10 +146,14 @@ def test_older_version_without_conversion_is_refused(tmp_path):
     del data["schema_version"]  # an EvalReport always had a version: 0 cannot be converted
     path = tmp_path / "metrics.json"
     path.write_text(json.dumps(data))
-    with pytest.raises(UserError, match=rf"schema version 0 is older than {EvalReport.SCHEMA_VERSION} and cannot be "
-                       "converted") as err:
+    with pytest.raises(UserError, match=rf"the file has no 'schema_version' \(written before files were versioned, "
+                       rf"or edited\): it is older than version {EvalReport.SCHEMA_VERSION} and cannot be converted"
+                       ) as err:
         EvalReport.read(path)
     assert "uncertsplat evaluate" in str(err.value)  # says which command rewrites it
+    assert err.value.render().count("metrics.json") == 1  # (the path once: its name was said twice)
+    with pytest.raises(UserError, match=r"eval/metrics.json has no 'schema_version'"):  # (no file: its name)
+        EvalReport.from_dict(data)
 
 
 def test_unversioned_prune_json_is_converted(tmp_path):

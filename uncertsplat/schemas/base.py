@@ -145,8 +145,12 @@ class SchemaFile(Strict):
         if version < cls.SCHEMA_VERSION:
             upgraded = cls._upgrade(dict(data), version)
             if upgraded is None:
-                raise UserError(f"{label}: schema version {version} is older than {cls.SCHEMA_VERSION} and cannot "
-                                f"be converted", path=where, hint=hint)
+                # (the error names the file itself when it has one: its name in the message said it twice)
+                what = "the file" if where is not None else label
+                found = (f"{what} has no 'schema_version' (written before files were versioned, or edited)"
+                         if "schema_version" not in data else f"{what}'s schema version {version}")
+                raise UserError(f"{found}: it is older than version {cls.SCHEMA_VERSION} and cannot be converted",
+                                path=where, hint=hint)
             data = {**upgraded, "schema_version": cls.SCHEMA_VERSION}
         else:
             problems = key_problems(cls, data)
