@@ -401,8 +401,17 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
     edited = read_rgb(first).copy()
     edited[0, 0] ^= 1
     write_rgb(first, edited)
+    with pytest.raises(UserError, match=rf"not the ones the workspace was made from .{first.name} edited or replaced"):
+        stage.run(photos, ws, one.model_copy(update={"extend": True}))
+    # a workspace whose report predates the photos' hashes (version 2): the photo is not named, the change still said
+    report = json.loads((ws / "reconstruct_report.json").read_text(encoding="utf-8"))
+    aside = (ws / "reconstruct_report.json").read_bytes()
+    del report["photo_sha256"]
+    report["schema_version"] = 2
+    (ws / "reconstruct_report.json").write_text(json.dumps(report), encoding="utf-8")
     with pytest.raises(UserError, match="not the ones the workspace was made from .a photo edited or replaced"):
         stage.run(photos, ws, one.model_copy(update={"extend": True}))
+    (ws / "reconstruct_report.json").write_bytes(aside)
     first.write_bytes(kept)
     with pytest.raises(UserError, match="needs a finished workspace"):
         stage.run(photos, tmp_path / "nowhere", one.model_copy(update={"extend": True}))

@@ -17,7 +17,7 @@ REPORT_NAME = "reconstruct_report.json"
 EXTEND_DIR = ".extend_tmp"
 """Where ``reconstruct --extend`` builds the grown workspace inside it; ``EXTEND_DIR/old`` holds the parts it
 replaced while it swaps them (``stages.reconstruct.extend``; ``sfm.scene.load_scene`` refuses a half-made swap)."""
-REPORT_SCHEMA_VERSION = 2
+REPORT_SCHEMA_VERSION = 3
 
 
 class _Base(Strict):
@@ -81,6 +81,9 @@ class ReconstructReport(SchemaFile):
     """The input folder, as given (resolved to an absolute path)."""
     inputs_fingerprint: str = ""
     """Hash of the input file names, sizes and modification times (detects a changed photo folder)."""
+    photo_sha256: dict[str, str] = {}
+    """Image name -> SHA-256 of the photo file, of every photo found (``--extend`` names a photo edited since);
+    empty in reports before version 3."""
     images_found: list[str] = []
     images_registered: list[str] = []
     images_unregistered: list[str] = []
@@ -128,9 +131,11 @@ class ReconstructReport(SchemaFile):
     def _upgrade(cls, data: dict, version: int) -> dict | None:
         # version 1 mapped once: no list of runs, no agreement test, no observation count (files written between
         # those keys' arrival and the version's bump have them: kept)
-        if version != 1:
+        if version == 1:
+            data = {"mapping_attempts": [], "mapping_agreed": None, "num_observations": None, **data}
+        elif version != 2:
             return None
-        return {"mapping_attempts": [], "mapping_agreed": None, "num_observations": None, **data}
+        return {"photo_sha256": {}, **data}  # (version 2 had no per-photo hashes)
 
     def summary(self) -> str:
         """One line for the console."""

@@ -100,6 +100,7 @@ class PhotoScan:
     photos: list[PhotoInfo]
     ignored: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    _hashes: dict[str, str] | None = field(default=None, repr=False, compare=False)
 
     @property
     def names(self) -> list[str]:
@@ -132,12 +133,19 @@ class PhotoScan:
                 groups.setdefault((w, h, lens), []).append(p.name)
         return groups
 
+    def photo_hashes(self) -> dict[str, str]:
+        """{name: SHA-256 of the file} of every photo, read once (``fingerprint`` and the report share them)."""
+        if self._hashes is None:
+            self._hashes = {p.name: file_sha256(p.path) for p in self.photos}
+        return dict(self._hashes)
+
     def fingerprint(self) -> str:
         """Hash of the photos' names and contents: changes when the photos change, not when a copy of the folder
         did not keep the modification times (``cp -r``, a sync, a restore)."""
+        hashes = self.photo_hashes()
         h = hashlib.sha256()
         for p in self.photos:
-            h.update(f"{p.name}\0{file_sha256(p.path)}\n".encode())
+            h.update(f"{p.name}\0{hashes[p.name]}\n".encode())
         return h.hexdigest()[:16]
 
     def legacy_fingerprint(self) -> str:

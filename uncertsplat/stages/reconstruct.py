@@ -283,7 +283,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     featureless: list[str] = []  # photos with no keypoint at all (blank, black, out of focus): named with the unregistered
     report = ReconstructReport(
         success=False, photos=str(photos.resolve()), inputs_fingerprint=fingerprint,
-        images_found=scan.names, images_unregistered=scan.names, ignored=scan.ignored, notes=list(scan.notes),
+        photo_sha256=scan.photo_hashes(), images_found=scan.names, images_unregistered=scan.names, ignored=scan.ignored, notes=list(scan.notes),
         pycolmap_version=pyv, colmap_version=colv,
         options=cfg.model_dump(mode="json", exclude={"overwrite", "extend"}),
     )
@@ -731,12 +731,16 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
         edited = (set(scan.names) == set(existing.images_found)  # (a photo left out since changes it too)
                   and existing.inputs_fingerprint not in ("", _inputs_fingerprint(scan, ws_cfg.masks),
                                                           scan.legacy_fingerprint()))
+        hashes = scan.photo_hashes() if edited and existing.photo_sha256 else {}
+        which = sorted(n for n, h in hashes.items() if existing.photo_sha256.get(n, h) != h)  # (before version 3: none)
         raise UserError(f"no new photo in {photos}: the workspace holds every one of its {len(scan.names)} photos"
                         + (f" (left out: {list_names(left)}, copies of a photo or sharing its name: the notes above)"
                            if left else "")
-                        + ("; and the folder's photos are not the ones the workspace was made from (a photo edited "
-                           "or replaced since: --extend keeps the cameras and images already there, so one the "
-                           "workspace registered must stay as it was)" if edited else ""),
+                        + ("; and the folder's photos are not the ones the workspace was made from ("
+                           + (f"{list_names(which)} edited or replaced since" if which else
+                              "a photo edited or replaced since")
+                           + ": --extend keeps the cameras and images already there, so one the workspace registered "
+                           "must stay as it was)" if edited else ""),
                         path=photos, hint="Put back the photos the workspace was made from, or reconstruct the folder "
                                           "into a new workspace (and train a new run on it)." if edited else
                         "Put the new photos into the folder beside the others and run this again.")
@@ -833,6 +837,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                 report.options["masks"] = str(masks)
                 report.notes.append(mask_note)
             report.inputs_fingerprint = _inputs_fingerprint(scan, masks if masks is not None else ws_cfg.masks)
+            report.photo_sha256 = scan.photo_hashes()
             report.photos = str(photos.resolve())
             report.ignored = scan.ignored  # (the scan's notes were printed; the report keeps its first scan's)
             report.images_found = scan.names
