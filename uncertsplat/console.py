@@ -57,9 +57,25 @@ def env_flag(name: str) -> bool:
     return os.environ.get(name, "").strip().lower() not in ("", "0", "false", "no", "off")
 
 
+def advice_within(name: str, fields, text: str, within: str) -> str:
+    """``text`` (a command's message) with its advice in the words of a ``within`` ("pipeline", "sweep") that gives
+    the command's settings under ``name``: ``--set key=value`` of one of ``fields`` as ``--set NAME.key=value``, and
+    the command's options that are its keys (``--features dsp-sift``) named after it as ``--set NAME.features``. Text
+    that speaks of pipelines (or of the ``within``) already is left as it is."""
+    if "pipeline" in text or within in text:
+        return text
+    text = re.sub(r"--set (['\"]?)([a-z_][a-z0-9_]*)([.=])",
+                  lambda m: f"--set {m.group(1)}{name}.{m.group(2)}{m.group(3)}" if m.group(2) in fields else m.group(0),
+                  text)
+    keys = [o.replace("-", "_") for o in re.findall(r"(?<![\w-])--([a-z][a-z0-9-]*)", text)]
+    keys = list(dict.fromkeys(k for k in keys if k in fields and k != "set"))
+    return text + (f" (in this {within}: {', '.join(f'--set {name}.{k}' for k in keys)})" if keys else "")
+
+
 class _Console(Console):
     """rich's console, with ``rewrite`` (None: off) applied to each text printed: a pipeline stage's advice names its
-    command's options (``--set exposure=affine``), which in a pipeline are that stage's keys (``stages.pipeline``).
+    command's options (``--set exposure=affine``), which in a pipeline are that stage's keys (``stages.pipeline``;
+    in a sweep, its ``train`` or ``evaluate`` table's: ``sweep.jobs``; ``advice_within``).
     Text of the user's (paths, names) is never read as markup (``escape_foreign_markup``), and a reader that went
     away (``uncertsplat train ... | head``) stops the output, not the work: a training goes on to its end."""
 

@@ -1143,3 +1143,31 @@ def test_a_swap_killed_between_its_renames_is_finished_before_any_point_is_skipp
     sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1)
     assert (run / "train_summary.json").is_file()
     assert sorted(p.name for p in run.parent.iterdir()) == [run.name]
+
+
+def test_a_points_advice_is_given_in_the_sweeps_words(monkeypatch, capsys):
+    """Training inside a sweep advised `--set exposure=affine`, which `sweep` refuses (its settings are
+    `--set train.exposure=affine`): what training and evaluation print and a failure's error name the sweep's
+    keys; the console is left as it was."""
+    from uncertsplat.config import EvalConfig, TrainConfig
+    from uncertsplat.console import advice_within, console
+    from uncertsplat.sweep import jobs as sweep_jobs
+
+    assert advice_within("train", TrainConfig.model_fields, "--set exposure=affine learns", "sweep") == \
+        "--set train.exposure=affine learns"
+    assert advice_within("evaluate", EvalConfig.model_fields, "give --num-samples 8", "sweep") == \
+        "give --num-samples 8 (in this sweep: --set evaluate.num_samples)"
+
+    def train(job, device):
+        console.print("[yellow]warning:[/] photos of other exposures: --set exposure=affine learns a gain")
+        raise UserError("too short: --set iterations=5000")
+
+    monkeypatch.setattr(sweep_jobs, "_train", train)
+    job = {"job_id": "j", "method_label": "m", "run_dir": "r", "device": "cpu",
+           "points": [{"id": "p", "hash": "h", "knobs": {}, "is_default": True}]}
+    (record,) = sweep_jobs.run_job(job)
+    captured = capsys.readouterr()
+    out = " ".join((captured.out + captured.err).split())
+    assert "--set train.exposure=affine learns a gain" in out
+    assert record["status"] == "failed" and "--set train.iterations=5000" in record["error"]
+    assert console.rewrite is None

@@ -11,7 +11,6 @@ the outputs of earlier stages intact and the error names the stage.
 from __future__ import annotations
 
 import json
-import re
 import shutil
 import time
 from functools import partial
@@ -30,7 +29,7 @@ from uncertsplat.config import (
     parse_override,
     train_config_from,
 )
-from uncertsplat.console import console, q
+from uncertsplat.console import advice_within, console, q
 from uncertsplat.errors import Interrupted, StageError, UserError, naming_overrides
 from uncertsplat.io.atomic import lock_holder, run_lock
 from uncertsplat.stages.manifest import (
@@ -581,17 +580,8 @@ def _changed_output(name: str, kind: str, out_dir: Path, manifest: Manifest) -> 
 
 
 def pipeline_advice(name: str, fields, text: str) -> str:
-    """``text`` (a stage's message) with its advice in a pipeline's words: ``--set key=value`` of one of the stage's
-    ``fields`` as ``--set NAME.key=value``, and the command's options that are its keys (``--features dsp-sift``)
-    named after it as ``--set NAME.features``. Text that speaks of pipelines already is left as it is."""
-    if "pipeline" in text:
-        return text
-    text = re.sub(r"--set (['\"]?)([a-z_][a-z0-9_]*)([.=])",
-                  lambda m: f"--set {m.group(1)}{name}.{m.group(2)}{m.group(3)}" if m.group(2) in fields else m.group(0),
-                  text)
-    keys = [o.replace("-", "_") for o in re.findall(r"(?<![\w-])--([a-z][a-z0-9-]*)", text)]
-    keys = list(dict.fromkeys(k for k in keys if k in fields and k != "set"))
-    return text + (f" (in this pipeline: {', '.join(f'--set {name}.{k}' for k in keys)})" if keys else "")
+    """``text`` (a stage's message) with its advice in a pipeline's words (``console.advice_within``)."""
+    return advice_within(name, fields, text, "pipeline")
 
 
 def _made_again(kind: str, out_dir: Path, manifest: Manifest) -> str | None:

@@ -7,6 +7,7 @@ It never raises for a failure inside the job: the records then have ``status = "
 
 from __future__ import annotations
 
+import functools
 import json
 import shutil
 import sys
@@ -16,6 +17,8 @@ from pathlib import Path
 
 import torch
 
+from uncertsplat.config import EvalConfig, TrainConfig
+from uncertsplat.console import advice_within, console
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.schemas import TrainSummary
 
@@ -149,9 +152,12 @@ def run_job(job: dict) -> list[dict]:
             "device": job["device"], "threads": torch.get_num_threads(), "scene": job.get("scene_name"),
             "seed": job.get("seed")}
     records = []
+    previous = console.rewrite
     try:
         device = resolve_device(job["device"])
         t0 = time.perf_counter()
+        # training's advice in the sweep's words (`--set train.exposure=affine`: the sweep refused `--set exposure`)
+        console.rewrite = functools.partial(advice_within, "train", TrainConfig.model_fields, within="sweep")
         summary, trained = _train(job, device)
         train_peak = summary.peak_memory_mb
         train_info = {"train_seconds": summary.seconds, "trained_now": trained,
@@ -162,15 +168,18 @@ def run_job(job: dict) -> list[dict]:
     except Interrupted:  # Ctrl-C / SIGTERM: the sweep stops (the checkpoint resumes the point), it does not retry
         raise
     except Exception as err:  # report, do not kill the sweep
-        msg = f"{type(err).__name__}: {err}"
+        msg = advice_within("train", TrainConfig.model_fields, f"{type(err).__name__}: {err}", within="sweep")
         tb = traceback.format_exc(limit=6)
         return [{**base, "id": p["id"], "hash": p["hash"], "knobs": p["knobs"], "is_default": p["is_default"],
                  "status": "failed", "stage": "train", "error": msg, "traceback": tb} for p in job["points"]]
+    finally:
+        console.rewrite = previous
 
     for p in job["points"]:
         rec = {**base, **train_info, "id": p["id"], "hash": p["hash"], "knobs": p["knobs"],
                "is_default": p["is_default"]}
         try:
+            console.rewrite = functools.partial(advice_within, "evaluate", EvalConfig.model_fields, within="sweep")
             rec.update(_evaluate(job, p, device))
             rec["peak_memory_mb"] = max(train_peak, rec["eval_peak_memory_mb"])
             # what a user waits for: training, the predictive's fit (pixel noise, std factor: as long as a tiny
@@ -179,8 +188,11 @@ def run_job(job: dict) -> list[dict]:
             rec["ause"] = rec.get("ause_mae")
             rec["status"] = "ok"
         except Exception as err:
-            rec.update(status="failed", stage="evaluate", error=f"{type(err).__name__}: {err}",
+            rec.update(status="failed", stage="evaluate", error=advice_within(
+                "evaluate", EvalConfig.model_fields, f"{type(err).__name__}: {err}", within="sweep"),
                        traceback=traceback.format_exc(limit=6))
+        finally:
+            console.rewrite = previous
         records.append(rec)
     return records
 
