@@ -80,6 +80,9 @@ def test_existing_run_is_refused(trained, tiny_scene_path, tmp_path):  # noqa: F
     with pytest.raises(UserError, match="not a training run") as e:
         stage.run(tiny_scene_path, other, cfg, torch.device("cpu"))
     assert "--resume" not in e.value.hint and (other / "notes.txt").read_text(encoding="utf-8") == "mine"
+    with pytest.raises(UserError, match="the output path is a file, not a folder"):  # (it was called a folder)
+        stage.run(tiny_scene_path, other / "notes.txt", cfg, torch.device("cpu"))
+    assert (other / "notes.txt").read_text(encoding="utf-8") == "mine"
     # a run of another scene: --resume would be refused on this one, so its own scene is named instead
     elsewhere = tmp_path / "elsewhere"
     shutil.copytree(tiny_scene_path, elsewhere)

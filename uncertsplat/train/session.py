@@ -365,7 +365,10 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     device = torch.device(device)
     # a bad UNCERTSPLAT_RASTERIZER, or =native without the kernels, is refused before the run folder is made
     native.require_requested(device)
-    exists = run_dir.exists() and (not run_dir.is_dir() or any(p.name != ".lock" for p in run_dir.iterdir()))
+    if run_dir.exists() and not run_dir.is_dir():
+        raise UserError("the output path is a file, not a folder", path=run_dir,
+                        hint="Give -o the folder for the run (a new one, or a run to --resume).")
+    exists = run_dir.exists() and any(p.name != ".lock" for p in run_dir.iterdir())
     if exists and not resume and (run_dir / "config.json").is_file() and _never_trained(run_dir):
         # a start that failed before its first step (e.g. a photo it could not read): nothing to keep. Under the
         # folder's lock: a training that is starting there looks the same until its first step, and is refused
