@@ -241,6 +241,13 @@ class SceneConfig(_Base):
                              f"its 3x3 part, 0 elsewhere), got {[row[:3] for row in m[:3]]}")
         return m
 
+    @field_validator("background", mode="before")
+    @classmethod
+    def _three_numbers(cls, v):  # (pydantic said "background.2: Field required" of two numbers)
+        if isinstance(v, (list, tuple)) and len(v) != 3:
+            raise ValueError(f"give 3 numbers (R, G, B) in [0, 1], e.g. [1, 1, 1] for white; got {len(v)}")
+        return v
+
     @field_validator("background")
     @classmethod
     def _check_bg(cls, v):

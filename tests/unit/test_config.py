@@ -132,6 +132,15 @@ def test_a_rule_over_several_keys_is_said_without_an_internal_location():
     assert "(root)" not in text and "give only one of --keep-ratio, --threshold and --auto" in text
 
 
+def test_a_background_of_other_than_three_numbers_says_so():
+    from uncertsplat.config import train_config_from
+
+    for value in ("[1,1]", "[1,1,1,1]"):
+        with pytest.raises(UserError, match=r"scene.background: give 3 numbers \(R, G, B\) in \[0, 1\]"):
+            train_config_from("tiny", None, [f"scene.background={value}"])
+    assert train_config_from("tiny", None, ["scene.background=[1,1,1]"]).scene.background == (1.0, 1.0, 1.0)
+
+
 def test_a_key_of_another_command_names_that_command():
     """A setting given to the wrong command (the README lists train's and evaluate's side by side) says whose it is
     instead of "check the spelling"; the valid keys are listed once however many keys are wrong."""
