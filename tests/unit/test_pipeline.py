@@ -799,3 +799,19 @@ def test_a_stage_s_advice_is_given_in_the_pipeline_s_words(tmp_path, monkeypatch
     said = " ".join(capsys.readouterr().err.split())
     assert "--set train.exposure=affine learns a gain" in said, said
     assert console.rewrite is None  # off once the stage ends
+
+
+def test_the_photos_pipeline_without_photos_is_named_as_typed(tmp_path):
+    """`run photos -o OUT` without --set photos: the placeholder folder beside the installed pipeline was named,
+    and the hint gave the package's path to the file instead of `run photos`."""
+    from uncertsplat.config import shipped_file
+
+    with pytest.raises(UserError) as err:
+        pl.run(shipped_file("photos", "pipeline"), tmp_path / "out")
+    text = err.value.render()
+    assert "which names a folder beside the pipeline file until --set photos gives yours" in text
+    assert f"uncertsplat run photos -o {tmp_path / 'out'} --set photos=" in " ".join(text.split())
+    with pytest.raises(UserError) as err:
+        pl.run(shipped_file("photos", "pipeline"), tmp_path / "out", overrides=[f"photos={tmp_path / 'none'}"])
+    assert "photo folder not found (the pipeline's `photos`)" in err.value.render()
+    assert not (tmp_path / "out").exists()

@@ -374,8 +374,14 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
     if cfg.photos is not None and not Path(cfg.photos).is_dir() and _reads_photos(cfg):
         # before any output folder exists: the pipeline's photo folder is a placeholder until the user sets it
         what = "is a file, not a photo folder" if Path(cfg.photos).exists() else "photo folder not found"
-        raise UserError(f"{what} (the pipeline's `photos`)", path=Path(cfg.photos),
-                        hint=f"Give your photos: uncertsplat run {q(pipeline)} -o {q(output)} --set photos=/path/to/photos")
+        given = any(o.split("=", 1)[0].strip() == "photos" for o in overrides or ())
+        # a pipeline shipped with the package is named as the user typed it (its path lies inside the package)
+        shipped = Path(__file__).resolve().parents[1] / "pipelines"
+        named = pipeline.stem if pipeline.resolve().parent == shipped else q(pipeline)
+        raise UserError(f"{what} (the pipeline's `photos`"
+                        + ("" if given else ", which names a folder beside the pipeline file until --set photos gives "
+                                            "yours") + ")", path=Path(cfg.photos),
+                        hint=f"Give your photos: uncertsplat run {named} -o {q(output)} --set photos=/path/to/photos")
     dev = resolve_device(device or cfg.device)
     root = Path(output)
     _refuse_other_outputs(root)
