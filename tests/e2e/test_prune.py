@@ -173,6 +173,10 @@ def test_dry_run_on_a_pruned_run_writes_no_model(pruned, tmp_path):
     assert not names & {"variational.ply", "point_cloud.ply", "config.json", "ckpts"}
     assert result.counts.after < result.counts.before == len(load_run(out, CPU).model)
     assert PruneReport.read(dry / "prune.json").written.model is False
+    # loaded as a run (evaluate, view, select-views, the Python API): named as a prune without a model, with its source
+    with pytest.raises(UserError, match=r"a dry-run prune \(prune --dry-run\): it wrote no model") as err:
+        load_run(dry, CPU)
+    assert str(out) in err.value.hint
 
 
 def test_bad_inputs(tiny_run_path, tmp_path):  # noqa: F811

@@ -405,6 +405,25 @@ class LoadedRun:
         return with_training_views(data, info.train)
 
 
+def _refuse_prune_without_model(folder: Path) -> None:
+    """A prune output that wrote no model (``prune --dry-run``, or ``--sweep`` alone) is named as one, with the run it
+    pruned: "not a training run (config.json is missing)" did not say what to do."""
+    from uncertsplat.schemas.prune import PruneReport
+
+    path = folder / PruneReport.FILE_NAME
+    if not path.is_file():
+        return
+    try:
+        report = PruneReport.read(path)
+    except UserError:
+        return  # (damaged: the plain message)
+    what = "a dry-run prune (prune --dry-run)" if report.dry_run else "a prune that measured its sweep only"
+    raise UserError(f"{what}: it wrote no model, so there is nothing to load here", path=folder,
+                    hint=f"Use the run it pruned ({q(report.source_folder(folder))}), or prune that run again with "
+                         "--keep-ratio, --threshold or --auto and -o NEW_RUN to write a pruned model; `uncertsplat "
+                         f"report {q(folder)}` shows what this prune measured.")
+
+
 def read_run_config(run_dir: Path) -> TrainConfig:
     """``RUN/config.json`` as a ``TrainConfig``.
 
@@ -413,6 +432,7 @@ def read_run_config(run_dir: Path) -> TrainConfig:
     """
     cfg_path = Path(run_dir) / "config.json"
     if not cfg_path.is_file():
+        _refuse_prune_without_model(Path(run_dir))
         raise UserError("not a training run (config.json is missing)", path=run_dir,
                         hint="Point to a folder written by `uncertsplat train`.")
     try:
