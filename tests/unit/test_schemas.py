@@ -275,3 +275,15 @@ def test_train_summary_version_1_is_converted(tmp_path):
     got = TrainSummary.read(path)
     assert got.schema_version == TrainSummary.SCHEMA_VERSION and got.posterior_updates == []
     assert got.members[0].posterior_updates == [] and got.members[0].train_psnr is None and got.warnings == []
+
+
+def test_the_reconstruct_summary_names_the_models_only_when_there_are_several():
+    """"12/12 images registered, 2 model(s)" read as a split capture where the second model was a subset of the
+    first: with several models the line says the images are those of the largest, the one the workspace holds."""
+    from uncertsplat.schemas.reconstruct import ReconstructReport
+
+    report = ReconstructReport(success=True, photos="/p", images_found=[f"{i}.png" for i in range(12)],
+                               images_registered=[f"{i}.png" for i in range(12)], models_found=1, num_points3d=10)
+    assert report.summary().startswith("12/12 images registered, 10 points")
+    report.models_found = 2
+    assert report.summary().startswith("12/12 images registered in the largest of 2 models, 10 points")

@@ -141,5 +141,7 @@ class ReconstructReport(SchemaFile):
         """One line for the console."""
         n, r = len(self.images_found), len(self.images_registered)
         err = "n/a" if self.mean_reprojection_error is None else f"{self.mean_reprojection_error:.2f} px"
-        return (f"{r}/{n} images registered, {self.models_found} model(s), {self.num_points3d} points, "
+        # (several models: the workspace holds the largest; "2 model(s)" beside 12/12 read as a split capture)
+        models = "" if self.models_found <= 1 else f" in the largest of {self.models_found} models"
+        return (f"{r}/{n} images registered{models}, {self.num_points3d} points, "
                 f"reprojection error {err}, {self.total_seconds:.1f} s")
