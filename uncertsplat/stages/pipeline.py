@@ -342,11 +342,8 @@ def _refuse_other_outputs(root: Path) -> None:
     which would mix with a training run's files or become part of a scene (whose runs then see their scene changed).
 
     Raises:
-        UserError: ``root`` is a file, a training run, a pruned run, or a scene or COLMAP workspace.
+        UserError: ``root`` is a training run, a pruned run, or a scene or COLMAP workspace (a file: ``run_lock``).
     """
-    if root.exists() and not root.is_dir():
-        raise UserError("the output path is a file", path=root,
-                        hint="Give -o a folder (new, or one an earlier `uncertsplat run` wrote).")
     if not root.is_dir():
         return
     what = None
