@@ -57,13 +57,19 @@ def env_flag(name: str) -> bool:
     return os.environ.get(name, "").strip().lower() not in ("", "0", "false", "no", "off")
 
 
-def advice_within(name: str, fields, text: str, within: str) -> str:
+def advice_within(name: str, fields, text: str, within: str, knobs: dict[str, str] | None = None) -> str:
     """``text`` (a command's message) with its advice in the words of a ``within`` ("pipeline", "sweep") that gives
     the command's settings under ``name``: ``--set key=value`` of one of ``fields`` as ``--set NAME.key=value``, and
-    the command's options that are its keys (``--features dsp-sift``) named after it as ``--set NAME.features``. Text
-    that speaks of pipelines (or of the ``within``) already is left as it is."""
+    the command's options that are its keys (``--features dsp-sift``) named after it as ``--set NAME.features``;
+    ``knobs`` {dotted key: knob}: a key the ``within`` sets by a knob of its own (a sweep's ``downscale``, which
+    refuses ``--set train.scene.downscale``) is named as that knob. Text that speaks of pipelines (or of the
+    ``within``) already is left as it is."""
     if "pipeline" in text or within in text:
         return text
+    if knobs:
+        text = re.sub(r"--set (['\"]?)([a-z_][a-z0-9_.]*)=([^\s'\",;)]*)\1",
+                      lambda m: (f"{knobs[m.group(2)]} = {m.group(3)} (a knob of the {within}: its [default] or [axes])"
+                                 if m.group(2) in knobs else m.group(0)), text)
     text = re.sub(r"--set (['\"]?)([a-z_][a-z0-9_]*)([.=])",
                   lambda m: f"--set {m.group(1)}{name}.{m.group(2)}{m.group(3)}" if m.group(2) in fields else m.group(0),
                   text)

@@ -126,3 +126,12 @@ def test_an_output_folder_that_is_another_commands_output_is_refused(tiny_scene_
         result = runner.invoke(app, ["run", str(ROOT / "pipelines" / "smoke.toml"), "-o", str(out), "--device", "cpu"])
         assert result.exit_code == 2 and what in " ".join(result.output.split()), result.output
         assert (sorted(p.name for p in out.iterdir()) if out.is_dir() else None) == before
+    # a folder of photos alone, or a pipeline's own output whose stage is named like a marker, is not refused
+    from uncertsplat.stages import pipeline
+
+    project = tmp_path / "project"
+    (project / "images").mkdir(parents=True)
+    pipeline._refuse_other_outputs(project)
+    (project / "sparse").mkdir()
+    (project / "sparse" / "manifest.json").write_text("{}")
+    pipeline._refuse_other_outputs(project)

@@ -335,6 +335,7 @@ class TestCandidates:
 
     @pytest.mark.parametrize("line, message", [
         ("a 1 0 0 0 0 0", "8 fields"),
+        ("a 1 0 0 0 1 0 0 5", "8 fields.*found 9"),  # (a column too many: read as the name 'a 1', numbers shifted)
         ("a 1 0 0 0 0 0 x", "not 7 numbers"),
         ("a 0 0 0 0 1 2 3", "quaternion is zero"),
         ("a 2 0 0 0 1 2 3", "norm 2"),

@@ -1160,6 +1160,7 @@ def test_a_points_advice_is_given_in_the_sweeps_words(monkeypatch, capsys):
 
     def train(job, device):
         console.print("[yellow]warning:[/] photos of other exposures: --set exposure=affine learns a gain")
+        console.print("[yellow]note:[/] small photos: --set scene.downscale=1 trains at about 128 px")
         raise UserError("too short: --set iterations=5000")
 
     monkeypatch.setattr(sweep_jobs, "_train", train)
@@ -1169,5 +1170,7 @@ def test_a_points_advice_is_given_in_the_sweeps_words(monkeypatch, capsys):
     captured = capsys.readouterr()
     out = " ".join((captured.out + captured.err).split())
     assert "--set train.exposure=affine learns a gain" in out
+    # a key a knob sets (which the sweep refuses under train.) is named as the knob
+    assert "downscale = 1 (a knob of the sweep: its [default] or [axes]) trains at about 128 px" in out
     assert record["status"] == "failed" and "--set train.iterations=5000" in record["error"]
     assert console.rewrite is None

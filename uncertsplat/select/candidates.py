@@ -105,6 +105,14 @@ def around_views(scene: SceneData, n: int, radius: float, generator: torch.Gener
     return Cameras(torch.stack(out).float() if out else cams.cam_from_world[:0], K, cams.width, cams.height, names)
 
 
+def _number(word: str) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
+
+
 def read_pose_file(path: Path, scene: SceneData, world_from_source: Tensor) -> Cameras:
     """Cameras of a pose file (see the module docstring).
 
@@ -128,9 +136,12 @@ def read_pose_file(path: Path, scene: SceneData, world_from_source: Tensor) -> C
         if not text or text.startswith("#"):
             continue
         fields = text.rsplit(None, 7)  # the name is what comes before the 7 numbers: a photo's name may hold spaces
-        if len(fields) != 8:
-            raise UserError(f"line {number}: expected 'NAME QW QX QY QZ TX TY TZ' (8 fields), found {len(fields)}: "
-                            f"{text[:80]!r}", path=path)
+        words = text.split()
+        if len(fields) != 8 or (len(words) > 8 and _number(words[-8])):
+            # (a name with spaces ending in a number is a line with a column too many: its numbers would shift)
+            raise UserError(f"line {number}: expected 'NAME QW QX QY QZ TX TY TZ' (8 fields), found {len(words)}: "
+                            f"{text[:80]!r}", path=path,
+                            hint="A name with spaces must not end in a number (IMG 0042.jpg reads; IMG 0042 does not).")
         try:
             values = [float(v) for v in fields[1:]]
         except ValueError:

@@ -350,8 +350,10 @@ def _refuse_other_outputs(root: Path) -> None:
     if (root / "config.json").is_file() and any((root / n).exists() for n in ("stats.jsonl", "train_summary.json",
                                                                                "ckpts", "prune.json")):
         what = "a training run" if not (root / "prune.json").is_file() else "a pruned run"
-    elif (root / "images").is_dir() or (root / "sparse").is_dir() or any(
+    elif ((root / "sparse").is_dir() and not (root / "sparse" / MANIFEST).is_file()) or any(
             (root / n).is_file() for n in ("transforms.json", "transforms_train.json", "reconstruct_report.json")):
+        # (a COLMAP model beside the photos; a stage folder named "sparse" holds its manifest; a folder of photos
+        # alone, images/, is a project folder the stages may well be written beside)
         what = "a scene (photos and their cameras)"
     if what is not None:
         raise UserError(f"the output folder holds {what}: the pipeline's stage folders written into it would mix "

@@ -418,7 +418,7 @@ def point_configs(spec: SweepSpec, point: SweepPoint, scene: str | None = None,
     return tcfg, ecfg
 
 
-_KNOB_KEYS = {"method": ("train", "method"), "num_entries": ("train", "variational.num_entries"),
+KNOB_KEYS = {"method": ("train", "method"), "num_entries": ("train", "variational.num_entries"),
               "downscale": ("train", "scene.downscale"), "ensemble_size": ("train", "ensemble_size"),
               "spawn_fraction": ("train", "densify.spawn_scale_fraction"), "num_samples": ("evaluate", "num_samples")}
 """Each knob's key in the spec's ``train`` / ``evaluate`` tables, which ``point_configs`` may replace with the knob's
@@ -447,7 +447,7 @@ def shadowed_settings(spec: SweepSpec) -> list[str]:
     base = None
     out: list[str] = []
     places = [(None, "")] + [(name, f"scenes.{name}.") for name in spec.scenes]
-    for knob, (where, dotted) in _KNOB_KEYS.items():
+    for knob, (where, dotted) in KNOB_KEYS.items():
         for scene, prefix in places:
             data = spec.model_dump()  # (a fresh copy: the key is taken out of it)
             given = pop((data if scene is None else data["scenes"][scene])[where], dotted)

@@ -88,7 +88,10 @@ class LiveView:
                     for v in viewer._views.values():
                         v.version += 1
             viewer.renderer = self._renderer(trainer)
-            viewer.offer_modes()  # (the prune preview once Gaussians carry a posterior)
+            try:
+                viewer.offer_modes()  # (the prune preview once Gaussians carry a posterior)
+            except Exception as err:  # the panel keeps its modes: nothing of the viewer's may stop the training
+                viewer.last_error = f"{type(err).__name__}: {err}"
             self._renderer_step = trainer.step
         with viewer._lock:
             views = list(viewer._views.values())
