@@ -119,7 +119,8 @@ def test_scan_leaves_out_exact_copies_and_names_them(tmp_path):
     assert any("p1_copy.png (= p1.png)" in n and "z.png (= p3.png)" in n for n in scan.notes)
 
 
-@pytest.mark.parametrize("copy", ["IMG_4037 (1).jpg", "IMG_4037 - Copy.jpg", "IMG_4037 copy 2.jpg", "IMG_4037-copy.jpg"])
+@pytest.mark.parametrize("copy", ["IMG_4037 (1).jpg", "IMG_4037 - Copy.jpg", "IMG_4037 copy 2.jpg", "IMG_4037-copy.jpg",
+                                  "Copy of IMG_4037.jpg", "Copy (2) of IMG_4037.jpg", "copy_of_IMG_4037.jpg"])
 def test_of_a_photo_and_its_copy_the_original_name_is_kept(tmp_path, copy):
     """A file manager's copy ("IMG_4037 (1).jpg" sorts before "IMG_4037.jpg": a space before the dot) is the one
     left out, so the outputs carry the photo's own name."""

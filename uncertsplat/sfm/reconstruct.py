@@ -363,8 +363,7 @@ def _without_copies(photos: list[PhotoInfo], ignored: list[str], notes: list[str
     shared = Counter(size.values())
     # of a photo and its copies, the one whose name is no copy's ("IMG_1.jpg" beside "IMG_1 (1).jpg" or "IMG_1
     # copy.jpg", which sort before it by name) is kept, then the first by name
-    order = sorted(photos, key=lambda p: (p.name not in prefer, _COPY_NAME.search(Path(p.name).stem) is not None,
-                                          p.name))
+    order = sorted(photos, key=lambda p: (p.name not in prefer, _is_copy_name(Path(p.name).stem), p.name))
     kept = {p.name for p in _first_of_each(
         # a file of a size no other has is no copy: not read
         order, lambda p: file_sha256(p.path) if shared[size[p.name]] > 1 else None, ignored, notes,
@@ -375,6 +374,12 @@ def _without_copies(photos: list[PhotoInfo], ignored: list[str], notes: list[str
 
 _COPY_NAME = re.compile(r"(\s*\(\d+\)|[\s_-]*copy(\s*\(?\d+\)?)?)$", re.IGNORECASE)
 """How file managers name a copy: "IMG_1 (1)" (Windows, browsers), "IMG_1 - Copy", "IMG_1 copy 2" (macOS)."""
+_COPY_PREFIX = re.compile(r"^copy[\s_-]*(\(\d+\)[\s_-]*)?of[\s_-]+", re.IGNORECASE)
+"""And in front of the name: "Copy of IMG_1", "Copy (2) of IMG_1" (older Windows), "copy_of_IMG_1"."""
+
+
+def _is_copy_name(stem: str) -> bool:
+    return _COPY_NAME.search(stem) is not None or _COPY_PREFIX.search(stem) is not None
 
 
 def stage_inputs(scan: PhotoScan, staging: Path) -> tuple[Path, list[str]]:
