@@ -1277,6 +1277,18 @@ _KIND_WORDS = {"pipeline": "a pipeline", "sweep": "a sweep spec"}
 _KIND_PLURAL = {"pipeline": "pipelines", "sweep": "sweep specs", None: "pipelines and sweep specs"}
 
 
+def method_label(cfg: TrainConfig) -> str:
+    """A short name for a resolved TrainConfig (``vi-single``, ``ensemble-10``, ``ensemble-2-variational``, ``paper``,
+    ...): what the sweep and the report call a run's method."""
+    if cfg.method == "ensemble":
+        return f"ensemble-{cfg.ensemble_size}" + ("-variational" if cfg.ensemble_members == "variational" else "")
+    if cfg.method in ("fisher", "deterministic"):
+        return cfg.method
+    if cfg.variational.num_entries == 1 and cfg.posterior == "sgd":  # the informed posterior stores one anyway
+        return "vi-single" if cfg.variant == "ours" else "vi-single-paper"
+    return "variational" if cfg.variant == "ours" else "paper"
+
+
 def shipped_file(path: str | Path, kind: str | None = None) -> Path:
     """``path``, or the installed pipeline / sweep spec it names when there is no such file: a bare name
     (``photos``, ``photos.toml``) or the repository's path (``pipelines/photos.toml``, what the README types) run

@@ -413,6 +413,16 @@ def test_prune_section_shows_the_prune_report(tmp_path):
     assert "0.4213" in text  # threshold_effective
     assert "position_spread" in text
     assert rep.notes[0] in text
+    assert "inside the masks" not in html
+    # a masked scene (the run's evaluation says so): the prune's PSNRs are inside the masks too, and so labelled
+    from uncertsplat.eval.engine import MASKED_NOTE
+
+    m = EvalReport.read(run / "eval" / "metrics.json")
+    m.notes = [f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them (30% of the pixels)"]
+    m.write(run / "eval" / "metrics.json")
+    html = stage.run(run, tmp_path / "masked").read_text(encoding="utf-8")
+    assert "<th>PSNR, inside the masks (dB)</th>" in html and "score 'position_spread', inside the masks" not in html
+    assert "PSNR, inside the masks, score " in html and "(test views, inside the masks)" in html
     assert "threshold requested" in text and "None" not in text
 
 
@@ -959,6 +969,14 @@ def test_psnr_inside_the_masks_is_labelled_so(tmp_path):
     assert all(not t.endswith("†") for _, _, t in row["plain"])
     html = stage.run([plain], tmp_path / "none", ReportConfig()).read_text(encoding="utf-8")
     assert "inside the masks" not in html and "test_psnr is over whole images" not in html
+    # masks the run trained with (the photos' own): train's test_psnr is inside them too, so no such note
+    from uncertsplat.eval.engine import PHOTO_MASKS_NOTE
+
+    m.notes = [f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them (30% of the pixels), "
+               f"as train's held-out PSNR and SSIM; {PHOTO_MASKS_NOTE}, whose black pixels training left out too"]
+    m.write(masked / "eval" / "metrics.json")
+    html = stage.run([masked], tmp_path / "own", ReportConfig()).read_text(encoding="utf-8")
+    assert "<th>PSNR, inside the masks (dB)</th>" in html and "test_psnr is over whole images" not in html
 
 
 def test_an_automatic_prune_says_its_ratio_and_score_were_chosen(tmp_path):
@@ -1352,3 +1370,34 @@ def test_a_report_that_fails_midway_leaves_the_earlier_one_whole(tmp_path, monke
     index = stage.run([run], out, ReportConfig(title="another"))
     assert "another" in index.read_text(encoding="utf-8") and not list(out.glob(".figures.tmp-*"))
     assert_figures_consistent(out, parse(index))
+
+
+def test_run_names_with_dollar_signs_are_drawn_as_text():
+    """Run names reach the figures' legends and titles: "dl$_$x" raised matplotlib's math parser (a traceback, no
+    report) and "price $5 vs $10" was drawn as a formula ("price 5vs10")."""
+    from uncertsplat.report import figures
+    from uncertsplat.report.extract import calibrations_of, curves_of
+
+    m = make_metrics(["view_000.png"])
+    assert figures.sparsification_figure(curves_of(m), run_label="dl$_$x") is not None
+    assert figures.calibration_figure([("dl$_$x", calibrations_of(m)), ("price $5 vs $10", calibrations_of(m))])
+    stats = [dict(step=s, loss=1.0 / (s + 1), num_gaussians=100 + s, num_carriers=50, sec_per_step=0.1)
+             for s in range(0, 50, 10)]
+    real = figures._png
+    drawn = []
+    figures._png = lambda fig: drawn.append([t.get_text() for t in fig.legends[0].get_texts()]) or real(fig)
+    try:
+        figures.timeline_figure([("price $5 vs $10", stats), ("dl$_$x", stats)])
+    finally:
+        figures._png = real
+    assert drawn[0][:2] == ["price $5 vs $10", "dl$_$x"]
+
+
+def test_the_provenance_names_the_method_as_the_sweep_does(tmp_path):
+    """A vi-single run read "train method: variational" like the default model: the method's label now."""
+    run = make_run(tmp_path, "single", maps=False, stats=False)
+    config = json.loads((run / "config.json").read_text(encoding="utf-8"))
+    config["variational"].update(posterior="sgd", num_entries=1)
+    (run / "config.json").write_text(json.dumps(config), encoding="utf-8")
+    html = stage.run(run, tmp_path / "out").read_text(encoding="utf-8")
+    assert "<dt>train method</dt><dd>vi-single</dd>" in html

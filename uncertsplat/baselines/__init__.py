@@ -23,6 +23,7 @@ from typing import Any
 import torch
 
 from uncertsplat.baselines.runs import LoadedRun, load_run, load_single_model, read_run_config
+from uncertsplat.config import method_label
 
 METHODS: dict[str, dict[str, Any]] = {
     "variational": {"method": "variational", "variant": "ours"},
@@ -44,18 +45,6 @@ def method_overrides(name: str) -> dict[str, Any]:
     if name not in METHODS:
         raise UserError(f"unknown method '{name}'", hint=f"Choose one of: {', '.join(METHODS)}.")
     return copy.deepcopy(METHODS[name])
-
-
-def method_label(cfg) -> str:
-    """A short name for a resolved TrainConfig (``vi-single``, ``ensemble-10``, ``ensemble-2-variational``, ``paper``,
-    ...)."""
-    if cfg.method == "ensemble":
-        return f"ensemble-{cfg.ensemble_size}" + ("-variational" if cfg.ensemble_members == "variational" else "")
-    if cfg.method in ("fisher", "deterministic"):
-        return cfg.method
-    if cfg.variational.num_entries == 1 and cfg.posterior == "sgd":  # the informed posterior stores one anyway
-        return "vi-single" if cfg.variant == "ours" else "vi-single-paper"
-    return "variational" if cfg.variant == "ours" else "paper"
 
 
 def train_run(scene: Path, run_dir: Path, cfg, device: torch.device, resume: bool = False,

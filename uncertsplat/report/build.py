@@ -17,9 +17,17 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from uncertsplat.config import method_label
 from uncertsplat.console import q
 from uncertsplat.errors import UserError
-from uncertsplat.eval.engine import GIVEN_SCENE_GT, MASKED_NOTE, SAME_RENDER, STD_TERMS
+from uncertsplat.eval.engine import (
+    GIVEN_SCENE_GT,
+    MASKED_NOTE,
+    PHOTO_MASKS_NOTE,
+    SAME_RENDER,
+    STD_TERMS,
+    TRANSIENT_MASKS_NOTE,
+)
 from uncertsplat.eval.nll import NLL_WORSE_BY
 from uncertsplat.gaussians.variational import describe_posterior
 from uncertsplat.report import figures as F
@@ -218,6 +226,21 @@ MASK_MARK = " †"
 def is_masked(run: RunData) -> bool:
     """Whether the run's evaluation took its PSNR (and AUSE, NLL, ...) inside the scene's validity masks."""
     return run.metrics is not None and any(n.startswith(MASKED_NOTE) for n in run.metrics.notes)
+
+
+def _trained_inside_masks(run: RunData) -> bool:
+    """Whether the masks of the run's evaluation are those its training left out (``eval.engine.PHOTO_MASKS_NOTE`` or
+    ``TRANSIENT_MASKS_NOTE``), so that train's held-out PSNR is taken inside them too."""
+    return run.metrics is not None and any(n.startswith(MASKED_NOTE) and (PHOTO_MASKS_NOTE in n or
+                                                                         TRANSIENT_MASKS_NOTE in n)
+                                           for n in run.metrics.notes)
+
+
+def _prune_masked(run: RunData, p: PruneReport, runs: list[RunData]) -> bool:
+    """Whether the prune's held-out PSNRs are inside the scene's masks: as its own or its source run's evaluation
+    says (prune scores the views evaluate scores, with the same masks)."""
+    source = p.source_folder(run.path).resolve()
+    return is_masked(run) or any(is_masked(r) for r in runs if r.path.resolve() == source)
 
 
 def _inside_masks(label: str) -> str:
@@ -719,7 +742,7 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
                 items = [(k, f"{v} (the sum over {members} members)" if k == "num_gaussians" else v)
                          for k, v in items]
             body.append(f"<h4>{esc(run.name)}: train_summary.json</h4>" + kv(items))
-            if is_masked(run) and s.test_psnr is not None:
+            if is_masked(run) and not _trained_inside_masks(run) and s.test_psnr is not None:
                 body.append(note(f"{run.name}: test_psnr is over whole images; evaluate's PSNR (Summary, Metrics) is "
                                  "inside the scene's validity masks, so the two differ for the same render."))
             for warning in s.warnings:  # e.g. a model that cannot fit its own training views
@@ -799,10 +822,11 @@ def _psnr_change(p: PruneReport, row: str, delta: float) -> str:
     return f"{a - b:+.2f} dB ({b:.2f} → {a:.2f})"
 
 
-def _prune_table(p: PruneReport, ri: int) -> str:
+def _prune_table(p: PruneReport, ri: int, masked: bool = False) -> str:
     rows_in = [("before", p.metrics.before), ("after", p.metrics.after), ("random removal", p.metrics.random)]
     rows = [(label, [_cell(v) for v in prune_row(m).values()]) for label, m in rows_in if m is not None]
-    return table(["model"] + [s.label for s in PRUNE_SPECS], rows, table_id=f"prune-{ri}")
+    labels = [_inside_masks(s.label) if masked and s.key in MASKED_KEYS else s.label for s in PRUNE_SPECS]
+    return table(["model"] + labels, rows, table_id=f"prune-{ri}")
 
 
 def _sweep_loss(sweep: PruneSweep, best) -> str:
@@ -819,7 +843,7 @@ def _sweep_loss(sweep: PruneSweep, best) -> str:
     return f"{b - a:.2f} dB ({b:.2f} → {a:.2f})"
 
 
-def _sweep_table(sweep: PruneSweep, ri: int) -> str:
+def _sweep_table(sweep: PruneSweep, ri: int, masked: bool = False) -> str:
     best = sweep.largest_removal_within_tolerance
     rows = []
     for pt in sweep.points:
@@ -832,6 +856,7 @@ def _sweep_table(sweep: PruneSweep, ri: int) -> str:
             Cell("largest within tolerance" if chosen else "", text_cell=True),
         ]))
     what = " of the expected render" if sweep.metric == "psnr_render" else ""
+    what += ", inside the masks" if masked else ""
     header = ["keep ratio", "achieved", "removed", f"PSNR{what}, score '{sweep.score}' (dB)",
               f"PSNR{what}, random removal (dB)", ""]
     return table(header, rows, table_id=f"prune-sweep-{ri}")
@@ -945,7 +970,8 @@ def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
             body.append(_problem_note(run, PRUNE))
             continue
         body.append(kv(_prune_facts(p, run.path)))
-        body.append(_prune_table(p, ri))
+        masked = _prune_masked(run, p, runs)
+        body.append(_prune_table(p, ri, masked))
         if p.metrics.after is None:
             body.append(para("No mask was chosen (a sweep only): no 'after' or 'random removal' row.", "muted"))
         for n in p.notes:
@@ -959,7 +985,8 @@ def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
             continue
         sw = p.sweep
         best = sw.largest_removal_within_tolerance
-        caption = (f"Held-out PSNR ({sw.split} views{', expected render' if sw.metric == 'psnr_render' else ''}) "
+        caption = (f"Held-out PSNR ({sw.split} views{', expected render' if sw.metric == 'psnr_render' else ''}"
+                   f"{', inside the masks' if masked else ''}) "
                    f"against the fraction of Gaussians kept: the score "
                    f"'{sw.score}' (solid) against random removal of as many Gaussians (dashed); dotted: the unpruned "
                    f"model, shaded: within {sw.tolerance_db:g} dB of it.")
@@ -967,9 +994,10 @@ def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
             caption += (f" Circled: the largest removal within tolerance (keep ratio {best.keep_ratio:g}, "
                         f"{best.num_removed:,} removed, {_sweep_loss(sw, best)} lost"
                         f"{' in the expected render' if sw.metric == 'psnr_render' else ''}).")
-        html = w.add_figure(f"prune_sweep_run{ri}.png", F.prune_sweep_figure(sw), caption, "pruning sweep")
+        html = w.add_figure(f"prune_sweep_run{ri}.png", F.prune_sweep_figure(sw, masked=masked), caption,
+                            "pruning sweep")
         body.append(html or note(f"{run.name}: the sweep has no PSNR to plot."))
-        body.append(_sweep_table(sw, ri))
+        body.append(_sweep_table(sw, ri, masked))
         measured = {q.keep_ratio for q in sw.points}
         missing = [r for r in sw.ratios if r not in measured]
         if missing:  # (a reader counted 3 rows against the 6 ratios of prune.json's sweep)
@@ -1038,7 +1066,7 @@ def provenance_section(w: ReportWriter, runs: list[RunData]) -> None:
             facts.append(("scene", str(run.scene_path)))
         cfg = run.config
         if cfg is not None:
-            facts += [("train method", cfg.method), ("train variant", cfg.variant),
+            facts += [("train method", method_label(cfg)), ("train variant", cfg.variant),
                       ("train iterations", cfg.iterations), ("train seed", cfg.seed)]
         m = run.metrics
         if m is not None:

@@ -237,13 +237,14 @@ def plot_pareto(records: Sequence[Any], path: Path, x: str = "time", ys: Sequenc
     colour = {m: cmap(i % 10) for i, m in enumerate(methods)}
     groups = list(dict.fromkeys(r.get(group) for r in ok)) if group else [None]
     groups = groups or [None]
-    fig, axes = plt.subplots(len(groups), len(ys), figsize=(6.0 * len(ys), 4.6 * len(groups)), squeeze=False)
-    for row, g in enumerate(groups):
-        rows = [r for r in ok if group is None or r.get(group) == g]
-        _panels(axes[row], rows, x, ys, methods, colour,
-                None if group is None else (str(g) if group == "panel" else f"{group} {g}"))
-    fig.suptitle(title)
-    fig.tight_layout()
+    with plt.rc_context({"text.parse_math": False}):  # (the spec's name and the points' ids are the user's text)
+        fig, axes = plt.subplots(len(groups), len(ys), figsize=(6.0 * len(ys), 4.6 * len(groups)), squeeze=False)
+        for row, g in enumerate(groups):
+            rows = [r for r in ok if group is None or r.get(group) == g]
+            _panels(axes[row], rows, x, ys, methods, colour,
+                    None if group is None else (str(g) if group == "panel" else f"{group} {g}"))
+        fig.suptitle(title)
+        fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp.png")
