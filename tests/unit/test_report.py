@@ -1020,6 +1020,23 @@ def test_a_prune_note_that_its_before_row_is_evaluates_is_checked_against_the_ev
         return " ".join(parse(stage.run(list(runs), tmp_path / out, ReportConfig())).text)
 
     assert claim in text("same") and "when prune ran" not in text("same2")  # the file prune read, unchanged
+    # the project copied elsewhere: the note names the copy's file, not the old place's
+    import shutil
+
+    moved = tmp_path / "copied"
+    moved.mkdir()
+    for r in (source, pruned):
+        shutil.copytree(r, moved / r.name)
+    from uncertsplat.provenance import file_sha256
+
+    (moved / "source" / "variational.ply").write_bytes(b"the model prune read")
+    rep_moved = PruneReport.read(moved / "pruned" / "prune.json")
+    rep_moved.source_from_run, rep_moved.source_model = "../source", "variational.ply"
+    rep_moved.source_model_sha256 = file_sha256(moved / "source" / "variational.ply")
+    rep_moved.write(moved / "pruned" / "prune.json")
+    shown = text("report_of_the_copy", (moved / "source", moved / "pruned"))
+    assert f"{UNPRUNED_FROM_EVALUATE} ({moved / 'source' / 'eval' / 'metrics.json'}: the same model file" in shown
+    assert str(source / "eval" / "metrics.json") not in shown
     m.num_samples, m.seed = 10, 3
     m.mean.psnr += 0.5
     m.write(source / "eval" / "metrics.json")

@@ -930,7 +930,11 @@ def prune_evaluation_note(text: str, run: RunData, p: PruneReport, runs: list[Ru
         return then + ("; that file is now unreadable (" + problem + ")" if problem else "; that file is gone") + \
             ": the row cannot be checked against it"
     diffs = evaluation_differences(p, m, row)
-    if not diffs:
+    if not diffs:  # (the file where it is now: a project moved or copied since names its own, not the old place)
+        head = UNPRUNED_FROM_EVALUATE if row_name == "before" else PRUNED_FROM_EVALUATE
+        old = f"{head} ("
+        if text.startswith(old) and f"{METRICS}:" in text:
+            return f"{old}{folder / METRICS}:" + text.split(f"{METRICS}:", 1)[1]
         return text
     shown = any(r.path.resolve() == folder.resolve() for r in runs)
     now = (f"; that file now holds another evaluation, with {_eval_settings(m)}" if any(
