@@ -301,6 +301,20 @@ def test_missing_inputs_give_notes_not_a_crash(tmp_path):
     assert "uncertsplat evaluate" in html
     assert "no scene.json" in html
     assert "prune" not in page.ids
+    # evaluated with --split train only: said, not shown as if nothing were measured
+    (run / "eval-train").mkdir()
+    make_metrics(["view_001.png"]).write(run / "eval-train" / "metrics.json")
+    html = stage.run([run], tmp_path / "rep2", ReportConfig()).read_text(encoding="utf-8")
+    assert "no eval/metrics.json (eval-train/metrics.json is another split" in " ".join(html.split())
+    # a pipeline's output given for a run: the runs in it are named
+    import shutil
+
+    project = tmp_path / "project"
+    project.mkdir()
+    shutil.copytree(run, project / "train")
+    with pytest.raises(UserError, match="it holds runs") as err:
+        stage.run([project], tmp_path / "rep3", ReportConfig())
+    assert "train" in err.value.hint
 
 
 def test_metrics_without_maps_and_corrupt_lines(tmp_path):

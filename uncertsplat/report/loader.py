@@ -206,10 +206,22 @@ def load_run(path: str | Path, name: str | None = None) -> RunData:
     if not any((path / m).is_file() for m in RUN_MARKERS):
         # a scene folder (synth's or a COLMAP workspace) holds images and a scene.json or sparse/, but no run files
         scene = (path / "images").is_dir() or (path / "sparse").is_dir()
+        # a pipeline's output (one folder per stage) or a sweep's: the runs are inside, and so is a report
+        inside = sorted(p.name for p in path.iterdir() if p.is_dir() and ((p / CONFIG).is_file()
+                                                                         or (p / PRUNE).is_file()))
+        sweep = (path / "sweep.json").is_file()
+        made = [p for p in (path / "report" / "index.html", path / "index.html") if p.is_file()]
+        hint = "Give the folder written by `uncertsplat train` (or `prune`)."
+        if inside or sweep:
+            hint = ((f"Give the runs in it: uncertsplat report {' '.join(q(path / n) for n in inside)}" if inside
+                     else "A sweep's points are its runs/ (uncertsplat report RUN ...)")
+                    + (f"; its report is {made[0]}" if made else "") + ".")
         raise UserError(
             "not a run folder (none of config.json, stats.jsonl, eval/metrics.json, prune.json found)"
-            + ("; this is a scene, the input of `uncertsplat train`" if scene else ""),
-            path=path, hint="Give the folder written by `uncertsplat train` (or `prune`).")
+            + ("; this is a scene, the input of `uncertsplat train`" if scene else
+               "; it holds runs (a pipeline's output)" if inside else
+               "; this is a sweep's output" if sweep else ""),
+            path=path, hint=hint)
     run = RunData(path=path, name=name or path.resolve().name)
     run.config = _read(run, CONFIG, lambda: read_train_config(path / CONFIG))
     run.stats = read_jsonl(path / STATS, run.notes)
