@@ -1356,9 +1356,13 @@ def test_the_sweep_caption_loses_what_the_table_beside_it_shows(tmp_path):
     sw = make_prune_report(tmp_path / "run").sweep
     best = sw.largest_removal_within_tolerance
     sw.unpruned.psnr, sw.points[1].score.psnr, best.psnr_loss_db = 32.6641, 32.6072, 0.0569
-    assert _sweep_loss(sw, best) == "0.05 dB (32.66 → 32.61)"
+    assert _sweep_loss(sw, best) == "0.05 dB (32.66 → 32.61) lost"
+    sw.points[1].score.psnr = 32.70  # a removal that raised the PSNR ("-0.04 dB ... lost" before)
+    assert _sweep_loss(sw, best) == "0.04 dB (32.66 → 32.70) gained"
     sw.points[1].score.psnr = None  # no PSNR in the table's row: the stored loss
-    assert _sweep_loss(sw, best) == "0.06 dB"
+    assert _sweep_loss(sw, best) == "0.06 dB lost"
+    best.psnr_loss_db = -0.03
+    assert _sweep_loss(sw, best) == "0.03 dB gained"
 
 
 def test_ratios_the_sweep_did_not_measure_are_named(tmp_path):

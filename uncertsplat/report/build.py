@@ -841,9 +841,11 @@ def _sweep_loss(sweep: PruneSweep, best) -> str:
     before = getattr(sweep.unpruned, sweep.metric)
     after = getattr(point.score, sweep.metric) if point is not None else None
     if before is None or after is None or not (math.isfinite(before) and math.isfinite(after)):
-        return f"{best.psnr_loss_db:.2f} dB"
+        loss = best.psnr_loss_db
+        return f"{loss:.2f} dB lost" if loss >= 0 else f"{-loss:.2f} dB gained"
     b, a = float(format_value(before, ".2f")), float(format_value(after, ".2f"))
-    return f"{b - a:.2f} dB ({b:.2f} → {a:.2f})"
+    # (a removal that raised the PSNR read "-0.03 dB (20.54 → 20.57) lost")
+    return f"{b - a:.2f} dB ({b:.2f} → {a:.2f}) lost" if b >= a else f"{a - b:.2f} dB ({b:.2f} → {a:.2f}) gained"
 
 
 def _sweep_table(sweep: PruneSweep, ri: int, masked: bool = False) -> str:
@@ -999,7 +1001,7 @@ def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
                    f"model, shaded: within {sw.tolerance_db:g} dB of it.")
         if best is not None:
             caption += (f" Circled: the largest removal within tolerance (keep ratio {best.keep_ratio:g}, "
-                        f"{best.num_removed:,} removed, {_sweep_loss(sw, best)} lost"
+                        f"{best.num_removed:,} removed, {_sweep_loss(sw, best)}"
                         f"{' in the expected render' if sw.metric == 'psnr_render' else ''}).")
         html = w.add_figure(f"prune_sweep_run{ri}.png", F.prune_sweep_figure(sw, masked=masked), caption,
                             "pruning sweep")
