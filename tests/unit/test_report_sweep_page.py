@@ -64,3 +64,13 @@ def test_page_shows_the_table_over_seeds_per_scene(tmp_path):
     assert "front" in point  # a seed's record is marked when its point (over seeds) is on the front
     single = build_sweep_page(_summary([_rec("a", "variational", 1.0, 0.1, default=True)], {}, "a"), None)
     assert 'id="sweep-table"' not in single  # one scene, one seed: the points table says it all
+
+
+def test_knobs_the_spec_never_set_are_not_listed():
+    """A knob the spec leaves unset is None in the record (the configs' own value): the page listed
+    "num_entries=None, downscale=None, ..." beside each point."""
+    rec = _rec("a", "variational", 10.0, 0.3, default=True)
+    rec.knobs = {"iterations": 100, "num_entries": None, "downscale": None}
+    page = build_sweep_page(_summary([rec], {}, "a"), "pareto.png")
+    row = re.search(r'<tr [^>]*data-point="a">(.*?)</tr>', page, re.S).group(1)
+    assert "iterations=100" in row and "None" not in row

@@ -46,7 +46,8 @@ def _group_cell(g: SweepGroup, key: str, fmt: str) -> Cell | str:
 
 
 def _knobs(rec: SweepRecord) -> str:
-    return ", ".join(f"{a}={b}" for a, b in rec.knobs.items())
+    # (a knob the spec never set is None in the record: the configs' own value, nothing to show)
+    return ", ".join(f"{a}={b}" for a, b in rec.knobs.items() if b is not None)
 
 
 def build_sweep_page(summary: SweepSummary, figure_rel: str | None) -> str:
