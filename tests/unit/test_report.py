@@ -470,6 +470,7 @@ def test_a_prune_folder_without_a_model_is_not_sent_to_evaluate(tmp_path):
 
     shown = text("rep")
     assert f"uncertsplat evaluate {run}" not in shown and "uncertsplat evaluate RUN" not in shown
+    assert f"{rep.counts.after:,} (would keep; no model written)" in shown  # (no model holds that count)
     assert ("dry: a dry-run prune (prune --dry-run): it holds prune.json, scores.npz and prune_mask.npy (the indices "
             "of the Gaussians it keeps), no model, so there is nothing to evaluate") in shown
     assert (f"prune without --dry-run, which writes it: `uncertsplat prune '{tmp_path / 'run a'}' -o NEW_RUN "

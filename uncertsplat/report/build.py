@@ -279,6 +279,8 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
         members = _ensemble_size(run)
         if ng is not None and members:  # the members' sum: the size of no one model
             cell.text += f" over {members} members"
+        if ng is not None and holds_no_model(run):  # a dry run's count is what it would keep: no model holds it
+            cell.text += " (would keep; no model written)"
         cells.append(cell)
         ts = run.train_summary.seconds if run.train_summary is not None else None
         cells.append(Cell(_fmt_seconds(ts), key="train_seconds", value=ts) if ts is not None else Cell("n/a"))
