@@ -437,6 +437,14 @@ def test_prune_section_shows_the_prune_report(tmp_path):
     html = stage.run(run, tmp_path / "masked").read_text(encoding="utf-8")
     assert "<th>PSNR, inside the masks (dB)</th>" in html and "score 'position_spread', inside the masks" not in html
     assert "PSNR, inside the masks, score " in html and "(test views, inside the masks)" in html
+    assert "row&#x27;s keep the source run" not in html
+    # the 'after' row from evaluate of the pruned run
+    from uncertsplat.schemas.prune import PRUNED_FROM_EVALUATE
+
+    rep.notes.append(f"{PRUNED_FROM_EVALUATE} ({run / 'eval' / 'metrics.json'}: the pruned run evaluated)")
+    rep.write(run / "prune.json")
+    html = stage.run(run, tmp_path / "after_from_evaluate").read_text(encoding="utf-8")
+    assert "row&#x27;s keep the source run" in " ".join(html.split())
     assert "threshold requested" in text and "None" not in text
 
 

@@ -983,6 +983,11 @@ def prune_section(w: ReportWriter, runs: list[RunData]) -> None:
         body.append(kv(_prune_facts(p, run.path)))
         masked = _prune_masked(run, p, runs)
         body.append(_prune_table(p, ri, masked))
+        if p.metrics.random is not None and any(n.startswith(PRUNED_FROM_EVALUATE) for n in p.notes):
+            body.append(para("The 'after' row's uncertainty metrics are evaluate's of the pruned run (its pixel noise, "
+                             "tails and std factor fitted again); the 'random removal' row's keep the source run's "
+                             "fits: their PSNRs compare as they are, their AUSE and NLL within those fits' "
+                             "difference.", "muted"))
         if p.metrics.after is None:
             body.append(para("No mask was chosen (a sweep only): no 'after' or 'random removal' row.", "muted"))
         for n in p.notes:
