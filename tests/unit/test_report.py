@@ -1445,3 +1445,32 @@ def test_the_provenance_names_the_method_as_the_sweep_does(tmp_path):
     (run / "config.json").write_text(json.dumps(config), encoding="utf-8")
     html = stage.run(run, tmp_path / "out").read_text(encoding="utf-8")
     assert "<dt>train method</dt><dd>vi-single</dd>" in html
+
+
+def test_a_pipelines_sfm_check_of_a_synthetic_scene_is_shown_with_its_gt_errors(tmp_path):
+    """`make demo` trains on the synthetic scene's own cameras and checks SfM on its photos in a stage beside it: the
+    report said "No reconstruct_report.json in .../synth" and left the check (and its errors against the GT cameras)
+    out. It shows that stage's report now, said to be beside the run; another scene's reconstruction is not taken."""
+    from uncertsplat.sfm.report import ReconstructReport, write_report
+
+    names = ["view_000.png", "view_008.png"]
+    scene = make_scene(tmp_path, names)
+    (scene / "reconstruct_report.json").unlink()  # a synthetic scene: its own cameras
+    run = make_run(tmp_path, "train", names=tuple(names), scene=scene, maps=False, stats=False)
+    html = stage.run(run, tmp_path / "before").read_text(encoding="utf-8")
+    assert "reconstruction health" not in html and "No reconstruct_report.json in" in html
+    check = tmp_path / "reconstruct"
+    check.mkdir()
+    gt = {"num_images": 2.0, "centre_error_mean_pct": 0.0988, "centre_error_max_pct": 0.23,
+          "rotation_error_mean_deg": 0.0832, "rotation_error_max_deg": 0.15, "focal_error_mean_pct": 0.143}
+    rep = ReconstructReport(success=True, photos=str(scene / "images"), images_found=names, images_registered=names,
+                            registered_fraction=1.0, models_found=1, num_points3d=10, ground_truth=gt)
+    write_report(check, rep)
+    html = " ".join(stage.run(run, tmp_path / "after").read_text(encoding="utf-8").split())
+    assert f"reconstruction health ({check / 'reconstruct_report.json'})" in html
+    assert "centres 0.0988 % of the rig&#x27;s radius (mean), rotations 0.0832° (mean), focal lengths 0.143 %" in html
+    assert "the run trained with the scene&#x27;s own cameras" in html
+    rep.photos = str(tmp_path / "other" / "images")  # a reconstruction of other photos
+    write_report(check, rep)
+    html = stage.run(run, tmp_path / "other_photos").read_text(encoding="utf-8")
+    assert "reconstruction health" not in html

@@ -1065,7 +1065,18 @@ def _reconstruct_html(run: RunData) -> str:
     if r.images_unregistered:
         unreg = r.images_unregistered
         items.append(("unregistered images", ", ".join(unreg[:30]) + (" …" if len(unreg) > 30 else "")))
+    gt = r.ground_truth or {}
+    if {"centre_error_mean_pct", "rotation_error_mean_deg"} <= gt.keys():  # photos of a synthetic scene: its cameras
+        items.append(("cameras against the scene's GT", (
+            f"centres {gt['centre_error_mean_pct']:.3g} % of the rig's radius (mean), rotations "
+            f"{gt['rotation_error_mean_deg']:.3g}° (mean)"
+            + (f", focal lengths {gt['focal_error_mean_pct']:.3g} %" if "focal_error_mean_pct" in gt else ""))))
+    own = run.scene_path is not None and run.reconstruct_path is not None and \
+        run.reconstruct_path.parent.resolve() != run.scene_path.resolve()
     html = f"<h4>reconstruction health ({esc(run.reconstruct_path)})</h4>" + kv(items)
+    if own:  # (the run trained with the scene's own cameras; this is the SfM check of its photos beside it)
+        html += para(f"A reconstruction of this scene's photos beside the run ({esc(run.reconstruct_path.parent)}); "
+                     "the run trained with the scene's own cameras.", "muted")
     if not r.success:
         html += note(f"The reconstruction reported a failure: {r.message}")
     for text in r.notes:  # e.g. mapping runs that disagreed, a capture split into several models

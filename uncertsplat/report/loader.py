@@ -240,9 +240,27 @@ def load_run(path: str | Path, name: str | None = None) -> RunData:
     scene = run.scene_path
     if scene is not None:
         rp = scene / RECONSTRUCT
+        if not rp.is_file():  # a synthetic scene with its own cameras: a pipeline's SfM check of its photos, if any
+            rp = _reconstruction_of(scene, path) or rp
         run.reconstruct = _read(run, RECONSTRUCT, lambda: ReconstructReport.read_optional(rp))
         run.reconstruct_path = rp if run.reconstruct is not None else None
     return run
+
+
+def _reconstruction_of(scene: Path, run_dir: Path) -> Path | None:
+    """The ``reconstruct_report.json`` of a stage beside the run (a pipeline's folders: ``make demo``'s reconstruct
+    stage checks SfM on the synthetic scene's photos, whose GT cameras the run trained with) that reconstructed
+    ``scene``'s own photos; None when there is none."""
+    photos = (scene / "images").resolve()
+    for folder in sorted(p for p in run_dir.resolve().parent.iterdir() if p.is_dir()):
+        found = folder / RECONSTRUCT
+        if found.is_file():
+            try:
+                if Path(ReconstructReport.read(found).photos).resolve() == photos:
+                    return found
+            except (UserError, OSError, ValueError):
+                continue
+    return None
 
 
 def _training_notes(run: RunData) -> list[str]:
