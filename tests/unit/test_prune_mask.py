@@ -215,6 +215,13 @@ def test_a_threshold_that_removes_most_carriers_is_noted():
     assert notes[0].startswith("--threshold -1 removes 4 of the 4 Gaussians that carry a posterior (100%)")
     keep, notes = choose_mask(score, carriers, threshold=0.35, keep_ratio=None)
     assert int((~keep).sum()) == 1 and notes == []
+    # every Gaussian a carrier and every one above the threshold: refused (writing an empty model raised deep in
+    # the PLY writer, a traceback)
+    from uncertsplat.errors import UserError
+
+    with pytest.raises(UserError, match=r"--threshold -1 removes every one of the 5 Gaussians \(this score ranges "
+                                        r"from 0.1 to 5"):
+        choose_mask(score, torch.ones(5, dtype=torch.bool), threshold=-1.0, keep_ratio=None)
     keep, notes = choose_mask(score, carriers, threshold=0.5, keep_ratio=None)  # above every carrier's score
     assert keep.all() and len(notes) == 1
     assert notes[0].startswith("--threshold 0.5 is above every score (0.4 at most, median")

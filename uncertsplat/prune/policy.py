@@ -12,6 +12,7 @@ from collections.abc import Callable, Sequence
 import torch
 from torch import Tensor
 
+from uncertsplat.errors import UserError
 from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.prune.mask import apply_keep, keep_ratio_mask, num_to_remove, random_mask, threshold_mask
 from uncertsplat.schemas.prune import PruneMetrics, PruneSweep, SweepPoint, ToleranceChoice
@@ -186,6 +187,12 @@ def choose_mask(score: Tensor, carriers: Tensor, *, threshold: float | None,
     if threshold is not None:
         keep = threshold_mask(score, carriers, threshold)
         removed, total = int((~keep).sum()), int(carriers.sum())
+        if keep.numel() and not bool(keep.any()):  # (an empty model failed deep in writing its PLY: a traceback)
+            lo, hi = float(score[carriers].min()), float(score[carriers].max())
+            raise UserError(f"--threshold {threshold:g} removes every one of the {removed:,} Gaussians (this score "
+                            f"ranges from {lo:.3g} to {hi:.3g} on this run): a model of none is no model",
+                            hint=f"Give a threshold above {lo:.3g} (it removes the Gaussians scoring above it), or "
+                                 "--keep-ratio or --auto, which choose by the count.")
         notes = []
         if total and removed >= 0.5 * total:  # a threshold below most scores: likely not what was meant
             lo, mid = float(score[carriers].min()), float(score[carriers].median())
