@@ -406,6 +406,10 @@ def test_depth_maps_with_no_usable_depth_and_depth_metrics_on_few_pixels_are_sai
                                         "no surface") as err:
         evaluate.run(run, EvalConfig(**cfg, depth_gt=nm), device=torch.device("cpu"))
     assert "depth_nm" in str(err.value) and "larger ones" in err.value.hint
+    # the same maps with a factor given (or the scene's units): no metric came out and nothing said why
+    for scale in ("scene", 2.0):
+        with pytest.raises(UserError, match="no depth metric can be computed: the GT maps hold no usable depth"):
+            evaluate.run(run, EvalConfig(**cfg, depth_gt=nm, depth_scale=scale), device=torch.device("cpu"))
     base = evaluate.run(run, EvalConfig(**cfg), device=torch.device("cpu"))
     assert not any(n.startswith("the depth metrics rest on ") for n in base.notes)
     prune.run(run, tmp_path / "few", PruneConfig(keep_ratio=0.002, score="gate"), torch.device("cpu"))
