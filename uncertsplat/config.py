@@ -91,8 +91,9 @@ class SynthConfig(_Base):
 
     preset: Literal["tiny", "demo"] = "demo"
     """tiny: ~24 views at 128x96 for tests; demo: ~40 views at 320x240."""
-    seed: int = Field(0, ge=0)
-    """Random seed: the same seed gives byte-identical outputs."""
+    seed: int = Field(0, ge=0, le=2**32 - 1)
+    """Random seed: the same seed gives byte-identical outputs (below 2**32: the generators take seed x 104729 + 7,
+    which must fit in 64 bits)."""
     num_views: int | None = Field(None, ge=3, le=2000)
     """Override the preset's number of views."""
     width: int | None = Field(None, ge=16, le=8192)
@@ -144,8 +145,9 @@ class ReconstructConfig(_Base):
     geometry (images, feature observations, focal lengths; ``sfm.reconstruct.attempts_agree``) and the run that
     explains the most feature observations is kept. One run can settle in a wrong focal length (bonsai: 3 of 8 seeds;
     BENCHMARKS.md "Mapping runs that disagree"). 1: one run, as COLMAP alone."""
-    seed: int = Field(0, ge=0)
-    """Seed for COLMAP's RANSAC and mapper; results are bit-identical for a seed only with num_threads=1
+    seed: int = Field(0, ge=0, le=2**31 - 21)
+    """Seed for COLMAP's RANSAC and mapper (a 32-bit signed integer there, plus one per mapping run: at most
+    2**31 - 21); results are bit-identical for a seed only with num_threads=1
     (with more threads the camera centres differ slightly between runs; BENCHMARKS.md, Reconstruct)."""
     num_threads: int = Field(-1, ge=-1)
     """Threads for COLMAP (-1: all cores)."""

@@ -141,6 +141,18 @@ def test_a_background_of_other_than_three_numbers_says_so():
     assert train_config_from("tiny", None, ["scene.background=[1,1,1]"]).scene.background == (1.0, 1.0, 1.0)
 
 
+def test_seeds_beyond_what_the_generators_take_are_refused_by_name():
+    """synth's and reconstruct's seeds had no upper bound: 2**31 failed inside pycolmap's RANSAC options, 1e15 in
+    torch's manual_seed (tracebacks)."""
+    from uncertsplat.config import ReconstructConfig, SynthConfig
+
+    with pytest.raises(UserError, match="seed: Input should be less than or equal to 4294967295"):
+        build_config(SynthConfig, {"seed": 10**15})
+    with pytest.raises(UserError, match="seed: Input should be less than or equal to 2147483627"):
+        build_config(ReconstructConfig, {"seed": 2**31})
+    assert build_config(ReconstructConfig, {"seed": 2**31 - 21}).seed == 2**31 - 21
+
+
 def test_a_key_of_another_command_names_that_command():
     """A setting given to the wrong command (the README lists train's and evaluate's side by side) says whose it is
     instead of "check the spelling"; the valid keys are listed once however many keys are wrong."""
