@@ -360,8 +360,9 @@ class TestCandidates:
             read_pose_file(dup, scene, scene.world_from_source)
         with pytest.raises(UserError, match="neither"):
             candidates_from_spec("everything", scene, scene.world_from_source, radius=1.0, generator=torch.Generator())
-        with pytest.raises(UserError, match="positive integer"):
-            candidates_from_spec("around:x", scene, scene.world_from_source, radius=1.0, generator=torch.Generator())
+        for spec in ("around:x", "around:0", "around:100000000000"):  # (the last ran on without a word)
+            with pytest.raises(UserError, match="N must be a whole number from 1 to 10,000"):
+                candidates_from_spec(spec, scene, scene.world_from_source, radius=1.0, generator=torch.Generator())
 
     def test_around_views_are_near_the_training_cameras_and_seeded(self, scene):
         a = around_views(scene, 12, 1.0, torch.Generator().manual_seed(3))

@@ -1174,3 +1174,28 @@ def test_a_points_advice_is_given_in_the_sweeps_words(monkeypatch, capsys):
     assert "downscale = 1 (a knob of the sweep: its [default] or [axes]) trains at about 128 px" in out
     assert record["status"] == "failed" and "--set train.iterations=5000" in record["error"]
     assert console.rewrite is None
+
+
+def test_a_sweep_whose_points_all_fail_names_no_figure(tmp_path, monkeypatch, capsys):
+    """Every point failed: the console said it wrote pareto.png, which it had not (and an earlier sweep's figure
+    there would have been shown as this one's)."""
+    from uncertsplat.stages import sweep
+    from uncertsplat.sweep import jobs as sweep_jobs
+
+    def fail(job):
+        return [{"id": p["id"], "hash": p["hash"], "job": job["job_id"], "method": job["method_label"],
+                 "knobs": p["knobs"], "is_default": p["is_default"], "status": "failed", "stage": "train",
+                 "error": "RuntimeError: diverged", "run_dir": job["run_dir"]} for p in job["points"]]
+
+    monkeypatch.setattr(sweep_jobs, "run_job", fail)
+    (tmp_path / "scene").mkdir()
+    f = tmp_path / "s.toml"
+    f.write_text('name = "x"\ntrain_preset = "tiny"\n[default]\niterations = 5\nnum_samples = 4\n')
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "pareto.png").write_bytes(b"an earlier sweep's figure")
+    with contextlib.suppress(UserError):  # (a sweep with failed points says so at its end)
+        sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1)
+    said = " ".join(capsys.readouterr().err.split())
+    assert "(no figure: no point was measured)" in said and "pareto.png" not in said
+    assert not (out / "pareto.png").exists() and 'src="pareto.png"' not in (out / "index.html").read_text("utf-8")

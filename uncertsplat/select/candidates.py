@@ -105,6 +105,10 @@ def around_views(scene: SceneData, n: int, radius: float, generator: torch.Gener
     return Cameras(torch.stack(out).float() if out else cams.cam_from_world[:0], K, cams.width, cams.height, names)
 
 
+MAX_AROUND = 10_000
+"""``around:N`` at most (every candidate is rendered and scored: 5,000 took 4 s on the tiny scene)."""
+
+
 def _number(word: str) -> bool:
     try:
         float(word)
@@ -256,8 +260,8 @@ def candidates_from_spec(spec: str, scene: SceneData, world_from_source: Tensor,
             n = int(spec.split(":", 1)[1]) if ":" in spec else DEFAULT_AROUND
         except ValueError:
             n = -1
-        if n < 1:
-            raise UserError(f"--candidates {spec}: N must be a positive integer (e.g. around:32)")
+        if n < 1 or n > MAX_AROUND:  # (10^11 ran on without a word: every candidate is rendered and scored)
+            raise UserError(f"--candidates {spec}: N must be a whole number from 1 to {MAX_AROUND:,} (e.g. around:32)")
         return Candidates(around_views(scene, n, radius, generator), "around")
     if Path(spec).suffix or Path(spec).exists():
         return Candidates(read_pose_file(Path(spec), scene, world_from_source), "file")

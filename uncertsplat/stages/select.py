@@ -382,8 +382,9 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                   f"{out / 'selection.png'}")
     if len(picked) < cfg.num_views:
         competing = len(cands) if allowed is None else int(allowed.sum())
+        there = "was there" if competing == 1 else "were there"
         console.print(f"[yellow]note:[/] {cfg.num_views} views were asked for and only {count(competing, 'candidate')} "
-                      f"{'competed' if allowed is not None else 'were there'}: every one is chosen")
+                      f"{'competed' if allowed is not None else there}: every one is chosen")
     folder = loaded.scene_path or "SCENE"
     source = PruneReport.training_run(run_dir)
     if source is not None and picked:  # no checkpoint to add views to: `train --resume` there is refused

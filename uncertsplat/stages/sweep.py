@@ -449,9 +449,13 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                         title=f"{spec.name}: {', '.join(axis_name(y) for y in spec.pareto_y)} against "
                               f"{axis_name(spec.pareto_x)}{means} (front in black, default starred)",
                         group="panel" if spec.scenes or split_by_resolution(summary, whole) else None)
+        else:  # no point to draw: an earlier sweep's figure there would be shown as this one's
+            (out_dir / "pareto.png").unlink(missing_ok=True)
         fig = "pareto.png" if (out_dir / "pareto.png").is_file() else None
         atomic_write_text(out_dir / "index.html", build_sweep_page(summary, fig))
-    console.print(f"wrote {log}, {out_dir / 'sweep.json'}, {out_dir / 'pareto.png'} and {out_dir / 'index.html'}")
+    written = [log, out_dir / "sweep.json", *([out_dir / "pareto.png"] if fig else [])]
+    console.print(f"wrote {', '.join(str(p) for p in written)} and {out_dir / 'index.html'}"
+                  + ("" if fig else " (no figure: no point was measured)"))
     if summary.num_failed:
         failed = [r.id for r in summary.records if r.status != "ok"]
         raise UserError(f"{len(failed)} sweep point(s) failed: {', '.join(failed)}", path=log,
