@@ -159,3 +159,21 @@ def test_an_outlier_filter_that_takes_every_point_says_so(tmp_path):
     with pytest.raises(UserError, match="no sparse point is left to start from: .* sparse points lie far outside") as e:
         Trainer(scene, toy_config(init_outlier_factor=1e-12), tr, te, run_dir=tmp_path)
     assert "init_outlier_factor" in e.value.hint
+
+
+def test_a_divergence_names_the_settings_the_run_changed():
+    """Learning rates of 1e30 (or a prior std of 1e30) diverged, and the error said to lower lr.means_init and
+    lr.scales, neither of which was changed; --resume, which takes the stored settings, diverges again."""
+    from uncertsplat.config import TrainConfig
+    from uncertsplat.train.session import _changed_fit_settings
+    from uncertsplat.train.trainer import _diverged_hint
+
+    cfg = TrainConfig.model_validate({"lr": {"opacities": 1e30}, "variational": {"position_prior_std": 1e30}})
+    changed = _changed_fit_settings(cfg)
+    assert changed == ["lr.opacities", "variational.position_prior_std"]
+    hint = _diverged_hint(changed, "lr.means_init=..., lr.scales=...", True, None)
+    assert "changed from their defaults (lr.opacities, variational.position_prior_std) set back" in hint
+    assert "lr.means_init" not in hint and "--resume goes on from the last good checkpoint" in hint
+    assert "(those that diverged)" in hint
+    assert "lower learning rates (--set lr.means_init" in _diverged_hint([], "lr.means_init=..., lr.scales=...",
+                                                                        False, "run")

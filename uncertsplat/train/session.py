@@ -850,8 +850,9 @@ def _changed_fit_settings(cfg: TrainConfig | None) -> list[str]:
         return []
     default = TrainConfig()
     out = [f"lr.{k}" for k, v in cfg.lr.model_dump().items() if v != getattr(default.lr, k)]
-    if cfg.variational.gate_prior_mean != default.variational.gate_prior_mean:
-        out.append("variational.gate_prior_mean")
+    for key in ("gate_prior_mean", "gate_prior_std", "position_prior_std"):
+        if getattr(cfg.variational, key) != getattr(default.variational, key):
+            out.append(f"variational.{key}")
     return out + (["init_opacity"] if cfg.init_opacity != default.init_opacity else [])
 
 

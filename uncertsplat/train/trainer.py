@@ -320,6 +320,22 @@ class _Unexposed:
         return self.photos.device
 
 
+
+def _diverged_hint(changed: list[str], rates: str, saved: bool, run_dir: Path | None) -> str:
+    """What to do after a training diverged: set back the settings of the fit the run changed from their defaults
+    (``changed``; a helper's learning rates of 1e30 were told to lower lr.means_init), else lower the learning rates
+    (``rates``); --resume where a checkpoint was ``saved`` (with the stored settings: those that diverged)."""
+    first = (f"Train again into a new folder (-o NEW_RUN) with the settings this run changed from their defaults "
+             f"({', '.join(changed)}) set back or nearer them" if changed else
+             f"Train again into a new folder (-o NEW_RUN) with lower learning rates (--set {rates}), or check the "
+             "input images")
+    if saved:
+        rest = "; --resume goes on from the last good checkpoint with this run's own settings" + (
+            " (those that diverged)" if changed else "")
+    else:
+        rest = f"; {run_dir} can be deleted" if run_dir is not None else ""
+    return first + rest + "."
+
 class Trainer:
     """Trains a ``GaussianModel`` on one scene.
 
@@ -1134,9 +1150,11 @@ class Trainer:
                       "(parameters unchanged)")
         if self.bad_steps_in_a_row >= MAX_BAD_STEPS:
             from uncertsplat.io.checkpoints import list_checkpoints
+            from uncertsplat.train.session import _changed_fit_settings
 
             saved = self.run_dir is not None and bool(list_checkpoints(self.run_dir))
             rates = "lr.means_init=..., lr.scales=..." + (", exposure_lr=..." if self.cfg.exposure != "off" else "")
+            changed = _changed_fit_settings(self.cfg)  # (a helper's lr of 1e30 was told to lower lr.means_init)
             # (--resume takes the run's stored settings, so lower rates need a new run; with no checkpoint the folder
             # holds nothing to go on from, and a plain start there is refused as an existing run)
             raise UserError(
@@ -1145,11 +1163,7 @@ class Trainer:
                 + ("; the checkpoints on disk are the last good state" if saved else
                    "; no checkpoint was written before it"),
                 path=self.run_dir,
-                hint=f"Train again into a new folder (-o NEW_RUN) with lower learning rates (--set {rates}), or check "
-                     "the input images" + ("; --resume goes on from the last good checkpoint with this run's own "
-                                           "settings" if saved else
-                                           f"; {self.run_dir} can be deleted" if self.run_dir is not None else "")
-                     + ".")
+                hint=_diverged_hint(changed, rates, saved, self.run_dir))
 
     # ------------------------------------------------------------------------------------- loop
     def _install_signal_handlers(self):
