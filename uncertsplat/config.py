@@ -532,8 +532,9 @@ class TrainConfig(_Base):
     tile_size: int = Field(8, ge=2, le=64)
     batch_size: int = Field(1, ge=1)
     init_opacity: float = Field(0.1, gt=0.0, lt=1.0)
-    init_num_random: int = Field(0, ge=0)
-    """Add this many random points in the scene box when the sparse cloud is poor."""
+    init_num_random: int = Field(0, ge=0, le=2_000_000)
+    """Add this many random points in the scene box when the sparse cloud is poor (at most 2,000,000, the largest
+    model budget: 10^12 tried to allocate 12 TB)."""
     init_outlier_factor: float = Field(10.0, ge=0.0)
     """Sparse points farther from the cloud's median point than this many times the larger of the cloud's
     90th-percentile distance and the cameras' radius start no Gaussian (``gaussians.params.far_points``): a lone

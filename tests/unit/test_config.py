@@ -151,6 +151,8 @@ def test_seeds_beyond_what_the_generators_take_are_refused_by_name():
     with pytest.raises(UserError, match="seed: Input should be less than or equal to 2147483627"):
         build_config(ReconstructConfig, {"seed": 2**31})
     assert build_config(ReconstructConfig, {"seed": 2**31 - 21}).seed == 2**31 - 21
+    with pytest.raises(UserError, match="init_num_random: Input should be less than or equal to 2000000"):
+        build_config(TrainConfig, {"init_num_random": 10**12})
 
 
 def test_a_key_of_another_command_names_that_command():
