@@ -631,8 +631,9 @@ class EvalConfig(_Base):
     seed: int = Field(0, ge=0, le=EVAL_SEED_MAX)
     depth_gt: Path | None = None
     """Folder of GT depth maps ({image stem}.npy, .exr, 16-bit .png or float .tif); synthetic scenes provide their own."""
-    depth_scale: Literal["auto", "scene"] | Annotated[float, Field(gt=0.0, le=1e30)] = "auto"
-    """Factor from rendered depth to GT depth units (> 0). auto: the scene's own GT depth is in known units, a
+    depth_scale: Literal["auto", "scene"] | Annotated[float, Field(ge=1e-30, le=1e30)] = "auto"
+    """Factor from rendered depth to GT depth units (1e-30 to 1e30: float32's range; 1e-300 made every rendered depth
+    0). auto: the scene's own GT depth is in known units, a
     ``depth_gt`` folder's factor is fitted (``depth_align``); scene: the ``depth_gt`` maps are in the scene's own
     units (its COLMAP model's, e.g. a metric map's), the known factor of ``RUN/scene.json``."""
     depth_align: Literal["median", "lsq"] = "median"

@@ -153,6 +153,10 @@ def test_seeds_beyond_what_the_generators_take_are_refused_by_name():
     assert build_config(ReconstructConfig, {"seed": 2**31 - 21}).seed == 2**31 - 21
     with pytest.raises(UserError, match="init_num_random: Input should be less than or equal to 2000000"):
         build_config(TrainConfig, {"init_num_random": 10**12})
+    from uncertsplat.config import EvalConfig  # a depth factor below float32's range made every depth 0
+
+    with pytest.raises(UserError, match="depth_scale: .*greater than or equal to 0.000000000000000000000000000001"):
+        build_config(EvalConfig, {"depth_scale": 1e-300})
 
 
 def test_a_key_of_another_command_names_that_command():
