@@ -127,6 +127,13 @@ def test_persistent_nan_stops_with_a_clear_error_and_good_checkpoints(tmp_path, 
     assert "the checkpoints on disk are the last good state" in msg and "-o NEW_RUN" in err.value.hint
     assert "--resume goes on from the last good checkpoint" in err.value.hint
     assert [s for s, _ in list_checkpoints(tmp_path)] == [4, 8, 12]  # step 12: parameters of step 9, unchanged
+    # the log is strict JSON (the NaN losses of the skipped steps as null: bare NaN tokens broke jq)
+    def refuse(token):
+        raise ValueError(f"not strict JSON: {token}")
+
+    rows = [json.loads(line, parse_constant=refuse)
+            for line in (tmp_path / "stats.jsonl").read_text(encoding="utf-8").splitlines()]
+    assert rows and any(r.get("loss", 0.0) is None for r in rows if "loss" in r)
     good = load_checkpoint(list_checkpoints(tmp_path)[-1][1])
     assert all(torch.isfinite(v).all() for v in good["model"]["params"].values())
     # the last good state resumes (and trains on once the cause is gone)

@@ -321,6 +321,17 @@ class _Unexposed:
 
 
 
+def _finite_or_null(value):
+    """``value`` (a stats record: numbers, text, lists and dicts of them) with every non-finite float as None."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite_or_null(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_null(v) for v in value]
+    return value
+
+
 def _diverged_hint(changed: list[str], rates: str, saved: bool, run_dir: Path | None) -> str:
     """What to do after a training diverged: set back the settings of the fit the run changed from their defaults
     (``changed``; a helper's learning rates of 1e30 were told to lower lr.means_init), else lower the learning rates
@@ -1197,7 +1208,8 @@ class Trainer:
         if self.run_dir is not None:
             try:
                 with open(self.run_dir / "stats.jsonl", "a", encoding="utf-8") as f:
-                    f.write(json.dumps(record) + "\n")
+                    # (strict JSON: a NaN/inf loss of a skipped step is null, which jq and other readers take)
+                    f.write(json.dumps(_finite_or_null(record), allow_nan=False) + "\n")
             except OSError as err:  # disk full: a clear message; a line cut short is dropped on resume
                 from uncertsplat.errors import UserError
 
