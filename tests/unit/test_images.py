@@ -107,6 +107,22 @@ def test_tiff_and_exr_read(tmp_path, rng):
     np.testing.assert_allclose(read_image(tmp_path / "a.exr"), a, atol=1e-6)
 
 
+def test_an_exr_photo_with_nan_or_inf_is_said_once(tmp_path, rng, capsys):
+    """NaN and inf values of a float photo were read as 0 and 1 without a word (a renderer's or denoiser's fault the
+    training would take in): said once a file, read as before."""
+    a = rng.random((5, 6, 3), dtype=np.float32)
+    a[0, 0, 0], a[1, 1, 1], a[2, 2, 2] = np.nan, np.inf, -np.inf
+    _raw_write(tmp_path / "bad.exr", a, oiio.FLOAT)
+    got = read_image(tmp_path / "bad.exr")
+    assert (got[0, 0, 0], got[1, 1, 1], got[2, 2, 2]) == (0.0, 1.0, 0.0)
+    read_image(tmp_path / "bad.exr")
+    said = " ".join(capsys.readouterr().err.split())
+    assert said.count("holds 3 NaN or infinite values") == 1 and "bad.exr" in said
+    _raw_write(tmp_path / "good.exr", rng.random((5, 6, 3), dtype=np.float32), oiio.FLOAT)
+    read_image(tmp_path / "good.exr")
+    assert "NaN" not in capsys.readouterr().err
+
+
 def test_exr_named_channels_roundtrip(tmp_path, rng):
     ch = {"depth_mean": rng.random((4, 5), dtype=np.float32), "depth_std": rng.random((4, 5), dtype=np.float32)}
     write_exr(tmp_path / "m.exr", ch)

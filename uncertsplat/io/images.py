@@ -210,6 +210,22 @@ def read_image_8bit(path: str | Path, exif_orientation: bool = False) -> np.ndar
     return np.ascontiguousarray(_reorient(np.ascontiguousarray(rgb), orientation))
 
 
+_NON_FINITE_SAID: set[str] = set()
+"""The files whose non-finite values ``read_image`` has said (once a file and process: a photo is read many times)."""
+
+
+def _say_non_finite(path: Path, bad: int, total: int) -> None:
+    """Say (once per file) that a float image holds NaN or inf values, which are read as 0 (NaN, -inf) and 1 (+inf):
+    a renderer's or a denoiser's fault the training and scores would otherwise take in without a word."""
+    key = str(path)
+    if bad and key not in _NON_FINITE_SAID:
+        from uncertsplat.console import console, esc
+
+        _NON_FINITE_SAID.add(key)
+        console.print(f"[yellow]warning:[/] {esc(key)} holds {bad:,} NaN or infinite values ({bad / total:.2%} of its "
+                      "channel values): read as 0 (NaN, -inf) and 1 (+inf); re-export it if they are not meant")
+
+
 def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0),
                exif_orientation: bool = False) -> np.ndarray:
     """Read an image as float32 RGB in [0, 1].
@@ -236,6 +252,8 @@ def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0),
         arr = arr[..., None]
     if arr.ndim == 4:  # volume images: first slice
         arr = arr[0]
+    if spec.format.basetype in (oiio.FLOAT, oiio.HALF, oiio.DOUBLE):  # (integer formats hold no NaN)
+        _say_non_finite(path, int(np.count_nonzero(~np.isfinite(arr))), arr.size)
     arr = np.nan_to_num(arr, nan=0.0, posinf=1.0, neginf=0.0)
     c = arr.shape[-1]
     alpha = None
