@@ -135,3 +135,6 @@ def test_an_output_folder_that_is_another_commands_output_is_refused(tiny_scene_
     (project / "sparse").mkdir()
     (project / "sparse" / "manifest.json").write_text("{}")
     pipeline._refuse_other_outputs(project)
+    (project / "sparse" / "manifest.json").unlink()  # (killed before its manifest: the pipeline's record says whose)
+    (project / ".stages_started.json").write_text('{"sparse": null}')
+    pipeline._refuse_other_outputs(project)

@@ -259,6 +259,51 @@ def test_an_interrupted_train_stage_resumes_from_its_checkpoint(tmp_path, monkey
     assert resumed == [False, True, False] and (tmp_path / "out" / ".previous" / "train").is_dir()
 
 
+def test_an_interrupted_train_stage_trained_on_by_hand_is_not_resumed(tmp_path, monkeypatch, capsys):
+    """Stopped, then `train --resume --iterations 1700` by hand (its config.json says so), then the pipeline again with
+    its own settings: it resumed that run and recorded a 1700-step model under a manifest of 1500 (a helper's
+    review); it runs the stage again now, the hand-trained run kept under .previous."""
+    from uncertsplat.errors import Interrupted
+
+    resumed = []
+
+    def fake(kind, cfg, up_path, out_dir, device, kwargs):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if kind == "train":
+            resumed.append(kwargs.get("resume", False))
+            (out_dir / "config.json").write_text(cfg.model_dump_json(), encoding="utf-8")
+            if len(resumed) == 1:
+                (out_dir / "ckpts").mkdir()
+                (out_dir / "ckpts" / "step_000005.pt").write_bytes(b"state")
+                raise Interrupted("training interrupted at step 5; checkpoint saved", path=out_dir)
+
+    monkeypatch.setattr(pl, "_run_stage", fake)
+    p = _write(tmp_path)
+    with pytest.raises(Interrupted):
+        pl.run(p, tmp_path / "out")
+    run_config = tmp_path / "out" / "train" / "config.json"
+    by_hand = json.loads(run_config.read_text(encoding="utf-8"))
+    by_hand["iterations"] += 200  # `train OUT/synth -o OUT/train --resume --iterations N`
+    run_config.write_text(json.dumps(by_hand), encoding="utf-8")
+    capsys.readouterr()
+    pl.run(p, tmp_path / "out")
+    said = " ".join(capsys.readouterr().err.split())
+    assert resumed == [False, False] and "it is not resumed; 'train' runs again" in said
+    kept = next((tmp_path / "out" / ".previous").glob("train*"))
+    assert json.loads((kept / "config.json").read_text(encoding="utf-8"))["iterations"] == by_hand["iterations"]
+
+
+def test_a_file_where_a_stage_writes_its_folder_is_said(tmp_path, monkeypatch):
+    monkeypatch.setattr(pl, "_run_stage", lambda *a: None)
+    p = _write(tmp_path)
+    (tmp_path / "out").mkdir()
+    first = pl.load_pipeline(p).stages[0]
+    (tmp_path / "out" / (first.name or first.stage)).write_text("mine")
+    with pytest.raises(UserError, match="a file is where the stage '.*' writes its folder"):
+        pl.run(p, tmp_path / "out")
+    assert (tmp_path / "out" / (first.name or first.stage)).read_text(encoding="utf-8") == "mine"
+
+
 def test_a_stage_s_advice_names_the_pipeline_s_keys(tmp_path, monkeypatch):
     """A failing stage's advice names its command's options (--iterations); the pipeline adds how to set them there
     (--set train.iterations), and only for options that are the stage's config keys (not --resume)."""

@@ -311,6 +311,9 @@ def _move_previous(out_dir: Path, root: Path, name: str, own: bool = False) -> N
     neither then nor at the next change. A folder without a manifest that is not ``own`` (no stage of this pipeline
     ever ran there) is not the pipeline's: it goes to ``.previous/NAME-not-from-this-pipeline`` (numbered when taken),
     never replaced."""
+    if out_dir.exists() and not out_dir.is_dir():  # (iterdir raised NotADirectoryError: a traceback)
+        raise UserError(f"a file is where the stage '{name}' writes its folder", path=out_dir,
+                        hint="Move or delete that file (or give -o another folder), then run the pipeline again.")
     if not out_dir.exists() or not any(out_dir.iterdir()):
         return
     if not own and not (out_dir / MANIFEST).is_file():
@@ -344,7 +347,7 @@ def _refuse_other_outputs(root: Path) -> None:
     Raises:
         UserError: ``root`` is a training run, a pruned run, or a scene or COLMAP workspace (a file: ``run_lock``).
     """
-    if not root.is_dir():
+    if not root.is_dir() or (root / STARTED).is_file():  # (an earlier `uncertsplat run`'s own output, in any state)
         return
     what = None
     if (root / "config.json").is_file() and any((root / n).exists() for n in ("stats.jsonl", "train_summary.json",
@@ -506,6 +509,10 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 (old is not None and old.config_hash == new.config_hash and same_inputs)
                 or _started_keys(root).get(name) == new.key)
             resume = not force and stage.stage == "train" and unfinished and _has_checkpoint(out_dir)
+            again = _made_again("train", out_dir, new) if resume else None
+            if again:  # trained on by hand since (`train --resume --iterations`): not this stage's run to go on with
+                console.print(f"[yellow]note:[/] {again}: it is not resumed; '{name}' runs again")
+                resume = False
             if unreadable:
                 console.print(f"[yellow]note:[/] {out_dir / MANIFEST} cannot be read (damaged or from another "
                               f"version), so '{name}' runs again; " + (
