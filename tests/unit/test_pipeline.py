@@ -227,23 +227,31 @@ def test_a_stage_interrupted_with_its_work_kept_stops_the_pipeline_as_an_interru
     assert manifest["status"] == "failed" and "interrupted" in json.dumps(manifest)
 
 
-def test_an_interrupted_train_stage_resumes_from_its_checkpoint(tmp_path, monkeypatch):
-    """Run again after Ctrl-C, the train stage goes on from its checkpoint (same settings and inputs) instead of
-    moving its folder to .previous and training from step 0; with other settings it starts over."""
+def _stopped_once(resumed: list[bool], write_config: bool = False):
+    """A ``_run_stage`` whose train stage is stopped with a checkpoint the first time (each call's resume flag goes to
+    ``resumed``; ``write_config``: it writes the run's config.json as train does)."""
     from uncertsplat.errors import Interrupted
-
-    resumed = []
 
     def fake(kind, cfg, up_path, out_dir, device, kwargs):
         out_dir.mkdir(parents=True, exist_ok=True)
         if kind == "train":
             resumed.append(kwargs.get("resume", False))
+            if write_config:
+                (out_dir / "config.json").write_text(cfg.model_dump_json(), encoding="utf-8")
             if len(resumed) == 1:
                 (out_dir / "ckpts").mkdir()
                 (out_dir / "ckpts" / "step_000005.pt").write_bytes(b"state")
                 raise Interrupted("training interrupted at step 5; checkpoint saved", path=out_dir)
+    return fake
 
-    monkeypatch.setattr(pl, "_run_stage", fake)
+
+def test_an_interrupted_train_stage_resumes_from_its_checkpoint(tmp_path, monkeypatch):
+    """Run again after Ctrl-C, the train stage goes on from its checkpoint (same settings and inputs) instead of
+    moving its folder to .previous and training from step 0; with other settings it starts over."""
+    from uncertsplat.errors import Interrupted
+
+    resumed: list[bool] = []
+    monkeypatch.setattr(pl, "_run_stage", _stopped_once(resumed))
     p = _write(tmp_path)
     with pytest.raises(Interrupted) as err:
         pl.run(p, tmp_path / "out")
@@ -265,19 +273,8 @@ def test_an_interrupted_train_stage_trained_on_by_hand_is_not_resumed(tmp_path, 
     review); it runs the stage again now, the hand-trained run kept under .previous."""
     from uncertsplat.errors import Interrupted
 
-    resumed = []
-
-    def fake(kind, cfg, up_path, out_dir, device, kwargs):
-        out_dir.mkdir(parents=True, exist_ok=True)
-        if kind == "train":
-            resumed.append(kwargs.get("resume", False))
-            (out_dir / "config.json").write_text(cfg.model_dump_json(), encoding="utf-8")
-            if len(resumed) == 1:
-                (out_dir / "ckpts").mkdir()
-                (out_dir / "ckpts" / "step_000005.pt").write_bytes(b"state")
-                raise Interrupted("training interrupted at step 5; checkpoint saved", path=out_dir)
-
-    monkeypatch.setattr(pl, "_run_stage", fake)
+    resumed: list[bool] = []
+    monkeypatch.setattr(pl, "_run_stage", _stopped_once(resumed, write_config=True))
     p = _write(tmp_path)
     with pytest.raises(Interrupted):
         pl.run(p, tmp_path / "out")
