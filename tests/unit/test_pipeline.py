@@ -857,3 +857,20 @@ def test_the_photos_pipeline_without_photos_is_named_as_typed(tmp_path):
         pl.run(shipped_file("photos", "pipeline"), tmp_path / "out", overrides=[f"photos={tmp_path / 'none'}"])
     assert "photo folder not found (the pipeline's `photos`)" in err.value.render()
     assert not (tmp_path / "out").exists()
+
+
+def test_an_evaluate_stage_with_the_synth_stages_depth_is_skipped_whichever_way_o_is_written(tmp_path, calls,
+                                                                                             monkeypatch):
+    """SfM on a synthetic scene's photos: the evaluate stage takes the synth stage's GT depth, whose path was keyed as
+    -o was typed, so an absolute `-o` after a relative one evaluated again (a helper's review)."""
+    p = tmp_path / "chain.toml"
+    p.write_text('name = "chain"\n[[stages]]\nstage = "synth"\nconfig = { preset = "tiny" }\n'
+                 '[[stages]]\nstage = "reconstruct"\n[[stages]]\nstage = "train"\npreset = "tiny"\n'
+                 '[[stages]]\nstage = "evaluate"\n')
+    monkeypatch.chdir(tmp_path)
+    pl.run(p, Path("out"))
+    ran = len(calls)
+    assert [k for k, _ in calls] == ["synth", "reconstruct", "train", "evaluate"]
+    pl.run(p, Path("./out"))
+    pl.run(p, tmp_path / "out")
+    assert len(calls) == ran  # every stage skipped

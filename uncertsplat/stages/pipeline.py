@@ -458,7 +458,8 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 if synth and stage_cfg.depth_gt is None and trained_on == "reconstruct":
                     # SfM on a synthetic scene: the GT depth lives with the generator's output; the evaluate
                     # stage aligns the depth scale (the reconstruction's frame is not the generator's).
-                    stage_cfg = stage_cfg.model_copy(update={"depth_gt": outputs[synth[0]] / "depth"})
+                    # (resolved: keyed as -o was typed, `-o /abs/out` after `-o out` ran the stage again)
+                    stage_cfg = stage_cfg.model_copy(update={"depth_gt": outputs[synth[0]].resolve() / "depth"})
                     inputs[synth[0]] = manifests[synth[0]].key
             elif stage.stage == "report":
                 runs = [p for n, p in outputs.items() if kinds[n] in ("train", "prune")]
