@@ -227,10 +227,11 @@ def test_a_stage_interrupted_with_its_work_kept_stops_the_pipeline_as_an_interru
     assert manifest["status"] == "failed" and "interrupted" in json.dumps(manifest)
 
 
-def _stopped_once(resumed: list[bool], write_config: bool = False):
+def _stopped_once(resumed: list[bool], write_config: bool = False, write_scene: bool = False):
     """A ``_run_stage`` whose train stage is stopped with a checkpoint the first time (each call's resume flag goes to
-    ``resumed``; ``write_config``: it writes the run's config.json as train does)."""
+    ``resumed``; ``write_config``, ``write_scene``: it writes the run's config.json, scene.json as train does)."""
     from uncertsplat.errors import Interrupted
+    from uncertsplat.schemas.scene import RunScene
 
     def fake(kind, cfg, up_path, out_dir, device, kwargs):
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -238,6 +239,9 @@ def _stopped_once(resumed: list[bool], write_config: bool = False):
             resumed.append(kwargs.get("resume", False))
             if write_config:
                 (out_dir / "config.json").write_text(cfg.model_dump_json(), encoding="utf-8")
+            if write_scene and not kwargs.get("resume"):
+                RunScene(scene=str(up_path.resolve()), source={"kind": "colmap"}, extent=1.0, scene_scale=1.0,
+                         width=8, height=6, train=[], test=[]).write(out_dir / "scene.json")
             if len(resumed) == 1:
                 (out_dir / "ckpts").mkdir()
                 (out_dir / "ckpts" / "step_000005.pt").write_bytes(b"state")
@@ -874,3 +878,26 @@ def test_an_evaluate_stage_with_the_synth_stages_depth_is_skipped_whichever_way_
     pl.run(p, Path("./out"))
     pl.run(p, tmp_path / "out")
     assert len(calls) == ran  # every stage skipped
+
+
+def test_a_copy_of_an_output_folder_with_an_unfinished_training_runs_it_again(tmp_path, monkeypatch, capsys):
+    """`cp -a OUT OUT2` with a training stopped in OUT: the pipeline on OUT2 resumed the run, which train refused
+    every time (trained on OUT's scene, which is still there), so OUT2 could never finish (a helper's review). The
+    copy's stage runs again; OUT itself, and a moved OUT, resume."""
+    import shutil
+
+    from uncertsplat.errors import Interrupted
+
+    resumed: list[bool] = []
+    monkeypatch.setattr(pl, "_run_stage", _stopped_once(resumed, write_scene=True))
+    p = _write(tmp_path)
+    with pytest.raises(Interrupted):
+        pl.run(p, tmp_path / "out")
+    shutil.copytree(tmp_path / "out", tmp_path / "copy")
+    capsys.readouterr()
+    pl.run(p, tmp_path / "copy")
+    said = " ".join(capsys.readouterr().err.split())
+    assert resumed == [False, False] and "which is still there (a copy of another output folder?)" in said
+    shutil.move(tmp_path / "out", tmp_path / "moved")  # the old scene gone with it: resumed beside the run
+    pl.run(p, tmp_path / "moved")
+    assert resumed == [False, False, True]

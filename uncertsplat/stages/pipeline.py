@@ -510,8 +510,8 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 (old is not None and old.config_hash == new.config_hash and same_inputs)
                 or _started_keys(root).get(name) == new.key)
             resume = not force and stage.stage == "train" and unfinished and _has_checkpoint(out_dir)
-            again = _made_again("train", out_dir, new) if resume else None
-            if again:  # trained on by hand since (`train --resume --iterations`): not this stage's run to go on with
+            again = (_made_again("train", out_dir, new) or _trained_elsewhere(out_dir, up_path)) if resume else None
+            if again:  # trained on by hand since (`train --resume --iterations`), or a copy's run: not this stage's
                 console.print(f"[yellow]note:[/] {again}: it is not resumed; '{name}' runs again")
                 resume = False
             if unreadable:
@@ -595,6 +595,24 @@ def _changed_output(name: str, kind: str, out_dir: Path, manifest: Manifest) -> 
 def pipeline_advice(name: str, fields, text: str) -> str:
     """``text`` (a stage's message) with its advice in a pipeline's words (``console.advice_within``)."""
     return advice_within(name, fields, text, "pipeline")
+
+
+def _trained_elsewhere(run_dir: Path, scene: Path | None) -> str | None:
+    """Why the unfinished run in ``run_dir`` is not this stage's to resume on ``scene``, or None: it records another
+    scene that is still there (a copy of the output folder: train refuses to resume it on the copy's scene, so the
+    stage could never finish; a moved project's old scene is gone, and train finds the one beside the run)."""
+    from uncertsplat.schemas.scene import RunScene
+
+    try:
+        info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
+    except (UserError, OSError):
+        return None
+    if info is None or scene is None:
+        return None
+    recorded = Path(info.scene)
+    if not recorded.is_dir() or recorded.resolve() == Path(scene).resolve():
+        return None
+    return f"the run in {run_dir} was trained on {recorded}, which is still there (a copy of another output folder?)"
 
 
 def _made_again(kind: str, out_dir: Path, manifest: Manifest) -> str | None:
