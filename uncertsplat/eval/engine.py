@@ -948,12 +948,14 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         given = isinstance(cfg.depth_scale, float)
         from uncertsplat.conventions import NO_SURFACE_DEPTH
 
-        none = not any(bool((g > 0).any()) for g in gts)
+        def none() -> bool:  # (read only where it decides: a pass over every GT map)
+            return not any(bool((g > 0).any()) for g in gts)
+
         no_depth = (f"the GT maps hold no usable depth at all: values of 0 or below, not finite, or of "
                     f"{NO_SURFACE_DEPTH:g} and above are read as no surface (Blender writes 1e10 there)")
         no_depth_hint = ("Depth maps stored in units that make every depth that large (nanometres) must be stored in "
                          "larger ones.")
-        if none and cfg.depth_gt is not None and (given or views.depth_known_scale):
+        if cfg.depth_gt is not None and (given or views.depth_known_scale) and none():
             # (with a factor given, no metric came out and nothing said why: the aligned case refuses the same maps)
             raise UserError(f"no depth metric can be computed: {no_depth}", path=cfg.depth_gt, hint=no_depth_hint)
         if given or views.depth_known_scale:  # a factor the user gave, or the scene's own GT's (1)
@@ -968,8 +970,9 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             try:
                 scale = align_depth_scale(dm, gts, mask=base_mask, method=cfg.depth_align)
             except ValueError as err:
-                raise UserError(f"cannot align depth with the GT: {err}" + (f"; {no_depth}" if none else ""),
-                                path=cfg.depth_gt, hint=no_depth_hint if none else None) from None
+                empty = none()
+                raise UserError(f"cannot align depth with the GT: {err}" + (f"; {no_depth}" if empty else ""),
+                                path=cfg.depth_gt, hint=no_depth_hint if empty else None) from None
         depth_info = DepthScaleInfo(scale=scale.scale, method=scale.method, num_pixels=scale.num_pixels)
         del dm, base_mask, kept
         scored_px = with_gt_px = 0  # the depth metrics' pixels, against those with a GT depth

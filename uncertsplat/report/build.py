@@ -175,7 +175,7 @@ def _missing_metrics_note(run: RunData, full: bool = True) -> str:
                     f"{q(run.path)}`; metric sections are left out for this run.")
     other = sorted(p.parent.name for p in run.path.glob("eval-*/metrics.json"))  # (`evaluate --split train`'s)
     also = (f" ({', '.join(f'{n}/metrics.json' for n in other)} is another split's evaluation, which the report does "
-            "not show: it reads the held-out views')" if other else "")
+            "not show: it reads the held-out views)" if other else "")
     return _file_note(run, METRICS, f"no eval/metrics.json{also} — run `uncertsplat evaluate {q(run.path)}` to "
                                     "measure the uncertainty; metric sections are left out for this run.")
 

@@ -130,12 +130,14 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
     return TrainSummary.read(summary_path), True
 
 
-def _knobs_of(table: str) -> dict[str, str]:
-    """{dotted key of the spec's ``table`` ("train", "evaluate"): knob} of the keys the sweep's knobs set (advice to
-    ``--set`` one of them names the knob: the sweep refuses the key where a knob replaces it)."""
+def _advice(table: str, fields) -> functools.partial:
+    """``text -> text``: a message of the command whose settings are the spec's ``table`` ("train", "evaluate",
+    with ``fields``) in the sweep's words (``console.advice_within``); a key a knob sets is named as that knob (the
+    sweep refuses the key where a knob replaces it)."""
     from uncertsplat.sweep.spec import KNOB_KEYS
 
-    return {dotted: knob for knob, (where, dotted) in KNOB_KEYS.items() if where == table}
+    knobs = {dotted: knob for knob, (where, dotted) in KNOB_KEYS.items() if where == table}
+    return functools.partial(advice_within, table, fields, within="sweep", knobs=knobs)
 
 
 def run_job(job: dict) -> list[dict]:
@@ -161,12 +163,12 @@ def run_job(job: dict) -> list[dict]:
             "seed": job.get("seed")}
     records = []
     previous = console.rewrite
+    train_advice, eval_advice = _advice("train", TrainConfig.model_fields), _advice("evaluate", EvalConfig.model_fields)
     try:
         device = resolve_device(job["device"])
         t0 = time.perf_counter()
         # training's advice in the sweep's words (`--set train.exposure=affine`: the sweep refused `--set exposure`)
-        console.rewrite = functools.partial(advice_within, "train", TrainConfig.model_fields, within="sweep",
-                                            knobs=_knobs_of("train"))
+        console.rewrite = train_advice
         summary, trained = _train(job, device)
         train_peak = summary.peak_memory_mb
         train_info = {"train_seconds": summary.seconds, "trained_now": trained,
@@ -177,8 +179,7 @@ def run_job(job: dict) -> list[dict]:
     except Interrupted:  # Ctrl-C / SIGTERM: the sweep stops (the checkpoint resumes the point), it does not retry
         raise
     except Exception as err:  # report, do not kill the sweep
-        msg = advice_within("train", TrainConfig.model_fields, f"{type(err).__name__}: {err}", within="sweep",
-                            knobs=_knobs_of("train"))
+        msg = train_advice(f"{type(err).__name__}: {err}")
         tb = traceback.format_exc(limit=6)
         return [{**base, "id": p["id"], "hash": p["hash"], "knobs": p["knobs"], "is_default": p["is_default"],
                  "status": "failed", "stage": "train", "error": msg, "traceback": tb} for p in job["points"]]
@@ -189,8 +190,7 @@ def run_job(job: dict) -> list[dict]:
         rec = {**base, **train_info, "id": p["id"], "hash": p["hash"], "knobs": p["knobs"],
                "is_default": p["is_default"]}
         try:
-            console.rewrite = functools.partial(advice_within, "evaluate", EvalConfig.model_fields, within="sweep",
-                                                knobs=_knobs_of("evaluate"))
+            console.rewrite = eval_advice
             rec.update(_evaluate(job, p, device))
             rec["peak_memory_mb"] = max(train_peak, rec["eval_peak_memory_mb"])
             # what a user waits for: training, the predictive's fit (pixel noise, std factor: as long as a tiny
@@ -199,9 +199,7 @@ def run_job(job: dict) -> list[dict]:
             rec["ause"] = rec.get("ause_mae")
             rec["status"] = "ok"
         except Exception as err:
-            rec.update(status="failed", stage="evaluate", error=advice_within(
-                "evaluate", EvalConfig.model_fields, f"{type(err).__name__}: {err}", within="sweep",
-                knobs=_knobs_of("evaluate")),
+            rec.update(status="failed", stage="evaluate", error=eval_advice(f"{type(err).__name__}: {err}"),
                        traceback=traceback.format_exc(limit=6))
         finally:
             console.rewrite = previous

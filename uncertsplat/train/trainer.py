@@ -49,6 +49,7 @@ from uncertsplat.io.images import area_resize
 from uncertsplat.render import near_plane, render
 from uncertsplat.render.exposure import centred, expose, exposure_record, fitted_gain, unexpose
 from uncertsplat.render.project import point_depths, points_in_view
+from uncertsplat.schemas.base import finite_or_none
 from uncertsplat.schemas.runs import RunExposure
 from uncertsplat.strategy.budget import gaussian_budget
 from uncertsplat.strategy.densify import Densifier, DensifyStats
@@ -320,16 +321,13 @@ class _Unexposed:
         return self.photos.device
 
 
-
 def _finite_or_null(value):
     """``value`` (a stats record: numbers, text, lists and dicts of them) with every non-finite float as None."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
     if isinstance(value, dict):
         return {k: _finite_or_null(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_finite_or_null(v) for v in value]
-    return value
+    return finite_or_none(value)
 
 
 def _diverged_hint(changed: list[str], rates: str, saved: bool, run_dir: Path | None) -> str:
@@ -346,6 +344,7 @@ def _diverged_hint(changed: list[str], rates: str, saved: bool, run_dir: Path | 
     else:
         rest = f"; {run_dir} can be deleted" if run_dir is not None else ""
     return first + rest + "."
+
 
 class Trainer:
     """Trains a ``GaussianModel`` on one scene.

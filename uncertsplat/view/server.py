@@ -250,10 +250,9 @@ class Viewer:
     # ------------------------------------------------------------------------------------------ panel
     def _build_panel(self) -> None:
         gui = self.server.gui
-        r = self.renderer
-        labels = [VIEW_MODES[m] for m in r.modes()]
-        self._label_to_mode = {VIEW_MODES[m]: m for m in r.modes()}
-        self.gui_mode = gui.add_dropdown("Mode", tuple(labels), initial_value=labels[0],
+        labels, scores = self._choices()
+        self._label_to_mode = {VIEW_MODES[m]: m for m in self.renderer.modes()}
+        self.gui_mode = gui.add_dropdown("Mode", labels, initial_value=labels[0],
                                          hint="What the view shows: the render, its depth, the posterior's std, or "
                                               "the Gaussians prune would remove.")
         # (a setting beyond a slider's usual range widens it: the config allows what the panel should show)
@@ -271,8 +270,7 @@ class Viewer:
                                          hint="Keep the current colour range while moving (default: 1st-99th "
                                               "percentile of each frame).")
         with gui.add_folder("Prune preview", expand_by_default=True) as self.gui_prune_folder:
-            scores = r.score_names() if r.prune_available else ["gate"]
-            self.gui_score = gui.add_dropdown("Score", tuple(scores), initial_value=scores[0])
+            self.gui_score = gui.add_dropdown("Score", scores, initial_value=scores[0])
             self.gui_keep = gui.add_slider("Keep ratio", min=KEEP_RANGE[0], max=KEEP_RANGE[1], step=0.01,
                                            initial_value=0.9,
                                            hint="Preview of prune --keep-ratio: the removed Gaussians are coloured.")
@@ -288,16 +286,20 @@ class Viewer:
         self.gui_cameras.on_update(self._on_show_cameras)
         self._update_visibility()
 
+    def _choices(self) -> tuple[tuple[str, ...], tuple[str, ...]]:
+        """(mode labels, prune scores) the panel offers for the current renderer."""
+        r = self.renderer
+        return (tuple(VIEW_MODES[m] for m in r.modes()),
+                tuple(r.score_names() if r.prune_available else ["gate"]))
+
     def offer_modes(self) -> None:
         """The panel's modes and prune scores made those of the current renderer: ``train --view`` starts before any
         Gaussian carries a posterior and gets a new renderer as the training goes (the prune preview then becomes
         available)."""
-        r = self.renderer
-        labels = tuple(VIEW_MODES[m] for m in r.modes())
+        labels, scores = self._choices()
         if tuple(self._label_to_mode) != labels:
-            self._label_to_mode = {VIEW_MODES[m]: m for m in r.modes()}
+            self._label_to_mode = {VIEW_MODES[m]: m for m in self.renderer.modes()}
             self.gui_mode.options = labels  # (viser keeps the value where it is still offered)
-        scores = tuple(r.score_names() if r.prune_available else ["gate"])
         if tuple(self.gui_score.options) != scores:
             self.gui_score.options = scores
 
