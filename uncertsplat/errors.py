@@ -70,6 +70,12 @@ class StageError(UserError):
     """A pipeline stage failed; the message says which stage and why."""
 
 
+class NoPosterior(UserError):
+    """A stage that works on the per-Gaussian posterior (prune) was given a run whose Gaussians carry none (a run
+    too short for its first densification, a method without one): a pipeline skips such a stage, with this message,
+    where no later stage needs its output."""
+
+
 class Interrupted(UserError):
     """The user stopped the work (Ctrl-C, SIGTERM) and what was done is kept (e.g. a checkpoint): the message says
     where and the hint how to continue. The CLI exits with 130, as for Ctrl-C; a sweep stops instead of retrying."""

@@ -279,7 +279,10 @@ def test_a_run_without_a_posterior_is_named_by_evaluate(tiny_scene_path, tmp_pat
     from uncertsplat.config import PruneConfig
     from uncertsplat.stages import prune
 
-    with pytest.raises(UserError, match="no uncertainty to prune by: the run's 2 steps end before Gaussians first"):
+    # (NoPosterior: a pipeline skips the stage and goes on to its report)
+    from uncertsplat.errors import NoPosterior
+
+    with pytest.raises(NoPosterior, match="no uncertainty to prune by: the run's 2 steps end before Gaussians first"):
         prune.run(run, tmp_path / "pruned", PruneConfig(keep_ratio=0.9), torch.device("cpu"))
     # a prune's output with no carrier left: pruning removed them (not the spawn rule, of which train said nothing)
     (run / "prune.json").write_text("{}")

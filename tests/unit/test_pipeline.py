@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from uncertsplat.errors import StageError, UserError
+from uncertsplat.errors import NoPosterior, StageError, UserError
 from uncertsplat.stages import pipeline as pl
 
 PIPE = """
@@ -318,6 +318,48 @@ def test_a_stage_s_advice_names_the_pipeline_s_keys(tmp_path, monkeypatch):
         pl.run(_write(tmp_path), tmp_path / "out")
     text = str(err.value)
     assert "(in this pipeline: --set train.iterations)" in text and "train.resume" not in text
+
+
+PRUNED = PIPE.replace('[[stages]]\nstage = "report"', '[[stages]]\nstage = "prune"\ninput = "train"\n'
+                                                        'config = { keep_ratio = 0.9 }\n[[stages]]\nstage = "report"')
+
+
+def _no_posterior(seen: dict):
+    def fake(kind, cfg, up_path, out_dir, device, kwargs):
+        seen.setdefault("kinds", []).append(kind)
+        if kind == "prune":  # as prune.run says it, before it writes anything
+            raise NoPosterior("the run has no Gaussians with a posterior, so there is no uncertainty to prune by: "
+                              "give it --iterations 222 or more for a posterior", path=up_path,
+                              hint="Prune a run whose Gaussians carry a posterior.")
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if kind == "report":
+            seen["runs"], seen["notes"] = kwargs["runs"], kwargs["notes"]
+    return fake
+
+
+def test_a_prune_of_a_run_without_a_posterior_is_skipped_and_the_report_says_why(tmp_path, monkeypatch, capsys):
+    """A photos pipeline too short to give a posterior stopped at its prune stage without a report: the stage is
+    skipped with a warning that names the train stage's key, and the report notes it with the run."""
+    seen: dict = {}
+    monkeypatch.setattr(pl, "_run_stage", _no_posterior(seen))
+    p = tmp_path / "p.toml"
+    p.write_text(PRUNED)
+    outs = pl.run(p, tmp_path / "out")
+    said = " ".join(capsys.readouterr().err.split())
+    assert seen["kinds"] == ["synth", "train", "evaluate", "prune", "report"] and "prune" not in outs
+    assert "stage 'prune' (prune) skipped:" in said and "(in this pipeline: --set train.iterations)" in said
+    assert "('prune' skipped: see above)" in said
+    assert seen["runs"] == [tmp_path / "out" / "train"]
+    ((where, (note,)),) = seen["notes"].items()
+    assert where == tmp_path / "out" / "train" and note.startswith("the pipeline's stage 'prune' did not run: ")
+    assert "--set train.iterations" in note and "Prune a run whose" not in note
+    assert not (tmp_path / "out" / "prune").exists()
+    # a stage that reads the skipped one's output cannot go on: the pipeline fails there, naming both
+    p.write_text(PRUNED.replace('stage = "report"', 'stage = "evaluate"\nname = "again"\ninput = "prune"\n[[stages]]\nstage = "report"'))
+    seen.clear()
+    with pytest.raises(StageError, match="stage 'prune' \\(prune\\) failed \\(stage 'again' needs its output\\)"):
+        pl.run(p, tmp_path / "out")
+    assert "report" not in seen["kinds"]
 
 
 def test_a_relative_photos_path_is_read_from_where_it_was_written(tmp_path, monkeypatch):

@@ -653,6 +653,18 @@ def test_a_run_whose_training_stopped_says_so_with_the_command_that_finishes_it(
     assert "training is not finished: its newest checkpoint is step 75 of 100" in notes and "--resume" in notes
 
 
+def test_notes_given_with_a_run_are_shown_with_it(tmp_path):
+    """A pipeline's note on a run (a prune stage it skipped for want of a posterior) is shown with that run, given by
+    its folder in any spelling, and with no other run."""
+    from uncertsplat.stages import report
+
+    a, b = make_run(tmp_path, "a", maps=False, stats=False), make_run(tmp_path, "b", maps=False, stats=False)
+    index = report.run([a, b], tmp_path / "out", notes={tmp_path / "x" / ".." / "a": ["the stage 'prune' did not run"]})
+    html = index.read_text(encoding="utf-8")
+    assert html.count("the stage &#x27;prune&#x27; did not run") == 1
+    assert "a: the stage &#x27;prune&#x27; did not run" in html
+
+
 def test_cli_report(tmp_path):
     from typer.testing import CliRunner
 

@@ -30,7 +30,7 @@ from uncertsplat.config import (
     train_config_from,
 )
 from uncertsplat.console import advice_within, console, q
-from uncertsplat.errors import Interrupted, StageError, UserError, naming_overrides
+from uncertsplat.errors import Interrupted, NoPosterior, StageError, UserError, naming_overrides
 from uncertsplat.io.atomic import lock_holder, run_lock
 from uncertsplat.stages.manifest import (
     MANIFEST,
@@ -394,8 +394,11 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
         outputs: dict[str, Path] = {}
         kinds: dict[str, str] = {}
         manifests: dict[str, Manifest] = {}
+        configs: dict = {}  # each finished stage's settings
         upstreams: dict[str, str | None] = {}
         previous: str | None = None
+        skipped: dict[str, str] = {}  # a stage skipped for want of a posterior: its reason
+        run_notes: dict[Path, list[str]] = {}  # what the report says of a run, e.g. that its prune stage was skipped
         t_all = time.perf_counter()
         console.print(f"[bold]pipeline[/] {cfg.name} ({pipeline}) -> {root}  device={dev}")
 
@@ -466,6 +469,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 if not runs:
                     raise UserError(f"stage '{name}' needs a train or prune stage before it", path=pipeline)
                 kwargs["runs"] = runs
+                kwargs["notes"] = run_notes
                 for n, k in kinds.items():
                     if k in ("train", "prune", "evaluate"):
                         inputs[n] = manifests[n].key
@@ -490,6 +494,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                     and same_inputs and not changed):
                 console.print(f"[green]skip[/] {name}: unchanged since its last run ({out_dir})")
                 outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, old
+                configs[name] = stage_cfg
                 previous = name
                 continue
 
@@ -546,6 +551,23 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 raise Interrupted(f"stage '{name}' ({stage.stage}) interrupted: {err.message}",
                                   hint=f"Run the same pipeline command again: the stages that finished are skipped and "
                                        f"{again}.") from None
+            except NoPosterior as err:
+                readers = _readers(cfg, name)
+                text = pipeline_advice(name, type(stage_cfg).model_fields, err.render())
+                if readers:
+                    _finish(out_dir, new, "failed", t0, err.render())
+                    raise StageError(f"stage '{name}' ({stage.stage}) failed (stage '{readers[0]}' needs its "
+                                     f"output): {text}") from None
+                # a prune of a run without a posterior (a short test run of a photos pipeline): the stages after it
+                # go on, so the pipeline still ends with its report, which says why this stage did not run
+                _finish(out_dir, new, "skipped", t0, err.render())
+                # what to change is the training's (its length): said in the words of the stage that trains it
+                text = (pipeline_advice(upstream, type(configs[upstream]).model_fields, f"{err.path}: {err.message}")
+                        if kinds.get(upstream) == "train" else text)
+                skipped[name] = text
+                run_notes.setdefault(up_path, []).append(f"the pipeline's stage '{name}' did not run: {text}")
+                console.print(f"[yellow]warning:[/] stage '{name}' ({stage.stage}) skipped: {text}")
+                continue
             except UserError as err:
                 _finish(out_dir, new, "failed", t0, err.render())
                 text = pipeline_advice(name, type(stage_cfg).model_fields, err.render())
@@ -563,13 +585,29 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 if moved:
                     console.print(f"[yellow]note:[/] {moved}")
             outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, new
+            configs[name] = stage_cfg
             previous = name
 
-        console.print(f"[bold green]pipeline finished[/] in {time.perf_counter() - t_all:.1f} s")
+        console.print(f"[bold green]pipeline finished[/] in {time.perf_counter() - t_all:.1f} s"
+                      + (f" ({', '.join(repr(n) for n in skipped)} skipped: see above)" if skipped else ""))
         reports = [p for n, p in outputs.items() if kinds[n] == "report"]
         for r in reports:
             console.print(f"report: {r / 'index.html'}")
         return outputs
+
+
+def _readers(cfg: PipelineConfig, name: str) -> list[str]:
+    """The stages after stage ``name`` that read its output: those that name it as `input`, and the one right after
+    it that takes the stage before as its input (all but synth, report and a reconstruct of the pipeline's photos)."""
+    names = [s.name or s.stage for s in cfg.stages]
+    i = names.index(name)
+    out = []
+    for j, s in enumerate(cfg.stages[i + 1:], start=i + 1):
+        implicit = s.input is None and j == i + 1 and s.stage not in ("synth", "report") and not (
+            s.stage == "reconstruct" and cfg.photos is not None)
+        if s.input == name or implicit:
+            out.append(names[j])
+    return out
 
 
 def _changed_output(name: str, kind: str, out_dir: Path, manifest: Manifest) -> str | None:
@@ -675,6 +713,6 @@ def _run_stage(kind: str, cfg, up_path: Path | None, out_dir: Path, device, kwar
     elif kind == "report":
         from uncertsplat.stages import report
 
-        report.run(kwargs["runs"], out_dir, cfg)
+        report.run(kwargs["runs"], out_dir, cfg, notes=kwargs.get("notes"))
     else:  # pragma: no cover - the schema forbids it
         raise UserError(f"unknown stage kind {kind}")

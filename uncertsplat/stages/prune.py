@@ -51,7 +51,7 @@ import torch
 
 from uncertsplat.config import EvalConfig, PruneConfig
 from uncertsplat.console import console, print_table, q
-from uncertsplat.errors import Interrupted, UserError, run_folder_missing
+from uncertsplat.errors import Interrupted, NoPosterior, UserError, run_folder_missing
 from uncertsplat.io.atomic import temp_folder, temp_stem
 from uncertsplat.provenance import file_sha256
 from uncertsplat.schemas.base import path_from
@@ -343,7 +343,7 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         from uncertsplat.train.trainer import no_carriers_reason
 
         reason = no_carriers_reason(loaded.config, loaded.step) if method == "variational" else None
-        raise UserError(f"{why}, so there is no uncertainty to prune by" + (f": {reason}" if reason else ""),
+        raise NoPosterior(f"{why}, so there is no uncertainty to prune by" + (f": {reason}" if reason else ""),
                         path=run_dir,
                         hint="Prune a run trained with the variational method (the default) past its first "
                              "densification step." if method != "variational" else

@@ -102,8 +102,10 @@ def _remove_stale_figures(out: Path, earlier: set[str], keep: list[str]) -> None
                 p.unlink()
 
 
-def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = None) -> Path:
+def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = None,
+        notes: dict[Path, list[str]] | None = None) -> Path:
     """Write the HTML report of ``runs`` (one run folder or a list) into ``out``; returns ``out/index.html``.
+    ``notes``: more notes to show with a run, by its folder (a pipeline's: a prune stage it skipped).
 
     Raises:
         UserError: naming the run path when a run folder is missing or is not a run folder, or the
@@ -125,6 +127,9 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
     names = _display_names([p for p in paths if p.exists()]) if all(p.exists() for p in paths) else []
     loaded = [load_run(p, name=names[i] if names else None) for i, p in enumerate(paths)]
     _check_output(out, paths)
+    extra = {Path(p).resolve(): list(n) for p, n in (notes or {}).items()}
+    for r in loaded:
+        r.notes.extend(extra.get(r.path.resolve(), []))
     for r in loaded:
         if r.metrics is not None and r.metrics.split == "test" and evaluation_is_current(r.path, r.metrics) is False:
             r.notes.append(f"its eval/metrics.json scored an earlier state of the run (the model, config or scene, or "
