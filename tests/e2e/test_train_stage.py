@@ -276,11 +276,10 @@ def test_a_run_without_a_posterior_is_named_by_evaluate(tiny_scene_path, tmp_pat
     carriers = dataclasses.replace(loaded, model=random_model(20, torch.Generator().manual_seed(0)))
     assert carriers.model.num_carriers > 0 and carriers.eval_notes(4) == []
     # prune refuses it with the same reason (it said: train "for at least one spawn interval")
-    from uncertsplat.config import PruneConfig
-    from uncertsplat.stages import prune
-
     # (NoPosterior: a pipeline skips the stage and goes on to its report)
+    from uncertsplat.config import PruneConfig
     from uncertsplat.errors import NoPosterior
+    from uncertsplat.stages import prune
 
     with pytest.raises(NoPosterior, match="no uncertainty to prune by: the run's 2 steps end before Gaussians first"):
         prune.run(run, tmp_path / "pruned", PruneConfig(keep_ratio=0.9), torch.device("cpu"))
