@@ -920,6 +920,28 @@ def test_an_evaluate_stage_with_the_synth_stages_depth_is_skipped_whichever_way_
     pl.run(p, Path("./out"))
     pl.run(p, tmp_path / "out")
     assert len(calls) == ran  # every stage skipped
+    # the project moved elsewhere: its GT depth is keyed by the synth stage it comes from, not where it lies (the
+    # evaluate stage ran again); the stage still runs with the depth where it now is
+    monkeypatch.chdir(tmp_path.parent)
+    (tmp_path / "moved").mkdir()
+    for f in ("chain.toml", "out"):
+        (tmp_path / f).rename(tmp_path / "moved" / f)
+    pl.run(tmp_path / "moved" / "chain.toml", tmp_path / "moved" / "out")
+    assert len(calls) == ran
+    m = json.loads((tmp_path / "moved" / "out" / "train" / "eval" / "manifest.json").read_text(encoding="utf-8"))
+    assert m["config"]["depth_gt"] == str((tmp_path / "out" / "synth" / "depth").resolve())  # as it ran
+    pl.run(tmp_path / "moved" / "chain.toml", tmp_path / "moved" / "out", overrides=["evaluate.num_samples=3"])
+    (last, where) = calls[-1]
+    assert last == "evaluate" and len(calls) == ran + 1
+    m = json.loads((where / "manifest.json").read_text(encoding="utf-8"))
+    assert m["config"]["depth_gt"] == str((tmp_path / "moved" / "out" / "synth" / "depth").resolve())
+    # a manifest keyed as before (by the path as run) is taken where the project has not moved
+    from uncertsplat.stages.manifest import hash_config
+
+    m["config_hash"] = hash_config(m["config"])
+    (where / "manifest.json").write_text(json.dumps(m))
+    pl.run(tmp_path / "moved" / "chain.toml", tmp_path / "moved" / "out", overrides=["evaluate.num_samples=3"])
+    assert len(calls) == ran + 1
 
 
 def test_a_copy_of_an_output_folder_with_an_unfinished_training_runs_it_again(tmp_path, monkeypatch, capsys):
@@ -943,3 +965,22 @@ def test_a_copy_of_an_output_folder_with_an_unfinished_training_runs_it_again(tm
     shutil.move(tmp_path / "out", tmp_path / "moved")  # the old scene gone with it: resumed beside the run
     pl.run(p, tmp_path / "moved")
     assert resumed == [False, False, True]
+
+
+def test_an_evaluate_stage_of_a_run_outside_out_is_skipped_when_unchanged(tmp_path, calls, capsys):
+    """Its evaluation is written into the run, which is the stage's input: the input changed with every call and the
+    stage was never skipped. The run's own files still are its input (a model trained on: evaluated again)."""
+    run = tmp_path / "myrun"
+    run.mkdir()
+    (run / "config.json").write_text("{}")
+    (run / "variational.ply").write_text("model")
+    p = tmp_path / "p.toml"
+    p.write_text('[[stages]]\nstage = "evaluate"\ninput = "myrun"\n')
+    pl.run(p, tmp_path / "out")
+    assert calls == [("evaluate", run / "eval")] and (run / "eval" / "out.txt").is_file()
+    capsys.readouterr()
+    pl.run(p, tmp_path / "out")
+    assert len(calls) == 1 and "skip evaluate: unchanged" in " ".join(capsys.readouterr().err.split())
+    (run / "variational.ply").write_text("trained on")
+    pl.run(p, tmp_path / "out")
+    assert len(calls) == 2

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from uncertsplat.errors import UserError
@@ -39,21 +40,24 @@ def _read_by_stages(rel: Path) -> bool:
     return not (len(rel.parts) == 1 and any(rel.match(pattern) for pattern in _NOT_READ_AT_TOP))
 
 
-def fingerprints(folder: Path, max_files: int = 100_000, skip: Path | None = None) -> tuple[str, str, str]:
+def fingerprints(folder: Path, max_files: int = 100_000,
+                 skip: Path | Sequence[Path] | None = None) -> tuple[str, str, str]:
     """(``fingerprint_folder``, the same over every file (what manifests held before 2026-11-29's thirty-eighth
     session), the names, sizes and mtimes of every file (before that day)) of ``folder`` in one pass: the pipeline takes an input
     as unchanged when a stage's manifest holds any of them. ``skip``: a folder inside ``folder`` left out (the
-    command's own output folder, written there: it would change the input with every call)."""
+    command's own output folder, written there: it would change the input with every call; a pipeline's evaluation
+    of a run outside it, written into the run), or several."""
     folder = Path(folder)
     if not folder.exists():
         return "missing", "missing", "missing"
-    skip = Path(skip).resolve() if skip is not None else None
-    inside = skip is not None and folder.resolve() in skip.parents
+    skips = [] if skip is None else [skip] if isinstance(skip, (str, Path)) else list(skip)
+    top = folder.resolve()
+    inside = [s for s in (Path(s).resolve() for s in skips) if top in s.parents]
     read, every, legacy = hashlib.sha256(), hashlib.sha256(), hashlib.sha256()
     for i, p in enumerate(sorted(folder.rglob("*"))):
         if i >= max_files:
             break
-        if inside and (p.resolve() == skip or skip in p.resolve().parents):
+        if inside and any(p.resolve() == s or s in p.resolve().parents for s in inside):
             continue
         if p.is_file():
             rel = p.relative_to(folder)
@@ -182,11 +186,13 @@ def write_manifest(folder: Path, manifest: Manifest) -> None:
     manifest.write(Path(folder) / MANIFEST)
 
 
-def start_manifest(stage: str, name: str, config: dict, inputs: dict[str, str]) -> Manifest:
+def start_manifest(stage: str, name: str, config: dict, inputs: dict[str, str], keyed: dict | None = None) -> Manifest:
+    """A running stage's manifest: ``config`` as the stage runs with it; ``keyed``, where given, the config its key
+    hashes instead (a pipeline keys a path inside its output folder by the stage that made it, not where it lies)."""
     return Manifest(
         stage=stage,
         name=name,
-        config_hash=hash_config(config),
+        config_hash=hash_config(config if keyed is None else keyed),
         input_hashes=inputs,
         config=config,
         status="running",

@@ -36,6 +36,7 @@ from uncertsplat.stages.manifest import (
     MANIFEST,
     Manifest,
     fingerprints,
+    hash_config,
     missing_outputs,
     nested_stages,
     output_sizes,
@@ -427,11 +428,17 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                         up_path = (pipeline.resolve().parent / up_path)
                     # keyed as the file writes it (a project moved with its pipeline file keeps its key), where
                     # manifests before 2026-11-30 keyed the resolved path: that key is taken too (``renamed``)
-                    inputs[upstream], earlier[0][upstream], earlier[1][upstream] = fingerprints(up_path, skip=root)
+                    skip = [root]
+                    if stage.stage == "evaluate":  # its output goes into the run: not an input of its own
+                        from uncertsplat.stages.evaluate import eval_dir
+
+                        skip.append(eval_dir(up_path, stage_cfg))
+                    inputs[upstream], earlier[0][upstream], earlier[1][upstream] = fingerprints(up_path, skip=skip)
                     if str(up_path) != upstream:
                         renamed[upstream] = str(up_path)
 
             kwargs: dict = {}
+            keyed: dict = {}  # settings keyed otherwise than the stage runs with them (a path inside OUT)
             if stage.stage == "synth":
                 out_dir = root / name
             elif stage.stage == "reconstruct":
@@ -464,6 +471,9 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                     # (resolved: keyed as -o was typed, `-o /abs/out` after `-o out` ran the stage again)
                     stage_cfg = stage_cfg.model_copy(update={"depth_gt": outputs[synth[0]].resolve() / "depth"})
                     inputs[synth[0]] = manifests[synth[0]].key
+                    # keyed by the stage it comes from (whose key is an input), so that a project moved elsewhere,
+                    # or `-o` given another way, skips it as every other stage
+                    keyed["depth_gt"] = f"{synth[0]}/depth"
             elif stage.stage == "report":
                 runs = [p for n, p in outputs.items() if kinds[n] in ("train", "prune")]
                 if not runs:
@@ -478,19 +488,21 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 out_dir = root / name
 
             config_dict = stage_cfg.model_dump(mode="json")
-            new = start_manifest(stage.stage, name, config_dict, inputs)
+            new = start_manifest(stage.stage, name, config_dict, inputs,
+                                 keyed={**config_dict, **keyed} if keyed else None)
             old = read_manifest(out_dir)
+            # (a manifest from before such keys, by the settings as run, is taken too: the same project, not moved)
+            same_config = old is not None and old.config_hash in {new.config_hash, hash_config(config_dict)}
             unreadable = old is None and (out_dir / MANIFEST).is_file()  # (said below, once it is known what follows)
             taken = [new.input_hashes, *({**new.input_hashes, **e} for e in earlier)]
             taken += [{renamed.get(k, k): v for k, v in d.items()} for d in taken] if renamed else []
             same_inputs = old is not None and old.input_hashes in taken
             changed = None
-            if old is not None and old.status == "done" and not force and old.config_hash == new.config_hash \
-                    and same_inputs:
+            if old is not None and old.status == "done" and not force and same_config and same_inputs:
                 changed = _changed_output(name, stage.stage, out_dir, old)
                 if changed:
                     console.print(f"[yellow]note:[/] {changed}: it runs again")
-            if (not force and old is not None and old.status == "done" and old.config_hash == new.config_hash
+            if (not force and old is not None and old.status == "done" and same_config
                     and same_inputs and not changed):
                 console.print(f"[green]skip[/] {name}: unchanged since its last run ({out_dir})")
                 outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, old
@@ -512,7 +524,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             # (Ctrl-C), failed (a full disk), or killed before it could say so (kill -9, the OOM killer: its folder
             # has no manifest of this start, but the pipeline recorded the start's key)
             unfinished = (old is None or old.status != "done") and (
-                (old is not None and old.config_hash == new.config_hash and same_inputs)
+                (old is not None and same_config and same_inputs)
                 or _started_keys(root).get(name) == new.key)
             resume = not force and stage.stage == "train" and unfinished and _has_checkpoint(out_dir)
             again = (_made_again("train", out_dir, new) or _trained_elsewhere(out_dir, up_path)) if resume else None
