@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 import operator
 import threading
+import dataclasses
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -158,7 +159,8 @@ def _whole(value, name: str, minimum: int) -> int:
 def _contiguous(values):
     """``values`` as torch takes them: a tensor detached (a pose with ``requires_grad`` warned from deep inside) and on
     the CPU (the checks compare with CPU constants: a robot's poses on the GPU ended in torch's device error), a
-    numpy array with negative strides (``np.flip``, ``a[::-1]``) copied, which ``torch.as_tensor`` refuses."""
+    numpy array with negative strides (``np.flip``, ``a[::-1]``), of the other byte order (``astype(">f8")``) or
+    read-only (``np.broadcast_to``, ``np.frombuffer``) copied, which ``torch.as_tensor`` refuses (or warns of)."""
     if isinstance(values, torch.Tensor):
         return values.detach().cpu()
     if isinstance(values, (list, tuple)) and values and all(isinstance(v, torch.Tensor) for v in values):
@@ -174,11 +176,32 @@ def _contiguous(values):
             return np.stack(values)
         except ValueError:
             return values
-    if type(values).__module__ == "numpy" and hasattr(values, "strides") and any(st < 0 for st in values.strides):
+    if type(values).__module__ == "numpy" and hasattr(values, "strides") and (
+            any(st < 0 for st in values.strides) or not values.flags.writeable or not values.dtype.isnative):
         import numpy as np
 
-        return np.ascontiguousarray(values)
+        return np.array(values, dtype=values.dtype.newbyteorder("="))
     return values
+
+
+def _check_cameras(cameras: Cameras) -> Cameras:
+    """Refuse a ``Cameras`` (built by hand, not by ``cameras_from_source``) the renderer cannot take: an image size
+    that is not a positive whole number (torch failed deep inside on 0, -5 or 1.5), a pose or K that is not finite
+    (a NaN pose gave NaN maps without a word), a focal length that is not positive. Returns them with the size as
+    ints (320.0 is taken as 320)."""
+    width, height = _whole(cameras.width, "the cameras' width", 1), _whole(cameras.height, "the cameras' height", 1)
+    for i in range(len(cameras)):
+        what = ("its pose (cam_from_world) is not finite" if not bool(torch.isfinite(cameras.cam_from_world[i]).all())
+                else "its K is not finite" if not bool(torch.isfinite(cameras.K[i]).all())
+                else "its focal lengths are not positive" if bool(focal_unusable(cameras.K[i])) else None)
+        if what is not None:
+            name = f" ({cameras.image_names[i]})" if i < len(cameras.image_names) else ""
+            raise UserError(f"camera {i}{name}: {what}",
+                            hint="Build cameras from poses with cameras_from_source(cam_from_source, K, width, height), "
+                                 "which checks them.")
+    if type(cameras.width) is int and type(cameras.height) is int:
+        return cameras
+    return dataclasses.replace(cameras, width=width, height=height)
 
 
 def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
@@ -190,7 +213,7 @@ def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
     try:
         m = torch.as_tensor(_contiguous(poses), dtype=torch.float64)
     except (TypeError, ValueError, RuntimeError) as e:
-        raise TypeError(f"cam_from_source must be a tensor or array of poses ([N,4,4] or [N,3,4]), got "
+        raise UserError(f"cam_from_source must be a tensor or array of poses ([N,4,4] or [N,3,4]), got "
                         f"{type(poses).__name__}: {e}") from None
     m = m[None] if m.ndim == 2 else m
     if m.ndim != 3 or m.shape[-2:] not in ((4, 4), (3, 4)):
@@ -243,7 +266,7 @@ def _intrinsics(K, n: int, width: int, height: int, outside_ok: bool = False) ->
     try:
         Ks = torch.as_tensor(_contiguous(K), dtype=torch.float64)
     except (TypeError, ValueError, RuntimeError) as e:
-        raise TypeError(f"K must be a tensor or array ([3,3] or [N,3,3]), got {type(K).__name__}: {e}") from None
+        raise UserError(f"K must be a tensor or array ([3,3] or [N,3,3]), got {type(K).__name__}: {e}") from None
     Ks = Ks[None] if Ks.ndim == 2 else Ks
     if Ks.ndim != 3 or Ks.shape[-2:] != (3, 3) or len(Ks) not in (1, n):
         raise UserError(f"K must be [3,3] or [N,3,3] with N = {n} poses, got shape {tuple(Ks.shape)}")
@@ -360,6 +383,8 @@ class Predictor:
         else:
             if kept is not None and (kept.device != device.type or kept.versions != plain_versions()):
                 kept = None  # fitted on another device or by another version: fitted again, as evaluate would
+            if kept is None and (" cannot be read (" in problem or " is of another format" in problem):
+                console.print(f"[yellow]note:[/] {problem}: the predictive is fitted again on the training photos")
         new_sampler = partial(loaded.sampler, scene.scene_scale, device)
         if kept is not None:
             if scene is not kept.scene:
@@ -423,7 +448,7 @@ class Predictor:
                 is what the full-size photo's K given with a smaller image size looks like.
 
         Raises:
-            UserError: a pose or K of the wrong shape, not rigid or not finite, unusable intrinsics or a principal
+            UserError: a pose or K that is not a tensor or array, of the wrong shape, not rigid or not finite, unusable intrinsics or a principal
                 point outside the image or near its edge (the message names the pose's index), names that do not match the poses, an
                 image size that is not a positive whole number.
         """
@@ -515,13 +540,16 @@ class Predictor:
 
         Raises:
             TypeError: ``cameras`` is not a ``Cameras`` (poses as matrices go through ``cameras_from_source``).
-            UserError: ``num_samples`` or ``seed`` not a whole number in range.
+            UserError: ``num_samples`` or ``seed`` not a whole number in range; a ``Cameras`` built by hand whose image
+                size is not a positive whole number, or whose poses or intrinsics are not finite or have a focal
+                length that is not positive (``cameras_from_source`` refuses these and more).
         """
         from uncertsplat import native
 
         if not isinstance(cameras, Cameras):
             raise TypeError(f"predict takes a Cameras batch, got {type(cameras).__name__}: give poses as matrices to "
                             "cameras_from_source(cam_from_source, K, width, height) first, or pass scene.cameras[...]")
+        cameras = _check_cameras(cameras)
         k = _whole(num_samples if num_samples is not None else self._cfg.num_samples, "num_samples", 1)
         seed = _whole(seed if seed is not None else self._cfg.seed, "seed", 0)
         if seed > MAX_SEED:  # torch's CPU generator keeps a seed's low 32 bits (config.EVAL_SEED_MAX)

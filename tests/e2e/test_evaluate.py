@@ -1045,6 +1045,19 @@ class TestPredictor:
         (run / "eval" / "predictive.pt").unlink()
         Predictor.load(run, "cpu")
         assert cache.is_file() and (run / "eval" / "predictive.pt").is_file()
+        # a damaged file, with the scene there: fitted again and written again, and said (it was replaced silently)
+        path = run / "eval" / "predictive.pt"
+        good = path.read_bytes()
+        data = bytearray(good)
+        data[len(data) // 2] ^= 0x10
+        path.write_bytes(bytes(data))
+        capsys.readouterr()
+        Predictor.load(run, "cpu")
+        printed = " ".join("".join(capsys.readouterr()).split())
+        assert "predictive.pt cannot be read (" in printed and "the predictive is fitted again on the training" in printed
+        assert path.read_bytes() == good
+        Predictor.load(run, "cpu")  # a missing or kept file: nothing said of it
+        assert "fitted again" not in " ".join("".join(capsys.readouterr()).split())
 
     def test_a_run_without_its_scene_gives_the_maps_of_one_with_it(self, evaluated, tmp_path, monkeypatch, capsys):
         """A robot has the run folder, not the photos: evaluate keeps what the predictive fitted on them

@@ -309,3 +309,51 @@ def test_load_names_a_file_given_for_the_run_folder(tmp_path):
     with pytest.raises(UserError, match="takes a run folder, not a file in it") as err:
         Predictor.load(tmp_path / "config.json")
     assert str(tmp_path) in err.value.hint
+
+
+def test_cameras_built_by_hand_are_checked_before_the_renderer_sees_them(monkeypatch):
+    """A ``Cameras`` of width 0, -5 or 1.5 failed deep inside torch (or ctypes), a NaN pose gave NaN maps without a
+    word; a whole float size (320.0) is taken as an int."""
+    pred = bare_predictor()
+    seen = []
+    monkeypatch.setattr(Predictor, "_predict", lambda self, cams, k, seed: seen.append((cams.width, cams.height)))
+    pose, k = torch.eye(4)[None], K.float()[None]
+    for w, match in ((0, "width must be 1 or more, got 0"), (-5, "width must be 1 or more, got -5"),
+                     (1.5, "width must be a whole number, got 1.5")):
+        with pytest.raises(UserError, match=f"the cameras' {match}"):
+            pred.predict(Cameras(pose, k, w, 96))
+    nan = pose.clone()
+    nan[0, 0, 3] = float("nan")
+    with pytest.raises(UserError, match=r"camera 0 \(v\): its pose \(cam_from_world\) is not finite.*cameras_from_source"):
+        pred.predict(Cameras(nan, k, 128, 96, ("v",)))
+    bad = k.clone()
+    bad[0, 0, 0] = 0.0
+    with pytest.raises(UserError, match="camera 0: its focal lengths are not positive"):
+        pred.predict(Cameras(pose, bad, 128, 96))
+    bad[0, 0, 0] = float("inf")
+    with pytest.raises(UserError, match="camera 0: its K is not finite"):
+        pred.predict(Cameras(pose, bad, 128, 96))
+    assert seen == []
+    pred.predict(Cameras(pose, k, 128.0, np.float32(96)))
+    assert seen == [(128, 96)] and all(type(v) is int for v in seen[0])
+
+
+def test_arrays_of_the_other_byte_order_read_only_or_not_arrays():
+    """A big-endian array was refused as "not a tensor or array", a read-only one (np.broadcast_to) made torch warn,
+    and something that is no array raised a TypeError where the docstring (and seen_free) says UserError."""
+    import warnings
+
+    pred = bare_predictor()
+    M = a_pose().numpy()
+    expected = pred.cameras_from_source(M, K, 128, 96)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for poses, Ks in ((M.astype(">f8"), K.numpy().astype(">f4")),
+                          (np.broadcast_to(M, (1, 4, 4)), np.broadcast_to(K.numpy(), (1, 3, 3)))):
+            got = pred.cameras_from_source(poses, Ks, 128, 96)
+            torch.testing.assert_close(got.cam_from_world, expected.cam_from_world, atol=0, rtol=0)
+            torch.testing.assert_close(got.K, expected.K, atol=0, rtol=0)
+    with pytest.raises(UserError, match="cam_from_source must be a tensor or array of poses"):
+        pred.cameras_from_source("abc", K, 128, 96)
+    with pytest.raises(UserError, match="K must be a tensor or array"):
+        pred.cameras_from_source(M, {"fx": 1}, 128, 96)
