@@ -30,10 +30,10 @@ than one after another where the kernels already use every core: x0.75-1.32 with
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import operator
 import threading
-import dataclasses
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
