@@ -411,6 +411,8 @@ class ViewSet:
             the transient regions training found (``transients_out``) where the views have no masks of their own.
         transients_out: the masks leave out the transient regions training found in these (training) views
             (``LoadedRun.scored_views``).
+        own_masks_too: with ``transients_out``, the views' own masks are in the masks too (not the transient
+            regions alone).
     """
 
     indices: tuple[int, ...]
@@ -421,6 +423,7 @@ class ViewSet:
     depth_known_scale: bool = False
     masks_trained: bool = False
     transients_out: bool = False
+    own_masks_too: bool = False
 
     def __len__(self) -> int:
         return len(self.indices)

@@ -4,6 +4,8 @@ each view's regions through a checkpoint."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -332,6 +334,7 @@ def test_a_run_writes_its_transients_and_the_fits_on_its_training_views_leave_th
         evaluate.run(run, EvalConfig(split=split, num_samples=2, save_maps=False), torch.device("cpu"), quiet=True)
     (train_views, train_notes), (test_views, test_notes) = scored
     k = train_views.names.index(painted[0])
+    assert not train_views.own_masks_too  # (the transient regions alone: the scene has no masks of its own)
     assert train_views.masks is not None and not train_views.masks[k].all() and train_views.masks_trained
     assert any("and of these training views' scores" in n for n in train_notes) and train_views.transients_out
     from uncertsplat.eval.engine import TRANSIENT_MASKS_NOTE
@@ -358,6 +361,7 @@ def test_a_run_writes_its_transients_and_the_fits_on_its_training_views_leave_th
     masked_views, _ = scored[-1]
     k = masked_views.names.index(painted[0])
     assert not masked_views.masks_trained and not masked_views.masks[k, : h // 8, : w // 8].any()
+    assert masked_views.own_masks_too
     written = EvalReport.read(run / "eval-train" / "metrics.json").notes
     assert not any(TRANSIENT_MASKS_NOTE in n for n in written)
     assert any("the transient regions training found in these views are left out too" in n for n in written)
@@ -514,3 +518,22 @@ def test_the_test_switches_itself_off_when_nearly_every_photo_has_regions():
     one = _painted_trainer()  # (one photo of six painted: it goes on)
     one.fit()
     assert one.transients_stopped is None and 0 in one.transient_keep
+
+
+def test_the_masks_note_names_the_masks_the_metrics_are_taken_inside():
+    """Training views scored without the transient regions training found: the note said "(and the photos' own
+    masks, where it trained with them)" whichever the case; it names the photos' own masks only where they are in."""
+    from uncertsplat.eval.engine import MASKED_NOTE_BELOW, PHOTO_MASKS_NOTE, TRANSIENT_MASKS_NOTE, masks_note
+    from uncertsplat.types import Cameras, ViewSet
+
+    cams = Cameras(torch.eye(4)[None], torch.eye(3)[None], 4, 4)
+    views = ViewSet((0,), cams, torch.zeros(1, 4, 4, 3))
+    assert masks_note(views, MASKED_NOTE_BELOW) is None
+    alone = masks_note(dataclasses.replace(views, masks_trained=True, transients_out=True), 0.9)
+    assert f"{TRANSIENT_MASKS_NOTE}, which training left out too" in alone and "own masks" not in alone
+    both = masks_note(dataclasses.replace(views, masks_trained=True, transients_out=True, own_masks_too=True), 0.9)
+    assert f"{TRANSIENT_MASKS_NOTE} and the photos' own masks, which training left out too" in both
+    own = masks_note(dataclasses.replace(views, masks_trained=True), 0.9)
+    assert PHOTO_MASKS_NOTE in own and "90%" in own and TRANSIENT_MASKS_NOTE not in own
+    later = masks_note(dataclasses.replace(views, transients_out=True), 0.5)
+    assert "train's held-out PSNR over whole images" in later and "transient regions training found" in later

@@ -216,7 +216,8 @@ class LoadedRun:
         if split == "train":
             masks = without_transients(views.masks, scene, views.indices, self.transient_runs())
             transients = views.masks is None and masks is not None  # (a scene's or photos' masks: not training's)
-            views = dataclasses.replace(views, masks=masks, transients_out=masks is not views.masks)
+            views = dataclasses.replace(views, masks=masks, transients_out=masks is not views.masks,
+                                        own_masks_too=masks is not views.masks and views.masks is not None)
         return dataclasses.replace(views, masks_trained=(views.masks_trained and trained_with_masks(self.run_dir))
                                    or transients)
 

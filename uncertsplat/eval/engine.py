@@ -696,6 +696,28 @@ TRANSIENT_MASKS_NOTE = "the masks leave out the transient regions training found
 """What it says when they leave out the transient regions training found (``ViewSet.transients_out``)."""
 
 
+def masks_note(views: ViewSet, inside: float) -> str | None:
+    """``evaluate_views``' note on the masks its metrics are taken inside (``inside``: the share of the views' pixels
+    they keep), None where they keep at least ``MASKED_NOTE_BELOW``: which masks they are, and whether train's
+    held-out PSNR is taken inside them too."""
+    if inside >= MASKED_NOTE_BELOW:  # train's held-out PSNR is over whole images: the two differ on such scenes
+        return None
+    if views.masks_trained:
+        return (f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
+                f"({inside:.0%} of the pixels of these views; SSIM too, with both images black outside "
+                "them), as train's held-out PSNR and SSIM; "
+                + (f"{TRANSIENT_MASKS_NOTE}" + (" and the photos' own masks" if views.own_masks_too else "")
+                   + ", which training left out too" if views.transients_out else
+                   f"{PHOTO_MASKS_NOTE}, whose black pixels training left out too"))
+    return (f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
+            f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out "
+            "PSNR over whole images; the masks are a synthetic scene's, the objects of transparent "
+            "photos (alpha >= 0.5: the background they are composited over left out), or the photos' "
+            "own added after training"
+            + ("; the transient regions training found in these views are left out too"
+               if views.transients_out else ""))
+
+
 def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: torch.device, *,
                    on_view: Callable[[ViewMaps], None] | None = None, show_progress: bool = True,
                    std_scale: float | None = None, calibration_views: list[str] | None = None,
@@ -775,23 +797,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if K == 1:
         notes.append("K=1: the samples' spread and the resolution term are 0 everywhere (one sample has no spread); "
                      "the std holds the predictive's other terms")
-    inside = float(masks.float().mean()) if masks is not None else 1.0
-    if inside < MASKED_NOTE_BELOW:  # train's held-out PSNR is over whole images: the two differ on such scenes
-        if views.masks_trained:
-            notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
-                         f"({inside:.0%} of the pixels of these views; SSIM too, with both images black outside "
-                         "them), as train's held-out PSNR and SSIM; "
-                         + (f"{TRANSIENT_MASKS_NOTE} (and the photos' own masks, where it trained with them), which "
-                            "training left out too" if views.transients_out else
-                            f"{PHOTO_MASKS_NOTE}, whose black pixels training left out too"))
-        else:
-            notes.append(f"{MASKED_NOTE}: PSNR, AUSE, NLL, calibration and Spearman are taken inside them "
-                         f"({inside:.0%} of the pixels of these views; SSIM over whole images), train's held-out "
-                         "PSNR over whole images; the masks are a synthetic scene's, the objects of transparent "
-                         "photos (alpha >= 0.5: the background they are composited over left out), or the photos' "
-                         "own added after training"
-                         + ("; the transient regions training found in these views are left out too"
-                            if views.transients_out else ""))
+    masked = masks_note(views, float(masks.float().mean()) if masks is not None else 1.0)
+    notes += [masked] if masked else []
     # a model without a posterior: its spread term is 0 too
     terms = ["the variance of the K samples" + (" (0: K = 1)" if K == 1 else
                                               f" (0 for this model: {SAME_RENDER})" if same else "")]
