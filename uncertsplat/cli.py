@@ -205,6 +205,7 @@ def _config_file(path: Path) -> dict:
             raise UserError(f"not a valid JSON file ({err})", path=path) from None
         if not isinstance(data, dict):
             raise UserError("a --config file holds the command's keys as one object", path=path)
+        data = _settings_inside(data)
     else:
         data = load_toml(path)
     if len(data) == 1 and next(iter(data)) in _STAGE_TABLES and isinstance(next(iter(data.values())), dict):
@@ -224,6 +225,24 @@ def _config_file(path: Path) -> dict:
             # (candidates may be a word, unused or around[:N]: a file only where the file's folder holds one)
             if key != "candidates" or there.exists():
                 data[key] = str(there)
+    return data
+
+
+_RECORDS = (("config", "config_hash"), ("options", "images_registered"), ("settings", "chosen"))
+"""The records that hold a command's settings under a key of their own, by (that key, a key that tells the record):
+a pipeline stage's ``manifest.json``, ``reconstruct_report.json``, ``select-views``' ``selection.json``."""
+
+_SCORE_KEYS = ("width", "height", "noise_std", "params", "note")
+"""What ``selection.json``'s ``settings`` holds beside the command's config (what the score used)."""
+
+
+def _settings_inside(data: dict) -> dict:
+    """The settings of a record that holds them under a key (``_RECORDS``; README says `--config` takes them back,
+    and the whole record was read as settings: "mapping_attempts: Input should be a valid integer"), else ``data``."""
+    for key, tell in _RECORDS:
+        if isinstance(data.get(key), dict) and tell in data and "schema_version" in data:
+            inside = dict(data[key])
+            return {k: v for k, v in inside.items() if k not in _SCORE_KEYS} if key == "settings" else inside
     return data
 
 
@@ -447,7 +466,7 @@ def prune(
     auto: Annotated[bool | None, typer.Option(
         "--auto/--no-auto", help="Strongest pruning within --tolerance-db of the unpruned PSNR.")] = None,
     tolerance_db: Annotated[float | None, typer.Option(help="PSNR loss --auto may accept, in dB (default 0.1).")] = None,
-    score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (with --auto or --keep-ratio: free-space and gate both tried, the one that prunes more within the tolerance kept; else free-space), free-space, gate, position, scale, or predictive (for --dry-run and --sweep only: it ranks the Gaussians the image needs most first; see the README).")] = None,
+    score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (with --auto or --keep-ratio, on a scene with held-out views: free-space and gate both tried, the one that prunes more within the tolerance kept; free-space alone with --sweep, --threshold or no held-out views), free-space, gate, position, scale, or predictive (for --dry-run and --sweep only: it ranks the Gaussians the image needs most first; see the README).")] = None,
     dry_run: Annotated[bool | None, typer.Option("--dry-run/--no-dry-run", help="Report only; write no model.")] = None,
     sweep: Annotated[bool | None, typer.Option("--sweep/--no-sweep", help="Evaluate a range of keep ratios.")] = None,
     device: DeviceOpt = "auto",

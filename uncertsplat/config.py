@@ -550,6 +550,19 @@ class TrainConfig(_Base):
     densify: DensifyConfig = DensifyConfig()
     lr: LearningRates = LearningRates()
 
+    @field_validator("method", mode="before")
+    @classmethod
+    def _option_only(cls, value):
+        # `--method paper` and `--method vi-single` are the option's shorthands for keys, not values of this key (a
+        # `--set method=vi-single` or a pipeline's `method = "vi-single"` was refused naming the four values only)
+        keys = {"paper": "variant = \"paper\"",
+                "vi-single": "variational.num_entries = 1 and variational.posterior = \"sgd\""}
+        if isinstance(value, str) and value in keys:
+            raise ValueError(f"{value!r} is a shorthand of the --method option, not a value of this key: it sets "
+                             f"{keys[value]} (with method \"variational\"); give `--method {value}` to train, or set "
+                             "those keys (in a file, a pipeline's stage or with --set)")
+        return value
+
     @model_validator(mode="after")
     def _members_seeds(self):
         if self.method == "ensemble" and self.seed + self.ensemble_size - 1 > TRAIN_SEED_MAX:

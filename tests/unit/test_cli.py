@@ -1,5 +1,6 @@
 """CLI wiring through Typer's test runner."""
 
+import json
 from pathlib import Path
 
 import pytest
@@ -446,6 +447,42 @@ def test_a_config_json_an_output_folder_holds_is_taken_by_config(tmp_path):
         _config_file(tmp_path / "bad.json")
 
 
+def test_the_records_that_hold_settings_are_taken_by_config(tmp_path):
+    """README says `--config` takes back reconstruct_report.json's `options`, selection.json's `settings` and a
+    pipeline stage's manifest.json, but the whole record was read as settings ("mapping_attempts: Input should be a
+    valid integer"): their settings are taken, selection.json's without what its score used."""
+    from uncertsplat.cli import _config_file
+    from uncertsplat.config import (
+        ReconstructConfig,
+        SelectConfig,
+        TrainConfig,
+        build_config,
+        train_config_from,
+    )
+    from uncertsplat.schemas.select import Selection
+    from uncertsplat.stages.manifest import start_manifest
+
+    rec = ReconstructConfig(max_image_size=1600, mapping_attempts=3)
+    report = {"schema_version": 3, "images_registered": 12, "mapping_attempts": [{"seed": 0}],
+              "options": rec.model_dump(mode="json")}
+    (tmp_path / "reconstruct_report.json").write_text(json.dumps(report))
+    assert build_config(ReconstructConfig, _config_file(tmp_path / "reconstruct_report.json")) == rec
+    sel = SelectConfig(num_views=3, gaps=0.25)
+    record = Selection(run="r", score="fisher", candidates="unused", num_candidates=4, chosen=[], seconds=1.0,
+                       seconds_per_candidate=0.25, settings={**sel.model_dump(mode="json"), "width": 96, "height": 72,
+                                                             "noise_std": 0.04, "params": ["means"]})
+    (tmp_path / "selection.json").write_text(record.model_dump_json())
+    assert build_config(SelectConfig, _config_file(tmp_path / "selection.json")) == sel
+    cfg = train_config_from("tiny", None, ["iterations=123"])
+    manifest = start_manifest("train", "train", cfg.model_dump(mode="json"), {"synth": "abc"})
+    (tmp_path / "manifest.json").write_text(manifest.model_dump_json())
+    assert build_config(TrainConfig, _config_file(tmp_path / "manifest.json")) == cfg
+    # a config.json with a key of those names is a config as it is
+    plain = {"options": {"a": 1}, "x": 2}
+    (tmp_path / "config.json").write_text(json.dumps(plain))
+    assert _config_file(tmp_path / "config.json") == plain
+
+
 def test_a_text_setting_given_a_number_says_to_quote_it(tmp_path):
     """`--set title=2024` is read as a number and refused as "Input should be a valid string" with no word on how to
     give the text 2024."""
@@ -454,3 +491,19 @@ def test_a_text_setting_given_a_number_says_to_quote_it(tmp_path):
     with pytest.raises(UserError, match=r"""--set 'title="2024"', or title = "2024" in a file"""):
         build_config(ReportConfig, parse_override("title=2024"), source="command line")
     assert build_config(ReportConfig, parse_override('title="2024"')).title == "2024"
+
+
+@pytest.mark.parametrize("alias, keys", [("vi-single", "variational.num_entries = 1"), ("paper", 'variant = "paper"')])
+def test_a_method_shorthand_given_as_a_key_says_what_it_sets(tmp_path, alias, keys):
+    """`--set method=vi-single` (or a pipeline's `method = "vi-single"`) was refused naming the four values of the key
+    only; the option's shorthands are named with the keys they set. `--method` itself takes them."""
+    from uncertsplat.config import TrainConfig, build_config
+
+    with pytest.raises(UserError, match=f"'{alias}' is a shorthand of the --method option.*sets {keys}.*--method {alias}"):
+        build_config(TrainConfig, {"method": alias})
+    res = runner.invoke(app, ["train", str(tmp_path / "nowhere"), "-o", str(tmp_path / "r"), "--set", f"method={alias}"])
+    assert res.exit_code == 2 and "is a shorthand of the --method option" in " ".join(res.output.split())
+    from uncertsplat.stages.train import resolve_config
+
+    cfg = resolve_config(None, {}, alias, {}, None)
+    assert cfg.method == "variational" and (cfg.variant == "paper" or cfg.variational.num_entries == 1)
