@@ -558,9 +558,9 @@ class TrainConfig(_Base):
         keys = {"paper": "variant = \"paper\"",
                 "vi-single": "variational.num_entries = 1 and variational.posterior = \"sgd\""}
         if isinstance(value, str) and value in keys:
-            raise ValueError(f"{value!r} is a shorthand of the --method option, not a value of this key: it sets "
-                             f"{keys[value]} (with method \"variational\"); give `--method {value}` to train, or set "
-                             "those keys (in a file, a pipeline's stage or with --set)")
+            raise ValueError(f"{value!r} is a shorthand of `uncertsplat train --method`, not a value of this key: it "
+                             f"sets {keys[value]} (with method \"variational\"): set those keys instead (in a file, a "
+                             "pipeline stage's config or with --set)")
         return value
 
     @model_validator(mode="after")

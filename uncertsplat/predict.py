@@ -193,7 +193,8 @@ def _check_cameras(cameras: Cameras) -> Cameras:
     for i in range(len(cameras)):
         what = ("its pose (cam_from_world) is not finite" if not bool(torch.isfinite(cameras.cam_from_world[i]).all())
                 else "its K is not finite" if not bool(torch.isfinite(cameras.K[i]).all())
-                else "its focal lengths are not positive" if bool(focal_unusable(cameras.K[i])) else None)
+                else "its focal lengths are not positive, or too large for float32" if bool(focal_unusable(cameras.K[i]))
+                else None)
         if what is not None:
             name = f" ({cameras.image_names[i]})" if i < len(cameras.image_names) else ""
             raise UserError(f"camera {i}{name}: {what}",

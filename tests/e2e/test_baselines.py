@@ -315,9 +315,13 @@ def test_prune_refuses_a_baseline_naming_its_method(which, ensemble_run, fisher_
     from uncertsplat.stages import prune
 
     run = ensemble_run if which == "ensemble" else fisher_run
-    with pytest.raises(UserError, match=f"an? {which} run has no per-Gaussian posterior"):
+    with pytest.raises(UserError, match=f"an? {which} run has no per-Gaussian posterior") as info:
         prune.run(run, tmp_path / "out", PruneConfig(keep_ratio=0.5), device=CPU)
     assert not (tmp_path / "out").exists()
+    from uncertsplat.errors import NoPosterior
+
+    # a method without one is a mistake a pipeline stops at (it skips a prune of a run too short for one)
+    assert not isinstance(info.value, NoPosterior) and "variational method" in str(info.value)
 
 
 def test_unknown_method_is_a_user_error(scene_path, tmp_path):

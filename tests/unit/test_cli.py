@@ -499,10 +499,10 @@ def test_a_method_shorthand_given_as_a_key_says_what_it_sets(tmp_path, alias, ke
     only; the option's shorthands are named with the keys they set. `--method` itself takes them."""
     from uncertsplat.config import TrainConfig, build_config
 
-    with pytest.raises(UserError, match=f"'{alias}' is a shorthand of the --method option.*sets {keys}.*--method {alias}"):
+    with pytest.raises(UserError, match=f"'{alias}' is a shorthand of .uncertsplat train --method., not a value.*sets {keys}"):
         build_config(TrainConfig, {"method": alias})
     res = runner.invoke(app, ["train", str(tmp_path / "nowhere"), "-o", str(tmp_path / "r"), "--set", f"method={alias}"])
-    assert res.exit_code == 2 and "is a shorthand of the --method option" in " ".join(res.output.split())
+    assert res.exit_code == 2 and "is a shorthand of `uncertsplat train --method`" in " ".join(res.output.split())
     from uncertsplat.stages.train import resolve_config
 
     cfg = resolve_config(None, {}, alias, {}, None)

@@ -354,12 +354,23 @@ def test_a_prune_of_a_run_without_a_posterior_is_skipped_and_the_report_says_why
     assert where == tmp_path / "out" / "train" and note.startswith("the pipeline's stage 'prune' did not run: ")
     assert "--set train.iterations" in note and "Prune a run whose" not in note
     assert not (tmp_path / "out" / "prune").exists()
+    # the report says it, so it is made again when the prune stage comes or goes (it was "unchanged": a stale note)
+    seen.clear()
+    pl.run(p, tmp_path / "out")
+    assert seen["kinds"] == ["prune"]
+    p.write_text(PIPE)
+    pl.run(p, tmp_path / "out")
+    assert seen["kinds"] == ["prune", "report"] and seen["notes"] == {}
+    p.write_text(PRUNED)
+    pl.run(p, tmp_path / "out")
+    assert seen["kinds"] == ["prune", "report", "prune", "report"] and seen["notes"]
     # a stage that reads the skipped one's output cannot go on: the pipeline fails there, naming both
     p.write_text(PRUNED.replace('stage = "report"', 'stage = "evaluate"\nname = "again"\ninput = "prune"\n[[stages]]\nstage = "report"'))
     seen.clear()
-    with pytest.raises(StageError, match="stage 'prune' \\(prune\\) failed \\(stage 'again' needs its output\\)"):
+    with pytest.raises(StageError, match="stage 'prune' \\(prune\\) failed \\(stage 'again' needs its output\\)") as info:
         pl.run(p, tmp_path / "out")
     assert "report" not in seen["kinds"]
+    assert "(in this pipeline: --set train.iterations)" in str(info.value) and "Prune a run whose" not in str(info.value)
 
 
 def test_a_relative_photos_path_is_read_from_where_it_was_written(tmp_path, monkeypatch):
@@ -984,3 +995,11 @@ def test_an_evaluate_stage_of_a_run_outside_out_is_skipped_when_unchanged(tmp_pa
     (run / "variational.ply").write_text("trained on")
     pl.run(p, tmp_path / "out")
     assert len(calls) == 2
+    # a second stage of the training views' evaluation, or one made by hand: neither is an input of the other
+    p.write_text('[[stages]]\nstage = "evaluate"\ninput = "myrun"\n[[stages]]\nstage = "evaluate"\nname = "evtrain"\n'
+                 'input = "myrun"\nconfig = { split = "train" }\n')
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls[2:]] == ["evaluate"] and calls[-1][1] == run / "eval-train"
+    for _ in range(2):
+        pl.run(p, tmp_path / "out")
+    assert len(calls) == 3

@@ -429,10 +429,12 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                     # keyed as the file writes it (a project moved with its pipeline file keeps its key), where
                     # manifests before 2026-11-30 keyed the resolved path: that key is taken too (``renamed``)
                     skip = [root]
-                    if stage.stage == "evaluate":  # its output goes into the run: not an input of its own
+                    if stage.stage == "evaluate":  # evaluations go into the run: not an input of the stage
                         from uncertsplat.stages.evaluate import eval_dir
 
-                        skip.append(eval_dir(up_path, stage_cfg))
+                        # (this stage's and any other's, of the held-out or the training views: another stage, or
+                        # an `evaluate --split train` by hand, rewrote one with each call)
+                        skip += [eval_dir(up_path, stage_cfg.model_copy(update={"split": s})) for s in ("test", "train")]
                     inputs[upstream], earlier[0][upstream], earlier[1][upstream] = fingerprints(up_path, skip=skip)
                     if str(up_path) != upstream:
                         renamed[upstream] = str(up_path)
@@ -483,6 +485,8 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 for n, k in kinds.items():
                     if k in ("train", "prune", "evaluate"):
                         inputs[n] = manifests[n].key
+                for n, why in skipped.items():  # the report says it: a stage skipped, or no longer, makes it again
+                    inputs[n] = "skipped: " + hash_config({"why": why})
                 out_dir = root / name
             else:
                 out_dir = root / name
@@ -565,17 +569,17 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                                        f"{again}.") from None
             except NoPosterior as err:
                 readers = _readers(cfg, name)
-                text = pipeline_advice(name, type(stage_cfg).model_fields, err.render())
+                # what to change is the training's (its length): said in the words of the stage that trains it
+                text = (pipeline_advice(upstream, type(configs[upstream]).model_fields, f"{err.path}: {err.message}")
+                        if kinds.get(upstream) == "train" else
+                        pipeline_advice(name, type(stage_cfg).model_fields, err.render()))
                 if readers:
                     _finish(out_dir, new, "failed", t0, err.render())
                     raise StageError(f"stage '{name}' ({stage.stage}) failed (stage '{readers[0]}' needs its "
                                      f"output): {text}") from None
-                # a prune of a run without a posterior (a short test run of a photos pipeline): the stages after it
-                # go on, so the pipeline still ends with its report, which says why this stage did not run
+                # a prune of a run its settings left without a posterior (a short test run of a photos pipeline): the
+                # stages after it go on, so the pipeline still ends with its report, which says why this one did not run
                 _finish(out_dir, new, "skipped", t0, err.render())
-                # what to change is the training's (its length): said in the words of the stage that trains it
-                text = (pipeline_advice(upstream, type(configs[upstream]).model_fields, f"{err.path}: {err.message}")
-                        if kinds.get(upstream) == "train" else text)
                 skipped[name] = text
                 run_notes.setdefault(up_path, []).append(f"the pipeline's stage '{name}' did not run: {text}")
                 console.print(f"[yellow]warning:[/] stage '{name}' ({stage.stage}) skipped: {text}")

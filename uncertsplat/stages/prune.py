@@ -343,7 +343,10 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         from uncertsplat.train.trainer import no_carriers_reason
 
         reason = no_carriers_reason(loaded.config, loaded.step) if method == "variational" else None
-        raise NoPosterior(f"{why}, so there is no uncertainty to prune by" + (f": {reason}" if reason else ""),
+        # (NoPosterior: a run its settings left without one, a short test run, which a pipeline skips; a method
+        # without a posterior, or a scene whose Gaussians the spawn rule passed over, is an error there too)
+        error = NoPosterior if reason else UserError
+        raise error(f"{why}, so there is no uncertainty to prune by" + (f": {reason}" if reason else ""),
                         path=run_dir,
                         hint="Prune a run trained with the variational method (the default) past its first "
                              "densification step." if method != "variational" else
