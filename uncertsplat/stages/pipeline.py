@@ -412,6 +412,14 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 raise UserError(f"stage '{name}' has no input", path=pipeline,
                                 hint="Put a stage before it, set `input`, or set `photos` for reconstruct.")
             upstreams[name] = upstream
+            if upstream in skipped and stage.stage not in ("synth", "report"):  # (those two read no input stage)
+                # a stage that reads a skipped one's output (the demo's evaluation of the pruned model) is skipped
+                # too, for the same reason: a quick test still ends with its report
+                skipped[name] = skipped[upstream]
+                console.print(f"[yellow]warning:[/] stage '{name}' ({stage.stage}) skipped: it reads the output of "
+                              f"stage '{upstream}', which was skipped")
+                previous = name
+                continue
             inputs: dict[str, str] = {}
             # folder inputs by the manifests' earlier hashes: of every file (notes and backups too), and before that
             # of names, sizes and mtimes
@@ -568,21 +576,18 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                                   hint=f"Run the same pipeline command again: the stages that finished are skipped and "
                                        f"{again}.") from None
             except NoPosterior as err:
-                readers = _readers(cfg, name)
-                # what to change is the training's (its length): said in the words of the stage that trains it
+                # a prune of a run its settings left without a posterior (a short test run of a photos pipeline): the
+                # stages after it go on (those that read its output skipped too), so the pipeline still ends with its
+                # report, which says why this one did not run; what to change is the training's (its length), said in
+                # the words of the stage that trains it
                 text = (pipeline_advice(upstream, type(configs[upstream]).model_fields, f"{err.path}: {err.message}")
                         if kinds.get(upstream) == "train" else
                         pipeline_advice(name, type(stage_cfg).model_fields, err.render()))
-                if readers:
-                    _finish(out_dir, new, "failed", t0, err.render())
-                    raise StageError(f"stage '{name}' ({stage.stage}) failed (stage '{readers[0]}' needs its "
-                                     f"output): {text}") from None
-                # a prune of a run its settings left without a posterior (a short test run of a photos pipeline): the
-                # stages after it go on, so the pipeline still ends with its report, which says why this one did not run
                 _finish(out_dir, new, "skipped", t0, err.render())
                 skipped[name] = text
                 run_notes.setdefault(up_path, []).append(f"the pipeline's stage '{name}' did not run: {text}")
                 console.print(f"[yellow]warning:[/] stage '{name}' ({stage.stage}) skipped: {text}")
+                previous = name
                 continue
             except UserError as err:
                 _finish(out_dir, new, "failed", t0, err.render())
@@ -610,20 +615,6 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
         for r in reports:
             console.print(f"report: {r / 'index.html'}")
         return outputs
-
-
-def _readers(cfg: PipelineConfig, name: str) -> list[str]:
-    """The stages after stage ``name`` that read its output: those that name it as `input`, and the one right after
-    it that takes the stage before as its input (all but synth, report and a reconstruct of the pipeline's photos)."""
-    names = [s.name or s.stage for s in cfg.stages]
-    i = names.index(name)
-    out = []
-    for j, s in enumerate(cfg.stages[i + 1:], start=i + 1):
-        implicit = s.input is None and j == i + 1 and s.stage not in ("synth", "report") and not (
-            s.stage == "reconstruct" and cfg.photos is not None)
-        if s.input == name or implicit:
-            out.append(names[j])
-    return out
 
 
 def _changed_output(name: str, kind: str, out_dir: Path, manifest: Manifest) -> str | None:
