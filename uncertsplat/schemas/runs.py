@@ -292,7 +292,8 @@ class Manifest(SchemaFile):
     """Input name -> hash: an upstream stage's ``key`` (by its folder name) or a user folder's fingerprint."""
     config: dict[str, Any]
     status: str
-    """"running", "done" or "failed"."""
+    """"running", "done", "failed" or "skipped" (a prune of a run too short for a posterior: ``errors.NoPosterior``;
+    written only where the stage left its folder)."""
     started_at: float
     finished_at: float | None = None
     seconds: float | None = None
