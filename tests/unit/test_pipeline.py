@@ -543,9 +543,25 @@ def test_a_stage_whose_output_is_gone_runs_again(tmp_path, calls, capsys):
     pl.run(p, tmp_path / "out")
     said = " ".join(capsys.readouterr().err.split())
     assert "train's output out.txt is gone from" in said and "it runs again" in said, said
-    # the train folder, its evaluation inside, went to .previous: that evaluation runs again too; synth is kept
-    assert [k for k, _ in calls] == ["train", "evaluate"]
+    # the train folder, its evaluation inside, went to .previous: that evaluation runs again too, and so does the
+    # report of the two (a stage run again with the same key is another input: on CUDA another model, where the
+    # report was skipped); synth is kept
+    assert [k for k, _ in calls] == ["train", "evaluate", "report"]
     calls.clear()
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    # manifests from before the stages were keyed with when their inputs finished (each input stage by its key
+    # alone) are taken as they are
+    from uncertsplat.schemas.runs import Manifest
+
+    keys = {}
+    for name, folder in (("synth", "synth"), ("train", "train"), ("evaluate", "train/eval"), ("report", "report")):
+        m = tmp_path / "out" / folder / "manifest.json"
+        data = json.loads(m.read_text(encoding="utf-8"))
+        assert all("@" in v for v in data["input_hashes"].values())
+        data["input_hashes"] = {k: keys[k] for k in data["input_hashes"]}
+        keys[name] = Manifest.model_validate(data).key
+        m.write_text(json.dumps(data))
     pl.run(p, tmp_path / "out")
     assert calls == []
 
@@ -578,7 +594,7 @@ def test_a_stage_whose_data_file_changed_size_runs_again(tmp_path, monkeypatch, 
     pl.run(p, tmp_path / "out")
     said = " ".join(capsys.readouterr().err.split())
     assert "train's output model.ply in" in said and "is not the size the stage left" in said, said
-    assert ran == ["train", "evaluate"]  # (its evaluation inside went to .previous with it)
+    assert ran == ["train", "evaluate", "report"]  # (its evaluation inside went to .previous with it)
     assert (tmp_path / "out" / ".previous" / "train" / "model.ply").stat().st_size == 600  # kept, not deleted
     ran.clear()
     pl.run(p, tmp_path / "out")
@@ -612,7 +628,7 @@ def test_an_output_made_again_by_hand_with_other_settings_runs_again(tmp_path, c
     capsys.readouterr()
     pl.run(p, tmp_path / "out")
     said = " ".join(capsys.readouterr().err.split())
-    assert [k for k, _ in calls] == ["evaluate"] and "was made again since with other settings" in said, said
+    assert [k for k, _ in calls] == ["evaluate", "report"] and "was made again since with other settings" in said, said
     trained = json.loads((tmp_path / "out" / "train" / "manifest.json").read_text(encoding="utf-8"))
     (tmp_path / "out" / "train" / "config.json").write_text(json.dumps(trained["config"]))
     calls.clear()
@@ -620,7 +636,7 @@ def test_an_output_made_again_by_hand_with_other_settings_runs_again(tmp_path, c
     assert calls == []
     (tmp_path / "out" / "train" / "config.json").write_text(json.dumps({**trained["config"], "iterations": 99}))
     pl.run(p, tmp_path / "out")
-    assert [k for k, _ in calls] == ["train", "evaluate"]
+    assert [k for k, _ in calls] == ["train", "evaluate", "report"]
 
 
 def test_a_damaged_manifest_is_named_before_its_stage_runs_again(tmp_path, calls, capsys):

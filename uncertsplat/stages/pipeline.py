@@ -429,7 +429,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             if upstream is not None:
                 if upstream in outputs:
                     up_path = outputs[upstream]
-                    inputs[upstream] = manifests[upstream].key
+                    inputs[upstream] = _made(manifests[upstream])
                 else:
                     up_path = Path(upstream)
                     if not up_path.is_absolute():
@@ -480,7 +480,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                     # stage aligns the depth scale (the reconstruction's frame is not the generator's).
                     # (resolved: keyed as -o was typed, `-o /abs/out` after `-o out` ran the stage again)
                     stage_cfg = stage_cfg.model_copy(update={"depth_gt": outputs[synth[0]].resolve() / "depth"})
-                    inputs[synth[0]] = manifests[synth[0]].key
+                    inputs[synth[0]] = _made(manifests[synth[0]])
                     # keyed by the stage it comes from (whose key is an input), so that a project moved elsewhere,
                     # or `-o` given another way, skips it as every other stage
                     keyed["depth_gt"] = f"{synth[0]}/depth"
@@ -492,7 +492,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 kwargs["notes"] = run_notes
                 for n, k in kinds.items():
                     if k in ("train", "prune", "evaluate"):
-                        inputs[n] = manifests[n].key
+                        inputs[n] = _made(manifests[n])
                 for n, why in skipped.items():  # the report says it: a stage skipped, or no longer, makes it again
                     inputs[n] = "skipped: " + hash_config({"why": why})
                 out_dir = root / name
@@ -508,6 +508,9 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             unreadable = old is None and (out_dir / MANIFEST).is_file()  # (said below, once it is known what follows)
             taken = [new.input_hashes, *({**new.input_hashes, **e} for e in earlier)]
             taken += [{renamed.get(k, k): v for k, v in d.items()} for d in taken] if renamed else []
+            # (manifests from before a stage's input was keyed with when it finished: by its key alone)
+            legacy = [{k: v.split("@", 1)[0] for k, v in d.items()} for d in taken]
+            taken += [d for d in legacy if d not in taken]
             same_inputs = old is not None and old.input_hashes in taken
             changed = None
             if old is not None and old.status == "done" and not force and same_config and same_inputs:
@@ -537,7 +540,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             # has no manifest of this start, but the pipeline recorded the start's key)
             unfinished = (old is None or old.status != "done") and (
                 (old is not None and same_config and same_inputs)
-                or _started_keys(root).get(name) == new.key)
+                or _started_keys(root).get(name) in (new.key, new.model_copy(update={"input_hashes": legacy[0]}).key))
             resume = not force and stage.stage == "train" and unfinished and _has_checkpoint(out_dir)
             again = (_made_again("train", out_dir, new) or _trained_elsewhere(out_dir, up_path)) if resume else None
             if again:  # trained on by hand since (`train --resume --iterations`), or a copy's run: not this stage's
@@ -615,6 +618,13 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
         for r in reports:
             console.print(f"report: {r / 'index.html'}")
         return outputs
+
+
+def _made(manifest: Manifest) -> str:
+    """A stage as the input of a later one: its key and when it finished, so that a stage run again with the same key
+    (a file of its output deleted, ``--force``) makes the stages after it run again: on CUDA, where training is not
+    bitwise repeatable, its model is another, which they were skipped for (the same bits on the CPU)."""
+    return f"{manifest.key}@{manifest.finished_at!r}"
 
 
 def _changed_output(name: str, kind: str, out_dir: Path, manifest: Manifest) -> str | None:
