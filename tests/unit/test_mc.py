@@ -300,3 +300,37 @@ class TestDepthSpread:
                          extra_depth_var=extra)[0]
         torch.testing.assert_close(maps.rgb_std, plain.rgb_std)
         torch.testing.assert_close(maps.depth_std.square(), plain.depth_std.square() + 0.09, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("n", [2, 17, 1 << 24, 17_000_000, 22_118_400, 24_000_000, 96_000_000])
+def test_spread_indices_stay_inside_and_reach_both_ends(n):
+    """The coverage's subsample of more than 2^24 alphas indexed with a float32 linspace, whose last index rounded up
+    to the count itself past 2^24 values: 8 training views of 1920x1440 (22,118,400 pixels) raised an IndexError in
+    evaluate, prune, the viewer and select-views."""
+    from uncertsplat.uncertainty.mc import spread_indices
+
+    m = min(n, 1 << 24)
+    idx = spread_indices(n, m)
+    assert idx.dtype == torch.int64 and idx.shape == (m,)
+    assert int(idx[0]) == 0 and int(idx[-1]) == n - 1 and bool((idx[1:] > idx[:-1]).all())
+    assert torch.linspace(0, 24_000_000 - 1, 1 << 24).long()[-1] == 24_000_000  # (what it was: out of range)
+
+
+def test_training_coverage_takes_more_than_two_to_the_24_pixels(monkeypatch):
+    """Eight views whose alphas together exceed torch.quantile's 2^24 values: the coverage is their quantile."""
+    from types import SimpleNamespace
+
+    from uncertsplat.uncertainty import mc
+
+    h, w = 1500, 2000  # 8 x 3 Mpx = 24,000,000 alphas
+    gen = torch.Generator().manual_seed(0)
+    alphas = torch.rand(8, h, w, 1, generator=gen)
+
+    def render(sample, cams):
+        i = int(cams.image_names[0].split("_")[1])
+        return SimpleNamespace(alpha=alphas[i:i + 1])  # (all the coverage reads)
+
+    cams = Cameras(torch.eye(4).repeat(8, 1, 1), torch.eye(3).repeat(8, 1, 1), w, h,
+                   tuple(f"v_{i}" for i in range(8)))
+    got = mc.training_coverage(None, cams, render, quantile=0.05)
+    assert abs(got - 0.05) < 1e-3

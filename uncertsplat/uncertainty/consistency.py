@@ -582,7 +582,9 @@ class ViewConsistency:
         photos see, a scale of the capture. Computed once (a median of every rendered pixel)."""
         depth = self._cache.get("median_depth")
         if depth is None:
-            surface = self.depth[self.depth > 0]
+            # (masked_select: indexing by a mask of the [C,H,W,1] stack built an index of 32 bytes a pixel first,
+            # 3 GB for 64 views of 1600x1200)
+            surface = torch.masked_select(self.depth, self.depth > 0)
             depth = self._cache["median_depth"] = float(surface.float().median()) if surface.numel() else 0.0
         return depth
 
