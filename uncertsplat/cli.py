@@ -23,7 +23,7 @@ from rich.text import Text
 from uncertsplat import __version__
 from uncertsplat.config import STAGE_PATH_KEYS as _PATH_KEYS
 from uncertsplat.console import console, q, qm
-from uncertsplat.errors import Interrupted, UserError
+from uncertsplat.errors import Interrupted, UserError, out_of_memory
 
 app = typer.Typer(
     name="uncertsplat",
@@ -134,6 +134,13 @@ def _handle_errors(fn):
             said = _INTERRUPTED.get(fn.__name__)
             console.print(Text.assemble(("interrupted", "yellow"), f": {said}" if said else ""), soft_wrap=True)
             raise typer.Exit(130) from None
+        except (MemoryError, RuntimeError) as err:
+            # memory that ran out: what lowers this command's use, not the allocator's traceback
+            memory = out_of_memory(err, fn.__name__.rstrip("_").replace("_", "-"))
+            if _STATE["debug"] or memory is None:
+                raise
+            console.print(Text.assemble(("error:", "bold red"), " ", memory.render()), soft_wrap=True)
+            raise typer.Exit(2) from None
         except OSError as err:
             # the environment, not a bug: disk full, quota, file too large, read-only or forbidden folder
             if _STATE["debug"] or err.errno not in _ENVIRONMENT_ERRNOS:

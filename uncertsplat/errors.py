@@ -81,6 +81,42 @@ class Interrupted(UserError):
     where and the hint how to continue. The CLI exits with 130, as for Ctrl-C; a sweep stops instead of retrying."""
 
 
+_MEMORY_ADVICE = {
+    "train": "--set scene.downscale=2 (each halving of the photos' side quarters their memory; or a larger factor), "
+             "or train on fewer photos",
+    "evaluate": "--set residual_views=16 and --set consistency_views=16 (the training views the pixel noise and the "
+                "view-consistency term render: 64 each by default), fewer --num-samples, or --set max_views=N",
+    "prune": "--set free_space_views=16 (the training views its free-space score renders: 64 by default), fewer "
+             "--num-samples, or a run trained at a larger scene.downscale",
+    "reconstruct": "--max-image-size 1600 (or less) and --set num_threads=1 (feature extraction holds a copy of the "
+                   "image per thread)",
+}
+"""What lowers each command's memory, named when it ran out (``out_of_memory``)."""
+
+
+def out_of_memory(err: BaseException, command: str) -> UserError | None:
+    """A ``UserError`` that says ``command`` ran out of memory and what lowers its use, for an allocation that failed
+    (``MemoryError``, torch's "can't allocate memory" on the CPU, a CUDA out-of-memory error); None for any other
+    error. It was a traceback of the allocator."""
+    text = str(err)
+    cuda = type(err).__name__ == "OutOfMemoryError" or "CUDA out of memory" in text
+    if not (isinstance(err, MemoryError) or cuda or (isinstance(err, RuntimeError) and (
+            "can't allocate memory" in text or "DefaultCPUAllocator" in text))):
+        return None
+    import re
+
+    size = re.search(r"allocate (\d+) bytes", text) or re.search(r"allocate ([\d.]+ [KMGT]iB)", text)
+    asked = (f"{int(size.group(1)) / 2**30:.2f} GiB" if size.group(1).isdigit() else size.group(1)) if size else None
+    where = "the GPU's" if cuda else "the machine's"
+    advice = _MEMORY_ADVICE.get(command)
+    return UserError(f"{command} ran out of {where} memory" + (f" (an allocation of {asked} failed)" if asked else ""),
+                     hint=(f"Lower its use with {advice}; " if advice else "") + "close other programs"
+                          + (" or use --device cpu" if cuda else "") + (
+                              ". A training stopped after a checkpoint goes on with --resume (which keeps its stored "
+                              "settings); one stopped before its first starts again with the same command and new "
+                              "settings" if command == "train" else "") + ".")
+
+
 def run_folder_missing(path: str | Path) -> UserError:
     """The error for a run folder that is not there: a file of that name is named as one."""
     path = Path(path)

@@ -412,6 +412,31 @@ def test_a_start_that_failed_before_training_can_be_run_again(tiny_scene_path, t
         stage.run(scene, run, cfg, torch.device("cpu"))
 
 
+def test_a_run_that_failed_before_its_first_checkpoint_starts_again_with_new_settings(tiny_scene_path, tmp_path,
+                                                                                      capsys):  # noqa: F811
+    """Memory that ran out at step 5 left config.json, scene.json and a stats.jsonl with logged steps: the same
+    command with a larger downscale was refused ("Add --resume"), and --resume ignored the new downscale and ran out
+    again. With no checkpoint there is nothing to resume from: the command starts the run with its new settings."""
+    done = tmp_path / "done"
+    cfg = train_config_from("tiny", None, ["iterations=3", "scene.downscale=4.0", "checkpoint_every=1000",
+                                           "log_every=1", "eval_every=1000"])
+    stage.run(tiny_scene_path, done, cfg, torch.device("cpu"))
+    run = tmp_path / "run"
+    (run / "ckpts").mkdir(parents=True)
+    for name in ("config.json", "scene.json", "stats.jsonl"):
+        shutil.copy(done / name, run / name)
+    capsys.readouterr()
+    smaller = cfg.model_copy(update={"scene": cfg.scene.model_copy(update={"downscale": 8.0})})
+    stage.run(tiny_scene_path, run, smaller, torch.device("cpu"))
+    said = " ".join(capsys.readouterr().err.split())
+    assert "holds a run that failed before its first checkpoint (step 3 logged), so there is nothing to resume from; " \
+           "starting it again" in said
+    assert json.loads((run / "config.json").read_text(encoding="utf-8"))["scene"]["downscale"] == 8.0
+    # a finished run is still refused
+    with pytest.raises(UserError, match="already exists"):
+        stage.run(tiny_scene_path, done, cfg, torch.device("cpu"))
+
+
 def test_a_finished_run_without_its_checkpoints_is_not_trained_again(tiny_scene_path, tmp_path):  # noqa: F811
     """ckpts/ deleted to save disk: --resume says there is nothing to do, --resume --iterations N (more steps) is
     refused, and the finished model is kept (it trained from step 0 over it)."""

@@ -70,8 +70,10 @@ def test_sigint_then_resume_then_sigterm_and_second_writer_refused(tiny_scene_pa
     second = run_cli(*args, "--resume")
     assert_clean_error(second.returncode, second.stderr + second.stdout, "another uncertsplat process",
                        f"PID {proc.pid}")
+    # the same command without --resume: a run with no checkpoint yet would be started again, but this one is
+    # training: refused by its lock, naming the process (it said "already exists ... --resume", which the lock refuses)
     plain = run_cli(*args)
-    assert_clean_error(plain.returncode, plain.stderr + plain.stdout, "already exists", "--resume")
+    assert_clean_error(plain.returncode, plain.stderr + plain.stdout, "another uncertsplat process", f"PID {proc.pid}")
     assert proc.poll() is None, proc.stdout.read()
     assert {p: p.stat().st_mtime_ns for p in before} == before
 

@@ -507,3 +507,39 @@ def test_a_method_shorthand_given_as_a_key_says_what_it_sets(tmp_path, alias, ke
 
     cfg = resolve_config(None, {}, alias, {}, None)
     assert cfg.method == "variational" and (cfg.variant == "paper" or cfg.variational.num_entries == 1)
+
+
+CPU_OOM = ("[enforce fail at alloc_cpu.cpp:127] data. DefaultCPUAllocator: can't allocate memory: you tried to "
+           "allocate 108000000 bytes. Error code 12 (Cannot allocate memory)")
+
+
+def test_memory_that_ran_out_is_said_with_what_lowers_the_commands_use(tmp_path, monkeypatch):
+    """train, evaluate and prune ended with the allocator's traceback and exit code 1 when memory ran out: one
+    paragraph now, naming the command's knobs, exit code 2; other runtime errors are still raised (bugs)."""
+    from uncertsplat.errors import out_of_memory
+    from uncertsplat.stages import evaluate
+
+    told = out_of_memory(RuntimeError(CPU_OOM), "train")
+    assert "train ran out of the machine's memory (an allocation of 0.10 GiB failed)" in told.render()
+    assert "--set scene.downscale=2" in told.render() and "--resume" in told.render()
+    assert "GPU" in out_of_memory(RuntimeError("CUDA out of memory. Tried to allocate 2.00 GiB"), "evaluate").render()
+    assert "residual_views" in out_of_memory(MemoryError(), "evaluate").render()
+    assert out_of_memory(RuntimeError("shape mismatch"), "train") is None
+    assert out_of_memory(ValueError("can't allocate memory"), "train") is None
+
+    def boom(*a, **k):
+        raise RuntimeError(CPU_OOM)
+
+    monkeypatch.setattr(evaluate, "run", boom)
+    (tmp_path / "r").mkdir()
+    res = runner.invoke(app, ["evaluate", str(tmp_path / "r")])
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and "error: evaluate ran out of the machine's memory" in said and "Traceback" not in said
+    assert "--set consistency_views=16" in said
+
+    def bug(*a, **k):
+        raise RuntimeError("shape mismatch")
+
+    monkeypatch.setattr(evaluate, "run", bug)
+    res = runner.invoke(app, ["evaluate", str(tmp_path / "r")])
+    assert res.exit_code == 1 and isinstance(res.exception, RuntimeError)

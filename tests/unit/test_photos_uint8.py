@@ -71,11 +71,21 @@ def test_load_photos_keeps_8bit_photos_as_uint8_equal_to_load_images(tiny_scene_
     assert torch.equal(photos[[0, 4]], images[[0, 4]])
 
 
-def test_load_photos_keeps_resized_photos_float(tiny_scene_path):  # noqa: F811
-    # downscale 2 averages 4 pixels each: no longer 8-bit values, so float32 as load_images gives them
-    scene = load_scene(tiny_scene_path, SceneConfig(downscale=2.0))
+@pytest.mark.parametrize("downscale", [2.0, 1.25])
+def test_resized_8bit_photos_are_rounded_back_and_kept_as_uint8(tiny_scene_path, downscale):  # noqa: F811
+    """Resized photos were kept as float32: four times the memory, so `scene.downscale = 1.25` (a user told to
+    downscale a bit) needed more than no downscale. They are the area average rounded back to 8 bits, in both
+    loaders, at most half a level from it."""
+    from uncertsplat.io.images import resize_image
+
+    scene = load_scene(tiny_scene_path, SceneConfig(downscale=downscale))
     photos = load_photos(scene, [0, 1])
-    assert photos.data.dtype == torch.float32 and torch.equal(photos.float(), load_images(scene, [0, 1]))
+    images = load_images(scene, [0, 1])
+    assert photos.data.dtype == torch.uint8 and torch.equal(photos.float(), images)
+    W, H = scene.cameras.width, scene.cameras.height
+    average = torch.from_numpy(resize_image(read_image(scene.image_paths[1]), W, H))
+    assert float((images[1] - average).abs().max()) <= 0.5 / 255 + 1e-6
+    assert not torch.equal(images[1], average)  # (rounded, not as averaged)
 
 
 def test_load_photos_keeps_16bit_photos_float(tiny_scene_path, tmp_path):  # noqa: F811

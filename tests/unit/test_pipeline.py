@@ -1022,3 +1022,18 @@ def test_an_evaluate_stage_of_a_run_outside_out_is_skipped_when_unchanged(tmp_pa
     for _ in range(2):
         pl.run(p, tmp_path / "out")
     assert len(calls) == 3
+
+
+def test_a_stage_out_of_memory_is_told_the_keys_that_lower_its_use(tmp_path, monkeypatch):
+    """A stage whose memory ran out failed "with an internal error" and its allocator's message."""
+    def fake(kind, cfg, up_path, out_dir, device, kwargs):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if kind == "train":
+            raise RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate 108000000 bytes")
+
+    monkeypatch.setattr(pl, "_run_stage", fake)
+    with pytest.raises(StageError) as info:
+        pl.run(_write(tmp_path), tmp_path / "out")
+    text = " ".join(str(info.value).split())
+    assert text.startswith("stage 'train' (train) failed: train ran out of the machine's memory")
+    assert "--set train.scene.downscale=2" in text and "internal error" not in text

@@ -30,7 +30,14 @@ from uncertsplat.config import (
     train_config_from,
 )
 from uncertsplat.console import advice_within, console, q
-from uncertsplat.errors import Interrupted, NoPosterior, StageError, UserError, naming_overrides
+from uncertsplat.errors import (
+    Interrupted,
+    NoPosterior,
+    StageError,
+    UserError,
+    naming_overrides,
+    out_of_memory,
+)
 from uncertsplat.io.atomic import lock_holder, run_lock
 from uncertsplat.stages.manifest import (
     MANIFEST,
@@ -598,6 +605,10 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 raise StageError(f"stage '{name}' ({stage.stage}) failed: {text}") from None
             except Exception as err:  # an unexpected fault: still say which stage, keep earlier outputs
                 _finish(out_dir, new, "failed", t0, f"{type(err).__name__}: {err}")
+                memory = out_of_memory(err, stage.stage)
+                if memory is not None:  # the machine's limit, not a fault: what lowers the stage's use, in its keys
+                    text = pipeline_advice(name, type(stage_cfg).model_fields, memory.render())
+                    raise StageError(f"stage '{name}' ({stage.stage}) failed: {text}") from None
                 raise StageError(
                     f"stage '{name}' ({stage.stage}) failed with an internal error: {type(err).__name__}: {err}",
                     hint="Earlier stages' outputs are intact; re-run with --debug for the traceback and report it.",

@@ -173,6 +173,24 @@ def _summary_steps(run_dir: Path) -> int | None:
     return summary.steps if summary is not None else None
 
 
+def _last_logged_step(run_dir: Path) -> int:
+    """The last step ``stats.jsonl`` logged (0: none, or no readable line)."""
+    import json
+
+    last = 0
+    try:
+        lines = (run_dir / "stats.jsonl").read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return 0
+    for line in lines:
+        try:
+            step = json.loads(line).get("step")
+        except (ValueError, AttributeError):
+            continue
+        last = max(last, step) if isinstance(step, int) else last
+    return last
+
+
 def _close_names(unknown: list[str], scene: Path, cfg: TrainConfig) -> str:
     """" (did you mean X?)" for names given to --add-views that are near a photo of the scene (another case, a path
     before it, a letter or digit off: view_15.png for view_015.png), "" when none is."""
@@ -212,19 +230,21 @@ def _record_moved_scene(run_dir: Path, scene: Path, cfg: TrainConfig) -> None:
 
 _STARTED_FILES = ("config.json", "scene.json", "stats.jsonl", ".lock")
 """What a run folder holds when ``train`` failed before its first checkpoint (a photo it could not read, a bad
-setting found while loading): nothing trained, so the same command may start it again (``_never_trained``)."""
+setting found while loading, memory that ran out at step 5): nothing to resume from, so the same command (with
+other settings, e.g. a larger ``scene.downscale``) may start it again (``_never_trained``)."""
 
 
 def _never_trained(run_dir: Path) -> bool:
-    """Whether ``run_dir`` is a run that failed before training anything: only ``_STARTED_FILES`` and an empty
-    ``ckpts/``, with no step in its ``stats.jsonl``."""
+    """Whether ``run_dir`` is a run that failed before its first checkpoint: only ``_STARTED_FILES`` and an empty
+    ``ckpts/`` (its ``stats.jsonl`` may have logged steps: ``--resume`` would start from step 0 all the same, with
+    the stored settings the user had to change; the folder was refused and a run out of memory could not be started
+    again with a larger downscale)."""
     for p in run_dir.iterdir():
         if p.name == "ckpts" and p.is_dir() and not any(p.iterdir()):
             continue
         if p.name not in _STARTED_FILES or not p.is_file():
             return False
-    stats = run_dir / "stats.jsonl"
-    return not stats.is_file() or not stats.read_text(encoding="utf-8", errors="replace").strip()
+    return True
 
 
 def _check_same_scene(before: RunScene, scene: Path, names: tuple[str, ...], run_dir: Path) -> None:
@@ -373,8 +393,10 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         # a start that failed before its first step (e.g. a photo it could not read): nothing to keep. Under the
         # folder's lock: a training that is starting there looks the same until its first step, and is refused
         with run_lock(run_dir, "train"):
-            console.print(f"[yellow]note:[/] {run_dir} holds a run that failed before training anything; starting "
-                          "it again")
+            logged = _last_logged_step(run_dir)
+            console.print(f"[yellow]note:[/] {run_dir} holds a run that failed before "
+                          + (f"its first checkpoint (step {logged} logged), so there is nothing to resume from"
+                             if logged else "training anything") + "; starting it again")
             for name in _STARTED_FILES[:3]:
                 (run_dir / name).unlink(missing_ok=True)
         exists = False
