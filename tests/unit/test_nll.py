@@ -117,3 +117,23 @@ def test_paper_nll_depends_on_resolution_ours_does_not():
     paper, paper_up = paper_nll(samples, y).item(), paper_nll(up_s, up_y).item()
     # bandwidth x 16^(1/5) = 1.74 -> NLL grows by about log(1.74) = 0.55
     assert paper_up > paper + 0.3
+
+
+def test_kde_in_chunks_is_the_whole_stacks_to_the_bit(monkeypatch):
+    """The KDE's temporaries over the whole [K,...] stack took three times the samples' memory (K = 64 at 1600x1200
+    ran out of memory); it works over chunks of the elements: the same values (to the bit in one chunk, as every
+    image under 4M / K values is; a chunk's tail may take torch's scalar exp: an ulp)."""
+    import math
+
+    from uncertsplat.eval import nll
+
+    gen = torch.Generator().manual_seed(0)
+    samples, target = torch.rand(7, 5, 9, 3, generator=gen), torch.rand(5, 9, 3, generator=gen)
+    h = nll.kde_bandwidth(samples.std(dim=0, unbiased=True), 7)
+    z = (target.unsqueeze(0) - samples) / h.unsqueeze(0)
+    whole = torch.logsumexp(-0.5 * z.square(), dim=0) - math.log(7) - torch.log(h) - nll._LOG_SQRT_2PI
+    assert torch.equal(nll._kde_log_density(samples, target, h), whole)
+    monkeypatch.setattr(nll, "KDE_CHUNK", 7 * 4)  # chunks of 4 elements, the last one shorter (135 = 33 x 4 + 3)
+    torch.testing.assert_close(nll._kde_log_density(samples, target, h), whole, rtol=1e-6, atol=1e-6)
+    assert torch.equal(nll.kde_nll(samples, target, bandwidth=0.05, reduction="none"),
+                       -nll._kde_log_density(samples, target, torch.full_like(target, 0.05)))

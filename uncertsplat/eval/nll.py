@@ -108,11 +108,23 @@ def kde_bandwidth(sample_std: Tensor, num_samples: int, *, floor: float = 1e-3) 
     return (SILVERMAN_FACTOR * sample_std * num_samples ** (-0.2)).clamp_min(floor)
 
 
+KDE_CHUNK = 1 << 22
+"""``_kde_log_density`` works on at most this many sample values at a time (16 MB of float32 a temporary): over the
+whole [K,...] stack its temporaries took three times the samples' memory (K = 64 at 1600x1200 ran out of memory)."""
+
+
 def _kde_log_density(samples: Tensor, target: Tensor, h: Tensor) -> Tensor:
-    """log (1/K sum_k N(target; samples_k, h^2)) per element; samples [K,...], target/h [...]."""
+    """log (1/K sum_k N(target; samples_k, h^2)) per element; samples [K,...], target/h [...]. Computed over chunks
+    of the elements (``KDE_CHUNK``): each element's value is the same to the bit."""
     k = samples.shape[0]
-    z = (target.unsqueeze(0) - samples) / h.unsqueeze(0)  # [K,...]
-    return torch.logsumexp(-0.5 * z.square(), dim=0) - math.log(k) - torch.log(h) - _LOG_SQRT_2PI
+    flat_s, flat_t, flat_h = samples.reshape(k, -1), target.reshape(-1), h.expand_as(target).reshape(-1)
+    out = torch.empty_like(flat_t)
+    step = max(1, KDE_CHUNK // max(k, 1))
+    for a in range(0, flat_t.numel(), step):
+        t, hh = flat_t[a:a + step], flat_h[a:a + step]
+        z = (t.unsqueeze(0) - flat_s[:, a:a + step].contiguous()) / hh.unsqueeze(0)  # [K,chunk]
+        out[a:a + step] = torch.logsumexp(-0.5 * z.square(), dim=0) - math.log(k) - torch.log(hh) - _LOG_SQRT_2PI
+    return out.reshape(target.shape)
 
 
 def kde_nll(
@@ -127,7 +139,7 @@ def kde_nll(
     """KDE NLL of ``target`` [...] under the K samples [K,...] of each element.
 
     ``bandwidth``: None for Silverman's rule from K (see :func:`kde_bandwidth`), or a fixed value /
-    per-element tensor (still floored). Memory is O(K x elements); K is small (10-20).
+    per-element tensor (still floored). Memory: the samples, and temporaries of at most ``KDE_CHUNK`` values.
     """
     if samples.ndim < 1 or samples.shape[1:] != target.shape:
         raise ValueError(f"samples must be [K,*target.shape], got {tuple(samples.shape)} vs {tuple(target.shape)}")
