@@ -831,3 +831,18 @@ def test_a_weak_registration_far_outside_the_capture_is_left_out():
     assert sorted(rec.image(i).name for i in rec.reg_image_ids()) == sorted([*ring, "drone.jpg"])
     assert sfm.far_weak_registrations(Rec(dict(list(ring.items())[:4])), {"p0.jpg": 1}) == {}  # too few to judge
     assert sfm.far_weak_registrations(rec, {}) == {}
+
+
+def test_feature_extraction_runs_on_as_many_threads_as_memory_holds():
+    """20 photos of 4000x3000 with --max-image-size 4000 ended in a segmentation fault in SIFT (2.4 GB a thread,
+    every core asked for): the threads are as many as half the free memory holds, said in a note."""
+    big = ReconstructConfig(max_image_size=4000, num_threads=16)
+    gb = 2**30
+    threads, note = sfm.extraction_threads(big, [(4000, 3000), (3000, 4000)], available=8 * gb)
+    per = sfm.SIFT_BYTES_PER_PIXEL * 12e6
+    assert threads == int(4 * gb // per) == 1 and "instead of 16" in note and "12.0 Mpx" in note
+    assert sfm.extraction_threads(big, [(4000, 3000)], available=64 * gb)[0] == int(32 * gb // per) < 16
+    # at the default 1600 px the photos are 1.92 Mpx: 16 threads fit in 16 GB, nothing said
+    assert sfm.extraction_threads(ReconstructConfig(num_threads=16), [(4000, 3000)], available=16 * gb) == (16, None)
+    assert sfm.extraction_threads(big, [(4000, 3000)], available=gb // 100)[0] == 1  # never none
+    assert sfm.extraction_threads(big, [], available=gb) == (16, None)

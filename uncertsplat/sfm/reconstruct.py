@@ -31,7 +31,7 @@ import numpy as np
 import pycolmap
 
 from uncertsplat.config import ReconstructConfig
-from uncertsplat.console import list_names
+from uncertsplat.console import console, list_names
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import decode_error
 from uncertsplat.provenance import file_sha256
@@ -547,6 +547,38 @@ def _chunks(items: Sequence, size: int) -> Iterator[Sequence]:
         yield items[i:i + size]
 
 
+SIFT_BYTES_PER_PIXEL = 200
+"""Feature extraction's memory per thread and pixel of the image it works on (``max_image_size``): 2.4 GB a thread
+for photos of 4000x3000 (pycolmap 4, a helper's measurement, 2026-12-01); threads that together asked for more than
+the machine had ended the process with a segmentation fault in SIFT, no message."""
+
+
+def extraction_threads(cfg: ReconstructConfig, sizes: Sequence[tuple[int, int]],
+                       available: int | None = None) -> tuple[int, str | None]:
+    """The threads feature extraction may run on (``cfg.num_threads``, -1: every core), as many as half the memory
+    ``available`` (``io.memory.available_memory`` when None) holds at ``SIFT_BYTES_PER_PIXEL`` for the largest of
+    the photos' ``sizes`` (width, height) brought down to ``cfg.max_image_size``; and the note that says so where
+    that is fewer (None otherwise)."""
+    import os
+
+    from uncertsplat.io.memory import available_memory
+
+    asked = cfg.num_threads if cfg.num_threads > 0 else (os.cpu_count() or 1)
+    if not sizes:
+        return asked, None
+    largest = max(w * h * min(1.0, cfg.max_image_size / max(w, h)) ** 2 for w, h in sizes)
+    per_thread = SIFT_BYTES_PER_PIXEL * largest
+    available = available_memory() if available is None else available
+    if available is None:
+        return asked, None
+    fit = max(1, int(0.5 * available // per_thread))
+    if fit >= asked:
+        return asked, None
+    return fit, (f"feature extraction on {fit} thread{'s' if fit > 1 else ''} instead of {asked}: each takes about "
+                 f"{per_thread / 2**30:.1f} GB at {largest / 1e6:.1f} Mpx (--max-image-size {cfg.max_image_size}) and "
+                 f"{available / 2**30:.1f} GB are free (more threads ran out of memory in SIFT)")
+
+
 def extract_features(
     database: Path,
     image_dir: Path,
@@ -571,7 +603,10 @@ def extract_features(
     if masks is not None:
         reader.mask_path = str(masks)
     extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = cfg.num_threads
+    threads, note = extraction_threads(cfg, [key[:2] for key in groups])
+    if note:
+        console.print(f"[yellow]note:[/] {note}")
+    extraction.num_threads = threads
     extraction.max_image_size = cfg.max_image_size
     if cfg.features == "dsp-sift":
         extraction.sift.estimate_affine_shape = True
