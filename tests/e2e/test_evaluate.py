@@ -6,6 +6,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import shutil
 from functools import partial
 from pathlib import Path
@@ -62,7 +63,10 @@ def test_save_maps_false_writes_no_maps_and_clears_earlier_ones(tiny_run_path, t
     capsys.readouterr()
     evaluate.run(run, EvalConfig(num_samples=2, seed=4, save_maps=False), device=torch.device("cpu"))
     assert not (run / "eval" / "maps").exists()  # the earlier maps belonged to the earlier metrics
-    assert "(no maps: save_maps = false)" in " ".join(capsys.readouterr().err.split())
+    said = " ".join(capsys.readouterr().err.split())
+    assert "(no maps: save_maps = false)" in said
+    # the whole evaluation's time beside the table's, which is each view's renders alone (read as the whole)
+    assert re.search(r"\(\d+\.\d s in all; 'render s' is each view's samples' renders alone\)", said) and "render s" in said
     assert EvalReport.from_json((run / "eval" / "metrics.json").read_text(encoding="utf-8")).seed == 4
 
 

@@ -6,7 +6,7 @@ averaging, and returned on the requested device.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -34,13 +34,14 @@ def _indices(scene: SceneData, indices: Sequence[int] | None) -> list[int]:
     return list(range(len(scene.cameras))) if indices is None else [int(i) for i in indices]
 
 
-def load_images(scene: SceneData, indices: Sequence[int] | None = None, device=None) -> Tensor:
+def load_images(scene: SceneData, indices: Sequence[int] | None = None, device=None,
+                on_photo: Callable[[], None] | None = None) -> Tensor:
     """Images of the cameras ``indices`` (all when None) as [C,H,W,3] float32 in [0, 1].
 
     Transparent pixels are composited over the scene's background colour (``SceneConfig.background``); photos
     of another size than the scene's are turned and cropped first (``SceneData.photo_fits``). An 8-bit photo
     without alpha that is resized (``scene.downscale``) is rounded back to 8 bits (``resized_8bit``), so that
-    ``load_photos`` keeps it as uint8.
+    ``load_photos`` keeps it as uint8. ``on_photo``: called as each photo is loaded (a progress bar).
     """
     bg = tuple(scene.source.get("background", (0.0, 0.0, 0.0)))
     W, H = scene.cameras.width, scene.cameras.height
@@ -53,26 +54,31 @@ def load_images(scene: SceneData, indices: Sequence[int] | None = None, device=N
             out[k] = as_float_photos(torch.from_numpy(resized_8bit(scene, i)))
         else:
             out[k] = torch.from_numpy(resize_image(read_photo(scene, i, background=bg), W, H))
+        if on_photo is not None:
+            on_photo()
     return out
 
 
-def load_photos(scene: SceneData, indices: Sequence[int] | None = None, device=None) -> Photos:
+def load_photos(scene: SceneData, indices: Sequence[int] | None = None, device=None,
+                on_photo: Callable[[], None] | None = None) -> Photos:
     """The images of ``load_images`` as ``Photos``: their 8-bit values (uint8, a quarter of the memory) when every
     one is an 8-bit file without alpha (resized ones rounded back to 8 bits: ``resized_8bit``), else the same
     float32 tensor ``load_images`` gives. Indexing gives float32 equal to ``load_images``'s to the bit either way."""
     idx = _indices(scene, indices)
     if not all(is_opaque_8bit(scene.image_paths[i]) for i in idx):
-        return Photos(load_images(scene, idx, device))
+        return Photos(load_images(scene, idx, device, on_photo))
     W, H = scene.cameras.width, scene.cameras.height
     out = torch.empty((len(idx), H, W, 3), dtype=torch.uint8, device=device)  # [C,H,W,3], one photo at a time
     for k, i in enumerate(idx):
         if not _at_size(scene, i):
             out[k] = torch.from_numpy(resized_8bit(scene, i))
-            continue
-        image = read_image_8bit(scene.image_paths[i])
-        if scene.photo_fits is not None:
-            image = fit_photo(scene.photo_fits[i], image)  # turned and cropped only (_at_size): stays uint8
-        out[k] = torch.from_numpy(image)
+        else:
+            image = read_image_8bit(scene.image_paths[i])
+            if scene.photo_fits is not None:
+                image = fit_photo(scene.photo_fits[i], image)  # turned and cropped only (_at_size): stays uint8
+            out[k] = torch.from_numpy(image)
+        if on_photo is not None:
+            on_photo()
     return Photos(out)
 
 

@@ -426,6 +426,7 @@ def _in_frame(loaded, scene, out: Path) -> bool:
 
 
 def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = False):
+    import time
     from functools import partial
 
     from uncertsplat.baselines import load_run
@@ -436,6 +437,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     from uncertsplat.schemas.metrics import EvalReport
     from uncertsplat.stages.predictive_cache import keep_predictive
     from uncertsplat.stages.residual_cache import fitted_residual
+
+    t_start = time.perf_counter()
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -542,7 +545,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         console.print(f"[yellow]warning:[/] {note}")
     for note in [*reach, *low, *few]:
         console.print(f"note: {note}")
-    return _print_report(run_dir, cfg, report, out, depth_to_source=scene.depth_to_source)
+    return _print_report(run_dir, cfg, report, out, depth_to_source=scene.depth_to_source,
+                         seconds=time.perf_counter() - t_start)
 
 
 def _keep_missing_predictive(run_dir: Path, loaded, scene, cfg: EvalConfig, report, device: torch.device) -> None:
@@ -720,13 +724,16 @@ def _reach_notes(sampler, views, device: torch.device) -> list[str]:
 
 
 def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bool = True,
-                  depth_to_source: float | None = None):
+                  depth_to_source: float | None = None, seconds: float | None = None):
     """Print ``report``'s table and notes; returns it. ``written``: this call wrote it (else it was found).
-    ``depth_to_source``: the scene's units per run unit, said beside depth metrics in the run's units."""
+    ``depth_to_source``: the scene's units per run unit, said beside depth metrics in the run's units. ``seconds``:
+    the whole evaluation's time (the table's is each view's samples' renders alone: loading, the fits and writing
+    the maps took as long again on large views)."""
     from rich.table import Table
 
     table = Table(title=f"{run_dir.name}: {cfg.split} views (K={cfg.num_samples})")
-    for col in ("view", "PSNR", "SSIM", "AUSE-MAE", "AUSE-RMSE", "NLL", "cal.err", "Spearman", "depth AUSE", "s/view"):
+    for col in ("view", "PSNR", "SSIM", "AUSE-MAE", "AUSE-RMSE", "NLL", "cal.err", "Spearman", "depth AUSE",
+                "render s"):
         table.add_column(col, justify="right")
 
     def f(x, p=3):
@@ -800,6 +807,8 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
         console.print(f"depth scale {report.depth_scale.scale:.4g} ({report.depth_scale.method}); the depth metrics "
                       f"are in {units}")
     maps = f" and maps in {out / 'maps'}" if (out / "maps").is_dir() else " (no maps: save_maps = false)"
-    console.print(f"{'wrote' if written else 'kept'} {out / 'metrics.json'}{maps}")
+    took = (f" ({seconds:.1f} s in all; 'render s' is each view's samples' renders alone)"
+            if seconds is not None else "")
+    console.print(f"{'wrote' if written else 'kept'} {out / 'metrics.json'}{maps}{took}")
     return report
 
