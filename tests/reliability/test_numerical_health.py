@@ -112,7 +112,8 @@ def test_a_divergence_before_any_checkpoint_says_there_is_none(tmp_path, monkeyp
     with pytest.raises(UserError) as err:
         t.fit()
     assert "no checkpoint was written before it" in str(err.value) and not list_checkpoints(tmp_path)
-    assert "-o NEW_RUN" in err.value.hint and "can be deleted" in err.value.hint and "--resume" not in err.value.hint
+    assert "-o NEW_RUN" in err.value.hint and "--resume" not in err.value.hint
+    assert "with no checkpoint written, the same command with the new settings starts" in err.value.hint
 
 
 def test_persistent_nan_stops_with_a_clear_error_and_good_checkpoints(tmp_path, monkeypatch):

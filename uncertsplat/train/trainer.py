@@ -341,8 +341,9 @@ def _diverged_hint(changed: list[str], rates: str, saved: bool, run_dir: Path | 
     if saved:
         rest = "; --resume goes on from the last good checkpoint with this run's own settings" + (
             " (those that diverged)" if changed else "")
-    else:
-        rest = f"; {run_dir} can be deleted" if run_dir is not None else ""
+    else:  # (train starts a folder with no checkpoint again: session._never_trained)
+        rest = (f"; with no checkpoint written, the same command with the new settings starts {run_dir} again (or "
+                "delete it)" if run_dir is not None else "")
     return first + rest + "."
 
 
@@ -1166,7 +1167,7 @@ class Trainer:
             rates = "lr.means_init=..., lr.scales=..." + (", exposure_lr=..." if self.cfg.exposure != "off" else "")
             changed = _changed_fit_settings(self.cfg)  # (a helper's lr of 1e30 was told to lower lr.means_init)
             # (--resume takes the run's stored settings, so lower rates need a new run; with no checkpoint the folder
-            # holds nothing to go on from, and a plain start there is refused as an existing run)
+            # holds nothing to go on from, and the same command with other settings starts it again)
             raise UserError(
                 f"training diverged: the loss or gradients were NaN/Inf for {self.bad_steps_in_a_row} steps in a "
                 f"row (steps {step - self.bad_steps_in_a_row + 1}-{step}); the model was not changed by them"
