@@ -60,3 +60,26 @@ def test_settings_that_give_no_posterior_are_said_before_training():
     (note,) = _posterior_notes(short)
     assert note.startswith("no Gaussian will carry a posterior in this run: the run's 60 steps end before Gaussians "
                            "first get a posterior") and note.endswith("give it --iterations 100 or more for a posterior")
+
+
+def test_the_last_posterior_update_is_said_before_it_runs_on_large_captures(monkeypatch, capsys):
+    """It runs inside the last step: 52 views of 2000x1500 took 100 s with the progress bar standing still. Said where
+    the views hold more than LONG_UPDATE_PIXELS together; an update before the last is not."""
+    import uncertsplat.train.trainer as trainer_module
+    from tests.e2e.test_train_resume import toy_config, toy_scene
+    from uncertsplat.train.trainer import Trainer
+
+    scene, tr, te = toy_scene()
+    t = Trainer(scene, toy_config(iterations=20), tr, te)
+    t.fit()
+    said = " ".join(capsys.readouterr().err.split())
+    assert "the last update renders every training view" not in said  # (the toy scene's views are small)
+    monkeypatch.setattr(trainer_module, "LONG_UPDATE_PIXELS", 0)
+    t.step = 10  # an update before the last one: not said
+    t.update_posterior()
+    assert "the last update" not in " ".join(capsys.readouterr().err.split())
+    t.step = 20
+    t.update_posterior()
+    w, h = scene.cameras.width, scene.cameras.height
+    assert (f"posterior: the last update renders every training view ({len(scene.split['train'])} at {w}x{h}"
+            in " ".join(capsys.readouterr().err.split()))
