@@ -3,6 +3,7 @@ use, and opacity resets that the run's length leaves out. A helper's sweep of ev
 
 from __future__ import annotations
 
+from tests.fixtures import tiny_scene_path  # noqa: F401
 from uncertsplat.config import train_config_from
 from uncertsplat.train.session import _reset_notes, _settle_notes, _unused_setting_notes
 
@@ -83,3 +84,24 @@ def test_the_last_posterior_update_is_said_before_it_runs_on_large_captures(monk
     w, h = scene.cameras.width, scene.cameras.height
     assert (f"posterior: the last update renders every training view ({len(scene.split['train'])} at {w}x{h}"
             in " ".join(capsys.readouterr().err.split()))
+
+
+def test_photos_that_would_fill_the_free_memory_are_warned_of(monkeypatch, tiny_scene_path):  # noqa: F811
+    """A capture too large ran out of memory minutes into loading or training with an allocator's traceback: the
+    photos' size (3 bytes a pixel for 8-bit ones) is weighed against the free memory before they are loaded."""
+    import uncertsplat.io.memory as memory
+    from uncertsplat.config import SceneConfig
+    from uncertsplat.sfm.scene import load_scene
+    from uncertsplat.train.session import _photo_memory_notes
+
+    scene = load_scene(tiny_scene_path, SceneConfig())
+    n = len(scene.split["train"]) + len(scene.split["test"])
+    need = n * 128 * 96 * 3  # the tiny scene's 8-bit PNGs
+    monkeypatch.setattr(memory, "available_memory", lambda: 2 * need + 1)
+    assert _photo_memory_notes(scene, "cpu") == []
+    monkeypatch.setattr(memory, "available_memory", lambda: need)
+    (note,) = _photo_memory_notes(scene, "cpu")
+    assert note.startswith(f"the {n} photos at 128x96 take 0.0 GB") and "--set scene.downscale=2" in note
+    assert _photo_memory_notes(scene, "cuda") == []  # (the GPU's memory is another)
+    monkeypatch.setattr(memory, "available_memory", lambda: None)
+    assert _photo_memory_notes(scene, "cpu") == []

@@ -173,6 +173,33 @@ def _summary_steps(run_dir: Path) -> int | None:
     return summary.steps if summary is not None else None
 
 
+PHOTO_MEMORY_SHARE = 0.5
+"""``train`` warns before loading when the photos alone would take more than this share of the free memory."""
+
+
+def _photo_memory_notes(data, device) -> list[str]:
+    """A warning when the photos ``train`` is about to load (of ``data``, a ``SceneData``) would take more than
+    ``PHOTO_MEMORY_SHARE`` of the free memory (``io.memory.available_memory``; on the CPU): training needs more
+    beside them (renders, the SSIM statistics), and a capture too large ran out of memory minutes later with an
+    allocator's traceback. Sizes from the headers: 3 bytes a pixel for 8-bit photos without alpha, 12 for others."""
+    from uncertsplat.io.images import is_opaque_8bit
+    from uncertsplat.io.memory import available_memory
+
+    if torch.device(device).type != "cpu":
+        return []
+    views = [i for k in ("train", "test") for i in data.split.get(k, ())]
+    if not views:
+        return []
+    pixels = data.cameras.width * data.cameras.height
+    need = sum(pixels * (3 if is_opaque_8bit(data.image_paths[i]) else 12) for i in views)
+    free = available_memory()
+    if free is None or need <= PHOTO_MEMORY_SHARE * free:
+        return []
+    return [f"the {len(views)} photos at {data.cameras.width}x{data.cameras.height} take {need / 2**30:.1f} GB, "
+            f"against {free / 2**30:.1f} GB of free memory, and training needs more beside them: it may run out; "
+            "--set scene.downscale=2 holds a quarter of it (or train on fewer photos)"]
+
+
 def _last_logged_step(run_dir: Path) -> int:
     """The last step ``stats.jsonl`` logged (0: none, or no readable line)."""
     import json
@@ -624,6 +651,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             elif changed:
                 console.print(f"[yellow]note:[/] the photos' masks changed since this run was trained ({changed}): "
                               "training goes on with them as they are now")
+        for note in _photo_memory_notes(data, device):
+            console.print(f"[yellow]warning:[/] {note}")
         # 8-bit photos stay uint8 (a quarter of float32's memory), converted one at a time where a step uses them
         # (a bar: 60 photos of 2000x1500 took 54 s with nothing said)
         with progress(transient=True) as bar:
