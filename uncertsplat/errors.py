@@ -86,12 +86,17 @@ _MEMORY_ADVICE = {
              "or train on fewer photos",
     "evaluate": "--set residual_views=16 and --set consistency_views=16 (the training views the pixel noise and the "
                 "view-consistency term render: 64 each by default), fewer --num-samples, or --set max_views=N",
-    "prune": "--set free_space_views=16 (the training views its free-space score renders: 64 by default), fewer "
-             "--num-samples, or a run trained at a larger scene.downscale",
+    "prune": "--set free_space_views=16 (the training views its free-space score renders: 64 by default), "
+             "--set num_samples=4, or a run trained at a larger scene.downscale",
     "reconstruct": "--max-image-size 1600 (or less) and --set num_threads=1 (feature extraction holds a copy of the "
                    "image per thread)",
 }
 """What lowers each command's memory, named when it ran out (``out_of_memory``)."""
+
+
+IMPOSSIBLE_ALLOCATION = 1 << 50
+"""An allocation of more bytes than this (a pebibyte) that failed is no machine's memory running out but a size gone
+wrong (``torch.empty(2**62)``): ``out_of_memory`` leaves it to be raised as a bug."""
 
 
 def out_of_memory(err: BaseException, command: str) -> UserError | None:
@@ -99,7 +104,8 @@ def out_of_memory(err: BaseException, command: str) -> UserError | None:
     (``MemoryError``, torch's "can't allocate memory" on the CPU, a CUDA out-of-memory error); None for any other
     error. It was a traceback of the allocator."""
     text = str(err)
-    cuda = type(err).__name__ == "OutOfMemoryError" or "CUDA out of memory" in text
+    cuda = type(err).__name__ == "OutOfMemoryError" or "CUDA out of memory" in text or (
+        "CUDA error: out of memory" in text)
     if not (isinstance(err, MemoryError) or cuda or (isinstance(err, RuntimeError) and (
             "can't allocate memory" in text or "DefaultCPUAllocator" in text))):
         return None
@@ -107,14 +113,16 @@ def out_of_memory(err: BaseException, command: str) -> UserError | None:
 
     size = re.search(r"allocate (\d+) bytes", text) or re.search(r"allocate ([\d.]+ [KMGT]iB)", text)
     asked = (f"{int(size.group(1)) / 2**30:.2f} GiB" if size.group(1).isdigit() else size.group(1)) if size else None
+    if size and size.group(1).isdigit() and int(size.group(1)) > IMPOSSIBLE_ALLOCATION:
+        return None  # no machine's memory: a size gone wrong (a bug), raised as such
     where = "the GPU's" if cuda else "the machine's"
     advice = _MEMORY_ADVICE.get(command)
     return UserError(f"{command} ran out of {where} memory" + (f" (an allocation of {asked} failed)" if asked else ""),
                      hint=(f"Lower its use with {advice}; " if advice else "") + "close other programs"
                           + (" or use --device cpu" if cuda else "") + (
-                              ". A training stopped after a checkpoint goes on with --resume (which keeps its stored "
-                              "settings); one stopped before its first starts again with the same command and new "
-                              "settings" if command == "train" else "") + ".")
+                              ". A training stopped before its first checkpoint starts again with the same command "
+                              "and new settings; one stopped after it keeps it (`train --resume` goes on with the "
+                              "stored settings)" if command == "train" else "") + ".")
 
 
 def run_folder_missing(path: str | Path) -> UserError:

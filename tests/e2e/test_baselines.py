@@ -360,3 +360,29 @@ def test_an_ensemble_whose_scene_is_refused_leaves_no_run_behind(scene_path, tmp
         assert not (run / "config.json").exists() and not (run / "members").exists()
     train_run(scene_path, run, quick_cfg(method="ensemble", ensemble_size=1), CPU)
     assert (run / "train_summary.json").is_file()
+
+
+def test_an_ensemble_out_of_memory_before_any_checkpoint_can_be_started_again(scene_path, tmp_path, monkeypatch):
+    """Memory that ran out in the first member left config.json and members/: the same command with a larger
+    downscale (what the error advises) was refused as an existing run. A bug's RuntimeError still keeps the folder."""
+    from uncertsplat.train.trainer import Trainer
+
+    run = tmp_path / "run"
+    real = Trainer.fit
+
+    def out(self, *a, **k):
+        raise RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate 108000000 bytes")
+
+    monkeypatch.setattr(Trainer, "fit", out)
+    with pytest.raises(RuntimeError, match="can't allocate memory"):
+        train_run(scene_path, run, quick_cfg(method="ensemble", ensemble_size=2), CPU)
+    assert not (run / "config.json").exists() and not (run / "members").exists()
+
+    def bug(self, *a, **k):
+        raise RuntimeError("shape mismatch")
+
+    monkeypatch.setattr(Trainer, "fit", bug)
+    with pytest.raises(RuntimeError, match="shape mismatch"):
+        train_run(scene_path, run, quick_cfg(method="ensemble", ensemble_size=2), CPU)
+    assert (run / "config.json").exists()  # (kept as it was: a bug is reported, not tidied away)
+    monkeypatch.setattr(Trainer, "fit", real)

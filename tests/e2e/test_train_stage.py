@@ -430,7 +430,8 @@ def test_a_run_that_failed_before_its_first_checkpoint_starts_again_with_new_set
     stage.run(tiny_scene_path, run, smaller, torch.device("cpu"))
     said = " ".join(capsys.readouterr().err.split())
     assert "holds a run that failed before its first checkpoint (step 3 logged), so there is nothing to resume from; " \
-           "starting it again" in said
+           "starting it again (its log kept as stats.failed.jsonl)" in said
+    assert (run / "stats.failed.jsonl").read_bytes() == (done / "stats.jsonl").read_bytes()
     assert json.loads((run / "config.json").read_text(encoding="utf-8"))["scene"]["downscale"] == 8.0
     # a finished run is still refused
     with pytest.raises(UserError, match="already exists"):

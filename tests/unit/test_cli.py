@@ -543,3 +543,16 @@ def test_memory_that_ran_out_is_said_with_what_lowers_the_commands_use(tmp_path,
     monkeypatch.setattr(evaluate, "run", bug)
     res = runner.invoke(app, ["evaluate", str(tmp_path / "r")])
     assert res.exit_code == 1 and isinstance(res.exception, RuntimeError)
+
+
+def test_an_impossible_allocation_is_a_bug_not_memory_that_ran_out():
+    """`torch.empty(2**62)` read "ran out of the machine's memory (an allocation of 4294967296.00 GiB failed)"; a size
+    no machine has is a size gone wrong, raised as a bug. CUDA's other wording is memory."""
+    from uncertsplat.errors import out_of_memory
+
+    huge = RuntimeError("[enforce fail at alloc_cpu.cpp:127] DefaultCPUAllocator: can't allocate memory: you tried to "
+                        f"allocate {2**62} bytes. Error code 12 (Cannot allocate memory)")
+    assert out_of_memory(huge, "train") is None
+    assert out_of_memory(RuntimeError("CUDA error: out of memory"), "train") is not None
+    told = out_of_memory(RuntimeError(CPU_OOM), "prune").render()
+    assert "--set num_samples=4" in told and "--num-samples" not in told

@@ -13,3 +13,34 @@ def test_available_memory_is_bounded_by_an_address_space_limit():
             "under = available_memory(); assert 0 <= under < cap and under <= free, (under, free); print('ok')")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def _tree(root, cgroup: str, files: dict[str, str]):
+    (root / "proc/self").mkdir(parents=True)
+    (root / "proc/self/cgroup").write_text(cgroup)
+    for rel, text in files.items():
+        (root / rel).parent.mkdir(parents=True, exist_ok=True)
+        (root / rel).write_text(text)
+
+
+def test_the_cgroup_room_is_read_from_the_process_s_own_group(tmp_path):
+    """Only the mount's root files were read (a job's group and cgroup v1 were missed), and the usage counted the page
+    cache the photos were read through (one thread of SfM left after hashing them)."""
+    from uncertsplat.io.memory import cgroup_room
+
+    v2 = tmp_path / "v2"
+    _tree(v2, "0::/job.slice/job_7\n", {"sys/fs/cgroup/job.slice/job_7/memory.max": "8000000000\n",
+                                         "sys/fs/cgroup/job.slice/job_7/memory.current": "7000000000\n",
+                                         "sys/fs/cgroup/job.slice/job_7/memory.stat": "anon 1000000000\nfile 6000000000\n"})
+    assert cgroup_room(v2) == 7_000_000_000
+    v1 = tmp_path / "v1"
+    _tree(v1, "12:cpu:/x\n4:memory:/process_api/abc\n", {
+        "sys/fs/cgroup/memory/process_api/abc/memory.limit_in_bytes": "4000000000\n",
+        "sys/fs/cgroup/memory/process_api/abc/memory.stat": "cache 10\nrss 5\ntotal_rss 1000000000\n"})
+    assert cgroup_room(v1) == 3_000_000_000
+    none = tmp_path / "none"
+    _tree(none, "4:memory:/a\n", {"sys/fs/cgroup/memory/a/memory.limit_in_bytes": "9223372036854771712\n"})
+    assert cgroup_room(none) is None
+    max_v2 = tmp_path / "max"
+    _tree(max_v2, "0::/\n", {"sys/fs/cgroup/memory.max": "max\n"})
+    assert cgroup_room(max_v2) is None and cgroup_room(tmp_path / "nothing") is None

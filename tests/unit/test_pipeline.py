@@ -564,6 +564,10 @@ def test_a_stage_whose_output_is_gone_runs_again(tmp_path, calls, capsys):
         m.write_text(json.dumps(data))
     pl.run(p, tmp_path / "out")
     assert calls == []
+    # ... but not where their input stage ran again (with the same key: its output deleted): they run again too
+    (tmp_path / "out" / "synth" / "out.txt").unlink()
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls] == ["synth", "train", "evaluate", "report"]
 
 
 def test_a_stage_whose_data_file_changed_size_runs_again(tmp_path, monkeypatch, capsys):

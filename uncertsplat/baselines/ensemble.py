@@ -29,7 +29,7 @@ import torch
 from uncertsplat.baselines.runs import LoadedRun, load_single_model, mean_exposure, read_run_config
 from uncertsplat.console import console, q
 from uncertsplat.conventions import ensemble_member_dir
-from uncertsplat.errors import UserError
+from uncertsplat.errors import UserError, out_of_memory
 from uncertsplat.eval.engine import SAME_RENDER, Sampler
 from uncertsplat.io.atomic import atomic_write_text, run_lock
 from uncertsplat.schemas import TrainSummary
@@ -118,7 +118,10 @@ def train_ensemble(scene: Path, run_dir: Path, cfg, device: torch.device, resume
         atomic_write_text(run_dir / "config.json", cfg.model_dump_json(indent=2) + "\n")
         try:
             summaries = _train_members(scene, run_dir, cfg, device, resume, on_trainer)
-        except UserError:
+        except (UserError, MemoryError, RuntimeError) as err:
+            # (and memory that ran out before any member's checkpoint: its advice is the same command again)
+            if not isinstance(err, UserError) and out_of_memory(err, "train") is None:
+                raise
             if not exists and not any(run_dir.glob("members/*/ckpts/*")):
                 # nothing trained (a scene the first member refused): the folder this call made goes, as a single
                 # run's does, so the same command can run again (it was refused as an existing run, and --resume

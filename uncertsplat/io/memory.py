@@ -1,33 +1,59 @@
-"""How much memory this process may still take: what sizes its work by the machine (SfM's feature threads)."""
+"""How much memory this process may still take: what sizes its work by the machine (SfM's feature threads, the
+warning before `train` loads its photos)."""
 
 from __future__ import annotations
 
 import resource
 from pathlib import Path
 
+V1_UNLIMITED = 1 << 60
+"""cgroup v1 writes "no limit" as a number near 2^63: a limit at or above this is none."""
+
 
 def available_memory() -> int | None:
     """Bytes this process may still allocate, or None where nothing says: the least of the system's available
-    memory (``MemAvailable``), the room left under its cgroup's limit (a container's, a cluster job's) and its
-    address-space limit (``ulimit -v``, less what it maps already)."""
+    memory (``MemAvailable``), the room left under its cgroup's limit (``cgroup_room``: a container's, a cluster
+    job's) and its address-space limit (``ulimit -v``, less what it maps already)."""
     found: list[int] = []
-    meminfo = _read("/proc/meminfo")
-    for line in meminfo.splitlines():
+    for line in _read(Path("/proc/meminfo")).splitlines():
         if line.startswith("MemAvailable:"):
             found.append(int(line.split()[1]) * 1024)
-    limit, used = _read("/sys/fs/cgroup/memory.max").strip(), _read("/sys/fs/cgroup/memory.current").strip()
-    if limit.isdigit() and used.isdigit():
-        found.append(max(int(limit) - int(used), 0))
+    room = cgroup_room()
+    if room is not None:
+        found.append(room)
     soft, _ = resource.getrlimit(resource.RLIMIT_AS)
     if soft != resource.RLIM_INFINITY:
-        mapped = _read("/proc/self/statm").split()
+        mapped = _read(Path("/proc/self/statm")).split()
         size = int(mapped[0]) * resource.getpagesize() if mapped and mapped[0].isdigit() else 0
         found.append(max(soft - size, 0))
     return min(found) if found else None
 
 
-def _read(path: str) -> str:
+def cgroup_room(root: Path = Path("/")) -> int | None:
+    """Bytes left under the memory limit of this process's own cgroup (v2's ``memory.max``, v1's
+    ``memory.limit_in_bytes``; the group ``/proc/self/cgroup`` names, else the mount's root), counting what its
+    processes hold themselves (``anon``, v1's ``total_rss``: the page cache they read through is given back under
+    pressure); None without a limit. ``root``: where the file system is (a test's copy)."""
+    for line in _read(root / "proc/self/cgroup").splitlines():
+        hierarchy, controllers, group = (line.split(":", 2) + ["", ""])[:3]
+        v2 = hierarchy == "0" and controllers == ""
+        if not v2 and "memory" not in controllers.split(","):
+            continue
+        mount = root / "sys/fs/cgroup" if v2 else root / "sys/fs/cgroup/memory"
+        for folder in (mount / group.strip().lstrip("/"), mount):
+            limit = _read(folder / ("memory.max" if v2 else "memory.limit_in_bytes")).strip()
+            if not limit.isdigit() or int(limit) >= V1_UNLIMITED:
+                continue
+            stat = dict(row.split(" ", 1) for row in _read(folder / "memory.stat").splitlines() if " " in row)
+            held = stat.get("anon" if v2 else "total_rss", "").strip()
+            used = held if held.isdigit() else _read(
+                folder / ("memory.current" if v2 else "memory.usage_in_bytes")).strip()
+            return max(int(limit) - (int(used) if used.isdigit() else 0), 0)
+    return None
+
+
+def _read(path: Path) -> str:
     try:
-        return Path(path).read_text(encoding="ascii", errors="replace")
+        return path.read_text(encoding="ascii", errors="replace")
     except OSError:
         return ""

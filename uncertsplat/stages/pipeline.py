@@ -403,6 +403,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
         kinds: dict[str, str] = {}
         manifests: dict[str, Manifest] = {}
         configs: dict = {}  # each finished stage's settings
+        ran: set[str] = set()  # the stages this run ran (not skipped)
         upstreams: dict[str, str | None] = {}
         previous: str | None = None
         skipped: dict[str, str] = {}  # a stage skipped for want of a posterior: its reason
@@ -515,8 +516,9 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             unreadable = old is None and (out_dir / MANIFEST).is_file()  # (said below, once it is known what follows)
             taken = [new.input_hashes, *({**new.input_hashes, **e} for e in earlier)]
             taken += [{renamed.get(k, k): v for k, v in d.items()} for d in taken] if renamed else []
-            # (manifests from before a stage's input was keyed with when it finished: by its key alone)
-            legacy = [{k: v.split("@", 1)[0] for k, v in d.items()} for d in taken]
+            # (manifests from before a stage's input was keyed with when it finished: by its key alone; only for an
+            # input stage skipped in this run, not one that ran again with the same key, which is what they miss)
+            legacy = [{k: v if k in ran else v.split("@", 1)[0] for k, v in d.items()} for d in taken]
             taken += [d for d in legacy if d not in taken]
             same_inputs = old is not None and old.input_hashes in taken
             changed = None
@@ -620,6 +622,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 if moved:
                     console.print(f"[yellow]note:[/] {moved}")
             outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, new
+            ran.add(name)
             configs[name] = stage_cfg
             previous = name
 

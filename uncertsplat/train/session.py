@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -255,7 +256,10 @@ def _record_moved_scene(run_dir: Path, scene: Path, cfg: TrainConfig) -> None:
     before.write(run_dir / RunScene.FILE_NAME)
 
 
-_STARTED_FILES = ("config.json", "scene.json", "stats.jsonl", ".lock")
+FAILED_STATS = "stats.failed.jsonl"
+"""Where a start that failed before its first checkpoint leaves its ``stats.jsonl`` when the run starts again."""
+
+_STARTED_FILES = ("config.json", "scene.json", "stats.jsonl", ".lock", FAILED_STATS)
 """What a run folder holds when ``train`` failed before its first checkpoint (a photo it could not read, a bad
 setting found while loading, memory that ran out at step 5): nothing to resume from, so the same command (with
 other settings, e.g. a larger ``scene.downscale``) may start it again (``_never_trained``)."""
@@ -420,13 +424,17 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         # a start that failed before its first step (e.g. a photo it could not read): nothing to keep. Under the
         # folder's lock: a training that is starting there looks the same until its first step, and is refused
         with run_lock(run_dir, "train"):
-            logged = _last_logged_step(run_dir)
-            console.print(f"[yellow]note:[/] {run_dir} holds a run that failed before "
-                          + (f"its first checkpoint (step {logged} logged), so there is nothing to resume from"
-                             if logged else "training anything") + "; starting it again")
-            for name in _STARTED_FILES[:3]:
-                (run_dir / name).unlink(missing_ok=True)
-        exists = False
+            if _never_trained(run_dir):  # (again under the lock: a training may have finished there since)
+                logged = _last_logged_step(run_dir)
+                console.print(f"[yellow]note:[/] {run_dir} holds a run that failed before "
+                              + (f"its first checkpoint (step {logged} logged), so there is nothing to resume from"
+                                 if logged else "training anything") + "; starting it again"
+                              + (f" (its log kept as {FAILED_STATS})" if logged else ""))
+                if logged:  # the failed start's log, which a user may want to read (one, the latest, is kept)
+                    os.replace(run_dir / "stats.jsonl", run_dir / FAILED_STATS)
+                for name in _STARTED_FILES[:3]:
+                    (run_dir / name).unlink(missing_ok=True)
+                exists = False
     if exists and not resume:
         if not (run_dir / "config.json").is_file():  # files of something else: nothing --resume could continue
             raise UserError("the output folder exists and holds files that are not a training run", path=run_dir,
