@@ -71,9 +71,9 @@ class StageError(UserError):
 
 
 class NoPosterior(UserError):
-    """A stage that works on the per-Gaussian posterior (prune) was given a run whose Gaussians carry none (a run
-    too short for its first densification, a method without one): a pipeline skips such a stage, with this message,
-    where no later stage needs its output."""
+    """A stage that works on the per-Gaussian posterior (prune) was given a run its settings left without one (a run
+    too short for its first densification: a quick test): a pipeline skips such a stage with this message, and the
+    stages that read its output, and goes on to its report. A method without a posterior is a ``UserError``."""
 
 
 class Interrupted(UserError):

@@ -449,9 +449,9 @@ class Predictor:
                 is what the full-size photo's K given with a smaller image size looks like.
 
         Raises:
-            UserError: a pose or K that is not a tensor or array, of the wrong shape, not rigid or not finite, unusable intrinsics or a principal
-                point outside the image or near its edge (the message names the pose's index), names that do not match the poses, an
-                image size that is not a positive whole number.
+            UserError: a pose or K that is not a tensor or array, of the wrong shape, not rigid or not finite,
+                unusable intrinsics or a principal point outside the image or near its edge (the message names the
+                pose's index), names that do not match the poses, an image size that is not a positive whole number.
         """
         from uncertsplat.sfm.scene import normalized_cam_from_world
 

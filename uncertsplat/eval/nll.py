@@ -115,7 +115,8 @@ whole [K,...] stack its temporaries took three times the samples' memory (K = 64
 
 def _kde_log_density(samples: Tensor, target: Tensor, h: Tensor) -> Tensor:
     """log (1/K sum_k N(target; samples_k, h^2)) per element; samples [K,...], target/h [...]. Computed over chunks
-    of the elements (``KDE_CHUNK``): each element's value is the same to the bit."""
+    of the elements (``KDE_CHUNK``): the values of the whole stack's (to the bit in one chunk, as every image of up
+    to ``KDE_CHUNK`` / K values is; past it a chunk's tail may take torch's scalar exp, an ulp apart)."""
     k = samples.shape[0]
     flat_s, flat_t, flat_h = samples.reshape(k, -1), target.reshape(-1), h.expand_as(target).reshape(-1)
     out = torch.empty_like(flat_t)

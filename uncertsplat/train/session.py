@@ -203,8 +203,6 @@ def _photo_memory_notes(data, device) -> list[str]:
 
 def _last_logged_step(run_dir: Path) -> int:
     """The last step ``stats.jsonl`` logged (0: none, or no readable line)."""
-    import json
-
     last = 0
     try:
         lines = (run_dir / "stats.jsonl").read_text(encoding="utf-8", errors="replace").splitlines()
