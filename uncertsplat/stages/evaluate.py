@@ -29,7 +29,7 @@ from __future__ import annotations
 import math
 import os
 import shutil
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -508,9 +508,9 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         # found here is a killed evaluation's (staging_folder removes it)
         with staging_folder(out, ".maps-") as staging:
             report = evaluate_views(sampler, views, cfg, device,
-                                    on_view=partial(write_view_maps, staging, preview=cfg.preview,
-                                                    turns=photo_turns(scene), depth_to_source=scene.depth_scale_to_gt,
-                                                    among=views.names)
+                                    on_view=maps_writer(staging, len(views), preview=cfg.preview,
+                                                        turns=photo_turns(scene),
+                                                        depth_to_source=scene.depth_scale_to_gt, among=views.names)
                                     if cfg.save_maps else None,
                                     std_scale=fit.scale, calibration_views=fit.names, dof=fit.dof,
                                     calibration_held_out=bool(scene.split.get("calibration")),
@@ -547,6 +547,27 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
         console.print(f"note: {note}")
     return _print_report(run_dir, cfg, report, out, depth_to_source=scene.depth_to_source,
                          seconds=time.perf_counter() - t_start)
+
+
+def maps_writer(folder: Path, num_views: int, **write) -> Callable[[ViewMaps], None]:
+    """``write_view_maps`` into ``folder`` for each of ``num_views`` views (``write``: its other arguments), saying
+    after the first one when the rest would take more than 90 % of the disk's free space, with what writes less (30
+    views of 1600x1200 wrote 2.2 GB without a word; a full disk ended the evaluation after its renders)."""
+    first = [True]
+
+    def on_view(maps: ViewMaps) -> None:
+        write_view_maps(folder, maps, **write)
+        if first[0] and num_views > 1:
+            first[0] = False
+            one = sum(f.stat().st_size for f in Path(folder).rglob("*") if f.is_file())
+            free = shutil.disk_usage(folder).free
+            if one * (num_views - 1) > 0.9 * free:
+                console.print(f"[yellow]warning:[/] the maps of the {num_views} views take about "
+                              f"{one * num_views / 2**30:.1f} GB ({one / 2**20:.0f} MB a view) and the disk holds "
+                              f"{free / 2**30:.1f} GB free: it may fill before the last view; --set save_maps=false "
+                              "writes none, --set max_views=N fewer views")
+
+    return on_view
 
 
 def _keep_missing_predictive(run_dir: Path, loaded, scene, cfg: EvalConfig, report, device: torch.device) -> None:
