@@ -84,6 +84,20 @@ def test_the_last_posterior_update_is_said_before_it_runs_on_large_captures(monk
     w, h = scene.cameras.width, scene.cameras.height
     assert (f"posterior: the last update renders every training view ({len(scene.split['train'])} at {w}x{h}"
             in " ".join(capsys.readouterr().err.split()))
+    # inside fit, the last update writes each view to the progress bar (a line a minute in a log)
+    seen = []
+
+    class Bar:
+        def update(self, task, **kw):
+            seen.append((task, kw))
+
+    t._bar = (Bar(), 7)
+    t.update_posterior()
+    n = len(scene.split["train"])
+    assert seen == [(7, {"info": f"posterior update: view {i}/{n}"}) for i in range(1, n + 1)]
+    t.step, seen[:] = 10, []
+    t.update_posterior()
+    assert seen == []  # (an update before the last one is short)
 
 
 def test_photos_that_would_fill_the_free_memory_are_warned_of(monkeypatch, tiny_scene_path):  # noqa: F811

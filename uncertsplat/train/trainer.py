@@ -450,6 +450,7 @@ class Trainer:
         # called after every step with the trainer (``train --view`` draws the model here, between steps, so it
         # never sees a half-updated model); its time is not in ``elapsed``
         self.on_step: Callable[[Trainer], None] | None = None
+        self._bar = None  # (the progress bar and its task while ``fit`` runs: the last posterior update writes to it)
         self.on_band: Callable[[BandCheck], None] | None = None  # told of each SH band test (``train`` prints it)
         self.on_growth: Callable[[GrowthCheck], None] | None = None  # told of each growth test (likewise)
         self.on_exposure: Callable[[ExposureCheck], None] | None = None  # told of each exposure test (likewise)
@@ -1131,9 +1132,16 @@ class Trainer:
             console.print(f"posterior: the last update renders every training view ({n} at {cams.width}x"
                           f"{cams.height}, a render and {probes} backward pass{'es' if probes > 1 else ''} each)")
         masks = self._train_masks(pick if n < t else range(t))
+        on_view = None
+        if last and self._bar is not None:  # (the last update, of every view, runs for minutes on large captures)
+            bar, task = self._bar
+
+            def on_view(done: int, views: int) -> None:
+                bar.update(task, info=f"posterior update: view {done}/{views}")
+
         curv = curvature(params, cams, images, self.render, names=("means", "scales", "opacities"),
                          generator=self.gen_noise, sh_degree=degree, probes=probes,
-                         disagreement=vcfg.sandwich and last, masks=masks)
+                         disagreement=vcfg.sandwich and last, masks=masks, on_view=on_view)
         noise, fisher, disagreement = curv.noise_std, curv.fisher, curv.disagreement
         if n < t:
             fisher = {k: v * (t / n) for k, v in fisher.items()}
@@ -1258,6 +1266,7 @@ class Trainer:
             self.eval_pending = False
             with progress() as bar:
                 task = bar.add_task("train", total=until, completed=self.step, info="")
+                self._bar = (bar, task)
                 while self.step < until:
                     t0 = time.perf_counter()
                     terms = self.train_step()
@@ -1315,6 +1324,7 @@ class Trainer:
                     raise TrainingInterrupted(self.step, path)
         finally:
             self._fit_until = None
+            self._bar = None
             if old:
                 for s, h in old.items():
                     signal.signal(s, h)

@@ -119,14 +119,16 @@ class Curvature:
 def curvature(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
               render_fn: Callable[[GaussianSample, Cameras], RenderOutput], *, names: tuple[str, ...],
               generator: torch.Generator, sh_degree: int, probes: int = 2, noise_std: float | None = None,
-              disagreement: bool = False, floor: float = 1.0 / 255.0, masks: Tensor | None = None) -> Curvature:
+              disagreement: bool = False, floor: float = 1.0 / 255.0, masks: Tensor | None = None,
+              on_view: Callable[[int, int], None] | None = None) -> Curvature:
     """The diagonal Fisher (``fisher_diagonal``'s ``ggn`` estimator, the same probes), the likelihood's noise and,
     optionally, how much the training views disagree, from one render per view.
 
     With ``noise_std`` None the noise is the RMS residual of these renders (``residual_noise_std``); every term
     is accumulated without it and scaled at the end (the Fisher by 1 / s^2), so the residual pass and the
     curvature pass are one. ``masks`` [T,H,W,1] bool: the pixels that count (the photos' masks; None: all), the
-    others in neither the noise nor the curvature.
+    others in neither the noise nor the curvature. ``on_view(done, views)``: called as each view is done (a progress
+    line: the last update of a large capture takes minutes).
 
     The disagreement is the variance over the T views of each view's score (the gradient of its Gaussian
     log-likelihood), times T: ``D = T/(T-1) sum_v (g_v - mean g)^2``. For a correctly specified model (pixels
@@ -165,6 +167,8 @@ def curvature(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
                     g = gr.double()
                     s1[n] += g
                     s2[n] += g.square()
+        if on_view is not None:
+            on_view(i + 1, t)
     if noise_std is None:
         noise_std = max(math.sqrt(sq_sum / max(count, 1)), floor)
     inv_var = 1.0 / noise_std**2
