@@ -402,7 +402,6 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
         outputs: dict[str, Path] = {}
         kinds: dict[str, str] = {}
         manifests: dict[str, Manifest] = {}
-        configs: dict = {}  # each finished stage's settings
         ran: set[str] = set()  # the stages this run ran (not skipped)
         upstreams: dict[str, str | None] = {}
         previous: str | None = None
@@ -530,7 +529,6 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                     and same_inputs and not changed):
                 console.print(f"[green]skip[/] {name}: unchanged since its last run ({out_dir})")
                 outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, old
-                configs[name] = stage_cfg
                 previous = name
                 continue
 
@@ -592,7 +590,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 # stages after it go on (those that read its output skipped too), so the pipeline still ends with its
                 # report, which says why this one did not run; what to change is the training's (its length), said in
                 # the words of the stage that trains it
-                text = (pipeline_advice(upstream, type(configs[upstream]).model_fields, f"{err.path}: {err.message}")
+                text = (pipeline_advice(upstream, STAGE_CONFIGS["train"].model_fields, f"{err.path}: {err.message}")
                         if kinds.get(upstream) == "train" else
                         pipeline_advice(name, type(stage_cfg).model_fields, err.render()))
                 _finish(out_dir, new, "skipped", t0, err.render())
@@ -623,7 +621,6 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                     console.print(f"[yellow]note:[/] {moved}")
             outputs[name], kinds[name], manifests[name] = out_dir, stage.stage, new
             ran.add(name)
-            configs[name] = stage_cfg
             previous = name
 
         console.print(f"[bold green]pipeline finished[/] in {time.perf_counter() - t_all:.1f} s"
