@@ -49,6 +49,8 @@ import torch.utils._pytree as pytree
 from torch.overrides import TorchFunctionMode
 
 FAKE_CUDA = torch.device("cuda", 0)
+FAKE_FREE_BYTES = 80 * 2**30
+"""What ``torch.cuda.mem_get_info`` answers (free and total): a device with room for any test's model."""
 _CPU = torch.device("cpu")
 _TAG = "_fake_cuda"  # the attribute on a tensor that says it is "on CUDA"
 _ROOT = Path(__file__).resolve().parents[1]
@@ -308,6 +310,7 @@ def fake_cuda() -> Iterator[FakeCuda]:
             mp.setattr(torch.cuda, stub, lambda *args, **kwargs: None)
         for zero in ("memory_allocated", "max_memory_allocated", "memory_reserved", "max_memory_reserved"):
             mp.setattr(torch.cuda, zero, lambda device=None: 0)
+        mp.setattr(torch.cuda, "mem_get_info", lambda device=None: (FAKE_FREE_BYTES, FAKE_FREE_BYTES))
         _ACTIVE.append(state)
         try:
             with _Mode(state):

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pytest
 import torch
 
 from tests.e2e.test_train_resume import toy_config, toy_scene
 from uncertsplat.config import PIXELS_PER_GAUSSIAN, DensifyConfig
+from uncertsplat.gaussians.params import memory_per_gaussian
 from uncertsplat.schemas.runs import Budget
 from uncertsplat.strategy import budget as budget_mod
 from uncertsplat.strategy.budget import MAX_BUDGET, MIN_BUDGET, gaussian_budget
@@ -52,3 +56,91 @@ def test_training_respects_and_records_the_automatic_budget(monkeypatch):
     assert len(unlimited.model) > 170, "without the budget the same schedule grows past it"
     assert unlimited.summary()["budget"]["source"] == "config"
     assert torch.isfinite(t.model.params["means"]).all()
+
+
+class TestMemoryGrowthLimit:
+    def test_room_past_the_reserve_is_shared_among_new_gaussians(self):
+        assert budget_mod.memory_growth_limit(1000, budget_mod.MEMORY_RESERVE + 10_000, 100.0) == 1100
+
+    @pytest.mark.parametrize("room", [0, budget_mod.MEMORY_RESERVE - 1, -(2**40)])
+    def test_no_room_never_removes_gaussians(self, room):
+        assert budget_mod.memory_growth_limit(1000, room, 100.0) == 1000
+
+    def test_a_zero_cost_does_not_divide_by_zero(self):
+        assert budget_mod.memory_growth_limit(0, budget_mod.MEMORY_RESERVE + 5, 0.0) == 5
+
+
+def _grown(monkeypatch, room):
+    scene, tr, te = toy_scene()
+    cfg = toy_config(densify={"start": 5, "until": 25, "interval": 5, "spawn_interval": 10,
+                              "opacity_reset_interval": 0, "grad_threshold": 1e-5, "max_gaussians": 10**6})
+    t = Trainer(scene, cfg, tr, te)
+    if room is not None:
+        monkeypatch.setattr(Trainer, "_memory_room", lambda self: room(self))
+    t.fit()
+    return t
+
+
+def test_memory_holds_growth_below_the_budget_and_records_it(monkeypatch, capsys):
+    free = _grown(monkeypatch, None)
+    start = len(Trainer(*toy_scene()[:1], toy_config(), *toy_scene()[1:]).model)
+
+    def room(self):  # room for 30 more Gaussians than the model starts with, at the trainer's own cost per Gaussian
+        per = budget_mod.GROWN_GAUSSIAN_FACTOR * memory_per_gaussian(self.model, table_moments=not self.informed)[
+            "total"]
+        return budget_mod.MEMORY_RESERVE + int((start + 30 - len(self.model)) * per) + 1
+
+    held = _grown(monkeypatch, room)
+    assert len(free.model) > start + 60, "without the hold the schedule grows well past it"
+    assert start < len(held.model) <= start + 30, "it grows into the room it has, no further"
+    hold = Budget.model_validate(held.summary()["budget"]).memory_hold
+    assert hold is not None and hold.gaussians <= start + 30 and hold.held >= 1 and hold.step <= hold.last_step
+    assert free.summary()["budget"]["memory_hold"] is None
+    warning = held.memory_hold_warning()
+    assert "memory held the model's growth" in warning and f"densify.max_gaussians={hold.gaussians}" in warning
+    assert capsys.readouterr().err.count("memory held the model's growth") == 1, "said once, when it first holds"
+    assert torch.isfinite(held.model.params["means"]).all()
+
+
+def test_no_room_at_all_keeps_the_model_and_trains_on(monkeypatch):
+    held = _grown(monkeypatch, lambda self: 0)
+    start = len(Trainer(*toy_scene()[:1], toy_config(), *toy_scene()[1:]).model)
+    assert len(held.model) <= start, "no Gaussian added (pruning may still remove some)"
+    assert held.step == held.cfg.iterations
+
+
+def test_a_device_that_does_not_say_leaves_the_budget_alone(monkeypatch):
+    free = _grown(monkeypatch, None)
+    unknown = _grown(monkeypatch, lambda self: None)
+    assert len(unknown.model) == len(free.model) and unknown.memory_hold is None
+
+
+def test_a_resume_keeps_the_record_of_memory_holding_growth(monkeypatch):
+    from uncertsplat.io.checkpoints import decode, encode
+
+    scene, tr, te = toy_scene()
+    cfg = toy_config(densify={"start": 5, "until": 25, "interval": 5, "spawn_interval": 10,
+                              "opacity_reset_interval": 0, "grad_threshold": 1e-5, "max_gaussians": 10**6})
+    monkeypatch.setattr(Trainer, "_memory_room", lambda self: 0)
+    part = Trainer(scene, cfg, tr, te)
+    part.fit(until=12)
+    assert part.memory_hold is not None and part.memory_hold["last_step"] <= 12
+    resumed = Trainer(scene, cfg, tr, te, state=decode(encode(part.state_dict())))
+    resumed.fit()
+    hold = resumed.summary()["budget"]["memory_hold"]
+    assert hold["step"] == part.memory_hold["step"], "the first hold is the one before the checkpoint"
+    assert hold["last_step"] > 12 and hold["held"] > part.memory_hold["held"], "the holds after it are added"
+
+
+def test_a_version_6_train_summary_reads_with_no_hold():
+    """``make demo``'s train_summary.json of 2026-12-01 (version 6, before memory could hold growth): its budget
+    reads with ``memory_hold`` None (nothing held), every other value kept."""
+    from uncertsplat.schemas.runs import TrainSummary
+
+    path = Path(__file__).resolve().parents[1] / "data" / "outputs_2026-11-29" / "train_summary.json"
+    old = json.loads(path.read_text(encoding="utf-8"))
+    v6 = {**old, "schema_version": 6, "posterior": {"position_prior": "config", **old["posterior"]},
+          "budget": {"max_gaussians": 40000, "source": "config", "reason": "densify.max_gaussians"}}
+    got = TrainSummary.from_dict(v6)
+    assert got.schema_version == TrainSummary.SCHEMA_VERSION and got.budget.memory_hold is None
+    assert got.budget.max_gaussians == 40000 and got.steps == old["steps"]

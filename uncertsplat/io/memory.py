@@ -29,6 +29,31 @@ def available_memory() -> int | None:
     return min(found) if found else None
 
 
+def room_beyond_peak() -> int | None:
+    """Bytes this process may still take beyond the most it took so far, or None where nothing says: what a loop
+    that repeats (a training step: a render's buffers are given back after it and taken again by the next) can add
+    for good. The least of ``MemAvailable`` and the cgroup's room, each less what the process's resident peak
+    (``VmHWM``) holds above its resident memory now, and of the address-space limit less its peak size
+    (``VmPeak``)."""
+    status = {}
+    for line in _read(Path("/proc/self/status")).splitlines():
+        key, _, rest = line.partition(":")
+        if key in ("VmRSS", "VmHWM", "VmPeak") and rest.split() and rest.split()[0].isdigit():
+            status[key] = int(rest.split()[0]) * 1024  # kB
+    again = max(status.get("VmHWM", 0) - status.get("VmRSS", 0), 0)
+    found: list[int] = []
+    for line in _read(Path("/proc/meminfo")).splitlines():
+        if line.startswith("MemAvailable:"):
+            found.append(int(line.split()[1]) * 1024 - again)
+    room = cgroup_room()
+    if room is not None:
+        found.append(room - again)
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY and "VmPeak" in status:
+        found.append(soft - status["VmPeak"])
+    return min(found) if found else None
+
+
 def cgroup_room(root: Path = Path("/")) -> int | None:
     """Bytes left under the memory limit of this process's own cgroup (v2's ``memory.max``, v1's
     ``memory.limit_in_bytes``; the group ``/proc/self/cgroup`` names, else the mount's root), counting what its

@@ -119,6 +119,22 @@ class ExposureCheck(Strict):
     """``spread >= threshold``: the photos' exposures were learned from the next step on."""
 
 
+class MemoryHold(Strict):
+    """Densification's growth held below the budget because memory ran short (``Trainer._memory_limit``)."""
+
+    step: int
+    """The first densification step memory held."""
+    last_step: int
+    gaussians: int
+    """The model's size at the last step held."""
+    room_mb: float
+    """MiB training could still take there, beyond what its steps take again at their peaks."""
+    per_gaussian_bytes: float
+    """The estimate of what each added Gaussian takes at a step's peak (``strategy.budget.GROWN_GAUSSIAN_FACTOR``)."""
+    held: int
+    """How many densification steps memory held."""
+
+
 class Budget(Strict):
     """The model-size limit densification had (``strategy.budget.GaussianBudget``)."""
 
@@ -126,6 +142,8 @@ class Budget(Strict):
     source: str
     """``config`` (``densify.max_gaussians`` set by the user or a preset) or ``auto`` (from the training pixels)."""
     reason: str
+    memory_hold: MemoryHold | None = None
+    """Set when memory held growth below ``max_gaussians`` (the model stayed smaller, the run went on)."""
 
 
 class MemoryPerGaussian(Strict):
@@ -148,10 +166,10 @@ class TrainSummary(SchemaFile):
     """
 
     FILE_NAME = "train_summary.json"
-    SCHEMA_VERSION = 6
+    SCHEMA_VERSION = 7
     WRITTEN_BY = "uncertsplat train SCENE -o RUN --resume"  # (a plain re-run refuses the existing run folder)
 
-    schema_version: int = 6
+    schema_version: int = 7
     method: str
     variant: str
     steps: int
@@ -221,14 +239,17 @@ class TrainSummary(SchemaFile):
     def _upgrade(cls, data: dict, version: int) -> dict | None:
         # version 1 had no informed posterior (no updates); versions 1 and 2 neither the fit on the training views
         # nor the warnings; versions 1-3 no exposure tests; versions 1-4 no posterior.position_prior (measured
-        # against the config's std then); versions 1-5 no transients (none were found); in the run and its members
-        if version not in (1, 2, 3, 4, 5):
+        # against the config's std then); versions 1-5 no transients (none were found); versions 1-6 no hold of the
+        # budget by memory (none held); in the run and its members
+        if version not in (1, 2, 3, 4, 5, 6):
             return None
 
         def up(d: dict) -> dict:
             d = {"train_psnr": None, "warnings": [], "exposure_checks": [], **d, "schema_version": cls.SCHEMA_VERSION}
             if isinstance(d.get("posterior"), dict):
                 d["posterior"] = {"position_prior": "config", **d["posterior"]}
+            if isinstance(d.get("budget"), dict):
+                d["budget"] = {"memory_hold": None, **d["budget"]}
             return {**d, "posterior_updates": []} if version == 1 else d
 
         return {**up(data), "members": [up(m) for m in data.get("members", [])]}

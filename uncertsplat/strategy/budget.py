@@ -19,6 +19,24 @@ MAX_BUDGET = 2_000_000
 """Nor above this, the ceiling of the fixed budget it replaced."""
 
 
+MEMORY_RESERVE = 256 * 2**20
+"""Bytes growth leaves free beyond what training will take: the process's and the system's other allocations move
+by more than the estimate of a grown Gaussian's cost is sure of."""
+GROWN_GAUSSIAN_FACTOR = 6.0
+"""Bytes a Gaussian grown by densification adds to a training step's peak, per byte of its parameters, offset-table
+share and Adam moments (``gaussians.params.memory_per_gaussian``): their gradients, the render's per-Gaussian and
+per-pair buffers and the posterior updates' accumulators come on top. Measured 3.8x at 320x240, 4.7x at 640x480 and
+6.8x at 1280x960 on randomly placed Gaussians, whose footprints are larger than a trained model's (BENCHMARKS.md,
+"Growth that stops before memory runs out")."""
+
+
+def memory_growth_limit(gaussians: int, room: int, per_gaussian: float) -> int:
+    """The most Gaussians a model of ``gaussians`` may grow to when the process may take ``room`` more bytes beyond
+    what its steps already take at their peaks, each added Gaussian costing ``per_gaussian`` bytes there, and
+    ``MEMORY_RESERVE`` is kept free. Never below ``gaussians``: memory never removes Gaussians, it stops growth."""
+    return gaussians + max(int((room - MEMORY_RESERVE) // max(per_gaussian, 1.0)), 0)
+
+
 @dataclass(frozen=True)
 class GaussianBudget:
     """The model-size limit of a run and where it comes from (``train_summary.json`` ``budget``)."""
@@ -46,4 +64,5 @@ def gaussian_budget(max_gaussians: int | None, pixels_per_gaussian: float, *, vi
     return GaussianBudget(n, "auto", reason)
 
 
-__all__ = ["MAX_BUDGET", "MIN_BUDGET", "GaussianBudget", "gaussian_budget"]
+__all__ = ["GROWN_GAUSSIAN_FACTOR", "MAX_BUDGET", "MEMORY_RESERVE", "MIN_BUDGET", "GaussianBudget", "gaussian_budget",
+           "memory_growth_limit"]

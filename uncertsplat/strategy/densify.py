@@ -151,10 +151,12 @@ class Densifier:
         radius = radii.detach().to(norm.dtype)
         self.stats.max_radius = torch.maximum(self.stats.max_radius, (radius * vis).amax(0))
 
-    def step(self, step: int, model: GaussianModel, optimizer, generator: torch.Generator) -> dict[str, int]:
-        """Topology changes due at ``step`` (after its optimiser update). Returns counts of what happened."""
+    def step(self, step: int, model: GaussianModel, optimizer, generator: torch.Generator, *,
+             limit: int | None = None) -> dict[str, int]:
+        """Topology changes due at ``step`` (after its optimiser update). Returns counts of what happened; ``held``
+        counts the clones and splits that ``limit`` (the model size memory allows, below the budget) left out."""
         cfg = self.cfg
-        done = {"cloned": 0, "split": 0, "pruned": 0, "spawned": 0, "reset": 0}
+        done = {"cloned": 0, "split": 0, "pruned": 0, "spawned": 0, "reset": 0, "held": 0}
         changed = False
         if is_densify_step(step, cfg, self.iterations):
             with torch.no_grad():
@@ -165,8 +167,12 @@ class Densifier:
                 clone_m, split_m = densify_decisions(grad, max_scale, grad_threshold=cfg.grad_threshold,
                                                      percent_dense=cfg.percent_dense, extent=self.extent)
                 # the Trainer sets the scene's budget (strategy.budget); unset, the ceiling of any budget applies
-                limit = cfg.max_gaussians if cfg.max_gaussians is not None else MAX_BUDGET
-                clone_m, split_m = limit_growth(clone_m, split_m, grad, len(model), limit if self.grow else 0)
+                budget = cfg.max_gaussians if cfg.max_gaussians is not None else MAX_BUDGET
+                clone_m, split_m = limit_growth(clone_m, split_m, grad, len(model), budget if self.grow else 0)
+                if limit is not None and limit < budget and self.grow:
+                    wanted = int(clone_m.sum()) + int(split_m.sum())
+                    clone_m, split_m = limit_growth(clone_m, split_m, grad, len(model), limit)
+                    done["held"] = wanted - int(clone_m.sum()) - int(split_m.sum())
                 n0 = len(model)
                 split_scales = pm.scales
             ops.clone(model, optimizer, clone_m)

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Hashable
+import math
+from collections.abc import Hashable, Sequence
 
 from torch import Tensor
 
@@ -55,6 +56,13 @@ class SsimTargetCache:
 
     def __len__(self) -> int:
         return len(self._stats)
+
+    def pending_bytes(self, shape: Sequence[int]) -> int:
+        """Bytes the cache may still take for training photos of ``shape`` ([T,H,W,3]): what its budget leaves, at
+        most the photos' own statistics not kept yet."""
+        if self._full or self.budget_bytes <= 0:
+            return 0
+        return max(min(self.budget_bytes, 8 * math.prod(shape)) - self.used_bytes, 0)
 
     def get(self, key: Hashable, target: Tensor) -> Tensor | None:
         """The statistics of ``target`` (HWC images [...,H,W,3]) under ``key`` (which names those exact pixels, e.g.

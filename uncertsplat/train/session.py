@@ -751,7 +751,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         warnings += [w for w in [transients_warning(transients, len(data.split["train"]), trainer.transients_stopped)]
                      if w]
         # what loading changed of the photos (turned, cropped, left out) goes into the summary, so the report shows it
-        recorded = warnings + [f"scene: {note}" for note in data.notes]
+        # (memory holding growth was said when it happened)
+        recorded = warnings + [w for w in [trainer.memory_hold_warning()] if w] + [f"scene: {note}" for note in data.notes]
         summary = TrainSummary(**trainer.summary(), test_psnr=held.get("psnr"), test_ssim=held.get("ssim"),
                                test_render="expected render (variational.expected_render_sample)",
                                num_test_views=len(data.split.get("test", ())), device=str(device), kernels=kernels,

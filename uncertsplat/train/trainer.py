@@ -51,7 +51,7 @@ from uncertsplat.render.exposure import centred, expose, exposure_record, fitted
 from uncertsplat.render.project import point_depths, points_in_view
 from uncertsplat.schemas.base import finite_or_none
 from uncertsplat.schemas.runs import RunExposure
-from uncertsplat.strategy.budget import gaussian_budget
+from uncertsplat.strategy.budget import GROWN_GAUSSIAN_FACTOR, gaussian_budget, memory_growth_limit
 from uncertsplat.strategy.densify import Densifier, DensifyStats
 from uncertsplat.strategy.exposure import EXPOSURE_SPREAD, ExposureCheck, exposure_check_due, gain_spread
 from uncertsplat.strategy.growth import (
@@ -61,7 +61,13 @@ from uncertsplat.strategy.growth import (
     halving_cost_db,
     weakest_half,
 )
-from uncertsplat.strategy.schedule import SETTLE_FRACTION, densify_end, is_opacity_reset_step, sh_degree_at
+from uncertsplat.strategy.schedule import (
+    SETTLE_FRACTION,
+    densify_end,
+    is_densify_step,
+    is_opacity_reset_step,
+    sh_degree_at,
+)
 from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due
 from uncertsplat.strategy.view_checks import check_views
 from uncertsplat.train.adam import Adam, all_finite
@@ -442,6 +448,9 @@ class Trainer:
         # {"step", "photos", "of"} when the test switched itself off (regions in nearly every photo after a pass over
         # them: parts of the scene the model cannot fit, not transients; ``_drop_transients``), else None
         self.transients_stopped: dict[str, int] | None = None
+        # {"step", "last_step", "gaussians", "room_mb", "per_gaussian_bytes", "held"} once memory held densification's
+        # growth below the budget (``_memory_limit``), else None
+        self.memory_hold: dict | None = None
         if state is None:
             self._init_fresh()
         else:
@@ -633,6 +642,7 @@ class Trainer:
             "sh_bands": [b.model_dump() for b in self.sh_bands],
             "posterior_updates": [dict(u) for u in self.posterior_updates],
             "growth": [g.model_dump() for g in self.growth],
+            "memory_hold": dict(self.memory_hold) if self.memory_hold else {},
             "exposure": self.exposure.detach().clone() if self.exposure is not None else None,
             "exposure_views": torch.tensor(self.train_idx, dtype=torch.long),
             "train_names": self._train_names(),
@@ -698,6 +708,7 @@ class Trainer:
         self.posterior_updates = [dict(u) for u in state.get("posterior_updates", [])]
         self.growth = [GrowthCheck(**g) for g in state.get("growth", [])]  # likewise
         self.densifier.grow = not any(g.stopped for g in self.growth)
+        self.memory_hold = dict(state.get("memory_hold") or {}) or None  # (absent in checkpoints from before)
         self.step = int(state["step"])
         self.elapsed = float(state["elapsed"])
         self.exposure_checks = [ExposureCheck(**c) for c in state.get("exposure_checks", [])]
@@ -736,6 +747,63 @@ class Trainer:
         d = self.cfg.densify
         return gaussian_budget(d.max_gaussians, d.pixels_per_gaussian, views=len(self.train_idx),
                                width=self.train_cams.width, height=self.train_cams.height)
+
+    def _memory_room(self) -> int | None:
+        """Bytes training may still take on its device beyond what its steps take again at their peaks (a render's
+        buffers, free between steps), and the SSIM statistics still to be kept; None where the device does not say.
+        """
+        if self.device.type == "cuda":
+            try:
+                free, _ = torch.cuda.mem_get_info(self.device)
+            except RuntimeError:  # (a device or driver that does not say)
+                return None
+            allocated = torch.cuda.memory_allocated(self.device)
+            cached = torch.cuda.memory_reserved(self.device) - allocated  # the allocator's, free to torch
+            return free + cached - max(torch.cuda.max_memory_allocated(self.device) - allocated, 0)
+        if self.device.type != "cpu":
+            return None
+        from uncertsplat.io.memory import room_beyond_peak
+
+        room = room_beyond_peak()
+        return room - self.ssim_cache.pending_bytes(self.train_images.shape) if room is not None else None
+
+    def _memory_limit(self, step: int) -> tuple[int, int, float] | None:
+        """(the most Gaussians densification may grow to at ``step`` before memory runs short, the room in bytes,
+        the bytes an added Gaussian takes), or None where no growth is due or the device does not say. Growth that
+        ran the process out of memory lost the run late (a capture's budget is up to ``MAX_BUDGET`` Gaussians, some
+        GB): held here instead, with a warning (``_memory_held``)."""
+        cfg = self.cfg.densify
+        if not self.densifier.grow or not is_densify_step(step, cfg, self.cfg.iterations) \
+                or len(self.model) >= self.budget.max_gaussians:
+            return None
+        room = self._memory_room()
+        if room is None:
+            return None
+        per = GROWN_GAUSSIAN_FACTOR * memory_per_gaussian(self.model, table_moments=not self.informed)["total"]
+        return memory_growth_limit(len(self.model), room, per), room, per
+
+    def _memory_held(self, step: int, limit: int, room: int, per: float) -> None:
+        """Record (and say, the first time) that memory held densification's growth at ``step``."""
+        first = self.memory_hold is None
+        hold = self.memory_hold or {"step": step, "held": 0}
+        hold.update(last_step=step, gaussians=len(self.model), room_mb=round(room / 2**20, 1),
+                    per_gaussian_bytes=round(per), held=hold["held"] + 1)
+        self.memory_hold = hold
+        if first:
+            from uncertsplat.console import console
+
+            console.print(f"[yellow]warning:[/] {self.memory_hold_warning()}")
+
+    def memory_hold_warning(self) -> str | None:
+        """What ``train`` says (and records in its warnings) when memory held growth; None when it never did."""
+        h = self.memory_hold
+        if not h:
+            return None
+        return (f"memory held the model's growth from step {h['step']} on, at {h['gaussians']:,} Gaussians (its budget "
+                f"is {self.budget.max_gaussians:,}; {max(h['room_mb'], 0) / 1024:.2f} GB were left beyond what training "
+                f"takes, about {h['per_gaussian_bytes'] / 1024:.1f} KB for each Gaussian more): training goes on with "
+                "the Gaussians memory holds rather than run out. For a larger model free memory or lower its use "
+                f"(--set scene.downscale=2); --set densify.max_gaussians={h['gaussians']} makes this size the budget")
 
     def _make_densifier(self) -> Densifier:
         dcfg = self.cfg.densify
@@ -1064,7 +1132,11 @@ class Trainer:
                 self.step = before
             self._test_seconds = time.perf_counter() - t0
         with timer("densify"):
-            done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise)
+            limit = self._memory_limit(step)
+            done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise,
+                                       limit=limit[0] if limit is not None else None)
+            if done.pop("held") and limit is not None:
+                self._memory_held(step, *limit)
             if any(done.values()):
                 self._expected = None
         if len(self.model) == 0:  # (trained on as an empty model, it ended in a traceback writing its PLY)
@@ -1370,7 +1442,8 @@ class Trainer:
                 "exposure_checks": [c.model_dump() for c in self.exposure_checks],
                 "variant": self.cfg.variant, "method": self.cfg.method,
                 "posterior": self.posterior_summary(),
-                "posterior_updates": self.posterior_updates, "budget": self.budget.as_dict(),
+                "posterior_updates": self.posterior_updates,
+                "budget": {**self.budget.as_dict(), "memory_hold": self.memory_hold},
                 **({"profile": self.timer.summary()} if self.timer.enabled else {})}
 
 
