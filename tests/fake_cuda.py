@@ -49,6 +49,15 @@ import torch.utils._pytree as pytree
 from torch.overrides import TorchFunctionMode
 
 FAKE_CUDA = torch.device("cuda", 0)
+
+
+class _NotCapturing:
+    """The stream ``torch.accelerator.current_stream`` answers: a CUDA build of torch (not a CPU one) asks it whether a
+    CUDA graph is being captured before an optimiser's step, which reached for a driver the emulator has not."""
+
+    def is_capturing(self) -> bool:
+        return False
+
 FAKE_FREE_BYTES = 80 * 2**30
 """What ``torch.cuda.mem_get_info`` answers (free and total): a device with room for any test's model."""
 _CPU = torch.device("cpu")
@@ -311,6 +320,8 @@ def fake_cuda() -> Iterator[FakeCuda]:
         for zero in ("memory_allocated", "max_memory_allocated", "memory_reserved", "max_memory_reserved"):
             mp.setattr(torch.cuda, zero, lambda device=None: 0)
         mp.setattr(torch.cuda, "mem_get_info", lambda device=None: (FAKE_FREE_BYTES, FAKE_FREE_BYTES))
+        if hasattr(torch, "accelerator"):  # a CUDA build of torch asks its stream in Optimizer.step: none is capturing
+            mp.setattr(torch.accelerator, "current_stream", lambda device=None: _NotCapturing())
         _ACTIVE.append(state)
         try:
             with _Mode(state):

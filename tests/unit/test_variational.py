@@ -17,6 +17,7 @@ from uncertsplat.gaussians.variational import (
     gaussian_kl,
     inverse_softplus,
     kl_terms,
+    log_softplus,
     posterior_mean,
     posterior_summary,
     prior_rows,
@@ -389,3 +390,28 @@ def test_expected_render_at_the_prior():
     assert (er.position_var[~car] == 0).all()
     torch.testing.assert_close(er.opacities, pm.opacities, rtol=0, atol=0)  # E[gate]; the blur's dimming is per view
     torch.testing.assert_close(er.scales[~car], pm.scales[~car], rtol=0, atol=0)
+
+
+class TestBoundsWhateverTorchsClamp:
+    """A clamp's gradient at its bound is 1 up to torch 2.13 and 0 from torch 2.14: the functions the posterior's
+    gradients pass through give the same value and gradient under both (x = -15 in the KL's log, a width at a
+    bound)."""
+
+    def test_log_softplus_has_its_true_gradient_at_the_branch_point(self):
+        x = torch.tensor([-30.0, -15.0 - 1e-3, -15.0, -14.0, 0.0, 30.0], dtype=torch.float64, requires_grad=True)
+        y = log_softplus(x)
+        y.sum().backward()
+        exact = torch.log(torch.nn.functional.softplus(x.detach()))
+        truth = torch.sigmoid(x.detach()) / torch.nn.functional.softplus(x.detach())  # d/dx log softplus(x)
+        torch.testing.assert_close(y.detach(), torch.where(x.detach() < -15, x.detach(), exact))
+        torch.testing.assert_close(x.grad, truth, rtol=1e-6, atol=0)
+
+    def test_a_width_on_a_bound_keeps_its_gradient(self):
+        from uncertsplat.gaussians.prior import MAX_WIDTH, MIN_WIDTH
+        from uncertsplat.gaussians.variational import clamp_width
+
+        w = torch.tensor([MIN_WIDTH / 2, MIN_WIDTH, 1.0, MAX_WIDTH, MAX_WIDTH * 2], requires_grad=True)
+        out = clamp_width(w)
+        out.sum().backward()
+        torch.testing.assert_close(out.detach(), w.detach().clamp(MIN_WIDTH, MAX_WIDTH))
+        assert w.grad.tolist() == [0.0, 1.0, 1.0, 1.0, 0.0]

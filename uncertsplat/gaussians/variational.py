@@ -65,8 +65,17 @@ from uncertsplat.types import GaussianSample
 def log_softplus(x: Tensor) -> Tensor:
     """log(softplus(x)) without underflow: softplus(x) ~ exp(x) for x << 0, so the log is x there."""
     low = x < -15.0
-    # clamp each branch's input so the branch not taken cannot produce inf (and NaN gradients)
-    return torch.where(low, x.clamp_max(-15.0), torch.log(F.softplus(x.clamp_min(-15.0))))
+    # the branch not taken gets a safe input so it cannot produce inf (and NaN gradients); through ``where``, not a
+    # clamp: a clamp's gradient at its bound is 1 up to torch 2.13 and 0 from 2.14, which left x = -15 without one
+    safe = torch.where(low, torch.full_like(x, -15.0), x)
+    return torch.where(low, x, torch.log(F.softplus(safe)))
+
+
+def clamp_width(width: Tensor) -> Tensor:
+    """``width`` clamped to [MIN_WIDTH, MAX_WIDTH], with the gradient 1 on the bounds themselves whatever torch's
+    version (a clamp's is 0 there from torch 2.14: a width that starts at a bound never left it)."""
+    inside = (width >= MIN_WIDTH) & (width <= MAX_WIDTH)
+    return torch.where(inside, width, width.clamp(MIN_WIDTH, MAX_WIDTH))
 
 
 def _unit(variant: Variant, extent: float) -> float:
@@ -198,7 +207,7 @@ def _sample_from(model: GaussianModel, d: _Draws, avgs: dict[str, Tensor], *, va
     """A sample from the subset-averaged raw columns ``avgs`` [P,D] and the draws."""
     sigma = F.softplus(avgs["pos_spread_raw"])
     offset = (avgs["pos_loc"] + sigma * d.eps) * _unit(variant, extent)
-    width = F.softplus(avgs["scale_width_raw"]).clamp(MIN_WIDTH, MAX_WIDTH)
+    width = clamp_width(F.softplus(avgs["scale_width_raw"]))
     mult = avgs["scale_left"] + width * d.u
     tau = F.softplus(avgs["gate_spread_raw"])
     gate = torch.sigmoid((avgs["gate_loc"] + tau * d.eta) / temperature)[:, 0]
@@ -356,7 +365,7 @@ def _entry_means(t: dict[str, Tensor], variant: Variant, extent: float,
 
 def _multiplier_width(t: dict[str, Tensor]) -> Tensor:
     """[P,3] the width w of the multiplier's interval [l, l + w] (all K entries averaged, clamped)."""
-    return F.softplus(t["scale_width_raw"].mean(1)).clamp(MIN_WIDTH, MAX_WIDTH)
+    return clamp_width(F.softplus(t["scale_width_raw"].mean(1)))
 
 
 def _position_variance(t: dict[str, Tensor], variant: Variant, extent: float) -> Tensor:
@@ -604,7 +613,7 @@ def gaussian_kl(loc: Tensor, spread_raw: Tensor, prior_loc: float, prior_std: fl
 
 def scale_kl(left: Tensor, width_raw: Tensor, prior_width: float, variant: Variant) -> Tensor:
     """Elementwise scale-multiplier divergence (see the module docstring for why not the true KL)."""
-    width = F.softplus(width_raw).clamp(MIN_WIDTH, MAX_WIDTH)
+    width = clamp_width(F.softplus(width_raw))
     if variant == "paper":
         return (left - (1.0 - prior_width)).abs() + (left + width - 1.0).abs()
     # moment-matched Gaussians: N(l + w/2, w^2/12) against N(1 - w_p/2, w_p^2/12)
