@@ -10,7 +10,7 @@ import torch
 
 from tests.e2e.test_train_resume import toy_config, toy_scene
 from uncertsplat.config import PIXELS_PER_GAUSSIAN, DensifyConfig
-from uncertsplat.gaussians.params import memory_per_gaussian
+from uncertsplat.gaussians.params import memory_per_gaussian, memory_per_new_gaussian
 from uncertsplat.schemas.runs import Budget
 from uncertsplat.strategy import budget as budget_mod
 from uncertsplat.strategy.budget import MAX_BUDGET, MIN_BUDGET, gaussian_budget
@@ -86,8 +86,8 @@ def test_memory_holds_growth_below_the_budget_and_records_it(monkeypatch, capsys
     start = len(Trainer(*toy_scene()[:1], toy_config(), *toy_scene()[1:]).model)
 
     def room(self):  # room for 30 more Gaussians than the model starts with, at the trainer's own cost per Gaussian
-        per = budget_mod.GROWN_GAUSSIAN_FACTOR * memory_per_gaussian(self.model, table_moments=not self.informed)[
-            "total"]
+        per = budget_mod.GROWN_GAUSSIAN_FACTOR * memory_per_new_gaussian(self.model, carrier=True,
+                                                                         table_moments=not self.informed)
         return budget_mod.MEMORY_RESERVE + int((start + 30 - len(self.model)) * per) + 1
 
     held = _grown(monkeypatch, room)
@@ -95,10 +95,12 @@ def test_memory_holds_growth_below_the_budget_and_records_it(monkeypatch, capsys
     assert start < len(held.model) <= start + 30, "it grows into the room it has, no further"
     hold = Budget.model_validate(held.summary()["budget"]).memory_hold
     assert hold is not None and hold.gaussians <= start + 30 and hold.held >= 1 and hold.step <= hold.last_step
-    assert free.summary()["budget"]["memory_hold"] is None
+    assert hold.budget == 10**6 and free.summary()["budget"]["memory_hold"] is None
     warning = held.memory_hold_warning()
     assert "memory held the model's growth" in warning and f"densify.max_gaussians={hold.gaussians}" in warning
-    assert capsys.readouterr().err.count("memory held the model's growth") == 1, "said once, when it first holds"
+    said = capsys.readouterr().err
+    assert said.count("memory held the model's growth") == 1, "said once, when it first holds"
+    assert " ".join(said.split()).endswith(" ".join(warning.split())), "what it said is what it records"
     assert torch.isfinite(held.model.params["means"]).all()
 
 
@@ -115,7 +117,7 @@ def test_a_device_that_does_not_say_leaves_the_budget_alone(monkeypatch):
     assert len(unknown.model) == len(free.model) and unknown.memory_hold is None
 
 
-def test_a_resume_keeps_the_record_of_memory_holding_growth(monkeypatch):
+def test_a_resume_keeps_the_record_of_memory_holding_growth(monkeypatch, capsys):
     from uncertsplat.io.checkpoints import decode, encode
 
     scene, tr, te = toy_scene()
@@ -125,11 +127,14 @@ def test_a_resume_keeps_the_record_of_memory_holding_growth(monkeypatch):
     part = Trainer(scene, cfg, tr, te)
     part.fit(until=12)
     assert part.memory_hold is not None and part.memory_hold["last_step"] <= 12
+    capsys.readouterr()
     resumed = Trainer(scene, cfg, tr, te, state=decode(encode(part.state_dict())))
     resumed.fit()
     hold = resumed.summary()["budget"]["memory_hold"]
-    assert hold["step"] == part.memory_hold["step"], "the first hold is the one before the checkpoint"
+    assert hold == {**part.memory_hold, "last_step": hold["last_step"], "held": hold["held"]}, \
+        "the first hold's numbers are the ones before the checkpoint"
     assert hold["last_step"] > 12 and hold["held"] > part.memory_hold["held"], "the holds after it are added"
+    assert capsys.readouterr().err.count("memory held the model's growth") == 1, "the resumed process says it too"
 
 
 def test_a_version_6_train_summary_reads_with_no_hold():
@@ -144,3 +149,30 @@ def test_a_version_6_train_summary_reads_with_no_hold():
     got = TrainSummary.from_dict(v6)
     assert got.schema_version == TrainSummary.SCHEMA_VERSION and got.budget.memory_hold is None
     assert got.budget.max_gaussians == 40000 and got.steps == old["steps"]
+
+
+def test_a_new_gaussian_is_priced_as_a_carrier_before_any_carrier_exists():
+    """Split children carry a posterior: priced by the model's average while none did, growth was priced 7x low."""
+    from uncertsplat.gaussians.variational import random_model
+
+    gen = torch.Generator().manual_seed(0)
+    none = random_model(100, gen, carrier_fraction=0.0)
+    some = random_model(100, gen, carrier_fraction=0.5)
+    carrier = memory_per_new_gaussian(none, carrier=True)
+    assert carrier == memory_per_new_gaussian(some, carrier=True), "whatever the share of carriers"
+    assert carrier > memory_per_gaussian(none)["total"] + 2 * some.tables["pos_loc"][0].numel() * 4
+    assert memory_per_new_gaussian(none, carrier=False) == pytest.approx(memory_per_gaussian(none)["total"])
+    assert memory_per_new_gaussian(none, carrier=True, table_moments=False) < carrier
+
+
+def test_each_training_is_held_by_its_own_peaks_not_the_process_s(monkeypatch):
+    """An ensemble's later member, a sweep's later point, a pipeline's train stage: a Trainer starts its peak over."""
+    from uncertsplat.train import trainer as trainer_mod
+
+    resets = []
+    monkeypatch.setattr(trainer_mod, "reset_peak_memory", lambda device: resets.append(str(device)))
+    monkeypatch.setattr(trainer_mod, "peak_memory_mb", lambda device: 4321.0 if not resets else 1234.0)
+    scene, tr, te = toy_scene()
+    t = Trainer(scene, toy_config(), tr, te)
+    assert resets == ["cpu"], "reset once it is built"
+    assert t.summary()["peak_memory_mb"] == 4321.0, "the summary keeps the process's peak from before"

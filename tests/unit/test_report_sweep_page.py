@@ -74,3 +74,15 @@ def test_knobs_the_spec_never_set_are_not_listed():
     page = build_sweep_page(_summary([rec], {}, "a"), "pareto.png")
     row = re.search(r'<tr [^>]*data-point="a">(.*?)</tr>', page, re.S).group(1)
     assert "iterations=100" in row and "None" not in row
+
+
+def test_page_names_the_points_whose_growth_memory_held():
+    from uncertsplat.strategy.budget import memory_hold_warning
+
+    warning = memory_hold_warning({"step": 100, "gaussians": 4324, "budget": 50000, "room_mb": 200.0,
+                                   "per_gaussian_bytes": 6144})
+    held = _rec("b", "variational", 5.0, 0.5).model_copy(update={"notes": [f"training: {warning}", "other"]})
+    page = build_sweep_page(_summary([_rec("a", "variational", 10.0, 0.3), held], {}, None), None)
+    assert "growth in the training of b:" in page
+    free = build_sweep_page(_summary([_rec("a", "variational", 10.0, 0.3)], {}, None), None)
+    assert "Memory held" not in free

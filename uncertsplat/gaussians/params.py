@@ -233,6 +233,16 @@ def init_from_points(points: Tensor, colors: Tensor, *, sh_degree: int, num_entr
     return GaussianModel(params, tables, torch.full((n,), -1, dtype=torch.long, device=dev), sh_degree, num_entries)
 
 
+def memory_per_new_gaussian(model: GaussianModel, *, carrier: bool, table_moments: bool = True) -> float:
+    """Bytes one more Gaussian of ``model`` takes: its row of every parameter with their two Adam moments, its table
+    index and, for a ``carrier``, its offset-table rows (with their two moments where ``table_moments``). Unlike
+    :func:`memory_per_gaussian`'s average this does not depend on how many carry a posterior yet (densification's
+    split children all do: priced by the average before the first carriers, growth was priced 7x too low)."""
+    row = sum(math.prod(t.shape[1:]) * t.element_size() for t in model.params.values())
+    table = sum(math.prod(t.shape[1:]) * t.element_size() for t in model.tables.values()) if carrier else 0
+    return float(3 * row + model.posterior_row.element_size() + table * (3 if table_moments else 1))
+
+
 def memory_per_gaussian(model: GaussianModel, *, optimizer_moments: bool = True,
                         table_moments: bool = True) -> dict[str, float]:
     """Bytes per Gaussian: parameters, offset tables (only carriers pay), and Adam moments (2x; of the tables

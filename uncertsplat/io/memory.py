@@ -30,28 +30,68 @@ def available_memory() -> int | None:
 
 
 def room_beyond_peak() -> int | None:
-    """Bytes this process may still take beyond the most it took so far, or None where nothing says: what a loop
-    that repeats (a training step: a render's buffers are given back after it and taken again by the next) can add
-    for good. The least of ``MemAvailable`` and the cgroup's room, each less what the process's resident peak
-    (``VmHWM``) holds above its resident memory now, and of the address-space limit less its peak size
-    (``VmPeak``)."""
+    """Bytes this process may still take beyond the most it took since its resident peak was last reset
+    (``trainer.reset_peak_memory``), or None where nothing says: what a loop that repeats (a training step: a
+    render's buffers are given back after it and taken again by the next) can add for good. The least of
+    ``MemAvailable``, the cgroup's room and the address-space limit less the process's size (``VmSize``), each less
+    what the resident peak (``VmHWM``) holds above the resident memory now (``VmRSS``)."""
     status = {}
     for line in _read(Path("/proc/self/status")).splitlines():
         key, _, rest = line.partition(":")
-        if key in ("VmRSS", "VmHWM", "VmPeak") and rest.split() and rest.split()[0].isdigit():
+        if key in ("VmRSS", "VmHWM", "VmSize") and rest.split() and rest.split()[0].isdigit():
             status[key] = int(rest.split()[0]) * 1024  # kB
     again = max(status.get("VmHWM", 0) - status.get("VmRSS", 0), 0)
     found: list[int] = []
     for line in _read(Path("/proc/meminfo")).splitlines():
         if line.startswith("MemAvailable:"):
-            found.append(int(line.split()[1]) * 1024 - again)
+            found.append(int(line.split()[1]) * 1024)
     room = cgroup_room()
     if room is not None:
-        found.append(room - again)
+        found.append(room)
     soft, _ = resource.getrlimit(resource.RLIMIT_AS)
-    if soft != resource.RLIM_INFINITY and "VmPeak" in status:
-        found.append(soft - status["VmPeak"])
-    return min(found) if found else None
+    if soft != resource.RLIM_INFINITY and "VmSize" in status:
+        # what the C allocator holds free stays mapped: the process takes it again without growing its size
+        found.append(soft - status["VmSize"] + allocator_free_bytes())
+    return min(found) - again if found else None
+
+
+def _glibc():
+    """The C library when it is glibc (``malloc_trim``, ``mallinfo2``: 2.33 and newer), else None."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.malloc_trim, libc.mallinfo2  # noqa: B018 (both must be there)
+    except (OSError, AttributeError):
+        return None
+    return libc
+
+
+def allocator_free_bytes() -> int:
+    """Bytes the C allocator holds free inside the process (glibc's ``mallinfo2().fordblks``; 0 where unknown):
+    memory a freed tensor left mapped, which the next allocations reuse."""
+    import ctypes
+
+    libc = _glibc()
+    if libc is None:
+        return 0
+
+    class MallInfo2(ctypes.Structure):
+        _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                          "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+    libc.mallinfo2.restype = MallInfo2
+    return int(libc.mallinfo2().fordblks)
+
+
+def release_free_memory() -> None:
+    """Give the pages the C allocator holds free back to the system (glibc's ``malloc_trim``): what an earlier
+    training in this process freed (an ensemble's member, a sweep's point) otherwise stays resident and counts
+    against the next one's room."""
+    libc = _glibc()
+    if libc is not None:
+        libc.malloc_trim(0)
 
 
 def cgroup_room(root: Path = Path("/")) -> int | None:

@@ -12,6 +12,7 @@ import time
 
 from uncertsplat.report.html import Cell, figure, kv, note, page, para, table
 from uncertsplat.schemas.runs import SweepGroup, SweepRecord, SweepSummary
+from uncertsplat.strategy.budget import MEMORY_HOLD
 
 # (SweepRecord field, column header, format)
 COLUMNS: tuple[tuple[str, str, str], ...] = (
@@ -72,6 +73,11 @@ def build_sweep_page(summary: SweepSummary, figure_rel: str | None) -> str:
         head += note("Points trained at another downscale are scored against their photos at that size, so their "
                      "PSNR, AUSE and NLL do not compare with the others': each resolution has a front of its own "
                      "(\"@ downscale D\"), and the figure a row of panels.")
+    held = [r.id for r in recs if any(MEMORY_HOLD in n for n in (r.notes or []))]
+    if held:
+        head += note(f"Memory held the model's growth in the training of {', '.join(held)}: they have fewer Gaussians "
+                     "than their settings grow where memory allows, and their accuracy and time are of that smaller "
+                     "model (train_summary.json's budget.memory_hold in each run).")
     sections.append(("summary", "Summary", head))
     if figure_rel:
         body = figure(figure_rel, "Accuracy vs time: every point coloured by method, the Pareto front as a black "

@@ -126,11 +126,14 @@ class MemoryHold(Strict):
     """The first densification step memory held."""
     last_step: int
     gaussians: int
-    """The model's size at the last step held."""
+    """The model's size at the first step held (growth may go on after it where the room allows)."""
+    budget: int
+    """The budget in force then (``--add-views`` may raise it later)."""
     room_mb: float
-    """MiB training could still take there, beyond what its steps take again at their peaks."""
+    """MiB training could still take at the first step held, beyond what its steps take again at their peaks."""
     per_gaussian_bytes: float
-    """The estimate of what each added Gaussian takes at a step's peak (``strategy.budget.GROWN_GAUSSIAN_FACTOR``)."""
+    """The estimate of what each added Gaussian takes at a step's peak (``strategy.budget.GROWN_GAUSSIAN_FACTOR`` x
+    ``gaussians.params.memory_per_new_gaussian``)."""
     held: int
     """How many densification steps memory held."""
 

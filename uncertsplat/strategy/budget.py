@@ -38,6 +38,23 @@ def memory_growth_limit(gaussians: int, room: int, per_gaussian: float) -> int:
     return gaussians + max(int((room - MEMORY_RESERVE) // max(per_gaussian, 1.0)), 0)
 
 
+MEMORY_HOLD = "memory held the model's growth"
+"""How ``memory_hold_warning`` begins: a sweep finds its held points by it."""
+
+
+def memory_hold_warning(hold: dict) -> str:
+    """The warning for a hold of densification's growth by memory (``Trainer.memory_hold``'s keys: the first hold's
+    step, size, budget, room and price)."""
+    room = hold["room_mb"] * 2**20
+    more = max(int((room - MEMORY_RESERVE) // max(hold["per_gaussian_bytes"], 1)), 0)
+    return (f"{MEMORY_HOLD} from step {hold['step']} on, at {hold['gaussians']:,} Gaussians (its "
+            f"budget: {hold['budget']:,}): {max(room, 0) / 2**30:.2f} GB were left beyond what training takes, growth "
+            f"keeps {MEMORY_RESERVE / 2**30:.2f} GB free and takes about {hold['per_gaussian_bytes'] / 1024:.1f} KB a "
+            f"Gaussian at a step's peak, room for {more:,} more where densification asked for more. Training goes on "
+            "with the Gaussians memory holds rather than run out; for a larger model free memory or lower its use "
+            f"(--set scene.downscale=2); --set densify.max_gaussians={hold['gaussians']} makes this size the budget")
+
+
 @dataclass(frozen=True)
 class GaussianBudget:
     """The model-size limit of a run and where it comes from (``train_summary.json`` ``budget``)."""
@@ -65,5 +82,5 @@ def gaussian_budget(max_gaussians: int | None, pixels_per_gaussian: float, *, vi
     return GaussianBudget(n, "auto", reason)
 
 
-__all__ = ["GROWN_GAUSSIAN_FACTOR", "MAX_BUDGET", "MEMORY_RESERVE", "MIN_BUDGET", "GaussianBudget", "gaussian_budget",
-           "memory_growth_limit"]
+__all__ = ["GROWN_GAUSSIAN_FACTOR", "MAX_BUDGET", "MEMORY_HOLD", "MEMORY_RESERVE", "MIN_BUDGET", "GaussianBudget",
+           "gaussian_budget", "memory_growth_limit", "memory_hold_warning"]

@@ -21,6 +21,7 @@ from uncertsplat.config import EvalConfig, TrainConfig
 from uncertsplat.console import advice_within, console
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.schemas import TrainSummary
+from uncertsplat.strategy.budget import MEMORY_HOLD
 
 RECORD_KEYS = ("psnr", "psnr_render", "ssim", "ause_mae", "ause_rmse", "nll", "nll_kde", "calibration_error",
                "nll_calibrated", "calibration_error_calibrated", "spearman", "depth_ause_mae", "depth_ause_rmse",
@@ -176,6 +177,8 @@ def run_job(job: dict) -> list[dict]:
                       "num_gaussians": summary.num_gaussians, "num_carriers": summary.num_carriers,
                       "memory_per_gaussian_bytes": summary.memory_per_gaussian_bytes,
                       "train_peak_memory_mb": train_peak}
+        # a point whose growth memory held has fewer Gaussians than its settings give: said with its record
+        train_notes = [f"training: {w}" for w in summary.warnings if w.startswith(MEMORY_HOLD)]
     except Interrupted:  # Ctrl-C / SIGTERM: the sweep stops (the checkpoint resumes the point), it does not retry
         raise
     except Exception as err:  # report, do not kill the sweep
@@ -192,6 +195,7 @@ def run_job(job: dict) -> list[dict]:
         try:
             console.rewrite = eval_advice
             rec.update(_evaluate(job, p, device))
+            rec["notes"] = train_notes + list(rec.get("notes") or [])
             rec["peak_memory_mb"] = max(train_peak, rec["eval_peak_memory_mb"])
             # what a user waits for: training, the predictive's fit (pixel noise, std factor: as long as a tiny
             # scene's training at K = 2, growing with K) and the evaluation

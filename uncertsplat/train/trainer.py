@@ -31,7 +31,13 @@ from uncertsplat.config import TrainConfig
 from uncertsplat.console import progress
 from uncertsplat.eval.image import masked_ssim, psnr, ssim
 from uncertsplat.gaussians.ops import truncate_sh
-from uncertsplat.gaussians.params import GaussianModel, far_points, init_from_points, memory_per_gaussian
+from uncertsplat.gaussians.params import (
+    GaussianModel,
+    far_points,
+    init_from_points,
+    memory_per_gaussian,
+    memory_per_new_gaussian,
+)
 from uncertsplat.gaussians.prior import Prior
 from uncertsplat.gaussians.variational import (
     ExpectedConstants,
@@ -51,7 +57,12 @@ from uncertsplat.render.exposure import centred, expose, exposure_record, fitted
 from uncertsplat.render.project import point_depths, points_in_view
 from uncertsplat.schemas.base import finite_or_none
 from uncertsplat.schemas.runs import RunExposure
-from uncertsplat.strategy.budget import GROWN_GAUSSIAN_FACTOR, gaussian_budget, memory_growth_limit
+from uncertsplat.strategy.budget import (
+    GROWN_GAUSSIAN_FACTOR,
+    gaussian_budget,
+    memory_growth_limit,
+    memory_hold_warning,
+)
 from uncertsplat.strategy.densify import Densifier, DensifyStats
 from uncertsplat.strategy.exposure import EXPOSURE_SPREAD, ExposureCheck, exposure_check_due, gain_spread
 from uncertsplat.strategy.growth import (
@@ -448,13 +459,23 @@ class Trainer:
         # {"step", "photos", "of"} when the test switched itself off (regions in nearly every photo after a pass over
         # them: parts of the scene the model cannot fit, not transients; ``_drop_transients``), else None
         self.transients_stopped: dict[str, int] | None = None
-        # {"step", "last_step", "gaussians", "room_mb", "per_gaussian_bytes", "held"} once memory held densification's
-        # growth below the budget (``_memory_limit``), else None
+        # {"step", "last_step", "gaussians", "budget", "room_mb", "per_gaussian_bytes", "held"} once memory held
+        # densification's growth below the budget (``_memory_limit``; the first hold's numbers), else None
         self.memory_hold: dict | None = None
         if state is None:
             self._init_fresh()
         else:
             self._load_state(state)
+        # growth is held by this training's own peaks (``_memory_room``), not those of what ran before it in this
+        # process (an ensemble's earlier member, a sweep's earlier point, a pipeline's earlier stage: a later one
+        # was held at its first size by them); the process's peak before is kept for the summary (``peak_mb``)
+        self._peak_before_mb = peak_memory_mb(self.device)
+        if self.device.type == "cpu":
+            from uncertsplat.io.memory import release_free_memory
+
+            release_free_memory()
+        reset_peak_memory(self.device)
+        self._hold_said = False  # (the first hold of this process is said when it happens)
         self.on_log: Callable[[dict], None] | None = None
         # called after every step with the trainer (``train --view`` draws the model here, between steps, so it
         # never sees a half-updated model); its time is not in ``elapsed``
@@ -748,6 +769,10 @@ class Trainer:
         return gaussian_budget(d.max_gaussians, d.pixels_per_gaussian, views=len(self.train_idx),
                                width=self.train_cams.width, height=self.train_cams.height)
 
+    def peak_mb(self) -> float:
+        """The process's peak memory (``peak_memory_mb``) over its training and what came before it."""
+        return max(self._peak_before_mb, peak_memory_mb(self.device))
+
     def _memory_room(self) -> int | None:
         """Bytes training may still take on its device beyond what its steps take again at their peaks (a render's
         buffers, free between steps), and the SSIM statistics still to be kept; None where the device does not say.
@@ -779,31 +804,29 @@ class Trainer:
         room = self._memory_room()
         if room is None:
             return None
-        per = GROWN_GAUSSIAN_FACTOR * memory_per_gaussian(self.model, table_moments=not self.informed)["total"]
+        # every Gaussian grown priced as a carrier where the model has posteriors (a split's children carry one)
+        per = GROWN_GAUSSIAN_FACTOR * memory_per_new_gaussian(self.model, carrier=self.variational,
+                                                              table_moments=not self.informed)
         return memory_growth_limit(len(self.model), room, per), room, per
 
     def _memory_held(self, step: int, limit: int, room: int, per: float) -> None:
-        """Record (and say, the first time) that memory held densification's growth at ``step``."""
-        first = self.memory_hold is None
-        hold = self.memory_hold or {"step": step, "held": 0}
-        hold.update(last_step=step, gaussians=len(self.model), room_mb=round(room / 2**20, 1),
-                    per_gaussian_bytes=round(per), held=hold["held"] + 1)
-        self.memory_hold = hold
-        if first:
+        """Record that memory held densification's growth at ``step`` (the first hold's numbers, the last step and
+        how many were held), and say it the first time in this process (a resumed run's holds are said again)."""
+        now = {"step": step, "last_step": step, "gaussians": len(self.model), "budget": self.budget.max_gaussians,
+               "room_mb": round(room / 2**20, 1), "per_gaussian_bytes": round(per), "held": 1}
+        if self.memory_hold is None:
+            self.memory_hold = dict(now)
+        else:
+            self.memory_hold.update(last_step=step, held=self.memory_hold["held"] + 1)
+        if not self._hold_said:
             from uncertsplat.console import console
 
-            console.print(f"[yellow]warning:[/] {self.memory_hold_warning()}")
+            self._hold_said = True
+            console.print(f"[yellow]warning:[/] {memory_hold_warning(now)}")
 
     def memory_hold_warning(self) -> str | None:
-        """What ``train`` says (and records in its warnings) when memory held growth; None when it never did."""
-        h = self.memory_hold
-        if not h:
-            return None
-        return (f"memory held the model's growth from step {h['step']} on, at {h['gaussians']:,} Gaussians (its budget "
-                f"is {self.budget.max_gaussians:,}; {max(h['room_mb'], 0) / 1024:.2f} GB were left beyond what training "
-                f"takes, about {h['per_gaussian_bytes'] / 1024:.1f} KB for each Gaussian more): training goes on with "
-                "the Gaussians memory holds rather than run out. For a larger model free memory or lower its use "
-                f"(--set scene.downscale=2); --set densify.max_gaussians={h['gaussians']} makes this size the budget")
+        """What ``train`` records in its warnings when memory held growth (the first hold); None when it never did."""
+        return memory_hold_warning(self.memory_hold) if self.memory_hold else None
 
     def _make_densifier(self) -> Densifier:
         dcfg = self.cfg.densify
@@ -1364,7 +1387,7 @@ class Trainer:
                                 "sh_degree": self.sh_degree,
                                 "lr_means": self.optimizer.param_groups[0]["lr"],
                                 "sec_per_step": window_t / max(window_n, 1), "elapsed": self.elapsed,
-                                "peak_memory_mb": peak_memory_mb(self.device)}
+                                "peak_memory_mb": self.peak_mb()}
                         if last_eval and evaluated:
                             last.update(eval_psnr=last_eval["psnr"], eval_ssim=last_eval["ssim"])
                         self._log(last)
@@ -1435,7 +1458,7 @@ class Trainer:
                 "num_gaussians": len(self.model), "num_carriers": self.model.num_carriers,
                 "carrier_fraction": self.model.num_carriers / max(len(self.model), 1),
                 "memory_per_gaussian_bytes": mem["total"], "memory": mem,
-                "peak_memory_mb": peak_memory_mb(self.device), "extent": self.extent,
+                "peak_memory_mb": self.peak_mb(), "extent": self.extent,
                 "skipped_steps": self.skipped_steps,
                 "sh_degree_active": self.sh_degree, "sh_bands": [b.model_dump() for b in self.sh_bands],
                 "growth": [g.model_dump() for g in self.growth],
