@@ -5,34 +5,36 @@ import subprocess
 import sys
 
 
-def test_available_memory_is_bounded_by_an_address_space_limit():
-    code = ("import resource; from uncertsplat.io.memory import available_memory; "
-            "free = available_memory(); assert free is not None and free > 0, free; "
-            "hard = resource.getrlimit(resource.RLIMIT_AS)[1]; "
-            "cap = 8 << 30 if hard == resource.RLIM_INFINITY else min(8 << 30, hard); "
-            "resource.setrlimit(resource.RLIMIT_AS, (cap, hard)); "
-            "under = available_memory(); assert 0 <= under < cap and under <= free, (under, free); print('ok')")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+UNDER_A_LIMIT = ("hard = resource.getrlimit(resource.RLIMIT_AS)[1]; "
+                 "cap = 8 << 30 if hard == resource.RLIM_INFINITY else min(8 << 30, hard); "
+                 "resource.setrlimit(resource.RLIMIT_AS, (cap, hard)); ")
+"""Python that sets an address-space limit of at most 8 GiB (``cap``) in the process it runs in."""
+
+
+def _run_ok(code: str) -> None:
+    """Run ``code`` in a fresh interpreter (its limits and peaks its own); it prints "ok" at its end."""
+    out = subprocess.run([sys.executable, "-c", code + "; print('ok')"], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_available_memory_is_bounded_by_an_address_space_limit():
+    _run_ok("import resource; from uncertsplat.io.memory import available_memory; "
+            "free = available_memory(); assert free is not None and free > 0, free; " + UNDER_A_LIMIT +
+            "under = available_memory(); assert 0 <= under < cap and under <= free, (under, free)")
 
 
 def test_the_room_beyond_the_peak_leaves_out_what_the_process_takes_again():
     # a peak of 200 MB given back counts against the room though it is free now, until the peak is reset (a new
     # training's own peaks: trainer.reset_peak_memory); under an address-space limit the room is what the limit
     # leaves beyond the process's size now, less the same peak
-    code = ("import resource, torch; from uncertsplat.io.memory import available_memory, room_beyond_peak; "
+    _run_ok("import resource, torch; from uncertsplat.io.memory import available_memory, room_beyond_peak; "
             "from uncertsplat.train.trainer import reset_peak_memory; "
             "before = room_beyond_peak(); assert before is not None and before > 0, before; "
             "b = bytearray(200 << 20); b[::4096] = b'x' * len(b[::4096]); del b; "
             "held = available_memory() - room_beyond_peak(); assert held >= 150 << 20, held; "
             "reset_peak_memory(torch.device('cpu')); "
-            "held = available_memory() - room_beyond_peak(); assert abs(held) < 50 << 20, held; "
-            "hard = resource.getrlimit(resource.RLIMIT_AS)[1]; "
-            "cap = 8 << 30 if hard == resource.RLIM_INFINITY else min(8 << 30, hard); "
-            "resource.setrlimit(resource.RLIMIT_AS, (cap, hard)); "
-            "under = room_beyond_peak(); assert 0 <= under < cap, under; print('ok')")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+            "held = available_memory() - room_beyond_peak(); assert abs(held) < 50 << 20, held; " + UNDER_A_LIMIT +
+            "under = room_beyond_peak(); assert 0 <= under < cap, under")
 
 
 def _tree(root, cgroup: str, files: dict[str, str]):

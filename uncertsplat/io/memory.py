@@ -14,6 +14,28 @@ def available_memory() -> int | None:
     """Bytes this process may still allocate, or None where nothing says: the least of the system's available
     memory (``MemAvailable``), the room left under its cgroup's limit (``cgroup_room``: a container's, a cluster
     job's) and its address-space limit (``ulimit -v``, less what it maps already)."""
+    found = _rooms(reusable=0)
+    return min(found) if found else None
+
+
+def room_beyond_peak() -> int | None:
+    """Bytes this process may still take beyond the most it took since its resident peak was last reset
+    (``trainer.reset_peak_memory``), or None where nothing says: what a loop that repeats (a training step: a
+    render's buffers are given back after it and taken again by the next) can add for good. ``available_memory``
+    (with what the C allocator holds free counted under ``ulimit -v``: it stays mapped, and the process takes it
+    again without growing) less what the resident peak (``VmHWM``) holds above the resident memory now (``VmRSS``)."""
+    status = {}
+    for line in _read(Path("/proc/self/status")).splitlines():
+        key, _, rest = line.partition(":")
+        if key in ("VmRSS", "VmHWM") and rest.split() and rest.split()[0].isdigit():
+            status[key] = int(rest.split()[0]) * 1024  # kB
+    found = _rooms(reusable=None)
+    return min(found) - max(status.get("VmHWM", 0) - status.get("VmRSS", 0), 0) if found else None
+
+
+def _rooms(reusable: int | None) -> list[int]:
+    """Bytes left under each limit that says (``available_memory``'s); under ``ulimit -v`` plus ``reusable`` bytes
+    of the process's mapped size (None: what the C allocator holds free, ``allocator_free_bytes``)."""
     found: list[int] = []
     for line in _read(Path("/proc/meminfo")).splitlines():
         if line.startswith("MemAvailable:"):
@@ -25,34 +47,9 @@ def available_memory() -> int | None:
     if soft != resource.RLIM_INFINITY:
         mapped = _read(Path("/proc/self/statm")).split()
         size = int(mapped[0]) * resource.getpagesize() if mapped and mapped[0].isdigit() else 0
-        found.append(max(soft - size, 0))
-    return min(found) if found else None
-
-
-def room_beyond_peak() -> int | None:
-    """Bytes this process may still take beyond the most it took since its resident peak was last reset
-    (``trainer.reset_peak_memory``), or None where nothing says: what a loop that repeats (a training step: a
-    render's buffers are given back after it and taken again by the next) can add for good. The least of
-    ``MemAvailable``, the cgroup's room and the address-space limit less the process's size (``VmSize``), each less
-    what the resident peak (``VmHWM``) holds above the resident memory now (``VmRSS``)."""
-    status = {}
-    for line in _read(Path("/proc/self/status")).splitlines():
-        key, _, rest = line.partition(":")
-        if key in ("VmRSS", "VmHWM", "VmSize") and rest.split() and rest.split()[0].isdigit():
-            status[key] = int(rest.split()[0]) * 1024  # kB
-    again = max(status.get("VmHWM", 0) - status.get("VmRSS", 0), 0)
-    found: list[int] = []
-    for line in _read(Path("/proc/meminfo")).splitlines():
-        if line.startswith("MemAvailable:"):
-            found.append(int(line.split()[1]) * 1024)
-    room = cgroup_room()
-    if room is not None:
-        found.append(room)
-    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
-    if soft != resource.RLIM_INFINITY and "VmSize" in status:
-        # what the C allocator holds free stays mapped: the process takes it again without growing its size
-        found.append(soft - status["VmSize"] + allocator_free_bytes())
-    return min(found) - again if found else None
+        free = allocator_free_bytes() if reusable is None else reusable
+        found.append(max(soft - size + free, 0))
+    return found
 
 
 def _glibc():
