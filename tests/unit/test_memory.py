@@ -4,7 +4,6 @@ and of it what a process that repeats its peaks may still add (``room_beyond_pea
 import subprocess
 import sys
 
-
 UNDER_A_LIMIT = ("hard = resource.getrlimit(resource.RLIMIT_AS)[1]; "
                  "cap = 8 << 30 if hard == resource.RLIM_INFINITY else min(8 << 30, hard); "
                  "resource.setrlimit(resource.RLIMIT_AS, (cap, hard)); ")
