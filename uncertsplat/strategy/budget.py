@@ -23,12 +23,13 @@ MEMORY_RESERVE = 256 * 2**20
 """Bytes growth leaves free beyond what training will take: the process's and the system's other allocations move
 by more than the estimate of a grown Gaussian's cost is sure of."""
 GROWN_GAUSSIAN_FACTOR = 8.0
-"""Bytes a Gaussian grown by densification adds to a training step's peak, per byte of its parameters, offset-table
-share and Adam moments (``gaussians.params.memory_per_gaussian``): their gradients, the render's per-Gaussian and
-per-pair buffers and the posterior updates' accumulators come on top. Measured (BENCHMARKS.md, "Growth held before
-memory runs out"): 3.9x at 320x240, 5.3x at 640x480 and 7.6x at 1280x960 for randomly placed Gaussians (whose
-footprints, and so pairs, grow with the image), 4.3x for a model densified to 398k at 640x480. Set above them all:
-a factor too low lets growth run the process out of memory, one too high only holds it sooner where memory is short."""
+"""Bytes a Gaussian grown by densification adds to a training step's peak, per byte of its stored state (its
+parameters, offset-table rows and Adam moments: ``gaussians.params.memory_per_new_gaussian``): their gradients, the
+render's per-Gaussian and per-pair buffers and the posterior updates' accumulators come on top. Measured (BENCHMARKS.md,
+"Growth held before memory runs out"; against the state of a Gaussian without tables, 716 bytes): 3.9x at 320x240,
+5.3x at 640x480 and 7.6x at 1280x960 for randomly placed Gaussians (whose footprints, and so pairs, grow with the
+image), 4.3x for a model densified to 398k at 640x480. Set above them all: a factor too low lets growth run the process
+out of memory, one too high only holds it sooner where memory is short."""
 
 
 def memory_growth_limit(gaussians: int, room: int, per_gaussian: float) -> int:
