@@ -25,7 +25,8 @@ def test_available_memory_is_bounded_by_an_address_space_limit():
 def test_the_room_beyond_the_peak_leaves_out_what_the_process_takes_again():
     # a peak of 200 MB given back counts against the room though it is free now, until the peak is reset (a new
     # training's own peaks: trainer.reset_peak_memory); under an address-space limit the room is what the limit
-    # leaves beyond the process's size now, less the same peak
+    # leaves beyond the process's size now, less the same peak, and at most what it leaves beyond the largest size
+    # the process had since the loop began
     _run_ok("import resource, torch; from uncertsplat.io.memory import available_memory, room_beyond_peak; "
             "from uncertsplat.train.trainer import reset_peak_memory; "
             "before = room_beyond_peak(); assert before is not None and before > 0, before; "
@@ -33,7 +34,11 @@ def test_the_room_beyond_the_peak_leaves_out_what_the_process_takes_again():
             "held = available_memory() - room_beyond_peak(); assert held >= 150 << 20, held; "
             "reset_peak_memory(torch.device('cpu')); "
             "held = available_memory() - room_beyond_peak(); assert abs(held) < 50 << 20, held; " + UNDER_A_LIMIT +
-            "under = room_beyond_peak(); assert 0 <= under < cap, under")
+            "under = room_beyond_peak(); assert 0 <= under < cap, under; "
+            # a size peak reached after the loop began (here: before any) is the loop's own: the room is below it
+            "from uncertsplat.io.memory import process_size_peak; peak = process_size_peak(); "
+            "own = room_beyond_peak(0); assert own <= max(cap - peak, 0) and own <= under, (own, cap, peak); "
+            "assert abs(room_beyond_peak(peak) - under) < 16 << 20, 'a peak of before is not the loop own'")
 
 
 def _tree(root, cgroup: str, files: dict[str, str]):

@@ -14,28 +14,48 @@ def available_memory() -> int | None:
     """Bytes this process may still allocate, or None where nothing says: the least of the system's available
     memory (``MemAvailable``), the room left under its cgroup's limit (``cgroup_room``: a container's, a cluster
     job's) and its address-space limit (``ulimit -v``, less what it maps already)."""
-    found = _rooms(reusable=0)
+    found = _rooms()
     return min(found) if found else None
 
 
-def room_beyond_peak() -> int | None:
+def room_beyond_peak(size_peak_before: int | None = None) -> int | None:
     """Bytes this process may still take beyond the most it took since its resident peak was last reset
     (``trainer.reset_peak_memory``), or None where nothing says: what a loop that repeats (a training step: a
     render's buffers are given back after it and taken again by the next) can add for good. ``available_memory``
-    (with what the C allocator holds free counted under ``ulimit -v``: it stays mapped, and the process takes it
-    again without growing) less what the resident peak (``VmHWM``) holds above the resident memory now (``VmRSS``)."""
+    less what the resident peak (``VmHWM``) holds above the resident memory now (``VmRSS``). Under ``ulimit -v``:
+    the limit less the process's size, plus what the C allocator holds free inside it (what an earlier loop freed,
+    an ensemble's other member: it stays mapped and is taken again), but never more than the limit less the largest
+    size the process had (``VmPeak``) once the loop itself set that peak (after ``size_peak_before``,
+    ``process_size_peak`` when the loop began): freed in small pieces, free memory cannot serve a large buffer (a
+    checkpoint's), and counted alone it let a run grow until its last checkpoint failed."""
+    status = _status()
+    again = max(status.get("VmHWM", 0) - status.get("VmRSS", 0), 0)
+    found = [room - again for room in _rooms(reusable=allocator_free_bytes())]
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    peak = status.get("VmPeak", 0)
+    if soft != resource.RLIM_INFINITY and size_peak_before is not None and peak > size_peak_before:
+        found.append(max(soft - peak, 0))
+    return min(found) if found else None
+
+
+def process_size_peak() -> int | None:
+    """The largest size this process had so far (``VmPeak``, bytes; None where ``/proc`` does not say)."""
+    return _status().get("VmPeak")
+
+
+def _status() -> dict[str, int]:
+    """``VmRSS``, ``VmHWM``, ``VmSize`` and ``VmPeak`` of this process in bytes (those ``/proc`` gives)."""
     status = {}
     for line in _read(Path("/proc/self/status")).splitlines():
         key, _, rest = line.partition(":")
-        if key in ("VmRSS", "VmHWM") and rest.split() and rest.split()[0].isdigit():
+        if key in ("VmRSS", "VmHWM", "VmSize", "VmPeak") and rest.split() and rest.split()[0].isdigit():
             status[key] = int(rest.split()[0]) * 1024  # kB
-    found = _rooms(reusable=None)
-    return min(found) - max(status.get("VmHWM", 0) - status.get("VmRSS", 0), 0) if found else None
+    return status
 
 
-def _rooms(reusable: int | None) -> list[int]:
-    """Bytes left under each limit that says (``available_memory``'s); under ``ulimit -v`` plus ``reusable`` bytes
-    of the process's mapped size (None: what the C allocator holds free, ``allocator_free_bytes``)."""
+def _rooms(reusable: int = 0) -> list[int]:
+    """Bytes left under each limit that says (``available_memory``'s); under ``ulimit -v`` with ``reusable`` bytes of
+    the process's size counted as free."""
     found: list[int] = []
     for line in _read(Path("/proc/meminfo")).splitlines():
         if line.startswith("MemAvailable:"):
@@ -47,19 +67,18 @@ def _rooms(reusable: int | None) -> list[int]:
     if soft != resource.RLIM_INFINITY:
         mapped = _read(Path("/proc/self/statm")).split()
         size = int(mapped[0]) * resource.getpagesize() if mapped and mapped[0].isdigit() else 0
-        free = allocator_free_bytes() if reusable is None else reusable
-        found.append(max(soft - size + free, 0))
+        found.append(max(soft - size + reusable, 0))
     return found
 
 
 def _glibc():
-    """The C library when it is glibc (``malloc_trim``, ``mallinfo2``: 2.33 and newer), else None."""
+    """The C library when it is glibc (``malloc_trim``), else None."""
     import ctypes
     import ctypes.util
 
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        libc.malloc_trim, libc.mallinfo2  # noqa: B018 (both must be there)
+        libc.malloc_trim  # noqa: B018 (it must be there)
     except (OSError, AttributeError):
         return None
     return libc
@@ -67,11 +86,11 @@ def _glibc():
 
 def allocator_free_bytes() -> int:
     """Bytes the C allocator holds free inside the process (glibc's ``mallinfo2().fordblks``; 0 where unknown):
-    memory a freed tensor left mapped, which the next allocations reuse."""
+    memory freed tensors left mapped, which later allocations take again."""
     import ctypes
 
     libc = _glibc()
-    if libc is None:
+    if libc is None or not hasattr(libc, "mallinfo2"):  # (glibc 2.33 and newer)
         return 0
 
     class MallInfo2(ctypes.Structure):

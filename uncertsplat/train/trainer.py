@@ -470,10 +470,12 @@ class Trainer:
         # process (an ensemble's earlier member, a sweep's earlier point, a pipeline's earlier stage: a later one
         # was held at its first size by them); the process's peak before is kept for the summary (``peak_mb``)
         self._peak_before_mb = peak_memory_mb(self.device)
+        self._size_peak_before = None  # (the process's largest size before: ``room_beyond_peak``)
         if self.device.type == "cpu":
-            from uncertsplat.io.memory import release_free_memory
+            from uncertsplat.io.memory import process_size_peak, release_free_memory
 
             release_free_memory()
+            self._size_peak_before = process_size_peak()
         reset_peak_memory(self.device)
         self._hold_said = False  # (the first hold of this process is said when it happens)
         self.on_log: Callable[[dict], None] | None = None
@@ -789,7 +791,7 @@ class Trainer:
             return None
         from uncertsplat.io.memory import room_beyond_peak
 
-        room = room_beyond_peak()
+        room = room_beyond_peak(self._size_peak_before)
         return room - self.ssim_cache.pending_bytes(self.train_images.shape) if room is not None else None
 
     def _memory_limit(self, step: int) -> tuple[int, int, float] | None:
