@@ -86,3 +86,14 @@ def test_page_names_the_points_whose_growth_memory_held():
     assert "growth in the training of b:" in page
     free = build_sweep_page(_summary([_rec("a", "variational", 10.0, 0.3)], {}, None), None)
     assert "Memory held" not in free
+
+
+def test_a_sweep_point_s_record_notes_memory_holding_its_training_or_a_member_s():
+    from uncertsplat.strategy.budget import memory_hold_warning
+    from uncertsplat.sweep.jobs import held_notes
+
+    warning = memory_hold_warning({"step": 100, "gaussians": 4324, "budget": 50000, "room_mb": 200.0,
+                                   "per_gaussian_bytes": 6144})
+    assert held_notes([warning, "the model fits its photos poorly"]) == [f"training: {warning}"]
+    assert held_notes([f"member 2: {warning}"]) == [f"training: member 2: {warning}"], "an ensemble's member"
+    assert held_notes(["scene: a photo was turned"]) == []

@@ -3,6 +3,7 @@ warning before `train` loads its photos)."""
 
 from __future__ import annotations
 
+import functools
 import resource
 from pathlib import Path
 
@@ -30,8 +31,8 @@ def room_beyond_peak(size_peak_before: int | None = None) -> int | None:
     checkpoint's), and counted alone it let a run grow until its last checkpoint failed."""
     status = _status()
     again = max(status.get("VmHWM", 0) - status.get("VmRSS", 0), 0)
-    found = [room - again for room in _rooms(reusable=allocator_free_bytes())]
     soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    found = [room - again for room in _rooms(reusable=allocator_free_bytes() if soft != resource.RLIM_INFINITY else 0)]
     peak = status.get("VmPeak", 0)
     if soft != resource.RLIM_INFINITY and size_peak_before is not None and peak > size_peak_before:
         found.append(max(soft - peak, 0))
@@ -71,8 +72,10 @@ def _rooms(reusable: int = 0) -> list[int]:
     return found
 
 
+@functools.cache
 def _glibc():
-    """The C library when it is glibc (``malloc_trim``), else None."""
+    """The C library when it is glibc (``malloc_trim``), else None. Looked up once: ``find_library`` runs
+    ``ldconfig -p`` (or a compiler) each time, a process started from a large one where memory is short."""
     import ctypes
     import ctypes.util
 

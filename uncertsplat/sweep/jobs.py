@@ -34,6 +34,12 @@ def _peak_mb(device: torch.device) -> float:
     return float(peak_memory_mb(device))
 
 
+def held_notes(warnings: list[str]) -> list[str]:
+    """The notes a point's record gets from its training's ``warnings``: where memory held its growth it has fewer
+    Gaussians than its settings give (an ensemble's warnings name their member first: "member 2: memory held ...")."""
+    return [f"training: {w}" for w in warnings if MEMORY_HOLD in w]
+
+
 def _same_config(run_dir: Path, cfg) -> bool:
     """Whether ``run_dir/config.json`` holds ``cfg`` (False when absent or unreadable)."""
     try:
@@ -177,8 +183,7 @@ def run_job(job: dict) -> list[dict]:
                       "num_gaussians": summary.num_gaussians, "num_carriers": summary.num_carriers,
                       "memory_per_gaussian_bytes": summary.memory_per_gaussian_bytes,
                       "train_peak_memory_mb": train_peak}
-        # a point whose growth memory held has fewer Gaussians than its settings give: said with its record
-        train_notes = [f"training: {w}" for w in summary.warnings if w.startswith(MEMORY_HOLD)]
+        train_notes = held_notes(summary.warnings)
     except Interrupted:  # Ctrl-C / SIGTERM: the sweep stops (the checkpoint resumes the point), it does not retry
         raise
     except Exception as err:  # report, do not kill the sweep

@@ -792,7 +792,10 @@ class Trainer:
         from uncertsplat.io.memory import room_beyond_peak
 
         room = room_beyond_peak(self._size_peak_before)
-        return room - self.ssim_cache.pending_bytes(self.train_images.shape) if room is not None else None
+        # the SSIM statistics are kept only where a step renders one view with an SSIM term (``train_step``)
+        keeps = self.cfg.batch_size == 1 and self.cfg.ssim_lambda > 0
+        pending = self.ssim_cache.pending_bytes(self.train_images.shape) if keeps else 0
+        return room - pending if room is not None else None
 
     def _memory_limit(self, step: int) -> tuple[int, int, float] | None:
         """(the most Gaussians densification may grow to at ``step`` before memory runs short, the room in bytes,
