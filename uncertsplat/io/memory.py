@@ -3,6 +3,7 @@ warning before `train` loads its photos)."""
 
 from __future__ import annotations
 
+import ctypes
 import functools
 import resource
 from pathlib import Path
@@ -29,10 +30,10 @@ def room_beyond_peak(size_peak_before: int | None = None) -> int | None:
     size the process had (``VmPeak``) once the loop itself set that peak (after ``size_peak_before``,
     ``process_size_peak`` when the loop began): freed in small pieces, free memory cannot serve a large buffer (a
     checkpoint's), and counted alone it let a run grow until its last checkpoint failed."""
-    status = _status()
+    status = process_status()
     again = max(status.get("VmHWM", 0) - status.get("VmRSS", 0), 0)
+    found = [room - again for room in _rooms(status, allocator_free=True)]
     soft, _ = resource.getrlimit(resource.RLIMIT_AS)
-    found = [room - again for room in _rooms(reusable=allocator_free_bytes() if soft != resource.RLIM_INFINITY else 0)]
     peak = status.get("VmPeak", 0)
     if soft != resource.RLIM_INFINITY and size_peak_before is not None and peak > size_peak_before:
         found.append(max(soft - peak, 0))
@@ -41,11 +42,12 @@ def room_beyond_peak(size_peak_before: int | None = None) -> int | None:
 
 def process_size_peak() -> int | None:
     """The largest size this process had so far (``VmPeak``, bytes; None where ``/proc`` does not say)."""
-    return _status().get("VmPeak")
+    return process_status().get("VmPeak")
 
 
-def _status() -> dict[str, int]:
-    """``VmRSS``, ``VmHWM``, ``VmSize`` and ``VmPeak`` of this process in bytes (those ``/proc`` gives)."""
+def process_status() -> dict[str, int]:
+    """``VmRSS``, ``VmHWM`` (the resident peak), ``VmSize`` and ``VmPeak`` of this process in bytes, those Linux's
+    ``/proc/self/status`` gives (none elsewhere)."""
     status = {}
     for line in _read(Path("/proc/self/status")).splitlines():
         key, _, rest = line.partition(":")
@@ -54,9 +56,10 @@ def _status() -> dict[str, int]:
     return status
 
 
-def _rooms(reusable: int = 0) -> list[int]:
-    """Bytes left under each limit that says (``available_memory``'s); under ``ulimit -v`` with ``reusable`` bytes of
-    the process's size counted as free."""
+def _rooms(status: dict[str, int] | None = None, *, allocator_free: bool = False) -> list[int]:
+    """Bytes left under each limit that says (``available_memory``'s); under ``ulimit -v`` the limit less the
+    process's size (``VmSize`` of ``status``, read when None), with what the C allocator holds free counted as free
+    where ``allocator_free``."""
     found: list[int] = []
     for line in _read(Path("/proc/meminfo")).splitlines():
         if line.startswith("MemAvailable:"):
@@ -66,17 +69,22 @@ def _rooms(reusable: int = 0) -> list[int]:
         found.append(room)
     soft, _ = resource.getrlimit(resource.RLIMIT_AS)
     if soft != resource.RLIM_INFINITY:
-        mapped = _read(Path("/proc/self/statm")).split()
-        size = int(mapped[0]) * resource.getpagesize() if mapped and mapped[0].isdigit() else 0
-        found.append(max(soft - size + reusable, 0))
+        size = (status if status is not None else process_status()).get("VmSize", 0)
+        found.append(max(soft - size + (allocator_free_bytes() if allocator_free else 0), 0))
     return found
+
+
+class _MallInfo2(ctypes.Structure):
+    """glibc's ``struct mallinfo2`` (2.33 and newer)."""
+
+    _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                      "fsmblks", "uordblks", "fordblks", "keepcost")]
 
 
 @functools.cache
 def _glibc():
     """The C library when it is glibc (``malloc_trim``), else None. Looked up once: ``find_library`` runs
     ``ldconfig -p`` (or a compiler) each time, a process started from a large one where memory is short."""
-    import ctypes
     import ctypes.util
 
     try:
@@ -84,23 +92,17 @@ def _glibc():
         libc.malloc_trim  # noqa: B018 (it must be there)
     except (OSError, AttributeError):
         return None
+    if hasattr(libc, "mallinfo2"):
+        libc.mallinfo2.restype = _MallInfo2
     return libc
 
 
 def allocator_free_bytes() -> int:
     """Bytes the C allocator holds free inside the process (glibc's ``mallinfo2().fordblks``; 0 where unknown):
     memory freed tensors left mapped, which later allocations take again."""
-    import ctypes
-
     libc = _glibc()
     if libc is None or not hasattr(libc, "mallinfo2"):  # (glibc 2.33 and newer)
         return 0
-
-    class MallInfo2(ctypes.Structure):
-        _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
-                                                          "fsmblks", "uordblks", "fordblks", "keepcost")]
-
-    libc.mallinfo2.restype = MallInfo2
     return int(libc.mallinfo2().fordblks)
 
 

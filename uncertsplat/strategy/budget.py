@@ -47,7 +47,7 @@ def memory_hold_warning(hold: dict) -> str:
     """The warning for a hold of densification's growth by memory (``Trainer.memory_hold``'s keys: the first hold's
     step, size, budget, room and price)."""
     room = hold["room_mb"] * 2**20
-    more = max(int((room - MEMORY_RESERVE) // max(hold["per_gaussian_bytes"], 1)), 0)
+    more = memory_growth_limit(0, room, hold["per_gaussian_bytes"])  # (the Gaussians the room held beyond the model)
     return (f"{MEMORY_HOLD} from step {hold['step']} on, at {hold['gaussians']:,} Gaussians (its "
             f"budget: {hold['budget']:,}): {max(room, 0) / 2**30:.2f} GB were left beyond what training takes, growth "
             f"keeps {MEMORY_RESERVE / 2**30:.2f} GB free and takes about {hold['per_gaussian_bytes'] / 1024:.1f} KB a "

@@ -106,14 +106,12 @@ def peak_memory_mb(device: torch.device) -> float:
     or the last ``reset_peak_memory``."""
     if device.type == "cuda":
         return torch.cuda.max_memory_allocated(device) / 2**20
-    try:  # Linux's high-water mark, which reset_peak_memory can lower (getrusage's never goes down)
-        with open("/proc/self/status", encoding="ascii") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return float(line.split()[1]) / 1024.0  # kB
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
+    from uncertsplat.io.memory import process_status
+
+    hwm = process_status().get("VmHWM")  # Linux's high-water mark, which reset_peak_memory can lower
+    if hwm is not None:
+        return hwm / 2**20
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # (never goes down) Linux reports KiB
 
 
 def reset_peak_memory(device: torch.device) -> None:
