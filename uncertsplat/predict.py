@@ -567,7 +567,10 @@ class Predictor:
         with torch.no_grad():
             index = {n: i for i, n in enumerate(self.scene.cameras.image_names)}
             for j in range(len(cameras)):
-                cam = cameras[[j]].to(self.device)
+                # in float32, the scene's cameras' and the renderer's precision: a pose given in float64 renders to
+                # the bit as the same pose in float32 (the terms that read the camera in its own dtype made the std
+                # maps of the two differ in their last bit on an Intel VM)
+                cam = cameras[[j]].to(self.device, torch.float32)
                 name = cameras.image_names[j] if cameras.image_names else None
                 # a pose of one's own: an index from its bytes, past the scene's (which count from 0)
                 at = index[name] if name in index else len(index) + pose_index(cameras.cam_from_world[j],
