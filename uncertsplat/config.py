@@ -332,6 +332,12 @@ PIXELS_PER_GAUSSIAN = 4.0
 """Default of ``DensifyConfig.pixels_per_gaussian`` (BENCHMARKS.md, "How many Gaussians a scene needs")."""
 
 
+GROWTH_MIN_GAIN_DB = 0.25
+"""The growth test's threshold without a re-fit (BENCHMARKS.md, "Growth that stops when it no longer pays")."""
+GROWTH_MIN_GAIN_REFIT_DB = 0.15
+"""The growth test's threshold with the rest re-fitted (BENCHMARKS.md, "The growth test with the rest re-fitted")."""
+
+
 class DensifyConfig(_Base):
     """3DGS adaptive density control and the spawn rule."""
 
@@ -355,23 +361,36 @@ class DensifyConfig(_Base):
     limit a run had and why)."""
     pixels_per_gaussian: float = Field(PIXELS_PER_GAUSSIAN, gt=0.0)
     """The automatic budget's training pixels per Gaussian (used when ``max_gaussians`` is None)."""
-    growth_min_gain_db: float = Field(0.25, ge=0.0)
+    growth_min_gain_db: float | None = Field(None, ge=0.0)
     """Stop adding Gaussians once the model's last doubling no longer pays: every ``growth_check_interval`` steps
-    while densifying, training views are rendered with and without the weakest half of the Gaussians they see;
-    when that half is worth less than this many dB of their PSNR (``growth_patience`` tests in a row),
-    densification only prunes from then on
-    (``strategy.growth``; each test is in ``train_summary.json`` ``growth``). 0: grow up to ``max_gaussians`` as
-    3DGS does. The half is switched off without re-fitting the rest, which overstates what a model of half the size
-    would lose (demo scene: 2-6 dB here against 0.4-1.5 dB of held-out PSNR per doubling); measured on four scenes
-    in BENCHMARKS.md, "Growth that stops when it no longer pays". No test runs while the model is within 1 % of
-    ``max_gaussians`` (``strategy.growth.at_budget``)."""
+    while densifying, the weakest half of the Gaussians ``growth_check_views`` training views see is taken out of a
+    copy of the model, the rest re-fitted for ``growth_refit_steps`` steps beside a copy of the whole model trained
+    as long; when the half is worth less than this many dB of the views' PSNR (``growth_patience`` tests in a row),
+    densification only prunes from then on (``strategy.growth``; each test is in ``train_summary.json``
+    ``growth``). None (default): ``GROWTH_MIN_GAIN_REFIT_DB`` (0.15 dB) with the re-fit, ``GROWTH_MIN_GAIN_DB``
+    (0.25 dB) without it (``growth_refit_steps = 0``: the half only switched off, which overstates what a model of
+    half the size would lose). 0: grow up to ``max_gaussians`` as 3DGS does. Measured on four scenes in
+    BENCHMARKS.md, "Growth that stops when it no longer pays" and "The growth test with the rest re-fitted". No
+    test runs while the model is within 1 % of ``max_gaussians`` (``strategy.growth.at_budget``)."""
+    growth_refit_steps: int = Field(100, ge=0)
+    """Steps each copy of the growth test trains (the whole model's, and the one without the weakest half) before
+    their PSNRs are compared; 0: no copies, the half switched off in the model as it is (the test before the
+    re-fit: faster, but it kept growing a forward-facing capture such as fern at 1/8 to 3x its knee)."""
     growth_check_interval: int = Field(250, ge=1)
     """Steps between growth tests."""
     growth_patience: int = Field(2, ge=1)
     """Growth stops when this many tests in a row find the half cheaper than ``growth_min_gain_db`` (one test right
     after densification starts sees a model that has not fitted yet)."""
     growth_check_views: int = Field(8, ge=1)
-    """Training views rendered for each growth test (three renders each)."""
+    """Training views rendered for each growth test (one render and one backward pass each for the blending
+    weights, then one render per model compared)."""
+
+    @property
+    def growth_threshold_db(self) -> float:
+        """``growth_min_gain_db`` as the growth test applies it (its default filled in by ``growth_refit_steps``)."""
+        if self.growth_min_gain_db is not None:
+            return self.growth_min_gain_db
+        return GROWTH_MIN_GAIN_REFIT_DB if self.growth_refit_steps > 0 else GROWTH_MIN_GAIN_DB
     spawn_interval: int = Field(1000, ge=1)
     spawn_scale_fraction: float = Field(0.01, gt=0.0)
     """Spawn: carry a posterior when ||scale|| > this * extent ..."""

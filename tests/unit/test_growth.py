@@ -11,7 +11,7 @@ import torch
 from tests.e2e.test_train_resume import assert_same_parameters, toy_config, toy_scene
 from tests.fixtures import tiny_scene_path  # noqa: F401
 from tests.run_fixtures import resume_without_key, tiny_run_path  # noqa: F401
-from uncertsplat.config import DensifyConfig
+from uncertsplat.config import GROWTH_MIN_GAIN_DB, GROWTH_MIN_GAIN_REFIT_DB, DensifyConfig
 from uncertsplat.io.checkpoints import decode, encode
 from uncertsplat.schemas.runs import GrowthCheck
 from uncertsplat.strategy.growth import (
@@ -115,7 +115,7 @@ class TestTraining:
         cfg = toy_config()
         return cfg.model_copy(update={"densify": cfg.densify.model_copy(update={
             "growth_min_gain_db": gain, "growth_check_interval": 10, "growth_patience": 1, "grad_threshold": 1e-5,
-            **densify})})
+            "growth_refit_steps": 3, **densify})})
 
     def test_a_cheap_half_stops_growth_and_is_recorded(self):
         scene, tr, te = toy_scene()
@@ -128,7 +128,7 @@ class TestTraining:
         (check,) = stopped.growth  # no test after the stop
         assert (check.step, check.stopped, check.views) == (10, True, 6)
         assert 0 < check.seen <= check.gaussians and check.cost_db < 50.0
-        assert all(b <= a for a, b in zip(sizes[9:-1], sizes[10:], strict=True)), "after the stop it only shrinks"
+        assert max(sizes[9:]) <= check.gaussians, "after the stop it never grows past its size at the test"
         assert sizes[9] < len(grown.model) - 10, "the same schedule without the test grows"
         assert grown.growth == []
         recorded = [GrowthCheck.model_validate(g) for g in stopped.summary()["growth"]]
@@ -176,6 +176,7 @@ class TestTraining:
         part.fit(until=15)
         resumed = Trainer(scene, cfg, tr, te, state=decode(encode(part.state_dict())))
         assert resumed.growth == part.growth and not resumed.densifier.grow
+        assert resumed.densifier.grown_to == part.densifier.grown_to == part.growth[-1].gaussians
         resumed.fit()
         assert_same_parameters(full.model, resumed.model)
         assert resumed.summary()["growth"] == full.summary()["growth"]
@@ -189,6 +190,16 @@ class TestTraining:
         resumed = Trainer(scene, self._cfg(50.0), tr, te, state=state)
         assert resumed.growth == [] and resumed.densifier.grow
 
+    def test_checkpoints_from_before_the_refill_only_prune_after_a_stop(self):
+        scene, tr, te = toy_scene()
+        part = Trainer(scene, self._cfg(50.0), tr, te)
+        part.fit(until=15)
+        assert not part.densifier.grow and part.densifier.grown_to == part.growth[0].gaussians
+        state = part.state_dict()
+        del state["grown_to"]
+        resumed = Trainer(scene, self._cfg(50.0), tr, te, state=state)
+        assert not resumed.densifier.grow and resumed.densifier.grown_to is None
+
 
 def test_a_run_from_before_the_test_resumes_without_it(tiny_scene_path, tiny_run_path, tmp_path):  # noqa: F811
     """config.json files written before ``densify.growth_min_gain_db`` existed grew up to their budget; a resumed
@@ -197,12 +208,107 @@ def test_a_run_from_before_the_test_resumes_without_it(tiny_scene_path, tiny_run
     assert cfg["densify"]["growth_min_gain_db"] == 0.0
 
 
+class TestRefit:
+    """The test with the rest re-fitted (``densify.growth_refit_steps``): two copies of the training at the test
+    (``Trainer._fork``), with and without the weakest half, train a few steps before they are compared."""
+
+    _cfg = staticmethod(TestTraining._cfg)
+
+    def test_the_copies_change_nothing_of_the_training(self):
+        scene, tr, te = toy_scene()
+        plain = Trainer(scene, self._cfg(0.0), tr, te)  # no test at all
+        plain.fit()
+        # tests that cannot stop growth (two tests, three needed in a row): the run must be the one without them
+        tested = Trainer(scene, self._cfg(1e-9, growth_patience=3), tr, te)
+        tested.fit()
+        assert [(g.step, g.refit_steps) for g in tested.growth] == [(10, 3), (20, 3)]
+        assert_same_parameters(plain.model, tested.model, atol=0)
+        for a, b in zip(plain.optimizer.state.values(), tested.optimizer.state.values(), strict=True):
+            for key in ("exp_avg", "exp_avg_sq"):
+                assert torch.equal(a[key], b[key])
+        assert torch.equal(plain.gen_noise.get_state(), tested.gen_noise.get_state())
+        assert torch.equal(plain.gen_views.get_state(), tested.gen_views.get_state())
+        assert plain.view_queue == tested.view_queue
+        assert [{**u, "seconds": 0} for u in plain.posterior_updates] == [
+            {**u, "seconds": 0} for u in tested.posterior_updates]
+
+    def test_a_copy_trains_as_its_parent_would(self):
+        """Without topology changes in the window (the toy schedule's last densification is at step 20), a copy's
+        steps are its parent's, bit for bit; one without some Gaussians trains the rest."""
+        scene, tr, te = toy_scene()
+        parent = Trainer(scene, self._cfg(0.0), tr, te)
+        parent.fit(until=21)
+        fork = parent._fork(parent.step)
+        off = torch.zeros(len(parent.model), dtype=torch.bool)
+        off[::3] = True
+        smaller = parent._fork(parent.step, off)
+        assert len(smaller.model) == len(parent.model) - int(off.sum())
+        for _ in range(3):
+            fork.train_step()
+            smaller.train_step()
+        parent.fit(until=24)
+        assert fork.step == parent.step == 24
+        assert_same_parameters(parent.model, fork.model, atol=0)
+        moved = (smaller.model.params["means"] - parent._fork(21).model.params["means"][~off]).abs().amax()
+        assert moved > 0, "the rest was trained"
+
+    def test_nothing_taken_out_costs_exactly_zero(self):
+        scene, tr, te = toy_scene()
+        t = Trainer(scene, self._cfg(0.0), tr, te)
+        t.fit(until=12)
+        none = torch.zeros(len(t.model), dtype=torch.bool)
+        assert t._refit_cost(t.step, none, [0, 2, 4], None) == 0.0
+        half = torch.zeros(len(t.model), dtype=torch.bool)
+        half[: len(t.model) // 2] = True
+        assert math.isfinite(t._refit_cost(t.step, half, [0, 2, 4], None))
+
+    def test_a_copy_that_cannot_train_lets_the_model_grow(self, monkeypatch):
+        from uncertsplat.errors import UserError
+
+        step = Trainer.train_step
+
+        def failing(self):
+            if self._is_fork:
+                raise UserError("the loss is NaN")
+            return step(self)
+
+        monkeypatch.setattr(Trainer, "train_step", failing)
+        scene, tr, te = toy_scene()
+        t = Trainer(scene, self._cfg(50.0), tr, te)  # (any half would be cheap against 50 dB)
+        t.fit()
+        assert [(g.cost_db, g.stopped) for g in t.growth] == [(1e3, False), (1e3, False)] and t.densifier.grow
+
+    def test_one_refit_step(self):
+        scene, tr, te = toy_scene()
+        t = Trainer(scene, self._cfg(1e-9, growth_refit_steps=1, growth_patience=3), tr, te)
+        t.fit()
+        assert [g.refit_steps for g in t.growth] == [1, 1] and all(math.isfinite(g.cost_db) for g in t.growth)
+
+    def test_the_threshold_default_follows_the_test(self):
+        assert DensifyConfig().growth_threshold_db == GROWTH_MIN_GAIN_REFIT_DB == 0.15
+        assert DensifyConfig(growth_refit_steps=0).growth_threshold_db == GROWTH_MIN_GAIN_DB == 0.25
+        assert DensifyConfig(growth_min_gain_db=0.4, growth_refit_steps=0).growth_threshold_db == 0.4
+        off = DensifyConfig(growth_min_gain_db=0.0, growth_check_interval=250)
+        assert off.growth_threshold_db == 0.0 and not growth_check_due(250, off)
+
+
+def test_a_run_from_before_the_refit_resumes_without_it(tiny_scene_path, tiny_run_path, tmp_path):  # noqa: F811
+    """config.json files written before ``densify.growth_refit_steps`` existed switched the half off in the model as
+    it was; a resumed one keeps doing so."""
+    cfg = resume_without_key(tiny_scene_path, tiny_run_path, tmp_path, "densify", "growth_refit_steps", 10)
+    assert cfg["densify"]["growth_refit_steps"] == 0
+
+
 def test_growth_reason_says_what_was_decided():
     g = GrowthCheck(step=500, gaussians=32156, seen=31273, cost_db=0.077, min_gain_db=0.25, stopped=True, views=8)
     assert growth_reason(g) == ("growth test at step 500: switching off the weakest half of the 31,273 Gaussians 8 "
                                 "training views see (of 32,156) costs 0.077 dB (< 0.25 dB), densification stops "
-                                "growing the model")
+                                "growing the model past 32,156 Gaussians")
     waiting = growth_reason(g.model_copy(update={"stopped": False}))
     assert "(< 0.25 dB), growth goes on until" in waiting
     assert growth_reason(g.model_copy(update={"stopped": False, "cost_db": 2.0})).endswith(
         "costs 2.000 dB (>= 0.25 dB), growth goes on")
+    refit = g.model_copy(update={"refit_steps": 100, "min_gain_db": 0.15})
+    assert growth_reason(refit) == ("growth test at step 500: taking out the weakest half of the 31,273 Gaussians 8 "
+                                    "training views see (of 32,156) and training the rest 100 steps costs 0.077 dB "
+                                    "(< 0.15 dB), densification stops growing the model past 32,156 Gaussians")

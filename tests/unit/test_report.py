@@ -744,7 +744,8 @@ def test_training_section_says_where_growth_stopped(tmp_path):
     summary.write(run / "train_summary.json")
     html = stage.run([run], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
     assert ("growth test at step 500: switching off the weakest half of the 31,273 Gaussians 8 training views see "
-            "(of 32,156) costs 0.077 dB (&lt; 0.25 dB), densification stops growing the model (2 growth test(s) "
+            "(of 32,156) costs 0.077 dB (&lt; 0.25 dB), densification stops growing the model past 32,156 Gaussians "
+            "(2 growth test(s) "
             "in all)") in html
 
 

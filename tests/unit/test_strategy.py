@@ -160,6 +160,33 @@ def test_densifier_uses_posterior_mean_and_keeps_stats_aligned():
     assert model.num_carriers == carriers_without_spawns + done["spawned"]
 
 
+@pytest.mark.parametrize("grown_to, size", [(None, 27), (33, 30), (40, 34), (10, 27)])
+def test_after_the_growth_test_stops_growth_densification_refills_up_to_the_size_it_stopped_at(grown_to, size):
+    """30 Gaussians, 3 of them transparent, 7 hot clone candidates (30 + 7 - 3 = 34 unbounded). Stopped with
+    ``grown_to`` = None (a checkpoint from before the refill): it only prunes; with a size, the clones fill the model
+    up to that size (the room pruning made at earlier steps), never past it, as a budget of that size does; a size
+    below the model's is not cut down to (pruning alone decides that)."""
+    from uncertsplat.train.optim import make_optimizer
+
+    g = torch.Generator().manual_seed(0)
+    model = random_model(30, g, carrier_fraction=0.0)
+    with torch.no_grad():
+        model.params["opacities"][:] = 2.0
+        model.params["opacities"][:3] = -10.0  # transparent -> pruned
+        model.params["scales"][:] = math.log(0.001)  # small -> clone when hot
+    opt = make_optimizer(model, {k: 1e-3 for k in model.parameters()})
+    cfg = DensifyConfig(start=0, until=1000, interval=10, spawn_interval=10**6, opacity_reset_interval=0,
+                        grad_threshold=1e-3)
+    d = Densifier(cfg, Prior(), extent=1.0, n=len(model), device=model.device)
+    d.grow, d.grown_to = False, grown_to
+    grad = torch.zeros(1, 30, 2)
+    grad[0, 3:10] = 1.0  # 7 hot ones
+    d.accumulate(10, grad, torch.ones(1, 30), 64, 48)
+    done = d.step(10, model, opt, g)
+    assert len(model) == size
+    assert done["cloned"] == size - 27 and done["pruned"] == 3
+
+
 def test_accumulate_converts_pixel_gradients_to_ndc():
     cfg = DensifyConfig(start=0, until=100)
     d = Densifier(cfg, Prior(), extent=1.0, n=3, device=torch.device("cpu"))

@@ -93,13 +93,17 @@ class GrowthCheck(Strict):
     seen: int
     """Gaussians with a footprint in the test's views; the weakest half of them was switched off."""
     cost_db: float
-    """Training-view PSNR of the whole model minus that without the weakest half."""
+    """Training-view PSNR of the whole model minus that without the weakest half (both trained ``refit_steps``
+    more steps first)."""
     min_gain_db: float
     stopped: bool
     """``cost_db < min_gain_db`` here and in the ``growth_patience - 1`` tests before: no Gaussians were added after
     this step."""
     views: int
     """Training views rendered."""
+    refit_steps: int = 0
+    """Steps the two copies trained before they were compared (``DensifyConfig.growth_refit_steps``); 0: the half
+    was switched off in the model as it was (every test before the re-fit existed)."""
 
 
 class ExposureCheck(Strict):
@@ -169,10 +173,10 @@ class TrainSummary(SchemaFile):
     """
 
     FILE_NAME = "train_summary.json"
-    SCHEMA_VERSION = 7
+    SCHEMA_VERSION = 8
     WRITTEN_BY = "uncertsplat train SCENE -o RUN --resume"  # (a plain re-run refuses the existing run folder)
 
-    schema_version: int = 7
+    schema_version: int = 8
     method: str
     variant: str
     steps: int
@@ -243,8 +247,9 @@ class TrainSummary(SchemaFile):
         # version 1 had no informed posterior (no updates); versions 1 and 2 neither the fit on the training views
         # nor the warnings; versions 1-3 no exposure tests; versions 1-4 no posterior.position_prior (measured
         # against the config's std then); versions 1-5 no transients (none were found); versions 1-6 no hold of the
-        # budget by memory (none held); in the run and its members
-        if version not in (1, 2, 3, 4, 5, 6):
+        # budget by memory (none held); versions 1-7 no growth test with a re-fit (each test's refit_steps: 0, its
+        # default); in the run and its members
+        if version not in (1, 2, 3, 4, 5, 6, 7):
             return None
 
         def up(d: dict) -> dict:

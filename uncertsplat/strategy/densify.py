@@ -121,7 +121,11 @@ class Densifier:
         self.prior = prior
         self.extent = float(extent)
         self.stats = DensifyStats.zeros(n, device)
-        self.grow = True  # False once the growth test (strategy.growth) stopped growth: densify steps only prune
+        self.grow = True  # False once the growth test (strategy.growth) stopped growth
+        # the model's size when the growth test stopped it: densification goes on cloning and splitting up to it,
+        # replacing what pruning removes, as under a budget of that size (None with growth stopped: it only
+        # prunes, as runs did before the refill; their checkpoints resume so)
+        self.grown_to: int | None = None
 
     def accumulate(self, step: int, means2d_grad: Tensor, radii: Tensor, width: int, height: int) -> None:
         """Add one step's screen statistics. ``means2d_grad`` [C,N,2] is in pixels per unit loss; the
@@ -168,7 +172,9 @@ class Densifier:
                                                      percent_dense=cfg.percent_dense, extent=self.extent)
                 # the Trainer sets the scene's budget (strategy.budget); unset, the ceiling of any budget applies
                 budget = cfg.max_gaussians if cfg.max_gaussians is not None else MAX_BUDGET
-                clone_m, split_m = limit_growth(clone_m, split_m, grad, len(model), budget if self.grow else 0)
+                if not self.grow:
+                    budget = min(budget, self.grown_to) if self.grown_to is not None else 0
+                clone_m, split_m = limit_growth(clone_m, split_m, grad, len(model), budget)
                 if limit is not None and limit < budget and self.grow:
                     wanted = int(clone_m.sum()) + int(split_m.sum())
                     clone_m, split_m = limit_growth(clone_m, split_m, grad, len(model), limit)

@@ -43,7 +43,12 @@ def psnr_gain_db(sample: GaussianSample, other: GaussianSample, cameras: Cameras
             sq = (pred - images[i]).square()  # [H,W,3]
             total += float((sq if masks is None else sq * masks[i]).sum(dtype=torch.float64))
         sse.append(total)
-    mine, theirs = sse
+    return gain_db(*sse)
+
+
+def gain_db(mine: float, theirs: float) -> float:
+    """``10 log10(theirs / mine)``: how much better (dB) a model with summed squared error ``mine`` renders the
+    same pixels than one with ``theirs``; exactly 0 for equal errors, +inf for ``mine`` = 0 < ``theirs``."""
     if mine == theirs:
         return 0.0
     if mine <= 0.0:
@@ -51,4 +56,4 @@ def psnr_gain_db(sample: GaussianSample, other: GaussianSample, cameras: Cameras
     return 10.0 * math.log10(max(theirs, 1e-300) / mine)
 
 
-__all__ = ["check_views", "psnr_gain_db"]
+__all__ = ["check_views", "gain_db", "psnr_gain_db"]

@@ -12,6 +12,7 @@ elapsed time. ``Trainer.from_state_dict`` continues exactly as if never interrup
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import json
 import math
@@ -30,6 +31,7 @@ from uncertsplat import native
 from uncertsplat.config import TrainConfig
 from uncertsplat.console import progress
 from uncertsplat.eval.image import masked_ssim, psnr, ssim
+from uncertsplat.gaussians.ops import remove as remove_rows
 from uncertsplat.gaussians.ops import truncate_sh
 from uncertsplat.gaussians.params import (
     GaussianModel,
@@ -80,7 +82,7 @@ from uncertsplat.strategy.schedule import (
     sh_degree_at,
 )
 from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due
-from uncertsplat.strategy.view_checks import check_views
+from uncertsplat.strategy.view_checks import check_views, gain_db
 from uncertsplat.train.adam import Adam, all_finite
 from uncertsplat.train.losses import SsimTargetCache, total_loss
 from uncertsplat.train.optim import base_rates, load_optimizer_state, make_optimizer, set_rates
@@ -391,8 +393,13 @@ class Trainer:
     def __init__(self, scene: SceneData, cfg: TrainConfig, train_images: Tensor | Photos,
                  test_images: Tensor | Photos | None = None,
                  run_dir: Path | None = None, state: dict | None = None, near: float | None = None,
-                 train_masks: Tensor | None = None, test_masks: Tensor | None = None):
+                 train_masks: Tensor | None = None, test_masks: Tensor | None = None, *,
+                 _fork_of: Trainer | None = None):
         self.scene, self.cfg = scene, cfg
+        # a copy that the growth test trains for a few steps (``_refit_psnr``): it shares its parent's photos and
+        # their derived arrays, and changes nothing outside itself (no topology change, posterior update, test, log,
+        # checkpoint or memory accounting)
+        self._is_fork = _fork_of is not None
         self.device = train_images.device
         self.train_idx = list(scene.split["train"])
         self.test_idx = list(scene.split.get("test", ()))
@@ -403,7 +410,7 @@ class Trainer:
             raise ValueError("train_images must have one image per training view")
         self.train_masks, self.test_masks = train_masks, test_masks
         for images, masks in ((train_images, train_masks), (test_images, test_masks)):
-            if masks is not None:
+            if masks is not None and _fork_of is None:  # (a fork's photos are its parent's, zeroed already)
                 if images is None or masks.shape != (*images.shape[:3], 1):
                     raise ValueError("masks must be [C,H,W,1], one per image")
                 (images.data if isinstance(images, Photos) else images).masked_fill_(~masks.expand(images.shape), 0)
@@ -411,7 +418,9 @@ class Trainer:
         # the low-resolution phase's images and cameras (cfg.low_res_fraction), area-averaged once
         self.low_res_until = int(cfg.low_res_fraction * cfg.iterations)
         self.low_cams = self.low_images = None
-        if self.low_res_until > 0 and cfg.low_res_scale < 1.0:
+        if _fork_of is not None:
+            self.low_cams, self.low_images, self.low_masks = _fork_of.low_cams, _fork_of.low_images, _fork_of.low_masks
+        elif self.low_res_until > 0 and cfg.low_res_scale < 1.0:
             self.low_cams = self.train_cams.scaled(cfg.low_res_scale)
             h, w = self.low_cams.height, self.low_cams.width
             self.low_images = torch.empty((len(self.train_idx), h, w, 3), dtype=torch.float32, device=self.device)
@@ -433,7 +442,7 @@ class Trainer:
         self.posterior_updates: list[dict] = []  # one record per informed-posterior update (kept in checkpoints)
         self.timer = PhaseTimer(self.device, cfg.profile)  # seconds per phase of this process's steps
         # the photos' own SSIM statistics, blurred once instead of every step (the same loss to the bit)
-        self.ssim_cache = SsimTargetCache(int(cfg.ssim_cache_mb * 2**20))
+        self.ssim_cache = SsimTargetCache(int(cfg.ssim_cache_mb * 2**20)) if _fork_of is None else _fork_of.ssim_cache
         # the table terms of the expected render while the tables stay fixed (dropped whenever the tables or
         # the topology may have changed: posterior updates, densification, growth and SH-band checks)
         self._expected: ExpectedConstants | None = None
@@ -469,7 +478,9 @@ class Trainer:
         # was held at its first size by them); the process's peak before is kept for the summary (``peak_mb``)
         self._peak_before_mb = peak_memory_mb(self.device)
         self._size_peak_before = None  # (the process's largest size before: ``room_beyond_peak``)
-        if self.device.type == "cpu":
+        if self._is_fork:
+            pass  # (its parent's peaks stand: a fork's memory is part of its parent's training)
+        elif self.device.type == "cpu":
             from uncertsplat.io.memory import process_size_peak, release_free_memory
 
             release_free_memory()
@@ -663,6 +674,7 @@ class Trainer:
             "sh_bands": [b.model_dump() for b in self.sh_bands],
             "posterior_updates": [dict(u) for u in self.posterior_updates],
             "growth": [g.model_dump() for g in self.growth],
+            "grown_to": -1 if self.densifier.grown_to is None else self.densifier.grown_to,
             "memory_hold": dict(self.memory_hold) if self.memory_hold else {},
             "exposure": self.exposure.detach().clone() if self.exposure is not None else None,
             "exposure_views": torch.tensor(self.train_idx, dtype=torch.long),
@@ -729,6 +741,8 @@ class Trainer:
         self.posterior_updates = [dict(u) for u in state.get("posterior_updates", [])]
         self.growth = [GrowthCheck(**g) for g in state.get("growth", [])]  # likewise
         self.densifier.grow = not any(g.stopped for g in self.growth)
+        # (absent in checkpoints from before the refill: a model stopped there only prunes)
+        self.densifier.grown_to = None if int(state.get("grown_to", -1)) < 0 else int(state["grown_to"])
         self.memory_hold = dict(state.get("memory_hold") or {}) or None  # (absent in checkpoints from before)
         self.step = int(state["step"])
         self.elapsed = float(state["elapsed"])
@@ -891,19 +905,75 @@ class Trainer:
         with torch.enable_grad():  # the blending weights come from one backward pass per view
             weights = blending_weights(g, cams, render_fn=self.render, masks=masks)  # [N]
         off = weakest_half(weights)
-        cost = halving_cost_db(g, off, cams, images, lambda s, cam: self.render(s, cam).rgb, masks=masks)
+        seen = int((weights > 0).sum())
+        if dcfg.growth_refit_steps > 0:
+            del g, weights  # (the copies below hold a model each)
+            cost = self._refit_cost(step, off, views, masks)
+        else:
+            cost = halving_cost_db(g, off, cams, images, lambda s, cam: self.render(s, cam).rgb, masks=masks)
+        threshold = dcfg.growth_threshold_db
         # the tests before this one that must also have found the half cheap (growth_patience - 1 of them)
         before = self.growth[len(self.growth) - dcfg.growth_patience + 1:] if dcfg.growth_patience > 1 else []
-        cheap = cost < dcfg.growth_min_gain_db and len(before) == dcfg.growth_patience - 1 and all(
+        cheap = cost < threshold and len(before) == dcfg.growth_patience - 1 and all(
             b.cost_db < b.min_gain_db for b in before)
-        check = GrowthCheck(step=step, gaussians=len(self.model), seen=int((weights > 0).sum()),
-                            cost_db=round(min(cost, 1e3), 4), min_gain_db=dcfg.growth_min_gain_db, stopped=cheap,
-                            views=len(views))
+        check = GrowthCheck(step=step, gaussians=len(self.model), seen=seen, cost_db=round(min(cost, 1e3), 4),
+                            min_gain_db=threshold, stopped=cheap, views=len(views),
+                            refit_steps=dcfg.growth_refit_steps)
         self.growth.append(check)
         self.densifier.grow = not check.stopped
+        if check.stopped:
+            self.densifier.grown_to = check.gaussians
         if self.on_growth is not None:
             self.on_growth(check)
         return check
+
+    def _refit_cost(self, step: int, off: Tensor, views: list[int], masks: Tensor | None) -> float:
+        """The growth test's cost with the rest re-fitted (``densify.growth_refit_steps`` > 0): two copies of this
+        training at ``step`` (``_fork``), the whole model and the model without the Gaussians in ``off`` [N], each
+        train ``growth_refit_steps`` steps on the same views in the same order (the copies change nothing of this
+        training); the cost is how much better the first renders the training ``views`` than the second
+        (``view_checks.psnr_gain_db``, dB). +inf where a copy could not train (its loss not finite for
+        ``MAX_BAD_STEPS`` steps in a row): a test that cannot tell lets the model grow."""
+        from uncertsplat.errors import UserError
+
+        sse = []
+        for remove in (None, off):
+            try:
+                fork = self._fork(step, remove)
+                with torch.enable_grad():  # (the tests run under no_grad)
+                    for _ in range(self.cfg.densify.growth_refit_steps):
+                        fork.train_step()
+            except UserError:
+                return math.inf
+            sse.append(fork._sum_squared_error(views, masks))
+            del fork
+        return gain_db(*sse)
+
+    def _fork(self, step: int, remove: Tensor | None = None) -> Trainer:
+        """A copy of this training as it stands inside ``step`` (after the step's update, before its topology
+        changes), without the Gaussians in ``remove`` [N] bool (None: all kept), for ``_refit_cost``: its
+        parameters, moments and generators are copies, its photos its parent's; its steps make no topology change,
+        posterior update or test and write nothing."""
+        state = self.state_dict()
+        state["optimizer"] = copy.deepcopy(state["optimizer"])  # (its moments are this training's own tensors)
+        state["step"] = step
+        fork = Trainer(self.scene, self.cfg, self.train_images, None, run_dir=None, state=state, near=self.near,
+                       train_masks=self.train_masks, _fork_of=self)
+        if remove is not None and bool(remove.any()):
+            remove_rows(fork.model, fork.optimizer, remove)
+            fork.densifier.stats = DensifyStats.zeros(len(fork.model), fork.model.device)
+        return fork
+
+    @torch.no_grad()
+    def _sum_squared_error(self, views: list[int], masks: Tensor | None) -> float:
+        """The squared error of the deterministic render (``mean_sample``) summed over the training ``views`` (the
+        pixels of ``masks`` [V,H,W,1], or all), against the photos as the growth and band tests see them."""
+        g, images = self.mean_sample(), self.photos(views)
+        total = 0.0
+        for i, v in enumerate(views):
+            sq = (self.render(g, self.train_cams[v]).rgb[0].clamp(0, 1) - images[i]).square()  # [H,W,3]
+            total += float((sq if masks is None else sq * masks[i]).sum(dtype=torch.float64))
+        return total
 
     def touched_rows(self, radii: Tensor) -> dict[str, Tensor]:
         """Rows a step's render touched, per optimiser group: the Gaussians with a footprint in any of its views
@@ -1061,7 +1131,7 @@ class Trainer:
         step = self.step + 1
         set_rates(self.optimizer, self._rates(step))
         timer = self.timer
-        if step % cfg.sh_degree_interval == 0:
+        if step % cfg.sh_degree_interval == 0 and not self._is_fork:
             with timer("eval"):
                 if self.check_sh_band(step) is not None:
                     self._expected = None
@@ -1141,10 +1211,11 @@ class Trainer:
                 scale = self.train_cams.width / cams.width
                 radii = out.radii if scale == 1.0 else out.radii * scale
                 self.densifier.accumulate(step, out.means2d.grad, radii, cams.width, cams.height)
-        with timer("eval"):
-            if self.check_growth(step) is not None:
-                self._expected = None
-            self.check_exposure(step)
+        if not self._is_fork:
+            with timer("eval"):
+                if self.check_growth(step) is not None:
+                    self._expected = None
+                self.check_exposure(step)
         if self._fit_until is not None and self._test_due(step) \
                 and is_opacity_reset_step(step, cfg.densify, cfg.iterations):
             # rendered even when a stop came in during the step (the stop's checkpoint waits for one test's renders):
@@ -1157,14 +1228,16 @@ class Trainer:
             finally:
                 self.step = before
             self._test_seconds = time.perf_counter() - t0
-        with timer("densify"):
-            limit = self._memory_limit(step)
-            done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise,
-                                       limit=limit[0] if limit is not None else None)
-            if done.pop("held") and limit is not None:
-                self._memory_held(step, *limit)
-            if any(done.values()):
-                self._expected = None
+        done: dict[str, int] = {}
+        if not self._is_fork:
+            with timer("densify"):
+                limit = self._memory_limit(step)
+                done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise,
+                                           limit=limit[0] if limit is not None else None)
+                if done.pop("held") and limit is not None:
+                    self._memory_held(step, *limit)
+                if any(done.values()):
+                    self._expected = None
         if len(self.model) == 0:  # (trained on as an empty model, it ended in a traceback writing its PLY)
             from uncertsplat.errors import UserError
 
@@ -1179,7 +1252,7 @@ class Trainer:
         # tables fell back to the prior for the next refresh_interval steps (bonsai's update at step 3000: 0.4 % of
         # the carriers' position spreads set by the data, against 75 % at step 2500; noise 0.34 against 0.08)
         if self.informed and (step % cfg.variational.refresh_interval == 0 or step == cfg.iterations) \
-                and not done.get("reset"):
+                and not done.get("reset") and not self._is_fork:
             with timer("posterior"):
                 self.update_posterior()
         result = {k: float(v.detach()) for k, v in losses.items()}
