@@ -214,12 +214,21 @@ class TestRefit:
 
     _cfg = staticmethod(TestTraining._cfg)
 
-    def test_the_copies_change_nothing_of_the_training(self):
+    @pytest.mark.parametrize("top", [{}, {"exposure": "affine"}, {"low_res_fraction": 0.8},
+                                     {"random_background": True, "drop_rate": 0.5}])
+    def test_the_copies_change_nothing_of_the_training(self, top):
+        """Also where the copies train what the model does not hold: the photos' exposures and their optimiser (a
+        review found the copies stepping the training's own exposure moments), the half-resolution phase's photos,
+        a random background and left-out Gaussians (their generators)."""
         scene, tr, te = toy_scene()
-        plain = Trainer(scene, self._cfg(0.0), tr, te)  # no test at all
+
+        def cfg(gain, **densify):
+            return self._cfg(gain, **densify).model_copy(update=top)
+
+        plain = Trainer(scene, cfg(0.0), tr, te)  # no test at all
         plain.fit()
         # tests that cannot stop growth (two tests, three needed in a row): the run must be the one without them
-        tested = Trainer(scene, self._cfg(1e-9, growth_patience=3), tr, te)
+        tested = Trainer(scene, cfg(1e-9, growth_patience=3), tr, te)
         tested.fit()
         assert [(g.step, g.refit_steps) for g in tested.growth] == [(10, 3), (20, 3)]
         assert_same_parameters(plain.model, tested.model, atol=0)
@@ -229,8 +238,38 @@ class TestRefit:
         assert torch.equal(plain.gen_noise.get_state(), tested.gen_noise.get_state())
         assert torch.equal(plain.gen_views.get_state(), tested.gen_views.get_state())
         assert plain.view_queue == tested.view_queue
+        if plain.exposure is not None:
+            assert torch.equal(plain.exposure, tested.exposure)
+            for a, b in zip(plain.exposure_optimizer.state.values(), tested.exposure_optimizer.state.values(),
+                            strict=True):
+                assert all(torch.equal(a[k], b[k]) for k in a)
         assert [{**u, "seconds": 0} for u in plain.posterior_updates] == [
             {**u, "seconds": 0} for u in tested.posterior_updates]
+
+    def test_a_copy_leaves_the_memory_peaks_alone(self, monkeypatch):
+        """The peak a training measures its memory room and summary by (``reset_peak_memory`` at a training's
+        start) is not reset by a growth test's copy: a review saw VmHWM fall from 765 to 365 MiB at one copy."""
+        from uncertsplat.train import trainer as trainer_module
+
+        scene, tr, te = toy_scene()
+        t = Trainer(scene, self._cfg(0.0), tr, te)
+        t.fit(until=12)
+        resets = []
+        monkeypatch.setattr(trainer_module, "reset_peak_memory", lambda device: resets.append(device))
+        t._fork(t.step)
+        assert resets == []
+        Trainer(scene, self._cfg(0.0), tr, te)
+        assert len(resets) == 1
+
+    def test_the_test_without_a_refit_only_prunes_after_a_stop(self):
+        """``growth_refit_steps = 0`` is the test before, whole: after its stop densification adds nothing (the
+        refill up to the size at the stop comes with the re-fitted test)."""
+        scene, tr, te = toy_scene()
+        t = Trainer(scene, self._cfg(50.0, growth_refit_steps=0), tr, te)
+        t.fit(until=15)
+        (check,) = t.growth
+        assert check.stopped and check.refit_steps == 0 and check.min_gain_db == 50.0
+        assert not t.densifier.grow and t.densifier.grown_to is None
 
     def test_a_copy_trains_as_its_parent_would(self):
         """Without topology changes in the window (the toy schedule's last densification is at step 20), a copy's

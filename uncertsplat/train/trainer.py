@@ -485,7 +485,8 @@ class Trainer:
 
             release_free_memory()
             self._size_peak_before = process_size_peak()
-        reset_peak_memory(self.device)
+        if not self._is_fork:  # (a fork's reset would take its parent's peaks with it)
+            reset_peak_memory(self.device)
         self._hold_said = False  # (the first hold of this process is said when it happens)
         self.on_log: Callable[[dict], None] | None = None
         # called after every step with the trainer (``train --view`` draws the model here, between steps, so it
@@ -921,7 +922,7 @@ class Trainer:
                             refit_steps=dcfg.growth_refit_steps)
         self.growth.append(check)
         self.densifier.grow = not check.stopped
-        if check.stopped:
+        if check.stopped and check.refit_steps > 0:  # (the test before the re-fit only pruned after a stop)
             self.densifier.grown_to = check.gaussians
         if self.on_growth is not None:
             self.on_growth(check)
@@ -936,16 +937,21 @@ class Trainer:
         ``MAX_BAD_STEPS`` steps in a row): a test that cannot tell lets the model grow."""
         from uncertsplat.errors import UserError
 
+        images = self.photos(views)  # (both copies scored against the photos as this training sees them)
         sse = []
         for remove in (None, off):
+            fork = None
             try:
                 fork = self._fork(step, remove)
                 with torch.enable_grad():  # (the tests run under no_grad)
                     for _ in range(self.cfg.densify.growth_refit_steps):
                         fork.train_step()
-            except UserError:
+                sse.append(fork._sum_squared_error(views, images, masks))
+            except (UserError, torch.OutOfMemoryError, MemoryError):
+                # a copy that diverged, or memory too short for a copy (the memory hold prices growth, not the
+                # copies): no decision, and growth goes on inside what the hold allows
+                del fork
                 return math.inf
-            sse.append(fork._sum_squared_error(views, masks))
             del fork
         return gain_db(*sse)
 
@@ -955,8 +961,10 @@ class Trainer:
         parameters, moments and generators are copies, its photos its parent's; its steps make no topology change,
         posterior update or test and write nothing."""
         state = self.state_dict()
-        state["optimizer"] = copy.deepcopy(state["optimizer"])  # (its moments are this training's own tensors)
-        state["step"] = step
+        # (the optimisers' states hold this training's own moment tensors, which loading them would share)
+        state["optimizer"] = copy.deepcopy(state["optimizer"])
+        state["exposure_optimizer"] = copy.deepcopy(state["exposure_optimizer"])
+        state["step"], state["bad_steps_in_a_row"] = step, 0
         fork = Trainer(self.scene, self.cfg, self.train_images, None, run_dir=None, state=state, near=self.near,
                        train_masks=self.train_masks, _fork_of=self)
         if remove is not None and bool(remove.any()):
@@ -965,10 +973,10 @@ class Trainer:
         return fork
 
     @torch.no_grad()
-    def _sum_squared_error(self, views: list[int], masks: Tensor | None) -> float:
+    def _sum_squared_error(self, views: list[int], images, masks: Tensor | None) -> float:
         """The squared error of the deterministic render (``mean_sample``) summed over the training ``views`` (the
-        pixels of ``masks`` [V,H,W,1], or all), against the photos as the growth and band tests see them."""
-        g, images = self.mean_sample(), self.photos(views)
+        pixels of ``masks`` [V,H,W,1], or all) against ``images`` [V,H,W,3], their photos as the tests see them."""
+        g = self.mean_sample()
         total = 0.0
         for i, v in enumerate(views):
             sq = (self.render(g, self.train_cams[v]).rgb[0].clamp(0, 1) - images[i]).square()  # [H,W,3]
@@ -1347,8 +1355,9 @@ class Trainer:
 
         self.skipped_steps += 1
         self.bad_steps_in_a_row += 1
-        console.print(f"[yellow]warning:[/] step {step}: the loss or a gradient is NaN/Inf; update skipped "
-                      "(parameters unchanged)")
+        if not self._is_fork:  # (a growth test's copy: its training's warning would name a step it never skipped)
+            console.print(f"[yellow]warning:[/] step {step}: the loss or a gradient is NaN/Inf; update skipped "
+                          "(parameters unchanged)")
         if self.bad_steps_in_a_row >= MAX_BAD_STEPS:
             from uncertsplat.io.checkpoints import list_checkpoints
             from uncertsplat.train.session import _changed_fit_settings
