@@ -366,7 +366,8 @@ class DensifyConfig(_Base):
     while densifying, the weakest half of the Gaussians ``growth_check_views`` training views see is taken out of a
     copy of the model, the rest re-fitted for ``growth_refit_steps`` steps beside a copy of the whole model trained
     as long; when the half is worth less than this many dB of the views' PSNR (``growth_patience`` tests in a row),
-    densification only prunes from then on (``strategy.growth``; each test is in ``train_summary.json``
+    densification never again takes the model past its size at that test, filling only the room pruning makes
+    (only pruning with ``growth_refit_steps = 0``; ``strategy.growth``; each test is in ``train_summary.json``
     ``growth``). None (default): ``GROWTH_MIN_GAIN_REFIT_DB`` (0.15 dB) with the re-fit, ``GROWTH_MIN_GAIN_DB``
     (0.25 dB) without it (``growth_refit_steps = 0``: the half only switched off, which overstates what a model of
     half the size would lose). 0: grow up to ``max_gaussians`` as 3DGS does. Measured on four scenes in

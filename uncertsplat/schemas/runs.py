@@ -97,8 +97,9 @@ class GrowthCheck(Strict):
     more steps first)."""
     min_gain_db: float
     stopped: bool
-    """``cost_db < min_gain_db`` here and in the ``growth_patience - 1`` tests before: no Gaussians were added after
-    this step."""
+    """``cost_db < min_gain_db`` here and in the ``growth_patience - 1`` tests before: the model grew no further
+    than ``gaussians`` after this step (with ``refit_steps`` > 0 densification filled the room pruning made; without,
+    no Gaussians were added)."""
     views: int
     """Training views rendered."""
     refit_steps: int = 0

@@ -396,7 +396,7 @@ class Trainer:
                  train_masks: Tensor | None = None, test_masks: Tensor | None = None, *,
                  _fork_of: Trainer | None = None):
         self.scene, self.cfg = scene, cfg
-        # a copy that the growth test trains for a few steps (``_refit_psnr``): it shares its parent's photos and
+        # a copy that the growth test trains for a few steps (``_refit_cost``): it shares its parent's photos and
         # their derived arrays, and changes nothing outside itself (no topology change, posterior update, test, log,
         # checkpoint or memory accounting)
         self._is_fork = _fork_of is not None
