@@ -296,10 +296,10 @@ class TestRefit:
         t = Trainer(scene, self._cfg(0.0), tr, te)
         t.fit(until=12)
         none = torch.zeros(len(t.model), dtype=torch.bool)
-        assert t._refit_cost(t.step, none, [0, 2, 4], None) == 0.0
+        assert t._refit_cost(t.step, none, [0, 2, 4], t.photos([0, 2, 4]), None) == 0.0
         half = torch.zeros(len(t.model), dtype=torch.bool)
         half[: len(t.model) // 2] = True
-        assert math.isfinite(t._refit_cost(t.step, half, [0, 2, 4], None))
+        assert math.isfinite(t._refit_cost(t.step, half, [0, 2, 4], t.photos([0, 2, 4]), None))
 
     def test_a_copy_that_cannot_train_lets_the_model_grow(self, monkeypatch):
         from uncertsplat.errors import UserError

@@ -35,15 +35,19 @@ def psnr_gain_db(sample: GaussianSample, other: GaussianSample, cameras: Cameras
     The squared errors are summed over all the views' pixels before the ratio, so a view with large errors weighs
     more. Two identical renders give exactly 0; a perfect ``sample`` (and an imperfect ``other``) +inf.
     """
-    sse = []
-    for g in (sample, other):
-        total = 0.0
-        for i in range(len(cameras)):
-            pred = render_fn(g, cameras[i])[0].clamp(0, 1)
-            sq = (pred - images[i]).square()  # [H,W,3]
-            total += float((sq if masks is None else sq * masks[i]).sum(dtype=torch.float64))
-        sse.append(total)
-    return gain_db(*sse)
+    return gain_db(*(sum_squared_error(g, cameras, images, render_fn, masks) for g in (sample, other)))
+
+
+@torch.no_grad()
+def sum_squared_error(sample: GaussianSample, cameras: Cameras, images: Tensor,
+                      render_fn: Callable[[GaussianSample, Cameras], Tensor], masks: Tensor | None = None) -> float:
+    """The squared error of ``sample``'s renders of ``cameras`` [V] (clamped to [0, 1]) against ``images``
+    [V,H,W,3], summed in float64 over the views' pixels (those of ``masks`` [V,H,W,1], or all) and channels."""
+    total = 0.0
+    for i in range(len(cameras)):
+        sq = (render_fn(sample, cameras[i])[0].clamp(0, 1) - images[i]).square()  # [H,W,3]
+        total += float((sq if masks is None else sq * masks[i]).sum(dtype=torch.float64))
+    return total
 
 
 def gain_db(mine: float, theirs: float) -> float:
@@ -56,4 +60,4 @@ def gain_db(mine: float, theirs: float) -> float:
     return 10.0 * math.log10(max(theirs, 1e-300) / mine)
 
 
-__all__ = ["check_views", "gain_db", "psnr_gain_db"]
+__all__ = ["check_views", "gain_db", "psnr_gain_db", "sum_squared_error"]

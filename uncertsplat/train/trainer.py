@@ -82,7 +82,7 @@ from uncertsplat.strategy.schedule import (
     sh_degree_at,
 )
 from uncertsplat.strategy.sh_bands import BandCheck, band_gain_db, check_due
-from uncertsplat.strategy.view_checks import check_views, gain_db
+from uncertsplat.strategy.view_checks import check_views, gain_db, sum_squared_error
 from uncertsplat.train.adam import Adam, all_finite
 from uncertsplat.train.losses import SsimTargetCache, total_loss
 from uncertsplat.train.optim import base_rates, load_optimizer_state, make_optimizer, set_rates
@@ -478,14 +478,12 @@ class Trainer:
         # was held at its first size by them); the process's peak before is kept for the summary (``peak_mb``)
         self._peak_before_mb = peak_memory_mb(self.device)
         self._size_peak_before = None  # (the process's largest size before: ``room_beyond_peak``)
-        if self._is_fork:
-            pass  # (its parent's peaks stand: a fork's memory is part of its parent's training)
-        elif self.device.type == "cpu":
-            from uncertsplat.io.memory import process_size_peak, release_free_memory
+        if not self._is_fork:  # (a growth test's copy leaves its parent's peaks alone: its memory is the parent's)
+            if self.device.type == "cpu":
+                from uncertsplat.io.memory import process_size_peak, release_free_memory
 
-            release_free_memory()
-            self._size_peak_before = process_size_peak()
-        if not self._is_fork:  # (a fork's reset would take its parent's peaks with it)
+                release_free_memory()
+                self._size_peak_before = process_size_peak()
             reset_peak_memory(self.device)
         self._hold_said = False  # (the first hold of this process is said when it happens)
         self.on_log: Callable[[dict], None] | None = None
@@ -909,7 +907,7 @@ class Trainer:
         seen = int((weights > 0).sum())
         if dcfg.growth_refit_steps > 0:
             del g, weights  # (the copies below hold a model each)
-            cost = self._refit_cost(step, off, views, masks)
+            cost = self._refit_cost(step, off, views, images, masks)
         else:
             cost = halving_cost_db(g, off, cams, images, lambda s, cam: self.render(s, cam).rgb, masks=masks)
         threshold = dcfg.growth_threshold_db
@@ -928,16 +926,16 @@ class Trainer:
             self.on_growth(check)
         return check
 
-    def _refit_cost(self, step: int, off: Tensor, views: list[int], masks: Tensor | None) -> float:
+    def _refit_cost(self, step: int, off: Tensor, views: list[int], images, masks: Tensor | None) -> float:
         """The growth test's cost with the rest re-fitted (``densify.growth_refit_steps`` > 0): two copies of this
         training at ``step`` (``_fork``), the whole model and the model without the Gaussians in ``off`` [N], each
         train ``growth_refit_steps`` steps on the same views in the same order (the copies change nothing of this
-        training); the cost is how much better the first renders the training ``views`` than the second
-        (``view_checks.psnr_gain_db``, dB). +inf where a copy could not train (its loss not finite for
-        ``MAX_BAD_STEPS`` steps in a row): a test that cannot tell lets the model grow."""
+        training); the cost is how much better the first renders the training ``views`` than the second, both
+        against ``images`` [V,H,W,3] (their photos as this training sees them; ``masks`` [V,H,W,1] or None), in dB
+        (``view_checks.gain_db``). +inf where a copy could not train (its loss not finite for ``MAX_BAD_STEPS``
+        steps in a row) or memory was too short for one: a test that cannot tell lets the model grow."""
         from uncertsplat.errors import UserError
 
-        images = self.photos(views)  # (both copies scored against the photos as this training sees them)
         sse = []
         for remove in (None, off):
             fork = None
@@ -946,7 +944,8 @@ class Trainer:
                 with torch.enable_grad():  # (the tests run under no_grad)
                     for _ in range(self.cfg.densify.growth_refit_steps):
                         fork.train_step()
-                sse.append(fork._sum_squared_error(views, images, masks))
+                sse.append(sum_squared_error(fork.mean_sample(), fork.train_cams[views], images,
+                                             lambda s, cam, f=fork: f.render(s, cam).rgb, masks))
             except (UserError, torch.OutOfMemoryError, MemoryError):
                 # a copy that diverged, or memory too short for a copy (the memory hold prices growth, not the
                 # copies): no decision, and growth goes on inside what the hold allows
@@ -971,17 +970,6 @@ class Trainer:
             remove_rows(fork.model, fork.optimizer, remove)
             fork.densifier.stats = DensifyStats.zeros(len(fork.model), fork.model.device)
         return fork
-
-    @torch.no_grad()
-    def _sum_squared_error(self, views: list[int], images, masks: Tensor | None) -> float:
-        """The squared error of the deterministic render (``mean_sample``) summed over the training ``views`` (the
-        pixels of ``masks`` [V,H,W,1], or all) against ``images`` [V,H,W,3], their photos as the tests see them."""
-        g = self.mean_sample()
-        total = 0.0
-        for i, v in enumerate(views):
-            sq = (self.render(g, self.train_cams[v]).rgb[0].clamp(0, 1) - images[i]).square()  # [H,W,3]
-            total += float((sq if masks is None else sq * masks[i]).sum(dtype=torch.float64))
-        return total
 
     def touched_rows(self, radii: Tensor) -> dict[str, Tensor]:
         """Rows a step's render touched, per optimiser group: the Gaussians with a footprint in any of its views
