@@ -19,6 +19,7 @@ A variant is ``NAME:key=value,key=value`` (empty after the colon: the defaults).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import platform
 import tempfile
@@ -77,6 +78,8 @@ def run_variant(scene: Path, work: Path, preset: str | None, common: list[str], 
         "ply_mb": (run / "variational.ply").stat().st_size / 2**20,
         "point_cloud_mb": (run / "point_cloud.ply").stat().st_size / 2**20,
         "test_psnr": summary.get("test_psnr"),
+        "growth": summary.get("growth", []),
+        "variational_sha256": hashlib.sha256((run / "variational.ply").read_bytes()).hexdigest(),
         "eval": _eval_numbers(metrics),
     }
 
@@ -98,7 +101,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", required=True, help="tiny, synthetic-demo (generated here) or a scene folder")
     ap.add_argument("--preset", default=None, help="training preset (default: demo for synthetic-demo, tiny for "
-                                                   "tiny, none otherwise)")
+                                                   "tiny, none otherwise; 'none': the default config)")
     ap.add_argument("--label", default=None, help="name of the results file (default: the scene)")
     ap.add_argument("--set", nargs="*", default=[], help="key=value overrides shared by every variant")
     ap.add_argument("--variant", action="append", required=True, help="NAME:key=value,... (first = reference)")
@@ -109,6 +112,7 @@ def main() -> None:
     add_overwrite_option(ap)
     args = ap.parse_args()
     preset = args.preset or {"synthetic-demo": "demo", "tiny": "tiny"}.get(args.scene)
+    preset = None if preset == "none" else preset
     label = args.label or Path(args.scene).name
     refuse_overwrite(RESULTS / f"options_{label}.json", overwrite=args.overwrite)
     variants = [parse_variant(v) for v in args.variant]
@@ -130,13 +134,14 @@ def main() -> None:
     path.write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {path}")
     print("| variant | train s (ratio) | s/step | optimiser s | Gaussians | SH degree | PLY MB (point_cloud / variational) | PSNR | AUSE-MAE | NLL "
-          "| cal. err |")
+          "| cal. err | growth tests (next skipped) | variational.ply as the first's |")
     for r in rows:
         e = r["eval"]
         print(f"| {r['name']} | {r['seconds']:.0f} (x{r['time_ratio']:.2f}) | {r['sec_per_step']:.4f} | "
               f"{r['optimizer_seconds'] or float('nan'):.2f} | {r['num_gaussians']:,} | {r['sh_degree_active']} | "
               f"{r['point_cloud_mb']:.1f} / {r['ply_mb']:.1f} | {_num(e, 'psnr'):.2f} | {_num(e, 'ause_mae'):.3f} | {_num(e, 'nll'):.2f} | "
-              f"{_num(e, 'calibration_error'):.3f} |")
+              f"{_num(e, 'calibration_error'):.3f} | {len(r['growth'])} ({sum(g.get('skip_next', False) for g in r['growth'])}) | "
+              f"{'same' if r['variational_sha256'] == ref['variational_sha256'] else 'differs'} |")
 
 
 if __name__ == "__main__":

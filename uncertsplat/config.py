@@ -379,6 +379,12 @@ class DensifyConfig(_Base):
     re-fit: faster, but it kept growing a forward-facing capture such as fern at 1/8 to 3x its knee)."""
     growth_check_interval: int = Field(250, ge=1)
     """Steps between growth tests."""
+    growth_skip_factor: float | None = Field(3.0, ge=1.0)
+    """A test whose half costs at least this many times the threshold skips the next test due (growth goes on
+    meanwhile): a cost that far above the threshold has not fallen below it one interval later on the scenes
+    measured, and each test's copies train ``2 x growth_refit_steps`` steps, up to +60 % of the densification
+    window's steps on a capture that grows through all of it (BENCHMARKS.md, "Growth tests skipped far above the
+    threshold"). None: a test at every interval."""
     growth_patience: int = Field(2, ge=1)
     """Growth stops when this many tests in a row find the half cheaper than ``growth_min_gain_db`` (one test right
     after densification starts sees a model that has not fitted yet)."""

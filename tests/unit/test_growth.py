@@ -20,6 +20,8 @@ from uncertsplat.strategy.growth import (
     growth_check_due,
     growth_reason,
     halving_cost_db,
+    skipped,
+    skips_next,
     weakest_half,
 )
 from uncertsplat.train.trainer import Trainer
@@ -115,7 +117,7 @@ class TestTraining:
         cfg = toy_config()
         return cfg.model_copy(update={"densify": cfg.densify.model_copy(update={
             "growth_min_gain_db": gain, "growth_check_interval": 10, "growth_patience": 1, "grad_threshold": 1e-5,
-            "growth_refit_steps": 3, **densify})})
+            "growth_refit_steps": 3, "growth_skip_factor": None, **densify})})
 
     def test_a_cheap_half_stops_growth_and_is_recorded(self):
         scene, tr, te = toy_scene()
@@ -199,6 +201,74 @@ class TestTraining:
         del state["grown_to"]
         resumed = Trainer(scene, self._cfg(50.0), tr, te, state=state)
         assert not resumed.densifier.grow and resumed.densifier.grown_to is None
+
+
+class TestSkip:
+    """A test whose half costs far above the threshold skips the next test due (``densify.growth_skip_factor``)."""
+
+    CFG = DensifyConfig(start=100, until=4000, opacity_reset_interval=3000, growth_check_interval=250,
+                        growth_skip_factor=3.0)
+
+    @staticmethod
+    def _check(step: int, skip: bool) -> GrowthCheck:
+        return GrowthCheck(step=step, gaussians=10, seen=10, cost_db=1.0, min_gain_db=0.15, stopped=False, views=8,
+                           skip_next=skip)
+
+    def test_the_factor_against_the_threshold(self):
+        assert skips_next(0.45, 0.15, self.CFG) and skips_next(math.inf, 0.15, self.CFG)
+        assert not skips_next(0.4499, 0.15, self.CFG)
+        assert not skips_next(0.45, 0.15, self.CFG.model_copy(update={"growth_skip_factor": None}))
+        assert skips_next(0.15, 0.15, self.CFG.model_copy(update={"growth_skip_factor": 1.0}))
+        assert not skips_next(5.0, 0.0, self.CFG), "a zero threshold (no test) skips nothing"
+
+    def test_only_the_next_test_due_is_skipped(self):
+        last = self._check(500, True)
+        assert skipped(last, 750, self.CFG) and not skipped(last, 1000, self.CFG)
+        assert not skipped(self._check(500, False), 750, self.CFG)
+        assert not skipped(None, 750, self.CFG) and not skipped(last, 500, self.CFG)
+
+    def test_the_next_due_after_a_pause_is_the_one_skipped(self):
+        """The tests pause after an opacity reset (at 3000, then none due until 4250): the first due after the
+        pause is the next test, and the one after it runs."""
+        cfg = self.CFG.model_copy(update={"until": 6000})
+        last = self._check(2750, True)
+        assert growth_check_due(3000, cfg) and skipped(last, 3000, cfg)
+        last = self._check(3000, True)
+        assert [m for m in range(3250, 4750, 250) if growth_check_due(m, cfg)] == [4250, 4500]
+        assert skipped(last, 4250, cfg) and not skipped(last, 4500, cfg)
+        # an interval not a multiple of the last test's step (a config changed on resume) still finds the next one
+        other = self.CFG.model_copy(update={"growth_check_interval": 400})
+        assert skipped(self._check(500, True), 800, other) and not skipped(self._check(500, True), 1200, other)
+
+    def test_training_skips_and_records_and_resumes_the_same(self):
+        """Tests every 5 steps on the toy schedule (due at 10, 15 and 20): a threshold far below every cost runs
+        every other test; the skipped ones change nothing else (no test stops growth here), and a run resumed
+        between a test and the one it skips skips it too."""
+        scene, tr, te = toy_scene()
+        every = Trainer(scene, TestTraining._cfg(1e-9, growth_check_interval=5, growth_patience=3), tr, te)
+        every.fit()
+        assert [g.step for g in every.growth] == [10, 15, 20]
+        cfg = TestTraining._cfg(1e-9, growth_check_interval=5, growth_patience=3, growth_skip_factor=3.0)
+        skip = Trainer(scene, cfg, tr, te)
+        skip.fit()
+        assert [(g.step, g.skip_next) for g in skip.growth] == [(10, True), (20, True)]
+        assert [g.cost_db for g in skip.growth] == [every.growth[0].cost_db, every.growth[2].cost_db]
+        assert_same_parameters(every.model, skip.model)
+        assert [GrowthCheck.model_validate(g) for g in skip.summary()["growth"]] == skip.growth
+        part = Trainer(scene, cfg, tr, te)
+        part.fit(until=12)
+        resumed = Trainer(scene, cfg, tr, te, state=decode(encode(part.state_dict())))
+        resumed.fit()
+        assert resumed.growth == skip.growth
+        assert "the next test skipped" in growth_reason(skip.growth[0])
+
+
+def test_a_run_from_before_the_skip_resumes_testing_every_interval(tiny_scene_path, tiny_run_path,  # noqa: F811
+                                                                    tmp_path):
+    """config.json files written before ``densify.growth_skip_factor`` existed tested at every interval; a resumed
+    one keeps doing so."""
+    cfg = resume_without_key(tiny_scene_path, tiny_run_path, tmp_path, "densify", "growth_skip_factor", 10)
+    assert cfg["densify"]["growth_skip_factor"] is None
 
 
 def test_a_run_from_before_the_test_resumes_without_it(tiny_scene_path, tiny_run_path, tmp_path):  # noqa: F811

@@ -105,6 +105,9 @@ class GrowthCheck(Strict):
     refit_steps: int = 0
     """Steps the two copies trained before they were compared (``DensifyConfig.growth_refit_steps``); 0: the half
     was switched off in the model as it was (every test before the re-fit existed)."""
+    skip_next: bool = False
+    """``cost_db`` was at least ``DensifyConfig.growth_skip_factor`` times ``min_gain_db``: the next test due was not
+    run (``strategy.growth.skipped``)."""
 
 
 class ExposureCheck(Strict):
@@ -174,10 +177,10 @@ class TrainSummary(SchemaFile):
     """
 
     FILE_NAME = "train_summary.json"
-    SCHEMA_VERSION = 8
+    SCHEMA_VERSION = 9
     WRITTEN_BY = "uncertsplat train SCENE -o RUN --resume"  # (a plain re-run refuses the existing run folder)
 
-    schema_version: int = 8
+    schema_version: int = 9
     method: str
     variant: str
     steps: int
@@ -249,8 +252,9 @@ class TrainSummary(SchemaFile):
         # nor the warnings; versions 1-3 no exposure tests; versions 1-4 no posterior.position_prior (measured
         # against the config's std then); versions 1-5 no transients (none were found); versions 1-6 no hold of the
         # budget by memory (none held); versions 1-7 no growth test with a re-fit (each test's refit_steps: 0, its
-        # default); in the run and its members
-        if version not in (1, 2, 3, 4, 5, 6, 7):
+        # default); versions 1-8 no skipped growth tests (each test's skip_next: False, its default); in the run and
+        # its members
+        if version not in (1, 2, 3, 4, 5, 6, 7, 8):
             return None
 
         def up(d: dict) -> dict:

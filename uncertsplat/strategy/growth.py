@@ -77,6 +77,25 @@ def reset_within(step: int, cfg, iterations: int | None = None) -> bool:
     return any(is_opacity_reset_step(m, cfg, iterations) for m in range(first, step, n))
 
 
+def skips_next(cost_db: float, threshold_db: float, cfg) -> bool:
+    """Whether a test that found the half worth ``cost_db`` against ``threshold_db`` skips the next test due:
+    ``cost_db`` at least ``cfg.growth_skip_factor`` (a ``DensifyConfig``; None: never) times the threshold."""
+    factor = cfg.growth_skip_factor
+    return factor is not None and threshold_db > 0 and cost_db >= factor * threshold_db
+
+
+def skipped(last: GrowthCheck | None, step: int, cfg, iterations: int | None = None) -> bool:
+    """Whether the test due at ``step`` is skipped: the last test ran (``last``) asked for it (``skip_next``) and no
+    step between the two had a test due (``growth_check_due``; one at the budget counts as due, so that a skip never
+    waits past the model's next chance to grow). A pure function of the recorded tests, so a resumed run skips the
+    same tests."""
+    if last is None or not last.skip_next or step <= last.step:
+        return False
+    n = cfg.growth_check_interval
+    first = (last.step // n + 1) * n  # the first multiple of the interval after the last test
+    return not any(growth_check_due(m, cfg, iterations) for m in range(first, step, n))
+
+
 # A model with at least this fraction of its budget is at the budget: the growth test is skipped (module docstring).
 AT_BUDGET = 0.99
 
@@ -120,6 +139,8 @@ def growth_reason(check: GrowthCheck) -> str:
     cheap = check.cost_db < check.min_gain_db
     verdict = (f"densification stops growing the model past {check.gaussians:,} Gaussians" if check.stopped
                else "growth goes on until the half is this cheap at consecutive tests" if cheap else "growth goes on")
+    if check.skip_next:
+        verdict += " (the next test skipped: the cost is far above the threshold)"
     cmp = "<" if cheap else ">="
     how = (f"taking out the weakest half of the {check.seen:,} Gaussians {check.views} training views see (of "
            f"{check.gaussians:,}) and training the rest {check.refit_steps} steps costs"
@@ -129,4 +150,5 @@ def growth_reason(check: GrowthCheck) -> str:
     return f"growth test at step {check.step}: {how} {check.cost_db:.3f} dB ({cmp} {check.min_gain_db:g} dB), {verdict}"
 
 
-__all__ = ["AT_BUDGET", "GrowthCheck", "at_budget", "growth_check_due", "growth_reason", "halving_cost_db", "weakest_half"]
+__all__ = ["AT_BUDGET", "GrowthCheck", "at_budget", "growth_check_due", "growth_reason", "halving_cost_db", "skipped",
+           "skips_next", "weakest_half"]

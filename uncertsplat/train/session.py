@@ -47,11 +47,12 @@ from uncertsplat.train.transients import transients_warning
 # variational.refresh_probes, before it existed: every update used `probes`; variational.spawn_keeps_render, before
 # it existed: spawned carriers took the prior's gate and multiplier on top of their parameters; densify.growth_min_gain_db,
 # before the growth test: densification grew the model up to its budget; densify.growth_refit_steps, before the test
-# re-fitted the rest: the half was switched off in the model as it was.
+# re-fitted the rest: the half was switched off in the model as it was; densify.growth_skip_factor, before tests were
+# skipped: a test at every interval.
 _KEYS_BEFORE = {"variational": {"posterior": "sgd", "train_on": "samples",
                                 "refresh_probes": lambda section: section.get("probes", 2),
                                 "spawn_keeps_render": False},
-                "densify": {"growth_min_gain_db": 0.0, "growth_refit_steps": 0}}
+                "densify": {"growth_min_gain_db": 0.0, "growth_refit_steps": 0, "growth_skip_factor": None}}
 
 
 def _transparent(data) -> bool:

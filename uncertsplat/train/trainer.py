@@ -72,6 +72,8 @@ from uncertsplat.strategy.growth import (
     at_budget,
     growth_check_due,
     halving_cost_db,
+    skipped,
+    skips_next,
     weakest_half,
 )
 from uncertsplat.strategy.schedule import (
@@ -897,6 +899,8 @@ class Trainer:
             return None
         if at_budget(len(self.model), self.budget.max_gaussians):
             return None
+        if skipped(self.growth[-1] if self.growth else None, step, dcfg, self.cfg.iterations):
+            return None
         views = check_views(len(self.train_idx), dcfg.growth_check_views)
         cams, images = self.train_cams[views], self.photos(views)
         g = self.mean_sample()
@@ -917,7 +921,8 @@ class Trainer:
             b.cost_db < b.min_gain_db for b in before)
         check = GrowthCheck(step=step, gaussians=len(self.model), seen=seen, cost_db=round(min(cost, 1e3), 4),
                             min_gain_db=threshold, stopped=cheap, views=len(views),
-                            refit_steps=dcfg.growth_refit_steps)
+                            refit_steps=dcfg.growth_refit_steps,
+                            skip_next=skips_next(cost, threshold, dcfg))
         self.growth.append(check)
         self.densifier.grow = not check.stopped
         if check.stopped and check.refit_steps > 0:  # (the test before the re-fit only pruned after a stop)
