@@ -14,6 +14,10 @@ at the widths asked), one thread each:
 Writes ``results/memory_growth_<label>.json``. Example (2-core CPU, about 25 minutes)::
 
     python benchmarks/bench_memory_growth.py --widths 320 640 1280 --gaussians 200000 --label s50
+
+With ``--growth-test`` the hold part's runs keep the growth test on (a threshold no half reaches), so that its
+copies of the training are made near the limit; ``--ulimit-v-kb`` runs only the limited run, at that limit (the
+code before a change, by ``PYTHONPATH``, under the limit of a run of the code after it).
 """
 
 from __future__ import annotations
@@ -78,7 +82,8 @@ def train(scene_dir: Path, out: Path, args: list[str], vmem_kb: int | None = Non
     row = {"rc": rc, "seconds": round(time.perf_counter() - t0, 1), "vm_peak_mb": round(vm_peak / 1024),
            "peak_rss_mb": round(usage.ru_maxrss / 1024, 1), "gaussians": summary.get("num_gaussians"),
            "memory_per_gaussian_bytes": summary.get("memory_per_gaussian_bytes"),
-           "test_psnr": summary.get("test_psnr"), "budget": summary.get("budget")}
+           "test_psnr": summary.get("test_psnr"), "budget": summary.get("budget"),
+           "growth": [(g["step"], g["gaussians"], g["cost_db"]) for g in summary.get("growth", [])]}
     if rc:
         row["stderr_tail"] = err[-1500:]
     return row
@@ -101,18 +106,26 @@ def part_cost(root: Path, widths: list[int], gaussians: int) -> list[dict]:
     return rows
 
 
-def part_hold(root: Path, width: int, budget: int, iterations: int, under: float) -> dict:
+def part_hold(root: Path, width: int, budget: int, iterations: int, under: float, growth_test: bool = False,
+              vmem_kb: int | None = None) -> dict:
+    """The free run, then one under ``ulimit -v`` at ``under`` x its peak size (or at ``vmem_kb`` given: the free run
+    is skipped). ``growth_test``: the growth test on at a threshold no half reaches, a test at every interval, so its
+    copies are made near the limit and none stops growth."""
     sc = scene(root, width)
+    test = (["--set", "densify.growth_min_gain_db=0.000001", "--set", "densify.growth_skip_factor=null"]
+            if growth_test else ["--set", "densify.growth_min_gain_db=0"])
     grow = ["--iterations", str(iterations), "--set", f"densify.max_gaussians={budget}",
-            "--set", "densify.growth_min_gain_db=0", "--set", "densify.grad_threshold=0.00003",
+            *test, "--set", "densify.grad_threshold=0.00003",
             "--set", f"eval_every={iterations // 2}", "--set", f"checkpoint_every={iterations // 2}"]
-    free = train(sc, root / "hold_free", grow)
-    print(json.dumps({"free": {k: v for k, v in free.items() if k != "stderr_tail"}}), flush=True)
-    vmem_kb = int(free["vm_peak_mb"] * under * 1024)
+    free = None
+    if vmem_kb is None:
+        free = train(sc, root / "hold_free", grow)
+        print(json.dumps({"free": {k: v for k, v in free.items() if k != "stderr_tail"}}), flush=True)
+        vmem_kb = int(free["vm_peak_mb"] * under * 1024)
     limited = train(sc, root / "hold_limited", grow, vmem_kb=vmem_kb)
     print(json.dumps({"limited": limited, "ulimit_v_kb": vmem_kb}), flush=True)
-    return {"width": width, "budget": budget, "iterations": iterations, "ulimit_v_kb": vmem_kb, "free": free,
-            "limited": limited}
+    return {"width": width, "budget": budget, "iterations": iterations, "growth_test": growth_test,
+            "ulimit_v_kb": vmem_kb, "free": free, "limited": limited}
 
 
 def main() -> None:
@@ -125,6 +138,10 @@ def main() -> None:
     ap.add_argument("--hold-iterations", type=int, default=1200)
     ap.add_argument("--under", type=float, default=0.73,
                     help="the limited run's ulimit -v as a share of the free run's peak virtual size")
+    ap.add_argument("--growth-test", action="store_true",
+                    help="hold part: the growth test on (its copies made near the limit) instead of off")
+    ap.add_argument("--ulimit-v-kb", type=int, default=None,
+                    help="hold part: this limit instead of --under x a free run's peak (no free run)")
     ap.add_argument("--workdir", type=Path, default=None, help="scenes and runs (default: a temporary folder)")
     ap.add_argument("--label", default="local")
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
@@ -139,7 +156,8 @@ def main() -> None:
     if args.part in ("cost", "both"):
         result["cost"] = part_cost(root, args.widths, args.gaussians)
     if args.part in ("hold", "both"):
-        result["hold"] = part_hold(root, args.hold_width, args.hold_budget, args.hold_iterations, args.under)
+        result["hold"] = part_hold(root, args.hold_width, args.hold_budget, args.hold_iterations, args.under,
+                                   args.growth_test, args.ulimit_v_kb)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1, default=str) + "\n")
     print(f"wrote {out}")

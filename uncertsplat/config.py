@@ -384,7 +384,8 @@ class DensifyConfig(_Base):
     meanwhile): a cost that far above the threshold has not fallen below it one interval later on the scenes
     measured, and each test's copies train ``2 x growth_refit_steps`` steps, up to +60 % of the densification
     window's steps on a capture that grows through all of it (BENCHMARKS.md, "Growth tests skipped far above the
-    threshold"). None: a test at every interval."""
+    threshold"). A test that could not tell (a copy that could not train or ran out of memory) skips the next too.
+    Only with ``growth_refit_steps`` > 0. None: a test at every interval."""
     growth_patience: int = Field(2, ge=1)
     """Growth stops when this many tests in a row find the half cheaper than ``growth_min_gain_db`` (one test right
     after densification starts sees a model that has not fitted yet)."""

@@ -220,6 +220,8 @@ class TestSkip:
         assert not skips_next(0.45, 0.15, self.CFG.model_copy(update={"growth_skip_factor": None}))
         assert skips_next(0.15, 0.15, self.CFG.model_copy(update={"growth_skip_factor": 1.0}))
         assert not skips_next(5.0, 0.0, self.CFG), "a zero threshold (no test) skips nothing"
+        assert not skips_next(5.0, 0.25, self.CFG.model_copy(update={"growth_refit_steps": 0})), (
+            "a test without copies costs a few renders: nothing to save")
 
     def test_only_the_next_test_due_is_skipped(self):
         last = self._check(500, True)
@@ -371,21 +373,40 @@ class TestRefit:
         half[: len(t.model) // 2] = True
         assert math.isfinite(t._refit_cost(t.step, half, [0, 2, 4], t.photos([0, 2, 4]), None))
 
-    def test_a_copy_that_cannot_train_lets_the_model_grow(self, monkeypatch):
+    @pytest.mark.parametrize("error", [
+        "diverged", "cpu", "cuda", "memory-error", "other"])
+    def test_a_copy_that_cannot_train_lets_the_model_grow(self, monkeypatch, error):
+        """A copy that diverges or whose memory runs out decides nothing; any other error is raised. On the CPU
+        torch's allocator raises a plain RuntimeError (seen under ``ulimit -v``), which the test let end the
+        training."""
         from uncertsplat.errors import UserError
 
+        raised = {"diverged": UserError("the loss is NaN"),
+                  "cpu": RuntimeError("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator: can't "
+                                      "allocate memory: you tried to allocate 3221225472 bytes. Error code 12"),
+                  "cuda": torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB"),
+                  "memory-error": MemoryError(), "other": RuntimeError("shape mismatch")}[error]
         step = Trainer.train_step
 
         def failing(self):
             if self._is_fork:
-                raise UserError("the loss is NaN")
+                raise raised
             return step(self)
 
         monkeypatch.setattr(Trainer, "train_step", failing)
         scene, tr, te = toy_scene()
         t = Trainer(scene, self._cfg(50.0), tr, te)  # (any half would be cheap against 50 dB)
+        if error == "other":
+            with pytest.raises(RuntimeError, match="shape mismatch"):
+                t.fit()
+            return
         t.fit()
         assert [(g.cost_db, g.stopped) for g in t.growth] == [(1e3, False), (1e3, False)] and t.densifier.grow
+        assert "could not be measured" in growth_reason(t.growth[0])
+        skipping = Trainer(scene, self._cfg(50.0, growth_skip_factor=3.0), tr, te)
+        skipping.fit()
+        assert [(g.step, g.cost_db, g.skip_next) for g in skipping.growth] == [(10, 1e3, True)]
+        assert growth_reason(skipping.growth[0]).endswith("growth goes on (the next test skipped)")
 
     def test_one_refit_step(self):
         scene, tr, te = toy_scene()

@@ -79,9 +79,11 @@ def reset_within(step: int, cfg, iterations: int | None = None) -> bool:
 
 def skips_next(cost_db: float, threshold_db: float, cfg) -> bool:
     """Whether a test that found the half worth ``cost_db`` against ``threshold_db`` skips the next test due:
-    ``cost_db`` at least ``cfg.growth_skip_factor`` (a ``DensifyConfig``; None: never) times the threshold."""
+    ``cost_db`` at least ``cfg.growth_skip_factor`` (a ``DensifyConfig``; None: never) times the threshold, for the
+    test with copies only (``growth_refit_steps`` > 0: without them a test costs a few renders, and its costs, 0.7-4.5
+    dB on every scene measured, would skip every other test)."""
     factor = cfg.growth_skip_factor
-    return factor is not None and threshold_db > 0 and cost_db >= factor * threshold_db
+    return factor is not None and cfg.growth_refit_steps > 0 and threshold_db > 0 and cost_db >= factor * threshold_db
 
 
 def skipped(last: GrowthCheck | None, step: int, cfg, iterations: int | None = None) -> bool:
@@ -94,6 +96,11 @@ def skipped(last: GrowthCheck | None, step: int, cfg, iterations: int | None = N
     n = cfg.growth_check_interval
     first = (last.step // n + 1) * n  # the first multiple of the interval after the last test
     return not any(growth_check_due(m, cfg, iterations) for m in range(first, step, n))
+
+
+UNTOLD_DB = 1e3
+"""A test's cost is recorded up to this (``GrowthCheck.cost_db``): a copy that could not train, memory too short for
+a copy, or a whole copy that renders its views exactly (+inf) all read as this."""
 
 
 # A model with at least this fraction of its budget is at the budget: the growth test is skipped (module docstring).
@@ -140,15 +147,19 @@ def growth_reason(check: GrowthCheck) -> str:
     verdict = (f"densification stops growing the model past {check.gaussians:,} Gaussians" if check.stopped
                else "growth goes on until the half is this cheap at consecutive tests" if cheap else "growth goes on")
     if check.skip_next:
-        verdict += " (the next test skipped: the cost is far above the threshold)"
+        verdict += (" (the next test skipped)" if check.cost_db >= UNTOLD_DB else
+                    " (the next test skipped: the cost is far above the threshold)")
     cmp = "<" if cheap else ">="
     how = (f"taking out the weakest half of the {check.seen:,} Gaussians {check.views} training views see (of "
            f"{check.gaussians:,}) and training the rest {check.refit_steps} steps costs"
            if check.refit_steps else
            f"switching off the weakest half of the {check.seen:,} Gaussians {check.views} training views see (of "
            f"{check.gaussians:,}) costs")
+    if check.cost_db >= UNTOLD_DB:
+        return (f"growth test at step {check.step}: {how} more than {UNTOLD_DB:g} dB or could not be measured (a copy "
+                f"that could not train or memory too short for one), {verdict}")
     return f"growth test at step {check.step}: {how} {check.cost_db:.3f} dB ({cmp} {check.min_gain_db:g} dB), {verdict}"
 
 
-__all__ = ["AT_BUDGET", "GrowthCheck", "at_budget", "growth_check_due", "growth_reason", "halving_cost_db", "skipped",
+__all__ = ["AT_BUDGET", "UNTOLD_DB", "GrowthCheck", "at_budget", "growth_check_due", "growth_reason", "halving_cost_db", "skipped",
            "skips_next", "weakest_half"]

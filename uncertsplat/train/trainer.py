@@ -68,6 +68,7 @@ from uncertsplat.strategy.budget import (
 from uncertsplat.strategy.densify import Densifier, DensifyStats
 from uncertsplat.strategy.exposure import EXPOSURE_SPREAD, ExposureCheck, exposure_check_due, gain_spread
 from uncertsplat.strategy.growth import (
+    UNTOLD_DB,
     GrowthCheck,
     at_budget,
     growth_check_due,
@@ -919,7 +920,7 @@ class Trainer:
         before = self.growth[len(self.growth) - dcfg.growth_patience + 1:] if dcfg.growth_patience > 1 else []
         cheap = cost < threshold and len(before) == dcfg.growth_patience - 1 and all(
             b.cost_db < b.min_gain_db for b in before)
-        check = GrowthCheck(step=step, gaussians=len(self.model), seen=seen, cost_db=round(min(cost, 1e3), 4),
+        check = GrowthCheck(step=step, gaussians=len(self.model), seen=seen, cost_db=round(min(cost, UNTOLD_DB), 4),
                             min_gain_db=threshold, stopped=cheap, views=len(views),
                             refit_steps=dcfg.growth_refit_steps,
                             skip_next=skips_next(cost, threshold, dcfg))
@@ -938,8 +939,10 @@ class Trainer:
         training); the cost is how much better the first renders the training ``views`` than the second, both
         against ``images`` [V,H,W,3] (their photos as this training sees them; ``masks`` [V,H,W,1] or None), in dB
         (``view_checks.gain_db``). +inf where a copy could not train (its loss not finite for ``MAX_BAD_STEPS``
-        steps in a row) or memory was too short for one: a test that cannot tell lets the model grow."""
-        from uncertsplat.errors import UserError
+        steps in a row) or memory was too short for one (the allocator's error): a test that cannot tell lets the
+        model grow as far as the memory hold allows. (The hold reads the process's peak, which holds the last test's
+        copies: growth leaves room for the next test's.)"""
+        from uncertsplat.errors import UserError, out_of_memory
 
         sse = []
         for remove in (None, off):
@@ -951,9 +954,11 @@ class Trainer:
                         fork.train_step()
                 sse.append(sum_squared_error(fork.mean_sample(), fork.train_cams[views], images,
                                              lambda s, cam, f=fork: f.render(s, cam).rgb, masks))
-            except (UserError, torch.OutOfMemoryError, MemoryError):
-                # a copy that diverged, or memory too short for a copy (the memory hold prices growth, not the
-                # copies): no decision, and growth goes on inside what the hold allows
+            except (UserError, MemoryError, RuntimeError) as err:
+                # a copy that diverged, or memory too short for a copy (on the CPU torch's allocator raises a plain
+                # RuntimeError, which ended the training): no decision, growth goes on inside what the hold allows
+                if not isinstance(err, UserError) and out_of_memory(err, "train") is None:
+                    raise
                 del fork
                 return math.inf
             del fork
