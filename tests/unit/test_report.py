@@ -747,6 +747,15 @@ def test_training_section_says_where_growth_stopped(tmp_path):
             "(of 32,156) costs 0.077 dB (&lt; 0.25 dB), densification stops growing the model past 32,156 Gaussians "
             "(2 growth test(s) "
             "in all)") in html
+    # tests far above the threshold skipped the next one (densify.growth_skip_factor): counted
+    summary.growth = [GrowthCheck(step=250, gaussians=11816, seen=11700, cost_db=0.70, min_gain_db=0.15,
+                                  stopped=False, views=8, refit_steps=100, skip_next=True),
+                      GrowthCheck(step=750, gaussians=55645, seen=55000, cost_db=0.76, min_gain_db=0.15,
+                                  stopped=False, views=8, refit_steps=100, skip_next=True)]
+    summary.write(run / "train_summary.json")
+    html = stage.run([run], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
+    assert ("growth goes on (the next test skipped: the cost is far above the threshold) (2 growth test(s) in all, 2 "
+            "of them far above the threshold, each skipping the next one)") in html
 
 
 def test_own_page_is_replaced_anothers_is_not(tmp_path):

@@ -756,8 +756,11 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
                 body.append(note(f"{run.name}: {band_reason(band)}"))
             stops = [g for g in s.growth if g.stopped]  # where densification stopped growing the model, and why
             if s.growth:
+                skipping = sum(g.skip_next for g in s.growth)  # (densify.growth_skip_factor)
                 body.append(note(f"{run.name}: {growth_reason(stops[0] if stops else s.growth[-1])} "
-                                 f"({len(s.growth)} growth test(s) in all)"))
+                                 f"({len(s.growth)} growth test(s) in all"
+                                 + (f", {skipping} of them far above the threshold, each skipping the next one"
+                                    if skipping else "") + ")"))
             stopped = any(w.startswith(TRANSIENTS_STOPPED) for w in s.warnings)
             if s.transients is not None and not stopped:  # which photos held transient objects, left out of training
                 # (a test that switched itself off: its warning, above, says so)
