@@ -161,5 +161,5 @@ def growth_reason(check: GrowthCheck) -> str:
     return f"growth test at step {check.step}: {how} {check.cost_db:.3f} dB ({cmp} {check.min_gain_db:g} dB), {verdict}"
 
 
-__all__ = ["AT_BUDGET", "UNTOLD_DB", "GrowthCheck", "at_budget", "growth_check_due", "growth_reason", "halving_cost_db", "skipped",
-           "skips_next", "weakest_half"]
+__all__ = ["AT_BUDGET", "UNTOLD_DB", "GrowthCheck", "at_budget", "growth_check_due", "growth_reason", "halving_cost_db",
+           "skipped", "skips_next", "weakest_half"]
