@@ -408,6 +408,38 @@ class TestRefit:
         assert [(g.step, g.cost_db, g.skip_next) for g in skipping.growth] == [(10, 1e3, True)]
         assert growth_reason(skipping.growth[0]).endswith("growth goes on (the next test skipped)")
 
+    def test_a_stop_during_the_copies_ends_them_without_a_test(self, monkeypatch):
+        """Ctrl-C (or a sweep's stop) during a test's copies waited for all their steps (minutes for a large model):
+        the copies end at the next of their steps, no test is recorded, and the step's stop follows; the resumed run
+        tests at the next interval."""
+        from uncertsplat.train.trainer import STOP_REQUESTED, TrainingInterrupted
+
+        step = Trainer.train_step
+        fork_steps, stops = [], [1]
+
+        def stop_in_a_copy(self):
+            if self._is_fork:
+                fork_steps.append(self.step)
+                if len(fork_steps) == 2 and stops:
+                    stops.pop()
+                    STOP_REQUESTED.set()  # (as a sweep's stop, or the Ctrl-C handler's flag)
+            return step(self)
+
+        monkeypatch.setattr(Trainer, "train_step", stop_in_a_copy)
+        scene, tr, te = toy_scene()
+        cfg = self._cfg(1e-9, growth_refit_steps=50)
+        t = Trainer(scene, cfg, tr, te)
+        try:
+            with pytest.raises(TrainingInterrupted):
+                t.fit()
+        finally:
+            STOP_REQUESTED.clear()
+        assert t.step == 10 and t.growth == [] and len(fork_steps) == 2, "the copies stopped after the stop came"
+        fork_steps.clear()
+        resumed = Trainer(scene, cfg, tr, te, state=decode(encode(t.state_dict())))
+        resumed.fit()
+        assert [g.step for g in resumed.growth] == [20] and len(fork_steps) == 2 * 50
+
     def test_one_refit_step(self):
         scene, tr, te = toy_scene()
         t = Trainer(scene, self._cfg(1e-9, growth_refit_steps=1, growth_patience=3), tr, te)

@@ -894,7 +894,8 @@ class Trainer:
     def check_growth(self, step: int) -> GrowthCheck | None:
         """Run the growth test due at ``step`` (``strategy.growth``); stop densification's growth when the weakest
         half of the model is worth less than ``densify.growth_min_gain_db``. Returns the test, or None (none due,
-        growth already stopped, or the model at its budget: ``strategy.growth.at_budget``)."""
+        growth already stopped, the model at its budget: ``strategy.growth.at_budget``, skipped:
+        ``strategy.growth.skipped``, or a stop that came in during the copies: ``_refit_cost``)."""
         dcfg = self.cfg.densify
         if not self.densifier.grow or not growth_check_due(step, dcfg, self.cfg.iterations):
             return None
@@ -913,6 +914,8 @@ class Trainer:
         if dcfg.growth_refit_steps > 0:
             del g, weights  # (the copies below hold a model each)
             cost = self._refit_cost(step, off, views, images, masks)
+            if cost is None:  # a stop asked for during the copies: no test (the step ends, its checkpoint follows)
+                return None
         else:
             cost = halving_cost_db(g, off, cams, images, lambda s, cam: self.render(s, cam).rgb, masks=masks)
         threshold = dcfg.growth_threshold_db
@@ -932,7 +935,7 @@ class Trainer:
             self.on_growth(check)
         return check
 
-    def _refit_cost(self, step: int, off: Tensor, views: list[int], images, masks: Tensor | None) -> float:
+    def _refit_cost(self, step: int, off: Tensor, views: list[int], images, masks: Tensor | None) -> float | None:
         """The growth test's cost with the rest re-fitted (``densify.growth_refit_steps`` > 0): two copies of this
         training at ``step`` (``_fork``), the whole model and the model without the Gaussians in ``off`` [N], each
         train ``growth_refit_steps`` steps on the same views in the same order (the copies change nothing of this
@@ -941,7 +944,9 @@ class Trainer:
         (``view_checks.gain_db``). +inf where a copy could not train (its loss not finite for ``MAX_BAD_STEPS``
         steps in a row) or memory was too short for one (the allocator's error): a test that cannot tell lets the
         model grow as far as the memory hold allows. (The hold reads the process's peak, which holds the last test's
-        copies: growth leaves room for the next test's.)"""
+        copies: growth leaves room for the next test's.) None where a stop (Ctrl-C, SIGTERM, ``STOP_REQUESTED``) came
+        in during the copies' steps: they end there, and the test is not made (the copies of a large model train for
+        minutes, which a stop waited for)."""
         from uncertsplat.errors import UserError, out_of_memory
 
         sse = []
@@ -951,6 +956,9 @@ class Trainer:
                 fork = self._fork(step, remove)
                 with torch.enable_grad():  # (the tests run under no_grad)
                     for _ in range(self.cfg.densify.growth_refit_steps):
+                        if self._stop or STOP_REQUESTED.is_set():
+                            del fork
+                            return None
                         fork.train_step()
                 sse.append(sum_squared_error(fork.mean_sample(), fork.train_cams[views], images,
                                              lambda s, cam, f=fork: f.render(s, cam).rgb, masks))
