@@ -215,12 +215,14 @@ class TestSkip:
                            skip_next=skip)
 
     def test_the_factor_against_the_threshold(self):
-        assert skips_next(0.45, 0.15, self.CFG) and skips_next(math.inf, 0.15, self.CFG)
-        assert not skips_next(0.4499, 0.15, self.CFG)
-        assert not skips_next(0.45, 0.15, self.CFG.model_copy(update={"growth_skip_factor": None}))
-        assert skips_next(0.15, 0.15, self.CFG.model_copy(update={"growth_skip_factor": 1.0}))
-        assert not skips_next(5.0, 0.0, self.CFG), "a zero threshold (no test) skips nothing"
-        assert not skips_next(5.0, 0.25, self.CFG.model_copy(update={"growth_refit_steps": 0})), (
+        assert self.CFG.growth_threshold_db == 0.15
+        assert skips_next(0.45, self.CFG) and skips_next(math.inf, self.CFG)
+        assert not skips_next(0.4499, self.CFG)
+        assert not skips_next(0.45, self.CFG.model_copy(update={"growth_skip_factor": None}))
+        assert skips_next(0.15, self.CFG.model_copy(update={"growth_skip_factor": 1.0}))
+        assert not skips_next(5.0, self.CFG.model_copy(update={"growth_min_gain_db": 0.0})), (
+            "a zero threshold (no test) skips nothing")
+        assert not skips_next(5.0, self.CFG.model_copy(update={"growth_refit_steps": 0})), (
             "a test without copies costs a few renders: nothing to save")
 
     def test_only_the_next_test_due_is_skipped(self):

@@ -77,13 +77,13 @@ def reset_within(step: int, cfg, iterations: int | None = None) -> bool:
     return any(is_opacity_reset_step(m, cfg, iterations) for m in range(first, step, n))
 
 
-def skips_next(cost_db: float, threshold_db: float, cfg) -> bool:
-    """Whether a test that found the half worth ``cost_db`` against ``threshold_db`` skips the next test due:
-    ``cost_db`` at least ``cfg.growth_skip_factor`` (a ``DensifyConfig``; None: never) times the threshold, for the
-    test with copies only (``growth_refit_steps`` > 0: without them a test costs a few renders, and its costs, 0.7-4.5
-    dB on every scene measured, would skip every other test)."""
-    factor = cfg.growth_skip_factor
-    return factor is not None and cfg.growth_refit_steps > 0 and threshold_db > 0 and cost_db >= factor * threshold_db
+def skips_next(cost_db: float, cfg) -> bool:
+    """Whether a test that found the half worth ``cost_db`` skips the next test due: ``cost_db`` at least
+    ``cfg.growth_skip_factor`` (a ``DensifyConfig``; None: never) times its threshold (``growth_threshold_db``), for
+    the test with copies only (``growth_refit_steps`` > 0: without them a test costs a few renders, and its costs,
+    0.7-4.5 dB on every scene measured, would skip every other test)."""
+    factor, threshold = cfg.growth_skip_factor, cfg.growth_threshold_db
+    return factor is not None and cfg.growth_refit_steps > 0 and threshold > 0 and cost_db >= factor * threshold
 
 
 def skipped(last: GrowthCheck | None, step: int, cfg, iterations: int | None = None) -> bool:

@@ -926,7 +926,7 @@ class Trainer:
         check = GrowthCheck(step=step, gaussians=len(self.model), seen=seen, cost_db=round(min(cost, UNTOLD_DB), 4),
                             min_gain_db=threshold, stopped=cheap, views=len(views),
                             refit_steps=dcfg.growth_refit_steps,
-                            skip_next=skips_next(cost, threshold, dcfg))
+                            skip_next=skips_next(cost, dcfg))
         self.growth.append(check)
         self.densifier.grow = not check.stopped
         if check.stopped and check.refit_steps > 0:  # (the test before the re-fit only pruned after a stop)
@@ -951,13 +951,12 @@ class Trainer:
 
         sse = []
         for remove in (None, off):
-            fork = None
+            fork = None  # (the first copy is freed before the second is made)
             try:
                 fork = self._fork(step, remove)
                 with torch.enable_grad():  # (the tests run under no_grad)
                     for _ in range(self.cfg.densify.growth_refit_steps):
                         if self._stop or STOP_REQUESTED.is_set():
-                            del fork
                             return None
                         fork.train_step()
                 sse.append(sum_squared_error(fork.mean_sample(), fork.train_cams[views], images,
@@ -967,9 +966,7 @@ class Trainer:
                 # RuntimeError, which ended the training): no decision, growth goes on inside what the hold allows
                 if not isinstance(err, UserError) and out_of_memory(err, "train") is None:
                     raise
-                del fork
                 return math.inf
-            del fork
         return gain_db(*sse)
 
     def _fork(self, step: int, remove: Tensor | None = None) -> Trainer:
