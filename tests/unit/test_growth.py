@@ -24,7 +24,7 @@ from uncertsplat.strategy.growth import (
     skips_next,
     weakest_half,
 )
-from uncertsplat.train.trainer import Trainer
+from uncertsplat.train.trainer import GrowthCopy, Trainer
 from uncertsplat.types import Cameras, GaussianSample
 
 
@@ -391,7 +391,7 @@ class TestRefit:
         step = Trainer.train_step
 
         def failing(self):
-            if self._is_fork:
+            if isinstance(self, GrowthCopy):
                 raise raised
             return step(self)
 
@@ -420,7 +420,7 @@ class TestRefit:
         fork_steps, stops = [], [1]
 
         def stop_in_a_copy(self):
-            if self._is_fork:
+            if isinstance(self, GrowthCopy):
                 fork_steps.append(self.step)
                 if len(fork_steps) == 2 and stops:
                     stops.pop()

@@ -399,10 +399,7 @@ class Trainer:
                  train_masks: Tensor | None = None, test_masks: Tensor | None = None, *,
                  _fork_of: Trainer | None = None):
         self.scene, self.cfg = scene, cfg
-        # a copy that the growth test trains for a few steps (``_refit_cost``): it shares its parent's photos and
-        # their derived arrays, and changes nothing outside itself (no topology change, posterior update, test, log,
-        # checkpoint or memory accounting)
-        self._is_fork = _fork_of is not None
+        # ``_fork_of``: the training a ``GrowthCopy`` copies, whose photos and their derived arrays it shares
         self.device = train_images.device
         self.train_idx = list(scene.split["train"])
         self.test_idx = list(scene.split.get("test", ()))
@@ -481,7 +478,7 @@ class Trainer:
         # was held at its first size by them); the process's peak before is kept for the summary (``peak_mb``)
         self._peak_before_mb = peak_memory_mb(self.device)
         self._size_peak_before = None  # (the process's largest size before: ``room_beyond_peak``)
-        if not self._is_fork:  # (a growth test's copy leaves its parent's peaks alone: its memory is the parent's)
+        if _fork_of is None:  # (a growth test's copy leaves its parent's peaks alone: its memory is the parent's)
             if self.device.type == "cpu":
                 from uncertsplat.io.memory import process_size_peak, release_free_memory
 
@@ -969,18 +966,18 @@ class Trainer:
                 return math.inf
         return gain_db(*sse)
 
-    def _fork(self, step: int, remove: Tensor | None = None) -> Trainer:
+    def _fork(self, step: int, remove: Tensor | None = None) -> GrowthCopy:
         """A copy of this training as it stands inside ``step`` (after the step's update, before its topology
         changes), without the Gaussians in ``remove`` [N] bool (None: all kept), for ``_refit_cost``: its
-        parameters, moments and generators are copies, its photos its parent's; its steps make no topology change,
-        posterior update or test and write nothing."""
+        parameters, moments and generators are copies, its photos its parent's (``GrowthCopy``: what its steps
+        leave out)."""
         state = self.state_dict()
         # (the optimisers' states hold this training's own moment tensors, which loading them would share)
         state["optimizer"] = copy.deepcopy(state["optimizer"])
         state["exposure_optimizer"] = copy.deepcopy(state["exposure_optimizer"])
         state["step"], state["bad_steps_in_a_row"] = step, 0
-        fork = Trainer(self.scene, self.cfg, self.train_images, None, run_dir=None, state=state, near=self.near,
-                       train_masks=self.train_masks, _fork_of=self)
+        fork = GrowthCopy(self.scene, self.cfg, self.train_images, None, run_dir=None, state=state, near=self.near,
+                          train_masks=self.train_masks, _fork_of=self)
         if remove is not None and bool(remove.any()):
             remove_rows(fork.model, fork.optimizer, remove)
             fork.densifier.stats = DensifyStats.zeros(len(fork.model), fork.model.device)
@@ -1142,7 +1139,7 @@ class Trainer:
         step = self.step + 1
         set_rates(self.optimizer, self._rates(step))
         timer = self.timer
-        if step % cfg.sh_degree_interval == 0 and not self._is_fork:
+        if step % cfg.sh_degree_interval == 0:
             with timer("eval"):
                 if self.check_sh_band(step) is not None:
                     self._expected = None
@@ -1222,11 +1219,10 @@ class Trainer:
                 scale = self.train_cams.width / cams.width
                 radii = out.radii if scale == 1.0 else out.radii * scale
                 self.densifier.accumulate(step, out.means2d.grad, radii, cams.width, cams.height)
-        if not self._is_fork:
-            with timer("eval"):
-                if self.check_growth(step) is not None:
-                    self._expected = None
-                self.check_exposure(step)
+        with timer("eval"):
+            if self.check_growth(step) is not None:
+                self._expected = None
+            self.check_exposure(step)
         if self._fit_until is not None and self._test_due(step) \
                 and is_opacity_reset_step(step, cfg.densify, cfg.iterations):
             # rendered even when a stop came in during the step (the stop's checkpoint waits for one test's renders):
@@ -1239,16 +1235,8 @@ class Trainer:
             finally:
                 self.step = before
             self._test_seconds = time.perf_counter() - t0
-        done: dict[str, int] = {}
-        if not self._is_fork:
-            with timer("densify"):
-                limit = self._memory_limit(step)
-                done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise,
-                                           limit=limit[0] if limit is not None else None)
-                if done.pop("held") and limit is not None:
-                    self._memory_held(step, *limit)
-                if any(done.values()):
-                    self._expected = None
+        with timer("densify"):
+            done = self._change_topology(step)
         if len(self.model) == 0:  # (trained on as an empty model, it ended in a traceback writing its PLY)
             from uncertsplat.errors import UserError
 
@@ -1263,7 +1251,7 @@ class Trainer:
         # tables fell back to the prior for the next refresh_interval steps (bonsai's update at step 3000: 0.4 % of
         # the carriers' position spreads set by the data, against 75 % at step 2500; noise 0.34 against 0.08)
         if self.informed and (step % cfg.variational.refresh_interval == 0 or step == cfg.iterations) \
-                and not done.get("reset") and not self._is_fork:
+                and not done.get("reset"):
             with timer("posterior"):
                 self.update_posterior()
         result = {k: float(v.detach()) for k, v in losses.items()}
@@ -1271,6 +1259,18 @@ class Trainer:
             result["skipped"] = 1.0
         result.update({k: float(v) for k, v in done.items() if v})
         return result
+
+    def _change_topology(self, step: int) -> dict[str, int]:
+        """Densification's changes due at ``step`` (clones, splits, prunes, opacity reset: their counts), inside what
+        memory allows (``_memory_limit``)."""
+        limit = self._memory_limit(step)
+        done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise,
+                                   limit=limit[0] if limit is not None else None)
+        if done.pop("held") and limit is not None:
+            self._memory_held(step, *limit)
+        if any(done.values()):
+            self._expected = None
+        return done
 
     def _drop(self, g: GaussianSample, step: int) -> GaussianSample:
         """``drop_rate``: each Gaussian left out of this step's render with probability r = drop_rate x
@@ -1351,16 +1351,19 @@ class Trainer:
         self.optimizer.step()
         return True
 
+    def _warn_non_finite(self, step: int) -> None:
+        from uncertsplat.console import console
+
+        console.print(f"[yellow]warning:[/] step {step}: the loss or a gradient is NaN/Inf; update skipped "
+                      "(parameters unchanged)")
+
     def _skip_non_finite(self, step: int) -> None:
         """A NaN/Inf loss or gradient: skip the update (Adam would spread it into every parameter)."""
-        from uncertsplat.console import console
         from uncertsplat.errors import UserError
 
         self.skipped_steps += 1
         self.bad_steps_in_a_row += 1
-        if not self._is_fork:  # (a growth test's copy: its training's warning would name a step it never skipped)
-            console.print(f"[yellow]warning:[/] step {step}: the loss or a gradient is NaN/Inf; update skipped "
-                          "(parameters unchanged)")
+        self._warn_non_finite(step)
         if self.bad_steps_in_a_row >= MAX_BAD_STEPS:
             from uncertsplat.io.checkpoints import list_checkpoints
             from uncertsplat.train.session import _changed_fit_settings
@@ -1558,6 +1561,33 @@ class Trainer:
                 **({"profile": self.timer.summary()} if self.timer.enabled else {})}
 
 
+class GrowthCopy(Trainer):
+    """A copy of a training that the growth test trains for a few steps (``Trainer._fork``, ``_refit_cost``): the
+    same steps as its parent's, with everything that would change more than the copy itself left out. It shares its
+    parent's photos and their derived arrays (low-resolution images, masks, SSIM statistics) and leaves its
+    parent's memory peaks alone; its steps change no topology, update no posterior, make no test (SH band, growth,
+    exposure) and warn of no skipped step (the parent never skipped it); it has no run folder, so it writes
+    nothing."""
+
+    def check_sh_band(self, step: int) -> None:
+        return None
+
+    def check_growth(self, step: int) -> None:
+        return None
+
+    def check_exposure(self, step: int) -> None:
+        return None
+
+    def update_posterior(self) -> dict:
+        return {}
+
+    def _change_topology(self, step: int) -> dict[str, int]:
+        return {}
+
+    def _warn_non_finite(self, step: int) -> None:
+        return None
+
+
 def log_line(record: dict) -> str:
     parts = [f"step {record.get('step')}"]
     for k in ("loss", "eval_psnr", "num_gaussians", "num_carriers", "sec_per_step"):
@@ -1567,4 +1597,4 @@ def log_line(record: dict) -> str:
     return ", ".join(parts)
 
 
-__all__ = ["Trainer", "TrainingInterrupted", "prior_from_config", "peak_memory_mb"]
+__all__ = ["GrowthCopy", "Trainer", "TrainingInterrupted", "prior_from_config", "peak_memory_mb"]
