@@ -12,6 +12,8 @@ median per mode are compared. ``--what``:
   (``variational.train_on = "mean"``, now) against the expected render (``"expected"``, before).
 - ``mean-sample``: a training step's Gaussians from the parameters and the kept table terms in one native pass and
   its backward (``variational._with_constants``, now) against the five tensor ops and their autograd nodes (before).
+- ``tile-size``: the run's ``tile_size`` ("before") against ``--tile-size`` ("now"): the rasterizer's tiles, whose
+  size trades the (tile, Gaussian) pairs binning lists against the pixels each pair's compositing visits.
 - ``ssim-cache``: the training photos' SSIM statistics kept (``ssim_cache_mb``, the default 1024 MB, now) against
   blurring the photo in every step's SSIM (``ssim_cache_mb = 0``, before); the same loss to the bit.
 
@@ -147,11 +149,23 @@ def _ssim_cache_modes(trainer):
     return before, now
 
 
+def _tile_size_modes(trainer, size: int):
+    """(set_before, set_now) for ``tile-size``: the run's tile size, then ``size``."""
+
+    def setter(value):
+        def set_mode():
+            trainer.cfg = trainer.cfg.model_copy(update={"tile_size": value})
+        return set_mode
+    return setter(trainer.cfg.tile_size), setter(size)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--run", type=Path, required=True, help="a run folder with checkpoints")
     ap.add_argument("--scene", type=Path, required=True, help="the scene of --run")
-    ap.add_argument("--what", choices=["fused-image", "train-on", "ssim-cache", "mean-sample"], default="fused-image")
+    ap.add_argument("--what", choices=["fused-image", "train-on", "ssim-cache", "mean-sample", "tile-size"],
+                    default="fused-image")
+    ap.add_argument("--tile-size", type=int, default=16, help="the tile size of --what tile-size's \"now\"")
     ap.add_argument("--rounds", type=int, default=16)
     ap.add_argument("--block", type=int, default=10)
     ap.add_argument("--label", default="run")
@@ -165,7 +179,8 @@ def main() -> None:
     trainer = trainer_from_run(args.scene, args.run, cfg, torch.device("cpu"),
                                extra_steps=2 * args.block * args.rounds + 10)
     modes = {"fused-image": lambda: _fused_image_modes(), "train-on": lambda: _train_on_modes(trainer),
-             "ssim-cache": lambda: _ssim_cache_modes(trainer), "mean-sample": _mean_sample_modes}
+             "ssim-cache": lambda: _ssim_cache_modes(trainer), "mean-sample": _mean_sample_modes,
+             "tile-size": lambda: _tile_size_modes(trainer, args.tile_size)}
     set_before, set_now = modes[args.what]()
     for _ in range(5):  # warm-up
         trainer.train_step()
@@ -184,7 +199,8 @@ def main() -> None:
     finally:
         set_now()
     out = {
-        "what": args.what, "run": str(args.run), "num_gaussians": len(trainer.model), "rounds": args.rounds,
+        "what": args.what, **({"tile_size": {"before": cfg.tile_size, "now": args.tile_size}}
+                              if args.what == "tile-size" else {}), "run": str(args.run), "num_gaussians": len(trainer.model), "rounds": args.rounds,
         "block": args.block, "threads": torch.get_num_threads(), "machine": args.machine,
         "date": date.today().isoformat(), "torch": torch.__version__,
         "ms_per_step": {k: [1e3 * s for s in v] for k, v in seconds.items()},
