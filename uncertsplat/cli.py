@@ -303,7 +303,10 @@ def _stage_config(model, config_file: Path | None, overrides: list[str] | None, 
 @app.command()
 @_handle_errors
 def synth(
-    out: Annotated[Path, typer.Argument(help="Output folder for the generated scene.")],
+    out: Annotated[Path | None, typer.Argument(
+        help="Output folder for the generated scene (or -o OUT, as the other commands take it).",
+        show_default=False)] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="The same as OUT.", show_default=False)] = None,
     preset: Annotated[str | None, typer.Option(
         help=f"tiny (tests, seconds) or demo (the embedded default). {_d('SynthConfig', 'preset')}")] = None,
     seed: Annotated[int | None, typer.Option(
@@ -323,6 +326,11 @@ def synth(
     from uncertsplat.config import SynthConfig
     from uncertsplat.stages import synth as stage
 
+    if out is None and output is None:
+        raise UserError("synth needs the folder to write the scene to", hint="uncertsplat synth OUT (or -o OUT)")
+    if out is not None and output is not None and out != output:
+        raise UserError(f"two output folders given: {q(out)} and -o {q(output)}", hint="Give one of them.")
+    out = out if out is not None else output
     explicit = {"preset": preset, "seed": seed, "layout": layout, "rig": rig, "backdrop": backdrop}
     cfg = _stage_config(SynthConfig, None, set_, explicit)
     stage.run(out, cfg, overwrite=overwrite)

@@ -193,6 +193,21 @@ def test_cli_synth_writes_a_scene(tmp_path):
     assert json.loads((out / "scene.json").read_text(encoding="utf-8"))["seed"] == 5
 
 
+def test_cli_synth_takes_its_folder_as_the_other_commands_do(tmp_path):
+    """``-o OUT`` as in train, reconstruct, prune, ... (a user typing ``synth -o OUT`` got "No such option: -o"); one
+    folder, not two, and none is a clear error."""
+    out = tmp_path / "scene"
+    small = ["--preset", "tiny", "--set", "num_views=4", "--set", "width=32"]
+    result = runner.invoke(app, ["synth", "-o", str(out), *small])
+    assert result.exit_code == 0, result.output
+    assert (out / "scene.json").is_file()
+    assert runner.invoke(app, ["synth", str(out), "-o", str(out), *small]).exit_code == 0  # the same folder twice
+    two = runner.invoke(app, ["synth", str(out), "-o", str(tmp_path / "other"), *small])
+    assert two.exit_code == 2 and "two output folders" in two.output and not (tmp_path / "other").exists()
+    none = runner.invoke(app, ["synth", *small])
+    assert none.exit_code == 2 and "synth OUT (or -o OUT)" in none.output and "Traceback" not in none.output
+
+
 def test_cli_synth_refuses_a_foreign_folder(tmp_path):
     (tmp_path / "notes.txt").write_text("mine")
     result = runner.invoke(app, ["synth", str(tmp_path), "--preset", "tiny", "--set", "num_views=3",
