@@ -118,16 +118,31 @@ def instrumented(rows: list[dict], refit: int, stop_step: int, out: Path, meta: 
     trainer_module.Trainer.check_growth = check_growth
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def scene_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options of a script that trains one scene on a preset with overrides (this one, bench_refit_steps.py)."""
     ap.add_argument("--scene", required=True, help="workspace, or tiny / synthetic-demo (generated)")
     ap.add_argument("--preset", default=None)
     ap.add_argument("--label", required=True)
     ap.add_argument("--set", nargs="*", default=[], dest="overrides", help="config overrides key=value")
-    ap.add_argument("--refit", type=int, default=200, help="steps each copy trains (its half measured too)")
-    ap.add_argument("--stop-step", type=int, default=2000)
     ap.add_argument("--device", default="cpu")
     add_overwrite_option(ap)
+
+
+def train_scene(scene: str, cfg, device: str) -> None:
+    """Train ``scene`` (``bench_options.scene_folder``) on ``cfg`` into a temporary folder; a stop ends it quietly."""
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = scene_folder(scene, Path(tmp))
+        try:
+            train_stage.run(folder, Path(tmp) / "run", cfg, torch.device(device))
+        except Interrupted:
+            pass
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    scene_arguments(ap)
+    ap.add_argument("--refit", type=int, default=200, help="steps each copy trains (its half measured too)")
+    ap.add_argument("--stop-step", type=int, default=2000)
     args = ap.parse_args()
     out = RESULTS / f"growth_refit_{args.label}.json"
     refuse_overwrite(out, overwrite=args.overwrite)
@@ -139,12 +154,7 @@ def main() -> None:
     cfg = train_config_from(args.preset, None, [*args.overrides, "densify.growth_min_gain_db=1e-6",
                                                 "densify.growth_refit_steps=0"])
     RESULTS.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        scene = scene_folder(args.scene, Path(tmp))
-        try:
-            train_stage.run(scene, Path(tmp) / "run", cfg, torch.device(args.device))
-        except Interrupted:
-            pass
+    train_scene(args.scene, cfg, args.device)
     print(f"wrote {out}")
 
 

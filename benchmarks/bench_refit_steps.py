@@ -20,19 +20,16 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import tempfile
 import time
 import types
 from datetime import date
 from pathlib import Path
 
 import torch
-from _common import RESULTS, add_overwrite_option, refuse_overwrite
-from bench_options import scene_folder
+from _common import RESULTS, refuse_overwrite
+from bench_growth_refit import scene_arguments, train_scene
 
 from uncertsplat.config import train_config_from
-from uncertsplat.errors import Interrupted
-from uncertsplat.stages import train as train_stage
 from uncertsplat.strategy.view_checks import gain_db, sum_squared_error
 from uncertsplat.train import trainer as trainer_module
 
@@ -90,16 +87,11 @@ def instrumented(rows: list[dict], lengths: list[int], stop_step: int, out: Path
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", required=True, help="workspace, or tiny / synthetic-demo (generated)")
-    ap.add_argument("--preset", default=None)
-    ap.add_argument("--label", required=True)
-    ap.add_argument("--set", nargs="*", default=[], dest="overrides", help="config overrides key=value")
+    scene_arguments(ap)
     ap.add_argument("--lengths", type=int, nargs="+", default=[25, 50, 100],
                     help="copy steps after which the cost is read (at most densify.growth_refit_steps)")
     ap.add_argument("--stop-step", type=int, default=10**9, help="stop the run after the test at this step")
-    ap.add_argument("--device", default="cpu")
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
-    add_overwrite_option(ap)
     args = ap.parse_args()
     out = RESULTS / f"refit_steps_{args.label}.json"
     refuse_overwrite(out, overwrite=args.overwrite)
@@ -112,12 +104,7 @@ def main() -> None:
     rows: list[dict] = []
     instrumented(rows, sorted(set(args.lengths)), args.stop_step, out, meta)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        scene = scene_folder(args.scene, Path(tmp))
-        try:
-            train_stage.run(scene, Path(tmp) / "run", cfg, torch.device(args.device))
-        except Interrupted:
-            pass
+    train_scene(args.scene, cfg, args.device)
     print(f"wrote {out}")
 
 
