@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import time
 import types
@@ -32,6 +33,10 @@ from bench_growth_refit import scene_arguments, train_scene
 from uncertsplat.config import train_config_from
 from uncertsplat.strategy.view_checks import gain_db, sum_squared_error
 from uncertsplat.train import trainer as trainer_module
+
+
+def _finite_or_none(value: float) -> float | None:
+    return value if math.isfinite(value) else None
 
 
 def instrumented(rows: list[dict], lengths: list[int], stop_step: int, out: Path, meta: dict) -> None:
@@ -68,13 +73,17 @@ def instrumented(rows: list[dict], lengths: list[int], stop_step: int, out: Path
         finally:
             del self._fork
         seconds = time.perf_counter() - t0 - reading[0]
+        if cost is None:  # a stop came in during the copies: no test (the run stops after this step)
+            return cost
         dcfg = self.cfg.densify
+        # (a copy that could not train reads +inf: null in the JSON, which has no infinity)
         row = {"step": step, "gaussians": len(self.model), "half": int(off.sum()),
-               "configured_steps": dcfg.growth_refit_steps, "cost_db": cost, "copies_seconds": seconds,
-               "costs_db": {str(n): gain_db(*v) for n, v in sse.items() if len(v) == 2},
+               "configured_steps": dcfg.growth_refit_steps, "cost_db": _finite_or_none(cost),
+               "copies_seconds": seconds,
+               "costs_db": {str(n): _finite_or_none(gain_db(*v)) for n, v in sse.items() if len(v) == 2},
                "threshold_db": dcfg.growth_threshold_db, "skip_factor": dcfg.growth_skip_factor}
         rows.append(row)
-        reads = "  ".join(f"{n}: {c:6.3f}" for n, c in row["costs_db"].items())
+        reads = "  ".join(f"{n}: {c:6.3f}" if c is not None else f"{n}: none" for n, c in row["costs_db"].items())
         print(f"step {step:5d}  N {len(self.model):8,d}  cost after {reads}  (test {cost:.3f} dB, copies "
               f"{seconds:.1f} s)", flush=True)
         out.write_text(json.dumps({**meta, "tests": rows}, indent=1))
