@@ -502,11 +502,14 @@ def test_notes_and_leftovers_beside_the_photos_are_not_inputs(tmp_path, calls):
     (photos / "sub" / "3.jpg").write_bytes(b"a photo in a subfolder")
     pl.run(p, tmp_path / "out")
     assert [k for k, _ in calls] == ["reconstruct", "train"]
-    # the pipeline's output inside its photo folder is not an input (its own files changed it with every call)
+    # an output inside the photo folder is refused before anything is written there (reconstruct refuses a
+    # workspace among its photos, after the pipeline had left its own file in the photo folder)
     calls.clear()
-    pl.run(p, photos / "out")
-    pl.run(p, photos / "out")
-    assert [k for k, _ in calls] == ["reconstruct", "train"]
+    for inside in (photos / "out", photos, photos / "sub" / "out"):
+        with pytest.raises(UserError, match="the output folder is inside the photo folder"):
+            pl.run(p, inside)
+    assert calls == [] and not (photos / "out").exists() and not (photos / "sub" / "out").exists()
+    assert not (photos / pl.STARTED).exists()
 
 
 def test_a_nested_stage_s_files_are_not_its_parent_s_outputs(tmp_path):

@@ -394,6 +394,13 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                         hint=f"Give your photos: uncertsplat run {named} -o {q(output)} --set photos=/path/to/photos")
     dev = resolve_device(device or cfg.device)
     root = Path(output)
+    if cfg.photos is not None and _reads_photos(cfg):
+        # (reconstruct refuses a workspace inside its photos, after the pipeline had written its own file there)
+        photos = Path(cfg.photos).resolve()
+        if photos == root.resolve() or photos in root.resolve().parents:
+            raise UserError(f"the output folder is inside the photo folder {q(cfg.photos)}: reconstruct writes no "
+                            "workspace among the photos it reads", path=root,
+                            hint=f"Choose an output folder outside it, e.g. -o {q(photos.parent / (photos.name + '_out'))}.")
     _refuse_other_outputs(root)
 
     # one pipeline command per output folder: a second one would move the first one's stage folders (and their
