@@ -30,6 +30,7 @@ from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import SAME_RENDER, Sampler
 from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.gaussians.prior import Prior
+from uncertsplat.io.folders import stage_hint
 from uncertsplat.render.exposure import PhotoExposure
 from uncertsplat.schemas import RunExposure, RunScene
 from uncertsplat.types import GaussianSample, SceneData, ViewSet
@@ -434,8 +435,9 @@ def read_run_config(run_dir: Path) -> TrainConfig:
     cfg_path = Path(run_dir) / "config.json"
     if not cfg_path.is_file():
         _refuse_prune_without_model(Path(run_dir))
-        raise UserError("not a training run (config.json is missing)", path=run_dir,
-                        hint="Point to a folder written by `uncertsplat train`.")
+        near = stage_hint(Path(run_dir), "run")  # (a pipeline's output folder, or its report/)
+        raise UserError("not a training run (config.json is missing)" + (f"; {near}" if near else ""), path=run_dir,
+                        hint="Point to a folder written by `uncertsplat train` (or `prune`).")
     try:
         data = json.loads(cfg_path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as err:

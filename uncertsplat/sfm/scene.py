@@ -31,6 +31,7 @@ import torch
 from uncertsplat.config import SceneConfig
 from uncertsplat.console import list_names, q
 from uncertsplat.errors import UserError
+from uncertsplat.io.folders import stage_hint
 from uncertsplat.io.images import IMAGE_EXTENSIONS, has_alpha, read_image_size
 from uncertsplat.schemas.reconstruct import EXTEND_DIR, REPORT_NAME
 from uncertsplat.schemas.scene import SynthScene
@@ -360,8 +361,9 @@ def find_sparse_model(path: Path) -> Path:
         raise UserError("no COLMAP model in sparse/0 (expected cameras, images, points3D as .bin or .txt)",
                         path=path / "sparse" / "0",
                         hint="Point to the workspace written by `uncertsplat reconstruct`, or re-run it.")
-    raise UserError("missing sparse/0: this folder is not a COLMAP workspace", path=path / "sparse" / "0",
-                    hint="Run `uncertsplat reconstruct PHOTOS -o WORKSPACE` to create one.")
+    near = stage_hint(path, "scene")  # (a pipeline's output folder: its workspace is OUT/reconstruct)
+    raise UserError("missing sparse/0: this folder is not a COLMAP workspace" + (f"; {near}" if near else ""),
+                    path=path / "sparse" / "0", hint="Run `uncertsplat reconstruct PHOTOS -o WORKSPACE` to create one.")
 
 
 # ---------------------------------------------------------------------------------------------- loaders
