@@ -166,8 +166,9 @@ def test_a_cropped_photo_saved_at_full_size_gets_a_camera_of_its_own(synth_scene
     assert camera[later] == camera[names[1]] != camera[zoomed]
 
 
-def test_mixed_sizes_and_exif_orientation(synth_scene, tmp_path):
-    """Different image sizes get one camera each (none dropped); EXIF-rotated photos are used upright."""
+def test_mixed_sizes_and_exif_orientation(synth_scene, tmp_path, capsys):
+    """Different image sizes get one camera each (none dropped); EXIF-rotated photos are used upright, and the console
+    names them (the note was only in the report's JSON)."""
     photos = tmp_path / "photos"
     photos.mkdir()
     names = sorted(p.name for p in (synth_scene / "images").iterdir())
@@ -185,6 +186,8 @@ def test_mixed_sizes_and_exif_orientation(synth_scene, tmp_path):
     report = stage.run(photos, tmp_path / "ws", CFG)
     assert report.success
     assert report.rotated == rotated
+    printed = " ".join(capsys.readouterr().err.split())
+    assert f"EXIF orientation applied to {len(rotated)} image(s): {rotated[0]}" in printed
     assert len(report.image_sizes) == 2 and len(report.cameras) == 2
     assert any("2 image sizes found" in n and "photo_sizes" in n for n in report.notes)
     # train loads every view at the common size: the 3/4-size ones (the same shape) resized, and names them

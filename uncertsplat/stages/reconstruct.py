@@ -355,8 +355,10 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                     report.notes.append(note)
                     console.print(f"[yellow]note:[/] {esc(note)}")
             report.rotated = rotated
-            if rotated:
-                report.notes.append(f"EXIF orientation applied to {len(rotated)} image(s)")
+            if rotated:  # (a phone's portrait photos: said, as the other notes on the photos are)
+                report.notes.append(f"EXIF orientation applied to {len(rotated)} image(s): {list_names(rotated)} "
+                                    "(turned upright before feature extraction; the workspace's images are upright)")
+                console.print(f"[yellow]note:[/] {esc(report.notes[-1])}")
             matcher = sfm.resolve_matcher(cfg, n)
             pairs = sfm.image_pairs(scan.names, matcher)
             report.matcher = matcher
