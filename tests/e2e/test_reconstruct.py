@@ -398,6 +398,19 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
     with pytest.raises(UserError, match="no new photo") as err:
         stage.run(photos, ws, one.model_copy(update={"extend": True}))
     assert "not the ones the workspace was made from" not in str(err.value)
+    # a hidden file, a note and a copy added: only the copy is named as left out, and a note above says which (a
+    # review's .DS_Store was named among "copies of a photo", with "the notes above" when none was printed)
+    (photos / ".DS_Store").write_bytes(b"x")
+    (photos / "notes.txt").write_text("taken at noon")
+    copy = photos / ("copy_" + sorted(photos.glob("*.png"))[0].name)
+    copy.write_bytes(sorted(photos.glob("*.png"))[0].read_bytes())
+    with pytest.raises(UserError, match="no new photo") as err:
+        stage.run(photos, ws, one.model_copy(update={"extend": True}))
+    message = " ".join(str(err.value).split())
+    assert f"(left out: {copy.name}, copies of a photo or sharing its name: the notes above)" in message
+    assert ".DS_Store" not in message and "notes.txt" not in message
+    for extra in (photos / ".DS_Store", photos / "notes.txt", copy):
+        extra.unlink()
     # a photo edited since, none added: said with the first refusal (only after a whole extension before)
     first = sorted(photos.iterdir())[0]
     kept = first.read_bytes()

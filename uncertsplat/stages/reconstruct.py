@@ -22,6 +22,7 @@ from uncertsplat.config import ReconstructConfig
 from uncertsplat.console import add_views_args, console, esc, list_names, progress, q, qm
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.io.atomic import check_output_folder, run_lock
+from uncertsplat.io.images import IMAGE_EXTENSIONS
 from uncertsplat.sfm import reconstruct as sfm
 from uncertsplat.sfm.report import (
     EXTEND_DIR,
@@ -717,9 +718,9 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
     masks = _extension_masks(ws_cfg.masks, cfg.masks, workspace, existing.images_registered)
     scan = sfm.scan_photos(photos, prefer=set(existing.images_registered), masks=masks)
     _check_output_path(photos, workspace)
-    for note in scan.notes:
-        if note not in existing.notes:
-            console.print(f"[yellow]note:[/] {note}")
+    said = [note for note in scan.notes if note not in existing.notes]
+    for note in said:
+        console.print(f"[yellow]note:[/] {note}")
     missing = sorted(set(existing.images_registered) - set(scan.names))
     if missing:
         raise UserError(f"{photos} lacks {len(missing)} of the photos the workspace registered ({list_names(missing)})",
@@ -728,7 +729,9 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
     found_before = set(existing.images_found)
     new = [n for n in scan.names if n not in found_before]
     if not new:
-        left = sorted(set(scan.ignored) - set(existing.ignored))
+        # (the photos left out as copies or for a shared name; not hidden files, sub-folders or other files)
+        left = sorted(n for n in set(scan.ignored) - set(existing.ignored)
+                      if not n.startswith(".") and n.lower().endswith(IMAGE_EXTENSIONS))
         # the same photos, other contents: a photo edited or replaced since (said only after a whole extension before)
         edited = (set(scan.names) == set(existing.images_found)  # (a photo left out since changes it too)
                   and existing.inputs_fingerprint not in ("", _inputs_fingerprint(scan, ws_cfg.masks),
@@ -736,8 +739,8 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
         hashes = scan.photo_hashes() if edited and existing.photo_sha256 else {}
         which = sorted(n for n, h in hashes.items() if existing.photo_sha256.get(n, h) != h)  # (before version 3: none)
         raise UserError(f"no new photo in {photos}: the workspace holds every one of its {len(scan.names)} photos"
-                        + (f" (left out: {list_names(left)}, copies of a photo or sharing its name: the notes above)"
-                           if left else "")
+                        + (f" (left out: {list_names(left)}, copies of a photo or sharing its name"
+                           + (": the notes above)" if said else ")") if left else "")
                         + ("; and the folder's photos are not the ones the workspace was made from ("
                            + (f"{list_names(which)} edited or replaced since" if which else
                               "a photo edited or replaced since")
