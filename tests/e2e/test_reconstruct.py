@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -436,7 +437,9 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
     # the plain command on the grown folder points to --extend
     for n in new:
         shutil.copy(synth_scene / "images" / n, photos / n)
-    with pytest.raises(UserError, match="other photos") as err:
+    # (said as the folder's own photos with some added, which a review read as "made from other photos")
+    with pytest.raises(UserError, match=rf"this folder's photos as they were then: {len(new)} photo\(s\) added "
+                                        rf"since \({re.escape(new[0])}") as err:
         stage.run(photos, ws, one)
     assert "--extend" in err.value.hint
     # a photo of nothing the others show does not register: said, and nothing changes
@@ -633,7 +636,7 @@ def test_masks_keep_features_off_and_come_undistorted_into_the_workspace(synth_s
     # the same photos and masks: reused; a mask changed: other inputs
     assert stage.run(photos, ws, cfg) == report
     write_rgb(masks / f"{names[0]}.png", np.full((h, w, 3), 255, np.uint8))
-    with pytest.raises(UserError, match="made from other photos or masks"):
+    with pytest.raises(UserError, match="made from this folder's photos as they were then: a photo or mask edited"):
         stage.run(photos, ws, cfg)
     # bad masks: named
     write_rgb(masks / f"{names[0]}.png", np.full((h // 2, w, 3), 255, np.uint8))

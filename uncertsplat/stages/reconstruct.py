@@ -78,8 +78,8 @@ def _check_output_path(photos: Path, workspace: Path) -> None:
     check_output_folder(workspace)
 
 
-def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fingerprints: tuple[str, ...]
-                       ) -> ReconstructReport | None:
+def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fingerprints: tuple[str, ...],
+                       names: list[str] | None = None) -> ReconstructReport | None:
     """Check the output folder; return an identical finished report to reuse, else make room. Called while holding
     the folder's lock: a run in progress (its report says unfinished) is never cleared by a second one.
     ``fingerprints``: the photos' (``PhotoScan.fingerprint``, then its legacy form); the same photos moved to another
@@ -115,6 +115,15 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
             what = (f"a workspace made from other photos{' or masks' if cfg.masks is not None else ''} "
                     f"({existing.photos})" if not same_input
                     else "a workspace made with other options")
+            if not same_input and existing.photos == str(photos_abs) and names is not None:
+                # the same folder, its photos changed since (one added, say): say how, not "other photos"
+                added = sorted(set(names) - set(existing.images_found))
+                gone = sorted(set(existing.images_found) - set(names))
+                changes = ([f"{len(added)} photo(s) added since ({list_names(added)})"] if added else []) + (
+                    [f"{len(gone)} gone ({list_names(gone)})"] if gone else [])
+                what = ("a workspace made from this folder's photos as they were then: "
+                        + (", ".join(changes) if changes else
+                           f"a photo{' or mask' if cfg.masks is not None else ''} edited or replaced since"))
         else:
             what = "other files (not an uncertsplat workspace)"
         grown = (existing is not None and existing.success and existing.photos == str(photos_abs)
@@ -327,7 +336,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     database = workspace / "database.db"
     try:
         with run_lock(workspace, "reconstruct"), sfm.colmap_logging():
-            reused = _prepare_workspace(photos, workspace, cfg, (fingerprint, scan.legacy_fingerprint()))
+            reused = _prepare_workspace(photos, workspace, cfg, (fingerprint, scan.legacy_fingerprint()), scan.names)
             if reused is not None:
                 console.print(f"reconstruct: {workspace} already holds this reconstruction ({reused.summary()}); "
                               "nothing to do (pass --overwrite to redo it)")
