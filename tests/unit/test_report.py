@@ -288,10 +288,13 @@ def test_single_run_report_has_every_section_and_exact_numbers(tmp_path):
     assert "GT image" not in text and "not found" not in text  # the GT previews were read from eval/maps
 
 
-def test_missing_inputs_give_notes_not_a_crash(tmp_path):
+def test_missing_inputs_give_notes_not_a_crash(tmp_path, capsys):
     run = make_run(tmp_path, "bare", metrics=False, maps=False, stats=False)
     out = tmp_path / "rep"
     index = stage.run([run], out, ReportConfig())
+    # the console says it too (a review's report of a run never evaluated printed only the page's path)
+    said = " ".join(capsys.readouterr().err.split())
+    assert "bare: not evaluated (no eval/metrics.json)" in said and f"uncertsplat evaluate {run}" in said
     page = parse(index)
     assert page.imgs == []
     assert_figures_consistent(out, page)

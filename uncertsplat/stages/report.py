@@ -111,8 +111,8 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
         UserError: naming the run path when a run folder is missing or is not a run folder, or the
             output folder when it cannot be used.
     """
-    from uncertsplat.report.build import build_report
-    from uncertsplat.report.loader import load_run
+    from uncertsplat.report.build import build_report, holds_no_model
+    from uncertsplat.report.loader import METRICS, load_run, unfinished_members
 
     cfg = cfg or ReportConfig()
     paths = [Path(runs)] if isinstance(runs, (str, Path)) else [Path(r) for r in runs]
@@ -163,5 +163,10 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
     for r in loaded:
         for n in r.notes:
             console.print(f"[yellow]note[/] {r.name}: {n}")
+        if (r.metrics is None and r.problem(METRICS) is None and not holds_no_model(r)
+                and unfinished_members(r) is None):
+            # (said on the page; a report of a run never evaluated looked finished from the console)
+            console.print(f"[yellow]note[/] {r.name}: not evaluated (no eval/metrics.json), so the report shows its "
+                          f"training only: `uncertsplat evaluate {q(r.path)}` adds the uncertainty maps and metrics")
     console.print(f"report: {index} ({len(figures)} figure{'' if len(figures) == 1 else 's'})")
     return index
