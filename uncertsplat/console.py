@@ -57,15 +57,22 @@ def env_flag(name: str) -> bool:
     return os.environ.get(name, "").strip().lower() not in ("", "0", "false", "no", "off")
 
 
-def advice_within(name: str, fields, text: str, within: str, knobs: dict[str, str] | None = None) -> str:
+def advice_within(name: str, fields, text: str, within: str, knobs: dict[str, str] | None = None,
+                  others: dict[str, tuple[str, object]] | None = None) -> str:
     """``text`` (a command's message) with its advice in the words of a ``within`` ("pipeline", "sweep") that gives
     the command's settings under ``name``: ``--set key=value`` of one of ``fields`` as ``--set NAME.key=value``, and
     the command's options that are its keys (``--features dsp-sift``) named after it as ``--set NAME.features``;
     ``knobs`` {dotted key: knob}: a key the ``within`` sets by a knob of its own (a sweep's ``downscale``, which
-    refuses ``--set train.scene.downscale``) is named as that knob. Text that speaks of pipelines (or of the
-    ``within``) already is left as it is."""
+    refuses ``--set train.scene.downscale``) is named as that knob; ``others`` {command: (its name within, its
+    fields)}: advice about another command's settings (an evaluation's "`train --set random_background=true`", or
+    "--iterations N" for the training that made the run) named as that command's (``--set train.random_background``).
+    Text that speaks of pipelines (or of the ``within``) already is left as it is."""
     if "pipeline" in text or within in text:
         return text
+    for command, (other, its_fields) in (others or {}).items():
+        text = re.sub(rf"\b{re.escape(command)} --set (['\"]?)([a-z_][a-z0-9_]*)([.=])",
+                      lambda m, o=other, f=its_fields: (f"--set {m.group(1)}{o}.{m.group(2)}{m.group(3)}"
+                                                        if m.group(2) in f else m.group(0)), text)
     if knobs:
         text = re.sub(r"--set (['\"]?)([a-z_][a-z0-9_.]*)=([^\s'\",;)]*)\1",
                       lambda m: (f"{knobs[m.group(2)]} = {m.group(3)} (a knob of the {within}: its [default] or [axes])"
@@ -74,8 +81,10 @@ def advice_within(name: str, fields, text: str, within: str, knobs: dict[str, st
                   lambda m: f"--set {m.group(1)}{name}.{m.group(2)}{m.group(3)}" if m.group(2) in fields else m.group(0),
                   text)
     keys = [o.replace("-", "_") for o in re.findall(r"(?<![\w-])--([a-z][a-z0-9-]*)", text)]
-    keys = list(dict.fromkeys(k for k in keys if k in fields and k != "set"))
-    return text + (f" (in this {within}: {', '.join(f'--set {name}.{k}' for k in keys)})" if keys else "")
+    named = [f"--set {name}.{k}" for k in dict.fromkeys(k for k in keys if k in fields and k != "set")]
+    for other, its_fields in (others or {}).values():  # (an option of the other command's alone)
+        named += [f"--set {other}.{k}" for k in dict.fromkeys(k for k in keys if k in its_fields and k not in fields)]
+    return text + (f" (in this {within}: {', '.join(named)})" if named else "")
 
 
 class _Console(Console):

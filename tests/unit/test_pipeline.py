@@ -917,12 +917,17 @@ def test_a_stage_s_advice_is_given_in_the_pipeline_s_words(tmp_path, monkeypatch
         (out_dir / "out.txt").write_text("x")
         if kind == "train":
             console.print("[yellow]warning:[/] photos of other exposures: --set exposure=affine learns a gain")
+        if kind == "evaluate":  # advice about the training that made the run (a review saw both in a pipeline)
+            console.print("[yellow]note:[/] `train --set random_background=true` covers them; give it --iterations "
+                          "222 or more for a posterior; --set num_samples=20")
 
     monkeypatch.setattr(pl, "_run_stage", fake)
     capsys.readouterr()
     pl.run(_write(tmp_path), tmp_path / "out")
     said = " ".join(capsys.readouterr().err.split())
     assert "--set train.exposure=affine learns a gain" in said, said
+    assert ("`--set train.random_background=true` covers them; give it --iterations 222 or more for a posterior; "
+            "--set evaluate.num_samples=20 (in this pipeline: --set train.iterations)") in said, said
     assert console.rewrite is None  # off once the stage ends
 
 

@@ -577,7 +577,13 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             _mark_started(root, name, new.key)
             t0 = time.perf_counter()
             try:
-                console.rewrite = partial(pipeline_advice, name, type(stage_cfg).model_fields)
+                # (an evaluation's or prune's advice about the training that made its run: that train stage's keys)
+                node = upstream
+                while node is not None and kinds.get(node) in ("prune", "evaluate"):
+                    node = upstreams.get(node)
+                others = ({"train": (node, STAGE_CONFIGS["train"].model_fields)}
+                          if node is not None and kinds.get(node) == "train" and stage.stage != "train" else None)
+                console.rewrite = partial(pipeline_advice, name, type(stage_cfg).model_fields, others=others)
                 try:
                     _run_stage(stage.stage, stage_cfg, up_path, out_dir, dev, kwargs)
                 finally:
@@ -665,9 +671,9 @@ def _changed_output(name: str, kind: str, out_dir: Path, manifest: Manifest) -> 
     return None
 
 
-def pipeline_advice(name: str, fields, text: str) -> str:
+def pipeline_advice(name: str, fields, text: str, others: dict[str, tuple[str, object]] | None = None) -> str:
     """``text`` (a stage's message) with its advice in a pipeline's words (``console.advice_within``)."""
-    return advice_within(name, fields, text, "pipeline")
+    return advice_within(name, fields, text, "pipeline", others=others)
 
 
 def _trained_elsewhere(run_dir: Path, scene: Path | None) -> str | None:
