@@ -180,8 +180,11 @@ def progress(transient: bool = False) -> Progress:
     # info text alone gets what the bar, counts and times leave
     bar = 40 if console.width >= 160 else 20 if console.width >= 100 else 10
     info_width = max(8, console.width - bar - 52)  # (a description of up to 24, counts 9, times 2 x 7, the gaps)
+    # (outside a terminal the finished bars are printed once, whole: "matching (new against a…" cut a log's line)
+    described = 24 if console.is_terminal else None
     return _Progress(
-        TextColumn("[bold]{task.description}", table_column=Column(no_wrap=True, max_width=24, overflow="ellipsis")),
+        TextColumn("[bold]{task.description}",
+                   table_column=Column(no_wrap=True, max_width=described, overflow="ellipsis")),
         BarColumn(bar_width=bar),
         MofNCompleteColumn(table_column=Column(no_wrap=True)),
         TimeElapsedColumn(table_column=Column(no_wrap=True)),

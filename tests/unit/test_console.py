@@ -94,6 +94,19 @@ class TestLogFiles:
         lines = [ln for ln in c.file.getvalue().splitlines() if ln.startswith("work: ")]
         assert [ln.split()[1] for ln in lines] == [f"{k}/100" for k in range(10, 100, 10)]
 
+    def test_a_finished_bar_names_its_task_whole(self, monkeypatch):
+        """A log's finished bar read "matching (new against a… ━━━ 12/12": the description was cut to 24 columns,
+        which only a terminal's redrawn bar needs."""
+        c = _capture()
+        monkeypatch.setattr(ucon, "console", c)
+        monkeypatch.delenv("UNCERTSPLAT_NO_PROGRESS", raising=False)
+        monkeypatch.delenv("CI", raising=False)
+        with ucon.progress() as bar:
+            task = bar.add_task("matching (new against every photo)", total=3, info="")
+            for _ in range(3):
+                bar.advance(task)
+        assert "matching (new against every photo) " in c.file.getvalue()
+
     def test_quick_task_writes_no_lines(self, monkeypatch):
         c = _capture()
         monkeypatch.setattr(ucon, "console", c)
