@@ -165,17 +165,26 @@ def floaters(loaded, scene, indices, cfg, device, fraction, seed):
     return out
 
 
-def real_floaters(loaded, scene, measure, before, scores, cfg, device):
-    """Score the model's own free-space Gaussians (see the module docstring); None without GT depth.
-
-    ``measure``, ``before`` and ``scores`` as for ``curves``."""
+def _floater_labels(loaded, scene, device):
+    """``eval.floaters.label_floaters`` of the run's posterior mean against the training views' GT depth (None
+    without it)."""
     train = list(scene.split["train"])
     depths = load_depths(scene, train, device)
     if depths is None:
         return None
-    model, prior = loaded.model, loaded.prior
-    pm = posterior_mean(model, variant=prior.variant, extent=loaded.extent, temperature=prior.temperature)
-    lab = label_floaters(pm.means.detach(), pm.scales.detach(), scene.cameras[train], depths, extent=loaded.extent)
+    prior = loaded.prior
+    pm = posterior_mean(loaded.model, variant=prior.variant, extent=loaded.extent, temperature=prior.temperature)
+    return label_floaters(pm.means.detach(), pm.scales.detach(), scene.cameras[train], depths, extent=loaded.extent)
+
+
+def real_floaters(loaded, scene, measure, before, scores, cfg, device):
+    """Score the model's own free-space Gaussians (see the module docstring); None without GT depth.
+
+    ``measure``, ``before`` and ``scores`` as for ``curves``."""
+    lab = _floater_labels(loaded, scene, device)
+    if lab is None:
+        return None
+    model = loaded.model
     carriers = carrier_mask(model)
     is_f = lab.is_floater
     n_f = int((is_f & carriers).sum())
@@ -207,6 +216,38 @@ def real_floaters(loaded, scene, measure, before, scores, cfg, device):
     return out
 
 
+def free_space_views(loaded, scene, scores, cfg, device, counts: list[int]) -> dict | None:
+    """The ``free-space`` score from ``counts`` training views each (``prune``'s ``free_space_views``, 64 by
+    default: every view of most captures): its time, its ROC AUC for the GT-depth floater labels (as
+    ``real_floaters``) and the share of the default score's top-F carriers it also ranks top-F (F = the number of
+    floater carriers). None without GT depth."""
+    from uncertsplat.uncertainty.scores import free_space_score
+
+    lab = _floater_labels(loaded, scene, device)
+    if lab is None:
+        return None
+    train, model, prior, is_f = list(scene.split["train"]), loaded.model, loaded.prior, lab.is_floater
+    carriers = carrier_mask(model)
+    n_f = max(int((is_f & carriers).sum()), 1)
+    render_fn = loaded.render_fn(scene.scene_scale, device)
+    default_top = ~keep_top(scores["free-space"], carriers, n_f)
+    out = {"training_views": len(train), "default_views": cfg.free_space_views, "num_floater_carriers": n_f,
+           "by_views": []}
+    for n in sorted(set(counts)):
+        cams = scene.cameras[spread_views(train, n)].to(device)
+        t0 = time.perf_counter()
+        score = free_space_score(model, cams, render_fn=render_fn, gate=scores["gate"], margin=cfg.free_space_margin,
+                                 variant=prior.variant, extent=loaded.extent, temperature=prior.temperature)
+        seconds = time.perf_counter() - t0
+        top = ~keep_top(score, carriers, n_f)
+        row = {"views": len(cams), "seconds": seconds, "auc": ranking_auc(score, is_f, carriers),
+               "top_f_shared_with_default": float((top & default_top).sum() / default_top.sum().clamp_min(1))}
+        out["by_views"].append(row)
+        print(f"  free-space from {row['views']:3d} views: {seconds:6.2f} s, floater AUC {row['auc']:.3f}, top-F "
+              f"shared with the default's {100 * row['top_f_shared_with_default']:.1f} %", flush=True)
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", type=Path, required=True)
@@ -216,6 +257,8 @@ def main():
     ap.add_argument("--floaters", type=float, default=0.02)
     ap.add_argument("--no-real-floaters", action="store_true", help="skip the GT-depth floater labels")
     ap.add_argument("--only-real-floaters", action="store_true", help="skip the keep-ratio sweep and planted floaters")
+    ap.add_argument("--free-space-views", type=int, nargs="+", default=None,
+                    help="also the free-space score from this many training views each (prune's free_space_views)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--machine", default=platform.processor() or platform.machine())
     add_overwrite_option(ap)
@@ -240,6 +283,8 @@ def main():
     scores, score_s = all_scores(loaded.model, loaded, scene, cfg, device)
     if not args.no_real_floaters:
         res["real_floaters"] = real_floaters(loaded, scene, measure, before, scores, cfg, device)
+    if args.free_space_views:
+        res["free_space_views"] = free_space_views(loaded, scene, scores, cfg, device, args.free_space_views)
     if not args.only_real_floaters:
         res["sweep"] = curves(loaded.model, measure, before, scores, score_s, cfg,
                               sorted(set(args.ratios), reverse=True), 0.1)
