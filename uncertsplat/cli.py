@@ -328,7 +328,7 @@ def synth(
 
     if out is None and output is None:
         raise UserError("synth needs the folder to write the scene to", hint="uncertsplat synth OUT (or -o OUT)")
-    if out is not None and output is not None and out != output:
+    if out is not None and output is not None and out.resolve() != output.resolve():
         raise UserError(f"two output folders given: {q(out)} and -o {q(output)}", hint="Give one of them.")
     out = out if out is not None else output
     explicit = {"preset": preset, "seed": seed, "layout": layout, "rig": rig, "backdrop": backdrop}

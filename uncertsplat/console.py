@@ -70,7 +70,8 @@ def advice_within(name: str, fields, text: str, within: str, knobs: dict[str, st
     if "pipeline" in text or within in text:
         return text
     for command, (other, its_fields) in (others or {}).items():
-        text = re.sub(rf"\b{re.escape(command)} --set (['\"]?)([a-z_][a-z0-9_]*)([.=])",
+        # (a whole command line, `uncertsplat train ...`, is one a user runs by hand: left as it is)
+        text = re.sub(rf"(?<!uncertsplat )\b{re.escape(command)} --set (['\"]?)([a-z_][a-z0-9_]*)([.=])",
                       lambda m, o=other, f=its_fields: (f"--set {m.group(1)}{o}.{m.group(2)}{m.group(3)}"
                                                         if m.group(2) in f else m.group(0)), text)
     if knobs:
@@ -82,7 +83,9 @@ def advice_within(name: str, fields, text: str, within: str, knobs: dict[str, st
                   text)
     keys = [o.replace("-", "_") for o in re.findall(r"(?<![\w-])--([a-z][a-z0-9-]*)", text)]
     named = [f"--set {name}.{k}" for k in dict.fromkeys(k for k in keys if k in fields and k != "set")]
-    for other, its_fields in (others or {}).values():  # (an option of the other command's alone)
+    for command, (other, its_fields) in (others or {}).items():  # (an option of the other command's alone, not one
+        if f"uncertsplat {command} " in text:  # of a whole command line of it, e.g. a resume's `--method fisher`)
+            continue
         named += [f"--set {other}.{k}" for k in dict.fromkeys(k for k in keys if k in its_fields and k not in fields)]
     return text + (f" (in this {within}: {', '.join(named)})" if named else "")
 
@@ -180,8 +183,9 @@ def progress(transient: bool = False) -> Progress:
     # info text alone gets what the bar, counts and times leave
     bar = 40 if console.width >= 160 else 20 if console.width >= 100 else 10
     info_width = max(8, console.width - bar - 52)  # (a description of up to 24, counts 9, times 2 x 7, the gaps)
-    # (outside a terminal the finished bars are printed once, whole: "matching (new against a…" cut a log's line)
-    described = 24 if console.is_terminal else None
+    # (where the bars are not redrawn, a log or TERM=dumb, the finished bars are printed once: "matching (new against
+    # a…" cut a log's line; 48 keeps every description whole and the counts beside it in a log's 140 columns)
+    described = 24 if console.is_interactive else 48
     return _Progress(
         TextColumn("[bold]{task.description}",
                    table_column=Column(no_wrap=True, max_width=described, overflow="ellipsis")),

@@ -435,8 +435,10 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
     with pytest.raises(ValueError, match="exclude each other"):
         ReconstructConfig(extend=True, overwrite=True)
     # the plain command on the grown folder points to --extend
-    for n in new:
+    for n in new[:-1]:
         shutil.copy(synth_scene / "images" / n, photos / n)
+    # the last new photo stored sideways with its EXIF tag (a phone's portrait photo): turned, and said
+    write_rgb(photos / new[-1], np.rot90(read_rgb(synth_scene / "images" / new[-1]), k=1), orientation=6)
     # (said as the folder's own photos with some added, which a review read as "made from other photos")
     with pytest.raises(UserError, match=rf"this folder's photos as they were then: {len(new)} photo\(s\) added "
                                         rf"since \({re.escape(new[0])}") as err:
@@ -460,8 +462,13 @@ def test_photos_added_to_the_folder_join_the_workspace_and_the_run(synth_scene, 
     shutil.move(tmp_path / "aside.png", gone)
 
     first = load_report(ws)
+    capsys.readouterr()
     report = stage.run(photos, ws, one.model_copy(update={"extend": True}))
     assert report.success and set(new) <= set(report.images_registered) and len(report.images_registered) == 20
+    assert report.rotated == [new[-1]] and [n for n in report.notes if n.startswith("EXIF")] == [
+        f"EXIF orientation applied to 1 image(s): {new[-1]} (turned upright before feature extraction; the "
+        "workspace's images are upright)"]
+    assert f"EXIF orientation applied to 1 new image(s): {new[-1]}" in " ".join(capsys.readouterr().err.split())
     # the extension's time is counted in the stages as in the total (it kept the first run's stages before)
     for k in ("extract", "match", "map", "undistort"):
         assert report.stage_seconds[k] > first.stage_seconds[k], k
@@ -638,6 +645,12 @@ def test_masks_keep_features_off_and_come_undistorted_into_the_workspace(synth_s
     write_rgb(masks / f"{names[0]}.png", np.full((h, w, 3), 255, np.uint8))
     with pytest.raises(UserError, match="made from this folder's photos as they were then: a photo or mask edited"):
         stage.run(photos, ws, cfg)
+    # the same photos without the masks: said as such (a review's read "a photo edited or replaced since"), and
+    # --extend, which only adds photos, is not offered
+    with pytest.raises(UserError, match=rf"as they were then: made with the masks in {re.escape(str(masks))}, now "
+                                        "without") as err:
+        stage.run(photos, ws, cfg.model_copy(update={"masks": None}))
+    assert "--extend" not in err.value.hint and "edited" not in err.value.message
     # bad masks: named
     write_rgb(masks / f"{names[0]}.png", np.full((h // 2, w, 3), 255, np.uint8))
     with pytest.raises(UserError, match=f"the mask is {w}x{h // 2}, another shape than its photo") as info:

@@ -1,13 +1,24 @@
-"""Errors for a pipeline's output folder given where a run or a scene was expected name the folder to give."""
+"""Errors for a folder given where a run or a scene was expected name the folder to give (a pipeline's output, its
+report/, a folder inside a run, a sweep's output)."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import pytest
 
 from uncertsplat.baselines.runs import read_run_config
 from uncertsplat.errors import UserError
-from uncertsplat.io.folders import is_run, is_scene, stage_hint
+from uncertsplat.io.folders import PIPELINE_STARTED, is_run, is_scene, stage_hint
 from uncertsplat.sfm.scene import find_sparse_model
+from uncertsplat.stages.pipeline import STARTED
+
+
+def _run(folder: Path, marker: str = "train_summary.json") -> Path:
+    folder.mkdir(parents=True)
+    (folder / "config.json").write_text("{}")
+    (folder / marker).write_text("{}")
+    return folder
 
 
 @pytest.fixture
@@ -16,37 +27,70 @@ def pipeline_out(tmp_path):
     out = tmp_path / "out"
     (out / "reconstruct" / "sparse" / "0").mkdir(parents=True)
     (out / "reconstruct" / "images").mkdir()
-    for run in ("train", "prune"):
-        (out / run).mkdir()
-        (out / run / "config.json").write_text("{}")
-    (out / "train" / "train_summary.json").write_text("{}")
-    (out / "prune" / "prune.json").write_text("{}")
+    _run(out / "train")
+    _run(out / "prune", "prune.json")
     (out / "report").mkdir()
     (out / "report" / "index.html").write_text("<html></html>")
     (out / "notes").mkdir()
     (out / "notes" / "config.json").write_text("{}")  # (a config alone is no run)
+    (out / PIPELINE_STARTED).write_text("{}")
     return out
 
 
 def test_runs_and_scenes_are_told_apart(pipeline_out):
+    assert STARTED == PIPELINE_STARTED
     assert [is_run(pipeline_out / n) for n in ("train", "prune", "notes", "reconstruct")] == [True, True, False, False]
     assert [is_scene(pipeline_out / n) for n in ("reconstruct", "train", "report")] == [True, False, False]
 
 
-def test_the_hint_names_the_stage_folders_inside_or_beside(pipeline_out, tmp_path):
+def test_the_hint_names_what_to_give(pipeline_out, tmp_path, monkeypatch):
     assert stage_hint(pipeline_out, "run") == (f"it holds runs (a pipeline's output): give one of them: "
                                                f"{pipeline_out / 'prune'}, {pipeline_out / 'train'}")
-    assert stage_hint(pipeline_out / "report", "run").startswith("beside it are runs")
+    assert stage_hint(pipeline_out / "report", "run").startswith("it is a stage folder of a pipeline's output, whose "
+                                                                 "runs are")
     assert stage_hint(pipeline_out, "scene").endswith(f"give one of them: {pipeline_out / 'reconstruct'}")
+    # inside a run (RUN/eval, an ensemble's members/): the run
+    (pipeline_out / "train" / "eval").mkdir()
+    assert stage_hint(pipeline_out / "train" / "eval", "run") == f"it lies inside the run {pipeline_out / 'train'}: " \
+                                                                 "give that"
+    # runs trained by hand side by side: named, but not as a pipeline's, and a folder beside them is not one of them
+    _run(tmp_path / "exp" / "a")
+    (tmp_path / "exp" / "junk").mkdir()
+    assert stage_hint(tmp_path / "exp", "run") == f"it holds runs: give one of them: {tmp_path / 'exp' / 'a'}"
+    assert stage_hint(tmp_path / "exp" / "junk", "run") == ""
+    # a sweep's output: its runs/
+    _run(tmp_path / "sweep" / "runs" / "p0")
+    assert stage_hint(tmp_path / "sweep", "run").endswith(str(tmp_path / "sweep" / "runs" / "p0"))
     (tmp_path / "empty").mkdir()
     assert stage_hint(tmp_path / "empty", "run") == "" and stage_hint(tmp_path / "missing", "scene") == ""
+    # from inside the report folder, `.`: the pipeline's runs, as the working folder sees them
+    monkeypatch.chdir(pipeline_out / "report")
+    assert stage_hint(Path("."), "run").endswith("runs are: ../prune, ../train")
+
+
+def test_a_folder_that_cannot_be_read_is_passed_over(pipeline_out, monkeypatch):
+    """A `lost+found` (mode 0700) beside the folder raised PermissionError from the hint, which the command then
+    reported as the error."""
+    unreadable = pipeline_out / "lost+found"
+    unreadable.mkdir()
+    is_file = Path.is_file
+
+    def refused(self):
+        if unreadable in (self, *self.parents):
+            raise PermissionError(13, "Permission denied", str(self))
+        return is_file(self)
+
+    monkeypatch.setattr(Path, "is_file", refused)
+    assert stage_hint(pipeline_out, "run").endswith(f"{pipeline_out / 'prune'}, {pipeline_out / 'train'}")
 
 
 def test_commands_given_a_pipelines_output_name_what_to_give(pipeline_out):
-    """`evaluate OUT`, `select-views OUT/report` and `train OUT` said only what OUT is not."""
+    """`evaluate OUT`, `select-views OUT/report` and `train OUT` said only what OUT is not (and train, to run
+    reconstruct)."""
     with pytest.raises(UserError, match=r"not a training run .*it holds runs .*give one of them: .*prune, .*train"):
         read_run_config(pipeline_out)
-    with pytest.raises(UserError, match=r"beside it are runs"):
+    with pytest.raises(UserError, match=r"a stage folder of a pipeline's output, whose runs are"):
         read_run_config(pipeline_out / "report")
-    with pytest.raises(UserError, match=r"not a COLMAP workspace; it holds scenes .*reconstruct"):
+    with pytest.raises(UserError, match=r"not a COLMAP workspace; it holds scenes .*reconstruct") as err:
         find_sparse_model(pipeline_out)
+    assert "uncertsplat reconstruct" not in err.value.hint

@@ -911,6 +911,9 @@ def test_a_stage_s_advice_is_given_in_the_pipeline_s_words(tmp_path, monkeypatch
     assert pl.pipeline_advice("train", fields, "--set nothing_of_its=1 --resume") == "--set nothing_of_its=1 --resume"
     kept = "train with --set scene.calibration_holdout=3 (in a pipeline: --set train.scene.calibration_holdout=3)"
     assert pl.pipeline_advice("train", fields, kept) == kept
+    others = {"train": ("fit", fields)}  # (another stage's advice about the training: whole command lines left alone)
+    whole = "run `uncertsplat train S -o R --method fisher --resume`, or uncertsplat train --set seed=2"
+    assert pl.pipeline_advice("evaluate", {}, whole, others=others) == whole
 
     def fake(kind, cfg, up_path, out_dir, device, kwargs):
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -920,10 +923,12 @@ def test_a_stage_s_advice_is_given_in_the_pipeline_s_words(tmp_path, monkeypatch
         if kind == "evaluate":  # advice about the training that made the run (a review saw both in a pipeline)
             console.print("[yellow]note:[/] `train --set random_background=true` covers them; give it --iterations "
                           "222 or more for a posterior; --set num_samples=20")
+            raise UserError("the run is too short: give it --iterations 300")  # (an error's advice alike)
 
     monkeypatch.setattr(pl, "_run_stage", fake)
     capsys.readouterr()
-    pl.run(_write(tmp_path), tmp_path / "out")
+    with pytest.raises(UserError, match=r"give it --iterations 300 \(in this pipeline: --set train.iterations\)"):
+        pl.run(_write(tmp_path), tmp_path / "out")
     said = " ".join(capsys.readouterr().err.split())
     assert "--set train.exposure=affine learns a gain" in said, said
     assert ("`--set train.random_background=true` covers them; give it --iterations 222 or more for a posterior; "

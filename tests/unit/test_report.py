@@ -307,8 +307,11 @@ def test_missing_inputs_give_notes_not_a_crash(tmp_path, capsys):
     # evaluated with --split train only: said, not shown as if nothing were measured
     (run / "eval-train").mkdir()
     make_metrics(["view_001.png"]).write(run / "eval-train" / "metrics.json")
+    capsys.readouterr()
     html = stage.run([run], tmp_path / "rep2", ReportConfig()).read_text(encoding="utf-8")
     assert "no eval/metrics.json (eval-train/metrics.json is another split" in " ".join(html.split())
+    said = " ".join(capsys.readouterr().err.split())
+    assert "bare: its only evaluation is another split's (eval-train), which the report does not show" in said
     # a pipeline's output given for a run: the runs in it are named
     import shutil
 

@@ -202,6 +202,7 @@ def test_cli_synth_takes_its_folder_as_the_other_commands_do(tmp_path):
     assert result.exit_code == 0, result.output
     assert (out / "scene.json").is_file()
     assert runner.invoke(app, ["synth", str(out), "-o", str(out), *small]).exit_code == 0  # the same folder twice
+    assert runner.invoke(app, ["synth", str(out), "-o", str(out / ".." / "scene"), *small]).exit_code == 0
     two = runner.invoke(app, ["synth", str(out), "-o", str(tmp_path / "other"), *small])
     assert two.exit_code == 2 and "two output folders" in two.output and not (tmp_path / "other").exists()
     none = runner.invoke(app, ["synth", *small])

@@ -435,7 +435,7 @@ def read_run_config(run_dir: Path) -> TrainConfig:
     cfg_path = Path(run_dir) / "config.json"
     if not cfg_path.is_file():
         _refuse_prune_without_model(Path(run_dir))
-        near = stage_hint(Path(run_dir), "run")  # (a pipeline's output folder, or its report/)
+        near = stage_hint(Path(run_dir), "run")  # (a pipeline's output folder or its report/, RUN/eval, ...)
         raise UserError("not a training run (config.json is missing)" + (f"; {near}" if near else ""), path=run_dir,
                         hint="Point to a folder written by `uncertsplat train` (or `prune`).")
     try:

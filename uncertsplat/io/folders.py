@@ -1,47 +1,83 @@
-"""The stage folders inside (or beside) a folder a user gave where a run or a scene was expected: a pipeline's
-output (``uncertsplat run -o OUT``: OUT/reconstruct, OUT/train, OUT/prune, OUT/report) or a sweep's, so that the
-error can name the folder to give instead of only saying what the given one is not."""
+"""The runs or scenes inside (or around) a folder a user gave where a run or a scene was expected, so that the error
+can name the folder to give instead of only saying what the given one is not: a pipeline's output (``uncertsplat
+run -o OUT``: OUT/reconstruct, OUT/train, OUT/prune, OUT/report), a sweep's (OUT/runs/POINT), a folder inside a run
+(RUN/eval, an ensemble's members/) or a folder of runs trained by hand."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 RUN_FILES = ("stats.jsonl", "train_summary.json", "ckpts", "prune.json")
 """Beside ``config.json``, the files that make a folder a training run (or a pruned one)."""
 
+PIPELINE_STARTED = ".stages_started.json"
+"""The file ``uncertsplat run`` keeps in its output folder (``stages.pipeline.STARTED``): what marks one."""
+
 
 def is_run(folder: Path) -> bool:
-    """Whether ``folder`` is a training or pruned run (``config.json`` and one of ``RUN_FILES``)."""
-    return (folder / "config.json").is_file() and any((folder / n).exists() for n in RUN_FILES)
+    """Whether ``folder`` is a training or pruned run (``config.json`` and one of ``RUN_FILES``); False where it
+    cannot be read."""
+    try:
+        return (folder / "config.json").is_file() and any((folder / n).exists() for n in RUN_FILES)
+    except OSError:
+        return False
 
 
 def is_scene(folder: Path) -> bool:
     """Whether ``folder`` looks like a scene ``train`` reads: a COLMAP workspace (``sparse/``) with its images, or a
-    Blender layout (``transforms*.json``)."""
-    return ((folder / "sparse").is_dir() and (folder / "images").is_dir()) or any(
-        (folder / n).is_file() for n in ("transforms.json", "transforms_train.json"))
+    Blender layout (``transforms*.json``); False where it cannot be read."""
+    try:
+        return ((folder / "sparse").is_dir() and (folder / "images").is_dir()) or any(
+            (folder / n).is_file() for n in ("transforms.json", "transforms_train.json"))
+    except OSError:
+        return False
 
 
 def _subfolders(folder: Path) -> list[Path]:
     try:
-        return sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
-    except OSError:
+        return sorted(p for p in folder.iterdir() if not p.name.startswith(".") and p.is_dir())
+    except OSError:  # (a folder that cannot be listed holds nothing to name)
         return []
 
 
+def _shown(path: Path) -> str:
+    """``path`` relative to the working folder where that is shorter (``../train`` from inside ``OUT/report``)."""
+    try:
+        rel = os.path.relpath(path)
+    except ValueError:  # (another drive)
+        return str(path)
+    return rel if len(rel) < len(str(path)) else str(path)
+
+
+def _listed(found: list[Path]) -> str:
+    return ", ".join(_shown(p) for p in found[:4]) + (", ..." if len(found) > 4 else "")
+
+
 def stage_hint(folder: Path, want: str) -> str:
-    """A sentence naming the runs (``want`` "run") or scenes (``want`` "scene") inside ``folder``, or beside it when
-    ``folder`` is itself a stage folder of such an output (a pipeline's ``report/``); "" when there are none."""
+    """A sentence naming what to give instead of ``folder`` when a run (``want`` "run") or a scene (``want``
+    "scene") was expected: the run it lies inside (``RUN/eval``, an ensemble's ``members/``), the runs or scenes
+    it holds (a pipeline's output, a folder of runs, a sweep's ``runs/``), or, for a stage folder of a pipeline's
+    output (its ``report/``), those of the pipeline; "" when there are none."""
     test = is_run if want == "run" else is_scene
     what = "runs" if want == "run" else "scenes"
     folder = Path(folder)
-    places = [(folder, "it holds")] + ([(folder.parent, "beside it are")] if folder.is_dir() else [])
-    for place, where in places:
-        found = [p for p in _subfolders(place) if p != folder and test(p)]
+    absolute = Path(os.path.abspath(folder))
+    if want == "run":
+        for up in list(absolute.parents)[:2]:  # (RUN/eval; ENSEMBLE/members/member_0's folder members/)
+            if is_run(up):
+                return f"it lies inside the run {_shown(up)}: give that"
+    found = [p for p in _subfolders(absolute) if test(p)]
+    if want == "run" and not found:  # (a sweep's points are its runs/)
+        found = [p for p in _subfolders(absolute / "runs") if test(p)]
+    if found:
+        whose = " (a pipeline's output)" if (absolute / PIPELINE_STARTED).is_file() else ""
+        return f"it holds {what}{whose}: give one of them: {_listed(found)}"
+    if (absolute.parent / PIPELINE_STARTED).is_file():  # a stage folder of a pipeline's output
+        found = [p for p in _subfolders(absolute.parent) if p != absolute and test(p)]
         if found:
-            listed = ", ".join(str(p) for p in found[:4]) + (", ..." if len(found) > 4 else "")
-            return f"{where} {what} (a pipeline's output): give one of them: {listed}"
+            return f"it is a stage folder of a pipeline's output, whose {what} are: {_listed(found)}"
     return ""
 
 
-__all__ = ["RUN_FILES", "is_run", "is_scene", "stage_hint"]
+__all__ = ["PIPELINE_STARTED", "RUN_FILES", "is_run", "is_scene", "stage_hint"]

@@ -363,7 +363,9 @@ def find_sparse_model(path: Path) -> Path:
                         hint="Point to the workspace written by `uncertsplat reconstruct`, or re-run it.")
     near = stage_hint(path, "scene")  # (a pipeline's output folder: its workspace is OUT/reconstruct)
     raise UserError("missing sparse/0: this folder is not a COLMAP workspace" + (f"; {near}" if near else ""),
-                    path=path / "sparse" / "0", hint="Run `uncertsplat reconstruct PHOTOS -o WORKSPACE` to create one.")
+                    path=path / "sparse" / "0",
+                    hint="Give that scene instead." if near else
+                    "Run `uncertsplat reconstruct PHOTOS -o WORKSPACE` to create one.")
 
 
 # ---------------------------------------------------------------------------------------------- loaders

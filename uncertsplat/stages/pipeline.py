@@ -39,6 +39,7 @@ from uncertsplat.errors import (
     out_of_memory,
 )
 from uncertsplat.io.atomic import lock_holder, run_lock
+from uncertsplat.io.folders import PIPELINE_STARTED
 from uncertsplat.stages.manifest import (
     MANIFEST,
     Manifest,
@@ -283,8 +284,8 @@ def held_out_change(previous: Path, run_dir: Path, stage: str = "train") -> str 
                                      f"{json.dumps(kept)}')." if kept else "."))
 
 
-STARTED = ".stages_started.json"
-"""``OUT/.stages_started.json``: {name: the manifest key (settings and inputs) it was last started with} of the stages
+STARTED = PIPELINE_STARTED
+"""``OUT/.stages_started.json`` (``io.folders.PIPELINE_STARTED``, by which other commands tell a pipeline's output): {name: the manifest key (settings and inputs) it was last started with} of the stages
 this pipeline has started in ``OUT`` (``_move_previous`` tells a folder of its own that lost its manifest, a stage
 killed before it, from one it never wrote; a train stage killed with ``kill -9`` or ended by a full disk resumes from
 its checkpoint when started again with the same key). Before 2026-11-30 a list of names (keys unknown)."""
@@ -576,14 +577,16 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                                own=stage.stage == "evaluate" or name in _started(root))
             _mark_started(root, name, new.key)
             t0 = time.perf_counter()
+            # the stage's advice in the pipeline's words: its own keys, and an evaluation's or prune's advice about the
+            # training that made its run as that train stage's keys (printed notes and the errors below alike)
+            node = upstream
+            while node is not None and kinds.get(node) in ("prune", "evaluate"):
+                node = upstreams.get(node)
+            advice = partial(pipeline_advice, name, type(stage_cfg).model_fields, others=(
+                {"train": (node, STAGE_CONFIGS["train"].model_fields)}
+                if node is not None and kinds.get(node) == "train" and stage.stage != "train" else None))
             try:
-                # (an evaluation's or prune's advice about the training that made its run: that train stage's keys)
-                node = upstream
-                while node is not None and kinds.get(node) in ("prune", "evaluate"):
-                    node = upstreams.get(node)
-                others = ({"train": (node, STAGE_CONFIGS["train"].model_fields)}
-                          if node is not None and kinds.get(node) == "train" and stage.stage != "train" else None)
-                console.rewrite = partial(pipeline_advice, name, type(stage_cfg).model_fields, others=others)
+                console.rewrite = advice
                 try:
                     _run_stage(stage.stage, stage_cfg, up_path, out_dir, dev, kwargs)
                 finally:
@@ -604,8 +607,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 # report, which says why this one did not run; what to change is the training's (its length), said in
                 # the words of the stage that trains it
                 text = (pipeline_advice(upstream, STAGE_CONFIGS["train"].model_fields, f"{err.path}: {err.message}")
-                        if kinds.get(upstream) == "train" else
-                        pipeline_advice(name, type(stage_cfg).model_fields, err.render()))
+                        if kinds.get(upstream) == "train" else advice(err.render()))
                 _finish(out_dir, new, "skipped", t0, err.render())
                 skipped[name] = text
                 run_notes.setdefault(up_path, []).append(f"the pipeline's stage '{name}' did not run: {text}")
@@ -614,14 +616,12 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 continue
             except UserError as err:
                 _finish(out_dir, new, "failed", t0, err.render())
-                text = pipeline_advice(name, type(stage_cfg).model_fields, err.render())
-                raise StageError(f"stage '{name}' ({stage.stage}) failed: {text}") from None
+                raise StageError(f"stage '{name}' ({stage.stage}) failed: {advice(err.render())}") from None
             except Exception as err:  # an unexpected fault: still say which stage, keep earlier outputs
                 _finish(out_dir, new, "failed", t0, f"{type(err).__name__}: {err}")
                 memory = out_of_memory(err, stage.stage)
                 if memory is not None:  # the machine's limit, not a fault: what lowers the stage's use, in its keys
-                    text = pipeline_advice(name, type(stage_cfg).model_fields, memory.render())
-                    raise StageError(f"stage '{name}' ({stage.stage}) failed: {text}") from None
+                    raise StageError(f"stage '{name}' ({stage.stage}) failed: {advice(memory.render())}") from None
                 raise StageError(
                     f"stage '{name}' ({stage.stage}) failed with an internal error: {type(err).__name__}: {err}",
                     hint="Earlier stages' outputs are intact; re-run with --debug for the traceback and report it.",

@@ -78,12 +78,43 @@ def _check_output_path(photos: Path, workspace: Path) -> None:
     check_output_folder(workspace)
 
 
+EXIF_NOTE = "EXIF orientation applied to"
+"""How the workspace's note on the photos turned upright by their EXIF orientation begins."""
+
+
+def _exif_note(rotated: list[str]) -> str:
+    return (f"{EXIF_NOTE} {len(rotated)} image(s): {list_names(rotated)} (turned upright before feature extraction; "
+            "the workspace's images are upright)")
+
+
+def _folder_changes(existing: ReconstructReport, scan: sfm.PhotoScan, cfg: ReconstructConfig
+                    ) -> tuple[list[str], list[str]]:
+    """(the photos added since, what changed: the photos added, gone or edited since the workspace ``existing`` was
+    made of the folder ``scan`` found them in, and its masks)."""
+    added = sorted(set(scan.names) - set(existing.images_found))
+    gone = sorted(set(existing.images_found) - set(scan.names))
+    changes = ([f"{len(added)} photo(s) added since ({list_names(added)})"] if added else []) + (
+        [f"{len(gone)} gone ({list_names(gone)})"] if gone else [])
+    hashes = scan.photo_hashes() if existing.photo_sha256 else {}  # (computed already for the fingerprint)
+    edited = sorted(n for n, h in hashes.items() if existing.photo_sha256.get(n, h) != h)
+    if edited:
+        changes.append(f"{list_names(edited)} edited or replaced since")
+    then, now = existing.options.get("masks"), cfg.masks
+    if (then is None) != (now is None) or (then is not None and Path(then).resolve() != Path(now).resolve()):
+        changes.append(f"made {f'with the masks in {then}' if then else 'without masks'}, now "
+                       f"{f'with those in {now}' if now is not None else 'without'}")
+    if not changes:  # (a mask edited in the same folder; a report from before the photos' hashes)
+        changes.append(f"a photo{' or mask' if now is not None else ''} edited or replaced since")
+    return added, changes
+
+
 def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fingerprints: tuple[str, ...],
-                       names: list[str] | None = None) -> ReconstructReport | None:
+                       scan: sfm.PhotoScan | None = None) -> ReconstructReport | None:
     """Check the output folder; return an identical finished report to reuse, else make room. Called while holding
     the folder's lock: a run in progress (its report says unfinished) is never cleared by a second one.
     ``fingerprints``: the photos' (``PhotoScan.fingerprint``, then its legacy form); the same photos moved to another
-    folder are the same input, and the report then records their new folder.
+    folder are the same input, and the report then records their new folder. ``scan``: the photos found, by which a
+    refusal says how the folder's photos (or masks) changed since the workspace was made of them.
 
     Raises:
         UserError: the output folder holds something else (another workspace, other files) and
@@ -111,23 +142,21 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
     # Our own failed run on the same photos is redone without asking: there is nothing to lose.
     redo_failed = existing is not None and (existing.photos == str(photos_abs) or same_input) and not existing.success
     if not cfg.overwrite and not redo_failed:
+        only_added = True  # (what --extend can take: photos added, nothing else changed)
         if existing is not None:
             what = (f"a workspace made from other photos{' or masks' if cfg.masks is not None else ''} "
                     f"({existing.photos})" if not same_input
                     else "a workspace made with other options")
-            if not same_input and existing.photos == str(photos_abs) and names is not None:
-                # the same folder, its photos changed since (one added, say): say how, not "other photos"
-                added = sorted(set(names) - set(existing.images_found))
-                gone = sorted(set(existing.images_found) - set(names))
-                changes = ([f"{len(added)} photo(s) added since ({list_names(added)})"] if added else []) + (
-                    [f"{len(gone)} gone ({list_names(gone)})"] if gone else [])
-                what = ("a workspace made from this folder's photos as they were then: "
-                        + (", ".join(changes) if changes else
-                           f"a photo{' or mask' if cfg.masks is not None else ''} edited or replaced since"))
+            if not same_input and existing.photos == str(photos_abs) and scan is not None:
+                # the same folder, its photos or masks changed since (one added, say): say how, not "other photos"
+                added, changes = _folder_changes(existing, scan, cfg)
+                only_added = bool(added) and len(changes) == 1
+                what = "a workspace made from this folder's photos as they were then: " + "; ".join(changes)
         else:
             what = "other files (not an uncertsplat workspace)"
+        # (--extend only adds photos: not offered where some are gone or changed, or the masks)
         grown = (existing is not None and existing.success and existing.photos == str(photos_abs)
-                 and (workspace / "distorted" / "sparse" / "0").is_dir())
+                 and (workspace / "distorted" / "sparse" / "0").is_dir() and only_added)
         raise UserError(f"the output folder already holds {what}", path=workspace,
                         hint="Choose another output folder, or pass --overwrite to replace it"
                              + ("; photos added to the folder join the workspace with --extend, every camera there "
@@ -336,7 +365,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     database = workspace / "database.db"
     try:
         with run_lock(workspace, "reconstruct"), sfm.colmap_logging():
-            reused = _prepare_workspace(photos, workspace, cfg, (fingerprint, scan.legacy_fingerprint()), scan.names)
+            reused = _prepare_workspace(photos, workspace, cfg, (fingerprint, scan.legacy_fingerprint()), scan)
             if reused is not None:
                 console.print(f"reconstruct: {workspace} already holds this reconstruction ({reused.summary()}); "
                               "nothing to do (pass --overwrite to redo it)")
@@ -366,8 +395,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
                     console.print(f"[yellow]note:[/] {esc(note)}")
             report.rotated = rotated
             if rotated:  # (a phone's portrait photos: said, as the other notes on the photos are)
-                report.notes.append(f"EXIF orientation applied to {len(rotated)} image(s): {list_names(rotated)} "
-                                    "(turned upright before feature extraction; the workspace's images are upright)")
+                report.notes.append(_exif_note(rotated))
                 console.print(f"[yellow]note:[/] {esc(report.notes[-1])}")
             matcher = sfm.resolve_matcher(cfg, n)
             pairs = sfm.image_pairs(scan.names, matcher)
@@ -860,7 +888,13 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
             report.registered_fraction = len(registered) / len(scan.names)
             report.undistorted_size = sizes
             report.image_sizes = {f"{w}x{h}": len(n) for (w, h), n in scan.size_groups().items()}
+            turned = sorted(set(rotated) - set(report.rotated))
             report.rotated = sorted(set(report.rotated) | set(rotated))
+            if turned:  # (the workspace's note names them all; the console the new ones)
+                console.print(f"[yellow]note:[/] EXIF orientation applied to {len(turned)} new image(s): "
+                              f"{esc(list_names(turned))}")
+                report.notes = [n for n in report.notes if not n.startswith(EXIF_NOTE)]
+                report.notes.append(_exif_note(report.rotated))
             _model_facts(report, grown)
             not_added = sorted(set(new) - set(added))
             report.notes.append(f"extended with {len(added)} photo(s) ({list_names(added)})"

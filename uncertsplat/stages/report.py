@@ -166,7 +166,11 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
         if (r.metrics is None and r.problem(METRICS) is None and not holds_no_model(r)
                 and unfinished_members(r) is None):
             # (said on the page; a report of a run never evaluated looked finished from the console)
-            console.print(f"[yellow]note[/] {r.name}: not evaluated (no eval/metrics.json), so the report shows its "
-                          f"training only: `uncertsplat evaluate {q(r.path)}` adds the uncertainty maps and metrics")
+            other = sorted(p.parent.name for p in r.path.glob("eval-*/metrics.json"))  # (`evaluate --split train`'s)
+            console.print(f"[yellow]note[/] {r.name}: "
+                          + (f"its only evaluation is another split's ({', '.join(other)}), which the report does not "
+                             "show" if other else "not evaluated (no eval/metrics.json)")
+                          + f", so the report shows its training only: `uncertsplat evaluate {q(r.path)}` adds the "
+                            "held-out views' uncertainty maps and metrics")
     console.print(f"report: {index} ({len(figures)} figure{'' if len(figures) == 1 else 's'})")
     return index
