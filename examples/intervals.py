@@ -23,8 +23,9 @@ from uncertsplat.schemas.metrics import EvalReport
 
 
 def main(run: Path, p: float) -> None:
+    loaded = load_run(run, "cpu")  # (first: a folder that is no run is said as such, not as a missing evaluation)
     report = EvalReport.read(run / "eval" / "metrics.json")
-    scene = load_run(run, "cpu").load_scene()
+    scene = loaded.load_scene()
     names = list(scene.cameras.image_names)
     views = load_view_set(scene, [names.index(n) for n in report.image_names], depth=False)
     turns = photo_turns(scene)  # a photo the scene turned has its maps written as the photo lies

@@ -58,7 +58,9 @@ def main(run: Path, view: str, k: int | None) -> None:
               f"calibrated), median depth {maps.depth_mean.median():.3g} +- {maps.depth_std.median():.3g} in the "
               f"scene's units; "
               + ("a photo looked through the pose" if bool(maps.seen_free[0]) else
-                 "no photo looked through the pose (inside an object, behind a wall or unseen): do not trust its maps"))
+                 "no photo looked through the pose: the photos cannot tell whether a camera can stand there (inside "
+                 "an object or behind a wall its maps are what the Gaussians around it look like from inside, with a "
+                 "confident std; in space no photo looked into they are as good as the model)"))
     print(f"the pose between {names[j]} and {scene.cameras.image_names[nearest]}; maps in {out}")
 
 

@@ -338,6 +338,9 @@ class Predictor:
         from uncertsplat import native
         from uncertsplat.device import resolve_device
 
+        if not Path(run_dir).exists():  # (as the commands say it: "not a training run" sent users looking for a file)
+            raise UserError("run folder not found", path=run_dir,
+                            hint="Pass the folder written by `uncertsplat train` (or `prune`).")
         if Path(run_dir).is_file():  # (it said "config.json is missing" of RUN/config.json)
             raise UserError("Predictor.load takes a run folder, not a file in it", path=run_dir,
                             hint=f"Pass the folder: Predictor.load({str(Path(run_dir).parent)!r}).")

@@ -309,6 +309,9 @@ def test_load_names_a_file_given_for_the_run_folder(tmp_path):
     with pytest.raises(UserError, match="takes a run folder, not a file in it") as err:
         Predictor.load(tmp_path / "config.json")
     assert str(tmp_path) in err.value.hint
+    # a folder that is not there is said as the commands say it (it read "config.json is missing")
+    with pytest.raises(UserError, match="run folder not found"):
+        Predictor.load(tmp_path / "nope")
 
 
 def test_cameras_built_by_hand_are_checked_before_the_renderer_sees_them(monkeypatch):

@@ -12,7 +12,9 @@ class CandidateScore(Strict):
 
     name: str
     score: float | None
-    """The policy's score before any choice (None for a NaN); higher = taken first."""
+    """The policy's score before any choice; higher = taken first. None where the candidate got no score: outside the
+    capture's gaps (``fisher``'s ``gaps``), a pose no camera can stand at as far as the photos tell (the notes say
+    which), or a NaN; a chosen view's ``score_when_chosen`` is its score at its turn."""
     cam_from_world: list[list[float]]
     """[4,4] in the run's normalised world (``RUN/scene.json`` has the similarity to the scene's own)."""
     position: list[float]
