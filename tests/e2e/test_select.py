@@ -462,6 +462,19 @@ def test_a_config_files_pose_file_is_read_from_its_folder(subset_run, tmp_path, 
                                    str(tmp_path / "out"), "--device", "cpu"])
     assert res.exit_code == 0, res.output
     assert Selection.read(tmp_path / "out" / "selection.json").chosen[0].name == "front"
+    # the pose file given on the command line, relative, recorded whole: selection.json given back as --config from
+    # another folder reads the same file (it looked for /plan.txt)
+    monkeypatch.chdir(sub)
+    res = CliRunner().invoke(app, ["select-views", str(subset_run), "--candidates", "plan.txt", "--score", "coverage",
+                                   "-o", str(tmp_path / "out_rel"), "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    assert Selection.read(tmp_path / "out_rel" / "selection.json").settings["candidates"] == str(sub / "plan.txt")
+    monkeypatch.chdir("/")
+    res = CliRunner().invoke(app, ["select-views", str(subset_run), "--config", str(tmp_path / "out_rel" /
+                                   "selection.json"), "-o", str(tmp_path / "out_again"), "--device", "cpu"])
+    assert res.exit_code == 0, res.output
+    assert Selection.read(tmp_path / "out_again" / "selection.json").chosen[0].name == "front"
+    monkeypatch.chdir(tmp_path)
     (sub / "select.toml").write_text('candidates = "missing.txt"\n')
     res = CliRunner().invoke(app, ["select-views", str(subset_run), "--config", "sub/select.toml", "-o",
                                    str(tmp_path / "out2"), "--device", "cpu"])

@@ -264,6 +264,8 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                       "to use the chosen views, train a new run on its views and the chosen ones "
                       "(--set scene.train_names=[...])")
     settings: dict = cfg.model_dump(mode="json")  # the resolved settings (K, probes, gaps, ...), then what the score used
+    if cands.kind == "file":  # (a relative pose file, given back by --config selection.json, was read from the folder
+        settings["candidates"] = str(Path(cfg.candidates).resolve())  # the command ran in: looked for in no other)
     depth_std = None
     t0 = time.perf_counter()
     if cfg.score == "coverage":
