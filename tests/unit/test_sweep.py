@@ -961,6 +961,29 @@ def test_a_switch_between_the_sweeps_own_scene_and_one_of_yours_is_refused(tmp_p
     _check_scene_inputs(tmp_path / "moved", {None: tmp_path / "moved" / "scene"}, force=False, measured=True)
 
 
+def test_runs_trained_inside_a_scene_folder_do_not_change_it(tmp_path):
+    """A run trained into SCENE/run (or a pipeline's output there) changed the scene's fingerprint with every command,
+    and the sweep refused every point on it; a file of the scene's own still counts, and the message says what does."""
+    from uncertsplat.errors import UserError
+    from uncertsplat.stages.sweep import _check_scene_inputs
+
+    scene = tmp_path / "scene"
+    (scene / "images").mkdir(parents=True)
+    (scene / "images" / "a.png").write_bytes(b"photo")
+    _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=False)
+    run = scene / "run"
+    run.mkdir()
+    (run / "config.json").write_text("{}")
+    (run / "train_summary.json").write_text("{}")
+    (scene / "pipe" / "train").mkdir(parents=True)
+    (scene / "pipe" / ".stages_started.json").write_text("{}")
+    (scene / "pipe" / "train" / "weights.bin").write_bytes(b"x")
+    _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)  # no word
+    (scene / "images" / "a.png").write_bytes(b"another photo")
+    with pytest.raises(UserError, match=r"files changed \(every file under it counts but hidden ones"):
+        _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)
+
+
 def test_a_higher_is_better_x_axis_is_maximised():
     """pareto_x = "psnr" (accepted, and drawn "higher is better") was minimised: every point came out on the front
     where the one with both the best PSNR and the best AUSE dominates the others (a helper's sweep)."""

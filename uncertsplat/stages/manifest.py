@@ -77,7 +77,7 @@ def fingerprints(folder: Path, max_files: int = 100_000,
     return read.hexdigest()[:16], every.hexdigest()[:16], legacy.hexdigest()[:16]
 
 
-def fingerprint_folder(folder: Path, max_files: int = 100_000, skip: Path | None = None) -> str:
+def fingerprint_folder(folder: Path, max_files: int = 100_000, skip: Path | Sequence[Path] | None = None) -> str:
     """Hash of the relative names and contents of the files under ``folder`` that a stage may read
     (``_read_by_stages``: not a note beside the photos, an editor's backup or a hidden file, each of which retrained
     a pipeline): a copy that did not keep the modification times (``cp -r``, a sync, a restore) is the same input

@@ -133,6 +133,21 @@ def _drop_runs(runs: Path) -> None:
         shutil.rmtree(runs)
 
 
+def _outputs_inside(folder: Path) -> list[Path]:
+    """uncertsplat's own outputs inside the scene folder ``folder`` (a run trained into SCENE/run, a pipeline's or a
+    sweep's output, a stage folder with its manifest): not the scene's files, and changed by every command run there
+    (a review's run trained into the scene refused every point of the sweep on it)."""
+    from uncertsplat.io.folders import PIPELINE_STARTED, is_run
+    from uncertsplat.stages.manifest import MANIFEST
+
+    found = set()
+    for marker in ("config.json", MANIFEST, PIPELINE_STARTED, SCENE_INPUTS):
+        for p in folder.rglob(marker):
+            if p.parent != folder and (marker != "config.json" or is_run(p.parent)):
+                found.add(p.parent)
+    return sorted(found)
+
+
 def _check_scene_inputs(out_dir: Path, folders: dict[str | None, Path], force: bool, measured: bool) -> None:
     """Refuse a scene folder of one's own (``scene = PATH``, ``--scene``, ``[scenes.NAME] path``) whose files or
     place changed since the sweep measured points on it (``measured``), and a switch between such a folder and a
@@ -157,7 +172,8 @@ def _check_scene_inputs(out_dir: Path, folders: dict[str | None, Path], force: b
             # reverse) reused every point as the other scene's
             entry = {"path": folder.relative_to(out_dir.resolve()).as_posix(), "made_by_the_sweep": True}
         else:
-            entry = {"path": str(folder), "fingerprint": fingerprint_folder(folder, skip=out_dir)}
+            entry = {"path": str(folder), "fingerprint": fingerprint_folder(folder, skip=[out_dir,
+                                                                                      *_outputs_inside(folder)])}
         old = recorded.get(key)
         if isinstance(old, dict) and old != entry:
             def where(e: dict) -> str:
@@ -165,7 +181,8 @@ def _check_scene_inputs(out_dir: Path, folders: dict[str | None, Path], force: b
                         else str(e.get("path")))
 
             what = (f"moved from {where(old)} to {where(entry)}" if old.get("path") != entry["path"]
-                    else f"{folder}'s files changed")
+                    else f"{folder}'s files changed (every file under it counts but hidden ones, notes at its top "
+                         "and uncertsplat's own outputs inside it: runs, a pipeline's or a sweep's folders)")
             changed.append((name, what))
         now[key] = entry
     if changed and measured and not force:
