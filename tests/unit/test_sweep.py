@@ -1047,35 +1047,41 @@ def test_force_trains_a_finished_run_again_beside_it(tmp_path, monkeypatch, caps
     run = tmp_path / "runs" / "variational_x"
     tcfg = json.loads(train_config_from("tiny").model_dump_json())
     job = {"run_dir": str(run), "job_id": "variational_x", "scene": str(tmp_path), "train_config": tcfg}
-    assert jobs._train(job, "cpu") == ("summary", True) and calls == [("variational_x", False)]
-    assert jobs._train(job, "cpu") == ("summary", False)  # reused without --force
-    assert jobs._train({**job, "retrain_before": None}, "cpu") == ("summary", False)
+    assert jobs._train(job, "cpu") == ("summary", True, None) and calls == [("variational_x", False)]
+    assert jobs._train(job, "cpu") == ("summary", False, None)  # reused without --force
+    assert jobs._train({**job, "retrain_before": None}, "cpu") == ("summary", False, None)
     forced = {**job, "retrain_before": time.time() + 1}  # the run finished before the forced sweep started
     stop_training = True  # Ctrl-C during the forced training: the finished run stands as it was
     with pytest.raises(Interrupted):
         jobs._train(forced, "cpu")
     assert (run / "weights.bin").read_text(encoding="utf-8") == "training 1" and (run / "train_summary.json").is_file()
     capsys.readouterr()
-    assert jobs._train(job, "cpu") == ("summary", False)  # a sweep without --force reuses it, naming the leftover
+    assert jobs._train(job, "cpu") == ("summary", False, None)  # a sweep without --force reuses it, naming the leftover
     assert f"note: {run}.retrain holds a training that `sweep --force` began" in capsys.readouterr().err
     stop_training = False
     capsys.readouterr()
-    assert jobs._train(forced, "cpu") == ("summary", True)  # --force again: the new training resumed, then swapped
+    fresh = run.parent / "variational_x.retrain"
+    # --force again: the new training resumed, and left beside the finished run until its points are evaluated (a
+    # review: put in place first, a stop during the evaluation left the old records beside the new run)
+    assert jobs._train(forced, "cpu") == ("summary", True, fresh)
     assert calls[-1] == ("variational_x.retrain", True)
+    assert (run / "weights.bin").read_text(encoding="utf-8") == "training 1"
+    assert jobs._train(job, "cpu") == ("summary", False, None)  # (stopped there: the next sweep keeps the old run)
+    jobs._swap_in(run)  # (run_job, once the points are evaluated)
     assert f"retrained: {run} (trained in variational_x.retrain" in capsys.readouterr().err
     assert (run / "weights.bin").read_text(encoding="utf-8") == f"training {len(calls)}"
     assert sorted(p.name for p in run.parent.iterdir()) == ["variational_x"]
-    assert jobs._train({**job, "retrain_before": time.time() - 60}, "cpu") == ("summary", False)  # trained since
+    assert jobs._train({**job, "retrain_before": time.time() - 60}, "cpu") == ("summary", False, None)  # trained since
     (run / "train_summary.json").unlink()  # unfinished: resumed, forced or not
-    assert jobs._train(forced, "cpu") == ("summary", True) and calls[-1] == ("variational_x", True)
+    assert jobs._train(forced, "cpu") == ("summary", True, None) and calls[-1] == ("variational_x", True)
     # changed by hand (train --resume --iterations N): moved aside with a note, forced or not
     (run / "config.json").write_text(json.dumps({**tcfg, "iterations": tcfg["iterations"] + 1}))
-    assert jobs._train(forced, "cpu") == ("summary", True) and calls[-1] == ("variational_x", False)
+    assert jobs._train(forced, "cpu") == ("summary", True, None) and calls[-1] == ("variational_x", False)
     assert json.loads((run.parent / "variational_x.replaced" / "config.json").read_text(encoding="utf-8"))["iterations"] == \
         tcfg["iterations"] + 1
     # killed between the swap's two renames: the next sweep finishes the swap
     run.rename(run.parent / "variational_x.retrained")
-    assert jobs._train(job, "cpu") == ("summary", False) and run.is_dir()
+    assert jobs._train(job, "cpu") == ("summary", False, None) and run.is_dir()
     assert not (run.parent / "variational_x.retrained").exists()
 
 

@@ -68,15 +68,17 @@ def finish_swap(run_dir: Path) -> None:
         shutil.rmtree(old)
 
 
-def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
-    """Train the job's run unless it is finished; returns (train_summary, trained_now).
+def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool, Path | None]:
+    """Train the job's run unless it is finished; returns (train_summary, trained_now, the retrained run waiting to
+    take the run's place, or None).
 
     ``job["retrain_before"]`` (sweep --force: its start): a run finished before it is trained again, so the point's
     training time is measured now, not carried over from an earlier sweep. The new training goes into
-    ``RUN.retrain`` beside the finished run, which stays until it is done: a forced sweep stopped midway leaves the run
-    its records measured (deleted first, the records of a later sweep without --force described models that were
-    gone), and the next --force resumes the new training. A run this sweep trained is kept for a retry of its
-    evaluation; an unfinished run resumes either way."""
+    ``RUN.retrain`` beside the finished run, which stays until the new one's points are evaluated (``run_job`` puts it
+    in place then, ``_swap_in``): a forced sweep stopped midway leaves the run its records measured (deleted first,
+    the records of a later sweep without --force described models that were gone; put in place before the
+    evaluation, a stop there left the old records beside the new run), and the next --force resumes the new training.
+    A run this sweep trained is kept for a retry of its evaluation; an unfinished run resumes either way."""
     from uncertsplat.baselines import train_run
     from uncertsplat.config import TrainConfig, build_config
     from uncertsplat.io.atomic import lock_holder
@@ -97,7 +99,7 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
                 print(f"note: {fresh} holds a training that `sweep --force` began and did not finish: the next "
                       "--force resumes it; without --force it is not used (delete it to drop it)", file=sys.stderr,
                       flush=True)
-            return summary, False
+            return summary, False, None
     # past the reuse of a finished run (an evaluate of it holds its lock too, and reading it is safe): what follows
     # removes, moves or trains the run, under a `train --resume` of it by hand it would mix or destroy both
     for folder in (run_dir, fresh):
@@ -111,13 +113,7 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
             shutil.rmtree(fresh)
         reset_peak_memory(device)  # the point's own peak, not that of the points trained before it in this process
         train_run(Path(job["scene"]), fresh, cfg, device, resume=resume)
-        run_dir.rename(old)
-        fresh.rename(run_dir)  # (beside each other: the run's paths relative to itself hold)
-        shutil.rmtree(old)
-        # (train's own last line named the folder it trained in, RUN.retrain, which is gone now)
-        print(f"retrained: {run_dir} (trained in {fresh.name}, now in place of the finished run)", file=sys.stderr,
-              flush=True)
-        return TrainSummary.read(summary_path), True
+        return TrainSummary.read(fresh / "train_summary.json"), True, fresh
     resume = (run_dir / "config.json").is_file()
     if run_dir.exists() and not resume:
         shutil.rmtree(run_dir)  # a job that died before writing anything useful
@@ -134,7 +130,19 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool]:
         resume = False
     reset_peak_memory(device)  # the point's own peak, not that of the points trained before it in this process
     train_run(Path(job["scene"]), run_dir, cfg, device, resume=resume)
-    return TrainSummary.read(summary_path), True
+    return TrainSummary.read(summary_path), True, None
+
+
+def _swap_in(run_dir: Path) -> None:
+    """The retrained run (``RUN.retrain``) in place of the finished one, once its points are evaluated (a kill between
+    the two renames is finished by ``finish_swap``)."""
+    fresh, old = retrain_folders(run_dir)
+    run_dir.rename(old)
+    fresh.rename(run_dir)  # (beside each other: the run's paths relative to itself hold)
+    shutil.rmtree(old)
+    # (train's own last line named the folder it trained in, RUN.retrain, which is gone now)
+    print(f"retrained: {run_dir} (trained in {fresh.name}, now in place of the finished run)", file=sys.stderr,
+          flush=True)
 
 
 def _advice(table: str, fields) -> functools.partial:
@@ -176,7 +184,7 @@ def run_job(job: dict) -> list[dict]:
         t0 = time.perf_counter()
         # training's advice in the sweep's words (`--set train.exposure=affine`: the sweep refused `--set exposure`)
         console.rewrite = train_advice
-        summary, trained = _train(job, device)
+        summary, trained, pending = _train(job, device)
         train_peak = summary.peak_memory_mb
         train_info = {"train_seconds": summary.seconds, "trained_now": trained,
                       "train_wall_seconds": time.perf_counter() - t0 if trained else None,
@@ -199,7 +207,7 @@ def run_job(job: dict) -> list[dict]:
                "is_default": p["is_default"]}
         try:
             console.rewrite = eval_advice
-            rec.update(_evaluate(job, p, device))
+            rec.update(_evaluate(job, p, device, run_dir=pending))
             rec["notes"] = train_notes + list(rec.get("notes") or [])
             rec["peak_memory_mb"] = max(train_peak, rec["eval_peak_memory_mb"])
             # what a user waits for: training, the predictive's fit (pixel noise, std factor: as long as a tiny
@@ -213,10 +221,13 @@ def run_job(job: dict) -> list[dict]:
         finally:
             console.rewrite = previous
         records.append(rec)
+    if pending is not None:  # (a stop before this point leaves the finished run and its records as they were)
+        _swap_in(Path(job["run_dir"]))
     return records
 
 
-def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
+def _evaluate(job: dict, point: dict, device: torch.device, run_dir: Path | None = None) -> dict:
+    """The point's evaluation of the job's run (``run_dir``: of that run retrained beside it, ``_train``)."""
     from functools import partial
 
     from uncertsplat.baselines import load_run
@@ -226,7 +237,7 @@ def _evaluate(job: dict, point: dict, device: torch.device) -> dict:
     from uncertsplat.train.trainer import reset_peak_memory
 
     ecfg = build_config(EvalConfig, point["eval_config"], source=f"sweep point {point['id']}")
-    run_dir = Path(job["run_dir"])
+    run_dir = Path(run_dir if run_dir is not None else job["run_dir"])
     loaded = load_run(run_dir, device)
     scene = loaded.load_scene()
     indices = split_indices(scene.split, ecfg)
