@@ -979,6 +979,16 @@ def test_runs_trained_inside_a_scene_folder_do_not_change_it(tmp_path):
     (scene / "pipe" / ".stages_started.json").write_text("{}")
     (scene / "pipe" / "train" / "weights.bin").write_bytes(b"x")
     _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)  # no word
+    # recorded by the version before, which counted the run's files: taken as the same scene, recorded anew
+    from uncertsplat.stages.manifest import fingerprint_folder
+    from uncertsplat.stages.sweep import SCENE_INPUTS
+
+    record = tmp_path / "out" / SCENE_INPUTS
+    before = json.loads(record.read_text(encoding="utf-8"))
+    before[""]["fingerprint"] = fingerprint_folder(scene, skip=tmp_path / "out")
+    record.write_text(json.dumps(before))
+    _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)
+    assert json.loads(record.read_text(encoding="utf-8"))[""]["fingerprint"] != before[""]["fingerprint"]
     (scene / "images" / "a.png").write_bytes(b"another photo")
     with pytest.raises(UserError, match=r"files changed \(every file under it counts but hidden ones"):
         _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)

@@ -175,6 +175,9 @@ def _check_scene_inputs(out_dir: Path, folders: dict[str | None, Path], force: b
             entry = {"path": str(folder), "fingerprint": fingerprint_folder(folder, skip=[out_dir,
                                                                                       *_outputs_inside(folder)])}
         old = recorded.get(key)
+        if (isinstance(old, dict) and old != entry and old.get("path") == entry["path"] and "fingerprint" in entry
+                and old.get("fingerprint") == fingerprint_folder(folder, skip=out_dir)):
+            old = entry  # (recorded before the outputs inside were left out, 2026-12-01: the same files)
         if isinstance(old, dict) and old != entry:
             def where(e: dict) -> str:
                 return (f"the scene the sweep made ({out_dir / e.get('path', '')})" if e.get("made_by_the_sweep")
