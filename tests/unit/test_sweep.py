@@ -598,6 +598,53 @@ def _one_point_sweep(tmp_path, monkeypatch):
     return f, out, rec
 
 
+def test_a_point_whose_newest_record_failed_is_run_again(tmp_path, monkeypatch):
+    """After `--force`, a point whose evaluation failed (its earlier record ok) was taken as done by every later sweep
+    without --force ("0 points to run") while the summary showed it failed: only its newest record counts."""
+    from uncertsplat.stages import sweep
+    from uncertsplat.sweep import jobs as sweep_jobs
+
+    f, out, rec = _one_point_sweep(tmp_path, monkeypatch)
+    ok = sweep_jobs.run_job
+
+    def failing(job):
+        return [{**r, "status": "failed", "stage": "evaluate", "error": "boom"} for r in ok(job)]
+
+    monkeypatch.setattr(sweep_jobs, "run_job", failing)
+    with pytest.raises(UserError):  # (the sweep ends with exit 2 when a point failed)
+        sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1, force=True)
+    log: list[str] = []
+    _fake_jobs(monkeypatch, log)
+    (again,) = sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1).records
+    assert log == [rec.id] and again.status == "ok"
+
+
+def test_a_retrained_run_that_cannot_take_its_place_fails_its_points(tmp_path, monkeypatch):
+    """run_job reports, it does not raise: a rename that fails when the retrained run takes the finished one's place
+    marks the job's points failed, naming the folders (it escaped run_job, and the executors recorded a bare error)."""
+    from types import SimpleNamespace
+
+    from uncertsplat.sweep import jobs as sweep_jobs
+
+    summary = SimpleNamespace(peak_memory_mb=1.0, seconds=2.0, num_gaussians=3, num_carriers=3,
+                              memory_per_gaussian_bytes=4, warnings=[])
+    pending = tmp_path / "r.retrain"
+    monkeypatch.setattr(sweep_jobs, "_train", lambda job, device: (summary, True, pending))
+    monkeypatch.setattr(sweep_jobs, "_evaluate", lambda job, p, device, run_dir=None: {
+        "eval_peak_memory_mb": 1.0, "calibration_seconds": 0.5, "eval_seconds": 1.0, "notes": [],
+        "evaluated": str(run_dir)})
+
+    def refused(run_dir):
+        raise PermissionError(13, "Permission denied", str(run_dir))
+
+    monkeypatch.setattr(sweep_jobs, "_swap_in", refused)
+    job = {"job_id": "j", "method_label": "m", "run_dir": str(tmp_path / "r"), "device": "cpu",
+           "points": [{"id": "p", "hash": "h", "knobs": {}, "is_default": True}]}
+    (record,) = sweep_jobs.run_job(job)
+    assert record["status"] == "failed" and record["stage"] == "swap" and record["evaluated"] == str(pending)
+    assert f"the retrained run in {pending} could not take the place of {tmp_path / 'r'}" in record["error"]
+
+
 def test_a_point_of_other_settings_never_replaces_a_points_report(tmp_path, monkeypatch):
     """points/ID.json was named by id alone: a run with --set train.seed=1 (other hashes, the same ids) replaced the
     seed-0 reports, the only copies, while sweep.json went on showing seed 0's records; a deleted report was never
@@ -992,6 +1039,18 @@ def test_runs_trained_inside_a_scene_folder_do_not_change_it(tmp_path):
     (scene / "images" / "a.png").write_bytes(b"another photo")
     with pytest.raises(UserError, match=r"files changed \(every file under it counts but hidden ones"):
         _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)
+    # a manifest.json of a capture app's among the photos does not hide them (a review: images/ was left out whole)
+    _check_scene_inputs(tmp_path / "out", {None: scene}, force=True, measured=True)
+    (scene / "images" / "manifest.json").write_text('{"stage": "x", "config_hash": "y"}')
+    (scene / "extra").mkdir()
+    (scene / "extra" / "manifest.json").write_text('{"files": 3}')
+    (scene / "extra" / "a.bin").write_bytes(b"data")
+    _check_scene_inputs(tmp_path / "out", {None: scene}, force=True, measured=True)
+    for changed in (scene / "images" / "a.png", scene / "extra" / "a.bin"):
+        changed.write_bytes(b"changed again " + changed.name.encode())
+        with pytest.raises(UserError, match="files changed"):
+            _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)
+        _check_scene_inputs(tmp_path / "out", {None: scene}, force=True, measured=True)
 
 
 def test_a_higher_is_better_x_axis_is_maximised():
@@ -1077,6 +1136,10 @@ def test_force_trains_a_finished_run_again_beside_it(tmp_path, monkeypatch, caps
     assert calls[-1] == ("variational_x.retrain", True)
     assert (run / "weights.bin").read_text(encoding="utf-8") == "training 1"
     assert jobs._train(job, "cpu") == ("summary", False, None)  # (stopped there: the next sweep keeps the old run)
+    assert f"{run}.retrain holds a training that `sweep --force` began and finished and was not yet evaluated" in \
+        " ".join(capsys.readouterr().err.split())
+    n = len(calls)  # --force again: the finished retraining is evaluated, not trained, nor called trained now
+    assert jobs._train(forced, "cpu") == ("summary", False, fresh) and len(calls) == n
     jobs._swap_in(run)  # (run_job, once the points are evaluated)
     assert f"retrained: {run} (trained in variational_x.retrain" in capsys.readouterr().err
     assert (run / "weights.bin").read_text(encoding="utf-8") == f"training {len(calls)}"
@@ -1171,17 +1234,20 @@ def test_a_swap_killed_between_its_renames_is_finished_before_any_point_is_skipp
     """A forced training killed between its two renames left RUN missing beside RUN.retrain / RUN.retrained; the
     recovery ran only inside a point's training, which a sweep skips for a point with a record: the next sweep said
     "already done" with the run folder its record names gone (a review). The sweep finishes the swap for every point
-    first."""
+    first. Since the swap comes after the retrained point's evaluation, a swap stopped half way had no records
+    written: the finished run goes back beside its records and the retraining waits for the next --force (a review:
+    taking it put the new run beside the old records)."""
     from uncertsplat.stages import sweep
 
     f, out, rec = _one_point_sweep(tmp_path, monkeypatch)
     run = Path(rec.run_dir)
     (run.parent / f"{run.name}.retrain").mkdir(parents=True)  # the new training, finished, not yet in place
-    (run.parent / f"{run.name}.retrain" / "train_summary.json").write_text("{}")
+    (run.parent / f"{run.name}.retrain" / "train_summary.json").write_text('{"new": 1}')
     (run.parent / f"{run.name}.retrained").mkdir()  # the old one, moved aside
+    (run.parent / f"{run.name}.retrained" / "train_summary.json").write_text('{"old": 1}')
     sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1)
-    assert (run / "train_summary.json").is_file()
-    assert sorted(p.name for p in run.parent.iterdir()) == [run.name]
+    assert (run / "train_summary.json").is_file() and "new" not in (run / "train_summary.json").read_text()
+    assert sorted(p.name for p in run.parent.iterdir()) == [run.name, f"{run.name}.retrain"]
 
 
 def test_a_points_advice_is_given_in_the_sweeps_words(monkeypatch, capsys):

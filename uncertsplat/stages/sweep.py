@@ -140,12 +140,30 @@ def _outputs_inside(folder: Path) -> list[Path]:
     from uncertsplat.io.folders import PIPELINE_STARTED, is_run
     from uncertsplat.stages.manifest import MANIFEST
 
+    def ours(marker: str, place: Path) -> bool:
+        if marker == "config.json":
+            return is_run(place)
+        if marker == MANIFEST:  # (a capture app's or a download's manifest.json is no stage's)
+            try:
+                data = json.loads((place / MANIFEST).read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                return False
+            return isinstance(data, dict) and {"stage", "config_hash"} <= data.keys()
+        if marker == SCENE_INPUTS:  # (a sweep's output: its runs/ or records beside it)
+            return (place / "runs").is_dir() or (place / "sweep.jsonl").is_file()
+        return True  # (.stages_started.json: uncertsplat run's own name)
+
     found = set()
     for marker in ("config.json", MANIFEST, PIPELINE_STARTED, SCENE_INPUTS):
         for p in folder.rglob(marker):
-            if p.parent != folder and (marker != "config.json" or is_run(p.parent)):
+            # (never the folders a scene's loader reads, whatever they hold)
+            if p.parent != folder and p.relative_to(folder).parts[0] not in _SCENE_DATA and ours(marker, p.parent):
                 found.add(p.parent)
     return sorted(found)
+
+
+_SCENE_DATA = frozenset({"images", "sparse", "masks", "depth", "distorted", "train", "test", "val"})
+"""The folders of a scene the loaders read (COLMAP and Blender layouts): never left out of its fingerprint."""
 
 
 def _check_scene_inputs(out_dir: Path, folders: dict[str | None, Path], force: bool, measured: bool) -> None:
@@ -358,7 +376,10 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                           "training and evaluation configuration as another point and are measured once (e.g. a "
                           "knob at the value the preset already gives, num_entries with the informed posterior, "
                           "which stores one table entry, or ensemble_size and spawn_fraction without offset tables)")
-        done = {r.hash for r in before if r.status == "ok"} & hashes if not force else set()
+        newest = {r.hash: r for r in before}  # (records in order: a point's last one says where it stands)
+        # a point is done when its newest record is ok: one that failed after an ok record (its evaluation of a run
+        # --force retrained) was never retried without --force, while the report showed it failed
+        done = {h for h, r in newest.items() if r.status == "ok"} & hashes if not force else set()
         everywhere = current  # with --scenes, the other scenes' points too (their reports move with them)
         if whole is not spec:
             others = {n: out_dir / "scenes" / n for n in whole.scenes if n not in spec.scenes}
@@ -427,7 +448,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                  "new records, the others with their earlier ones; a stopped point that had a record keeps it and its "
                  "run (its new training waits in the run folder's .retrain), one that had none resumes from its "
                  "checkpoint. With --force again, every point is trained again, a stopped training resumed from its "
-                 "checkpoint.")
+                 "checkpoint, one finished in .retrain evaluated.")
         with bar:
             try:
                 if executor == "ray":

@@ -55,15 +55,18 @@ def retrain_folders(run_dir: Path) -> tuple[Path, Path]:
 
 
 def finish_swap(run_dir: Path) -> None:
-    """A forced training killed between its two renames (``_train``): the new run put in place (or the old one back
-    when the new one is not finished), the old one removed. The sweep calls it for every point before it decides
-    which are done: a point with a record is not trained again, and its run folder was missing."""
+    """A forced retraining stopped between the two renames that put it in place (``_swap_in``): its points' records
+    were not written (the swap comes after their evaluation, and the driver records what ``run_job`` returns), so the
+    finished run goes back and the retraining waits in ``RUN.retrain`` for the next --force (a review: taking it then
+    left the old records beside the new run). A leftover ``RUN.retrained`` beside the run is removed. The sweep calls
+    it for every point before it decides which are done: a point with a record is not trained again, and its run
+    folder was missing."""
     fresh, old = retrain_folders(run_dir)
     if not run_dir.exists():
-        if (fresh / "train_summary.json").is_file():
-            fresh.rename(run_dir)
-        elif old.is_dir():
+        if old.is_dir():
             old.rename(run_dir)
+        elif (fresh / "train_summary.json").is_file():  # (no run to go back to)
+            fresh.rename(run_dir)
     if old.exists() and run_dir.exists():
         shutil.rmtree(old)
 
@@ -96,9 +99,10 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool, Path | 
         summary = TrainSummary.read(summary_path)
         if cfg.method != "fisher" or summary.fisher_seconds is not None:
             if fresh.is_dir():  # a forced retraining stopped midway, which this sweep (no --force) leaves alone
-                print(f"note: {fresh} holds a training that `sweep --force` began and did not finish: the next "
-                      "--force resumes it; without --force it is not used (delete it to drop it)", file=sys.stderr,
-                      flush=True)
+                what = ("finished and was not yet evaluated: the next --force evaluates it" if
+                        (fresh / "train_summary.json").is_file() else "did not finish: the next --force resumes it")
+                print(f"note: {fresh} holds a training that `sweep --force` began and {what}; without --force it is "
+                      "not used (delete it to drop it)", file=sys.stderr, flush=True)
             return summary, False, None
     # past the reuse of a finished run (an evaluate of it holds its lock too, and reading it is safe): what follows
     # removes, moves or trains the run, under a `train --resume` of it by hand it would mix or destroy both
@@ -111,6 +115,10 @@ def _train(job: dict, device: torch.device) -> tuple[TrainSummary, bool, Path | 
         resume = _same_config(fresh, cfg)
         if fresh.exists() and not resume:
             shutil.rmtree(fresh)
+        if resume and (fresh / "train_summary.json").is_file():
+            # an earlier --force's retraining, finished and stopped before its evaluation: evaluated now, its training
+            # time its own (not "trained now": a record said so with 0.09 s of wall time)
+            return TrainSummary.read(fresh / "train_summary.json"), False, fresh
         reset_peak_memory(device)  # the point's own peak, not that of the points trained before it in this process
         train_run(Path(job["scene"]), fresh, cfg, device, resume=resume)
         return TrainSummary.read(fresh / "train_summary.json"), True, fresh
@@ -222,7 +230,12 @@ def run_job(job: dict) -> list[dict]:
             console.rewrite = previous
         records.append(rec)
     if pending is not None:  # (a stop before this point leaves the finished run and its records as they were)
-        _swap_in(Path(job["run_dir"]))
+        try:
+            _swap_in(Path(job["run_dir"]))
+        except OSError as err:  # (run_job reports, it does not raise: the records say what is where)
+            msg = (f"the retrained run in {pending} could not take the place of {job['run_dir']} ({err}); the next "
+                   "sweep puts the finished run back, and --force evaluates the retraining again")
+            records = [{**r, "status": "failed", "stage": "swap", "error": msg} for r in records]
     return records
 
 
