@@ -229,7 +229,7 @@ def test_a_sweep_neither_trains_into_nor_deletes_a_run_another_process_writes(tm
     (done / "train_summary.json").write_text("{}")
     monkeypatch.setattr(jobs.TrainSummary, "read", classmethod(lambda cls, path: "the finished summary"))
     with _held_by_another_process(done):
-        assert jobs._train({**job, "run_dir": str(done)}, "cpu") == ("the finished summary", False)
+        assert jobs._train({**job, "run_dir": str(done)}, "cpu") == ("the finished summary", False, None)
     monkeypatch.undo()
 
     class Trained(Exception):
