@@ -91,6 +91,8 @@ def test_commands_given_a_pipelines_output_name_what_to_give(pipeline_out):
         read_run_config(pipeline_out)
     with pytest.raises(UserError, match=r"a stage folder of a pipeline's output, whose runs are"):
         read_run_config(pipeline_out / "report")
+    with pytest.raises(UserError, match=r"not a training run .*; this is a scene, the input of `uncertsplat train`"):
+        read_run_config(pipeline_out / "reconstruct")  # (evaluate SCENE, prune SCENE: as report says it)
     with pytest.raises(UserError, match=r"not a COLMAP workspace; it holds scenes .*reconstruct") as err:
         find_sparse_model(pipeline_out)
     assert "uncertsplat reconstruct" not in err.value.hint

@@ -210,15 +210,20 @@ def test_a_threshold_that_removes_most_carriers_is_noted():
 
     score = torch.tensor([0.1, 0.2, 0.3, 0.4, 5.0])
     carriers = torch.tensor([True, True, True, True, False])
-    keep, notes = choose_mask(score, carriers, threshold=-1.0, keep_ratio=None)
-    assert int((~keep).sum()) == 4 and len(notes) == 1
-    assert notes[0].startswith("--threshold -1 removes 4 of the 4 Gaussians that carry a posterior (100%)")
+    keep, notes = choose_mask(score, carriers, threshold=0.15, keep_ratio=None)
+    assert int((~keep).sum()) == 3 and len(notes) == 1
+    assert notes[0].startswith("--threshold 0.15 removes 3 of the 4 Gaussians that carry a posterior (75%)")
+    # every carrier removed, only those without a posterior left (a review's 7 of 15,810 Gaussians at 7 dB, written
+    # with a note): refused
+    from uncertsplat.errors import UserError
+
+    with pytest.raises(UserError, match=r"--threshold -1 removes every one of the 4 Gaussians that carry a posterior "
+                                        r"\(this score ranges from 0.1 on them\), leaving only the 1 without one"):
+        choose_mask(score, carriers, threshold=-1.0, keep_ratio=None)
     keep, notes = choose_mask(score, carriers, threshold=0.35, keep_ratio=None)
     assert int((~keep).sum()) == 1 and notes == []
     # every Gaussian a carrier and every one above the threshold: refused (writing an empty model raised deep in
     # the PLY writer, a traceback)
-    from uncertsplat.errors import UserError
-
     with pytest.raises(UserError, match=r"--threshold -1 removes every one of the 5 Gaussians \(this score ranges "
                                         r"from 0.1 to 5"):
         choose_mask(score, torch.ones(5, dtype=torch.bool), threshold=-1.0, keep_ratio=None)

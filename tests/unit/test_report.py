@@ -290,6 +290,13 @@ def test_single_run_report_has_every_section_and_exact_numbers(tmp_path):
 
 def test_missing_inputs_give_notes_not_a_crash(tmp_path, capsys):
     run = make_run(tmp_path, "bare", metrics=False, maps=False, stats=False)
+    # a run stopped before its first checkpoint (no model at all): said as such, not "run evaluate" (which fails)
+    index = stage.run([run], tmp_path / "rep0", ReportConfig())
+    said = " ".join(capsys.readouterr().err.split())
+    assert "bare: no trained model (its training stopped before its first checkpoint)" in said and "--resume" in said
+    assert "no trained model (neither variational.ply nor a checkpoint in ckpts/" in " ".join(
+        index.read_text(encoding="utf-8").split())
+    (run / "variational.ply").write_bytes(b"")  # (its model, as far as the report looks)
     out = tmp_path / "rep"
     index = stage.run([run], out, ReportConfig())
     # the console says it too (a review's report of a run never evaluated printed only the page's path)

@@ -30,7 +30,7 @@ from uncertsplat.errors import UserError
 from uncertsplat.eval.engine import SAME_RENDER, Sampler
 from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.gaussians.prior import Prior
-from uncertsplat.io.folders import stage_hint
+from uncertsplat.io.folders import is_scene, stage_hint
 from uncertsplat.render.exposure import PhotoExposure
 from uncertsplat.schemas import RunExposure, RunScene
 from uncertsplat.types import GaussianSample, SceneData, ViewSet
@@ -435,7 +435,9 @@ def read_run_config(run_dir: Path) -> TrainConfig:
     cfg_path = Path(run_dir) / "config.json"
     if not cfg_path.is_file():
         _refuse_prune_without_model(Path(run_dir))
-        near = stage_hint(Path(run_dir), "run")  # (a pipeline's output folder or its report/, RUN/eval, ...)
+        # (a scene, as `report` says it; a pipeline's output folder or its report/, RUN/eval, ...: what to give)
+        near = "; ".join(n for n in ("this is a scene, the input of `uncertsplat train`" if is_scene(Path(run_dir))
+                                     else "", stage_hint(Path(run_dir), "run")) if n)
         raise UserError("not a training run (config.json is missing)" + (f"; {near}" if near else ""), path=run_dir,
                         hint="Point to a folder written by `uncertsplat train` (or `prune`).")
     try:

@@ -193,6 +193,13 @@ def choose_mask(score: Tensor, carriers: Tensor, *, threshold: float | None,
                             f"ranges from {lo:.3g} to {hi:.3g} on this run): a model of none is no model",
                             hint=f"Give a threshold above {lo:.3g} (it removes the Gaussians scoring above it), or "
                                  "--keep-ratio or --auto, which choose by the count.")
+        if total and bool((~keep & carriers).sum() == total):  # (7 Gaussians left, 7 dB: written without a word)
+            lo = float(score[carriers].min())
+            raise UserError(f"--threshold {threshold:g} removes every one of the {total:,} Gaussians that carry a "
+                            f"posterior (this score ranges from {lo:.3g} on them), leaving only the "
+                            f"{int(keep.sum()):,} without one: no model of the scene",
+                            hint=f"Give a threshold above {lo:.3g} (it removes the Gaussians scoring above it), or "
+                                 "--keep-ratio or --auto, which choose by the count.")
         notes = []
         if total and removed >= 0.5 * total:  # a threshold below most scores: likely not what was meant
             lo, mid = float(score[carriers].min()), float(score[carriers].median())

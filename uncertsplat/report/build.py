@@ -57,6 +57,7 @@ from uncertsplat.report.loader import (
     RunData,
     one_line,
     unfinished_members,
+    without_model,
 )
 from uncertsplat.report.views import SURFACE_MIN_ALPHA, ViewMaps, load_view
 from uncertsplat.schemas import EvalReport, PruneMetrics, PruneReport, PruneSweep
@@ -168,6 +169,10 @@ def _missing_metrics_note(run: RunData, full: bool = True) -> str:
     if holds_no_model(run) and run.problem(METRICS) is None:
         return note(_no_model_text(run) if full else
                     f"{run.name}: a prune folder without a model (nothing to evaluate; the Summary says what to do).")
+    if without_model(run) and run.problem(METRICS) is None:  # (`evaluate` of it fails: "no trained model here")
+        return note(f"{run.name}: no trained model (neither variational.ply nor a checkpoint in ckpts/: its training "
+                    "stopped before its first checkpoint), so there is nothing to evaluate: `uncertsplat train SCENE "
+                    f"-o {q(run.path)} --resume` trains it from step 0; metric sections are left out for this run.")
     members = unfinished_members(run)
     if members is not None and run.problem(METRICS) is None:  # `evaluate` refuses it until every member is trained
         return note(f"{run.name}: no eval/metrics.json, and {members[1] - members[0]} of the ensemble's {members[1]} "

@@ -292,6 +292,14 @@ def _training_notes(run: RunData) -> list[str]:
     return notes
 
 
+def without_model(run: RunData) -> bool:
+    """Whether a training run holds no model at all: no ``variational.ply``, no checkpoint and no ensemble members (a
+    training stopped before its first checkpoint), so there is nothing to evaluate (a prune folder: ``prune.json``)."""
+    p = run.path
+    return (run.config is not None and not (p / "variational.ply").is_file() and not any((p / "ckpts").glob("*.pt"))
+            and not (p / MEMBERS).is_dir() and not (p / PRUNE).is_file())
+
+
 def unfinished_members(run: RunData) -> tuple[int, int] | None:
     """(members trained, members in all) of an ensemble run stopped before its last member finished (no
     train_summary.json of its own); None for every other run."""

@@ -56,11 +56,14 @@ def _check_output(out: Path, runs: list[Path]) -> None:
     # anyone's: a folder holding only them was refused as "not empty"
     own = [p for p in out.iterdir() if not p.name.startswith(".") and p.name != "Thumbs.db"] if out.is_dir() else []
     if own and not is_report_page(out / INDEX) and not _unfinished_report(out):
-        what = ("its index.html is not a page `report` wrote" if (out / INDEX).is_file()
-                else "it holds no earlier report")
+        from uncertsplat.io.folders import is_run
+
+        what = ("it is a training run" if is_run(out) else "its index.html is not a page `report` wrote"
+                if (out / INDEX).is_file() else "it holds no earlier report")
         raise UserError(f"the output folder is not empty and {what}; refusing to write into it (its index.html and "
                         "figures/ would be replaced)", path=out,
-                        hint="Choose a new or empty folder (a folder of an earlier report is replaced).")
+                        hint="Choose a new or empty folder, or one of an earlier report (its page and the figures it "
+                             "wrote are replaced, other files kept).")
 
 
 def _unfinished_report(out: Path) -> bool:
@@ -112,7 +115,7 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
             output folder when it cannot be used.
     """
     from uncertsplat.report.build import build_report, holds_no_model
-    from uncertsplat.report.loader import METRICS, load_run, unfinished_members
+    from uncertsplat.report.loader import METRICS, load_run, unfinished_members, without_model
 
     cfg = cfg or ReportConfig()
     paths = [Path(runs)] if isinstance(runs, (str, Path)) else [Path(r) for r in runs]
@@ -163,7 +166,11 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
     for r in loaded:
         for n in r.notes:
             console.print(f"[yellow]note[/] {r.name}: {n}")
-        if (r.metrics is None and r.problem(METRICS) is None and not holds_no_model(r)
+        if r.metrics is None and r.problem(METRICS) is None and without_model(r):
+            console.print(f"[yellow]note[/] {r.name}: no trained model (its training stopped before its first "
+                          f"checkpoint), so the report shows its settings only: `uncertsplat train SCENE -o "
+                          f"{q(r.path)} --resume` trains it from step 0")
+        elif (r.metrics is None and r.problem(METRICS) is None and not holds_no_model(r)
                 and unfinished_members(r) is None):
             # (said on the page; a report of a run never evaluated looked finished from the console)
             other = sorted(p.parent.name for p in r.path.glob("eval-*/metrics.json"))  # (`evaluate --split train`'s)
