@@ -650,6 +650,30 @@ class TestPrunedRunThatRemovedNothing:
         assert not any("copied from" in n for n in report.notes)
 
 
+def test_a_source_evaluated_with_reuse_off_is_copied_too(same_model_runs, tmp_path):
+    """The source's evaluation made with --set reuse=false was never copied into a pruned run that kept its model (its
+    config hash holds `reuse`), though `evaluate` and `prune` of the source reuse it (a review)."""
+    from uncertsplat.provenance import hash_config
+
+    src, kept = same_model_runs
+    other = tmp_path / "source"
+    shutil.copytree(src, other)
+    used = EvalConfig.model_validate_json((other / "eval" / "config.json").read_text(encoding="utf-8"))
+    used = used.model_copy(update={"reuse": False})
+    (other / "eval" / "config.json").write_text(used.model_dump_json(indent=2))
+    report = EvalReport.read(other / "eval" / "metrics.json")
+    report.config_hash = hash_config(used.model_dump(mode="json"))
+    report.write(other / "eval" / "metrics.json")
+    pruned = tmp_path / "kept"
+    shutil.copytree(kept, pruned, ignore=shutil.ignore_patterns("eval"))
+    data = PruneReport.read(pruned / "prune.json")
+    data.source_run = str(other)
+    data.write(pruned / "prune.json")
+    assert evaluate.same_model_evaluation(pruned, SAME_CFG, torch.device("cpu")) == other / "eval"
+    other_samples = SAME_CFG.model_copy(update={"num_samples": SAME_CFG.num_samples + 1})
+    assert evaluate.same_model_evaluation(pruned, other_samples, torch.device("cpu")) is None
+
+
 class TestPruneReadsTheEvaluation:
     """``prune``'s "before" row: ``evaluate``'s held-out means when it scored the same model file on the same views
     with the same settings and versions (``stages.evaluate.matching_evaluation``), the same numbers it would measure."""

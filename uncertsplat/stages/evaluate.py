@@ -171,14 +171,19 @@ def same_model_evaluation(run_dir: Path, cfg: EvalConfig, device: torch.device) 
         if previous is not None and previous.run_sha256 is not None \
                 and previous.run_sha256 != run_sha256(source, source / "variational.ply"):
             return None  # the source's evaluation is of its files (or the photos' masks) as they were: not now
-        if (previous is None or previous.config_hash != hash_config(cfg.model_dump(mode="json"))
-                or previous.device != str(device) or previous.versions != versions()
+        if (previous is None or previous.device != str(device) or previous.versions != versions()
                 or not (source / "eval" / "config.json").is_file() or not (source / "eval" / "maps").is_dir()):
+            return None
+        # the settings it was measured with and wrote its files with, but for whether it may be reused (one made with
+        # --set reuse=false was never copied, though `evaluate` and `prune` of the source reuse it)
+        used = EvalConfig.model_validate_json((source / "eval" / "config.json").read_text(encoding="utf-8"))
+        if (previous.config_hash != hash_config(used.model_dump(mode="json"))
+                or used.model_dump(mode="json", exclude={"reuse"}) != cfg.model_dump(mode="json", exclude={"reuse"})):
             return None
         digest = pruned.source_model_sha256
         if file_sha256(run_dir / "variational.ply") != digest or file_sha256(source / "variational.ply") != digest:
             return None
-    except (OSError, UserError):
+    except (OSError, UserError, ValueError):  # (ValueError: an eval/config.json that is no EvalConfig)
         return None
     return source / "eval"
 
