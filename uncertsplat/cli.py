@@ -277,6 +277,26 @@ _SHORT = {"num_views": "-n/"}
 """The options with a short form besides their long one (named both ways in an error about their value)."""
 
 
+def _refuse_other_commands_file(model, data: dict, config_file: Path | None) -> None:
+    """A --config file that is another command's configuration (``RUN/config.json``, train's, given to ``evaluate``):
+    one sentence, instead of one clause per key (about forty for a training's config)."""
+    from uncertsplat.config import STAGE_CONFIGS
+
+    foreign = [k for k in data if k not in model.model_fields]
+    if config_file is None or len(foreign) < 3 or 2 * len(foreign) < len(data):
+        return
+    owner = next((name for name, other in STAGE_CONFIGS.items()
+                  if other is not model and all(k in other.model_fields for k in data)), None)
+    if owner is None:
+        return
+    mine = next((name for name, m in STAGE_CONFIGS.items() if m is model), "this command")
+    own = {"evaluate": "RUN/eval/config.json", "prune": "PRUNED/prune_config.json", "train": "RUN/config.json"}
+    raise UserError(f"this is `uncertsplat {owner}`'s configuration ({len(foreign)} of its keys are not settings of "
+                    f"`{mine}`), not `{mine}`'s", path=config_file,
+                    hint=f"Give {mine}'s own" + (f" ({own[mine]})" if mine in own else "")
+                         + ", or a TOML file with its keys (the command's --help lists them).")
+
+
 def _stage_config(model, config_file: Path | None, overrides: list[str] | None, explicit: dict):
     """config file < explicit command-line options < --set overrides (the same key from both, with two values, is
     refused: ``_refuse_two_values``)."""
@@ -284,6 +304,7 @@ def _stage_config(model, config_file: Path | None, overrides: list[str] | None, 
 
     _refuse_two_values(explicit, overrides)
     data = _config_file(config_file) if config_file else {}
+    _refuse_other_commands_file(model, data, config_file)
     given = {k: v for k, v in explicit.items() if v is not None}
     data = deep_update(data, given)
     set_keys: set[str] = set()

@@ -556,3 +556,20 @@ def test_an_impossible_allocation_is_a_bug_not_memory_that_ran_out():
     assert out_of_memory(RuntimeError("CUDA error: out of memory"), "train") is not None
     told = out_of_memory(RuntimeError(CPU_OOM), "prune").render()
     assert "--set num_samples=4" in told and "--num-samples" not in told
+
+
+def test_another_commands_config_file_is_named_in_one_sentence(tmp_path):
+    """`evaluate RUN --config RUN/config.json` (train's) printed one clause for each of its ~40 keys: the file is named
+    as that command's, with the file to give."""
+    from uncertsplat.config import TrainConfig
+
+    cfg = tmp_path / "config.json"
+    cfg.write_text(TrainConfig().model_dump_json())
+    result = runner.invoke(app, ["evaluate", str(tmp_path), "--config", str(cfg)])
+    said = " ".join(result.output.split())
+    assert result.exit_code == 2 and "this is `uncertsplat train`'s configuration" in said, said
+    assert "RUN/eval/config.json" in said and said.count("not a setting of this command") == 0
+    # a file of this command's keys with one stray key is still checked key by key
+    cfg.write_text('{"num_samples": 4, "iterations": 100}')
+    result = runner.invoke(app, ["evaluate", str(tmp_path), "--config", str(cfg)])
+    assert "`iterations` is one of `uncertsplat train`'s" in " ".join(result.output.split())
