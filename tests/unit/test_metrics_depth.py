@@ -151,6 +151,11 @@ def test_the_implausible_factor_note_takes_one_map_a_view():
     listed = implausible_depth_scale_notes(list(depth), list(gt), list(mask), 1.0, 1.0)
     assert stacked == listed and len(listed) == 1 and "3.1x" in listed[0]
     assert implausible_depth_scale_notes(list(depth), list(gt), list(mask), 3.0, 3.0) == []
+    # a factor given against the scene's own GT (in the run's units already): the note says it needs none (it
+    # advised --depth-scale auto, which does nothing without --depth-gt; a review gave the run-to-scene factor)
+    (own,) = implausible_depth_scale_notes(depth, depth, mask, 4.044, 4.044, scene_gt=True)
+    assert "the scene's own GT depth is in the run's units already: leave --depth-scale out, or give 1" in own
+    assert "auto fits" not in own
 
 
 def test_the_implausible_factor_note_names_a_power_of_ten_of_the_scenes_units():

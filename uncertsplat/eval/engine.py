@@ -653,7 +653,7 @@ less than 1/this, at the median, is noted as probably wrong (``implausible_depth
 
 def implausible_depth_scale_notes(depth: Tensor | Sequence[Tensor], gt: Tensor | Sequence[Tensor],
                                   mask: Tensor | Sequence[Tensor], scale: float, given,
-                                  to_source: float | None = None) -> list[str]:
+                                  to_source: float | None = None, scene_gt: bool = False) -> list[str]:
     """A note when the depth factor given (``given``: a number, or the scene's known units) leaves the GT depth
     ``IMPLAUSIBLE_DEPTH_RATIO`` times the scaled render (or less than its inverse) at the median: GT maps in other
     units than the factor assumes (``--depth-scale 1`` on maps in the scene's units gave abs-rel 0.76 without a
@@ -661,7 +661,9 @@ def implausible_depth_scale_notes(depth: Tensor | Sequence[Tensor], gt: Tensor |
     view (``align_depth_scale``, which scales the depth slice by slice: no scaled copy of every map). ``to_source``:
     the scene's units per run unit; when the right factor lies within 15 % of a power of ten of them (maps in
     millimetres of a metric scene: the scene's factor x 1000), the note gives it (a user tried 1000 and got another
-    warning: the factor is from the run's units, not the scene's)."""
+    warning: the factor is from the run's units, not the scene's). ``scene_gt``: the GT is the scene's own (no
+    ``--depth-gt``), already in the run's units: the factor it needs is 1, which the note says (it advised ``auto``,
+    which does nothing there)."""
     from uncertsplat.eval.depth import align_depth_scale
 
     try:
@@ -671,7 +673,9 @@ def implausible_depth_scale_notes(depth: Tensor | Sequence[Tensor], gt: Tensor |
     if 1 / IMPLAUSIBLE_DEPTH_RATIO <= ratio <= IMPLAUSIBLE_DEPTH_RATIO:
         return []
     what = f"the depth factor given ({given:g})" if isinstance(given, float) else "the scene's own depth units"
-    hint = "(--depth-scale auto fits the factor; scene takes maps in the scene's own units)"
+    hint = ("(the scene's own GT depth is in the run's units already: leave --depth-scale out, or give 1; a number is "
+            "for maps of one's own, --depth-gt)" if scene_gt else
+            "(--depth-scale auto fits the factor; scene takes maps in the scene's own units)")
     if to_source:
         # the factor from the run's depth to the maps' units this median asks for, as a power of ten of the scene's
         right = ratio * (given if isinstance(given, float) else to_source)
@@ -972,7 +976,8 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             scale = type(scale)(scale.scale, method, scale.num_pixels)
             # (the power of ten of the scene's units is a hint for maps of one's own: the scene's own GT needs 1)
             notes += implausible_depth_scale_notes(dm, gts, base_mask, scale.scale, cfg.depth_scale,
-                                                   depth_to_source if cfg.depth_gt is not None else None)
+                                                   depth_to_source if cfg.depth_gt is not None else None,
+                                                   scene_gt=views.depth_known_scale and cfg.depth_gt is None)
         else:
             try:
                 scale = align_depth_scale(dm, gts, mask=base_mask, method=cfg.depth_align)

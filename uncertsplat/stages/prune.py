@@ -14,7 +14,8 @@ place at the end, so an interrupted prune leaves no half-written run, and an exi
   input run's path and the SHA-256 of its model file (both in ``prune.json``) this makes the pruning
   reversible and reproducible: ``rebuild_from_mask(RUN, OUT/prune_mask.npy)`` rebuilds the pruned model,
   and undoing the prune is using (or re-pruning) ``RUN`` itself, which is unchanged.
-- ``scores.npz``: every score of every Gaussian of the input run, and the ``carriers`` flag.
+- ``scores.npz``: the ``position``, ``scale`` and ``gate`` scores of every Gaussian of the input run, the score used
+  when it is ``free-space`` or ``predictive``, and the ``carriers`` flag.
 - ``renders/{view}_{before,after,random}.png``: deterministic renders (``expected_render_sample``) of a few
   held-out views before pruning, after pruning, and after removing as many random Gaussians.
 - ``prune.json``: counts before/after, score, threshold, keep ratio, held-out metrics (PSNR, SSIM, AUSE,
