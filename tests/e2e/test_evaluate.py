@@ -468,7 +468,8 @@ def test_a_depth_gt_folder_in_the_scene_s_units_and_a_factor_that_cannot_be_righ
     off = evaluate.run(run, EvalConfig(num_samples=2, max_views=2, save_maps=False, depth_scale=40.0),
                        device=torch.device("cpu"))
     (note,) = [n for n in off.notes if "probably in other units" in n]
-    assert "--depth-scale auto fits the factor" in note and "the run's depth to the maps' units" not in note
+    assert "the scene's own GT depth is in the run's units already: leave --depth-scale out, or give 1" in note
+    assert "--depth-scale auto fits" not in note and "the run's depth to the maps' units" not in note
     assert "the depth metrics are in the run's normalised units: x 4." in " ".join(capsys.readouterr().err.split())
 
 
