@@ -56,6 +56,7 @@ from uncertsplat.report.loader import (
     SUMMARY,
     RunData,
     one_line,
+    other_splits,
     unfinished_members,
     without_model,
 )
@@ -178,7 +179,7 @@ def _missing_metrics_note(run: RunData, full: bool = True) -> str:
         return note(f"{run.name}: no eval/metrics.json, and {members[1] - members[0]} of the ensemble's {members[1]} "
                     "members are not trained yet: finish training (the note above), then `uncertsplat evaluate "
                     f"{q(run.path)}`; metric sections are left out for this run.")
-    other = sorted(p.parent.name for p in run.path.glob("eval-*/metrics.json"))  # (`evaluate --split train`'s)
+    other = other_splits(run)
     also = (f" ({', '.join(f'{n}/metrics.json' for n in other)} is another split's evaluation, which the report does "
             "not show: it reads the held-out views)" if other else "")
     return _file_note(run, METRICS, f"no eval/metrics.json{also} — run `uncertsplat evaluate {q(run.path)}` to "

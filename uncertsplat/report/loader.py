@@ -292,6 +292,12 @@ def _training_notes(run: RunData) -> list[str]:
     return notes
 
 
+def other_splits(run: RunData) -> list[str]:
+    """The folders of ``run``'s evaluations of other splits than the held-out views (``evaluate --split train``'s
+    ``eval-train/``), which the report does not show."""
+    return sorted(p.parent.name for p in run.path.glob("eval-*/metrics.json"))
+
+
 def without_model(run: RunData) -> bool:
     """Whether a training run holds no model at all: no ``variational.ply``, no checkpoint and no ensemble members (a
     training stopped before its first checkpoint), so there is nothing to evaluate (a prune folder: ``prune.json``)."""

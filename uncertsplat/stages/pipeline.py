@@ -39,7 +39,7 @@ from uncertsplat.errors import (
     out_of_memory,
 )
 from uncertsplat.io.atomic import lock_holder, run_lock
-from uncertsplat.io.folders import PIPELINE_STARTED
+from uncertsplat.io.folders import PIPELINE_STARTED, is_run
 from uncertsplat.stages.manifest import (
     MANIFEST,
     Manifest,
@@ -359,8 +359,7 @@ def _refuse_other_outputs(root: Path) -> None:
     if not root.is_dir() or (root / STARTED).is_file():  # (an earlier `uncertsplat run`'s own output, in any state)
         return
     what = None
-    if (root / "config.json").is_file() and any((root / n).exists() for n in ("stats.jsonl", "train_summary.json",
-                                                                               "ckpts", "prune.json")):
+    if is_run(root):
         what = "a training run" if not (root / "prune.json").is_file() else "a pruned run"
     elif ((root / "sparse").is_dir() and not (root / "sparse" / MANIFEST).is_file()) or any(
             (root / n).is_file() for n in ("transforms.json", "transforms_train.json", "reconstruct_report.json")):

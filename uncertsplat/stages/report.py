@@ -115,7 +115,7 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
             output folder when it cannot be used.
     """
     from uncertsplat.report.build import build_report, holds_no_model
-    from uncertsplat.report.loader import METRICS, load_run, unfinished_members, without_model
+    from uncertsplat.report.loader import METRICS, load_run, other_splits, unfinished_members, without_model
 
     cfg = cfg or ReportConfig()
     paths = [Path(runs)] if isinstance(runs, (str, Path)) else [Path(r) for r in runs]
@@ -173,7 +173,7 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
         elif (r.metrics is None and r.problem(METRICS) is None and not holds_no_model(r)
                 and unfinished_members(r) is None):
             # (said on the page; a report of a run never evaluated looked finished from the console)
-            other = sorted(p.parent.name for p in r.path.glob("eval-*/metrics.json"))  # (`evaluate --split train`'s)
+            other = other_splits(r)
             console.print(f"[yellow]note[/] {r.name}: "
                           + (f"its only evaluation is another split's ({', '.join(other)}), which the report does not "
                              "show" if other else "not evaluated (no eval/metrics.json)")

@@ -138,17 +138,13 @@ def _outputs_inside(folder: Path) -> list[Path]:
     sweep's output, a stage folder with its manifest): not the scene's files, and changed by every command run there
     (a review's run trained into the scene refused every point of the sweep on it)."""
     from uncertsplat.io.folders import PIPELINE_STARTED, is_run
-    from uncertsplat.stages.manifest import MANIFEST
+    from uncertsplat.stages.manifest import MANIFEST, read_manifest
 
     def ours(marker: str, place: Path) -> bool:
         if marker == "config.json":
             return is_run(place)
         if marker == MANIFEST:  # (a capture app's or a download's manifest.json is no stage's)
-            try:
-                data = json.loads((place / MANIFEST).read_text(encoding="utf-8"))
-            except (OSError, ValueError):
-                return False
-            return isinstance(data, dict) and {"stage", "config_hash"} <= data.keys()
+            return read_manifest(place) is not None
         if marker == SCENE_INPUTS:  # (a sweep's output: its runs/ or records beside it)
             return (place / "runs").is_dir() or (place / "sweep.jsonl").is_file()
         return True  # (.stages_started.json: uncertsplat run's own name)
