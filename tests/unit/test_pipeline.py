@@ -1054,3 +1054,40 @@ def test_a_stage_out_of_memory_is_told_the_keys_that_lower_its_use(tmp_path, mon
     text = " ".join(str(info.value).split())
     assert text.startswith("stage 'train' (train) failed: train ran out of the machine's memory")
     assert "--set train.scene.downscale=2" in text and "internal error" not in text
+
+
+def test_a_report_without_an_evaluate_stage_is_made_again_after_an_evaluation_by_hand(tmp_path, calls):
+    # the report shows RUN/eval whoever wrote it: an `uncertsplat evaluate RUN` by hand, made, changed or deleted
+    # after the pipeline ran, makes its report again; an evaluate stage's own output keys the report as before
+    p = tmp_path / "p.toml"
+    p.write_text(PIPE.replace('[[stages]]\nstage = "evaluate"\n', ""))
+    out = tmp_path / "out"
+    pl.run(p, out)
+    calls.clear()
+    pl.run(p, out)
+    assert calls == []
+    metrics = out / "train" / "eval" / "metrics.json"
+    metrics.parent.mkdir()
+    metrics.write_text('{"psnr": 20.0}')
+    pl.run(p, out)
+    assert [k for k, _ in calls] == ["report"]
+    calls.clear()
+    pl.run(p, out)
+    assert calls == []
+    metrics.write_text('{"psnr": 21.0}')  # evaluated again, other numbers
+    (out / "train" / "eval-train").mkdir()
+    (out / "train" / "eval-train" / "metrics.json").write_text('{"psnr": 25.0}')
+    pl.run(p, out)
+    assert [k for k, _ in calls] == ["report"]
+    calls.clear()
+    shutil.rmtree(metrics.parent)
+    pl.run(p, out)
+    assert [k for k, _ in calls] == ["report"]
+    # with an evaluate stage, its evaluation is the stage's: written again by it, the report is not run twice
+    calls.clear()
+    p.write_text(PIPE)
+    pl.run(p, out)
+    assert [k for k, _ in calls] == ["evaluate", "report"]
+    calls.clear()
+    pl.run(p, out)
+    assert calls == []

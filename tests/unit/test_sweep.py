@@ -1026,6 +1026,27 @@ def test_runs_trained_inside_a_scene_folder_do_not_change_it(tmp_path):
     (scene / "pipe" / ".stages_started.json").write_text("{}")
     (scene / "pipe" / "train" / "weights.bin").write_bytes(b"x")
     _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)  # no word
+    # nor an `evaluate RUN -o SCENE/ev` or a `select-views -o SCENE/next` (left as a known limit, 2026-12-01)
+    from uncertsplat.schemas.metrics import EvalReport
+    from uncertsplat.schemas.select import Selection
+
+    (scene / "ev" / "maps").mkdir(parents=True)
+    EvalReport().write(scene / "ev" / "metrics.json")
+    (scene / "ev" / "config.json").write_text("{}")
+    (scene / "ev" / "maps" / "a_std.exr").write_bytes(b"map")
+    Selection(run="r", score="s", candidates="c", num_candidates=0, chosen=[], seconds=0.0,
+              seconds_per_candidate=0.0).write(scene / "next" / "selection.json")
+    (scene / "next" / "selection.png").write_bytes(b"png")
+    _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)  # no word
+    # another tool's metrics.json is a file of the scene's
+    (scene / "theirs").mkdir()
+    (scene / "theirs" / "config.json").write_text("{}")
+    (scene / "theirs" / "metrics.json").write_text('{"accuracy": 0.9}')
+    _check_scene_inputs(tmp_path / "out", {None: scene}, force=True, measured=True)
+    (scene / "theirs" / "metrics.json").write_text('{"accuracy": 0.8}')
+    with pytest.raises(UserError, match="files changed"):
+        _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)
+    _check_scene_inputs(tmp_path / "out", {None: scene}, force=True, measured=True)
     # recorded by the version before, which counted the run's files: taken as the same scene, recorded anew
     from uncertsplat.stages.manifest import fingerprint_folder
     from uncertsplat.stages.sweep import SCENE_INPUTS

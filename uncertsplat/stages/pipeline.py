@@ -43,6 +43,7 @@ from uncertsplat.io.folders import PIPELINE_STARTED, is_run
 from uncertsplat.stages.manifest import (
     MANIFEST,
     Manifest,
+    file_sha256,
     fingerprints,
     hash_config,
     missing_outputs,
@@ -507,6 +508,9 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 for n, k in kinds.items():
                     if k in ("train", "prune", "evaluate"):
                         inputs[n] = _made(manifests[n])
+                # an evaluation no stage of this pipeline made (an `evaluate RUN` by hand) is read by the report as
+                # the stages' are: made, changed or deleted since, the report is made again
+                inputs.update(_evaluations_by_hand(outputs, kinds))
                 for n, why in skipped.items():  # the report says it: a stage skipped, or no longer, makes it again
                     inputs[n] = "skipped: " + hash_config({"why": why})
                 out_dir = root / name
@@ -648,6 +652,20 @@ def _made(manifest: Manifest) -> str:
     (a file of its output deleted, ``--force``) makes the stages after it run again: on CUDA, where training is not
     bitwise repeatable, its model is another, which they were skipped for (the same bits on the CPU)."""
     return f"{manifest.key}@{manifest.finished_at!r}"
+
+
+def _evaluations_by_hand(outputs: dict[str, Path], kinds: dict[str, str]) -> dict[str, str]:
+    """{"RUN_STAGE/EVAL_FOLDER": the SHA-256 of its metrics.json} for each evaluation a report of the pipeline's runs
+    reads (``RUN/eval``, ``RUN/eval-train``, ...) that none of the pipeline's evaluate stages wrote."""
+    staged = {p.resolve() for n, p in outputs.items() if kinds[n] == "evaluate"}
+    found: dict[str, str] = {}
+    for n, run_dir in outputs.items():
+        if kinds[n] not in ("train", "prune"):
+            continue
+        for metrics in sorted([run_dir / "eval" / "metrics.json", *run_dir.glob("eval-*/metrics.json")]):
+            if metrics.is_file() and metrics.parent.resolve() not in staged:
+                found[f"{n}/{metrics.parent.name}"] = file_sha256(metrics)
+    return found
 
 
 def _changed_output(name: str, kind: str, out_dir: Path, manifest: Manifest) -> str | None:

@@ -135,10 +135,23 @@ def _drop_runs(runs: Path) -> None:
 
 def _outputs_inside(folder: Path) -> list[Path]:
     """uncertsplat's own outputs inside the scene folder ``folder`` (a run trained into SCENE/run, a pipeline's or a
-    sweep's output, a stage folder with its manifest): not the scene's files, and changed by every command run there
-    (a review's run trained into the scene refused every point of the sweep on it)."""
+    sweep's output, a stage folder with its manifest, an ``evaluate -o`` or a ``select-views -o`` folder): not the
+    scene's files, and changed by every command run there (a review's run trained into the scene refused every point
+    of the sweep on it). One walk of the folder, never into the folders a scene's loader reads (``_SCENE_DATA``)."""
+    import os
+
+    from uncertsplat.errors import UserError
     from uncertsplat.io.folders import PIPELINE_STARTED, is_run
+    from uncertsplat.schemas.metrics import EvalReport
+    from uncertsplat.schemas.select import Selection
     from uncertsplat.stages.manifest import MANIFEST, read_manifest
+
+    def reads_as(schema, path: Path) -> bool:
+        try:
+            schema.read(path)
+        except UserError:
+            return False
+        return True
 
     def ours(marker: str, place: Path) -> bool:
         if marker == "config.json":
@@ -147,14 +160,22 @@ def _outputs_inside(folder: Path) -> list[Path]:
             return read_manifest(place) is not None
         if marker == SCENE_INPUTS:  # (a sweep's output: its runs/ or records beside it)
             return (place / "runs").is_dir() or (place / "sweep.jsonl").is_file()
+        if marker == "metrics.json":  # (evaluate -o: another tool's metrics.json is the scene's)
+            return (place / "config.json").is_file() and reads_as(EvalReport, place / marker)
+        if marker == "selection.json":
+            return reads_as(Selection, place / marker)
         return True  # (.stages_started.json: uncertsplat run's own name)
 
+    markers = ("config.json", MANIFEST, PIPELINE_STARTED, SCENE_INPUTS, "metrics.json", "selection.json")
     found = set()
-    for marker in ("config.json", MANIFEST, PIPELINE_STARTED, SCENE_INPUTS):
-        for p in folder.rglob(marker):
-            # (never the folders a scene's loader reads, whatever they hold)
-            if p.parent != folder and p.relative_to(folder).parts[0] not in _SCENE_DATA and ours(marker, p.parent):
-                found.add(p.parent)
+    for top, dirs, files in os.walk(folder):
+        place = Path(top)
+        if place == folder:
+            dirs[:] = [d for d in dirs if d not in _SCENE_DATA]  # (never left out, whatever they hold)
+            continue
+        if any(m in files and ours(m, place) for m in markers):
+            found.add(place)
+            dirs[:] = []  # (all of it left out: nothing inside needs a look)
     return sorted(found)
 
 
@@ -199,7 +220,8 @@ def _check_scene_inputs(out_dir: Path, folders: dict[str | None, Path], force: b
 
             what = (f"moved from {where(old)} to {where(entry)}" if old.get("path") != entry["path"]
                     else f"{folder}'s files changed (every file under it counts but hidden ones, notes at its top "
-                         "and uncertsplat's own outputs inside it: runs, a pipeline's or a sweep's folders)")
+                         "and uncertsplat's own outputs inside it: runs, evaluations, selections, a pipeline's or a "
+                         "sweep's folders)")
             changed.append((name, what))
         now[key] = entry
     if changed and measured and not force:
