@@ -486,9 +486,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                                   f"{root / '.previous'})")
                 synth = [n for n, k in kinds.items() if k == "synth"]
                 # follow the chain back (evaluate <- prune <- train) to the scene the model was trained on
-                node = upstream
-                while node is not None and kinds.get(node) == "prune":
-                    node = upstreams.get(node)
+                node = _back_through(upstream, ("prune",), kinds, upstreams)
                 trained_on = kinds.get(str(upstreams.get(node)))
                 if synth and stage_cfg.depth_gt is None and trained_on == "reconstruct":
                     # SfM on a synthetic scene: the GT depth lives with the generator's output; the evaluate
@@ -582,9 +580,7 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
             t0 = time.perf_counter()
             # the stage's advice in the pipeline's words: its own keys, and an evaluation's or prune's advice about the
             # training that made its run as that train stage's keys (printed notes and the errors below alike)
-            node = upstream
-            while node is not None and kinds.get(node) in ("prune", "evaluate"):
-                node = upstreams.get(node)
+            node = _back_through(upstream, ("prune", "evaluate"), kinds, upstreams)
             advice = partial(pipeline_advice, name, type(stage_cfg).model_fields, others=(
                 {"train": (node, STAGE_CONFIGS["train"].model_fields)}
                 if node is not None and kinds.get(node) == "train" and stage.stage != "train" else None))
@@ -652,6 +648,15 @@ def _made(manifest: Manifest) -> str:
     (a file of its output deleted, ``--force``) makes the stages after it run again: on CUDA, where training is not
     bitwise repeatable, its model is another, which they were skipped for (the same bits on the CPU)."""
     return f"{manifest.key}@{manifest.finished_at!r}"
+
+
+def _back_through(node: str | None, through: tuple[str, ...], kinds: dict[str, str],
+                  upstreams: dict[str, str | None]) -> str | None:
+    """The first stage up the chain from ``node`` (itself included) whose kind is not in ``through``: the train stage
+    behind an evaluation of a pruned run, or a stage given as a folder (None where the chain ends)."""
+    while node is not None and kinds.get(node) in through:
+        node = upstreams.get(node)
+    return node
 
 
 def _evaluations_by_hand(outputs: dict[str, Path], kinds: dict[str, str]) -> dict[str, str]:
