@@ -98,10 +98,12 @@ def empty_tables(num_entries: int, *, device=None, dtype=torch.float32) -> dict[
 
 
 def prior_rows(n: int, num_entries: int, prior: Prior, *, device=None, dtype=torch.float32) -> dict[str, Tensor]:
-    """``n`` new table rows [n,K,D] at the prior, so every KL term is 0 for them.
+    """``n`` new table rows [n,K,D] at the prior: every KL term is 0 for them, but the scale term of the paper
+    variant with K != 10 entries.
 
     The multiplier width starts at w_p (ours; the KL is then 0 for any K) or at 1/K (paper, as the
-    original code; equal to w_p for the default K = 10).
+    original code; equal to w_p only for the default K = 10: with other K its scale term does not start at 0);
+    the interval's left edge is 1 - w_p for both.
     """
     k = num_entries
     width = prior.scale_width if prior.variant == "ours" else 1.0 / k
