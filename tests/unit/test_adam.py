@@ -255,6 +255,41 @@ class TestRows:
         assert not torch.allclose(b[0][2:], a[0][2:])
         torch.testing.assert_close(b[0][:2], a[0][:2], rtol=1e-5, atol=1e-6)
 
+    @pytest.mark.parametrize("backend", BACKENDS)
+    @pytest.mark.parametrize("source", ["ours", "torch"])
+    def test_lazy_after_a_dense_state_owes_no_decay(self, backend, source, monkeypatch):
+        """A dense state (ours, or torch's Adam: a run resumed with ``sparse_updates="lazy"``) loaded into lazy
+        Adam: every row was updated at the state's last step, so the next sparse step decays nothing extra; the
+        touched rows' moments and values are those of one more dense step, and ``last_step`` starts at the loaded
+        step count."""
+        from uncertsplat.train.optim import load_optimizer_state
+
+        monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", backend)
+        a, b = _params(shapes=((6, 4), (6,))), _params(shapes=((6, 4), (6,)))
+        dense = (Adam if source == "ours" else torch.optim.Adam)(_groups(a), eps=1e-15)
+        for step in range(3):
+            _grads(a, step)
+            dense.step()
+        for pa, pb in zip(a, b, strict=True):
+            pb.data.copy_(pa.detach())
+        lazy = Adam(_groups(b), eps=1e-15, lazy=True)
+        load_optimizer_state(lazy, copy.deepcopy(dense.state_dict()))  # as read from a checkpoint
+        rows = torch.tensor([1, 4])
+        _grads(a, 3, rows)
+        _grads(b, 3, rows)
+        dense.step()
+        lazy.step(rows={"t0": rows, "t1": rows})
+        others = torch.tensor([0, 2, 3, 5])
+        for pa, pb in zip(a, b, strict=True):
+            for key in ("exp_avg", "exp_avg_sq"):
+                torch.testing.assert_close(lazy.state[pb][key][rows], dense.state[pa][key][rows], rtol=1e-5,
+                                           atol=1e-12)
+            torch.testing.assert_close(pb.detach()[rows], pa.detach()[rows], rtol=1e-5, atol=1e-6)
+            assert int(lazy.state[pb]["step"]) == 4
+            assert lazy.state[pb]["last_step"].tolist() == [3, 4, 3, 3, 4, 3]
+            # the skipped rows keep the loaded moments (dense Adam decayed them): they owe one step from here
+            assert not torch.allclose(lazy.state[pb]["exp_avg"][others], dense.state[pa]["exp_avg"][others])
+
     def test_empty_row_list_and_no_gradient_change_nothing(self):
         params = _params(shapes=((5, 2),))
         opt = Adam(_groups(params))

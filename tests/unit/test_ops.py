@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from uncertsplat.gaussians import ops
+from uncertsplat.gaussians.prior import prior_rows
 from uncertsplat.gaussians.variational import Prior, random_model
 from uncertsplat.train.optim import make_optimizer
 
@@ -91,6 +92,9 @@ def test_split_children_carry_posteriors():
     mask[5:15] = True
     parent_tags = tag(model)[5:15].clone()
     parent_logscale = model.params["scales"].detach()[5:15].clone()
+    parent_row = model.posterior_row[5:15].clone()
+    assert (parent_row >= 0).any() and (parent_row < 0).any()  # both cases below are exercised
+    parent_tables = {k: v.detach()[parent_row.clamp_min(0)].clone() for k, v in model.tables.items()}
     scales = model.params["scales"].detach().exp()
     ops.split(model, opt, mask, g, scales=scales, prior=Prior(), factor=1.6)
     assert len(model) == 40 - 10 + 20
@@ -99,6 +103,14 @@ def test_split_children_carry_posteriors():
     # children sit near their parent (within a few sigma) and are 1.6x smaller
     torch.testing.assert_close(model.params["scales"].detach()[-20:], parent_logscale.repeat(2, 1) - math.log(1.6))
     assert set(torch.round(tag(model)[-20:]).tolist()) <= set(parent_tags.tolist()) | set()
+    # child j is a child of parent j % 10: it copies every table row of a parent that had a posterior
+    # (all keys, not just the tagged pos_loc), and gets the prior's rows when the parent had none
+    had = parent_row.repeat(2) >= 0
+    fresh = prior_rows(20, model.num_entries, Prior(), device=model.device, dtype=model.dtype)
+    for k, v in model.tables.items():
+        rows = v.detach()[children]
+        assert torch.equal(rows[had], parent_tables[k].repeat(2, *([1] * (v.ndim - 1)))[had]), k
+        assert torch.equal(rows[~had], fresh[k][~had]), k
     model.check()
     assert (opt.state[model.params["means"]]["exp_avg"][-20:] == 0).all()
 

@@ -247,6 +247,28 @@ def test_auto_on_a_model_too_small_to_remove_any_gaussian_says_so():
     assert "--tolerance-db" not in note
 
 
+def test_largest_removal_stops_at_the_first_ratio_that_fails():
+    """``--auto`` walks the keep ratios downward and stops at the first that loses more than the tolerance: a
+    larger removal that passes again (0.7 here) is noise, not a plateau, and must not be chosen."""
+    from uncertsplat.prune.policy import largest_removal_within
+    from uncertsplat.schemas.prune import PruneMetrics, SweepPoint
+
+    def point(keep, psnr):
+        m = PruneMetrics(num_gaussians=100, num_carriers=100, psnr_render=psnr, coverage=0.9,
+                         variational_ply_bytes=900, point_cloud_ply_bytes=300, seconds=0.1)
+        n = round(100 * (1 - keep))
+        return SweepPoint(keep_ratio=keep, num_removed=n, keep_ratio_achieved=keep, score=m, random=m)
+
+    points = [point(1.0, 30.0), point(0.9, 29.8), point(0.8, 29.0), point(0.7, 29.9)]
+    choice = largest_removal_within(points, 30.0, 0.5)
+    assert choice.keep_ratio == 0.9 and choice.num_removed == 10
+    assert choice.psnr_loss_db == pytest.approx(0.2) and choice.tolerance_db == 0.5
+    # without the failing 0.8 the walk goes on to 0.7; a first ratio that fails gives no removal at all
+    assert largest_removal_within([points[0], points[1], points[3]], 30.0, 0.5).keep_ratio == 0.7
+    assert largest_removal_within([points[0], points[2], points[3]], 30.0, 0.5) is None
+    assert largest_removal_within(points, None, 0.5) is None
+
+
 def test_a_score_that_loses_to_random_removal_is_noted():
     from types import SimpleNamespace
 

@@ -83,6 +83,44 @@ def test_scale_kl_paper_is_l1_of_endpoints():
     torch.testing.assert_close(out, torch.tensor([0.0, 0.2, 0.4]), atol=1e-5, rtol=0)
 
 
+def test_total_loss_is_the_photometric_mix_plus_the_weighted_kl():
+    """The training loss (train/losses.py): (1 - lambda) L1 + lambda (1 - SSIM) + kl_weight x KL total, the KL
+    added (minimising the loss pulls the posterior toward the prior), its terms logged as ``kl_*``."""
+    from uncertsplat.eval.image import ssim
+    from uncertsplat.train.losses import total_loss
+
+    g = gen(21)
+    target = torch.rand(2, 16, 16, 3, generator=g)
+    pred = (target + 0.1 * torch.randn(2, 16, 16, 3, generator=g)).clamp(0, 1)
+    l1 = float((pred - target).abs().mean())
+    s = float(ssim(pred, target))
+    assert 0.05 < l1 and s < 0.99  # a mix of two distinct terms
+    kl = {"position": torch.tensor(0.5, requires_grad=True), "scale": torch.tensor(0.25), "gate": torch.tensor(0.125)}
+    kl["total"] = kl["position"] + kl["scale"] + kl["gate"]
+    out = total_loss(pred, target, kl, ssim_lambda=0.2, kl_weight=0.01)
+    assert out["l1"].item() == pytest.approx(l1, rel=1e-5)
+    assert out["ssim"].item() == pytest.approx(s, rel=1e-5)
+    photo = 0.8 * l1 + 0.2 * (1.0 - s)
+    assert out["photo"].item() == pytest.approx(photo, rel=1e-5)
+    assert out["loss"].item() == pytest.approx(photo + 0.01 * 0.875, rel=1e-5)
+    assert {k: out[f"kl_{k}"].item() for k in kl} == {"position": 0.5, "scale": 0.25, "gate": 0.125, "total": 0.875}
+    out["loss"].backward()
+    assert kl["position"].grad.item() == pytest.approx(0.01)  # +kl_weight: the KL enters with a plus sign
+    # without a posterior the loss is the photometric term alone
+    bare = total_loss(pred, target, None, ssim_lambda=0.2, kl_weight=0.01)
+    assert bare["loss"].item() == pytest.approx(photo, rel=1e-5) and "kl_total" not in bare
+
+    # on a real model: a gradient step on the loss (the photometric term fixed) lowers the KL
+    prior = Prior()
+    m = random_model(20, gen(22), prior=prior, carrier_fraction=1.0, perturb_tables=0.3)
+    before = kl_terms(m, prior)
+    total_loss(pred, target, before, ssim_lambda=0.2, kl_weight=1.0)["loss"].backward()
+    with torch.no_grad():
+        for t in m.tables.values():
+            t -= 1e-3 * t.grad
+    assert kl_terms(m, prior)["total"].item() < before["total"].item()
+
+
 def _subset_mixture(model, m_size, extent):
     """Exact mean and std of a sampled position / multiplier, enumerating every subset."""
     t = {k: v.detach().double() for k, v in model.tables.items()}
@@ -204,6 +242,24 @@ def test_prior_rows_shapes_and_values():
     assert torch.allclose(F.softplus(rows["pos_spread_raw"]), torch.tensor(0.00248))
     assert torch.allclose(F.softplus(rows["gate_spread_raw"]), torch.tensor(1.996))
     assert torch.allclose(rows["scale_left"], torch.tensor(0.9))
+
+
+@pytest.mark.parametrize("k", [1, 4, 10, 32])
+def test_prior_rows_paper_interval_for_any_k(k):
+    """The paper variant (METHOD.md: "table init width = 1/K, left = 0.9") starts every multiplier interval at
+    [1 - w_p, 1 - w_p + 1/K]: the left edge is the prior's, whatever K; only the width follows K (ours: w_p).
+    At K = 10 the two agree, so only another K tells a left edge of 1 - w_p from one of 1 - 1/K."""
+    wp = 0.1
+    paper = prior_rows(3, k, Prior(variant="paper", scale_width=wp))
+    assert torch.allclose(paper["scale_left"], torch.tensor(1.0 - wp))
+    torch.testing.assert_close(F.softplus(paper["scale_width_raw"]), torch.full((3, k, 3), 1.0 / k))
+    ours = prior_rows(3, k, Prior(variant="ours", scale_width=wp))
+    assert torch.allclose(ours["scale_left"], torch.tensor(1.0 - wp))
+    torch.testing.assert_close(F.softplus(ours["scale_width_raw"]), torch.full((3, k, 3), wp))
+    # so the paper's scale term at initialisation is |(1 - w_p + 1/K) - 1| = |1/K - w_p|: 0 only for K = 10
+    kl = scale_kl(paper["scale_left"], paper["scale_width_raw"], wp, "paper")
+    torch.testing.assert_close(kl, torch.full((3, k, 3), abs(1.0 / k - wp)), atol=1e-6, rtol=0)
+    assert float(scale_kl(ours["scale_left"], ours["scale_width_raw"], wp, "ours").abs().max()) < 1e-5
 
 
 def test_gradients_reach_tables_and_params():
