@@ -88,9 +88,13 @@ def test_save_maps_false_writes_no_maps_and_clears_earlier_ones(tiny_run_path, t
 
 
 def test_writes_maps_and_metrics(evaluated):
+    from uncertsplat.eval.depth import valid_depth_mask
+    from uncertsplat.eval.sparsification import sparsification_all
+
     run, report = evaluated
     data = EvalReport.from_json((run / "eval" / "metrics.json").read_text(encoding="utf-8"))
     assert data.image_names == report.image_names and len(data.image_names) == 3  # every 8th of 24 views
+    scene_data = load_run(run, "cpu").load_scene()
     for name in data.image_names:
         stem = map_stem(name)
         ch = read_exr(run / "eval" / "maps" / f"{stem}.exr")
@@ -114,6 +118,31 @@ def test_writes_maps_and_metrics(evaluated):
         assert np.median(ch["depth_mean.Z"][hit] * scale / gt_depth[hit]) == pytest.approx(1.0, abs=0.15)
         for suffix in ("gt", "mean", "error", "std", "error_rank", "std_rank", "depth", "depth_std"):
             assert (run / "eval" / "maps" / f"{stem}_{suffix}.png").is_file()
+        # the view's AUSEs are those of the stored maps against its GT (float32 maps: the same numbers; a synthetic
+        # scene's views are upright, nothing turned)
+        view = load_view_set(scene_data, [scene_data.cameras.image_names.index(name)])
+        mask = view.masks[0] if view.masks is not None else None
+        mean = torch.from_numpy(np.stack([ch[f"rgb_mean.{c}"] for c in "RGB"], -1))
+        std = torch.from_numpy(np.stack([ch[f"rgb_std.{c}"] for c in "RGB"], -1))
+        err = mean.clamp(0, 1) - view.images[0]
+        sp = sparsification_all(err, std, mask=mask, steps=data.ause_steps)
+        v = data.per_view[name]
+        assert v.ause_mae == pytest.approx(sp["mae"].ause, rel=1e-4, abs=1e-7)
+        assert v.ause_mse == pytest.approx(sp["mse"].ause, rel=1e-4, abs=1e-7)
+        assert v.ause_rmse == pytest.approx(sp["rmse"].ause, rel=1e-4, abs=1e-7)
+        # the std ranks the errors better than a random score (AURG > 0), its reverse worse (the AUSEs of the two do
+        # not tell them apart here: each is normalised by its own curves' maximum, which the reverse's rise lifts)
+        reverse = sparsification_all(err, -std, mask=mask, steps=data.ause_steps)["mae"]
+        assert sp["mae"].aurg > 0 > reverse.aurg
+        assert data.curves[name].rgb["mae"].aurg == pytest.approx(sp["mae"].aurg, rel=1e-4, abs=1e-7)
+        # depth: the scene's GT in the run's units (scale 1), scored where the model covers the pixel (alpha > 0.5)
+        d_mean, d_std, alpha = (torch.from_numpy(ch[k])[..., None] for k in ("depth_mean.Z", "depth_std.Z",
+                                                                               EXR_ALPHA_CHANNEL))
+        covered = alpha > 0.5 if mask is None else (alpha > 0.5) & mask
+        valid = valid_depth_mask(d_mean, view.depths[0], covered)
+        dsp = sparsification_all(d_mean - view.depths[0], d_std, mask=valid, steps=data.ause_steps)
+        assert v.depth_ause_mae == pytest.approx(dsp["mae"].ause, rel=1e-4, abs=1e-7)
+        assert v.depth_ause_rmse == pytest.approx(dsp["rmse"].ause, rel=1e-4, abs=1e-7)
     m = data.mean
     assert 10 < m.psnr < 60 and 0 < m.ssim <= 1
     assert m.ause_mae is not None and m.nll is not None and m.nll_kde is not None
@@ -135,7 +164,10 @@ def test_posterior_gives_nonzero_std(evaluated):
     assert ch["rgb_std.R"].max() > 0, "a run with posterior carriers must have some spread"
 
 
-def test_same_seed_same_metrics(evaluated, tiny_run_path):
+def test_same_seed_same_metrics(evaluated, tiny_run_path, monkeypatch):
+    from uncertsplat.eval.nll import kde_nll
+    from uncertsplat.uncertainty import mc
+
     run, report = evaluated
     cpu = torch.device("cpu")
     loaded = load_run(run, cpu)
@@ -145,9 +177,20 @@ def test_same_seed_same_metrics(evaluated, tiny_run_path):
                          load_views=partial(load_view_set, scene, depth=False))
     sampler = with_side_terms(loaded.sampler(scene.scene_scale, cpu), field, scene.cameras[scene.split["train"]], cfg,
                               cpu)
-    again = evaluate_views(sampler, load_view_set(scene, scene.split["test"]), cfg, cpu, show_progress=False)
+    kept = []  # the samples each view's renders keep (the KDE NLL's; evaluate writes none of them)
+    real = mc.mc_render
+    monkeypatch.setattr(mc, "mc_render", lambda *a, **k: kept.append(out := real(*a, **k)) or out)
+    views = load_view_set(scene, scene.split["test"])
+    again = evaluate_views(sampler, views, cfg, cpu, show_progress=False)
     assert again.mean.ause_mae == pytest.approx(report.mean.ause_mae, rel=1e-6)
     assert again.mean.psnr == pytest.approx(report.mean.psnr, rel=1e-6)
+    # the KDE NLL is that of the view's GT image (not of the samples' own mean) under its K samples
+    assert len(kept) == len(views.indices) == len(report.image_names)
+    for j, (name, (_, samples)) in enumerate(zip(report.image_names, kept, strict=True)):
+        assert samples is not None and samples.rgb.shape[0] == cfg.num_samples
+        mask = views.masks[j] if views.masks is not None else None
+        expected = float(kde_nll(samples.rgb[:, 0].cpu(), views.images[j], mask=mask))
+        assert report.per_view[name].nll_kde == pytest.approx(expected, rel=1e-5, abs=1e-6)
 
 
 def test_std_scale_is_fitted_on_training_views_and_applied_to_the_std(evaluated):
@@ -180,11 +223,17 @@ def test_std_scale_is_fitted_on_training_views_and_applied_to_the_std(evaluated)
     assert calibration(err, std).calibration_error == pytest.approx(v.calibration_error_gaussian, abs=1e-3)
     assert report.calibration["rgb"].half_widths == list(calibration(err, std, dof=dof).half_widths)
     assert report.mean.calibration_error_calibrated is not None
+    # the calibrated calibration error is that of the std times the factor (the factor changes it: not the raw one)
+    calibrated = calibration(err, std * report.std_scale, dof=dof).calibration_error
+    assert v.calibration_error_calibrated == pytest.approx(calibrated, abs=1e-6)
+    assert abs(calibrated - v.calibration_error) > 2e-3
 
 
-def test_std_scale_is_fitted_on_the_views_set_aside_from_training(tiny_run_path, tmp_path):
+def test_std_scale_is_fitted_on_the_views_set_aside_from_training(tiny_run_path, tmp_path, monkeypatch):
     """A run whose scene set views aside (``scene.calibration_holdout``) gets its std factor fitted on exactly those:
     none of them a training view, the report saying so, and the factor the maximum-likelihood one of their maps."""
+    from uncertsplat.uncertainty import mc
+
     run = tmp_path / "run"
     shutil.copytree(tiny_run_path, run)
     cfg_path = run / "config.json"
@@ -213,8 +262,20 @@ def test_std_scale_is_fitted_on_the_views_set_aside_from_training(tiny_run_path,
     on_train = fit_std_scale(sampler, {"train": scene.split["train"]}, ecfg, cpu,
                              load_views=partial(load_view_set, scene, depth=False))
     assert not set(on_train.names) & set(held) and on_train.scale != pytest.approx(rep.std_scale, rel=1e-3)
+    rendered = []  # the maps of the views the factor is fitted on
+    real = mc.mc_render
+    monkeypatch.setattr(mc, "mc_render", lambda *a, **k: rendered.append(out := real(*a, **k)) or out)
     again = fit_std_scale(sampler, scene.split, ecfg, cpu, load_views=partial(load_view_set, scene, depth=False))
     assert again.names == held and again.scale == pytest.approx(rep.std_scale, rel=1e-5)
+    # the maximum-likelihood factor of a Gaussian on those maps: s^2 = mean((error / max(std, floor))^2) over every
+    # pixel and channel of the views, so the z-scores divided by s have a unit second moment
+    aside = load_view_set(scene, scene.split["calibration"], depth=False)
+    assert len(rendered) == len(held)
+    z = []
+    for j, (maps, _) in enumerate(rendered):
+        zj = (maps.rgb_mean[0].clamp(0, 1) - aside.images[j]) / maps.rgb_std[0].clamp_min(ecfg.std_floor)
+        z.append((zj[aside.masks[j][..., 0]] if aside.masks is not None else zj).reshape(-1).double())
+    assert again.scale == pytest.approx(float(torch.cat(z).square().mean()) ** 0.5, rel=1e-5)
     assert rep.degrees_of_freedom is not None and again.dof == pytest.approx(rep.degrees_of_freedom, rel=1e-5)
 
 
@@ -388,6 +449,10 @@ def test_given_depth_gt_folder_estimates_scale(tiny_run_path, tiny_scene_path, t
     assert rep.depth_scale.method == "median"
     assert rep.depth_scale.scale > 0 and np.isfinite(rep.depth_scale.scale)
     assert meta  # the scene records its generator settings
+    # the factor takes the run's depth to the folder's (the scene's own) units: 1 / s of the run's world_from_source
+    # (s is ~0.25 here; a short run's depths are a few per cent off, so the median ratio is too)
+    world_from_source = json.loads((run / "scene.json").read_text(encoding="utf-8"))["world_from_source"]
+    assert rep.depth_scale.scale == pytest.approx(1.0 / world_from_source[0][0], rel=0.15)
 
 
 def test_the_depth_nll_of_gt_maps_in_other_units_moves_by_the_log_of_the_unit_alone(tiny_run_path, tiny_scene_path,

@@ -19,6 +19,7 @@ def test_perfect_uncertainty_gives_zero(device):
         r = sparsification(err, err * 3 + 1, metric=metric)  # monotone in the error
         assert r.ause == pytest.approx(0.0, abs=1e-12)
         assert torch.allclose(r.oracle, r.uncertainty)
+        assert r.aurg > 0.05  # a perfect ranking beats a random one
 
 
 def test_hand_computed_reversed_mae(device):
@@ -32,6 +33,28 @@ def test_hand_computed_reversed_mae(device):
     assert r.scale == pytest.approx(4.0)
     # trapezoid of [0, .25, .5, .75] with spacing .25 = .25 * (0.125 + 0.375 + 0.625)
     assert r.ause == pytest.approx(0.28125)
+    # AURG: random curve flat at U(0) = 0.625, R - U = [0, -.125, -.25, -.375]:
+    # .25 * (-0.0625 - 0.1875 - 0.3125) = -0.140625 (worse than random)
+    assert r.aurg == pytest.approx(-0.140625)
+    # the perfect ranking: U = O = [2.5, 2, 1.5, 1] / 2.5 (its own maximum now), R - U = [0, .2, .4, .6]:
+    # .25 * (.1 + .3 + .5) = 0.225 (better than random)
+    perfect = sparsification(err, err, metric="mae", steps=4)
+    assert perfect.ause == pytest.approx(0.0, abs=1e-12)
+    assert perfect.aurg == pytest.approx(0.225)
+
+
+def test_kept_counts_round_down_when_steps_do_not_divide_n(device):
+    """n_j = max(1, floor((S - j) n / S)): with n = 3, S = 4 the kept counts are 3, 2, 1, 1 (9/4 -> 2, 6/4 -> 1,
+    3/4 -> 0 -> 1), not the 3, 3, 2, 1 that rounding up would give."""
+    err = _t([1.0, 2.0, 3.0], device)
+    r = sparsification(err, -err, metric="mae", steps=4)
+    # oracle (smallest kept): means of [1,2,3], [1,2], [1], [1] = 2, 1.5, 1, 1
+    # reversed (largest kept): means of [1,2,3], [2,3], [3], [3] = 2, 2.5, 3, 3; scale 3
+    assert r.oracle.tolist() == pytest.approx([2 / 3, 0.5, 1 / 3, 1 / 3])
+    assert r.uncertainty.tolist() == pytest.approx([2 / 3, 5 / 6, 1.0, 1.0])
+    assert r.scale == pytest.approx(3.0)
+    # U - O = [0, 1/3, 2/3, 2/3]: .25 * (1/6 + 1/2 + 2/3) = 1/3
+    assert r.ause == pytest.approx(1 / 3)
 
 
 def test_hand_computed_rmse(device):

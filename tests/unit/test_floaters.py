@@ -44,6 +44,16 @@ class TestLabelFloaters:
         scales = torch.tensor([[0.01] * 3, [0.1] * 3])  # margins 0.04 and 0.31
         assert label_floaters(means, scales, cams, depths, extent=1.0).is_floater.tolist() == [True, False]
 
+    def test_a_flat_gaussian_gets_the_margin_of_its_largest_axis(self):
+        """A flat Gaussian (a splat lying along a surface) 0.25 in front of a wall: its largest axis, 0.1, gives a
+        margin of 3 x 0.1 + 0.01 = 0.31 and keeps it off the floaters; its mean axis (0.067) would give 0.211."""
+        cams = _cams(1)
+        depths = torch.full((1, 30, 40), 2.0)
+        lab = label_floaters(torch.tensor([[0.0, 0.0, 1.75]]), torch.tensor([[0.1, 0.1, 0.001]]), cams, depths,
+                             extent=1.0)
+        assert lab.gap.tolist() == pytest.approx([0.25], abs=1e-6)
+        assert lab.is_floater.tolist() == [False]
+
     def test_outside_every_view_or_behind_the_camera_is_not_labelled(self):
         cams = _cams(1)
         depths = torch.full((1, 30, 40, 1), 2.0)  # [C,H,W,1] is accepted too
