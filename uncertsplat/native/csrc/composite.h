@@ -867,6 +867,9 @@ __attribute__((always_inline)) inline uint64_t row_hits(const EllipseTest<S>& e,
     return n >= 64 ? bits : bits & ((uint64_t{1} << n) - 1);
 }
 
+// How many Gaussians ahead pass 1 fetches the rows of the one it will read (random in memory: depth order).
+constexpr int64_t PREFETCH_AHEAD = 16;
+
 // Pass 1: the depth order, each visible Gaussian's box and tile mask (boxes [V]), and per worker the
 // number of pairs of each tile (counts [workers, T]).
 template <typename S>
@@ -894,8 +897,17 @@ int64_t bin_count(const BinArgs& a, const S* means2d, const S* extents, const S*
     uskern::run_workers(a.workers, [&](int64_t w) {
         std::vector<int64_t> diff(static_cast<size_t>(a.C * a.tiles_y * W1), 0);
         std::vector<uint64_t>& pool = pools[w];
-        for (int64_t i = V * w / a.workers; i < V * (w + 1) / a.workers; ++i) {
+        const int64_t i_end = V * (w + 1) / a.workers;
+        for (int64_t i = V * w / a.workers; i < i_end; ++i) {
             const int64_t g = order[i];
+            if (i + PREFETCH_AHEAD < i_end) {
+                // the Gaussians come in depth order, so their rows are read at random: fetch a later one's now
+                const int64_t h = order[i + PREFETCH_AHEAD];
+                __builtin_prefetch(means2d + 2 * h);
+                __builtin_prefetch(extents + 2 * h);
+                __builtin_prefetch(conics + 3 * h);
+                __builtin_prefetch(opac + (a.C > 1 ? h % a.N : h));
+            }
             int64_t tx0, tx1, ty0, ty1;
             tile_box<S>(a, means2d[2 * g], means2d[2 * g + 1], extents[2 * g], extents[2 * g + 1], tx0, tx1, ty0, ty1);
             const EllipseTest<S> meets = ellipse_test<S>(a, g, means2d, conics, opac);
