@@ -15,7 +15,13 @@ import pytest
 from uncertsplat.config import ReconstructConfig, SynthConfig
 from uncertsplat.errors import UserError
 from uncertsplat.sfm import reconstruct as sfm
-from uncertsplat.sfm.report import REPORT_NAME, load_report
+from uncertsplat.sfm.report import (
+    FAILED_REPORT_NAME,
+    OVERWRITE_OLD,
+    REPORT_NAME,
+    ReconstructReport,
+    load_report,
+)
 from uncertsplat.stages import reconstruct as stage
 
 FERN = Path(__file__).parents[2] / "../shared/datasets/fern"
@@ -247,6 +253,17 @@ def test_too_few_registered_lists_the_images_and_writes_the_report(synth_scene, 
     assert report.success and set([*strays, "black.png"]) <= set(report.images_unregistered)
     warning = next(line for line in capsys.readouterr().err.splitlines() if "not registered:" in line)
     assert "black.png: no features found at all" in warning and "stray_a.png" in warning
+    # an --overwrite that fails puts the finished workspace back as it was (a new user's retry with stricter options
+    # deleted it, and a run trained on it could no longer be evaluated); its own report is kept beside it
+    before = _digest(ws)
+    with pytest.raises(UserError, match=r"only \d+/15 images registered .*reconstruct_report\.failed\.json"):
+        stage.run(photos, ws, CFG.model_copy(update={"min_registered": 1.0, "overwrite": True}))
+    after = _digest(ws)
+    assert after.pop(FAILED_REPORT_NAME) and after == before and load_report(ws).success
+    failed = ReconstructReport.read(ws / FAILED_REPORT_NAME)
+    assert not failed.success and "only" in failed.message
+    assert not (ws / OVERWRITE_OLD).exists()
+    assert "the workspace --overwrite was to replace is back" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------------------------------ bad input

@@ -439,6 +439,70 @@ def test_overwrite_removes_only_workspace_entries(tmp_path):
     assert sorted(p.name for p in ws.iterdir()) == ["keep.txt"]
 
 
+def _finished_workspace(tmp_path: Path) -> Path:
+    ws = tmp_path / "ws"
+    write_report(ws, _report(photos=str(tmp_path / "elsewhere")))
+    for rel, data in (("sparse/0/points3D.bin", b"points"), ("images/a.png", b"image"), ("database.db", b"db"),
+                      ("distorted/sparse/0/cameras.bin", b"cams"), ("masks/a.png.png", b"drawn by hand"),
+                      ("notes.txt", b"mine")):
+        (ws / rel).parent.mkdir(parents=True, exist_ok=True)
+        (ws / rel).write_bytes(data)
+    return ws
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.name != ".lock"}
+
+
+def test_an_overwrite_stopped_puts_the_finished_workspace_back(tmp_path, monkeypatch, capsys):
+    """--overwrite moved a finished workspace's files away only once the new one had finished: stopped (Ctrl-C, a
+    failure) before, the workspace is as it was, hand-drawn masks and the user's files untouched, and the stopped
+    run's report is kept beside it (a new user's failed retry had deleted the workspace a run was trained on)."""
+    from uncertsplat.errors import Interrupted
+    from uncertsplat.sfm.report import FAILED_REPORT_NAME, OVERWRITE_OLD, UNFINISHED
+
+    photos = _photos(tmp_path)
+    ws = _finished_workspace(tmp_path)
+    before = _files(ws)
+
+    def stop(*a, **k):
+        (ws / "images").mkdir()
+        (ws / "images" / "new.png").write_bytes(b"half made")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(stage.sfm, "stage_inputs", stop)
+    with pytest.raises(Interrupted, match="the workspace --overwrite was to replace is back as it was"):
+        stage.run(photos, ws, ReconstructConfig(overwrite=True))
+    after = _files(ws)
+    assert ReconstructReport.model_validate_json(after.pop(FAILED_REPORT_NAME)).message == UNFINISHED
+    assert after == before and not (ws / OVERWRITE_OLD).exists()
+    assert "is back in" in capsys.readouterr().err
+
+
+def test_an_overwrite_killed_is_undone_by_the_next_reconstruct(tmp_path, capsys):
+    """Killed (no handler runs), an --overwrite leaves the old workspace aside and an unfinished new one: train names
+    it and what puts it back; the next reconstruct of the folder puts the old one back before anything else."""
+    from uncertsplat.sfm.report import OVERWRITE_OLD, UNFINISHED, require_successful
+
+    photos = _photos(tmp_path)
+    ws = _finished_workspace(tmp_path)
+    before = _files(ws)
+    # as the killed run left it: its files moved aside, a new half-made workspace with its unfinished report
+    assert stage._prepare_workspace(photos, ws, ReconstructConfig(overwrite=True), ("fp",)) is None
+    assert (ws / OVERWRITE_OLD / "sparse").is_dir() and (ws / "masks" / "a.png.png").is_file()  # (not its own)
+    write_report(ws, _report(photos=str(photos), success=False, message=UNFINISHED))
+    (ws / "database.db").write_bytes(b"half made")
+    (ws / "stereo").mkdir()
+    with pytest.raises(UserError, match="--overwrite was stopped before it finished") as err:
+        require_successful(ws)
+    assert "(without --overwrite) puts back the workspace it was replacing" in err.value.hint
+    with pytest.raises(UserError, match="other photos"):  # (the workspace back is of other photos: refused as ever)
+        stage.run(photos, ws, ReconstructConfig())
+    assert _files(ws) == before and not (ws / "stereo").exists() and not (ws / OVERWRITE_OLD).exists()
+    assert "the workspace it was replacing is back" in capsys.readouterr().err
+
+
 def test_photos_in_a_subfolder_are_pointed_out(tmp_path):
     from uncertsplat.sfm.reconstruct import scan_photos
 

@@ -17,6 +17,11 @@ REPORT_NAME = "reconstruct_report.json"
 EXTEND_DIR = ".extend_tmp"
 """Where ``reconstruct --extend`` builds the grown workspace inside it; ``EXTEND_DIR/old`` holds the parts it
 replaced while it swaps them (``stages.reconstruct.extend``; ``sfm.scene.load_scene`` refuses a half-made swap)."""
+OVERWRITE_OLD = ".overwrite_old"
+"""Where ``reconstruct --overwrite`` keeps the finished workspace it replaces until the new one has finished: put back
+after a failure, a stop or a kill (``stages.reconstruct``), so a failed --overwrite never loses a workspace."""
+FAILED_REPORT_NAME = "reconstruct_report.failed.json"
+"""The report of an --overwrite that failed, kept beside the workspace it was to replace (put back)."""
 REPORT_SCHEMA_VERSION = 3
 
 

@@ -9,9 +9,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from uncertsplat.console import q
 from uncertsplat.errors import UserError
 from uncertsplat.schemas.reconstruct import (
     EXTEND_DIR,
+    FAILED_REPORT_NAME,
+    OVERWRITE_OLD,
     REPORT_NAME,
     REPORT_SCHEMA_VERSION,
     CameraSummary,
@@ -51,6 +54,11 @@ def require_successful(workspace: str | Path) -> ReconstructReport | None:
     """
     report = load_report(workspace)
     if report is not None and not report.success and report.message == UNFINISHED:
+        if (Path(workspace) / OVERWRITE_OLD).is_dir():  # (killed: the workspace it replaced waits in the folder)
+            raise UserError("this workspace's reconstruct --overwrite was stopped before it finished",
+                            path=report_path(workspace),
+                            hint=f"`uncertsplat reconstruct {q(report.photos)} -o {q(workspace)}` (without --overwrite) "
+                                 "puts back the workspace it was replacing; with --overwrite it starts over.")
         raise UserError("this workspace comes from a reconstruction that was stopped before it finished",
                         path=report_path(workspace),
                         hint=f"Run the same `uncertsplat reconstruct` command (photos {report.photos}, output "
@@ -66,5 +74,5 @@ def require_successful(workspace: str | Path) -> ReconstructReport | None:
     return report
 
 
-__all__ = ["EXTEND_DIR", "REPORT_NAME", "REPORT_SCHEMA_VERSION", "UNFINISHED", "CameraSummary", "MappingAttempt", "ModelSummary", "ReconstructReport",
+__all__ = ["EXTEND_DIR", "FAILED_REPORT_NAME", "OVERWRITE_OLD", "REPORT_NAME", "REPORT_SCHEMA_VERSION", "UNFINISHED", "CameraSummary", "MappingAttempt", "ModelSummary", "ReconstructReport",
            "load_report", "report_path", "require_successful", "write_report"]

@@ -12,6 +12,7 @@ Workspace layout (the COLMAP layout that 3DGS tools read; README, ``uncertsplat 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import shutil
 import time
@@ -26,6 +27,8 @@ from uncertsplat.io.images import IMAGE_EXTENSIONS
 from uncertsplat.sfm import reconstruct as sfm
 from uncertsplat.sfm.report import (
     EXTEND_DIR,
+    FAILED_REPORT_NAME,
+    OVERWRITE_OLD,
     REPORT_NAME,
     UNFINISHED,
     MappingAttempt,
@@ -39,7 +42,11 @@ OWN_CAMERAS_DB = "database.own_cameras.db"
 """The copy of the database a photo gets a camera of its own in, mapped from, then put in place of it."""
 # What a workspace written by this stage consists of: --overwrite removes these and nothing else.
 _OWNED = ("images", "masks", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", ".extend_tmp", ".extend_done",
-          REPORT_NAME, OWN_CAMERAS_DB, f"{OWN_CAMERAS_DB}-wal", f"{OWN_CAMERAS_DB}-shm")
+          REPORT_NAME, FAILED_REPORT_NAME, OWN_CAMERAS_DB, f"{OWN_CAMERAS_DB}-wal", f"{OWN_CAMERAS_DB}-shm")
+OVERWRITE_DONE = ".overwrite_done"
+"""``OVERWRITE_OLD`` renamed once the new workspace has finished, then removed."""
+NO_MASKS_BEFORE = "NO_MASKS"
+"""A marker in ``OVERWRITE_OLD``: the workspace had no masks/ (one the new run makes goes when the old one comes back)."""
 
 
 def _inputs_fingerprint(scan, masks: Path | None) -> str:
@@ -167,13 +174,67 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
         console.print(f"[yellow]note:[/] {esc(str(workspace / 'masks'))} is kept (reconstruct did not make it): its "
                       "masks were drawn on the images the workspace had, which are made again now; check that they "
                       "still fit them")
+    # a finished workspace is moved aside, not deleted, until the new one has finished (``_overwrite_kept``): an
+    # --overwrite that fails (too few photos registered with the new options), is stopped or killed puts it back
+    keep = existing is not None and existing.success and (workspace / "sparse" / "0").is_dir()
+    aside = workspace / OVERWRITE_OLD
+    if keep:
+        aside.mkdir()
+        if "masks" not in ours and not (workspace / "masks").exists():
+            (aside / NO_MASKS_BEFORE).touch()
     for name in ours:
+        target = workspace / name
+        if keep and (target.exists() or target.is_symlink()):
+            target.rename(aside / name)
+        elif target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        elif target.exists() or target.is_symlink():
+            target.unlink()
+    return None
+
+
+def _recover_overwrite(workspace: Path) -> bool:
+    """Put back the workspace an --overwrite moved aside (``OVERWRITE_OLD``) when the new one did not finish (failed,
+    stopped, killed): the new run's files go, the old ones return. Returns whether one was put back; a finished
+    --overwrite's leftovers (``OVERWRITE_DONE``) are removed."""
+    shutil.rmtree(workspace / OVERWRITE_DONE, ignore_errors=True)
+    aside = workspace / OVERWRITE_OLD
+    if not aside.is_dir():
+        return False
+    for name in _OWNED:
+        if name == "masks" and not (aside / "masks").exists() and not (aside / NO_MASKS_BEFORE).exists():
+            continue  # masks drawn by hand, never moved: they stay
         target = workspace / name
         if target.is_dir() and not target.is_symlink():
             shutil.rmtree(target)
         elif target.exists() or target.is_symlink():
             target.unlink()
-    return None
+        if (aside / name).exists() or (aside / name).is_symlink():
+            (aside / name).rename(target)
+    shutil.rmtree(aside)
+    return True
+
+
+@contextlib.contextmanager
+def _overwrite_kept(workspace: Path, state: dict):
+    """Around a reconstruction in ``workspace`` (inside its lock): an --overwrite's old workspace goes once the new one
+    has finished (its report written), and comes back when it fails or is stopped, the new run's report kept as
+    ``FAILED_REPORT_NAME`` beside it (what failed, and why); ``state["restored"]`` then says so."""
+    try:
+        yield
+    except BaseException:
+        if (workspace / OVERWRITE_OLD).is_dir():
+            new = workspace / REPORT_NAME
+            failed = new.read_bytes() if new.is_file() else None
+            state["restored"] = _recover_overwrite(workspace)
+            if failed is not None:
+                (workspace / FAILED_REPORT_NAME).write_bytes(failed)
+            console.print(f"[yellow]note:[/] the workspace --overwrite was to replace is back in {workspace}, as it "
+                          "was" + (f" (this run's report: {workspace / FAILED_REPORT_NAME})" if failed else ""))
+        raise
+    if (workspace / OVERWRITE_OLD).is_dir():
+        (workspace / OVERWRITE_OLD).rename(workspace / OVERWRITE_DONE)
+        shutil.rmtree(workspace / OVERWRITE_DONE, ignore_errors=True)
 
 
 def resized_note(groups: dict[tuple[int, int], list[str]], max_side: int) -> str | None:
@@ -298,6 +359,12 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
     if (workspace / EXTEND_DIR).exists() or (workspace / EXTEND_DONE).exists():
         with run_lock(workspace, "reconstruct"):
             _recover_extend(workspace)
+    # an --overwrite killed before it finished: the workspace it was replacing, back
+    if (workspace / OVERWRITE_OLD).exists() or (workspace / OVERWRITE_DONE).exists():
+        with run_lock(workspace, "reconstruct"):
+            if _recover_overwrite(workspace):
+                console.print(f"[yellow]note:[/] an earlier --overwrite of {workspace} was stopped before it finished: "
+                              "the workspace it was replacing is back")
     if cfg.masks is not None:
         if cfg.masks.resolve() == Path(photos).resolve():
             raise UserError("--masks names the photo folder itself: every photo would be its own mask",
@@ -358,13 +425,16 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         report.stage_seconds = dict(watch.seconds)
         report.total_seconds = round(time.perf_counter() - t_start, 3)
         write_report(workspace, report)
-        return UserError(f"{message} (report: {workspace / REPORT_NAME})", path=photos, hint=hint)
+        # (an --overwrite's report is kept beside the workspace it was to replace, which comes back: _overwrite_kept)
+        kept = workspace / (FAILED_REPORT_NAME if (workspace / OVERWRITE_OLD).is_dir() else REPORT_NAME)
+        return UserError(f"{message} (report: {kept})", path=photos, hint=hint)
 
     n = len(scan.photos)
     distorted = workspace / "distorted"
     database = workspace / "database.db"
+    overwrite = {"restored": False}  # (_overwrite_kept: whether a stop put back the workspace it was replacing)
     try:
-        with run_lock(workspace, "reconstruct"), sfm.colmap_logging():
+        with run_lock(workspace, "reconstruct"), sfm.colmap_logging(), _overwrite_kept(workspace, overwrite):
             reused = _prepare_workspace(photos, workspace, cfg, (fingerprint, scan.legacy_fingerprint()), scan)
             if reused is not None:
                 console.print(f"reconstruct: {workspace} already holds this reconstruction ({reused.summary()}); "
@@ -561,6 +631,9 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
             report.total_seconds = round(time.perf_counter() - t_start, 3)
             write_report(workspace, report)
     except KeyboardInterrupt:
+        if overwrite["restored"]:
+            raise Interrupted("reconstruct interrupted; the workspace --overwrite was to replace is back as it was",
+                              path=workspace, hint="Run the same command again to start over.") from None
         raise Interrupted("reconstruct interrupted; the unfinished workspace is replaced when the same command runs "
                           "again", path=workspace, hint="Run the same command again to start over.") from None
     console.print(f"reconstruct: {report.summary()} -> {workspace}")
