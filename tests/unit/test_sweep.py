@@ -1320,8 +1320,41 @@ def test_a_sweep_whose_points_all_fail_names_no_figure(tmp_path, monkeypatch, ca
     out = tmp_path / "out"
     out.mkdir()
     (out / "pareto.png").write_bytes(b"an earlier sweep's figure")
+    (out / "sweep.jsonl").write_text("")  # (an earlier sweep's folder: a folder of other files is refused)
     with contextlib.suppress(UserError):  # (a sweep with failed points says so at its end)
         sweep.run(f, out, device="cpu", scene=tmp_path / "scene", jobs=1)
     said = " ".join(capsys.readouterr().err.split())
     assert "(no figure: no point was measured)" in said and "pareto.png" not in said
     assert not (out / "pareto.png").exists() and 'src="pareto.png"' not in (out / "index.html").read_text("utf-8")
+
+
+def test_an_output_folder_of_other_files_or_the_scene_itself_is_refused(tmp_path, monkeypatch):
+    """A folder of a user's files (a web folder with its index.html) had them replaced by the sweep's page and figure;
+    the scene folder as -o took the sweep's own files for a change of the scene at the next identical run. Both are
+    refused before anything is written; an earlier sweep's folder, hidden files alone, or a new folder are taken."""
+    from uncertsplat.stages import sweep
+    from uncertsplat.sweep import jobs as sweep_jobs
+
+    monkeypatch.setattr(sweep_jobs, "run_job", lambda job: [])
+    (tmp_path / "scene").mkdir()
+    f = tmp_path / "s.toml"
+    f.write_text('name = "x"\ntrain_preset = "tiny"\n[default]\niterations = 5\nnum_samples = 4\n')
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "index.html").write_text("<h1>my page</h1>")
+    with pytest.raises(UserError, match=r"not empty and holds no earlier sweep \(index.html\)"):
+        sweep.run(f, site, device="cpu", scene=tmp_path / "scene", jobs=1)
+    assert [p.name for p in site.iterdir()] == ["index.html"]
+    assert (site / "index.html").read_text() == "<h1>my page</h1>"
+    with pytest.raises(UserError, match="output folder is its scene folder") as err:
+        sweep.run(f, tmp_path / "scene", device="cpu", scene=tmp_path / "scene", jobs=1)
+    assert "scene_sweep" in err.value.hint and list((tmp_path / "scene").iterdir()) == []
+    for ok in (tmp_path / "new", tmp_path / "hidden"):
+        if ok.name == "hidden":
+            ok.mkdir()
+            (ok / ".DS_Store").write_bytes(b"")
+        with contextlib.suppress(UserError):  # (no point measured: said at the end)
+            sweep.run(f, ok, device="cpu", scene=tmp_path / "scene", jobs=1)
+        assert (ok / "sweep.json").is_file()
+        with contextlib.suppress(UserError):  # an earlier sweep's folder: taken again
+            sweep.run(f, ok, device="cpu", scene=tmp_path / "scene", jobs=1)

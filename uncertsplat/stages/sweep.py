@@ -35,7 +35,7 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from uncertsplat.console import console, count
+from uncertsplat.console import console, count, list_names, q
 from uncertsplat.errors import Interrupted, UserError
 from uncertsplat.io.atomic import atomic_write_text, run_lock
 from uncertsplat.schemas.base import describe_validation_error, key_problems
@@ -116,6 +116,32 @@ def _synth(keys: dict, folder: Path, force: bool = False, runs: Path | None = No
 SCENE_INPUTS = "scene_inputs.json"
 """``OUT/scene_inputs.json``: the scene folders of one's own a sweep measured on, with their fingerprints
 (``_check_scene_inputs``)."""
+
+
+SWEEP_FILES = ("sweep.jsonl", "sweep.json", SCENE_INPUTS, "points", "runs", "scene", "scenes")
+"""What a sweep writes into its output folder (the module docstring): one of them makes a folder a sweep's."""
+
+
+def _refuse_foreign_output(out_dir: Path, scenes: list[Path | None]) -> None:
+    """Refuse an output folder that is one of the sweep's scene folders (``scenes``: a scene's records would be among
+    its files, which the next sweep takes for a changed scene), or that holds files and nothing a sweep writes
+    (``SWEEP_FILES``): its index.html and pareto.png would replace a user's (a new user's web folder).
+
+    Raises:
+        UserError: naming the folder and what to give instead.
+    """
+    out = out_dir.resolve()
+    for folder in scenes:
+        if folder is not None and Path(folder).resolve() == out:
+            raise UserError("the sweep's output folder is its scene folder: the sweep's files would be counted as the "
+                            "scene's, and the next sweep would take it for a changed scene", path=out_dir,
+                            hint=f"Give the sweep a folder of its own, e.g. -o {q(out.parent / (out.name + '_sweep'))}.")
+    # (hidden files, a file manager's .DS_Store, do not make a folder anyone's)
+    held = [p.name for p in out_dir.iterdir() if not p.name.startswith(".")] if out_dir.is_dir() else []
+    if held and not any(n in SWEEP_FILES for n in held):
+        raise UserError(f"the output folder is not empty and holds no earlier sweep ({list_names(sorted(held))}): the "
+                        "sweep would write its index.html, pareto.png and folders among them", path=out_dir,
+                        hint="Choose a new output folder (-o), or an earlier sweep's folder to go on with it.")
 
 
 def _runs_of(out_dir: Path, name: str | None) -> Path:
@@ -366,6 +392,8 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
         raise UserError("--scene replaces the scene of a single-scene spec, and this spec names "
                         f"{len(spec.scenes)} scenes ({', '.join(spec.scenes)})", path=spec_path,
                         hint="Set one scene's folder with --set scenes.NAME.path=FOLDER instead.")
+    _refuse_foreign_output(out_dir, [Path(scene) if scene is not None else spec.scene,
+                                     *(e.path for e in (spec.scenes or {}).values())])
     with run_lock(out_dir, "sweep"):  # (it makes the folder, or says why it cannot)
         if spec.scenes:
             folders = {name: prepare_scene(name, entry, out_dir, force) for name, entry in spec.scenes.items()}
