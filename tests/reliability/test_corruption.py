@@ -113,14 +113,21 @@ def test_damaged_run_config_is_reported_not_a_traceback(small_run, tmp_path):
     run = _copy(small_run, tmp_path)
     scene = Path(json.loads((run / "scene.json").read_text(encoding="utf-8"))["scene"])
     truncate(run / "config.json", 0.5)
-    with pytest.raises(UserError, match="config.json"):
+    # the advice leads out: neither `train --resume` nor a plain `train` into the run writes the file again (a new
+    # user's audit followed "re-run uncertsplat train" in a circle)
+    written_once = "written once, when its training starts"
+    with pytest.raises(UserError, match="config.json") as err:
         train.run(scene, run, small_config(), device=torch.device("cpu"), resume=True)
-    with pytest.raises(UserError, match="config.json"):
+    assert written_once in err.value.hint and "new folder" in err.value.hint
+    with pytest.raises(UserError, match="config.json") as err:
         load_run(run)
+    assert written_once in err.value.hint
     shutil.copyfile(small_run / "config.json", run / "config.json")
-    truncate(run / "scene.json", 0.5)
-    with pytest.raises(UserError, match="scene.json"):
-        load_run(run)
+    for damage in (lambda p: truncate(p, 0.5), lambda p: p.write_text("{}")):
+        damage(run / "scene.json")
+        with pytest.raises(UserError, match="scene.json") as err:
+            load_run(run)
+        assert written_once in err.value.hint and "--config RUN/config.json" in err.value.hint
     assert not (run / ".lock").exists()
 
 

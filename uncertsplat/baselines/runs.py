@@ -33,6 +33,7 @@ from uncertsplat.gaussians.prior import Prior
 from uncertsplat.io.folders import is_scene, stage_hint
 from uncertsplat.render.exposure import PhotoExposure
 from uncertsplat.schemas import RunExposure, RunScene
+from uncertsplat.schemas.base import run_file_hint
 from uncertsplat.types import GaussianSample, SceneData, ViewSet
 
 
@@ -443,7 +444,8 @@ def read_run_config(run_dir: Path) -> TrainConfig:
     try:
         data = json.loads(cfg_path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as err:
-        raise UserError(f"config.json is not valid JSON ({err})", path=cfg_path) from None
+        raise UserError(f"config.json is not valid JSON ({err})", path=cfg_path,
+                        hint=run_file_hint("config.json")) from None
     if isinstance(data, dict) and 2 * len(data.keys() - TrainConfig.model_fields.keys()) > len(data):
         # another stage's output (RUN/eval, a prune or select folder's config): name the run it belongs to
         parent = Path(run_dir).resolve().parent

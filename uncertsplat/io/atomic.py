@@ -137,15 +137,16 @@ def atomic_write_json(path: str | Path, obj) -> Path:
     return atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=str) + "\n")
 
 
-def read_json(path: str | Path):
-    """Parse a JSON file we wrote; a missing, truncated or corrupted file is a ``UserError`` naming it."""
+def read_json(path: str | Path, hint: str | None = None):
+    """Parse a JSON file we wrote; a missing, truncated or corrupted file is a ``UserError`` naming it (``hint``: what
+    to do, where re-running the stage that wrote it would not write it again)."""
     path = Path(path)
     try:
         return json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         why = err.strerror if isinstance(err, OSError) else f"not valid JSON: {err}"
         raise UserError(f"cannot read the file ({why}); it may be truncated or corrupted", path=path,
-                        hint="Restore it from a copy, or re-run the stage that wrote it.") from None
+                        hint=hint or "Restore it from a copy, or re-run the stage that wrote it.") from None
 
 
 # the temp names of atomic_write (".NAME.XXXXXXXX.tmp") and of io.images (".STEM.XXXXXXXX.tmp.EXT")

@@ -41,6 +41,7 @@ from uncertsplat.console import q
 from uncertsplat.conventions import ENSEMBLE_MEMBERS, ensemble_member_dir
 from uncertsplat.errors import UserError
 from uncertsplat.schemas import EvalReport, Manifest, PruneReport, ReconstructReport, RunScene, TrainSummary
+from uncertsplat.schemas.base import run_file_hint
 from uncertsplat.types import similarity_scale
 
 # Files whose presence makes a folder a run folder (at least one is needed).
@@ -153,8 +154,7 @@ def read_train_config(path: Path) -> TrainConfig | None:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise UserError(f"not valid JSON ({err})", path=path, hint="Re-run `uncertsplat train` to write it again.") \
-            from None
+        raise UserError(f"not valid JSON ({err})", path=path, hint=run_file_hint("config.json")) from None
     if not isinstance(data, dict):
         raise UserError(f"expected a JSON object, found {type(data).__name__}", path=path)
     return build_config(TrainConfig, data, source=str(path))

@@ -104,6 +104,14 @@ def key_problems(model: type[BaseModel], data: Any, prefix: str = "") -> list[st
     return out
 
 
+def run_file_hint(name: str) -> str:
+    """The advice for a training run's ``name`` (config.json, scene.json) found damaged: ``train`` writes it once,
+    when the run starts, and neither ``train`` nor ``train --resume`` writes it again into the run."""
+    return (f"A run's {name} is written once, when its training starts, and is not written again into the run: put "
+            "back a copy of the file, or train again into a new folder (`uncertsplat train SCENE -o NEW_RUN`"
+            + (", with `--config RUN/config.json` for the same settings" if name != "config.json" else "") + ").")
+
+
 class SchemaFile(Strict):
     """A JSON file with a schema version. Subclasses set ``FILE_NAME`` and ``SCHEMA_VERSION``.
 
@@ -114,6 +122,9 @@ class SchemaFile(Strict):
     FILE_NAME: ClassVar[str] = ""
     SCHEMA_VERSION: ClassVar[int] = 1
     WRITTEN_BY: ClassVar[str] = "uncertsplat"
+    DAMAGED_HINT: ClassVar[str | None] = None
+    """What to do when the file is damaged or of an old layout, where re-running ``WRITTEN_BY`` cannot write it
+    again (a run's files, written when its training starts: ``run_file_hint``); None: re-run ``WRITTEN_BY``."""
     """The command that writes the file (named in errors: re-running it rewrites the file)."""
 
     @classmethod
@@ -132,7 +143,7 @@ class SchemaFile(Strict):
         """
         where = Path(source) if source is not None else None
         label = cls.FILE_NAME or cls.__name__
-        hint = f"Re-run `{cls.WRITTEN_BY}` to write it again with this version of uncertsplat."
+        hint = cls.DAMAGED_HINT or f"Re-run `{cls.WRITTEN_BY}` to write it again with this version of uncertsplat."
         if not isinstance(data, dict):
             raise UserError(f"{label}: expected a JSON object, found {type(data).__name__}", path=where, hint=hint)
         # Files written before schemas were versioned have no key: version 0 (converted where possible).
@@ -183,7 +194,7 @@ class SchemaFile(Strict):
             data = json.loads(text)
         except json.JSONDecodeError as err:
             raise UserError(f"not valid JSON ({err})", path=path,
-                            hint=f"The file is damaged; re-run `{cls.WRITTEN_BY}`.") from None
+                            hint=cls.DAMAGED_HINT or f"The file is damaged; re-run `{cls.WRITTEN_BY}`.") from None
         return cls.from_dict(data, source=path)
 
     @classmethod

@@ -7,7 +7,7 @@ from typing import Any, Literal
 
 from pydantic import Field
 
-from uncertsplat.schemas.base import SchemaFile, Strict, path_from, resolve_from
+from uncertsplat.schemas.base import SchemaFile, Strict, path_from, resolve_from, run_file_hint
 
 
 class SynthIntrinsics(Strict):
@@ -90,6 +90,7 @@ class RunScene(SchemaFile):
     FILE_NAME = "scene.json"
     SCHEMA_VERSION = 6
     WRITTEN_BY = "uncertsplat train"
+    DAMAGED_HINT = run_file_hint("scene.json")
 
     schema_version: int = 6
     scene: str

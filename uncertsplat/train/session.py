@@ -35,6 +35,7 @@ from uncertsplat.io.atomic import (
     run_lock,
 )
 from uncertsplat.schemas import PruneReport, RunExposure, RunScene, TrainSummary
+from uncertsplat.schemas.base import run_file_hint
 from uncertsplat.schemas.scene import ViewsAdded
 from uncertsplat.strategy.exposure import EXPOSURE_SPREAD, exposure_reason, gain_spread
 from uncertsplat.strategy.growth import growth_reason
@@ -474,7 +475,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         later: list[str] = []  # what the resume says once the scene and the added views are checked
         if resume:
             remove_stale_temp_files(run_dir, run_dir / "ckpts")  # left by a killed process; we hold the lock
-            stored = read_json(run_dir / "config.json")
+            stored = read_json(run_dir / "config.json", hint=run_file_hint("config.json"))
             for section, before in _KEYS_BEFORE.items():
                 if isinstance(stored.get(section), dict):
                     for key, value in before.items():
