@@ -910,3 +910,22 @@ def test_feature_extraction_runs_on_as_many_threads_as_memory_holds():
     assert sfm.extraction_threads(ReconstructConfig(num_threads=16), [(4000, 3000)], available=16 * gb) == (16, None)
     assert sfm.extraction_threads(big, [(4000, 3000)], available=gb // 100)[0] == 1  # never none
     assert sfm.extraction_threads(big, [], available=gb) == (16, None)
+
+
+def test_extend_into_a_scene_reconstruct_did_not_make_points_to_a_new_folder(tmp_path):
+    """--extend given a synthetic scene (or a COLMAP model made elsewhere) advised `reconstruct PHOTOS -o SCENE`, which
+    is refused there and with --overwrite would replace the scene: it says what the folder is and names a new one."""
+    photos = _photos(tmp_path)
+    scene = tmp_path / "scene"
+    (scene / "images").mkdir(parents=True)
+    (scene / "sparse" / "0").mkdir(parents=True)
+    with pytest.raises(UserError, match="holds a scene `reconstruct` did not make") as err:
+        stage.run(photos, scene, ReconstructConfig(extend=True))
+    assert "-o " + str(tmp_path / "scene_ws") in err.value.hint and "--overwrite" not in err.value.hint
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "thesis.docx").write_text("mine")
+    with pytest.raises(UserError, match="holds other files"):
+        stage.run(photos, tmp_path / "other", ReconstructConfig(extend=True))
+    with pytest.raises(UserError, match=r"needs a finished workspace .*\(its report") as err:  # nothing there yet
+        stage.run(photos, tmp_path / "nowhere", ReconstructConfig(extend=True))
+    assert "Reconstruct the photos first" in err.value.hint

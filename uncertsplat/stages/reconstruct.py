@@ -820,6 +820,15 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
     existing = load_report(workspace) if workspace.is_dir() else None  # (``run`` undid a stopped extension first)
     needed = [workspace / "database.db", workspace / "distorted" / "sparse" / "0", workspace / "sparse" / "0"]
     if existing is None or not existing.success or any(not p.exists() for p in needed):
+        held = workspace.is_dir() and any(not p.name.startswith(".") for p in workspace.iterdir())
+        if existing is None and held:  # (a synthetic scene, a COLMAP model made elsewhere: never to be overwritten)
+            from uncertsplat.io.folders import is_scene
+
+            what = "a scene `reconstruct` did not make" if is_scene(workspace) else "other files"
+            hint = ("--extend grows only a workspace `uncertsplat reconstruct` made; reconstruct the photos into a new "
+                    f"folder: uncertsplat reconstruct {q(photos)} -o {q(workspace.parent / (workspace.name + '_ws'))}")
+            raise UserError(f"--extend needs a finished workspace of `uncertsplat reconstruct`, and the folder holds "
+                            f"{what}", path=workspace, hint=hint)
         raise UserError("--extend needs a finished workspace of `uncertsplat reconstruct` (its report, database.db, "
                         "distorted/sparse/0)", path=workspace,
                         hint=f"Reconstruct the photos first: uncertsplat reconstruct {q(photos)} -o {q(workspace)}")
