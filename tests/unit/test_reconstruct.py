@@ -482,7 +482,8 @@ def test_an_overwrite_stopped_puts_the_finished_workspace_back(tmp_path, monkeyp
 
 def test_an_overwrite_killed_is_undone_by_the_next_reconstruct(tmp_path, capsys):
     """Killed (no handler runs), an --overwrite leaves the old workspace aside and an unfinished new one: train names
-    it and what puts it back; the next reconstruct of the folder puts the old one back before anything else."""
+    it and what puts it back; the next reconstruct of the folder puts the old one back before anything else, the new
+    run's files gone (SQLite's -wal beside the database too: replayed into the old one, it emptied its matches)."""
     from uncertsplat.sfm.report import OVERWRITE_OLD, UNFINISHED, require_successful
 
     photos = _photos(tmp_path)
@@ -493,14 +494,108 @@ def test_an_overwrite_killed_is_undone_by_the_next_reconstruct(tmp_path, capsys)
     assert (ws / OVERWRITE_OLD / "sparse").is_dir() and (ws / "masks" / "a.png.png").is_file()  # (not its own)
     write_report(ws, _report(photos=str(photos), success=False, message=UNFINISHED))
     (ws / "database.db").write_bytes(b"half made")
+    (ws / "database.db-wal").write_bytes(b"the new run's log")
     (ws / "stereo").mkdir()
     with pytest.raises(UserError, match="--overwrite was stopped before it finished") as err:
         require_successful(ws)
-    assert "(without --overwrite) puts back the workspace it was replacing" in err.value.hint
+    assert "puts back the workspace it was replacing before anything else" in err.value.hint
     with pytest.raises(UserError, match="other photos"):  # (the workspace back is of other photos: refused as ever)
         stage.run(photos, ws, ReconstructConfig())
     assert _files(ws) == before and not (ws / "stereo").exists() and not (ws / OVERWRITE_OLD).exists()
     assert "the workspace it was replacing is back" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("moment", ["moving", "restoring", "restoring-twice", "finished"])
+def test_an_overwrite_killed_at_any_moment_loses_nothing(tmp_path, moment):
+    """A review killed --overwrite between its renames: put back after a kill while the old files went aside, the
+    recovery deleted the ones still in place; killed while they came back, the next run deleted those back already;
+    killed after the new workspace's report, the finished new workspace was thrown away for the old one."""
+    from uncertsplat.sfm.report import OVERWRITE_MOVING, OVERWRITE_OLD, OVERWRITE_RESTORING, UNFINISHED
+
+    photos = _photos(tmp_path)
+    ws = _finished_workspace(tmp_path)
+    before = _files(ws)
+    assert stage._prepare_workspace(photos, ws, ReconstructConfig(overwrite=True), ("fp",)) is None
+    old = ws / OVERWRITE_OLD
+    if moment == "moving":  # killed with images/ and the report aside, the rest still in place
+        (ws / OVERWRITE_MOVING).mkdir()
+        for name in ("images", "reconstruct_report.json", "plan.json"):
+            (old / name).rename(ws / OVERWRITE_MOVING / name)
+        for name in [p.name for p in old.iterdir()]:
+            (old / name).rename(ws / name)
+        old.rmdir()
+        assert stage._recover_overwrite(ws) == "restored"
+        assert _files(ws) == before
+        return
+    write_report(ws, _report(photos=str(photos), success=moment == "finished", message="" if moment == "finished"
+                             else UNFINISHED))
+    (ws / "images").mkdir()
+    (ws / "images" / "new.png").write_bytes(b"new")
+    if moment == "finished":  # killed between the new report and dropping the old files: the new one stands
+        assert stage._recover_overwrite(ws) == "finished"
+        assert (ws / "images" / "new.png").is_file() and load_report(ws).success and not old.exists()
+        assert not (ws / "sparse").exists()  # (the old one's, dropped; the new run had not made one here)
+        return
+    # killed while the old files came back: the new run's files already gone, images/ back, the rest still aside
+    for name in ("images", "reconstruct_report.json"):
+        stage._remove(ws / name)
+    old.rename(ws / OVERWRITE_RESTORING)
+    (ws / OVERWRITE_RESTORING / "images").rename(ws / "images")
+    if moment == "restoring-twice":
+        (ws / OVERWRITE_RESTORING / "database.db").rename(ws / "database.db")
+    assert stage._recover_overwrite(ws) == "restored"
+    assert _files(ws) == before and not (ws / OVERWRITE_RESTORING).exists()
+    assert stage._recover_overwrite(ws) is None  # (nothing left: run again, it changes nothing)
+    assert _files(ws) == before
+
+
+def test_masks_drawn_by_hand_that_overwrite_masks_replaces_come_back_on_failure(tmp_path, monkeypatch):
+    """--overwrite --masks on a workspace with masks drawn by hand: the new run replaces masks/, so they go aside with
+    the rest and come back when it fails (the review found the new masks in their place, "back as it was")."""
+    photos = _photos(tmp_path)
+    masks = tmp_path / "given_masks"
+    masks.mkdir()
+    ws = _finished_workspace(tmp_path)
+    before = _files(ws)
+
+    def fail(*a, **k):
+        (ws / "masks").mkdir(exist_ok=True)
+        (ws / "masks" / "a.png.png").write_bytes(b"the new run's")
+        raise UserError("mapping failed")
+
+    monkeypatch.setattr(stage.sfm, "stage_inputs", fail)
+    with pytest.raises(UserError, match="mapping failed"):
+        stage.run(photos, ws, ReconstructConfig(overwrite=True, masks=masks))
+    after = _files(ws)
+    after.pop(".reconstruct_report.failed.json")
+    assert after == before
+
+
+def test_a_workspace_being_reconstructed_is_named_as_such(tmp_path):
+    """train on a workspace whose reconstruction runs now was told it had been stopped, and to run reconstruct."""
+    import subprocess
+    import sys
+    import time
+
+    from uncertsplat.sfm.report import UNFINISHED, require_successful
+
+    ws = tmp_path / "ws"
+    write_report(ws, _report(success=False, message=UNFINISHED))
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from uncertsplat.io.atomic import run_lock\n"
+        f"with run_lock({str(ws)!r}, 'reconstruct'):\n    print('held', flush=True); time.sleep(30)")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(UserError, match="a reconstruction is writing this workspace now") as err:
+            require_successful(ws)
+        assert "Wait for it to finish" in err.value.hint
+    finally:
+        holder.kill()
+        holder.wait()
+    time.sleep(0.05)
+    with pytest.raises(UserError, match="stopped before it finished"):
+        require_successful(ws)
 
 
 def test_photos_in_a_subfolder_are_pointed_out(tmp_path):

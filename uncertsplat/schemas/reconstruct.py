@@ -20,8 +20,14 @@ replaced while it swaps them (``stages.reconstruct.extend``; ``sfm.scene.load_sc
 OVERWRITE_OLD = ".overwrite_old"
 """Where ``reconstruct --overwrite`` keeps the finished workspace it replaces until the new one has finished: put back
 after a failure, a stop or a kill (``stages.reconstruct``), so a failed --overwrite never loses a workspace."""
-FAILED_REPORT_NAME = "reconstruct_report.failed.json"
-"""The report of an --overwrite that failed, kept beside the workspace it was to replace (put back)."""
+OVERWRITE_MOVING = ".overwrite_moving"
+"""Where --overwrite moves a finished workspace's files one by one; renamed ``OVERWRITE_OLD`` once all are there."""
+OVERWRITE_RESTORING = ".overwrite_restoring"
+"""``OVERWRITE_OLD`` once the new run's files are gone, while its files go back."""
+FAILED_REPORT_NAME = ".reconstruct_report.failed.json"
+"""The report of an --overwrite that failed, kept beside the workspace it was to replace (put back); hidden, so that
+the workspace, put back as it was, is the same input to the stages that read it (their fingerprints skip hidden
+files)."""
 REPORT_SCHEMA_VERSION = 3
 
 

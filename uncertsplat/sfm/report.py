@@ -14,7 +14,9 @@ from uncertsplat.errors import UserError
 from uncertsplat.schemas.reconstruct import (
     EXTEND_DIR,
     FAILED_REPORT_NAME,
+    OVERWRITE_MOVING,
     OVERWRITE_OLD,
+    OVERWRITE_RESTORING,
     REPORT_NAME,
     REPORT_SCHEMA_VERSION,
     CameraSummary,
@@ -54,11 +56,19 @@ def require_successful(workspace: str | Path) -> ReconstructReport | None:
     """
     report = load_report(workspace)
     if report is not None and not report.success and report.message == UNFINISHED:
-        if (Path(workspace) / OVERWRITE_OLD).is_dir():  # (killed: the workspace it replaced waits in the folder)
+        from uncertsplat.io.atomic import lock_holder
+
+        holder = lock_holder(workspace)
+        if holder is not None:
+            raise UserError(f"a reconstruction is writing this workspace now ({holder})", path=workspace,
+                            hint="Wait for it to finish, then run this again.")
+        if any((Path(workspace) / n).is_dir() for n in (OVERWRITE_MOVING, OVERWRITE_OLD, OVERWRITE_RESTORING)):
+            # (killed: the workspace it was replacing waits in the folder, put back by the next reconstruct of it)
             raise UserError("this workspace's reconstruct --overwrite was stopped before it finished",
                             path=report_path(workspace),
-                            hint=f"`uncertsplat reconstruct {q(report.photos)} -o {q(workspace)}` (without --overwrite) "
-                                 "puts back the workspace it was replacing; with --overwrite it starts over.")
+                            hint=f"Any `uncertsplat reconstruct {q(report.photos)} -o {q(workspace)}` puts back the "
+                                 "workspace it was replacing before anything else (with --overwrite and its options "
+                                 "it then starts the replacement over).")
         raise UserError("this workspace comes from a reconstruction that was stopped before it finished",
                         path=report_path(workspace),
                         hint=f"Run the same `uncertsplat reconstruct` command (photos {report.photos}, output "
@@ -74,5 +84,5 @@ def require_successful(workspace: str | Path) -> ReconstructReport | None:
     return report
 
 
-__all__ = ["EXTEND_DIR", "FAILED_REPORT_NAME", "OVERWRITE_OLD", "REPORT_NAME", "REPORT_SCHEMA_VERSION", "UNFINISHED", "CameraSummary", "MappingAttempt", "ModelSummary", "ReconstructReport",
+__all__ = ["EXTEND_DIR", "FAILED_REPORT_NAME", "OVERWRITE_MOVING", "OVERWRITE_OLD", "OVERWRITE_RESTORING", "REPORT_NAME", "REPORT_SCHEMA_VERSION", "UNFINISHED", "CameraSummary", "MappingAttempt", "ModelSummary", "ReconstructReport",
            "load_report", "report_path", "require_successful", "write_report"]

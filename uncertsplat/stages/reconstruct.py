@@ -22,13 +22,21 @@ from pathlib import Path
 from uncertsplat.config import ReconstructConfig
 from uncertsplat.console import add_views_args, console, esc, list_names, progress, q, qm
 from uncertsplat.errors import Interrupted, UserError
-from uncertsplat.io.atomic import check_output_folder, run_lock
+from uncertsplat.io.atomic import (
+    atomic_write_bytes,
+    atomic_write_json,
+    check_output_folder,
+    read_json,
+    run_lock,
+)
 from uncertsplat.io.images import IMAGE_EXTENSIONS
 from uncertsplat.sfm import reconstruct as sfm
 from uncertsplat.sfm.report import (
     EXTEND_DIR,
     FAILED_REPORT_NAME,
+    OVERWRITE_MOVING,
     OVERWRITE_OLD,
+    OVERWRITE_RESTORING,
     REPORT_NAME,
     UNFINISHED,
     MappingAttempt,
@@ -42,11 +50,12 @@ OWN_CAMERAS_DB = "database.own_cameras.db"
 """The copy of the database a photo gets a camera of its own in, mapped from, then put in place of it."""
 # What a workspace written by this stage consists of: --overwrite removes these and nothing else.
 _OWNED = ("images", "masks", "sparse", "distorted", "database.db", "stereo", ".undistort_tmp", ".extend_tmp", ".extend_done",
-          REPORT_NAME, FAILED_REPORT_NAME, OWN_CAMERAS_DB, f"{OWN_CAMERAS_DB}-wal", f"{OWN_CAMERAS_DB}-shm")
+          REPORT_NAME, FAILED_REPORT_NAME, OWN_CAMERAS_DB, f"{OWN_CAMERAS_DB}-wal", f"{OWN_CAMERAS_DB}-shm",
+          "database.db-wal", "database.db-shm")
 OVERWRITE_DONE = ".overwrite_done"
 """``OVERWRITE_OLD`` renamed once the new workspace has finished, then removed."""
-NO_MASKS_BEFORE = "NO_MASKS"
-"""A marker in ``OVERWRITE_OLD``: the workspace had no masks/ (one the new run makes goes when the old one comes back)."""
+OVERWRITE_PLAN = "plan.json"
+"""In ``OVERWRITE_MOVING``: the names moved aside and the names the old workspace did not have."""
 
 
 def _inputs_fingerprint(scan, masks: Path | None) -> str:
@@ -175,44 +184,72 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
                       "masks were drawn on the images the workspace had, which are made again now; check that they "
                       "still fit them")
     # a finished workspace is moved aside, not deleted, until the new one has finished (``_overwrite_kept``): an
-    # --overwrite that fails (too few photos registered with the new options), is stopped or killed puts it back
-    keep = existing is not None and existing.success and (workspace / "sparse" / "0").is_dir()
-    aside = workspace / OVERWRITE_OLD
-    if keep:
-        aside.mkdir()
-        if "masks" not in ours and not (workspace / "masks").exists():
-            (aside / NO_MASKS_BEFORE).touch()
+    # --overwrite that fails (too few photos registered with the new options), is stopped or killed puts it back.
+    # Masks drawn by hand that --masks is to replace go aside with it.
+    if existing is not None and existing.success and (workspace / "sparse" / "0").is_dir():
+        names = [*ours, *(["masks"] if cfg.masks is not None and "masks" not in ours else [])]
+        there = [n for n in names if (workspace / n).exists() or (workspace / n).is_symlink()]
+        moving = workspace / OVERWRITE_MOVING
+        moving.mkdir()
+        # (the names the new run may write, so that putting the old one back removes exactly the new run's files)
+        atomic_write_json(moving / OVERWRITE_PLAN, {"moved": there, "absent": [n for n in names if n not in there]})
+        for name in there:
+            (workspace / name).rename(moving / name)
+        moving.rename(workspace / OVERWRITE_OLD)  # (all of it aside: the new run may begin)
+        return None
     for name in ours:
-        target = workspace / name
-        if keep and (target.exists() or target.is_symlink()):
-            target.rename(aside / name)
-        elif target.is_dir() and not target.is_symlink():
-            shutil.rmtree(target)
-        elif target.exists() or target.is_symlink():
-            target.unlink()
+        _remove(workspace / name)
     return None
 
 
-def _recover_overwrite(workspace: Path) -> bool:
-    """Put back the workspace an --overwrite moved aside (``OVERWRITE_OLD``) when the new one did not finish (failed,
-    stopped, killed): the new run's files go, the old ones return. Returns whether one was put back; a finished
-    --overwrite's leftovers (``OVERWRITE_DONE``) are removed."""
+def _remove(target: Path) -> None:
+    """Delete a file, link or folder if it is there."""
+    if target.is_dir() and not target.is_symlink():
+        shutil.rmtree(target)
+    elif target.exists() or target.is_symlink():
+        target.unlink()
+
+
+def _recover_overwrite(workspace: Path) -> str | None:
+    """Finish what an --overwrite left (failed, stopped or killed at any point; itself stopped and run again):
+
+    - ``OVERWRITE_MOVING``: stopped while the old files went aside: the new run never began, they go back;
+    - ``OVERWRITE_OLD``: the new run began: finished (its report says success; only the last rename was left), the old
+      files go; else the new run's files (the plan's names) go, then ``OVERWRITE_RESTORING``;
+    - ``OVERWRITE_RESTORING``: the old files go back, each one still there (a stop between two is run again);
+    - ``OVERWRITE_DONE``: a finished one's old files, removed.
+
+    Returns "restored" (the old workspace is back), "finished" (the new one stands) or None (nothing left)."""
     shutil.rmtree(workspace / OVERWRITE_DONE, ignore_errors=True)
-    aside = workspace / OVERWRITE_OLD
-    if not aside.is_dir():
-        return False
-    for name in _OWNED:
-        if name == "masks" and not (aside / "masks").exists() and not (aside / NO_MASKS_BEFORE).exists():
-            continue  # masks drawn by hand, never moved: they stay
-        target = workspace / name
-        if target.is_dir() and not target.is_symlink():
-            shutil.rmtree(target)
-        elif target.exists() or target.is_symlink():
-            target.unlink()
-        if (aside / name).exists() or (aside / name).is_symlink():
-            (aside / name).rename(target)
-    shutil.rmtree(aside)
-    return True
+    moving, old, back = (workspace / n for n in (OVERWRITE_MOVING, OVERWRITE_OLD, OVERWRITE_RESTORING))
+    if old.is_dir():
+        try:
+            report = load_report(workspace)
+        except UserError:  # (damaged: not a finished one)
+            report = None
+        if report is not None and report.success:
+            _drop_old(workspace)
+            return "finished"
+        plan = read_json(old / OVERWRITE_PLAN)
+        for name in [*plan["moved"], *plan["absent"]]:  # the new run's (the old ones are aside)
+            _remove(workspace / name)
+        old.rename(back)
+    elif moving.is_dir():  # (nothing in place is the new run's: only what went aside comes back)
+        moving.rename(back)
+    if not back.is_dir():
+        return None
+    for part in back.iterdir():
+        target = workspace / part.name
+        if part.name != OVERWRITE_PLAN and not (target.exists() or target.is_symlink()):
+            part.rename(target)
+    shutil.rmtree(back)
+    return "restored"
+
+
+def _drop_old(workspace: Path) -> None:
+    """Remove ``OVERWRITE_OLD`` in a step that cannot leave a half: renamed first, then deleted."""
+    (workspace / OVERWRITE_OLD).rename(workspace / OVERWRITE_DONE)
+    shutil.rmtree(workspace / OVERWRITE_DONE, ignore_errors=True)
 
 
 @contextlib.contextmanager
@@ -223,18 +260,19 @@ def _overwrite_kept(workspace: Path, state: dict):
     try:
         yield
     except BaseException:
-        if (workspace / OVERWRITE_OLD).is_dir():
-            new = workspace / REPORT_NAME
-            failed = new.read_bytes() if new.is_file() else None
-            state["restored"] = _recover_overwrite(workspace)
-            if failed is not None:
-                (workspace / FAILED_REPORT_NAME).write_bytes(failed)
-            console.print(f"[yellow]note:[/] the workspace --overwrite was to replace is back in {workspace}, as it "
-                          "was" + (f" (this run's report: {workspace / FAILED_REPORT_NAME})" if failed else ""))
+        if (workspace / OVERWRITE_MOVING).is_dir() or (workspace / OVERWRITE_OLD).is_dir():
+            new = workspace / REPORT_NAME  # (the new run's only once everything old is aside)
+            failed = new.read_bytes() if (workspace / OVERWRITE_OLD).is_dir() and new.is_file() else None
+            state["restored"] = _recover_overwrite(workspace) == "restored"
+            if state["restored"]:
+                if failed is not None:
+                    with contextlib.suppress(OSError):  # (never in place of the error that stopped the run)
+                        atomic_write_bytes(workspace / FAILED_REPORT_NAME, failed)
+                console.print(f"[yellow]note:[/] the workspace --overwrite was to replace is back in {workspace}, as "
+                              "it was" + (f" (this run's report: {workspace / FAILED_REPORT_NAME})" if failed else ""))
         raise
     if (workspace / OVERWRITE_OLD).is_dir():
-        (workspace / OVERWRITE_OLD).rename(workspace / OVERWRITE_DONE)
-        shutil.rmtree(workspace / OVERWRITE_DONE, ignore_errors=True)
+        _drop_old(workspace)
 
 
 def resized_note(groups: dict[tuple[int, int], list[str]], max_side: int) -> str | None:
@@ -360,9 +398,9 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
         with run_lock(workspace, "reconstruct"):
             _recover_extend(workspace)
     # an --overwrite killed before it finished: the workspace it was replacing, back
-    if (workspace / OVERWRITE_OLD).exists() or (workspace / OVERWRITE_DONE).exists():
+    if any((workspace / n).exists() for n in (OVERWRITE_MOVING, OVERWRITE_OLD, OVERWRITE_RESTORING, OVERWRITE_DONE)):
         with run_lock(workspace, "reconstruct"):
-            if _recover_overwrite(workspace):
+            if _recover_overwrite(workspace) == "restored":
                 console.print(f"[yellow]note:[/] an earlier --overwrite of {workspace} was stopped before it finished: "
                               "the workspace it was replacing is back")
     if cfg.masks is not None:
