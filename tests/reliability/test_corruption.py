@@ -115,7 +115,7 @@ def test_damaged_run_config_is_reported_not_a_traceback(small_run, tmp_path):
     truncate(run / "config.json", 0.5)
     # the advice leads out: neither `train --resume` nor a plain `train` into the run writes the file again (a new
     # user's audit followed "re-run uncertsplat train" in a circle)
-    written_once = "written once, when its training starts"
+    written_once = "written when its training (or prune) starts and read first by every command"
     with pytest.raises(UserError, match="config.json") as err:
         train.run(scene, run, small_config(), device=torch.device("cpu"), resume=True)
     assert written_once in err.value.hint and "new folder" in err.value.hint

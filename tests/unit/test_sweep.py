@@ -1026,7 +1026,7 @@ def test_runs_trained_inside_a_scene_folder_do_not_change_it(tmp_path):
     (scene / "pipe" / ".stages_started.json").write_text("{}")
     (scene / "pipe" / "train" / "weights.bin").write_bytes(b"x")
     _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)  # no word
-    # nor an `evaluate RUN -o SCENE/ev` or a `select-views -o SCENE/next` (left as a known limit, 2026-12-01)
+    # nor a run's evaluation copied there (SCENE/ev) or a `select-views -o SCENE/next` (a known limit before)
     from uncertsplat.schemas.metrics import EvalReport
     from uncertsplat.schemas.select import Selection
 
@@ -1037,6 +1037,15 @@ def test_runs_trained_inside_a_scene_folder_do_not_change_it(tmp_path):
     Selection(run="r", score="s", candidates="c", num_candidates=0, chosen=[], seconds=0.0,
               seconds_per_candidate=0.0).write(scene / "next" / "selection.json")
     (scene / "next" / "selection.png").write_bytes(b"png")
+    _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)  # no word
+    # recorded by the version before, which left runs and stages out but counted these: the same scene
+    from uncertsplat.stages.manifest import fingerprint_folder as fingerprint
+    from uncertsplat.stages.sweep import SCENE_INPUTS as INPUTS
+    from uncertsplat.stages.sweep import _outputs_inside
+
+    kept = json.loads((tmp_path / "out" / INPUTS).read_text(encoding="utf-8"))
+    kept[""]["fingerprint"] = fingerprint(scene, skip=[tmp_path / "out", *_outputs_inside(scene, evaluations=False)])
+    (tmp_path / "out" / INPUTS).write_text(json.dumps(kept))
     _check_scene_inputs(tmp_path / "out", {None: scene}, force=False, measured=True)  # no word
     # another tool's metrics.json is a file of the scene's
     (scene / "theirs").mkdir()
@@ -1349,10 +1358,15 @@ def test_an_output_folder_of_other_files_or_the_scene_itself_is_refused(tmp_path
     with pytest.raises(UserError, match="output folder is its scene folder") as err:
         sweep.run(f, tmp_path / "scene", device="cpu", scene=tmp_path / "scene", jobs=1)
     assert "scene_sweep" in err.value.hint and list((tmp_path / "scene").iterdir()) == []
-    for ok in (tmp_path / "new", tmp_path / "hidden"):
+    (tmp_path / "own").mkdir()
+    own_spec = tmp_path / "own" / "spec.toml"  # (a spec kept in its sweep's folder: the sweep's own)
+    own_spec.write_text(f.read_text())
+    for ok in (tmp_path / "new", tmp_path / "hidden", tmp_path / "own"):
         if ok.name == "hidden":
             ok.mkdir()
             (ok / ".DS_Store").write_bytes(b"")
+        if ok.name == "own":
+            f = own_spec
         with contextlib.suppress(UserError):  # (no point measured: said at the end)
             sweep.run(f, ok, device="cpu", scene=tmp_path / "scene", jobs=1)
         assert (ok / "sweep.json").is_file()

@@ -105,11 +105,13 @@ def key_problems(model: type[BaseModel], data: Any, prefix: str = "") -> list[st
 
 
 def run_file_hint(name: str) -> str:
-    """The advice for a training run's ``name`` (config.json, scene.json) found damaged: ``train`` writes it once,
-    when the run starts, and neither ``train`` nor ``train --resume`` writes it again into the run."""
-    return (f"A run's {name} is written once, when its training starts, and is not written again into the run: put "
-            "back a copy of the file, or train again into a new folder (`uncertsplat train SCENE -o NEW_RUN`"
-            + (", with `--config RUN/config.json` for the same settings" if name != "config.json" else "") + ").")
+    """The advice for a run's ``name`` (config.json, scene.json) found damaged: ``train`` (or ``prune``, for a pruned
+    run) writes it when the run starts, and every command reads it first, ``train --resume`` included, so none of them
+    gets as far as writing it again."""
+    return (f"A run's {name} is written when its training (or prune) starts and read first by every command, `train "
+            "--resume` included: put back a copy of the file, or make the run again into a new folder (`uncertsplat "
+            "train SCENE -o NEW_RUN`" + (", with `--config RUN/config.json` for the same settings" if name != "config.json"
+                                          else "") + "; a pruned run: `uncertsplat prune SOURCE_RUN -o NEW`).")
 
 
 class SchemaFile(Strict):

@@ -122,10 +122,11 @@ SWEEP_FILES = ("sweep.jsonl", "sweep.json", SCENE_INPUTS, "points", "runs", "sce
 """What a sweep writes into its output folder (the module docstring): one of them makes a folder a sweep's."""
 
 
-def _refuse_foreign_output(out_dir: Path, scenes: list[Path | None]) -> None:
+def _refuse_foreign_output(out_dir: Path, scenes: list[Path | None], spec_path: Path) -> None:
     """Refuse an output folder that is one of the sweep's scene folders (``scenes``: a scene's records would be among
     its files, which the next sweep takes for a changed scene), or that holds files and nothing a sweep writes
-    (``SWEEP_FILES``): its index.html and pareto.png would replace a user's (a new user's web folder).
+    (``SWEEP_FILES``): its index.html and pareto.png would replace a user's (a new user's web folder). The spec
+    ``spec_path`` kept in the folder is the sweep's own.
 
     Raises:
         UserError: naming the folder and what to give instead.
@@ -137,7 +138,8 @@ def _refuse_foreign_output(out_dir: Path, scenes: list[Path | None]) -> None:
                             "scene's, and the next sweep would take it for a changed scene", path=out_dir,
                             hint=f"Give the sweep a folder of its own, e.g. -o {q(out.parent / (out.name + '_sweep'))}.")
     # (hidden files, a file manager's .DS_Store, do not make a folder anyone's)
-    held = [p.name for p in out_dir.iterdir() if not p.name.startswith(".")] if out_dir.is_dir() else []
+    held = [p.name for p in out_dir.iterdir() if not p.name.startswith(".") and p.resolve() != spec_path.resolve()] \
+        if out_dir.is_dir() else []
     if held and not any(n in SWEEP_FILES for n in held):
         raise UserError(f"the output folder is not empty and holds no earlier sweep ({list_names(sorted(held))}): the "
                         "sweep would write its index.html, pareto.png and folders among them", path=out_dir,
@@ -159,11 +161,14 @@ def _drop_runs(runs: Path) -> None:
         shutil.rmtree(runs)
 
 
-def _outputs_inside(folder: Path) -> list[Path]:
+def _outputs_inside(folder: Path, evaluations: bool = True) -> list[Path]:
     """uncertsplat's own outputs inside the scene folder ``folder`` (a run trained into SCENE/run, a pipeline's or a
-    sweep's output, a stage folder with its manifest, an ``evaluate -o`` or a ``select-views -o`` folder): not the
-    scene's files, and changed by every command run there (a review's run trained into the scene refused every point
-    of the sweep on it). One walk of the folder, never into the folders a scene's loader reads (``_SCENE_DATA``)."""
+    sweep's output, a stage folder with its manifest, a run's evaluation folder copied there, a ``select-views -o``
+    folder): not the scene's files, and changed by every command run there (a review's run trained into the scene
+    refused every point of the sweep on it). One walk of the folder, never into the folders a scene's loader reads
+    (``_SCENE_DATA``).
+    ``evaluations`` False: without evaluation and selection folders, as before 2026-12-01 (a fingerprint recorded
+    then is taken by those rules)."""
     import os
 
     from uncertsplat.errors import UserError
@@ -186,13 +191,14 @@ def _outputs_inside(folder: Path) -> list[Path]:
             return read_manifest(place) is not None
         if marker == SCENE_INPUTS:  # (a sweep's output: its runs/ or records beside it)
             return (place / "runs").is_dir() or (place / "sweep.jsonl").is_file()
-        if marker == "metrics.json":  # (evaluate -o: another tool's metrics.json is the scene's)
+        if marker == "metrics.json":  # (a copied RUN/eval; another tool's metrics.json is the scene's)
             return (place / "config.json").is_file() and reads_as(EvalReport, place / marker)
         if marker == "selection.json":
             return reads_as(Selection, place / marker)
         return True  # (.stages_started.json: uncertsplat run's own name)
 
-    markers = ("config.json", MANIFEST, PIPELINE_STARTED, SCENE_INPUTS, "metrics.json", "selection.json")
+    markers = ("config.json", MANIFEST, PIPELINE_STARTED, SCENE_INPUTS,
+               *(("metrics.json", "selection.json") if evaluations else ()))
     found = set()
     for top, dirs, files in os.walk(folder):
         place = Path(top)
@@ -237,8 +243,9 @@ def _check_scene_inputs(out_dir: Path, folders: dict[str | None, Path], force: b
                                                                                       *_outputs_inside(folder)])}
         old = recorded.get(key)
         if (isinstance(old, dict) and old != entry and old.get("path") == entry["path"] and "fingerprint" in entry
-                and old.get("fingerprint") == fingerprint_folder(folder, skip=out_dir)):
-            old = entry  # (recorded before the outputs inside were left out, 2026-12-01: the same files)
+                and old.get("fingerprint") in (fingerprint_folder(folder, skip=out_dir), fingerprint_folder(
+                    folder, skip=[out_dir, *_outputs_inside(folder, evaluations=False)]))):
+            old = entry  # (recorded by the rules before, 2026-12-01: every file, or runs and stages left out)
         if isinstance(old, dict) and old != entry:
             def where(e: dict) -> str:
                 return (f"the scene the sweep made ({out_dir / e.get('path', '')})" if e.get("made_by_the_sweep")
@@ -393,7 +400,7 @@ def run(spec_path: Path, out_dir: Path, *, jobs: int | None = None, device: str 
                         f"{len(spec.scenes)} scenes ({', '.join(spec.scenes)})", path=spec_path,
                         hint="Set one scene's folder with --set scenes.NAME.path=FOLDER instead.")
     _refuse_foreign_output(out_dir, [Path(scene) if scene is not None else spec.scene,
-                                     *(e.path for e in (spec.scenes or {}).values())])
+                                     *(e.path for e in (whole.scenes or {}).values())], spec_path)
     with run_lock(out_dir, "sweep"):  # (it makes the folder, or says why it cannot)
         if spec.scenes:
             folders = {name: prepare_scene(name, entry, out_dir, force) for name, entry in spec.scenes.items()}
