@@ -1024,3 +1024,25 @@ def test_extend_into_a_scene_reconstruct_did_not_make_points_to_a_new_folder(tmp
     with pytest.raises(UserError, match=r"needs a finished workspace .*\(its report") as err:  # nothing there yet
         stage.run(photos, tmp_path / "nowhere", ReconstructConfig(extend=True))
     assert "Reconstruct the photos first" in err.value.hint
+
+
+def test_colmap_failing_on_a_full_disk_is_said_as_the_disk(tmp_path, monkeypatch):
+    """pycolmap's RuntimeError on a full disk ("No registered database factory succeeded") reached the user as a
+    traceback; with the disk nearly full it is said as the disk, and other RuntimeErrors stay what they are."""
+    import collections
+
+    photos = _photos(tmp_path)
+
+    def boom(*a, **k):
+        raise RuntimeError("No registered database factory succeeded")
+
+    monkeypatch.setattr(stage.sfm, "extract_features", boom)
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(stage.shutil, "disk_usage", lambda p: usage(10**9, 10**9 - 2 * 10**6, 2 * 10**6))
+    with pytest.raises(UserError, match=r"No registered database factory succeeded\) with 2 MB left .*the disk is "
+                                         "full") as err:
+        stage.run(photos, tmp_path / "ws", ReconstructConfig())
+    assert "Free some space" in err.value.hint
+    monkeypatch.setattr(stage.shutil, "disk_usage", lambda p: usage(10**12, 0, 10**11))
+    with pytest.raises(RuntimeError, match="factory"):
+        stage.run(photos, tmp_path / "ws2", ReconstructConfig())

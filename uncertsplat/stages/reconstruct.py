@@ -202,6 +202,21 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
     return None
 
 
+DISK_FULL_BYTES = 64 * 2**20
+"""Below this much free space on its disk, an error of COLMAP's in a workspace is taken for a full disk."""
+
+
+def _free_bytes(folder: Path) -> int | None:
+    """The free bytes on the disk that holds ``folder`` (or its nearest existing parent); None where it cannot say."""
+    for place in (folder, *folder.parents):
+        if place.exists():
+            try:
+                return shutil.disk_usage(place).free
+            except OSError:
+                return None
+    return None
+
+
 def _remove(target: Path) -> None:
     """Delete a file, link or folder if it is there."""
     if target.is_dir() and not target.is_symlink():
@@ -668,6 +683,16 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
             report.stage_seconds = dict(watch.seconds)
             report.total_seconds = round(time.perf_counter() - t_start, 3)
             write_report(workspace, report)
+    except RuntimeError as err:
+        # COLMAP's own errors on a full disk ("No registered database factory succeeded", a write that failed): said
+        # as the disk, not as COLMAP's traceback
+        room = _free_bytes(workspace)
+        if room is None or room >= DISK_FULL_BYTES:
+            raise
+        raise UserError(f"COLMAP failed ({str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__}) "
+                        f"with {room / 1e6:.0f} MB left on the disk that holds the workspace: the disk is full",
+                        path=workspace, hint="Free some space (or choose an output folder on another disk), then run "
+                                             "the same command again.") from None
     except KeyboardInterrupt:
         if overwrite["restored"]:
             raise Interrupted("reconstruct interrupted; the workspace --overwrite was to replace is back as it was",
