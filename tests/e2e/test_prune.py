@@ -395,23 +395,81 @@ def test_a_model_is_not_pruned_by_the_predictive_score(tiny_run_path, tmp_path):
         assert "--dry-run or --sweep" in err.value.hint and not out.exists()
 
 
-def test_an_evaluation_that_fails_after_the_model_is_written_says_what_works(tiny_run_path, tmp_path, monkeypatch):  # noqa: F811
-    """A full disk while prune evaluated the pruned run it had written: the evaluation's advice ("free some space, then
-    run again") led to a prune refused because its output exists. The message says the run is written and that
-    `uncertsplat evaluate OUT` scores it."""
+def test_an_evaluation_that_fails_leaves_no_output_and_its_advice_works(tiny_run_path, tmp_path, monkeypatch):  # noqa: F811
+    """A full disk while prune evaluated the pruned run: the run was already under its final name, so the evaluation's
+    advice ("free some space, then run again") led to a prune refused because its output existed. The evaluation runs
+    in the staging folder now: nothing is left, the file is named as it lies in the output, and running again works."""
     from uncertsplat.stages import evaluate
 
-    def full(*args, **kwargs):
-        raise UserError("cannot write here (the disk is full)", path=tmp_path / "out" / "eval" / "maps",
-                        hint="Free some space, then run again.")
+    real = evaluate.run
 
+    def full(run_dir, *args, **kwargs):
+        raise UserError("could not write the file: the disk is full; nothing was left half-written",
+                        path=Path(run_dir) / "eval" / "maps" / "view_000_rgb.png",
+                        hint="Free some space or choose another output folder, then run again.")
+
+    out = tmp_path / "out"
     monkeypatch.setattr(evaluate, "run", full)
     with pytest.raises(UserError) as err:
-        prune.run(tiny_run_path, tmp_path / "out", PruneConfig(keep_ratio=0.8, **FAST), device=CPU)
+        prune.run(tiny_run_path, out, PruneConfig(keep_ratio=0.8, **FAST), device=CPU)
     said = err.value.render()
-    assert "prune wrote the pruned run to" in said and "then its evaluation failed" in said, said
-    assert f"`uncertsplat evaluate {q(tmp_path / 'out')}`" in said and "Free some space" in said, said
-    assert (tmp_path / "out" / "variational.ply").is_file()
+    assert "prune's evaluation of the pruned run failed" in said and "nothing was written" in said, said
+    assert err.value.path == out / "eval" / "maps" / "view_000_rgb.png" and "Free some space" in said, said
+    assert not out.exists() and list(tmp_path.iterdir()) == [], list(tmp_path.iterdir())
+    monkeypatch.setattr(evaluate, "run", real)  # space freed: the same command
+    result = prune.run(tiny_run_path, out, PruneConfig(keep_ratio=0.8, **FAST), device=CPU)
+    assert result.metrics.after.ause_mae is not None and (out / "eval" / "metrics.json").is_file()
+
+
+def test_ctrl_c_during_the_evaluation_writes_nothing(tiny_run_path, tmp_path, monkeypatch):  # noqa: F811
+    """Ctrl-C while prune evaluated the pruned run: the CLI says "nothing was written (the output folder appears only
+    when prune has finished)", which now holds; the run had been renamed into place before its evaluation."""
+    from uncertsplat.stages import evaluate
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(evaluate, "run", stop)
+    with pytest.raises(KeyboardInterrupt):
+        prune.run(tiny_run_path, tmp_path / "out", PruneConfig(keep_ratio=0.8, **FAST), device=CPU)
+    assert list(tmp_path.iterdir()) == []
+
+
+_KILLED_IN_EVALUATION = """
+import os, signal, sys
+from uncertsplat.stages import evaluate
+def killed(*args, **kwargs):  # the evaluation's maps are written (in its staging folder): killed before they are put
+    os.kill(os.getpid(), signal.SIGKILL)
+evaluate._put_in_place = killed
+from uncertsplat.cli import app
+sys.argv = ["uncertsplat", *{args!r}]
+app()
+"""
+
+
+def test_a_prune_killed_during_its_evaluation_leaves_no_output_and_the_same_command_works(tiny_run_path,  # noqa: F811
+                                                                                             tmp_path):
+    """kill -9 while prune evaluated the pruned run left OUT with a prune.json without its "after" row, the
+    evaluation's staging maps and a dead lock, and the same command refused it ("the output folder already exists").
+    Now OUT does not exist; the killed process's staging folder is removed by the next prune, which finishes."""
+    import signal
+
+    from tests.reliability.helpers import finish, run_cli, start_python
+
+    out = tmp_path / "out"
+    args = ["prune", str(tiny_run_path), "-o", str(out), "--keep-ratio", "0.8", "--device", "cpu",
+            *[a for k, v in FAST.items() for a in ("--set", f"{k}={v}")]]
+    rc, said = finish(start_python(_KILLED_IN_EVALUATION.format(args=args)))
+    assert rc == -signal.SIGKILL, said
+    assert "evaluating the pruned run" in said, said
+    assert not out.exists(), sorted(p.relative_to(out).as_posix() for p in out.rglob("*"))
+    left = [p.name for p in tmp_path.iterdir()]
+    assert len(left) == 1 and left[0].startswith(".out.tmp-"), left  # the killed process's, with its model
+    done = run_cli(*args)
+    assert done.returncode == 0, done.stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
+    assert PruneReport.read(out / "prune.json").metrics.after.ause_mae is not None
+    assert not (out / ".lock").exists() and not list((out / "eval").glob(".maps-*"))
 
 
 def test_a_moved_project_s_prune_reads_its_own_source_run(pruned, tiny_run_path, tmp_path):  # noqa: F811

@@ -44,6 +44,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
@@ -52,7 +53,7 @@ import torch
 
 from uncertsplat.config import EvalConfig, PruneConfig
 from uncertsplat.console import console, print_table, q
-from uncertsplat.errors import Interrupted, NoPosterior, UserError, run_folder_missing
+from uncertsplat.errors import NoPosterior, UserError, run_folder_missing
 from uncertsplat.io.atomic import temp_folder, temp_stem
 from uncertsplat.provenance import file_sha256
 from uncertsplat.schemas.base import path_from
@@ -493,26 +494,17 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         _print_result(result, notes, score_name, cfg)
         console.print("dry run: nothing written" if cfg.dry_run else "sweep only: nothing written (no -o)")
         return result
-    _write_output(run_dir, output, cfg, measure, loaded, result, scores, carriers, keep, pruned, random_model, sweep)
-    if evaluate_written and keep is not None and result.counts.removed > 0:  # (nothing removed: "after" is "before")
-        try:
-            _evaluate_written(output, result, measure, device)
-        except KeyboardInterrupt:
-            raise Interrupted(f"prune stopped while it evaluated the pruned run: the run is written to {output}, but "
-                              "prune.json's 'after' row holds only the expected render's PSNR", path=output,
-                              hint=f"`uncertsplat evaluate {q(output)}` scores the pruned run (its eval/ folder); or "
-                                   f"delete {output} and prune again for a complete prune.json.") from None
-        except UserError as err:  # (a full disk while it wrote the maps): its own advice, "run again", would be refused
-            raise UserError(f"prune wrote the pruned run to {output}, then its evaluation failed: {err.message}",
-                            path=err.path or output,
-                            hint=(f"{err.hint} " if err.hint else "") + f"Then `uncertsplat evaluate {q(output)}` scores the "
-                                 f"pruned run (running prune again into {output} is refused: the folder exists; "
-                                 f"delete it first for a complete prune.json).") from None
+    def evaluate_staged(staged: Path) -> None:  # (in the staging folder, before it is renamed to the output)
+        _evaluate_written(staged, result, measure, device, shown=output)
         notes.append(f"{PRUNED_FROM_EVALUATE} ({output / 'eval' / 'metrics.json'}: "
                      "the pruned run evaluated as `evaluate` does, with this K and seed)")
         _tolerance_note(result, notes, cfg)
         _random_note(result, notes, score_name, cfg)
-        result.write(output / "prune.json")
+
+    # (nothing removed: the "after" row is the "before" row)
+    evaluates = evaluate_written and keep is not None and result.counts.removed > 0
+    _write_output(run_dir, output, cfg, measure, loaded, result, scores, carriers, keep, pruned, random_model, sweep,
+                  evaluate_staged if evaluates else None)
     _print_result(result, notes, score_name, cfg)
     return result
 
@@ -579,12 +571,13 @@ def _print_result(result: PruneReport, notes: list[str], score_name: str, cfg: P
 
 
 def _evaluate_written(output: Path, result: PruneReport, measure: _Measure, device: torch.device,
-                      save_maps: bool = True) -> None:
+                      save_maps: bool = True, shown: Path | None = None) -> None:
     """Evaluate the pruned run just written to ``output`` as ``evaluate`` does (``output/eval``), and take its held-out
-    means as the "after" row of ``result`` (a dry run's: a temporary folder, without the maps)."""
+    means as the "after" row of ``result`` (a dry run's: a temporary folder, without the maps). ``shown``: the folder
+    the console names (the output, where ``output`` is its staging folder)."""
     from uncertsplat.stages import evaluate
 
-    console.print(f"evaluating the pruned run {output} as `evaluate` does" if save_maps else
+    console.print(f"evaluating the pruned run {shown or output} as `evaluate` does" if save_maps else
                   "evaluating the pruned model as `evaluate` would (in a temporary folder, removed after)")
     report = evaluate.run(output, measure.ecfg.model_copy(update={"save_maps": save_maps}), device, quiet=True)
     after = result.metrics.after
@@ -614,6 +607,16 @@ def _remove_dead_temp_folders(output: Path) -> None:
             shutil.rmtree(p, ignore_errors=True)
         except OSError:  # alive under another user: not ours to remove
             pass
+
+
+def _in_output(path: Path | None, staging: Path, output: Path) -> Path | None:
+    """``path`` as it would lie in ``output`` when it lies in ``staging`` (the staging folder, removed), else itself."""
+    if path is None:
+        return None
+    try:
+        return output / Path(path).relative_to(staging)
+    except ValueError:
+        return path
 
 
 def _write_model(folder: Path, run_dir: Path, loaded, meta: dict, pruned, keep: torch.Tensor, carriers: torch.Tensor,
@@ -647,7 +650,12 @@ def _write_model(folder: Path, run_dir: Path, loaded, meta: dict, pruned, keep: 
 
 
 def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measure, loaded, result: PruneReport,
-                  scores: dict, carriers: torch.Tensor, keep, pruned, random_model, sweep) -> None:
+                  scores: dict, carriers: torch.Tensor, keep, pruned, random_model, sweep,
+                  evaluate: Callable[[Path], None] | None = None) -> None:
+    """Write the prune's files into a staging folder beside ``output`` and rename it into place. ``evaluate(staging)``
+    (the pruned run evaluated as ``evaluate`` does, ``_evaluate_written``) runs before the rename: a prune stopped or
+    killed during its evaluation (the longest step) left ``output`` with a prune.json without its "after" row and a
+    dead process's lock and maps, which the same command then refused as an existing output."""
     from uncertsplat.data.dataset import photo_turns, turned_back
     from uncertsplat.io.atomic import atomic_write_bytes
     from uncertsplat.io.images import write_png
@@ -682,7 +690,16 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
         # the resolved settings of this prune (config.json beside it is the pruned run's training config)
         atomic_write_bytes(tmp / "prune_config.json", (cfg.model_dump_json(indent=2) + "\n").encode())
         result.source_from_run = path_from(output, run_dir)  # (tmp is the output's sibling: the same path from either)
-        result.write(tmp / "prune.json")
+        result.write(tmp / "prune.json")  # (the evaluation reads it: the source's coverage)
+        if evaluate is not None:
+            try:
+                evaluate(tmp)
+            except UserError as err:  # (a full disk while it wrote the maps): named in the output, which the rename
+                # would have made of the staging folder; its own advice ("run again") works, as nothing is kept
+                raise UserError(f"prune's evaluation of the pruned run failed: {err.message}; nothing was written "
+                                "(the output folder appears only when prune has finished)",
+                                path=_in_output(err.path, tmp, output), hint=err.hint) from None
+            result.write(tmp / "prune.json")  # with its "after" row
         try:
             if output.exists():
                 output.rmdir()  # checked empty before any work; rmdir fails (safely) if something appeared since
