@@ -462,6 +462,31 @@ def test_a_finished_run_without_its_checkpoints_is_not_trained_again(tiny_scene_
     assert (run / "variational.ply").read_bytes() == model
 
 
+def test_a_finished_run_whose_checkpoints_are_all_damaged_says_so(tiny_scene_path, tmp_path, capsys):  # noqa: F811
+    """Every checkpoint truncated: --resume said "its checkpoints are gone (ckpts/ holds none)" with two damaged ones in
+    ckpts/. It says they are damaged, and its advice (copy them back from a copy of the run) works."""
+    run = tmp_path / "run"
+    cfg = train_config_from("tiny", None, ["iterations=4", "scene.downscale=4.0", "checkpoint_every=2",
+                                           "log_every=1", "eval_every=1000"])
+    stage.run(tiny_scene_path, run, cfg, torch.device("cpu"))
+    shutil.copytree(run, tmp_path / "copy")
+    for path in (run / "ckpts").iterdir():
+        path.write_bytes(path.read_bytes()[:1000])
+    capsys.readouterr()
+    stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True)
+    said = " ".join(capsys.readouterr().err.split())
+    assert "nothing to do (its checkpoints are damaged, so it cannot be trained on)" in said, said
+    with pytest.raises(UserError) as err:
+        stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True, extend_to=6)
+    said = err.value.render()
+    assert "the run's 2 checkpoints in ckpts/ are all damaged" in said and "holds none" not in said, said
+    assert "Copy the checkpoints back into ckpts/ from a copy of the run" in said, said
+    shutil.rmtree(run / "ckpts")
+    shutil.copytree(tmp_path / "copy" / "ckpts", run / "ckpts")
+    stage.run(tiny_scene_path, run, cfg, torch.device("cpu"), resume=True, extend_to=6)
+    assert json.loads((run / "train_summary.json").read_text(encoding="utf-8"))["steps"] == 6
+
+
 def test_views_held_out_by_index_are_named(tiny_scene_path, tmp_path, capsys):  # noqa: F811
     """Indices count the scene's views after any photo it left out, so `train` names the views they chose (a user's
     index 11 held out the 11th photo left, not the 11th file of the folder, without a word)."""

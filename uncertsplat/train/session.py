@@ -393,7 +393,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             interruption (Ctrl-C / SIGTERM; a checkpoint was written and ``--resume`` continues).
     """
     from uncertsplat.data.dataset import load_masks, load_photos
-    from uncertsplat.io.checkpoints import load_latest
+    from uncertsplat.io.checkpoints import list_checkpoints, load_latest
     from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
     from uncertsplat.render import near_plane
     from uncertsplat.sfm.scene import (
@@ -514,19 +514,29 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                               "show stays poorly fitted; to grow for them, add views from an earlier checkpoint (a run "
                               "of more steps, or one started with a later densify.until)")
             finished = _summary_steps(run_dir) if (run_dir / "variational.ply").is_file() else None
-            if found is None and finished:  # a finished model whose checkpoints were deleted (to save disk)
+            # checkpoints that are there but none loads (each named in a warning above) are not "gone": a copy of the
+            # run restores them
+            damaged = len(list_checkpoints(run_dir)) if found is None else 0
+            broken = (f"{damaged} checkpoint{'s' if damaged > 1 else ''} in ckpts/ {'are all' if damaged > 1 else 'is'} "
+                      "damaged (the warnings above name them)")
+            if found is None and finished:  # a finished model whose checkpoints were deleted (to save disk) or damaged
                 if extend_to is None or extend_to <= finished:
                     if not _same_scene_path(run_dir, scene):  # resumed to point it at its scene's new folder
                         _record_moved_scene(run_dir, scene, cfg)
-                    console.print(f"{run_dir}: already trained for its {finished} steps, nothing to do (its "
-                                  "checkpoints are gone, so it cannot be trained on)")
+                    console.print(f"{run_dir}: already trained for its {finished} steps, nothing to do ("
+                                  + ("its checkpoints are damaged" if damaged else "its checkpoints are gone")
+                                  + ", so it cannot be trained on)")
                     return run_dir
-                raise UserError(f"the run's checkpoints are gone (ckpts/ holds none): it cannot go on from its "
-                                f"{finished} steps, and starting from step 0 would replace its finished model",
-                                path=run_dir, hint="Train a new run with the steps you want (-o NEW_RUN --iterations "
-                                                   f"{extend_to}); this one stays as it is.")
+                why = f"the run's {broken}" if damaged else "the run's checkpoints are gone (ckpts/ holds none)"
+                raise UserError(f"{why}: it cannot go on from its {finished} steps, and starting from step 0 would "
+                                "replace its finished model", path=run_dir,
+                                hint=("Copy the checkpoints back into ckpts/ from a copy of the run and run this "
+                                      "again, or train" if damaged else "Train")
+                                + f" a new run with the steps you want (-o NEW_RUN --iterations {extend_to}); this "
+                                  "one stays as it is (its finished model is intact: evaluate, prune and view read it).")
             if found is None:
-                console.print("[yellow]note:[/] no usable checkpoint in the run folder; starting from step 0")
+                console.print("[yellow]note:[/] no usable checkpoint in the run folder"
+                              + (f": its {broken}" if damaged else "") + "; starting from step 0")
                 for name in ("stats.jsonl",):
                     (run_dir / name).unlink(missing_ok=True)
             elif (int(found[1]["step"]) >= cfg.iterations and not add_views and (run_dir / "variational.ply").is_file()
