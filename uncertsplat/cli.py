@@ -69,18 +69,52 @@ _ENVIRONMENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, err
 
 
 _INTERRUPTED = {
-    "evaluate": "this evaluation has no metrics.json (it is written last, and an earlier one goes once new maps are "
-                "written), so no command takes it for a finished one; the same command evaluates again",
     "prune": "nothing was written (the output folder appears only when prune has finished); the same command "
              "prunes again",
     "report": "the page was not written; the same command writes the report (its figures again too)",
-    "synth": "the scene folder is unfinished (no scene.json); the same command with --overwrite writes it again",
     "select_views": "no selection was written; the same command scores the candidates again",
     "run_pipeline": "the stages that finished are kept (each has a manifest.json); the same command skips them and "
                     "runs the rest",
     "view": "the viewer stopped",
 }
-"""What Ctrl-C leaves, by command (function name), for those that do not say it themselves."""
+"""What Ctrl-C leaves, by command (function name), for those that do not say it themselves (evaluate and synth say it
+by what is on disk: ``_evaluation_stopped``, ``_synth_stopped``)."""
+
+
+def _evaluation_stopped(run: Path, cfg) -> Interrupted:
+    """What a Ctrl-C in ``evaluate`` left: its maps go to a staging folder (removed) and are put in place with
+    metrics.json once every view is scored, so an earlier evaluation stays whole; one fixed text said "this evaluation
+    has no metrics.json" beside an intact earlier one."""
+    from uncertsplat.stages.evaluate import eval_dir
+
+    out = eval_dir(run, cfg)
+    if (out / "metrics.json").is_file():
+        return Interrupted("evaluate stopped before it finished; the evaluation already here is kept whole (its "
+                           "metrics.json and maps: the new maps went to a staging folder, now removed)", path=out,
+                           hint="The same command evaluates again.")
+    return Interrupted("evaluate stopped before it finished: no metrics.json was written (it is written last), so no "
+                       "command takes this folder for a finished evaluation", path=out if out.is_dir() else run,
+                       hint="The same command evaluates again.")
+
+
+def _holds_files(folder: Path) -> bool:
+    return folder.is_dir() and any(p.name != ".lock" for p in folder.iterdir())
+
+
+def _synth_stopped(out: Path, held: bool) -> Interrupted:
+    """What a Ctrl-C in ``synth`` left in ``out`` (``held``: it held files before, a scene replaced with --overwrite).
+    The scene is rendered into a temporary folder, removed on a stop, and moved into ``out`` once finished: one fixed
+    text said "the scene folder is unfinished ... --overwrite" where no folder was left and the plain command works."""
+    if not _holds_files(out):
+        return Interrupted("synth stopped before the scene was finished: nothing was written (it is rendered into a "
+                           "temporary folder, moved into place once finished)", path=out,
+                           hint="The same command writes the scene.")
+    if held:
+        return Interrupted("synth stopped before the new scene was finished: the folder holds what it held before "
+                           "(the scene is rendered into a temporary folder, moved into place once finished)", path=out,
+                           hint="The same command writes the scene.")
+    return Interrupted("synth stopped while it moved the finished scene into place: the folder holds part of it",
+                       path=out, hint="The same command with --overwrite writes it again.")
 
 
 def _d_flag(model: str, field: str, on: str, off: str) -> str:
@@ -354,7 +388,11 @@ def synth(
     out = out if out is not None else output
     explicit = {"preset": preset, "seed": seed, "layout": layout, "rig": rig, "backdrop": backdrop}
     cfg = _stage_config(SynthConfig, None, set_, explicit)
-    stage.run(out, cfg, overwrite=overwrite)
+    held = _holds_files(out)
+    try:
+        stage.run(out, cfg, overwrite=overwrite)
+    except KeyboardInterrupt:
+        raise _synth_stopped(out, held) from None
     # the next command a user types (not printed by the stage: inside `run` the pipeline trains it)
     console.print(f"Next: [bold]uncertsplat train {qm(out)} -o RUN --preset {cfg.preset}[/]")
 
@@ -489,7 +527,10 @@ def evaluate(
     explicit = dict(split=split, num_samples=num_samples, seed=seed, depth_gt=depth_gt, depth_scale=ds,
                     paper_nll=paper_nll)
     cfg = _stage_config(EvalConfig, config, set_, explicit)
-    stage.run(run, cfg, device=resolve_device(device))
+    try:
+        stage.run(run, cfg, device=resolve_device(device))
+    except KeyboardInterrupt:
+        raise _evaluation_stopped(run, cfg) from None
 
 
 @app.command()

@@ -1368,6 +1368,35 @@ def test_an_evaluation_stopped_midway_keeps_the_earlier_one_whole(tiny_run_path,
         evaluate.run(run, first, device=torch.device("cpu"))
 
 
+def test_evaluate_stopped_says_what_is_on_disk(tiny_run_path, tmp_path, monkeypatch):  # noqa: F811
+    """Ctrl-C during evaluate said "this evaluation has no metrics.json" beside an intact earlier metrics.json and maps:
+    it says the earlier evaluation is kept whole, and without one that no metrics.json was written."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval", ".lock"))
+    real = evaluate.write_view_maps
+
+    def stop_after_one(*args, **kwargs):
+        real(*args, **kwargs)
+        raise KeyboardInterrupt
+
+    args = ["evaluate", str(run), "--num-samples", "2", "--device", "cpu"]
+    monkeypatch.setattr(evaluate, "write_view_maps", stop_after_one)
+    result = runner.invoke(app, args)
+    said = " ".join(result.output.split())
+    assert result.exit_code == 130 and "no metrics.json was written" in said, said
+    monkeypatch.setattr(evaluate, "write_view_maps", real)
+    assert runner.invoke(app, args).exit_code == 0  # "the same command evaluates again"
+    kept = {p.relative_to(run): p.read_bytes() for p in (run / "eval").rglob("*") if p.is_file()}
+    monkeypatch.setattr(evaluate, "write_view_maps", stop_after_one)
+    result = runner.invoke(app, [*args, "--seed", "5"])
+    said = " ".join(result.output.split())
+    assert result.exit_code == 130 and "the evaluation already here is kept whole" in said, said
+    assert "has no metrics.json" not in said and f"{run / 'eval'}: " in said, said
+    assert {p.relative_to(run): p.read_bytes() for p in (run / "eval").rglob("*") if p.is_file()
+            and p.name not in ("residual.pt", "predictive.pt")} == {
+        k: v for k, v in kept.items() if k.name not in ("residual.pt", "predictive.pt")}
+
+
 def test_views_the_model_leaves_empty_are_named():
     """A held-out view whose pixels the model leaves empty (no Gaussian: alpha < 1/2) well beyond its training views'
     share is named with the fraction (the surface-based reach note cannot see empty rays: 40 % empty, 12 dB); the

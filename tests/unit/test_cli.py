@@ -226,8 +226,7 @@ def test_view_addresses_are_checked_at_once_with_the_command_s_own_option(tmp_pa
     check_port("localhost", 0)
 
 
-@pytest.mark.parametrize(("command", "words"), [("evaluate", "this evaluation has no metrics.json"),
-                                                ("prune", "nothing was written"),
+@pytest.mark.parametrize(("command", "words"), [("prune", "nothing was written"),
                                                 ("run_pipeline", "the stages that finished are kept")])
 def test_ctrl_c_says_what_was_kept(command, words, capsys, monkeypatch):
     """Ctrl-C in a command that does not say it itself: what it kept and what to run (it printed 'interrupted')."""

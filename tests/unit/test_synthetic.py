@@ -209,6 +209,41 @@ def test_cli_synth_takes_its_folder_as_the_other_commands_do(tmp_path):
     assert none.exit_code == 2 and "synth OUT (or -o OUT)" in none.output and "Traceback" not in none.output
 
 
+def test_cli_synth_stopped_says_what_is_on_disk(tmp_path, monkeypatch):
+    """Ctrl-C during synth said "the scene folder is unfinished ... the same command with --overwrite writes it again"
+    where no folder was left (the scene is rendered into a temporary folder) and the plain command works; into a
+    folder that held a scene (--overwrite), that scene is left as it was. Each advice is followed."""
+    from uncertsplat.stages import synth
+
+    real = synth.generate_scene
+
+    def stopped(out, cfg, overwrite=False, on_view=None):
+        def stop(done, total):
+            raise KeyboardInterrupt
+
+        return real(out, cfg, overwrite=overwrite, on_view=stop)
+
+    out = tmp_path / "scene"
+    small = ["--preset", "tiny", "--set", "num_views=3", "--set", "width=16"]
+    monkeypatch.setattr(synth, "generate_scene", stopped)
+    result = runner.invoke(app, ["synth", str(out), *small])
+    said = " ".join(result.output.split())
+    assert result.exit_code == 130 and "interrupted:" in said and "nothing was written" in said, said
+    assert "--overwrite" not in said and "The same command writes the scene." in said, said
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.setattr(synth, "generate_scene", real)
+    assert runner.invoke(app, ["synth", str(out), *small]).exit_code == 0  # the same command
+    scene = (out / "scene.json").read_bytes()
+    monkeypatch.setattr(synth, "generate_scene", stopped)
+    result = runner.invoke(app, ["synth", str(out), *small, "--seed", "3", "--overwrite"])
+    said = " ".join(result.output.split())
+    assert result.exit_code == 130 and "the folder holds what it held before" in said, said
+    assert (out / "scene.json").read_bytes() == scene and [p.name for p in tmp_path.iterdir()] == ["scene"]
+    monkeypatch.setattr(synth, "generate_scene", real)
+    assert runner.invoke(app, ["synth", str(out), *small, "--seed", "3", "--overwrite"]).exit_code == 0
+    assert json.loads((out / "scene.json").read_text(encoding="utf-8"))["seed"] == 3
+
+
 def test_cli_synth_refuses_a_foreign_folder(tmp_path):
     (tmp_path / "notes.txt").write_text("mine")
     result = runner.invoke(app, ["synth", str(tmp_path), "--preset", "tiny", "--set", "num_views=3",
