@@ -23,7 +23,7 @@ from rich.text import Text
 from uncertsplat import __version__
 from uncertsplat.config import STAGE_PATH_KEYS as _PATH_KEYS
 from uncertsplat.console import console, q, qm
-from uncertsplat.errors import Interrupted, UserError, out_of_memory
+from uncertsplat.errors import Interrupted, UserError, WriteFailed, out_of_memory
 
 app = typer.Typer(
     name="uncertsplat",
@@ -117,6 +117,20 @@ def _synth_stopped(out: Path, held: bool) -> Interrupted:
                        path=out, hint="The same command with --overwrite writes it again.")
 
 
+def _space_advice(command: str, kwargs: dict) -> str | None:
+    """What works after a full disk (or quota) stopped ``command``, where the writer's "free some space or choose
+    another output folder, then run again" does not: ``evaluate`` writes into the run (it has no output folder to
+    choose), and a ``train`` whose run folder holds its config is refused when run again without --resume. None: the
+    writer's advice works."""
+    if command == "evaluate":
+        return ("Free some space on that disk, then run the same command again (evaluate writes into the run folder); "
+                "or copy the run folder to a disk with room and evaluate the copy.")
+    if command == "train" and kwargs.get("output") is not None and (Path(kwargs["output"]) / "config.json").is_file():
+        return ("Free some space, then run the same command again" + ("" if kwargs.get("resume") else " with --resume")
+                + " (from its last checkpoint, where it has one); or choose another output folder (-o) for a new run.")
+    return None
+
+
 def _d_flag(model: str, field: str, on: str, off: str) -> str:
     """``_d`` for an on/off flag pair: the name of the flag the field's default stands for."""
     import uncertsplat.config as configs
@@ -156,6 +170,8 @@ def _handle_errors(fn):
             if _STATE["debug"]:  # the traceback, then the exit code of a user error, as without --debug
                 console.print_exception()
                 raise typer.Exit(130 if isinstance(err, Interrupted) else 2) from None
+            if isinstance(err, WriteFailed) and err.space:
+                err.hint = _space_advice(fn.__name__, kwargs) or err.hint
             # the message as plain text: a path or value in it must not be read as markup or an emoji code
             label = ("interrupted:", "bold yellow") if isinstance(err, Interrupted) else ("error:", "bold red")
             if isinstance(err, Interrupted):
@@ -181,9 +197,10 @@ def _handle_errors(fn):
                 raise
             where = f"{err.filename}: " if err.filename else ""
             space = err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
-            advice = ("Free some space or choose another output folder" if space
-                      else "Choose an output folder you can write to") + ", then run again" + (
-                " (--resume continues the training run)" if fn.__name__ == "train" else "") + "."
+            advice = (space and _space_advice(fn.__name__, kwargs)) or (
+                ("Free some space or choose another output folder" if space
+                 else "Choose an output folder you can write to") + ", then run again" + (
+                    " (--resume continues the training run)" if fn.__name__ == "train" else "") + ".")
             console.print(Text.assemble(("error:", "bold red"), f" {where}{err.strerror}. {advice}"), soft_wrap=True)
             raise typer.Exit(2) from None
 

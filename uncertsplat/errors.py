@@ -66,6 +66,17 @@ def require_extra(module: str, *, feature: str, extra: str):
                         hint=f"Install it with: pip install 'uncertsplat[{extra}]' (or: pip install {module}).") from None
 
 
+class WriteFailed(UserError):
+    """A file could not be written (``io.atomic``; nothing was left half-written). ``space``: the disk (or the quota)
+    was full, and the advice frees space. Its advice, "then run again", is the writer's, which knows no command: the
+    CLI gives a command's own where that one would not work (``evaluate`` has no output folder to choose; a ``train``
+    run folder that exists is refused without --resume)."""
+
+    def __init__(self, message: str, *, path: str | Path | None = None, hint: str | None = None, space: bool = False):
+        self.space = space
+        super().__init__(message, path=path, hint=hint)
+
+
 class StageError(UserError):
     """A pipeline stage failed; the message says which stage and why."""
 

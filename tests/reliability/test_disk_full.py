@@ -215,7 +215,9 @@ def test_cli_with_a_file_size_limit_fails_cleanly_and_resumes(tiny_scene_path, t
         resource.setrlimit(resource.RLIMIT_FSIZE, (30_000, resource.RLIM_INFINITY))
 
     proc = subprocess.run(args, env=env(), capture_output=True, text=True, timeout=WAIT_S, preexec_fn=limit)
-    assert_clean_error(proc.returncode, proc.stderr, "could not write the file", "step_000002.pt")
+    # its advice is the command that works: run again without --resume, the folder (config.json) is refused
+    assert_clean_error(proc.returncode, proc.stderr, "could not write the file", "step_000002.pt",
+                       "then run the same command again with --resume")
     assert not temp_leftovers(run) and not (run / ".lock").exists()
     assert not (run / "ckpts").exists() or not any((run / "ckpts").iterdir())
     ok = subprocess.run(args + ["--resume"], env=env(), capture_output=True, text=True, timeout=WAIT_S)

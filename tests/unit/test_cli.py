@@ -279,6 +279,49 @@ def test_a_file_system_error_gets_the_advice_of_its_kind(code, command, words, n
     assert out.startswith("error: /out/x: ") and words in out and not_words not in out
 
 
+@pytest.mark.parametrize(("command", "run", "words", "not_words"), [
+    ("evaluate", "run", "copy the run folder to a disk with room and evaluate the copy", "another output folder"),
+    ("train", "run", "then run the same command again with --resume", "then run again"),
+    ("train", "resumed", "then run the same command again (from its last checkpoint", "with --resume"),
+    ("train", "none", "Free some space or choose another output folder, then run again.", "--resume"),
+    ("prune", "run", "Free some space or choose another output folder, then run again.", "--resume"),
+])
+@pytest.mark.parametrize("raised", ["WriteFailed", "OSError"])
+def test_a_full_disk_gets_advice_that_works_for_its_command(command, run, words, not_words, raised, tmp_path, capsys):
+    """The writer's "free some space or choose another output folder, then run again": evaluate has no output folder
+    to choose (it writes into the run), and train run again without --resume is refused once its folder holds the
+    run's config ("already exists. Add --resume"); a train whose folder was never written runs again as it was."""
+    import errno
+    import os
+
+    import typer
+
+    from uncertsplat.cli import _handle_errors
+    from uncertsplat.errors import WriteFailed
+
+    folder = tmp_path / "run"
+    folder.mkdir()
+    if run != "none":
+        (folder / "config.json").write_text("{}")
+
+    def fail(**kwargs):
+        if raised == "OSError":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(folder / "x"))
+        raise WriteFailed("could not write the file: the disk is full; nothing was left half-written",
+                          path=folder / "x", hint="Free some space or choose another output folder, then run again.",
+                          space=True)
+
+    fail.__name__ = command
+    kwargs = {"run": folder} if command == "evaluate" else {"output": folder, "resume": run == "resumed"}
+    with pytest.raises(typer.Exit):
+        _handle_errors(fail)(**kwargs)
+    said = capsys.readouterr()
+    out = " ".join((said.out + said.err).split())
+    if raised == "OSError" and run == "none":  # (the handler's own words for a bare OSError)
+        words, not_words = "Free some space or choose another output folder, then run again", "with --resume"
+    assert out.startswith(f"error: {folder / 'x'}: ") and words in out and not_words not in out, out
+
+
 @pytest.mark.parametrize(("command", "option", "default"), [("reconstruct", "--max-image-size", "1600"),
                                                              ("reconstruct", "--mapping-attempts", "4"),
                                                              ("evaluate", "--num-samples", "10"),

@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO
 
-from uncertsplat.errors import UserError
+from uncertsplat.errors import UserError, WriteFailed
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -62,6 +62,10 @@ def temp_stem(name: str) -> str:
     return name[:TEMP_STEM - 9] + "~" + hashlib.sha256(name.encode()).hexdigest()[:8]
 
 
+_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+"""The write failures that freeing space (or raising a quota, or a file-size limit) cures."""
+
+
 def atomic_write_via(path: str | Path, write_tmp: Callable[[str], None], *, what: str = "file") -> Path:
     """Write a file atomically through a writer that takes a file *name* (e.g. OpenImageIO).
 
@@ -79,8 +83,10 @@ def atomic_write_via(path: str | Path, write_tmp: Callable[[str], None], *, what
                                    dir=path.parent)
         os.close(fd)
     except OSError as err:
-        raise UserError(f"cannot write here ({err.strerror})", path=path.parent,
-                        hint="Choose an output folder you can write to.") from None
+        space = err.errno in _SPACE_ERRNOS
+        raise WriteFailed(f"cannot write here ({err.strerror})", path=path.parent, space=space,
+                          hint="Free some space, then run again." if space else
+                          "Choose an output folder you can write to.") from None
     try:
         write_tmp(tmp)
         os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp creates 0600; give the file the usual permissions
@@ -93,8 +99,9 @@ def atomic_write_via(path: str | Path, write_tmp: Callable[[str], None], *, what
         os_err = _os_error(err)
         if os_err is not None:
             why = "the disk is full" if os_err.errno == errno.ENOSPC else (os_err.strerror or str(os_err))
-            raise UserError(f"could not write the {what}: {why}; nothing was left half-written", path=path,
-                            hint="Free some space or choose another output folder, then run again.") from None
+            raise WriteFailed(f"could not write the {what}: {why}; nothing was left half-written", path=path,
+                              hint="Free some space or choose another output folder, then run again.",
+                              space=os_err.errno in _SPACE_ERRNOS) from None
         raise
     _fsync_dir(path.parent)
     return path
