@@ -416,7 +416,22 @@ def test_an_evaluation_that_fails_leaves_no_output_and_its_advice_works(tiny_run
     assert "prune's evaluation of the pruned run failed" in said and "nothing was written" in said, said
     assert err.value.path == out / "eval" / "maps" / "view_000_rgb.png" and "Free some space" in said, said
     assert not out.exists() and list(tmp_path.iterdir()) == [], list(tmp_path.iterdir())
-    monkeypatch.setattr(evaluate, "run", real)  # space freed: the same command
+    monkeypatch.setattr(evaluate, "run", real)
+    from uncertsplat.io import ply
+
+    real_model = ply.write_variational_ply
+
+    def model_full(path, *args, **kwargs):  # the same for the model itself: named where it was to be, not in staging
+        if not Path(path).parent.name.startswith(".out.tmp-"):  # (the file sizes prune measures, elsewhere)
+            return real_model(path, *args, **kwargs)
+        raise UserError("could not write the file: the disk is full; nothing was left half-written", path=path)
+
+    monkeypatch.setattr(ply, "write_variational_ply", model_full)
+    with pytest.raises(UserError) as err:
+        prune.run(tiny_run_path, out, PruneConfig(keep_ratio=0.8, **FAST), device=CPU)
+    assert err.value.path == out / "variational.ply" and str(out / "variational.ply") in str(err.value)
+    assert list(tmp_path.iterdir()) == []
+    monkeypatch.undo()  # space freed: the same command
     result = prune.run(tiny_run_path, out, PruneConfig(keep_ratio=0.8, **FAST), device=CPU)
     assert result.metrics.after.ause_mae is not None and (out / "eval" / "metrics.json").is_file()
 

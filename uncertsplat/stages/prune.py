@@ -694,11 +694,11 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
         if evaluate is not None:
             try:
                 evaluate(tmp)
-            except UserError as err:  # (a full disk while it wrote the maps): named in the output, which the rename
-                # would have made of the staging folder; its own advice ("run again") works, as nothing is kept
+            except UserError as err:  # (a full disk while it wrote the maps): its own advice ("run again") works, as
+                # nothing is kept; its file is named in the output below, which the rename would have made of the staging
                 raise UserError(f"prune's evaluation of the pruned run failed: {err.message}; nothing was written "
                                 "(the output folder appears only when prune has finished)",
-                                path=_in_output(err.path, tmp, output), hint=err.hint) from None
+                                path=err.path, hint=err.hint) from None
             result.write(tmp / "prune.json")  # with its "after" row
         try:
             if output.exists():
@@ -709,8 +709,11 @@ def _write_output(run_dir: Path, output: Path, cfg: PruneConfig, measure: _Measu
                 raise UserError("the output folder was written by another process while this prune ran", path=output,
                                 hint="Nothing of this prune was kept; choose another output folder (-o).") from None
             raise
-    except BaseException:
+    except BaseException as err:
         shutil.rmtree(tmp, ignore_errors=True)
+        if isinstance(err, UserError) and err.path is not None:  # (a full disk): not the staging folder just removed
+            err.path = _in_output(err.path, tmp, output)
+            err.args = (err.render(),)
         raise
     what = "pruned run" if result.written.model else "report (no model: dry run)" \
         if cfg.dry_run else "report (no model: sweep only)"
