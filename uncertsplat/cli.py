@@ -254,7 +254,7 @@ def _config_file(path: Path) -> dict:
     to run the same settings again); one that holds a single stage table (``[train]``) is refused with the fix."""
     import json
 
-    from uncertsplat.config import load_toml
+    from uncertsplat.config import load_toml, what_file_is
 
     if Path(path).suffix.lower() == ".json" and Path(path).is_file():
         try:
@@ -272,6 +272,15 @@ def _config_file(path: Path) -> dict:
                         f"level (e.g. `iterations = 7000`, not under [{table}])", path=path,
                         hint=f"Remove the [{table}] line; a pipeline file (`uncertsplat run`) is where stages are "
                              "tables.")
+    what = what_file_is(data)
+    if what is not None and ("schema_version" in data or what == "a sweep spec"):
+        # a record a command wrote (train_summary.json, metrics.json) or a sweep spec: not settings (each key was
+        # refused in turn, or a record's values read as settings: "ensemble_size: Input should be a valid integer")
+        sweep = what == "a sweep spec"
+        raise UserError(f"this is {what}, not a command's --config file", path=path,
+                        hint=f"Run it with `uncertsplat sweep {q(path)} -o OUT`." if sweep else
+                        "Give the command's own config.json (e.g. RUN/config.json for train, RUN/eval/config.json for "
+                        "evaluate), or a TOML file with its keys (the command's --help lists them).")
     if isinstance(data.get("stages"), list):  # a whole pipeline given to one command
         raise UserError("this is a pipeline file (it lists [[stages]]), not one command's --config file", path=path,
                         hint=f"Run it with `uncertsplat run {q(path)}`, or copy the keys of one stage's `config = {{...}}` "
@@ -484,9 +493,11 @@ def train(
     set_: SetOpt = None,
 ):
     """Train a variational multi-scale 3DGS model (or a baseline, --method) with full-state checkpoints."""
+    from uncertsplat.config import TrainConfig
     from uncertsplat.stages import train as stage
 
     data = _config_file(config) if config else {}
+    _refuse_other_commands_file(TrainConfig, data, config)
     explicit = dict(iterations=iterations, variant=variant, seed=seed)
     _refuse_two_values({**explicit, "method": method}, set_)
     cfg = stage.resolve_config(preset, data, method, explicit, set_, source=str(config) if config else None)

@@ -1362,11 +1362,40 @@ def shipped_file(path: str | Path, kind: str | None = None) -> Path:
         raise UserError("file not found" + (f" (did you mean {close[0]}?)" if close else ""), path=path,
                         hint=f"The {what} installed with uncertsplat run by name: {', '.join(names)} (e.g. {example}).")
     actual = _toml_kind(found)
+    if kind is not None and actual is None:
+        _refuse_not_toml(found, kind)
     if kind is not None and actual is not None and actual != kind:
         shown = found.stem if found.parent == SHIPPED else str(found)
         raise UserError(f"this is {_KIND_WORDS[actual]}, not {_KIND_WORDS[kind]}", path=found,
                         hint=f"Run it with `uncertsplat {_KIND_COMMAND[actual]} {shown} -o OUT`.")
     return found
+
+
+def _refuse_not_toml(path: Path, kind: str) -> None:
+    """A file ``run`` or ``sweep`` cannot read as TOML (a run's config.json, a stage's manifest.json): what it is and
+    what the command takes, in one sentence (the TOML parser's "Invalid statement (at line 1, column 1)" said
+    neither)."""
+    try:
+        tomllib.loads(path.read_text(encoding="utf-8"))
+        return  # TOML of neither kind: the command's reader names the key
+    except (OSError, UnicodeDecodeError):
+        what = None
+        err: Exception | None = None
+    except tomllib.TOMLDecodeError as toml_err:
+        err = toml_err
+        try:
+            what = what_file_is(json.loads(path.read_text(encoding="utf-8")))
+        except (OSError, ValueError, UnicodeDecodeError):
+            what = None
+    expected = ("a pipeline (a TOML file that lists [[stages]])" if kind == "pipeline"
+                else "a sweep spec (a TOML file of the points to train and evaluate)")
+    example = ("uncertsplat run photos -o OUT --set photos=PHOTOS" if kind == "pipeline"
+               else "uncertsplat sweep tradeoff -o OUT")
+    names = ", ".join(shipped_names(kind))
+    raise UserError((f"this is {what}, not {expected}" if what else
+                     f"not {expected}" + (f": not a valid TOML file ({err})" if err else "")), path=path,
+                    hint=f"Give {_KIND_WORDS[kind]} file, or the name of one installed with uncertsplat: {names} "
+                         f"(e.g. {example}).")
 
 
 _SWEEP_KEYS = frozenset({"axes", "default", "design", "pareto_x", "pareto_y", "seeds", "scenes", "synth",
@@ -1384,6 +1413,49 @@ def _toml_kind(path: Path) -> str | None:
     if "stages" in data:
         return "pipeline"
     return "sweep" if _SWEEP_KEYS & set(data) else None
+
+
+_RECORDS_WRITTEN = (
+    ("SynthScene", "`uncertsplat synth`'s record of a synthetic scene (scene.json)"),
+    ("Manifest", "a pipeline stage's record (manifest.json, written by `uncertsplat run`)"),
+    ("TrainSummary", "`uncertsplat train`'s summary of a training (train_summary.json)"),
+    ("PruneReport", "`uncertsplat prune`'s report (prune.json)"),
+    ("PruneSweep", "`uncertsplat prune --sweep`'s record (sweep.json)"),
+    ("SweepSummary", "`uncertsplat sweep`'s summary (sweep.json)"),
+    ("Selection", "`uncertsplat select-views`' record (selection.json)"),
+    ("ReconstructReport", "`uncertsplat reconstruct`'s report (reconstruct_report.json)"),
+    ("RunExposure", "`uncertsplat train`'s exposure record (exposure.json)"),
+    ("RunScene", "`uncertsplat train`'s record of the run's scene (scene.json)"),
+)
+"""The records uncertsplat writes (``schemas``) that ``what_file_is`` tells by their required keys, the most
+specific first (a run's scene.json has few)."""
+
+
+def what_file_is(data: dict) -> str | None:
+    """What a file that is not the one a command expects is, from its keys: a record uncertsplat writes (e.g.
+    "`uncertsplat train`'s summary of a training (train_summary.json)"), a pipeline, a sweep spec or a command's
+    configuration; None when it is none of them (a mistyped file: the command's reader names the key). Records
+    are not settings, and a --config file, ``run`` or ``sweep`` given one failed with one clause per key or a
+    TOML parser's "Invalid statement"."""
+    if not isinstance(data, dict) or not data:
+        return None
+    if "schema_version" in data:
+        import uncertsplat.schemas as schemas
+
+        if {"per_view", "mean"} <= set(data):  # (EvalReport requires no key)
+            return "`uncertsplat evaluate`'s metrics (metrics.json)"
+        for name, words in _RECORDS_WRITTEN:
+            required = {k for k, f in getattr(schemas, name).model_fields.items() if f.is_required()}
+            if required <= set(data):
+                return words
+        return "a record uncertsplat writes (it has a schema_version)"
+    if isinstance(data.get("stages"), list):
+        return "a pipeline (it lists [[stages]])"
+    if len(_SWEEP_KEYS & set(data)) >= 2:  # (one could be a misspelt setting)
+        return "a sweep spec"
+    owner = next((name for name, model in STAGE_CONFIGS.items() if all(k in model.model_fields for k in data)),
+                 None)
+    return f"`uncertsplat {owner}`'s configuration" if owner else None
 
 
 def shipped_names(kind: str | None = None) -> list[str]:

@@ -615,3 +615,62 @@ def test_another_commands_config_file_is_named_in_one_sentence(tmp_path):
     cfg.write_text('{"num_samples": 4, "iterations": 100}')
     result = runner.invoke(app, ["evaluate", str(tmp_path), "--config", str(cfg)])
     assert "`iterations` is one of `uncertsplat train`'s" in " ".join(result.output.split())
+
+
+_SUMMARY = {"schema_version": 1, "method": "variational", "variant": "ours", "steps": 200, "seconds": 1.0,
+            "sec_per_step": 0.01, "num_gaussians": 9, "num_carriers": 9, "peak_memory_mb": 1.0, "device": "cpu",
+            "scene": "/s", "ensemble_size": None, "profile": None, "transients": None}
+"""The top of a train_summary.json: keys that are settings too (ensemble_size, profile, transients) among them."""
+
+
+def test_train_names_another_commands_file_given_to_config(tmp_path):
+    """`train --config RUN/eval/config.json` repeated "not a setting of this command" for each of evaluate's keys and
+    `train --config RUN/train_summary.json` listed type errors ("ensemble_size: Input should be a valid integer"); a
+    record, a sweep spec or another command's configuration is named in one sentence, by any command."""
+    from uncertsplat.config import SHIPPED, EvalConfig
+
+    files = {"eval.json": EvalConfig().model_dump_json(), "train_summary.json": json.dumps(_SUMMARY),
+             "metrics.json": json.dumps({"schema_version": 3, "split": "test", "per_view": [], "mean": {}})}
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    told = {"eval.json": "this is `uncertsplat evaluate`'s configuration",
+            "train_summary.json": "this is `uncertsplat train`'s summary of a training (train_summary.json), not a "
+                                  "command's --config file",
+            "metrics.json": "this is `uncertsplat evaluate`'s metrics (metrics.json), not a command's --config file"}
+    for name, expected in told.items():
+        result = runner.invoke(app, ["train", str(tmp_path), "-o", str(tmp_path / "run"), "--config",
+                                     str(tmp_path / name)])
+        said = " ".join(result.output.split())
+        assert result.exit_code == 2 and expected in said, said
+        assert "not a setting of this command" not in said and "Input should be" not in said, said
+        assert "RUN/config.json" in said, said
+    spec = SHIPPED / "tradeoff.toml"
+    result = runner.invoke(app, ["evaluate", str(tmp_path), "--config", str(spec)])
+    said = " ".join(result.output.split())
+    assert result.exit_code == 2 and "this is a sweep spec, not a command's --config file" in said, said
+    assert f"uncertsplat sweep {q(spec)} -o OUT" in said and "not a setting" not in said, said
+    assert not (tmp_path / "run").exists()
+
+
+def test_run_and_sweep_name_a_file_that_is_not_theirs(tmp_path):
+    """`uncertsplat run RUN/train/manifest.json` and `uncertsplat sweep RUN/config.json` said "not a valid TOML file
+    (Invalid statement (at line 1, column 1))": what the file is and what the command takes, in one sentence."""
+    from uncertsplat.config import TrainConfig
+
+    manifest = {"schema_version": 1, "stage": "train", "name": "train", "config": {}, "config_hash": "x",
+                "input_hashes": {}, "started_at": "now", "status": "done"}
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    (tmp_path / "config.json").write_text(TrainConfig().model_dump_json())
+    (tmp_path / "model.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\n\xff\xfe")
+    cases = ((["run", str(tmp_path / "manifest.json")],
+              "this is a pipeline stage's record (manifest.json, written by `uncertsplat run`), not a pipeline (a "
+              "TOML file that lists [[stages]])", "uncertsplat run photos -o OUT"),
+             (["sweep", str(tmp_path / "config.json")],
+              "this is `uncertsplat train`'s configuration, not a sweep spec", "uncertsplat sweep tradeoff -o OUT"),
+             (["run", str(tmp_path / "model.ply")], "not a pipeline (a TOML file that lists [[stages]])",
+              "demo, photos, smoke"))
+    for args, expected, hint in cases:
+        result = runner.invoke(app, [*args, "-o", str(tmp_path / "out")])
+        said = " ".join(result.output.split())
+        assert result.exit_code == 2 and expected in said and hint in said, said
+        assert "Invalid statement" not in said, said
