@@ -254,6 +254,56 @@ def test_ctrl_c_says_what_was_kept(command, words, capsys, monkeypatch):
     assert out.startswith("interrupted: ") and words in out
 
 
+def _read_only_locks(monkeypatch):
+    """The lock file cannot be created, as in a folder made immutable (`chattr +i`: EPERM, even for root)."""
+    import errno
+    import os
+
+    real = os.open
+
+    def fake(path, *args, **kwargs):
+        if str(path).endswith(".lock"):
+            raise PermissionError(errno.EPERM, os.strerror(errno.EPERM), str(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", fake)
+
+
+def test_a_folder_that_refuses_the_lock_file_gets_advice(tmp_path, monkeypatch):
+    """`train SCENE -o RO`, `evaluate RORUN` and `train --resume` on a read-only (immutable) folder said only "cannot
+    write here (Operation not permitted)": what to do is said, as for the other write errors."""
+    from uncertsplat.io.atomic import run_lock
+
+    (tmp_path / "RUN").mkdir()
+    _read_only_locks(monkeypatch)
+    with pytest.raises(UserError) as err:
+        with run_lock(tmp_path / "RUN", "evaluate"):
+            pass
+    said = " ".join(err.value.render().split())
+    assert "cannot write here (Operation not permitted)" in said, said
+    assert "Make the folder writable, or write elsewhere: an output folder you can write to (-o), or a copy of the " \
+           "run for a command that writes into it (evaluate, select-views, train --resume)" in said, said
+
+
+def test_select_views_on_a_read_only_run_fails_before_scoring(tmp_path, monkeypatch):
+    """`select-views` on a read-only run scored every candidate (minutes) before it failed to write its selection: the
+    folder is tried first (the lock file, as evaluate takes it), and no folder is left behind."""
+    import uncertsplat.baselines as baselines
+
+    run = tmp_path / "run"
+    run.mkdir()
+
+    def scored(*args, **kwargs):
+        raise AssertionError("the run was loaded and scored before its folder was tried")
+
+    monkeypatch.setattr(baselines, "load_run", scored)
+    _read_only_locks(monkeypatch)
+    result = runner.invoke(app, ["select-views", str(run), "--device", "cpu"])
+    said = " ".join(result.output.split())
+    assert result.exit_code == 2 and "cannot write here (Operation not permitted)" in said, said
+    assert "Make the folder writable" in said and not (run / "select").exists()
+
+
 @pytest.mark.parametrize(("code", "command", "words", "not_words"), [
     (28, "prune", "Free some space or choose another output folder, then run again.", "--resume"),  # ENOSPC
     (13, "prune", "Choose an output folder you can write to, then run again.", "space"),  # EACCES

@@ -276,7 +276,14 @@ def run_lock(folder: str | Path, command: str = "uncertsplat") -> Iterator[Path]
         try:
             fd = os.open(lock, os.O_CREAT | os.O_RDWR, 0o644)
         except OSError as err:
-            raise UserError(f"cannot write here ({err.strerror})", path=folder) from None
+            if created:  # (as when the command fails later: no empty folder left behind)
+                with contextlib.suppress(OSError):
+                    folder.rmdir()
+            # (a read-only or immutable folder, e.g. EPERM under `chattr +i`: the other write errors say what to do)
+            raise UserError(f"cannot write here ({err.strerror})", path=folder,
+                            hint="Make the folder writable, or write elsewhere: an output folder you can write to "
+                                 "(-o), or a copy of the run for a command that writes into it (evaluate, "
+                                 "select-views, train --resume); then run again.") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as err:

@@ -226,6 +226,8 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         raise run_folder_missing(run_dir)
     out = Path(output) if output is not None else run_dir / "select"
     check_output_folder(out)  # before the scoring's minutes (run_lock checks again at the end)
+    with run_lock(out, "select-views"):  # a folder it cannot write (read-only run): said now, not after the scoring
+        pass  # (a folder it made for this is removed again)
     loaded = load_run(run_dir, device)
     loaded.warn_if_unfinished()
     scene = loaded.load_scene()
