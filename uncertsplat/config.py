@@ -328,6 +328,11 @@ class VariationalConfig(_Base):
     off by default. Applied at every update it cost 2 dB (the Gaussians train under the wider samples)."""
 
 
+MAX_ITERATIONS = 1_000_000
+"""The most training steps a run (``TrainConfig.iterations``) or a growth test's copy (``growth_refit_steps``) takes:
+33x the paper's 30k, hours at the fastest step measured, days on a photo scene; 1e20 was taken, with an ETA of
+1e15 hours."""
+
 PIXELS_PER_GAUSSIAN = 4.0
 """Default of ``DensifyConfig.pixels_per_gaussian`` (BENCHMARKS.md, "How many Gaussians a scene needs")."""
 
@@ -373,7 +378,7 @@ class DensifyConfig(_Base):
     half the size would lose). 0: grow up to ``max_gaussians`` as 3DGS does. Measured on four scenes in
     BENCHMARKS.md, "Growth that stops when it no longer pays" and "The growth test with the rest re-fitted". No
     test runs while the model is within 1 % of ``max_gaussians`` (``strategy.growth.at_budget``)."""
-    growth_refit_steps: int = Field(100, ge=0)
+    growth_refit_steps: int = Field(100, ge=0, le=MAX_ITERATIONS)
     """Steps each copy of the growth test trains (the whole model's, and the one without the weakest half) before
     their PSNRs are compared; 0: no copies, the half switched off in the model as it is (the test before the
     re-fit: faster, but it kept growing a forward-facing capture such as fern at 1/8 to 3x its knee)."""
@@ -491,7 +496,8 @@ class TrainConfig(_Base):
     variant: Literal["ours", "paper"] = "ours"
     """paper: the original code's choices (log-scale multiplier, absolute position prior)."""
 
-    iterations: int = Field(7000, ge=1)
+    iterations: int = Field(7000, ge=1, le=MAX_ITERATIONS)
+    """Training steps, at most ``MAX_ITERATIONS`` (1,000,000)."""
     seed: int = Field(0, ge=0, le=TRAIN_SEED_MAX)
     """At most ``TRAIN_SEED_MAX`` (2**32 - 8; an ensemble: with its last member's seed, seed + ensemble_size - 1):
     the trainer's generators take seed + a few, and torch's CPU generator keeps a seed's low 32 bits (seeds s and
@@ -1269,6 +1275,9 @@ def format_validation_error(err: ValidationError, source: str, model: type[BaseM
             msg += (f" (found {e.get('input')!r}: a text that reads as a number, date, true/false or list is given "
                     f"in quotes: --set '{e['loc'][-1]}=\"{e.get('input')}\"', or {e['loc'][-1]} = \"{e.get('input')}\" "
                     "in a file)")
+        if e["type"] == "less_than_equal" and path and path[-1] in ("iterations", "growth_refit_steps"):
+            # (the bound alone read as arbitrary: what it allows)
+            msg += f" ({MAX_ITERATIONS:,} steps are already days of training; 3DGS trains 30,000)"
         if e["type"] == "extra_forbidden":
             valid = _valid_keys(model, tuple(e["loc"]))
             close = difflib.get_close_matches(str(e["loc"][-1]), valid, n=3, cutoff=0.6)

@@ -281,3 +281,28 @@ def test_a_fixed_scene_frame_is_a_scale_and_a_shift():
                        ([[float("nan"), 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1]], "finite")):
         with pytest.raises(ValueError, match=match):
             SceneConfig(world_from_source=bad)
+
+
+def test_training_steps_have_an_upper_bound_that_no_shipped_file_passes():
+    """`--iterations 100000000000000000000` was taken (an ETA of 1e15 hours): iterations and the growth test's re-fit
+    steps are at most MAX_ITERATIONS, said with what that is; no preset, pipeline or sweep spec shipped asks for more."""
+    import tomllib
+
+    from uncertsplat.config import MAX_ITERATIONS, SHIPPED, TRAIN_PRESETS
+
+    assert train_config_from(None, {"iterations": MAX_ITERATIONS}).iterations == MAX_ITERATIONS
+    for data in ({"iterations": 10**20}, {"densify": {"growth_refit_steps": MAX_ITERATIONS + 1}}):
+        with pytest.raises(UserError) as err:
+            train_config_from(None, data)
+        said = str(err.value)
+        assert "less than or equal to 1000000 (1,000,000 steps are already days of training" in said, said
+
+    def steps(node, key=""):  # every number given to iterations or growth_refit_steps, in tables and axes' lists
+        if isinstance(node, dict):
+            return [n for k, v in node.items() for n in steps(v, k)]
+        if isinstance(node, list):
+            return [n for v in node for n in steps(v, key)]
+        return [node] if key in ("iterations", "growth_refit_steps") and isinstance(node, int) else []
+
+    found = steps(TRAIN_PRESETS) + [n for f in SHIPPED.glob("*.toml") for n in steps(tomllib.loads(f.read_text()))]
+    assert found and max(found) <= MAX_ITERATIONS
