@@ -19,13 +19,53 @@ from typing import Annotated
 import numpy  # noqa: F401, I001
 import typer
 from rich.text import Text
+from typer.core import TyperGroup
 
 from uncertsplat import __version__
 from uncertsplat.config import STAGE_PATH_KEYS as _PATH_KEYS
 from uncertsplat.console import console, q, qm
 from uncertsplat.errors import Interrupted, UserError, WriteFailed, out_of_memory
 
+
+def _plain_output() -> bool:
+    """Whether stderr is a log, a pipe or a dumb terminal, where our messages are plain lines never broken at a width
+    (``console``)."""
+    return not console.is_terminal or console.is_dumb_terminal
+
+
+class _Group(TyperGroup):
+    """Typer's command group, with its usage errors (an option misspelt, ``--iterations abc``) printed as our errors
+    are outside a terminal: ``error: ...`` on one line and the usage; Typer's box-drawn panel, wrapped at 80 columns,
+    stays in a terminal."""
+
+    def _plain_usage_error(self, err: typer.TyperException):
+        # (no arguments at all: its "error" is the help, printed as Typer prints it)
+        if type(err).__name__ == "NoArgsIsHelpError" or not _plain_output():
+            raise err
+        ctx = getattr(err, "ctx", None)
+        console.print(Text.assemble(("error:", "bold red"), " ", err.format_message()), soft_wrap=True)
+        if ctx is not None:
+            usage = ctx.get_usage()
+            if ctx.command.get_help_option(ctx) is not None:
+                usage += f"\nTry '{ctx.command_path} {ctx.help_option_names[0]}' for help."
+            console.print(Text(usage), soft_wrap=True)
+        raise typer.Exit(err.exit_code) from None
+
+    def make_context(self, *args, **kwargs):  # noqa: D102
+        try:
+            return super().make_context(*args, **kwargs)
+        except typer.TyperException as err:  # (Typer's own click: its ClickException and usage errors)
+            self._plain_usage_error(err)
+
+    def invoke(self, ctx):  # noqa: D102  (a command's own arguments are parsed in here)
+        try:
+            return super().invoke(ctx)
+        except typer.TyperException as err:  # (Typer's own click: its ClickException and usage errors)
+            self._plain_usage_error(err)
+
+
 app = typer.Typer(
+    cls=_Group,
     name="uncertsplat",
     help="Photos to a calibrated uncertainty report for variational multi-scale 3D Gaussian Splatting.",
     no_args_is_help=True,

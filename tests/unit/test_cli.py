@@ -724,3 +724,26 @@ def test_run_and_sweep_name_a_file_that_is_not_theirs(tmp_path):
         said = " ".join(result.output.split())
         assert result.exit_code == 2 and expected in said and hint in said, said
         assert "Invalid statement" not in said, said
+
+
+@pytest.mark.parametrize(("args", "said"), [
+    (["train", "S", "-o", "R", "--iterations", "abc"], "error: Invalid value for '--iterations': Input should be a "
+                                                       "valid integer, unable to parse string as an integer"),
+    (["train", "S", "-o", "R", "--iteration", "10"],
+     "error: No such option: --iteration (Possible options: --iterations)"),
+    (["trian"], "error: No such command 'trian'. Did you mean 'train'?"),
+])
+def test_a_usage_error_outside_a_terminal_is_plain_lines(args, said, monkeypatch):
+    """Typer printed a usage error in a box-drawn panel wrapped at 80 columns in a pipe and under TERM=dumb too, where
+    our own errors are plain lines never broken at a width (README): one `error: ...` line and the usage there; the
+    panel stays in a terminal."""
+    import uncertsplat.cli as cli
+
+    result = runner.invoke(app, args)
+    lines = result.output.splitlines()
+    assert result.exit_code == 2 and said in lines, result.output
+    assert any(line.startswith("Usage: uncertsplat ") for line in lines), result.output
+    assert "--help' for help." in lines[-1] and not any(c in result.output for c in "╭│╰"), result.output
+    monkeypatch.setattr(cli, "_plain_output", lambda: False)
+    result = runner.invoke(app, args)
+    assert result.exit_code == 2 and "╭─ Error" in result.output, result.output
