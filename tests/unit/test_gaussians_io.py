@@ -98,6 +98,37 @@ def test_point_cloud_ply_holds_the_bands_the_model_renders_with(tmp_path, degree
         np.testing.assert_allclose(v[f"f_rest_{bands}"], m.params["shN"].detach()[:, 0, 1].numpy())
 
 
+def test_a_cut_short_variational_ply_says_how_to_write_it_again(tmp_path):
+    """A truncated variational.ply said "cannot read the PLY file (line 39: early end-of-file)" and nothing to do: the
+    file is called damaged, with what writes it again (a run with checkpoints: `train --resume` once it is moved
+    aside, which writes it again bit for bit; a pruned run: prune; else train again)."""
+    import json
+
+    from uncertsplat.console import q
+
+    m = random_model(64, torch.Generator().manual_seed(0), num_entries=5, carrier_fraction=0.4)
+    run = tmp_path / "run"
+    path = write_variational_ply(run / "variational.ply", m)
+    path.write_bytes(path.read_bytes()[:3000])
+    hints = []
+    for extra in (None, "ckpts", "prune.json"):
+        if extra == "ckpts":
+            (run / "ckpts").mkdir()
+            (run / "ckpts" / "step_000200.pt").write_bytes(b"x")
+            (run / "scene.json").write_text(json.dumps({"scene": "/data/my scene"}))
+        elif extra == "prune.json":
+            (run / "prune.json").write_text("{}")
+        with pytest.raises(UserError) as err:
+            read_variational_ply(path)
+        said = err.value.render()
+        assert "cannot read the PLY file" in said and "The file is damaged (cut short" in said, said
+        hints.append(said)
+    assert "Train the run again (it has no checkpoint to write it from)" in hints[0]
+    assert (f"Move it aside (or delete it), then `uncertsplat train {q('/data/my scene')} -o {q(run)} --resume` "
+            "writes it again from the run's last checkpoint") in hints[1], hints[1]
+    assert "`uncertsplat prune` wrote it: prune the source run again" in hints[2]
+
+
 def test_reading_a_point_cloud_as_variational_fails_clearly(tmp_path):
     m = random_model(5, torch.Generator().manual_seed(3))
     path = write_point_cloud_ply(tmp_path / "point_cloud.ply", m)

@@ -155,13 +155,35 @@ def _parse_meta(comments: list[str]) -> dict:
     return meta
 
 
+def _damaged_hint(path: Path) -> str:
+    """What writes a damaged (cut short) ``variational.ply`` again: "early end-of-file" alone said neither that the
+    file is damaged nor what to do. A run with checkpoints writes it again on ``train --resume`` once it is gone (a
+    finished run with the file in place has nothing to do), bit for bit; a pruned run has none (``prune`` wrote it)."""
+    import json
+
+    from uncertsplat.console import q
+
+    run = path.parent
+    said = "The file is damaged (cut short: a copy or a write that did not finish?). "
+    if (run / "prune.json").is_file():
+        return said + "`uncertsplat prune` wrote it: prune the source run again into a new folder."
+    if any((run / "ckpts").glob("*.pt")):
+        try:
+            scene = json.loads((run / "scene.json").read_text(encoding="utf-8"))["scene"]
+        except (OSError, ValueError, KeyError, TypeError):
+            scene = "SCENE"
+        return said + (f"Move it aside (or delete it), then `uncertsplat train {q(scene)} -o {q(run)} --resume` "
+                       "writes it again from the run's last checkpoint; or train the run again.")
+    return said + "Train the run again (it has no checkpoint to write it from), or copy the file again from its source."
+
+
 def read_variational_ply(path: str | Path, device: torch.device | str = "cpu") -> tuple[GaussianModel, dict]:
     """Rebuild the model written by ``write_variational_ply``; returns (model, header metadata)."""
     path = Path(path)
     try:
         ply = PlyData.read(str(path))
     except Exception as err:
-        raise UserError(f"cannot read the PLY file ({err})", path=path) from None
+        raise UserError(f"cannot read the PLY file ({err})", path=path, hint=_damaged_hint(path)) from None
     meta = _parse_meta(list(ply.comments))
     names = [e.name for e in ply.elements]
     if "vertex" not in names or "offset" not in names or "num_entries" not in meta:
