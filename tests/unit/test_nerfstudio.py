@@ -152,6 +152,29 @@ def test_bad_files_are_refused(tiny_scene_path, tmp_path):  # noqa: F811
     _raises(tmp_path / "ns", "cannot read the transforms file")
 
 
+def test_a_frame_without_its_pose_names_the_frame_and_the_key(tiny_scene_path, tmp_path):  # noqa: F811
+    """A frame missing `transform_matrix` (or `file_path`) said only "KeyError('transform_matrix')": the file, the
+    frame and the key are named, with what a frame holds; a pose that is not numbers says so without the repr."""
+    _, meta = convert(tiny_scene_path, tmp_path / "ns")
+    path = tmp_path / "ns" / "transforms.json"
+    for key, value, said in (("transform_matrix", None, "frames[2] ('images/view_002.png') has no 'transform_matrix'"),
+                             ("file_path", None, "frames[2] has no 'file_path'"),
+                             ("transform_matrix", "abc", "frames[2] ('images/view_002.png'): 'file_path' must be a "
+                                                         "text and 'transform_matrix' a matrix of numbers")):
+        bad = json.loads(json.dumps(meta))
+        if value is None:
+            del bad["frames"][2][key]
+        else:
+            bad["frames"][2][key] = value
+        path.write_text(json.dumps(bad))
+        text = _raises(tmp_path / "ns", said)
+        assert "Each frame holds {\"file_path\"" in text and "Error(" not in text, text
+    # the advice: without the frame the scene loads
+    bad["frames"].pop(2)
+    path.write_text(json.dumps(bad))
+    assert load_scene(tmp_path / "ns") is not None
+
+
 def test_masks_read_depth_unread_and_an_unused_colmap_model_are_named(tiny_scene_path, tmp_path):  # noqa: F811
     """A frame's mask_path is read (its black pixels neither trained on nor scored: test_masks.py), its
     depth_file_path is not (said so), and a COLMAP model beside transforms.json is not used: all were silent."""

@@ -137,13 +137,25 @@ def _missing_image(name: str, root: Path, file: Path) -> UserError:
 
 def _frames(root: Path, meta: dict, path: Path, split: str | None) -> list[_Frame]:
     out = []
+    layout = ('{"file_path": "./train/r_0", "transform_matrix": [[...], [...], [...], [0, 0, 0, 1]]}: its image and '
+              "its camera-to-world pose")
     for i, fr in enumerate(meta["frames"]):
+        # (a key left out was a raw "KeyError('transform_matrix')": the frame, the key and what a frame holds instead)
+        if not isinstance(fr, dict):
+            raise UserError(f"frames[{i}] is not an object of a frame's keys", path=path,
+                            hint=f"Each frame is {layout}.")
+        which = f"frames[{i}]" + (f" ('{fr['file_path']}')" if isinstance(fr.get("file_path"), str) else "")
+        missing = [k for k in ("file_path", "transform_matrix") if k not in fr]
+        if missing:
+            raise UserError(f"{which} has no '{missing[0]}'"
+                            + (f" (nor '{missing[1]}')" if len(missing) > 1 else ""), path=path,
+                            hint=f"Each frame holds {layout}; add it, or remove the frame.")
         try:
             c2w = np.asarray(fr["transform_matrix"], dtype=np.float64)
             name = image_name(root, fr["file_path"])
-        except (KeyError, TypeError, ValueError) as err:
-            raise UserError(f"frame {i} needs 'file_path' and a numeric 'transform_matrix' ({err!r})",
-                            path=path) from None
+        except (TypeError, ValueError) as err:
+            raise UserError(f"{which}: 'file_path' must be a text and 'transform_matrix' a matrix of "
+                            f"numbers ({err})", path=path, hint=f"Each frame holds {layout}.") from None
         if c2w.shape == (3, 4):
             c2w = np.concatenate([c2w, [[0.0, 0.0, 0.0, 1.0]]], 0)
         if c2w.shape != (4, 4) or not np.all(np.isfinite(c2w)):
