@@ -1381,15 +1381,18 @@ def shipped_file(path: str | Path, kind: str | None = None) -> Path:
 
 
 def _refuse_not_toml(path: Path, kind: str) -> None:
-    """A file ``run`` or ``sweep`` cannot read as TOML (a run's config.json, a stage's manifest.json): what it is and
-    what the command takes, in one sentence (the TOML parser's "Invalid statement (at line 1, column 1)" said
-    neither)."""
+    """A file ``run`` or ``sweep`` cannot read as TOML (a run's config.json, a stage's manifest.json), or one command's
+    TOML configuration: what it is and what the command takes, in one sentence (the TOML parser's "Invalid statement
+    (at line 1, column 1)" said neither; a configuration had a clause per key)."""
+    what: str | None = None
+    err: Exception | None = None
     try:
-        tomllib.loads(path.read_text(encoding="utf-8"))
-        return  # TOML of neither kind: the command's reader names the key
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        what = what_file_is(data) if len(data) >= 2 else None
+        if what is None or not what.endswith("configuration"):
+            return  # TOML of neither kind: the command's reader names the key
     except (OSError, UnicodeDecodeError):
-        what = None
-        err: Exception | None = None
+        pass  # (not text: a PLY, an image)
     except tomllib.TOMLDecodeError as toml_err:
         err = toml_err
         try:
@@ -1403,8 +1406,10 @@ def _refuse_not_toml(path: Path, kind: str) -> None:
     names = ", ".join(shipped_names(kind))
     raise UserError((f"this is {what}, not {expected}" if what else
                      f"not {expected}" + (f": not a valid TOML file ({err})" if err else "")), path=path,
-                    hint=f"Give {_KIND_WORDS[kind]} file, or the name of one installed with uncertsplat: {names} "
-                         f"(e.g. {example}).")
+                    hint=(f"Give it to that command's --config; `uncertsplat {_KIND_COMMAND[kind]}` takes "
+                          if what and what.endswith("configuration") else "Give ")
+                    + f"{_KIND_WORDS[kind]} file, or the name of one installed with uncertsplat: {names} "
+                      f"(e.g. {example}).")
 
 
 _SWEEP_KEYS = frozenset({"axes", "default", "design", "pareto_x", "pareto_y", "seeds", "scenes", "synth",

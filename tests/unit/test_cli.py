@@ -711,6 +711,7 @@ def test_run_and_sweep_name_a_file_that_is_not_theirs(tmp_path):
                 "input_hashes": {}, "started_at": "now", "status": "done"}
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     (tmp_path / "config.json").write_text(TrainConfig().model_dump_json())
+    (tmp_path / "train.toml").write_text("iterations = 100\nseed = 3\n")
     (tmp_path / "model.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\n\xff\xfe")
     cases = ((["run", str(tmp_path / "manifest.json")],
               "this is a pipeline stage's record (manifest.json, written by `uncertsplat run`), not a pipeline (a "
@@ -718,7 +719,9 @@ def test_run_and_sweep_name_a_file_that_is_not_theirs(tmp_path):
              (["sweep", str(tmp_path / "config.json")],
               "this is `uncertsplat train`'s configuration, not a sweep spec", "uncertsplat sweep tradeoff -o OUT"),
              (["run", str(tmp_path / "model.ply")], "not a pipeline (a TOML file that lists [[stages]])",
-              "demo, photos, smoke"))
+              "demo, photos, smoke"),
+             (["run", str(tmp_path / "train.toml")], "this is `uncertsplat train`'s configuration, not a pipeline",
+              "Give it to that command's --config; `uncertsplat run` takes a pipeline file"))
     for args, expected, hint in cases:
         result = runner.invoke(app, [*args, "-o", str(tmp_path / "out")])
         said = " ".join(result.output.split())
