@@ -237,10 +237,12 @@ def _handle_errors(fn):
                 raise
             where = f"{err.filename}: " if err.filename else ""
             space = err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+            # (--resume only for a run folder that holds its config: before it, train starts over and --resume fails)
+            begun = kwargs.get("output") is None or (Path(kwargs["output"]) / "config.json").is_file()
             advice = (space and _space_advice(fn.__name__, kwargs)) or (
                 ("Free some space or choose another output folder" if space
                  else "Choose an output folder you can write to") + ", then run again" + (
-                    " (--resume continues the training run)" if fn.__name__ == "train" else "") + ".")
+                    " (--resume continues the training run)" if fn.__name__ == "train" and begun else "") + ".")
             console.print(Text.assemble(("error:", "bold red"), f" {where}{err.strerror}. {advice}"), soft_wrap=True)
             raise typer.Exit(2) from None
 

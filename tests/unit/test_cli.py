@@ -310,15 +310,16 @@ def test_select_views_on_a_read_only_run_fails_before_scoring(tmp_path, monkeypa
     (30, "sweep", "Choose an output folder you can write to", "space"),  # EROFS
     (28, "train", "(--resume continues the training run)", "you can write to"),
 ])
-def test_a_file_system_error_gets_the_advice_of_its_kind(code, command, words, not_words, capsys):
-    """A full disk asks for space, a read-only or forbidden folder for another folder; only train mentions --resume."""
+def test_a_file_system_error_gets_the_advice_of_its_kind(code, command, words, not_words, capsys, tmp_path):
+    """A full disk asks for space, a read-only or forbidden folder for another folder; only train mentions --resume,
+    and not for a run folder without its config yet (the training never began: --resume would fail there)."""
     import os
 
     import typer
 
     from uncertsplat.cli import _handle_errors
 
-    def fail():
+    def fail(output=None):
         raise OSError(code, os.strerror(code), "/out/x")
 
     fail.__name__ = command
@@ -327,6 +328,11 @@ def test_a_file_system_error_gets_the_advice_of_its_kind(code, command, words, n
     said = capsys.readouterr()
     out = " ".join((said.out + said.err).split())
     assert out.startswith("error: /out/x: ") and words in out and not_words not in out
+    if command == "train":
+        with pytest.raises(typer.Exit):
+            _handle_errors(fail)(output=tmp_path / "new_run")
+        said = capsys.readouterr()
+        assert "--resume" not in said.out + said.err and "then run again." in " ".join(said.err.split())
 
 
 @pytest.mark.parametrize(("command", "run", "words", "not_words"), [
