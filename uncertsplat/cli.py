@@ -296,7 +296,8 @@ def _config_file(path: Path) -> dict:
     to run the same settings again); one that holds a single stage table (``[train]``) is refused with the fix."""
     import json
 
-    from uncertsplat.config import load_toml, what_file_is
+    from uncertsplat.config import load_toml
+    from uncertsplat.schemas.identify import what_file_is
 
     if Path(path).suffix.lower() == ".json" and Path(path).is_file():
         try:
@@ -712,10 +713,11 @@ def sweep(
 ):
     """Measure the speed-accuracy trade: train/evaluate each point of a sweep and draw the Pareto front."""
     from uncertsplat.config import shipped_file
+    from uncertsplat.schemas.identify import what_file_is
     from uncertsplat.stages import sweep as stage
 
     only = [s.strip() for s in scenes.split(",") if s.strip()] if scenes else None
-    stage.run(shipped_file(spec, "sweep"), output, jobs=jobs, device=device, scene=scene, overrides=set_, force=force, executor=executor,
+    stage.run(shipped_file(spec, "sweep", describe=what_file_is), output, jobs=jobs, device=device, scene=scene, overrides=set_, force=force, executor=executor,
               address=address, cpus_per_job=cpus_per_job, gpus_per_job=gpus_per_job, retries=retries,
               only_scenes=only)
 
@@ -732,10 +734,11 @@ def run_pipeline(
 ):
     """Run a chain of stages from a TOML file, skipping stages whose config and inputs are unchanged."""
     from uncertsplat.config import shipped_file
+    from uncertsplat.schemas.identify import what_file_is
     from uncertsplat.stages import pipeline as stage
 
     _refuse_two_values({"device": device}, set_)
-    stage.run(shipped_file(pipeline, "pipeline"), output, overrides=set_ or [], device=device, force=force)
+    stage.run(shipped_file(pipeline, "pipeline", describe=what_file_is), output, overrides=set_ or [], device=device, force=force)
 
 
 def entrypoint():  # pragma: no cover

@@ -12,6 +12,7 @@ import json
 import math
 import re
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -1342,12 +1343,14 @@ def method_label(cfg: TrainConfig) -> str:
     return "variational" if cfg.variant == "ours" else "paper"
 
 
-def shipped_file(path: str | Path, kind: str | None = None) -> Path:
+def shipped_file(path: str | Path, kind: str | None = None,
+                 describe: Callable[[dict], str | None] | None = None) -> Path:
     """``path``, or the installed pipeline / sweep spec it names when there is no such file: a bare name
     (``photos``, ``photos.toml``) or the repository's path (``pipelines/photos.toml``, what the README types) run
     from outside the repository, e.g. after ``pip install``. ``kind`` (``"pipeline"`` for ``run``, ``"sweep"`` for
     ``sweep``): a file of the other kind is refused with the command that runs it (a sweep spec given to ``run``
-    failed on every key), and a name not found is offered those of this kind only.
+    failed on every key), and a name not found is offered those of this kind only. ``describe``: what a file of
+    neither kind is, from its keys (``schemas.identify.what_file_is``, a layer above this module), for the refusal.
 
     Raises:
         UserError: no such file and no installed one of that name (the installed names listed), or a file of the
@@ -1372,7 +1375,7 @@ def shipped_file(path: str | Path, kind: str | None = None) -> Path:
                         hint=f"The {what} installed with uncertsplat run by name: {', '.join(names)} (e.g. {example}).")
     actual = _toml_kind(found)
     if kind is not None and actual is None:
-        _refuse_not_toml(found, kind)
+        _refuse_not_toml(found, kind, describe)
     if kind is not None and actual is not None and actual != kind:
         shown = found.stem if found.parent == SHIPPED else str(found)
         raise UserError(f"this is {_KIND_WORDS[actual]}, not {_KIND_WORDS[kind]}", path=found,
@@ -1380,7 +1383,7 @@ def shipped_file(path: str | Path, kind: str | None = None) -> Path:
     return found
 
 
-def _refuse_not_toml(path: Path, kind: str) -> None:
+def _refuse_not_toml(path: Path, kind: str, describe: Callable[[dict], str | None] | None) -> None:
     """A file ``run`` or ``sweep`` cannot read as TOML (a run's config.json, a stage's manifest.json), or one command's
     TOML configuration: what it is and what the command takes, in one sentence (the TOML parser's "Invalid statement
     (at line 1, column 1)" said neither; a configuration had a clause per key)."""
@@ -1388,7 +1391,7 @@ def _refuse_not_toml(path: Path, kind: str) -> None:
     err: Exception | None = None
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
-        what = what_file_is(data) if len(data) >= 2 else None
+        what = describe(data) if describe is not None and len(data) >= 2 else None
         if what is None or not what.endswith("configuration"):
             return  # TOML of neither kind: the command's reader names the key
     except (OSError, UnicodeDecodeError):
@@ -1396,7 +1399,7 @@ def _refuse_not_toml(path: Path, kind: str) -> None:
     except tomllib.TOMLDecodeError as toml_err:
         err = toml_err
         try:
-            what = what_file_is(json.loads(path.read_text(encoding="utf-8")))
+            what = describe(json.loads(path.read_text(encoding="utf-8"))) if describe is not None else None
         except (OSError, ValueError, UnicodeDecodeError):
             what = None
     expected = ("a pipeline (a TOML file that lists [[stages]])" if kind == "pipeline"
@@ -1412,7 +1415,7 @@ def _refuse_not_toml(path: Path, kind: str) -> None:
                       f"(e.g. {example}).")
 
 
-_SWEEP_KEYS = frozenset({"axes", "default", "design", "pareto_x", "pareto_y", "seeds", "scenes", "synth",
+SWEEP_KEYS = frozenset({"axes", "default", "design", "pareto_x", "pareto_y", "seeds", "scenes", "synth",
                          "train_preset"})
 """Keys only a sweep spec has (``sweep.spec.SweepSpec``); a pipeline has ``stages``."""
 
@@ -1426,50 +1429,7 @@ def _toml_kind(path: Path) -> str | None:
         return None
     if "stages" in data:
         return "pipeline"
-    return "sweep" if _SWEEP_KEYS & set(data) else None
-
-
-_RECORDS_WRITTEN = (
-    ("SynthScene", "`uncertsplat synth`'s record of a synthetic scene (scene.json)"),
-    ("Manifest", "a pipeline stage's record (manifest.json, written by `uncertsplat run`)"),
-    ("TrainSummary", "`uncertsplat train`'s summary of a training (train_summary.json)"),
-    ("PruneReport", "`uncertsplat prune`'s report (prune.json)"),
-    ("PruneSweep", "`uncertsplat prune --sweep`'s record (sweep.json)"),
-    ("SweepSummary", "`uncertsplat sweep`'s summary (sweep.json)"),
-    ("Selection", "`uncertsplat select-views`' record (selection.json)"),
-    ("ReconstructReport", "`uncertsplat reconstruct`'s report (reconstruct_report.json)"),
-    ("RunExposure", "`uncertsplat train`'s exposure record (exposure.json)"),
-    ("RunScene", "`uncertsplat train`'s record of the run's scene (scene.json)"),
-)
-"""The records uncertsplat writes (``schemas``) that ``what_file_is`` tells by their required keys, the most
-specific first (a run's scene.json has few)."""
-
-
-def what_file_is(data: dict) -> str | None:
-    """What a file that is not the one a command expects is, from its keys: a record uncertsplat writes (e.g.
-    "`uncertsplat train`'s summary of a training (train_summary.json)"), a pipeline, a sweep spec or a command's
-    configuration; None when it is none of them (a mistyped file: the command's reader names the key). Records
-    are not settings, and a --config file, ``run`` or ``sweep`` given one failed with one clause per key or a
-    TOML parser's "Invalid statement"."""
-    if not isinstance(data, dict) or not data:
-        return None
-    if "schema_version" in data:
-        import uncertsplat.schemas as schemas
-
-        if {"per_view", "mean"} <= set(data):  # (EvalReport requires no key)
-            return "`uncertsplat evaluate`'s metrics (metrics.json)"
-        for name, words in _RECORDS_WRITTEN:
-            required = {k for k, f in getattr(schemas, name).model_fields.items() if f.is_required()}
-            if required <= set(data):
-                return words
-        return "a record uncertsplat writes (it has a schema_version)"
-    if isinstance(data.get("stages"), list):
-        return "a pipeline (it lists [[stages]])"
-    if len(_SWEEP_KEYS & set(data)) >= 2:  # (one could be a misspelt setting)
-        return "a sweep spec"
-    owner = next((name for name, model in STAGE_CONFIGS.items() if all(k in model.model_fields for k in data)),
-                 None)
-    return f"`uncertsplat {owner}`'s configuration" if owner else None
+    return "sweep" if SWEEP_KEYS & set(data) else None
 
 
 def shipped_names(kind: str | None = None) -> list[str]:
