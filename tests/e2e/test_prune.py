@@ -54,7 +54,7 @@ def test_writes_a_valid_pruned_run(pruned, tiny_run_path):  # noqa: F811
     loaded.model.check()
     n = len(src)
     assert result.counts.before == n and len(loaded.model) == result.counts.after
-    assert result.counts.after == n - round(0.2 * n) or result.counts.after > n - round(0.2 * n)
+    assert n - round(0.2 * n) <= result.counts.after < n  # (some removed, never more than asked)
     assert (out / "config.json").read_bytes() == (tiny_run_path / "config.json").read_bytes()
     assert json.loads((out / "prune_config.json").read_text(encoding="utf-8"))["keep_ratio"] == result.keep_ratio  # its settings
     assert (out / "scene.json").is_file() and (out / "point_cloud.ply").is_file()
