@@ -192,6 +192,19 @@ def test_posterior_variance_between_zero_and_the_prior():
     assert v["means"][2] < 1e-5
 
 
+def test_a_gaussian_without_information_has_the_prior_variance_in_units_of_the_extent():
+    """``compute_fisher``'s prior (``prior_stds``): the position prior std is ``prior_std_means`` x the scene extent
+    (the others are in their own units), so a Gaussian with no Fisher information keeps (prior_std_means x extent)^2
+    as its position variance. At an extent near 1 a missing factor hid."""
+    from uncertsplat.baselines.fisher import prior_stds
+    from uncertsplat.config import FisherConfig
+
+    fcfg = FisherConfig(prior_std_means=0.02, prior_std_scales=0.3)
+    v = posterior_variance({"means": torch.zeros(2, 3), "scales": torch.zeros(2, 3)}, prior_stds(fcfg, 5.0))
+    assert v["means"].tolist() == [[pytest.approx((0.02 * 5.0) ** 2)] * 3] * 2
+    assert v["scales"].tolist() == [[pytest.approx(0.3 ** 2)] * 3] * 2
+
+
 def test_perturbed_sample_is_repeatable_and_zero_variance_is_the_mean():
     params = _params(6)
     var = {k: torch.full_like(params[k], 0.01) for k in ("means", "scales", "opacities", "sh0")}

@@ -22,6 +22,13 @@ def test_fixed_scale_ends_and_clipping():
     assert (img[0, 2] == img[0, 1]).all() and (img[0, 3] == img[0, 0]).all()
 
 
+def test_fixed_scale_that_does_not_start_at_zero():
+    """[vmin, vmax] = [2, 4] maps 2, 3, 4 to the colour map's low end, middle and high end (the callers' vmin of 0
+    could not tell (a - vmin) / (vmax - vmin) from (a - vmin) / vmax)."""
+    img = colorize(np.array([[2.0, 3.0, 4.0]]), mode="fixed", vmin=2.0, vmax=4.0)
+    assert (img[0] == _lut(np.array([0.0, 0.5, 1.0]))).all()
+
+
 def test_percentile_scale_ignores_outliers():
     x = np.linspace(0, 1, 1000).reshape(20, 50)
     x[0, 0] = 1e6

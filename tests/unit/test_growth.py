@@ -145,6 +145,21 @@ class TestTraining:
         t3.fit()
         assert not any(g.stopped for g in t3.growth) and t3.densifier.grow, "two tests cannot make three in a row"
 
+    def test_patience_counts_only_the_tests_just_before(self, monkeypatch):
+        """With patience 2 the test that stops is the second cheap one in a row, however many tests came before:
+        the slice over the earlier tests (``check_growth``) must take exactly ``patience - 1`` of them (an
+        off-by-one there passed the two-test case above). The costs are set: 100 dB, then 0 dB at every test."""
+        from uncertsplat.train import trainer as trainer_module
+
+        costs = iter([100.0] + [0.0] * 10)
+        monkeypatch.setattr(trainer_module, "halving_cost_db", lambda *a, **k: next(costs))
+        scene, tr, te = toy_scene()
+        t = Trainer(scene, self._cfg(1.0, growth_check_interval=5, growth_patience=2, growth_refit_steps=0,
+                                     start=1), tr, te)
+        t.fit()
+        assert [(g.cost_db, g.stopped) for g in t.growth] == [(100.0, False), (0.0, False), (0.0, True)]
+        assert not t.densifier.grow
+
     def test_a_half_that_pays_lets_growth_go_on(self):
         scene, tr, te = toy_scene()
         t = Trainer(scene, self._cfg(1e-9), tr, te)

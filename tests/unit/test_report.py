@@ -461,6 +461,18 @@ def test_prune_section_shows_the_prune_report(tmp_path):
     assert "threshold requested" in text and "None" not in text
 
 
+def test_prune_facts_give_the_removed_share_of_the_model_before(tmp_path):
+    """The facts' removed percentage is of the Gaussians before pruning: 25 of 100 is 25.0 % (of the 75 after, it
+    would read 33.3 %). No other test reads the percentage."""
+    from uncertsplat.report import build
+
+    rep = make_prune_report(tmp_path / "run", sweep=False)
+    rep.counts = PruneCounts(before=100, after=75, removed=25, carriers_before=60, carriers_after=35)
+    facts = dict(build._prune_facts(rep))
+    assert facts["Gaussians before → after"] == "100 → 75 (25 removed, 25.0 %)"
+    assert facts["posterior carriers before → after"] == "60 → 35"
+
+
 def test_prune_report_without_sweep_or_mask(tmp_path):
     run = make_run(tmp_path, "pruned", stats=False, metrics=False, maps=False)
     rep = make_prune_report(run, sweep=False)
@@ -1138,6 +1150,23 @@ def test_colour_bars_say_where_they_clip_and_what_they_measure():
     depth = panels["depth mean (run's normalised units)"].bar.ticks
     assert depth[0][1].startswith("≤") and depth[-1][1].startswith("≥")
     assert panels["depth std (run's normalised units)"].bar.ticks[-1][1] == "0.2"  # a constant map: nothing clipped
+
+
+def test_the_error_and_std_panels_share_a_scale_that_holds_both():
+    """The shared |error| / RGB std scale is taken over both maps: a std above every error (0.1 and 0.2 against
+    0.05) tops the bar at 0.2, unclipped, and its two values keep two colours (a scale from the error alone
+    drew the whole std panel in the top colour)."""
+    from uncertsplat.report import figures
+    from uncertsplat.report.views import ViewMaps
+
+    std = np.full((H, W, 3), 0.2)
+    std[: H // 2] = 0.1
+    view = ViewMaps("v", rgb_std=std, error=np.full((H, W), 0.05))
+    panels = {p.title: p for p in figures.view_panels(view)}
+    error, spread = panels["|error| (colour, 0-1)"], panels["RGB std (colour, 0-1)"]
+    assert spread.bar is error.bar and error.bar.ticks[-1][1] == "0.2"
+    assert len({tuple(p) for p in spread.image.reshape(-1, 3)}) == 2
+    assert len({tuple(p) for p in error.image.reshape(-1, 3)}) == 1
 
 
 def test_depth_panels_draw_pixels_without_a_surface_grey_and_leave_them_out_of_the_colour_scale(tmp_path):

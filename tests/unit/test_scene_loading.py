@@ -588,6 +588,35 @@ def test_pose_twins_thresholds():
     assert pose_twins(base, [0], [1, 2, 3]) == {} and pose_twins(base, [], [1]) == {}
 
 
+def test_pose_twins_compare_the_optical_axes_in_any_world():
+    """The angle of ``pose_twins`` is between the cameras' optical axes in the world (a row of the world-to-camera
+    rotation; its column is the world's z axis seen from the camera). A camera at view 2's centre turned by
+    3 x ``TWIN_ANGLE_DEG`` about the world's z axis keeps that column but points elsewhere: no twin. (The turn of
+    test_pose_twins_thresholds moved row and column alike.) The answers stay when the whole rig is rotated."""
+    from tests.reference.naive_render import look_at_cameras
+    from uncertsplat.sfm.scene import TWIN_ANGLE_DEG, pose_twins
+    from uncertsplat.types import Cameras
+
+    base = look_at_cameras(4, 64, 48, 50.0, dtype=torch.float64)
+    a = math.radians(3 * TWIN_ANGLE_DEG)
+    Rz = torch.tensor([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]],
+                      dtype=torch.float64)
+    turned = base.cam_from_world[2].clone()
+    turned[:3, :3] = turned[:3, :3] @ Rz  # turned about the world's z axis through its own centre
+    turned[:3, 3] = -turned[:3, :3] @ base.centers[2]
+    axis = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64) / math.sqrt(14.0)
+    skew = torch.tensor([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]],
+                        dtype=torch.float64)
+    world = torch.eye(4, dtype=torch.float64)
+    world[:3, :3] = torch.linalg.matrix_exp(math.radians(40.0) * skew)  # the whole rig rotated: x -> W x
+    for fifth, twins in ((base.cam_from_world[2], {2: [4]}), (turned, {})):
+        rig = Cameras(torch.cat([base.cam_from_world, fifth[None]]), torch.cat([base.K, base.K[:1]]), 64, 48)
+        assert pose_twins(rig, [2], [0, 1, 3, 4]) == twins
+        rotated = Cameras(rig.cam_from_world @ world.T, rig.K, 64, 48)
+        torch.testing.assert_close(rotated.centers, rig.centers @ world[:3, :3].T)
+        assert pose_twins(rotated, [2], [0, 1, 3, 4]) == twins
+
+
 def test_map_coordinates_keep_their_precision(workspace, tmp_path):
     """A capture in map coordinates (UTM: millions of metres) loads to the same normalised scene as at the origin:
     the poses and points stay float64 until they are centred (float32 poses cost 2 dB at 5e6)."""

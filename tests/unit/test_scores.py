@@ -90,6 +90,18 @@ def test_posterior_scores_match_hand_values(device):
     assert bool(((s["gate"] >= 0) & (s["gate"] <= 1)).all())
 
 
+def test_position_score_divides_by_the_largest_axis(device):
+    """The ``position`` score is the spread over the Gaussian's largest posterior-mean axis: a flat floater (0.05 x
+    0.01 x 0.01) scores as the isotropic 0.05 one of test_posterior_scores_match_hand_values (its smallest axis
+    would score it 5 x higher; isotropic Gaussians could not tell)."""
+    model, is_floater, _ = planted_scene(device=device)
+    i = int(is_floater.nonzero()[0])
+    with torch.no_grad():
+        model.params["scales"][i] = torch.tensor([0.05, 0.01, 0.01], device=device).log()
+    s = posterior_scores(model, variant="ours", extent=2.0)
+    torch.testing.assert_close(s["position"][i].cpu(), torch.tensor(0.08 / (0.05 * 0.85)), rtol=1e-4, atol=0)
+
+
 def test_blending_weights_sum_to_the_rendered_alpha(device):
     model, _, cams = planted_scene(device=device)
     from uncertsplat.gaussians.variational import posterior_mean
@@ -220,3 +232,17 @@ class TestFreeSpace:
         n = [int((compute_scores(model, cams, None, render_fn=render, names=("free-space",),
                                  free_space_margin=m)["free-space"] > 1).sum()) for m in (1.0, 5.0, 1e9)]
         assert n[0] >= n[1] and n[2] == 0 and n[0] > 0
+
+    def test_a_gaussian_no_view_sees_scores_its_gate(self, device):
+        """A carrier outside every view has no surface to be in front of: its ``free-space`` score is its ``gate``
+        score, not the +inf depth's 1e6 + 1 (which pruned it first)."""
+        model, is_floater, cams = planted_scene(device=device)
+        i = int(is_floater.nonzero()[0])
+        with torch.no_grad():
+            model.params["means"][i] = torch.tensor([0.0, 100.0, 0.0], device=device)  # far below every view
+        from uncertsplat.gaussians.variational import posterior_mean
+
+        _, views = free_space_depth(posterior_mean(model), cams, render_fn=render)
+        assert int(views[i]) == 0
+        s = compute_scores(model, cams, None, render_fn=render, names=("free-space", "gate"))
+        assert 0 < float(s["free-space"][i]) == float(s["gate"][i]) < 1

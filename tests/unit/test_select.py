@@ -413,6 +413,22 @@ class TestCandidates:
                                                                                "around3_002")
 
 
+def test_seen_fraction_is_the_share_of_the_points_in_view():
+    """``seen_fraction`` is a fraction in [0, 1] per camera (the blind-candidate note compares it with a tenth of
+    the training views'): of four points, one camera looking down +z has two in its image (one is outside it, one
+    behind it), one looking down -z has the one behind the first."""
+    from uncertsplat.select.candidates import seen_fraction
+    from uncertsplat.types import Cameras
+
+    K = torch.tensor([[2.0, 0, 2.0], [0, 2.0, 2.0], [0, 0, 1.0]])
+    back = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))  # turned half a turn about y
+    cams = Cameras(torch.stack([torch.eye(4), back]), K[None].repeat(2, 1, 1), 4, 4, ("ahead", "back"))
+    points = torch.tensor([[0.0, 0.0, 2.0], [0.1, 0.1, 1.0], [50.0, 0.0, 2.0], [0.0, 0.0, -1.0]])
+    seen = seen_fraction(cams, points)
+    assert seen.tolist() == [0.5, 0.25]
+    assert seen_fraction(cams[[0]], points[:0]).tolist() == [0.0]
+
+
 def test_a_candidate_behind_a_surface_from_every_nearby_camera_is_walled_off():
     """A pose under the floor lies where no photo's frame reached, so nothing said it was behind anything, and the
     fisher score ranked it first (2.3x the best real candidate): its way from each of its nearest training cameras

@@ -151,6 +151,23 @@ class TestTraining:
         t.fit()
         assert t.model.sh_degree == 1 and t.sh_degree == 1 and t.sh_bands == []
 
+    def test_a_band_switches_on_at_its_step(self):
+        """Band 1 of a ``sh_degree_interval`` of 5 is rendered from step 5 (``schedule.sh_degree_at`` of the step
+        being made, not of the step before: that switched each band on one step late)."""
+        scene, tr, te = toy_scene()
+        t = Trainer(scene, toy_config(sh_min_gain_db=0.0, sh_degree_interval=5), tr, te)
+        degrees = {}
+        render = t.render
+
+        def recording(g, cams, background=None):
+            degrees.setdefault(t.step + 1, g.sh_degree)  # the step's training render comes first
+            return render(g, cams, background)
+
+        t.render = recording
+        for _ in range(6):
+            t.train_step()
+        assert degrees == {1: 0, 2: 0, 3: 0, 4: 0, 5: 1, 6: 1}
+
     def test_a_band_that_pays_is_kept(self):
         scene, tr, te = toy_scene()
         t = Trainer(scene, toy_config(sh_min_gain_db=1e-12), tr, te)

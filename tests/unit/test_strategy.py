@@ -53,6 +53,14 @@ def test_opacity_reset_disabled_by_zero():
     assert not any(is_opacity_reset_step(s, cfg) for s in range(1, 1000))
 
 
+def test_no_opacity_reset_at_until():
+    """Opacity resets happen while densifying, strictly before ``until``: none at ``until`` itself when it is a
+    multiple of the interval (the table's ``until``, 400, is no multiple of 300, so it could not tell)."""
+    cfg = DensifyConfig(start=100, until=400, opacity_reset_interval=200)
+    assert is_opacity_reset_step(400, cfg) is False
+    assert is_opacity_reset_step(200, cfg) is True
+
+
 @pytest.mark.parametrize("step, interval, max_deg, expected",
                          [(0, 1000, 3, 0), (999, 1000, 3, 0), (1000, 1000, 3, 1), (5000, 1000, 3, 3),
                           (250, 100, 1, 1), (50, 100, 0, 0)])
@@ -65,6 +73,22 @@ def test_position_lr_decays_exponentially_and_scales_with_extent():
     assert position_lr(100, 100, 1e-4, 1e-6, 2.0) == pytest.approx(2e-6)
     assert position_lr(50, 100, 1e-4, 1e-6, 1.0) == pytest.approx(1e-5)  # geometric midpoint
     assert position_lr(500, 100, 1e-4, 1e-6, 1.0) == pytest.approx(1e-6)
+
+
+def test_position_table_rate_is_in_units_of_the_extent():
+    """``train.optim.base_rates``: in variant "ours" the position tables are in units of the extent, so their rate
+    is ``table_lr_factor`` x the position rate / extent (the position rate itself grows with it); at the demo
+    scenes' extent (~1.1) a missing division hid. The paper's tables are in world units; the rest ignore it."""
+    from uncertsplat.config import LearningRates
+    from uncertsplat.train.optim import base_rates
+
+    lr = LearningRates()
+    ours = base_rates(lr, 0, 100, 5.0, table_lr_factor=0.1, variant="ours")
+    assert ours["means"] == pytest.approx(lr.means_init * 5.0)
+    assert ours["pos_spread_raw"] == ours["pos_loc"] == pytest.approx(0.1 * lr.means_init)
+    assert ours["scale_width_raw"] == pytest.approx(0.1 * lr.scales)
+    paper = base_rates(lr, 0, 100, 5.0, table_lr_factor=0.1, variant="paper")
+    assert paper["pos_loc"] == pytest.approx(0.1 * lr.means_init * 5.0)
 
 
 @pytest.mark.parametrize(
