@@ -302,7 +302,8 @@ def resized_note(groups: dict[tuple[int, int], list[str]], max_side: int) -> str
     f = max_side / max(w, h)
     return (f"{count} photo(s) larger than max_image_size ({max_side} px on the longest side; up to {w}x{h}) are "
             f"resized to it in the workspace's images ({round(w * f)}x{round(h * f)}), and `train`'s scene.downscale "
-            f"divides that size (the paper preset's 1/8 trains at {round(w * f / 8)}x{round(h * f / 8)}); "
+            f"divides that size (the paper preset's 1/8 trains at about {round(w * f / 8)}x{round(h * f / 8)}, "
+            "undistortion crops a few pixels); "
             "--max-image-size N keeps more pixels (slower SfM and training)")
 
 
