@@ -137,15 +137,13 @@ def _evaluation_stopped(run: Path, cfg) -> Interrupted:
                        hint="The same command evaluates again.")
 
 
-def _holds_files(folder: Path) -> bool:
-    return folder.is_dir() and any(p.name != ".lock" for p in folder.iterdir())
-
-
 def _synth_stopped(out: Path, held: bool) -> Interrupted:
     """What a Ctrl-C in ``synth`` left in ``out`` (``held``: it held files before, a scene replaced with --overwrite).
     The scene is rendered into a temporary folder, removed on a stop, and moved into ``out`` once finished: one fixed
     text said "the scene folder is unfinished ... --overwrite" where no folder was left and the plain command works."""
-    if not _holds_files(out):
+    from uncertsplat.io.folders import holds_files
+
+    if not holds_files(out):
         return Interrupted("synth stopped before the scene was finished: nothing was written (it is rendered into a "
                            "temporary folder, moved into place once finished)", path=out,
                            hint="The same command writes the scene.")
@@ -157,6 +155,12 @@ def _synth_stopped(out: Path, held: bool) -> Interrupted:
                        path=out, hint="The same command with --overwrite writes it again.")
 
 
+def _run_begun(kwargs: dict) -> bool:
+    """Whether ``train``'s output folder (``kwargs["output"]``) holds its config: the training began there, and the
+    same command is refused without --resume."""
+    return (Path(kwargs["output"]) / "config.json").is_file()
+
+
 def _space_advice(command: str, kwargs: dict) -> str | None:
     """What works after a full disk (or quota) stopped ``command``, where the writer's "free some space or choose
     another output folder, then run again" does not: ``evaluate`` writes into the run (it has no output folder to
@@ -165,7 +169,7 @@ def _space_advice(command: str, kwargs: dict) -> str | None:
     if command == "evaluate":
         return ("Free some space on that disk, then run the same command again (evaluate writes into the run folder); "
                 "or copy the run folder to a disk with room and evaluate the copy.")
-    if command == "train" and kwargs.get("output") is not None and (Path(kwargs["output"]) / "config.json").is_file():
+    if command == "train" and kwargs.get("output") is not None and _run_begun(kwargs):
         return ("Free some space, then run the same command again" + ("" if kwargs.get("resume") else " with --resume")
                 + " (from its last checkpoint, where it has one); or choose another output folder (-o) for a new run.")
     return None
@@ -238,11 +242,11 @@ def _handle_errors(fn):
             where = f"{err.filename}: " if err.filename else ""
             space = err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
             # (--resume only for a run folder that holds its config: before it, train starts over and --resume fails)
-            begun = kwargs.get("output") is None or (Path(kwargs["output"]) / "config.json").is_file()
             advice = (space and _space_advice(fn.__name__, kwargs)) or (
                 ("Free some space or choose another output folder" if space
                  else "Choose an output folder you can write to") + ", then run again" + (
-                    " (--resume continues the training run)" if fn.__name__ == "train" and begun else "") + ".")
+                    " (--resume continues the training run)" if fn.__name__ == "train" and (
+                        kwargs.get("output") is None or _run_begun(kwargs)) else "") + ".")
             console.print(Text.assemble(("error:", "bold red"), f" {where}{err.strerror}. {advice}"), soft_wrap=True)
             raise typer.Exit(2) from None
 
@@ -383,13 +387,12 @@ _SHORT = {"num_views": "-n/"}
 def _refuse_other_commands_file(model, data: dict, config_file: Path | None) -> None:
     """A --config file that is another command's configuration (``RUN/config.json``, train's, given to ``evaluate``):
     one sentence, instead of one clause per key (about forty for a training's config)."""
-    from uncertsplat.config import STAGE_CONFIGS
+    from uncertsplat.config import STAGE_CONFIGS, config_owner
 
     foreign = [k for k in data if k not in model.model_fields]
     if config_file is None or len(foreign) < 3 or 2 * len(foreign) < len(data):
         return
-    owner = next((name for name, other in STAGE_CONFIGS.items()
-                  if other is not model and all(k in other.model_fields for k in data)), None)
+    owner = config_owner(data, other_than=model)
     if owner is None:
         return
     mine = next((name for name, m in STAGE_CONFIGS.items() if m is model), "this command")
@@ -448,6 +451,7 @@ def synth(
 ):
     """Generate a synthetic multi-view scene with GT cameras and depth, as a COLMAP model or a Blender folder."""
     from uncertsplat.config import SynthConfig
+    from uncertsplat.io.folders import holds_files
     from uncertsplat.stages import synth as stage
 
     if out is None and output is None:
@@ -457,7 +461,7 @@ def synth(
     out = out if out is not None else output
     explicit = {"preset": preset, "seed": seed, "layout": layout, "rig": rig, "backdrop": backdrop}
     cfg = _stage_config(SynthConfig, None, set_, explicit)
-    held = _holds_files(out)
+    held = holds_files(out)
     try:
         stage.run(out, cfg, overwrite=overwrite)
     except KeyboardInterrupt:

@@ -1027,6 +1027,13 @@ STAGE_CONFIGS: dict[str, type[_Base]] = {
 }
 
 
+def config_owner(data: dict, other_than: type[_Base] | None = None) -> str | None:
+    """The command (a ``STAGE_CONFIGS`` name) whose configuration has every key of ``data``, the first such but
+    ``other_than``'s; None for none: what a --config file of another command (or a TOML given to ``run``) is."""
+    return next((name for name, model in STAGE_CONFIGS.items()
+                 if model is not other_than and all(k in model.model_fields for k in data)), None)
+
+
 def deep_update(base: dict, update: dict) -> dict:
     """Recursively merge ``update`` into a copy of ``base``."""
     out = dict(base)

@@ -54,6 +54,7 @@ from torch import Tensor
 
 from uncertsplat.config import SynthConfig
 from uncertsplat.errors import UserError
+from uncertsplat.io.folders import holds_files
 from uncertsplat.schemas.scene import SynthScene
 
 GENERATOR_VERSION = 2
@@ -743,7 +744,7 @@ def _generate(out: Path, cfg: SynthConfig, overwrite: bool, on_view, workers: in
 
     if out.exists() and not out.is_dir():
         raise UserError("the output path exists and is not a folder", path=out, hint="Choose a folder path.")
-    if out.is_dir() and any(p.name != ".lock" for p in out.iterdir()) and not overwrite:
+    if holds_files(out) and not overwrite:
         raise UserError("the output folder is not empty", path=out,
                         hint="Choose a new folder or pass --overwrite to replace the scene in it.")
 

@@ -24,6 +24,12 @@ def is_run(folder: Path) -> bool:
         return False
 
 
+def holds_files(folder: Path) -> bool:
+    """Whether ``folder`` is a folder that holds anything but a command's lock (``.lock``, which ``run_lock`` makes
+    before the command writes)."""
+    return folder.is_dir() and any(p.name != ".lock" for p in folder.iterdir())
+
+
 def is_scene(folder: Path) -> bool:
     """Whether ``folder`` looks like a scene ``train`` reads: a COLMAP workspace (``sparse/``) with its images, or a
     Blender layout (``transforms*.json``); False where it cannot be read."""
@@ -80,4 +86,4 @@ def stage_hint(folder: Path, want: str) -> str:
     return ""
 
 
-__all__ = ["PIPELINE_STARTED", "RUN_FILES", "is_run", "is_scene", "stage_hint"]
+__all__ = ["PIPELINE_STARTED", "RUN_FILES", "holds_files", "is_run", "is_scene", "stage_hint"]

@@ -6,7 +6,7 @@
 from __future__ import annotations
 
 import uncertsplat.schemas as schemas
-from uncertsplat.config import STAGE_CONFIGS, SWEEP_KEYS
+from uncertsplat.config import SWEEP_KEYS, config_owner
 
 RECORDS_WRITTEN = (
     ("SynthScene", "`uncertsplat synth`'s record of a synthetic scene (scene.json)"),
@@ -42,8 +42,7 @@ def what_file_is(data: dict) -> str | None:
         return "a pipeline (it lists [[stages]])"
     if len(SWEEP_KEYS & set(data)) >= 2:  # (one could be a misspelt setting)
         return "a sweep spec"
-    owner = next((name for name, model in STAGE_CONFIGS.items() if all(k in model.model_fields for k in data)),
-                 None)
+    owner = config_owner(data)
     return f"`uncertsplat {owner}`'s configuration" if owner else None
 
 

@@ -243,7 +243,7 @@ def _recover_overwrite(workspace: Path) -> str | None:
         except UserError:  # (damaged: not a finished one)
             report = None
         if report is not None and report.success:
-            _drop_old(workspace)
+            _drop(workspace / OVERWRITE_OLD, workspace / OVERWRITE_DONE)
             return "finished"
         plan = read_json(old / OVERWRITE_PLAN)
         for name in [*plan["moved"], *plan["absent"]]:  # the new run's (the old ones are aside)
@@ -261,10 +261,13 @@ def _recover_overwrite(workspace: Path) -> str | None:
     return "restored"
 
 
-def _drop_old(workspace: Path) -> None:
-    """Remove ``OVERWRITE_OLD`` in a step that cannot leave a half: renamed first, then deleted."""
-    (workspace / OVERWRITE_OLD).rename(workspace / OVERWRITE_DONE)
-    shutil.rmtree(workspace / OVERWRITE_DONE, ignore_errors=True)
+def _drop(folder: Path, done: Path) -> None:
+    """Delete ``folder`` in one step that cannot leave a half: renamed ``done`` first (a leftover ``done`` of an
+    earlier one removed), then removed (a kill while it is removed leaves only ``done``, dropped later): ``extend``'s
+    staging folder (its report marker and the originals go together), an --overwrite's old workspace."""
+    shutil.rmtree(done, ignore_errors=True)
+    folder.rename(done)
+    shutil.rmtree(done, ignore_errors=True)
 
 
 @contextlib.contextmanager
@@ -287,7 +290,7 @@ def _overwrite_kept(workspace: Path, state: dict):
                               "it was" + (f" (this run's report: {workspace / FAILED_REPORT_NAME})" if failed else ""))
         raise
     if (workspace / OVERWRITE_OLD).is_dir():
-        _drop_old(workspace)
+        _drop(workspace / OVERWRITE_OLD, workspace / OVERWRITE_DONE)
 
 
 def resized_note(groups: dict[tuple[int, int], list[str]], max_side: int) -> str | None:
@@ -757,7 +760,7 @@ def _swap_in(workspace: Path, stage_dir: Path, report: ReconstructReport, staged
         if (workspace / part).exists():  # (masks/: absent in a workspace made without them)
             (workspace / part).rename(aside)
         (stage_dir / part).rename(workspace / part)
-    _drop_staging(workspace)
+    _drop(workspace / EXTEND_DIR, workspace / EXTEND_DONE)
 
 
 NO_MASKS = "NO_MASKS"
@@ -848,23 +851,10 @@ def _recover_extend(workspace: Path) -> bool:
         for part in (*_SWAPPED, Path("masks")):
             aside = stage_dir / "old" / part
             if aside.exists():
-                target = workspace / part
-                if target.is_dir() and not target.is_symlink():
-                    shutil.rmtree(target)
-                elif target.exists():
-                    target.unlink()
-                aside.rename(target)
-    _drop_staging(workspace)
+                _remove(workspace / part)
+                aside.rename(workspace / part)
+    _drop(workspace / EXTEND_DIR, workspace / EXTEND_DONE)
     return grown
-
-
-def _drop_staging(workspace: Path) -> None:
-    """Delete the staging folder in one step that cannot leave a half: renamed first (its report marker and the
-    originals go together), then removed (a kill while it is removed leaves only ``EXTEND_DONE``, dropped later)."""
-    done = workspace / EXTEND_DONE
-    shutil.rmtree(done, ignore_errors=True)
-    (workspace / EXTEND_DIR).rename(done)
-    shutil.rmtree(done, ignore_errors=True)
 
 
 def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructReport:

@@ -12,6 +12,7 @@ from uncertsplat.console import console, esc, print_table, progress
 from uncertsplat.data.synthetic import GENERATOR_VERSION, generate_scene, read_scene_meta, resolve_size
 from uncertsplat.errors import UserError
 from uncertsplat.io.atomic import run_lock
+from uncertsplat.io.folders import holds_files
 from uncertsplat.report.loader import RUN_MARKERS
 from uncertsplat.schemas import SynthScene
 
@@ -45,7 +46,7 @@ def run(out: Path, cfg: SynthConfig, overwrite: bool = False) -> Path:
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise UserError("the output path exists and is not a folder", path=out, hint="Choose a folder path.")
-    non_empty = out.is_dir() and any(p.name != ".lock" for p in out.iterdir())
+    non_empty = holds_files(out)
     if non_empty and (out / "config.json").is_file() and any(
             (out / name).exists() for name in RUN_MARKERS if name != "config.json"):
         # a training run: the scene's files would replace its scene.json and mix with its outputs
