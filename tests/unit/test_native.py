@@ -218,6 +218,30 @@ def test_image_compositing_equals_tiles_then_image(background, dtype, tol, used)
         assert ((a - b).norm() / b.norm()).item() <= tol, name
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_image_backward_of_the_colour_only_equals_the_full_loop_exactly(dtype):
+    """A loss of the colour alone (a training step's) takes the backward's colour-only loop, which leaves out the
+    depth and alpha features: every gradient is the full loop's to the bit (the full loop runs when the depth and
+    alpha gradients are given, here as zeros), and the depths get exactly 0."""
+    from uncertsplat.render.rasterize import composite_image
+
+    g = torch.Generator().manual_seed(5)
+    weight = torch.randn(2, 47, 61, 3, generator=g, dtype=dtype)
+    grads = []
+    for zeros in (False, True):
+        ins, bins = _image_inputs(dtype, seed=3)
+        rgb, depth, alpha = composite_image(*ins, bins, 47, 61, torch.tensor([0.3, 0.6, 0.9], dtype=dtype))
+        loss = (rgb * weight).sum()
+        if zeros:  # non-null gradients of 0 for depth and alpha: the full loop
+            loss = loss + (depth * 0.0).sum() + (alpha * 0.0).sum()
+        loss.backward()
+        grads.append([t.grad for t in ins])
+    assert float(grads[0][0].abs().max()) > 0.0 and float(grads[0][3].abs().max()) > 0.0
+    for name, a, b in zip(("means2d", "conics", "log_o", "colors", "depths"), *grads, strict=True):
+        assert torch.equal(a, b), name
+    assert float(grads[0][4].abs().max()) == 0.0
+
+
 @pytest.mark.parametrize("n,size,tile_size", [(0, (61, 47), 8), (1, (61, 47), 8), (200, (1, 1), 8),
                                                (200, (5, 3), 16), (200, (17, 9), 4)])
 def test_image_compositing_at_the_extremes(n, size, tile_size):
