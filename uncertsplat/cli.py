@@ -351,7 +351,7 @@ _SCORE_KEYS = ("width", "height", "noise_std", "params", "note")
 
 
 def _settings_inside(data: dict) -> dict:
-    """The settings of a record that holds them under a key (``_RECORDS``; README says `--config` takes them back,
+    """The settings of a record that holds them under a key (``_RECORDS``; docs/guide.md says `--config` takes them back,
     and the whole record was read as settings: "mapping_attempts: Input should be a valid integer"), else ``data``."""
     for key, tell in _RECORDS:
         if isinstance(data.get(key), dict) and tell in data and "schema_version" in data:
@@ -618,7 +618,7 @@ def prune(
     auto: Annotated[bool | None, typer.Option(
         "--auto/--no-auto", help="Strongest pruning within --tolerance-db of the unpruned PSNR.")] = None,
     tolerance_db: Annotated[float | None, typer.Option(help="PSNR loss --auto may accept, in dB (default 0.1).")] = None,
-    score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (with --auto or --keep-ratio, on a scene with held-out views: free-space and gate both tried, the one that prunes more within the tolerance kept; free-space alone with --sweep, --threshold or no held-out views), free-space, gate, position, scale, or predictive (for --dry-run and --sweep only: it ranks the Gaussians the image needs most first; see the README).")] = None,
+    score: Annotated[str | None, typer.Option(help="Per-Gaussian score: auto (with --auto or --keep-ratio, on a scene with held-out views: free-space and gate both tried, the one that prunes more within the tolerance kept; free-space alone with --sweep, --threshold or no held-out views), free-space, gate, position, scale, or predictive (for --dry-run and --sweep only: it ranks the Gaussians the image needs most first; see docs/guide.md).")] = None,
     dry_run: Annotated[bool | None, typer.Option("--dry-run/--no-dry-run", help="Report only; write no model.")] = None,
     sweep: Annotated[bool | None, typer.Option("--sweep/--no-sweep", help="Evaluate a range of keep ratios.")] = None,
     device: DeviceOpt = "auto",

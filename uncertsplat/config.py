@@ -134,7 +134,7 @@ class ReconstructConfig(_Base):
     """A folder of masks for the photos (the mask of ``IMG_1.jpg``: ``IMG_1.jpg.png`` as COLMAP names it,
     ``IMG_1.jpg`` or ``IMG_1.png``), white where the photo shows the scene and black where not (a person walking
     through, the rig, the sky): no feature is taken under black pixels, and the workspace gets ``masks/``, each mask
-    undistorted as its image is, which ``train`` and ``evaluate`` read (README, "Masks"). A photo without a mask
+    undistorted as its image is, which ``train`` and ``evaluate`` read (docs/guide.md, "Masks"). A photo without a mask
     counts every pixel."""
     guided_matching: bool = False
     """After a pair's geometry is verified, match its features again constrained by that geometry (more inlier
@@ -456,7 +456,7 @@ class TransientsConfig(_Base):
     photos, a test that has found regions in three quarters of them or more (of at least 4) switches itself off
     (parts of the scene the model cannot fit, not objects that came and went: bonsai's flowers at 20 dB) and
     ``train`` warns. Off by default: on scenes the model fits well a photo without transients loses nothing but the test's cost; measured in
-    BENCHMARKS.md, "Transient objects found from the residual". Masks a user brings (README, "Masks") are exact where
+    BENCHMARKS.md, "Transient objects found from the residual". Masks a user brings (docs/guide.md, "Masks") are exact where
     this is a guess."""
     start: float = Field(0.5, ge=0.0, le=1.0)
     """The share of the iterations before the first test: before it the model is far from every photo."""

@@ -833,7 +833,7 @@ def describe_posterior(post: dict, update: dict | None = None) -> str:
             "10th-90th percentile")
     if post["moved_fraction"] < 0.05:
         line += ("; the posteriors are still close to the prior, so per-Gaussian scores carry little from the data "
-                 "(README: 'What the uncertainty is')")
+                 "(docs/guide.md: 'What the uncertainty is')")
     return line
 
 

@@ -326,7 +326,7 @@ def native_unavailable():
 
     return UserError(f"UNCERTSPLAT_RASTERIZER=native, but the native kernels are unavailable: {unavailable_reason()}",
                      hint="Install a C++ compiler (g++, or set CXX to one), or unset UNCERTSPLAT_RASTERIZER to take the "
-                          "PyTorch kernels (much slower on a CPU: README, \"Speed on a CPU\").")
+                          "PyTorch kernels (much slower on a CPU: docs/guide.md, \"Speed on a CPU\").")
 
 
 def require_requested(device: torch.device | str) -> None:
@@ -358,7 +358,7 @@ def single_threaded_torch(device: torch.device | str):
     own, nested uses counted per thread: threads may enter and leave in any order (a pool over
     ``Predictor.predict`` calls) and each gets what it gets alone. torch also takes the count last set as the one a
     thread starts with: another thread whose first parallel torch op falls inside this window starts on one thread
-    and keeps it (a host application's thread; README, "From Python")."""
+    and keeps it (a host application's thread; docs/guide.md, "From Python")."""
     if torch.device(device).type != "cpu" or requested_backend() == "torch" or library() is None:
         yield
         return

@@ -117,7 +117,7 @@ def transients_warning(shares: dict[str, float] | None, photos: int, stopped: di
         return (f"{STOPPED} at step {stopped['step']}: after a pass over the photos it "
                 f"had found regions in {stopped['photos']} of the {stopped['of']} training photos, and objects that "
                 "come and go are seldom in nearly every photo; these were parts of the scene the model cannot fit yet "
-                "(fine detail, reflections), trained on again from then on. Masks of the photos (README, \"Masks\") "
+                "(fine detail, reflections), trained on again from then on. Masks of the photos (docs/guide.md, \"Masks\") "
                 "leave real transients out where this cannot")
     if not shares or photos < MIN_PHOTOS or len(shares) < EVERYWHERE_SHARE * photos:
         return None
