@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import types
 from pathlib import Path
 
 import pytest
@@ -1372,3 +1373,59 @@ def test_an_output_folder_of_other_files_or_the_scene_itself_is_refused(tmp_path
         assert (ok / "sweep.json").is_file()
         with contextlib.suppress(UserError):  # an earlier sweep's folder: taken again
             sweep.run(f, ok, device="cpu", scene=tmp_path / "scene", jobs=1)
+
+
+class TestRayAddressProbe:
+    """A wrong ``--address`` fails in seconds with one message: Ray's own attempt retried for minutes with a C++
+    warning every few seconds (Ray 2.60: 2 minutes and 9 warnings for a port where nothing listens)."""
+
+    @pytest.mark.parametrize("address,expected", [
+        ("10.0.0.5:6379", ("10.0.0.5", 6379)), ("ray://head.lan:10001", ("head.lan", 10001)),
+        ("[::1]:6379", ("::1", 6379)), ("auto", None), ("local", None), ("head.lan", None), ("head:port", None)])
+    def test_host_and_port_of_an_address(self, address, expected):
+        from uncertsplat.sweep.executors import _host_port
+
+        assert _host_port(address) == expected
+
+    def test_a_port_where_nothing_listens_is_refused_before_ray_is_called(self, monkeypatch):
+        import socket
+
+        from uncertsplat.sweep import executors
+
+        with socket.socket() as s:  # a port just freed: nothing listens there
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        fake = types.SimpleNamespace(is_initialized=lambda: False, init=lambda **kw: pytest.fail("ray.init called"))
+        monkeypatch.setattr(executors, "require_ray", lambda: fake)
+        with pytest.raises(UserError, match=rf"cannot reach the Ray cluster at '127.0.0.1:{port}' \(connection "
+                                            rf"refused at 127.0.0.1:{port}\)") as err:
+            executors.connect_ray(f"127.0.0.1:{port}")
+        assert "ray start --head" in err.value.hint
+
+    def test_a_listening_port_and_auto_go_on_to_ray(self, monkeypatch):
+        import socket
+
+        from uncertsplat.sweep import executors
+
+        calls = []
+        fake = types.SimpleNamespace(is_initialized=lambda: False, init=lambda **kw: calls.append(kw["address"]))
+        monkeypatch.setattr(executors, "require_ray", lambda: fake)
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            s.listen()
+            port = s.getsockname()[1]
+            assert executors.connect_ray(f"127.0.0.1:{port}") is True
+        assert executors.connect_ray("auto") is True
+        assert calls == [f"127.0.0.1:{port}", "auto"]
+
+    def test_rays_value_error_is_one_message(self, monkeypatch):
+        from uncertsplat.sweep import executors
+
+        def client_missing(**kw):
+            raise ValueError("Ray Client requires pip package `ray[client]`.")
+
+        monkeypatch.setattr(executors, "require_ray", lambda: types.SimpleNamespace(is_initialized=lambda: False,
+                                                                                   init=client_missing))
+        monkeypatch.setattr(executors, "_probe", lambda address, timeout: None)
+        with pytest.raises(UserError, match=r"Ray cannot connect to 'ray://head:10001': Ray Client requires"):
+            executors.connect_ray("ray://head:10001")

@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import socket
 import threading
 import traceback
 from collections.abc import Callable, Iterator
@@ -220,13 +221,50 @@ def require_ray():
     return require_extra("ray", feature="--executor ray", extra="ray")
 
 
+RAY_PROBE_SECONDS = 5.0
+"""How long ``connect_ray`` waits for a TCP connection to a cluster's address before it calls it unreachable."""
+
+_NOT_REACHED_HINT = ("Start it on the head node (ray start --head) and run the sweep there with --address auto, or "
+                     "leave --address out to use this machine only.")
+
+
+def _host_port(address: str) -> tuple[str, int] | None:
+    """(host, port) of a Ray address ``HOST:PORT``, ``ray://HOST:PORT`` or ``[IPv6]:PORT``; None for one without
+    a port (``auto``, ``local``), which Ray itself resolves."""
+    rest = address.strip().removeprefix("ray://")
+    host, sep, port = rest.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        return None
+    return host.strip("[]"), int(port)
+
+
+def _probe(address: str, timeout: float) -> None:
+    """Raise one UserError when nothing answers at ``address``'s host and port within ``timeout`` seconds. Ray's own
+    attempt at an unreachable address retries for minutes while its C++ client prints a warning every few seconds
+    (2 minutes and 9 warnings without an answer for 127.0.0.1:6399, Ray 2.60)."""
+    target = _host_port(address)
+    if target is None:
+        return
+    try:
+        with socket.create_connection(target, timeout=timeout):
+            pass
+    except OSError as err:
+        where = f"{target[0]}:{target[1]}"
+        reason = (f"no answer at {where} within {timeout:g} s" if isinstance(err, TimeoutError)
+                  else f"{(err.strerror or str(err)).lower()} at {where}")
+        raise UserError(f"cannot reach the Ray cluster at {address!r} ({reason})", hint=_NOT_REACHED_HINT) from None
+
+
 def connect_ray(address: str | None, num_cpus: int | None = None) -> bool:
     """Start a local Ray instance (``address`` None; ``num_cpus`` CPUs, default all) or join the cluster at
     ``address``, unless this process is connected already; True when this call connected. A cluster that cannot be
-    reached is one UserError with what to do (``sweep`` calls this before it prepares any scene)."""
+    reached is one UserError with what to do (``sweep`` calls this before it prepares any scene): an address with a
+    port is tried first with a plain TCP connection (``RAY_PROBE_SECONDS``), so a wrong one fails in seconds."""
     ray = require_ray()
     if ray.is_initialized():
         return False
+    if address is not None:
+        _probe(address, RAY_PROBE_SECONDS)
     kwargs = dict(include_dashboard=False, log_to_driver=False, configure_logging=False)
     try:
         if address is None:
@@ -234,9 +272,9 @@ def connect_ray(address: str | None, num_cpus: int | None = None) -> bool:
         else:
             ray.init(address=address, **kwargs)
     except ConnectionError as err:
-        raise UserError(f"cannot reach the Ray cluster at {address!r} ({err})",
-                        hint="Start it on the head node (ray start --head) and run the sweep there with "
-                             "--address auto, or leave --address out to use this machine only.") from None
+        raise UserError(f"cannot reach the Ray cluster at {address!r} ({err})", hint=_NOT_REACHED_HINT) from None
+    except ValueError as err:  # e.g. a ray:// address without Ray's client package: Ray's message says what to install
+        raise UserError(f"Ray cannot connect to {address!r}: {err}") from None
     return True
 
 
