@@ -816,6 +816,39 @@ def test_a_project_moved_with_its_pipeline_file_skips_its_stages(tmp_path, calls
     assert [k for k, _ in calls] == ["train"]
 
 
+def test_a_run_trained_into_the_scene_folder_by_hand_is_no_change_of_the_scene(tmp_path, calls):
+    """A train stage's scene folder was fingerprinted with every file in it: a run trained into it by hand
+    (`uncertsplat train scene -o scene/myrun`), which the scene's loader never reads, retrained the stage from step 0
+    (as the sweep's scene fingerprint, uncertsplat's own outputs inside the scene are left out). A manifest holding
+    the fingerprint with such a run counted still skips; a photo changed runs the stage again."""
+    from uncertsplat.stages.manifest import fingerprints
+
+    (tmp_path / "scene" / "images").mkdir(parents=True)
+    (tmp_path / "scene" / "images" / "a.png").write_text("x")
+    p = tmp_path / "p.toml"
+    p.write_text('name = "m"\n[[stages]]\nstage = "train"\ninput = "scene"\npreset = "tiny"\n')
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls] == ["train"]
+    calls.clear()
+    run = tmp_path / "scene" / "myrun"
+    (run / "ckpts").mkdir(parents=True)
+    (run / "config.json").write_text("{}")
+    (run / "stats.jsonl").write_text('{"step": 1}\n')
+    (run / "ckpts" / "step_000001.pt").write_bytes(b"model")
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    # a manifest recorded with the run in the fingerprint (as before) is the same scene too
+    m = tmp_path / "out" / "train" / "manifest.json"
+    data = json.loads(m.read_text(encoding="utf-8"))
+    data["input_hashes"] = {"scene": fingerprints(tmp_path / "scene", skip=[tmp_path / "out"])[0]}
+    m.write_text(json.dumps(data))
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    (tmp_path / "scene" / "images" / "a.png").write_text("y")
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls] == ["train"]
+
+
 def test_a_home_folder_in_a_path_setting_is_expanded(monkeypatch, tmp_path):
     """``photos = "~/..."`` in a pipeline file or ``--set depth_gt=~/...`` was looked for in a folder named ``~``
     (no shell expands them there)."""

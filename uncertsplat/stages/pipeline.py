@@ -437,8 +437,9 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 continue
             inputs: dict[str, str] = {}
             # folder inputs by the manifests' earlier hashes: of every file (notes and backups too), and before that
-            # of names, sizes and mtimes
-            earlier: tuple[dict[str, str], dict[str, str]] = ({}, {})
+            # of names, sizes and mtimes; then the three of a scene folder with uncertsplat's own outputs inside it
+            # counted (``_outputs_inside``: before they were left out)
+            earlier: tuple[dict[str, str], ...] = ({}, {}, {}, {}, {})
             renamed: dict[str, str] = {}
             up_path: Path | None = None
             if upstream is not None:
@@ -458,7 +459,17 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                         # (this stage's and any other's, of the held-out or the training views: another stage, or
                         # an `evaluate --split train` by hand, rewrote one with each call)
                         skip += [eval_dir(up_path, stage_cfg.model_copy(update={"split": s})) for s in ("test", "train")]
-                    inputs[upstream], earlier[0][upstream], earlier[1][upstream] = fingerprints(up_path, skip=skip)
+                    # a train stage's scene: a run trained into it by hand (SCENE/run), its evaluation, a pipeline's
+                    # or a sweep's output there are no files the scene's loader reads, and each retrained the stage
+                    # from step 0 (as the sweep's scene fingerprint leaves them out)
+                    from uncertsplat.stages.sweep import _outputs_inside
+
+                    inside = _outputs_inside(up_path) if stage.stage == "train" and up_path.is_dir() else []
+                    inputs[upstream], earlier[0][upstream], earlier[1][upstream] = fingerprints(
+                        up_path, skip=[*skip, *inside])
+                    if inside:
+                        for e, value in zip(earlier[2:], fingerprints(up_path, skip=skip), strict=True):
+                            e[upstream] = value
                     if str(up_path) != upstream:
                         renamed[upstream] = str(up_path)
 
