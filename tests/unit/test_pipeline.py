@@ -849,6 +849,34 @@ def test_a_run_trained_into_the_scene_folder_by_hand_is_no_change_of_the_scene(t
     assert [k for k, _ in calls] == ["train"]
 
 
+def test_a_prune_stage_of_a_run_outside_out_is_skipped_when_unchanged(tmp_path, calls):
+    """A prune stage of a run outside OUT fingerprinted every file of the run, the evaluation an evaluate stage of the
+    pipeline writes into it too: the prune stage pruned again at every call, nothing changed; so did a `select-views
+    RUN` by hand (its output is RUN/select). Neither is the run's model; the model trained on is."""
+    from uncertsplat.schemas.select import Selection
+
+    run = tmp_path / "myrun"
+    run.mkdir()
+    (run / "config.json").write_text("{}")
+    (run / "variational.ply").write_text("model")
+    p = tmp_path / "p.toml"
+    p.write_text('[[stages]]\nstage = "prune"\ninput = "myrun"\nconfig = { keep_ratio = 0.9 }\n[[stages]]\n'
+                 'stage = "evaluate"\nname = "ev"\ninput = "myrun"\n')
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls] == ["prune", "evaluate"]
+    calls.clear()
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    Selection(run=str(run), score="variance", candidates="around:6", num_candidates=6, chosen=[], seconds=0.1,
+              seconds_per_candidate=0.01).write(run / "select" / "selection.json")
+    (run / "select" / "selection.png").write_bytes(b"png")
+    pl.run(p, tmp_path / "out")
+    assert calls == []
+    (run / "variational.ply").write_text("trained on")
+    pl.run(p, tmp_path / "out")
+    assert [k for k, _ in calls] == ["prune", "evaluate"]
+
+
 def test_a_home_folder_in_a_path_setting_is_expanded(monkeypatch, tmp_path):
     """``photos = "~/..."`` in a pipeline file or ``--set depth_gt=~/...`` was looked for in a folder named ``~``
     (no shell expands them there)."""

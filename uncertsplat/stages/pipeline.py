@@ -461,10 +461,14 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                         skip += [eval_dir(up_path, stage_cfg.model_copy(update={"split": s})) for s in ("test", "train")]
                     # a train stage's scene: a run trained into it by hand (SCENE/run), its evaluation, a pipeline's
                     # or a sweep's output there are no files the scene's loader reads, and each retrained the stage
-                    # from step 0 (as the sweep's scene fingerprint leaves them out)
+                    # from step 0 (as the sweep's scene fingerprint leaves them out); likewise a run's: a select-views
+                    # or evaluation folder made in it by hand is not its model (an ensemble's members are)
                     from uncertsplat.stages.sweep import _outputs_inside
 
-                    inside = _outputs_inside(up_path) if stage.stage == "train" and up_path.is_dir() else []
+                    inside = []
+                    if up_path.is_dir() and stage.stage in ("train", "evaluate", "prune"):
+                        inside = [o for o in _outputs_inside(up_path) if stage.stage == "train"
+                                  or o.relative_to(up_path).parts[0] != "members"]
                     inputs[upstream], earlier[0][upstream], earlier[1][upstream] = fingerprints(
                         up_path, skip=[*skip, *inside])
                     if inside:
