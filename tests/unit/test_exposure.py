@@ -9,6 +9,8 @@ import pytest
 import torch
 
 from tests.e2e.test_train_resume import assert_resume_is_exact, assert_same_parameters, toy_config, toy_scene
+from tests.fixtures import tiny_scene_path  # noqa: F401
+from tests.run_fixtures import tiny_run_path  # noqa: F401
 from uncertsplat.baselines.runs import mean_exposure
 from uncertsplat.config import TrainConfig
 from uncertsplat.io.checkpoints import decode, encode
@@ -237,3 +239,30 @@ def test_photo_gains_leave_out_the_views_added_late():
     assert seen == [0, 1, 2, 4] and all(abs(g - 1.0) < 1e-6 for g in gains)
     seen.clear()
     assert max(Trainer.photo_gains(fake)) > 1.4 and 3 in seen  # the same photo counted when not skipped
+
+
+def test_a_checkpoint_newer_than_the_model_file_comes_with_its_own_exposures(tiny_run_path, tmp_path):  # noqa: F811
+    """A run trained on (`train --resume --iterations N`) and stopped before it wrote its model is loaded from its
+    newest checkpoint; its exposures were read from exposure.json, the earlier training's (written with the PLY),
+    so evaluate fitted the newer model's noise on photos brought to the older exposures."""
+    import shutil
+
+    from uncertsplat.baselines import load_run
+    from uncertsplat.io.checkpoints import load_latest, save_checkpoint
+    from uncertsplat.io.ply import read_variational_ply
+    from uncertsplat.schemas.scene import RunScene
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    names = RunScene.read(run / RunScene.FILE_NAME).train
+    _, meta = read_variational_ply(run / "variational.ply")
+    done = int(meta["step"])
+    RunExposure(images=names, gain=[[1.0] * 3] * len(names), offset=[[0.0] * 3] * len(names),
+                step=done).write(run / RunExposure.FILE_NAME)
+    _, state = load_latest(run)
+    later = torch.zeros(len(names), 2, 3)
+    later[0, 0] = 0.2  # the first photo brighter than the others
+    save_checkpoint(run, done + 10, {**state, "step": done + 10, "exposure": later})
+    loaded = load_run(run)
+    assert loaded.step == done + 10 and loaded.exposure.step == done + 10
+    assert loaded.exposure.gain[0][0] > 1.1 > loaded.exposure.gain[1][0]

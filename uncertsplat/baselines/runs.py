@@ -524,21 +524,26 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
     except (KeyError, ValueError) as err:  # a good checksum over an inconsistent model: written by other code
         raise CorruptCheckpoint(f"the model in the checkpoint is inconsistent ({err})", path=path) from None
     refuse_non_finite(model, path)
-    if exposure is None and state.get("exposure") is not None and info is not None:
-        exposure = checkpoint_exposure(state, info.train)
+    if state.get("exposure") is not None and info is not None:
+        # the checkpoint's own: an exposure.json beside it is an earlier training's (it is written with the PLY, which
+        # is older than this checkpoint or absent; a --resume --iterations stopped midway paired its model with them)
+        exposure = checkpoint_exposure(state, info.train) or exposure
     return LoadedRun(model, cfg, scene_path, float(state["extent"]), int(state["step"]),
                      int(state.get("sh_degree_active", model.sh_degree)), path, run_dir, transparent, exposure, near)
 
 
 def checkpoint_exposure(state: dict, train_names: list[str]) -> RunExposure | None:
-    """The exposures a training checkpoint ``state`` holds, as ``exposure.json`` would (``train_names``: the run's
-    training photos in the order of its split, ``RunScene.train``); None when its rows do not match them."""
+    """The exposures a training checkpoint ``state`` holds, as ``exposure.json`` would, for its training photos (the
+    names it keeps; ``train_names``, the run's training photos in the order of its split, ``RunScene.train``, for a
+    checkpoint from before it kept them: scene.json names views added after the checkpoint too); None when its rows
+    do not match them."""
     from uncertsplat.render.exposure import exposure_record
 
     params = state["exposure"]
-    if params.shape[0] != len(train_names):
+    names = list(state.get("train_names") or train_names)
+    if params.shape[0] != len(names):
         return None
-    return exposure_record(params, train_names, int(state.get("step", 0)))
+    return exposure_record(params, names, int(state.get("step", 0)))
 
 
 def mean_exposure(records: list[RunExposure | None]) -> RunExposure | None:
