@@ -106,6 +106,23 @@ def test_resume_falls_back_to_previous_good_checkpoint_and_says_so(small_run, tm
     assert [s for s in stats if s] == [1, 2, 3, 4, 5, 6]
 
 
+def test_a_damaged_checkpoint_past_the_model_file_leaves_the_model_file_in_use(small_run, tmp_path, capsys):
+    """A run trained on (`--resume --iterations N`) and stopped keeps its newest checkpoint beside the PLY of its
+    earlier end; with that checkpoint damaged and none past the PLY left (keep_checkpoints = 1), every command
+    refused the run as holding 'neither variational.ply nor a checkpoint'. The PLY is its newest good model."""
+    from uncertsplat.baselines import load_run
+
+    run = _copy(small_run, tmp_path)
+    shutil.copyfile(checkpoint_path(run, 6), checkpoint_path(run, 8))  # (as keep_checkpoints = 1 leaves it)
+    for step in (2, 4, 6):
+        checkpoint_path(run, step).unlink()
+    flip_bit(checkpoint_path(run, 8), 5000)
+    capsys.readouterr()
+    loaded = load_run(run)
+    assert loaded.source == run / "variational.ply" and loaded.step == 6
+    assert "step_000008.pt: checksum mismatch" in " ".join(capsys.readouterr().err.split())
+
+
 def test_damaged_run_config_is_reported_not_a_traceback(small_run, tmp_path):
     from uncertsplat.baselines import load_run
     from uncertsplat.stages import train

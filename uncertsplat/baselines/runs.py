@@ -502,19 +502,28 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
     exposure = RunExposure.read_optional(run_dir / RunExposure.FILE_NAME)
     device = torch.device(device)
     ply = run_dir / "variational.ply"
+    from_ply = None
     if ply.is_file():
         model, meta = read_variational_ply(ply, device=device)
         newest = max((step for step, _ in list_checkpoints(run_dir)), default=-1)
-        # a --resume stopped (Ctrl-C, a crash) before it wrote its model leaves the PLY of the steps before it, and
-        # checkpoints past them: the newer model is the checkpoint's (``unfinished_notes`` says so), not the PLY
-        # every command otherwise scored without a word (views added since counted as trained, as scene.json says)
-        if "step" not in meta or newest <= int(meta["step"]):
+
+        def from_ply() -> LoadedRun:
             refuse_non_finite(model, ply)  # (a newer checkpoint stands in for the file: that one is checked)
             extent = float(meta.get("extent", info.extent if info is not None else 1.0))
             return LoadedRun(model, cfg, scene_path, extent, int(meta.get("step", 0)),
                              int(meta.get("sh_degree_active", model.sh_degree)), ply, run_dir, transparent, exposure,
                              near)
+
+        # a --resume stopped (Ctrl-C, a crash) before it wrote its model leaves the PLY of the steps before it, and
+        # checkpoints past them: the newer model is the checkpoint's (``unfinished_notes`` says so), not the PLY
+        # every command otherwise scored without a word (views added since counted as trained, as scene.json says)
+        if "step" not in meta or newest <= int(meta["step"]):
+            return from_ply()
     found = load_latest(run_dir, map_location=device)
+    if from_ply is not None and (found is None or int(found[1]["step"]) < int(meta["step"])):
+        # every checkpoint past the PLY is damaged (each named in a warning): the PLY is the newest good model (a run
+        # keeping one checkpoint was refused as holding 'neither variational.ply nor a checkpoint')
+        return from_ply()
     if found is None:
         raise UserError("no trained model here (neither variational.ply nor a checkpoint in ckpts/)", path=run_dir,
                         hint="Run `uncertsplat train` (or `--resume`) to finish training first.")
