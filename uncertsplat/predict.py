@@ -184,17 +184,49 @@ def _contiguous(values):
     return values
 
 
+ROTATION_TOLERANCE = 1e-5
+"""How far from the identity ``R R^T`` of a pose given to ``cameras_from_source`` may be."""
+HAND_ROTATION_TOLERANCE = 1e-3
+"""The same for a ``Cameras`` built by hand and given to ``predict``: the scene loaders' (a ``transforms.json`` pose
+within 1e-3 of a rotation trains, and ``scene.cameras`` holds it as written), so that the run's own cameras pass."""
+
+
+def _not_rigid(m: Tensor, tolerance: float) -> str | None:
+    """Why the finite [4,4] float64 ``m`` is not a rigid transform (as a clause: "has ..."), None when it is one."""
+    if not torch.allclose(m[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype), rtol=0, atol=1e-6):
+        # the renderer reads the top three rows only, the side terms invert the whole 4x4: the mean would be the
+        # pose's and the std another's (or the inverse fails: a 3x4 padded with zeros)
+        return f"has the last row {[round(float(v), 6) for v in m[3]]}, not [0, 0, 0, 1]"
+    R = m[:3, :3]
+    off = float((R @ R.T - torch.eye(3, dtype=m.dtype)).abs().max())  # how far from orthonormal
+    if off > tolerance:
+        most = f"{tolerance:.0e}".replace("e-0", "e-")  # 1e-5, not 1e-05
+        return (f"has a rotation part that is not orthonormal: R R^T is {off:.1e} off the identity (at most {most} "
+                "is taken; a pose with a scale, a sim(3), is not rigid: divide its rotation by the scale, or "
+                "re-orthonormalise it, e.g. by its SVD)")
+    if float(torch.linalg.det(R)) <= 0:  # (a reflection is orthogonal too)
+        return "has a rotation part that is a reflection (determinant < 0)"
+    return None
+
+
+def _its_pose(clause: str | None) -> str | None:
+    return f"its pose (cam_from_world) {clause}" if clause is not None else None
+
+
 def _check_cameras(cameras: Cameras) -> Cameras:
     """Refuse a ``Cameras`` (built by hand, not by ``cameras_from_source``) the renderer cannot take: an image size
     that is not a positive whole number (torch failed deep inside on 0, -5 or 1.5), a pose or K that is not finite
-    (a NaN pose gave NaN maps without a word), a focal length that is not positive. Returns them with the size as
-    ints (320.0 is taken as 320)."""
+    (a NaN pose gave NaN maps without a word), a pose that is not rigid (a last row other than [0, 0, 0, 1], a 3x4
+    padded with zeros, ended in torch's "linalg.inv: ... singular" from the view-consistency term; a scaled or
+    mirrored rotation rendered other maps without a word), a focal length that is not positive. Returns them with
+    the size as ints (320.0 is taken as 320)."""
     width, height = _whole(cameras.width, "the cameras' width", 1), _whole(cameras.height, "the cameras' height", 1)
     for i in range(len(cameras)):
         what = ("its pose (cam_from_world) is not finite" if not bool(torch.isfinite(cameras.cam_from_world[i]).all())
-                else "its K is not finite" if not bool(torch.isfinite(cameras.K[i]).all())
-                else "its focal lengths are not positive, or too large for float32" if bool(focal_unusable(cameras.K[i]))
-                else None)
+                else _its_pose(_not_rigid(cameras.cam_from_world[i].detach().double().cpu(), HAND_ROTATION_TOLERANCE))
+                or ("its K is not finite" if not bool(torch.isfinite(cameras.K[i]).all())
+                    else "its focal lengths are not positive, or too large for float32"
+                    if bool(focal_unusable(cameras.K[i])) else None))
         if what is not None:
             name = f" ({cameras.image_names[i]})" if i < len(cameras.image_names) else ""
             raise UserError(f"camera {i}{name}: {what}",
@@ -226,22 +258,12 @@ def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
         what = None
         if not bool(torch.isfinite(m[i]).all()):
             what = "has entries that are not finite (NaN or infinite)"
-        elif not torch.allclose(m[i, 3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype), rtol=0, atol=1e-6):
-            # the renderer reads the top three rows only, the side terms invert the whole 4x4: the mean would be the
-            # pose's and the std another's
-            what = f"has the last row {[round(float(v), 6) for v in m[i, 3]]}, not [0, 0, 0, 1]"
         else:
-            R = m[i, :3, :3]
-            off = float((R @ R.T - torch.eye(3, dtype=m.dtype)).abs().max())  # how far from orthonormal
-            if not (off <= 1e-5 and float(torch.linalg.det(R)) > 0):  # (a reflection is orthogonal too)
-                what = ("has a rotation part that is a reflection (determinant < 0)" if off <= 1e-5 else
-                        f"has a rotation part that is not orthonormal: R R^T is {off:.1e} off the identity (at most "
-                        "1e-5 is taken; a pose with a scale, a sim(3), is not rigid: divide its rotation by the scale,"
-                        " or re-orthonormalise it, e.g. by its SVD)")
-                given = str(getattr(poses, "dtype", "")).rsplit(".", 1)[-1]  # torch.float16 or numpy's float16
-                if given in ("float16", "bfloat16", "half") and off > 1e-5:
-                    what += (f"; the poses are {given}, whose 2-3 significant digits cannot hold a rotation that "
-                             "closely: pass them as float32 or float64")
+            what = _not_rigid(m[i], ROTATION_TOLERANCE)
+            given = str(getattr(poses, "dtype", "")).rsplit(".", 1)[-1]  # torch.float16 or numpy's float16
+            if what is not None and "not orthonormal" in what and given in ("float16", "bfloat16", "half"):
+                what += (f"; the poses are {given}, whose 2-3 significant digits cannot hold a rotation that "
+                         "closely: pass them as float32 or float64")
         if what is not None:
             raise UserError(f"cam_from_source must be rigid transforms (a rotation and a translation): pose {i} {what}",
                             hint=_RIGID_HINT)
@@ -545,8 +567,9 @@ class Predictor:
         Raises:
             TypeError: ``cameras`` is not a ``Cameras`` (poses as matrices go through ``cameras_from_source``).
             UserError: ``num_samples`` or ``seed`` not a whole number in range; a ``Cameras`` built by hand whose image
-                size is not a positive whole number, or whose poses or intrinsics are not finite or have a focal
-                length that is not positive (``cameras_from_source`` refuses these and more).
+                size is not a positive whole number, whose poses are not finite or not rigid (within 1e-3), or
+                whose intrinsics are not finite or have a focal length that is not positive (``cameras_from_source``
+                refuses these and more).
         """
         from uncertsplat import native
 

@@ -341,6 +341,29 @@ def test_cameras_built_by_hand_are_checked_before_the_renderer_sees_them(monkeyp
     assert seen == [(128, 96)] and all(type(v) is int for v in seen[0])
 
 
+@pytest.mark.parametrize("change, match", [
+    # a [3,4] padded with a row of zeros: torch's "linalg.inv: ... singular" from the view-consistency term
+    (lambda M: M[3].zero_(), r"its pose \(cam_from_world\) has the last row \[0.0, 0.0, 0.0, 0.0\], not \[0, 0, 0, 1\]"),
+    # a sim(3) pose: rendered other maps without a word
+    (lambda M: M[:3, :3].mul_(2.0), "its pose .* rotation part that is not orthonormal: R R\\^T is 3.0e\\+00 off .*1e-3"),
+    (lambda M: M[:3, 0].neg_(), r"its pose .* rotation part that is a reflection"),
+])
+def test_cameras_built_by_hand_that_are_not_rigid_are_refused(monkeypatch, change, match):
+    pred = bare_predictor()
+    seen = []
+    monkeypatch.setattr(Predictor, "_predict", lambda self, cams, k, seed: seen.append(len(cams)))
+    bad = a_pose()
+    change(bad)
+    poses = torch.stack([a_pose(), bad]).float()
+    with pytest.raises(UserError, match=r"camera 1 \(mine\): " + match):
+        pred.predict(Cameras(poses, K.float().expand(2, 3, 3).clone(), 128, 96, ("ok", "mine")))
+    # what the scene loaders take (a transforms.json rotation within 1e-3) is taken here too: the run's own cameras
+    near = a_pose()
+    near[:3, :3] *= 1.0 + 2e-4
+    pred.predict(Cameras(torch.stack([a_pose(), near]).float(), K.float().expand(2, 3, 3).clone(), 128, 96))
+    assert seen == [2]
+
+
 def test_arrays_of_the_other_byte_order_read_only_or_not_arrays():
     """A big-endian array was refused as "not a tensor or array", a read-only one (np.broadcast_to) made torch warn,
     and something that is no array raised a TypeError where the docstring (and seen_free) says UserError."""
