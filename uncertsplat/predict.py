@@ -121,6 +121,21 @@ def _evaluation_config(run_dir: Path):
         return EvalConfig()
 
 
+def _eval_config(cfg):
+    """``Predictor.load``'s ``cfg`` as an ``EvalConfig``: one as it is, a dict of its keys validated (a bad key named,
+    as ``--set`` names it; a dict was an AttributeError about ``model_dump`` from deep inside the load)."""
+    from collections.abc import Mapping
+
+    from uncertsplat.config import EvalConfig, build_config
+
+    if isinstance(cfg, EvalConfig):
+        return cfg
+    if isinstance(cfg, Mapping):
+        return build_config(EvalConfig, dict(cfg), source="Predictor.load's cfg")
+    raise TypeError(f"cfg must be an uncertsplat.config.EvalConfig (or a dict of its keys, e.g. {{'num_samples': 4}}), "
+                    f"got {type(cfg).__name__}")
+
+
 TRANSFORMS = ("cam_from_world", "world_from_cam")
 """The poses ``Predictor.cameras_from_source`` takes: world-to-camera (COLMAP's) or camera-to-world."""
 AXES = ("opencv", "opengl", "blender")
@@ -352,10 +367,13 @@ class Predictor:
             device: ``auto``, ``cpu``, ``cuda[:n]`` or a torch.device.
             cfg: an ``EvalConfig`` (None: the settings of the run's evaluation, ``RUN/eval/config.json``, so that the
                 predictive is the one ``evaluate`` scored; ``evaluate``'s defaults when the run has none;
-                ``cfg.num_samples`` is ``predict``'s default K).
+                ``cfg.num_samples`` is ``predict``'s default K), or a dict of its keys (``{"num_samples": 4}``, as
+                ``evaluate --set`` takes them; the others are ``evaluate``'s defaults).
 
         Raises:
-            UserError: not a run, its scene is gone or its cameras changed since training, no CUDA device.
+            UserError: not a run, its scene is gone or its cameras changed since training, no CUDA device, a ``cfg``
+                dict with a key or value ``EvalConfig`` does not take.
+            TypeError: a ``cfg`` that is neither an ``EvalConfig`` nor a dict.
         """
         from uncertsplat import native
         from uncertsplat.device import resolve_device
@@ -368,7 +386,7 @@ class Predictor:
                             hint=f"Pass the folder: Predictor.load({str(Path(run_dir).parent)!r}).")
         device = resolve_device(device)
         evaluation = _evaluation_config(Path(run_dir))
-        cfg = cfg if cfg is not None else evaluation
+        cfg = _eval_config(cfg) if cfg is not None else evaluation
         with native.single_threaded_torch(device):  # as evaluate runs (its sums, so its maps, to the last bit)
             return cls._load(Path(run_dir), device, cfg, evaluation)
 

@@ -383,3 +383,22 @@ def test_arrays_of_the_other_byte_order_read_only_or_not_arrays():
         pred.cameras_from_source("abc", K, 128, 96)
     with pytest.raises(UserError, match="K must be a tensor or array"):
         pred.cameras_from_source(M, {"fx": 1}, 128, 96)
+
+
+def test_load_takes_the_config_as_a_dict_and_names_a_bad_key(monkeypatch, tmp_path):
+    """``cfg={"num_samples": 2}`` was an AttributeError ('dict' object has no attribute 'model_dump') from deep inside
+    the load: a dict of ``EvalConfig``'s keys is taken, a bad key named as ``--set`` names it."""
+    seen = []
+    monkeypatch.setattr(Predictor, "_load", classmethod(lambda cls, run, device, cfg, evaluation: seen.append(cfg)))
+    Predictor.load(tmp_path, "cpu", cfg={"num_samples": 2})
+    assert seen == [EvalConfig(num_samples=2)]
+    Predictor.load(tmp_path, "cpu", cfg=EvalConfig(num_samples=3))
+    assert seen[-1] == EvalConfig(num_samples=3)
+    with pytest.raises(UserError, match=r"invalid configuration in Predictor.load's cfg: num_sample: unknown key "
+                                        r"\(did you mean num_samples\?\)"):
+        Predictor.load(tmp_path, "cpu", cfg={"num_sample": 2})
+    with pytest.raises(UserError, match="num_samples: Input should be greater than or equal to 1"):
+        Predictor.load(tmp_path, "cpu", cfg={"num_samples": 0})
+    with pytest.raises(TypeError, match="cfg must be an uncertsplat.config.EvalConfig .*got int"):
+        Predictor.load(tmp_path, "cpu", cfg=4)
+    assert len(seen) == 2
