@@ -302,6 +302,9 @@ def test_the_interval_reads_the_std_as_the_student_ts_standard_deviation():
         gauss.interval(0.9, calibrated=True)
     with pytest.raises(ValueError, match="probability must be in"):
         pred.interval(1.5)
+    # a percentage (95 for 95 %) was told only the range
+    with pytest.raises(ValueError, match=r"got 95.0 \(a probability, not a percentage: 0.95 for a 95 % interval\)"):
+        pred.interval(95)
 
 
 def test_load_names_a_file_given_for_the_run_folder(tmp_path):

@@ -92,7 +92,8 @@ def half_width(p: float, dof: float | None) -> float:
     p is mean +- x std. Bisection to 1e-10 relative."""
     _check(dof)
     if not 0.0 <= p < 1.0:
-        raise ValueError(f"a central interval's probability must be in [0, 1), got {p}")
+        percent = f" (a probability, not a percentage: {p / 100:g} for a {p:g} % interval)" if 1.0 < p < 100.0 else ""
+        raise ValueError(f"a central interval's probability must be in [0, 1), got {p}{percent}")
     if p == 0.0:
         return 0.0
     lo, hi = 0.0, 1.0
