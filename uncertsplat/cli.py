@@ -395,10 +395,16 @@ def _refuse_other_commands_file(model, data: dict, config_file: Path | None) -> 
     owner = config_owner(data, other_than=model)
     if owner is None:
         return
-    mine = next((name for name, m in STAGE_CONFIGS.items() if m is model), "this command")
-    own = {"evaluate": "RUN/eval/config.json", "prune": "PRUNED/prune_config.json", "train": "RUN/config.json"}
+    from uncertsplat.config import SelectConfig, ViewConfig
+
+    # (select-views' and view's are no pipeline stage's: "settings of `this command`" named neither)
+    commands = {**STAGE_CONFIGS, "select-views": SelectConfig, "view": ViewConfig}
+    mine = next((name for name, m in commands.items() if m is model), "this command")
+    own = {"evaluate": "RUN/eval/config.json", "prune": "PRUNED/prune_config.json", "train": "RUN/config.json",
+           "select-views": "OUT/selection.json"}
+    name = f"`uncertsplat {mine}`" if mine in commands else mine
     raise UserError(f"this is `uncertsplat {owner}`'s configuration ({len(foreign)} of its keys are not settings of "
-                    f"`{mine}`), not `{mine}`'s", path=config_file,
+                    f"{name}), not {name}'s", path=config_file,
                     hint=f"Give {mine}'s own" + (f" ({own[mine]})" if mine in own else "")
                          + ", or a TOML file with its keys (the command's --help lists them).")
 

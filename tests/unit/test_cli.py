@@ -673,6 +673,21 @@ def test_another_commands_config_file_is_named_in_one_sentence(tmp_path):
     assert "`iterations` is one of `uncertsplat train`'s" in " ".join(result.output.split())
 
 
+@pytest.mark.parametrize("command", ["select-views", "view"])
+def test_another_commands_config_file_names_select_views_and_view(tmp_path, command):
+    """`select-views RUN --config RUN/config.json` said "35 of its keys are not settings of `this command`), not
+    `this command`'s": the two commands that are no pipeline stage are named as the others are."""
+    from uncertsplat.config import TrainConfig
+
+    cfg = tmp_path / "config.json"
+    cfg.write_text(TrainConfig().model_dump_json())
+    result = runner.invoke(app, [command, str(tmp_path), "--config", str(cfg)])
+    said = " ".join(result.output.split())
+    assert result.exit_code == 2 and "this is `uncertsplat train`'s configuration" in said, said
+    assert f"are not settings of `uncertsplat {command}`), not `uncertsplat {command}`'s" in said, said
+    assert "this command" not in said, said
+
+
 _SUMMARY = {"schema_version": 1, "method": "variational", "variant": "ours", "steps": 200, "seconds": 1.0,
             "sec_per_step": 0.01, "num_gaussians": 9, "num_carriers": 9, "peak_memory_mb": 1.0, "device": "cpu",
             "scene": "/s", "ensemble_size": None, "profile": None, "transients": None}
