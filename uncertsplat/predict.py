@@ -295,6 +295,16 @@ def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
     return m
 
 
+def _swapped_size(cx: float, cy: float, width: int, height: int) -> bool:
+    """Whether the principal point (``cx``, ``cy``) lies at the centre of a ``height`` x ``width`` image (within 2 %)
+    and well off the centre of the ``width`` x ``height`` one given (10 %): the size passed as (height, width), the
+    order of an image array's shape, which rendered an off-centre view of the pose without a word."""
+    if width == height:
+        return False
+    swapped = abs(cx - height / 2) <= 0.02 * height and abs(cy - width / 2) <= 0.02 * width
+    return swapped and (abs(cx - width / 2) > 0.1 * width or abs(cy - height / 2) > 0.1 * height)
+
+
 def _intrinsics(K, n: int, width: int, height: int, outside_ok: bool = False) -> Tensor:
     """[1 or n,3,3] float64 pinhole intrinsics of ``cameras_from_source``: refused when the renderer could not take
     them as given (it reads fx, fy, cx, cy alone: a skew or another last row would be dropped without a word), and,
@@ -328,6 +338,12 @@ def _intrinsics(K, n: int, width: int, height: int, outside_ok: bool = False) ->
             hint = (f"Scale fx, fy, cx and cy by the ratio of the sizes for a {width}x{height} render (or pass the "
                     "size the intrinsics were measured at); a crop whose optical centre lies outside it or near its "
                     "edge takes principal_point_outside=True.")
+        if what is None and not outside_ok and _swapped_size(cx, cy, width, height):
+            what = (f"has its principal point at ({cx:g}, {cy:g}): the centre of a {height}x{width} image, far off the "
+                    f"centre of the {width}x{height} one given (width and height swapped? an image array's shape is "
+                    "(height, width))")
+            hint = (f"Pass width={height}, height={width}; a crop whose optical centre lies there takes "
+                    "principal_point_outside=True.")
         if what is not None:
             where = "K" if len(Ks) == 1 and n != 1 else f"K of pose {i}"
             raise UserError(f"{where} {what}", hint=hint)
@@ -489,12 +505,14 @@ class Predictor:
                 is the same).
             principal_point_outside: accept a principal point outside the image or in its outer 5 % (a crop of a
                 larger view); refused by default, as ``train`` refuses it (``SceneConfig.principal_point_outside``): it
-                is what the full-size photo's K given with a smaller image size looks like.
+                is what the full-size photo's K given with a smaller image size looks like. Also one at the centre of
+                a ``height`` x ``width`` image, off this one's centre: what width and height swapped look like.
 
         Raises:
             UserError: a pose or K that is not a tensor or array, of the wrong shape, not rigid or not finite,
-                unusable intrinsics or a principal point outside the image or near its edge (the message names the
-                pose's index), names that do not match the poses, an image size that is not a positive whole number.
+                unusable intrinsics or a principal point outside the image, near its edge or where width and height
+                swapped put it (the message names the pose's index), names that do not match the poses, an image size
+                that is not a positive whole number.
         """
         from uncertsplat.sfm.scene import normalized_cam_from_world
 

@@ -206,6 +206,28 @@ def test_refuses_a_principal_point_outside_the_image_unless_told():
         pred.cameras_from_source(torch.stack([a_pose(), a_pose()]), torch.stack([K, full]), 128, 96)
 
 
+def test_refuses_width_and_height_swapped_unless_told():
+    """A 640x480 camera's K given with width=480, height=640 (an image array's shape is (height, width)) put the
+    principal point inside, off-centre, and rendered a shifted view of the pose without a word."""
+    pred = bare_predictor()
+    vga = torch.tensor([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    with pytest.raises(UserError, match=r"K has its principal point at \(320, 240\): the centre of a 640x480 image, far "
+                                        r"off the centre of the 480x640 one given \(width and height swapped") as err:
+        pred.cameras_from_source(torch.stack([a_pose(), a_pose()]), vga, 480, 640)
+    assert "Pass width=640, height=480" in err.value.hint and "principal_point_outside=True" in err.value.hint
+    pred.cameras_from_source(a_pose(), vga, 640, 480)
+    pred.cameras_from_source(a_pose(), vga, 480, 640, principal_point_outside=True)  # a crop there: the user's call
+    hd = torch.tensor([[1000.0, 0.0, 959.5], [0.0, 1000.0, 539.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    with pytest.raises(UserError, match="K of pose 0 has its principal point at \\(959.5, 539.5\\): the centre of a "
+                                        "1920x1080 image"):
+        pred.cameras_from_source(a_pose(), hd, 1080, 1920)
+    # a square image, or a point near both centres (a nearly square image), is not told anything
+    sq = torch.tensor([[100.0, 0.0, 50.0], [0.0, 100.0, 50.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    pred.cameras_from_source(a_pose(), sq, 100, 100)
+    near = torch.tensor([[100.0, 0.0, 50.0], [0.0, 100.0, 51.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    pred.cameras_from_source(a_pose(), near, 102, 100)
+
+
 def test_poses_and_intrinsics_as_robots_hold_them():
     """Intrinsics that need grad warned from inside and kept their grad in ``Cameras.K``; a list of pose tensors ended
     in torch's own wording; cameras without names gave a prediction without names."""
