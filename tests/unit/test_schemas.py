@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -139,6 +140,32 @@ def test_nested_error_names_the_dotted_key(tmp_path):
     path.write_text(json.dumps(data))
     with pytest.raises(UserError, match=r"key 'metrics.after.psnrr' is not part of the schema"):
         PruneReport.read(path)
+
+
+def test_a_file_of_another_kind_is_named_as_what_it_is(tmp_path):
+    """``Selection.read("RUN/eval/metrics.json")`` said "schema version 4 is newer than the 2 this version of uncertsplat
+    reads. Upgrade uncertsplat to read it", and a synthetic scene's scene.json read as a run's named a missing key
+    and "re-run `uncertsplat train`": a record of another kind is named as what it is."""
+    from uncertsplat.schemas import Selection
+    from uncertsplat.schemas.identify import own_words
+
+    metrics = next(d for d in EXAMPLES if isinstance(d, EvalReport)).write(tmp_path / "metrics.json")
+    with pytest.raises(UserError, match=r"this is `uncertsplat evaluate`'s metrics \(metrics.json\), not "
+                                        r"`uncertsplat select-views`' record \(selection.json\)") as err:
+        Selection.read(metrics)
+    assert "Upgrade" not in err.value.render() and "selection.json that `uncertsplat select-views` writes" in err.value.hint
+    synth = next(d for d in EXAMPLES if isinstance(d, SynthScene)).write(tmp_path / "scene.json")
+    with pytest.raises(UserError, match=r"this is `uncertsplat synth`'s record of a synthetic scene \(scene.json\), "
+                                        r"not `uncertsplat train`'s record of the run's scene"):
+        RunScene.read(synth)
+    # every example read as every other kind that can tell it: named, never read
+    for doc in EXAMPLES:
+        path = doc.write(tmp_path / "f.json")
+        for other in {type(d) for d in EXAMPLES} - {type(doc)}:
+            if own_words(type(doc)) is None or own_words(other) is None:
+                continue
+            with pytest.raises(UserError, match=f"this is .*, not {re.escape(own_words(other))}"):
+                other.read(path)
 
 
 def test_older_version_without_conversion_is_refused(tmp_path):

@@ -141,8 +141,18 @@ class SchemaFile(Strict):
         """Validate parsed JSON, upgrading an older schema version when a conversion exists.
 
         Raises:
-            UserError: naming ``source`` (or the file kind) and the version or key that is wrong.
+            UserError: naming ``source`` (or the file kind) and the version or key that is wrong, or what the file is
+                when it is another of the records uncertsplat writes (``_refuse_another_kind``).
         """
+        try:
+            return cls._from_dict(data, source=source)
+        except UserError:
+            cls._refuse_another_kind(data, Path(source) if source is not None else None)
+            raise
+
+    @classmethod
+    def _from_dict(cls, data: Any, *, source: str | Path | None = None) -> Self:
+        """``from_dict`` for a file of this kind."""
         where = Path(source) if source is not None else None
         label = cls.FILE_NAME or cls.__name__
         hint = cls.DAMAGED_HINT or f"Re-run `{cls.WRITTEN_BY}` to write it again with this version of uncertsplat."
@@ -176,6 +186,24 @@ class SchemaFile(Strict):
         except ValidationError as err:
             raise UserError(f"{label} does not match its schema (version {cls.SCHEMA_VERSION}): "
                             f"{describe_validation_error(err)}", path=where, hint=hint) from None
+
+    @classmethod
+    def _refuse_another_kind(cls, data: dict, where: Path | None) -> None:
+        """Refuse, in one sentence, a file of another kind (``metrics.json`` read as a ``Selection``: "schema version
+        4 is newer than the 2 this version of uncertsplat reads. Upgrade uncertsplat"; a synthetic scene's
+        ``scene.json`` read as a run's: a key missing, "re-run `uncertsplat train`"): one that lacks a key this schema
+        requires and that ``schemas.identify.what_file_is`` tells as another record, asked only of a file that could
+        not be read (a file of this kind with a key missing keeps ``_from_dict``'s message)."""
+        from uncertsplat.schemas.identify import identifying_keys, own_words, what_file_is
+
+        if not isinstance(data, dict) or identifying_keys(cls) <= set(data):
+            return
+        other, mine = what_file_is(data), own_words(cls)
+        if other is None or mine is None or other == mine or other.startswith("a record uncertsplat writes"):
+            return
+        raise UserError(f"this is {other}, not {mine}", path=where,
+                        hint=f"Read it with its own schema (README, \"Outputs and their schemas\"), or give the "
+                             f"{cls.FILE_NAME or cls.__name__} that `{cls.WRITTEN_BY}` writes.")
 
     @classmethod
     def read(cls, path: str | Path) -> Self:

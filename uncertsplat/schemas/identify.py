@@ -24,6 +24,24 @@ RECORDS_WRITTEN = (
 run's scene.json has few)."""
 
 
+METRICS_WORDS = "`uncertsplat evaluate`'s metrics (metrics.json)"
+
+
+def own_words(model: type) -> str | None:
+    """How ``what_file_is`` names a file of the schema ``model`` (None: a schema it does not tell)."""
+    if model is schemas.EvalReport:
+        return METRICS_WORDS
+    return next((words for name, words in RECORDS_WRITTEN if getattr(schemas, name) is model), None)
+
+
+def identifying_keys(model: type) -> set[str]:
+    """The keys ``what_file_is`` tells a file of the schema ``model`` by: its required keys (``EvalReport``, which
+    requires none, by its per-view metrics and their mean)."""
+    if model is schemas.EvalReport:
+        return {"per_view", "mean"}
+    return {k for k, f in model.model_fields.items() if f.is_required()}
+
+
 def what_file_is(data: dict) -> str | None:
     """What a file that is not the one a command expects is, from its keys: a record uncertsplat writes (e.g.
     "`uncertsplat train`'s summary of a training (train_summary.json)"), a pipeline, a sweep spec or a command's
@@ -31,11 +49,10 @@ def what_file_is(data: dict) -> str | None:
     if not isinstance(data, dict) or not data:
         return None
     if "schema_version" in data:
-        if {"per_view", "mean"} <= set(data):  # (EvalReport requires no key)
-            return "`uncertsplat evaluate`'s metrics (metrics.json)"
+        if identifying_keys(schemas.EvalReport) <= set(data):
+            return METRICS_WORDS
         for name, words in RECORDS_WRITTEN:
-            required = {k for k, f in getattr(schemas, name).model_fields.items() if f.is_required()}
-            if required <= set(data):
+            if identifying_keys(getattr(schemas, name)) <= set(data):
                 return words
         return "a record uncertsplat writes (it has a schema_version)"
     if isinstance(data.get("stages"), list):
@@ -46,4 +63,4 @@ def what_file_is(data: dict) -> str | None:
     return f"`uncertsplat {owner}`'s configuration" if owner else None
 
 
-__all__ = ["RECORDS_WRITTEN", "what_file_is"]
+__all__ = ["METRICS_WORDS", "RECORDS_WRITTEN", "identifying_keys", "own_words", "what_file_is"]
