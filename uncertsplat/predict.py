@@ -252,6 +252,30 @@ def _check_cameras(cameras: Cameras) -> Cameras:
     return dataclasses.replace(cameras, width=width, height=height)
 
 
+def _names(names) -> tuple[str, ...]:
+    """``cameras_from_source``'s ``names`` as a tuple of texts: one text is one name (not its letters), None none (it
+    was "'NoneType' object is not iterable"), numpy's texts and whole numbers (a frame index) as plain texts; anything
+    else, a None among them, refused by its place (they became the maps' names as given)."""
+    import numbers
+
+    if names is None:
+        return ()
+    if isinstance(names, str):
+        return (str(names),)
+    try:
+        given = tuple(names)
+    except TypeError:
+        raise UserError(f"names must be texts, one per pose, got {type(names).__name__}") from None
+    out = []
+    for i, n in enumerate(given):
+        if isinstance(n, str) or (isinstance(n, numbers.Integral) and not isinstance(n, bool)):
+            out.append(str(n))
+        else:
+            raise UserError(f"name {i} must be a text (or a whole number), got {n!r}",
+                            hint="Give one name per pose, e.g. names=(\"pose_a\", \"pose_b\"), or none.")
+    return tuple(out)
+
+
 def _cam_from_world(poses, transform: str, axes: str) -> Tensor:
     """[N,4,4] float64 world-to-camera transforms with OpenCV axes from ``cameras_from_source``'s poses."""
     if transform not in TRANSFORMS:
@@ -497,7 +521,7 @@ class Predictor:
                 takes it; the run's own is ``scene.cameras.width`` x ``height``): positive finite focal lengths, a
                 finite principal point, no skew, last row [0, 0, 1].
             width, height: the image size in pixels (whole numbers).
-            names: N names (default ``pose_0``, ``pose_1``, ...).
+            names: N names, texts (default, or None: ``pose_0``, ``pose_1``, ...; whole numbers are taken as texts).
             transform: ``"cam_from_world"`` (world-to-camera, COLMAP's) or ``"world_from_cam"`` (camera-to-world: the
                 camera's pose in the world, as Blender, NeRF's ``transforms.json`` and most robot frames give it).
             axes: the camera's axes, ``"opencv"`` (x right, y down, z forward: COLMAP, OpenCV, ROS optical frames) or
@@ -519,7 +543,7 @@ class Predictor:
         cfs = _cam_from_world(cam_from_source, transform, axes)
         width, height = _whole(width, "width", 1), _whole(height, "height", 1)
         Ks = _intrinsics(K, len(cfs), width, height, principal_point_outside)
-        names = (names,) if isinstance(names, str) else tuple(names)  # one name, not its letters
+        names = _names(names)
         names = names or tuple(f"pose_{i}" for i in range(len(cfs)))
         if len(names) != len(cfs):
             raise UserError(f"{len(names)} name(s) for {len(cfs)} pose(s): give one name per pose (or none)")

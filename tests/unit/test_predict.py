@@ -427,3 +427,19 @@ def test_load_takes_the_config_as_a_dict_and_names_a_bad_key(monkeypatch, tmp_pa
     with pytest.raises(TypeError, match="cfg must be an uncertsplat.config.EvalConfig .*got int"):
         Predictor.load(tmp_path, "cpu", cfg=4)
     assert len(seen) == 2
+
+
+def test_names_none_numbers_and_numpy_texts():
+    """``names=None`` was "'NoneType' object is not iterable"; frame numbers or numpy's texts became the maps' names
+    as given (ints, ``np.str_``); a None among them is named by its place."""
+    pred = bare_predictor()
+    two = torch.stack([a_pose(), a_pose()])
+    assert pred.cameras_from_source(two, K, 128, 96, names=None).image_names == ("pose_0", "pose_1")
+    got = pred.cameras_from_source(two, K, 128, 96, names=[7, np.int64(8)]).image_names
+    assert got == ("7", "8") and all(type(n) is str for n in got)
+    got = pred.cameras_from_source(two, K, 128, 96, names=np.array(["a", "b"])).image_names
+    assert got == ("a", "b") and all(type(n) is str for n in got)
+    with pytest.raises(UserError, match="name 1 must be a text .*got None"):
+        pred.cameras_from_source(two, K, 128, 96, names=("a", None))
+    with pytest.raises(UserError, match="names must be texts, one per pose, got float"):
+        pred.cameras_from_source(two, K, 128, 96, names=1.5)
