@@ -349,6 +349,25 @@ class TestCandidates:
             read_pose_file(f, scene, scene.world_from_source)
         assert str(f) in err.value.render()
 
+    def test_colmap_s_images_txt_is_named_with_the_line_that_converts_it(self, scene, tmp_path):
+        """COLMAP's images.txt itself (the format is described after it) said "8 fields, found 10 ... A name with spaces
+        must not end in a number": its layout is named, with a command that writes the pose file from it."""
+        import shutil
+        import subprocess
+
+        f = tmp_path / "images.txt"
+        f.write_text("# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, "
+                     "NAME\n#   POINTS2D[] as (X, Y, POINT3D_ID)\n# Number of images: 2\n"
+                     "1 1 0 0 0 0 0 1 1 a.png\n10.5 20.5 3 11.5 2.5 4\n2 1 0 0 0 0 0 2 1 b.png\n\n")
+        with pytest.raises(UserError, match=r"line 5 is in the layout of COLMAP's images.txt \(IMAGE_ID QW") as err:
+            read_pose_file(f, scene, scene.world_from_source)
+        assert "A name with spaces" not in err.value.render()
+        command = err.value.hint.split("from images.txt: ", 1)[1].split(" (every", 1)[0]
+        if shutil.which("awk") and shutil.which("sh"):
+            subprocess.run(["sh", "-c", command], cwd=tmp_path, check=True)
+            cams = read_pose_file(tmp_path / "plan.txt", scene, scene.world_from_source)
+            assert cams.image_names == ("a.png", "b.png")
+
     def test_empty_file_duplicates_and_unknown_spec(self, scene, tmp_path):
         empty = tmp_path / "empty.txt"
         empty.write_text("# nothing\n")

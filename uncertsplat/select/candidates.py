@@ -141,6 +141,13 @@ def read_pose_file(path: Path, scene: SceneData, world_from_source: Tensor) -> C
             continue
         fields = text.rsplit(None, 7)  # the name is what comes before the 7 numbers: a photo's name may hold spaces
         words = text.split()
+        if len(words) >= 10 and words[0].isdigit() and words[8].isdigit() and all(_number(w) for w in words[1:8]):
+            # COLMAP's images.txt itself (the file the format is named after): its layout is another
+            raise UserError(f"line {number} is in the layout of COLMAP's images.txt (IMAGE_ID QW QX QY QZ TX TY TZ "
+                            f"CAMERA_ID NAME, then a line of 2D points), not 'NAME QW QX QY QZ TX TY TZ'", path=path,
+                            hint="Write one line 'NAME QW QX QY QZ TX TY TZ' per pose, e.g. from images.txt: awk "
+                                 "'!/^#/ && n++ % 2 == 0 {print $10, $2, $3, $4, $5, $6, $7, $8}' images.txt > plan.txt (every "
+                                 "other line after the comments is an image's)")
         if len(fields) != 8 or (len(words) > 8 and _number(words[-8])):
             # (a name with spaces ending in a number is a line with a column too many: its numbers would shift)
             raise UserError(f"line {number}: expected 'NAME QW QX QY QZ TX TY TZ' (8 fields), found {len(words)}: "
