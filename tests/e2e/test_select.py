@@ -636,6 +636,9 @@ def test_a_run_that_cannot_grow_says_so_when_choosing(tiny_scene_path, tmp_path,
     stage.run(run, SelectConfig(score="coverage"), CPU, output=tmp_path / "sel")
     said = " ".join(capsys.readouterr().err.split())
     assert "`train --resume --add-views` does not grow an ensemble run" in said
+    # the new run it says to train keeps the run's method and settings: without its config it was a variational run
+    (nxt,) = said.split("Next: ")[1:]
+    assert f"-o NEW_RUN --config {q(run / 'config.json')} --set 'scene.train_names=[...]'" in nxt, nxt
 
 
 def test_a_planned_pose_named_as_a_photo_is_said(subset_run, tmp_path, capsys):

@@ -400,7 +400,9 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         train_next = f"[bold]uncertsplat train {qm(folder)} -o {qm(run_dir)} --resume --iterations N --add-views {esc(added)}[/]"
     else:  # the command the note above said is refused: a new run instead
         train_next = (f"(`--resume --add-views` refuses this run: {cannot_grow}) train a new run on its views and "
-                      f"these, [bold]uncertsplat train {qm(folder)} -o NEW_RUN --set 'scene.train_names=[...]'[/] with the "
+                      # (its config: a fisher or ensemble run's method, its settings; without it a variational run)
+                      f"these, [bold]uncertsplat train {qm(folder)} -o NEW_RUN --config {qm(run_dir / 'config.json')} "
+                      f"--set 'scene.train_names=[...]'[/] with the "
                       f"names in {run_dir / 'scene.json'}'s training and calibration lists and {added}")
     if picked and cands.kind == "unused":  # photos of the scene: the run trains on them as they are
         console.print(f"Next: {train_next}")
