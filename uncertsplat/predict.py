@@ -403,7 +403,7 @@ class Predictor:
 
         Args:
             run_dir: a folder written by ``uncertsplat train``; its scene folder must be where ``scene.json`` says
-                (the side terms are fitted on its training photos).
+                (the side terms are fitted on its training photos); a leading ``~`` is the home folder, as in a shell.
             device: ``auto``, ``cpu``, ``cuda[:n]`` or a torch.device.
             cfg: an ``EvalConfig`` (None: the settings of the run's evaluation, ``RUN/eval/config.json``, so that the
                 predictive is the one ``evaluate`` scored; ``evaluate``'s defaults when the run has none;
@@ -418,6 +418,8 @@ class Predictor:
         from uncertsplat import native
         from uncertsplat.device import resolve_device
 
+        if str(run_dir).startswith("~"):  # "~/runs/x", as a shell reads it (it was "run folder not found")
+            run_dir = Path(run_dir).expanduser()
         if not Path(run_dir).exists():  # (as the commands say it: "not a training run" sent users looking for a file)
             raise UserError("run folder not found", path=run_dir,
                             hint="Pass the folder written by `uncertsplat train` (or `prune`).")

@@ -339,6 +339,17 @@ def test_load_names_a_file_given_for_the_run_folder(tmp_path):
         Predictor.load(tmp_path / "nope")
 
 
+def test_load_reads_a_leading_tilde_as_the_home_folder(monkeypatch, tmp_path):
+    """``Predictor.load("~/runs/x")`` said "run folder not found" of a run that was there: ``~`` is the home folder,
+    as a shell reads it (and as the TOML files' paths are read)."""
+    (tmp_path / "runs" / "x").mkdir(parents=True)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    seen = []
+    monkeypatch.setattr(Predictor, "_load", classmethod(lambda cls, run, device, cfg, evaluation: seen.append(run)))
+    Predictor.load("~/runs/x", "cpu")
+    assert seen == [tmp_path / "runs" / "x"]
+
+
 def test_cameras_built_by_hand_are_checked_before_the_renderer_sees_them(monkeypatch):
     """A ``Cameras`` of width 0, -5 or 1.5 failed deep inside torch (or ctypes), a NaN pose gave NaN maps without a
     word; a whole float size (320.0) is taken as an int."""
