@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import pytest
 import torch
@@ -723,3 +724,14 @@ def test_candidates_all_at_held_out_poses_are_refused_not_chosen(subset_run, tmp
                     CPU, output=tmp_path / "b")
     said = " ".join(capsys.readouterr().err.split())
     assert [c.name for c in sel.chosen] == ["far"] and "1 candidate at a held-out view's pose (again) does not compete" in said
+
+
+def test_an_output_folder_among_the_scene_s_photos_is_refused(tiny_scene_path, subset_run):
+    """`select-views RUN -o SCENE/images` wrote selection.png among the photos, where the next reconstruct of them (the
+    one that adds the chosen photo) takes it for a photo: refused before the scoring, nothing written there."""
+    images = Path(tiny_scene_path) / "images"
+    before = sorted(p.name for p in images.iterdir())
+    for out in (images, images / "next"):
+        with pytest.raises(UserError, match="the output folder is inside the folder of the scene's photos"):
+            stage.run(subset_run, SelectConfig(score="coverage"), CPU, output=out)
+    assert sorted(p.name for p in images.iterdir()) == before

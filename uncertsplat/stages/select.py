@@ -188,6 +188,30 @@ def _plausible(loaded, scene, train: list[int], cands, cfg: SelectConfig, device
     return ok
 
 
+def _refuse_output_among_photos(out: Path, scene, scene_path: Path | None) -> None:
+    """Refuse an output folder that is, or lies inside, a folder of the scene's photos (its ``images/``) or of the photos
+    ``reconstruct`` made the workspace from (``reconstruct_report.json``'s ``photos``): ``selection.png`` landed among
+    the photos, where the next ``reconstruct`` of them, the one that adds the chosen photo, takes it for a photo."""
+    from uncertsplat.schemas import ReconstructReport
+
+    folders = {Path(p).parent.resolve() for p in scene.image_paths}
+    if scene_path is not None and (Path(scene_path) / "images").is_dir():  # (its photos may lie in subfolders)
+        folders.add((Path(scene_path) / "images").resolve())
+    if scene_path is not None:
+        try:
+            report = ReconstructReport.read_optional(Path(scene_path) / "reconstruct_report.json")
+        except UserError:
+            report = None
+        if report is not None and report.photos:
+            folders.add(Path(report.photos).resolve())
+    target = out.resolve()
+    for folder in sorted(folders):
+        if target == folder or folder in target.parents:
+            raise UserError(f"the output folder is inside the folder of the scene's photos ({folder}): selection.png "
+                            "would be taken for a photo there", path=out,
+                            hint="Choose an output folder outside the photos (the default is RUN/select).")
+
+
 def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | None = None):
     """Choose ``cfg.num_views`` candidates for the run ``run_dir``; returns the written ``Selection``.
 
@@ -231,6 +255,8 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     loaded = load_run(run_dir, device)
     loaded.warn_if_unfinished()
     scene = loaded.load_scene()
+    if run_dir.resolve() not in out.resolve().parents:  # (RUN/select, the default: the run's own, wherever it lies)
+        _refuse_output_among_photos(out, scene, loaded.scene_path)
     info = RunScene.read(run_dir / RunScene.FILE_NAME)
     gen = torch.Generator().manual_seed(cfg.seed)
     cands = candidates_from_spec(cfg.candidates, scene, torch.tensor(info.world_from_source, dtype=torch.float64),
