@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import re
+
 import torch
 
 from uncertsplat.errors import UserError
 
 
 def resolve_device(name: str | torch.device) -> torch.device:
-    """Map ``auto|cpu|cuda[:n]`` or a torch.device to a torch.device; a clear error when CUDA is asked for but absent
+    """Map ``auto|cpu[:0]|cuda[:n]`` or a torch.device to a torch.device; a clear error when CUDA is asked for but absent
     (a ``torch.device("cuda")`` too: torch itself would only fail at the first tensor put there, with an
     AssertionError).
 
@@ -25,13 +27,13 @@ def resolve_device(name: str | torch.device) -> torch.device:
     name = name.lower()
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cpu":
+    if re.fullmatch(r"cpu(:\d+)?", name):  # (torch names the one CPU device cpu:0 too; its tensors say "cpu")
         return torch.device("cpu")
-    if name.startswith("cuda"):
+    if re.fullmatch(r"cuda(:\d+)?", name):
         if not torch.cuda.is_available():
             raise _no_cuda(name)
         return torch.device(name)
-    raise UserError(f"unknown device '{name}'", hint="Use auto, cpu or cuda.")
+    raise UserError(f"unknown device '{name}'", hint="Use auto, cpu, cuda or cuda:N (N: the GPU's index).")
 
 
 def _no_cuda(asked: str) -> UserError:

@@ -21,3 +21,15 @@ def test_cuda_without_a_cuda_device_is_a_user_error_as_a_name_and_as_a_torch_dev
         resolve_device("tpu")
     with pytest.raises(UserError, match="must be a name or a torch.device"):
         resolve_device(0)
+
+
+def test_device_names_torch_takes_and_misspelt_ones(monkeypatch):
+    """``cpu:0`` (torch's name of the CPU device) was an unknown device; a misspelt index (``cuda:x``) went to
+    ``torch.device`` and ended in its RuntimeError traceback: one message now."""
+    assert resolve_device("cpu:0") == torch.device("cpu") and resolve_device("cpu:0").index is None
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert resolve_device("cuda:1") == torch.device("cuda", 1)
+    for bad in ("cuda:x", "cuda1", "cpu:", "cpux"):
+        with pytest.raises(UserError, match=f"unknown device '{bad}'") as err:
+            resolve_device(bad)
+        assert "cuda:N" in err.value.hint
