@@ -597,9 +597,13 @@ def test_the_selection_plot_shows_the_held_out_views_and_keeps_its_legend_outsid
     _plot(tmp_path / "s.png", ring[:6], ring[6:10], [0], torch.tensor([0.0, 0.0, 1.0]), "t", held=ring[10:])
     ax = figs[0].axes[0]
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
-    assert "held out (2)" in labels and "used (6)" in labels
+    assert "held out (2)" in labels and "used (6)" in labels and "candidates (4)" in labels
     box = ax.get_legend().get_window_extent(figs[0].canvas.get_renderer())
     assert box.x0 >= ax.get_window_extent(figs[0].canvas.get_renderer()).x1  # beside the axes, not over them
+    # candidates ruled out are left off the plot; the legend counts them (it said "candidates (3)" of 4)
+    _plot(tmp_path / "s2.png", ring[:6], ring[6:9], [0], torch.tensor([0.0, 0.0, 1.0]), "t", not_drawn=1)
+    labels = [t.get_text() for t in figs[-1].axes[0].get_legend().get_texts()]
+    assert "candidates (3; 1 ruled out, not drawn)" in labels
     plt.close("all")
 
 

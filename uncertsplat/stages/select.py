@@ -21,12 +21,13 @@ from uncertsplat.errors import UserError, run_folder_missing
 
 
 def _plot(path: Path, used: torch.Tensor, cands: torch.Tensor, chosen: list[int], up: torch.Tensor, title: str,
-          held: torch.Tensor | None = None) -> None:
+          held: torch.Tensor | None = None, not_drawn: int = 0) -> None:
     """The camera centres on the plane they spread over: candidates, the views used for training, the held-out ones
     (``held``: where the scores are measured, a gap's middle often) and the chosen. Seen from above (on the plane
     normal to ``up``) when the training cameras spread over a level plane (a ring, a walk), from the front when they
     stand on an upright one (a forward-facing grid, which the view from above drew as a line, its chosen views on top
-    of each other)."""
+    of each other). ``not_drawn``: candidates ruled out (no camera can stand there) and left off the plot, which the
+    legend counts (it said "candidates (3)" of 4)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -57,7 +58,8 @@ def _plot(path: Path, used: torch.Tensor, cands: torch.Tensor, chosen: list[int]
         return (p @ a).numpy(), (p @ b).numpy()
 
     fig, ax = plt.subplots(figsize=(6, 6), dpi=110)
-    ax.scatter(*xy(cands), s=14, c="0.6", label=f"candidates ({len(cands)})")
+    left = f"; {not_drawn} ruled out, not drawn" if not_drawn else ""
+    ax.scatter(*xy(cands), s=14, c="0.6", label=f"candidates ({len(cands)}{left})")
     if len(used):
         ax.scatter(*xy(used), s=22, c="tab:blue", label=f"used ({len(used)})")
     if held is not None and len(held):
@@ -391,7 +393,7 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         # (a pose far outside the capture, ranked last, set the axes and squashed every other into a strip)
         _plot(out / "selection.png", scene.cameras[train].centers, centres[drawn], [drawn.index(c) for c in chosen], up,
               f"{run_dir.name}: {cfg.score} chose {', '.join(p.name for p in picked)}",
-              held=scene.cameras[held].centers if held else None)
+              held=scene.cameras[held].centers if held else None, not_drawn=len(cands) - len(drawn))
     gaps = cfg.score == "fisher" and cfg.gaps > 0
     for p in picked:
         when = f"{p.score_when_chosen:.6g}" if p.score_when_chosen is not None else "-"
