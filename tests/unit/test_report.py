@@ -1480,6 +1480,93 @@ def test_a_report_that_fails_midway_leaves_the_earlier_one_whole(tmp_path, monke
     assert_figures_consistent(out, parse(index))
 
 
+_KILLED_IN_SWAP = """
+import os, sys
+from pathlib import Path
+from uncertsplat.config import ReportConfig
+from uncertsplat.stages import report as stage
+swap, real, n = stage._swap_in, os.replace, int(sys.argv[3])
+def dying_swap(*args):
+    moves = []
+    def replace(src, dst):
+        if len(moves) == n:
+            os._exit(9)  # as a SIGKILL: nothing runs after it
+        moves.append(dst)
+        real(src, dst)
+    os.replace = replace
+    swap(*args)
+stage._swap_in = dying_swap
+stage.run([Path(sys.argv[1])], Path(sys.argv[2]), ReportConfig())
+"""
+
+
+def _figure_bytes(out: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in (out / "figures").glob("*.png")}
+
+
+@pytest.mark.parametrize("moves", [0, 1, 3, -1])
+def test_a_report_killed_while_its_files_go_in_never_shows_a_page_beside_figures_it_did_not_draw(tmp_path, moves):
+    """The staged figures were put in place one by one under the earlier page, which was replaced last: a kill in
+    between left that page showing the new report's figures (they have fixed names). The earlier page now goes aside
+    first; a kill leaves either page with its own figures or none, and the next report finishes the folder."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    first, second = make_run(tmp_path / "a", "r", seed=0), make_run(tmp_path / "b", "r", seed=1)
+    stage.run([first], out, ReportConfig())
+    old, old_page = _figure_bytes(out), (out / "index.html").read_bytes()
+    stage.run([second], tmp_path / "new", ReportConfig())  # the figures the second report draws
+    new = _figure_bytes(tmp_path / "new")
+    assert len(old) >= 3 and old.keys() == new.keys() and sum(old[n] != new[n] for n in old) >= 2
+    (out / "mine.txt").write_text("a file of yours")  # kept, and no reason to refuse the folder
+    n = 1 + 2 * len(new) if moves == -1 else moves  # -1: killed before the new page goes in (each figure
+    # replaced is two moves: the earlier one aside, the new one in)
+    done = subprocess.run([sys.executable, "-c", _KILLED_IN_SWAP, str(second), str(out), str(n)])
+    assert done.returncode == 9
+    on_disk = _figure_bytes(out)
+    if (out / "index.html").exists():  # a page, and only the figures it drew
+        assert (out / "index.html").read_bytes() == old_page
+        assert on_disk == old
+    else:  # no page: the kill came while the files went in
+        assert moves != 0 or not on_disk
+    index = stage.run([second], out, ReportConfig())
+    assert _figure_bytes(out) == new and (out / "mine.txt").is_file() and not list(out.glob(".figures.tmp-*"))
+    assert_figures_consistent(out, parse(index))
+
+
+def test_a_report_that_fails_while_its_files_go_in_puts_the_earlier_one_back(tmp_path, monkeypatch):
+    """An error (or Ctrl-C) while the staged files go in puts the earlier page and its figures back."""
+    import os
+
+    out = tmp_path / "out"
+    first, second = make_run(tmp_path / "a", "r", seed=0), make_run(tmp_path / "b", "r", seed=1)
+    stage.run([first], out, ReportConfig())
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != stage.MARKER}
+    real, moves = os.replace, []
+
+    def failing(src, dst):
+        moves.append(dst)
+        if len(moves) == 3:
+            raise KeyboardInterrupt
+        real(src, dst)
+
+    swap = stage._swap_in
+
+    def failing_swap(*args):
+        monkeypatch.setattr(os, "replace", failing)
+        try:
+            swap(*args)
+        finally:
+            monkeypatch.setattr(os, "replace", real)
+
+    monkeypatch.setattr(stage, "_swap_in", failing_swap)
+    with pytest.raises(KeyboardInterrupt):
+        stage.run([second], out, ReportConfig())
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file() and p.name != stage.MARKER}
+    assert after == before and not list(out.glob(".figures.tmp-*"))
+
+
 def test_run_names_with_dollar_signs_are_drawn_as_text():
     """Run names reach the figures' legends and titles: "dl$_$x" raised matplotlib's math parser (a traceback, no
     report) and "price $5 vs $10" was drawn as a formula ("price 5vs10")."""

@@ -3,9 +3,10 @@
 The page is self-contained (inline CSS, no scripts, fonts or network access); figures are PNG files
 beside it. Every input is read through its schema and is optional (see ``uncertsplat.report.loader``): a
 run that was not evaluated gets a note instead of metric sections, and a file that is present but invalid
-is named in a note with the key or version that is wrong. All files are written atomically; the figures into a staging
-folder first, put in place with ``index.html`` last, so a report folder never references a figure that is not there
-and a report that fails midway leaves the earlier page with its own figures.
+is named in a note with the key or version that is wrong. All files are written atomically; the figures and the page
+into a staging folder first, then put in place (``_swap_in``: the earlier page aside first, the new one last), so a
+report folder never shows a page beside figures it did not draw, and a report that fails midway leaves the earlier
+page with its own figures.
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ def _check_output(out: Path, runs: list[Path]) -> None:
     # hidden files (a file manager's .DS_Store, Thumbs.db is not hidden but is the same kind) do not make a folder
     # anyone's: a folder holding only them was refused as "not empty"
     own = [p for p in out.iterdir() if not p.name.startswith(".") and p.name != "Thumbs.db"] if out.is_dir() else []
-    if own and not is_report_page(out / INDEX) and not _unfinished_report(out):
+    if own and not is_report_page(out / INDEX) and not _unfinished_report(out) and not _swap_cut_short(out):
         from uncertsplat.io.folders import is_run
 
         what = ("it is a training run" if is_run(out) else "its index.html is not a page `report` wrote"
@@ -103,6 +104,56 @@ def _remove_stale_figures(out: Path, earlier: set[str], keep: list[str]) -> None
         if p.is_file():
             with contextlib.suppress(OSError):
                 p.unlink()
+
+
+OLD = ".old"
+"""``STAGING/OLD``: the earlier page and the figures the new ones replace, while ``_swap_in`` puts the new ones in."""
+
+
+def _swap_in(out: Path, staging: Path, staged: dict[Path, Path], page: Path) -> None:
+    """Put the staged figures (``staged``: final path -> staged file) and ``page`` in place in ``out``.
+
+    The earlier page goes aside first and the new one comes last, so that no moment shows a page beside figures it
+    did not draw (the figures were replaced in place under the earlier page: a kill before the new page left that
+    page showing the new figures). The files replaced are moved aside into ``staging``, and a failure (an error,
+    Ctrl-C) puts everything back as it was; a kill in between (milliseconds) leaves no page, which the next report
+    finishes (``_swap_cut_short``)."""
+    aside = staging / OLD
+    moved: list[tuple[Path, Path | None]] = []  # (final path, the earlier file moved aside from it, or None)
+    old_page: Path | None = None
+    try:
+        if (out / INDEX).exists():
+            aside.mkdir(parents=True, exist_ok=True)
+            old_page = aside / INDEX
+            os.replace(out / INDEX, old_page)
+        for final, written in staged.items():
+            final.parent.mkdir(parents=True, exist_ok=True)
+            before = None
+            if final.is_file():
+                before = aside / final.relative_to(out)
+                before.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(final, before)
+            moved.append((final, before))
+            os.replace(written, final)
+        os.replace(page, out / INDEX)
+    except BaseException:
+        for final, before in reversed(moved):
+            with contextlib.suppress(OSError):
+                if before is None:
+                    final.unlink(missing_ok=True)
+                else:
+                    os.replace(before, final)
+        if old_page is not None:
+            with contextlib.suppress(OSError):
+                os.replace(old_page, out / INDEX)
+        raise
+
+
+def _swap_cut_short(out: Path) -> bool:
+    """Whether ``out`` is a report folder whose ``_swap_in`` was killed: its ``MARKER``, no page, and the earlier
+    page aside in a staging folder (the next report's ``staging_folder`` removes it)."""
+    return ((out / MARKER).is_file() and not (out / INDEX).exists()
+            and any(is_report_page(p / OLD / INDEX) for p in out.glob(f".{FIGURES}.tmp-*")))
 
 
 def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = None,
@@ -156,10 +207,9 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
             return path
 
         text, figures = build_report(loaded, out, cfg.title, cfg.max_views, write_figure)
-        for final, written in staged.items():
-            final.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(written, final)
-        index = atomic_write_text(out / INDEX, text)
+        # the page staged too (a full disk fails it before anything in OUT changed)
+        _swap_in(out, staging, staged, atomic_write_text(staging / INDEX, text))
+        index = out / INDEX
     _remove_stale_figures(out, earlier | listed, figures)
     atomic_write_json(out / MARKER, {"figures": sorted(Path(f).name for f in figures)})
     atomic_write_json(out / CONFIG, cfg.model_dump(mode="json"))  # as every stage writes its config beside its outputs
