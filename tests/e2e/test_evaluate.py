@@ -672,7 +672,7 @@ class TestPrunedRunThatRemovedNothing:
         for f in sorted((src / "eval" / "maps").iterdir()):
             assert (kept / "eval" / "maps" / f.name).read_bytes() == f.read_bytes()
         copied_files = sorted(p.name for p in (kept / "eval").iterdir())
-        assert copied_files == ["config.json", "maps", "metrics.json", "residual.pt"]
+        assert copied_files == ["config.json", "maps", "metrics.json", "predictive.pt", "residual.pt"]
         assert evaluate.same_model_evaluation(kept, SAME_CFG, torch.device("cpu")) == src / "eval"
 
     def test_a_copy_in_another_folder_is_this_run_s_current_evaluation(self, same_model_runs, tmp_path):
@@ -693,6 +693,35 @@ class TestPrunedRunThatRemovedNothing:
         report = evaluate.run(deeper, SAME_CFG, device=torch.device("cpu"))
         assert "copied from" in report.notes[-1]
         assert evaluation_is_current(deeper, EvalReport.read(deeper / "eval" / "metrics.json"))
+
+    def test_a_copy_carries_the_noise_and_predictive_keyed_for_this_run(self, same_model_runs, tmp_path):
+        """The copy left the source's predictive.pt out (Predictor.load of the pruned run, its scene gone: "predictive.pt
+        is missing", though the hint said evaluate keeps it), and its residual.pt kept the source's key, which a run
+        one folder deeper (another scene.json) never matches: the noise was fitted again."""
+        from uncertsplat.baselines import load_run
+        from uncertsplat.stages.predictive_cache import read_predictive
+        from uncertsplat.stages.residual_cache import FILE_NAME, residual_key
+
+        src, kept = same_model_runs
+        cpu = torch.device("cpu")
+        deeper = tmp_path / "a" / "b" / "kept"
+        deeper.parent.mkdir(parents=True)
+        shutil.copytree(kept, deeper, ignore=shutil.ignore_patterns("eval"))
+        info = json.loads((deeper / "scene.json").read_text(encoding="utf-8"))
+        info["scene_from_run"] = os.path.relpath(info["scene"], deeper)
+        (deeper / "scene.json").write_text(json.dumps(info))
+        assert "copied from" in evaluate.run(deeper, SAME_CFG, device=cpu).notes[-1]
+        loaded = load_run(deeper, cpu)
+        predictive, problem = read_predictive(loaded, SAME_CFG, src)
+        source_predictive, _ = read_predictive(load_run(src, cpu), SAME_CFG, src)
+        assert predictive is not None, problem
+        assert (predictive.scale, predictive.dof, predictive.names) == (
+            source_predictive.scale, source_predictive.dof, source_predictive.names)
+        from uncertsplat.io.checkpoints import decode
+
+        noise = decode((deeper / "eval" / FILE_NAME).read_bytes())
+        assert noise["key"] == residual_key(loaded, SAME_CFG, cpu)
+        assert noise["key"] != decode((src / "eval" / FILE_NAME).read_bytes())["key"]  # (a scene.json of its own)
 
     def test_anything_else_is_evaluated(self, same_model_runs, tmp_path):
         src, kept = same_model_runs

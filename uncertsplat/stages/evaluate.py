@@ -312,16 +312,19 @@ def _matching(run_dir: Path, model_file: Path, cfg: EvalConfig, image_names: lis
     return report, used
 
 
-def _copy_evaluation(source_eval: Path, out: Path, run_dir: Path) -> None:
-    """Copy ``source_eval``'s maps, metrics and config to ``out`` (``run_dir``'s evaluation), adding a note to the
-    metrics and ``run_dir``'s own ``run_sha256`` (its scene.json may differ from the source's in the scene's relative
-    path alone: the copy was taken for an earlier state of the run and evaluated again); the copy is built beside
-    ``out`` and renamed into place, so a failure leaves ``out`` as it was."""
+def _copy_evaluation(source_eval: Path, out: Path, run_dir: Path, device: torch.device) -> None:
+    """Copy ``source_eval``'s maps, metrics and config to ``out`` (``run_dir``'s evaluation, evaluated on ``device``),
+    with its pixel noise and predictive keyed for ``run_dir``, adding a note to the metrics and ``run_dir``'s own
+    ``run_sha256`` (its scene.json may differ from the source's in the scene's relative path alone: the copy was
+    taken for an earlier state of the run and evaluated again); the copy is built beside ``out`` and renamed into
+    place, so a failure leaves ``out`` as it was."""
     import shutil
 
     from uncertsplat.io.atomic import temp_folder
     from uncertsplat.schemas.metrics import EvalReport
-    from uncertsplat.stages.residual_cache import FILE_NAME
+    from uncertsplat.stages.predictive_cache import FILE_NAME as PREDICTIVE
+    from uncertsplat.stages.predictive_cache import rekeyed_predictive
+    from uncertsplat.stages.residual_cache import FILE_NAME, rekeyed_residual
 
     tmp = temp_folder(".eval-copy-", out.parent)
     try:
@@ -330,8 +333,16 @@ def _copy_evaluation(source_eval: Path, out: Path, run_dir: Path) -> None:
         shutil.copytree(source_eval / "maps", staged / "maps")
         shutil.copy2(source_eval / "config.json", staged / "config.json")
         shutil.copy2(source_eval / "metrics.json", staged / "metrics.json")
-        if (source_eval / FILE_NAME).is_file():  # the same model's noise, under the same key
-            shutil.copy2(source_eval / FILE_NAME, staged / FILE_NAME)
+        # the same model's pixel noise and predictive (what Predictor.load reads, where the scene is gone), keyed
+        # for this run: its scene.json differs from the source's in the scene's path, and so do the keys (copied as
+        # they were, the noise was never read and Predictor.load found no predictive.pt)
+        used = EvalConfig.model_validate_json((source_eval / "config.json").read_text(encoding="utf-8"))
+        source, model = source_eval.parent, "variational.ply"  # (the only model file same_model_evaluation copies for)
+        for name, rekey in ((FILE_NAME, lambda b: rekeyed_residual(b, source, run_dir, model, used, device)),
+                            (PREDICTIVE, lambda b: rekeyed_predictive(b, source, run_dir, model))):
+            data = rekey((source_eval / name).read_bytes()) if (source_eval / name).is_file() else None
+            if data is not None:
+                (staged / name).write_bytes(data)
         report = EvalReport.read(staged / "metrics.json")
         report.notes.append(f"copied from {source_eval}: this run's model file is that run's, unchanged (prune "
                             "removed nothing), and it was evaluated with the same settings, versions and device "
@@ -455,7 +466,7 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
     with run_lock(run_dir, "evaluate"):
         reusable = same_model_evaluation(run_dir, cfg, device)
         if reusable is not None:
-            _copy_evaluation(reusable, out, run_dir)
+            _copy_evaluation(reusable, out, run_dir, device)
     if reusable is not None:
         console.print(f"[bold]evaluate[/] {run_dir}: its model is {reusable.parent}'s, unchanged (prune removed "
                       f"nothing), evaluated there with the same settings: copied {reusable} "

@@ -205,6 +205,29 @@ def read_predictive(loaded, cfg, scene_folder: str | Path) -> tuple[KeptPredicti
     return kept, ""
 
 
+def rekeyed_predictive(data: bytes, source: Path, run_dir: Path, model_file: str) -> bytes | None:
+    """``RUN/eval/predictive.pt``'s bytes ``data`` of the run ``source``, keyed for ``run_dir``, whose ``model_file``
+    and ``config.json`` are the source's byte for byte (a prune that removed nothing, whose evaluation is the
+    source's, copied: without the file, ``Predictor.load`` of that run found none where the scene is gone); None when
+    the file is not one written for the source's ``model_file`` and run (``_parts``) in this format."""
+    from uncertsplat.io.checkpoints import decode, encode
+    from uncertsplat.stages.residual_cache import _model_of, run_digests
+
+    try:
+        stored = decode(data)
+        parts = json.loads(stored["parts"])
+        if stored.get("format") != FORMAT or stored.get("key") != _key(parts):
+            return None
+    except Exception:  # noqa: BLE001 - damaged or of another format: not copied (it would not be read either)
+        return None
+    was, now = run_digests(_model_of(source, model_file)), run_digests(_model_of(run_dir, model_file))
+    if was is None or now is None or now["scene"] is None or was.keys() != now.keys() \
+            or any(parts.get(k) != v for k, v in was.items()):
+        return None
+    parts = {**parts, **now}
+    return encode({**stored, "key": _key(parts), "parts": json.dumps(parts, sort_keys=True, default=str)})
+
+
 def _difference(kept: dict, now: dict) -> str:
     """What differs between a file's ``_parts`` and the ones asked for, in words."""
     if kept.get("model") != now["model"] or kept.get("config") != now["config"] or kept.get("scene") != now["scene"]:
@@ -232,4 +255,4 @@ def _difference(kept: dict, now: dict) -> str:
 
 
 __all__ = ["FILE_NAME", "LEFT_OUT_WHEN", "KeptPredictive", "keep_predictive", "key_settings", "plain_versions",
-           "predictive_key", "read_predictive"]
+           "predictive_key", "read_predictive", "rekeyed_predictive"]

@@ -118,4 +118,33 @@ def fitted_residual(loaded, scene_scale: float, train_indices, cfg, device: torc
     return field
 
 
-__all__ = ["FILE_NAME", "fitted_residual", "residual_key", "run_digests", "same_residual_settings"]
+def _model_of(run_dir: Path, model_file: str):
+    """What ``run_digests`` reads of a ``baselines.LoadedRun``: its model file and run folder."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(source=Path(run_dir) / model_file, run_dir=Path(run_dir))
+
+
+def rekeyed_residual(data: bytes, source: Path, run_dir: Path, model_file: str, cfg, device: torch.device) -> bytes | None:
+    """``RUN/eval/residual.pt``'s bytes ``data`` of the run ``source``, keyed for ``run_dir``, whose ``model_file`` and
+    ``config.json`` are the source's byte for byte (a prune that removed nothing: its scene.json differs in the
+    scene's path, its key with it, and the copy evaluate made was never read); None when the file is not the noise of
+    the source's ``model_file`` under ``cfg`` (the settings of the evaluation it was copied with) on ``device``."""
+    from uncertsplat.io.checkpoints import decode, encode
+
+    try:
+        stored = decode(data, map_location="cpu")
+    except Exception:  # noqa: BLE001 - damaged or of another format: not copied (it would not be read either)
+        return None
+    if not isinstance(stored, dict) or "state" not in stored:
+        return None
+    for set_aside in (False, True):
+        if stored.get("key") is not None and stored.get("key") == residual_key(_model_of(source, model_file), cfg,
+                                                                                device, set_aside):
+            key = residual_key(_model_of(run_dir, model_file), cfg, device, set_aside)
+            return None if key is None else encode({**stored, "key": key})
+    return None
+
+
+__all__ = ["FILE_NAME", "fitted_residual", "rekeyed_residual", "residual_key", "run_digests",
+           "same_residual_settings"]
