@@ -373,6 +373,63 @@ def test_a_run_writes_its_transients_and_the_fits_on_its_training_views_leave_th
     assert TrainSummary.read(plain / "train_summary.json").transients is None
 
 
+def test_a_model_read_from_a_newer_checkpoint_leaves_out_that_checkpoints_regions(tiny_scene_path, tmp_path,  # noqa: F811
+                                                                                  monkeypatch):
+    """A --resume stopped before it wrote its model is read from its newest checkpoint, but the fits on its training
+    views left out RUN/transients/, written with the PLY by the earlier training: other regions than the ones that
+    model was trained without (the checkpoint holds its own). The checkpoint's are used now."""
+    import shutil
+
+    from tests.run_fixtures import TINY_RUN_OVERRIDES, train_tiny_run
+    from uncertsplat.baselines import load_run
+    from uncertsplat.config import deep_update, train_config_from
+    from uncertsplat.data.dataset import TRANSIENTS_FOLDER
+    from uncertsplat.errors import UserError
+    from uncertsplat.io.checkpoints import load_latest
+    from uncertsplat.io.images import read_image, read_mask, write_png
+    from uncertsplat.sfm.scene import load_scene
+    from uncertsplat.stages import train
+    from uncertsplat.train.transients import unpack_mask
+
+    ws = tmp_path / "ws"
+    shutil.copytree(tiny_scene_path / "images", ws / "images")
+    shutil.copytree(tiny_scene_path / "sparse", ws / "sparse")
+    scene = load_scene(ws)
+    names = [scene.cameras.image_names[i] for i in scene.split["train"]]
+    for n in names[:3]:
+        im = read_image(ws / "images" / n)
+        h, w = im.shape[:2]
+        im[h // 4:h // 2, w // 4:w // 2] = (1.0, 0.0, 1.0)
+        write_png(ws / "images" / n, im)
+    found = {"detect": True, "start": 0.3, "window": 0.1, "core": 0.5}
+    run = train_tiny_run(ws, tmp_path / "run", iterations=300, transients=found)
+    real = Trainer.train_step
+
+    def stopping(self, *args, **kw):
+        out = real(self, *args, **kw)
+        if self.step == 360:
+            self._stop = True  # as a Ctrl-C: a checkpoint, no model files
+        return out
+
+    monkeypatch.setattr(Trainer, "train_step", stopping)
+    cfg = train_config_from("tiny", deep_update(TINY_RUN_OVERRIDES, {"iterations": 300, "transients": found}))
+    with pytest.raises(UserError, match="interrupted at step 360"):
+        train.run(ws, run, cfg, device=torch.device("cpu"), resume=True, extend_to=500)
+    _, state = load_latest(run)
+    H, W = scene.cameras.height, scene.cameras.width
+    ckpt = {state["train_names"][v]: unpack_mask(packed, H, W)[..., 0]
+            for v, packed in zip(state["transient_views"].tolist(), state["transient_keep"], strict=True)}
+    folder = {p.name.removesuffix(".png"): torch.from_numpy(read_mask(p))
+              for p in (run / TRANSIENTS_FOLDER).iterdir()}
+    assert ckpt and any(n not in folder or not torch.equal(m, folder[n]) for n, m in ckpt.items())
+    loaded = load_run(run)
+    assert loaded.step == 360
+    views = loaded.training_views(loaded.load_scene())(list(scene.split["train"]))
+    used = {n: views.masks[k, ..., 0] for k, n in enumerate(views.names) if not views.masks[k].all()}
+    assert used.keys() == ckpt.keys() and all(torch.equal(used[n], m) for n, m in ckpt.items())
+    assert any("(the checkpoint step_000360.pt)" in n for n in loaded.eval_notes(4))
+
+
 def test_the_note_names_the_photos_and_their_share():
     from uncertsplat.train.transients import transients_note
 

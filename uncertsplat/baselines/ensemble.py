@@ -182,9 +182,10 @@ class EnsembleRun(LoadedRun):
                        coverage=self.coverage(scene_scale, device, members[0]), mean_sample=members[0],
                        exposure=self.photo_exposure())
 
-    def transient_runs(self) -> list[Path]:
-        """Each member's run folder: a region any member's training left out is left out of the fits."""
-        return [m.run_dir for m in self.members]
+    def transient_runs(self) -> list:
+        """Each member's run folder (or its checkpoint's regions): a region any member's training left out is left
+        out of the fits."""
+        return [r for m in self.members for r in m.transient_runs()]
 
     def size_text(self) -> str:
         """All members' Gaussians (``model`` is member 0's alone)."""

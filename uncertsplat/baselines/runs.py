@@ -66,6 +66,10 @@ class LoadedRun:
     """The training photos' learned exposures (``RUN/exposure.json``; ``TrainConfig.exposure``), None without."""
     near: float | None = None
     """The near plane the run was trained with (``RUN/scene.json``); None: ``render.near_plane`` of the scale."""
+    transients: dict[str, Tensor] | None = None
+    """The transient regions of the checkpoint the model was read from ({training photo: [H,W] bool, its pixels that
+    count}, ``checkpoint_transients``), which stand for ``RUN/transients/`` (an earlier training's beside a newer
+    checkpoint); None: the folder's."""
     _coverage: float | None = field(default=None, init=False, repr=False)  # ``coverage``, once computed
     _photo_exposure: PhotoExposure | None = field(default=None, init=False, repr=False)  # ``photo_exposure``, once
     _scene: SceneData | None = field(default=None, init=False, repr=False)  # ``load_scene``, once
@@ -223,10 +227,12 @@ class LoadedRun:
         return dataclasses.replace(views, masks_trained=(views.masks_trained and trained_with_masks(self.run_dir))
                                    or transients)
 
-    def transient_runs(self) -> list[Path]:
+    def transient_runs(self) -> list[Path | dict[str, Tensor]]:
         """The run folders whose ``transients/`` (``data.dataset.TRANSIENTS_FOLDER``) hold what training left out of
-        this model's photos: the run's own (an ensemble: its members')."""
-        return [self.run_dir]
+        this model's photos: the run's own (an ensemble: its members'), or the regions of the checkpoint the model
+        was read from (``transients``: the folder is written with the PLY, an earlier training's beside a newer
+        checkpoint)."""
+        return [self.transients if self.transients is not None else self.run_dir]
 
     def sampler(self, scene_scale: float, device: torch.device) -> Sampler:
         """What the evaluation engine draws samples from: the model's posterior (its mean for a deterministic
@@ -283,8 +289,9 @@ class LoadedRun:
         from uncertsplat.data.dataset import TRANSIENTS_FOLDER, transient_mask_files
 
         runs = self.transient_runs()
-        found = {name for r in runs for name in transient_mask_files(r)}
-        where = runs[0] / TRANSIENTS_FOLDER if len(runs) == 1 else f"the members' {TRANSIENTS_FOLDER}/ folders"
+        found = {name for r in runs for name in (r if isinstance(r, dict) else transient_mask_files(r))}
+        where = (f"the checkpoint {self.source.name}" if isinstance(runs[0], dict) else runs[0] / TRANSIENTS_FOLDER
+                 ) if len(runs) == 1 else f"the members' {TRANSIENTS_FOLDER}/ folders"
         notes = [f"the transient objects training found in {len(found)} training photo(s) ({where}) are left out "
                  "of the fits on the training views (the pixel noise, the std factor)"
                  + (" and of these training views' scores" if scored else "") + ", as training left them out"
@@ -537,8 +544,31 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
         # the checkpoint's own: an exposure.json beside it is an earlier training's (it is written with the PLY, which
         # is older than this checkpoint or absent; a --resume --iterations stopped midway paired its model with them)
         exposure = checkpoint_exposure(state, info.train) or exposure
+    # the checkpoint's transient regions too: RUN/transients/ is written with the PLY (an earlier training's here)
+    transients = checkpoint_transients(state, info.width, info.height) if info is not None else None
     return LoadedRun(model, cfg, scene_path, float(state["extent"]), int(state["step"]),
-                     int(state.get("sh_degree_active", model.sh_degree)), path, run_dir, transparent, exposure, near)
+                     int(state.get("sh_degree_active", model.sh_degree)), path, run_dir, transparent, exposure, near,
+                     transients)
+
+
+def checkpoint_transients(state: dict, width: int, height: int) -> dict[str, Tensor] | None:
+    """The transient regions a training checkpoint ``state`` holds (``Trainer.transient_keep``: each training photo's
+    last regions, what ``train`` writes into ``RUN/transients/`` with the PLY), as {photo name: [H,W] bool, its
+    pixels that count} of the photos with any (``width`` x ``height``: the training photos'); None where the
+    checkpoint does not say by name (one from before it kept its photos' names or regions) or its masks are of
+    another size."""
+    from uncertsplat.train.transients import unpack_mask
+
+    names, views = state.get("train_names"), state.get("transient_views")
+    if not names or views is None or "transient_keep" not in state or (
+            len(views) and len(views) != len(state["transient_keep"])):
+        return None
+    out = {}
+    for v, packed in zip(views.tolist(), state["transient_keep"], strict=False):
+        if not 0 <= v < len(names) or packed.numel() != (width * height + 7) // 8:
+            return None
+        out[str(names[v])] = unpack_mask(packed, height, width)[..., 0]
+    return out
 
 
 def checkpoint_exposure(state: dict, train_names: list[str]) -> RunExposure | None:

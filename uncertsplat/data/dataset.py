@@ -6,7 +6,7 @@ averaging, and returned on the requested device.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -462,26 +462,40 @@ def transient_mask_paths(run_dir: Path, names: Sequence[str]) -> dict[str, Path]
 
 
 def without_transients(masks: Tensor | None, scene: SceneData, indices: Sequence[int],
-                       runs: Path | Sequence[Path]) -> Tensor | None:
+                       runs: Path | Sequence[Path | Mapping[str, Tensor]]) -> Tensor | None:
     """``masks`` [C,H,W,1] bool of the views ``indices`` (None: every pixel counts) without the transient regions
     the run folder(s) ``runs`` found in them (``TRANSIENTS_FOLDER``; an ensemble's members: a region any of them
-    left out); ``masks`` itself when none was found there."""
+    left out; an entry may be the regions themselves, {photo name: [H,W] bool, its pixels that count}: a checkpoint's,
+    ``baselines.runs.checkpoint_transients``); ``masks`` itself when none was found there."""
+    import torch.nn.functional as F
+
     names = [scene.cameras.image_names[i] for i in indices]
     out = masks
     W, H = scene.cameras.width, scene.cameras.height
-    for run_dir in [runs] if isinstance(runs, (str, Path)) else runs:
-        found = transient_mask_paths(run_dir, names)
+
+    def keep(found, n) -> Tensor:  # [H,W] bool
+        if not isinstance(found[n], Tensor):
+            return torch.from_numpy(load_mask(found[n], W, H))
+        m = found[n].cpu()
+        if tuple(m.shape) != (H, W):  # (the photos' size differs from the checkpoint's: nearest, as load_mask)
+            m = F.interpolate(m[None, None].float(), size=(H, W), mode="nearest")[0, 0] > 0.5
+        return m
+
+    for run in [runs] if isinstance(runs, (str, Path)) else runs:
+        found = ({n: run[n] for n in names if n in run} if isinstance(run, Mapping)
+                 else transient_mask_paths(run, names))
         if found and out is masks:
             out = torch.ones((len(names), H, W, 1), dtype=torch.bool) if masks is None else masks.clone()
         for k, n in enumerate(names):
             if n in found:
-                out[k, ..., 0] &= torch.from_numpy(load_mask(found[n], W, H)).to(out.device)
+                out[k, ..., 0] &= keep(found, n).to(out.device)
     return out
 
 
 def load_view_set(scene: SceneData, indices: Sequence[int], *, depth: bool = True,
                   depth_folder: Path | None = None, folder_in_scene_units: bool = False,
-                  keep_8bit: bool = False, transients: Path | Sequence[Path] | None = None) -> ViewSet:
+                  keep_8bit: bool = False, transients: Path | Sequence[Path | Mapping[str, Tensor]] | None = None
+                  ) -> ViewSet:
     """The views ``indices`` of ``scene`` with their images, masks and GT depth, for evaluation (CPU).
 
     Args:
@@ -491,8 +505,9 @@ def load_view_set(scene: SceneData, indices: Sequence[int], *, depth: bool = Tru
         depth_folder: take GT depth from this folder instead (``load_depth_folder``; scale unknown).
         folder_in_scene_units: ``depth_folder``'s maps are in the scene's own (source) units: converted to its
             normalised units as the scene's own GT depth is (``depth_known_scale``).
-        transients: a run folder (or several: an ensemble's members): the transient regions its training found in
-            these views (``TRANSIENTS_FOLDER``) are left out of their masks.
+        transients: a run folder (or several: an ensemble's members; or a checkpoint's regions, as
+            ``without_transients`` takes them): the transient regions its training found in these views
+            (``TRANSIENTS_FOLDER``) are left out of their masks.
     """
     indices = [int(i) for i in indices]
     depths, known = None, False
