@@ -277,6 +277,35 @@ def test_one_pass_gives_the_noise_the_fisher_and_the_disagreement():
     assert fixed.noise_std == 0.5 and fixed.disagreement is None
 
 
+def test_masked_pixels_count_in_neither_the_noise_nor_the_fisher():
+    """``masks``: the noise is the RMS over the pixel channels inside the mask (each pixel's three channels count),
+    and a parameter seen only in pixels outside it gets no Fisher (its probes are masked too). Each coordinate of the
+    means drives single pixel channels, so the probe estimate is exact: (w z)^2 = w^2."""
+    params = _params(n=2)
+    maps = torch.zeros(1, 3, 60)
+    inside, outside = (0 * 5 + 0) * 3 + 0, (3 * 5 + 4) * 3 + 1  # flat index (row * 5 + col) * 3 + channel
+    maps[0, 0, inside] = 2.0  # x: a pixel inside the mask
+    maps[0, 1, outside] = 3.0  # y: only a pixel outside it
+    maps[0, 2, inside + 1] = 0.5  # z: inside (the pixel's next channel) and outside (the other pixel's)
+    maps[0, 2, outside + 1] = 7.0
+    mask = torch.ones(1, 4, 5, 1, dtype=torch.bool)
+    mask[0, 3, 4] = False
+    s = params["means"].sum(0)
+    rendered = (s @ maps[0]).reshape(1, 4, 5, 3)
+    images = rendered + torch.linspace(-0.2, 0.3, 60).reshape(1, 4, 5, 3)  # residuals of every pixel channel
+    images[0, 3, 4] += 5.0  # outside the mask: would dominate the noise
+    c = curvature(params, _Cams(maps), images, _linear_render, names=("means",),
+                  generator=torch.Generator().manual_seed(0), sh_degree=0, probes=3, masks=mask)
+    r = (rendered - images)[0][mask[0, ..., 0]]  # [19,3]: the pixels inside
+    noise = float(r.double().square().mean().sqrt())
+    assert c.noise_std == pytest.approx(noise, rel=1e-5)
+    assert residual_noise_std(params, _Cams(maps), images, _linear_render, sh_degree=0,
+                              masks=mask) == pytest.approx(noise, rel=1e-5)
+    expected = torch.tensor([4.0, 0.0, 0.25]) / noise**2
+    for i in range(2):
+        torch.testing.assert_close(c.fisher["means"][i], expected, rtol=1e-4, atol=0)
+
+
 def test_disagreement_of_a_well_specified_model_is_its_fisher():
     """Images = render + independent pixel noise of the stated std: the views disagree only by the noise, and
     the disagreement's expectation is the Fisher (so the sandwich variance is the Laplace one)."""
