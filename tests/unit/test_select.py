@@ -35,6 +35,21 @@ class TestRanking:
         assert chosen == [1, 2, 0] and at == pytest.approx([5.0, 5.0, 1.0])
         torch.testing.assert_close(first, torch.tensor([1.0, 5.0, 5.0, 4.9], dtype=torch.float64))
 
+    def test_coverage_measures_from_the_nearest_of_several_used_cameras(self):
+        """Cameras used at 0 and 10: a candidate at 9.5 lies 0.5 from the nearest (not 9.5 from the first, nor 10
+        from the farthest), so the one midway (5 from both) is the gap."""
+        from uncertsplat.select.scores import nearest_used_distance
+
+        used = torch.tensor([[0.0, 0, 0], [10.0, 0, 0]])
+        cands = torch.tensor([[1.0, 0, 0], [5.0, 0, 0], [9.5, 0, 0], [3.0, 4.0, 0]])
+        expect = torch.tensor([1.0, 5.0, 0.5, 5.0], dtype=torch.float64)
+        torch.testing.assert_close(nearest_used_distance(cands, used), expect)
+        chosen, at, first = coverage_choice(cands, used, 2)
+        torch.testing.assert_close(first, expect)
+        # 5 ties with (3, 4, 0) at 5 (the first listed wins); then (3, 4, 0) is 4.47 from it and 5 from the cameras
+        assert chosen == [1, 3] and at == pytest.approx([5.0, math.sqrt(20.0)])
+        assert torch.isinf(nearest_used_distance(cands, torch.zeros(0, 3))).all()
+
     def test_coverage_never_repeats_and_stops_at_the_pool(self):
         cands = torch.zeros(3, 3)  # identical cameras: distances 0 after the first pick
         chosen, _, _ = coverage_choice(cands, torch.ones(1, 3), 5)
@@ -106,9 +121,9 @@ class TestFisherInformation:
 
         monkeypatch.setattr(curvature_mod, "curvature", fake)
 
-        def run(information, n, eligible=None):
+        def run(information, n, eligible=None, prior=1.0):
             return fisher_choice({}, _Views(["train"]), torch.zeros(1, 1, 1, 3), _Views(range(4)), None,
-                                 names=["means"], prior_std={"means": 1.0}, sh_degree=0, probes=1, seed=0, n=n,
+                                 names=["means"], prior_std={"means": prior}, sh_degree=0, probes=1, seed=0, n=n,
                                  information=information, eligible=eligible)
         return run
 
@@ -134,6 +149,15 @@ class TestFisherInformation:
         # precision = training Fisher + 1 / prior^2 = [2, 1]: 10 / 2 = 5 against 4 / 1
         assert chosen == [0] and at == pytest.approx([5.0])
         torch.testing.assert_close(first, torch.tensor([5.0, 4.0, 4.0, 4.0], dtype=torch.float64))
+
+    def test_the_prior_adds_its_precision_one_over_its_variance(self, choose):
+        # prior std 0.5: precision = training Fisher + 1 / 0.5^2 = [5, 4]: 10 / 5 = 2 against 4 / 4 = 1
+        chosen, at, first, _ = choose("trace", 1, prior=0.5)
+        assert chosen == [0] and at == pytest.approx([2.0])
+        torch.testing.assert_close(first, torch.tensor([2.0, 1.0, 1.0, 1.0], dtype=torch.float64))
+        # a wide prior (std 4: precision [1.0625, 0.0625]) leaves b unknown: the views that see it win
+        chosen, at, _, _ = choose("trace", 1, prior=4.0)
+        assert chosen == [1] and at == pytest.approx([4.0 / 0.0625])
 
     def test_predictive_weighs_what_the_capture_shows(self, choose):
         chosen, at, first, _ = choose("predictive", 2)
@@ -339,6 +363,7 @@ class TestCandidates:
         ("a 1 0 0 0 0 0 x", "not 7 numbers"),
         ("a 0 0 0 0 1 2 3", "quaternion is zero"),
         ("a 2 0 0 0 1 2 3", "norm 2"),
+        ("a 1.002 0 0 0 1 2 3", "norm 1.002"),  # (past 1e-3: a pose typed with too few digits is not guessed at)
         ("a 1 0 0 0 nan 0 0", "non-finite"),
         ("a 1 0 0 0 0 0 1e300", "too far away to compute with"),  # (finite, inf in float32: ranked first)
     ])
@@ -399,6 +424,27 @@ class TestCandidates:
         src = scene.cameras[scene.split["train"]].cam_from_world
         for T in still.cam_from_world:
             assert float((src - T).abs().amax((1, 2)).min()) < 1e-4
+
+    def test_around_views_move_by_the_median_spacing_of_the_training_cameras(self):
+        """Training cameras at x = 0, 1, 2 and 10 (nearest neighbours 1, 1, 1, 8): the median spacing is 1, so a
+        candidate lies within 1 (radius 1) of its source camera, however far the one outlier stands."""
+        from types import SimpleNamespace
+
+        from uncertsplat.types import Cameras
+
+        x = torch.tensor([0.0, 1.0, 2.0, 10.0])
+        w2c = torch.eye(4).repeat(4, 1, 1)
+        w2c[:, 0, 3] = -x  # identity rotation: the centre is -t
+        K = torch.tensor([[50.0, 0, 16], [0, 50.0, 12], [0, 0, 1]]).repeat(4, 1, 1)
+        scene = SimpleNamespace(cameras=Cameras(w2c, K, 32, 24, tuple(f"c{i}.png" for i in range(4))),
+                                split={"train": [0, 1, 2, 3]}, scene_scale=1.0)
+        a = around_views(scene, 40, 1.0, torch.Generator().manual_seed(1))
+        train = torch.stack([x, torch.zeros(4), torch.zeros(4)], 1)
+        moved = torch.cdist(a.centers.double(), train.double()).min(1).values
+        assert float(moved.max()) <= 1.0 + 1e-5 and float(moved.max()) > 0.5
+        half = around_views(scene, 40, 0.5, torch.Generator().manual_seed(1))  # the radius scales the move
+        torch.testing.assert_close(torch.cdist(half.centers.double(), train.double()).min(1).values.max(),
+                                   moved.max() * 0.5, atol=0.05, rtol=0)
 
     def test_around_views_turn_with_the_scene(self, scene):
         """A scene turned (the same capture in another frame: the run's cameras turned with it) gets its candidates
@@ -469,3 +515,35 @@ def test_a_candidate_behind_a_surface_from_every_nearby_camera_is_walled_off():
                          dtype=torch.float64)
     assert _walled_off(looked, cands, used, torch.device("cpu")).tolist() == [True, False, False, False]
     assert _walled_off(looked, cands[:0], used, torch.device("cpu")).tolist() == []
+
+
+def test_relative_position_variance_is_the_variance_ratio_of_each_carrier():
+    """Each carrier's posterior position std over the prior's (geometric mean over the axes, averaged over the
+    entries as raw values), squared: a variance ratio, at most 1; 0 for the Gaussians without a posterior. The
+    rows are shuffled against the Gaussians (``random_model``), so a Gaussian must get its own row's ratio."""
+    from uncertsplat.gaussians.prior import Prior, inverse_softplus
+    from uncertsplat.gaussians.variational import random_model
+    from uncertsplat.select.scores import relative_position_variance
+
+    prior = Prior()
+    model = random_model(12, torch.Generator().manual_seed(5), sh_degree=0, num_entries=3, carrier_fraction=0.6,
+                         prior=prior)
+    rows = model.num_carriers
+    assert 2 < rows < 12
+    # per row, axis factors of the prior's std: geometric means 0.5, 0.8, ... and one above the prior (clamped)
+    factors = torch.tensor([[0.25, 0.5, 2.0], [0.8, 0.8, 0.8], [1.5, 2.0, 3.0]]).repeat(rows // 3 + 1, 1)[:rows]
+    sigma = (factors * prior.position_std).double()
+    model.tables["pos_spread_raw"].data.copy_(inverse_softplus(sigma)[:, None, :].expand_as(
+        model.tables["pos_spread_raw"]).float())
+    expect_row = (factors.double().log().mean(1).exp().square()).clamp(max=1.0)  # 0.25, 0.64, 1 (9 clamped)
+    u = relative_position_variance(model, prior)
+    for g in range(len(model)):
+        r = int(model.posterior_row[g])
+        want = 0.0 if r < 0 else float(expect_row[r])
+        assert float(u[g]) == pytest.approx(want, rel=1e-4, abs=1e-7), (g, r)
+    # a prior of its own per carrier (the informed posterior's): twice the std, a quarter of the ratio
+    own = torch.full((rows,), 2 * prior.position_std)
+    u2 = relative_position_variance(model, prior, own)
+    idx = model.carrier_index()
+    torch.testing.assert_close(u2[idx].double(), (factors.double().log().mean(1).exp() / 2).square().clamp(max=1.0),
+                               rtol=1e-4, atol=1e-7)
