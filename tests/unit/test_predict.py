@@ -146,6 +146,8 @@ def test_refuses_a_pose_that_is_not_rigid_naming_it(change, match):
     (2, 0, 0.1, r"K of pose 1 has the last row \[0.1, 0.0, 1.0\], not \[0, 0, 1\]"),
     (2, 2, 2.0, r"K of pose 1 has the last row"),
     (0, 1, 3.0, r"K of pose 1 has the skew K\[0,1\] = 3"),
+    (0, 1, 0.01, r"K of pose 1 has the skew K\[0,1\] = 0.01"),  # 1e-4 of fx: more than rounding, dropped unsaid
+    (1, 0, 1e-9, r"K of pose 1 has the skew .*K\[1,0\] = 1e-09"),
     (0, 0, 0.0, "K of pose 1 has the focal lengths 0 / 90 px: they must be positive and finite"),
     (1, 1, -90.0, "K of pose 1 has the focal lengths 100 / -90 px"),
     (0, 0, float("nan"), "K of pose 1 has the focal lengths nan / 90 px"),
@@ -273,6 +275,8 @@ def test_refuses_sizes_and_counts_that_are_not_whole_numbers():
         pred.predict(cams, num_samples=0)
     with pytest.raises(UserError, match=r"seed must be at most 4294967295 \(2\*\*32 - 1\), got 1180591620717411303424"):
         pred.predict(cams, seed=2**70)
+    with pytest.raises(UserError, match=r"seed must be at most 4294967295 \(2\*\*32 - 1\), got 4294967296"):
+        pred.predict(cams, seed=2**32)  # (the CPU generator keeps the low 32 bits: it would be seed 0's maps)
     with pytest.raises(UserError, match="seed must be 0 or more, got -1"):
         pred.predict(cams, seed=-1)
     with pytest.raises(UserError, match="seed must be a whole number, got 1.5"):
@@ -454,3 +458,30 @@ def test_names_none_numbers_and_numpy_texts():
         pred.cameras_from_source(two, K, 128, 96, names=("a", None))
     with pytest.raises(UserError, match="names must be texts, one per pose, got float"):
         pred.cameras_from_source(two, K, 128, 96, names=1.5)
+
+
+def test_seen_free_takes_points_in_the_scenes_frame_through_the_similarity():
+    """``seen_free(points)`` (source frame) tests x_world = s R x_source + t, the normalisation a pose goes through
+    (``cameras_from_source``); ``frame="world"`` passes them as given."""
+    from types import SimpleNamespace
+
+    pred = bare_predictor(scale=0.5, shift=(1.0, -2.0, 3.0))
+    T = pred._world_from_source.clone()
+    T[:3, :3] = 0.5 * rotation(0.7, 2) @ rotation(-0.4, 0)  # a turn, so that R and its transpose differ
+    pred._world_from_source = T
+    asked = []
+
+    def free(pts):
+        asked.append(pts.double())
+        return pts[:, 0] > 0
+
+    pred._sampler = SimpleNamespace(consistency=SimpleNamespace(seen_free=free))
+    x = torch.tensor([[1.0, 2.0, 3.0], [-4.0, 0.5, 2.0]], dtype=torch.float64)
+    got = pred.seen_free(x)
+    homogeneous = torch.cat([x, torch.ones(2, 1, dtype=torch.float64)], 1)
+    world = (T @ homogeneous.T).T[:, :3]
+    torch.testing.assert_close(asked[0], world, atol=1e-6, rtol=0)
+    assert got.tolist() == (world[:, 0] > 0).tolist()
+    pred.seen_free(x, frame="world")
+    torch.testing.assert_close(asked[1], x, atol=1e-6, rtol=0)
+    torch.testing.assert_close(pred.seen_free(x[0]), got[:1])  # one point as [3]
