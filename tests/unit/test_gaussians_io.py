@@ -52,6 +52,15 @@ def test_variational_ply_round_trip(tmp_path):
     assert torch.equal(back.posterior_row, m.posterior_row)
     for name, p in m.parameters().items():
         assert torch.equal(back.parameters()[name], p.detach()), name
+    # the offset element as the module docstring lays it out (what another tool reads): carrier-major rows in
+    # table-row order, each with its Gaussian (owner) and its entry 0..K-1
+    o = PlyData.read(str(path))["offset"]
+    P = m.num_carriers
+    assert len(o.data) == P * 5
+    owners = {int(r): g for g, r in enumerate(m.posterior_row.tolist()) if r >= 0}
+    assert o["owner"].tolist() == [owners[r] for r in range(P) for _ in range(5)]
+    assert o["entry"].tolist() == list(range(5)) * P
+    np.testing.assert_array_equal(o["pos_loc_1"].reshape(P, 5), m.tables["pos_loc"][:, :, 1].detach().numpy())
 
 
 def test_variational_ply_without_carriers(tmp_path):
