@@ -77,3 +77,19 @@ def test_the_cgroup_room_is_read_from_the_process_s_own_group(tmp_path):
     max_v2 = tmp_path / "max"
     _tree(max_v2, "0::/\n", {"sys/fs/cgroup/memory.max": "max\n"})
     assert cgroup_room(max_v2) is None and cgroup_room(tmp_path / "nothing") is None
+
+
+def test_the_room_beyond_the_peak_under_an_address_space_limit_in_numbers():
+    """The limit less the process's size, plus what the C allocator holds free (taken again by the next loop), less
+    what the resident peak holds above the resident memory now; and at most the limit less the largest size once the
+    loop set that peak. The process's numbers are fixed, the other limits left out."""
+    _run_ok("import resource; import uncertsplat.io.memory as m; " + UNDER_A_LIMIT +
+            "MB = 1 << 20; "
+            "m.process_status = lambda: {'VmRSS': 100 * MB, 'VmHWM': 150 * MB, 'VmSize': 1024 * MB, "
+            "'VmPeak': 2048 * MB}; "
+            "m._read = lambda path: ''; m.cgroup_room = lambda root=None: None; "
+            "m.allocator_free_bytes = lambda: 300 * MB; "
+            "got = m.room_beyond_peak(); want = cap - 1024 * MB + 300 * MB - 50 * MB; assert got == want, (got, want); "
+            "got = m.room_beyond_peak(4096 * MB); assert got == want, (got, want); "  # the peak came before the loop
+            "got = m.room_beyond_peak(0); want = min(want, cap - 2048 * MB); assert got == want, (got, want); "
+            "got = m.available_memory(); assert got == cap - 1024 * MB, got")  # (nothing freed counted there)
