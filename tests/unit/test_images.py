@@ -181,6 +181,25 @@ def test_resize_area_average(rng):
     np.testing.assert_array_equal(resize_image(a, 12, 8), a)
 
 
+def test_resize_down_along_one_axis_averages_the_area_too():
+    """The width divided by 3, the height kept: each pixel is the mean of the three under it (a bilinear
+    interpolation reads the middle one alone, which aliases)."""
+    a = np.array([[0.0, 3.0, 0.0, 0.0, 6.0, 0.0], [3.0, 3.0, 3.0, 9.0, 0.0, 0.0]], dtype=np.float32)
+    np.testing.assert_allclose(resize_image(a, 2, 2), [[1.0, 2.0], [3.0, 3.0]], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(resize_image(a.T.copy(), 2, 2), [[1.0, 3.0], [2.0, 3.0]], rtol=0, atol=1e-6)
+
+
+def test_a_resized_mask_counts_a_pixel_only_where_every_pixel_under_it_counts():
+    from uncertsplat.io.images import resize_mask
+
+    m = np.ones((4, 6), dtype=bool)
+    m[0, 1] = False  # one of the six under the top-left target pixel (3 x 2 of them)
+    m[3, 5] = False
+    assert resize_mask(m, 2, 2).tolist() == [[False, True], [True, False]]
+    assert resize_mask(m[..., None], 2, 2).shape == (2, 2, 1)
+    assert resize_mask(np.ones((4, 6)), 3, 2).all()  # (0/1 values: all count)
+
+
 class TestAreaResize:
     """``area_resize``: each target pixel the exact mean of the source area it covers, edge to edge."""
 
