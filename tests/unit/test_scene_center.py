@@ -69,6 +69,9 @@ def test_inward_rig_centre_is_the_target():
     assert choice.method == "optical_axes" and "inward-facing" in choice.reason
     # the camera centroid lies well above the target (the bug of issue 17)
     assert (cams.centers.double().mean(0) - choice.center).norm() > 1.0
+    # the depth it reports (and measures against the rig's radius) is the median of the cameras' depths
+    assert f"{float(fit.depths.median()):.3g} in front of the cameras" in fit.why, fit.why
+    assert f"{float(fit.depths.median()) / fit.rig_radius:.2f} x the rig radius" in fit.why, fit.why
     # with sparse points the centroid is kept: COLMAP scenes normalise exactly as before
     kept = choose_center(cams, has_points=True)
     assert kept.method == "camera_centroid" and "sparse points" in kept.reason
@@ -125,6 +128,19 @@ def test_random_points_fill_the_cube_every_camera_sees():
     assert d.max() <= half + 1e-5 and d.max() > 0.95 * half
     again, _, _ = random_points(cams, choice, 5000, torch.Generator().manual_seed(0))
     assert torch.equal(pts, again)
+
+
+def test_random_points_of_a_rig_that_is_not_inward_fill_a_third_of_it():
+    """No inward-facing rig: a box around the camera centroid whose side is a third of the rig's extent per axis."""
+    cams = _forward_rig()
+    choice = choose_center(cams, has_points=False)
+    assert choice.method == "camera_centroid"
+    pts, _, what = random_points(cams, choice, 4000, torch.Generator().manual_seed(1))
+    centres = cams.centers.double()
+    half = (centres.max(0).values - centres.min(0).values) / 6.0  # 0.15, 0, 0.067 (the grid: 0.9 x 0 x 0.4)
+    d = (pts.double() - centres.mean(0)).abs()
+    assert "a third of the camera rig" in what
+    assert bool((d <= half + 1e-9).all()) and bool((d.max(0).values >= 0.95 * half).all())
 
 
 def test_what_each_scene_kind_picks(tmp_path):
@@ -187,6 +203,26 @@ def test_carving_keeps_the_visual_hull():
     assert not carve_points(outside, cams, [None] * len(masks)).any()  # seen by no view with a mask
     assert carve_points(outside, cams, [*[None] * len(rig), masks[-1]]).tolist() == [False] * 3
     assert carve_points(inside, cams, [masks[0], *[None] * len(rig)]).all()
+
+
+def test_carving_scales_a_mask_by_its_own_width_and_height_and_stops_at_its_edge():
+    """A mask of another aspect than the image (4 x 4 for a 8 x 4 image: columns halved, rows kept) is read at
+    u w / width, v h / height; a point exactly on the image's right edge (u = width) lies outside it (pixel c covers
+    [c, c + 1)), so that view does not judge it."""
+    from uncertsplat.sfm.center import carve_points
+
+    K = torch.tensor([[8.0, 0, 4], [0, 8.0, 2], [0, 0, 1]], dtype=torch.float64)
+    cams = Cameras(torch.eye(4, dtype=torch.float64)[None], K[None], 8, 4)
+    mask = torch.zeros(4, 4, dtype=torch.bool)
+    mask[:, 1] = True  # image columns 2-3
+    # u = 8 x + 4 at z = 1, v = 8 y + 2: u 2.5 (mask column 1.25), u 5 (2.5), v 2.5 (row 2.5) for both
+    pts = torch.tensor([[-0.1875, 0.0625, 1.0], [0.125, 0.0625, 1.0]])
+    assert carve_points(pts, cams, [mask]).tolist() == [True, False]
+    wide = torch.ones(4, 4, dtype=torch.bool)
+    edge = torch.tensor([[0.5, 0.0, 1.0], [0.0, 0.25, 1.0]])  # u = 8 exactly; v = 4 exactly
+    both = Cameras(torch.eye(4, dtype=torch.float64).expand(2, 4, 4).clone(), K.expand(2, 3, 3).clone(), 8, 4)
+    # seen by neither view (on the edges): carved as seen by no view with a mask, not an index error
+    assert carve_points(edge, both, [wide, wide]).tolist() == [False, False]
 
 
 def test_carved_random_points_lie_in_the_hull():
