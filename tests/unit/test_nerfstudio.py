@@ -88,8 +88,9 @@ def test_per_frame_intrinsics_scaled_transform_and_split(tiny_scene_path, tmp_pa
     c, s_ = np.cos(0.4), np.sin(0.4)
     similarity = np.array([[2 * c, -2 * s_, 0, 1.0], [2 * s_, 2 * c, 0, -3.0], [0, 0, 2.0, 0.5]])
     ref, meta = convert(tiny_scene_path, tmp_path / "ns", applied=similarity, per_frame=True)
-    for i, fr in enumerate(meta["frames"]):  # every frame its own focal length
+    for i, fr in enumerate(meta["frames"]):  # every frame its own focal lengths (fl_y apart from fl_x)
         fr["fl_x"] *= 1 + 0.01 * i
+        fr["fl_y"] *= 1 - 0.005 * i
     meta["test_filenames"] = ["images/view_003.png", "./images/view_010.png"]
     del meta["ply_file_path"]
     (tmp_path / "ns" / "transforms.json").write_text(json.dumps(meta))
@@ -97,6 +98,7 @@ def test_per_frame_intrinsics_scaled_transform_and_split(tiny_scene_path, tmp_pa
     torch.testing.assert_close(scene.cameras.cam_from_world, ref.cameras.cam_from_world, atol=1e-5, rtol=0)
     fx = ref.cameras.K[:, 0, 0] * (1 + 0.01 * torch.arange(24))
     torch.testing.assert_close(scene.cameras.K[:, 0, 0], fx)
+    torch.testing.assert_close(scene.cameras.K[:, 1, 1], ref.cameras.K[:, 1, 1] * (1 - 0.005 * torch.arange(24)))
     assert scene.split["test"] == (3, 10) and len(scene.split["train"]) == 22
     # no point cloud: random initial points around where the (inward-facing) ring looks
     assert scene.center_method == "optical_axes" and len(scene.points) > 1000
@@ -142,6 +144,9 @@ def test_bad_files_are_refused(tiny_scene_path, tmp_path):  # noqa: F811
     with pytest.raises(UserError, match="image is 128x96 but the transforms file says 100x96"):
         load_scene(tmp_path / "ns")
     path.write_text(json.dumps({**meta, "applied_transform": [[1, 0, 0, 0], [0, 2, 0, 0], [0, 0, 1, 0]]}))
+    _raises(tmp_path / "ns", "applied_transform is not a rotation with a uniform scale")
+    # a mirror (determinant < 0) is orthogonal with a uniform scale too, but no rotation: the scene would be flipped
+    path.write_text(json.dumps({**meta, "applied_transform": [[1, 0, 0, 0], [0, 0, 1, 0], [0, 1, 0, 0]]}))
     _raises(tmp_path / "ns", "applied_transform is not a rotation with a uniform scale")
     path.write_text(json.dumps({**meta, "ply_file_path": "nope.ply"}))
     with pytest.raises(UserError, match="nope.ply"):
