@@ -439,6 +439,22 @@ def test_portrait_photo_is_turned_with_its_camera(workspace, monkeypatch, tmp_pa
         np.testing.assert_allclose(got, resize_image(small, W, H), rtol=0, atol=1e-6)
 
 
+def test_the_common_size_and_how_a_photo_joins_it():
+    from uncertsplat.sfm.scene import PHOTO_SHAPE_TOLERANCE, common_size, size_fit
+
+    # the most common size; among equals the larger (in pixels), then the wider
+    assert common_size({(640, 480): 3, (800, 600): 2}) == (640, 480)
+    assert common_size({(100, 200): 2, (150, 100): 2}) == (100, 200)
+    assert common_size({(200, 100): 1, (100, 200): 1}) == (200, 100)
+    # within 5 % of each side: cropped; the same shape within 1 % of the aspect ratio (3:2 here, 0.015): resized
+    assert size_fit(3024, 2016, 3000, 2000) == "crop"
+    assert PHOTO_SHAPE_TOLERANCE == 0.01
+    assert size_fit(6000, 4000, 3000, 2000) == "resize"
+    assert size_fit(6000, 4040, 3000, 2000) == "resize"  # aspect 1.4851: 0.0149 off, within 1 % of 1.5 (0.015)
+    assert size_fit(6000, 4045, 3000, 2000) is None  # aspect 1.4833: 0.0167 off
+    assert size_fit(3000, 2101, 3000, 2000) is None  # 5.05 % taller, and not the shape
+
+
 def test_photos_a_few_pixels_larger_are_cropped_to_the_common_size(workspace, monkeypatch):
     from dataclasses import replace
 
