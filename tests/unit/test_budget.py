@@ -69,6 +69,22 @@ class TestMemoryGrowthLimit:
     def test_a_zero_cost_does_not_divide_by_zero(self):
         assert budget_mod.memory_growth_limit(0, budget_mod.MEMORY_RESERVE + 5, 0.0) == 5
 
+    def test_the_warning_says_the_hold_s_numbers(self):
+        """The record keeps the room in MiB (``Trainer``: room / 2**20): 1024 of them are 1 GiB, of which 0.25 are
+        kept free and 0.75 GiB at 2 KiB a Gaussian hold 393,216 more."""
+        hold = {"step": 300, "gaussians": 52_000, "budget": 80_000, "room_mb": 1024.0, "per_gaussian_bytes": 2048}
+        said = " ".join(budget_mod.memory_hold_warning(hold).split())
+        assert said.startswith("memory held the model's growth from step 300 on, at 52,000 Gaussians (its budget: "
+                               "80,000): 1.00 GB were left beyond what training takes"), said
+        assert "keeps 0.25 GB free and takes about 2.0 KB a Gaussian" in said
+        assert "room for 393,216 more" in said and said.endswith("--set densify.max_gaussians=52000 makes this size "
+                                                                 "the budget")
+
+    def test_a_grown_gaussian_is_priced_above_every_measured_factor(self):
+        # BENCHMARKS.md's measured peaks per byte of state: 3.9x, 5.3x, 7.6x (random Gaussians at 320x240 to
+        # 1280x960), 4.3x (a densified model): a factor below any of them lets growth run the process out of memory
+        assert budget_mod.GROWN_GAUSSIAN_FACTOR >= 7.6
+
 
 def _grown(monkeypatch, room):
     scene, tr, te = toy_scene()
