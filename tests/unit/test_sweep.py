@@ -61,6 +61,18 @@ def test_pareto_front_matches_brute_force():
     assert sorted(ids(pareto_front(pts, x="t", y="y"))) == sorted(p["id"] for p in pts if not dominated(p))
 
 
+def test_pareto_front_maximises_the_keys_whose_larger_values_are_better():
+    """PSNR, SSIM and the std-error Spearman: larger is better on either axis (a sweep's pareto_x = "spearman" is
+    maximised without being told)."""
+    pts = [{"id": "a", "spearman": 0.8, "ause": 0.30}, {"id": "b", "spearman": 0.5, "ause": 0.20},
+           {"id": "c", "spearman": 0.4, "ause": 0.25}]  # c: less correlated than b and a larger AUSE
+    assert ids(pareto_front(pts, x="spearman", y="ause")) == ["a", "b"]
+    assert ids(pareto_front(pts, x="ause", y="spearman", minimize_both=False)) == ["b", "a"]
+    for key in ("psnr", "ssim", "spearman"):
+        assert ids(pareto_front([{"id": "lo", key: 0.1, "t": 1.0}, {"id": "hi", key: 0.9, "t": 1.0}], x=key,
+                                y="t")) == ["hi"], key
+
+
 def test_pareto_front_reads_attributes():
     class P:
         def __init__(self, time, ause):
@@ -111,6 +123,8 @@ def test_plot_pareto_time_labels_are_plain_and_apart(tmp_path, monkeypatch, lo, 
 @pytest.mark.parametrize(("values", "expected"), [
     ([0.132, 0.139, 0.17, 0.29, 0.76], ("log", {})),  # AUSE with a K = 1 point: a factor 5.8
     ([0.132, 0.139, 0.17], ("linear", {})),  # close together
+    ([0.1, 0.29], ("linear", {})),  # a factor 2.9: within 3
+    ([0.1, 0.31], ("log", {})),
     ([-1.6, -1.3, -0.3, 11.8, 750.0], ("symlog", {"linthresh": 1.6})),  # NLL beside K = 1; t = median |value|
     ([-1.6, -1.3, -0.3, 2.2], ("linear", {})),  # NLL, no far point
     ([0.0, 0.0], ("linear", {})),
