@@ -166,6 +166,26 @@ def test_point_configs_apply_knobs():
     assert t.densify.interval == base.densify.interval  # ... but not the densification interval
     fixed, _ = point_configs(spec(schedule="fixed"), s.default.model_copy(update={"iterations": 150}))
     assert fixed.densify.until == base.densify.until
+    # 110 of 300 steps: every step of the schedule x 11/30, rounded to the nearest step (36.7 -> 37, not 36)
+    assert (base.sh_degree_interval, base.densify.start, base.densify.until, base.densify.spawn_interval) == (
+        100, 50, 250, 100)
+    short, _ = point_configs(s, s.default.model_copy(update={"iterations": 110}))
+    assert (short.sh_degree_interval, short.densify.start, short.densify.until, short.densify.spawn_interval) == (
+        37, 18, 92, 37)
+
+
+def test_point_ids_name_the_knobs_that_matter():
+    """The id is the run's folder and the key its records are found by: a whole float without its ".0", and the
+    ensemble size only for an ensemble (two ensembles of 2 and 3 members are two runs; a model that is no ensemble
+    is the same run whatever N says)."""
+    s = spec()
+    assert point_id(s.default.model_copy(update={"downscale": 2.0})).endswith("_ds2")
+    assert point_id(s.default.model_copy(update={"downscale": 1.5})).endswith("_ds1.5")
+    ens = [point_id(s.default.model_copy(update={"method": "ensemble", "ensemble_size": n})) for n in (2, 3)]
+    assert ens[0] != ens[1] and ens[1].startswith("ensemble_") and "_n3" in ens[1]
+    plain = [point_id(s.default.model_copy(update={"ensemble_size": n})) for n in (2, 3)]
+    assert plain[0] == plain[1] and "_n" not in plain[0]
+    assert point_id(s.default, "fern", 4) == "fern." + point_id(s.default) + "_seed4"
 
 
 def test_num_entries_only_matters_to_sgd_tables(tmp_path):
