@@ -236,6 +236,24 @@ def test_jobs_group_points_that_share_training(tmp_path):
     json.dumps(jobs)  # jobs are plain data: any engine can ship them
 
 
+def test_points_that_resolve_to_the_same_configs_are_one_point(tmp_path):
+    """N only matters to ensembles: a variational sweep over ensemble_size is the default alone (once), not three
+    records of one run under one hash."""
+    s = spec(axes={"ensemble_size": [2, 3, 5]})
+    assert len(expand_points(s)) == 4  # the knob's values differ ...
+    jobs = make_jobs(s, tmp_path, tmp_path / "scene", "cpu")
+    assert len(jobs) == 1 and [p["is_default"] for p in jobs[0]["points"]] == [True]  # ... their configs do not
+
+
+def test_a_config_s_hash_does_not_depend_on_its_keys_order():
+    from uncertsplat.provenance import hash_config
+
+    a = {"train": {"iterations": 300, "scene": {"downscale": 2.0, "background": [0, 0, 0]}}, "eval": {"seed": 1}}
+    b = {"eval": {"seed": 1}, "train": {"scene": {"background": [0, 0, 0], "downscale": 2.0}, "iterations": 300}}
+    assert hash_config(a) == hash_config(b) and len(hash_config(a)) == 16
+    assert hash_config(a) != hash_config({**a, "eval": {"seed": 2}})
+
+
 def test_tradeoff_pipeline_file_is_valid():
     s = load_spec(ROOT / "pipelines" / "tradeoff.toml")
     pts = expand_points(s)
