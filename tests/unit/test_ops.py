@@ -176,6 +176,15 @@ def test_reset_opacity_caps_and_zeroes_moments():
     op = torch.sigmoid(model.params["opacities"].detach())
     assert (op <= 0.01 + 1e-6).all() and op[0] < 1e-4
     assert (opt.state[model.params["opacities"]]["exp_avg"] == 0).all()
+    # the cap is the opacity itself, not a logit near it: the Gaussians that were above it sit at 0.01 exactly
+    assert float(op.max()) == pytest.approx(0.01, rel=1e-5)
+    ops.reset_opacity(model, opt, 0.3)  # (far from 0, where log p and the logit part)
+    assert float(torch.sigmoid(model.params["opacities"].detach()).max()) <= 0.01 + 1e-6
+    with torch.no_grad():
+        model.params["opacities"].fill_(5.0)
+    ops.reset_opacity(model, opt, 0.3)
+    torch.testing.assert_close(torch.sigmoid(model.params["opacities"].detach()),
+                               torch.full((len(model),), 0.3), rtol=1e-5, atol=0)
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
