@@ -94,6 +94,21 @@ def test_point_cloud_ply_standard_layout(tmp_path):
     assert ((off >= 0) & (off <= 1)).all() and (off[~has] == 0).all() and off[has].std() > 0
 
 
+def test_point_cloud_ply_position_uncertainty_is_the_rms_of_the_axes_std(tmp_path):
+    """``uncertainty_position``: sqrt(mean over x, y, z of sigma^2), sigma = softplus of the entries' mean raw spread
+    x the extent (world units); here every carrier's axes are 1, 2 and 2 x 0.01 in table units."""
+    from uncertsplat.gaussians.prior import inverse_softplus
+
+    m = random_model(20, torch.Generator().manual_seed(4), sh_degree=0, num_entries=3, carrier_fraction=0.5)
+    sigma = torch.tensor([0.01, 0.02, 0.02], dtype=torch.float64)
+    m.tables["pos_spread_raw"].data.copy_(inverse_softplus(sigma).float().expand_as(m.tables["pos_spread_raw"]))
+    v = PlyData.read(str(write_point_cloud_ply(tmp_path / "pc.ply", m, extent=2.0)))["vertex"]
+    has = np.asarray(v["has_posterior"]) > 0
+    assert has.any()
+    rms = 2.0 * float(sigma.square().mean().sqrt())  # 0.0346, where the mean std is 0.0333
+    np.testing.assert_allclose(np.asarray(v["uncertainty_position"])[has], rms, rtol=1e-5)
+
+
 @pytest.mark.parametrize("degree", [0, 1, 2])
 def test_point_cloud_ply_holds_the_bands_the_model_renders_with(tmp_path, degree):
     """A run shorter than the first SH band test stores degree 3 while rendering with degree 0: its point cloud had
