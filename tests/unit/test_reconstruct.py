@@ -781,6 +781,56 @@ def test_weakly_registered_photos_are_named_fewest_first():
     assert sfm.weakly_registered(Rec(counts)) == {"c.jpg": 32, "e.jpg": 149}  # median 753: below 150.6
     assert sfm.weakly_registered(Rec({"a.jpg": 1000, "b.jpg": 1100, "c.jpg": 950})) == {}
     assert sfm.weakly_registered(Rec({"a.jpg": 1000, "b.jpg": 1})) == {}  # two photos: no median to speak of
+    # fewer than a fifth: exactly a fifth of the median is not named
+    assert sfm.weakly_registered(Rec({"a.jpg": 1000, "b.jpg": 1000, "e.jpg": 1000, "c.jpg": 200, "d.jpg": 199})) == {
+        "d.jpg": 199}
+
+
+def test_a_photo_whose_own_focal_length_stands_apart_is_named(monkeypatch):
+    """``focal_outliers`` with pycolmap's pose estimation replaced by what it would find: each photo's own focal
+    length (its ratio to the shared camera's is read from its first point's x). Camera 1: five photos within 0.5 %,
+    one 25 % longer (a crop saved at full size); the robust spread (1.4826 x the median absolute deviation) keeps the
+    threshold at 3 % where the outlier's own spread would lift a standard deviation's 6x to 50 %. A photo with
+    fewer than 30 points is not estimated, nor is a camera of two photos."""
+    from types import SimpleNamespace
+
+    class Camera:
+        def __init__(self, model="PINHOLE", width=100, height=80, params=(100.0, 100.0, 50.0, 40.0)):
+            self.model, self.width, self.height, self.params = model, width, height, np.array(params, dtype=float)
+
+        def mean_focal_length(self):
+            return float(self.params[:2].mean())
+
+    ratios = {"a": 1.0, "b": 1.005, "c": 0.995, "d": 1.002, "e": 0.998, "crop": 1.25, "few": 2.0, "x": 1.0, "y": 1.6}
+    names = list(ratios)
+
+    def image(name, camera_id, points):
+        code = float(names.index(name))
+        pts = [SimpleNamespace(xy=(code, 0.0), point3D_id=k, has_point3D=lambda: True) for k in range(points)]
+        pts.append(SimpleNamespace(xy=(0.0, 0.0), point3D_id=-1, has_point3D=lambda: False))
+        return SimpleNamespace(name=f"{name}.jpg", camera_id=camera_id, points2D=pts)
+
+    images = [image(n, 1, 40) for n in "abcde"] + [image("crop", 1, 40), image("few", 1, 29)]
+    images += [image("x", 2, 40), image("y", 2, 40)]
+    rec = SimpleNamespace(reg_image_ids=lambda: range(len(images)), image=lambda i: images[i],
+                          cameras={1: Camera(), 2: Camera()},
+                          points3D={k: SimpleNamespace(xyz=(0.0, 0.0, float(k))) for k in range(40)})
+
+    def estimate(xy, xyz, own, estimation, refinement):
+        assert estimation.estimate_focal_length and refinement.refine_focal_length and len(xy) == len(xyz) >= 30
+        own.params[:2] *= ratios[names[int(xy[0, 0])]]
+        return {}
+
+    monkeypatch.setattr(sfm, "pycolmap", SimpleNamespace(
+        Camera=Camera, AbsolutePoseEstimationOptions=SimpleNamespace, AbsolutePoseRefinementOptions=SimpleNamespace,
+        estimate_and_refine_absolute_pose=estimate))
+    got = sfm.focal_outliers(rec)
+    middle = float(np.median(np.log([ratios[n] for n in ("a", "b", "c", "d", "e", "crop")])))
+    assert list(got) == ["crop.jpg"] and got["crop.jpg"] == pytest.approx(1.25 / np.exp(middle), rel=1e-9)
+    ratios["crop"] = 1.028  # within 3 % of the others' median: not named
+    assert sfm.focal_outliers(rec) == {}
+    ratios.update(b=1.0, c=1.0, d=1.0, e=1.0, crop=1.02)  # no spread at all: still 3 % at least
+    assert sfm.focal_outliers(rec) == {}
 
 
 def test_the_weak_registration_note_suggests_only_options_not_used():
