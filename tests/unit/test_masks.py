@@ -357,3 +357,23 @@ def test_an_undistorted_mask_keeps_no_pixel_the_undistorter_blends_with_a_masked
     assert kept.shape == blended.shape
     assert int((blended[kept] < 255).sum()) == 0
     assert kept.sum() >= 0.9 * (blended == 255).sum()
+
+
+@pytest.mark.parametrize(("model", "params"), [("PINHOLE", [50.0, 50.0, 20.0, 15.0]),
+                                                ("SIMPLE_RADIAL", [50.0, 20.0, 15.0, 0.15])])
+def test_an_undistorted_mask_is_what_colmap_fills_at_the_photo_s_edges(model, params):
+    """A mask that keeps every pixel: the undistorted mask is exactly the pixels COLMAP's undistortion fills (its
+    bilinear lookup needs the four neighbours inside the photo: a pinhole photo's own last row and column, at x =
+    W - 1 exactly, come out blank)."""
+    import pycolmap
+
+    from uncertsplat.sfm.reconstruct import undistorted_mask
+
+    old = pycolmap.Camera(model=model, width=40, height=30, params=params)
+    mask = np.ones((30, 40), dtype=bool)
+    bitmap = pycolmap.Bitmap.from_array(np.full((30, 40, 3), 255, dtype=np.uint8))
+    image, cam = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(), bitmap, old)
+    filled = image.to_array()[..., 0] == 255
+    np.testing.assert_array_equal(undistorted_mask(mask, cam, old), filled)
+    if model == "PINHOLE":
+        assert not filled[-1].any() and not filled[:, -1].any() and filled[:-1, :-1].all()
