@@ -1137,5 +1137,13 @@ def test_a_colmap_pose_that_is_no_rotation_or_a_name_listed_twice_is_refused(wor
     assert len(read_colmap_model(_old_text_model(workspace, tmp_path / "a", lambda lines, poses: None)).images) > 2
     with pytest.raises(UserError, match="rotation quaternion of norm 2, not 1"):
         read_colmap_model(_old_text_model(workspace, tmp_path / "b", doubled))
+
+    def off(lines, poses):  # 0.2 % long: past rounding (1e-3), a pose typed with too few digits
+        f = lines[poses[1]].split()
+        f[1:5] = [repr(1.002 * float(v)) for v in f[1:5]]
+        lines[poses[1]] = " ".join(f)
+
+    with pytest.raises(UserError, match="rotation quaternion of norm 1.002, not 1"):
+        read_colmap_model(_old_text_model(workspace, tmp_path / "b2", off))
     with pytest.raises(UserError, match="lists image 'view_.*' twice"):
         read_colmap_model(_old_text_model(workspace, tmp_path / "c", same_name))
