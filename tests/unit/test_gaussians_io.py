@@ -28,6 +28,16 @@ def test_checkpoint_round_trip_and_keep(tmp_path):
     assert not list(tmp_path.joinpath("ckpts").glob(".*tmp"))  # no temp files left behind
 
 
+def test_checkpoints_past_a_million_steps_are_ordered_by_step(tmp_path):
+    """``step_{:06d}`` takes seven digits at a million: by name, step_1000000 sorts before step_999999 (the newest
+    would be deleted and the older one resumed from)."""
+    for step in (999_998, 999_999, 1_000_000, 1_000_001):
+        save_checkpoint(tmp_path, step, {"step": step}, keep=2)
+    assert [s for s, _ in list_checkpoints(tmp_path)] == [1_000_000, 1_000_001]
+    path, state = load_latest(tmp_path)
+    assert path.name == "step_1000001.pt" and state["step"] == 1_000_001
+
+
 def test_truncated_checkpoint_falls_back(tmp_path, capsys):
     save_checkpoint(tmp_path, 1, {"step": 1}, keep=5)
     p2 = save_checkpoint(tmp_path, 2, {"step": 2, "big": torch.zeros(1000)}, keep=5)
