@@ -151,6 +151,12 @@ def test_memory_per_gaussian_counts_only_carriers():
     assert math.isclose(m1["tables"], half.num_carriers * 560 / 100)
     assert m1["total"] > m0["total"]
     assert memory_per_gaussian(none, optimizer_moments=False)["optimizer"] == 0
+    # Adam's two moments of every parameter, and of the tables unless the informed posterior sets them itself
+    table_bytes = half.num_carriers * 560
+    assert m1["optimizer"] == pytest.approx(2 * (59 * 4 * 100 + table_bytes) / 100)
+    informed = memory_per_gaussian(half, table_moments=False)
+    assert informed["optimizer"] == pytest.approx(2 * 59 * 4)
+    assert informed["total"] == pytest.approx(m1["total"] - 2 * table_bytes / 100)
 
 
 # ------------------------------------------------------------------------ GaussianModel.check: ValueError
