@@ -785,6 +785,27 @@ class TestCameraChanges:
         assert said is not None and said.startswith("4 of its 4 views' cameras differ"), said
         assert re.search(words, said), said
 
+    def test_a_record_is_the_centre_the_right_and_optical_axes_and_the_intrinsics(self):
+        """What ``scene.json`` keeps of a view (runs written earlier are compared against it): [centre, right axis,
+        optical axis, fx, fy, cx, cy]."""
+        a = math.radians(30.0)
+        rec = camera_records(self.cameras(turn_deg=30.0), ["v1.png"])["v1.png"]
+        t = torch.tensor([0.1, 0.0, 2.0], dtype=torch.float64)
+        R = torch.tensor([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0.0, 0.0, 1.0]],
+                         dtype=torch.float64)
+        want = [*(-R.T @ t).tolist(), math.cos(a), -math.sin(a), 0.0, 0.0, 0.0, 1.0, 100.0, 100.0, 32.0, 24.0]
+        assert rec == pytest.approx(want, abs=1e-6)
+
+    def test_the_move_is_measured_against_the_extent_and_the_view_that_changed_most_is_named(self):
+        rec = camera_records(self.cameras(), ["v0.png", "v1.png", "v2.png", "v3.png"])
+        now = self.cameras()
+        now.cam_from_world[1, 0, 3] += 0.004
+        now.cam_from_world[2, 0, 3] += 0.02
+        said = camera_changes(rec, now, extent=4.0)  # 0.1 % and 0.5 % of an extent of 4
+        assert said is not None and said.startswith("2 of its 4 views' cameras differ"), said
+        assert "(v2.png's camera moved 0.5 % of the scene's extent)" in said, said
+        assert camera_changes(rec, now, extent=1000.0) is None  # 2e-5 of the extent: within the tolerance
+
     def test_only_views_the_scene_still_holds_are_compared(self):
         rec = camera_records(self.cameras(), ["v0.png", "v1.png"])
         assert camera_changes(rec, self.cameras(n=1), extent=1.0) is None  # (the caller checks missing names)
