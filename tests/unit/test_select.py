@@ -121,10 +121,10 @@ class TestFisherInformation:
 
         monkeypatch.setattr(curvature_mod, "curvature", fake)
 
-        def run(information, n, eligible=None, prior=1.0):
+        def run(information, n, eligible=None, prior=1.0, competing=None):
             return fisher_choice({}, _Views(["train"]), torch.zeros(1, 1, 1, 3), _Views(range(4)), None,
                                  names=["means"], prior_std={"means": prior}, sh_degree=0, probes=1, seed=0, n=n,
-                                 information=information, eligible=eligible)
+                                 information=information, eligible=eligible, competing=competing)
         return run
 
     def test_gaps_keep_the_choice_among_the_far_candidates(self, choose):
@@ -166,6 +166,13 @@ class TestFisherInformation:
         torch.testing.assert_close(first, torch.tensor([110 / 24, 9.6, 9.6, 9.6], dtype=torch.float64))
         # then view 1's Fisher joins the precision ([2, 5]): views 2-3 drop to 12 * 4 / (5 * 9), view 0 is next
         assert chosen == [1, 0] and at == pytest.approx([9.6, 110 / 24])
+
+    def test_only_the_competing_candidates_join_the_predictive_s_reference(self, choose):
+        # views 2 and 3 do not compete (poses inside an object): G = training + views 0 and 1 = [11, 4], so b's
+        # views score 4 x 4 / (1 x 5) = 3.2 and the sharp view 0 (11 x 10 / (2 x 12)) wins
+        chosen, at, first, _ = choose("predictive", 1, competing=torch.tensor([True, True, False, False]))
+        torch.testing.assert_close(first, torch.tensor([110 / 24, 3.2, 3.2, 3.2], dtype=torch.float64))
+        assert chosen == [0] and at == pytest.approx([110 / 24])
 
     def test_a_candidates_information_depends_on_neither_its_place_nor_its_poses_last_digits(self, monkeypatch):
         """Every candidate's probes come from one seed: the candidates in reverse get the same information, and so
