@@ -261,3 +261,21 @@ def test_a_photo_without_read_permission_is_named_as_such(tmp_path, rng, monkeyp
     with pytest.raises(UserError, match="cannot read the image") as err:
         read_image(path)
     assert "re-export" in err.value.hint
+
+
+def test_read_alpha_is_clipped_and_finds_an_unnamed_extra_channel(tmp_path):
+    """``read_alpha``: a float file's alpha as a value in [0, 1] (NaN as 0, as ``read_image`` reads it), and the
+    last of two or four channels where the header names no alpha channel (as ``read_image`` composites it)."""
+    from uncertsplat.io.images import read_alpha
+
+    half = np.full((1, 4), 0.5, dtype=np.float32)
+    write_exr(tmp_path / "rgba.exr", {"R": half, "G": half, "B": half,
+                                      "A": np.array([[-0.5, 1.5, np.nan, 0.25]], dtype=np.float32)})
+    np.testing.assert_array_equal(read_alpha(tmp_path / "rgba.exr"), [[0.0, 1.0, 0.0, 0.25]])
+    extra = np.array([[0.0, 0.5, 1.0, 0.25]], dtype=np.float32)
+    write_exr(tmp_path / "two.exr", {"Y0": half, "Y1": extra})
+    np.testing.assert_array_equal(read_alpha(tmp_path / "two.exr"), extra)
+    write_exr(tmp_path / "four.exr", {"C0": half, "C1": half, "C2": half, "C3": extra})
+    np.testing.assert_array_equal(read_alpha(tmp_path / "four.exr"), extra)
+    write_exr(tmp_path / "three.exr", {"C0": half, "C1": half, "C2": extra})
+    assert read_alpha(tmp_path / "three.exr") is None
