@@ -252,6 +252,7 @@ def test_nerf_synthetic(tiny_scene_path, tmp_path):  # noqa: F811
     root = tmp_path / "nerf"
     K = ref.cameras.K[0].double()
     angle_x = 2 * math.atan(0.5 * ref.cameras.width / K[0, 0].item())
+    angle_y = 2 * math.atan(0.5 * ref.cameras.height / K[1, 1].item())  # (of the height: the test split has it)
     for split, idx in (("train", ref.split["train"]), ("test", ref.split["test"])):
         frames = []
         for i in idx:
@@ -263,7 +264,8 @@ def test_nerf_synthetic(tiny_scene_path, tmp_path):  # noqa: F811
             c2w = np.linalg.inv(ref.cameras.cam_from_world[i].double().numpy())
             c2w[:3, 1:3] *= -1  # OpenCV -> OpenGL
             frames.append({"file_path": f"./{split}/{name[:-4]}", "transform_matrix": c2w.tolist()})
-        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": angle_x, "frames": frames}))
+        angles = {"camera_angle_x": angle_x, **({"camera_angle_y": angle_y} if split == "test" else {})}
+        (root / f"transforms_{split}.json").write_text(json.dumps({**angles, "frames": frames}))
     scene = load_scene(root, SceneConfig(normalize=False, background=(1.0, 1.0, 1.0)))
     assert scene.source["kind"] == "nerf_synthetic"
     assert len(scene.cameras) == 24
