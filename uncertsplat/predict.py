@@ -140,6 +140,9 @@ TRANSFORMS = ("cam_from_world", "world_from_cam")
 """The poses ``Predictor.cameras_from_source`` takes: world-to-camera (COLMAP's) or camera-to-world."""
 AXES = ("opencv", "opengl", "blender")
 """The camera axes it takes: OpenCV's (x right, y down, z forward), OpenGL's = Blender's (x right, y up, z backward)."""
+BLIND_POINTS = 20000
+"""How many of the model's Gaussian means (evenly strided) ``cameras_from_source`` projects to tell a pose that sees
+almost none of the model."""
 MAX_SEED = EVAL_SEED_MAX
 """The largest seed ``Predictor.predict`` takes (``view_seed`` of it and of any view index stays a 64-bit seed)."""
 _RIGID_HINT = ("Pass world-to-camera matrices in the scene's units, as pycolmap's Image.cam_from_world().matrix() "
@@ -389,6 +392,7 @@ class Predictor:
         self.run_dir, self.loaded, self.scene, self.device = Path(run_dir), loaded, scene, device
         self._sampler, self._cfg = sampler, cfg
         self._free, self._free_lock = None, threading.Lock()  # ``_free_space``, built on first use
+        self._train_seen: float | None = None  # ``_blind_poses_note``'s reference, measured on first use
         self.config = cfg
         self.std_factor: float | None = fit.scale
         self.dof: float | None = fit.dof
@@ -550,7 +554,45 @@ class Predictor:
         if len(names) != len(cfs):
             raise UserError(f"{len(names)} name(s) for {len(cfs)} pose(s): give one name per pose (or none)")
         cfw = normalized_cam_from_world(cfs, self._world_from_source)
-        return Cameras(cfw.float(), Ks.expand(len(cfs), 3, 3).float().clone(), width, height, names)
+        cams = Cameras(cfw.float(), Ks.expand(len(cfs), 3, 3).float().clone(), width, height, names)
+        note = self._blind_poses_note(cams)
+        if note is not None:
+            from uncertsplat.console import console
+
+            console.print(f"[yellow]note:[/] {note}")
+        return cams
+
+    def _blind_poses_note(self, cams: Cameras) -> str | None:
+        """A note on the poses that see under a tenth of what the training views see of the model's Gaussians
+        (their median): most often a pose in another convention (camera-to-world given as world-to-camera, OpenGL
+        axes as OpenCV's), whose maps otherwise look like an honest, uncertain view (a review's OpenGL pose on the
+        demo scene: alpha 0.50 and a high std, no word). None when each sees the model, or without a model or
+        training cameras (``select.candidates.seen_fraction``; at most ``BLIND_POINTS`` of the means, evenly)."""
+        from uncertsplat.select.candidates import seen_fraction
+
+        if self.loaded is None or self.scene is None or not len(cams):
+            return None
+        means = self.loaded.model.params["means"].detach()
+        if not len(means):
+            return None
+        points = means[:: max(1, len(means) // BLIND_POINTS)]
+        if self._train_seen is None:
+            train = list(self.scene.split.get("train", ()))
+            ref = seen_fraction(self.scene.cameras[train], points) if train else torch.zeros(0)
+            self._train_seen = float(ref.median()) if len(ref) else 0.0
+        if self._train_seen <= 0.0:
+            return None
+        seen = seen_fraction(cams, points)
+        blind = [j for j in range(len(seen)) if float(seen[j]) < 0.1 * self._train_seen]
+        if not blind:
+            return None
+        names = cams.image_names or tuple(f"pose {j}" for j in range(len(seen)))
+        listed = ", ".join(f"{names[j]} {100 * float(seen[j]):.1f} %" for j in blind[:6]) + (
+            ", ..." if len(blind) > 6 else "")
+        return (f"{len(blind)} of {len(seen)} pose(s) see almost none of the model ({listed} of its Gaussians in view, "
+                f"the training views {100 * self._train_seen:.0f} %): where they face what no photo showed, the maps "
+                "hold little (low alpha, the empty rays' std); otherwise check the poses' convention: "
+                "transform=\"world_from_cam\" for camera-to-world poses, axes=\"opengl\" for x right, y up, z backward")
 
     def seen_free(self, points, frame: str = "source") -> Tensor:
         """[P] bool: whether a training photo's ray passed through each point on its way to the surface the model

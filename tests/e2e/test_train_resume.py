@@ -174,7 +174,7 @@ def test_a_stop_during_the_last_step_skips_its_test_renders(tmp_path):
     t.train_step = last_step_then_signal
     renders = []
     evaluate = t.evaluate
-    t.evaluate = lambda: renders.append(t.step) or evaluate()
+    t.evaluate = lambda *a, **kw: renders.append(t.step) or evaluate(*a, **kw)
     with pytest.raises(TrainingInterrupted) as info:
         t.fit()
     assert info.value.step == cfg.iterations and cfg.iterations not in renders

@@ -25,6 +25,7 @@ def bare_predictor(scale: float = 0.5, shift=(1.0, -2.0, 3.0)) -> Predictor:
     pred._world_from_source = T
     pred._cfg = pred.config = EvalConfig(num_samples=3, seed=4)
     pred.device = torch.device("cpu")
+    pred.loaded = pred.scene = None  # (no model: cameras_from_source's note on poses that see none of it is skipped)
     return pred
 
 
@@ -483,3 +484,32 @@ def test_seen_free_takes_points_in_the_scenes_frame_through_the_similarity():
     pred.seen_free(x, frame="world")
     torch.testing.assert_close(asked[1], x, atol=1e-6, rtol=0)
     torch.testing.assert_close(pred.seen_free(x[0]), got[:1])  # one point as [3]
+
+
+def test_a_pose_that_sees_none_of_the_model_gets_a_note_on_its_convention(capsys):
+    """A pose in another convention (OpenGL axes given as OpenCV's, camera-to-world as world-to-camera) rendered maps
+    that look like an honest, uncertain view, without a word: a pose that sees under a tenth of what the training
+    views see of the model's Gaussians is named, with the fraction and the two options to check."""
+    from types import SimpleNamespace
+
+    pred = bare_predictor(scale=1.0, shift=(0.0, 0.0, 0.0))
+    g = torch.Generator().manual_seed(0)
+    means = torch.rand(500, 3, generator=g) * torch.tensor([2.0, 2.0, 2.0]) + torch.tensor([-1.0, -1.0, 3.0])
+    K1 = torch.tensor([[60.0, 0.0, 32.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]])
+    train = Cameras(torch.eye(4)[None], K1[None], 64, 48, ("train_0",))
+    pred.loaded = SimpleNamespace(model=SimpleNamespace(params={"means": means}))
+    pred.scene = SimpleNamespace(split={"train": [0]}, cameras=train)
+    pred._train_seen = None
+    ahead = torch.eye(4, dtype=torch.float64)
+    cams = pred.cameras_from_source(ahead, K1, 64, 48, ("ahead",))
+    assert len(cams) == 1 and "see almost none" not in capsys.readouterr().err
+    # the same camera as an OpenGL pose given as OpenCV's: it looks backward, away from every Gaussian
+    gl = ahead.clone()
+    gl[:3, :3] = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+    pred.cameras_from_source(torch.stack([ahead, gl]), K1, 64, 48, ("ahead", "mixed_up"))
+    err = " ".join(capsys.readouterr().err.split())
+    assert "1 of 2 pose(s) see almost none of the model (mixed_up 0.0 % of its Gaussians in view" in err
+    assert 'transform="world_from_cam"' in err and 'axes="opengl"' in err
+    # read with its own convention, the pose is the camera that sees them: no note
+    pred.cameras_from_source(gl, K1, 64, 48, ("gl",), axes="opengl")
+    assert "see almost none" not in capsys.readouterr().err
