@@ -206,18 +206,25 @@ ROTATION_TOLERANCE = 1e-5
 """How far from the identity ``R R^T`` of a pose given to ``cameras_from_source`` may be."""
 HAND_ROTATION_TOLERANCE = 1e-3
 """The same for a ``Cameras`` built by hand and given to ``predict``: the scene loaders' (a ``transforms.json`` pose
-within 1e-3 of a rotation trains, and ``scene.cameras`` holds it as written), so that the run's own cameras pass."""
+within 1e-3 of a rotation trains, and ``scene.cameras`` holds it as written), so that the run's own cameras pass.
+Taken of the pose or of its inverse (the loader measures ``R^T R`` of the camera-to-world pose, whose inverse is
+``scene.cameras``' pose: ``R R^T`` of that is ``(R^T R)^-1``, a little further off), with float32's rounding."""
 
 
-def _not_rigid(m: Tensor, tolerance: float) -> str | None:
-    """Why the finite [4,4] float64 ``m`` is not a rigid transform (as a clause: "has ..."), None when it is one."""
+def _not_rigid(m: Tensor, tolerance: float, inverse_too: bool = False) -> str | None:
+    """Why the finite [4,4] float64 ``m`` is not a rigid transform (as a clause: "has ..."), None when it is one.
+    ``inverse_too``: a rotation part within ``tolerance`` measured on the inverse (as a loader measured it) passes."""
     if not torch.allclose(m[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=m.dtype), rtol=0, atol=1e-6):
         # the renderer reads the top three rows only, the side terms invert the whole 4x4: the mean would be the
         # pose's and the std another's (or the inverse fails: a 3x4 padded with zeros)
         return f"has the last row {[round(float(v), 6) for v in m[3]]}, not [0, 0, 0, 1]"
     R = m[:3, :3]
     off = float((R @ R.T - torch.eye(3, dtype=m.dtype)).abs().max())  # how far from orthonormal
-    if off > tolerance:
+    within = off <= tolerance
+    if inverse_too and not within and float(torch.linalg.det(R)) > 0:
+        inv = torch.linalg.inv(R)  # the camera-to-world rotation the scene loader measured (R^T R of it)
+        within = float((inv.T @ inv - torch.eye(3, dtype=m.dtype)).abs().max()) <= tolerance + 1e-6  # (float32)
+    if not within:
         most = f"{tolerance:.0e}".replace("e-0", "e-")  # 1e-5, not 1e-05
         return (f"has a rotation part that is not orthonormal: R R^T is {off:.1e} off the identity (at most {most} "
                 "is taken; a pose with a scale, a sim(3), is not rigid: divide its rotation by the scale, or "
@@ -241,7 +248,8 @@ def _check_cameras(cameras: Cameras) -> Cameras:
     width, height = _whole(cameras.width, "the cameras' width", 1), _whole(cameras.height, "the cameras' height", 1)
     for i in range(len(cameras)):
         what = ("its pose (cam_from_world) is not finite" if not bool(torch.isfinite(cameras.cam_from_world[i]).all())
-                else _its_pose(_not_rigid(cameras.cam_from_world[i].detach().double().cpu(), HAND_ROTATION_TOLERANCE))
+                else _its_pose(_not_rigid(cameras.cam_from_world[i].detach().double().cpu(), HAND_ROTATION_TOLERANCE,
+                                          inverse_too=True))
                 or ("its K is not finite" if not bool(torch.isfinite(cameras.K[i]).all())
                     else "its focal lengths are not positive, or too large for float32"
                     if bool(focal_unusable(cameras.K[i])) else None))

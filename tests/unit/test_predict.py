@@ -513,3 +513,34 @@ def test_a_pose_that_sees_none_of_the_model_gets_a_note_on_its_convention(capsys
     # read with its own convention, the pose is the camera that sees them: no note
     pred.cameras_from_source(gl, K1, 64, 48, ("gl",), axes="opengl")
     assert "see almost none" not in capsys.readouterr().err
+
+
+def test_a_blender_scenes_own_cameras_at_the_loaders_limit_pass(monkeypatch, tmp_path):
+    """The loader takes a transforms.json pose whose R^T R (camera-to-world) is within 1e-3 of the identity; predict
+    measured R R^T of its inverse, (R^T R)^-1, a little further off: a run's own camera trained and was refused."""
+    import json
+
+    from uncertsplat.config import SceneConfig
+    from uncertsplat.io.images import write_png
+    from uncertsplat.sfm.scene import load_scene
+
+    frames = []
+    for i in range(3):
+        write_png(tmp_path / "train" / f"v{i}.png", np.full((6, 8, 3), 0.5, np.float32))
+        c2w = np.eye(4)
+        c2w[0, 3], c2w[2, 3] = 0.1 * i, 3.0
+        if i == 1:
+            c2w[:3, 0] *= math.sqrt(1.0 - 0.9995e-3)  # R^T R 0.9995e-3 off: trains
+        frames.append({"file_path": f"./train/v{i}", "transform_matrix": c2w.tolist()})
+    (tmp_path / "transforms_train.json").write_text(json.dumps({"camera_angle_x": 0.8, "frames": frames}))
+    scene = load_scene(tmp_path, SceneConfig())
+    pred = bare_predictor()
+    seen = []
+    monkeypatch.setattr(Predictor, "_predict", lambda self, cams, k, seed: seen.append(len(cams)))
+    pred.predict(scene.cameras)
+    assert seen == [3]
+    # a scale past the limit either way is still refused
+    bad = scene.cameras.cam_from_world.clone()
+    bad[1, :3, :3] *= 1.01
+    with pytest.raises(UserError, match="not orthonormal"):
+        pred.predict(Cameras(bad, scene.cameras.K, scene.cameras.width, scene.cameras.height))
