@@ -1535,6 +1535,24 @@ def test_a_report_killed_while_its_files_go_in_never_shows_a_page_beside_figures
     assert_figures_consistent(out, parse(index))
 
 
+def test_a_report_of_an_older_version_killed_while_its_files_go_in_is_finished_by_the_next(tmp_path):
+    """A page written before the marker existed references every figure the new report draws (fixed names), so no
+    marker was written before the files went in: a kill there left figures/ without a page or a marker, and every
+    later report refused the folder as 'not empty and it holds no earlier report'."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    first, second = make_run(tmp_path / "a", "r", seed=0), make_run(tmp_path / "b", "r", seed=1)
+    stage.run([first], out, ReportConfig())
+    (out / stage.MARKER).unlink()  # (as versions before the marker wrote the folder)
+    (out / stage.CONFIG).unlink()
+    done = subprocess.run([sys.executable, "-c", _KILLED_IN_SWAP, str(second), str(out), "1"])
+    assert done.returncode == 9 and not (out / "index.html").exists()
+    index = stage.run([second], out, ReportConfig())
+    assert_figures_consistent(out, parse(index))
+
+
 def test_a_report_that_fails_while_its_files_go_in_puts_the_earlier_one_back(tmp_path, monkeypatch):
     """An error (or Ctrl-C) while the staged files go in puts the earlier page and its figures back."""
     import os

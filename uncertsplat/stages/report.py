@@ -207,6 +207,10 @@ def run(runs: Path | str | list[Path], out: Path, cfg: ReportConfig | None = Non
             return path
 
         text, figures = build_report(loaded, out, cfg.title, cfg.max_views, write_figure)
+        if not (out / MARKER).is_file():
+            # (a page written before the marker existed referenced every figure drawn: none was written above, and a
+            # kill in ``_swap_in`` left a folder without page or marker, refused by every later report)
+            atomic_write_json(out / MARKER, {"figures": sorted(listed)})
         # the page staged too (a full disk fails it before anything in OUT changed)
         _swap_in(out, staging, staged, atomic_write_text(staging / INDEX, text))
         index = out / INDEX
