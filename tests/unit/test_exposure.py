@@ -266,3 +266,49 @@ def test_a_checkpoint_newer_than_the_model_file_comes_with_its_own_exposures(tin
     loaded = load_run(run)
     assert loaded.step == done + 10 and loaded.exposure.step == done + 10
     assert loaded.exposure.gain[0][0] > 1.1 > loaded.exposure.gain[1][0]
+
+
+def test_a_pruned_checkpoint_model_takes_the_checkpoints_exposures_and_transients(tiny_run_path, tmp_path):  # noqa: F811
+    """prune copied the source folder's exposure.json and transients/ beside the pruned model; of a model read from a
+    checkpoint newer than the PLY they are the earlier training's (written with the PLY), not the ones the model was
+    loaded and pruned with, and the pruned run's evaluation paired the two."""
+    import shutil
+
+    import numpy
+
+    from uncertsplat.baselines import load_run
+    from uncertsplat.config import PruneConfig
+    from uncertsplat.data.dataset import TRANSIENTS_FOLDER
+    from uncertsplat.io.checkpoints import load_latest, save_checkpoint
+    from uncertsplat.io.images import read_mask, write_png
+    from uncertsplat.io.ply import read_variational_ply
+    from uncertsplat.schemas.scene import RunScene
+    from uncertsplat.stages import prune
+    from uncertsplat.train.transients import pack_mask
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns("eval"))
+    info = RunScene.read(run / RunScene.FILE_NAME)
+    names = info.train
+    _, meta = read_variational_ply(run / "variational.ply")
+    done = int(meta["step"])
+    RunExposure(images=names, gain=[[1.0] * 3] * len(names), offset=[[0.0] * 3] * len(names),
+                step=done).write(run / RunExposure.FILE_NAME)
+    write_png(run / TRANSIENTS_FOLDER / f"{names[1]}.png", numpy.zeros((info.height, info.width), bool))  # the earlier
+    _, state = load_latest(run)
+    later = torch.zeros(len(names), 2, 3)
+    later[0, 0] = 0.2
+    keep = torch.ones(info.height, info.width, 1, dtype=torch.bool)
+    keep[: info.height // 2] = False
+    save_checkpoint(run, done + 10, {**state, "step": done + 10, "exposure": later, "train_names": list(names),
+                                     "transient_views": torch.tensor([0]), "transient_keep": pack_mask(keep)[None]})
+    loaded = load_run(run)
+    assert loaded.step == done + 10 and loaded.exposure.gain[0][0] > 1.1
+    out = tmp_path / "pruned"
+    prune.run(run, out, PruneConfig(keep_ratio=0.9, num_samples=2, score_views=2, score_samples=2, render_views=0),
+              torch.device("cpu"))
+    assert RunExposure.read(out / RunExposure.FILE_NAME).gain == loaded.exposure.gain
+    masks = {p.name.removesuffix(".png"): read_mask(p) for p in (out / TRANSIENTS_FOLDER).rglob("*.png")}
+    assert masks.keys() == {names[0]} and (masks[names[0]] == keep[..., 0].numpy()).all()
+    again = load_run(out)
+    assert again.exposure.gain == loaded.exposure.gain

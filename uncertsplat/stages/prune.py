@@ -629,10 +629,22 @@ def _write_model(folder: Path, run_dir: Path, loaded, meta: dict, pruned, keep: 
     from uncertsplat.io.atomic import atomic_write_bytes
     from uncertsplat.io.ply import set_vertex_properties, write_point_cloud_ply, write_variational_ply
 
+    # a model read from a checkpoint newer than the PLY (a --resume stopped before its end) comes with that
+    # checkpoint's exposures and transient regions (``baselines.runs._load_single``): the folder's exposure.json and
+    # transients/ are an earlier training's, which the pruned run's evaluation would pair with this model
+    from_checkpoint = Path(loaded.source).suffix == ".pt"
     for name in ("config.json", RunExposure.FILE_NAME):
-        if (run_dir / name).is_file():
+        if name == RunExposure.FILE_NAME and from_checkpoint and loaded.exposure is not None:
+            loaded.exposure.write(folder / name)
+        elif (run_dir / name).is_file():
             atomic_write_bytes(folder / name, (run_dir / name).read_bytes())
-    if (run_dir / TRANSIENTS_FOLDER).is_dir():  # what training left out of the photos, which pruning does not change
+    regions = getattr(loaded, "transients", None) if from_checkpoint else None
+    if regions is not None:
+        from uncertsplat.io.images import write_png
+
+        for name, keep_px in regions.items():
+            write_png(folder / TRANSIENTS_FOLDER / f"{name}.png", keep_px.cpu().numpy())
+    elif (run_dir / TRANSIENTS_FOLDER).is_dir():  # what training left out of the photos, which pruning does not change
         shutil.copytree(run_dir / TRANSIENTS_FOLDER, folder / TRANSIENTS_FOLDER)
     info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
     if info is not None:  # its path relative to the run, from here (the staging folder is the output's sibling)
