@@ -431,7 +431,10 @@ class Predictor:
         from uncertsplat.device import resolve_device
 
         if str(run_dir).startswith("~"):  # "~/runs/x", as a shell reads it (it was "run folder not found")
-            run_dir = Path(run_dir).expanduser()
+            try:
+                run_dir = Path(run_dir).expanduser()
+            except RuntimeError:  # "~nosuchuser/x": no such home folder, so no such run folder (said below)
+                pass
         if not Path(run_dir).exists():  # (as the commands say it: "not a training run" sent users looking for a file)
             raise UserError("run folder not found", path=run_dir,
                             hint="Pass the folder written by `uncertsplat train` (or `prune`).")

@@ -355,6 +355,13 @@ def test_load_reads_a_leading_tilde_as_the_home_folder(monkeypatch, tmp_path):
     assert seen == [tmp_path / "runs" / "x"]
 
 
+def test_load_of_an_unknown_users_home_folder_says_the_run_is_not_found():
+    """``~nosuchuser/run`` ended in pathlib's RuntimeError ("Could not determine home directory") once a leading ``~``
+    was expanded: no such home folder is no such run folder."""
+    with pytest.raises(UserError, match="run folder not found"):
+        Predictor.load("~nosuchuser_of_uncertsplat/run", "cpu")
+
+
 def test_cameras_built_by_hand_are_checked_before_the_renderer_sees_them(monkeypatch):
     """A ``Cameras`` of width 0, -5 or 1.5 failed deep inside torch (or ctypes), a NaN pose gave NaN maps without a
     word; a whole float size (320.0) is taken as an int."""
