@@ -273,6 +273,9 @@ def _names(names) -> tuple[str, ...]:
         return ()
     if isinstance(names, str):
         return (str(names),)
+    if isinstance(names, (bytes, bytearray)):  # (iterated, its bytes were whole numbers: b"ab" named "97", "98")
+        raise UserError(f"names must be texts, one per pose, got {type(names).__name__} {names!r}",
+                        hint="Decode it first (names.decode()), or give one name per pose.")
     try:
         given = tuple(names)
     except TypeError:

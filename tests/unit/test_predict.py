@@ -355,6 +355,15 @@ def test_load_reads_a_leading_tilde_as_the_home_folder(monkeypatch, tmp_path):
     assert seen == [tmp_path / "runs" / "x"]
 
 
+def test_names_as_bytes_are_refused_not_read_as_numbers():
+    """``names=b"ab"`` for two poses was iterated as the whole numbers 97 and 98, which names take as texts: the maps
+    were named "97" and "98" without a word."""
+    pred = bare_predictor()
+    M = a_pose().numpy()
+    with pytest.raises(UserError, match="names must be texts, one per pose, got bytes"):
+        pred.cameras_from_source(np.stack([M, M]), K, 128, 96, names=b"ab")
+
+
 def test_load_of_an_unknown_users_home_folder_says_the_run_is_not_found():
     """``~nosuchuser/run`` ended in pathlib's RuntimeError ("Could not determine home directory") once a leading ``~``
     was expanded: no such home folder is no such run folder."""
