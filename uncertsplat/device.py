@@ -20,7 +20,7 @@ def resolve_device(name: str | torch.device) -> torch.device:
     if isinstance(name, torch.device):
         if name.type == "cuda" and not torch.cuda.is_available():
             raise _no_cuda(str(name))
-        return name
+        return torch.device("cpu") if name.type == "cpu" else name  # (cpu:0 is the CPU: runs record "cpu")
     if not isinstance(name, str):
         raise UserError(f"the device must be a name or a torch.device, got {type(name).__name__} {name!r}",
                         hint="Use auto, cpu or cuda.")

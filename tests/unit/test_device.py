@@ -27,6 +27,7 @@ def test_device_names_torch_takes_and_misspelt_ones(monkeypatch):
     """``cpu:0`` (torch's name of the CPU device) was an unknown device; a misspelt index (``cuda:x``) went to
     ``torch.device`` and ended in its RuntimeError traceback: one message now."""
     assert resolve_device("cpu:0") == torch.device("cpu") and resolve_device("cpu:0").index is None
+    assert str(resolve_device(torch.device("cpu", 0))) == "cpu"  # what evaluate records and compares
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert resolve_device("cuda:1") == torch.device("cuda", 1)
     for bad in ("cuda:x", "cuda1", "cpu:", "cpux"):

@@ -1481,3 +1481,5 @@ class TestRayAddressProbe:
         monkeypatch.setattr(executors, "_probe", lambda address, timeout: None)
         with pytest.raises(UserError, match=r"Ray cannot connect to 'ray://head:10001': Ray Client requires"):
             executors.connect_ray("ray://head:10001")
+        with pytest.raises(UserError, match=r"Ray cannot start on this machine: Ray Client requires"):
+            executors.connect_ray(None)

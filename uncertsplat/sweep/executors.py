@@ -274,7 +274,8 @@ def connect_ray(address: str | None, num_cpus: int | None = None) -> bool:
     except ConnectionError as err:
         raise UserError(f"cannot reach the Ray cluster at {address!r} ({err})", hint=_NOT_REACHED_HINT) from None
     except ValueError as err:  # e.g. a ray:// address without Ray's client package: Ray's message says what to install
-        raise UserError(f"Ray cannot connect to {address!r}: {err}") from None
+        where = f"connect to {address!r}" if address is not None else "start on this machine"
+        raise UserError(f"Ray cannot {where}: {err}") from None
     return True
 
 

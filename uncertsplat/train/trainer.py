@@ -1036,6 +1036,7 @@ class Trainer:
         final, self._final_test = self._final_test, None
         if max_views is None and final is not None and final[0] == self.step and _same_sample(final[1], g):
             return dict(final[2])
+        final = None  # (its copy of the Gaussians is not held while every view renders again)
         ps, ss = [], []
         n = len(self.test_idx) if max_views is None else min(max_views, len(self.test_idx))
         for i in range(n):
