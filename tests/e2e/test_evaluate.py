@@ -657,6 +657,18 @@ def same_model_runs(tiny_run_path, tmp_path_factory):  # noqa: F811
     return src, kept
 
 
+
+def _copied_deeper(kept: Path, tmp_path: Path) -> Path:
+    """A copy of the run ``kept`` (without its evaluation) two folders deeper, its scene.json's relative path to the
+    scene rewritten for its new place: the same model and config, another scene.json."""
+    deeper = tmp_path / "a" / "b" / "kept"
+    deeper.parent.mkdir(parents=True)
+    shutil.copytree(kept, deeper, ignore=shutil.ignore_patterns("eval"))
+    info = json.loads((deeper / "scene.json").read_text(encoding="utf-8"))
+    info["scene_from_run"] = os.path.relpath(info["scene"], deeper)
+    (deeper / "scene.json").write_text(json.dumps(info))
+    return deeper
+
 class TestPrunedRunThatRemovedNothing:
     """A prune output whose model is its source's file, unchanged: evaluate copies the source's evaluation when it
     was made with the same settings, and evaluates anything else."""
@@ -682,12 +694,7 @@ class TestPrunedRunThatRemovedNothing:
         from uncertsplat.stages.evaluate import evaluation_is_current
 
         src, kept = same_model_runs
-        deeper = tmp_path / "a" / "b" / "kept"
-        deeper.parent.mkdir(parents=True)
-        shutil.copytree(kept, deeper, ignore=shutil.ignore_patterns("eval"))
-        info = json.loads((deeper / "scene.json").read_text(encoding="utf-8"))
-        info["scene_from_run"] = os.path.relpath(info["scene"], deeper)
-        (deeper / "scene.json").write_text(json.dumps(info))
+        deeper = _copied_deeper(kept, tmp_path)
         assert (deeper / "scene.json").read_bytes() != (src / "scene.json").read_bytes()
         assert evaluate.same_model_evaluation(deeper, SAME_CFG, torch.device("cpu")) == src / "eval"
         report = evaluate.run(deeper, SAME_CFG, device=torch.device("cpu"))
@@ -704,12 +711,7 @@ class TestPrunedRunThatRemovedNothing:
 
         src, kept = same_model_runs
         cpu = torch.device("cpu")
-        deeper = tmp_path / "a" / "b" / "kept"
-        deeper.parent.mkdir(parents=True)
-        shutil.copytree(kept, deeper, ignore=shutil.ignore_patterns("eval"))
-        info = json.loads((deeper / "scene.json").read_text(encoding="utf-8"))
-        info["scene_from_run"] = os.path.relpath(info["scene"], deeper)
-        (deeper / "scene.json").write_text(json.dumps(info))
+        deeper = _copied_deeper(kept, tmp_path)
         assert "copied from" in evaluate.run(deeper, SAME_CFG, device=cpu).notes[-1]
         loaded = load_run(deeper, cpu)
         predictive, problem = read_predictive(loaded, SAME_CFG, src)
