@@ -121,17 +121,27 @@ def _evaluation_config(run_dir: Path):
         return EvalConfig()
 
 
-def _eval_config(cfg):
-    """``Predictor.load``'s ``cfg`` as an ``EvalConfig``: one as it is, a dict of its keys validated (a bad key named,
-    as ``--set`` names it; a dict was an AttributeError about ``model_dump`` from deep inside the load)."""
+def _eval_config(cfg, evaluation):
+    """``Predictor.load``'s ``cfg`` as an ``EvalConfig``: one as it is; a dict of its keys over the run's evaluation's
+    settings ``evaluation`` (``cfg={"num_samples": 4}`` is that evaluation with K = 4, as ``evaluate --set`` changes
+    one setting; with the defaults under it the predictive was another than the one ``evaluate`` scored), validated
+    (a bad key named, as ``--set`` names it; a dict was an AttributeError about ``model_dump`` from deep inside the
+    load)."""
     from collections.abc import Mapping
 
     from uncertsplat.config import EvalConfig, build_config
 
+    def merged(base: dict, given: Mapping) -> dict:
+        out = dict(base)
+        for k, v in given.items():
+            out[k] = merged(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), dict) else v
+        return out
+
     if isinstance(cfg, EvalConfig):
         return cfg
     if isinstance(cfg, Mapping):
-        return build_config(EvalConfig, dict(cfg), source="Predictor.load's cfg")
+        return build_config(EvalConfig, merged(evaluation.model_dump(mode="json"), cfg),
+                            source="Predictor.load's cfg")
     raise TypeError(f"cfg must be an uncertsplat.config.EvalConfig (or a dict of its keys, e.g. {{'num_samples': 4}}), "
                     f"got {type(cfg).__name__}")
 
@@ -423,7 +433,7 @@ class Predictor:
             cfg: an ``EvalConfig`` (None: the settings of the run's evaluation, ``RUN/eval/config.json``, so that the
                 predictive is the one ``evaluate`` scored; ``evaluate``'s defaults when the run has none;
                 ``cfg.num_samples`` is ``predict``'s default K), or a dict of its keys (``{"num_samples": 4}``, as
-                ``evaluate --set`` takes them; the others are ``evaluate``'s defaults).
+                ``evaluate --set`` takes them) over those of the run's evaluation.
 
         Raises:
             UserError: not a run, its scene is gone or its cameras changed since training, no CUDA device, a ``cfg``
@@ -446,7 +456,7 @@ class Predictor:
                             hint=f"Pass the folder: Predictor.load({str(Path(run_dir).parent)!r}).")
         device = resolve_device(device)
         evaluation = _evaluation_config(Path(run_dir))
-        cfg = _eval_config(cfg) if cfg is not None else evaluation
+        cfg = _eval_config(cfg, evaluation) if cfg is not None else evaluation
         with native.single_threaded_torch(device):  # as evaluate runs (its sums, so its maps, to the last bit)
             return cls._load(Path(run_dir), device, cfg, evaluation)
 

@@ -459,6 +459,12 @@ def test_load_takes_the_config_as_a_dict_and_names_a_bad_key(monkeypatch, tmp_pa
     with pytest.raises(TypeError, match="cfg must be an uncertsplat.config.EvalConfig .*got int"):
         Predictor.load(tmp_path, "cpu", cfg=4)
     assert len(seen) == 2
+    # over the run's evaluation's settings, as `evaluate --set` changes one (with the defaults under it, the
+    # predictive was another than the one evaluate scored)
+    (tmp_path / "eval").mkdir()
+    (tmp_path / "eval" / "config.json").write_text(EvalConfig(seed=7, residual_views=5).model_dump_json())
+    Predictor.load(tmp_path, "cpu", cfg={"num_samples": 2})
+    assert seen[-1] == EvalConfig(seed=7, residual_views=5, num_samples=2)
 
 
 def test_names_none_numbers_and_numpy_texts():
