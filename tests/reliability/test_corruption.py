@@ -123,6 +123,30 @@ def test_a_damaged_checkpoint_past_the_model_file_leaves_the_model_file_in_use(s
     assert "step_000008.pt: checksum mismatch" in " ".join(capsys.readouterr().err.split())
 
 
+@pytest.mark.parametrize("harm", ["nan", "inconsistent"])
+def test_a_checkpoint_past_the_model_file_without_a_usable_model_leaves_the_model_file_in_use(small_run, tmp_path,
+                                                                                               capsys, harm):
+    """A checkpoint past the PLY whose checksum is good but whose model is not usable (a NaN, tables that do not fit
+    the parameters: written by other code) was refused, though the PLY beside it is a good model: it is used, with a
+    warning naming the checkpoint, as where every checkpoint past it is damaged."""
+    from uncertsplat.baselines import load_run
+    from uncertsplat.io.checkpoints import load_checkpoint, save_checkpoint
+
+    run = _copy(small_run, tmp_path)
+    state = load_checkpoint(checkpoint_path(run, 6))
+    state["step"] = 8
+    if harm == "nan":
+        state["model"]["params"]["means"][0, 0] = float("nan")
+    else:
+        state["model"]["params"]["means"] = state["model"]["params"]["means"][:-1]
+    save_checkpoint(run, 8, state, keep=10)
+    capsys.readouterr()
+    loaded = load_run(run)
+    assert loaded.source == run / "variational.ply" and loaded.step == 6
+    err = " ".join(capsys.readouterr().err.split())
+    assert "warning:" in err and "step_000008.pt" in err and "the model of step 6" in err
+
+
 def test_damaged_run_config_is_reported_not_a_traceback(small_run, tmp_path):
     from uncertsplat.baselines import load_run
     from uncertsplat.stages import train

@@ -514,7 +514,7 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
         model, meta = read_variational_ply(ply, device=device)
         newest = max((step for step, _ in list_checkpoints(run_dir)), default=-1)
 
-        def from_ply() -> LoadedRun:
+        def from_ply(model: GaussianModel = model) -> LoadedRun:  # (bound now: ``model`` is the checkpoint's below)
             refuse_non_finite(model, ply)  # (a newer checkpoint stands in for the file: that one is checked)
             extent = float(meta.get("extent", info.extent if info is not None else 1.0))
             return LoadedRun(model, cfg, scene_path, extent, int(meta.get("step", 0)),
@@ -536,10 +536,20 @@ def _load_single(run_dir: Path, cfg: TrainConfig, device: torch.device | str) ->
                         hint="Run `uncertsplat train` (or `--resume`) to finish training first.")
     path, state = found
     try:
-        model = GaussianModel.from_state_dict(state["model"], device)
-    except (KeyError, ValueError) as err:  # a good checksum over an inconsistent model: written by other code
-        raise CorruptCheckpoint(f"the model in the checkpoint is inconsistent ({err})", path=path) from None
-    refuse_non_finite(model, path)
+        try:
+            model = GaussianModel.from_state_dict(state["model"], device)
+        except (KeyError, ValueError) as err:  # a good checksum over an inconsistent model: written by other code
+            raise CorruptCheckpoint(f"the model in the checkpoint is inconsistent ({err})", path=path) from None
+        refuse_non_finite(model, path)
+    except UserError as err:
+        if from_ply is None:
+            raise
+        # a checkpoint past the PLY that loads but holds no usable model: the PLY is the newest good one, as where
+        # every such checkpoint is damaged (above)
+        from uncertsplat.console import console
+
+        console.print(f"[yellow]warning:[/] {err.message} ({path}); using {ply}, the model of step {meta['step']}")
+        return from_ply()
     if state.get("exposure") is not None and info is not None:
         # the checkpoint's own: an exposure.json beside it is an earlier training's (it is written with the PLY, which
         # is older than this checkpoint or absent; a --resume --iterations stopped midway paired its model with them)
