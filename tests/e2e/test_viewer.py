@@ -8,6 +8,7 @@ page with every non-local host unresolvable and checks that a frame arrives, tha
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -104,6 +105,47 @@ class TestServer:
         said = " ".join(capsys.readouterr().err.split())
         assert v.scene is None and "no cameras or photos in the viewer" in said and "empty-ray term" in said, said
         assert v.renderer.loaded.coverage(1.0, torch.device("cpu")) == 1.0
+
+    def test_the_views_select_views_chose_are_drawn_and_named(self, tiny_run_path, tmp_path, capsys):
+        """The poses `select-views` chose (RUN/select/selection.json) could not be looked at: they are drawn as green
+        cameras of their own, and clicking one takes the view there and names the choice; a damaged file is a note."""
+        import json
+        import shutil
+
+        from uncertsplat.schemas import Selection
+        from uncertsplat.schemas.select import ChosenView
+
+        run = tmp_path / "run"
+        shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns(".lock", "select"))
+        info = json.loads((run / "scene.json").read_text(encoding="utf-8"))
+        info["scene_from_run"] = os.path.relpath(info["scene"], run)
+        (run / "scene.json").write_text(json.dumps(info))
+        cfw = torch.eye(4, dtype=torch.float64)
+        cfw[2, 3] = 3.0
+        pick = ChosenView(name="around_007", score=2.5, cam_from_world=cfw.tolist(), position=[0.0, 0.0, -3.0],
+                          rank=1, score_when_chosen=2.5)
+        (run / "select").mkdir()
+        Selection(run=str(run), score="fisher", candidates="around:8", num_candidates=8, chosen=[pick], seconds=1.0,
+                  seconds_per_candidate=0.1).write(run / "select" / Selection.FILE_NAME)
+        capsys.readouterr()
+        v = stage.build(run, ViewConfig(port=0, thumbnails=False), torch.device("cpu"))
+        assert "showing the 1 view(s) select-views chose" in " ".join(capsys.readouterr().err.split())
+        v.start(worker=False)
+        try:
+            assert len(v._frustums) == len(v.scene.cameras) + 1
+            chosen = v._frustums[-1]
+            assert tuple(chosen.color) == view_server.CHOSEN_COLOUR
+            assert np.allclose(chosen.position, camera_pose(cfw.float(), v.scene.cameras.K[0], 96)[1])
+            client = SimpleNamespace(camera=SimpleNamespace(), atomic=contextlib.nullcontext)
+            v._chosen_handler(len(v._frustums) - 1, pick, (1.0, 0.0, 0.0, 0.0), np.zeros(3), 0.8)(
+                SimpleNamespace(client=client))
+            assert "around_007" in v.gui_photo_title.content and "choice 1 of select-views" in v.gui_photo_title.content
+            assert client.camera.fov == 0.8 and not chosen.visible
+        finally:
+            v.stop()
+        (run / "select" / Selection.FILE_NAME).write_text("{")
+        v = stage.build(run, ViewConfig(port=0, thumbnails=False), torch.device("cpu"))
+        assert v.chosen == [] and "the views select-views chose are not shown" in capsys.readouterr().err
 
     def test_without_viser_one_message_with_the_install_command(self, monkeypatch, tiny_run_path):
         monkeypatch.setitem(sys.modules, "viser", None)  # import viser -> ImportError

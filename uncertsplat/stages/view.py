@@ -77,7 +77,25 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
         to_source = None
     renderer = FrameRenderer(loaded, scene_scale, device, score_cameras=score_cams, free_space_cameras=free_cams,
                              seed=cfg.seed, unseen_field=fit_unseen, depth_to_source=to_source)
-    return Viewer(renderer, scene, cfg)
+    return Viewer(renderer, scene, cfg, chosen=_chosen_views(run_dir) if scene is not None else None)
+
+
+def _chosen_views(run_dir: Path) -> list:
+    """The views ``select-views`` chose for ``run_dir`` into its default folder (``RUN/select/selection.json``), to be
+    drawn beside the cameras; none when there is no such file, and a note when it cannot be read."""
+    from uncertsplat.schemas import Selection
+
+    path = run_dir / "select" / Selection.FILE_NAME
+    if not path.is_file():
+        return []
+    try:
+        chosen = Selection.read(path).chosen
+    except UserError as err:
+        console.print(f"[yellow]note:[/] the views select-views chose are not shown: {err.render()}", soft_wrap=True)
+        return []
+    if chosen:
+        console.print(f"showing the {len(chosen)} view(s) select-views chose ({path}) as green cameras")
+    return chosen
 
 
 @contextlib.contextmanager

@@ -58,6 +58,8 @@ PHOTO_WIDTH = 320
 _ROLE_COLOURS = {"train": (40, 90, 220), "test": (230, 120, 20), "calibration": (150, 60, 200), "unused": (140, 140, 140)}
 """Frustum colours by the camera's part in the run (``Viewer._role``): blue trained on, orange held out, purple
 set aside for the std factor, grey a photo the run did not train on."""
+CHOSEN_COLOUR = (30, 170, 70)
+"""The frustums of the views ``select-views`` chose (``RUN/select/selection.json``): green, a little larger."""
 _ROLE_WORDS = {"train": "training", "test": "held-out", "calibration": "set aside for calibration",
                "unused": "not trained on"}
 
@@ -201,10 +203,11 @@ class Viewer:
         cfg: the viewer settings.
     """
 
-    def __init__(self, renderer: FrameRenderer, scene: SceneData | None, cfg: ViewConfig):
+    def __init__(self, renderer: FrameRenderer, scene: SceneData | None, cfg: ViewConfig, chosen: list | None = None):
         self.renderer = renderer
         self.scene = scene
         self.cfg = cfg
+        self.chosen = list(chosen or [])  # ``schemas.ChosenView``s: drawn as frustums of their own (no photo yet)
         self.server = None
         self._views: dict[int, ViewState] = {}
         self._lock = threading.Lock()
@@ -365,6 +368,15 @@ class Viewer:
                 position=pos)
             h.on_click(self._click_handler(i, name, wxyz, pos, fov))
             self._frustums.append(h)
+        ref = scene.split["train"][0] if scene.split.get("train") else 0  # (a chosen pose's field of view: its)
+        for c in self.chosen:
+            cfw = torch.tensor(c.cam_from_world, dtype=cams.cam_from_world.dtype)
+            wxyz, pos, fov = camera_pose(cfw, cams.K[ref], cams.height)
+            h = self.server.scene.add_camera_frustum(
+                f"/cameras/chosen/{c.rank:03d}", fov=fov, aspect=aspect, scale=1.5 * self._frustum_size,
+                thickness=3.0, thickness_units="screen", color=CHOSEN_COLOUR, wxyz=wxyz, position=pos)
+            h.on_click(self._chosen_handler(len(self._frustums), c, wxyz, pos, fov))
+            self._frustums.append(h)
         # initial view: behind and above the first training camera, looking where it looks (as far as the scene
         # centre), so its frustum and photo are in sight without covering the render
         first = scene.split["train"][0] if scene.split.get("train") else 0
@@ -401,6 +413,25 @@ class Viewer:
             self._frustums[i].visible = False
             self._hidden = i
             self._show_photo(i, name)
+
+        return on_click
+
+    def _chosen_handler(self, i: int, chosen, wxyz, pos, fov):
+        """Clicking a chosen view's frustum: the view jumps to it, and the panel says which choice it is (it has no
+        photo yet: it is where the next one is to be taken)."""
+        def on_click(event) -> None:
+            client = event.client
+            with client.atomic():
+                client.camera.wxyz = wxyz
+                client.camera.position = pos
+                client.camera.fov = fov
+            if self._hidden is not None:
+                self._frustums[self._hidden].visible = bool(self.gui_cameras.value)
+            self._frustums[i].visible = False
+            self._hidden = i
+            score = "" if chosen.score_when_chosen is None else f", score {chosen.score_when_chosen:.4g}"
+            self.gui_photo_title.content = (f"**{html.escape(chosen.name)}**: choice {chosen.rank} of select-views"
+                                            f"{score} (no photo yet: take one here)")
 
         return on_click
 
