@@ -400,18 +400,21 @@ class Viewer:
                 return role
         return "unused"
 
+    def _jump(self, client, i: int, wxyz, pos, fov) -> None:
+        """Put ``client``'s view at frustum ``i``'s camera and hide that frustum: standing at the camera, its own
+        frustum (and photo) would cover the render (shown again at the next jump)."""
+        with client.atomic():
+            client.camera.wxyz = wxyz
+            client.camera.position = pos
+            client.camera.fov = fov
+        if self._hidden is not None:
+            self._frustums[self._hidden].visible = bool(self.gui_cameras.value)
+        self._frustums[i].visible = False
+        self._hidden = i
+
     def _click_handler(self, i: int, name: str, wxyz, pos, fov):
         def on_click(event) -> None:
-            client = event.client
-            with client.atomic():
-                client.camera.wxyz = wxyz
-                client.camera.position = pos
-                client.camera.fov = fov
-            # standing at the camera, its own frustum (and photo) would cover the render: hide it until the next jump
-            if self._hidden is not None:
-                self._frustums[self._hidden].visible = bool(self.gui_cameras.value)
-            self._frustums[i].visible = False
-            self._hidden = i
+            self._jump(event.client, i, wxyz, pos, fov)
             self._show_photo(i, name)
 
         return on_click
@@ -420,15 +423,7 @@ class Viewer:
         """Clicking a chosen view's frustum: the view jumps to it, and the panel says which choice it is (it has no
         photo yet: it is where the next one is to be taken)."""
         def on_click(event) -> None:
-            client = event.client
-            with client.atomic():
-                client.camera.wxyz = wxyz
-                client.camera.position = pos
-                client.camera.fov = fov
-            if self._hidden is not None:
-                self._frustums[self._hidden].visible = bool(self.gui_cameras.value)
-            self._frustums[i].visible = False
-            self._hidden = i
+            self._jump(event.client, i, wxyz, pos, fov)
             score = "" if chosen.score_when_chosen is None else f", score {chosen.score_when_chosen:.4g}"
             self.gui_photo_title.content = (f"**{html.escape(chosen.name)}**: choice {chosen.rank} of select-views"
                                             f"{score} (no photo yet: take one here)")
