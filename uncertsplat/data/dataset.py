@@ -455,6 +455,16 @@ def transient_mask_files(run_dir: Path) -> dict[str, Path]:
     return {p.relative_to(folder).as_posix().removesuffix(".png"): p for p in sorted(folder.rglob("*.png"))}
 
 
+def write_transient_masks(folder: Path, regions: Mapping[str, Tensor]) -> None:
+    """Write ``regions`` ({image name: [H,W] bool, white where the pixels count}) as the masks of a ``TRANSIENTS_FOLDER``
+    into ``folder`` (``IMG_1.jpg.png`` for ``IMG_1.jpg``, as ``transient_mask_files`` reads them back)."""
+    # (looked up at each call: tests stand in for it to fail a write)
+    from uncertsplat.io.images import write_png
+
+    for name, keep in regions.items():
+        write_png(Path(folder) / f"{name}.png", keep.cpu().numpy())
+
+
 def transient_mask_paths(run_dir: Path, names: Sequence[str]) -> dict[str, Path]:
     """{image name: its mask in ``RUN/transients/``} of the training photos ``names`` with one."""
     wanted = set(names)

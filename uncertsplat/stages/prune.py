@@ -625,7 +625,7 @@ def _write_model(folder: Path, run_dir: Path, loaded, meta: dict, pruned, keep: 
     cloud with each kept Gaussian's scores)."""
     import shutil
 
-    from uncertsplat.data.dataset import TRANSIENTS_FOLDER
+    from uncertsplat.data.dataset import TRANSIENTS_FOLDER, write_transient_masks
     from uncertsplat.io.atomic import atomic_write_bytes
     from uncertsplat.io.ply import set_vertex_properties, write_point_cloud_ply, write_variational_ply
 
@@ -638,12 +638,8 @@ def _write_model(folder: Path, run_dir: Path, loaded, meta: dict, pruned, keep: 
             loaded.exposure.write(folder / name)
         elif (run_dir / name).is_file():
             atomic_write_bytes(folder / name, (run_dir / name).read_bytes())
-    regions = getattr(loaded, "transients", None) if from_checkpoint else None
-    if regions is not None:
-        from uncertsplat.io.images import write_png
-
-        for name, keep_px in regions.items():
-            write_png(folder / TRANSIENTS_FOLDER / f"{name}.png", keep_px.cpu().numpy())
+    if loaded.transients is not None:  # (set only for a model read from a checkpoint)
+        write_transient_masks(folder / TRANSIENTS_FOLDER, loaded.transients)
     elif (run_dir / TRANSIENTS_FOLDER).is_dir():  # what training left out of the photos, which pruning does not change
         shutil.copytree(run_dir / TRANSIENTS_FOLDER, folder / TRANSIENTS_FOLDER)
     info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)

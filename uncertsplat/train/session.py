@@ -806,8 +806,7 @@ def _write_transients(run_dir: Path, trainer, names) -> dict[str, float] | None:
     ``transients.detect`` off (and no folder)."""
     import shutil
 
-    from uncertsplat.data.dataset import TRANSIENTS_FOLDER
-    from uncertsplat.io.images import write_png
+    from uncertsplat.data.dataset import TRANSIENTS_FOLDER, write_transient_masks
     from uncertsplat.train.transients import transients_note
 
     folder = run_dir / TRANSIENTS_FOLDER
@@ -824,10 +823,8 @@ def _write_transients(run_dir: Path, trainer, names) -> dict[str, float] | None:
             shutil.rmtree(folder)
         return None
     regions = trainer.transient_regions(names)
-    shares = {}
-    for name, keep in regions.items():  # the new masks beside the old ones, then swapped: never none of either
-        write_png(partial / f"{name}.png", keep.cpu().numpy())
-        shares[name] = round(1.0 - float(keep.float().mean()), 4)
+    write_transient_masks(partial, regions)  # the new masks beside the old ones, then swapped: never none of either
+    shares = {name: round(1.0 - float(keep.float().mean()), 4) for name, keep in regions.items()}
     if folder.exists():
         folder.rename(old)
     if regions:
