@@ -787,15 +787,21 @@ def test_a_folder_the_pipeline_did_not_write_is_kept_apart_and_never_replaced(tm
     assert (tmp_path / "out" / ".previous" / "report-not-from-this-pipeline-2" / "mine.txt").is_file()
 
 
+def _one_train_stage(root: Path) -> Path:
+    """``root/p.toml``, a pipeline of one train stage on the folder ``root/scene`` (one image); returns its path."""
+    (root / "scene" / "images").mkdir(parents=True)
+    (root / "scene" / "images" / "a.png").write_text("x")
+    p = root / "p.toml"
+    p.write_text('name = "m"\n[[stages]]\nstage = "train"\ninput = "scene"\npreset = "tiny"\n')
+    return p
+
+
 def test_a_project_moved_with_its_pipeline_file_skips_its_stages(tmp_path, calls, capsys):
     """A stage reading a folder beside the pipeline file (``input = "scene"``) was keyed by the folder's resolved path:
     the project moved elsewhere trained again from scratch (and the next move lost the first run from .previous).
     Keyed as the file writes it, the moved project skips every stage; a manifest keyed the old way is taken too."""
     project = tmp_path / "a"
-    (project / "scene" / "images").mkdir(parents=True)
-    (project / "scene" / "images" / "a.png").write_text("x")
-    p = project / "p.toml"
-    p.write_text('name = "m"\n[[stages]]\nstage = "train"\ninput = "scene"\npreset = "tiny"\n')
+    p = _one_train_stage(project)
     pl.run(p, project / "out")
     assert [k for k, _ in calls] == ["train"]
     recorded = json.loads((project / "out" / "train" / "manifest.json").read_text(encoding="utf-8"))["input_hashes"]
@@ -823,10 +829,7 @@ def test_a_run_trained_into_the_scene_folder_by_hand_is_no_change_of_the_scene(t
     the fingerprint with such a run counted still skips; a photo changed runs the stage again."""
     from uncertsplat.stages.manifest import fingerprints
 
-    (tmp_path / "scene" / "images").mkdir(parents=True)
-    (tmp_path / "scene" / "images" / "a.png").write_text("x")
-    p = tmp_path / "p.toml"
-    p.write_text('name = "m"\n[[stages]]\nstage = "train"\ninput = "scene"\npreset = "tiny"\n')
+    p = _one_train_stage(tmp_path)
     pl.run(p, tmp_path / "out")
     assert [k for k, _ in calls] == ["train"]
     calls.clear()
