@@ -194,17 +194,30 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: s
         m = report.mean
         return {"psnr": m.psnr, "ause_mae": m.ause_mae, "nll": m.nll, "calibration_error": m.calibration_error,
                 "depth_ause": None, "std_scale": scale, "degrees_of_freedom": report.degrees_of_freedom,
-                "nll_gaussian": m.nll_gaussian, "calibration_error_gaussian": m.calibration_error_gaussian, **per_view}
+                "nll_gaussian": m.nll_gaussian, "calibration_error_gaussian": m.calibration_error_gaussian,
+                "variance_shares": report.variance_shares, **per_view}
     rgb, dep, unobs, empty = [], [], [], []
+    parts: dict[str, list[torch.Tensor]] = {}  # each part of the RGB variance on the pixels with surface
     for j, m in enumerate(maps):
         obs, valid = observed(run, j)
+        for k, t in (m.rgb_terms or {}).items():
+            parts.setdefault(k, []).append(t[..., 0][valid].double())
         rgb.append(m.rgb_std.mean(-1)[valid])
         dep.append(m.depth_std[..., 0][valid])
         unobs.append(~obs[valid])
         empty.append((m.alpha_mean[..., 0] < 0.5)[valid])  # rays that meet (almost) no Gaussian
     rgb, dep, unobs, empty = (torch.cat(x) for x in (rgb, dep, unobs, empty))
+    parts = {k: torch.cat(v) for k, v in parts.items()}
     mean = report.mean
     hit = ~empty
+
+    def shares(where: torch.Tensor) -> dict[str, float] | None:  # each part's share of the mean variance there
+        if not parts or not bool(where.any()):
+            return None
+        means = {k: float(v[where].mean()) for k, v in parts.items()}
+        total = sum(means.values())
+        return {k: v / total for k, v in means.items()} if total > 0 else None
+
     return {
         "auc_rgb": roc(rgb, unobs), "auc_depth": roc(dep, unobs),
         # the Gaussians' own spread, where the rays meet the model (alpha >= 0.5)
@@ -217,7 +230,11 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: s
         "degrees_of_freedom": report.degrees_of_freedom, "nll_gaussian": mean.nll_gaussian,
         "calibration_error_gaussian": mean.calibration_error_gaussian, "depth_nll": mean.depth_nll,
         "depth_calibration_error": report.calibration["depth"].calibration_error if "depth" in report.calibration
-        else None, **per_view,
+        else None, "variance_shares": report.variance_shares,
+        # the parts' shares of the RGB variance on the unobserved and on the observed pixels, and each part's ROC AUC
+        # alone for the unobserved ones (which part finds what no training view saw)
+        "rgb_shares_unobserved": shares(unobs), "rgb_shares_observed": shares(~unobs),
+        "auc_rgb_by_part": {k: roc(v, unobs) for k, v in parts.items()}, **per_view,
     }
 
 

@@ -380,6 +380,10 @@ class UncertaintyMaps:
         alpha_mean: [C,H,W,1]
         n_samples: number of posterior samples used.
         image_names: C names.
+        rgb_terms, depth_terms: what each part of the predictive adds to the RGB variance (mean over the channels)
+            and the depth variance, [C,H,W,1] each, keyed by the part's name in the order they are added; their sum
+            is the variance (the RGB std before its cap, ``mc.RGB_STD_MAX``). None unless asked for
+            (``mc_render``'s ``terms``).
     """
 
     rgb_mean: Tensor
@@ -389,6 +393,8 @@ class UncertaintyMaps:
     alpha_mean: Tensor
     n_samples: int
     image_names: tuple[str, ...] = ()
+    rgb_terms: dict[str, Tensor] | None = None
+    depth_terms: dict[str, Tensor] | None = None
 
 
 @dataclass(frozen=True)

@@ -164,6 +164,32 @@ def test_posterior_gives_nonzero_std(evaluated):
     assert ch["rgb_std.R"].max() > 0, "a run with posterior carriers must have some spread"
 
 
+def test_the_variance_shares_say_what_the_predictive_is_made_of(evaluated):
+    """metrics.json records each part's share of the predictive's variance on the scored pixels (RGB and depth), in
+    the order the parts are added, summing to 1; the console's and report's sentence ranks them. A file of schema
+    version 4 (before the shares) reads with none."""
+    run, report = evaluated
+    path = run / "eval" / "metrics.json"
+    data = EvalReport.from_json(path.read_text(encoding="utf-8"))
+    assert data.variance_shares == report.variance_shares
+    rgb, depth = data.variance_shares["rgb"], data.variance_shares["depth"]
+    assert list(rgb)[:3] == ["samples", "resolution", "empty rays"]
+    assert {"pixel noise", "colour posterior", "edge", "view consistency"} <= set(rgb)
+    assert list(depth)[:3] == ["samples", "resolution", "empty rays"] and "depth spread" in depth
+    for shares in (rgb, depth):
+        assert sum(shares.values()) == pytest.approx(1.0, abs=1e-9) and min(shares.values()) >= 0.0
+    assert rgb["samples"] > 0.0  # a posterior's spread
+    text = data.variance_parts()
+    top = max(rgb, key=rgb.get)
+    assert text.startswith(f"RGB: {top if top != 'samples' else 'the samples' + chr(39) + ' spread'} ")
+    assert "; depth: " in text
+    old = json.loads(path.read_text(encoding="utf-8"))
+    old["schema_version"] = 4
+    del old["variance_shares"]
+    back = EvalReport.from_dict(old)
+    assert back.variance_shares == {} and back.variance_parts() is None
+
+
 def test_same_seed_same_metrics(evaluated, tiny_run_path, monkeypatch):
     from uncertsplat.eval.nll import kde_nll
     from uncertsplat.uncertainty import mc

@@ -546,10 +546,12 @@ class TestHiddenDepth:
 
     def test_the_predictive_adds_it_to_the_depth_variance_only_when_asked(self, monkeypatch):
         """``eval.engine.predictive_terms``: the hidden points' depth variance joins the depths a ray blends in
-        ``extra_depth_var``; not with ``hidden_depth`` off, nor for a caller of the RGB maps alone."""
+        ``extra_depth_var`` (named "hidden surface" and "depth spread"); not with ``hidden_depth`` off, nor for a
+        caller of the RGB maps alone."""
         from types import SimpleNamespace
 
         from uncertsplat.eval import engine
+        from uncertsplat.uncertainty.mc import sum_terms
 
         render_fn = _plane_render(nearer=frozenset({0}))
         vc, _ = _term([0.0], gate=4.0, render_fn=render_fn)
@@ -559,8 +561,10 @@ class TestHiddenDepth:
         cfg = SimpleNamespace(hidden_depth=True, depth_spread=False, empty_rays=False, resolution=0.0,
                               resolution_renders=1)
         terms = engine.predictive_terms(sampler, cfg, test)
-        torch.testing.assert_close(terms["extra_depth_var"], vc.hidden_depth_variance(test, _plane_render()))
-        assert float(terms["extra_depth_var"].min()) > 0.0
+        assert list(terms["extra_depth_var"]) == ["hidden surface"]
+        torch.testing.assert_close(terms["extra_depth_var"]["hidden surface"],
+                                   vc.hidden_depth_variance(test, _plane_render()))
+        assert float(terms["extra_depth_var"]["hidden surface"].min()) > 0.0
         assert engine.predictive_terms(sampler, cfg, test, depth=False)["extra_depth_var"] is None
         cfg.hidden_depth = False
         assert engine.predictive_terms(sampler, cfg, test)["extra_depth_var"] is None
@@ -568,7 +572,8 @@ class TestHiddenDepth:
         monkeypatch.setattr(engine, "_representative", lambda s, d: s.det_sample)
         monkeypatch.setattr("uncertsplat.uncertainty.mc.depth_spread", lambda *a: torch.full((1, H, W, 1), 0.5))
         both = engine.predictive_terms(sampler, cfg, test)["extra_depth_var"]
-        torch.testing.assert_close(both, vc.hidden_depth_variance(test, _plane_render()) + 0.5)
+        assert list(both) == ["depth spread", "hidden surface"]
+        torch.testing.assert_close(sum_terms(both), vc.hidden_depth_variance(test, _plane_render()) + 0.5)
 
 def test_depth_edges_flag_jumps_not_slopes():
     step = torch.ones(8, 10)

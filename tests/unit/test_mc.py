@@ -99,6 +99,42 @@ def test_rgb_std_never_exceeds_that_of_a_colour_in_the_unit_range(device):
     assert float(small.rgb_std.max()) < 0.5  # below the bound, untouched
 
 
+def test_the_terms_are_each_part_of_the_variance_and_add_up_to_it(device):
+    """``terms=True``: the samples' spread, the resolution renders, the empty rays and the named side terms, in the
+    order they are added, sum to the variance (RGB: the mean over the channels of std^2, below the cap); a mapping of
+    side terms gives the std of their sum to the bit; a bare tensor is named "extra"; without ``terms`` none."""
+    from uncertsplat.uncertainty.mc import sum_terms
+
+    d = Dummy(device)
+    a = torch.full((C, H, W, 1), 0.01, device=device)
+    b = torch.linspace(0.0, 0.02, C * H * W, device=device).reshape(C, H, W, 1)
+    dep = torch.full((C, H, W, 1), 0.3, device=device)
+
+    def shift(generator):  # a second 'posterior' for the resolution term
+        return d.sample_fn(generator)
+
+    def render(mapping):
+        return mc_render(d.sample_fn, d.render_fn, _cameras(device), 5, torch.Generator().manual_seed(4),
+                         empty_std=(0.2, 0.5), coverage=1.0, extra_var=mapping,
+                         extra_depth_var={"depth spread": dep}, shift_fn=shift, terms=True)[0]
+
+    maps = render({"pixel noise": a, "view consistency": b})
+    assert list(maps.rgb_terms) == ["samples", "resolution", "empty rays", "pixel noise", "view consistency"]
+    assert list(maps.depth_terms) == ["samples", "resolution", "empty rays", "depth spread"]
+    assert all(t.shape == (C, H, W, 1) and float(t.min()) >= 0.0 for t in maps.rgb_terms.values())
+    torch.testing.assert_close(sum_terms(maps.rgb_terms), maps.rgb_std.square().mean(-1, keepdim=True),
+                               rtol=1e-5, atol=1e-8)
+    torch.testing.assert_close(sum_terms(maps.depth_terms), maps.depth_std.square(), rtol=1e-5, atol=1e-8)
+    torch.testing.assert_close(maps.rgb_terms["view consistency"], b)
+    assert float(maps.rgb_terms["samples"].max()) > 0.0 and float(maps.rgb_terms["resolution"].max()) > 0.0
+    summed = render(a + b)  # the sum given as one tensor: the same std to the bit, named "extra"
+    assert torch.equal(summed.rgb_std, maps.rgb_std) and list(summed.rgb_terms)[-1] == "extra"
+    plain = mc_render(d.sample_fn, d.render_fn, _cameras(device), 5, torch.Generator().manual_seed(4))[0]
+    assert plain.rgb_terms is None and plain.depth_terms is None
+    with pytest.raises(ValueError, match="empty mapping"):
+        sum_terms({})
+
+
 def test_single_sample_std_zero(device):
     d = Dummy(device)
     maps, samples = mc_render(d.sample_fn, d.render_fn, _cameras(device), 1, torch.Generator().manual_seed(0))

@@ -744,6 +744,22 @@ def test_metrics_section_states_the_fitted_std_scale(tmp_path):
     assert "x1.9, fitted on 2 views set aside from training" in html
 
 
+def test_summary_says_what_each_run_s_variance_is_made_of(tmp_path):
+    """A run whose evaluation recorded ``variance_shares`` gets one sentence ranking the parts (RGB, then depth); a
+    run without them (an older evaluation) none."""
+    run = make_run(tmp_path, "r", maps=False)
+    m = EvalReport.read(run / "eval" / "metrics.json")
+    m.variance_shares = {"rgb": {"samples": 0.1, "resolution": 0.004, "pixel noise": 0.896},
+                         "depth": {"samples": 0.0, "depth spread": 1.0}}
+    m.write(run / "eval" / "metrics.json")
+    plain = make_run(tmp_path, "plain", maps=False)
+    html = stage.run([run, plain], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
+    assert ("r (evaluate): what the variance is made of on the scored pixels of its test views (each part&#x27;s "
+            "share, before the std factor): RGB: pixel noise 90 %, the samples&#x27; spread 10 %, resolution &lt;1 %; "
+            "depth: depth spread 100 %, the samples&#x27; spread 0 %") in html
+    assert "plain (evaluate): what the variance" not in html
+
+
 def test_training_section_says_which_sh_bands_the_scene_kept(tmp_path):
     from uncertsplat.schemas.runs import ShBandCheck
 

@@ -272,6 +272,26 @@ class TestColourPosterior:
         torch.testing.assert_close(got, expect, rtol=1e-3, atol=1e-7)
         assert float(got) > 0.5 * float(centre) * float(field.colour_prior[0]) * 0.2821**2
 
+    def test_blended_parts_are_the_noise_the_colour_and_the_edge_and_add_up_to_blended(self):
+        """``blended_parts``: "pixel noise" is the noise alone blended, "colour posterior" ``colour_blended``, "edge"
+        the edge term, for each of several cameras (the colour term depends on the camera); ``blended`` is their sum.
+        Without a colour or an edge term the part is absent."""
+        sample, cams, d = _sample(), _cams(3), 0.05
+        out, g, images = _edge_images(sample, cams, d, 0.5)
+        field = self._fit(sample, cams, images, edge_scale=0.5)
+        back = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))[None]  # the turned camera sees the unseen Gaussian
+        both = Cameras(torch.cat([cams.cam_from_world[:1], back]), cams.K[:2], W, H, ("v0.png", "back.png"))
+        parts = field.blended_parts(both, RENDER)
+        assert list(parts) == ["pixel noise", "colour posterior", "edge"]
+        noise_only = replace(field, colour_evidence=None, edge_scale=0.0)
+        torch.testing.assert_close(parts["pixel noise"], noise_only.blended(both, RENDER), rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(parts["colour posterior"], field.colour_blended(both, RENDER), rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(parts["edge"], field.edge(both, RENDER))
+        assert float(parts["colour posterior"][1].max()) > 3 * float(parts["colour posterior"][0].max())  # (x5.7)
+        torch.testing.assert_close(field.blended(both, RENDER),
+                                   parts["pixel noise"] + parts["colour posterior"] + parts["edge"], rtol=0, atol=0)
+        assert list(noise_only.blended_parts(both, RENDER)) == ["pixel noise"]
+
     def test_constant_images_and_subset(self):
         """Images without any variation: the prior is 0 (floored), every colour variance finite and ~0; ``subset``
         keeps each Gaussian's evidence."""

@@ -160,13 +160,19 @@ def test_schema_keys_walk_nested_records():
     assert issubclass(PruneReport, schemas.SchemaFile)
 
 
-def test_evaluation_reports_of_versions_1_to_3_read(tmp_path):
+def test_evaluation_reports_of_versions_1_to_4_read(tmp_path):
     """``metrics.json`` gained ``run_sha256`` in version 3 (``prune`` reads an evaluation of the same model file
-    back) and the Student-t predictive in version 4; older reports read with the model file at None, so ``prune``
-    measures again instead of trusting them, and with the Gaussian predictive they were scored with."""
+    back), the Student-t predictive in version 4 and ``variance_shares`` in version 5; older reports read with the
+    model file at None, so ``prune`` measures again instead of trusting them, with the Gaussian predictive they were
+    scored with, and without shares."""
     current = schemas.EvalReport(image_names=["a.png"], device="cpu", run_sha256="f" * 64).model_dump(mode="json")
     new_view_keys = ("nll_gaussian", "calibration_error_gaussian")
-    v3 = {k: v for k, v in current.items() if k != "degrees_of_freedom"} | {
+    v4 = {k: v for k, v in current.items() if k != "variance_shares"} | {"schema_version": 4,
+                                                                          "degrees_of_freedom": 3.5}
+    (tmp_path / "metrics.json").write_text(json.dumps(v4))
+    got = schemas.EvalReport.read(tmp_path / "metrics.json")
+    assert got.schema_version == 5 and got.variance_shares == {} and got.degrees_of_freedom == 3.5
+    v3 = {k: v for k, v in v4.items() if k != "degrees_of_freedom"} | {
         "schema_version": 3, "mean": {k: v for k, v in current["mean"].items() if k not in new_view_keys}}
     v2 = {k: v for k, v in v3.items() if k != "run_sha256"} | {"schema_version": 2}
     v1 = {k: v for k, v in v2.items() if k != "calibration_held_out"} | {"schema_version": 1}
@@ -174,7 +180,7 @@ def test_evaluation_reports_of_versions_1_to_3_read(tmp_path):
         path = tmp_path / "metrics.json"
         path.write_text(json.dumps(data))
         got = schemas.EvalReport.read(path)
-        assert got.schema_version == 4 and got.image_names == ["a.png"]
+        assert got.schema_version == 5 and got.image_names == ["a.png"] and got.variance_shares == {}
         assert got.degrees_of_freedom is None and got.mean.nll_gaussian is None
         assert got.run_sha256 == ("f" * 64 if data is v3 else None)
         assert got.calibration_held_out is False

@@ -148,6 +148,8 @@ class ViewMaps:
         alpha_mean: [H,W,1] mean accumulated opacity (None when not given).
         dof: the degrees of freedom of the RGB predictive's Student-t (``evaluate_views``' ``dof``; None: the
             Gaussian).
+        rgb_terms: {part: [H,W,1]} what each part of the predictive adds to the RGB variance (``UncertaintyMaps.
+            rgb_terms``; None when not given).
     """
 
     name: str
@@ -158,6 +160,7 @@ class ViewMaps:
     depth_std: Tensor
     alpha_mean: Tensor | None = None
     dof: float | None = None
+    rgb_terms: dict[str, Tensor] | None = None
 
 
 @dataclass
@@ -186,40 +189,41 @@ def _shift_fn(sampler: Sampler, cfg: EvalSettings, device: torch.device):
 def predictive_terms(sampler: Sampler, cfg: EvalSettings, cams: Cameras, *, depth: bool = True) -> dict:
     """The terms ``mc_render`` adds to the samples' spread for ``cams``, as the settings allow (``depth=False``: none
     of the depth-only ones, for a caller that reads the RGB maps alone): ``mc_render(..., **predictive_terms(...))``
-    is ``evaluate``'s predictive (``uncertsplat.predict`` for any camera)."""
+    is ``evaluate``'s predictive (``uncertsplat.predict`` for any camera). The side terms come as named maps
+    (``mc.sum_terms`` adds them up; ``mc_render``'s ``terms`` keeps each)."""
     from uncertsplat.uncertainty.mc import depth_spread
 
     extra, hidden = _side_variance(sampler, cams, hidden_depth=depth and cfg.hidden_depth)
-    spread = depth_spread(_representative(sampler, cams.device), cams, sampler.render_fn) \
-        if cfg.depth_spread and depth else None
+    depth_parts: dict[str, Tensor] = {}
+    if cfg.depth_spread and depth:
+        depth_parts["depth spread"] = depth_spread(_representative(sampler, cams.device), cams, sampler.render_fn)
     if hidden is not None:
-        spread = hidden if spread is None else spread + hidden.to(spread)
+        depth_parts["hidden surface"] = hidden
     return {"empty_std": sampler.empty_std if cfg.empty_rays else None, "coverage": sampler.coverage,
-            "extra_var": extra, "extra_depth_var": spread, "shift_fn": _shift_fn(sampler, cfg, cams.device),
-            "shift_renders": cfg.resolution_renders}
+            "extra_var": extra or None, "extra_depth_var": depth_parts or None,
+            "shift_fn": _shift_fn(sampler, cfg, cams.device), "shift_renders": cfg.resolution_renders}
 
 
 def _side_variance(sampler: Sampler, cams: Cameras, *, hidden_depth: bool = False
-                   ) -> tuple[Tensor | None, Tensor | None]:
-    """[C,H,W,1] the RGB variance of the sampler's side terms, the pixel noise and the view-consistency term (None
-    without either): what ``mc_render`` adds to the samples' spread as ``extra_var``; and with ``hidden_depth`` the
-    depth variance of the view-consistency term's hidden points (``ViewConsistency.hidden_depth_variance``, from the
-    same render and lookup; None without the term or ``hidden_depth``)."""
-    extra = sampler.residual.blended(cams, sampler.render_fn) if sampler.residual is not None else None
+                   ) -> tuple[dict[str, Tensor], Tensor | None]:
+    """The RGB variance maps [C,H,W,1] of the sampler's side terms, by name in the order ``mc_render`` adds them
+    (empty without any): the pixel noise's parts (``ResidualField.blended_parts``), "view consistency" and
+    "exposure"; and with ``hidden_depth`` the depth variance of the view-consistency term's hidden points
+    (``ViewConsistency.hidden_depth_variance``, from the same render and lookup; None without the term or
+    ``hidden_depth``)."""
+    extra = dict(sampler.residual.blended_parts(cams, sampler.render_fn)) if sampler.residual is not None else {}
     hidden = None
     if sampler.consistency is not None:
         parts = [sampler.consistency.variances(cams[[j]], sampler.render_fn, hidden_depth=hidden_depth)
                  for j in range(len(cams))]
-        term = torch.cat([p[0] for p in parts])
-        extra = term if extra is None else extra + term
+        extra["view consistency"] = torch.cat([p[0] for p in parts])
         if hidden_depth:
             hidden = torch.cat([p[1] for p in parts])
     if sampler.exposure is not None:
         rep = _representative(sampler, cams.device)
         with torch.no_grad():
-            term = torch.cat([sampler.exposure.variance(sampler.render_fn(rep, cams[[j]]).rgb)
-                              for j in range(len(cams))])
-        extra = term if extra is None else extra + term
+            extra["exposure"] = torch.cat([sampler.exposure.variance(sampler.render_fn(rep, cams[[j]]).rgb)
+                                           for j in range(len(cams))])
     return extra, hidden
 
 
@@ -588,7 +592,7 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
         training split, when there is no view to fit on or no valid pixel.
     """
     from uncertsplat.eval.tails import FIT_ELEMENTS, fit_dof
-    from uncertsplat.uncertainty.mc import mc_render
+    from uncertsplat.uncertainty.mc import mc_render, sum_terms
 
     chosen = calibration_indices(split, cfg)
     if not chosen:
@@ -612,7 +616,7 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
         if set_aside_maps is not None and i in set_aside_maps:
             mean, bare_std = set_aside_maps[i]
             extra = _side_variance(dataclasses.replace(sampler, exposure=None), cam)[0]  # bare_std has the exposures' term
-            std = bare_std if extra is None else (bare_std.square() + extra.cpu().to(bare_std)).sqrt()
+            std = (bare_std.square() + sum_terms(extra).cpu().to(bare_std)).sqrt() if extra else bare_std
         else:
             gen.manual_seed(view_seed(cfg.seed, i))
             maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cam, cfg.num_samples, gen,
@@ -862,6 +866,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     notes.append(STD_TERMS + " + ".join(terms))
 
     results: list[_ViewResult] = []
+    term_sums: dict[str, dict[str, float]] = {"rgb": {}, "depth": {}}  # per part, its mean over each view, summed
     kept: tuple[Tensor, Tensor, Tensor] | None = None  # the depth maps the depth metrics wait for (with GT depth)
     gen = torch.Generator(device=device)
     prog = progress() if show_progress else None
@@ -876,7 +881,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
             t0 = time.perf_counter()
-            maps, samples = mc_render(sample_fn, render_fn, cams, K, gen, keep_samples=keep,
+            maps, samples = mc_render(sample_fn, render_fn, cams, K, gen, keep_samples=keep, terms=True,
                                       **predictive_terms(sampler, cfg, cams))
             if device.type == "cuda":
                 torch.cuda.synchronize(device)
@@ -938,8 +943,14 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                 if masks is not None:
                     r.depth_valid &= masks[j]
             results.append(r)
+            scored = mask if mask is not None else torch.ones_like(a_mean, dtype=torch.bool)
+            _add_term_means(term_sums["rgb"], maps.rgb_terms, scored)
+            _add_term_means(term_sums["depth"], maps.depth_terms, scored & (a_mean > 0.5))
+            rgb_terms = {k: t[0].cpu() for k, t in maps.rgb_terms.items()} if maps.rgb_terms is not None else None
+            del maps
             if on_view is not None:
-                on_view(ViewMaps(name, gt, pred, std, d_mean, d_std, a_mean, dof))
+                on_view(ViewMaps(name, gt, pred, std, d_mean, d_std, a_mean, dof, rgb_terms))
+            del rgb_terms
             if prog:
                 prog.update(task, advance=1, info=f"{name}: PSNR {m['psnr']:.2f} AUSE {m['ause_mae']:.3f} "
                                                   f"{seconds:.2f}s")
@@ -1070,8 +1081,25 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         edge_scale=sampler.residual.edge_scale if sampler.residual is not None else None,
         lpips=LpipsStatus(available=lp_ok, reason=lp_reason),
         device=str(device),
+        variance_shares={k: _shares(v) for k, v in term_sums.items() if _shares(v)},
         notes=notes,
     )
+
+
+def _add_term_means(sums: dict[str, float], terms: Mapping[str, Tensor] | None, scored: Tensor) -> None:
+    """Adds each part's mean over one view's ``scored`` pixels ([H,W,1] bool) to ``sums`` (parts [1,H,W,1]; a view
+    without a scored pixel adds nothing)."""
+    if terms is None or not bool(scored.any()):
+        return
+    for name, t in terms.items():
+        value = float(t[0].cpu()[scored].double().mean())
+        sums[name] = sums.get(name, 0.0) + (value if math.isfinite(value) else 0.0)
+
+
+def _shares(sums: Mapping[str, float]) -> dict[str, float]:
+    """Each part's share of the summed variance (empty when there is none to share)."""
+    total = sum(sums.values())
+    return {k: v / total for k, v in sums.items()} if total > 0.0 else {}
 
 
 __all__ = ["KDE_MAX_SAMPLES", "STD_TERMS", "EvalSettings", "Sampler", "StdFit", "ViewMaps", "calibration_indices",

@@ -20,9 +20,10 @@ from uncertsplat.schemas.base import SchemaFile
 from uncertsplat.schemas.base import Strict as _Strict
 from uncertsplat.schemas.base import finite_or_none as _finite_or_none
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 """``EvalReport``'s: 2 added ``calibration_held_out`` (2026-11-27), 4 the Student-t predictive
-(``degrees_of_freedom``, the Gaussian readings and the calibration table's half-widths; 2026-11-28)."""
+(``degrees_of_freedom``, the Gaussian readings and the calibration table's half-widths; 2026-11-28), 5
+``variance_shares`` (2026-12-01)."""
 
 
 class ViewMetrics(_Strict):
@@ -182,6 +183,11 @@ class LpipsStatus(_Strict):
     reason: str
 
 
+def _percent(share: float) -> str:
+    """A share as a whole percentage; below 0.5 % as "<1 %" (0 stays "0 %")."""
+    return "0 %" if share <= 0.0 else "<1 %" if share < 0.005 else f"{100 * share:.0f} %"
+
+
 class EvalReport(SchemaFile):
     """Everything ``evaluate`` measured for one run and split (``RUN/eval/metrics.json``)."""
 
@@ -193,8 +199,8 @@ class EvalReport(SchemaFile):
     def _upgrade(cls, data: dict, version: int) -> dict | None:
         # version 1 had every key but calibration_held_out (its std factor was always fitted on training views) and
         # run_sha256; version 2 every key but run_sha256 (not recorded); version 3 every key but the Student-t's
-        # (its predictive was the Gaussian: the defaults)
-        if version not in (1, 2, 3):
+        # (its predictive was the Gaussian: the defaults); version 4 every key but variance_shares (not recorded)
+        if version not in (1, 2, 3, 4):
             return None
         out = dict(data)
         if version < 3:
@@ -238,6 +244,18 @@ class EvalReport(SchemaFile):
         """The views the std factor and a fitted noise level come from, in words (``calibration_held_out``)."""
         return "views set aside from training" if self.calibration_held_out else "training views"
 
+    def variance_parts(self) -> str | None:
+        """``variance_shares`` in words, each modality's parts largest first ("RGB: resolution 40 %, view consistency
+        39 %, ...; depth: ..."); None when not recorded."""
+        names = {"samples": "the samples' spread"}
+        out = []
+        for modality, label in (("rgb", "RGB"), ("depth", "depth")):
+            shares = self.variance_shares.get(modality)
+            if shares:
+                ranked = sorted(shares.items(), key=lambda kv: -kv[1])
+                out.append(f"{label}: " + ", ".join(f"{names.get(k, k)} {_percent(v)}" for k, v in ranked))
+        return "; ".join(out) or None
+
     noise_scale: float | None = None
     """The factor the pixel noise (``EvalConfig.residual_views``) carries: fitted by maximum likelihood on the views
     set aside from training (``calibration_held_out``) or on training views (``EvalConfig.residual_scale``), or set;
@@ -247,6 +265,13 @@ class EvalReport(SchemaFile):
     pixel-noise term or in reports from before it."""
     lpips: LpipsStatus | None = None
     device: str | None = None
+    variance_shares: dict[str, dict[str, float]] = Field(default_factory=dict)
+    """What the predictive's variance is made of on the scored pixels: {"rgb": {part: share}, "depth": {...}}, each
+    part's mean variance over the views' scored pixels (depth: those the samples cover, mean alpha above 0.5) as a
+    share of their sum, before the std factor and the RGB std's cap. Parts in the order they are added: "samples" (the
+    spread of the K renders: the posterior's, or an ensemble's members'), "resolution", "empty rays", "pixel noise",
+    "colour posterior", "edge", "view consistency", "exposure"; for depth also "depth spread" and "hidden surface".
+    Empty when not recorded (files of schema version 4 and older)."""
     run_sha256: str | None = None
     """What was scored: a SHA-256 over the model file (``variational.ply`` or the method's file) and the run's
     ``config.json`` and ``scene.json`` (``stages.evaluate.run_sha256``); None: not recorded (files of schema version

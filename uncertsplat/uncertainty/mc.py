@@ -24,7 +24,7 @@ are moved by a fraction of their own size (``resolution_shift``); the variance o
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
 import torch
@@ -115,28 +115,61 @@ class MonteCarloMoments:
         self.shift_depth.update(out.depth)
 
     def maps(self, image_names: tuple[str, ...] = (), *, empty_std: tuple[float, float] | None = None,
-             extra_var: Tensor | None = None, extra_depth_var: Tensor | None = None) -> UncertaintyMaps:
-        """The mean and std maps of the samples so far (see ``mc_render`` for ``empty_std``, ``extra_var`` and
-        ``extra_depth_var``)."""
+             extra_var: Terms | None = None, extra_depth_var: Terms | None = None,
+             terms: bool = False) -> UncertaintyMaps:
+        """The mean and std maps of the samples so far (see ``mc_render`` for ``empty_std``, ``extra_var``,
+        ``extra_depth_var`` and ``terms``)."""
         rgb_var, depth_var = self.rgb.var, self.depth.var
+        rgb_parts: dict[str, Tensor] = {"samples": rgb_var}
+        depth_parts: dict[str, Tensor] = {"samples": depth_var}
         if self.shift_rgb.count:
-            rgb_var = rgb_var + self.shift_rgb.var
-            depth_var = depth_var + self.shift_depth.var
+            rgb_parts["resolution"], depth_parts["resolution"] = self.shift_rgb.var, self.shift_depth.var
+            rgb_var = rgb_var + rgb_parts["resolution"]
+            depth_var = depth_var + depth_parts["resolution"]
         if empty_std is not None and (empty_std[0] > 0 or empty_std[1] > 0):
             # the mean over the samples of (1 - alpha / coverage)_+^2, [C,H,W,1] (M2 / n is the biased variance)
             gap = self.gap.mean.square() + self.gap.var * ((self.count - 1) / self.count)
-            rgb_var = rgb_var + gap * empty_std[0] ** 2
-            depth_var = depth_var + gap * empty_std[1] ** 2
+            rgb_parts["empty rays"], depth_parts["empty rays"] = gap * empty_std[0] ** 2, gap * empty_std[1] ** 2
+            rgb_var = rgb_var + rgb_parts["empty rays"]
+            depth_var = depth_var + depth_parts["empty rays"]
         if extra_var is not None:
-            rgb_var = rgb_var + extra_var.to(rgb_var)
+            rgb_var = rgb_var + sum_terms(extra_var).to(rgb_var)
+            rgb_parts.update(_named(extra_var, "extra"))
         if extra_depth_var is not None:
-            depth_var = depth_var + extra_depth_var.to(depth_var)
+            depth_var = depth_var + sum_terms(extra_depth_var).to(depth_var)
+            depth_parts.update(_named(extra_depth_var, "extra"))
         # a colour in [0, 1] spreads at most 0.5 (half its mass at each end): the side terms, each sized for a
         # render at the photos' resolution, add up past that on a render several times finer (0.69 at 8x)
         rgb_std, depth_std = rgb_var.sqrt().clamp_max(RGB_STD_MAX), depth_var.sqrt()
+        rgb_terms = depth_terms = None
+        if terms:  # per pixel, the RGB parts as the mean over the channels of those that have three
+            rgb_terms = {k: (v.mean(-1, keepdim=True) if v.shape[-1] == 3 else v).to(rgb_var)
+                         for k, v in rgb_parts.items()}
+            depth_terms = {k: v.to(depth_var) for k, v in depth_parts.items()}
         return UncertaintyMaps(rgb_mean=self.rgb.mean, rgb_std=rgb_std, depth_mean=self.depth.mean,
                                depth_std=depth_std, alpha_mean=self.alpha.mean, n_samples=self.count,
-                               image_names=image_names)
+                               image_names=image_names, rgb_terms=rgb_terms, depth_terms=depth_terms)
+
+
+Terms = Tensor | Mapping[str, Tensor]
+"""A variance map [C,H,W,1], or several named ones whose sum it is (``mc_render``'s ``extra_var``)."""
+
+
+def sum_terms(extra: Terms) -> Tensor:
+    """``extra`` itself, or the sum of its maps in their order (the first's device and dtype)."""
+    if not isinstance(extra, Mapping):
+        return extra
+    if not extra:
+        raise ValueError("an empty mapping of variance terms (give None for no term)")
+    maps = list(extra.values())
+    total = maps[0]
+    for m in maps[1:]:
+        total = total + m.to(total)
+    return total
+
+
+def _named(extra: Terms, name: str) -> dict[str, Tensor]:
+    return dict(extra) if isinstance(extra, Mapping) else {name: extra}
 
 
 RGB_STD_MAX = 0.5
@@ -170,10 +203,11 @@ def mc_render(
     keep_samples: bool = False,
     empty_std: tuple[float, float] | None = None,
     coverage: float = 1.0,
-    extra_var: Tensor | None = None,
-    extra_depth_var: Tensor | None = None,
+    extra_var: Terms | None = None,
+    extra_depth_var: Terms | None = None,
     shift_fn: SampleFn | None = None,
     shift_renders: int = 1,
+    terms: bool = False,
 ) -> tuple[UncertaintyMaps, MCSamples | None]:
     """Render ``num_samples`` posterior samples of ``cameras`` and return their mean and std maps.
 
@@ -195,15 +229,19 @@ def mc_render(
             surface was seen (alpha 0.9-1, its colours fitted with that), and that part is not unknown. 1
             counts every alpha < 1 (the term before 2026-11-25; BENCHMARKS.md, "Coverage, resolution and floaters").
         extra_var: [C,H,W,1] a variance added to the RGB variance, e.g. the pixel noise of the model's
-            Gaussians (``uncertainty.residual``): the predictive of a pixel is the samples' spread plus it.
+            Gaussians (``uncertainty.residual``): the predictive of a pixel is the samples' spread plus it. Or a
+            mapping of named such maps, added as their sum in their order (``sum_terms``), each a part of ``terms``.
         extra_depth_var: [C,H,W,1] a variance added to the depth variance, e.g. the spread of the depths each ray
-            blends (``depth_spread``).
+            blends (``depth_spread``); or a mapping of named ones, as ``extra_var``.
         shift_fn: the resolution term (``resolution_shift``): one render of it per sample, whose variance is added
             to the RGB and depth variance (their mean is not used). Draws from its own generator, seeded from
             ``generator``'s initial seed.
         shift_renders: renders of ``shift_fn`` per sample (``shift_renders`` x K in all): the resolution term's
             variance is estimated from that many renders, so its Monte Carlo noise falls with them (it is what
             the std's ranking loses most to at small K; BENCHMARKS.md, "The resolution term's renders").
+        terms: also return what each part adds to the variance (``UncertaintyMaps.rgb_terms`` / ``depth_terms``):
+            "samples" (the K renders' spread), "resolution", "empty rays", and ``extra_var``'s and
+            ``extra_depth_var``'s named maps (a bare tensor is named "extra").
 
     Returns:
         (UncertaintyMaps with rgb_mean/rgb_std [C,H,W,3], depth_mean/depth_std [C,H,W,1],
@@ -236,7 +274,7 @@ def mc_render(
             # the next iteration (otherwise two renders are alive at the peak).
             del sample, out
     maps = moments.maps(tuple(cameras.image_names), empty_std=empty_std, extra_var=extra_var,
-                        extra_depth_var=extra_depth_var)
+                        extra_depth_var=extra_depth_var, terms=terms)
     samples = MCSamples(torch.stack(kept_rgb), torch.stack(kept_depth)) if keep_samples else None
     return maps, samples
 

@@ -191,15 +191,35 @@ class ResidualField:
         return self.edge_scale * image_gradient_sq(render_fn(self.sample, cameras).rgb)
 
     @torch.no_grad()
+    def blended_parts(self, cameras: Cameras,
+                      render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> dict[str, Tensor]:
+        """``blended``'s parts, [C,H,W,1] each: "pixel noise" ``sum_i w_i(p) v_i``, "colour posterior" ``sum_i w_i(p)
+        c_i`` (with a colour term) and "edge" (with an edge term). The first two are one blend (their values in two
+        channels of the same renders)."""
+        if self.colour_evidence is not None and len(cameras) > 1:  # the colour term depends on the camera
+            per = [self.blended_parts(cameras[[j]], render_fn) for j in range(len(cameras))]
+            return {k: torch.cat([p[k] for p in per]) for k in per[0]}
+        if self.colour_evidence is not None:
+            colour = self.colour_variance(cameras.centers)[0]
+            both = blend_colours(self.sample, torch.stack([self.variance, colour, torch.zeros_like(colour)], -1),
+                                 cameras, render_fn)[0]  # two renders: see blend_colours
+            parts = {"pixel noise": both[..., :1], "colour posterior": both[..., 1:2]}
+        else:
+            parts = {"pixel noise": blend_values(self.sample, self.variance, cameras, render_fn)[0]}
+        if self.edge_scale > 0.0:
+            parts["edge"] = self.edge(cameras, render_fn)
+        return parts
+
+    @torch.no_grad()
     def blended(self, cameras: Cameras, render_fn: Callable[[GaussianSample, Cameras], RenderOutput]) -> Tensor:
         """[C,H,W,1] ``sum_i w_i(p) (v_i + c_i)`` for the cameras (c_i: the colour posterior's variance seen from
-        the camera, 0 without a colour term), plus the edge term when the field has one."""
-        if self.colour_evidence is not None and len(cameras) > 1:  # the colour term depends on the camera
-            return torch.cat([self.blended(cameras[[j]], render_fn) for j in range(len(cameras))])
-        var = self.variance + self.colour_variance(cameras.centers)[0] if self.colour_evidence is not None else \
-            self.variance
-        out = blend_values(self.sample, var, cameras, render_fn)[0]  # two renders: see blend_values
-        return out + self.edge(cameras, render_fn) if self.edge_scale > 0.0 else out
+        the camera, 0 without a colour term), plus the edge term when the field has one: the sum of
+        ``blended_parts``."""
+        parts = list(self.blended_parts(cameras, render_fn).values())
+        total = parts[0]
+        for part in parts[1:]:
+            total = total + part
+        return total
 
     STATE_TENSORS = ("variance", "seen", "observations", "colour_evidence", "colour_prior", "pixel_variance")
     STATE_NUMBERS = ("mean_variance", "scale", "leverage_inflation", "edge_scale")
