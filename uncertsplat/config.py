@@ -765,7 +765,7 @@ class EvalConfig(_Base):
     0.348 with 16, for 3.4 s of a 29 s evaluation)."""
     residual_scale: Literal["auto", "fit"] | Annotated[float, Field(gt=0.0, le=1e30)] = "auto"
     """The pixel noise's level: a factor for the fitted per-Gaussian noise (1: each Gaussian's mean squared training
-    residual itself), or ``fit``: the maximum-likelihood factor given the rest of the predictive
+    residual itself), or ``fit``: the unit z-variance factor given the rest of the predictive
     (``eval.engine.fit_noise_scale``) on the views set aside from training when the scene has some
     (``SceneConfig.calibration_holdout``), else on training views. ``auto`` (the default): ``fit`` on views set
     aside, 1 without them. Fitted on training views it calibrates views like the training ones (demo: std factor

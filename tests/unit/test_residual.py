@@ -96,7 +96,7 @@ def test_explained_variance_is_taken_off_the_residual():
 
 
 class TestNoiseScale:
-    """``eval.engine.fit_noise_scale``: the maximum-likelihood level of the pixel noise on training views."""
+    """``eval.engine.fit_noise_scale``: the pixel noise's level at which the z-scores have unit variance."""
 
     @staticmethod
     def _setup(d: float = 0.05):
@@ -145,6 +145,42 @@ class TestNoiseScale:
         with torch.no_grad():
             exact = RENDER(sample, cams).rgb.clamp(0, 1)
         assert fit_noise_scale(field, sample, cams, exact, RENDER) == pytest.approx(1e-4)
+
+    def test_the_scale_solves_the_unit_variance_equation_which_is_ml_only_without_explained(self):
+        """With ``explained`` e > 0 the fitted a is the root of mean r^2 / (e + a n) = 1 (its docstring), not
+        the Gaussian likelihood's stationary point sum n (r^2 - v) / v^2 = 0 (v = e + a n), another number;
+        with e = 0 the two are the same, a = mean(r^2 / n)."""
+        from uncertsplat.eval.engine import fit_noise_scale
+
+        sample, cams, images, field = self._setup()
+        g = torch.Generator().manual_seed(1)
+        e_maps = [torch.rand(1, H, W, 1, generator=g) ** 4 * 4e-3 for _ in range(len(cams))]
+
+        def explained(cam):
+            j = int(round(-float(cam.cam_from_world[0, 0, 3]) / 0.05))
+            return e_maps[j]
+
+        with torch.no_grad():
+            out = RENDER(sample, cams)
+            r2 = (out.rgb.clamp(0, 1) - images).square().mean(-1, keepdim=True).double()
+        covered = out.alpha >= 0.5
+        n = field.blended(cams, RENDER).double()[covered]
+        e = torch.cat(e_maps).double()[covered]
+        r2 = r2[covered]
+        a = fit_noise_scale(field, sample, cams, images, RENDER, explained=explained, std_floor=1e-9)
+        assert abs(float((r2 / (e + a * n)).mean()) - 1.0) < 1e-6
+
+        def score(b: float) -> float:  # d log-likelihood / d a, up to a positive factor
+            v = e + b * n
+            return float((n * (r2 - v) / v.square()).sum())
+
+        lo, hi = 1e-4, 1e4
+        for _ in range(200):
+            mid = (lo * hi) ** 0.5
+            lo, hi = (mid, hi) if score(mid) > 0 else (lo, mid)
+        assert abs(a / lo - 1.0) > 1e-3, "with e > 0 the unit-variance root is not the likelihood's"
+        plain = fit_noise_scale(field, sample, cams, images, RENDER, std_floor=1e-9)
+        assert plain == pytest.approx(float((r2 / n).mean()), rel=1e-9)
 
 
 class TestOutOfSample:

@@ -366,12 +366,13 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
 def _rest_of_predictive(sampler: Sampler, cfg: EvalSettings, cameras: Cameras, indices: Sequence[int],
                         device: torch.device,
                         keep: dict[int, tuple[Tensor, Tensor]] | None = None) -> Callable[[Cameras], Tensor]:
-    """``explained(camera) -> [1,H,W,1]`` for ``fit_noise_scale`` on views set aside from training: the RGB variance
-    of the predictive ``evaluate`` scores there without the pixel noise (the K samples' spread, the resolution term,
-    the empty-ray term; the view-consistency term is 0 this close to the training views) of ``cameras`` (scene
-    ``indices``), each with its evaluation seed, so the noise's level is the maximum-likelihood one given everything
-    else that will be added to it. With the resolution term alone in its place the demo's std came out 20-25 % too
-    wide (BENCHMARKS.md, "Why the demo's raw calibration error stays above 0.05"). ``keep``: receives each view's
+    """``explained(camera) -> [1,H,W,1]`` for ``fit_noise_scale`` on views set aside from training: the RGB
+    variance of the predictive ``evaluate`` scores there without the pixel noise (the K samples' spread, the
+    resolution term, the empty-ray term; the view-consistency term is 0 this close to the training views) of
+    ``cameras`` (scene ``indices``), each with its evaluation seed, so the noise's level is the one at which
+    the whole predictive's z-scores have unit variance there (``fit_noise_scale``), given everything else that
+    will be added to it. With the resolution term alone in its place the demo's std came out 20-25 % too wide
+    (BENCHMARKS.md, "Why the demo's raw calibration error stays above 0.05"). ``keep``: receives each view's
     (rgb_mean, rgb_std) [1,H,W,3] (on the CPU) by scene index."""
     from uncertsplat.uncertainty.mc import mc_render
 
@@ -427,15 +428,21 @@ NOISE_SCALE_VIEWS = 16
 def fit_noise_scale(field: ResidualField, sample: GaussianSample, cameras: Cameras, images: Tensor,
                     render_fn: Callable[[GaussianSample, Cameras], RenderOutput], *, masks: Tensor | None = None,
                     explained: Callable[[Cameras], Tensor] | None = None, std_floor: float = 1e-3) -> float:
-    """The maximum-likelihood scale ``a`` of the pixel noise given the rest of the predictive, on training views.
+    """The scale ``a`` of the pixel noise at which the Gaussian predictive's z-scores have unit variance,
+    given the rest of the predictive, on training views (or the views set aside: ``fit_residual``).
 
-    Solves ``mean_p r(p)^2 / (e(p) + a n(p)) = 1`` over the valid pixels with alpha >= ``MIN_NOISE_ALPHA`` of at
-    most ``NOISE_SCALE_VIEWS`` of ``cameras``, where r^2 is the squared residual of ``sample``'s render (mean over
-    the channels), ``n`` the field's blended noise and ``e`` what ``explained`` gives (the resolution term; 0
-    without it): the scale at which the Gaussian predictive's z-scores have unit variance there. The per-Gaussian
-    noise is a local mean of r^2, and r^2 is heavy-tailed (most pixels fit closely, a few edges do not), so the unscaled noise makes most
-    pixels' std too large (the demo scene: a factor of 0.63 fitted on the whole std). Monotone in ``a``:
-    bisection in log space over [1e-4, 1e4] (an end when the root lies beyond it).
+    Solves ``mean_p r(p)^2 / (e(p) + a n(p)) = 1`` over the valid pixels with alpha >= ``MIN_NOISE_ALPHA`` of
+    at most ``NOISE_SCALE_VIEWS`` of ``cameras``, where r^2 is the squared residual of ``sample``'s render
+    (mean over the channels), ``n`` the field's blended noise and ``e`` what ``explained`` gives (the
+    resolution term; 0 without it): the scale at which the Gaussian predictive's z-scores have unit variance
+    there. This is the maximum-likelihood scale only where ``e`` is 0 (then a = mean r^2 / n); with ``e`` > 0
+    the likelihood's stationary point is the root of ``sum_p n(p) (r(p)^2 - v(p)) / v(p)^2 = 0``, v = e + a n,
+    which weights the pixels the noise dominates more: a moment (unit z-variance) estimate, not the
+    maximum-likelihood one (the two agree when the predictive's form is right; on heavy-tailed residuals they
+    differ by a few per cent). The per-Gaussian noise is a local mean of r^2, and r^2 is heavy-tailed (most
+    pixels fit closely, a few edges do not), so the unscaled noise makes most pixels' std too large (the demo
+    scene: a factor of 0.63 fitted on the whole std). Monotone in ``a``: bisection in log space over [1e-4,
+    1e4] (an end when the root lies beyond it).
     """
     r2s, es, ns = [], [], []
     for j in evenly_spaced(range(len(cameras)), NOISE_SCALE_VIEWS):

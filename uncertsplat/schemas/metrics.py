@@ -257,9 +257,10 @@ class EvalReport(SchemaFile):
         return "; ".join(out) or None
 
     noise_scale: float | None = None
-    """The factor the pixel noise (``EvalConfig.residual_views``) carries: fitted by maximum likelihood on the views
-    set aside from training (``calibration_held_out``) or on training views (``EvalConfig.residual_scale``), or set;
-    None without the pixel-noise term, or in reports from before it was scaled (factor 1)."""
+    """The factor the pixel noise (``EvalConfig.residual_views``) carries: fitted so that the predictive's
+    z-scores have unit variance (``eval.engine.fit_noise_scale``) on the views set aside from training
+    (``calibration_held_out``) or on training views (``EvalConfig.residual_scale``), or set; None without the
+    pixel-noise term, or in reports from before it was scaled (factor 1)."""
     edge_scale: float | None = None
     """delta^2 (pixels^2) of the pixel noise's edge term (``EvalConfig.edge_noise``): 0 without it, None without the
     pixel-noise term or in reports from before it."""

@@ -784,7 +784,7 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
     if report.noise_scale is not None:
         # a fitted level is worth a line (1, the default without views set aside, is not)
         if cfg.residual_scale == "fit" or (cfg.residual_scale == "auto" and report.calibration_held_out):
-            console.print(f"pixel noise x {report.noise_scale:.3g} (maximum likelihood on the "
+            console.print(f"pixel noise x {report.noise_scale:.3g} (unit z-variance on the "
                           f"{report.calibration_source})")
     if report.std_scale is not None:
         m = report.mean
