@@ -286,6 +286,36 @@ class TestColourPosterior:
         assert v_side > 5 * v_front
         assert v_side <= float(field.colour_prior[0]) * 0.2821**2 + float(field.colour_prior[3]) * 0.4886**2 + 1e-9
 
+    def test_the_variance_is_the_diagonal_laplace_posterior_not_the_full_one(self):
+        """``colour_variance`` is sum_b Y_b(d)^2 / precision_b with the diagonal of the Laplace precision (its
+        docstring: the coefficients' covariance is dropped), not Y(d)^T (sum_v s Y_v Y_v^T + diag(1/prior))^-1
+        Y(d). Seen from one direction only, the exact posterior keeps about the prior's variance from the
+        opposite side; the diagonal one gives it the seen side's (band 1 flips sign, its square does not)."""
+        from uncertsplat.render.sh import sh_basis, view_directions
+
+        s = GaussianSample(means=torch.zeros(1, 3), quats=torch.tensor([[1.0, 0, 0, 0]]),
+                           scales=torch.ones(1, 3), opacities=torch.ones(1), sh=torch.zeros(1, 4, 3),
+                           sh_degree=1)
+        obs, noise = 200.0, 1e-3
+        prior = torch.tensor([0.05 / 0.28209479177387814**2, 0.01, 0.01, 0.01], dtype=torch.float64)
+        seen_centre = torch.tensor([[0.0, 0.0, 5.0]], dtype=torch.float64)
+        y_seen = sh_basis(1, view_directions(s.means.double(), seen_centre))[0, 0]
+        evidence = (obs * y_seen.square())[None]
+        field = ResidualField(sample=s, variance=torch.tensor([noise]), seen=torch.tensor([True]),
+                              mean_variance=noise, colour_evidence=evidence.float(),
+                              colour_prior=prior.float())
+        centers = torch.tensor([[0.0, 0.0, 5.0], [0.0, 0.0, -5.0]])
+        got = field.colour_variance(centers)[:, 0].double()
+        y = sh_basis(1, view_directions(s.means.double(), centers.double()))[:, 0]  # [2,4]
+        diagonal = (y.square() / (evidence / noise + 1.0 / prior)).sum(-1)
+        torch.testing.assert_close(got, diagonal, rtol=1e-5, atol=1e-12)
+        full = torch.linalg.inv(obs / noise * torch.outer(y_seen, y_seen) + torch.diag(1.0 / prior))
+        exact = torch.einsum("cb,bd,cd->c", y, full, y)
+        # the opposite side is as known as the seen one; exactly, it keeps (about) the prior's variance
+        assert float(got[1]) == pytest.approx(float(got[0]), rel=1e-5)
+        assert float(exact[1]) > 100 * float(got[1])
+
+
     def test_blended_adds_the_unknown_colour_where_a_new_view_uncovers_an_unseen_gaussian(self):
         """The Gaussian behind every training camera is unseen; a camera turned around sees it, and its blended
         variance there is (almost) noise + prior; on the training views the colour term adds little."""

@@ -23,16 +23,24 @@ estimates that noise per Gaussian, heteroscedastically, and renders it:
   error); only the Gaussians observed by fewer pixels than it, which the training residuals flatter most (the
   initial points of a surface few views saw), get more. Where the median Gaussian's leverage is already at the
   cap (a sparse capture: every Gaussian fitted by a few pixels) nothing changes.
-* The colour posterior (``fit_residual_field(colour_posterior=True)``, ``ResidualField.colour_variance``): the variational
-  posterior covers where a Gaussian is, not what colour it has. A Gaussian's colour is linear in its SH
-  coefficients, so the Laplace posterior of a coefficient b is exact for the pixel likelihood: precision
-  ``sum_views Y_b(d_v)^2 sum_p w_i(p) / v_i + 1 / prior_b`` (d_v: the direction from view v's centre to the
-  Gaussian; ``sum_p w_i(p)`` stands in for the exact ``sum_p w_i(p)^2``, an upper bound since w <= 1). The
-  prior is empirical: the DC colour's is the variance of the training pixels ("a surface no view saw looks like
-  some pixel of the capture"), each higher band's the mean square of that band over the seen Gaussians. Seen
-  from a direction d, the colour's variance is ``sum_b Y_b(d)^2 / precision_b``: negligible for a Gaussian that
-  views pinned down, the prior's for one no view saw (a surface a held-out view uncovers), and growing with
-  the angle from the directions its views had, for the view-dependent bands.
+* The colour posterior (``fit_residual_field(colour_posterior=True)``, ``ResidualField.colour_variance``): the
+  variational posterior covers where a Gaussian is, not what colour it has. A Gaussian's colour is linear in
+  its SH coefficients, so its Laplace posterior is Gaussian for the pixel likelihood, with the B x B precision
+  ``sum_views Y(d_v) Y(d_v)^T sum_p w_i(p) / v_i + diag(1 / prior)`` (d_v: the direction from view v's centre
+  to the Gaussian; ``sum_p w_i(p)`` stands in for the exact ``sum_p w_i(p)^2``, an upper bound since w <= 1).
+  Only its diagonal is kept (a mean-field approximation: precision_b = ``sum_views Y_b(d_v)^2 sum_p w_i(p) /
+  v_i + 1 / prior_b``, the coefficients independent), so the covariance between the coefficients is dropped:
+  the exact posterior pins down only the combinations the views' directions measured, while the diagonal one
+  pins every coefficient a view's basis touches. Exact for the DC term alone (degree 0). The prior is
+  empirical: the DC colour's is the variance of the training pixels ("a surface no view saw looks like some
+  pixel of the capture"), each higher band's the mean square of that band over the seen Gaussians. Seen from a
+  direction d, the colour's variance is ``sum_b Y_b(d)^2 / precision_b``: negligible for a Gaussian that views
+  pinned down, the prior's for one no view saw (a surface a held-out view uncovers), and larger from a
+  direction whose basis weighs coefficients the views did not constrain. It depends on d only through
+  Y_b(d)^2, so it cannot tell a direction from its opposite as the exact posterior does (the direction
+  opposite a single view, where the odd bands flip sign, gets the variance of the view's own direction; exact:
+  about the prior's), and at a view's own direction it is up to the number of coefficients times the exact
+  one.
 * The edge term (``fit_edge_scale``, ``ResidualField.edge_scale``): most of a model's error sits on the edges
   and texture lines of its render, where a fraction of a pixel's misplacement changes a pixel by a lot, and a
   per-Gaussian noise spreads that error over all the Gaussian's pixels (too wide where the image is flat, too
@@ -119,8 +127,10 @@ class ResidualField:
         return self.variance if self.pixel_variance is None else self.pixel_variance
 
     def colour_variance(self, centers: Tensor) -> Tensor:
-        """[C,N] the posterior variance of each Gaussian's colour (per channel, RGB units) seen from each camera
-        centre ``centers`` [C,3] (module docstring); zeros when the field has no colour term."""
+        """[C,N] the posterior variance of each Gaussian's colour (per channel, RGB units) seen from each
+        camera centre ``centers`` [C,3] under the diagonal (mean-field) Laplace posterior of its SH
+        coefficients (module docstring: the covariance between coefficients is dropped); zeros when the field
+        has no colour term."""
         s = self.sample
         if self.colour_evidence is None:
             return torch.zeros(centers.shape[0], s.means.shape[0], device=s.means.device)
