@@ -574,15 +574,20 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
     """One factor for the predicted std and the predictive's tails, fitted on the views ``calibration_indices``
     chooses from ``split``.
 
-    The factor is the maximum-likelihood scale of a Gaussian predictive, s^2 = mean((error / max(std, std_floor))^2)
-    over every valid pixel and channel of those views (K samples each, as in evaluation): the one that makes the
-    variance right. With ``cfg.degrees_of_freedom`` "fit", the Student-t's nu is then fitted by maximum likelihood
-    to the same z-scores divided by s (``eval.tails.fit_dof``): the shape, whatever the level. Training views fit
-    better than held-out ones, so a factor fitted on them errs low; views set aside from training
-    (``split["calibration"]``) do not have that bias. On training views the predictive is fitted without the
-    resolution term unless ``cfg.resolution_on_training_views``: the term stands for what the training images
-    cannot show (Gaussians trading places unseen in them), and on those images it exceeded the residuals the model
-    left (BENCHMARKS.md, "The std factor on training views without the resolution term"); and unless the pixel
+    The factor is the maximum-likelihood scale of a Gaussian predictive with std s x max(std, std_floor), s^2
+    = mean((error / max(std, std_floor))^2) over every valid pixel and channel of those views (K samples each,
+    as in evaluation): the one that makes the variance right. The calibrated metrics (``nll_calibrated``,
+    ``calibration_error_calibrated``) score std x s floored after scaling, max(s x std, std_floor): the same
+    predictive wherever std >= std_floor and s x std >= std_floor, not the one this s is the maximum of where
+    many stds lie below the floor (a Monte-Carlo std of exactly 0 without the pixel-noise term: the floored
+    pixels' errors then raise s, which widens every other pixel). With ``cfg.degrees_of_freedom`` "fit", the
+    Student-t's nu is then fitted by maximum likelihood to the same z-scores divided by s
+    (``eval.tails.fit_dof``): the shape, whatever the level. Training views fit better than held-out ones, so
+    a factor fitted on them errs low; views set aside from training (``split["calibration"]``) do not have
+    that bias. On training views the predictive is fitted without the resolution term unless
+    ``cfg.resolution_on_training_views``: the term stands for what the training images cannot show (Gaussians
+    trading places unseen in them), and on those images it exceeded the residuals the model left
+    (BENCHMARKS.md, "The std factor on training views without the resolution term"); and unless the pixel
     noise's level was fitted on those views given the term (``cfg.residual_scale`` "fit", with a noise field).
 
     Args:

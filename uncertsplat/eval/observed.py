@@ -32,7 +32,7 @@ def observed_mask(depth: Tensor, cam_from_world: Tensor, K: Tensor, train_depths
 
     Returns:
         (observed [H,W] bool, valid [H,W] bool): ``valid`` marks pixels with surface (finite depth > 0);
-        ``observed`` is False wherever ``valid`` is.
+        ``observed`` is False wherever ``valid`` is False.
 
     Raises:
         ValueError: on shapes that do not fit or a negative tolerance.
