@@ -234,7 +234,9 @@ def measure(run_dir: Path, device: torch.device, num_samples: int, predictive: s
         # the parts' shares of the RGB variance on the unobserved and on the observed pixels, and each part's ROC AUC
         # alone for the unobserved ones (which part finds what no training view saw)
         "rgb_shares_unobserved": shares(unobs), "rgb_shares_observed": shares(~unobs),
-        "auc_rgb_by_part": {k: roc(v, unobs) for k, v in parts.items()}, **per_view,
+        "auc_rgb_by_part": {k: roc(v, unobs) for k, v in parts.items()},
+        "auc_rgb_by_part_covered": {k: roc(v[hit], unobs[hit]) for k, v in parts.items()},
+        "rgb_shares_unobserved_covered": shares(unobs & hit), **per_view,
     }
 
 
