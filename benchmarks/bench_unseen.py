@@ -16,7 +16,8 @@ writes), ``before`` (the predictive before the coverage and resolution terms: ev
 resolution term), ``spread`` (the samples' spread alone) and ``leverage`` (``full`` with
 ``EvalConfig.residual_leverage = "full"``); ``no-leverage`` is ``full`` without the relative leverage (the default
 since 2026-11-27); ``no-colour`` is ``full`` without the colour posterior
-(``EvalConfig.colour_posterior``, the default since 2026-11-26); ``edge`` / ``no-edge`` are ``full`` with and
+(``EvalConfig.colour_posterior``, the default since 2026-11-26); ``colour-block`` / ``colour-diagonal`` are
+``full`` with the colour posterior's two forms (``EvalConfig.colour_covariance``); ``edge`` / ``no-edge`` are ``full`` with and
 without the edge term (``EvalConfig.edge_noise``); ``no-depth-spread`` is ``full`` without the spread of the depths
 each ray blends (``EvalConfig.depth_spread``); ``resolution-1`` is ``full`` with one render of the resolution
 term per sample (``EvalConfig.resolution_renders``, 2 since 2026-11-27); ``no-consistency`` is ``full`` without
@@ -126,6 +127,8 @@ PREDICTIVES = {  # name -> (EvalConfig overrides, the coverage of 1 = every alph
     "leverage": ({"residual_leverage": "full"}, False),  # full, each Gaussian's pixel noise / (1 - its leverage)
     "no-leverage": ({"residual_leverage": "none"}, False),  # full without the relative leverage (before 11-27)
     "no-colour": ({"colour_posterior": False}, False),  # full without the colour posterior (the default before)
+    "colour-block": ({"colour_covariance": "block"}, False),  # the DC term and band 1 of the colour posterior jointly
+    "colour-diagonal": ({"colour_covariance": "diagonal"}, False),  # every SH coefficient on its own
     "edge": ({"edge_noise": True}, False),  # full with the pixel noise split into the edge term and the rest
     "no-edge": ({"edge_noise": False}, False),  # full without the edge term
     "no-depth-spread": ({"depth_spread": False}, False),  # full without the depths a ray blends

@@ -782,6 +782,11 @@ class EvalConfig(_Base):
     colour down; the prior's (the training pixels' variance) for a Gaussian no view saw, e.g. a surface a new view
     uncovers; in between for a colour seen from few directions and looked at from a new one (SH degree > 0).
     Fitted in the same pass as the pixel noise (``residual_views`` > 0), no extra render."""
+    colour_covariance: Literal["block", "diagonal"] = "diagonal"
+    """The colour posterior's form (``uncertainty.residual``): ``block`` takes the DC term and SH band 1 jointly
+    (exact at SH degree <= 1; a colour seen from one side is unknown from the other), ``diagonal`` each SH coefficient
+    on its own (the form before 2026-12-01, which gives the direction opposite a view that view's certainty). The
+    higher bands are diagonal in both."""
     consistency_views: int = Field(64, ge=0)
     """The view-consistency term (``uncertainty.consistency``): each pixel's surface point, at the rendered depth, is
     compared with the same point in the training view that saw it from the nearest direction, and the squared

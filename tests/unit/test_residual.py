@@ -316,6 +316,61 @@ class TestColourPosterior:
         assert float(exact[1]) > 100 * float(got[1])
 
 
+    @pytest.mark.parametrize("degree", [1, 2])
+    def test_the_block_form_is_the_exact_posterior_of_the_dc_term_and_band_1(self, degree):
+        """``colour_covariance="block"`` (``colour_cross``): Y_low^T (E_low / v + diag(1/prior_low))^-1 Y_low for the
+        DC term and band 1, plus the diagonal form for the higher bands; at degree 1 that is the exact Laplace
+        posterior, so a Gaussian seen from one side only keeps (about) the prior's variance from the other, where the
+        diagonal form gives it the seen side's. A precision whose evidence exceeds the prior's inverse by 1e9 stays
+        finite (float64 Cholesky)."""
+        from uncertsplat.render.sh import sh_basis, view_directions
+
+        nb = (degree + 1) ** 2
+        s = GaussianSample(means=torch.zeros(1, 3), quats=torch.tensor([[1.0, 0, 0, 0]]), scales=torch.ones(1, 3),
+                           opacities=torch.ones(1), sh=torch.zeros(1, nb, 3), sh_degree=degree)
+        obs, noise = 200.0, 1e-3
+        prior = torch.cat([torch.tensor([0.05 / 0.28209479177387814**2]), torch.full((nb - 1,), 0.01)]).double()
+        seen = torch.tensor([[0.0, 0.0, 5.0], [0.0, 3.0, 4.0]], dtype=torch.float64)  # two views, 37 degrees apart
+        ys = sh_basis(degree, view_directions(s.means.double(), seen))[:, 0]  # [2,B]
+        evidence = (obs * ys.square()).sum(0)[None]  # [1,B]
+        cross = (obs * ys[:, :4, None] * ys[:, None, :4]).sum(0)[None]  # [1,4,4]
+        base = dict(sample=s, variance=torch.tensor([noise]), seen=torch.tensor([True]), mean_variance=noise,
+                    colour_evidence=evidence.float(), colour_prior=prior.float())
+        block, diagonal = ResidualField(**base, colour_cross=cross), ResidualField(**base)
+        centers = torch.tensor([[0.0, 0.0, 5.0], [0.0, 0.0, -5.0], [4.0, 0.0, 3.0]])
+        got = block.colour_variance(centers)[:, 0].double()
+        y = sh_basis(degree, view_directions(s.means.double(), centers.double()))[:, 0]  # [3,B]
+        p_low = obs / noise * (ys[:, :4, None] * ys[:, None, :4]).sum(0) + torch.diag(1.0 / prior[:4])
+        want = torch.einsum("cb,bd,cd->c", y[:, :4], torch.linalg.inv(p_low), y[:, :4])
+        want = want + (y[:, 4:].square() / (evidence[0, 4:] / noise + 1.0 / prior[4:])).sum(-1)
+        torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-12)
+        flat = diagonal.colour_variance(centers)[:, 0].double()
+        assert float(got[1]) > 50 * float(flat[1])  # the far side: unknown with the block, "seen" without
+        assert float(got[0]) < float(flat[0])  # a seen direction: the joint posterior pins it down more
+        sure = ResidualField(**{**base, "colour_evidence": evidence.float() * 1e9}, colour_cross=cross * 1e9)
+        assert bool(torch.isfinite(sure.colour_variance(centers)).all())
+
+    def test_the_block_form_is_fitted_kept_by_subset_and_state_and_refused_for_another_degree(self):
+        sample, cams, d = _sample(), _cams(3), 0.05
+        sample = replace(sample, sh=torch.cat([sample.sh, torch.zeros(len(sample.sh), 3, 3)], 1), sh_degree=1)
+        with torch.no_grad():
+            images = (RENDER(sample, cams).rgb + d).clamp(0, 1)
+        diag = self._fit(sample, cams, images)
+        block = self._fit(sample, cams, images, colour_covariance="block")
+        assert diag.colour_cross is None and block.colour_cross.shape == (len(sample.means), 4, 4)
+        # its diagonal is the diagonal form's evidence; the noise is the same
+        torch.testing.assert_close(torch.diagonal(block.colour_cross, dim1=1, dim2=2).float(), block.colour_evidence)
+        torch.testing.assert_close(block.colour_evidence, diag.colour_evidence)
+        keep = torch.arange(len(sample.means)) % 2 == 0
+        torch.testing.assert_close(block.subset(keep).colour_cross, block.colour_cross[keep])
+        back = ResidualField.from_state(sample, block.state())
+        torch.testing.assert_close(back.colour_variance(cams.centers), block.colour_variance(cams.centers))
+        with pytest.raises(ValueError, match="another SH degree"):
+            ResidualField.from_state(replace(sample, sh=sample.sh[:, :1], sh_degree=0),
+                                     {**block.state(), "colour_evidence": block.colour_evidence[:, :1]})
+        with pytest.raises(ValueError, match="colour_covariance"):
+            self._fit(sample, cams, images, colour_covariance="full")
+
     def test_blended_adds_the_unknown_colour_where_a_new_view_uncovers_an_unseen_gaussian(self):
         """The Gaussian behind every training camera is unseen; a camera turned around sees it, and its blended
         variance there is (almost) noise + prior; on the training views the colour term adds little."""

@@ -82,6 +82,8 @@ class EvalSettings(Protocol):
     ``full`` (by 1 - its leverage) (``ResidualField.out_of_sample``)."""
     colour_posterior: bool
     """Add each Gaussian's colour posterior variance to its noise (``ResidualField.colour_variance``)."""
+    colour_covariance: str
+    """The colour posterior's form: "block" (the DC term and band 1 jointly) or "diagonal"."""
     consistency_views: int
     """Training views the view-consistency term compares each evaluated view with (``view_consistency``; 0: none)."""
     depth_spread: bool
@@ -338,7 +340,8 @@ def fit_residual(sampler: Sampler, train_indices: Sequence[int], cfg: EvalSettin
     with torch.enable_grad():
         field = fit_residual_field(rep, cams, images, sampler.render_fn, masks=masks, explained=explained,
                                    colour_posterior=cfg.colour_posterior, view_factor=len(train_indices) / len(chosen),
-                                   edge_scale="fit" if cfg.edge_noise else 0.0)
+                                   edge_scale="fit" if cfg.edge_noise else 0.0,
+                                   colour_covariance=cfg.colour_covariance)
     mode = noise_scale_mode(cfg, calibration_indices)
     on_set_aside = mode == "fit" and len(calibration_indices) > 0
     if mode != "fit":
@@ -398,7 +401,7 @@ def noise_scale_mode(cfg: EvalSettings, calibration_indices: Sequence[int] = ())
 
 
 RESIDUAL_SETTINGS = ("residual_views", "resolution", "residual_scale", "residual_leverage", "colour_posterior",
-                     "edge_noise", "seed", "std_floor")
+                     "colour_covariance", "edge_noise", "seed", "std_floor")
 """The settings ``fit_residual`` reads: a fitted field can stand for another evaluation of the same model whose
 settings agree on these (``stages.residual_cache``)..."""
 RESIDUAL_SET_ASIDE_SETTINGS = ("num_samples", "empty_rays", "resolution_renders")

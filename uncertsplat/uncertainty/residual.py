@@ -28,19 +28,22 @@ estimates that noise per Gaussian, heteroscedastically, and renders it:
   its SH coefficients, so its Laplace posterior is Gaussian for the pixel likelihood, with the B x B precision
   ``sum_views Y(d_v) Y(d_v)^T sum_p w_i(p) / v_i + diag(1 / prior)`` (d_v: the direction from view v's centre
   to the Gaussian; ``sum_p w_i(p)`` stands in for the exact ``sum_p w_i(p)^2``, an upper bound since w <= 1).
-  Only its diagonal is kept (a mean-field approximation: precision_b = ``sum_views Y_b(d_v)^2 sum_p w_i(p) /
+  ``colour_covariance = "block"`` keeps the full precision of the first four coefficients (the DC term and band 1,
+  ``colour_cross``): exact at degrees 0 and 1, and it tells a direction from its opposite, where band 1 changes
+  sign; the higher bands, and every coefficient with ``"diagonal"``, keep only its diagonal (a mean-field
+  approximation: precision_b = ``sum_views Y_b(d_v)^2 sum_p w_i(p) /
   v_i + 1 / prior_b``, the coefficients independent), so the covariance between the coefficients is dropped:
   the exact posterior pins down only the combinations the views' directions measured, while the diagonal one
   pins every coefficient a view's basis touches. Exact for the DC term alone (degree 0). The prior is
   empirical: the DC colour's is the variance of the training pixels ("a surface no view saw looks like some
   pixel of the capture"), each higher band's the mean square of that band over the seen Gaussians. Seen from a
-  direction d, the colour's variance is ``sum_b Y_b(d)^2 / precision_b``: negligible for a Gaussian that views
-  pinned down, the prior's for one no view saw (a surface a held-out view uncovers), and larger from a
-  direction whose basis weighs coefficients the views did not constrain. It depends on d only through
-  Y_b(d)^2, so it cannot tell a direction from its opposite as the exact posterior does (the direction
-  opposite a single view, where the odd bands flip sign, gets the variance of the view's own direction; exact:
-  about the prior's), and at a view's own direction it is up to the number of coefficients times the exact
-  one.
+  direction d, the colour's variance is ``Y(d)^T precision^-1 Y(d)`` (``sum_b Y_b(d)^2 / precision_b`` for the
+  diagonal part): negligible for a Gaussian that views pinned down, the prior's for one no view saw (a surface a
+  held-out view uncovers), and larger from a direction whose basis weighs coefficients the views did not
+  constrain. The diagonal part depends on d only through Y_b(d)^2, so on its own it cannot tell a direction from
+  its opposite as the exact posterior does (the direction opposite a single view, where the odd bands flip sign,
+  gets the variance of the view's own direction; exact: about the prior's), and at a view's own direction it is
+  up to the number of coefficients times the exact one.
 * The edge term (``fit_edge_scale``, ``ResidualField.edge_scale``): most of a model's error sits on the edges
   and texture lines of its render, where a fraction of a pixel's misplacement changes a pixel by a lot, and a
   per-Gaussian noise spreads that error over all the Gaussian's pixels (too wide where the image is flat, too
@@ -113,6 +116,10 @@ class ResidualField:
     posterior, module docstring); None: no colour term."""
     colour_prior: Tensor | None = None
     """[B] the prior variance of each SH coefficient (SH units) of the colour posterior."""
+    colour_cross: Tensor | None = None
+    """[N,L,L] ``sum_views Y(d_v) Y(d_v)^T sum_p w_i(p)`` over the first L = min(B, 4) coefficients (the DC term and
+    band 1), whose posterior is then taken jointly (``colour_covariance = "block"``: module docstring); None: every
+    coefficient on its own (the diagonal ``colour_evidence``)."""
     edge_scale: float = 0.0
     """``delta^2`` (pixels^2) of the edge term ``delta^2 g(p)`` (module docstring; ``fit_edge_scale``); 0: none."""
     pixel_variance: Tensor | None = None
@@ -128,9 +135,10 @@ class ResidualField:
 
     def colour_variance(self, centers: Tensor) -> Tensor:
         """[C,N] the posterior variance of each Gaussian's colour (per channel, RGB units) seen from each
-        camera centre ``centers`` [C,3] under the diagonal (mean-field) Laplace posterior of its SH
-        coefficients (module docstring: the covariance between coefficients is dropped); zeros when the field
-        has no colour term."""
+        camera centre ``centers`` [C,3] under the Laplace posterior of its SH coefficients: jointly for the DC term
+        and band 1 when the field has ``colour_cross`` (the block form), each coefficient on its own otherwise and
+        for the higher bands (the module docstring says what each drops); zeros when the field has no colour
+        term."""
         s = self.sample
         if self.colour_evidence is None:
             return torch.zeros(centers.shape[0], s.means.shape[0], device=s.means.device)
@@ -140,7 +148,19 @@ class ResidualField:
         coef_var = 1.0 / (self.colour_evidence.float() / noise + 1.0 / prior)  # [N,B]
         d = view_directions(s.means.float(), centers.float().to(s.means.device))  # [C,N,3]
         basis = sh_basis(_degree(coef_var.shape[1]), d)  # [C,N,B]
-        return (basis.square() * coef_var).sum(-1).to(self.variance.dtype)
+        if self.colour_cross is None:
+            return (basis.square() * coef_var).sum(-1).to(self.variance.dtype)
+        low = self.colour_cross.shape[-1]
+        # the block's precision E / v + diag(1 / prior) in float64 (its evidence can exceed the prior's inverse by
+        # 1e8, past float32's Cholesky), and Y^T P^-1 Y = |L^-1 Y|^2 with P = L L^T
+        prec = self.colour_cross.double() / noise.double()[:, :, None] \
+            + torch.diag_embed(1.0 / prior[:low].double()).expand_as(self.colour_cross)
+        chol = torch.linalg.cholesky(prec)  # [N,L,L]
+        y = basis[..., :low].double().unsqueeze(-1)  # [C,N,L,1]
+        z = torch.linalg.solve_triangular(chol.expand(y.shape[0], *chol.shape), y, upper=False)
+        joint = z.square().sum((-2, -1))  # [C,N]
+        rest = (basis[..., low:].square() * coef_var[:, low:]).sum(-1)
+        return (joint + rest.double()).to(self.variance.dtype)
 
     def out_of_sample(self, params_per_gaussian: int, view_factor: float = 1.0,
                       max_leverage: float = MAX_LEVERAGE, relative: bool = False) -> ResidualField:
@@ -231,7 +251,8 @@ class ResidualField:
             total = total + part
         return total
 
-    STATE_TENSORS = ("variance", "seen", "observations", "colour_evidence", "colour_prior", "pixel_variance")
+    STATE_TENSORS = ("variance", "seen", "observations", "colour_evidence", "colour_prior", "pixel_variance",
+                     "colour_cross")
     STATE_NUMBERS = ("mean_variance", "scale", "leverage_inflation", "edge_scale")
 
     def state(self) -> dict:
@@ -271,6 +292,9 @@ class ResidualField:
         bases = (sample.sh_degree + 1) ** 2
         if kw["colour_evidence"] is not None and kw["colour_evidence"].shape[1] != bases:
             raise ValueError("the residual state's colour evidence is for another SH degree")
+        if kw["colour_cross"] is not None and (kw["colour_evidence"] is None
+                                               or tuple(kw["colour_cross"].shape[1:]) != (min(bases, 4),) * 2):
+            raise ValueError("the residual state's joint colour evidence is for another SH degree")
         return cls(sample=sample, **kw)
 
     def subset(self, keep: Tensor) -> ResidualField:
@@ -282,10 +306,10 @@ class ResidualField:
                          opacities=s.opacities[keep], sh=s.sh[keep], position_var=pv)
         obs = None if self.observations is None else self.observations[keep]
         evidence = None if self.colour_evidence is None else self.colour_evidence[keep]
+        cross = None if self.colour_cross is None else self.colour_cross[keep]
         pv = None if self.pixel_variance is None else self.pixel_variance[keep]
         return replace(self, sample=sample, variance=self.variance[keep], seen=self.seen[keep], observations=obs,
-                       pixel_variance=pv,
-                       colour_evidence=evidence)
+                       pixel_variance=pv, colour_evidence=evidence, colour_cross=cross)
 
 
 def blend_colours(sample: GaussianSample, colour: Tensor, cameras: Cameras,
@@ -396,7 +420,8 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
                        render_fn: Callable[[GaussianSample, Cameras], RenderOutput],
                        masks: Tensor | None = None,
                        explained: Callable[[Cameras], Tensor] | None = None, colour_posterior: bool = False,
-                       view_factor: float = 1.0, edge_scale: float | str = 0.0) -> ResidualField:
+                       view_factor: float = 1.0, edge_scale: float | str = 0.0,
+                       colour_covariance: str = "diagonal") -> ResidualField:
     """Each Gaussian's noise variance from the training views (see the module docstring).
 
     Args:
@@ -407,6 +432,8 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
             pixel (the resolution term): the noise is fitted to what the residual leaves beyond it,
             ``max(r^2 - explained, 0)``, so that the two are not counted twice.
         colour_posterior: also fit the colour posterior (module docstring; ``ResidualField.colour_variance``).
+        colour_covariance: ``"block"``: the DC term and band 1 of the colour posterior jointly (``colour_cross``);
+            ``"diagonal"``: every coefficient on its own.
         view_factor: the training views over ``len(cameras)`` (when the field is fitted on a subset of them): the
             colour posterior's evidence is scaled to all training views by it.
         edge_scale: ``delta^2`` of the edge term (0: none; ``"fit"``: fitted as ``fit_edge_scale`` does, from the
@@ -422,6 +449,8 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
     """
     if isinstance(edge_scale, str) and edge_scale != "fit":
         raise ValueError(f"edge_scale must be a number or 'fit', got {edge_scale!r}")
+    if colour_covariance not in ("block", "diagonal"):
+        raise ValueError(f"colour_covariance must be 'block' or 'diagonal', got {colour_covariance!r}")
     fit_edge = edge_scale == "fit"
     edge = fit_edge or float(edge_scale) > 0.0
     n = sample.means.shape[0]
@@ -431,6 +460,9 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
     edge_sums = torch.zeros(5, dtype=torch.float64)  # the edge term's least squares (_edge_sums)
     num_bases = (sample.sh_degree + 1) ** 2
     evidence = torch.zeros(n, num_bases, device=dev, dtype=torch.float64) if colour_posterior else None
+    low = min(num_bases, 4)
+    cross = torch.zeros(n, low, low, device=dev, dtype=torch.float64) \
+        if colour_posterior and colour_covariance == "block" else None
     pix_sum = torch.zeros(3, dtype=torch.float64, device=dev)
     pix_sq = torch.zeros(3, dtype=torch.float64, device=dev)
     total_r2, count = 0.0, 0
@@ -460,7 +492,11 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
             pix_sum += img.sum(0)
             pix_sq += img.square().sum(0)
             d = view_directions(sample.means.detach().double(), cam.centers.double())[0]  # [N,3]
-            evidence += sh_basis(sample.sh_degree, d).square() * grad[:, 1:2].double()
+            basis = sh_basis(sample.sh_degree, d)  # [N,B]
+            evidence += basis.square() * grad[:, 1:2].double()
+            if cross is not None:
+                y = basis[:, :low]
+                cross += y[:, :, None] * y[:, None, :] * grad[:, 1:2, None].double()
     delta2 = _edge_slope(edge_sums) if fit_edge else float(edge_scale)
     # the unseen Gaussians' noise: the whole residual's mean, edges included (nothing says where theirs lie)
     mean_var = total_r2 / max(count, 1)
@@ -478,9 +514,10 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
         pixel_var = float((pix_sq / max(count, 1) - (pix_sum / max(count, 1)).square()).clamp_min(0).mean())
         prior = _colour_prior(sample, seen, pixel_var, num_bases).float()
         evidence = (evidence * view_factor).float()
+        cross = None if cross is None else cross * view_factor  # (float64: its inverse is taken in float64)
     return ResidualField(sample=sample, variance=var.float(), seen=seen, mean_variance=mean_var,
                          observations=weight.float(), colour_evidence=evidence, colour_prior=prior,
-                         edge_scale=delta2, pixel_variance=whole_var)
+                         edge_scale=delta2, pixel_variance=whole_var, colour_cross=cross)
 
 
 __all__ = ["ResidualField", "blend_colours", "blend_values", "fit_edge_scale", "fit_residual_field", "image_gradient_sq",
