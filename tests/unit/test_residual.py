@@ -349,6 +349,10 @@ class TestColourPosterior:
         assert float(got[0]) < float(flat[0])  # a seen direction: the joint posterior pins it down more
         sure = ResidualField(**{**base, "colour_evidence": evidence.float() * 1e9}, colour_cross=cross * 1e9)
         assert bool(torch.isfinite(sure.colour_variance(centers)).all())
+        # a block that is not positive definite (a damaged cache) or not a number: that Gaussian's diagonal form
+        for bad in (-1e9 * torch.eye(4, dtype=torch.float64)[None], torch.full((1, 4, 4), float("nan"))):
+            odd = ResidualField(**base, colour_cross=bad).colour_variance(centers)
+            torch.testing.assert_close(odd, diagonal.colour_variance(centers))
 
     def test_the_block_form_is_fitted_kept_by_subset_and_state_and_refused_for_another_degree(self):
         sample, cams, d = _sample(), _cams(3), 0.05
@@ -370,6 +374,9 @@ class TestColourPosterior:
                                      {**block.state(), "colour_evidence": block.colour_evidence[:, :1]})
         with pytest.raises(ValueError, match="colour_covariance"):
             self._fit(sample, cams, images, colour_covariance="full")
+        # at SH degree 0 the block is the DC term alone: no joint evidence, the diagonal form to the bit
+        flat = replace(sample, sh=sample.sh[:, :1], sh_degree=0)
+        assert self._fit(flat, cams, images, colour_covariance="block").colour_cross is None
 
     def test_blended_adds_the_unknown_colour_where_a_new_view_uncovers_an_unseen_gaussian(self):
         """The Gaussian behind every training camera is unseen; a camera turned around sees it, and its blended

@@ -119,7 +119,7 @@ class ResidualField:
     colour_cross: Tensor | None = None
     """[N,L,L] ``sum_views Y(d_v) Y(d_v)^T sum_p w_i(p)`` over the first L = min(B, 4) coefficients (the DC term and
     band 1), whose posterior is then taken jointly (``colour_covariance = "block"``: module docstring); None: every
-    coefficient on its own (the diagonal ``colour_evidence``)."""
+    coefficient on its own (the diagonal ``colour_evidence``), and always at SH degree 0 (where the two are one)."""
     edge_scale: float = 0.0
     """``delta^2`` (pixels^2) of the edge term ``delta^2 g(p)`` (module docstring; ``fit_edge_scale``); 0: none."""
     pixel_variance: Tensor | None = None
@@ -155,10 +155,15 @@ class ResidualField:
         # 1e8, past float32's Cholesky), and Y^T P^-1 Y = |L^-1 Y|^2 with P = L L^T
         prec = self.colour_cross.double() / noise.double()[:, :, None] \
             + torch.diag_embed(1.0 / prior[:low].double()).expand_as(self.colour_cross)
-        chol = torch.linalg.cholesky(prec)  # [N,L,L]
+        chol, info = torch.linalg.cholesky_ex(prec)  # [N,L,L]; info > 0 where a precision is not positive definite
         y = basis[..., :low].double().unsqueeze(-1)  # [C,N,L,1]
         z = torch.linalg.solve_triangular(chol.expand(y.shape[0], *chol.shape), y, upper=False)
         joint = z.square().sum((-2, -1))  # [C,N]
+        # (a precision that lost definiteness to rounding, or holds no finite number: its coefficients on their own)
+        failed = (info != 0) | ~torch.isfinite(joint).all(0)
+        if bool(failed.any()):
+            alone = (basis[..., :low].square() * coef_var[:, :low]).sum(-1).double()
+            joint = torch.where(failed, alone, joint)
         rest = (basis[..., low:].square() * coef_var[:, low:]).sum(-1)
         return (joint + rest.double()).to(self.variance.dtype)
 
@@ -461,8 +466,9 @@ def fit_residual_field(sample: GaussianSample, cameras: Cameras, images: Tensor,
     num_bases = (sample.sh_degree + 1) ** 2
     evidence = torch.zeros(n, num_bases, device=dev, dtype=torch.float64) if colour_posterior else None
     low = min(num_bases, 4)
+    # (at SH degree 0 the block is the DC term alone: the diagonal form, exactly)
     cross = torch.zeros(n, low, low, device=dev, dtype=torch.float64) \
-        if colour_posterior and colour_covariance == "block" else None
+        if colour_posterior and colour_covariance == "block" and low > 1 else None
     pix_sum = torch.zeros(3, dtype=torch.float64, device=dev)
     pix_sq = torch.zeros(3, dtype=torch.float64, device=dev)
     total_r2, count = 0.0, 0
