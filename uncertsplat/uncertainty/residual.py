@@ -63,6 +63,7 @@ imports neither ``render`` nor a model class.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -133,6 +134,17 @@ class ResidualField:
         ``variance``."""
         return self.variance if self.pixel_variance is None else self.pixel_variance
 
+    @functools.cached_property
+    def _colour_block_factor(self) -> tuple[Tensor, Tensor]:
+        """The Cholesky factor L [N,L,L] of each Gaussian's block precision P = E / v + diag(1 / prior) (``colour_cross``)
+        and its ``info`` [N] (> 0 where P is not positive definite), once per field: it does not depend on the camera.
+        float64: the evidence can exceed the prior's inverse by 1e8, past float32's Cholesky. Y^T P^-1 Y = |L^-1 Y|^2."""
+        low = self.colour_cross.shape[-1]
+        noise = self.likelihood_variance.double().clamp_min(MIN_NOISE)[:, None, None]  # [N,1,1]
+        prior = self.colour_prior.double().clamp_min(MIN_PRIOR)[:low]
+        prec = self.colour_cross.double() / noise + torch.diag_embed(1.0 / prior).expand_as(self.colour_cross)
+        return torch.linalg.cholesky_ex(prec)
+
     def colour_variance(self, centers: Tensor) -> Tensor:
         """[C,N] the posterior variance of each Gaussian's colour (per channel, RGB units) seen from each
         camera centre ``centers`` [C,3] under the Laplace posterior of its SH coefficients: jointly for the DC term
@@ -151,11 +163,7 @@ class ResidualField:
         if self.colour_cross is None:
             return (basis.square() * coef_var).sum(-1).to(self.variance.dtype)
         low = self.colour_cross.shape[-1]
-        # the block's precision E / v + diag(1 / prior) in float64 (its evidence can exceed the prior's inverse by
-        # 1e8, past float32's Cholesky), and Y^T P^-1 Y = |L^-1 Y|^2 with P = L L^T
-        prec = self.colour_cross.double() / noise.double()[:, :, None] \
-            + torch.diag_embed(1.0 / prior[:low].double()).expand_as(self.colour_cross)
-        chol, info = torch.linalg.cholesky_ex(prec)  # [N,L,L]; info > 0 where a precision is not positive definite
+        chol, info = self._colour_block_factor
         y = basis[..., :low].double().unsqueeze(-1)  # [C,N,L,1]
         z = torch.linalg.solve_triangular(chol.expand(y.shape[0], *chol.shape), y, upper=False)
         joint = z.square().sum((-2, -1))  # [C,N]
