@@ -1575,6 +1575,7 @@ def test_files_kept_before_the_training_views_fit_changed_read_with_the_old_fit(
 
     old = EvalConfig().model_dump(mode="json", exclude=set(UNUSED_SETTINGS))
     del old["resolution_on_training_views"]  # (what a file written before the setting holds)
+    del old["colour_covariance"]  # (nor this one, added later: left out at its default, "diagonal")
     assert key_settings(EvalConfig(resolution_on_training_views=True)) == old
     assert key_settings(EvalConfig())["resolution_on_training_views"] is False
     assert "hidden_depth" not in key_settings(EvalConfig(hidden_depth=False))
@@ -1586,12 +1587,44 @@ def test_files_kept_before_the_training_views_fit_changed_read_with_the_old_fit(
     written_in = {**parts, "settings": {**parts["settings"], "resolution_on_training_views": True}}
     assert _key(written_in) in _accepted_keys(parts) and _key(parts) in _accepted_keys(parts)
     default = {**parts, "settings": key_settings(EvalConfig())}
-    assert _accepted_keys(default) == {_key(default)}
+    assert _key(default) in _accepted_keys(default)
+    assert not {_key(parts), _key(written_in)} & _accepted_keys(default)
     # the difference says what the file lacks and how to read it, not "None there"
     said = _difference(parts, default)
     assert "resolution_on_training_views = not in the file (written before the setting existed; --set " \
            "resolution_on_training_views=true reads it), False here" in said and "None" not in said
     assert _difference(written_in, parts) == "another version of the noise fit or of the std factor's"  # (none differs)
+
+
+def test_files_kept_before_colour_covariance_existed_read_with_the_diagonal_form():
+    """``predictive.pt`` files written before ``colour_covariance`` existed hold the diagonal colour posterior
+    (the default): they read with it, as do the files of the commit that added the setting (which wrote it in
+    the key), with ``resolution_on_training_views`` left out or not; ``block`` reads neither and says why."""
+    from uncertsplat.stages.predictive_cache import (
+        UNUSED_SETTINGS,
+        _accepted_keys,
+        _difference,
+        _key,
+        key_settings,
+    )
+
+    def parts(settings: dict) -> dict:
+        return {"model": "m", "config": "c", "scene": "s", "settings": settings, "fit": 2}
+
+    for cfg in (EvalConfig(), EvalConfig(resolution_on_training_views=True)):
+        before = cfg.model_dump(mode="json", exclude=set(UNUSED_SETTINGS))
+        if cfg.resolution_on_training_views:
+            del before["resolution_on_training_views"]  # (left out at true, as every file keys it)
+        written_in = dict(before)  # the commit that added the setting keyed it so
+        del before["colour_covariance"]  # (what a file written before the setting holds)
+        now = parts(key_settings(cfg))
+        assert _key(parts(before)) in _accepted_keys(now) and _key(parts(written_in)) in _accepted_keys(now)
+    block = parts(key_settings(EvalConfig(colour_covariance="block")))
+    old = parts({k: v for k, v in EvalConfig().model_dump(mode="json", exclude=set(UNUSED_SETTINGS)).items()
+                 if k != "colour_covariance"})
+    assert _key(old) not in _accepted_keys(block)
+    assert "colour_covariance = not in the file (written before the setting existed; --set " \
+           "colour_covariance=diagonal reads it), 'block' here" in _difference(old, block)
 
 
 def test_files_with_a_fitted_noise_level_from_before_the_factor_kept_the_term_are_not_read(tiny_run_path):

@@ -57,9 +57,10 @@ settings only): 2 since the factor on training views keeps the resolution term t
 views set aside, whose factor did not change, is keyed apart too (its file is fitted again where the scene is)."""
 
 
-LEFT_OUT_WHEN = {"resolution_on_training_views": True}
+LEFT_OUT_WHEN = {"resolution_on_training_views": True, "colour_covariance": "diagonal"}
 """Settings the key leaves out at these values: the files written before the setting existed were fitted as that
-value fits, so they still read with it (``key_settings``)."""
+value fits, so they still read with it (``key_settings``). ``colour_covariance``: every file before it held the
+diagonal colour posterior, its default."""
 
 
 def key_settings(cfg) -> dict:
@@ -73,13 +74,14 @@ def key_settings(cfg) -> dict:
 
 
 def _accepted_keys(parts: dict) -> set[str]:
-    """The keys a file may hold for ``parts``: its own, and where a ``LEFT_OUT_WHEN`` setting is left out, the one
-    with it written in (files of the commit that added ``resolution_on_training_views`` keyed it so)."""
-    keys = {_key(parts)}
-    for name, value in LEFT_OUT_WHEN.items():
-        if name not in parts["settings"]:
-            keys.add(_key({**parts, "settings": {**parts["settings"], name: value}}))
-    return keys
+    """The keys a file may hold for ``parts``: its own, and where ``LEFT_OUT_WHEN`` settings are left out, those
+    with any of them written in (files of the commits that added ``resolution_on_training_views`` and
+    ``colour_covariance`` keyed them so)."""
+    from itertools import combinations
+
+    left_out = [(name, value) for name, value in LEFT_OUT_WHEN.items() if name not in parts["settings"]]
+    return {_key({**parts, "settings": {**parts["settings"], **dict(written)}})
+            for r in range(len(left_out) + 1) for written in combinations(left_out, r)}
 
 
 def predictive_key(loaded, cfg) -> str | None:
