@@ -45,7 +45,8 @@ FAKE_CUDA_TESTS ?= tests/unit/test_fake_cuda.py tests/e2e/test_cuda_paths.py tes
 	tests/unit/test_tails.py tests/unit/test_metrics_image.py tests/unit/test_metrics_depth.py \
 	tests/unit/test_prune_mask.py tests/unit/test_render_api.py tests/numerics/test_render_parity.py \
 	tests/numerics/test_render_extremes.py tests/numerics/test_render_position_var.py \
-	tests/numerics/test_render_gradcheck.py
+	tests/numerics/test_render_gradcheck.py \
+	tests/unit/test_residual.py::TestColourPosterior::test_the_block_form_on_the_device
 
 test-fake-cuda: setup
 	OMP_NUM_THREADS=2 $(BIN)/python -m pytest -q -p no:xdist --device fake-cuda $(FAKE_CUDA_TESTS) $(PYTEST_ARGS)

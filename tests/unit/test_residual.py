@@ -420,6 +420,35 @@ class TestColourPosterior:
                                    parts["pixel noise"] + parts["colour posterior"] + parts["edge"], rtol=0, atol=0)
         assert list(noise_only.blended_parts(both, RENDER)) == ["pixel noise"]
 
+    def test_the_block_form_on_the_device(self, device):
+        """The block form fitted, kept (``state``/``from_state``) and rendered on the test session's device (``--device
+        fake-cuda`` in ``make test-fake-cuda``: its float64 evidence and Cholesky on the Gaussians' device); at SH
+        degree 0 it is the diagonal form (one coefficient: nothing to take jointly)."""
+        render_on = functools.partial(render, background=torch.tensor([0.2, 0.4, 0.6], device=device))
+        s = _sample()
+        s = replace(s, means=s.means.to(device), quats=s.quats.to(device), scales=s.scales.to(device),
+                    opacities=s.opacities.to(device), sh=torch.cat([s.sh, torch.zeros(len(s.sh), 3, 3)], 1).to(device),
+                    sh_degree=1)
+        cams = _cams(3).to(device)
+        with torch.no_grad():
+            images = (render_on(s, cams).rgb + 0.05).clamp(0, 1)
+        block = fit_residual_field(s, cams, images, render_on, colour_posterior=True, colour_covariance="block")
+        assert block.colour_cross.device.type == device.type and block.colour_cross.dtype == torch.float64
+        var = block.colour_variance(cams.centers)
+        assert var.device.type == device.type and bool(torch.isfinite(var).all())
+        back = ResidualField.from_state(s, block.state())
+        assert back.colour_cross.device.type == device.type
+        torch.testing.assert_close(back.colour_variance(cams.centers), var)
+        parts = block.blended_parts(cams, render_on)
+        assert list(parts) == ["pixel noise", "colour posterior"]
+        assert all(p.device.type == device.type for p in parts.values())
+        s0 = replace(s, sh=s.sh[:, :1], sh_degree=0)
+        kw = dict(colour_posterior=True)
+        one = fit_residual_field(s0, cams, images, render_on, colour_covariance="block", **kw)
+        flat = fit_residual_field(s0, cams, images, render_on, **kw)
+        assert one.colour_cross.shape == (len(s0.means), 1, 1)
+        torch.testing.assert_close(one.colour_variance(cams.centers), flat.colour_variance(cams.centers))
+
     def test_constant_images_and_subset(self):
         """Images without any variation: the prior is 0 (floored), every colour variance finite and ~0; ``subset``
         keeps each Gaussian's evidence."""
