@@ -31,6 +31,7 @@ than one after another where the kernels already use every core: x0.75-1.32 with
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import operator
 import threading
@@ -116,8 +117,13 @@ def _evaluation_config(run_dir: Path):
 
     path = run_dir / "eval" / "config.json"
     try:
-        return EvalConfig.model_validate_json(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValidationError):
+        data = json.loads(path.read_text(encoding="utf-8"))
+        if isinstance(data, dict):
+            # an evaluation from before the setting existed (2026-12-01) used the diagonal colour posterior: its
+            # predictive.pt holds that form, which the default (the block) would refuse
+            data.setdefault("colour_covariance", "diagonal")
+        return EvalConfig.model_validate(data)
+    except (OSError, UnicodeDecodeError, ValueError, ValidationError):
         return EvalConfig()
 
 

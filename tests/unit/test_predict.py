@@ -1,6 +1,7 @@
 """``Predictor.cameras_from_source`` and ``predict``'s argument checks, without a run: a Predictor of a scene whose
 normalisation is a known similarity (the end-to-end tests with a trained run are in tests/e2e/test_evaluate.py)."""
 
+import json
 import math
 
 import numpy as np
@@ -465,6 +466,13 @@ def test_load_takes_the_config_as_a_dict_and_names_a_bad_key(monkeypatch, tmp_pa
     (tmp_path / "eval" / "config.json").write_text(EvalConfig(seed=7, residual_views=5).model_dump_json())
     Predictor.load(tmp_path, "cpu", cfg={"num_samples": 2})
     assert seen[-1] == EvalConfig(seed=7, residual_views=5, num_samples=2)
+    # an evaluation from before colour_covariance existed used the diagonal colour posterior (its predictive.pt holds
+    # it): read so, where the default is the block
+    old = json.loads(EvalConfig(seed=7).model_dump_json())
+    del old["colour_covariance"]
+    (tmp_path / "eval" / "config.json").write_text(json.dumps(old))
+    Predictor.load(tmp_path, "cpu")
+    assert seen[-1] == EvalConfig(seed=7, colour_covariance="diagonal") and EvalConfig().colour_covariance == "block"
 
 
 def test_names_none_numbers_and_numpy_texts():

@@ -755,7 +755,7 @@ def test_summary_says_what_each_run_s_variance_is_made_of(tmp_path):
     plain = make_run(tmp_path, "plain", maps=False)
     html = stage.run([run, plain], tmp_path / "out", ReportConfig()).read_text(encoding="utf-8")
     assert ("r (evaluate): what the variance is made of on the scored pixels of its test views (each part&#x27;s "
-            "share, before the std factor): RGB: pixel noise 90 %, the samples&#x27; spread 10 %, resolution &lt;1 %; "
+            "share, before the std factor and the RGB std&#x27;s cap at 0.5): RGB: pixel noise 90 %, the samples&#x27; spread 10 %, resolution &lt;1 %; "
             "depth: depth spread 100 %, the samples&#x27; spread 0 %") in html
     assert "plain (evaluate): what the variance" not in html
 

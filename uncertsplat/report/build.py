@@ -322,7 +322,8 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
             parts = run.metrics.variance_parts()
             if parts:
                 body.append(note(f"{run.name} (evaluate): what the variance is made of on the scored pixels of its "
-                                 f"{run.metrics.split} views (each part's share, before the std factor): {parts}"))
+                                 f"{run.metrics.split} views (each part's share, before the std factor and the RGB "
+                                 f"std's cap at 0.5): {parts}"))
         post = run.train_summary.posterior if run.train_summary is not None else None
         if post is not None and post.carriers and post.moved_fraction is not None \
                 and post.position_spread_ratio is not None and post.gate_off is not None:

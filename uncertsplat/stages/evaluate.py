@@ -798,8 +798,8 @@ def _print_report(run_dir: Path, cfg: EvalConfig, report, out: Path, written: bo
             console.print(f"[yellow]note:[/] {note}")
     parts = report.variance_parts()
     if parts:
-        console.print(f"the predictive's variance on the scored pixels (share of each part, before the std factor): "
-                      f"{parts}")
+        console.print(f"the predictive's variance on the scored pixels (share of each part, before the std factor and "
+                      f"the RGB std's cap at 0.5): {parts}")
     if report.degrees_of_freedom is None and cfg.degrees_of_freedom == "fit" and report.mean.nll is not None:
         why = ("the Gaussian fitted the calibration views' errors best" if report.calibration_views else
                "no std factor or tails are fitted when the training views are the ones scored (a fit on the views "
