@@ -1573,20 +1573,21 @@ def test_files_kept_before_the_training_views_fit_changed_read_with_the_old_fit(
     resolution term: the default (false) fits another and does not read them; ``true`` keys as they were keyed."""
     from uncertsplat.stages.predictive_cache import UNUSED_SETTINGS, key_settings
 
-    old = EvalConfig().model_dump(mode="json", exclude=set(UNUSED_SETTINGS))
+    diagonal = {"colour_covariance": "diagonal"}  # (the colour posterior's form of those files, left out of keys)
+    old = EvalConfig(**diagonal).model_dump(mode="json", exclude=set(UNUSED_SETTINGS))
     del old["resolution_on_training_views"]  # (what a file written before the setting holds)
-    del old["colour_covariance"]  # (nor this one, added later: left out at its default, "diagonal")
-    assert key_settings(EvalConfig(resolution_on_training_views=True)) == old
+    del old["colour_covariance"]  # (nor this one, added later: left out at "diagonal", the form before it)
+    assert key_settings(EvalConfig(resolution_on_training_views=True, **diagonal)) == old
     assert key_settings(EvalConfig())["resolution_on_training_views"] is False
     assert "hidden_depth" not in key_settings(EvalConfig(hidden_depth=False))
     # a file keyed with true written in (the commit that added the setting) reads with true too
     from uncertsplat.stages.predictive_cache import _accepted_keys, _difference, _key
 
-    parts = {"model": "m", "config": "c", "scene": "s", "settings": key_settings(EvalConfig(resolution_on_training_views=True)),
-             "fit": 1}
+    parts = {"model": "m", "config": "c", "scene": "s",
+             "settings": key_settings(EvalConfig(resolution_on_training_views=True, **diagonal)), "fit": 1}
     written_in = {**parts, "settings": {**parts["settings"], "resolution_on_training_views": True}}
     assert _key(written_in) in _accepted_keys(parts) and _key(parts) in _accepted_keys(parts)
-    default = {**parts, "settings": key_settings(EvalConfig())}
+    default = {**parts, "settings": key_settings(EvalConfig(**diagonal))}
     assert _key(default) in _accepted_keys(default)
     assert not {_key(parts), _key(written_in)} & _accepted_keys(default)
     # the difference says what the file lacks and how to read it, not "None there"
@@ -1611,7 +1612,8 @@ def test_files_kept_before_colour_covariance_existed_read_with_the_diagonal_form
     def parts(settings: dict) -> dict:
         return {"model": "m", "config": "c", "scene": "s", "settings": settings, "fit": 2}
 
-    for cfg in (EvalConfig(), EvalConfig(resolution_on_training_views=True)):
+    for cfg in (EvalConfig(colour_covariance="diagonal"),
+                EvalConfig(resolution_on_training_views=True, colour_covariance="diagonal")):
         before = cfg.model_dump(mode="json", exclude=set(UNUSED_SETTINGS))
         if cfg.resolution_on_training_views:
             del before["resolution_on_training_views"]  # (left out at true, as every file keys it)
@@ -1619,7 +1621,8 @@ def test_files_kept_before_colour_covariance_existed_read_with_the_diagonal_form
         del before["colour_covariance"]  # (what a file written before the setting holds)
         now = parts(key_settings(cfg))
         assert _key(parts(before)) in _accepted_keys(now) and _key(parts(written_in)) in _accepted_keys(now)
-    block = parts(key_settings(EvalConfig(colour_covariance="block")))
+    block = parts(key_settings(EvalConfig()))  # the default since 2026-12-01
+    assert EvalConfig().colour_covariance == "block"
     old = parts({k: v for k, v in EvalConfig().model_dump(mode="json", exclude=set(UNUSED_SETTINGS)).items()
                  if k != "colour_covariance"})
     assert _key(old) not in _accepted_keys(block)
