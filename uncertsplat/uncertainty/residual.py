@@ -258,11 +258,9 @@ class ResidualField:
         """[C,H,W,1] ``sum_i w_i(p) (v_i + c_i)`` for the cameras (c_i: the colour posterior's variance seen from
         the camera, 0 without a colour term), plus the edge term when the field has one: the sum of
         ``blended_parts``."""
-        parts = list(self.blended_parts(cameras, render_fn).values())
-        total = parts[0]
-        for part in parts[1:]:
-            total = total + part
-        return total
+        from uncertsplat.uncertainty.mc import sum_terms
+
+        return sum_terms(self.blended_parts(cameras, render_fn))
 
     STATE_TENSORS = ("variance", "seen", "observations", "colour_evidence", "colour_prior", "pixel_variance",
                      "colour_cross")
