@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
+import pytest
 import torch
 
 from tests.reference.naive_render import look_at_cameras, naive_render, random_scene
@@ -204,3 +206,46 @@ def test_gaussian_behind_stopped_rays_gets_exactly_zero_gradient(device):
     # The front Gaussian does receive colour gradients (the check above is not vacuous); its alpha is
     # at the 0.99 cap everywhere, so its geometry gradients are 0 by the cap's semantics.
     assert g["sh"][0].abs().sum() > 0
+
+
+def _stack(device, dtype, log_opacity, n, centre=2.0):
+    """``n`` wide Gaussians stacked front to back over one 4 x 4 tile, all at pixel ``centre``, each of log opacity
+    ``log_opacity``: composite's inputs (gparams [n,6], one feature of 1s: the output is the ray's alpha) and bins."""
+    from uncertsplat.render.rasterize import bin_gaussians
+
+    means2d = torch.full((1, n, 2), centre, dtype=dtype, device=device)
+    conics = torch.tensor([[[0.01, 0.0, 0.01]] * n], dtype=dtype, device=device)
+    opac = torch.full((n,), math.exp(log_opacity), dtype=dtype, device=device)
+    bins = bin_gaussians(means2d, torch.full_like(means2d, 10.0), torch.ones(1, n, dtype=torch.bool, device=device),
+                         torch.arange(1.0, n + 1, dtype=dtype, device=device)[None], 4, 4, 4, conics, opac)
+    gparams = torch.cat([means2d[0], conics[0], torch.full((n, 1), log_opacity, dtype=dtype, device=device)], -1)
+    return gparams, torch.ones(n, 1, dtype=dtype, device=device), bins
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_ray_whose_transmittance_reaches_t_min_exactly_keeps_that_gaussian(device, dtype, monkeypatch):
+    """The ray stops before a Gaussian that would take T *under* T_MIN (3DGS's ``test_T < 0.0001f``, the oracle's
+    ``t_incl >= 1e-4``): one that leaves T equal to it is added. With the cap at 0.5 and T_MIN 0.25 (exact in
+    binary) three opaque Gaussians leave T = 0.5, 0.25 (kept), 0.125 (the ray stops before it): alpha 0.75 on every
+    pixel, from both compositors (the PyTorch one zeroed T <= T_MIN and stopped at 0.5; a native ``<=`` too)."""
+    from uncertsplat.render import rasterize
+
+    monkeypatch.setattr(rasterize, "ALPHA_MAX", 0.5)
+    monkeypatch.setattr(rasterize, "T_MIN", 0.25)
+    gparams, feat, bins = _stack(device, dtype, 0.0, 3)
+    out = rasterize.composite(gparams, feat, bins)
+    assert torch.equal(out, torch.full_like(out, 0.75))
+
+
+def test_an_alpha_of_exactly_alpha_min_is_drawn(device, monkeypatch):
+    """Only alpha < ALPHA_MIN is skipped (3DGS's ``alpha < 1/255``, the oracle's ``alpha >= 1/255``): with ALPHA_MIN
+    0.5 a Gaussian of opacity 0.5 is drawn exactly at its mean's pixel (alpha 0.5 there, in float64 where
+    exp(log 0.5) is 0.5 on both paths) and nowhere else (the PyTorch compositor zeroed alpha <= ALPHA_MIN)."""
+    from uncertsplat.render import rasterize
+
+    monkeypatch.setattr(rasterize, "ALPHA_MIN", 0.5)
+    gparams, feat, bins = _stack(device, torch.float64, math.log(0.5), 1, centre=1.5)
+    out = rasterize.composite(gparams, feat, bins)[0, :, 0]
+    expected = torch.zeros_like(out)
+    expected[5] = 0.5  # pixel (1, 1) of the tile: centre (1.5, 1.5)
+    assert torch.equal(out, expected)

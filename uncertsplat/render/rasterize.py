@@ -391,18 +391,35 @@ def make_plan(
     )
 
 
-def _alpha(pb: Tensor, phi_t: Tensor, nt: int, L: int, clamp: bool) -> Tensor:
-    """[nt,P,L] alpha of a block (list position last, so that the scans run along contiguous memory)."""
+def _below(value: float, dtype: torch.dtype) -> float:
+    """The largest number of ``dtype`` under ``value`` (as ``dtype`` rounds it). ``threshold_(x, t, 0)`` zeroes
+    x <= t, so with t = ``_below(v)`` it zeroes x < v and keeps x == v: the comparisons of 3DGS, the native kernels
+    and the oracle (alpha < ALPHA_MIN skipped, a ray stopped where T would fall under T_MIN). A threshold of v itself
+    also dropped the values equal to it (a ray whose T reached exactly T_MIN lost that Gaussian)."""
+    v = torch.tensor(value, dtype=dtype)
+    return float(torch.nextafter(v, torch.zeros_like(v)))
+
+
+def _cuts(dtype: torch.dtype) -> tuple[float, float]:
+    """The block kernels' thresholds for ``threshold_`` on alpha and T (``_below`` ALPHA_MIN and T_MIN), taken once
+    per call outside the kernels (which torch.compile may wrap)."""
+    return _below(ALPHA_MIN, dtype), _below(T_MIN, dtype)
+
+
+def _alpha(pb: Tensor, phi_t: Tensor, nt: int, L: int, clamp: bool, cut: float) -> Tensor:
+    """[nt,P,L] alpha of a block (list position last, so that the scans run along contiguous memory); ``cut``: the
+    alpha threshold of ``_cuts``."""
     alpha = torch.bmm(phi_t.expand(nt, -1, -1), pb.view(nt, L, pb.shape[1]).transpose(1, 2))
     alpha.exp_()
-    torch.nn.functional.threshold_(alpha, ALPHA_MIN, 0.0)  # skip contributions below 1/255
+    torch.nn.functional.threshold_(alpha, cut, 0.0)  # skip contributions below 1/255
     if clamp:
         alpha.clamp_max_(ALPHA_MAX)
     return alpha
 
 
-def _weights(alpha: Tensor, need_r: bool):
-    """Weights w [nt,P,L] (and r = alpha / (1 - alpha) when asked) of a block, from alpha [nt,P,L].
+def _weights(alpha: Tensor, need_r: bool, cut: float):
+    """Weights w [nt,P,L] (and r = alpha / (1 - alpha) when asked) of a block, from alpha [nt,P,L]; ``cut``: the T
+    threshold of ``_cuts``.
 
     T (transmittance) is one in-place cumprod of 1 - alpha along the list, which is the contiguous
     last dim. 3DGS stops a ray before the first Gaussian that would push T under T_MIN and does not add
@@ -414,14 +431,15 @@ def _weights(alpha: Tensor, need_r: bool):
     torch.sub(1.0, alpha, out=T)
     r = torch.div(alpha, T, out=alpha if not need_r else None)
     T.cumprod_(-1)
-    torch.nn.functional.threshold_(T, T_MIN, 0.0)
+    torch.nn.functional.threshold_(T, cut, 0.0)
     w = T.mul_(r) if not need_r else T * r
     return w, r
 
 
-def block_forward(pb: Tensor, ft: Tensor, phi_t: Tensor, nt: int, L: int, clamp: bool) -> Tensor:
-    """Rows pb [nt*L,8], features ft [nt,L,F] -> [nt,P,F] composited features."""
-    w, _ = _weights(_alpha(pb, phi_t, nt, L, clamp), need_r=False)
+def block_forward(pb: Tensor, ft: Tensor, phi_t: Tensor, nt: int, L: int, clamp: bool,
+                  cuts: tuple[float, float]) -> Tensor:
+    """Rows pb [nt*L,8], features ft [nt,L,F] -> [nt,P,F] composited features; ``cuts``: ``_cuts(pb.dtype)``."""
+    w, _ = _weights(_alpha(pb, phi_t, nt, L, clamp, cuts[0]), need_r=False, cut=cuts[1])
     return torch.bmm(w, ft)
 
 
@@ -435,11 +453,13 @@ def block_backward(
     clamp: bool,
     g_rows: Tensor,
     g_feat: Tensor,
+    cuts: tuple[float, float],
 ) -> None:
-    """Closed-form gradients of one block, written into g_rows [nt,L,8] and g_feat [nt,L,F]. go: [nt,P,F]."""
-    alpha = _alpha(pb, phi_t, nt, L, clamp)
+    """Closed-form gradients of one block, written into g_rows [nt,L,8] and g_feat [nt,L,F]. go: [nt,P,F]; ``cuts``:
+    ``_cuts(pb.dtype)``."""
+    alpha = _alpha(pb, phi_t, nt, L, clamp, cuts[0])
     capped = alpha >= ALPHA_MAX if clamp else None
-    w, r = _weights(alpha, need_r=True)
+    w, r = _weights(alpha, need_r=True, cut=cuts[1])
     torch.bmm(w.transpose(1, 2), go, out=g_feat)  # dL/df_i = sum_pixels w_i g
     wh = torch.bmm(go, ft.transpose(1, 2), out=alpha).mul_(w)  # [nt,P,L]  w_i (g . f_i)
     # Suffix sums sum_{k>i} w_k h_k = total - prefix_i; with the block's own total (not g . out) the
@@ -463,10 +483,11 @@ class _Composite(torch.autograd.Function):
         rows = pair_rows(gparams.detach(), plan.pair_gauss, plan.pair_centre)  # [M+1,8]
         feat_ext = torch.cat([feat.detach(), feat.new_zeros(1, F)])
         out = feat.new_zeros(plan.num_tiles, P, F)
+        cuts = _cuts(rows.dtype)
         for b in plan.blocks:
             pb = rows.index_select(0, b.rows)
             ft = feat_ext.index_select(0, b.gauss).view(-1, b.L, F)
-            out[b.tiles] = fwd(pb, ft, phi_t, b.tiles.numel(), b.L, b.clamp)
+            out[b.tiles] = fwd(pb, ft, phi_t, b.tiles.numel(), b.L, b.clamp, cuts)
         ctx.save_for_backward(rows, feat_ext)
         ctx.plan = plan
         return out
@@ -484,6 +505,7 @@ class _Composite(torch.autograd.Function):
         g_rows = feat_ext.new_empty(plan.num_padded, 8)
         g_pairs = feat_ext.new_empty(plan.num_padded, 6 + F)
         off = 0
+        cuts = _cuts(rows.dtype)
         for b in plan.blocks:
             nt = b.tiles.numel()
             k = nt * b.L
@@ -491,7 +513,7 @@ class _Composite(torch.autograd.Function):
             ft = feat_ext.index_select(0, b.gauss).view(nt, b.L, F)
             gr = g_rows[off : off + k].view(nt, b.L, 8)
             gf = ft.new_empty(nt, b.L, F)
-            bwd(pb, ft, g_out[b.tiles], phi_t, nt, b.L, b.clamp, gr, gf)
+            bwd(pb, ft, g_out[b.tiles], phi_t, nt, b.L, b.clamp, gr, gf, cuts)
             g_pairs[off : off + k, 6:] = gf.view(k, F)
             off += k
         # Chain rule from the polynomial coefficients to the Gaussian's 2D parameters, for all pairs at once.
