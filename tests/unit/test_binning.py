@@ -88,6 +88,23 @@ def test_binning_keeps_every_pair_whose_alpha_reaches_the_threshold(aspect, tile
             assert len(listed) < 1.5 * len(needed)
 
 
+def test_both_backends_sort_depths_of_every_magnitude_front_to_back():
+    """The native kernel sorts float32 depths by a radix sort of their bits, one byte per pass: depths from 1e-3 to
+    1e4 (keys that differ in every byte, the exponent's high bits in the last) must come out front to back in
+    every tile, the pairs the PyTorch binning lists in the same order. (The depths of ``_ellipses`` lie in
+    [0.5, 1.5): their keys share the top byte, so a sort that skipped it listed the same pairs.)"""
+    w, h, n = 61, 47, 300
+    m, e, v, _, con, opac = _ellipses(n, w, h, seed=5, aspect=4.0)
+    d = 10.0 ** (torch.rand(1, n, generator=torch.Generator().manual_seed(6)) * 7 - 3)
+    got = {b: bin_gaussians(m, e, v, d, w, h, 8, con, opac, backend=b) for b in ("torch", "native")}
+    a, b = got["torch"], got["native"]
+    assert torch.equal(a.pair_gauss, b.pair_gauss) and torch.equal(a.pair_tile, b.pair_tile)
+    pair_depth = d[0, b.pair_gauss.long()]
+    same_tile = b.pair_tile[1:] == b.pair_tile[:-1]
+    assert int(same_tile.sum()) > 1000
+    assert bool((pair_depth[1:] >= pair_depth[:-1])[same_tile].all())
+
+
 def test_more_gaussians_than_the_pair_index_holds():
     """The tile lists index Gaussians as int32: 2^31 cameras x Gaussians is refused with a message."""
     C, N = 2**16, 2**15
