@@ -93,6 +93,35 @@ class TestDense:
             assert torch.equal(pb.detach(), pa.detach()) if exact else torch.allclose(pb, pa, rtol=1e-5, atol=1e-6)
         assert int(ours.state[b[1]]["step"]) == 11
 
+    def test_a_second_moment_decays_after_the_first_has_underflowed(self):
+        """Rows with no gradient whose first moment has reached exactly 0 (it decays by beta1 = 0.9 a step: a float
+        underflows after about 900 steps without a gradient) still hold a second moment (beta2 = 0.999), which Adam
+        decays every step: the kernel may skip a cache line only where the gradient and *both* moments are 0. After
+        steps in that state, moments and parameters equal torch's fused Adam's as in the test above."""
+        a, b, theirs, ours = self._pair()
+        for step in range(4):
+            _grads(a, step)
+            _grads(b, step)
+            if step >= 1:
+                for p, opt in ((a[2], theirs), (b[2], ours)):
+                    p.grad[:40] = 0.0
+                    opt.state[p]["exp_avg"][:40] = 0.0
+            torch_threads = torch.get_num_threads()
+            torch.set_num_threads(1)
+            try:
+                theirs.step()
+            finally:
+                torch.set_num_threads(torch_threads)
+            assert ours.step_if_finite()
+        v = ours.state[b[2]]["exp_avg_sq"]
+        assert bool((v[:40] > 0).all())
+        exact = torch.backends.cpu.get_cpu_capability() in ("AVX2", "AVX512")
+        for pa, pb in zip(a, b, strict=True):
+            for key in ("exp_avg", "exp_avg_sq"):
+                x, y = ours.state[pb][key], theirs.state[pa][key]
+                assert torch.equal(x, y) if exact else torch.allclose(x, y, rtol=1e-5, atol=1e-7), key
+            assert torch.equal(pb.detach(), pa.detach()) if exact else torch.allclose(pb, pa, rtol=1e-5, atol=1e-6)
+
     @pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
     @pytest.mark.parametrize("where", [(0, (0, 0)), (2, (96, 14, 2)), (4, (0, 0))])
     def test_non_finite_gradient_changes_nothing(self, value, where):
