@@ -108,12 +108,19 @@ def test_training_pixels_without_depth_do_not_observe():
     holes[:, :8] = 0.0  # no GT surface there in the training view (e.g. a masked-out region)
     observed, _ = label([holes], [cam_at()])
     assert not observed[:, :8].any() and observed[:, 8:].all()
+    # however wide the tolerance: a depth of 0 is no surface, not one within 100 % of the point's depth
+    observed, _ = label([holes], [cam_at()], rel_tol=1.0)
+    assert not observed[:, :8].any() and observed[:, 8:].all()
 
 
 def test_tolerance_decides_at_its_edge():
     farther = plane() * 1.01  # the training view's surface 1 % behind the point
     assert label([farther], [cam_at()], rel_tol=0.02)[0].all()
     assert not label([farther], [cam_at()], rel_tol=0.005)[0].any()
+    # relative to the point's depth, not the training view's: a surface 50 % behind is outside 40 % of the point's
+    # depth (though inside 40 % of its own)
+    assert not label([plane() * 1.5], [cam_at()], rel_tol=0.4)[0].any()
+    assert label([plane() * 1.5], [cam_at()], rel_tol=0.5)[0].all()
 
 
 def test_bad_inputs():
