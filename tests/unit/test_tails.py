@@ -97,6 +97,16 @@ class TestFit:
         dof = tails.fit_dof(z)
         assert dof is None or dof > 50
 
+    def test_a_best_fit_past_the_largest_dof_is_the_gaussian(self):
+        """z-scores shaped exactly as the unit-variance t with nu = 1500 (its quantiles): the likelihood peaks past
+        MAX_DOF, so the grid's last point is best and beats the Gaussian; that end is reported as the Gaussian
+        (None), not as a nu a hair under MAX_DOF from a search against the grid's end."""
+        nu, n = 1500.0, 200_000
+        q = (torch.arange(n, dtype=torch.float64) + 0.5) / n
+        z = torch.from_numpy(stats.t.ppf(q.numpy(), df=nu)) * math.sqrt((nu - 2) / nu)
+        z = z / z.square().mean().sqrt()
+        assert tails.fit_dof(z) is None
+
     def test_nothing_to_fit(self):
         assert tails.fit_dof(torch.empty(0)) is None
         assert tails.fit_dof(torch.tensor([float("nan"), float("inf")])) is None
