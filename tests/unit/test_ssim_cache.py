@@ -43,6 +43,28 @@ class TestSsimTargetCache:
         assert cache.get(2, photos[2]) is None and len(cache) == 2  # past the budget: blurred in the loss
         assert cache.get(1, photos[1]) is not None  # the photos kept stay
 
+    def test_a_budget_of_exactly_the_photos_keeps_them(self, native_kernels):
+        photos = torch.rand(2, 1, 20, 30, 3, generator=torch.Generator().manual_seed(0))
+        cache = SsimTargetCache(2 * 8 * 20 * 30 * 3)
+        assert cache.get(0, photos[0]) is not None and cache.get(1, photos[1]) is not None
+        assert cache.used_bytes == cache.budget_bytes
+
+    def test_pending_bytes_are_the_photos_statistics_not_kept_yet_within_the_budget(self, native_kernels):
+        """What the trainer's memory room reserves for the cache (``Trainer._memory_room``): the statistics of the
+        training photos still to be kept, at most what the budget leaves, 0 once the budget is spent."""
+        photos = torch.rand(3, 20, 30, 3, generator=torch.Generator().manual_seed(0))
+        per_photo = 8 * 20 * 30 * 3
+        cache = SsimTargetCache(10**9)  # a budget far above the photos: only they are reserved
+        assert cache.pending_bytes(photos.shape) == 3 * per_photo
+        cache.get(0, photos[:1])
+        assert cache.pending_bytes(photos.shape) == 2 * per_photo
+        small = SsimTargetCache(per_photo + 10)  # a budget under the photos: what it leaves
+        assert small.pending_bytes(photos.shape) == per_photo + 10
+        small.get(0, photos[:1])
+        assert small.pending_bytes(photos.shape) == 10
+        assert small.get(1, photos[1:2]) is None and small.pending_bytes(photos.shape) == 0  # spent
+        assert SsimTargetCache(0).pending_bytes(photos.shape) == 0
+
     def test_nothing_is_kept_with_no_budget_or_without_the_fused_kernel(self, native_kernels, monkeypatch):
         photo = torch.rand(1, 20, 30, 3, generator=torch.Generator().manual_seed(0))
         assert SsimTargetCache(0).get(0, photo) is None
