@@ -277,6 +277,14 @@ def test_the_last_tenth_of_a_run_never_densifies():
     assert is_densify_step(1500, cfg) and not is_densify_step(1500, cfg, iterations=1500)
     assert is_densify_step(1300, cfg, iterations=1500) and is_densify_step(1350 // 100 * 100, cfg, iterations=1500)
     assert not is_densify_step(1400, cfg, iterations=1500)  # past 0.9 x 1500 + 1 = 1351
+    # at its edge: the last tenth of 1000 steps is 901-1000, so step 900 still densifies
+    assert is_densify_step(900, cfg, iterations=1000) and not is_densify_step(1000, cfg, iterations=1000)
+    # densify_steps_after says whether is_densify_step holds at a later step up to the run's end, short runs too
+    small = DensifyConfig(start=0, until=100, interval=5)
+    for last in range(1, 40):
+        for step in range(last + 1):
+            expect = any(is_densify_step(s, small, iterations=last) for s in range(step + 1, last + 1))
+            assert densify_steps_after(step, small, last_step=last) == expect, (step, last)
     assert densify_steps_after(1300, cfg) and not densify_steps_after(1300, cfg, last_step=1500)
     grow = cfg.model_copy(update={"growth_check_interval": 250})
     assert growth_check_due(1500, grow) and not growth_check_due(1500, grow, iterations=1500)
