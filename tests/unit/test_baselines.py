@@ -277,6 +277,18 @@ def test_one_pass_gives_the_noise_the_fisher_and_the_disagreement():
     assert fixed.noise_std == 0.5 and fixed.disagreement is None
 
 
+def test_a_perfect_fit_gets_the_noise_floor_not_zero():
+    """Images the render reproduces exactly: a noise of 0 would make the Fisher infinite (1 / s^2), so the noise is
+    ``floor`` (1/255 unless given), from ``residual_noise_std`` as from ``curvature``."""
+    params = _params()
+    maps = torch.randn(2, 3, 60, generator=torch.Generator().manual_seed(4))
+    images = torch.stack([(params["means"].sum(0) @ maps[t]).reshape(4, 5, 3) for t in range(2)])
+    assert residual_noise_std(params, _Cams(maps), images, _linear_render, sh_degree=0) == 1.0 / 255.0
+    assert residual_noise_std(params, _Cams(maps), images, _linear_render, sh_degree=0, floor=0.1) == 0.1
+    c = curvature(params, _Cams(maps), images, _linear_render, names=("means",),
+                  generator=torch.Generator().manual_seed(0), sh_degree=0, probes=1)
+    assert c.noise_std == 1.0 / 255.0 and bool(torch.isfinite(c.fisher["means"]).all())
+
 def test_masked_pixels_count_in_neither_the_noise_nor_the_fisher():
     """``masks``: the noise is the RMS over the pixel channels inside the mask (each pixel's three channels count),
     and a parameter seen only in pixels outside it gets no Fisher (its probes are masked too). Each coordinate of the
