@@ -102,6 +102,36 @@ def test_position_score_divides_by_the_largest_axis(device):
     torch.testing.assert_close(s["position"][i].cpu(), torch.tensor(0.08 / (0.05 * 0.85)), rtol=1e-4, atol=0)
 
 
+def test_position_score_is_the_rms_spread_over_the_axes(device):
+    """Per-axis spreads 0.03, 0.04 and 0.12 (x extent 2): the RMS over the axes, sqrt(mean of their squares) (0.079 of
+    0.05 x 0.85 world units), not their mean (0.063)."""
+    model, is_floater, _ = planted_scene(device=device)
+    i = int(is_floater.nonzero()[0])
+    row = int(model.posterior_row[i])
+    with torch.no_grad():
+        model.tables["pos_spread_raw"][row] = inverse_softplus(torch.tensor([0.03, 0.04, 0.12], device=device))
+    s = posterior_scores(model, variant="ours", extent=2.0)
+    rms = 2.0 * math.sqrt((0.03**2 + 0.04**2 + 0.12**2) / 3)
+    torch.testing.assert_close(s["position"][i].cpu(), torch.tensor(rms / (0.05 * 0.85)), rtol=1e-4, atol=0)
+
+
+def test_predictive_counts_a_move_of_more_than_its_size_as_one_size(device):
+    """``predictive`` weighs the contribution by min(1, position): positions of 1 and of 100 give the same score (the
+    same posterior samples), 0.5 a smaller one where a Gaussian contributes."""
+    from uncertsplat.uncertainty.scores import predictive_score
+
+    model, _, cams = planted_scene(device=device)
+    cams = cams[[0, 1]]
+
+    def score(position):
+        return predictive_score(model, cams, torch.Generator(device=device).manual_seed(0), render_fn=render,
+                                num_samples=2, position=torch.full((len(model),), position, device=device))
+
+    one, far, half = score(1.0), score(100.0), score(0.5)
+    assert torch.equal(one["predictive"], far["predictive"])
+    seen = carrier_mask(model) & (one["contribution"] > 1e-3)
+    assert bool(seen.any()) and bool((half["predictive"][seen] < one["predictive"][seen]).all())
+
 def test_blending_weights_sum_to_the_rendered_alpha(device):
     model, _, cams = planted_scene(device=device)
     from uncertsplat.gaussians.variational import posterior_mean
@@ -200,6 +230,9 @@ class TestFreeSpace:
         means = torch.tensor([[0.0, 0.0, 2.0], [50.0, 0.0, 2.0], [0.0, 0.0, -1.0]])
         gap, views = centre_gap(means, cams, lambda c: depth[c])
         assert views.tolist() == [2, 0, 0]
+        # the image spans [0, 4) in u and v: a centre at u = 0 or v = 0 is inside, at u = 4 or v = 4 outside
+        edges = torch.tensor([[-2.0, 0.0, 2.0], [0.0, -2.0, 2.0], [2.0, 0.0, 2.0], [0.0, 2.0, 2.0]])
+        assert centre_gap(edges, cams[[0]], lambda c: depth[c])[1].tolist() == [1, 1, 0, 0]
         assert float(gap[0]) == pytest.approx(0.5)  # the smaller gap over the two views
         assert math.isinf(float(gap[1])) and math.isinf(float(gap[2]))
         # no surface through the pixel (0 or non-finite depth): free space along the whole ray
