@@ -118,6 +118,7 @@ def test_position_score_is_the_rms_spread_over_the_axes(device):
 def test_predictive_counts_a_move_of_more_than_its_size_as_one_size(device):
     """``predictive`` weighs the contribution by min(1, position): positions of 1 and of 100 give the same score (the
     same posterior samples), 0.5 a smaller one where a Gaussian contributes."""
+    from uncertsplat.gaussians.variational import sample
     from uncertsplat.uncertainty.scores import predictive_score
 
     model, _, cams = planted_scene(device=device)
@@ -131,6 +132,13 @@ def test_predictive_counts_a_move_of_more_than_its_size_as_one_size(device):
     assert torch.equal(one["predictive"], far["predictive"])
     seen = carrier_mask(model) & (one["contribution"] > 1e-3)
     assert bool(seen.any()) and bool((half["predictive"][seen] < one["predictive"][seen]).all())
+    # position 0: the std of the weights over the samples (the unbiased variance of the two), the same samples drawn
+    gen = torch.Generator(device=device).manual_seed(0)
+    w = torch.stack([blending_weights(sample(model, gen, subset_size=2, variant="ours", extent=1.0, temperature=0.2,
+                                             sh_degree=0), cams, render_fn=render) for _ in range(2)])
+    got = score(0.0)["predictive"][seen]
+    torch.testing.assert_close(got.square(), w.var(0, unbiased=True)[seen], rtol=1e-5, atol=1e-12)
+    assert float(got.max()) > 0.0
 
 def test_blending_weights_sum_to_the_rendered_alpha(device):
     model, _, cams = planted_scene(device=device)
@@ -210,6 +218,7 @@ def test_names_and_helpers():
         resolve_score_name("entropy")
     assert spread_views(range(4), 8) == [0, 1, 2, 3]
     assert spread_views(range(10), 3) == [0, 3, 6]
+    assert spread_views(range(10), 4) == [0, 2, 5, 7]  # a step of 2.5, not 2
     model, _, _ = planted_scene()
     with pytest.raises(ValueError, match="predictive"):
         compute_scores(model, None, None, names=("predictive",))
