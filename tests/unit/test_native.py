@@ -90,6 +90,26 @@ def test_tile_lists_longer_than_a_list_chunk(opacity_range):
         assert ((ga[k] - gb[k]).norm() / ga[k].norm()).item() <= 1e-12, k
 
 
+def test_rays_that_a_whole_list_chunk_passes_by_go_on_to_the_next():
+    """One 8 x 8 tile: 139 flat Gaussians over its first two pixel rows only (the first slice of lanes), in front,
+    stop those rays within the first chunk of 128 entries, in which the other slices' rays get no entry at all; the
+    140th, behind, covers the whole tile. The chunk loop goes on while any ray of the tile is live, whether or not the
+    chunk reached it: the lower rows get the last Gaussian, as on the PyTorch path."""
+    n = 140
+    means2d = torch.tensor([4.0, 1.0], dtype=torch.float64).repeat(1, n, 1)  # between pixel rows 0 and 1
+    conics = torch.tensor([1e-4, 0.0, 1 / 0.09], dtype=torch.float64).repeat(1, n, 1)  # 100 px wide, 0.3 px high
+    means2d[0, -1] = torch.tensor([4.0, 4.0])
+    conics[0, -1] = torch.tensor([0.01, 0.0, 0.01])
+    opac = torch.full((n,), 0.9, dtype=torch.float64)
+    bins = bin_gaussians(means2d, torch.full_like(means2d, 100.0), torch.ones(1, n, dtype=torch.bool),
+                         torch.arange(1.0, n + 1, dtype=torch.float64)[None], 8, 8, 8, conics, opac)
+    assert bins.tile_count.tolist() == [n]
+    gparams = torch.cat([means2d[0], conics[0], opac.log()[:, None]], -1)
+    feat = torch.ones(n, 1, dtype=torch.float64)
+    a, b = (composite(gparams, feat, bins, backend=be)[0, :, 0].view(8, 8) for be in ("torch", "native"))
+    assert float(b[:2].min()) > 0.9998 and float(b[2:].min()) > 0.7
+    assert (a - b).abs().max().item() <= 1e-12
+
 def test_binning_lists_the_same_pairs_in_the_same_order():
     s, cams = _scene(800, torch.float32)
     p = project_gaussians(s.means, s.quats, s.scales, s.opacities, cams.cam_from_world, cams.K, 61, 47)
