@@ -16,7 +16,7 @@ from uncertsplat.config import TrainConfig
 from uncertsplat.io.checkpoints import decode, encode
 from uncertsplat.render.exposure import PhotoExposure, centred, expose, fitted_gain, spread_variance, unexpose
 from uncertsplat.schemas import RunExposure
-from uncertsplat.strategy.exposure import EXPOSURE_SPREAD
+from uncertsplat.strategy.exposure import EXPOSURE_SPREAD, gain_spread
 from uncertsplat.train.trainer import Trainer
 from uncertsplat.types import Cameras, ViewSet
 
@@ -312,3 +312,11 @@ def test_a_pruned_checkpoint_model_takes_the_checkpoints_exposures_and_transient
     assert masks.keys() == {names[0]} and (masks[names[0]] == keep[..., 0].numpy()).all()
     again = load_run(out)
     assert again.exposure.gain == loaded.exposure.gain
+
+
+def test_gain_spread_of_no_one_or_several_gains():
+    """The largest over the smallest gain; 1 (no spread, nothing learned) for fewer than two gains, none at all
+    included, or a gain that is not positive."""
+    assert gain_spread([]) == gain_spread([1.3]) == 1.0
+    assert gain_spread([0.8, 1.0, 1.2]) == pytest.approx(1.5)
+    assert gain_spread([0.0, 1.2]) == gain_spread([-0.5, 1.2]) == 1.0

@@ -123,6 +123,17 @@ class TestGain:
         assert band_gain_db(self._sample(), 1, cams, images, _const_render({0: 0.2, 1: 0.2})) == 0.0
         assert band_gain_db(self._sample(), 1, cams, images, _const_render({0: 0.2, 1: 0.5})) == math.inf
 
+    def test_renders_are_clamped_to_the_image_range_before_the_error(self):
+        """A band that pushes the render past 1 (or under 0) is judged by what an image shows: renders above the white
+        or below the black of the photos match them (0 error; the band is a perfect fit, not a worse one)."""
+        from uncertsplat.strategy.view_checks import sum_squared_error
+
+        cams = Cameras(torch.eye(4)[None], torch.eye(3)[None], 5, 4, ("a",))
+        white, black = torch.ones(1, 4, 5, 3), torch.zeros(1, 4, 5, 3)
+        assert sum_squared_error(self._sample(), cams, white, _const_render({2: 1.4})) == 0.0
+        assert sum_squared_error(self._sample(), cams, black, _const_render({2: -0.3})) == 0.0
+        assert band_gain_db(self._sample(), 2, cams, white, _const_render({1: 0.8, 2: 1.4})) == math.inf
+
     def test_degree_zero_is_refused(self):
         cams = Cameras(torch.eye(4)[None], torch.eye(3)[None], 5, 4, ("a",))
         with pytest.raises(ValueError, match=">= 1"):
