@@ -699,6 +699,18 @@ def test_native_projection_matches_the_reference(monkeypatch):
     del g
 
 
+def test_native_projection_culls_beyond_the_far_plane():
+    """Gaussians at or beyond ``far`` are culled by both paths (not valid, no footprint), those before it kept."""
+    s = random_scene(400, torch.Generator().manual_seed(5), sh_degree=0, extent=2.5)
+    cams = look_at_cameras(2, 64, 48, focal=50.0, radius=3.0)
+    out = {b: project_gaussians(s.means, s.quats, s.scales, s.opacities, cams.cam_from_world, cams.K, 64, 48,
+                                near=0.5, far=3.2, backend=b) for b in ("torch", "native")}
+    a, b = out["torch"], out["native"]
+    beyond = a.depths >= 3.2
+    assert bool(beyond.any()) and bool(a.valid[~beyond].any())
+    assert torch.equal(a.valid, b.valid) and not bool(b.valid[beyond].any())
+    assert torch.equal(b.extents[beyond], torch.zeros_like(b.extents[beyond]))
+
 class TestSingleThreadedTorch:
     """``native.single_threaded_torch``: torch's own ops on one thread, the native kernels on torch's count."""
 
