@@ -153,6 +153,7 @@ def test_the_native_peak_factor_matches_the_reference_and_its_gradients():
     conics = project_gaussians(means, s.quats, torch.sqrt(s.scales**2 + var.clamp_min(0)[:, None]), s.opacities,
                                cw, K, 40, 32, 0.01, 1e10, 0.3).conics.detach().clone()
     conics[:, 25] = torch.tensor([1.0, 1.0, 1.0])  # a c - b^2 = 0: no factor
+    conics[:, 26] = torch.tensor([1.0, 2.0, 1.0])  # a c - b^2 < 0 (not an ellipse): no factor either
     inputs = {"means": means, "conics": conics, "var": var}
     outs, grads = {}, {}
     weight = torch.rand(3, n, generator=g) - 0.5
@@ -169,10 +170,12 @@ def test_the_native_peak_factor_matches_the_reference_and_its_gradients():
         outs[name], grads[name] = out.detach(), {k: v.grad for k, v in leaves.items()}
     behind = project_gaussians(means, s.quats, s.scales, s.opacities, cw, K, 40, 32, 0.01, 1e10, 0.3).depths <= 0.01
     assert bool(behind.any()) and bool((outs["reference"] < -1.0).any()) and bool((outs["reference"] == 0).any())
+    assert float(outs["native"][:, 25:27].abs().max()) == 0.0  # the degenerate conics
     torch.testing.assert_close(outs["native"], outs["reference"], rtol=1e-5, atol=1e-6)
     for k in inputs:
         ref, got = grads["reference"][k], grads["native"][k]
         if k == "var":  # at v = 0 the factor sits on its clamp at 0, where rounding decides which side passes
+            assert float(ref[var < 0].abs().max()) == 0.0 == float(got[var < 0].abs().max())  # clamped: none
             ref, got = ref[var > 0], got[var > 0]
         assert float(ref.abs().max()) > 0, k  # the comparison is not vacuous
         torch.testing.assert_close(got, ref, rtol=1e-4, atol=1e-6 * float(ref.abs().max()), msg=k)
