@@ -69,6 +69,30 @@ class TestTransientMasks:
         assert transient_masks(render, far, **{**KW, "max_share": 0.4}).all()
         assert (~transient_masks(render, far, **{**KW, "max_share": 0.5})).float().mean() == pytest.approx(58 / 128)
 
+    def test_the_share_is_of_the_valid_pixels_and_exactly_max_share_keeps_the_regions(self):
+        """``max_share`` bounds the regions' share of the pixels that count: a region that covers exactly it is left out
+        (only a larger one means a model far from the photo), and under a user's mask the share is of the pixels the
+        mask lets count, not of the whole image."""
+        render, photo = _scene(h=64)  # 8192 pixels: every share of them is exact in binary
+        photo[0][_disc(64, 128, 30, 30, 12)] = torch.tensor([1.0, 0.0, 1.0])
+        region = ~transient_masks(render, photo, **{**KW, "max_share": 1.0})
+        share = float(region.sum()) / (64 * 128)
+        assert 0.02 < share < 0.1
+        assert torch.equal(~transient_masks(render, photo, **{**KW, "max_share": share}), region)
+        assert transient_masks(render, photo, **{**KW, "max_share": share - 1e-6}).all()
+        valid = torch.zeros(1, 64, 128, 1, dtype=torch.bool)
+        valid[0, :, :64] = True  # the disc lies in the half that counts: twice the share of it
+        assert torch.equal(~transient_masks(render, photo, **{**KW, "max_share": 2 * share}, valid=valid), region)
+        assert transient_masks(render, photo, **{**KW, "max_share": 1.5 * share}, valid=valid).all()
+
+    def test_a_window_exactly_core_full_of_candidates_is_transient(self):
+        """The share of candidates is compared with ``core`` inclusively: with core 1 a block of candidates wider than
+        the window is transient (every window inside it is full)."""
+        render, photo = _scene()
+        photo[0, 30:50, 40:70] = torch.tensor([1.0, 0.0, 1.0])
+        keep = transient_masks(render, photo, **{**KW, "core": 1.0})[0, ..., 0]
+        assert not keep[30:50, 40:70].any()
+
     def test_a_background_rendered_exactly_does_not_set_the_scale(self):
         """An object on a black background the model renders to the bit: the object's own residuals, not the
         background's zeros, are the typical residual, so only the object painted over counts."""
@@ -124,7 +148,7 @@ class TestTransientMasks:
 
     def test_window_sizes(self):
         assert window_pixels(96, 128, 0.03) == 3 and window_pixels(378, 504, 0.03) == 11
-        assert window_pixels(1, 1, 0.5) == 3 and window_pixels(100, 100, 0.1) % 2 == 1
+        assert window_pixels(1, 1, 0.5) == 3 and window_pixels(100, 100, 0.1) == 11  # an even 10 widened to 11
 
 
 def _painted_trainer(state: dict | None = None) -> Trainer:
@@ -542,6 +566,7 @@ def test_regions_in_nearly_every_photo_are_warned_about():
     assert transients_warning(shares, 42 * 2) is None and transients_warning({}, 42) is None
     assert transients_warning(None, 42) is None and transients_warning({"a": 0.1, "b": 0.1}, 2) is None
     assert transients_warning({"a": 0.1, "b": 0.1, "c": 0.1}, 3) is None  # (fewer than 4 photos say nothing)
+    assert transients_warning({"a": 0.1, "b": 0.1, "c": 0.1, "d": 0.1}, 4) is not None  # 4 of 4 do
 
 
 def test_the_test_switches_itself_off_when_nearly_every_photo_has_regions():
