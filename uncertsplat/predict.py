@@ -71,6 +71,11 @@ class Prediction:
             (``Predictor.seen_free``). False for a camera inside an object or behind a wall, whose maps look confident
             (it sees the inside of a surface the photos saw from outside), and for one in space no photo showed
             empty: a planner should not take such a pose as reachable. None: not computed.
+        rgb_terms, depth_terms: with ``predict(..., terms=True)``, what each part of the predictive adds to the RGB
+            variance (the mean over the channels) and to the depth variance (in the scene's units squared), [N,H,W,1]
+            each, keyed as ``evaluate``'s ``variance_shares`` ("samples", "resolution", "empty rays", "pixel noise",
+            ...): their sum is ``rgb_std ** 2`` (its mean over the channels, below the std's cap at 0.5) and
+            ``depth_std ** 2``. Which part makes a pixel uncertain. None without ``terms``.
     """
 
     rgb_mean: Tensor
@@ -83,6 +88,8 @@ class Prediction:
     depth_to_source: float
     image_names: tuple[str, ...]
     seen_free: Tensor | None = None
+    rgb_terms: dict[str, Tensor] | None = None
+    depth_terms: dict[str, Tensor] | None = None
 
     def interval(self, p: float = 0.95, *, calibrated: bool = False) -> tuple[Tensor, Tensor]:
         """([N,H,W,3] lower, upper): each pixel's central interval of probability ``p`` for its colour, around the
@@ -680,7 +687,8 @@ class Predictor:
                 self._free = view_consistency(self._sampler, train, EvalConfig(finer_detail=False), self.device)
         return self._free
 
-    def predict(self, cameras: Cameras, num_samples: int | None = None, seed: int | None = None) -> Prediction:
+    def predict(self, cameras: Cameras, num_samples: int | None = None, seed: int | None = None, *,
+                terms: bool = False) -> Prediction:
         """``evaluate``'s mean and std maps of ``cameras`` (normalised world: ``cameras_from_source`` or
         ``scene.cameras``), one view at a time. Each view's generator is seeded as ``evaluate`` seeds it
         (``eval.engine.view_seed``): a camera named as one of the scene's views by its index there, so that ``seed``
@@ -693,6 +701,8 @@ class Predictor:
                 config's K: for another K load with ``cfg=EvalConfig(num_samples=k)``, which fits them at k.
             seed: the evaluation seed (None: the config's, ``config.seed``: the run's evaluation's unless ``load``
                 was given a ``cfg``, so that the scene's views get ``evaluate``'s EXR maps); 0 to 2**32 - 1.
+            terms: also return each part's variance map (``Prediction.rgb_terms`` / ``depth_terms``); the other maps
+                are the same.
 
         Calls may come from several threads at once (a thread pool over candidate views), each getting the maps a
         serial call gets; on a CPU each call runs torch's own ops on one thread, so a pool of about as many threads
@@ -716,9 +726,9 @@ class Predictor:
         if seed > MAX_SEED:  # torch's CPU generator keeps a seed's low 32 bits (config.EVAL_SEED_MAX)
             raise UserError(f"seed must be at most {MAX_SEED} (2**32 - 1), got {seed}")
         with native.single_threaded_torch(self.device):  # as evaluate runs (its sums, so its maps, to the last bit)
-            return self._predict(cameras, k, seed)
+            return self._predict(cameras, k, seed, bool(terms))
 
-    def _predict(self, cameras: Cameras, k: int, seed: int) -> Prediction:
+    def _predict(self, cameras: Cameras, k: int, seed: int, terms: bool = False) -> Prediction:
         from uncertsplat.eval.engine import pose_index, predictive_terms, view_seed
         from uncertsplat.uncertainty.mc import mc_render
 
@@ -736,11 +746,14 @@ class Predictor:
                 at = index[name] if name in index else len(index) + pose_index(cameras.cam_from_world[j],
                                                                                cameras.K[j])
                 gen.manual_seed(view_seed(seed, at))
-                maps, _ = mc_render(self._sampler.sample_fn, self._sampler.render_fn, cam, k, gen,
+                maps, _ = mc_render(self._sampler.sample_fn, self._sampler.render_fn, cam, k, gen, terms=terms,
                                     **predictive_terms(self._sampler, self._cfg, cam))
                 # each view's maps to the CPU as it is done: kept on the device, a batch of poses would hold them
                 # all there (75 MB a view at 1920x1080), and joined there, twice that
                 out.append({n: getattr(maps, n).cpu() for n in _PREDICTED})
+                if terms:
+                    out[-1]["terms"] = ({k: t.cpu() for k, t in maps.rgb_terms.items()},
+                                        {k: t.cpu() for k, t in maps.depth_terms.items()})
                 del maps  # (not held on the device while the next view renders)
         to_source = 1.0 / self.scale
 
@@ -749,13 +762,20 @@ class Predictor:
                 return torch.zeros(0, cameras.height, cameras.width, channels)
             return torch.cat([m[name] for m in out])
 
+        rgb_terms = depth_terms = None
+        if terms and out:
+            rgb_terms = {k: torch.cat([m["terms"][0][k] for m in out]) for k in out[0]["terms"][0]}
+            depth_terms = {k: torch.cat([m["terms"][1][k] for m in out]) * to_source**2 for k in out[0]["terms"][1]}
+        elif terms:
+            rgb_terms, depth_terms = {}, {}
         return Prediction(rgb_mean=cat("rgb_mean", 3), rgb_std=cat("rgb_std", 3),
                           depth_mean=cat("depth_mean", 1) * to_source, depth_std=cat("depth_std", 1) * to_source,
                           alpha=cat("alpha_mean", 1), std_factor=self.std_factor, dof=self.dof,
                           depth_to_source=to_source,
                           image_names=tuple(cameras.image_names) or tuple(f"pose_{i}" for i in range(len(cameras))),
                           seen_free=self._free_space().seen_free(cameras.centers.to(self.device)).cpu()
-                          if len(cameras) else torch.zeros(0, dtype=torch.bool))
+                          if len(cameras) else torch.zeros(0, dtype=torch.bool),
+                          rgb_terms=rgb_terms, depth_terms=depth_terms)
 
 
 __all__ = ["Prediction", "Predictor"]

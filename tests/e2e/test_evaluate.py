@@ -1131,6 +1131,28 @@ class TestPredictor:
         torch.testing.assert_close(cams.cam_from_world, pred.scene.cameras.cam_from_world[[i]], atol=1e-5, rtol=0)
         assert cams.image_names == ("pose_0",)
 
+    def test_the_terms_are_the_parts_of_the_maps_variance(self, evaluated):
+        """``predict(..., terms=True)``: each part's variance map, keyed as ``evaluate``'s shares; they add up to the
+        RGB std's square (mean over the channels) and the depth std's (in the scene's units); the maps are the same
+        as without; an empty batch gives empty mappings."""
+        from uncertsplat.predict import Predictor
+        from uncertsplat.uncertainty.mc import sum_terms
+
+        run, report = evaluated
+        pred = Predictor.load(run, "cpu")
+        i = pred.scene.cameras.image_names.index(report.image_names[0])
+        view = pred.scene.cameras[[i]]
+        plain, parts = pred.predict(view, num_samples=3), pred.predict(view, num_samples=3, terms=True)
+        assert plain.rgb_terms is None and torch.equal(parts.rgb_std, plain.rgb_std)
+        assert list(parts.rgb_terms) == list(report.variance_shares["rgb"])
+        assert list(parts.depth_terms) == list(report.variance_shares["depth"])
+        below = parts.rgb_std.amax(-1, keepdim=True) < 0.5  # (the RGB std's cap)
+        torch.testing.assert_close(sum_terms(parts.rgb_terms)[below],
+                                   parts.rgb_std.square().mean(-1, keepdim=True)[below], rtol=1e-4, atol=1e-9)
+        torch.testing.assert_close(sum_terms(parts.depth_terms), parts.depth_std.square(), rtol=1e-4, atol=1e-9)
+        none = pred.predict(pred.scene.cameras[[]], terms=True)
+        assert none.rgb_terms == {} and none.depth_terms == {}
+
     def test_refuses_what_is_not_a_pose_or_a_sample_count(self, evaluated):
         from uncertsplat.predict import Predictor
 
