@@ -296,7 +296,7 @@ def test_predict_takes_the_configs_seed_and_samples_by_default(monkeypatch):
     """``predict()`` after ``evaluate --seed 3`` is evaluate's maps: the seed defaults to the config's, not 0."""
     pred = bare_predictor()
     seen = []
-    monkeypatch.setattr(Predictor, "_predict", lambda self, cams, k, seed: seen.append((k, seed)))
+    monkeypatch.setattr(Predictor, "_predict", lambda self, cams, k, seed, terms=False: seen.append((k, seed)))
     cams = Cameras(torch.eye(4)[None], K.float()[None], 128, 96)
     pred.predict(cams)
     pred.predict(cams, num_samples=np.int64(2), seed=0)
@@ -377,7 +377,7 @@ def test_cameras_built_by_hand_are_checked_before_the_renderer_sees_them(monkeyp
     word; a whole float size (320.0) is taken as an int."""
     pred = bare_predictor()
     seen = []
-    monkeypatch.setattr(Predictor, "_predict", lambda self, cams, k, seed: seen.append((cams.width, cams.height)))
+    monkeypatch.setattr(Predictor, "_predict", lambda self, cams, k, seed, terms=False: seen.append((cams.width, cams.height)))
     pose, k = torch.eye(4)[None], K.float()[None]
     for w, match in ((0, "width must be 1 or more, got 0"), (-5, "width must be 1 or more, got -5"),
                      (1.5, "width must be a whole number, got 1.5")):
@@ -409,7 +409,7 @@ def test_cameras_built_by_hand_are_checked_before_the_renderer_sees_them(monkeyp
 def test_cameras_built_by_hand_that_are_not_rigid_are_refused(monkeypatch, change, match):
     pred = bare_predictor()
     seen = []
-    monkeypatch.setattr(Predictor, "_predict", lambda self, cams, k, seed: seen.append(len(cams)))
+    monkeypatch.setattr(Predictor, "_predict", lambda self, cams, k, seed, terms=False: seen.append(len(cams)))
     bad = a_pose()
     change(bad)
     poses = torch.stack([a_pose(), bad]).float()
@@ -566,7 +566,7 @@ def test_a_blender_scenes_own_cameras_at_the_loaders_limit_pass(monkeypatch, tmp
     scene = load_scene(tmp_path, SceneConfig())
     pred = bare_predictor()
     seen = []
-    monkeypatch.setattr(Predictor, "_predict", lambda self, cams, k, seed: seen.append(len(cams)))
+    monkeypatch.setattr(Predictor, "_predict", lambda self, cams, k, seed, terms=False: seen.append(len(cams)))
     pred.predict(scene.cameras)
     assert seen == [3]
     # a scale past the limit either way is still refused
