@@ -757,19 +757,30 @@ class Predictor:
                 del maps  # (not held on the device while the next view renders)
         to_source = 1.0 / self.scale
 
-        def cat(name: str, channels: int) -> Tensor:
+        def join(views: list[dict], name: str) -> Tensor:
+            # each view's piece is let go once joined (popped: the list below holds the last reference), so that a
+            # batch peaks at what it returns plus one map, not at twice what it returns (every view's pieces kept
+            # until the last map was joined)
+            pieces = [v.pop(name) for v in views]
+            joined = torch.cat(pieces)
+            del pieces
+            return joined
+
+        def cat(name: str, channels: int, scale: float = 1.0) -> Tensor:
             if not out:  # no camera: empty maps of the cameras' size
                 return torch.zeros(0, cameras.height, cameras.width, channels)
-            return torch.cat([m[name] for m in out])
+            return join(out, name).mul_(scale) if scale != 1.0 else join(out, name)
 
         rgb_terms = depth_terms = None
         if terms and out:
-            rgb_terms = {k: torch.cat([m["terms"][0][k] for m in out]) for k in out[0]["terms"][0]}
-            depth_terms = {k: torch.cat([m["terms"][1][k] for m in out]) * to_source**2 for k in out[0]["terms"][1]}
+            rgb_parts = [m["terms"][0] for m in out]
+            depth_parts = [m.pop("terms")[1] for m in out]
+            rgb_terms = {k: join(rgb_parts, k) for k in list(rgb_parts[0])}
+            depth_terms = {k: join(depth_parts, k).mul_(to_source**2) for k in list(depth_parts[0])}
         elif terms:
             rgb_terms, depth_terms = {}, {}
         return Prediction(rgb_mean=cat("rgb_mean", 3), rgb_std=cat("rgb_std", 3),
-                          depth_mean=cat("depth_mean", 1) * to_source, depth_std=cat("depth_std", 1) * to_source,
+                          depth_mean=cat("depth_mean", 1, to_source), depth_std=cat("depth_std", 1, to_source),
                           alpha=cat("alpha_mean", 1), std_factor=self.std_factor, dof=self.dof,
                           depth_to_source=to_source,
                           image_names=tuple(cameras.image_names) or tuple(f"pose_{i}" for i in range(len(cameras))),
