@@ -1590,6 +1590,24 @@ def test_a_std_of_zero_everywhere_is_said(tiny_run_path, tmp_path):
     assert report.mean.nll_kde is not None and not any(n.startswith("KDE NLL not") for n in report.notes)
 
 
+def test_one_sample_still_has_the_resolution_term_s_spread(tiny_run_path, tmp_path):
+    """K = 1 with the default two renders of the resolution term per sample: that term still spreads (its share is
+    not 0), and the notes do not say it is 0 (a helper saw "the resolution term ... 0 with K = 1" beside its share,
+    "resolution 2 %"); the shares' sentence says why the samples' spread is 0. With one render it is 0, and said."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run_path, run)
+    kw = dict(num_samples=1, max_views=1, save_maps=False, reuse=False)
+    report = evaluate.run(run, EvalConfig(**kw), device=torch.device("cpu"))
+    assert report.variance_shares["rgb"]["resolution"] > 0.0 and report.variance_shares["rgb"]["samples"] == 0.0
+    assert not any("resolution term are 0" in n or "0 with K = 1" in n for n in report.notes)
+    assert any(n.startswith("K=1: the samples' spread is 0 everywhere") for n in report.notes)
+    assert "the samples' spread 0 % (K = 1: one sample has no spread)" in report.variance_parts()
+    report = evaluate.run(run, EvalConfig(resolution_renders=1, **kw), device=torch.device("cpu"))
+    assert report.variance_shares["rgb"]["resolution"] == 0.0
+    assert any(n.startswith("K=1: the samples' spread and the resolution term are 0 everywhere") for n in report.notes)
+    assert any("1 render per sample; 0 with K = 1)" in n for n in report.notes)
+
+
 def test_files_kept_before_the_training_views_fit_changed_read_with_the_old_fit():
     """``predictive.pt`` files written before ``resolution_on_training_views`` existed hold a factor fitted with the
     resolution term: the default (false) fits another and does not read them; ``true`` keys as they were keyed."""

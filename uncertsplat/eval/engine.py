@@ -817,9 +817,13 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     elif K == 1 or same:
         notes.append("KDE NLL" + (" and the paper's NLL" if cfg.paper_nll else "") + " not computed: the samples are "
                      "one render (a kernel density of one value measures its bandwidth, not the model)")
+    # the resolution term's renders (K x resolution_renders of them) still spread at K = 1 unless there is one
+    one_shift = cfg.resolution > 0 and K * cfg.resolution_renders == 1
     if K == 1:
-        notes.append("K=1: the samples' spread and the resolution term are 0 everywhere (one sample has no spread); "
-                     "the std holds the predictive's other terms")
+        notes.append("K=1: the samples' spread " + ("and the resolution term are 0 everywhere (one sample, one render "
+                                                    "of the resolution term: no spread)" if one_shift else
+                                                    "is 0 everywhere (one sample has no spread)")
+                     + "; the std holds the predictive's other terms")
     masked = masks_note(views, float(masks.float().mean()) if masks is not None else 1.0)
     notes += [masked] if masked else []
     # a model without a posterior: its spread term is 0 too
@@ -845,7 +849,7 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
     if cfg.resolution > 0:
         terms.append(f"the resolution term (every Gaussian moved by N(0, ({cfg.resolution:g} x its size)^2), "
                      f"{cfg.resolution_renders} render{'s' if cfg.resolution_renders > 1 else ''} per sample"
-                     + ("; 0 with K = 1)" if K == 1 else ")"))
+                     + ("; 0 with K = 1)" if one_shift else ")"))
     if sampler.consistency is not None:
         faint = ""  # the rays through space no photo saw empty, on transparent photos
         if sampler.consistency.unseen_empty:

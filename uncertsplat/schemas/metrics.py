@@ -246,14 +246,17 @@ class EvalReport(SchemaFile):
 
     def variance_parts(self) -> str | None:
         """``variance_shares`` in words, each modality's parts largest first ("RGB: resolution 40 %, view consistency
-        39 %, ...; depth: ..."); None when not recorded."""
+        39 %, ...; depth: ..."); None when not recorded. At K = 1 the samples' 0 % says why (one sample has no
+        spread: not a posterior that knows everything)."""
         names = {"samples": "the samples' spread"}
         out = []
         for modality, label in (("rgb", "RGB"), ("depth", "depth")):
             shares = self.variance_shares.get(modality)
             if shares:
                 ranked = sorted(shares.items(), key=lambda kv: -kv[1])
-                out.append(f"{label}: " + ", ".join(f"{names.get(k, k)} {_percent(v)}" for k, v in ranked))
+                out.append(f"{label}: " + ", ".join(f"{names.get(k, k)} {_percent(v)}" + (
+                    " (K = 1: one sample has no spread)" if k == "samples" and self.num_samples == 1 else "")
+                    for k, v in ranked))
         return "; ".join(out) or None
 
     noise_scale: float | None = None
