@@ -75,7 +75,8 @@ class Prediction:
             variance (the mean over the channels) and to the depth variance (in the scene's units squared), [N,H,W,1]
             each, keyed as ``evaluate``'s ``variance_shares`` ("samples", "resolution", "empty rays", "pixel noise",
             ...): their sum is ``rgb_std ** 2`` (its mean over the channels, below the std's cap at 0.5) and
-            ``depth_std ** 2``. Which part makes a pixel uncertain. None without ``terms``.
+            ``depth_std ** 2``. Which part makes a pixel uncertain. None without ``terms``; empty mappings for an
+            empty batch (the parts are known only once a view is rendered).
     """
 
     rgb_mean: Tensor
