@@ -962,11 +962,13 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
                 if masks is not None:
                     r.depth_valid &= masks[j]
             results.append(r)
+            # each part's map of this view on the CPU once: for the shares and for on_view
+            rgb_terms, depth_terms = ({k: t[0].cpu() for k, t in parts.items()} if parts is not None else None
+                                      for parts in (maps.rgb_terms, maps.depth_terms))
             scored = mask if mask is not None else torch.ones_like(a_mean, dtype=torch.bool)
-            _add_term_means(term_sums["rgb"], maps.rgb_terms, scored)
-            _add_term_means(term_sums["depth"], maps.depth_terms, scored & (a_mean > 0.5))
-            rgb_terms = {k: t[0].cpu() for k, t in maps.rgb_terms.items()} if maps.rgb_terms is not None else None
-            del maps
+            _add_term_means(term_sums["rgb"], rgb_terms, scored)
+            _add_term_means(term_sums["depth"], depth_terms, scored & (a_mean > 0.5))
+            del maps, depth_terms
             if on_view is not None:
                 on_view(ViewMaps(name, gt, pred, std, d_mean, d_std, a_mean, dof, rgb_terms))
             del rgb_terms
@@ -1100,18 +1102,18 @@ def evaluate_views(sampler: Sampler, views: ViewSet, cfg: EvalSettings, device: 
         edge_scale=sampler.residual.edge_scale if sampler.residual is not None else None,
         lpips=LpipsStatus(available=lp_ok, reason=lp_reason),
         device=str(device),
-        variance_shares={k: _shares(v) for k, v in term_sums.items() if _shares(v)},
+        variance_shares={k: shares for k, v in term_sums.items() if (shares := _shares(v))},
         notes=notes,
     )
 
 
 def _add_term_means(sums: dict[str, float], terms: Mapping[str, Tensor] | None, scored: Tensor) -> None:
-    """Adds each part's mean over one view's ``scored`` pixels ([H,W,1] bool) to ``sums`` (parts [1,H,W,1]; a view
-    without a scored pixel adds nothing)."""
+    """Adds each part's mean over one view's ``scored`` pixels ([H,W,1] bool) to ``sums`` (parts [H,W,1] on the CPU;
+    a view without a scored pixel adds nothing)."""
     if terms is None or not bool(scored.any()):
         return
     for name, t in terms.items():
-        value = float(t[0].cpu()[scored].double().mean())
+        value = float(t[scored].double().mean())
         sums[name] = sums.get(name, 0.0) + (value if math.isfinite(value) else 0.0)
 
 

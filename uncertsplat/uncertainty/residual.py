@@ -160,8 +160,9 @@ class ResidualField:
         coef_var = 1.0 / (self.colour_evidence.float() / noise + 1.0 / prior)  # [N,B]
         d = view_directions(s.means.float(), centers.float().to(s.means.device))  # [C,N,3]
         basis = sh_basis(_degree(coef_var.shape[1]), d)  # [C,N,B]
+        alone = basis.square() * coef_var  # [C,N,B]: each coefficient's part on its own (the diagonal form)
         if self.colour_cross is None:
-            return (basis.square() * coef_var).sum(-1).to(self.variance.dtype)
+            return alone.sum(-1).to(self.variance.dtype)
         low = self.colour_cross.shape[-1]
         chol, info = self._colour_block_factor
         y = basis[..., :low].double().unsqueeze(-1)  # [C,N,L,1]
@@ -170,10 +171,8 @@ class ResidualField:
         # (a precision that lost definiteness to rounding, or holds no finite number: its coefficients on their own)
         failed = (info != 0) | ~torch.isfinite(joint).all(0)
         if bool(failed.any()):
-            alone = (basis[..., :low].square() * coef_var[:, :low]).sum(-1).double()
-            joint = torch.where(failed, alone, joint)
-        rest = (basis[..., low:].square() * coef_var[:, low:]).sum(-1)
-        return (joint + rest.double()).to(self.variance.dtype)
+            joint = torch.where(failed, alone[..., :low].sum(-1).double(), joint)
+        return (joint + alone[..., low:].sum(-1).double()).to(self.variance.dtype)
 
     def out_of_sample(self, params_per_gaussian: int, view_factor: float = 1.0,
                       max_leverage: float = MAX_LEVERAGE, relative: bool = False) -> ResidualField:
