@@ -32,7 +32,9 @@ its densification window scaled to the length). Methods: ``variational`` (our de
 ``expected`` (the informed posterior with the Gaussians fitted to the expected render, the default until 2026-11-28),
 ``sgd`` (the tables learned by SGD with the KL in the loss, the default before issue 18: the prior-only
 reference), ``sandwich`` (the informed posterior with ``variational.sandwich``), ``paper``, ``vi-single``, ``fisher``,
-``ensemble-N``, ``vensemble-NxF`` (an ensemble of N of our variational models, each trained for F times the steps).
+``ensemble-N``, ``vensemble-NxF`` (an ensemble of N of our variational models, each trained for F times the steps),
+``imported`` (the ``deterministic`` row's plain 3DGS model given the informed posterior afterwards, as ``train
+--from-ply`` gives one to a model trained elsewhere; its train s: the plain training plus the posterior's build).
 
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/bench_unseen.py --out /tmp/unseen [--iterations 1500]
 
@@ -374,20 +376,35 @@ def main() -> None:
             n, _, frac = name.split("-")[1].partition("x")
             over = {"method": "ensemble", "ensemble_size": int(n), "ensemble_members": "variational"}
             base = schedule(max(1, round(its * float(frac or 1.0))))
-        elif name not in METHODS:
+        elif name not in METHODS and name != "imported":
             raise SystemExit(f"unknown method {name}")
         from uncertsplat.config import deep_update
 
-        cfg = train_config_from(args.preset, deep_update(base, over), args.set)
+        def trained(run_dir: Path, cfg) -> float:
+            """Train ``cfg`` into ``run_dir`` unless it holds that run; its training seconds."""
+            if not (run_dir / "train_summary.json").is_file():
+                train_run(scene_dir, run_dir, cfg, device)
+            elif TrainConfig.model_validate_json((run_dir / "config.json").read_text(encoding="utf-8")) != cfg:
+                raise SystemExit(f"{run_dir} holds a run trained with another configuration (protocol, --set, "
+                                 f"--iterations ...): choose another --out, or delete it to train again")
+            return json.loads((run_dir / "train_summary.json").read_text(encoding="utf-8"))["seconds"]
+
         run_dir = args.out / name
         t0 = time.perf_counter()
-        if not (run_dir / "train_summary.json").is_file():
-            train_run(scene_dir, run_dir, cfg, device)
-        elif TrainConfig.model_validate_json((run_dir / "config.json").read_text(encoding="utf-8")) != cfg:
-            raise SystemExit(f"{run_dir} holds a run trained with another configuration (protocol, --set, "
-                             f"--iterations ...): choose another --out, or delete it to train again")
-        train_s = json.loads((run_dir / "train_summary.json").read_text(encoding="utf-8"))["seconds"]
-        rec = {"method": name, "train_seconds": train_s, "wall_seconds": time.perf_counter() - t0}
+        extra = {}
+        if name == "imported":  # plain 3DGS (the deterministic row's run), then its posterior (`train --from-ply`)
+            det = args.out / "deterministic"
+            train_s = trained(det, train_config_from(args.preset, deep_update(base, METHODS["deterministic"]),
+                                                     args.set))
+            cfg = train_config_from(args.preset, {"scene": base["scene"], "init_ply": str(det / "point_cloud.ply"),
+                                                  "iterations": 0}, args.set)
+            t1 = time.perf_counter()
+            trained(run_dir, cfg)
+            extra = {"posterior_seconds": time.perf_counter() - t1}
+            train_s += extra["posterior_seconds"]
+        else:
+            train_s = trained(run_dir, train_config_from(args.preset, deep_update(base, over), args.set))
+        rec = {"method": name, "train_seconds": train_s, "wall_seconds": time.perf_counter() - t0, **extra}
         # the full predictive (the default), the one before the coverage and resolution terms, the spread alone
         for kind in args.predictives:
             rec[kind] = measure(run_dir, device, args.samples, kind)

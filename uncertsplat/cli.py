@@ -539,6 +539,9 @@ def train(
     resume: Annotated[bool, typer.Option(help="Continue from the last good checkpoint in OUTPUT.")] = False,
     add_views: Annotated[list[str] | None, typer.Option(
         "--add-views", help="With --resume: image names to add to the training views (repeatable).")] = None,
+    from_ply: Annotated[Path | None, typer.Option(
+        "--from-ply", help="A 3DGS model trained elsewhere on SCENE (its point_cloud.ply): give it the posterior "
+        "without training it (0 steps).")] = None,
     view: Annotated[bool, typer.Option("--view", help="Watch the model train in the browser (needs viser).")] = False,
     view_port: Annotated[int, typer.Option(help="Port of the --view viewer (0 picks a free one).")] = 8080,
     device: DeviceOpt = "auto",
@@ -552,6 +555,10 @@ def train(
     data = _config_file(config) if config else {}
     _refuse_other_commands_file(TrainConfig, data, config)
     explicit = dict(iterations=iterations, variant=variant, seed=seed)
+    if from_ply is not None:  # (absolute: config.json and a later --resume read it from any folder)
+        explicit["init_ply"] = from_ply.expanduser().absolute()
+        if iterations is None and "iterations" not in stage.given_keys(None, {}, None, {}, set_):
+            explicit["iterations"] = 0  # (a number given is refused by the config, which says why)
     _refuse_two_values({**explicit, "method": method}, set_)
     cfg = stage.resolve_config(preset, data, method, explicit, set_, source=str(config) if config else None)
     # with --resume, --iterations means "train on to this many steps" (the stored config wins otherwise)

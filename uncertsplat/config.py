@@ -497,8 +497,21 @@ class TrainConfig(_Base):
     variant: Literal["ours", "paper"] = "ours"
     """paper: the original code's choices (log-scale multiplier, absolute position prior)."""
 
-    iterations: int = Field(7000, ge=1, le=MAX_ITERATIONS)
-    """Training steps, at most ``MAX_ITERATIONS`` (1,000,000)."""
+    iterations: int = Field(7000, ge=0, le=MAX_ITERATIONS)
+    """Training steps, at most ``MAX_ITERATIONS`` (1,000,000); 0 only with ``init_ply`` (no step trained)."""
+    init_ply: Path | None = None
+    """A 3DGS model trained elsewhere, as a PLY file in the standard layout (INRIA's 3DGS, gsplat, nerfstudio's
+    export, SuperSplat's uncompressed PLY, Mip-Splatting's with its 3D filter folded in, or a run's
+    ``point_cloud.ply``), to give the informed posterior (``train --from-ply``): the run starts from its Gaussians
+    instead of the scene's points, the spawn rule gives the large ones a posterior (each rendering as in the file),
+    and with ``iterations = 0`` no step is trained, so only the posterior update of the last step runs, over every
+    training view of the scene. The scene must be the one the model was trained on (its cameras in the same frame:
+    ``init_ply_frame``). Needs the variational method with the informed posterior."""
+    init_ply_frame: Literal["auto", "source", "run"] = "auto"
+    """The frame of ``init_ply``'s Gaussians: ``source`` the scene's own coordinates (the COLMAP model's, as other
+    tools train in them), moved into the run's normalised frame by the scene's ``world_from_source``; ``run`` the
+    normalised frame already (a ``point_cloud.ply`` of uncertsplat); ``auto`` the latter for files uncertsplat wrote,
+    the former otherwise."""
     seed: int = Field(0, ge=0, le=TRAIN_SEED_MAX)
     """At most ``TRAIN_SEED_MAX`` (2**32 - 8; an ensemble: with its last member's seed, seed + ensemble_size - 1):
     the trainer's generators take seed + a few, and torch's CPU generator keeps a seed's low 32 bits (seeds s and
@@ -603,6 +616,23 @@ class TrainConfig(_Base):
             raise ValueError(f"seed: an ensemble's members take seeds seed .. seed + ensemble_size - 1, and the last, "
                              f"{self.seed + self.ensemble_size - 1}, is over {TRAIN_SEED_MAX} (torch's CPU generator "
                              f"keeps 32 bits): give a seed of at most {TRAIN_SEED_MAX - self.ensemble_size + 1}")
+        return self
+
+    @model_validator(mode="after")
+    def _imported_model(self):
+        if self.init_ply is None:
+            if self.iterations == 0:
+                raise ValueError("iterations: 0 trains nothing; it is for a model given by init_ply (`train "
+                                 "--from-ply MODEL.ply`), to build its posterior only. Give at least 1 step")
+            return self
+        if self.method != "variational" or self.posterior != "informed":
+            raise ValueError("init_ply: a model trained elsewhere gets the informed posterior (method \"variational\", "
+                             "variational.posterior = \"informed\", the defaults); drop --method or the posterior "
+                             "setting")
+        if self.iterations != 0:
+            raise ValueError(f"init_ply with iterations = {self.iterations}: a model trained elsewhere is given its "
+                             "posterior as it is (iterations = 0, what --from-ply sets); training it on from its "
+                             "Gaussians is not supported (the schedule would densify and reset it as a fresh run)")
         return self
 
     @model_validator(mode="after")
@@ -1332,9 +1362,9 @@ def build_config(model: type[_Base], data: dict, source: str = "config", key_pre
         raise UserError(format_validation_error(err, source, model, key_prefix, names, where)) from None
 
 
-STAGE_PATH_KEYS = ("depth_gt", "candidates", "masks")
+STAGE_PATH_KEYS = ("depth_gt", "candidates", "masks", "init_ply")
 """The stage configs' path settings (``EvalConfig.depth_gt``, ``SelectConfig.candidates`` when it names a file,
-``ReconstructConfig.masks``): a relative one is read from the folder of the file that wrote it (a --config file's; a
+``ReconstructConfig.masks``, ``TrainConfig.init_ply``): a relative one is read from the folder of the file that wrote it (a --config file's; a
 pipeline file's where the current folder has no such path)."""
 
 SHIPPED = Path(__file__).resolve().parent / "pipelines"

@@ -79,7 +79,7 @@ def test_a_config_file_s_mistake_is_named_with_its_line(tmp_path):
     """`--config FILE` errors give the line of each key the file wrote (train's and another command's); a key an
     option or --set gave is named without a line of the file."""
     cfg = tmp_path / "t.toml"
-    cfg.write_text("# settings\niterations = 0\n\n[densify]\nuntill = 5\n")
+    cfg.write_text("# settings\niterations = -1\n\n[densify]\nuntill = 5\n")
     result = runner.invoke(app, ["train", str(tmp_path), "-o", str(tmp_path / "run"), "--config", str(cfg),
                                  "--device", "cpu"])
     out = " ".join(result.output.split())
@@ -423,7 +423,7 @@ def test_a_relative_path_in_a_config_file_is_read_from_the_file_s_folder(tmp_pat
     (tmp_path / "cfgs" / "eval.toml").write_text('num_samples = 2\ndepth_gt = "../scene/depth"\n')
     (tmp_path / "cfgs" / "abs.toml").write_text(f'depth_gt = "{tmp_path / "elsewhere"}"\n')
     monkeypatch.chdir("/")
-    assert _PATH_KEYS == ("depth_gt", "candidates", "masks")
+    assert _PATH_KEYS == ("depth_gt", "candidates", "masks", "init_ply")
     (tmp_path / "cfgs" / "rec.toml").write_text('masks = "../masks"\n')  # reconstruct's masks likewise
     assert _config_file(tmp_path / "cfgs" / "rec.toml")["masks"] == str(tmp_path / "cfgs" / ".." / "masks")
     assert _config_file(tmp_path / "cfgs" / "eval.toml")["depth_gt"] == str(tmp_path / "cfgs" / ".." / "scene" / "depth")

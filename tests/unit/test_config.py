@@ -240,12 +240,12 @@ def test_each_key_s_line_in_a_toml_file(tmp_path):
 def test_validation_errors_give_the_line_of_the_key(tmp_path):
     """Each key's line in the error, after the key; a key named by its option gets none."""
     path = tmp_path / "t.toml"
-    path.write_text("iterations = 0\n[densify]\nuntill = 5\n")
+    path.write_text("iterations = -1\n[densify]\nuntill = 5\n")
     with pytest.raises(UserError, match=r"iterations \(line 1\): Input should be .*; densify\.untill \(line 3\): "
                                         r"unknown key \(did you mean densify\.until\?\)"):
         build_config(TrainConfig, load_toml(path), source=str(path), where=KeyLines(path))
     with pytest.raises(UserError, match=r"--iterations: Input should be"):
-        build_config(TrainConfig, {"iterations": 0}, source=str(path), names={"iterations": "--iterations"},
+        build_config(TrainConfig, {"iterations": -1}, source=str(path), names={"iterations": "--iterations"},
                      where=KeyLines(path))
 
 

@@ -8,6 +8,9 @@ extra float properties per Gaussian: ``uncertainty_position`` (RMS position std,
 ``uncertainty_switch_off`` (the chance a posterior sample switches the Gaussian mostly off: ``prune``'s ``gate``
 score) and ``has_posterior`` (0/1). Viewers ignore properties they do not know.
 
+``read_standard_ply``: a model in that standard layout written by another tool (INRIA's 3DGS, gsplat, nerfstudio's
+export, SuperSplat's uncompressed PLY, Mip-Splatting's ``filter_3D`` folded in), for ``train --from-ply``.
+
 ``variational.ply`` (``write_variational_ply`` / ``read_variational_ply``): round-trips everything.
 Element ``vertex`` holds the *stored* parameters in the same standard names (so it opens in viewers
 too, without the posterior) plus ``has_posterior``; element ``offset`` holds one row per table entry
@@ -19,6 +22,7 @@ gate_spread_raw_0 gate_loc_0``. Only carriers have rows (no NaN padding). Header
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +34,9 @@ from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.gaussians.prior import TABLE_SPECS
 from uncertsplat.gaussians.variational import carrier_uncertainty, posterior_mean
 from uncertsplat.io.atomic import atomic_write
+
+POINT_CLOUD_COMMENT = "uncertsplat point_cloud posterior-mean"
+"""The header comment of ``write_point_cloud_ply``'s files: their Gaussians are in the run's normalised frame."""
 
 
 def _rest_count(sh_degree: int) -> int:
@@ -95,7 +102,7 @@ def write_point_cloud_ply(path: str | Path, model: GaussianModel, *, variant: st
     for k in ("position", "scale", "gate", "switch_off"):
         cols[f"uncertainty_{k}"] = unc[k].cpu().float().numpy()
     cols["has_posterior"] = (model.posterior_row >= 0).cpu().float().numpy()
-    return _write(Path(path), [_vertex(cols, len(model))], ["uncertsplat point_cloud posterior-mean"])
+    return _write(Path(path), [_vertex(cols, len(model))], [POINT_CLOUD_COMMENT])
 
 
 def set_vertex_properties(path: str | Path, cols: dict[str, np.ndarray]) -> None:
@@ -135,6 +142,113 @@ def write_variational_ply(path: str | Path, model: GaussianModel, *, meta: dict 
     info["sha256"] = _data_digest(elements)
     comments = ["uncertsplat variational 1"] + [f"uncertsplat {k}={v}" for k, v in info.items()]
     return _write(Path(path), elements, comments)
+
+
+_STANDARD = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
+             "rot_0", "rot_1", "rot_2", "rot_3")
+
+
+@dataclass(frozen=True)
+class StandardPly:
+    """A 3DGS model read by ``read_standard_ply``.
+
+    Attributes:
+        params: the stored parameters as ``PARAM_SPECS`` names them (means [N,3], log-scales [N,3], quats [N,4]
+            wxyz as written (not normalised), opacity logits [N], sh0 [N,1,3], shN [N,B-1,3]), float32 on the CPU.
+        sh_degree: the SH degree its ``f_rest_*`` count gives.
+        ours: written by uncertsplat's ``write_point_cloud_ply`` (in a run's normalised frame).
+        notes: what was done to the file's values on reading (rows dropped, a 3D filter folded in), for the user.
+    """
+
+    params: dict[str, torch.Tensor]
+    sh_degree: int
+    ours: bool
+    notes: tuple[str, ...]
+
+
+def read_standard_ply(path: str | Path) -> StandardPly:
+    """Read a 3DGS model in the standard PLY layout (see the module docstring) that another tool wrote.
+
+    Rows with a value that is not finite, or a rotation of zero length, are dropped (with a note): a NaN would
+    render as nothing in that tool and poison every sum here. Mip-Splatting's ``filter_3D`` (a 3D smoothing filter
+    of that size, folded into each Gaussian at render time) is folded in as that renderer does: the variance
+    ``filter^2`` added to each axis and the opacity scaled by the square root of the ratio of the determinants.
+
+    Raises:
+        UserError: a file that cannot be read, a point cloud or another layout (compressed, variational.ply), a
+            property missing, an ``f_rest_*`` count of no SH degree, no usable Gaussian.
+    """
+    path = Path(path)
+    try:
+        ply = PlyData.read(str(path))
+    except Exception as err:
+        raise UserError(f"cannot read the PLY file ({err})", path=path,
+                        hint="Give a 3DGS model as the tool that trained it wrote it (point_cloud.ply).") from None
+    names = [e.name for e in ply.elements]
+    if "offset" in names and any(c.startswith("uncertsplat variational") for c in ply.comments):
+        raise UserError("this is a run's variational.ply, which holds the posterior's tables", path=path,
+                        hint="Its run needs no import: `uncertsplat evaluate` that run folder directly (or give "
+                        "its point_cloud.ply).")
+    if "chunk" in names:
+        raise UserError("a compressed PLY (SuperSplat's or splat-transform's chunked layout)", path=path,
+                        hint="Write it uncompressed first (SuperSplat: export as PLY, not compressed PLY; "
+                        "`splat-transform in.compressed.ply out.ply`).")
+    if "vertex" not in names:
+        raise UserError(f"no vertex element (the file holds {', '.join(names) or 'no element'})", path=path,
+                        hint="Give a 3DGS model in the standard layout (x y z f_dc_* f_rest_* opacity scale_* rot_*).")
+    v = ply["vertex"].data
+    have = set(v.dtype.names or ())
+    missing = [k for k in _STANDARD if k not in have]
+    if missing:
+        what = ("a point cloud (positions and colours), not a 3DGS model" if {"x", "y", "z"} <= have
+                and not ({"opacity", "scale_0"} & have) else f"missing the properties {', '.join(missing)}")
+        raise UserError(f"{what}: a 3DGS model has {' '.join(_STANDARD[:7])} scale_* rot_* and f_rest_*", path=path,
+                        hint="Give the model file a 3DGS trainer wrote (e.g. point_cloud/iteration_30000/"
+                        "point_cloud.ply of INRIA's code), not the sparse points.")
+    rest = sorted((k for k in have if k.startswith("f_rest_")), key=lambda k: int(k[7:]) if k[7:].isdigit() else -1)
+    degrees = {_rest_count(d): d for d in range(5)}
+    if len(rest) not in degrees or [k[7:] for k in rest] != [str(i) for i in range(len(rest))]:
+        raise UserError(f"{len(rest)} f_rest_* properties, which is the count of no SH degree (0, 9, 24, 45 for "
+                        "degrees 0-3)", path=path, hint="The file is not in the standard 3DGS layout.")
+    degree = degrees[len(rest)]
+    if degree > 3:
+        raise UserError(f"SH degree {degree}: the renderer evaluates degrees 0-3", path=path)
+    n = len(v)
+
+    def col(*keys):  # [n,len(keys)] float64 (some tools write doubles; the checks below see their values)
+        return np.stack([np.asarray(v[k], dtype=np.float64) for k in keys], axis=-1) if keys else np.zeros((n, 0))
+
+    means, log_scales, quats = col("x", "y", "z"), col("scale_0", "scale_1", "scale_2"), col(*_STANDARD[10:])
+    logits, dc, fr = col("opacity")[:, 0], col("f_dc_0", "f_dc_1", "f_dc_2"), col(*rest)
+    notes = []
+    if "filter_3D" in have:  # Mip-Splatting: the 3D filter folded into the scales and the opacity
+        f2 = col("filter_3D")[:, 0] ** 2  # [n]
+        var = np.exp(2.0 * log_scales)  # [n,3]
+        with np.errstate(all="ignore"):
+            ratio = np.sqrt(np.prod(var / (var + f2[:, None]), axis=1))  # [n] <= 1
+            opacity = ratio / (1.0 + np.exp(-logits))
+            logits = np.log(opacity) - np.log1p(-opacity)
+            log_scales = 0.5 * np.log(var + f2[:, None])
+        notes.append("Mip-Splatting's filter_3D folded into the scales and opacities (its 2D filter is not "
+                     "modelled: the renders may differ slightly from Mip-Splatting's)")
+    good = (np.isfinite(np.concatenate([means, log_scales, quats, logits[:, None], dc, fr], axis=1)).all(axis=1)
+            & (np.linalg.norm(quats, axis=1) > 0))
+    if not good.all():
+        notes.append(f"{int((~good).sum()):,} of the {n:,} Gaussians have a value that is not finite (or a "
+                     "rotation of zero length) and were left out")
+    if not good.any():
+        raise UserError(f"no Gaussian has finite values (of {n:,})" if n else "the file holds no Gaussian", path=path)
+
+    def t(a):
+        return torch.from_numpy(np.ascontiguousarray(a[good], dtype=np.float32))
+
+    m = int(good.sum())
+    b = len(rest) // 3
+    params = {"means": t(means), "scales": t(log_scales), "quats": t(quats), "opacities": t(logits),
+              "sh0": t(dc).reshape(m, 1, 3),
+              # f_rest is channel-major (all of red's bases, then green's, then blue's), as write_point_cloud_ply
+              "shN": t(fr).reshape(m, 3, b).transpose(1, 2).contiguous()}
+    return StandardPly(params, degree, POINT_CLOUD_COMMENT in ply.comments, tuple(notes))
 
 
 def _data_digest(elements) -> str:

@@ -157,6 +157,21 @@ class Budget(Strict):
     """Set when memory held growth below ``max_gaussians`` (the model stayed smaller, the run went on)."""
 
 
+class ImportedModel(Strict):
+    """The 3DGS model trained elsewhere that a run started from (``TrainConfig.init_ply``, ``train.imported``)."""
+
+    path: str
+    frame: str
+    """``source`` (moved from the scene's source coordinates into the run's frame) or ``run`` (taken as it was)."""
+    gaussians: int
+    """Gaussians read (rows with a value that is not finite left out)."""
+    sh_degree: int
+    in_view_share: float
+    """The share of them inside some training view (low: the model and the scene may be in different frames)."""
+    notes: list[str] = Field(default_factory=list)
+    """What reading changed (rows left out, Mip-Splatting's 3D filter folded in)."""
+
+
 class MemoryPerGaussian(Strict):
     """Bytes per Gaussian by kind (``gaussians.params.memory_per_gaussian``)."""
 
@@ -177,10 +192,10 @@ class TrainSummary(SchemaFile):
     """
 
     FILE_NAME = "train_summary.json"
-    SCHEMA_VERSION = 9
+    SCHEMA_VERSION = 10
     WRITTEN_BY = "uncertsplat train SCENE -o RUN --resume"  # (a plain re-run refuses the existing run folder)
 
-    schema_version: int = 9
+    schema_version: int = 10
     method: str
     variant: str
     steps: int
@@ -231,6 +246,8 @@ class TrainSummary(SchemaFile):
     transients: dict[str, float] | None = None
     """{training photo: share of its pixels left out as transient} of the photos in which training found transient
     objects (``TrainConfig.transients``; their masks in ``RUN/transients/``); None with the detection off."""
+    imported: ImportedModel | None = None
+    """The model trained elsewhere the run started from (``train --from-ply``); None for a run trained here."""
     # ---- fisher
     train_seconds: float | None = None
     fisher_seconds: float | None = None
@@ -252,13 +269,14 @@ class TrainSummary(SchemaFile):
         # nor the warnings; versions 1-3 no exposure tests; versions 1-4 no posterior.position_prior (measured
         # against the config's std then); versions 1-5 no transients (none were found); versions 1-6 no hold of the
         # budget by memory (none held); versions 1-7 no growth test with a re-fit (each test's refit_steps: 0, its
-        # default); versions 1-8 no skipped growth tests (each test's skip_next: False, its default); in the run and
-        # its members
-        if version not in (1, 2, 3, 4, 5, 6, 7, 8):
+        # default); versions 1-8 no skipped growth tests (each test's skip_next: False, its default); versions 1-9 no
+        # model trained elsewhere (imported: None); in the run and its members
+        if version not in (1, 2, 3, 4, 5, 6, 7, 8, 9):
             return None
 
         def up(d: dict) -> dict:
-            d = {"train_psnr": None, "warnings": [], "exposure_checks": [], **d, "schema_version": cls.SCHEMA_VERSION}
+            d = {"train_psnr": None, "warnings": [], "exposure_checks": [], "imported": None, **d,
+                 "schema_version": cls.SCHEMA_VERSION}
             if isinstance(d.get("posterior"), dict):
                 d["posterior"] = {"position_prior": "config", **d["posterior"]}
             if isinstance(d.get("budget"), dict):

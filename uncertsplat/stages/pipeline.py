@@ -529,6 +529,12 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 out_dir = root / name
             else:
                 out_dir = root / name
+                if stage.stage == "train" and getattr(stage_cfg, "init_ply", None) is not None:
+                    from uncertsplat.provenance import file_sha256
+
+                    # the model file is an input as the scene is: another model under the same name trains again
+                    ply = Path(stage_cfg.init_ply).expanduser()
+                    inputs["init_ply"] = file_sha256(ply) if ply.is_file() else "missing"
 
             config_dict = stage_cfg.model_dump(mode="json")
             new = start_manifest(stage.stage, name, config_dict, inputs,

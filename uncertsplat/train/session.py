@@ -114,7 +114,9 @@ def _posterior_notes(cfg: TrainConfig) -> list[str]:
     after it: a helper's densify.start beyond the run's steps trained all of it for a model without uncertainty)."""
     from uncertsplat.train.trainer import no_carriers_reason
 
-    reason = no_carriers_reason(cfg, cfg.iterations, planned=True) if cfg.has_offset_tables else None
+    # (a model given by init_ply gets its carriers from the spawn rule at the start, not from a schedule)
+    reason = (no_carriers_reason(cfg, cfg.iterations, planned=True) if cfg.has_offset_tables and cfg.init_ply is None
+              else None)
     return [f"no Gaussian will carry a posterior in this run: {reason}"] if reason else []
 
 
@@ -696,12 +698,20 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             console.print(f"added {len(add_views)} training view(s) at step {trainer.step}: {', '.join(add_views)} "
                           f"({len(data.split['train'])} in all)")
         kernels = native.describe(device)
-        console.print(f"training {count(len(trainer.model), 'Gaussian')} on {count(len(data.split['train']), 'view')} "
-                      f"({data.cameras.width}x{data.cameras.height}), {len(data.split.get('test', ()))} held out, "
-                      + (f"{len(data.split['calibration'])} set aside for calibration, " if data.split.get("calibration")
-                         else "") +
-                      f"device {device} ({kernels}), {cfg.iterations} steps, at most "
-                      f"{count(trainer.budget.max_gaussians, 'Gaussian')} ({trainer.budget.reason})")
+        if trainer.imported:
+            im = trainer.imported
+            console.print(f"the model of {q(im['path'])} ({count(im['gaussians'], 'Gaussian')}, SH degree "
+                          f"{im['sh_degree']}, read in the {'scene source' if im['frame'] == 'source' else 'run'}'s "
+                          f"frame): its posterior from {count(len(data.split['train']), 'training view')} "
+                          f"({data.cameras.width}x{data.cameras.height}), {len(data.split.get('test', ()))} held out, "
+                          f"device {device} ({kernels}), no step trained")
+        else:
+            console.print(f"training {count(len(trainer.model), 'Gaussian')} on {count(len(data.split['train']), 'view')} "
+                          f"({data.cameras.width}x{data.cameras.height}), {len(data.split.get('test', ()))} held "
+                          "out, " + (f"{len(data.split['calibration'])} set aside for calibration, "
+                                     if data.split.get("calibration") else "") +
+                          f"device {device} ({kernels}), {cfg.iterations} steps, at most "
+                          f"{count(trainer.budget.max_gaussians, 'Gaussian')} ({trainer.budget.reason})")
         if cfg.scene.test_indices is not None or cfg.scene.train_indices is not None:
             # indices count the scene's views, after any photo left out: the names say which views they are
             held = [data.cameras.image_names[i] for i in data.split.get("test", ())]
@@ -751,8 +761,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         transients = _write_transients(run_dir, trainer, names)
         held = trainer.evaluate()
         fit_psnr = trainer.training_psnr()
-        warnings = poor_fit_warnings(fit_psnr, scene, cfg)
-        if warnings and trainer.step < SHORT_RUN_STEPS:  # it judges a fitted model
+        warnings = poor_fit_warnings(fit_psnr, scene, cfg) if not trainer.imported else imported_fit_warnings(
+            fit_psnr, trainer.imported)
+        if warnings and trainer.step < SHORT_RUN_STEPS and not trainer.imported:  # it judges a fitted model
             warnings = [f"{w} (after only {trainer.step} steps the model may not fit its photos yet: judge this on "
                         "a full run)" for w in warnings]
         warnings += few_carriers_warning(trainer.model, cfg, trainer.extent, trainer.prior, trainer.step)
@@ -780,14 +791,32 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         wall_txt = (f" ({wall:.1f} s with its test renders and checkpoints)"
                     if first_step == 0 and wall > 1.02 * trainer.elapsed and f"{wall:.1f}" != f"{trainer.elapsed:.1f}"
                     else "")
-        console.print(f"{done_label}: {trainer.step} steps in {trainer.elapsed:.1f} s{wall_txt}, {len(trainer.model)} Gaussians "
-                      f"({trainer.model.num_carriers} with a posterior){psnr_txt}{fit_txt} -> {run_dir}")
+        if trainer.imported:
+            console.print(f"{done_label}: the posterior of {len(trainer.model)} Gaussians "
+                          f"({trainer.model.num_carriers} with a posterior) in {wall:.1f} s{psnr_txt}{fit_txt} -> {run_dir}")
+        else:
+            console.print(f"{done_label}: {trainer.step} steps in {trainer.elapsed:.1f} s{wall_txt}, {len(trainer.model)} "
+                          f"Gaussians ({trainer.model.num_carriers} with a posterior){psnr_txt}{fit_txt} -> {run_dir}")
         for warning in warnings:
             console.print(f"[yellow]warning:[/] {warning}")
         if summary.posterior is not None and summary.posterior.carriers:
             last = summary.posterior_updates[-1].model_dump() if summary.posterior_updates else None
             console.print(describe_posterior(summary.posterior.model_dump(), last))
     return run_dir
+
+
+def imported_fit_warnings(fit_psnr: float | None, imported: dict) -> list[str]:
+    """The warning for a model trained elsewhere (``init_ply``) that renders its training views poorly here: a model
+    its trainer fitted renders them far above ``POOR_FIT_PSNR`` unless it is not in the scene cameras' frame or that
+    trainer renders otherwise."""
+    if fit_psnr is None or fit_psnr >= POOR_FIT_PSNR:
+        return []
+    return [f"the model of {imported['path']} renders its training views at {_psnr_shown(fit_psnr):.1f} dB here "
+            f"(read in the {'scene source' if imported['frame'] == 'source' else 'run'}'s frame; "
+            f"{imported['in_view_share']:.0%} of its Gaussians inside some training view): its trainer fitted them far "
+            "better, so the model and the scene's cameras are not in one frame (--set init_ply_frame=source|run; "
+            "another mapping of the photos has another frame), or it renders otherwise than 3DGS does (an "
+            "antialiased or filtered renderer, another background): its uncertainty here describes this render"]
 
 
 SHORT_RUN_STEPS = 1000

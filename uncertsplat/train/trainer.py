@@ -32,7 +32,7 @@ from uncertsplat.config import TrainConfig
 from uncertsplat.console import progress
 from uncertsplat.eval.image import masked_ssim, psnr, ssim
 from uncertsplat.gaussians.ops import remove as remove_rows
-from uncertsplat.gaussians.ops import truncate_sh
+from uncertsplat.gaussians.ops import spawn, truncate_sh
 from uncertsplat.gaussians.params import (
     GaussianModel,
     far_points,
@@ -43,11 +43,14 @@ from uncertsplat.gaussians.params import (
 from uncertsplat.gaussians.prior import Prior
 from uncertsplat.gaussians.variational import (
     ExpectedConstants,
+    absorbed_opacity_logit,
     expected_constants,
+    expected_gate,
     expected_render_sample,
     informed_position_prior,
     informed_tables,
     mean_params,
+    normal_quantile,
     posterior_mean,
     posterior_summary,
     sample,
@@ -65,7 +68,7 @@ from uncertsplat.strategy.budget import (
     memory_growth_limit,
     memory_hold_warning,
 )
-from uncertsplat.strategy.densify import Densifier, DensifyStats
+from uncertsplat.strategy.densify import Densifier, DensifyStats, spawn_decisions
 from uncertsplat.strategy.exposure import EXPOSURE_SPREAD, ExposureCheck, exposure_check_due, gain_spread
 from uncertsplat.strategy.growth import (
     UNTOLD_DB,
@@ -486,6 +489,8 @@ class Trainer:
         # {"step", "last_step", "gaussians", "budget", "room_mb", "per_gaussian_bytes", "held"} once memory held
         # densification's growth below the budget (``_memory_limit``; the first hold's numbers), else None
         self.memory_hold: dict | None = None
+        # the model trained elsewhere that the run started from (cfg.init_ply: ``train.imported``'s record), else None
+        self.imported: dict | None = None
         if state is None:
             self._init_fresh()
         else:
@@ -520,6 +525,48 @@ class Trainer:
         self.gen_noise = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
         self.gen_drop = torch.Generator(device=self.device).manual_seed(cfg.seed + 3)
         self.gen_background = torch.Generator(device=self.device).manual_seed(cfg.seed + 4)
+        if cfg.init_ply is not None:
+            self._init_imported()
+        else:
+            self._init_from_points()
+        self.optimizer = make_optimizer(self.model, self._rates(0), sparse=cfg.sparse_updates)
+        self.densifier = self._make_densifier()
+        self.view_queue: list[int] = []
+        self.sh_bands: list[BandCheck] = []
+        self.growth: list[GrowthCheck] = []
+        self.step = 0
+        self.elapsed = 0.0
+        self.exposure_checks: list[ExposureCheck] = []
+        self._init_exposure(None)
+
+    def _init_imported(self) -> None:
+        """The model of ``cfg.init_ply`` (``train.imported``), its large Gaussians given a posterior by the spawn
+        rule, each rendering as in the file (the posterior mean absorbs the prior's gate and multiplier)."""
+        from uncertsplat.train.imported import model_from_ply
+
+        cfg = self.cfg
+        model, notes, self.imported = model_from_ply(cfg.init_ply, self.scene, self.train_cams,
+                                                     frame=cfg.init_ply_frame, device=self.device)
+        with torch.no_grad():
+            p = model.params
+            opacity = torch.sigmoid(p["opacities"])  # [N] as the file renders them
+            m = spawn_decisions(p["scales"].exp(), opacity, scale_fraction=cfg.densify.spawn_scale_fraction,
+                                min_opacity=cfg.densify.spawn_min_opacity, extent=self.extent)
+            spawn(model, None, m, self.prior, keep_render=True)
+            # the prior's gate (expected 0.84) caps what a carrier's base opacity can carry: an opaque Gaussian of
+            # the file would render at 0.84 and the update below would start from that. The gates start "on"
+            # (switched off with probability 1e-12, as the update sets them where the views need a Gaussian) and
+            # the base opacities carry the file's; the update then sets every gate from the views
+            idx = model.carrier_index()
+            loc = -self.prior.gate_std * float(normal_quantile(torch.tensor(1e-12, dtype=torch.float64)))
+            model.tables["gate_loc"].data.fill_(loc)
+            gate = expected_gate(torch.tensor(loc), torch.tensor(self.prior.gate_std), self.prior.temperature)
+            p["opacities"].data[idx] = absorbed_opacity_logit(opacity[idx], gate).to(p["opacities"].dtype)
+        self.model = model
+        self.init_notes = notes
+
+    def _init_from_points(self) -> None:
+        cfg = self.cfg
         points = self.scene.points.to(self.device, torch.float32)
         colors = self.scene.points_rgb.to(self.device, torch.float32)
         far = far_points(points, factor=cfg.init_outlier_factor, extent=self.extent)  # [P]
@@ -576,15 +623,6 @@ class Trainer:
         self.model = init_from_points(points, colors, sh_degree=cfg.sh_degree,
                                       num_entries=entries, init_opacity=cfg.init_opacity,
                                       extent=self.extent)
-        self.optimizer = make_optimizer(self.model, self._rates(0), sparse=cfg.sparse_updates)
-        self.densifier = self._make_densifier()
-        self.view_queue: list[int] = []
-        self.sh_bands: list[BandCheck] = []
-        self.growth: list[GrowthCheck] = []
-        self.step = 0
-        self.elapsed = 0.0
-        self.exposure_checks: list[ExposureCheck] = []
-        self._init_exposure(None)
 
     def _init_exposure(self, state: dict | None) -> None:
         """The per-photo exposure parameters [T,2,3] (``render.exposure``) and their optimiser, from ``state`` (a
@@ -692,6 +730,7 @@ class Trainer:
             "growth": [g.model_dump() for g in self.growth],
             "grown_to": -1 if self.densifier.grown_to is None else self.densifier.grown_to,
             "memory_hold": dict(self.memory_hold) if self.memory_hold else {},
+            "imported": dict(self.imported) if self.imported else {},
             "exposure": self.exposure.detach().clone() if self.exposure is not None else None,
             "exposure_views": torch.tensor(self.train_idx, dtype=torch.long),
             "train_names": self._train_names(),
@@ -760,6 +799,7 @@ class Trainer:
         # (absent in checkpoints from before the refill: a model stopped there only prunes)
         self.densifier.grown_to = None if int(state.get("grown_to", -1)) < 0 else int(state["grown_to"])
         self.memory_hold = dict(state.get("memory_hold") or {}) or None  # (absent in checkpoints from before)
+        self.imported = dict(state.get("imported") or {}) or None  # likewise
         self.step = int(state["step"])
         self.elapsed = float(state["elapsed"])
         self.exposure_checks = [ExposureCheck(**c) for c in state.get("exposure_checks", [])]
@@ -877,7 +917,10 @@ class Trainer:
 
     @property
     def sh_degree(self) -> int:
-        """Active SH degree: the schedule's, capped by the bands the model still has (``sh_min_gain_db``)."""
+        """Active SH degree: the schedule's, capped by the bands the model still has (``sh_min_gain_db``); a model
+        trained elsewhere (``init_ply``) renders every band its file holds."""
+        if self.cfg.init_ply is not None:
+            return self.model.sh_degree
         return sh_degree_at(self.step, self.model.sh_degree, self.cfg.sh_degree_interval)
 
     @torch.no_grad()
@@ -1478,8 +1521,9 @@ class Trainer:
                            "num_gaussians": len(self.model), "num_carriers": self.model.num_carriers})
             self.eval_pending = False
             with progress() as bar:
-                task = bar.add_task("train", total=until, completed=self.step, info="")
-                self._bar = (bar, task)
+                if self.step < until:  # (a call with no step to train draws no bar of 0 steps)
+                    task = bar.add_task("train", total=until, completed=self.step, info="")
+                    self._bar = (bar, task)
                 while self.step < until:
                     t0 = time.perf_counter()
                     terms = self.train_step()
@@ -1529,7 +1573,9 @@ class Trainer:
                     # a resume told to stop at its checkpoint's step (--iterations N, N = that step) trains no step,
                     # and the update of a run's last step is made inside one: without this, the tables stayed as
                     # the last refresh left them (the prior, before the first)
-                    with self.timer("posterior"):
+                    with self.timer("posterior"), progress() as bar:
+                        if self._bar is None:  # no step trained in this call (a model given by init_ply): its own bar
+                            self._bar = (bar, bar.add_task("posterior", total=None, info=""))
                         self.update_posterior()
                 # written while a stop waits for it (a Ctrl-C during the write lost every step since the last
                 # periodic checkpoint), then the stop is honoured
@@ -1586,6 +1632,7 @@ class Trainer:
                 "posterior": self.posterior_summary(),
                 "posterior_updates": self.posterior_updates,
                 "budget": {**self.budget.as_dict(), "memory_hold": self.memory_hold},
+                **({"imported": self.imported} if self.imported else {}),
                 **({"profile": self.timer.summary()} if self.timer.enabled else {})}
 
 
