@@ -873,6 +873,116 @@ def test_runs_without_maps_are_left_out_of_the_side_by_side_not_the_others(tmp_p
         (out / "index.html").read_text(encoding="utf-8")
 
 
+def _side_by_side_rows(monkeypatch) -> list[tuple[str, list[str]]]:
+    """Record (view, row labels) of every side-by-side figure the report draws (still drawing it)."""
+    from uncertsplat.report import figures
+
+    drawn: list[tuple[str, list[str]]] = []
+    real = figures.side_by_side_figure
+
+    def recording(views, name):
+        drawn.append((name, [label for label, _ in views]))
+        return real(views, name)
+
+    monkeypatch.setattr(figures, "side_by_side_figure", recording)
+    return drawn
+
+
+def _evaluated_on(run: Path, split: str) -> None:
+    """Mark a fake run's evaluation as one of ``split``'s views (``evaluate --split train``)."""
+    report = EvalReport.read(run / "eval" / "metrics.json")
+    report.split = split
+    report.write(run / "eval" / "metrics.json")
+
+
+def test_a_run_evaluated_on_other_views_is_left_out_of_the_side_by_side_not_the_others(tmp_path, monkeypatch):
+    """Two runs evaluated on the same test views beside one evaluated with --split train: the two are drawn
+    side by side (the report said the runs shared no view and drew none), and the page names the third and
+    why."""
+    names = ("view_000.png", "view_008.png")
+    scene = make_scene(tmp_path, [*names, "view_001.png"])
+    a = make_run(tmp_path / "a", "run", names=names, scene=scene, seed=1)
+    b = make_run(tmp_path / "b", "run", names=names, scene=scene, seed=2)
+    c = make_run(tmp_path / "c", "run", names=("view_001.png",), scene=scene, seed=3)
+    _evaluated_on(c, "train")
+    drawn = _side_by_side_rows(monkeypatch)
+    out = tmp_path / "report"
+    page = parse(stage.run([a, b, c], out, ReportConfig()))
+    assert_figures_consistent(out, page)
+    assert drawn == [("view_000.png", ["a/run", "b/run"]), ("view_008.png", ["a/run", "b/run"])]
+    assert {"figures/compare_view0.png", "figures/compare_view1.png"} <= set(page.imgs)
+    html = (out / "index.html").read_text(encoding="utf-8")
+    assert "share no evaluated view" not in html
+    assert ("Left out of the side-by-side figures: c/run (its 1 train view: view_001.png; no other run with "
+            "maps evaluated any of them).") in html
+    assert "view_000.png across runs; not drawn: c/run (not evaluated on this view)" in html
+    assert "One test view across runs." in html  # the train view is not drawn
+    # runs that share no view at all are still told apart, each with the views it was evaluated on
+    drawn.clear()
+    page = parse(stage.run([a, c], out, ReportConfig()))
+    assert drawn == [] and not any("compare_view" in src for src in page.imgs)
+    assert ("The runs with maps share no evaluated view (a/run: 2 test views: view_000.png, view_008.png; "
+            "c/run: 1 train view: view_001.png); side-by-side images left out.") in (
+        out / "index.html").read_text(encoding="utf-8")
+
+
+def test_each_side_by_side_view_holds_the_runs_that_evaluated_it(tmp_path, monkeypatch):
+    """Runs sharing some views and not others: the view most runs hold comes first, then the one that draws
+    runs not drawn yet, each figure with the runs that have its view (read past a run's first max_views) and
+    a caption naming the others; a view another run scored as another split's says so, and unreadable maps
+    are named."""
+    scene = make_scene(tmp_path, ["view_000.png", "view_008.png", "view_016.png"])
+    a = make_run(tmp_path / "a", "run", names=("view_000.png", "view_008.png"), scene=scene, seed=1)
+    b = make_run(tmp_path / "b", "run", names=("view_000.png", "view_008.png"), scene=scene, seed=2)
+    c = make_run(tmp_path / "c", "run", names=("view_008.png", "view_016.png"), scene=scene, seed=3)
+    d = make_run(tmp_path / "d", "run", names=("view_016.png",), scene=scene, seed=4)
+    _evaluated_on(d, "train")
+    drawn = _side_by_side_rows(monkeypatch)
+    out = tmp_path / "report"
+    # max_views=1: the per-view section read a's and b's view_000 and c's view_008 alone; view_008 is drawn
+    page = parse(stage.run([a, b, c, d], out, ReportConfig(max_views=1)))
+    assert_figures_consistent(out, page)
+    assert drawn == [("view_008.png", ["a/run", "b/run", "c/run"])]
+    html = (out / "index.html").read_text(encoding="utf-8")
+    assert "share no evaluated view" not in html
+    assert ("Left out of the side-by-side figures: d/run (the views it shares with other runs, view_016.png, "
+            "are past the 1 figure drawn; `report --set max_views=3` draws 3).") in html
+    drawn.clear()
+    page = parse(stage.run([a, b, c, d], out, ReportConfig()))
+    assert_figures_consistent(out, page)
+    assert drawn == [("view_008.png", ["a/run", "b/run", "c/run"]), ("view_016.png", ["c/run", "d/run"]),
+                     ("view_000.png", ["a/run", "b/run"])]
+    html = (out / "index.html").read_text(encoding="utf-8")
+    assert "Left out of the side-by-side" not in html
+    assert "view_008.png across runs; not drawn: d/run (not evaluated on this view)" in html
+    assert ("view_016.png across runs; a test view of c/run; a train view of d/run; not drawn: a/run, b/run "
+            "(not evaluated on this view)") in html
+    assert "view_000.png across runs; not drawn: c/run, d/run (not evaluated on this view)" in html
+    assert "One view across runs." in html and "each figure holds the runs that evaluated its view" in html
+    # a run whose maps of a drawn view cannot be read is named in its caption, not dropped unsaid
+    (b / "eval" / "maps" / f"{map_stem('view_008.png')}.exr").unlink()
+    drawn.clear()
+    stage.run([a, b, c, d], out, ReportConfig(max_views=1))
+    assert drawn == [("view_008.png", ["a/run", "c/run"])]
+    html = (out / "index.html").read_text(encoding="utf-8")
+    assert re.search(r"view_008\.png across runs; not drawn: d/run \(not evaluated on this view\); b/run: "
+                     r"no maps could be read \([^)]*view_008[^)]*not found\)", html)
+
+
+def test_the_side_by_side_plan_covers_every_run_that_shares_a_view():
+    """compare_plan: runs sharing every view keep their first views in order; disjoint pairs are both drawn;
+    a view one run alone holds is never drawn."""
+    from uncertsplat.report.build import compare_plan
+
+    assert compare_plan({0: ["v0", "v1", "v2", "v3"], 1: ["v0", "v1", "v2", "v3"]}, 3) == [
+        ("v0", [0, 1]), ("v1", [0, 1]), ("v2", [0, 1])]
+    assert compare_plan({0: ["v0", "v1"], 1: ["v1", "v0"], 2: ["v5"], 3: ["v5", "v9"]}, 2) == [
+        ("v0", [0, 1]), ("v5", [2, 3])]
+    assert compare_plan({0: ["v0"], 1: ["v1"], 2: ["v2", "v1"]}, 3) == [("v1", [1, 2])]
+    assert compare_plan({0: ["v0"], 1: ["v1"]}, 3) == []
+    assert compare_plan({0: ["v0", "v1"], 2: ["v1", "v0"], 5: ["v1"]}, 1) == [("v1", [0, 2, 5])]
+
+
 def test_the_summary_says_plainly_when_the_std_is_too_small_or_too_large(tmp_path):
     """The calibration table's 68 % row, in one sentence (a reader had only the diagonal plot to go by)."""
     from uncertsplat.report.build import calibration_verdict

@@ -625,33 +625,128 @@ def views_section(w: ReportWriter, runs: list[RunData], max_views: int) -> dict[
     return loaded
 
 
+COMPARED_VIEWS = 3
+"""The most side-by-side figures the report draws (fewer with ``max_views`` below it)."""
+
+
+def compare_plan(views_of: dict[int, list[str]], limit: int) -> list[tuple[str, list[int]]]:
+    """The views to draw side by side, each with the runs that evaluated it: ``views_of`` maps a run's index
+    to its evaluated views (``EvalReport.image_names``); each (view, run indices) returned has two runs or
+    more.
+
+    Runs evaluated on different views (one with ``--split train``, another ``max_views``, a scene of another
+    split) share some views and not others. Requiring every run to hold a view drew nothing when one run
+    shared none; instead each figure holds the runs that have its view. The first view is the one the most
+    runs hold; each next one the view that adds the most runs not drawn yet (then the most runs), so within
+    ``limit`` figures every run that shares a view with another is drawn where it can be. Ties go to the view
+    listed first (the runs' order, then each run's): runs that share every view keep their first views, as
+    before.
+    """
+    order: list[str] = []
+    holders: dict[str, list[int]] = {}
+    for ri in sorted(views_of):
+        for name in views_of[ri]:
+            if name not in holders:
+                order.append(name)
+                holders[name] = []
+            if ri not in holders[name]:
+                holders[name].append(ri)
+    candidates = [n for n in order if len(holders[n]) >= 2]
+    plan: list[tuple[str, list[int]]] = []
+    drawn: set[int] = set()
+    while candidates and len(plan) < limit:
+        # max() keeps the first of equals: the view listed first
+        name = max(candidates, key=lambda n: (len(set(holders[n]) - drawn), len(holders[n])))
+        candidates.remove(name)
+        plan.append((name, holders[name]))
+        drawn.update(holders[name])
+    return plan
+
+
+def _has_rgb(view: ViewMaps) -> bool:
+    """Whether a view's maps give a row of the side-by-side figure (``side_by_side_figure``'s test)."""
+    return view.rgb_mean is not None or view.rgb_std is not None
+
+
 def compare_section(w: ReportWriter, runs: list[RunData], loaded: dict[int, dict[str, ViewMaps]],
                     max_views: int) -> None:
+    """One evaluated view across runs, for the views two runs or more evaluated (``compare_plan``), each
+    figure naming the runs left out of it and why. ``loaded`` holds the maps ``views_section`` read (run index
+    -> view -> maps); the others are read here (a view shared past a run's first ``max_views``)."""
     if len(runs) < 2:
         return
     # the runs with maps are compared; those without any (no evaluation, or save_maps off) are named
     with_maps = [ri for ri in range(len(runs)) if loaded.get(ri)]
-    common = None
-    for ri in with_maps:
-        names = list(loaded[ri])
-        common = names if common is None else [n for n in common if n in names]
+    views_of = {ri: list(runs[ri].metrics.image_names) for ri in with_maps}
+    plan = compare_plan(views_of, min(COMPARED_VIEWS, max_views))
     body = []
     without = [runs[ri].name for ri in range(len(runs)) if ri not in with_maps]
     if len(with_maps) < 2:
         body.append(note("Fewer than two runs have uncertainty maps; side-by-side images left out"
                          + (f" (no maps: {', '.join(without)})." if without else ".")))
-    elif not common:
-        body.append(note("The runs with maps share no evaluated view; side-by-side images left out."))
-    else:
-        if without:
-            body.append(note(f"Left out, no maps: {', '.join(without)}."))
-        body.append(para("One test view across runs. Error and std share one colour scale across all rows.",
-                         "legend"))
-        for vi, name in enumerate(common[: min(3, max_views)]):
-            views = [(runs[ri].name, loaded[ri][name]) for ri in with_maps]
-            html = w.add_figure(f"compare_view{vi}.png", F.side_by_side_figure(views, name),
-                                f"{name} across runs", f"{name} side by side")
-            body.append(html or note(f"{name}: not enough maps to compare."))
+        w.section("compare", "Runs side by side", "".join(body))
+        return
+
+    def listed(names: list[str]) -> str:
+        return ", ".join(names[:VIEWS_LISTED]) + (", …" if len(names) > VIEWS_LISTED else "")
+
+    def evaluated(ri: int) -> str:
+        names = views_of[ri]
+        return f"{len(names)} {runs[ri].metrics.split} view{'' if len(names) == 1 else 's'}: {listed(names)}"
+
+    if not plan:
+        body.append(note("The runs with maps share no evaluated view ("
+                         + "; ".join(f"{runs[ri].name}: {evaluated(ri)}" for ri in with_maps)
+                         + "); side-by-side images left out."))
+        w.section("compare", "Runs side by side", "".join(body))
+        return
+    if without:
+        body.append(note(f"Left out, no maps: {', '.join(without)}."))
+    drawn = {ri for _, held in plan for ri in held}
+    why = []
+    for ri in (ri for ri in with_maps if ri not in drawn):
+        common = [n for n in views_of[ri] if any(n in views_of[rj] for rj in with_maps if rj != ri)]
+        if common:  # only where the figures ran out: compare_plan draws every run it can
+            more = (f"; `report --set max_views={COMPARED_VIEWS}` draws {COMPARED_VIEWS}"
+                    if max_views < COMPARED_VIEWS else "")
+            why.append(f"{runs[ri].name} (the views it shares with other runs, {listed(common)}, are past "
+                       f"the {len(plan)} figure{'' if len(plan) == 1 else 's'} drawn{more})")
+        else:
+            why.append(f"{runs[ri].name} (its {evaluated(ri)}; no other run with maps evaluated any of them)")
+    if why:
+        body.append(note("Left out of the side-by-side figures: " + "; ".join(why) + "."))
+    if any(len(held) < len(with_maps) for _, held in plan):
+        body.append(para("The runs were evaluated on different views: each figure holds the runs that "
+                         "evaluated its view, and its caption names the others.", "muted"))
+    # a view of --split train is a training view: "test view" would say the run never saw it
+    kind = "test view" if all(runs[ri].metrics.split == "test" for _, held in plan for ri in held) else "view"
+    body.append(para(f"One {kind} across runs. Error and std share one colour scale across all rows.",
+                     "legend"))
+    for vi, (name, held) in enumerate(plan):
+        views = []
+        for ri in held:
+            view = loaded[ri].get(name)
+            if view is None:  # past the run's first max_views: views_section did not read it
+                view = load_view(name, runs[ri].maps_dir, runs[ri].depth_to_source, among=views_of[ri])
+            views.append((ri, view))
+        rows = [(runs[ri].name, v) for ri, v in views if _has_rgb(v)]
+        # side_by_side_figure drops a run without maps: the caption says so rather than lose it unsaid
+        unread = [f"{runs[ri].name}: no maps could be read ({v.note})" for ri, v in views if not _has_rgb(v)]
+        missing = [runs[ri].name for ri in with_maps if ri not in held]
+        splits = sorted({runs[ri].metrics.split for ri in held})
+        caption = f"{name} across runs"
+        if len(splits) > 1:  # one run's test view is another's training view (--split train, another split)
+            for s in splits:
+                of = ", ".join(runs[ri].name for ri in held if runs[ri].metrics.split == s)
+                caption += f"; a {s} view of {of}"
+        if missing:
+            caption += f"; not drawn: {', '.join(missing)} (not evaluated on this view)"
+        if unread and len(rows) >= 2:
+            caption += "; " + "; ".join(unread)
+        html = w.add_figure(f"compare_view{vi}.png", F.side_by_side_figure(rows, name), caption,
+                            f"{name} side by side")
+        body.append(html or note(f"{name}: not enough maps to compare"
+                                 + (f" ({'; '.join(unread)})." if unread else ".")))
     w.section("compare", "Runs side by side", "".join(body))
 
 
