@@ -108,6 +108,15 @@ class TestImportedRun:
         report = evaluate.run(imported, EvalConfig(num_samples=4, residual_views=0), CPU, quiet=True)
         assert math.isfinite(report.mean.nll) and report.mean.ause_mae > 0
 
+    def test_the_report_says_where_the_model_came_from(self, plain_and_imported, tmp_path):
+        from uncertsplat.config import ReportConfig
+        from uncertsplat.stages import report
+
+        _, ply, imported = plain_and_imported
+        report.run([imported], tmp_path / "report", ReportConfig())
+        html = " ".join((tmp_path / "report" / "index.html").read_text(encoding="utf-8").split())
+        assert f"the model of {ply.resolve()}" in html and "trained elsewhere" in html
+
     def test_nothing_to_resume_and_no_steps_to_add(self, plain_and_imported, tiny_scene_path):  # noqa: F811
         _, _, imported = plain_and_imported
         cfg = json.loads((imported / "config.json").read_text(encoding="utf-8"))

@@ -856,6 +856,13 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
             if is_masked(run) and not _trained_inside_masks(run) and s.test_psnr is not None:
                 body.append(note(f"{run.name}: test_psnr is over whole images; evaluate's PSNR (Summary, Metrics) is "
                                  "inside the scene's validity masks, so the two differ for the same render."))
+            if s.imported is not None:  # a model another tool trained (train --from-ply): not trained here
+                im = s.imported
+                body.append(note(f"{run.name}: the model of {im.path} ({im.gaussians:,} Gaussians, SH degree "
+                                 f"{im.sh_degree}, read in the {'scene source' if im.frame == 'source' else 'run'}'s "
+                                 "frame), trained elsewhere and given the informed posterior here without a step of "
+                                 "training (train --from-ply); its held-out metrics are honest only if its trainer "
+                                 "held out the same views."))
             for warning in s.warnings:  # e.g. a model that cannot fit its own training views
                 body.append(note(f"{run.name}: {warning}"))
             for band in s.sh_bands:  # which SH bands the scene kept, and why
