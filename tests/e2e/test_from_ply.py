@@ -153,6 +153,30 @@ def test_a_model_in_another_frame(plain_and_imported, tiny_scene_path, tmp_path)
     assert not (tmp_path / "far_run" / "variational.ply").exists()
 
 
+def test_one_gaussian_in_view_outside_the_sample_is_enough(plain_and_imported, tiny_scene_path, tmp_path,  # noqa: F811
+                                                            monkeypatch):
+    """The in-view share is measured over a sample of the Gaussians; a model refused for none in view is looked at
+    whole first."""
+    from uncertsplat.train import imported
+
+    _, ply, _ = plain_and_imported
+    v = PlyData.read(str(ply))["vertex"].data[:20].copy()
+    v["z"][:] = v["z"] - 1e6  # every one far below the ring
+    v["z"][4] = v["z"][4] + 1e6  # but one, which the evenly spaced sample (every 3rd: 7 of 20) leaves out
+    path = tmp_path / "one.ply"
+    PlyData([PlyElement.describe(v, "vertex")], text=False).write(str(path))
+    scene = load_scene(tiny_scene_path)
+    cams = scene.cameras[list(scene.split["train"])]
+    monkeypatch.setattr(imported, "IN_VIEW_SAMPLE", 7)
+    model, notes, record = imported.model_from_ply(path, scene, cams)
+    assert len(model) == 20 and record["in_view_share"] == pytest.approx(1 / 20)
+    assert any("only 5%" in n for n in notes), notes
+    v["z"][4] = v["z"][4] - 1e6
+    PlyData([PlyElement.describe(v, "vertex")], text=False).write(str(path))
+    with pytest.raises(UserError, match="none of the model's 20 Gaussians"):
+        imported.model_from_ply(path, scene, cams)
+
+
 class TestConfig:
     def test_zero_steps_only_for_a_given_model(self):
         with pytest.raises(UserError, match="iterations: 0 trains nothing"):
