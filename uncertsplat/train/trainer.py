@@ -1388,8 +1388,11 @@ class Trainer:
         if last and self._bar is not None:  # (the last update, of every view, runs for minutes on large captures)
             bar, task = self._bar
 
+            # (the bar of an update alone counts its views)
+            counts = any(t.id == task and t.description == "posterior" for t in bar.tasks)
+
             def on_view(done: int, views: int) -> None:
-                bar.update(task, info=f"posterior update: view {done}/{views}")
+                bar.update(task, info=f"posterior update: view {done}/{views}", **({"completed": done} if counts else {}))
 
         curv = curvature(params, cams, images, self.render, names=("means", "scales", "opacities"),
                          generator=self.gen_noise, sh_degree=degree, probes=probes,
@@ -1574,8 +1577,9 @@ class Trainer:
                     # and the update of a run's last step is made inside one: without this, the tables stayed as
                     # the last refresh left them (the prior, before the first)
                     with self.timer("posterior"), progress() as bar:
-                        if self._bar is None:  # no step trained in this call (a model given by init_ply): its own bar
-                            self._bar = (bar, bar.add_task("posterior", total=None, info=""))
+                        if self._bar is None:  # no step trained in this call (a model given by init_ply): a bar of
+                            # the update's views (the update counts them on it)
+                            self._bar = (bar, bar.add_task("posterior", total=len(self.train_idx), info=""))
                         self.update_posterior()
                 # written while a stop waits for it (a Ctrl-C during the write lost every step since the last
                 # periodic checkpoint), then the stop is honoured
