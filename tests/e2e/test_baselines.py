@@ -322,6 +322,8 @@ def test_prune_refuses_a_baseline_naming_its_method(which, ensemble_run, fisher_
 
     # a method without one is a mistake a pipeline stops at (it skips a prune of a run too short for one)
     assert not isinstance(info.value, NoPosterior) and "variational method" in str(info.value)
+    # a plain model (Fisher's) can be given the posterior without training again; an ensemble's members cannot
+    assert ("--from-ply" in str(info.value)) == (which == "fisher"), str(info.value)
 
 
 def test_unknown_method_is_a_user_error(scene_path, tmp_path):

@@ -117,6 +117,16 @@ class TestImportedRun:
         html = " ".join((tmp_path / "report" / "index.html").read_text(encoding="utf-8").split())
         assert f"the model of {ply.resolve()}" in html and "trained elsewhere" in html
 
+    def test_prune_of_the_plain_run_says_how_to_give_it_a_posterior(self, plain_and_imported, tmp_path):
+        from uncertsplat.config import PruneConfig
+        from uncertsplat.stages import prune
+
+        plain, _, _ = plain_and_imported
+        with pytest.raises(UserError, match="a deterministic run has no per-Gaussian posterior") as info:
+            prune.run(plain, tmp_path / "out", PruneConfig(keep_ratio=0.5), device=CPU)
+        text = " ".join(str(info.value).split())
+        assert f"--from-ply {plain / 'point_cloud.ply'}" in text and "uncertsplat train" in text, text
+
     def test_nothing_to_resume_and_no_steps_to_add(self, plain_and_imported, tiny_scene_path):  # noqa: F811
         _, _, imported = plain_and_imported
         cfg = json.loads((imported / "config.json").read_text(encoding="utf-8"))

@@ -348,11 +348,19 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
         # (NoPosterior: a run its settings left without one, a short test run, which a pipeline skips; a method
         # without a posterior, or a scene whose Gaussians the spawn rule passed over, is an error there too)
         error = NoPosterior if reason else UserError
+        hint = ("Prune a run whose Gaussians carry a posterior (train's closing lines say how many do)."
+                if method == "variational" else
+                "Prune a run trained with the variational method (the default) past its first densification step")
+        if method in ("deterministic", "fisher") and (run_dir / "point_cloud.ply").is_file():
+            # a plain model gets the informed posterior without training again (seconds: train --from-ply)
+            scene_dir = loaded.scene_path or "SCENE"
+            hint += (f", or give this one the posterior first: uncertsplat train {q(scene_dir)} -o "
+                     f"{q(run_dir.parent / (run_dir.name + '_posterior'))} --from-ply {q(run_dir / 'point_cloud.ply')}"
+                     " (no training; then prune that run).")
+        elif method != "variational":
+            hint += "."
         raise error(f"{why}, so there is no uncertainty to prune by" + (f": {reason}" if reason else ""),
-                        path=run_dir,
-                        hint="Prune a run trained with the variational method (the default) past its first "
-                             "densification step." if method != "variational" else
-                        "Prune a run whose Gaussians carry a posterior (train's closing lines say how many do).")
+                    path=run_dir, hint=hint)
     scene = loaded.load_scene()
     notes: list[str] = []
     split = "test"
