@@ -133,6 +133,44 @@ class TestImportedRun:
         with pytest.raises(UserError, match="not supported"):
             train_config_from(None, {**cfg, "iterations": 100})
 
+    def test_resume_trains_no_step_and_leaves_the_run_usable(self, plain_and_imported, tiny_scene_path, tmp_path,
+                                                             capsys):  # noqa: F811
+        """`train --resume --iterations N` trained N steps of an imported run (the config's refusal skipped), said
+        "no step trained", and wrote a config.json (init_ply, iterations N) that every later command refused."""
+        import shutil
+
+        from uncertsplat.train.session import train_model
+
+        _, ply, imported = plain_and_imported
+        run = tmp_path / "copy"
+        shutil.copytree(imported, run)
+        before = {f: (run / f).read_bytes() for f in ("config.json", "variational.ply", "train_summary.json")}
+        cfg = train_config_from(None, json.loads((run / "config.json").read_text(encoding="utf-8")))
+        for kwargs, what in (({"extend_to": 50}, "cannot be trained on to 50 steps"),
+                             ({"add_views": ["view_000.png"]}, "views cannot be added")):
+            with pytest.raises(UserError, match="model trained elsewhere") as err:
+                train_model(tiny_scene_path, run, cfg, CPU, resume=True, **kwargs)
+            assert what in str(err.value) and "--from-ply NEW_MODEL.ply" in err.value.hint
+        # a plain --resume: nothing to do, said without advising steps
+        train_model(tiny_scene_path, run, cfg, CPU, resume=True)
+        out = " ".join(capsys.readouterr().err.split())
+        assert "nothing to do" in out and "--iterations N" not in out and ply.name in out
+        assert {f: (run / f).read_bytes() for f in before} == before
+        # the same command without --resume: the folder holds the import, not a run to continue
+        with pytest.raises(UserError, match="holds the posterior of") as err:
+            train_model(tiny_scene_path, run, cfg, CPU)
+        assert "--resume" not in err.value.hint
+
+    def test_no_short_run_caveats(self, plain_and_imported):
+        """A model trained elsewhere is fitted: the warnings of a short run ("after only 0 steps", "give it
+        --iterations N") do not apply to it, and the advice names no option of `train` that it refuses."""
+        from uncertsplat.stages.evaluate import low_coverage_notes
+        from uncertsplat.train.session import exposure_warnings
+
+        warned = exposure_warnings([0.5, 1.0, 1.5], learned=False, steps=None, imported=True)
+        assert warned and "after only" not in warned[0] and "exposure=affine" not in warned[0]
+        assert low_coverage_notes(0.4, 0) == [] and "random_background" not in low_coverage_notes(0.4, 0, fitted=True)[0]
+
 
 def test_a_plain_model_imported_knows_the_unseen_half(tiny_scene_path, tmp_path):  # noqa: F811
     """Trained on one half of the ring by plain 3DGS (no posterior), then imported: the posterior's own spread is
@@ -144,6 +182,22 @@ def test_a_plain_model_imported_knows_the_unseen_half(tiny_scene_path, tmp_path)
     run = _imported(tiny_scene_path, plain / "point_cloud.ply", tmp_path / "imported", **split)
     ratio = _std_unobserved_over_observed(run, train, test)
     assert ratio > 1.3, f"unobserved / observed mean std {ratio:.2f}"
+
+
+def test_a_model_of_narrow_gaussians_is_told_the_spawn_rule(plain_and_imported, tiny_scene_path,
+                                                            tmp_path):  # noqa: F811
+    """No Gaussian of the file wider than the spawn rule asks: the warning names densify.spawn_scale_fraction,
+    not the steps of a run (--iterations N, which an imported run refuses)."""
+    _, ply, _ = plain_and_imported
+    v = PlyData.read(str(ply))["vertex"].data.copy()
+    for i in range(3):
+        v[f"scale_{i}"] = v[f"scale_{i}"] - 4.0
+    narrow = tmp_path / "narrow.ply"
+    PlyData([PlyElement.describe(v, "vertex")], text=False).write(str(narrow))
+    run = _imported(tiny_scene_path, narrow, tmp_path / "narrow_run")
+    warnings = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))["warnings"]
+    assert any("densify.spawn_scale_fraction=" in w for w in warnings), warnings
+    assert not any("--iterations" in w or "after only" in w for w in warnings), warnings
 
 
 def test_a_model_in_another_frame(plain_and_imported, tiny_scene_path, tmp_path):  # noqa: F811

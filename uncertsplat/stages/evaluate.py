@@ -542,7 +542,8 @@ def _run(run_dir: Path, cfg: EvalConfig, device: torch.device, quiet: bool = Fal
             # (on training views, or where an empty ray is the photo's background (a transparent scene: no empty-ray
             # term), a view's empty share says nothing of what no photo saw)
             low = low_coverage_notes(sampler.coverage if cfg.empty_rays and sampler.empty_std is not None else None,
-                                     loaded.config.iterations)
+                                     loaded.config.iterations,
+                                     fitted=getattr(loaded.config, "init_ply", None) is not None)
             few = few_samples_notes(report.mean.psnr, report.mean.psnr_render, cfg.num_samples)
             if cfg.split == "test":  # held-out views one video frame from training ones flatter the model
                 few += near_copy_notes(scene, views, report.mean.psnr)
@@ -668,17 +669,21 @@ its own training views partly empty: on bonsai 0.43 (dark furniture fitted by th
 elsewhere 0.86-0.99 (BENCHMARKS.md, "Training over a random background colour")."""
 
 
-def low_coverage_notes(coverage: float | None, steps: int) -> list[str]:
+def low_coverage_notes(coverage: float | None, steps: int, fitted: bool = False) -> list[str]:
     """The note for a model trained ``steps`` steps that covers its own training views poorly (``LOW_COVERAGE``);
     none for None, or for a run shorter than ``train``'s ``SHORT_RUN_STEPS`` (not yet fitted: its coverage says
-    nothing about dark surfaces)."""
+    nothing about dark surfaces) unless ``fitted`` (a model trained elsewhere: ``init_ply``, 0 steps here)."""
     from uncertsplat.train.session import SHORT_RUN_STEPS  # here: evaluate's import needs no training module
 
-    if coverage is None or coverage >= LOW_COVERAGE or steps < SHORT_RUN_STEPS:
+    if coverage is None or coverage >= LOW_COVERAGE or (steps < SHORT_RUN_STEPS and not fitted):
         return []
-    return [f"the model covers its own training views only to alpha {coverage:.2f} (95 % of their pixels): it leaves "
+    said = (f"the model covers its own training views only to alpha {coverage:.2f} (95 % of their pixels): it leaves "
             "surfaces partly empty, often dark ones fitted by the background showing through, and the empty-ray term "
-            "counts them as surface no view saw; `train --set random_background=true` covers them (bonsai: 0.43 -> "
+            "counts them as surface no view saw")
+    if fitted:  # (a model trained elsewhere: its trainer, not `train`, would train it over random backgrounds)
+        return [said + "; a model trained over a random background colour (an option of some trainers) "
+                "covers them"]
+    return [said + "; `train --set random_background=true` covers them (bonsai: 0.43 -> "
             "0.99, held out +0.2-0.5 dB and AUSE-MAE 0.394 -> 0.370, but worse where new views extrapolate: "
             "BENCHMARKS.md, \"Training over a random background colour\")"]
 

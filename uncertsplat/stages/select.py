@@ -424,7 +424,11 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
                       f"was pruned from, {source}, which is then pruned again")
         run_dir = source
     added = ",".join(p.name for p in picked) if cands.kind == "unused" else "NEW_PHOTOS"
-    if cannot_grow is None:
+    init_ply = getattr(loaded.config, "init_ply", None)
+    if init_ply is not None:  # a model trained elsewhere: `train --resume` trains no step of it (and refuses views)
+        train_next = (f"train the model on with them in the tool that trained it ({Path(init_ply).name}) and give "
+                      f"its new file: [bold]uncertsplat train {qm(folder)} -o NEW_RUN --from-ply NEW_MODEL.ply[/]")
+    elif cannot_grow is None:
         train_next = f"[bold]uncertsplat train {qm(folder)} -o {qm(run_dir)} --resume --iterations N --add-views {esc(added)}[/]"
     else:  # the command the note above said is refused: a new run instead
         train_next = (f"(`--resume --add-views` refuses this run: {cannot_grow}) train a new run on its views and "

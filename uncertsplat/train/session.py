@@ -170,6 +170,30 @@ def _same_scene_path(run_dir: Path, scene: Path) -> bool:
     return info is not None and Path(info.scene).resolve() == Path(scene).resolve()
 
 
+def imported_not_trained_on(init_ply, what: str) -> str:
+    """The refusal of training on (or adding views to) a run whose model was trained elsewhere (``init_ply``)."""
+    return (f"this run is the posterior of a model trained elsewhere ({init_ply}), which uncertsplat does not train: "
+            f"{what}")
+
+
+def imported_retrain_hint(scene, init_ply) -> str:
+    """What to do instead: train the model on in the tool that trained it, then import its new file."""
+    from uncertsplat.console import q
+
+    return (f"Train the model on (with the new photos, if any) in the tool that trained it, then give its new file: "
+            f"uncertsplat train {q(scene)} -o NEW_RUN --from-ply NEW_MODEL.ply (this run stays as it is; it was "
+            f"built from {Path(init_ply).name}).")
+
+
+def _imported_from(run_dir: Path) -> str | None:
+    """The model file a run was imported from (its config.json's ``init_ply``), or None (not one, or unreadable)."""
+    try:
+        value = json.loads((run_dir / "config.json").read_text(encoding="utf-8")).get("init_ply")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return str(value) if value else None
+
+
 def _summary_steps(run_dir: Path) -> int | None:
     """The steps ``train_summary.json`` says the run's finished model was trained for (None: none readable)."""
     try:
@@ -443,6 +467,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             raise UserError("the output folder exists and holds files that are not a training run", path=run_dir,
                             hint="Choose another output folder (-o), or empty this one.")
         steps = _summary_steps(run_dir)
+        imported = _imported_from(run_dir)
         try:
             before = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
         except UserError:
@@ -452,6 +477,10 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             raise UserError(f"the run folder already exists and holds a run of another scene ({before.scene})",
                             path=run_dir, hint="Choose another output folder (-o) for this scene, or resume that run "
                                                f"on its own: uncertsplat train {q(before.scene)} -o {q(run_dir)} --resume")
+        if imported is not None and steps is not None:  # finished: nothing to continue (--resume says so)
+            raise UserError(f"the run folder already exists and holds the posterior of {imported}", path=run_dir,
+                            hint="Choose another output folder (-o) for this model, or move that run aside (or "
+                                 "delete it) to import the model again.")
         raise UserError("the run folder already exists" + (f" and holds a run trained for {steps} steps" if steps
                                                            else ""), path=run_dir,
                         hint=("Add --resume --iterations N (N > its steps) to train it on" if steps else
@@ -490,6 +519,12 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 console.print(f"[yellow]note:[/] resuming with the run's stored configuration; ignoring the "
                               f"given values of: {', '.join(diff)}")
             cfg = build_config(TrainConfig, stored, source=str(run_dir / "config.json"))
+            if cfg.init_ply is not None and (add_views or extend_to not in (None, cfg.iterations)):
+                # the config refuses steps with init_ply; --iterations N here trained N steps (a model_copy skips the
+                # validation) and left a config.json that every later command refused
+                raise UserError(imported_not_trained_on(cfg.init_ply, "views cannot be added to it" if add_views
+                                                        else f"it cannot be trained on to {extend_to} steps"),
+                                path=run_dir, hint=imported_retrain_hint(scene, cfg.init_ply))
             if add_views:
                 cfg, add_views = _add_training_views(cfg, run_dir, list(add_views), scene)
             found = load_latest(run_dir, map_location=device)
@@ -544,7 +579,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             elif (int(found[1]["step"]) >= cfg.iterations and not add_views and (run_dir / "variational.ply").is_file()
                   and _summary_steps(run_dir) == int(found[1]["step"]) and _same_scene_path(run_dir, scene)):
                 # (a run resumed on its scene's new folder goes on below: it checks the scene and records the folder)
-                console.print(f"{run_dir}: already trained for its {cfg.iterations} steps, nothing to do "
+                console.print(f"{run_dir}: its posterior is built from {cfg.init_ply}, nothing to do (a model "
+                              "trained elsewhere is not trained on here)" if cfg.init_ply is not None else
+                              f"{run_dir}: already trained for its {cfg.iterations} steps, nothing to do "
                               f"(--iterations N with N > {cfg.iterations} trains it on)")
                 return run_dir
             else:
@@ -771,7 +808,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         # view added there raised the warning on photos of one exposure)
         late = {n for added in views_added for n in added.names}
         skip = [k for k, i in enumerate(data.split["train"]) if names and names[i] in late]
-        warnings += exposure_warnings(trainer.photo_gains(skip=skip), trainer.exposure is not None, trainer.step)
+        warnings += exposure_warnings(trainer.photo_gains(skip=skip), trainer.exposure is not None,
+                                      None if trainer.imported else trainer.step, imported=bool(trainer.imported))
         warnings += [w for w in [transients_warning(transients, len(data.split["train"]), trainer.transients_stopped)]
                      if w]
         # what loading changed of the photos (turned, cropped, left out) goes into the summary, so the report shows it
@@ -811,12 +849,16 @@ def imported_fit_warnings(fit_psnr: float | None, imported: dict) -> list[str]:
     trainer renders otherwise."""
     if fit_psnr is None or fit_psnr >= POOR_FIT_PSNR:
         return []
+    other = "run" if imported["frame"] == "source" else "source"
     return [f"the model of {imported['path']} renders its training views at {_psnr_shown(fit_psnr):.1f} dB here "
             f"(read in the {'scene source' if imported['frame'] == 'source' else 'run'}'s frame; "
             f"{imported['in_view_share']:.0%} of its Gaussians inside some training view): its trainer fitted them far "
-            "better, so the model and the scene's cameras are not in one frame (--set init_ply_frame=source|run; "
-            "another mapping of the photos has another frame), or it renders otherwise than 3DGS does (an "
-            "antialiased or filtered renderer, another background): its uncertainty here describes this render"]
+            "better, so the model and the scene's cameras are likely not in one frame (read in the other: --set "
+            f"init_ply_frame={other}; a trainer that normalises its world, as gsplat's simple_trainer and "
+            "nerfstudio's splatfacto do by default, writes the model in its normalised frame, which must be moved "
+            "back into the COLMAP model's first; another mapping of the photos has another frame), or it renders "
+            "otherwise than 3DGS does (an antialiased or filtered renderer, another background): its uncertainty "
+            "here describes this render"]
 
 
 SHORT_RUN_STEPS = 1000
@@ -910,14 +952,21 @@ def small_images_notes(width: int, height: int, downscale: float) -> list[str]:
             f"{photo / better:.0f} px"]
 
 
-def exposure_warnings(gains: list[float], learned: bool, steps: int | None = None) -> list[str]:
+def exposure_warnings(gains: list[float], learned: bool, steps: int | None = None,
+                      imported: bool = False) -> list[str]:
     """The warning for training photos of different brightness (``strategy.exposure.EXPOSURE_SPREAD``) when their
     exposures were not ``learned``; after fewer than ``SHORT_RUN_STEPS`` ``steps`` it leads with the caveat (a model
-    that has not fitted its photos yet shows such gains on photos of one exposure too)."""
+    that has not fitted its photos yet shows such gains on photos of one exposure too). ``imported``: a model trained
+    elsewhere (``init_ply``, no step here: ``steps`` None), which ``exposure=affine`` cannot retrain."""
     spread = gain_spread(gains)
     if learned or spread < EXPOSURE_SPREAD:
         return []
     gains_text = f"relative gains {min(gains):.2f}-{max(gains):.2f} on {len(gains)} of them"
+    if imported:
+        return [f"the training photos differ in brightness against the model ({gains_text}): if they were taken "
+                "with automatic exposure or white balance, the model's residuals, and the uncertainty built from "
+                "them, hold the difference (a trainer that learns a per-photo exposure fits it instead); if the "
+                "model renders poorly overall (the warning above), that is the likelier cause"]
     if steps is not None and steps < SHORT_RUN_STEPS:
         return [f"after only {steps} steps the training photos differ in brightness against the model ({gains_text}), "
                 "as a model this short often shows on photos of one exposure: if a full run says so too, they were "

@@ -272,7 +272,8 @@ def few_carriers_warning(model: GaussianModel, cfg: TrainConfig, extent: float, 
     d = cfg.densify
     if not cfg.has_offset_tables or n == 0 or model.num_carriers >= FEW_CARRIERS * n:
         return []
-    reason = no_carriers_reason(cfg, step)
+    # (a model trained elsewhere (init_ply) gets its carriers by the spawn rule at the start, none from a schedule)
+    reason = no_carriers_reason(cfg, step) if cfg.init_ply is None else None
     if reason is not None:  # what the settings decide: said only where nothing carries one (a short test run)
         return [f"no Gaussian carries a posterior, so the uncertainty is only the predictive's other terms: {reason}"
                 ] if model.num_carriers == 0 else []
