@@ -127,6 +127,16 @@ class TestImportedRun:
         text = " ".join(str(info.value).split())
         assert f"--from-ply {plain / 'point_cloud.ply'}" in text and "uncertsplat train" in text, text
 
+    def test_report_summary_says_it_was_imported(self, plain_and_imported, tmp_path):
+        """The report's summary table showed "training time 0.0 s" for an imported run (no step trained here)."""
+        import html
+
+        from uncertsplat.stages import report
+
+        plain, _, imported = plain_and_imported
+        page = html.unescape(report.run([imported, plain], tmp_path / "report2").read_text(encoding="utf-8"))
+        assert "imported (posterior " in page
+
     def test_nothing_to_resume_and_no_steps_to_add(self, plain_and_imported, tiny_scene_path):  # noqa: F811
         _, _, imported = plain_and_imported
         cfg = json.loads((imported / "config.json").read_text(encoding="utf-8"))

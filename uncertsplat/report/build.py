@@ -289,7 +289,12 @@ def summary_section(w: ReportWriter, runs: list[RunData]) -> None:
             cell.text += " (would keep; no model written)"
         cells.append(cell)
         ts = run.train_summary.seconds if run.train_summary is not None else None
-        cells.append(Cell(_fmt_seconds(ts), key="train_seconds", value=ts) if ts is not None else Cell("n/a"))
+        if ts is not None and run.train_summary.imported is not None:
+            # a model trained elsewhere: no step trained here ("0.0 s" read as a training); its posterior's time
+            built = sum(float(u.seconds or 0.0) for u in run.train_summary.posterior_updates)
+            cells.append(Cell(f"imported (posterior {_fmt_seconds(built)})", key="train_seconds", value=ts))
+        else:
+            cells.append(Cell(_fmt_seconds(ts), key="train_seconds", value=ts) if ts is not None else Cell("n/a"))
         m = run.metrics
         cells.append(_num_cell(m.seconds_per_view, ".3f", "seconds_per_view")
                      if m is not None and m.seconds_per_view is not None else Cell("n/a"))
