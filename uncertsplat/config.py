@@ -627,8 +627,9 @@ class TrainConfig(_Base):
             return self
         if self.method != "variational" or self.posterior != "informed":
             raise ValueError("init_ply: a model trained elsewhere gets the informed posterior (method \"variational\", "
-                             "variational.posterior = \"informed\", the defaults); drop --method or the posterior "
-                             "setting")
+                             "variational.posterior = \"informed\", variant \"ours\", the defaults); drop --method, "
+                             f"--variant or the posterior setting (given: method {self.method!r}, variant "
+                             f"{self.variant!r}, posterior {self.posterior!r})")
         if self.iterations != 0:
             raise ValueError(f"init_ply with iterations = {self.iterations}: a model trained elsewhere is given its "
                              "posterior as it is (iterations = 0, what --from-ply sets); training it on from its "

@@ -263,6 +263,10 @@ class TestConfig:
                      {"variational": {"posterior": "sgd"}}):
             with pytest.raises(UserError, match="informed posterior"):
                 train_config_from(None, {"init_ply": "m.ply", "iterations": 0, **data})
+        # `--variant paper` alone: the refusal names the option given (it named --method and the posterior only)
+        with pytest.raises(UserError, match="drop --method, --variant") as err:
+            train_config_from(None, {"init_ply": "m.ply", "iterations": 0, "variant": "paper"})
+        assert "variant 'paper'" in str(err.value)
 
     def test_cli_sets_zero_steps(self, tmp_path):
         from typer.testing import CliRunner
