@@ -210,6 +210,18 @@ def test_a_model_of_narrow_gaussians_is_told_the_spawn_rule(plain_and_imported, 
     assert not any("--iterations" in w or "after only" in w for w in warnings), warnings
 
 
+def test_views_set_aside_for_calibration_are_warned_of(plain_and_imported, tiny_scene_path,
+                                                        tmp_path):  # noqa: F811
+    """The other tool held out only the test views, so it trained on the views set aside for calibration here:
+    `evaluate`'s calibration on them would read as on training views (said nowhere before)."""
+    _, ply, imported = plain_and_imported
+    warnings = json.loads((imported / "train_summary.json").read_text(encoding="utf-8"))["warnings"]
+    assert not any("calibration" in w for w in warnings), warnings
+    run = _imported(tiny_scene_path, ply, tmp_path / "calib", scene={"calibration_holdout": 2})
+    warnings = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))["warnings"]
+    assert any("set aside for calibration" in w and "likely trained on them" in w for w in warnings), warnings
+
+
 def test_a_model_in_another_frame(plain_and_imported, tiny_scene_path, tmp_path):  # noqa: F811
     plain, ply, _ = plain_and_imported
     # read as if in the run's frame: the scene's scale is 1/4, so it lies far off its views; warned, not refused

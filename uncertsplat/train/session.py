@@ -804,6 +804,15 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
             warnings = [f"{w} (after only {trainer.step} steps the model may not fit its photos yet: judge this on "
                         "a full run)" for w in warnings]
         warnings += few_carriers_warning(trainer.model, cfg, trainer.extent, trainer.prior, trainer.step)
+        if trainer.imported and cfg.scene.calibration_holdout:
+            # another tool held out at most this scene's test views (INRIA's --eval: every 8th), so it likely trained
+            # on the views set aside here, whose residuals then read like training views' to `evaluate`'s calibration
+            warnings.append(f"{cfg.scene.calibration_holdout} view(s) are set aside for calibration "
+                            "(scene.calibration_holdout), but the model's own trainer likely trained on them (INRIA's "
+                            "--eval holds out only every 8th view, this scene's test views): `evaluate` would fit "
+                            "the std factor and the pixel noise on views the model has seen, as on training views, "
+                            "and the std would read too small on new ones; import without calibration_holdout unless "
+                            "that trainer held those views out too")
         # the views added during the run are left out: one added in a gap is fitted poorly whatever its exposure (a
         # view added there raised the warning on photos of one exposure)
         late = {n for added in views_added for n in added.names}
