@@ -222,6 +222,34 @@ def test_views_set_aside_for_calibration_are_warned_of(plain_and_imported, tiny_
     assert any("set aside for calibration" in w and "likely trained on them" in w for w in warnings), warnings
 
 
+def test_a_pipeline_stage_whose_model_file_is_gone_keeps_its_run(plain_and_imported, tiny_scene_path,
+                                                                  tmp_path):  # noqa: F811
+    """A train stage with init_ply: skipped while the file is unchanged, run again when it changes; with the file
+    gone, refused before anything is moved (the finished run went to .previous/ and the stage then failed with
+    "no such file", naming a path under the current folder, not the pipeline file's)."""
+    import shutil
+
+    from uncertsplat.stages import pipeline
+
+    _, ply, _ = plain_and_imported
+    project = tmp_path / "project"
+    project.mkdir()
+    shutil.copy(ply, project / "model.ply")
+    toml = project / "imp.toml"
+    toml.write_text(f'name = "imp"\n\n[[stages]]\nstage = "train"\ninput = "{tiny_scene_path}"\n'
+                    'config = { init_ply = "model.ply", iterations = 0 }\n', encoding="utf-8")
+    out = tmp_path / "out"
+    pipeline.run(toml, out, device="cpu")
+    model = (out / "train" / "variational.ply").read_bytes()
+    pipeline.run(toml, out, device="cpu")  # unchanged: skipped
+    assert (out / "train" / "variational.ply").read_bytes() == model and not (out / ".previous").exists()
+    (project / "model.ply").unlink()
+    with pytest.raises(UserError, match="model.ply, is missing") as err:
+        pipeline.run(toml, out, device="cpu")
+    assert str(project) in str(err.value)
+    assert (out / "train" / "variational.ply").read_bytes() == model and not (out / ".previous").exists()
+
+
 def test_a_model_in_another_frame(plain_and_imported, tiny_scene_path, tmp_path):  # noqa: F811
     plain, ply, _ = plain_and_imported
     # read as if in the run's frame: the scene's scale is 1/4, so it lies far off its views; warned, not refused

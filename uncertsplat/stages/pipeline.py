@@ -534,7 +534,15 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
 
                     # the model file is an input as the scene is: another model under the same name trains again
                     ply = Path(stage_cfg.init_ply).expanduser()
-                    inputs["init_ply"] = file_sha256(ply) if ply.is_file() else "missing"
+                    if not ply.is_file():  # refused here, before the stage's finished run is moved aside for nothing
+                        # (a relative one was looked for from the current folder, then the pipeline file's)
+                        where = "" if ply.is_absolute() else (f" (looked for from the current folder and from "
+                                                              f"{Path(pipeline).parent.absolute()})")
+                        raise UserError(f"stage '{name}': its model file (init_ply), {ply}, is "
+                                        f"{'not a file' if ply.exists() else 'missing'}{where}", path=pipeline,
+                                        hint="Put the model file back (or give init_ply its new place) and run the "
+                                             "pipeline again; the stage's earlier output is left as it is.")
+                    inputs["init_ply"] = file_sha256(ply)
 
             config_dict = stage_cfg.model_dump(mode="json")
             new = start_manifest(stage.stage, name, config_dict, inputs,
