@@ -630,6 +630,12 @@ class TrainConfig(_Base):
                              "variational.posterior = \"informed\", variant \"ours\", the defaults); drop --method, "
                              f"--variant or the posterior setting (given: method {self.method!r}, variant "
                              f"{self.variant!r}, posterior {self.posterior!r})")
+        if self.exposure == "affine":
+            # (accepted before: every gain 1, an exposure.json of nothing learned, and train's warning on photos of
+            # different brightness silenced as if their exposures had been learned)
+            raise ValueError("init_ply with exposure = \"affine\": the exposures are learned with the model's training, "
+                             "which a model trained elsewhere does not have here (no step is trained); drop the "
+                             "setting (train warns when the photos differ in brightness against the model)")
         if self.iterations != 0:
             raise ValueError(f"init_ply with iterations = {self.iterations}: a model trained elsewhere is given its "
                              "posterior as it is (iterations = 0, what --from-ply sets); training it on from its "

@@ -303,6 +303,9 @@ class TestConfig:
                      {"variational": {"posterior": "sgd"}}):
             with pytest.raises(UserError, match="informed posterior"):
                 train_config_from(None, {"init_ply": "m.ply", "iterations": 0, **data})
+        # exposures are learned with the training an imported model does not have (gains of 1 were written)
+        with pytest.raises(UserError, match="exposures are learned with the model's training"):
+            train_config_from(None, {"init_ply": "m.ply", "iterations": 0, "exposure": "affine"})
         # `--variant paper` alone: the refusal names the option given (it named --method and the posterior only)
         with pytest.raises(UserError, match="drop --method, --variant") as err:
             train_config_from(None, {"init_ply": "m.ply", "iterations": 0, "variant": "paper"})
