@@ -636,6 +636,11 @@ class TrainConfig(_Base):
             raise ValueError("init_ply with exposure = \"affine\": the exposures are learned with the model's training, "
                              "which a model trained elsewhere does not have here (no step is trained); drop the "
                              "setting (train warns when the photos differ in brightness against the model)")
+        if self.transients.detect:
+            # (accepted before, and train said "found in none of the training photos" without a test made)
+            raise ValueError("init_ply with transients.detect: transient objects are found from the residuals of "
+                             "training steps, which a model trained elsewhere does not have here (no step is "
+                             "trained); drop the setting, or give the photos' masks (a workspace's masks/)")
         if self.iterations != 0:
             raise ValueError(f"init_ply with iterations = {self.iterations}: a model trained elsewhere is given its "
                              "posterior as it is (iterations = 0, what --from-ply sets); training it on from its "

@@ -306,6 +306,8 @@ class TestConfig:
         # exposures are learned with the training an imported model does not have (gains of 1 were written)
         with pytest.raises(UserError, match="exposures are learned with the model's training"):
             train_config_from(None, {"init_ply": "m.ply", "iterations": 0, "exposure": "affine"})
+        with pytest.raises(UserError, match="transient objects are found from the residuals of training steps"):
+            train_config_from(None, {"init_ply": "m.ply", "iterations": 0, "transients": {"detect": True}})
         # `--variant paper` alone: the refusal names the option given (it named --method and the posterior only)
         with pytest.raises(UserError, match="drop --method, --variant") as err:
             train_config_from(None, {"init_ply": "m.ply", "iterations": 0, "variant": "paper"})
