@@ -137,6 +137,16 @@ class TestImportedRun:
         page = html.unescape(report.run([imported, plain], tmp_path / "report2").read_text(encoding="utf-8"))
         assert "imported (posterior " in page
 
+    def test_select_views_says_how_to_use_the_views(self, plain_and_imported, tmp_path, capsys):
+        """select-views advised `train --resume --iterations N --add-views`, which an imported run refuses."""
+        from uncertsplat.config import SelectConfig
+        from uncertsplat.stages import select
+
+        _, ply, imported = plain_and_imported
+        select.run(imported, SelectConfig(candidates="around:4", num_views=1), CPU, output=tmp_path / "sel")
+        out = " ".join(capsys.readouterr().err.split())
+        assert "--from-ply NEW_MODEL.ply" in out and ply.name in out and "--resume" not in out, out
+
     def test_nothing_to_resume_and_no_steps_to_add(self, plain_and_imported, tiny_scene_path):  # noqa: F811
         _, _, imported = plain_and_imported
         cfg = json.loads((imported / "config.json").read_text(encoding="utf-8"))
