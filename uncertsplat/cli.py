@@ -558,7 +558,9 @@ def train(
     if from_ply is not None:  # (absolute: config.json and a later --resume read it from any folder)
         explicit["init_ply"] = from_ply.expanduser().absolute()
         if iterations is None and "iterations" not in stage.given_keys(None, {}, None, {}, set_):
-            explicit["iterations"] = 0  # (a number given is refused by the config, which says why)
+            # over a --config file's steps too (an option wins over the file, as every option does); steps given
+            # on the command line are refused by the config, which says why
+            explicit["iterations"] = 0
     _refuse_two_values({**explicit, "method": method}, set_)
     cfg = stage.resolve_config(preset, data, method, explicit, set_, source=str(config) if config else None)
     # with --resume, --iterations means "train on to this many steps" (the stored config wins otherwise)

@@ -1519,8 +1519,15 @@ def train_config_from(preset: str | None, data: dict | None = None, overrides: l
         merged = deep_update(merged, TRAIN_PRESETS[preset])
     if data:
         merged = deep_update(merged, data)
+    given = set(data or {})
     for o in overrides or []:
-        merged = deep_update(merged, parse_override(o))
+        parsed = parse_override(o)
+        given |= set(parsed)
+        merged = deep_update(merged, parsed)
+    if merged.get("init_ply") is not None and "iterations" not in given:
+        # a model trained elsewhere is given its posterior without training (what --from-ply sets): the steps of a
+        # preset or the default (7000) were refused, in a config file, a pipeline stage or --set init_ply=...
+        merged["iterations"] = 0
     label = source or "train config"
     return build_config(TrainConfig, merged, source=f"{label} (preset {preset})" if preset else label, where=where)
 

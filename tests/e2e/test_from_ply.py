@@ -247,7 +247,7 @@ def test_a_pipeline_stage_whose_model_file_is_gone_keeps_its_run(plain_and_impor
     shutil.copy(ply, project / "model.ply")
     toml = project / "imp.toml"
     toml.write_text(f'name = "imp"\n\n[[stages]]\nstage = "train"\ninput = "{tiny_scene_path}"\n'
-                    'config = { init_ply = "model.ply", iterations = 0 }\n', encoding="utf-8")
+                    'config = { init_ply = "model.ply" }\n', encoding="utf-8")
     out = tmp_path / "out"
     pipeline.run(toml, out, device="cpu")
     model = (out / "train" / "variational.ply").read_bytes()
@@ -305,8 +305,13 @@ class TestConfig:
     def test_zero_steps_only_for_a_given_model(self):
         with pytest.raises(UserError, match="iterations: 0 trains nothing"):
             train_config_from(None, {"iterations": 0})
+        # a model given without steps trains none: the preset's or the default's steps are not the user's
+        assert train_config_from(None, {"init_ply": "m.ply"}).iterations == 0
+        assert train_config_from("paper", {}, ["init_ply=m.ply"]).iterations == 0
+        with pytest.raises(UserError, match="not supported"):  # steps the user asked for are refused
+            train_config_from("tiny", {"init_ply": "m.ply", "iterations": 300})
         with pytest.raises(UserError, match="not supported"):
-            train_config_from(None, {"init_ply": "m.ply"})  # the default 7000 steps
+            train_config_from(None, {"init_ply": "m.ply"}, ["iterations=5"])
 
     def test_informed_posterior_only(self):
         for data in ({"method": "deterministic"}, {"variant": "paper", "variational": {"posterior": "sgd"}},
@@ -331,6 +336,23 @@ class TestConfig:
         r = CliRunner().invoke(app, ["train", str(tmp_path / "nope"), "-o", str(tmp_path / "o"), "--from-ply",
                                      str(tmp_path / "m.ply"), "--iterations", "5"])
         assert r.exit_code != 0 and "iterations = 5" in r.output and "not supported" in r.output
+
+    def test_cli_from_ply_wins_over_a_config_file_s_steps(self, plain_and_imported, tiny_scene_path,  # noqa: F811
+                                                          tmp_path):
+        """`--from-ply` with `--config` of a training's settings (e.g. a run's config.json, 7000 steps): the option
+        wins over the file, as every option does; the rest of the file is taken."""
+        from typer.testing import CliRunner
+
+        from uncertsplat.cli import app
+
+        _, ply, _ = plain_and_imported
+        cfg = tmp_path / "c.toml"
+        cfg.write_text("iterations = 7000\nseed = 3\n", encoding="utf-8")
+        r = CliRunner().invoke(app, ["train", str(tiny_scene_path), "-o", str(tmp_path / "o"), "--from-ply", str(ply),
+                                     "--config", str(cfg), "--device", "cpu"])
+        assert r.exit_code == 0, r.output
+        saved = json.loads((tmp_path / "o" / "config.json").read_text(encoding="utf-8"))
+        assert saved["iterations"] == 0 and saved["seed"] == 3
 
 
 def _write(path: Path, cols: dict[str, np.ndarray], comments=(), extra=()) -> Path:
