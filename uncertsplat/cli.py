@@ -542,6 +542,9 @@ def train(
     from_ply: Annotated[Path | None, typer.Option(
         "--from-ply", help="A 3DGS model trained elsewhere on SCENE (its point_cloud.ply): give it the posterior "
         "without training it (0 steps).")] = None,
+    from_ply_transform: Annotated[Path | None, typer.Option(
+        "--from-ply-transform", help="With --from-ply: the JSON file of the frame the model was trained in "
+        "(nerfstudio's dataparser_transforms.json), for a trainer that normalises its world.")] = None,
     view: Annotated[bool, typer.Option("--view", help="Watch the model train in the browser (needs viser).")] = False,
     view_port: Annotated[int, typer.Option(help="Port of the --view viewer (0 picks a free one).")] = 8080,
     device: DeviceOpt = "auto",
@@ -555,6 +558,8 @@ def train(
     data = _config_file(config) if config else {}
     _refuse_other_commands_file(TrainConfig, data, config)
     explicit = dict(iterations=iterations, variant=variant, seed=seed)
+    if from_ply_transform is not None:
+        explicit["init_ply_transform"] = from_ply_transform.expanduser().absolute()
     if from_ply is not None:  # (absolute: config.json and a later --resume read it from any folder)
         explicit["init_ply"] = from_ply.expanduser().absolute()
         if iterations is None and "iterations" not in stage.given_keys(None, {}, None, {}, set_):

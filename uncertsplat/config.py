@@ -512,6 +512,11 @@ class TrainConfig(_Base):
     tools train in them), moved into the run's normalised frame by the scene's ``world_from_source``; ``run`` the
     normalised frame already (a ``point_cloud.ply`` of uncertsplat); ``auto`` the latter for files uncertsplat wrote,
     the former otherwise."""
+    init_ply_transform: Path | None = None
+    """A JSON file with the similarity that took the scene's source coordinates into ``init_ply``'s (x_file = s R
+    x_source + t), for a trainer that normalises its world before training: nerfstudio's ``dataparser_transforms.json``
+    (``transform`` and ``scale``), or ``{"file_from_source": [[4x4]]}``. The Gaussians' positions, sizes, rotations and
+    SH colours are moved back through it (``train --from-ply-transform``)."""
     seed: int = Field(0, ge=0, le=TRAIN_SEED_MAX)
     """At most ``TRAIN_SEED_MAX`` (2**32 - 8; an ensemble: with its last member's seed, seed + ensemble_size - 1):
     the trainer's generators take seed + a few, and torch's CPU generator keeps a seed's low 32 bits (seeds s and
@@ -621,6 +626,9 @@ class TrainConfig(_Base):
     @model_validator(mode="after")
     def _imported_model(self):
         if self.init_ply is None:
+            if self.init_ply_transform is not None:
+                raise ValueError("init_ply_transform is the frame of a model given by init_ply (`train --from-ply "
+                                 "MODEL.ply --from-ply-transform FILE`); give the model too, or drop the transform")
             if self.iterations == 0:
                 raise ValueError("iterations: 0 trains nothing; it is for a model given by init_ply (`train "
                                  "--from-ply MODEL.ply`), to build its posterior only. Give at least 1 step")
@@ -630,6 +638,9 @@ class TrainConfig(_Base):
                              "variational.posterior = \"informed\", variant \"ours\", the defaults); drop --method, "
                              f"--variant or the posterior setting (given: method {self.method!r}, variant "
                              f"{self.variant!r}, posterior {self.posterior!r})")
+        if self.init_ply_transform is not None and self.init_ply_frame == "run":
+            raise ValueError("init_ply_transform with init_ply_frame = \"run\": the transform takes the scene's source "
+                             "frame to the model's, so the model is not in the run's frame; drop one of the two")
         if self.exposure == "affine":
             # (accepted before: every gain 1, an exposure.json of nothing learned, and train's warning on photos of
             # different brightness silenced as if their exposures had been learned)
@@ -1374,9 +1385,9 @@ def build_config(model: type[_Base], data: dict, source: str = "config", key_pre
         raise UserError(format_validation_error(err, source, model, key_prefix, names, where)) from None
 
 
-STAGE_PATH_KEYS = ("depth_gt", "candidates", "masks", "init_ply")
+STAGE_PATH_KEYS = ("depth_gt", "candidates", "masks", "init_ply", "init_ply_transform")
 """The stage configs' path settings (``EvalConfig.depth_gt``, ``SelectConfig.candidates`` when it names a file,
-``ReconstructConfig.masks``, ``TrainConfig.init_ply``): a relative one is read from the folder of the file that wrote it (a --config file's; a
+``ReconstructConfig.masks``, ``TrainConfig.init_ply`` and ``init_ply_transform``): a relative one is read from the folder of the file that wrote it (a --config file's; a
 pipeline file's where the current folder has no such path)."""
 
 SHIPPED = Path(__file__).resolve().parent / "pipelines"

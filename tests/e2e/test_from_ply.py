@@ -301,6 +301,97 @@ def test_one_gaussian_in_view_outside_the_sample_is_enough(plain_and_imported, t
         imported.model_from_ply(path, scene, cams)
 
 
+class TestRotateSh:
+    @pytest.mark.parametrize("degree", [1, 2, 3])
+    def test_every_colour_is_the_same_in_the_turned_direction(self, degree):
+        from uncertsplat.gaussians.ops import quat_to_rotmat
+        from uncertsplat.render.sh import eval_sh, rotate_sh
+
+        g = torch.Generator().manual_seed(degree)
+        sh = torch.randn(40, (degree + 1) ** 2, 3, generator=g, dtype=torch.float64)
+        d = torch.nn.functional.normalize(torch.randn(1, 40, 3, generator=g, dtype=torch.float64), dim=-1)
+        for q in ([0.3, -0.5, 0.8, 0.1], [0.0, 0.0, 0.0, 1.0], [1.0, 0.0, 0.0, 0.0]):  # any, 180 degrees, none
+            r = quat_to_rotmat(torch.tensor([q], dtype=torch.float64))[0]
+            turned = torch.cat([sh[:, :1], rotate_sh(sh[:, 1:], r)], dim=1)
+            torch.testing.assert_close(eval_sh(degree, turned, d @ r.T), eval_sh(degree, sh, d), rtol=0, atol=1e-12)
+        with pytest.raises(ValueError, match="bases"):
+            rotate_sh(torch.zeros(2, 5, 3), r)
+
+
+def test_a_model_in_a_turned_frame_with_its_transform(plain_and_imported, tiny_scene_path, tmp_path):  # noqa: F811
+    """A trainer that normalises its world (nerfstudio: ``dataparser_transforms.json``) writes the model turned,
+    scaled and shifted: read through its transform, positions, sizes, rotations and SH colours come back and the
+    model renders as the plain one."""
+    from uncertsplat.gaussians.ops import quat_to_rotmat, rotmat_to_quat
+    from uncertsplat.render.sh import rotate_sh
+    from uncertsplat.train.imported import _quat_mul
+
+    plain, ply, _ = plain_and_imported  # ply: the plain model in the scene's source frame
+    r = quat_to_rotmat(torch.tensor([[0.6, 0.2, -0.7, 0.3]], dtype=torch.float64))[0]
+    scale, t0 = 0.37, torch.tensor([0.5, -1.0, 2.0], dtype=torch.float64)
+    v = PlyData.read(str(ply))["vertex"].data.copy()
+    xyz = torch.from_numpy(np.stack([v[a] for a in "xyz"], -1).astype(np.float64))
+    moved = scale * (xyz @ r.T + t0)  # x_file = scale (R x_source + t0)
+    for i, a in enumerate("xyz"):
+        v[a] = moved[:, i].numpy()
+    for i in range(3):
+        v[f"scale_{i}"] = v[f"scale_{i}"] + math.log(scale)
+    q = torch.from_numpy(np.stack([v[f"rot_{i}"] for i in range(4)], -1).astype(np.float64))
+    q = _quat_mul(rotmat_to_quat(r).expand_as(q), q)
+    for i in range(4):
+        v[f"rot_{i}"] = q[:, i].numpy()
+    rest = sorted((k for k in v.dtype.names if k.startswith("f_rest_")), key=lambda k: int(k[7:]))
+    b = len(rest) // 3
+    sh = torch.from_numpy(np.stack([v[k] for k in rest], -1).astype(np.float64)).reshape(-1, 3, b).transpose(1, 2)
+    sh = rotate_sh(sh, r).transpose(1, 2).reshape(len(v), -1)
+    for i, k in enumerate(rest):
+        v[k] = sh[:, i].numpy()
+    turned = tmp_path / "splat.ply"
+    PlyData([PlyElement.describe(v, "vertex")], text=False).write(str(turned))
+    tf = tmp_path / "dataparser_transforms.json"
+    tf.write_text(json.dumps({"transform": torch.cat([r, t0[:, None]], 1).tolist(), "scale": scale}))
+    # without the transform: read as the scene's source frame, it lies elsewhere and renders poorly (warned)
+    run = _imported(tiny_scene_path, turned, tmp_path / "wrong")
+    assert any("--from-ply-transform" in w for w in json.loads(
+        (run / "train_summary.json").read_text(encoding="utf-8"))["warnings"])
+    run = _imported(tiny_scene_path, turned, tmp_path / "turned", init_ply_transform=str(tf))
+    summary = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))
+    assert summary["imported"]["frame"] == "transform" and summary["imported"]["transform"] == str(tf.resolve())
+    plain_psnr = json.loads((plain / "train_summary.json").read_text(encoding="utf-8"))["test_psnr"]
+    assert abs(summary["test_psnr"] - plain_psnr) < 0.15
+    assert not any("not in one frame" in w for w in summary["warnings"]), summary["warnings"]
+    a, _ = read_variational_ply(plain / "variational.ply")
+    m, meta = read_variational_ply(run / "variational.ply")
+    with torch.no_grad():
+        pa, pm = posterior_mean(a), posterior_mean(m, extent=float(meta["extent"]))
+        torch.testing.assert_close(pm.means, pa.means, rtol=0, atol=1e-4)
+        torch.testing.assert_close(pm.scales, pa.scales, rtol=1e-4, atol=0)
+        qa = torch.nn.functional.normalize(pa.quats, dim=-1)
+        qm = torch.nn.functional.normalize(pm.quats, dim=-1)
+        assert float((qa * qm).sum(-1).abs().min()) > 1 - 1e-5  # the same rotation (q or -q)
+        torch.testing.assert_close(m.params["shN"], a.params["shN"][:, : m.params["shN"].shape[1]], rtol=0,
+                                   atol=1e-4)
+
+
+def test_transform_files(tmp_path):
+    from uncertsplat.train.imported import read_transform
+
+    (tmp_path / "ns.json").write_text(json.dumps({"transform": [[0, 1, 0, 1], [1, 0, 0, 2], [0, 0, -1, 3]],
+                                                  "scale": 2.0}))
+    m = read_transform(tmp_path / "ns.json")
+    assert m[0].tolist() == [0, 2, 0, 2] and m[3].tolist() == [0, 0, 0, 1]
+    eye = torch.eye(4, dtype=torch.float64)
+    (tmp_path / "plain.json").write_text(json.dumps({"file_from_source": eye.tolist()}))
+    (tmp_path / "bare.json").write_text(json.dumps(eye.tolist()))
+    assert torch.equal(read_transform(tmp_path / "plain.json"), eye) and torch.equal(read_transform(
+        tmp_path / "bare.json"), eye)
+    for name, text, match in (("bad.json", "{", "cannot read"), ("none.json", '{"a": 1}', "no transform"),
+                              ("row.json", json.dumps([[1, 0, 0, 0]] * 4), "last row")):
+        (tmp_path / name).write_text(text)
+        with pytest.raises(UserError, match=match):
+            read_transform(tmp_path / name)
+
+
 class TestConfig:
     def test_zero_steps_only_for_a_given_model(self):
         with pytest.raises(UserError, match="iterations: 0 trains nothing"):
@@ -312,6 +403,12 @@ class TestConfig:
             train_config_from("tiny", {"init_ply": "m.ply", "iterations": 300})
         with pytest.raises(UserError, match="not supported"):
             train_config_from(None, {"init_ply": "m.ply"}, ["iterations=5"])
+
+    def test_a_transform_needs_a_model_and_its_frame(self):
+        with pytest.raises(UserError, match="init_ply_transform is the frame of a model"):
+            train_config_from(None, {"init_ply_transform": "t.json"})
+        with pytest.raises(UserError, match="drop one of the two"):
+            train_config_from(None, {"init_ply": "m.ply", "init_ply_transform": "t.json", "init_ply_frame": "run"})
 
     def test_informed_posterior_only(self):
         for data in ({"method": "deterministic"}, {"variant": "paper", "variational": {"posterior": "sgd"}},

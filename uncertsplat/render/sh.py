@@ -6,6 +6,8 @@ The colour of a Gaussian seen along the unit direction d (from the camera centre
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
@@ -75,6 +77,41 @@ def sh_basis(degree: int, dirs: Tensor) -> Tensor:
             C3[6] * x * (xx - 3.0 * yy),
         ]
     return torch.stack(out, dim=-1)
+
+
+def _fibonacci_sphere(n: int) -> Tensor:
+    """[n,3] float64 unit directions spread evenly over the sphere (a Fibonacci lattice: deterministic)."""
+    i = torch.arange(n, dtype=torch.float64) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = (1.0 - z * z).sqrt()
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    return torch.stack([r * phi.cos(), r * phi.sin(), z], dim=-1)
+
+
+def rotate_sh(sh_rest: Tensor, rotation: Tensor) -> Tensor:
+    """The SH coefficients of the bands above 0 after the world is turned by ``rotation`` [3,3] (a proper rotation,
+    d_new = R d_old): ``sh_rest`` [N,B-1,3] -> [N,B-1,3] such that every colour is the same in the turned direction,
+    ``eval_sh(c', R d) = eval_sh(c, d)``. The DC term does not depend on the direction and is left as it is.
+
+    Each band turns by itself (a (2l+1)x(2l+1) matrix, the real Wigner D of R in this basis), solved here by least
+    squares from the basis at 64 directions and at their turned ones, exact to float64 rounding (the basis of a
+    band is closed under rotation; 64 directions determine its 7 functions at most)."""
+    b = sh_rest.shape[1] + 1
+    degree = round(math.sqrt(b)) - 1
+    if (degree + 1) ** 2 != b or not 0 <= degree <= 3:
+        raise ValueError(f"sh_rest must hold (degree+1)^2 - 1 bases for a degree 0..3, got {b - 1}")
+    if degree == 0:
+        return sh_rest.clone()
+    dirs = _fibonacci_sphere(64)  # [64,3]
+    R = rotation.to(torch.float64).cpu()
+    before, after = sh_basis(degree, dirs), sh_basis(degree, dirs @ R.T)  # [64,B]: Y(d), Y(R d)
+    out = torch.empty_like(sh_rest)
+    for band in range(1, degree + 1):
+        lo, hi = band * band, (band + 1) ** 2
+        # M with Y_l(R d) M = Y_l(d) for every d: c' = M c keeps Y_l(R d) . c' = Y_l(d) . c
+        m = torch.linalg.lstsq(after[:, lo:hi], before[:, lo:hi]).solution  # [2l+1,2l+1]
+        out[:, lo - 1:hi - 1] = torch.einsum("ij,njc->nic", m.to(sh_rest), sh_rest[:, lo - 1:hi - 1])
+    return out
 
 
 def eval_sh(degree: int, sh: Tensor, dirs: Tensor) -> Tensor:

@@ -66,6 +66,7 @@ from uncertsplat.schemas.prune import METRIC_KEYS as PRUNE_EVAL_KEYS
 from uncertsplat.schemas.prune import PRUNED_FROM_EVALUATE, UNPRUNED_FROM_EVALUATE
 from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
+from uncertsplat.train.imported import frame_phrase
 from uncertsplat.train.transients import STOPPED as TRANSIENTS_STOPPED
 from uncertsplat.train.transients import transients_note
 
@@ -864,8 +865,7 @@ def training_section(w: ReportWriter, runs: list[RunData]) -> None:
             if s.imported is not None:  # a model another tool trained (train --from-ply): not trained here
                 im = s.imported
                 body.append(note(f"{run.name}: the model of {im.path} ({im.gaussians:,} Gaussians, SH degree "
-                                 f"{im.sh_degree}, read in the {'scene source' if im.frame == 'source' else 'run'}'s "
-                                 "frame), trained elsewhere and given the informed posterior here without a step of "
+                                 f"{im.sh_degree}, read in {frame_phrase(im.model_dump())}), trained elsewhere and given the informed posterior here without a step of "
                                  "training (train --from-ply); its held-out metrics are honest only if its trainer "
                                  "held out the same views."))
             for warning in s.warnings:  # e.g. a model that cannot fit its own training views

@@ -162,7 +162,10 @@ class ImportedModel(Strict):
 
     path: str
     frame: str
-    """``source`` (moved from the scene's source coordinates into the run's frame) or ``run`` (taken as it was)."""
+    """``source`` (moved from the scene's source coordinates into the run's frame), ``transform`` (moved back through
+    ``transform`` first) or ``run`` (taken as it was)."""
+    transform: str | None = None
+    """The file of ``TrainConfig.init_ply_transform``, or None."""
     gaussians: int
     """Gaussians read (rows with a value that is not finite left out)."""
     sh_degree: int

@@ -529,20 +529,23 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 out_dir = root / name
             else:
                 out_dir = root / name
-                if stage.stage == "train" and getattr(stage_cfg, "init_ply", None) is not None:
+                for key, what in (("init_ply", "model file"), ("init_ply_transform", "model's frame")):
+                    if stage.stage != "train" or getattr(stage_cfg, key, None) is None:
+                        continue
                     from uncertsplat.provenance import file_sha256
 
-                    # the model file is an input as the scene is: another model under the same name trains again
-                    ply = Path(stage_cfg.init_ply).expanduser()
-                    if not ply.is_file():  # refused here, before the stage's finished run is moved aside for nothing
+                    # the model file (and its frame's) is an input as the scene is: another under the same name
+                    # trains again
+                    given = Path(getattr(stage_cfg, key)).expanduser()
+                    if not given.is_file():  # refused here, before the stage's finished run is moved aside for nothing
                         # (a relative one was looked for from the current folder, then the pipeline file's)
-                        where = "" if ply.is_absolute() else (f" (looked for from the current folder and from "
-                                                              f"{Path(pipeline).parent.absolute()})")
-                        raise UserError(f"stage '{name}': its model file (init_ply), {ply}, is "
-                                        f"{'not a file' if ply.exists() else 'missing'}{where}", path=pipeline,
-                                        hint="Put the model file back (or give init_ply its new place) and run the "
+                        where = "" if given.is_absolute() else (f" (looked for from the current folder and from "
+                                                                f"{Path(pipeline).parent.absolute()})")
+                        raise UserError(f"stage '{name}': its {what} ({key}), {given}, is "
+                                        f"{'not a file' if given.exists() else 'missing'}{where}", path=pipeline,
+                                        hint=f"Put the file back (or give {key} its new place) and run the "
                                              "pipeline again; the stage's earlier output is left as it is.")
-                    inputs["init_ply"] = file_sha256(ply)
+                    inputs[key] = file_sha256(given)
 
             config_dict = stage_cfg.model_dump(mode="json")
             new = start_manifest(stage.stage, name, config_dict, inputs,

@@ -40,6 +40,7 @@ from uncertsplat.schemas.scene import ViewsAdded
 from uncertsplat.strategy.exposure import EXPOSURE_SPREAD, exposure_reason, gain_spread
 from uncertsplat.strategy.growth import growth_reason
 from uncertsplat.strategy.sh_bands import band_reason
+from uncertsplat.train.imported import frame_phrase
 from uncertsplat.train.transients import transients_warning
 
 # What a run trained with when its config.json predates a key (every dump has the key since), per config section;
@@ -738,8 +739,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         if trainer.imported:
             im = trainer.imported
             console.print(f"the model of {q(im['path'])} ({count(im['gaussians'], 'Gaussian')}, SH degree "
-                          f"{im['sh_degree']}, read in the {'scene source' if im['frame'] == 'source' else 'run'}'s "
-                          f"frame): its posterior from {count(len(data.split['train']), 'training view')} "
+                          f"{im['sh_degree']}, read in {frame_phrase(im)}): its posterior from {count(len(data.split['train']), 'training view')} "
                           f"({data.cameras.width}x{data.cameras.height}), {len(data.split.get('test', ()))} held out, "
                           f"device {device} ({kernels}), no step trained")
         else:
@@ -858,16 +858,18 @@ def imported_fit_warnings(fit_psnr: float | None, imported: dict) -> list[str]:
     trainer renders otherwise."""
     if fit_psnr is None or fit_psnr >= POOR_FIT_PSNR:
         return []
-    other = "run" if imported["frame"] == "source" else "source"
+    frame = imported["frame"]
+    try_other = ("check init_ply_transform" if frame == "transform" else
+                 f"read in the other: --set init_ply_frame={'run' if frame == 'source' else 'source'}")
+    read_in = frame_phrase(imported)
     return [f"the model of {imported['path']} renders its training views at {_psnr_shown(fit_psnr):.1f} dB here "
-            f"(read in the {'scene source' if imported['frame'] == 'source' else 'run'}'s frame; "
-            f"{imported['in_view_share']:.0%} of its Gaussians inside some training view): its trainer fitted them far "
-            "better, so the model and the scene's cameras are likely not in one frame (read in the other: --set "
-            f"init_ply_frame={other}; a trainer that normalises its world, as gsplat's simple_trainer and "
-            "nerfstudio's splatfacto do by default, writes the model in its normalised frame, which must be moved "
-            "back into the COLMAP model's first; another mapping of the photos has another frame), or it renders "
-            "otherwise than 3DGS does (an antialiased or filtered renderer, another background): its uncertainty "
-            "here describes this render"]
+            f"(read in {read_in}; {imported['in_view_share']:.0%} of its Gaussians inside some training view): its "
+            f"trainer fitted them far better, so the model and the scene's cameras are likely not in one frame "
+            f"({try_other}; a trainer that normalises its world, as nerfstudio's splatfacto and gsplat's "
+            "simple_trainer do by default, writes the model in that frame: give the transform it used, "
+            "--from-ply-transform dataparser_transforms.json for nerfstudio; another mapping of the photos has "
+            "another frame), or it renders otherwise than 3DGS does (an antialiased or filtered renderer, another "
+            "background): its uncertainty here describes this render"]
 
 
 SHORT_RUN_STEPS = 1000

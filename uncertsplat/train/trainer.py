@@ -547,7 +547,8 @@ class Trainer:
 
         cfg = self.cfg
         model, notes, self.imported = model_from_ply(cfg.init_ply, self.scene, self.train_cams,
-                                                     frame=cfg.init_ply_frame, device=self.device)
+                                                     frame=cfg.init_ply_frame, transform=cfg.init_ply_transform,
+                                                     device=self.device)
         with torch.no_grad():
             p = model.params
             opacity = torch.sigmoid(p["opacities"])  # [N] as the file renders them
