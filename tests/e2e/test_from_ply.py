@@ -253,11 +253,37 @@ def test_a_pipeline_stage_whose_model_file_is_gone_keeps_its_run(plain_and_impor
     model = (out / "train" / "variational.ply").read_bytes()
     pipeline.run(toml, out, device="cpu")  # unchanged: skipped
     assert (out / "train" / "variational.ply").read_bytes() == model and not (out / ".previous").exists()
+    # another model under the same name: the stage runs again
+    v = PlyData.read(str(project / "model.ply"))["vertex"].data.copy()
+    v["opacity"][0] = v["opacity"][0] - 3.0
+    PlyData([PlyElement.describe(v, "vertex")], text=False).write(str(project / "model.ply"))
+    pipeline.run(toml, out, device="cpu")
+    assert (out / "train" / "variational.ply").read_bytes() != model and (out / ".previous").exists()
+    model = (out / "train" / "variational.ply").read_bytes()
+    # its frame's file is an input too: changed, the stage runs again; gone, refused as the model's file is
+    (project / "t.json").write_text(json.dumps({"file_from_source": torch.eye(4).tolist()}))
+    toml.write_text(toml.read_text(encoding="utf-8").replace('init_ply = "model.ply"',
+                                                             'init_ply = "model.ply", init_ply_transform = "t.json"'))
+    pipeline.run(toml, out, device="cpu")
+    again = (out / "train" / "variational.ply").read_bytes()
+    assert again == model  # (the identity: the same model, made again)
+    stamp = (out / "train" / "train_summary.json").stat().st_mtime_ns
+    pipeline.run(toml, out, device="cpu")  # unchanged: skipped
+    assert (out / "train" / "train_summary.json").stat().st_mtime_ns == stamp
+    eye = torch.eye(4)
+    eye[0, 3] = 1e-3
+    (project / "t.json").write_text(json.dumps({"file_from_source": eye.tolist()}))
+    pipeline.run(toml, out, device="cpu")
+    assert (out / "train" / "train_summary.json").stat().st_mtime_ns != stamp
+    model = (out / "train" / "variational.ply").read_bytes()
+    (project / "t.json").unlink()
+    with pytest.raises(UserError, match=r"model's frame \(init_ply_transform\), t.json, is missing"):
+        pipeline.run(toml, out, device="cpu")
     (project / "model.ply").unlink()
     with pytest.raises(UserError, match="model.ply, is missing") as err:
         pipeline.run(toml, out, device="cpu")
     assert str(project) in str(err.value)
-    assert (out / "train" / "variational.ply").read_bytes() == model and not (out / ".previous").exists()
+    assert (out / "train" / "variational.ply").read_bytes() == model
 
 
 def test_a_model_in_another_frame(plain_and_imported, tiny_scene_path, tmp_path):  # noqa: F811
