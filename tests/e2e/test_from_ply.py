@@ -191,6 +191,23 @@ class TestImportedRun:
         assert warned and "after only" not in warned[0] and "exposure=affine" not in warned[0]
         assert low_coverage_notes(0.4, 0) == [] and "random_background" not in low_coverage_notes(0.4, 0, fitted=True)[0]
 
+    def test_few_carriers_get_the_spawn_rule_advice(self, plain_and_imported, tiny_scene_path):  # noqa: F811
+        """A model given by init_ply gets its carriers from the spawn rule at the start, whatever its 0 steps: the
+        warning on few carriers names ``densify.spawn_scale_fraction``, not the steps (``--iterations N``, refused
+        with init_ply), and is said when some carry one too (it was said only for none)."""
+        from uncertsplat.train import imported as imp
+        from uncertsplat.train.trainer import few_carriers_warning, no_carriers_reason, prior_from_config
+
+        _, ply, _ = plain_and_imported
+        cfg = train_config_from("tiny", {"init_ply": str(ply), "iterations": 0,
+                                         "densify": {"spawn_scale_fraction": 5.0}})
+        assert no_carriers_reason(cfg, 0) is None and no_carriers_reason(cfg, 0, planned=True) is None
+        scene = load_scene(tiny_scene_path)
+        model, _, _ = imp.model_from_ply(ply, scene, scene.cameras[list(scene.split["train"])])
+        (warning,) = few_carriers_warning(model, cfg, scene.extent, prior_from_config(cfg), 0)
+        assert "only 0 of the" in warning and "--set densify.spawn_scale_fraction=" in warning, warning
+        assert "--iterations" not in warning, warning
+
 
 def test_a_plain_model_imported_knows_the_unseen_half(tiny_scene_path, tmp_path):  # noqa: F811
     """Trained on one half of the ring by plain 3DGS (no posterior), then imported: the posterior's own spread is
@@ -536,6 +553,23 @@ class TestReadStandardPly:
         torch.testing.assert_close(m.params["scales"].exp(), torch.full((1, 3), math.sqrt(0.02)))
         torch.testing.assert_close(torch.sigmoid(m.params["opacities"]), torch.tensor([0.5 * 0.5 ** 1.5]))
         assert "filter_3D" in m.notes[0]
+
+    def test_mip_splatting_filter_keeps_extreme_opacities(self, tmp_path):
+        """An opaque Gaussian the filter barely changes (logit 40, filter 1e-9 of its size) and a nearly transparent
+        one (logit -800) have finite values after the fold: they were left out as "not finite" (1 - r o = 0 and
+        o = 0 in float64)."""
+        cols = _standard(3, 0)
+        cols.update({f"scale_{i}": np.array([0.0, math.log(0.1), math.log(0.1)], np.float32) for i in range(3)})
+        cols["opacity"] = np.array([40.0, -800.0, 1.0], np.float32)
+        cols["filter_3D"] = np.array([1e-9, 0.1, 0.1], np.float32)
+        m = read_standard_ply(_write(tmp_path / "m.ply", cols))
+        assert m.params["opacities"].shape[0] == 3 and len(m.notes) == 1, m.notes
+        logit = m.params["opacities"].double()
+        # 1 - r o = (1 - r) + r (1 - o): 1.5e-18 + 4.2e-18 for the first, r = (1/2)^1.5 for the others
+        assert float(logit[0]) == pytest.approx(-math.log(1.5e-18 + math.exp(-40.0)), rel=1e-6)
+        assert float(logit[1]) == pytest.approx(-800.0 + 1.5 * math.log(0.5), rel=1e-6)
+        o = 0.5 ** 1.5 / (1.0 + math.exp(-1.0))
+        assert float(logit[2]) == pytest.approx(math.log(o / (1.0 - o)), rel=1e-6)
 
     def test_ours_is_recognised(self, tmp_path):
         from uncertsplat.io.ply import POINT_CLOUD_COMMENT

@@ -223,12 +223,17 @@ def read_standard_ply(path: str | Path) -> StandardPly:
     notes = []
     if "filter_3D" in have:  # Mip-Splatting: the 3D filter folded into the scales and the opacity
         f2 = col("filter_3D")[:, 0] ** 2  # [n]
-        var = np.exp(2.0 * log_scales)  # [n,3]
         with np.errstate(all="ignore"):
-            ratio = np.sqrt(np.prod(var / (var + f2[:, None]), axis=1))  # [n] <= 1
-            opacity = ratio / (1.0 + np.exp(-logits))
-            logits = np.log(opacity) - np.log1p(-opacity)
-            log_scales = 0.5 * np.log(var + f2[:, None])
+            rel = f2[:, None] * np.exp(-2.0 * log_scales)  # [n,3] filter^2 / variance
+            # in logs: log r = log sqrt(det / det'), and the new logit log(r o) - log(1 - r o) with 1 - r o written
+            # (1 - r) + r (1 - o); as r x sigmoid, an opaque Gaussian (logit ~37 and up) that the filter barely
+            # changes made 1 - r o = 0, an infinite logit, and a very transparent one log(0): both left out as "not
+            # finite" though the file's values were
+            log_r = -0.5 * np.log1p(rel).sum(axis=1)  # [n] <= 0
+            log_o = -np.logaddexp(0.0, -logits)  # log sigmoid(logit)
+            log_not_o = -np.logaddexp(0.0, logits)  # log (1 - sigmoid(logit))
+            logits = log_r + log_o - np.logaddexp(np.log(-np.expm1(log_r)), log_r + log_not_o)
+            log_scales = log_scales + 0.5 * np.log1p(rel)
         notes.append("Mip-Splatting's filter_3D folded into the scales and opacities (its 2D filter is not "
                      "modelled: the renders may differ slightly from Mip-Splatting's)")
     good = (np.isfinite(np.concatenate([means, log_scales, quats, logits[:, None], dc, fr], axis=1)).all(axis=1)

@@ -427,7 +427,9 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
     init_ply = getattr(loaded.config, "init_ply", None)
     if init_ply is not None:  # a model trained elsewhere: `train --resume` trains no step of it (and refuses views)
         train_next = (f"train the model on with them in the tool that trained it ({Path(init_ply).name}) and give "
-                      f"its new file: [bold]uncertsplat train {qm(folder)} -o NEW_RUN --from-ply NEW_MODEL.ply[/]")
+                      f"its new file the posterior: [bold]uncertsplat train {qm(folder)} -o NEW_RUN --from-ply "
+                      f"NEW_MODEL.ply[/] (with --set 'scene.train_names=[...]', the names in "
+                      f"{run_dir / 'scene.json'}'s training list and {added}, where the run chose its views)")
     elif cannot_grow is None:
         train_next = f"[bold]uncertsplat train {qm(folder)} -o {qm(run_dir)} --resume --iterations N --add-views {esc(added)}[/]"
     else:  # the command the note above said is refused: a new run instead

@@ -225,7 +225,11 @@ def no_carriers_reason(cfg: TrainConfig, step: int, planned: bool = False) -> st
     narrower than the spawn rule asks, ``few_carriers_warning``). Gaussians get a posterior as the children of a
     split (from the first densification step) and at the spawn steps, which come only while densification runs
     (``densify.until``). ``planned``: said before training, of a run of ``step`` steps, where a split may yet come
-    (None then once one can); else said of a model that has no carrier, whose splits therefore made none."""
+    (None then once one can); else said of a model that has no carrier, whose splits therefore made none. None for
+    a model given by ``init_ply``: the spawn rule gave its carriers at the start, whatever the run's steps (0), so
+    only ``densify.spawn_scale_fraction`` decides (``few_carriers_warning``)."""
+    if cfg.init_ply is not None:  # (its steps and schedule say nothing: --iterations N is refused with init_ply)
+        return None
     d = cfg.densify
     needed = posterior_steps_needed(cfg)
     if needed is None and d.start >= cfg.iterations:  # (raising until would not help a run that ends first)
