@@ -147,6 +147,22 @@ class TestImportedRun:
         out = " ".join(capsys.readouterr().err.split())
         assert "--from-ply NEW_MODEL.ply" in out and ply.name in out and "--resume" not in out, out
 
+    def test_prune_hint_keeps_the_runs_views_and_scale(self):
+        """The hint's new run has the plain run's scene settings: without them a run trained on some views (or at
+        another downscale) was given its posterior from views it never fitted, and held out views it trained on."""
+        from uncertsplat.config import parse_override
+        from uncertsplat.stages.prune import _scene_settings
+
+        cfg = train_config_from("tiny", {"method": "deterministic",
+                                         "scene": {"downscale": 4, "train_indices": [0, 1, 2], "test_names": ["a.png"]}})
+        sets = _scene_settings(cfg)
+        assert sorted(sets) == ["scene.downscale=4.0", 'scene.test_names=["a.png"]', "scene.train_indices=[0,1,2]"]
+        data: dict = {"init_ply": "m.ply", "iterations": 0}
+        for x in sets:  # (as the command's --set reads them)
+            data = deep_update(data, parse_override(x))
+        assert train_config_from(None, data).scene == cfg.scene
+        assert _scene_settings(train_config_from("tiny", {"method": "deterministic"})) == []
+
     def test_nothing_to_resume_and_no_steps_to_add(self, plain_and_imported, tiny_scene_path):  # noqa: F811
         _, _, imported = plain_and_imported
         cfg = json.loads((imported / "config.json").read_text(encoding="utf-8"))

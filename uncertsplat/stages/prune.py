@@ -299,6 +299,19 @@ def run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.devi
         return _run(run_dir, output, cfg, device)
 
 
+def _scene_settings(config) -> list[str]:
+    """``scene.KEY=VALUE`` for each scene setting of a run's ``config`` (``TrainConfig``) apart from its default:
+    a new run on the scene with them has the run's views, split and scale (its training views, not others, give an
+    imported model its posterior, and its held-out views stay the ones the model never saw)."""
+    import json
+
+    from uncertsplat.config import SceneConfig
+
+    default = SceneConfig().model_dump(mode="json")
+    return [f"scene.{k}={json.dumps(v, separators=(',', ':'))}"
+            for k, v in config.scene.model_dump(mode="json").items() if v != default.get(k)]
+
+
 def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.device):
     from uncertsplat.baselines import load_run
     from uncertsplat.prune import apply_keep
@@ -356,7 +369,8 @@ def _run(run_dir: Path, output: Path | None, cfg: PruneConfig, device: torch.dev
             scene_dir = loaded.scene_path or "SCENE"
             hint += (f", or give this one the posterior first: uncertsplat train {q(scene_dir)} -o "
                      f"{q(run_dir.parent / (run_dir.name + '_posterior'))} --from-ply {q(run_dir / 'point_cloud.ply')}"
-                     " (no training; then prune that run).")
+                     + "".join(f" --set {q(s)}" for s in _scene_settings(loaded.config))
+                     + " (no training; then prune that run).")
         elif method != "variational":
             hint += "."
         raise error(f"{why}, so there is no uncertainty to prune by" + (f": {reason}" if reason else ""),
