@@ -1483,3 +1483,13 @@ class TestRayAddressProbe:
             executors.connect_ray("ray://head:10001")
         with pytest.raises(UserError, match=r"Ray cannot start on this machine: Ray Client requires"):
             executors.connect_ray(None)
+
+
+def test_an_imported_model_has_no_steps_to_sweep():
+    """A spec whose train settings give a model trained elsewhere (init_ply, 0 steps) and an iterations knob: said,
+    not a ZeroDivisionError from the scaled schedule (the steps x knob / 0)."""
+    s = spec(train={"init_ply": "m.ply", "iterations": 0})
+    with pytest.raises(UserError, match="trains no step"):
+        point_configs(s, s.default)
+    t, _ = point_configs(s, s.default.model_copy(update={"iterations": None}))
+    assert t.iterations == 0 and t.init_ply is not None

@@ -385,6 +385,10 @@ def point_configs(spec: SweepSpec, point: SweepPoint, scene: str | None = None,
     base = train_config_from(preset, train_keys)
     data = json.loads(base.model_dump_json())
     if point.iterations is not None and point.iterations != base.iterations:
+        if base.init_ply is not None:  # (0 steps: the scaled schedule divided by them)
+            raise UserError(f"the sweep's train settings give a model trained elsewhere (init_ply), which trains no "
+                            f"step, and a point asks for {point.iterations} steps",
+                            hint="Sweep the iterations of models trained here, or leave the iterations knob out.")
         data = (_scaled_schedule(data, base, point.iterations) if spec.schedule == "scaled"
                 else deep_update(data, {"iterations": point.iterations}))
     if point.num_entries is not None:
