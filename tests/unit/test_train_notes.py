@@ -3,6 +3,8 @@ use, and opacity resets that the run's length leaves out. A helper's sweep of ev
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 from tests.fixtures import tiny_scene_path  # noqa: F401
 from uncertsplat.config import train_config_from
 from uncertsplat.train.session import _reset_notes, _settle_notes, _unused_setting_notes
@@ -88,13 +90,21 @@ def test_the_last_posterior_update_is_said_before_it_runs_on_large_captures(monk
     seen = []
 
     class Bar:
+        def __init__(self, tasks=()):
+            self.tasks = list(tasks)  # (rich's Progress.tasks, which the update reads)
+
         def update(self, task, **kw):
             seen.append((task, kw))
 
-    t._bar = (Bar(), 7)
+    t._bar = (Bar([SimpleNamespace(id=7, description="train")]), 7)
     t.update_posterior()
     n = len(scene.split["train"])
     assert seen == [(7, {"info": f"posterior update: view {i}/{n}"}) for i in range(1, n + 1)]
+    # a bar of the update alone (a model given by init_ply trains no step) counts its views
+    seen[:] = []
+    t._bar = (Bar([SimpleNamespace(id=7, description="posterior")]), 7)
+    t.update_posterior()
+    assert seen == [(7, {"info": f"posterior update: view {i}/{n}", "completed": i}) for i in range(1, n + 1)]
     t.step, seen[:] = 10, []
     t.update_posterior()
     assert seen == []  # (an update before the last one is short)
