@@ -423,7 +423,7 @@ def test_a_relative_path_in_a_config_file_is_read_from_the_file_s_folder(tmp_pat
     (tmp_path / "cfgs" / "eval.toml").write_text('num_samples = 2\ndepth_gt = "../scene/depth"\n')
     (tmp_path / "cfgs" / "abs.toml").write_text(f'depth_gt = "{tmp_path / "elsewhere"}"\n')
     monkeypatch.chdir("/")
-    assert _PATH_KEYS == ("depth_gt", "candidates", "masks", "init_ply")
+    assert _PATH_KEYS == ("depth_gt", "candidates", "masks", "init_ply", "init_ply_transform")
     (tmp_path / "cfgs" / "rec.toml").write_text('masks = "../masks"\n')  # reconstruct's masks likewise
     assert _config_file(tmp_path / "cfgs" / "rec.toml")["masks"] == str(tmp_path / "cfgs" / ".." / "masks")
     assert _config_file(tmp_path / "cfgs" / "eval.toml")["depth_gt"] == str(tmp_path / "cfgs" / ".." / "scene" / "depth")
