@@ -20,7 +20,7 @@ from uncertsplat.gaussians.prior import empty_tables
 from uncertsplat.io.ply import read_standard_ply
 from uncertsplat.render.project import points_in_view
 from uncertsplat.render.sh import rotate_sh
-from uncertsplat.types import Cameras, SceneData
+from uncertsplat.types import Cameras, SceneData, similarity_scale
 
 IN_VIEW_SAMPLE = 100_000
 """The most Gaussians the in-view share (``MIN_IN_VIEW``) is measured over."""
@@ -74,7 +74,7 @@ def _frame(path: Path, ours: bool, frame: str, world_from_source: torch.Tensor,
         run_from_file = run_from_file @ torch.linalg.inv(file_from_source.double().cpu())
     a, shift = run_from_file[:3, :3], run_from_file[:3, 3]
     det = float(torch.linalg.det(a))
-    s = abs(det) ** (1.0 / 3.0)
+    s = similarity_scale(run_from_file)
     r = a / s if s > 0 else a
     if det <= 0 or not torch.allclose(r @ r.T, torch.eye(3, dtype=torch.float64), rtol=0, atol=1e-6):
         raise UserError("the model's frame is not a turned, scaled and shifted copy of the scene's (the transform "

@@ -115,9 +115,7 @@ def _posterior_notes(cfg: TrainConfig) -> list[str]:
     after it: a helper's densify.start beyond the run's steps trained all of it for a model without uncertainty)."""
     from uncertsplat.train.trainer import no_carriers_reason
 
-    # (a model given by init_ply gets its carriers from the spawn rule at the start, not from a schedule)
-    reason = (no_carriers_reason(cfg, cfg.iterations, planned=True) if cfg.has_offset_tables and cfg.init_ply is None
-              else None)
+    reason = no_carriers_reason(cfg, cfg.iterations, planned=True) if cfg.has_offset_tables else None
     return [f"no Gaussian will carry a posterior in this run: {reason}"] if reason else []
 
 
@@ -817,8 +815,8 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         # view added there raised the warning on photos of one exposure)
         late = {n for added in views_added for n in added.names}
         skip = [k for k, i in enumerate(data.split["train"]) if names and names[i] in late]
-        warnings += exposure_warnings(trainer.photo_gains(skip=skip), trainer.exposure is not None,
-                                      None if trainer.imported else trainer.step, imported=bool(trainer.imported))
+        warnings += exposure_warnings(trainer.photo_gains(skip=skip), trainer.exposure is not None, trainer.step,
+                                      imported=bool(trainer.imported))
         warnings += [w for w in [transients_warning(transients, len(data.split["train"]), trainer.transients_stopped)]
                      if w]
         # what loading changed of the photos (turned, cropped, left out) goes into the summary, so the report shows it
@@ -968,7 +966,8 @@ def exposure_warnings(gains: list[float], learned: bool, steps: int | None = Non
     """The warning for training photos of different brightness (``strategy.exposure.EXPOSURE_SPREAD``) when their
     exposures were not ``learned``; after fewer than ``SHORT_RUN_STEPS`` ``steps`` it leads with the caveat (a model
     that has not fitted its photos yet shows such gains on photos of one exposure too). ``imported``: a model trained
-    elsewhere (``init_ply``, no step here: ``steps`` None), which ``exposure=affine`` cannot retrain."""
+    elsewhere (``init_ply``: fitted by its own trainer, whatever ``steps`` says), which ``exposure=affine`` cannot
+    retrain."""
     spread = gain_spread(gains)
     if learned or spread < EXPOSURE_SPREAD:
         return []

@@ -276,8 +276,7 @@ def few_carriers_warning(model: GaussianModel, cfg: TrainConfig, extent: float, 
     d = cfg.densify
     if not cfg.has_offset_tables or n == 0 or model.num_carriers >= FEW_CARRIERS * n:
         return []
-    # (a model trained elsewhere (init_ply) gets its carriers by the spawn rule at the start, none from a schedule)
-    reason = no_carriers_reason(cfg, step) if cfg.init_ply is None else None
+    reason = no_carriers_reason(cfg, step)
     if reason is not None:  # what the settings decide: said only where nothing carries one (a short test run)
         return [f"no Gaussian carries a posterior, so the uncertainty is only the predictive's other terms: {reason}"
                 ] if model.num_carriers == 0 else []
@@ -1582,11 +1581,14 @@ class Trainer:
                     # a resume told to stop at its checkpoint's step (--iterations N, N = that step) trains no step,
                     # and the update of a run's last step is made inside one: without this, the tables stayed as
                     # the last refresh left them (the prior, before the first)
-                    with self.timer("posterior"), progress() as bar:
+                    with self.timer("posterior"):
                         if self._bar is None:  # no step trained in this call (a model given by init_ply): a bar of
-                            # the update's views (the update counts them on it)
-                            self._bar = (bar, bar.add_task("posterior", total=len(self.train_idx), info=""))
-                        self.update_posterior()
+                            # the update's views (the update counts them on it); else the training's bar shows it
+                            with progress() as bar:
+                                self._bar = (bar, bar.add_task("posterior", total=len(self.train_idx), info=""))
+                                self.update_posterior()
+                        else:
+                            self.update_posterior()
                 # written while a stop waits for it (a Ctrl-C during the write lost every step since the last
                 # periodic checkpoint), then the stop is honoured
                 path = self.save_checkpoint()
