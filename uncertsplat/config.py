@@ -507,11 +507,14 @@ class TrainConfig(_Base):
     and with ``iterations = 0`` no step is trained, so only the posterior update of the last step runs, over every
     training view of the scene. The scene must be the one the model was trained on (its cameras in the same frame:
     ``init_ply_frame``). Needs the variational method with the informed posterior."""
-    init_ply_frame: Literal["auto", "source", "run"] = "auto"
+    init_ply_frame: Literal["auto", "source", "run", "align"] = "auto"
     """The frame of ``init_ply``'s Gaussians: ``source`` the scene's own coordinates (the COLMAP model's, as other
     tools train in them), moved into the run's normalised frame by the scene's ``world_from_source``; ``run`` the
-    normalised frame already (a ``point_cloud.ply`` of uncertsplat); ``auto`` the latter for files uncertsplat wrote,
-    the former otherwise."""
+    normalised frame already (a ``point_cloud.ply`` of uncertsplat); ``align`` a frame of the model's own, found by
+    placing its Gaussians on the scene's sparse points (a similarity: scale, rotation, shift; ``sfm.align``), for a
+    trainer that normalised its world and did not write how (gsplat's simple_trainer); ``auto`` ``run`` for files
+    uncertsplat wrote, otherwise ``source``, or ``align`` when the Gaussians read in the source frame do not lie on
+    the scene's sparse points and the found frame places them there."""
     init_ply_transform: Path | None = None
     """A JSON file with the similarity that took the scene's source coordinates into ``init_ply``'s (x_file = s R
     x_source + t), for a trainer that normalises its world before training: nerfstudio's ``dataparser_transforms.json``
@@ -638,9 +641,12 @@ class TrainConfig(_Base):
                              "variational.posterior = \"informed\", variant \"ours\", the defaults); drop --method, "
                              f"--variant or the posterior setting (given: method {self.method!r}, variant "
                              f"{self.variant!r}, posterior {self.posterior!r})")
-        if self.init_ply_transform is not None and self.init_ply_frame == "run":
-            raise ValueError("init_ply_transform with init_ply_frame = \"run\": the transform takes the scene's source "
-                             "frame to the model's, so the model is not in the run's frame; drop one of the two")
+        if self.init_ply_transform is not None and self.init_ply_frame in ("run", "align"):
+            raise ValueError(f"init_ply_transform with init_ply_frame = \"{self.init_ply_frame}\": the transform "
+                             "takes the scene's source frame to the model's, so "
+                             + ("the model is not in the run's frame" if self.init_ply_frame == "run" else
+                                "there is no frame to find")
+                             + "; drop one of the two")
         if self.exposure == "affine":
             # (accepted before: every gain 1, an exposure.json of nothing learned, and train's warning on photos of
             # different brightness silenced as if their exposures had been learned)

@@ -157,13 +157,33 @@ class Budget(Strict):
     """Set when memory held growth below ``max_gaussians`` (the model stayed smaller, the run went on)."""
 
 
+class ImportedAlignment(Strict):
+    """The frame found for a model trained elsewhere by placing its Gaussians on the scene's sparse points
+    (``TrainConfig.init_ply_frame`` "align", or "auto" when the source frame left them off; ``sfm.align``)."""
+
+    file_from_source: list[list[float]]
+    """[4,4] the similarity found, x_file = s R x_source + t."""
+    residual: float
+    """The nearest 70 % of the sparse points' mean distance to the model's solid Gaussians, over the points' radius,
+    in the found frame (0.005-0.009 where a model lies on its points)."""
+    source_residual: float
+    """The same read in the scene's source frame."""
+    points: int
+    gaussians: int
+    """Sparse points and solid Gaussians (opacity >= 0.5, all when too few) placed."""
+    refined_psnr: list[float] | None = None
+    """[before, after]: the mean PSNR of the compared training views before and after the frame was fitted to the
+    photos (``train.imported.refine_frame``), or None where it was not."""
+
+
 class ImportedModel(Strict):
     """The 3DGS model trained elsewhere that a run started from (``TrainConfig.init_ply``, ``train.imported``)."""
 
     path: str
     frame: str
     """``source`` (moved from the scene's source coordinates into the run's frame), ``transform`` (moved back through
-    ``transform`` first) or ``run`` (taken as it was)."""
+    ``transform`` first), ``aligned`` (moved back through the frame ``alignment`` found) or ``run`` (taken as it
+    was)."""
     transform: str | None = None
     """The file of ``TrainConfig.init_ply_transform``, or None."""
     gaussians: int
@@ -173,6 +193,8 @@ class ImportedModel(Strict):
     """The share of them inside some training view (low: the model and the scene may be in different frames)."""
     notes: list[str] = Field(default_factory=list)
     """What reading changed (rows left out, Mip-Splatting's 3D filter folded in)."""
+    alignment: ImportedAlignment | None = None
+    """The frame found on the scene's sparse points (``frame`` "aligned"), or None."""
 
 
 class MemoryPerGaussian(Strict):
@@ -195,10 +217,10 @@ class TrainSummary(SchemaFile):
     """
 
     FILE_NAME = "train_summary.json"
-    SCHEMA_VERSION = 10
+    SCHEMA_VERSION = 11
     WRITTEN_BY = "uncertsplat train SCENE -o RUN --resume"  # (a plain re-run refuses the existing run folder)
 
-    schema_version: int = 10
+    schema_version: int = 11
     method: str
     variant: str
     steps: int
@@ -273,13 +295,16 @@ class TrainSummary(SchemaFile):
         # against the config's std then); versions 1-5 no transients (none were found); versions 1-6 no hold of the
         # budget by memory (none held); versions 1-7 no growth test with a re-fit (each test's refit_steps: 0, its
         # default); versions 1-8 no skipped growth tests (each test's skip_next: False, its default); versions 1-9 no
-        # model trained elsewhere (imported: None); in the run and its members
-        if version not in (1, 2, 3, 4, 5, 6, 7, 8, 9):
+        # model trained elsewhere (imported: None); versions 1-10 no frame found on the sparse points (imported's
+        # alignment: None); in the run and its members
+        if version not in (1, 2, 3, 4, 5, 6, 7, 8, 9, 10):
             return None
 
         def up(d: dict) -> dict:
             d = {"train_psnr": None, "warnings": [], "exposure_checks": [], "imported": None, **d,
                  "schema_version": cls.SCHEMA_VERSION}
+            if isinstance(d.get("imported"), dict):
+                d["imported"] = {"alignment": None, **d["imported"]}
             if isinstance(d.get("posterior"), dict):
                 d["posterior"] = {"position_prior": "config", **d["posterior"]}
             if isinstance(d.get("budget"), dict):

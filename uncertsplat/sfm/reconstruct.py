@@ -35,6 +35,7 @@ from uncertsplat.console import console, list_names
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import decode_error
 from uncertsplat.provenance import file_sha256
+from uncertsplat.sfm.align import similarity_align
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".jfif", ".jpe", ".png", ".tif", ".tiff")
 """Accepted photo extensions, compared case-insensitively (IMG_0001.JPG is fine)."""
@@ -1215,29 +1216,3 @@ def _align_by_rotations(model_rots: list, ref_rots: list, src: np.ndarray,
     xs, xd = src - src.mean(0), dst - dst.mean(0)
     scale = float((xd * (xs @ rot.T)).sum() / max((xs ** 2).sum(), 1e-300))
     return scale, rot, dst.mean(0) - scale * rot @ src.mean(0)
-
-
-def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity (Umeyama 1991) with ``dst ~ s * R @ src + t``.
-
-    Args:
-        src: [N,3] points. dst: [N,3] corresponding points, N >= 3 not collinear.
-    Returns:
-        (s, R [3,3], t [3]).
-    """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or src.shape[0] < 3:
-        raise ValueError("similarity_align needs two [N,3] arrays with N >= 3")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    cov = xd.T @ xs / len(src)  # [3,3]
-    u, d, vt = np.linalg.svd(cov)
-    sign = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:  # reflection: flip the weakest axis
-        sign[2, 2] = -1.0
-    rot = u @ sign @ vt
-    var_s = (xs ** 2).sum() / len(src)
-    scale = float(np.trace(np.diag(d) @ sign) / var_s)
-    t = mu_d - scale * rot @ mu_s
-    return scale, rot, t

@@ -858,7 +858,10 @@ def imported_fit_warnings(fit_psnr: float | None, imported: dict) -> list[str]:
         return []
     frame = imported["frame"]
     try_other = ("check init_ply_transform" if frame == "transform" else
-                 f"read in the other: --set init_ply_frame={'run' if frame == 'source' else 'source'}")
+                 "read in another: --set init_ply_frame=run, or =align to find its frame on the scene's sparse points"
+                 if frame == "source" else
+                 "read in the scene's source frame: --set init_ply_frame=source" if frame == "aligned" else
+                 "read in another: --set init_ply_frame=source")
     read_in = frame_phrase(imported)
     return [f"the model of {imported['path']} renders its training views at {_psnr_shown(fit_psnr):.1f} dB here "
             f"(read in {read_in}; {imported['in_view_share']:.0%} of its Gaussians inside some training view): its "

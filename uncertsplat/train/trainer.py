@@ -546,12 +546,22 @@ class Trainer:
     def _init_imported(self) -> None:
         """The model of ``cfg.init_ply`` (``train.imported``), its large Gaussians given a posterior by the spawn
         rule, each rendering as in the file (the posterior mean absorbs the prior's gate and multiplier)."""
-        from uncertsplat.train.imported import model_from_ply
+        from uncertsplat.train.imported import model_from_ply, refine_frame
 
         cfg = self.cfg
+        views = check_views(len(self.train_idx), 8)
+        masks = self._train_masks(views) if views else None
+
+        def refine(p: dict[str, Tensor], degree: int) -> tuple[Tensor, float, float]:
+            # a frame found on the sparse points, fitted to 8 training photos (its first guess renders pixels off);
+            # the photos as they are (an imported run learns no exposures: config refuses them)
+            return refine_frame({k: t.to(self.device) for k, t in p.items()}, degree, self.train_cams[views],
+                                lambda k: self.train_images[[views[k]]][0], lambda g, cam: self.render(g, cam).rgb,
+                                extent=self.extent, mask=lambda k: None if masks is None else masks[k])
+
         model, notes, self.imported = model_from_ply(cfg.init_ply, self.scene, self.train_cams,
                                                      frame=cfg.init_ply_frame, transform=cfg.init_ply_transform,
-                                                     device=self.device)
+                                                     device=self.device, refine=refine if views else None)
         with torch.no_grad():
             p = model.params
             opacity = torch.sigmoid(p["opacities"])  # [N] as the file renders them

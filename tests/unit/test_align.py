@@ -1,0 +1,149 @@
+"""Two clouds of the same surfaces placed on each other without matches (``sfm.align.register_clouds``).
+
+What a 3DGS model trained in a frame of its own needs (``train --from-ply``, ``init_ply_frame = "align"``): the
+scene's sparse points (the source cloud) found on the model's Gaussians (the destination) whatever the similarity
+between them, including turns that principal axes alone cannot tell apart (a half turn flips two of them; nearly
+equal axes leave the turn about the third free), clouds that hold points the other lacks, and a few far outliers.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from uncertsplat.sfm.align import MIN_POINTS, Registration, placement_residual, register_clouds
+
+
+def _room(rng: np.random.Generator, n: int, size=(4.0, 2.5, 3.0)) -> np.ndarray:
+    """Points on the floor and walls of a box room with a few objects: planes and a sphere, unequal sides."""
+    sx, sy, sz = size
+    face = rng.integers(0, 6, n)
+    u, v = rng.random(n), rng.random(n)
+    pts = np.zeros((n, 3))
+    pts[face == 0] = np.stack([u * sx, np.zeros(n), v * sz], -1)[face == 0]  # floor
+    pts[face == 1] = np.stack([u * sx, v * sy, np.zeros(n)], -1)[face == 1]  # back wall
+    pts[face == 2] = np.stack([np.zeros(n), u * sy, v * sz], -1)[face == 2]  # left wall
+    pts[face == 3] = np.stack([np.full(n, sx), u * sy, v * sz], -1)[face == 3]  # right wall
+    d = rng.normal(size=(n, 3))
+    sphere = 0.4 * d / np.linalg.norm(d, axis=1, keepdims=True) + np.array([1.2, 0.4, 1.5])
+    pts[face == 4] = sphere[face == 4]
+    pts[face == 5] = np.stack([2.5 + 0.6 * u, 0.3 * v, 0.8 + 0.5 * rng.random(n)], -1)[face == 5]  # a box
+    return pts
+
+
+def _turn(rng: np.random.Generator) -> np.ndarray:
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def _about(axis: np.ndarray, degrees: float) -> np.ndarray:
+    k = axis / np.linalg.norm(axis)
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    a = math.radians(degrees)
+    return np.eye(3) + math.sin(a) * kx + (1 - math.cos(a)) * kx @ kx
+
+
+def _similarity(s: float, r: np.ndarray, t) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = s * r, t
+    return m
+
+
+def _place(points: np.ndarray, m: np.ndarray) -> np.ndarray:
+    return points @ m[:3, :3].T + m[:3, 3]
+
+
+def _errors(found: Registration, truth: np.ndarray, src: np.ndarray) -> tuple[float, float]:
+    """(the largest distance between the two placements of ``src`` over the placed cloud's radius, the turn's angle
+    between them in degrees)."""
+    a, b = _place(src, found.dst_from_src), _place(src, truth)
+    radius = float(np.sqrt(((b - b.mean(0)) ** 2).sum(1).mean()))
+    ra, rb = found.dst_from_src[:3, :3], truth[:3, :3]
+    rel = (ra / np.cbrt(np.linalg.det(ra))) @ (rb / np.cbrt(np.linalg.det(rb))).T
+    angle = math.degrees(math.acos(np.clip((np.trace(rel) - 1) / 2, -1, 1)))
+    return float(np.linalg.norm(a - b, axis=1).max()) / radius, angle
+
+
+class TestRegisterClouds:
+    @pytest.mark.parametrize("case", range(4))
+    def test_finds_a_random_similarity(self, case):
+        """Any turn, a scale from 1/20 to 20 and a far shift: the sparse points (a sample of the surfaces) land on
+        the Gaussians (a denser sample with their own noise) to a fraction of a percent."""
+        rng = np.random.default_rng(case)
+        surface = _room(rng, 12000)
+        src = surface[:1000] + rng.normal(scale=0.005, size=(1000, 3))
+        dst_run = surface[1000:] + rng.normal(scale=0.005, size=(11000, 3))
+        truth = _similarity(float(np.exp(rng.uniform(-3, 3))), _turn(rng), rng.normal(scale=50.0, size=3))
+        found = register_clouds(src, _place(dst_run, truth))
+        shift, angle = _errors(found, truth, src)
+        assert shift < 0.01 and angle < 0.3, (shift, angle)
+        assert found.scale == pytest.approx(np.cbrt(np.linalg.det(truth[:3, :3])), rel=0.005)
+        assert found.residual < 0.02  # a sparse sample of the surfaces: the NN distances of 11k points
+
+    def test_a_half_turn_is_told_from_none(self):
+        """A half turn about the longest axis maps the principal axes onto themselves up to sign: the search must
+        try the signs, not take the axes as they come."""
+        rng = np.random.default_rng(7)
+        surface = _room(rng, 10000, size=(6.0, 2.0, 3.0))
+        src, dst_run = surface[:1000], surface[1000:]
+        truth = _similarity(1.0, _about(np.array([1.0, 0.0, 0.0]), 180.0), [0.3, 0.0, 0.0])
+        found = register_clouds(src, _place(dst_run, truth))
+        shift, angle = _errors(found, truth, src)
+        assert shift < 0.01 and angle < 0.3, (shift, angle)
+
+    def test_nearly_equal_axes_leave_no_turn_unfound(self):
+        """A cube-like room (equal sides: its principal axes are any axes of the plane of two equal ones) turned by
+        45 degrees about one axis, halfway between the starts of the signed permutations."""
+        rng = np.random.default_rng(11)
+        surface = _room(rng, 10000, size=(3.0, 3.0, 3.0))
+        src, dst_run = surface[:1000], surface[1000:]
+        truth = _similarity(2.0, _about(np.array([0.0, 1.0, 0.0]), 45.0), [1.0, 2.0, 3.0])
+        found = register_clouds(src, _place(dst_run, truth))
+        shift, angle = _errors(found, truth, src)
+        assert shift < 0.01 and angle < 0.3, (shift, angle)
+
+    def test_clouds_with_parts_the_other_lacks(self):
+        """The Gaussians hold a background the SfM points lack (a far sky shell, a tenth of them) and the points hold
+        outliers the Gaussians lack (3 % lone far points): the trimmed matches leave both out."""
+        rng = np.random.default_rng(5)
+        surface = _room(rng, 10000)
+        d = rng.normal(size=(1000, 3))
+        sky = 30.0 * d / np.linalg.norm(d, axis=1, keepdims=True) + surface.mean(0)
+        dst_run = np.concatenate([surface[1000:], sky])
+        src = np.concatenate([surface[:1000], rng.uniform(-40, 40, size=(30, 3))])
+        truth = _similarity(0.3, _turn(rng), [5.0, -1.0, 2.0])
+        found = register_clouds(src, _place(dst_run, truth))
+        shift, angle = _errors(found, truth, surface[:1000])
+        assert shift < 0.01 and angle < 0.3, (shift, angle)
+
+    def test_residual_tells_a_placement_from_a_wrong_one(self):
+        """``placement_residual`` of the true similarity is the found one's; of the identity (a model read in the
+        wrong frame) it is tens of times larger."""
+        rng = np.random.default_rng(2)
+        surface = _room(rng, 10000)
+        src, dst_run = surface[:1000], surface[1000:]
+        truth = _similarity(0.5, _turn(rng), [1.0, 1.0, 1.0])
+        dst = _place(dst_run, truth)
+        found = register_clouds(src, dst)
+        right = placement_residual(src, dst, truth)
+        assert right == pytest.approx(found.residual, rel=0.2)
+        assert placement_residual(src, dst, np.eye(4)) > 20 * right
+
+    def test_deterministic(self):
+        rng = np.random.default_rng(9)
+        surface = _room(rng, 10000)
+        dst = _place(surface[1000:], _similarity(2.0, _turn(rng), [0.0, 1.0, 0.0]))
+        a = register_clouds(surface[:1000], dst, seed=3)
+        b = register_clouds(surface[:1000], dst, seed=3)
+        np.testing.assert_array_equal(a.dst_from_src, b.dst_from_src)
+
+    def test_too_few_points(self):
+        rng = np.random.default_rng(0)
+        few = rng.normal(size=(MIN_POINTS - 1, 3))
+        many = rng.normal(size=(500, 3))
+        with pytest.raises(ValueError, match="at least"):
+            register_clouds(few, many)
+        with pytest.raises(ValueError, match="at least"):
+            register_clouds(many, np.concatenate([few, np.full((10, 3), np.nan)]))

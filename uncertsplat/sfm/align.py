@@ -1,0 +1,267 @@
+"""Point sets placed on each other by a similarity (x_dst = s R x_src + t).
+
+``similarity_align`` is the least-squares similarity of matched points (Umeyama 1991: SfM cameras on reference
+poses). ``register_clouds`` finds one for two clouds of the same surfaces without matches: the Gaussians of a 3DGS
+model that another tool trained in a frame of its own (normalised, turned to its principal axes) and the scene's
+sparse points (``train --from-ply``, ``TrainConfig.init_ply_frame = "align"``). It starts from the principal axes
+of both clouds in every proper axis order and sign (and turned by 30 and 60 degrees about each axis, for clouds
+whose principal axes are nearly equal; at three scales) and refines the best starts by trimmed ICP: each source point matched to its
+nearest destination point, the nearest share of the matches kept, the similarity of those solved again.
+
+The residual that ranks the starts is the kept matches' mean distance over the source cloud's radius as placed
+(its size in the destination's units): a similarity that shrinks the source onto a dense patch of the destination
+makes its distances small, but not relative to its own size.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from itertools import permutations, product
+
+import numpy as np
+
+
+def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity (Umeyama 1991) with ``dst ~ s * R @ src + t``.
+
+    Args:
+        src: [N,3] points. dst: [N,3] corresponding points, N >= 3 not collinear.
+    Returns:
+        (s, R [3,3], t [3]).
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or src.shape[0] < 3:
+        raise ValueError("similarity_align needs two [N,3] arrays with N >= 3")
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    cov = xd.T @ xs / len(src)  # [3,3]
+    u, d, vt = np.linalg.svd(cov)
+    sign = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:  # reflection: flip the weakest axis
+        sign[2, 2] = -1.0
+    rot = u @ sign @ vt
+    var_s = (xs ** 2).sum() / len(src)
+    scale = float(np.trace(np.diag(d) @ sign) / var_s)
+    t = mu_d - scale * rot @ mu_s
+    return scale, rot, t
+
+
+KEEP = 0.7
+"""The share of a start's matches (the nearest) that its ICP solves the similarity from: the rest are the source's
+points where the destination has no surface (an SfM point in the sky, a part of the scene the model left out)."""
+MIN_POINTS = 50
+"""Fewer points than this in either cloud: nothing to register."""
+
+
+@dataclass(frozen=True)
+class Registration:
+    """``register_clouds``' answer.
+
+    Attributes:
+        dst_from_src: [4,4] float64, x_dst = s R x_src + t.
+        scale: s.
+        residual: the kept matches' mean distance over the placed source's radius (0: every kept point on a
+            destination point; two clouds of one surface sampled alike: about 0.01).
+        starts: the starts tried.
+    """
+
+    dst_from_src: np.ndarray
+    scale: float
+    residual: float
+    starts: int
+
+
+def _matrix(s: float, r: np.ndarray, t: np.ndarray) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3] = s * r
+    m[:3, 3] = t
+    return m
+
+
+def _core(points: np.ndarray, share: float) -> tuple[np.ndarray, float, np.ndarray]:
+    """(centre [3], radius, principal axes [3,3] as columns, largest first, right-handed) of the ``share`` of the
+    points nearest their median: far points (lone SfM points, the background a model holds and the points lack) do
+    not set them."""
+    med = np.median(points, axis=0)
+    dist = np.linalg.norm(points - med, axis=1)
+    core = points[dist <= np.quantile(dist, share)]
+    centre = core.mean(0)
+    radius = float(np.sqrt(((core - centre) ** 2).sum(1).mean()))
+    evals, evecs = np.linalg.eigh(np.cov((core - centre).T))
+    axes = evecs[:, np.argsort(evals)[::-1]]
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] = -axes[:, 2]
+    return centre, radius, axes
+
+
+def _turn(axis: int, degrees: float) -> np.ndarray:
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    i, j = [k for k in range(3) if k != axis]
+    r = np.eye(3)
+    r[i, i], r[i, j], r[j, i], r[j, j] = c, -s, s, c
+    return r
+
+
+def _starting_turns() -> list[np.ndarray]:
+    """The 24 proper signed permutations of three axes, each also turned by +-30 and +-60 degrees about each axis."""
+    base = []
+    for perm in permutations(range(3)):
+        for signs in product((1.0, -1.0), repeat=3):
+            m = np.zeros((3, 3))
+            for row, (col, sign) in enumerate(zip(perm, signs, strict=True)):
+                m[row, col] = sign
+            if np.linalg.det(m) > 0:
+                base.append(m)
+    turns = [np.eye(3)] + [_turn(axis, deg) for axis in range(3) for deg in (30.0, -30.0, 60.0, -60.0)]
+    return [t @ m for m in base for t in turns]
+
+
+def _rotation(w: np.ndarray) -> np.ndarray:
+    """The rotation exp([w]x) (Rodrigues)."""
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = w / angle
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * kx + (1.0 - math.cos(angle)) * kx @ kx
+
+
+class _Matcher:
+    """Nearest destination points of placed source points, the trimmed residual, and ICP rounds."""
+
+    def __init__(self, dst: np.ndarray):
+        from scipy.spatial import cKDTree
+
+        self.dst = dst
+        self.tree = cKDTree(dst)
+        self._normals: np.ndarray | None = None
+
+    def normals(self) -> np.ndarray:
+        """[M,3] the destination's surface normals: the least axis of each point's 12 nearest neighbours."""
+        if self._normals is None:
+            _, nn = self.tree.query(self.dst, k=min(12, len(self.dst)), workers=-1)
+            nb = self.dst[nn] - self.dst[nn].mean(1, keepdims=True)  # [M,k,3]
+            self._normals = np.linalg.eigh(np.einsum("mki,mkj->mij", nb, nb))[1][:, :, 0]
+        return self._normals
+
+    def icp(self, src: np.ndarray, s: float, r: np.ndarray, t: np.ndarray, iterations: int,
+            scale_range: tuple[float, float], tol: float = 0.0, plane: bool = False, reach: float = 1.0
+            ) -> tuple[float, np.ndarray, np.ndarray, float]:
+        """(s, R, t, residual) after at most ``iterations`` rounds of trimmed ICP from (s, R, t), fewer once a round
+        lowers the residual by less than ``tol`` of it; s stays in ``scale_range``. ``plane``: each round minimises
+        the kept matches' distances to the destination's tangent planes (linearised about their centre), which
+        slide along flat surfaces in a few rounds where point-to-point rounds creep (hundreds on a room's walls).
+        ``reach``: matches farther than this share of the placed source's radius count as that far (a start's score
+        needs no more, and the tree's search stops there)."""
+        keep = max(3, int(KEEP * len(src)))
+        radius = float(np.sqrt(((src - src.mean(0)) ** 2).sum(1).mean()))
+        residual = math.inf
+        for it in range(iterations + 1):
+            placed = src @ (s * r).T + t
+            # a match farther than the placed source's radius counts as that far: the tree stops looking there
+            # (a poor start's points lie far off the destination, where an unbounded search visits most of it)
+            bound = max(s * radius, 1e-300)
+            dist, idx = self.tree.query(placed, distance_upper_bound=reach * bound)
+            dist = np.minimum(dist, reach * bound)
+            order = np.argpartition(dist, keep - 1)[:keep]
+            before, residual = residual, float(dist[order].mean()) / bound
+            if it == iterations or (tol > 0 and before - residual < tol * residual):
+                break
+            order = order[idx[order] < len(self.dst)]  # matched within the bound
+            if len(order) < 7:
+                break
+            if plane:
+                s_new, r_new, t_new = self._plane_round(placed[order], idx[order], s, r, t)
+            else:
+                s_new, r_new, t_new = similarity_align(src[order], self.dst[idx[order]])
+            if not (math.isfinite(s_new) and s_new > 0):
+                break
+            s_clamped = min(max(s_new, scale_range[0]), scale_range[1])
+            if s_clamped != s_new:  # keep the rotation, place the kept points' centre with the bounded scale
+                t_new = self.dst[idx[order]].mean(0) - s_clamped * r_new @ src[order].mean(0)
+            s, r, t = s_clamped, r_new, t_new
+        return s, r, t, residual
+
+    def _plane_round(self, placed: np.ndarray, idx: np.ndarray, s: float, r: np.ndarray, t: np.ndarray
+                     ) -> tuple[float, np.ndarray, np.ndarray]:
+        """One point-to-plane step: placed' = c + e^sigma exp([w]x) (placed - c) + v, (w, v, sigma) by linear least
+        squares of ((placed' - dst) . n)."""
+        n = self.normals()[idx]  # [K,3]
+        c = placed.mean(0)
+        q = placed - c
+        res = ((placed - self.dst[idx]) * n).sum(1)  # [K]
+        jac = np.concatenate([np.cross(q, n), n, (q * n).sum(1, keepdims=True)], axis=1)  # [K,7]
+        lhs = jac.T @ jac
+        lhs += 1e-9 * np.trace(lhs) / 7.0 * np.eye(7)
+        p = np.linalg.solve(lhs, -jac.T @ res)
+        turn, grow = _rotation(p[:3]), math.exp(float(p[6]))
+        return s * grow, turn @ r, c + grow * turn @ (t - c) + p[3:6]
+
+
+def register_clouds(src: np.ndarray, dst: np.ndarray, *, seed: int = 0, start_points: int = 300,
+                    coarse_points: int = 2000,
+                    fine_points: int = 20000, max_dst: int = 100_000, refine: int = 24) -> Registration:
+    """The similarity that places the cloud ``src`` [N,3] on the cloud ``dst`` [M,3] of the same surfaces (no
+    matches known; either may hold points the other lacks).
+
+    Every start (``_starting_turns`` between the two clouds' principal axes, the scale of their radii and half and
+    twice it; for 90 % of each cloud and for its half nearest its median) is scored
+    after one match on ``start_points`` source points; the ``refine`` best run 10 rounds of trimmed ICP on
+    ``coarse_points``, and the best three of those up to 100 point-to-plane rounds on ``fine_points`` (until a
+    round gains under 1e-4 of the residual); the best of the three is the answer. Deterministic for a ``seed``.
+
+    Raises:
+        ValueError: fewer than ``MIN_POINTS`` finite points in either cloud.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    src = src[np.isfinite(src).all(1)]
+    dst = dst[np.isfinite(dst).all(1)]
+    if len(src) < MIN_POINTS or len(dst) < MIN_POINTS:
+        raise ValueError(f"register_clouds needs at least {MIN_POINTS} points in each cloud ({len(src)}, {len(dst)})")
+    rng = np.random.default_rng(seed)
+
+    def subset(points: np.ndarray, n: int) -> np.ndarray:
+        return points if len(points) <= n else points[np.sort(rng.choice(len(points), n, replace=False))]
+
+    dst = subset(dst, max_dst)
+    few, coarse, fine = subset(src, start_points), subset(src, coarse_points), subset(src, fine_points)
+    # starts from two views of each cloud: 90 % of it (the shape as a whole) and the half nearest its median (where
+    # one cloud holds far parts the other lacks, up to about half of it); at the cores' radii ratio, half and twice
+    cores = [(_core(src, share), _core(dst, share)) for share in (0.9, 0.5)]
+    s0 = cores[0][1][1] / max(cores[0][0][1], 1e-300)
+    scale_range = (s0 / 8.0, s0 * 8.0)
+    matcher = _Matcher(dst)
+    starts = []
+    for (c_src, rad_src, ax_src), (c_dst, rad_dst, ax_dst) in cores:
+        ratio = rad_dst / max(rad_src, 1e-300)
+        for turn in _starting_turns():
+            r = ax_dst @ turn @ ax_src.T
+            for grow in (0.5, 1.0, 2.0):
+                t = c_dst - grow * ratio * r @ c_src
+                starts.append(matcher.icp(few, grow * ratio, r, t, 0, scale_range, reach=0.25))
+    starts.sort(key=lambda x: x[3])
+    refined = sorted((matcher.icp(coarse, s, r, t, 10, scale_range, plane=True) for s, r, t, _ in starts[:refine]),
+                     key=lambda x: x[3])
+    # the best three to the end: a start can sit in a basin a few degrees off that 10 rounds did not leave
+    finals = [matcher.icp(fine, s, r, t, 100, scale_range, tol=1e-4, plane=True) for s, r, t, _ in refined[:3]]
+    s, r, t, residual = min(finals, key=lambda x: x[3])
+    return Registration(_matrix(s, r, t), s, residual, len(starts))
+
+
+def placement_residual(src: np.ndarray, dst: np.ndarray, dst_from_src: np.ndarray, *, seed: int = 0,
+                       points: int = 20000) -> float:
+    """``register_clouds``' residual of a given similarity (no ICP): how well ``dst_from_src`` already places
+    ``src`` on ``dst``."""
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    src = src[np.isfinite(src).all(1)]
+    dst = dst[np.isfinite(dst).all(1)]
+    rng = np.random.default_rng(seed)
+    if len(src) > points:
+        src = src[np.sort(rng.choice(len(src), points, replace=False))]
+    m = np.asarray(dst_from_src, dtype=np.float64)
+    s = float(np.cbrt(abs(np.linalg.det(m[:3, :3]))))
+    return _Matcher(dst).icp(src, s, m[:3, :3] / s, m[:3, 3], 0, (s, s))[3]
