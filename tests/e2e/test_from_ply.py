@@ -604,24 +604,42 @@ def _standard(n: int, degree: int, dtype=np.float32) -> dict[str, np.ndarray]:
 
 class TestReadStandardPly:
     def test_inria_layout_in_doubles(self, tmp_path):
+        """Every property lands in its parameter's column, in the file's order (each column of ``_standard`` holds
+        other values, so a swapped pair of axes, of rotation components or of colour channels shows)."""
         cols = _standard(5, 3, np.float64)
         m = read_standard_ply(_write(tmp_path / "m.ply", cols))
         assert m.sh_degree == 3 and not m.ours and m.notes == ()
         assert m.params["shN"].shape == (5, 15, 3) and m.params["shN"].dtype == torch.float32
         # channel-major: f_rest_i is channel i // 15, basis i % 15
         assert float(m.params["shN"][0, 2, 1]) == 15 + 2 and float(m.params["shN"][0, 14, 2]) == 44
-        torch.testing.assert_close(m.params["means"][:, 0], torch.from_numpy(cols["x"]).float())
-        torch.testing.assert_close(m.params["quats"][:, 3], torch.from_numpy(cols["rot_3"]).float())
+
+        def stacked(*keys):
+            return torch.from_numpy(np.stack([cols[k] for k in keys], axis=-1)).float()
+
+        torch.testing.assert_close(m.params["means"], stacked("x", "y", "z"))
+        torch.testing.assert_close(m.params["scales"], stacked("scale_0", "scale_1", "scale_2"))
+        torch.testing.assert_close(m.params["quats"], stacked("rot_0", "rot_1", "rot_2", "rot_3"))
+        torch.testing.assert_close(m.params["sh0"][:, 0], stacked("f_dc_0", "f_dc_1", "f_dc_2"))
+        torch.testing.assert_close(m.params["opacities"], stacked("opacity")[:, 0])
 
     def test_rows_not_finite_are_left_out(self, tmp_path):
-        cols = _standard(6, 1)
+        """A value not finite in any property (position, scale, colour, opacity, SH rest), a rotation of zero length,
+        or a double beyond float32's range (it became inf in the model, past a check of the doubles) drops its row;
+        the note counts the rows left out, not those kept."""
+        cols = _standard(9, 1, np.float64)
         cols["opacity"][1] = np.nan
         cols["f_rest_4"][2] = np.inf
         for i in range(4):
             cols[f"rot_{i}"][3] = 0.0
+        cols["x"][4] = 1e300
+        cols["y"][5] = np.nan
+        cols["f_dc_2"][6] = -np.inf
+        cols["scale_1"][7] = np.nan
         m = read_standard_ply(_write(tmp_path / "m.ply", cols))
-        assert m.params["means"].shape[0] == 3 and "3 of the 6" in m.notes[0]
-        torch.testing.assert_close(m.params["means"][:, 0], torch.from_numpy(cols["x"][[0, 4, 5]]))
+        assert m.params["means"].shape[0] == 2 and "7 of the 9" in m.notes[0], m.notes
+        torch.testing.assert_close(m.params["means"][:, 0], torch.from_numpy(cols["x"][[0, 8]]).float())
+        assert all(bool(t.isfinite().all()) for t in m.params.values())
+        cols = _standard(6, 1)
         for k in cols:
             cols[k][:] = np.nan
         with pytest.raises(UserError, match="no Gaussian has finite values"):
@@ -636,6 +654,21 @@ class TestReadStandardPly:
         torch.testing.assert_close(m.params["scales"].exp(), torch.full((1, 3), math.sqrt(0.02)))
         torch.testing.assert_close(torch.sigmoid(m.params["opacities"]), torch.tensor([0.5 * 0.5 ** 1.5]))
         assert "filter_3D" in m.notes[0]
+
+    def test_mip_splatting_filter_widens_a_collapsed_gaussian(self, tmp_path):
+        """A Gaussian collapsed to a point (log-scale -50, as trainers leave some) comes out of the fold at the
+        filter's size with a finite opacity logit: filter^2 / variance (e^100) is beyond float32, so the fold must
+        run in float64."""
+        cols = _standard(1, 0)
+        cols.update({f"scale_{i}": np.full(1, -50.0, np.float32) for i in range(3)})
+        cols["opacity"] = np.zeros(1, np.float32)
+        cols["filter_3D"] = np.full(1, 0.1, np.float32)
+        m = read_standard_ply(_write(tmp_path / "m.ply", cols))
+        assert m.params["opacities"].shape[0] == 1 and len(m.notes) == 1, m.notes
+        torch.testing.assert_close(m.params["scales"].exp(), torch.full((1, 3), 0.1))
+        # r = (variance / (variance + filter^2))^1.5 = e^(1.5 (log(100) - 100)); the logit of r / 2: log r - log 2
+        assert float(m.params["opacities"][0]) == pytest.approx(1.5 * (math.log(100.0) - 100.0) - math.log(2.0),
+                                                                 rel=1e-6)
 
     def test_mip_splatting_filter_keeps_extreme_opacities(self, tmp_path):
         """An opaque Gaussian the filter barely changes (logit 40, filter 1e-9 of its size) and a nearly transparent
@@ -661,6 +694,7 @@ class TestReadStandardPly:
 
     @pytest.mark.parametrize("case, match", [
         ("points", "a point cloud"), ("missing", "missing the properties rot_3"), ("rest", "7 f_rest_"),
+        ("rest_gap", "9 f_rest_. properties not numbered f_rest_0 to f_rest_8"),
         ("chunk", "compressed PLY"), ("variational", "variational.ply"), ("empty", "holds no Gaussian"),
         ("garbage", "cannot read"), ("no_vertex", "no vertex element"), ("degree4", "SH degree 4"),
     ])
@@ -676,6 +710,9 @@ class TestReadStandardPly:
         elif case == "rest":
             _write(path, {**{k: v for k, v in cols.items() if not k.startswith("f_rest")},
                           **{f"f_rest_{i}": np.zeros(3, np.float32) for i in range(7)}})
+        elif case == "rest_gap":  # the count of degree 1, but f_rest_8 missing and an f_rest_9
+            _write(path, {**{k: v for k, v in cols.items() if not k.startswith("f_rest")},
+                          **{f"f_rest_{i}": np.zeros(3, np.float32) for i in (*range(8), 9)}})
         elif case == "chunk":
             chunk = np.zeros(1, dtype=[("min_x", "f4")])
             _write(path, cols, extra=[PlyElement.describe(chunk, "chunk")])

@@ -169,8 +169,8 @@ class StandardPly:
 def read_standard_ply(path: str | Path) -> StandardPly:
     """Read a 3DGS model in the standard PLY layout (see the module docstring) that another tool wrote.
 
-    Rows with a value that is not finite, or a rotation of zero length, are dropped (with a note): a NaN would
-    render as nothing in that tool and poison every sum here. Mip-Splatting's ``filter_3D`` (a 3D smoothing filter
+    Rows with a value that is not finite in float32 (a double beyond its range included), or a rotation of zero
+    length, are dropped (with a note): a NaN would render as nothing in that tool and poison every sum here. Mip-Splatting's ``filter_3D`` (a 3D smoothing filter
     of that size, folded into each Gaussian at render time) is folded in as that renderer does: the variance
     ``filter^2`` added to each axis and the opacity scaled by the square root of the ratio of the determinants.
 
@@ -207,9 +207,14 @@ def read_standard_ply(path: str | Path) -> StandardPly:
                         "point_cloud.ply of INRIA's code), not the sparse points.")
     rest = sorted((k for k in have if k.startswith("f_rest_")), key=lambda k: int(k[7:]) if k[7:].isdigit() else -1)
     degrees = {_rest_count(d): d for d in range(5)}
-    if len(rest) not in degrees or [k[7:] for k in rest] != [str(i) for i in range(len(rest))]:
+    if len(rest) not in degrees:
         raise UserError(f"{len(rest)} f_rest_* properties, which is the count of no SH degree (0, 9, 24, 45 for "
                         "degrees 0-3)", path=path, hint="The file is not in the standard 3DGS layout.")
+    if [k[7:] for k in rest] != [str(i) for i in range(len(rest))]:
+        # the count of a degree, numbered otherwise (a gap): "the count of no SH degree" said of 9 was wrong
+        raise UserError(f"{len(rest)} f_rest_* properties not numbered f_rest_0 to f_rest_{len(rest) - 1} "
+                        f"({', '.join(rest[:3])}{', ...' if len(rest) > 3 else ''})", path=path,
+                        hint="The file is not in the standard 3DGS layout.")
     degree = degrees[len(rest)]
     if degree > 3:
         raise UserError(f"SH degree {degree}: the renderer evaluates degrees 0-3", path=path)
@@ -236,8 +241,9 @@ def read_standard_ply(path: str | Path) -> StandardPly:
             log_scales = log_scales + 0.5 * np.log1p(rel)
         notes.append("Mip-Splatting's filter_3D folded into the scales and opacities (its 2D filter is not "
                      "modelled: the renders may differ slightly from Mip-Splatting's)")
-    good = (np.isfinite(np.concatenate([means, log_scales, quats, logits[:, None], dc, fr], axis=1)).all(axis=1)
-            & (np.linalg.norm(quats, axis=1) > 0))
+    with np.errstate(over="ignore"):  # the values as stored (float32): a double beyond its range became inf there
+        stored = np.concatenate([means, log_scales, quats, logits[:, None], dc, fr], axis=1).astype(np.float32)
+    good = np.isfinite(stored).all(axis=1) & (np.linalg.norm(quats, axis=1) > 0)
     if not good.all():
         notes.append(f"{int((~good).sum()):,} of the {n:,} Gaussians have a value that is not finite (or a "
                      "rotation of zero length) and were left out")
