@@ -971,7 +971,8 @@ def test_each_side_by_side_view_holds_the_runs_that_evaluated_it(tmp_path, monke
 
 def test_the_side_by_side_plan_covers_every_run_that_shares_a_view():
     """compare_plan: runs sharing every view keep their first views in order; disjoint pairs are both drawn;
-    a view one run alone holds is never drawn."""
+    a view one run alone holds is never drawn; the next view is the one that draws the most runs not drawn yet,
+    then the one holding the most runs, then the one listed first in the runs' order."""
     from uncertsplat.report.build import compare_plan
 
     assert compare_plan({0: ["v0", "v1", "v2", "v3"], 1: ["v0", "v1", "v2", "v3"]}, 3) == [
@@ -981,6 +982,52 @@ def test_the_side_by_side_plan_covers_every_run_that_shares_a_view():
     assert compare_plan({0: ["v0"], 1: ["v1"], 2: ["v2", "v1"]}, 3) == [("v1", [1, 2])]
     assert compare_plan({0: ["v0"], 1: ["v1"]}, 3) == []
     assert compare_plan({0: ["v0", "v1"], 2: ["v1", "v0"], 5: ["v1"]}, 1) == [("v1", [0, 2, 5])]
+    # runs not drawn yet come before runs in all: z draws 3 and 4, y only runs drawn already
+    assert compare_plan({0: ["x", "y"], 1: ["x", "y"], 2: ["x", "y"], 3: ["z"], 4: ["z"]}, 2) == [
+        ("x", [0, 1, 2]), ("z", [3, 4])]
+    # as many runs not drawn yet (run 3): the view that holds more runs in all, though listed later
+    assert compare_plan({0: ["p", "q", "r"], 1: ["p", "r"], 2: ["p"], 3: ["q", "r"]}, 2) == [
+        ("p", [0, 1, 2]), ("r", [0, 1, 3])]
+    # ties go by the runs' order, not the order of the mapping; a view listed twice by one run is one run's
+    assert compare_plan({1: ["v1", "v0"], 0: ["v0", "v1"]}, 2) == [("v0", [0, 1]), ("v1", [0, 1])]
+    assert compare_plan({0: ["v0", "v0"], 1: ["v1"]}, 3) == []
+
+
+def _compare_html(monkeypatch, views: list[list[str]], max_views: int) -> str:
+    """The "Runs side by side" section ``compare_section`` writes for runs evaluated on ``views`` (each run's test
+    views, every map read), the figures not drawn: the plan's notes and captions alone."""
+    from types import SimpleNamespace
+
+    from uncertsplat.report import build
+
+    monkeypatch.setattr(build.F, "side_by_side_figure", lambda rows, name: None)
+    sections = {}
+    writer = SimpleNamespace(add_figure=lambda file, fig, caption, alt: f"<figure>{caption}</figure>",
+                             section=lambda key, title, html: sections.setdefault(key, html))
+    runs = [SimpleNamespace(name=f"r{i}", metrics=SimpleNamespace(image_names=list(v), split="test"))
+            for i, v in enumerate(views)]
+    maps = SimpleNamespace(rgb_mean=np.zeros((2, 2, 3), np.float32), rgb_std=None, note="")
+    build.compare_section(writer, runs, {i: {n: maps for n in v} for i, v in enumerate(views)}, max_views)
+    return sections["compare"]
+
+
+def test_the_side_by_side_notes_follow_the_plan(monkeypatch):
+    """A run left out because the figures ran out is told to raise max_views only where max_views is below the
+    figures the report draws at most (at that count, raising it draws no more); the sentence on runs evaluated
+    on different views is there when one figure lacks a run, though another holds them all, and absent when
+    every figure holds every run."""
+    from uncertsplat.report.build import COMPARED_VIEWS
+
+    # four pairs of runs, one view each (r0 in two): the fourth figure, r6's only shared view, is past the limit
+    views = [["v0", "v3"], ["v0"], ["v1"], ["v1"], ["v2"], ["v2"], ["v3"]]
+    html = _compare_html(monkeypatch, views, COMPARED_VIEWS)
+    assert f"r6 (the views it shares with other runs, v3, are past the {COMPARED_VIEWS} figures drawn)" in html
+    assert "max_views=" not in html
+    html = _compare_html(monkeypatch, views, COMPARED_VIEWS - 1)
+    assert f"figures drawn; `report --set max_views={COMPARED_VIEWS}` draws {COMPARED_VIEWS})" in html
+    different = "each figure holds the runs that evaluated its view"
+    assert different in _compare_html(monkeypatch, [["v0", "v1"], ["v0", "v1"], ["v0"]], COMPARED_VIEWS)
+    assert different not in _compare_html(monkeypatch, [["v0", "v1"], ["v0", "v1"]], COMPARED_VIEWS)
 
 
 def test_the_summary_says_plainly_when_the_std_is_too_small_or_too_large(tmp_path):
