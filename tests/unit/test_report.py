@@ -1018,8 +1018,9 @@ def test_the_side_by_side_notes_follow_the_plan(monkeypatch):
     every figure holds every run."""
     from uncertsplat.report.build import COMPARED_VIEWS
 
-    # four pairs of runs, one view each (r0 in two): the fourth figure, r6's only shared view, is past the limit
-    views = [["v0", "v3"], ["v0"], ["v1"], ["v1"], ["v2"], ["v2"], ["v3"]]
+    # four pairs of runs, one view each (r0 in two): the fourth figure, r6's only shared view, is past the limit;
+    # the note names the view r6 shares, not its own v9
+    views = [["v0", "v3"], ["v0"], ["v1"], ["v1"], ["v2"], ["v2"], ["v9", "v3"]]
     html = _compare_html(monkeypatch, views, COMPARED_VIEWS)
     assert f"r6 (the views it shares with other runs, v3, are past the {COMPARED_VIEWS} figures drawn)" in html
     assert "max_views=" not in html
