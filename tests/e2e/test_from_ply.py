@@ -188,10 +188,11 @@ class TestImportedRun:
             with pytest.raises(UserError, match="model trained elsewhere") as err:
                 train_model(tiny_scene_path, run, cfg, CPU, resume=True, **kwargs)
             assert what in str(err.value) and "--from-ply NEW_MODEL.ply" in err.value.hint
-        # a plain --resume: nothing to do, said without advising steps
-        train_model(tiny_scene_path, run, cfg, CPU, resume=True)
-        out = " ".join(capsys.readouterr().err.split())
-        assert "nothing to do" in out and "--iterations N" not in out and ply.name in out
+        # a plain --resume, or one to the run's own 0 steps: nothing to do, said without advising steps
+        for kwargs in ({}, {"extend_to": 0}):
+            train_model(tiny_scene_path, run, cfg, CPU, resume=True, **kwargs)
+            out = " ".join(capsys.readouterr().err.split())
+            assert "nothing to do" in out and "--iterations N" not in out and ply.name in out
         assert {f: (run / f).read_bytes() for f in before} == before
         # the same command without --resume: the folder holds the import, not a run to continue
         with pytest.raises(UserError, match="holds the posterior of") as err:
@@ -255,15 +256,28 @@ def test_a_model_of_narrow_gaussians_is_told_the_spawn_rule(plain_and_imported, 
 
 
 def test_views_set_aside_for_calibration_are_warned_of(plain_and_imported, tiny_scene_path,
-                                                        tmp_path):  # noqa: F811
+                                                        tmp_path, capsys):  # noqa: F811
     """The other tool held out only the test views, so it trained on the views set aside for calibration here:
-    `evaluate`'s calibration on them would read as on training views (said nowhere before)."""
+    `evaluate`'s calibration on them would read as on training views (said nowhere before). A run trained here
+    held them out itself: not warned. The import's first line counts the views of this split."""
+    from uncertsplat.config import SceneConfig
+
     _, ply, imported = plain_and_imported
     warnings = json.loads((imported / "train_summary.json").read_text(encoding="utf-8"))["warnings"]
     assert not any("calibration" in w for w in warnings), warnings
+    capsys.readouterr()
     run = _imported(tiny_scene_path, ply, tmp_path / "calib", scene={"calibration_holdout": 2})
     warnings = json.loads((run / "train_summary.json").read_text(encoding="utf-8"))["warnings"]
     assert any("set aside for calibration" in w and "likely trained on them" in w for w in warnings), warnings
+    split = load_scene(tiny_scene_path, SceneConfig(calibration_holdout=2)).split
+    out = " ".join(capsys.readouterr().err.split())
+    assert (f"read in the scene source's frame): its posterior from {len(split['train'])} training views" in out
+            and f"{len(split['test'])} held out" in out and "no step trained" in out), out
+    cfg = train_config_from("tiny", None, ["iterations=2", "scene.downscale=4.0", "checkpoint_every=1000",
+                                           "eval_every=1000", "scene.calibration_holdout=2"])
+    train_stage.run(tiny_scene_path, tmp_path / "trained", cfg, CPU)
+    warnings = json.loads((tmp_path / "trained" / "train_summary.json").read_text(encoding="utf-8"))["warnings"]
+    assert not any("set aside for calibration" in w for w in warnings), warnings
 
 
 def test_a_pipeline_stage_whose_model_file_is_gone_keeps_its_run(plain_and_imported, tiny_scene_path,
@@ -399,6 +413,29 @@ class TestAlignRefusals:
             train_config_from(None, {"init_ply": "m.ply", "init_ply_transform": "t.json", "init_ply_frame": "align"})
 
 
+class TestImportedFitWarnings:
+    def test_names_the_frame_not_tried(self):
+        """The poor-fit warning of an imported model advises the frame it was not read in (source <-> run), or the
+        transform when one was given (no frame to switch to); nothing at or above POOR_FIT_PSNR."""
+        from uncertsplat.train.session import POOR_FIT_PSNR, imported_fit_warnings
+
+        record = {"path": "m.ply", "in_view_share": 0.25}
+        (warning,) = imported_fit_warnings(12.345, {**record, "frame": "source"})
+        assert "--set init_ply_frame=run" in warning and "12.3 dB here (read in the scene source's frame; 25% of" \
+            in warning, warning
+        (warning,) = imported_fit_warnings(12.0, {**record, "frame": "run"})
+        assert "--set init_ply_frame=source" in warning and "read in the run's frame" in warning, warning
+        (warning,) = imported_fit_warnings(12.0, {**record, "frame": "transform", "transform": "/d/tf.json"})
+        assert "(check init_ply_transform;" in warning and "init_ply_frame" not in warning, warning
+        (warning,) = imported_fit_warnings(12.0, {**record, "frame": "aligned"})
+        assert ("read in the frame found by placing its Gaussians on the scene's sparse points" in warning
+                and "(read in the scene's source frame: --set init_ply_frame=source;" in warning), warning
+        (warning,) = imported_fit_warnings(12.0, {**record, "frame": "source"})
+        assert "=align to find its frame on the scene's sparse points" in warning, warning
+        assert imported_fit_warnings(POOR_FIT_PSNR, {**record, "frame": "source"}) == []
+        assert imported_fit_warnings(None, {**record, "frame": "source"}) == []
+
+
 class TestRotateSh:
     @pytest.mark.parametrize("degree", [1, 2, 3])
     def test_every_colour_is_the_same_in_the_turned_direction(self, degree):
@@ -414,6 +451,8 @@ class TestRotateSh:
             torch.testing.assert_close(eval_sh(degree, turned, d @ r.T), eval_sh(degree, sh, d), rtol=0, atol=1e-12)
         with pytest.raises(ValueError, match="bases"):
             rotate_sh(torch.zeros(2, 5, 3), r)
+        with pytest.raises(ValueError, match="bases for a degree 0..3, got 24"):  # degree 4: refused as such
+            rotate_sh(torch.zeros(2, 24, 3), r)
 
 
 def test_a_model_in_a_turned_frame_with_its_transform(plain_and_imported, tiny_scene_path, tmp_path):  # noqa: F811
