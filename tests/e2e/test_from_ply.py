@@ -188,6 +188,7 @@ class TestImportedRun:
             with pytest.raises(UserError, match="model trained elsewhere") as err:
                 train_model(tiny_scene_path, run, cfg, CPU, resume=True, **kwargs)
             assert what in str(err.value) and "--from-ply NEW_MODEL.ply" in err.value.hint
+            assert f"it was built from {ply.name})" in err.value.hint  # the file's name, not its whole path
         # a plain --resume, or one to the run's own 0 steps: nothing to do, said without advising steps
         for kwargs in ({}, {"extend_to": 0}):
             train_model(tiny_scene_path, run, cfg, CPU, resume=True, **kwargs)
