@@ -252,14 +252,17 @@ def register_clouds(src: np.ndarray, dst: np.ndarray, *, seed: int = 0, start_po
 
 
 def placement_residual(src: np.ndarray, dst: np.ndarray, dst_from_src: np.ndarray, *, seed: int = 0,
-                       points: int = 20000) -> float:
+                       points: int = 20000, max_dst: int = 100_000) -> float:
     """``register_clouds``' residual of a given similarity (no ICP): how well ``dst_from_src`` already places
-    ``src`` on ``dst``."""
+    ``src`` on ``dst`` (the same subsets of either cloud as ``register_clouds`` with the same arguments takes, so
+    that the two residuals compare)."""
     src = np.asarray(src, dtype=np.float64)
     dst = np.asarray(dst, dtype=np.float64)
     src = src[np.isfinite(src).all(1)]
     dst = dst[np.isfinite(dst).all(1)]
     rng = np.random.default_rng(seed)
+    if len(dst) > max_dst:
+        dst = dst[np.sort(rng.choice(len(dst), max_dst, replace=False))]
     if len(src) > points:
         src = src[np.sort(rng.choice(len(src), points, replace=False))]
     m = np.asarray(dst_from_src, dtype=np.float64)
