@@ -184,6 +184,22 @@ class _Matcher:
             s, r, t = s_clamped, r_new, t_new
         return s, r, t, residual
 
+    def scores(self, src: np.ndarray, placements: list[tuple[float, np.ndarray, np.ndarray]], reach: float
+               ) -> list[float]:
+        """``icp``'s residual with no round for each placement (s, R, t) of ``src``: every placement's points in one
+        query of the tree (thousands of starts: one query each was most of the search's time)."""
+        keep = max(3, int(KEEP * len(src)))
+        radius = float(np.sqrt(((src - src.mean(0)) ** 2).sum(1).mean()))
+        sr = np.stack([s * r for s, r, _ in placements])  # [S,3,3]
+        t = np.stack([t for _, _, t in placements])  # [S,3]
+        bound = np.maximum(np.array([s for s, _, _ in placements]) * radius, 1e-300)  # [S]
+        placed = np.einsum("sij,nj->sni", sr, src) + t[:, None, :]  # [S,N,3]
+        dist, _ = self.tree.query(placed.reshape(-1, 3), distance_upper_bound=reach * float(bound.max()),
+                                  workers=-1)
+        dist = np.minimum(dist.reshape(len(placements), -1), reach * bound[:, None])  # [S,N]
+        nearest = np.partition(dist, keep - 1, axis=1)[:, :keep]
+        return list(nearest.mean(1) / bound)
+
     def _plane_round(self, placed: np.ndarray, idx: np.ndarray, s: float, r: np.ndarray, t: np.ndarray
                      ) -> tuple[float, np.ndarray, np.ndarray]:
         """One point-to-plane step: placed' = c + e^sigma exp([w]x) (placed - c) + v, (w, v, sigma) by linear least
@@ -240,8 +256,8 @@ def register_clouds(src: np.ndarray, dst: np.ndarray, *, seed: int = 0, start_po
         for turn in _starting_turns():
             r = ax_dst @ turn @ ax_src.T
             for grow in (0.5, 1.0, 2.0):
-                t = c_dst - grow * ratio * r @ c_src
-                starts.append(matcher.icp(few, grow * ratio, r, t, 0, scale_range, reach=0.25))
+                starts.append((grow * ratio, r, c_dst - grow * ratio * r @ c_src))
+    starts = [(s, r, t, res) for (s, r, t), res in zip(starts, matcher.scores(few, starts, reach=0.25), strict=True)]
     starts.sort(key=lambda x: x[3])
     refined = sorted((matcher.icp(coarse, s, r, t, 10, scale_range, plane=True) for s, r, t, _ in starts[:refine]),
                      key=lambda x: x[3])
