@@ -118,6 +118,20 @@ class TestRegisterClouds:
         shift, angle = _errors(found, truth, surface[:1000])
         assert shift < 0.01 and angle < 0.3, (shift, angle)
 
+    @pytest.mark.parametrize("sky", [0.5, 1.0])
+    def test_a_background_as_large_as_the_surfaces(self, sky):
+        """A sky shell of half as many Gaussians as the surfaces, or as many (an unbounded scene's model): the shell
+        swells the model's 90 % core, whose radius alone set the scale's bounds 8x around a ratio 9x the true
+        scale, which then stuck at the bound with the points a third of their radius off (residual 0.03)."""
+        rng = np.random.default_rng(5)
+        surface = _room(rng, 10000)
+        d = rng.normal(size=(int(sky * 9000), 3))
+        shell = 30.0 * d / np.linalg.norm(d, axis=1, keepdims=True) + surface.mean(0)
+        truth = _similarity(0.3, _turn(rng), [5.0, -1.0, 2.0])
+        found = register_clouds(surface[:1000], _place(np.concatenate([surface[1000:], shell]), truth))
+        shift, angle = _errors(found, truth, surface[:1000])
+        assert shift < 0.01 and angle < 0.3, (shift, angle)
+
     def test_residual_tells_a_placement_from_a_wrong_one(self):
         """``placement_residual`` of the true similarity is the found one's; of the identity (a model read in the
         wrong frame) it is tens of times larger."""

@@ -247,8 +247,11 @@ def register_clouds(src: np.ndarray, dst: np.ndarray, *, seed: int = 0, start_po
     # starts from two views of each cloud: 90 % of it (the shape as a whole) and the half nearest its median (where
     # one cloud holds far parts the other lacks, up to about half of it); at the cores' radii ratio, half and twice
     cores = [(_core(src, share), _core(dst, share)) for share in (0.9, 0.5)]
-    s0 = cores[0][1][1] / max(cores[0][0][1], 1e-300)
-    scale_range = (s0 / 8.0, s0 * 8.0)
+    # the scale stays within 8x of both cores' ratios: a background as large as the surfaces (a sky the points lack)
+    # swells the 90 % core, whose ratio alone was measured 9x the true scale (the scale then stuck at its bound,
+    # the points a third of their radius off, at a residual that passed for placed)
+    ratios = [c_dst[1] / max(c_src[1], 1e-300) for c_src, c_dst in cores]
+    scale_range = (min(ratios) / 8.0, max(ratios) * 8.0)
     matcher = _Matcher(dst)
     starts = []
     for (c_src, rad_src, ax_src), (c_dst, rad_dst, ax_dst) in cores:
