@@ -409,6 +409,55 @@ class TestAlignRefusals:
             imported.model_from_ply(few, scene, cams, frame="align")
         assert imported.model_from_ply(few, scene, cams)[2]["frame"] == "source"
 
+    @staticmethod
+    def _foreign(scene, run_points: np.ndarray) -> torch.Tensor:
+        """Gaussians at ``run_points`` (the run's frame) written in a frame of a trainer's own: the scene's source
+        frame turned, scaled by 0.37 and shifted."""
+        from uncertsplat.gaussians.ops import quat_to_rotmat
+
+        source = np.linalg.inv(scene.world_from_source.double().numpy())
+        r = quat_to_rotmat(torch.tensor([[0.6, 0.2, -0.7, 0.3]], dtype=torch.float64))[0].numpy()
+        file_from_run = np.diag([0.37, 0.37, 0.37, 1.0]) @ np.block([[r, np.array([[0.5], [-1.0], [2.0]])],
+                                                                     [np.zeros((1, 3)), np.ones((1, 1))]]) @ source
+        return torch.from_numpy(run_points @ file_from_run[:3, :3].T + file_from_run[:3, 3])
+
+    def test_a_flat_scene_pins_no_frame(self, tiny_scene_path):  # noqa: F811
+        """The scene's sparse points on one plane, the model's Gaussians on a larger part of it in a frame of its
+        own: the search places the points on them as closely in many frames (measured: twice the scale, turned half
+        round), so auto takes none and says why, and align refuses, naming what to give instead."""
+        import dataclasses
+
+        from uncertsplat.train import imported
+
+        scene = load_scene(tiny_scene_path)
+        rng = np.random.default_rng(1)
+        centres = rng.uniform((-0.6, -0.3), (0.3, 0.3), (30, 2))
+        xy = centres[rng.integers(0, 30, 1500)] + rng.normal(scale=0.05, size=(1500, 2))
+        points = np.concatenate([xy, rng.normal(scale=0.002, size=(1500, 1))], axis=1)
+        flat = dataclasses.replace(scene, points=torch.from_numpy(points).float())
+        plane = np.concatenate([rng.uniform((-0.9, -0.6), (0.9, 0.6), (20000, 2)),
+                                rng.normal(scale=0.002, size=(20000, 1))], axis=1)
+        means, opaque = self._foreign(scene, plane), torch.full((20000,), 3.0)
+        found, record, note = imported._aligned(Path("m.ply"), "auto", means, opaque, flat)
+        assert found is None and record is None
+        assert "cannot be taken" in note and "do not pin one" in note and "one plane" in note, note
+        with pytest.raises(UserError, match="do not pin one") as err:
+            imported._aligned(Path("m.ply"), "align", means, opaque, flat)
+        assert "--from-ply-transform" in err.value.hint
+
+    def test_a_search_that_finds_nothing_is_said(self, tiny_scene_path):  # noqa: F811
+        """A model that the scene's points fit in no frame (a blob of another scene): auto reads it in the source
+        frame and says that a frame was searched and not found (the renders' warning that follows advises the
+        search otherwise)."""
+        from uncertsplat.train import imported
+
+        scene = load_scene(tiny_scene_path)
+        blob = np.random.default_rng(0).normal(size=(400, 3)) * [3.0, 1.0, 0.5] + [10.0, 0.0, 0.0]
+        found, record, note = imported._aligned(Path("m.ply"), "auto", self._foreign(scene, blob),
+                                                torch.full((400,), 3.0), scene)
+        assert found is None and record is None
+        assert "nor in the best frame found for them" in note and "another scene" in note, note
+
     def test_a_transform_leaves_nothing_to_find(self):
         with pytest.raises(UserError, match="no frame to find"):
             train_config_from(None, {"init_ply": "m.ply", "init_ply_transform": "t.json", "init_ply_frame": "align"})

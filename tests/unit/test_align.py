@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from uncertsplat.sfm.align import MIN_POINTS, Registration, placement_residual, register_clouds
+from uncertsplat.sfm.align import MIN_FIRMNESS, MIN_POINTS, Registration, placement_residual, register_clouds
 
 
 def _room(rng: np.random.Generator, n: int, size=(4.0, 2.5, 3.0)) -> np.ndarray:
@@ -161,3 +161,48 @@ class TestRegisterClouds:
             register_clouds(few, many)
         with pytest.raises(ValueError, match="at least"):
             register_clouds(many, np.concatenate([few, np.full((10, 3), np.nan)]))
+
+
+def _flat(rng: np.random.Generator, n: int, lo=(-2.0, -1.0), hi=(1.0, 1.0)) -> np.ndarray:
+    """Points on one plane (a facade, a table top seen from above): texture blobs, as SfM finds them, in a
+    rectangle, with a little noise off the plane."""
+    centres = rng.uniform(lo, hi, (30, 2))
+    xy = centres[rng.integers(0, 30, n)] + rng.normal(scale=0.15, size=(n, 2))
+    return np.concatenate([xy, rng.normal(scale=0.005, size=(n, 1))], axis=1)
+
+
+class TestFirmness:
+    """``Registration.firmness``: clouds that do not pin a similarity (all points on one plane or along one line, so
+    that the placed points slide along the surfaces without leaving them) are told from ones that do, whatever the
+    small residual both get."""
+
+    def test_a_flat_cloud_is_not_pinned(self):
+        """The points on a plane, the Gaussians on a larger part of it: the residual is that of a right placement,
+        yet the found one is far off (measured: twice the scale, turned half round), so firmness says so."""
+        rng = np.random.default_rng(1)
+        src = _flat(rng, 1500)
+        plane = np.concatenate([rng.uniform((-3, -2), (3, 2), (30000, 2)),
+                                rng.normal(scale=0.005, size=(30000, 1))], axis=1)
+        found = register_clouds(src, _place(plane, _similarity(0.37, _turn(rng), [1.0, -2.0, 0.5])))
+        assert found.residual < 0.02  # as low as a right placement's: the residual alone cannot tell
+        assert found.firmness < MIN_FIRMNESS, found.firmness
+
+    def test_a_line_like_cloud_is_not_pinned(self):
+        """Points along a corridor (a line with a little spread), the Gaussians on a long thin tube about it."""
+        rng = np.random.default_rng(2)
+        src = np.stack([rng.uniform(-3, 3, 1500), *rng.normal(scale=0.03, size=(2, 1500))], axis=1)
+        ang = rng.uniform(0, 2 * np.pi, 30000)
+        tube = np.stack([rng.uniform(-4, 4, 30000), 0.04 * np.cos(ang), 0.04 * np.sin(ang)], axis=1)
+        found = register_clouds(src, _place(tube, _similarity(2.0, _turn(rng), [0.0, 1.0, 0.0])))
+        assert found.firmness < MIN_FIRMNESS, found.firmness
+
+    @pytest.mark.parametrize("points", [80, 1000])
+    def test_a_room_is_pinned(self, points):
+        """Floor, walls and objects pin every motion, from few sparse points too."""
+        rng = np.random.default_rng(3)
+        surface = _room(rng, 11000 + points)
+        truth = _similarity(0.5, _turn(rng), [1.0, 2.0, 3.0])
+        found = register_clouds(surface[:points], _place(surface[points:], truth))
+        shift, angle = _errors(found, truth, surface[:points])
+        assert shift < 0.02 and angle < 1.0, (shift, angle)
+        assert found.firmness > MIN_FIRMNESS, found.firmness

@@ -53,6 +53,12 @@ KEEP = 0.7
 points where the destination has no surface (an SfM point in the sky, a part of the scene the model left out)."""
 MIN_POINTS = 50
 """Fewer points than this in either cloud: nothing to register."""
+SLIDE = 0.2
+"""The RMS distance, over the placed source's radius, by which ``Registration.firmness`` moves the source."""
+MIN_FIRMNESS = 1.15
+"""A registration whose ``firmness`` is below this is not pinned by the clouds: a motion of ``SLIDE`` of the points'
+radius leaves the residual within 15 % (measured: flat clouds and line-like ones 0.96-1.06, a floor whose few
+objects hold 3 % of the points 1.02, one whose objects hold 15 % 1.2, the tiny synthetic scene 1.8, a room 2.7)."""
 
 
 @dataclass(frozen=True)
@@ -65,12 +71,17 @@ class Registration:
         residual: the kept matches' mean distance over the placed source's radius (0: every kept point on a
             destination point; two clouds of one surface sampled alike: about 0.01).
         starts: the starts tried.
+        firmness: the residual after the least constrained motion of the placed source by ``SLIDE`` of its radius
+            (RMS), over ``residual``: near 1 where the source slides along the destination's surfaces without
+            leaving them (points on one plane or along one line), so that they do not pin the similarity
+            (``MIN_FIRMNESS``).
     """
 
     dst_from_src: np.ndarray
     scale: float
     residual: float
     starts: int
+    firmness: float = math.inf
 
 
 def _matrix(s: float, r: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -200,6 +211,34 @@ class _Matcher:
         nearest = np.partition(dist, keep - 1, axis=1)[:, :keep]
         return list(nearest.mean(1) / bound)
 
+    def firmness(self, src: np.ndarray, s: float, r: np.ndarray, t: np.ndarray) -> float:
+        """``Registration.firmness`` of the placement (s, R, t): the motions (a turn and a scale about the kept
+        matches' centre, a shift) that move the kept points least off the destination's tangent planes (the
+        point-to-plane normal equations' weakest directions; the normals' noise leaves none at 0), each tried by
+        ``SLIDE`` of the radius both ways, and the smallest residual of them over the placement's."""
+        base = self.icp(src, s, r, t, 0, (s, s))[3]
+        placed = src @ (s * r).T + t
+        dist, idx = self.tree.query(placed)
+        keep = max(3, int(KEEP * len(src)))
+        keep = np.argpartition(dist, keep - 1)[:keep]
+        n = self.normals()[idx[keep]]
+        c = placed[keep].mean(0)
+        radius = float(np.sqrt(((placed[keep] - c) ** 2).sum(1).mean()))
+        if not (base > 0 and radius > 0):
+            return math.inf
+        q = (placed[keep] - c) / radius  # (in radii: a turn, a shift and a log-scale of 1 move points alike)
+        jac = np.concatenate([np.cross(q, n), n, (q * n).sum(1, keepdims=True)], axis=1)  # [K,7]
+        _, vecs = np.linalg.eigh(jac.T @ jac)
+        least = math.inf
+        for u in vecs.T[:4]:  # a plane leaves 4 motions free (2 shifts, the turn about its normal, the scale)
+            size = float(np.sqrt(((np.cross(u[:3], q) + u[3:6] + u[6] * q) ** 2).sum(1).mean()))
+            for sign in (1.0, -1.0):
+                p = sign * SLIDE / max(size, 1e-12) * u
+                turn, grow = _rotation(p[:3]), math.exp(float(p[6]))
+                s2, r2, t2 = s * grow, turn @ r, c + grow * turn @ (t - c) + p[3:6] * radius
+                least = min(least, self.icp(src, s2, r2, t2, 0, (s2, s2))[3])
+        return least / base
+
     def _plane_round(self, placed: np.ndarray, idx: np.ndarray, s: float, r: np.ndarray, t: np.ndarray
                      ) -> tuple[float, np.ndarray, np.ndarray]:
         """One point-to-plane step: placed' = c + e^sigma exp([w]x) (placed - c) + v, (w, v, sigma) by linear least
@@ -226,7 +265,8 @@ def register_clouds(src: np.ndarray, dst: np.ndarray, *, seed: int = 0, start_po
     twice it; for 90 % of each cloud and for its half nearest its median) is scored
     after one match on ``start_points`` source points; the ``refine`` best run 10 rounds of trimmed ICP on
     ``coarse_points``, and the best three of those up to 100 point-to-plane rounds on ``fine_points`` (until a
-    round gains under 1e-4 of the residual); the best of the three is the answer. Deterministic for a ``seed``.
+    round gains under 1e-4 of the residual); the best of the three is the answer, with its ``firmness`` (whether the
+    clouds pin it at all: a flat or line-like cloud fits as well slid along itself). Deterministic for a ``seed``.
 
     Raises:
         ValueError: fewer than ``MIN_POINTS`` finite points in either cloud.
@@ -267,7 +307,7 @@ def register_clouds(src: np.ndarray, dst: np.ndarray, *, seed: int = 0, start_po
     # the best three to the end: a start can sit in a basin a few degrees off that 10 rounds did not leave
     finals = [matcher.icp(fine, s, r, t, 100, scale_range, tol=1e-4, plane=True) for s, r, t, _ in refined[:3]]
     s, r, t, residual = min(finals, key=lambda x: x[3])
-    return Registration(_matrix(s, r, t), s, residual, len(starts))
+    return Registration(_matrix(s, r, t), s, residual, len(starts), matcher.firmness(fine, s, r, t))
 
 
 def placement_residual(src: np.ndarray, dst: np.ndarray, dst_from_src: np.ndarray, *, seed: int = 0,

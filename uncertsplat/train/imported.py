@@ -112,7 +112,7 @@ def _aligned(path: Path, frame: str, means: torch.Tensor, opacity_logits: torch.
     source frame lie from the scene's sparse points and finds a frame only when they do not lie on them."""
     import numpy as np
 
-    from uncertsplat.sfm.align import MIN_POINTS, placement_residual, register_clouds
+    from uncertsplat.sfm.align import MIN_FIRMNESS, MIN_POINTS, SLIDE, placement_residual, register_clouds
 
     points = _sparse_points(scene)
     if means.shape[0] < MIN_POINTS:
@@ -139,7 +139,29 @@ def _aligned(path: Path, frame: str, means: torch.Tensor, opacity_logits: torch.
         return None, None, None
     reg = register_clouds(pts, cloud_np)
     if frame == "auto" and not (reg.residual <= ALIGNED_RESIDUAL and reg.residual < 0.5 * source_residual):
-        return None, None, None
+        # said: the renders' warning that follows would otherwise suggest the search that was just made
+        found = (f"nor in the best frame found for them ({reg.residual:.3f}; {ALIGNED_RESIDUAL:g} or less lies on "
+                 "them)" if reg.residual > ALIGNED_RESIDUAL else
+                 f"and the best frame found for them places them hardly nearer ({reg.residual:.3f})")
+        return None, None, (f"the model's Gaussians do not lie on the scene's sparse points as read in the scene's "
+                            f"source frame ({source_residual:.3f} of the points' radius from them), {found}: read in "
+                            "the source frame; the model may be of another scene or of another mapping of the "
+                            "photos (--from-ply-transform FILE gives the trainer's frame)")
+    if reg.residual <= ALIGNED_RESIDUAL and reg.firmness < MIN_FIRMNESS:
+        # a placement near the points that they do not pin (points on about one plane or line: the model slides
+        # along them, turned, shifted and scaled, as near to them as anywhere; a frame taken so was measured twice
+        # the scale and turned half round): its small residual says nothing, so no frame is found
+        why = (f"the scene's {pts.shape[0]:,} sparse points do not pin one (slid along them by {SLIDE:.0%} of "
+               f"their radius, the found frame leaves them {reg.firmness:.2f}x as far from the Gaussians, as when "
+               "they lie on about one plane or along one line)")
+        if frame == "align":
+            raise UserError(f"init_ply_frame = \"align\" found a frame that {why}", path=path,
+                            hint="Give the transform the trainer used (--from-ply-transform FILE: nerfstudio's "
+                            "dataparser_transforms.json), or train the model in the scene's source frame "
+                            "(INRIA's 3DGS and gsplat without normalisation write it there).")
+        return None, None, (f"the model's Gaussians do not lie on the scene's sparse points as read in the scene's "
+                            f"source frame, and a frame found for them cannot be taken: {why}; read in the source frame "
+                            "(--from-ply-transform FILE gives the trainer's)")
     file_from_source = torch.from_numpy(reg.dst_from_src @ scene.world_from_source.double().cpu().numpy())
     rot = reg.dst_from_src[:3, :3] / reg.scale
     angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(rot)) - 1.0) / 2.0))))
