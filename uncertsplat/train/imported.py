@@ -150,10 +150,11 @@ def _aligned(path: Path, frame: str, means: torch.Tensor, opacity_logits: torch.
     if reg.residual <= ALIGNED_RESIDUAL and reg.firmness < MIN_FIRMNESS:
         # a placement near the points that they do not pin (points on about one plane or line: the model slides
         # along them, turned, shifted and scaled, as near to them as anywhere; a frame taken so was measured twice
-        # the scale and turned half round): its small residual says nothing, so no frame is found
+        # the scale and turned half round; a model of another scene sharing a room's walls: 1.07-1.14 on the tiny
+        # scene, taken before at a residual of 0.026-0.029): its small residual says nothing, so no frame is found
         why = (f"the scene's {pts.shape[0]:,} sparse points do not pin one (slid along them by {SLIDE:.0%} of "
-               f"their radius, the found frame leaves them {reg.firmness:.2f}x as far from the Gaussians, as when "
-               "they lie on about one plane or along one line)")
+               f"their radius, the found frame leaves them {reg.firmness:.2f}x as far from the Gaussians: they lie on "
+               "about one plane or along one line, or the model is of another scene)")
         if frame == "align":
             raise UserError(f"init_ply_frame = \"align\" found a frame that {why}", path=path,
                             hint="Give the transform the trainer used (--from-ply-transform FILE: nerfstudio's "
