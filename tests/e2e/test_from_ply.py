@@ -19,6 +19,7 @@ from plyfile import PlyData, PlyElement
 
 from tests.e2e.test_informed_posterior import _half_ring, _std_unobserved_over_observed
 from tests.fixtures import tiny_scene_path  # noqa: F401
+from tests.foreign_ply import in_source_frame, moved
 from tests.run_fixtures import TINY_RUN_OVERRIDES
 from uncertsplat.baselines import train_run
 from uncertsplat.config import deep_update, train_config_from
@@ -39,20 +40,6 @@ def _deterministic(scene_dir: Path, out: Path, short: bool = True, **extra) -> P
     return out
 
 
-def _in_source_frame(run: Path, out: Path) -> Path:
-    """``run``'s point_cloud.ply moved back into the scene's source frame, without uncertsplat's header comment: a
-    file as another tool writes it."""
-    m = np.asarray(json.loads((run / "scene.json").read_text(encoding="utf-8"))["world_from_source"])
-    s, t = float(np.cbrt(abs(np.linalg.det(m[:3, :3])))), m[:3, 3]
-    v = PlyData.read(str(run / "point_cloud.ply"))["vertex"].data.copy()
-    for i, a in enumerate("xyz"):
-        v[a] = (v[a].astype(np.float64) - t[i]) / s
-    for i in range(3):
-        v[f"scale_{i}"] = v[f"scale_{i}"] - math.log(s)
-    PlyData([PlyElement.describe(v, "vertex")], text=False).write(str(out))
-    return out
-
-
 def _imported(scene_dir: Path, ply: Path, out: Path, **extra) -> Path:
     cfg = train_config_from("tiny", {"init_ply": str(ply), "iterations": 0, **extra})
     train_stage.run(scene_dir, out, cfg, CPU)
@@ -63,7 +50,7 @@ def _imported(scene_dir: Path, ply: Path, out: Path, **extra) -> Path:
 def plain_and_imported(tiny_scene_path, tmp_path_factory):  # noqa: F811
     root = tmp_path_factory.mktemp("from_ply")
     plain = _deterministic(tiny_scene_path, root / "plain")
-    ply = _in_source_frame(plain, root / "model.ply")
+    ply = in_source_frame(plain, root / "model.ply")
     return plain, ply, _imported(tiny_scene_path, ply, root / "imported")
 
 
@@ -509,32 +496,14 @@ def test_a_model_in_a_turned_frame_with_its_transform(plain_and_imported, tiny_s
     """A trainer that normalises its world (nerfstudio: ``dataparser_transforms.json``) writes the model turned,
     scaled and shifted: read through its transform, positions, sizes, rotations and SH colours come back and the
     model renders as the plain one."""
-    from uncertsplat.gaussians.ops import quat_to_rotmat, rotmat_to_quat
-    from uncertsplat.render.sh import rotate_sh
-    from uncertsplat.train.imported import _quat_mul
+    from uncertsplat.gaussians.ops import quat_to_rotmat
 
     plain, ply, _ = plain_and_imported  # ply: the plain model in the scene's source frame
     r = quat_to_rotmat(torch.tensor([[0.6, 0.2, -0.7, 0.3]], dtype=torch.float64))[0]
     scale, t0 = 0.37, torch.tensor([0.5, -1.0, 2.0], dtype=torch.float64)
-    v = PlyData.read(str(ply))["vertex"].data.copy()
-    xyz = torch.from_numpy(np.stack([v[a] for a in "xyz"], -1).astype(np.float64))
-    moved = scale * (xyz @ r.T + t0)  # x_file = scale (R x_source + t0)
-    for i, a in enumerate("xyz"):
-        v[a] = moved[:, i].numpy()
-    for i in range(3):
-        v[f"scale_{i}"] = v[f"scale_{i}"] + math.log(scale)
-    q = torch.from_numpy(np.stack([v[f"rot_{i}"] for i in range(4)], -1).astype(np.float64))
-    q = _quat_mul(rotmat_to_quat(r).expand_as(q), q)
-    for i in range(4):
-        v[f"rot_{i}"] = q[:, i].numpy()
-    rest = sorted((k for k in v.dtype.names if k.startswith("f_rest_")), key=lambda k: int(k[7:]))
-    b = len(rest) // 3
-    sh = torch.from_numpy(np.stack([v[k] for k in rest], -1).astype(np.float64)).reshape(-1, 3, b).transpose(1, 2)
-    sh = rotate_sh(sh, r).transpose(1, 2).reshape(len(v), -1)
-    for i, k in enumerate(rest):
-        v[k] = sh[:, i].numpy()
-    turned = tmp_path / "splat.ply"
-    PlyData([PlyElement.describe(v, "vertex")], text=False).write(str(turned))
+    file_from_source = torch.eye(4, dtype=torch.float64)  # x_file = scale (R x_source + t0)
+    file_from_source[:3, :3], file_from_source[:3, 3] = scale * r, scale * t0
+    turned = moved(ply, tmp_path / "splat.ply", file_from_source)
     tf = tmp_path / "dataparser_transforms.json"
     tf.write_text(json.dumps({"transform": torch.cat([r, t0[:, None]], 1).tolist(), "scale": scale}))
     # read as the scene's source frame (as given, no frame found), it lies elsewhere and renders poorly (warned)
