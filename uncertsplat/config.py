@@ -512,9 +512,10 @@ class TrainConfig(_Base):
     tools train in them), moved into the run's normalised frame by the scene's ``world_from_source``; ``run`` the
     normalised frame already (a ``point_cloud.ply`` of uncertsplat); ``align`` a frame of the model's own, found by
     placing its Gaussians on the scene's sparse points (a similarity: scale, rotation, shift; ``sfm.align``), for a
-    trainer that normalised its world and did not write how (gsplat's simple_trainer); ``auto`` ``run`` for files
-    uncertsplat wrote, otherwise ``source``, or ``align`` when the Gaussians read in the source frame do not lie on
-    the scene's sparse points and the found frame places them there."""
+    trainer that normalised its world and did not write how (gsplat's simple_trainer), then fitted to 8 training
+    photos; ``auto`` ``run`` for files uncertsplat wrote, otherwise ``source``, or ``align`` when the Gaussians read in
+    the source frame do not lie on the scene's sparse points and a frame found places them there and is pinned by
+    them (points on about one plane or line pin none: ``sfm.align.MIN_FIRMNESS``)."""
     init_ply_transform: Path | None = None
     """A JSON file with the similarity that took the scene's source coordinates into ``init_ply``'s (x_file = s R
     x_source + t), for a trainer that normalises its world before training: nerfstudio's ``dataparser_transforms.json``
