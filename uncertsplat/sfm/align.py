@@ -5,12 +5,14 @@ poses). ``register_clouds`` finds one for two clouds of the same surfaces withou
 model that another tool trained in a frame of its own (normalised, turned to its principal axes) and the scene's
 sparse points (``train --from-ply``, ``TrainConfig.init_ply_frame = "align"``). It starts from the principal axes
 of both clouds in every proper axis order and sign (and turned by 30 and 60 degrees about each axis, for clouds
-whose principal axes are nearly equal; at three scales) and refines the best starts by trimmed ICP: each source point matched to its
-nearest destination point, the nearest share of the matches kept, the similarity of those solved again.
+whose principal axes are nearly equal; at three scales) and refines the best starts by trimmed ICP: each source
+point matched to its nearest destination point, the nearest share of the matches kept, the similarity of those
+solved again (point to point, then point to plane).
 
 The residual that ranks the starts is the kept matches' mean distance over the source cloud's radius as placed
 (its size in the destination's units): a similarity that shrinks the source onto a dense patch of the destination
-makes its distances small, but not relative to its own size.
+makes its distances small, but not relative to its own size. A small residual does not say the placement is the
+only one: ``Registration.firmness`` says whether the clouds pin it (points on one plane or line do not).
 """
 
 from __future__ import annotations
