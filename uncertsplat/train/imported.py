@@ -9,6 +9,7 @@ trainer gives the large ones a posterior that renders them as the file does (``o
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -137,7 +138,9 @@ def _aligned(path: Path, frame: str, means: torch.Tensor, opacity_logits: torch.
     source_residual = placement_residual(pts, cloud_np, file_from_run_source)
     if frame == "auto" and source_residual <= ALIGNED_RESIDUAL:
         return None, None, None
+    began = time.perf_counter()  # (said: train's "done" line times the posterior only)
     reg = register_clouds(pts, cloud_np)
+    searched = time.perf_counter() - began
     if frame == "auto" and not (reg.residual <= ALIGNED_RESIDUAL and reg.residual < 0.5 * source_residual):
         # said: the renders' warning that follows would otherwise suggest the search that was just made
         found = (f"nor in the best frame found for them ({reg.residual:.3f}; {ALIGNED_RESIDUAL:g} or less lies on "
@@ -168,9 +171,9 @@ def _aligned(path: Path, frame: str, means: torch.Tensor, opacity_logits: torch.
     angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(rot)) - 1.0) / 2.0))))
     record = {"file_from_source": file_from_source.tolist(), "residual": reg.residual, "refined_psnr": None,
               "source_residual": source_residual, "points": int(pts.shape[0]), "gaussians": int(cloud_np.shape[0])}
-    placed = (f"placed on the scene's {pts.shape[0]:,} sparse points by a similarity (from the run's frame: "
-              f"scale x{reg.scale:.4g}, turned {angle:.1f} degrees; {cloud_np.shape[0]:,} Gaussians at least "
-              f"{SOLID_OPACITY} opaque lie {reg.residual:.3f} of the points' radius from them, against "
+    placed = (f"placed on the scene's {pts.shape[0]:,} sparse points in {searched:.1f} s by a similarity (from the "
+              f"run's frame: scale x{reg.scale:.4g}, turned {angle:.1f} degrees; {cloud_np.shape[0]:,} Gaussians "
+              f"at least {SOLID_OPACITY} opaque lie {reg.residual:.3f} of the points' radius from them, against "
               f"{source_residual:.3f} read in the scene's source frame)")
     if frame == "auto":
         note = (f"the model's Gaussians do not lie on the scene's sparse points as read in the scene's source frame, so "
@@ -352,12 +355,15 @@ def model_from_ply(path: Path, scene: SceneData, train_cams: Cameras, *, frame: 
     if alignment is not None:
         name = "aligned"
         if refine is not None:
+            began = time.perf_counter()
             run_from_run, before, after = refine(_moved(ply.params, a, shift, s), ply.sh_degree)
+            fitted = time.perf_counter() - began
             w = scene.world_from_source.double().cpu()
             file_from_source = file_from_source @ torch.linalg.inv(w) @ torch.linalg.inv(run_from_run) @ w
             a, shift, s, _ = _frame(path, ply.ours, "source", scene.world_from_source, file_from_source)
             alignment = {**alignment, "file_from_source": file_from_source.tolist(), "refined_psnr": [before, after]}
-            align_note = f"{align_note}; fitted to the photos: {before:.2f} -> {after:.2f} dB on the views compared"
+            align_note = (f"{align_note}; fitted to the photos: {before:.2f} -> {after:.2f} dB on the views compared "
+                          f"({fitted:.1f} s)")
     p = _moved(ply.params, a, shift, s)
     n = p["means"].shape[0]
     # the share inside some training view, over at most IN_VIEW_SAMPLE evenly spaced Gaussians (a statistic: a
