@@ -82,27 +82,23 @@ class TestRegisterClouds:
         assert found.scale == pytest.approx(np.cbrt(np.linalg.det(truth[:3, :3])), rel=0.005)
         assert found.residual < 0.02  # a sparse sample of the surfaces: the NN distances of 11k points
 
-    def test_a_half_turn_is_told_from_none(self):
-        """A half turn about the longest axis maps the principal axes onto themselves up to sign: the search must
-        try the signs, not take the axes as they come."""
-        rng = np.random.default_rng(7)
-        surface = _room(rng, 10000, size=(6.0, 2.0, 3.0))
+    @pytest.mark.parametrize("seed, size, axis, degrees, scale, shift", [
+        # a half turn about the longest axis maps the principal axes onto themselves up to sign: the search must try
+        # the signs, not take the axes as they come
+        (7, (6.0, 2.0, 3.0), (1.0, 0.0, 0.0), 180.0, 1.0, (0.3, 0.0, 0.0)),
+        # a cube-like room (equal sides: its principal axes are any axes of the plane of two equal ones) turned by 45
+        # degrees about one axis, halfway between the starts of the signed permutations
+        (11, (3.0, 3.0, 3.0), (0.0, 1.0, 0.0), 45.0, 2.0, (1.0, 2.0, 3.0)),
+    ], ids=["half-turn", "equal-axes"])
+    def test_turns_the_principal_axes_cannot_tell(self, seed, size, axis, degrees, scale, shift):
+        """Turns that the two clouds' principal axes alone do not give are found from the other starts."""
+        rng = np.random.default_rng(seed)
+        surface = _room(rng, 10000, size=size)
         src, dst_run = surface[:1000], surface[1000:]
-        truth = _similarity(1.0, _about(np.array([1.0, 0.0, 0.0]), 180.0), [0.3, 0.0, 0.0])
+        truth = _similarity(scale, _about(np.array(axis), degrees), list(shift))
         found = register_clouds(src, _place(dst_run, truth))
-        shift, angle = _errors(found, truth, src)
-        assert shift < 0.01 and angle < 0.3, (shift, angle)
-
-    def test_nearly_equal_axes_leave_no_turn_unfound(self):
-        """A cube-like room (equal sides: its principal axes are any axes of the plane of two equal ones) turned by
-        45 degrees about one axis, halfway between the starts of the signed permutations."""
-        rng = np.random.default_rng(11)
-        surface = _room(rng, 10000, size=(3.0, 3.0, 3.0))
-        src, dst_run = surface[:1000], surface[1000:]
-        truth = _similarity(2.0, _about(np.array([0.0, 1.0, 0.0]), 45.0), [1.0, 2.0, 3.0])
-        found = register_clouds(src, _place(dst_run, truth))
-        shift, angle = _errors(found, truth, src)
-        assert shift < 0.01 and angle < 0.3, (shift, angle)
+        shift_err, angle = _errors(found, truth, src)
+        assert shift_err < 0.01 and angle < 0.3, (shift_err, angle)
 
     def test_clouds_with_parts_the_other_lacks(self):
         """The Gaussians hold a background the SfM points lack (a far sky shell, a tenth of them) and the points hold

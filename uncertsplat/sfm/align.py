@@ -88,6 +88,27 @@ class Registration:
     firmness: float = math.inf
 
 
+def _rms_radius(points: np.ndarray) -> float:
+    """The points' RMS distance from their mean."""
+    return float(np.sqrt(((points - points.mean(0)) ** 2).sum(1).mean()))
+
+
+def _kept(n: int) -> int:
+    """How many of n matches (the nearest) count: ``KEEP`` of them, at least 3."""
+    return max(3, int(KEEP * n))
+
+
+def _finite(points) -> np.ndarray:
+    """[N,3] float64 rows of ``points`` without a value that is not finite."""
+    points = np.asarray(points, dtype=np.float64)
+    return points[np.isfinite(points).all(1)]
+
+
+def _subset(points: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """At most ``n`` of the points, drawn by ``rng`` and kept in their order."""
+    return points if len(points) <= n else points[np.sort(rng.choice(len(points), n, replace=False))]
+
+
 def _matrix(s: float, r: np.ndarray, t: np.ndarray) -> np.ndarray:
     m = np.eye(4)
     m[:3, :3] = s * r
@@ -103,12 +124,11 @@ def _core(points: np.ndarray, share: float) -> tuple[np.ndarray, float, np.ndarr
     dist = np.linalg.norm(points - med, axis=1)
     core = points[dist <= np.quantile(dist, share)]
     centre = core.mean(0)
-    radius = float(np.sqrt(((core - centre) ** 2).sum(1).mean()))
     evals, evecs = np.linalg.eigh(np.cov((core - centre).T))
     axes = evecs[:, np.argsort(evals)[::-1]]
     if np.linalg.det(axes) < 0:
         axes[:, 2] = -axes[:, 2]
-    return centre, radius, axes
+    return centre, _rms_radius(core), axes
 
 
 def _turn(axis: int, degrees: float) -> np.ndarray:
@@ -170,8 +190,7 @@ class _Matcher:
         slide along flat surfaces in a few rounds where point-to-point rounds creep (hundreds on a room's walls).
         ``reach``: matches farther than this share of the placed source's radius count as that far (a start's score
         needs no more, and the tree's search stops there)."""
-        keep = max(3, int(KEEP * len(src)))
-        radius = float(np.sqrt(((src - src.mean(0)) ** 2).sum(1).mean()))
+        keep, radius = _kept(len(src)), _rms_radius(src)
         residual = math.inf
         for it in range(iterations + 1):
             placed = src @ (s * r).T + t
@@ -203,8 +222,7 @@ class _Matcher:
                ) -> list[float]:
         """``icp``'s residual with no round for each placement (s, R, t) of ``src``: every placement's points in one
         query of the tree (thousands of starts: one query each was most of the search's time)."""
-        keep = max(3, int(KEEP * len(src)))
-        radius = float(np.sqrt(((src - src.mean(0)) ** 2).sum(1).mean()))
+        keep, radius = _kept(len(src)), _rms_radius(src)
         sr = np.stack([s * r for s, r, _ in placements])  # [S,3,3]
         t = np.stack([t for _, _, t in placements])  # [S,3]
         bound = np.maximum(np.array([s for s, _, _ in placements]) * radius, 1e-300)  # [S]
@@ -220,28 +238,26 @@ class _Matcher:
         matches' centre, a shift) that move the kept points least off the destination's tangent planes (the
         point-to-plane normal equations' weakest directions; the normals' noise leaves none at 0), each tried by
         ``SLIDE`` of the radius both ways, and the smallest residual of them over the placement's."""
-        base = self.icp(src, s, r, t, 0, (s, s))[3]
         placed = src @ (s * r).T + t
         dist, idx = self.tree.query(placed)
-        keep = max(3, int(KEEP * len(src)))
-        keep = np.argpartition(dist, keep - 1)[:keep]
+        keep = np.argpartition(dist, _kept(len(src)) - 1)[:_kept(len(src))]
         n = self.normals()[idx[keep]]
         c = placed[keep].mean(0)
-        radius = float(np.sqrt(((placed[keep] - c) ** 2).sum(1).mean()))
-        if not (base > 0 and radius > 0):
-            return math.inf
-        q = (placed[keep] - c) / radius  # (in radii: a turn, a shift and a log-scale of 1 move points alike)
+        radius = _rms_radius(placed[keep])
+        q = (placed[keep] - c) / max(radius, 1e-300)  # (in radii: a turn, a shift and a log-scale of 1 move alike)
         jac = np.concatenate([np.cross(q, n), n, (q * n).sum(1, keepdims=True)], axis=1)  # [K,7]
         _, vecs = np.linalg.eigh(jac.T @ jac)
-        least = math.inf
+        slides = []
         for u in vecs.T[:4]:  # a plane leaves 4 motions free (2 shifts, the turn about its normal, the scale)
             size = float(np.sqrt(((np.cross(u[:3], q) + u[3:6] + u[6] * q) ** 2).sum(1).mean()))
             for sign in (1.0, -1.0):
                 p = sign * SLIDE / max(size, 1e-12) * u
                 turn, grow = _rotation(p[:3]), math.exp(float(p[6]))
-                s2, r2, t2 = s * grow, turn @ r, c + grow * turn @ (t - c) + p[3:6] * radius
-                least = min(least, self.icp(src, s2, r2, t2, 0, (s2, s2))[3])
-        return least / base
+                slides.append((s * grow, turn @ r, c + grow * turn @ (t - c) + p[3:6] * radius))
+        base, *moved = self.scores(src, [(s, r, t), *slides], reach=1.0)
+        if not (base > 0 and radius > 0):
+            return math.inf
+        return min(moved) / base
 
     def _plane_round(self, placed: np.ndarray, idx: np.ndarray, s: float, r: np.ndarray, t: np.ndarray
                      ) -> tuple[float, np.ndarray, np.ndarray]:
@@ -275,19 +291,12 @@ def register_clouds(src: np.ndarray, dst: np.ndarray, *, seed: int = 0, start_po
     Raises:
         ValueError: fewer than ``MIN_POINTS`` finite points in either cloud.
     """
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    src = src[np.isfinite(src).all(1)]
-    dst = dst[np.isfinite(dst).all(1)]
+    src, dst = _finite(src), _finite(dst)
     if len(src) < MIN_POINTS or len(dst) < MIN_POINTS:
         raise ValueError(f"register_clouds needs at least {MIN_POINTS} points in each cloud ({len(src)}, {len(dst)})")
     rng = np.random.default_rng(seed)
-
-    def subset(points: np.ndarray, n: int) -> np.ndarray:
-        return points if len(points) <= n else points[np.sort(rng.choice(len(points), n, replace=False))]
-
-    dst = subset(dst, max_dst)
-    few, coarse, fine = subset(src, start_points), subset(src, coarse_points), subset(src, fine_points)
+    dst = _subset(dst, max_dst, rng)
+    few, coarse, fine = (_subset(src, n, rng) for n in (start_points, coarse_points, fine_points))
     # starts from two views of each cloud: 90 % of it (the shape as a whole) and the half nearest its median (where
     # one cloud holds far parts the other lacks, up to about half of it); at the cores' radii ratio, half and twice
     cores = [(_core(src, share), _core(dst, share)) for share in (0.9, 0.5)]
@@ -319,15 +328,9 @@ def placement_residual(src: np.ndarray, dst: np.ndarray, dst_from_src: np.ndarra
     """``register_clouds``' residual of a given similarity (no ICP): how well ``dst_from_src`` already places
     ``src`` on ``dst`` (the same subsets of either cloud as ``register_clouds`` with the same arguments takes, so
     that the two residuals compare)."""
-    src = np.asarray(src, dtype=np.float64)
-    dst = np.asarray(dst, dtype=np.float64)
-    src = src[np.isfinite(src).all(1)]
-    dst = dst[np.isfinite(dst).all(1)]
     rng = np.random.default_rng(seed)
-    if len(dst) > max_dst:
-        dst = dst[np.sort(rng.choice(len(dst), max_dst, replace=False))]
-    if len(src) > points:
-        src = src[np.sort(rng.choice(len(src), points, replace=False))]
+    dst = _subset(_finite(dst), max_dst, rng)
+    src = _subset(_finite(src), points, rng)
     m = np.asarray(dst_from_src, dtype=np.float64)
     s = float(np.cbrt(abs(np.linalg.det(m[:3, :3]))))
-    return _Matcher(dst).icp(src, s, m[:3, :3] / s, m[:3, 3], 0, (s, s))[3]
+    return _Matcher(dst).scores(src, [(s, m[:3, :3] / s, m[:3, 3])], reach=1.0)[0]

@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 
 from uncertsplat.errors import UserError
-from uncertsplat.gaussians.ops import rotmat_to_quat
+from uncertsplat.gaussians.ops import quat_to_rotmat, rotmat_to_quat
 from uncertsplat.gaussians.params import GaussianModel
 from uncertsplat.gaussians.prior import empty_tables
 from uncertsplat.io.ply import read_standard_ply
@@ -231,16 +231,6 @@ Refine = Callable[[dict[str, torch.Tensor], int], tuple[torch.Tensor, float, flo
 frame, their SH degree) -> (run_from_run [4,4] float64 that moves them onto the photos, PSNR before, after)."""
 
 
-def _axis_angle_matrix(w: torch.Tensor) -> torch.Tensor:
-    """[3,3] exp([w]x), differentiable at w = 0 (the angle's square root kept off 0)."""
-    angle = torch.sqrt((w * w).sum() + 1e-24)
-    k = w / angle
-    zero = w.new_zeros(())
-    kx = torch.stack([torch.stack([zero, -k[2], k[1]]), torch.stack([k[2], zero, -k[0]]),
-                      torch.stack([-k[1], k[0], zero])])
-    return torch.eye(3, dtype=w.dtype, device=w.device) + torch.sin(angle) * kx + (1.0 - torch.cos(angle)) * kx @ kx
-
-
 REFINE_SCHEDULE = ((0.25, 30), (0.5, 30), (1.0, 40))
 """``refine_frame``'s rounds: (image scale, Adam steps), coarse first: a frame the sparse points left a few pixels off
 at full size is under a pixel off at a quarter of it, where the photometric loss still sees the way."""
@@ -272,13 +262,17 @@ def refine_frame(params: dict[str, torch.Tensor], sh_degree: int, cams: Cameras,
     v = torch.zeros(3, dtype=torch.float64, device=dev, requires_grad=True)
     sigma = torch.zeros(1, dtype=torch.float64, device=dev, requires_grad=True)
 
+    def turn() -> torch.Tensor:
+        """[4] wxyz: the turn by the angle |w| about w (its half-angle kept off 0, so differentiable at w = 0)."""
+        half = 0.5 * torch.sqrt((w * w).sum() + 1e-24)
+        return torch.cat([torch.cos(half)[None], torch.sin(half) * w / (2.0 * half)])
+
     def sample() -> GaussianSample:
-        r = _axis_angle_matrix(w)
+        q_turn = turn()
+        r = quat_to_rotmat(q_turn[None])[0]
         grow = torch.exp(sigma)
         moved = c + grow * (means - c) @ r.T + v
-        half = 0.5 * torch.sqrt((w * w).sum() + 1e-24)  # the turn's quaternion (cos, sin k), wxyz
-        turn = torch.cat([torch.cos(half)[None], torch.sin(half) * w / (2.0 * half)])
-        q = _quat_mul(turn.to(base["quats"].dtype).expand_as(base["quats"]), base["quats"])
+        q = _quat_mul(q_turn.to(base["quats"].dtype).expand_as(base["quats"]), base["quats"])
         return GaussianSample(moved.float(), q, base["scales"].exp() * grow.float(), opacities, sh, sh_degree)
 
     def views_psnr() -> float:
@@ -314,7 +308,7 @@ def refine_frame(params: dict[str, torch.Tensor], sh_degree: int, cams: Cameras,
             opt.step()
     after = views_psnr()
     with torch.no_grad():
-        r, grow = _axis_angle_matrix(w).cpu(), float(torch.exp(sigma))
+        r, grow = quat_to_rotmat(turn()[None])[0].cpu(), float(torch.exp(sigma))
         out = torch.eye(4, dtype=torch.float64)
         out[:3, :3] = grow * r
         out[:3, 3] = c.cpu() + v.cpu() - grow * r @ c.cpu()

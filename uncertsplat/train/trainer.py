@@ -550,11 +550,11 @@ class Trainer:
 
         cfg = self.cfg
         views = check_views(len(self.train_idx), 8)
-        masks = self._train_masks(views) if views else None
 
         def refine(p: dict[str, Tensor], degree: int) -> tuple[Tensor, float, float]:
             # a frame found on the sparse points, fitted to 8 training photos (its first guess renders pixels off);
             # the photos as they are (an imported run learns no exposures: config refuses them)
+            masks = self._train_masks(views)
             return refine_frame({k: t.to(self.device) for k, t in p.items()}, degree, self.train_cams[views],
                                 lambda k: self.train_images[[views[k]]][0], lambda g, cam: self.render(g, cam).rgb,
                                 extent=self.extent, mask=lambda k: None if masks is None else masks[k])
