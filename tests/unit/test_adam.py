@@ -189,6 +189,45 @@ class TestDense:
         load_optimizer_state(back, copy.deepcopy(theirs.state_dict()))
         assert all(torch.equal(back.state[p]["exp_avg_sq"], ours.state[p]["exp_avg_sq"]) for p in b)
 
+    @pytest.mark.parametrize("sparse", [False, True])
+    @pytest.mark.parametrize("gradient", ["none", "zeros"])
+    def test_an_idle_group_is_skipped_to_the_bit(self, gradient, sparse):
+        """``idle``: a group whose gradient (none, or zeros) and moments are zero (SH bands not switched on yet) is
+        not read, and the step leaves parameters, moments and step counts as the step over every element would,
+        to the bit, also once the group gets gradients; torch's convention (a group without a gradient skips the
+        step, its count too) would have given it step 1 there instead of step 5."""
+        shapes = ((97, 3), (97, 15, 3), (97,))
+        a, b = _params(shapes=shapes), _params(shapes=shapes)
+        full, part = Adam(_groups(a), eps=1e-15), Adam(_groups(b), eps=1e-15)
+        rows = {"t0": torch.arange(0, 97, 2), "t1": torch.arange(0, 97, 3)} if sparse else None
+        for step in range(8):
+            _grads(a, step)
+            _grads(b, step)
+            asleep = step < 4
+            if asleep:
+                a[1].grad.zero_()
+                b[1].grad = None if gradient == "none" else torch.zeros_like(b[1])
+            assert full.step_if_finite(rows)
+            assert part.step_if_finite(rows, idle=("t1",) if asleep else ())
+        for pa, pb in zip(a, b, strict=True):
+            for key in ("exp_avg", "exp_avg_sq", "step"):
+                assert torch.equal(part.state[pb][key], full.state[pa][key]), key
+            assert torch.equal(pb.detach(), pa.detach())
+        assert int(part.state[b[1]]["step"]) == 8
+
+    def test_an_idle_group_is_not_read(self):
+        """The skip is real: an idle group's gradient (here NaN, which the check refuses otherwise) is neither read
+        nor applied; the other groups are updated."""
+        params = _params(shapes=((40, 3), (40, 15, 3)))
+        opt = Adam(_groups(params), eps=1e-15)
+        _grads(params, 0)
+        params[1].grad[5, 2, 1] = float("nan")
+        before = [p.detach().clone() for p in params]
+        assert opt.step_if_finite(idle=("t1",))
+        assert torch.equal(params[1].detach(), before[1])
+        assert not torch.equal(params[0].detach(), before[0])
+        assert not opt.step_if_finite(), "not idle, the NaN is seen and the step refused"
+
     def test_the_trainer_uses_it_on_the_cpu(self):
         """``make_optimizer``'s dense Adam on CPU float32 is ours (one call per step), torch's when the native
         kernels are not used."""
@@ -378,6 +417,53 @@ class TestTraining:
                 torch.testing.assert_close(sb[i][key], sa[i][key], rtol=0, atol=1e-6, msg=f"{i}.{key}")
         if mode == "lazy":
             assert all("last_step" in s for s in sa.values())
+
+    def test_bands_not_switched_on_cost_nothing_and_change_nothing(self, monkeypatch):
+        """At SH degree 0 Adam does not read the higher bands (``idle``), which get no gradient at all once the
+        step renders the table's two SH tensors (the native SH backward writes none: from the first posterior
+        update on, when the model has carriers), yet their step count keeps pace. The parameters and moments of such
+        a run equal, to the bit, those of a run in which every step handed Adam a gradient of zeros for the bands
+        and Adam updated every element (the way before)."""
+        from uncertsplat.render import sh as sh_module
+
+        if native.library() is None:
+            pytest.skip("the native CPU kernels are not available on this machine")
+        scene, tr, te = toy_scene()
+        cfg = toy_config(iterations=24, sh_degree_interval=15)  # degree 0 to step 14, carriers from step 11 on
+        seen: list[tuple[int, bool, tuple[str, ...]]] = []
+        fast = Trainer(scene, cfg, tr, te)
+        update = fast._update
+
+        def recording(loss, radii, idle):
+            seen.append((fast.step + 1, fast.model.params["shN"].grad is None, idle))
+            return update(loss, radii, idle)
+
+        fast._update = recording
+        fast.fit()
+        assert [(k, idle) for k, _, idle in seen if k < 15] == [(k, ("shN",)) for k in range(1, 15)], "degree 0"
+        assert any(none for k, none, _ in seen if k < 15), "no step rendered the split SH without a band gradient"
+        assert all(not none and idle == () for k, none, idle in seen if k >= 15), "degree 1, the model's own"
+
+        backward = sh_module._NativeSH.backward
+
+        def zeros_for_the_bands(ctx, grad):
+            out = list(backward(ctx, grad))
+            if out[1] is None and len(ctx.saved_tensors) == 4:
+                out[1] = torch.zeros_like(ctx.saved_tensors[3])
+            return tuple(out)
+
+        monkeypatch.setattr(sh_module._NativeSH, "backward", staticmethod(zeros_for_the_bands))
+        monkeypatch.setattr(Trainer, "_idle_sh", lambda self, degree: ())
+        slow = Trainer(scene, cfg, tr, te)
+        slow.fit()
+        for name, p in fast.model.parameters().items():
+            q = slow.model.parameters()[name]
+            assert torch.equal(p.detach(), q.detach()), name
+            mine, theirs = fast.optimizer.state.get(p, {}), slow.optimizer.state.get(q, {})
+            assert mine.keys() == theirs.keys(), name  # (the informed tables get no gradient, so no state)
+            for key in mine:
+                assert torch.equal(mine[key], theirs[key]), f"{name}.{key}"
+        assert int(fast.optimizer.state[fast.model.params["shN"]]["step"]) == 24
 
     def test_a_gaussian_outside_every_view_keeps_its_parameters_and_moments(self):
         scene, tr, te = toy_scene()

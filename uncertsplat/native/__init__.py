@@ -41,7 +41,7 @@ from pathlib import Path
 
 import torch
 
-INTERFACE_VERSION = 20
+INTERFACE_VERSION = 21
 CSRC = Path(__file__).with_name("csrc")
 # compiled side by side, one process each (``_build``): the two halves of the rasterizer take most of the time
 SOURCES = (CSRC / "composite_forward.cpp", CSRC / "composite_backward.cpp", CSRC / "losses.cpp", CSRC / "project.cpp",

@@ -211,10 +211,13 @@ class _NativeSH(torch.autograd.Function):
 
         means, centers, *parts = ctx.saved_tensors
         C, N, B = centers.shape[0], means.shape[0], sum(t.shape[1] for t in parts)
-        g_parts, g_means = [torch.empty_like(t) for t in parts], torch.empty_like(means)
+        # at degree 0 the higher bands (apart) get no gradient, not one of zeros: nothing of them reached the render,
+        # and a training step then neither writes nor reads them (``Adam.step_if_finite``'s ``idle``)
+        g_parts = [torch.empty_like(t) if i == 0 or ctx.degree > 0 else None for i, t in enumerate(parts)]
+        g_means = torch.empty_like(means)
         grad = grad.contiguous()  # kept in a variable: the kernel reads it after data_ptr() returns
         lib = native.library()
         fn = lib.us_sh_backward_f32 if len(parts) == 1 else lib.us_sh2_backward_f32
         fn(C, N, B, ctx.degree, *(t.data_ptr() for t in parts), means.data_ptr(), centers.data_ptr(), grad.data_ptr(),
-           *(t.data_ptr() for t in g_parts), g_means.data_ptr(), native.kernel_threads())
+           *(None if t is None else t.data_ptr() for t in g_parts), g_means.data_ptr(), native.kernel_threads())
         return g_parts[0], g_parts[1] if len(parts) == 2 else None, g_means, None, None

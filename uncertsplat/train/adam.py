@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+from collections.abc import Collection
 
 import torch
 from torch import Tensor
@@ -60,25 +61,42 @@ class Adam(torch.optim.Optimizer):
                 state["last_step"] = state["last_step"].round().to(torch.long).contiguous()
 
     @torch.no_grad()
-    def step(self, closure=None, rows: dict[str, Tensor] | None = None):  # noqa: D417
+    def step(self, closure=None, rows: dict[str, Tensor] | None = None,  # noqa: D417
+             idle: Collection[str] = ()):
         """One update of the rows ``rows[group name]`` ([R] long, distinct) of each tensor that has a gradient.
 
         A group absent from ``rows`` (or ``rows=None``) updates every row. Rows outside the list keep their
         values and moments.
+
+        ``idle``: groups whose gradient (if any) and moments the caller vouches are all zero (SH bands not
+        switched on yet), where Adam would change no number: they are not read, but their step count advances as
+        under a gradient of zeros, so that their bias correction when they wake is a dense step's (torch skips a
+        group without a gradient, its step count too).
         """
         loss = closure() if closure is not None else None
-        self.step_if_finite(rows, check_finite=False)
+        self.step_if_finite(rows, check_finite=False, idle=idle)
         return loss
 
     @torch.no_grad()
-    def step_if_finite(self, rows: dict[str, Tensor] | None = None, *, check_finite: bool = True) -> bool:
+    def step_if_finite(self, rows: dict[str, Tensor] | None = None, *, check_finite: bool = True,
+                       idle: Collection[str] = ()) -> bool:
         """As :meth:`step`; with ``check_finite`` (the default) it updates only when every gradient is finite, and
         returns False (changing nothing, moments and step counts included) when one holds a NaN or Inf."""
-        live = [g for g in self.param_groups if g["params"][0].grad is not None]
+        live = [g for g in self.param_groups if g["params"][0].grad is not None and g["name"] not in idle]
+        asleep = [g for g in self.param_groups if g["name"] in idle]
         if rows is None and not self.lazy and self._dense_native(live):
-            return self._dense_step(live, check_finite)
-        if check_finite and not all_finite(g["params"][0].grad for g in live):
+            if not self._dense_step(live, check_finite):
+                return False
+        elif check_finite and not all_finite(g["params"][0].grad for g in live):
             return False
+        else:
+            self._per_group(live, rows)
+        for g in asleep:
+            self._state_of(g["params"][0])["step"] += 1
+        return True
+
+    def _per_group(self, live: list[dict], rows: dict[str, Tensor] | None) -> None:
+        """One native (or torch) call per group: the sparse updates, and the dense step off the native path."""
         for group in live:
             (p,) = group["params"]
             state = self._state_of(p)
@@ -92,7 +110,6 @@ class Adam(torch.optim.Optimizer):
             beta1, beta2 = group["betas"]
             adam_rows(p, p.grad, state["exp_avg"], state["exp_avg_sq"], state.get("last_step") if self.lazy else None,
                       idx, step=step, lr=group["lr"], beta1=beta1, beta2=beta2, eps=group["eps"])
-        return True
 
     def zero_grad(self, set_to_none: bool = True) -> None:
         """As ``Optimizer.zero_grad``, without its profiler hooks (every training step calls it)."""

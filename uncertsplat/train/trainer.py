@@ -1288,7 +1288,7 @@ class Trainer:
         # thread, which spins after a parallel region (libgomp's wait policy) and takes a core from the next kernels
         # (BENCHMARKS.md, "Adam on torch's one thread", "One Adam call for every group")
         with timer("optimizer"):
-            finite = self._update(losses["loss"], out.radii)
+            finite = self._update(losses["loss"], out.radii, self._idle_sh(degree))
             if finite:
                 self.bad_steps_in_a_row = 0
                 if self.exposure_optimizer is not None:
@@ -1426,15 +1426,26 @@ class Trainer:
         self.posterior_updates.append(record)
         return record
 
-    def _update(self, loss: Tensor, radii: Tensor) -> bool:
+    def _idle_sh(self, degree: int) -> tuple[str, ...]:
+        """Adam's ``idle`` groups at SH degree ``degree``: at degree 0 no coefficient of the higher bands (``shN``)
+        reaches the render, nor has one before (the schedule only switches bands on), so their gradients and
+        moments are zero and Adam, which would leave them as they are, need not read them (the native SH backward
+        gives them no gradient there: ``render.sh``). Three quarters of a Gaussian's numbers at SH degree 3."""
+        return ("shN",) if degree == 0 < self.model.sh_degree else ()
+
+    def _update(self, loss: Tensor, radii: Tensor, idle: tuple[str, ...]) -> bool:
         """The optimisers' update from this step's gradients, unless the loss or a gradient is NaN/Inf (then
         nothing changes and False is returned). Our Adam checks the parameters' gradients in its own pass
-        (``Adam.step_if_finite``); torch's (on other devices) after a check here."""
+        (``Adam.step_if_finite``); torch's (on other devices) after a check here. ``idle``: ``_idle_sh``."""
         rows = None if self.cfg.sparse_updates == "dense" else self.touched_rows(radii)
         exposure = self.exposure.grad if self.exposure is not None else None
         if isinstance(self.optimizer, Adam):
-            return all_finite([loss, exposure]) and self.optimizer.step_if_finite(rows)
-        if not all_finite([loss, exposure, *(p.grad for p in self.model.parameters().values())]):
+            return all_finite([loss, exposure]) and self.optimizer.step_if_finite(rows, idle=idle)
+        params = self.model.parameters()
+        for name in idle:  # torch's Adam skips a tensor without a gradient, its step count too
+            if params[name].grad is None:
+                params[name].grad = torch.zeros_like(params[name])
+        if not all_finite([loss, exposure, *(p.grad for p in params.values())]):
             return False
         self.optimizer.step()
         return True

@@ -222,9 +222,11 @@ void sh_backward(int64_t C, int64_t N, int64_t B, int degree, const ShLayout& sh
                 const int64_t n = n0 + l;
                 float* gdc = g_sh.dc + n * g_sh.dc_stride;
                 for (int i = 0; i < 3; ++i) gdc[i] = gs[i][l];
-                float* grest = g_sh.rest + n * g_sh.rest_stride;
-                for (int i = 3; i < nb * 3; ++i) grest[i - 3] = gs[i][l];
-                std::fill(grest + std::max(nb - 1, 0) * 3, grest + (B - 1) * 3, 0.0f);
+                if (g_sh.rest != nullptr) {  // null: no gradient of the higher bands asked for (degree 0)
+                    float* grest = g_sh.rest + n * g_sh.rest_stride;
+                    for (int i = 3; i < nb * 3; ++i) grest[i - 3] = gs[i][l];
+                    std::fill(grest + std::max(nb - 1, 0) * 3, grest + (B - 1) * 3, 0.0f);
+                }
                 for (int i = 0; i < 3; ++i) g_means[3 * n + i] = gm[i][l];
             }
         }
@@ -656,7 +658,8 @@ int us_sh_backward_f32(int64_t C, int64_t N, int64_t B, int64_t degree, const fl
     return 0;
 }
 
-// The same with the DC sh0 [N,1,3] and the higher bands shN [N,B-1,3] as two arrays (the parameter table's).
+// The same with the DC sh0 [N,1,3] and the higher bands shN [N,B-1,3] as two arrays (the parameter table's); the
+// backward's g_shN may be null at degree 0 (no gradient of the bands, whose share of the render is nil, is written).
 int us_sh2_forward_f32(int64_t C, int64_t N, int64_t B, int64_t degree, const float* sh0, const float* shN,
                        const float* means, const float* centres, float* out, int64_t num_threads) {
     if (degree < 0 || degree > 3 || (degree + 1) * (degree + 1) > B) return 1;
@@ -668,7 +671,7 @@ int us_sh2_forward_f32(int64_t C, int64_t N, int64_t B, int64_t degree, const fl
 int us_sh2_backward_f32(int64_t C, int64_t N, int64_t B, int64_t degree, const float* sh0, const float* shN,
                         const float* means, const float* centres, const float* g_out, float* g_sh0, float* g_shN,
                         float* g_means, int64_t num_threads) {
-    if (degree < 0 || degree > 3 || (degree + 1) * (degree + 1) > B) return 1;
+    if (degree < 0 || degree > 3 || (degree + 1) * (degree + 1) > B || (g_shN == nullptr && degree > 0)) return 1;
     sh_backward(C, N, B, static_cast<int>(degree), ShLayout{sh0, 3, shN, (B - 1) * 3}, means, centres, g_out,
                 ShGradLayout{g_sh0, 3, g_shN, (B - 1) * 3}, g_means, num_threads);
     return 0;
