@@ -857,6 +857,17 @@ def imported_fit_warnings(fit_psnr: float | None, imported: dict) -> list[str]:
     if fit_psnr is None or fit_psnr >= POOR_FIT_PSNR:
         return []
     frame = imported["frame"]
+    if frame == "aligned":  # a frame the points placed and the photos fitted: no frame to try, the model is the doubt
+        fitted = (imported.get("alignment") or {}).get("refined_psnr")
+        fit = f", fitted to the photos from {fitted[0]:.1f} to {fitted[1]:.1f} dB" if fitted else ""
+        return [f"the model of {imported['path']} renders its training views at {_psnr_shown(fit_psnr):.1f} dB here "
+                f"(read in {frame_phrase(imported)}{fit}; {imported['in_view_share']:.0%} of its Gaussians inside "
+                "some training view): its trainer fitted them far better, and no frame the points and photos "
+                "allow renders them better, so the model is likely of another scene (another capture of the place, "
+                "or of its own photos under other names: a scene whose walls or ground alone match still gets a "
+                "frame), or it renders otherwise than 3DGS does (an antialiased or filtered renderer, another "
+                "background); where the trainer's frame is known, give it (--from-ply-transform FILE): its "
+                "uncertainty here describes this render"]
     try_other = ("check init_ply_transform" if frame == "transform" else
                  "read in another: --set init_ply_frame=run, or =align to find its frame on the scene's sparse points"
                  if frame == "source" else
