@@ -465,6 +465,27 @@ class TestTraining:
                 assert torch.equal(mine[key], theirs[key]), f"{name}.{key}"
         assert int(fast.optimizer.state[fast.model.params["shN"]]["step"]) == 24
 
+    @pytest.mark.parametrize("mode", ["dense", "lazy"])
+    @pytest.mark.parametrize("bands", ["none", "dropped"])
+    def test_a_model_without_higher_bands_keeps_every_step_count(self, bands, mode):
+        """A model at SH degree 0 for good (``sh_degree = 0``, or band 1 dropped by its test: ``shN`` [N,0,3]) still
+        counts every step for ``shN``, as when each step handed Adam its (empty) gradient: the native SH backward
+        gives it none at degree 0, which must not stop its count (the checkpoint's state as before, and as on
+        torch's path)."""
+        if native.library() is None:
+            pytest.skip("the native CPU kernels are not available on this machine")
+        scene, tr, te = toy_scene()
+        cfg = toy_config(iterations=24, sparse_updates=mode,
+                         **({"sh_degree": 0} if bands == "none" else
+                            {"sh_degree": 1, "sh_degree_interval": 10, "sh_min_gain_db": 100.0}))
+        trainer = Trainer(scene, cfg, tr, te)
+        trainer.fit()
+        assert trainer.model.sh_degree == 0 and trainer.model.params["shN"].shape[1] == 0
+        if bands == "dropped":
+            assert [b.kept for b in trainer.sh_bands] == [False]
+        steps = {name: int(trainer.optimizer.state[p]["step"]) for name, p in trainer.model.params.items()}
+        assert steps == dict.fromkeys(steps, 24), steps
+
     def test_a_gaussian_outside_every_view_keeps_its_parameters_and_moments(self):
         scene, tr, te = toy_scene()
         cfg = toy_config(sparse_updates="visible", iterations=8,

@@ -1430,8 +1430,10 @@ class Trainer:
         """Adam's ``idle`` groups at SH degree ``degree``: at degree 0 no coefficient of the higher bands (``shN``)
         reaches the render, nor has one before (the schedule only switches bands on), so their gradients and
         moments are zero and Adam, which would leave them as they are, need not read them (the native SH backward
-        gives them no gradient there: ``render.sh``). Three quarters of a Gaussian's numbers at SH degree 3."""
-        return ("shN",) if degree == 0 < self.model.sh_degree else ()
+        gives them no gradient there: ``render.sh``). Three quarters of a Gaussian's numbers at SH degree 3. Also
+        when the model holds no higher band (``sh_degree = 0``, or band 1 dropped: ``shN`` [N,0,3]): its step count
+        goes on as when each step handed Adam the empty gradient (before, and on torch's path)."""
+        return ("shN",) if degree == 0 else ()
 
     def _update(self, loss: Tensor, radii: Tensor, idle: tuple[str, ...]) -> bool:
         """The optimisers' update from this step's gradients, unless the loss or a gradient is NaN/Inf (then
