@@ -476,7 +476,7 @@ class TestImportedFitWarnings:
 
         record = {"path": "m.ply", "in_view_share": 0.25}
         (warning,) = imported_fit_warnings(12.345, {**record, "frame": "source"})
-        assert "--set init_ply_frame=run" in warning and "12.3 dB here (read in the scene source's frame; 25% of" \
+        assert "--set init_ply_frame=run" in warning and "12.34 dB here (read in the scene source's frame; 25% of" \
             in warning, warning
         (warning,) = imported_fit_warnings(12.0, {**record, "frame": "run"})
         assert "--set init_ply_frame=source" in warning and "read in the run's frame" in warning, warning
@@ -495,6 +495,11 @@ class TestImportedFitWarnings:
         assert "=align to find its frame on the scene's sparse points" in warning, warning
         assert imported_fit_warnings(POOR_FIT_PSNR, {**record, "frame": "source"}) == []
         assert imported_fit_warnings(None, {**record, "frame": "source"}) == []
+        # just below the threshold reads as below it, as the closing line prints it (19.99), in every frame: "at
+        # 20.0 dB here" said a fit poor that read as the threshold itself (poor_fit_warnings' "19.99 dB")
+        for frame in ("source", "run", "aligned", "transform"):
+            (edge,) = imported_fit_warnings(POOR_FIT_PSNR - 0.004, {**record, "frame": frame, "transform": "t.json"})
+            assert "at 19.99 dB here" in edge, edge
 
 
 class TestRotateSh:

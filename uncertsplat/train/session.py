@@ -860,7 +860,7 @@ def imported_fit_warnings(fit_psnr: float | None, imported: dict) -> list[str]:
     if frame == "aligned":  # a frame the points placed and the photos fitted: no frame to try, the model is the doubt
         fitted = (imported.get("alignment") or {}).get("refined_psnr")
         fit = f", fitted to the photos from {fitted[0]:.1f} to {fitted[1]:.1f} dB" if fitted else ""
-        return [f"the model of {imported['path']} renders its training views at {_psnr_shown(fit_psnr):.1f} dB here "
+        return [f"the model of {imported['path']} renders its training views at {_psnr_shown(fit_psnr):.2f} dB here "
                 f"(read in {frame_phrase(imported)}{fit}; {imported['in_view_share']:.0%} of its Gaussians inside "
                 "some training view): its trainer fitted them far better, and no frame the points and photos "
                 "allow renders them better, so the model is likely of another scene (another capture of the place, "
@@ -874,7 +874,7 @@ def imported_fit_warnings(fit_psnr: float | None, imported: dict) -> list[str]:
                  "read in the scene's source frame: --set init_ply_frame=source" if frame == "aligned" else
                  "read in another: --set init_ply_frame=source")
     read_in = frame_phrase(imported)
-    return [f"the model of {imported['path']} renders its training views at {_psnr_shown(fit_psnr):.1f} dB here "
+    return [f"the model of {imported['path']} renders its training views at {_psnr_shown(fit_psnr):.2f} dB here "
             f"(read in {read_in}; {imported['in_view_share']:.0%} of its Gaussians inside some training view): its "
             f"trainer fitted them far better, so the model and the scene's cameras are likely not in one frame "
             f"({try_other}; a trainer that normalises its world, as nerfstudio's splatfacto and gsplat's "
