@@ -739,3 +739,48 @@ def test_an_output_folder_among_the_scene_s_photos_is_refused(tiny_scene_path, s
         with pytest.raises(UserError, match="the output folder is inside the folder of the scene's photos"):
             stage.run(subset_run, SelectConfig(score="coverage"), CPU, output=out)
     assert sorted(p.name for p in images.iterdir()) == before
+
+
+def test_a_run_without_its_scene_chooses_from_the_cameras_its_evaluation_kept(subset_run, tmp_path, monkeypatch,
+                                                                                capsys):
+    """A robot has the run folder, not the photos: the scores that read the model alone (variance, unseen, coverage)
+    choose from the cameras, split and normalisation evaluate kept in eval/predictive.pt, the same choice as with the
+    scene; fisher, which compares the model with the training photos, and a run without the file say what to do."""
+    from uncertsplat.baselines import load_run
+    from uncertsplat.baselines.runs import LoadedRun
+    from uncertsplat.config import EvalConfig
+    from uncertsplat.select.candidates import pose_line
+    from uncertsplat.stages import evaluate
+
+    run = tmp_path / "run"
+    shutil.copytree(subset_run, run)
+    evaluate.run(run, EvalConfig(num_samples=2, max_views=1), device=CPU)
+    plan = tmp_path / "plan.txt"  # two of the scene's unused cameras, as planned poses
+    cams = load_run(run, CPU).load_scene().cameras
+    wfs = torch.tensor(RunScene.read(run / RunScene.FILE_NAME).world_from_source, dtype=torch.float64)
+    plan.write_text("".join(pose_line(f"plan_{i}", cams.cam_from_world[i], wfs) + "\n" for i in (2, 6)),
+                    encoding="utf-8")
+    settings = [dict(score="variance"), dict(score="unseen", candidates=str(plan)),
+                dict(score="coverage", candidates="around:6")]
+    expected = [stage.run(run, SelectConfig(**s), CPU, output=tmp_path / f"with{i}") for i, s in enumerate(settings)]
+
+    def gone(self):
+        raise UserError(f"the scene this run was trained on is gone: {self.scene_path}", path=self.run_dir,
+                        hint="Restore the scene folder.")
+
+    monkeypatch.setattr(LoadedRun, "_read_scene", gone)
+    capsys.readouterr()
+    for i, s in enumerate(settings):
+        got = stage.run(run, SelectConfig(**s), CPU, output=tmp_path / f"without{i}")
+        assert [(c.name, c.score) for c in got.ranking] == [(c.name, c.score) for c in expected[i].ranking]
+        assert [c.name for c in got.chosen] == [c.name for c in expected[i].chosen]
+    printed = " ".join(capsys.readouterr().err.split())
+    assert "the cameras, split and normalisation are those kept in" in printed
+    with pytest.raises(UserError, match="is gone.*the fisher score .* compares the model with the training photos") as e:
+        stage.run(run, SelectConfig(score="fisher"), CPU, output=tmp_path / "fisher")
+    assert "--score variance, unseen or coverage" in e.value.hint
+    (run / "eval" / "predictive.pt").unlink()
+    with pytest.raises(UserError, match="is gone.*cannot stand in for it: .*predictive.pt is missing") as e:
+        stage.run(run, SelectConfig(score="variance"), CPU, output=tmp_path / "none")
+    assert "uncertsplat evaluate" in e.value.hint
+    assert not (tmp_path / "fisher").exists() and not (tmp_path / "none").exists()

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from uncertsplat.config import SelectConfig
-from uncertsplat.console import console, count, esc, list_names, qm
+from uncertsplat.console import console, count, esc, list_names, q, qm
 from uncertsplat.errors import UserError, run_folder_missing
 
 
@@ -214,6 +214,29 @@ def _refuse_output_among_photos(out: Path, scene, scene_path: Path | None) -> No
                             hint="Choose an output folder outside the photos (the default is RUN/select).")
 
 
+def _kept_scene(loaded, run_dir: Path, cfg: SelectConfig, err: UserError):
+    """The scene as the run's evaluation kept it (``RUN/eval/predictive.pt``: cameras, split, normalisation) where
+    the scene folder cannot be loaded (``err``), for the scores that read the run alone; ``err``, with what else to do,
+    where the score compares the model with the training photos (``fisher``) or the run holds no such file."""
+    from uncertsplat.predict import _evaluation_config
+    from uncertsplat.stages.predictive_cache import read_predictive
+
+    alone = "--score variance, unseen or coverage read the run alone (its eval/predictive.pt)"
+    if cfg.score == "fisher":
+        raise UserError(f"{err.message}; the fisher score (the default) compares the model with the training photos",
+                        path=err.path, hint=f"{err.hint or 'Restore the scene folder.'} Or choose without the photos: "
+                                            f"{alone}.") from err
+    kept, problem = read_predictive(loaded, _evaluation_config(run_dir), loaded.scene_path or run_dir)
+    if kept is None:
+        raise UserError(f"{err.message}; and the cameras kept beside the run cannot stand in for it: {problem}",
+                        path=err.path, hint=f"{err.hint or 'Restore the scene folder.'} Or run `uncertsplat evaluate "
+                                            f"{q(run_dir)}` where the scene is and copy the run folder with its eval/ "
+                                            f"folder: {alone}.") from err
+    console.print(f"[yellow]note:[/] the scene cannot be loaded ({err.message}): the cameras, split and normalisation "
+                  f"are those kept in {run_dir / 'eval' / 'predictive.pt'}")
+    return kept.scene
+
+
 def run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | None = None):
     """Choose ``cfg.num_views`` candidates for the run ``run_dir``; returns the written ``Selection``.
 
@@ -256,7 +279,11 @@ def _run(run_dir: Path, cfg: SelectConfig, device: torch.device, output: Path | 
         pass  # (a folder it made for this is removed again)
     loaded = load_run(run_dir, device)
     loaded.warn_if_unfinished()
-    scene = loaded.load_scene()
+    try:
+        scene = loaded.load_scene()
+    except UserError as err:  # a robot has the run, not the photos: the cameras and split its evaluation kept
+        scene = _kept_scene(loaded, run_dir, cfg, err)
+        loaded = loaded.with_scene(scene)  # (the empty-ray term's coverage reads the training cameras from it)
     if run_dir.resolve() not in out.resolve().parents:  # (RUN/select, the default: the run's own, wherever it lies)
         _refuse_output_among_photos(out, scene, loaded.scene_path)
     info = RunScene.read(run_dir / RunScene.FILE_NAME)
