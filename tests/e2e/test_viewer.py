@@ -106,6 +106,41 @@ class TestServer:
         assert v.scene is None and "no cameras or photos in the viewer" in said and "empty-ray term" in said, said
         assert v.renderer.loaded.coverage(1.0, torch.device("cpu")) == 1.0
 
+    def test_a_run_without_its_scene_draws_the_cameras_its_evaluation_kept(self, tiny_run_path, tmp_path, capsys,
+                                                                             monkeypatch):
+        """A robot has the run folder, not the photos: the cameras, split and normalisation evaluate kept
+        (eval/predictive.pt) are drawn, without photos, and the std modes keep the empty-ray term as with the scene;
+        the unseen mode, fitted on the photos, is not offered."""
+        import shutil
+
+        from uncertsplat.baselines.runs import LoadedRun
+        from uncertsplat.config import EvalConfig
+        from uncertsplat.stages import evaluate
+
+        run = tmp_path / "run"
+        shutil.copytree(tiny_run_path, run, ignore=shutil.ignore_patterns(".lock", "eval", "select"))
+        evaluate.run(run, EvalConfig(num_samples=2, max_views=1), device=torch.device("cpu"))
+        with_scene = stage.build(run, ViewConfig(port=0, thumbnails=False), torch.device("cpu"))
+
+        def gone(self):
+            raise UserError(f"the scene this run was trained on is gone: {self.scene_path}", path=self.run_dir)
+
+        monkeypatch.setattr(LoadedRun, "_read_scene", gone)  # (a scene.json edited would be another run's key)
+        capsys.readouterr()
+        v = stage.run(run, ViewConfig(port=0), torch.device("cpu"), block=False)
+        try:
+            said = " ".join(capsys.readouterr().err.split())
+            assert "is gone" in said and "the cameras are those kept in" in said, said
+            assert v.scene is not None and len(v._frustums) == len(with_scene.scene.cameras)
+            assert torch.equal(v.scene.cameras.cam_from_world, with_scene.scene.cameras.cam_from_world)
+            assert v.scene.split == with_scene.scene.split and not v.cfg.thumbnails
+            cpu = torch.device("cpu")
+            scale = with_scene.scene.scene_scale
+            assert v.renderer.loaded.coverage(scale, cpu) == with_scene.renderer.loaded.coverage(scale, cpu) < 1.0
+            assert "unseen" not in v.renderer.modes() and "unseen" in with_scene.renderer.modes()
+        finally:
+            v.stop()
+
     def test_the_views_select_views_chose_are_drawn_and_named(self, tiny_run_path, tmp_path, capsys):
         """The poses `select-views` chose (RUN/select/selection.json) could not be looked at: they are drawn as green
         cameras of their own, and clicking one takes the view there and names the choice; a damaged file is a note."""

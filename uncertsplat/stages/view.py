@@ -41,13 +41,25 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
     loaded = load_run(run_dir, device)
     loaded.warn_if_unfinished()
     scene = None
+    photos = True  # the scene folder's photos are there (not only the cameras its evaluation kept)
     try:
         scene = loaded.load_scene()
     except UserError as err:  # the model is still worth looking at without its photos
-        console.print(f"[yellow]note:[/] no cameras or photos in the viewer, and its std modes leave out the "
-                      f"empty-ray term (measured on the training views): {err.render()}", soft_wrap=True)
-        # (the term's coverage is rendered from the training cameras: the viewer stopped there with the same error)
-        loaded = loaded.with_model(loaded.model, coverage=1.0)
+        from uncertsplat.predict import _evaluation_config
+        from uncertsplat.stages.predictive_cache import read_predictive
+
+        kept, problem = read_predictive(loaded, _evaluation_config(run_dir), loaded.scene_path or run_dir)
+        if kept is not None:  # the cameras, split and normalisation evaluate kept (eval/predictive.pt)
+            scene, photos = kept.scene, False
+            loaded = loaded.with_scene(scene)  # (the empty-ray term's coverage is rendered from its training cameras)
+            console.print(f"[yellow]note:[/] {err.message}: the cameras are those kept in "
+                          f"{run_dir / 'eval' / 'predictive.pt'}, without their photos (nor the unseen mode, fitted "
+                          "on them)", soft_wrap=True)
+        else:
+            console.print(f"[yellow]note:[/] no cameras or photos in the viewer, and its std modes leave out the "
+                          f"empty-ray term (measured on the training views): {err.render()}", soft_wrap=True)
+            # (the term's coverage is rendered from the training cameras: the viewer stopped there with the same error)
+            loaded = loaded.with_model(loaded.model, coverage=1.0)
     info = RunScene.read_optional(run_dir / RunScene.FILE_NAME)
     scene_scale = scene.scene_scale if scene is not None else (info.scene_scale if info is not None else 1.0)
     score_cams = free_cams = None
@@ -56,7 +68,7 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
         score_cams = scene.cameras[spread_views(scene.split["train"], defaults.score_views)]
         free_cams = scene.cameras[spread_views(scene.split["train"], defaults.free_space_views)]
     fit_unseen = None
-    if scene is not None and scene.split.get("train"):
+    if photos and scene is not None and scene.split.get("train"):
         def fit_unseen():
             # the colour posterior as `evaluate` fits it, without the resolution term's shifted renders and the edge
             # term's fit (they only refine the noise of what the photos showed; the colour posterior divides by the
@@ -77,6 +89,8 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
         to_source = None
     renderer = FrameRenderer(loaded, scene_scale, device, score_cameras=score_cams, free_space_cameras=free_cams,
                              seed=cfg.seed, unseen_field=fit_unseen, depth_to_source=to_source)
+    if not photos:  # (the panel would name each missing photo; the frustums are drawn without pictures)
+        cfg = cfg.model_copy(update={"thumbnails": False})
     return Viewer(renderer, scene, cfg, chosen=_chosen_views(run_dir) if scene is not None else None)
 
 
