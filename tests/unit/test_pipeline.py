@@ -1155,3 +1155,27 @@ def test_a_report_without_an_evaluate_stage_is_made_again_after_an_evaluation_by
     calls.clear()
     pl.run(p, out)
     assert calls == []
+
+
+def test_a_stage_folder_gone_and_the_stages_after_it_say_why_they_run_again(tmp_path, calls, capsys):
+    """A project copied without its scene folder (out/synth): synth was made again and train ran again, its
+    finished model moved to .previous, with no word of why; each says it."""
+    import shutil
+
+    p = _write(tmp_path)
+    pl.run(p, tmp_path / "out")
+    shutil.rmtree(tmp_path / "out" / "synth")
+    calls.clear()
+    capsys.readouterr()
+    pl.run(p, tmp_path / "out")
+    said = " ".join(capsys.readouterr().err.split())
+    assert [k for k, _ in calls] == ["synth", "train", "evaluate", "report"]
+    assert f"{tmp_path / 'out' / 'synth'}, where 'synth' wrote its output before, is gone: it runs again" in said, said
+    assert "'train' runs again: its input 'synth' ran again" in said, said
+    assert "'report' runs again: its inputs 'evaluate', 'train' ran again" in said, said
+    # a config changed is said as well, naming the stage
+    capsys.readouterr()
+    pl.run(p, tmp_path / "out", overrides=["train.iterations=7"])
+    said = " ".join(capsys.readouterr().err.split())
+    assert "'train' runs again: its settings changed since its last run" in said, said
+    assert "'evaluate' runs again: its input 'train' ran again" in said, said

@@ -566,6 +566,10 @@ def run(pipeline: Path, output: Path, *, overrides: list[str] | None = None, dev
                 changed = _changed_output(name, stage.stage, out_dir, old)
                 if changed:
                     console.print(f"[yellow]note:[/] {changed}: it runs again")
+            elif not force and not unreadable:  # (a first run says nothing; the note above, the output changed)
+                why = _why_again(name, out_dir, old, new, same_config, upstream, ran, _started(root))
+                if why:  # a stage folder gone, or its input made again, moved a finished output aside unsaid
+                    console.print(f"[yellow]note:[/] {why}")
             if (not force and old is not None and old.status == "done" and same_config
                     and same_inputs and not changed):
                 console.print(f"[green]skip[/] {name}: unchanged since its last run ({out_dir})")
@@ -703,6 +707,32 @@ def _evaluations_by_hand(outputs: dict[str, Path], kinds: dict[str, str]) -> dic
             if metrics.is_file() and metrics.parent.resolve() not in staged:
                 found[f"{n}/{metrics.parent.name}"] = file_sha256(metrics)
     return found
+
+
+def _why_again(name: str, out_dir: Path, old: Manifest | None, new: Manifest, same_config: bool,
+               upstream: str | None, ran: set[str], started: set[str]) -> str | None:
+    """Why the stage ``name``, started before, runs again (its earlier output moved to ``.previous``), or None: its
+    folder gone (a project copied without its scene), its settings changed, an input stage that ran again or an input
+    that changed. None for a stage never started here, an unfinished one (it resumes or starts over) and a skip."""
+    if old is None:
+        if upstream in ran and name in started:  # (a nested output, RUN/eval, went to .previous with its run)
+            return f"'{name}' runs again: its input '{upstream}' ran again"
+        if name in started and not out_dir.exists():
+            return f"{out_dir}, where '{name}' wrote its output before, is gone: it runs again"
+        return None
+    if old.status != "done":
+        return None
+    if not same_config:
+        return f"'{name}' runs again: its settings changed since its last run"
+    moved = [k for k, v in new.input_hashes.items() if old.input_hashes.get(k) != v]
+    moved += [k for k in old.input_hashes if k not in new.input_hashes]
+    if not moved:
+        return None
+    parts = []
+    for which, what in (([k for k in moved if k in ran], "ran again"), ([k for k in moved if k not in ran], "changed")):
+        if which:
+            parts.append(f"its input{'s' if len(which) > 1 else ''} {', '.join(repr(k) for k in which)} {what}")
+    return f"'{name}' runs again: " + "; ".join(parts)
 
 
 def _changed_output(name: str, kind: str, out_dir: Path, manifest: Manifest) -> str | None:
