@@ -754,6 +754,12 @@ def test_a_report_without_a_run_before_it_is_refused_before_any_stage_runs(tmp_p
     with pytest.raises(UserError, match="stage 'report' needs a train or prune stage before it"):
         pl.run(p, tmp_path / "out")
     assert calls == []
+    # a report given a run folder as its input (a robot's copied run): the input is not read, and the error says so
+    (tmp_path / "RUN").mkdir()
+    p.write_text('name = "t"\ndevice = "cpu"\n[[stages]]\nstage = "report"\ninput = "RUN"\n')
+    with pytest.raises(UserError, match="needs a train or prune stage before it .*its input 'RUN' is not read") as err:
+        pl.run(p, tmp_path / "out")
+    assert "uncertsplat report RUN" in err.value.hint and calls == []
 
 
 def test_a_folder_the_pipeline_did_not_write_is_kept_apart_and_never_replaced(tmp_path, calls):

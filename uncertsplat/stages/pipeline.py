@@ -187,10 +187,13 @@ def check_stages(cfg: PipelineConfig, path: Path, overrides: list[str] | None = 
                                          "(its axes), or `uncertsplat evaluate` on a copy of the run.")
                 evaluated[key] = name
         if stage.stage == "report" and not any(k in ("train", "prune") for k in kinds.values()):
-            # (found when the report's turn came, after the stages before it had run)
+            # (found when the report's turn came, after the stages before it had run); a report's `input` is not
+            # read: a run folder given there (a copied run) was met with "put a train stage before it" alone
+            given = f"; its input '{stage.input}' is not read" if stage.input is not None else ""
             raise UserError(f"stage '{name}' needs a train or prune stage before it (a report shows the pipeline's "
-                            "runs)", path=path, hint="Put a train stage before it, or run `uncertsplat report RUN` "
-                                                     "on a run of your own.")
+                            f"runs{given})", path=path,
+                            hint=f"Put a train stage before it, or run `uncertsplat report "
+                                 f"{q(stage.input) if stage.input is not None else 'RUN'}` on a run of your own.")
         kinds[name] = stage.stage
         if stage.input is not None and stage.input not in earlier:
             folder = Path(stage.input)
