@@ -609,3 +609,33 @@ def test_steps_outside_fit_leave_no_test_for_it(monkeypatch):
     trainer.on_log = logged.append
     trainer.fit(until=21)
     assert calls == [21] and [r["step"] for r in logged if "eval_psnr" in r] == [21]
+
+
+def test_a_pruned_run_whose_scene_moved_is_not_advised_a_resume(trained, tiny_scene_path, tmp_path,  # noqa: F811
+                                                                  capsys):
+    """`train --resume` refuses a pruned model (no checkpoint to go on from), yet the scene-gone error advised
+    `uncertsplat train NEW_SCENE_FOLDER -o PRUNED --resume` for one, and the moved-scene note said it "records" the
+    new folder: they say where to put the scene instead. A training run keeps its advice."""
+    run, _ = trained
+    project = tmp_path / "project"
+    for name in ("pruned", "run"):
+        shutil.copytree(run, project / name, ignore=shutil.ignore_patterns("ckpts", ".lock", "eval"))
+        info = json.loads((project / name / "scene.json").read_text(encoding="utf-8"))
+        info.update(scene=str(tmp_path / "gone"), scene_from_run="../scene")
+        (project / name / "scene.json").write_text(json.dumps(info))
+    (project / "pruned" / "prune.json").write_text("{}")  # (a prune output, as its file marks it)
+    with pytest.raises(UserError, match="the scene this run was trained on is gone") as err:
+        load_run(project / "pruned").load_scene()
+    assert "NEW_SCENE_FOLDER" not in err.value.hint and "has no checkpoint" in err.value.hint, err.value.hint
+    assert f"or at {(project / 'scene').resolve()}, its place relative to the run" in err.value.hint, err.value.hint
+    with pytest.raises(UserError, match="the scene this run was trained on is gone") as err:
+        load_run(project / "run").load_scene()
+    assert "NEW_SCENE_FOLDER" in err.value.hint
+    shutil.copytree(tiny_scene_path, project / "scene")
+    capsys.readouterr()
+    load_run(project / "pruned").load_scene()
+    said = " ".join(capsys.readouterr().err.split())
+    assert "reading the folder at the same place relative to the run" in said and "records it" not in said, said
+    load_run(project / "run").load_scene()
+    said = " ".join(capsys.readouterr().err.split())
+    assert "reading the folder at the same place relative to the run" in said and "--resume` records it" in said, said

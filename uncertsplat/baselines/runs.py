@@ -374,6 +374,21 @@ class LoadedRun:
             raise UserError("the run does not record its scene (scene.json is missing)", path=self.run_dir,
                             hint="Evaluate a run written by `uncertsplat train`.")
         if not Path(self.scene_path).exists():
+            if (self.run_dir / "prune.json").is_file():  # (no checkpoint: `train --resume` refuses a pruned model)
+                from uncertsplat.schemas.base import resolve_from
+
+                try:
+                    info = RunScene.read_optional(self.run_dir / RunScene.FILE_NAME)
+                except UserError:
+                    info = None
+                beside = (resolve_from(self.run_dir, info.scene_from_run)
+                          if info is not None and info.scene_from_run else None)
+                raise UserError(f"the scene this run was trained on is gone: {self.scene_path}", path=self.run_dir,
+                                hint="Restore the scene folder at that path" + (
+                                    f" or at {beside}, its place relative to the run (where a run moved with its "
+                                    "scene finds it)" if beside is not None and beside != Path(self.scene_path) else "")
+                                + ", then run this command again (a pruned model has no checkpoint, so `uncertsplat "
+                                  "train --resume` cannot point it at another folder).")
             raise UserError(f"the scene this run was trained on is gone: {self.scene_path}", path=self.run_dir,
                             hint="Restore the scene folder at that path; or, if you moved it, point the run at its new "
                                  f"place with `uncertsplat train NEW_SCENE_FOLDER -o {q(self.run_dir)} --resume` (it "
@@ -389,9 +404,11 @@ class LoadedRun:
         from uncertsplat.console import console, list_names
 
         if Path(self.scene_path) != Path(info.scene):  # (the cameras and the views' names are compared below)
+            pruned = (self.run_dir / "prune.json").is_file()  # (`train --resume` refuses a pruned model)
             console.print(f"[yellow]note:[/] the scene this run was trained on, {info.scene}, is gone; reading the "
                           f"folder at the same place relative to the run, {self.scene_path} (the run was moved with "
-                          f"it); `uncertsplat train {q(self.scene_path)} -o {q(self.run_dir)} --resume` records it")
+                          "it)" + ("" if pruned else f"; `uncertsplat train {q(self.scene_path)} -o {q(self.run_dir)} "
+                                                     "--resume` records it"))
 
         if own is not None:
             known = {*info.train, *info.test, *info.calibration}
