@@ -1307,6 +1307,48 @@ class TestPredictor:
         with pytest.raises(UserError, match="is gone.*predictive.pt is missing"):
             Predictor.load(run, "cpu")
 
+    def test_a_run_pointed_at_its_moved_scene_keeps_its_predictive(self, evaluated, tiny_scene_path, tmp_path,
+                                                                    monkeypatch):
+        """`train NEW_SCENE_FOLDER -o RUN --resume` (what the scene-gone error advises: it trains nothing) rewrote
+        where scene.json says the scene lies, and eval/predictive.pt, keyed by the file's bytes, became "the predictive
+        of another model or run": a robot given the run afterwards had no predictive. Where the scene lies is not part
+        of the key; a file keyed by the whole scene.json, as before, still reads."""
+        from uncertsplat.baselines.runs import LoadedRun
+        from uncertsplat.predict import Predictor, _evaluation_config
+        from uncertsplat.stages import predictive_cache as pc
+
+        run = tmp_path / "run"
+        shutil.copytree(evaluated[0], run)
+        with_scene = Predictor.load(run, "cpu")
+        moved = tmp_path / "moved"
+        shutil.copytree(tiny_scene_path, moved)
+        before = (run / "scene.json").read_bytes()
+        info = json.loads(before)  # the scene moved away (the shared one stays; a resume on another is refused)
+        (run / "scene.json").write_text(json.dumps({**info, "scene": str(tmp_path / "gone"), "scene_from_run": None}))
+        result = CliRunner().invoke(app, ["train", str(moved), "-o", str(run), "--resume"])
+        assert result.exit_code == 0, result.output
+        assert (run / "scene.json").read_bytes() != before  # (the scene's new place recorded)
+
+        def gone(self):
+            raise UserError(f"the scene this run was trained on is gone: {self.scene_path}", path=self.run_dir)
+
+        monkeypatch.setattr(LoadedRun, "_read_scene", gone)
+        offline = Predictor.load(run, "cpu")
+        assert offline.std_factor == with_scene.std_factor and offline.scene.split == with_scene.scene.split
+        # a file written before (keyed by scene.json's bytes) reads as well
+        path = run / "eval" / "predictive.pt"
+        stored = decode(path.read_bytes())
+        loaded = load_run(run, torch.device("cpu"))
+        old = pc._parts(loaded, _evaluation_config(run), whole_scene=True)
+        assert old["scene"] != pc._parts(loaded, _evaluation_config(run))["scene"]
+        path.write_bytes(encode({**stored, "key": pc._key(old), "parts": json.dumps(old, sort_keys=True, default=str)}))
+        assert Predictor.load(run, "cpu").std_factor == with_scene.std_factor
+        # another scene.json content (another split) is another run's file, as before
+        info = json.loads((run / "scene.json").read_text(encoding="utf-8"))
+        (run / "scene.json").write_text(json.dumps({**info, "extent": info["extent"] * 2}))
+        with pytest.raises(UserError, match="holds the predictive of another model or run"):
+            Predictor.load(run, "cpu")
+
     def test_an_evaluation_kept_as_it_is_still_leaves_the_predictive(self, evaluated, tmp_path, capsys):
         """A run evaluated before eval/predictive.pt existed: `evaluate` again said "already evaluated" and wrote
         nothing, though the Predictor's error sent the user there. It now writes the file from its metrics and the

@@ -7,8 +7,9 @@ the run's uncertainty at its own poses has the run folder, not the photos (often
 ``Predictor.load`` that fits them) keeps these here: the fitted noise's state, the std factor and tails, and the scene's
 cameras, split and normalisation as loaded; ``Predictor.load`` reads them when the scene cannot be loaded.
 
-The file is keyed by the model file, the run's ``config.json`` and ``scene.json`` and every evaluation setting (the
-whole ``EvalConfig``): a file for another model or other settings is not used. Unlike ``residual.pt`` the key leaves
+The file is keyed by the model file, the run's ``config.json`` and ``scene.json`` (but where the scene lies,
+``SCENE_LOCATION``) and every evaluation setting (the whole ``EvalConfig``): a file for another model or other settings
+is not used. Unlike ``residual.pt`` the key leaves
 out the device type and the versions, which are recorded instead: a run evaluated on a desktop's CPU is queried on a
 robot's GPU (the maps then differ from the EXR maps by the devices' rounding, and ``Predictor.load`` says so).
 """
@@ -34,16 +35,55 @@ cfg=EvalConfig(save_maps=False))`` reads the evaluation's file, and files writte
 still read."""
 
 
-def _parts(loaded, cfg) -> dict | None:
-    """What the key hashes: the model file's, the run's ``config.json`` and ``scene.json``'s SHA-256
-    (``residual_cache.run_digests``), the settings the predictive depends on and the noise fit's version; None for a
-    model that is not one file (an ensemble), a run without ``scene.json`` or a file that cannot be read."""
-    from uncertsplat.eval.engine import RESIDUAL_FIT
+SCENE_LOCATION = {"scene": None, "scene_from_run": None, "source": ("path", "model")}
+"""The fields of ``scene.json`` that say where the scene folder lies, not what the run was trained on: left out of the
+key (``_digests``), so that a run pointed at its moved scene (``train NEW_SCENE_FOLDER -o RUN --resume``, which checks
+that the folder holds the run's images and trains nothing) keeps its file; they made it "another model or run"."""
+
+
+def _scene_digest(run_dir: Path) -> str | None:
+    """The SHA-256 of ``run_dir/scene.json`` without ``SCENE_LOCATION`` (its bytes' where it is not a JSON object)."""
+    path = Path(run_dir) / "scene.json"
+    try:
+        raw = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        data = json.loads(raw)
+    except ValueError:
+        data = None
+    if not isinstance(data, dict):
+        return hashlib.sha256(raw).hexdigest()
+    for name, inner in SCENE_LOCATION.items():
+        if inner is None:
+            data.pop(name, None)
+        elif isinstance(data.get(name), dict):
+            data[name] = {k: v for k, v in data[name].items() if k not in inner}
+    return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+
+
+def _digests(loaded) -> tuple[dict, dict] | None:
+    """(``residual_cache.run_digests`` with the scene's digest without where the scene lies, ``_scene_digest``; the
+    same with ``scene.json``'s whole bytes, as files written before 2026-12-02 were keyed), or None."""
     from uncertsplat.stages.residual_cache import run_digests
 
     digests = run_digests(loaded)
     if digests is None or digests["scene"] is None:
         return None
+    return {**digests, "scene": _scene_digest(Path(loaded.run_dir))}, digests
+
+
+def _parts(loaded, cfg, whole_scene: bool = False) -> dict | None:
+    """What the key hashes: the model file's, the run's ``config.json`` and ``scene.json``'s SHA-256 (the latter
+    without where the scene lies: ``_digests``; ``whole_scene``: of its bytes, the key of files written before), the
+    settings the predictive depends on and the noise fit's version; None for a model that is not one file (an
+    ensemble), a run without ``scene.json`` or a file that cannot be read."""
+    from uncertsplat.eval.engine import RESIDUAL_FIT
+
+    both = _digests(loaded)
+    if both is None:
+        return None
+    digests = both[1] if whole_scene else both[0]
     parts = {**digests, "settings": key_settings(cfg), "fit": RESIDUAL_FIT}
     if cfg.residual_scale == "fit" and cfg.residual_views > 0:
         parts["std_fit"] = STD_FIT_WITH_FITTED_NOISE
@@ -187,7 +227,7 @@ def read_predictive(loaded, cfg, scene_folder: str | Path) -> tuple[KeptPredicti
     try:
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             return None, f"{path} is of another format (written by another version)"
-        if data.get("key") not in _accepted_keys(parts):
+        if data.get("key") not in _accepted_keys(parts) | _accepted_keys(_parts(loaded, cfg, whole_scene=True)):
             return None, f"{path} holds the predictive of {_difference(json.loads(data['parts']), parts)}"
         s, std = data["scene"], data["std"]
         cams = Cameras(s["cam_from_world"].float(), s["K"].float(), int(s["width"]), int(s["height"]),
@@ -213,7 +253,7 @@ def rekeyed_predictive(data: bytes, source: Path, run_dir: Path, model_file: str
     source's, copied: without the file, ``Predictor.load`` of that run found none where the scene is gone); None when
     the file is not one written for the source's ``model_file`` and run (``_parts``) in this format."""
     from uncertsplat.io.checkpoints import decode, encode
-    from uncertsplat.stages.residual_cache import _model_of, run_digests
+    from uncertsplat.stages.residual_cache import _model_of
 
     try:
         stored = decode(data)
@@ -222,11 +262,11 @@ def rekeyed_predictive(data: bytes, source: Path, run_dir: Path, model_file: str
             return None
     except Exception:  # noqa: BLE001 - damaged or of another format: not copied (it would not be read either)
         return None
-    was, now = run_digests(_model_of(source, model_file)), run_digests(_model_of(run_dir, model_file))
-    if was is None or now is None or now["scene"] is None or was.keys() != now.keys() \
-            or any(parts.get(k) != v for k, v in was.items()):
+    was, now = _digests(_model_of(source, model_file)), _digests(_model_of(run_dir, model_file))
+    if was is None or now is None or was[0].keys() != now[0].keys() \
+            or not any(all(parts.get(k) == v for k, v in form.items()) for form in was):
         return None
-    parts = {**parts, **now}
+    parts = {**parts, **now[0]}
     return encode({**stored, "key": _key(parts), "parts": json.dumps(parts, sort_keys=True, default=str)})
 
 
