@@ -31,7 +31,6 @@ than one after another where the kernels already use every core: x0.75-1.32 with
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import operator
 import threading
@@ -113,26 +112,6 @@ class Prediction:
         w = half_width(float(p), self.dof)
         mean = self.rgb_mean.clamp(0, 1)
         return mean - w * std, mean + w * std
-
-
-def _evaluation_config(run_dir: Path):
-    """The ``EvalConfig`` of the run's evaluation (``RUN/eval/config.json``: after ``evaluate --num-samples 4`` the
-    defaults fitted another std factor than the evaluation's), ``evaluate``'s defaults when there is none or it
-    cannot be read (a newer or damaged file)."""
-    from pydantic import ValidationError
-
-    from uncertsplat.config import EvalConfig
-
-    path = run_dir / "eval" / "config.json"
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-        if isinstance(data, dict):
-            # an evaluation from before the setting existed (2026-12-01) used the diagonal colour posterior: its
-            # predictive.pt holds that form, which the default (the block) would refuse
-            data.setdefault("colour_covariance", "diagonal")
-        return EvalConfig.model_validate(data)
-    except (OSError, UnicodeDecodeError, ValueError, ValidationError):
-        return EvalConfig()
 
 
 def _eval_config(cfg, evaluation):
@@ -468,8 +447,10 @@ class Predictor:
         if Path(run_dir).is_file():  # (it said "config.json is missing" of RUN/config.json)
             raise UserError("Predictor.load takes a run folder, not a file in it", path=run_dir,
                             hint=f"Pass the folder: Predictor.load({str(Path(run_dir).parent)!r}).")
+        from uncertsplat.stages.predictive_cache import evaluation_config
+
         device = resolve_device(device)
-        evaluation = _evaluation_config(Path(run_dir))
+        evaluation = evaluation_config(Path(run_dir))
         cfg = _eval_config(cfg, evaluation) if cfg is not None else evaluation
         with native.single_threaded_torch(device):  # as evaluate runs (its sums, so its maps, to the last bit)
             return cls._load(Path(run_dir), device, cfg, evaluation)

@@ -1314,8 +1314,9 @@ class TestPredictor:
         of another model or run": a robot given the run afterwards had no predictive. Where the scene lies is not part
         of the key; a file keyed by the whole scene.json, as before, still reads."""
         from uncertsplat.baselines.runs import LoadedRun
-        from uncertsplat.predict import Predictor, _evaluation_config
+        from uncertsplat.predict import Predictor
         from uncertsplat.stages import predictive_cache as pc
+        from uncertsplat.stages.predictive_cache import evaluation_config
 
         run = tmp_path / "run"
         shutil.copytree(evaluated[0], run)
@@ -1339,8 +1340,8 @@ class TestPredictor:
         path = run / "eval" / "predictive.pt"
         stored = decode(path.read_bytes())
         loaded = load_run(run, torch.device("cpu"))
-        old = pc._parts(loaded, _evaluation_config(run), whole_scene=True)
-        assert old["scene"] != pc._parts(loaded, _evaluation_config(run))["scene"]
+        old = pc._parts(loaded, evaluation_config(run), whole_scene=True)
+        assert old["scene"] != pc._parts(loaded, evaluation_config(run))["scene"]
         path.write_bytes(encode({**stored, "key": pc._key(old), "parts": json.dumps(old, sort_keys=True, default=str)}))
         assert Predictor.load(run, "cpu").std_factor == with_scene.std_factor
         # another scene.json content (another split) is another run's file, as before

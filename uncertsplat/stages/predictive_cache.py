@@ -202,6 +202,26 @@ class KeptPredictive:
     versions: dict
 
 
+def evaluation_config(run_dir: Path):
+    """The ``EvalConfig`` of the run's evaluation (``RUN/eval/config.json``: after ``evaluate --num-samples 4`` the
+    defaults fitted another std factor than the evaluation's), ``evaluate``'s defaults when there is none or it
+    cannot be read (a newer or damaged file)."""
+    from pydantic import ValidationError
+
+    from uncertsplat.config import EvalConfig
+
+    path = run_dir / "eval" / "config.json"
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        if isinstance(data, dict):
+            # an evaluation from before the setting existed (2026-12-01) used the diagonal colour posterior: its
+            # predictive.pt holds that form, which the default (the block) would refuse
+            data.setdefault("colour_covariance", "diagonal")
+        return EvalConfig.model_validate(data)
+    except (OSError, UnicodeDecodeError, ValueError, ValidationError):
+        return EvalConfig()
+
+
 def read_predictive(loaded, cfg, scene_folder: str | Path) -> tuple[KeptPredictive | None, str]:
     """(``RUN/eval/predictive.pt`` of ``loaded`` when it was written for this model, run and ``cfg``
     (``predictive_key``), else None; "", else why not for an error: the file is missing, damaged, of another format,
