@@ -760,6 +760,11 @@ def test_a_report_without_a_run_before_it_is_refused_before_any_stage_runs(tmp_p
     with pytest.raises(UserError, match="needs a train or prune stage before it .*its input 'RUN' is not read") as err:
         pl.run(p, tmp_path / "out")
     assert "uncertsplat report RUN" in err.value.hint and calls == []
+    (tmp_path / "copied run").mkdir()  # the hint names the folder given, quoted for the shell
+    p.write_text('name = "t"\ndevice = "cpu"\n[[stages]]\nstage = "report"\ninput = "copied run"\n')
+    with pytest.raises(UserError, match="its input 'copied run' is not read") as err:
+        pl.run(p, tmp_path / "out")
+    assert "uncertsplat report 'copied run'" in err.value.hint and calls == []
 
 
 def test_a_folder_the_pipeline_did_not_write_is_kept_apart_and_never_replaced(tmp_path, calls):
@@ -1185,3 +1190,32 @@ def test_a_stage_folder_gone_and_the_stages_after_it_say_why_they_run_again(tmp_
     said = " ".join(capsys.readouterr().err.split())
     assert "'train' runs again: its settings changed since its last run" in said, said
     assert "'evaluate' runs again: its input 'train' ran again" in said, said
+
+
+def test_why_again_names_each_reason_and_stays_quiet_otherwise(tmp_path):
+    """``_why_again`` by itself: a stage never started here, an unfinished one and an unchanged one say nothing; an
+    input gone from the stage's inputs is a change; inputs that ran again and inputs that changed are both named."""
+    from uncertsplat.schemas.runs import Manifest
+
+    def manifest(status="done", **hashes):
+        return Manifest(stage="train", name="t", config_hash="c", input_hashes=hashes, config={}, status=status,
+                        started_at=0.0)
+
+    gone = tmp_path / "gone"
+    new = manifest(a="1")
+    # never started here: quiet, whether its input ran again or its folder is missing
+    assert pl._why_again("t", gone, None, new, True, "up", {"up"}, set()) is None
+    assert pl._why_again("t", gone, None, new, True, None, set(), set()) is None
+    assert "'t' runs again: its input 'up' ran again" == pl._why_again("t", tmp_path, None, new, True, "up", {"up"},
+                                                                       {"t"})
+    # unfinished (failed or running): it resumes or starts over, unsaid
+    for status in ("failed", "running"):
+        assert pl._why_again("t", tmp_path, manifest(status, a="0"), new, True, None, set(), {"t"}) is None
+    # finished, same settings and inputs: a skip
+    assert pl._why_again("t", tmp_path, manifest(a="1"), new, True, None, set(), {"t"}) is None
+    # an input no longer given is a change
+    assert pl._why_again("t", tmp_path, manifest(a="1", b="2"), new, True, None, set(), {"t"}) == \
+        "'t' runs again: its input 'b' changed"
+    # one ran again, another changed: both said
+    both = pl._why_again("t", tmp_path, manifest(a="0", b="0"), manifest(a="1", b="2"), True, None, {"a"}, {"t"})
+    assert both == "'t' runs again: its input 'a' ran again; its input 'b' changed", both
