@@ -635,3 +635,42 @@ def test_a_batchs_maps_and_terms_are_joined_without_holding_every_view_twice(mon
         assert returned == n * H * W * (9 + 7 * terms)
         # at most what is returned and one map of three channels (the pieces of the one being joined)
         assert peak[0] <= returned + n * H * W * 3, (terms, peak[0], returned)
+
+
+def test_evaluation_config_reads_the_runs_evaluation_and_falls_back_to_the_defaults(tmp_path):
+    """``evaluation_config``: RUN/eval/config.json as written (one from before ``colour_covariance`` existed is the
+    diagonal form it used); the defaults where there is none, or it is damaged or of a newer version."""
+    from uncertsplat.stages.predictive_cache import evaluation_config
+
+    assert evaluation_config(tmp_path) == EvalConfig()
+    (tmp_path / "eval").mkdir()
+    path = tmp_path / "eval" / "config.json"
+    path.write_text(json.dumps({"num_samples": 4}))
+    assert evaluation_config(tmp_path) == EvalConfig(num_samples=4, colour_covariance="diagonal")
+    path.write_text(json.dumps({"num_samples": 4, "colour_covariance": "block"}))
+    assert evaluation_config(tmp_path) == EvalConfig(num_samples=4, colour_covariance="block")
+    for damaged in ('{"num_samples": "many"}', '{"no_such_setting": 1}', "{not json", "[1, 2]"):
+        path.write_text(damaged)
+        assert evaluation_config(tmp_path) == EvalConfig(), damaged
+
+
+def test_the_scene_digest_leaves_out_where_the_scene_lies_alone(tmp_path):
+    """``_scene_digest``: scene.json without where the scene lies (``SCENE_LOCATION``); of the file's bytes where it
+    is not a JSON object (damaged, or a list); None without the file."""
+    import hashlib
+
+    from uncertsplat.stages.predictive_cache import _scene_digest
+
+    assert _scene_digest(tmp_path) is None
+    path = tmp_path / "scene.json"
+    base = {"train": ["a"], "source": {"kind": "colmap", "path": "/x", "model": "/x/sparse/0"}}
+    path.write_text(json.dumps({**base, "scene": "/x", "scene_from_run": "../x"}))
+    here = _scene_digest(tmp_path)
+    path.write_text(json.dumps({**base, "scene": "/y", "scene_from_run": "../y",
+                                "source": {"kind": "colmap", "path": "/y", "model": "/y/sparse/0"}}))
+    assert _scene_digest(tmp_path) == here, "moved: the same digest"
+    path.write_text(json.dumps({**base, "source": {"kind": "nerfstudio", "path": "/x", "model": "/x/sparse/0"}}))
+    assert _scene_digest(tmp_path) != here, "what the run was trained on is kept"
+    for raw in (b"[1, 2]", b"{damaged", b"\xff"):
+        path.write_bytes(raw)
+        assert _scene_digest(tmp_path) == hashlib.sha256(raw).hexdigest(), raw
