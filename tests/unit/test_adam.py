@@ -227,6 +227,9 @@ class TestDense:
         assert torch.equal(params[1].detach(), before[1])
         assert not torch.equal(params[0].detach(), before[0])
         assert not opt.step_if_finite(), "not idle, the NaN is seen and the step refused"
+        steps = int(opt.state[params[1]]["step"])
+        opt.step(idle=("t1",))  # ``step`` hands ``idle`` on: unchecked, the NaN would be applied
+        assert torch.equal(params[1].detach(), before[1]) and int(opt.state[params[1]]["step"]) == steps + 1
 
     def test_the_trainer_uses_it_on_the_cpu(self):
         """``make_optimizer``'s dense Adam on CPU float32 is ours (one call per step), torch's when the native
@@ -501,3 +504,19 @@ class TestTraining:
         for n, p in t.model.params.items():
             assert torch.equal(p.detach()[0], before[n]), n
             assert torch.equal(t.optimizer.state[p]["exp_avg"][0], moments[n]), n
+
+
+def test_torch_adam_counts_an_idle_band_without_a_gradient(monkeypatch):
+    """``Trainer._update`` with torch's Adam (other devices): an idle group without a gradient (the native SH backward
+    at degree 0) is handed zeros, so torch counts its step as ours does (torch skips a tensor without a gradient)."""
+    scene, tr, te = toy_scene()
+    t = Trainer(scene, toy_config(iterations=1), tr, te)
+    params = t.model.parameters()
+    t.optimizer = torch.optim.Adam([{"params": [p], "name": n, "lr": 1e-3} for n, p in params.items()])
+    monkeypatch.setattr(t, "touched_rows", lambda radii: None)
+    for name, p in params.items():
+        p.grad = None if name == "shN" else torch.ones_like(p)
+    before = params["shN"].detach().clone()
+    assert t._update(torch.tensor(1.0), None, ("shN",))
+    assert int(t.optimizer.state[params["shN"]]["step"]) == 1, "counted as under a gradient of zeros"
+    assert torch.equal(params["shN"].detach(), before)
