@@ -1344,6 +1344,14 @@ class TestPredictor:
         assert old["scene"] != pc._parts(loaded, evaluation_config(run))["scene"]
         path.write_bytes(encode({**stored, "key": pc._key(old), "parts": json.dumps(old, sort_keys=True, default=str)}))
         assert Predictor.load(run, "cpu").std_factor == with_scene.std_factor
+        # copied to a run (a prune that removed nothing), such a file is rekeyed in today's form, without the location
+        again = decode(pc.rekeyed_predictive(path.read_bytes(), run, run, Path(loaded.source).name))
+        assert again["key"] == pc._key(pc._parts(loaded, evaluation_config(run))), json.loads(again["parts"])
+        # a run without scene.json has no key (nor a rekeyed file)
+        (run / "scene.json").rename(run / "scene.json.kept")
+        assert pc._parts(loaded, evaluation_config(run)) is None
+        assert pc.rekeyed_predictive(path.read_bytes(), run, run, Path(loaded.source).name) is None
+        (run / "scene.json.kept").rename(run / "scene.json")
         # another scene.json content (another split) is another run's file, as before
         info = json.loads((run / "scene.json").read_text(encoding="utf-8"))
         (run / "scene.json").write_text(json.dumps({**info, "extent": info["extent"] * 2}))
