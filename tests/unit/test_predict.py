@@ -674,3 +674,21 @@ def test_the_scene_digest_leaves_out_where_the_scene_lies_alone(tmp_path):
     for raw in (b"[1, 2]", b"{damaged", b"\xff"):
         path.write_bytes(raw)
         assert _scene_digest(tmp_path) == hashlib.sha256(raw).hexdigest(), raw
+
+
+def test_a_predictive_is_not_rekeyed_for_a_run_with_other_digests(monkeypatch, tmp_path):
+    """``rekeyed_predictive``: the target run's digests name other files (its photos have masks, the source's not):
+    the source's fit does not describe it, and nothing is copied; the same names are rekeyed."""
+    from uncertsplat.io.checkpoints import decode, encode
+    from uncertsplat.stages import predictive_cache as pc
+    from uncertsplat.stages import residual_cache
+
+    digests = {"model": "m", "config": "c", "scene": "s"}
+    parts = {**digests, "settings": {}, "fit": 1}
+    data = encode({"format": pc.FORMAT, "key": pc._key(parts), "parts": json.dumps(parts, sort_keys=True)})
+    target = {"source": digests, "run": {**digests, "scene": "t"}}
+    monkeypatch.setattr(residual_cache, "_model_of", lambda run, model: run)
+    monkeypatch.setattr(pc, "_digests", lambda run: (target[run], target[run]))
+    assert json.loads(decode(pc.rekeyed_predictive(data, "source", "run", "m.ply"))["parts"])["scene"] == "t"
+    target["run"] = {**digests, "masks": "k"}
+    assert pc.rekeyed_predictive(data, "source", "run", "m.ply") is None
