@@ -628,6 +628,14 @@ def test_a_pruned_run_whose_scene_moved_is_not_advised_a_resume(trained, tiny_sc
         load_run(project / "pruned").load_scene()
     assert "NEW_SCENE_FOLDER" not in err.value.hint and "has no checkpoint" in err.value.hint, err.value.hint
     assert f"or at {(project / 'scene').resolve()}, its place relative to the run" in err.value.hint, err.value.hint
+    # recorded where its place relative to the run is: that place is named once
+    moved = project / "pruned" / "scene.json"
+    kept = moved.read_text(encoding="utf-8")
+    moved.write_text(json.dumps({**json.loads(kept), "scene": str((project / "scene").resolve())}))
+    with pytest.raises(UserError, match="the scene this run was trained on is gone") as err:
+        load_run(project / "pruned").load_scene()
+    assert "or at" not in err.value.hint and "has no checkpoint" in err.value.hint, err.value.hint
+    moved.write_text(kept)
     with pytest.raises(UserError, match="the scene this run was trained on is gone") as err:
         load_run(project / "run").load_scene()
     assert "NEW_SCENE_FOLDER" in err.value.hint
