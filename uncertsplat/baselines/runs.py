@@ -383,17 +383,18 @@ class LoadedRun:
                     info = None
                 beside = (resolve_from(self.run_dir, info.scene_from_run)
                           if info is not None and info.scene_from_run else None)
-                raise UserError(f"the scene this run was trained on is gone: {self.scene_path}", path=self.run_dir,
-                                hint="Restore the scene folder at that path" + (
-                                    f" or at {beside}, its place relative to the run (where a run moved with its "
-                                    "scene finds it)" if beside is not None and beside != Path(self.scene_path) else "")
-                                + ", then run this command again (a pruned model has no checkpoint, so `uncertsplat "
-                                  "train --resume` cannot point it at another folder).")
+                hint = ("Restore the scene folder at that path" + (
+                    f" or at {beside}, its place relative to the run (where a run moved with its scene finds it)"
+                    if beside is not None and beside != Path(self.scene_path) else "")
+                    + ", then run this command again (a pruned model has no checkpoint, so `uncertsplat train "
+                      "--resume` cannot point it at another folder).")
+            else:
+                hint = ("Restore the scene folder at that path; or, if you moved it, point the run at its new place "
+                        f"with `uncertsplat train NEW_SCENE_FOLDER -o {q(self.run_dir)} --resume` (it checks that the "
+                        "folder holds the run's images and trains no further when the run is finished). Then run this "
+                        "command again.")
             raise UserError(f"the scene this run was trained on is gone: {self.scene_path}", path=self.run_dir,
-                            hint="Restore the scene folder at that path; or, if you moved it, point the run at its new "
-                                 f"place with `uncertsplat train NEW_SCENE_FOLDER -o {q(self.run_dir)} --resume` (it "
-                                 "checks that the folder holds the run's images and trains no further when the run "
-                                 "is finished). Then run this command again.")
+                            hint=hint)
         # rendering a trained run needs no initial points (for a scene without sparse points, making them reads
         # every training view's alpha mask)
         info = RunScene.read_optional(self.run_dir / RunScene.FILE_NAME)

@@ -73,21 +73,27 @@ def _digests(loaded) -> tuple[dict, dict] | None:
     return {**digests, "scene": _scene_digest(Path(loaded.run_dir))}, digests
 
 
-def _parts(loaded, cfg, whole_scene: bool = False) -> dict | None:
-    """What the key hashes: the model file's, the run's ``config.json`` and ``scene.json``'s SHA-256 (the latter
-    without where the scene lies: ``_digests``; ``whole_scene``: of its bytes, the key of files written before), the
-    settings the predictive depends on and the noise fit's version; None for a model that is not one file (an
-    ensemble), a run without ``scene.json`` or a file that cannot be read."""
+def _part_forms(loaded, cfg) -> tuple[dict, dict] | None:
+    """What the key hashes, in today's form and in that of files written before 2026-12-02: the model file's, the
+    run's ``config.json`` and ``scene.json``'s SHA-256 (the latter without where the scene lies, ``_digests``; before,
+    of its bytes), the settings the predictive depends on and the noise fit's version; None for a model that is not
+    one file (an ensemble), a run without ``scene.json`` or a file that cannot be read."""
     from uncertsplat.eval.engine import RESIDUAL_FIT
 
     both = _digests(loaded)
     if both is None:
         return None
-    digests = both[1] if whole_scene else both[0]
-    parts = {**digests, "settings": key_settings(cfg), "fit": RESIDUAL_FIT}
+    extra = {"settings": key_settings(cfg), "fit": RESIDUAL_FIT}
     if cfg.residual_scale == "fit" and cfg.residual_views > 0:
-        parts["std_fit"] = STD_FIT_WITH_FITTED_NOISE
-    return parts
+        extra["std_fit"] = STD_FIT_WITH_FITTED_NOISE
+    today, before = ({**digests, **extra} for digests in both)
+    return today, before
+
+
+def _parts(loaded, cfg, whole_scene: bool = False) -> dict | None:
+    """``_part_forms``' today's form (``whole_scene``: that of files written before), or None."""
+    forms = _part_forms(loaded, cfg)
+    return None if forms is None else forms[1 if whole_scene else 0]
 
 
 STD_FIT_WITH_FITTED_NOISE = 2
@@ -222,6 +228,12 @@ def evaluation_config(run_dir: Path):
         return EvalConfig()
 
 
+def evaluation_predictive(loaded) -> tuple[KeptPredictive | None, str]:
+    """``read_predictive`` of the run's own evaluation (its settings: ``evaluation_config``): the cameras, split and
+    normalisation it kept, for a command that reads the run where the scene folder cannot be loaded."""
+    return read_predictive(loaded, evaluation_config(Path(loaded.run_dir)), loaded.scene_path or loaded.run_dir)
+
+
 def read_predictive(loaded, cfg, scene_folder: str | Path) -> tuple[KeptPredictive | None, str]:
     """(``RUN/eval/predictive.pt`` of ``loaded`` when it was written for this model, run and ``cfg``
     (``predictive_key``), else None; "", else why not for an error: the file is missing, damaged, of another format,
@@ -231,9 +243,10 @@ def read_predictive(loaded, cfg, scene_folder: str | Path) -> tuple[KeptPredicti
     from uncertsplat.types import Cameras, SceneData
 
     path = Path(loaded.run_dir) / "eval" / FILE_NAME
-    parts = _parts(loaded, cfg)
-    if parts is None:
+    forms = _part_forms(loaded, cfg)
+    if forms is None:
         return None, "an ensemble's predictive is not kept (it has no single model file)"
+    parts = forms[0]
     if not path.is_file():
         return None, f"{path} is missing"
     raw = path.read_bytes()
@@ -247,7 +260,7 @@ def read_predictive(loaded, cfg, scene_folder: str | Path) -> tuple[KeptPredicti
     try:
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             return None, f"{path} is of another format (written by another version)"
-        if data.get("key") not in _accepted_keys(parts) | _accepted_keys(_parts(loaded, cfg, whole_scene=True)):
+        if data.get("key") not in _accepted_keys(parts) | _accepted_keys(forms[1]):
             return None, f"{path} holds the predictive of {_difference(json.loads(data['parts']), parts)}"
         s, std = data["scene"], data["std"]
         cams = Cameras(s["cam_from_world"].float(), s["K"].float(), int(s["width"]), int(s["height"]),

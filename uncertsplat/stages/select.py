@@ -218,14 +218,14 @@ def _kept_scene(loaded, run_dir: Path, cfg: SelectConfig, err: UserError):
     """The scene as the run's evaluation kept it (``RUN/eval/predictive.pt``: cameras, split, normalisation) where
     the scene folder cannot be loaded (``err``), for the scores that read the run alone; ``err``, with what else to do,
     where the score compares the model with the training photos (``fisher``) or the run holds no such file."""
-    from uncertsplat.stages.predictive_cache import evaluation_config, read_predictive
+    from uncertsplat.stages.predictive_cache import evaluation_predictive
 
     alone = "--score variance, unseen or coverage read the run alone (its eval/predictive.pt)"
     if cfg.score == "fisher":
         raise UserError(f"{err.message}; the fisher score (the default) compares the model with the training photos",
                         path=err.path, hint=f"{err.hint or 'Restore the scene folder.'} Or choose without the photos: "
                                             f"{alone}.") from err
-    kept, problem = read_predictive(loaded, evaluation_config(run_dir), loaded.scene_path or run_dir)
+    kept, problem = evaluation_predictive(loaded)
     if kept is None:
         raise UserError(f"{err.message}; and the cameras kept beside the run cannot stand in for it: {problem}",
                         path=err.path, hint=f"{err.hint or 'Restore the scene folder.'} Or run `uncertsplat evaluate "

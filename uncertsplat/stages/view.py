@@ -45,9 +45,9 @@ def build(run_dir: Path, cfg: ViewConfig, device: torch.device):
     try:
         scene = loaded.load_scene()
     except UserError as err:  # the model is still worth looking at without its photos
-        from uncertsplat.stages.predictive_cache import evaluation_config, read_predictive
+        from uncertsplat.stages.predictive_cache import evaluation_predictive
 
-        kept, problem = read_predictive(loaded, evaluation_config(run_dir), loaded.scene_path or run_dir)
+        kept, problem = evaluation_predictive(loaded)
         if kept is not None:  # the cameras, split and normalisation evaluate kept (eval/predictive.pt)
             scene, photos = kept.scene, False
             loaded = loaded.with_scene(scene)  # (the empty-ray term's coverage is rendered from its training cameras)

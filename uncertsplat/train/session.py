@@ -863,15 +863,13 @@ def imported_fit_warnings(fit_psnr: float | None, imported: dict) -> list[str]:
         return [f"the model of {imported['path']} renders its training views at {_psnr_shown(fit_psnr):.2f} dB here "
                 f"(read in {frame_phrase(imported)}{fit}; {imported['in_view_share']:.0%} of its Gaussians inside "
                 "some training view): its trainer fitted them far better, and no frame the points and photos "
-                "allow renders them better, so the model is likely of another scene (another capture of the place, "
-                "or of its own photos under other names: a scene whose walls or ground alone match still gets a "
-                "frame), or it renders otherwise than 3DGS does (an antialiased or filtered renderer, another "
+                "allow renders them better, so the model is likely of another scene (or of another capture of the "
+                "place: a scene whose walls or ground alone match the points still gets a frame), or it renders otherwise than 3DGS does (an antialiased or filtered renderer, another "
                 "background); where the trainer's frame is known, give it (--from-ply-transform FILE): its "
                 "uncertainty here describes this render"]
     try_other = ("check init_ply_transform" if frame == "transform" else
                  "read in another: --set init_ply_frame=run, or =align to find its frame on the scene's sparse points"
                  if frame == "source" else
-                 "read in the scene's source frame: --set init_ply_frame=source" if frame == "aligned" else
                  "read in another: --set init_ply_frame=source")
     read_in = frame_phrase(imported)
     return [f"the model of {imported['path']} renders its training views at {_psnr_shown(fit_psnr):.2f} dB here "
