@@ -96,3 +96,26 @@ def test_std_factor_notes_name_too_few_views_and_a_factor_these_views_disagree_w
     (worse,) = std_factor_notes(8, -0.01, -0.12)
     assert worse.startswith("the fitted factor makes these views' NLL worse than the raw std does, by 0.110 nats")
     assert std_factor_notes(8, -1.6135, -1.6164) == []  # 0.003 nats worse: no disagreement worth a warning
+
+
+def test_the_std_factor_from_kept_maps_caps_the_std_as_the_rendered_predictive_does(monkeypatch):
+    """``fit_std_scale`` given the maps ``fit_residual`` kept for the views set aside adds the side terms to them instead
+    of rendering the samples again: the std it scores must be the one ``mc_render`` gives, capped at ``RGB_STD_MAX``.
+    A pixel at error 0.5 whose kept std is 0.3 and whose side terms add 0.55 to the variance has the std
+    min(sqrt(0.09 + 0.55), 0.5) = 0.5, so its z-score is 1 and so is the factor (0.8 uncapped: a factor of 0.625)."""
+    from uncertsplat.config import EvalConfig
+    from uncertsplat.eval import engine
+    from uncertsplat.types import Cameras, ViewSet
+
+    h, w = 2, 3
+    cams = Cameras(torch.eye(4).repeat(3, 1, 1), torch.eye(3).repeat(3, 1, 1), w, h, ("a.png", "b.png", "c.png"))
+    views = ViewSet(indices=(2,), cameras=cams[[2]], images=torch.zeros(1, h, w, 3))
+    monkeypatch.setattr(engine, "_side_variance", lambda sampler, cam: ({"pixel noise": torch.full((1, h, w, 1), 0.55)},
+                                                                        None))
+    sampler = engine.Sampler(sample_fn=lambda g: None, render_fn=lambda s, c: None)
+    kept = {2: (torch.full((1, h, w, 3), 0.5), torch.full((1, h, w, 3), 0.3))}
+    fit = engine.fit_std_scale(sampler, {"train": [0, 1], "calibration": [2]},
+                               EvalConfig(degrees_of_freedom="gaussian"), torch.device("cpu"),
+                               load_views=lambda indices: views, set_aside_maps=kept)
+    assert fit.names == ["c.png"] and fit.dof is None
+    assert fit.scale == pytest.approx(1.0, rel=1e-6)

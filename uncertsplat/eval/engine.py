@@ -607,7 +607,7 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
         training split, when there is no view to fit on or no valid pixel.
     """
     from uncertsplat.eval.tails import FIT_ELEMENTS, fit_dof
-    from uncertsplat.uncertainty.mc import mc_render, sum_terms
+    from uncertsplat.uncertainty.mc import RGB_STD_MAX, mc_render, sum_terms
 
     chosen = calibration_indices(split, cfg)
     if not chosen:
@@ -631,7 +631,9 @@ def fit_std_scale(sampler: Sampler, split: Mapping[str, Sequence[int]], cfg: Eva
         if set_aside_maps is not None and i in set_aside_maps:
             mean, bare_std = set_aside_maps[i]
             extra = _side_variance(dataclasses.replace(sampler, exposure=None), cam)[0]  # bare_std has the exposures' term
-            std = (bare_std.square() + sum_terms(extra).cpu().to(bare_std)).sqrt() if extra else bare_std
+            # capped as mc_render caps the whole std (bare_std was capped alone: where it was, the sum is above the cap)
+            std = (bare_std.square() + sum_terms(extra).cpu().to(bare_std)).sqrt().clamp_max(RGB_STD_MAX) \
+                if extra else bare_std
         else:
             gen.manual_seed(view_seed(cfg.seed, i))
             maps, _ = mc_render(sampler.sample_fn, sampler.render_fn, cam, cfg.num_samples, gen,
