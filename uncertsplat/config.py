@@ -807,9 +807,9 @@ class EvalConfig(_Base):
     """The resolution term: however many views constrain it, a Gaussian's position is known only to within this
     fraction of its own size (geometric mean of its axes), since neighbouring Gaussians can trade places that
     much with no visible change in the training views (a diagonal posterior cannot represent that). Each of the
-    K samples is paired with one render of the model with every Gaussian moved by N(0, (resolution x size)^2);
-    their variance is added to the RGB and depth variance (the prediction stays the samples' mean). Costs
-    ``resolution_renders`` renders per sample; 0: off. Also subtracted from the training residual the pixel noise is
+    K samples is paired with ``resolution_renders`` renders of the model with every Gaussian moved by
+    N(0, (resolution x size)^2); their variance is added to the RGB and depth variance (the prediction stays the
+    samples' mean). 0: off. Also subtracted from the training residual the pixel noise is
     fitted on."""
     resolution_renders: int = Field(2, ge=1, le=100)
     """Renders of the resolution term per posterior sample. Its variance is estimated from K x this many renders,

@@ -334,7 +334,7 @@ def depth_spread(sample: GaussianSample, cameras: Cameras, render_fn: RenderFn) 
     A rendered depth is the weighted mean of the depths of the Gaussians along the ray: where the ray crosses an
     edge, a semi-transparent layer or a floater in front of a surface, the pixel's depth is a mixture of distant
     values, and the mean says nothing of it. Two renders per camera (``uncertainty.residual.blend_colours`` of
-    (z, z^2, 0)).
+    (z - z0, (z - z0)^2, 0), z0 the nearest Gaussian in front of the camera).
     """
     from uncertsplat.uncertainty.residual import blend_colours
 
