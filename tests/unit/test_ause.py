@@ -156,3 +156,56 @@ def test_million_elements(device):
     unc = (err_cpu + 0.3 * torch.rand(10**6, generator=g)).to(device)
     res = sparsification_all(err, unc)
     assert 0 < res["mae"].ause < sparsification(err, -err).ause
+
+
+class TestInputsAndAverages:
+    """What enters the curves (|error|, finite uncertainties, at least 2 steps) and how per-view results
+    average."""
+
+    def test_signed_errors_count_by_their_magnitude(self, device):
+        # the reversed case of test_hand_computed_reversed_mae with alternating signs: the same numbers
+        err = _t([1.0, -2.0, 3.0, -4.0], device)
+        r = sparsification(err, -err.abs(), metric="mae", steps=4)
+        assert r.oracle.tolist() == pytest.approx([0.625, 0.5, 0.375, 0.25])
+        assert r.uncertainty.tolist() == pytest.approx([0.625, 0.75, 0.875, 1.0])
+        assert r.scale == pytest.approx(4.0) and r.ause == pytest.approx(0.28125)
+        # a ranking by the magnitude is perfect however the signs fall
+        assert sparsification(err, err.abs(), metric="mae", steps=4).ause == pytest.approx(0.0, abs=1e-12)
+
+    def test_non_finite_uncertainty_drops_the_element(self, device):
+        err = _t([1.0, 2.0, 3.0, 4.0, 9.0], device)
+        for bad in (float("nan"), float("inf")):
+            unc = _t([4.0, 3.0, 2.0, 1.0, bad], device)
+            r = sparsification(err, unc, metric="mae", steps=4)
+            assert r.num_elements == 4
+            # exactly the reversed case of test_hand_computed_reversed_mae (the 9 is gone)
+            assert r.uncertainty.tolist() == pytest.approx([0.625, 0.75, 0.875, 1.0])
+            assert r.ause == pytest.approx(0.28125)
+
+    def test_fewer_than_two_steps_are_refused(self, device):
+        err = _t([1.0, 2.0], device)
+        with pytest.raises(ValueError, match="steps must be >= 2"):
+            sparsification(err, err, steps=1)
+        assert sparsification(err, err, steps=2).fractions.tolist() == [0.0, 0.5]
+
+    def test_mean_curves_average_ause_aurg_and_sum_the_elements(self, device):
+        err = _t([1.0, 2.0, 3.0, 4.0], device)
+        reversed_ = sparsification(err, -err, steps=4)  # AUSE 0.28125, AURG -0.140625 (hand-computed above)
+        perfect = sparsification(err, err, steps=4)  # AUSE 0, AURG 0.225
+        m = mean_curves([reversed_, perfect])
+        assert m.ause == pytest.approx((0.28125 + 0.0) / 2)
+        assert m.aurg == pytest.approx((-0.140625 + 0.225) / 2)
+        assert m.num_elements == 8
+        # oracle: [0.625, 0.5, 0.375, 0.25] and [1, 0.8, 0.6, 0.4] (scale 2.5)
+        assert m.oracle.tolist() == pytest.approx([0.8125, 0.65, 0.4875, 0.325])
+
+    def test_mean_curves_skip_views_without_valid_elements(self, device):
+        err = _t([1.0, 2.0, 3.0, 4.0], device)
+        a = sparsification(err, -err, steps=4)
+        empty = sparsification(err, err, mask=torch.zeros(4, dtype=torch.bool, device=device), steps=4)
+        assert empty.num_elements == 0
+        m = mean_curves([a, empty])
+        assert m.ause == pytest.approx(a.ause) and m.aurg == pytest.approx(a.aurg) and m.num_elements == 4
+        assert m.uncertainty.tolist() == pytest.approx(a.uncertainty.tolist())
+        with pytest.raises(ValueError, match="no view has valid elements"):
+            mean_curves([empty])

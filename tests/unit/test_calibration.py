@@ -119,3 +119,37 @@ def test_the_std_factor_from_kept_maps_caps_the_std_as_the_rendered_predictive_d
                                load_views=lambda indices: views, set_aside_maps=kept)
     assert fit.names == ["c.png"] and fit.dof is None
     assert fit.scale == pytest.approx(1.0, rel=1e-6)
+
+
+class TestCalibrationArithmetic:
+    """The calibration error's absolute differences, the averaging over views with elements, Spearman's
+    reasons."""
+
+    def test_calibration_error_adds_the_absolute_differences(self, device):
+        # |e| / std = 0.5, 0.5, 0.5, 5: inside k = 1 and k = 2 three times of four: 0.75 lies above the
+        # nominal 0.683 at k = 1 and below the nominal 0.954 at k = 2; the two misses must not cancel
+        err = torch.tensor([0.5, -0.5, 0.5, 5.0], dtype=torch.float64, device=device)
+        r = calibration(err, torch.ones_like(err), ks=(1.0, 2.0))
+        assert r.observed == (0.75, 0.75)
+        n1, n2 = nominal_coverage(1.0), nominal_coverage(2.0)
+        assert r.calibration_error == pytest.approx(((0.75 - n1) + (n2 - 0.75)) / 2, rel=1e-12)
+        assert r.calibration_error == pytest.approx(0.135905, abs=1e-6)
+
+    def test_mean_calibration_skips_views_without_elements(self, device):
+        err = torch.tensor([0.0, 5.0], device=device)
+        std = torch.ones_like(err)
+        r = calibration(err, std, ks=(1.0,))
+        empty = calibration(err, std, ks=(1.0,), mask=torch.zeros(2, dtype=torch.bool, device=device))
+        assert empty.num_elements == 0
+        m = mean_calibration([r, empty])
+        assert m.observed == (0.5,) and m.num_elements == 2
+        assert m.calibration_error == pytest.approx(abs(0.5 - nominal_coverage(1.0)))
+        with pytest.raises(ValueError, match="no view has valid elements"):
+            mean_calibration([empty])
+
+    def test_spearman_of_fewer_than_two_elements_says_how_many(self, device):
+        one = spearman(torch.tensor([0.3], device=device), torch.tensor([0.1], device=device))
+        assert one.value is None and one.reason == "undefined: 1 valid element(s)" and one.num_elements == 1
+        none = spearman(torch.tensor([float("nan")], device=device), torch.tensor([0.1], device=device))
+        assert none.value is None and none.reason == "undefined: 0 valid element(s)"
+        assert none.num_elements == 0

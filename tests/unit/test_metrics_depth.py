@@ -176,3 +176,32 @@ def test_the_implausible_factor_note_names_a_power_of_ten_of_the_scenes_units():
     assert "(maps in the scene's own units: --depth-scale scene;" in metres
     (odd,) = implausible_depth_scale_notes(depth, depth * 22.0, mask, 1.0, 1.0, to_source)  # 5.5x the scene's
     assert "--depth-scale auto fits the factor" in odd and "the run's depth to the maps' units" not in odd
+
+
+class TestExactValues:
+    """The least-squares factor and the relative error by their formulas on numbers where the alternatives
+    differ; a given factor must be positive."""
+
+    def test_lsq_is_the_least_squares_factor_through_the_origin(self, device):
+        pred = torch.tensor([1.0, 2.0, 4.0], device=device)
+        gt = torch.tensor([2.0, 2.0, 2.0], device=device)
+        # argmin_s sum (s p - g)^2 = sum(p g) / sum(p^2) = (2 + 4 + 8) / (1 + 4 + 16)
+        got = align_depth_scale(pred, gt, method="lsq")
+        assert got.scale == pytest.approx(14 / 21, rel=1e-12) and got.num_pixels == 3
+        # the median of the ratios 2, 1, 0.5
+        assert align_depth_scale(pred, gt, method="median").scale == 1.0
+
+    def test_abs_rel_divides_by_the_ground_truth(self, device):
+        pred = torch.tensor([1.0, 2.0, 4.0], device=device)
+        gt = torch.tensor([2.0, 4.0, 1.0], device=device)
+        m = depth_metrics(pred, gt)
+        # over the GT, not the prediction ((1 + 1 + 0.75) / 3)
+        assert m.abs_rel == pytest.approx((1 / 2 + 2 / 4 + 3 / 1) / 3, rel=1e-12)
+        assert m.mae == pytest.approx(2.0) and m.rmse == pytest.approx((14 / 3) ** 0.5)
+        assert depth_metrics(pred, gt, scale=2.0).abs_rel == pytest.approx((0 + 0 + 7 / 1) / 3, rel=1e-12)
+
+    @pytest.mark.parametrize("bad", [0.0, -2.0, float("inf"), float("nan")])
+    def test_a_given_factor_must_be_positive_and_finite(self, bad, device):
+        pred = torch.ones(4, device=device)
+        with pytest.raises(ValueError, match="positive finite"):
+            align_depth_scale(pred, 2 * pred, method=bad)

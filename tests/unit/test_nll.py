@@ -14,6 +14,7 @@ from uncertsplat.eval.nll import (
     kde_nll,
     paper_bandwidth,
     paper_nll,
+    predictive_nll,
 )
 
 
@@ -137,3 +138,64 @@ def test_kde_in_chunks_is_the_whole_stacks_to_the_bit(monkeypatch):
     torch.testing.assert_close(nll._kde_log_density(samples, target, h), whole, rtol=1e-6, atol=1e-6)
     assert torch.equal(nll.kde_nll(samples, target, bandwidth=0.05, reduction="none"),
                        -nll._kde_log_density(samples, target, torch.full_like(target, 0.05)))
+
+
+class TestReductionsAndFloors:
+    """The mean over finite, masked elements; the floors of a given bandwidth; the arguments checked; the
+    paper formula's closed form."""
+
+    def test_the_mean_leaves_out_non_finite_elements(self, device):
+        y = torch.tensor([0.5, float("nan"), float("inf")], dtype=torch.float64, device=device)
+        mu = torch.full_like(y, 0.3)
+        s = torch.full_like(y, 0.1)
+        expected = 0.5 * math.log(2 * math.pi * 0.01) + 2.0  # the first one's (test_gaussian_nll_closed_form)
+        assert gaussian_nll(y, mu, s).item() == pytest.approx(expected, rel=1e-12)
+        first = predictive_nll(y[:1], mu[:1], s[:1], 5.0).item()
+        assert predictive_nll(y, mu, s, 5.0).item() == pytest.approx(first, rel=1e-12)
+        nothing = gaussian_nll(y[1:], mu[1:], s[1:])
+        assert torch.isnan(nothing)
+
+    def test_predictive_nll_applies_the_mask(self, device):
+        g = torch.Generator().manual_seed(4)
+        y, mu = torch.rand(2, 3, 4, 3, generator=g, dtype=torch.float64).to(device)
+        s = (0.05 + torch.rand(3, 4, 1, generator=g, dtype=torch.float64)).to(device)
+        mask = torch.zeros(3, 4, dtype=torch.bool, device=device)
+        mask[1:, :2] = True
+        for dof in (None, 4.0):
+            per = predictive_nll(y, mu, s, dof, reduction="none")
+            got = predictive_nll(y, mu, s, dof, mask=mask)
+            assert got.item() == pytest.approx(per[mask].mean().item(), rel=1e-12)
+            assert got.item() != pytest.approx(per.mean().item(), rel=1e-6)
+        assert predictive_nll(y, mu, s, None, mask=mask).item() == pytest.approx(
+            gaussian_nll(y, mu, s, mask=mask).item(), rel=1e-12)
+
+    def test_a_given_bandwidth_is_floored(self, device):
+        samples = torch.tensor([[0.4, 0.5]], dtype=torch.float64, device=device)  # K = 1
+        y = torch.tensor([0.45, 0.9], dtype=torch.float64, device=device)
+        for bw in (0.0, 0.01, torch.tensor([0.0, 0.01], dtype=torch.float64, device=device)):
+            got = kde_nll(samples, y, bandwidth=bw, bandwidth_floor=0.05, reduction="none")
+            ref = -torch.distributions.Normal(samples[0], 0.05).log_prob(y)
+            assert torch.allclose(got, ref, atol=1e-12)
+        wide = kde_nll(samples, y, bandwidth=torch.tensor([0.01, 0.2], dtype=torch.float64, device=device),
+                       bandwidth_floor=0.05, reduction="none")
+        ref = -torch.distributions.Normal(samples[0], torch.tensor([0.05, 0.2], dtype=torch.float64,
+                                                                   device=device)).log_prob(y)
+        assert torch.allclose(wide, ref, atol=1e-12)
+
+    def test_kde_bandwidth_needs_a_sample(self):
+        with pytest.raises(ValueError, match="num_samples must be >= 1"):
+            kde_bandwidth(torch.tensor([0.1]), 0)
+        with pytest.raises(ValueError, match="floor must be > 0"):
+            kde_bandwidth(torch.tensor([0.1]), 3, floor=0.0)
+        assert kde_bandwidth(torch.tensor([0.1]), 1).item() == pytest.approx(0.106, rel=1e-6)
+
+    def test_paper_nll_closed_form(self, device):
+        # K = 3 samples 0, 1, 3 of one pixel: unbiased std sqrt(7/3); bandwidth 1.06 std P^(1/5) + 1e-5
+        samples = torch.tensor([0.0, 1.0, 3.0], dtype=torch.float64, device=device).reshape(3, 1, 1, 1)
+        y = torch.full((1, 1, 1), 0.5, dtype=torch.float64, device=device)
+        for pixels in (None, 32):
+            h = 1.06 * math.sqrt(7 / 3) * (1 if pixels is None else 32) ** 0.2 + 1e-5
+            kernels = sum(math.exp(-0.5 * ((0.5 - m) / h) ** 2) for m in (0.0, 1.0, 3.0))
+            dens = kernels / (3 * h * math.sqrt(2 * math.pi))
+            got = paper_nll(samples, y, num_pixels=pixels).item()
+            assert got == pytest.approx(-math.log(dens), rel=1e-12)

@@ -130,3 +130,21 @@ def test_bad_inputs():
         observed_mask(plane(), cam_at(), K, plane()[None], cam_at(), K)
     with pytest.raises(ValueError, match="rel_tol"):
         observed_mask(plane(), cam_at(), K, plane()[None], cam_at()[None], K, rel_tol=-1.0)
+
+
+class TestEdges:
+    """A zero tolerance (an exact match) is a valid one, and a training view shifted vertically stops at its
+    last row (the rows are checked against its height, not its width: H < W here)."""
+
+    def test_a_zero_tolerance_observes_an_exact_match_only(self):
+        assert label([plane()], [cam_at()], rel_tol=0.0)[0].all()
+        assert not label([plane() * 1.001], [cam_at()], rel_tol=0.0)[0].any()
+
+    def test_a_vertically_shifted_view_observes_only_the_overlap(self):
+        # a camera at y = -1 sees the wall shifted by F * 1 / D = 4 rows down: test rows 0..7 land on its rows
+        # 4..11, rows 8..11 below its last row (12..15: inside its width of 16, outside its height of 12)
+        below = torch.eye(4, dtype=torch.float64)
+        below[1, 3] = 4 * D / F
+        observed, valid = label([plane()], [below])
+        assert valid.all()
+        assert observed[:8].all() and not observed[8:].any()
