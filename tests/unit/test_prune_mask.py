@@ -290,3 +290,140 @@ def test_a_score_that_loses_to_random_removal_is_noted():
     for quiet in (result(23.40, 23.43), result(23.5, 23.43), result(20.0, 23.4, removed=0)):
         _random_note(quiet, notes, "gate", PruneConfig(keep_ratio=0.8))
         assert notes == ["other"]
+
+
+class TestBoundaries:
+    """The edges of the decisions: a score equal to the threshold stays, a loss of exactly the tolerance is
+    within it, half of the carriers removed is already 'most', and a sweep always holds the unpruned point
+    1.0."""
+
+    def test_a_score_equal_to_the_threshold_is_kept(self):
+        score = torch.tensor([0.1, 0.4, 0.5, float("nan")])
+        cand = torch.ones(4, dtype=torch.bool)
+        assert threshold_mask(score, cand, 0.4).tolist() == [True, True, False, False]
+
+    def test_a_loss_of_exactly_the_tolerance_is_within_it(self):
+        from uncertsplat.prune.policy import largest_removal_within
+        from uncertsplat.schemas.prune import PruneMetrics, SweepPoint
+
+        def point(keep, psnr):
+            m = PruneMetrics(num_gaussians=100, num_carriers=100, psnr_render=psnr, coverage=0.9,
+                             variational_ply_bytes=900, point_cloud_ply_bytes=300, seconds=0.1)
+            n = round(100 * (1 - keep))
+            return SweepPoint(keep_ratio=keep, num_removed=n, keep_ratio_achieved=keep, score=m, random=m)
+
+        points = [point(1.0, 30.0), point(0.9, 29.75), point(0.8, 29.5), point(0.7, 29.25)]
+        choice = largest_removal_within(points, 30.0, 0.5)  # 30 - 0.5 = 29.5 exactly (all binary fractions)
+        assert choice.keep_ratio == 0.8 and choice.psnr_loss_db == 0.5
+        assert largest_removal_within(points, 30.0, 0.25).keep_ratio == 0.9
+
+    def test_removing_exactly_half_of_the_carriers_is_noted(self):
+        from uncertsplat.prune.policy import choose_mask
+
+        score = torch.tensor([0.1, 0.2, 0.3, 0.4, 5.0])
+        carriers = torch.tensor([True, True, True, True, False])
+        keep, notes = choose_mask(score, carriers, threshold=0.25, keep_ratio=None)
+        assert keep.tolist() == [True, True, False, False, True] and len(notes) == 1
+        assert notes[0].startswith("--threshold 0.25 removes 2 of the 4 Gaussians that carry a posterior "
+                                   "(50%)")
+
+    def test_a_sweep_always_holds_the_unpruned_point(self):
+        sweeps = TestScoreChoice.sweeps([0.9])
+        for sweep in sweeps.values():
+            assert sweep.ratios == [1.0, 0.9]
+            assert [p.keep_ratio for p in sweep.points] == [1.0, 0.9]
+            first = sweep.points[0]
+            assert first.num_removed == 0 and first.keep_ratio_achieved == 1.0
+            assert first.score == sweep.unpruned and first.random == sweep.unpruned
+            removal = sweep.points[1]
+            assert removal.num_removed == 6 and removal.keep_ratio_achieved == pytest.approx(0.9)
+
+
+class TestSweepAndNotes:
+    """``--auto`` alone stops the sweep at the first failing ratio; a keep ratio notes a removal only when the
+    carriers are too few for it."""
+
+    @staticmethod
+    def setup(calls):
+        from uncertsplat.schemas.prune import PruneMetrics
+
+        model = tagged_model(n=60)
+        carriers = carrier_mask(model)
+        rows = model.params["means"][:, 0].detach()
+
+        def measure(m, keep, full=True):
+            calls.append(int((~keep).sum()))
+            lost = int((~keep & (rows < 30)).sum())  # 30 dB, less 0.05 dB per removed row of the first 30
+            return PruneMetrics(num_gaussians=len(m), num_carriers=m.num_carriers,
+                                psnr_render=30.0 - 0.05 * lost, coverage=1.0, variational_ply_bytes=0,
+                                point_cloud_ply_bytes=0, seconds=0.0)
+
+        return model, carriers, -rows, measure  # the score removes the important rows first
+
+    def test_stop_at_first_failure_measures_no_further_ratio(self):
+        from uncertsplat.prune.policy import keep_ratio_sweep
+
+        for stop, keeps in ((True, [1.0, 0.9]), (False, [1.0, 0.9, 0.8])):
+            calls = []
+            model, carriers, score, measure = self.setup(calls)
+            unpruned = measure(model, torch.ones(60, dtype=torch.bool))
+            sweep = keep_ratio_sweep(model, score, carriers, [0.9, 0.8], measure, unpruned=unpruned, seed=0,
+                                     tolerance_db=0.1, score_name="free-space", split="test",
+                                     stop_at_first_failure=stop)
+            # 0.9 removes 6 of the first 30 rows: 0.3 dB, over the 0.1 dB tolerance
+            assert [p.keep_ratio for p in sweep.points] == keeps
+            # the unpruned model, then the score's and the random removal of each ratio measured
+            assert calls == [0] + [6, 6, 12, 12][: 2 * (len(keeps) - 1)]
+            assert sweep.largest_removal_within_tolerance is None
+
+    def test_a_keep_ratio_notes_only_a_removal_the_carriers_cannot_make(self):
+        from uncertsplat.prune.policy import choose_mask
+
+        score = torch.tensor([0.5, 0.1, 0.4, 0.2, 0.3, 0.9])
+        carriers = torch.tensor([True, True, True, True, False, False])
+        keep, notes = choose_mask(score, carriers, threshold=None, keep_ratio=0.5)  # 3 to remove, 4 carriers
+        assert keep.tolist() == [False, True, False, False, True, True] and notes == []
+        # 5 to remove (round(1.2) = 1 kept)
+        keep, notes = choose_mask(score, carriers, threshold=None, keep_ratio=0.2)
+        assert keep.tolist() == [False, False, False, False, True, True]
+        assert notes == ["keep ratio 0.2 needs 5 removals but only 4 Gaussians carry a posterior; "
+                         "non-carriers are never removed by a score"]
+        assert choose_mask(score, carriers, threshold=None, keep_ratio=None) == (None, [])
+
+    @staticmethod
+    def sweep(first_psnr, name="s"):
+        from uncertsplat.schemas.prune import PruneMetrics, PruneSweep, SweepPoint
+
+        def metrics(psnr):
+            return PruneMetrics(num_gaussians=100, num_carriers=100, psnr_render=psnr, coverage=0.9,
+                                variational_ply_bytes=900, point_cloud_ply_bytes=300, seconds=0.1)
+
+        ref = metrics(30.0)
+        points = [SweepPoint(keep_ratio=1.0, num_removed=0, keep_ratio_achieved=1.0, score=ref, random=ref),
+                  SweepPoint(keep_ratio=0.9, num_removed=10, keep_ratio_achieved=0.9,
+                             score=metrics(first_psnr), random=metrics(29.0))]
+        return PruneSweep(ratios=[1.0, 0.9], score=name, split="test", unpruned=ref, points=points,
+                          tolerance_db=0.1, metric="psnr_render")
+
+    def test_an_unmeasured_psnr_loses_to_a_measured_one(self):
+        from uncertsplat.prune.policy import choose_score_at_ratio, choose_score_by_removal
+
+        sweeps = {"free-space": self.sweep(None), "gate": self.sweep(29.5)}  # neither within 0.1 dB
+        chosen, note = choose_score_at_ratio(sweeps, 0.9)
+        assert chosen == "gate" and "'free-space' -inf dB; 'gate' 29.50 dB" in note
+        # --auto: neither removes anything; the nearest miss is a measured one (0.50 dB), not the unknown
+        chosen, note = choose_score_by_removal(sweeps)
+        assert chosen == "gate"
+        assert "('free-space' 0 Gaussians; 'gate' 0 Gaussians, its smallest removal 0.50 dB)" in note
+
+
+def test_keep_top_clamps_the_count_to_the_candidates():
+    """A negative count removes nothing (it sliced the order from its end: all but two removed), one above the
+    candidates removes every candidate and nothing else."""
+    score = torch.tensor([0.1, 0.9, 0.5, 0.3])
+    cand = torch.tensor([True, True, False, True])
+    assert keep_top(score, cand, -2).tolist() == [True, True, True, True]
+    assert keep_top(score, cand, 10).tolist() == [False, False, True, False]
+    assert random_mask(4, -1, torch.Generator().manual_seed(0), candidates=cand).all()
+    every = random_mask(4, 10, torch.Generator().manual_seed(0), candidates=cand)
+    assert every.tolist() == [False, False, True, False]
