@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import math
 import shutil
 
 import numpy as np
@@ -300,3 +301,79 @@ def test_file_paths_without_extension_find_upper_case_files(tiny_scene_path, tmp
     text = _raises(root, "no image for 'images/view_001' named in transforms.json")
     assert ".png, .jpg, .jpeg, .exr (in any case)" in text and "there is view_001.webp" in text, text
     assert "view_001.png" not in text, text
+
+
+def test_test_filenames_win_over_val_filenames(tiny_scene_path, tmp_path):  # noqa: F811
+    """A file listing both splits holds its held-out views in test_filenames (nerfstudio's val views are for
+    validation during training): they are the test split; val_filenames alone stand in for it."""
+    _, meta = convert(tiny_scene_path, tmp_path / "ns")
+    path = tmp_path / "ns" / "transforms.json"
+    path.write_text(json.dumps({**meta, "val_filenames": ["images/view_005.png", "images/view_007.png"],
+                                "test_filenames": ["images/view_003.png"]}))
+    scene = load_scene(tmp_path / "ns", SceneConfig(normalize=False))
+    assert scene.split["test"] == (3,) and len(scene.split["train"]) == 23
+    assert scene.source["split_from"] == "test_filenames"
+    path.write_text(json.dumps({**meta, "val_filenames": ["images/view_005.png", "images/view_007.png"]}))
+    scene = load_scene(tmp_path / "ns", SceneConfig(normalize=False))
+    assert scene.split["test"] == (5, 7) and scene.source["split_from"] == "val_filenames"
+
+
+def test_8_bit_point_colours_are_read_over_255(tiny_scene_path, tmp_path):  # noqa: F811
+    """The PLY's 8-bit colours (what nerfstudio and COLMAP write) are v / 255 exactly: 255 is white, not
+    255/256."""
+    convert(tiny_scene_path, tmp_path / "ns")
+    levels = np.array([[0, 128, 255], [255, 1, 254]])
+    _write_ply(tmp_path / "ns" / "sparse_pc.ply", np.array([[0.1, 0.2, 0.3], [-0.5, 0.0, 1.0]]), levels / 255)
+    scene = load_scene(tmp_path / "ns", SceneConfig(normalize=False))
+    torch.testing.assert_close(scene.points_rgb.double(), torch.tensor(levels / 255), atol=1e-7, rtol=0)
+    assert scene.points_rgb[0, 2].item() == 1.0 and scene.points_rgb[0, 0].item() == 0.0
+
+
+def test_a_mirrored_pose_is_refused(tiny_scene_path, tmp_path):  # noqa: F811
+    """A transform_matrix whose 3x3 part is orthonormal but a reflection (determinant -1) is no camera
+    pose."""
+    _, meta = convert(tiny_scene_path, tmp_path / "ns")
+    c2w = np.asarray(meta["frames"][2]["transform_matrix"])
+    c2w[:3, 0] *= -1  # the x axis mirrored: still R^T R = I
+    meta["frames"][2]["transform_matrix"] = c2w.tolist()
+    (tmp_path / "ns" / "transforms.json").write_text(json.dumps(meta))
+    _raises(tmp_path / "ns", "frame 2 ('images/view_002.png'): transform_matrix is not a rigid "
+                             "camera-to-world pose")
+
+
+def test_a_field_of_view_of_pi_is_refused(tiny_scene_path, tmp_path):  # noqa: F811
+    """camera_angle_x = pi is a 180-degree view: no pinhole camera (its focal length would be 0)."""
+    _, meta = convert(tiny_scene_path, tmp_path / "ns")
+    for key in ("fl_x", "fl_y"):
+        del meta[key]
+    path = tmp_path / "ns" / "transforms.json"
+    path.write_text(json.dumps({**meta, "camera_angle_x": math.pi}))
+    _raises(tmp_path / "ns", f"camera_angle_x = {math.pi:g} is no field of view in radians (0 to pi)")
+    path.write_text(json.dumps({**meta, "camera_angle_x": math.pi - 0.5}))  # 151 degrees: a wide pinhole
+    scene = load_scene(tmp_path / "ns", SceneConfig(normalize=False))
+    fx = 0.5 * 128 / math.tan(0.5 * (math.pi - 0.5))
+    assert scene.cameras.K[0, 0, 0].item() == pytest.approx(fx, rel=1e-6)
+
+
+def test_a_downscaled_folder_is_read_at_the_resized_size(tiny_scene_path, tmp_path):  # noqa: F811
+    """downscale = 3 of 128 x 96 images resizes them to round(128 / 3) x 32 = 43 x 32 (``Cameras.scaled``):
+    an images_3/ folder of that size is read; one of 42 x 32 (the width truncated) is not, the full-size
+    images are."""
+    convert(tiny_scene_path, tmp_path / "ns")
+    small = tmp_path / "ns" / "images_3"
+    for width, used in ((43, "images_3"), (42, "full size")):
+        for p in sorted((tmp_path / "ns" / "images").iterdir()):
+            write_png(small / p.name, resize_image(read_image(p), width, 32))
+        scene = load_scene(tmp_path / "ns", SceneConfig(downscale=3))
+        assert scene.source["images"] == used
+        assert (scene.cameras.width, scene.cameras.height) == (43, 32)
+
+
+def test_test_filenames_naming_every_frame_leave_the_default_split(tiny_scene_path, tmp_path):  # noqa: F811
+    """No frame left to train on: the dataset's split is not used; the default (every 8th view held out)
+    is."""
+    _, meta = convert(tiny_scene_path, tmp_path / "ns")
+    names = [fr["file_path"] for fr in meta["frames"]]
+    (tmp_path / "ns" / "transforms.json").write_text(json.dumps({**meta, "test_filenames": names}))
+    scene = load_scene(tmp_path / "ns", SceneConfig(normalize=False))
+    assert scene.split["test"] == (0, 8, 16) and len(scene.split["train"]) == 21

@@ -279,3 +279,40 @@ def test_rendering_loads_skip_the_initial_points(tmp_path, monkeypatch):
     torch.testing.assert_close(light.cameras.cam_from_world, full.cameras.cam_from_world, rtol=0, atol=0)
     torch.testing.assert_close(light.world_from_source, full.world_from_source, rtol=0, atol=0)
     assert light.split == full.split and light.center == full.center and light.scene_scale == full.scene_scale
+
+
+class TestInwardBounds:
+    """The acceptance tests' edges: in view of exactly ``MIN_IN_VIEW`` of the cameras is enough, and a point
+    nearer to the cameras than ``MIN_LOOK_DISTANCE`` x the rig radius is no inward rig's centre."""
+
+    def test_in_view_of_exactly_the_minimum_fraction_is_enough(self):
+        from uncertsplat.sfm.center import MIN_IN_VIEW
+
+        target = (0.2, 0.1, -0.3)
+        for hidden, inward in ((2, True), (3, False)):
+            rig = _inward_rig(target, n=10)
+            K = rig.K.clone()
+            K[:hidden, 0, 2] = -10.0  # the point (on every optical axis) lands at u = -10 there: out of view
+            fit = fit_optical_axes(Cameras(rig.cam_from_world, K, W, H))
+            assert fit.in_view == pytest.approx(1 - hidden / 10, abs=0)
+            assert fit.inward is inward, fit.why
+        assert MIN_IN_VIEW == 0.8
+
+    def test_a_point_nearer_than_the_minimum_look_distance_is_refused(self):
+        from uncertsplat.sfm.center import MIN_LOOK_DISTANCE
+
+        target = torch.tensor([1.0, -2.0, 0.5], dtype=torch.float64)
+        near = [(1.0, 0.2, 0.3), (-1.0, 0.1, 0.2), (0.2, 1.0, -0.3), (0.1, -1.0, 0.4), (0.3, 0.2, 1.0)]
+        far = [(1.0, 0.3, 0.3), (1.0, -0.3, 0.3), (1.0, 0.3, -0.3), (1.0, -0.3, -0.3)]
+        mats = []
+        # five cameras 0.01 from the point, four 100 away on one side
+        for dirs, dist in ((near, 0.01), (far, 100.0)):
+            for d in dirs:
+                d = torch.tensor(d, dtype=torch.float64)
+                mats.append(_look_at(target + dist * d / d.norm(), target))
+        fit = fit_optical_axes(_cameras(mats))
+        torch.testing.assert_close(fit.point, target, atol=1e-9, rtol=0)
+        assert fit.in_view == 1.0 and fit.spread > 0.1
+        assert fit.look_distance == pytest.approx(0.01, rel=1e-6)  # the median camera is a near one
+        assert fit.look_distance / fit.rig_radius < MIN_LOOK_DISTANCE
+        assert not fit.inward and "x the rig radius from the cameras (outside 0.05..4.0)" in fit.why, fit.why

@@ -225,3 +225,21 @@ def test_hemisphere_held_out_views_on_every_side_and_apart(views, every):
     spacing = math.degrees(math.sqrt(2 * math.pi * 0.8 / views))  # the hemisphere band's area per view
     nearest = torch.rad2deg(torch.acos((d[test] @ d[train].T).clamp(-1, 1))).min()
     assert float(nearest) > 0.6 * spacing
+
+
+def test_a_blender_folder_without_test_frames_has_no_split_of_its_own(pair, tmp_path):
+    """Only transforms_train.json: the dataset names no held-out view, so the default split (every 8th view)
+    is used rather than an empty test set."""
+    from uncertsplat.sfm.transforms import read_blender
+
+    _, blender = pair
+    root = tmp_path / "blender"
+    shutil.copytree(blender, root)
+    test = json.loads((root / "transforms_test.json").read_text())
+    train = json.loads((root / "transforms_train.json").read_text())
+    every = {**train, "frames": train["frames"] + test["frames"]}
+    (root / "transforms_train.json").write_text(json.dumps(every))
+    (root / "transforms_test.json").unlink()
+    assert read_blender(root, SceneConfig()).split is None
+    scene = load_scene(root, SceneConfig(normalize=False))
+    assert scene.split["test"] == (0, 8) and len(scene.split["train"]) == 7
