@@ -1817,3 +1817,24 @@ def test_a_pipelines_sfm_check_of_a_synthetic_scene_is_shown_with_its_gt_errors(
     write_report(check, rep)
     html = stage.run(run, tmp_path / "other_photos").read_text(encoding="utf-8")
     assert "reconstruction health" not in html
+
+
+def test_the_written_depth_factor_is_the_first_maps_positive_finite_one(tmp_path):
+    """``written_depth_to_source`` reads the factor of the first EXR by name; a factor that is no length ratio
+    (0, < 0, inf, NaN), none in the header, no map and no folder all give None."""
+    from uncertsplat.io.images import write_exr
+    from uncertsplat.io.maps import EXR_DEPTH_TO_SOURCE, written_depth_to_source
+
+    plane = {"depth_mean.Z": np.zeros((2, 3), dtype=np.float32)}
+    maps = tmp_path / "maps"
+    assert written_depth_to_source(maps) is None  # no folder
+    maps.mkdir()
+    assert written_depth_to_source(maps) is None  # no map
+    write_exr(maps / "b.exr", plane, attributes={EXR_DEPTH_TO_SOURCE: 3.0})
+    write_exr(maps / "a.exr", plane, attributes={EXR_DEPTH_TO_SOURCE: 2.0})
+    assert written_depth_to_source(maps) == 2.0
+    for bad in (0.0, -2.0, float("inf"), float("nan")):
+        write_exr(maps / "a.exr", plane, attributes={EXR_DEPTH_TO_SOURCE: bad})
+        assert written_depth_to_source(maps) is None, bad
+    write_exr(maps / "a.exr", plane)
+    assert written_depth_to_source(maps) is None
