@@ -115,6 +115,64 @@ def test_split_children_carry_posteriors():
     assert (opt.state[model.params["means"]]["exp_avg"][-20:] == 0).all()
 
 
+@pytest.mark.parametrize("variant", ["ours", "paper"])
+@pytest.mark.parametrize("keep", [False, True])
+def test_split_keep_render_gives_children_of_a_parent_without_rows_the_render_of_3dgs_split(keep, variant):
+    """``keep_render`` (variant "ours"): a child whose parent had no posterior renders (posterior mean) with the
+    parent's opacity and its scale / 1.6, as a child of a parent with a posterior does; without it (or with the
+    paper's variant, where nothing is absorbed) the prior's expected gate and mean multiplier dim and shrink it.
+    Children of parents with rows are the same either way."""
+    from uncertsplat.gaussians.variational import expected_gate, posterior_mean
+
+    model, opt, g = setup()
+    with torch.no_grad():  # opacities from 0.02 to 0.8: below 1 / E[gate], so none is capped
+        model.params["opacities"].copy_(torch.logit(torch.linspace(0.02, 0.8, 40)))
+    prior = Prior(variant=variant)
+    mask = torch.zeros(40, dtype=torch.bool)
+    mask[5:15] = True
+    had = (model.posterior_row[5:15] >= 0).repeat(2)  # [20]: child j's parent is 5 + j % 10
+    assert had.any() and (~had).any()
+    before = posterior_mean(model, variant=variant)
+    parent_opacity, parent_scales = before.opacities[5:15].repeat(2), before.scales[5:15].repeat(2, 1)
+    parent_logscale = model.params["scales"].detach()[5:15].repeat(2, 1)
+    ops.split(model, opt, mask, g, scales=model.params["scales"].detach().exp(), prior=prior, factor=1.6,
+              keep_render=keep)
+    after = posterior_mean(model, variant=variant)
+    op, sc = after.opacities[-20:], after.scales[-20:]
+    if variant == "ours":  # (the paper's posterior mean is not linear in the base scale)
+        torch.testing.assert_close(op[had], parent_opacity[had], rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(sc[had], parent_scales[had] / 1.6, rtol=1e-5, atol=1e-7)
+    if keep and variant == "ours":
+        torch.testing.assert_close(op[~had], parent_opacity[~had], rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(sc[~had], parent_scales[~had] / 1.6, rtol=1e-5, atol=1e-7)
+    elif variant == "ours":
+        gate = float(expected_gate(torch.tensor(prior.gate_mean), torch.tensor(prior.gate_std), prior.temperature))
+        torch.testing.assert_close(op[~had], parent_opacity[~had] * gate, rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(sc[~had], parent_scales[~had] / 1.6 * (1.0 - 0.5 * prior.scale_width),
+                                   rtol=1e-5, atol=1e-7)
+    else:  # the paper's variant: nothing absorbed, the children's base parameters are 3DGS's split's
+        logit = torch.logit(torch.linspace(0.02, 0.8, 40))[5:15].repeat(2)
+        torch.testing.assert_close(model.params["opacities"].detach()[-20:], logit, rtol=0, atol=0)
+        torch.testing.assert_close(model.params["scales"].detach()[-20:], parent_logscale - math.log(1.6),
+                                   rtol=0, atol=1e-6)
+    model.check()
+
+
+def test_split_keep_render_gives_no_rows_without_carry():
+    """With ``carry=False`` (plain 3DGS) a child of a parent without rows gets none, and keep_render changes
+    nothing: its base parameters are 3DGS's split's."""
+    model, opt, g = setup()
+    mask = torch.zeros(40, dtype=torch.bool)
+    mask[5:15] = True
+    had = (model.posterior_row[5:15] >= 0).repeat(2)
+    parent_logit = model.params["opacities"].detach()[5:15].repeat(2).clone()
+    ops.split(model, opt, mask, g, scales=model.params["scales"].detach().exp(), prior=Prior(), carry=False,
+              keep_render=True)
+    assert (model.posterior_row[-20:] >= 0).tolist() == had.tolist()
+    assert torch.equal(model.params["opacities"].detach()[-20:], parent_logit)
+    model.check()
+
+
 def test_spawn_adds_prior_rows_only_for_new_carriers():
     model, opt, _ = setup()
     p0 = model.num_carriers

@@ -110,12 +110,14 @@ class Densifier:
             carry a posterior only when their parent does (so a model without posteriors keeps none).
         iterations: the run's length (None: unknown): no opacity reset in its last ``RESET_RECOVERY_STEPS``.
         spawn_keeps_render: new carriers keep their posterior-mean render (``ops.spawn``'s ``keep_render``).
+        split_keeps_render: so do split children given new rows (``ops.split``'s ``keep_render``).
     """
 
     def __init__(self, cfg, prior: Prior, extent: float, n: int, device, posteriors: bool = True,
-                 iterations: int | None = None, spawn_keeps_render: bool = False):
+                 iterations: int | None = None, spawn_keeps_render: bool = False, split_keeps_render: bool = False):
         self.cfg = cfg
         self.spawn_keeps_render = spawn_keeps_render  # ops.spawn's keep_render (the informed posterior's runs)
+        self.split_keeps_render = split_keeps_render  # ops.split's keep_render (the same)
         self.posteriors = posteriors  # False: plain 3DGS, splits and spawns never create posteriors
         self.iterations = iterations  # the run's length: no opacity reset near its end (is_opacity_reset_step)
         self.prior = prior
@@ -186,7 +188,7 @@ class Densifier:
             split_full = torch.cat([split_m, torch.zeros(pad, dtype=torch.bool, device=split_m.device)])
             scales_full = torch.cat([split_scales, split_scales[clone_m]])
             ops.split(model, optimizer, split_full, generator, scales=scales_full, prior=self.prior,
-                      factor=cfg.split_factor, carry=self.posteriors)
+                      factor=cfg.split_factor, carry=self.posteriors, keep_render=self.split_keeps_render)
             with torch.no_grad():
                 pm = posterior_mean(model, variant=self.prior.variant, extent=self.extent,
                                     temperature=self.prior.temperature)

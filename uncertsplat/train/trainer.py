@@ -922,9 +922,10 @@ class Trainer:
         dcfg = dcfg.model_copy(update={"max_gaussians": self.budget.max_gaussians})
         if not self.variational:  # plain 3DGS: densify, never spawn posteriors
             dcfg = dcfg.model_copy(update={"spawn_interval": 10**9})
-        keep = self.informed and self.cfg.variational.spawn_keeps_render
+        vcfg = self.cfg.variational
         return Densifier(dcfg, self.prior, self.extent, len(self.model), self.device, posteriors=self.variational,
-                         iterations=self.cfg.iterations, spawn_keeps_render=keep)
+                         iterations=self.cfg.iterations, spawn_keeps_render=self.informed and vcfg.spawn_keeps_render,
+                         split_keeps_render=self.informed and vcfg.split_keeps_render)
 
     def _rates(self, step: int) -> dict[str, float]:
         return base_rates(self.cfg.lr, step, self.cfg.iterations, self.extent,
