@@ -262,15 +262,6 @@ def test_an_informed_run_from_before_spawn_keeps_render_resumes_without_it(tiny_
     assert cfg["variational"]["spawn_keeps_render"] is False
 
 
-def test_an_informed_run_from_before_split_keeps_render_resumes_without_it(tiny_scene_path, tiny_run_path,  # noqa: F811
-                                                                              tmp_path):
-    """config.json files written before ``variational.split_keeps_render`` existed split Gaussians without a
-    posterior into children at the prior's gate and multiplier; a resumed one keeps doing so."""
-    assert train_config_from("tiny", {}).variational.split_keeps_render is True
-    cfg = resume_without_key(tiny_scene_path, tiny_run_path, tmp_path, "variational", "split_keeps_render", 20)
-    assert cfg["variational"]["split_keeps_render"] is False
-
-
 def test_an_informed_run_from_before_refresh_probes_keeps_its_probes(tiny_scene_path, tiny_run_path,  # noqa: F811
                                                                       tmp_path):
     """config.json files written before ``variational.refresh_probes`` existed used ``probes`` at every update; a

@@ -47,14 +47,13 @@ from uncertsplat.train.transients import transients_warning
 # a callable gets the stored section: variational.posterior, before the informed posterior existed: SGD tables;
 # variational.train_on, before it existed: an informed run fitted its Gaussians to posterior samples;
 # variational.refresh_probes, before it existed: every update used `probes`; variational.spawn_keeps_render, before
-# it existed: spawned carriers took the prior's gate and multiplier on top of their parameters (and
-# variational.split_keeps_render: split children of a Gaussian without a posterior); densify.growth_min_gain_db,
+# it existed: spawned carriers took the prior's gate and multiplier on top of their parameters; densify.growth_min_gain_db,
 # before the growth test: densification grew the model up to its budget; densify.growth_refit_steps, before the test
 # re-fitted the rest: the half was switched off in the model as it was; densify.growth_skip_factor, before tests were
 # skipped: a test at every interval.
 _KEYS_BEFORE = {"variational": {"posterior": "sgd", "train_on": "samples",
                                 "refresh_probes": lambda section: section.get("probes", 2),
-                                "spawn_keeps_render": False, "split_keeps_render": False},
+                                "spawn_keeps_render": False},
                 "densify": {"growth_min_gain_db": 0.0, "growth_refit_steps": 0, "growth_skip_factor": None}}
 
 
