@@ -247,18 +247,22 @@ def test_auto_on_a_model_too_small_to_remove_any_gaussian_says_so():
     assert "--tolerance-db" not in note
 
 
+def _sweep_point(keep, psnr):
+    """A sweep point of 100 carriers at ``keep`` whose score and random removal both render at ``psnr``."""
+    from uncertsplat.schemas.prune import PruneMetrics, SweepPoint
+
+    m = PruneMetrics(num_gaussians=100, num_carriers=100, psnr_render=psnr, coverage=0.9,
+                     variational_ply_bytes=900, point_cloud_ply_bytes=300, seconds=0.1)
+    n = round(100 * (1 - keep))
+    return SweepPoint(keep_ratio=keep, num_removed=n, keep_ratio_achieved=keep, score=m, random=m)
+
+
 def test_largest_removal_stops_at_the_first_ratio_that_fails():
     """``--auto`` walks the keep ratios downward and stops at the first that loses more than the tolerance: a
     larger removal that passes again (0.7 here) is noise, not a plateau, and must not be chosen."""
     from uncertsplat.prune.policy import largest_removal_within
-    from uncertsplat.schemas.prune import PruneMetrics, SweepPoint
 
-    def point(keep, psnr):
-        m = PruneMetrics(num_gaussians=100, num_carriers=100, psnr_render=psnr, coverage=0.9,
-                         variational_ply_bytes=900, point_cloud_ply_bytes=300, seconds=0.1)
-        n = round(100 * (1 - keep))
-        return SweepPoint(keep_ratio=keep, num_removed=n, keep_ratio_achieved=keep, score=m, random=m)
-
+    point = _sweep_point
     points = [point(1.0, 30.0), point(0.9, 29.8), point(0.8, 29.0), point(0.7, 29.9)]
     choice = largest_removal_within(points, 30.0, 0.5)
     assert choice.keep_ratio == 0.9 and choice.num_removed == 10
@@ -304,14 +308,8 @@ class TestBoundaries:
 
     def test_a_loss_of_exactly_the_tolerance_is_within_it(self):
         from uncertsplat.prune.policy import largest_removal_within
-        from uncertsplat.schemas.prune import PruneMetrics, SweepPoint
 
-        def point(keep, psnr):
-            m = PruneMetrics(num_gaussians=100, num_carriers=100, psnr_render=psnr, coverage=0.9,
-                             variational_ply_bytes=900, point_cloud_ply_bytes=300, seconds=0.1)
-            n = round(100 * (1 - keep))
-            return SweepPoint(keep_ratio=keep, num_removed=n, keep_ratio_achieved=keep, score=m, random=m)
-
+        point = _sweep_point
         points = [point(1.0, 30.0), point(0.9, 29.75), point(0.8, 29.5), point(0.7, 29.25)]
         choice = largest_removal_within(points, 30.0, 0.5)  # 30 - 0.5 = 29.5 exactly (all binary fractions)
         assert choice.keep_ratio == 0.8 and choice.psnr_loss_db == 0.5
