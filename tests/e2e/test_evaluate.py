@@ -1340,7 +1340,7 @@ class TestPredictor:
         path = run / "eval" / "predictive.pt"
         stored = decode(path.read_bytes())
         loaded = load_run(run, torch.device("cpu"))
-        old = pc._parts(loaded, evaluation_config(run), whole_scene=True)
+        old = pc._part_forms(loaded, evaluation_config(run))[1]
         assert old["scene"] != pc._parts(loaded, evaluation_config(run))["scene"]
         path.write_bytes(encode({**stored, "key": pc._key(old), "parts": json.dumps(old, sort_keys=True, default=str)}))
         assert Predictor.load(run, "cpu").std_factor == with_scene.std_factor

@@ -90,10 +90,10 @@ def _part_forms(loaded, cfg) -> tuple[dict, dict] | None:
     return today, before
 
 
-def _parts(loaded, cfg, whole_scene: bool = False) -> dict | None:
-    """``_part_forms``' today's form (``whole_scene``: that of files written before), or None."""
+def _parts(loaded, cfg) -> dict | None:
+    """``_part_forms``' today's form, or None."""
     forms = _part_forms(loaded, cfg)
-    return None if forms is None else forms[1 if whole_scene else 0]
+    return None if forms is None else forms[0]
 
 
 STD_FIT_WITH_FITTED_NOISE = 2

@@ -864,8 +864,8 @@ def imported_fit_warnings(fit_psnr: float | None, imported: dict) -> list[str]:
                 f"(read in {frame_phrase(imported)}{fit}; {imported['in_view_share']:.0%} of its Gaussians inside "
                 "some training view): its trainer fitted them far better, and no frame the points and photos "
                 "allow renders them better, so the model is likely of another scene (or of another capture of the "
-                "place: a scene whose walls or ground alone match the points still gets a frame), or it renders otherwise than 3DGS does (an antialiased or filtered renderer, another "
-                "background); where the trainer's frame is known, give it (--from-ply-transform FILE): its "
+                "place: a scene whose walls or ground alone match the points still gets a frame), or it renders "
+                "otherwise than 3DGS does (an antialiased or filtered renderer, another background); where the trainer's frame is known, give it (--from-ply-transform FILE): its "
                 "uncertainty here describes this render"]
     try_other = ("check init_ply_transform" if frame == "transform" else
                  "read in another: --set init_ply_frame=run, or =align to find its frame on the scene's sparse points"
