@@ -163,7 +163,7 @@ def test_ctrl_c_cancels_the_ray_jobs_and_keeps_the_finished_records(tmp_path_fac
         pytest.skip("reads the process table from /proc")
     scene = tiny_scene(tmp_path_factory.getbasetemp() / "shared_scenes")
     spec = tmp_path / "spec.toml"
-    spec.write_text(CTRL_C_SPEC.format(iterations=400))
+    spec.write_text(CTRL_C_SPEC.format(iterations=200))
     out = tmp_path / "out"
     ray_tmp = tempfile.mkdtemp(prefix="rc", dir="/tmp")  # Ray's sockets need a short path
     env = {**os.environ, "RAY_TMPDIR": ray_tmp, "OMP_NUM_THREADS": "1"}
