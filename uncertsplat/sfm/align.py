@@ -227,9 +227,14 @@ class _Matcher:
         t = np.stack([t for _, _, t in placements])  # [S,3]
         bound = np.maximum(np.array([s for s, _, _ in placements]) * radius, 1e-300)  # [S]
         placed = np.einsum("sij,nj->sni", sr, src) + t[:, None, :]  # [S,N,3]
-        dist, _ = self.tree.query(placed.reshape(-1, 3), distance_upper_bound=reach * float(bound.max()),
-                                  workers=-1)
-        dist = np.minimum(dist.reshape(len(placements), -1), reach * bound[:, None])  # [S,N]
+        dist = np.empty(placed.shape[:2])  # [S,N]
+        # one query per bound (the starts come at a few scales): a search bounded by the largest scale's reach
+        # visits far more of the tree for the smaller ones, most of all above a dense flat cloud (x2.5 on one)
+        for b in np.unique(bound):
+            at = bound == b
+            dist[at] = self.tree.query(placed[at].reshape(-1, 3), distance_upper_bound=reach * float(b),
+                                       workers=-1)[0].reshape(-1, placed.shape[1])
+        dist = np.minimum(dist, reach * bound[:, None])  # [S,N]
         nearest = np.partition(dist, keep - 1, axis=1)[:, :keep]
         return list(nearest.mean(1) / bound)
 
