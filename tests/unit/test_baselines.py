@@ -224,6 +224,25 @@ def test_perturbed_sample_is_repeatable_and_zero_variance_is_the_mean():
     assert d.std().item() == pytest.approx(0.1, rel=0.05)
 
 
+def test_perturbed_sample_adds_its_noise_in_the_documented_order_to_every_perturbed_parameter():
+    """``perturbed_sample`` is ``theta + sqrt(var) * eps`` with eps drawn from the generator in ``PARAM_ORDER``
+    (means, scales, opacities, sh0), each added to its own stored parameter before the activation: the DC colour too,
+    and with the sign given (an offset subtracted has the same spread and would pass a test of the spread alone)."""
+    from uncertsplat.baselines.fisher import PARAM_ORDER
+
+    params = _params(5)
+    gen = torch.Generator().manual_seed(11)
+    var = {k: torch.rand(params[k].shape, generator=gen) * 0.04 + 0.01 for k in PARAM_ORDER}
+    got = perturbed_sample(params, var, torch.Generator().manual_seed(12), sh_degree=0)
+    draws = torch.Generator().manual_seed(12)
+    moved = {k: params[k] + var[k].sqrt() * torch.randn(var[k].shape, generator=draws) for k in PARAM_ORDER}
+    torch.testing.assert_close(got.means, moved["means"], rtol=0, atol=1e-6)
+    torch.testing.assert_close(got.scales, moved["scales"].exp(), rtol=1e-6, atol=0)
+    torch.testing.assert_close(got.opacities, torch.sigmoid(moved["opacities"]), rtol=0, atol=1e-6)
+    torch.testing.assert_close(got.sh[:, :1], moved["sh0"], rtol=0, atol=1e-6)
+    assert torch.equal(got.sh[:, 1:], params["shN"]) and torch.equal(got.quats, params["quats"])
+
+
 # ------------------------------------------------------------------- deterministic = plain 3DGS
 def test_plain_3dgs_split_creates_no_posteriors():
     from uncertsplat.gaussians import ops
@@ -272,9 +291,16 @@ def test_one_pass_gives_the_noise_the_fisher_and_the_disagreement():
     expected = g.var(0, unbiased=True) * 5
     torch.testing.assert_close(c.disagreement["means"][0], expected, rtol=1e-4, atol=1e-6)
     assert torch.all(c.disagreement["scales"] == 0), "parameters the render ignores: no disagreement"
+    calls = []
     fixed = curvature(params, _Cams(maps), images, _linear_render, names=("means",),
-                      generator=torch.Generator().manual_seed(9), sh_degree=0, noise_std=0.5)
+                      generator=torch.Generator().manual_seed(9), sh_degree=0, noise_std=0.5,
+                      on_view=lambda done, views: calls.append((done, views)))
     assert fixed.noise_std == 0.5 and fixed.disagreement is None
+    assert calls == [(1, 5), (2, 5), (3, 5), (4, 5), (5, 5)], "on_view(done, views) as each view is done"
+    # two probes per view unless told: the same draws, so the same estimate as probes=2
+    two = curvature(params, _Cams(maps), images, _linear_render, names=("means",),
+                    generator=torch.Generator().manual_seed(9), sh_degree=0, noise_std=0.5, probes=2)
+    assert torch.equal(fixed.fisher["means"], two.fisher["means"])
 
 
 def test_a_perfect_fit_gets_the_noise_floor_not_zero():

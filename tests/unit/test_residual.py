@@ -77,6 +77,52 @@ def test_masked_pixels_do_not_count_and_subset_keeps_each_gaussians_noise():
     sub = field.subset(keep)
     assert sub.sample.means.shape[0] == int(keep.sum())
     torch.testing.assert_close(sub.variance, field.variance[keep])
+    # the sample's position variance (an expected render's) is kept with its Gaussians too
+    spread = replace(field, sample=replace(sample, position_var=torch.linspace(0.0, 1.0, len(sample.means))))
+    assert torch.equal(spread.subset(keep).sample.position_var, spread.sample.position_var[keep])
+
+
+def test_a_faint_gaussian_is_seen_and_masked_pixels_leave_the_mean_too():
+    """A Gaussian whose blending weight is a few percent of the others' is still seen (its own noise, not the mean);
+    the mean over the training pixels (what the unseen Gaussian gets) is taken over the pixels inside the masks."""
+    sample, cams, d = _sample(), _cams(3), 0.05
+    faint = torch.full_like(sample.opacities, 0.7)
+    faint[0] = 0.01
+    sample = replace(sample, opacities=faint)
+    with torch.no_grad():
+        out = RENDER(sample, cams)
+    field = fit_residual_field(sample, cams, out.rgb + d, RENDER)
+    assert 0.0 < float(field.observations[0]) < 0.05 * float(field.observations.max())
+    assert bool(field.seen[0]) and float(field.variance[0]) == pytest.approx(d * d, rel=1e-3)
+    masks = torch.zeros(3, H, W, 1, dtype=torch.bool)
+    masks[:, :, : W // 3] = True
+    images = torch.where(masks, out.rgb + d, out.rgb + 5 * d)
+    masked = fit_residual_field(sample, cams, images, RENDER, masks=masks)
+    assert masked.mean_variance == pytest.approx(d * d, rel=1e-4)
+    assert float(masked.variance[-1]) == pytest.approx(d * d, rel=1e-4)
+
+
+def test_the_colour_prior_is_the_pixels_variance_and_each_bands_mean_square_over_the_seen_gaussians():
+    """``fit_residual_field(colour_posterior=True)``'s prior: the DC coefficient's is the variance of the training
+    pixels (inside the masks) over C0^2, each higher band's the mean square of that band's coefficients over the seen
+    Gaussians (the unseen one's left out, however large)."""
+    sample, cams = _sample(), _cams(3)
+    g = torch.Generator().manual_seed(7)
+    n = len(sample.means)
+    band1, band2 = 0.2 * torch.randn(n, 3, 3, generator=g), 0.05 * torch.randn(n, 5, 3, generator=g)
+    band1[-1], band2[-1] = 50.0, -50.0  # the unseen Gaussian's
+    sample = replace(sample, sh=torch.cat([sample.sh, band1, band2], 1), sh_degree=2)
+    images = torch.rand(3, H, W, 3, generator=g)
+    masks = torch.ones(3, H, W, 1, dtype=torch.bool)
+    masks[2, : H // 2] = False
+    field = fit_residual_field(sample, cams, images, RENDER, masks=masks, colour_posterior=True)
+    seen = field.seen
+    assert not bool(seen[-1]) and bool(seen[:-1].all())
+    pixels = images.double()[masks[..., 0]]  # [P,3]
+    dc = float(pixels.var(0, unbiased=False).mean()) / 0.28209479177387814**2
+    want = torch.tensor([dc] + [float(band1[seen].double().square().mean())] * 3
+                        + [float(band2[seen].double().square().mean())] * 5, dtype=torch.float64)
+    torch.testing.assert_close(field.colour_prior.double(), want, rtol=1e-5, atol=0)
 
 
 def test_explained_variance_is_taken_off_the_residual():
@@ -93,6 +139,20 @@ def test_explained_variance_is_taken_off_the_residual():
                                atol=1e-7)
     none = fit_residual_field(sample, cams, out.rgb + d, RENDER, explained=lambda cam: torch.full((1, H, W, 1), 1.0))
     assert float(none.variance.abs().max()) == 0.0
+
+
+def test_a_constant_colour_renders_as_that_colour():
+    """``with_colour``: the sample's SH is degree 0 with ``C0 sh + 0.5`` (``render.sh``'s DC colour) equal to the
+    given colour [N,3] of each Gaussian, the rest of the sample as it was (the value maps are rendered so)."""
+    from uncertsplat.render.sh import eval_sh
+    from uncertsplat.uncertainty.residual import with_colour
+
+    sample = _sample(n=6)
+    colour = torch.rand(6, 3, generator=torch.Generator().manual_seed(5)) * 2.0 - 0.5
+    got = with_colour(sample, colour)
+    assert got.sh_degree == 0 and got.sh.shape == (6, 1, 3) and torch.equal(got.means, sample.means)
+    d = torch.nn.functional.normalize(torch.randn(1, 6, 3, generator=torch.Generator().manual_seed(6)), dim=-1)
+    torch.testing.assert_close(eval_sh(0, got.sh, d)[0] + 0.5, colour, rtol=0, atol=1e-6)
 
 
 class TestNoiseScale:
@@ -337,7 +397,8 @@ class TestColourPosterior:
         base = dict(sample=s, variance=torch.tensor([noise]), seen=torch.tensor([True]), mean_variance=noise,
                     colour_evidence=evidence.float(), colour_prior=prior.float())
         block, diagonal = ResidualField(**base, colour_cross=cross), ResidualField(**base)
-        centers = torch.tensor([[0.0, 0.0, 5.0], [0.0, 0.0, -5.0], [4.0, 0.0, 3.0]])
+        # (the last from off both axes: there every coefficient of band 2 is non-zero, the first one too)
+        centers = torch.tensor([[0.0, 0.0, 5.0], [0.0, 0.0, -5.0], [4.0, 0.0, 3.0], [2.0, 3.0, 4.0]])
         got = block.colour_variance(centers)[:, 0].double()
         y = sh_basis(degree, view_directions(s.means.double(), centers.double()))[:, 0]  # [3,B]
         p_low = obs / noise * (ys[:, :4, None] * ys[:, None, :4]).sum(0) + torch.diag(1.0 / prior[:4])
@@ -365,6 +426,25 @@ class TestColourPosterior:
         # its diagonal is the diagonal form's evidence; the noise is the same
         torch.testing.assert_close(torch.diagonal(block.colour_cross, dim1=1, dim2=2).float(), block.colour_evidence)
         torch.testing.assert_close(block.colour_evidence, diag.colour_evidence)
+        # sum_views Y(d_v) Y(d_v)^T sum_p w: symmetric, and its off-diagonal the products of different coefficients
+        torch.testing.assert_close(block.colour_cross, block.colour_cross.transpose(1, 2), rtol=0, atol=0)
+        assert float(block.colour_cross[:, 0, 1:].abs().max()) > 0.0
+        # fitted on a share of the views: scaled to all of them as the diagonal evidence is
+        four = self._fit(sample, cams, images, colour_covariance="block", view_factor=4.0)
+        torch.testing.assert_close(four.colour_cross, 4 * block.colour_cross)
+        # blended for several cameras: each with its own direction's colour variance (one moved 1 to the side; band 1
+        # given a spread, so that its prior, and the variance's dependence on the direction, is not 0)
+        band1 = 0.2 * torch.randn(len(sample.means), 3, 3, generator=torch.Generator().manual_seed(8))
+        lit = replace(sample, sh=torch.cat([sample.sh[:, :1], band1], 1))
+        with torch.no_grad():
+            lit_images = RENDER(lit, cams).rgb + d
+        lit_field = self._fit(lit, cams, lit_images, colour_covariance="block")
+        side = cams.cam_from_world[:1].clone()
+        side[0, 0, 3] = -1.0
+        both = Cameras(torch.cat([cams.cam_from_world[:1], side]), cams.K[:2], W, H, ("v0.png", "side.png"))
+        one_by_one = torch.cat([lit_field.blended_parts(both[[i]], RENDER)["colour posterior"] for i in range(2)])
+        torch.testing.assert_close(lit_field.blended_parts(both, RENDER)["colour posterior"], one_by_one, rtol=1e-4,
+                                   atol=0)
         keep = torch.arange(len(sample.means)) % 2 == 0
         torch.testing.assert_close(block.subset(keep).colour_cross, block.colour_cross[keep])
         back = ResidualField.from_state(sample, block.state())
@@ -503,6 +583,8 @@ class TestEdgeTerm:
         assert float(image_gradient_sq(torch.full((4, 6, 3), 0.7)).abs().max()) == 0.0
         row = torch.stack([0.2 * torch.arange(9.0)] * 3, -1)[None]  # [1,9,3]: one row, no y difference to take
         torch.testing.assert_close(image_gradient_sq(row), torch.full((1, 9, 1), 0.04))
+        pair = torch.stack([0.2 * torch.arange(2.0)] * 3, -1)[None]  # [1,2,3]: two pixels are enough for a difference
+        torch.testing.assert_close(image_gradient_sq(pair), torch.full((1, 2, 1), 0.04))
 
     def test_the_slope_is_recovered_when_the_residual_follows_the_gradient(self):
         """Residuals with r^2 = s0 + delta^2 g (+ an explained e) exactly: least squares gives delta^2 back; pixels the
@@ -523,6 +605,13 @@ class TestEdgeTerm:
         assert got == pytest.approx(delta2, rel=1e-3)
         # without telling it about e, a constant e only moves the intercept
         assert fit_edge_scale(sample, cams, images, RENDER) == pytest.approx(delta2, rel=1e-3)
+        # covered pixels outside the masks do not count either, whatever their residual
+        masks = torch.ones(3, H, W, 1, dtype=torch.bool)
+        masks[0, :, : W // 2] = False
+        assert bool((~uncovered[0, :, : W // 2]).any())
+        spoiled = torch.where(~masks, images + 0.3, images)
+        assert fit_edge_scale(sample, cams, spoiled, RENDER, masks=masks) == pytest.approx(delta2, rel=1e-3)
+        assert fit_edge_scale(sample, cams, spoiled, RENDER) != pytest.approx(delta2, rel=0.1)
 
     def test_no_gradient_relation_gives_zero_and_the_field_renders_nothing_then(self):
         from uncertsplat.uncertainty.residual import fit_edge_scale
@@ -556,6 +645,9 @@ class TestEdgeTerm:
         assert field.edge_scale == delta2
         torch.testing.assert_close(field.edge(cams, RENDER), delta2 * g)
         torch.testing.assert_close(field.blended(cams, RENDER), out.alpha * d * d + delta2 * g, rtol=1e-3, atol=1e-7)
+        # an edge term larger than the residuals: each Gaussian's noise is clamped at 0, never negative
+        over = fit_residual_field(sample, cams, images, RENDER, edge_scale=50 * delta2)
+        assert float(over.variance.min()) == 0.0 and bool((over.variance >= 0).all())
         # a fitted noise level scales both parts; pruning keeps the edge term
         assert field.scaled(0.5).edge_scale == pytest.approx(0.25)
         assert field.subset(torch.arange(len(sample.means)) % 2 == 0).edge_scale == delta2
