@@ -213,6 +213,17 @@ class TestViewConsistency:
         assert centre[20.0] == 0.0
         assert float(dataclasses.replace(base, gate=4.0, palette_var=0.0).variance(
             test, _plane_render()).abs().max()) == 0.0
+        # only a view whose image holds the point counts: a narrow view at 40 degrees holds the plane's centre (2
+        # degrees from a wide view at 38: within the gate) but not the far points at that view's right edge, which
+        # take the angle to the wide 0-degree view (38 degrees: in full; its left half looks past the plane)
+        wide, narrow = _cameras([0.0], focal=6.0, device=device), _cameras([40.0], focal=60.0, device=device)
+        train = Cameras(torch.cat([wide.cam_from_world, narrow.cam_from_world]), torch.cat([wide.K, narrow.K]), W, H,
+                        ("wide.png", "narrow.png")).to(device)
+        held = dataclasses.replace(ViewConsistency.of(_sample(device), train, _plane_render(nearer=frozenset({0, 40}))),
+                                   gate=4.0)
+        var = held.variance(_cameras([38.0], focal=14.0, device=device), _plane_render())
+        assert float(var[0, H // 2, W // 2, 0]) < 0.1 * held.palette_var
+        assert float(var[0, 0, W - 1, 0]) == pytest.approx(held.palette_var, rel=1e-3)
 
     def test_rays_through_space_no_photo_saw_empty_on_transparent_scenes(self, device):
         """``unseen_empty`` (transparent training photos: no empty-ray term): a ray of the evaluated view that meets
@@ -282,6 +293,17 @@ class TestViewConsistency:
         n, m = 2 * H * W, H * W
         assert two.palette_var == pytest.approx(full.palette_var * (n - 1) / n * m / (m - 1), rel=1e-5)
 
+        def two_pixels(sample, cameras):  # the fewest surface pixels with a variance: 0.2 and 0.6
+            out = render_fn(sample, cameras)
+            alpha = torch.zeros_like(out.alpha)
+            alpha[:, 0, :2] = 1.0
+            rgb = out.rgb.clone()
+            rgb[:, 0, 0], rgb[:, 0, 1] = 0.2, 0.6
+            return dataclasses.replace(out, alpha=alpha, rgb=rgb)
+
+        pair = ViewConsistency.of(_sample(device), _cameras([10.0], device=device), two_pixels)
+        assert pair.palette_var == pytest.approx(0.08, rel=1e-5)  # ((0.2 - 0.4)^2 + (0.6 - 0.4)^2) / (2 - 1)
+
     def test_the_fraction_of_a_view_no_training_camera_looked_at(self, device):
         """The wide view at 20 degrees sees the plane beyond both narrow training images at its corners: a part of
         its surface, neither none nor all; none once a training camera's image holds it, none for a compared view
@@ -336,6 +358,11 @@ class TestViewConsistency:
         near.cam_from_world[0, 2, 3] -= 2.0  # along its optical axis, to 2 units from the plane's centre
         assert vc.reach(near, render_fn)[1] == pytest.approx(4.0, rel=0.1)
         assert vc.reach(train[[1]], render_fn) == (0.0, 1.0)
+        # the footprint is the depth over the focal length along x for this view as for the training views: a view
+        # whose pixels are only taller (fy = 60) resolves the surface across as they do
+        tall = dataclasses.replace(same, K=same.K.clone())
+        tall.K[0, 1, 1] = 60.0
+        assert vc.reach(tall, render_fn)[1] == pytest.approx(1.0, rel=0.1)
 
         def empty(sample, cameras):
             out = render_fn(sample, cameras)
@@ -359,6 +386,18 @@ class TestViewConsistency:
         vc = ViewConsistency.of(_sample(), ring, _plane_render())
         assert vc.gate == pytest.approx(GATE_SPACINGS * 30.0, rel=1e-4)
         assert vc.rgb.shape == (12, H, W, 3) and vc.depth.shape == (12, H, W)
+        # the median, not the mean, of each camera's angle to its nearest neighbour: one camera far from the
+        # others (10, 10, 10 and 40 degrees) leaves the spacing at 10
+        uneven = _cameras([0.0, 10.0, 20.0, 60.0])
+        assert capture_spacing(uneven.centers, torch.zeros(3)) == pytest.approx(10.0, rel=1e-4)
+        # seen from the model's median Gaussian: a far outlier among its Gaussians does not move the point
+        outlier = dataclasses.replace(_sample(), means=torch.tensor([[0.0, 0, 0], [0.1, 0, 0], [40.0, 0, 0]]),
+                                      quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(3, 1),
+                                      scales=torch.full((3, 3), 0.1), opacities=torch.ones(3),
+                                      sh=torch.zeros(3, 1, 3))
+        vc = ViewConsistency.of(outlier, uneven, _plane_render())
+        assert vc.gate == pytest.approx(GATE_SPACINGS * capture_spacing(uneven.centers, torch.tensor([0.1, 0, 0])),
+                                        rel=1e-4)
 
 
 class TestSeenFree:
@@ -399,11 +438,28 @@ class TestSeenFree:
         assert self._free(walls, azimuths).seen_free(torch.tensor([[0.0, 0.0, 0.0]])).tolist() == [True]
         assert self._free(walls, azimuths[:8]).seen_free(torch.tensor([[0.0, 0.0, 0.0]])).tolist() == [False]
 
+    def test_a_point_is_compared_with_the_pixel_it_lands_in(self):
+        """The rendered depth a point is compared with is that of the pixel holding its projection (pixel c spans
+        [c, c + 1)), not of the pixel whose centre is nearest: a point landing at u = 16.7 in front of a wall at depth 4
+        in column 16 is free, whatever column 17, at depth 1, holds."""
+        step = torch.full((H, W), 4.0)
+        step[:, W // 2 + 1:] = 1.0
+        term = self._free(lambda k: step)
+        # the camera at (0, 0, -4) looking down +z with focal length 40: u = 40 x / (z + 4) + 16, at camera depth 2
+        pts = torch.tensor([[0.7 * 2 / 40, 0.0, -2.0], [1.2 * 2 / 40, 0.0, -2.0]])  # u = 16.7 and 17.2
+        assert term.seen_free(pts, around=0).tolist() == [True, False]
+
     def test_where_a_photo_was_taken_is_free(self):
         """A training camera's centre (z = 0 in its own view) and its surroundings within 3 % of the views' median
         depth are free, behind it too; farther behind it is not."""
         term = self._free(lambda k: torch.full((H, W), 4.0))
         pts = torch.tensor([[0.0, 0.0, -4.0], [0.0, 0.0, -4.1], [0.0, 0.0, -4.2]])  # centre, 0.1 and 0.2 behind
+        assert term.seen_free(pts).tolist() == [True, True, False]
+        # the median is over the pixels with a surface: most of the view empty (depth 0) leaves it at the wall's
+        mostly_empty = torch.zeros(H, W)
+        mostly_empty[: H // 4] = 4.0
+        term = self._free(lambda k: mostly_empty)
+        assert term.median_surface_depth() == 4.0
         assert term.seen_free(pts).tolist() == [True, True, False]
 
     def test_behind_what_every_view_that_holds_it_saw(self):
@@ -482,6 +538,22 @@ class TestHiddenDepth:
         far = dataclasses.replace(vc, unseen_empty=True).hidden_depth_variance(test, _plane_render())[0, ..., 0]
         torch.testing.assert_close(far.cpu().double(), torch.full_like(var, ((gap + behind) * 4.0) ** 2 / 12.0),
                                    rtol=1e-4, atol=0.0)
+
+    def test_on_transparent_photos_the_stretch_behind_ends_where_a_photo_saw_empty(self):
+        """``unseen_empty``: two training cameras where the evaluated one stands, one that rendered something at half
+        the wall's depth, one that saw through to 3x it: the wall's points are seen by neither, and the space just in
+        front (0.97 of the depth) and just behind (1.03) was seen empty by the second, so the stretch is 0.06 of the
+        depth, the variance (0.06 z)^2 / 12."""
+        cams = _cameras([0.0, 0.0], focal=6.0)
+        wall = _plane_render()(_sample(), cams[[0]]).depth[0, ..., 0]
+        vc = ViewConsistency(_sample(), cams, torch.zeros(2, H, W, 3, dtype=torch.float16),
+                             torch.stack([0.5 * wall, 3.0 * wall]), gate=4.0, unseen_empty=True)
+        test = _cameras([0.0], focal=20.0)
+        z = _plane_render()(_sample(), test).depth[0, ..., 0].double()
+        var = vc.hidden_depth_variance(test, _plane_render())[0, ..., 0].double()
+        assert consistency._gap_fractions()[0] == pytest.approx(0.97)
+        assert consistency._behind_fractions()[0] == pytest.approx(1.03)
+        torch.testing.assert_close(var, (0.06 * z) ** 2 / 12.0, rtol=1e-4, atol=0.0)
 
     def test_outside_every_photo_the_whole_depth(self, device):
         """A wider evaluated view from the training camera's place: its corners lie outside the training image, so no
@@ -582,6 +654,16 @@ def test_depth_edges_flag_jumps_not_slopes():
     assert edges[:, 4:6].all() and not edges[:, :4].any() and not edges[:, 6:].any()
     slope = 1.0 + 0.5 * DEPTH_JUMP * torch.arange(10.0)[None].expand(8, 10) / 10  # well below the jump per window
     assert not _depth_edges(slope).any()
+    # the surface points the term projects leave those pixels out (the point a blended depth gives lies on neither)
+    cam = _cameras([0.0])
+    out = _plane_render()(_sample(), cam)
+    depth = out.depth.clone()
+    depth[..., W // 2:, :] *= 1.5
+    rgb, where, points, z = ViewConsistency._surface_of(dataclasses.replace(out, depth=depth), cam)
+    kept = torch.zeros(H * W, dtype=torch.bool)
+    kept[where] = True
+    assert torch.equal(kept.reshape(H, W), ~_depth_edges(depth[0, ..., 0]))
+    assert not bool(kept.reshape(H, W)[:, W // 2 - 1: W // 2 + 1].any()) and int(kept.sum()) == H * (W - 2)
 
 
 def _textured_plane_render(slope: float = 0.05):
