@@ -902,6 +902,17 @@ class TestNativeLookup:
         torch.testing.assert_close(finest, ref[3], atol=0.0, rtol=1e-5)
         assert float(diff[~seen].abs().max()) == 0.0 and bool(torch.isinf(finest[~seen]).all())
 
+    def test_a_view_from_the_far_side_of_the_point_is_found(self):
+        """A training view more than 90 degrees round from the evaluated one (each at 70 degrees to the plane's normal,
+        on either side) still sees the plane's points: the angle, 140 degrees, as the tensor ops give it."""
+        vc = ViewConsistency.of(_sample(), _cameras([70.0], focal=20.0), _plane_render())
+        test = _cameras([-70.0], focal=20.0)
+        points = torch.tensor([[0.0, 0.0, 0.0], [0.1, 0.05, 0.0], [-0.1, -0.05, 0.0]])
+        best = vc._lookup_native(points, test, None, None)[0]
+        ref = vc._lookup_torch(points, test, None, None)[0]
+        assert bool(torch.isfinite(ref).all()) and float(ref[0]) == pytest.approx(140.0, abs=0.1)
+        torch.testing.assert_close(best, ref, atol=0.1, rtol=1e-4)
+
     def test_float16_renders_are_read_exactly_down_to_subnormals(self):
         """The kernel decodes the float16 renders itself: renders of dark colours (1e-4 and below: most of them
         float16 subnormals, under 6.1e-5) compared with a colour of 0 give the tensor ops' differences to float32
