@@ -93,11 +93,12 @@ class TestClosedForm:
 
     def test_disagreement_widens_the_spread_up_to_the_prior(self):
         """Sandwich: views that agree as the noise predicts (D = F) leave the Laplace spread; views that
-        disagree widen it by (D - F) / (F + prior precision)^2, never beyond the prior."""
+        disagree widen it by (D - F) / (F + prior precision)^2, never beyond the prior; views that agree better than
+        the noise predicts (D < F: a chance of few views) never narrow it below the Laplace spread."""
         prior = Prior()
         f = torch.rand(64, 3, generator=torch.Generator().manual_seed(1)) * 1e6 + 1e4
         spreads = []
-        for d in (f, 2.0 * f, 1e6 * f):
+        for d in (f, 2.0 * f, 1e6 * f, 0.5 * f):
             model = _model()
             fisher = _fisher(model)
             fisher["means"] = f.clone()
@@ -111,6 +112,7 @@ class TestClosedForm:
         torch.testing.assert_close(spreads[0], prec**-0.5, rtol=1e-4, atol=1e-9)
         torch.testing.assert_close(spreads[1], (1 / prec + f[idx] / prec**2).sqrt(), rtol=1e-4, atol=1e-9)
         torch.testing.assert_close(spreads[2], prior_std.expand_as(spreads[2]), rtol=1e-4, atol=1e-9)
+        torch.testing.assert_close(spreads[3], spreads[0], rtol=0, atol=0)
 
     def test_gate_follows_the_evidence(self):
         """dL = F_a / (2 (1 - o)^2) nats against 'off': none keeps the prior's odds, a lot switches it on."""
@@ -128,6 +130,24 @@ class TestClosedForm:
         expected = torch.sigmoid(math.log(p0 / (1 - p0)) - drop)
         torch.testing.assert_close(off, expected, rtol=2e-3, atol=1e-7)
         assert bool((off[1:] <= off[:-1]).all())  # more evidence, never more likely off
+
+    def test_the_record_counts_the_data_dominated_and_gives_the_median_switch_off(self):
+        """``informed_tables``' record: ``data_dominated`` the share of carriers whose position variance is below half
+        the prior's (F = 3 / p^2: a quarter of it; F = 0.5 / p^2: two thirds, not counted), ``gate_off_median`` the
+        median switch-off probability (most carriers unseen at the prior's, the rest switched on: the prior's)."""
+        prior = Prior()
+        model = _model()
+        idx = model.carrier_index()
+        p = idx.numel()
+        pos_var = (prior.position_std * EXTENT) ** 2  # position_prior_scale 0: the config's std for every carrier
+        fisher = _fisher(model)
+        fisher["means"][idx[: p // 3]] = 3.0 / pos_var
+        fisher["means"][idx[p // 3:]] = 0.5 / pos_var
+        fisher["opacities"][idx[: p // 4]] = 1e6
+        info = informed_tables(model, fisher, prior, extent=EXTENT, position_prior_scale=0.0)
+        assert info["carriers"] == p and info["data_dominated"] == pytest.approx((p // 3) / p)
+        p0 = float(gate_off_probability(torch.tensor(prior.gate_mean), torch.tensor(prior.gate_std)))
+        assert info["gate_off_median"] == pytest.approx(p0, rel=1e-4)
 
     def test_the_mean_render_is_preserved(self):
         """Base opacity, scale and position absorb the change of expected gate, multiplier and location."""

@@ -86,7 +86,8 @@ def test_position_table_rate_is_in_units_of_the_extent():
     ours = base_rates(lr, 0, 100, 5.0, table_lr_factor=0.1, variant="ours")
     assert ours["means"] == pytest.approx(lr.means_init * 5.0)
     assert ours["pos_spread_raw"] == ours["pos_loc"] == pytest.approx(0.1 * lr.means_init)
-    assert ours["scale_width_raw"] == pytest.approx(0.1 * lr.scales)
+    assert ours["scale_width_raw"] == ours["scale_left"] == pytest.approx(0.1 * lr.scales)
+    assert ours["gate_spread_raw"] == ours["gate_loc"] == pytest.approx(0.1 * lr.opacities)
     paper = base_rates(lr, 0, 100, 5.0, table_lr_factor=0.1, variant="paper")
     assert paper["pos_loc"] == pytest.approx(0.1 * lr.means_init * 5.0)
 

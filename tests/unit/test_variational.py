@@ -10,6 +10,7 @@ import torch.nn.functional as F
 from torch.distributions import Normal, Uniform, kl_divergence
 
 from uncertsplat.gaussians.variational import (
+    MIN_WIDTH,
     Prior,
     expected_constants,
     expected_gate,
@@ -244,6 +245,60 @@ def test_prior_rows_shapes_and_values():
     assert torch.allclose(rows["scale_left"], torch.tensor(0.9))
 
 
+def test_a_subset_holds_between_one_and_all_distinct_entries():
+    """``draw_subset``: M = min(subset_size, K) distinct entries, at least one (a subset size of 0 or below still
+    averages one entry: a sample always has one)."""
+    from uncertsplat.gaussians.variational import draw_subset
+
+    for size, want in ((0, 1), (-3, 1), (1, 1), (4, 4), (10, 10), (25, 10)):
+        got = draw_subset(10, size, gen(size + 5))
+        assert got.shape == (want,) and got.unique().numel() == want and bool(((got >= 0) & (got < 10)).all())
+
+
+def test_an_absorbed_gate_leaves_the_opacity_as_it_was():
+    """``absorbed_opacity_logit``: sigmoid(logit) x gate is the given opacity, for any gate above it; where the gate
+    cannot carry it (opacity above the gate) the base opacity is capped below 1."""
+    from uncertsplat.gaussians.variational import absorbed_opacity_logit
+
+    opacity = torch.tensor([0.01, 0.3, 0.5, 0.89])
+    gate = torch.tensor([0.05, 0.4, 0.9, 0.9])
+    torch.testing.assert_close(torch.sigmoid(absorbed_opacity_logit(opacity, gate)) * gate, opacity)
+    torch.testing.assert_close(torch.sigmoid(absorbed_opacity_logit(opacity, 1.0)), opacity)
+    capped = torch.sigmoid(absorbed_opacity_logit(torch.tensor([0.8]), torch.tensor([0.5])))
+    assert float(capped) == pytest.approx(1.0 - 1e-4, abs=1e-6)
+
+
+def test_the_paper_scales_second_moment_is_the_integral_near_and_far_from_its_limit():
+    """E[exp(2 s o)] for o ~ U[l, l + w] (the paper variant's expected render): ``exp(2 s l) (exp(2 s w) - 1) / (2 s
+    w)``, its limit ``exp(2 s l) (1 + s w)`` only where 2 s w is below 1e-6; against the mean over a fine grid of o."""
+    from uncertsplat.gaussians.variational import _scale_second_moment
+
+    s = torch.tensor([[-3.0, -0.5, 0.02, 1e-9, 2.0]], dtype=torch.float64)
+    left, width = torch.full_like(s, 0.9), torch.tensor([[0.01, 0.05, 0.1, 0.1, 0.02]], dtype=torch.float64)
+    o = left[..., None] + width[..., None] * (torch.arange(20000, dtype=torch.float64) + 0.5) / 20000
+    want = torch.exp(2.0 * s[..., None] * o).mean(-1)
+    torch.testing.assert_close(_scale_second_moment(s, left, width, "paper"), want, rtol=1e-7, atol=0)
+
+
+def test_the_mean_params_of_a_saturated_opacity_are_finite():
+    """``mean_params``: an opacity of 0 or 1 in float32 (logits of +-20 and beyond, gates of 1 off the carriers) gives
+    a finite logit (clamped to 1e-6 from either end), so the curvature differentiates finite numbers."""
+    from uncertsplat.gaussians.variational import mean_params
+
+    model = random_model(6, gen(3), carrier_fraction=0.0)
+    model.params["opacities"].data.copy_(torch.tensor([-200.0, -20.0, 0.0, 20.0, 40.0, 200.0]))
+    logits = mean_params(model)["opacities"]
+    assert bool(torch.isfinite(logits).all())
+    assert float(logits.abs().max()) == pytest.approx(math.log((1 - 1e-6) / 1e-6), rel=1e-3)
+
+
+def test_prior_rows_width_is_clamped_as_every_reader_clamps_it():
+    """The paper's 1/K width below ``MIN_WIDTH`` (K = 200) starts at ``MIN_WIDTH``, the width the sampler and the KL
+    read from the table anyway: the table holds what is used, not a width that only the clamp hides."""
+    paper = prior_rows(2, 200, Prior(variant="paper"))
+    torch.testing.assert_close(F.softplus(paper["scale_width_raw"]), torch.full((2, 200, 3), MIN_WIDTH))
+
+
 @pytest.mark.parametrize("k", [1, 4, 10, 32])
 def test_prior_rows_paper_interval_for_any_k(k):
     """The paper variant (METHOD.md: "table init width = 1/K, left = 0.9") starts every multiplier interval at
@@ -291,6 +346,23 @@ class TestPosteriorSummary:
         assert s["gate_off"]["q50"] == pytest.approx(s["gate_off_prior"], rel=1e-5)
         # the documented value: N(2, 1.996^2) puts about 16 % of the gate logits below 0
         assert s["gate_off_prior"] == pytest.approx(Normal(2.0, 1.996).cdf(torch.tensor(0.0)).item(), rel=1e-5)
+
+    def test_an_anisotropic_spread_is_summed_up_by_its_means(self):
+        """Position spreads of 1, 2 and 4 x the prior's along the axes: ``posterior_summary``'s ratio is their
+        geometric mean (2), ``carrier_uncertainty``'s position std their RMS (sqrt 7 x the prior's, world units)."""
+        from uncertsplat.gaussians.variational import carrier_uncertainty
+
+        prior = Prior()
+        model = self._model(prior)
+        std = prior.position_std * torch.tensor([1.0, 2.0, 4.0])
+        model.tables["pos_spread_raw"].data.copy_(inverse_softplus(std).expand_as(model.tables["pos_spread_raw"]))
+        s = posterior_summary(model, prior)
+        assert s["position_spread_ratio"]["q10"] == s["position_spread_ratio"]["q90"] == pytest.approx(2.0, rel=1e-4)
+        got = carrier_uncertainty(model, extent=3.0)["position"]
+        idx = model.carrier_index()
+        torch.testing.assert_close(got[idx], torch.full((idx.numel(),), 3.0 * math.sqrt(7.0) * prior.position_std),
+                                   rtol=1e-4, atol=0)
+        assert float(got[model.posterior_row < 0].abs().max()) == 0.0
 
     def test_counts_the_carriers_that_moved(self):
         prior = Prior()
