@@ -110,6 +110,10 @@ def test_total_loss_is_the_photometric_mix_plus_the_weighted_kl():
     # without a posterior the loss is the photometric term alone
     bare = total_loss(pred, target, None, ssim_lambda=0.2, kl_weight=0.01)
     assert bare["loss"].item() == pytest.approx(photo, rel=1e-5) and "kl_total" not in bare
+    # lambda = 0: no SSIM computed (reported as 0), the loss the mean absolute error
+    plain = total_loss(pred, target, None, ssim_lambda=0.0, kl_weight=0.01)
+    assert plain["l1"].item() == pytest.approx(l1, rel=1e-5) and plain["ssim"].item() == 0.0
+    assert plain["loss"].item() == plain["photo"].item() == pytest.approx(l1, rel=1e-5)
 
     # on a real model: a gradient step on the loss (the photometric term fixed) lowers the KL
     prior = Prior()
