@@ -147,6 +147,47 @@ def test_a_checkpoint_past_the_model_file_without_a_usable_model_leaves_the_mode
     assert "warning:" in err and "step_000008.pt" in err and "the model of step 6" in err
 
 
+def test_a_short_file_or_another_format_version_is_refused_by_decode():
+    """``decode`` itself (not only ``load_checkpoint``, which turns any error into ``CorruptCheckpoint``): the magic
+    with a header cut short, and a checksummed payload of another format version, older or newer."""
+    import struct
+
+    from uncertsplat.io.checkpoints import MAGIC, VERSION, decode, encode
+
+    good = encode({"step": 3, "x": torch.arange(4)})
+    assert decode(good)["step"] == 3
+    for short in (MAGIC, MAGIC + b"\x01\x00", good[:43]):
+        with pytest.raises(CorruptCheckpoint, match="bad header"):
+            decode(short)
+    for version in (VERSION - 1, VERSION + 1):
+        other = good[:8] + struct.pack("<I", version) + good[12:]
+        with pytest.raises(CorruptCheckpoint, match=f"format {version} is not supported"):
+            decode(other)
+
+
+def test_checkpoints_are_listed_by_step_kept_newest_and_loaded_newest_first(tmp_path, capsys):
+    """``list_checkpoints``: only files named ``step_N.pt`` (not a temporary file or a folder of that name), oldest
+    first whatever the file system's order; ``save_checkpoint`` keeps the newest ``keep`` and never the file it has
+    just written, even when it is older than those (a resumed run saving an earlier step); ``load_latest`` takes
+    the newest that loads."""
+    from uncertsplat.io.checkpoints import checkpoint_dir, load_latest, save_checkpoint
+
+    run = tmp_path / "run"
+    for step in (12, 3, 100, 7):
+        save_checkpoint(run, step, {"step": step}, keep=0)
+    (checkpoint_dir(run) / "step_000200.pt.tmp").write_bytes(b"partial")
+    (checkpoint_dir(run) / "step_000300.pt").mkdir()
+    assert [s for s, _ in list_checkpoints(run)] == [3, 7, 12, 100]
+    save_checkpoint(run, 50, {"step": 50}, keep=2)
+    assert [s for s, _ in list_checkpoints(run)] == [50, 100]
+    save_checkpoint(run, 20, {"step": 20}, keep=1)  # older than the newest kept: still there afterwards
+    assert [s for s, _ in list_checkpoints(run)] == [20, 100]
+    checkpoint_path(run, 100).write_bytes(b"damaged")
+    path, state = load_latest(run)
+    assert path == checkpoint_path(run, 20) and state["step"] == 20
+    assert "trying the previous checkpoint" in capsys.readouterr().err
+
+
 def test_damaged_run_config_is_reported_not_a_traceback(small_run, tmp_path):
     from uncertsplat.baselines import load_run
     from uncertsplat.stages import train
