@@ -81,6 +81,7 @@ class TestImportedRun:
         rec = summary["imported"]
         assert rec["path"] == str(ply.resolve()) and rec["frame"] == "source"
         assert rec["alignment"] is None  # its Gaussians lie on the scene's points in the source frame: no search
+        assert not any("sparse points" in n for n in rec["notes"]), rec["notes"]  # (nor a word of one)
         assert rec["gaussians"] == json.loads((plain / "train_summary.json").read_text(encoding="utf-8"))[
             "num_gaussians"]
         assert 0.9 < rec["in_view_share"] <= 1.0
@@ -586,6 +587,64 @@ def test_a_model_in_a_turned_frame_with_its_transform(plain_and_imported, tiny_s
         assert float((pm.means - pa.means).norm(dim=-1).median()) < 0.03 * extent
 
 
+def test_a_file_s_gaussians_are_moved_into_the_run_s_frame():
+    """``imported._frame`` and ``_moved`` without a run: with the trainer's transform F (x_file = F x_source) and the
+    run's W (x_run = W x_source) a Gaussian written at F x lands at W x; its log-scales grow by log s, its rotation is
+    turned by R (the rotation matrix of the new quaternion is R times the old one's: ``_quat_mul`` is the Hamilton
+    product, b then a) and its SH colours look from the turned direction as they did."""
+    from pathlib import Path
+
+    from uncertsplat.gaussians.ops import quat_to_rotmat
+    from uncertsplat.render.sh import eval_sh
+    from uncertsplat.train import imported
+
+    g = torch.Generator().manual_seed(4)
+    a, b = torch.nn.functional.normalize(torch.randn(2, 5, 4, generator=g, dtype=torch.float64), dim=-1)
+    torch.testing.assert_close(quat_to_rotmat(imported._quat_mul(a, b)), quat_to_rotmat(a) @ quat_to_rotmat(b))
+
+    def similarity(q, scale, t):
+        m = torch.eye(4, dtype=torch.float64)
+        m[:3, :3] = scale * quat_to_rotmat(torch.tensor([q], dtype=torch.float64))[0]
+        m[:3, 3] = torch.tensor(t, dtype=torch.float64)
+        return m
+
+    world_from_source = similarity([0.9, 0.1, 0.3, -0.2], 2.0, [0.1, 0.2, -0.3])
+    file_from_source = similarity([0.6, 0.2, -0.7, 0.3], 0.37, [0.5, -1.0, 2.0])
+    x_source = torch.randn(7, 3, generator=g, dtype=torch.float64)
+    x_file = x_source @ file_from_source[:3, :3].T + file_from_source[:3, 3]
+    turn, shift, s, name = imported._frame(Path("m.ply"), False, "auto", world_from_source, file_from_source)
+    assert name == "transform" and s == pytest.approx(2.0 / 0.37)
+    torch.testing.assert_close(x_file @ turn.T + shift, x_source @ world_from_source[:3, :3].T + world_from_source[:3, 3])
+    r = turn / s
+    params = {"means": x_file.float(), "scales": torch.randn(7, 3, generator=g),
+              "quats": torch.nn.functional.normalize(torch.randn(7, 4, generator=g), dim=-1),
+              "opacities": torch.randn(7, generator=g), "sh0": torch.randn(7, 1, 3, generator=g),
+              "shN": torch.randn(7, 3, 3, generator=g)}
+    moved = imported._moved(params, turn, shift, s)
+    torch.testing.assert_close(moved["means"].double(), x_file @ turn.T + shift, rtol=0, atol=1e-5)
+    torch.testing.assert_close(moved["scales"], params["scales"] + math.log(s))
+    torch.testing.assert_close(quat_to_rotmat(moved["quats"].double()),
+                               r @ quat_to_rotmat(params["quats"].double()), rtol=0, atol=1e-6)
+    d = torch.nn.functional.normalize(torch.randn(1, 7, 3, generator=g, dtype=torch.float64), dim=-1)
+    before = eval_sh(1, torch.cat([params["sh0"], params["shN"]], 1).double(), d)
+    after = eval_sh(1, torch.cat([moved["sh0"], moved["shN"]], 1).double(), d @ r.T)
+    torch.testing.assert_close(after, before, rtol=0, atol=1e-5)
+
+
+def test_a_gaussian_in_view_of_any_one_camera_is_in_view():
+    """``imported._in_view``: a Gaussian counts as in view when some training camera has it in front and inside its
+    image, in any group of 16: of two cameras back to back, each sees the points on its own side."""
+    from uncertsplat.train import imported
+    from uncertsplat.types import Cameras
+
+    back = torch.diag(torch.tensor([-1.0, 1.0, -1.0, 1.0]))
+    cams = Cameras(torch.stack([torch.eye(4)] * 17 + [back]), torch.tensor([[50.0, 0, 20], [0, 50.0, 15], [0, 0, 1]])
+                   .repeat(18, 1, 1), 40, 30, tuple(f"v{i}.png" for i in range(18)))
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, -2.0], [50.0, 0.0, 2.0]])  # in front, behind, beside
+    assert imported._in_view(means, cams).tolist() == [True, True, False]
+    assert imported._in_view(means, cams[:17]).tolist() == [True, False, False]
+
+
 def test_transform_files(tmp_path):
     from uncertsplat.train.imported import read_transform
 
@@ -599,7 +658,9 @@ def test_transform_files(tmp_path):
     assert torch.equal(read_transform(tmp_path / "plain.json"), eye) and torch.equal(read_transform(
         tmp_path / "bare.json"), eye)
     for name, text, match in (("bad.json", "{", "cannot read"), ("none.json", '{"a": 1}', "no transform"),
-                              ("row.json", json.dumps([[1, 0, 0, 0]] * 4), "last row")):
+                              ("row.json", json.dumps([[1, 0, 0, 0]] * 4), "last row"),
+                              ("shear.json", json.dumps([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]]),
+                               "last row")):
         (tmp_path / name).write_text(text)
         with pytest.raises(UserError, match=match):
             read_transform(tmp_path / name)
