@@ -271,6 +271,11 @@ class TestViewConsistency:
             torch.testing.assert_close(depth_var[0, ..., 0], torch.full((H, W), weight * (hi - lo) ** 2 / 12.0,
                                                                         device=depth_var.device), rtol=1e-4, atol=0)
         assert float(vc.variances(test, faint(0.0))[1].abs().max()) == 0.0  # (opaque photos: not this term)
+        # a model of one flat colour (palette variance 0): no colour term, the depth term all the same
+        flat_rgb, flat_depth = dataclasses.replace(on, palette_var=0.0).variances(test, faint(0.0))
+        assert float(flat_rgb.abs().max()) == 0.0
+        torch.testing.assert_close(flat_depth[0, ..., 0], torch.full((H, W), (hi - lo) ** 2 / 12.0,
+                                                                     device=flat_depth.device), rtol=1e-4, atol=0)
         torch.testing.assert_close(var, torch.full_like(var, vc.palette_var), rtol=1e-4, atol=0)
 
     def test_the_palette_counts_only_surface_pixels(self, device):

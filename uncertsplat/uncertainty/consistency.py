@@ -274,8 +274,8 @@ class ViewConsistency:
         if self._is_compared(camera):  # its own render is the nearest: 0 everywhere
             return zero, no_depth
         rendered = render_fn(self.sample, camera)  # (one render for both: the surface points and the faint rays)
-        empty, empty_depth = self._unseen_empty(camera, rendered) \
-            if self.unseen_empty and self.palette_var > 0.0 else (None, None)
+        # (not gated on the palette: a model of one flat colour has no colour to be unsure of, but a depth still)
+        empty, empty_depth = self._unseen_empty(camera, rendered) if self.unseen_empty else (None, None)
         if empty_depth is not None and no_depth is not None:
             no_depth = no_depth + empty_depth
         found = self._surface_of(rendered, camera)
