@@ -622,6 +622,9 @@ def evaluate(
     explicit = dict(split=split, num_samples=num_samples, seed=seed, depth_gt=depth_gt, depth_scale=ds,
                     paper_nll=paper_nll)
     cfg = _stage_config(EvalConfig, config, set_, explicit)
+    if cfg.depth_gt is not None and not cfg.depth_gt.is_absolute():
+        # (absolute, as train's --from-ply: RUN/eval/config.json, given back by --config, is read from its own folder)
+        cfg = cfg.model_copy(update={"depth_gt": cfg.depth_gt.absolute()})
     try:
         stage.run(run, cfg, device=resolve_device(device))
     except KeyboardInterrupt:

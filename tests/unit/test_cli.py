@@ -771,3 +771,25 @@ def test_a_usage_error_outside_a_terminal_is_plain_lines(args, said, monkeypatch
     monkeypatch.setattr(cli, "_plain_output", lambda: False)
     result = runner.invoke(app, args)
     assert result.exit_code == 2 and "╭─ Error" in result.output, result.output
+
+
+@pytest.mark.parametrize("given", [["--depth-gt", "gt"], ["--set", "depth_gt=gt"]])
+def test_a_relative_depth_gt_is_recorded_from_the_current_folder(tmp_path, monkeypatch, given):
+    """`evaluate RUN --depth-gt gt` wrote `depth_gt = "gt"` into RUN/eval/config.json, and `--config` reads a relative
+    path there from that file's folder: `evaluate RUN --config RUN/eval/config.json` looked for RUN/eval/gt ("GT depth
+    folder not found"). The path is made absolute from the folder the command ran in before anything uses it."""
+    from uncertsplat.stages import evaluate
+
+    seen = {}
+    monkeypatch.setattr(evaluate, "run", lambda run, cfg, **k: seen.update(cfg=cfg))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "gt").mkdir()
+    res = runner.invoke(app, ["evaluate", "run", *given])
+    assert res.exit_code == 0, res.output
+    assert seen["cfg"].depth_gt == tmp_path / "gt"
+    (tmp_path / "eval").mkdir()  # written back as evaluate writes it, then given to --config from another folder
+    (tmp_path / "eval" / "config.json").write_text(seen["cfg"].model_dump_json(indent=2))
+    monkeypatch.chdir("/")
+    res = runner.invoke(app, ["evaluate", str(tmp_path / "run"), "--config", str(tmp_path / "eval" / "config.json")])
+    assert res.exit_code == 0, res.output
+    assert seen["cfg"].depth_gt == tmp_path / "gt"
