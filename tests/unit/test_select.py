@@ -415,6 +415,16 @@ class TestCandidates:
             with pytest.raises(UserError, match="N must be a whole number from 1 to 10,000"):
                 candidates_from_spec(spec, scene, scene.world_from_source, radius=1.0, generator=torch.Generator())
 
+    def test_a_folder_given_for_the_pose_file_is_named_a_folder(self, scene, tmp_path):
+        """`--candidates scenes/x` (a folder) was "candidate pose file not found", though the path is there."""
+        (tmp_path / "photos").mkdir()
+        for call in (lambda: read_pose_file(tmp_path / "photos", scene, scene.world_from_source),
+                     lambda: candidates_from_spec(str(tmp_path / "photos"), scene, scene.world_from_source, radius=1.0,
+                                                  generator=torch.Generator())):
+            with pytest.raises(UserError, match="names a folder, not a file of poses") as err:
+                call()
+            assert "not found" not in err.value.render()
+
     def test_around_views_are_near_the_training_cameras_and_seeded(self, scene):
         a = around_views(scene, 12, 1.0, torch.Generator().manual_seed(3))
         b = around_views(scene, 12, 1.0, torch.Generator().manual_seed(3))

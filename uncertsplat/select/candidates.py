@@ -124,6 +124,10 @@ def read_pose_file(path: Path, scene: SceneData, world_from_source: Tensor) -> C
         UserError: naming the file and the line of a malformed pose, or an empty file.
     """
     path = Path(path)
+    if path.is_dir():  # (it was "not found": a folder of photos, say, given for the file of their poses)
+        raise UserError("--candidates names a folder, not a file of poses", path=path,
+                        hint="Give 'unused', 'around[:N]' or a text file of lines 'NAME QW QX QY QZ TX TY TZ' (one "
+                             "pose a line, camera-from-world in the scene's own coordinates).")
     if not path.is_file():
         raise UserError("candidate pose file not found" + ("" if path.is_absolute() else f" (looked for {path.resolve()}:"
                                                                   " a relative path is read from the current folder, "
