@@ -1100,6 +1100,20 @@ def test_depth_gt_given_the_images_folder_says_so(tiny_scene_path):  # noqa: F81
         load_depth_folder(tiny_scene_path / "images", scene, [0])
 
 
+def test_depth_gt_given_the_scene_folder_names_its_depth_sub_folder(tiny_scene_path):  # noqa: F811
+    """--depth-gt SCENE (a synthetic scene's folder, its maps in SCENE/depth) said "rename the maps after the photos",
+    which no renaming mends: the sub-folder that holds the map is named as the folder to give."""
+    from uncertsplat.data.dataset import load_depth_folder
+
+    scene = load_scene(tiny_scene_path)
+    with pytest.raises(UserError, match="no GT depth map for image 'view_000.png'") as err:
+        load_depth_folder(tiny_scene_path, scene, [0])
+    said = " ".join(err.value.render().split())
+    assert f"its sub-folder depth/ holds view_000.npy: give that folder, --depth-gt {tiny_scene_path / 'depth'}" in said
+    assert "rename" not in said and "images/" not in said.split("sub-folder", 1)[1]
+    load_depth_folder(tiny_scene_path / "depth", scene, [0])  # (the folder named reads)
+
+
 def test_an_empty_list_of_training_views_is_named_as_such(workspace):
     """`--set 'scene.train_names=[]'` was 'the test split takes all 24 images and leaves no training view': the list
     the user emptied is named."""

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from uncertsplat.console import list_names
+from uncertsplat.console import list_names, q
 from uncertsplat.conventions import NO_SURFACE_DEPTH
 from uncertsplat.errors import UserError
 from uncertsplat.io.images import (
@@ -384,6 +384,18 @@ def _other_depth_files(folder: Path, looked: Sequence[str], photos: Sequence[Pat
             f"np.save('{npy}', depth) (--depth-scale auto fits the scale of any unit)")
 
 
+def _sub_folder_with_map(folder: Path, looked: Sequence[str], own: set[Path]) -> str:
+    """For ``load_depth_folder``'s error when no file has a looked-up name: a sub-folder that holds the map (a
+    synthetic scene's folder given for its ``depth/``), named as the folder to give; else ""."""
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        for n in looked:
+            for ext in DEPTH_EXTENSIONS:
+                if (sub / f"{n}{ext}").is_file() and (sub / f"{n}{ext}").resolve() not in own:
+                    return (f"; its sub-folder {sub.name}/ holds {n}{ext}: give that folder, --depth-gt "
+                            f"{q(sub)}")
+    return ""
+
+
 def _folder_holds(folder: Path) -> str:
     """For ``load_depth_folder``'s error when no file has a looked-up name: a few of the files the folder holds (maps
     named otherwise, ``depth_000.png`` for ``view_000.png``, need renaming), or that it holds none."""
@@ -430,7 +442,8 @@ def load_depth_folder(folder: Path, scene: SceneData, indices: Sequence[int]) ->
                             hint=f"Expected {' or '.join(f'{n}.npy' for n in looked)} (or .exr, .png, .tif)"
                                  + (f"; {Path(names[i]).stem}.npy alone would be ambiguous: {list_names(shared)} "
                                     "has the same name" if shared else "")
-                                 + (_other_depth_files(folder, looked, getattr(scene, "image_paths", ()))
+                                 + (_sub_folder_with_map(folder, looked, own)
+                                    or _other_depth_files(folder, looked, getattr(scene, "image_paths", ()))
                                     or _folder_holds(folder)) + ".")
         paths.append(path)
     out = torch.empty((len(paths), H, W, 1), dtype=torch.float32)  # [C,H,W,1], filled one map at a time
