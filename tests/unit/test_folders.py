@@ -96,3 +96,27 @@ def test_commands_given_a_pipelines_output_name_what_to_give(pipeline_out):
     with pytest.raises(UserError, match=r"not a COLMAP workspace; it holds scenes .*reconstruct") as err:
         find_sparse_model(pipeline_out)
     assert "uncertsplat reconstruct" not in err.value.hint
+
+
+def test_a_folder_inside_a_scene_or_a_run_given_for_the_scene_names_the_scene(pipeline_out, tmp_path):
+    """`train WS/images`, `train WS/sparse/0` or `train RUN` said "this folder is not a COLMAP workspace. Run
+    `uncertsplat reconstruct PHOTOS -o WORKSPACE` to create one", advice that makes a second workspace of the one
+    there: the scene the folder lies in, or the one the run was trained on, is named instead."""
+    import json
+
+    ws = pipeline_out / "reconstruct"
+    (ws / "sparse" / "0" / "cameras.bin").write_bytes(b"")
+    for inside in (ws / "images", ws / "sparse" / "0"):
+        assert stage_hint(inside, "scene") == f"it lies inside the scene {ws}: give that"
+        with pytest.raises(UserError) as err:
+            find_sparse_model(inside)
+        assert f"it lies inside the scene {ws}: give that" in err.value.render()
+        assert "reconstruct PHOTOS" not in err.value.render()
+    (pipeline_out / "train" / "scene.json").write_text(json.dumps({"scene": str(ws)}))
+    assert stage_hint(pipeline_out / "train", "scene") == ("it is a training run, the output of `uncertsplat train`; "
+                                                           f"the scene it was trained on is {ws}: give that")
+    (pipeline_out / "train" / "scene.json").write_text(json.dumps({"scene": str(tmp_path / "gone")}))
+    assert stage_hint(pipeline_out / "train", "scene") == "it is a training run, the output of `uncertsplat train`"
+    (tmp_path / "photos").mkdir()  # a folder of photos in no scene: reconstruct is the advice still
+    with pytest.raises(UserError, match="Run `uncertsplat reconstruct PHOTOS -o WORKSPACE`"):
+        find_sparse_model(tmp_path / "photos")

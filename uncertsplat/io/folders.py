@@ -40,6 +40,17 @@ def is_scene(folder: Path) -> bool:
         return False
 
 
+def _run_scene(run: Path) -> Path | None:
+    """The scene folder ``run``'s ``scene.json`` names where it still is a scene, else None."""
+    import json
+
+    try:
+        scene = json.loads((run / "scene.json").read_text(encoding="utf-8")).get("scene")
+        return Path(scene) if isinstance(scene, str) and is_scene(Path(scene)) else None
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
 def _subfolders(folder: Path) -> list[Path]:
     try:
         return sorted(p for p in folder.iterdir() if not p.name.startswith(".") and p.is_dir())
@@ -73,6 +84,14 @@ def stage_hint(folder: Path, want: str) -> str:
         for up in list(absolute.parents)[:2]:  # (RUN/eval; ENSEMBLE/members/member_0's folder members/)
             if is_run(up):
                 return f"it lies inside the run {_shown(up)}: give that"
+    else:
+        if is_run(absolute):  # (a run given for its scene: "not a COLMAP workspace. Run `uncertsplat reconstruct`")
+            scene = _run_scene(absolute)
+            return ("it is a training run, the output of `uncertsplat train`" +
+                    (f"; the scene it was trained on is {_shown(scene)}: give that" if scene else ""))
+        for up in list(absolute.parents)[:2]:  # (WS/images, WS/sparse/0, a Blender scene's train/)
+            if is_scene(up):
+                return f"it lies inside the scene {_shown(up)}: give that"
     found = [p for p in _subfolders(absolute) if test(p)]
     if want == "run" and not found:  # (a sweep's points are its runs/)
         found = [p for p in _subfolders(absolute / "runs") if test(p)]
