@@ -275,8 +275,10 @@ class TestAddViewsErrors:
         held = RunScene.read(run / "scene.json").test[0]
         with pytest.raises(UserError, match="held-out view"):
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=[held])
-        with pytest.raises(UserError, match="already a training view"):
+        with pytest.raises(UserError, match="already a training view") as err:
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=[START[0]])
+        # (a run on some of the scene's views: the error said no more, with nothing on what to do)
+        assert "scene.json lists the ones it trains on" in str(err.value) and "select-views" in str(err.value)
         capsys.readouterr()
         with pytest.raises(UserError, match="--add-views nope.png: no photo of that name in the scene") as err:
             train_run(tiny_scene_path, run, _cfg(), CPU, resume=True, extend_to=90, add_views=["nope.png"])

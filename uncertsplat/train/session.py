@@ -393,7 +393,9 @@ def _add_training_views(cfg: TrainConfig, run_dir: Path, add: list[str],
                                  "`--resume` alone, which trains it." if recent else
                                  "New photos join a workspace of `uncertsplat reconstruct` with `uncertsplat "
                                  "reconstruct PHOTOS -o WORKSPACE --extend` (every camera there kept); then add them "
-                                 "here." if every else None)
+                                 "here." if every else
+                                 "Add views it has not trained on: its scene.json lists the ones it trains on under "
+                                 f"`train`, and `uncertsplat select-views {q(run_dir)}` ranks the others.")
         added.append(name)
     scene = cfg.scene.model_copy(update={"train_names": current + added, "train_indices": None})
     return cfg.model_copy(update={"scene": scene}), added
