@@ -533,3 +533,23 @@ def test_a_run_folder_removed_under_a_training_is_named_as_such(tmp_path):
     with pytest.raises(UserError, match="the run folder is gone while training wrote to it") as err:
         t._log({"step": 1})
     assert "Free some space" not in err.value.hint
+
+
+def test_resume_in_a_folder_of_other_files_does_not_advise_a_start_that_is_refused(tmp_path, tiny_scene_path):  # noqa: F811
+    """`train SCENE -o FOLDER --resume` on a folder of other files (a prune's sweep, a scene) said "Start a new run
+    without --resume", which the same folder then refused ("holds files that are not a training run"): it says what
+    the folder holds and to give a run's folder or a new one; a folder that is not there keeps the short advice."""
+    from uncertsplat.errors import UserError
+    from uncertsplat.stages.train import run as train_run
+
+    cfg = train_config_from("tiny", overrides=["iterations=5"])
+    (tmp_path / "sweep_only").mkdir()
+    (tmp_path / "sweep_only" / "prune.json").write_text("{}")
+    with pytest.raises(UserError, match="nothing to resume") as err:
+        train_run(tiny_scene_path, tmp_path / "sweep_only", cfg, torch.device("cpu"), resume=True)
+    said = err.value.render()
+    assert "holds files that are not a training run" in said and "in a new or empty output folder" in said
+    assert sorted(p.name for p in (tmp_path / "sweep_only").iterdir()) == ["prune.json"]  # (nothing written)
+    with pytest.raises(UserError, match="nothing to resume") as err:
+        train_run(tiny_scene_path, tmp_path / "none", cfg, torch.device("cpu"), resume=True)
+    assert err.value.hint == "Start a new run without --resume."

@@ -421,6 +421,7 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     """
     from uncertsplat.data.dataset import load_masks, load_photos
     from uncertsplat.io.checkpoints import list_checkpoints, load_latest
+    from uncertsplat.io.folders import stage_hint
     from uncertsplat.io.ply import write_point_cloud_ply, write_variational_ply
     from uncertsplat.render import near_plane
     from uncertsplat.sfm.scene import (
@@ -490,8 +491,14 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
         raise UserError("views can only be added to a run that exists (--add-views needs --resume)", path=run_dir,
                         hint="Train the first views, then resume with --add-views.")
     if resume and not (run_dir / "config.json").is_file():
-        raise UserError("nothing to resume: no config.json in the run folder", path=run_dir,
-                        hint="Start a new run without --resume.")
+        # a folder of other files (a scene, a prune's sweep): "start a new run without --resume" there was refused
+        # next ("the output folder exists and holds files that are not a training run")
+        near = stage_hint(run_dir, "run") if exists else ""
+        raise UserError("nothing to resume: no config.json in the run folder"
+                        + ("; the folder holds files that are not a training run" if exists else "")
+                        + (f" ({near})" if near else ""), path=run_dir,
+                        hint="Give --resume the folder `uncertsplat train -o` wrote, or start a new run without --resume "
+                             "in a new or empty output folder (-o)." if exists else "Start a new run without --resume.")
     if resume and (run_dir / "prune.json").is_file():
         # a prune output holds a model and config.json but no checkpoint: a --resume started from step 0 in it and
         # wrote a new model over the pruned one, beside a prune.json and evaluation of neither (a helper followed
