@@ -760,6 +760,17 @@ def test_a_workspace_from_before_an_option_existed_is_reused_at_its_default():
     assert not stage._same_options({**options, "matcher": "sequential"}, ReconstructConfig())
 
 
+def test_a_workspace_made_with_other_options_names_them():
+    """`reconstruct PHOTOS -o WS --seed 3` on a workspace made with the default seed said "a workspace made with other
+    options" without naming one: the options that differ are named with their two values."""
+    options = ReconstructConfig().model_dump(mode="json", exclude={"overwrite", "extend"})
+    assert stage._option_changes(options, ReconstructConfig(seed=3)) == "seed 0 then, 3 now"
+    assert stage._option_changes(options, ReconstructConfig(seed=3, matcher="sequential")) == (
+        "matcher auto then, sequential now, seed 0 then, 3 now")
+    assert stage._option_changes(options, ReconstructConfig(overwrite=True)) == ""  # (not a workspace's option)
+    assert stage._option_changes({**options, "removed_option": 1}, ReconstructConfig()) == ""
+
+
 def test_weakly_registered_photos_are_named_fewest_first():
     """Photos with fewer than a fifth of the median photo's observations (a stub with what the function reads)."""
 

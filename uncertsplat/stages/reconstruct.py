@@ -78,6 +78,17 @@ def _same_options(recorded: dict, cfg: ReconstructConfig) -> bool:
     return then == cfg
 
 
+def _option_changes(recorded: dict, cfg: ReconstructConfig) -> str:
+    """The options a workspace was made with that ``cfg`` changes, for the refusal to reuse it ("seed 0 then, 3
+    now"); "" where its recorded options cannot be read as a config (an option removed since)."""
+    try:
+        then = type(cfg).model_validate({**recorded, "overwrite": cfg.overwrite, "extend": cfg.extend})
+    except ValueError:
+        return ""
+    before, now = then.model_dump(mode="json"), cfg.model_dump(mode="json")
+    return ", ".join(f"{k} {before[k]} then, {now[k]} now" for k in now if before[k] != now[k])
+
+
 def _check_output_path(photos: Path, workspace: Path) -> None:
     """Refuse an output path that is a file, holds the photo folder or lies inside it (before any folder is made).
 
@@ -162,7 +173,8 @@ def _prepare_workspace(photos: Path, workspace: Path, cfg: ReconstructConfig, fi
         if existing is not None:
             what = (f"a workspace made from other photos{' or masks' if cfg.masks is not None else ''} "
                     f"({existing.photos})" if not same_input
-                    else "a workspace made with other options")
+                    else "a workspace made with other options"
+                    + (f" ({changed})" if (changed := _option_changes(existing.options, cfg)) else ""))
             if not same_input and existing.photos == str(photos_abs) and scan is not None:
                 # the same folder, its photos or masks changed since (one added, say): say how, not "other photos"
                 added, changes = _folder_changes(existing, scan, cfg)
