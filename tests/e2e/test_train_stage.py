@@ -91,6 +91,30 @@ def test_existing_run_is_refused(trained, tiny_scene_path, tmp_path):  # noqa: F
     assert f"uncertsplat train {q(tiny_scene_path.resolve())} -o {q(run)} --resume" in e.value.hint
 
 
+def test_an_output_folder_among_the_scene_s_photos_is_refused(tiny_scene_path, tmp_path):  # noqa: F811
+    """`train SCENE -o SCENE/images/run` trained there, and the next `reconstruct` of those photos (which reads
+    subfolders) took the run's renders and maps for photos; refused before anything is written, as `reconstruct` and
+    `select-views` refuse it, for the photo folder `reconstruct_report.json` names too."""
+    from uncertsplat.schemas import ReconstructReport
+
+    scene = tmp_path / "scene"
+    shutil.copytree(tiny_scene_path, scene)
+    images = scene / "images"
+    before = sorted(p.name for p in images.iterdir())
+    cfg = train_config_from("tiny", {"iterations": 2})
+    for out in (images, images / "run"):
+        with pytest.raises(UserError, match=r"inside the folder of the scene's photos \(.*images\)"):
+            stage.run(scene, out, cfg, torch.device("cpu"))
+    assert sorted(p.name for p in images.iterdir()) == before
+    photos = tmp_path / "photos"  # the folder the workspace was reconstructed from
+    photos.mkdir()
+    ReconstructReport(success=True, photos=str(photos), images_found=before,
+                      registered_fraction=1.0).write(scene / "reconstruct_report.json")
+    with pytest.raises(UserError, match=r"inside the folder of the scene's photos \(.*photos\)"):
+        stage.run(scene, photos / "run", cfg, torch.device("cpu"))
+    assert not list(photos.iterdir())
+
+
 def test_resume_from_middle_checkpoint_is_exact(trained, tiny_scene_path, tmp_path):  # noqa: F811
     run, cfg = trained
     copy = tmp_path / "run"

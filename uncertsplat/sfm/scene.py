@@ -211,6 +211,27 @@ def user_mask_files(path: Path, names: Sequence[str]) -> dict[str, Path]:
     return {} if found is None else {n: p for n, p in zip(names, found, strict=True) if p is not None}
 
 
+def photo_folder_holding(out: Path, scene: Path | None, image_paths: Sequence[str | Path] = ()) -> Path | None:
+    """The folder of the scene's photos that ``out`` is or lies inside, or None: the scene's ``images/`` (its photos
+    may lie in subfolders), the folder ``reconstruct`` made the workspace from (``reconstruct_report.json``'s
+    ``photos``) and the folders of ``image_paths``. Files a stage writes there are taken for photos by the next
+    ``reconstruct`` of them."""
+    from uncertsplat.schemas import ReconstructReport
+
+    folders = {Path(p).parent.resolve() for p in image_paths}
+    if scene is not None and (Path(scene) / "images").is_dir():
+        folders.add((Path(scene) / "images").resolve())
+    if scene is not None:
+        try:
+            report = ReconstructReport.read_optional(Path(scene) / REPORT_NAME)
+        except UserError:
+            report = None
+        if report is not None and report.photos:
+            folders.add(Path(report.photos).resolve())
+    target = Path(out).resolve()
+    return next((f for f in sorted(folders) if target == f or f in target.parents), None)
+
+
 def trained_with_masks(run_dir: Path) -> bool:
     """Whether the run in ``run_dir`` was trained with the photos' own masks (``RunScene.masks``): its metrics are
     taken inside them as its training's were; masks added to the scene since are scored inside but not so called."""

@@ -191,27 +191,16 @@ def _plausible(loaded, scene, train: list[int], cands, cfg: SelectConfig, device
 
 
 def _refuse_output_among_photos(out: Path, scene, scene_path: Path | None) -> None:
-    """Refuse an output folder that is, or lies inside, a folder of the scene's photos (its ``images/``) or of the photos
-    ``reconstruct`` made the workspace from (``reconstruct_report.json``'s ``photos``): ``selection.png`` landed among
-    the photos, where the next ``reconstruct`` of them, the one that adds the chosen photo, takes it for a photo."""
-    from uncertsplat.schemas import ReconstructReport
+    """Refuse an output folder that is, or lies inside, a folder of the scene's photos (``sfm.scene.
+    photo_folder_holding``): ``selection.png`` landed among the photos, where the next ``reconstruct`` of them, the one
+    that adds the chosen photo, takes it for a photo."""
+    from uncertsplat.sfm.scene import photo_folder_holding
 
-    folders = {Path(p).parent.resolve() for p in scene.image_paths}
-    if scene_path is not None and (Path(scene_path) / "images").is_dir():  # (its photos may lie in subfolders)
-        folders.add((Path(scene_path) / "images").resolve())
-    if scene_path is not None:
-        try:
-            report = ReconstructReport.read_optional(Path(scene_path) / "reconstruct_report.json")
-        except UserError:
-            report = None
-        if report is not None and report.photos:
-            folders.add(Path(report.photos).resolve())
-    target = out.resolve()
-    for folder in sorted(folders):
-        if target == folder or folder in target.parents:
-            raise UserError(f"the output folder is inside the folder of the scene's photos ({folder}): selection.png "
-                            "would be taken for a photo there", path=out,
-                            hint="Choose an output folder outside the photos (the default is RUN/select).")
+    folder = photo_folder_holding(out, scene_path, scene.image_paths)
+    if folder is not None:
+        raise UserError(f"the output folder is inside the folder of the scene's photos ({folder}): selection.png "
+                        "would be taken for a photo there", path=out,
+                        hint="Choose an output folder outside the photos (the default is RUN/select).")
 
 
 def _kept_scene(loaded, run_dir: Path, cfg: SelectConfig, err: UserError):

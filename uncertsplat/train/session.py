@@ -448,6 +448,14 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
     if run_dir.exists() and not run_dir.is_dir():
         raise UserError("the output path is a file, not a folder", path=run_dir,
                         hint="Give -o the folder for the run (a new one, or a run to --resume).")
+    if not resume:  # (a run made there before this check resumes where it is)
+        from uncertsplat.sfm.scene import photo_folder_holding
+
+        photos = photo_folder_holding(run_dir, scene)
+        if photos is not None:  # its renders, maps and figures would be photos to the next `reconstruct`
+            raise UserError(f"the output folder is inside the folder of the scene's photos ({photos}): the run's "
+                            "images would be taken for photos there", path=run_dir,
+                            hint="Choose an output folder outside the photos (e.g. beside the scene).")
     exists = run_dir.exists() and any(p.name != ".lock" for p in run_dir.iterdir())
     if exists and not resume and (run_dir / "config.json").is_file() and _never_trained(run_dir):
         # a start that failed before its first step (e.g. a photo it could not read): nothing to keep. Under the
