@@ -1107,3 +1107,25 @@ def test_colmap_failing_on_a_full_disk_is_said_as_the_disk(tmp_path, monkeypatch
     monkeypatch.setattr(stage.shutil, "disk_usage", lambda p: usage(10**12, 0, 10**11))
     with pytest.raises(RuntimeError, match="factory"):
         stage.run(photos, tmp_path / "ws2", ReconstructConfig())
+
+
+def test_extend_without_new_photos_names_those_the_workspace_never_registered(tmp_path):
+    """--extend on a folder whose photos the workspace was all made from said it "holds every one of its N photos"
+    when some never registered (5 of 24 in a new user's try): the ones found then but not registered are named, with
+    why --extend does not try them again."""
+    photos = _photos(tmp_path)
+    ws = tmp_path / "ws"
+    for folder in ("distorted/sparse/0", "sparse/0"):
+        (ws / folder).mkdir(parents=True)
+    (ws / "database.db").write_bytes(b"")
+    _report(photos=str(photos), images_found=["0.png", "1.png", "2.png"],
+            images_registered=["0.png"]).write(ws / "reconstruct_report.json")
+    with pytest.raises(UserError, match="no new photo") as err:
+        stage.run(photos, ws, ReconstructConfig(extend=True))
+    message = " ".join(str(err.value).split())
+    assert "made from every one of its 3 photos (2 of them not registered then: 1.png, 2.png;" in message
+    _report(photos=str(photos), images_found=["0.png", "1.png", "2.png"],
+            images_registered=["0.png", "1.png", "2.png"]).write(ws / "reconstruct_report.json")
+    with pytest.raises(UserError, match="made from every one of its 3 photos") as err:
+        stage.run(photos, ws, ReconstructConfig(extend=True))
+    assert "not registered" not in str(err.value)

@@ -923,7 +923,10 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
                                                           scan.legacy_fingerprint()))
         hashes = scan.photo_hashes() if edited and existing.photo_sha256 else {}
         which = sorted(n for n, h in hashes.items() if existing.photo_sha256.get(n, h) != h)  # (before version 3: none)
-        raise UserError(f"no new photo in {photos}: the workspace holds every one of its {len(scan.names)} photos"
+        unregistered = sorted(set(scan.names) - set(existing.images_registered))  # (found then, not registered)
+        raise UserError(f"no new photo in {photos}: the workspace was made from every one of its {len(scan.names)} "
+                        "photos" + (f" ({len(unregistered)} of them not registered then: {list_names(unregistered)}; "
+                                    "--extend adds only photos it has not tried)" if unregistered else "")
                         + (f" (left out: {list_names(left)}, copies of a photo or sharing its name"
                            + (": the notes above)" if said else ")") if left else "")
                         + ("; and the folder's photos are not the ones the workspace was made from ("
