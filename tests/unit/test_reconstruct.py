@@ -1129,3 +1129,15 @@ def test_extend_without_new_photos_names_those_the_workspace_never_registered(tm
     with pytest.raises(UserError, match="made from every one of its 3 photos") as err:
         stage.run(photos, ws, ReconstructConfig(extend=True))
     assert "not registered" not in str(err.value)
+
+
+def test_a_masks_folder_without_a_mask_of_any_photo_is_named_once(tmp_path):
+    """`reconstruct PHOTOS --masks FOLDER` with no mask named for a photo: the folder is the error's path, so the
+    message says "the folder" rather than its path again ("/x/depth: /x/depth holds no mask ...")."""
+    photos = _photos(tmp_path)
+    masks = tmp_path / "depth"
+    masks.mkdir()
+    write_image(masks / "other.png", seed=5)
+    with pytest.raises(UserError, match="the folder holds no mask named for any photo") as err:
+        stage.run(photos, tmp_path / "ws", ReconstructConfig(masks=masks))
+    assert str(err.value).count(str(masks)) == 1 and err.value.path == masks

@@ -525,7 +525,7 @@ def run(photos: Path, workspace: Path, cfg: ReconstructConfig) -> ReconstructRep
 
                     if len(without) == len(scan.photos):
 
-                        raise UserError(f"{cfg.masks} holds no mask named for any photo ({mask_names(scan.names[0])})",
+                        raise UserError(f"the folder holds no mask named for any photo ({mask_names(scan.names[0])})",
                                         path=cfg.masks, hint="Name each mask after its photo.")
                     missing = set(without)
                     note = masks_note(scan.names, [None if p in missing else p for p in scan.names],
@@ -966,7 +966,7 @@ def extend(photos: Path, workspace: Path, cfg: ReconstructConfig) -> Reconstruct
 
                     bare = set(without)
                     if cfg.masks is not None and is_new <= bare:
-                        raise UserError(f"{masks} holds no mask named for any new photo ({mask_names(new[0])})",
+                        raise UserError(f"the folder holds no mask named for any new photo ({mask_names(new[0])})",
                                         path=masks, hint="Name each mask after its photo.")
                     mask_note = "new photos' " + masks_note(new, [None if n in bare else n for n in new], f"in {masks}")
                     console.print(f"[yellow]note:[/] {esc(mask_note)}")
