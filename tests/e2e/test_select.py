@@ -286,7 +286,7 @@ class TestAddViewsErrors:
         # a synthetic scene is no reconstruct workspace: --extend, which refuses it, is not suggested (a helper's audit)
         assert "--extend registers new photos" in str(err.value) and "reconstruct PHOTOS" not in str(err.value)
         said = capsys.readouterr().err  # nothing said of a resume that is refused (it warned, then refused)
-        assert "resuming from" not in said and "none are grown" not in said, said
+        assert "resuming from" not in said and "none are grown" not in said and "continuing to" not in said, said
         assert "did you mean" not in str(err.value)
         # a near miss names the photo (another case, a path before it)
         for near in ("VIEW_002.PNG", "scene/images/view_002.png"):

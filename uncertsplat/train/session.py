@@ -549,8 +549,9 @@ def train_model(scene: Path, run_dir: Path, cfg: TrainConfig, device: torch.devi
                 if extend_to < done:
                     raise UserError(f"cannot shorten the run to {extend_to} steps: its checkpoint is at step {done}",
                                     path=run_dir, hint="Give --iterations at or above that step.")
-                console.print(f"[yellow]note:[/] continuing to {extend_to} steps instead of {cfg.iterations}; the "
-                              "position learning-rate schedule is stretched to the new length from here on")
+                # (said once the scene and the added views are checked: before, a refused name followed it)
+                later.append(f"[yellow]note:[/] continuing to {extend_to} steps instead of {cfg.iterations}; the "
+                             "position learning-rate schedule is stretched to the new length from here on")
                 cfg = cfg.model_copy(update={"iterations": extend_to})
             if add_views and found is not None and int(found[1]["step"]) >= cfg.iterations:
                 raise UserError(f"the run has finished its {cfg.iterations} steps: the added view(s) would never be "
