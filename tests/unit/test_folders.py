@@ -95,7 +95,8 @@ def test_commands_given_a_pipelines_output_name_what_to_give(pipeline_out):
         read_run_config(pipeline_out / "reconstruct")  # (evaluate SCENE, prune SCENE: as report says it)
     with pytest.raises(UserError, match=r"not a COLMAP workspace; it holds scenes .*reconstruct") as err:
         find_sparse_model(pipeline_out)
-    assert "uncertsplat reconstruct" not in err.value.hint
+    # the message says which to give: no hint repeating it ("give one of them: ...", then "Give that scene instead.")
+    assert err.value.hint is None and "uncertsplat reconstruct" not in err.value.render()
 
 
 def test_a_folder_inside_a_scene_or_a_run_given_for_the_scene_names_the_scene(pipeline_out, tmp_path):

@@ -385,7 +385,7 @@ def find_sparse_model(path: Path) -> Path:
     near = stage_hint(path, "scene")  # (a pipeline's output folder: its workspace is OUT/reconstruct)
     raise UserError("missing sparse/0: this folder is not a COLMAP workspace" + (f"; {near}" if near else ""),
                     path=path / "sparse" / "0",
-                    hint="Give that scene instead." if near else
+                    hint=None if near else  # (the message says which to give: "... give that")
                     "Run `uncertsplat reconstruct PHOTOS -o WORKSPACE` to create one.")
 
 
