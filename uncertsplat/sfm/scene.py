@@ -219,9 +219,9 @@ def photo_folder_holding(out: Path, scene: Path | None, image_paths: Sequence[st
     from uncertsplat.schemas import ReconstructReport
 
     folders = {Path(p).parent.resolve() for p in image_paths}
-    if scene is not None and (Path(scene) / "images").is_dir():
-        folders.add((Path(scene) / "images").resolve())
     if scene is not None:
+        if (Path(scene) / "images").is_dir():
+            folders.add((Path(scene) / "images").resolve())
         try:
             report = ReconstructReport.read_optional(Path(scene) / REPORT_NAME)
         except UserError:

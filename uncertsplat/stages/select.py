@@ -191,9 +191,9 @@ def _plausible(loaded, scene, train: list[int], cands, cfg: SelectConfig, device
 
 
 def _refuse_output_among_photos(out: Path, scene, scene_path: Path | None) -> None:
-    """Refuse an output folder that is, or lies inside, a folder of the scene's photos (``sfm.scene.
-    photo_folder_holding``): ``selection.png`` landed among the photos, where the next ``reconstruct`` of them, the one
-    that adds the chosen photo, takes it for a photo."""
+    """Refuse an output folder that is, or lies inside, a folder of the scene's photos
+    (``sfm.scene.photo_folder_holding``): ``selection.png`` landed among the photos, where the next ``reconstruct`` of
+    them, the one that adds the chosen photo, takes it for a photo."""
     from uncertsplat.sfm.scene import photo_folder_holding
 
     folder = photo_folder_holding(out, scene_path, scene.image_paths)
