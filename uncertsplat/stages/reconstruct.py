@@ -68,25 +68,29 @@ def _inputs_fingerprint(scan, masks: Path | None) -> str:
     return sfm.combined_fingerprint(scan.fingerprint(), fingerprint_folder(masks))
 
 
-def _same_options(recorded: dict, cfg: ReconstructConfig) -> bool:
-    """Whether a workspace's recorded options are ``cfg``'s; an option added since it was made counts at its default
-    (a workspace from before ``features`` existed was made with "sift", the default)."""
+def _recorded_config(recorded: dict, cfg: ReconstructConfig) -> ReconstructConfig | None:
+    """A workspace's recorded options as a config (with ``cfg``'s ``overwrite``, no option of a workspace); an option
+    added since it was made counts at its default (a workspace from before ``features`` existed was made with "sift",
+    the default); None where they no longer read (an option that no longer exists, or a value no longer allowed)."""
     try:
-        then = type(cfg).model_validate({**recorded, "overwrite": cfg.overwrite})
-    except ValueError:  # an option that no longer exists, or a value no longer allowed
-        return False
-    return then == cfg
+        return type(cfg).model_validate({**recorded, "overwrite": cfg.overwrite})
+    except ValueError:
+        return None
+
+
+def _same_options(recorded: dict, cfg: ReconstructConfig) -> bool:
+    """Whether a workspace's recorded options are ``cfg``'s (``_recorded_config``)."""
+    return _recorded_config(recorded, cfg) == cfg
 
 
 def _option_changes(recorded: dict, cfg: ReconstructConfig) -> str:
     """The options a workspace was made with that ``cfg`` changes, for the refusal to reuse it ("seed 0 then, 3
-    now"); "" where its recorded options cannot be read as a config (an option removed since)."""
-    try:
-        then = type(cfg).model_validate({**recorded, "overwrite": cfg.overwrite, "extend": cfg.extend})
-    except ValueError:
+    now"); "" where its recorded options cannot be read as a config."""
+    then = _recorded_config(recorded, cfg)
+    if then is None:
         return ""
     before, now = then.model_dump(mode="json"), cfg.model_dump(mode="json")
-    return ", ".join(f"{k} {before[k]} then, {now[k]} now" for k in now if before[k] != now[k])
+    return ", ".join(f"{k} {before[k]} then, {now[k]} now" for k in now if k != "extend" and before[k] != now[k])
 
 
 def _check_output_path(photos: Path, workspace: Path) -> None:
