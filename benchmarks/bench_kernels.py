@@ -456,7 +456,7 @@ def bench_ssim(libs: dict, repeats: int, planes: int = 3, height: int = 240, wid
             return gx
         return call
 
-    (pm_a, part_a), (pm_b, part_b) = parts.values()
+    (pm_a, _), (pm_b, _) = parts.values()
     grads = [backward(lib, parts[k][1])() for k, lib in libs.items()]
     # the current kernels' forward with the target's blurred mean and mean square given (what training keeps for
     # its photos), against the reference's forward as it is

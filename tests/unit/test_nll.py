@@ -1,4 +1,4 @@
-"""NLL: closed forms, torch.distributions, KDE bandwidth, streaming, the paper formula."""
+"""NLL: closed forms, torch.distributions, KDE bandwidth, the paper formula."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ import pytest
 import torch
 
 from uncertsplat.eval.nll import (
-    StreamingKDE,
     gaussian_nll,
     kde_bandwidth,
     kde_nll,
@@ -90,18 +89,6 @@ def test_kde_gaussian_data_close_to_gaussian_nll():
     y = torch.randn(200, generator=g, dtype=torch.float64)
     true = gaussian_nll(y, torch.zeros_like(y), torch.ones_like(y)).item()
     assert kde_nll(samples, y).item() == pytest.approx(true, abs=0.1)
-
-
-def test_streaming_kde_matches_batch(device):
-    g = torch.Generator().manual_seed(2)
-    samples = torch.rand(12, 5, 6, 3, generator=g, dtype=torch.float64).to(device)
-    y = torch.rand(5, 6, 3, generator=g, dtype=torch.float64).to(device)
-    h = kde_bandwidth(samples.std(0), 12)
-    acc = StreamingKDE(y, h)
-    for k in range(12):
-        acc.update(samples[k])
-    assert acc.nll().item() == pytest.approx(kde_nll(samples, y).item(), rel=1e-10)
-    assert torch.allclose(acc.nll(reduction="none"), kde_nll(samples, y, reduction="none"), atol=1e-10)
 
 
 def test_paper_nll_depends_on_resolution_ours_does_not():

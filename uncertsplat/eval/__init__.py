@@ -15,7 +15,7 @@ from uncertsplat.eval.calibration import (
 )
 from uncertsplat.eval.depth import DepthMetrics, DepthScale, align_depth_scale, depth_metrics
 from uncertsplat.eval.image import lpips, lpips_available, psnr, ssim
-from uncertsplat.eval.nll import StreamingKDE, gaussian_nll, kde_bandwidth, kde_nll, paper_nll, predictive_nll
+from uncertsplat.eval.nll import gaussian_nll, kde_bandwidth, kde_nll, paper_nll, predictive_nll
 from uncertsplat.eval.sparsification import (
     SparsificationResult,
     ause,
@@ -32,7 +32,6 @@ __all__ = [
     "EvalReport",
     "SparsificationResult",
     "SpearmanResult",
-    "StreamingKDE",
     "ViewMetrics",
     "align_depth_scale",
     "ause",

@@ -49,17 +49,6 @@ class CalibrationResult:
     half_widths: tuple[float, ...] = ()
     dof: float | None = None
 
-    def to_dict(self) -> dict:
-        return {
-            "ks": list(self.ks),
-            "observed": list(self.observed),
-            "nominal": list(self.nominal),
-            "calibration_error": self.calibration_error,
-            "num_elements": self.num_elements,
-            "half_widths": list(self.half_widths),
-            "dof": self.dof,
-        }
-
 
 def nominal_coverage(k: float) -> float:
     """P(|Z| <= k) for a standard normal Z: erf(k / sqrt 2)."""

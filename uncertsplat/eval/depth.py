@@ -46,9 +46,6 @@ class DepthMetrics:
     mae: float
     num_pixels: int
 
-    def to_dict(self) -> dict:
-        return {"abs_rel": self.abs_rel, "rmse": self.rmse, "mae": self.mae, "num_pixels": self.num_pixels}
-
 
 def valid_depth_mask(pred: Tensor, gt: Tensor, mask: Tensor | None = None) -> Tensor:
     """Pixels usable for depth evaluation: both finite, GT > 0, render > 0, inside ``mask``."""

@@ -11,9 +11,7 @@ Four estimators, all per element (RGB channels are separate elements) and averag
 - :func:`kde_nll`: a Gaussian kernel density estimate over the K Monte-Carlo samples of each element,
   bandwidth by Silverman's rule from the *sample count*: h = 1.06 * std_hat * K^(-1/5), std_hat the
   unbiased sample std, floored at ``bandwidth_floor`` (same reason as above). Computed with
-  logsumexp, so far-away targets give a large finite NLL rather than log(0). :class:`StreamingKDE`
-  computes the same value from samples streamed one at a time once the bandwidth is known (e.g. from
-  a first Welford pass over the same seeded samples), so memory need not grow with K.
+  logsumexp, so far-away targets give a large finite NLL rather than log(0).
 - :func:`paper_nll`: the official code's estimator (docs/method.md, the original code's defect 1; bandwidth
   exponent +1/5 instead of -1/5, with the pixel count instead of the sample count). NOT COMPARABLE
   with a correct NLL: it depends on image resolution. Provided only to compare with published tables.
@@ -152,38 +150,6 @@ def kde_nll(
         h = torch.as_tensor(bandwidth, dtype=target.dtype, device=target.device).expand_as(target)
         h = h.clamp_min(bandwidth_floor)
     return _reduce(-_kde_log_density(samples, target, h), mask, reduction)
-
-
-class StreamingKDE:
-    """KDE log-likelihood accumulated one sample at a time, for a bandwidth known in advance.
-
-    Use: pass 1 computes the Welford mean/std of K samples; ``bw = kde_bandwidth(std, K)``; pass 2
-    redraws the same K samples (same generator seed) and calls ``update`` for each. Memory: three
-    tensors the size of the target, whatever K. The result equals :func:`kde_nll` with the same
-    bandwidth (a running logsumexp).
-    """
-
-    def __init__(self, target: Tensor, bandwidth: Tensor):
-        self.target = target
-        self.h = bandwidth.expand_as(target)
-        self._max = torch.full_like(target, -math.inf)
-        self._sum = torch.zeros_like(target)
-        self.count = 0
-
-    def update(self, sample: Tensor) -> None:
-        """Add one sample [...] (same shape as the target)."""
-        x = -0.5 * ((self.target - sample) / self.h).square()
-        new_max = torch.maximum(self._max, x)
-        # Rescale the running sum to the new maximum (exp(-inf) = 0 on the first update).
-        self._sum = self._sum * torch.exp(self._max - new_max) + torch.exp(x - new_max)
-        self._max = new_max
-        self.count += 1
-
-    def nll(self, *, mask: Tensor | None = None, reduction: Reduction = "mean") -> Tensor:
-        if self.count == 0:
-            raise ValueError("StreamingKDE.nll() before any update()")
-        log_p = self._max + torch.log(self._sum) - math.log(self.count) - torch.log(self.h) - _LOG_SQRT_2PI
-        return _reduce(-log_p, mask, reduction)
 
 
 def paper_bandwidth(sample_std: Tensor, num_pixels: int, *, eps: float = 1e-5) -> Tensor:

@@ -68,19 +68,6 @@ class SparsificationResult:
     scale: float
     num_elements: int
 
-    def to_dict(self) -> dict:
-        """Plain lists and floats (for JSON)."""
-        return {
-            "metric": self.metric,
-            "fractions": self.fractions.tolist(),
-            "oracle": self.oracle.tolist(),
-            "uncertainty": self.uncertainty.tolist(),
-            "ause": self.ause,
-            "aurg": self.aurg,
-            "scale": self.scale,
-            "num_elements": self.num_elements,
-        }
-
 
 def flatten_valid(error: Tensor, uncertainty: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """Flatten |error| and uncertainty to [n] over valid, finite elements.

@@ -1,7 +1,7 @@
 """Real spherical harmonics up to degree 3, in the basis and sign convention of 3DGS.
 
 The colour of a Gaussian seen along the unit direction d (from the camera centre to the mean) is
-``max(sum_b sh[b] * Y_b(d) + 0.5, 0)``; ``rgb_to_sh`` / ``sh_to_rgb`` convert the constant (DC) term.
+``max(sum_b sh[b] * Y_b(d) + 0.5, 0)``; ``rgb_to_sh`` gives the constant (DC) term of a colour.
 """
 
 from __future__ import annotations
@@ -31,13 +31,8 @@ def num_sh_bases(degree: int) -> int:
 
 
 def rgb_to_sh(rgb: Tensor) -> Tensor:
-    """DC coefficient whose evaluated colour is ``rgb`` (inverse of ``sh_to_rgb``)."""
+    """DC coefficient whose evaluated colour is ``rgb`` (the colour of a DC coefficient is ``dc * C0 + 0.5``)."""
     return (rgb - 0.5) / C0
-
-
-def sh_to_rgb(sh_dc: Tensor) -> Tensor:
-    """Colour of a DC-only SH coefficient (before the clamp at 0)."""
-    return sh_dc * C0 + 0.5
 
 
 def sh_basis(degree: int, dirs: Tensor) -> Tensor:

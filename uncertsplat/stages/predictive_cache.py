@@ -130,23 +130,17 @@ def _accepted_keys(parts: dict) -> set[str]:
             for r in range(len(left_out) + 1) for written in combinations(left_out, r)}
 
 
-def predictive_key(loaded, cfg) -> str | None:
-    """The key of ``loaded``'s (a ``baselines.LoadedRun``) predictive under the evaluation settings ``cfg``: a
-    SHA-256 over ``_parts`` (the model file, the run's ``config.json`` and ``scene.json``, the settings but
-    ``UNUSED_SETTINGS``, the noise fit's version). None for a model that is not one file (an ensemble) or a file
-    that cannot be read."""
-    parts = _parts(loaded, cfg)
-    return None if parts is None else _key(parts)
-
-
 def _key(parts: dict) -> str:
+    """The key of a predictive: a SHA-256 over ``_parts`` (the model file, the run's ``config.json`` and
+    ``scene.json``, the evaluation settings but ``UNUSED_SETTINGS``, the noise fit's version)."""
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
 
 def keep_predictive(loaded, scene, cfg, residual, fit, device: torch.device) -> Path | None:
     """Write ``RUN/eval/predictive.pt`` for ``loaded``'s model under ``cfg``: the pixel noise ``residual`` (a
     ``ResidualField`` or None), the ``StdFit`` ``fit`` and ``scene``'s cameras, split and normalisation. Returns the
-    path, or None when the model has no key (``predictive_key``). Call it under the run's lock."""
+    path, or None when the model has no key (``_parts``: an ensemble, or a file that cannot be read). Call it under
+    the run's lock."""
     from uncertsplat.io.atomic import atomic_write_bytes
     from uncertsplat.io.checkpoints import encode
 
@@ -236,7 +230,7 @@ def evaluation_predictive(loaded) -> tuple[KeptPredictive | None, str]:
 
 def read_predictive(loaded, cfg, scene_folder: str | Path) -> tuple[KeptPredictive | None, str]:
     """(``RUN/eval/predictive.pt`` of ``loaded`` when it was written for this model, run and ``cfg``
-    (``predictive_key``), else None; "", else why not for an error: the file is missing, damaged, of another format,
+    (``_key``), else None; "", else why not for an error: the file is missing, damaged, of another format,
     an ensemble's (no single model file), for another model or run, or for other settings, naming them).
     ``scene_folder``: where the run's scene was (the image paths are named under it)."""
     from uncertsplat.io.checkpoints import decode
@@ -330,4 +324,4 @@ def _difference(kept: dict, now: dict) -> str:
 
 
 __all__ = ["FILE_NAME", "LEFT_OUT_WHEN", "KeptPredictive", "keep_predictive", "key_settings", "plain_versions",
-           "predictive_key", "read_predictive", "rekeyed_predictive"]
+           "read_predictive", "rekeyed_predictive"]
