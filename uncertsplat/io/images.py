@@ -99,21 +99,19 @@ def _header(path: Path) -> oiio.ImageSpec:
         inp.close()
 
 
-EXIF_ORIENTATION_NOTE = ("COLMAP and the other tools that give a scene its cameras ignore the EXIF orientation "
-                         "tag: a photo's camera describes its pixels as stored")
-"""Why the readers below ignore the tag by default: a workspace's photo carrying a tag (COLMAP's undistorter keeps
-it) was read turned against its camera, upside down without a word for tag 3, refused as the wrong size for 6 and 8.
-``reconstruct`` stages tagged photos with the tag applied and reset, so its workspaces read the same either way."""
-
-
+# The readers below ignore the EXIF orientation tag by default, as COLMAP and the other tools that give a scene
+# its cameras do: a photo's camera describes its pixels as stored. A workspace's photo carrying a tag (COLMAP's
+# undistorter keeps it) was read turned against its camera, upside down without a word for tag 3, refused as the
+# wrong size for 6 and 8. ``reconstruct`` stages tagged photos with the tag applied and reset, so its workspaces
+# read the same either way.
 def _orientation(spec: oiio.ImageSpec, exif_orientation: bool) -> int:
     """The EXIF orientation to apply: the tag's with ``exif_orientation``, else 1 (the pixels as stored)."""
     return spec.get_int_attribute("Orientation", 1) if exif_orientation else 1
 
 
 def read_image_size(path: str | Path, exif_orientation: bool = False) -> tuple[int, int]:
-    """(width, height) of an image, reading the header only: as stored (``EXIF_ORIENTATION_NOTE``), or as displayed
-    with ``exif_orientation`` (the tag applied)."""
+    """(width, height) of an image, reading the header only: as stored (the note above ``_orientation``), or as
+    displayed with ``exif_orientation`` (the tag applied)."""
     spec = _header(Path(path))
     return _oriented_size(spec) if exif_orientation else (spec.width, spec.height)
 
@@ -234,7 +232,7 @@ def read_image(path: str | Path, background: Sequence[float] = (0.0, 0.0, 0.0),
         path: a PNG (8/16-bit), JPEG, TIFF or EXR file.
         background: RGB colour in [0, 1] under transparent pixels (alpha is composited over it).
         exif_orientation: apply the file's EXIF orientation tag (the image as displayed); by default the pixels
-            as stored, as the scene's cameras describe them (``EXIF_ORIENTATION_NOTE``).
+            as stored, as the scene's cameras describe them (the note above ``_orientation``).
 
     Returns:
         [H,W,3] float32. Grayscale files are replicated to three channels; EXR values are clipped to
