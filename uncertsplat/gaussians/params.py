@@ -1,7 +1,7 @@
 """Per-Gaussian parameters: one row-aligned table, initialised from sparse points.
 
 ``PARAM_SPECS`` lists every per-Gaussian attribute once (name, trailing shape, activation, learning-rate
-key); ``TABLE_SPECS`` (in ``variational.py``) does the same for the offset tables of posterior carriers.
+key); ``TABLE_SPECS`` (in ``prior.py``) does the same for the offset tables of posterior carriers.
 ``GaussianModel`` holds both plus ``posterior_row`` [N] (long; -1 = no posterior), which maps each
 Gaussian to its row in the offset tables. Offset tables hold rows only for posterior carriers ("model
 only what a scene requires"), so a scene whose Gaussians are mostly small pays almost nothing for them.
@@ -19,7 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from uncertsplat.gaussians.neighbors import nearest_neighbor_distance
-from uncertsplat.gaussians.prior import empty_tables
+from uncertsplat.gaussians.prior import TABLE_SPECS, empty_tables
 from uncertsplat.render.sh import rgb_to_sh
 
 
@@ -122,8 +122,6 @@ class GaussianModel:
         values of ``posterior_row`` that are >= 0 are a permutation of ``0..P-1``. Plain ``if`` tests, so
         the checks also run under ``python -O``.
         """
-        from uncertsplat.gaussians.variational import TABLE_SPECS  # avoid a cycle at import time
-
         missing = [s.name for s in PARAM_SPECS if s.name not in self.params]
         if missing:
             raise ValueError(f"GaussianModel.params lacks {', '.join(missing)} (expected {', '.join(PARAM_NAMES)})")
