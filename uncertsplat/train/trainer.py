@@ -1,13 +1,16 @@
 """The training loop: variational multi-scale 3DGS with full-state checkpoints.
 
-One step: pick the next training view (a shuffled queue, refilled when empty), draw one posterior sample
-(``variational.sample``; the plain parameters for ``method="deterministic"``), render, loss = L1/SSIM +
-kl_weight x KL, backward, accumulate screen-space gradients, Adam update, then the topology changes due at
-this step (densify / prune / opacity reset / spawn), deciding on the posterior mean.
+One step: pick the next training view (a shuffled queue, refilled when empty), form the Gaussians to render (the
+informed posterior: the posterior mean or expected render, or a sample, by ``variational.train_on``; the SGD
+posterior: one posterior sample with its KL, ``variational.sample_with_kl``; the plain parameters for
+``method="deterministic"``), render, loss = L1/SSIM (+ kl_weight x KL for the SGD posterior), backward, Adam
+update, accumulate screen-space gradients, then the topology changes due at this step (densify / prune / opacity
+reset / spawn), deciding on the posterior mean, and the informed posterior's update when due.
 
 Everything that influences the future is in ``state_dict()``: parameters, offset tables, posterior rows,
-Adam moments, densification statistics, both generators' states, the view queue, the step and the
-elapsed time. ``Trainer.from_state_dict`` continues exactly as if never interrupted (bit-identical on CPU).
+Adam moments, densification statistics, the generators' states (views, noise, drop, background), the view queue,
+the step and the elapsed time. A ``Trainer`` built with that ``state`` continues exactly as if never
+interrupted (bit-identical on CPU).
 """
 
 from __future__ import annotations
@@ -176,14 +179,16 @@ demo and tiny scenes: 98-100 %)."""
 
 
 def first_spawn_step(cfg: TrainConfig) -> int:
-    """The first step at which Gaussians get a posterior (``densify.spawn_interval`` steps after ``densify.start``)."""
+    """The first step at which Gaussians get a posterior (the first multiple of ``densify.spawn_interval`` after
+    ``densify.start``: ``schedule.is_spawn_step``)."""
     d = cfg.densify
     return (d.start // d.spawn_interval + 1) * d.spawn_interval
 
 
 def first_split_step(cfg: TrainConfig) -> int:
-    """The first densification step of ``cfg``'s schedule (``densify.interval`` steps after ``densify.start``), where
-    the children of split Gaussians first carry a posterior, if it comes before densification ends."""
+    """The first densification step of ``cfg``'s schedule (the first multiple of ``densify.interval`` after
+    ``densify.start``: ``schedule.is_densify_step``), where the children of split Gaussians first carry a posterior,
+    if it comes before densification ends."""
     d = cfg.densify
     return (d.start // d.interval + 1) * d.interval
 
@@ -966,7 +971,8 @@ class Trainer:
     @torch.no_grad()
     def check_growth(self, step: int) -> GrowthCheck | None:
         """Run the growth test due at ``step`` (``strategy.growth``); stop densification's growth when the weakest
-        half of the model is worth less than ``densify.growth_min_gain_db``. Returns the test, or None (none due,
+        half of the model is worth less than ``densify.growth_threshold_db`` (``growth_min_gain_db``, or its default
+        for ``growth_refit_steps``) at ``growth_patience`` tests in a row. Returns the test, or None (none due,
         growth already stopped, the model at its budget: ``strategy.growth.at_budget``, skipped:
         ``strategy.growth.skipped``, or a stop that came in during the copies: ``_refit_cost``)."""
         dcfg = self.cfg.densify

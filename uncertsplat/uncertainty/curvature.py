@@ -77,7 +77,7 @@ def fisher_diagonal(params: dict[str, Tensor], cameras: Cameras, images: Tensor,
         noise_std: observation noise std s.
         generator: source of the Rademacher probes (``ggn``).
         sh_degree: SH degree to render with.
-        estimator: ``"ggn"`` or ``"empirical"`` (module docstring).
+        estimator: ``"ggn"`` or ``"empirical"`` (``baselines.fisher``'s module docstring).
         probes: probe vectors per view (``ggn``).
         masks: [T,H,W,1] bool, the pixels that count (the photos' masks), or None for all.
 

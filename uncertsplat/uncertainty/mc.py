@@ -2,7 +2,8 @@
 
 Each of the K samples is drawn (``sample_fn(generator)``), rendered (``render_fn(sample, cameras)``),
 folded into running moments (Welford's algorithm) and released before the next one, so memory is that
-of one render plus three accumulators, whatever K. The std is the unbiased sample std (divisor K - 1);
+of one render plus the running moments (``MonteCarloMoments``: colour, depth, alpha, the empty part of each ray
+and the shifted renders'), whatever K. The std is the unbiased sample std (divisor K - 1);
 with K = 1 it is 0 everywhere. Welford's update leaves an exactly constant element with a variance of
 exactly 0 (every delta is 0), which keeps "no uncertainty" areas exactly tied for AUSE.
 

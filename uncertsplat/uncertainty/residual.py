@@ -53,7 +53,7 @@ estimates that noise per Gaussian, heteroscedastically, and renders it:
   noise is fitted to what the edge term leaves (a Gaussian no training pixel sees keeps the mean of the whole
   residual, edges included: nothing tells where its edges are).
 * ``ResidualField.blended``: the blended variance ``sum_i w_i(p) (v_i + c_i)`` of a view (c_i: the colour
-  posterior's variance, when fitted; one extra render), which ``uncertainty.mc.mc_render`` adds to the samples'
+  posterior's variance, when fitted; blended in a second channel of the same renders), which ``uncertainty.mc.mc_render`` adds to the samples'
   variance: the predictive of a pixel is the model's spread plus the noise and the unknown colour of its
   Gaussians.
 
