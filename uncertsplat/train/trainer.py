@@ -902,7 +902,7 @@ class Trainer:
                                                               table_moments=not self.informed)
         return memory_growth_limit(len(self.model), room, per), room, per
 
-    def _memory_held(self, step: int, limit: int, room: int, per: float) -> None:
+    def _memory_held(self, step: int, room: int, per: float) -> None:
         """Record that memory held densification's growth at ``step`` (the first hold's numbers, the last step and
         how many were held), and say it the first time in this process (a resumed run's holds are said again)."""
         now = {"step": step, "last_step": step, "gaussians": len(self.model), "budget": self.budget.max_gaussians,
@@ -1359,7 +1359,7 @@ class Trainer:
         done = self.densifier.step(step, self.model, self.optimizer, self.gen_noise,
                                    limit=limit[0] if limit is not None else None)
         if done.pop("held") and limit is not None:
-            self._memory_held(step, *limit)
+            self._memory_held(step, *limit[1:])
         if any(done.values()):
             self._expected = None
         return done
