@@ -103,9 +103,10 @@ class Densifier:
 
     Args:
         cfg: a ``DensifyConfig``.
-        prior: the variational prior (new table rows start there).
+        prior: the variational prior (new table rows start there; its variant and temperature form the posterior
+            mean the decisions use, ``variational.posterior_mean``).
         extent: scene extent.
-        variant, temperature: how the posterior mean is formed (see ``variational.posterior_mean``).
+        n, device: the model's size and device (the rows of the screen statistics).
         posteriors: False for plain 3DGS (``method != "variational"``): no spawning, and split children
             carry a posterior only when their parent does (so a model without posteriors keeps none).
         iterations: the run's length (None: unknown): no opacity reset in its last ``RESET_RECOVERY_STEPS``.
