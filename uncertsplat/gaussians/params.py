@@ -30,7 +30,7 @@ class ParamSpec:
     Attributes:
         name: key in ``GaussianModel.params``.
         shape: trailing shape per Gaussian; ``None`` entries depend on the SH degree (see ``trailing_shape``).
-        activation: how the stored value becomes a renderable one (documentation and PLY export).
+        activation: how the stored value becomes a renderable one (documentation only: no code reads it).
         lr: key into ``LearningRates`` (the optimiser builds one Adam group per attribute).
     """
 
