@@ -647,8 +647,8 @@ class Trainer:
     def _init_exposure(self, state: dict | None) -> None:
         """The per-photo exposure parameters [T,2,3] (``render.exposure``) and their optimiser, from ``state`` (a
         checkpoint's) or at the identity; None with ``exposure = "off"``. Views added since the checkpoint
-        (``train --add-views``) start at the others' centre, the others keep their rows (matched by view index) and,
-        when none was added, their optimiser state."""
+        (``train --add-views``) start at the others' centre, the others keep their rows (matched by name, or by view
+        index in checkpoints without names: ``_saved_views``) and, when none was added, their optimiser state."""
         self.exposure = self.exposure_optimizer = None
         saved = state.get("exposure") if state is not None else None
         if self.cfg.exposure == "off" or (self.cfg.exposure == "auto" and saved is None):
