@@ -215,7 +215,8 @@ class ViewConsistency:
     """Transparent training images (no empty-ray term): rays that meet little of the model through space no photo saw
     empty get ``(1 - alpha)^2 palette_var`` and, below ``MIN_ALPHA``, a depth variance (``_unseen_empty``); a hidden
     point's depth stretch counts the space behind it too (``_free_gap``)."""
-    _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # ``_stack``'s and ``_near``
+    # ``_stack``'s stacks and ``median_surface_depth``'s value
+    _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
     @torch.no_grad()
