@@ -7,11 +7,17 @@ same float32 formulas evaluated in another order; measured ~3e-7); float64 withi
 
 from __future__ import annotations
 
+import os
+import signal
+import struct
+import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import pytest
 import torch
+from torch import Tensor
 
 from tests.reference.naive_render import look_at_cameras, random_scene
 from uncertsplat import native
@@ -816,3 +822,81 @@ class TestSingleThreadedTorch:
         _with_threads(2, t.train_step)
         assert seen == [(1, 2)]
         assert _with_threads(2, torch.get_num_threads) == 2
+
+
+class TestKernelThreads:
+    """The kernels' worker threads (``parallel.h``): kept in a pool between calls, made afresh for a call that finds
+    the pool taken, started anew in a child made by fork(). Which thread runs a worker must never change a result."""
+
+    @staticmethod
+    def _ssim_and_grad(seed: int) -> tuple[Tensor, Tensor]:
+        g = torch.Generator().manual_seed(seed)
+        target = torch.rand(96, 80, 3, generator=g)  # 3 x 96 rows: two workers on two threads
+        x = (target + 0.1 * torch.randn(96, 80, 3, generator=g)).clamp(0, 1).requires_grad_()
+        value = ssim(x, target)
+        value.backward()
+        return value.detach(), x.grad
+
+    def _require_native(self, monkeypatch):
+        monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "native")
+        if native.library() is None:
+            pytest.skip(f"native kernels unavailable: {native.unavailable_reason()}")
+
+    def test_calls_from_several_threads_at_once_each_get_their_own_result(self, monkeypatch):
+        """Four Python threads calling kernels at once (ctypes lets them overlap): one holds the pool, the others
+        make their own threads; every result is the one the call gives alone."""
+        self._require_native(monkeypatch)
+        seeds = list(range(8))
+        alone = {s: _with_threads(1, lambda s=s: self._ssim_and_grad(s)) for s in seeds}
+
+        def many(seed):
+            return [self._ssim_and_grad(seed) for _ in range(6)]
+
+        def run():
+            with ThreadPoolExecutor(4) as pool:
+                return dict(zip(seeds, pool.map(many, seeds), strict=True))
+
+        together = _with_threads(3, run)
+        for s in seeds:
+            for value, grad in together[s]:
+                assert torch.equal(value, alone[s][0]) and torch.equal(grad, alone[s][1]), s
+
+    def test_more_workers_than_the_pool_holds_so_far(self, monkeypatch):
+        """The pool grows to the workers a call asks for (2, then 4 threads: one, then three helpers)."""
+        self._require_native(monkeypatch)
+        one = _with_threads(1, lambda: self._ssim_and_grad(3))
+        for n in (2, 4, 2):
+            value, grad = _with_threads(n, lambda: self._ssim_and_grad(3))
+            assert torch.equal(value, one[0]) and torch.equal(grad, one[1]), n
+
+    @pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork() on this platform")
+    def test_a_child_made_by_fork_runs_the_kernels(self, monkeypatch):
+        """A child forked after the pool started has none of its threads: it must start its own, not wait forever
+        for the parent's (the test fails on a timeout)."""
+        self._require_native(monkeypatch)
+        expected = _with_threads(2, lambda: self._ssim_and_grad(5))[0]  # the pool started in this process
+        read, write = os.pipe()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)  # fork() of a process with threads
+            pid = os.fork()
+        if pid == 0:  # the child: no pytest machinery, only the kernel and the answer
+            try:
+                value = _with_threads(2, lambda: self._ssim_and_grad(5))[0]
+                os.write(write, struct.pack("<d", float(value)))
+            finally:
+                os._exit(0)
+        os.close(write)
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            done, status = os.waitpid(pid, os.WNOHANG)
+            if done:
+                break
+            time.sleep(0.05)
+        else:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            pytest.fail("the forked child's kernel call did not return within 60 s")
+        answer = os.read(read, 8)
+        os.close(read)
+        assert os.waitstatus_to_exitcode(status) == 0 and len(answer) == 8
+        assert struct.unpack("<d", answer)[0] == float(expected)

@@ -350,7 +350,7 @@ def single_threaded_torch(device: torch.device | str):
     Between the kernels, a training step is a few hundred small torch ops on tensors of one value per
     Gaussian or per pixel (about 40k-300k elements); on 2 threads each one wakes the intra-op pool, which cost
     more than the arithmetic: a demo training step took x0.74 the time with those ops on one thread and the
-    kernels on two (BENCHMARKS.md, "Torch's own ops on one thread"). The kernels start their own threads, so
+    kernels on two (BENCHMARKS.md, "Torch's own ops on one thread"). The kernels run on their own threads, so
     they keep the parallelism where it pays. Nothing changes on other devices, without the native kernels,
     or when torch already runs on one thread.
 

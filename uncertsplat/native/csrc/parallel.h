@@ -1,7 +1,14 @@
-// Minimal fork-join over std::thread (the library links no OpenMP runtime; torch brings its own).
+// Minimal fork-join over a pool of std::threads (the library links no OpenMP runtime; torch brings its own).
 #pragma once
 
+#include <pthread.h>
+
+#include <atomic>
+#include <chrono>
+#include <cstdlib>
+#include <condition_variable>
 #include <cstdint>
+#include <mutex>
 #include <thread>
 #include <vector>
 
@@ -35,9 +42,146 @@ class FlushDenormals {
     unsigned int saved_ = 0;
 };
 
+namespace detail {
+
+// Threads kept between kernel calls. A training step makes 15-20 parallel kernel calls, and creating and joining a
+// std::thread for each cost 35 us on a 2-core VM (0.5 ms a step, 2 % of a bonsai step): the pool's threads wait on a
+// condition variable instead and are woken for each call. One call at a time uses it (`busy`); a call that finds it
+// taken (another thread's kernel, or a kernel called from inside a worker) makes its own threads as before. The pool
+// is never destroyed (its threads may still wait when the process exits), and a child made by fork() starts a new
+// one (the parent's threads do not exist there).
+class Pool {
+   public:
+    using Call = void (*)(void*, int64_t);
+
+    // Claims the pool for one call; false when another call holds it.
+    bool acquire() { return !busy_.exchange(true, std::memory_order_acquire); }
+
+    // Runs call(ctx, id) for id = 1 .. helpers on the pool's threads (started here when there are too few) and
+    // returns at once; wait() returns when all of them are done.
+    void start(int64_t helpers, Call call, void* ctx) {
+        std::lock_guard<std::mutex> lock(mutex_);
+        while (static_cast<int64_t>(threads_) < helpers) {
+            const int64_t id = static_cast<int64_t>(++threads_);
+            std::thread([this, id] { serve(id); }).detach();
+        }
+        call_ = call;
+        ctx_ = ctx;
+#ifdef USKERN_HAS_MXCSR
+        csr_ = _mm_getcsr();  // the caller's floating-point mode, as a thread made for the call would inherit it
+#endif
+        helpers_ = helpers;
+        pending_.store(helpers, std::memory_order_relaxed);
+        generation_.fetch_add(1, std::memory_order_release);
+        wake_.notify_all();
+    }
+
+    // Waits for the helpers of start() and releases the pool.
+    void wait() {
+        if (!spin([this] { return pending_.load(std::memory_order_acquire) == 0; })) {
+            std::unique_lock<std::mutex> lock(mutex_);
+            done_.wait(lock, [this] { return pending_.load(std::memory_order_relaxed) == 0; });
+        }
+        busy_.store(false, std::memory_order_release);
+    }
+
+    // True on the pool's own threads (a kernel called from a worker must not wait for the pool it runs in).
+    static bool& on_worker() {
+        thread_local bool flag = false;
+        return flag;
+    }
+
+   private:
+    // Polls ready() for up to spin_us() microseconds; whether it became true. Kernel calls come in bursts tens of
+    // microseconds apart (a render's projection, binning and compositing, then the loss's), and a thread put to sleep
+    // on a VM takes tens of microseconds to wake: waiting on the condition variable alone made a bonsai training
+    // step slower than threads made per call (x1.04), polling 50 us faster (x0.94; BENCHMARKS.md, "The kernels'
+    // threads kept between calls"). UNCERTSPLAT_KERNEL_SPIN_US sets the time (0: no polling).
+    template <typename Ready>
+    static bool spin(Ready ready) {
+        static const int64_t limit_us = spin_us();
+        if (limit_us <= 0) return ready();
+        const auto t0 = std::chrono::steady_clock::now();
+        for (int64_t i = 1;; ++i) {
+            if (ready()) return true;
+#ifdef USKERN_HAS_MXCSR
+            _mm_pause();
+#endif
+            if (i % 64 == 0 && std::chrono::steady_clock::now() - t0 > std::chrono::microseconds(limit_us))
+                return ready();
+        }
+    }
+
+    static int64_t spin_us() {
+        const char* env = std::getenv("UNCERTSPLAT_KERNEL_SPIN_US");
+        return env != nullptr ? std::atoll(env) : 50;
+    }
+
+    void serve(int64_t id) {
+        on_worker() = true;
+        uint64_t seen = 0;
+        for (;;) {
+            spin([&] { return generation_.load(std::memory_order_acquire) != seen; });
+            std::unique_lock<std::mutex> lock(mutex_);
+            wake_.wait(lock, [&] { return generation_.load(std::memory_order_relaxed) != seen; });
+            seen = generation_.load(std::memory_order_relaxed);
+            if (id > helpers_) continue;  // not needed by this call
+            const Call call = call_;
+            void* const ctx = ctx_;
+#ifdef USKERN_HAS_MXCSR
+            _mm_setcsr(csr_);
+#endif
+            lock.unlock();
+            call(ctx, id);
+            lock.lock();
+            if (pending_.fetch_sub(1, std::memory_order_acq_rel) == 1) done_.notify_one();
+        }
+    }
+
+    std::atomic<bool> busy_{false};
+    std::mutex mutex_;  // guards the call's fields below and the condition variables' waits
+    std::condition_variable wake_, done_;
+    std::atomic<uint64_t> generation_{0};
+    std::atomic<int64_t> pending_{0};
+    size_t threads_ = 0;
+    int64_t helpers_ = 0;
+    Call call_ = nullptr;
+    void* ctx_ = nullptr;
+    unsigned int csr_ = 0;
+};
+
+inline std::atomic<Pool*>& pool_slot() {
+    static std::atomic<Pool*> slot{nullptr};
+    return slot;
+}
+
+// This process's pool, made on first use; fork() leaves the child an empty slot.
+inline Pool* pool() {
+    Pool* p = pool_slot().load(std::memory_order_acquire);
+    if (p != nullptr) return p;
+    static std::mutex make;
+    std::lock_guard<std::mutex> lock(make);
+    p = pool_slot().load(std::memory_order_acquire);
+    if (p == nullptr) {
+        static const int registered = pthread_atfork(nullptr, nullptr, [] { pool_slot().store(nullptr); });
+        (void)registered;
+        p = new Pool();  // never deleted: see Pool
+        pool_slot().store(p, std::memory_order_release);
+    }
+    return p;
+}
+
+template <typename G>
+void call_guarded(void* ctx, int64_t id) {
+    (*static_cast<G*>(ctx))(id);
+}
+
+}  // namespace detail
+
 // Runs fn(worker) for worker = 0 .. workers - 1, worker 0 on the calling thread, and waits for all;
 // every worker runs with denormals flushed (FlushDenormals) unless FLUSH is false (a kernel that must give
-// torch's bits: torch keeps denormals).
+// torch's bits: torch keeps denormals). The others run on the pool's threads (detail::Pool), or on threads made
+// for this call when the pool is taken; which thread runs a worker never changes what it computes.
 template <bool FLUSH = true, typename Fn>
 void run_workers(int64_t workers, Fn fn) {
     auto guarded = [&fn](int64_t id) {
@@ -48,8 +192,19 @@ void run_workers(int64_t workers, Fn fn) {
             fn(id);
         }
     };
+    if (workers <= 1) {
+        guarded(int64_t{0});
+        return;
+    }
+    detail::Pool* pool = detail::Pool::on_worker() ? nullptr : detail::pool();
+    if (pool != nullptr && pool->acquire()) {
+        pool->start(workers - 1, &detail::call_guarded<decltype(guarded)>, &guarded);
+        guarded(int64_t{0});
+        pool->wait();
+        return;
+    }
     std::vector<std::thread> threads;
-    threads.reserve(workers > 1 ? workers - 1 : 0);
+    threads.reserve(workers - 1);
     for (int64_t i = 1; i < workers; ++i) threads.emplace_back(guarded, i);
     guarded(int64_t{0});
     for (auto& th : threads) th.join();
