@@ -98,8 +98,8 @@ def _png_with_legend_below(fig, axes=(), ncol: int = 4, handles=None) -> bytes:
         ncol = min(ncol, len(labels))
         while True:
             legend = fig.legend(handles, labels, loc="lower center", ncol=ncol, frameon=False)
-            fig.canvas.draw()
-            width = legend.get_window_extent().width / fig.dpi + 0.2  # inches, with a margin
+            # the legend's own layout gives its width; drawing the whole figure for it took most of a report's time
+            width = legend.get_window_extent(fig.canvas.get_renderer()).width / fig.dpi + 0.2  # inches, with a margin
             if width <= fig.get_figwidth() or ncol == 1:
                 break
             legend.remove()
