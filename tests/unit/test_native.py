@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import signal
 import struct
+import subprocess
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -903,3 +904,93 @@ class TestKernelThreads:
         os.close(read)
         assert os.waitstatus_to_exitcode(status) == 0 and len(answer) == 8
         assert struct.unpack("<d", answer)[0] == float(expected)
+
+
+# A program built from parallel.h alone: what cannot be brought about from Python on demand (an exception in a worker,
+# a fork() at the moment another thread makes the first pool). `operator new` is replaced so that the first pool's
+# allocation, once armed, takes 300 ms: a fork() then lands inside pool()'s first call.
+_POOL_HARNESS = r"""
+#include "parallel.h"
+#include <sys/wait.h>
+#include <unistd.h>
+#include <atomic>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <new>
+
+static std::atomic<int> slow_new{0};
+void* operator new(size_t n) {
+    if (slow_new.load() == 1 && n == sizeof(uskern::detail::Pool)) { slow_new = 2; usleep(300000); }
+    if (void* p = std::malloc(n ? n : 1)) return p;
+    throw std::bad_alloc();
+}
+void operator delete(void* p) noexcept { std::free(p); }
+void operator delete(void* p, size_t) noexcept { std::free(p); }
+
+int main(int argc, char** argv) {
+    if (argc > 1 && std::strcmp(argv[1], "throw") == 0) {
+        std::atomic<int> done{0};
+        int caught = 0;
+        try {
+            uskern::run_workers(3, [&](int64_t id) {
+                if (id == 0) throw std::bad_alloc();
+                usleep(200000);
+                ++done;
+            });
+        } catch (const std::bad_alloc&) {
+            caught = 1;
+        }
+        const int done_when_caught = done.load();
+        usleep(400000);  // the helpers of the pool as it was: done by now
+        std::atomic<int> after{0};
+        uskern::run_workers(3, [&](int64_t) { ++after; });
+        std::printf("caught %d done_when_caught %d pool_free %d after %d\n", caught, done_when_caught,
+                    (int)uskern::detail::pool()->acquire(), after.load());
+        return 0;
+    }
+    slow_new = 1;
+    std::thread first([] { uskern::run_workers(2, [](int64_t) {}); });
+    usleep(100000);  // inside the first pool's making
+    const pid_t pid = fork();
+    if (pid == 0) {
+        alarm(5);
+        std::atomic<int> n{0};
+        uskern::run_workers(2, [&](int64_t) { ++n; });
+        _exit(n == 2 ? 0 : 3);
+    }
+    int status = 0;
+    waitpid(pid, &status, 0);
+    first.join();
+    std::printf("child %s\n", WIFEXITED(status) && WEXITSTATUS(status) == 0 ? "ok"
+                                : WIFSIGNALED(status) ? "hung" : "failed");
+    return 0;
+}
+"""
+
+
+@pytest.fixture(scope="module")
+def pool_harness(tmp_path_factory):
+    cxx = native._compiler()
+    if cxx is None:
+        pytest.skip("no C++ compiler")
+    folder = tmp_path_factory.mktemp("pool_harness")
+    (folder / "harness.cpp").write_text(_POOL_HARNESS)
+    exe = folder / "harness"
+    subprocess.run([cxx, "-std=c++17", "-O1", "-pthread", f"-I{native.CSRC}", str(folder / "harness.cpp"), "-o",
+                    str(exe)], check=True, capture_output=True, timeout=300)
+    return exe
+
+
+def test_a_kernel_that_throws_returns_only_when_its_workers_are_done(pool_harness):
+    """A worker's exception (std::bad_alloc, which the rasterizer's entry points turn into return code 2) reaches the
+    caller after every worker finished (the workers use the caller's stack), and the pool serves the next call."""
+    out = subprocess.run([str(pool_harness), "throw"], capture_output=True, text=True, timeout=60).stdout
+    assert out.split() == ["caught", "1", "done_when_caught", "2", "pool_free", "1", "after", "3"], out
+
+
+def test_a_fork_while_another_thread_makes_the_first_pool(pool_harness):
+    """The child of a fork() made while another thread was inside the first pool's making runs its kernels (it
+    waited forever for a lock held, in the child, by a thread that does not exist there)."""
+    out = subprocess.run([str(pool_harness), "fork"], capture_output=True, text=True, timeout=60).stdout
+    assert out.strip() == "child ok", out

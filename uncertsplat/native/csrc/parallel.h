@@ -3,11 +3,13 @@
 
 #include <pthread.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cstdlib>
 #include <condition_variable>
 #include <cstdint>
+#include <exception>
 #include <mutex>
 #include <thread>
 #include <vector>
@@ -58,12 +60,20 @@ class Pool {
     bool acquire() { return !busy_.exchange(true, std::memory_order_acquire); }
 
     // Runs call(ctx, id) for id = 1 .. helpers on the pool's threads (started here when there are too few) and
-    // returns at once; wait() returns when all of them are done.
+    // returns at once; wait() returns when all of them are done. When a thread cannot be started (std::system_error)
+    // nothing runs, the pool is released and the error thrown; threads_ counts only threads that exist (one counted
+    // but missing would leave a later call's wait() waiting for it forever).
     void start(int64_t helpers, Call call, void* ctx) {
         std::lock_guard<std::mutex> lock(mutex_);
-        while (static_cast<int64_t>(threads_) < helpers) {
-            const int64_t id = static_cast<int64_t>(++threads_);
-            std::thread([this, id] { serve(id); }).detach();
+        try {
+            while (static_cast<int64_t>(threads_) < helpers) {
+                const int64_t id = static_cast<int64_t>(threads_) + 1;
+                std::thread([this, id] { serve(id); }).detach();
+                threads_ = static_cast<size_t>(id);
+            }
+        } catch (...) {
+            busy_.store(false, std::memory_order_release);
+            throw;
         }
         call_ = call;
         ctx_ = ctx;
@@ -99,7 +109,7 @@ class Pool {
     // threads kept between calls"). UNCERTSPLAT_KERNEL_SPIN_US sets the time (0: no polling).
     template <typename Ready>
     static bool spin(Ready ready) {
-        static const int64_t limit_us = spin_us();
+        const int64_t limit_us = spin_us();
         if (limit_us <= 0) return ready();
         const auto t0 = std::chrono::steady_clock::now();
         for (int64_t i = 1;; ++i) {
@@ -112,9 +122,17 @@ class Pool {
         }
     }
 
+    // Read once, without a function-local static's guard: a fork() while another thread held that guard (its
+    // first call) left the child's first call waiting for it forever. Racing first calls read the same value.
     static int64_t spin_us() {
-        const char* env = std::getenv("UNCERTSPLAT_KERNEL_SPIN_US");
-        return env != nullptr ? std::atoll(env) : 50;
+        static std::atomic<int64_t> cached{-1};
+        int64_t us = cached.load(std::memory_order_relaxed);
+        if (us < 0) {
+            const char* env = std::getenv("UNCERTSPLAT_KERNEL_SPIN_US");
+            us = env != nullptr ? std::max<int64_t>(0, std::atoll(env)) : 50;
+            cached.store(us, std::memory_order_relaxed);
+        }
+        return us;
     }
 
     void serve(int64_t id) {
@@ -155,19 +173,22 @@ inline std::atomic<Pool*>& pool_slot() {
     return slot;
 }
 
-// This process's pool, made on first use; fork() leaves the child an empty slot.
+// fork() leaves the child an empty slot. Registered when the library is loaded, not on the first call: a fork() while
+// another thread made the first pool under a lock (or a static's guard) left the child's first call waiting forever
+// for a lock whose owner does not exist there.
+inline const int pool_slot_cleared_on_fork =
+    pthread_atfork(nullptr, nullptr, [] { pool_slot().store(nullptr, std::memory_order_relaxed); });
+
+// This process's pool, made on first use, lock-free (see above): racing first calls each make one, one is kept and
+// the others, which have no threads yet, are deleted.
 inline Pool* pool() {
+    (void)pool_slot_cleared_on_fork;  // used, so every compiler keeps its initialisation
     Pool* p = pool_slot().load(std::memory_order_acquire);
     if (p != nullptr) return p;
-    static std::mutex make;
-    std::lock_guard<std::mutex> lock(make);
-    p = pool_slot().load(std::memory_order_acquire);
-    if (p == nullptr) {
-        static const int registered = pthread_atfork(nullptr, nullptr, [] { pool_slot().store(nullptr); });
-        (void)registered;
-        p = new Pool();  // never deleted: see Pool
-        pool_slot().store(p, std::memory_order_release);
-    }
+    Pool* fresh = new Pool();  // never deleted once in the slot: see Pool
+    if (pool_slot().compare_exchange_strong(p, fresh, std::memory_order_acq_rel, std::memory_order_acquire))
+        return fresh;
+    delete fresh;
     return p;
 }
 
@@ -176,38 +197,73 @@ void call_guarded(void* ctx, int64_t id) {
     (*static_cast<G*>(ctx))(id);
 }
 
+// The first exception thrown by any worker of a call, thrown again on the calling thread once every worker is done.
+class FirstError {
+   public:
+    void keep() noexcept {
+        if (!taken_.exchange(true, std::memory_order_relaxed)) error_ = std::current_exception();
+    }
+    void rethrow() const {
+        if (error_) std::rethrow_exception(error_);
+    }
+
+   private:
+    std::atomic<bool> taken_{false};
+    std::exception_ptr error_;
+};
+
 }  // namespace detail
 
 // Runs fn(worker) for worker = 0 .. workers - 1, worker 0 on the calling thread, and waits for all;
 // every worker runs with denormals flushed (FlushDenormals) unless FLUSH is false (a kernel that must give
 // torch's bits: torch keeps denormals). The others run on the pool's threads (detail::Pool), or on threads made
 // for this call when the pool is taken; which thread runs a worker never changes what it computes.
+// An exception from a worker (e.g. std::bad_alloc, which the rasterizer's entry points turn into an error code) is
+// thrown here after every worker has finished: the workers use the caller's stack (fn, its captures), so returning
+// while one still runs was a use after scope, and an exception thrown past the pool's wait() kept it taken for good.
 template <bool FLUSH = true, typename Fn>
 void run_workers(int64_t workers, Fn fn) {
-    auto guarded = [&fn](int64_t id) {
+    if (workers <= 1) {
         if constexpr (FLUSH) {
             FlushDenormals ftz;
-            fn(id);
+            fn(int64_t{0});
         } else {
-            fn(id);
+            fn(int64_t{0});
         }
-    };
-    if (workers <= 1) {
-        guarded(int64_t{0});
         return;
     }
+    detail::FirstError error;
+    auto guarded = [&fn, &error](int64_t id) noexcept {
+        try {
+            if constexpr (FLUSH) {
+                FlushDenormals ftz;
+                fn(id);
+            } else {
+                fn(id);
+            }
+        } catch (...) {
+            error.keep();
+        }
+    };
     detail::Pool* pool = detail::Pool::on_worker() ? nullptr : detail::pool();
     if (pool != nullptr && pool->acquire()) {
         pool->start(workers - 1, &detail::call_guarded<decltype(guarded)>, &guarded);
         guarded(int64_t{0});
         pool->wait();
+        error.rethrow();
         return;
     }
     std::vector<std::thread> threads;
     threads.reserve(workers - 1);
-    for (int64_t i = 1; i < workers; ++i) threads.emplace_back(guarded, i);
+    try {
+        for (int64_t i = 1; i < workers; ++i) threads.emplace_back(guarded, i);
+    } catch (...) {  // a thread that cannot be started: the ones that were finish before the error leaves
+        for (auto& th : threads) th.join();
+        throw;
+    }
     guarded(int64_t{0});
     for (auto& th : threads) th.join();
+    error.rethrow();
 }
 
 }  // namespace uskern
