@@ -7,7 +7,9 @@ same float32 formulas evaluated in another order; measured ~3e-7); float64 withi
 
 from __future__ import annotations
 
+import ctypes
 import os
+import shutil
 import signal
 import struct
 import subprocess
@@ -994,3 +996,18 @@ def test_a_fork_while_another_thread_makes_the_first_pool(pool_harness):
     waited forever for a lock held, in the child, by a thread that does not exist there)."""
     out = subprocess.run([str(pool_harness), "fork"], capture_output=True, text=True, timeout=60).stdout
     assert out.strip() == "child ok", out
+
+
+def test_two_copies_of_the_library_keep_their_own_pool(tmp_path):
+    """Two kernel libraries loaded side by side (ctypes loads RTLD_LOCAL; say two cache folders) each keep their own
+    pool: the pool's slot was an STB_GNU_UNIQUE symbol, which the dynamic linker binds once per process, so the second
+    library ran its own code on the first one's Pool (a different Pool layout there would be undefined behaviour)."""
+    source = native.library()._name
+    copies = [ctypes.CDLL(shutil.copy(source, tmp_path / f"copy{i}.so")) for i in range(2)]
+    slots = []
+    for lib in copies:
+        try:
+            slots.append(ctypes.addressof(ctypes.c_void_p.in_dll(lib, "_ZZN6uskern6detail9pool_slotEvE4slot")))
+        except ValueError:  # not exported: the library's own
+            pass
+    assert len(set(slots)) == len(slots), "both libraries use one pool slot"

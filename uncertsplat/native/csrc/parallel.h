@@ -44,6 +44,11 @@ class FlushDenormals {
     unsigned int saved_ = 0;
 };
 
+// The pool's state is this library's own: without hidden visibility its function-local statics (pool_slot()'s slot,
+// on_worker()'s flag) were STB_GNU_UNIQUE symbols, which the dynamic linker binds once per process even across
+// libraries loaded RTLD_LOCAL (as ctypes does): a second kernels library loaded in the process (another cache folder,
+// another build) used the first one's Pool with its own idea of the Pool's layout.
+#pragma GCC visibility push(hidden)
 namespace detail {
 
 // Threads kept between kernel calls. A training step makes 15-20 parallel kernel calls, and creating and joining a
@@ -213,6 +218,7 @@ class FirstError {
 };
 
 }  // namespace detail
+#pragma GCC visibility pop
 
 // Runs fn(worker) for worker = 0 .. workers - 1, worker 0 on the calling thread, and waits for all;
 // every worker runs with denormals flushed (FlushDenormals) unless FLUSH is false (a kernel that must give
