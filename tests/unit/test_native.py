@@ -913,13 +913,17 @@ class TestKernelThreads:
 # allocation, once armed, takes 300 ms: a fork() then lands inside pool()'s first call.
 _POOL_HARNESS = r"""
 #include "parallel.h"
+#include <dirent.h>
+#include <sys/syscall.h>
 #include <sys/wait.h>
 #include <unistd.h>
 #include <atomic>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <fstream>
 #include <new>
+#include <string>
 
 static std::atomic<int> slow_new{0};
 void* operator new(size_t n) {
@@ -930,7 +934,30 @@ void* operator new(size_t n) {
 void operator delete(void* p) noexcept { std::free(p); }
 void operator delete(void* p, size_t) noexcept { std::free(p); }
 
+// Threads of this process in state R (running or runnable: polling), this one left out.
+static int polling_threads() {
+    int n = 0;
+    DIR* dir = opendir("/proc/self/task");
+    while (dirent* e = readdir(dir)) {
+        if (e->d_name[0] == '.' || atoi(e->d_name) == static_cast<int>(syscall(SYS_gettid))) continue;
+        std::ifstream stat(std::string("/proc/self/task/") + e->d_name + "/stat");
+        std::string line((std::istreambuf_iterator<char>(stat)), std::istreambuf_iterator<char>());
+        const size_t paren = line.rfind(')');
+        if (paren != std::string::npos && paren + 2 < line.size() && line[paren + 2] == 'R') ++n;
+    }
+    closedir(dir);
+    return n;
+}
+
 int main(int argc, char** argv) {
+    if (argc > 1 && std::strcmp(argv[1], "idle") == 0) {  // run with UNCERTSPLAT_KERNEL_SPIN_US=10000000
+        uskern::run_workers(6, [](int64_t) {});  // five threads, polling after their call
+        uskern::run_workers(2, [](int64_t) {});  // needs one of them
+        usleep(300000);
+        std::printf("polling %d\n", polling_threads());
+        std::fflush(stdout);
+        _exit(0);
+    }
     if (argc > 1 && std::strcmp(argv[1], "throw") == 0) {
         std::atomic<int> done{0};
         int caught = 0;
@@ -982,6 +1009,16 @@ def pool_harness(tmp_path_factory):
     subprocess.run([cxx, "-std=c++17", "-O1", "-pthread", f"-I{native.CSRC}", str(folder / "harness.cpp"), "-o",
                     str(exe)], check=True, capture_output=True, timeout=300)
     return exe
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="needs /proc")
+def test_threads_a_call_does_not_need_sleep(pool_harness):
+    """A pool of five threads serving a call that needs one: the other four sleep instead of polling a core for
+    UNCERTSPLAT_KERNEL_SPIN_US (made 10 s here, so that a polling thread is seen in state R); the one that ran polls
+    for the next call, as intended."""
+    env = {**os.environ, "UNCERTSPLAT_KERNEL_SPIN_US": "10000000"}
+    out = subprocess.run([str(pool_harness), "idle"], capture_output=True, text=True, timeout=60, env=env).stdout
+    assert out.strip() == "polling 1", out
 
 
 def test_a_kernel_that_throws_returns_only_when_its_workers_are_done(pool_harness):
