@@ -110,8 +110,8 @@ class Pool {
     // Polls ready() for up to spin_us() microseconds; whether it became true. Kernel calls come in bursts tens of
     // microseconds apart (a render's projection, binning and compositing, then the loss's), and a thread put to sleep
     // on a VM takes tens of microseconds to wake: waiting on the condition variable alone made a bonsai training
-    // step slower than threads made per call (x1.04), polling 50 us faster (x0.94; BENCHMARKS.md, "The kernels'
-    // threads kept between calls"). UNCERTSPLAT_KERNEL_SPIN_US sets the time (0: no polling).
+    // step no faster than threads made per call in one of two runs (x1.04, x0.94), polling 50 us x0.94-0.95
+    // (BENCHMARKS.md, "The kernels' threads kept between calls"). UNCERTSPLAT_KERNEL_SPIN_US sets the time (0: no polling).
     template <typename Ready>
     static bool spin(Ready ready) {
         const int64_t limit_us = spin_us();
