@@ -843,15 +843,10 @@ class TestKernelThreads:
         value.backward()
         return value.detach(), x.grad
 
-    def _require_native(self, monkeypatch):
-        monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "native")
-        if native.library() is None:
-            pytest.skip(f"native kernels unavailable: {native.unavailable_reason()}")
-
     def test_calls_from_several_threads_at_once_each_get_their_own_result(self, monkeypatch):
         """Four Python threads calling kernels at once (ctypes lets them overlap): one holds the pool, the others
         make their own threads; every result is the one the call gives alone."""
-        self._require_native(monkeypatch)
+        monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "native")  # (the module's needs_native skips without them)
         seeds = list(range(8))
         alone = {s: _with_threads(1, lambda s=s: self._ssim_and_grad(s)) for s in seeds}
 
@@ -869,7 +864,7 @@ class TestKernelThreads:
 
     def test_more_workers_than_the_pool_holds_so_far(self, monkeypatch):
         """The pool grows to the workers a call asks for (2, then 4 threads: one, then three helpers)."""
-        self._require_native(monkeypatch)
+        monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "native")
         one = _with_threads(1, lambda: self._ssim_and_grad(3))
         for n in (2, 4, 2):
             value, grad = _with_threads(n, lambda: self._ssim_and_grad(3))
@@ -879,7 +874,7 @@ class TestKernelThreads:
     def test_a_child_made_by_fork_runs_the_kernels(self, monkeypatch):
         """A child forked after the pool started has none of its threads: it must start its own, not wait forever
         for the parent's (the test fails on a timeout)."""
-        self._require_native(monkeypatch)
+        monkeypatch.setenv("UNCERTSPLAT_RASTERIZER", "native")
         expected = _with_threads(2, lambda: self._ssim_and_grad(5))[0]  # the pool started in this process
         read, write = os.pipe()
         with warnings.catch_warnings():
