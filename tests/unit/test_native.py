@@ -336,6 +336,17 @@ def test_bad_backend_setting_is_refused(monkeypatch):
         render(s, cams)
 
 
+@pytest.mark.parametrize("value", ["fast", "-5", "2.5", ""])
+def test_a_bad_poll_time_setting_is_refused(monkeypatch, value):
+    """The thread pool reads UNCERTSPLAT_KERNEL_SPIN_US in C, where a typo would become 0 without a word."""
+    monkeypatch.setattr(native, "_state", {})
+    monkeypatch.setenv("UNCERTSPLAT_KERNEL_SPIN_US", value)
+    with pytest.raises(UserError, match="UNCERTSPLAT_KERNEL_SPIN_US must be a whole number of microseconds"):
+        native.library()
+    monkeypatch.setenv("UNCERTSPLAT_KERNEL_SPIN_US", " 0 ")
+    assert native.library() is not None
+
+
 def test_without_a_compiler_it_warns_once_and_uses_pytorch(monkeypatch):
     s, cams = _scene(100, torch.float32)
     ref = render(s, cams, backend="torch").rgb

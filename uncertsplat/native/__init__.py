@@ -234,10 +234,22 @@ def _declare(lib: ctypes.CDLL) -> None:
     lib.us_max_features.restype = ctypes.c_int
 
 
+def _check_spin_setting() -> None:
+    """``UNCERTSPLAT_KERNEL_SPIN_US``, which the kernels' thread pool reads itself (``csrc/parallel.h``): microseconds
+    its threads poll for the next call, a whole number >= 0. The C library would read a typo as 0 without a word."""
+    value = os.environ.get("UNCERTSPLAT_KERNEL_SPIN_US")
+    if value is not None and not value.strip().isdigit():
+        from uncertsplat.errors import UserError
+
+        raise UserError(f"UNCERTSPLAT_KERNEL_SPIN_US must be a whole number of microseconds >= 0, not {value!r}",
+                        hint="Unset it (50 us) or set e.g. 0 (threads sleep at once between kernel calls).")
+
+
 def library() -> ctypes.CDLL | None:
     """The loaded native kernels, building them on first use; None (with one warning) if unavailable."""
     if "lib" in _state:
         return _state["lib"]
+    _check_spin_setting()
     lib, reason = None, None
     cxx = _compiler()
     if cxx is None:
